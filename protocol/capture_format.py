@@ -1,0 +1,178 @@
+"""The capture folder's data types and checks (DESIGN §2), shared by the writer and the reader.
+
+```
+CAPTURE/scan.json              manifest: sensor model, rig, hand-eye, schedule, state (running | complete | aborted)
+CAPTURE/schedule.npy           optional planned sensor poses (P, 4, 4) float64, metres
+CAPTURE/chunk-000000/          published chunks of at most `chunk_size` measurements, never changed once published
+    hists.npy                  (n, zones, bins) uint32 photon counts
+    poses.npy                  (n, 4, 4) float64 sensor-to-world, metres
+    reference.npy              optional (n, bins) uint32 reference histograms
+    meta.json                  {"measurements": [{"pose_index": int, "frame": int, ...}, ...]}
+```
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CaptureError
+
+FORMAT = "spadscan-capture"
+VERSION = 1
+MANIFEST = "scan.json"
+SCHEDULE = "schedule.npy"
+CHUNK_PREFIX = "chunk-"
+TMP_PREFIX = ".tmp-"
+STATES = ("running", "complete", "aborted")
+POSE_TOL = 1e-4
+
+
+@dataclass
+class Measurement:
+    """One histogram frame and where the sensor was.
+
+    hist: (zones, bins) counts; pose: (4, 4) sensor-to-world (metres); reference: (bins,) or None; meta: JSON-able
+    extras (timestamps s, temperature C, on-chip depths mm, joint angles rad, ...).
+    """
+
+    hist: np.ndarray
+    pose: np.ndarray
+    pose_index: int
+    frame: int = 0
+    reference: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+
+@dataclass
+class Chunk:
+    """One published chunk, validated. Arrays as in the module docstring; `meta` is one dict per measurement."""
+
+    name: str
+    hists: np.ndarray
+    poses: np.ndarray
+    reference: np.ndarray | None
+    meta: list[dict]
+
+    @property
+    def pose_indices(self) -> np.ndarray:
+        return np.array([m["pose_index"] for m in self.meta], dtype=np.int64)
+
+
+def chunk_name(index: int) -> str:
+    return f"{CHUNK_PREFIX}{index:06d}"
+
+
+def chunk_index(name: str) -> int | None:
+    """Index of a published chunk folder name, or None for anything else."""
+    if not name.startswith(CHUNK_PREFIX):
+        return None
+    digits = name[len(CHUNK_PREFIX):]
+    return int(digits) if digits.isdigit() and len(digits) == 6 else None
+
+
+def check_poses(poses: np.ndarray, where: str) -> np.ndarray:
+    """Check (n, 4, 4) rigid transforms: finite, orthonormal rotation with det +1, last row (0, 0, 0, 1)."""
+    poses = np.asarray(poses)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise CaptureError(f"{where}: poses have shape {poses.shape}, expected (n, 4, 4)")
+    if not np.issubdtype(poses.dtype, np.floating):
+        raise CaptureError(f"{where}: poses have dtype {poses.dtype}, expected float64")
+    if not np.all(np.isfinite(poses)):
+        bad = int(np.argwhere(~np.isfinite(poses).all(axis=(1, 2)))[0, 0])
+        raise CaptureError(f"{where}: pose {bad} is not finite")
+    r = poses[:, :3, :3]
+    err = np.abs(np.einsum("nij,nkj->nik", r, r) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(r)
+    last = np.abs(poses[:, 3] - np.array([0, 0, 0, 1.0])).max(axis=1)
+    bad = np.flatnonzero((err > POSE_TOL) | (np.abs(det - 1) > POSE_TOL) | (last > POSE_TOL))
+    if bad.size:
+        i = int(bad[0])
+        raise CaptureError(f"{where}: pose {i} is not rigid (|R R^T - I| = {err[i]:.2g}, det R = {det[i]:.4g})")
+    return poses.astype(np.float64, copy=False)
+
+
+def check_hists(hists: np.ndarray, zones: int, bins: int, where: str) -> np.ndarray:
+    """Check (n, zones, bins) uint32 counts."""
+    hists = np.asarray(hists)
+    if hists.ndim != 3 or hists.shape[1:] != (zones, bins):
+        raise CaptureError(f"{where}: histograms have shape {hists.shape}, expected (n, {zones}, {bins})")
+    if hists.dtype != np.uint32:
+        raise CaptureError(f"{where}: histograms have dtype {hists.dtype}, expected uint32")
+    return hists
+
+
+def to_counts(values: np.ndarray, where: str) -> np.ndarray:
+    """Convert counts given as any numeric array to uint32, refusing negatives, NaN, fractions and overflow."""
+    a = np.asarray(values)
+    if a.dtype == np.uint32:
+        return a
+    if a.dtype.kind not in "iuf":
+        raise CaptureError(f"{where}: counts have dtype {a.dtype}, expected numbers")
+    if a.dtype.kind == "f":
+        if not np.all(np.isfinite(a)):
+            raise CaptureError(f"{where}: counts contain NaN or infinity")
+        if np.any(a != np.round(a)):
+            raise CaptureError(f"{where}: counts are not whole numbers")
+    if a.size and (a.min() < 0 or a.max() > 2**32 - 1):
+        raise CaptureError(f"{where}: counts outside 0..2^32-1 (min {a.min()}, max {a.max()})")
+    return a.astype(np.uint32)
+
+
+def read_json(path: Path) -> dict:
+    """Read a JSON object; a missing, truncated or non-object file is a one-line CaptureError naming it."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: missing") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CaptureError(f"{path}: unreadable JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise CaptureError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def read_npy(path: Path) -> np.ndarray:
+    """Load a .npy file without pickles; truncation or corruption is a one-line CaptureError naming the file."""
+    try:
+        return np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: missing") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise CaptureError(f"{path}: corrupt or truncated .npy ({exc})") from None
+
+
+def fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_durable(path: Path, data: bytes) -> None:
+    """Write bytes and fsync the file (the caller renames and fsyncs the folder)."""
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def save_npy_durable(path: Path, array: np.ndarray) -> None:
+    with open(path, "wb") as f:
+        np.save(f, array, allow_pickle=False)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    """Replace a JSON file atomically: temp file, fsync, rename, fsync the folder."""
+    path = Path(path)
+    tmp = path.with_name(f"{TMP_PREFIX}{path.name}")
+    write_durable(tmp, (json.dumps(data, indent=1) + "\n").encode())
+    os.replace(tmp, path)
+    fsync_dir(path.parent)

@@ -1,0 +1,148 @@
+"""Reading capture folders: validated manifests and chunks, also while the scan is still being written."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, Chunk, check_hists, check_poses, chunk_index,
+                             read_json, read_npy)
+from .errors import CaptureError, SensorModelError
+from .sensor_model import SensorModel
+
+
+@dataclass
+class CaptureData:
+    """A whole capture in memory. hists (N, zones, bins) uint32; poses (N, 4, 4) float64 metres;
+    reference (N, bins) uint32 or None; meta: one dict per measurement (pose_index, frame, ...)."""
+
+    sensor: SensorModel
+    hists: np.ndarray
+    poses: np.ndarray
+    reference: np.ndarray | None
+    meta: list[dict]
+    manifest: dict
+
+    @property
+    def pose_indices(self) -> np.ndarray:
+        return np.array([m["pose_index"] for m in self.meta], dtype=np.int64)
+
+
+class CaptureReader:
+    """Reads one capture folder (the folder that holds `scan.json`). Every problem is a one-line CaptureError."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise CaptureError(f"{self.path}: no such capture folder")
+        self.manifest = self._read_manifest()
+        try:
+            self.sensor = SensorModel.from_dict(self.manifest["sensor"])
+        except SensorModelError as exc:
+            raise CaptureError(f"{self.path / MANIFEST}: {exc}") from None
+        self.hand_eye = check_poses(np.asarray(self.manifest.get("hand_eye", np.eye(4).tolist()), float)[None],
+                                    f"{self.path / MANIFEST} hand_eye")[0]
+
+    def _read_manifest(self) -> dict:
+        where = self.path / MANIFEST
+        m = read_json(where)
+        if m.get("format") != FORMAT:
+            raise CaptureError(f"{where}: not a spadscan capture (format {m.get('format')!r})")
+        for key in ("state", "sensor", "chunk_size"):
+            if key not in m:
+                raise CaptureError(f"{where}: lacks {key!r}")
+        if m["state"] not in STATES:
+            raise CaptureError(f"{where}: state {m['state']!r} is not one of {STATES}")
+        return m
+
+    def refresh(self) -> str:
+        """Re-read the manifest; returns the scan state."""
+        self.manifest = self._read_manifest()
+        return self.manifest["state"]
+
+    @property
+    def state(self) -> str:
+        return self.manifest["state"]
+
+    @property
+    def scan_id(self) -> str:
+        return self.manifest.get("scan_id", self.path.name)
+
+    def planned_poses(self) -> np.ndarray | None:
+        """Planned sensor poses (P, 4, 4), when the scan stored its schedule."""
+        p = self.path / SCHEDULE
+        return check_poses(read_npy(p), str(p)) if p.exists() else None
+
+    def chunk_names(self) -> list[str]:
+        """Published chunks in order (temporary folders of a chunk being written are never listed)."""
+        names = [p.name for p in self.path.iterdir() if chunk_index(p.name) is not None and p.is_dir()]
+        return sorted(names)
+
+    def read_chunk(self, name: str) -> Chunk:
+        d = self.path / name
+        s = self.sensor
+        hists = check_hists(read_npy(d / "hists.npy"), s.n_zones, s.n_bins, str(d / "hists.npy"))
+        n = hists.shape[0]
+        poses = check_poses(read_npy(d / "poses.npy"), str(d / "poses.npy"))
+        if poses.shape[0] != n:
+            raise CaptureError(f"{d / 'poses.npy'}: {poses.shape[0]} poses for {n} histograms")
+        ref = None
+        if (d / "reference.npy").exists():
+            ref = read_npy(d / "reference.npy")
+            if ref.shape != (n, s.n_bins) or ref.dtype != np.uint32:
+                raise CaptureError(f"{d / 'reference.npy'}: shape {ref.shape} {ref.dtype}, expected "
+                                   f"({n}, {s.n_bins}) uint32")
+        meta = read_json(d / "meta.json").get("measurements")
+        if not isinstance(meta, list) or len(meta) != n:
+            raise CaptureError(f"{d / 'meta.json'}: expected {n} measurement records")
+        for i, m in enumerate(meta):
+            if not isinstance(m, dict) or not isinstance(m.get("pose_index"), int) or m["pose_index"] < 0:
+                raise CaptureError(f"{d / 'meta.json'}: measurement {i} lacks a pose_index >= 0")
+        return Chunk(name, hists, poses, ref, meta)
+
+    def iter_chunks(self, start: int = 0) -> Iterator[Chunk]:
+        """Published chunks from position `start` in the listing."""
+        for name in self.chunk_names()[start:]:
+            yield self.read_chunk(name)
+
+    def follow(self, poll_s: float = 0.5, timeout_s: float | None = None) -> Iterator[Chunk]:
+        """Yield chunks as they are published until the scan is no longer running (and all chunks are read).
+
+        Raises CaptureError if `timeout_s` passes with the scan still running and nothing new.
+        """
+        seen: set[str] = set()
+        last_new = time.monotonic()
+        while True:
+            state = self.refresh()
+            new = [n for n in self.chunk_names() if n not in seen]
+            for name in new:
+                seen.add(name)
+                yield self.read_chunk(name)
+            if new:
+                last_new = time.monotonic()
+            elif state != "running":
+                return
+            elif timeout_s is not None and time.monotonic() - last_new > timeout_s:
+                raise CaptureError(f"{self.path}: no new chunk for {timeout_s:.0f} s while the scan is running")
+            else:
+                time.sleep(poll_s)
+
+    def load(self) -> CaptureData:
+        """Every published measurement, concatenated in order. An empty capture is an error."""
+        chunks = list(self.iter_chunks())
+        if not chunks:
+            raise CaptureError(f"{self.path}: holds no published measurements")
+        refs = [c.reference for c in chunks]
+        reference = np.concatenate(refs) if all(r is not None for r in refs) else None
+        return CaptureData(
+            sensor=self.sensor,
+            hists=np.concatenate([c.hists for c in chunks]),
+            poses=np.concatenate([c.poses for c in chunks]),
+            reference=reference,
+            meta=[m for c in chunks for m in c.meta],
+            manifest=self.manifest,
+        )

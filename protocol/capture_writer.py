@@ -1,0 +1,180 @@
+"""Writing capture folders: chunks published by one atomic rename, a manifest that records the scan's state.
+
+A chunk is written into a hidden temporary folder, every file fsynced, then renamed to `chunk-NNNNNN` and the parent
+folder fsynced: a reader sees a whole chunk or none, and a crash loses only what was not yet flushed. `resume` reopens
+a scan, removes half-written temporary folders and continues after the last published chunk.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from .capture_format import (CHUNK_PREFIX, FORMAT, MANIFEST, SCHEDULE, STATES, TMP_PREFIX, VERSION, Measurement,
+                             check_poses, chunk_index, chunk_name, fsync_dir, read_json, save_npy_durable,
+                             to_counts, write_durable, write_json_atomic)
+from .capture_reader import CaptureReader
+from .errors import CaptureError
+from .sensor_model import SensorModel
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+class CaptureWriter:
+    """Appends measurements to one capture folder. Not thread-safe: one writer per scan.
+
+    Use `create` for a new scan and `resume` to continue one; `append` buffers, `flush` publishes the buffer as a
+    chunk (the daemon flushes at the end of every pose so that a finished pose is durable), `finish` marks the
+    state. As a context manager it flushes on exit and leaves the state 'running' if the block raised.
+    """
+
+    def __init__(self, path: Path, manifest: dict, sensor: SensorModel, next_chunk: int, published: int,
+                 pose_indices: set[int]):
+        self.path = Path(path)
+        self.manifest = manifest
+        self.sensor = sensor
+        self._next_chunk = next_chunk
+        self._buffer: list[Measurement] = []
+        self.n_published = published
+        self.published_pose_indices = pose_indices
+
+    # ---- opening -------------------------------------------------------------------------------------------------
+    @classmethod
+    def create(cls, path, sensor: SensorModel, *, scan_id: str | None = None, rig: dict | None = None,
+               hand_eye: np.ndarray | None = None, schedule: dict | None = None,
+               planned_poses: np.ndarray | None = None, chunk_size: int = 64, scene: dict | None = None,
+               frames_per_pose: int = 1) -> "CaptureWriter":
+        """Start a new scan folder. Refuses a folder that already holds a capture (use `resume`)."""
+        path = Path(path)
+        if (path / MANIFEST).exists():
+            raise CaptureError(f"{path}: already holds a capture (resume it, or choose another folder)")
+        if path.exists() and any(p.name.startswith(CHUNK_PREFIX) for p in path.iterdir()):
+            raise CaptureError(f"{path}: holds chunk folders but no {MANIFEST}; refusing to mix scans")
+        if not (isinstance(chunk_size, int) and 1 <= chunk_size <= 1_000_000):
+            raise CaptureError(f"chunk size {chunk_size} must be an integer in [1, 1000000]")
+        sensor.validate()
+        he = np.eye(4) if hand_eye is None else check_poses(np.asarray(hand_eye, float)[None], "hand-eye")[0]
+        path.mkdir(parents=True, exist_ok=True)
+        if planned_poses is not None:
+            planned = check_poses(np.asarray(planned_poses, dtype=np.float64), "planned poses")
+            save_npy_durable(path / SCHEDULE, planned)
+        manifest = {
+            "format": FORMAT,
+            "version": VERSION,
+            "scan_id": scan_id or path.name,
+            "state": "running",
+            "reason": None,
+            "created_utc": _now(),
+            "updated_utc": _now(),
+            "sensor": sensor.to_dict(),
+            "rig": rig or {},
+            "hand_eye": he.tolist(),
+            "schedule": schedule or {},
+            "planned_poses": None if planned_poses is None else int(len(planned_poses)),
+            "frames_per_pose": int(frames_per_pose),
+            "chunk_size": chunk_size,
+            "scene": scene or {},
+        }
+        json.dumps(manifest)  # fail here, before anything is written, if a caller passed something not JSON-able
+        write_json_atomic(path / MANIFEST, manifest)
+        fsync_dir(path.parent)
+        return cls(path, manifest, sensor, 0, 0, set())
+
+    @classmethod
+    def resume(cls, path) -> "CaptureWriter":
+        """Reopen a scan to continue it: drop half-written chunks, count what was published, state -> running."""
+        path = Path(path)
+        reader = CaptureReader(path)
+        for p in path.iterdir():
+            if p.name.startswith(TMP_PREFIX) and p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+        names = reader.chunk_names()
+        published, poses = 0, set()
+        for name in names:
+            chunk = reader.read_chunk(name)
+            published += len(chunk.meta)
+            poses.update(int(i) for i in chunk.pose_indices)
+        next_chunk = (chunk_index(names[-1]) + 1) if names else 0
+        manifest = dict(reader.manifest)
+        manifest.update(state="running", reason=None, updated_utc=_now())
+        write_json_atomic(path / MANIFEST, manifest)
+        return cls(path, manifest, reader.sensor, next_chunk, published, poses)
+
+    # ---- writing -------------------------------------------------------------------------------------------------
+    @property
+    def chunk_size(self) -> int:
+        return int(self.manifest["chunk_size"])
+
+    @property
+    def next_pose_index(self) -> int:
+        """First pose index not yet published (poses are published in order)."""
+        return max(self.published_pose_indices) + 1 if self.published_pose_indices else 0
+
+    def append(self, m: Measurement) -> None:
+        """Buffer one measurement; publishes a chunk when the buffer reaches the chunk size."""
+        where = f"{self.path.name} pose {m.pose_index} frame {m.frame}"
+        hist = to_counts(m.hist, where)
+        if hist.shape != (self.sensor.n_zones, self.sensor.n_bins):
+            raise CaptureError(f"{where}: histogram shape {hist.shape}, expected "
+                               f"({self.sensor.n_zones}, {self.sensor.n_bins})")
+        pose = check_poses(np.asarray(m.pose, dtype=np.float64)[None], where)[0]
+        ref = None
+        if m.reference is not None:
+            ref = to_counts(m.reference, where + " reference")
+            if ref.shape != (self.sensor.n_bins,):
+                raise CaptureError(f"{where}: reference shape {ref.shape}, expected ({self.sensor.n_bins},)")
+        if self._buffer and (self._buffer[0].reference is None) != (ref is None):
+            self.flush()  # a chunk either has reference histograms for all its measurements or for none
+        self._buffer.append(Measurement(hist, pose, int(m.pose_index), int(m.frame), ref, dict(m.meta)))
+        if len(self._buffer) >= self.chunk_size:
+            self.flush()
+
+    def flush(self) -> str | None:
+        """Publish the buffered measurements as one chunk; returns its name (None when the buffer was empty)."""
+        if not self._buffer:
+            return None
+        name = chunk_name(self._next_chunk)
+        tmp = self.path / f"{TMP_PREFIX}{name}"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        buf = self._buffer
+        save_npy_durable(tmp / "hists.npy", np.stack([m.hist for m in buf]))
+        save_npy_durable(tmp / "poses.npy", np.stack([m.pose for m in buf]))
+        if buf[0].reference is not None:
+            save_npy_durable(tmp / "reference.npy", np.stack([m.reference for m in buf]))
+        meta = {"measurements": [{"pose_index": m.pose_index, "frame": m.frame, **m.meta} for m in buf]}
+        write_durable(tmp / "meta.json", json.dumps(meta).encode())
+        fsync_dir(tmp)
+        os.rename(tmp, self.path / name)
+        fsync_dir(self.path)
+        self._next_chunk += 1
+        self.n_published += len(buf)
+        self.published_pose_indices.update(m.pose_index for m in buf)
+        self._buffer = []
+        return name
+
+    def set_state(self, state: str, reason: str | None = None, **extra) -> None:
+        """Record the scan's state (and why) in the manifest, atomically."""
+        if state not in STATES:
+            raise CaptureError(f"state {state!r} is not one of {STATES}")
+        self.manifest.update(state=state, reason=reason, updated_utc=_now(), **extra)
+        write_json_atomic(self.path / MANIFEST, self.manifest)
+
+    def finish(self, state: str = "complete", reason: str | None = None) -> None:
+        """Flush and mark the scan complete (or aborted, with a reason)."""
+        self.flush()
+        self.set_state(state, reason)
+
+    def __enter__(self) -> "CaptureWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.flush()

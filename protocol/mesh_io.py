@@ -1,0 +1,44 @@
+"""Loading meshes the user names: one-line errors for missing, empty or non-finite files, unit detection for STL."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .errors import MeshError
+
+# An object this tool scans fits in a 2 m box; an STL whose extent exceeds this is taken to be in millimetres.
+MM_EXTENT_THRESHOLD_M = 5.0
+
+
+def load_mesh(path, *, units: str = "auto"):
+    """Load a triangle mesh in metres as a trimesh.Trimesh.
+
+    units: 'm', 'mm' or 'auto' (STL files, which carry no units, are read as millimetres when their extent exceeds
+    MM_EXTENT_THRESHOLD_M metres). Scenes with several bodies are concatenated.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: no such mesh file")
+    if units not in ("auto", "m", "mm"):
+        raise MeshError(f"units {units!r} must be 'auto', 'm' or 'mm'")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for bad files; all mean "cannot read this mesh"
+        raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise MeshError(f"{path}: holds no triangles")
+    verts = np.asarray(loaded.vertices, dtype=np.float64)
+    if not np.all(np.isfinite(verts)):
+        raise MeshError(f"{path}: has non-finite vertex coordinates")
+    scale = 1.0
+    if units == "mm" or (units == "auto" and path.suffix.lower() == ".stl"
+                         and np.ptp(verts, axis=0).max() > MM_EXTENT_THRESHOLD_M):
+        scale = 1e-3
+    mesh = trimesh.Trimesh(verts * scale, np.asarray(loaded.faces), process=True)
+    if len(mesh.faces) == 0:
+        raise MeshError(f"{path}: all triangles are degenerate")
+    return mesh

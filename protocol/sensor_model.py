@@ -1,0 +1,244 @@
+"""The sensor model: one record that says what a transient histogram means.
+
+It is stored in every capture (`scan.json`) and read back by the worker, so it is plain data with a JSON form that is
+validated on load. Units: metres and radians inside; a *bin coordinate* t means bin i covers [i, i + 1).
+
+A return from a surface at one-way range r (metres) arrives at bin coordinate `zero_bin + r / bin_width_m`; the
+laser pulse (kernel sampled per bin, normalised to sum 1) is placed there, then pile-up and noise act on the rate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import numpy as np
+
+from .errors import SensorModelError
+
+
+@dataclass(frozen=True)
+class Zone:
+    """Where one zone (one histogram channel) looks, in the sensor frame (+z is the boresight).
+
+    A `cone` zone sees every direction within `half_angle_rad` of `axis`; a `rect` zone sees directions whose
+    tan(x/z) lies in `tan_x` and tan(y/z) in `tan_y` (the TMF8820's rectangular SPAD zones).
+    """
+
+    kind: str = "cone"
+    """'cone' or 'rect'."""
+    half_angle_rad: float = 0.0
+    """Cone half-angle (radians); cone zones only."""
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    """Cone axis, unit vector in the sensor frame; cone zones only."""
+    tan_x: tuple[float, float] = (0.0, 0.0)
+    """(low, high) bounds of x/z; rect zones only."""
+    tan_y: tuple[float, float] = (0.0, 0.0)
+    """(low, high) bounds of y/z; rect zones only."""
+    gain: float = 1.0
+    """Relative sensitivity of this zone (emitter pattern, SPAD count); 1 for the reference zone."""
+
+    def validate(self, where: str) -> None:
+        if self.kind == "cone":
+            if not 0.0 < self.half_angle_rad < math.pi / 2:
+                raise SensorModelError(f"{where}: cone half-angle {self.half_angle_rad} rad is outside (0, pi/2)")
+            n = np.asarray(self.axis, float)
+            if n.shape != (3,) or not np.all(np.isfinite(n)) or abs(np.linalg.norm(n) - 1) > 1e-6 or n[2] <= 0:
+                raise SensorModelError(f"{where}: cone axis {self.axis} must be a forward-looking unit 3-vector")
+        elif self.kind == "rect":
+            for name, (lo, hi) in (("tan_x", self.tan_x), ("tan_y", self.tan_y)):
+                if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi and abs(lo) < 10 and abs(hi) < 10):
+                    raise SensorModelError(f"{where}: {name} bounds ({lo}, {hi}) must be finite with low < high")
+        else:
+            raise SensorModelError(f"{where}: zone kind {self.kind!r} is not 'cone' or 'rect'")
+        if not (math.isfinite(self.gain) and self.gain > 0):
+            raise SensorModelError(f"{where}: gain {self.gain} must be positive")
+
+    def solid_angle_sr(self) -> float:
+        """Solid angle of the zone (steradians)."""
+        if self.kind == "cone":
+            return 2 * math.pi * (1 - math.cos(self.half_angle_rad))
+        # Solid angle of a rectangle on the z = 1 plane: sum of signed corner terms atan(xy / sqrt(1 + x^2 + y^2)).
+        total = 0.0
+        for x, sx in ((self.tan_x[1], 1), (self.tan_x[0], -1)):
+            for y, sy in ((self.tan_y[1], 1), (self.tan_y[0], -1)):
+                total += sx * sy * math.atan(x * y / math.sqrt(1 + x * x + y * y))
+        return total
+
+
+@dataclass(frozen=True)
+class Pulse:
+    """The laser impulse response as seen by the detector, per bin.
+
+    `kind='exgauss'`: a Gaussian (sigma_bins) convolved with a one-sided exponential tail (tau_bins), its Gaussian
+    centre at the arrival time. `kind='table'`: `values[k]` is the response k - origin bins after arrival.
+    """
+
+    kind: str = "exgauss"
+    sigma_bins: float = 1.0
+    tau_bins: float = 0.0
+    values: tuple[float, ...] = ()
+    origin: int = 0
+
+    def validate(self, where: str) -> None:
+        if self.kind == "exgauss":
+            if not (math.isfinite(self.sigma_bins) and 0.05 <= self.sigma_bins <= 1000):
+                raise SensorModelError(f"{where}: pulse sigma {self.sigma_bins} bins is outside [0.05, 1000]")
+            if not (math.isfinite(self.tau_bins) and 0 <= self.tau_bins <= 1000):
+                raise SensorModelError(f"{where}: pulse tail tau {self.tau_bins} bins is outside [0, 1000]")
+        elif self.kind == "table":
+            v = np.asarray(self.values, float)
+            if v.ndim != 1 or v.size == 0 or not np.all(np.isfinite(v)) or np.any(v < 0) or v.sum() <= 0:
+                raise SensorModelError(f"{where}: pulse table must be a non-empty list of finite values >= 0")
+            if not 0 <= self.origin < v.size:
+                raise SensorModelError(f"{where}: pulse origin {self.origin} is outside the table (0..{v.size - 1})")
+        else:
+            raise SensorModelError(f"{where}: pulse kind {self.kind!r} is not 'exgauss' or 'table'")
+
+    def kernel(self, oversample: int = 1) -> tuple[np.ndarray, int]:
+        """The pulse sampled every 1/oversample bins, normalised to sum 1, and the index of the arrival time.
+
+        Returns (kernel (K,), origin) with kernel[origin + k] the response k/oversample bins after arrival.
+        """
+        if self.kind == "table":
+            v = np.asarray(self.values, float)
+            if oversample != 1:
+                x = np.arange(v.size * oversample) / oversample
+                v = np.interp(x, np.arange(v.size), v, right=0.0)
+            return v / v.sum(), self.origin * oversample
+        s, tau = self.sigma_bins, self.tau_bins
+        # Sample finely, convolve the Gaussian with the exponential tail numerically (stable for any tau), then
+        # average groups of `fine` samples back to the requested spacing.
+        fine = 8
+        step = 1.0 / (oversample * fine)
+        before = int(math.ceil(5 * s * oversample)) + 1
+        after = int(math.ceil((5 * s + 12 * tau) * oversample)) + 1
+        t = np.arange(-before * fine, (after + 1) * fine) * step - 0.5 / oversample + 0.5 * step
+        g = np.exp(-0.5 * (t / s) ** 2)
+        if tau >= 1e-3:
+            tail = np.exp(-np.arange(0, int(math.ceil(12 * tau / step)) + 1) * step / tau)
+            g = np.convolve(g, tail)[: t.size]
+        k = g.reshape(-1, fine).mean(axis=1)
+        return k / k.sum(), before
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """What a histogram means: geometry of the zones, the time axis, the pulse and the photon statistics.
+
+    Rates are photons per bin per laser cycle; a histogram holds counts over `cycles` laser cycles.
+    """
+
+    name: str
+    """Preset name this model came from (or 'custom')."""
+    n_bins: int
+    """Bins per histogram."""
+    bin_width_m: float
+    """One-way distance covered by one bin (metres)."""
+    zero_bin: float
+    """Bin coordinate of a return at zero range (where the pulse's arrival time sits for r = 0)."""
+    zones: tuple[Zone, ...]
+    """One entry per histogram channel, in the sensor's channel order."""
+    pulse: Pulse
+    """Laser impulse response."""
+    signal_scale: float
+    """Photons per cycle per unit albedo per unit of the integral of cos(incidence) / r^2 dOmega (sr / m^2)."""
+    background: float
+    """Ambient background (photons per bin per cycle), flat in time."""
+    cycles: int
+    """Laser cycles summed in one histogram."""
+    pileup: bool = True
+    """The detector stops at its first photon per cycle (Coates pile-up)."""
+    crosstalk: float = 0.0
+    """Each zone also receives this fraction of the sum of all zones' signal (multi-zone sensors)."""
+    jitter_bins: float = 0.0
+    """Gaussian timing jitter (sigma, bins) applied to detection probabilities."""
+    max_count: int = 2**32 - 1
+    """Largest count a bin can hold (24-bit counters on the TMF8820)."""
+    ignore_bins: tuple[int, ...] = ()
+    """Bins whose counts are unreliable (e.g. the TMF8820's bin 0) and are left out of fits."""
+    has_reference: bool = False
+    """Captures carry a reference histogram (the laser pulse through an internal path) per frame."""
+    notes: str = ""
+    """Where the numbers come from."""
+
+    @property
+    def n_zones(self) -> int:
+        return len(self.zones)
+
+    def bin_of_range(self, r_m):
+        """Bin coordinate of the arrival of a return from one-way range r (metres)."""
+        return self.zero_bin + np.asarray(r_m) / self.bin_width_m
+
+    def range_of_bin(self, t):
+        """One-way range (metres) of a return that arrives at bin coordinate t."""
+        return (np.asarray(t) - self.zero_bin) * self.bin_width_m
+
+    @property
+    def max_range_m(self) -> float:
+        return float(self.range_of_bin(self.n_bins))
+
+    def validate(self) -> "SensorModel":
+        where = f"sensor model {self.name!r}"
+        if not (isinstance(self.n_bins, int) and 4 <= self.n_bins <= 65536):
+            raise SensorModelError(f"{where}: n_bins {self.n_bins} must be an integer in [4, 65536]")
+        if not (math.isfinite(self.bin_width_m) and 1e-6 <= self.bin_width_m <= 1.0):
+            raise SensorModelError(f"{where}: bin width {self.bin_width_m} m is outside [1e-6, 1] m")
+        if not (math.isfinite(self.zero_bin) and -self.n_bins <= self.zero_bin < self.n_bins):
+            raise SensorModelError(f"{where}: zero bin {self.zero_bin} is outside the histogram")
+        if not self.zones:
+            raise SensorModelError(f"{where}: needs at least one zone")
+        for i, z in enumerate(self.zones):
+            z.validate(f"{where} zone {i}")
+        self.pulse.validate(f"{where} pulse")
+        for key, lo, hi in (("signal_scale", 0.0, 1e9), ("background", 0.0, 1.0), ("crosstalk", 0.0, 1.0),
+                            ("jitter_bins", 0.0, 1000.0)):
+            v = getattr(self, key)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+                raise SensorModelError(f"{where}: {key} = {v} is outside [{lo}, {hi}]")
+        if not (isinstance(self.cycles, int) and 1 <= self.cycles <= 10**10):
+            raise SensorModelError(f"{where}: cycles {self.cycles} must be an integer in [1, 1e10]")
+        if not (isinstance(self.max_count, int) and 1 <= self.max_count <= 2**32 - 1):
+            raise SensorModelError(f"{where}: max_count {self.max_count} must fit in uint32")
+        if any(not 0 <= b < self.n_bins for b in self.ignore_bins):
+            raise SensorModelError(f"{where}: ignore_bins {self.ignore_bins} must lie in 0..{self.n_bins - 1}")
+        return self
+
+    def with_(self, **changes) -> "SensorModel":
+        """A copy with some fields changed, validated."""
+        return replace(self, **changes).validate()
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "SensorModel":
+        """Build and validate a model from its JSON form; unknown or missing keys are one-line errors."""
+        if not isinstance(data, dict):
+            raise SensorModelError(f"sensor model must be a JSON object, got {type(data).__name__}")
+        data = dict(data)
+        try:
+            zones = tuple(_dataclass_from(Zone, z, "zone") for z in data.pop("zones"))
+            pulse = _dataclass_from(Pulse, data.pop("pulse"), "pulse")
+        except KeyError as exc:
+            raise SensorModelError(f"sensor model lacks {exc.args[0]!r}") from None
+        model = _dataclass_from(cls, {**data, "zones": zones, "pulse": pulse}, "sensor model")
+        return model.validate()
+
+
+def _dataclass_from(cls, data, what: str):
+    if not isinstance(data, dict):
+        raise SensorModelError(f"{what} must be a JSON object, got {type(data).__name__}")
+    names = {f.name: f for f in fields(cls)}
+    unknown = set(data) - set(names)
+    if unknown:
+        raise SensorModelError(f"{what} has unknown keys {sorted(unknown)}")
+    kwargs = {}
+    for key, value in data.items():
+        if isinstance(value, list):
+            value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
+        kwargs[key] = value
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:
+        raise SensorModelError(f"{what}: {exc}") from None

@@ -1,0 +1,1 @@
+"""Offline reconstruction: folder watcher, durable job queue, reconstruction, baselines, metrics and reports."""
