@@ -1,0 +1,109 @@
+"""The device interfaces the scan runner drives, and the plain data they return.
+
+Every device follows one lifecycle: connect -> prepare -> (act) -> release -> close. Concrete backends live in
+`daemon/arm/` (ur, sim) and `daemon/sensor/` (serial, i2c, sim); the runner sees only these classes. Times are
+`time.monotonic()` seconds of the daemon process; poses are 4x4 float64 in metres.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spadscan.protocol.errors import DeviceError
+from spadscan.protocol.sensor_model import SensorModel
+
+
+class ArmFault(DeviceError):
+    """The arm refused or aborted a motion: protective stop, emergency stop, workspace violation."""
+
+
+class LinkLost(DeviceError):
+    """A device's link dropped (stale data, closed port, unplugged cable)."""
+
+
+class SensorSilent(DeviceError):
+    """The sensor delivered no frame within its timeout."""
+
+
+@dataclass
+class ArmState:
+    """What the arm reports: actual TCP pose (4x4, base frame, metres), joint angles (rad), controller time (s)."""
+
+    tcp_pose: np.ndarray
+    joints: np.ndarray
+    timestamp_s: float
+    protective_stop: bool = False
+
+
+@dataclass
+class Frame:
+    """One sensor frame. hists (zones, bins) uint32 counts; reference (bins,) uint32 or None.
+
+    t_start / t_end: monotonic seconds when the frame's exposure began / when it was received.
+    """
+
+    hists: np.ndarray
+    t_start: float
+    t_end: float
+    reference: np.ndarray | None = None
+    temperature_c: float | None = None
+    depths_mm: list[float] | None = None
+    confidences: list[int] | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class Device(abc.ABC):
+    """Lifecycle shared by every device. Implementations make each step idempotent."""
+
+    name: str = "device"
+
+    async def connect(self) -> None:
+        """Open the link (socket, serial port, bus)."""
+
+    async def prepare(self) -> None:
+        """Bring the device to a ready state (boot, configure, power the arm)."""
+
+    async def release(self) -> None:
+        """Leave the device safe (stop motion, stop measuring). Always called, also after errors."""
+
+    async def close(self) -> None:
+        """Close the link."""
+
+
+class Arm(Device):
+    """A robot arm that carries the sensor on its tool flange."""
+
+    name = "arm"
+
+    @abc.abstractmethod
+    async def move_to(self, tcp_pose: np.ndarray, speed: float, accel: float) -> None:
+        """Move linearly to a TCP pose (4x4, metres) at speed (m/s) and acceleration (m/s^2); returns once stopped.
+
+        Raises ArmFault when the controller refuses or aborts the move, LinkLost when the link is gone.
+        """
+
+    @abc.abstractmethod
+    async def state(self) -> ArmState:
+        """The actual (measured) state. Raises LinkLost when the data is stale."""
+
+    @abc.abstractmethod
+    async def stop(self) -> None:
+        """Stop any motion now."""
+
+
+class Sensor(Device):
+    """A time-of-flight sensor that streams histogram frames."""
+
+    name = "sensor"
+    model: SensorModel
+
+    @abc.abstractmethod
+    async def next_frame(self, timeout_s: float) -> Frame:
+        """The next complete frame. Raises SensorSilent after timeout_s seconds without one."""
+
+    def counters(self) -> dict:
+        """Health counters (frames, corrupt lines skipped, reconnects, ...), for `ctl status`."""
+        return {}
