@@ -1,0 +1,72 @@
+"""Shared fixtures: every test must stop the processes and asyncio tasks it starts."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from pathlib import Path
+
+import pytest
+
+DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "lcspc"
+
+
+def _children() -> set[int]:
+    """Live child processes of this process (from /proc), zombies excluded."""
+    pids: set[int] = set()
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        try:
+            pids.update(int(p) for p in (task / "children").read_text().split())
+        except OSError:
+            continue
+    live = set()
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            live.add(pid)
+    return live
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_processes():
+    """Fail a test that leaves a child process running."""
+    before = _children()
+    yield
+    leaked = _children() - before
+    if leaked:
+        # Give processes that were just signalled a moment to exit before calling it a leak.
+        import time
+
+        deadline = time.monotonic() + 5
+        while leaked and time.monotonic() < deadline:
+            time.sleep(0.05)
+            leaked = _children() - before
+    assert not leaked, f"test leaked child processes {sorted(leaked)}"
+
+
+@pytest.fixture
+def arun():
+    """Run a coroutine in a fresh event loop and fail if it leaves tasks behind."""
+
+    def run(coro, timeout_s: float = 60.0):
+        async def wrapper():
+            result = await asyncio.wait_for(coro, timeout_s)
+            await asyncio.sleep(0)
+            others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task() and not t.done()]
+            assert not others, f"coroutine leaked asyncio tasks: {others}"
+            return result
+
+        return asyncio.run(wrapper())
+
+    return run
+
+
+@pytest.fixture
+def lcspc_dataset() -> Path:
+    """The public dataset folder; skips the test (saying why) when it is not there."""
+    if not DATASET.is_dir():
+        pytest.skip(f"LCSPCData not found at {DATASET}")
+    return DATASET
