@@ -92,6 +92,8 @@ def check_poses(poses: np.ndarray, where: str) -> np.ndarray:
     bad = np.flatnonzero((err > POSE_TOL) | (np.abs(det - 1) > POSE_TOL) | (last > POSE_TOL))
     if bad.size:
         i = int(bad[0])
+        if last[i] > POSE_TOL:
+            raise CaptureError(f"{where}: pose {i} has last row {poses[i, 3].tolist()}, expected [0, 0, 0, 1]")
         raise CaptureError(f"{where}: pose {i} is not rigid (|R R^T - I| = {err[i]:.2g}, det R = {det[i]:.4g})")
     return poses.astype(np.float64, copy=False)
 
@@ -123,6 +125,19 @@ def to_counts(values: np.ndarray, where: str) -> np.ndarray:
     return a.astype(np.uint32)
 
 
+def one_line(exc: BaseException) -> str:
+    """An exception's message folded onto one line (library messages sometimes span several)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def check_json(data, where: str) -> None:
+    """Refuse data that JSON cannot hold (objects, arrays), before anything is written."""
+    try:
+        json.dumps(data)
+    except (TypeError, ValueError) as exc:
+        raise CaptureError(f"{where}: not JSON-serialisable ({one_line(exc)})") from None
+
+
 def read_json(path: Path) -> dict:
     """Read a JSON object; a missing, truncated or non-object file is a one-line CaptureError naming it."""
     try:
@@ -130,7 +145,7 @@ def read_json(path: Path) -> dict:
     except FileNotFoundError:
         raise CaptureError(f"{path}: missing") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CaptureError(f"{path}: unreadable JSON ({exc})") from None
+        raise CaptureError(f"{path}: unreadable JSON ({one_line(exc)})") from None
     if not isinstance(data, dict):
         raise CaptureError(f"{path}: expected a JSON object, got {type(data).__name__}")
     return data
@@ -139,11 +154,15 @@ def read_json(path: Path) -> dict:
 def read_npy(path: Path) -> np.ndarray:
     """Load a .npy file without pickles; truncation or corruption is a one-line CaptureError naming the file."""
     try:
-        return np.load(path, allow_pickle=False)
+        array = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise CaptureError(f"{path}: missing") from None
     except (OSError, ValueError, EOFError) as exc:
-        raise CaptureError(f"{path}: corrupt or truncated .npy ({exc})") from None
+        raise CaptureError(f"{path}: corrupt or truncated .npy ({one_line(exc)})") from None
+    if not isinstance(array, np.ndarray):  # an .npz archive under an .npy name
+        getattr(array, "close", lambda: None)()
+        raise CaptureError(f"{path}: not a single .npy array ({type(array).__name__})")
+    return array
 
 
 def fsync_dir(path: Path) -> None:

@@ -10,7 +10,7 @@ from typing import Iterator
 import numpy as np
 
 from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, Chunk, check_hists, check_poses, chunk_index,
-                             read_json, read_npy)
+                             one_line, read_json, read_npy)
 from .errors import CaptureError, SensorModelError
 from .sensor_model import SensorModel
 
@@ -40,12 +40,18 @@ class CaptureReader:
         if not self.path.is_dir():
             raise CaptureError(f"{self.path}: no such capture folder")
         self.manifest = self._read_manifest()
+        where = self.path / MANIFEST
         try:
             self.sensor = SensorModel.from_dict(self.manifest["sensor"])
         except SensorModelError as exc:
-            raise CaptureError(f"{self.path / MANIFEST}: {exc}") from None
-        self.hand_eye = check_poses(np.asarray(self.manifest.get("hand_eye", np.eye(4).tolist()), float)[None],
-                                    f"{self.path / MANIFEST} hand_eye")[0]
+            raise CaptureError(f"{where}: {exc}") from None
+        except (TypeError, ValueError) as exc:  # a field of the wrong JSON type (a string for a number, ...)
+            raise CaptureError(f"{where}: malformed sensor model ({one_line(exc)})") from None
+        try:
+            hand_eye = np.asarray(self.manifest.get("hand_eye", np.eye(4).tolist()), dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise CaptureError(f"{where}: hand_eye is not a 4x4 matrix ({one_line(exc)})") from None
+        self.hand_eye = check_poses(hand_eye[None], f"{where} hand_eye")[0]
 
     def _read_manifest(self) -> dict:
         where = self.path / MANIFEST
@@ -55,6 +61,9 @@ class CaptureReader:
         for key in ("state", "sensor", "chunk_size"):
             if key not in m:
                 raise CaptureError(f"{where}: lacks {key!r}")
+        size = m["chunk_size"]
+        if not (isinstance(size, int) and not isinstance(size, bool) and size >= 1):
+            raise CaptureError(f"{where}: chunk_size {size!r} must be a positive integer")
         if m["state"] not in STATES:
             raise CaptureError(f"{where}: state {m['state']!r} is not one of {STATES}")
         return m
@@ -87,7 +96,10 @@ class CaptureReader:
         s = self.sensor
         hists = check_hists(read_npy(d / "hists.npy"), s.n_zones, s.n_bins, str(d / "hists.npy"))
         n = hists.shape[0]
-        poses = check_poses(read_npy(d / "poses.npy"), str(d / "poses.npy"))
+        poses = read_npy(d / "poses.npy")
+        if poses.dtype != np.float64:
+            raise CaptureError(f"{d / 'poses.npy'}: poses have dtype {poses.dtype}, expected float64")
+        poses = check_poses(poses, str(d / "poses.npy"))
         if poses.shape[0] != n:
             raise CaptureError(f"{d / 'poses.npy'}: {poses.shape[0]} poses for {n} histograms")
         ref = None
@@ -100,7 +112,8 @@ class CaptureReader:
         if not isinstance(meta, list) or len(meta) != n:
             raise CaptureError(f"{d / 'meta.json'}: expected {n} measurement records")
         for i, m in enumerate(meta):
-            if not isinstance(m, dict) or not isinstance(m.get("pose_index"), int) or m["pose_index"] < 0:
+            index = m.get("pose_index") if isinstance(m, dict) else None
+            if not isinstance(index, int) or isinstance(index, bool) or index < 0:
                 raise CaptureError(f"{d / 'meta.json'}: measurement {i} lacks a pose_index >= 0")
         return Chunk(name, hists, poses, ref, meta)
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .capture_format import (CHUNK_PREFIX, FORMAT, MANIFEST, SCHEDULE, STATES, TMP_PREFIX, VERSION, Measurement,
-                             check_poses, chunk_index, chunk_name, fsync_dir, read_json, save_npy_durable,
+                             check_json, check_poses, chunk_index, chunk_name, fsync_dir, read_json, save_npy_durable,
                              to_counts, write_durable, write_json_atomic)
 from .capture_reader import CaptureReader
 from .errors import CaptureError
@@ -60,6 +60,7 @@ class CaptureWriter:
         if not (isinstance(chunk_size, int) and 1 <= chunk_size <= 1_000_000):
             raise CaptureError(f"chunk size {chunk_size} must be an integer in [1, 1000000]")
         sensor.validate()
+        check_json({"rig": rig, "schedule": schedule, "scene": scene}, f"{path / MANIFEST}")
         he = np.eye(4) if hand_eye is None else check_poses(np.asarray(hand_eye, float)[None], "hand-eye")[0]
         path.mkdir(parents=True, exist_ok=True)
         if planned_poses is not None:
@@ -82,7 +83,7 @@ class CaptureWriter:
             "chunk_size": chunk_size,
             "scene": scene or {},
         }
-        json.dumps(manifest)  # fail here, before anything is written, if a caller passed something not JSON-able
+        check_json(manifest, f"{path / MANIFEST}")  # fail before anything is written
         write_json_atomic(path / MANIFEST, manifest)
         fsync_dir(path.parent)
         return cls(path, manifest, sensor, 0, 0, set())
@@ -92,9 +93,12 @@ class CaptureWriter:
         """Reopen a scan to continue it: drop half-written chunks, count what was published, state -> running."""
         path = Path(path)
         reader = CaptureReader(path)
-        for p in path.iterdir():
-            if p.name.startswith(TMP_PREFIX) and p.is_dir():
-                shutil.rmtree(p, ignore_errors=True)
+        for p in path.iterdir():  # half-written chunks and manifests of a writer that died
+            if p.name.startswith(TMP_PREFIX):
+                if p.is_dir():
+                    shutil.rmtree(p, ignore_errors=True)
+                else:
+                    p.unlink(missing_ok=True)
         names = reader.chunk_names()
         published, poses = 0, set()
         for name in names:
@@ -120,6 +124,10 @@ class CaptureWriter:
     def append(self, m: Measurement) -> None:
         """Buffer one measurement; publishes a chunk when the buffer reaches the chunk size."""
         where = f"{self.path.name} pose {m.pose_index} frame {m.frame}"
+        for key in ("pose_index", "frame"):
+            v = getattr(m, key)
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 0):
+                raise CaptureError(f"{where}: {key} {v!r} must be an integer >= 0")
         hist = to_counts(m.hist, where)
         if hist.shape != (self.sensor.n_zones, self.sensor.n_bins):
             raise CaptureError(f"{where}: histogram shape {hist.shape}, expected "
@@ -130,6 +138,9 @@ class CaptureWriter:
             ref = to_counts(m.reference, where + " reference")
             if ref.shape != (self.sensor.n_bins,):
                 raise CaptureError(f"{where}: reference shape {ref.shape}, expected ({self.sensor.n_bins},)")
+        if not isinstance(m.meta, dict):
+            raise CaptureError(f"{where}: meta is a {type(m.meta).__name__}, expected a dict")
+        check_json(m.meta, where + " meta")
         if self._buffer and (self._buffer[0].reference is None) != (ref is None):
             self.flush()  # a chunk either has reference histograms for all its measurements or for none
         self._buffer.append(Measurement(hist, pose, int(m.pose_index), int(m.frame), ref, dict(m.meta)))
@@ -150,7 +161,7 @@ class CaptureWriter:
         save_npy_durable(tmp / "poses.npy", np.stack([m.pose for m in buf]))
         if buf[0].reference is not None:
             save_npy_durable(tmp / "reference.npy", np.stack([m.reference for m in buf]))
-        meta = {"measurements": [{"pose_index": m.pose_index, "frame": m.frame, **m.meta} for m in buf]}
+        meta = {"measurements": [{**m.meta, "pose_index": m.pose_index, "frame": m.frame} for m in buf]}
         write_durable(tmp / "meta.json", json.dumps(meta).encode())
         fsync_dir(tmp)
         os.rename(tmp, self.path / name)
@@ -165,6 +176,7 @@ class CaptureWriter:
         """Record the scan's state (and why) in the manifest, atomically."""
         if state not in STATES:
             raise CaptureError(f"state {state!r} is not one of {STATES}")
+        check_json({"reason": reason, **extra}, f"{self.path / MANIFEST}")
         self.manifest.update(state=state, reason=reason, updated_utc=_now(), **extra)
         write_json_atomic(self.path / MANIFEST, self.manifest)
 

@@ -1,0 +1,529 @@
+"""Capture folders: round trip, chunk boundaries, a writer killed mid-chunk, resume, corrupt files, live reading."""
+
+from __future__ import annotations
+
+import inspect
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spadscan.protocol.capture_format import MANIFEST, Measurement, chunk_name
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.sensor_presets import sensor_preset
+
+
+def make_measurement(i, zones, bins, with_reference):
+    """Deterministic measurement number i (also used by the child writer processes, whose source embeds it)."""
+    import numpy as np
+
+    from spadscan.protocol.capture_format import Measurement
+
+    rng = np.random.default_rng(i)
+    hist = rng.integers(0, 2**24, size=(zones, bins)).astype(np.uint32)
+    a, b = 0.1 * i, 0.05 * i
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    pose = np.eye(4)
+    pose[:3, :3] = rz @ rx
+    pose[:3, 3] = [0.5 * np.cos(a), 0.5 * np.sin(a), 0.01 * i]
+    ref = rng.integers(0, 1000, size=bins).astype(np.uint32) if with_reference else None
+    meta = {"timestamp_s": 1000.0 + i, "temperature_c": 20 + i % 7, "depths_mm": [i, i + 1]}
+    return Measurement(hist=hist, pose=pose, pose_index=i, frame=0, reference=ref, meta=meta)
+
+
+TMF = sensor_preset("tmf8820")
+SIM = sensor_preset("lcspc-sim")
+
+
+def tmf(i):
+    return make_measurement(i, TMF.n_zones, TMF.n_bins, True)
+
+
+def write(path, n, chunk_size, sensor=TMF, finish=True, **kwargs):
+    ref = sensor.has_reference
+    with CaptureWriter.create(path, sensor, chunk_size=chunk_size, **kwargs) as w:
+        for i in range(n):
+            w.append(make_measurement(i, sensor.n_zones, sensor.n_bins, ref))
+        if finish:
+            w.finish()
+    return w
+
+
+# ---- round trip --------------------------------------------------------------------------------------------------
+def test_round_trip_keeps_arrays_meta_reference_and_manifest(tmp_path):
+    path = tmp_path / "scan"
+    he = make_measurement(3, 1, 4, False).pose
+    planned = np.stack([tmf(i).pose for i in range(12)])
+    write(path, 10, 4, scene={"name": "unit"}, rig={"arm": "sim"}, hand_eye=he, schedule={"kind": "fib"},
+          planned_poses=planned, scan_id="abc")
+    r = CaptureReader(path)
+    assert r.state == "complete" and r.scan_id == "abc"
+    assert r.chunk_names() == [chunk_name(0), chunk_name(1), chunk_name(2)]
+    assert r.sensor == TMF
+    np.testing.assert_allclose(r.hand_eye, he)
+    np.testing.assert_array_equal(r.planned_poses(), planned)
+    assert r.manifest["scene"] == {"name": "unit"} and r.manifest["rig"] == {"arm": "sim"}
+    assert r.manifest["schedule"] == {"kind": "fib"} and r.manifest["planned_poses"] == 12
+    data = r.load()
+    assert data.hists.shape == (10, 9, 128) and data.hists.dtype == np.uint32
+    assert data.poses.shape == (10, 4, 4) and data.poses.dtype == np.float64
+    assert data.reference.shape == (10, 128) and data.reference.dtype == np.uint32
+    for i in range(10):
+        m = tmf(i)
+        np.testing.assert_array_equal(data.hists[i], m.hist)
+        np.testing.assert_array_equal(data.poses[i], m.pose)
+        np.testing.assert_array_equal(data.reference[i], m.reference)
+        assert data.meta[i] == {"pose_index": i, "frame": 0, **m.meta}
+    np.testing.assert_array_equal(data.pose_indices, np.arange(10))
+
+
+def test_counts_given_as_other_numeric_types_are_converted(tmp_path):
+    m = tmf(0)
+    with CaptureWriter.create(tmp_path / "s", TMF) as w:
+        w.append(Measurement(m.hist.astype(np.float64), m.pose, 0, reference=m.reference.astype(np.int64)))
+        w.finish()
+    data = CaptureReader(tmp_path / "s").load()
+    np.testing.assert_array_equal(data.hists[0], m.hist)
+    assert data.hists.dtype == np.uint32
+
+
+def test_meta_cannot_overwrite_pose_index_or_frame(tmp_path):
+    m = tmf(5)
+    m.meta = {"pose_index": 99, "frame": 7, "x": 1}
+    with CaptureWriter.create(tmp_path / "s", TMF) as w:
+        w.append(m)
+    meta = CaptureReader(tmp_path / "s").load().meta[0]
+    assert meta["pose_index"] == 5 and meta["frame"] == 0 and meta["x"] == 1
+
+
+# ---- chunk boundaries ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("n,size", [(1, 3), (2, 3), (3, 3), (4, 3), (6, 3), (7, 3), (5, 1), (3, 64)])
+def test_chunks_hold_at_most_chunk_size(tmp_path, n, size):
+    write(tmp_path / "s", n, size, sensor=SIM)
+    r = CaptureReader(tmp_path / "s")
+    chunks = list(r.iter_chunks())
+    assert [len(c.meta) for c in chunks] == [size] * (n // size) + ([n % size] if n % size else [])
+    assert [c.name for c in chunks] == [chunk_name(k) for k in range(len(chunks))]
+    np.testing.assert_array_equal(r.load().pose_indices, np.arange(n))
+    assert r.load().reference is None
+
+
+def test_empty_capture_is_an_error_when_loaded(tmp_path):
+    write(tmp_path / "s", 0, 4)
+    r = CaptureReader(tmp_path / "s")
+    assert r.chunk_names() == [] and r.state == "complete"
+    with pytest.raises(CaptureError, match="no published measurements"):
+        r.load()
+
+
+def test_explicit_flush_publishes_partial_chunk_and_numbering_continues(tmp_path):
+    w = CaptureWriter.create(tmp_path / "s", TMF, chunk_size=4)
+    w.append(tmf(0))
+    assert w.flush() == chunk_name(0)
+    assert w.flush() is None
+    for i in range(1, 6):
+        w.append(tmf(i))
+    w.finish()
+    r = CaptureReader(tmp_path / "s")
+    assert [len(c.meta) for c in r.iter_chunks()] == [1, 4, 1]
+    assert w.n_published == 6 and w.next_pose_index == 6
+
+
+def test_measurements_with_and_without_reference_never_share_a_chunk(tmp_path):
+    w = CaptureWriter.create(tmp_path / "s", TMF, chunk_size=8)
+    w.append(tmf(0))
+    m = tmf(1)
+    m.reference = None
+    w.append(m)
+    w.finish()
+    chunks = list(CaptureReader(tmp_path / "s").iter_chunks())
+    assert [c.reference is None for c in chunks] == [False, True]
+    assert CaptureReader(tmp_path / "s").load().reference is None
+
+
+# ---- writer input checks ---------------------------------------------------------------------------------------------
+def _bad_hist_shape(m):
+    m.hist = m.hist[:, :-1]
+
+
+def _negative(m):
+    m.hist = m.hist.astype(np.int64) - 2**25
+
+
+def _nan_count(m):
+    m.hist = m.hist.astype(float)
+    m.hist[0, 0] = np.nan
+
+
+def _fraction(m):
+    m.hist = m.hist + 0.5
+
+
+def _overflow(m):
+    m.hist = m.hist.astype(np.int64) + 2**32
+
+
+def _nan_pose(m):
+    m.pose[0, 3] = np.nan
+
+
+def _scaled_pose(m):
+    m.pose[:3, :3] *= 1.01
+
+
+def _mirror_pose(m):
+    m.pose[:3, 0] *= -1
+
+
+def _bad_reference(m):
+    m.reference = m.reference[:10]
+
+
+def _unserialisable_meta(m):
+    m.meta["obj"] = object()
+
+
+def _negative_pose_index(m):
+    m.pose_index = -1
+
+
+@pytest.mark.parametrize("spoil", [_bad_hist_shape, _negative, _nan_count, _fraction, _overflow, _nan_pose,
+                                   _scaled_pose, _mirror_pose, _bad_reference, _unserialisable_meta,
+                                   _negative_pose_index])
+def test_writer_refuses_bad_measurements_in_one_line(tmp_path, spoil):
+    w = CaptureWriter.create(tmp_path / "s", TMF, chunk_size=1)
+    m = tmf(0)
+    spoil(m)
+    with pytest.raises(CaptureError) as info:
+        w.append(m)
+    assert "\n" not in str(info.value)
+    assert CaptureReader(tmp_path / "s").chunk_names() == []
+
+
+def test_create_refuses_an_existing_capture_and_bad_chunk_size(tmp_path):
+    write(tmp_path / "s", 1, 4)
+    with pytest.raises(CaptureError, match="already holds a capture"):
+        CaptureWriter.create(tmp_path / "s", TMF)
+    with pytest.raises(CaptureError, match="chunk size"):
+        CaptureWriter.create(tmp_path / "t", TMF, chunk_size=0)
+    with pytest.raises(CaptureError):
+        CaptureWriter.create(tmp_path / "u", TMF, scene={"x": object()})
+    assert not (tmp_path / "u" / MANIFEST).exists()
+
+
+def test_set_state_refuses_unknown_state_and_records_reason(tmp_path):
+    w = write(tmp_path / "s", 2, 4, finish=False)
+    with pytest.raises(CaptureError, match="state"):
+        w.set_state("paused")
+    w.finish("aborted", "arm fault")
+    r = CaptureReader(tmp_path / "s")
+    assert r.state == "aborted" and r.manifest["reason"] == "arm fault"
+
+
+# ---- a writer killed in the middle of a chunk --------------------------------------------------------------------------
+CHILD = """
+import sys, time
+from pathlib import Path
+import numpy as np
+import spadscan.protocol.capture_writer as cw
+from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.sensor_presets import sensor_preset
+
+{source}
+
+path, mode, block_chunk = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3])
+sensor = sensor_preset("tmf8820")
+real_save = cw.save_npy_durable
+
+def blocking_save(p, array):
+    # Write this file, then hang inside the chunk (the parent kills us here).
+    real_save(p, array)
+    if p.parent.name.endswith(cw.chunk_name(block_chunk)) and p.name == "hists.npy":
+        (path.parent / "blocked").write_text("x")
+        time.sleep(3600)
+
+if mode == "block":
+    cw.save_npy_durable = blocking_save
+w = CaptureWriter.create(path, sensor, chunk_size=3)
+i = 0
+while True:  # writes until killed
+    w.append(make_measurement(i, sensor.n_zones, sensor.n_bins, True))
+    i += 1
+"""
+
+
+def _start_child(tmp_path, mode, block_chunk=-1):
+    script = tmp_path / "child.py"
+    script.write_text(CHILD.format(source=textwrap.dedent(inspect.getsource(make_measurement))))
+    return subprocess.Popen([sys.executable, str(script), str(tmp_path / "scan"), mode, str(block_chunk)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _wait_for(cond, proc, what, timeout_s=60.0):
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if proc.poll() is not None:
+            raise AssertionError(f"child writer exited early: {proc.stderr.read().decode()[-2000:]}")
+        if time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.02)
+
+
+def _kill(proc):
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    proc.stderr.close()
+
+
+def _finish_after_resume(path, total):
+    w = CaptureWriter.resume(path)
+    for i in range(w.next_pose_index, total):
+        w.append(tmf(i))
+    w.finish()
+    data = CaptureReader(path).load()
+    np.testing.assert_array_equal(data.pose_indices, np.arange(total))
+    for i in (0, total // 2, total - 1):
+        np.testing.assert_array_equal(data.hists[i], tmf(i).hist)
+        np.testing.assert_array_equal(data.poses[i], tmf(i).pose)
+
+
+def test_kill_in_the_middle_of_a_chunk_then_resume(tmp_path):
+    path = tmp_path / "scan"
+    proc = _start_child(tmp_path, "block", block_chunk=2)
+    try:
+        _wait_for(lambda: (tmp_path / "blocked").exists(), proc, "the writer to block inside chunk 2")
+    finally:
+        _kill(proc)
+    tmp = [p for p in path.iterdir() if p.name.startswith(".tmp-")]
+    assert [p.name for p in tmp] == [".tmp-" + chunk_name(2)]
+    assert (tmp[0] / "hists.npy").exists()  # half a chunk lies on disk ...
+    r = CaptureReader(path)
+    assert r.state == "running"
+    assert r.chunk_names() == [chunk_name(0), chunk_name(1)]  # ... but readers never see it
+    np.testing.assert_array_equal(r.load().pose_indices, np.arange(6))
+
+    w = CaptureWriter.resume(path)
+    assert not any(p.name.startswith(".tmp-") for p in path.iterdir())
+    assert w.next_pose_index == 6 and w.n_published == 6
+    w.append(tmf(6))
+    assert w.flush() == chunk_name(2)
+    w.finish()
+    _finish_after_resume(path, 11)
+
+
+def test_kill_at_an_arbitrary_moment_leaves_only_whole_chunks(tmp_path):
+    path = tmp_path / "scan"
+    proc = _start_child(tmp_path, "forever")
+    try:
+        _wait_for(lambda: path.is_dir() and (path / chunk_name(4)).exists(), proc, "five published chunks")
+    finally:
+        _kill(proc)
+    r = CaptureReader(path)
+    names = r.chunk_names()
+    assert names == [chunk_name(k) for k in range(len(names))] and len(names) >= 5
+    chunks = list(r.iter_chunks())
+    assert all(len(c.meta) == 3 for c in chunks)
+    n = 3 * len(chunks)
+    np.testing.assert_array_equal(r.load().pose_indices, np.arange(n))
+    w = CaptureWriter.resume(path)
+    assert w.next_pose_index == n
+    _finish_after_resume(path, n + 4)
+    assert CaptureReader(path).chunk_names()[len(names)] == chunk_name(len(names))
+
+
+def test_resume_removes_stray_temporary_files_and_reopens_a_finished_scan(tmp_path):
+    path = tmp_path / "s"
+    write(path, 4, 4)
+    (path / ".tmp-scan.json").write_text("{half")
+    (path / ".tmp-chunk-000001").mkdir()
+    w = CaptureWriter.resume(path)
+    assert sorted(p.name for p in path.iterdir()) == [chunk_name(0), MANIFEST]
+    assert CaptureReader(path).state == "running" and w.next_pose_index == 4
+
+
+def test_resume_of_a_folder_without_capture_is_one_line(tmp_path):
+    (tmp_path / "empty").mkdir()
+    for p in (tmp_path / "empty", tmp_path / "missing"):
+        with pytest.raises(CaptureError) as info:
+            CaptureWriter.resume(p)
+        assert "\n" not in str(info.value) and str(p) in str(info.value)
+
+
+# ---- corrupt files ------------------------------------------------------------------------------------------------------
+def _truncate(p, keep):
+    data = p.read_bytes()
+    p.write_bytes(data[:keep(len(data))])
+
+
+def _rewrite_npy(name, fn):
+    def spoil(path):
+        f = path / chunk_name(0) / name
+        np.save(f, fn(np.load(f)))
+    return spoil
+
+
+def _patch_manifest(fn):
+    def spoil(path):
+        m = json.loads((path / MANIFEST).read_text())
+        fn(m)
+        (path / MANIFEST).write_text(json.dumps(m))
+    return spoil
+
+
+def _set(key, value):
+    def fn(m):
+        m[key] = value
+    return fn
+
+
+def _nan_pose_file(p):
+    p[1, 2, 3] = np.nan
+    return p
+
+
+def _stretch_pose_file(p):
+    p[0, :3, :3] *= 1.2
+    return p
+
+
+def _bad_last_row(p):
+    p[0, 3, 0] = 0.5
+    return p
+
+
+def _set_sensor_bins(m):
+    m["sensor"]["bin_width_m"] = "wide"
+
+
+def _drop_pose_index(path):
+    f = path / chunk_name(0) / "meta.json"
+    meta = json.loads(f.read_text())
+    del meta["measurements"][1]["pose_index"]
+    f.write_text(json.dumps(meta))
+
+
+def _short_meta(path):
+    f = path / chunk_name(0) / "meta.json"
+    meta = json.loads(f.read_text())
+    meta["measurements"].pop()
+    f.write_text(json.dumps(meta))
+
+
+def _npz_instead(path):
+    f = path / chunk_name(0) / "hists.npy"
+    arr = np.load(f)
+    with open(f, "wb") as fh:
+        np.savez(fh, hists=arr)
+
+
+CORRUPTIONS = {
+    "truncated hists": (lambda p: _truncate(p / chunk_name(0) / "hists.npy", lambda n: n - 100), "hists.npy"),
+    "truncated header": (lambda p: _truncate(p / chunk_name(0) / "hists.npy", lambda n: 40), "hists.npy"),
+    "empty poses": (lambda p: _truncate(p / chunk_name(0) / "poses.npy", lambda n: 0), "poses.npy"),
+    "npz hists": (_npz_instead, "hists.npy"),
+    "missing hists": (lambda p: (p / chunk_name(0) / "hists.npy").unlink(), "hists.npy"),
+    "garbage meta": (lambda p: (p / chunk_name(0) / "meta.json").write_text("{not json"), "meta.json"),
+    "meta not object": (lambda p: (p / chunk_name(0) / "meta.json").write_text("[1, 2]"), "meta.json"),
+    "meta without pose index": (_drop_pose_index, "meta.json"),
+    "meta too short": (_short_meta, "meta.json"),
+    "nan pose": (_rewrite_npy("poses.npy", _nan_pose_file), "poses.npy"),
+    "non-rigid pose": (_rewrite_npy("poses.npy", _stretch_pose_file), "poses.npy"),
+    "bad last row": (_rewrite_npy("poses.npy", _bad_last_row), "poses.npy"),
+    "float32 poses": (_rewrite_npy("poses.npy", lambda p: p.astype(np.float32)), "poses.npy"),
+    "too few poses": (_rewrite_npy("poses.npy", lambda p: p[:-1]), "poses.npy"),
+    "int64 hists": (_rewrite_npy("hists.npy", lambda h: h.astype(np.int64)), "hists.npy"),
+    "float hists": (_rewrite_npy("hists.npy", lambda h: h.astype(np.float64)), "hists.npy"),
+    "wrong bins": (_rewrite_npy("hists.npy", lambda h: h[:, :, :-1]), "hists.npy"),
+    "flat hists": (_rewrite_npy("hists.npy", lambda h: h.reshape(len(h), -1)), "hists.npy"),
+    "reference dtype": (_rewrite_npy("reference.npy", lambda r: r.astype(np.float32)), "reference.npy"),
+    "missing manifest": (lambda p: (p / MANIFEST).unlink(), MANIFEST),
+    "garbage manifest": (lambda p: (p / MANIFEST).write_text("\x00\x01garbage"), MANIFEST),
+    "wrong format": (_patch_manifest(_set("format", "something-else")), MANIFEST),
+    "unknown state": (_patch_manifest(_set("state", "paused")), MANIFEST),
+    "bad chunk size": (_patch_manifest(_set("chunk_size", "many")), MANIFEST),
+    "bad sensor": (_patch_manifest(_set_sensor_bins), MANIFEST),
+    "sensor not object": (_patch_manifest(_set("sensor", [1, 2])), MANIFEST),
+    "bad hand-eye": (_patch_manifest(_set("hand_eye", "identity")), MANIFEST),
+    "ragged hand-eye": (_patch_manifest(_set("hand_eye", [[1, 0], [0, 1, 0]])), MANIFEST),
+    "bad schedule file": (lambda p: (p / "schedule.npy").write_bytes(b"\x93NUMPY junk"), "schedule.npy"),
+}
+
+
+@pytest.mark.parametrize("name", list(CORRUPTIONS))
+def test_corrupt_files_give_one_line_errors_naming_the_file(tmp_path, name):
+    path = tmp_path / "scan"
+    write(path, 5, 3, planned_poses=np.stack([tmf(i).pose for i in range(5)]))
+    spoil, filename = CORRUPTIONS[name]
+    spoil(path)
+    with pytest.raises(CaptureError) as info:
+        r = CaptureReader(path)
+        r.load()
+        r.planned_poses()
+    msg = str(info.value)
+    assert "\n" not in msg and filename in msg, msg
+
+
+def test_a_scan_folder_that_is_not_a_directory(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(CaptureError, match="no such capture folder"):
+        CaptureReader(tmp_path / "file")
+
+
+# ---- reading while the scan runs -------------------------------------------------------------------------------------
+def test_follow_yields_each_chunk_as_it_is_published_and_stops_when_complete(tmp_path):
+    path = tmp_path / "scan"
+    w = CaptureWriter.create(path, TMF, chunk_size=2)
+    got: list[str] = []
+    ack = threading.Event()
+    failure: list[BaseException] = []
+
+    def produce():
+        try:
+            for k in range(4):
+                w.append(tmf(2 * k))
+                w.append(tmf(2 * k + 1))
+                # Lock step: the next chunk appears only once the reader has yielded this one, so a reader that
+                # waited for the end of the scan would time out here.
+                if not ack.wait(20):
+                    raise TimeoutError(f"reader did not yield chunk {k} while the scan ran")
+                ack.clear()
+            w.finish()
+        except BaseException as exc:  # reported by the test thread
+            failure.append(exc)
+            w.finish("aborted", str(exc))
+
+    t = threading.Thread(target=produce)
+    t.start()
+    try:
+        for chunk in CaptureReader(path).follow(poll_s=0.01, timeout_s=30):
+            got.append(chunk.name)
+            assert CaptureReader(path).state == "running"
+            ack.set()
+    finally:
+        t.join(30)
+    assert not failure, failure
+    assert got == [chunk_name(k) for k in range(4)]
+
+
+def test_follow_reads_a_finished_scan_and_times_out_on_a_stalled_one(tmp_path):
+    write(tmp_path / "done", 5, 2)
+    assert [len(c.meta) for c in CaptureReader(tmp_path / "done").follow(poll_s=0.01)] == [2, 2, 1]
+    w = write(tmp_path / "stalled", 2, 2, finish=False)
+    chunks = CaptureReader(tmp_path / "stalled").follow(poll_s=0.01, timeout_s=0.2)
+    assert next(chunks).name == chunk_name(0)
+    with pytest.raises(CaptureError, match="no new chunk"):
+        next(chunks)
+    w.finish()
