@@ -1,0 +1,264 @@
+"""The physically based transient simulator (DESIGN §4): mesh + sensor model + poses -> photon-count histograms.
+
+For each pose and zone, rays spread evenly over the zone's field of view find their first surface hit by ray casting.
+A hit at one-way range r with incidence cosine cos_i adds
+
+    signal_scale * power * albedo * weight * cos_i / r^2        (weight: the ray's solid angle, steradians)
+
+photons per cycle, arriving at bin coordinate zero_bin + r / bin_width. The returns are convolved with the laser pulse
+on an oversampled axis and integrated back to bins, scaled by zone gains, mixed by crosstalk (each zone also gets
+`crosstalk` x the sum of all zones' signal) and lifted by a flat background. Coates pile-up turns these rates into
+per-cycle detection probabilities, timing jitter blurs them, and N cycles give multinomial counts (detections per bin
+plus a "no photon" outcome), clipped to the sensor's counter size.
+
+Rules at the edges: a surface closer than MIN_RANGE_M counts as if it were at MIN_RANGE_M (finite, saturating flux at
+the start of the histogram); returns whose pulse cannot reach the histogram (far beyond the last bin, or well before
+bin 0) add nothing; the background never drops below BACKGROUND_FLOOR so that likelihoods never see a zero rate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import pileup
+from .errors import SimulationError
+from .raycast import first_hits, make_intersector, zone_rays
+from .sensor_model import SensorModel
+from .transient import FineAxis, convolve_pulse, pulse_pad_bins
+
+MIN_RANGE_M = 1e-3
+"""Surfaces closer than this (metres) are treated as being at this range."""
+BACKGROUND_FLOOR = 1e-12
+"""Smallest background rate (photons per bin per cycle) used in the rates, so that no bin has rate zero."""
+_RAYS_PER_BLOCK = 1 << 20  # rays cast per intersector call: bounds memory, amortises call overhead
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Photon settings of a simulation; `None` takes the sensor model's own value."""
+
+    power: float = 1.0
+    """Multiplies the sensor's signal_scale (laser power relative to the model)."""
+    ambient: float | None = None
+    """Background photons per bin per cycle (sunlight, room light); None = the sensor model's background."""
+    cycles: int | None = None
+    """Laser cycles per histogram; None = the sensor model's cycles."""
+    albedo: float = 1.0
+    """Lambertian albedo of every surface of the mesh (relative to the sensor model's signal_scale)."""
+    rays_per_zone: int = 4096
+    """Rays cast per zone per pose. 4096 keeps the rendered signal within ~0.5% of the converged value."""
+    oversample: int = 8
+    """Fine time cells per bin used to place returns with sub-bin accuracy before integrating to bins."""
+    reference_signal: float = 0.06
+    """Photons per cycle in the reference channel (sensors with one): ~0.06 on the real TMF8820 (~2.3e5 counts
+    over ~4e6 cycles)."""
+    reference_background: float = 1.0e-6
+    """Flat background of the reference channel, photons per bin per cycle (~4 counts over ~4e6 cycles)."""
+    reference_delay_bins: float = 1.0
+    """The reference pulse arrives this many bins after the zones' zero-range point (internal optical path)."""
+
+    def check(self) -> "SimSettings":
+        for key, lo, hi in (("power", 0.0, 1e9), ("albedo", 0.0, 1e3), ("reference_signal", 0.0, 1e6),
+                            ("reference_background", 0.0, 1.0), ("reference_delay_bins", -1e4, 1e4)):
+            v = getattr(self, key)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+                raise SimulationError(f"{key} = {v} is outside [{lo}, {hi}]")
+        if self.ambient is not None and not (math.isfinite(self.ambient) and 0 <= self.ambient <= 1.0):
+            raise SimulationError(f"ambient {self.ambient} photons/bin/cycle is outside [0, 1]")
+        if self.cycles is not None and not (isinstance(self.cycles, (int, np.integer)) and 1 <= self.cycles <= 10**10):
+            raise SimulationError(f"cycles {self.cycles} must be an integer in [1, 1e10]")
+        if not (isinstance(self.oversample, (int, np.integer)) and 1 <= self.oversample <= 64):
+            raise SimulationError(f"oversample {self.oversample} must be an integer in [1, 64]")
+        return self
+
+
+@dataclass
+class SimFrames:
+    """Simulated measurements. hists: (n, zones, bins) uint32 counts; reference: (n, bins) uint32 or None;
+    poses: (n, 4, 4) float64 sensor-to-world (metres)."""
+
+    hists: np.ndarray
+    reference: np.ndarray | None
+    poses: np.ndarray
+
+
+def check_pose_array(poses) -> np.ndarray:
+    """Poses as (n, 4, 4) float64 rigid transforms; one-line SimulationError otherwise."""
+    p = np.asarray(poses, dtype=np.float64)
+    if p.ndim != 3 or p.shape[1:] != (4, 4):
+        raise SimulationError(f"poses must have shape (n, 4, 4), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise SimulationError("poses hold non-finite values")
+    rot = p[:, :3, :3]
+    err = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).reshape(len(p), -1).max(axis=1, initial=0.0)
+    bad = np.flatnonzero((err > 1e-4) | (np.linalg.det(rot) < 0) | np.any(p[:, 3] != [0, 0, 0, 1], axis=1))
+    if bad.size:
+        raise SimulationError(f"pose {bad[0]} is not a rigid transform (rotation off orthonormal by {err[bad[0]]:.2g})")
+    return p
+
+
+class Simulator:
+    """Renders one mesh for one sensor model; build once, render any poses (one at a time or thousands).
+
+    `sensor` is the model the histograms obey: the given model with the settings' power, ambient and cycles folded in
+    (store it with the capture). `expected_rates` and `transient` are pure functions of the poses; `frames` draws
+    photons from a generator seeded by `seed`, so the same calls in the same order give the same counts.
+    """
+
+    def __init__(self, mesh, sensor: SensorModel, settings: SimSettings = SimSettings(), seed: int = 0):
+        settings.check()
+        sensor.validate()
+        faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
+        if len(faces) == 0:
+            raise SimulationError("mesh has no triangles")
+        if not np.all(np.isfinite(mesh.vertices)):
+            raise SimulationError("mesh has non-finite vertices")
+        self.settings = settings
+        self.base_sensor = sensor
+        self.sensor = sensor.with_(
+            signal_scale=sensor.signal_scale * settings.power,
+            background=sensor.background if settings.ambient is None else float(settings.ambient),
+            cycles=sensor.cycles if settings.cycles is None else int(settings.cycles),
+        )
+        self.mesh = mesh
+        self._intersector = make_intersector(mesh)
+        self._normals = np.asarray(mesh.face_normals, dtype=np.float64)
+        ray_seed, photon_seed = np.random.SeedSequence(int(seed)).spawn(2)
+        self.rays = zone_rays(sensor.zones, settings.rays_per_zone, int(ray_seed.generate_state(1)[0]))
+        self.rng = np.random.default_rng(photon_seed)
+        self._kernel, self._origin = sensor.pulse.kernel(settings.oversample)
+        self.axis = FineAxis(sensor.n_bins, settings.oversample,
+                             pulse_pad_bins(self._kernel, self._origin, settings.oversample))
+
+    # ---- geometry ------------------------------------------------------------------------------------------------
+    def _returns(self, poses: np.ndarray):
+        """Ray-cast every zone's rays from every pose.
+
+        Returns (channel (H,), t_bins (H,), value (H,)): histogram index view * zones + zone, arrival bin coordinate,
+        albedo * weight * cos_i / r^2 (sr / m^2).
+        """
+        z, r = self.rays.directions.shape[:2]
+        per_view = z * r
+        block = max(1, _RAYS_PER_BLOCK // per_view)
+        out = []
+        for start in range(0, len(poses), block):
+            p = poses[start: start + block]
+            dirs = np.einsum("vij,zrj->vzri", p[:, :3, :3], self.rays.directions).reshape(-1, 3)
+            origins = np.repeat(p[:, :3, 3], per_view, axis=0)
+            ray, rng_m, cos_i = first_hits(self._intersector, self._normals, origins, dirs)
+            rng_m = np.maximum(rng_m, MIN_RANGE_M)
+            w = self.rays.weights.reshape(-1)[ray % per_view]
+            channel = start * z + ray // r
+            out.append((channel, self.sensor.bin_of_range(rng_m),
+                        self.settings.albedo * w * cos_i / (rng_m * rng_m)))
+        if not out:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        return tuple(np.concatenate(parts) for parts in zip(*out))
+
+    def transient(self, poses) -> np.ndarray:
+        """Ideal transient h: albedo x integral of cos_i / r^2 dOmega per bin (sr/m^2), no pulse, gains or noise.
+
+        poses (n, 4, 4) -> (n, zones, bins) float64; a return at bin coordinate t counts in bin floor(t) (to within
+        one fine cell).
+        """
+        poses = check_pose_array(poses)
+        n, z = len(poses), self.sensor.n_zones
+        channel, t, value = self._returns(poses)
+        fine = self.axis.splat(channel, t, value, n * z)
+        return self.axis.to_bins(fine).reshape(n, z, self.sensor.n_bins)
+
+    def signal_rates(self, poses) -> np.ndarray:
+        """Signal photons per bin per cycle (pulse, gains, crosstalk; no background). (n, 4, 4) -> (n, zones, bins)."""
+        poses = check_pose_array(poses)
+        n, z = len(poses), self.sensor.n_zones
+        channel, t, value = self._returns(poses)
+        fine = self.axis.splat(channel, t, value * self.sensor.signal_scale, n * z)
+        sig = self.axis.to_bins(convolve_pulse(fine, self._kernel, self._origin)).reshape(n, z, -1)
+        sig *= np.array([zone.gain for zone in self.sensor.zones])[:, None]
+        if self.sensor.crosstalk > 0:
+            sig += self.sensor.crosstalk * sig.sum(axis=1, keepdims=True)
+        return sig
+
+    def expected_rates(self, poses) -> np.ndarray:
+        """Photon rate lambda per bin per cycle before pile-up: signal + background. (n, 4, 4) -> (n, zones, bins)."""
+        return self.signal_rates(poses) + max(self.sensor.background, BACKGROUND_FLOOR)
+
+    def reference_rates(self, n: int) -> np.ndarray | None:
+        """Rates of the reference channel (n, bins), or None when the sensor has none: the pulse at zero range
+        plus the internal path's delay, over its own flat background."""
+        if not self.sensor.has_reference:
+            return None
+        t = np.full(1, self.sensor.zero_bin + self.settings.reference_delay_bins)
+        fine = self.axis.splat(np.zeros(1, np.int64), t, np.full(1, self.settings.reference_signal), 1)
+        ref = self.axis.to_bins(convolve_pulse(fine, self._kernel, self._origin))[0]
+        ref = ref + max(self.settings.reference_background, BACKGROUND_FLOOR)
+        return np.broadcast_to(ref, (n, ref.size)).copy()
+
+    # ---- photons -------------------------------------------------------------------------------------------------
+    def detection_probabilities(self, rates: np.ndarray) -> np.ndarray:
+        """Per-cycle probability of a detection in each bin (pile-up and jitter as the sensor says), (..., bins)."""
+        if self.sensor.pileup:
+            p = pileup.detection_probabilities(rates)
+        else:
+            p = pileup.detection_probabilities_no_pileup(rates)
+        return pileup.jitter_blur(p, self.sensor.jitter_bins)
+
+    def draw_counts(self, rates: np.ndarray) -> np.ndarray:
+        """Photon counts over the sensor's cycles for rates (..., bins); uint32, clipped to max_count."""
+        n_cycles = self.sensor.cycles
+        p = self.detection_probabilities(rates)
+        if self.sensor.pileup:
+            total = p.sum(axis=-1, keepdims=True)
+            p = p / np.maximum(total, 1.0) * (1.0 - 1e-12)  # the "no photon" outcome takes the rest, never < 0
+            pvals = np.concatenate([p, 1.0 - p.sum(axis=-1, keepdims=True)], axis=-1)
+            counts = self.rng.multinomial(n_cycles, pvals)[..., :-1]
+        else:
+            counts = self.rng.poisson(np.minimum(p * n_cycles, 1e15))
+        return np.minimum(counts, self.sensor.max_count).astype(np.uint32)
+
+    def frames(self, poses) -> SimFrames:
+        """Photon-count histograms for poses (n, 4, 4); advances the generator (deterministic for the seed)."""
+        poses = check_pose_array(poses)
+        hists = self.draw_counts(self.expected_rates(poses))
+        ref = self.reference_rates(len(poses))
+        return SimFrames(hists, None if ref is None else self.draw_counts(ref), poses.copy())
+
+
+def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSettings = SimSettings(), seed: int = 0,
+                     chunk_size: int = 64, scene: dict | None = None, schedule: dict | None = None,
+                     progress: bool = True):
+    """Render `poses` (n, 4, 4) of `mesh` into a complete capture folder `out` (which must not hold a capture).
+
+    The manifest records the effective sensor model (settings folded in), `scene` (plus the albedo) and `schedule`.
+    Shows a progress bar on stderr unless `progress` is False. Returns the capture's path.
+    """
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from .capture_format import Measurement
+    from .capture_writer import CaptureWriter
+
+    poses = check_pose_array(poses)
+    sim = Simulator(mesh, sensor, settings, seed)
+    scene = {**(scene or {}), "albedo": settings.albedo, "seed": int(seed), "rays_per_zone": settings.rays_per_zone,
+             "faces": int(len(mesh.faces))}
+    writer = CaptureWriter.create(Path(out), sim.sensor, rig={"kind": "simulated"}, schedule=schedule or {},
+                                  planned_poses=poses, chunk_size=chunk_size, scene=scene)
+    with tqdm(total=len(poses), desc="simulate", unit="view", disable=not progress, leave=False) as bar:
+        for start in range(0, len(poses), chunk_size):
+            fr = sim.frames(poses[start: start + chunk_size])
+            for i in range(len(fr.poses)):
+                ref = None if fr.reference is None else fr.reference[i]
+                writer.append(Measurement(fr.hists[i], fr.poses[i], start + i, 0, ref, {"simulated": True}))
+            writer.flush()
+            bar.update(len(fr.poses))
+    writer.finish("complete")
+    return writer.path
+
+
+__all__ = ["SimSettings", "SimFrames", "Simulator", "simulate_capture", "check_pose_array", "MIN_RANGE_M",
+           "BACKGROUND_FLOOR"]
