@@ -1,4 +1,5 @@
-"""Loading meshes the user names: one-line errors for missing, empty or non-finite files, unit detection for STL."""
+"""Loading meshes the user names: one-line errors for missing, empty or non-finite files, unit detection for STL
+(and the other unitless formats: OBJ, PLY, OFF)."""
 
 from __future__ import annotations
 
@@ -10,35 +11,39 @@ from .errors import MeshError
 
 # An object this tool scans fits in a 2 m box; an STL whose extent exceeds this is taken to be in millimetres.
 MM_EXTENT_THRESHOLD_M = 5.0
+# Formats that carry no unit. STL is the usual millimetre culprit (CAD exports); an OBJ, PLY or OFF exported from
+# CAD in millimetres is just as wrong read as metres, so 'auto' applies the same rule to them.
+UNITLESS_SUFFIXES = (".stl", ".obj", ".ply", ".off")
 
 
 def load_mesh(path, *, units: str = "auto"):
     """Load a triangle mesh in metres as a trimesh.Trimesh.
 
-    units: 'm', 'mm' or 'auto' (STL files, which carry no units, are read as millimetres when their extent exceeds
-    MM_EXTENT_THRESHOLD_M metres). Scenes with several bodies are concatenated.
+    units: 'm', 'mm' or 'auto' (STL files, which carry no units, and the other UNITLESS_SUFFIXES are read as
+    millimetres when their extent exceeds MM_EXTENT_THRESHOLD_M metres). Scenes with several bodies are concatenated.
     """
     import trimesh
 
     path = Path(path)
     if not path.is_file():
-        raise MeshError(f"{path}: no such mesh file")
+        raise MeshError(f"{path}: {'is a folder, not' if path.is_dir() else 'no such'} mesh file")
     if units not in ("auto", "m", "mm"):
         raise MeshError(f"units {units!r} must be 'auto', 'm' or 'mm'")
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files; all mean "cannot read this mesh"
-        raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+        detail = " ".join(str(exc).split())
+        raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {detail})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise MeshError(f"{path}: holds no triangles")
     verts = np.asarray(loaded.vertices, dtype=np.float64)
     if not np.all(np.isfinite(verts)):
         raise MeshError(f"{path}: has non-finite vertex coordinates")
     scale = 1.0
-    if units == "mm" or (units == "auto" and path.suffix.lower() == ".stl"
+    if units == "mm" or (units == "auto" and path.suffix.lower() in UNITLESS_SUFFIXES
                          and np.ptp(verts, axis=0).max() > MM_EXTENT_THRESHOLD_M):
         scale = 1e-3
     mesh = trimesh.Trimesh(verts * scale, np.asarray(loaded.faces), process=True)
-    if len(mesh.faces) == 0:
-        raise MeshError(f"{path}: all triangles are degenerate")
+    if len(mesh.faces) == 0 or not mesh.area > 0:
+        raise MeshError(f"{path}: all triangles are degenerate (zero area)")
     return mesh

@@ -1,0 +1,89 @@
+"""load_mesh: metres in, millimetre files detected and scaled, one-line errors for files that are not meshes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from spadscan.protocol.errors import MeshError
+from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh
+
+
+def sphere(radius):
+    return trimesh.creation.icosphere(subdivisions=2, radius=radius)
+
+
+@pytest.mark.parametrize("name,kwargs", [("a.stl", {}), ("a.stl", {"file_type": "stl_ascii"}), ("a.obj", {}),
+                                         ("a.ply", {}), ("a.off", {})])
+def test_millimetre_files_are_scaled_to_metres(tmp_path, name, kwargs):
+    sphere(80.0).export(tmp_path / name, **kwargs)  # a 160 mm ball written in millimetres
+    mesh = load_mesh(tmp_path / name)
+    np.testing.assert_allclose(mesh.extents, 0.16, rtol=1e-3)
+
+
+@pytest.mark.parametrize("name", ["a.stl", "a.obj"])
+def test_metre_files_stay_in_metres(tmp_path, name):
+    sphere(0.08).export(tmp_path / name)
+    np.testing.assert_allclose(load_mesh(tmp_path / name).extents, 0.16, rtol=1e-3)
+
+
+def test_threshold_and_explicit_units(tmp_path):
+    # Just below the threshold: metres (a 4 m slab is odd but possible); just above: millimetres.
+    for size, expect in ((0.9 * MM_EXTENT_THRESHOLD_M, 0.9 * MM_EXTENT_THRESHOLD_M),
+                         (1.1 * MM_EXTENT_THRESHOLD_M, 1.1e-3 * MM_EXTENT_THRESHOLD_M)):
+        trimesh.creation.box([size, 0.1, 0.1]).export(tmp_path / "b.stl")
+        np.testing.assert_allclose(load_mesh(tmp_path / "b.stl").extents[0], expect, rtol=1e-6)
+    sphere(0.08).export(tmp_path / "small.stl")
+    np.testing.assert_allclose(load_mesh(tmp_path / "small.stl", units="mm").extents, 0.16e-3, rtol=1e-3)
+    sphere(80.0).export(tmp_path / "big.stl")
+    np.testing.assert_allclose(load_mesh(tmp_path / "big.stl", units="m").extents, 160, rtol=1e-3)
+    with pytest.raises(MeshError, match="units"):
+        load_mesh(tmp_path / "big.stl", units="inch")
+
+
+def test_glb_keeps_its_own_units(tmp_path):
+    # glTF is defined in metres: a large scene there is large, not millimetres.
+    trimesh.creation.box([8.0, 1.0, 1.0]).export(tmp_path / "room.glb")
+    np.testing.assert_allclose(load_mesh(tmp_path / "room.glb").extents[0], 8.0)
+
+
+def _write(path, data):
+    path.write_bytes(data if isinstance(data, bytes) else data.encode())
+    return path
+
+
+BAD = {
+    "empty.stl": (b"", "no triangles"),
+    "empty.obj": ("", "no triangles"),
+    "garbage.stl": (b"\x00" * 40 + b"junk" * 50, "no triangles"),
+    "points.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no triangles"),
+    "nan.obj": ("v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "non-finite"),
+    "flat.obj": ("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "degenerate"),
+    "index.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "cannot read"),
+    "mesh.xyzq": ("1 2 3\n", "cannot read"),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD))
+def test_bad_files_are_one_line_errors_naming_the_file(tmp_path, name):
+    data, why = BAD[name]
+    path = _write(tmp_path / name, data)
+    with pytest.raises(MeshError, match=why) as info:
+        load_mesh(path)
+    assert "\n" not in str(info.value) and name in str(info.value)
+
+
+def test_missing_file_and_folder(tmp_path):
+    with pytest.raises(MeshError, match="no such mesh file"):
+        load_mesh(tmp_path / "missing.obj")
+    (tmp_path / "dir.obj").mkdir()
+    with pytest.raises(MeshError, match="folder"):
+        load_mesh(tmp_path / "dir.obj")
+
+
+def test_dataset_ground_truths_load_in_metres(lcspc_dataset):
+    bunny = load_mesh(lcspc_dataset / "simulated" / "bunny" / "bunny.obj")
+    assert 0.15 < bunny.extents[2] < 0.35 and abs(bunny.bounds[0, 2]) < 0.01
+    pyramid = load_mesh(lcspc_dataset / "real" / "pyramid" / "pyramid2.stl")  # metres, table slab ~2 m
+    assert 1.0 < pyramid.extents.max() < 3.0
