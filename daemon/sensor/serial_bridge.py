@@ -1,0 +1,176 @@
+"""The TMF8820 behind an Arduino bridge that prints the sensor's records as text lines over USB serial (pyserial).
+
+Line format (one record per line, fields separated by commas, an optional trailing comma, `\\n` or `\\r\\n`):
+
+    #Raw,<i2c addr>,<sub-packet 0..29>,<128 byte values 0..255>          131 fields
+    #Obj,<i2c addr>,<result no>,<temperature C>,<n valid>,<systick>,
+         <distance mm>,<confidence> x 36                                  78 fields
+    #Obj                                                                  a separator, ignored
+    #Err,<text...>   #Vers,<text...>                                      status lines
+
+The bridge has no checksum: a line is accepted when its tag, field count and every value are well-formed and in
+range; anything else (a partial line after a mid-line start or an unplug, two lines run together, line noise) is
+skipped and counted, and the frame it belonged to is dropped by the frame assembler.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+
+import serial
+
+from spadscan.protocol.sensor_model import SensorModel
+
+from .tmf8820 import TMF8820
+from .transport import (N_RESULTS, N_SUBPACKETS, SUBPACKET_BYTES, HistogramPacket, LinkDown, Packet, ResultPacket,
+                        StatusPacket, Transport)
+
+RAW_FIELDS = 3 + SUBPACKET_BYTES
+OBJ_FIELDS = 6 + 2 * N_RESULTS
+MAX_LINE_BYTES = 4096
+"""A line longer than this without a newline is garbage (a #Raw line is at most ~520 bytes)."""
+
+
+def _uint(field: bytes, limit: int) -> int:
+    """A decimal integer in [0, limit]; ValueError otherwise (no signs, spaces or other bytes)."""
+    if not field.isdigit() or len(field) > 10:
+        raise ValueError(field)
+    v = int(field)
+    if v > limit:
+        raise ValueError(field)
+    return v
+
+
+def parse_line(line: bytes, t: float, address: int | None) -> Packet | str:
+    """Decode one line (without its newline). Returns a packet, or a string naming why the line was skipped:
+    'corrupt', 'separator', 'other_address', 'unknown'."""
+    line = line.rstrip(b"\r")
+    fields = line.split(b",")
+    if len(fields) > 1 and fields[-1] == b"":
+        fields.pop()  # the bridge ends some lines with a comma
+    tag = fields[0]
+    try:
+        if tag == b"#Raw":
+            if len(fields) != RAW_FIELDS:
+                return "corrupt"
+            addr, index = _uint(fields[1], 127), _uint(fields[2], N_SUBPACKETS - 1)
+            payload = bytes(_uint(f, 255) for f in fields[3:])
+            if address is not None and addr != address:
+                return "other_address"
+            return HistogramPacket(index=index, payload=payload, t=t)
+        if tag == b"#Obj":
+            if len(fields) == 1:
+                return "separator"
+            if len(fields) != OBJ_FIELDS:
+                return "corrupt"
+            addr = _uint(fields[1], 127)
+            temp = float(fields[3])
+            if not -60.0 <= temp <= 150.0:
+                return "corrupt"
+            pairs = [_uint(f, 65535) for f in fields[6:]]
+            if any(c > 255 for c in pairs[1::2]):
+                return "corrupt"
+            if address is not None and addr != address:
+                return "other_address"
+            return ResultPacket(result_no=_uint(fields[2], 255), temperature_c=temp,
+                                n_valid=_uint(fields[4], N_RESULTS), systick=_uint(fields[5], 2**32 - 1),
+                                distances_mm=pairs[0::2], confidences=pairs[1::2], t=t)
+        if tag in (b"#Err", b"#Vers"):
+            text = b",".join(fields[1:]).decode("ascii", "replace")
+            return StatusPacket(kind="error" if tag == b"#Err" else "version", text=text, t=t)
+    except ValueError:
+        return "corrupt"
+    return "corrupt" if not tag.startswith(b"#") or len(tag) > 8 else "unknown"
+
+
+class SerialBridgeTransport(Transport):
+    """pyserial link to the bridge: splits the byte stream into lines, timestamps and parses them.
+
+    The port is reopened by path after an unplug (use a stable path such as /dev/serial/by-id/...). Counters:
+    lines, corrupt_lines, unknown_lines, other_address_lines, separators, overlong_lines.
+    """
+
+    def __init__(self, port: str, baud: int = 1_000_000, address: int | None = 0x41):
+        self.port = str(port)
+        self.baud = int(baud)
+        self.address = address
+        self.name = f"serial {self.port}"
+        self._ser: serial.Serial | None = None
+        self._buf = bytearray()
+        self._pending: collections.deque[tuple[bytes, float]] = collections.deque()
+        self._counts = {"lines": 0, "corrupt_lines": 0, "unknown_lines": 0, "other_address_lines": 0,
+                        "separators": 0, "overlong_lines": 0}
+
+    def open(self) -> None:
+        if self._ser is not None:
+            return
+        try:
+            ser = serial.Serial(self.port, self.baud, timeout=0.05)
+            ser.reset_input_buffer()  # bytes that waited in the OS buffer would get false arrival times
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LinkDown(f"cannot open port at {self.baud} baud: {exc}") from None
+        self._ser = ser
+        self._buf.clear()
+        self._pending.clear()
+
+    def read_packet(self, timeout_s: float) -> Packet | None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            while self._pending:
+                line, t = self._pending.popleft()
+                self._counts["lines"] += 1
+                out = parse_line(line, t, self.address)
+                if not isinstance(out, str):
+                    return out
+                key = "separators" if out == "separator" else f"{out}_lines"
+                self._counts[key] += 1
+            if time.monotonic() >= deadline:
+                return None
+            self._fill(deadline)
+
+    def _fill(self, deadline: float) -> None:
+        """Read what the port has (waiting at most until deadline) and split complete lines into _pending."""
+        if self._ser is None:
+            raise LinkDown("port is not open")
+        try:
+            self._ser.timeout = max(0.0, min(0.05, deadline - time.monotonic()))
+            chunk = self._ser.read(max(1, self._ser.in_waiting))
+        except (serial.SerialException, OSError) as exc:
+            raise LinkDown(f"read failed: {exc}") from None
+        if not chunk:
+            return
+        t = time.monotonic()
+        self._buf += chunk
+        *lines, rest = self._buf.split(b"\n")
+        self._pending.extend((bytes(line), t) for line in lines if line.strip())
+        self._buf = bytearray(rest)
+        if len(self._buf) > MAX_LINE_BYTES:
+            self._counts["overlong_lines"] += 1
+            self._buf.clear()
+
+    def close(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except (serial.SerialException, OSError):
+                pass
+
+    def counters(self) -> dict:
+        return dict(self._counts)
+
+
+class SerialSensor(TMF8820):
+    """A TMF8820 on an Arduino bridge at `port` (1,000,000 baud; some sketches use 115,200).
+
+    frame_timeout_s: a frame not complete this long after its first line is dropped. link_grace_s: how long the port
+    may be gone (unplugged) before next_frame raises LinkLost; it is reopened with backoff meanwhile. address: the
+    sensor's I2C address printed on each line (None accepts any).
+    """
+
+    def __init__(self, port: str, baud: int = 1_000_000, *, model: SensorModel | None = None,
+                 frame_timeout_s: float = 2.0, link_grace_s: float = 5.0, address: int | None = 0x41,
+                 queue_frames: int = 256):
+        super().__init__(SerialBridgeTransport(port, baud, address), model=model, frame_timeout_s=frame_timeout_s,
+                         link_grace_s=link_grace_s, queue_frames=queue_frames)

@@ -1,0 +1,218 @@
+"""The TMF8820 as a `Sensor`: frame assembly and health over any transport, in one dedicated reader thread.
+
+The reader thread runs from `prepare` to `release`: it reads packets as they arrive (so that arrival times are
+true even while nobody asks for frames, e.g. while the arm moves), assembles frames and queues them for
+`next_frame`. When the link fails it closes the transport and reopens it with exponential backoff; `next_frame`
+raises `LinkLost` only once the link has been down longer than `link_grace_s`, and frames flow again after a
+replug. All transport calls (open, start, reads, stop, close) run in that same thread, one at a time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+from spadscan.daemon.devices import Frame, LinkLost, Sensor, SensorSilent
+from spadscan.protocol.errors import DeviceError, SpadscanError
+from spadscan.protocol.sensor_model import SensorModel
+from spadscan.protocol.sensor_presets import sensor_preset
+
+from .assembly import FrameAssembler
+from .transport import N_CHANNELS, SUBPACKET_BYTES, LinkDown, Transport
+
+READ_SLICE_S = 0.05
+"""Longest single blocking read, so that the reader notices `release` promptly."""
+
+
+class TMF8820(Sensor):
+    """A TMF8820 (3x3 zones, 128 bins, reference channel) behind `transport`.
+
+    model: the sensor model frames are described by (default: the `tmf8820` preset); it must have 9 zones of 128
+    bins. frame_timeout_s: a frame not completed this long after its first sub-packet is dropped. link_grace_s: how
+    long the link may be down before `next_frame` raises LinkLost. start_timeout_s: limit for opening and starting
+    the link in `connect`/`prepare`. queue_frames: frames kept for `next_frame`; older ones are dropped (counted).
+    """
+
+    def __init__(self, transport: Transport, *, model: SensorModel | None = None, frame_timeout_s: float = 2.0,
+                 link_grace_s: float = 5.0, start_timeout_s: float = 30.0, queue_frames: int = 256,
+                 backoff_s: tuple[float, float] = (0.05, 2.0)):
+        self.model = model if model is not None else sensor_preset("tmf8820")
+        if self.model.n_zones != N_CHANNELS - 1 or self.model.n_bins != SUBPACKET_BYTES:
+            raise DeviceError(f"sensor {transport.name}: a TMF8820 delivers 9 zones x 128 bins, but the sensor model "
+                              f"{self.model.name!r} has {self.model.n_zones} zones x {self.model.n_bins} bins")
+        if not (link_grace_s >= 0 and start_timeout_s > 0 and queue_frames >= 1):
+            raise DeviceError(f"sensor {transport.name}: link grace {link_grace_s} s, start timeout "
+                              f"{start_timeout_s} s and queue {queue_frames} frames must be positive")
+        self.transport = transport
+        self.name = f"sensor {transport.name}"
+        self.link_grace_s = link_grace_s
+        self.start_timeout_s = start_timeout_s
+        self.backoff_s = backoff_s
+        self._assembler = FrameAssembler(frame_timeout_s, t0=time.monotonic())
+        self._frames: collections.deque[Frame] = collections.deque()
+        self._queue_frames = queue_frames
+        self._executor: ThreadPoolExecutor | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._wake: asyncio.Event | None = None
+        self._stop = threading.Event()
+        self._reader: asyncio.Future | None = None
+        self._connected = False
+        self._down_since: float | None = None
+        self._failure: BaseException | None = None
+        self._stats = {"frames_delivered": 0, "frames_overflowed": 0, "silent_timeouts": 0, "link_drops": 0,
+                       "reconnects": 0, "reconnect_failures": 0}
+        self._last_error = ""
+
+    # ---- lifecycle -----------------------------------------------------------------------------------------------
+    async def connect(self) -> None:
+        if self._connected:
+            return
+        self._loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"spadscan-{self.name}")
+        await self._call(self.transport.open, "the link to open")
+        self._connected = True
+
+    async def prepare(self) -> None:
+        if self._reader is not None:
+            return
+        if not self._connected:
+            await self.connect()
+        await self._call(self.transport.start, "the sensor to start measuring")
+        self._assembler.reset(time.monotonic())
+        self._frames.clear()
+        self._stop.clear()
+        self._reader = self._loop.run_in_executor(self._executor, self._read_loop)
+
+    async def release(self) -> None:
+        if self._reader is not None:
+            self._stop.set()
+            try:
+                await asyncio.wait_for(asyncio.shield(self._reader), READ_SLICE_S * 20 + 5.0)
+            except asyncio.TimeoutError:
+                raise DeviceError(f"{self.name}: reader thread did not stop within "
+                                  f"{READ_SLICE_S * 20 + 5.0:.1f} s") from None
+            finally:
+                self._reader = None
+        if self._connected and self._down_since is None:
+            await self._call(self.transport.stop, "the sensor to stop measuring", quiet=True)
+
+    async def close(self) -> None:
+        if self._reader is not None:
+            await self.release()
+        if self._executor is not None:
+            await self._call(self.transport.close, "the link to close", quiet=True)
+            self._executor.shutdown(wait=True)
+            self._executor = None
+        self._connected = False
+
+    # ---- frames --------------------------------------------------------------------------------------------------
+    async def next_frame(self, timeout_s: float) -> Frame:
+        if self._reader is None or self._wake is None:
+            raise DeviceError(f"{self.name}: next_frame before prepare (the sensor is not streaming)")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if self._frames:
+                self._stats["frames_delivered"] += 1
+                return self._frames.popleft()
+            if self._failure is not None:
+                raise DeviceError(f"{self.name}: reader stopped: {self._failure}")
+            now = time.monotonic()
+            down = self._down_since
+            if down is not None and now - down >= self.link_grace_s:
+                raise LinkLost(f"{self.name}: link down for {now - down:.1f} s (grace {self.link_grace_s:g} s; "
+                               f"{self._last_error or 'no detail'}); still trying to reconnect")
+            if now >= deadline:
+                self._stats["silent_timeouts"] += 1
+                raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s")
+            self._wake.clear()
+            if self._frames or self._failure is not None:
+                continue
+            wait = deadline - now
+            if down is not None:
+                wait = min(wait, down + self.link_grace_s - now)
+            try:
+                await asyncio.wait_for(self._wake.wait(), max(wait, 0.0))
+            except asyncio.TimeoutError:
+                pass
+
+    def counters(self) -> dict:
+        out = {**self._assembler.counters(), **self.transport.counters(), **self._stats}
+        out["queued"] = len(self._frames)
+        out["link"] = "down" if self._down_since is not None else "up"
+        if self._last_error:
+            out["last_link_error"] = self._last_error
+        return out
+
+    # ---- the reader thread ---------------------------------------------------------------------------------------
+    def _read_loop(self) -> None:
+        try:
+            while not self._stop.is_set():
+                try:
+                    pkt = self.transport.read_packet(READ_SLICE_S)
+                except LinkDown as exc:
+                    self._link_down(exc)
+                    continue
+                if pkt is not None:
+                    frame = self._assembler.feed(pkt)
+                    if frame is not None:
+                        self._push(frame)
+        except BaseException as exc:  # a bug or an unexpected library error: report it through next_frame
+            self._failure = exc
+            self._notify()
+
+    def _push(self, frame: Frame) -> None:
+        if len(self._frames) >= self._queue_frames:
+            self._frames.popleft()
+            self._stats["frames_overflowed"] += 1
+        self._frames.append(frame)
+        self._notify()
+
+    def _notify(self) -> None:
+        try:
+            self._loop.call_soon_threadsafe(self._wake.set)
+        except RuntimeError:  # the loop is closed: nobody is waiting
+            pass
+
+    def _link_down(self, exc: Exception) -> None:
+        """Close the link and reopen it with exponential backoff until it is back or the device is released."""
+        self._stats["link_drops"] += 1
+        self._last_error = str(exc)
+        self._down_since = time.monotonic()
+        self._assembler.reset(self._down_since)
+        self._notify()
+        delay = self.backoff_s[0]
+        while not self._stop.is_set():
+            self.transport.close()
+            try:
+                self.transport.open()
+                self.transport.start()
+            except SpadscanError as err:  # LinkDown, or a boot error after a power loss
+                self._stats["reconnect_failures"] += 1
+                self._last_error = str(err)
+                self._stop.wait(delay)
+                delay = min(delay * 2, self.backoff_s[1])
+                continue
+            self._stats["reconnects"] += 1
+            self._assembler.reset(time.monotonic())
+            self._down_since = None
+            self._notify()
+            return
+
+    async def _call(self, fn, what: str, quiet: bool = False) -> None:
+        """Run a blocking transport call in the device's thread, limited to start_timeout_s."""
+        fut = self._loop.run_in_executor(self._executor, fn)
+        try:
+            await asyncio.wait_for(fut, self.start_timeout_s)
+        except asyncio.TimeoutError:
+            raise DeviceError(f"{self.name}: timed out after {self.start_timeout_s:g} s waiting for {what}") from None
+        except SpadscanError as exc:
+            if quiet:
+                self._last_error = str(exc)
+                return
+            # Transports word their errors without naming themselves; the device adds its name.
+            raise (DeviceError if isinstance(exc, LinkDown) else type(exc))(f"{self.name}: {exc}") from None

@@ -1,0 +1,102 @@
+"""The small byte-level interface between the TMF8820 device logic and the link that carries its data.
+
+A transport delivers the sensor's records one at a time: histogram sub-packets (128 raw bytes each, 30 per frame)
+and result records (on-chip distances). The serial bridge, the I2C bus and their simulated twins implement it; the
+`TMF8820` class assembles frames from what they deliver and owns the threading, timeouts and reconnection.
+
+Every method blocks and is called from the device's one dedicated thread only, never from the event loop.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+from spadscan.protocol.errors import DeviceError
+
+N_SUBPACKETS = 30
+"""Histogram sub-packets per frame: 10 channels x 3 byte planes."""
+SUBPACKET_BYTES = 128
+"""Payload bytes per sub-packet: one byte plane of 128 bins."""
+N_CHANNELS = 10
+"""Channel 0 is the reference histogram, channels 1..9 the 3x3 zones."""
+N_RESULTS = 36
+"""Result slots (distance, confidence) in one result record."""
+
+
+class LinkDown(DeviceError):
+    """The link failed under a transport (port vanished, bus error). The device reopens it with backoff."""
+
+
+@dataclass
+class HistogramPacket:
+    """One histogram sub-packet: `index` 0..29 (channel index % 10, byte plane index // 10), 128 payload bytes.
+
+    `t` is the monotonic time (s) the packet arrived.
+    """
+
+    index: int
+    payload: bytes
+    t: float
+
+
+@dataclass
+class ResultPacket:
+    """One result record: the sensor's own distance estimates that close a frame.
+
+    distances_mm / confidences: 36 entries each; `t` is the monotonic arrival time (s).
+    """
+
+    result_no: int
+    temperature_c: float
+    n_valid: int
+    systick: int
+    distances_mm: list[int]
+    confidences: list[int]
+    t: float
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class StatusPacket:
+    """A message from the link that is not data: kind 'error' (`#Err`) or 'version' (`#Vers`), with its text."""
+
+    kind: str
+    text: str
+    t: float
+
+
+Packet = HistogramPacket | ResultPacket | StatusPacket
+
+
+class Transport(abc.ABC):
+    """A link to one TMF8820. Implementations count what they skip in `counters()`.
+
+    Lifecycle: open -> start -> read_packet ... -> stop -> close. After a `LinkDown` the device calls close, then
+    open and start again (with backoff) until the link is back.
+    """
+
+    name: str = "transport"
+    """Human-readable name of the link (port, bus and address), used in error messages."""
+
+    @abc.abstractmethod
+    def open(self) -> None:
+        """Open the link. Raises LinkDown when the port or bus is not there (yet)."""
+
+    def start(self) -> None:
+        """Bring the sensor to streaming frames (boot, configure, start measuring). Default: nothing to do."""
+
+    @abc.abstractmethod
+    def read_packet(self, timeout_s: float) -> Packet | None:
+        """The next well-formed record, or None when none arrived within timeout_s. Raises LinkDown."""
+
+    def stop(self) -> None:
+        """Stop measuring (best effort). Default: nothing to do."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Close the link; idempotent, never raises."""
+
+    def counters(self) -> dict:
+        """What the link skipped or saw (corrupt lines, bad records, ...): name -> int or str."""
+        return {}
