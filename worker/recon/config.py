@@ -1,0 +1,183 @@
+"""Reconstruction configs as dataclasses, and the one registry of presets.
+
+A preset is a function returning a fully resolved `ReconConfig`; the resolved config is saved with every result
+(`to_dict`). The presets share every part except the field and its schedule: `field` and `schedule` hold the preset's
+own dataclasses, and `model_factory` names the function that builds the preset's model (see `model_api`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from .errors import ReconstructionError
+
+
+@dataclass
+class RaysConfig:
+    """How rays and samples are drawn."""
+
+    rays_per_view: int = 512
+    """Rays stratified uniformly in solid angle per view, split evenly over the zones of a multi-zone sensor."""
+    importance_rays_per_view: int = 64
+    """Extra rays per view drawn where the previous step saw most signal (balance-heuristic weights keep the
+    estimate unbiased)."""
+    min_rays_per_zone: int = 16
+    """Floor on stratified rays per zone when `rays_per_view` is split over many zones."""
+    samples_per_ray: int = 256
+    """Stratified samples per ray between the ray's entry into and exit from the scene box."""
+    importance_samples: int = 32
+    """Extra samples per ray drawn from the coarse opacity (inverse-CDF, no gradient)."""
+    views_per_batch: int = 2
+    """Views rendered per optimisation step."""
+    near_m: float = 0.01
+    """Samples closer than this to the sensor (metres) are never drawn."""
+
+
+@dataclass
+class LossConfig:
+    """What the optimiser minimises."""
+
+    kind: str = "l2"
+    """'l2': squared error between measured counts / cycles and predicted detections per cycle (the paper's loss);
+    'nll': negative log-likelihood (multinomial with pile-up, or Poisson)."""
+    eikonal_weight: float = 0.1
+    """Weight of mean (|grad f| - 1)^2."""
+    eikonal_points: int = 512
+    """Random points in the scene box added to the ray samples for the Eikonal term."""
+    tv_weight: float = 0.01
+    """Weight of the normal-smoothness (total variation) term; used only where the terms say `tv` (real data)."""
+
+
+@dataclass
+class OptimConfig:
+    """Adam with linear warm-up and cosine decay."""
+
+    lr: float = 5e-4
+    """Peak learning rate."""
+    nominal_steps: int = 300_000
+    """Steps the schedule is laid out for when the run gives no step count (the paper's 300K)."""
+    warmup_steps: int = 5000
+    """Linear warm-up steps (shortened to 2% of the horizon on short runs)."""
+    lr_floor: float = 0.05
+    """The cosine decays to this fraction of `lr`."""
+
+
+@dataclass
+class SharpnessConfig:
+    """Opacity sharpness s of the NeuS-style renderer, in 1 / (scene half-size) units."""
+
+    init: float = 20.0
+    """Initial s."""
+    learned: bool = True
+    """Whether s is optimised (the paper) or fixed."""
+    min: float = 1.0
+    """Lower clamp."""
+    max: float = 1.0e4
+    """Upper clamp (the renderer stays finite far past it; see tests)."""
+    upsample: float = 64.0
+    """Sharpness floor used only to place importance samples."""
+
+
+@dataclass
+class ReconConfig:
+    """Everything a reconstruction run needs besides the capture."""
+
+    preset: str
+    """Registry name."""
+    model_factory: str
+    """'module:function' building the model: f(scene: SceneData, config: ReconConfig, device, plan: RunPlan) -> model
+    implementing `model_api.ReconModel`."""
+    field: Any
+    """The preset's field config (a dataclass)."""
+    schedule: Any = None
+    """The preset's own schedule (a dataclass), or None."""
+    rays: RaysConfig = field(default_factory=RaysConfig)
+    """Ray and sample counts."""
+    loss: LossConfig = field(default_factory=LossConfig)
+    """Loss terms and weights."""
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    """Optimiser and learning-rate schedule."""
+    sharpness: SharpnessConfig = field(default_factory=SharpnessConfig)
+    """Opacity sharpness."""
+    albedo_init: float = 1.0
+    """Initial (learned) Lambertian albedo of the object; the table has its own."""
+    mesh_resolution: int = 256
+    """Marching-cubes grid cells along the longest side of the scene box for the final mesh."""
+    dtype: str = "float32"
+    """Tensor dtype of the optimisation ('float32' or 'float64')."""
+    trace_points: int = 30_000
+    """Points sampled per mesh for the Chamfer at trace checkpoints (the final metrics use the full count)."""
+    trace_checkpoints: int = 12
+    """Checkpoints per run at regular training-clock intervals (their evaluation time is not counted)."""
+    trace_mesh_resolution: int = 96
+    """Marching-cubes resolution of the meshes extracted at checkpoints."""
+
+    def to_dict(self) -> dict:
+        """JSON-able form of the resolved config."""
+        return dataclasses.asdict(self)
+
+
+def with_overrides(config: ReconConfig, overrides: dict[str, Any]) -> ReconConfig:
+    """A copy of `config` with dotted keys replaced, e.g. {'rays.samples_per_ray': 32, 'field.width': 64}."""
+    config = _deep_copy(config)
+    for key, value in overrides.items():
+        *path, name = key.split(".")
+        obj = config
+        for part in path:
+            obj = getattr(obj, part, None)
+            if obj is None or not dataclasses.is_dataclass(obj):
+                raise ReconstructionError(f"config override {key!r}: {part!r} is not a config section")
+        if not any(f.name == name for f in dataclasses.fields(obj)):
+            raise ReconstructionError(f"config override {key!r}: no field {name!r} in {type(obj).__name__}")
+        setattr(obj, name, value)
+    return config
+
+
+def _deep_copy(obj):
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.replace(obj, **{f.name: _deep_copy(getattr(obj, f.name)) for f in dataclasses.fields(obj)
+                                           if f.init})
+    return obj
+
+
+def _paper() -> ReconConfig:
+    from .paper.config import paper_config
+
+    return paper_config()
+
+
+def _fast() -> ReconConfig:
+    try:
+        module = importlib.import_module("spadscan.worker.recon.fast.config")
+    except ModuleNotFoundError as exc:
+        if exc.name and exc.name.startswith("spadscan.worker.recon.fast"):
+            raise ReconstructionError("preset 'fast' is not installed (spadscan.worker.recon.fast.config is "
+                                      "missing); use --preset paper") from None
+        raise
+    return module.fast_config()
+
+
+PRESETS: dict[str, Callable[[], ReconConfig]] = {"paper": _paper, "fast": _fast}
+"""Preset name -> function returning its resolved config."""
+
+
+def preset_config(name: str) -> ReconConfig:
+    """The config of preset `name`; a one-line error lists the known names."""
+    try:
+        make = PRESETS[name]
+    except KeyError:
+        raise ReconstructionError(f"unknown preset {name!r} (known: {', '.join(PRESETS)})") from None
+    return make()
+
+
+def load_factory(config: ReconConfig) -> Callable:
+    """Import the function named by `config.model_factory` ('module:function')."""
+    module_name, _, func = config.model_factory.partition(":")
+    try:
+        return getattr(importlib.import_module(module_name), func)
+    except (ImportError, AttributeError) as exc:
+        raise ReconstructionError(f"preset {config.preset!r}: cannot load model factory "
+                                  f"{config.model_factory!r} ({exc})") from None

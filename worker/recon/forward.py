@@ -1,0 +1,192 @@
+"""The sensor model in torch: range binning, pulse, zone gains, crosstalk, background, pile-up and likelihoods.
+
+Units. A *transient* holds, per bin, sum over rays of (ray solid angle) x (albedo / pi) x cos(incidence) / r^2 for
+the returns whose range falls in the bin (what `render.render_rays` produces times the ray weights). The rate is
+`lambda = signal_scale * pi * gain_z * (transient * pulse) + crosstalk * sum_z' (...) + background` photons per bin
+per cycle, so that `signal_scale` keeps the sensor model's meaning (photons per cycle per unit albedo per sr/m^2).
+
+Time axis. Bin i covers bin coordinates [i, i + 1); a return at range r arrives at `zero_bin + r / bin_width_m`.
+The pulse kernel's entry `origin + k` is the response averaged over [k - 0.5, k + 0.5) bins after the arrival, so a
+return is split linearly between the two bins whose centres bracket its arrival, then convolved with the kernel.
+Transients are binned on an extended axis of B + K - 1 bins (`pad_lo` before bin 0, `pad_hi` after bin B - 1) so
+that pulses starting before or ending after the recorded window leak into it as they should.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+
+from spadscan.protocol.sensor_model import SensorModel
+
+from .errors import ReconstructionError
+
+PILEUP_THRESHOLD = 0.01
+"""Pile-up is modelled when some histogram's detections use more than this fraction of its cycles: bins at the end
+of that histogram then read at least this much low."""
+RATE_FLOOR = 1e-12
+"""Smallest rate (photons per bin per cycle) the likelihoods ever see."""
+
+
+@dataclass
+class ModelTerms:
+    """Which parts of the sensor model a reconstruction uses (decided from the capture, listed in the report)."""
+
+    pileup: bool
+    """First-photon (Coates) pile-up."""
+    crosstalk: bool
+    """Light leaking between zones (multi-zone sensors)."""
+    table: bool
+    """A table plane under the object."""
+    tv: bool
+    """Total-variation (normal smoothness) regulariser (measured data)."""
+    reference_pulse: bool
+    """Pulse taken from the capture's reference histograms."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def choose_terms(scene) -> ModelTerms:
+    """Terms for a SceneData: pile-up when the sensor stops at its first photon and some histogram's detections
+    exceed PILEUP_THRESHOLD of its cycles; crosstalk for multi-zone sensors with a crosstalk fraction; the table when
+    the manifest names one; TV on measured data; the reference pulse when the capture provided it."""
+    sensor = scene.sensor
+    used = (scene.counts * scene.valid).sum(-1) / scene.cycles[:, None]
+    return ModelTerms(
+        pileup=bool(sensor.pileup and float(used.max()) > PILEUP_THRESHOLD),
+        crosstalk=bool(sensor.n_zones > 1 and sensor.crosstalk > 0),
+        table=scene.table is not None,
+        tv=bool(scene.real),
+        reference_pulse=scene.pulse_source == "reference",
+    )
+
+
+class TransientForward(torch.nn.Module):
+    """From rendered returns to per-bin rates and likelihoods, for one sensor model. Z zones, B bins."""
+
+    def __init__(self, sensor: SensorModel, terms: ModelTerms, pulse: torch.Tensor, pulse_origin: int):
+        super().__init__()
+        pulse = torch.as_tensor(pulse)
+        if pulse.ndim != 1 or pulse.numel() == 0 or not bool(torch.isfinite(pulse).all()) or float(pulse.sum()) <= 0:
+            raise ReconstructionError(f"pulse kernel must be a non-empty finite 1-D array, got {tuple(pulse.shape)}")
+        if not 0 <= pulse_origin < pulse.numel():
+            raise ReconstructionError(f"pulse origin {pulse_origin} lies outside the kernel (0..{pulse.numel() - 1})")
+        self.sensor, self.terms = sensor, terms
+        self.n_bins = sensor.n_bins
+        self.pad_lo = pulse.numel() - 1 - pulse_origin
+        self.pad_hi = pulse_origin
+        self.n_ext = self.n_bins + pulse.numel() - 1
+        self.register_buffer("kernel", (pulse / pulse.sum()).flip(0).reshape(1, 1, -1).clone())
+        self.register_buffer("gain", torch.tensor([z.gain for z in sensor.zones], dtype=pulse.dtype))
+        self.power = sensor.signal_scale * math.pi
+        self.crosstalk = sensor.crosstalk if terms.crosstalk else 0.0
+
+    # ---- rendering to rates ----------------------------------------------------------------------------------------
+    def bin(self, ranges_m: torch.Tensor, radiance: torch.Tensor, hist_id: torch.Tensor, n_hist: int) -> torch.Tensor:
+        """Scatter returns into histograms with linear (sub-bin) interpolation.
+
+        ranges_m (N,) one-way metres; radiance (N,) weighted returns; hist_id (N,) long in [0, n_hist).
+        Returns (n_hist, n_ext) transients on the extended axis (differentiable in radiance and ranges).
+        """
+        s = self.sensor
+        u = (s.zero_bin - 0.5 + self.pad_lo) + ranges_m / s.bin_width_m
+        u = torch.nan_to_num(u, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2.0, self.n_ext + 1.0)
+        j = torch.floor(u.detach())
+        f = u - j
+        j = j.long()
+        out = torch.zeros(n_hist * self.n_ext, dtype=radiance.dtype, device=radiance.device)
+        base = hist_id.long() * self.n_ext
+        for idx, w in ((j, 1.0 - f), (j + 1, f)):
+            ok = (idx >= 0) & (idx < self.n_ext)
+            out = out.index_add(0, (base + idx.clamp(0, self.n_ext - 1))[ok], (radiance * w)[ok])
+        return out.reshape(n_hist, self.n_ext)
+
+    def rates(self, transient: torch.Tensor, background: torch.Tensor | float) -> torch.Tensor:
+        """Photon rates per bin per cycle.
+
+        transient: (V, Z, n_ext) from `bin` (or (V, Z, B), taken as zero outside the window); background: (V, Z) or
+        a scalar, photons per bin per cycle. Returns lam (V, Z, B), everywhere >= RATE_FLOOR.
+        """
+        v, z, n = transient.shape
+        if n == self.n_bins:
+            transient = F.pad(transient, (self.pad_lo, self.pad_hi))
+        elif n != self.n_ext:
+            raise ReconstructionError(f"transient has {n} bins; expected {self.n_bins} or {self.n_ext}")
+        if z != len(self.gain):
+            raise ReconstructionError(f"transient has {z} zones; the sensor model has {len(self.gain)}")
+        sig = F.conv1d(transient.reshape(v * z, 1, -1), self.kernel.to(transient.dtype)).reshape(v, z, self.n_bins)
+        sig = self.power * self.gain.to(sig.dtype)[None, :, None] * sig
+        if self.crosstalk:
+            sig = sig + self.crosstalk * sig.sum(dim=1, keepdim=True)
+        bg = torch.as_tensor(background, dtype=sig.dtype, device=sig.device)
+        bg = bg[..., None] if bg.ndim == 2 else bg
+        return (sig + bg).clamp_min(RATE_FLOOR)
+
+    # ---- rates to detections and likelihoods ---------------------------------------------------------------------
+    def detections(self, lam: torch.Tensor) -> torch.Tensor:
+        """Expected detections per cycle (V, Z, B): first-photon probabilities when pile-up is on, else lam;
+        blurred by the sensor's timing jitter."""
+        if self.terms.pileup:
+            p = -torch.expm1(-lam) * torch.exp(-_before(lam))
+        else:
+            p = lam
+        return self._jitter(p)
+
+    def expected_counts(self, lam: torch.Tensor, cycles: torch.Tensor) -> torch.Tensor:
+        """Expected counts (V, Z, B) over cycles (V,) laser cycles."""
+        return self.detections(lam) * cycles[:, None, None]
+
+    def nll(self, lam: torch.Tensor, counts: torch.Tensor, cycles: torch.Tensor,
+            valid: torch.Tensor | None = None) -> torch.Tensor:
+        """Negative log-likelihood of counts (V, Z, B) over cycles (V,), as a deviance (0 for a perfect fit),
+        summed over valid bins and averaged over histograms.
+
+        Multinomial over bins plus a 'no photon' outcome when pile-up is on (log p_b = log(1 - e^-lam_b) -
+        sum_{j<b} lam_j, computed with log1p/expm1 and a float64 cumulative sum), Poisson otherwise. Finite for any
+        rates >= 0, however small or large."""
+        lam = lam.clamp_min(RATE_FLOOR)
+        valid = torch.ones_like(counts, dtype=torch.bool) if valid is None else valid
+        n = cycles[:, None, None].to(lam.dtype)
+        c = counts.to(lam.dtype)
+        if self.terms.pileup:
+            if self.sensor.jitter_bins > 0:
+                logp = torch.log(self.detections(lam).clamp_min(1e-300 if lam.dtype == torch.float64 else 1e-38))
+            else:
+                logp = _log_hit(lam) - _before(lam)
+            terms = torch.where(valid, torch.xlogy(c, c / n) - c * logp, torch.zeros_like(c))
+            miss_c = (n[..., 0] - c.sum(-1)).clamp_min(0.0)
+            log_miss = -lam.sum(-1, dtype=torch.float64).to(lam.dtype)
+            miss = torch.xlogy(miss_c, miss_c / n[..., 0]) - miss_c * log_miss
+            total = terms.sum(-1) + miss
+        else:
+            mu = self._jitter(lam) * n
+            total = torch.where(valid, mu - c + torch.xlogy(c, c) - c * torch.log(mu), torch.zeros_like(c)).sum(-1)
+        return total.mean()
+
+    def _jitter(self, p: torch.Tensor) -> torch.Tensor:
+        sigma = self.sensor.jitter_bins
+        if sigma < 1e-3:
+            return p
+        half = int(math.ceil(5 * sigma))
+        x = torch.arange(-half, half + 1, dtype=p.dtype, device=p.device)
+        k = torch.exp(-0.5 * (x / sigma) ** 2)
+        k = (k / k.sum()).reshape(1, 1, -1)
+        v, z, b = p.shape
+        return F.conv1d(F.pad(p.reshape(v * z, 1, b), (half, half)), k).reshape(v, z, b)
+
+
+def _before(lam: torch.Tensor) -> torch.Tensor:
+    """sum_{j<b} lam_j along the last axis, accumulated in float64 (long histograms), >= 0."""
+    csum = torch.cumsum(lam.double(), dim=-1)
+    return (csum - lam.double()).clamp_min(0.0).to(lam.dtype)
+
+
+def _log_hit(lam: torch.Tensor) -> torch.Tensor:
+    """log(1 - exp(-lam)), accurate for tiny and huge lam."""
+    # Each branch sees only its own range, so the unused one never produces inf (whose gradient would poison where).
+    big, small = lam.clamp_min(0.6931), lam.clamp(max=0.6931)
+    return torch.where(lam > 0.6931, torch.log1p(-torch.exp(-big)), torch.log(-torch.expm1(-small)))

@@ -1,0 +1,202 @@
+"""A capture loaded into tensors for reconstruction: counts per view, poses, pulse, background, scene bounds, table.
+
+Frames recorded at one pose (same `pose_index`) are summed into one histogram per zone (their cycles add up), since
+the sensor did not move between them. Bins listed in the sensor model's `ignore_bins`, and bins where any frame hit
+the counter's ceiling (`max_count`), are masked out of every loss.
+
+The manifest's `scene` dict may say (all optional, metres):
+- `"center": [x, y, z]`, `"radius": r` — a sphere that holds the object (else: the point nearest to every sensor's
+  boresight, and 0.6 x the nearest sensor's distance to it);
+- `"table": {"normal": [nx, ny, nz], "offset": d}` (the plane n . x = d, n pointing up) or `"table": {"z": h}`, or
+  `"table": true` for a horizontal table whose height is fitted (it starts at the bottom of the sphere);
+- `"real": true|false` — measured data (default: the sensor model carries reference histograms, i.e. hardware).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.sensor_model import SensorModel
+
+from .pulse import pulse_kernel
+
+RADIUS_FRACTION = 0.6  # scene sphere radius as a fraction of the nearest sensor's distance to the target
+
+
+@dataclass
+class TablePlane:
+    """The plane n . x = offset (n unit, pointing into the free half-space); `fitted` = its offset is learned."""
+
+    normal: np.ndarray
+    offset: float
+    fitted: bool
+
+
+@dataclass
+class SceneData:
+    """One capture, ready for the renderer. V views, Z zones, B bins."""
+
+    capture: Path
+    """The capture folder."""
+    sensor: SensorModel
+    """The capture's sensor model."""
+    counts: torch.Tensor
+    """(V, Z, B) photon counts per view (frames of one pose summed)."""
+    cycles: torch.Tensor
+    """(V,) laser cycles behind each view's histograms."""
+    valid: torch.Tensor
+    """(V, Z, B) bool: bins that enter the loss (not ignored, not saturated)."""
+    poses: torch.Tensor
+    """(V, 4, 4) sensor-to-world transforms, metres."""
+    pose_index: np.ndarray
+    """(V,) the capture's pose index of each view."""
+    pulse: torch.Tensor
+    """(K,) pulse kernel per bin, sums to 1; pulse[pulse_origin + k] is the response k bins after arrival."""
+    pulse_origin: int
+    """Index of the arrival time in `pulse`."""
+    pulse_source: str
+    """'reference' (from the capture's reference histograms) or 'sensor model'."""
+    background: torch.Tensor
+    """(V, Z) flat background, photons per bin per cycle (> 0)."""
+    background_source: str
+    """'estimated' (from bins before any possible return) or 'sensor model'."""
+    center: torch.Tensor
+    """(3,) centre of the scene sphere, metres."""
+    radius: float
+    """Radius of the scene sphere that holds the object, metres."""
+    table: TablePlane | None
+    """The table plane, or None (no table in this scene)."""
+    real: bool
+    """Measured data (enables the TV term)."""
+    scene: dict
+    """The manifest's scene dict as read."""
+
+    @property
+    def n_views(self) -> int:
+        return int(self.counts.shape[0])
+
+    @property
+    def box(self) -> torch.Tensor:
+        """(2, 3) axis-aligned box around the scene sphere, cut at the table if there is one (min row, max row)."""
+        lo, hi = self.center - self.radius, self.center + self.radius
+        if self.table is not None and abs(self.table.normal[2]) > 0.99 and not self.table.fitted:
+            lo = lo.clone()
+            lo[2] = max(float(lo[2]), self.table.offset / self.table.normal[2] - 0.01 * self.radius)
+        return torch.stack([lo, hi])
+
+
+def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
+    """Read a capture folder into a SceneData on `device` in `dtype` (counts and poses; bools stay bool)."""
+    capture = Path(capture)
+    data = CaptureReader(capture).load()
+    sensor = data.sensor
+    if data.hists.shape[0] == 0:
+        raise CaptureError(f"{capture}: holds no measurements")
+    order, groups = np.unique(data.pose_indices, return_inverse=True)
+    n_views = len(order)
+    counts = np.zeros((n_views,) + data.hists.shape[1:], np.float64)
+    np.add.at(counts, groups, data.hists.astype(np.float64))
+    frames = np.bincount(groups, minlength=n_views).astype(np.float64)
+    saturated = np.zeros(counts.shape, bool)
+    np.logical_or.at(saturated, groups, data.hists >= sensor.max_count)
+    first = np.array([np.flatnonzero(groups == g)[0] for g in range(n_views)])
+    poses = data.poses[first]
+    valid = ~saturated
+    if sensor.ignore_bins:
+        valid[..., list(sensor.ignore_bins)] = False
+    cycles = frames * float(sensor.cycles)
+
+    scene = dict(data.manifest.get("scene") or {})
+    center, radius = _scene_sphere(scene, poses, counts, sensor, capture)
+    table = _table(scene, center, radius, capture)
+    real = bool(scene.get("real", sensor.has_reference))
+    kernel, origin, pulse_source = pulse_kernel(sensor, data.reference)
+    background, bg_source = _background(counts, cycles, poses, center, radius, sensor, origin, real)
+
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
+    return SceneData(
+        capture=capture, sensor=sensor, counts=t(counts), cycles=t(cycles),
+        valid=torch.as_tensor(valid, device=device), poses=t(poses), pose_index=order,
+        pulse=t(kernel), pulse_origin=origin, pulse_source=pulse_source,
+        background=t(background), background_source=bg_source,
+        center=t(center), radius=float(radius), table=table, real=real, scene=scene,
+    )
+
+
+def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: SensorModel, where: Path):
+    """(centre (3,), radius) of a sphere that holds the object, from the manifest or the sensor poses."""
+    origins, axes = poses[:, :3, 3], poses[:, :3, 2]
+    if "center" in scene:
+        center = np.asarray(scene["center"], float)
+        if center.shape != (3,) or not np.all(np.isfinite(center)):
+            raise CaptureError(f"{where}: scene center {scene['center']} is not a finite 3-vector")
+    else:
+        # The point nearest to every boresight line: sum (I - d d^T) (x - o) = 0.
+        proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
+        a, b = proj.sum(0), np.einsum("nij,nj->i", proj, origins)
+        if np.linalg.cond(a) < 1e6:
+            center = np.linalg.solve(a, b)
+        else:  # parallel boresights (one view, or a flat sweep): the strongest return along the mean axis
+            peak = float(np.argmax(counts.sum(axis=(0, 1))))
+            rng = float(np.clip(sensor.range_of_bin(peak), 0.05, sensor.max_range_m))
+            center = (origins + axes * rng).mean(0)
+    dist = np.linalg.norm(origins - center, axis=1)
+    if "radius" in scene:
+        radius = float(scene["radius"])
+        if not (np.isfinite(radius) and radius > 0):
+            raise CaptureError(f"{where}: scene radius {scene['radius']} must be a positive number of metres")
+    else:
+        radius = RADIUS_FRACTION * float(dist.min())
+    if radius < 1e-3:
+        raise CaptureError(f"{where}: a sensor sits {dist.min() * 1e3:.1f} mm from the scene centre; cannot bound "
+                           "the object (give scene.center and scene.radius in the manifest)")
+    return center, radius
+
+
+def _table(scene: dict, center: np.ndarray, radius: float, where: Path) -> TablePlane | None:
+    spec = scene.get("table")
+    if not spec:
+        return None
+    if spec is True:
+        return TablePlane(np.array([0.0, 0.0, 1.0]), float(center[2] - radius), fitted=True)
+    if not isinstance(spec, dict):
+        raise CaptureError(f"{where}: scene table must be true or a dict with 'z' or 'normal' and 'offset'")
+    if "z" in spec:
+        return TablePlane(np.array([0.0, 0.0, 1.0]), float(spec["z"]), fitted=bool(spec.get("fit", False)))
+    normal = np.asarray(spec.get("normal", (0, 0, 1)), float)
+    norm = np.linalg.norm(normal)
+    if normal.shape != (3,) or not np.isfinite(norm) or norm < 1e-9 or "offset" not in spec:
+        raise CaptureError(f"{where}: scene table needs a non-zero 3-vector 'normal' and an 'offset' in metres")
+    return TablePlane(normal / norm, float(spec["offset"]) / norm, fitted=bool(spec.get("fit", False)))
+
+
+def _background(counts, cycles, poses, center, radius, sensor: SensorModel, pulse_origin: int, real: bool):
+    """(V, Z) background per bin per cycle, and where it came from.
+
+    Simulated captures use the sensor model's value. Measured ones estimate it per histogram from the bins that end
+    before any return can arrive (the scene sphere's nearest point, less the pulse's rise); with fewer than 3 such
+    bins the sensor model's value is used. The estimate is floored at 1e-12 so that no rate is ever zero.
+    """
+    n_views, n_zones, n_bins = counts.shape
+    fallback = np.full((n_views, n_zones), max(sensor.background, 1e-12))
+    if not real:
+        return fallback, "sensor model"
+    near = np.maximum(np.linalg.norm(poses[:, :3, 3] - center, axis=1) - radius, 0.0)
+    last = np.floor(sensor.bin_of_range(near) - pulse_origin - 1).astype(int)  # bins [0, last) are return-free
+    bins = np.arange(n_bins)
+    usable = bins[None] < last[:, None]
+    if sensor.ignore_bins:
+        usable[:, list(sensor.ignore_bins)] = False
+    out, estimated = fallback.copy(), 0
+    for v in range(n_views):
+        idx = np.flatnonzero(usable[v])
+        if idx.size >= 3:
+            out[v] = np.maximum(counts[v][:, idx].mean(axis=1) / cycles[v], 1e-12)
+            estimated += 1
+    return out, "estimated" if estimated == n_views else ("sensor model" if estimated == 0 else "mixed")
