@@ -1,0 +1,214 @@
+"""A simulated arm: linear moves that take time, an actual pose that follows the commanded one, injectable faults.
+
+Motion time follows a trapezoidal speed profile from the move's distance, speed and acceleration (or a fixed time;
+0 = instant), scaled by `time_scale`. While a move runs the actual pose slides along the straight line, so a sensor
+that renders at the arm's pose sees motion. Faults rehearse what a real UR does: a protective stop half way through a
+chosen move (the move raises ArmFault and every later move is refused until `clear_protective_stop`), or a link drop
+(state and moves raise LinkLost until `restore_link`). Joint angles are a fake but deterministic function of the pose.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
+
+# Home: 0.6 m above the base origin, tool z pointing down.
+HOME = np.array([[1.0, 0, 0, 0], [0, -1.0, 0, 0], [0, 0, -1.0, 0.6], [0, 0, 0, 1]])
+
+
+@dataclass(frozen=True)
+class SimArmFaults:
+    """Faults to inject, by move number (1 = the first move_to call)."""
+
+    protective_stop_on_moves: tuple[int, ...] = ()
+    """Moves that stop protectively half way."""
+    link_drop_on_moves: tuple[int, ...] = ()
+    """Moves during which the link drops (the move raises LinkLost half way)."""
+
+
+def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of an axis-angle vector (3,) in radians (Rodrigues)."""
+    v = np.asarray(v, float)
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = v / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
+
+
+def matrix_to_rotvec(r: np.ndarray) -> np.ndarray:
+    """Axis-angle vector (3,) in radians of a rotation matrix (3, 3); stable near 0 and pi."""
+    cos = max(-1.0, min(1.0, (np.trace(r) - 1) / 2))
+    angle = math.acos(cos)
+    if angle < 1e-9:
+        return np.zeros(3)
+    if math.pi - angle < 1e-6:
+        # Near pi the antisymmetric part vanishes: take the axis from the symmetric part's largest column.
+        b = (r + np.eye(3)) / 2
+        axis = b[:, int(np.argmax(np.diag(b)))]
+        return axis / np.linalg.norm(axis) * angle
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return w / (2 * math.sin(angle)) * angle
+
+
+def interpolate_pose(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
+    """The pose a fraction s in [0, 1] of the way from a to b (straight line, rotation about one axis)."""
+    out = np.eye(4)
+    out[:3, 3] = (1 - s) * a[:3, 3] + s * b[:3, 3]
+    out[:3, :3] = a[:3, :3] @ rotvec_to_matrix(s * matrix_to_rotvec(a[:3, :3].T @ b[:3, :3]))
+    return out
+
+
+def trapezoid_time(distance_m: float, speed: float, accel: float) -> float:
+    """Seconds to travel distance_m from rest to rest at most `speed` (m/s) with acceleration `accel` (m/s^2)."""
+    if distance_m <= 0:
+        return 0.0
+    if distance_m > speed * speed / accel:
+        return distance_m / speed + speed / accel
+    return 2 * math.sqrt(distance_m / accel)
+
+
+def fake_joints(pose: np.ndarray) -> np.ndarray:
+    """Six plausible joint angles (rad) that change smoothly with the TCP pose; not a real inverse kinematics."""
+    x, y, z = pose[:3, 3]
+    rv = matrix_to_rotvec(pose[:3, :3])
+    return np.array([math.atan2(y, x), -math.atan2(z, math.hypot(x, y)), math.hypot(x, y, z) - 0.5, *rv])
+
+
+class SimArm(Arm):
+    """Simulated arm. motion_time_s None: trapezoidal timing at min(move speed, `speed`) m/s; a number: fixed."""
+
+    def __init__(self, *, motion_time_s: float | None = None, speed: float = 0.25, time_scale: float = 1.0,
+                 faults: SimArmFaults = SimArmFaults(), pose_noise_m: float = 0.0, seed: int = 0,
+                 home: np.ndarray | None = None):
+        if motion_time_s is not None and not (math.isfinite(motion_time_s) and motion_time_s >= 0):
+            raise ValueError(f"motion_time_s {motion_time_s} must be >= 0 s")
+        if not (speed > 0 and time_scale >= 0 and pose_noise_m >= 0):
+            raise ValueError("speed must be > 0 m/s, time_scale >= 0, pose_noise_m >= 0 m")
+        self.name = "arm (sim)"
+        self.motion_time_s = motion_time_s
+        self.max_speed = float(speed)
+        self.time_scale = float(time_scale)
+        self.faults = faults
+        self.pose_noise_m = float(pose_noise_m)
+        self._rng = np.random.default_rng(seed)
+        self._pose = np.array(HOME if home is None else home, dtype=float)
+        self._motion: tuple[np.ndarray, np.ndarray, float, float] | None = None  # start, goal, t0, duration
+        self.moves = 0
+        self.commanded: list[np.ndarray] = []
+        self.protective_stop = False
+        self.link_up = True
+        self.connected = False
+
+    # ---- lifecycle ---------------------------------------------------------------------------------------------
+    async def connect(self) -> None:
+        self.connected = True
+
+    async def close(self) -> None:
+        self.connected = False
+
+    async def release(self) -> None:
+        await self.stop()
+
+    # ---- faults ------------------------------------------------------------------------------------------------
+    def trigger_protective_stop(self) -> None:
+        """Stop protectively now (as a collision would); the move in progress raises ArmFault."""
+        self._freeze()
+        self.protective_stop = True
+
+    def clear_protective_stop(self) -> None:
+        """What the operator does on the teach pendant after a protective stop."""
+        self.protective_stop = False
+
+    def drop_link(self) -> None:
+        self._freeze()
+        self.link_up = False
+
+    def restore_link(self) -> None:
+        self.link_up = True
+
+    # ---- motion ------------------------------------------------------------------------------------------------
+    def actual_pose(self) -> np.ndarray:
+        """The actual TCP pose (4, 4) now, also mid-move (thread-safe: reads one snapshot of the motion)."""
+        motion = self._motion
+        if motion is None:
+            return self._pose.copy()
+        start, goal, t0, duration = motion
+        s = 1.0 if duration <= 0 else min(1.0, max(0.0, (time.monotonic() - t0) / duration))
+        return interpolate_pose(start, goal, s)
+
+    def motion_time(self, start: np.ndarray, goal: np.ndarray, speed: float, accel: float) -> float:
+        if self.motion_time_s is not None:
+            return self.motion_time_s * self.time_scale
+        distance = float(np.linalg.norm(goal[:3, 3] - start[:3, 3]))
+        return trapezoid_time(distance, min(speed, self.max_speed), accel) * self.time_scale
+
+    async def move_to(self, tcp_pose: np.ndarray, speed: float, accel: float) -> None:
+        goal = np.array(tcp_pose, dtype=float)
+        if goal.shape != (4, 4) or not np.all(np.isfinite(goal)):
+            raise ArmFault(f"{self.name}: target pose must be a finite 4x4 array, got shape {goal.shape}")
+        if not (speed > 0 and accel > 0):
+            raise ArmFault(f"{self.name}: speed {speed} m/s and acceleration {accel} m/s^2 must be positive")
+        self._check_link()
+        if self.protective_stop:
+            raise ArmFault(f"{self.name}: protective stop; clear it on the teach pendant, then resume")
+        self.moves += 1
+        self.commanded.append(goal.copy())
+        start = self.actual_pose()
+        duration = self.motion_time(start, goal, speed, accel)
+        fault = None
+        if self.moves in self.faults.protective_stop_on_moves:
+            fault = "stop"
+        elif self.moves in self.faults.link_drop_on_moves:
+            fault = "link"
+        motion = (start, goal, time.monotonic(), duration)
+        self._motion = motion
+        try:
+            await asyncio.sleep(duration / 2 if fault else duration)
+            if fault == "stop":
+                self.trigger_protective_stop()
+            elif fault == "link":
+                self.drop_link()
+            self._check_link()
+            if self.protective_stop:
+                raise ArmFault(f"{self.name}: protective stop during move {self.moves}")
+            if self._motion is not motion:
+                raise ArmFault(f"{self.name}: move {self.moves} was stopped before it arrived")
+            self._motion = None
+            self._pose = self._noisy(goal)
+        finally:
+            if self._motion is motion:
+                self._freeze()
+
+    def _noisy(self, goal: np.ndarray) -> np.ndarray:
+        if self.pose_noise_m <= 0:
+            return goal.copy()
+        out = goal.copy()
+        out[:3, 3] += self._rng.normal(0.0, self.pose_noise_m, 3)
+        return out
+
+    def _freeze(self) -> None:
+        """End any motion where the arm is now."""
+        if self._motion is not None:
+            self._pose = self.actual_pose()
+            self._motion = None
+
+    def _check_link(self) -> None:
+        if not self.link_up:
+            raise LinkLost(f"{self.name}: link lost (no fresh state data)")
+
+    async def state(self) -> ArmState:
+        self._check_link()
+        pose = self.actual_pose()
+        return ArmState(tcp_pose=pose, joints=fake_joints(pose), timestamp_s=time.monotonic(),
+                        protective_stop=self.protective_stop)
+
+    async def stop(self) -> None:
+        self._freeze()

@@ -1,0 +1,395 @@
+"""The scan runner: drives the arm through a scan plan, captures K frames per pose, publishes every pose durably.
+
+Per pose: move (TCP pose = sensor pose @ inv(hand-eye)), settle, drop frames that began before the arm stopped and
+settled, capture K frames, read the arm's *actual* TCP pose and joints, store each frame as its own measurement
+(sensor pose = actual TCP @ hand-eye), publish the pose as one chunk. Publishing runs on one writer thread and
+overlaps the next move and settle (never the next pose's frames): at any moment at most one pose is captured but
+unpublished, and a pose counts only once its chunk is published.
+
+Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent), a protective stop or lost link
+(ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The writer is then
+dropped and reopened on resume, which continues at the first unpublished pose (`CaptureWriter.next_pose_index`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from spadscan.protocol.capture_format import MANIFEST, Measurement, read_json
+from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
+
+from .config import DaemonConfig, scan_to_dict, scan_with
+from .devices import Arm, ArmFault, Frame, LinkLost, Sensor, SensorSilent
+from .scan_job import ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
+from .scan_plan import build_plan, check_workspace, sensor_from_tcp
+
+log = logging.getLogger("spadscan.daemon")
+STATE_TIMEOUT_S = 5.0  # how long arm.state() may take
+STOP_TIMEOUT_S = 5.0  # how long arm.stop() may take
+FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before the runner gives up on it
+
+
+class _Fault(Exception):
+    """A fault that pauses the scan; its message is the pause reason."""
+
+
+class ScanRunner:
+    """Owns the current scan. All methods run on the daemon's event loop; writer I/O runs on one thread."""
+
+    def __init__(self, arm: Arm, sensor: Sensor, cfg: DaemonConfig, *, rig: dict | None = None,
+                 scene: dict | None = None):
+        self.arm, self.sensor, self.cfg = arm, sensor, cfg
+        self.root = cfg.captures
+        self.rig, self.scene = rig or {}, scene or {}
+        self.job: ScanJob | None = None
+        self.state = "idle"
+        self.last_error: str | None = None
+        self.finished: dict[str, str] = {}
+        self._task: asyncio.Task | None = None
+        self._resume = asyncio.Event()
+        self._pause_requested = False
+        self._end: tuple[str, str] | None = None  # (state, reason) the scan ends in when its task is cancelled
+        self._changed = asyncio.Event()
+        self._io_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
+
+    # ---- requests --------------------------------------------------------------------------------------------------
+    async def start(self, name: str | None = None, overrides: dict | None = None) -> dict:
+        """Plan and start a scan named `name` (default: scan-<time>) with [scan] keys overridden."""
+        if self.job is not None:
+            raise ConfigError(f"scan {self.job.name!r} is {self.state} at pose {self._progress()}: "
+                              f"{'resume or abort it' if self.state == 'paused' else 'wait for it or abort it'} first")
+        self.root.mkdir(parents=True, exist_ok=True)
+        name = check_scan_name(name, self.root) if name is not None else default_scan_name(self.root)
+        path = self.root / name
+        if path.exists():
+            raise ConfigError(f"scan {name!r} already exists in {self.root} (choose another name)")
+        scan = scan_with(self.cfg.scan, overrides or {})
+        start = (await self._arm_state()).tcp_pose
+        plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
+        hand_eye = self.cfg.arm.hand_eye
+        writer = await self._io(CaptureWriter.create, path, self.sensor.model, scan_id=name, rig=self.rig,
+                                hand_eye=hand_eye, schedule=plan.description, planned_poses=plan.sensor_poses,
+                                chunk_size=scan.chunk_size, scene=self.scene, frames_per_pose=scan.frames_per_pose)
+        self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,
+                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer)
+        self._launch("scanning")
+        log.info("scan %s: %d poses x %d frames -> %s", name, len(plan), scan.frames_per_pose, path)
+        return self.status()
+
+    async def recover(self) -> None:
+        """At start-up: take over a scan a crash or stop left 'running', paused (or resumed when auto_resume)."""
+        path = await asyncio.to_thread(find_interrupted, self.root)
+        if path is None:
+            return
+        try:
+            job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye)
+            job.writer = await self._io(CaptureWriter.resume, path)
+            job.record_progress(job.writer)
+            if job.blocked is None:
+                check_workspace(job.tcp_poses[job.next_pose:], self.cfg.arm, f"scan {job.name!r}")
+        except (CaptureError, ConfigError, OSError) as exc:
+            log.error("cannot take over interrupted scan %s: %s", path, exc)
+            self.last_error = f"cannot take over interrupted scan {path.name!r}: {exc}"
+            return
+        self.job = job
+        job.reason = job.blocked or (f"interrupted at pose {self._progress()} (daemon restarted); "
+                                     f"`spadscan ctl resume` continues")
+        self._launch("paused")
+        if self.cfg.auto_resume and job.blocked is None:
+            await self.resume()
+
+    async def pause(self) -> dict:
+        """Pause after the pose in flight is published."""
+        if self.state == "scanning":
+            self._pause_requested = True
+            self._set_state("pausing")
+        elif self.state not in ("pausing", "paused"):
+            raise ConfigError(f"nothing to pause (daemon is {self.state})")
+        return self.status()
+
+    async def resume(self) -> dict:
+        """Continue a paused scan at its first unpublished pose."""
+        job = self.job
+        if self.state == "pausing":
+            self._pause_requested = False
+            self._set_state("scanning")
+        elif self.state == "paused" and job is not None:
+            if job.blocked:
+                raise ConfigError(f"cannot resume scan {job.name!r}: {job.blocked}")
+            self._resume.set()
+        else:
+            raise ConfigError(f"nothing to resume (daemon is {self.state})")
+        return self.status()
+
+    async def abort(self, reason: str = "aborted by user") -> dict:
+        """Stop the arm, mark the scan aborted (what was published stays)."""
+        if self.job is None or self._task is None:
+            raise ConfigError(f"nothing to abort (daemon is {self.state})")
+        name = self.job.name
+        await self._cancel(("aborted", reason))
+        return {**self.status(), "aborted": name}
+
+    async def wait(self, name: str) -> dict:
+        """Block until scan `name` is complete or aborted; returns {'name', 'state'}."""
+        check_scan_name(name, self.root)
+        while True:
+            if name in self.finished:
+                return {"name": name, "state": self.finished[name]}
+            if self.job is None or self.job.name != name:
+                m = self.root / name / MANIFEST
+                state = (await asyncio.to_thread(read_json, m)).get("state") if m.is_file() else None
+                if state in ("complete", "aborted"):
+                    return {"name": name, "state": state}
+                raise ConfigError(f"no scan named {name!r} is running or finished in {self.root}")
+            changed = self._changed
+            await changed.wait()
+
+    async def shutdown(self) -> None:
+        """Stop the scan in flight (leaving its capture 'running', resumable) and the writer thread."""
+        if self._task is not None:
+            await self._cancel(("running", "daemon stopped; a restarted daemon resumes at the first unpublished pose"))
+        self._io_pool.shutdown(wait=True)
+
+    def status(self) -> dict:
+        job = self.job
+        out = {"state": self.state, "scan": None, "last_error": self.last_error, "arm": self.arm.name,
+               "sensor": {"name": self.sensor.name, **self.sensor.counters()}}
+        if job is not None:
+            out.update(scan=job.name, path=str(job.path), pose=job.next_pose, poses=job.n_poses,
+                       progress=self._progress(), frames=job.frames, frames_per_pose=job.scan.frames_per_pose,
+                       dropped_frames=job.dropped, rate_hz=round(job.rate_hz(), 2), reason=job.reason,
+                       elapsed_s=round(time.monotonic() - job.started, 3))
+        if self.finished:
+            name = next(reversed(self.finished))
+            out["last_scan"] = {"name": name, "state": self.finished[name]}
+        return out
+
+    # ---- the scan task ---------------------------------------------------------------------------------------------
+    def _launch(self, state: str) -> None:
+        self._pause_requested = False
+        self._resume.clear()
+        self._end = None
+        self._set_state(state)
+        self._task = asyncio.create_task(self._run(self.job, paused=(state == "paused")), name=f"scan {self.job.name}")
+
+    async def _run(self, job: ScanJob, paused: bool) -> None:
+        try:
+            if paused:
+                await self._wait_resume(job)
+            while True:
+                if job.writer is None:
+                    try:
+                        job.writer = await self._io(CaptureWriter.resume, job.path)
+                        job.record_progress(job.writer)
+                    except (OSError, CaptureError) as exc:
+                        await self._fault(job, f"cannot reopen the capture: {_describe(exc)}")
+                        continue
+                if self._pause_requested:
+                    job.reason = "paused by user"
+                    await self._wait_resume(job)
+                    continue
+                try:
+                    await self._poses(job)
+                    if not self._pause_requested:
+                        await self._io(job.writer.finish, "complete")
+                        break
+                except (DeviceError, OSError, CaptureError, _Fault) as exc:
+                    await self._fault(job, _describe(exc) + f" (pose {job.next_pose}/{job.n_poses})")
+                except asyncio.CancelledError:
+                    raise
+                except Exception as exc:  # a bug must pause the scan, never kill the daemon
+                    log.exception("scan %s: unexpected error", job.name)
+                    await self._fault(job, f"internal error: {type(exc).__name__}: {exc}")
+            self._finish(job, "complete")
+        except asyncio.CancelledError:
+            await self._wind_down(job)
+            raise
+
+    async def _poses(self, job: ScanJob) -> None:
+        """Run poses from job.next_pose until the plan ends or a pause is requested; raises on a fault."""
+        pending = None  # the previous pose's publish, overlapping this pose's move and settle
+        try:
+            for i in range(job.next_pose, job.n_poses):
+                if self._pause_requested:
+                    break
+                t_stop = await self._move(job, i)
+                if job.scan.settle_s > 0:
+                    await asyncio.sleep(job.scan.settle_s)
+                if pending is not None:
+                    p, pending = pending, None
+                    await p
+                    job.record_progress(job.writer)
+                    self._notify()
+                frames = await self._frames(job, i, t_stop + job.scan.settle_s)
+                arm = await self._arm_state()
+                if arm.protective_stop:
+                    raise ArmFault(f"{self.arm.name}: protective stop while capturing pose {i}")
+                pending = asyncio.ensure_future(self._io(self._publish, job.writer, _measurements(job, i, frames,
+                                                                                                   arm)))
+        finally:
+            if pending is not None:  # let the publish land before anything else touches the writer
+                try:
+                    await asyncio.shield(pending)
+                finally:
+                    if pending.done() and not pending.cancelled() and pending.exception() is None:
+                        job.record_progress(job.writer)
+                        self._notify()
+
+    async def _move(self, job: ScanJob, i: int) -> float:
+        """Move to pose i; returns the monotonic time the arm stopped."""
+        timeout = self.cfg.arm.move_timeout_s
+        try:
+            await asyncio.wait_for(self.arm.move_to(job.tcp_poses[i], self.cfg.arm.speed, self.cfg.arm.acceleration),
+                                   timeout)
+        except asyncio.TimeoutError:
+            raise ArmFault(f"{self.arm.name}: move to pose {i} did not finish within {timeout:g} s") from None
+        return time.monotonic()
+
+    async def _frames(self, job: ScanJob, i: int, ready_t: float) -> list[Frame]:
+        """K frames that began at or after ready_t; earlier ones (exposed while moving or settling) are dropped."""
+        timeout = self.cfg.sensor.frame_timeout_s
+        model = self.sensor.model
+        frames: list[Frame] = []
+        deadline = time.monotonic() + timeout
+        while len(frames) < job.scan.frames_per_pose:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise SensorSilent(f"{self.sensor.name}: no frame that began after the arm settled within "
+                                   f"{timeout:g} s at pose {i}")
+            try:
+                f = await asyncio.wait_for(self.sensor.next_frame(left), left + FRAME_GRACE_S)
+            except asyncio.TimeoutError:
+                raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
+                                   f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
+            if f.t_start < ready_t:
+                job.dropped += 1
+                continue
+            if np.shape(f.hists) != (model.n_zones, model.n_bins):
+                raise DeviceError(f"{self.sensor.name}: frame of shape {np.shape(f.hists)}, expected "
+                                  f"({model.n_zones}, {model.n_bins})")
+            frames.append(f)
+            deadline = time.monotonic() + timeout
+        return frames
+
+    @staticmethod
+    def _publish(writer: CaptureWriter, measurements: list[Measurement]) -> None:
+        for m in measurements:
+            writer.append(m)
+        writer.flush()
+
+    async def _arm_state(self):
+        try:
+            return await asyncio.wait_for(self.arm.state(), STATE_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            raise LinkLost(f"{self.arm.name}: no state within {STATE_TIMEOUT_S:g} s") from None
+
+    async def _stop_arm(self) -> None:
+        try:
+            await asyncio.wait_for(self.arm.stop(), STOP_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            self.last_error = f"{self.arm.name}: stop did not return within {STOP_TIMEOUT_S:g} s"
+        except DeviceError as exc:
+            self.last_error = str(exc)
+
+    # ---- pausing, ending -------------------------------------------------------------------------------------------
+    async def _fault(self, job: ScanJob, reason: str) -> None:
+        """Pause on a fault: stop the arm, drop the writer (reopened on resume), wait for `ctl resume`."""
+        log.warning("scan %s paused: %s", job.name, reason)
+        await self._stop_arm()
+        job.writer = None
+        job.reason = self.last_error = reason
+        await self._wait_resume(job)
+
+    async def _wait_resume(self, job: ScanJob) -> None:
+        # The event is cleared after each resume and only set while the state is 'paused', so a resume that lands
+        # between 'paused' being announced and this wait starting is not lost.
+        self._pause_requested = False
+        self._set_state("paused")
+        await self._resume.wait()
+        self._resume.clear()
+        job.reason = None
+        self._set_state("scanning")
+
+    async def _cancel(self, end: tuple[str, str]) -> None:
+        self._end = end
+        task = self._task
+        task.cancel()
+        try:
+            await task
+        except asyncio.CancelledError:
+            pass
+
+    async def _wind_down(self, job: ScanJob) -> None:
+        """The scan task was cancelled (abort or shutdown): stop the arm, record the end state in the manifest."""
+        state, reason = self._end or ("running", "scan task cancelled")
+        await self._stop_arm()
+        try:
+            if job.writer is None:
+                job.writer = await self._io(CaptureWriter.resume, job.path)
+            if state == "aborted":
+                await self._io(job.writer.finish, "aborted", reason)
+            else:
+                await self._io(job.writer.set_state, "running", reason)
+        except (OSError, CaptureError) as exc:
+            self.last_error = f"scan {job.name!r}: could not record '{state}': {_describe(exc)}"
+        if state == "aborted":
+            self._finish(job, "aborted")
+
+    def _finish(self, job: ScanJob, state: str) -> None:
+        self.finished[job.name] = state
+        self.job, self._task = None, None
+        log.info("scan %s %s: %d frames", job.name, state, job.frames)
+        self._set_state("idle")
+
+    def _set_state(self, state: str) -> None:
+        self.state = state
+        self._notify()
+
+    def _notify(self) -> None:
+        changed, self._changed = self._changed, asyncio.Event()
+        changed.set()
+
+    def _progress(self) -> str:
+        return f"{self.job.next_pose}/{self.job.n_poses}" if self.job else "-"
+
+    async def _io(self, fn, *args, **kwargs):
+        """Run capture I/O on the writer thread (one thread: writes never interleave)."""
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self._io_pool, lambda: fn(*args, **kwargs))
+
+
+def _measurements(job: ScanJob, i: int, frames: list[Frame], arm) -> list[Measurement]:
+    """One measurement per frame at the arm's actual pose (raw counts, never summed)."""
+    tcp = np.asarray(arm.tcp_pose, dtype=np.float64)
+    sensor_pose = sensor_from_tcp(tcp, job.hand_eye)
+    common = {"tcp_pose": tcp.tolist(), "joints": np.asarray(arm.joints, float).tolist(),
+              "arm_timestamp_s": float(arm.timestamp_s)}
+    out = []
+    for k, f in enumerate(frames):
+        meta = {"t_start": float(f.t_start), "t_end": float(f.t_end), "temperature_c": f.temperature_c,
+                "depths_mm": f.depths_mm, "confidences": f.confidences, **common}
+        if f.extra:
+            meta["extra"] = f.extra
+        out.append(Measurement(f.hists, sensor_pose, i, k, f.reference, meta))
+    return out
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, OSError):
+        what = "disk full" if exc.errno == errno.ENOSPC else "write error"
+        where = f" ({exc.filename})" if exc.filename else ""
+        return f"{what} while publishing: {exc.strerror or exc}{where}"
+    if isinstance(exc, SensorSilent):
+        return f"sensor silent: {exc}"
+    if isinstance(exc, ArmFault):
+        return f"arm fault: {exc}"
+    if isinstance(exc, LinkLost):
+        return f"link lost: {exc}"
+    return str(exc) if isinstance(exc, SpadscanError) else f"{type(exc).__name__}: {exc}"

@@ -1,0 +1,132 @@
+"""One scan in the daemon's hands: its folder, plan and progress; scan names; finding a scan a crash interrupted.
+
+A scan named N lives in `<captures>/N/` (DESIGN §2). Its `schedule.npy` holds the planned sensor poses in visiting
+order and `scan.json` the scan settings, so a restarted daemon can continue it at the first pose not yet published.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import re
+import time
+from collections import deque
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from spadscan.protocol.capture_format import MANIFEST, read_json
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.errors import CaptureError, ConfigError
+
+from .config import ScanConfig, scan_with
+from .scan_plan import tcp_from_sensor
+
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,99}")
+
+
+def check_scan_name(name, root: Path) -> str:
+    """A scan name that stays inside the captures root: letters, digits and . _ + -, not hidden, <= 100 chars."""
+    if not isinstance(name, str) or not name:
+        raise ConfigError("scan name must be a non-empty string")
+    if not _NAME.fullmatch(name) or name in (".", ".."):
+        raise ConfigError(f"scan name {name!r} must be 1-100 letters, digits or . _ + - and not start with . _ + - "
+                          f"(no '/', no '..', no hidden names)")
+    root = Path(root).resolve()
+    if (root / name).resolve().parent != root:
+        raise ConfigError(f"scan name {name!r} escapes the captures root {root}")
+    return name
+
+
+def default_scan_name(root: Path) -> str:
+    """scan-YYYYMMDD-HHMMSS (local time), with a suffix when that folder exists."""
+    base = "scan-" + _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    name, k = base, 1
+    while (Path(root) / name).exists():
+        k += 1
+        name = f"{base}-{k}"
+    return name
+
+
+@dataclass
+class ScanJob:
+    """A scan being run. sensor_poses / tcp_poses: (P, 4, 4) in visiting order; next_pose: poses published so far."""
+
+    name: str
+    path: Path
+    scan: ScanConfig
+    sensor_poses: np.ndarray
+    tcp_poses: np.ndarray
+    hand_eye: np.ndarray
+    writer: CaptureWriter | None = None
+    next_pose: int = 0
+    frames: int = 0
+    dropped: int = 0
+    reason: str | None = None
+    blocked: str | None = None
+    """Why this scan cannot resume (e.g. the rig's hand-eye changed); None when it can."""
+    started: float = field(default_factory=time.monotonic)
+    history: deque = field(default_factory=lambda: deque(maxlen=256))
+    """(monotonic s, frames published) after each pose, for the rate."""
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.sensor_poses)
+
+    def record_progress(self, writer: CaptureWriter) -> None:
+        self.next_pose = writer.next_pose_index
+        self.frames = writer.n_published
+        self.history.append((time.monotonic(), self.frames))
+
+    def rate_hz(self, window_s: float = 10.0) -> float:
+        """Histograms published per second over the last window_s seconds."""
+        if len(self.history) < 2:
+            return 0.0
+        t1, f1 = self.history[-1]
+        old = [(t, f) for t, f in self.history if t1 - t <= window_s]
+        t0, f0 = old[0] if len(old) > 1 else self.history[-2]
+        return (f1 - f0) / (t1 - t0) if t1 > t0 else 0.0
+
+
+def find_interrupted(root: Path) -> Path | None:
+    """The scan folder under root whose manifest says 'running' and was updated last (a crash or stop left it)."""
+    best, best_t = None, ""
+    root = Path(root)
+    if not root.is_dir():
+        return None
+    for d in root.iterdir():
+        m = d / MANIFEST
+        if d.name.startswith(".") or not m.is_file():
+            continue
+        try:
+            manifest = read_json(m)
+        except CaptureError:
+            continue
+        if manifest.get("state") == "running" and str(manifest.get("updated_utc", "")) >= best_t:
+            best, best_t = d, str(manifest.get("updated_utc", ""))
+    return best
+
+
+def load_job(path: Path, hand_eye_now: np.ndarray) -> ScanJob:
+    """Reopen an interrupted scan's plan and settings (not its writer) from its folder.
+
+    The plan's TCP poses come from the capture's own hand-eye; when the rig's hand-eye differs, the job is marked
+    blocked (resuming would put the sensor elsewhere than planned).
+    """
+    reader = CaptureReader(path)
+    planned = reader.planned_poses()
+    if planned is None:
+        raise CaptureError(f"{path}: has no schedule.npy; cannot resume")
+    known = {f.name for f in fields(ScanConfig)}
+    stored = {k: v for k, v in reader.manifest.get("schedule", {}).items() if k in known}
+    try:
+        scan = scan_with(ScanConfig(), stored, f"{path / MANIFEST} schedule")
+    except ConfigError as exc:
+        raise CaptureError(str(exc)) from None
+    job = ScanJob(name=path.name, path=Path(path), scan=scan, sensor_poses=planned,
+                  tcp_poses=tcp_from_sensor(planned, reader.hand_eye), hand_eye=reader.hand_eye)
+    if not np.allclose(reader.hand_eye, hand_eye_now, atol=1e-6):
+        job.blocked = (f"the rig's [arm] hand_eye differs from the one scan {path.name!r} was planned with; "
+                       f"restore it to resume, or abort the scan")
+    return job

@@ -1,0 +1,189 @@
+"""Scan plans: the sensor poses of a scan, their visiting order, the TCP poses that carry the sensor there, and a
+workspace check of every TCP pose before the first move.
+
+Poses are (P, 4, 4) float64, metres, in the arm's base frame; the sensor looks along its local +z. The hand-eye
+transform X (tool flange -> sensor) links them: sensor pose = TCP pose @ X, so TCP pose = sensor pose @ inv(X).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from spadscan.protocol.errors import ConfigError, SimulationError
+
+from .config import ArmConfig, ScanConfig, scan_to_dict
+
+
+@dataclass
+class ScanPlan:
+    """sensor_poses, tcp_poses: (P, 4, 4) in visiting order; description: JSON-able record of how it was made."""
+
+    sensor_poses: np.ndarray
+    tcp_poses: np.ndarray
+    description: dict
+
+    def __len__(self) -> int:
+        return len(self.sensor_poses)
+
+
+def invert_rigid(m: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (4, 4) or a stack (n, 4, 4)."""
+    m = np.asarray(m, dtype=np.float64)
+    out = np.zeros_like(m)
+    rt = np.swapaxes(m[..., :3, :3], -1, -2)
+    out[..., :3, :3] = rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, m[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def tcp_from_sensor(sensor_poses: np.ndarray, hand_eye: np.ndarray) -> np.ndarray:
+    """TCP poses (P, 4, 4) that put the sensor at sensor_poses: sensor @ inv(hand_eye)."""
+    return np.asarray(sensor_poses, dtype=np.float64) @ invert_rigid(hand_eye)
+
+
+def sensor_from_tcp(tcp_poses: np.ndarray, hand_eye: np.ndarray) -> np.ndarray:
+    """Sensor poses (..., 4, 4) of the TCP poses: tcp @ hand_eye."""
+    return np.asarray(tcp_poses, dtype=np.float64) @ np.asarray(hand_eye, dtype=np.float64)
+
+
+def generate_sensor_poses(scan: ScanConfig) -> np.ndarray:
+    """The schedule's sensor poses (views, 4, 4) in generated order, jittered when scan.jitter_deg > 0."""
+    from spadscan.protocol import schedules
+
+    try:
+        if scan.schedule == "fibonacci":
+            poses = schedules.fibonacci_hemisphere(scan.views, scan.radius_m, scan.target, scan.min_elevation_deg,
+                                                   scan.max_elevation_deg)
+        else:
+            poses = schedules.elevation_rings(scan.rings, scan.views // scan.rings, scan.radius_m, scan.target,
+                                              scan.min_elevation_deg, scan.max_elevation_deg)
+        if scan.jitter_deg > 0:
+            poses = schedules.jitter_orientations(poses, scan.jitter_deg, np.random.default_rng(scan.seed))
+    except SimulationError as exc:
+        raise ConfigError(f"scan schedule: {exc}") from None
+    return poses
+
+
+def _elevation_azimuth(positions: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    d = positions - target
+    return np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])), np.arctan2(d[:, 1], d[:, 0])
+
+
+def order_nearest(positions: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+    """Greedy nearest-neighbour tour over positions (P, 3); begins nearest `start` (3,), else at index 0.
+
+    Returns a permutation (P,). O(P^2) arithmetic: ~0.3 s for 10,000 views.
+    """
+    n = len(positions)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    first = 0 if start is None else int(np.argmin(np.linalg.norm(positions - start, axis=1)))
+    order = np.empty(n, dtype=np.int64)
+    free = np.ones(n, dtype=bool)
+    cur = first
+    for k in range(n):
+        order[k] = cur
+        free[cur] = False
+        if k + 1 < n:
+            d = np.sum((positions - positions[cur]) ** 2, axis=1)
+            d[~free] = np.inf
+            cur = int(np.argmin(d))
+    return order
+
+
+def order_serpentine(positions: np.ndarray, target: np.ndarray, bands: int) -> np.ndarray:
+    """Band by band from the highest elevation down, azimuth alternating in direction between bands.
+
+    positions (P, 3), target (3,); `bands` elevation bands of equal count (the rings, for a ring schedule).
+    """
+    n = len(positions)
+    elev, azim = _elevation_azimuth(positions, target)
+    by_elev = np.argsort(-elev, kind="stable")
+    order = []
+    for b, idx in enumerate(np.array_split(by_elev, max(1, min(bands, n)))):
+        idx = idx[np.argsort(azim[idx], kind="stable")]
+        order.extend(idx[::-1] if b % 2 else idx)
+    return np.asarray(order, dtype=np.int64)
+
+
+def path_length(positions: np.ndarray) -> float:
+    """Total straight-line travel (m) through positions (P, 3) in order."""
+    return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()) if len(positions) > 1 else 0.0
+
+
+def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np.ndarray | None = None) -> None:
+    """Raise ConfigError naming the first TCP pose (or straight move) that leaves the arm's workspace.
+
+    Checks every position against the box workspace_min..workspace_max and the reach shell
+    min_reach_m..max_reach_m around the base origin, and every straight move (from `start`, when given) against
+    min_reach_m (a straight line between two reachable points can cut through the base's keep-out sphere).
+    """
+    pos = np.asarray(tcp_poses, dtype=np.float64)[:, :3, 3]
+    n = len(pos)
+    if not np.all(np.isfinite(pos)):
+        i = int(np.flatnonzero(~np.isfinite(pos).all(axis=1))[0])
+        raise ConfigError(f"{where}: pose {i} of {n}: TCP position is not finite")
+    bad = np.zeros(n, dtype=bool)
+    reason = [""] * n
+    if arm.workspace_min is not None:
+        lo, hi = arm.workspace_min, arm.workspace_max
+        for i in np.flatnonzero(((pos < lo) | (pos > hi)).any(axis=1)):
+            axis = int(np.flatnonzero((pos[i] < lo) | (pos[i] > hi))[0])
+            side, limit = ("below workspace_min", lo[axis]) if pos[i, axis] < lo[axis] else \
+                ("above workspace_max", hi[axis])
+            bad[i], reason[i] = True, f"{'xyz'[axis]} = {pos[i, axis]:.3f} m is {side} {limit:.3f} m"
+    reach = np.linalg.norm(pos, axis=1)
+    for i in np.flatnonzero(~bad & (reach < arm.min_reach_m)):
+        bad[i], reason[i] = True, f"its distance {reach[i]:.3f} m from the base is below min_reach_m {arm.min_reach_m}"
+    if arm.max_reach_m is not None:
+        for i in np.flatnonzero(~bad & (reach > arm.max_reach_m)):
+            bad[i], reason[i] = True, (f"its distance {reach[i]:.3f} m from the base exceeds max_reach_m "
+                                       f"{arm.max_reach_m}")
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        p = ", ".join(f"{v:.3f}" for v in pos[i])
+        raise ConfigError(f"{where}: pose {i} of {n}: TCP at [{p}] m is unreachable: {reason[i]} ([arm] limits)")
+    if arm.min_reach_m > 0 and n:
+        a = np.vstack([start[None], pos[:-1]]) if start is not None else pos[:-1]
+        b = pos if start is not None else pos[1:]
+        d = _segment_origin_distance(a, b)
+        hits = np.flatnonzero(d < arm.min_reach_m)
+        if hits.size:
+            j = int(hits[0]) + (0 if start is not None else 1)
+            raise ConfigError(f"{where}: the straight move to pose {j} of {n} passes {d[hits[0]]:.3f} m from the "
+                              f"base, inside min_reach_m {arm.min_reach_m} ([arm] limits)")
+
+
+def _segment_origin_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from the origin to each segment a[i]-b[i] (n, 3) -> (n,)."""
+    ab = b - a
+    L2 = np.maximum(np.sum(ab * ab, axis=1), 1e-300)
+    t = np.clip(-np.sum(a * ab, axis=1) / L2, 0.0, 1.0)
+    return np.linalg.norm(a + t[:, None] * ab, axis=1)
+
+
+def build_plan(scan: ScanConfig, arm: ArmConfig, *, start_tcp: np.ndarray | None = None,
+               where: str = "scan") -> ScanPlan:
+    """Generate, order and check a scan plan; start_tcp (4, 4) is where the arm is now, when known."""
+    sensor = generate_sensor_poses(scan)
+    tcp = tcp_from_sensor(sensor, arm.hand_eye)
+    start = None if start_tcp is None else np.asarray(start_tcp, float)[:3, 3]
+    pos = tcp[:, :3, 3]
+    if scan.order == "nearest":
+        if start is None:  # begin at the highest view: the arm usually waits above the object
+            start = pos[int(np.argmax(_elevation_azimuth(sensor[:, :3, 3], scan.target)[0]))]
+        perm = order_nearest(pos, start)
+    elif scan.order == "serpentine":
+        bands = scan.rings if scan.schedule == "rings" else max(1, round(math.sqrt(scan.views / 2)))
+        perm = order_serpentine(sensor[:, :3, 3], np.asarray(scan.target, float), bands)
+    else:
+        perm = np.arange(len(sensor))
+    sensor, tcp = sensor[perm], tcp[perm]
+    check_workspace(tcp, arm, where, None if start_tcp is None else np.asarray(start_tcp, float)[:3, 3])
+    description = {**scan_to_dict(scan), "travel_m": round(path_length(tcp[:, :3, 3]), 4),
+                   "generated_order": perm.tolist()}
+    return ScanPlan(sensor, tcp, description)
