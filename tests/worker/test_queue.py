@@ -1,0 +1,217 @@
+"""The durable job queue: queued once, claimed once, leases that expire, retries, failures with reasons."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+
+import pytest
+
+from spadscan.protocol.errors import ConfigError
+from spadscan.worker.jobs import Job, job_id_for
+from spadscan.worker.queue import Holder, Queue, holder_gone
+
+
+def _job(name: str, preset: str = "fast") -> Job:
+    return Job(id=job_id_for(name, preset), scan=name, preset=preset)
+
+
+def _elsewhere() -> Holder:
+    """A holder on another machine: only its lease's expiry can free its jobs."""
+    return Holder(host="another-host", pid=12345, boot_id="other-boot", pid_ns="pid:[1]", pid_start="1")
+
+
+def test_job_ids_are_deterministic_and_safe():
+    assert job_id_for("bunny", "fast") == "bunny-fast" == job_id_for("bunny", "fast")
+    assert job_id_for("a b/../c", "paper") == "a_b_.._c-paper"
+    assert job_id_for("bunny", "fast") != job_id_for("bunny", "paper")
+
+
+def test_a_scan_is_queued_once(tmp_path):
+    q = Queue(tmp_path / "q")
+    assert q.enqueue(_job("bunny"))
+    assert not q.enqueue(_job("bunny"))
+    claim = q.claim()
+    assert claim.job.scan == "bunny" and claim.attempt == 1
+    assert not q.enqueue(_job("bunny")), "a running job must not be queued again"
+    q.finish(claim)
+    assert not q.enqueue(_job("bunny")), "a finished job must not be queued again"
+    assert q.counts() == {"queued": 0, "running": 0, "done": 1, "failed": 0}
+
+
+def test_bad_job_ids_are_refused(tmp_path):
+    q = Queue(tmp_path / "q")
+    with pytest.raises(ConfigError, match="job id"):
+        q.enqueue(Job(id="../escape", scan="x"))
+
+
+CLAIM_ALL = """
+import json, sys
+from spadscan.worker.queue import Queue
+q = Queue(sys.argv[1])
+got = []
+while (c := q.claim()) is not None:
+    got.append(c.job.id)
+    q.finish(c)
+print(json.dumps(got))
+"""
+
+
+def test_concurrent_claims_take_each_job_once(tmp_path):
+    q = Queue(tmp_path / "q")
+    ids = [job_id_for(f"scan{i:03d}", "fast") for i in range(60)]
+    for i in range(60):
+        q.enqueue(_job(f"scan{i:03d}"))
+    procs = [subprocess.Popen([sys.executable, "-c", CLAIM_ALL, str(q.path)], stdout=subprocess.PIPE, text=True)
+             for _ in range(4)]
+    outs = [p.communicate(timeout=60)[0] for p in procs]
+    got = [j for out in outs for j in json.loads(out)]
+    assert sorted(got) == sorted(ids), "every job claimed exactly once"
+    assert q.counts()["done"] == 60
+
+
+def test_claims_racing_in_threads_take_each_job_once(tmp_path):
+    q = Queue(tmp_path / "q")
+    for i in range(200):
+        q.enqueue(_job(f"s{i:03d}"))
+    start = threading.Barrier(8)
+    got: list[list[str]] = [[] for _ in range(8)]
+
+    def claimer(k: int) -> None:
+        start.wait()
+        while (c := q.claim()) is not None:
+            got[k].append(c.job.id)
+
+    threads = [threading.Thread(target=claimer, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    flat = [j for g in got for j in g]
+    assert len(flat) == 200 and len(set(flat)) == 200
+    assert q.counts() == {"queued": 0, "running": 200, "done": 0, "failed": 0}
+
+
+def test_heartbeat_keeps_the_lease_and_finish_records_the_result(tmp_path):
+    q = Queue(tmp_path / "q", lease_s=5)
+    q.enqueue(_job("s"))
+    claim = q.claim()
+    assert q.heartbeat(claim)
+    assert q.reclaim_expired(now=time.time() + 1) == [], "a fresh lease holds"
+    assert q.finish(claim)
+    q.record_result(claim, "/x/recon/s-fast")
+    (row,) = q.statuses()
+    assert (row.state, row.attempts, row.result, row.error) == ("done", 1, "/x/recon/s-fast", None)
+
+
+def test_expired_lease_is_taken_over_and_retried_then_failed(tmp_path):
+    q = Queue(tmp_path / "q", lease_s=10, max_attempts=2)
+    q.enqueue(_job("s"))
+    first = q.claim(_elsewhere())
+    assert q.reclaim_expired(now=time.time() + 5) == []
+    assert q.reclaim_expired(now=time.time() + 11) == [("s-fast", "queued")]
+    assert not q.heartbeat(first), "the old holder learns that it lost the lease"
+    assert not q.finish(first), "and cannot finish the job any more"
+    second = q.claim(_elsewhere())
+    assert second.attempt == 2
+    assert q.reclaim_expired(now=time.time() + 11) == [("s-fast", "failed")]
+    (row,) = q.statuses()
+    assert row.state == "failed" and row.attempts == 2
+    assert "stopped renewing its lease" in row.error and "giving up" in row.error
+
+
+def test_concurrent_reclaims_take_an_expired_job_once(tmp_path):
+    q = Queue(tmp_path / "q", lease_s=1, max_attempts=5)
+    q.enqueue(_job("s"))
+    q.claim(_elsewhere())
+    later = time.time() + 2
+    results = [q.reclaim_expired(now=later) for _ in range(3)]
+    assert sum(len(r) for r in results) == 1
+    assert q.counts()["queued"] == 1
+
+
+def test_a_dead_holder_on_this_machine_frees_its_job_at_once(tmp_path):
+    q = Queue(tmp_path / "q", lease_s=3600)
+    q.enqueue(_job("s"))
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    dead = replace(Holder.current(), pid=proc.pid, pid_start="")
+    assert holder_gone(dead.to_dict())
+    assert not holder_gone(Holder.current().to_dict())
+    assert not holder_gone(_elsewhere().to_dict()), "liveness of other machines' processes is unknown"
+    q.claim(dead)
+    assert q.reclaim_expired() == [("s-fast", "queued")]
+    (row,) = q.statuses()
+    assert "died mid-job" in row.error
+
+
+def test_a_live_holder_keeps_its_job(tmp_path):
+    q = Queue(tmp_path / "q", lease_s=3600)
+    q.enqueue(_job("s"))
+    q.claim()
+    assert q.reclaim_expired() == []
+    (row,) = q.statuses()
+    assert row.state == "running" and row.holder.endswith(f":{os.getpid()}")
+
+
+def test_input_errors_fail_at_once_crashes_retry(tmp_path):
+    q = Queue(tmp_path / "q", max_attempts=3)
+    q.enqueue(_job("bad"))
+    q.enqueue(_job("flaky"))
+    bad = q.claim()
+    assert q.fail(bad, "capture: chunk-000000/hists.npy: corrupt\nsecond line", retry=False) == "failed"
+    states = []
+    while (c := q.claim()) is not None:
+        states.append(q.crash(c, "job process killed by SIGKILL"))
+    assert states == ["queued", "queued", "failed"]
+    rows = {r.id: r for r in q.statuses()}
+    assert rows["bad-fast"].error == "capture: chunk-000000/hists.npy: corrupt second line"
+    assert rows["bad-fast"].attempts == 1
+    assert rows["flaky-fast"].attempts == 3 and "giving up" in rows["flaky-fast"].error
+
+
+def test_release_gives_a_job_back_without_using_an_attempt(tmp_path):
+    q = Queue(tmp_path / "q", max_attempts=1)
+    q.enqueue(_job("s"))
+    assert q.release(q.claim())
+    claim = q.claim()
+    assert claim.attempt == 1
+    assert q.crash(claim, "boom") == "failed"
+
+
+def test_retry_failed_starts_the_count_again(tmp_path):
+    q = Queue(tmp_path / "q", max_attempts=1)
+    q.enqueue(_job("s"))
+    q.fail(q.claim(), "bad", retry=False)
+    assert q.retry_failed() == ["s-fast"]
+    claim = q.claim()
+    assert claim.attempt == 1
+    q.finish(claim)
+    (row,) = q.statuses()
+    assert row.state == "done" and row.error is None
+
+
+def test_repair_queues_a_job_whose_enqueue_was_cut_short(tmp_path):
+    q = Queue(tmp_path / "q")
+    job = _job("s")
+    tmp = q.path / "tmp" / f"{job.id}~abc.json"
+    tmp.write_text(json.dumps(job.to_dict()))
+    os.link(tmp, q.path / "ids" / f"{job.id}.json")  # registered, then the process died before queuing it
+    assert q.repair(min_age_s=3600) == [], "a recent enqueue may still be in progress"
+    assert q.repair(min_age_s=0) == ["s-fast"]
+    assert q.claim().job == job
+
+
+def test_an_unreadable_job_file_fails_that_job_only(tmp_path):
+    q = Queue(tmp_path / "q")
+    (q.path / "queued" / "junk.json").write_text("{not json")
+    q.enqueue(_job("s"))
+    claim = q.claim()
+    assert claim is not None and claim.job.id == "s-fast"
+    rows = {r.id: r for r in q.statuses()}
+    assert rows["junk"].state == "failed" and "unreadable job file" in rows["junk"].error

@@ -1,0 +1,226 @@
+"""What a job is and what running one means: check the capture, reconstruct it, publish the results under the scan.
+
+A job's results land in `<scan>/recon/<job id>/` (mesh.ply, report.json, pictures, job.json). They are written into
+a hidden temporary folder beside it and published by one rename, so a reader never sees half a result.
+
+`python -m spadscan.worker.jobs` is the child process the worker pool starts for each job: it runs one job into the
+folder the pool names and writes an outcome file the pool reads (exit 0 done, 3 the input is at fault and a retry
+would fail the same way, 4 the job crashed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import re
+import secrets
+import shutil
+import sys
+import threading
+import time
+import traceback
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Callable
+
+from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
+
+ID_RE = re.compile(r"[^A-Za-z0-9._-]+")
+RECON_DIR = "recon"
+EXIT_DONE, EXIT_INPUT, EXIT_CRASH = 0, 3, 4
+
+ReconFn = Callable[..., dict]
+"""`reconstruct_capture(capture, out, *, preset, budget_s, steps, gt, device, seed) -> report dict`."""
+
+
+def job_id_for(scan_name: str, preset: str) -> str:
+    """Deterministic job id of one scan and preset, `<scan>-<preset>`, reduced to the characters [A-Za-z0-9._-]."""
+    clean = ID_RE.sub("_", f"{scan_name}-{preset}").strip(".") or "job"
+    return clean[:200]
+
+
+@dataclass(frozen=True)
+class Job:
+    """What to reconstruct and how. Stored as the job file; never changed once queued."""
+
+    id: str
+    """Deterministic id (see `job_id_for`)."""
+    scan: str
+    """Scan folder relative to the captures root."""
+    preset: str = "fast"
+    """Reconstruction preset."""
+    budget_s: float | None = None
+    """Wall-clock budget of the reconstruction (seconds); None = the preset's default."""
+    steps: int | None = None
+    """Optimisation steps; None = the preset's default."""
+    device: str = "auto"
+    """'auto', 'cpu' or 'cuda'."""
+    seed: int = 0
+    created_utc: str = ""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str = "job") -> "Job":
+        names = {f.name for f in fields(cls)}
+        if not isinstance(data, dict) or not {"id", "scan"} <= set(data):
+            raise ConfigError(f"{where}: not a job record (needs 'id' and 'scan')")
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+def load_recon(spec: str | None = None) -> ReconFn:
+    """The reconstruction function: `spadscan.worker.reconstruct.reconstruct_capture`, or `module:function`."""
+    if spec is None:
+        from spadscan.worker.reconstruct import reconstruct_capture  # torch: imported only in the job's process
+
+        return reconstruct_capture
+    module, _, name = spec.partition(":")
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"cannot load reconstruction function {spec!r}: {exc}") from None
+
+
+def scan_path(job: Job, root: Path) -> Path:
+    """The job's scan folder; refuses paths that leave the captures root."""
+    root = Path(root).resolve()
+    path = (root / job.scan).resolve()
+    if root not in path.parents:
+        raise ConfigError(f"job {job.id}: scan {job.scan!r} is not inside the captures root {root}")
+    return path
+
+
+def check_capture(scan: Path) -> dict:
+    """Validate a capture before reconstructing it: manifest, state 'complete', every chunk readable.
+
+    Returns the manifest. Raises CaptureError with the one-line reason otherwise.
+    """
+    from spadscan.protocol.capture_reader import CaptureReader
+
+    reader = CaptureReader(scan)
+    if reader.state != "complete":
+        raise CaptureError(f"{scan}: scan state is {reader.state!r}, not 'complete'")
+    data = reader.load()  # reads and checks every chunk: shapes, dtypes, finite rigid poses
+    if len(data.hists) == 0:
+        raise CaptureError(f"{scan}: holds no measurements")
+    return reader.manifest
+
+
+def ground_truth(manifest: dict, out: Path) -> Path | None:
+    """A ground-truth mesh for a simulated capture, when its manifest names one (a mesh file or a built-in scene)."""
+    scene = manifest.get("scene") or {}
+    mesh = scene.get("mesh")
+    if isinstance(mesh, str) and Path(mesh).is_file():
+        return Path(mesh)
+    if isinstance(scene.get("builtin"), str):
+        try:
+            from spadscan.protocol.scenes import builtin_scene
+
+            path = out / "ground_truth.ply"
+            builtin_scene(scene["builtin"]).export(path)
+            return path
+        except (ImportError, SpadscanError):
+            return None
+    return None
+
+
+def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -> dict:
+    """Reconstruct the job's capture into the folder `out` (created). Returns the reconstruction's report."""
+    scan = scan_path(job, root)
+    manifest = check_capture(scan)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    gt = ground_truth(manifest, out)
+    (out / "job.json").write_text(json.dumps({**job.to_dict(), "capture": str(scan),
+                                              "gt": None if gt is None else str(gt)}, indent=1) + "\n")
+    recon = recon or load_recon()
+    report = recon(scan, out, preset=job.preset, budget_s=job.budget_s, steps=job.steps, gt=gt,
+                   device=job.device, seed=job.seed)
+    return dict(report or {})
+
+
+def result_path(job: Job, root: Path) -> Path:
+    """Where the job's results are published: `<scan>/recon/<job id>/`."""
+    return scan_path(job, root) / RECON_DIR / job.id
+
+
+def scratch_path(job: Job, root: Path) -> Path:
+    """A fresh hidden folder beside the result folder to write one attempt's results into."""
+    return scan_path(job, root) / RECON_DIR / f".tmp-{job.id}-{secrets.token_hex(4)}"
+
+
+def publish(scratch: Path, final: Path) -> Path:
+    """Move a finished scratch folder into place by rename, replacing an earlier result of the same job."""
+    old = None
+    if final.exists():
+        old = final.with_name(f".old-{final.name}-{secrets.token_hex(4)}")
+        os.rename(final, old)
+    os.rename(scratch, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def run_job(job: Job, root: Path, *, recon: ReconFn | None = None) -> Path:
+    """Run one job in this process and publish its results; returns `<scan>/recon/<job id>/`."""
+    scratch = scratch_path(job, root)
+    try:
+        execute_job(job, root, scratch, recon)
+        return publish(scratch, result_path(job, root))
+    finally:
+        if scratch.exists():
+            shutil.rmtree(scratch, ignore_errors=True)
+
+
+# ---- the job's child process -----------------------------------------------------------------------------------
+def _exit_with_parent(poll_s: float = 0.5) -> None:
+    """End this process when the worker that started it dies (its lease then expires and another worker retries)."""
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(poll_s)
+            if os.getppid() != parent:
+                os._exit(EXIT_CRASH)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _write_outcome(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data) + "\n")
+    os.replace(tmp, path)
+
+
+def child_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m spadscan.worker.jobs", description="Run one queued job.")
+    parser.add_argument("--job", required=True, help="the job record as JSON")
+    parser.add_argument("--root", required=True, help="captures root")
+    parser.add_argument("--out", required=True, help="folder to write the results into")
+    parser.add_argument("--outcome", required=True, help="file to write the outcome into (JSON)")
+    parser.add_argument("--recon", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    _exit_with_parent()
+    outcome = Path(args.outcome)
+    t0 = time.monotonic()
+    try:
+        job = Job.from_dict(json.loads(args.job))
+        report = execute_job(job, Path(args.root), Path(args.out), load_recon(args.recon))
+    except SpadscanError as exc:
+        _write_outcome(outcome, {"ok": False, "kind": "input", "error": str(exc)})
+        print(f"job failed: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except Exception as exc:  # a bug or a resource problem: record it and let the pool retry
+        traceback.print_exc()
+        _write_outcome(outcome, {"ok": False, "kind": "crash", "error": f"{type(exc).__name__}: {exc}"})
+        return EXIT_CRASH
+    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps") if k in report}
+    _write_outcome(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary})
+    return EXIT_DONE
+
+
+if __name__ == "__main__":
+    sys.exit(child_main())

@@ -1,0 +1,454 @@
+"""The durable job queue (DESIGN §2): job files moved between state folders by atomic rename, with expiring leases.
+
+Layout of a queue folder (by default `<captures root>/.queue/`):
+
+```
+ids/<job>.json                 registry: one entry per job ever queued, so a scan is queued once
+queued/<job>.json              waiting to be claimed
+running/<job>~<token>.json     claimed; <token> names the claim, the file's mtime is the holder's last heartbeat
+done/<job>.json                finished; the result folder is in the job's last attempt record
+failed/<job>.json              gave up; the one-line reason is in the job's last attempt record
+attempts/<job>/<token>.json    one record per claim: holder (host, pid), times, outcome, error, result
+tmp/                           files being written
+```
+
+Why several workers on one machine or on a shared filesystem run each job once:
+- Job files are never rewritten, only renamed, and a rename of one source name succeeds for exactly one caller. So
+  claiming (`queued/j` -> `running/j~T`), taking over an expired lease (`running/j~A` -> `running/j~B`) and finishing
+  (`running/j~T` -> `done/j`) are each won by one process: the rename is the lock.
+- A holder touches its `running/j~T` file (os.utime) every few seconds. A missing file means its lease expired and
+  another worker took the job over: the holder drops its result.
+- A lease expires when that file's mtime is older than the lease (clocks of machines sharing a filesystem must agree
+  to well within the lease), or at once when the holder was a process on this machine that no longer exists.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import socket
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from spadscan.protocol.errors import ConfigError
+
+from .jobs import ID_RE as _ID_RE, Job
+
+
+STATES = ("queued", "running", "done", "failed")
+QUEUE_DIRNAME = ".queue"
+SEP = "~"
+# Outcomes of one claim. Interrupted claims (the worker was asked to stop) do not count as attempts.
+OUTCOMES = ("running", "done", "failed", "crashed", "lost", "interrupted")
+
+
+@dataclass
+class Claim:
+    """A job this process holds. `path` is its `running/` file; `attempt` counts this claim (1-based)."""
+
+    job: Job
+    token: str
+    path: Path
+    attempt: int
+    started: float = field(default_factory=time.time)
+
+
+@dataclass
+class JobStatus:
+    """One row of `spadscan worker --status`."""
+
+    id: str
+    scan: str
+    preset: str
+    state: str
+    attempts: int
+    error: str | None
+    result: str | None
+    holder: str | None
+    heartbeat_age_s: float | None
+
+
+def _read(path: str) -> str:
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except OSError:
+        return ""
+
+
+def _pid_start(pid: int) -> str:
+    """Start time of a process in clock ticks since boot ('' when unknown): tells a reused pid apart."""
+    stat = _read(f"/proc/{pid}/stat")
+    return stat.rsplit(")", 1)[1].split()[19] if ")" in stat else ""
+
+
+def _pid_namespace() -> str:
+    try:
+        return os.readlink("/proc/self/ns/pid")
+    except OSError:
+        return ""
+
+
+@dataclass(frozen=True)
+class Holder:
+    """Who holds a lease: a process, named so that another process can tell whether it still exists.
+
+    Two processes can only judge each other's liveness on one machine (same host name, boot and pid namespace);
+    elsewhere the lease's expiry decides.
+    """
+
+    host: str
+    pid: int
+    boot_id: str = ""
+    pid_ns: str = ""
+    pid_start: str = ""
+
+    @classmethod
+    def current(cls) -> "Holder":
+        pid = os.getpid()
+        return cls(socket.gethostname(), pid, _read("/proc/sys/kernel/random/boot_id"), _pid_namespace(),
+                   _pid_start(pid))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def describe(self) -> dict:
+        return {"host": self.host, "pid": self.pid}
+
+
+def holder_gone(data: dict) -> bool:
+    """True only when `data` (Holder.to_dict) names a process on this machine that no longer exists."""
+    me = Holder.current()
+    try:
+        h = Holder(**data)
+    except TypeError:
+        return False
+    if (h.host, h.boot_id, h.pid_ns) != (me.host, me.boot_id, me.pid_ns) or not h.boot_id:
+        return False
+    try:
+        os.kill(h.pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        pass  # it exists, under another user
+    start = _pid_start(h.pid)
+    if start and h.pid_start and start != h.pid_start:
+        return True  # the pid was reused by a newer process
+    # A zombie has exited but is not yet reaped by its parent: it holds nothing.
+    stat = _read(f"/proc/{h.pid}/stat")
+    return ")" in stat and stat.rsplit(")", 1)[1].split()[0] == "Z"
+
+
+def _utc() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+class Queue:
+    """A job queue in one folder. Methods are safe to call from several processes at once."""
+
+    def __init__(self, path, *, lease_s: float = 60.0, max_attempts: int = 3):
+        if not (lease_s > 0):
+            raise ConfigError(f"lease {lease_s} s must be > 0")
+        if not (isinstance(max_attempts, int) and max_attempts >= 1):
+            raise ConfigError(f"max attempts {max_attempts} must be an integer >= 1")
+        self.path = Path(path)
+        self.lease_s = float(lease_s)
+        self.max_attempts = max_attempts
+        for sub in ("ids", "tmp", "attempts", *STATES):
+            (self.path / sub).mkdir(parents=True, exist_ok=True)
+
+    @classmethod
+    def for_root(cls, root, **kwargs) -> "Queue":
+        return cls(Path(root) / QUEUE_DIRNAME, **kwargs)
+
+    # ---- adding ----------------------------------------------------------------------------------------------
+    def enqueue(self, job: Job) -> bool:
+        """Queue a job unless its id was ever queued; True when it was added.
+
+        The job file is written once into tmp/, hard-linked into ids/ (fails if the id exists: exactly one caller
+        wins) and then renamed into queued/.
+        """
+        if not job.id or _ID_RE.search(job.id) or job.id.startswith("."):
+            raise ConfigError(f"job id {job.id!r} must be a non-empty name of [A-Za-z0-9._-]")
+        if self.known(job.id):
+            return False
+        if not job.created_utc:
+            job = Job(**{**job.to_dict(), "created_utc": _utc()})
+        tmp = self.path / "tmp" / f"{job.id}{SEP}{secrets.token_hex(6)}.json"
+        _write_new(tmp, job.to_dict())
+        try:
+            os.link(tmp, self._id_path(job.id))
+        except FileExistsError:
+            tmp.unlink(missing_ok=True)
+            return False
+        os.rename(tmp, self.path / "queued" / f"{job.id}.json")
+        return True
+
+    def known(self, job_id: str) -> bool:
+        return self._id_path(job_id).exists()
+
+    def _id_path(self, job_id: str) -> Path:
+        return self.path / "ids" / f"{job_id}.json"
+
+    # ---- claiming --------------------------------------------------------------------------------------------
+    def claim(self, holder: Holder | None = None) -> Claim | None:
+        """Take the oldest queued job, or None when there is none. Race-free: the one rename that succeeds wins."""
+        holder = holder or Holder.current()
+        for src in sorted((self.path / "queued").glob("*.json")):
+            job_id = src.stem
+            token = _new_token()
+            dst = self.path / "running" / f"{job_id}{SEP}{token}.json"
+            try:
+                os.utime(src)  # the lease starts now: a rename keeps the old mtime
+                os.rename(src, dst)
+            except FileNotFoundError:
+                continue  # another worker claimed it first
+            try:
+                job = Job.from_dict(json.loads(dst.read_text()), str(dst))
+            except (ValueError, ConfigError) as exc:
+                self._settle(dst, job_id, "failed")
+                self._record(job_id, token, holder, outcome="failed", error=f"unreadable job file: {exc}")
+                continue
+            attempt = self.attempts(job_id) + 1
+            self._record(job_id, token, holder, outcome="running", attempt=attempt)
+            return Claim(job, token, dst, attempt)
+        return None
+
+    def heartbeat(self, claim: Claim) -> bool:
+        """Renew the lease; False when it was lost (another worker took the job over)."""
+        try:
+            os.utime(claim.path)
+            return True
+        except FileNotFoundError:
+            return False
+
+    # ---- finishing -------------------------------------------------------------------------------------------
+    def finish(self, claim: Claim, result: str | None = None) -> bool:
+        """Move a held job to done/; False (and nothing changes) when the lease was lost."""
+        if not self._settle(claim.path, claim.job.id, "done"):
+            return False
+        self._update(claim, outcome="done", result=result)
+        return True
+
+    def record_result(self, claim: Claim, result: str) -> None:
+        """Note where a finished job's results were published."""
+        self._update(claim, result=result)
+
+    def fail(self, claim: Claim, reason: str, *, retry: bool) -> str | None:
+        """A claim ended in error. With `retry` and attempts left the job goes back to queued/, else to failed/.
+
+        Returns the new state, or None when the lease had been lost (nothing changes).
+        """
+        retry = retry and claim.attempt < self.max_attempts
+        state = "queued" if retry else "failed"
+        if not retry and claim.attempt > 1 and claim.attempt >= self.max_attempts:
+            reason = f"{reason} (attempt {claim.attempt} of {self.max_attempts}; giving up)"
+        if not self._settle(claim.path, claim.job.id, state):
+            return None
+        self._update(claim, outcome="failed", error=_one_line(reason), retried=retry)
+        return state
+
+    def crash(self, claim: Claim, reason: str) -> str | None:
+        """The job's process died or raised unexpectedly: retried while attempts are left."""
+        state = self.fail(claim, reason, retry=True)
+        if state is not None:
+            self._update(claim, outcome="crashed")
+        return state
+
+    def release(self, claim: Claim, reason: str = "worker stopped") -> bool:
+        """Give a held job back to queued/ without counting the attempt (the worker was asked to stop)."""
+        if not self._settle(claim.path, claim.job.id, "queued"):
+            return False
+        self._update(claim, outcome="interrupted", error=_one_line(reason))
+        return True
+
+    def _settle(self, src: Path, job_id: str, state: str) -> bool:
+        try:
+            os.rename(src, self.path / state / f"{job_id}.json")
+            return True
+        except FileNotFoundError:
+            return False
+
+    # ---- expired leases --------------------------------------------------------------------------------------
+    def reclaim_expired(self, holder: Holder | None = None, now: float | None = None) -> list[tuple[str, str]]:
+        """Take over every running job whose holder stopped; retry it or fail it. Returns [(job id, new state)]."""
+        holder = holder or Holder.current()
+        out = []
+        for path in sorted((self.path / "running").glob(f"*{SEP}*.json")):
+            job_id, _, old_token = path.stem.rpartition(SEP)
+            reason = self._expired(path, job_id, old_token, now)
+            if reason is None:
+                continue
+            token = _new_token()
+            mine = path.with_name(f"{job_id}{SEP}{token}.json")
+            try:
+                os.rename(path, mine)  # exactly one reclaimer wins
+            except FileNotFoundError:
+                continue
+            attempts = self.attempts(job_id)
+            retry = attempts < self.max_attempts
+            if not retry:
+                reason = f"{reason} (attempt {attempts} of {self.max_attempts}; giving up)"
+            self._patch_record(job_id, old_token, outcome="lost", error=reason, ended_utc=_utc(), retried=retry)
+            state = "queued" if retry else "failed"
+            self._settle(mine, job_id, state)
+            out.append((job_id, state))
+        return out
+
+    def _expired(self, path: Path, job_id: str, token: str, now: float | None) -> str | None:
+        """Why the lease on `path` has expired, or None while it holds."""
+        try:
+            mtime = path.stat().st_mtime
+        except FileNotFoundError:
+            return None
+        rec = self._read_record(job_id, token) or {}
+        lease = float(rec.get("lease_s") or self.lease_s)
+        who = f"worker {rec.get('host', '?')} pid {rec.get('pid', '?')}"
+        if rec.get("holder") and holder_gone(rec["holder"]):
+            return f"{who} died mid-job"
+        age = (time.time() if now is None else now) - mtime
+        if age > lease:
+            return f"{who} stopped renewing its lease ({age:.0f} s > {lease:.0f} s)"
+        return None
+
+    # ---- attempt records -------------------------------------------------------------------------------------
+    def attempts(self, job_id: str) -> int:
+        """Claims of this job that counted as attempts (interrupted ones do not)."""
+        return sum(1 for r in self.records(job_id) if r.get("outcome") != "interrupted")
+
+    def records(self, job_id: str) -> list[dict]:
+        """Attempt records of one job, oldest first."""
+        folder = self.path / "attempts" / job_id
+        recs = []
+        for p in folder.glob("*.json") if folder.is_dir() else ():
+            try:
+                recs.append(json.loads(p.read_text()))
+            except (OSError, ValueError):
+                continue  # being replaced right now, or a torn file from a crash: not a record
+        return sorted(recs, key=lambda r: (r.get("started_unix", 0.0), r.get("token", "")))
+
+    def _record(self, job_id: str, token: str, holder: Holder, **values) -> None:
+        rec = {"token": token, **holder.describe(), "holder": holder.to_dict(), "lease_s": self.lease_s,
+               "started_utc": _utc(), "started_unix": time.time(), "ended_utc": None, "error": None,
+               "result": None, **values}
+        self._write_record(job_id, token, rec)
+
+    def _update(self, claim: Claim, **values) -> None:
+        values.setdefault("ended_utc", _utc())
+        values.setdefault("seconds", round(time.time() - claim.started, 3))
+        self._patch_record(claim.job.id, claim.token, **values)
+
+    def _patch_record(self, job_id: str, token: str, **values) -> None:
+        rec = self._read_record(job_id, token) or {"token": token, "started_unix": time.time()}
+        rec.update(values)
+        self._write_record(job_id, token, rec)
+
+    def _read_record(self, job_id: str, token: str) -> dict | None:
+        try:
+            return json.loads((self.path / "attempts" / job_id / f"{token}.json").read_text())
+        except (OSError, ValueError):
+            return None
+
+    def _write_record(self, job_id: str, token: str, rec: dict) -> None:
+        folder = self.path / "attempts" / job_id
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = self.path / "tmp" / f"rec-{job_id}{SEP}{token}-{secrets.token_hex(4)}.json"
+        _write_new(tmp, rec)
+        os.replace(tmp, folder / f"{token}.json")
+
+    # ---- listing and maintenance -----------------------------------------------------------------------------
+    def job_paths(self) -> dict[str, tuple[str, Path]]:
+        """Every job file by id: (state, path). A job moving between listings may appear in either state."""
+        found: dict[str, tuple[str, Path]] = {}
+        for state in STATES:
+            for p in (self.path / state).glob("*.json"):
+                job_id = p.stem.rpartition(SEP)[0] if state == "running" else p.stem
+                found[job_id] = (state, p)
+        return found
+
+    def statuses(self) -> list[JobStatus]:
+        """One row per job, sorted by id."""
+        rows = []
+        now = time.time()
+        for job_id, (state, path) in sorted(self.job_paths().items()):
+            try:
+                job = Job.from_dict(json.loads(path.read_text()), str(path))
+            except (OSError, ValueError, ConfigError):
+                job = Job(id=job_id, scan="?", preset="?")
+            recs = self.records(job_id)
+            errors = [r["error"] for r in recs if r.get("error") and r.get("outcome") != "interrupted"]
+            results = [r["result"] for r in recs if r.get("outcome") == "done" and r.get("result")]
+            holder = age = None
+            if state == "running":
+                token = path.stem.rpartition(SEP)[2]
+                rec = next((r for r in recs if r.get("token") == token), {})
+                holder = f"{rec.get('host', '?')}:{rec.get('pid', '?')}"
+                try:
+                    age = max(0.0, now - path.stat().st_mtime)
+                except FileNotFoundError:
+                    age = None
+            rows.append(JobStatus(job_id, job.scan, job.preset, state,
+                                  sum(1 for r in recs if r.get("outcome") != "interrupted"),
+                                  errors[-1] if errors and state != "done" else None,
+                                  results[-1] if results else None, holder, age))
+        return rows
+
+    def counts(self) -> dict[str, int]:
+        """Number of job files in each state."""
+        return {s: sum(1 for _ in (self.path / s).glob("*.json")) for s in STATES}
+
+    def retry_failed(self, job_id: str | None = None) -> list[str]:
+        """Put failed jobs (one, or all) back in the queue with a fresh attempt count."""
+        moved = []
+        for p in sorted((self.path / "failed").glob("*.json")):
+            if job_id is not None and p.stem != job_id:
+                continue
+            folder = self.path / "attempts" / p.stem
+            if folder.is_dir():
+                os.rename(folder, folder.with_name(f".{p.stem}{SEP}retired{SEP}{_new_token()}"))
+            try:
+                os.rename(p, self.path / "queued" / p.name)
+                moved.append(p.stem)
+            except FileNotFoundError:
+                continue
+        return moved
+
+    def repair(self, min_age_s: float = 60.0) -> list[str]:
+        """Queue jobs whose enqueue was cut short between registering and queuing (a crash); returns their ids."""
+        fixed = []
+        now = time.time()
+        for tmp in (self.path / "tmp").glob(f"*{SEP}*.json"):
+            job_id = tmp.stem.rpartition(SEP)[0]
+            try:
+                st = tmp.stat()
+                reg = self._id_path(job_id).stat()
+            except FileNotFoundError:
+                continue
+            if st.st_ino != reg.st_ino or now - st.st_mtime < min_age_s:
+                continue  # not this job's registered file, or its enqueue may still be in progress
+            try:
+                os.rename(tmp, self.path / "queued" / f"{job_id}.json")
+                fixed.append(job_id)
+            except FileNotFoundError:
+                continue
+        return fixed
+
+
+def _new_token() -> str:
+    return secrets.token_hex(8)
+
+
+def _one_line(text: str, limit: int = 500) -> str:
+    line = " ".join(str(text).split())
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def _write_new(path: Path, data: dict) -> None:
+    """Write a JSON file durably (fsync) before it is linked or renamed into place."""
+    with open(path, "w") as f:
+        json.dump(data, f, indent=1)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
