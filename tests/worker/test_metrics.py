@@ -1,0 +1,193 @@
+"""Mesh metrics: known distances between simple shapes, F-score around its threshold, normals, cropping, `spadscan eval`."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from spadscan.cli import main
+from spadscan.protocol.errors import MeshError
+from spadscan.worker.metrics import MeshMetrics, crop_to_box, mesh_metrics, sample_surface
+
+N = 40_000
+
+
+def ball(radius=0.1, center=(0, 0, 0.1)):
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    return mesh.apply_translation(center)
+
+
+def floor_mm(mesh, n):
+    """Expected sample-to-sample distance between two independent samplings of the same surface (mm)."""
+    return 0.5 * math.sqrt(mesh.area / n) * 1e3
+
+
+def test_identical_meshes_score_the_sampling_floor():
+    mesh = ball()
+    m = mesh_metrics(mesh, mesh.copy(), n_points=300_000)
+    assert isinstance(m, MeshMetrics)
+    floor = floor_mm(mesh, 300_000)  # ~0.33 mm
+    assert 0.5 * floor < m.chamfer_mm < 1.3 * floor
+    assert m.fscore_5mm == 1.0 and m.normal_error_deg < 3.0
+
+
+def test_floor_shrinks_with_more_points():
+    mesh = ball()
+    coarse = mesh_metrics(mesh, mesh, n_points=5_000).chamfer_mm
+    fine = mesh_metrics(mesh, mesh, n_points=80_000).chamfer_mm
+    assert fine == pytest.approx(coarse / 4, rel=0.15)  # spacing ~ 1 / sqrt(n)
+
+
+def test_sphere_two_millimetres_larger():
+    m = mesh_metrics(ball(0.100), ball(0.102), n_points=300_000)
+    assert m.chamfer_mm == pytest.approx(2.0, abs=0.1)
+    assert m.accuracy_mm == pytest.approx(m.completeness_mm, rel=0.05)
+    assert m.normal_error_deg < 2.0  # concentric spheres share their normals
+
+
+def test_shifted_copy_of_a_sphere():
+    # A sphere moved by d along x: the mean distance between the surfaces is E|d cos(theta)| = d / 2.
+    shifted = ball().apply_translation([0.006, 0, 0])
+    m = mesh_metrics(ball(), shifted, n_points=N)
+    assert m.chamfer_mm == pytest.approx(3.0, abs=0.35)
+
+
+def test_accuracy_and_completeness_are_not_swapped():
+    full = ball()
+    top_half = crop_to_box(full, [-1, -1, 0.1], [1, 1, 1])
+    m = mesh_metrics(top_half, full, n_points=N)
+    # Every point of the half lies on the whole (accuracy at the floor); half of the whole is far from the half.
+    assert m.accuracy_mm < 1.5 * floor_mm(full, N)
+    assert m.completeness_mm > 20
+    assert m.precision == 1.0 and 0.45 < m.recall < 0.6
+
+
+@pytest.mark.parametrize("gap_mm,expect", [(3.5, 1.0), (4.5, 1.0), (5.5, 0.0), (8.0, 0.0)])
+def test_fscore_switches_at_five_millimetres(gap_mm, expect):
+    m = mesh_metrics(ball(0.1), ball(0.1 + gap_mm * 1e-3), n_points=N)
+    assert m.fscore_5mm == pytest.approx(expect, abs=0.02)
+
+
+def test_fscore_threshold_is_a_parameter():
+    a, b = ball(0.1), ball(0.107)
+    assert mesh_metrics(a, b, n_points=N).fscore_5mm < 0.01
+    m = mesh_metrics(a, b, n_points=N, fscore_threshold_m=0.008)
+    assert m.fscore_5mm > 0.99 and m.fscore_threshold_mm == pytest.approx(8.0)
+
+
+def test_normal_error_of_a_tilted_plate_and_flipped_orientation():
+    plate = trimesh.creation.box([0.2, 0.2, 0.002])
+    tilt = trimesh.transformations.rotation_matrix(math.radians(10), [1, 0, 0])
+    tilted = plate.copy().apply_transform(tilt)
+    base = mesh_metrics(plate, plate.copy(), n_points=N).normal_error_deg  # samples near edges: ~1.4 deg
+    assert base < 3
+    assert mesh_metrics(plate, tilted, n_points=N).normal_error_deg - base == pytest.approx(10.0, abs=1.0)
+    flipped = plate.copy()
+    flipped.invert()
+    assert mesh_metrics(plate, flipped, n_points=N).normal_error_deg == pytest.approx(base, abs=0.5)  # orientation ignored
+
+
+def test_same_seed_same_numbers_other_seed_close():
+    a, b = ball(), ball(0.103)
+    m1, m2 = mesh_metrics(a, b, n_points=N, seed=3), mesh_metrics(a, b, n_points=N, seed=3)
+    m3 = mesh_metrics(a, b, n_points=N, seed=4)
+    assert m1 == m2 and m1 != m3
+    assert m3.chamfer_mm == pytest.approx(m1.chamfer_mm, abs=0.05)
+
+
+def test_sampling_is_uniform_by_area():
+    # Two faces, one with 3x the area of the other: 3x the samples.
+    mesh = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [2, 3, 0], [5, 0, 0]],
+                           [[0, 1, 2], [3, 5, 4]], process=False)
+    pts, nrm = sample_surface(mesh, 40_000, np.random.default_rng(0))
+    assert np.mean(pts[:, 0] >= 2) == pytest.approx(9 / 10, abs=0.01)
+    assert np.all(pts[:, 0] >= 0) and np.allclose(pts[:, 2], 0) and np.allclose(np.abs(nrm[:, 2]), 1)
+    inside_first = pts[pts[:, 0] < 1.5]
+    assert np.all(inside_first[:, 0] + inside_first[:, 1] <= 1 + 1e-12)  # inside the triangle, not the square
+
+
+@pytest.mark.parametrize("kwargs,match", [({"n_points": 0}, "points"), ({"seed": -1}, "seed"),
+                                          ({"fscore_threshold_m": 0.0}, "threshold"),
+                                          ({"fscore_threshold_m": float("nan")}, "threshold")])
+def test_bad_parameters(kwargs, match):
+    with pytest.raises(MeshError, match=match):
+        mesh_metrics(ball(), ball(), **kwargs)
+
+
+def test_bad_meshes():
+    nan = ball()
+    nan.vertices[0, 0] = np.nan
+    flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]], process=False)
+    for bad, match in ((trimesh.Trimesh(), "no triangles"), (nan, "non-finite"), (flat, "zero surface area"),
+                       ("mesh.obj", "trimesh")):
+        with pytest.raises(MeshError, match=match):
+            mesh_metrics(bad, ball())
+        with pytest.raises(MeshError, match="ground truth"):
+            mesh_metrics(ball(), bad)
+
+
+def test_crop_to_box():
+    mesh = ball()
+    top = crop_to_box(mesh, [-1, -1, 0.15], [1, 1, 1])
+    assert top.triangles_center[:, 2].min() >= 0.15 and top.bounds[1, 2] == pytest.approx(0.2)
+    assert len(top.vertices) < len(mesh.vertices)  # unreferenced vertices dropped
+    with pytest.raises(MeshError, match="no triangle"):
+        crop_to_box(mesh, [1, 1, 1], [2, 2, 2])
+    with pytest.raises(MeshError, match="below max"):
+        crop_to_box(mesh, [0, 0, 0.2], [1, 1, 0.1])
+    with pytest.raises(MeshError, match="3-vectors"):
+        crop_to_box(mesh, [0, 0], [1, 1, 1])
+
+
+# ---- spadscan eval ------------------------------------------------------------------------------------------------------
+def test_eval_detects_millimetre_stl_and_prints_json(tmp_path, capsys):
+    gt = ball()
+    gt.export(tmp_path / "gt.obj")
+    ball(100.0, (0, 0, 100.0)).export(tmp_path / "recon.stl")  # the same ball, in millimetres
+    rc = main(["eval", str(tmp_path / "recon.stl"), "--gt", str(tmp_path / "gt.obj"), "--json", "--points", str(N)])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["chamfer_mm"] < 1.5 * floor_mm(gt, N) and out["fscore_5mm"] == 1.0 and out["n_points"] == N
+    assert {"accuracy_mm", "completeness_mm", "normal_error_deg", "mesh", "gt"} <= set(out)
+
+
+def test_eval_table_and_builtin_scenes(capsys):
+    assert main(["eval", "builtin:cup", "--gt", "builtin:cup", "--points", "5000", "--seed", "2"]) == 0
+    out = capsys.readouterr().out
+    for key in ("Chamfer", "accuracy", "completeness", "F-score @5 mm", "normal error", "mm", "seed 2"):
+        assert key in out
+    chamfer = float(next(line for line in out.splitlines() if line.startswith("Chamfer")).split()[1])
+    assert 0 < chamfer < 3
+
+
+def test_eval_box_crops_both_meshes(tmp_path, capsys):
+    plate = trimesh.creation.box([2.0, 2.0, 0.02]).apply_translation([0, 0, -0.01])
+    scene = trimesh.util.concatenate([plate, ball()])
+    scene.export(tmp_path / "gt.ply")
+    ball().export(tmp_path / "recon.ply")
+    args = ["eval", str(tmp_path / "recon.ply"), "--gt", str(tmp_path / "gt.ply"), "--json", "--points", str(N)]
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out)["completeness_mm"] > 100  # the table dominates
+    assert main(args + ["--box", "-0.2", "-0.2", "0.001", "0.2", "0.2", "0.3"]) == 0
+    assert json.loads(capsys.readouterr().out)["chamfer_mm"] < 1.5 * floor_mm(ball(), N)
+
+
+@pytest.mark.parametrize("content,name", [(None, "missing.obj"), ("not a mesh\n", "bad.obj"), (b"", "empty.stl")])
+def test_eval_bad_files_are_one_line_errors(tmp_path, capsys, content, name):
+    path = tmp_path / name
+    if content is not None:
+        path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    assert main(["eval", str(path), "--gt", "builtin:sphere"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("spadscan: error:") and name in err and err.count("\n") == 1
+
+
+def test_eval_bad_options_are_one_line_errors(capsys):
+    assert main(["eval", "builtin:sphere", "--gt", "builtin:teapot"]) == 1
+    assert "teapot" in capsys.readouterr().err
+    assert main(["eval", "builtin:sphere", "--gt", "builtin:sphere", "--points", "-5"]) == 1
+    assert capsys.readouterr().err.count("\n") == 1
