@@ -25,10 +25,14 @@ def _check_rate(rate) -> np.ndarray:
 
 
 def _rate_before(rate: np.ndarray) -> np.ndarray:
-    """sum_{j<b} lambda_j for every b (exclusive cumulative sum along the last axis)."""
-    before = np.cumsum(rate, axis=-1)
-    before -= rate
-    return np.maximum(before, 0.0)  # rounding of huge sums must not go negative
+    """sum_{j<b} lambda_j for every b (exclusive cumulative sum along the last axis).
+
+    Shifted, not `cumsum - rate`: subtracting a huge rate from a sum that holds it would cancel the smaller ones.
+    """
+    before = np.zeros_like(rate)
+    with np.errstate(over="ignore"):  # sums past 1e308 become inf, and exp(-inf) = 0 is the right answer
+        np.cumsum(rate[..., :-1], axis=-1, out=before[..., 1:])
+    return before
 
 
 def detection_probabilities(rate) -> np.ndarray:
@@ -45,7 +49,8 @@ def detection_probabilities(rate) -> np.ndarray:
 def miss_probability(rate) -> np.ndarray:
     """Probability that a cycle sees no photon in any bin: exp(-sum lambda). rate (..., bins) -> (...)."""
     rate = _check_rate(rate)
-    return np.exp(-rate.sum(axis=-1))
+    with np.errstate(over="ignore"):
+        return np.exp(-rate.sum(axis=-1))
 
 
 def detection_probabilities_no_pileup(rate) -> np.ndarray:

@@ -57,8 +57,9 @@ class SimSettings:
     over ~4e6 cycles)."""
     reference_background: float = 1.0e-6
     """Flat background of the reference channel, photons per bin per cycle (~4 counts over ~4e6 cycles)."""
-    reference_delay_bins: float = 1.0
-    """The reference pulse arrives this many bins after the zones' zero-range point (internal optical path)."""
+    reference_delay_bins: float = 1.6
+    """The reference pulse arrives this many bins after the zones' zero-range point (internal optical path; the real
+    TMF8820's reference peaks 1.5-2 bins after the zones' zero-range point)."""
 
     def check(self) -> "SimSettings":
         for key, lo, hi in (("power", 0.0, 1e9), ("albedo", 0.0, 1e3), ("reference_signal", 0.0, 1e6),
@@ -78,11 +79,13 @@ class SimSettings:
 @dataclass
 class SimFrames:
     """Simulated measurements. hists: (n, zones, bins) uint32 counts; reference: (n, bins) uint32 or None;
-    poses: (n, 4, 4) float64 sensor-to-world (metres)."""
+    poses: (n, 4, 4) float64 sensor-to-world (metres); misses: (n, zones) int64 cycles that detected nothing in
+    the histogram window (before clipping to max_count, hists.sum(-1) + misses == cycles)."""
 
     hists: np.ndarray
     reference: np.ndarray | None
     poses: np.ndarray
+    misses: np.ndarray | None = None
 
 
 def check_pose_array(poses) -> np.ndarray:
@@ -93,7 +96,7 @@ def check_pose_array(poses) -> np.ndarray:
     if not np.all(np.isfinite(p)):
         raise SimulationError("poses hold non-finite values")
     rot = p[:, :3, :3]
-    err = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).reshape(len(p), -1).max(axis=1, initial=0.0)
+    err = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).reshape(len(p), 9).max(axis=1, initial=0.0)
     bad = np.flatnonzero((err > 1e-4) | (np.linalg.det(rot) < 0) | np.any(p[:, 3] != [0, 0, 0, 1], axis=1))
     if bad.size:
         raise SimulationError(f"pose {bad[0]} is not a rigid transform (rotation off orthonormal by {err[bad[0]]:.2g})")
@@ -176,7 +179,7 @@ class Simulator:
         n, z = len(poses), self.sensor.n_zones
         channel, t, value = self._returns(poses)
         fine = self.axis.splat(channel, t, value * self.sensor.signal_scale, n * z)
-        sig = self.axis.to_bins(convolve_pulse(fine, self._kernel, self._origin)).reshape(n, z, -1)
+        sig = self.axis.to_bins(convolve_pulse(fine, self._kernel, self._origin)).reshape(n, z, self.sensor.n_bins)
         sig *= np.array([zone.gain for zone in self.sensor.zones])[:, None]
         if self.sensor.crosstalk > 0:
             sig += self.sensor.crosstalk * sig.sum(axis=1, keepdims=True)
@@ -206,25 +209,31 @@ class Simulator:
             p = pileup.detection_probabilities_no_pileup(rates)
         return pileup.jitter_blur(p, self.sensor.jitter_bins)
 
-    def draw_counts(self, rates: np.ndarray) -> np.ndarray:
-        """Photon counts over the sensor's cycles for rates (..., bins); uint32, clipped to max_count."""
+    def draw_counts(self, rates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Photon counts over the sensor's cycles for rates (..., bins).
+
+        Returns (counts (..., bins) uint32 clipped to max_count, misses (...) int64 cycles without a detection).
+        Without pile-up every photon counts (Poisson per bin) and misses are cycles minus counts, floored at 0.
+        """
         n_cycles = self.sensor.cycles
         p = self.detection_probabilities(rates)
         if self.sensor.pileup:
             total = p.sum(axis=-1, keepdims=True)
             p = p / np.maximum(total, 1.0) * (1.0 - 1e-12)  # the "no photon" outcome takes the rest, never < 0
             pvals = np.concatenate([p, 1.0 - p.sum(axis=-1, keepdims=True)], axis=-1)
-            counts = self.rng.multinomial(n_cycles, pvals)[..., :-1]
+            drawn = self.rng.multinomial(n_cycles, pvals)
+            counts, misses = drawn[..., :-1], drawn[..., -1]
         else:
             counts = self.rng.poisson(np.minimum(p * n_cycles, 1e15))
-        return np.minimum(counts, self.sensor.max_count).astype(np.uint32)
+            misses = np.maximum(n_cycles - counts.sum(axis=-1), 0)
+        return np.minimum(counts, self.sensor.max_count).astype(np.uint32), misses.astype(np.int64)
 
     def frames(self, poses) -> SimFrames:
         """Photon-count histograms for poses (n, 4, 4); advances the generator (deterministic for the seed)."""
         poses = check_pose_array(poses)
-        hists = self.draw_counts(self.expected_rates(poses))
+        hists, misses = self.draw_counts(self.expected_rates(poses))
         ref = self.reference_rates(len(poses))
-        return SimFrames(hists, None if ref is None else self.draw_counts(ref), poses.copy())
+        return SimFrames(hists, None if ref is None else self.draw_counts(ref)[0], poses.copy(), misses)
 
 
 def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSettings = SimSettings(), seed: int = 0,

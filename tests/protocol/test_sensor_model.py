@@ -1,0 +1,129 @@
+"""The sensor model record: JSON round trip, validation with one-line errors, zone geometry, pulse kernels."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from spadscan.protocol.errors import SensorModelError
+from spadscan.protocol.sensor_model import Pulse, SensorModel, Zone
+from spadscan.protocol.sensor_presets import PRESETS, sensor_preset
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_presets_round_trip_through_json(name):
+    model = sensor_preset(name)
+    again = SensorModel.from_dict(json.loads(json.dumps(model.to_dict())))
+    assert again == model
+    assert again.n_zones == len(model.zones) and again.name == name
+
+
+def test_presets_describe_their_sensors():
+    tmf, sim = sensor_preset("tmf8820"), sensor_preset("lcspc-sim")
+    assert (tmf.n_zones, tmf.n_bins, tmf.has_reference) == (9, 128, True)
+    assert tmf.bin_width_m == pytest.approx(1 / 73.48, rel=0.05) and tmf.max_count == 2**24 - 1
+    assert (sim.n_zones, sim.n_bins, sim.cycles) == (1, 1024, 5000)
+    assert 1 / sim.bin_width_m == pytest.approx(800, abs=3)
+    # a surface at 0.4 m arrives near bin 13.25 + 73.48 * 0.4 on the TMF8820 and near 800 * 0.4 on lcspc-sim
+    assert tmf.bin_of_range(0.4) == pytest.approx(13.25 + 73.48 * 0.4, abs=1.0)
+    assert sim.bin_of_range(0.4) == pytest.approx(320, abs=3)
+    assert sim.range_of_bin(sim.bin_of_range(0.4)) == pytest.approx(0.4)
+    with pytest.raises(SensorModelError, match="known: tmf8820, lcspc-sim"):
+        sensor_preset("nope")
+
+
+def test_tmf8820_zone_layout_follows_the_channel_order():
+    zones = sensor_preset("tmf8820").zones
+    centre = [(np.mean(z.tan_x), np.mean(z.tan_y)) for z in zones]
+    assert centre[0][0] > 0 and centre[0][1] > 0  # channel 1 looks toward (+x, +y)
+    assert centre[2][0] > 0 and centre[2][1] < 0  # channel 3 toward (+x, -y)
+    assert centre[8][0] < 0 and centre[8][1] < 0  # channel 9 toward (-x, -y)
+    assert centre[4] == pytest.approx((0, 0))
+    assert zones[4].gain == 1.0
+
+
+def test_solid_angles():
+    cone = Zone(kind="cone", half_angle_rad=math.radians(15))
+    assert cone.solid_angle_sr() == pytest.approx(2 * math.pi * (1 - math.cos(math.radians(15))))
+    rect = Zone(kind="rect", tan_x=(-0.1, 0.3), tan_y=(0.05, 0.2))
+    x = np.linspace(-0.1, 0.3, 2001)
+    y = np.linspace(0.05, 0.2, 2001)
+    xx, yy = np.meshgrid((x[1:] + x[:-1]) / 2, (y[1:] + y[:-1]) / 2)
+    quad = (np.diff(x)[0] * np.diff(y)[0] / (1 + xx**2 + yy**2) ** 1.5).sum()
+    assert rect.solid_angle_sr() == pytest.approx(quad, rel=1e-6)
+
+
+@pytest.mark.parametrize("sigma,tau,over", [(2.0, 3.6, 1), (2.0, 3.6, 8), (0.9, 0.0, 4), (0.5, 1.5, 8)])
+def test_exgauss_kernel_has_the_right_mean_and_width(sigma, tau, over):
+    k, origin = Pulse(kind="exgauss", sigma_bins=sigma, tau_bins=tau).kernel(over)
+    assert k.sum() == pytest.approx(1.0) and np.all(k >= 0)
+    offset = (np.arange(k.size) - origin) / over
+    mean = (offset * k).sum()
+    var = ((offset - mean) ** 2 * k).sum()
+    # an ex-Gaussian's mean is the Gaussian centre + tau; the kernel's left-point sum of the exponential tail
+    # (8 steps per sample) runs early by half a step, 1/16 of a sample
+    assert mean == pytest.approx(tau - (0.5 / 8 / over if tau else 0.0), abs=0.005)
+    # variance sigma^2 + tau^2, plus the box of one sample (1/12 over^2) from averaging
+    assert var == pytest.approx(sigma**2 + tau**2 + 1 / (12 * over**2), rel=0.03)
+
+
+def test_table_pulse_kernel():
+    k, origin = Pulse(kind="table", values=(0.0, 1.0, 3.0, 1.0), origin=2).kernel(1)
+    np.testing.assert_allclose(k, [0, 0.2, 0.6, 0.2])
+    assert origin == 2
+    k4, origin4 = Pulse(kind="table", values=(0.0, 1.0, 3.0, 1.0), origin=2).kernel(4)
+    assert origin4 == 8 and k4.argmax() == 8 and k4.sum() == pytest.approx(1.0)
+
+
+def _dict(**changes):
+    d = sensor_preset("lcspc-sim").to_dict()
+    d.update(changes)
+    return json.loads(json.dumps(d))
+
+
+@pytest.mark.parametrize("data,message", [
+    (_dict(n_bins=2), "n_bins"),
+    (_dict(bin_width_m=-1.0), "bin width"),
+    (_dict(zero_bin=1e6), "zero bin"),
+    (_dict(cycles=0), "cycles"),
+    (_dict(background=float("nan")), "background"),
+    (_dict(crosstalk=2.0), "crosstalk"),
+    (_dict(max_count=2**40), "max_count"),
+    (_dict(ignore_bins=[5000]), "ignore_bins"),
+    (_dict(zones=[]), "at least one zone"),
+    (_dict(zones=[{"kind": "hexagon"}]), "zone kind"),
+    (_dict(zones=[{"kind": "cone", "half_angle_rad": 2.0}]), "half-angle"),
+    (_dict(zones=[{"kind": "cone", "half_angle_rad": 0.2, "axis": [0, 0, -1]}]), "axis"),
+    (_dict(zones=[{"kind": "rect", "tan_x": [0.2, 0.1], "tan_y": [0, 1]}]), "tan_x"),
+    (_dict(zones=[{"kind": "cone", "half_angle_rad": 0.2, "gain": 0}]), "gain"),
+    (_dict(zones=[{"kind": "cone", "half_angle_rad": 0.2, "colour": "red"}]), "unknown keys"),
+    (_dict(pulse={"kind": "table", "values": [1, 2], "origin": 5}), "origin"),
+    (_dict(pulse={"kind": "table", "values": [-1, 2], "origin": 0}), "pulse table"),
+    (_dict(pulse={"kind": "exgauss", "sigma_bins": 0.0}), "sigma"),
+    (_dict(pulse={"kind": "laser"}), "pulse kind"),
+    (_dict(speed_of_light=3e8), "unknown keys"),
+    ([1, 2, 3], "JSON object"),
+])
+def test_validation_errors_are_one_line(data, message):
+    with pytest.raises(SensorModelError, match=message) as info:
+        SensorModel.from_dict(data)
+    assert "\n" not in str(info.value)
+
+
+def test_missing_keys_are_named():
+    d = _dict()
+    del d["pulse"]
+    with pytest.raises(SensorModelError, match="pulse"):
+        SensorModel.from_dict(d)
+    d = _dict()
+    del d["n_bins"]
+    with pytest.raises(SensorModelError, match="n_bins"):
+        SensorModel.from_dict(d)
+
+
+def test_with_validates():
+    model = sensor_preset("tmf8820")
+    assert model.with_(cycles=10).cycles == 10
+    with pytest.raises(SensorModelError):
+        model.with_(signal_scale=-1.0)
