@@ -1,0 +1,108 @@
+"""Watch a captures root and reconstruct every complete scan, once, in child processes.
+
+Every child folder of ROOT that holds scan.json in state 'complete' becomes the job `<scan>-<preset>` in a durable
+queue (ROOT/.queue by default). Several workers, on this machine or on others sharing the folder, can serve one root:
+each job runs exactly once; a job whose worker died is taken over when its lease expires (at once on the same
+machine) and retried up to --max-attempts times. A malformed capture fails its job with the reason, never the worker.
+Results go to <scan>/recon/<job>/ (mesh.ply, report.json, pictures, job.log). Ctrl-C or SIGTERM stops the job
+processes and gives their jobs back to the queue.
+
+Examples:
+  spadscan worker --root captures --processes 2
+  spadscan worker --root captures --once          # reconstruct what is there, then exit
+  spadscan worker --root captures --status        # list jobs: state, attempts, last error, result
+  spadscan worker --root captures --retry-failed  # put failed jobs back in the queue
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--root", required=True, metavar="CAPTURES", help="captures root whose children are scans")
+    parser.add_argument("--processes", type=int, default=1, metavar="N", help="jobs run at once (default: 1)")
+    parser.add_argument("--preset", default="fast", help="reconstruction preset: fast or paper (default: fast)")
+    parser.add_argument("--budget-s", type=float, default=None, metavar="S",
+                        help="wall-clock budget per reconstruction in seconds (default: the preset's)")
+    parser.add_argument("--steps", type=int, default=None, metavar="N",
+                        help="optimisation steps per reconstruction (default: the preset's)")
+    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                        help="where reconstructions run (default: auto)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the reconstructions (default: 0)")
+    parser.add_argument("--once", action="store_true",
+                        help="queue the complete scans there are, run until nothing is queued or running, exit")
+    parser.add_argument("--poll-s", type=float, default=2.0, metavar="S",
+                        help="seconds between looks at the root and the queue (default: 2)")
+    parser.add_argument("--lease-s", type=float, default=60.0, metavar="S",
+                        help="a job whose worker has not renewed its lease for S seconds is taken over (default: 60)")
+    parser.add_argument("--max-attempts", type=int, default=3, metavar="N",
+                        help="tries of a job whose process or worker died before it fails (default: 3)")
+    parser.add_argument("--queue", default=None, metavar="DIR", help="queue folder (default: ROOT/.queue)")
+    parser.add_argument("--status", action="store_true", help="list the jobs and exit")
+    parser.add_argument("--json", action="store_true", help="with --status: print JSON instead of a table")
+    parser.add_argument("--retry-failed", action="store_true",
+                        help="put every failed job back in the queue with a fresh attempt count, and exit")
+
+
+def run(args) -> int:
+    import asyncio
+    from pathlib import Path
+
+    from spadscan.protocol.errors import ConfigError
+    from spadscan.worker.pool import WorkerConfig, run_worker
+    from spadscan.worker.queue import Queue
+    from spadscan.worker.watcher import JobOptions
+
+    root = Path(args.root)
+    if not root.is_dir():
+        raise ConfigError(f"{root}: captures root is not a folder")
+    queue_dir = Path(args.queue) if args.queue else root / ".queue"
+    if args.status:
+        return _print_status(Queue(queue_dir, lease_s=args.lease_s), args.json)
+    if args.retry_failed:
+        moved = Queue(queue_dir).retry_failed()
+        print(f"queued again: {', '.join(moved)}" if moved else "no failed jobs")
+        return 0
+    if args.budget_s is not None and not args.budget_s > 0:
+        raise ConfigError(f"--budget-s {args.budget_s} must be > 0 seconds")
+    if args.steps is not None and args.steps < 1:
+        raise ConfigError(f"--steps {args.steps} must be at least 1")
+    config = WorkerConfig(
+        root=root, processes=args.processes, queue_dir=queue_dir, poll_s=args.poll_s, lease_s=args.lease_s,
+        max_attempts=args.max_attempts, once=args.once,
+        options=JobOptions(preset=args.preset, budget_s=args.budget_s, steps=args.steps, device=args.device,
+                           seed=args.seed),
+    )
+    settled = asyncio.run(run_worker(config))
+    failed = sorted(j for j, s in settled.items() if s == "failed")
+    if args.once:
+        done = sum(1 for s in settled.values() if s == "done")
+        print(f"spadscan worker: {done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else ""))
+    return 1 if args.once and failed else 0
+
+
+def _print_status(queue, as_json: bool) -> int:
+    import json
+    from dataclasses import asdict
+
+    rows = queue.statuses()
+    if as_json:
+        print(json.dumps([asdict(r) for r in rows], indent=1))
+        return 0
+    if not rows:
+        print(f"no jobs in {queue.path}")
+        return 0
+    table = [("JOB", "STATE", "TRIES", "HOLDER", "RESULT / LAST ERROR")]
+    for r in rows:
+        holder = r.holder or "-"
+        if r.heartbeat_age_s is not None:
+            holder += f" ({r.heartbeat_age_s:.0f} s ago)"
+        detail = r.result if r.state == "done" else (r.error or "-")
+        table.append((r.id, r.state, str(r.attempts), holder, detail))
+    widths = [max(len(row[i]) for row in table) for i in range(4)]
+    for row in table:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4])
+    counts = queue.counts()
+    print(", ".join(f"{n} {state}" for state, n in counts.items()))
+    return 0

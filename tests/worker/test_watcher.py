@@ -1,0 +1,92 @@
+"""The folder watcher: every complete scan is queued once; running scans wait; aborted ones are skipped."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+
+from spadscan.protocol.capture_format import Measurement
+from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.worker.queue import Queue
+from spadscan.worker.watcher import JobOptions, scan_folders, scan_once, watch
+
+
+def make_scan(root, name, state="complete", n=2):
+    """A tiny capture folder (n flat histograms) in the given state; returns its writer."""
+    sensor = sensor_preset("lcspc-sim")
+    w = CaptureWriter.create(root / name, sensor, chunk_size=4)
+    for i in range(n):
+        w.append(Measurement(np.ones((1, sensor.n_bins), np.uint32), np.eye(4), i))
+    if state == "running":
+        w.flush()
+    else:
+        w.finish(state)
+    return w
+
+
+def test_complete_scans_are_queued_once(tmp_path):
+    make_scan(tmp_path, "a")
+    make_scan(tmp_path, "b", "running")
+    make_scan(tmp_path, "c", "aborted")
+    (tmp_path / "notes").mkdir()  # a folder without scan.json is not a scan
+    q = Queue.for_root(tmp_path)
+    report = scan_once(tmp_path, q, JobOptions())
+    assert (report.queued, report.pending, report.skipped) == (["a"], ["b"], ["c"])
+    assert [p.name for p in scan_folders(tmp_path)] == ["a", "b", "c"], "the queue folder is not a scan"
+    assert scan_once(tmp_path, q, JobOptions()).queued == [], "a second pass queues nothing new"
+    assert q.counts()["queued"] == 1
+
+
+def test_a_scan_is_queued_when_it_completes(tmp_path):
+    w = make_scan(tmp_path, "live", "running")
+    q = Queue.for_root(tmp_path)
+    assert scan_once(tmp_path, q, JobOptions()).queued == []
+    w.finish("complete")
+    assert scan_once(tmp_path, q, JobOptions()).queued == ["live"]
+    job = q.claim().job
+    assert (job.id, job.scan, job.preset) == ("live-fast", "live", "fast")
+
+
+def test_two_watchers_on_one_root_queue_each_scan_once(tmp_path):
+    for i in range(5):
+        make_scan(tmp_path, f"s{i}")
+    q1, q2 = Queue.for_root(tmp_path), Queue.for_root(tmp_path)
+    a = scan_once(tmp_path, q1, JobOptions(preset="paper", budget_s=30.0))
+    b = scan_once(tmp_path, q2, JobOptions(preset="paper", budget_s=30.0))
+    assert sorted(a.queued + b.queued) == [f"s{i}" for i in range(5)]
+    jobs = [json.loads(p.read_text()) for p in (q1.path / "queued").glob("*.json")]
+    assert sorted(j["id"] for j in jobs) == [f"s{i}-paper" for i in range(5)]
+    assert {j["budget_s"] for j in jobs} == {30.0}
+
+
+def test_an_unreadable_manifest_is_queued_so_that_its_job_can_fail(tmp_path):
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "scan.json").write_text("{truncated")
+    q = Queue.for_root(tmp_path)
+    report = scan_once(tmp_path, q, JobOptions())
+    assert report.unreadable == ["broken"] and report.queued == []
+    assert q.known("broken-fast")
+
+
+def test_watch_polls_until_stopped(tmp_path, arun):
+    q = Queue.for_root(tmp_path)
+    reports = []
+
+    async def main():
+        stop = asyncio.Event()
+        task = asyncio.create_task(watch(tmp_path, q, JobOptions(), stop, poll_s=0.05, on_report=reports.append))
+        await asyncio.sleep(0.1)
+        make_scan(tmp_path, "late")
+        for _ in range(200):
+            if q.known("late-fast"):
+                break
+            await asyncio.sleep(0.05)
+        stop.set()
+        await task
+
+    arun(main())
+    assert q.known("late-fast")
+    assert sum(r.queued.count("late") for r in reports) == 1

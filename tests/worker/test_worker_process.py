@@ -1,0 +1,223 @@
+"""Worker processes on one captures root: exactly once, kill -9 and retry, corrupt captures, clean stops.
+
+The jobs here run `marker_recon` (below) instead of the torch reconstruction: it leaves a marker file when it starts
+and when it ends, and sleeps in between, which is what the queue's guarantees are about.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spadscan.cli import main as cli_main
+from spadscan.worker.pool import Worker, WorkerConfig
+from spadscan.worker.queue import Queue
+
+from test_watcher import make_scan
+
+HERE = Path(__file__).resolve().parent
+RECON = "test_worker_process:marker_recon"
+
+
+def marker_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+    """A stand-in reconstruction: markers `<scan>.<pid>.start/.end` in $MARKERS, a report in `out`."""
+    markers = Path(os.environ["MARKERS"])
+    name = f"{Path(capture).name}.{os.getpid()}"
+    (markers / f"{name}.start").write_text("")
+    if os.environ.get("RECON_FAIL") == Path(capture).name:
+        raise RuntimeError("simulated crash")
+    time.sleep(float(os.environ.get("SLEEP_S", "0")))
+    report = {"preset": preset, "chamfer_mm": 1.5, "capture": str(capture)}
+    (Path(out) / "report.json").write_text(json.dumps(report))
+    (markers / f"{name}.end").write_text("")
+    return report
+
+
+LAUNCH = """
+import asyncio, sys
+from spadscan.worker.pool import WorkerConfig, run_worker
+root, once, lease = sys.argv[1], sys.argv[2] == "once", float(sys.argv[3])
+if len(sys.argv) > 4:  # pretend to be another machine sharing the filesystem
+    import spadscan.worker.queue as queue
+    queue.socket.gethostname = lambda: sys.argv[4]
+config = WorkerConfig(root=root, processes=2, once=once, poll_s=0.1, lease_s=lease, max_attempts=3,
+                      recon=%r, stop_grace_s=5)
+asyncio.run(run_worker(config))
+""" % RECON
+
+
+def start_worker(root: Path, markers: Path, *, once: bool, sleep_s: float, lease_s: float = 30.0,
+                 host: str | None = None):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]),
+           "MARKERS": str(markers), "SLEEP_S": str(sleep_s)}
+    args = [str(root), "once" if once else "serve", str(lease_s)] + ([host] if host else [])
+    return subprocess.Popen([sys.executable, "-c", LAUNCH, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def markers_of(markers: Path, scan: str, kind: str) -> list[int]:
+    """Pids of the job processes that left a `kind` marker for `scan`."""
+    return [int(p.name.split(".")[1]) for p in markers.glob(f"{scan}.*.{kind}")]
+
+
+def wait_for(predicate, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("timed out waiting")
+        time.sleep(0.05)
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.fixture
+def markers(tmp_path):
+    d = tmp_path / "markers"
+    d.mkdir()
+    return d
+
+
+def test_two_workers_run_each_job_exactly_once(tmp_path, markers):
+    root = tmp_path / "captures"
+    root.mkdir()
+    scans = [f"scan{i}" for i in range(6)]
+    for s in scans:
+        make_scan(root, s)
+    workers = [start_worker(root, markers, once=True, sleep_s=0.3) for _ in range(2)]
+    logs = [w.communicate(timeout=120)[0] for w in workers]
+    assert [w.returncode for w in workers] == [0, 0], logs
+    for s in scans:
+        assert len(markers_of(markers, s, "start")) == 1, f"{s} started more than once"
+        assert len(markers_of(markers, s, "end")) == 1
+        result = root / s / "recon" / f"{s}-fast"
+        assert json.loads((result / "report.json").read_text())["capture"].endswith(s)
+        assert (result / "job.log").exists() and (result / "job.json").exists()
+        assert not [p for p in (root / s / "recon").iterdir() if p.name.startswith(".")], "no scratch left"
+    assert Queue.for_root(root).counts() == {"queued": 0, "running": 0, "done": 6, "failed": 0}
+
+
+@pytest.mark.parametrize("where", ["same machine", "another machine"])
+def test_a_killed_workers_job_is_retried_by_another(tmp_path, markers, where):
+    """On one machine the dead holder is seen at once; from another machine, once its lease expires."""
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "s")
+    first = start_worker(root, markers, once=False, sleep_s=60, lease_s=2.0)
+    try:
+        wait_for(lambda: markers_of(markers, "s", "start"))
+        (orphan,) = markers_of(markers, "s", "start")
+        first.kill()  # kill -9: no chance to release the lease
+        first.communicate(timeout=30)
+        wait_for(lambda: not pid_alive(orphan), 30)  # its job process notices and exits
+        killed = time.monotonic()
+        host = "elsewhere" if where == "another machine" else None
+        second = start_worker(root, markers, once=True, sleep_s=0.1, lease_s=2.0, host=host)
+        log = second.communicate(timeout=120)[0]
+        waited = time.monotonic() - killed
+        assert second.returncode == 0, log
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.communicate()
+    assert len(markers_of(markers, "s", "start")) == 2
+    assert len(markers_of(markers, "s", "end")) == 1, "the job ran to its end exactly once"
+    (row,) = Queue.for_root(root).statuses()
+    assert (row.state, row.attempts) == ("done", 2)
+    assert "its worker stopped" in log
+    recs = Queue.for_root(root).records("s-fast")
+    assert [r["outcome"] for r in recs] == ["lost", "done"]
+    if where == "same machine":
+        assert "died mid-job" in recs[0]["error"]
+    else:
+        assert "stopped renewing its lease" in recs[0]["error"] and recs[1]["host"] == "elsewhere"
+        assert waited > 1.0, "the job is taken over only after the lease has expired"
+
+
+def test_sigterm_stops_the_job_and_gives_it_back(tmp_path, markers):
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "s")
+    worker = start_worker(root, markers, once=False, sleep_s=60)
+    try:
+        wait_for(lambda: markers_of(markers, "s", "start"))
+        (child,) = markers_of(markers, "s", "start")
+        worker.send_signal(signal.SIGTERM)
+        log = worker.communicate(timeout=60)[0]
+    finally:
+        if worker.poll() is None:
+            worker.kill()
+            worker.communicate()
+    assert worker.returncode == 0, log
+    assert not pid_alive(child)
+    assert "back in the queue" in log
+    q = Queue.for_root(root)
+    assert q.counts()["queued"] == 1 and q.attempts("s-fast") == 0, "a stop does not use up an attempt"
+    assert not (root / "s" / "recon" / "s-fast").exists()
+
+
+def _corrupt_chunk(scan: Path) -> None:
+    (scan / "chunk-000000" / "hists.npy").write_bytes(b"\x93NUMPY garbage")
+
+
+def test_bad_captures_fail_their_jobs_and_the_worker_goes_on(tmp_path, markers, arun, monkeypatch):
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "good")
+    make_scan(root, "corrupt")
+    _corrupt_chunk(root / "corrupt")
+    make_scan(root, "crashes")
+    (root / "broken").mkdir()
+    (root / "broken" / "scan.json").write_text("[]")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("MARKERS", str(markers))
+    monkeypatch.setenv("RECON_FAIL", "crashes")
+    lines = []
+    config = WorkerConfig(root=root, processes=2, once=True, poll_s=0.1, max_attempts=2, recon=RECON)
+    settled = arun(Worker(config, log=lines.append).run(), timeout_s=120)
+    assert settled == {"good-fast": "done", "corrupt-fast": "failed", "crashes-fast": "failed",
+                       "broken-fast": "failed"}
+    rows = {r.id: r for r in Queue.for_root(root).statuses()}
+    assert "hists.npy" in rows["corrupt-fast"].error and rows["corrupt-fast"].attempts == 1
+    assert "expected a JSON object" in rows["broken-fast"].error
+    assert rows["crashes-fast"].attempts == 2 and "RuntimeError: simulated crash" in rows["crashes-fast"].error
+    assert rows["good-fast"].result == str(root / "good" / "recon" / "good-fast")
+    assert not markers_of(markers, "corrupt", "start"), "a corrupt capture never reaches the reconstruction"
+    assert any("corrupt-fast failed" in line for line in lines)
+
+
+def test_status_lists_jobs_as_a_table_and_as_json(tmp_path, capsys):
+    root = tmp_path / "captures"
+    root.mkdir()
+    q = Queue.for_root(root)
+    from spadscan.worker.watcher import JobOptions, scan_once
+
+    make_scan(root, "a")
+    make_scan(root, "b")
+    scan_once(root, q, JobOptions())
+    c = q.claim()
+    q.fail(c, "a.npy: corrupt", retry=False)
+    assert cli_main(["worker", "--root", str(root), "--status"]) == 0
+    out = capsys.readouterr().out
+    assert "a-fast" in out and "failed" in out and "a.npy: corrupt" in out and "b-fast" in out
+    assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
+    rows = {r["id"]: r for r in json.loads(capsys.readouterr().out)}
+    assert rows["a-fast"]["state"] == "failed" and rows["b-fast"]["state"] == "queued"
+
+
+def test_the_command_refuses_a_missing_root(tmp_path, capsys):
+    assert cli_main(["worker", "--root", str(tmp_path / "nope"), "--once"]) == 1
+    assert "captures root is not a folder" in capsys.readouterr().err

@@ -1,0 +1,301 @@
+"""The worker: watches a captures root, claims jobs from the durable queue and runs each in a child process.
+
+One asyncio loop does everything the worker process itself does: the watcher queues complete scans, the loop claims
+jobs while it has free slots, renews the leases of the jobs it holds, takes over jobs whose holders died, and settles
+each job when its child exits. A job runs in `python -m spadscan.worker.jobs` (its own process: torch, memory and
+crashes stay there) with its output in a log file under the queue. Stopping (Ctrl-C, SIGTERM, `stop` set) ends the
+children and gives their jobs back to the queue without counting the attempt.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from spadscan.protocol.errors import ConfigError
+
+from .jobs import EXIT_CRASH, publish, result_path, scratch_path
+from .queue import SEP, Claim, Queue
+from .watcher import JobOptions, ScanReport, scan_once, watch
+
+
+@dataclass
+class WorkerConfig:
+    """How a worker runs. Times in seconds."""
+
+    root: Path
+    """Captures root: its children are scan folders."""
+    processes: int = 1
+    """Jobs run at once (one child process each)."""
+    options: JobOptions = field(default_factory=JobOptions)
+    """Preset, budget, device, seed of the jobs this worker queues."""
+    queue_dir: Path | None = None
+    """Queue folder; default `<root>/.queue`."""
+    poll_s: float = 2.0
+    """How often the root is scanned and the queue looked at."""
+    lease_s: float = 60.0
+    """A job whose holder has not renewed its lease for this long is taken over by another worker."""
+    max_attempts: int = 3
+    """A job whose process dies or whose worker dies is retried until it has been tried this many times."""
+    once: bool = False
+    """Queue what is there, run until no job is queued or running, then exit."""
+    stop_grace_s: float = 10.0
+    """On stop, children get SIGTERM and this long to exit before SIGKILL."""
+    recon: str | None = None
+    """`module:function` replacing the reconstruction (tests only; not on the command line)."""
+    child_env: dict[str, str] | None = None
+    """Extra environment variables for the job processes."""
+
+    def check(self) -> "WorkerConfig":
+        if not (isinstance(self.processes, int) and 1 <= self.processes <= 256):
+            raise ConfigError(f"processes {self.processes} must be an integer in [1, 256]")
+        for key in ("poll_s", "lease_s", "stop_grace_s"):
+            v = getattr(self, key)
+            if not (isinstance(v, (int, float)) and 0 < v < 1e6):
+                raise ConfigError(f"{key.replace('_s', '')} {v} s must be > 0")
+        if not Path(self.root).is_dir():
+            raise ConfigError(f"{self.root}: captures root is not a folder")
+        return self
+
+
+@dataclass
+class _Child:
+    claim: Claim
+    proc: asyncio.subprocess.Process
+    scratch: Path
+    outcome: Path
+    log: Path
+    wait: asyncio.Task
+    last_beat: float = field(default_factory=time.monotonic)
+
+
+class Worker:
+    """Runs jobs from the queue in child processes. `log` receives one-line progress messages."""
+
+    def __init__(self, config: WorkerConfig, log: Callable[[str], None] | None = None):
+        self.config = config.check()
+        self.root = Path(config.root)
+        self.queue = Queue(config.queue_dir or self.root / ".queue", lease_s=config.lease_s,
+                           max_attempts=config.max_attempts)
+        (self.queue.path / "logs").mkdir(exist_ok=True)
+        self.log = log or (lambda line: print(f"spadscan worker: {line}", file=sys.stderr, flush=True))
+        self.children: dict[str, _Child] = {}
+        self.settled: dict[str, str] = {}
+        """Job id -> 'done' or 'failed' for jobs this worker finished."""
+        self._seen_skipped: set[str] = set()
+
+    # ---- main loop -------------------------------------------------------------------------------------------
+    async def run(self, stop: asyncio.Event | None = None) -> dict[str, str]:
+        """Work until `stop` is set (or, with `once`, until the queue is drained). Returns `settled`."""
+        stop = stop or asyncio.Event()
+        watcher = None
+        if self.config.once:
+            self._on_scan(await asyncio.to_thread(scan_once, self.root, self.queue, self.config.options))
+        else:
+            watcher = asyncio.create_task(watch(self.root, self.queue, self.config.options, stop,
+                                                poll_s=self.config.poll_s, on_report=self._on_scan))
+        next_poll = 0.0
+        try:
+            while not stop.is_set():
+                if time.monotonic() >= next_poll:
+                    await self._poll_queue()
+                    next_poll = time.monotonic() + self.config.poll_s
+                self._heartbeat()
+                if self.config.once and not self.children and self._drained():
+                    break
+                await self._wait(stop, min(self.config.poll_s, self.config.lease_s / 4))
+                await self._reap()
+        finally:
+            stop.set()
+            if watcher is not None:
+                await watcher
+            await self._shutdown()
+        return self.settled
+
+    def _drained(self) -> bool:
+        counts = self.queue.counts()
+        return counts["queued"] == 0 and counts["running"] == 0
+
+    async def _wait(self, stop: asyncio.Event, timeout: float) -> None:
+        """Sleep until a child exits, `stop` is set or `timeout` passes."""
+        stopper = asyncio.ensure_future(stop.wait())
+        waits = [c.wait for c in self.children.values()]
+        await asyncio.wait([stopper, *waits], timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+        if not stopper.done():
+            stopper.cancel()
+            await asyncio.gather(stopper, return_exceptions=True)
+
+    async def _poll_queue(self) -> None:
+        """Take over jobs of dead workers, finish cut-short enqueues, claim jobs for the free slots."""
+        for job_id, state in await asyncio.to_thread(self.queue.reclaim_expired):
+            self.log(f"{job_id}: its worker stopped; {'queued again' if state == 'queued' else 'failed'}")
+        await asyncio.to_thread(self.queue.repair)
+        while len(self.children) < self.config.processes:
+            claim = await asyncio.to_thread(self.queue.claim)
+            if claim is None:
+                break
+            await self._start(claim)
+
+    def _on_scan(self, report: ScanReport) -> None:
+        for name in report.queued:
+            self.log(f"queued scan {name}")
+        for name in report.unreadable:
+            self.log(f"queued scan {name} (its manifest is unreadable: the job will say why)")
+        for name in report.skipped:
+            if name not in self._seen_skipped:
+                self._seen_skipped.add(name)
+                self.log(f"skipping aborted scan {name}")
+
+    # ---- one job ---------------------------------------------------------------------------------------------
+    async def _start(self, claim: Claim) -> None:
+        job = claim.job
+        stem = f"{job.id}{SEP}{claim.token}"
+        log_path = self.queue.path / "logs" / f"{stem}.log"
+        outcome = self.queue.path / "tmp" / f"outcome-{stem}.json"
+        try:
+            scratch = scratch_path(job, self.root)
+            scratch.parent.mkdir(parents=True, exist_ok=True)
+        except (ConfigError, OSError) as exc:
+            self.queue.fail(claim, f"cannot prepare the result folder: {exc}", retry=False)
+            self.settled[job.id] = "failed"
+            self.log(f"{job.id} failed: cannot prepare the result folder: {exc}")
+            return
+        cmd = [sys.executable, "-m", "spadscan.worker.jobs", "--job", json.dumps(job.to_dict()),
+               "--root", str(self.root), "--out", str(scratch), "--outcome", str(outcome)]
+        if self.config.recon:
+            cmd += ["--recon", self.config.recon]
+        env = {**os.environ, **(self.config.child_env or {})}
+        with open(log_path, "wb") as logf:
+            # A session of its own: a Ctrl-C at the terminal reaches the worker, which then stops its children.
+            proc = await asyncio.create_subprocess_exec(*cmd, stdin=asyncio.subprocess.DEVNULL, stdout=logf,
+                                                        stderr=asyncio.subprocess.STDOUT, env=env,
+                                                        start_new_session=True)
+        self.children[job.id] = _Child(claim, proc, scratch, outcome, log_path, asyncio.create_task(proc.wait()))
+        self.log(f"{job.id} started (attempt {claim.attempt} of {self.queue.max_attempts}, pid {proc.pid})")
+
+    def _heartbeat(self) -> None:
+        now = time.monotonic()
+        for job_id, child in list(self.children.items()):
+            if now - child.last_beat < self.config.lease_s / 4:
+                continue
+            child.last_beat = now
+            if not self.queue.heartbeat(child.claim):
+                self.log(f"{job_id}: lease lost to another worker; stopping its process and dropping the result")
+                _kill(child.proc, signal.SIGKILL)
+
+    async def _reap(self) -> None:
+        for job_id, child in list(self.children.items()):
+            if child.wait.done():
+                del self.children[job_id]
+                await asyncio.to_thread(self._settle, child)
+
+    def _settle(self, child: _Child) -> None:
+        claim, job = child.claim, child.claim.job
+        rc = child.proc.returncode
+        try:
+            outcome = json.loads(child.outcome.read_text())
+        except (OSError, ValueError):
+            outcome = {}
+        child.outcome.unlink(missing_ok=True)
+        seconds = time.time() - claim.started
+        try:
+            if rc == 0 and outcome.get("ok"):
+                self._settle_done(child, seconds, outcome.get("summary") or {})
+            elif outcome.get("kind") == "input":
+                if self.queue.fail(claim, outcome.get("error", "bad input"), retry=False) is not None:
+                    self.settled[job.id] = "failed"
+                    self.log(f"{job.id} failed after {seconds:.1f} s: {outcome.get('error')}")
+            else:
+                reason = outcome.get("error") or _exit_reason(rc)
+                state = self.queue.crash(claim, f"{reason} (log: {child.log})")
+                if state == "failed":
+                    self.settled[job.id] = "failed"
+                if state is not None:
+                    again = "queued again" if state == "queued" else "giving up"
+                    self.log(f"{job.id} crashed after {seconds:.1f} s: {reason}; {again}")
+        finally:
+            if child.scratch.exists():
+                shutil.rmtree(child.scratch, ignore_errors=True)
+
+    def _settle_done(self, child: _Child, seconds: float, summary: dict) -> None:
+        claim, job = child.claim, child.claim.job
+        if not self.queue.finish(claim):
+            self.log(f"{job.id}: finished, but its lease had been taken over; result dropped")
+            return
+        shutil.copyfile(child.log, child.scratch / "job.log")
+        final = publish(child.scratch, result_path(job, self.root))
+        self.queue.record_result(claim, str(final))
+        self.settled[job.id] = "done"
+        extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
+        self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}")
+
+    # ---- stopping --------------------------------------------------------------------------------------------
+    async def _shutdown(self) -> None:
+        """Stop every child (SIGTERM, then SIGKILL after the grace period) and give its job back to the queue."""
+        if not self.children:
+            return
+        for child in self.children.values():
+            _kill(child.proc, signal.SIGTERM)
+        waits = [c.wait for c in self.children.values()]
+        await asyncio.wait(waits, timeout=self.config.stop_grace_s)
+        for child in self.children.values():
+            if not child.wait.done():
+                _kill(child.proc, signal.SIGKILL)
+        await asyncio.gather(*waits, return_exceptions=True)
+        for job_id, child in self.children.items():
+            if self.queue.release(child.claim, "worker stopped"):
+                self.log(f"{job_id} stopped; back in the queue")
+            child.outcome.unlink(missing_ok=True)
+            shutil.rmtree(child.scratch, ignore_errors=True)
+        self.children.clear()
+
+
+def _kill(proc: asyncio.subprocess.Process, sig: int) -> None:
+    """Signal a child's whole process group (it may have started helpers of its own)."""
+    if proc.returncode is not None:
+        return
+    try:
+        os.killpg(proc.pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def _exit_reason(rc: int | None) -> str:
+    if rc is None:
+        return "job process vanished"
+    if rc < 0:
+        try:
+            name = signal.Signals(-rc).name
+        except ValueError:
+            name = f"signal {-rc}"
+        return f"job process killed by {name}"
+    if rc == EXIT_CRASH:
+        return "job process crashed"
+    return f"job process exited with code {rc}"
+
+
+async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = None,
+                     handle_signals: bool = True) -> dict[str, str]:
+    """Run a worker until SIGINT/SIGTERM (or drained, with `once`). Returns {job id: 'done' | 'failed'}."""
+    worker = Worker(config, log)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    sigs = (signal.SIGINT, signal.SIGTERM) if handle_signals else ()
+    for sig in sigs:
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        return await worker.run(stop)
+    finally:
+        for sig in sigs:
+            loop.remove_signal_handler(sig)
+
+
+__all__ = ["WorkerConfig", "Worker", "run_worker"]
