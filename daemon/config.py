@@ -120,7 +120,7 @@ class SensorConfig:
 class ScanConfig:
     """[scan]: defaults of every scan; `spadscan ctl scan` options override them per scan."""
 
-    views: int = key(64, "int", lo=1, hi=100_000)
+    views: int = key(64, "int", lo=1, hi=10_000)
     """Number of sensor poses."""
     schedule: str = key("fibonacci", "choice", choices=("fibonacci", "rings"))
     """'fibonacci' (a Fibonacci spiral over the hemisphere, the dataset's layout) or 'rings' (elevation rings)."""
@@ -335,6 +335,9 @@ def _check_sensor(sensor: SensorConfig, where: str) -> None:
     for name in required:
         if getattr(sensor, name) is None:
             raise ConfigError(f"{where} {name} is required for backend {sensor.backend!r}")
+    if sensor.backend in ("serial", "i2c") and sensor.preset != "tmf8820":
+        raise ConfigError(f"{where} preset {sensor.preset!r} does not describe a TMF8820 (backend "
+                          f"{sensor.backend!r} needs preset 'tmf8820')")
 
 
 def check_scan(scan: ScanConfig, where: str) -> None:

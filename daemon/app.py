@@ -1,0 +1,151 @@
+"""The daemon process: devices up (in parallel), the control socket, the scan runner; a clean shutdown on SIGTERM,
+SIGINT or `ctl shutdown`.
+
+Start-up order keeps anything from moving before the whole config is known good: config and default scan plan
+checked, devices built, socket path claimed, then devices connected and prepared. Whatever happens afterwards, the
+runner stops the arm and records the scan's state, every device is released and closed, and the socket file goes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import time
+
+from spadscan.protocol.errors import ConfigError, DeviceError
+
+from .backends import build_devices, rig_record
+from .config import DaemonConfig
+from .control import ControlServer, claim_socket_path
+from .devices import Device
+from .runner import ScanRunner
+from .scan_plan import build_plan
+
+log = logging.getLogger("spadscan.daemon")
+STEP_TIMEOUT_S = {"connect": 30.0, "prepare": 60.0, "release": 15.0, "close": 15.0}
+
+
+class DeviceSession:
+    """`async with DeviceSession([arm, sensor])`: connect and prepare all devices in parallel; on the way out
+    release and close all of them, always. A failure of any device is one DeviceError naming every device that
+    failed and in which step."""
+
+    def __init__(self, devices: list[Device], timeouts: dict[str, float] | None = None):
+        self.devices = devices
+        self.timeouts = {**STEP_TIMEOUT_S, **(timeouts or {})}
+
+    async def _step(self, device: Device, step: str) -> None:
+        timeout = self.timeouts[step]
+        try:
+            await asyncio.wait_for(getattr(device, step)(), timeout)
+        except asyncio.TimeoutError:
+            raise DeviceError(f"{device.name}: {step} did not finish within {timeout:g} s") from None
+
+    async def _all(self, step: str) -> list[str]:
+        results = await asyncio.gather(*(self._step(d, step) for d in self.devices), return_exceptions=True)
+        failures = []
+        for device, result in zip(self.devices, results):
+            if isinstance(result, asyncio.CancelledError):
+                raise result
+            if isinstance(result, BaseException):
+                text = str(result) if isinstance(result, DeviceError) else \
+                    f"{device.name}: {step} failed: {type(result).__name__}: {result}"
+                failures.append(text)
+        return failures
+
+    async def __aenter__(self) -> "DeviceSession":
+        failures = await self._all("connect")
+        if not failures:
+            failures = await self._all("prepare")
+        if failures:
+            await self._down()
+            raise DeviceError("rig did not start: " + "; ".join(failures))
+        return self
+
+    async def _down(self) -> list[str]:
+        return await self._all("release") + await self._all("close")
+
+    async def __aexit__(self, exc_type, exc, tb) -> None:
+        failures = await self._down()
+        if failures:
+            log.error("rig did not shut down cleanly: %s", "; ".join(failures))
+            if exc_type is None:
+                raise DeviceError("rig did not shut down cleanly: " + "; ".join(failures))
+
+
+class Dispatcher:
+    """Turns control requests into runner calls."""
+
+    OPS = {"status": (), "scan": ("name", "options"), "pause": (), "resume": (), "abort": ("reason",),
+           "wait": ("name",), "shutdown": ()}
+
+    def __init__(self, runner: ScanRunner, stop: asyncio.Event, cfg: DaemonConfig):
+        self.runner, self.stop, self.cfg = runner, stop, cfg
+        self.started = time.monotonic()
+
+    async def __call__(self, req: dict) -> dict:
+        op = req["op"]
+        if op not in self.OPS:
+            raise ConfigError(f"unknown op {op!r} (known: {', '.join(self.OPS)})")
+        extra = set(req) - {"op", *self.OPS[op]}
+        if extra:
+            raise ConfigError(f"op {op!r} takes no {', '.join(sorted(extra))}")
+        r = self.runner
+        if op == "status":
+            return {**r.status(), "daemon": {"pid": os.getpid(), "socket": str(self.cfg.socket),
+                                             "captures": str(self.cfg.captures),
+                                             "uptime_s": round(time.monotonic() - self.started, 1)}}
+        if op == "scan":
+            options = req.get("options", {})
+            if not isinstance(options, dict):
+                raise ConfigError("scan options must be a JSON object of [scan] keys")
+            return await r.start(req.get("name"), options)
+        if op == "pause":
+            return await r.pause()
+        if op == "resume":
+            return await r.resume()
+        if op == "abort":
+            reason = req.get("reason") or "aborted by user"
+            return await r.abort(str(reason)[:200])
+        if op == "wait":
+            if not isinstance(req.get("name"), str):
+                raise ConfigError("wait needs a scan 'name'")
+            return await r.wait(req["name"])
+        asyncio.get_running_loop().call_soon(self.stop.set)  # after the reply is written
+        return {"stopping": True}
+
+
+def check_startup(cfg: DaemonConfig):
+    """Everything that can be checked before a device is touched; returns (arm, sensor), not yet connected."""
+    build_plan(cfg.scan, cfg.arm, where=f"{cfg.source}: [scan] defaults")
+    arm, sensor = build_devices(cfg)
+    cfg.captures.mkdir(parents=True, exist_ok=True)
+    claim_socket_path(cfg.socket)
+    return arm, sensor
+
+
+async def serve(cfg: DaemonConfig, arm=None, sensor=None) -> None:
+    """Run the daemon until SIGTERM, SIGINT or `ctl shutdown`."""
+    if arm is None or sensor is None:
+        arm, sensor = check_startup(cfg)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        async with DeviceSession([arm, sensor]):
+            rig, scene = rig_record(cfg)
+            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+            try:
+                async with ControlServer(cfg.socket, Dispatcher(runner, stop, cfg)):
+                    log.info("listening on %s (captures in %s)", cfg.socket, cfg.captures)
+                    await runner.recover()
+                    await stop.wait()
+                    log.info("shutting down")
+            finally:
+                await runner.shutdown()
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(sig)

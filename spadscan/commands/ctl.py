@@ -1,0 +1,104 @@
+"""Talk to a running daemon over its control socket (JSON lines).
+
+    spadscan ctl status                         state, scan, pose i/n, frames, rate, last error, sensor counters
+    spadscan ctl scan --name bunny --views 128  start a scan; it is written to <captures>/bunny/
+    spadscan ctl pause | resume | abort         pause after the pose in flight, continue, or stop for good
+    spadscan ctl wait bunny                     block until the scan is complete (exit 0) or aborted (exit 1)
+    spadscan ctl shutdown                       stop the daemon (a scan in flight stays resumable)
+
+Units: metres, seconds, degrees. The socket defaults to $SPADSCAN_SOCKET, else $XDG_RUNTIME_DIR/spadscan.sock, else
+/tmp/spadscan-<uid>.sock; pass --socket to match the daemon's `socket` config key.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+# option -> ([scan] key, type); None values are left out so the daemon's [scan] defaults apply
+SCAN_OPTIONS = {
+    "views": ("views", int), "schedule": ("schedule", str), "rings": ("rings", int), "radius": ("radius_m", float),
+    "target": ("target", None), "min_elevation": ("min_elevation_deg", float),
+    "max_elevation": ("max_elevation_deg", float), "jitter": ("jitter_deg", float), "seed": ("seed", int),
+    "order": ("order", str), "frames_per_pose": ("frames_per_pose", int), "settle": ("settle_s", float),
+    "chunk_size": ("chunk_size", int),
+}
+
+
+def _target(text: str) -> list[float]:
+    import argparse
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"{text!r} is not X,Y,Z in metres")
+    return values
+
+
+def add_arguments(parser) -> None:
+    from spadscan.daemon.client import default_socket_path
+
+    parser.add_argument("--socket", default=None, metavar="PATH",
+                        help=f"the daemon's control socket (default: {default_socket_path()})")
+    parser.add_argument("--timeout", type=float, default=None, metavar="S",
+                        help="seconds to wait for the reply (default: 30; `wait`: forever)")
+    sub = parser.add_subparsers(dest="op", required=True, metavar="OP")
+    sub.add_parser("status", help="print the daemon's state as JSON")
+    scan = sub.add_parser("scan", help="start a scan (options override the config's [scan] defaults)")
+    scan.add_argument("--name", help="scan name: the capture goes to <captures>/NAME/ (default: scan-<time>)")
+    scan.add_argument("--views", type=int, help="number of sensor poses")
+    scan.add_argument("--schedule", choices=("fibonacci", "rings"), help="pose layout")
+    scan.add_argument("--rings", type=int, help="elevation rings (schedule 'rings'; views must be a multiple)")
+    scan.add_argument("--radius", type=float, metavar="M", help="sensor-to-target distance (m)")
+    scan.add_argument("--target", type=_target, metavar="X,Y,Z", help="point every view looks at, base frame (m)")
+    scan.add_argument("--min-elevation", type=float, metavar="DEG", help="lowest view elevation (degrees)")
+    scan.add_argument("--max-elevation", type=float, metavar="DEG", help="highest view elevation (degrees)")
+    scan.add_argument("--jitter", type=float, metavar="DEG", help="largest random tilt off the target (degrees)")
+    scan.add_argument("--seed", type=int, help="random seed of the jitter")
+    scan.add_argument("--order", choices=("nearest", "serpentine", "planned"), help="visiting order")
+    scan.add_argument("--frames-per-pose", type=int, metavar="K", help="frames stored per pose (never summed)")
+    scan.add_argument("--settle", type=float, metavar="S", help="wait after each move before frames count (s)")
+    scan.add_argument("--chunk-size", type=int, metavar="N", help="most measurements per published chunk")
+    scan.add_argument("--wait", action="store_true", help="block until the scan is complete or aborted")
+    sub.add_parser("pause", help="pause after the pose in flight is published")
+    sub.add_parser("resume", help="continue a paused or interrupted scan at its first unpublished pose")
+    abort = sub.add_parser("abort", help="stop the scan for good (published poses stay)")
+    abort.add_argument("--reason", help="why (recorded in the capture)")
+    wait = sub.add_parser("wait", help="block until scan NAME is complete (exit 0) or aborted (exit 1)")
+    wait.add_argument("name", metavar="NAME")
+    sub.add_parser("shutdown", help="stop the daemon; a scan in flight stays resumable")
+
+
+def run(args) -> int:
+    from spadscan.daemon.client import call, default_socket_path
+
+    path = args.socket or default_socket_path()
+    timeout = 30.0 if args.timeout is None else args.timeout
+    if args.op == "wait":
+        return _wait(path, args.name, args.timeout)
+    request = {}
+    if args.op == "scan":
+        options = {key: getattr(args, opt) for opt, (key, _) in SCAN_OPTIONS.items() if getattr(args, opt) is not None}
+        request = {"options": options, **({"name": args.name} if args.name else {})}
+    elif args.op == "abort" and args.reason:
+        request = {"reason": args.reason}
+    reply = call(path, args.op, timeout, **request)
+    reply.pop("ok", None)
+    print(json.dumps(reply, indent=1 if args.op == "status" else None))
+    if args.op == "scan" and args.wait:
+        return _wait(path, reply["scan"], args.timeout)
+    return 0
+
+
+def _wait(path: str, name: str, timeout: float | None) -> int:
+    from spadscan.daemon.client import call
+
+    reply = call(path, "wait", timeout, name=name)
+    reply.pop("ok", None)
+    print(json.dumps(reply))
+    if reply.get("state") != "complete":
+        print(f"spadscan: scan {name!r} ended {reply.get('state')}", file=sys.stderr)
+        return 1
+    return 0

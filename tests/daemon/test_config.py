@@ -1,0 +1,171 @@
+"""Rig configs: the examples load, every problem is one line naming the file and key, and nothing moves."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spadscan.cli import main
+from spadscan.daemon.config import ScanConfig, config_from_dict, load_config, scan_with
+from spadscan.protocol.errors import ConfigError
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
+SIM = """
+captures = "caps"
+socket = "ctl.sock"
+[arm]
+backend = "sim"
+motion_time_s = 0.0
+[sensor]
+backend = "sim"
+mesh = "builtin:sphere"
+[scan]
+views = 8
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "rig.toml"
+    p.write_text(text)
+    return p
+
+
+def error_of(tmp_path: Path, text: str) -> str:
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, text))
+    msg = str(info.value)
+    assert "\n" not in msg
+    return msg
+
+
+@pytest.mark.parametrize("name", ["rig-sim.toml", "rig-ur.toml", "rig-serial.toml"])
+def test_examples_load(name):
+    cfg = load_config(EXAMPLES / name)
+    assert cfg.arm.hand_eye.shape == (4, 4)
+    assert cfg.scan.views >= 1
+
+
+def test_i2c_example_needs_the_users_firmware(tmp_path):
+    text = (EXAMPLES / "rig-i2c.toml").read_text()
+    msg = error_of(tmp_path, text)
+    assert "firmware" in msg and "no such file" in msg and "rig.toml" in msg
+    image = tmp_path / "app.hex"
+    image.write_text(":00000001FF\n")
+    cfg = load_config(write(tmp_path, text.replace("/home/lab/tmf8820/tmf8820_app.hex", str(image))))
+    assert cfg.sensor.firmware == image and cfg.sensor.address == 0x41 and cfg.sensor.bus == 1
+
+
+def test_defaults_and_relative_paths(tmp_path):
+    cfg = load_config(write(tmp_path, SIM))
+    assert cfg.captures == tmp_path / "caps"
+    assert cfg.socket == tmp_path / "ctl.sock"
+    assert cfg.auto_resume is False
+    assert cfg.scan.frames_per_pose == 1 and cfg.scan.schedule == "fibonacci"
+    np.testing.assert_array_equal(cfg.arm.hand_eye, np.eye(4))
+
+
+@pytest.mark.parametrize("text, words", [
+    (SIM + "colour = 'red'\n", ["unknown key 'colour'"]),
+    (SIM.replace("views = 8", "views = 8\nview = 3"), ["[scan]", "unknown key 'view'"]),
+    (SIM.replace('backend = "sim"\nmotion', 'backend = "sim"\nspeed = -1\nmotion'), ["[arm] speed", "-1"]),
+    (SIM.replace("views = 8", "views = 0"), ["[scan] views", "outside"]),
+    (SIM.replace("views = 8", "views = 'many'"), ["[scan] views", "integer"]),
+    (SIM.replace("views = 8", "views = 8\nradius_m = true"), ["radius_m", "number"]),
+    (SIM.replace("views = 8", "views = 8\ntarget = [0, 0]"), ["target", "[x, y, z]"]),
+    (SIM.replace("views = 8", "views = 8\nmin_elevation_deg = 50\nmax_elevation_deg = 40"), ["min_elevation_deg"]),
+    (SIM.replace("views = 8", "views = 10\nschedule = 'rings'\nrings = 4"), ["multiple of rings"]),
+    (SIM.replace("views = 8", "views = 8\nframes_per_pose = 8\nchunk_size = 4"), ["chunk_size", "whole"]),
+    (SIM.replace("views = 8", "views = 8\nschedule = 'spiral'"), ["schedule", "'fibonacci'"]),
+    (SIM.replace('backend = "sim"\nmotion', 'backend = "sim"\nhost = "10.0.0.1"\nmotion'), ["host", "'ur'"]),
+    (SIM.replace('backend = "sim"\nmotion', 'backend = "ur"\nmotion'), ["motion_time_s", "'sim'"]),
+    (SIM.replace('backend = "sim"\nmotion_time_s = 0.0', 'backend = "ur"'), ["host is required"]),
+    (SIM.replace('mesh = "builtin:sphere"', 'mesh = "nowhere.obj"'), ["mesh", "no such file"]),
+    (SIM.replace('backend = "sim"\nmesh = "builtin:sphere"', 'backend = "serial"'), ["port is required"]),
+    (SIM.replace('backend = "sim"\nmesh = "builtin:sphere"', 'backend = "serial"\nport = "/dev/x"\n'
+                 'preset = "lcspc-sim"'), ["preset", "TMF8820"]),
+    (SIM.replace('motion_time_s = 0.0', 'hand_eye = [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]'),
+     ["hand_eye", "rigid"]),
+    (SIM.replace('motion_time_s = 0.0', 'hand_eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 45], [0, 0, 0, 1]]'),
+     ["hand_eye", "metres"]),
+    (SIM.replace('motion_time_s = 0.0', 'workspace_min = [0, 0, 0]'), ["workspace_max", "together"]),
+    (SIM + "[arm\n", ["not valid TOML"]),
+    (SIM.replace('socket = "ctl.sock"', 'socket = "' + "s" * 120 + '"'), ["107 bytes"]),
+])
+def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, words):
+    msg = error_of(tmp_path, text)
+    assert "rig.toml" in msg
+    for w in words:
+        assert w in msg, msg
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(ConfigError, match="absent.toml: no such config file"):
+        load_config(tmp_path / "absent.toml")
+
+
+def test_scan_overrides_are_validated_like_the_file():
+    base = ScanConfig()
+    s = scan_with(base, {"views": 12, "target": [0.1, 0, 0], "jitter_deg": 5})
+    assert s.views == 12 and s.jitter_deg == 5 and s.target.tolist() == [0.1, 0, 0]
+    assert base.views == 64  # the defaults are untouched
+    for bad, word in (({"view": 3}, "unknown key"), ({"views": -1}, "outside"), ({"radius_m": "far"}, "number")):
+        with pytest.raises(ConfigError, match=word):
+            scan_with(base, bad)
+
+
+def test_cli_error_is_one_line_exit_1_and_nothing_moves(tmp_path, monkeypatch, capsys):
+    """Bad key, bad value, missing file, unreachable default scan: exit 1 before any device is built."""
+    import spadscan.daemon.app as app
+
+    built = []
+    monkeypatch.setattr(app, "build_devices", lambda cfg: built.append(cfg))
+    cases = [SIM + "bogus = 1\n", SIM.replace("views = 8", "views = -2"),
+             SIM.replace('mesh = "builtin:sphere"', 'mesh = "missing.stl"'),
+             SIM.replace("motion_time_s = 0.0", "motion_time_s = 0.0\nworkspace_min = [-1, -1, 0.3]\n"
+                                                 "workspace_max = [1, 1, 1]")]
+    for text in cases:
+        path = write(tmp_path, text)
+        assert main(["daemon", "--config", str(path)]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("spadscan: error: ") and "\n" not in err, err
+    assert main(["daemon", "--config", str(tmp_path / "nope.toml")]) == 1
+    assert "no such config file" in capsys.readouterr().err
+    assert built == [] and not (tmp_path / "ctl.sock").exists()
+
+
+def test_check_flag_validates_without_devices(tmp_path, capsys):
+    path = write(tmp_path, SIM)
+    assert main(["daemon", "--config", str(path), "--check"]) == 0
+    out = capsys.readouterr().out
+    assert "ok" in out and "8 poses" in out
+    assert not (tmp_path / "caps").exists()
+
+
+def test_example_readme_documents_every_key():
+    from dataclasses import fields
+
+    from spadscan.daemon.config import ArmConfig, DaemonConfig, SensorConfig
+
+    readme = (EXAMPLES / "README.md").read_text()
+    for cls in (DaemonConfig, ArmConfig, SensorConfig, ScanConfig):
+        for f in fields(cls):
+            if f.name in ("arm", "sensor", "scan", "source"):
+                continue
+            assert f"`{f.name}`" in readme, f"examples/README.md lacks {cls.__name__}.{f.name}"
+
+
+def test_examples_copy_runs_check(tmp_path):
+    """The sim example passes `--check` from another folder (relative paths follow the file)."""
+    shutil.copy(EXAMPLES / "rig-sim.toml", tmp_path / "rig-sim.toml")
+    assert main(["daemon", "--config", str(tmp_path / "rig-sim.toml"), "--check"]) == 0
+    cfg = load_config(tmp_path / "rig-sim.toml")
+    assert cfg.captures == (tmp_path / "../captures")
+
+
+def test_config_from_dict_rejects_non_table_section(tmp_path):
+    with pytest.raises(ConfigError, match=r"\[arm\] must be a table"):
+        config_from_dict({"arm": 3}, tmp_path / "rig.toml")
