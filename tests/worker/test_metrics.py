@@ -43,8 +43,9 @@ def test_floor_shrinks_with_more_points():
 
 
 def test_sphere_two_millimetres_larger():
-    m = mesh_metrics(ball(0.100), ball(0.102), n_points=300_000)
-    assert m.chamfer_mm == pytest.approx(2.0, abs=0.1)
+    # Sample spacing adds a little to the 2 mm gap (~0.1 mm at 100,000 points, ~0.03 mm at 300,000).
+    m = mesh_metrics(ball(0.100), ball(0.102), n_points=100_000)
+    assert m.chamfer_mm == pytest.approx(2.0, abs=0.15)
     assert m.accuracy_mm == pytest.approx(m.completeness_mm, rel=0.05)
     assert m.normal_error_deg < 2.0  # concentric spheres share their normals
 
