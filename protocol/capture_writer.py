@@ -53,6 +53,8 @@ class CaptureWriter:
                frames_per_pose: int = 1) -> "CaptureWriter":
         """Start a new scan folder. Refuses a folder that already holds a capture (use `resume`)."""
         path = Path(path)
+        if path.exists() and not path.is_dir():
+            raise CaptureError(f"{path}: exists and is not a folder")
         if (path / MANIFEST).exists():
             raise CaptureError(f"{path}: already holds a capture (resume it, or choose another folder)")
         if path.exists() and any(p.name.startswith(CHUNK_PREFIX) for p in path.iterdir()):

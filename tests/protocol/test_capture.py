@@ -215,6 +215,9 @@ def test_create_refuses_an_existing_capture_and_bad_chunk_size(tmp_path):
     write(tmp_path / "s", 1, 4)
     with pytest.raises(CaptureError, match="already holds a capture"):
         CaptureWriter.create(tmp_path / "s", TMF)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(CaptureError, match="not a folder"):
+        CaptureWriter.create(tmp_path / "file", TMF)
     with pytest.raises(CaptureError, match="chunk size"):
         CaptureWriter.create(tmp_path / "t", TMF, chunk_size=0)
     with pytest.raises(CaptureError):

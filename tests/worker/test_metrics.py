@@ -26,6 +26,7 @@ def floor_mm(mesh, n):
     return 0.5 * math.sqrt(mesh.area / n) * 1e3
 
 
+@pytest.mark.slow
 def test_identical_meshes_score_the_sampling_floor():
     mesh = ball()
     m = mesh_metrics(mesh, mesh.copy(), n_points=300_000)
