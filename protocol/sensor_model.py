@@ -179,6 +179,13 @@ class SensorModel:
         return float(self.range_of_bin(self.n_bins))
 
     def validate(self) -> "SensorModel":
+        """Check every field; returns self. Wrong types (a string for a number, ...) are SensorModelErrors too."""
+        try:
+            return self._validate()
+        except (TypeError, ValueError) as exc:
+            raise SensorModelError(f"sensor model {self.name!r}: a field has the wrong type ({exc})") from None
+
+    def _validate(self) -> "SensorModel":
         where = f"sensor model {self.name!r}"
         if not (isinstance(self.n_bins, int) and 4 <= self.n_bins <= 65536):
             raise SensorModelError(f"{where}: n_bins {self.n_bins} must be an integer in [4, 65536]")
