@@ -124,6 +124,8 @@ class ScanRunner:
             if job.blocked:
                 raise ConfigError(f"cannot resume scan {job.name!r}: {job.blocked}")
             self._resume.set()
+            job.reason = None
+            self._set_state("scanning")
         else:
             raise ConfigError(f"nothing to resume (daemon is {self.state})")
         return self.status()

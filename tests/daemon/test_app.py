@@ -1,0 +1,137 @@
+"""The daemon's device lifecycle and request dispatch (in-process; the subprocess tests are test_daemon_process)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from spadscan.daemon.app import DeviceSession, Dispatcher
+from spadscan.daemon.devices import Device
+from spadscan.protocol.errors import ConfigError, DeviceError
+
+
+class Recorder(Device):
+    """A device that logs its lifecycle and can fail or hang in one step."""
+
+    def __init__(self, name: str, log: list, fail: str | None = None, hang: str | None = None, delay: float = 0.0):
+        self.name, self.log, self.fail, self.hang, self.delay = name, log, fail, hang, delay
+
+    async def _step(self, step: str) -> None:
+        self.log.append((self.name, step, "begin"))
+        await asyncio.sleep(self.delay)
+        if step == self.hang:
+            await asyncio.sleep(3600)
+        if step == self.fail:
+            raise DeviceError(f"{self.name}: {step} refused")
+        self.log.append((self.name, step, "end"))
+
+    async def connect(self):
+        await self._step("connect")
+
+    async def prepare(self):
+        await self._step("prepare")
+
+    async def release(self):
+        await self._step("release")
+
+    async def close(self):
+        await self._step("close")
+
+
+def test_devices_connect_in_parallel_and_always_release(arun):
+    log = []
+
+    async def scenario():
+        a, b = Recorder("arm", log, delay=0.05), Recorder("sensor", log, delay=0.05)
+        with pytest.raises(RuntimeError, match="body failed"):
+            async with DeviceSession([a, b]):
+                log.append(("body",))
+                raise RuntimeError("body failed")
+
+    arun(scenario())
+    # Both connects begin before either ends: parallel.
+    assert log[:2] == [("arm", "connect", "begin"), ("sensor", "connect", "begin")]
+    assert ("body",) in log
+    for dev in ("arm", "sensor"):
+        for step in ("release", "close"):
+            assert (dev, step, "end") in log
+    assert log.index(("arm", "release", "end")) < log.index(("arm", "close", "begin"))
+
+
+def test_every_failed_device_is_reported_in_one_error(arun):
+    log = []
+
+    async def scenario():
+        devices = [Recorder("arm", log, fail="connect"), Recorder("sensor", log, hang="connect"),
+                   Recorder("light", log)]
+        session = DeviceSession(devices, timeouts={"connect": 0.2})
+        with pytest.raises(DeviceError) as info:
+            async with session:
+                log.append(("body",))
+        return str(info.value)
+
+    msg = arun(scenario())
+    assert msg.startswith("rig did not start: ")
+    assert "arm: connect refused" in msg and "sensor: connect did not finish within 0.2 s" in msg
+    assert "light" not in msg and "\n" not in msg
+    assert ("body",) not in log
+    assert ("light", "release", "end") in log and ("light", "close", "end") in log  # the good one is let go too
+    assert not any(step == "prepare" for _, step, *_ in log)
+
+
+def test_release_failure_is_reported(arun):
+    log = []
+
+    async def scenario():
+        async with DeviceSession([Recorder("arm", log, fail="release"), Recorder("sensor", log)]):
+            pass
+
+    with pytest.raises(DeviceError, match="rig did not shut down cleanly: arm: release refused"):
+        arun(scenario())
+    assert ("arm", "close", "end") in log and ("sensor", "release", "end") in log
+
+
+class FakeRunner:
+    def __init__(self):
+        self.calls = []
+
+    def status(self):
+        return {"state": "idle"}
+
+    async def start(self, name, options):
+        self.calls.append(("start", name, options))
+        return {"state": "scanning", "scan": name}
+
+    async def abort(self, reason):
+        self.calls.append(("abort", reason))
+        return {"state": "idle"}
+
+    async def wait(self, name):
+        return {"name": name, "state": "complete"}
+
+
+def test_dispatcher(arun, tmp_path):
+    from spadscan.daemon.config import config_from_dict
+
+    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(tmp_path / "s.sock"),
+                            "sensor": {"backend": "sim", "mesh": "builtin:sphere"}}, tmp_path / "rig.toml")
+
+    async def scenario():
+        runner, stop = FakeRunner(), asyncio.Event()
+        d = Dispatcher(runner, stop, cfg)
+        out = [await d({"op": "status"}), await d({"op": "scan", "name": "n", "options": {"views": 3}}),
+               await d({"op": "abort"}), await d({"op": "wait", "name": "n"})]
+        for bad, word in (({"op": "dance"}, "unknown op 'dance'"), ({"op": "status", "x": 1}, "takes no x"),
+                          ({"op": "scan", "options": [1]}, "JSON object"), ({"op": "wait"}, "needs a scan")):
+            with pytest.raises(ConfigError, match=word):
+                await d(bad)
+        assert not stop.is_set()
+        out.append(await d({"op": "shutdown"}))
+        await asyncio.sleep(0)
+        return out, runner.calls, stop.is_set()
+
+    out, calls, stopped = arun(scenario())
+    assert out[0]["state"] == "idle" and out[0]["daemon"]["socket"] == str(tmp_path / "s.sock")
+    assert calls == [("start", "n", {"views": 3}), ("abort", "aborted by user")]
+    assert out[3] == {"name": "n", "state": "complete"} and out[4] == {"stopping": True} and stopped

@@ -1,0 +1,197 @@
+"""The control socket: mode 0600, bad input answered and survived, stale sockets, the stdlib client."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import stat
+
+import pytest
+
+from spadscan.daemon.client import ControlError, call, request
+from spadscan.daemon.control import ControlServer, claim_socket_path
+from spadscan.protocol.errors import ConfigError
+
+
+async def echo(req: dict) -> dict:
+    if req["op"] == "boom":
+        raise RuntimeError("handler bug")
+    if req["op"] == "refuse":
+        raise ConfigError("refused for a reason")
+    return {"echo": req["op"]}
+
+
+async def exchange(path, payloads: list[bytes]) -> list[dict]:
+    """Send raw payloads on one connection; read one reply line after each."""
+    reader, writer = await asyncio.open_unix_connection(str(path), limit=1 << 22)
+    replies = []
+    try:
+        for data in payloads:
+            writer.write(data)
+            await writer.drain()
+            replies.append(json.loads(await asyncio.wait_for(reader.readline(), 5)))
+    finally:
+        writer.close()
+        await writer.wait_closed()
+    return replies
+
+
+def test_socket_is_private_and_removed(arun, tmp_path):
+    path = tmp_path / "ctl.sock"
+
+    async def scenario():
+        async with ControlServer(path, echo):
+            st = os.stat(path)
+            replies = await exchange(path, [b'{"op": "status"}\n'])
+            return stat.S_ISSOCK(st.st_mode), stat.S_IMODE(st.st_mode), replies
+
+    is_sock, mode, replies = arun(scenario())
+    assert is_sock and mode == 0o600
+    assert replies == [{"ok": True, "echo": "status"}]
+    assert not path.exists()
+
+
+def test_bad_lines_get_errors_and_the_server_keeps_serving(arun, tmp_path):
+    path = tmp_path / "ctl.sock"
+    big = b'{"op": "' + b"x" * 200_000 + b'"}\n'
+
+    async def scenario():
+        async with ControlServer(path, echo, max_line=4096):
+            one = await exchange(path, [
+                b"this is not json\n",
+                big,
+                b"\xff\xfe\x00\x01binary\n",
+                b'{"op": "st\x00atus"}\n',
+                b"[1, 2, 3]\n",
+                b'{"no_op": 1}\n',
+                b"\n",
+                b'{"op": "boom"}\n',
+                b'{"op": "refuse"}\n',
+                b'{"op": "status"}\n',
+            ])
+            # A second client is served too, also while the first one's connection is gone.
+            two = await exchange(path, [b'{"op": "again"}\n'])
+            return one, two
+
+    one, two = arun(scenario())
+    assert [r["ok"] for r in one] == [False] * 9 + [True]
+    assert "malformed JSON" in one[0]["error"]
+    assert "longer than 4096 bytes" in one[1]["error"]
+    assert "UTF-8" in one[2]["error"]
+    assert "NUL" in one[3]["error"]
+    assert "JSON object" in one[4]["error"] and "'op'" in one[5]["error"]
+    assert "empty request" in one[6]["error"]
+    assert "internal error: RuntimeError: handler bug" == one[7]["error"]
+    assert one[8]["error"] == "refused for a reason"
+    assert one[9] == {"ok": True, "echo": "status"} and two == [{"ok": True, "echo": "again"}]
+
+
+def test_oversized_line_split_across_reads(arun, tmp_path):
+    """An oversized line that arrives in pieces is answered once and its tail is not taken for a request."""
+    path = tmp_path / "ctl.sock"
+
+    async def scenario():
+        async with ControlServer(path, echo, max_line=1000):
+            reader, writer = await asyncio.open_unix_connection(str(path))
+            try:
+                for _ in range(5):
+                    writer.write(b"y" * 600)
+                    await writer.drain()
+                    await asyncio.sleep(0.01)
+                writer.write(b'"}\n{"op": "after"}\n')
+                await writer.drain()
+                first = json.loads(await asyncio.wait_for(reader.readline(), 5))
+                second = json.loads(await asyncio.wait_for(reader.readline(), 5))
+            finally:
+                writer.close()
+                await writer.wait_closed()
+            return first, second
+
+    first, second = arun(scenario())
+    assert not first["ok"] and "longer than 1000 bytes" in first["error"]
+    assert second == {"ok": True, "echo": "after"}
+
+
+def test_client_round_trip_and_refusal(arun, tmp_path):
+    path = tmp_path / "ctl.sock"
+
+    async def scenario():
+        async with ControlServer(path, echo):
+            ok = await asyncio.to_thread(call, path, "status")
+            raw = await asyncio.to_thread(request, path, {"op": "refuse"})
+            with pytest.raises(ControlError, match="refused for a reason"):
+                await asyncio.to_thread(call, path, "refuse")
+            return ok, raw
+
+    ok, raw = arun(scenario())
+    assert ok == {"ok": True, "echo": "status"}
+    assert raw == {"ok": False, "error": "refused for a reason"}
+
+
+def test_client_says_when_no_daemon_listens(tmp_path):
+    with pytest.raises(ControlError, match="no daemon is listening on .*ctl.sock") as info:
+        call(tmp_path / "ctl.sock", "status")
+    assert "\n" not in str(info.value)
+    # A stale socket file (nobody listening) reads the same.
+    s = socket.socket(socket.AF_UNIX)
+    s.bind(str(tmp_path / "ctl.sock"))
+    s.close()
+    with pytest.raises(ControlError, match="no daemon is listening"):
+        call(tmp_path / "ctl.sock", "status")
+
+
+def test_stale_socket_is_replaced_live_one_refused(arun, tmp_path):
+    path = tmp_path / "ctl.sock"
+    stale = socket.socket(socket.AF_UNIX)
+    stale.bind(str(path))
+    stale.close()  # a crashed daemon's socket file: nobody listens
+
+    async def scenario():
+        async with ControlServer(path, echo):
+            with pytest.raises(ConfigError, match="another daemon is already listening"):
+                claim_socket_path(path)
+            second = ControlServer(path, echo)
+            with pytest.raises(ConfigError, match="another daemon"):
+                await second.start()
+            return await exchange(path, [b'{"op": "still"}\n'])
+
+    assert arun(scenario()) == [{"ok": True, "echo": "still"}]
+    assert not path.exists()
+
+
+def test_refuses_to_replace_a_regular_file(tmp_path):
+    path = tmp_path / "ctl.sock"
+    path.write_text("precious")
+    with pytest.raises(ConfigError, match="not a socket"):
+        claim_socket_path(path)
+    assert path.read_text() == "precious"
+
+
+def test_close_ends_blocked_requests(arun, tmp_path):
+    """A client blocked in a long request (like `wait`) is let go when the server closes."""
+    path = tmp_path / "ctl.sock"
+    never = None
+
+    async def slow(req):
+        await never.wait()
+        return {}
+
+    async def scenario():
+        nonlocal never
+        never = asyncio.Event()
+        server = ControlServer(path, slow)
+        await server.start()
+        reader, writer = await asyncio.open_unix_connection(str(path))
+        writer.write(b'{"op": "wait"}\n')
+        await writer.drain()
+        await asyncio.sleep(0.05)
+        await server.close()
+        data = await asyncio.wait_for(reader.read(), 5)
+        writer.close()
+        await writer.wait_closed()
+        return data
+
+    assert arun(scenario()) == b""
+    assert not path.exists()

@@ -1,0 +1,368 @@
+"""The scan runner with the simulated arm and the simulated sensor: every pose exactly once, actual poses, faults
+that pause with their reason, resume at the first unpublished pose, nothing published ever lost."""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spadscan.daemon.app import DeviceSession
+from spadscan.daemon.arm.sim import SimArm, SimArmFaults, fake_joints
+from spadscan.daemon.backends import pose_provider
+from spadscan.daemon.config import config_from_dict
+from spadscan.daemon.runner import ScanRunner
+from spadscan.daemon.sensor.sim import SimSensor
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.simulator import SimSettings
+
+HAND_EYE = [[0.0, -1, 0, 0.0], [1, 0, 0, 0.0], [0, 0, 1, 0.05], [0, 0, 0, 1]]
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    from spadscan.protocol.scenes import builtin_scene
+
+    return builtin_scene("sphere")
+
+
+def make_cfg(tmp_path: Path, *, auto_resume: bool = False, frame_timeout_s: float = 5.0, **scan):
+    scan = {"views": 10, "frames_per_pose": 2, "settle_s": 0.0, "radius_m": 0.4, "target": [0, 0, 0.1], **scan}
+    return config_from_dict({
+        "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"), "auto_resume": auto_resume,
+        "arm": {"backend": "sim", "hand_eye": HAND_EYE},
+        "sensor": {"backend": "sim", "mesh": "builtin:sphere", "rays_per_zone": 16,
+                   "frame_timeout_s": frame_timeout_s},
+        "scan": scan}, tmp_path / "rig.toml")
+
+
+class TimedArm(SimArm):
+    """Remembers when each move ended."""
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self.stops: list[float] = []
+
+    async def move_to(self, tcp_pose, speed, accel):
+        await super().move_to(tcp_pose, speed, accel)
+        self.stops.append(time.monotonic())
+
+
+def make_rig(cfg, mesh, *, frame_time_s=0.0, **arm_kw):
+    arm = TimedArm(**{"motion_time_s": 0.0, **arm_kw})
+    sensor = SimSensor(sensor_preset("tmf8820"), mesh, pose_provider(arm, cfg.arm.hand_eye),
+                       settings=SimSettings(rays_per_zone=16), seed=1, frame_time_s=frame_time_s)
+    return arm, sensor
+
+
+async def until(pred, what: str, timeout_s: float = 20.0) -> None:
+    t0 = time.monotonic()
+    while not pred():
+        if time.monotonic() - t0 > timeout_s:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.005)
+
+
+def check_capture(path: Path, n: int, k: int, state: str = "complete"):
+    """Every pose 0..n-1 exactly once with frames 0..k-1; sensor pose = recorded actual TCP @ hand-eye."""
+    r = CaptureReader(path)
+    data = r.load()
+    assert r.state == state
+    got = sorted(zip(data.pose_indices.tolist(), [m["frame"] for m in data.meta]))
+    assert got == [(i, f) for i in range(n) for f in range(k)]
+    tcp = np.array([m["tcp_pose"] for m in data.meta])
+    np.testing.assert_allclose(data.poses, tcp @ np.array(HAND_EYE), atol=1e-12)
+    return data
+
+
+def test_scan_stores_each_frame_at_the_actual_pose(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=8, frames_per_pose=3)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, pose_noise_m=0.002)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                started = await runner.start("ball")
+                done = await runner.wait("ball")
+                return started, done, runner.status(), [c.copy() for c in arm.commanded]
+            finally:
+                await runner.shutdown()
+
+    started, done, status, commanded = arun(scenario())
+    assert started["state"] == "scanning" and started["poses"] == 8
+    assert done == {"name": "ball", "state": "complete"}
+    assert status["state"] == "idle" and status["last_scan"] == {"name": "ball", "state": "complete"}
+    data = check_capture(tmp_path / "caps" / "ball", 8, 3)
+    assert data.hists.shape == (24, 9, 128) and data.hists.dtype == np.uint32
+    assert data.reference is not None  # the TMF8820 model carries reference histograms
+    planned = CaptureReader(tmp_path / "caps" / "ball").planned_poses()
+    for m, pose in zip(data.meta, data.poses):
+        i = m["pose_index"]
+        # The actual pose: what the sensor saw (render pose), not the commanded one (1-2 mm away with noise).
+        np.testing.assert_allclose(pose, np.array(m["extra"]["render_pose"]), atol=1e-12)
+        off = np.linalg.norm(np.array(m["tcp_pose"])[:3, 3] - commanded[i][:3, 3])
+        assert 0 < off < 0.02
+        assert np.linalg.norm(pose[:3, 3] - planned[i][:3, 3]) < 0.02
+        np.testing.assert_allclose(m["joints"], fake_joints(np.array(m["tcp_pose"])))
+        assert m["t_start"] <= m["t_end"]
+    # Frames are separate measurements, never summed: K distinct exposures per pose.
+    starts = {(m["pose_index"], m["t_start"]) for m in data.meta}
+    assert len(starts) == 24
+
+
+def test_frames_that_began_before_the_arm_settled_are_dropped(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=5, frames_per_pose=2, settle_s=0.03)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, frame_time_s=0.02, motion_time_s=0.05)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("settle")
+                await until(lambda: runner.job is not None and runner.job.dropped > 0, "a dropped frame")
+                await runner.wait("settle")
+                return list(arm.stops)
+            finally:
+                await runner.shutdown()
+
+    stops = arun(scenario())
+    data = check_capture(tmp_path / "caps" / "settle", 5, 2)
+    for m in data.meta:
+        assert m["t_start"] >= stops[m["pose_index"]] + 0.03 - 1e-9
+
+
+def test_pause_resume_abort(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=30, frames_per_pose=1)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("p")
+                await until(lambda: runner.job.next_pose >= 2, "two poses")
+                assert (await runner.pause())["state"] in ("pausing", "paused")
+                await until(lambda: runner.state == "paused", "paused")
+                held = runner.job.next_pose
+                await asyncio.sleep(0.1)
+                assert runner.job.next_pose == held and runner.status()["reason"] == "paused by user"
+                await runner.resume()
+                await until(lambda: runner.job.next_pose >= held + 3, "progress after resume")
+                reply = await runner.abort("enough")
+                assert reply["aborted"] == "p" and reply["state"] == "idle"
+                waited = await runner.wait("p")
+                # A new scan can start after an abort.
+                await runner.start("q", {"views": 3})
+                return held, waited, await runner.wait("q")
+            finally:
+                await runner.shutdown()
+
+    held, waited, second = arun(scenario())
+    assert waited == {"name": "p", "state": "aborted"} and second["state"] == "complete"
+    r = CaptureReader(tmp_path / "caps" / "p")
+    assert r.state == "aborted" and r.manifest["reason"] == "enough"
+    idx = r.load().pose_indices.tolist()
+    assert idx == list(range(len(idx))) and held + 3 <= len(idx) < 30  # a prefix, each pose once
+    check_capture(tmp_path / "caps" / "q", 3, 1)
+
+
+def test_protective_stop_pauses_with_reason_and_resumes(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=8)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, faults=SimArmFaults(protective_stop_on_moves=(4,)))
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("stop")
+                await until(lambda: runner.state == "paused", "the pause")
+                first = runner.status()
+                await runner.resume()  # still stopped: the arm refuses, the scan pauses again
+                await until(lambda: runner.state == "paused" and arm.moves == 4, "the second pause")
+                await asyncio.sleep(0.05)
+                again = runner.status()
+                arm.clear_protective_stop()
+                await runner.resume()
+                return first, again, await runner.wait("stop")
+            finally:
+                await runner.shutdown()
+
+    first, again, done = arun(scenario())
+    assert "protective stop" in first["reason"] and first["reason"] == first["last_error"]
+    assert first["pose"] == 3 and first["progress"] == "3/8"
+    assert again["state"] == "paused" and "protective stop" in again["reason"]
+    assert done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "stop", 8, 2)
+
+
+def test_sensor_silence_pauses_and_resumes(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=8, frame_timeout_s=0.2)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("quiet")
+                await until(lambda: runner.job.next_pose >= 2, "two poses")
+                sensor.inject_silence(0.5)
+                await until(lambda: runner.state == "paused", "the pause")
+                paused = runner.status()
+                await asyncio.sleep(0.5)
+                await runner.resume()
+                return paused, await runner.wait("quiet")
+            finally:
+                await runner.shutdown()
+
+    paused, done = arun(scenario())
+    assert paused["reason"].startswith("sensor silent: sensor sim")
+    assert done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "quiet", 8, 2)
+
+
+def test_disk_full_pauses_and_loses_nothing_published(arun, tmp_path, sphere, monkeypatch):
+    import spadscan.protocol.capture_writer as cw
+
+    cfg = make_cfg(tmp_path, views=10)
+    real = cw.save_npy_durable
+    full = {"on": False}
+
+    def save(path, array):
+        if full["on"] and path.name == "poses.npy":  # the chunk's second file: a half-written chunk
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real(path, array)
+
+    monkeypatch.setattr(cw, "save_npy_durable", save)
+    folder = tmp_path / "caps" / "full"
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("full")
+                await until(lambda: runner.job.next_pose >= 3, "three poses")
+                full["on"] = True
+                await until(lambda: runner.state == "paused", "the pause")
+                paused = runner.status()
+                snapshot = {p.relative_to(folder): p.read_bytes() for p in folder.glob("chunk-*/*")}
+                await runner.resume()  # still full: pauses again, nothing lost
+                await until(lambda: runner.state == "paused", "the second pause")
+                full["on"] = False
+                await runner.resume()
+                return paused, snapshot, await runner.wait("full")
+            finally:
+                await runner.shutdown()
+
+    paused, snapshot, done = arun(scenario())
+    assert paused["reason"].startswith("disk full while publishing") and "No space left" in paused["reason"]
+    assert done["state"] == "complete"
+    check_capture(folder, 10, 2)
+    for rel, data in snapshot.items():  # every file published before the fault is still there, unchanged
+        assert (folder / rel).read_bytes() == data
+    assert not list(folder.glob(".tmp-*"))
+
+
+def test_link_loss_and_odd_frames_pause(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=6)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, faults=SimArmFaults(link_drop_on_moves=(2,)))
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("link")
+                await until(lambda: runner.state == "paused", "the pause")
+                reason = runner.status()["reason"]
+                arm.restore_link()
+                await runner.resume()
+                return reason, await runner.wait("link")
+            finally:
+                await runner.shutdown()
+
+    reason, done = arun(scenario())
+    assert reason.startswith("link lost: arm (sim)")
+    assert done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "link", 6, 2)
+
+
+def test_restart_takes_over_an_interrupted_scan(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=12)
+    auto = make_cfg(tmp_path, views=12, auto_resume=True)
+
+    async def first_daemon():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            await runner.start("crash")
+            await until(lambda: runner.job.next_pose >= 4, "four poses")
+            await runner.shutdown()  # like SIGTERM: the capture stays 'running'
+
+    async def second_daemon(c, resume: bool):
+        arm, sensor = make_rig(c, sphere)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, c)
+            try:
+                await runner.recover()
+                first = runner.status()
+                if resume:
+                    await runner.resume()
+                return first, await runner.wait("crash")
+            finally:
+                await runner.shutdown()
+
+    arun(first_daemon())
+    r = CaptureReader(tmp_path / "caps" / "crash")
+    assert r.state == "running" and "daemon stopped" in r.manifest["reason"]
+    n_before = len(r.load().meta)
+    first, done = arun(second_daemon(cfg, resume=True))
+    assert first["state"] == "paused" and "interrupted at pose" in first["reason"]
+    assert first["frames"] == n_before and done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "crash", 12, 2)
+    # auto_resume: the next interrupted scan continues by itself.
+    (tmp_path / "caps" / "crash" / "scan.json").write_text(
+        (tmp_path / "caps" / "crash" / "scan.json").read_text().replace('"complete"', '"running"'))
+    first, done = arun(second_daemon(auto, resume=False))
+    assert first["state"] in ("scanning", "idle") and done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "crash", 12, 2)
+
+
+def test_requests_in_the_wrong_state_are_refused(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=40)
+    (tmp_path / "caps").mkdir()
+    (tmp_path / "caps" / "taken").mkdir()
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        errors = []
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                for call in (runner.pause(), runner.resume(), runner.abort(), runner.wait("ghost"),
+                             runner.start("taken"), runner.start("../up"), runner.start("a/b"), runner.start(".hid"),
+                             runner.start(""), runner.start("ok", {"views": 0}), runner.start("ok", {"fps": 2})):
+                    with pytest.raises(ConfigError) as info:
+                        await call
+                    errors.append(str(info.value))
+                await runner.start("busy")
+                with pytest.raises(ConfigError, match="'busy' is scanning"):
+                    await runner.start("other")
+                await runner.abort()
+            finally:
+                await runner.shutdown()
+        return errors
+
+    errors = arun(scenario())
+    assert all("\n" not in e for e in errors)
+    assert "nothing to pause" in errors[0] and "nothing to resume" in errors[1] and "nothing to abort" in errors[2]
+    assert "no scan named 'ghost'" in errors[3] and "already exists" in errors[4]
+    assert all("scan name" in e for e in errors[5:9])
+    assert "views" in errors[9] and "unknown key 'fps'" in errors[10]
+    assert sorted(p.name for p in (tmp_path / "caps").iterdir()) == ["busy", "taken"]
