@@ -108,19 +108,27 @@ def make_intersector(mesh):
         return RayMeshIntersector(mesh)
 
 
-def first_hits(intersector, face_normals: np.ndarray, origins: np.ndarray, directions: np.ndarray):
+def first_hits(intersector, mesh, origins: np.ndarray, directions: np.ndarray):
     """First surface hit along each ray.
 
     origins, directions: (N, 3) (directions unit). Returns (ray_index (H,), range_m (H,), cos_incidence (H,)) for the
     H rays that hit: range along the ray in metres and |n . d| at the hit, in [0, 1].
+
+    The intersector names the first triangle hit; the range is the ray's crossing of that triangle's plane (cheaper
+    than asking for hit locations). A ray that grazes its triangle (|n . d| < 1e-9) cannot be ranged that way and
+    takes the distance to the triangle's centroid; its contribution, proportional to |n . d|, is nil anyway.
     """
     if len(origins) == 0:
         empty = np.zeros(0)
         return empty.astype(np.int64), empty, empty
-    tri, ray, loc = intersector.intersects_id(origins, directions, multiple_hits=False, return_locations=True)
+    tri, ray = intersector.intersects_id(origins, directions, multiple_hits=False, return_locations=False)
     ray = np.asarray(ray, dtype=np.int64)
     tri = np.asarray(tri, dtype=np.int64)
-    loc = np.asarray(loc, dtype=np.float64)
-    rng_m = np.einsum("ij,ij->i", loc - origins[ray], directions[ray])
-    cos_inc = np.abs(np.einsum("ij,ij->i", face_normals[tri], directions[ray]))
-    return ray, rng_m, np.clip(cos_inc, 0.0, 1.0)
+    normals = np.asarray(mesh.face_normals)[tri]
+    d = directions[ray]
+    to_plane = np.asarray(mesh.triangles_center)[tri] - origins[ray]
+    den = np.sum(normals * d, axis=1)
+    grazing = np.abs(den) < 1e-9
+    rng_m = np.where(grazing, np.linalg.norm(to_plane, axis=1),
+                     np.sum(normals * to_plane, axis=1) / np.where(grazing, 1.0, den))
+    return ray, np.maximum(rng_m, 0.0), np.clip(np.abs(den), 0.0, 1.0)

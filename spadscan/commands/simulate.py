@@ -45,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="laser cycles per histogram (default: the sensor preset's)")
     parser.add_argument("--albedo", type=float, default=1.0, help="Lambertian albedo of the mesh (default: 1)")
     parser.add_argument("--rays-per-zone", type=int, default=None, metavar="R",
-                        help="rays cast per zone per view (default: 4096)")
+                        help="rays cast per zone per view (default: 4096 per view shared by the zones, "
+                             "at least 512 each)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
     parser.add_argument("--chunk-size", type=int, default=64, metavar="K", help="measurements per chunk (default: 64)")
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
