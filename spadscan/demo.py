@@ -1,0 +1,260 @@
+"""The whole loop on simulated devices: daemon -> capture folder -> worker -> mesh, each half in its own process.
+
+The demo drives the same commands a lab operator uses (`spadscan daemon`, the control socket, `spadscan worker`), so
+it proves the system end to end. Every process it starts it stops again, also on Ctrl-C or an error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from spadscan.daemon.client import ControlError, call
+from spadscan.protocol.errors import SpadscanError
+
+# Unix socket paths longer than this fail to bind (sun_path is 108 bytes on Linux).
+MAX_SOCKET_PATH = 100
+
+
+class DemoError(SpadscanError):
+    """A stage of the demo failed; the message says which and where its log is."""
+
+
+@dataclass
+class DemoOptions:
+    """What `spadscan demo` runs."""
+
+    out: Path
+    """Folder for the rig config, captures, logs and the summary."""
+    scene: str = "demo"
+    """Built-in scene the simulated sensor renders (spadscan.protocol.scenes)."""
+    views: int = 64
+    """Sensor poses in the scan."""
+    budget_s: float = 120.0
+    """Wall-clock budget of the reconstruction (s)."""
+    arm: str = "sim"
+    """'sim' (simulated arm) or 'ur-sim' (the real ur_rtde client against a simulated UR controller on loopback)."""
+    sensor: str = "lcspc-sim"
+    """Sensor preset the simulated sensor uses: 'lcspc-sim' or 'tmf8820'."""
+    frames_per_pose: int = 1
+    """Frames stored per pose."""
+    stage_timeout_s: float = 600.0
+    """Longest any one stage may take before the demo gives up (s)."""
+
+
+@dataclass
+class Processes:
+    """The child processes of a demo run, stopped in reverse order."""
+
+    procs: list[tuple[str, subprocess.Popen]] = field(default_factory=list)
+
+    def start(self, name: str, argv: list[str], log: Path) -> subprocess.Popen:
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with open(log, "ab") as f:
+            # A new session: Ctrl-C in the terminal reaches only the demo, which then stops its children in order.
+            proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    start_new_session=True)
+        self.procs.append((name, proc))
+        return proc
+
+    def stop_all(self, grace_s: float = 10.0) -> None:
+        for name, proc in reversed(self.procs):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        for name, proc in reversed(self.procs):
+            try:
+                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        self.procs.clear()
+
+
+def _spadscan(*args: str) -> list[str]:
+    return [sys.executable, "-m", "spadscan.cli", *args]
+
+
+def _free_loopback_host() -> str:
+    """A 127.0.0.N address where the fixed UR ports (30004, 29999, 30003) are free."""
+    for n in range(20, 250):
+        host = f"127.0.0.{n}"
+        try:
+            for port in (30004, 29999, 30003):
+                with socket.socket() as s:
+                    s.bind((host, port))
+            return host
+        except OSError:
+            continue
+    raise DemoError("no loopback address has the UR ports 30004/29999/30003 free")
+
+
+def _socket_path(out: Path) -> tuple[Path, Path | None]:
+    """The control socket path, in a short temporary folder when `out` is too deep for a Unix socket."""
+    path = out.resolve() / "daemon.sock"
+    if len(str(path)) <= MAX_SOCKET_PATH:
+        return path, None
+    tmp = Path(tempfile.mkdtemp(prefix="spadscan-"))
+    return tmp / "daemon.sock", tmp
+
+
+def write_rig_config(opts: DemoOptions, captures: Path, sock: Path, ur_host: str | None) -> Path:
+    """The demo's rig: simulated arm (or ur-sim), simulated sensor rendering a built-in scene."""
+    arm = (f'backend = "ur"\nhost = "{ur_host}"\nspeed = 0.5\nacceleration = 2.0\n' if ur_host else
+           'backend = "sim"\nspeed = 0.5\nacceleration = 2.0\ntime_scale = 0.05\n')
+    text = f"""# Written by `spadscan demo`: simulated devices only.
+captures = "{captures}"
+socket = "{sock}"
+
+[arm]
+{arm}
+[sensor]
+backend = "sim"
+preset = "{opts.sensor}"
+mesh = "builtin:{opts.scene}"
+frame_time_s = 0.0
+
+[scan]
+views = {opts.views}
+schedule = "fibonacci"
+radius_m = 0.5
+target = [0.0, 0.0, 0.0]
+min_elevation_deg = 0.0
+max_elevation_deg = 86.0
+frames_per_pose = {opts.frames_per_pose}
+settle_s = 0.0
+"""
+    path = opts.out / "rig.toml"
+    path.write_text(text)
+    return path
+
+
+def _wait_for_daemon(sock: Path, proc: subprocess.Popen, log: Path, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise DemoError(f"the daemon exited with code {proc.returncode} at start-up (log: {log})")
+        try:
+            call(sock, "status", timeout_s=2.0)
+            return
+        except ControlError:
+            time.sleep(0.2)
+    raise DemoError(f"the daemon did not open its control socket within {timeout_s:.0f} s (log: {log})")
+
+
+def _scan(sock: Path, name: str, opts: DemoOptions, progress) -> dict:
+    call(sock, "scan", name=name, options={"views": opts.views})
+    deadline = time.monotonic() + opts.stage_timeout_s
+    last = 0
+    while time.monotonic() < deadline:
+        st = call(sock, "status", timeout_s=10.0)
+        done = int(st.get("pose") or 0) if st.get("scan") == name else last
+        progress.update(max(0, done - last))
+        last = max(last, done)
+        finished = (st.get("last_scan") or {})
+        if finished.get("name") == name and st.get("scan") in (None, name) and st.get("state") == "idle":
+            if finished.get("state") != "complete":
+                raise DemoError(f"scan {name} ended {finished.get('state')}: {st.get('last_error')}")
+            progress.update(max(0, opts.views - last))
+            return st
+        if st.get("state") == "paused":
+            raise DemoError(f"scan {name} paused: {st.get('reason') or st.get('last_error')}")
+        time.sleep(0.25)
+    raise DemoError(f"scan {name} did not finish within {opts.stage_timeout_s:.0f} s")
+
+
+def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path) -> None:
+    log = logs / "worker.log"
+    worker = procs.start("worker", _spadscan("worker", "--root", str(captures), "--once", "--processes", "1",
+                                             "--budget-s", f"{opts.budget_s:g}", "--poll-s", "0.5"), log)
+    try:
+        code = worker.wait(timeout=opts.stage_timeout_s + opts.budget_s)
+    except subprocess.TimeoutExpired:
+        raise DemoError(f"the worker did not finish within {opts.stage_timeout_s + opts.budget_s:.0f} s "
+                        f"(log: {log})") from None
+    if code != 0:
+        raise DemoError(f"the worker exited with code {code} (log: {log})")
+
+
+def _find_report(scan_dir: Path) -> Path:
+    reports = sorted((scan_dir / "recon").glob("*/report.json"), key=lambda p: p.stat().st_mtime)
+    if not reports:
+        raise DemoError(f"the worker wrote no report under {scan_dir / 'recon'}")
+    return reports[-1]
+
+
+def run_demo(opts: DemoOptions, progress_factory) -> dict:
+    """Run the loop and return the summary (also written to OUT/summary.json).
+
+    progress_factory(total, desc) -> an object with update(n) and close(), e.g. a tqdm bar.
+    """
+    from spadscan.protocol.scenes import BUILTIN_SCENES
+
+    if opts.scene not in BUILTIN_SCENES:
+        raise DemoError(f"unknown scene {opts.scene!r} (built-in: {', '.join(BUILTIN_SCENES)})")
+    if opts.arm not in ("sim", "ur-sim"):
+        raise DemoError(f"--arm {opts.arm!r} must be 'sim' or 'ur-sim'")
+    if opts.views < 4:
+        raise DemoError(f"--views {opts.views} is too few (at least 4)")
+    out = opts.out
+    out.mkdir(parents=True, exist_ok=True)
+    logs, captures = out / "logs", out / "captures"
+    captures.mkdir(exist_ok=True)
+    name = f"{opts.scene}-{time.strftime('%Y%m%d-%H%M%S')}"
+    sock, sock_tmp = _socket_path(out)
+    procs = Processes()
+    stages: dict[str, float] = {}
+    t0 = time.monotonic()
+    try:
+        ur_host = None
+        if opts.arm == "ur-sim":
+            ur_host = _free_loopback_host()
+            procs.start("ur-sim", [sys.executable, "-m", "spadscan.daemon.ursim", "--host", ur_host],
+                        logs / "ursim.log")
+        config = write_rig_config(opts, captures, sock, ur_host)
+        daemon = procs.start("daemon", _spadscan("daemon", "--config", str(config)), logs / "daemon.log")
+        _wait_for_daemon(sock, daemon, logs / "daemon.log", timeout_s=60.0)
+        stages["start_s"] = time.monotonic() - t0
+
+        t = time.monotonic()
+        bar = progress_factory(opts.views, "scan (poses)")
+        try:
+            _scan(sock, name, opts, bar)
+        finally:
+            bar.close()
+        stages["scan_s"] = time.monotonic() - t
+        call(sock, "shutdown")
+
+        t = time.monotonic()
+        _reconstruct(opts, captures, procs, logs)
+        stages["reconstruct_s"] = time.monotonic() - t
+    finally:
+        procs.stop_all()
+        if sock_tmp is not None:
+            shutil.rmtree(sock_tmp, ignore_errors=True)
+    stages["total_s"] = time.monotonic() - t0
+    report_path = _find_report(captures / name)
+    report = json.loads(report_path.read_text())
+    summary = {
+        "scene": opts.scene, "views": opts.views, "arm": opts.arm, "sensor": opts.sensor,
+        "capture": str(captures / name),
+        "mesh": str(report_path.parent / "mesh.ply"),
+        "report": str(report_path),
+        "report_html": str(report_path.parent / "report.html"),
+        "pictures": sorted(str(p) for p in report_path.parent.glob("*.png")),
+        "chamfer_mm": report.get("chamfer_mm"),
+        "fscore_5mm": report.get("fscore_5mm"),
+        "preset": report.get("preset"),
+        "seconds": {k: round(v, 2) for k, v in stages.items()},
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    return summary
