@@ -1,0 +1,68 @@
+"""Run the simulated UR controller as a process: `python -m spadscan.daemon.ursim --host 127.0.0.N`.
+
+Prints one line once it listens, then serves until SIGINT or SIGTERM. With `--control-stdio` it also takes JSON-line
+requests (fault injection, recorded moves) on stdin and stops when stdin closes; see `remote.py`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import sys
+
+from spadscan.daemon.ursim.remote import serve_stdio
+from spadscan.daemon.ursim.sim_controller import SimURController
+from spadscan.protocol.errors import SpadscanError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m spadscan.daemon.ursim", description=__doc__.splitlines()[0])
+    parser.add_argument("--host", default="127.0.0.1", help="loopback address to listen on (default 127.0.0.1)")
+    parser.add_argument("--time-scale", type=float, default=1.0,
+                        help="multiply every motion time by this (0 = moves finish at once; default 1)")
+    parser.add_argument("--control-stdio", action="store_true",
+                        help="take JSON-line requests on stdin, answer on stdout; stop when stdin closes")
+    args = parser.parse_args(argv)
+    try:
+        controller = SimURController(args.host, time_scale=args.time_scale)
+    except SpadscanError as exc:
+        print(f"ursim: error: {exc}", file=sys.stderr)
+        return 1
+
+    def ready() -> None:
+        print(f"ursim listening on {args.host} (RTDE 30004, dashboard 29999, script 30003)", flush=True)
+
+    async def run() -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, controller.request_stop)
+        await controller.serve(ready)
+
+    try:
+        if args.control_stdio:
+            return _serve_with_stdio(controller, ready)
+        asyncio.run(run())
+    except OSError as exc:
+        print(f"ursim: error: cannot listen on {args.host}: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _serve_with_stdio(controller: SimURController, ready) -> int:
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    try:
+        controller.start()
+    except SpadscanError as exc:
+        print(f"ursim: error: {exc}", file=sys.stderr)
+        return 1
+    try:
+        ready()
+        serve_stdio(controller)
+    finally:
+        controller.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
