@@ -1,0 +1,127 @@
+"""SimSensor: the transient simulator as a `Sensor`, with the real sensor's frame timing and injectable faults.
+
+Timing as on the TMF8820: the sensor measures back to back whether or not anyone reads. Frame k covers
+[t_k, t_k + frame_time_s) with t_{k+1} = t_k + frame_time_s, starting at `prepare`. `next_frame` delivers the first
+frame still in progress or yet to start: a caller that arrives mid-frame gets the frame in progress (its t_start lies
+in the past, so a scan runner drops it when the arm was still moving) and a caller that keeps up gets back-to-back
+frames. A frame is rendered at the pose `pose_provider()` returns when it starts (for a frame already in progress:
+when the call arrives). With frame_time_s = 0 a frame starts when asked for and ends when rendered.
+
+Faults: `inject_silence(s)` (no frames for s seconds: next_frame raises SensorSilent after its timeout; the frame in
+progress is lost) and `inject_link_loss(s)` (next_frame raises LinkLost at once for s seconds).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from spadscan.daemon.devices import Frame, LinkLost, Sensor, SensorSilent
+from spadscan.protocol.errors import DeviceError
+from spadscan.protocol.sensor_model import SensorModel
+from spadscan.protocol.simulator import SimSettings, Simulator
+
+
+class SimSensor(Sensor):
+    """Renders `mesh` (trimesh, metres) for `model` at the sensor pose (4, 4) from `pose_provider()`.
+
+    `model` after construction is the simulator's effective model (settings' power, ambient and cycles folded in),
+    which is what captures must store. Rendering runs in a worker thread; one frame is rendered at a time.
+    """
+
+    def __init__(self, model: SensorModel, mesh, pose_provider: Callable[[], np.ndarray], *,
+                 settings: SimSettings | None = None, seed: int = 0, frame_time_s: float = 0.0):
+        if not (math.isfinite(frame_time_s) and 0.0 <= frame_time_s <= 3600.0):
+            raise DeviceError(f"sensor sim: frame time {frame_time_s} s is outside [0, 3600] s")
+        self._sim = Simulator(mesh, model, settings if settings is not None else SimSettings(), seed)
+        self.model = self._sim.sensor
+        self.name = "sensor sim"
+        self.pose_provider = pose_provider
+        self.frame_time_s = float(frame_time_s)
+        self._render_lock = threading.Lock()  # a render abandoned by a timeout may still run in its thread
+        self._prev_end: float | None = None
+        self._silent_until = -math.inf
+        self._down_until = -math.inf
+        self._counts = {"frames": 0, "frames_lost_to_silence": 0, "silent_timeouts": 0, "faults_injected": 0}
+
+    # ---- lifecycle -----------------------------------------------------------------------------------------------
+    async def prepare(self) -> None:
+        if self._prev_end is None:
+            self._prev_end = time.monotonic()  # the stream of back-to-back frames starts now
+
+    async def release(self) -> None:
+        self._prev_end = None
+
+    # ---- faults --------------------------------------------------------------------------------------------------
+    def inject_silence(self, duration_s: float) -> None:
+        """No frames for duration_s seconds from now; the frame in progress is lost."""
+        self._silent_until = max(self._silent_until, time.monotonic() + duration_s)
+        self._counts["faults_injected"] += 1
+
+    def inject_link_loss(self, duration_s: float) -> None:
+        """next_frame raises LinkLost for duration_s seconds from now."""
+        self._down_until = max(self._down_until, time.monotonic() + duration_s)
+        self._counts["faults_injected"] += 1
+
+    # ---- frames --------------------------------------------------------------------------------------------------
+    async def next_frame(self, timeout_s: float) -> Frame:
+        if self._prev_end is None:
+            raise DeviceError(f"{self.name}: next_frame before prepare (the sensor is not streaming)")
+        try:
+            return await asyncio.wait_for(self._next(), timeout_s)
+        except asyncio.TimeoutError:
+            self._counts["silent_timeouts"] += 1
+            raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s") from None
+
+    def counters(self) -> dict:
+        out = dict(self._counts)
+        now = time.monotonic()
+        out["silent"] = now < self._silent_until
+        out["link"] = "down" if now < self._down_until else "up"
+        return out
+
+    async def _next(self) -> Frame:
+        while True:
+            now = time.monotonic()
+            if now < self._down_until:
+                raise LinkLost(f"{self.name}: link down for another {self._down_until - now:.1f} s (injected)")
+            start = self._frame_start(now)
+            await _sleep_until(start)
+            pose = np.asarray(self.pose_provider(), dtype=np.float64)
+            frames = await asyncio.to_thread(self._render, pose)
+            end = max(start + self.frame_time_s, time.monotonic()) if self.frame_time_s else time.monotonic()
+            await _sleep_until(end)
+            self._prev_end = end
+            if self._silent_until > start:  # silenced while this frame was exposed: it never arrives
+                self._counts["frames_lost_to_silence"] += 1
+                continue
+            self._counts["frames"] += 1
+            return Frame(hists=frames.hists[0], t_start=start, t_end=end,
+                         reference=None if frames.reference is None else frames.reference[0],
+                         extra={"render_pose": pose.tolist()})
+
+    def _frame_start(self, now: float) -> float:
+        """Start of the first frame that has not ended by `now` (monotonic seconds), after any silence."""
+        start = self._prev_end
+        if self.frame_time_s == 0.0:
+            start = max(start, now)
+        elif now > start:
+            start += math.floor((now - start) / self.frame_time_s) * self.frame_time_s
+        if start < self._silent_until:  # frames resume when the silence ends
+            start = self._silent_until
+        return start
+
+    def _render(self, pose: np.ndarray):
+        with self._render_lock:
+            return self._sim.frames(pose[None])
+
+
+async def _sleep_until(t: float) -> None:
+    delay = t - time.monotonic()
+    if delay > 0:
+        await asyncio.sleep(delay)

@@ -1,0 +1,198 @@
+"""The serial backend: the real pyserial on a pseudo-terminal fed by the simulated Arduino bridge.
+
+Decoded histograms must equal what was sent, bit for bit; frames with corrupt, partial, missing, duplicated or
+reordered lines must never come out, and the counters must say why."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from spadscan.daemon.devices import LinkLost
+from spadscan.daemon.sensor.serial_bridge import SerialSensor, parse_line
+from spadscan.daemon.sensor.sim_bridge import FAULTS, BridgeResult, SimBridge, frame_lines, obj_line, raw_lines
+from spadscan.daemon.sensor.transport import HistogramPacket, ResultPacket, StatusPacket
+from spadscan.protocol.errors import DeviceError
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads_or_fds():
+    threads, fds = set(threading.enumerate()), len(os.listdir("/proc/self/fd"))
+    yield
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and set(threading.enumerate()) - threads:
+        time.sleep(0.02)
+    assert not set(threading.enumerate()) - threads, "test leaked threads"
+    assert len(os.listdir("/proc/self/fd")) <= fds, "test leaked file descriptors (a pty or a port)"
+
+
+def counts(seed):
+    return np.random.default_rng(seed).integers(0, 1 << 24, (10, 128))
+
+
+def result(seed):
+    rng = np.random.default_rng(seed)
+    return BridgeResult(result_no=seed % 256, temperature_c=int(rng.integers(10, 50)), n_valid=9,
+                        systick=int(rng.integers(0, 2**32)), distances_mm=rng.integers(0, 5000, 36).tolist(),
+                        confidences=rng.integers(0, 256, 36).tolist())
+
+
+# ---- line parsing ------------------------------------------------------------------------------------------------
+def test_parse_raw_and_obj_lines():
+    c = counts(1)
+    lines = raw_lines(c)
+    assert len(lines) == 30 and lines[13].startswith(b"#Raw,65,13,")
+    pkt = parse_line(lines[13].rstrip(b"\n"), 1.5, 0x41)
+    assert isinstance(pkt, HistogramPacket) and pkt.index == 13 and pkt.t == 1.5
+    assert list(pkt.payload) == [(int(v) >> 8) & 0xFF for v in c[3]]  # channel 13 % 10, byte plane 13 // 10
+    res = result(2)
+    line = obj_line(res)
+    assert len(line.rstrip(b",\r\n").split(b",")) == 78
+    obj = parse_line(line.rstrip(b"\n"), 2.0, 0x41)
+    assert isinstance(obj, ResultPacket)
+    assert (obj.result_no, obj.temperature_c, obj.n_valid, obj.systick) == (2, res.temperature_c, 9, res.systick)
+    assert obj.distances_mm == res.distances_mm and obj.confidences == res.confidences
+
+
+@pytest.mark.parametrize("line, why", [
+    (b"#Obj", "separator"),
+    (b"#Raw,65,3,1,2,3", "corrupt"),  # truncated
+    (b"#Raw,66,3," + b",".join([b"1"] * 128), "other_address"),
+    (b"#Raw,65,30," + b",".join([b"1"] * 128), "corrupt"),  # sub-packet out of range
+    (b"#Raw,65,3," + b",".join([b"1"] * 127) + b",-1", "corrupt"),
+    (b"#Raw,65,3," + b",".join([b"1"] * 127) + b", 1", "corrupt"),
+    (b"#Obj,65,1,25,9,100," + b",".join([b"1", b"300"] * 36), "corrupt"),  # confidence > 255
+    (b"#Obj,65,1,nan,9,100," + b",".join([b"1", b"3"] * 36), "corrupt"),
+    (b"#Obj,65,1,25,9,100," + b",".join([b"1", b"3"] * 35), "corrupt"),
+    (b"12,13,14,15", "corrupt"),  # the tail of a line: a mid-line start
+    (b"\xff\xfe#R", "corrupt"),
+    (b"#Foo,1,2", "unknown"),
+])
+def test_malformed_lines_are_named(line, why):
+    assert parse_line(line, 0.0, 0x41) == why
+
+
+def test_status_lines():
+    err = parse_line(b"#Err,I2C,NACK\r", 0.0, 0x41)
+    vers = parse_line(b"#Vers,1,2,3", 0.0, 0x41)
+    assert isinstance(err, StatusPacket) and (err.kind, err.text) == ("error", "I2C,NACK")
+    assert isinstance(vers, StatusPacket) and (vers.kind, vers.text) == ("version", "1,2,3")
+
+
+@pytest.mark.parametrize("fault", FAULTS)
+def test_every_bridge_fault_spoils_the_frame(fault):
+    good = frame_lines(counts(3), result(3))
+    bad = frame_lines(counts(3), result(3), fault)
+    assert bad != good
+
+
+# ---- end to end over a pty ---------------------------------------------------------------------------------------
+async def _open(bridge, **kw):
+    sensor = SerialSensor(bridge.port, **kw)
+    await sensor.connect()
+    await sensor.prepare()
+    return sensor
+
+
+async def _close(sensor):
+    await sensor.release()
+    await sensor.close()
+
+
+def test_frames_arrive_bit_for_bit_and_corrupt_frames_never_do(arun):
+    sent_good = []
+
+    async def main():
+        with SimBridge() as bridge:
+            sensor = await _open(bridge)
+            bridge.send(b"1,2,3,4\n")  # we joined mid-line
+            bridge.send(b"#Vers,1.0.4\r\n#Err,no target\r\n#Obj\n")
+            bridge.send(b"".join(raw_lines(counts(99))[5:]))  # ... and mid-frame
+            for k, fault in enumerate((None,) + FAULTS + (None,)):
+                bridge.send_frame(counts(k), result(k), fault=fault)
+                if fault is None:
+                    sent_good.append(k)
+                bridge.send_frame(counts(100 + k), result(100 + k))  # a good frame after every fault
+                sent_good.append(100 + k)
+            bridge.send(b"#Raw,66,0," + b",".join([b"7"] * 128) + b"\n")  # another sensor on the bridge
+            got = [await sensor.next_frame(10) for _ in sent_good]
+            counters = sensor.counters()
+            await _close(sensor)
+            return got, counters
+
+    got, c = arun(main())
+    for frame, k in zip(got, sent_good):
+        assert np.array_equal(frame.hists, counts(k)[1:]) and np.array_equal(frame.reference, counts(k)[0])
+        assert frame.hists.dtype == np.uint32
+        assert frame.depths_mm == [float(d) for d in result(k).distances_mm]
+        assert frame.confidences == result(k).confidences and frame.temperature_c == result(k).temperature_c
+        assert frame.t_start <= frame.extra["t_first_packet"] <= frame.t_end
+    assert all(a.t_end <= b.t_start for a, b in zip(got, got[1:]))
+    assert c["frames"] == len(sent_good) and c["frames_delivered"] == len(sent_good)
+    # Every faulty frame was dropped, except "no_result" and "bad_result", whose frames lose only their #Obj line
+    # and are dropped when the next frame starts: all 9 are counted once.
+    assert c["frames_dropped"] == len(FAULTS)
+    assert c["dropped_no_result"] == 2 and c["dropped_out_of_order"] == len(FAULTS) - 2
+    # mid-line start, truncate, garble, out_of_range, merge (two lines run into one), bad_result
+    assert c["corrupt_lines"] == 6 and c["separators"] == 2 and c["other_address_lines"] == 1
+    assert c["firmware_version"] == "1.0.4" and c["last_status_error"] == "no target" and c["status_errors"] == 1
+
+
+def test_unplug_and_replug(arun):
+    async def main():
+        with SimBridge() as bridge:
+            sensor = await _open(bridge, link_grace_s=0.3)
+            bridge.send_frame(counts(1))
+            first = await sensor.next_frame(10)
+            bridge.send(b"".join(raw_lines(counts(2))[:9]) + b"#Raw,65,9,1,2")  # unplugged mid-frame, mid-line
+            bridge.flush()
+            bridge.unplug()
+            with pytest.raises(LinkLost, match="sensor serial .*link down .*grace 0.3 s"):
+                await sensor.next_frame(30)
+            bridge.replug()
+            while sensor.counters()["link"] == "down":
+                await asyncio.sleep(0.01)
+            bridge.send_frame(counts(3))
+            after = await sensor.next_frame(10)
+            counters = sensor.counters()
+            await _close(sensor)
+            return first, after, counters
+
+    first, after, c = arun(main())
+    assert np.array_equal(first.hists, counts(1)[1:]) and np.array_equal(after.hists, counts(3)[1:])
+    assert c["link_drops"] == 1 and c["reconnects"] == 1 and c["reconnect_failures"] >= 1 and c["frames"] == 2
+    assert after.t_start > first.t_end
+
+
+def test_a_short_unplug_within_the_grace_loses_no_later_frame(arun):
+    async def main():
+        with SimBridge() as bridge:
+            sensor = await _open(bridge, link_grace_s=30)
+            bridge.unplug()
+            bridge.replug()
+            bridge.flush()
+            while sensor.counters()["reconnects"] < 1:
+                await asyncio.sleep(0.01)
+            bridge.send_frame(counts(4))
+            frame = await sensor.next_frame(10)
+            await _close(sensor)
+            return frame
+
+    assert np.array_equal(arun(main()).hists, counts(4)[1:])
+
+
+def test_a_missing_port_is_a_named_error_at_connect(arun, tmp_path):
+    async def main():
+        sensor = SerialSensor(str(tmp_path / "ttyNONE"))
+        try:
+            await sensor.connect()
+        finally:
+            await sensor.close()
+
+    with pytest.raises(DeviceError, match=r"sensor serial .*ttyNONE: cannot open port at 1000000 baud"):
+        arun(main())
