@@ -63,9 +63,9 @@ class SimSettings:
     over ~4e6 cycles)."""
     reference_background: float = 1.0e-6
     """Flat background of the reference channel, photons per bin per cycle (~4 counts over ~4e6 cycles)."""
-    reference_delay_bins: float = 1.6
-    """The reference pulse arrives this many bins after the zones' zero-range point (internal optical path; the real
-    TMF8820's reference peaks 1.5-2 bins after the zones' zero-range point)."""
+    reference_delay_bins: float = 2.3
+    """The reference pulse arrives this many bins after the zones' zero-range point (internal optical path): the real
+    TMF8820's reference peaks at bin coordinate ~14.7, its zones' zero-range peak at ~12.4."""
 
     def check(self) -> "SimSettings":
         for key, lo, hi in (("power", 0.0, 1e9), ("albedo", 0.0, 1e3), ("reference_signal", 0.0, 1e6),

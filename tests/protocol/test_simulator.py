@@ -215,7 +215,7 @@ def test_reference_channel():
     sensor = sensor_preset("tmf8820")
     fr = Simulator(plane(0.3), sensor).frames(np.repeat(IDENTITY, 2, axis=0))
     assert fr.reference.shape == (2, sensor.n_bins) and fr.reference.dtype == np.uint32
-    assert abs(int(fr.reference[0].argmax()) - (sensor.zero_bin + 1.6)) <= 2
+    assert abs(fr.reference[0].argmax() + 0.5 - (sensor.zero_bin + 2.3)) <= 1
     assert Simulator(plane(0.3), cone_sensor()).frames(IDENTITY).reference is None
 
 
