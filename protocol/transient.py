@@ -15,7 +15,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class FineAxis:
-    """An oversampled time axis: fine cell j covers bin coordinates [j / oversample - pad, (j + 1) / oversample - pad)."""
+    """An oversampled time axis: fine cell j covers bin coordinates [j / oversample - pad, (j + 1) / oversample - pad).
+    """
 
     n_bins: int
     oversample: int

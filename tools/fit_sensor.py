@@ -143,7 +143,8 @@ def residuals(p, scenes) -> dict:
         out[name] = dict(deviance_per_bin=float(dev), noise_deviance_per_bin=float(noise),
                          peak_bin_error_mean_abs=float(np.abs(peak).mean()),
                          peak_bin_error_p95_abs=float(np.percentile(np.abs(peak), 95)),
-                         count_error_rms=float(np.sqrt(np.mean(count**2))), count_error_max_abs=float(np.abs(count).max()))
+                         count_error_rms=float(np.sqrt(np.mean(count**2))),
+                         count_error_max_abs=float(np.abs(count).max()))
     return out
 
 
