@@ -25,6 +25,7 @@ which the device treats as a dropped link (it boots and downloads again).
 
 from __future__ import annotations
 
+import errno
 import time
 from pathlib import Path
 from typing import Callable
@@ -231,19 +232,19 @@ class I2CTransport(Transport):
         try:
             return self._need_bus().read_byte_data(self.address, reg)
         except OSError as exc:
-            raise LinkDown(f"i2c read of register {reg:#04x} failed: {exc}") from None
+            raise _bus_error(f"read of register {reg:#04x}", exc) from None
 
     def _write(self, reg: int, value: int) -> None:
         try:
             self._need_bus().write_byte_data(self.address, reg, value)
         except OSError as exc:
-            raise LinkDown(f"i2c write of register {reg:#04x} failed: {exc}") from None
+            raise _bus_error(f"write of register {reg:#04x}", exc) from None
 
     def _block_write(self, reg: int, data: list[int]) -> None:
         try:
             self._need_bus().write_i2c_block_data(self.address, reg, data)
         except OSError as exc:
-            raise LinkDown(f"i2c block write at {reg:#04x} failed: {exc}") from None
+            raise _bus_error(f"block write at {reg:#04x}", exc) from None
 
     def _block_read(self, reg: int, n: int) -> bytes:
         """n bytes from reg in one combined transfer (SMBus block reads stop at 32 bytes)."""
@@ -253,7 +254,7 @@ class I2CTransport(Transport):
         try:
             self._need_bus().i2c_rdwr(write, read)
         except OSError as exc:
-            raise LinkDown(f"i2c read of {n} bytes at {reg:#04x} failed: {exc}") from None
+            raise _bus_error(f"read of {n} bytes at {reg:#04x}", exc) from None
         return bytes(read)
 
     def _rdwr_write(self, data: bytes) -> None:
@@ -262,12 +263,19 @@ class I2CTransport(Transport):
         try:
             self._need_bus().i2c_rdwr(i2c_msg.write(self.address, data))
         except OSError as exc:
-            raise LinkDown(f"i2c write of {len(data)} bytes failed: {exc}") from None
+            raise _bus_error(f"write of {len(data)} bytes", exc) from None
 
     def _need_bus(self):
         if self._bus is None:
             raise LinkDown("the bus is not open")
         return self._bus
+
+
+def _bus_error(what: str, exc: OSError) -> LinkDown:
+    """A failed transfer as a dropped link; a missing acknowledge says what to check."""
+    if exc.errno in (errno.EREMOTEIO, errno.ENXIO, errno.EIO):
+        return LinkDown(f"i2c {what}: no acknowledge (is the sensor wired, powered and at this address?)")
+    return LinkDown(f"i2c {what} failed: {exc}")
 
 
 class I2CSensor(TMF8820):

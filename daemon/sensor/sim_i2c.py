@@ -37,6 +37,7 @@ class SimTMF8820Bus:
         self.produced: list[tuple[np.ndarray, dict]] = []
         self.violations: list[str] = []
         self.commands: list[int] = []
+        self.spoiled: list[int] = []  # indices into `produced` of frames sent with a corrupt record
         self.opened = 0
         self.closed = False
         self.plugged = True
@@ -294,6 +295,7 @@ class SimTMF8820Bus:
                 rec = bytearray([0x81, self._tid(), 131, 0, k, 128, 0]) + plane
                 if k in self._corrupt:
                     rec[0] = 0x7F
+                    self.spoiled.append(n)
                 self.records.append((0x08, bytes(rec)))
             self._corrupt.clear()
         head = bytearray([0x10, self._tid(), 128, 0, result["result_no"], result["temperature_c"] & 0xFF, 9, 0])

@@ -74,7 +74,11 @@ class TMF8820(Sensor):
         self._wake = asyncio.Event()
         if self._executor is None:
             self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"spadscan-{self.name}")
-        await self._call(self.transport.open, "the link to open")
+        try:
+            await self._call(self.transport.open, "the link to open")
+        except BaseException:
+            await self.close()  # leave no thread behind when the device is unusable
+            raise
         self._connected = True
 
     async def prepare(self) -> None:

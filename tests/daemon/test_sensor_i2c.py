@@ -1,0 +1,239 @@
+"""The I2C backend: smbus2 messages against the register-level fake of the TMF8820.
+
+Boot, firmware download (the fake checks checksums and that every byte arrived), short-range configuration,
+measure, 30 sub-packets read with i2c_rdwr; decoded histograms must equal what the fake holds, bit for bit."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+from smbus2 import i2c_msg
+
+from spadscan.daemon.devices import LinkLost
+from spadscan.daemon.sensor.firmware import bootloader_frame, download_frames, load_firmware
+from spadscan.daemon.sensor.i2c_bus import I2CSensor, I2CTransport
+from spadscan.daemon.sensor.sim_i2c import SimTMF8820Bus
+from spadscan.daemon.sensor.tmf8820 import TMF8820
+from spadscan.protocol.errors import DeviceError
+
+EXPECTED_COMMANDS = [0x6E, 0x16, 0x15, 0x10]  # short range, load config, write config, measure
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads_or_fds():
+    threads, fds = set(threading.enumerate()), len(os.listdir("/proc/self/fd"))
+    yield
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and set(threading.enumerate()) - threads:
+        time.sleep(0.02)
+    assert not set(threading.enumerate()) - threads, "test leaked threads"
+    assert len(os.listdir("/proc/self/fd")) <= fds, "test leaked file descriptors"
+
+
+@pytest.fixture
+def image(tmp_path):
+    """A stand-in application image: random bytes (never the real ams image), 2.5 W_RAM chunks past a round size."""
+    data = np.random.default_rng(7).integers(0, 256, 3000, dtype=np.uint8).tobytes()
+    path = tmp_path / "tmf8820_app.bin"
+    path.write_bytes(data)
+    return path, data
+
+
+async def _run(sensor, n_frames=3, during=None):
+    await sensor.connect()
+    try:
+        await sensor.prepare()
+        frames = [await sensor.next_frame(10) for _ in range(n_frames)]
+        if during is not None:
+            frames += await during(sensor)
+        return frames
+    finally:
+        await sensor.release()
+        await sensor.close()
+
+
+def test_boot_download_configure_measure_bit_for_bit(arun, image):
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake, period_ms=250, kilo_iterations=4000)
+    frames = arun(_run(sensor))
+    assert fake.violations == []
+    assert fake.app_running and bytes(fake.ram[:len(data)]) == data and fake.written.sum() == len(data)
+    assert fake.commands == EXPECTED_COMMANDS + [0xFF]  # ... and stop on release
+    assert fake.config == {"period_ms": 250, "kilo_iterations": 4000, "spad_map": 1, "hist_dump": 1}
+    assert fake.short_range and fake.closed
+    for frame, (counts, result) in zip(frames, fake.produced):
+        assert np.array_equal(frame.hists, counts[1:]) and np.array_equal(frame.reference, counts[0])
+        assert frame.hists.dtype == np.uint32
+        assert frame.depths_mm == [float(d) for d in result["distances_mm"]]
+        assert frame.confidences == result["confidences"] and frame.temperature_c == result["temperature_c"]
+        assert frame.extra["systick"] == result["systick"] and frame.extra["result_no"] == result["result_no"]
+    c = sensor.counters()
+    assert c["downloads"] == 1 and c["bad_records"] == 0 and c["frames_dropped"] == 0
+
+
+def test_download_frames_cover_the_image_in_chunks_of_128(image):
+    path, data = image
+    frames = download_frames(load_firmware(path))
+    labels = [label for label, _ in frames]
+    assert labels[0] == "SET_ADDR 0x0000" and labels[-1] == "RAMREMAP" and len(labels) == 2 + 24  # ceil(3000/128)
+    payload = b"".join(f[2:-1] for label, f in frames if label.startswith("W_RAM"))
+    assert payload == data and max(f[1] for _, f in frames) == 128
+    for _, f in frames:
+        assert (sum(f[:-1]) + f[-1]) & 0xFF == 0xFF  # checksum: ones' complement of the byte sum
+
+
+def test_the_fake_rejects_a_bad_checksum_and_an_incomplete_image():
+    data = bytes(range(200))
+    fake = SimTMF8820Bus(image=data, busy_polls=0)
+    fake.write_byte_data(0x41, 0xE0, 0x01)
+    while not fake.read_byte_data(0x41, 0xE0) & 0x40:
+        pass
+    frame = bytearray(bootloader_frame(0x41, data[:128]))
+    frame[-1] ^= 0x01
+    fake.i2c_rdwr(i2c_msg.write(0x41, b"\x08" + bytes(frame)))
+    status = i2c_msg.read(0x41, 3)
+    fake.i2c_rdwr(i2c_msg.write(0x41, [0x08]), status)
+    assert list(status)[0] == 0x02 and "checksum" in fake.violations[-1]
+    fake.i2c_rdwr(i2c_msg.write(0x41, b"\x08" + bootloader_frame(0x41, data[:128])))  # the rest never comes
+    fake.i2c_rdwr(i2c_msg.write(0x41, b"\x08" + bootloader_frame(0x11)))
+    assert fake.read_byte_data(0x41, 0x00) == 0x80 and "72 image bytes missing" in fake.violations[-1]
+    with pytest.raises(ValueError):
+        fake.read_i2c_block_data(0x41, 0x20, 33)  # as smbus2: SMBus block reads stop at 32 bytes
+
+
+def test_a_truncated_download_is_a_named_error(arun, image, tmp_path):
+    path, data = image
+    short = tmp_path / "short.bin"
+    short.write_bytes(data[:2000])
+    sensor = I2CSensor(1, firmware=short, smbus_factory=SimTMF8820Bus(image=data), timeout_s=0.2)
+    with pytest.raises(DeviceError, match=r"sensor i2c bus 1 addr 0x41: timed out after 0.2 s waiting for the "
+                                          r"application to start after the download of .*short.bin"):
+        arun(_run(sensor))
+
+
+def test_the_app_already_running_is_stopped_and_reused(arun, image):
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+    arun(_run(I2CSensor(1, firmware=path, smbus_factory=fake), n_frames=1))
+    before = len(fake.produced)
+    frames = arun(_run(I2CSensor(1, smbus_factory=fake), n_frames=1))  # no firmware needed: it still runs
+    assert fake.violations == [] and len(frames) == 1
+    assert fake.commands == EXPECTED_COMMANDS + [0xFF, 0xFF] + EXPECTED_COMMANDS + [0xFF]
+    assert np.array_equal(frames[0].hists, fake.produced[before][0][1:])  # the first frame of the new session
+
+
+@pytest.mark.parametrize("fake_kw, sensor_kw, message", [
+    ({"app_id": 0x42}, {}, r"unexpected APP_ID 0x42 \(expected 0x80 for the bootloader or 0x03"),
+    ({"ready_after_polls": None}, {}, r"timed out after 0.2 s waiting for cpu_ready \(ENABLE bit 6\)"),
+    ({}, {"firmware": None}, r"the sensor is in its bootloader and needs the firmware image"),
+    ({"address": 0x29}, {}, r"i2c write of register 0xe0: no acknowledge \(is the sensor wired, powered"),
+])
+def test_boot_failures_are_named(arun, image, fake_kw, sensor_kw, message):
+    path, data = image
+    kw = {"firmware": path, **sensor_kw}
+    sensor = I2CSensor(1, smbus_factory=SimTMF8820Bus(image=data, **fake_kw), timeout_s=0.2, **kw)
+    with pytest.raises(DeviceError, match=r"^sensor i2c bus 1 addr 0x41: " + message):
+        arun(_run(sensor))
+
+
+def test_a_missing_firmware_file_is_one_line_naming_the_path(arun, tmp_path):
+    missing = tmp_path / "nowhere" / "tmf8820_app.hex"
+    with pytest.raises(DeviceError) as info:
+        arun(_run(I2CSensor(1, firmware=missing, smbus_factory=SimTMF8820Bus())))
+    assert str(missing) in str(info.value) and "\n" not in str(info.value) and "does not exist" in str(info.value)
+
+
+def test_intel_hex_images(tmp_path):
+    def record(kind, addr, data):
+        body = bytes([len(data), addr >> 8, addr & 0xFF, kind]) + data
+        return ":" + (body + bytes([-sum(body) & 0xFF])).hex().upper()
+
+    lines = [record(4, 0, b"\x20\x00"), record(0, 0x0000, b"\x01\x02"), record(0, 0x0002, b"\x03"),
+             record(0, 0x0100, b"\x09"), record(1, 0, b"")]
+    path = tmp_path / "app.hex"
+    path.write_text("\n".join(lines))
+    assert load_firmware(path).segments == ((0x0000, b"\x01\x02\x03"), (0x0100, b"\x09"))
+    path.write_text(lines[1][:-2] + "00")
+    with pytest.raises(DeviceError, match=r"app.hex: line 1 is not an Intel HEX record"):
+        load_firmware(path)
+
+
+def test_a_corrupt_record_drops_its_frame(arun, image):
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+
+    def index_of(frame):
+        """Which produced frame this is (bit for bit), or None."""
+        return next((k for k, (counts, _) in enumerate(fake.produced)
+                     if np.array_equal(frame.reference, counts[0]) and np.array_equal(frame.hists, counts[1:])), None)
+
+    async def during(sensor):
+        fake.corrupt_next_record(11)
+        got = []
+        while not (fake.spoiled and got and got[-1] > fake.spoiled[0]):  # read until past the spoiled frame
+            got.append(index_of(await sensor.next_frame(10)))
+        return got
+
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake)
+    first, *rest = arun(_run(sensor, n_frames=1, during=during))
+    (spoiled,) = fake.spoiled
+    assert index_of(first) == 0 and None not in rest
+    assert rest == [k for k in range(1, rest[-1] + 1) if k != spoiled]  # every frame but the spoiled one, in order
+    c = sensor.counters()
+    assert c["bad_records"] == 1 and c["frames_dropped"] == 1 and c["dropped_out_of_order"] == 1
+
+
+def test_power_loss_and_unplug_reboot_and_download_again(arun, image):
+    path, data = image
+    fake = SimTMF8820Bus(image=data, frame_interval_s=0.02)
+
+    async def during(sensor):
+        out = []
+        fake.power_cycle()
+        out.append(await sensor.next_frame(10))
+        fake.unplug()
+        with pytest.raises(LinkLost, match="i2c bus 1 addr 0x41: link down .*no acknowledge"):
+            await sensor.next_frame(30)
+        fake.replug()
+        while sensor.counters()["link"] == "down":
+            await asyncio.sleep(0.01)
+        out.append(await sensor.next_frame(10))
+        return out
+
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake, link_grace_s=0.3)
+    frames = arun(_run(sensor, n_frames=1, during=during))
+    c = sensor.counters()
+    assert c["downloads"] == 3 and c["link_drops"] == 2 and c["reconnects"] == 2
+    held = [counts for counts, _ in fake.produced]
+    for f in frames:
+        assert any(np.array_equal(f.hists, h[1:]) and np.array_equal(f.reference, h[0]) for h in held)
+
+
+def test_a_chip_reset_is_caught_by_the_watchdog(arun, image):
+    path, data = image
+    fake = SimTMF8820Bus(image=data, frame_interval_s=0.02)
+    transport = I2CTransport(1, firmware=path, smbus_factory=fake, watchdog_s=0.2)
+    sensor = TMF8820(transport)
+
+    async def during(sensor):
+        fake.crash()  # back in the bootloader but still answering: only APP_ID tells
+        while sensor.counters()["reconnects"] < 1:
+            await asyncio.sleep(0.01)
+        return [await sensor.next_frame(10)]
+
+    arun(_run(sensor, n_frames=1, during=during))
+    c = sensor.counters()
+    assert c["downloads"] == 2 and "sensor reset (APP_ID 0x80" in c["last_link_error"]
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(DeviceError, match="period_ms = 0 must be an integer in"):
+        I2CSensor(1, period_ms=0)
+    with pytest.raises(DeviceError, match="kilo_iterations = 70000"):
+        I2CSensor(1, kilo_iterations=70000)
