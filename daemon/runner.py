@@ -34,6 +34,7 @@ log = logging.getLogger("spadscan.daemon")
 STATE_TIMEOUT_S = 5.0  # how long arm.state() may take
 STOP_TIMEOUT_S = 5.0  # how long arm.stop() may take
 FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before the runner gives up on it
+PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may take
 
 
 class _Fault(Exception):
@@ -226,7 +227,7 @@ class ScanRunner:
                     await asyncio.sleep(job.scan.settle_s)
                 if pending is not None:
                     p, pending = pending, None
-                    await p
+                    await self._landed(p, i - 1)
                     job.record_progress(job.writer)
                     self._notify()
                 frames = await self._frames(job, i, t_stop + job.scan.settle_s)
@@ -243,6 +244,17 @@ class ScanRunner:
                     if pending.done() and not pending.cancelled() and pending.exception() is None:
                         job.record_progress(job.writer)
                         self._notify()
+
+    @staticmethod
+    async def _landed(publish: asyncio.Future, i: int) -> None:
+        """Wait for pose i's publish; a disk that stalls past PUBLISH_TIMEOUT_S pauses the scan (the write may still
+        land later: the writer thread finishes it before the capture is reopened)."""
+        try:
+            await asyncio.wait_for(asyncio.shield(publish), PUBLISH_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            publish.add_done_callback(lambda f: f.cancelled() or f.exception())  # retrieved: no "never retrieved"
+            raise _Fault(f"capture writer: publishing pose {i} did not finish within {PUBLISH_TIMEOUT_S:g} s "
+                         f"(disk stalled?)") from None
 
     async def _move(self, job: ScanJob, i: int) -> float:
         """Move to pose i; returns the monotonic time the arm stopped."""

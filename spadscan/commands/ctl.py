@@ -40,13 +40,24 @@ def _target(text: str) -> list[float]:
 def add_arguments(parser) -> None:
     from spadscan.daemon.client import default_socket_path
 
-    parser.add_argument("--socket", default=None, metavar="PATH",
-                        help=f"the daemon's control socket (default: {default_socket_path()})")
-    parser.add_argument("--timeout", type=float, default=None, metavar="S",
-                        help="seconds to wait for the reply (default: 30; `wait`: forever)")
+    import argparse
+
+    def common(p, default):
+        p.add_argument("--socket", default=default, metavar="PATH",
+                       help=f"the daemon's control socket (default: {default_socket_path()})")
+        p.add_argument("--timeout", type=float, default=default, metavar="S",
+                       help="seconds to wait for the reply (default: 30; `wait`: forever)")
+
+    common(parser, None)
+    shared = argparse.ArgumentParser(add_help=False)
+    common(shared, argparse.SUPPRESS)  # also accepted after the operation: `ctl status --socket PATH`
     sub = parser.add_subparsers(dest="op", required=True, metavar="OP")
-    sub.add_parser("status", help="print the daemon's state as JSON")
-    scan = sub.add_parser("scan", help="start a scan (options override the config's [scan] defaults)")
+
+    def op(name: str, help_: str):
+        return sub.add_parser(name, help=help_, parents=[shared])
+
+    op("status", "print the daemon's state as JSON")
+    scan = op("scan", "start a scan (options override the config's [scan] defaults)")
     scan.add_argument("--name", help="scan name: the capture goes to <captures>/NAME/ (default: scan-<time>)")
     scan.add_argument("--views", type=int, help="number of sensor poses")
     scan.add_argument("--schedule", choices=("fibonacci", "rings"), help="pose layout")
@@ -62,13 +73,13 @@ def add_arguments(parser) -> None:
     scan.add_argument("--settle", type=float, metavar="S", help="wait after each move before frames count (s)")
     scan.add_argument("--chunk-size", type=int, metavar="N", help="most measurements per published chunk")
     scan.add_argument("--wait", action="store_true", help="block until the scan is complete or aborted")
-    sub.add_parser("pause", help="pause after the pose in flight is published")
-    sub.add_parser("resume", help="continue a paused or interrupted scan at its first unpublished pose")
-    abort = sub.add_parser("abort", help="stop the scan for good (published poses stay)")
+    op("pause", "pause after the pose in flight is published")
+    op("resume", "continue a paused or interrupted scan at its first unpublished pose")
+    abort = op("abort", "stop the scan for good (published poses stay)")
     abort.add_argument("--reason", help="why (recorded in the capture)")
-    wait = sub.add_parser("wait", help="block until scan NAME is complete (exit 0) or aborted (exit 1)")
+    wait = op("wait", "block until scan NAME is complete (exit 0) or aborted (exit 1)")
     wait.add_argument("name", metavar="NAME")
-    sub.add_parser("shutdown", help="stop the daemon; a scan in flight stays resumable")
+    op("shutdown", "stop the daemon; a scan in flight stays resumable")
 
 
 def run(args) -> int:

@@ -366,3 +366,40 @@ def test_requests_in_the_wrong_state_are_refused(arun, tmp_path, sphere):
     assert all("scan name" in e for e in errors[5:9])
     assert "views" in errors[9] and "unknown key 'fps'" in errors[10]
     assert sorted(p.name for p in (tmp_path / "caps").iterdir()) == ["busy", "taken"]
+
+
+def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, monkeypatch):
+    import spadscan.daemon.runner as runner_mod
+    import spadscan.protocol.capture_writer as cw
+
+    monkeypatch.setattr(runner_mod, "PUBLISH_TIMEOUT_S", 0.2)
+    cfg = make_cfg(tmp_path, views=6)
+    real = cw.save_npy_durable
+    stall = {"once": False}
+
+    def save(path, array):
+        if stall["once"]:
+            stall["once"] = False
+            time.sleep(0.6)  # a disk that stalls, then completes the write
+        real(path, array)
+
+    monkeypatch.setattr(cw, "save_npy_durable", save)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("stall")
+                await until(lambda: runner.job.next_pose >= 2, "two poses")
+                stall["once"] = True
+                await until(lambda: runner.state == "paused", "the pause")
+                reason = runner.status()["reason"]
+                await runner.resume()
+                return reason, await runner.wait("stall")
+            finally:
+                await runner.shutdown()
+
+    reason, done = arun(scenario())
+    assert "did not finish within 0.2 s" in reason and done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "stall", 6, 2)
