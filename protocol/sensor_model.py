@@ -116,7 +116,9 @@ class Pulse:
         t = np.arange(-before * fine, (after + 1) * fine) * step - 0.5 / oversample + 0.5 * step
         g = np.exp(-0.5 * (t / s) ** 2)
         if tau >= 1e-3:
+            # Trapezoidal weights (half weight at zero delay): a left-point sum would put the pulse early by step/2.
             tail = np.exp(-np.arange(0, int(math.ceil(12 * tau / step)) + 1) * step / tau)
+            tail[0] *= 0.5
             g = np.convolve(g, tail)[: t.size]
         k = g.reshape(-1, fine).mean(axis=1)
         return k / k.sum(), before
