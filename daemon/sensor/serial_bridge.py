@@ -127,14 +127,14 @@ class SerialBridgeTransport(Transport):
                 self._counts[key] += 1
             if time.monotonic() >= deadline:
                 return None
-            self._fill(deadline)
+            self._fill()
 
-    def _fill(self, deadline: float) -> None:
-        """Read what the port has (waiting at most until deadline) and split complete lines into _pending."""
+    def _fill(self) -> None:
+        """Read what the port has (waiting at most 0.05 s) and split complete lines into _pending."""
         if self._ser is None:
             raise LinkDown("port is not open")
         try:
-            self._ser.timeout = max(0.0, min(0.05, deadline - time.monotonic()))
+            # The port's own timeout stays at 0.05 s: setting it reconfigures the tty every time.
             chunk = self._ser.read(max(1, self._ser.in_waiting))
         except (serial.SerialException, OSError) as exc:
             raise LinkDown(f"read failed: {exc}") from None

@@ -113,13 +113,13 @@ def test_frames_arrive_bit_for_bit_and_corrupt_frames_never_do(arun):
             bridge.send(b"1,2,3,4\n")  # we joined mid-line
             bridge.send(b"#Vers,1.0.4\r\n#Err,no target\r\n#Obj\n")
             bridge.send(b"".join(raw_lines(counts(99))[5:]))  # ... and mid-frame
+            bridge.send(b"#Raw,66,0," + b",".join([b"7"] * 128) + b"\n")  # another sensor on the bridge
             for k, fault in enumerate((None,) + FAULTS + (None,)):
                 bridge.send_frame(counts(k), result(k), fault=fault)
                 if fault is None:
                     sent_good.append(k)
                 bridge.send_frame(counts(100 + k), result(100 + k))  # a good frame after every fault
                 sent_good.append(100 + k)
-            bridge.send(b"#Raw,66,0," + b",".join([b"7"] * 128) + b"\n")  # another sensor on the bridge
             got = [await sensor.next_frame(10) for _ in sent_good]
             counters = sensor.counters()
             await _close(sensor)
@@ -196,3 +196,27 @@ def test_a_missing_port_is_a_named_error_at_connect(arun, tmp_path):
 
     with pytest.raises(DeviceError, match=r"sensor serial .*ttyNONE: cannot open port at 1000000 baud"):
         arun(main())
+
+
+def test_a_streaming_bridge_with_faults_delivers_only_whole_frames(arun):
+    """The demo's use: a bridge that streams rendered frames and spoils every third one."""
+    made = []
+
+    def source():
+        made.append(counts(len(made)))
+        return made[-1]
+
+    async def main():
+        with SimBridge() as bridge:
+            sensor = await _open(bridge)
+            bridge.start_stream(source, period_s=0.01, fault_every=3)
+            got = [await sensor.next_frame(10) for _ in range(8)]
+            bridge.stop_stream()
+            counters = sensor.counters()
+            await _close(sensor)
+            return got, counters
+
+    got, c = arun(main())
+    delivered = [next(k for k, m in enumerate(made) if np.array_equal(f.hists, m[1:])) for f in got]
+    assert all(k % 3 != 2 for k in delivered)  # frames 3, 6, 9, ... (indices 2, 5, ...) carried a fault
+    assert delivered == sorted(delivered) and c["frames_dropped"] >= 2
