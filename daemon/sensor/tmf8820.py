@@ -109,9 +109,13 @@ class TMF8820(Sensor):
         if self._reader is not None:
             await self.release()
         if self._executor is not None:
-            await self._call(self.transport.close, "the link to close", quiet=True)
-            self._executor.shutdown(wait=True)
-            self._executor = None
+            executor, hung = self._executor, True
+            try:
+                await self._call(self.transport.close, "the link to close", quiet=True)
+                hung = False
+            finally:
+                self._executor = None
+                executor.shutdown(wait=not hung)  # idle unless the close timed out: then do not block the loop
         self._connected = False
 
     # ---- frames --------------------------------------------------------------------------------------------------
