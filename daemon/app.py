@@ -139,9 +139,9 @@ async def serve(cfg: DaemonConfig, arm=None, sensor=None) -> None:
             rig, scene = rig_record(cfg)
             runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
             try:
+                await runner.recover()  # before listening: the first `status` already shows an interrupted scan
                 async with ControlServer(cfg.socket, Dispatcher(runner, stop, cfg)):
                     log.info("listening on %s (captures in %s)", cfg.socket, cfg.captures)
-                    await runner.recover()
                     await stop.wait()
                     log.info("shutting down")
             finally:
