@@ -183,8 +183,8 @@ def main(argv=None) -> None:
     widths = [max(len(r[i]) for r in rows + [header]) for i in range(len(header))]
     for r in [header] + rows:
         print("  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip())
-    print("  Every pose is published durably (fsynced chunk + rename) before it counts: on a disk where one fsync takes "
-          "milliseconds that publish is the floor at zero motion; with real motion it runs during the next move.")
+    print("  Every pose is published durably (fsynced chunk + rename) before it counts: on a disk where one fsync "
+          "takes milliseconds that publish is the floor at zero motion; with real motion it runs during the next move.")
 
 
 if __name__ == "__main__":

@@ -37,7 +37,7 @@ FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before th
 PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may take
 
 
-class _Fault(Exception):
+class _Fault(SpadscanError):
     """A fault that pauses the scan; its message is the pause reason."""
 
 
@@ -56,6 +56,7 @@ class ScanRunner:
         self._task: asyncio.Task | None = None
         self._resume = asyncio.Event()
         self._pause_requested = False
+        self._starting = False
         self._end: tuple[str, str] | None = None  # (state, reason) the scan ends in when its task is cancelled
         self._changed = asyncio.Event()
         self._io_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
@@ -66,6 +67,15 @@ class ScanRunner:
         if self.job is not None:
             raise ConfigError(f"scan {self.job.name!r} is {self.state} at pose {self._progress()}: "
                               f"{'resume or abort it' if self.state == 'paused' else 'wait for it or abort it'} first")
+        if self._starting:
+            raise ConfigError("another scan is being planned; try again in a moment")
+        self._starting = True
+        try:
+            return await self._start(name, overrides)
+        finally:
+            self._starting = False
+
+    async def _start(self, name: str | None, overrides: dict | None) -> dict:
         self.root.mkdir(parents=True, exist_ok=True)
         name = check_scan_name(name, self.root) if name is not None else default_scan_name(self.root)
         path = self.root / name

@@ -351,7 +351,9 @@ def test_requests_in_the_wrong_state_are_refused(arun, tmp_path, sphere):
                     with pytest.raises(ConfigError) as info:
                         await call
                     errors.append(str(info.value))
-                await runner.start("busy")
+                # Two clients asking at once: exactly one scan starts.
+                both = await asyncio.gather(runner.start("busy"), runner.start("twin"), return_exceptions=True)
+                assert isinstance(both[1], ConfigError) and both[0]["scan"] == "busy"
                 with pytest.raises(ConfigError, match="'busy' is scanning"):
                     await runner.start("other")
                 await runner.abort()
