@@ -1,0 +1,106 @@
+"""Building the rig from a config: the right backend classes, a sim sensor that renders at the arm's actual pose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spadscan.daemon.arm.sim import SimArm
+from spadscan.daemon.backends import TrackedArm, build_devices, rig_record, sensor_model
+from spadscan.daemon.config import config_from_dict
+from spadscan.daemon.devices import Arm, ArmState
+from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.sensor_presets import sensor_preset
+
+HAND_EYE = [[1, 0, 0, 0.01], [0, 1, 0, 0], [0, 0, 1, 0.05], [0, 0, 0, 1]]
+UR = {"backend": "ur", "host": "127.0.0.1", "workspace_min": [-1, -1, 0], "workspace_max": [1, 1, 1],
+      "hand_eye": HAND_EYE}
+
+
+def cfg_of(tmp_path, arm: dict, sensor: dict):
+    return config_from_dict({"captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"), "arm": arm,
+                             "sensor": sensor}, tmp_path / "rig.toml")
+
+
+def test_sim_rig_renders_at_the_arms_actual_pose(tmp_path, arun):
+    cfg = cfg_of(tmp_path, {"backend": "sim", "hand_eye": HAND_EYE, "motion_time_s": 0},
+                 {"backend": "sim", "mesh": "builtin:sphere", "rays_per_zone": 8, "cycles": 1000, "ambient": 1e-5,
+                  "power": 2.0})
+    arm, sensor = build_devices(cfg)
+    assert isinstance(arm, SimArm) and type(sensor).__name__ == "SimSensor"
+    base = sensor_preset("tmf8820")
+    assert sensor.model.cycles == 1000 and sensor.model.background == 1e-5
+    assert sensor.model.signal_scale == pytest.approx(2 * base.signal_scale)
+    assert sensor_model(cfg) == sensor.model  # what the captures store is what is simulated
+
+    async def scenario():
+        goal = np.eye(4)
+        goal[:3, :3] = np.diag([1.0, -1.0, -1.0])
+        goal[:3, 3] = [0.1, 0.2, 0.5]
+        await arm.move_to(goal, 0.1, 0.5)
+        await sensor.prepare()
+        frame = await sensor.next_frame(5.0)
+        await sensor.release()
+        return goal, np.array(frame.extra["render_pose"])
+
+    goal, rendered = arun(scenario())
+    np.testing.assert_allclose(rendered, goal @ np.array(HAND_EYE), atol=1e-12)
+
+
+class BareArm(Arm):
+    """An arm without `actual_pose` (like the UR backend)."""
+
+    def __init__(self):
+        self.pose = np.eye(4)
+        self.name = "bare arm"
+
+    async def move_to(self, tcp_pose, speed, accel):
+        self.pose = np.array(tcp_pose, float)
+
+    async def state(self):
+        return ArmState(self.pose + 0.0, np.zeros(6), 0.0)
+
+    async def stop(self):
+        pass
+
+
+def test_tracked_arm_remembers_the_latest_pose(arun):
+    tracked = TrackedArm(BareArm())
+    assert tracked.name == "bare arm"
+    goal = np.eye(4)
+    goal[:3, 3] = [0.3, 0.0, 0.4]
+
+    async def scenario():
+        await tracked.move_to(goal, 0.1, 0.5)
+        after_move = tracked.actual_pose()
+        tracked.inner.pose[0, 3] = 0.31  # the arm reports a slightly different actual pose
+        await tracked.state()
+        return after_move, tracked.actual_pose()
+
+    after_move, after_state = arun(scenario())
+    np.testing.assert_allclose(after_move, goal)
+    assert after_state[0, 3] == 0.31
+
+
+def test_hardware_backends_are_built_without_touching_hardware(tmp_path):
+    arm, sensor = build_devices(cfg_of(tmp_path, UR, {"backend": "serial", "port": "/dev/ttyNOPE", "baud": 115200}))
+    assert type(arm).__name__ == "URArm" and type(sensor).__name__ == "SerialSensor"
+    image = tmp_path / "app.hex"
+    image.write_text(":00000001FF\n")
+    cfg = cfg_of(tmp_path, UR, {"backend": "i2c", "bus": 7, "firmware": str(image)})
+    arm, sensor = build_devices(cfg)
+    assert type(sensor).__name__ == "I2CSensor"
+    rig, scene = rig_record(cfg)
+    assert rig["arm"]["host"] == "127.0.0.1" and rig["sensor"]["bus"] == 7 and scene == {}
+    # A UR arm with a simulated sensor: the sensor needs the arm's pose, so the arm is tracked.
+    cfg = cfg_of(tmp_path, UR, {"backend": "sim", "mesh": "builtin:cup", "rays_per_zone": 8,
+                                "mesh_offset_m": [0.4, 0, 0]})
+    arm, sensor = build_devices(cfg)
+    assert isinstance(arm, TrackedArm) and type(arm.inner).__name__ == "URArm"
+    assert rig_record(cfg)[1]["builtin"] == "cup" and rig_record(cfg)[1]["mesh_offset_m"] == [0.4, 0, 0]
+
+
+def test_unknown_builtin_scene_is_a_config_error(tmp_path):
+    cfg = cfg_of(tmp_path, {"backend": "sim"}, {"backend": "sim", "mesh": "builtin:teapot"})
+    with pytest.raises(ConfigError, match=r"rig.toml \[sensor\] mesh: unknown built-in scene 'teapot'"):
+        build_devices(cfg)
