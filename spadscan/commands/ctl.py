@@ -92,7 +92,7 @@ def run(args) -> int:
     request = {}
     if args.op == "scan":
         options = {key: getattr(args, opt) for opt, (key, _) in SCAN_OPTIONS.items() if getattr(args, opt) is not None}
-        request = {"options": options, **({"name": args.name} if args.name else {})}
+        request = {"options": options, **({"name": args.name} if args.name is not None else {})}
     elif args.op == "abort" and args.reason:
         request = {"reason": args.reason}
     reply = call(path, args.op, timeout, **request)

@@ -159,11 +159,11 @@ def test_example_readme_documents_every_key():
 
 
 def test_examples_copy_runs_check(tmp_path):
-    """The sim example passes `--check` from another folder (relative paths follow the file)."""
+    """The sim example passes `--check` from another folder; `~` is expanded."""
     shutil.copy(EXAMPLES / "rig-sim.toml", tmp_path / "rig-sim.toml")
     assert main(["daemon", "--config", str(tmp_path / "rig-sim.toml"), "--check"]) == 0
     cfg = load_config(tmp_path / "rig-sim.toml")
-    assert cfg.captures == (tmp_path / "../captures")
+    assert cfg.captures == Path.home() / "spadscan-captures"
 
 
 def test_config_from_dict_rejects_non_table_section(tmp_path):
