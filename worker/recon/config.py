@@ -102,8 +102,14 @@ class ReconConfig:
     """Optimiser and learning-rate schedule."""
     sharpness: SharpnessConfig = field(default_factory=SharpnessConfig)
     """Opacity sharpness."""
+    default_steps: int | None = None
+    """Steps of a run that names neither steps nor a time budget (None: unbounded by steps)."""
+    default_budget_s: float | None = None
+    """Training seconds of a run that names neither steps nor a time budget (None: unbounded by time)."""
     albedo_init: float = 1.0
     """Initial (learned) Lambertian albedo of the object; the table has its own."""
+    time_oversample: int = 4
+    """Fine time cells per bin on which returns are placed before the pulse convolution."""
     mesh_resolution: int = 256
     """Marching-cubes grid cells along the longest side of the scene box for the final mesh."""
     dtype: str = "float32"

@@ -6,10 +6,11 @@ the returns whose range falls in the bin (what `render.render_rays` produces tim
 per cycle, so that `signal_scale` keeps the sensor model's meaning (photons per cycle per unit albedo per sr/m^2).
 
 Time axis. Bin i covers bin coordinates [i, i + 1); a return at range r arrives at `zero_bin + r / bin_width_m`.
-The pulse kernel's entry `origin + k` is the response averaged over [k - 0.5, k + 0.5) bins after the arrival, so a
-return is split linearly between the two bins whose centres bracket its arrival, then convolved with the kernel.
-Transients are binned on an extended axis of B + K - 1 bins (`pad_lo` before bin 0, `pad_hi` after bin B - 1) so
-that pulses starting before or ending after the recorded window leak into it as they should.
+Returns are splatted onto a fine axis of `oversample` cells per bin, split linearly between the two cells whose
+centres bracket the arrival (a scatter-add, never a dense one-hot), convolved with the pulse sampled per fine cell
+(`kernel[origin + k]` = the response k fine cells after the arrival), then summed back to bins. The fine axis runs
+`pad_lo` bins before bin 0 and `pad_hi` bins after the last one, so that a pulse that starts before or ends after
+the recorded window leaks into it as it should. This is the simulator's own scheme (protocol.transient), in torch.
 """
 
 from __future__ import annotations
@@ -68,18 +69,22 @@ def choose_terms(scene) -> ModelTerms:
 class TransientForward(torch.nn.Module):
     """From rendered returns to per-bin rates and likelihoods, for one sensor model. Z zones, B bins."""
 
-    def __init__(self, sensor: SensorModel, terms: ModelTerms, pulse: torch.Tensor, pulse_origin: int):
+    def __init__(self, sensor: SensorModel, terms: ModelTerms, pulse, pulse_origin: int, oversample: int = 1):
         super().__init__()
         pulse = torch.as_tensor(pulse)
         if pulse.ndim != 1 or pulse.numel() == 0 or not bool(torch.isfinite(pulse).all()) or float(pulse.sum()) <= 0:
             raise ReconstructionError(f"pulse kernel must be a non-empty finite 1-D array, got {tuple(pulse.shape)}")
         if not 0 <= pulse_origin < pulse.numel():
             raise ReconstructionError(f"pulse origin {pulse_origin} lies outside the kernel (0..{pulse.numel() - 1})")
-        self.sensor, self.terms = sensor, terms
+        if not (isinstance(oversample, int) and 1 <= oversample <= 64):
+            raise ReconstructionError(f"time oversampling {oversample} must be an integer in [1, 64]")
+        self.sensor, self.terms, self.oversample = sensor, terms, oversample
         self.n_bins = sensor.n_bins
-        self.pad_lo = pulse.numel() - 1 - pulse_origin
-        self.pad_hi = pulse_origin
-        self.n_ext = self.n_bins + pulse.numel() - 1
+        k = pulse.numel()
+        self.pad_lo = -(-(k - 1 - pulse_origin) // oversample) + 1  # whole bins
+        self.pad_hi = -(-pulse_origin // oversample) + 1
+        self.n_fine = (self.n_bins + self.pad_lo + self.pad_hi) * oversample
+        self._conv_pad = (k - 1 - pulse_origin, pulse_origin)
         self.register_buffer("kernel", (pulse / pulse.sum()).flip(0).reshape(1, 1, -1).clone())
         self.register_buffer("gain", torch.tensor([z.gain for z in sensor.zones], dtype=pulse.dtype))
         self.power = sensor.signal_scale * math.pi
@@ -87,39 +92,45 @@ class TransientForward(torch.nn.Module):
 
     # ---- rendering to rates ----------------------------------------------------------------------------------------
     def bin(self, ranges_m: torch.Tensor, radiance: torch.Tensor, hist_id: torch.Tensor, n_hist: int) -> torch.Tensor:
-        """Scatter returns into histograms with linear (sub-bin) interpolation.
+        """Scatter returns into histograms on the fine axis with linear interpolation.
 
         ranges_m (N,) one-way metres; radiance (N,) weighted returns; hist_id (N,) long in [0, n_hist).
-        Returns (n_hist, n_ext) transients on the extended axis (differentiable in radiance and ranges).
+        Returns (n_hist, n_fine) transients (differentiable in radiance and ranges); arrivals off the axis drop out.
         """
-        s = self.sensor
-        u = (s.zero_bin - 0.5 + self.pad_lo) + ranges_m / s.bin_width_m
-        u = torch.nan_to_num(u, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2.0, self.n_ext + 1.0)
+        s, os_ = self.sensor, self.oversample
+        u = (s.zero_bin + self.pad_lo + ranges_m / s.bin_width_m) * os_ - 0.5
+        u = torch.nan_to_num(u, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2.0, self.n_fine + 1.0)
         j = torch.floor(u.detach())
         f = u - j
         j = j.long()
-        out = torch.zeros(n_hist * self.n_ext, dtype=radiance.dtype, device=radiance.device)
-        base = hist_id.long() * self.n_ext
+        out = torch.zeros(n_hist * self.n_fine, dtype=radiance.dtype, device=radiance.device)
+        base = hist_id.long() * self.n_fine
         for idx, w in ((j, 1.0 - f), (j + 1, f)):
-            ok = (idx >= 0) & (idx < self.n_ext)
-            out = out.index_add(0, (base + idx.clamp(0, self.n_ext - 1))[ok], (radiance * w)[ok])
-        return out.reshape(n_hist, self.n_ext)
+            ok = (idx >= 0) & (idx < self.n_fine)
+            out = out.index_add(0, (base + idx.clamp(0, self.n_fine - 1))[ok], (radiance * w)[ok])
+        return out.reshape(n_hist, self.n_fine)
 
     def rates(self, transient: torch.Tensor, background: torch.Tensor | float) -> torch.Tensor:
         """Photon rates per bin per cycle.
 
-        transient: (V, Z, n_ext) from `bin` (or (V, Z, B), taken as zero outside the window); background: (V, Z) or
-        a scalar, photons per bin per cycle. Returns lam (V, Z, B), everywhere >= RATE_FLOOR.
+        transient: (V, Z, n_fine) from `bin`, or (V, Z, B) per bin (each bin's returns spread evenly over it, zero
+        outside the window); background: (V, Z) or a scalar, photons per bin per cycle. Returns lam (V, Z, B),
+        everywhere >= RATE_FLOOR.
         """
         v, z, n = transient.shape
+        os_ = self.oversample
         if n == self.n_bins:
-            transient = F.pad(transient, (self.pad_lo, self.pad_hi))
-        elif n != self.n_ext:
-            raise ReconstructionError(f"transient has {n} bins; expected {self.n_bins} or {self.n_ext}")
+            transient = (transient / os_).repeat_interleave(os_, dim=-1)
+            transient = F.pad(transient, (self.pad_lo * os_, self.pad_hi * os_))
+        elif n != self.n_fine:
+            raise ReconstructionError(f"transient has {n} bins; expected {self.n_bins} (per bin) or {self.n_fine} "
+                                      f"(fine axis)")
         if z != len(self.gain):
             raise ReconstructionError(f"transient has {z} zones; the sensor model has {len(self.gain)}")
-        sig = F.conv1d(transient.reshape(v * z, 1, -1), self.kernel.to(transient.dtype)).reshape(v, z, self.n_bins)
-        sig = self.power * self.gain.to(sig.dtype)[None, :, None] * sig
+        fine = F.pad(transient.reshape(v * z, 1, -1), self._conv_pad)
+        fine = F.conv1d(fine, self.kernel.to(transient.dtype))
+        sig = fine.reshape(v, z, -1, os_).sum(-1)[..., self.pad_lo: self.pad_lo + self.n_bins]
+        sig = self.power * self.gain.to(sig.dtype)[None, :, None] * sig.clamp_min(0.0)
         if self.crosstalk:
             sig = sig + self.crosstalk * sig.sum(dim=1, keepdim=True)
         bg = torch.as_tensor(background, dtype=sig.dtype, device=sig.device)

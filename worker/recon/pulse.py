@@ -1,9 +1,10 @@
 """The laser pulse used by the forward model: the sensor model's, or one derived from reference histograms.
 
-For the TMF8820 the reference channel records the emitted pulse through an internal path. Fitted against the zones
-(SENSOR_FACTS), the zones' pulse is the floor-subtracted reference, normalised to peak 1, shifted, stretched by 1.10
-in time and raised to the power 1.5: p(i) = ref_n(peak_ref + (i - (zero_bin - 0.59)) / 1.10) ** 1.5 for a return at
-zero range (i a bin index, peak_ref the reference's peak index, found here per capture).
+For the real TMF8820 the reference channel records the emitted pulse through an internal path. Fitted against the
+zones (SENSOR_FACTS), the zones' pulse is the floor-subtracted reference, normalised to peak 1, shifted, stretched
+by 1.10 in time and raised to the power 1.5: p(i) = ref_n(peak_ref + (i - (zero_bin - 0.59)) / 1.10) ** 1.5 for a
+return at zero range (i a bin index, peak_ref the reference's peak index, found per capture). That fit holds for
+measured data only: a simulator that draws its reference from the sensor model's own pulse needs no such mapping.
 """
 
 from __future__ import annotations
@@ -22,26 +23,23 @@ KERNEL_BEFORE, KERNEL_AFTER = 4, 24
 """Bins kept before and after the arrival in a reference-derived kernel (tail e-folding ~3.9 bins)."""
 
 
-def pulse_kernel(sensor: SensorModel, reference: np.ndarray | None) -> tuple[np.ndarray, int, str]:
-    """(kernel (K,) summing to 1, origin index of the arrival, source) for a capture.
+def pulse_kernel(sensor: SensorModel, reference: np.ndarray | None, oversample: int = 1):
+    """(kernel (K,) summing to 1, origin, source) with kernel[origin + k] the response averaged over
+    [k - 0.5, k + 0.5) / oversample bins after the arrival.
 
-    reference: (N, B) reference histograms of the capture's frames, or None. The reference is used when the sensor
-    model says it carries one and it holds a clear peak; otherwise the sensor model's pulse.
-    """
-    if reference is not None and sensor.has_reference:
-        kernel = reference_kernel(np.asarray(reference, np.float64).mean(axis=0))
+    reference: (B,) mean reference histogram of a measured capture, or None (then the sensor model's pulse). A
+    reference without a clear peak above its floor falls back to the sensor model's pulse too."""
+    if reference is not None:
+        kernel = reference_kernel(reference, oversample)
         if kernel is not None:
-            return kernel, KERNEL_BEFORE, "reference"
-    kernel, origin = sensor.pulse.kernel(1)
+            return kernel, KERNEL_BEFORE * oversample, "reference"
+    kernel, origin = sensor.pulse.kernel(oversample)
     return kernel, int(origin), "sensor model"
 
 
-def reference_kernel(ref: np.ndarray, oversample: int = 8) -> np.ndarray | None:
-    """Pulse kernel from a mean reference histogram (B,), or None when it holds no peak above its floor.
-
-    Returns (KERNEL_BEFORE + KERNEL_AFTER + 1,) values, entry KERNEL_BEFORE + k being the pulse averaged over
-    [k - 0.5, k + 0.5) bins after the arrival.
-    """
+def reference_kernel(ref: np.ndarray, oversample: int = 1, fine: int = 8) -> np.ndarray | None:
+    """Pulse kernel ((KERNEL_BEFORE + KERNEL_AFTER + 1) * oversample,) from a mean reference histogram (B,), or None
+    when it holds no peak clearly above its floor (5 sigma of Poisson noise)."""
     ref = np.asarray(ref, np.float64)
     if ref.ndim != 1 or ref.size < 8 or not np.all(np.isfinite(ref)):
         return None
@@ -57,11 +55,12 @@ def reference_kernel(ref: np.ndarray, oversample: int = 8) -> np.ndarray | None:
         denom = a - 2 * b + c
         if denom < 0:
             peak += float(np.clip(0.5 * (a - c) / denom, -0.5, 0.5))
-    # Offset x (bins after the arrival, bin-centre coordinates) <-> histogram index i = zero_bin + x - 0.5.
-    x = (np.arange((KERNEL_BEFORE + KERNEL_AFTER + 1) * oversample) + 0.5) / oversample - KERNEL_BEFORE - 0.5
+    # x: offset after the arrival in bins (bin-centre coordinates); histogram index i = zero_bin + x - 0.5.
+    n = (KERNEL_BEFORE + KERNEL_AFTER + 1) * oversample * fine
+    x = (np.arange(n) + 0.5) / (oversample * fine) - KERNEL_BEFORE - 0.5 / oversample
     arg = peak + (x - 0.5 - REF_PEAK_SHIFT_BINS) / REF_STRETCH
     p = np.interp(arg, np.arange(ref.size), ref_n, left=0.0, right=0.0) ** REF_POWER
-    k = p.reshape(-1, oversample).mean(axis=1)
+    k = p.reshape(-1, fine).mean(axis=1)
     if k.sum() <= 0:
         return None
     return k / k.sum()

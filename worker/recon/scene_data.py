@@ -9,7 +9,8 @@ The manifest's `scene` dict may say (all optional, metres):
   boresight, and 0.6 x the nearest sensor's distance to it);
 - `"table": {"normal": [nx, ny, nz], "offset": d}` (the plane n . x = d, n pointing up) or `"table": {"z": h}`, or
   `"table": true` for a horizontal table whose height is fitted (it starts at the bottom of the sphere);
-- `"real": true|false` — measured data (default: the sensor model carries reference histograms, i.e. hardware).
+- `"real": true|false` — measured data (default: false for a simulated rig, else whether the sensor model carries
+  reference histograms, i.e. is hardware). Only measured data take their pulse from reference histograms.
 """
 
 from __future__ import annotations
@@ -56,10 +57,8 @@ class SceneData:
     """(V, 4, 4) sensor-to-world transforms, metres."""
     pose_index: np.ndarray
     """(V,) the capture's pose index of each view."""
-    pulse: torch.Tensor
-    """(K,) pulse kernel per bin, sums to 1; pulse[pulse_origin + k] is the response k bins after arrival."""
-    pulse_origin: int
-    """Index of the arrival time in `pulse`."""
+    reference: np.ndarray | None
+    """(B,) mean reference histogram of a measured capture (gives the pulse), or None."""
     pulse_source: str
     """'reference' (from the capture's reference histograms) or 'sensor model'."""
     background: torch.Tensor
@@ -76,6 +75,12 @@ class SceneData:
     """Measured data (enables the TV term)."""
     scene: dict
     """The manifest's scene dict as read."""
+
+    def pulse(self, oversample: int = 1) -> tuple[np.ndarray, int]:
+        """(kernel (K,) summing to 1, origin): kernel[origin + k] is the response k / oversample bins after the
+        arrival (see `pulse.pulse_kernel`)."""
+        kernel, origin, _ = pulse_kernel(self.sensor, self.reference, oversample)
+        return kernel, origin
 
     @property
     def n_views(self) -> int:
@@ -115,18 +120,30 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     scene = dict(data.manifest.get("scene") or {})
     center, radius = _scene_sphere(scene, poses, counts, sensor, capture)
     table = _table(scene, center, radius, capture)
-    real = bool(scene.get("real", sensor.has_reference))
-    kernel, origin, pulse_source = pulse_kernel(sensor, data.reference)
+    real = _is_real(scene, data.manifest, sensor)
+    reference = data.reference.mean(axis=0) if (real and data.reference is not None) else None
+    kernel, origin, pulse_source = pulse_kernel(sensor, reference)
+    reference = reference if pulse_source == "reference" else None
     background, bg_source = _background(counts, cycles, poses, center, radius, sensor, origin, real)
 
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
     return SceneData(
         capture=capture, sensor=sensor, counts=t(counts), cycles=t(cycles),
         valid=torch.as_tensor(valid, device=device), poses=t(poses), pose_index=order,
-        pulse=t(kernel), pulse_origin=origin, pulse_source=pulse_source,
+        reference=reference, pulse_source=pulse_source,
         background=t(background), background_source=bg_source,
         center=t(center), radius=float(radius), table=table, real=real, scene=scene,
     )
+
+
+def _is_real(scene: dict, manifest: dict, sensor: SensorModel) -> bool:
+    """Measured data? The scene's `real` flag when given; else not when the rig is simulated; else whether the
+    sensor model is a hardware one (it carries reference histograms)."""
+    if "real" in scene:
+        return bool(scene["real"])
+    if (manifest.get("rig") or {}).get("kind") == "simulated":
+        return False
+    return bool(sensor.has_reference)
 
 
 def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: SensorModel, where: Path):
