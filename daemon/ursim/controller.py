@@ -215,6 +215,7 @@ class URControllerModel:
             self._step(t)
             pose = tuple(float(x) for x in self._pose)
             snapshot = self._snapshot(t, pose)
+            snapshot.update(self._velocities(t))
             return [self._value(n, snapshot) for n in names]
 
     def _snapshot(self, t: float, pose: tuple) -> dict:
@@ -235,6 +236,21 @@ class URControllerModel:
             "speed_scaling": 1.0, "target_speed_fraction": 1.0, "actual_main_voltage": 48.0,
             "actual_robot_voltage": 48.0, "joint_temperatures": (30.0,) * 6, "actual_execution_time": 0.1,
         }
+
+    def _velocities(self, t: float) -> dict:
+        """actual_TCP_speed (linear m/s, angular rad/s, base frame) and actual_qd (rad/s) by a backward difference
+        over 1 ms of the motion in progress; zero at rest."""
+        m = self._motion
+        if m is None or t <= m.t_start:
+            return {}
+        h = min(1e-3, t - m.t_start)
+        p1, p0 = m.pose_at(t), m.pose_at(t - h)
+        r0 = rotvec_to_matrix(p0[3:])
+        omega = r0 @ matrix_to_rotvec(r0.T @ rotvec_to_matrix(p1[3:])) / h
+        speed = np.concatenate([(p1[:3] - p0[:3]) / h, omega])
+        qd = (inverse_kinematics(p1) - inverse_kinematics(p0)) / h
+        return {"actual_TCP_speed": tuple(map(float, speed)), "target_TCP_speed": tuple(map(float, speed)),
+                "actual_qd": tuple(map(float, qd)), "target_qd": tuple(map(float, qd))}
 
     def _value(self, name: str, snapshot: dict):
         if name in snapshot:

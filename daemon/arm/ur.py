@@ -1,0 +1,327 @@
+"""URArm: a Universal Robots arm through the real ur_rtde client (RTDEControlInterface + RTDEReceiveInterface).
+
+Every ur_rtde call runs on one dedicated thread (`CallThread`; the interfaces are not thread-safe) and is awaited
+with a timeout whose error names the arm and what it waited for. Moves are sent asynchronously (moveL with
+asynchronous=True) and then polled, so that a stop, a fault or a dead link is seen while the arm travels.
+
+What ur_rtde does not tell by raising, this class checks:
+- a move refused or aborted returns False (or the async move just ends): protective and emergency stops are read
+  from the safety status and raised as ArmFault;
+- after a link drop the receive getters keep returning the last values: the controller timestamp must advance, and
+  one stuck for `stale_after_s` raises LinkLost;
+- after a move, the actual pose must reach the target (within `position_tol_m` / `rotation_tol_rad`) and the
+  actual TCP speed fall below `rest_speed` / `rest_angular_speed`: the receive stream may lag the control stream,
+  so "move finished" alone does not mean the reading shows the arm at rest.
+Reconnecting builds new interfaces: ur_rtde 1.6.5's `RTDEReceiveInterface.reconnect()` can crash the process.
+
+GIL traps of ur_rtde 1.6.5: its constructors hold the Python GIL while they connect (the event loop stalls for the
+length of `connect()`, ~30 ms on loopback), and its destructors hold it for ~0.5 s each even after `disconnect()`.
+Disconnected interfaces (no threads or sockets left) are therefore kept until the URArm itself is dropped, so that
+`close()` and reconnecting never stall the event loop; `disconnect()` itself releases the GIL.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from spadscan.daemon.arm.call_thread import CallThread
+from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rotvec_to_matrix, vector_to_pose
+from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
+from spadscan.protocol.errors import ConfigError, DeviceError
+
+MAX_TOOL_SPEED = 3.0
+"""m/s: ur_rtde rejects faster moveL speeds."""
+MAX_TOOL_ACCEL = 150.0
+"""m/s^2: ur_rtde rejects larger moveL accelerations."""
+STOP_DECEL = 10.0
+"""m/s^2: tool deceleration of stop() (ur_rtde's stopL default)."""
+SAFETY_MODES = {1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery", 5: "safeguard stop",
+                6: "system emergency stop", 7: "robot emergency stop", 8: "violation", 9: "fault"}
+
+
+@dataclass(frozen=True)
+class _Reading:
+    """One consistent read of the receive interface (taken on the arm's thread)."""
+
+    pose_vec: np.ndarray  # (6,) [m, rad]
+    joints: np.ndarray  # (6,) rad
+    timestamp: float  # controller seconds
+    protective: bool
+    emergency: bool
+    safety_mode: int
+    connected: bool
+    tcp_speed: np.ndarray  # (6,) linear m/s, angular rad/s
+    moving: bool = False  # an asynchronous move is still running (control interface)
+
+
+class URArm(Arm):
+    """A UR arm over ur_rtde; see the module docstring. Speeds in m/s, accelerations in m/s^2, times in s."""
+
+    def __init__(self, host: str, *, speed: float = 0.1, accel: float = 0.3, timeout_s: float = 10.0,
+                 stale_after_s: float = 0.5, frequency: float | None = None, position_tol_m: float = 1e-3,
+                 rotation_tol_rad: float = 0.01, rest_speed: float = 2e-3, rest_angular_speed: float = 0.02,
+                 poll_s: float = 0.005):
+        if not isinstance(host, str) or not host:
+            raise ConfigError(f"UR arm host must be a non-empty string, got {host!r}")
+        for label, value, hi in (("speed", speed, MAX_TOOL_SPEED), ("accel", accel, MAX_TOOL_ACCEL),
+                                 ("timeout_s", timeout_s, 3600.0), ("stale_after_s", stale_after_s, 60.0),
+                                 ("position_tol_m", position_tol_m, 0.1), ("rotation_tol_rad", rotation_tol_rad, 1.0),
+                                 ("rest_speed", rest_speed, 1.0), ("rest_angular_speed", rest_angular_speed, 1.0),
+                                 ("poll_s", poll_s, 1.0), ("frequency", 1.0 if frequency is None else frequency, 500.0)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 < value <= hi):
+                raise ConfigError(f"UR arm {label} must be in (0, {hi:g}], got {value!r}")
+        self.host, self.speed, self.accel = host, float(speed), float(accel)
+        self.timeout_s, self.stale_after_s = float(timeout_s), float(stale_after_s)
+        self.frequency = -1.0 if frequency is None else float(frequency)  # -1: ur_rtde's default (500 Hz on e-series)
+        self.position_tol_m, self.rotation_tol_rad, self.poll_s = position_tol_m, rotation_tol_rad, poll_s
+        self.rest_speed, self.rest_angular_speed = rest_speed, rest_angular_speed
+        self.name = f"UR arm {host}"
+        self._thread = CallThread(self.name)
+        # Touched only on the arm's thread:
+        self._control = None
+        self._receive = None
+        self._retired: list = []  # disconnected interfaces, destroyed with the URArm (see the module docstring)
+        # Touched only on the event loop: the last controller timestamp seen and when it last changed.
+        self._last_ts: float | None = None
+        self._last_change = 0.0
+        self._open = False
+
+    # -- lifecycle ---------------------------------------------------------------------------------------------
+    async def connect(self) -> None:
+        """Open both interfaces (uploads ur_rtde's control script) and wait for live data. Idempotent; after a lost
+        link it reconnects."""
+        if self._open:
+            try:
+                await self._fresh("live data")
+                return
+            except LinkLost:
+                pass
+        await self.reconnect()
+
+    async def reconnect(self) -> None:
+        """Drop the interfaces and build new ones."""
+        await self._close_interfaces()
+        await self._call(f"connection to {self.host}", self._open_interfaces, timeout_s=self.timeout_s + 15.0)
+        self._open = True
+        self._last_ts = None
+        await self._fresh("the first data after connecting")
+
+    async def prepare(self) -> None:
+        """Refuse to start while the arm is stopped for safety."""
+        reading = await self._fresh("the safety state")
+        self._raise_if_stopped(reading, "cannot prepare")
+
+    async def release(self) -> None:
+        """Stop any motion (stopL). Nothing to do when not connected; LinkLost without trying when the link is
+        known dead (ur_rtde would block for seconds on it)."""
+        if self._open:
+            self._check_link(await self._call("the arm state", self._read))
+            await self.stop()
+
+    async def close(self) -> None:
+        """Disconnect both interfaces and end the arm's thread. Idempotent."""
+        try:
+            await self._close_interfaces()
+        finally:
+            await self._thread.stop(self.timeout_s)
+
+    # -- acting ----------------------------------------------------------------------------------------------------
+    async def move_to(self, tcp_pose: np.ndarray, speed: float | None = None, accel: float | None = None) -> None:
+        """moveL to a TCP pose (4x4, base frame, metres) and wait until the arm is there (see the module docstring).
+
+        speed / accel default to the constructor's. Raises ArmFault (safety stop, refused move, target not
+        reached, bad arguments) or LinkLost (stale or closed link).
+        """
+        speed = self.speed if speed is None else float(speed)
+        accel = self.accel if accel is None else float(accel)
+        if not (0 < speed <= MAX_TOOL_SPEED and 0 < accel <= MAX_TOOL_ACCEL):
+            raise ArmFault(f"{self.name}: speed {speed} m/s and acceleration {accel} m/s^2 must be in "
+                           f"(0, {MAX_TOOL_SPEED:g}] and (0, {MAX_TOOL_ACCEL:g}]")
+        try:
+            target = pose_to_vector(tcp_pose)
+        except DeviceError as exc:
+            raise ArmFault(f"{self.name}: bad target: {exc}") from None
+        self._require_open()
+        start = await self._fresh("live data before moveL")
+        self._raise_if_stopped(start, "moveL refused")
+        what = f"moveL to [{target[0]:.4f}, {target[1]:.4f}, {target[2]:.4f}] m"
+        vec = [float(x) for x in target]
+        budget = 2.0 * _move_time(start.pose_vec, target, speed, accel) + self.timeout_s
+        try:
+            if not await self._call(what, lambda: self._control.moveL(vec, speed, accel, True)):
+                # ur_rtde refuses from the control stream's view, which may lag the receive stream's (a stop
+                # just cleared): let both catch up, then try once more unless a real reason shows.
+                await self._explain_refusal(what, final=False)
+                if not await self._call(what, lambda: self._control.moveL(vec, speed, accel, True)):
+                    await self._explain_refusal(what, final=True)
+            await self._wait_motion(what, budget)
+            await self._wait_arrival(what, target)
+        except asyncio.CancelledError:
+            self._thread.post(self._stop_now)  # runs on the arm's thread as soon as it is free
+            raise
+
+    async def state(self) -> ArmState:
+        """Actual TCP pose (4x4), joints (6,), controller timestamp, and whether the arm is stopped for safety
+        (protective or emergency stop). Raises LinkLost when the link is closed or the data stopped advancing."""
+        self._require_open()
+        reading = await self._call("the arm state", self._read)
+        self._check_link(reading)
+        return ArmState(tcp_pose=vector_to_pose(reading.pose_vec), joints=reading.joints.copy(),
+                        timestamp_s=reading.timestamp, protective_stop=reading.protective or reading.emergency)
+
+    async def stop(self) -> None:
+        """stopL now (decelerating at STOP_DECEL)."""
+        self._require_open()
+        await self._call("stopL", self._stop_now)
+
+    # -- waiting ---------------------------------------------------------------------------------------------------
+    async def _wait_motion(self, what: str, budget_s: float) -> None:
+        deadline = time.monotonic() + budget_s
+        while True:
+            reading = await self._call(what, self._read_with_progress)
+            self._check_link(reading)
+            self._raise_if_stopped(reading, f"{what} aborted")
+            if not reading.moving:
+                return
+            if time.monotonic() > deadline:
+                await self.stop()
+                raise ArmFault(f"{self.name}: {what} did not finish within {budget_s:.1f} s; stopped")
+            await asyncio.sleep(self.poll_s)
+
+    async def _wait_arrival(self, what: str, target: np.ndarray) -> None:
+        """Wait for a reading at the target and at rest: the receive stream may lag the control stream's 'done'."""
+        deadline = time.monotonic() + self.timeout_s
+        first_ts = None
+        while True:
+            reading = await self._call(what, self._read)
+            self._check_link(reading)
+            self._raise_if_stopped(reading, f"{what} aborted")
+            first_ts = reading.timestamp if first_ts is None else first_ts
+            dist = float(np.linalg.norm(reading.pose_vec[:3] - target[:3]))
+            angle = rotation_angle(rotvec_to_matrix(reading.pose_vec[3:]), rotvec_to_matrix(target[3:]))
+            speed, spin = (float(np.linalg.norm(reading.tcp_speed[i:i + 3])) for i in (0, 3))
+            if (dist <= self.position_tol_m and angle <= self.rotation_tol_rad and speed <= self.rest_speed
+                    and spin <= self.rest_angular_speed):
+                return
+            if time.monotonic() > deadline and reading.timestamp != first_ts:
+                raise ArmFault(f"{self.name}: {what} ended {dist * 1e3:.2f} mm / {math.degrees(angle):.3f} deg "
+                               f"from the target, moving at {speed * 1e3:.1f} mm/s / {math.degrees(spin):.2f} deg/s "
+                               f"(tolerance {self.position_tol_m * 1e3:g} mm / "
+                               f"{math.degrees(self.rotation_tol_rad):g} deg, at rest below "
+                               f"{self.rest_speed * 1e3:g} mm/s / {math.degrees(self.rest_angular_speed):g} deg/s)")
+            await asyncio.sleep(self.poll_s)
+
+    async def _fresh(self, what: str) -> _Reading:
+        """A reading whose controller timestamp is newer than any seen so far; LinkLost after stale_after_s."""
+        self._require_open()
+        start, before = time.monotonic(), self._last_ts
+        while True:
+            reading = await self._call(what, self._read)
+            if not reading.connected:
+                raise LinkLost(f"{self.name}: link closed while waiting for {what}")
+            if reading.timestamp != before:
+                self._seen(reading.timestamp)
+                return reading
+            waited = time.monotonic() - start
+            if waited > self.stale_after_s:
+                raise LinkLost(f"{self.name}: controller timestamp stuck at {reading.timestamp:.3f} s for "
+                               f"{waited:.2f} s (limit {self.stale_after_s:g} s) while waiting for {what}")
+            await asyncio.sleep(self.poll_s)
+
+    def _seen(self, ts: float) -> None:
+        if ts != self._last_ts:
+            self._last_ts, self._last_change = ts, time.monotonic()
+
+    def _check_link(self, reading: _Reading) -> None:
+        """LinkLost when the link is closed or the timestamp has not moved for stale_after_s."""
+        if not reading.connected:
+            raise LinkLost(f"{self.name}: link closed (ur_rtde reports disconnected)")
+        if reading.timestamp != self._last_ts:
+            self._seen(reading.timestamp)
+            return
+        age = time.monotonic() - self._last_change
+        if age > self.stale_after_s:
+            raise LinkLost(f"{self.name}: receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s "
+                           f"for {age:.2f} s (limit {self.stale_after_s:g} s)")
+
+    def _raise_if_stopped(self, reading: _Reading, doing: str) -> None:
+        mode = f"safety mode {reading.safety_mode} ({SAFETY_MODES.get(reading.safety_mode, 'unknown')})"
+        if reading.emergency:
+            raise ArmFault(f"emergency stop on {self.name}: {doing} ({mode})")
+        if reading.protective:
+            raise ArmFault(f"protective stop on {self.name}: {doing} ({mode})")
+
+    async def _explain_refusal(self, what: str, final: bool) -> None:
+        """The controller answered False: raise for a safety stop or a dead link; otherwise, when `final`, raise a
+        plain refusal, else return after two fresh readings (time for the control stream to catch up)."""
+        for _ in range(2):
+            reading = await self._fresh(f"the safety state after {what} was refused")
+            self._raise_if_stopped(reading, f"{what} refused")
+        if final:
+            running = await self._call("the program state", lambda: self._control.isProgramRunning())
+            raise ArmFault(f"{self.name}: controller refused {what} (safety mode {reading.safety_mode}, control "
+                           f"script {'running' if running else 'not running'})")
+
+    # -- on the arm's thread -------------------------------------------------------------------------------------
+    async def _call(self, what: str, fn, timeout_s: float | None = None):
+        try:
+            return await self._thread.call(what, self.timeout_s if timeout_s is None else timeout_s, fn)
+        except DeviceError as exc:
+            raise LinkLost(str(exc)) from None
+        except RuntimeError as exc:  # ur_rtde reports link and protocol failures as RuntimeError
+            raise LinkLost(f"{self.name}: {what} failed: {exc}") from None
+
+    def _require_open(self) -> None:
+        if not self._open:
+            raise LinkLost(f"{self.name}: not connected")
+
+    def _open_interfaces(self) -> None:
+        import rtde_control
+        import rtde_receive
+
+        self._receive = rtde_receive.RTDEReceiveInterface(self.host, self.frequency)
+        self._control = rtde_control.RTDEControlInterface(self.host, self.frequency)
+
+    async def _close_interfaces(self) -> None:
+        self._open = False
+        await self._call("disconnect", self._disconnect)
+
+    def _disconnect(self) -> None:
+        for iface in (self._control, self._receive):
+            if iface is not None:
+                try:
+                    iface.disconnect()
+                except RuntimeError:  # already dead: nothing left to close
+                    pass
+                self._retired.append(iface)
+        self._control = self._receive = None
+
+    def _read(self) -> _Reading:
+        r, c = self._receive, self._control
+        if r is None or c is None:
+            raise RuntimeError("interfaces are closed")
+        return _Reading(np.array(r.getActualTCPPose(), dtype=np.float64), np.array(r.getActualQ(), dtype=np.float64),
+                        float(r.getTimestamp()), bool(r.isProtectiveStopped()), bool(r.isEmergencyStopped()),
+                        int(r.getSafetyMode()), bool(r.isConnected() and c.isConnected()),
+                        np.array(r.getActualTCPSpeed(), dtype=np.float64))
+
+    def _read_with_progress(self) -> _Reading:
+        reading = self._read()
+        moving = bool(self._control.getAsyncOperationProgressEx().isAsyncOperationRunning())
+        return _Reading(**{**reading.__dict__, "moving": moving})
+
+    def _stop_now(self) -> None:
+        if self._control is not None:
+            self._control.stopL(STOP_DECEL)
+
+
+def _move_time(start: np.ndarray, goal: np.ndarray, speed: float, accel: float) -> float:
+    """Rough duration (s) of a linear move between pose vectors (6,): trapezoid on max(translation, 0.1 m x angle)."""
+    angle = rotation_angle(rotvec_to_matrix(start[3:]), rotvec_to_matrix(goal[3:]))
+    d = max(float(np.linalg.norm(goal[:3] - start[:3])), 0.1 * angle)
+    return d / speed + speed / accel if d > speed * speed / accel else 2.0 * math.sqrt(d / accel)

@@ -1,0 +1,336 @@
+"""URArm with the real ur_rtde client against the simulated UR controller in a child process; pose conversions;
+the arm's call thread."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import gc
+import itertools
+import math
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spadscan.daemon.arm.call_thread import CallThread
+from spadscan.daemon.arm.pose_convert import (matrix_to_rotvec, pose_to_vector, rotation_angle, rotvec_to_matrix,
+                                              vector_to_pose)
+from spadscan.daemon.arm.ur import URArm
+from spadscan.daemon.devices import ArmFault, LinkLost
+from spadscan.daemon.ursim.kinematics import inverse_kinematics
+from spadscan.daemon.ursim.remote import SimURProcess
+from spadscan.protocol.errors import ConfigError, DeviceError
+
+_hosts = itertools.count(1)
+SPEED, ACCEL = 0.5, 2.0
+
+
+def _host() -> str:
+    return f"127.77.{os.getpid() % 250}.{next(_hosts) % 240 + 1}"
+
+
+@pytest.fixture
+def ur():
+    """A simulated controller process on a fresh loopback address; motion runs 10x faster than real."""
+    for _ in range(10):
+        try:
+            sim = SimURProcess(_host(), time_scale=0.1)
+            break
+        except DeviceError:  # address in use: take the next one
+            continue
+    else:
+        raise AssertionError("no free loopback address for the simulated controller")
+    yield sim
+    gc.collect()  # destroy this test's ur_rtde interfaces now (~0.5 s each), not during a later test
+    sim.close()
+
+
+def make_arm(host: str) -> URArm:
+    # Generous timeouts: the tests share two cores with other work.
+    return URArm(host, frequency=100.0, stale_after_s=1.0, timeout_s=20.0)
+
+
+@contextlib.asynccontextmanager
+async def connected_arm(host: str):
+    """A connected URArm that is closed however the test ends (an unclosed one keeps reconnecting)."""
+    arm = make_arm(host)
+    try:
+        await arm.connect()
+        yield arm
+    finally:
+        await arm.close()
+
+
+def pose(x, y, z, rot=np.eye(3)) -> np.ndarray:
+    p = np.eye(4)
+    p[:3, :3], p[:3, 3] = rot, (x, y, z)
+    return p
+
+
+DOWN = np.diag([1.0, -1.0, -1.0])  # tool z pointing down: pi about x
+DIAG_PI = 2.0 * np.outer([1, 1, 0], [1, 1, 0]) / 2.0 - np.eye(3)  # pi about (1, 1, 0) / sqrt 2
+NEAR_PI = rotvec_to_matrix(np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]) * (math.pi - 1e-9))
+TILTED = rotvec_to_matrix([0.2, 2.9, -0.1])
+
+
+async def wait_for_moves(ur, n: int, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while len(ur.moves) < n:
+        assert time.monotonic() < deadline, f"the controller never took command {n}"
+        await asyncio.sleep(0.01)
+
+
+def test_moves_arrive_at_the_commanded_poses_and_state_reports_the_actual_pose(ur, arun):
+    targets = [pose(0.4, 0.1, 0.3, DOWN), pose(0.35, -0.1, 0.25, NEAR_PI), pose(0.3, 0.05, 0.35, DIAG_PI),
+               pose(0.45, 0.0, 0.2, TILTED), pose(0.3, 0.0, 0.3, rotvec_to_matrix([1e-8, 0.0, 0.0]))]
+
+    async def scan():
+        async with connected_arm(ur.host) as arm:
+            await arm.prepare()
+            states = []
+            for target in targets:
+                await arm.move_to(target, SPEED, ACCEL)
+                states.append(await arm.state())
+            controller_pose = ur.pose()
+        return states, controller_pose
+
+    states, controller_pose = arun(scan())
+    for target, state in zip(targets, states):
+        assert np.allclose(state.tcp_pose, target, atol=1e-6)
+        assert state.joints.shape == (6,) and not state.protective_stop
+    assert np.allclose(states[-1].joints, inverse_kinematics(np.array(controller_pose)), atol=1e-9)
+    assert states[-1].timestamp_s > states[0].timestamp_s
+    moves = ur.moves
+    assert [m.name for m in moves] == ["moveL"] * len(targets)
+    for target, move in zip(targets, moves):
+        assert np.allclose(move.target[:3], target[:3, 3], atol=1e-6)
+        assert rotation_angle(rotvec_to_matrix(move.target[3:]), target[:3, :3]) < 1e-6
+        assert (move.speed, move.accel) == (SPEED, ACCEL)
+
+
+def test_protective_stop_refuses_the_move(ur, arun):
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+            ur.protective_stop()
+            with pytest.raises(ArmFault, match="protective stop"):
+                await asyncio.wait_for(arm.move_to(pose(0.4, 0.1, 0.3, DOWN)), 30)
+            stopped = (await arm.state()).protective_stop
+            with pytest.raises(ArmFault, match="protective stop"):
+                await arm.prepare()
+            ur.clear_protective_stop()
+            await arm.move_to(pose(0.4, 0.2, 0.3, DOWN))
+            cleared = (await arm.state()).protective_stop
+        return stopped, cleared
+
+    assert arun(run()) == (True, False)
+    assert [m.target[1] for m in ur.moves] == [0.0, 0.2]  # the refused move never reached the controller
+
+
+class ArmWithoutPreCheck(URArm):
+    """Sends a move even when its own last reading shows a stop, as when the stop comes between check and send."""
+
+    def _raise_if_stopped(self, reading, doing):
+        if doing != "moveL refused":
+            super()._raise_if_stopped(reading, doing)
+
+
+def test_move_returning_false_is_explained_by_the_protective_stop(ur, arun):
+    async def run():
+        arm = ArmWithoutPreCheck(ur.host, frequency=100.0, stale_after_s=1.0, timeout_s=20.0)
+        try:
+            await arm.connect()
+            ur.protective_stop()
+            with pytest.raises(ArmFault, match="protective stop.*refused"):
+                await asyncio.wait_for(arm.move_to(pose(0.4, 0.1, 0.3, DOWN)), 30)
+        finally:
+            await arm.close()
+
+    arun(run())
+    assert ur.moves == []
+
+
+def test_protective_stop_during_a_move_aborts_it(ur, arun):
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            move = asyncio.ensure_future(arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.005, 1.0))  # 40 s scaled to 4 s
+            await wait_for_moves(ur, 1)
+            ur.protective_stop()
+            with pytest.raises(ArmFault, match="protective stop.*aborted"):
+                await asyncio.wait_for(move, 30)
+            state = await arm.state()
+        return state
+
+    state = arun(run())
+    assert state.protective_stop
+    assert state.tcp_pose[1, 3] < 0.19  # halted on the way
+
+
+def test_emergency_stop_is_an_arm_fault(ur, arun):
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            ur.emergency_stop()
+            with pytest.raises(ArmFault, match="emergency stop"):
+                await asyncio.wait_for(arm.move_to(pose(0.4, 0.0, 0.3, DOWN)), 30)
+
+    arun(run())
+    assert ur.moves == []
+
+
+def test_cancelled_move_stops_the_arm(ur, arun):
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            move = asyncio.ensure_future(arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.005, 1.0))
+            await wait_for_moves(ur, 1)
+            move.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await move
+            await wait_for_moves(ur, 2)
+
+    arun(run())
+    assert [m.name for m in ur.moves] == ["moveL", "stopL"]
+    assert ur.pose()[1] < 0.19
+
+
+@pytest.mark.parametrize("mode", ["silent", "freeze", "close"])
+def test_dropped_link_is_link_lost_and_reconnect_works(ur, arun, mode):
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+            ur.drop_link(mode)
+            deadline = time.monotonic() + 30
+            with pytest.raises(LinkLost) as lost:
+                while time.monotonic() < deadline:
+                    await arm.state()
+                    await asyncio.sleep(0.05)
+            with pytest.raises(LinkLost):
+                await asyncio.wait_for(arm.move_to(pose(0.4, 0.1, 0.3, DOWN)), 30)
+            with pytest.raises(LinkLost):
+                await asyncio.wait_for(arm.release(), 30)
+            rtde_before = ur.connections()["rtde"]
+            ur.restore_link()
+            await arm.connect()
+            await arm.move_to(pose(0.4, 0.2, 0.3, DOWN))
+            state = await arm.state()
+        return str(lost.value), state, ur.connections()["rtde"] - rtde_before
+
+    message, state, new_sessions = arun(run())
+    assert ur.host in message
+    assert ("closed" if mode == "close" else "stale") in message
+    assert np.allclose(state.tcp_pose, pose(0.4, 0.2, 0.3, DOWN), atol=1e-6)
+    assert [m.target[1] for m in ur.moves] == [0.0, 0.2]
+    if mode == "close":
+        assert new_sessions == 2  # reconnecting built new receive and control interfaces
+
+
+def _native_threads() -> int:
+    return len(os.listdir(f"/proc/{os.getpid()}/task"))
+
+
+def _sockets() -> int:
+    count = 0
+    for fd in Path(f"/proc/{os.getpid()}/fd").iterdir():
+        try:
+            count += os.readlink(fd).startswith("socket:")
+        except OSError:  # closed while listing (the listing's own descriptor, or another thread's)
+            pass
+    return count
+
+
+def test_close_leaves_no_threads_or_sockets(ur, arun):
+    threads, sockets = _native_threads(), _sockets()
+
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+            busy = (_native_threads() > threads, _sockets() > sockets)
+            await arm.release()
+            await arm.close()
+        await arm.release()  # closed: nothing to do
+        return busy
+
+    assert arun(run()) == (True, True)
+    assert [m.name for m in ur.moves] == ["moveL", "stopL"]
+    assert (_native_threads(), _sockets()) == (threads, sockets)
+    deadline = time.monotonic() + 20
+    while ur.open_connections() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert ur.open_connections() == 0
+
+
+def test_arguments_are_checked_before_anything_moves(arun):
+    for kwargs in ({"speed": 0.0}, {"speed": 4.0}, {"accel": -1.0}, {"stale_after_s": math.nan},
+                   {"frequency": 0.0}, {"timeout_s": 0.0}):
+        with pytest.raises(ConfigError):
+            URArm("127.0.0.1", **kwargs)
+    with pytest.raises(ConfigError):
+        URArm("")
+
+    async def run():
+        arm = URArm(f"127.77.{os.getpid() % 250}.250", timeout_s=10.0)
+        with pytest.raises(ArmFault, match="speed"):
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN), speed=5.0)
+        with pytest.raises(ArmFault, match="rotation"):
+            await arm.move_to(pose(0.4, 0.0, 0.3, 1.01 * DOWN))
+        with pytest.raises(ArmFault, match="4x4"):
+            await arm.move_to(np.eye(3))
+        with pytest.raises(LinkLost, match="not connected"):
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+        with pytest.raises(LinkLost, match="127.77"):
+            await arm.connect()  # nothing listens there
+        await arm.close()
+
+    arun(run())
+
+
+def test_rotation_vectors_of_known_rotations():
+    assert np.allclose(rotvec_to_matrix([0.0, 0.0, math.pi / 2]), [[0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    assert np.allclose(np.abs(matrix_to_rotvec(DOWN)), [math.pi, 0, 0])
+    assert np.allclose(np.abs(matrix_to_rotvec(DIAG_PI)), [math.pi / math.sqrt(2)] * 2 + [0])
+    assert np.allclose(matrix_to_rotvec(np.eye(3)), 0)
+    assert np.allclose(pose_to_vector(pose(1, 2, 3, rotvec_to_matrix([0.1, 0.2, 0.3]))), [1, 2, 3, 0.1, 0.2, 0.3])
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-6, 0.5, 3.0, math.pi - 1e-6, math.pi - 1e-12, math.pi])
+def test_pose_vector_round_trip_is_exact_near_zero_and_pi(angle):
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        axis = rng.normal(size=3)
+        rv = axis / np.linalg.norm(axis) * angle
+        p = pose(*rng.normal(size=3), rotvec_to_matrix(rv))
+        v = pose_to_vector(p)
+        assert np.linalg.norm(v[3:]) <= math.pi + 1e-15
+        assert np.allclose(vector_to_pose(v), p, atol=1e-12)
+        if angle < math.pi - 1e-3:
+            assert np.allclose(v[3:], rv, atol=1e-12)
+
+
+def test_bad_poses_are_rejected():
+    for bad in (np.eye(3), np.full((4, 4), np.nan), pose(0, 0, 0, -np.eye(3)), pose(0, 0, 0, 2 * np.eye(3))):
+        with pytest.raises(DeviceError):
+            pose_to_vector(bad)
+    with pytest.raises(DeviceError):
+        vector_to_pose([0, 0, 0, 0, 0])
+
+
+def test_call_thread_runs_calls_in_order_on_one_thread_and_names_timeouts(arun):
+    async def run():
+        worker = CallThread("test worker")
+        idents = [await worker.call("ident", 10, threading.get_ident) for _ in range(3)]
+        with pytest.raises(DeviceError, match="test worker: no answer within 0.05 s waiting for the nap"):
+            await worker.call("the nap", 0.05, time.sleep, 0.5)
+        assert await worker.call("after the nap", 10, lambda: 42) == 42  # queued behind the slow call
+        with pytest.raises(ZeroDivisionError):
+            await worker.call("a division", 10, lambda: 1 / 0)
+        await worker.stop(10)
+        await worker.stop(10)
+        return idents
+
+    before = threading.active_count()
+    idents = arun(run())
+    assert len(set(idents)) == 1 and idents[0] != threading.get_ident()
+    assert threading.active_count() == before

@@ -1,0 +1,321 @@
+"""The simulated UR controller, spoken to with raw sockets: RTDE packages, recipes, streaming, the control-script
+register protocol, the dashboard, the script port, faults, and clean shutdown."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from spadscan.daemon.ursim import SimURController
+from spadscan.daemon.ursim import rtde_codec as codec
+from spadscan.daemon.ursim.kinematics import forward_kinematics, inverse_kinematics, profile_duration
+from spadscan.daemon.ursim.script_port import take_programs
+from spadscan.protocol.errors import DeviceError
+
+_hosts = itertools.count(1)
+STATE = ["timestamp", "actual_TCP_pose", "actual_q", "runtime_state", "output_int_register_0",
+         "output_int_register_2", "safety_mode", "safety_status_bits", "robot_status_bits", "input_int_register_0"]
+CMD = ["input_int_register_0", "input_int_register_1"] + [f"input_double_register_{i}" for i in range(8)]
+PROGRAM = b"def rtde_control():\n    textmsg(\"hi\")\n    while True:\n        sync()\n    end\nend\n"
+
+
+@pytest.fixture
+def sim():
+    """A controller on a fresh loopback address (127.78.P.N), stopped after the test."""
+    for _ in range(10):
+        host = f"127.78.{os.getpid() % 250}.{next(_hosts) % 250 + 1}"
+        try:
+            controller = SimURController(host, time_scale=0.0).start()
+            break
+        except DeviceError:  # address in use by another run: take the next one
+            continue
+    else:
+        raise AssertionError("no free loopback address for the simulated controller")
+    yield controller
+    controller.stop()
+
+
+class Client:
+    """A minimal RTDE client over one socket."""
+
+    def __init__(self, host: str, port: int = 30004):
+        self.sock = socket.create_connection((host, port), timeout=10)
+        self.buffer = bytearray()
+
+    def send(self, kind: str, payload: bytes = b"") -> None:
+        self.sock.sendall(codec.pack(ord(kind), payload))
+
+    def receive(self, kind: str | None = None) -> tuple[str, bytes]:
+        """The next package (of `kind`, skipping others)."""
+        while True:
+            for k, payload in codec.split(self.buffer):
+                if kind is None or chr(k) == kind:
+                    return chr(k), payload
+            data = self.sock.recv(65536)
+            assert data, "server closed the connection"
+            self.buffer += data
+
+    def request(self, kind: str, payload: bytes = b"") -> bytes:
+        self.send(kind, payload)
+        return self.receive(kind)[1]
+
+    def outputs(self, names: list[str], freq: float = 100.0) -> tuple[int, list[str]]:
+        reply = self.request("O", struct.pack(">d", freq) + ",".join(names).encode())
+        return reply[0], reply[1:].decode().split(",")
+
+    def inputs(self, names: list[str]) -> tuple[int, list[str]]:
+        reply = self.request("I", (",".join(names) + ",").encode())  # trailing comma, as ur_rtde sends it
+        return reply[0], reply[1:].decode().split(",")
+
+    def data(self, types: list[str]) -> dict:
+        _, payload = self.receive("U")
+        return dict(zip(STATE, codec.decode_values(types, payload[1:])))
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def wait_until(predicate, what: str, timeout_s: float = 20.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.005)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def streaming_client(sim) -> tuple[Client, list[str]]:
+    c = Client(sim.host)
+    rid, types = c.outputs(STATE)
+    assert rid == 1
+    assert c.request("S") == b"\x01"
+    return c, types
+
+
+def send_program(host: str) -> None:
+    with socket.create_connection((host, 30003), timeout=10) as s:
+        s.sendall(PROGRAM)
+        time.sleep(0.05)
+
+
+def command(c: Client, rid: int, cmd: int, regs=(0.0,) * 8, asynchronous: int = 0) -> None:
+    types = ["INT32", "INT32"] + ["DOUBLE"] * 8
+    c.send("U", bytes([rid]) + codec.encode_values(types, [cmd, asynchronous, *regs]))
+
+
+def test_codec_round_trips_every_type_and_splits_partial_packages():
+    types = list(codec.TYPE_FORMATS)
+    values = [True, 7, 2**32 - 1, 2**64 - 1, -5, 1.5, (1.0, 2.0, 3.0), tuple(np.arange(6.0)), (-1, 2, -3, 4, -5, 6),
+              (1, 2, 3, 4, 5, 6)]
+    assert codec.decode_values(types, codec.encode_values(types, values)) == values
+    stream = bytearray(codec.pack(ord("U"), b"\x01abc") + codec.pack(ord("S")))
+    tail = bytearray(stream[-2:])
+    head = bytearray(stream[:-2])
+    assert codec.split(head) == [(ord("U"), b"\x01abc")]
+    head += tail
+    assert codec.split(head) == [(ord("S"), b"")] and not head
+
+
+def test_handshake_version_and_recipe_ids(sim):
+    c = Client(sim.host)
+    assert c.request("V", struct.pack(">H", 2)) == b"\x01"
+    assert c.request("V", struct.pack(">H", 3)) == b"\x00"
+    assert struct.unpack(">IIII", c.request("v")) == (5, 15, 0, 0)
+    assert c.outputs(["timestamp", "actual_q"]) == (1, ["DOUBLE", "VECTOR6D"])
+    assert c.outputs(["no_such_variable", "timestamp"]) == (0, ["NOT_FOUND", "DOUBLE"])
+    assert c.outputs(["runtime_state"]) == (2, ["UINT32"])
+    assert c.inputs(["input_int_register_0"]) == (1, ["INT32"])
+    assert c.inputs(["input_int_register_0", "input_double_register_3"]) == (2, ["INT32", "DOUBLE"])
+    assert c.inputs(["input_int_register_0", "bogus"]) == (0, ["INT32", "NOT_FOUND"])
+    assert c.inputs(["external_force_torque"]) == (3, ["VECTOR6D"])
+    other = Client(sim.host)
+    assert other.inputs(["input_int_register_0"]) == (0, ["IN_USE"])
+    c.close()
+    wait_until(lambda: other.inputs(["input_int_register_0"])[0] == 1, "the register to be released")
+    other.close()
+
+
+def test_streams_advancing_timestamps_until_paused(sim):
+    c, types = streaming_client(sim)
+    first = [c.data(types) for _ in range(5)]
+    stamps = [d["timestamp"] for d in first]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert np.allclose(first[0]["actual_TCP_pose"], (0.3, 0.0, 0.3, 0.0, math.pi, 0.0))
+    assert np.allclose(first[0]["actual_q"], inverse_kinematics(np.array(first[0]["actual_TCP_pose"])))
+    assert first[0]["runtime_state"] == 1 and first[0]["safety_mode"] == 1 and first[0]["safety_status_bits"] == 1
+    c.send("P")
+    c.receive("P")
+    c.sock.settimeout(0.3)
+    c.buffer.clear()
+    with pytest.raises(TimeoutError):
+        c.sock.recv(65536)
+    c.close()
+
+
+def test_script_then_move_command_register_protocol(sim):
+    c, types = streaming_client(sim)
+    rid, _ = c.inputs(CMD)
+    send_program(sim.host)
+    wait_until(lambda: (d := c.data(types))["runtime_state"] == 2 and d["output_int_register_0"] == 1, "ready")
+    assert wait_until(lambda: c.data(types)["robot_status_bits"] & 2, "program running bit")
+    target = (0.4, -0.1, 0.2, 0.0, 3.0, 0.2)
+    command(c, rid, 3, (*target, 0.25, 1.2))
+    wait_until(lambda: c.data(types)["output_int_register_0"] == 2, "done")
+    d = c.data(types)
+    assert np.allclose(d["actual_TCP_pose"], target)
+    command(c, rid, 0)
+    wait_until(lambda: c.data(types)["output_int_register_0"] == 1, "ready again")
+    command(c, rid, 1, (*inverse_kinematics(np.array([0.3, 0.1, 0.3, 0, 3.1, 0])), 1.0, 1.0), asynchronous=1)
+    wait_until(lambda: c.data(types)["output_int_register_0"] == 2, "async moveJ accepted")
+    wait_until(lambda: not c.data(types)["output_int_register_2"] & 32768, "async move finished")
+    assert np.allclose(c.data(types)["actual_TCP_pose"], [0.3, 0.1, 0.3, 0, 3.1, 0])
+    moves = sim.moves
+    assert [m.name for m in moves] == ["moveL", "moveJ"]
+    assert moves[0].target == target and (moves[0].speed, moves[0].accel) == (0.25, 1.2)
+    assert moves[1].asynchronous and not moves[0].asynchronous
+    command(c, rid, 0)
+    command(c, rid, 255)
+    wait_until(lambda: c.data(types)["runtime_state"] == 1, "script stopped")
+    c.close()
+
+
+def test_motion_takes_scaled_time_and_interpolates():
+    assert profile_duration(0.0, 0.1, 1.0) == 0.0
+    assert math.isclose(profile_duration(1.0, 0.5, 1.0), 2.5)  # cruise 2 s + ramps 0.5 s
+    assert math.isclose(profile_duration(0.01, 1.0, 1.0), 0.2)  # triangular: 2 sqrt(d / a)
+    q = np.array([0.1, -1.0, 1.2, -0.4, -1.5, 0.3])
+    assert np.allclose(inverse_kinematics(forward_kinematics(q)), q)
+
+
+def test_protective_stop_refuses_commands_until_cleared(sim):
+    c, types = streaming_client(sim)
+    rid, _ = c.inputs(CMD)
+    send_program(sim.host)
+    wait_until(lambda: c.data(types)["output_int_register_0"] == 1, "ready")
+    sim.protective_stop()
+    d = wait_until(lambda: (d := c.data(types))["safety_mode"] == 3 and d, "protective stop")
+    assert d["safety_status_bits"] & 4
+    command(c, rid, 3, (0.5, 0.0, 0.3, 0.0, 3.0, 0.0, 0.25, 1.2))
+    for _ in range(5):
+        assert c.data(types)["output_int_register_0"] != 2
+    assert sim.moves == []
+    command(c, rid, 0)
+    wait_until(lambda: c.data(types)["input_int_register_0"] == 0, "the cleared command to arrive")
+    sim.clear_protective_stop()
+    d = wait_until(lambda: (d := c.data(types))["safety_mode"] == 1 and d, "normal mode")
+    assert not d["safety_status_bits"] & 4
+    command(c, rid, 3, (0.5, 0.0, 0.3, 0.0, 3.0, 0.0, 0.25, 1.2))
+    wait_until(lambda: c.data(types)["output_int_register_0"] == 2, "done after clearing")
+    assert len(sim.moves) == 1
+    c.close()
+
+
+def test_bad_move_is_a_script_error(sim):
+    c, types = streaming_client(sim)
+    rid, _ = c.inputs(CMD)
+    send_program(sim.host)
+    wait_until(lambda: c.data(types)["output_int_register_0"] == 1, "ready")
+    command(c, rid, 3, (math.nan, 0.0, 0.3, 0.0, 3.0, 0.0, 0.25, 1.2))
+    wait_until(lambda: c.data(types)["runtime_state"] == 1, "the script to stop")
+    assert sim.moves == [] and len(sim.model.errors) == 1
+    assert np.all(np.isfinite(c.data(types)["actual_TCP_pose"]))
+    c.close()
+
+
+def test_dashboard_answers_what_ur_rtde_asks(sim):
+    with socket.create_connection((sim.host, 29999), timeout=10) as s:
+        f = s.makefile("rwb")
+        assert f.readline().startswith(b"Connected: Universal Robots Dashboard Server")
+        replies = {}
+        for cmd in ("PolyscopeVersion", "get serial number", "is in remote control", "safetystatus", "bogus"):
+            f.write(cmd.encode() + b"\n")
+            f.flush()
+            replies[cmd] = f.readline().decode().strip()
+    assert replies["PolyscopeVersion"].startswith("URSoftware 5.15")
+    assert replies["get serial number"].isdigit()
+    assert replies["is in remote control"] == "true"
+    assert replies["safetystatus"] == "Safetystatus: NORMAL"
+    assert replies["bogus"] == "could not understand: 'bogus'"
+    assert sim.dashboard_log[:2] == ["PolyscopeVersion", "get serial number"]
+
+
+def test_script_port_splits_programs():
+    buf = bytearray(PROGRAM + PROGRAM[:20])
+    assert take_programs(buf) == [PROGRAM.decode().strip()]
+    assert bytes(buf) == PROGRAM[:20]
+
+
+@pytest.mark.parametrize("mode", ["close", "silent", "freeze"])
+def test_link_faults(sim, mode):
+    c, types = streaming_client(sim)
+    c.data(types)
+    sim.drop_link(mode)
+    if mode == "close":
+        c.sock.settimeout(5)
+        with pytest.raises(AssertionError, match="closed"):
+            while True:
+                c.data(types)
+    elif mode == "silent":
+        c.sock.settimeout(0.3)
+        c.buffer.clear()
+        with pytest.raises(TimeoutError):
+            while True:
+                c.data(types)
+    else:
+        stamps = {c.data(types)["timestamp"] for _ in range(5)}
+        stamps = {c.data(types)["timestamp"] for _ in range(5)}
+        assert len(stamps) == 1
+    if mode != "freeze":
+        with pytest.raises(OSError):
+            socket.create_connection((sim.host, 30004), timeout=5)
+    sim.restore_link()
+    c2, types = streaming_client(sim)
+    a, b = c2.data(types)["timestamp"], c2.data(types)["timestamp"]
+    assert b > a
+    c.close()
+    c2.close()
+
+
+def test_stop_closes_everything():
+    threads = threading.active_count()
+    sim = SimURController(f"127.78.{os.getpid() % 250}.251").start()
+    c, _ = streaming_client(sim)
+    assert sim.open_connections() == 1
+    sim.stop()
+    sim.stop()
+    assert threading.active_count() == threads
+    c.sock.settimeout(5)
+    with pytest.raises(AssertionError, match="closed"):
+        while True:
+            c.receive()
+    c.close()
+
+
+def test_runs_as_a_process_and_stops_on_sigterm():
+    host = f"127.78.{os.getpid() % 250}.252"
+    proc = subprocess.Popen([sys.executable, "-m", "spadscan.daemon.ursim", "--host", host],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().startswith("ursim listening")
+        c = Client(host)
+        assert c.request("V", struct.pack(">H", 2)) == b"\x01"
+        c.close()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+        proc.stdout.close()
