@@ -39,8 +39,9 @@ class DeviceSession:
     async def _step(self, device: Device, step: str) -> None:
         timeout = self.timeouts[step]
         try:
-            await asyncio.wait_for(getattr(device, step)(), timeout)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(timeout):
+                await getattr(device, step)()
+        except TimeoutError:
             raise DeviceError(f"{device.name}: {step} did not finish within {timeout:g} s") from None
 
     async def _all(self, step: str) -> list[str]:

@@ -197,6 +197,7 @@ class ScanRunner:
             if paused:
                 await self._wait_resume(job)
             while True:
+                self._check_end()
                 if job.writer is None:
                     try:
                         job.writer = await self._io(CaptureWriter.resume, job.path)
@@ -230,6 +231,7 @@ class ScanRunner:
         pending = None  # the previous pose's publish, overlapping this pose's move and settle
         try:
             for i in range(job.next_pose, job.n_poses):
+                self._check_end()
                 if self._pause_requested:
                     break
                 t_stop = await self._move(job, i)
@@ -242,6 +244,7 @@ class ScanRunner:
                     self._notify()
                 frames = await self._frames(job, i, t_stop + job.scan.settle_s)
                 arm = await self._arm_state()
+                self._check_end()
                 if arm.protective_stop:
                     raise ArmFault(f"{self.arm.name}: protective stop while capturing pose {i}")
                 pending = asyncio.ensure_future(self._io(self._publish, job.writer, _measurements(job, i, frames,
@@ -255,13 +258,20 @@ class ScanRunner:
                         job.record_progress(job.writer)
                         self._notify()
 
+    def _check_end(self) -> None:
+        """Honour an abort or shutdown even if its cancellation was absorbed by a device call that finished at the
+        same moment: the request is also recorded in self._end."""
+        if self._end is not None:
+            raise asyncio.CancelledError()
+
     @staticmethod
     async def _landed(publish: asyncio.Future, i: int) -> None:
         """Wait for pose i's publish; a disk that stalls past PUBLISH_TIMEOUT_S pauses the scan (the write may still
         land later: the writer thread finishes it before the capture is reopened)."""
         try:
-            await asyncio.wait_for(asyncio.shield(publish), PUBLISH_TIMEOUT_S)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(PUBLISH_TIMEOUT_S):
+                await asyncio.shield(publish)
+        except TimeoutError:
             publish.add_done_callback(lambda f: f.cancelled() or f.exception())  # retrieved: no "never retrieved"
             raise _Fault(f"capture writer: publishing pose {i} did not finish within {PUBLISH_TIMEOUT_S:g} s "
                          f"(disk stalled?)") from None
@@ -270,9 +280,9 @@ class ScanRunner:
         """Move to pose i; returns the monotonic time the arm stopped."""
         timeout = self.cfg.arm.move_timeout_s
         try:
-            await asyncio.wait_for(self.arm.move_to(job.tcp_poses[i], self.cfg.arm.speed, self.cfg.arm.acceleration),
-                                   timeout)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(timeout):
+                await self.arm.move_to(job.tcp_poses[i], self.cfg.arm.speed, self.cfg.arm.acceleration)
+        except TimeoutError:
             raise ArmFault(f"{self.arm.name}: move to pose {i} did not finish within {timeout:g} s") from None
         return time.monotonic()
 
@@ -288,8 +298,9 @@ class ScanRunner:
                 raise SensorSilent(f"{self.sensor.name}: no frame that began after the arm settled within "
                                    f"{timeout:g} s at pose {i}")
             try:
-                f = await asyncio.wait_for(self.sensor.next_frame(left), left + FRAME_GRACE_S)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(left + FRAME_GRACE_S):
+                    f = await self.sensor.next_frame(left)
+            except TimeoutError:
                 raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
                                    f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
             if f.t_start < ready_t:
@@ -310,14 +321,16 @@ class ScanRunner:
 
     async def _arm_state(self):
         try:
-            return await asyncio.wait_for(self.arm.state(), STATE_TIMEOUT_S)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(STATE_TIMEOUT_S):
+                return await self.arm.state()
+        except TimeoutError:
             raise LinkLost(f"{self.arm.name}: no state within {STATE_TIMEOUT_S:g} s") from None
 
     async def _stop_arm(self) -> None:
         try:
-            await asyncio.wait_for(self.arm.stop(), STOP_TIMEOUT_S)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(STOP_TIMEOUT_S):
+                await self.arm.stop()
+        except TimeoutError:
             self.last_error = f"{self.arm.name}: stop did not return within {STOP_TIMEOUT_S:g} s"
         except DeviceError as exc:
             self.last_error = str(exc)
