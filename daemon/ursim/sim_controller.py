@@ -66,8 +66,12 @@ class SimURController:
 
     def request_stop(self) -> None:
         """Ask `serve()` to finish (thread-safe)."""
-        if self._loop is not None and self._stop_event is not None:
-            self._loop.call_soon_threadsafe(self._stop_event.set)
+        loop, event = self._loop, self._stop_event
+        if loop is not None and event is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(event.set)
+            except RuntimeError:  # the loop closed meanwhile: nothing left to stop
+                pass
 
     def start(self, timeout_s: float = 10.0) -> SimURController:
         """Serve from a background thread; returns once listening. Raises DeviceError when it cannot listen."""

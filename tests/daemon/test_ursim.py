@@ -303,6 +303,15 @@ def test_stop_closes_everything():
     c.close()
 
 
+def test_a_taken_address_is_one_error():
+    threads = threading.active_count()
+    host = f"127.78.{os.getpid() % 250}.253"
+    with SimURController(host):
+        with pytest.raises(DeviceError, match=host):
+            SimURController(host).start()
+    assert threading.active_count() == threads
+
+
 def test_runs_as_a_process_and_stops_on_sigterm():
     host = f"127.78.{os.getpid() % 250}.252"
     proc = subprocess.Popen([sys.executable, "-m", "spadscan.daemon.ursim", "--host", host],
