@@ -270,7 +270,7 @@ def test_disk_full_pauses_and_loses_nothing_published(arun, tmp_path, sphere, mo
     assert not list(folder.glob(".tmp-*"))
 
 
-def test_link_loss_and_odd_frames_pause(arun, tmp_path, sphere):
+def test_link_loss_pauses_and_resumes(arun, tmp_path, sphere):
     cfg = make_cfg(tmp_path, views=6)
 
     async def scenario():
