@@ -1,0 +1,83 @@
+"""kill -9 of a worker mid-job: two `spadscan worker` processes serve one captures root with a short lease; the one
+running a job is killed; the job finishes on the other worker and every scan is reconstructed exactly once (a real
+reconstruction, two optimisation steps)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from e2e_helpers import processes_mentioning, spadscan, spadscan_argv, wait_for
+from spadscan.worker.queue import Queue
+
+SCANS = ("s0", "s1", "s2")
+
+
+def parent_pid(pid: int) -> int | None:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def job_processes(root: Path) -> dict[int, str]:
+    """Job child processes (`python -m spadscan.worker.jobs`) working on scans under `root`."""
+    return {pid: cmd for pid, cmd in processes_mentioning(str(root)).items() if "spadscan.worker.jobs" in cmd}
+
+
+def make_captures(root: Path) -> None:
+    root.mkdir()
+    r = spadscan("simulate", "builtin:sphere", "--out", root / SCANS[0], "--views", 6, "--rays-per-zone", 16,
+                 "--sensor", "tmf8820", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    for name in SCANS[1:]:
+        shutil.copytree(root / SCANS[0], root / name)
+
+
+@pytest.mark.slow
+def test_a_killed_workers_job_finishes_on_the_other_worker_once(tmp_path, procs):
+    root = tmp_path / "captures"
+    make_captures(root)
+    argv = spadscan_argv("worker", "--root", root, "--processes", 1, "--steps", 2, "--device", "cpu",
+                         "--lease-s", 3, "--poll-s", 0.2)
+    workers = {p.pid: p for p in (procs.start(argv, "worker-a"), procs.start(argv, "worker-b"))}
+
+    # The first job process to appear: its worker is the one to kill, mid-job.
+    job_pid, _ = next(iter(wait_for(lambda: job_processes(root), "a job process", 120).items()))
+    victim = workers.pop(parent_pid(job_pid))
+    (survivor,) = workers.values()
+    victim.kill()
+    victim.wait(timeout=30)
+    wait_for(lambda: job_pid not in job_processes(root), "the orphaned job process to exit", 30)
+
+    queue = Queue.for_root(root)
+    wait_for(lambda: queue.counts()["done"] == len(SCANS), "every job done", 180, poll_s=0.2)
+    assert procs.stop(survivor) == 0, procs.log(survivor)
+    assert not job_processes(root), "a job process outlived its worker"
+
+    r = spadscan("worker", "--root", root, "--status", "--json")
+    assert r.returncode == 0, r.stderr
+    rows = {row["id"]: row for row in json.loads(r.stdout)}
+    assert sorted(rows) == [f"{s}-fast" for s in SCANS]
+    assert {row["state"] for row in rows.values()} == {"done"}
+    lost = []
+    for scan in SCANS:
+        job = f"{scan}-fast"
+        outcomes = [rec["outcome"] for rec in queue.records(job)]
+        assert outcomes.count("done") == 1, f"{job} reconstructed {outcomes.count('done')} times: {outcomes}"
+        if "lost" in outcomes:
+            lost.append(job)
+            assert outcomes == ["lost", "done"], outcomes
+            assert rows[job]["attempts"] == 2
+        done = [rec for rec in queue.records(job) if rec["outcome"] == "done"][0]
+        assert done["pid"] == survivor.pid or "lost" not in outcomes, "the retried job ran on the surviving worker"
+        result = root / scan / "recon" / job
+        assert Path(rows[job]["result"]) == result
+        assert (result / "mesh.ply").is_file() and (result / "job.log").is_file()
+        assert json.loads((result / "report.json").read_text())["steps"] == 2
+        assert [p.name for p in (root / scan / "recon").iterdir() if not p.name.startswith(".")] == [job]
+    assert len(lost) == 1, f"exactly the killed worker's job was taken over: {lost}"
+    assert "its worker stopped" in procs.log(survivor)
