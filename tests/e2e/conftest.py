@@ -39,6 +39,6 @@ def make_daemon(tmp_path, procs, sock_dir):
         sock = sock_dir / "ctl.sock"
         rig = tmp_path / f"{name}.toml"
         rig.write_text(toml_text(rig_dict(captures, sock, **sections)))
-        return Daemon(procs, rig, sock)
+        return Daemon(procs, rig, sock, captures)
 
     return make

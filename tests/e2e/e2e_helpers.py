@@ -147,10 +147,10 @@ class Procs:
 
 
 class Daemon:
-    """`spadscan daemon --config RIG` as a process of `procs`, with its control socket."""
+    """`spadscan daemon --config RIG` as a process of `procs`, with its control socket and captures root."""
 
-    def __init__(self, procs: Procs, rig: Path, sock: Path):
-        self.procs, self.rig, self.sock = procs, Path(rig), Path(sock)
+    def __init__(self, procs: Procs, rig: Path, sock: Path, captures: Path):
+        self.procs, self.rig, self.sock, self.captures = procs, Path(rig), Path(sock), Path(captures)
         self.proc: subprocess.Popen | None = None
 
     def start(self, timeout_s: float = 90.0) -> "Daemon":
@@ -201,7 +201,8 @@ class Daemon:
 
 
 # ---- captures --------------------------------------------------------------------------------------------------------
-def assert_every_pose_once(folder: Path, n_poses: int, frames_per_pose: int, *, complete: bool = True):
+def assert_every_pose_once(folder: Path, n_poses: int, frames_per_pose: int, *, complete: bool = True,
+                           atol: float = 1e-6):
     """Each (pose, frame) of the plan exactly once in the capture; each measurement at its planned pose.
     Returns the loaded CaptureData."""
     reader = CaptureReader(folder)
@@ -214,8 +215,8 @@ def assert_every_pose_once(folder: Path, n_poses: int, frames_per_pose: int, *, 
         f"missing or extra poses: {sorted(set(range(n_poses)) ^ set(data.pose_indices.tolist()))}"
     assert set(counts.values()) == {1}, f"repeated: {[k for k, c in counts.items() if c > 1]}"
     planned = reader.planned_poses()
-    # The sim arm reaches its targets exactly: every measurement was taken at the pose its index names.
-    np.testing.assert_allclose(data.poses, planned[data.pose_indices], atol=1e-6)
+    # Simulated arms reach their targets exactly: every measurement was taken at the pose its index names.
+    np.testing.assert_allclose(data.poses, planned[data.pose_indices], atol=atol)
     return data
 
 
