@@ -7,6 +7,7 @@ Every process started here is stopped by its owner (`Daemon.stop`, `Procs.stop_a
 from __future__ import annotations
 
 import collections
+import contextlib
 import hashlib
 import json
 import os
@@ -235,6 +236,24 @@ def chunk_digests(folder: Path) -> dict[str, str]:
             h.update(f.name.encode() + b"\0" + f.read_bytes())
         out[chunk.name] = h.hexdigest()
     return out
+
+
+# ---- filesystems ----------------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def tmpfs(mountpoint: Path, size: str):
+    """Mount a tmpfs of `size` (e.g. '2m') at mountpoint (created) for the block; yields False (and mounts nothing)
+    where mounting is not allowed (not root). Unmounts on the way out (lazily if something still holds it)."""
+    mountpoint.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},mode=0755", "tmpfs", str(mountpoint)],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        if subprocess.run(["umount", str(mountpoint)], capture_output=True).returncode != 0:
+            subprocess.run(["umount", "-l", str(mountpoint)], capture_output=True)
 
 
 # ---- processes -------------------------------------------------------------------------------------------------------

@@ -10,11 +10,10 @@ import errno
 import itertools
 import json
 import os
-import subprocess
 
 import pytest
 
-from e2e_helpers import assert_every_pose_once, chunk_digests, published_prefix, wait_for
+from e2e_helpers import assert_every_pose_once, chunk_digests, published_prefix, tmpfs, wait_for
 from spadscan.protocol.capture_reader import CaptureReader
 
 
@@ -111,18 +110,13 @@ def test_protective_stop_on_the_ur_controller_pauses_and_resume_completes(make_d
 @pytest.fixture
 def small_disk(tmp_path, procs):
     """A 2 MiB tmpfs mounted at tmp_path/caps (needs root); unmounted after every process of the test stopped."""
-    mnt = tmp_path / "caps"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m,mode=0755", "tmpfs", str(mnt)], capture_output=True,
-                       text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs here ({r.stderr.strip() or 'mount failed'}); needs root")
-    try:
-        yield mnt
-    finally:
-        procs.stop_all()
-        if subprocess.run(["umount", str(mnt)], capture_output=True).returncode != 0:
-            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+    with tmpfs(tmp_path / "caps", "2m") as mounted:
+        if not mounted:
+            pytest.skip("cannot mount a small tmpfs here (needs root)")
+        try:
+            yield tmp_path / "caps"
+        finally:
+            procs.stop_all()
 
 
 def fill(folder) -> int:
