@@ -1,0 +1,57 @@
+"""`spadscan demo`, the whole loop (daemon -> capture -> worker -> mesh) as real processes: it finishes with a summary
+and leaves no process behind; Ctrl-C during the scan stops every process it started."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+from pathlib import Path
+
+import pytest
+
+from e2e_helpers import processes_mentioning, spadscan, spadscan_argv, wait_for
+from spadscan.protocol.capture_reader import CaptureReader
+
+
+@pytest.mark.slow
+def test_demo_finishes_with_a_summary_and_no_process_left(tmp_path):
+    out = tmp_path / "demo"
+    r = spadscan("demo", "--out", out, "--views", 8, "--budget-s", 10, timeout=480)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert isinstance(summary["chamfer_mm"], float) and math.isfinite(summary["chamfer_mm"])
+    assert summary["chamfer_mm"] > 0
+    for key in ("mesh", "report"):
+        assert Path(summary[key]).is_file(), f"summary {key}: {summary[key]} does not exist"
+    assert Path(summary["mesh"]).parent == Path(summary["report"]).parent
+    stages = summary["seconds"]
+    assert {"start_s", "scan_s", "reconstruct_s", "total_s"} <= set(stages)
+    assert all(isinstance(v, (int, float)) and v >= 0 for v in stages.values())
+    assert stages["total_s"] >= stages["scan_s"] + stages["reconstruct_s"]
+    assert summary["mesh"] in r.stdout and "chamfer" in r.stdout
+    capture = CaptureReader(summary["capture"])
+    assert capture.state == "complete" and len(capture.load().hists) == 8
+    assert not processes_mentioning(str(out)), "the demo left a process running"
+    assert not (out / "daemon.sock").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_the_scan_stops_every_process(tmp_path, procs):
+    out = tmp_path / "demo"
+    demo = procs.start(spadscan_argv("demo", "--out", out, "--views", 400, "--budget-s", 10), "demo")
+    wait_for(lambda: list(out.glob("captures/*/chunk-000002")) or demo.poll() is not None,
+             "the scan to publish a few poses", 120, poll_s=0.05)
+    assert demo.poll() is None, procs.log(demo)
+    started = {pid: cmd for pid, cmd in processes_mentioning(str(out)).items() if pid != demo.pid}
+    assert any(" daemon " in cmd for cmd in started.values()), started
+    demo.send_signal(signal.SIGINT)
+    assert demo.wait(timeout=90) == 130, procs.log(demo)
+    wait_for(lambda: not processes_mentioning(str(out)), "every process of the demo to stop", 30, poll_s=0.1)
+    assert "Traceback" not in procs.log(demo)
+    (capture,) = out.glob("captures/*/scan.json")
+    reader = CaptureReader(capture.parent)
+    assert reader.state == "running", "stopped during the scan: the capture stays resumable"
+    assert len(reader.load().hists) < 400
+    assert not (out / "daemon.sock").exists()
