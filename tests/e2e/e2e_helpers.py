@@ -290,3 +290,16 @@ def open_fds(pid: int) -> dict[int, str]:
         except OSError:
             continue
     return out
+
+
+def settled_fds(pid: int, timeout_s: float = 30.0) -> dict[int, str]:
+    """The process's open fds once none is closing any more (the same set twice, 0.3 s apart)."""
+    last = open_fds(pid)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        time.sleep(0.3)
+        now = open_fds(pid)
+        if now == last:
+            return now
+        last = now
+    return last

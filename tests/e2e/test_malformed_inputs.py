@@ -12,7 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from e2e_helpers import one_line_error, open_fds, rig_dict, spadscan, spadscan_argv, toml_text, wait_for
+from e2e_helpers import (one_line_error, open_fds, rig_dict, settled_fds, spadscan, spadscan_argv, toml_text,
+                         wait_for)
 
 
 def run_many(cases: dict[str, list], parallel: int = 4, timeout: float = 300) -> dict[str, subprocess.CompletedProcess]:
@@ -251,4 +252,20 @@ def test_malformed_control_messages_get_one_line_errors_and_the_daemon_keeps_ser
     assert s["state"] == "idle" and s["daemon"]["pid"] == daemon.pid
     wait_for(lambda: len(open_fds(daemon.pid)) <= fds_before, "the daemon to close every client connection", 30)
     assert "Traceback" not in daemon.log()
+    assert daemon.stop() == 0, daemon.log()
+
+
+@pytest.mark.xfail(strict=True, reason="ControlServer._serve_client does not notice a client that hangs up while its "
+                                       "request is pending: each abandoned `wait` keeps a socket and a task until the "
+                                       "scan ends (a paused scan: for ever), so fds pile up")
+def test_clients_that_hang_up_on_wait_release_their_connections(make_daemon):
+    # A scan that stays paused (the sim arm's protective stop cannot be cleared): `wait` on it never returns.
+    daemon = make_daemon(arm={"protective_stop_on_move": [2]}, scan={"views": 4}).start()
+    daemon.call("scan", name="held")
+    daemon.wait_state("paused")
+    before = len(settled_fds(daemon.pid))
+    for _ in range(20):
+        hang_up(daemon.sock, b'{"op": "wait", "name": "held"}\n')
+    assert daemon.status()["state"] == "paused"
+    wait_for(lambda: len(open_fds(daemon.pid)) <= before, "the abandoned wait connections to be closed", 10)
     assert daemon.stop() == 0, daemon.log()

@@ -6,27 +6,15 @@ from __future__ import annotations
 
 import collections
 import json
-import time
 
 import pytest
 
-from e2e_helpers import assert_every_pose_once, open_fds, rss_kib, tmpfs, wait_for
+from e2e_helpers import assert_every_pose_once, rss_kib, settled_fds, tmpfs, wait_for
 
 POSES = 2000
 RSS_MARGIN_KIB = 5 * 1024
 """Allowed growth of the resident set from pose 500 to pose 2,000 (measured: under 0.5 MiB). A leaked histogram per
 pose alone would add 4.5 KiB x 1,500 = 6.6 MiB; a leaked measurement with its metadata far more."""
-
-
-def settled_fds(pid: int) -> dict[int, str]:
-    """The process's open fds once no connection is closing (the same set twice, 0.3 s apart)."""
-    last = open_fds(pid)
-    while True:
-        time.sleep(0.3)
-        now = open_fds(pid)
-        if now == last:
-            return now
-        last = now
 
 
 def kinds(fds: dict[int, str]) -> collections.Counter:
