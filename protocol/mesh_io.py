@@ -47,3 +47,20 @@ def load_mesh(path, *, units: str = "auto"):
     if len(mesh.faces) == 0 or not mesh.area > 0:
         raise MeshError(f"{path}: all triangles are degenerate (zero area)")
     return mesh
+
+
+BUILTIN_PREFIX = "builtin:"
+
+
+def load_mesh_spec(spec: str, *, units: str = "auto"):
+    """A mesh in metres from a file path or `builtin:NAME` (a scene of spadscan.protocol.scenes).
+
+    Returns (mesh, record): the record is what captures store in their manifest's `scene` dict so that the worker
+    can find the ground truth again: {"builtin": NAME} or {"mesh": absolute path}.
+    """
+    if spec.startswith(BUILTIN_PREFIX):
+        from .scenes import builtin_scene  # lazily: building the scenes costs time nobody else should pay
+
+        name = spec[len(BUILTIN_PREFIX):]
+        return builtin_scene(name), {"builtin": name}
+    return load_mesh(spec, units=units), {"mesh": str(Path(spec).resolve())}

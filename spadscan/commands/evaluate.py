@@ -33,17 +33,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="crop both meshes to this box (metres) before comparing")
 
 
-def load(spec: str, units: str):
-    """A mesh in metres from a file path or `builtin:NAME`."""
-    if spec.startswith("builtin:"):
-        from spadscan.protocol.scenes import builtin_scene
-
-        return builtin_scene(spec[len("builtin:"):])
-    from spadscan.protocol.mesh_io import load_mesh
-
-    return load_mesh(spec, units=units)
-
-
 def format_table(metrics, mesh: str, gt: str) -> str:
     """The metrics as a small aligned table (mm and degrees)."""
     m = metrics
@@ -65,9 +54,10 @@ def format_table(metrics, mesh: str, gt: str) -> str:
 def run(args: argparse.Namespace) -> int:
     import json
 
+    from spadscan.protocol.mesh_io import load_mesh_spec
     from spadscan.worker.metrics import crop_to_box, mesh_metrics
 
-    pred, gt = load(args.mesh, args.units), load(args.gt, args.units)
+    pred, gt = load_mesh_spec(args.mesh, units=args.units)[0], load_mesh_spec(args.gt, units=args.units)[0]
     if args.box is not None:
         pred = crop_to_box(pred, args.box[:3], args.box[3:])
         gt = crop_to_box(gt, args.box[:3], args.box[3:])

@@ -52,26 +52,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
-def load_scene(spec: str):
-    """(mesh, scene record) for a mesh path or `builtin:NAME`."""
-    from pathlib import Path
-
-    from spadscan.protocol.errors import MeshError
-
-    if spec.startswith("builtin:"):
-        name = spec.split(":", 1)[1]
-        try:
-            from spadscan.protocol import scenes
-        except ImportError:
-            raise MeshError(f"{spec}: built-in scenes are not available in this installation") from None
-        if name not in scenes.BUILTIN_SCENES:
-            raise MeshError(f"unknown built-in scene {name!r} (known: {', '.join(sorted(scenes.BUILTIN_SCENES))})")
-        return scenes.builtin_scene(name), {"builtin": name}
-    from spadscan.protocol.mesh_io import load_mesh
-
-    return load_mesh(spec), {"mesh": str(Path(spec).resolve())}
-
-
 def make_poses(args):
     """(poses (n, 4, 4), schedule record) from the command-line options."""
     import numpy as np
@@ -104,6 +84,7 @@ def run(args) -> int:
     import time
 
     from spadscan.protocol.errors import SimulationError
+    from spadscan.protocol.mesh_io import load_mesh_spec
     from spadscan.protocol.sensor_presets import sensor_preset
     from spadscan.protocol.simulator import SimSettings, simulate_capture
 
@@ -111,7 +92,7 @@ def run(args) -> int:
         raise SimulationError(f"--views {args.views} must be at least 1")
     if not (args.radius > 0):
         raise SimulationError(f"--radius {args.radius} m must be > 0")
-    mesh, scene = load_scene(args.mesh)
+    mesh, scene = load_mesh_spec(args.mesh)
     poses, schedule = make_poses(args)
     sensor = sensor_preset(args.sensor)
     settings = SimSettings(power=args.power, ambient=args.ambient, cycles=args.cycles, albedo=args.albedo,

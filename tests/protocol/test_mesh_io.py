@@ -87,3 +87,19 @@ def test_dataset_ground_truths_load_in_metres(lcspc_dataset):
     assert 0.15 < bunny.extents[2] < 0.35 and abs(bunny.bounds[0, 2]) < 0.01
     pyramid = load_mesh(lcspc_dataset / "real" / "pyramid" / "pyramid2.stl")  # metres, table slab ~2 m
     assert 1.0 < pyramid.extents.max() < 3.0
+
+
+def test_load_mesh_spec_builtin_and_file(tmp_path):
+    from spadscan.protocol.mesh_io import load_mesh_spec
+    from spadscan.protocol.scenes import builtin_scene
+
+    mesh, record = load_mesh_spec("builtin:cup")
+    assert record == {"builtin": "cup"}
+    assert np.allclose(mesh.bounds, builtin_scene("cup").bounds)
+    path = tmp_path / "cup.ply"
+    mesh.export(path)
+    again, record = load_mesh_spec(str(path))
+    assert record == {"mesh": str(path.resolve())}
+    assert np.allclose(again.bounds, mesh.bounds)
+    with pytest.raises(MeshError, match="unknown built-in scene 'nope'"):
+        load_mesh_spec("builtin:nope")
