@@ -3,11 +3,13 @@
 
 from __future__ import annotations
 
+import collections
 import json
 
 import pytest
 
 from e2e_helpers import assert_every_pose_once, published_prefix
+from spadscan.protocol.capture_reader import CaptureReader
 
 VIEWS, K = 30, 3
 SCAN = {"views": VIEWS, "frames_per_pose": K, "chunk_size": K}
@@ -15,13 +17,16 @@ ARM = {"motion_time_s": 0.05}  # slow enough that a kill lands mid-scan
 
 
 def start_and_kill(daemon, folder, at_pose: int) -> tuple[list[int], dict]:
-    """Kill -9 the daemon once the scan in `folder` has published `at_pose` poses; returns (published poses, chunk digests)
-    and checks that no published pose was lost and no half pose was published."""
+    """Kill -9 the daemon once the scan in `folder` has published `at_pose` poses. Checks that no published pose
+    was lost and no half pose was published; returns (published poses, chunk digests)."""
     seen = daemon.wait_pose(folder.name, at_pose)["pose"]
     daemon.kill9()
     poses, digests = published_prefix(folder)
     assert poses == list(range(len(poses))), "published poses are a prefix of the plan"
     assert len(poses) >= seen, "a pose the daemon reported published is gone"
+    per_pose = collections.Counter(CaptureReader(folder).load().pose_indices.tolist())
+    assert set(per_pose.values()) == {K}, f"a pose was published without all its {K} frames: {per_pose}"
+    assert CaptureReader(folder).state == "running"
     return poses, digests
 
 
