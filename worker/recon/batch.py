@@ -120,6 +120,7 @@ def backprop_batch(field_: SDFField, forward: TransientForward, batch: RayBatch,
     for start, stop in chunks:
         tr, grad = _render_chunk(field_, forward, batch, start, stop, s, albedo, table, True)
         eik = ((grad.norm(dim=-1) - 1.0) ** 2).sum()
-        ((tr * g_hist).sum() + eikonal_weight * eik / n_total).backward()
+        # The small graph of s, albedo and the table is shared by every chunk: keep it for the next one.
+        ((tr * g_hist).sum() + eikonal_weight * eik / n_total).backward(retain_graph=True)
         eik_sum = eik_sum + eik.detach()
     return data.detach(), eik_sum / n_total

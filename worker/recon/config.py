@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import json
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -114,6 +115,8 @@ class ReconConfig:
     """Marching-cubes grid cells along the longest side of the scene box for the final mesh."""
     dtype: str = "float32"
     """Tensor dtype of the optimisation ('float32' or 'float64')."""
+    metrics_points: int = 300_000
+    """Points sampled per mesh for the final metrics (the project's convention: 300,000)."""
     trace_points: int = 30_000
     """Points sampled per mesh for the Chamfer at trace checkpoints (the final metrics use the full count)."""
     trace_checkpoints: int = 12
@@ -126,8 +129,22 @@ class ReconConfig:
         return dataclasses.asdict(self)
 
 
+def parse_override(text: str) -> tuple[str, Any]:
+    """'KEY=VALUE' -> (key, value); the value is read as JSON when it parses (numbers, true, null, lists), else
+    kept as a string."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ReconstructionError(f"config override {text!r} must look like KEY=VALUE (e.g. rays.samples_per_ray=64)")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    return key.strip(), value
+
+
 def with_overrides(config: ReconConfig, overrides: dict[str, Any]) -> ReconConfig:
-    """A copy of `config` with dotted keys replaced, e.g. {'rays.samples_per_ray': 32, 'field.width': 64}."""
+    """A copy of `config` with dotted keys replaced, e.g. {'rays.samples_per_ray': 32, 'field.width': 64}.
+    A value must have the type of the field it replaces (ints may stand for floats, lists for tuples)."""
     config = _deep_copy(config)
     for key, value in overrides.items():
         *path, name = key.split(".")
@@ -138,8 +155,29 @@ def with_overrides(config: ReconConfig, overrides: dict[str, Any]) -> ReconConfi
                 raise ReconstructionError(f"config override {key!r}: {part!r} is not a config section")
         if not any(f.name == name for f in dataclasses.fields(obj)):
             raise ReconstructionError(f"config override {key!r}: no field {name!r} in {type(obj).__name__}")
-        setattr(obj, name, value)
+        setattr(obj, name, _coerce(getattr(obj, name), value, key))
     return config
+
+
+def _coerce(old, value, key: str):
+    """value, converted to the type of the field's current value `old`; a one-line error when it does not fit."""
+    if old is None or value is None:
+        return value
+    if isinstance(old, bool):
+        ok = isinstance(value, bool)
+    elif isinstance(old, int):
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif isinstance(old, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif isinstance(old, tuple):
+        ok = isinstance(value, (list, tuple))
+        value = tuple(value) if ok else value
+    else:
+        ok = isinstance(old, str) and isinstance(value, str)
+    if not ok:
+        raise ReconstructionError(f"config override {key!r}: {value!r} does not fit a field holding {old!r}")
+    return value
 
 
 def _deep_copy(obj):

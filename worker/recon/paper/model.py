@@ -20,6 +20,7 @@ from ..errors import ReconstructionError
 from ..forward import TransientForward, choose_terms
 from ..loss import eikonal, hist_l2, hist_scale, normal_tv
 from ..mesh import marching_cubes_mesh
+from ..numerics import flush_denormals
 from ..model_api import RunPlan
 from ..rays import ZoneGrid, mixture_weights
 from ..render import Table, table_hit
@@ -46,8 +47,6 @@ class PaperModel:
     """Implements model_api.ReconModel for the `paper` preset."""
 
     def __init__(self, scene: SceneData, config: ReconConfig, device: torch.device, plan: RunPlan):
-        if device.type == "cpu":
-            torch.set_flush_denormal(True)  # float32 denormals slow CPU steps 5-10x once the sharpness is large
         self.scene, self.config, self.device, self.plan = scene, config, device, plan
         self.dtype = {"float32": torch.float32, "float64": torch.float64}.get(config.dtype)
         if self.dtype is None:
@@ -105,7 +104,7 @@ class PaperModel:
         """Rays and samples for views (nv,): one ray in every cell of every zone (jittered when training), then
         (training) importance rays and, always, importance samples. No gradient."""
         rc, g = self.config.rays, self.grid
-        s_up = max(float(self.sharpness), self.config.sharpness.upsample) / self.radius
+        s_up = max(float(self.sharpness.detach()), self.config.sharpness.upsample) / self.radius
         cells = g.all_cells()[None].expand(len(views), -1, -1)  # (nv, Z, C)
         batch = self._coarse(views, cells, train)
         weight = g.cell_weight[None].expand(cells.shape)
@@ -148,6 +147,10 @@ class PaperModel:
 
     # ---- one step ------------------------------------------------------------------------------------------------
     def step(self) -> dict:
+        with flush_denormals(self.device):
+            return self._step()
+
+    def _step(self) -> dict:
         t0 = time.perf_counter()
         rc, lc = self.config.rays, self.config.loss
         nv = min(rc.views_per_batch, self.scene.n_views)
@@ -183,7 +186,7 @@ class PaperModel:
         if not math.isfinite(loss):
             raise ReconstructionError(f"the loss became {loss} at step {self.steps_done} (diverged)")
         return {"loss": loss, "data": float(data), "eikonal": float(eik), "tv": float(tv),
-                "sharpness": float(self.sharpness), "albedo": float(albedo)}
+                "sharpness": float(self.sharpness.detach()), "albedo": float(albedo.detach())}
 
     def _random_points(self, n: int) -> torch.Tensor:
         u = torch.randn(n, 3, generator=self.gen, dtype=torch.float64)
@@ -220,7 +223,7 @@ class PaperModel:
         z, out = self.scene.sensor.n_zones, []
         for v in views.split(1):
             batch = self.make_batch(v, train=False)
-            with torch.no_grad():
+            with torch.no_grad(), flush_denormals(self.device):
                 table = self._table()
                 table = None if table is None else Table(table.normal, table.offset.detach(), table.albedo.detach())
                 tr = batch_transient(self.field, self.forward, batch, (self.sharpness / self.radius).detach(),
@@ -230,10 +233,10 @@ class PaperModel:
         return np.concatenate(out)
 
     def summary(self) -> dict:
-        out = {"sharpness": float(self.sharpness), "albedo": float(self.log_albedo.exp()),
+        out = {"sharpness": float(self.sharpness.detach()), "albedo": float(self.log_albedo.detach().exp()),
                "hist_scale": self.scale, "steps": self.steps_done, "train_seconds": self.train_s,
                "rays_per_zone": self.grid.n_cells, "importance_rays_per_zone": self.n_imp_rays}
         if self.scene.table is not None:
-            out["table_offset_m"] = float(self.table_offset)
-            out["table_albedo"] = float(self.table_albedo.exp())
+            out["table_offset_m"] = float(self.table_offset.detach())
+            out["table_albedo"] = float(self.table_albedo.detach().exp())
         return out

@@ -1,0 +1,92 @@
+"""The training loop shared by the presets: steps until the step count or the time budget runs out, with
+checkpoints at regular intervals of training time that record the loss and (through a callback) the error.
+
+The training clock counts only `model.step()`; checkpoint evaluation (mesh extraction, Chamfer) is timed apart and
+never charged to the run, so that error-versus-time curves compare methods fairly.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+from .errors import ReconstructionError
+from .model_api import ReconModel, RunPlan
+
+
+@dataclass
+class TrainResult:
+    """What a run did. trace: one dict per checkpoint {step, seconds, loss, ...evaluation}."""
+
+    steps: int
+    seconds: float
+    stopped_by: str
+    last: dict
+    trace: list[dict] = field(default_factory=list)
+    eval_seconds: float = 0.0
+    losses: list[float] = field(default_factory=list)
+
+
+def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
+          evaluate: Callable[[], dict] | None = None, progress: bool = True, desc: str = "reconstruct") -> TrainResult:
+    """Run model.step() until plan.steps steps or plan.budget_s training seconds, whichever comes first.
+
+    Checkpoints: at the start, every 1/checkpoints of the run (of the budget when there is one, else of the steps)
+    and at the end; each records the step, training seconds, the mean loss since the previous checkpoint and
+    whatever `evaluate()` returns. A tqdm bar on stderr shows progress unless `progress` is False."""
+    from tqdm import tqdm
+
+    if not plan.steps and not plan.budget_s:
+        raise ReconstructionError("a run needs a step count or a time budget (give --steps or --budget-s)")
+    by_time = bool(plan.budget_s)
+    every = plan.budget_s / checkpoints if by_time else max(1, math.ceil(plan.steps / checkpoints))
+    result = TrainResult(steps=0, seconds=0.0, stopped_by="", last={})
+    window: list[float] = []
+
+    def checkpoint():
+        t0 = time.perf_counter()
+        entry = {"step": result.steps, "seconds": round(result.seconds, 4),
+                 "loss": (sum(window) / len(window)) if window else None}
+        if evaluate is not None:
+            entry.update(evaluate())
+        result.trace.append(entry)
+        window.clear()
+        result.eval_seconds += time.perf_counter() - t0
+        return entry
+
+    total = plan.budget_s if by_time else plan.steps
+    unit = "s" if by_time else "step"
+    with tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, disable=not progress, leave=False,
+              bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]") as bar:
+        checkpoint()
+        next_mark = every
+        while True:
+            if plan.steps and result.steps >= plan.steps:
+                result.stopped_by = "steps"
+                break
+            if by_time and result.seconds >= plan.budget_s:
+                result.stopped_by = "budget"
+                break
+            t0 = time.perf_counter()
+            last = model.step()
+            dt = time.perf_counter() - t0
+            result.steps += 1
+            result.seconds += dt
+            result.last = last
+            result.losses.append(float(last["loss"]))
+            window.append(float(last["loss"]))
+            bar.update(min(dt, max(0.0, plan.budget_s - bar.n)) if by_time else 1)
+            done = result.seconds if by_time else result.steps
+            if done >= next_mark:
+                entry = checkpoint()
+                next_mark += every
+                post = {"loss": f"{entry['loss']:.3g}"}
+                if entry.get("chamfer_mm") is not None:
+                    post["chamfer"] = f"{entry['chamfer_mm']:.2f}mm"
+                bar.set_postfix(post)
+        if window or not result.trace or result.trace[-1]["step"] != result.steps:
+            checkpoint()
+    return result
