@@ -12,6 +12,7 @@ import math
 import torch
 from torch import nn
 
+from ..errors import ReconstructionError
 from ..render import SDFField
 from .config import MLPFieldConfig
 
@@ -34,6 +35,11 @@ class MLPField(SDFField):
         self.register_buffer("center", torch.as_tensor(center).detach().clone())
         self.radius = float(radius)
         d_in = 3 + 6 * cfg.frequencies
+        if cfg.layers < 1 or (cfg.skip_layers and cfg.width <= d_in) or any(
+                not 0 < k <= cfg.layers for k in cfg.skip_layers):
+            raise ReconstructionError(f"MLP field: {cfg.layers} layers of width {cfg.width} with skips at "
+                                      f"{list(cfg.skip_layers)} cannot hold the {d_in}-wide encoding (skip layers must "
+                                      f"lie in 1..layers and the width must exceed {d_in})")
         dims = [d_in] + [cfg.width] * cfg.layers + [1]
         self.skips = set(cfg.skip_layers)
         self.linears = nn.ModuleList()
