@@ -185,7 +185,7 @@ class PaperModel:
         loss = float(data) + lc.eikonal_weight * float(eik) + float(extra.detach())
         if not math.isfinite(loss):
             raise ReconstructionError(f"the loss became {loss} at step {self.steps_done} (diverged)")
-        return {"loss": loss, "data": float(data), "eikonal": float(eik), "tv": float(tv),
+        return {"loss": loss, "data": float(data), "eikonal": float(eik), "tv": float(tv.detach()),
                 "sharpness": float(self.sharpness.detach()), "albedo": float(albedo.detach())}
 
     def _random_points(self, n: int) -> torch.Tensor:
