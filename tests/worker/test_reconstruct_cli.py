@@ -1,0 +1,131 @@
+"""`spadscan reconstruct` and `reconstruct_capture`: every file written, the report's contents, one-line errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from spadscan.cli import main
+from spadscan.protocol.schedules import fibonacci_hemisphere
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+SMALL = ["rays.rays_per_view=32", "rays.importance_rays_per_view=8", "rays.samples_per_ray=24",
+         "rays.importance_samples=8", "field.width=48", "field.layers=3", "field.skip_layers=[2]",
+         "field.frequencies=4", "mesh_resolution=40", "trace_mesh_resolution=24", "trace_points=2000",
+         "metrics_points=5000"]
+FILES = {"mesh.ply", "report.json", "preview.png", "error_vs_time.png", "fit.png"}
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def capture_and_gt(tmp_path_factory):
+    import trimesh
+
+    root = tmp_path_factory.mktemp("recon")
+    mesh = trimesh.creation.box(extents=(0.07, 0.05, 0.09))
+    mesh.apply_translation([0.0, 0.0, 0.045])
+    gt = root / "gt.ply"
+    mesh.export(gt)
+    poses = fibonacci_hemisphere(6, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
+    cap = simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, root / "cap",
+                           settings=SimSettings(rays_per_zone=512), progress=False)
+    return cap, gt
+
+
+def small_args():
+    return [x for kv in SMALL for x in ("--set", kv)]
+
+
+@pytest.mark.slow
+def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
+    cap, gt = capture_and_gt
+    out = tmp_path / "out"
+    rc = main(["reconstruct", str(cap), "--out", str(out), "--preset", "paper", "--steps", "2", "--gt", str(gt),
+               "--device", "cpu", "--seed", "3", "--no-progress", *small_args()])
+    assert rc == 0
+    assert FILES | {"normals.png"} <= {p.name for p in out.iterdir()}
+    for name in FILES - {"report.json", "mesh.ply"} | {"normals.png"}:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    report = json.loads((out / "report.json").read_text())
+    assert report["preset"] == "paper" and report["device"] == "cpu" and report["steps"] == 2
+    assert report["seed"] == 3 and report["stopped_by"] == "steps" and report["seconds"] > 0
+    assert set(report["terms"]) == {"pileup", "crosstalk", "table", "tv", "reference_pulse"}
+    assert report["terms"]["pileup"] and not report["terms"]["crosstalk"] and not report["terms"]["table"]
+    assert np.isfinite(report["final_loss"])
+    assert report["config"]["rays"]["samples_per_ray"] == 24  # the resolved config, overrides included
+    for key in ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg"):
+        assert np.isfinite(report[key])
+    trace = report["trace"]
+    assert [p["step"] for p in trace] == [0, 1, 2]
+    assert all(np.isfinite(p["chamfer_mm"]) for p in trace) and "excluded" in report["trace_note"]
+    assert trace[0]["seconds"] == 0 and trace[-1]["seconds"] == pytest.approx(report["seconds"], abs=1e-3)
+    assert set(report["files"]) >= FILES
+    header = (out / "mesh.ply").read_bytes()[:1000]
+    assert b"property float nx" in header or b"property double nx" in header  # per-vertex normals are stored
+    summary = capsys.readouterr().out
+    assert "paper: 2 steps" in summary and "Chamfer" in summary
+
+
+@pytest.mark.slow
+def test_reconstruct_capture_stops_at_the_time_budget(capture_and_gt, tmp_path):
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    cap, _ = capture_and_gt
+    overrides = dict(kv.split("=", 1) for kv in SMALL)
+    overrides = {k: json.loads(v) for k, v in overrides.items()}
+    report = reconstruct_capture(cap, tmp_path / "o", preset="paper", budget_s=1.0, device="cpu", seed=0,
+                                 progress=False, overrides=overrides)
+    assert report["stopped_by"] == "budget" and report["steps"] >= 1
+    assert 1.0 <= report["seconds"] < 1.0 + 10 * report["seconds_per_step"]
+    secs = [p["seconds"] for p in report["trace"]]
+    assert secs == sorted(secs) and all(p["chamfer_mm"] is None for p in report["trace"] if "chamfer_mm" in p)
+    assert "chamfer_mm" not in report and FILES <= set(report["files"])
+
+
+def one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("spadscan: error: "), err
+    return err[0]
+
+
+def test_bad_capture_is_a_one_line_error(tmp_path, capsys):
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "scan.json").write_text("{not json")
+    assert main(["reconstruct", str(tmp_path / "junk"), "--out", str(tmp_path / "o"), "--preset", "paper"]) == 1
+    assert "scan.json" in one_line_error(capsys)
+    assert main(["reconstruct", str(tmp_path / "nothing"), "--out", str(tmp_path / "o"), "--preset", "paper"]) == 1
+    assert "no such capture" in one_line_error(capsys)
+
+
+def test_bad_arguments_are_one_line_errors(capture_and_gt, tmp_path, capsys):
+    cap, _ = capture_and_gt
+    base = ["reconstruct", str(cap), "--out", str(tmp_path / "o"), "--preset", "paper", "--no-progress"]
+    assert main(base + ["--gt", str(tmp_path / "missing.obj")]) == 1
+    assert "missing.obj" in one_line_error(capsys)
+    assert main(base + ["--steps", "0"]) == 1
+    assert "steps" in one_line_error(capsys)
+    assert main(base + ["--set", "rays.no_such_field=1"]) == 1
+    assert "no_such_field" in one_line_error(capsys)
+    if not torch.cuda.is_available():
+        assert main(base + ["--device", "cuda", "--steps", "1"]) == 1
+        assert "CUDA" in one_line_error(capsys)
+
+
+def test_help_names_every_option(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["reconstruct", "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    for flag in ("--out", "--preset", "--budget-s", "--steps", "--gt", "--device", "--seed"):
+        assert flag in text
