@@ -55,6 +55,12 @@ class TrackedArm(Arm):
     async def stop(self) -> None:
         await self.inner.stop()
 
+    async def reconnect(self) -> None:
+        await self.inner.reconnect()
+
+    async def clear_fault(self) -> None:
+        await self.inner.clear_fault()
+
     def actual_pose(self) -> np.ndarray:
         return self.last_tcp_pose.copy()
 

@@ -93,6 +93,15 @@ class Arm(Device):
     async def stop(self) -> None:
         """Stop any motion now."""
 
+    async def reconnect(self) -> None:
+        """Open the link afresh after LinkLost; the runner calls it when a scan resumes after a lost link. Raises
+        LinkLost while the link is still down. Default: `connect()` (idempotent)."""
+        await self.connect()
+
+    async def clear_fault(self) -> None:
+        """Called when the user resumes a scan that an ArmFault paused. A real arm does nothing here (the operator
+        clears a protective stop on the teach pendant before resuming); a simulated one clears its stop."""
+
 
 class Sensor(Device):
     """A time-of-flight sensor that streams histogram frames."""

@@ -3,12 +3,16 @@
 Per pose: move (TCP pose = sensor pose @ inv(hand-eye)), settle, drop frames that began before the arm stopped and
 settled, capture K frames, read the arm's *actual* TCP pose and joints, store each frame as its own measurement
 (sensor pose = actual TCP @ hand-eye), publish the pose as one chunk. Publishing runs on one writer thread and
-overlaps the next move and settle (never the next pose's frames): at any moment at most one pose is captured but
-unpublished, and a pose counts only once its chunk is published.
+overlaps the next pose's move, settle and frames; pose i+1 is handed to the writer only once pose i's chunk has
+landed. So at any moment at most one *finished* pose is unpublished (a kill -9 loses it and the frames of the pose
+being captured, nothing else), and a pose counts only once its chunk is published.
 
 Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent), a protective stop or lost link
 (ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The writer is then
 dropped and reopened on resume, which continues at the first unpublished pose (`CaptureWriter.next_pose_index`).
+Before the first move after such a resume the arm is readied: after LinkLost it reconnects (`Arm.reconnect`: fresh
+interfaces), after ArmFault `Arm.clear_fault` runs (the sim arm clears its protective stop; a real UR arm's stop is
+cleared by the operator on the pendant before `ctl resume`).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ STATE_TIMEOUT_S = 5.0  # how long arm.state() may take
 STOP_TIMEOUT_S = 5.0  # how long arm.stop() may take
 FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before the runner gives up on it
 PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may take
+READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting) may take
 
 
 class _Fault(SpadscanError):
@@ -112,6 +117,9 @@ class ScanRunner:
         self.job = job
         job.reason = job.blocked or (f"interrupted at pose {self._progress()} (daemon restarted); "
                                      f"`spadscan ctl resume` continues")
+        log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
+                 "blocked: " + job.blocked if job.blocked else
+                 "resuming by itself: auto_resume" if self.cfg.auto_resume else "paused until `ctl resume`")
         self._launch("paused")
         if self.cfg.auto_resume and job.blocked is None:
             await self.resume()
@@ -121,6 +129,7 @@ class ScanRunner:
         if self.state == "scanning":
             self._pause_requested = True
             self._set_state("pausing")
+            log.info("scan %s: pause requested at pose %s", self.job.name, self._progress())
         elif self.state not in ("pausing", "paused"):
             raise ConfigError(f"nothing to pause (daemon is {self.state})")
         return self.status()
@@ -131,9 +140,12 @@ class ScanRunner:
         if self.state == "pausing":
             self._pause_requested = False
             self._set_state("scanning")
+            log.info("scan %s: pause withdrawn, scanning on at pose %s", job.name, self._progress())
         elif self.state == "paused" and job is not None:
             if job.blocked:
                 raise ConfigError(f"cannot resume scan {job.name!r}: {job.blocked}")
+            log.info("scan %s: resumed at pose %s%s", job.name, self._progress(),
+                     f" (was paused: {job.reason})" if job.reason else "")
             self._resume.set()
             job.reason = None
             self._set_state("scanning")
@@ -207,14 +219,19 @@ class ScanRunner:
                         continue
                 if self._pause_requested:
                     job.reason = "paused by user"
+                    log.info("scan %s paused by user at pose %s", job.name, self._progress())
                     await self._wait_resume(job)
                     continue
                 try:
+                    await self._ready_arm(job)
                     await self._poses(job)
                     if not self._pause_requested:
                         await self._io(job.writer.finish, "complete")
                         break
                 except (DeviceError, OSError, CaptureError, _Fault) as exc:
+                    # What the arm needs before it moves again, once the user resumes.
+                    job.arm_fix = ("reconnect" if isinstance(exc, LinkLost) else
+                                   "clear" if isinstance(exc, ArmFault) else job.arm_fix)
                     await self._fault(job, _describe(exc) + f" (pose {job.next_pose}/{job.n_poses})")
                 except asyncio.CancelledError:
                     raise
@@ -226,9 +243,26 @@ class ScanRunner:
             await self._wind_down(job)
             raise
 
+    async def _ready_arm(self, job: ScanJob) -> None:
+        """Before the first move after a fault: reconnect after a lost link, clear a fault (see the module
+        docstring). A failure raises like any fault (and the fix is tried again at the next resume)."""
+        fix = job.arm_fix
+        if fix is None:
+            return
+        what = "reconnecting" if fix == "reconnect" else "clearing its fault"
+        log.info("scan %s: %s: %s before pose %s", job.name, self.arm.name, what, self._progress())
+        try:
+            async with asyncio.timeout(READY_TIMEOUT_S):
+                if fix == "reconnect":
+                    await self.arm.reconnect()
+                await self.arm.clear_fault()
+        except TimeoutError:
+            raise LinkLost(f"{self.arm.name}: {what} did not finish within {READY_TIMEOUT_S:g} s") from None
+        job.arm_fix = None
+
     async def _poses(self, job: ScanJob) -> None:
         """Run poses from job.next_pose until the plan ends or a pause is requested; raises on a fault."""
-        pending = None  # the previous pose's publish, overlapping this pose's move and settle
+        pending = None  # the previous pose's publish, overlapping this pose's move, settle and frames
         try:
             for i in range(job.next_pose, job.n_poses):
                 self._check_end()
@@ -237,16 +271,16 @@ class ScanRunner:
                 t_stop = await self._move(job, i)
                 if job.scan.settle_s > 0:
                     await asyncio.sleep(job.scan.settle_s)
-                if pending is not None:
-                    p, pending = pending, None
-                    await self._landed(p, i - 1)
-                    job.record_progress(job.writer)
-                    self._notify()
                 frames = await self._frames(job, i, t_stop + job.scan.settle_s)
                 arm = await self._arm_state()
                 self._check_end()
                 if arm.protective_stop:
                     raise ArmFault(f"{self.arm.name}: protective stop while capturing pose {i}")
+                if pending is not None:  # pose i-1 lands before pose i is handed over: one finished pose unpublished
+                    p, pending = pending, None
+                    await self._landed(p, i - 1)
+                    job.record_progress(job.writer)
+                    self._notify()
                 pending = asyncio.ensure_future(self._io(self._publish, job.writer, _measurements(job, i, frames,
                                                                                                    arm)))
         finally:

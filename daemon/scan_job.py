@@ -66,6 +66,8 @@ class ScanJob:
     reason: str | None = None
     blocked: str | None = None
     """Why this scan cannot resume (e.g. the rig's hand-eye changed); None when it can."""
+    arm_fix: str | None = None
+    """What the arm needs before its next move after a fault: 'reconnect' (lost link), 'clear' (arm fault) or None."""
     started: float = field(default_factory=time.monotonic)
     history: deque = field(default_factory=lambda: deque(maxlen=256))
     """(monotonic s, frames published) after each pose, for the rate."""

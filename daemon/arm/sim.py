@@ -3,8 +3,14 @@
 Motion time follows a trapezoidal speed profile from the move's distance, speed and acceleration (or a fixed time;
 0 = instant), scaled by `time_scale`. While a move runs the actual pose slides along the straight line, so a sensor
 that renders at the arm's pose sees motion. Faults rehearse what a real UR does: a protective stop half way through a
-chosen move (the move raises ArmFault and every later move is refused until `clear_protective_stop`), or a link drop
-(state and moves raise LinkLost until `restore_link`). Joint angles are a fake but deterministic function of the pose.
+chosen move (the move raises ArmFault and every later move is refused until the stop is cleared), or a link drop
+(state and moves raise LinkLost until `restore_link`). An injected fault freezes the arm at exactly
+`interpolate_pose(start, goal, 0.5)`, whatever the clock says. Joint angles are a fake but deterministic function of
+the pose.
+
+Clearing a protective stop: on a real UR the operator clears it on the teach pendant, then resumes the scan. The sim
+has no pendant, so `clear_fault()` (which the scan runner calls when the user resumes a scan an arm fault paused,
+`spadscan ctl resume`) clears it, as does `clear_protective_stop()`.
 """
 
 from __future__ import annotations
@@ -16,7 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from spadscan.daemon.arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
+from spadscan.protocol.errors import ConfigError
 
 # Home: 0.6 m above the base origin, tool z pointing down.
 HOME = np.array([[1.0, 0, 0, 0], [0, -1.0, 0, 0], [0, 0, -1.0, 0.6], [0, 0, 0, 1]])
@@ -30,32 +38,6 @@ class SimArmFaults:
     """Moves that stop protectively half way."""
     link_drop_on_moves: tuple[int, ...] = ()
     """Moves during which the link drops (the move raises LinkLost half way)."""
-
-
-def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of an axis-angle vector (3,) in radians (Rodrigues)."""
-    v = np.asarray(v, float)
-    angle = float(np.linalg.norm(v))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = v / angle
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
-
-
-def matrix_to_rotvec(r: np.ndarray) -> np.ndarray:
-    """Axis-angle vector (3,) in radians of a rotation matrix (3, 3); stable near 0 and pi."""
-    cos = max(-1.0, min(1.0, (np.trace(r) - 1) / 2))
-    angle = math.acos(cos)
-    if angle < 1e-9:
-        return np.zeros(3)
-    if math.pi - angle < 1e-6:
-        # Near pi the antisymmetric part vanishes: take the axis from the symmetric part's largest column.
-        b = (r + np.eye(3)) / 2
-        axis = b[:, int(np.argmax(np.diag(b)))]
-        return axis / np.linalg.norm(axis) * angle
-    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    return w / (2 * math.sin(angle)) * angle
 
 
 def interpolate_pose(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
@@ -88,10 +70,14 @@ class SimArm(Arm):
     def __init__(self, *, motion_time_s: float | None = None, speed: float = 0.25, time_scale: float = 1.0,
                  faults: SimArmFaults = SimArmFaults(), pose_noise_m: float = 0.0, seed: int = 0,
                  home: np.ndarray | None = None):
-        if motion_time_s is not None and not (math.isfinite(motion_time_s) and motion_time_s >= 0):
-            raise ValueError(f"motion_time_s {motion_time_s} must be >= 0 s")
-        if not (speed > 0 and time_scale >= 0 and pose_noise_m >= 0):
-            raise ValueError("speed must be > 0 m/s, time_scale >= 0, pose_noise_m >= 0 m")
+        if motion_time_s is not None and not (_number(motion_time_s) and motion_time_s >= 0):
+            raise ConfigError(f"sim arm motion_time_s = {motion_time_s!r} must be a finite number >= 0 (s)")
+        for label, value, ok in (("speed", speed, "> 0 (m/s)"), ("time_scale", time_scale, ">= 0"),
+                                 ("pose_noise_m", pose_noise_m, ">= 0 (m)")):
+            if not (_number(value) and (value > 0 if label == "speed" else value >= 0)):
+                raise ConfigError(f"sim arm {label} = {value!r} must be a finite number {ok}")
+        if home is not None and np.shape(home) != (4, 4):
+            raise ConfigError(f"sim arm home must be a 4x4 pose, got shape {np.shape(home)}")
         self.name = "arm (sim)"
         self.motion_time_s = motion_time_s
         self.max_speed = float(speed)
@@ -126,6 +112,15 @@ class SimArm(Arm):
     def clear_protective_stop(self) -> None:
         """What the operator does on the teach pendant after a protective stop."""
         self.protective_stop = False
+
+    async def clear_fault(self) -> None:
+        """The user resumed after an arm fault: clear the protective stop (the sim's stand-in for the pendant)."""
+        self.clear_protective_stop()
+
+    async def reconnect(self) -> None:
+        """LinkLost while the link is still down (see `restore_link`); otherwise connected again."""
+        self._check_link()
+        self.connected = True
 
     def drop_link(self) -> None:
         self._freeze()
@@ -172,10 +167,12 @@ class SimArm(Arm):
         self._motion = motion
         try:
             await asyncio.sleep(duration / 2 if fault else duration)
+            if fault and self._motion is motion:  # half way, exactly: not wherever the clock has got to
+                self._pose, self._motion = interpolate_pose(start, goal, 0.5), None
             if fault == "stop":
-                self.trigger_protective_stop()
+                self.protective_stop = True
             elif fault == "link":
-                self.drop_link()
+                self.link_up = False
             self._check_link()
             if self.protective_stop:
                 raise ArmFault(f"{self.name}: protective stop during move {self.moves}")
@@ -212,3 +209,7 @@ class SimArm(Arm):
 
     async def stop(self) -> None:
         self._freeze()
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)

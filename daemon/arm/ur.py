@@ -14,6 +14,12 @@ What ur_rtde does not tell by raising, this class checks:
   so "move finished" alone does not mean the reading shows the arm at rest.
 Reconnecting builds new interfaces: ur_rtde 1.6.5's `RTDEReceiveInterface.reconnect()` can crash the process.
 
+A dead link can wedge a control call for good (ur_rtde 1.6.5's stopL on a dropped link never returns, not even after
+the link comes back). So `stop()` reads the link first and raises LinkLost instead of calling stopL on a dead link;
+a call that still outlives its timeout marks the arm's thread stuck, and every later call then fails at once with
+LinkLost instead of queueing behind it. `reconnect()` and `close()` give a stuck thread up, with its control
+interface (neither is touched again; the interface is kept, never destroyed), and carry on with a fresh thread.
+
 GIL traps of ur_rtde 1.6.5: its constructors hold the Python GIL while they connect (the event loop stalls for the
 length of `connect()`, ~30 ms on loopback), and its destructors hold it for ~0.5 s each even after `disconnect()`.
 Disconnected interfaces (no threads or sockets left) are therefore kept until the URArm itself is dropped, so that
@@ -104,7 +110,8 @@ class URArm(Arm):
         await self.reconnect()
 
     async def reconnect(self) -> None:
-        """Drop the interfaces and build new ones."""
+        """Drop the interfaces and build new ones (on a fresh thread when the old one is stuck)."""
+        self._abandon_if_stuck()
         await self._close_interfaces()
         await self._call(f"connection to {self.host}", self._open_interfaces, timeout_s=self.timeout_s + 15.0)
         self._open = True
@@ -124,7 +131,8 @@ class URArm(Arm):
             await self.stop()
 
     async def close(self) -> None:
-        """Disconnect both interfaces and end the arm's thread. Idempotent."""
+        """Disconnect both interfaces and end the arm's thread. Idempotent; never waits on a stuck thread."""
+        self._abandon_if_stuck()
         try:
             await self._close_interfaces()
         finally:
@@ -162,7 +170,8 @@ class URArm(Arm):
             await self._wait_motion(what, budget)
             await self._wait_arrival(what, target)
         except asyncio.CancelledError:
-            self._thread.post(self._stop_now)  # runs on the arm's thread as soon as it is free
+            # Runs on the arm's thread as soon as it is free.
+            self._thread.post(self._stop_now, what="stopL after a cancelled move", timeout_s=self.timeout_s)
             raise
 
     async def state(self) -> ArmState:
@@ -175,8 +184,10 @@ class URArm(Arm):
                         timestamp_s=reading.timestamp, protective_stop=reading.protective or reading.emergency)
 
     async def stop(self) -> None:
-        """stopL now (decelerating at STOP_DECEL)."""
+        """stopL now (decelerating at STOP_DECEL). LinkLost without trying when the link is dead: stopL would block
+        the arm's thread for good."""
         self._require_open()
+        self._check_link(await self._call("the arm state before stopL", self._read))
         await self._call("stopL", self._stop_now)
 
     # -- waiting ---------------------------------------------------------------------------------------------------
@@ -269,6 +280,10 @@ class URArm(Arm):
 
     # -- on the arm's thread -------------------------------------------------------------------------------------
     async def _call(self, what: str, fn, timeout_s: float | None = None):
+        stuck = self._thread.overdue()
+        if stuck:
+            raise LinkLost(f"{self.name}: the arm's thread is still blocked in {stuck} (link dead?); {what} not "
+                           f"sent, reconnect first")
         try:
             return await self._thread.call(what, self.timeout_s if timeout_s is None else timeout_s, fn)
         except DeviceError as exc:
@@ -286,6 +301,17 @@ class URArm(Arm):
 
         self._receive = rtde_receive.RTDEReceiveInterface(self.host, self.frequency)
         self._control = rtde_control.RTDEControlInterface(self.host, self.frequency)
+
+    def _abandon_if_stuck(self) -> None:
+        """Give up a thread stuck in a call, and the control interface it is stuck in (see the module docstring);
+        the receive interface is disconnected on the fresh thread as usual."""
+        if self._thread.overdue() is None:
+            return
+        if self._control is not None:
+            self._retired.append(self._control)
+        self._control = None
+        self._open = False
+        self._thread.abandon()
 
     async def _close_interfaces(self) -> None:
         self._open = False

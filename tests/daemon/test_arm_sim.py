@@ -9,9 +9,11 @@ import time
 import numpy as np
 import pytest
 
-from spadscan.daemon.arm.sim import (HOME, SimArm, SimArmFaults, fake_joints, interpolate_pose, matrix_to_rotvec,
-                                     rotvec_to_matrix, trapezoid_time)
+from spadscan.daemon.arm import sim as sim_module
+from spadscan.daemon.arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
+from spadscan.daemon.arm.sim import HOME, SimArm, SimArmFaults, fake_joints, interpolate_pose, trapezoid_time
 from spadscan.daemon.devices import ArmFault, LinkLost
+from spadscan.protocol.errors import ConfigError
 
 
 def pose_at(x, y, z, rotvec=(math.pi, 0.0, 0.0)) -> np.ndarray:
@@ -87,10 +89,24 @@ def test_pose_noise_moves_the_actual_pose_a_little(arun):
     np.testing.assert_allclose(actual[:3, :3], goal[:3, :3])
 
 
-def test_protective_stop_on_kth_move(arun):
+class LateClock:
+    """The sim arm's clock on a loaded machine: every reading is `lag_s` later than the one before."""
+
+    def __init__(self, lag_s: float):
+        self.lag_s, self.offset = lag_s, 0.0
+
+    def monotonic(self) -> float:
+        self.offset += self.lag_s
+        return time.monotonic() + self.offset
+
+
+@pytest.mark.parametrize("lag_s", [0.0, 10.0])
+def test_protective_stop_on_kth_move_freezes_exactly_half_way(arun, monkeypatch, lag_s):
+    monkeypatch.setattr(sim_module, "time", LateClock(lag_s))
+
     async def scenario():
         arm = SimArm(motion_time_s=0.02, faults=SimArmFaults(protective_stop_on_moves=(2,)))
-        first, second = pose_at(0.4, 0, 0.3), pose_at(0.4, 0.2, 0.3)
+        first, second = pose_at(0.4, 0, 0.3), pose_at(0.4, 0.2, 0.3, rotvec=(0.0, math.pi / 2, 0.0))
         await arm.move_to(first, 0.1, 0.5)
         with pytest.raises(ArmFault, match="protective stop"):
             await arm.move_to(second, 0.1, 0.5)
@@ -103,9 +119,33 @@ def test_protective_stop_on_kth_move(arun):
 
     state, final, first, second = arun(scenario())
     assert state.protective_stop
-    y = state.tcp_pose[1, 3]
-    assert 0.0 < y < 0.2  # stopped part way
+    np.testing.assert_array_equal(state.tcp_pose, interpolate_pose(first, second, 0.5))
     np.testing.assert_allclose(final, second, atol=1e-12)
+
+
+def test_clear_fault_clears_the_protective_stop_and_reconnect_needs_the_link(arun):
+    async def scenario():
+        arm = SimArm(motion_time_s=0, faults=SimArmFaults(protective_stop_on_moves=(1,)))
+        with pytest.raises(ArmFault, match="protective stop"):
+            await arm.move_to(pose_at(0.4, 0, 0.3), 0.1, 0.5)
+        await arm.clear_fault()  # what the runner calls on `ctl resume` after an arm fault
+        await arm.move_to(pose_at(0.4, 0, 0.3), 0.1, 0.5)
+        arm.drop_link()
+        with pytest.raises(LinkLost):
+            await arm.reconnect()
+        arm.restore_link()
+        await arm.reconnect()
+        return arm.moves, arm.connected
+
+    assert arun(scenario()) == (2, True)
+
+
+@pytest.mark.parametrize("kwargs", [{"motion_time_s": -1.0}, {"motion_time_s": math.nan}, {"speed": 0.0},
+                                    {"speed": math.inf}, {"time_scale": -0.1}, {"pose_noise_m": math.nan},
+                                    {"speed": True}, {"home": np.eye(3)}])
+def test_bad_arguments_are_config_errors(kwargs):
+    with pytest.raises(ConfigError, match="sim arm"):
+        SimArm(**kwargs)
 
 
 def test_protective_stop_on_demand_and_stop(arun):

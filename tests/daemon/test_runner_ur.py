@@ -1,5 +1,6 @@
 """The scan runner driving the UR backend (the real ur_rtde client) against the simulated UR controller on loopback,
-with a simulated sensor: the moves arrive at the planned TCP poses, a protective stop pauses the scan."""
+with a simulated sensor: the moves arrive at the planned TCP poses, a protective stop pauses the scan, a dropped link
+pauses it and `resume` reconnects the arm and completes it, a dead link does not hang the shutdown."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import numpy as np
 import pytest
 
 from spadscan.daemon.app import DeviceSession
-from spadscan.daemon.backends import TrackedArm, build_devices
+from spadscan.daemon.arm.ur import URArm
+from spadscan.daemon.backends import TrackedArm, build_devices, build_sensor
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.scan_plan import tcp_from_sensor
@@ -51,16 +53,37 @@ async def until(pred, what: str, timeout_s: float = 60.0) -> None:
         await asyncio.sleep(0.01)
 
 
-@pytest.mark.slow
-def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, arun):
-    cfg = config_from_dict({
+def ur_config(tmp_path, host: str):
+    return config_from_dict({
         "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"),
-        "arm": {"backend": "ur", "host": controller.host, "speed": 0.5, "acceleration": 2.0, "hand_eye": HAND_EYE,
+        "arm": {"backend": "ur", "host": host, "speed": 0.5, "acceleration": 2.0, "hand_eye": HAND_EYE,
                 "workspace_min": [0.0, -0.5, 0.02], "workspace_max": [0.9, 0.5, 0.7], "min_reach_m": 0.1,
                 "max_reach_m": 0.85, "move_timeout_s": 30.0},
         "sensor": {"backend": "sim", "mesh": "builtin:pyramid", "mesh_offset_m": [0.4, 0, 0], "rays_per_zone": 8},
         "scan": {"views": 8, "frames_per_pose": 1, "settle_s": 0.0, "radius_m": 0.25, "target": [0.4, 0, 0.05],
                  "min_elevation_deg": 30, "max_elevation_deg": 80}}, tmp_path / "rig.toml")
+
+
+def quick_rig(cfg):
+    """The config's rig, with a UR arm that gives up on a silent link after 5 s instead of 10 s."""
+    arm = TrackedArm(URArm(cfg.arm.host, speed=cfg.arm.speed, accel=cfg.arm.acceleration, timeout_s=5.0,
+                           stale_after_s=1.0))
+    return arm, build_sensor(cfg, arm)
+
+
+def check_every_pose_once(path, hand_eye=HAND_EYE) -> None:
+    reader = CaptureReader(path)
+    data = reader.load()
+    assert reader.state == "complete"
+    assert sorted(data.pose_indices.tolist()) == list(range(8))
+    planned_tcp = tcp_from_sensor(reader.planned_poses(), np.array(hand_eye))
+    for m in data.meta:  # every pose was reached: the simulated controller is exact
+        np.testing.assert_allclose(np.array(m["tcp_pose"]), planned_tcp[m["pose_index"]], atol=1e-5)
+
+
+@pytest.mark.slow
+def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, arun):
+    cfg = ur_config(tmp_path, controller.host)
 
     async def scenario():
         arm, sensor = build_devices(cfg)
@@ -95,3 +118,69 @@ def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, 
     assert len(targets) >= 8
     for t in targets:
         assert np.min(np.linalg.norm(planned_tcp[:, :3, 3] - t, axis=1)) < 1e-6
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["close", "silent"])
+def test_resume_after_a_dropped_link_reconnects_and_completes(tmp_path, controller, arun, mode):
+    """"close": the controller closes every connection; "silent": a pulled cable, where ur_rtde's moveL blocks its
+    thread for good. Either way the scan pauses, and once the link is back `resume` reconnects (fresh interfaces, and
+    a fresh thread when the old one is stuck) and completes the scan; the shutdown is clean."""
+    cfg = ur_config(tmp_path, controller.host)
+
+    async def scenario():
+        arm, sensor = quick_rig(cfg)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("ur")
+                await until(lambda: runner.job.next_pose >= 2, "two poses")
+                await asyncio.to_thread(controller.drop_link, mode)
+                await until(lambda: runner.state == "paused", "the pause")
+                reason = runner.status()["reason"]
+                sessions = (await asyncio.to_thread(controller.connections))["rtde"]
+                await asyncio.to_thread(controller.restore_link)
+                await runner.resume()
+                await until(lambda: runner.state != "scanning", "the resumed scan to end or pause")
+                status = runner.status()
+            finally:
+                await runner.shutdown()
+        return reason, status, (await asyncio.to_thread(controller.connections))["rtde"] - sessions
+
+    reason, status, new_sessions = arun(scenario(), timeout_s=180)
+    assert "link lost" in reason
+    assert status["state"] == "idle" and status["last_scan"] == {"name": "ur", "state": "complete"}, status
+    assert new_sessions == 2  # resuming built a new receive and a new control interface
+    check_every_pose_once(tmp_path / "caps" / "ur")
+
+
+@pytest.mark.slow
+def test_shutdown_on_a_dead_link_does_not_hang(tmp_path, controller, arun):
+    """The link stays down (silent: the arm's thread is stuck in ur_rtde): shutting down reports the dead link
+    instead of waiting on the stuck thread, and leaves the scan resumable."""
+    cfg = ur_config(tmp_path, controller.host)
+
+    async def scenario():
+        arm, sensor = quick_rig(cfg)
+        session = DeviceSession([arm, sensor])
+        await session.__aenter__()
+        runner = ScanRunner(arm, sensor, cfg)
+        try:
+            await runner.start("ur")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            await asyncio.to_thread(controller.drop_link, "silent")
+            await until(lambda: runner.state == "paused", "the pause")
+            reason = runner.status()["reason"]
+        finally:
+            await runner.shutdown()
+        with pytest.raises(DeviceError) as down:
+            await session.__aexit__(None, None, None)
+        return reason, str(down.value)
+
+    reason, down = arun(scenario(), timeout_s=120)
+    assert "link lost" in reason
+    # Only release fails, at once (the arm's thread is stuck: nothing more is sent); close gives the stuck thread up
+    # instead of waiting for it.
+    assert "still blocked in moveL" in down, down
+    assert "did not finish" not in down and "still busy" not in down, down
+    assert CaptureReader(tmp_path / "caps" / "ur").state == "running"
