@@ -31,9 +31,12 @@ class MLPFieldConfig:
 class PaperSchedule:
     """How the paper's run is laid out in time."""
 
-    chunk_points: int = 1 << 17
+    chunk_points: int | None = None
     """Samples rendered with gradient at once; larger batches are rendered in chunks by a two-pass, exact
-    back-propagation (first the histograms, then each chunk's share of the gradient) to bound memory."""
+    back-propagation (first the histograms, then each chunk's share of the gradient) to bound memory. None: as many
+    as fit in `memory_gb` (about 70 kB per sample for the 8 x 256 network in float32)."""
+    memory_gb: float | None = None
+    """Memory the rendering graph may take; None: 3 GB on CPU, half the free memory on a GPU."""
 
 
 def paper_config() -> ReconConfig:

@@ -84,8 +84,25 @@ class PaperModel:
         self.valid = scene.valid.to(device)
         self.background = scene.background.to(**kw)
         self.scale = hist_scale(self.counts, self.cycles, self.valid, self.background)
+        self.chunk_points = self._chunk_points()
         self.steps_done = 0
         self.train_s = 0.0
+
+    def _chunk_points(self) -> int:
+        """Samples per rendering chunk: the config's, or what fits the memory budget. Measured: a sample of the
+        8 x 256 float32 network holds ~70 kB of graph (activations of the field, its gradient and their backward)."""
+        sched = self.config.schedule
+        if sched.chunk_points:
+            return int(sched.chunk_points)
+        f = self.config.field
+        per_point = 8 * f.width * (f.layers + 1) * (torch.finfo(self.dtype).bits // 8)
+        if sched.memory_gb:
+            budget = sched.memory_gb * 1e9
+        elif self.device.type == "cuda":
+            budget = 0.5 * torch.cuda.mem_get_info(self.device)[0]
+        else:
+            budget = 3e9
+        return int(max(4096, budget // per_point))
 
     # ---- parameters ----------------------------------------------------------------------------------------------
     @property
@@ -168,7 +185,7 @@ class PaperModel:
             return self.forward.nll(lam, counts, cycles, valid) / max(1, int(valid[0].sum()))
 
         data, eik = backprop_batch(self.field, self.forward, batch, s_m, albedo, self._table(), data_loss,
-                                   lc.eikonal_weight, self.config.schedule.chunk_points)
+                                   lc.eikonal_weight, self.chunk_points)
         # Random points in the scene sphere keep the field an SDF away from the rays too.
         x = self._random_points(lc.eikonal_points)
         _, g = self.field.sdf_and_grad(x, create_graph=True)
@@ -227,7 +244,7 @@ class PaperModel:
                 table = self._table()
                 table = None if table is None else Table(table.normal, table.offset.detach(), table.albedo.detach())
                 tr = batch_transient(self.field, self.forward, batch, (self.sharpness / self.radius).detach(),
-                                     self.log_albedo.exp().detach(), table, self.config.schedule.chunk_points)
+                                     self.log_albedo.exp().detach(), table, self.chunk_points)
                 lam = self.forward.rates(tr.reshape(1, z, -1), self.background[v])
                 out.append(self.forward.expected_counts(lam, self.cycles[v]).double().cpu().numpy())
         return np.concatenate(out)
@@ -235,7 +252,8 @@ class PaperModel:
     def summary(self) -> dict:
         out = {"sharpness": float(self.sharpness.detach()), "albedo": float(self.log_albedo.detach().exp()),
                "hist_scale": self.scale, "steps": self.steps_done, "train_seconds": self.train_s,
-               "rays_per_zone": self.grid.n_cells, "importance_rays_per_zone": self.n_imp_rays}
+               "rays_per_zone": self.grid.n_cells, "importance_rays_per_zone": self.n_imp_rays,
+               "chunk_points": self.chunk_points}
         if self.scene.table is not None:
             out["table_offset_m"] = float(self.table_offset.detach())
             out["table_albedo"] = float(self.table_albedo.detach().exp())
