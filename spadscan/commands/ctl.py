@@ -3,7 +3,8 @@
     spadscan ctl status                         state, scan, pose i/n, frames, rate, last error, sensor counters
     spadscan ctl scan --name bunny --views 128  start a scan; it is written to <captures>/bunny/
     spadscan ctl pause | resume | abort         pause after the pose in flight, continue, or stop for good
-    spadscan ctl wait bunny                     block until the scan is complete (exit 0) or aborted (exit 1)
+    spadscan ctl wait bunny                     block until the scan is complete (exit 0) or aborted (exit 1);
+                                                on a terminal a progress bar (pose i/n) runs on stderr
     spadscan ctl shutdown                       stop the daemon (a scan in flight stays resumable)
 
 Units: metres, seconds, degrees. The socket defaults to $SPADSCAN_SOCKET, else $XDG_RUNTIME_DIR/spadscan.sock, else
@@ -15,6 +16,8 @@ from __future__ import annotations
 import json
 import sys
 
+PROGRESS_POLL_S = 0.5  # how often `wait` asks for the status while its progress bar runs
+
 # option -> ([scan] key, type); None values are left out so the daemon's [scan] defaults apply
 SCAN_OPTIONS = {
     "views": ("views", int), "schedule": ("schedule", str), "rings": ("rings", int), "radius": ("radius_m", float),
@@ -23,6 +26,20 @@ SCAN_OPTIONS = {
     "order": ("order", str), "frames_per_pose": ("frames_per_pose", int), "settle": ("settle_s", float),
     "chunk_size": ("chunk_size", int),
 }
+
+
+def _seconds(text: str) -> float:
+    """argparse type of --timeout: a positive, finite number of seconds."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
 
 
 def _target(text: str) -> list[float]:
@@ -45,8 +62,8 @@ def add_arguments(parser) -> None:
     def common(p, default):
         p.add_argument("--socket", default=default, metavar="PATH",
                        help=f"the daemon's control socket (default: {default_socket_path()})")
-        p.add_argument("--timeout", type=float, default=default, metavar="S",
-                       help="seconds to wait for the reply (default: 30; `wait`: forever)")
+        p.add_argument("--timeout", type=_seconds, default=default, metavar="S",
+                       help="seconds to wait for the reply, > 0 (default: 30; `wait` and `scan --wait`: forever)")
 
     common(parser, None)
     shared = argparse.ArgumentParser(add_help=False)
@@ -72,7 +89,8 @@ def add_arguments(parser) -> None:
     scan.add_argument("--frames-per-pose", type=int, metavar="K", help="frames stored per pose (never summed)")
     scan.add_argument("--settle", type=float, metavar="S", help="wait after each move before frames count (s)")
     scan.add_argument("--chunk-size", type=int, metavar="N", help="most measurements per published chunk")
-    scan.add_argument("--wait", action="store_true", help="block until the scan is complete or aborted")
+    scan.add_argument("--wait", action="store_true",
+                      help="block until the scan is complete or aborted (a progress bar on stderr when a terminal)")
     op("pause", "pause after the pose in flight is published")
     op("resume", "continue a paused or interrupted scan at its first unpublished pose")
     abort = op("abort", "stop the scan for good (published poses stay)")
@@ -106,10 +124,59 @@ def run(args) -> int:
 def _wait(path: str, name: str, timeout: float | None) -> int:
     from spadscan.daemon.client import call
 
-    reply = call(path, "wait", timeout, name=name)
+    if sys.stderr.isatty():
+        reply = wait_with_progress(path, name, timeout, sys.stderr)
+    else:
+        reply = call(path, "wait", timeout, name=name)
     reply.pop("ok", None)
     print(json.dumps(reply))
     if reply.get("state") != "complete":
         print(f"spadscan: scan {name!r} ended {reply.get('state')}", file=sys.stderr)
         return 1
     return 0
+
+
+def wait_with_progress(path: str, name: str, timeout: float | None, stream) -> dict:
+    """The `wait` reply for scan `name`, with a progress bar (poses published / planned, state, pause reason) on
+    `stream` meanwhile: the blocking `wait` request runs on a thread while `status` is polled every
+    PROGRESS_POLL_S seconds."""
+    import threading
+
+    from tqdm import tqdm  # only here: `ctl status` and friends stay light
+
+    from spadscan.daemon.client import ControlError, call
+
+    outcome: dict = {}
+
+    def wait() -> None:
+        try:
+            outcome["reply"] = call(path, "wait", timeout, name=name)
+        except BaseException as exc:  # re-raised on the main thread
+            outcome["error"] = exc
+
+    waiter = threading.Thread(target=wait, name="ctl wait", daemon=True)
+    waiter.start()
+    bar = None
+    try:
+        while waiter.is_alive():
+            try:
+                status = call(path, "status", 10.0)
+            except ControlError:  # the wait request says what went wrong
+                status = {}
+            if status.get("scan") == name:
+                if bar is None:
+                    bar = tqdm(total=status["poses"], desc=name, unit="pose", file=stream, dynamic_ncols=True)
+                bar.n = status["pose"]
+                reason = status.get("reason")
+                bar.set_postfix_str(status["state"] + (f": {reason}" if reason else ""), refresh=False)
+                bar.refresh()
+            waiter.join(PROGRESS_POLL_S)
+        if bar is not None and outcome.get("reply", {}).get("state") == "complete":
+            bar.n = bar.total
+            bar.set_postfix_str("complete", refresh=False)
+    finally:
+        if bar is not None:
+            bar.close()
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["reply"]

@@ -1,0 +1,164 @@
+"""`spadscan ctl` against a fake daemon on a Unix socket: --timeout takes only positive finite seconds, `wait` shows
+a progress bar on a terminal (and nothing extra otherwise), and a real `spadscan ctl` process imports neither numpy
+nor torch."""
+
+from __future__ import annotations
+
+import fcntl
+import io
+import json
+import os
+import pty
+import select
+import socketserver
+import struct
+import subprocess
+import sys
+import termios
+import threading
+import time
+
+import pytest
+
+from spadscan.cli import main
+
+POSES = 6
+
+
+class FakeDaemon(socketserver.ThreadingUnixStreamServer):
+    """Answers `status` with a scan that advances one pose per status request, and `wait` once it is done."""
+
+    daemon_threads = True
+
+    def __init__(self, path: str):
+        self.pose, self.step = 0, 1
+        self.requests: list[str] = []
+        self.lock = threading.Lock()
+        super().__init__(path, Handler)
+
+    def status(self) -> dict:
+        with self.lock:
+            self.pose = min(POSES, self.pose + self.step)
+            pose = self.pose
+        return {"ok": True, "state": "scanning" if pose < POSES else "idle", "scan": "mug", "pose": pose,
+                "poses": POSES, "reason": None}
+
+
+class Handler(socketserver.StreamRequestHandler):
+    def handle(self) -> None:
+        req = json.loads(self.rfile.readline())
+        self.server.requests.append(req["op"])
+        if req["op"] == "status":
+            reply = self.server.status()
+        elif req["op"] == "wait":
+            while self.server.pose < POSES:
+                time.sleep(0.01)
+            reply = {"ok": True, "name": req["name"], "state": "complete"}
+        else:
+            reply = {"ok": False, "error": f"unknown op {req['op']!r}"}
+        self.wfile.write((json.dumps(reply) + "\n").encode())
+
+
+@pytest.fixture
+def fake_daemon(tmp_path):
+    server = FakeDaemon(str(tmp_path / "ctl.sock"))
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01})
+    thread.start()
+    yield server, str(tmp_path / "ctl.sock")
+    server.shutdown()
+    server.server_close()
+    thread.join()
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan", "inf", "-inf", "soon"])
+def test_timeout_must_be_positive_and_finite(value, capsys, tmp_path):
+    with pytest.raises(SystemExit) as exited:
+        main(["ctl", "status", "--socket", str(tmp_path / "none.sock"), f"--timeout={value}"])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2
+    assert f"{value!r} is not a positive number of seconds" in err and "Traceback" not in err
+
+
+def test_wait_on_a_terminal_shows_pose_progress(fake_daemon, monkeypatch, capsys):
+    server, path = fake_daemon
+    terminal = Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    monkeypatch.setattr("spadscan.commands.ctl.PROGRESS_POLL_S", 0.01)
+    assert main(["ctl", "--socket", path, "wait", "mug"]) == 0
+    shown = terminal.getvalue()
+    assert "mug" in shown and f"{POSES}/{POSES}" in shown and "complete" in shown
+    assert any(f"{i}/{POSES}" in shown for i in range(1, POSES))  # it moved on the way
+    assert json.loads(capsys.readouterr().out) == {"name": "mug", "state": "complete"}
+    assert "status" in server.requests
+
+
+def test_wait_without_a_terminal_prints_only_the_result(fake_daemon, capsys):
+    server, path = fake_daemon
+    server.pose = POSES
+    assert main(["ctl", "--socket", path, "wait", "mug"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out) == {"name": "mug", "state": "complete"} and err == ""
+    assert server.requests == ["wait"]
+
+
+def imported(importtime_output: str) -> set[str]:
+    """Top-level package names from `python -X importtime` lines ('import time: self | cumulative | name')."""
+    names = set()
+    for line in importtime_output.splitlines():
+        if line.startswith("import time:") and line.count("|") == 2:
+            names.add(line.rsplit("|", 1)[1].strip().split(".")[0])
+    return names
+
+
+CTL = [sys.executable, "-X", "importtime", "-c", "import sys; from spadscan.cli import main; sys.exit(main())"]
+
+
+def test_ctl_status_process_imports_neither_numpy_nor_torch(fake_daemon):
+    _, path = fake_daemon
+    r = subprocess.run(CTL + ["ctl", "--socket", path, "status"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["scan"] == "mug"
+    names = imported(r.stderr)
+    assert "spadscan" in names and "json" in names  # the listing is real
+    assert not names & {"numpy", "torch", "trimesh", "tqdm"}, sorted(names)
+
+
+def test_ctl_wait_on_a_terminal_imports_tqdm_but_not_numpy(fake_daemon):
+    """stderr on a pseudo-terminal: the progress bar appears, tqdm is imported, numpy and torch still are not."""
+    server, path = fake_daemon
+    server.step = 3  # done after two polls
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # 24 rows, 100 columns
+    proc = subprocess.Popen(CTL + ["ctl", "--socket", path, "wait", "mug"], stdout=subprocess.PIPE,
+                            stderr=follower, text=True)
+    os.close(follower)
+    chunks = []
+    try:
+        while True:
+            ready, _, _ = select.select([leader], [], [], 60)
+            assert ready, "ctl wait printed nothing for 60 s"
+            try:
+                data = os.read(leader, 65536)
+            except OSError:  # the process closed its end
+                break
+            if not data:
+                break
+            chunks.append(data.decode(errors="replace"))
+        out = proc.stdout.read()
+        assert proc.wait(60) == 0
+    finally:
+        proc.stdout.close()
+        os.close(leader)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    shown = "".join(chunks)
+    assert "mug: 100%" in shown or f"{POSES}/{POSES}" in shown, shown[-2000:]
+    assert json.loads(out) == {"name": "mug", "state": "complete"}
+    names = imported(shown)
+    assert "tqdm" in names and not names & {"numpy", "torch"}, sorted(names)
