@@ -171,6 +171,14 @@ def test_scene_loading_sums_frames_masks_bad_bins_and_bounds_the_scene(tmp_path)
     assert not scene.real and scene.background_source == "sensor model"
 
 
+def test_scene_sphere_from_first_returns_holds_the_object_and_no_sensor(box_capture):
+    scene = load_scene(box_capture)
+    c, r = scene.center.double().numpy(), scene.radius
+    assert np.linalg.norm(box_mesh().vertices - c, axis=1).max() < r
+    assert np.linalg.norm(scene.poses[:, :3, 3].double().numpy() - c, axis=1).min() > r
+    assert scene.table is None and not scene.real  # simulated: no table, no TV
+
+
 def test_measured_capture_takes_its_pulse_from_the_reference_and_estimates_background(tmp_path):
     sensor = sensor_preset("tmf8820")
     target = np.zeros(3)

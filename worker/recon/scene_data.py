@@ -5,10 +5,11 @@ the sensor did not move between them. Bins listed in the sensor model's `ignore_
 the counter's ceiling (`max_count`), are masked out of every loss.
 
 The manifest's `scene` dict may say (all optional, metres):
-- `"center": [x, y, z]`, `"radius": r` — a sphere that holds the object (else: the point nearest to every sensor's
-  boresight, and 0.6 x the nearest sensor's distance to it);
+- `"center": [x, y, z]`, `"radius": r` — a sphere that holds the object (else found from the views' first returns,
+  see `_scene_sphere`);
 - `"table": {"normal": [nx, ny, nz], "offset": d}` (the plane n . x = d, n pointing up) or `"table": {"z": h}`, or
-  `"table": true` for a horizontal table whose height is fitted (it starts at the bottom of the sphere);
+  `"table": true` for a horizontal table whose height is fitted, or `"table": false`; measured scenes that say
+  nothing get a fitted table (on the arm rig the object stands on one), simulated ones none;
 - `"real": true|false` — measured data (default: false for a simulated rig, else whether the sensor model carries
   reference histograms, i.e. is hardware). Only measured data take their pulse from reference histograms.
 """
@@ -27,7 +28,8 @@ from spadscan.protocol.sensor_model import SensorModel
 
 from .pulse import pulse_kernel
 
-RADIUS_FRACTION = 0.6  # scene sphere radius as a fraction of the nearest sensor's distance to the target
+RADIUS_FRACTION = 0.6  # scene radius / nearest sensor's distance, when no return locates the object
+RADIUS_FRACTION_MAX = 0.8  # the scene sphere never reaches closer to a sensor than this fraction
 
 
 @dataclass
@@ -119,8 +121,8 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
 
     scene = dict(data.manifest.get("scene") or {})
     center, radius = _scene_sphere(scene, poses, counts, sensor, capture)
-    table = _table(scene, center, radius, capture)
     real = _is_real(scene, data.manifest, sensor)
+    table = _table(scene, center, radius, real, first_returns(counts, poses, sensor), capture)
     reference = data.reference.mean(axis=0) if (real and data.reference is not None) else None
     kernel, origin, pulse_source = pulse_kernel(sensor, reference)
     reference = reference if pulse_source == "reference" else None
@@ -146,28 +148,55 @@ def _is_real(scene: dict, manifest: dict, sensor: SensorModel) -> bool:
     return bool(sensor.has_reference)
 
 
+def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) -> np.ndarray:
+    """World points (n, 3) of each view's strongest return along its boresight, for views with a clear one.
+
+    counts: (V, Z, B). The zones are summed; a view counts when its peak stands 8 Poisson sigmas above the
+    histogram's median (most bins hold background only)."""
+    h = counts.sum(axis=1)
+    if sensor.ignore_bins:
+        h[:, list(sensor.ignore_bins)] = 0.0
+    floor = np.median(h, axis=1)
+    peak = np.argmax(h, axis=1)
+    clear = h[np.arange(len(h)), peak] > floor + 8 * np.sqrt(np.maximum(floor, 1.0))
+    rng = sensor.range_of_bin(peak + 0.5)
+    clear &= (rng > 0.01) & (rng < sensor.max_range_m)
+    return poses[clear, :3, 3] + rng[clear, None] * poses[clear, :3, 2]
+
+
 def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: SensorModel, where: Path):
-    """(centre (3,), radius) of a sphere that holds the object, from the manifest or the sensor poses."""
+    """(centre (3,), radius) of a sphere that holds the object, from the manifest, else from the data.
+
+    Centre: the median of the views' first-return points when at least 3 views show one (it lies inside the object
+    for views from around it); else the point nearest to every boresight. Radius: 3 x the 90th percentile of the
+    points' distances to the centre (at least 5 cm), never more than 0.8 x the nearest sensor's distance (no sensor
+    inside); without points, 0.6 x that distance."""
     origins, axes = poses[:, :3, 3], poses[:, :3, 2]
+    points = first_returns(counts, poses, sensor)
     if "center" in scene:
         center = np.asarray(scene["center"], float)
         if center.shape != (3,) or not np.all(np.isfinite(center)):
             raise CaptureError(f"{where}: scene center {scene['center']} is not a finite 3-vector")
+    elif len(points) >= 3:
+        center = np.median(points, axis=0)
     else:
         # The point nearest to every boresight line: sum (I - d d^T) (x - o) = 0.
         proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
         a, b = proj.sum(0), np.einsum("nij,nj->i", proj, origins)
         if np.linalg.cond(a) < 1e6:
             center = np.linalg.solve(a, b)
-        else:  # parallel boresights (one view, or a flat sweep): the strongest return along the mean axis
-            peak = float(np.argmax(counts.sum(axis=(0, 1))))
-            rng = float(np.clip(sensor.range_of_bin(peak), 0.05, sensor.max_range_m))
-            center = (origins + axes * rng).mean(0)
+        elif len(points):
+            center = points.mean(0)
+        else:
+            center = (origins + axes * min(0.3, 0.5 * sensor.max_range_m)).mean(0)
     dist = np.linalg.norm(origins - center, axis=1)
     if "radius" in scene:
         radius = float(scene["radius"])
         if not (np.isfinite(radius) and radius > 0):
             raise CaptureError(f"{where}: scene radius {scene['radius']} must be a positive number of metres")
+    elif len(points) >= 3:
+        spread = float(np.percentile(np.linalg.norm(points - center, axis=1), 90))
+        radius = min(RADIUS_FRACTION_MAX * float(dist.min()), max(3.0 * spread, 0.05))
     else:
         radius = RADIUS_FRACTION * float(dist.min())
     if radius < 1e-3:
@@ -176,12 +205,16 @@ def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: Se
     return center, radius
 
 
-def _table(scene: dict, center: np.ndarray, radius: float, where: Path) -> TablePlane | None:
-    spec = scene.get("table")
+def _table(scene: dict, center: np.ndarray, radius: float, real: bool, points: np.ndarray,
+           where: Path) -> TablePlane | None:
+    """The table: as the manifest says; measured scenes that say nothing get a fitted horizontal table that starts
+    at the lowest first returns (5th percentile of their heights), or the bottom of the scene sphere."""
+    spec = scene.get("table", True if real else None)
     if not spec:
         return None
     if spec is True:
-        return TablePlane(np.array([0.0, 0.0, 1.0]), float(center[2] - radius), fitted=True)
+        start = float(np.percentile(points[:, 2], 5)) if len(points) >= 3 else float(center[2] - radius)
+        return TablePlane(np.array([0.0, 0.0, 1.0]), max(start, float(center[2] - radius)), fitted=True)
     if not isinstance(spec, dict):
         raise CaptureError(f"{where}: scene table must be true or a dict with 'z' or 'normal' and 'offset'")
     if "z" in spec:
