@@ -118,10 +118,28 @@ class Dispatcher:
         return {"stopping": True}
 
 
+def check_config(cfg: DaemonConfig):
+    """Everything start-up checks before a device is touched, creating, claiming and opening nothing (also what
+    `spadscan daemon --check` runs): the default scan plan, the devices built (a sim sensor's mesh loaded, the
+    sensor model), an I2C sensor's firmware image read and parsed, the socket path not taken by another file.
+    Returns (plan, arm, sensor), neither device connected."""
+    plan = build_plan(cfg.scan, cfg.arm, where=f"{cfg.source}: [scan] defaults")
+    arm, sensor = build_devices(cfg)
+    if cfg.sensor.backend == "i2c":
+        from .sensor.firmware import load_firmware
+
+        try:
+            load_firmware(cfg.sensor.firmware)
+        except DeviceError as exc:
+            raise ConfigError(f"{cfg.source}: [sensor] firmware: {exc}") from None
+    if cfg.socket.is_symlink() or (cfg.socket.exists() and not cfg.socket.is_socket()):
+        raise ConfigError(f"socket path {cfg.socket} exists and is not a socket; refusing to replace it")
+    return plan, arm, sensor
+
+
 def check_startup(cfg: DaemonConfig):
     """Everything that can be checked before a device is touched; returns (arm, sensor), not yet connected."""
-    build_plan(cfg.scan, cfg.arm, where=f"{cfg.source}: [scan] defaults")
-    arm, sensor = build_devices(cfg)
+    _, arm, sensor = check_config(cfg)
     cfg.captures.mkdir(parents=True, exist_ok=True)
     claim_socket_path(cfg.socket)
     return arm, sensor

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from pathlib import Path
 
 import pytest
 
@@ -135,3 +136,44 @@ def test_dispatcher(arun, tmp_path):
     assert out[0]["state"] == "idle" and out[0]["daemon"]["socket"] == str(tmp_path / "s.sock")
     assert calls == [("start", "n", {"views": 3}), ("abort", "aborted by user")]
     assert out[3] == {"name": "n", "state": "complete"} and out[4] == {"stopping": True} and stopped
+
+
+# ---- spadscan daemon --check -----------------------------------------------------------------------------------------
+def write_check_rig(tmp_path, sensor: str) -> Path:
+    rig = tmp_path / "rig.toml"
+    rig.write_text(f'captures = "caps"\nsocket = "{tmp_path / "d.sock"}"\n[arm]\nbackend = "sim"\n'
+                   f'[sensor]\n{sensor}\n[scan]\nviews = 8\nradius_m = 0.3\ntarget = [0, 0, 0.1]\n')
+    return rig
+
+
+def check(rig, capsys) -> tuple[int, str, str]:
+    from spadscan.cli import main
+
+    code = main(["daemon", "--config", str(rig), "--check"])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("what", ["builtin", "mesh-file", "firmware", "socket"])
+def test_check_refuses_what_start_up_refuses(tmp_path, capsys, what):
+    """`--check` runs start-up's checks: an unknown built-in scene, a mesh file with no triangles, a firmware image
+    that is not Intel HEX, a socket path taken by a regular file; one line, exit 1, nothing created."""
+    (tmp_path / "garbage.stl").write_text("solid x\nthis is not a mesh\n")
+    (tmp_path / "app.hex").write_text("this is not intel hex\n")
+    sensor = {"builtin": 'backend = "sim"\nmesh = "builtin:nope"',
+              "mesh-file": 'backend = "sim"\nmesh = "garbage.stl"',
+              "firmware": 'backend = "i2c"\nbus = 1\nfirmware = "app.hex"',
+              "socket": 'backend = "sim"\nmesh = "builtin:sphere"'}[what]
+    if what == "socket":
+        (tmp_path / "d.sock").write_text("a regular file")
+    code, out, err = check(write_check_rig(tmp_path, sensor), capsys)
+    assert code == 1 and out == "" and err.count("\n") == 1 and err.startswith("spadscan: error:"), err
+    assert {"builtin": "nope", "mesh-file": "garbage.stl", "firmware": "firmware", "socket": "not a socket"}[what] \
+        in err
+    assert not (tmp_path / "caps").exists()
+
+
+def test_check_passes_a_good_config_and_touches_nothing(tmp_path, capsys):
+    code, out, err = check(write_check_rig(tmp_path, 'backend = "sim"\nmesh = "builtin:sphere"'), capsys)
+    assert code == 0 and "ok (sim arm, sim sensor, default scan of 8 poses" in out, err
+    assert not (tmp_path / "caps").exists() and not (tmp_path / "d.sock").exists()
