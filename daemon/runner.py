@@ -31,7 +31,7 @@ from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, Spa
 
 from .config import DaemonConfig, scan_to_dict, scan_with
 from .devices import Arm, ArmFault, Frame, LinkLost, Sensor, SensorSilent
-from .scan_job import ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
+from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
 from .scan_plan import build_plan, check_workspace, sensor_from_tcp
 
 log = logging.getLogger("spadscan.daemon")
@@ -90,7 +90,8 @@ class ScanRunner:
         start = (await self._arm_state()).tcp_pose
         plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
         hand_eye = self.cfg.arm.hand_eye
-        writer = await self._io(CaptureWriter.create, path, self.sensor.model, scan_id=name, rig=self.rig,
+        writer = await self._io(CaptureWriter.create, path, self.sensor.model, scan_id=name,
+                                rig={**self.rig, "writer": WRITER},
                                 hand_eye=hand_eye, schedule=plan.description, planned_poses=plan.sensor_poses,
                                 chunk_size=scan.chunk_size, scene=self.scene, frames_per_pose=scan.frames_per_pose)
         self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,

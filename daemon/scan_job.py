@@ -2,11 +2,14 @@
 
 A scan named N lives in `<captures>/N/` (DESIGN §2). Its `schedule.npy` holds the planned sensor poses in visiting
 order and `scan.json` the scan settings, so a restarted daemon can continue it at the first pose not yet published.
+The daemon marks the scans it writes (`rig.writer` = WRITER in the manifest) and takes over only those: another
+tool's interrupted capture under the captures root (say `spadscan simulate --out <captures>/x`) is never driven.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import logging
 import re
 import time
 from collections import deque
@@ -23,6 +26,9 @@ from spadscan.protocol.errors import CaptureError, ConfigError
 from .config import ScanConfig, scan_with
 from .scan_plan import tcp_from_sensor
 
+log = logging.getLogger("spadscan.daemon")
+WRITER = "spadscan-daemon"
+"""The manifest's rig.writer of every scan the daemon writes."""
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,99}")
 
 
@@ -92,7 +98,8 @@ class ScanJob:
 
 
 def find_interrupted(root: Path) -> Path | None:
-    """The scan folder under root whose manifest says 'running' and was updated last (a crash or stop left it)."""
+    """The daemon's scan folder under root whose manifest says 'running' and was updated last (a crash or stop left
+    it). 'running' captures the daemon did not write (no rig.writer = WRITER) are logged and skipped."""
     best, best_t = None, ""
     root = Path(root)
     if not root.is_dir():
@@ -105,7 +112,14 @@ def find_interrupted(root: Path) -> Path | None:
             manifest = read_json(m)
         except CaptureError:
             continue
-        if manifest.get("state") == "running" and str(manifest.get("updated_utc", "")) >= best_t:
+        if manifest.get("state") != "running":
+            continue
+        rig = manifest.get("rig")
+        if not (isinstance(rig, dict) and rig.get("writer") == WRITER):
+            log.warning("not taking over %s: its capture says 'running' but was not written by the daemon "
+                        "(no rig.writer = %r in %s)", d, WRITER, MANIFEST)
+            continue
+        if str(manifest.get("updated_utc", "")) >= best_t:
             best, best_t = d, str(manifest.get("updated_utc", ""))
     return best
 

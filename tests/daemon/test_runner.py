@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import logging
 import time
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from spadscan.daemon.config import config_from_dict
 from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.sensor.sim import SimSensor
 from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings
@@ -138,7 +140,8 @@ def test_frames_that_began_before_the_arm_settled_are_dropped(arun, tmp_path, sp
         assert m["t_start"] >= stops[m["pose_index"]] + 0.03 - 1e-9
 
 
-def test_pause_resume_abort(arun, tmp_path, sphere):
+def test_pause_resume_abort(arun, tmp_path, sphere, caplog):
+    caplog.set_level(logging.INFO, logger="spadscan.daemon")
     cfg = make_cfg(tmp_path, views=30, frames_per_pose=1)
 
     async def scenario():
@@ -171,6 +174,10 @@ def test_pause_resume_abort(arun, tmp_path, sphere):
     idx = r.load().pose_indices.tolist()
     assert idx == list(range(len(idx))) and held + 3 <= len(idx) < 30  # a prefix, each pose once
     check_capture(tmp_path / "caps" / "q", 3, 1)
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert any(m.startswith("scan p: pause requested at pose") for m in said), said
+    assert any(m == f"scan p paused by user at pose {held}/30" for m in said), said
+    assert any(m.startswith(f"scan p: resumed at pose {held}/30 (was paused: paused by user)") for m in said), said
 
 
 def test_protective_stop_pauses_with_reason_and_resume_clears_it(arun, tmp_path, sphere):
@@ -403,3 +410,50 @@ def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, 
     reason, done = arun(scenario())
     assert "did not finish within 0.2 s" in reason and done["state"] == "complete"
     check_capture(tmp_path / "caps" / "stall", 6, 2)
+
+
+def test_only_scans_the_daemon_wrote_are_taken_over(arun, tmp_path, sphere, caplog):
+    """An interrupted capture another tool wrote under the captures root (here a 'running' capture with a schedule,
+    as `spadscan simulate --out <captures>/x` leaves one) is logged and skipped, even with auto_resume and even
+    when it is the newest; the daemon's own interrupted scan is taken over (and that is logged)."""
+    caplog.set_level(logging.INFO, logger="spadscan.daemon")
+    cfg = make_cfg(tmp_path, views=6, auto_resume=True)
+
+    async def daemon(start: str | None):
+        arm, sensor = make_rig(cfg, sphere)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                if start:
+                    await runner.start(start)
+                    await until(lambda: runner.job.next_pose >= 2, "two poses")
+                    return runner.status()
+                await runner.recover()
+                status = runner.status()
+                if status["scan"] is not None:
+                    await runner.wait(status["scan"])
+                return status, arm.moves
+            finally:
+                await runner.shutdown()
+
+    def foreign(name: str) -> Path:
+        planned = CaptureReader(tmp_path / "caps" / "mine").planned_poses() if name == "sim-later" else None
+        w = CaptureWriter.create(tmp_path / "caps" / name, sensor_preset("tmf8820"), rig={"kind": "simulated"},
+                                 planned_poses=planned if planned is not None else np.eye(4)[None])
+        return w.path
+
+    (tmp_path / "caps").mkdir()
+    foreign("sim-first")
+    status, moves = arun(daemon(None))  # only someone else's capture: nothing taken over, nothing moves
+    assert status["state"] == "idle" and status["scan"] is None and moves == 0
+    assert any("not taking over" in r.getMessage() and "sim-first" in r.getMessage() for r in caplog.records)
+    arun(daemon("mine"))  # stopped mid-scan: stays 'running'
+    foreign("sim-later")  # newer than the daemon's, with a full schedule of its own
+    status, _ = arun(daemon(None))
+    assert status["scan"] == "mine"
+    check_capture(tmp_path / "caps" / "mine", 6, 2)
+    for name in ("sim-first", "sim-later"):
+        r = CaptureReader(tmp_path / "caps" / name)
+        assert r.state == "running" and r.chunk_names() == []  # untouched
+    assert CaptureReader(tmp_path / "caps" / "mine").manifest["rig"]["writer"] == "spadscan-daemon"
+    assert any(r.getMessage().startswith("took over interrupted scan mine at pose ") for r in caplog.records)
