@@ -146,7 +146,8 @@ class ScanConfig:
     settle_s: float = key(0.2, "float", lo=0.0, hi=60.0, unit="s")
     """Wait after the arm stops before frames count (s); frames that began earlier are dropped."""
     chunk_size: int = key(64, "int", lo=1, hi=1_000_000)
-    """Most measurements per published chunk; at least frames_per_pose (a pose is published whole)."""
+    """The largest chunk, in measurements; at least frames_per_pose (a pose is never split). The daemon publishes each
+    pose as its own chunk as soon as it is complete, so this caps a chunk rather than batching poses."""
 
 
 @dataclass(frozen=True)
@@ -156,7 +157,8 @@ class DaemonConfig:
     captures: Path = key(Path("captures"), "path")
     """Captures root: a scan named N is written to <captures>/N/."""
     socket: Path = key(None, "path")
-    """Control socket path (mode 0600); default $SPADSCAN_SOCKET, else $XDG_RUNTIME_DIR/spadscan.sock."""
+    """Control socket path (mode 0600); default (the same as `spadscan ctl`'s): $SPADSCAN_SOCKET, else
+    $XDG_RUNTIME_DIR/spadscan.sock, else /tmp/spadscan-<uid>.sock."""
     auto_resume: bool = key(False, "bool")
     """Resume an interrupted scan by itself at start-up (otherwise it waits, paused, for `ctl resume`)."""
     arm: ArmConfig = field(default_factory=ArmConfig)

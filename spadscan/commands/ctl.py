@@ -88,7 +88,7 @@ def add_arguments(parser) -> None:
     scan.add_argument("--order", choices=("nearest", "serpentine", "planned"), help="visiting order")
     scan.add_argument("--frames-per-pose", type=int, metavar="K", help="frames stored per pose (never summed)")
     scan.add_argument("--settle", type=float, metavar="S", help="wait after each move before frames count (s)")
-    scan.add_argument("--chunk-size", type=int, metavar="N", help="most measurements per published chunk")
+    scan.add_argument("--chunk-size", type=int, metavar="N", help="largest chunk, >= frames per pose (each pose is published as its own chunk)")
     scan.add_argument("--wait", action="store_true",
                       help="block until the scan is complete or aborted (a progress bar on stderr when a terminal)")
     op("pause", "pause after the pose in flight is published")

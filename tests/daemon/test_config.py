@@ -49,6 +49,20 @@ def test_examples_load(name):
     assert cfg.scan.views >= 1
 
 
+@pytest.mark.parametrize("name", ["rig-sim.toml", "rig-ur.toml", "rig-serial.toml", "rig-i2c.toml"])
+def test_examples_listen_where_ctl_looks(name, tmp_path, monkeypatch):
+    """`spadscan ctl scan` with no --socket must reach a daemon started from any example."""
+    from spadscan.daemon.client import default_socket_path
+
+    monkeypatch.delenv("SPADSCAN_SOCKET", raising=False)
+    image = tmp_path / "app.hex"
+    image.write_text(":00000001FF\n")
+    text = (EXAMPLES / name).read_text().replace("/home/lab/tmf8820/tmf8820_app.hex", str(image))
+    assert load_config(write(tmp_path, text)).socket == Path(default_socket_path())
+    monkeypatch.setenv("SPADSCAN_SOCKET", str(tmp_path / "env.sock"))
+    assert load_config(write(tmp_path, text)).socket == tmp_path / "env.sock" == Path(default_socket_path())
+
+
 def test_i2c_example_needs_the_users_firmware(tmp_path):
     text = (EXAMPLES / "rig-i2c.toml").read_text()
     msg = error_of(tmp_path, text)
