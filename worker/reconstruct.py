@@ -35,14 +35,9 @@ def resolve_device(device: str):
 
 def load_ground_truth(gt):
     """A ground-truth mesh in metres from a file path or `builtin:NAME` (a built-in scene)."""
-    spec = str(gt)
-    if spec.startswith("builtin:"):
-        from spadscan.protocol.scenes import builtin_scene
+    from spadscan.protocol.mesh_io import load_mesh_spec
 
-        return builtin_scene(spec[len("builtin:"):])
-    from spadscan.protocol.mesh_io import load_mesh
-
-    return load_mesh(Path(spec))
+    return load_mesh_spec(str(gt))[0]
 
 
 def _check_run_args(budget_s, steps, seed) -> None:
