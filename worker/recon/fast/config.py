@@ -1,0 +1,103 @@
+"""Configuration of the `fast` preset: an explicit SDF grid started and bounded by the space-carving hull.
+
+`fast_config()` returns the shared `ReconConfig` with this preset's own sections: `field` (`FastFieldConfig`: hull,
+grid, rendering) and `schedule` (`FastScheduleConfig`: rays, samples, optimiser, stopping). Of the shared sections it
+uses `loss.eikonal_weight` and `loss.tv_weight` (the grid's Eikonal and smoothness weights), `time_oversample`,
+`dtype` (float32) and the mesh and trace settings; `rays`, `optim` and `sharpness` belong to the paper preset and are
+not read. One set of defaults serves every scene: lengths that should follow the grid are in voxels, physical ones
+in metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class FastFieldConfig:
+    """The SDF grid, the hull that starts and bounds it, and how it is rendered."""
+
+    resolution: int = 64
+    """Grid nodes along the longest side of the hull's box at the coarse level."""
+    refine_after_steps: int = 300
+    """Steps at the coarse level before the grid is refined 2x (0: never refine)."""
+    box_pad_voxels: float = 3.0
+    """Empty margin (coarse voxels) between the hull's bounding box and the grid's walls."""
+    hull_resolution: int = 128
+    """Cells along the longest side of the space-carving grid."""
+    carve_threshold: float = 5.0
+    """Detection threshold of the carving's first returns, in noise standard deviations (lower carves less and is
+    safer for faint, thin parts)."""
+    carve_margin_m: float = 0.002
+    """Range (metres) left uncarved in front of every first return."""
+    hull_margin_m: float = 0.004
+    """How far (metres) the surface may grow outside the carved hull: keeps thin parts that carving shaved."""
+    sharpness_voxels: float = 2.0
+    """Fixed NeuS opacity sharpness s = sharpness_voxels / voxel (1/metres): the surface is about a voxel thick at
+    every level of the grid. Never learned: sharpening past the sample spacing makes runs drift."""
+    floor_z: float | None = 0.0
+    """Height (metres, world z) below which nothing is solid: the floor the object stands on, which no histogram
+    shows (world z = 0 by the convention of the simulator and of LCSPCData's simulated scenes, as for the space-carving
+    baseline). Without it the carved hull keeps the object's whole unobservable shadow below it. A `floor_z` in the
+    capture's scene record, or a table (named by the capture or detected in a measured one), takes precedence;
+    None: no floor."""
+    table_albedo_init: float = 1.0
+    """Initial albedo of the table plane (real scenes), relative to the sensor model's signal scale."""
+
+
+@dataclass
+class FastScheduleConfig:
+    """Rays, samples, optimiser and stopping rule of the fast preset."""
+
+    candidate_rays_per_sr: float = 5000.0
+    """Candidate directions per steradian of each zone, marched once through the hull; those that enter it form the
+    pool each step draws from."""
+    rays_per_sr: float = 900.0
+    """Hull-hitting rays drawn per histogram per step, per steradian of the zone (at least `min_rays`)."""
+    min_rays: int = 32
+    """Floor on rays per histogram per step."""
+    views_per_step: int = 16
+    """Views (all their zones) rendered per step."""
+    coarse_samples: int = 48
+    """Samples per ray, without gradient, spread over its hull segment to find the first zero crossing."""
+    fine_samples: int = 16
+    """Samples per ray, with gradient, around the first zero crossing."""
+    window_voxels: float = 3.0
+    """Half-width of the fine window around the crossing, in voxels."""
+    segment_pad_voxels: float = 1.5
+    """Padding of each ray's hull segment at both ends, in voxels."""
+    lr_voxels: float = 0.4
+    """Adam learning rate of the SDF values, in voxels per step."""
+    lr_final_fraction: float = 0.25
+    """The grid's learning rate decays (cosine, over the fine level's expected steps) to this fraction."""
+    fine_steps: int = 1200
+    """Steps the fine level's learning-rate decay is laid out over."""
+    albedo_lr: float = 0.02
+    """Adam learning rate of the log albedos (object and table)."""
+    band_voxels: float = 4.0
+    """The Eikonal and smoothness terms act on nodes within this many voxels of the surface."""
+    patience_steps: int = 300
+    """After the last refinement, the run reports `converged` once the data term, averaged over windows of
+    patience/6 steps, has not improved by `min_rel_improvement` for this many steps."""
+    min_rel_improvement: float = 0.002
+    """Relative improvement of the windowed data term that counts as progress."""
+
+
+def fast_config():
+    """The resolved `ReconConfig` of the `fast` preset."""
+    from spadscan.worker.recon.config import LossConfig, ReconConfig
+
+    return ReconConfig(
+        preset="fast",
+        model_factory="spadscan.worker.recon.fast.model:make_fast_model",
+        field=FastFieldConfig(),
+        schedule=FastScheduleConfig(),
+        loss=LossConfig(kind="nll", eikonal_weight=0.1, eikonal_points=0, tv_weight=0.05),
+        default_budget_s=120.0,
+        time_oversample=1,
+        mesh_resolution=256,
+        trace_mesh_resolution=128,
+    )
+
+
+__all__ = ["FastFieldConfig", "FastScheduleConfig", "fast_config"]

@@ -1,0 +1,217 @@
+"""The `fast` preset's model: a hull-bounded SDF grid fitted to photon counts.
+
+Each step renders a batch of views (every zone) with hull-hitting rays and crossing-centred samples, bins the
+returns, applies the shared sensor model (pulse, gains, crosstalk, background, pile-up) and scores the counts with
+the photon likelihood, plus finite-difference Eikonal and smoothness terms on the grid; Adam steps the grid and the
+albedos, and the grid is projected back inside the hull. The grid is refined 2x once; after that the learning rate
+decays and the run reports `converged` when the windowed data term stops improving.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..forward import TransientForward, choose_terms
+from ..numerics import flush_denormals
+from .grid_field import GridField, grid_shape
+from .hull import HullConstraint
+from .optim import Adam
+from .problem import FastProblem, build_problem
+from .regularizers import grid_regularizers
+from .render import render_returns
+from .sampler import HullRays, around_crossing, hull_rays, pick_rays, stratified
+from .table import TableModel
+
+
+def make_fast_model(scene, config, device, plan) -> "FastModel":
+    """The model factory named by the `fast` preset: f(SceneData, ReconConfig, device, RunPlan) -> FastModel."""
+    device = torch.device(device)
+    terms = choose_terms(scene)
+    problem = build_problem(scene, config, device, terms)
+    return FastModel(problem, config, seed=int(plan.seed), terms=terms)
+
+
+class FastModel:
+    """Implements model_api.ReconModel for the `fast` preset (see the module docstring)."""
+
+    def __init__(self, problem: FastProblem, config, *, seed: int = 0, terms=None):
+        self.p, self.config = problem, config
+        self.fc, self.sc = config.field, config.schedule
+        self.terms = terms
+        dev = problem.counts.device
+        self.device = dev
+        self.gen = torch.Generator(device=dev)
+        self.gen.manual_seed(seed)
+        self.constraint = HullConstraint(problem.hull, self.fc.hull_margin_m, problem.floor_z)
+        counts, voxel = grid_shape(problem.box[0], problem.box[1], self.fc.resolution)
+        self.field = self.constraint.start_field(problem.box[0], voxel, counts, dev, torch.float32)
+        inside = self.field.sdf.detach()[0, 0] < 0
+        plane = problem.table_plane
+        self.rays: HullRays = hull_rays(inside, self.field.origin, voxel, problem.poses, problem.zone_dirs,
+                                        problem.zone_weights, pad_m=self.sc.segment_pad_voxels * voxel,
+                                        keep_missed=plane is not None)
+        self.table: TableModel | None = None
+        if plane is not None:
+            self.table = TableModel(plane[0], plane[1], self.fc.table_albedo_init, plane[2], self.rays.missed,
+                                    problem.forward, dev)
+        self.log_albedo = torch.zeros((), device=dev, requires_grad=True)
+        self.n_views, self.n_zones, self.n_bins = problem.counts.shape
+        solid = float(problem.zone_weights.sum(dim=1).mean())
+        self.per_hist = max(self.sc.min_rays, int(round(self.sc.rays_per_sr * solid)))
+        self._order = torch.empty(0, dtype=torch.long, device=dev)
+        self.steps, self.level_steps = 0, 0
+        self.refined = self.fc.refine_after_steps <= 0
+        self._window: list[float] = []
+        self._best, self._since_best, self.converged = math.inf, 0, False
+        self._make_optimizer()
+
+    # ---- optimiser and schedule -------------------------------------------------------------------------------
+    def _params(self):
+        groups = [([self.field.sdf], self._grid_lr()), ([self.log_albedo], self.sc.albedo_lr)]
+        if self.table is not None:
+            groups.append((self.table.parameters(), self.sc.albedo_lr))
+        return groups
+
+    def _make_optimizer(self) -> None:
+        self.opt = Adam(self._params())
+
+    def _grid_lr(self) -> float:
+        """Learning rate of the grid (metres per step): constant on the coarse level, cosine-decayed on the fine."""
+        lr = self.sc.lr_voxels * self.field.voxel
+        if not self.refined:
+            return lr
+        p = min(1.0, self.level_steps / max(1, self.sc.fine_steps))
+        floor = self.sc.lr_final_fraction
+        return lr * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * p)))
+
+    def _next_views(self) -> torch.Tensor:
+        k = min(self.sc.views_per_step, self.n_views)
+        if self._order.numel() < k:
+            perm = torch.randperm(self.n_views, device=self.device, generator=self.gen)
+            self._order = torch.cat([self._order, perm])
+        views, self._order = self._order[:k], self._order[k:]
+        return views
+
+    # ---- rendering --------------------------------------------------------------------------------------------
+    def _rates(self, views: torch.Tensor) -> torch.Tensor:
+        """Photon rates (n, Z, B) of the given views under the current field, albedos and table."""
+        Z, fwd = self.n_zones, self.p.forward
+        n_hist = views.numel() * Z
+        hist = (views[:, None] * Z + torch.arange(Z, device=self.device)).reshape(-1)
+        has = self.rays.count[hist] > 0
+        hist_ok, local = hist[has], torch.nonzero(has)[:, 0]
+        transient = torch.zeros(n_hist, fwd.n_fine, device=self.device)
+        vox = self.field.voxel
+        if hist_ok.numel() > 0:
+            idx, batch, o, d, w = pick_rays(self.rays, hist_ok, self.per_hist, self.gen)
+            t_in, t_out = self.rays.t_in[idx], self.rays.t_out[idx]
+            with torch.no_grad():
+                tc = stratified(t_in, t_out, self.sc.coarse_samples, self.gen)
+                fc = self.field.sample(o[:, None] + tc[..., None] * d[:, None])
+            t = around_crossing(tc, fc, t_in, t_out, self.sc.fine_samples, self.sc.window_voxels * vox, self.gen)
+            r, radiance, opacity = render_returns(self.field.sample, o, d, t, w, self.fc.sharpness_voxels / vox,
+                                                  0.5 * vox)
+            # The forward model's transient carries albedo / pi (see forward.py); render_returns gives cos/r^2 x sr.
+            radiance = radiance * (torch.exp(self.log_albedo) / math.pi)
+            hist_id = local[batch][:, None].expand_as(r)
+            ranges, values, ids = [r.reshape(-1)], [radiance.reshape(-1)], [hist_id.reshape(-1)]
+            if self.table is not None:
+                tr, tv = self.table.returns(o, d, w, (1.0 - opacity).clamp(0.0, 1.0) ** 2)
+                ranges.append(tr)
+                values.append(tv)
+                ids.append(local[batch])
+            transient = fwd.bin(torch.cat(ranges), torch.cat(values), torch.cat(ids), n_hist)
+        if self.table is not None:
+            transient = transient + self.table.open_transient(hist)
+        return fwd.rates(transient.reshape(views.numel(), Z, -1), self.p.background[views])
+
+    # ---- the Model protocol -----------------------------------------------------------------------------------
+    def step(self) -> dict:
+        """One optimiser step; returns the loss and its parts (data, eikonal, smooth), albedos, grid size, and
+        `converged` (the windowed data term has stopped improving after the last refinement)."""
+        with flush_denormals(self.device):
+            return self._step()
+
+    def _step(self) -> dict:
+        sc, lc = self.sc, self.config.loss
+        if not self.refined and self.level_steps >= self.fc.refine_after_steps:
+            self._refine()
+        views = self._next_views()
+        lam = self._rates(views)
+        nll = self.p.forward.nll(lam, self.p.counts[views], self.p.cycles[views], self.p.valid[views])
+        data = nll / self.n_bins  # deviance per bin: ~0.5 when the fit reaches the photon noise
+        eik, smooth = grid_regularizers(self.field.sdf, self.field.voxel, sc.band_voxels * self.field.voxel)
+        loss = data + lc.eikonal_weight * eik + lc.tv_weight * smooth
+        self.opt.zero_grad()
+        loss.backward()
+        self.opt.set_lr(0, self._grid_lr())
+        self.opt.step()
+        self.constraint.project(self.field)
+        self.steps += 1
+        self.level_steps += 1
+        self._track(float(data.detach()))
+        out = {"loss": float(loss.detach()), "data": float(data.detach()), "eikonal": float(eik.detach()),
+               "smooth": float(smooth.detach()), "albedo": float(torch.exp(self.log_albedo.detach())),
+               "grid": max(self.field.counts), "converged": self.converged}
+        if self.table is not None:
+            out["table_albedo"] = self.table.albedo_value()
+        if not math.isfinite(out["loss"]):
+            from ..errors import ReconstructionError
+
+            raise ReconstructionError(f"the loss became {out['loss']} at step {self.steps} (diverged)")
+        return out
+
+    def _refine(self) -> None:
+        self.field = self.field.upsampled(2)
+        self.constraint.project(self.field)
+        self.refined, self.level_steps = True, 0
+        self._window, self._best, self._since_best = [], math.inf, 0
+        self._make_optimizer()
+
+    def _track(self, data: float) -> None:
+        """Windowed plateau test on the data term; counts only after the last refinement."""
+        self._window.append(data)
+        w = max(10, self.sc.patience_steps // 6)
+        if len(self._window) < w:
+            return
+        mean = float(np.mean(self._window))
+        self._window = []
+        if mean < self._best - self.sc.min_rel_improvement * abs(self._best):
+            self._best, self._since_best = mean, 0
+        else:
+            self._since_best += w
+        self.converged = self.converged or (self.refined and self._since_best >= self.sc.patience_steps)
+
+    def extract_mesh(self, resolution: int | None = None):
+        """The surface as a trimesh.Trimesh (world metres) with vertex normals from the grid's gradient, marching
+        cubes on the grid resampled to `resolution` cells along its longest side (None: the grid's own)."""
+        from .mesh import mesh_from_field
+
+        return mesh_from_field(self.field, resolution)
+
+    def render_histograms(self, view_ids) -> np.ndarray:
+        """Expected counts (n, Z, B) of the given views under the current fit (float64, no gradient)."""
+        views = torch.as_tensor(np.asarray(list(view_ids)), device=self.device, dtype=torch.long).reshape(-1)
+        out = []
+        with torch.no_grad(), flush_denormals(self.device):
+            for v in views.split(max(1, self.sc.views_per_step)):
+                lam = self._rates(v)
+                out.append(self.p.forward.expected_counts(lam, self.p.cycles[v]).double().cpu().numpy())
+        return np.concatenate(out) if out else np.zeros((0, self.n_zones, self.n_bins))
+
+    def summary(self) -> dict:
+        """JSON-able state: grid, hull, rays, albedos, table, convergence."""
+        out = {"steps": self.steps, "grid_nodes": list(self.field.counts), "voxel_mm": self.field.voxel * 1e3,
+               "sharpness_per_m": self.fc.sharpness_voxels / self.field.voxel, "refined": self.refined,
+               "converged": self.converged, "albedo": float(torch.exp(self.log_albedo.detach())),
+               "hull_rays": int(self.rays.count.sum()), "rays_per_histogram": self.per_hist,
+               "floor_z_m": self.p.floor_z, **self.p.notes}
+        if self.table is not None:
+            out.update(self.table.summary())
+        return out
+
+
+__all__ = ["FastModel", "make_fast_model", "FastProblem", "TransientForward"]

@@ -1,0 +1,137 @@
+"""Everything the fast model fits, built from a SceneData: counts, sensor model, candidate rays, hull, table.
+
+The hull comes from the shared space carving (`baselines.space_carving.carve_scene`) inside the scene's box; the
+SDF grid's box is the hull's bounding box plus a few voxels. With a table (named by the capture, or detected in the
+histograms of a measured capture) the carving and the object stay above it, and the plane is rendered exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from spadscan.protocol.raycast import zone_rays
+
+from ..errors import ReconstructionError
+from ..forward import TransientForward
+from .grid_field import GridField
+
+
+HULL_MIN_VOTES = 0.2
+"""Pieces of the carved hull that fewer first returns land in than this fraction of the best piece's are not the
+object (see hull.object_hull)."""
+
+
+@dataclass
+class FastProblem:
+    """What the model fits, as tensors on the model's device. V views, Z zones, B bins, D candidate rays per zone.
+
+    counts (V, Z, B), cycles (V,), valid (V, Z, B) bool, background (V, Z) per bin per cycle, poses (V, 4, 4);
+    zone_dirs (Z, D, 3) and zone_weights (Z, D): candidate directions (sensor frame) and steradians;
+    forward: the shared TransientForward; hull: the carved hull's SDF (GridField, negative inside);
+    floor_z: nothing solid below this height (metres) or None; box: (min (3,), max (3,)) of the SDF grid;
+    table: a TableModel or None (built by the model, which owns the rays); notes: what was decided, for the report.
+    """
+
+    counts: torch.Tensor
+    cycles: torch.Tensor
+    valid: torch.Tensor
+    background: torch.Tensor
+    poses: torch.Tensor
+    zone_dirs: torch.Tensor
+    zone_weights: torch.Tensor
+    forward: TransientForward
+    hull: GridField
+    floor_z: float | None
+    box: tuple[np.ndarray, np.ndarray]
+    table_plane: tuple[np.ndarray, float, bool] | None = None
+    """(normal (3,), offset, fitted) of the table, or None."""
+    table: object = None
+    notes: dict = field(default_factory=dict)
+
+
+def candidate_rays(sensor, per_sr: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(dirs (Z, D, 3), weights (Z, D)) spread evenly over each zone, D = per_sr x the largest zone's solid angle."""
+    solid = max(z.solid_angle_sr() for z in sensor.zones)
+    n = max(16, int(math.ceil(per_sr * solid)))
+    zr = zone_rays(sensor.zones, n, seed)
+    return zr.directions, zr.weights
+
+
+def _table_plane(scene, forward_kernel, zone_dirs, zone_weights):
+    """(normal, offset, fitted, source) of the table, or None."""
+    if scene.table is not None:
+        t = scene.table
+        return np.asarray(t.normal, float), float(t.offset), bool(t.fitted), "capture"
+    if not scene.real:
+        return None
+    from .table import detect_height
+
+    kernel, origin = forward_kernel
+    h = detect_height(scene.counts.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
+                      scene.background.double().cpu().numpy(), scene.poses.double().cpu().numpy(),
+                      zone_dirs, zone_weights, scene.sensor, kernel, origin)
+    if h is None:
+        return None
+    return np.array([0.0, 0.0, 1.0]), h, True, "detected"
+
+
+def build_problem(scene, config, device, terms) -> FastProblem:
+    """Assemble a FastProblem from a SceneData and the resolved config (see the module docstring)."""
+    fc, sc = config.field, config.schedule
+    f32 = dict(device=device, dtype=torch.float32)
+    sensor = scene.sensor
+    kernel, origin = scene.pulse(config.time_oversample)
+    forward = TransientForward(sensor, terms, torch.as_tensor(kernel, dtype=torch.float32), origin,
+                               config.time_oversample).to(device)
+    dirs, weights = candidate_rays(sensor, sc.candidate_rays_per_sr, 0)
+    table = _table_plane(scene, scene.pulse(1), dirs, weights)
+    floor_z, floor_source = fc.floor_z, "config"
+    if isinstance(scene.scene.get("floor_z"), (int, float)):
+        floor_z, floor_source = float(scene.scene["floor_z"]), "capture"
+    if table is not None and abs(table[0][2]) > 0.99:
+        floor_z, floor_source = table[1] / table[0][2], "table"
+    notes = {"table": None if table is None else table[3], "floor": floor_source}
+    hull_res = _carve(scene, fc, floor_z)
+    from .hull import hull_field, object_hull
+
+    voxel = float(np.min(hull_res.voxel_m))
+    occ = np.transpose(hull_res.occupancy, (2, 1, 0))  # (x, y, z) -> (z, y, x)
+    from spadscan.worker.baselines.returns import first_returns
+
+    counts_np, poses_np = scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy()
+    onset = first_returns(counts_np, sensor, fc.carve_threshold, "leading").onset_range_m(sensor)
+    occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=HULL_MIN_VOTES)
+    if not occ.any():
+        raise ReconstructionError("space carving removed everything: no histogram shows a return above the "
+                                  f"threshold ({fc.carve_threshold} noise deviations) inside the scene box")
+    hull = hull_field(occ, hull_res.origin, voxel, device)
+    idx = np.argwhere(occ)[:, ::-1]  # (x, y, z)
+    lo = hull_res.origin + idx.min(axis=0) * voxel
+    hi = hull_res.origin + idx.max(axis=0) * voxel
+    size = float(np.max(hi - lo))
+    pad = fc.box_pad_voxels * size / max(1, fc.resolution - 1) + fc.hull_margin_m
+    lo, hi = lo - pad, hi + pad
+    notes.update({"hull_voxel_mm": voxel * 1e3, "hull_box_min_m": lo.tolist(), "hull_box_max_m": hi.tolist(),
+                  "hull_occupied_voxels": int(occ.sum())})
+    return FastProblem(
+        counts=scene.counts.to(**f32), cycles=scene.cycles.to(**f32), valid=scene.valid.to(device),
+        background=scene.background.to(**f32), poses=scene.poses.to(**f32),
+        zone_dirs=torch.as_tensor(dirs, **f32), zone_weights=torch.as_tensor(weights, **f32), forward=forward,
+        hull=hull, floor_z=floor_z, box=(lo, hi),
+        table_plane=None if table is None else (table[0], table[1], table[2]), notes=notes)
+
+
+def _carve(scene, fc, floor_z):
+    from spadscan.worker.baselines.space_carving import carve_scene
+
+    box = scene.box.double().cpu().numpy()
+    return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
+                       resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
+                       floor_z=floor_z, bounds=(box[0], box[1]))
+
+
+__all__ = ["FastProblem", "build_problem", "candidate_rays"]
