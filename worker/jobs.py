@@ -110,11 +110,13 @@ def check_capture(scan: Path) -> dict:
 
 
 def ground_truth(manifest: dict, out: Path) -> Path | None:
-    """A ground-truth mesh for a simulated capture, when its manifest names one (a mesh file or a built-in scene)."""
+    """A ground-truth mesh for the capture, when its manifest's scene record names one: a mesh file (`ground_truth`,
+    `mesh`) or a built-in scene (`builtin`, exported into `out`)."""
     scene = manifest.get("scene") or {}
-    mesh = scene.get("mesh")
-    if isinstance(mesh, str) and Path(mesh).is_file():
-        return Path(mesh)
+    for key in ("ground_truth", "mesh"):  # written by import-lcspc and by simulate
+        mesh = scene.get(key)
+        if isinstance(mesh, str) and Path(mesh).is_file():
+            return Path(mesh)
     if isinstance(scene.get("builtin"), str):
         try:
             from spadscan.protocol.scenes import builtin_scene

@@ -221,3 +221,16 @@ def test_status_lists_jobs_as_a_table_and_as_json(tmp_path, capsys):
 def test_the_command_refuses_a_missing_root(tmp_path, capsys):
     assert cli_main(["worker", "--root", str(tmp_path / "nope"), "--once"]) == 1
     assert "captures root is not a folder" in capsys.readouterr().err
+
+
+def test_jobs_find_the_ground_truth_a_capture_names(tmp_path):
+    from spadscan.worker.jobs import ground_truth
+
+    mesh = tmp_path / "gt.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert ground_truth({"scene": {"ground_truth": str(mesh)}}, tmp_path) == mesh  # import-lcspc
+    assert ground_truth({"scene": {"mesh": str(mesh)}}, tmp_path) == mesh  # simulate MESH
+    exported = ground_truth({"scene": {"builtin": "sphere"}}, tmp_path)  # simulate builtin:NAME
+    assert exported == tmp_path / "ground_truth.ply" and exported.stat().st_size > 0
+    assert ground_truth({"scene": {"mesh": str(tmp_path / "gone.obj")}}, tmp_path) is None
+    assert ground_truth({}, tmp_path) is None
