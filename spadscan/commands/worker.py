@@ -64,6 +64,10 @@ def run(args) -> int:
         moved = Queue(queue_dir).retry_failed()
         print(f"queued again: {', '.join(moved)}" if moved else "no failed jobs")
         return 0
+    from spadscan.worker.recon.config import PRESETS  # plain dataclasses: no torch here
+
+    if args.preset not in PRESETS:
+        raise ConfigError(f"unknown preset {args.preset!r} (known: {', '.join(PRESETS)})")
     if args.budget_s is not None and not args.budget_s > 0:
         raise ConfigError(f"--budget-s {args.budget_s} must be > 0 seconds")
     if args.steps is not None and args.steps < 1:

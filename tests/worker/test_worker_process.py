@@ -218,9 +218,12 @@ def test_status_lists_jobs_as_a_table_and_as_json(tmp_path, capsys):
     assert rows["a-fast"]["state"] == "failed" and rows["b-fast"]["state"] == "queued"
 
 
-def test_the_command_refuses_a_missing_root(tmp_path, capsys):
+def test_the_command_refuses_a_missing_root_and_an_unknown_preset(tmp_path, capsys):
     assert cli_main(["worker", "--root", str(tmp_path / "nope"), "--once"]) == 1
     assert "captures root is not a folder" in capsys.readouterr().err
+    assert cli_main(["worker", "--root", str(tmp_path), "--once", "--preset", "slow"]) == 1
+    assert "unknown preset 'slow'" in capsys.readouterr().err
+    assert not (tmp_path / ".queue").exists(), "nothing queued with a bad preset"
 
 
 def test_jobs_find_the_ground_truth_a_capture_names(tmp_path):
