@@ -179,8 +179,9 @@ def test_shutdown_on_a_dead_link_does_not_hang(tmp_path, controller, arun):
 
     reason, down = arun(scenario(), timeout_s=120)
     assert "link lost" in reason
-    # Only release fails, at once (the arm's thread is stuck: nothing more is sent); close gives the stuck thread up
-    # instead of waiting for it.
-    assert "still blocked in moveL" in down, down
+    # Only release fails, at once: either the arm's thread is still stuck in moveL, or (on a loaded machine, when
+    # the stuck call already returned) the stale receive data is reported; close gives a stuck thread up instead of
+    # waiting for it.
+    assert "still blocked in moveL" in down or "receive data stale" in down, down
     assert "did not finish" not in down and "still busy" not in down, down
     assert CaptureReader(tmp_path / "caps" / "ur").state == "running"
