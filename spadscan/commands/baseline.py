@@ -7,7 +7,7 @@ space-carving  voxels that a zone saw as empty (in its field of view, in front o
 
 The detection threshold T is a z-score: a bin holds a return when the pulse-filtered, background-free signal
 exceeds T standard deviations of the background noise (pile-up undone first). --calibrate tries thresholds from 3 to
-80 and keeps the one with the lowest Chamfer distance to --gt, as the paper did (and says so in the report).
+300 and keeps the one with the lowest Chamfer distance to --gt, as the paper did (and says so in the report).
 Writes DIR/mesh.ply and DIR/report.json (method, threshold, calibrated, seconds, and with --gt the metrics:
 chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg).
 

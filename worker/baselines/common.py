@@ -15,7 +15,7 @@ from spadscan.protocol.sensor_model import SensorModel, Zone
 
 from .returns import FirstReturns
 
-CALIBRATION_THRESHOLDS = (3.0, 4.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0, 80.0)
+CALIBRATION_THRESHOLDS = (3.0, 4.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0, 80.0, 120.0, 200.0, 300.0)
 """Thresholds (noise standard deviations) tried by `calibrate`."""
 CALIBRATION_POINTS = 100_000
 """Samples per mesh for the metrics during the search (the final metrics use the project's 300,000)."""
