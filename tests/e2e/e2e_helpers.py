@@ -221,6 +221,15 @@ def assert_every_pose_once(folder: Path, n_poses: int, frames_per_pose: int, *, 
     return data
 
 
+def drop_ground_truth(folder: Path) -> None:
+    """Remove the scene record from a simulated capture's manifest: the worker then reconstructs it without a ground
+    truth and skips the metrics (which cost far more than a two-step reconstruction)."""
+    manifest = Path(folder) / "scan.json"
+    data = json.loads(manifest.read_text())
+    data["scene"] = {}
+    manifest.write_text(json.dumps(data, indent=1) + "\n")
+
+
 def published_prefix(folder: Path) -> tuple[list[int], dict[str, str]]:
     """(sorted pose indices published, {chunk name: sha256 of its files}) of a capture folder right now."""
     reader = CaptureReader(folder)

@@ -12,8 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from e2e_helpers import (one_line_error, open_fds, rig_dict, settled_fds, spadscan, spadscan_argv, toml_text,
-                         wait_for)
+from e2e_helpers import (drop_ground_truth, one_line_error, open_fds, rig_dict, settled_fds, spadscan,
+                         spadscan_argv, toml_text, wait_for)
 
 
 def run_many(cases: dict[str, list], parallel: int = 4, timeout: float = 300) -> dict[str, subprocess.CompletedProcess]:
@@ -113,6 +113,7 @@ def make_capture(folder) -> None:
     r = spadscan("simulate", "builtin:sphere", "--out", folder, "--views", 4, "--rays-per-zone", 16, "--sensor",
                  "tmf8820", "--no-progress")
     assert r.returncode == 0, r.stderr
+    drop_ground_truth(folder)
 
 
 def corrupt(good, folder, how: str) -> None:
