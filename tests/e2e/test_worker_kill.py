@@ -112,6 +112,7 @@ def children(pid: int) -> list[int]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="worker/jobs.py _exit_with_parent takes the parent to watch from os.getppid() "
                                        "when the job starts: a worker that dies before that moment leaves a job "
                                        "process (reparented to init) that runs its whole reconstruction")
