@@ -253,6 +253,7 @@ def test_malformed_control_messages_get_one_line_errors_and_the_daemon_keeps_ser
     assert daemon.stop() == 0, daemon.log()
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="ControlServer._serve_client does not notice a client that hangs up while its "
                                        "request is pending: each abandoned `wait` keeps a socket and a task until the "
                                        "scan ends (a paused scan: for ever), so fds pile up")
