@@ -72,10 +72,20 @@ class FastScheduleConfig:
     """The grid's learning rate decays (cosine, over the fine level's expected steps) to this fraction."""
     fine_steps: int = 1200
     """Steps the fine level's learning-rate decay is laid out over."""
+    grad_blur_passes: int = 0
+    """Passes of a [1, 2, 1] / 4 filter along each axis over the grid's gradient before the Adam step (a Sobolev-
+    type preconditioner: neighbouring nodes move together, so the sparse, noisy ray gradients do not roughen the
+    field)."""
+    shared_adam: bool = False
+    """One second moment for the whole grid instead of one per node (updates stay proportional to the gradient)."""
     albedo_lr: float = 0.02
     """Adam learning rate of the log albedos (object and table)."""
     band_voxels: float = 4.0
     """The Eikonal and smoothness terms act on nodes within this many voxels of the surface."""
+    reg_points: int = 65536
+    """Band nodes drawn per step for the Eikonal and smoothness terms (all of them when the band is smaller)."""
+    band_refresh_steps: int = 10
+    """Steps between updates of the band of nodes near the surface."""
     patience_steps: int = 300
     """After the last refinement, the run reports `converged` once the data term, averaged over windows of
     patience/6 steps, has not improved by `min_rel_improvement` for this many steps."""

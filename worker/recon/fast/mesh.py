@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from spadscan.protocol.errors import ConfigError
+from ..errors import ReconstructionError
 
 
 def clean_solid(values: np.ndarray, min_fraction: float = 0.005) -> np.ndarray:
@@ -36,39 +36,59 @@ def clean_solid(values: np.ndarray, min_fraction: float = 0.005) -> np.ndarray:
     return v
 
 
-def mesh_from_values(values: np.ndarray, origin, voxel: float):
-    """Marching cubes of an SDF grid (nz, ny, nx) with nodes at origin + voxel * (x, y, z) -> trimesh.Trimesh.
+def mesh_from_values(values: np.ndarray, origin, spacing):
+    """Marching cubes of an SDF grid (nz, ny, nx) with nodes at origin + spacing * (x, y, z) -> trimesh.Trimesh.
 
-    A grid with no zero crossing gives an empty mesh (no vertices) rather than an error.
+    spacing: a voxel size or (3,) sizes along x, y, z (metres). Raises ReconstructionError when the grid holds no
+    surface (all inside or all outside) or is not finite.
     """
     import trimesh
     from skimage.measure import marching_cubes
 
     v = np.asarray(values, np.float32)
     if v.ndim != 3 or not np.all(np.isfinite(v)):
-        raise ConfigError(f"SDF grid must be a finite 3-D array, got shape {v.shape}")
+        raise ReconstructionError(f"the SDF grid must be a finite 3-D array (the fit diverged?), got shape {v.shape}")
     if not (v.min() < 0 < v.max()):
-        return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
-    verts, faces, _, _ = marching_cubes(v, level=0.0, spacing=(voxel, voxel, voxel))
+        where = "outside" if v.min() >= 0 else "inside"
+        raise ReconstructionError(f"no surface: the SDF is {where} everywhere on the grid")
+    sx, sy, sz = np.broadcast_to(np.asarray(spacing, float), (3,))
+    verts, faces, _, _ = marching_cubes(v, level=0.0, spacing=(sz, sy, sx))
     verts = verts[:, ::-1] + np.asarray(origin, float)  # (z, y, x) -> (x, y, z)
-    # marching_cubes orients faces for a field increasing outward when the axes are (z, y, x); swapping to
-    # (x, y, z) mirrors the frame, so flip the winding to keep normals pointing out of the solid.
+    # Swapping the axes to (x, y, z) mirrors the frame: flip the winding so that normals point out of the solid.
     return trimesh.Trimesh(verts, faces[:, ::-1], process=True)
 
 
 def mesh_from_field(field, resolution: int | None = None):
-    """Marching cubes of a GridField, on its own nodes or resampled to `resolution` nodes on the longest side."""
+    """Marching cubes of a GridField (cleaned by `clean_solid`), on its own nodes or resampled to `resolution` cells
+    along its longest side, with vertex normals from the field's gradient (central differences)."""
     vals = field.sdf.detach()
-    voxel = field.voxel
-    if resolution is not None and resolution != max(field.counts):
-        if not (isinstance(resolution, int) and 8 <= resolution <= 1024):
-            raise ConfigError(f"mesh resolution {resolution} must be an integer in [8, 1024]")
-        factor = (resolution - 1) / (max(field.counts) - 1)
-        size = tuple(max(2, int(round((n - 1) * factor)) + 1) for n in vals.shape[2:])
+    n = max(field.counts) - 1
+    spacing = np.full(3, field.voxel)
+    if resolution is not None and resolution != n:
+        if not (isinstance(resolution, (int, np.integer)) and 8 <= resolution <= 1024):
+            raise ReconstructionError(f"mesh resolution {resolution} must be an integer in [8, 1024]")
+        factor = resolution / n
+        size = tuple(max(2, int(round((c - 1) * factor)) + 1) for c in vals.shape[2:])  # (nz, ny, nx)
         with torch.no_grad():
             vals = torch.nn.functional.interpolate(vals, size=size, mode="trilinear", align_corners=True)
-        voxel = voxel / factor
-    return mesh_from_values(clean_solid(vals[0, 0].cpu().numpy()), field.origin.cpu().numpy(), voxel)
+        ext = (np.array(vals.shape[2:][::-1]) - 1)  # cells along x, y, z
+        spacing = (np.array(field.counts) - 1) * field.voxel / ext
+    mesh = mesh_from_values(clean_solid(vals[0, 0].cpu().numpy()), field.origin.cpu().numpy(), spacing)
+    mesh.vertex_normals = vertex_normals(field, mesh.vertices)
+    return mesh
 
 
-__all__ = ["mesh_from_values", "mesh_from_field"]
+def vertex_normals(field, points: np.ndarray, chunk: int = 1 << 16) -> np.ndarray:
+    """Unit gradients (N, 3) of a GridField at points (N, 3) metres, by central differences of half a voxel."""
+    out = np.zeros((len(points), 3))
+    h = 0.5 * field.voxel
+    eye = torch.eye(3, dtype=field.sdf.dtype, device=field.sdf.device) * h
+    with torch.no_grad():
+        for i in range(0, len(points), chunk):
+            p = torch.as_tensor(points[i: i + chunk], dtype=field.sdf.dtype, device=field.sdf.device)
+            v = field.sample(torch.cat([p[:, None] + eye, p[:, None] - eye], dim=1))
+            out[i: i + chunk] = (v[:, :3] - v[:, 3:]).double().cpu().numpy()
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+
+
+__all__ = ["clean_solid", "mesh_from_values", "mesh_from_field", "vertex_normals"]

@@ -20,10 +20,23 @@ from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
 from .optim import Adam
 from .problem import FastProblem, build_problem
-from .regularizers import grid_regularizers
+from .regularizers import band_nodes, grid_regularizers
 from .render import render_returns
 from .sampler import HullRays, around_crossing, hull_rays, pick_rays, stratified
 from .table import TableModel
+
+
+def blur3(x: torch.Tensor, passes: int) -> torch.Tensor:
+    """`passes` rounds of a [1, 2, 1] / 4 filter along each axis of a grid (1, 1, nz, ny, nx), edges replicated."""
+    k = torch.tensor([0.25, 0.5, 0.25], dtype=x.dtype, device=x.device)
+    for _ in range(passes):
+        for dim in (2, 3, 4):
+            shape = [1, 1, 1, 1, 1]
+            shape[dim] = 3
+            pad = [0, 0, 0, 0, 0, 0]
+            pad[2 * (4 - dim)], pad[2 * (4 - dim) + 1] = 1, 1
+            x = torch.nn.functional.conv3d(torch.nn.functional.pad(x, pad, mode="replicate"), k.reshape(shape))
+    return x
 
 
 def make_fast_model(scene, config, device, plan) -> "FastModel":
@@ -66,6 +79,7 @@ class FastModel:
         self.refined = self.fc.refine_after_steps <= 0
         self._window: list[float] = []
         self._best, self._since_best, self.converged = math.inf, 0, False
+        self._band: torch.Tensor | None = None
         self._make_optimizer()
 
     # ---- optimiser and schedule -------------------------------------------------------------------------------
@@ -76,7 +90,8 @@ class FastModel:
         return groups
 
     def _make_optimizer(self) -> None:
-        self.opt = Adam(self._params())
+        groups = self._params()
+        self.opt = Adam(groups, shared=(self.sc.shared_adam,) + (False,) * (len(groups) - 1))
 
     def _grid_lr(self) -> float:
         """Learning rate of the grid (metres per step): constant on the coarse level, cosine-decayed on the fine."""
@@ -143,10 +158,15 @@ class FastModel:
         lam = self._rates(views)
         nll = self.p.forward.nll(lam, self.p.counts[views], self.p.cycles[views], self.p.valid[views])
         data = nll / self.n_bins  # deviance per bin: ~0.5 when the fit reaches the photon noise
-        eik, smooth = grid_regularizers(self.field.sdf, self.field.voxel, sc.band_voxels * self.field.voxel)
+        if self._band is None or self.level_steps % sc.band_refresh_steps == 0:
+            self._band = band_nodes(self.field.sdf, sc.band_voxels * self.field.voxel,
+                                    self.constraint.bound_for(self.field))
+        eik, smooth = grid_regularizers(self.field.sdf, self.field.voxel, self._band, sc.reg_points, self.gen)
         loss = data + lc.eikonal_weight * eik + lc.tv_weight * smooth
         self.opt.zero_grad()
         loss.backward()
+        if sc.grad_blur_passes > 0 and self.field.sdf.grad is not None:
+            self.field.sdf.grad = blur3(self.field.sdf.grad, sc.grad_blur_passes)
         self.opt.set_lr(0, self._grid_lr())
         self.opt.step()
         self.constraint.project(self.field)
@@ -167,7 +187,7 @@ class FastModel:
     def _refine(self) -> None:
         self.field = self.field.upsampled(2)
         self.constraint.project(self.field)
-        self.refined, self.level_steps = True, 0
+        self.refined, self.level_steps, self._band = True, 0, None
         self._window, self._best, self._since_best = [], math.inf, 0
         self._make_optimizer()
 

@@ -62,21 +62,26 @@ def candidate_rays(sensor, per_sr: float, seed: int) -> tuple[np.ndarray, np.nda
 
 
 def _table_plane(scene, forward_kernel, zone_dirs, zone_weights):
-    """(normal, offset, fitted, source) of the table, or None."""
-    if scene.table is not None:
-        t = scene.table
-        return np.asarray(t.normal, float), float(t.offset), bool(t.fitted), "capture"
-    if not scene.real:
+    """(normal, offset, fitted, source) of the table, or None.
+
+    A plane the capture fixes is used as given. A fitted horizontal table (the capture says only that there is
+    one) starts where `table.detect_height` finds it in the histograms, else where the scene data put it."""
+    t = scene.table
+    if t is None:
         return None
+    normal = np.asarray(t.normal, float)
+    if not t.fitted or abs(normal[2]) < 0.99:
+        return normal, float(t.offset), bool(t.fitted), "capture"
     from .table import detect_height
 
     kernel, origin = forward_kernel
     h = detect_height(scene.counts.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
                       scene.background.double().cpu().numpy(), scene.poses.double().cpu().numpy(),
-                      zone_dirs, zone_weights, scene.sensor, kernel, origin)
+                      zone_dirs, zone_weights, scene.sensor, np.asarray(kernel, float), origin,
+                      ignore_bins=scene.sensor.ignore_bins)
     if h is None:
-        return None
-    return np.array([0.0, 0.0, 1.0]), h, True, "detected"
+        return normal, float(t.offset), True, "fitted from the scene data's start"
+    return np.array([0.0, 0.0, 1.0]), h * float(np.sign(normal[2])), True, "detected, then fitted"
 
 
 def build_problem(scene, config, device, terms) -> FastProblem:

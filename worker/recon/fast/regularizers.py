@@ -1,8 +1,8 @@
-"""Finite-difference regularisers on an SDF grid: Eikonal and smoothness, near the surface only.
+"""Finite-difference regularisers on an SDF grid: Eikonal and smoothness, on nodes near the surface.
 
-Both act on the grid values directly (no autograd double-backward, no sampling): a step costs one pass over the
-nodes. They are averaged over a band of nodes within `band_m` of the current surface, where the shape is decided;
-far nodes are pinned by the hull constraint or carry no information.
+Both act on the grid values directly (no autograd double-backward, no sampling of the field): central differences
+and a 6-neighbour Laplacian at a random subset of the nodes within `band_m` of the surface, gathered by flat index,
+so a step costs O(points) however fine the grid. The band is refreshed every few steps by the model.
 """
 
 from __future__ import annotations
@@ -10,32 +10,43 @@ from __future__ import annotations
 import torch
 
 
-def _central(g: torch.Tensor, voxel: float):
-    """Central differences on interior nodes: g (nz, ny, nx) -> (gx, gy, gz), each (nz-2, ny-2, nx-2), unitless."""
-    gx = (g[1:-1, 1:-1, 2:] - g[1:-1, 1:-1, :-2]) / (2 * voxel)
-    gy = (g[1:-1, 2:, 1:-1] - g[1:-1, :-2, 1:-1]) / (2 * voxel)
-    gz = (g[2:, 1:-1, 1:-1] - g[:-2, 1:-1, 1:-1]) / (2 * voxel)
-    return gx, gy, gz
+def band_nodes(values: torch.Tensor, band_m: float, bound: torch.Tensor | None = None) -> torch.Tensor:
+    """Flat indices (n,) of interior nodes of a grid (1, 1, nz, ny, nx) whose |value| < band_m (metres).
+
+    bound: the constraint's lower bound on the same grid; nodes held at it are left out (the projection decides
+    them, and the kink where the bound takes over is no roughness of the surface)."""
+    g = values.detach()[0, 0]
+    keep = torch.zeros_like(g, dtype=torch.bool)
+    keep[1:-1, 1:-1, 1:-1] = True
+    keep &= g.abs() < band_m
+    if bound is not None:
+        keep &= g > bound[0, 0] + 1e-7
+    return torch.nonzero(keep.reshape(-1))[:, 0]
 
 
-def grid_regularizers(values: torch.Tensor, voxel: float, band_m: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Eikonal and smoothness terms of a grid (1, 1, nz, ny, nx) of SDF values (metres).
+def grid_regularizers(values: torch.Tensor, voxel: float, nodes: torch.Tensor, n_points: int,
+                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eikonal and smoothness terms at up to n_points random nodes among `nodes` (flat interior indices).
 
-    eikonal = mean (|grad f| - 1)^2 over band nodes; smoothness = mean (voxel * laplacian f)^2 over band nodes, i.e.
-    the squared change of the unit gradient across one voxel (dimensionless, ~ (voxel / radius of curvature)^2).
-    Returns two scalars (zero when the band is empty).
+    values: (1, 1, nz, ny, nx) SDF (metres). eikonal = mean (|grad f| - 1)^2 (central differences); smoothness =
+    mean (voxel x laplacian f)^2, the squared change of the unit gradient across one voxel (dimensionless, ~ (voxel /
+    radius of curvature)^2). Returns two scalars (zero when there are no nodes).
     """
-    g = values[0, 0]
-    core = g[1:-1, 1:-1, 1:-1]
-    band = (core.detach().abs() < band_m).to(g.dtype)
-    n = band.sum().clamp(min=1.0)
-    gx, gy, gz = _central(g, voxel)
-    norm = torch.sqrt(gx * gx + gy * gy + gz * gz + 1e-12)
-    eik = (((norm - 1.0) ** 2) * band).sum() / n
-    lap = (g[1:-1, 1:-1, 2:] + g[1:-1, 1:-1, :-2] + g[1:-1, 2:, 1:-1] + g[1:-1, :-2, 1:-1]
-           + g[2:, 1:-1, 1:-1] + g[:-2, 1:-1, 1:-1] - 6.0 * core) / voxel
-    smooth = ((lap * lap) * band).sum() / n
-    return eik, smooth
+    if nodes.numel() == 0:
+        zero = values.new_zeros(())
+        return zero, zero
+    if nodes.numel() > n_points:
+        pick = torch.randint(0, nodes.numel(), (n_points,), device=nodes.device, generator=generator)
+        nodes = nodes[pick]
+    nz, ny, nx = values.shape[2:]
+    step = torch.tensor([0, 1, -1, nx, -nx, nx * ny, -nx * ny], device=nodes.device)
+    # One gather for the node and its six neighbours: its backward is one scatter into the grid, not seven.
+    c, xp, xm, yp, ym, zp, zm = values.reshape(-1)[nodes[:, None] + step].unbind(-1)
+    grad = torch.stack([xp - xm, yp - ym, zp - zm], dim=-1) / (2 * voxel)
+    norm = torch.sqrt((grad * grad).sum(-1) + 1e-12)
+    eik = ((norm - 1.0) ** 2).mean()
+    lap = (xp + xm + yp + ym + zp + zm - 6.0 * c) / voxel
+    return eik, (lap * lap).mean()
 
 
-__all__ = ["grid_regularizers"]
+__all__ = ["band_nodes", "grid_regularizers"]

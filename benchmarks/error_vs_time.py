@@ -1,0 +1,328 @@
+"""Error against run time: every preset and baseline on every scene for the same wall-clock budget.
+
+    python benchmarks/error_vs_time.py --scenes DIR... --budget-s S [--presets fast,paper] [--baselines]
+                                       [--out FOLDER] [--device auto|cpu|cuda] [--every-s 5] [--seed 0]
+
+A scene is a capture folder (holds scan.json) or a folder of the public dataset (holds <name>.json, imported once
+into --out). Each preset runs in its own process (clean peak memory, nothing shared) through the shared pieces of
+`spadscan reconstruct` (load_scene, the preset's model, the training loop), with checkpoints every --every-s seconds
+that record the Chamfer distance against the capture's ground truth. Run time is wall time from the start of loading
+the capture — set-up (carving, ray tables) included — less the time spent evaluating checkpoints. On a real scene
+with a table, Chamfer is measured on the object above the table: both meshes are cut 5 mm above the table top
+(found in the ground truth as the largest horizontal face area). Baselines run once and are timed whole.
+
+Prints one table (scene x method: Chamfer at 30 s, 60 s, 180 s and at the end, time to reach 2 mm, peak memory),
+the speed-up of `fast` over `paper` (time for `fast` to reach the Chamfer `paper` reaches at the end of its budget),
+and saves one plot (error_vs_time.png) and all numbers (results.json) in --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+MARKS_S = (30.0, 60.0, 180.0)
+GOAL_MM = 2.0
+CUT_ABOVE_TABLE_M = 0.005
+
+
+# ---- scenes ---------------------------------------------------------------------------------------------------------
+def prepare_scene(path: Path, work: Path) -> Path:
+    """A capture folder for a scene argument: the folder itself, or the dataset file inside it imported once."""
+    if (path / "scan.json").is_file():
+        return path
+    files = sorted(p for p in path.glob("*.json") if not p.name.endswith("_random.json"))
+    if not files:
+        raise SystemExit(f"error: {path} holds neither scan.json nor a dataset <name>.json")
+    cap = work / "captures" / path.name
+    if not (cap / "scan.json").is_file():
+        from spadscan.protocol.lcspc import import_lcspc
+
+        import_lcspc(files[0], cap)
+    return cap
+
+
+def ground_truth(capture: Path):
+    """(mesh, crop_z or None) from the capture's scene record; crop_z cuts away a table slab in the ground truth."""
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.protocol.mesh_io import load_mesh
+
+    scene = CaptureReader(capture).manifest.get("scene") or {}
+    gt = scene.get("ground_truth")
+    if not gt:
+        return None, None
+    mesh = load_mesh(gt)
+    normals, areas = mesh.face_normals, mesh.area_faces
+    up = normals[:, 2] > 0.99
+    crop_z = None
+    if up.any() and areas[up].sum() > 0.5 * areas.sum():  # a table slab dominates the ground truth
+        crop_z = float(mesh.triangles_center[up, 2][np.argmax(areas[up])]) + CUT_ABOVE_TABLE_M
+        mesh = cut_above(mesh, crop_z)
+    return mesh, crop_z
+
+
+def cut_above(mesh, z: float):
+    from spadscan.worker.metrics import crop_to_box
+
+    big = 1e3
+    return crop_to_box(mesh, np.array([-big, -big, z]), np.array([big, big, big]))
+
+
+def chamfer_mm(mesh, gt, crop_z, n_points: int) -> float | None:
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.worker.metrics import mesh_metrics
+
+    try:
+        if crop_z is not None:
+            mesh = cut_above(mesh, crop_z)
+        return float(mesh_metrics(mesh, gt, n_points=n_points).chamfer_mm)
+    except SpadscanError:
+        return None
+
+
+# ---- one run (in its own process) -----------------------------------------------------------------------------------
+def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, device: str, seed: int,
+               out: Path) -> dict:
+    """Run one preset on one capture; returns {trace: [{seconds, wall_seconds, step, chamfer_mm}], ...}."""
+    import resource
+
+    import torch
+
+    from spadscan.worker.reconstruct import resolve_device
+    from spadscan.worker.recon.config import load_factory, preset_config
+    from spadscan.worker.recon.model_api import RunPlan
+    from spadscan.worker.recon.scene_data import load_scene
+    from spadscan.worker.recon.trainer import train
+
+    t0 = time.perf_counter()
+    config = preset_config(preset)
+    dev = resolve_device(device)
+    gt, crop_z = ground_truth(capture)
+    load_start = time.perf_counter()
+    scene = load_scene(capture, dev, torch.float32)
+    plan = RunPlan(steps=None, budget_s=None, seed=seed)
+    model = load_factory(config)(scene, config, dev, plan)
+    setup_s = time.perf_counter() - load_start
+    # The training budget is what is left of the wall budget after set-up.
+    plan = RunPlan(steps=None, budget_s=max(1.0, budget_s - setup_s), seed=seed)
+    resolution = config.trace_mesh_resolution
+    points = config.trace_points
+
+    def evaluate():
+        if gt is None:
+            return {}
+        try:
+            mesh = model.extract_mesh(resolution)
+        except Exception as exc:  # no surface yet: the trace says so
+            return {"chamfer_mm": None, "note": str(exc)}
+        return {"chamfer_mm": chamfer_mm(mesh, gt, crop_z, points)}
+
+    checkpoints = max(2, int(round(plan.budget_s / every_s)))
+    result = train(model, plan, checkpoints=checkpoints, evaluate=evaluate, progress=False, desc=preset)
+    trace = [{**e, "wall_seconds": e["seconds"] + setup_s} for e in result.trace]
+    final = None
+    if gt is not None:
+        try:
+            final = chamfer_mm(model.extract_mesh(config.mesh_resolution), gt, crop_z, config.metrics_points)
+        except Exception:
+            final = None
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if dev.type == "cuda":
+        peak_mb = max(peak_mb, torch.cuda.max_memory_allocated() / 2**20)
+    return {"method": preset, "kind": "preset", "device": str(dev),
+            "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or "cpu",
+            "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": result.steps,
+            "train_s": result.seconds, "trace": trace, "final_chamfer_mm": final, "crop_z_m": crop_z,
+            "peak_rss_mb": peak_mb, "summary": _jsonable(model.summary()), "total_s": time.perf_counter() - t0}
+
+
+def run_baseline(capture: Path, method: str, out: Path) -> dict:
+    import resource
+
+    from spadscan.worker.baselines.run import run_baseline as run
+    import trimesh
+
+    gt, crop_z = ground_truth(capture)
+    start = time.perf_counter()
+    report = run(capture, out, method)
+    seconds = time.perf_counter() - start
+    mesh = trimesh.load(out / "mesh.ply")
+    c = chamfer_mm(mesh, gt, crop_z, 300_000) if gt is not None else None
+    return {"method": method, "kind": "baseline", "setup_s": 0.0, "trace": [{"wall_seconds": seconds,
+            "chamfer_mm": c}], "final_chamfer_mm": c, "crop_z_m": crop_z, "threshold": report.get("threshold"),
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def _jsonable(obj):
+    return json.loads(json.dumps(obj, default=lambda v: v.tolist() if hasattr(v, "tolist") else str(v)))
+
+
+# ---- tables and plot ------------------------------------------------------------------------------------------------
+def chamfer_at(trace: list[dict], t: float) -> float | None:
+    """The Chamfer of the last checkpoint at or before wall time t (None if none yet or no surface)."""
+    best = None
+    for e in trace:
+        if e["wall_seconds"] <= t + 1e-9:
+            best = e.get("chamfer_mm")
+    return best
+
+
+def time_to(trace: list[dict], goal: float) -> float | None:
+    for e in trace:
+        c = e.get("chamfer_mm")
+        if c is not None and c <= goal:
+            return e["wall_seconds"]
+    return None
+
+
+def fmt(v, unit="") -> str:
+    return "-" if v is None else f"{v:.2f}{unit}"
+
+
+def table(results: list[dict], budget_s: float) -> str:
+    marks = [m for m in MARKS_S if m <= budget_s + 1e-9]
+    head = ["scene", "method"] + [f"@{m:.0f} s" for m in marks] + ["final", f"to {GOAL_MM:g} mm", "peak MB"]
+    rows = [head]
+    for r in results:
+        final = r.get("final_chamfer_mm")
+        rows.append([r["scene"], r["method"]] + [fmt(chamfer_at(r["trace"], m)) for m in marks]
+                    + [fmt(final), fmt(time_to(r["trace"], GOAL_MM), " s"), f"{r['peak_rss_mb']:.0f}"])
+    widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
+    lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths)) + " |" for row in rows]
+    lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    return "\n".join(lines)
+
+
+def speedups(results: list[dict]) -> list[str]:
+    out = []
+    for scene in sorted({r["scene"] for r in results}):
+        by = {r["method"]: r for r in results if r["scene"] == scene}
+        if "fast" in by and "paper" in by:
+            paper = [e for e in by["paper"]["trace"] if e.get("chamfer_mm") is not None]
+            if not paper:
+                continue
+            target, t_paper = paper[-1]["chamfer_mm"], paper[-1]["wall_seconds"]
+            t_fast = time_to(by["fast"]["trace"], target)
+            ratio = "not reached" if t_fast is None else f"{t_paper / t_fast:.0f}x"
+            out.append(f"{scene}: paper reaches {target:.2f} mm at {t_paper:.0f} s; fast reaches it at "
+                       f"{fmt(t_fast, ' s')}: speed-up {ratio}")
+    return out
+
+
+def plot(results: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["scene"] for r in results})
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4.5 * len(scenes), 3.6), squeeze=False)
+    for ax, scene in zip(axes[0], scenes):
+        for r in (r for r in results if r["scene"] == scene):
+            pts = [(e["wall_seconds"], e["chamfer_mm"]) for e in r["trace"] if e.get("chamfer_mm") is not None]
+            if not pts:
+                continue
+            t, c = zip(*pts)
+            if r["kind"] == "baseline":
+                ax.plot(t, c, "s", label=r["method"])
+            else:
+                ax.plot(t, c, "-o", ms=2, label=r["method"])
+        ax.axhline(GOAL_MM, color="gray", ls=":", lw=1)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(scene)
+        ax.set_xlabel("wall time (s)")
+        ax.set_ylabel("Chamfer (mm)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# ---- driver -----------------------------------------------------------------------------------------------------
+def machine() -> str:
+    import torch
+
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = f", GPU {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else ""
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__} ({torch.get_num_threads()} threads){gpu}; "
+            f"load average {load:.1f} at start")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--scenes", nargs="+", required=True, type=Path, metavar="DIR",
+                    help="capture folders, or dataset folders holding <name>.json (imported into --out)")
+    ap.add_argument("--budget-s", type=float, required=True, help="wall-clock seconds per preset and scene")
+    ap.add_argument("--presets", default="fast", help="comma-separated presets (default: fast)")
+    ap.add_argument("--baselines", action="store_true", help="also run space carving and reprojection")
+    ap.add_argument("--out", type=Path, default=Path("benchmark-out"), help="output folder (default: benchmark-out)")
+    ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    ap.add_argument("--every-s", type=float, default=5.0, help="seconds between checkpoints (default: 5)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--one", nargs=3, metavar=("CAPTURE", "METHOD", "RESULT"), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.budget_s <= 0 or args.every_s <= 0:
+        raise SystemExit("error: --budget-s and --every-s must be > 0")
+    if args.one:  # child process: one method on one capture
+        capture, method, result = Path(args.one[0]), args.one[1], Path(args.one[2])
+        out = result.parent / (result.stem + "-files")
+        if method in ("space-carving", "reprojection"):
+            res = run_baseline(capture, method, out)
+        else:
+            res = run_preset(capture, method, args.budget_s, args.every_s, args.device, args.seed, out)
+        result.write_text(json.dumps(_jsonable(res), indent=1))
+        return 0
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    presets = [p for p in args.presets.split(",") if p]
+    methods = presets + (["space-carving", "reprojection"] if args.baselines else [])
+    header = machine()
+    print(f"machine: {header}", file=sys.stderr)
+    results = []
+    for scene_dir in args.scenes:
+        capture = prepare_scene(scene_dir.resolve(), args.out.resolve())
+        for method in methods:
+            result = args.out / "runs" / f"{capture.name}-{method}.json"
+            result.parent.mkdir(parents=True, exist_ok=True)
+            print(f"{capture.name}: {method} ...", file=sys.stderr, flush=True)
+            cmd = [sys.executable, __file__, "--scenes", str(capture), "--budget-s", str(args.budget_s),
+                   "--every-s", str(args.every_s), "--device", args.device, "--seed", str(args.seed),
+                   "--one", str(capture), method, str(result)]
+            proc = subprocess.run(cmd)
+            if proc.returncode != 0 or not result.is_file():
+                print(f"{capture.name}: {method} failed (exit {proc.returncode})", file=sys.stderr)
+                continue
+            res = json.loads(result.read_text())
+            res["scene"] = capture.name
+            results.append(res)
+    text = [f"Machine: {header}", f"Budget: {args.budget_s:g} s wall per run (set-up included)", "",
+            table(results, args.budget_s), ""] + speedups(results)
+    print("\n".join(text))
+    (args.out / "results.json").write_text(json.dumps({"machine": header, "budget_s": args.budget_s,
+                                                       "results": results}, indent=1))
+    (args.out / "table.md").write_text("\n".join(text) + "\n")
+    plot(results, args.out / "error_vs_time.png")
+    print(f"plot: {args.out / 'error_vs_time.png'}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,249 @@
+"""The `fast` preset: grid field, hull constraint, sampler, renderer, regularisers, optimiser, table, and runs on
+captures made by the simulator (a two-step smoke run, and a short run that must lower the loss and the Chamfer)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from spadscan.protocol.schedules import fibonacci_hemisphere
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.simulator import SimSettings, simulate_capture
+from spadscan.worker.recon.config import preset_config, with_overrides
+from spadscan.worker.recon.errors import ReconstructionError
+from spadscan.worker.recon.fast.grid_field import GridField, grid_shape
+from spadscan.worker.recon.fast.hull import HullConstraint, hull_field, object_hull, signed_distance
+from spadscan.worker.recon.fast.model import make_fast_model
+from spadscan.worker.recon.fast.optim import Adam
+from spadscan.worker.recon.fast.regularizers import band_nodes, grid_regularizers
+from spadscan.worker.recon.fast.render import section_ranges, section_weights
+from spadscan.worker.recon.fast.sampler import around_crossing, hull_rays
+from spadscan.worker.recon.model_api import ReconModel, RunPlan
+from spadscan.worker.recon.scene_data import load_scene
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def linear_grid(coef=(0.3, -0.2, 0.5), const=-0.01, n=(9, 7, 5), voxel=0.01, origin=(-0.04, -0.03, 0.0)):
+    """A GridField holding f(p) = coef . p + const exactly at its nodes; returns (field, f)."""
+    nx, ny, nz = n
+    z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    pts = np.asarray(origin) + voxel * np.stack([x, y, z], -1)
+    f = lambda p: p @ np.asarray(coef) + const  # noqa: E731
+    return GridField(origin, voxel, torch.tensor(f(pts), dtype=torch.float64)), f
+
+
+# ---- grid field ---------------------------------------------------------------------------------------------------
+def test_grid_reproduces_a_linear_field_inside_the_box():
+    field, f = linear_grid()
+    rng = np.random.default_rng(0)
+    lo, hi = field.origin.numpy(), field.box_max.numpy()
+    pts = lo + rng.random((500, 3)) * (hi - lo)
+    got = field.sample(torch.tensor(pts)).detach().numpy()
+    np.testing.assert_allclose(got, f(pts), atol=1e-9)
+
+
+def test_points_outside_the_box_read_as_empty_even_where_the_field_is_solid():
+    field = GridField((0.0, 0.0, 0.0), 0.01, -torch.ones((5, 5, 5), dtype=torch.float64))
+    outside = torch.tensor([[-0.001, 0.02, 0.02], [0.02, 0.0401, 0.02], [0.5, 0.5, 0.5], [0.02, 0.02, -1e-6]],
+                           dtype=torch.float64)
+    v = field.sample(outside).detach()
+    assert bool((v > 0).all()), v
+    # Further out reads further from any surface, by the distance to the box.
+    assert float(v[2]) == pytest.approx(float(torch.linalg.norm(outside[2] - 0.04)), rel=1e-6)
+    inside = field.sample(torch.tensor([[0.02, 0.02, 0.02]], dtype=torch.float64))
+    assert float(inside) == pytest.approx(-1.0)
+
+
+def test_refining_the_grid_keeps_the_field_and_its_zero_level_set():
+    rng = np.random.default_rng(1)
+    coarse = GridField((0.0, 0.0, 0.0), 0.02, torch.tensor(rng.normal(0, 0.01, (6, 7, 8))))
+    fine = coarse.upsampled(2)
+    assert fine.counts == (15, 13, 11) and fine.voxel == pytest.approx(0.01)
+    pts = torch.tensor(rng.random((2000, 3)) * (coarse.box_max.numpy()), dtype=torch.float64)
+    a, b = coarse.sample(pts).detach(), fine.sample(pts).detach()
+    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-12)
+    assert bool(((a < 0) == (b < 0)).all())
+
+
+def test_grid_shape_covers_the_box_with_cubic_voxels():
+    counts, voxel = grid_shape((0, 0, 0), (0.2, 0.1, 0.05), 21)
+    assert voxel == pytest.approx(0.01)
+    assert counts == (21, 11, 6)
+
+
+# ---- hull ---------------------------------------------------------------------------------------------------------
+def test_signed_distance_of_an_occupancy_changes_sign_between_nodes():
+    occ = np.zeros((9, 9, 9), bool)
+    occ[3:6, 3:6, 3:6] = True
+    d = signed_distance(occ, 0.01)
+    assert np.all(d[occ] < 0) and np.all(d[~occ] > 0)
+    assert d[4, 4, 4] == pytest.approx(-0.015)  # 2 nodes to the nearest empty one, less half a node
+    assert d[4, 4, 1] == pytest.approx(0.015)
+
+
+def test_hull_constraint_bounds_the_field_and_starts_it_on_the_grown_hull():
+    occ = np.zeros((12, 12, 12), bool)
+    occ[2:8, 3:9, 3:9] = True  # (z, y, x): a block whose bottom rows lie below the floor
+    hull = hull_field(occ, (0.0, 0.0, 0.0), 0.01, "cpu", torch.float64)
+    con = HullConstraint(hull, margin_m=0.004, floor_z=0.035)
+    field = con.start_field((0.0, 0.0, 0.0), 0.005, (23, 23, 23), "cpu", torch.float64)
+    with torch.no_grad():
+        field.sdf.fill_(-1.0)  # try to make everything solid
+    con.project(field)
+    pts = field.node_points().reshape(-1, 3)
+    v = field.sdf.detach().reshape(-1)
+    solid = pts[v < 0]
+    assert len(solid) > 0
+    assert float(solid[:, 2].min()) >= 0.035  # nothing below the floor
+    assert bool((hull.sample(solid).detach() < 0.004 + 1e-9).all())  # nothing beyond hull + margin
+    far = torch.tensor([[0.11, 0.11, 0.06]], dtype=torch.float64)
+    assert float(con.bound_at(far)) > 0
+
+
+def test_object_hull_keeps_the_piece_the_first_returns_land_in():
+    occ = np.zeros((20, 20, 40), bool)  # (z, y, x)
+    occ[8:12, 8:12, 4:8] = True  # the object, in front of the sensor
+    occ[8:12, 8:12, 30:34] = True  # a speck no first return reaches
+    poses = np.eye(4)[None].copy()
+    poses[0, :3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]  # looks along +x
+    poses[0, :3, 3] = [-0.1, 0.1, 0.1]
+    dirs = np.array([[[0.0, 0.0, 1.0], [0.02, 0.0, 1.0], [0.0, -0.02, 1.0]]])
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    kept = object_hull(occ, (0.0, 0.0, 0.0), 0.01, poses, dirs, np.array([[0.135]]))
+    assert kept[10, 10, 5] and not kept[10, 10, 31]
+    assert kept.sum() == 64
+
+
+# ---- rays, samples, rendering -------------------------------------------------------------------------------------
+def test_hull_rays_keep_only_rays_that_enter_the_hull_with_their_segment():
+    inside = torch.zeros((21, 21, 21), dtype=torch.bool)
+    inside[8:13, 8:13, 8:13] = True  # a cube of side 0.04 m around (0.1, 0.1, 0.1)
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, 3] = torch.tensor([0.1, 0.1, -0.2])  # below the cube, looking up (+z)
+    dirs = torch.tensor([[[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]], dtype=torch.float64)
+    rays = hull_rays(inside, torch.zeros(3, dtype=torch.float64), 0.01, pose[None], dirs,
+                     torch.full((1, 2), 0.5, dtype=torch.float64), pad_m=0.0, keep_missed=True)
+    assert rays.count.tolist() == [1] and rays.missed.count.tolist() == [1]
+    # The dilated hull spans z 0.07 .. 0.13 on the axis: 0.27 .. 0.33 m from the sensor.
+    assert float(rays.t_in[0]) == pytest.approx(0.27, abs=0.011)
+    assert float(rays.t_out[0]) == pytest.approx(0.33, abs=0.011)
+
+
+def test_samples_crowd_around_the_first_crossing():
+    t = torch.linspace(0.0, 1.0, 21)[None]
+    f = 0.45 - t  # crosses at 0.45
+    fine = around_crossing(t, f, torch.zeros(1), torch.ones(1), 8, 0.05, None)
+    assert float(fine.min()) >= 0.4 - 1e-6 and float(fine.max()) <= 0.5 + 1e-6
+    assert bool((fine[:, 1:] >= fine[:, :-1]).all())
+
+
+def test_an_opaque_crossing_returns_all_its_light_at_the_crossing():
+    t = torch.linspace(0.2, 0.3, 41, dtype=torch.float64)[None]
+    f = 0.2437 - t
+    for s in (200.0, 2000.0, 20000.0):  # however thick the opacity profile is against the sample spacing
+        w = section_weights(f, s)
+        assert float(w.sum()) == pytest.approx(1.0, abs=1e-3)
+    r = section_ranges(t, f)
+    k = int(torch.argmax(section_weights(f, 20000.0)))
+    assert float(r[0, k]) == pytest.approx(0.2437, abs=1e-9)
+
+
+# ---- regularisers and optimiser -----------------------------------------------------------------------------------
+def test_regularisers_vanish_on_a_plane_and_grow_on_noise():
+    field, _ = linear_grid(coef=(0.6, 0.0, 0.8), const=-0.02, n=(12, 12, 12))
+    nodes = band_nodes(field.sdf, 1.0)
+    eik, smooth = grid_regularizers(field.sdf, field.voxel, nodes, 100000)
+    assert float(eik) < 1e-12 and float(smooth) < 1e-12
+    noisy = field.sdf + 0.003 * torch.randn_like(field.sdf)
+    eik2, smooth2 = grid_regularizers(noisy, field.voxel, nodes, 100000)
+    assert float(eik2) > 0.01 and float(smooth2) > 0.01
+
+
+def test_adam_follows_the_textbook_update():
+    x = torch.tensor([1.0, -2.0, 3.0], requires_grad=True)
+    ref = x.detach().clone().requires_grad_(True)
+    ours, theirs = Adam([([x], 0.1)]), torch.optim.Adam([ref], lr=0.1, betas=(0.9, 0.99), eps=1e-12)
+    for _ in range(5):
+        for p, opt in ((x, ours), (ref, theirs)):
+            opt.zero_grad()
+            ((p - 0.5) ** 2 * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
+            opt.step()
+    np.testing.assert_allclose(x.detach().numpy(), ref.detach().numpy(), rtol=1e-5)
+
+
+# ---- runs on simulated captures -----------------------------------------------------------------------------------
+def cylinder_mesh():
+    import trimesh
+
+    mesh = trimesh.creation.cylinder(radius=0.04, height=0.08, sections=48)
+    mesh.apply_translation([0.005, -0.004, 0.04])  # standing on z = 0
+    return mesh
+
+
+@pytest.fixture(scope="module")
+def cylinder_capture(tmp_path_factory):
+    """24 simulated views of a cylinder on the floor, from 0.3 m (LCSPCData's simulated sensor)."""
+    path = tmp_path_factory.mktemp("fast") / "cyl"
+    poses = fibonacci_hemisphere(24, 0.3, target=(0, 0, 0.03), min_elevation_deg=5)
+    simulate_capture(cylinder_mesh(), sensor_preset("lcspc-sim"), poses, path,
+                     settings=SimSettings(rays_per_zone=1024), seed=3, progress=False)
+    return path
+
+
+SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine_after_steps": 4,
+         "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
+
+
+def test_two_step_smoke_run_follows_the_model_protocol(cylinder_capture):
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), SMALL)
+    model = make_fast_model(scene, config, "cpu", RunPlan(steps=2, budget_s=None, seed=0))
+    assert isinstance(model, ReconModel)
+    for _ in range(2):
+        out = model.step()
+        assert math.isfinite(out["loss"]) and out["loss"] > 0
+    mesh = model.extract_mesh(32)
+    assert len(mesh.faces) > 0
+    n = np.asarray(mesh.vertex_normals)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+    rendered = model.render_histograms([0, 5])
+    assert rendered.shape == (2, 1, scene.sensor.n_bins) and np.all(np.isfinite(rendered))
+    json.dumps(model.summary())
+    json.dumps(config.to_dict())
+    assert model.terms.pileup and not model.terms.table
+
+
+def test_a_grid_with_no_surface_is_a_one_line_error(cylinder_capture):
+    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), SMALL), "cpu",
+                            RunPlan(steps=1, budget_s=None, seed=0))
+    with torch.no_grad():
+        model.field.sdf.fill_(1.0)
+    with pytest.raises(ReconstructionError, match="no surface"):
+        model.extract_mesh(32)
+
+
+@pytest.mark.slow
+def test_short_run_lowers_loss_and_chamfer(cylinder_capture):
+    from spadscan.worker.metrics import mesh_metrics
+
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), {**SMALL, "field.resolution": 32, "field.refine_after_steps": 60})
+    model = make_fast_model(scene, config, "cpu", RunPlan(steps=100, budget_s=None, seed=0))
+    gt = cylinder_mesh()
+    chamfer0 = mesh_metrics(model.extract_mesh(48), gt, n_points=5000).chamfer_mm
+    data = [model.step()["data"] for _ in range(100)]
+    chamfer1 = mesh_metrics(model.extract_mesh(48), gt, n_points=5000).chamfer_mm
+    assert np.mean(data[-10:]) < 0.5 * np.mean(data[:5])
+    assert chamfer1 < 0.6 * chamfer0, (chamfer0, chamfer1)
+    assert chamfer1 < 4.0
