@@ -24,15 +24,7 @@ from spadscan.protocol.errors import DeviceError
 EXPECTED_COMMANDS = [0x6E, 0x16, 0x15, 0x10]  # short range, load config, write config, measure
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads_or_fds():
-    threads, fds = set(threading.enumerate()), len(os.listdir("/proc/self/fd"))
-    yield
-    deadline = time.monotonic() + 5
-    while time.monotonic() < deadline and set(threading.enumerate()) - threads:
-        time.sleep(0.02)
-    assert not set(threading.enumerate()) - threads, "test leaked threads"
-    assert len(os.listdir("/proc/self/fd")) <= fds, "test leaked file descriptors"
+pytestmark = pytest.mark.usefixtures("no_leaked_threads_or_fds")
 
 
 @pytest.fixture

@@ -20,15 +20,7 @@ from spadscan.daemon.sensor.transport import HistogramPacket, ResultPacket, Stat
 from spadscan.protocol.errors import DeviceError
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads_or_fds():
-    threads, fds = set(threading.enumerate()), len(os.listdir("/proc/self/fd"))
-    yield
-    deadline = time.monotonic() + 5
-    while time.monotonic() < deadline and set(threading.enumerate()) - threads:
-        time.sleep(0.02)
-    assert not set(threading.enumerate()) - threads, "test leaked threads"
-    assert len(os.listdir("/proc/self/fd")) <= fds, "test leaked file descriptors (a pty or a port)"
+pytestmark = pytest.mark.usefixtures("no_leaked_threads_or_fds")
 
 
 def counts(seed):

@@ -19,15 +19,7 @@ from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_presets import sensor_preset
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads_or_fds():
-    threads, fds = set(threading.enumerate()), len(os.listdir("/proc/self/fd"))
-    yield
-    deadline = time.monotonic() + 5
-    while time.monotonic() < deadline and set(threading.enumerate()) - threads:
-        time.sleep(0.02)
-    assert not set(threading.enumerate()) - threads, "test leaked threads"
-    assert len(os.listdir("/proc/self/fd")) <= fds, "test leaked file descriptors"
+pytestmark = pytest.mark.usefixtures("no_leaked_threads_or_fds")
 
 
 def packets_for(counts, t0=0.0, result_no=0, dt=0.001):
