@@ -159,6 +159,16 @@ def test_an_opaque_crossing_returns_all_its_light_at_the_crossing():
     assert float(r[0, k]) == pytest.approx(0.2437, abs=1e-9)
 
 
+def test_the_mean_return_sits_on_the_surface_however_soft_the_opacity():
+    # A round-trip weighting would pull the mean return 1/s towards the sensor (1 mm at s = 1000 / m).
+    t = torch.linspace(0.20, 0.30, 2001, dtype=torch.float64)[None]
+    f = 0.25 - t
+    for s in (300.0, 1000.0, 5000.0):
+        w = section_weights(f, s)
+        mean = float((w * section_ranges(t, f)).sum() / w.sum())
+        assert mean == pytest.approx(0.25, abs=2e-5), s
+
+
 # ---- regularisers and optimiser -----------------------------------------------------------------------------------
 def test_regularisers_vanish_on_a_plane_and_grow_on_noise():
     field, _ = linear_grid(coef=(0.6, 0.0, 0.8), const=-0.02, n=(12, 12, 12))

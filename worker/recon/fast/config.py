@@ -72,14 +72,18 @@ class FastScheduleConfig:
     """The grid's learning rate decays (cosine, over the fine level's expected steps) to this fraction."""
     fine_steps: int = 1200
     """Steps the fine level's learning-rate decay is laid out over."""
-    grad_blur_passes: int = 0
+    grad_blur_passes: int = 1
     """Passes of a [1, 2, 1] / 4 filter along each axis over the grid's gradient before the Adam step (a Sobolev-
     type preconditioner: neighbouring nodes move together, so the sparse, noisy ray gradients do not roughen the
     field)."""
+    blur_physical: bool = False
+    """Keep the blur's physical reach on the refined grid (4x the passes there)."""
     shared_adam: bool = False
     """One second moment for the whole grid instead of one per node (updates stay proportional to the gradient)."""
     albedo_lr: float = 0.02
     """Adam learning rate of the log albedos (object and table)."""
+    table_lr_m: float = 2e-4
+    """Adam learning rate of a fitted table's height (metres per step)."""
     band_voxels: float = 4.0
     """The Eikonal and smoothness terms act on nodes within this many voxels of the surface."""
     reg_points: int = 65536

@@ -86,7 +86,9 @@ class FastModel:
     def _params(self):
         groups = [([self.field.sdf], self._grid_lr()), ([self.log_albedo], self.sc.albedo_lr)]
         if self.table is not None:
-            groups.append((self.table.parameters(), self.sc.albedo_lr))
+            groups.append(([self.table.log_albedo], self.sc.albedo_lr))
+            if self.table.fit_offset:
+                groups.append(([self.table.offset], self.sc.table_lr_m))
         return groups
 
     def _make_optimizer(self) -> None:
@@ -134,7 +136,7 @@ class FastModel:
             hist_id = local[batch][:, None].expand_as(r)
             ranges, values, ids = [r.reshape(-1)], [radiance.reshape(-1)], [hist_id.reshape(-1)]
             if self.table is not None:
-                tr, tv = self.table.returns(o, d, w, (1.0 - opacity).clamp(0.0, 1.0) ** 2)
+                tr, tv = self.table.returns(o, d, w, (1.0 - opacity).clamp(0.0, 1.0))
                 ranges.append(tr)
                 values.append(tv)
                 ids.append(local[batch])
@@ -162,11 +164,22 @@ class FastModel:
             self._band = band_nodes(self.field.sdf, sc.band_voxels * self.field.voxel,
                                     self.constraint.bound_for(self.field))
         eik, smooth = grid_regularizers(self.field.sdf, self.field.voxel, self._band, sc.reg_points, self.gen)
-        loss = data + lc.eikonal_weight * eik + lc.tv_weight * smooth
+        reg = lc.eikonal_weight * eik + lc.tv_weight * smooth
+        loss = data + reg
         self.opt.zero_grad()
-        loss.backward()
-        if sc.grad_blur_passes > 0 and self.field.sdf.grad is not None:
-            self.field.sdf.grad = blur3(self.field.sdf.grad, sc.grad_blur_passes)
+        if sc.grad_blur_passes > 0:
+            # Blur only the data term's gradient: the regularisers' gradients are what removes roughness, and a
+            # blur would take exactly that away.
+            data.backward()
+            if self.field.sdf.grad is not None:
+                # The same physical reach at every level: a 2x finer grid needs 4x the passes (variances add).
+                passes = sc.grad_blur_passes * (4 if self.refined and self.fc.refine_after_steps > 0 and
+                                                sc.blur_physical else 1)
+                self.field.sdf.grad = blur3(self.field.sdf.grad, passes)
+            if reg.requires_grad:
+                reg.backward()
+        else:
+            loss.backward()
         self.opt.set_lr(0, self._grid_lr())
         self.opt.step()
         self.constraint.project(self.field)
