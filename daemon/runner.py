@@ -20,8 +20,10 @@ from __future__ import annotations
 import asyncio
 import errno
 import logging
+import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
@@ -81,7 +83,10 @@ class ScanRunner:
             self._starting = False
 
     async def _start(self, name: str | None, overrides: dict | None) -> dict:
-        self.root.mkdir(parents=True, exist_ok=True)
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CaptureError(f"cannot start a scan: {_describe(exc, 'creating the captures root')}") from None
         name = check_scan_name(name, self.root) if name is not None else default_scan_name(self.root)
         path = self.root / name
         if path.exists():
@@ -90,10 +95,20 @@ class ScanRunner:
         start = (await self._arm_state()).tcp_pose
         plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
         hand_eye = self.cfg.arm.hand_eye
-        writer = await self._io(CaptureWriter.create, path, self.sensor.model, scan_id=name,
-                                rig={**self.rig, "writer": WRITER},
-                                hand_eye=hand_eye, schedule=plan.description, planned_poses=plan.sensor_poses,
-                                chunk_size=scan.chunk_size, scene=self.scene, frames_per_pose=scan.frames_per_pose)
+        try:
+            writer = await self._io(CaptureWriter.create, path, self.sensor.model, scan_id=name,
+                                    rig={**self.rig, "writer": WRITER}, hand_eye=hand_eye,
+                                    schedule=plan.description, planned_poses=plan.sensor_poses,
+                                    chunk_size=scan.chunk_size, scene=self.scene,
+                                    frames_per_pose=scan.frames_per_pose)
+        except (OSError, CaptureError) as exc:
+            # The folder did not exist before (checked above, and only one scan is planned at a time): whatever
+            # create left of it is ours to remove, so that the name is free again once the disk has room.
+            await self._io(_remove_partial, path)
+            what = _describe(exc, "creating the scan folder") if isinstance(exc, OSError) else str(exc)
+            self.last_error = f"cannot start scan {name!r}: {what}"
+            log.warning("%s", self.last_error)
+            raise CaptureError(self.last_error) from None
         self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,
                            tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer)
         self._launch("scanning")
@@ -105,10 +120,15 @@ class ScanRunner:
         path = await asyncio.to_thread(find_interrupted, self.root)
         if path is None:
             return
+        reopen_error = None
         try:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye)
-            job.writer = await self._io(CaptureWriter.resume, path)
-            job.record_progress(job.writer)
+            try:
+                job.writer = await self._io(CaptureWriter.resume, path)
+                job.record_progress(job.writer)
+            except OSError as exc:  # a full disk: take the scan over all the same, paused until room is made
+                reopen_error = _describe(exc, "reopening the capture")
+                await asyncio.to_thread(job.count_published)
             if job.blocked is None:
                 check_workspace(job.tcp_poses[job.next_pose:], self.cfg.arm, f"scan {job.name!r}")
         except (CaptureError, ConfigError, OSError) as exc:
@@ -118,11 +138,15 @@ class ScanRunner:
         self.job = job
         job.reason = job.blocked or (f"interrupted at pose {self._progress()} (daemon restarted); "
                                      f"`spadscan ctl resume` continues")
+        if reopen_error and not job.blocked:
+            job.reason = self.last_error = (f"interrupted at pose {self._progress()} (daemon restarted), and "
+                                            f"{reopen_error}; make room, then `spadscan ctl resume`")
         log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
                  "blocked: " + job.blocked if job.blocked else
+                 "paused: " + job.reason if reopen_error else
                  "resuming by itself: auto_resume" if self.cfg.auto_resume else "paused until `ctl resume`")
         self._launch("paused")
-        if self.cfg.auto_resume and job.blocked is None:
+        if self.cfg.auto_resume and job.blocked is None and reopen_error is None:
             await self.resume()
 
     async def pause(self) -> dict:
@@ -216,7 +240,7 @@ class ScanRunner:
                         job.writer = await self._io(CaptureWriter.resume, job.path)
                         job.record_progress(job.writer)
                     except (OSError, CaptureError) as exc:
-                        await self._fault(job, f"cannot reopen the capture: {_describe(exc)}")
+                        await self._fault(job, f"cannot reopen the capture: {_describe(exc, 'reopening it')}")
                         continue
                 if self._pause_requested:
                     job.reason = "paused by user"
@@ -410,7 +434,7 @@ class ScanRunner:
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
-            self.last_error = f"scan {job.name!r}: could not record '{state}': {_describe(exc)}"
+            self.last_error = f"scan {job.name!r}: could not record '{state}': {_describe(exc, 'recording it')}"
         if state == "aborted":
             self._finish(job, "aborted")
 
@@ -453,11 +477,16 @@ def _measurements(job: ScanJob, i: int, frames: list[Frame], arm) -> list[Measur
     return out
 
 
-def _describe(exc: BaseException) -> str:
+def _remove_partial(path: Path) -> None:
+    """Remove a scan folder that CaptureWriter.create left half-made (removing needs no free space)."""
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def _describe(exc: BaseException, doing: str = "publishing") -> str:
     if isinstance(exc, OSError):
-        what = "disk full" if exc.errno == errno.ENOSPC else "write error"
+        what = "disk full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else "write error"
         where = f" ({exc.filename})" if exc.filename else ""
-        return f"{what} while publishing: {exc.strerror or exc}{where}"
+        return f"{what} while {doing}: {exc.strerror or exc}{where}"
     if isinstance(exc, SensorSilent):
         return f"sensor silent: {exc}"
     if isinstance(exc, ArmFault):

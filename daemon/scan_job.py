@@ -87,6 +87,18 @@ class ScanJob:
         self.frames = writer.n_published
         self.history.append((time.monotonic(), self.frames))
 
+    def count_published(self) -> None:
+        """Progress read from the capture folder alone (no writer, nothing written): for a scan whose writer could
+        not be reopened."""
+        reader = CaptureReader(self.path)
+        poses, frames = set(), 0
+        for name in reader.chunk_names():
+            chunk = reader.read_chunk(name)
+            frames += len(chunk.meta)
+            poses.update(int(i) for i in chunk.pose_indices)
+        self.next_pose = max(poses) + 1 if poses else 0
+        self.frames = frames
+
     def rate_hz(self, window_s: float = 10.0) -> float:
         """Histograms published per second over the last window_s seconds."""
         if len(self.history) < 2:

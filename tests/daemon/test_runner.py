@@ -20,7 +20,7 @@ from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.sensor.sim import SimSensor
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
-from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings
 
@@ -275,6 +275,43 @@ def test_disk_full_pauses_and_loses_nothing_published(arun, tmp_path, sphere, mo
     assert not list(folder.glob(".tmp-*"))
 
 
+def test_disk_full_at_scan_start_is_refused_and_the_name_stays_free(arun, tmp_path, sphere, monkeypatch):
+    import spadscan.protocol.capture_writer as cw
+
+    cfg = make_cfg(tmp_path, views=4)
+    real = cw.save_npy_durable
+    full = {"on": True}
+
+    def save(path, array):
+        if full["on"]:  # schedule.npy: the folder exists, the manifest does not
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real(path, array)
+
+    monkeypatch.setattr(cw, "save_npy_durable", save)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                with pytest.raises(CaptureError) as refused:
+                    await runner.start("late")
+                after = runner.status()
+                left = (tmp_path / "caps" / "late").exists()
+                full["on"] = False
+                await runner.start("late")
+                return str(refused.value), after, left, await runner.wait("late")
+            finally:
+                await runner.shutdown()
+
+    refused, after, left, done = arun(scenario())
+    assert refused.startswith("cannot start scan 'late': disk full") and "No space left" in refused, refused
+    assert after["state"] == "idle" and after["last_error"] == refused
+    assert not left, "the half-made scan folder was left behind"
+    assert done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "late", 4, 2)
+
+
 def test_link_loss_pauses_and_resumes(arun, tmp_path, sphere):
     cfg = make_cfg(tmp_path, views=6)
 
@@ -337,6 +374,52 @@ def test_restart_takes_over_an_interrupted_scan(arun, tmp_path, sphere):
     first, done = arun(second_daemon(auto, resume=False))
     assert first["state"] in ("scanning", "idle") and done["state"] == "complete"
     check_capture(tmp_path / "caps" / "crash", 12, 2)
+
+
+def test_restart_on_a_full_disk_takes_the_scan_over_paused(arun, tmp_path, sphere, monkeypatch):
+    import spadscan.protocol.capture_writer as cw
+
+    cfg = make_cfg(tmp_path, views=8, auto_resume=True)
+    folder = tmp_path / "caps" / "crash"
+    real = cw.write_json_atomic
+    full = {"on": False}
+
+    def write(path, data):
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real(path, data)
+
+    monkeypatch.setattr(cw, "write_json_atomic", write)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, make_cfg(tmp_path, views=8))
+            await runner.start("crash")
+            await until(lambda: runner.job.next_pose >= 3, "three poses")
+            await runner.shutdown()
+        published = {p.relative_to(folder): p.read_bytes() for p in folder.glob("chunk-*/*")}
+        full["on"] = True
+        arm, sensor = make_rig(cfg, sphere)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)  # auto_resume: not while the capture cannot be reopened
+            try:
+                await runner.recover()
+                first = runner.status()
+                full["on"] = False
+                await runner.resume()
+                return published, first, await runner.wait("crash")
+            finally:
+                await runner.shutdown()
+
+    published, first, done = arun(scenario())
+    assert first["state"] == "paused" and first["scan"] == "crash", first
+    assert "disk full while reopening the capture" in first["reason"] and "No space left" in first["reason"], first
+    assert first["pose"] >= 3 and first["frames"] == len(CaptureReader(folder).load().meta) - 2 * (8 - first["pose"])
+    assert done["state"] == "complete"
+    check_capture(folder, 8, 2)
+    for rel, data in published.items():
+        assert (folder / rel).read_bytes() == data
 
 
 def test_requests_in_the_wrong_state_are_refused(arun, tmp_path, sphere):

@@ -134,6 +134,12 @@ def test_disk_full_pauses_and_resume_completes(make_daemon, small_disk):
     status, digests = paused_with(daemon, "disk full", small_disk / "full")
     assert status["last_error"] == status["reason"]
     assert daemon.status()["state"] == "paused"
+    r = daemon.ctl("resume")  # before room is made: the scan pauses again, nothing published is touched
+    assert r.returncode == 0, r.stderr
+    status = daemon.wait_state("paused", 60)
+    assert "disk full" in status["reason"], status
+    again = chunk_digests(small_disk / "full")
+    assert all(again[n] == d for n, d in digests.items()), "a resume on a full disk changed a published chunk"
     (small_disk / "filler").unlink()  # the operator makes room
     resume_to_the_end(daemon, "full", digests)
     assert_every_pose_once(small_disk / "full", 24, 2)
@@ -141,15 +147,15 @@ def test_disk_full_pauses_and_resume_completes(make_daemon, small_disk):
     assert daemon.stop() == 0, daemon.log()
 
 
-@pytest.mark.xfail(strict=True, reason="ScanRunner._start lets CaptureWriter.create's OSError through: `ctl scan` on "
-                                       "a full disk answers 'internal error: OSError ...' (a traceback in the log) and "
-                                       "leaves a half-made scan folder, so the name is refused after room is made")
 def test_disk_full_at_scan_start_is_a_clear_refusal_and_the_name_stays_free(make_daemon, small_disk):
     daemon = make_daemon(captures=small_disk, scan={"views": 6}).start()
     assert fill(small_disk) > 0
     r = daemon.ctl("scan", "--name", "late")
     line = one_line_error(r)
-    assert daemon.status()["state"] == "idle", "the daemon keeps serving"
+    status = daemon.status()
+    assert status["state"] == "idle", "the daemon keeps serving"
+    assert "No space left" in status["last_error"], status
+    assert not (small_disk / "late").exists(), "the half-made scan folder is left behind"
     (small_disk / "filler").unlink()
     r2 = daemon.ctl("scan", "--name", "late", "--wait")
     assert "internal error" not in line and "No space left" in line, line
