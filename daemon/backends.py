@@ -146,7 +146,7 @@ def build_sensor(cfg: DaemonConfig, arm: Arm) -> Sensor:
     except SimulationError as exc:
         raise ConfigError(f"{_where(cfg)} [sensor]: {exc}") from None
     return SimSensor(model, mesh, pose_provider(arm, cfg.arm.hand_eye), settings=settings, seed=s.seed,
-                     frame_time_s=s.frame_time_s)
+                     frame_time_s=s.frame_time_s, silence_on_frames=s.silence_on_frames, silence_s=s.silence_s)
 
 
 def build_devices(cfg: DaemonConfig) -> tuple[Arm, Sensor]:

@@ -112,6 +112,11 @@ class SensorConfig:
     """Sim: Lambertian albedo of every surface of the mesh."""
     rays_per_zone: int = key(4096, "int", lo=1, hi=10**7, backends=("sim",))
     """Sim: rays cast per zone per frame (fewer renders faster, coarser)."""
+    silence_on_frames: tuple = key((), "ints", lo=0, backends=("sim",))
+    """Sim: frame numbers (0 = the first frame the sensor delivers after the daemon started, counted across scans)
+    at which the sensor falls silent for silence_s instead, to rehearse faults."""
+    silence_s: float = key(0.0, "float", lo=0.0, hi=3600.0, unit="s", backends=("sim",))
+    """Sim: how long each scheduled silence lasts (s; > 0 when silence_on_frames is set)."""
     frame_timeout_s: float = key(5.0, "float", lo=0.0, hi=600.0, lo_open=True, unit="s")
     """A sensor that delivers no frame for this long is silent: the scan pauses (s)."""
 
@@ -337,6 +342,8 @@ def _check_sensor(sensor: SensorConfig, where: str) -> None:
     for name in required:
         if getattr(sensor, name) is None:
             raise ConfigError(f"{where} {name} is required for backend {sensor.backend!r}")
+    if sensor.silence_on_frames and sensor.silence_s <= 0:
+        raise ConfigError(f"{where} silence_on_frames {list(sensor.silence_on_frames)} needs silence_s > 0 (s)")
     if sensor.backend in ("serial", "i2c") and sensor.preset != "tmf8820":
         raise ConfigError(f"{where} preset {sensor.preset!r} does not describe a TMF8820 (backend "
                           f"{sensor.backend!r} needs preset 'tmf8820')")

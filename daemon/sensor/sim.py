@@ -8,7 +8,10 @@ frames. A frame is rendered at the pose `pose_provider()` returns when it starts
 when the call arrives). With frame_time_s = 0 a frame starts when asked for and ends when rendered.
 
 Faults: `inject_silence(s)` (no frames for s seconds: next_frame raises SensorSilent after its timeout; the frame in
-progress is lost) and `inject_link_loss(s)` (next_frame raises LinkLost at once for s seconds).
+progress is lost) and `inject_link_loss(s)` (next_frame raises LinkLost at once for s seconds). Scheduled silence
+(the rig config's `silence_on_frames` and `silence_s`, reachable from a daemon process): when the sensor is about to
+deliver frame N (N counts the frames it delivered since it was built, from 0: over a daemon's lifetime, across
+scans), it falls silent for silence_s seconds instead, once per listed N; frame N arrives after the silence.
 """
 
 from __future__ import annotations
@@ -35,9 +38,16 @@ class SimSensor(Sensor):
     """
 
     def __init__(self, model: SensorModel, mesh, pose_provider: Callable[[], np.ndarray], *,
-                 settings: SimSettings | None = None, seed: int = 0, frame_time_s: float = 0.0):
+                 settings: SimSettings | None = None, seed: int = 0, frame_time_s: float = 0.0,
+                 silence_on_frames: tuple[int, ...] = (), silence_s: float = 0.0):
         if not (math.isfinite(frame_time_s) and 0.0 <= frame_time_s <= 3600.0):
             raise DeviceError(f"sensor sim: frame time {frame_time_s} s is outside [0, 3600] s")
+        if not (math.isfinite(silence_s) and 0.0 <= silence_s <= 3600.0):
+            raise DeviceError(f"sensor sim: silence of {silence_s} s is outside [0, 3600] s")
+        if any(isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0 for n in silence_on_frames):
+            raise DeviceError(f"sensor sim: silence_on_frames {list(silence_on_frames)} must be frame numbers >= 0")
+        if silence_on_frames and silence_s <= 0.0:
+            raise DeviceError("sensor sim: silence_on_frames needs a silence_s > 0 s")
         self._sim = Simulator(mesh, model, settings if settings is not None else SimSettings(), seed)
         self.model = self._sim.sensor
         self.name = "sensor sim"
@@ -47,6 +57,8 @@ class SimSensor(Sensor):
         self._prev_end: float | None = None
         self._silent_until = -math.inf
         self._down_until = -math.inf
+        self._silence_on = {int(n) for n in silence_on_frames}  # frame numbers still to be silenced
+        self.silence_s = float(silence_s)
         self._counts = {"frames": 0, "frames_lost_to_silence": 0, "silent_timeouts": 0, "faults_injected": 0}
 
     # ---- lifecycle -----------------------------------------------------------------------------------------------
@@ -90,6 +102,9 @@ class SimSensor(Sensor):
             now = time.monotonic()
             if now < self._down_until:
                 raise LinkLost(f"{self.name}: link down for another {self._down_until - now:.1f} s (injected)")
+            if self._counts["frames"] in self._silence_on:  # scheduled: this frame is due, the sensor goes quiet
+                self._silence_on.discard(self._counts["frames"])
+                self.inject_silence(self.silence_s)
             start = self._frame_start(now)
             await _sleep_until(start)
             pose = np.asarray(self.pose_provider(), dtype=np.float64)

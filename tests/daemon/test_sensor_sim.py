@@ -136,6 +136,37 @@ def test_silence_and_link_loss(arun):
     assert c["silent_timeouts"] == 1 and c["faults_injected"] == 2 and c["frames"] == 3 and c["link"] == "up"
 
 
+def test_scheduled_silence_delays_the_listed_frames_once(arun):
+    async def main():
+        sensor = SimSensor(sensor_preset("tmf8820"), floor_plane(), lambda: looking_down(0.5), settings=FAST,
+                           silence_on_frames=(2,), silence_s=0.3)
+        await sensor.prepare()
+        try:
+            first = [await sensor.next_frame(5) for _ in range(2)]  # frames 0 and 1: on time
+            asked = time.monotonic()
+            with pytest.raises(SensorSilent):  # frame 2 is due: silence instead
+                await sensor.next_frame(0.1)
+            during = sensor.counters()["silent"]
+            late = await sensor.next_frame(5)  # frame 2, after the silence
+            after = [await sensor.next_frame(0.5) for _ in range(2)]  # not silenced again
+            return first, asked, during, late, after, sensor.counters()
+        finally:
+            await sensor.release()
+
+    first, asked, during, late, after, c = arun(main())
+    assert during and not c["silent"]
+    assert late.t_start >= asked + 0.3 and all(f.t_start < asked for f in first)
+    assert c["frames"] == 5 and c["faults_injected"] == 1 and c["silent_timeouts"] == 1
+
+
+@pytest.mark.parametrize("kw, words", [({"silence_on_frames": (-1,), "silence_s": 1.0}, "frame numbers >= 0"),
+                                       ({"silence_on_frames": (3,)}, "needs a silence_s > 0"),
+                                       ({"silence_s": -2.0}, "silence of -2.0 s is outside")])
+def test_scheduled_silence_checks(kw, words):
+    with pytest.raises(DeviceError, match=words):
+        SimSensor(sensor_preset("tmf8820"), floor_plane(), lambda: np.eye(4), **kw)
+
+
 def test_model_and_argument_checks(arun):
     sensor = SimSensor(sensor_preset("tmf8820"), floor_plane(), lambda: looking_down(0.5),
                        settings=SimSettings(rays_per_zone=256, cycles=1000))

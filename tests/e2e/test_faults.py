@@ -166,9 +166,6 @@ def test_disk_full_at_scan_start_is_a_clear_refusal_and_the_name_stays_free(make
 
 
 # ---- a silent sim sensor ---------------------------------------------------------------------------------------------
-@pytest.mark.xfail(strict=True, reason="the sim sensor has no config key to inject silence (SimSensor.inject_silence "
-                                       "is not reachable from a daemon process); proposed: [sensor] "
-                                       "silence_on_frames = [N, ...] and silence_s")
 def test_silent_sim_sensor_pauses_and_resume_completes(make_daemon, tmp_path):
     daemon = make_daemon(sensor={"frame_timeout_s": 0.5, "silence_on_frames": [7], "silence_s": 2.0},
                          scan={"views": 10, "frames_per_pose": 2, "chunk_size": 2}).start()
