@@ -1,8 +1,8 @@
 """Reconstruct one capture: load it, build the preset's model, train, extract the mesh, write the report.
 
 `reconstruct_capture` is what `spadscan reconstruct` and the worker's job processes call. It writes into `out`:
-mesh.ply (per-vertex normals from the SDF gradient), report.json, preview.png, error_vs_time.png, fit.png, and with
-ground truth normals.png (per-vertex normal error).
+mesh.ply (per-vertex normals from the SDF gradient), report.json, report.html (the page to open first), preview.png,
+error_vs_time.png, fit.png, and with ground truth normals.png (per-vertex normal error).
 """
 
 from __future__ import annotations
@@ -106,13 +106,15 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
         report["ground_truth"] = str(gt)
     _pictures(out, mesh, gt_mesh, model, scene, result, preset)
     report["files"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
-    if "report.json" not in report["files"]:
-        report["files"] = sorted(report["files"] + ["report.json"])
+    report["files"] = sorted(set(report["files"]) | {"report.json", "report.html"})
     report["wall_seconds"] = time.perf_counter() - wall0
+    from spadscan.worker.report.report_html import write_report_html
     from spadscan.worker.report.report_json import json_safe, write_report
 
     write_report(out, report)
-    return json_safe(report)
+    report = json_safe(report)
+    write_report_html(report, out)
+    return report
 
 
 def _checkpoint_metrics(model, gt_mesh, config) -> dict:

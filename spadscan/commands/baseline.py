@@ -8,8 +8,9 @@ space-carving  voxels that a zone saw as empty (in its field of view, in front o
 The detection threshold T is a z-score: a bin holds a return when the pulse-filtered, background-free signal
 exceeds T standard deviations of the background noise (pile-up undone first). --calibrate tries thresholds from 3 to
 300 and keeps the one with the lowest Chamfer distance to --gt, as the paper did (and says so in the report).
-Writes DIR/mesh.ply and DIR/report.json (method, threshold, calibrated, seconds, and with --gt the metrics:
-chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg).
+Writes DIR/mesh.ply, DIR/report.json (method, threshold, calibrated, seconds, and with --gt the metrics:
+chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg), DIR/preview.png (the mesh, and the ground
+truth beside it) and DIR/report.html (the page to open first).
 
 Examples:
   spadscan baseline space-carving captures/bunny --out out/bunny-carve --gt bunny.obj
@@ -66,6 +67,7 @@ def run(args) -> int:
         args.capture, args.out, args.method, gt=args.gt, threshold=args.threshold, calibrate_=args.calibrate,
         resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
         floor_z=None if args.no_floor else args.floor_z, surface=args.surface, edge_deg=args.edge_deg, log=log)
+    write_pictures_and_page(report, args.out, args.gt)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
     line += f", {report['seconds']:.1f} s"
     if "chamfer_mm" in report:
@@ -73,3 +75,16 @@ def run(args) -> int:
                  f"{report['completeness_mm']:.2f}), F-score@5mm {report['fscore_5mm']:.3f}")
     print(f"{line} -> {args.out}")
     return 0
+
+
+def write_pictures_and_page(report: dict, out, gt) -> None:
+    """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json."""
+    from pathlib import Path
+
+    from spadscan.protocol.mesh_io import load_mesh
+    from spadscan.worker.report.pictures import preview_png
+    from spadscan.worker.report.report_html import write_report_html
+
+    out = Path(out)
+    preview_png(load_mesh(out / "mesh.ply"), out / "preview.png", gt=load_mesh(gt) if gt is not None else None)
+    write_report_html(report, out)

@@ -180,6 +180,9 @@ def test_baseline_command_writes_a_mesh_and_a_report(sphere_capture, tmp_path, c
     assert report["chamfer_mm"] < 30
     assert trimesh.load(out / "mesh.ply").is_watertight
     assert "Chamfer" in capsys.readouterr().out
+    assert (out / "preview.png").read_bytes()[:4] == b"\x89PNG"
+    page = (out / "report.html").read_text()
+    assert "space-carving" in page and f"{report['chamfer_mm']:.4g} mm" in page and 'src="preview.png"' in page
 
 
 def test_calibration_picks_the_best_threshold(sphere_capture, tmp_path, monkeypatch, quick_metrics):

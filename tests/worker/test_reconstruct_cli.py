@@ -70,7 +70,11 @@ def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
     assert [p["step"] for p in trace] == [0, 1, 2]
     assert all(np.isfinite(p["chamfer_mm"]) for p in trace) and "excluded" in report["trace_note"]
     assert trace[0]["seconds"] == 0 and trace[-1]["seconds"] == pytest.approx(report["seconds"], abs=1e-3)
-    assert set(report["files"]) >= FILES
+    assert set(report["files"]) >= FILES | {"report.html"}
+    page = (out / "report.html").read_text()
+    assert f"{report['chamfer_mm']:.4g} mm" in page and "paper" in page
+    for name in ("preview.png", "error_vs_time.png", "fit.png", "normals.png"):
+        assert f'src="{name}"' in page
     header = (out / "mesh.ply").read_bytes()[:1000]
     assert b"property float nx" in header or b"property double nx" in header  # per-vertex normals are stored
     summary = capsys.readouterr().out

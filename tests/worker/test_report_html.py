@@ -1,0 +1,121 @@
+"""report.html: the report's numbers on one static page, every string escaped, links only to files that exist."""
+
+from __future__ import annotations
+
+import re
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+
+from spadscan.worker.report.report_html import REPORT_HTML, format_value, render_html, write_report_html
+
+PNG = b"\x89PNG\r\n\x1a\n" + b"\0" * 16
+
+
+def a_report(**extra) -> dict:
+    report = {
+        "capture": "/data/captures/bunny", "preset": "fast", "device": "cpu", "steps": 1234, "seconds": 97.25,
+        "wall_seconds": 112.5, "stopped_by": "budget", "final_loss": 0.0123456,
+        "terms": {"pileup": True, "crosstalk": False, "table": True, "tv": False},
+        "chamfer_mm": 2.71828, "accuracy_mm": 1.5, "completeness_mm": 3.9, "fscore_5mm": 0.875,
+        "normal_error_deg": 12.5, "vertex_normal_error_deg": {"mean": 11.0, "median": 8.25},
+        "trace": [{"step": 0, "seconds": 0.0, "loss": None, "chamfer_mm": None, "note": "no surface yet"},
+                  {"step": 600, "seconds": 48.5, "loss": 0.031, "chamfer_mm": 4.4},
+                  {"step": 1234, "seconds": 97.25, "loss": 0.0123, "chamfer_mm": 2.72}],
+        "trace_note": "'seconds' is training time only",
+    }
+    report.update(extra)
+    return report
+
+
+class Links(HTMLParser):
+    """Collects src and href attributes and the names of the tags used."""
+
+    def __init__(self):
+        super().__init__()
+        self.links: list[str] = []
+        self.tags: set[str] = set()
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.add(tag)
+        self.links += [v for k, v in attrs if k in ("src", "href") and v is not None]
+
+
+def parse(text: str) -> Links:
+    parser = Links()
+    parser.feed(text)
+    return parser
+
+
+@pytest.fixture
+def folder(tmp_path):
+    for name in ("preview.png", "error_vs_time.png", "fit.png", "normals.png"):
+        (tmp_path / name).write_bytes(PNG)
+    (tmp_path / "mesh.ply").write_text("ply\n")
+    (tmp_path / "report.json").write_text("{}\n")
+    return tmp_path
+
+
+def test_the_page_shows_the_reports_numbers_and_trace(folder):
+    path = write_report_html(a_report(), folder)
+    assert path == folder / REPORT_HTML
+    text = path.read_text()
+    for shown in ("fast", "cpu", "1234", "97.25 s", "0.01235", "2.718 mm", "1.5 mm", "3.9 mm", "0.875", "12.5 deg",
+                  "mean 11, median 8.25", "pileup, table", "crosstalk, tv", "budget", "no surface yet",
+                  "training time only"):
+        assert shown in text, shown
+    trace = text.split("<h2>Trace", 1)[1].split("<h2>", 1)[0]
+    assert trace.count("<tr>") == 4  # a header and one row per checkpoint
+    assert "48.5" in trace and "4.4" in trace and "600" in trace
+
+
+def test_links_point_only_at_files_beside_the_page(folder):
+    text = write_report_html(a_report(), folder).read_text()
+    links = parse(text)
+    srcs = {link for link in links.links if link.endswith(".png")}
+    assert srcs == {"preview.png", "error_vs_time.png", "fit.png", "normals.png"}
+    for link in links.links:
+        assert "/" not in link and (folder / link).is_file(), link
+    assert "script" not in links.tags and "http" not in text  # nothing fetched from anywhere
+
+
+def test_missing_pictures_are_named_not_linked(folder):
+    (folder / "fit.png").unlink()
+    (folder / "normals.png").unlink()
+    text = render_html(a_report(), folder)
+    links = parse(text).links
+    assert "fit.png" not in links and "normals.png" not in links and "preview.png" in links
+    assert "no picture (fit.png was not written)" in text
+
+
+def test_every_string_from_the_report_is_escaped(folder):
+    evil = '<script>alert("x")</script>&'
+    report = a_report(capture=f"/tmp/{evil}", preset=evil, terms={evil: True},
+                      trace=[{"step": 1, "seconds": 1.0, "loss": 0.5, "note": evil, evil: 1}])
+    text = render_html(report, folder)
+    assert "<script" not in text and evil not in text
+    assert "&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt;&amp;" in text
+    assert "script" not in parse(text).tags
+
+
+def test_a_baseline_report_without_trace_or_pictures(tmp_path):
+    (tmp_path / "mesh.ply").write_text("ply\n")
+    text = render_html({"method": "space-carving", "threshold": 5.0, "calibrated": False, "seconds": 1.25,
+                        "capture": "c"}, tmp_path)
+    assert "space-carving" in text and "1.25 s" in text and "<img" not in text
+    assert "<h2>Trace" not in text and 'href="mesh.ply"' in text
+
+
+@pytest.mark.parametrize("value, text", [(None, "-"), (True, "yes"), (0.000123456, "0.0001235"), (float("nan"), "nan"),
+                                         ([1, 2], "[1, 2]"), (7, "7")])
+def test_format_value(value, text):
+    assert format_value(value) == text
+
+
+def test_the_written_page_is_complete_and_atomic(folder):
+    write_report_html(a_report(), folder)
+    write_report_html(a_report(steps=99), folder)
+    text = (folder / REPORT_HTML).read_text()
+    assert text.rstrip().endswith("</html>") and re.search(r">99<", text)
+    assert not [p for p in Path(folder).iterdir() if p.name.startswith(".")]
