@@ -5,6 +5,13 @@ A request is a JSON object with an `op`; the reply is the handler's dict with `"
 `max_line` bytes and unknown ops are each answered with an error and the connection keeps serving. The socket file
 is created with mode 0600 (umask set around bind, then chmod), a stale one left by a crash is replaced, a live one
 (another daemon) is refused, and the file is removed on close.
+
+A client that hangs up while its request is pending (say a `wait` on a paused scan) is noticed: while a request
+runs, the server checks the connection for the peer's hang-up (POLLHUP: the peer closed its socket; a peer that only
+shut down its sending side still gets its reply). A request that changes nothing (`status`, `wait`) is then
+cancelled and the connection closed; any other runs to its end, since its effect must not depend on whether the
+asker still listens, and the connection closes when its reply cannot be written. Abandoned requests hold no socket
+and no task.
 """
 
 from __future__ import annotations
@@ -14,6 +21,7 @@ import contextlib
 import json
 import logging
 import os
+import select
 import socket
 import stat
 from pathlib import Path
@@ -23,6 +31,9 @@ from spadscan.protocol.errors import ConfigError, SpadscanError
 
 log = logging.getLogger("spadscan.daemon")
 MAX_LINE_BYTES = 64 * 1024
+HANGUP_POLL_S = 0.2  # how often a pending request's connection is checked for the client's hang-up
+ABANDONABLE_OPS = frozenset({"status", "wait"})
+"""Ops that only read: cancelled when the client that asked hangs up before the reply."""
 
 Handler = Callable[[dict], Awaitable[dict]]
 
@@ -52,10 +63,12 @@ def claim_socket_path(path: Path) -> None:
 class ControlServer:
     """Serves `handler` on a Unix socket. Use `async with` or start()/close()."""
 
-    def __init__(self, path, handler: Handler, *, max_line: int = MAX_LINE_BYTES):
+    def __init__(self, path, handler: Handler, *, max_line: int = MAX_LINE_BYTES,
+                 abandonable: frozenset[str] = ABANDONABLE_OPS):
         self.path = Path(path)
         self.handler = handler
         self.max_line = max_line
+        self.abandonable = frozenset(abandonable)
         self._server: asyncio.base_events.Server | None = None
         self._inode: tuple[int, int] | None = None
         self._clients: set[asyncio.Task] = set()
@@ -108,19 +121,46 @@ class ControlServer:
     async def _serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         self._clients.add(task)
+        sock = writer.get_extra_info("socket")
         try:
             async with contextlib.aclosing(self._lines(reader)) as lines:
                 async for line, problem in lines:
-                    reply = {"ok": False, "error": problem} if problem else await self._answer(line)
+                    if problem:
+                        reply = {"ok": False, "error": problem}
+                    else:
+                        reply = await self._answer_while_connected(line, sock)
                     writer.write((json.dumps(reply) + "\n").encode())
                     await writer.drain()
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
         except asyncio.CancelledError:
-            pass  # the server is closing
+            pass  # the server is closing, or the client hung up on a read-only request
         finally:
             self._clients.discard(task)
             writer.close()
+
+    async def _answer_while_connected(self, line: bytes, sock) -> dict:
+        """The reply to one line. The handler runs in this task, so its reply is written before anything it
+        scheduled (shutdown's stop) runs. A read-only request is watched: when its client hangs up, this task is
+        cancelled, which ends the request and the connection (see the module docstring)."""
+        request, reply = _parse(line)
+        if request is None:
+            return reply
+        if request["op"] not in self.abandonable:
+            return await self._answer(request)  # a client that hung up meanwhile: the reply's write fails
+        watcher = asyncio.create_task(self._watch_hangup(sock, request["op"], asyncio.current_task()))
+        try:
+            return await self._answer(request)
+        finally:
+            watcher.cancel()
+            await asyncio.gather(watcher, return_exceptions=True)
+
+    @staticmethod
+    async def _watch_hangup(sock, op: str, serving: asyncio.Task) -> None:
+        while not _peer_gone(sock):
+            await asyncio.sleep(HANGUP_POLL_S)
+        log.info("control client hung up while %r was pending; cancelled", op)
+        serving.cancel()
 
     async def _lines(self, reader: asyncio.StreamReader) -> AsyncIterator[tuple[bytes, str | None]]:
         """Yield (line, None) per complete line, or (b'', problem) for a line over max_line bytes (whose rest is
@@ -151,21 +191,7 @@ class ControlServer:
                     continue
                 yield line, None
 
-    async def _answer(self, line: bytes) -> dict:
-        try:
-            text = line.decode("utf-8")
-        except UnicodeDecodeError:
-            return {"ok": False, "error": "request is not UTF-8 text; send one JSON object per line"}
-        if "\x00" in text:
-            return {"ok": False, "error": "request contains NUL bytes; send one JSON object per line"}
-        if not text.strip():
-            return {"ok": False, "error": "empty request; send one JSON object per line, e.g. {\"op\": \"status\"}"}
-        try:
-            request = json.loads(text)
-        except json.JSONDecodeError as exc:
-            return {"ok": False, "error": f"malformed JSON ({exc.msg} at column {exc.colno})"}
-        if not isinstance(request, dict) or not isinstance(request.get("op"), str):
-            return {"ok": False, "error": "a request must be a JSON object with a string 'op'"}
+    async def _answer(self, request: dict) -> dict:
         try:
             return {"ok": True, **await self.handler(request)}
         except SpadscanError as exc:
@@ -175,3 +201,35 @@ class ControlServer:
         except Exception as exc:  # a bug in a handler must not take the server down
             log.exception("control request %r failed", request.get("op"))
             return {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
+
+
+def _parse(line: bytes) -> tuple[dict | None, dict | None]:
+    """(request, None) for a well-formed request line, else (None, error reply)."""
+    try:
+        text = line.decode("utf-8")
+    except UnicodeDecodeError:
+        return None, {"ok": False, "error": "request is not UTF-8 text; send one JSON object per line"}
+    if "\x00" in text:
+        return None, {"ok": False, "error": "request contains NUL bytes; send one JSON object per line"}
+    if not text.strip():
+        return None, {"ok": False, "error": "empty request; send one JSON object per line, e.g. {\"op\": \"status\"}"}
+    try:
+        request = json.loads(text)
+    except json.JSONDecodeError as exc:
+        return None, {"ok": False, "error": f"malformed JSON ({exc.msg} at column {exc.colno})"}
+    if not isinstance(request, dict) or not isinstance(request.get("op"), str):
+        return None, {"ok": False, "error": "a request must be a JSON object with a string 'op'"}
+    return request, None
+
+
+def _peer_gone(sock) -> bool:
+    """True when the client closed its socket (POLLHUP on a Unix stream socket: both directions shut down; a
+    client that only shut down its sending side still reads). Checked without reading: the data stays queued."""
+    if sock is None:
+        return False
+    try:
+        poller = select.poll()
+        poller.register(sock.fileno(), select.POLLHUP)
+        return any(ev & (select.POLLHUP | select.POLLERR | select.POLLNVAL) for _, ev in poller.poll(0))
+    except (OSError, ValueError):
+        return True

@@ -195,3 +195,52 @@ def test_close_ends_blocked_requests(arun, tmp_path):
 
     assert arun(scenario()) == b""
     assert not path.exists()
+
+
+def test_a_client_that_hangs_up_on_a_pending_request_is_let_go(arun, tmp_path):
+    """`wait` (reads only) is cancelled when its client hangs up; `scan` (changes things) runs to its end; a client
+    that only shuts down its sending side still gets its reply. No task, no connection stays behind."""
+    path = tmp_path / "ctl.sock"
+    release = None
+    seen: list[tuple[str, str]] = []
+
+    async def slow(req):
+        try:
+            await release.wait()
+        except asyncio.CancelledError:
+            seen.append((req["op"], "cancelled"))
+            raise
+        seen.append((req["op"], "finished"))
+        return {"done": req["op"]}
+
+    async def until(pred):
+        for _ in range(500):
+            if pred():
+                return
+            await asyncio.sleep(0.01)
+        raise AssertionError(f"timed out; seen {seen}")
+
+    async def scenario():
+        nonlocal release
+        release = asyncio.Event()
+        async with ControlServer(path, slow) as server:
+            for op in ("wait", "scan"):
+                with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+                    s.connect(str(path))
+                    s.sendall(json.dumps({"op": op}).encode() + b"\n")
+            await until(lambda: ("wait", "cancelled") in seen)
+            assert len(server._clients) == 1 and seen == [("wait", "cancelled")]  # scan is still running
+            reader, writer = await asyncio.open_unix_connection(str(path))
+            writer.write(b'{"op": "status"}\n')
+            writer.write_eof()  # half-closed: it still reads
+            await asyncio.sleep(3 * 0.2)
+            release.set()
+            reply = json.loads(await asyncio.wait_for(reader.readline(), 5))
+            writer.close()
+            await writer.wait_closed()
+            await until(lambda: not server._clients)
+            return reply
+
+    reply = arun(scenario())
+    assert reply == {"ok": True, "done": "status"}
+    assert sorted(seen) == [("scan", "finished"), ("status", "finished"), ("wait", "cancelled")]

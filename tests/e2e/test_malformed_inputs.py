@@ -254,9 +254,6 @@ def test_malformed_control_messages_get_one_line_errors_and_the_daemon_keeps_ser
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="ControlServer._serve_client does not notice a client that hangs up while its "
-                                       "request is pending: each abandoned `wait` keeps a socket and a task until the "
-                                       "scan ends (a paused scan: for ever), so fds pile up")
 def test_clients_that_hang_up_on_wait_release_their_connections(make_daemon):
     # A scan paused by a protective stop that nobody resumes: `wait` on it does not return.
     daemon = make_daemon(arm={"protective_stop_on_move": [2]}, scan={"views": 4}).start()
