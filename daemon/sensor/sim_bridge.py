@@ -4,7 +4,8 @@ pyserial opens `SimBridge.port`, a symlink to the current pty (like a udev /dev/
 `SerialSensor` talks to it exactly as to a USB bridge. Faults for tests and the demo: corrupt or partial lines,
 frames with a sub-packet missing, duplicated or out of order, a mid-line start, and unplug/replug (the pty is closed
 and the link removed; a replug opens a new pty behind the same link). All writes happen in one writer thread in the
-order they were queued; `close` stops it and closes every descriptor.
+order they were queued; `close` is prompt: what is still queued or half-written is dropped (counted in
+`bytes_dropped`, as an unplug loses it), waiters in `flush` are let go, the thread stops and every descriptor closes.
 """
 
 from __future__ import annotations
@@ -110,6 +111,7 @@ class SimBridge:
         self._slave: int | None = None
         self._queue: queue.Queue = queue.Queue()
         self._stream_stop = threading.Event()
+        self._closing = threading.Event()  # set by close: the writer drops instead of waiting for a reader
         self._stream: threading.Thread | None = None
         self._plug()
         self._writer = threading.Thread(target=self._write_loop, name="spadscan-sim-bridge", daemon=True)
@@ -137,6 +139,8 @@ class SimBridge:
 
     def flush(self, timeout_s: float = 10.0) -> None:
         """Wait until everything queued so far is written (not necessarily read)."""
+        if self._closing.is_set():
+            raise RuntimeError("sim bridge: flush after close")
         done = threading.Event()
         self._queue.put(("mark", done))
         if not done.wait(timeout_s):
@@ -169,11 +173,14 @@ class SimBridge:
             self._stream = None
 
     def close(self) -> None:
-        """Stop the threads, close the pty and remove the port path."""
+        """Stop the threads, drop what is still queued, close the pty and remove the port path (promptly: within
+        one select period, never a write timeout)."""
         self.stop_stream()
+        self._closing.set()
         if self._writer.is_alive():
             self._queue.put(("quit", None))
             self._writer.join()
+        self._drop_queued()
         self._unplug()
         if self._own_dir:
             try:
@@ -194,7 +201,10 @@ class SimBridge:
             if kind == "quit":
                 return
             if kind == "data":
-                self._write(arg)
+                if self._closing.is_set():
+                    self.counts["bytes_dropped"] += len(arg)
+                else:
+                    self._write(arg)
             elif kind == "unplug":
                 self._unplug()
                 self.counts["unplugs"] += 1
@@ -209,7 +219,8 @@ class SimBridge:
         view = memoryview(data)
         deadline = time.monotonic() + self.write_timeout_s
         while view:
-            if self._master is None or time.monotonic() > deadline:  # unplugged, or nobody reads: data is lost
+            if self._master is None or time.monotonic() > deadline or self._closing.is_set():
+                # unplugged, nobody reads, or closing: the data is lost
                 self.counts["bytes_dropped"] += len(view)
                 return
             _, ready, _ = select.select([], [self._master], [], 0.05)
@@ -224,6 +235,18 @@ class SimBridge:
                 return
             self.counts["bytes"] += n
             view = view[n:]
+
+    def _drop_queued(self) -> None:
+        """After the writer stopped: count what it never wrote as dropped and let every flush waiter go."""
+        while True:
+            try:
+                kind, arg = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            if kind == "data":
+                self.counts["bytes_dropped"] += len(arg)
+            elif kind == "mark":
+                arg.set()
 
     def _plug(self) -> None:
         if self._master is not None:

@@ -212,3 +212,37 @@ def test_a_streaming_bridge_with_faults_delivers_only_whole_frames(arun):
     delivered = [next(k for k, m in enumerate(made) if np.array_equal(f.hists, m[1:])) for f in got]
     assert all(k % 3 != 2 for k in delivered)  # frames 3, 6, 9, ... (indices 2, 5, ...) carried a fault
     assert delivered == sorted(delivered) and c["frames_dropped"] >= 2
+
+
+def test_close_is_prompt_and_drops_what_nobody_read():
+    """Nobody reads the pty: close must not wait out the write timeout for each queued frame."""
+    bridge = SimBridge(write_timeout_s=600.0)
+    for k in range(20):  # ~16 KB each: more than a pty buffers
+        bridge.send_frame(counts(k), result(k))
+    released = []
+    waiter = threading.Thread(target=lambda: released.append(_flushed(bridge)))
+    waiter.start()
+    deadline = time.monotonic() + 60
+    while not any(kind == "mark" for kind, _ in list(bridge._queue.queue)):  # the flush waits behind the frames
+        assert time.monotonic() < deadline, "flush never queued its mark"
+        time.sleep(0.01)
+    closer = threading.Thread(target=bridge.close)
+    closer.start()
+    closer.join(timeout=120)  # far below one write timeout, far above a loaded machine's scheduling
+    waiter.join(timeout=120)
+    assert not closer.is_alive(), "close waited for a reader"
+    assert released == [True], "a flush waiter was left hanging"
+    assert not os.path.lexists(bridge.port)
+    assert bridge.counts["bytes_dropped"] > 0
+    with pytest.raises(RuntimeError, match="flush after close"):
+        bridge.flush()
+    assert bridge.counts["bytes"] + bridge.counts["bytes_dropped"] == sum(
+        len(b"".join(frame_lines(counts(k), result(k)))) for k in range(20))
+
+
+def _flushed(bridge) -> bool:
+    try:
+        bridge.flush(timeout_s=120)
+    except TimeoutError:
+        return False
+    return True

@@ -70,8 +70,8 @@ class Feeder:
 @pytest.fixture
 def bridge(tmp_path):
     (tmp_path / "bridge").mkdir()
-    # A short write timeout: SimBridge.close first writes out what is queued, each item waiting this long when the
-    # daemon has stopped reading.
+    # A short write timeout: a frame written while the daemon is not reading is dropped after this long, as a USB
+    # bridge's output is lost when nobody reads it.
     with SimBridge(tmp_path / "bridge", write_timeout_s=1.0) as b:
         feeder = Feeder(b)
         try:
