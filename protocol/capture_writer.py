@@ -3,6 +3,10 @@
 A chunk is written into a hidden temporary folder, every file fsynced, then renamed to `chunk-NNNNNN` and the parent
 folder fsynced: a reader sees a whole chunk or none, and a crash loses only what was not yet flushed. `resume` reopens
 a scan, removes half-written temporary folders and continues after the last published chunk.
+
+A chunk's files are written and fsynced side by side, one thread each, and the publish waits for all of them: the
+same fsyncs as one after the other, but a journaling filesystem (ext4's jbd2) commits them together, so a durable
+publish costs about two journal commits (the files, then the rename) instead of one per file.
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ import datetime as _dt
 import json
 import os
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +30,31 @@ from .sensor_model import SensorModel
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _together(calls: list) -> None:
+    """Run calls [(fn, *args)] side by side (the first in this thread) and wait for all of them; then raise the
+    first error, if any. Waiting for all means no file is still being written when the caller moves on."""
+    errors: list[BaseException | None] = [None] * len(calls)
+
+    def run(k: int) -> None:
+        fn, *args = calls[k]
+        try:
+            fn(*args)
+        except BaseException as exc:  # handed to the caller below
+            errors[k] = exc
+
+    threads = [threading.Thread(target=run, args=(k,), name="capture-fsync") for k in range(1, len(calls))]
+    for t in threads:
+        t.start()
+    try:
+        run(0)
+    finally:
+        for t in threads:
+            t.join()
+    for exc in errors:
+        if exc is not None:
+            raise exc
 
 
 class CaptureWriter:
@@ -159,12 +189,13 @@ class CaptureWriter:
             shutil.rmtree(tmp)
         tmp.mkdir()
         buf = self._buffer
-        save_npy_durable(tmp / "hists.npy", np.stack([m.hist for m in buf]))
-        save_npy_durable(tmp / "poses.npy", np.stack([m.pose for m in buf]))
-        if buf[0].reference is not None:
-            save_npy_durable(tmp / "reference.npy", np.stack([m.reference for m in buf]))
         meta = {"measurements": [{**m.meta, "pose_index": m.pose_index, "frame": m.frame} for m in buf]}
-        write_durable(tmp / "meta.json", json.dumps(meta).encode())
+        writes = [(save_npy_durable, tmp / "hists.npy", np.stack([m.hist for m in buf])),
+                  (save_npy_durable, tmp / "poses.npy", np.stack([m.pose for m in buf])),
+                  (write_durable, tmp / "meta.json", json.dumps(meta).encode())]
+        if buf[0].reference is not None:
+            writes.append((save_npy_durable, tmp / "reference.npy", np.stack([m.reference for m in buf])))
+        _together(writes)
         fsync_dir(tmp)
         os.rename(tmp, self.path / name)
         fsync_dir(self.path)

@@ -1,0 +1,100 @@
+"""CaptureWriter.flush: a chunk's files are fsynced side by side, yet every one of them (and its folder) is durable
+before the chunk is published by its rename, the captures folder is fsynced after it, and a failed write publishes
+nothing and leaves no write running."""
+
+from __future__ import annotations
+
+import errno
+import os
+import threading
+
+import numpy as np
+import pytest
+
+import spadscan.protocol.capture_writer as cw
+from spadscan.protocol.capture_format import Measurement
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.sensor_presets import sensor_preset
+
+
+def measurement(i: int, sensor, reference: bool = True) -> Measurement:
+    rng = np.random.default_rng(i)
+    hist = rng.integers(0, 1000, (sensor.n_zones, sensor.n_bins))
+    ref = rng.integers(0, 1000, sensor.n_bins) if reference else None
+    return Measurement(hist, np.eye(4), i, 0, ref, {"i": i})
+
+
+@pytest.fixture
+def events(monkeypatch):
+    """A log of ('fsync', path) and ('rename', src, dst), in the order they happened (any thread)."""
+    log: list[tuple] = []
+    lock = threading.Lock()
+    real_fsync, real_rename = os.fsync, os.rename
+
+    def fsync(fd):
+        real_fsync(fd)
+        with lock:
+            log.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+
+    def rename(src, dst):
+        real_rename(src, dst)
+        with lock:
+            log.append(("rename", str(src), str(dst)))
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "rename", rename)
+    return log
+
+
+@pytest.mark.parametrize("reference", [True, False])
+def test_every_file_and_folder_is_fsynced_around_the_publishing_rename(tmp_path, events, reference):
+    sensor = sensor_preset("tmf8820")
+    w = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=2)
+    del events[:]
+    for i in range(2):
+        w.append(measurement(i, sensor, reference))  # the second append publishes chunk 0
+    (rename,) = [e for e in events if e[0] == "rename"]
+    at = events.index(rename)
+    tmp, published = rename[1], rename[2]
+    before = {e[1] for e in events[:at] if e[0] == "fsync"}
+    files = {"hists.npy", "poses.npy", "meta.json"} | ({"reference.npy"} if reference else set())
+    assert before == {f"{tmp}/{f}" for f in files} | {tmp}, before
+    assert ("fsync", str(tmp_path / "scan")) in events[at + 1:], "the captures folder is not fsynced after"
+    assert sorted(os.listdir(published)) == sorted(files)
+    np.testing.assert_array_equal(CaptureReader(tmp_path / "scan").load().pose_indices, [0, 1])
+
+
+def test_a_failed_write_publishes_nothing_and_leaves_no_write_running(tmp_path, monkeypatch):
+    sensor = sensor_preset("tmf8820")
+    w = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=1)
+    w.append(measurement(0, sensor))
+    real = cw.save_npy_durable
+    running = {"now": 0}
+    lock = threading.Lock()
+
+    def save(path, array):
+        with lock:
+            running["now"] += 1
+        try:
+            if path.name == "poses.npy":
+                raise OSError(errno.ENOSPC, "No space left on device", str(path))
+            if path.name == "reference.npy":  # a sibling that may still be writing when the error comes
+                threading.Event().wait(0.2)
+            real(path, array)
+        finally:
+            with lock:
+                running["now"] -= 1
+
+    monkeypatch.setattr(cw, "save_npy_durable", save)
+    with pytest.raises(OSError, match="No space left"):
+        w.append(measurement(1, sensor))
+    assert running["now"] == 0, "flush raised while a write of the chunk was still running"
+    assert [t for t in threading.enumerate() if t.name == "capture-fsync"] == []
+    assert CaptureReader(tmp_path / "scan").chunk_names() == ["chunk-000000"]
+    monkeypatch.setattr(cw, "save_npy_durable", real)
+    w = CaptureWriter.resume(tmp_path / "scan")
+    assert not [p for p in (tmp_path / "scan").iterdir() if p.name.startswith(".tmp-")]
+    w.append(measurement(1, sensor))
+    w.finish()
+    np.testing.assert_array_equal(CaptureReader(tmp_path / "scan").load().pose_indices, [0, 1])
