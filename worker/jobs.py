@@ -178,9 +178,15 @@ def run_job(job: Job, root: Path, *, recon: ReconFn | None = None) -> Path:
 
 
 # ---- the job's child process -----------------------------------------------------------------------------------
-def _exit_with_parent(poll_s: float = 0.5) -> None:
-    """End this process when the worker that started it dies (its lease then expires and another worker retries)."""
-    parent = os.getppid()
+def _exit_with_parent(parent: int | None = None, poll_s: float = 0.5) -> None:
+    """End this process when the worker that started it dies (its lease then expires and another worker retries).
+
+    `parent`: the worker's pid, passed on the command line. Taking it from os.getppid() at start-up would miss a
+    worker that died before this process got that far: the orphan's parent is then already init (or a subreaper),
+    and it would run its whole reconstruction for nobody. So a job whose parent is not the worker exits at once."""
+    parent = os.getppid() if parent is None else parent
+    if os.getppid() != parent:
+        os._exit(EXIT_CRASH)
 
     def watch():
         while True:
@@ -203,9 +209,11 @@ def child_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", required=True, help="captures root")
     parser.add_argument("--out", required=True, help="folder to write the results into")
     parser.add_argument("--outcome", required=True, help="file to write the outcome into (JSON)")
+    parser.add_argument("--parent-pid", type=int, default=None,
+                        help="pid of the worker that started this job: the job ends when that process does")
     parser.add_argument("--recon", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    _exit_with_parent()
+    _exit_with_parent(args.parent_pid)
     outcome = Path(args.outcome)
     t0 = time.monotonic()
     try:

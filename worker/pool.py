@@ -169,7 +169,7 @@ class Worker:
             self.log(f"{job.id} failed: cannot prepare the result folder: {exc}")
             return
         cmd = [sys.executable, "-m", "spadscan.worker.jobs", "--job", json.dumps(job.to_dict()),
-               "--root", str(self.root), "--out", str(scratch), "--outcome", str(outcome)]
+               "--root", str(self.root), "--out", str(scratch), "--outcome", str(outcome), "--parent-pid", str(os.getpid())]
         if self.config.recon:
             cmd += ["--recon", self.config.recon]
         env = {**os.environ, **(self.config.child_env or {})}

@@ -113,11 +113,6 @@ def children(pid: int) -> list[int]:
 
 
 @pytest.mark.slow
-# Not strict: the race below is lost only when the worker dies before the job process reads its parent, which a
-# loaded machine may or may not reproduce.
-@pytest.mark.xfail(strict=False, reason="worker/jobs.py _exit_with_parent takes the parent to watch from os.getppid() "
-                                       "when the job starts: a worker that dies before that moment leaves a job "
-                                       "process (reparented to init) that runs its whole reconstruction")
 def test_a_job_whose_worker_died_before_it_started_exits(tmp_path, procs):
     root = tmp_path / "captures"
     make_captures(root)

@@ -237,3 +237,27 @@ def test_jobs_find_the_ground_truth_a_capture_names(tmp_path):
     assert exported == tmp_path / "ground_truth.ply" and exported.stat().st_size > 0
     assert ground_truth({"scene": {"mesh": str(tmp_path / "gone.obj")}}, tmp_path) is None
     assert ground_truth({}, tmp_path) is None
+
+
+def test_a_job_whose_worker_is_already_gone_exits_at_once(tmp_path, markers):
+    """The job is told its worker's pid: when that is not its parent (the worker died before the job got under way,
+    so the job was reparented), it exits before reconstructing anything."""
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "s")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]),
+           "MARKERS": str(markers)}
+    outcome = tmp_path / "outcome.json"
+
+    def job(parent_pid: int) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "spadscan.worker.jobs", "--job", json.dumps({"id": "s-fast", "scan": "s"}),
+             "--root", str(root), "--out", str(tmp_path / "out"), "--outcome", str(outcome),
+             "--parent-pid", str(parent_pid), "--recon", RECON], env=env, capture_output=True, text=True, timeout=60)
+
+    gone = job(os.getppid())  # a live process, but not the job's parent
+    assert gone.returncode == 4, gone.stderr
+    assert not outcome.exists() and not markers_of(markers, "s", "start"), "nothing ran"
+    ran = job(os.getpid())  # its real parent
+    assert ran.returncode == 0, ran.stderr
+    assert json.loads(outcome.read_text())["ok"] and markers_of(markers, "s", "start")
