@@ -149,9 +149,26 @@ def result_path(job: Job, root: Path) -> Path:
     return scan_path(job, root) / RECON_DIR / job.id
 
 
-def scratch_path(job: Job, root: Path) -> Path:
-    """A fresh hidden folder beside the result folder to write one attempt's results into."""
-    return scan_path(job, root) / RECON_DIR / f".tmp-{job.id}-{secrets.token_hex(4)}"
+SCRATCH_RE = re.compile(r"^\.tmp-(?P<job>.+)-(?P<token>[0-9a-f]{16})$")
+"""Name of a queued claim's scratch folder: `.tmp-<job id>-<claim token>` (the token says whose it is)."""
+
+
+def scratch_path(job: Job, root: Path, token: str | None = None) -> Path:
+    """A fresh hidden folder beside the result folder to write one attempt's results into.
+
+    `token`: the queue claim's token, so that a scratch folder left by a dead worker can be told from one in use
+    (see SCRATCH_RE); without it (a job run outside the queue) a shorter random suffix that no sweep touches."""
+    return scan_path(job, root) / RECON_DIR / f".tmp-{job.id}-{token or secrets.token_hex(4)}"
+
+
+def scratch_folders(root: Path) -> list[tuple[Path, str, str]]:
+    """(folder, job id, claim token) of every queued claim's scratch folder under the scans of `root`."""
+    found = []
+    for path in sorted(Path(root).glob(f"*/{RECON_DIR}/.tmp-*")):
+        m = SCRATCH_RE.match(path.name)
+        if m and path.is_dir():
+            found.append((path, m["job"], m["token"]))
+    return found
 
 
 def publish(scratch: Path, final: Path) -> Path:

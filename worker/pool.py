@@ -22,7 +22,7 @@ from typing import Callable
 
 from spadscan.protocol.errors import ConfigError
 
-from .jobs import EXIT_CRASH, publish, result_path, scratch_path
+from .jobs import EXIT_CRASH, publish, result_path, scratch_folders, scratch_path
 from .queue import SEP, Claim, Queue
 from .watcher import JobOptions, ScanReport, scan_once, watch
 
@@ -91,6 +91,7 @@ class Worker:
         self.settled: dict[str, str] = {}
         """Job id -> 'done' or 'failed' for jobs this worker finished."""
         self._seen_skipped: set[str] = set()
+        self._swept = False
 
     # ---- main loop -------------------------------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None) -> dict[str, str]:
@@ -134,15 +135,35 @@ class Worker:
             await asyncio.gather(stopper, return_exceptions=True)
 
     async def _poll_queue(self) -> None:
-        """Take over jobs of dead workers, finish cut-short enqueues, claim jobs for the free slots."""
-        for job_id, state in await asyncio.to_thread(self.queue.reclaim_expired):
+        """Take over jobs of dead workers, remove their partial results, finish cut-short enqueues, claim jobs for
+        the free slots."""
+        reclaimed = await asyncio.to_thread(self.queue.reclaim_expired)
+        for job_id, state in reclaimed:
             self.log(f"{job_id}: its worker stopped; {'queued again' if state == 'queued' else 'failed'}")
+        if reclaimed or not self._swept:
+            self._swept = True
+            for path in await asyncio.to_thread(self._sweep_scratch):
+                self.log(f"removed the partial result {path} of a dead worker")
         await asyncio.to_thread(self.queue.repair)
         while len(self.children) < self.config.processes:
             claim = await asyncio.to_thread(self.queue.claim)
             if claim is None:
                 break
             await self._start(claim)
+
+    def _sweep_scratch(self) -> list[Path]:
+        """Remove the scratch folders of claims that can never publish (their worker died or lost the lease).
+
+        Folders are listed before their claims are looked at: a claim's record is written before its scratch
+        folder is made, so a folder in use always has a record that names a live holder."""
+        removed = []
+        for path, job_id, token in scratch_folders(self.root):
+            if any(c.claim.token == token for c in self.children.values()):
+                continue
+            if self.queue.claim_is_dead(job_id, token):
+                shutil.rmtree(path, ignore_errors=True)
+                removed.append(path)
+        return removed
 
     def _on_scan(self, report: ScanReport) -> None:
         for name in report.queued:
@@ -161,7 +182,7 @@ class Worker:
         log_path = self.queue.path / "logs" / f"{stem}.log"
         outcome = self.queue.path / "tmp" / f"outcome-{stem}.json"
         try:
-            scratch = scratch_path(job, self.root)
+            scratch = scratch_path(job, self.root, claim.token)
             scratch.parent.mkdir(parents=True, exist_ok=True)
         except (ConfigError, OSError) as exc:
             self.queue.fail(claim, f"cannot prepare the result folder: {exc}", retry=False)

@@ -313,6 +313,18 @@ class Queue:
             return f"{who} stopped renewing its lease ({age:.0f} s > {lease:.0f} s)"
         return None
 
+    def claim_is_dead(self, job_id: str, token: str) -> bool:
+        """True when claim `token` of a job can never publish a result: its lease was taken over ('lost') or its
+        holder is a process on this machine that no longer exists. False for live claims, for settled claims whose
+        holder may still be moving its result into place, and for unknown tokens."""
+        rec = self._read_record(job_id, token)
+        if not isinstance(rec, dict):
+            return False
+        if rec.get("outcome") == "lost":
+            return True  # finish() can no longer succeed for it, so its holder will never publish
+        holder = rec.get("holder")
+        return isinstance(holder, dict) and holder_gone(holder)
+
     # ---- attempt records -------------------------------------------------------------------------------------
     def attempts(self, job_id: str) -> int:
         """Claims of this job that counted as attempts (interrupted ones do not)."""

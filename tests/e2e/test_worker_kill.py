@@ -135,9 +135,6 @@ def test_a_job_whose_worker_died_before_it_started_exits(tmp_path, procs):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the scratch folder <scan>/recon/.tmp-<job>-* of a job whose worker was killed "
-                                       "is never removed (worker/pool.py removes scratch only in Worker._settle of the "
-                                       "worker that started it), so every crash leaves a partial result behind")
 def test_a_killed_workers_partial_result_is_cleaned_up(tmp_path, procs):
     root = tmp_path / "captures"
     make_captures(root)

@@ -215,3 +215,23 @@ def test_an_unreadable_job_file_fails_that_job_only(tmp_path):
     assert claim is not None and claim.job.id == "s-fast"
     rows = {r.id: r for r in q.statuses()}
     assert rows["junk"].state == "failed" and "unreadable job file" in rows["junk"].error
+
+
+def test_a_claim_is_dead_only_when_it_can_never_publish(tmp_path):
+    q = Queue(tmp_path / "q", lease_s=5)
+    for name in ("live", "gone", "far", "done"):
+        q.enqueue(_job(name))
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    live = q.claim()  # this process: alive
+    gone = q.claim(replace(Holder.current(), pid=proc.pid, pid_start=""))
+    far = q.claim(_elsewhere())
+    done = q.claim()
+    q.finish(done)
+    assert not q.claim_is_dead(live.job.id, live.token)
+    assert q.claim_is_dead(gone.job.id, gone.token), "its holder died on this machine"
+    assert not q.claim_is_dead(far.job.id, far.token), "another machine's holder may be alive while its lease holds"
+    assert not q.claim_is_dead(done.job.id, done.token), "a finished claim's holder may be publishing its result"
+    assert not q.claim_is_dead("far-fast", "0" * 16), "an unknown claim is left alone"
+    q.reclaim_expired(now=time.time() + 60)  # the far holder's lease expires: its claim is lost
+    assert q.claim_is_dead(far.job.id, far.token)

@@ -261,3 +261,46 @@ def test_a_job_whose_worker_is_already_gone_exits_at_once(tmp_path, markers):
     ran = job(os.getpid())  # its real parent
     assert ran.returncode == 0, ran.stderr
     assert json.loads(outcome.read_text())["ok"] and markers_of(markers, "s", "start")
+
+
+def test_partial_results_of_dead_claims_are_removed_and_live_ones_kept(tmp_path, markers, arun, monkeypatch):
+    """A worker removes the scratch folder a dead worker left, never one of a job another worker is running."""
+    from spadscan.worker.jobs import Job, scratch_path
+    from spadscan.worker.queue import Holder
+
+    root = tmp_path / "captures"
+    root.mkdir()
+    for name in ("dead", "live"):
+        make_scan(root, name)
+    queue = Queue.for_root(root, lease_s=3600)
+    for name in ("dead", "live"):
+        queue.enqueue(Job(id=f"{name}-fast", scan=name))
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead_claim = queue.claim(Holder(**{**Holder.current().to_dict(), "pid": gone.pid, "pid_start": ""}))
+    live_claim = queue.claim(Holder("another-host", 4242, "other-boot", "pid:[1]", "1"))  # lease held for an hour
+    folders = {"dead": scratch_path(dead_claim.job, root, dead_claim.token),
+               "live": scratch_path(live_claim.job, root, live_claim.token),
+               "outside the queue": scratch_path(dead_claim.job, root)}
+    for folder in folders.values():
+        folder.mkdir(parents=True)
+        (folder / "mesh.ply").write_text("partial")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("MARKERS", str(markers))
+    lines = []
+    worker = Worker(WorkerConfig(root=root, poll_s=0.1, lease_s=3600, recon=RECON), log=lines.append)
+
+    async def until_dead_job_is_redone():
+        stop = asyncio.Event()
+        task = asyncio.create_task(worker.run(stop))
+        while "dead-fast" not in worker.settled and not task.done():
+            await asyncio.sleep(0.05)
+        stop.set()
+        return await task
+
+    assert arun(until_dead_job_is_redone(), timeout_s=120) == {"dead-fast": "done"}
+    assert not folders["dead"].exists(), "the dead worker's partial result is gone"
+    assert (folders["live"] / "mesh.ply").read_text() == "partial", "a running job's scratch folder is kept"
+    assert folders["outside the queue"].exists(), "a folder no claim names is not the queue's to remove"
+    assert (root / "dead" / "recon" / "dead-fast" / "report.json").is_file()
+    assert any("removed the partial result" in line for line in lines)
