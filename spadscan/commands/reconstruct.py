@@ -25,7 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="fast", choices=("paper", "fast"),
                         help="reconstruction method (default: fast)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
-                        help="stop after S seconds of training (checkpoint evaluation not counted)")
+                        help="stop after S seconds of wall time, checkpoint evaluation with --gt included (the "
+                             "final mesh, metrics and pictures come after)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N optimisation steps")
     parser.add_argument("--gt", default=None, metavar="MESH",
                         help="ground-truth mesh (metres; STL in mm detected) or builtin:NAME, for the metrics")

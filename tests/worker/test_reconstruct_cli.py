@@ -91,10 +91,58 @@ def test_reconstruct_capture_stops_at_the_time_budget(capture_and_gt, tmp_path):
     report = reconstruct_capture(cap, tmp_path / "o", preset="paper", budget_s=1.0, device="cpu", seed=0,
                                  progress=False, overrides=overrides)
     assert report["stopped_by"] == "budget" and report["steps"] >= 1
-    assert 1.0 <= report["seconds"] < 1.0 + 10 * report["seconds_per_step"]
+    spent = report["seconds"] + report["eval_seconds"]
+    assert 1.0 <= spent < 1.0 + 10 * report["seconds_per_step"]
     secs = [p["seconds"] for p in report["trace"]]
     assert secs == sorted(secs) and all(p["chamfer_mm"] is None for p in report["trace"] if "chamfer_mm" in p)
     assert "chamfer_mm" not in report and FILES <= set(report["files"])
+
+
+class SlowToEvaluate:
+    """A stand-in model whose steps take about 10 ms; the evaluation below takes 300 ms."""
+
+    def step(self) -> dict:
+        import time
+
+        time.sleep(0.01)
+        return {"loss": 1.0}
+
+
+def test_checkpoint_evaluation_counts_against_the_time_budget():
+    import time
+
+    from spadscan.worker.recon.model_api import RunPlan
+    from spadscan.worker.recon.trainer import train
+
+    evaluated = []
+
+    def evaluate():
+        time.sleep(0.3)
+        evaluated.append(1)
+        return {"chamfer_mm": 1.0}
+
+    result = train(SlowToEvaluate(), RunPlan(steps=10**6, budget_s=1.5, seed=0), checkpoints=12, evaluate=evaluate,
+                   progress=False)
+    assert result.stopped_by == "budget"
+    assert result.seconds < 1.5, "evaluation time was charged to the budget, so training got less than all of it"
+    assert result.eval_seconds >= 0.3 * len(evaluated) and len(evaluated) >= 2
+    assert result.seconds + result.eval_seconds < 1.5 + 0.3 + 0.3 + 5.0  # one step and one evaluation past, at most
+    skipped = [p for p in result.trace if "skipped" in p.get("note", "")]
+    assert len(evaluated) + len(skipped) == len(result.trace)
+
+
+@pytest.mark.slow
+def test_a_short_budget_with_ground_truth_ends_near_its_budget(capture_and_gt, tmp_path):
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    cap, gt = capture_and_gt
+    overrides = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in SMALL)}
+    overrides["trace_points"] = 30_000  # checkpoints as costly as the preset's own
+    report = reconstruct_capture(cap, tmp_path / "o", preset="paper", budget_s=3.0, steps=10**6, gt=gt,
+                                 device="cpu", progress=False, overrides=overrides)
+    assert report["stopped_by"] == "budget" and report["steps"] < 10**6
+    assert report["seconds"] + report["eval_seconds"] <= 3.0 + 30.0  # generous: one step and the last checkpoint
+    assert report["trace"][-1]["chamfer_mm"] is not None, "the last checkpoint is always evaluated"
 
 
 def one_line_error(capsys) -> str:
