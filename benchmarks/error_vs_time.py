@@ -99,7 +99,7 @@ def chamfer_mm(mesh, gt, crop_z, n_points: int) -> float | None:
 
 # ---- one run (in its own process) -----------------------------------------------------------------------------------
 def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, device: str, seed: int,
-               out: Path) -> dict:
+               out: Path, eval_resolution: int | None = None) -> dict:
     """Run one preset on one capture; returns {trace: [{seconds, wall_seconds, step, chamfer_mm}], ...}."""
     import resource
 
@@ -109,7 +109,6 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     from spadscan.worker.recon.config import load_factory, preset_config
     from spadscan.worker.recon.model_api import RunPlan
     from spadscan.worker.recon.scene_data import load_scene
-    from spadscan.worker.recon.trainer import train
 
     t0 = time.perf_counter()
     config = preset_config(preset)
@@ -124,7 +123,7 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     plan = RunPlan(steps=None, budget_s=max(1.0, budget_s - setup_s), seed=seed)
     # Checkpoints are scored exactly like the final mesh (DESIGN §6: 300,000 points, the full mesh resolution): their
     # time is not counted, and fewer points would raise the estimate's floor (~1.1 mm at 30,000 points).
-    resolution = config.mesh_resolution
+    resolution = eval_resolution or config.mesh_resolution
     points = config.metrics_points
 
     def evaluate():
@@ -136,23 +135,38 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
             return {"chamfer_mm": None, "note": str(exc)}
         return {"chamfer_mm": chamfer_mm(mesh, gt, crop_z, points)}
 
-    checkpoints = max(2, int(round(plan.budget_s / every_s)))
-    result = train(model, plan, checkpoints=checkpoints, evaluate=evaluate, progress=False, desc=preset)
-    trace = [{**e, "wall_seconds": e["seconds"] + setup_s} for e in result.trace]
-    final = None
-    if gt is not None:
-        try:
-            final = chamfer_mm(model.extract_mesh(config.mesh_resolution), gt, crop_z, config.metrics_points)
-        except Exception:
-            final = None
+    trace, steps, train_s = training_trace(model, plan.budget_s, every_s, evaluate)
+    trace = [{**e, "wall_seconds": e["seconds"] + setup_s} for e in trace]
+    final = trace[-1].get("chamfer_mm")  # the last checkpoint is the end of the run
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if dev.type == "cuda":
         peak_mb = max(peak_mb, torch.cuda.max_memory_allocated() / 2**20)
     return {"method": preset, "kind": "preset", "device": str(dev),
             "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or "cpu",
-            "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": result.steps,
-            "train_s": result.seconds, "trace": trace, "final_chamfer_mm": final, "crop_z_m": crop_z,
+            "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": steps,
+            "train_s": train_s, "trace": trace, "final_chamfer_mm": final, "crop_z_m": crop_z,
             "peak_rss_mb": peak_mb, "summary": _jsonable(model.summary()), "total_s": time.perf_counter() - t0}
+
+
+def training_trace(model, budget_s: float, every_s: float, evaluate) -> tuple[list[dict], int, float]:
+    """Step the model for budget_s seconds of training time, evaluating every every_s seconds of it (and at the start
+    and the end). Evaluation time is not training time: the curve is error against the time the method itself took.
+    Returns (trace [{step, seconds, loss, chamfer_mm}], steps, training seconds)."""
+    trace, steps, seconds, losses, next_mark = [], 0, 0.0, [], 0.0
+    while True:
+        if seconds >= next_mark or seconds >= budget_s:
+            entry = {"step": steps, "seconds": round(seconds, 3),
+                     "loss": float(np.mean(losses)) if losses else None, **evaluate()}
+            trace.append(entry)
+            losses.clear()
+            next_mark += every_s
+            if seconds >= budget_s:
+                return trace, steps, seconds
+        t0 = time.perf_counter()
+        out = model.step()
+        seconds += time.perf_counter() - t0
+        steps += 1
+        losses.append(float(out["loss"]))
 
 
 def run_baseline(capture: Path, method: str, out: Path) -> dict:
@@ -288,6 +302,10 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     ap.add_argument("--every-s", type=float, default=5.0, help="seconds between checkpoints (default: 5)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--eval-resolution", type=int, default=None, metavar="N",
+                    help="marching-cubes cells along the longest side for every checkpoint (default: each preset's "
+                         "mesh resolution; an MLP's 256^3 evaluation takes minutes on a CPU: 128 keeps paper runs "
+                         "short, at about a millimetre of added error)")
     ap.add_argument("--one", nargs=3, metavar=("CAPTURE", "METHOD", "RESULT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.budget_s <= 0 or args.every_s <= 0:
@@ -298,7 +316,8 @@ def main(argv=None) -> int:
         if method in ("space-carving", "reprojection"):
             res = run_baseline(capture, method, out)
         else:
-            res = run_preset(capture, method, args.budget_s, args.every_s, args.device, args.seed, out)
+            res = run_preset(capture, method, args.budget_s, args.every_s, args.device, args.seed, out,
+                             args.eval_resolution)
         result.write_text(json.dumps(_jsonable(res), indent=1))
         return 0
 
@@ -315,8 +334,9 @@ def main(argv=None) -> int:
             result.parent.mkdir(parents=True, exist_ok=True)
             print(f"{capture.name}: {method} ...", file=sys.stderr, flush=True)
             cmd = [sys.executable, __file__, "--scenes", str(capture), "--budget-s", str(args.budget_s),
-                   "--every-s", str(args.every_s), "--device", args.device, "--seed", str(args.seed),
-                   "--one", str(capture), method, str(result)]
+                   "--every-s", str(args.every_s), "--device", args.device, "--seed", str(args.seed)]
+            cmd += ["--eval-resolution", str(args.eval_resolution)] if args.eval_resolution else []
+            cmd += ["--one", str(capture), method, str(result)]
             proc = subprocess.run(cmd)
             if proc.returncode != 0 or not result.is_file():
                 print(f"{capture.name}: {method} failed (exit {proc.returncode})", file=sys.stderr)
