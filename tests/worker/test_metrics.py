@@ -193,3 +193,39 @@ def test_eval_bad_options_are_one_line_errors(capsys):
     assert "teapot" in capsys.readouterr().err
     assert main(["eval", "builtin:sphere", "--gt", "builtin:sphere", "--points", "-5"]) == 1
     assert capsys.readouterr().err.count("\n") == 1
+
+
+@pytest.mark.parametrize("case", ["small sphere inside a large one", "shifted 3 cm", "box beside a sphere", "close"])
+def test_nearest_samples_are_exactly_the_kd_trees(case):
+    from scipy.spatial import cKDTree
+
+    from spadscan.worker.metrics import nearest_samples
+
+    a, b = {"small sphere inside a large one": (ball(0.02), ball(0.05)),
+            "shifted 3 cm": (ball(0.05), ball(0.05, (0.03, 0, 0.1))),
+            "box beside a sphere": (trimesh.creation.box((0.05, 0.02, 0.08)), ball(0.05, (0.1, 0, 0))),
+            "close": (ball(0.05), ball(0.051))}[case]
+    rng = np.random.default_rng(1)
+    q, _ = sample_surface(a, 12_000, rng)
+    d, _ = sample_surface(b, 9_000, rng)
+    dist, idx = nearest_samples(q, d, spacing_m=math.sqrt(b.area / len(d)))
+    ref, ref_idx = cKDTree(d).query(q)
+    np.testing.assert_allclose(dist, ref, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(q - d[idx], axis=1), dist, rtol=0, atol=1e-15)
+    assert np.mean(idx == ref_idx) > 0.999  # exact ties aside, the very same samples
+
+
+def test_far_queries_skip_the_kd_tree():
+    from spadscan.worker.metrics import _maybe_near
+
+    rng = np.random.default_rng(2)
+    big, _ = sample_surface(ball(0.05), 20_000, rng)
+    small, _ = sample_surface(ball(0.02), 20_000, rng)
+    assert not _maybe_near(small, big, 0.005).any(), "3 cm from every sample: none is near"
+    assert _maybe_near(big, big, 0.005).all()
+
+
+def test_a_small_sphere_inside_a_large_one_is_its_gap_away():
+    m = mesh_metrics(ball(0.02), ball(0.05), n_points=N)
+    assert m.accuracy_mm == pytest.approx(30.0, abs=0.1) and m.completeness_mm == pytest.approx(30.0, abs=0.1)
+    assert m.fscore_5mm == 0.0
