@@ -131,6 +131,35 @@ def test_checkpoint_evaluation_counts_against_the_time_budget():
     assert len(evaluated) + len(skipped) == len(result.trace)
 
 
+class SlowStep:
+    """A stand-in model whose one step outlasts half the budget below."""
+
+    def step(self) -> dict:
+        import time
+
+        time.sleep(0.6)
+        return {"loss": 1.0}
+
+
+def test_a_run_that_ends_on_a_skipped_checkpoint_still_evaluates_its_end():
+    import time
+
+    from spadscan.worker.recon.model_api import RunPlan
+    from spadscan.worker.recon.trainer import train
+
+    def evaluate():
+        time.sleep(0.5)
+        return {"chamfer_mm": 1.0}
+
+    # Start: evaluated (0.5 s). One step (0.6 s) reaches the mid-run mark, whose evaluation would overrun the 1 s
+    # budget and is skipped; the budget is then spent, so the run ends on that very checkpoint.
+    result = train(SlowStep(), RunPlan(steps=10**6, budget_s=1.0, seed=0), checkpoints=2, evaluate=evaluate,
+                   progress=False)
+    assert result.stopped_by == "budget"
+    assert result.trace[-1]["step"] == result.steps
+    assert result.trace[-1].get("chamfer_mm") == 1.0, result.trace
+
+
 @pytest.mark.slow
 def test_a_short_budget_with_ground_truth_ends_near_its_budget(capture_and_gt, tmp_path):
     from spadscan.worker.reconstruct import reconstruct_capture

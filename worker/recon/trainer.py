@@ -101,4 +101,11 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
                 bar.set_postfix(post)
         if window or not result.trace or result.trace[-1]["step"] != result.steps:
             checkpoint(final=True)
+        elif evaluate is not None and "note" in result.trace[-1]:
+            # The run ended on a checkpoint whose evaluation was skipped: the end of a run is always evaluated.
+            t0 = time.perf_counter()
+            last = result.trace[-1]
+            del last["note"]
+            last.update(evaluate())
+            result.eval_seconds += time.perf_counter() - t0
     return result
