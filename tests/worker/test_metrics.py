@@ -199,7 +199,7 @@ def test_eval_bad_options_are_one_line_errors(capsys):
 def test_nearest_samples_are_exactly_the_kd_trees(case):
     from scipy.spatial import cKDTree
 
-    from spadscan.worker.metrics import nearest_samples
+    from spadscan.worker.nearest import nearest_samples
 
     a, b = {"small sphere inside a large one": (ball(0.02), ball(0.05)),
             "shifted 3 cm": (ball(0.05), ball(0.05, (0.03, 0, 0.1))),
@@ -216,7 +216,7 @@ def test_nearest_samples_are_exactly_the_kd_trees(case):
 
 
 def test_far_queries_skip_the_kd_tree():
-    from spadscan.worker.metrics import _maybe_near
+    from spadscan.worker.nearest import _maybe_near
 
     rng = np.random.default_rng(2)
     big, _ = sample_surface(ball(0.05), 20_000, rng)
