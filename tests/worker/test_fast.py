@@ -26,12 +26,7 @@ from spadscan.worker.recon.model_api import ReconModel, RunPlan
 from spadscan.worker.recon.scene_data import load_scene
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def linear_grid(coef=(0.3, -0.2, 0.5), const=-0.01, n=(9, 7, 5), voxel=0.01, origin=(-0.04, -0.03, 0.0)):

@@ -23,13 +23,7 @@ from spadscan.worker.recon.sampler import sphere_interval, stratified
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One torch thread: the test machine's cores are shared, and oversubscribed threads only spin."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make_forward(sensor, pileup_on=True, oversample=8, crosstalk=None):

@@ -29,12 +29,7 @@ SMALL = {"rays.rays_per_view": 48, "rays.importance_rays_per_view": 16, "rays.sa
 """The paper's method at a size a unit test can afford (the network and the ray counts shrink, nothing else)."""
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def box_mesh():

@@ -20,12 +20,7 @@ SMALL = ["rays.rays_per_view=32", "rays.importance_rays_per_view=8", "rays.sampl
 FILES = {"mesh.ply", "report.json", "preview.png", "error_vs_time.png", "fit.png"}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -25,12 +25,7 @@ from spadscan.worker.recon.render import SphereField, render_rays
 F32, F64 = torch.float32, torch.float64
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def forward_for(sensor, dtype=F64, pileup=True, oversample=2):
