@@ -41,6 +41,9 @@ class FastFieldConfig:
     baseline). Without it the carved hull keeps the object's whole unobservable shadow below it. A `floor_z` in the
     capture's scene record, or a table (named by the capture or detected in a measured one), takes precedence;
     None: no floor."""
+    fill_under_overhangs: bool = True
+    """Scenes on a table only: the mesh fills the hidden space between the object's underside and the table
+    (`empty_space.fill_under_overhangs`)."""
     table_albedo_init: float = 1.0
     """Initial albedo of the table plane (real scenes), relative to the sensor model's signal scale."""
 
@@ -90,6 +93,12 @@ class FastScheduleConfig:
     """Band nodes drawn per step for the Eikonal and smoothness terms (all of them when the band is smaller)."""
     band_refresh_steps: int = 10
     """Steps between updates of the band of nodes near the surface."""
+    empty_pressure: float = 0.2
+    """Scenes on a table only (see empty_space.py): each step pushes the surface inward on surface nodes that few
+    views look at, by this fraction of the data gradient's rms there (0: off)."""
+    pressure_coverage: float = 0.25
+    """The push is full where no view looks and fades to nothing where this fraction of the views (or more) has the
+    node in its field of view."""
     patience_steps: int = 300
     """After the last refinement, the run reports `converged` once the data term, averaged over windows of
     patience/6 steps, has not improved by `min_rel_improvement` for this many steps."""

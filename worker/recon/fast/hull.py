@@ -130,3 +130,4 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     keep = votes >= min_views * votes.max()
     keep[0] = False
     return keep[lab]
+

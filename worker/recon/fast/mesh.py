@@ -8,13 +8,27 @@ import torch
 from ..errors import ReconstructionError
 
 
-def clean_solid(values: np.ndarray, min_fraction: float = 0.005) -> np.ndarray:
+def cavities(solid: np.ndarray, below_floor: np.ndarray | None = None) -> np.ndarray:
+    """Empty nodes of a boolean grid (nz, ny, nx) that no path through empty nodes links to the grid's boundary.
+
+    below_floor: nodes under the floor the object stands on (or None); they count as solid, since no sensor sees from
+    under the floor: a pocket closed by the object and the floor is as hidden as one closed by the object alone."""
+    from scipy import ndimage
+
+    wall = solid if below_floor is None else (solid | below_floor)
+    empty_lab, _ = ndimage.label(~wall)
+    border = np.unique(np.concatenate([empty_lab[[0, -1]].ravel(), empty_lab[:, [0, -1]].ravel(),
+                                       empty_lab[:, :, [0, -1]].ravel()]))
+    return (~wall) & ~np.isin(empty_lab, border[border > 0])
+
+
+def clean_solid(values: np.ndarray, min_fraction: float = 0.005, below_floor: np.ndarray | None = None) -> np.ndarray:
     """Remove what the histograms cannot have seen from an SDF grid (nz, ny, nx) -> cleaned copy.
 
-    Cavities (empty regions not connected to the grid's boundary) lie behind every surface a sensor outside can see:
-    they are filled. Solid pieces smaller than `min_fraction` of the largest piece (by node count) are floaters:
-    they are emptied. Filled and emptied nodes get a value of half a node spacing's worth (+-1e-3 of the field's
-    scale), so the surface moves only where something was removed.
+    Cavities (`cavities`: empty regions closed by the solid, and by the floor when `below_floor` marks it) lie behind
+    every surface a sensor outside can see: they are filled. Solid pieces smaller than `min_fraction` of the largest
+    piece (by node count) are floaters: they are emptied. Filled and emptied nodes get a value of half a node
+    spacing's worth (+-1e-3 of the field's scale), so the surface moves only where something was removed.
     """
     from scipy import ndimage
 
@@ -22,12 +36,8 @@ def clean_solid(values: np.ndarray, min_fraction: float = 0.005) -> np.ndarray:
     solid = v < 0
     if not solid.any():
         return v
-    empty_lab, n_empty = ndimage.label(~solid)
-    border = np.unique(np.concatenate([empty_lab[[0, -1]].ravel(), empty_lab[:, [0, -1]].ravel(),
-                                       empty_lab[:, :, [0, -1]].ravel()]))
-    cavity = (~solid) & ~np.isin(empty_lab, border[border > 0])
     eps = 1e-4 * max(float(np.abs(v).max()), 1e-6)
-    v[cavity] = -eps
+    v[cavities(solid, below_floor)] = -eps
     lab, n = ndimage.label(v < 0)
     if n > 1:
         sizes = np.bincount(lab.ravel())[1:]
@@ -58,9 +68,11 @@ def mesh_from_values(values: np.ndarray, origin, spacing):
     return trimesh.Trimesh(verts, faces[:, ::-1], process=True)
 
 
-def mesh_from_field(field, resolution: int | None = None):
-    """Marching cubes of a GridField (cleaned by `clean_solid`), on its own nodes or resampled to `resolution` cells
-    along its longest side, with vertex normals from the field's gradient (central differences)."""
+def mesh_from_field(field, resolution: int | None = None, floor_z: float | None = None, fill_under: bool = False):
+    """Marching cubes of a GridField (cleaned by `clean_solid`, with the floor at height `floor_z` metres, if any),
+    on its own nodes or resampled to `resolution` cells along its longest side, with vertex normals from the field's
+    gradient (central differences). fill_under (a table at floor_z): fill the hidden space under overhangs first
+    (`empty_space.fill_under_overhangs`)."""
     vals = field.sdf.detach()
     n = max(field.counts) - 1
     spacing = np.full(3, field.voxel)
@@ -73,7 +85,16 @@ def mesh_from_field(field, resolution: int | None = None):
             vals = torch.nn.functional.interpolate(vals, size=size, mode="trilinear", align_corners=True)
         ext = (np.array(vals.shape[2:][::-1]) - 1)  # cells along x, y, z
         spacing = (np.array(field.counts) - 1) * field.voxel / ext
-    mesh = mesh_from_values(clean_solid(vals[0, 0].cpu().numpy()), field.origin.cpu().numpy(), spacing)
+    grid = vals[0, 0].cpu().numpy()
+    below = None
+    if floor_z is not None:
+        z = float(field.origin[2]) + np.arange(grid.shape[0]) * spacing[2]
+        below = np.broadcast_to((z < floor_z)[:, None, None], grid.shape)
+        if fill_under:
+            from .empty_space import fill_under_overhangs
+
+            grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)))
+    mesh = mesh_from_values(clean_solid(grid, below_floor=below), field.origin.cpu().numpy(), spacing)
     mesh.vertex_normals = vertex_normals(field, mesh.vertices)
     return mesh
 
@@ -91,4 +112,4 @@ def vertex_normals(field, points: np.ndarray, chunk: int = 1 << 16) -> np.ndarra
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
-__all__ = ["clean_solid", "mesh_from_values", "mesh_from_field", "vertex_normals"]
+__all__ = ["cavities", "clean_solid", "mesh_from_values", "mesh_from_field", "vertex_normals"]

@@ -1,0 +1,121 @@
+"""The empty-space bias of table scenes (worker/recon/fast/empty_space.py) and the hidden-space fills of meshes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.sensor_model import Zone
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.worker.recon.fast.empty_space import (fill_under_overhangs, pressure_weight, push_to_empty,
+                                                    view_coverage)
+from spadscan.worker.recon.fast.mesh import cavities, clean_solid
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def pose_at(position, rotation=np.eye(3)):
+    p = np.eye(4)
+    p[:3, :3], p[:3, 3] = rotation, position
+    return p
+
+
+# ---- coverage -------------------------------------------------------------------------------------------------------
+def test_coverage_counts_the_views_whose_zones_hold_a_point():
+    zones = sensor_preset("tmf8820").zones  # 3x3 rect zones, tan x in [-0.294, 0.294], tan y in [-0.291, 0.291]
+    down = np.diag([1.0, -1.0, -1.0])  # boresight (+z of the sensor) pointing down the world's -z
+    poses = torch.tensor(np.stack([pose_at([0, 0, 1.0], down), pose_at([5.0, 0, 1.0], down),
+                                   pose_at([0, 0, -1.0], down)]))  # the last one is below the points: behind it
+    pts = torch.tensor([[0.0, 0.0, 0.0],      # straight below the first sensor
+                        [0.29, 0.0, 0.0],     # tan 0.29: inside the outer zones' edge
+                        [0.30, 0.0, 0.0],     # tan 0.30: outside every zone
+                        [5.0, 0.1, 0.0]], dtype=torch.float64)  # below the second sensor only
+    cov = view_coverage(pts, poses, zones).numpy()
+    np.testing.assert_allclose(cov, [1 / 3, 1 / 3, 0.0, 1 / 3])
+
+
+def test_coverage_of_a_cone_zone_and_shape_of_the_result():
+    zones = (Zone(kind="cone", half_angle_rad=math.radians(15.0)),)
+    poses = torch.tensor(np.stack([pose_at([0, 0, -1.0]), pose_at([0, 0, -1.0])]))  # looking up +z
+    r_in, r_out = math.tan(math.radians(14.5)), math.tan(math.radians(15.5))
+    pts = torch.tensor([[[r_in, 0, 0.0], [0, r_out, 0.0]], [[0, 0, 0.0], [0, 0, -2.0]]], dtype=torch.float64)
+    cov = view_coverage(pts, poses, zones, chunk=3)  # chunks smaller than the points change nothing
+    assert cov.shape == (2, 2)
+    np.testing.assert_allclose(cov.numpy(), [[1.0, 0.0], [1.0, 0.0]])
+
+
+def test_pressure_weight_falls_from_one_to_zero_with_coverage():
+    w = pressure_weight(torch.tensor([0.0, 0.1, 0.2, 0.5, 1.0]), 0.2).numpy()
+    np.testing.assert_allclose(w, [1.0, 0.5, 0.0, 0.0, 0.0])
+    for bad in (0.0, -0.1, 1.5):
+        with pytest.raises(ConfigError, match="pressure coverage"):
+            pressure_weight(torch.zeros(3), bad)
+
+
+# ---- the push -------------------------------------------------------------------------------------------------------
+def test_push_acts_on_surface_nodes_only_by_a_fraction_of_the_gradient_rms():
+    voxel = 0.01
+    z = torch.arange(8, dtype=torch.float64)[:, None, None].expand(8, 3, 3)
+    sdf = ((z - 3.5) * voxel)[None, None].clone()  # a plane between nodes 3 and 4: those two are surface nodes
+    grad = torch.zeros_like(sdf)
+    grad[0, 0, 3] = 3.0
+    grad[0, 0, 4] = -4.0
+    weight = torch.ones_like(sdf)
+    weight[0, 0, :, 0, 0] = 0.0  # one column that many views look at: no push
+    before = grad.clone()
+    push_to_empty(grad, sdf, voxel, weight, 0.2)
+    rms = math.sqrt((9 + 16) / 2)
+    delta = (grad - before)[0, 0]
+    assert float(delta[3, 1, 1]) == pytest.approx(-0.2 * rms) and float(delta[4, 2, 2]) == pytest.approx(-0.2 * rms)
+    assert float(delta[3, 0, 0]) == 0.0 and float(delta[4, 0, 0]) == 0.0
+    off_surface = torch.ones(8, dtype=torch.bool)
+    off_surface[3:5] = False
+    assert bool((delta[off_surface] == 0).all())
+
+
+def test_push_leaves_a_gradient_alone_when_there_is_nothing_to_scale_by():
+    sdf = torch.full((1, 1, 4, 4, 4), 0.5, dtype=torch.float64)  # no surface
+    grad = torch.randn_like(sdf)
+    before = grad.clone()
+    push_to_empty(grad, sdf, 0.01, torch.ones_like(sdf), 0.2)
+    assert torch.equal(grad, before)
+    sdf[0, 0, 2] = 0.0  # a surface, but a zero data gradient on it (nothing seen yet)
+    grad = torch.zeros_like(sdf)
+    push_to_empty(grad, sdf, 0.01, torch.ones_like(sdf), 0.2)
+    assert bool((grad == 0).all())
+
+
+# ---- hidden space ---------------------------------------------------------------------------------------------------
+def mushroom(n=12):
+    """(values (nz, ny, nx), z (nz,)): a floor at z = 2 (nodes below it empty), a stem on it, a wide cap above a gap."""
+    solid = np.zeros((n, n, n), bool)
+    solid[2:8, 5:7, 5:7] = True   # stem, standing on the floor
+    solid[8:10, 2:10, 2:10] = True  # cap: the space under it, beside the stem, is hidden from above
+    return np.where(solid, -1.0, 1.0).astype(np.float32), np.arange(n, dtype=float)
+
+
+def test_space_under_an_overhang_is_filled_down_to_the_table_only():
+    values, z = mushroom()
+    out = fill_under_overhangs(values, z, 2.0, -0.5)
+    assert np.all(out[2:8, 2:10, 2:10] < 0)  # under the cap, down to the floor
+    assert np.all(out[:2] == values[:2])  # under the table: untouched
+    assert np.all(out[:, 0:2] > 0) and np.all(out[10:] > 0)  # beside and above the cap: still empty
+    assert np.all(values[2:8, 2:5, 2:5] > 0)  # (the input is not changed)
+
+
+def test_pockets_closed_by_the_floor_are_cavities_only_when_the_floor_is_given():
+    n = 10
+    solid = np.zeros((n, n, n), bool)
+    solid[2:7, 2:8, 2:8] = True
+    solid[2:5, 4:6, 4:6] = False  # a pocket open only downwards, onto the floor at node 2
+    below = np.broadcast_to((np.arange(n) < 2)[:, None, None], solid.shape)
+    assert not cavities(solid).any()
+    cav = cavities(solid, below)
+    assert cav.sum() == 3 * 2 * 2 and cav[2:5, 4:6, 4:6].all()
+    values = np.where(solid, -1.0, 1.0).astype(np.float32)
+    assert np.all(clean_solid(values, below_floor=below)[2:5, 4:6, 4:6] < 0)
+    assert np.all(clean_solid(values)[2:5, 4:6, 4:6] > 0)
