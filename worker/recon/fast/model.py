@@ -161,7 +161,7 @@ class FastModel:
         sc, lc = self.sc, self.config.loss
         if not self.refined and self.level_steps >= self.fc.refine_after_steps:
             self._refine()
-        if self.empty_space and self.level_steps % sc.band_refresh_steps == 0:
+        if self.level_steps % sc.band_refresh_steps == 0:
             self._fill_cavities()
         views = self._next_views()
         lam = self._rates(views)
@@ -263,8 +263,9 @@ class FastModel:
         cubes on the grid resampled to `resolution` cells along its longest side (None: the grid's own)."""
         from .mesh import mesh_from_field
 
-        fill = self.table is not None and self.fc.fill_under_overhangs
-        return mesh_from_field(self.field, resolution, self.p.floor_z, fill_under=fill)
+        if self.table is None:  # the hidden-space fills are the table's (empty_space.py)
+            return mesh_from_field(self.field, resolution)
+        return mesh_from_field(self.field, resolution, self.p.floor_z, fill_under=self.fc.fill_under_overhangs)
 
     def render_histograms(self, view_ids) -> np.ndarray:
         """Expected counts (n, Z, B) of the given views under the current fit (float64, no gradient)."""
