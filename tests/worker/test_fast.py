@@ -238,6 +238,49 @@ def test_a_grid_with_no_surface_is_a_one_line_error(cylinder_capture):
         model.extract_mesh(32)
 
 
+def test_a_bubble_inside_the_solid_is_filled_and_only_a_table_scene_gets_the_empty_space_push(cylinder_capture):
+    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), SMALL), "cpu",
+                            RunPlan(steps=1, budget_s=None, seed=0))
+    assert not model.empty_space and model.summary()["empty_space_push"] is False  # no table in this scene
+    sdf = model.field.sdf.detach()[0, 0]
+    deepest = np.unravel_index(int(torch.argmin(sdf)), tuple(sdf.shape))
+    assert float(sdf[deepest]) < -2 * model.field.voxel
+    with torch.no_grad():
+        sdf[deepest] = model.field.voxel  # an empty node that no sensor can see into
+    model.step()  # pockets are filled at the start of every few steps
+    assert float(model.field.sdf.detach()[0, 0][deepest]) < 0
+
+
+@pytest.fixture(scope="module")
+def table_capture(tmp_path_factory):
+    """12 simulated views of a cylinder standing on a wide slab whose top is the table (z = 0)."""
+    import trimesh
+
+    slab = trimesh.creation.box([0.6, 0.6, 0.02])
+    slab.apply_translation([0.0, 0.0, -0.01])
+    path = tmp_path_factory.mktemp("fast") / "table"
+    poses = fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.03), min_elevation_deg=35)
+    simulate_capture(trimesh.util.concatenate([cylinder_mesh(), slab]), sensor_preset("lcspc-sim"), poses, path,
+                     settings=SimSettings(rays_per_zone=512), seed=5, progress=False, scene={"table": True})
+    return path
+
+
+def test_a_table_scene_pushes_where_few_views_look_and_meshes_above_the_table(table_capture):
+    model = make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), SMALL), "cpu",
+                            RunPlan(steps=3, budget_s=None, seed=0))
+    assert model.table is not None and model.empty_space and model.summary()["empty_space_push"] is True
+    for _ in range(3):
+        assert math.isfinite(model.step()["loss"])
+    w = model._pressure_weight()
+    assert w.shape == model.field.sdf.shape and float(w.min()) >= 0 and float(w.max()) <= 1
+    # Straight under the views' target every view looks: no push there.
+    nodes = model.field.node_points()
+    centre = torch.argmin(((nodes - torch.tensor([0.0, 0.0, 0.03], dtype=nodes.dtype)) ** 2).sum(-1))
+    assert float(w.reshape(-1)[centre]) == 0.0
+    mesh = model.extract_mesh(32)
+    assert mesh.bounds[0, 2] >= model.p.floor_z - 2 * model.field.voxel
+
+
 @pytest.mark.slow
 def test_short_run_lowers_loss_and_chamfer(cylinder_capture):
     from spadscan.worker.metrics import mesh_metrics

@@ -221,8 +221,10 @@ class FastModel:
         return self._push_weight
 
     def _fill_cavities(self) -> None:
-        """Make solid every empty pocket closed by the solid (and the floor): no sensor outside sees into one, so
-        nothing in the data would stop it growing under the empty-space push."""
+        """Make solid every empty pocket closed by the solid (and the floor), every few steps: no sensor outside sees
+        into one, so nothing in the data holds the nodes around it. Without this, bubbles grew inside the dataset's
+        soap after ~3,000 steps (Chamfer 1.8 mm -> 8.7 mm by 180 s on an idle machine), and on a table the
+        empty-space push hollowed the object out."""
         from .mesh import cavities
 
         sdf = self.field.sdf.detach()[0, 0]
