@@ -96,6 +96,10 @@ def _rotate_z_to(d: np.ndarray, axis: np.ndarray) -> np.ndarray:
     return d @ rot.T
 
 
+RAY_CHUNK = 4096
+"""Rays handed to the intersector at a time (bounds the memory of trimesh's own intersector)."""
+
+
 def make_intersector(mesh):
     """The fastest ray intersector trimesh offers for this mesh (embree when importable, else trimesh's own)."""
     try:
@@ -121,9 +125,16 @@ def first_hits(intersector, mesh, origins: np.ndarray, directions: np.ndarray):
     if len(origins) == 0:
         empty = np.zeros(0)
         return empty.astype(np.int64), empty, empty
-    tri, ray = intersector.intersects_id(origins, directions, multiple_hits=False, return_locations=False)
-    ray = np.asarray(ray, dtype=np.int64)
-    tri = np.asarray(tri, dtype=np.int64)
+    tris, rays = [], []
+    # In chunks: trimesh's own intersector builds every (ray, candidate triangle) pair at once, which for a whole
+    # view of a detailed mesh is tens of millions of pairs and tens of GB.
+    for start in range(0, len(origins), RAY_CHUNK):
+        stop = start + RAY_CHUNK
+        tri, ray = intersector.intersects_id(origins[start:stop], directions[start:stop], multiple_hits=False,
+                                             return_locations=False)
+        tris.append(np.asarray(tri, dtype=np.int64))
+        rays.append(np.asarray(ray, dtype=np.int64) + start)
+    ray, tri = np.concatenate(rays), np.concatenate(tris)
     normals = np.asarray(mesh.face_normals)[tri]
     d = directions[ray]
     to_plane = np.asarray(mesh.triangles_center)[tri] - origins[ray]
