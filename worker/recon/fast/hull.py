@@ -130,4 +130,3 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     keep = votes >= min_views * votes.max()
     keep[0] = False
     return keep[lab]
-

@@ -8,6 +8,15 @@ import torch
 from ..errors import ReconstructionError
 
 
+def below_floor(shape: tuple[int, int, int], origin_z: float, spacing_z: float, floor_z: float | None):
+    """(nz, ny, nx) bool view: the nodes of a grid (node k at height origin_z + k * spacing_z, metres) that lie
+    under the floor at floor_z; None when there is no floor."""
+    if floor_z is None:
+        return None
+    z = origin_z + np.arange(shape[0]) * spacing_z
+    return np.broadcast_to((z < floor_z)[:, None, None], shape)
+
+
 def cavities(solid: np.ndarray, below_floor: np.ndarray | None = None) -> np.ndarray:
     """Empty nodes of a boolean grid (nz, ny, nx) that no path through empty nodes links to the grid's boundary.
 
@@ -86,14 +95,12 @@ def mesh_from_field(field, resolution: int | None = None, floor_z: float | None 
         ext = (np.array(vals.shape[2:][::-1]) - 1)  # cells along x, y, z
         spacing = (np.array(field.counts) - 1) * field.voxel / ext
     grid = vals[0, 0].cpu().numpy()
-    below = None
-    if floor_z is not None:
-        z = float(field.origin[2]) + np.arange(grid.shape[0]) * spacing[2]
-        below = np.broadcast_to((z < floor_z)[:, None, None], grid.shape)
-        if fill_under:
-            from .empty_space import fill_under_overhangs
+    below = below_floor(grid.shape, float(field.origin[2]), float(spacing[2]), floor_z)
+    if below is not None and fill_under:
+        from .empty_space import fill_under_overhangs
 
-            grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)))
+        z = float(field.origin[2]) + np.arange(grid.shape[0]) * spacing[2]
+        grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)))
     mesh = mesh_from_values(clean_solid(grid, below_floor=below), field.origin.cpu().numpy(), spacing)
     mesh.vertex_normals = vertex_normals(field, mesh.vertices)
     return mesh
@@ -112,4 +119,4 @@ def vertex_normals(field, points: np.ndarray, chunk: int = 1 << 16) -> np.ndarra
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
-__all__ = ["cavities", "clean_solid", "mesh_from_values", "mesh_from_field", "vertex_normals"]
+__all__ = ["below_floor", "cavities", "clean_solid", "mesh_from_values", "mesh_from_field", "vertex_normals"]

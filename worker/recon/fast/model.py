@@ -17,9 +17,9 @@ import torch
 
 from ..forward import TransientForward, choose_terms
 from ..numerics import flush_denormals
+from .empty_space import pressure_weight, push_to_empty, view_coverage
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
-from .empty_space import pressure_weight, push_to_empty, view_coverage
 from .optim import Adam
 from .problem import FastProblem, build_problem
 from .regularizers import band_nodes, grid_regularizers
@@ -225,14 +225,11 @@ class FastModel:
         into one, so nothing in the data holds the nodes around it. Without this, bubbles grew inside the dataset's
         soap after ~3,000 steps (Chamfer 1.8 mm -> 8.7 mm by 180 s on an idle machine), and on a table the
         empty-space push hollowed the object out."""
-        from .mesh import cavities
+        from .mesh import below_floor, cavities
 
         sdf = self.field.sdf.detach()[0, 0]
         solid = (sdf < 0).cpu().numpy()
-        below = None
-        if self.p.floor_z is not None:
-            z = float(self.field.origin[2]) + np.arange(sdf.shape[0]) * self.field.voxel
-            below = np.broadcast_to((z < self.p.floor_z)[:, None, None], solid.shape)
+        below = below_floor(solid.shape, float(self.field.origin[2]), self.field.voxel, self.p.floor_z)
         cav = torch.as_tensor(cavities(solid, below), device=sdf.device)
         if bool(cav.any()):
             with torch.no_grad():
