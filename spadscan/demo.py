@@ -111,8 +111,9 @@ def write_rig_config(opts: DemoOptions, captures: Path, sock: Path, ur_host: str
     """The demo's rig: simulated arm (or ur-sim), simulated sensor rendering a built-in scene."""
     arm = (f'backend = "ur"\nhost = "{ur_host}"\nspeed = 0.5\nacceleration = 2.0\n' if ur_host else
            'backend = "sim"\nspeed = 0.5\nacceleration = 2.0\ntime_scale = 0.05\n')
+    # Absolute: the daemon resolves a relative path against the config's own folder, not the demo's working folder.
     text = f"""# Written by `spadscan demo`: simulated devices only.
-captures = "{captures}"
+captures = "{captures.resolve()}"
 socket = "{sock}"
 
 [arm]

@@ -55,3 +55,16 @@ def test_ctrl_c_during_the_scan_stops_every_process(tmp_path, procs):
     assert reader.state == "running", "stopped during the scan: the capture stays resumable"
     assert len(reader.load().hists) < 400
     assert not (out / "daemon.sock").exists()
+
+
+def test_the_rig_config_finds_the_captures_from_a_relative_output_folder(tmp_path, monkeypatch):
+    # The README's `spadscan demo` writes to ./spadscan-demo: the daemon reads the rig config's paths relative to
+    # the config's own folder, so a path relative to the working folder would point one level too deep.
+    from spadscan.daemon.config import load_config
+    from spadscan.demo import DemoOptions, write_rig_config
+
+    monkeypatch.chdir(tmp_path)
+    out = Path("spadscan-demo")
+    out.mkdir()
+    config = load_config(write_rig_config(DemoOptions(out=out), out / "captures", tmp_path / "d.sock", None))
+    assert Path(config.captures).resolve() == (tmp_path / "spadscan-demo" / "captures").resolve()
