@@ -165,7 +165,10 @@ class URArm(Arm):
                 # ur_rtde refuses from the control stream's view, which may lag the receive stream's (a stop
                 # just cleared): let both catch up, then try once more unless a real reason shows.
                 await self._explain_refusal(what, final=False)
-                if not await self._call(what, lambda: self._control.moveL(vec, speed, accel, True)):
+                # The refusal can also be a late answer to a command the controller did take: resend only when the
+                # arm is neither moving nor at the target, so that one move is never sent twice.
+                if not await self._took_it(what, target) and not await self._call(
+                        what, lambda: self._control.moveL(vec, speed, accel, True)):
                     await self._explain_refusal(what, final=True)
             await self._wait_motion(what, budget)
             await self._wait_arrival(what, target)
@@ -226,6 +229,14 @@ class URArm(Arm):
                                f"{math.degrees(self.rotation_tol_rad):g} deg, at rest below "
                                f"{self.rest_speed * 1e3:g} mm/s / {math.degrees(self.rest_angular_speed):g} deg/s)")
             await asyncio.sleep(self.poll_s)
+
+    async def _took_it(self, what: str, target: np.ndarray) -> bool:
+        """Whether a fresh reading shows the arm moving or already at the target."""
+        await self._fresh(f"the motion state after {what} was refused")
+        reading = await self._call(what, self._read_with_progress)
+        dist = float(np.linalg.norm(reading.pose_vec[:3] - target[:3]))
+        angle = rotation_angle(rotvec_to_matrix(reading.pose_vec[3:]), rotvec_to_matrix(target[3:]))
+        return reading.moving or (dist <= self.position_tol_m and angle <= self.rotation_tol_rad)
 
     async def _fresh(self, what: str) -> _Reading:
         """A reading whose controller timestamp is newer than any seen so far; LinkLost after stale_after_s."""
