@@ -11,8 +11,8 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.sensor_model import Zone
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.recon.fast.empty_space import (fill_under_overhangs, pressure_weight, push_to_empty,
-                                                    view_coverage)
+from spadscan.worker.recon.fast.empty_space import (fill_under_overhangs, pressure_weight, pulse_width_m,
+                                                    push_to_empty, thin_near_table, view_coverage)
 from spadscan.worker.recon.fast.mesh import cavities, clean_solid
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -119,3 +119,47 @@ def test_pockets_closed_by_the_floor_are_cavities_only_when_the_floor_is_given()
     values = np.where(solid, -1.0, 1.0).astype(np.float32)
     assert np.all(clean_solid(values, below_floor=below)[2:5, 4:6, 4:6] < 0)
     assert np.all(clean_solid(values)[2:5, 4:6, 4:6] > 0)
+
+
+# ---- thin sheets just above the table -------------------------------------------------------------------------------
+def test_pulse_width_is_the_full_width_at_half_maximum_in_metres():
+    x = np.arange(-40, 41) / 4.0  # 4 samples per bin, in bins
+    gauss = np.exp(-0.5 * (x / 2.0) ** 2)  # sigma 2 bins: FWHM 4.71 bins
+    assert pulse_width_m(gauss, 4, 0.01) == pytest.approx(2.3548 * 2.0 * 0.01, abs=0.25 * 0.01)
+    assert pulse_width_m(np.zeros(5), 1, 0.01) == 0.0
+
+
+def table_block_and_curtain():
+    """Node rows 1 cm apart from z = -0.03 m, the table at z = 0: a thick block on the table, a 2-node thick curtain
+    beside it reaching 7 cm up, and a thin fin on the block's top, 8 cm above the table."""
+    z = -0.03 + 0.01 * np.arange(14)
+    solid = np.zeros((14, 20, 20), bool)
+    solid[3:11, 4:12, 4:12] = True  # block from the table (row 3, z = 0) to z = 7 cm
+    solid[3:10, 4:12, 14:16] = True  # curtain, separate from the block
+    solid[11:13, 7:9, 4:12] = True  # fin on the block's top (z = 8-9 cm)
+    return solid, z
+
+
+def test_thin_sheets_within_the_band_above_the_table_are_emptied_and_thick_bodies_kept():
+    solid, z = table_block_and_curtain()
+    thin = thin_near_table(solid, z, 0.0, 0.04, 2)
+    assert not (thin & ~solid).any()
+    band = (z >= 0.0) & (z < 0.04)
+    curtain = np.zeros_like(solid)
+    curtain[3:10, 4:12, 14:16] = True
+    assert thin[curtain & band[:, None, None]].all()  # the curtain goes within the band...
+    assert not thin[curtain & ~band[:, None, None]].any()  # ...and stays above it
+    assert not thin[11:13].any()  # the fin is above the band
+    core = np.zeros_like(solid)
+    core[3:7, 6:10, 6:10] = True
+    assert not thin[core].any()  # the block's inside and its base on the table stay solid
+    # At most the block's vertical edges are rounded: every node it loses lies within two steps of one.
+    _, yy, xx = np.nonzero(thin[:, 4:12, 4:12])
+    to_edge = np.min([np.abs(yy - cy) + np.abs(xx - cx) for cy in (0, 7) for cx in (0, 7)], axis=0)
+    assert to_edge.max() <= 2
+
+
+def test_no_thin_sheet_removal_without_a_band_or_a_radius():
+    solid, z = table_block_and_curtain()
+    assert not thin_near_table(solid, z, 0.0, 0.04, 0).any()
+    assert not thin_near_table(solid, z, 0.5, 0.04, 2).any()  # the band lies above the grid

@@ -281,6 +281,32 @@ def test_a_table_scene_pushes_where_few_views_look_and_meshes_above_the_table(ta
     assert mesh.bounds[0, 2] >= model.p.floor_z - 2 * model.field.voxel
 
 
+def test_a_table_scene_empties_thin_sheets_within_a_pulse_width_of_the_table(table_capture):
+    model = make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), SMALL), "cpu",
+                            RunPlan(steps=6, budget_s=None, seed=0))
+    fwhm_m = 7 * model.p.forward.sensor.bin_width_m  # the lcspc-sim pulse: FWHM about 7 bins
+    assert 0.6 * fwhm_m < model._sheet_band_m < 1.4 * fwhm_m
+    for _ in range(6):
+        model.step()
+    assert model.refined
+    sdf, vox = model.field.sdf.detach()[0, 0], model.field.voxel
+    model._sheet_band_m = 4.5 * vox  # a band four node rows high on this coarse test grid
+    nodes = model.field.node_points().reshape(sdf.shape + (3,))
+    z = nodes[..., 2] - model.p.floor_z
+    r = torch.hypot(nodes[..., 0] - 0.005, nodes[..., 1] + 0.004)
+    curtain = (z >= 0) & (z < 4 * vox) & (r > 0.06) & (r < 0.06 + 1.5 * vox)  # a thin ring 2 cm off the cylinder
+    body = (z >= 0) & (z < 4 * vox) & (r < 0.02)  # the cylinder's inside, just above the table
+    assert bool(curtain.any()) and bool(body.any())
+    with torch.no_grad():
+        sdf[(z >= 0) & (r > 0.05)] = vox  # empty space around the cylinder...
+        sdf[curtain] = -0.5 * vox  # ...but for the curtain
+        sdf[body] = -2 * vox
+    model._empty_thin_sheets()
+    # The curtain is gone (but for its foot, which may pass for a thickening of the table).
+    assert bool((sdf[curtain & (z > 1.5 * vox)] > 0).all())
+    assert bool((sdf[body] < 0).all())
+
+
 @pytest.mark.slow
 def test_short_run_lowers_loss_and_chamfer(cylinder_capture):
     from spadscan.worker.metrics import mesh_metrics

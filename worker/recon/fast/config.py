@@ -44,6 +44,10 @@ class FastFieldConfig:
     fill_under_overhangs: bool = True
     """Scenes on a table only: the mesh fills the hidden space between the object's underside and the table
     (`empty_space.fill_under_overhangs`)."""
+    thin_sheet_voxels: int = 2
+    """Scenes on a table only, on the refined grid: every `band_refresh_steps`, solid sheets thinner than about twice
+    this many voxels within one pulse width (FWHM) above the table are emptied (`empty_space.thin_near_table`);
+    0: off."""
     table_albedo_init: float = 1.0
     """Initial albedo of the table plane (real scenes), relative to the sensor model's signal scale."""
 

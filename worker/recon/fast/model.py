@@ -17,7 +17,7 @@ import torch
 
 from ..forward import TransientForward, choose_terms
 from ..numerics import flush_denormals
-from .empty_space import pressure_weight, push_to_empty, view_coverage
+from .empty_space import pressure_weight, pulse_width_m, push_to_empty, thin_near_table, view_coverage
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
 from .optim import Adam
@@ -85,6 +85,8 @@ class FastModel:
         # The empty-space bias (empty_space.py) of scenes on a table, and its per-node weight (None until used).
         self.empty_space = self.table is not None and self.sc.empty_pressure > 0
         self._push_weight: torch.Tensor | None = None
+        fwd = problem.forward
+        self._sheet_band_m = pulse_width_m(fwd.kernel.flip(-1).cpu().numpy(), fwd.oversample, fwd.sensor.bin_width_m)
         self._make_optimizer()
 
     # ---- optimiser and schedule -------------------------------------------------------------------------------
@@ -163,6 +165,7 @@ class FastModel:
             self._refine()
         if self.level_steps % sc.band_refresh_steps == 0:
             self._fill_cavities()
+            self._empty_thin_sheets()
         views = self._next_views()
         lam = self._rates(views)
         nll = self.p.forward.nll(lam, self.p.counts[views], self.p.cycles[views], self.p.valid[views])
@@ -235,6 +238,18 @@ class FastModel:
             with torch.no_grad():
                 sdf[cav] = -0.5 * self.field.voxel
             self.constraint.project(self.field)
+    def _empty_thin_sheets(self) -> None:
+        """Empty the thin sheets just above the table (`empty_space.thin_near_table`), every few steps on the refined
+        grid of a scene on a table."""
+        if self.table is None or self.p.floor_z is None or not self.refined or self.fc.thin_sheet_voxels <= 0:
+            return
+        sdf = self.field.sdf.detach()[0, 0]
+        z = float(self.field.origin[2]) + np.arange(sdf.shape[0]) * self.field.voxel
+        thin = thin_near_table((sdf < 0).cpu().numpy(), z, self.p.floor_z, self._sheet_band_m,
+                               self.fc.thin_sheet_voxels)
+        if thin.any():
+            with torch.no_grad():
+                sdf[torch.as_tensor(thin, device=sdf.device)] = 0.5 * self.field.voxel
 
     def _refine(self) -> None:
         self.field = self.field.upsampled(2)
