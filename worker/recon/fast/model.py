@@ -85,6 +85,10 @@ class FastModel:
         # The empty-space bias (empty_space.py) of scenes on a table, and its per-node weight (None until used).
         self.empty_space = self.table is not None and self.sc.empty_pressure > 0
         self._push_weight: torch.Tensor | None = None
+        if self.fc.thin_sheet_voxels < 0:
+            from spadscan.protocol.errors import ConfigError
+
+            raise ConfigError(f"field.thin_sheet_voxels {self.fc.thin_sheet_voxels} must be >= 0 (0: off)")
         fwd = problem.forward
         self._sheet_band_m = pulse_width_m(fwd.kernel.flip(-1).cpu().numpy(), fwd.oversample, fwd.sensor.bin_width_m)
         self._make_optimizer()
