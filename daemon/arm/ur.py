@@ -216,8 +216,7 @@ class URArm(Arm):
             self._check_link(reading)
             self._raise_if_stopped(reading, f"{what} aborted")
             first_ts = reading.timestamp if first_ts is None else first_ts
-            dist = float(np.linalg.norm(reading.pose_vec[:3] - target[:3]))
-            angle = rotation_angle(rotvec_to_matrix(reading.pose_vec[3:]), rotvec_to_matrix(target[3:]))
+            dist, angle = _pose_distance(reading.pose_vec, target)
             speed, spin = (float(np.linalg.norm(reading.tcp_speed[i:i + 3])) for i in (0, 3))
             if (dist <= self.position_tol_m and angle <= self.rotation_tol_rad and speed <= self.rest_speed
                     and spin <= self.rest_angular_speed):
@@ -234,8 +233,7 @@ class URArm(Arm):
         """Whether a fresh reading shows the arm moving or already at the target."""
         await self._fresh(f"the motion state after {what} was refused")
         reading = await self._call(what, self._read_with_progress)
-        dist = float(np.linalg.norm(reading.pose_vec[:3] - target[:3]))
-        angle = rotation_angle(rotvec_to_matrix(reading.pose_vec[3:]), rotvec_to_matrix(target[3:]))
+        dist, angle = _pose_distance(reading.pose_vec, target)
         return reading.moving or (dist <= self.position_tol_m and angle <= self.rotation_tol_rad)
 
     async def _fresh(self, what: str) -> _Reading:
@@ -357,8 +355,14 @@ class URArm(Arm):
             self._control.stopL(STOP_DECEL)
 
 
+def _pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(translation metres, rotation radians) between two pose vectors (6,): position and rotation vector."""
+    return (float(np.linalg.norm(a[:3] - b[:3])),
+            rotation_angle(rotvec_to_matrix(a[3:]), rotvec_to_matrix(b[3:])))
+
+
 def _move_time(start: np.ndarray, goal: np.ndarray, speed: float, accel: float) -> float:
     """Rough duration (s) of a linear move between pose vectors (6,): trapezoid on max(translation, 0.1 m x angle)."""
-    angle = rotation_angle(rotvec_to_matrix(start[3:]), rotvec_to_matrix(goal[3:]))
-    d = max(float(np.linalg.norm(goal[:3] - start[:3])), 0.1 * angle)
+    dist, angle = _pose_distance(start, goal)
+    d = max(dist, 0.1 * angle)
     return d / speed + speed / accel if d > speed * speed / accel else 2.0 * math.sqrt(d / accel)

@@ -8,12 +8,17 @@ import torch
 from ..errors import ReconstructionError
 
 
+def node_heights(nz: int, origin_z: float, spacing_z: float) -> np.ndarray:
+    """(nz,) heights (metres) of a grid's node rows: row k at origin_z + k * spacing_z."""
+    return origin_z + np.arange(nz) * spacing_z
+
+
 def below_floor(shape: tuple[int, int, int], origin_z: float, spacing_z: float, floor_z: float | None):
-    """(nz, ny, nx) bool view: the nodes of a grid (node k at height origin_z + k * spacing_z, metres) that lie
-    under the floor at floor_z; None when there is no floor."""
+    """(nz, ny, nx) bool view: the nodes of a grid (rows at `node_heights`) that lie under the floor at floor_z;
+    None when there is no floor."""
     if floor_z is None:
         return None
-    z = origin_z + np.arange(shape[0]) * spacing_z
+    z = node_heights(shape[0], origin_z, spacing_z)
     return np.broadcast_to((z < floor_z)[:, None, None], shape)
 
 
@@ -99,7 +104,7 @@ def mesh_from_field(field, resolution: int | None = None, floor_z: float | None 
     if below is not None and fill_under:
         from .empty_space import fill_under_overhangs
 
-        z = float(field.origin[2]) + np.arange(grid.shape[0]) * spacing[2]
+        z = node_heights(grid.shape[0], float(field.origin[2]), float(spacing[2]))
         grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)))
     mesh = mesh_from_values(clean_solid(grid, below_floor=below), field.origin.cpu().numpy(), spacing)
     mesh.vertex_normals = vertex_normals(field, mesh.vertices)
@@ -119,4 +124,4 @@ def vertex_normals(field, points: np.ndarray, chunk: int = 1 << 16) -> np.ndarra
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
-__all__ = ["below_floor", "cavities", "clean_solid", "mesh_from_values", "mesh_from_field", "vertex_normals"]
+__all__ = ["node_heights", "below_floor", "cavities", "clean_solid", "mesh_from_values", "mesh_from_field", "vertex_normals"]

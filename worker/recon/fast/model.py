@@ -90,7 +90,7 @@ class FastModel:
 
             raise ConfigError(f"field.thin_sheet_voxels {self.fc.thin_sheet_voxels} must be >= 0 (0: off)")
         fwd = problem.forward
-        self._sheet_band_m = pulse_width_m(fwd.kernel.flip(-1).cpu().numpy(), fwd.oversample, fwd.sensor.bin_width_m)
+        self._sheet_band_m = pulse_width_m(fwd.kernel.cpu().numpy(), fwd.oversample, fwd.sensor.bin_width_m)
         self._make_optimizer()
 
     # ---- optimiser and schedule -------------------------------------------------------------------------------
@@ -242,13 +242,16 @@ class FastModel:
             with torch.no_grad():
                 sdf[cav] = -0.5 * self.field.voxel
             self.constraint.project(self.field)
+
     def _empty_thin_sheets(self) -> None:
         """Empty the thin sheets just above the table (`empty_space.thin_near_table`), every few steps on the refined
         grid of a scene on a table."""
         if self.table is None or self.p.floor_z is None or not self.refined or self.fc.thin_sheet_voxels <= 0:
             return
+        from .mesh import node_heights
+
         sdf = self.field.sdf.detach()[0, 0]
-        z = float(self.field.origin[2]) + np.arange(sdf.shape[0]) * self.field.voxel
+        z = node_heights(sdf.shape[0], float(self.field.origin[2]), self.field.voxel)
         thin = thin_near_table((sdf < 0).cpu().numpy(), z, self.p.floor_z, self._sheet_band_m,
                                self.fc.thin_sheet_voxels)
         if thin.any():
