@@ -11,70 +11,20 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import shutil
 import signal
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import ConfigError
 
-from .jobs import EXIT_CRASH, publish, result_path, scratch_folders, scratch_path
+from .children import Child, exit_reason, kill_group, spawn_job
+from .jobs import publish, result_path, scratch_folders, scratch_path
 from .queue import SEP, Claim, Queue
-from .watcher import JobOptions, ScanReport, scan_once, watch
-
-
-@dataclass
-class WorkerConfig:
-    """How a worker runs. Times in seconds."""
-
-    root: Path
-    """Captures root: its children are scan folders."""
-    processes: int = 1
-    """Jobs run at once (one child process each)."""
-    options: JobOptions = field(default_factory=JobOptions)
-    """Preset, budget, device, seed of the jobs this worker queues."""
-    queue_dir: Path | None = None
-    """Queue folder; default `<root>/.queue`."""
-    poll_s: float = 2.0
-    """How often the root is scanned and the queue looked at."""
-    lease_s: float = 60.0
-    """A job whose holder has not renewed its lease for this long is taken over by another worker."""
-    max_attempts: int = 3
-    """A job whose process dies or whose worker dies is retried until it has been tried this many times."""
-    once: bool = False
-    """Queue what is there, run until no job is queued or running, then exit."""
-    stop_grace_s: float = 10.0
-    """On stop, children get SIGTERM and this long to exit before SIGKILL."""
-    recon: str | None = None
-    """`module:function` replacing the reconstruction (tests only; not on the command line)."""
-    child_env: dict[str, str] | None = None
-    """Extra environment variables for the job processes."""
-
-    def check(self) -> "WorkerConfig":
-        if not (isinstance(self.processes, int) and 1 <= self.processes <= 256):
-            raise ConfigError(f"processes {self.processes} must be an integer in [1, 256]")
-        for key in ("poll_s", "lease_s", "stop_grace_s"):
-            v = getattr(self, key)
-            if not (isinstance(v, (int, float)) and 0 < v < 1e6):
-                raise ConfigError(f"{key.replace('_s', '')} {v} s must be > 0")
-        if not Path(self.root).is_dir():
-            raise ConfigError(f"{self.root}: captures root is not a folder")
-        return self
-
-
-@dataclass
-class _Child:
-    claim: Claim
-    proc: asyncio.subprocess.Process
-    scratch: Path
-    outcome: Path
-    log: Path
-    wait: asyncio.Task
-    last_beat: float = field(default_factory=time.monotonic)
+from .watcher import ScanReport, scan_once, watch
+from .worker_config import WorkerConfig
 
 
 class Worker:
@@ -87,7 +37,7 @@ class Worker:
                            max_attempts=config.max_attempts)
         (self.queue.path / "logs").mkdir(exist_ok=True)
         self.log = log or (lambda line: print(f"spadscan worker: {line}", file=sys.stderr, flush=True))
-        self.children: dict[str, _Child] = {}
+        self.children: dict[str, Child] = {}
         self.settled: dict[str, str] = {}
         """Job id -> 'done' or 'failed' for jobs this worker finished."""
         self._seen_skipped: set[str] = set()
@@ -189,17 +139,9 @@ class Worker:
             self.settled[job.id] = "failed"
             self.log(f"{job.id} failed: cannot prepare the result folder: {exc}")
             return
-        cmd = [sys.executable, "-m", "spadscan.worker.jobs", "--job", json.dumps(job.to_dict()),
-               "--root", str(self.root), "--out", str(scratch), "--outcome", str(outcome), "--parent-pid", str(os.getpid())]
-        if self.config.recon:
-            cmd += ["--recon", self.config.recon]
-        env = {**os.environ, **(self.config.child_env or {})}
-        with open(log_path, "wb") as logf:
-            # A session of its own: a Ctrl-C at the terminal reaches the worker, which then stops its children.
-            proc = await asyncio.create_subprocess_exec(*cmd, stdin=asyncio.subprocess.DEVNULL, stdout=logf,
-                                                        stderr=asyncio.subprocess.STDOUT, env=env,
-                                                        start_new_session=True)
-        self.children[job.id] = _Child(claim, proc, scratch, outcome, log_path, asyncio.create_task(proc.wait()))
+        proc = await spawn_job(job, self.root, scratch, outcome, log_path, recon=self.config.recon,
+                               extra_env=self.config.child_env)
+        self.children[job.id] = Child(claim, proc, scratch, outcome, log_path, asyncio.create_task(proc.wait()))
         self.log(f"{job.id} started (attempt {claim.attempt} of {self.queue.max_attempts}, pid {proc.pid})")
 
     def _heartbeat(self) -> None:
@@ -210,7 +152,7 @@ class Worker:
             child.last_beat = now
             if not self.queue.heartbeat(child.claim):
                 self.log(f"{job_id}: lease lost to another worker; stopping its process and dropping the result")
-                _kill(child.proc, signal.SIGKILL)
+                kill_group(child.proc, signal.SIGKILL)
 
     async def _reap(self) -> None:
         for job_id, child in list(self.children.items()):
@@ -218,7 +160,7 @@ class Worker:
                 del self.children[job_id]
                 await asyncio.to_thread(self._settle, child)
 
-    def _settle(self, child: _Child) -> None:
+    def _settle(self, child: Child) -> None:
         claim, job = child.claim, child.claim.job
         rc = child.proc.returncode
         try:
@@ -235,7 +177,7 @@ class Worker:
                     self.settled[job.id] = "failed"
                     self.log(f"{job.id} failed after {seconds:.1f} s: {outcome.get('error')}")
             else:
-                reason = outcome.get("error") or _exit_reason(rc)
+                reason = outcome.get("error") or exit_reason(rc)
                 state = self.queue.crash(claim, f"{reason} (log: {child.log})")
                 if state == "failed":
                     self.settled[job.id] = "failed"
@@ -246,7 +188,7 @@ class Worker:
             if child.scratch.exists():
                 shutil.rmtree(child.scratch, ignore_errors=True)
 
-    def _settle_done(self, child: _Child, seconds: float, summary: dict) -> None:
+    def _settle_done(self, child: Child, seconds: float, summary: dict) -> None:
         claim, job = child.claim, child.claim.job
         if not self.queue.finish(claim):
             self.log(f"{job.id}: finished, but its lease had been taken over; result dropped")
@@ -264,12 +206,12 @@ class Worker:
         if not self.children:
             return
         for child in self.children.values():
-            _kill(child.proc, signal.SIGTERM)
+            kill_group(child.proc, signal.SIGTERM)
         waits = [c.wait for c in self.children.values()]
         await asyncio.wait(waits, timeout=self.config.stop_grace_s)
         for child in self.children.values():
             if not child.wait.done():
-                _kill(child.proc, signal.SIGKILL)
+                kill_group(child.proc, signal.SIGKILL)
         await asyncio.gather(*waits, return_exceptions=True)
         for job_id, child in self.children.items():
             if self.queue.release(child.claim, "worker stopped"):
@@ -277,30 +219,6 @@ class Worker:
             child.outcome.unlink(missing_ok=True)
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()
-
-
-def _kill(proc: asyncio.subprocess.Process, sig: int) -> None:
-    """Signal a child's whole process group (it may have started helpers of its own)."""
-    if proc.returncode is not None:
-        return
-    try:
-        os.killpg(proc.pid, sig)
-    except (ProcessLookupError, PermissionError):
-        pass
-
-
-def _exit_reason(rc: int | None) -> str:
-    if rc is None:
-        return "job process vanished"
-    if rc < 0:
-        try:
-            name = signal.Signals(-rc).name
-        except ValueError:
-            name = f"signal {-rc}"
-        return f"job process killed by {name}"
-    if rc == EXIT_CRASH:
-        return "job process crashed"
-    return f"job process exited with code {rc}"
 
 
 async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = None,
@@ -319,4 +237,4 @@ async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = N
             loop.remove_signal_handler(sig)
 
 
-__all__ = ["WorkerConfig", "Worker", "run_worker"]
+__all__ = ["Worker", "run_worker"]

@@ -19,7 +19,8 @@ Why several workers on one machine or on a shared filesystem run each job once:
 - A holder touches its `running/j~T` file (os.utime) every few seconds. A missing file means its lease expired and
   another worker took the job over: the holder drops its result.
 - A lease expires when that file's mtime is older than the lease (clocks of machines sharing a filesystem must agree
-  to well within the lease), or at once when the holder was a process on this machine that no longer exists.
+  to well within the lease), or at once when the holder was a process on this machine that no longer exists
+  (holder.py).
 """
 
 from __future__ import annotations
@@ -27,13 +28,13 @@ from __future__ import annotations
 import json
 import os
 import secrets
-import socket
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 
+from .holder import Holder, holder_gone
 from .jobs import ID_RE as _ID_RE, Job
 
 
@@ -68,77 +69,6 @@ class JobStatus:
     result: str | None
     holder: str | None
     heartbeat_age_s: float | None
-
-
-def _read(path: str) -> str:
-    try:
-        with open(path) as f:
-            return f.read().strip()
-    except OSError:
-        return ""
-
-
-def _pid_start(pid: int) -> str:
-    """Start time of a process in clock ticks since boot ('' when unknown): tells a reused pid apart."""
-    stat = _read(f"/proc/{pid}/stat")
-    return stat.rsplit(")", 1)[1].split()[19] if ")" in stat else ""
-
-
-def _pid_namespace() -> str:
-    try:
-        return os.readlink("/proc/self/ns/pid")
-    except OSError:
-        return ""
-
-
-@dataclass(frozen=True)
-class Holder:
-    """Who holds a lease: a process, named so that another process can tell whether it still exists.
-
-    Two processes can only judge each other's liveness on one machine (same host name, boot and pid namespace);
-    elsewhere the lease's expiry decides.
-    """
-
-    host: str
-    pid: int
-    boot_id: str = ""
-    pid_ns: str = ""
-    pid_start: str = ""
-
-    @classmethod
-    def current(cls) -> "Holder":
-        pid = os.getpid()
-        return cls(socket.gethostname(), pid, _read("/proc/sys/kernel/random/boot_id"), _pid_namespace(),
-                   _pid_start(pid))
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    def describe(self) -> dict:
-        return {"host": self.host, "pid": self.pid}
-
-
-def holder_gone(data: dict) -> bool:
-    """True only when `data` (Holder.to_dict) names a process on this machine that no longer exists."""
-    me = Holder.current()
-    try:
-        h = Holder(**data)
-    except TypeError:
-        return False
-    if (h.host, h.boot_id, h.pid_ns) != (me.host, me.boot_id, me.pid_ns) or not h.boot_id:
-        return False
-    try:
-        os.kill(h.pid, 0)
-    except ProcessLookupError:
-        return True
-    except PermissionError:
-        pass  # it exists, under another user
-    start = _pid_start(h.pid)
-    if start and h.pid_start and start != h.pid_start:
-        return True  # the pid was reused by a newer process
-    # A zombie has exited but is not yet reaped by its parent: it holds nothing.
-    stat = _read(f"/proc/{h.pid}/stat")
-    return ")" in stat and stat.rsplit(")", 1)[1].split()[0] == "Z"
 
 
 def _utc() -> str:

@@ -50,9 +50,10 @@ def run(args) -> int:
     from pathlib import Path
 
     from spadscan.protocol.errors import ConfigError
-    from spadscan.worker.pool import WorkerConfig, run_worker
+    from spadscan.worker.pool import run_worker
     from spadscan.worker.queue import Queue
     from spadscan.worker.watcher import JobOptions
+    from spadscan.worker.worker_config import WorkerConfig
 
     root = Path(args.root)
     if not root.is_dir():

@@ -13,8 +13,9 @@ from dataclasses import replace
 import pytest
 
 from spadscan.protocol.errors import ConfigError
+from spadscan.worker.holder import Holder, holder_gone
 from spadscan.worker.jobs import Job, job_id_for
-from spadscan.worker.queue import Holder, Queue, holder_gone
+from spadscan.worker.queue import Queue
 
 
 def _job(name: str, preset: str = "fast") -> Job:

@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 
 from spadscan.cli import main as cli_main
-from spadscan.worker.pool import Worker, WorkerConfig
+from spadscan.worker.pool import Worker
 from spadscan.worker.queue import Queue
+from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
 
@@ -44,11 +45,12 @@ def marker_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=N
 
 LAUNCH = """
 import asyncio, sys
-from spadscan.worker.pool import WorkerConfig, run_worker
+from spadscan.worker.pool import run_worker
+from spadscan.worker.worker_config import WorkerConfig
 root, once, lease = sys.argv[1], sys.argv[2] == "once", float(sys.argv[3])
 if len(sys.argv) > 4:  # pretend to be another machine sharing the filesystem
-    import spadscan.worker.queue as queue
-    queue.socket.gethostname = lambda: sys.argv[4]
+    import spadscan.worker.holder as holder
+    holder.socket.gethostname = lambda: sys.argv[4]
 config = WorkerConfig(root=root, processes=2, once=once, poll_s=0.1, lease_s=lease, max_attempts=3,
                       recon=%r, stop_grace_s=5)
 asyncio.run(run_worker(config))
@@ -266,7 +268,7 @@ def test_a_job_whose_worker_is_already_gone_exits_at_once(tmp_path, markers):
 def test_partial_results_of_dead_claims_are_removed_and_live_ones_kept(tmp_path, markers, arun, monkeypatch):
     """A worker removes the scratch folder a dead worker left, never one of a job another worker is running."""
     from spadscan.worker.jobs import Job, scratch_path
-    from spadscan.worker.queue import Holder
+    from spadscan.worker.holder import Holder
 
     root = tmp_path / "captures"
     root.mkdir()
