@@ -135,7 +135,7 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
             return {"chamfer_mm": None, "note": str(exc)}
         return {"chamfer_mm": chamfer_mm(mesh, gt, crop_z, points)}
 
-    trace, steps, train_s = training_trace(model, plan.budget_s, every_s, evaluate)
+    trace, steps, train_s, stopped_by = training_trace(model, plan.budget_s, every_s, evaluate, config.early_stop)
     trace = [{**e, "wall_seconds": e["seconds"] + setup_s} for e in trace]
     final = trace[-1].get("chamfer_mm")  # the last checkpoint is the end of the run
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -144,29 +144,34 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     return {"method": preset, "kind": "preset", "device": str(dev),
             "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or "cpu",
             "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": steps,
-            "train_s": train_s, "trace": trace, "final_chamfer_mm": final, "crop_z_m": crop_z,
+            "train_s": train_s, "stopped_by": stopped_by, "trace": trace, "final_chamfer_mm": final, "crop_z_m": crop_z,
             "peak_rss_mb": peak_mb, "summary": _jsonable(model.summary()), "total_s": time.perf_counter() - t0}
 
 
-def training_trace(model, budget_s: float, every_s: float, evaluate) -> tuple[list[dict], int, float]:
-    """Step the model for budget_s seconds of training time, evaluating every every_s seconds of it (and at the start
-    and the end). Evaluation time is not training time: the curve is error against the time the method itself took.
-    Returns (trace [{step, seconds, loss, chamfer_mm}], steps, training seconds)."""
-    trace, steps, seconds, losses, next_mark = [], 0, 0.0, [], 0.0
+def training_trace(model, budget_s: float, every_s: float, evaluate,
+                   early_stop: bool) -> tuple[list[dict], int, float, str]:
+    """Step the model for budget_s seconds of training time (or, with early_stop, until a step reports `converged`),
+    evaluating every every_s seconds of it (and at the start and the end). Evaluation time is not training time: the
+    curve is error against the time the method itself took. A run that stops early keeps its last mesh: the tables
+    carry its final Chamfer forward to the later columns.
+    Returns (trace [{step, seconds, loss, chamfer_mm}], steps, training seconds, 'budget' or 'converged')."""
+    trace, steps, seconds, losses, next_mark, stopped_by = [], 0, 0.0, [], 0.0, ""
     while True:
-        if seconds >= next_mark or seconds >= budget_s:
+        if seconds >= next_mark or seconds >= budget_s or stopped_by:
             entry = {"step": steps, "seconds": round(seconds, 3),
                      "loss": float(np.mean(losses)) if losses else None, **evaluate()}
             trace.append(entry)
             losses.clear()
             next_mark += every_s
-            if seconds >= budget_s:
-                return trace, steps, seconds
+            if seconds >= budget_s or stopped_by:
+                return trace, steps, seconds, stopped_by or "budget"
         t0 = time.perf_counter()
         out = model.step()
         seconds += time.perf_counter() - t0
         steps += 1
         losses.append(float(out["loss"]))
+        if early_stop and out.get("converged"):
+            stopped_by = "converged"
 
 
 def run_baseline(capture: Path, method: str, out: Path) -> dict:
@@ -208,18 +213,26 @@ def time_to(trace: list[dict], goal: float) -> float | None:
     return None
 
 
+def ended(result: dict) -> str:
+    """How a run ended: 'budget', or where an early stop ended it ('converged 142 s'); baselines run to the end."""
+    if result.get("stopped_by") == "converged":
+        return f"converged {result['trace'][-1]['wall_seconds']:.0f} s"
+    return "budget" if result.get("kind") == "preset" else "done"
+
+
 def fmt(v, unit="") -> str:
     return "-" if v is None else f"{v:.2f}{unit}"
 
 
 def table(results: list[dict], budget_s: float) -> str:
     marks = [m for m in MARKS_S if m <= budget_s + 1e-9]
-    head = ["scene", "method"] + [f"@{m:.0f} s" for m in marks] + ["final", f"to {GOAL_MM:g} mm", "peak MB"]
+    head = (["scene", "method"] + [f"@{m:.0f} s" for m in marks]
+            + ["final", "ended", f"to {GOAL_MM:g} mm", "peak MB"])
     rows = [head]
     for r in results:
         final = r.get("final_chamfer_mm")
         rows.append([r["scene"], r["method"]] + [fmt(chamfer_at(r["trace"], m)) for m in marks]
-                    + [fmt(final), fmt(time_to(r["trace"], GOAL_MM), " s"), f"{r['peak_rss_mb']:.0f}"])
+                    + [fmt(final), ended(r), fmt(time_to(r["trace"], GOAL_MM), " s"), f"{r['peak_rss_mb']:.0f}"])
     widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
     lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths)) + " |" for row in rows]
     lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")

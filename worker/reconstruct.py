@@ -87,7 +87,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     if gt_mesh is not None:
         evaluate = lambda: _checkpoint_metrics(model, gt_mesh, config)  # noqa: E731
     result = train(model, plan, checkpoints=config.trace_checkpoints, evaluate=evaluate, progress=progress,
-                   desc=f"reconstruct ({preset})")
+                   desc=f"reconstruct ({preset})", early_stop=config.early_stop)
 
     mesh = model.extract_mesh(config.mesh_resolution)
     mesh_path = out / "mesh.ply"

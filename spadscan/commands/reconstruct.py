@@ -4,7 +4,9 @@ Writes into --out: mesh.ply (per-vertex normals from the SDF gradient), report.j
 training seconds, the model terms used, final loss, the resolved config, and with --gt: chamfer_mm, accuracy_mm,
 completeness_mm, fscore_5mm, normal_error_deg plus a trace of error against training time), preview.png,
 error_vs_time.png, fit.png (measured against rendered histograms) and, with --gt, normals.png (per-vertex normal
-error). The run stops at --steps or --budget-s, whichever comes first; with neither, the preset's default.
+error). The run stops at --steps or --budget-s, whichever comes first; with neither, the preset's default. The
+`fast` preset also stops early once its data term has stopped improving (report.json: stopped_by 'converged'); turn
+that off with --set early_stop=false.
 
 Presets: `fast` (default) is an SDF grid that reaches good meshes in minutes on a CPU; `paper` is the published
 method (an MLP SDF, 300K steps nominal: hours on a GPU).

@@ -311,6 +311,24 @@ def test_a_table_scene_empties_thin_sheets_within_a_pulse_width_of_the_table(tab
             **SMALL, "field.thin_sheet_voxels": -1}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
 
+def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_there(cylinder_capture):
+    from spadscan.worker.recon.trainer import train
+
+    scene = load_scene(cylinder_capture)
+    # A margin no window can beat: the plateau is reached one patience (30 steps) after the first window (10 steps)
+    # of the refined level, which starts after 4 steps.
+    flat = {**SMALL, "schedule.patience_steps": 30, "schedule.min_rel_improvement": 0.9}
+    coarse = make_fast_model(scene, with_overrides(preset_config("fast"), {**flat, "field.refine_after_steps": 1000}),
+                             "cpu", RunPlan(steps=60, budget_s=None, seed=0))
+    assert not any(coarse.step()["converged"] for _ in range(60))
+    config = with_overrides(preset_config("fast"), flat)
+    assert config.early_stop
+    model = make_fast_model(scene, config, "cpu", RunPlan(steps=200, budget_s=None, seed=0))
+    result = train(model, RunPlan(steps=200, budget_s=None, seed=0), progress=False, early_stop=config.early_stop)
+    assert (result.stopped_by, result.steps) == ("converged", 4 + 10 + 30)
+    assert model.summary()["converged"] is True
+
+
 @pytest.mark.slow
 def test_short_run_lowers_loss_and_chamfer(cylinder_capture):
     from spadscan.worker.metrics import mesh_metrics

@@ -155,6 +155,28 @@ def test_a_run_that_ends_on_a_skipped_checkpoint_still_evaluates_its_end():
     assert result.trace[-1].get("chamfer_mm") == 1.0, result.trace
 
 
+class ConvergesAt:
+    """A stand-in model that reports `converged` from step `at` on."""
+
+    def __init__(self, at: int):
+        self.at, self.steps = at, 0
+
+    def step(self) -> dict:
+        self.steps += 1
+        return {"loss": 1.0 / self.steps, "converged": self.steps >= self.at}
+
+
+@pytest.mark.parametrize("early_stop, steps, stopped_by", [(True, 7, "converged"), (False, 20, "steps")])
+def test_early_stop_ends_the_run_at_the_first_converged_step(early_stop, steps, stopped_by):
+    from spadscan.worker.recon.model_api import RunPlan
+    from spadscan.worker.recon.trainer import train
+
+    result = train(ConvergesAt(7), RunPlan(steps=20, budget_s=None, seed=0), checkpoints=4,
+                   evaluate=lambda: {"chamfer_mm": 1.0}, progress=False, early_stop=early_stop)
+    assert (result.steps, result.stopped_by) == (steps, stopped_by)
+    assert result.trace[-1]["step"] == steps and result.trace[-1]["chamfer_mm"] == 1.0  # the end is evaluated
+
+
 @pytest.mark.slow
 def test_a_short_budget_with_ground_truth_ends_near_its_budget(capture_and_gt, tmp_path):
     from spadscan.worker.reconstruct import reconstruct_capture

@@ -107,6 +107,9 @@ class ReconConfig:
     """Steps of a run that names neither steps nor a time budget (None: unbounded by steps)."""
     default_budget_s: float | None = None
     """Training seconds of a run that names neither steps nor a time budget (None: unbounded by time)."""
+    early_stop: bool = True
+    """End a run before its step count or budget once the model reports `converged` (the fast preset's plateau test,
+    `schedule.patience_steps`); the paper preset never reports it and runs its whole schedule."""
     albedo_init: float = 1.0
     """Initial (learned) Lambertian albedo of the object; the table has its own."""
     time_oversample: int = 4

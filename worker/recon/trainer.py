@@ -1,5 +1,5 @@
-"""The training loop shared by the presets: steps until the step count or the time budget runs out, with
-checkpoints at regular intervals of training time that record the loss and (through a callback) the error.
+"""The training loop shared by the presets: steps until the step count or the time budget runs out (or, with
+`early_stop`, until the model reports `converged`), with checkpoints at regular intervals of training time that record the loss and (through a callback) the error.
 
 The training clock counts only `model.step()`; checkpoint evaluation (mesh extraction, Chamfer) is timed apart and
 never charged to the trace, so that error-versus-time curves compare methods fairly. The time budget, though, bounds
@@ -33,9 +33,11 @@ class TrainResult:
 
 
 def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
-          evaluate: Callable[[], dict] | None = None, progress: bool = True, desc: str = "reconstruct") -> TrainResult:
+          evaluate: Callable[[], dict] | None = None, progress: bool = True, desc: str = "reconstruct",
+          early_stop: bool = False) -> TrainResult:
     """Run model.step() until plan.steps steps or plan.budget_s seconds of wall time (training and checkpoint
-    evaluation together), whichever comes first.
+    evaluation together), whichever comes first; with `early_stop`, also as soon as a step reports
+    `converged: True` (stopped_by 'converged').
 
     Checkpoints: at the start, every 1/checkpoints of the run (of the budget when there is one, else of the steps)
     and at the end; each records the step, training seconds, the mean loss since the previous checkpoint and
@@ -89,6 +91,8 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
             result.seconds += dt
             result.last = last
             result.losses.append(float(last["loss"]))
+            if early_stop and last.get("converged"):
+                result.stopped_by = "converged"
             window.append(float(last["loss"]))
             bar.update(min(spent() - bar.n, max(0.0, plan.budget_s - bar.n)) if by_time else 1)
             done = result.seconds if by_time else result.steps
@@ -99,6 +103,8 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
                 if entry.get("chamfer_mm") is not None:
                     post["chamfer"] = f"{entry['chamfer_mm']:.2f}mm"
                 bar.set_postfix(post)
+            if result.stopped_by:
+                break
         if window or not result.trace or result.trace[-1]["step"] != result.steps:
             checkpoint(final=True)
         elif evaluate is not None and "note" in result.trace[-1]:

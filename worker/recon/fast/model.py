@@ -21,6 +21,7 @@ from .empty_space import pressure_weight, pulse_width_m, push_to_empty, thin_nea
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
 from .optim import Adam
+from .plateau import Plateau
 from .problem import FastProblem, build_problem
 from .regularizers import band_nodes, grid_regularizers
 from .render import render_returns
@@ -79,8 +80,8 @@ class FastModel:
         self._order = torch.empty(0, dtype=torch.long, device=dev)
         self.steps, self.level_steps = 0, 0
         self.refined = self.fc.refine_after_steps <= 0
-        self._window: list[float] = []
-        self._best, self._since_best, self.converged = math.inf, 0, False
+        self._plateau = Plateau(self.sc.patience_steps, self.sc.min_rel_improvement)
+        self.converged = False
         self._band: torch.Tensor | None = None
         # The empty-space bias (empty_space.py) of scenes on a table, and its per-node weight (None until used).
         self.empty_space = self.table is not None and self.sc.empty_pressure > 0
@@ -262,22 +263,13 @@ class FastModel:
         self.field = self.field.upsampled(2)
         self.constraint.project(self.field)
         self.refined, self.level_steps, self._band = True, 0, None
-        self._window, self._best, self._since_best = [], math.inf, 0
+        self._plateau = Plateau(self.sc.patience_steps, self.sc.min_rel_improvement)
         self._make_optimizer()
 
     def _track(self, data: float) -> None:
-        """Windowed plateau test on the data term; counts only after the last refinement."""
-        self._window.append(data)
-        w = max(10, self.sc.patience_steps // 6)
-        if len(self._window) < w:
-            return
-        mean = float(np.mean(self._window))
-        self._window = []
-        if mean < self._best - self.sc.min_rel_improvement * abs(self._best):
-            self._best, self._since_best = mean, 0
-        else:
-            self._since_best += w
-        self.converged = self.converged or (self.refined and self._since_best >= self.sc.patience_steps)
+        """The plateau test on the data term; it counts only after the last refinement."""
+        reached = self._plateau.update(data)
+        self.converged = self.converged or (self.refined and reached)
 
     def extract_mesh(self, resolution: int | None = None):
         """The surface as a trimesh.Trimesh (world metres) with vertex normals from the grid's gradient, marching
