@@ -144,8 +144,9 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     return {"method": preset, "kind": "preset", "device": str(dev),
             "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or "cpu",
             "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": steps,
-            "train_s": train_s, "stopped_by": stopped_by, "trace": trace, "final_chamfer_mm": final, "crop_z_m": crop_z,
-            "peak_rss_mb": peak_mb, "summary": _jsonable(model.summary()), "total_s": time.perf_counter() - t0}
+            "train_s": train_s, "stopped_by": stopped_by, "trace": trace, "final_chamfer_mm": final,
+            "crop_z_m": crop_z, "peak_rss_mb": peak_mb, "summary": _jsonable(model.summary()),
+            "total_s": time.perf_counter() - t0}
 
 
 def training_trace(model, budget_s: float, every_s: float, evaluate,

@@ -1,5 +1,6 @@
 """The training loop shared by the presets: steps until the step count or the time budget runs out (or, with
-`early_stop`, until the model reports `converged`), with checkpoints at regular intervals of training time that record the loss and (through a callback) the error.
+`early_stop`, until the model reports `converged`), with checkpoints at regular intervals of training time that
+record the loss and (through a callback) the error.
 
 The training clock counts only `model.step()`; checkpoint evaluation (mesh extraction, Chamfer) is timed apart and
 never charged to the trace, so that error-versus-time curves compare methods fairly. The time budget, though, bounds

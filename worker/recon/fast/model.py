@@ -81,7 +81,6 @@ class FastModel:
         self.steps, self.level_steps = 0, 0
         self.refined = self.fc.refine_after_steps <= 0
         self._plateau = Plateau(self.sc.patience_steps, self.sc.min_rel_improvement)
-        self.converged = False
         self._band: torch.Tensor | None = None
         # The empty-space bias (empty_space.py) of scenes on a table, and its per-node weight (None until used).
         self.empty_space = self.table is not None and self.sc.empty_pressure > 0
@@ -203,7 +202,7 @@ class FastModel:
         self.constraint.project(self.field)
         self.steps += 1
         self.level_steps += 1
-        self._track(float(data.detach()))
+        self._plateau.update(float(data.detach()))
         out = {"loss": float(loss.detach()), "data": float(data.detach()), "eikonal": float(eik.detach()),
                "smooth": float(smooth.detach()), "albedo": float(torch.exp(self.log_albedo.detach())),
                "grid": max(self.field.counts), "converged": self.converged}
@@ -266,10 +265,10 @@ class FastModel:
         self._plateau = Plateau(self.sc.patience_steps, self.sc.min_rel_improvement)
         self._make_optimizer()
 
-    def _track(self, data: float) -> None:
-        """The plateau test on the data term; it counts only after the last refinement."""
-        reached = self._plateau.update(data)
-        self.converged = self.converged or (self.refined and reached)
+    @property
+    def converged(self) -> bool:
+        """The data term has plateaued (`plateau.Plateau`) on the last level: the test starts afresh at refinement."""
+        return self.refined and self._plateau.reached
 
     def extract_mesh(self, resolution: int | None = None):
         """The surface as a trimesh.Trimesh (world metres) with vertex normals from the grid's gradient, marching
