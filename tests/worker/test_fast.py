@@ -329,6 +329,15 @@ def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_
     assert model.summary()["converged"] is True
 
 
+def test_a_bad_patience_on_the_command_line_is_a_one_line_error(cylinder_capture, tmp_path, capsys):
+    from spadscan.cli import main
+
+    rc = main(["reconstruct", str(cylinder_capture), "--out", str(tmp_path / "o"), "--no-progress",
+               "--set", "schedule.patience_steps=0"])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and "schedule.patience_steps" in err and len(err.splitlines()) == 1, err
+
+
 @pytest.mark.slow
 def test_short_run_lowers_loss_and_chamfer(cylinder_capture):
     from spadscan.worker.metrics import mesh_metrics

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from spadscan.protocol.errors import ConfigError
 from spadscan.worker.recon.fast.plateau import Plateau
 
 
@@ -46,5 +47,5 @@ def test_non_finite_losses_count_as_no_improvement():
 
 @pytest.mark.parametrize("patience, rel", [(0, 1e-3), (10, -0.1), (10, math.nan)])
 def test_bad_settings_are_refused(patience, rel):
-    with pytest.raises(ValueError, match="plateau"):
+    with pytest.raises(ConfigError, match="plateau"):
         Plateau(patience=patience, min_rel_improvement=rel)

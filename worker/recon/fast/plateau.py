@@ -11,14 +11,16 @@ from __future__ import annotations
 
 import math
 
+from spadscan.protocol.errors import ConfigError
+
 
 class Plateau:
     """Feed one loss per step to `update`; it returns True from the step the loss has plateaued on."""
 
     def __init__(self, patience: int, min_rel_improvement: float, window: int | None = None):
         if patience < 1 or not math.isfinite(min_rel_improvement) or min_rel_improvement < 0:
-            raise ValueError(f"plateau test needs patience >= 1 and a finite min_rel_improvement >= 0, got "
-                             f"{patience} and {min_rel_improvement}")
+            raise ConfigError(f"plateau test needs schedule.patience_steps >= 1 and a finite "
+                              f"schedule.min_rel_improvement >= 0, got {patience} and {min_rel_improvement}")
         self.patience, self.min_rel = int(patience), float(min_rel_improvement)
         self.window = int(window) if window else max(10, self.patience // 6)
         self.best = math.inf
