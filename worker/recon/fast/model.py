@@ -17,6 +17,7 @@ import torch
 
 from ..forward import TransientForward, choose_terms
 from ..numerics import flush_denormals
+from .blur import blur3
 from .empty_space import pressure_weight, pulse_width_m, push_to_empty, thin_near_table, view_coverage
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
@@ -27,19 +28,6 @@ from .regularizers import band_nodes, grid_regularizers
 from .render import render_returns
 from .sampler import HullRays, around_crossing, hull_rays, pick_rays, stratified
 from .table import TableModel
-
-
-def blur3(x: torch.Tensor, passes: int) -> torch.Tensor:
-    """`passes` rounds of a [1, 2, 1] / 4 filter along each axis of a grid (1, 1, nz, ny, nx), edges replicated."""
-    k = torch.tensor([0.25, 0.5, 0.25], dtype=x.dtype, device=x.device)
-    for _ in range(passes):
-        for dim in (2, 3, 4):
-            shape = [1, 1, 1, 1, 1]
-            shape[dim] = 3
-            pad = [0, 0, 0, 0, 0, 0]
-            pad[2 * (4 - dim)], pad[2 * (4 - dim) + 1] = 1, 1
-            x = torch.nn.functional.conv3d(torch.nn.functional.pad(x, pad, mode="replicate"), k.reshape(shape))
-    return x
 
 
 def make_fast_model(scene, config, device, plan) -> "FastModel":
