@@ -188,6 +188,25 @@ def test_adam_follows_the_textbook_update():
     np.testing.assert_allclose(x.detach().numpy(), ref.detach().numpy(), rtol=1e-5)
 
 
+def test_adam_leaves_untouched_elements_where_they_are():
+    """A grid whose gradient is zero almost everywhere (the usual case): only the touched nodes move, by about the
+    learning rate, and nothing turns non-finite (the second moment of untouched nodes stays exactly zero)."""
+    x = torch.zeros(1, 1, 4, 5, 6, requires_grad=True)
+    opt = Adam([([x], 0.01)])
+    for _ in range(3):
+        opt.zero_grad()
+        x.grad = torch.zeros_like(x)
+        x.grad[0, 0, 1, 2, 3] = 1e-9  # a tiny gradient still takes a full Adam step
+        x.grad[0, 0, 2, 2, 2] = -5.0
+        opt.step()
+    moved = x.detach()[0, 0]
+    assert torch.isfinite(moved).all()
+    assert float(moved[1, 2, 3]) == pytest.approx(-0.03, rel=1e-3)
+    assert float(moved[2, 2, 2]) == pytest.approx(0.03, rel=1e-3)
+    moved[1, 2, 3] = moved[2, 2, 2] = 0.0
+    assert float(moved.abs().max()) == 0.0
+
+
 # ---- runs on simulated captures -----------------------------------------------------------------------------------
 def cylinder_mesh():
     import trimesh
