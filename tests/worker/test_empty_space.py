@@ -121,6 +121,20 @@ def test_pockets_closed_by_the_floor_are_cavities_only_when_the_floor_is_given()
     assert np.all(clean_solid(values)[2:5, 4:6, 4:6] > 0)
 
 
+def test_pieces_much_smaller_than_the_object_are_removed_and_comparable_ones_kept():
+    from spadscan.worker.recon.fast.mesh import FLOATER_FRACTION
+
+    solid = np.zeros((30, 30, 30), bool)
+    solid[2:22, 2:22, 2:22] = True  # the object: 8,000 nodes
+    solid[2:4, 25:27, 25:27] = True  # 8 nodes: a floater (0.1%)
+    solid[2:12, 25:29, 2:12] = True  # 400 nodes (5%): a second object
+    assert 8 < FLOATER_FRACTION * 8000 < 400
+    out = clean_solid(np.where(solid, -1.0, 1.0).astype(np.float32))
+    assert np.all(out[2:4, 25:27, 25:27] > 0)
+    assert np.all(out[2:22, 2:22, 2:22] < 0) and np.all(out[2:12, 25:29, 2:12] < 0)
+    assert np.all((out < 0) == (solid & ~np.pad(np.ones((2, 2, 2), bool), ((2, 26), (25, 3), (25, 3)))))
+
+
 # ---- thin sheets just above the table -------------------------------------------------------------------------------
 def test_pulse_width_is_the_full_width_at_half_maximum_in_metres():
     x = np.arange(-40, 41) / 4.0  # 4 samples per bin, in bins

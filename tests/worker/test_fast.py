@@ -249,6 +249,35 @@ def test_two_step_smoke_run_follows_the_model_protocol(cylinder_capture):
     assert model.terms.pileup and not model.terms.table
 
 
+def test_meshes_come_from_the_moving_average_of_the_grid_restarted_at_refinement(cylinder_capture):
+    scene = load_scene(cylinder_capture)
+    decay = 0.8
+    model = make_fast_model(scene, with_overrides(preset_config("fast"), {**SMALL, "schedule.average_decay": decay}),
+                            "cpu", RunPlan(steps=8, budget_s=None, seed=0))
+    assert model.mesh_field() is model.field  # nothing to average before the first step
+    average = None
+    for _ in range(8):  # refinement after 4 steps doubles the grid
+        model.step()
+        grid = model.field.sdf.detach().clone()
+        average = grid if average is None or average.shape != grid.shape else decay * average + (1 - decay) * grid
+    averaged = model.mesh_field()
+    assert averaged is not model.field and averaged.sdf.shape == model.field.sdf.shape
+    torch.testing.assert_close(averaged.sdf.detach(), average, rtol=0, atol=1e-6)
+    assert float((averaged.sdf.detach() - model.field.sdf.detach()).abs().max()) > 1e-5  # not the current grid
+    torch.testing.assert_close(averaged.origin, model.field.origin)
+    assert averaged.voxel == model.field.voxel
+    assert len(model.extract_mesh(32).faces) > 0
+
+    plain = make_fast_model(scene, with_overrides(preset_config("fast"), {**SMALL, "schedule.average_decay": 0.0}),
+                            "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    plain.step()
+    assert plain.mesh_field() is plain.field
+    for bad in (1.0, -0.1):
+        with pytest.raises(ConfigError, match="schedule.average_decay"):
+            make_fast_model(scene, with_overrides(preset_config("fast"), {**SMALL, "schedule.average_decay": bad}),
+                            "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+
+
 def test_a_grid_with_no_surface_is_a_one_line_error(cylinder_capture):
     model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), SMALL), "cpu",
                             RunPlan(steps=1, budget_s=None, seed=0))

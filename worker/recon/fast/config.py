@@ -79,6 +79,10 @@ class FastScheduleConfig:
     """The grid's learning rate decays (cosine, over the fine level's expected steps) to this fraction."""
     fine_steps: int = 1200
     """Steps the fine level's learning-rate decay is laid out over."""
+    average_decay: float = 0.99
+    """The mesh is extracted from an exponential moving average of the grid, updated after every step with this
+    decay (0: the current grid). Averaging over the last ~1 / (1 - decay) steps removes the jitter that the sparse,
+    noisy ray gradients leave on the surface at a learning rate still high enough to move it far."""
     grad_blur_passes: int = 1
     """Passes of a [1, 2, 1] / 4 filter along each axis over the grid's gradient before the Adam step (a Sobolev-
     type preconditioner: neighbouring nodes move together, so the sparse, noisy ray gradients do not roughen the

@@ -5,7 +5,7 @@ returns, applies the shared sensor model (pulse, gains, crosstalk, background, p
 the photon likelihood, plus finite-difference Eikonal and smoothness terms on the grid (and, on a table, the
 empty-space push of empty_space.py); Adam steps the grid and the albedos, and the grid is projected back inside the
 hull. The grid is refined 2x once; after that the learning rate decays and the run reports `converged` when the
-windowed data term stops improving.
+windowed data term stops improving. Meshes come from a moving average of the grid over the last steps.
 """
 
 from __future__ import annotations
@@ -73,10 +73,15 @@ class FastModel:
         # The empty-space bias (empty_space.py) of scenes on a table, and its per-node weight (None until used).
         self.empty_space = self.table is not None and self.sc.empty_pressure > 0
         self._push_weight: torch.Tensor | None = None
-        if self.fc.thin_sheet_voxels < 0:
-            from spadscan.protocol.errors import ConfigError
+        from spadscan.protocol.errors import ConfigError
 
+        if self.fc.thin_sheet_voxels < 0:
             raise ConfigError(f"field.thin_sheet_voxels {self.fc.thin_sheet_voxels} must be >= 0 (0: off)")
+        if not 0.0 <= self.sc.average_decay < 1.0:
+            raise ConfigError(f"schedule.average_decay {self.sc.average_decay} must be in [0, 1) (0: off)")
+        # The moving average of the grid that meshes are extracted from (schedule.average_decay); restarted at
+        # refinement, where the grid changes shape.
+        self._average: torch.Tensor | None = None
         fwd = problem.forward
         self._sheet_band_m = pulse_width_m(fwd.kernel.cpu().numpy(), fwd.oversample, fwd.sensor.bin_width_m)
         self._make_optimizer()
@@ -188,6 +193,7 @@ class FastModel:
         self.opt.set_lr(0, self._grid_lr())
         self.opt.step()
         self.constraint.project(self.field)
+        self._update_average()
         self.steps += 1
         self.level_steps += 1
         self._plateau.update(float(data.detach()))
@@ -201,6 +207,23 @@ class FastModel:
 
             raise ReconstructionError(f"the loss became {out['loss']} at step {self.steps} (diverged)")
         return out
+
+    def _update_average(self) -> None:
+        decay = self.sc.average_decay
+        if decay <= 0:
+            return
+        sdf = self.field.sdf.detach()
+        if self._average is None or self._average.shape != sdf.shape:
+            self._average = sdf.clone()
+        else:
+            self._average.lerp_(sdf, 1.0 - decay)
+
+    def mesh_field(self) -> GridField:
+        """The field meshes are extracted from: the grid's moving average (`schedule.average_decay`) once a step has
+        been taken, else the grid itself."""
+        if self._average is None or self._average.shape != self.field.sdf.shape:
+            return self.field
+        return GridField(self.field.origin.cpu().numpy(), self.field.voxel, self._average[0, 0])
 
     def _pressure_weight(self) -> torch.Tensor:
         """The empty-space push's weight on the current grid's nodes: from the views' coverage, computed once on the
@@ -263,9 +286,10 @@ class FastModel:
         cubes on the grid resampled to `resolution` cells along its longest side (None: the grid's own)."""
         from .mesh import mesh_from_field
 
+        field = self.mesh_field()
         if self.table is None:  # the hidden-space fills are the table's (empty_space.py)
-            return mesh_from_field(self.field, resolution)
-        return mesh_from_field(self.field, resolution, self.p.floor_z, fill_under=self.fc.fill_under_overhangs)
+            return mesh_from_field(field, resolution)
+        return mesh_from_field(field, resolution, self.p.floor_z, fill_under=self.fc.fill_under_overhangs)
 
     def render_histograms(self, view_ids) -> np.ndarray:
         """Expected counts (n, Z, B) of the given views under the current fit (float64, no gradient)."""
