@@ -81,7 +81,8 @@ class FastScheduleConfig:
     """Steps the fine level's learning-rate decay is laid out over."""
     average_decay: float = 0.99
     """The mesh is extracted from an exponential moving average of the grid, updated after every step with this
-    decay (0: the current grid). Averaging over the last ~1 / (1 - decay) steps removes the jitter that the sparse,
+    decay (0: the current grid; a level's first steps use a shorter memory, min(decay, (1 + n) / (10 + n)) at its
+    n-th update). Averaging over the last ~1 / (1 - decay) steps removes the jitter that the sparse,
     noisy ray gradients leave on the surface at a learning rate still high enough to move it far. Measured on the
     same fits (step-based, one thread), current grid -> average: sphere 1.63 -> 1.56 mm (3,000 steps), cup 3.43 ->
     3.36 (2,400), real pyramid 5.22 -> 5.16 (2,250); the average lags a fast-moving fit (demo goblet 3.07 -> 3.48 at
