@@ -271,6 +271,7 @@ def test_meshes_come_from_the_moving_average_of_the_grid_restarted_at_refinement
     torch.testing.assert_close(averaged.origin, model.field.origin)
     assert averaged.voxel == model.field.voxel
     assert len(model.extract_mesh(32).faces) > 0
+    assert model.summary()["mesh_average_decay"] == decay  # the report says what the mesh was taken from
 
     plain = make_fast_model(scene, with_overrides(preset_config("fast"), {**SMALL, "schedule.average_decay": 0.0}),
                             "cpu", RunPlan(steps=1, budget_s=None, seed=0))

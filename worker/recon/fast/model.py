@@ -312,7 +312,8 @@ class FastModel:
                "sharpness_per_m": self.fc.sharpness_voxels / self.field.voxel, "refined": self.refined,
                "converged": self.converged, "albedo": float(torch.exp(self.log_albedo.detach())),
                "hull_rays": int(self.rays.count.sum()), "rays_per_histogram": self.per_hist,
-               "floor_z_m": self.p.floor_z, "empty_space_push": self.empty_space, **self.p.notes}
+               "floor_z_m": self.p.floor_z, "empty_space_push": self.empty_space,
+               "mesh_average_decay": self.sc.average_decay, **self.p.notes}
         if self.table is not None:
             out.update(self.table.summary())
         return out
