@@ -85,7 +85,7 @@ class FastScheduleConfig:
     n-th update). Averaging over the last ~1 / (1 - decay) steps removes the jitter that the sparse,
     noisy ray gradients leave on the surface at a learning rate still high enough to move it far. Measured on the
     same fits (step-based, one thread), current grid -> average: sphere 1.63 -> 1.56 mm (3,000 steps), cup 3.43 ->
-    3.36 (2,400), real pyramid 5.22 -> 5.16 (2,250); the average lags a fast-moving fit (demo goblet 3.07 -> 3.48 at
+    3.36 (2,400), real pyramid 5.22 -> 5.16 (2,250, floor 0.1); the average lags a fast-moving fit (demo goblet 3.07 -> 3.48 at
     1,200 steps) and catches up once it settles (1.53 -> 1.53 at 2,400)."""
     grad_blur_passes: int = 1
     """Passes of a [1, 2, 1] / 4 filter along each axis over the grid's gradient before the Adam step (a Sobolev-
