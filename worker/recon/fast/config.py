@@ -82,11 +82,11 @@ class FastScheduleConfig:
     average_decay: float = 0.99
     """The mesh is extracted from an exponential moving average of the grid, updated after every step with this
     decay (0: the current grid; a level's first steps use a shorter memory, min(decay, (1 + n) / (10 + n)) at its
-    n-th update). Averaging over the last ~1 / (1 - decay) steps removes the jitter that the sparse,
-    noisy ray gradients leave on the surface at a learning rate still high enough to move it far. Measured on the
-    same fits (step-based, one thread), current grid -> average: sphere 1.63 -> 1.56 mm (3,000 steps), cup 3.43 ->
-    3.36 (2,400), real pyramid 5.22 -> 5.16 (2,250, floor 0.1); the average lags a fast-moving fit (demo goblet 3.07 -> 3.48 at
-    1,200 steps) and catches up once it settles (1.53 -> 1.53 at 2,400)."""
+    n-th update). Averaging over the last ~1 / (1 - decay) steps removes the jitter that the sparse, noisy ray
+    gradients leave on the surface at a learning rate still high enough to move it far. Measured on the same fits
+    (step-based, one thread), current grid -> average: sphere 1.63 -> 1.56 mm (3,000 steps), cup 3.43 -> 3.36
+    (2,400), real pyramid 5.22 -> 5.16 (2,250, learning-rate floor 0.1); the average lags a fast-moving fit (demo
+    goblet 3.07 -> 3.48 at 1,200 steps) and catches up once it settles (1.53 -> 1.53 at 2,400)."""
     grad_blur_passes: int = 1
     """Passes of a [1, 2, 1] / 4 filter along each axis over the grid's gradient before the Adam step (a Sobolev-
     type preconditioner: neighbouring nodes move together, so the sparse, noisy ray gradients do not roughen the
