@@ -132,5 +132,5 @@ def vertex_normals(field, points: np.ndarray, chunk: int = 1 << 16) -> np.ndarra
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
-__all__ = ["FLOATER_FRACTION", "node_heights", "below_floor", "cavities", "clean_solid", "mesh_from_values", "mesh_from_field",
-           "vertex_normals"]
+__all__ = ["FLOATER_FRACTION", "node_heights", "below_floor", "cavities", "clean_solid", "mesh_from_values",
+           "mesh_from_field", "vertex_normals"]
