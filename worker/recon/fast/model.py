@@ -82,7 +82,6 @@ class FastModel:
         # The moving average of the grid that meshes are extracted from (schedule.average_decay); restarted at
         # refinement, where the grid changes shape.
         self._average: torch.Tensor | None = None
-        self._averaged = 0
         fwd = problem.forward
         self._sheet_band_m = pulse_width_m(fwd.kernel.cpu().numpy(), fwd.oversample, fwd.sensor.bin_width_m)
         self._make_optimizer()
@@ -213,15 +212,15 @@ class FastModel:
         if self.sc.average_decay <= 0:
             return
         sdf = self.field.sdf.detach()
-        if self._average is None or self._average.shape != sdf.shape:
-            self._average, self._averaged = sdf.clone(), 1
+        n = self.level_steps  # this level's earlier updates (the step is counted after this)
+        if n == 0:  # a new level (or the first step): the grid has a new shape
+            self._average = sdf.clone()
             return
         # A short memory while the level is young and the grid still moves fast, growing to the configured one
         # (the num_updates warm-up of TensorFlow's ExponentialMovingAverage): a 100-step average lagged a fresh
         # level by up to 0.9 mm (the bunny at 30 s).
-        decay = min(self.sc.average_decay, (1.0 + self._averaged) / (10.0 + self._averaged))
+        decay = min(self.sc.average_decay, (1.0 + n) / (10.0 + n))
         self._average.lerp_(sdf, 1.0 - decay)
-        self._averaged += 1
 
     def mesh_field(self) -> GridField:
         """The field meshes are extracted from: the grid's moving average (`schedule.average_decay`) once a step has
