@@ -305,6 +305,46 @@ def test_a_bubble_inside_the_solid_is_filled_and_only_a_table_scene_gets_the_emp
     assert float(model.field.sdf.detach()[0, 0][deepest]) < 0
 
 
+def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cylinder_capture):
+    import dataclasses
+
+    from spadscan.worker.recon.fast.model import FastModel
+
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), {**SMALL, "field.resolution": 40, "schedule.phantom_every_steps": 3,
+                                                    "schedule.phantom_min_hits": 1})
+
+    def run(blank: bool, ratio: float):
+        cfg = with_overrides(config, {"schedule.phantom_ratio": ratio})
+        model = make_fast_model(scene, cfg, "cpu", RunPlan(steps=3, budget_s=None, seed=0))
+        if blank:  # the histograms hold only the background: every rendered return is one they do not show
+            bg = model.p.background[..., None] * model.p.cycles[:, None, None]
+            model.p.counts = torch.poisson(bg.expand_as(model.p.counts), generator=torch.Generator().manual_seed(0))
+        start = model.field.sdf.detach().clone()
+        for _ in range(3):
+            assert math.isfinite(model.step()["loss"])
+        return model, int((start < 0).sum() - (model.field.sdf.detach() < 0).sum())
+
+    blank, blank_lost = run(True, 0.6)
+    assert blank.phantoms and blank.summary()["phantom_erosion"] is True
+    assert blank.eroded_nodes > 0 and blank.summary()["eroded_nodes"] == blank.eroded_nodes
+    _, kept_lost = run(True, 0.0)  # the same fit without the erosion
+    assert blank_lost > kept_lost + blank.eroded_nodes // 2
+    true, _ = run(False, 0.6)  # the carved hull around the cylinder is eroded, never the cylinder itself
+    pts = true.field.node_points()
+    r = torch.sqrt((pts[..., 0] - 0.005) ** 2 + (pts[..., 1] + 0.004) ** 2)
+    depth = torch.minimum(0.04 - r, torch.minimum(pts[..., 2], 0.08 - pts[..., 2]))  # inside the cylinder, metres
+    core = depth > 1.5 * true.field.voxel
+    assert int(core.sum()) > 20 and bool((true.field.sdf.detach()[0, 0][core] < 0).all())
+
+    measured = FastModel(dataclasses.replace(blank.p, measured=True), config, seed=0, terms=blank.terms)
+    assert not measured.phantoms and measured.summary()["phantom_erosion"] is False
+    for key, bad in (("schedule.phantom_ratio", 1.0), ("schedule.phantom_ratio", -0.1),
+                     ("schedule.phantom_every_steps", 0), ("schedule.phantom_window_bins", -1)):
+        with pytest.raises(ConfigError, match=key.split(".")[1]):
+            make_fast_model(scene, with_overrides(config, {key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+
+
 @pytest.fixture(scope="module")
 def table_capture(tmp_path_factory):
     """12 simulated views of a cylinder standing on a wide slab whose top is the table (z = 0)."""

@@ -113,6 +113,17 @@ class FastScheduleConfig:
     node in its field of view. (On LCSPCData's real pyramid the surface 1 cm or more off the object after a fit
     lay where a median 31% of the views look; the object's own faces, where a median 59% do: the data holds those
     against the push.)"""
+    phantom_ratio: float = 0.6
+    """Simulated captures (see phantoms.py): surface nodes where the measured photons around the rays' returns are
+    below this fraction of the model's, on average over at least `phantom_min_hits` returns, are eroded by one voxel
+    every `phantom_every_steps` steps (0: off). On the built-in cup (step-based, one thread) 3.05 mm at 1,200 steps
+    against 3.70 mm without it; on the built-in goblet 1.47 mm against 3.48 mm."""
+    phantom_every_steps: int = 30
+    """Steps over which returns are gathered before each erosion."""
+    phantom_min_hits: int = 3
+    """Returns a node needs in that time before it can be eroded."""
+    phantom_window_bins: int = 3
+    """Photons are compared within this many bins either side of a return's bin."""
     patience_steps: int = 600
     """After the last refinement, the run reports `converged` (and, with `early_stop`, ends) once the data term,
     averaged over windows of patience/6 steps, has not beaten its best window by `min_rel_improvement` for this

@@ -22,6 +22,7 @@ from .empty_space import pressure_weight, pulse_width_m, push_to_empty, thin_nea
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
 from .optim import Adam
+from .phantoms import ReturnEvidence, erode_at, return_ratios
 from .plateau import Plateau
 from .problem import FastProblem, build_problem
 from .regularizers import band_nodes, grid_regularizers
@@ -79,6 +80,17 @@ class FastModel:
             raise ConfigError(f"field.thin_sheet_voxels {self.fc.thin_sheet_voxels} must be >= 0 (0: off)")
         if not 0.0 <= self.sc.average_decay < 1.0:
             raise ConfigError(f"schedule.average_decay {self.sc.average_decay} must be in [0, 1) (0: off)")
+        if not 0.0 <= self.sc.phantom_ratio < 1.0:
+            raise ConfigError(f"schedule.phantom_ratio {self.sc.phantom_ratio} must be in [0, 1) (0: off)")
+        if self.sc.phantom_every_steps < 1 or self.sc.phantom_min_hits < 1 or self.sc.phantom_window_bins < 0:
+            raise ConfigError("schedule.phantom_every_steps and phantom_min_hits must be >= 1 and "
+                              "phantom_window_bins >= 0")
+        # Erosion of surface the histograms do not show (phantoms.py): simulated captures only, where the sensor
+        # model predicts a surface's photons well enough for the test.
+        self.phantoms = self.sc.phantom_ratio > 0 and not problem.measured
+        self._evidence: ReturnEvidence | None = None
+        self._hits = None
+        self.eroded_nodes = 0
         # The moving average of the grid that meshes are extracted from (schedule.average_decay); restarted at
         # refinement, where the grid changes shape.
         self._average: torch.Tensor | None = None
@@ -135,6 +147,8 @@ class FastModel:
             t = around_crossing(tc, fc, t_in, t_out, self.sc.fine_samples, self.sc.window_voxels * vox, self.gen)
             r, radiance, opacity = render_returns(self.field.sample, o, d, t, w, self.fc.sharpness_voxels / vox,
                                                   0.5 * vox)
+            if self.phantoms:
+                self._hits = _opaque_returns(o, d, r, radiance, opacity, local[batch])
             # The forward model's transient carries albedo / pi (see forward.py); render_returns gives cos/r^2 x sr.
             radiance = radiance * (torch.exp(self.log_albedo) / math.pi)
             hist_id = local[batch][:, None].expand_as(r)
@@ -166,6 +180,8 @@ class FastModel:
         views = self._next_views()
         lam = self._rates(views)
         nll = self.p.forward.nll(lam, self.p.counts[views], self.p.cycles[views], self.p.valid[views])
+        if self.phantoms:
+            self._gather_evidence(views, lam.detach())
         data = nll / self.n_bins  # deviance per bin: ~0.5 when the fit reaches the photon noise
         if self._band is None or self.level_steps % sc.band_refresh_steps == 0:
             self._band = band_nodes(self.field.sdf, sc.band_voxels * self.field.voxel,
@@ -193,6 +209,8 @@ class FastModel:
         self.opt.set_lr(0, self._grid_lr())
         self.opt.step()
         self.constraint.project(self.field)
+        if self.phantoms and (self.level_steps + 1) % sc.phantom_every_steps == 0:
+            self._erode_phantoms()
         self._update_average()
         self.steps += 1
         self.level_steps += 1
@@ -207,6 +225,33 @@ class FastModel:
 
             raise ReconstructionError(f"the loss became {out['loss']} at step {self.steps} (diverged)")
         return out
+
+    def _gather_evidence(self, views: torch.Tensor, lam: torch.Tensor) -> None:
+        """Add this step's opaque returns to the per-node evidence (phantoms.py): the log of measured over expected
+        signal photons around each return's bin, where the expected signal is well above the noise."""
+        hits, self._hits = self._hits, None
+        shape = tuple(self.field.sdf.shape[2:])
+        if self._evidence is None or self._evidence.shape != shape:
+            self._evidence = ReturnEvidence(shape, self.device)
+        if hits is None or hits[0].numel() == 0:
+            return
+        p, fwd = self.p, self.p.forward
+        cycles = p.cycles[views]
+        expected = fwd.expected_counts(lam, cycles).reshape(-1, self.n_bins)
+        bg = (p.background[views] * cycles[:, None]).reshape(-1)
+        ratio, significant = return_ratios(expected, p.counts[views].reshape(-1, self.n_bins), bg,
+                                           p.valid[views].reshape(-1, self.n_bins), self.sc.phantom_window_bins)
+        hist, points, ranges = hits
+        s = fwd.sensor
+        b = torch.floor(s.zero_bin + ranges / s.bin_width_m).long().clamp(0, self.n_bins - 1)
+        keep = significant[hist, b]
+        self._evidence.add(points[keep], torch.log(ratio[hist, b][keep]), self.field.origin, self.field.voxel)
+
+    def _erode_phantoms(self) -> None:
+        if self._evidence is None or self._evidence.shape != tuple(self.field.sdf.shape[2:]):
+            return
+        nodes = self._evidence.take(self.sc.phantom_min_hits, self.sc.phantom_ratio)
+        self.eroded_nodes += erode_at(self.field.sdf.detach()[0, 0], nodes, self.field.voxel)
 
     def _update_average(self) -> None:
         if self.sc.average_decay <= 0:
@@ -312,10 +357,21 @@ class FastModel:
                "converged": self.converged, "albedo": float(torch.exp(self.log_albedo.detach())),
                "hull_rays": int(self.rays.count.sum()), "rays_per_histogram": self.per_hist,
                "floor_z_m": self.p.floor_z, "empty_space_push": self.empty_space,
-               "mesh_average_decay": self.sc.average_decay, **self.p.notes}
+               "mesh_average_decay": self.sc.average_decay, "phantom_erosion": self.phantoms,
+               "eroded_nodes": self.eroded_nodes, **self.p.notes}
         if self.table is not None:
             out.update(self.table.summary())
         return out
+
+
+def _opaque_returns(o, d, r, radiance, opacity, hist):
+    """(histogram (n,), point (n, 3), range (n,)) of the rays whose return is opaque (opacity > 0.5): the point at
+    the radiance-weighted mean range along each ray. No gradient."""
+    with torch.no_grad():
+        rad = radiance.detach()
+        t = (rad * r.detach()).sum(dim=1) / rad.sum(dim=1).clamp(min=1e-30)
+        keep = (opacity.detach() > 0.5) & (rad.sum(dim=1) > 0)
+        return hist[keep], o[keep] + t[keep, None] * d[keep], t[keep]
 
 
 __all__ = ["FastModel", "make_fast_model", "FastProblem", "TransientForward"]

@@ -33,7 +33,8 @@ class FastProblem:
     zone_dirs (Z, D, 3) and zone_weights (Z, D): candidate directions (sensor frame) and steradians;
     forward: the shared TransientForward; hull: the carved hull's SDF (GridField, negative inside);
     floor_z: nothing solid below this height (metres) or None; box: (min (3,), max (3,)) of the SDF grid;
-    table: a TableModel or None (built by the model, which owns the rays); notes: what was decided, for the report.
+    table: a TableModel or None (built by the model, which owns the rays); notes: what was decided, for the report;
+    measured: real sensor data, not simulated.
     """
 
     counts: torch.Tensor
@@ -51,6 +52,8 @@ class FastProblem:
     """(normal (3,), offset, fitted) of the table, or None."""
     table: object = None
     notes: dict = field(default_factory=dict)
+    measured: bool = False
+    """The histograms come from a real sensor (the capture's `real` flag), not from a simulator."""
 
 
 def candidate_rays(sensor, per_sr: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -127,7 +130,8 @@ def build_problem(scene, config, device, terms) -> FastProblem:
         background=scene.background.to(**f32), poses=scene.poses.to(**f32),
         zone_dirs=torch.as_tensor(dirs, **f32), zone_weights=torch.as_tensor(weights, **f32), forward=forward,
         hull=hull, floor_z=floor_z, box=(lo, hi),
-        table_plane=None if table is None else (table[0], table[1], table[2]), notes=notes)
+        table_plane=None if table is None else (table[0], table[1], table[2]), notes=notes,
+        measured=bool(scene.real))
 
 
 def _carve(scene, fc, floor_z):

@@ -1,0 +1,78 @@
+"""Erosion of surface the histograms do not show (worker/recon/fast/phantoms.py): the photon ratio test, the per-node
+evidence, and the erosion itself."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from spadscan.worker.recon.fast.phantoms import ReturnEvidence, erode_at, return_ratios
+
+
+def peak(n_bins: int, at: int, photons: float) -> torch.Tensor:
+    h = torch.zeros(n_bins, dtype=torch.float64)
+    h[at - 1: at + 2] = torch.tensor([0.25, 0.5, 0.25], dtype=torch.float64) * photons
+    return h
+
+
+def test_a_predicted_return_with_no_measured_photons_reads_a_small_significant_ratio():
+    bg = torch.tensor([2.0, 2.0, 100.0, 2.0], dtype=torch.float64)
+    expected = bg[:, None] + torch.stack([peak(40, 20, 500.0), peak(40, 20, 500.0), peak(40, 20, 3.0),
+                                          peak(40, 20, 500.0)])
+    counts = expected.clone()
+    counts[0] = bg[0]  # nothing came back where the model puts 500 photons
+    valid = torch.ones_like(counts, dtype=torch.bool)
+    valid[3, 18:23] = False  # what a bin does not record cannot confirm a return
+    ratio, significant = return_ratios(expected, counts, bg, valid, window=2)
+    assert float(ratio[0, 20]) < 0.01 and bool(significant[0, 20])
+    assert float(ratio[1, 20]) == pytest.approx(1.0) and bool(significant[1, 20])
+    assert not bool(significant[2, 20])  # 3 photons over a background of 100 per bin: noise could hide them
+    assert float(ratio[3, 20]) < 0.01
+    # Away from any return there is no signal either way: ratio 1, and nothing to test.
+    assert float(ratio[1, 5]) == pytest.approx(1.0) and not bool(significant[1, 5])
+    assert torch.isfinite(ratio).all()
+
+
+def test_ratios_stay_finite_with_zero_photons_and_huge_counts():
+    expected = torch.tensor([[0.0] * 8, [1e9] * 8], dtype=torch.float64)
+    counts = torch.tensor([[0.0] * 8, [16777215.0] * 8], dtype=torch.float64)
+    ratio, _ = return_ratios(expected, counts, torch.zeros(2, dtype=torch.float64),
+                             torch.ones(2, 8, dtype=torch.bool), window=0)
+    assert torch.isfinite(ratio).all() and float(ratio[0].min()) == 1.0
+    with pytest.raises(ValueError, match="window"):
+        return_ratios(expected, counts, torch.zeros(2), torch.ones(2, 8, dtype=torch.bool), window=-1)
+
+
+def test_evidence_flags_nodes_with_enough_low_ratio_returns_and_then_starts_afresh():
+    ev = ReturnEvidence((4, 5, 6), "cpu")
+    origin, voxel = torch.tensor([0.0, 0.0, 0.0]), 0.01
+    node = lambda x, y, z: torch.tensor([[x * voxel + 0.001, y * voxel - 0.002, z * voxel]])  # noqa: E731
+    for _ in range(3):
+        ev.add(node(1, 2, 3), torch.tensor([math.log(0.2)]), origin, voxel)  # three returns, all 0.2
+    ev.add(node(4, 1, 0), torch.tensor([math.log(0.2)]), origin, voxel)  # one return only
+    for r in (0.2, 1.5, 1.5):  # mean log ratio above log 0.6
+        ev.add(node(2, 2, 2), torch.tensor([math.log(r)]), origin, voxel)
+    ev.add(torch.tensor([[1.0, 1.0, 1.0], [-0.5, 0.0, 0.0]]), torch.tensor([-9.0, -9.0]), origin, voxel)  # off grid
+    flagged = ev.take(min_hits=3, max_ratio=0.6)
+    assert flagged.shape == (4, 5, 6)
+    assert [tuple(i) for i in torch.nonzero(flagged).tolist()] == [(3, 2, 1)]  # (z, y, x)
+    assert not ev.take(min_hits=1, max_ratio=0.6).any()  # taken: the next window starts empty
+
+
+def test_erosion_moves_the_surface_one_voxel_inward_near_the_flagged_nodes_only():
+    voxel = 0.01
+    z = torch.arange(10, dtype=torch.float64)[:, None, None] * voxel
+    sdf = (z - 0.055).expand(10, 8, 8).clone()  # solid below z = 5.5 voxels
+    nodes = torch.zeros(10, 8, 8, dtype=torch.bool)
+    nodes[5, 4, 4] = True
+    before = sdf.clone()
+    assert erode_at(sdf, nodes, voxel) == 1
+    changed = (sdf - before).abs() > 0
+    assert int(changed.sum()) == 27  # the node and its 26 neighbours
+    assert torch.allclose((sdf - before)[changed], torch.tensor(voxel, dtype=torch.float64))
+    # The surface there now lies one voxel lower, half-way between nodes 4 and 5 (it was between 5 and 6).
+    assert float(sdf[4, 4, 4]) == pytest.approx(-0.5 * voxel) and float(sdf[5, 4, 4]) == pytest.approx(0.5 * voxel)
+    assert float(sdf[5, 4, 6]) == pytest.approx(-0.5 * voxel)  # two nodes away: where it was
+    assert erode_at(sdf, torch.zeros_like(nodes), voxel) == 0
