@@ -17,7 +17,7 @@ cup, the lid's nodes read a median ratio of 0.57 and the walls' 0.94 (the bottom
 The test trusts the sensor model to predict a surface's photons within tens of percent. On measured data it does not:
 on LCSPCData's real pyramid the measured counts are 0.44x the model's three bins before a peak and 1.19x at it, and
 the erosion made the fit worse (5.71 mm against 5.14 mm at 1,500 steps). So the model enables it for simulated
-captures only (`phantom_erosion_applies`).
+captures only (`FastProblem.measured` false).
 """
 
 from __future__ import annotations
@@ -33,15 +33,15 @@ def return_ratios(expected: torch.Tensor, counts: torch.Tensor, background: torc
     """Measured over expected signal photons around each bin, and where that ratio means something.
 
     expected, counts (H, B) photons (the model's expected counts and the measured ones); background (H,) photons per
-    bin; valid (H, B) bool. Both signals are the counts less the background (negatives clipped), summed over bins
-    b - window .. b + window. Returns (ratio (H, B) = (measured + 1) / (expected + 1), significant (H, B): the
-    expected signal stands `min_sigma` Poisson sigmas of the window's background above zero, so that a ratio below
-    one is not noise).
+    bin; valid (H, B) bool. Both signals are the counts less the background (negatives clipped), summed over the
+    valid bins among b - window .. b + window (a bin the sensor does not record can neither confirm nor deny).
+    Returns (ratio (H, B) = (measured + 1) / (expected + 1), significant (H, B): the expected signal stands
+    `min_sigma` Poisson sigmas of the window's background above zero, so that a ratio below one is not noise).
     """
     if window < 0:
         raise ValueError(f"window {window} must be >= 0 bins")
     bg = background[:, None]
-    model = (expected - bg).clamp(min=0.0)
+    model = (expected - bg).clamp(min=0.0) * valid
     meas = ((counts.to(expected.dtype) - bg) * valid).clamp(min=0.0)
     kernel = torch.ones(1, 1, 2 * window + 1, dtype=expected.dtype, device=expected.device)
     m = F.conv1d(model[:, None], kernel, padding=window)[:, 0]
