@@ -337,6 +337,10 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
     core = depth > 1.5 * true.field.voxel
     assert int(core.sum()) > 20 and bool((true.field.sdf.detach()[0, 0][core] < 0).all())
 
+    # Evidence comes only from a step's own rendering: rendering views for a picture leaves none for the next step.
+    true.render_histograms([0, 1])
+    assert true._hits is None
+
     measured = FastModel(dataclasses.replace(blank.p, measured=True), config, seed=0, terms=blank.terms)
     assert not measured.phantoms and measured.summary()["phantom_erosion"] is False
     for key, bad in (("schedule.phantom_ratio", 1.0), ("schedule.phantom_ratio", -0.1),

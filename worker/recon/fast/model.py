@@ -130,8 +130,10 @@ class FastModel:
         return views
 
     # ---- rendering --------------------------------------------------------------------------------------------
-    def _rates(self, views: torch.Tensor) -> torch.Tensor:
-        """Photon rates (n, Z, B) of the given views under the current field, albedos and table."""
+    def _rates(self, views: torch.Tensor, record_hits: bool = False) -> torch.Tensor:
+        """Photon rates (n, Z, B) of the given views under the current field, albedos and table. record_hits: keep
+        the opaque returns in `_hits` for the step's evidence (phantoms.py); otherwise `_hits` is left None."""
+        self._hits = None
         Z, fwd = self.n_zones, self.p.forward
         n_hist = views.numel() * Z
         hist = (views[:, None] * Z + torch.arange(Z, device=self.device)).reshape(-1)
@@ -148,7 +150,7 @@ class FastModel:
             t = around_crossing(tc, fc, t_in, t_out, self.sc.fine_samples, self.sc.window_voxels * vox, self.gen)
             r, radiance, opacity = render_returns(self.field.sample, o, d, t, w, self.fc.sharpness_voxels / vox,
                                                   0.5 * vox)
-            if self.phantoms:
+            if record_hits:
                 self._hits = _opaque_returns(o, d, r, radiance, opacity, local[batch])
             # The forward model's transient carries albedo / pi (see forward.py); render_returns gives cos/r^2 x sr.
             radiance = radiance * (torch.exp(self.log_albedo) / math.pi)
@@ -179,7 +181,7 @@ class FastModel:
             self._fill_cavities()
             self._empty_thin_sheets()
         views = self._next_views()
-        lam = self._rates(views)
+        lam = self._rates(views, record_hits=self.phantoms)
         nll = self.p.forward.nll(lam, self.p.counts[views], self.p.cycles[views], self.p.valid[views])
         if self.phantoms:
             self._gather_evidence(views, lam.detach())
