@@ -340,6 +340,10 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
     # Evidence comes only from a step's own rendering: rendering views for a picture leaves none for the next step.
     true.render_histograms([0, 1])
     assert true._hits is None
+    # A batch of views none of whose rays enter the hull has no data gradient: the step still runs on the
+    # regularisers, and gathers no evidence.
+    true.rays.count.zero_()
+    assert math.isfinite(true.step()["loss"])
 
     measured = FastModel(dataclasses.replace(blank.p, measured=True), config, seed=0, terms=blank.terms)
     assert not measured.phantoms and measured.summary()["phantom_erosion"] is False

@@ -195,8 +195,9 @@ class FastModel:
         self.opt.zero_grad()
         if sc.grad_blur_passes > 0:
             # Blur only the data term's gradient: the regularisers' gradients are what removes roughness, and a
-            # blur would take exactly that away.
-            data.backward()
+            # blur would take exactly that away. (A batch whose rays all miss the hull has no data gradient.)
+            if data.requires_grad:
+                data.backward()
             if self.field.sdf.grad is not None:
                 # The same physical reach at every level: a 2x finer grid needs 4x the passes (variances add).
                 passes = sc.grad_blur_passes * (4 if self.refined and self.fc.refine_after_steps > 0 and
