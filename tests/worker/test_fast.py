@@ -337,9 +337,10 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
     core = depth > 1.5 * true.field.voxel
     assert int(core.sum()) > 20 and bool((true.field.sdf.detach()[0, 0][core] < 0).all())
 
-    # Evidence comes only from a step's own rendering: rendering views for a picture leaves none for the next step.
-    true.render_histograms([0, 1])
-    assert true._hits is None
+    # Evidence comes only from a step's own rendering: rendering views for a picture records no returns.
+    assert true.render_histograms([0, 1]).shape[0] == 2
+    assert true._rates(torch.tensor([0, 1]))[1] is None
+    assert true._rates(torch.tensor([0, 1]), record_hits=True)[1][0].numel() > 0
     # A batch of views none of whose rays enter the hull has no data gradient: the step still runs on the
     # regularisers, and gathers no evidence.
     true.rays.count.zero_()

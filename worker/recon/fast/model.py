@@ -90,7 +90,6 @@ class FastModel:
         # model predicts a surface's photons well enough for the test.
         self.phantoms = self.sc.phantom_ratio > 0 and not problem.measured
         self._evidence: ReturnEvidence | None = None
-        self._hits = None
         self.eroded_nodes = 0
         # The moving average of the grid that meshes are extracted from (schedule.average_decay); restarted at
         # refinement, where the grid changes shape.
@@ -130,10 +129,10 @@ class FastModel:
         return views
 
     # ---- rendering --------------------------------------------------------------------------------------------
-    def _rates(self, views: torch.Tensor, record_hits: bool = False) -> torch.Tensor:
-        """Photon rates (n, Z, B) of the given views under the current field, albedos and table. record_hits: keep
-        the opaque returns in `_hits` for the step's evidence (phantoms.py); otherwise `_hits` is left None."""
-        self._hits = None
+    def _rates(self, views: torch.Tensor, record_hits: bool = False) -> tuple[torch.Tensor, tuple | None]:
+        """(photon rates (n, Z, B) of the given views under the current field, albedos and table, hits). hits: with
+        record_hits, the opaque returns (`_opaque_returns`) for the step's evidence (phantoms.py), else None."""
+        hits = None
         Z, fwd = self.n_zones, self.p.forward
         n_hist = views.numel() * Z
         hist = (views[:, None] * Z + torch.arange(Z, device=self.device)).reshape(-1)
@@ -151,7 +150,7 @@ class FastModel:
             r, radiance, opacity = render_returns(self.field.sample, o, d, t, w, self.fc.sharpness_voxels / vox,
                                                   0.5 * vox)
             if record_hits:
-                self._hits = _opaque_returns(o, d, r, radiance, opacity, local[batch])
+                hits = _opaque_returns(o, d, r, radiance, opacity, local[batch])
             # The forward model's transient carries albedo / pi (see forward.py); render_returns gives cos/r^2 x sr.
             radiance = radiance * (torch.exp(self.log_albedo) / math.pi)
             hist_id = local[batch][:, None].expand_as(r)
@@ -164,7 +163,7 @@ class FastModel:
             transient = fwd.bin(torch.cat(ranges), torch.cat(values), torch.cat(ids), n_hist)
         if self.table is not None:
             transient = transient + self.table.open_transient(hist)
-        return fwd.rates(transient.reshape(views.numel(), Z, -1), self.p.background[views])
+        return fwd.rates(transient.reshape(views.numel(), Z, -1), self.p.background[views]), hits
 
     # ---- the Model protocol -----------------------------------------------------------------------------------
     def step(self) -> dict:
@@ -181,10 +180,10 @@ class FastModel:
             self._fill_cavities()
             self._empty_thin_sheets()
         views = self._next_views()
-        lam = self._rates(views, record_hits=self.phantoms)
+        lam, hits = self._rates(views, record_hits=self.phantoms)
         nll = self.p.forward.nll(lam, self.p.counts[views], self.p.cycles[views], self.p.valid[views])
         if self.phantoms:
-            self._gather_evidence(views, lam.detach())
+            self._gather_evidence(views, lam.detach(), hits)
         data = nll / self.n_bins  # deviance per bin: ~0.5 when the fit reaches the photon noise
         if self._band is None or self.level_steps % sc.band_refresh_steps == 0:
             self._band = band_nodes(self.field.sdf, sc.band_voxels * self.field.voxel,
@@ -230,10 +229,10 @@ class FastModel:
             raise ReconstructionError(f"the loss became {out['loss']} at step {self.steps} (diverged)")
         return out
 
-    def _gather_evidence(self, views: torch.Tensor, lam: torch.Tensor) -> None:
-        """Add this step's opaque returns to the per-node evidence (phantoms.py): the log of measured over expected
-        signal photons around each return's bin, where the expected signal is well above the noise."""
-        hits, self._hits = self._hits, None
+    def _gather_evidence(self, views: torch.Tensor, lam: torch.Tensor, hits: tuple | None) -> None:
+        """Add this step's opaque returns (`_rates`' hits) to the per-node evidence (phantoms.py): the log of measured
+        over expected signal photons around each return's bin, where the expected signal is well above the noise.
+        (Also makes the evidence grid match the field's, so `_erode_phantoms` always finds one.)"""
         shape = tuple(self.field.sdf.shape[2:])
         if self._evidence is None or self._evidence.shape != shape:
             self._evidence = ReturnEvidence(shape, self.device)
@@ -252,8 +251,6 @@ class FastModel:
         self._evidence.add(points[keep], torch.log(ratio[hist, b][keep]), self.field.origin, self.field.voxel)
 
     def _erode_phantoms(self) -> None:
-        if self._evidence is None or self._evidence.shape != tuple(self.field.sdf.shape[2:]):
-            return
         nodes = self._evidence.take(self.sc.phantom_min_hits, self.sc.phantom_ratio)
         self.eroded_nodes += erode_at(self.field.sdf.detach()[0, 0], nodes, self.field.voxel)
 
@@ -350,7 +347,7 @@ class FastModel:
         out = []
         with torch.no_grad(), flush_denormals(self.device):
             for v in views.split(max(1, self.sc.views_per_step)):
-                lam = self._rates(v)
+                lam, _ = self._rates(v)
                 out.append(self.p.forward.expected_counts(lam, self.p.cycles[v]).double().cpu().numpy())
         return np.concatenate(out) if out else np.zeros((0, self.n_zones, self.n_bins))
 
