@@ -109,7 +109,10 @@ def _socket_path(out: Path) -> tuple[Path, Path | None]:
 
 def write_rig_config(opts: DemoOptions, captures: Path, sock: Path, ur_host: str | None) -> Path:
     """The demo's rig: simulated arm (or ur-sim), simulated sensor rendering a built-in scene."""
-    arm = (f'backend = "ur"\nhost = "{ur_host}"\nspeed = 0.5\nacceleration = 2.0\n' if ur_host else
+    # The ur backend needs a workspace box (metres, base frame): the scan's hemisphere of radius 0.5 m around the
+    # origin with a margin.
+    arm = (f'backend = "ur"\nhost = "{ur_host}"\nspeed = 0.5\nacceleration = 2.0\n'
+           'workspace_min = [-0.7, -0.7, -0.1]\nworkspace_max = [0.7, 0.7, 0.7]\n' if ur_host else
            'backend = "sim"\nspeed = 0.5\nacceleration = 2.0\ntime_scale = 0.05\n')
     # Absolute: the daemon resolves a relative path against the config's own folder, not the demo's working folder.
     text = f"""# Written by `spadscan demo`: simulated devices only.

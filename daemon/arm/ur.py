@@ -1,7 +1,8 @@
 """URArm: a Universal Robots arm through the real ur_rtde client (RTDEControlInterface + RTDEReceiveInterface).
 
-Every ur_rtde call runs on one dedicated thread (`CallThread`; the interfaces are not thread-safe) and is awaited
-with a timeout whose error names the arm and what it waited for. Moves are sent asynchronously (moveL with
+The ur_rtde client runs in a child process (`RTDELink`, `rtde_child.py`): ur_rtde 1.6.5 can crash the process that
+holds it when a dropped link comes back, and a crash there is a lost link here, never a dead daemon. Every call is
+awaited with a timeout whose error names the arm and what it waited for. Moves are sent asynchronously (moveL with
 asynchronous=True) and then polled, so that a stop, a fault or a dead link is seen while the arm travels.
 
 What ur_rtde does not tell by raising, this class checks:
@@ -12,18 +13,13 @@ What ur_rtde does not tell by raising, this class checks:
 - after a move, the actual pose must reach the target (within `position_tol_m` / `rotation_tol_rad`) and the
   actual TCP speed fall below `rest_speed` / `rest_angular_speed`: the receive stream may lag the control stream,
   so "move finished" alone does not mean the reading shows the arm at rest.
-Reconnecting builds new interfaces: ur_rtde 1.6.5's `RTDEReceiveInterface.reconnect()` can crash the process.
-
-A dead link can wedge a control call for good (ur_rtde 1.6.5's stopL on a dropped link never returns, not even after
-the link comes back). So `stop()` reads the link first and raises LinkLost instead of calling stopL on a dead link;
-a call that still outlives its timeout marks the arm's thread stuck, and every later call then fails at once with
-LinkLost instead of queueing behind it. `reconnect()` and `close()` give a stuck thread up, with its control
-interface (neither is touched again; the interface is kept, never destroyed), and carry on with a fresh thread.
-
-GIL traps of ur_rtde 1.6.5: its constructors hold the Python GIL while they connect (the event loop stalls for the
-length of `connect()`, ~30 ms on loopback), and its destructors hold it for ~0.5 s each even after `disconnect()`.
-Disconnected interfaces (no threads or sockets left) are therefore kept until the URArm itself is dropped, so that
-`close()` and reconnecting never stall the event loop; `disconnect()` itself releases the GIL.
+Any LinkLost ends the client process (a closed link's interfaces would otherwise go on reconnecting by themselves,
+which is what crashes ur_rtde), and every later call fails at once with LinkLost until `connect()` or `reconnect()`
+starts a fresh process with new interfaces (ur_rtde's own `reconnect()` can crash the process too). A dead link can
+wedge a control call for good (ur_rtde 1.6.5's stopL on a dropped link never returns), so `stop()` reads the link
+first and raises LinkLost instead of calling stopL on a dead link, and a call that outlives its timeout ends the
+process. Keeping ur_rtde out of the daemon's process also keeps its GIL traps out of the event loop (its
+constructors hold the GIL while they connect, its destructors for ~0.5 s each).
 """
 
 from __future__ import annotations
@@ -35,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spadscan.daemon.arm.call_thread import CallThread
+from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rotvec_to_matrix, vector_to_pose
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError
@@ -52,7 +48,7 @@ SAFETY_MODES = {1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery", 
 
 @dataclass(frozen=True)
 class _Reading:
-    """One consistent read of the receive interface (taken on the arm's thread)."""
+    """One consistent read of the receive interface (taken in the ur_rtde process)."""
 
     pose_vec: np.ndarray  # (6,) [m, rad]
     joints: np.ndarray  # (6,) rad
@@ -87,12 +83,8 @@ class URArm(Arm):
         self.position_tol_m, self.rotation_tol_rad, self.poll_s = position_tol_m, rotation_tol_rad, poll_s
         self.rest_speed, self.rest_angular_speed = rest_speed, rest_angular_speed
         self.name = f"UR arm {host}"
-        self._thread = CallThread(self.name)
-        # Touched only on the arm's thread:
-        self._control = None
-        self._receive = None
-        self._retired: list = []  # disconnected interfaces, destroyed with the URArm (see the module docstring)
-        # Touched only on the event loop: the last controller timestamp seen and when it last changed.
+        self._link: RTDELink | None = None  # the ur_rtde client process, once connected
+        # The last controller timestamp seen and when it last changed.
         self._last_ts: float | None = None
         self._last_change = 0.0
         self._open = False
@@ -110,10 +102,15 @@ class URArm(Arm):
         await self.reconnect()
 
     async def reconnect(self) -> None:
-        """Drop the interfaces and build new ones (on a fresh thread when the old one is stuck)."""
-        self._abandon_if_stuck()
-        await self._close_interfaces()
-        await self._call(f"connection to {self.host}", self._open_interfaces, timeout_s=self.timeout_s + 15.0)
+        """Drop the interfaces and build new ones, in a fresh ur_rtde process."""
+        await self._close_link()
+        self._link = RTDELink(self.name)
+        try:
+            await self._link.start()
+        except OSError as exc:
+            raise DeviceError(f"{self.name}: cannot start the ur_rtde process: {exc}") from None
+        await self._call(f"connection to {self.host}", "open", self.host, self.frequency,
+                         timeout_s=self.timeout_s + 15.0)
         self._open = True
         self._last_ts = None
         await self._fresh("the first data after connecting")
@@ -127,16 +124,13 @@ class URArm(Arm):
         """Stop any motion (stopL). Nothing to do when not connected; LinkLost without trying when the link is
         known dead (ur_rtde would block for seconds on it)."""
         if self._open:
-            self._check_link(await self._call("the arm state", self._read))
+            self._check_link(await self._read("the arm state"))
             await self.stop()
 
     async def close(self) -> None:
-        """Disconnect both interfaces and end the arm's thread. Idempotent; never waits on a stuck thread."""
-        self._abandon_if_stuck()
-        try:
-            await self._close_interfaces()
-        finally:
-            await self._thread.stop(self.timeout_s)
+        """Disconnect both interfaces and end the ur_rtde process. Idempotent; never waits long on a dead link (the
+        process was ended when the link was found lost, and one that does not exit within timeout_s is killed)."""
+        await self._close_link()
 
     # -- acting ----------------------------------------------------------------------------------------------------
     async def move_to(self, tcp_pose: np.ndarray, speed: float | None = None, accel: float | None = None) -> None:
@@ -161,43 +155,43 @@ class URArm(Arm):
         vec = [float(x) for x in target]
         budget = 2.0 * _move_time(start.pose_vec, target, speed, accel) + self.timeout_s
         try:
-            if not await self._call(what, lambda: self._control.moveL(vec, speed, accel, True)):
+            if not await self._call(what, "moveL", vec, speed, accel):
                 # ur_rtde refuses from the control stream's view, which may lag the receive stream's (a stop
                 # just cleared): let both catch up, then try once more unless a real reason shows.
                 await self._explain_refusal(what, final=False)
                 # The refusal can also be a late answer to a command the controller did take: resend only when the
                 # arm is neither moving nor at the target, so that one move is never sent twice.
-                if not await self._took_it(what, target) and not await self._call(
-                        what, lambda: self._control.moveL(vec, speed, accel, True)):
+                if not await self._took_it(what, target) and not await self._call(what, "moveL", vec, speed, accel):
                     await self._explain_refusal(what, final=True)
             await self._wait_motion(what, budget)
             await self._wait_arrival(what, target)
         except asyncio.CancelledError:
-            # Runs on the arm's thread as soon as it is free.
-            self._thread.post(self._stop_now, what="stopL after a cancelled move", timeout_s=self.timeout_s)
+            # Runs in the ur_rtde process as soon as it is free.
+            if self._link is not None:
+                self._link.post("stopL after a cancelled move", "stopL", STOP_DECEL)
             raise
 
     async def state(self) -> ArmState:
         """Actual TCP pose (4x4), joints (6,), controller timestamp, and whether the arm is stopped for safety
         (protective or emergency stop). Raises LinkLost when the link is closed or the data stopped advancing."""
         self._require_open()
-        reading = await self._call("the arm state", self._read)
+        reading = await self._read("the arm state")
         self._check_link(reading)
         return ArmState(tcp_pose=vector_to_pose(reading.pose_vec), joints=reading.joints.copy(),
                         timestamp_s=reading.timestamp, protective_stop=reading.protective or reading.emergency)
 
     async def stop(self) -> None:
         """stopL now (decelerating at STOP_DECEL). LinkLost without trying when the link is dead: stopL would block
-        the arm's thread for good."""
+        the ur_rtde process for good."""
         self._require_open()
-        self._check_link(await self._call("the arm state before stopL", self._read))
-        await self._call("stopL", self._stop_now)
+        self._check_link(await self._read("the arm state before stopL"))
+        await self._call("stopL", "stopL", STOP_DECEL)
 
     # -- waiting ---------------------------------------------------------------------------------------------------
     async def _wait_motion(self, what: str, budget_s: float) -> None:
         deadline = time.monotonic() + budget_s
         while True:
-            reading = await self._call(what, self._read_with_progress)
+            reading = await self._read(what, progress=True)
             self._check_link(reading)
             self._raise_if_stopped(reading, f"{what} aborted")
             if not reading.moving:
@@ -212,7 +206,7 @@ class URArm(Arm):
         deadline = time.monotonic() + self.timeout_s
         first_ts = None
         while True:
-            reading = await self._call(what, self._read)
+            reading = await self._read(what)
             self._check_link(reading)
             self._raise_if_stopped(reading, f"{what} aborted")
             first_ts = reading.timestamp if first_ts is None else first_ts
@@ -232,7 +226,7 @@ class URArm(Arm):
     async def _took_it(self, what: str, target: np.ndarray) -> bool:
         """Whether a fresh reading shows the arm moving or already at the target."""
         await self._fresh(f"the motion state after {what} was refused")
-        reading = await self._call(what, self._read_with_progress)
+        reading = await self._read(what, progress=True)
         dist, angle = _pose_distance(reading.pose_vec, target)
         return reading.moving or (dist <= self.position_tol_m and angle <= self.rotation_tol_rad)
 
@@ -241,16 +235,16 @@ class URArm(Arm):
         self._require_open()
         start, before = time.monotonic(), self._last_ts
         while True:
-            reading = await self._call(what, self._read)
+            reading = await self._read(what)
             if not reading.connected:
-                raise LinkLost(f"{self.name}: link closed while waiting for {what}")
+                raise self._lost(f"link closed while waiting for {what}")
             if reading.timestamp != before:
                 self._seen(reading.timestamp)
                 return reading
             waited = time.monotonic() - start
             if waited > self.stale_after_s:
-                raise LinkLost(f"{self.name}: controller timestamp stuck at {reading.timestamp:.3f} s for "
-                               f"{waited:.2f} s (limit {self.stale_after_s:g} s) while waiting for {what}")
+                raise self._lost(f"controller timestamp stuck at {reading.timestamp:.3f} s for {waited:.2f} s "
+                                 f"(limit {self.stale_after_s:g} s) while waiting for {what}")
             await asyncio.sleep(self.poll_s)
 
     def _seen(self, ts: float) -> None:
@@ -260,14 +254,14 @@ class URArm(Arm):
     def _check_link(self, reading: _Reading) -> None:
         """LinkLost when the link is closed or the timestamp has not moved for stale_after_s."""
         if not reading.connected:
-            raise LinkLost(f"{self.name}: link closed (ur_rtde reports disconnected)")
+            raise self._lost("link closed (ur_rtde reports disconnected)")
         if reading.timestamp != self._last_ts:
             self._seen(reading.timestamp)
             return
         age = time.monotonic() - self._last_change
         if age > self.stale_after_s:
-            raise LinkLost(f"{self.name}: receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s "
-                           f"for {age:.2f} s (limit {self.stale_after_s:g} s)")
+            raise self._lost(f"receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s for "
+                             f"{age:.2f} s (limit {self.stale_after_s:g} s)")
 
     def _raise_if_stopped(self, reading: _Reading, doing: str) -> None:
         mode = f"safety mode {reading.safety_mode} ({SAFETY_MODES.get(reading.safety_mode, 'unknown')})"
@@ -283,76 +277,39 @@ class URArm(Arm):
             reading = await self._fresh(f"the safety state after {what} was refused")
             self._raise_if_stopped(reading, f"{what} refused")
         if final:
-            running = await self._call("the program state", lambda: self._control.isProgramRunning())
+            running = await self._call("the program state", "program_running")
             raise ArmFault(f"{self.name}: controller refused {what} (safety mode {reading.safety_mode}, control "
                            f"script {'running' if running else 'not running'})")
 
-    # -- on the arm's thread -------------------------------------------------------------------------------------
-    async def _call(self, what: str, fn, timeout_s: float | None = None):
-        stuck = self._thread.overdue()
-        if stuck:
-            raise LinkLost(f"{self.name}: the arm's thread is still blocked in {stuck} (link dead?); {what} not "
-                           f"sent, reconnect first")
-        try:
-            return await self._thread.call(what, self.timeout_s if timeout_s is None else timeout_s, fn)
-        except DeviceError as exc:
-            raise LinkLost(str(exc)) from None
-        except RuntimeError as exc:  # ur_rtde reports link and protocol failures as RuntimeError
-            raise LinkLost(f"{self.name}: {what} failed: {exc}") from None
+    # -- the ur_rtde process --------------------------------------------------------------------------------------
+    async def _call(self, what: str, op: str, *args, timeout_s: float | None = None):
+        """Run a `rtde_child` operation; LinkLost when not connected, the link has ended or no answer comes in time."""
+        if self._link is None:
+            raise LinkLost(f"{self.name}: not connected; {what} not sent")
+        return await self._link.call(what, self.timeout_s if timeout_s is None else timeout_s, op, *args)
+
+    async def _read(self, what: str, progress: bool = False) -> _Reading:
+        d = await self._call(what, "read_progress" if progress else "read")
+        return _Reading(np.array(d["pose"], dtype=np.float64), np.array(d["joints"], dtype=np.float64),
+                        float(d["timestamp"]), d["protective"], d["emergency"], d["safety_mode"], d["connected"],
+                        np.array(d["tcp_speed"], dtype=np.float64), bool(d.get("moving", False)))
+
+    def _lost(self, reason: str) -> LinkLost:
+        """End the ur_rtde process (its interfaces are of no more use and would go on reconnecting by themselves) and
+        return the LinkLost to raise; later calls fail with the same reason until a reconnect."""
+        if self._link is not None:
+            self._link.end(reason)
+        return LinkLost(f"{self.name}: {reason}")
 
     def _require_open(self) -> None:
         if not self._open:
             raise LinkLost(f"{self.name}: not connected")
 
-    def _open_interfaces(self) -> None:
-        import rtde_control
-        import rtde_receive
-
-        self._receive = rtde_receive.RTDEReceiveInterface(self.host, self.frequency)
-        self._control = rtde_control.RTDEControlInterface(self.host, self.frequency)
-
-    def _abandon_if_stuck(self) -> None:
-        """Give up a thread stuck in a call, and the control interface it is stuck in (see the module docstring);
-        the receive interface is disconnected on the fresh thread as usual."""
-        if self._thread.overdue() is None:
-            return
-        if self._control is not None:
-            self._retired.append(self._control)
-        self._control = None
+    async def _close_link(self) -> None:
         self._open = False
-        self._thread.abandon()
-
-    async def _close_interfaces(self) -> None:
-        self._open = False
-        await self._call("disconnect", self._disconnect)
-
-    def _disconnect(self) -> None:
-        for iface in (self._control, self._receive):
-            if iface is not None:
-                try:
-                    iface.disconnect()
-                except RuntimeError:  # already dead: nothing left to close
-                    pass
-                self._retired.append(iface)
-        self._control = self._receive = None
-
-    def _read(self) -> _Reading:
-        r, c = self._receive, self._control
-        if r is None or c is None:
-            raise RuntimeError("interfaces are closed")
-        return _Reading(np.array(r.getActualTCPPose(), dtype=np.float64), np.array(r.getActualQ(), dtype=np.float64),
-                        float(r.getTimestamp()), bool(r.isProtectiveStopped()), bool(r.isEmergencyStopped()),
-                        int(r.getSafetyMode()), bool(r.isConnected() and c.isConnected()),
-                        np.array(r.getActualTCPSpeed(), dtype=np.float64))
-
-    def _read_with_progress(self) -> _Reading:
-        reading = self._read()
-        moving = bool(self._control.getAsyncOperationProgressEx().isAsyncOperationRunning())
-        return _Reading(**{**reading.__dict__, "moving": moving})
-
-    def _stop_now(self) -> None:
-        if self._control is not None:
-            self._control.stopL(STOP_DECEL)
+        link, self._link = self._link, None
+        if link is not None:
+            await link.stop(grace_s=self.timeout_s)
 
 
 def _pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:

@@ -1,24 +1,25 @@
-"""URArm with the real ur_rtde client against the simulated UR controller in a child process; pose conversions;
-the arm's call thread."""
+"""URArm with the real ur_rtde client (in its own process) against the simulated UR controller in a child process;
+pose conversions; the link to the ur_rtde process."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import gc
 import itertools
+import json
 import math
 import os
-import threading
+import signal
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from spadscan.daemon.arm.call_thread import CallThread
 from spadscan.daemon.arm.pose_convert import (matrix_to_rotvec, pose_to_vector, rotation_angle, rotvec_to_matrix,
                                               vector_to_pose)
+from spadscan.daemon.arm.rtde_child import answer
+from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.ur import URArm
 from spadscan.daemon.devices import ArmFault, LinkLost
 from spadscan.daemon.ursim.kinematics import inverse_kinematics
@@ -45,7 +46,6 @@ def ur():
     else:
         raise AssertionError("no free loopback address for the simulated controller")
     yield sim
-    gc.collect()  # destroy this test's ur_rtde interfaces now (~0.5 s each), not during a later test
     sim.close()
 
 
@@ -227,39 +227,85 @@ def test_dropped_link_is_link_lost_and_reconnect_works(ur, arun, mode):
         assert new_sessions == 2  # reconnecting built new receive and control interfaces
 
 
-def _native_threads() -> int:
-    return len(os.listdir(f"/proc/{os.getpid()}/task"))
+def _alive(pid: int) -> bool:
+    """Whether a process exists and is not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
-def _sockets() -> int:
-    count = 0
-    for fd in Path(f"/proc/{os.getpid()}/fd").iterdir():
-        try:
-            count += os.readlink(fd).startswith("socket:")
-        except OSError:  # closed while listing (the listing's own descriptor, or another thread's)
-            pass
-    return count
+def _fds() -> int:
+    return len(os.listdir(f"/proc/{os.getpid()}/fd"))
 
 
-def test_close_leaves_no_threads_or_sockets(ur, arun):
-    threads, sockets = _native_threads(), _sockets()
+def test_close_ends_the_ur_rtde_process_and_leaves_nothing_open(ur, arun):
+    fds = _fds()
 
     async def run():
         async with connected_arm(ur.host) as arm:
             await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
-            busy = (_native_threads() > threads, _sockets() > sockets)
+            pid = arm._link.pid
+            busy = _alive(pid) and ur.open_connections() > 0
             await arm.release()
             await arm.close()
         await arm.release()  # closed: nothing to do
-        return busy
+        return pid, busy
 
-    assert arun(run()) == (True, True)
+    pid, busy = arun(run())
+    assert busy and not _alive(pid)
     assert [m.name for m in ur.moves] == ["moveL", "stopL"]
-    assert (_native_threads(), _sockets()) == (threads, sockets)
+    assert _fds() == fds
     deadline = time.monotonic() + 20
     while ur.open_connections() and time.monotonic() < deadline:
         time.sleep(0.02)
     assert ur.open_connections() == 0
+
+
+def test_a_crash_of_ur_rtde_is_a_lost_link_and_reconnect_recovers(ur, arun):
+    """ur_rtde dies (as it does when its own reconnect races a returning link): the arm reports the lost link with the
+    signal, later calls fail at once, and connect() starts a fresh client that works."""
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+            os.kill(arm._link.pid, signal.SIGSEGV)
+            with pytest.raises(LinkLost) as lost:
+                for _ in range(200):
+                    await arm.state()
+                    await asyncio.sleep(0.01)
+            with pytest.raises(LinkLost, match="reconnect first"):
+                await arm.move_to(pose(0.4, 0.1, 0.3, DOWN))
+            await arm.connect()
+            await arm.move_to(pose(0.4, 0.2, 0.3, DOWN))
+            return str(lost.value), await arm.state()
+
+    message, state = arun(run())
+    assert "SIGSEGV" in message and ur.host in message
+    assert np.allclose(state.tcp_pose, pose(0.4, 0.2, 0.3, DOWN), atol=1e-6)
+    assert [m.target[1] for m in ur.moves] == [0.0, 0.2]
+
+
+def test_a_link_that_comes_back_at_once_never_takes_the_daemon_down(ur, arun):
+    """The controller closes every connection and takes them again at once: ur_rtde 1.6.5's control interface then
+    reconnects by itself from two threads and crashes its process within a second or so (this crashed the daemon's
+    process when ur_rtde ran in it). Here the arm reports a lost link, or nothing at all, and works after connect()."""
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+            ur.drop_link("close")
+            ur.restore_link()
+            deadline = time.monotonic() + 3
+            with contextlib.suppress(LinkLost):
+                while time.monotonic() < deadline:
+                    await arm.state()
+                    await asyncio.sleep(0.02)
+            await arm.connect()
+            await arm.move_to(pose(0.4, 0.2, 0.3, DOWN))
+            return await arm.state()
+
+    for _ in range(3):
+        state = arun(run())
+        assert np.allclose(state.tcp_pose, pose(0.4, 0.2, 0.3, DOWN), atol=1e-6)
 
 
 def test_arguments_are_checked_before_anything_moves(arun):
@@ -317,20 +363,64 @@ def test_bad_poses_are_rejected():
         vector_to_pose([0, 0, 0, 0, 0])
 
 
-def test_call_thread_runs_calls_in_order_on_one_thread_and_names_timeouts(arun):
-    async def run():
-        worker = CallThread("test worker")
-        idents = [await worker.call("ident", 10, threading.get_ident) for _ in range(3)]
-        with pytest.raises(DeviceError, match="test worker: no answer within 0.05 s waiting for the nap"):
-            await worker.call("the nap", 0.05, time.sleep, 0.5)
-        assert await worker.call("after the nap", 10, lambda: 42) == 42  # queued behind the slow call
-        with pytest.raises(ZeroDivisionError):
-            await worker.call("a division", 10, lambda: 1 / 0)
-        await worker.stop(10)
-        await worker.stop(10)
-        return idents
+def test_rtde_child_answers_each_request_and_never_raises():
+    class Fake:
+        control = receive = None
 
-    before = threading.active_count()
-    idents = arun(run())
-    assert len(set(idents)) == 1 and idents[0] != threading.get_ident()
-    assert threading.active_count() == before
+    assert answer(Fake(), "not json")["error"] == "ValueError"
+    assert answer(Fake(), json.dumps({"id": 3, "op": "format_disk"})) == {
+        "id": 3, "error": "ValueError", "message": "unknown operation 'format_disk'"}
+    assert answer(Fake(), json.dumps({"id": 4, "op": "read"})) == {
+        "id": 4, "error": "RuntimeError", "message": "interfaces are not open"}
+    assert answer(Fake(), json.dumps({"id": 5, "op": "stopL", "args": [1, 2, 3]}))["error"] == "TypeError"
+
+
+def test_rtde_link_maps_errors_and_ends_the_process_on_a_timeout(arun):
+    """Against the real child process with no arm: ur_rtde's RuntimeError is LinkLost, any other failure DeviceError;
+    a call that outlives its timeout (here: the child is stopped with SIGSTOP) ends the process, and every later call
+    fails at once naming why."""
+    async def run():
+        link = RTDELink("test link")
+        with pytest.raises(LinkLost, match="not connected"):
+            await link.call("a read", 10, "read")
+        await link.start()
+        pid = link.pid
+        with pytest.raises(LinkLost, match="test link: a read failed: interfaces are not open"):
+            await link.call("a read", 10, "read")
+        with pytest.raises(DeviceError, match="unknown operation") as bad:
+            await link.call("a bad op", 10, "no_such_op")
+        assert not isinstance(bad.value, LinkLost)
+        with pytest.raises(LinkLost, match="the connection failed"):  # nothing listens there
+            await link.call("the connection", 30, "open", f"127.77.{os.getpid() % 250}.251", 100.0)
+        assert link.alive
+        os.kill(pid, signal.SIGSTOP)
+        with pytest.raises(LinkLost, match="no answer within 0.2 s waiting for a read; the ur_rtde process was stopped"):
+            await link.call("a read", 0.2, "read")
+        with pytest.raises(LinkLost, match="no answer within 0.2 s.*; a stop not sent, reconnect first"):
+            await link.call("a stop", 10, "stopL", 10.0)
+        link.post("a posted stop", "stopL", 10.0)  # dropped: the link has ended
+        await link.stop(5)
+        await link.stop(5)
+        return pid
+
+    assert not _alive(arun(run()))
+
+
+def test_rtde_link_tells_every_waiting_call_that_the_process_died(arun):
+    async def run():
+        link = RTDELink("test link")
+        await link.start()
+        os.kill(link.pid, signal.SIGSTOP)  # requests now wait
+        waiting = [asyncio.ensure_future(link.call(f"read {i}", 30, "read")) for i in range(3)]
+        await asyncio.sleep(0.1)
+        os.kill(link.pid, signal.SIGKILL)
+        results = await asyncio.gather(*waiting, return_exceptions=True)
+        with pytest.raises(LinkLost, match="ur_rtde process ended"):
+            await link.call("a later read", 30, "read")
+        await link.stop(5)
+        return results
+
+    results = arun(run())
+    assert all(isinstance(r, LinkLost) for r in results)
+    assert all("link closed: the ur_rtde process ended (killed by SIGKILL)" in str(r) for r in results)
+    assert [str(r).rsplit("; ", 1)[1] for r in results] == [f"read {i} got no answer" for i in range(3)]

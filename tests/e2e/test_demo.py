@@ -15,9 +15,11 @@ from spadscan.protocol.capture_reader import CaptureReader
 
 
 @pytest.mark.slow
-def test_demo_finishes_with_a_summary_and_no_process_left(tmp_path):
+@pytest.mark.parametrize("arm", ["sim", "ur-sim"])
+def test_demo_finishes_with_a_summary_and_no_process_left(tmp_path, arm):
+    """ur-sim: the real ur_rtde client (in its own process) against the simulated UR controller."""
     out = tmp_path / "demo"
-    r = spadscan("demo", "--out", out, "--views", 8, "--budget-s", 10, timeout=480)
+    r = spadscan("demo", "--out", out, "--views", 8, "--budget-s", 10, "--arm", arm, timeout=480)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "Traceback" not in r.stderr
     summary = json.loads((out / "summary.json").read_text())

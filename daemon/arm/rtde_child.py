@@ -1,0 +1,109 @@
+"""The ur_rtde client in a process of its own: `python -m spadscan.daemon.arm.rtde_child` (started by `RTDELink`).
+
+Why a process: ur_rtde 1.6.5 can crash the process that holds it. When a link drops, RTDEControlInterface's receive
+thread reconnects by itself; if the controller answers again while it does, that thread starts a second receive
+thread and both go on reconnecting over the same socket until one reads through a freed one (SIGSEGV, seen against
+the simulated controller when the link comes back within milliseconds). Here such a crash ends this process, which
+the daemon reports as a lost link, and never the daemon with its open captures. A call that blocks for good (stopL
+on a dead link) is ended the same way: the parent kills this process.
+
+Requests come on stdin, one JSON line each: {"id": n, "op": name, "args": [...]}. They run one at a time, in order
+(the interfaces are not thread-safe), and each gets one reply line: {"id": n, "result": ...} or
+{"id": n, "error": exception class name, "message": text}. ur_rtde prints its own messages to stdout, so the
+replies go to a duplicate of the original stdout and fd 1 is pointed at stderr. When stdin closes, the interfaces
+are disconnected and the process exits.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+
+class Client:
+    """The two ur_rtde interfaces of one arm and the operations the parent may ask for (see `OPS`)."""
+
+    def __init__(self):
+        self.control = None
+        self.receive = None
+
+    def open(self, host: str, frequency: float) -> None:
+        import rtde_control
+        import rtde_receive
+
+        self.receive = rtde_receive.RTDEReceiveInterface(host, frequency)
+        self.control = rtde_control.RTDEControlInterface(host, frequency)
+
+    def read(self) -> dict:
+        """One consistent reading: TCP pose vector [m, rad], joints [rad], controller timestamp [s], safety flags,
+        whether both links are up, TCP speed [m/s, rad/s]."""
+        r, c = self.receive, self.control
+        if r is None or c is None:
+            raise RuntimeError("interfaces are not open")
+        return {"pose": list(r.getActualTCPPose()), "joints": list(r.getActualQ()), "timestamp": r.getTimestamp(),
+                "protective": bool(r.isProtectiveStopped()), "emergency": bool(r.isEmergencyStopped()),
+                "safety_mode": int(r.getSafetyMode()), "connected": bool(r.isConnected() and c.isConnected()),
+                "tcp_speed": list(r.getActualTCPSpeed())}
+
+    def read_progress(self) -> dict:
+        """`read`, plus whether an asynchronous move is still running."""
+        reading = self.read()
+        reading["moving"] = bool(self.control.getAsyncOperationProgressEx().isAsyncOperationRunning())
+        return reading
+
+    def move_l(self, pose: list, speed: float, accel: float) -> bool:
+        """Asynchronous moveL; False when the controller refuses it."""
+        return bool(self.control.moveL([float(x) for x in pose], float(speed), float(accel), True))
+
+    def stop_l(self, decel: float) -> None:
+        self.control.stopL(float(decel))
+
+    def program_running(self) -> bool:
+        return bool(self.control.isProgramRunning())
+
+    def close(self) -> None:
+        for iface in (self.control, self.receive):
+            if iface is not None:
+                try:
+                    iface.disconnect()
+                except RuntimeError:  # already dead: nothing left to close
+                    pass
+        self.control = self.receive = None
+
+
+OPS = {"open": Client.open, "read": Client.read, "read_progress": Client.read_progress, "moveL": Client.move_l,
+       "stopL": Client.stop_l, "program_running": Client.program_running}
+
+
+def answer(client: Client, line: str) -> dict:
+    """The reply to one request line (never raises)."""
+    try:
+        request = json.loads(line)
+        rid, op, args = request["id"], request["op"], request.get("args", [])
+    except (ValueError, KeyError, TypeError) as exc:
+        return {"id": None, "error": "ValueError", "message": f"bad request {line.strip()[:80]!r}: {exc}"}
+    if op not in OPS:
+        return {"id": rid, "error": "ValueError", "message": f"unknown operation {op!r}"}
+    try:
+        return {"id": rid, "result": OPS[op](client, *args)}
+    except Exception as exc:  # handed to the parent, which decides what it means
+        return {"id": rid, "error": type(exc).__name__, "message": str(exc)}
+
+
+def main() -> int:
+    replies = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
+    sys.stdout.flush()
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # ur_rtde's own printing must not mix with the replies
+    client = Client()
+    try:
+        for line in sys.stdin:
+            if line.strip():
+                replies.write(json.dumps(answer(client, line)) + "\n")
+    finally:
+        client.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

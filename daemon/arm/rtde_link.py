@@ -1,0 +1,164 @@
+"""RTDELink: the parent's end of one ur_rtde client process (`rtde_child.py`, whose docstring says why it exists).
+
+`call` sends an operation and awaits its reply with a timeout; the child runs requests one at a time, in order, so
+a call also waits for the ones sent before it. A call that gets no answer in time, or a child that dies (ur_rtde
+crashed), ends the link: the process is killed, every waiting call raises LinkLost saying why, and so does every
+later call, until the owner starts a new link. Nothing is ever left running: `stop` ends the process (gracefully
+when it answers, by SIGKILL when it does not) and waits for it and for the tasks that read its pipes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import signal
+import sys
+import time
+
+from spadscan.daemon.devices import LinkLost
+from spadscan.protocol.errors import DeviceError
+
+_LAST_WORDS = 20  # stderr lines of the child kept for the error that reports its death
+
+
+class RTDELink:
+    """One ur_rtde client process; see the module docstring. Times in seconds."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self._proc: asyncio.subprocess.Process | None = None
+        self._readers: list[asyncio.Task] = []
+        self._pending: dict[int, tuple[str, asyncio.Future | None]] = {}
+        self._ids = 0
+        self._ended: str | None = None  # why the link ended, once it has
+        self._stderr: collections.deque[str] = collections.deque(maxlen=_LAST_WORDS)
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._ended is None
+
+    async def start(self) -> None:
+        """Start the child process (it connects nothing until asked to `open`)."""
+        if self._proc is not None:
+            raise DeviceError(f"{self.name}: the ur_rtde process was already started")
+        self._proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "spadscan.daemon.arm.rtde_child", stdin=asyncio.subprocess.PIPE,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        self._readers = [asyncio.ensure_future(self._read_replies()), asyncio.ensure_future(self._read_stderr())]
+
+    async def call(self, what: str, timeout_s: float, op: str, *args):
+        """Run `op(*args)` in the child and return its result. LinkLost when the link has ended, when no answer comes
+        within timeout_s (the link is then ended) or when ur_rtde raises RuntimeError (how it reports link and
+        protocol failures); DeviceError for any other failure in the child."""
+        future = asyncio.get_running_loop().create_future()
+        rid = self._send(what, op, args, future)
+        try:
+            async with asyncio.timeout(timeout_s):
+                reply = await future
+        except TimeoutError:
+            self.end(f"no answer within {timeout_s:g} s waiting for {what}; the ur_rtde process was stopped")
+            raise LinkLost(f"{self.name}: {self._ended}") from None
+        finally:
+            self._pending.pop(rid, None)
+        if "error" not in reply:
+            return reply.get("result")
+        if reply["error"] == "RuntimeError":
+            raise LinkLost(f"{self.name}: {what} failed: {reply['message']}")
+        raise DeviceError(f"{self.name}: {what} failed in the ur_rtde process: {reply['error']}: {reply['message']}")
+
+    def post(self, what: str, op: str, *args) -> None:
+        """Send `op(*args)` without waiting for it (its reply is dropped): for last-ditch stops on cancellation. It runs
+        after the calls sent before it, and `stop` lets it finish. Does nothing once the link has ended."""
+        if self.alive:
+            self._send(what, op, args, None)
+
+    def end(self, reason: str) -> None:
+        """End the link now (SIGKILL): waiting and later calls raise LinkLost with `reason`. Idempotent."""
+        if self._ended is None:
+            self._ended = reason
+        if self._proc is not None and self._proc.returncode is None:
+            try:
+                self._proc.kill()
+            except ProcessLookupError:  # exited meanwhile
+                pass
+        self._fail_pending()
+
+    async def stop(self, grace_s: float) -> None:
+        """End the process: close its stdin so that it finishes the requests sent so far, disconnects and exits;
+        kill it after grace_s. Waits for it and for the pipe readers. Idempotent."""
+        proc = self._proc
+        if proc is None:
+            return
+        if proc.returncode is None and self._ended is None:
+            try:
+                proc.stdin.close()
+                await asyncio.wait_for(proc.wait(), grace_s)
+            except (TimeoutError, ConnectionError):
+                pass
+        if self._ended is None:
+            self._ended = "the link was closed"
+        self.end(self._ended)
+        await proc.wait()
+        await asyncio.gather(*self._readers, return_exceptions=True)
+        self._readers = []
+
+    # -- internals ------------------------------------------------------------------------------------------------
+    def _send(self, what: str, op: str, args: tuple, future: asyncio.Future | None) -> int:
+        if self._proc is None:
+            raise LinkLost(f"{self.name}: not connected; {what} not sent")
+        if self._ended is not None:
+            raise LinkLost(f"{self.name}: {self._ended}; {what} not sent, reconnect first")
+        self._ids += 1
+        self._pending[self._ids] = (what, future)
+        try:
+            self._proc.stdin.write((json.dumps({"id": self._ids, "op": op, "args": list(args)}) + "\n").encode())
+        except (ConnectionError, RuntimeError) as exc:  # the child is gone; its reader reports why
+            self._pending.pop(self._ids, None)
+            raise LinkLost(f"{self.name}: {what} not sent: the ur_rtde process is gone ({exc})") from None
+        return self._ids
+
+    async def _read_replies(self) -> None:
+        proc = self._proc
+        while line := await proc.stdout.readline():
+            try:
+                reply = json.loads(line)
+            except ValueError:
+                continue  # not a reply: nothing waits on it
+            _, future = self._pending.pop(reply.get("id"), (None, None))
+            if future is not None and not future.done():
+                future.set_result(reply)
+        # stdout closed: the child has exited or is about to.
+        returncode = await proc.wait()
+        await asyncio.sleep(0)  # let the stderr reader take the last lines
+        if self._ended is None:
+            self._ended = f"link closed: the ur_rtde process ended ({_describe(returncode)}){self._last_words()}"
+        self._fail_pending()
+
+    async def _read_stderr(self) -> None:
+        while line := await self._proc.stderr.readline():
+            text = line.decode(errors="replace").strip()
+            if text:
+                self._stderr.append(f"{time.strftime('%H:%M:%S')} {text}")
+
+    def _last_words(self) -> str:
+        return f"; it last said: {self._stderr[-1]}" if self._stderr else ""
+
+    def _fail_pending(self) -> None:
+        pending, self._pending = self._pending, {}
+        for what, future in pending.values():
+            if future is not None and not future.done():
+                future.set_exception(LinkLost(f"{self.name}: {self._ended}; {what} got no answer"))
+
+
+def _describe(returncode: int) -> str:
+    if returncode < 0:
+        try:
+            return f"killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"killed by signal {-returncode}"
+    return f"exit status {returncode}"
