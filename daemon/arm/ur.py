@@ -107,10 +107,13 @@ class URArm(Arm):
         self._link = RTDELink(self.name)
         try:
             await self._link.start()
-        except OSError as exc:
-            raise DeviceError(f"{self.name}: cannot start the ur_rtde process: {exc}") from None
-        await self._call(f"connection to {self.host}", "open", self.host, self.frequency,
-                         timeout_s=self.timeout_s + 15.0)
+            await self._call(f"connection to {self.host}", "open", self.host, self.frequency,
+                             timeout_s=self.timeout_s + 15.0)
+        except BaseException as exc:
+            await self._close_link()  # no client process is left behind a failed connect
+            if isinstance(exc, OSError):
+                raise DeviceError(f"{self.name}: cannot start the ur_rtde process: {exc}") from None
+            raise
         self._open = True
         self._last_ts = None
         await self._fresh("the first data after connecting")

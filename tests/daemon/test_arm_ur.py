@@ -328,6 +328,7 @@ def test_arguments_are_checked_before_anything_moves(arun):
             await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
         with pytest.raises(LinkLost, match="127.77"):
             await arm.connect()  # nothing listens there
+        assert arm._link is None  # the failed connect left no ur_rtde process behind
         await arm.close()
 
     arun(run())
