@@ -1,4 +1,5 @@
-"""The ur_rtde client in a process of its own: `python -m spadscan.daemon.arm.rtde_child` (started by `RTDELink`).
+"""The ur_rtde client in a process of its own: `python -m spadscan.daemon.arm.rtde_child --parent PID` (started by
+`RTDELink`).
 
 Why a process: ur_rtde 1.6.5 can crash the process that holds it. When a link drops, RTDEControlInterface's receive
 thread reconnects by itself; if the controller answers again while it does, that thread starts a second receive
@@ -12,13 +13,22 @@ Requests come on stdin, one JSON line each: {"id": n, "op": name, "args": [...]}
 {"id": n, "error": exception class name, "message": text}. ur_rtde prints its own messages to stdout, so the
 replies go to a duplicate of the original stdout and fd 1 is pointed at stderr. When stdin closes, the interfaces
 are disconnected and the process exits.
+
+Its lifetime follows the parent's: it runs in a session of its own (a Ctrl-C on the daemon's terminal does not reach
+it), it ignores SIGINT and SIGTERM (a service stop signals every process of the service, and the daemon still needs
+the client to stop the arm on its way out), and it exits by itself when the parent is gone, even while a call
+blocks.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
+import signal
 import sys
+import threading
+import time
 
 
 class Client:
@@ -91,7 +101,23 @@ def answer(client: Client, line: str) -> dict:
         return {"id": rid, "error": type(exc).__name__, "message": str(exc)}
 
 
-def main() -> int:
+def exit_with_parent(parent: int, poll_s: float = 1.0) -> None:
+    """Exit at once when the parent process is gone (we were re-parented), whatever the main thread is doing."""
+    while os.getppid() == parent:
+        time.sleep(poll_s)
+    os._exit(0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m spadscan.daemon.arm.rtde_child",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--parent", type=int, default=None,
+                        help="the pid to live no longer than (default: the parent at start-up; name it, since the "
+                             "parent may be gone before this process gets that far)")
+    args = parser.parse_args(argv)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    threading.Thread(target=exit_with_parent, args=(args.parent or os.getppid(),), daemon=True).start()
     replies = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
     sys.stdout.flush()
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # ur_rtde's own printing must not mix with the replies

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import json
+import os
 import signal
 import sys
 import time
@@ -46,9 +47,12 @@ class RTDELink:
         """Start the child process (it connects nothing until asked to `open`)."""
         if self._proc is not None:
             raise DeviceError(f"{self.name}: the ur_rtde process was already started")
+        # A session of its own: a Ctrl-C on the daemon's terminal must not end the client the daemon needs to stop
+        # the arm on its way out.
         self._proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "spadscan.daemon.arm.rtde_child", stdin=asyncio.subprocess.PIPE,
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            sys.executable, "-m", "spadscan.daemon.arm.rtde_child", "--parent", str(os.getpid()),
+            stdin=asyncio.subprocess.PIPE,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True)
         self._readers = [asyncio.ensure_future(self._read_replies()), asyncio.ensure_future(self._read_stderr())]
 
     async def call(self, what: str, timeout_s: float, op: str, *args):

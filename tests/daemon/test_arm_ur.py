@@ -10,6 +10,8 @@ import json
 import math
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -388,6 +390,11 @@ def test_rtde_link_maps_errors_and_ends_the_process_on_a_timeout(arun):
         pid = link.pid
         with pytest.raises(LinkLost, match="test link: a read failed: interfaces are not open"):
             await link.call("a read", 10, "read")
+        for sig in (signal.SIGINT, signal.SIGTERM):  # the daemon still needs the client to stop the arm on its way out
+            os.kill(pid, sig)
+        await asyncio.sleep(0.2)
+        with pytest.raises(LinkLost, match="test link: a read failed: interfaces are not open"):
+            await link.call("a read", 10, "read")
         with pytest.raises(DeviceError, match="unknown operation") as bad:
             await link.call("a bad op", 10, "no_such_op")
         assert not isinstance(bad.value, LinkLost)
@@ -425,3 +432,30 @@ def test_rtde_link_tells_every_waiting_call_that_the_process_died(arun):
     assert all(isinstance(r, LinkLost) for r in results)
     assert all("link closed: the ur_rtde process ended (killed by SIGKILL)" in str(r) for r in results)
     assert [str(r).rsplit("; ", 1)[1] for r in results] == [f"read {i} got no answer" for i in range(3)]
+
+
+def test_rtde_child_exits_when_its_parent_is_gone_even_with_stdin_held_open(tmp_path):
+    """A parent killed while another process still holds the child's stdin open (or while a call blocks): the child
+    must not live on with its links to the controller."""
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import os, subprocess, sys\n"
+        "r, w = os.pipe()\n"
+        "child = subprocess.Popen([sys.executable, '-m', 'spadscan.daemon.arm.rtde_child', '--parent',\n"
+        "                          str(os.getpid())], stdin=r,\n"
+        "                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)\n"
+        "holder = subprocess.Popen(['sleep', '60'], pass_fds=[w], stdout=subprocess.DEVNULL,\n"
+        "                          stderr=subprocess.DEVNULL)\n"
+        "print(child.pid, holder.pid, flush=True)\n"
+        "os._exit(0)\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    child, holder = (int(x) for x in out.stdout.split())
+    try:
+        deadline = time.monotonic() + 10
+        while _alive(child) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _alive(child)
+    finally:
+        os.kill(holder, signal.SIGKILL)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(child, signal.SIGKILL)
