@@ -11,7 +11,7 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.sensor_model import Zone
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.recon.fast.empty_space import (fill_under_overhangs, pressure_weight, pulse_width_m,
+from spadscan.worker.recon.fast.empty_space import (fill_under_overhangs, pressure_weight,
                                                     push_to_empty, thin_near_table, view_coverage)
 from spadscan.worker.recon.fast.mesh import cavities, clean_solid
 
@@ -136,13 +136,6 @@ def test_pieces_much_smaller_than_the_object_are_removed_and_comparable_ones_kep
 
 
 # ---- thin sheets just above the table -------------------------------------------------------------------------------
-def test_pulse_width_is_the_full_width_at_half_maximum_in_metres():
-    x = np.arange(-40, 41) / 4.0  # 4 samples per bin, in bins
-    gauss = np.exp(-0.5 * (x / 2.0) ** 2)  # sigma 2 bins: FWHM 4.71 bins
-    assert pulse_width_m(gauss, 4, 0.01) == pytest.approx(2.3548 * 2.0 * 0.01, abs=0.25 * 0.01)
-    assert pulse_width_m(np.zeros(5), 1, 0.01) == 0.0
-
-
 def table_block_and_curtain():
     """Node rows 1 cm apart from z = -0.03 m, the table at z = 0: a thick block on the table, a 2-node thick curtain
     beside it reaching 7 cm up, and a thin fin on the block's top, 8 cm above the table."""

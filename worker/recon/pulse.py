@@ -5,6 +5,12 @@ zones (SENSOR_FACTS), the zones' pulse is the floor-subtracted reference, normal
 by 1.10 in time and raised to the power 1.5: p(i) = ref_n(peak_ref + (i - (zero_bin - 0.59)) / 1.10) ** 1.5 for a
 return at zero range (i a bin index, peak_ref the reference's peak index, found per capture). That fit holds for
 measured data only: a simulator that draws its reference from the sensor model's own pulse needs no such mapping.
+
+That mapping still rises too slowly: a pulse fitted freely to the real pyramid's histograms (the geometry held) puts
+0.8% of its area two bins before the peak, the mapped one 3.5%. So the kernel's bins before its peak are raised to
+the power 2 relative to the peak (then renormalised). A pulse that starts too early lets the fit move near surfaces
+away from the sensors; with the steeper edge the pyramid's data term falls 14% and its faces move out to the object
+(benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -19,6 +25,8 @@ REF_POWER = 1.5
 """Power applied to the normalised reference (narrows its over-wide tail)."""
 REF_PEAK_SHIFT_BINS = -0.59
 """Pulse peak index minus the zero-range bin coordinate (12.66 - 13.25 in the fit)."""
+REF_RISE_POWER = 2.0
+"""Power applied to the kernel's bins before its peak, relative to the peak (steepens the rising edge)."""
 KERNEL_BEFORE, KERNEL_AFTER = 4, 24
 """Bins kept before and after the arrival in a reference-derived kernel (tail e-folding ~3.9 bins)."""
 
@@ -63,4 +71,6 @@ def reference_kernel(ref: np.ndarray, oversample: int = 1, fine: int = 8) -> np.
     k = p.reshape(-1, fine).mean(axis=1)
     if k.sum() <= 0:
         return None
+    top = int(np.argmax(k))
+    k[:top] = k[top] * (k[:top] / k[top]) ** REF_RISE_POWER
     return k / k.sum()

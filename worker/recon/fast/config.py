@@ -46,8 +46,13 @@ class FastFieldConfig:
     (`empty_space.fill_under_overhangs`)."""
     thin_sheet_voxels: int = 2
     """Scenes on a table only, on the refined grid: every `band_refresh_steps`, solid sheets thinner than about twice
-    this many voxels within one pulse width (FWHM) above the table are emptied (`empty_space.thin_near_table`);
+    this many voxels less than `thin_sheet_band_m` above the table are emptied (`empty_space.thin_near_table`);
     0: off."""
+    thin_sheet_band_m: float = 0.09
+    """Height (metres) above the table within which thin sheets are emptied. Views from above see a sheet standing on
+    the table edge on, and near the table no histogram tells it from the table behind it: on the real pyramid such
+    curtains stood up to 8 cm high. A band of one pulse width (41 mm) left them standing; 12 cm began to erode the
+    object itself (benchmarks/RESULTS.md)."""
     table_albedo_init: float = 1.0
     """Initial albedo of the table plane (real scenes), relative to the sensor model's signal scale."""
 

@@ -91,23 +91,16 @@ def fill_under_overhangs(values: np.ndarray, z_nodes: np.ndarray, floor_z: float
     return v
 
 
-def pulse_width_m(kernel, oversample: int, bin_width_m: float) -> float:
-    """Full width at half maximum (metres of one-way range) of a pulse kernel sampled `oversample` times per bin."""
-    k = np.asarray(kernel, np.float64).ravel()
-    if k.size == 0 or not np.all(np.isfinite(k)) or k.max() <= 0:
-        return 0.0
-    return float(np.count_nonzero(k >= 0.5 * k.max())) / oversample * bin_width_m
-
-
 def thin_near_table(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, band_m: float, radius: int) -> np.ndarray:
     """(nz, ny, nx) bool: the solid nodes less than `band_m` above the table (at floor_z) that a morphological opening
     of `radius` node steps removes — sheets and fins thinner than about 2 x radius nodes. z_nodes (nz,): heights of
     the node rows, metres, increasing; the space under the table counts as solid, so the object's base is not eroded
     from below.
 
-    Within a pulse width of the table the histograms cannot tell a thin sheet from the table behind it, and views
-    from above see a vertical sheet edge on: such curtains are what the carved hull's skirt melts into, and nothing
-    in the data removes them (on LCSPCData's real pyramid, a fifth of the surface lay 1-3 cm outside the object)."""
+    Near the table the histograms cannot tell a thin sheet from the table behind it, and views from above see a
+    vertical sheet edge on: such curtains are what the carved hull's skirt melts into, and nothing in the data
+    removes them (on LCSPCData's real pyramid, a fifth of the surface lay 1-3 cm outside the object, in curtains up
+    to 8 cm high; `field.thin_sheet_band_m` sets band_m)."""
     from scipy import ndimage
 
     out = np.zeros(solid.shape, bool)
@@ -124,5 +117,5 @@ def thin_near_table(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, band
     return out
 
 
-__all__ = ["view_coverage", "pressure_weight", "push_to_empty", "fill_under_overhangs", "pulse_width_m",
+__all__ = ["view_coverage", "pressure_weight", "push_to_empty", "fill_under_overhangs",
            "thin_near_table"]

@@ -19,7 +19,7 @@ import torch
 from ..forward import TransientForward, choose_terms
 from ..numerics import flush_denormals
 from .blur import blur3
-from .empty_space import pressure_weight, pulse_width_m, push_to_empty, thin_near_table, view_coverage
+from .empty_space import pressure_weight, push_to_empty, thin_near_table, view_coverage
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
 from .optim import Adam
@@ -79,6 +79,8 @@ class FastModel:
 
         if self.fc.thin_sheet_voxels < 0:
             raise ConfigError(f"field.thin_sheet_voxels {self.fc.thin_sheet_voxels} must be >= 0 (0: off)")
+        if not 0.0 <= self.fc.thin_sheet_band_m <= 1.0:  # also refuses NaN
+            raise ConfigError(f"field.thin_sheet_band_m {self.fc.thin_sheet_band_m} must be in [0, 1] metres")
         if not 0.0 <= self.sc.average_decay < 1.0:
             raise ConfigError(f"schedule.average_decay {self.sc.average_decay} must be in [0, 1) (0: off)")
         if not 0.0 <= self.sc.phantom_ratio < 1.0:
@@ -94,8 +96,7 @@ class FastModel:
         # The moving average of the grid that meshes are extracted from (schedule.average_decay); restarted at
         # refinement, where the grid changes shape.
         self._average: torch.Tensor | None = None
-        fwd = problem.forward
-        self._sheet_band_m = pulse_width_m(fwd.kernel.cpu().numpy(), fwd.oversample, fwd.sensor.bin_width_m)
+        self._sheet_band_m = float(self.fc.thin_sheet_band_m)
         self._make_optimizer()
 
     # ---- optimiser and schedule -------------------------------------------------------------------------------
