@@ -1,10 +1,13 @@
 """RTDELink: the parent's end of one ur_rtde client process (`rtde_child.py`, whose docstring says why it exists).
 
 `call` sends an operation and awaits its reply with a timeout; the child runs requests one at a time, in order, so
-a call also waits for the ones sent before it. A call that gets no answer in time, or a child that dies (ur_rtde
-crashed), ends the link: the process is killed, every waiting call raises LinkLost saying why, and so does every
-later call, until the owner starts a new link. Nothing is ever left running: `stop` ends the process (gracefully
-when it answers, by SIGKILL when it does not) and waits for it and for the tasks that read its pipes.
+a call also waits for the ones sent before it. The link ends when a call gets no answer in time, when ur_rtde
+reports a failure (RuntimeError: a dropped link or a protocol error), or when the child dies (ur_rtde crashed): the
+process is killed, every waiting call raises LinkLost saying why, and so does every later call, until the owner
+starts a new link. A request whose caller gave up (cancelled) still counts: once it is past its timeout unanswered,
+the next call or `stop` ends the link instead of queueing behind it. Nothing is ever left running: `stop` ends the
+process (gracefully when it answers, by SIGKILL when it does not or when `stop` is cancelled) and waits for it and
+for the tasks that read its pipes.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ class RTDELink:
         self.name = name
         self._proc: asyncio.subprocess.Process | None = None
         self._readers: list[asyncio.Task] = []
-        self._pending: dict[int, tuple[str, asyncio.Future | None]] = {}
+        # Unanswered requests: id -> (what, the caller's future or None, monotonic deadline).
+        self._pending: dict[int, tuple[str, asyncio.Future | None, float]] = {}
         self._ids = 0
         self._ended: str | None = None  # why the link ended, once it has
         self._stderr: collections.deque[str] = collections.deque(maxlen=_LAST_WORDS)
@@ -60,26 +64,34 @@ class RTDELink:
         within timeout_s (the link is then ended) or when ur_rtde raises RuntimeError (how it reports link and
         protocol failures); DeviceError for any other failure in the child."""
         future = asyncio.get_running_loop().create_future()
-        rid = self._send(what, op, args, future)
+        rid = self._send(what, op, args, future, timeout_s)
         try:
             async with asyncio.timeout(timeout_s):
                 reply = await future
         except TimeoutError:
             self.end(f"no answer within {timeout_s:g} s waiting for {what}; the ur_rtde process was stopped")
             raise LinkLost(f"{self.name}: {self._ended}") from None
-        finally:
-            self._pending.pop(rid, None)
+        except asyncio.CancelledError:
+            # The request stays pending (its reply dropped): a later call or stop sees it if it is overdue.
+            if rid in self._pending:
+                self._pending[rid] = (what, None, self._pending[rid][2])
+            if future.done() and not future.cancelled():
+                future.exception()  # settled as the cancellation came: retrieved, so asyncio does not complain
+            raise
+        self._pending.pop(rid, None)
         if "error" not in reply:
             return reply.get("result")
         if reply["error"] == "RuntimeError":
+            self.end(f"{what} failed: {reply['message']}")
             raise LinkLost(f"{self.name}: {what} failed: {reply['message']}")
         raise DeviceError(f"{self.name}: {what} failed in the ur_rtde process: {reply['error']}: {reply['message']}")
 
-    def post(self, what: str, op: str, *args) -> None:
+    def post(self, what: str, timeout_s: float, op: str, *args) -> None:
         """Send `op(*args)` without waiting for it (its reply is dropped): for last-ditch stops on cancellation. It runs
-        after the calls sent before it, and `stop` lets it finish. Does nothing once the link has ended."""
+        after the calls sent before it, and `stop` lets it finish unless it is past timeout_s. Does nothing once the
+        link has ended."""
         if self.alive:
-            self._send(what, op, args, None)
+            self._send(what, op, args, None, timeout_s)
 
     def end(self, reason: str) -> None:
         """End the link now (SIGKILL): waiting and later calls raise LinkLost with `reason`. Idempotent."""
@@ -98,33 +110,43 @@ class RTDELink:
         proc = self._proc
         if proc is None:
             return
-        if proc.returncode is None and self._ended is None:
-            try:
-                proc.stdin.close()
-                await asyncio.wait_for(proc.wait(), grace_s)
-            except (TimeoutError, ConnectionError):
-                pass
-        if self._ended is None:
-            self._ended = "the link was closed"
-        self.end(self._ended)
+        try:
+            self._end_if_overdue()
+            if proc.returncode is None and self._ended is None:
+                try:
+                    proc.stdin.close()
+                    await asyncio.wait_for(proc.wait(), grace_s)
+                except (TimeoutError, ConnectionError):
+                    pass
+        finally:  # also when cancelled: kill rather than leave the process behind
+            self.end(self._ended or "the link was closed")
         await proc.wait()
         await asyncio.gather(*self._readers, return_exceptions=True)
         self._readers = []
 
     # -- internals ------------------------------------------------------------------------------------------------
-    def _send(self, what: str, op: str, args: tuple, future: asyncio.Future | None) -> int:
+    def _send(self, what: str, op: str, args: tuple, future: asyncio.Future | None, timeout_s: float) -> int:
         if self._proc is None:
             raise LinkLost(f"{self.name}: not connected; {what} not sent")
+        self._end_if_overdue()
         if self._ended is not None:
             raise LinkLost(f"{self.name}: {self._ended}; {what} not sent, reconnect first")
         self._ids += 1
-        self._pending[self._ids] = (what, future)
+        self._pending[self._ids] = (what, future, time.monotonic() + timeout_s)
         try:
             self._proc.stdin.write((json.dumps({"id": self._ids, "op": op, "args": list(args)}) + "\n").encode())
         except (ConnectionError, RuntimeError) as exc:  # the child is gone; its reader reports why
             self._pending.pop(self._ids, None)
             raise LinkLost(f"{self.name}: {what} not sent: the ur_rtde process is gone ({exc})") from None
         return self._ids
+
+    def _end_if_overdue(self) -> None:
+        """End the link when a request sent earlier is still unanswered past its timeout (its caller gave up)."""
+        now = time.monotonic()
+        for what, _, deadline in self._pending.values():
+            if now > deadline:
+                self.end(f"{what} got no answer in time; the ur_rtde process was stopped")
+                return
 
     async def _read_replies(self) -> None:
         proc = self._proc
@@ -133,7 +155,7 @@ class RTDELink:
                 reply = json.loads(line)
             except ValueError:
                 continue  # not a reply: nothing waits on it
-            _, future = self._pending.pop(reply.get("id"), (None, None))
+            _, future, _ = self._pending.pop(reply.get("id"), (None, None, 0.0))
             if future is not None and not future.done():
                 future.set_result(reply)
         # stdout closed: the child has exited or is about to.
@@ -154,7 +176,7 @@ class RTDELink:
 
     def _fail_pending(self) -> None:
         pending, self._pending = self._pending, {}
-        for what, future in pending.values():
+        for what, future, _ in pending.values():
             if future is not None and not future.done():
                 future.set_exception(LinkLost(f"{self.name}: {self._ended}; {what} got no answer"))
 

@@ -25,6 +25,7 @@ constructors hold the GIL while they connect, its destructors for ~0.5 s each).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -110,7 +111,8 @@ class URArm(Arm):
             await self._call(f"connection to {self.host}", "open", self.host, self.frequency,
                              timeout_s=self.timeout_s + 15.0)
         except BaseException as exc:
-            await self._close_link()  # no client process is left behind a failed connect
+            self._link.end(f"connecting failed: {exc}")  # no client process is left behind a failed connect
+            await self._close_link()
             if isinstance(exc, OSError):
                 raise DeviceError(f"{self.name}: cannot start the ur_rtde process: {exc}") from None
             raise
@@ -171,7 +173,8 @@ class URArm(Arm):
         except asyncio.CancelledError:
             # Runs in the ur_rtde process as soon as it is free.
             if self._link is not None:
-                self._link.post("stopL after a cancelled move", "stopL", STOP_DECEL)
+                with contextlib.suppress(LinkLost):  # the cancellation, not a dead link, is what the caller gets
+                    self._link.post("stopL after a cancelled move", self.timeout_s, "stopL", STOP_DECEL)
             raise
 
     async def state(self) -> ArmState:
@@ -246,8 +249,8 @@ class URArm(Arm):
                 return reading
             waited = time.monotonic() - start
             if waited > self.stale_after_s:
-                raise self._lost(f"controller timestamp stuck at {reading.timestamp:.3f} s for {waited:.2f} s "
-                                 f"(limit {self.stale_after_s:g} s) while waiting for {what}")
+                raise self._lost(f"receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s for "
+                                 f"{waited:.2f} s (limit {self.stale_after_s:g} s) while waiting for {what}")
             await asyncio.sleep(self.poll_s)
 
     def _seen(self, ts: float) -> None:

@@ -289,18 +289,17 @@ def test_a_crash_of_ur_rtde_is_a_lost_link_and_reconnect_recovers(ur, arun):
 
 def test_a_link_that_comes_back_at_once_never_takes_the_daemon_down(ur, arun):
     """The controller closes every connection and takes them again at once: ur_rtde 1.6.5's control interface then
-    reconnects by itself from two threads and crashes its process within a second or so (this crashed the daemon's
-    process when ur_rtde ran in it). Here the arm reports a lost link, or nothing at all, and works after connect()."""
+    reconnects by itself from two threads, which crashes its process about one time in four within 2 s (this crashed
+    the daemon's process when ur_rtde ran in it). Here the arm reports a lost link (SIGSEGV or a closed link), or
+    nothing at all, and works after connect()."""
     async def run():
         async with connected_arm(ur.host) as arm:
             await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
             ur.drop_link("close")
             ur.restore_link()
-            deadline = time.monotonic() + 3
+            await asyncio.sleep(2.0)  # no call meanwhile: ur_rtde's reconnect threads race undisturbed
             with contextlib.suppress(LinkLost):
-                while time.monotonic() < deadline:
-                    await arm.state()
-                    await asyncio.sleep(0.02)
+                await arm.state()
             await arm.connect()
             await arm.move_to(pose(0.4, 0.2, 0.3, DOWN))
             return await arm.state()
@@ -379,36 +378,78 @@ def test_rtde_child_answers_each_request_and_never_raises():
 
 
 def test_rtde_link_maps_errors_and_ends_the_process_on_a_timeout(arun):
-    """Against the real child process with no arm: ur_rtde's RuntimeError is LinkLost, any other failure DeviceError;
-    a call that outlives its timeout (here: the child is stopped with SIGSTOP) ends the process, and every later call
-    fails at once naming why."""
+    """Against the real child process with no arm: a failure in the child is DeviceError and the link goes on; ur_rtde's
+    RuntimeError (a dropped link, a protocol error) is LinkLost and ends the link; so does a call that outlives its
+    timeout (here: the child is stopped with SIGSTOP). Every later call fails at once naming why."""
     async def run():
         link = RTDELink("test link")
         with pytest.raises(LinkLost, match="not connected"):
             await link.call("a read", 10, "read")
         await link.start()
-        pid = link.pid
-        with pytest.raises(LinkLost, match="test link: a read failed: interfaces are not open"):
-            await link.call("a read", 10, "read")
+        first = link.pid
+        with pytest.raises(DeviceError, match="unknown operation") as bad:
+            await link.call("a bad op", 10, "no_such_op")
+        assert not isinstance(bad.value, LinkLost) and link.alive
         for sig in (signal.SIGINT, signal.SIGTERM):  # the daemon still needs the client to stop the arm on its way out
-            os.kill(pid, sig)
+            os.kill(first, sig)
         await asyncio.sleep(0.2)
         with pytest.raises(LinkLost, match="test link: a read failed: interfaces are not open"):
             await link.call("a read", 10, "read")
-        with pytest.raises(DeviceError, match="unknown operation") as bad:
-            await link.call("a bad op", 10, "no_such_op")
-        assert not isinstance(bad.value, LinkLost)
-        with pytest.raises(LinkLost, match="the connection failed"):  # nothing listens there
-            await link.call("the connection", 30, "open", f"127.77.{os.getpid() % 250}.251", 100.0)
-        assert link.alive
-        os.kill(pid, signal.SIGSTOP)
+        with pytest.raises(LinkLost, match="a read failed: interfaces are not open; a stop not sent, reconnect first"):
+            await link.call("a stop", 10, "stopL", 10.0)
+        await link.stop(5)
+
+        link = RTDELink("test link")
+        await link.start()
+        second = link.pid
+        os.kill(second, signal.SIGSTOP)
         with pytest.raises(LinkLost, match="no answer within 0.2 s waiting for a read; the ur_rtde process was stopped"):
             await link.call("a read", 0.2, "read")
         with pytest.raises(LinkLost, match="no answer within 0.2 s.*; a stop not sent, reconnect first"):
             await link.call("a stop", 10, "stopL", 10.0)
-        link.post("a posted stop", "stopL", 10.0)  # dropped: the link has ended
+        link.post("a posted stop", 10, "stopL", 10.0)  # dropped: the link has ended
         await link.stop(5)
         await link.stop(5)
+        return first, second
+
+    assert not any(_alive(pid) for pid in arun(run()))
+
+
+def test_rtde_link_ends_when_a_call_its_caller_gave_up_on_is_overdue(arun):
+    """A caller cancelled while the child is stuck (as when the runner's own timeout is shorter than the arm's): the
+    next call does not queue behind the stuck request once that is past its timeout, and stop() does not wait."""
+    async def run():
+        link = RTDELink("test link")
+        await link.start()
+        os.kill(link.pid, signal.SIGSTOP)
+        stuck = asyncio.ensure_future(link.call("stopL", 0.3, "stopL", 10.0))
+        await asyncio.sleep(0.05)
+        stuck.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await stuck
+        assert link.alive  # not overdue yet
+        await asyncio.sleep(0.4)
+        with pytest.raises(LinkLost, match="stopL got no answer in time; the ur_rtde process was stopped; a read not"):
+            await link.call("a read", 30, "read")
+        t0 = time.monotonic()
+        await link.stop(30)
+        return time.monotonic() - t0
+
+    assert arun(run()) < 5
+
+
+def test_a_cancelled_stop_still_ends_the_process(arun):
+    async def run():
+        link = RTDELink("test link")
+        await link.start()
+        pid = link.pid
+        os.kill(pid, signal.SIGSTOP)  # it cannot exit by itself
+        closing = asyncio.ensure_future(link.stop(30))
+        await asyncio.sleep(0.3)
+        closing.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await closing
+        await link.stop(5)  # reaps it and its readers
         return pid
 
     assert not _alive(arun(run()))
