@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import json
 import os
 import signal
@@ -89,8 +90,8 @@ class RTDELink:
     def post(self, what: str, timeout_s: float, op: str, *args) -> None:
         """Send `op(*args)` without waiting for it (its reply is dropped): for last-ditch stops on cancellation. It runs
         after the calls sent before it, and `stop` lets it finish unless it is past timeout_s. Does nothing once the
-        link has ended."""
-        if self.alive:
+        link has ended (never raises: its caller is already on its way out with another error)."""
+        with contextlib.suppress(LinkLost):
             self._send(what, op, args, None, timeout_s)
 
     def end(self, reason: str) -> None:

@@ -25,7 +25,6 @@ constructors hold the GIL while they connect, its destructors for ~0.5 s each).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -173,8 +172,7 @@ class URArm(Arm):
         except asyncio.CancelledError:
             # Runs in the ur_rtde process as soon as it is free.
             if self._link is not None:
-                with contextlib.suppress(LinkLost):  # the cancellation, not a dead link, is what the caller gets
-                    self._link.post("stopL after a cancelled move", self.timeout_s, "stopL", STOP_DECEL)
+                self._link.post("stopL after a cancelled move", self.timeout_s, "stopL", STOP_DECEL)
             raise
 
     async def state(self) -> ArmState:
