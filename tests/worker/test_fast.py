@@ -387,12 +387,12 @@ def test_a_table_scene_pushes_where_few_views_look_and_meshes_above_the_table(ta
 def test_a_table_scene_empties_thin_sheets_within_the_band_above_the_table(table_capture):
     model = make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), {
         **SMALL, "field.thin_sheet_band_m": 0.05}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
-    assert model._sheet_band_m == 0.05
+    assert model.fc.thin_sheet_band_m == 0.05
     for _ in range(6):
         model.step()
     assert model.refined
     sdf, vox = model.field.sdf.detach()[0, 0], model.field.voxel
-    model._sheet_band_m = 4.5 * vox  # a band four node rows high on this coarse test grid
+    model.fc.thin_sheet_band_m = 4.5 * vox  # a band four node rows high on this coarse test grid
     nodes = model.field.node_points().reshape(sdf.shape + (3,))
     z = nodes[..., 2] - model.p.floor_z
     r = torch.hypot(nodes[..., 0] - 0.005, nodes[..., 1] + 0.004)

@@ -96,7 +96,6 @@ class FastModel:
         # The moving average of the grid that meshes are extracted from (schedule.average_decay); restarted at
         # refinement, where the grid changes shape.
         self._average: torch.Tensor | None = None
-        self._sheet_band_m = float(self.fc.thin_sheet_band_m)
         self._make_optimizer()
 
     # ---- optimiser and schedule -------------------------------------------------------------------------------
@@ -314,7 +313,7 @@ class FastModel:
 
         sdf = self.field.sdf.detach()[0, 0]
         z = node_heights(sdf.shape[0], float(self.field.origin[2]), self.field.voxel)
-        thin = thin_near_table((sdf < 0).cpu().numpy(), z, self.p.floor_z, self._sheet_band_m,
+        thin = thin_near_table((sdf < 0).cpu().numpy(), z, self.p.floor_z, self.fc.thin_sheet_band_m,
                                self.fc.thin_sheet_voxels)
         if thin.any():
             with torch.no_grad():
