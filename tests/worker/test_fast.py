@@ -176,6 +176,27 @@ def test_regularisers_vanish_on_a_plane_and_grow_on_noise():
     assert float(eik2.detach()) > 0.01 and float(smooth2.detach()) > 0.01
 
 
+def test_the_smoothness_can_be_kept_to_the_lowest_layers_of_the_grid():
+    field, _ = linear_grid(coef=(0.6, 0.0, 0.8), const=-0.02, n=(12, 12, 12))
+    nodes = band_nodes(field.sdf, 1.0)
+    bumps = torch.zeros_like(field.sdf)
+    bumps[0, 0, 8:] = 0.003 * torch.randn((4, 12, 12), generator=torch.Generator().manual_seed(0),
+                                          dtype=bumps.dtype)
+    rough = (field.sdf.detach() + bumps).requires_grad_(True)  # a plane, rough from z layer 8 up
+    eik, everywhere = grid_regularizers(rough, field.voxel, nodes, 100000)
+    eik_low, low = grid_regularizers(rough, field.voxel, nodes, 100000, smooth_layers=7)
+    assert float(everywhere.detach()) > 0.01 and float(low.detach()) < 1e-12  # layers 0-6 touch no bump
+    assert float(eik_low.detach()) == float(eik.detach())  # the Eikonal term is not limited
+    _, all_layers = grid_regularizers(rough, field.voxel, nodes, 100000, smooth_layers=12)
+    assert float(all_layers.detach()) == float(everywhere.detach())
+    _, up_to_9 = grid_regularizers(rough, field.voxel, nodes, 100000, smooth_layers=9)
+    assert 0.0 < float(up_to_9.detach()) < float(everywhere.detach())
+    # Only the kept layers and the layer above them (their neighbours) are pulled.
+    up_to_9.backward()
+    grad = rough.grad[0, 0]
+    assert float(grad[10:].abs().max()) == 0.0 and float(grad[7:10].abs().max()) > 0.0
+
+
 def test_adam_follows_the_textbook_update():
     x = torch.tensor([1.0, -2.0, 3.0], requires_grad=True)
     ref = x.detach().clone().requires_grad_(True)
@@ -281,6 +302,44 @@ def test_meshes_come_from_the_moving_average_of_the_grid_restarted_at_refinement
         with pytest.raises(ConfigError, match="schedule.average_decay"):
             make_fast_model(scene, with_overrides(preset_config("fast"), {**SMALL, "schedule.average_decay": bad}),
                             "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+
+
+def test_the_coarse_level_smooths_only_near_the_floor_of_a_scene_without_a_table(cylinder_capture, table_capture,
+                                                                                 monkeypatch):
+    import spadscan.worker.recon.fast.model as fast_model
+
+    seen = []
+    real = fast_model.grid_regularizers
+
+    def spy(*args):
+        seen.append(args[5])
+        return real(*args)
+
+    monkeypatch.setattr(fast_model, "grid_regularizers", spy)
+    scene = load_scene(cylinder_capture)
+    model = make_fast_model(scene, with_overrides(preset_config("fast"), {
+        **SMALL, "schedule.coarse_smooth_height_m": 0.03}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
+    assert model.p.floor_z == 0.0 and model.summary()["coarse_smooth_below_z_m"] == pytest.approx(0.03)
+    layers = model._coarse_smooth_layers
+    z0, vox = float(model.field.origin[2]), model.field.voxel
+    assert z0 + (layers - 1) * vox < 0.03 <= z0 + layers * vox  # the layers whose nodes lie below 3 cm
+    for _ in range(6):
+        assert math.isfinite(model.step()["loss"])
+    assert seen == [layers] * 4 + [None] * 2  # the fine level (after 4 steps) smooths everywhere
+
+    seen.clear()
+    for overrides, target in ((SMALL, table_capture), ({**SMALL, "schedule.coarse_smooth_height_m": None},
+                                                       cylinder_capture)):
+        model = make_fast_model(load_scene(target), with_overrides(preset_config("fast"), overrides), "cpu",
+                                RunPlan(steps=1, budget_s=None, seed=0))
+        model.step()
+        assert model.summary()["coarse_smooth_below_z_m"] is None
+    assert seen == [None, None]  # on a table, or when switched off, the coarse level smooths everywhere
+    for bad in (-0.01, float("nan"), 2.0, "low"):
+        config = with_overrides(preset_config("fast"), SMALL)
+        config.schedule.coarse_smooth_height_m = bad
+        with pytest.raises(ConfigError, match="coarse_smooth_height_m"):
+            make_fast_model(scene, config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
 
 def test_a_grid_with_no_surface_is_a_one_line_error(cylinder_capture):

@@ -77,6 +77,17 @@ class FastModel:
         self._push_weight: torch.Tensor | None = None
         from spadscan.protocol.errors import ConfigError
 
+        h = self.sc.coarse_smooth_height_m
+        if h is not None and not (isinstance(h, (int, float)) and 0.0 <= h <= 1.0):  # also refuses NaN
+            raise ConfigError(f"schedule.coarse_smooth_height_m {h} must be in [0, 1] metres or None")
+        # The coarse level's smoothness near the floor only (schedule.coarse_smooth_height_m): its z layers.
+        self.coarse_smooth_top_z: float | None = None
+        self._coarse_smooth_layers: int | None = None
+        if h is not None and self.table is None and problem.floor_z is not None:
+            self.coarse_smooth_top_z = problem.floor_z + h
+            top = (self.coarse_smooth_top_z - float(self.field.origin[2])) / self.field.voxel
+            self._coarse_smooth_layers = max(0, math.ceil(top))  # layers iz with origin_z + iz * voxel < top_z
+
         if self.fc.thin_sheet_voxels < 0:
             raise ConfigError(f"field.thin_sheet_voxels {self.fc.thin_sheet_voxels} must be >= 0 (0: off)")
         if not 0.0 <= self.fc.thin_sheet_band_m <= 1.0:  # also refuses NaN
@@ -188,7 +199,8 @@ class FastModel:
         if self._band is None or self.level_steps % sc.band_refresh_steps == 0:
             self._band = band_nodes(self.field.sdf, sc.band_voxels * self.field.voxel,
                                     self.constraint.bound_for(self.field))
-        eik, smooth = grid_regularizers(self.field.sdf, self.field.voxel, self._band, sc.reg_points, self.gen)
+        eik, smooth = grid_regularizers(self.field.sdf, self.field.voxel, self._band, sc.reg_points, self.gen,
+                                        None if self.refined else self._coarse_smooth_layers)
         reg = lc.eikonal_weight * eik + lc.tv_weight * smooth
         loss = data + reg
         self.opt.zero_grad()
@@ -357,7 +369,8 @@ class FastModel:
                "sharpness_per_m": self.fc.sharpness_voxels / self.field.voxel, "refined": self.refined,
                "converged": self.converged, "albedo": float(torch.exp(self.log_albedo.detach())),
                "hull_rays": int(self.rays.count.sum()), "rays_per_histogram": self.per_hist,
-               "floor_z_m": self.p.floor_z, "empty_space_push": self.empty_space,
+               "floor_z_m": self.p.floor_z, "coarse_smooth_below_z_m": self.coarse_smooth_top_z,
+               "empty_space_push": self.empty_space,
                "mesh_average_decay": self.sc.average_decay, "phantom_erosion": self.phantoms,
                "eroded_nodes": self.eroded_nodes, **self.p.notes}
         if self.table is not None:

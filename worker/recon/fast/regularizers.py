@@ -25,12 +25,15 @@ def band_nodes(values: torch.Tensor, band_m: float, bound: torch.Tensor | None =
 
 
 def grid_regularizers(values: torch.Tensor, voxel: float, nodes: torch.Tensor, n_points: int,
-                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                      generator: torch.Generator | None = None,
+                      smooth_layers: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Eikonal and smoothness terms at up to n_points random nodes among `nodes` (flat interior indices).
 
     values: (1, 1, nz, ny, nx) SDF (metres). eikonal = mean (|grad f| - 1)^2 (central differences); smoothness =
     mean (voxel x laplacian f)^2, the squared change of the unit gradient across one voxel (dimensionless, ~ (voxel /
-    radius of curvature)^2). Returns two scalars (zero when there are no nodes).
+    radius of curvature)^2). smooth_layers: the smoothness counts only at nodes in the lowest this many z layers
+    (the others add zero to its mean, so the weight per node stays the same); None: at every node. Returns two
+    scalars (zero when there are no nodes).
     """
     if nodes.numel() == 0:
         zero = values.new_zeros(())
@@ -49,6 +52,8 @@ def grid_regularizers(values: torch.Tensor, voxel: float, nodes: torch.Tensor, n
     norm = torch.sqrt((grad * grad).sum(-1) + 1e-12)
     eik = ((norm - 1.0) ** 2).mean()
     lap = (xp + xm + yp + ym + zp + zm - 6.0 * c) / voxel
+    if smooth_layers is not None:
+        lap = lap * (nodes < smooth_layers * nx * ny).to(lap.dtype)  # flat index = (z * ny + y) * nx + x
     return eik, (lap * lap).mean()
 
 
