@@ -112,11 +112,11 @@ class FastScheduleConfig:
     The coarse level decides what the hull leaves unobserved. Near the floor that is the object's base, which only
     the lowest views see, at grazing angles: the smoothness keeps it (without it LCSPCData's sphere has its bottom
     cap cut flat at 2-3 cm). Higher up it is hull left over under overhangs and in openings, which the smoothness
-    holds against the data (the built-in lamp's cone of solid under its shade). Step-based, one thread, Chamfer at
-    2,400 steps, everywhere -> below 6 cm: lamp 2.37 -> 1.35 mm (1,800 steps), demo goblet 1.18 -> 0.92, cup
-    3.01 -> 2.57, LCSPC sphere 1.60 -> 1.63, bunny 1.43 -> 1.47, soap 1.83 -> 2.01 (benchmarks/RESULTS.md). On a
-    table the empty-space push does this job, and the real pyramid lost 0.2 mm with it, so table scenes smooth
-    everywhere."""
+    holds against the data (the built-in lamp's cone of solid under its shade). The 180 s benchmark, everywhere ->
+    below 6 cm (benchmarks/RESULTS.md): built-in lamp 2.25 -> 1.24 mm, cup 2.85 -> 2.57, goblet 0.89 -> 0.82,
+    sphere 1.23 -> 1.21, pyramid 0.98 -> 0.97; LCSPCData's bunny 1.28 -> 1.36, soap 1.59 -> 1.81, sphere 1.47 ->
+    1.46. The 6 cm is a length chosen on these scenes. On a table the empty-space push does this job, and the real
+    pyramid lost 0.2 mm with the band (step-based), so table scenes smooth everywhere."""
     reg_points: int = 65536
     """Band nodes drawn per step for the Eikonal and smoothness terms (all of them when the band is smaller)."""
     band_refresh_steps: int = 10
