@@ -4,9 +4,10 @@ Each step renders a batch of views (every zone) with hull-hitting rays and cross
 returns, applies the shared sensor model (pulse, gains, crosstalk, background, pile-up) and scores the counts with
 the photon likelihood, plus finite-difference Eikonal and smoothness terms on the grid (and, on a table, the
 empty-space push of empty_space.py); Adam steps the grid and the albedos, and the grid is projected back inside the
-hull. Without a table, the coarse level smooths only near the floor (`schedule.coarse_smooth_height_m`). On simulated captures, surface whose returns the histograms do not show is eroded every few steps
-(phantoms.py). The grid is refined 2x once; after that the learning rate decays and the run reports `converged` when
-the windowed data term stops improving. Meshes come from a moving average of the grid over the last steps.
+hull. Without a table, the coarse level smooths only near the floor (`schedule.coarse_smooth_height_m`). On
+simulated captures, surface whose returns the histograms do not show is eroded every few steps (phantoms.py). The
+grid is refined 2x once; after that the learning rate decays and the run reports `converged` when the windowed data
+term stops improving. Meshes come from a moving average of the grid over the last steps.
 """
 
 from __future__ import annotations
