@@ -85,9 +85,11 @@ class FastModel:
         self.coarse_smooth_top_z: float | None = None
         self._coarse_smooth_layers: int | None = None
         if h is not None and self.table is None and problem.floor_z is not None:
+            from .mesh import node_heights
+
             self.coarse_smooth_top_z = problem.floor_z + h
-            top = (self.coarse_smooth_top_z - float(self.field.origin[2])) / self.field.voxel
-            self._coarse_smooth_layers = max(0, math.ceil(top))  # layers iz with origin_z + iz * voxel < top_z
+            rows = node_heights(self.field.counts[2], float(self.field.origin[2]), self.field.voxel)
+            self._coarse_smooth_layers = int((rows < self.coarse_smooth_top_z).sum())
 
         if self.fc.thin_sheet_voxels < 0:
             raise ConfigError(f"field.thin_sheet_voxels {self.fc.thin_sheet_voxels} must be >= 0 (0: off)")
