@@ -194,6 +194,27 @@ def test_measured_capture_takes_its_pulse_from_the_reference_and_estimates_backg
     assert load_scene(sim_cap).pulse_source == "sensor model"
 
 
+def test_daemon_capture_from_a_simulated_sensor_is_not_measured(tmp_path):
+    # The daemon records its sensor backend, not rig.kind; a sim TMF8820 must not get the measured-data treatment
+    # (a fitted table at the lowest returns, estimated background, the reference pulse).
+    sensor = sensor_preset("tmf8820")
+    target = np.zeros(3)
+    poses = np.stack([look_at([0.0, 0.0, 0.3], target), look_at([0.2, 0.0, 0.25], target)])
+    hists = np.random.default_rng(0).poisson(150, (2, 9, 128)).astype(np.uint32)
+    ref = np.random.default_rng(1).poisson(4, (2, 128)).astype(np.float64)
+    ref[:, 12:20] += 2e5 * np.exp(-0.5 * ((np.arange(12, 20) - 14.27) / 0.8) ** 2)
+    ref = ref.astype(np.uint32)
+    kinds = {}
+    for backend in ("sim", "serial", "i2c"):
+        cap = write_capture(tmp_path / backend, sensor, hists, poses, reference=ref,
+                            rig={"arm": {"backend": "sim"}, "sensor": {"backend": backend, "preset": "tmf8820"},
+                                 "writer": "spadscan-daemon"})
+        scene = load_scene(cap)
+        kinds[backend] = (scene.real, scene.table is not None, scene.pulse_source, scene.background_source)
+    assert kinds["sim"] == (False, False, "sensor model", "sensor model")
+    assert kinds["serial"] == kinds["i2c"] == (True, True, "reference", "estimated")
+
+
 def test_table_scene_renders_and_meshes_only_the_object(tmp_path):
     sensor = sensor_preset("tmf8820")
     target = np.array([0.0, 0.0, 0.03])

@@ -10,8 +10,9 @@ The manifest's `scene` dict may say (all optional, metres):
 - `"table": {"normal": [nx, ny, nz], "offset": d}` (the plane n . x = d, n pointing up) or `"table": {"z": h}`, or
   `"table": true` for a horizontal table whose height is fitted, or `"table": false`; measured scenes that say
   nothing get a fitted table (on the arm rig the object stands on one), simulated ones none;
-- `"real": true|false` — measured data (default: false for a simulated rig, else whether the sensor model carries
-  reference histograms, i.e. is hardware). Only measured data take their pulse from reference histograms.
+- `"real": true|false` — measured data (default: false for a simulated rig (`rig.kind` "simulated") or a daemon's
+  simulated sensor (`rig.sensor.backend` "sim"), else whether the sensor model carries reference histograms, i.e.
+  is hardware). Only measured data take their pulse from reference histograms.
 """
 
 from __future__ import annotations
@@ -139,11 +140,14 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
 
 
 def _is_real(scene: dict, manifest: dict, sensor: SensorModel) -> bool:
-    """Measured data? The scene's `real` flag when given; else not when the rig is simulated; else whether the
-    sensor model is a hardware one (it carries reference histograms)."""
+    """Measured data? The scene's `real` flag when given; else not when the rig or its sensor is simulated; else
+    whether the sensor model is a hardware one (it carries reference histograms)."""
     if "real" in scene:
         return bool(scene["real"])
-    if (manifest.get("rig") or {}).get("kind") == "simulated":
+    rig = manifest.get("rig") or {}
+    if rig.get("kind") == "simulated":  # written by `spadscan simulate`
+        return False
+    if (rig.get("sensor") or {}).get("backend") == "sim":  # the daemon's simulated sensor
         return False
     return bool(sensor.has_reference)
 
