@@ -15,11 +15,14 @@ from spadscan.protocol.capture_reader import CaptureReader
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("arm", ["sim", "ur-sim"])
-def test_demo_finishes_with_a_summary_and_no_process_left(tmp_path, arm):
-    """ur-sim: the real ur_rtde client (in its own process) against the simulated UR controller."""
+@pytest.mark.parametrize("arm, sensor", [("sim", "lcspc-sim"), ("ur-sim", "lcspc-sim"), ("sim", "tmf8820")])
+def test_demo_finishes_with_a_summary_and_no_process_left(tmp_path, arm, sensor):
+    """ur-sim: the real ur_rtde client (in its own process) against the simulated UR controller. tmf8820: the
+    simulated 3x3-zone sensor, whose captures the worker must still treat as simulated (no table, no estimated
+    background), though the model carries reference histograms like the hardware."""
     out = tmp_path / "demo"
-    r = spadscan("demo", "--out", out, "--views", 8, "--budget-s", 10, "--arm", arm, timeout=480)
+    r = spadscan("demo", "--out", out, "--views", 8, "--budget-s", 10, "--arm", arm, "--sensor", sensor,
+                 timeout=480)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "Traceback" not in r.stderr
     summary = json.loads((out / "summary.json").read_text())
@@ -28,6 +31,9 @@ def test_demo_finishes_with_a_summary_and_no_process_left(tmp_path, arm):
     for key in ("mesh", "report"):
         assert Path(summary[key]).is_file(), f"summary {key}: {summary[key]} does not exist"
     assert Path(summary["mesh"]).parent == Path(summary["report"]).parent
+    report = json.loads(Path(summary["report"]).read_text())
+    assert report["scene"]["sensor"] == sensor and report["scene"]["real"] is False
+    assert report["scene"]["table"] is None and report["scene"]["background"] == "sensor model"
     stages = summary["seconds"]
     assert {"start_s", "scan_s", "reconstruct_s", "total_s"} <= set(stages)
     assert all(isinstance(v, (int, float)) and v >= 0 for v in stages.values())
