@@ -139,7 +139,7 @@ def test_scan_overrides_are_validated_like_the_file():
     base = ScanConfig()
     s = scan_with(base, {"views": 12, "target": [0.1, 0, 0], "jitter_deg": 5})
     assert s.views == 12 and s.jitter_deg == 5 and s.target.tolist() == [0.1, 0, 0]
-    assert base.views == ScanConfig().views != 12  # the defaults are untouched
+    assert base.views == 128  # the defaults are untouched (and the default is the paper rigs' 120-128)
     for bad, word in (({"view": 3}, "unknown key"), ({"views": -1}, "outside"), ({"radius_m": "far"}, "number")):
         with pytest.raises(ConfigError, match=word):
             scan_with(base, bad)
