@@ -1,0 +1,65 @@
+"""benchmarks/error_vs_time.py's table: the columns it prints, the marks it accepts, and the overrides it passes on."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "error_vs_time.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("error_vs_time", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def run(trace, final, kind="preset"):
+    """A result as run_preset writes it: trace entries of (wall seconds, Chamfer mm)."""
+    return {"scene": "bunny", "method": "fast", "kind": kind, "stopped_by": "budget", "peak_rss_mb": 2000.0,
+            "final_chamfer_mm": final, "trace": [{"wall_seconds": t, "chamfer_mm": c} for t, c in trace]}
+
+
+def test_marks_are_columns_and_the_budget_mark_shows_the_final_checkpoint(bench):
+    # Set-up took 2.8 s; the last step overran the 20 s budget by 0.04 s.
+    result = run([(2.8, 22.4), (4.8, 2.91), (6.8, 1.89), (10.8, 1.91), (20.04, 1.58)], 1.58)
+    text = bench.table([result], 20.0, (5.0, 10.0, 20.0, 30.0))
+    head, _, row = text.splitlines()
+    assert [c.strip() for c in head.strip("|").split("|")][2:5] == ["@5 s", "@10 s", "@20 s"]  # 30 s > budget
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2:6] == ["2.91", "1.89", "1.58", "1.58"]
+    assert cells[7] == "6.80 s"  # the first checkpoint at or under 2 mm
+
+
+def test_a_mark_before_the_first_checkpoint_is_a_dash(bench):
+    text = bench.table([run([(16.2, 44.2), (20.0, 5.01)], 5.01)], 20.0, (5.0, 10.0, 20.0))
+    cells = [c.strip() for c in text.splitlines()[2].strip("|").split("|")]
+    assert cells[2:5] == ["-", "-", "5.01"]
+    assert cells[7] == "-"  # never under 2 mm
+
+
+def test_marks_must_be_positive_finite_and_increasing(bench):
+    assert bench.parse_marks("5,10,30") == (5.0, 10.0, 30.0)
+    assert bench.parse_marks("2.5") == (2.5,)
+    for bad in ("", "10,5", "5,5", "0,5", "-1", "inf", "nan", "five"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            bench.parse_marks(bad)
+
+
+def test_bad_marks_are_a_one_line_usage_error(bench, capsys):
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--scenes", "x", "--budget-s", "10", "--marks", "10,5"])
+    assert exc.value.code == 2
+    assert "marks must be positive, finite and increasing" in capsys.readouterr().err
+
+
+def test_overrides_reach_the_preset_config_and_bad_keys_are_refused(bench, tmp_path):
+    from spadscan.protocol.errors import SpadscanError
+
+    with pytest.raises(SpadscanError, match="no_such_field"):
+        bench.run_preset(tmp_path, "fast", 1.0, 1.0, "cpu", 0, tmp_path, overrides=["schedule.no_such_field=1"])
