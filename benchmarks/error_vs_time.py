@@ -100,7 +100,7 @@ def chamfer_mm(mesh, gt, crop_z, n_points: int) -> float | None:
 
 # ---- one run (in its own process) -----------------------------------------------------------------------------------
 def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, device: str, seed: int,
-               out: Path, eval_resolution: int | None = None, overrides: list[str] = ()) -> dict:
+               out: Path, eval_resolution: int | None = None, overrides: tuple[str, ...] | list[str] = ()) -> dict:
     """Run one preset on one capture; returns {trace: [{seconds, wall_seconds, step, chamfer_mm}], ...}."""
     import resource
 
@@ -147,7 +147,8 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     return {"method": preset, "kind": "preset", "device": str(dev),
             "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or "cpu",
             "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": steps,
-            "train_s": train_s, "stopped_by": stopped_by, "overrides": list(overrides), "trace": trace, "final_chamfer_mm": final,
+            "train_s": train_s, "stopped_by": stopped_by, "overrides": list(overrides), "trace": trace,
+            "final_chamfer_mm": final,
             "crop_z_m": crop_z, "peak_rss_mb": peak_mb, "summary": _jsonable(model.summary()),
             "total_s": time.perf_counter() - t0}
 
@@ -383,8 +384,7 @@ def main(argv=None) -> int:
             results.append(res)
     text = [f"Machine: {header}", f"Budget: {args.budget_s:g} s wall per run (set-up included)"]
     text += [f"Overrides: {' '.join(args.overrides)}"] if args.overrides else []
-    text += ["",
-            table(results, args.budget_s, args.marks), ""] + speedups(results)
+    text += ["", table(results, args.budget_s, args.marks), ""] + speedups(results)
     print("\n".join(text))
     (args.out / "results.json").write_text(json.dumps({"machine": header, "budget_s": args.budget_s,
                                                        "results": results}, indent=1))

@@ -14,3 +14,19 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def cylinder_capture(tmp_path_factory):
+    """24 simulated views of worker_helpers.cylinder_mesh from 0.3 m (LCSPCData's simulated sensor)."""
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+    from worker_helpers import cylinder_mesh
+
+    path = tmp_path_factory.mktemp("cylinder") / "cyl"
+    poses = fibonacci_hemisphere(24, 0.3, target=(0, 0, 0.03), min_elevation_deg=5)
+    simulate_capture(cylinder_mesh(), sensor_preset("lcspc-sim"), poses, path,
+                     settings=SimSettings(rays_per_zone=1024), seed=3, progress=False)
+    return path

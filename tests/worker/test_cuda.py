@@ -11,47 +11,20 @@ import numpy as np
 import pytest
 import torch
 
-from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker.recon.config import preset_config, with_overrides
 from spadscan.worker.recon.fast.grid_field import GridField
 from spadscan.worker.recon.fast.model import make_fast_model
 from spadscan.worker.recon.fast.render import render_returns
-from spadscan.worker.recon.forward import ModelTerms, TransientForward
 from spadscan.worker.recon.model_api import RunPlan
-from spadscan.worker.recon.pulse import pulse_kernel
 from spadscan.worker.recon.scene_data import load_scene
+from worker_helpers import PAPER_SMALL, cylinder_mesh, sensor_forward
 
 F32, F64 = torch.float32, torch.float64
 CUDA = torch.device("cuda")
 
 pytestmark = [pytest.mark.cuda, pytest.mark.usefixtures("one_thread"),
               pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device")]
-
-
-def cylinder_mesh():
-    import trimesh
-
-    mesh = trimesh.creation.cylinder(radius=0.04, height=0.08, sections=48)
-    mesh.apply_translation([0.005, -0.004, 0.04])  # standing on z = 0
-    return mesh
-
-
-@pytest.fixture(scope="module")
-def capture(tmp_path_factory):
-    """24 simulated views of a cylinder on the floor, from 0.3 m (LCSPCData's simulated sensor)."""
-    path = tmp_path_factory.mktemp("cuda") / "cyl"
-    poses = fibonacci_hemisphere(24, 0.3, target=(0, 0, 0.03), min_elevation_deg=5)
-    simulate_capture(cylinder_mesh(), sensor_preset("lcspc-sim"), poses, path,
-                     settings=SimSettings(rays_per_zone=1024), seed=3, progress=False)
-    return path
-
-
-def forward_for(sensor, dtype, device, oversample=4):
-    kernel, origin, _ = pulse_kernel(sensor, None, oversample)
-    terms = ModelTerms(pileup=True, crosstalk=sensor.n_zones > 1, table=False, tv=False, reference_pulse=False)
-    return TransientForward(sensor, terms, torch.tensor(kernel, dtype=dtype), origin, oversample).to(device)
 
 
 def rel_err(got: torch.Tensor, want: torch.Tensor) -> float:
@@ -69,7 +42,7 @@ def test_the_sensor_model_in_float32_on_cuda_matches_float64_on_the_cpu(preset):
     ids = rng.integers(0, n_hist, n)
     out = {}
     for dev, dt in ((torch.device("cpu"), F64), (CUDA, F32)):
-        fw = forward_for(sensor, dt, dev)
+        fw = sensor_forward(sensor, dt, oversample=4).to(dev)
         tr = fw.bin(torch.tensor(ranges, dtype=dt, device=dev), torch.tensor(radiance, dtype=dt, device=dev),
                     torch.tensor(ids, device=dev), n_hist)
         lam = fw.rates(tr.reshape(6, sensor.n_zones, -1), sensor.background)
@@ -119,18 +92,19 @@ SMALL = {"field.resolution": 32, "field.hull_resolution": 48, "field.refine_afte
          "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
 
 
-def test_the_fast_preset_trains_on_cuda_as_well_as_on_the_cpu(capture):
+def test_the_fast_preset_trains_on_cuda_as_well_as_on_the_cpu(cylinder_capture):
     from spadscan.worker.metrics import mesh_metrics
 
     gt = cylinder_mesh()
     config = with_overrides(preset_config("fast"), SMALL)
     result = []
     for device in ("cpu", "cuda"):
-        model = make_fast_model(load_scene(capture, device), config, device, RunPlan(steps=100, budget_s=None, seed=0))
+        scene = load_scene(cylinder_capture, device)
+        model = make_fast_model(scene, config, device, RunPlan(steps=100, budget_s=None, seed=0))
         chamfer0 = mesh_metrics(model.extract_mesh(48), gt, n_points=5000).chamfer_mm
         data = [model.step()["data"] for _ in range(100)]
         result.append((np.mean(data[:5]), np.mean(data[-10:]), chamfer0,
-                          mesh_metrics(model.extract_mesh(48), gt, n_points=5000).chamfer_mm))
+                       mesh_metrics(model.extract_mesh(48), gt, n_points=5000).chamfer_mm))
         if device == "cuda":
             assert model.field.sdf.device.type == "cuda"
             rendered = model.render_histograms([0, 7])
@@ -143,14 +117,12 @@ def test_the_fast_preset_trains_on_cuda_as_well_as_on_the_cpu(capture):
     assert d1 < 1.3 * cpu_d1 and c1 < max(1.3 * cpu_c1, cpu_c1 + 0.5), result
 
 
-def test_the_paper_preset_trains_on_cuda(capture):
+def test_the_paper_preset_trains_on_cuda(cylinder_capture):
     from spadscan.worker.recon.paper.model import make_paper_model
 
-    small = {"rays.rays_per_view": 48, "rays.importance_rays_per_view": 16, "rays.samples_per_ray": 32,
-             "rays.importance_samples": 16, "field.width": 64, "field.layers": 4, "field.skip_layers": [2],
-             "optim.lr": 1e-3}
-    config = with_overrides(preset_config("paper"), small)
-    model = make_paper_model(load_scene(capture, "cuda"), config, "cuda", RunPlan(steps=60, budget_s=None, seed=0))
+    config = with_overrides(preset_config("paper"), PAPER_SMALL)
+    scene = load_scene(cylinder_capture, "cuda")
+    model = make_paper_model(scene, config, "cuda", RunPlan(steps=60, budget_s=None, seed=0))
     losses = [model.step()["loss"] for _ in range(60)]
     assert all(math.isfinite(v) for v in losses)
     assert np.mean(losses[-10:]) < np.mean(losses[:5])
@@ -159,12 +131,12 @@ def test_the_paper_preset_trains_on_cuda(capture):
     assert rendered.shape[0] == 2 and np.all(np.isfinite(rendered))
 
 
-def test_reconstruct_on_cuda_writes_every_output_and_says_cuda(capture, tmp_path):
+def test_reconstruct_on_cuda_writes_every_output_and_says_cuda(cylinder_capture, tmp_path):
     from spadscan.cli import main
 
     out = tmp_path / "o"
-    args = ["reconstruct", str(capture), "--out", str(out), "--device", "cuda", "--steps", "150", "--no-progress",
-            "--gt", str(tmp_path / "gt.ply")]
+    args = ["reconstruct", str(cylinder_capture), "--out", str(out), "--device", "cuda", "--steps", "150",
+            "--no-progress", "--gt", str(tmp_path / "gt.ply")]
     cylinder_mesh().export(tmp_path / "gt.ply")
     assert main(args + ["--set", "field.resolution=32", "--set", "field.refine_after_steps=60"]) == 0
     for name in ("mesh.ply", "report.json", "preview.png", "fit.png", "error_vs_time.png"):

@@ -25,6 +25,7 @@ from spadscan.worker.recon.fast.render import section_ranges, section_weights
 from spadscan.worker.recon.fast.sampler import around_crossing, hull_rays
 from spadscan.worker.recon.model_api import ReconModel, RunPlan
 from spadscan.worker.recon.scene_data import load_scene
+from worker_helpers import cylinder_mesh
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -229,24 +230,6 @@ def test_adam_leaves_untouched_elements_where_they_are():
 
 
 # ---- runs on simulated captures -----------------------------------------------------------------------------------
-def cylinder_mesh():
-    import trimesh
-
-    mesh = trimesh.creation.cylinder(radius=0.04, height=0.08, sections=48)
-    mesh.apply_translation([0.005, -0.004, 0.04])  # standing on z = 0
-    return mesh
-
-
-@pytest.fixture(scope="module")
-def cylinder_capture(tmp_path_factory):
-    """24 simulated views of a cylinder on the floor, from 0.3 m (LCSPCData's simulated sensor)."""
-    path = tmp_path_factory.mktemp("fast") / "cyl"
-    poses = fibonacci_hemisphere(24, 0.3, target=(0, 0, 0.03), min_elevation_deg=5)
-    simulate_capture(cylinder_mesh(), sensor_preset("lcspc-sim"), poses, path,
-                     settings=SimSettings(rays_per_zone=1024), seed=3, progress=False)
-    return path
-
-
 SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine_after_steps": 4,
          "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
 

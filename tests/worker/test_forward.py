@@ -13,12 +13,12 @@ from spadscan.protocol.schedules import look_at
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, Simulator
 from spadscan.worker.recon.errors import ReconstructionError
-from spadscan.worker.recon.forward import ModelTerms, TransientForward, choose_terms
+from spadscan.worker.recon.forward import choose_terms
 from spadscan.worker.recon.pipeline import render_transients, world_rays
-from spadscan.worker.recon.pulse import pulse_kernel
 from spadscan.worker.recon.rays import zone_rays
 from spadscan.worker.recon.render import SphereField
 from spadscan.worker.recon.sampler import sphere_interval, stratified
+from worker_helpers import sensor_forward
 
 F64 = torch.float64
 
@@ -26,16 +26,9 @@ F64 = torch.float64
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def make_forward(sensor, pileup_on=True, oversample=8, crosstalk=None):
-    terms = ModelTerms(pileup=pileup_on, crosstalk=sensor.n_zones > 1 if crosstalk is None else crosstalk,
-                       table=False, tv=False, reference_pulse=False)
-    kernel, origin, _ = pulse_kernel(sensor, None, oversample)
-    return TransientForward(sensor, terms, torch.tensor(kernel, dtype=F64), origin, oversample)
-
-
 def render_sphere_rates(sensor, poses, center, radius, rays_per_zone, samples):
     """Rates (V, Z, B) of an analytic sphere through the renderer and the forward model (float64, sharp)."""
-    fw = make_forward(sensor)
+    fw = sensor_forward(sensor, oversample=8)
     field = SphereField(center, radius)
     dirs, w = zone_rays(sensor, rays_per_zone, jitter=True, generator=torch.Generator().manual_seed(1), dtype=F64)
     org, d = world_rays(torch.tensor(poses), dirs)
@@ -71,7 +64,7 @@ def test_rendered_sphere_matches_simulated_sphere_mesh(preset, rays, samples):
 
 def test_bin_conserves_mass_and_mean_arrival():
     sensor = sensor_preset("lcspc-sim")
-    fw = make_forward(sensor, oversample=4)
+    fw = sensor_forward(sensor, oversample=4)
     ranges = torch.tensor([0.2, 0.2001, 0.35, 0.5], dtype=F64)
     rad = torch.tensor([1.0, 2.0, 0.5, 0.25], dtype=F64)
     hist = torch.tensor([0, 0, 1, 1])
@@ -87,7 +80,7 @@ def test_bin_conserves_mass_and_mean_arrival():
 
 def test_bin_drops_returns_off_the_axis_and_nonfinite_ranges():
     sensor = sensor_preset("tmf8820")
-    fw = make_forward(sensor, oversample=2)
+    fw = sensor_forward(sensor, oversample=2)
     ranges = torch.tensor([-5.0, 50.0, float("nan"), float("inf"), 0.3], dtype=F64)
     out = fw.bin(ranges, torch.ones(5, dtype=F64), torch.zeros(5, dtype=torch.long), 1)
     assert torch.isfinite(out).all()
@@ -96,7 +89,7 @@ def test_bin_drops_returns_off_the_axis_and_nonfinite_ranges():
 
 def test_per_bin_transient_equals_evenly_spread_fine_transient():
     sensor = sensor_preset("tmf8820")
-    fw = make_forward(sensor, oversample=4)
+    fw = sensor_forward(sensor, oversample=4)
     per_bin = torch.zeros(1, 9, sensor.n_bins, dtype=F64)
     per_bin[0, :, 40] = 1.0
     # The same returns, spread evenly over bin 40 on the fine axis.
@@ -109,7 +102,7 @@ def test_per_bin_transient_equals_evenly_spread_fine_transient():
 
 def test_rates_apply_gains_crosstalk_and_background():
     sensor = sensor_preset("tmf8820")
-    fw = make_forward(sensor, oversample=1)
+    fw = sensor_forward(sensor, oversample=1)
     tr = torch.zeros(1, 9, sensor.n_bins, dtype=F64)
     tr[0, 4, 50] = 1.0  # only the centre zone sees anything
     lam = fw.rates(tr, torch.full((1, 9), 1e-5, dtype=F64))
@@ -124,7 +117,7 @@ def test_rates_apply_gains_crosstalk_and_background():
 
 
 def test_rates_refuse_wrong_shapes():
-    fw = make_forward(sensor_preset("tmf8820"), oversample=1)
+    fw = sensor_forward(sensor_preset("tmf8820"), oversample=1)
     with pytest.raises(ReconstructionError, match="bins"):
         fw.rates(torch.zeros(1, 9, 77, dtype=F64), 1e-6)
     with pytest.raises(ReconstructionError, match="zones"):
@@ -133,7 +126,7 @@ def test_rates_refuse_wrong_shapes():
 
 def test_detections_match_the_protocol_pileup():
     sensor = sensor_preset("lcspc-sim")
-    fw = make_forward(sensor)
+    fw = sensor_forward(sensor, oversample=8)
     rng = np.random.default_rng(0)
     lam = rng.gamma(0.5, 0.01, size=(2, 1, sensor.n_bins))
     lam[0, 0, 300] = 3.0  # a saturating peak
@@ -145,7 +138,7 @@ def test_detections_match_the_protocol_pileup():
 def test_nll_is_smallest_at_the_true_rates_and_finite_at_extremes():
     sensor = sensor_preset("lcspc-sim")
     for pile in (True, False):
-        fw = make_forward(sensor, pileup_on=pile, oversample=1)
+        fw = sensor_forward(sensor, pileup=pile, oversample=1)
         lam = torch.full((1, 1, sensor.n_bins), 2e-4, dtype=F64)
         lam[0, 0, 400:410] = 0.05
         rng = np.random.default_rng(1)
@@ -181,7 +174,7 @@ def test_choose_terms_follow_the_capture():
 
 def test_gradients_of_binning_rates_and_likelihood_by_finite_differences():
     sensor = sensor_preset("tmf8820").with_(n_bins=24, zero_bin=2.0, jitter_bins=0.0)
-    fw = make_forward(sensor, oversample=2)
+    fw = sensor_forward(sensor, oversample=2)
     counts = torch.tensor(np.random.default_rng(2).integers(0, 50, (1, 9, 24)), dtype=F64)
     cyc = torch.tensor([2000.0], dtype=F64)
     hist = torch.tensor([0, 3, 8])

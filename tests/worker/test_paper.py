@@ -22,11 +22,7 @@ from spadscan.worker.recon.paper.field import MLPField
 from spadscan.worker.recon.paper.model import make_paper_model
 from spadscan.worker.recon.pulse import KERNEL_BEFORE
 from spadscan.worker.recon.scene_data import load_scene
-
-SMALL = {"rays.rays_per_view": 48, "rays.importance_rays_per_view": 16, "rays.samples_per_ray": 32,
-         "rays.importance_samples": 16, "field.width": 64, "field.layers": 4, "field.skip_layers": [2],
-         "optim.lr": 1e-3}
-"""The paper's method at a size a unit test can afford (the network and the ray counts shrink, nothing else)."""
+from worker_helpers import PAPER_SMALL
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -51,7 +47,7 @@ def box_capture(tmp_path_factory):
 
 
 def small_paper(**extra):
-    return with_overrides(preset_config("paper"), {**SMALL, **extra})
+    return with_overrides(preset_config("paper"), {**PAPER_SMALL, **extra})
 
 
 def fit_error(model, scene) -> float:

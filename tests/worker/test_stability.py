@@ -18,20 +18,14 @@ from spadscan.worker.recon.loss import hist_l2, hist_scale
 from spadscan.worker.recon.mesh import marching_cubes_mesh
 from spadscan.worker.recon.paper.config import MLPFieldConfig
 from spadscan.worker.recon.paper.field import MLPField
-from spadscan.worker.recon.pulse import pulse_kernel
 from spadscan.worker.recon.rays import ZoneGrid
 from spadscan.worker.recon.render import SphereField, render_rays
+from worker_helpers import sensor_forward
 
 F32, F64 = torch.float32, torch.float64
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def forward_for(sensor, dtype=F64, pileup=True, oversample=2):
-    kernel, origin, _ = pulse_kernel(sensor, None, oversample)
-    terms = ModelTerms(pileup=pileup, crosstalk=sensor.n_zones > 1, table=False, tv=False, reference_pulse=False)
-    return TransientForward(sensor, terms, torch.tensor(kernel, dtype=dtype), origin, oversample)
 
 
 def rays_at_sphere(n=16, dtype=F64, spread=0.26):
@@ -82,7 +76,7 @@ def test_samples_a_millimetre_from_the_sensor_and_on_it():
         out.radiance.sum().backward()
         assert torch.isfinite(out.radiance).all() and float(out.radiance.detach().sum()) > 0
         assert torch.isfinite(field.radius.grad)
-    fw = forward_for(sensor_preset("tmf8820"))
+    fw = sensor_forward(sensor_preset("tmf8820"))
     tr = fw.bin(out.ranges.reshape(-1), out.radiance.detach().reshape(-1), torch.zeros(63, dtype=torch.long), 9)
     lam = fw.rates(tr.reshape(1, 9, -1), 1e-5)
     assert torch.isfinite(lam).all() and torch.isfinite(fw.detections(lam)).all()
@@ -91,7 +85,7 @@ def test_samples_a_millimetre_from_the_sensor_and_on_it():
 @pytest.mark.parametrize("flux", [1e-12, 1.0, 1e3, 1e8])
 def test_flux_up_to_and_past_saturation(flux):
     sensor = sensor_preset("tmf8820")
-    fw = forward_for(sensor)
+    fw = sensor_forward(sensor)
     lam = torch.full((1, 9, sensor.n_bins), 1e-4, dtype=F64)
     lam[..., 30:34] = flux
     lam.requires_grad_(True)
@@ -107,7 +101,7 @@ def test_flux_up_to_and_past_saturation(flux):
 
 def test_zero_photon_histograms():
     sensor = sensor_preset("lcspc-sim")
-    fw = forward_for(sensor, pileup=True)
+    fw = sensor_forward(sensor, pileup=True)
     counts = torch.zeros(2, 1, sensor.n_bins, dtype=F64)
     cycles = torch.full((2,), 5000.0, dtype=F64)
     valid = torch.ones_like(counts, dtype=torch.bool)
@@ -118,13 +112,13 @@ def test_zero_photon_histograms():
     for fn in (lambda: fw.nll(lam, counts, cycles), lambda: hist_l2(fw, lam, counts, cycles, valid, scale)):
         v = fn()
         assert torch.isfinite(v)
-    fw_no = forward_for(sensor, pileup=False)
+    fw_no = sensor_forward(sensor, pileup=False)
     assert torch.isfinite(fw_no.nll(lam, counts, cycles))
 
 
 def test_24_bit_saturated_counts():
     sensor = sensor_preset("tmf8820")
-    fw = forward_for(sensor)
+    fw = sensor_forward(sensor)
     counts = torch.full((1, 9, sensor.n_bins), 150.0, dtype=F64)
     counts[..., 20:30] = float(2 ** 24 - 1)  # far more than the cycles can explain
     cycles = torch.tensor([4e6], dtype=F64)
@@ -150,7 +144,7 @@ def test_bins_ten_times_finer_or_coarser_conserve_the_signal(factor):
                        pulse=type(pulse)(kind="exgauss", sigma_bins=pulse.sigma_bins / factor,
                                          tau_bins=pulse.tau_bins / factor))
     for sensor in (base, other):
-        fw = forward_for(sensor)
+        fw = sensor_forward(sensor)
         tr = fw.bin(out.ranges.reshape(-1), out.radiance.detach().reshape(-1), torch.zeros(399, dtype=torch.long), 9)
         lam = fw.rates(tr.reshape(1, 9, -1), 0.0) - 0.0
         assert torch.isfinite(lam).all()
@@ -182,7 +176,7 @@ def test_pipeline_gradient_of_an_mlp_field_by_finite_differences():
     torch.manual_seed(1)
     field = MLPField(cfg, torch.zeros(3, dtype=F64), 0.2).to(F64)
     sensor = sensor_preset("tmf8820").with_(n_bins=48)
-    fw = forward_for(sensor)
+    fw = sensor_forward(sensor)
     o, d = rays_at_sphere(6, spread=0.3)
     t = torch.linspace(0.2, 0.6, 24, dtype=F64).expand(6, -1)
     counts = torch.tensor(np.random.default_rng(0).integers(0, 30, (1, 9, 48)), dtype=F64)

@@ -1,0 +1,30 @@
+"""Scenes and model pieces that several of the worker's test modules build the same way."""
+
+from __future__ import annotations
+
+import torch
+
+from spadscan.worker.recon.forward import ModelTerms, TransientForward
+from spadscan.worker.recon.pulse import pulse_kernel
+
+PAPER_SMALL = {"rays.rays_per_view": 48, "rays.importance_rays_per_view": 16, "rays.samples_per_ray": 32,
+               "rays.importance_samples": 16, "field.width": 64, "field.layers": 4, "field.skip_layers": [2],
+               "optim.lr": 1e-3}
+"""The paper's method at a size a unit test can afford (the network and the ray counts shrink, nothing else)."""
+
+
+def cylinder_mesh():
+    """A cylinder of radius 4 cm and height 8 cm standing on z = 0, a little off the axis."""
+    import trimesh
+
+    mesh = trimesh.creation.cylinder(radius=0.04, height=0.08, sections=48)
+    mesh.apply_translation([0.005, -0.004, 0.04])
+    return mesh
+
+
+def sensor_forward(sensor, dtype=torch.float64, pileup=True, oversample=2, crosstalk=None) -> TransientForward:
+    """The sensor model with the preset's own pulse; crosstalk on for multi-zone sensors unless told otherwise."""
+    terms = ModelTerms(pileup=pileup, crosstalk=sensor.n_zones > 1 if crosstalk is None else crosstalk,
+                       table=False, tv=False, reference_pulse=False)
+    kernel, origin, _ = pulse_kernel(sensor, None, oversample)
+    return TransientForward(sensor, terms, torch.tensor(kernel, dtype=dtype), origin, oversample)
