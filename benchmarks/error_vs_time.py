@@ -15,6 +15,9 @@ with a table, Chamfer is measured on the object above the table: both meshes are
 Prints one table (scene x method: Chamfer at each of --marks (default 30 s, 60 s, 180 s) and at the end, time to
 reach 2 mm, peak memory), the speed-up of `fast` over `paper` (time for `fast` to reach the Chamfer `paper` reaches
 at the end of its budget), and saves one plot (error_vs_time.png) and all numbers (results.json) in --out.
+
+A run writes its checkpoints so far to runs/<scene>-<method>.partial.json as it goes. If it is killed (Ctrl-C, or a
+time limit's SIGTERM to this script), the table still comes out, with that run's checkpoints marked "cut off".
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import argparse
 import json
 import os
 import platform
+import signal
 import subprocess
 import sys
 import time
@@ -100,8 +104,11 @@ def chamfer_mm(mesh, gt, crop_z, n_points: int) -> float | None:
 
 # ---- one run (in its own process) -----------------------------------------------------------------------------------
 def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, device: str, seed: int,
-               out: Path, eval_resolution: int | None = None, overrides: tuple[str, ...] | list[str] = ()) -> dict:
-    """Run one preset on one capture; returns {trace: [{seconds, wall_seconds, step, chamfer_mm}], ...}."""
+               out: Path, eval_resolution: int | None = None, overrides: tuple[str, ...] | list[str] = (),
+               partial: Path | None = None) -> dict:
+    """Run one preset on one capture; returns {trace: [{seconds, wall_seconds, step, chamfer_mm}], ...}.
+    With `partial`, the trace so far is rewritten there after every checkpoint, so that a run killed before its end
+    (a time limit, Ctrl-C) still leaves its checkpoints behind."""
     import resource
 
     import torch
@@ -138,7 +145,9 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
             return {"chamfer_mm": None, "note": str(exc)}
         return {"chamfer_mm": chamfer_mm(mesh, gt, crop_z, points)}
 
-    trace, steps, train_s, stopped_by = training_trace(model, plan.budget_s, every_s, evaluate, config.early_stop)
+    keep = None if partial is None else partial_writer(partial, preset, str(dev), setup_s)
+    trace, steps, train_s, stopped_by = training_trace(model, plan.budget_s, every_s, evaluate, config.early_stop,
+                                                       keep)
     trace = [{**e, "wall_seconds": e["seconds"] + setup_s} for e in trace]
     final = trace[-1].get("chamfer_mm")  # the last checkpoint is the end of the run
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -153,12 +162,12 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
             "total_s": time.perf_counter() - t0}
 
 
-def training_trace(model, budget_s: float, every_s: float, evaluate,
-                   early_stop: bool) -> tuple[list[dict], int, float, str]:
+def training_trace(model, budget_s: float, every_s: float, evaluate, early_stop: bool,
+                   on_checkpoint=None) -> tuple[list[dict], int, float, str]:
     """Step the model for budget_s seconds of training time (or, with early_stop, until a step reports `converged`),
     evaluating every every_s seconds of it (and at the start and the end). Evaluation time is not training time: the
     curve is error against the time the method itself took. A run that stops early keeps its last mesh: the tables
-    carry its final Chamfer forward to the later columns.
+    carry its final Chamfer forward to the later columns. on_checkpoint(trace) is called after each checkpoint.
     Returns (trace [{step, seconds, loss, chamfer_mm}], steps, training seconds, 'budget' or 'converged')."""
     trace, steps, seconds, losses, next_mark, stopped_by = [], 0, 0.0, [], 0.0, ""
     while True:
@@ -166,6 +175,8 @@ def training_trace(model, budget_s: float, every_s: float, evaluate,
             entry = {"step": steps, "seconds": round(seconds, 3),
                      "loss": float(np.mean(losses)) if losses else None, **evaluate()}
             trace.append(entry)
+            if on_checkpoint is not None:
+                on_checkpoint(trace)
             losses.clear()
             next_mark += every_s
             if seconds >= budget_s or stopped_by:
@@ -196,8 +207,41 @@ def run_baseline(capture: Path, method: str, out: Path) -> dict:
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
+def write_atomic(path: Path, record: dict) -> None:
+    """Write JSON so that a reader (or a kill mid-write) never sees half a file."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(_jsonable(record), indent=1))
+    os.replace(tmp, path)
+
+
 def _jsonable(obj):
     return json.loads(json.dumps(obj, default=lambda v: v.tolist() if hasattr(v, "tolist") else str(v)))
+
+
+def partial_writer(path: Path, preset: str, device: str, setup_s: float):
+    """A checkpoint callback for training_trace that rewrites `path` with the trace so far, as a 'cut off' result."""
+    def keep(trace_so_far: list[dict]) -> None:
+        write_atomic(path, {"method": preset, "kind": "preset", "device": device, "setup_s": setup_s,
+                            "stopped_by": "cut off",
+                            "trace": [{**e, "wall_seconds": e["seconds"] + setup_s} for e in trace_so_far]})
+    return keep
+
+
+def partial_path(result: Path) -> Path:
+    return result.with_name(result.stem + ".partial.json")
+
+
+def cut_off_result(partial: Path) -> dict | None:
+    """The checkpoints a killed run left behind, as a result the table can show ('cut off'), or None if it left
+    none with a Chamfer. Its final Chamfer is its last checkpoint's; its peak memory was not measured."""
+    try:
+        res = json.loads(partial.read_text())
+    except (OSError, ValueError):
+        return None
+    if not res.get("trace"):
+        return None
+    res.update(final_chamfer_mm=res["trace"][-1].get("chamfer_mm"), peak_rss_mb=None)
+    return res
 
 
 # ---- tables and plot ------------------------------------------------------------------------------------------------
@@ -219,14 +263,29 @@ def time_to(trace: list[dict], goal: float) -> float | None:
 
 
 def ended(result: dict) -> str:
-    """How a run ended: 'budget', or where an early stop ended it ('converged 142 s'); baselines run to the end."""
-    if result.get("stopped_by") == "converged":
-        return f"converged {result['trace'][-1]['wall_seconds']:.0f} s"
+    """How a run ended: 'budget', where an early stop ended it ('converged 142 s') or where it was killed ('cut off
+    142 s': its partial trace); baselines run to the end."""
+    if result.get("stopped_by") in ("converged", "cut off"):
+        return f"{result['stopped_by']} {result['trace'][-1]['wall_seconds']:.0f} s"
     return "budget" if result.get("kind") == "preset" else "done"
 
 
 def fmt(v, unit="") -> str:
     return "-" if v is None else f"{v:.2f}{unit}"
+
+
+def fmt_mb(v) -> str:
+    return "-" if v is None else f"{v:.0f}"
+
+
+def mark_value(result: dict, mark_s: float, budget_s: float) -> float | None:
+    """The Chamfer a table shows at wall time mark_s. A run's last checkpoint is its budget's end, however far the
+    last step overran it; a run that was cut off has no figure after its last checkpoint."""
+    if result.get("stopped_by") == "cut off":
+        return chamfer_at(result["trace"], mark_s) if mark_s <= result["trace"][-1]["wall_seconds"] else None
+    if mark_s >= budget_s - 1e-9:
+        return result.get("final_chamfer_mm")
+    return chamfer_at(result["trace"], mark_s)
 
 
 def table(results: list[dict], budget_s: float, marks_s=MARKS_S) -> str:
@@ -236,10 +295,8 @@ def table(results: list[dict], budget_s: float, marks_s=MARKS_S) -> str:
     rows = [head]
     for r in results:
         final = r.get("final_chamfer_mm")
-        # A run's last checkpoint is its budget's end, however far the last step overran it.
-        rows.append([r["scene"], r["method"]] + [fmt(final if m >= budget_s - 1e-9 else chamfer_at(r["trace"], m))
-                                                 for m in marks]
-                    + [fmt(final), ended(r), fmt(time_to(r["trace"], GOAL_MM), " s"), f"{r['peak_rss_mb']:.0f}"])
+        rows.append([r["scene"], r["method"]] + [fmt(mark_value(r, m, budget_s)) for m in marks]
+                    + [fmt(final), ended(r), fmt(time_to(r["trace"], GOAL_MM), " s"), fmt_mb(r.get("peak_rss_mb"))])
     widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
     lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths)) + " |" for row in rows]
     lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
@@ -322,6 +379,39 @@ def parse_marks(text: str) -> tuple[float, ...]:
     return marks
 
 
+def run_all(args, methods: list[str], results: list[dict]) -> None:
+    """Each method on each scene, each in its own process; appends to `results` as runs end. A run that fails or is
+    killed contributes the checkpoints it left behind (its partial file), if any."""
+    for scene_dir in args.scenes:
+        capture = prepare_scene(scene_dir.resolve(), args.out.resolve())
+        for method in methods:
+            result = args.out / "runs" / f"{capture.name}-{method}.json"
+            result.parent.mkdir(parents=True, exist_ok=True)
+            print(f"{capture.name}: {method} ...", file=sys.stderr, flush=True)
+            cmd = [sys.executable, __file__, "--scenes", str(capture), "--budget-s", str(args.budget_s),
+                   "--every-s", str(args.every_s), "--device", args.device, "--seed", str(args.seed)]
+            cmd += ["--eval-resolution", str(args.eval_resolution)] if args.eval_resolution else []
+            cmd += [x for kv in args.overrides for x in ("--set", kv)]
+            cmd += ["--one", str(capture), method, str(result)]
+            result.unlink(missing_ok=True)
+            try:
+                proc = subprocess.run(cmd)
+            except KeyboardInterrupt:
+                res = cut_off_result(partial_path(result))
+                if res is not None:
+                    results.append({**res, "scene": capture.name})
+                raise
+            if proc.returncode != 0 or not result.is_file():
+                print(f"{capture.name}: {method} failed (exit {proc.returncode})", file=sys.stderr)
+                res = cut_off_result(partial_path(result))
+                if res is None:
+                    continue
+            else:
+                res = json.loads(result.read_text())
+            res["scene"] = capture.name
+            results.append(res)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--scenes", nargs="+", required=True, type=Path, metavar="DIR",
@@ -353,9 +443,13 @@ def main(argv=None) -> int:
         if method in ("space-carving", "reprojection"):
             res = run_baseline(capture, method, out)
         else:
-            res = run_preset(capture, method, args.budget_s, args.every_s, args.device, args.seed, out,
-                             args.eval_resolution, args.overrides)
-        result.write_text(json.dumps(_jsonable(res), indent=1))
+            try:
+                res = run_preset(capture, method, args.budget_s, args.every_s, args.device, args.seed, out,
+                                 args.eval_resolution, args.overrides, partial_path(result))
+            except KeyboardInterrupt:  # the parent reads the partial file
+                return 130
+        write_atomic(result, res)
+        partial_path(result).unlink(missing_ok=True)
         return 0
 
     args.out.mkdir(parents=True, exist_ok=True)
@@ -364,24 +458,12 @@ def main(argv=None) -> int:
     header = machine()
     print(f"machine: {header}", file=sys.stderr)
     results = []
-    for scene_dir in args.scenes:
-        capture = prepare_scene(scene_dir.resolve(), args.out.resolve())
-        for method in methods:
-            result = args.out / "runs" / f"{capture.name}-{method}.json"
-            result.parent.mkdir(parents=True, exist_ok=True)
-            print(f"{capture.name}: {method} ...", file=sys.stderr, flush=True)
-            cmd = [sys.executable, __file__, "--scenes", str(capture), "--budget-s", str(args.budget_s),
-                   "--every-s", str(args.every_s), "--device", args.device, "--seed", str(args.seed)]
-            cmd += ["--eval-resolution", str(args.eval_resolution)] if args.eval_resolution else []
-            cmd += [x for kv in args.overrides for x in ("--set", kv)]
-            cmd += ["--one", str(capture), method, str(result)]
-            proc = subprocess.run(cmd)
-            if proc.returncode != 0 or not result.is_file():
-                print(f"{capture.name}: {method} failed (exit {proc.returncode})", file=sys.stderr)
-                continue
-            res = json.loads(result.read_text())
-            res["scene"] = capture.name
-            results.append(res)
+    # A time limit's SIGTERM ends the runs like Ctrl-C does: the table still comes out.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        run_all(args, methods, results)
+    except KeyboardInterrupt:  # Ctrl-C: the table of the runs so far, the one in progress as far as it got
+        print("interrupted: the table holds the runs so far", file=sys.stderr)
     text = [f"Machine: {header}", f"Budget: {args.budget_s:g} s wall per run (set-up included)"]
     text += [f"Overrides: {' '.join(args.overrides)}"] if args.overrides else []
     text += ["", table(results, args.budget_s, args.marks), ""] + speedups(results)

@@ -63,3 +63,42 @@ def test_overrides_reach_the_preset_config_and_bad_keys_are_refused(bench, tmp_p
 
     with pytest.raises(SpadscanError, match="no_such_field"):
         bench.run_preset(tmp_path, "fast", 1.0, 1.0, "cpu", 0, tmp_path, overrides=["schedule.no_such_field=1"])
+
+
+class StoppedModel:
+    """Steps that take no time until the n-th, which is interrupted (as a time limit or Ctrl-C would)."""
+
+    def __init__(self, n: int):
+        self.n, self.steps = n, 0
+
+    def step(self):
+        self.steps += 1
+        if self.steps >= self.n:
+            raise KeyboardInterrupt
+        return {"loss": 1.0 / self.steps}
+
+
+def test_a_run_killed_mid_way_leaves_its_checkpoints_for_the_table(bench, tmp_path):
+    partial = bench.partial_path(tmp_path / "bunny-fast.json")
+    keep = bench.partial_writer(partial, "fast", "cpu", setup_s=3.0)
+    chamfers = iter([20.0, 5.0, 2.5, 1.9])
+    with pytest.raises(KeyboardInterrupt):
+        # every_s=0: a checkpoint before every step; the 4th step is interrupted after the 4th checkpoint.
+        bench.training_trace(StoppedModel(4), 100.0, 0.0, lambda: {"chamfer_mm": next(chamfers)}, False, keep)
+    res = bench.cut_off_result(partial)
+    assert [e["chamfer_mm"] for e in res["trace"]] == [20.0, 5.0, 2.5, 1.9]
+    assert all(e["wall_seconds"] >= 3.0 for e in res["trace"])  # set-up counts
+    assert res["final_chamfer_mm"] == 1.9 and res["peak_rss_mb"] is None
+    cells = [c.strip() for c in bench.table([{**res, "scene": "bunny"}], 100.0, (3.0, 30.0)).splitlines()[2]
+             .strip("|").split("|")]
+    # At 3 s: the last checkpoint (the steps took no time); at 30 s, after it was cut off: nothing is known.
+    assert cells[2:5] == ["1.90", "-", "1.90"]
+    assert cells[5].startswith("cut off") and cells[7] == "-"  # peak memory unknown
+
+
+def test_no_partial_or_an_empty_one_is_no_result(bench, tmp_path):
+    assert bench.cut_off_result(tmp_path / "missing.partial.json") is None
+    (tmp_path / "half.partial.json").write_text('{"trace": [')  # never written by write_atomic, but be safe
+    assert bench.cut_off_result(tmp_path / "half.partial.json") is None
+    bench.write_atomic(tmp_path / "empty.partial.json", {"trace": []})
+    assert bench.cut_off_result(tmp_path / "empty.partial.json") is None
