@@ -102,3 +102,21 @@ def test_no_partial_or_an_empty_one_is_no_result(bench, tmp_path):
     assert bench.cut_off_result(tmp_path / "half.partial.json") is None
     bench.write_atomic(tmp_path / "empty.partial.json", {"trace": []})
     assert bench.cut_off_result(tmp_path / "empty.partial.json") is None
+
+
+def test_the_method_peak_memory_leaves_the_scoring_of_checkpoints_out(bench):
+    import numpy as np
+    import torch
+
+    meter = bench.MethodPeak(torch.device("cpu"))
+    if not meter.excludes_scoring:
+        pytest.skip("this system cannot reset a process's peak memory (/proc/self/clear_refs)")
+    base_mb = bench._hwm_kb() / 1024
+    method = np.ones(200 * 2**20 // 8)  # 200 MB, touched by the method
+    del method
+    meter.pause()
+    scoring = np.ones(600 * 2**20 // 8)  # 600 MB, touched while a checkpoint is scored
+    del scoring
+    meter.resume()
+    peak = meter.peak_mb()
+    assert base_mb + 150 < peak < base_mb + 450
