@@ -113,6 +113,7 @@ class MethodPeak:
     def __init__(self, device):
         self.device = device
         self.peak_kb = 0.0
+        self.with_scoring_kb = 0.0  # the peak of the whole process (the reset clears ru_maxrss too)
         self.excludes_scoring = _reset_hwm()
 
     def pause(self) -> None:
@@ -125,6 +126,7 @@ class MethodPeak:
 
     def resume(self) -> None:
         """After scoring: start the high-water marks afresh."""
+        self.with_scoring_kb = max(self.with_scoring_kb, _hwm_kb())
         if self.excludes_scoring:
             self.excludes_scoring = _reset_hwm()
         if self.device.type == "cuda":
@@ -135,6 +137,9 @@ class MethodPeak:
     def peak_mb(self) -> float:
         self.pause()
         return self.peak_kb / 1024
+
+    def peak_with_scoring_mb(self) -> float:
+        return max(self.with_scoring_kb, self.peak_kb, _hwm_kb()) / 1024
 
 
 def _hwm_kb() -> float:
@@ -166,8 +171,6 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     """Run one preset on one capture; returns {trace: [{seconds, wall_seconds, step, chamfer_mm}], ...}.
     With `partial`, the trace so far is rewritten there after every checkpoint, so that a run killed before its end
     (a time limit, Ctrl-C) still leaves its checkpoints behind."""
-    import resource
-
     import torch
 
     from spadscan.worker.reconstruct import resolve_device
@@ -219,7 +222,7 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
             "final_chamfer_mm": final,
             "crop_z_m": crop_z, "peak_rss_mb": peak_mb,
             "peak_excludes_scoring": meter.excludes_scoring,
-            "peak_rss_with_scoring_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "peak_rss_with_scoring_mb": meter.peak_with_scoring_mb(),
             "summary": _jsonable(model.summary()),
             "total_s": time.perf_counter() - t0}
 

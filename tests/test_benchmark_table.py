@@ -120,3 +120,4 @@ def test_the_method_peak_memory_leaves_the_scoring_of_checkpoints_out(bench):
     meter.resume()
     peak = meter.peak_mb()
     assert base_mb + 150 < peak < base_mb + 450
+    assert meter.peak_with_scoring_mb() > base_mb + 550  # what the whole process took, scoring included
