@@ -103,7 +103,7 @@ def chamfer_mm(mesh, gt, crop_z, n_points: int) -> float | None:
         return None
 
 
-# ---- one run (in its own process) ---------------------------------------------------------------------------------
+# ---- peak memory ----------------------------------------------------------------------------------------------------
 class MethodPeak:
     """Peak memory of the method alone (MB): scoring a checkpoint (meshing, 300,000-point Chamfer) can take more
     memory than the method does, and would otherwise set the peak. The host's high-water mark (VmHWM) is read before
