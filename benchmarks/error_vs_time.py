@@ -212,7 +212,7 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     keep = None if partial is None else partial_writer(partial, preset, str(dev), setup_s)
     trace, steps, train_s, stopped_by = training_trace(model, plan.budget_s, every_s, evaluate, config.early_stop,
                                                        keep)
-    trace = [{**e, "wall_seconds": e["seconds"] + setup_s} for e in trace]
+    trace = with_wall_seconds(trace, setup_s)
     final = trace[-1].get("chamfer_mm")  # the last checkpoint is the end of the run
     peak_mb = meter.peak_mb()
     return {"method": preset, "kind": "preset", "device": str(dev),
@@ -288,8 +288,13 @@ def partial_writer(path: Path, preset: str, device: str, setup_s: float):
     def keep(trace_so_far: list[dict]) -> None:
         write_atomic(path, {"method": preset, "kind": "preset", "device": device, "setup_s": setup_s,
                             "stopped_by": "cut off",
-                            "trace": [{**e, "wall_seconds": e["seconds"] + setup_s} for e in trace_so_far]})
+                            "trace": with_wall_seconds(trace_so_far, setup_s)})
     return keep
+
+
+def with_wall_seconds(trace: list[dict], setup_s: float) -> list[dict]:
+    """Checkpoints with their wall time: training seconds plus the set-up that came before them."""
+    return [{**e, "wall_seconds": e["seconds"] + setup_s} for e in trace]
 
 
 def partial_path(result: Path) -> Path:
@@ -459,22 +464,16 @@ def run_all(args, methods: list[str], results: list[dict]) -> None:
             cmd += [x for kv in args.overrides for x in ("--set", kv)]
             cmd += ["--one", str(capture), method, str(result)]
             result.unlink(missing_ok=True)
+            finished = False
             try:
                 proc = subprocess.run(cmd)
-            except KeyboardInterrupt:
-                res = cut_off_result(partial_path(result))
+                finished = proc.returncode == 0 and result.is_file()
+                if not finished:
+                    print(f"{capture.name}: {method} failed (exit {proc.returncode})", file=sys.stderr)
+            finally:  # also on Ctrl-C: the run in progress counts as far as it got
+                res = json.loads(result.read_text()) if finished else cut_off_result(partial_path(result))
                 if res is not None:
                     results.append({**res, "scene": capture.name})
-                raise
-            if proc.returncode != 0 or not result.is_file():
-                print(f"{capture.name}: {method} failed (exit {proc.returncode})", file=sys.stderr)
-                res = cut_off_result(partial_path(result))
-                if res is None:
-                    continue
-            else:
-                res = json.loads(result.read_text())
-            res["scene"] = capture.name
-            results.append(res)
 
 
 def main(argv=None) -> int:
