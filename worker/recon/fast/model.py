@@ -24,6 +24,7 @@ from .empty_space import pressure_weight, push_to_empty, thin_near_table, view_c
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
 from .optim import Adam
+from .openings import opened_field
 from .phantoms import ReturnEvidence, erode_at, return_ratios
 from .plateau import Plateau
 from .problem import FastProblem, build_problem
@@ -107,6 +108,14 @@ class FastModel:
         self.phantoms = self.sc.phantom_ratio > 0 and not problem.measured
         self._evidence: ReturnEvidence | None = None
         self.eroded_nodes = 0
+        # Opening of the solid behind phantom surface (openings.py), with the same evidence: simulated captures only.
+        if sc_bad_opening(self.sc):
+            raise ConfigError(sc_bad_opening(self.sc))
+        self.seed = int(seed)
+        self._opening = self.phantoms and self.sc.open_every_steps > 0 and len(self.sc.open_depths_m) > 0
+        self._open_misses = 0
+        self.opened_nodes = 0
+        self.openings: list[dict] = []
         # The moving average of the grid that meshes are extracted from (schedule.average_decay); restarted at
         # refinement, where the grid changes shape.
         self._average: torch.Tensor | None = None
@@ -143,10 +152,13 @@ class FastModel:
         return views
 
     # ---- rendering --------------------------------------------------------------------------------------------
-    def _rates(self, views: torch.Tensor, record_hits: bool = False) -> tuple[torch.Tensor, tuple | None]:
+    def _rates(self, views: torch.Tensor, record_hits: bool = False,
+               gen: torch.Generator | None = None) -> tuple[torch.Tensor, tuple | None]:
         """(photon rates (n, Z, B) of the given views under the current field, albedos and table, hits). hits: with
-        record_hits, the opaque returns (`_opaque_returns`) for the step's evidence (phantoms.py), else None."""
+        record_hits, the opaque returns (`_opaque_returns`) for the step's evidence (phantoms.py), else None. gen:
+        the generator that draws the rays and samples (default: the model's)."""
         hits = None
+        gen = self.gen if gen is None else gen
         Z, fwd = self.n_zones, self.p.forward
         n_hist = views.numel() * Z
         hist = (views[:, None] * Z + torch.arange(Z, device=self.device)).reshape(-1)
@@ -155,12 +167,12 @@ class FastModel:
         transient = torch.zeros(n_hist, fwd.n_fine, device=self.device)
         vox = self.field.voxel
         if hist_ok.numel() > 0:
-            idx, batch, o, d, w = pick_rays(self.rays, hist_ok, self.per_hist, self.gen)
+            idx, batch, o, d, w = pick_rays(self.rays, hist_ok, self.per_hist, gen)
             t_in, t_out = self.rays.t_in[idx], self.rays.t_out[idx]
             with torch.no_grad():
-                tc = stratified(t_in, t_out, self.sc.coarse_samples, self.gen)
+                tc = stratified(t_in, t_out, self.sc.coarse_samples, gen)
                 fc = self.field.sample(o[:, None] + tc[..., None] * d[:, None])
-            t = around_crossing(tc, fc, t_in, t_out, self.sc.fine_samples, self.sc.window_voxels * vox, self.gen)
+            t = around_crossing(tc, fc, t_in, t_out, self.sc.fine_samples, self.sc.window_voxels * vox, gen)
             r, radiance, opacity = render_returns(self.field.sample, o, d, t, w, self.fc.sharpness_voxels / vox,
                                                   0.5 * vox)
             if record_hits:
@@ -232,6 +244,8 @@ class FastModel:
         self._update_average()
         self.steps += 1
         self.level_steps += 1
+        if self._opening and self.steps % sc.open_every_steps == 0:
+            self._open_phantoms()
         self._plateau.update(float(data.detach()))
         out = {"loss": float(loss.detach()), "data": float(data.detach()), "eikonal": float(eik.detach()),
                "smooth": float(smooth.detach()), "albedo": float(torch.exp(self.log_albedo.detach())),
@@ -244,13 +258,17 @@ class FastModel:
             raise ReconstructionError(f"the loss became {out['loss']} at step {self.steps} (diverged)")
         return out
 
-    def _gather_evidence(self, views: torch.Tensor, lam: torch.Tensor, hits: tuple | None) -> None:
+    def _gather_evidence(self, views: torch.Tensor, lam: torch.Tensor, hits: tuple | None,
+                         evidence: ReturnEvidence | None = None) -> None:
         """Add this step's opaque returns (`_rates`' hits) to the per-node evidence (phantoms.py): the log of measured
         over expected signal photons around each return's bin, where the expected signal is well above the noise.
-        (Also makes the evidence grid match the field's, so `_erode_phantoms` always finds one.)"""
-        shape = tuple(self.field.sdf.shape[2:])
-        if self._evidence is None or self._evidence.shape != shape:
-            self._evidence = ReturnEvidence(shape, self.device)
+        evidence: where to add them (default: the erosion's, made to match the field's grid first, so that
+        `_erode_phantoms` always finds one)."""
+        if evidence is None:
+            shape = tuple(self.field.sdf.shape[2:])
+            if self._evidence is None or self._evidence.shape != shape:
+                self._evidence = ReturnEvidence(shape, self.device)
+            evidence = self._evidence
         if hits is None or hits[0].numel() == 0:
             return
         p, fwd = self.p, self.p.forward
@@ -263,11 +281,66 @@ class FastModel:
         s = fwd.sensor
         b = torch.floor(s.zero_bin + ranges / s.bin_width_m).long().clamp(0, self.n_bins - 1)
         keep = significant[hist, b]
-        self._evidence.add(points[keep], torch.log(ratio[hist, b][keep]), self.field.origin, self.field.voxel)
+        evidence.add(points[keep], torch.log(ratio[hist, b][keep]), self.field.origin, self.field.voxel)
 
     def _erode_phantoms(self) -> None:
         nodes = self._evidence.take(self.sc.phantom_min_hits, self.sc.phantom_ratio)
         self.eroded_nodes += erode_at(self.field.sdf.detach()[0, 0], nodes, self.field.voxel)
+
+    def _all_views_deviance(self, seed: int, evidence: ReturnEvidence | None = None) -> float:
+        """Deviance per bin over every view under the current field, with the rays that `seed` draws (so that two
+        fields compare on the same rays); with `evidence`, their returns are added to it. No gradient."""
+        gen = torch.Generator(device=self.device)
+        gen.manual_seed(seed)
+        total, fwd, p = 0.0, self.p.forward, self.p
+        with torch.no_grad():
+            for views in torch.arange(self.n_views, device=self.device).split(self.sc.views_per_step):
+                lam, hits = self._rates(views, record_hits=evidence is not None, gen=gen)
+                nll = fwd.nll(lam, p.counts[views], p.cycles[views], p.valid[views])  # mean over the histograms
+                total += float(nll) * views.numel()
+                if evidence is not None:
+                    self._gather_evidence(views, lam, hits, evidence)
+        return total / (self.n_views * self.n_bins)
+
+    def _open_phantoms(self) -> None:
+        """Propose opening the solid behind phantom surface at each depth and keep the best proposal the likelihood
+        prefers (openings.py)."""
+        sc, field = self.sc, self.field
+        evidence = ReturnEvidence(tuple(field.sdf.shape[2:]), self.device)
+        seed = self.seed * 1_000_003 + self.steps
+        before = self._all_views_deviance(seed, evidence)
+        for k in range(1, sc.open_passes):
+            self._all_views_deviance(seed + k, evidence)
+        flagged, supported = evidence.classify(sc.phantom_min_hits, sc.phantom_ratio, sc.open_keep_ratio)
+        current = field.sdf.detach().clone()
+        best = (before - sc.open_min_gain, None, 0, None)
+        for depth in sc.open_depths_m:
+            grid, n = opened_field(current[0, 0], flagged, supported, field.voxel, depth, sc.open_keep_m)
+            if n == 0:
+                continue
+            with torch.no_grad():
+                field.sdf[0, 0] = grid
+            after = self._all_views_deviance(seed)
+            if after < best[0]:
+                best = (after, depth, n, grid)
+        with torch.no_grad():
+            field.sdf.copy_(current)
+            if best[1] is not None:
+                field.sdf[0, 0] = best[3]
+        self.constraint.project(field)
+        record = {"step": self.steps, "flagged": int(flagged.sum()), "deviance": round(before, 5)}
+        if best[1] is None:
+            self._open_misses += 1
+            self._opening = self._open_misses < sc.open_patience
+        else:
+            self._open_misses = 0
+            self.opened_nodes += best[2]
+            record.update(depth_m=best[1], opened=best[2], deviance_after=round(best[0], 5))
+            # The average and the band follow the jump at once: averaging it in over ~100 steps would mesh the old
+            # lid and the new cavity blended.
+            self._average = field.sdf.detach().clone()
+            self._band = None
+        self.openings.append(record)
 
     def _update_average(self) -> None:
         if self.sc.average_decay <= 0:
@@ -375,10 +448,27 @@ class FastModel:
                "floor_z_m": self.p.floor_z, "coarse_smooth_below_z_m": self.coarse_smooth_top_z,
                "empty_space_push": self.empty_space,
                "mesh_average_decay": self.sc.average_decay, "phantom_erosion": self.phantoms,
-               "eroded_nodes": self.eroded_nodes, **self.p.notes}
+               "eroded_nodes": self.eroded_nodes, "opened_nodes": self.opened_nodes, "openings": self.openings,
+               **self.p.notes}
         if self.table is not None:
             out.update(self.table.summary())
         return out
+
+
+def sc_bad_opening(sc) -> str | None:
+    """A one-line reason why the schedule's opening settings (openings.py) are unusable, or None."""
+    depths = sc.open_depths_m
+    if not (isinstance(sc.open_every_steps, int) and sc.open_every_steps >= 0):
+        return f"schedule.open_every_steps {sc.open_every_steps} must be an integer >= 0 (0: off)"
+    if not all(isinstance(d, (int, float)) and 0 < d <= 1 for d in depths):
+        return f"schedule.open_depths_m {list(depths)} must be depths in (0, 1] metres"
+    if not 0 <= sc.open_keep_m <= 0.1:
+        return f"schedule.open_keep_m {sc.open_keep_m} must be in [0, 0.1] metres"
+    if not sc.phantom_ratio <= sc.open_keep_ratio:
+        return f"schedule.open_keep_ratio {sc.open_keep_ratio} must be >= phantom_ratio {sc.phantom_ratio}"
+    if sc.open_passes < 1 or sc.open_patience < 1 or not sc.open_min_gain >= 0:
+        return "schedule.open_passes and open_patience must be >= 1 and open_min_gain >= 0"
+    return None
 
 
 def _opaque_returns(o, d, r, radiance, opacity, hist):

@@ -76,11 +76,19 @@ class ReturnEvidence:
     def take(self, min_hits: int, max_ratio: float) -> torch.Tensor:
         """Nodes (nz, ny, nx) bool with at least `min_hits` hits whose mean ratio is below `max_ratio`; then starts
         afresh."""
-        mean = self.log_sum / self.hits.clamp(min=1.0)
-        out = (self.hits >= min_hits) & (mean < math.log(max_ratio))
+        out = self.classify(min_hits, max_ratio, math.inf)[0]
         self.log_sum.zero_()
         self.hits.zero_()
         return out
+
+    def classify(self, min_hits: int, low: float, high: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """(flagged, supported): nodes (nz, ny, nx) bool with at least `min_hits` hits whose mean ratio is below
+        `low`, and those whose mean ratio is at least `high`. Keeps the sums."""
+        if not 0 < low <= high:
+            raise ValueError(f"ratios {low} and {high} must satisfy 0 < low <= high")
+        mean = self.log_sum / self.hits.clamp(min=1.0)
+        enough = self.hits >= min_hits
+        return enough & (mean < math.log(low)), enough & (mean >= math.log(high))
 
 
 def erode_at(sdf: torch.Tensor, nodes: torch.Tensor, voxel: float, radius: int = 1) -> int:

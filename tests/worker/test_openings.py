@@ -1,0 +1,145 @@
+"""Opening the solid behind phantom surface (worker/recon/fast/openings.py): the proposal field, the evidence's
+classes, and the model's rounds of proposals kept only where the likelihood prefers them."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from spadscan.protocol.errors import ConfigError
+from spadscan.worker.recon.config import preset_config, with_overrides
+from spadscan.worker.recon.fast.model import FastModel, make_fast_model
+from spadscan.worker.recon.fast.openings import opened_field
+from spadscan.worker.recon.fast.phantoms import ReturnEvidence
+from spadscan.worker.recon.model_api import RunPlan
+from spadscan.worker.recon.scene_data import load_scene
+
+VOXEL = 0.01
+
+
+def slab(n: int = 20, top: int = 15) -> torch.Tensor:
+    """(n, n, n) SDF (z, y, x), metres: solid below node layer `top`."""
+    z = torch.arange(n, dtype=torch.float32)[:, None, None].expand(n, n, n)
+    return (z - top) * VOXEL
+
+
+def patch(n: int = 20, z: int = 15, lo: int = 6, hi: int = 14) -> torch.Tensor:
+    out = torch.zeros(n, n, n, dtype=torch.bool)
+    out[z, lo:hi, lo:hi] = True
+    return out
+
+
+def test_the_solid_behind_flagged_surface_opens_as_deep_as_asked_and_nowhere_else():
+    sdf, flagged = slab(), patch()
+    none = torch.zeros_like(flagged)
+    opened, n = opened_field(sdf, flagged, none, VOXEL, 0.045, 0.0)
+    assert n > 0 and n == int((opened > sdf).sum())
+    assert bool((opened >= sdf).all()) and torch.isfinite(opened).all()  # an opening only ever raises the field
+    centre = opened[:, 10, 10]
+    assert bool((centre[11:15] > 0).all())  # 1-4 voxels under the patch: empty now
+    assert bool((centre[:10] < 0).all())  # 5 voxels and deeper: still solid
+    assert float(centre[12]) == pytest.approx(0.045 - 0.03)  # a distance field of the opened region
+    assert torch.equal(opened[:, 0, 0], sdf[:, 0, 0])  # far from the patch: unchanged
+    deeper, m = opened_field(sdf, flagged, none, VOXEL, 0.085, 0.0)
+    assert m > n and bool((deeper[7:15, 10, 10] > 0).all()) and float(deeper[6, 10, 10]) < 0
+
+
+def test_solid_near_supported_surface_is_kept_and_nothing_flagged_changes_nothing():
+    sdf, flagged = slab(), patch()
+    supported = torch.zeros_like(flagged)
+    supported[11, :, :] = True  # a wall the data holds, 4 voxels under the flagged patch
+    opened, _ = opened_field(sdf, flagged, supported, VOXEL, 0.085, 0.015)
+    centre = opened[:, 10, 10]
+    assert bool((centre[13:15] > 0).all())  # more than 1.5 cm from the supported layer: opened
+    assert torch.equal(centre[:13], sdf[:13, 10, 10])  # within 1.5 cm of it, and beyond it: untouched
+    same, n = opened_field(sdf, torch.zeros_like(flagged), supported, VOXEL, 0.085, 0.015)
+    assert n == 0 and torch.equal(same, sdf)
+    with pytest.raises(ValueError, match="one shape"):
+        opened_field(sdf, flagged[:-1], supported, VOXEL, 0.04, 0.0)
+    with pytest.raises(ValueError, match="depth"):
+        opened_field(sdf, flagged, supported, VOXEL, -0.04, 0.0)
+
+
+def test_evidence_classes_flagged_and_supported_nodes_and_keeps_its_sums():
+    ev = ReturnEvidence((3, 3, 3), "cpu")
+    origin = torch.zeros(3)
+    at = lambda x: torch.tensor([[x * VOXEL, 0.0, 0.0]])  # noqa: E731
+    for ratio, node, hits in ((0.3, 0, 3), (0.9, 1, 3), (0.7, 2, 3)):
+        for _ in range(hits):
+            ev.add(at(node), torch.tensor([math.log(ratio)]), origin, VOXEL)
+    flagged, supported = ev.classify(3, 0.6, 0.8)
+    assert flagged[0, 0].tolist() == [True, False, False] and supported[0, 0].tolist() == [False, True, False]
+    assert int(flagged.sum()) == 1 and int(supported.sum()) == 1  # 0.7 is neither
+    assert int(ev.hits.sum()) == 9  # classify keeps the sums; take starts afresh
+    assert int(ev.classify(4, 0.6, 0.8)[0].sum()) == 0  # too few returns for either class
+    with pytest.raises(ValueError, match="ratios"):
+        ev.classify(3, 0.9, 0.8)
+
+
+SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine_after_steps": 4,
+         "schedule.views_per_step": 8, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0,
+         "schedule.phantom_min_hits": 1, "schedule.open_every_steps": 2, "schedule.open_passes": 1}
+
+
+def blank_histograms(model) -> None:
+    """Only the background comes back: every rendered return is one the histograms do not show."""
+    bg = model.p.background[..., None] * model.p.cycles[:, None, None]
+    model.p.counts = torch.poisson(bg.expand_as(model.p.counts), generator=torch.Generator().manual_seed(0))
+
+
+def test_an_opening_the_likelihood_prefers_is_kept_and_the_mesh_average_follows_it(cylinder_capture):
+    scene = load_scene(cylinder_capture)
+    model = make_fast_model(scene, with_overrides(preset_config("fast"), SMALL), "cpu",
+                            RunPlan(steps=2, budget_s=None, seed=0))
+    blank_histograms(model)
+    solid_before = int((model.field.sdf.detach() < 0).sum())
+    for _ in range(2):
+        assert math.isfinite(model.step()["loss"])
+    (round_,) = model.openings
+    assert round_["step"] == 2 and round_["flagged"] > 0
+    assert round_["depth_m"] in preset_config("fast").schedule.open_depths_m
+    assert round_["deviance_after"] < round_["deviance"] - model.sc.open_min_gain
+    assert model.opened_nodes == round_["opened"] > 0 and model.summary()["opened_nodes"] == model.opened_nodes
+    assert int((model.field.sdf.detach() < 0).sum()) < solid_before
+    assert torch.equal(model.mesh_field().sdf.detach(), model.field.sdf.detach())  # the average restarts at the jump
+    assert torch.isfinite(model.field.sdf.detach()).all()
+
+
+def test_rounds_that_gain_nothing_are_undone_and_stop_after_the_patience(cylinder_capture):
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), {**SMALL, "schedule.open_min_gain": 1e9,
+                                                    "schedule.open_patience": 2})
+    model = make_fast_model(scene, config, "cpu", RunPlan(steps=8, budget_s=None, seed=0))
+    blank_histograms(model)
+    for _ in range(3):
+        model.step()
+    model.step()  # step 4: the second round, whose proposals are all rejected and undone
+    after_rounds = model.field.sdf.detach().clone()
+    assert len(model.openings) == 2 and "depth_m" not in model.openings[1] and model.opened_nodes == 0
+    assert not model._opening
+    for _ in range(4):
+        model.step()
+    assert len(model.openings) == 2  # no rounds after the patience ran out
+    # A rejected round leaves the grid as the step made it: the same as a run with the rounds switched off.
+    off = make_fast_model(scene, with_overrides(config, {"schedule.open_every_steps": 0}), "cpu",
+                          RunPlan(steps=8, budget_s=None, seed=0))
+    blank_histograms(off)
+    for _ in range(4):
+        off.step()
+    assert not off.openings and torch.equal(off.field.sdf.detach(), after_rounds)
+
+
+def test_no_openings_on_measured_captures_and_bad_settings_are_one_line_errors(cylinder_capture):
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), SMALL)
+    model = make_fast_model(scene, config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    measured = FastModel(dataclasses.replace(model.p, measured=True), config, seed=0, terms=model.terms)
+    assert not measured._opening
+    for key, bad in (("schedule.open_every_steps", -1), ("schedule.open_depths_m", [0.02, -0.01]),
+                     ("schedule.open_keep_m", 0.5), ("schedule.open_keep_ratio", 0.5),
+                     ("schedule.open_passes", 0), ("schedule.open_min_gain", -1.0)):
+        with pytest.raises(ConfigError, match=key.split(".")[1]):
+            make_fast_model(scene, with_overrides(config, {key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
