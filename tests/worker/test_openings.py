@@ -12,7 +12,7 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.recon.config import preset_config, with_overrides
 from spadscan.worker.recon.fast.model import FastModel, make_fast_model
-from spadscan.worker.recon.fast.openings import opened_field
+from spadscan.worker.recon.fast.openings import opened_field, opening_distances
 from spadscan.worker.recon.fast.phantoms import ReturnEvidence
 from spadscan.worker.recon.model_api import RunPlan
 from spadscan.worker.recon.scene_data import load_scene
@@ -34,8 +34,9 @@ def patch(n: int = 20, z: int = 15, lo: int = 6, hi: int = 14) -> torch.Tensor:
 
 def test_the_solid_behind_flagged_surface_opens_as_deep_as_asked_and_nowhere_else():
     sdf, flagged = slab(), patch()
-    none = torch.zeros_like(flagged)
-    opened, n = opened_field(sdf, flagged, none, VOXEL, 0.045, 0.0)
+    distances = opening_distances(flagged, torch.zeros_like(flagged), VOXEL)
+    assert bool(torch.isinf(distances[1]).all())  # nothing supported: every node is infinitely far from it
+    opened, n = opened_field(sdf, flagged, distances, 0.045, 0.0)
     assert n > 0 and n == int((opened > sdf).sum())
     assert bool((opened >= sdf).all()) and torch.isfinite(opened).all()  # an opening only ever raises the field
     centre = opened[:, 10, 10]
@@ -43,7 +44,7 @@ def test_the_solid_behind_flagged_surface_opens_as_deep_as_asked_and_nowhere_els
     assert bool((centre[:10] < 0).all())  # 5 voxels and deeper: still solid
     assert float(centre[12]) == pytest.approx(0.045 - 0.03)  # a distance field of the opened region
     assert torch.equal(opened[:, 0, 0], sdf[:, 0, 0])  # far from the patch: unchanged
-    deeper, m = opened_field(sdf, flagged, none, VOXEL, 0.085, 0.0)
+    deeper, m = opened_field(sdf, flagged, distances, 0.085, 0.0)
     assert m > n and bool((deeper[7:15, 10, 10] > 0).all()) and float(deeper[6, 10, 10]) < 0
 
 
@@ -51,16 +52,19 @@ def test_solid_near_supported_surface_is_kept_and_nothing_flagged_changes_nothin
     sdf, flagged = slab(), patch()
     supported = torch.zeros_like(flagged)
     supported[11, :, :] = True  # a wall the data holds, 4 voxels under the flagged patch
-    opened, _ = opened_field(sdf, flagged, supported, VOXEL, 0.085, 0.015)
+    opened, _ = opened_field(sdf, flagged, opening_distances(flagged, supported, VOXEL), 0.085, 0.015)
     centre = opened[:, 10, 10]
     assert bool((centre[13:15] > 0).all())  # more than 1.5 cm from the supported layer: opened
     assert torch.equal(centre[:13], sdf[:13, 10, 10])  # within 1.5 cm of it, and beyond it: untouched
-    same, n = opened_field(sdf, torch.zeros_like(flagged), supported, VOXEL, 0.085, 0.015)
+    nothing = torch.zeros_like(flagged)
+    same, n = opened_field(sdf, nothing, opening_distances(nothing, supported, VOXEL), 0.085, 0.015)
     assert n == 0 and torch.equal(same, sdf)
     with pytest.raises(ValueError, match="one shape"):
-        opened_field(sdf, flagged[:-1], supported, VOXEL, 0.04, 0.0)
+        opening_distances(flagged[:-1], supported, VOXEL)
+    with pytest.raises(ValueError, match="one shape"):
+        opened_field(sdf[:-1], flagged, opening_distances(flagged, supported, VOXEL), 0.04, 0.0)
     with pytest.raises(ValueError, match="depth"):
-        opened_field(sdf, flagged, supported, VOXEL, -0.04, 0.0)
+        opened_field(sdf, flagged, opening_distances(flagged, supported, VOXEL), -0.04, 0.0)
 
 
 def test_evidence_classes_flagged_and_supported_nodes_and_keeps_its_sums():
@@ -102,6 +106,7 @@ def test_an_opening_the_likelihood_prefers_is_kept_and_the_mesh_average_follows_
     assert round_["step"] == 2 and round_["flagged"] > 0
     assert round_["depth_m"] in preset_config("fast").schedule.open_depths_m
     assert round_["deviance_after"] < round_["deviance"] - model.sc.open_min_gain
+    assert round_["seconds"] > 0
     assert model.opened_nodes == round_["opened"] > 0 and model.summary()["opened_nodes"] == model.opened_nodes
     assert int((model.field.sdf.detach() < 0).sum()) < solid_before
     assert torch.equal(model.mesh_field().sdf.detach(), model.field.sdf.detach())  # the average restarts at the jump

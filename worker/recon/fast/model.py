@@ -5,14 +5,16 @@ returns, applies the shared sensor model (pulse, gains, crosstalk, background, p
 the photon likelihood, plus finite-difference Eikonal and smoothness terms on the grid (and, on a table, the
 empty-space push of empty_space.py); Adam steps the grid and the albedos, and the grid is projected back inside the
 hull. Without a table, the coarse level smooths only near the floor (`schedule.coarse_smooth_height_m`). On
-simulated captures, surface whose returns the histograms do not show is eroded every few steps (phantoms.py). The
-grid is refined 2x once; after that the learning rate decays and the run reports `converged` when the windowed data
+simulated captures, surface whose returns the histograms do not show is eroded every few steps (phantoms.py), and
+every `schedule.open_every_steps` the solid behind it is opened in one jump wherever the likelihood over all views
+prefers that (openings.py). The grid is refined 2x once; after that the learning rate decays and the run reports `converged` when the windowed data
 term stops improving. Meshes come from a moving average of the grid over the last steps.
 """
 
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import torch
@@ -24,7 +26,7 @@ from .empty_space import pressure_weight, push_to_empty, thin_near_table, view_c
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
 from .optim import Adam
-from .openings import opened_field
+from .openings import opened_field, opening_distances
 from .phantoms import ReturnEvidence, erode_at, return_ratios
 from .plateau import Plateau
 from .problem import FastProblem, build_problem
@@ -306,16 +308,18 @@ class FastModel:
         """Propose opening the solid behind phantom surface at each depth and keep the best proposal the likelihood
         prefers (openings.py)."""
         sc, field = self.sc, self.field
+        started = time.perf_counter()
         evidence = ReturnEvidence(tuple(field.sdf.shape[2:]), self.device)
         seed = self.seed * 1_000_003 + self.steps
         before = self._all_views_deviance(seed, evidence)
         for k in range(1, sc.open_passes):
             self._all_views_deviance(seed + k, evidence)
         flagged, supported = evidence.classify(sc.phantom_min_hits, sc.phantom_ratio, sc.open_keep_ratio)
+        distances = opening_distances(flagged, supported, field.voxel)
         current = field.sdf.detach().clone()
         best = (before - sc.open_min_gain, None, 0, None)
         for depth in sc.open_depths_m:
-            grid, n = opened_field(current[0, 0], flagged, supported, field.voxel, depth, sc.open_keep_m)
+            grid, n = opened_field(current[0, 0], flagged, distances, depth, sc.open_keep_m)
             if n == 0:
                 continue
             with torch.no_grad():
@@ -340,6 +344,7 @@ class FastModel:
             # lid and the new cavity blended.
             self._average = field.sdf.detach().clone()
             self._band = None
+        record["seconds"] = round(time.perf_counter() - started, 2)
         self.openings.append(record)
 
     def _update_average(self) -> None:

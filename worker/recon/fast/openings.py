@@ -34,34 +34,46 @@ import numpy as np
 import torch
 
 
-def opened_field(sdf: torch.Tensor, flagged: torch.Tensor, supported: torch.Tensor, voxel: float, depth_m: float,
-                 keep_m: float) -> tuple[torch.Tensor, int]:
-    """The SDF grid (nz, ny, nx, metres) with the solid behind flagged nodes opened (see the module).
+def opening_distances(flagged: torch.Tensor, supported: torch.Tensor, voxel: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(distance to the nearest flagged node, distance to the nearest supported node), metres, on the grid of the
+    two (nz, ny, nx) bool masks (Euclidean distance transforms; inf where a mask is empty). Computed once per round
+    of proposals: they do not depend on the depth."""
+    from scipy.ndimage import distance_transform_edt
 
-    flagged, supported: (nz, ny, nx) bool. Returns (new grid, number of nodes whose value rose). Inside the opened
-    region (within `depth_m` of a flagged node, more than `keep_m` from a supported one, in a piece of that region
-    that reaches a flagged node) the value becomes max(current, min(depth_m - d_flagged, d_supported - keep_m));
-    elsewhere it is unchanged. With no flagged nodes
-    nothing changes.
-    """
-    from scipy.ndimage import distance_transform_edt, label
-
-    if sdf.shape != flagged.shape or sdf.shape != supported.shape:
-        raise ValueError(f"grid {tuple(sdf.shape)}, flagged {tuple(flagged.shape)} and supported "
-                         f"{tuple(supported.shape)} must have one shape")
-    if not (voxel > 0 and depth_m >= 0 and keep_m >= 0):
-        raise ValueError(f"voxel {voxel} m must be > 0, depth {depth_m} m and keep {keep_m} m >= 0")
-    if not bool(flagged.any()):
-        return sdf.clone(), 0
+    if flagged.shape != supported.shape:
+        raise ValueError(f"flagged {tuple(flagged.shape)} and supported {tuple(supported.shape)} must have one shape")
+    if not voxel > 0:
+        raise ValueError(f"voxel {voxel} m must be > 0")
 
     def distance(nodes: torch.Tensor) -> torch.Tensor:
         mask = nodes.detach().cpu().numpy()
         if not mask.any():  # no such node: infinitely far
-            return torch.full(sdf.shape, float("inf"), dtype=sdf.dtype, device=sdf.device)
-        d = distance_transform_edt(~mask) * voxel
-        return torch.from_numpy(d.astype(np.float32)).to(device=sdf.device, dtype=sdf.dtype)
+            return torch.full(nodes.shape, float("inf"), device=nodes.device)
+        return torch.from_numpy((distance_transform_edt(~mask) * voxel).astype(np.float32)).to(nodes.device)
 
-    value = torch.minimum(depth_m - distance(flagged), distance(supported) - keep_m)
+    return distance(flagged), distance(supported)
+
+
+def opened_field(sdf: torch.Tensor, flagged: torch.Tensor, distances: tuple[torch.Tensor, torch.Tensor],
+                 depth_m: float, keep_m: float) -> tuple[torch.Tensor, int]:
+    """The SDF grid (nz, ny, nx, metres) with the solid behind flagged nodes opened (see the module).
+
+    flagged: (nz, ny, nx) bool; distances: `opening_distances` of the flagged and supported nodes. Returns (new grid,
+    number of nodes whose value rose). Inside the opened region (within `depth_m` of a flagged node, more than
+    `keep_m` from a supported one, in a piece of that region that reaches a flagged node) the value becomes
+    max(current, min(depth_m - d_flagged, d_supported - keep_m)); elsewhere it is unchanged. With no flagged nodes
+    nothing changes.
+    """
+    from scipy.ndimage import label
+
+    d_flagged, d_supported = distances
+    if not (sdf.shape == flagged.shape == d_flagged.shape == d_supported.shape):
+        raise ValueError(f"grid {tuple(sdf.shape)}, flagged {tuple(flagged.shape)} and distances must have one shape")
+    if not (depth_m >= 0 and keep_m >= 0):
+        raise ValueError(f"depth {depth_m} m and keep {keep_m} m must be >= 0")
+    if not bool(flagged.any()):
+        return sdf.clone(), 0
+    value = torch.minimum(depth_m - d_flagged, d_supported - keep_m).to(sdf.dtype)
     # Only the pieces of the region that reach a flagged node: the opening grows from the phantom surface and never
     # jumps across the kept margin of a supported wall into the solid beyond it.
     pieces, _ = label((value > 0).cpu().numpy())
@@ -71,4 +83,4 @@ def opened_field(sdf: torch.Tensor, flagged: torch.Tensor, supported: torch.Tens
     return torch.where(rise, value, sdf), int(rise.sum())
 
 
-__all__ = ["opened_field"]
+__all__ = ["opened_field", "opening_distances"]
