@@ -85,7 +85,8 @@ def test_evidence_classes_flagged_and_supported_nodes_and_keeps_its_sums():
 
 SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine_after_steps": 4,
          "schedule.views_per_step": 8, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0,
-         "schedule.phantom_min_hits": 1, "schedule.open_every_steps": 2, "schedule.open_passes": 1}
+         "schedule.phantom_min_hits": 1, "schedule.open_every_steps": 2, "schedule.open_passes": 1,
+         "schedule.open_min_flagged": 1}
 
 
 def blank_histograms(model) -> None:
@@ -137,6 +138,23 @@ def test_rounds_that_gain_nothing_are_undone_and_stop_after_the_patience(cylinde
     assert not off.openings and torch.equal(off.field.sdf.detach(), after_rounds)
 
 
+def test_a_round_with_fewer_flagged_nodes_than_the_minimum_proposes_nothing(cylinder_capture):
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), {**SMALL, "schedule.open_min_gain": 0.0})
+    runs = {}
+    for minimum in (1, 10**9):
+        model = make_fast_model(scene, with_overrides(config, {"schedule.open_min_flagged": minimum}), "cpu",
+                                RunPlan(steps=2, budget_s=None, seed=0))
+        blank_histograms(model)
+        for _ in range(2):
+            model.step()
+        runs[minimum] = model
+    assert runs[1].openings[0]["flagged"] > 0 and "depth_m" in runs[1].openings[0]
+    (round_,) = runs[10**9].openings
+    assert round_["flagged"] == runs[1].openings[0]["flagged"] and "depth_m" not in round_
+    assert runs[10**9].opened_nodes == 0 and runs[10**9]._open_misses == 1
+
+
 def test_no_openings_on_measured_captures_and_bad_settings_are_one_line_errors(cylinder_capture):
     scene = load_scene(cylinder_capture)
     config = with_overrides(preset_config("fast"), SMALL)
@@ -145,6 +163,7 @@ def test_no_openings_on_measured_captures_and_bad_settings_are_one_line_errors(c
     assert not measured._opening
     for key, bad in (("schedule.open_every_steps", -1), ("schedule.open_depths_m", [0.02, -0.01]),
                      ("schedule.open_keep_m", 0.5), ("schedule.open_keep_ratio", 0.5),
-                     ("schedule.open_passes", 0), ("schedule.open_min_gain", -1.0)):
+                     ("schedule.open_passes", 0), ("schedule.open_min_gain", -1.0),
+                     ("schedule.open_min_flagged", 0)):
         with pytest.raises(ConfigError, match=key.split(".")[1]):
             make_fast_model(scene, with_overrides(config, {key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))

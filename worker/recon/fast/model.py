@@ -315,10 +315,11 @@ class FastModel:
         for k in range(1, sc.open_passes):
             self._all_views_deviance(seed + k, evidence)
         flagged, supported = evidence.classify(sc.phantom_min_hits, sc.phantom_ratio, sc.open_keep_ratio)
-        distances = opening_distances(flagged, supported, field.voxel)
         current = field.sdf.detach().clone()
         best = (before - sc.open_min_gain, None, 0, None)
-        for depth in sc.open_depths_m:
+        few = int(flagged.sum()) < sc.open_min_flagged  # a handful of flagged nodes is noise, not a lid: no proposals
+        distances = None if few else opening_distances(flagged, supported, field.voxel)
+        for depth in () if few else sc.open_depths_m:
             grid, n = opened_field(current[0, 0], flagged, distances, depth, sc.open_keep_m)
             if n == 0:
                 continue
@@ -471,8 +472,8 @@ def sc_bad_opening(sc) -> str | None:
         return f"schedule.open_keep_m {sc.open_keep_m} must be in [0, 0.1] metres"
     if not sc.phantom_ratio <= sc.open_keep_ratio:
         return f"schedule.open_keep_ratio {sc.open_keep_ratio} must be >= phantom_ratio {sc.phantom_ratio}"
-    if sc.open_passes < 1 or sc.open_patience < 1 or not sc.open_min_gain >= 0:
-        return "schedule.open_passes and open_patience must be >= 1 and open_min_gain >= 0"
+    if sc.open_passes < 1 or sc.open_patience < 1 or not sc.open_min_gain >= 0 or sc.open_min_flagged < 1:
+        return "schedule.open_passes, open_patience and open_min_flagged must be >= 1 and open_min_gain >= 0"
     return None
 
 

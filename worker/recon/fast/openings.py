@@ -13,7 +13,8 @@ prefers:
 1. One pass over all views (and `open_passes - 1` more with other rays) gathers the same per-node evidence as the
    erosion: the log of measured over expected photons at each ray's return. Nodes with at least `phantom_min_hits`
    returns whose mean ratio is below `phantom_ratio` are *flagged* (phantom surface); those whose mean ratio is
-   at least `open_keep_ratio` are *supported* (surface the data holds).
+   at least `open_keep_ratio` are *supported* (surface the data holds). With fewer than `open_min_flagged` flagged
+   nodes the round makes no proposals.
 2. For each depth D in `open_depths_m`: the solid within D of a flagged node and more than `open_keep_m` from every
    supported node is opened (`opened_field`): there the field becomes min(D - distance to the flagged nodes,
    distance to the supported ones - keep), a distance field of the opened region, where that is above the current
