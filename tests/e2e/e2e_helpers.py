@@ -112,6 +112,10 @@ def wait_for(pred, what: str, timeout_s: float = 60.0, poll_s: float = 0.02):
         time.sleep(poll_s)
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Procs:
     """Background processes of one test, stopped (SIGTERM, then SIGKILL) in reverse order by stop_all."""
 
@@ -121,6 +125,9 @@ class Procs:
 
     def start(self, argv: list[str], name: str, **kwargs) -> subprocess.Popen:
         log = self.folder / f"{name}-{len(self.procs)}.log"
+        # Ctrl-C as a terminal delivers it: a test run started in the background (`.ci/run &`) inherits SIGINT
+        # ignored, and Python keeps an ignored SIGINT ignored, so the Ctrl-C tests would test nothing.
+        kwargs.setdefault("preexec_fn", _default_sigint)
         with open(log, "wb") as f:
             proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, **kwargs)
         self.procs.append((proc, log))

@@ -155,6 +155,24 @@ def test_a_round_with_fewer_flagged_nodes_than_the_minimum_proposes_nothing(cyli
     assert runs[10**9].opened_nodes == 0 and runs[10**9]._open_misses == 1
 
 
+def test_the_floor_is_kept_like_supported_surface(cylinder_capture):
+    scene = load_scene(cylinder_capture)
+    model = make_fast_model(scene, with_overrides(preset_config("fast"), SMALL), "cpu",
+                            RunPlan(steps=1, budget_s=None, seed=0))
+    assert model.p.floor_z == 0.0
+    sdf = model.field.sdf.detach()[0, 0]
+    flagged, nothing = torch.zeros_like(sdf, dtype=torch.bool), torch.zeros_like(sdf, dtype=torch.bool)
+    flagged[-3, 5, 5] = True
+    d_flagged, d_supported = model._opening_distances(flagged, nothing)
+    heights = model.field.origin[2] + torch.arange(sdf.shape[0]) * model.field.voxel
+    assert torch.allclose(d_supported[:, 2, 7], heights.clamp(min=0.0), atol=1e-6)
+    assert float(d_flagged[-3, 5, 5]) == 0.0
+    opened, _ = opened_field(sdf - 1.0, flagged, (d_flagged, d_supported), 10.0, 0.02)  # all solid, opened 10 m deep
+    low = heights < 0.02
+    assert bool(low.any()) and torch.equal(opened[low], (sdf - 1.0)[low])  # within 2 cm of the floor: kept
+    assert bool((opened[~low] > 0).all())
+
+
 def test_no_openings_on_measured_captures_and_bad_settings_are_one_line_errors(cylinder_capture):
     scene = load_scene(cylinder_capture)
     config = with_overrides(preset_config("fast"), SMALL)

@@ -304,6 +304,19 @@ class FastModel:
                     self._gather_evidence(views, lam, hits, evidence)
         return total / (self.n_views * self.n_bins)
 
+    def _opening_distances(self, flagged: torch.Tensor, supported: torch.Tensor):
+        """`opening_distances`, with the floor counted as supported surface: the object's base rests on it, where no
+        view sees it, and an opening that reaches the floor leaves a hole through the base that nothing in the data
+        closes again (the built-in cup's 8 mm base, opened from above at step 300)."""
+        d_flagged, d_supported = opening_distances(flagged, supported, self.field.voxel)
+        if self.p.floor_z is not None:
+            from .mesh import node_heights
+
+            rows = node_heights(flagged.shape[0], float(self.field.origin[2]), self.field.voxel) - self.p.floor_z
+            above = torch.as_tensor(rows, dtype=d_supported.dtype, device=d_supported.device).clamp(min=0.0)
+            d_supported = torch.minimum(d_supported, above[:, None, None].expand_as(d_supported))
+        return d_flagged, d_supported
+
     def _open_phantoms(self) -> None:
         """Propose opening the solid behind phantom surface at each depth and keep the best proposal the likelihood
         prefers (openings.py)."""
@@ -318,7 +331,7 @@ class FastModel:
         current = field.sdf.detach().clone()
         best = (before - sc.open_min_gain, None, 0, None)
         few = int(flagged.sum()) < sc.open_min_flagged  # a handful of flagged nodes is noise, not a lid: no proposals
-        distances = None if few else opening_distances(flagged, supported, field.voxel)
+        distances = None if few else self._opening_distances(flagged, supported)
         for depth in () if few else sc.open_depths_m:
             grid, n = opened_field(current[0, 0], flagged, distances, depth, sc.open_keep_m)
             if n == 0:
