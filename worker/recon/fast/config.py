@@ -148,7 +148,8 @@ class FastScheduleConfig:
     open_depths_m: tuple = (0.02, 0.04, 0.08)
     """How deep (metres) behind the flagged surface each proposal opens the solid."""
     open_keep_m: float = 0.006
-    """Solid within this distance (metres) of surface the data supports is never opened (walls behind a lid)."""
+    """Solid within this distance (metres) of surface the data supports, or of the floor (`field.floor_z`), is never
+    opened (walls behind a lid; a base standing on the floor, which no view sees from below)."""
     open_keep_ratio: float = 0.8
     """Surface nodes whose returns measure at least this fraction of the model's photons are supported."""
     open_passes: int = 3

@@ -16,7 +16,7 @@ prefers:
    at least `open_keep_ratio` are *supported* (surface the data holds). With fewer than `open_min_flagged` flagged
    nodes the round makes no proposals.
 2. For each depth D in `open_depths_m`: the solid within D of a flagged node and more than `open_keep_m` from every
-   supported node is opened (`opened_field`): there the field becomes min(D - distance to the flagged nodes,
+   supported node (and from the floor, which the model counts as supported) is opened (`opened_field`): there the field becomes min(D - distance to the flagged nodes,
    distance to the supported ones - keep), a distance field of the opened region, where that is above the current
    value; only the pieces of that region that reach a flagged node open. The kept margin spares the walls the data
    holds, and the fine level then moves them to where the data puts them.
