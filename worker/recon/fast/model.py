@@ -7,8 +7,8 @@ empty-space push of empty_space.py); Adam steps the grid and the albedos, and th
 hull. Without a table, the coarse level smooths only near the floor (`schedule.coarse_smooth_height_m`). On
 simulated captures, surface whose returns the histograms do not show is eroded every few steps (phantoms.py), and
 every `schedule.open_every_steps` the solid behind it is opened in one jump wherever the likelihood over all views
-prefers that (openings.py). The grid is refined 2x once; after that the learning rate decays and the run reports `converged` when the windowed data
-term stops improving. Meshes come from a moving average of the grid over the last steps.
+prefers that (openings.py). The grid is refined 2x once; after that the learning rate decays and the run reports
+`converged` when the windowed data term stops improving. Meshes come from a moving average of the grid over the last steps.
 """
 
 from __future__ import annotations
@@ -111,8 +111,9 @@ class FastModel:
         self._evidence: ReturnEvidence | None = None
         self.eroded_nodes = 0
         # Opening of the solid behind phantom surface (openings.py), with the same evidence: simulated captures only.
-        if sc_bad_opening(self.sc):
-            raise ConfigError(sc_bad_opening(self.sc))
+        bad = _opening_settings_error(self.sc)
+        if bad:
+            raise ConfigError(bad)
         self.seed = int(seed)
         self._opening = self.phantoms and self.sc.open_every_steps > 0 and len(self.sc.open_depths_m) > 0
         self._open_misses = 0
@@ -318,48 +319,62 @@ class FastModel:
         return d_flagged, d_supported
 
     def _open_phantoms(self) -> None:
-        """Propose opening the solid behind phantom surface at each depth and keep the best proposal the likelihood
-        prefers (openings.py)."""
-        sc, field = self.sc, self.field
+        """One round of proposals (openings.py): open the solid behind phantom surface at the depth the likelihood
+        prefers, if any; records the round in `openings`."""
         started = time.perf_counter()
-        evidence = ReturnEvidence(tuple(field.sdf.shape[2:]), self.device)
         seed = self.seed * 1_000_003 + self.steps
+        before, flagged, supported = self._opening_evidence(seed)
+        record = {"step": self.steps, "flagged": int(flagged.sum()), "deviance": round(before, 5)}
+        kept = None
+        if record["flagged"] >= self.sc.open_min_flagged:  # a handful of flagged nodes is noise, not a lid
+            kept = self._best_opening(seed, before, flagged, supported)
+        if kept is None:
+            self._open_misses += 1
+            self._opening = self._open_misses < self.sc.open_patience
+        else:
+            depth, opened, after = kept
+            self._open_misses = 0
+            self.opened_nodes += opened
+            record.update(depth_m=depth, opened=opened, deviance_after=round(after, 5))
+            # The average and the band follow the jump at once: averaging it in over ~100 steps would mesh the old
+            # lid and the new cavity blended.
+            self._average = self.field.sdf.detach().clone()
+            self._band = None
+        record["seconds"] = round(time.perf_counter() - started, 2)
+        self.openings.append(record)
+
+    def _opening_evidence(self, seed: int) -> tuple[float, torch.Tensor, torch.Tensor]:
+        """(deviance per bin over all views with the rays `seed` draws, flagged nodes, supported nodes), from
+        `open_passes` passes over all views."""
+        sc = self.sc
+        evidence = ReturnEvidence(tuple(self.field.sdf.shape[2:]), self.device)
         before = self._all_views_deviance(seed, evidence)
         for k in range(1, sc.open_passes):
             self._all_views_deviance(seed + k, evidence)
-        flagged, supported = evidence.classify(sc.phantom_min_hits, sc.phantom_ratio, sc.open_keep_ratio)
+        return (before, *evidence.classify(sc.phantom_min_hits, sc.phantom_ratio, sc.open_keep_ratio))
+
+    def _best_opening(self, seed: int, before: float, flagged: torch.Tensor,
+                      supported: torch.Tensor) -> tuple[float, int, float] | None:
+        """Try each depth of `open_depths_m` on the same rays as `before`; leave the field opened at the best one
+        that gains at least `open_min_gain` per bin and return (depth, nodes opened, deviance), or leave the field
+        as it was and return None."""
+        sc, field = self.sc, self.field
         current = field.sdf.detach().clone()
-        best = (before - sc.open_min_gain, None, 0, None)
-        few = int(flagged.sum()) < sc.open_min_flagged  # a handful of flagged nodes is noise, not a lid: no proposals
-        distances = None if few else self._opening_distances(flagged, supported)
-        for depth in () if few else sc.open_depths_m:
-            grid, n = opened_field(current[0, 0], flagged, distances, depth, sc.open_keep_m)
-            if n == 0:
+        distances = self._opening_distances(flagged, supported)
+        best, best_grid = None, None
+        for depth in sc.open_depths_m:
+            grid, opened = opened_field(current[0, 0], flagged, distances, depth, sc.open_keep_m)
+            if opened == 0:
                 continue
             with torch.no_grad():
                 field.sdf[0, 0] = grid
             after = self._all_views_deviance(seed)
-            if after < best[0]:
-                best = (after, depth, n, grid)
+            if after < (before - sc.open_min_gain if best is None else best[2]):
+                best, best_grid = (depth, opened, after), grid
         with torch.no_grad():
-            field.sdf.copy_(current)
-            if best[1] is not None:
-                field.sdf[0, 0] = best[3]
+            field.sdf[0, 0] = current[0, 0] if best_grid is None else best_grid
         self.constraint.project(field)
-        record = {"step": self.steps, "flagged": int(flagged.sum()), "deviance": round(before, 5)}
-        if best[1] is None:
-            self._open_misses += 1
-            self._opening = self._open_misses < sc.open_patience
-        else:
-            self._open_misses = 0
-            self.opened_nodes += best[2]
-            record.update(depth_m=best[1], opened=best[2], deviance_after=round(best[0], 5))
-            # The average and the band follow the jump at once: averaging it in over ~100 steps would mesh the old
-            # lid and the new cavity blended.
-            self._average = field.sdf.detach().clone()
-            self._band = None
-        record["seconds"] = round(time.perf_counter() - started, 2)
-        self.openings.append(record)
+        return best
 
     def _update_average(self) -> None:
         if self.sc.average_decay <= 0:
@@ -474,7 +489,7 @@ class FastModel:
         return out
 
 
-def sc_bad_opening(sc) -> str | None:
+def _opening_settings_error(sc) -> str | None:
     """A one-line reason why the schedule's opening settings (openings.py) are unusable, or None."""
     depths = sc.open_depths_m
     if not (isinstance(sc.open_every_steps, int) and sc.open_every_steps >= 0):
