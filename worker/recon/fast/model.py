@@ -8,7 +8,8 @@ hull. Without a table, the coarse level smooths only near the floor (`schedule.c
 simulated captures, surface whose returns the histograms do not show is eroded every few steps (phantoms.py), and
 every `schedule.open_every_steps` the solid behind it is opened in one jump wherever the likelihood over all views
 prefers that (openings.py). The grid is refined 2x once; after that the learning rate decays and the run reports
-`converged` when the windowed data term stops improving. Meshes come from a moving average of the grid over the last steps.
+`converged` when the windowed data term stops improving. Meshes come from a moving average of the grid over the
+last steps.
 """
 
 from __future__ import annotations

@@ -16,9 +16,10 @@ prefers:
    at least `open_keep_ratio` are *supported* (surface the data holds). With fewer than `open_min_flagged` flagged
    nodes the round makes no proposals.
 2. For each depth D in `open_depths_m`: the solid within D of a flagged node and more than `open_keep_m` from every
-   supported node (and from the floor, which the model counts as supported) is opened (`opened_field`): there the field becomes min(D - distance to the flagged nodes,
-   distance to the supported ones - keep), a distance field of the opened region, where that is above the current
-   value; only the pieces of that region that reach a flagged node open. The kept margin spares the walls the data
+   supported node (and from the floor, which the model counts as supported) is opened (`opened_field`): there the
+   field becomes min(D - distance to the flagged nodes, distance to the supported ones - keep), a distance field of
+   the opened region, where that is above the current value; only the pieces of that region that reach a flagged
+   node open. The kept margin spares the walls the data
    holds, and the fine level then moves them to where the data puts them.
 3. Each proposal is rendered over all views with the rays of the first pass (common random numbers: the comparison
    does not see the sampling noise) and kept if it lowers the deviance per bin by at least `open_min_gain`; the best
@@ -35,7 +36,8 @@ import numpy as np
 import torch
 
 
-def opening_distances(flagged: torch.Tensor, supported: torch.Tensor, voxel: float) -> tuple[torch.Tensor, torch.Tensor]:
+def opening_distances(flagged: torch.Tensor, supported: torch.Tensor,
+                      voxel: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(distance to the nearest flagged node, distance to the nearest supported node), metres, on the grid of the
     two (nz, ny, nx) bool masks (Euclidean distance transforms; inf where a mask is empty). Computed once per round
     of proposals: they do not depend on the depth."""
