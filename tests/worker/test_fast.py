@@ -25,7 +25,7 @@ from spadscan.worker.recon.fast.render import section_ranges, section_weights
 from spadscan.worker.recon.fast.sampler import around_crossing, hull_rays
 from spadscan.worker.recon.model_api import ReconModel, RunPlan
 from spadscan.worker.recon.scene_data import load_scene
-from worker_helpers import cylinder_mesh
+from worker_helpers import FAST_SMALL, blank_histograms, cylinder_mesh
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -230,13 +230,11 @@ def test_adam_leaves_untouched_elements_where_they_are():
 
 
 # ---- runs on simulated captures -----------------------------------------------------------------------------------
-SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine_after_steps": 4,
-         "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
 
 
 def test_two_step_smoke_run_follows_the_model_protocol(cylinder_capture):
     scene = load_scene(cylinder_capture)
-    config = with_overrides(preset_config("fast"), SMALL)
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
     model = make_fast_model(scene, config, "cpu", RunPlan(steps=2, budget_s=None, seed=0))
     assert isinstance(model, ReconModel)
     for _ in range(2):
@@ -256,7 +254,8 @@ def test_two_step_smoke_run_follows_the_model_protocol(cylinder_capture):
 def test_meshes_come_from_the_moving_average_of_the_grid_restarted_at_refinement(cylinder_capture):
     scene = load_scene(cylinder_capture)
     decay = 0.8
-    model = make_fast_model(scene, with_overrides(preset_config("fast"), {**SMALL, "schedule.average_decay": decay}),
+    model = make_fast_model(scene,
+                            with_overrides(preset_config("fast"), {**FAST_SMALL, "schedule.average_decay": decay}),
                             "cpu", RunPlan(steps=8, budget_s=None, seed=0))
     assert model.mesh_field() is model.field  # nothing to average before the first step
     average, n = None, 0
@@ -277,13 +276,13 @@ def test_meshes_come_from_the_moving_average_of_the_grid_restarted_at_refinement
     assert len(model.extract_mesh(32).faces) > 0
     assert model.summary()["mesh_average_decay"] == decay  # the report says what the mesh was taken from
 
-    plain = make_fast_model(scene, with_overrides(preset_config("fast"), {**SMALL, "schedule.average_decay": 0.0}),
+    plain = make_fast_model(scene, with_overrides(preset_config("fast"), {**FAST_SMALL, "schedule.average_decay": 0.0}),
                             "cpu", RunPlan(steps=1, budget_s=None, seed=0))
     plain.step()
     assert plain.mesh_field() is plain.field
     for bad in (1.0, -0.1):
         with pytest.raises(ConfigError, match="schedule.average_decay"):
-            make_fast_model(scene, with_overrides(preset_config("fast"), {**SMALL, "schedule.average_decay": bad}),
+            make_fast_model(scene, with_overrides(preset_config("fast"), {**FAST_SMALL, "schedule.average_decay": bad}),
                             "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
 
@@ -301,7 +300,7 @@ def test_the_coarse_level_smooths_only_near_the_floor_of_a_scene_without_a_table
     monkeypatch.setattr(fast_model, "grid_regularizers", spy)
     scene = load_scene(cylinder_capture)
     model = make_fast_model(scene, with_overrides(preset_config("fast"), {
-        **SMALL, "schedule.coarse_smooth_height_m": 0.03}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
+        **FAST_SMALL, "schedule.coarse_smooth_height_m": 0.03}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
     assert model.p.floor_z == 0.0 and model.summary()["coarse_smooth_below_z_m"] == pytest.approx(0.03)
     layers = model._coarse_smooth_layers
     z0, vox = float(model.field.origin[2]), model.field.voxel
@@ -311,7 +310,7 @@ def test_the_coarse_level_smooths_only_near_the_floor_of_a_scene_without_a_table
     assert seen == [layers] * 4 + [None] * 2  # the fine level (after 4 steps) smooths everywhere
 
     seen.clear()
-    for overrides, target in ((SMALL, table_capture), ({**SMALL, "schedule.coarse_smooth_height_m": None},
+    for overrides, target in ((FAST_SMALL, table_capture), ({**FAST_SMALL, "schedule.coarse_smooth_height_m": None},
                                                        cylinder_capture)):
         model = make_fast_model(load_scene(target), with_overrides(preset_config("fast"), overrides), "cpu",
                                 RunPlan(steps=1, budget_s=None, seed=0))
@@ -319,14 +318,14 @@ def test_the_coarse_level_smooths_only_near_the_floor_of_a_scene_without_a_table
         assert model.summary()["coarse_smooth_below_z_m"] is None
     assert seen == [None, None]  # on a table, or when switched off, the coarse level smooths everywhere
     for bad in (-0.01, float("nan"), 2.0, "low"):
-        config = with_overrides(preset_config("fast"), SMALL)
+        config = with_overrides(preset_config("fast"), FAST_SMALL)
         config.schedule.coarse_smooth_height_m = bad
         with pytest.raises(ConfigError, match="coarse_smooth_height_m"):
             make_fast_model(scene, config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
 
 def test_a_grid_with_no_surface_is_a_one_line_error(cylinder_capture):
-    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), SMALL), "cpu",
+    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
                             RunPlan(steps=1, budget_s=None, seed=0))
     with torch.no_grad():
         model.field.sdf.fill_(1.0)
@@ -335,7 +334,7 @@ def test_a_grid_with_no_surface_is_a_one_line_error(cylinder_capture):
 
 
 def test_a_bubble_inside_the_solid_is_filled_and_only_a_table_scene_gets_the_empty_space_push(cylinder_capture):
-    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), SMALL), "cpu",
+    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
                             RunPlan(steps=1, budget_s=None, seed=0))
     assert not model.empty_space and model.summary()["empty_space_push"] is False  # no table in this scene
     sdf = model.field.sdf.detach()[0, 0]
@@ -353,15 +352,15 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
     from spadscan.worker.recon.fast.model import FastModel
 
     scene = load_scene(cylinder_capture)
-    config = with_overrides(preset_config("fast"), {**SMALL, "field.resolution": 40, "schedule.phantom_every_steps": 3,
+    config = with_overrides(preset_config("fast"), {**FAST_SMALL, "field.resolution": 40,
+                                                    "schedule.phantom_every_steps": 3,
                                                     "schedule.phantom_min_hits": 1})
 
     def run(blank: bool, ratio: float):
         cfg = with_overrides(config, {"schedule.phantom_ratio": ratio})
         model = make_fast_model(scene, cfg, "cpu", RunPlan(steps=3, budget_s=None, seed=0))
         if blank:  # the histograms hold only the background: every rendered return is one they do not show
-            bg = model.p.background[..., None] * model.p.cycles[:, None, None]
-            model.p.counts = torch.poisson(bg.expand_as(model.p.counts), generator=torch.Generator().manual_seed(0))
+            blank_histograms(model)
         start = model.field.sdf.detach().clone()
         for _ in range(3):
             assert math.isfinite(model.step()["loss"])
@@ -411,7 +410,7 @@ def table_capture(tmp_path_factory):
 
 
 def test_a_table_scene_pushes_where_few_views_look_and_meshes_above_the_table(table_capture):
-    model = make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), SMALL), "cpu",
+    model = make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
                             RunPlan(steps=3, budget_s=None, seed=0))
     assert model.table is not None and model.empty_space and model.summary()["empty_space_push"] is True
     for _ in range(3):
@@ -428,7 +427,7 @@ def test_a_table_scene_pushes_where_few_views_look_and_meshes_above_the_table(ta
 
 def test_a_table_scene_empties_thin_sheets_within_the_band_above_the_table(table_capture):
     model = make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), {
-        **SMALL, "field.thin_sheet_band_m": 0.05}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
+        **FAST_SMALL, "field.thin_sheet_band_m": 0.05}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
     assert model.fc.thin_sheet_band_m == 0.05
     for _ in range(6):
         model.step()
@@ -453,7 +452,7 @@ def test_a_table_scene_empties_thin_sheets_within_the_band_above_the_table(table
                      ("field.thin_sheet_band_m", float("nan"))):
         with pytest.raises(ConfigError, match=key.split(".")[1]):
             make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), {
-                **SMALL, key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+                **FAST_SMALL, key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
 
 def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_there(cylinder_capture):
@@ -462,7 +461,7 @@ def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_
     scene = load_scene(cylinder_capture)
     # A margin no window can beat: the plateau is reached one patience (30 steps) after the first window (10 steps)
     # of the refined level, which starts after 4 steps.
-    flat = {**SMALL, "schedule.patience_steps": 30, "schedule.min_rel_improvement": 0.9}
+    flat = {**FAST_SMALL, "schedule.patience_steps": 30, "schedule.min_rel_improvement": 0.9}
     coarse = make_fast_model(scene, with_overrides(preset_config("fast"), {**flat, "field.refine_after_steps": 1000}),
                              "cpu", RunPlan(steps=60, budget_s=None, seed=0))
     assert not any(coarse.step()["converged"] for _ in range(60))
@@ -488,7 +487,8 @@ def test_short_run_lowers_loss_and_chamfer(cylinder_capture):
     from spadscan.worker.metrics import mesh_metrics
 
     scene = load_scene(cylinder_capture)
-    config = with_overrides(preset_config("fast"), {**SMALL, "field.resolution": 32, "field.refine_after_steps": 60})
+    config = with_overrides(preset_config("fast"), {**FAST_SMALL, "field.resolution": 32,
+                                                    "field.refine_after_steps": 60})
     model = make_fast_model(scene, config, "cpu", RunPlan(steps=100, budget_s=None, seed=0))
     gt = cylinder_mesh()
     chamfer0 = mesh_metrics(model.extract_mesh(48), gt, n_points=5000).chamfer_mm

@@ -16,6 +16,7 @@ from spadscan.worker.recon.fast.openings import opened_field, opening_distances
 from spadscan.worker.recon.fast.phantoms import ReturnEvidence
 from spadscan.worker.recon.model_api import RunPlan
 from spadscan.worker.recon.scene_data import load_scene
+from worker_helpers import FAST_SMALL, blank_histograms
 
 VOXEL = 0.01
 
@@ -83,16 +84,8 @@ def test_evidence_classes_flagged_and_supported_nodes_and_keeps_its_sums():
         ev.classify(3, 0.9, 0.8)
 
 
-SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine_after_steps": 4,
-         "schedule.views_per_step": 8, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0,
-         "schedule.phantom_min_hits": 1, "schedule.open_every_steps": 2, "schedule.open_passes": 1,
-         "schedule.open_min_flagged": 1}
-
-
-def blank_histograms(model) -> None:
-    """Only the background comes back: every rendered return is one the histograms do not show."""
-    bg = model.p.background[..., None] * model.p.cycles[:, None, None]
-    model.p.counts = torch.poisson(bg.expand_as(model.p.counts), generator=torch.Generator().manual_seed(0))
+SMALL = {**FAST_SMALL, "schedule.views_per_step": 8, "schedule.phantom_min_hits": 1,
+         "schedule.open_every_steps": 2, "schedule.open_passes": 1, "schedule.open_min_flagged": 1}
 
 
 def test_an_opening_the_likelihood_prefers_is_kept_and_the_mesh_average_follows_it(cylinder_capture):

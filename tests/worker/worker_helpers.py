@@ -12,6 +12,17 @@ PAPER_SMALL = {"rays.rays_per_view": 48, "rays.importance_rays_per_view": 16, "r
                "optim.lr": 1e-3}
 """The paper's method at a size a unit test can afford (the network and the ray counts shrink, nothing else)."""
 
+FAST_SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine_after_steps": 4,
+              "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
+"""The fast preset at a size a unit test can afford (a coarse grid refined after 4 steps, few views and rays)."""
+
+
+def blank_histograms(model) -> None:
+    """Replace a fast model's histograms with background alone (Poisson, seed 0): every return it renders is then
+    one the histograms do not show."""
+    bg = model.p.background[..., None] * model.p.cycles[:, None, None]
+    model.p.counts = torch.poisson(bg.expand_as(model.p.counts), generator=torch.Generator().manual_seed(0))
+
 
 def cylinder_mesh():
     """A cylinder of radius 4 cm and height 8 cm standing on z = 0, a little off the axis."""

@@ -372,9 +372,8 @@ class FastModel:
             after = self._all_views_deviance(seed)
             if after < (before - sc.open_min_gain if best is None else best[2]):
                 best, best_grid = (depth, opened, after), grid
-        with torch.no_grad():
+        with torch.no_grad():  # an opening only raises the field, so it stays within the hull's bound
             field.sdf[0, 0] = current[0, 0] if best_grid is None else best_grid
-        self.constraint.project(field)
         return best
 
     def _update_average(self) -> None:
