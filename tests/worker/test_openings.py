@@ -12,7 +12,7 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.recon.config import preset_config, with_overrides
 from spadscan.worker.recon.fast.model import FastModel, make_fast_model
-from spadscan.worker.recon.fast.openings import opened_field, opening_distances
+from spadscan.worker.recon.fast.openings import opened_field, opening_distances, surface_classes
 from spadscan.worker.recon.fast.phantoms import ReturnEvidence
 from spadscan.worker.recon.model_api import RunPlan
 from spadscan.worker.recon.scene_data import load_scene
@@ -84,6 +84,23 @@ def test_evidence_classes_flagged_and_supported_nodes_and_keeps_its_sums():
         ev.classify(3, 0.9, 0.8)
 
 
+def test_only_nodes_at_the_surface_as_it_is_now_are_classed():
+    sdf = slab()  # surface at node layer 15
+    ev = ReturnEvidence(tuple(sdf.shape), "cpu")
+    origin = torch.zeros(3)
+    for z, x, ratio in ((15, 5, 0.3), (19, 6, 0.3), (15, 7, 0.9), (11, 8, 0.9)):  # at the surface, 4 voxels off it
+        for _ in range(3):
+            ev.add(torch.tensor([[x * VOXEL, 5 * VOXEL, z * VOXEL]]), torch.tensor([math.log(ratio)]), origin, VOXEL)
+    everywhere = ev.classify(3, 0.6, 0.8)
+    assert [int(c.sum()) for c in everywhere] == [2, 2]
+    flagged, supported = surface_classes(ev, sdf, VOXEL, 3, 0.6, 0.8)
+    assert torch.nonzero(flagged).tolist() == [[15, 5, 5]] and torch.nonzero(supported).tolist() == [[15, 5, 7]]
+    with pytest.raises(ValueError, match="one shape"):
+        surface_classes(ev, sdf[:-1], VOXEL, 3, 0.6, 0.8)
+    with pytest.raises(ValueError, match="voxel"):
+        surface_classes(ev, sdf, 0.0, 3, 0.6, 0.8)
+
+
 SMALL = {**FAST_SMALL, "schedule.views_per_step": 8, "schedule.phantom_min_hits": 1,
          "schedule.open_every_steps": 2, "schedule.open_passes": 1, "schedule.open_min_flagged": 1}
 
@@ -105,6 +122,33 @@ def test_an_opening_the_likelihood_prefers_is_kept_and_the_mesh_average_follows_
     assert int((model.field.sdf.detach() < 0).sum()) < solid_before
     assert torch.equal(model.mesh_field().sdf.detach(), model.field.sdf.detach())  # the average restarts at the jump
     assert torch.isfinite(model.field.sdf.detach()).all()
+
+
+def test_a_round_weighs_the_returns_of_the_training_steps_in_its_window_only(cylinder_capture):
+    # 24 views at 8 a step: one pass's worth is 3 steps, so the round at step 6 weighs the returns of steps 4-6.
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), {**SMALL, "field.refine_after_steps": 0,
+                                                    "schedule.open_every_steps": 6})
+    model = make_fast_model(scene, config, "cpu", RunPlan(steps=6, budget_s=None, seed=0))
+    blank_histograms(model)
+    assert model._open_window == 3
+    seen, round_ = [], model._open_phantoms
+
+    def spy(step):
+        # The erosion's evidence holds every step's returns so far (it is taken only every 30 steps).
+        seen.append((float(model._open_evidence.hits.sum()), float(model._evidence.hits.sum())))
+        round_(step)
+
+    model._open_phantoms = spy
+    totals = []
+    for _ in range(6):
+        model.step()
+        totals.append(float(model._evidence.hits.sum()))
+    assert len(seen) == 1 and len(model.openings) == 1
+    window, all_steps = seen[0]
+    assert 0 < window == all_steps - totals[2] < all_steps
+    assert model.openings[0]["flagged"] > 0 and model._open_evidence is None  # a round consumes its evidence
+    assert "depth_m" in model.openings[0] and totals[5] == 0  # a kept jump restarts the erosion's evidence
 
 
 def test_rounds_that_gain_nothing_are_undone_and_stop_after_the_patience(cylinder_capture):

@@ -153,7 +153,8 @@ class FastScheduleConfig:
     open_keep_ratio: float = 0.8
     """Surface nodes whose returns measure at least this fraction of the model's photons are supported."""
     open_passes: int = 3
-    """Passes over all views (with fresh rays) that gather the evidence for one round of proposals."""
+    """A round's evidence is the returns of the training steps just before it: the last this many passes' worth of
+    views (each view about this many times; 48 steps at 256 views and 16 views a step), at most `open_every_steps`."""
     open_min_gain: float = 0.001
     """A proposal is kept only if it lowers the deviance over all views by at least this much per bin: smaller
     gains are within the noise of the comparison (on the built-in lamp such proposals took off the top of its

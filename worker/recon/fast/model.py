@@ -27,7 +27,7 @@ from .empty_space import pressure_weight, push_to_empty, thin_near_table, view_c
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
 from .optim import Adam
-from .openings import opened_field, opening_distances
+from .openings import opened_field, opening_distances, surface_classes
 from .phantoms import ReturnEvidence, erode_at, return_ratios
 from .plateau import Plateau
 from .problem import FastProblem, build_problem
@@ -118,6 +118,10 @@ class FastModel:
         self.seed = int(seed)
         self._opening = self.phantoms and self.sc.open_every_steps > 0 and len(self.sc.open_depths_m) > 0
         self._open_misses = 0
+        # A round's evidence: the returns of the training steps of its last `open_passes` passes' worth of views.
+        self._open_window = min(self.sc.open_every_steps,
+                                self.sc.open_passes * math.ceil(self.n_views / max(1, self.sc.views_per_step)))
+        self._open_evidence: ReturnEvidence | None = None
         self.opened_nodes = 0
         self.openings: list[dict] = []
         # The moving average of the grid that meshes are extracted from (schedule.average_decay); restarted at
@@ -213,7 +217,7 @@ class FastModel:
         lam, hits = self._rates(views, record_hits=self.phantoms)
         nll = self.p.forward.nll(lam, self.p.counts[views], self.p.cycles[views], self.p.valid[views])
         if self.phantoms:
-            self._gather_evidence(views, lam.detach(), hits)
+            self._gather_evidence(views, lam.detach(), hits, self._evidence_targets())
         data = nll / self.n_bins  # deviance per bin: ~0.5 when the fit reaches the photon noise
         if self._band is None or self.level_steps % sc.band_refresh_steps == 0:
             self._band = band_nodes(self.field.sdf, sc.band_voxels * self.field.voxel,
@@ -243,13 +247,15 @@ class FastModel:
         self.opt.set_lr(0, self._grid_lr())
         self.opt.step()
         self.constraint.project(self.field)
+        # A round of openings before the erosion: its evidence is on the surface as these steps rendered it, and
+        # the erosion would first move exactly the flagged nodes a voxel away from it.
+        if self._opening and (self.steps + 1) % sc.open_every_steps == 0:
+            self._open_phantoms(self.steps + 1)
         if self.phantoms and (self.level_steps + 1) % sc.phantom_every_steps == 0:
             self._erode_phantoms()
         self._update_average()
         self.steps += 1
         self.level_steps += 1
-        if self._opening and self.steps % sc.open_every_steps == 0:
-            self._open_phantoms()
         self._plateau.update(float(data.detach()))
         out = {"loss": float(loss.detach()), "data": float(data.detach()), "eikonal": float(eik.detach()),
                "smooth": float(smooth.detach()), "albedo": float(torch.exp(self.log_albedo.detach())),
@@ -262,17 +268,26 @@ class FastModel:
             raise ReconstructionError(f"the loss became {out['loss']} at step {self.steps} (diverged)")
         return out
 
+    def _evidence_targets(self) -> list[ReturnEvidence]:
+        """The evidence this step's returns go to: the erosion's, and in the last `_open_window` steps before a round
+        of openings, the round's (each made afresh where it is missing or the grid changed shape since)."""
+        shape = tuple(self.field.sdf.shape[2:])
+        if self._evidence is None or self._evidence.shape != shape:
+            self._evidence = ReturnEvidence(shape, self.device)
+        targets = [self._evidence]
+        if self._opening:
+            every, into = self.sc.open_every_steps, self.steps % self.sc.open_every_steps
+            if into == every - self._open_window or self._open_evidence is None or self._open_evidence.shape != shape:
+                self._open_evidence = ReturnEvidence(shape, self.device)
+            if into >= every - self._open_window:
+                targets.append(self._open_evidence)
+        return targets
+
     def _gather_evidence(self, views: torch.Tensor, lam: torch.Tensor, hits: tuple | None,
-                         evidence: ReturnEvidence | None = None) -> None:
-        """Add this step's opaque returns (`_rates`' hits) to the per-node evidence (phantoms.py): the log of measured
-        over expected signal photons around each return's bin, where the expected signal is well above the noise.
-        evidence: where to add them (default: the erosion's, made to match the field's grid first, so that
-        `_erode_phantoms` always finds one)."""
-        if evidence is None:
-            shape = tuple(self.field.sdf.shape[2:])
-            if self._evidence is None or self._evidence.shape != shape:
-                self._evidence = ReturnEvidence(shape, self.device)
-            evidence = self._evidence
+                         targets: list[ReturnEvidence]) -> None:
+        """Add the opaque returns (`_rates`' hits) of these views to each per-node evidence of `targets`
+        (phantoms.py): the log of measured over expected signal photons around each return's bin, where the expected
+        signal is well above the noise."""
         if hits is None or hits[0].numel() == 0:
             return
         p, fwd = self.p, self.p.forward
@@ -285,25 +300,25 @@ class FastModel:
         s = fwd.sensor
         b = torch.floor(s.zero_bin + ranges / s.bin_width_m).long().clamp(0, self.n_bins - 1)
         keep = significant[hist, b]
-        evidence.add(points[keep], torch.log(ratio[hist, b][keep]), self.field.origin, self.field.voxel)
+        points, log_ratio = points[keep], torch.log(ratio[hist, b][keep])
+        for evidence in targets:
+            evidence.add(points, log_ratio, self.field.origin, self.field.voxel)
 
     def _erode_phantoms(self) -> None:
         nodes = self._evidence.take(self.sc.phantom_min_hits, self.sc.phantom_ratio)
         self.eroded_nodes += erode_at(self.field.sdf.detach()[0, 0], nodes, self.field.voxel)
 
-    def _all_views_deviance(self, seed: int, evidence: ReturnEvidence | None = None) -> float:
+    def _all_views_deviance(self, seed: int) -> float:
         """Deviance per bin over every view under the current field, with the rays that `seed` draws (so that two
-        fields compare on the same rays); with `evidence`, their returns are added to it. No gradient."""
+        fields compare on the same rays). No gradient."""
         gen = torch.Generator(device=self.device)
         gen.manual_seed(seed)
         total, fwd, p = 0.0, self.p.forward, self.p
         with torch.no_grad():
             for views in torch.arange(self.n_views, device=self.device).split(self.sc.views_per_step):
-                lam, hits = self._rates(views, record_hits=evidence is not None, gen=gen)
+                lam, _ = self._rates(views, gen=gen)
                 nll = fwd.nll(lam, p.counts[views], p.cycles[views], p.valid[views])  # mean over the histograms
                 total += float(nll) * views.numel()
-                if evidence is not None:
-                    self._gather_evidence(views, lam, hits, evidence)
         return total / (self.n_views * self.n_bins)
 
     def _opening_distances(self, flagged: torch.Tensor, supported: torch.Tensor):
@@ -319,19 +334,27 @@ class FastModel:
             d_supported = torch.minimum(d_supported, above[:, None, None].expand_as(d_supported))
         return d_flagged, d_supported
 
-    def _open_phantoms(self) -> None:
-        """One round of proposals (openings.py): open the solid behind phantom surface at the depth the likelihood
-        prefers, if any; records the round in `openings`."""
+    def _open_phantoms(self, step: int) -> None:
+        """One round of proposals (openings.py) at the end of step `step`: open the solid behind phantom surface at
+        the depth the likelihood prefers, if any; records the round in `openings`."""
         started = time.perf_counter()
-        seed = self.seed * 1_000_003 + self.steps
-        before, flagged, supported = self._opening_evidence(seed)
-        record = {"step": self.steps, "flagged": int(flagged.sum()), "deviance": round(before, 5)}
+        sc = self.sc
+        evidence, self._open_evidence = self._open_evidence, None
+        flagged = supported = None
+        sdf = self.field.sdf.detach()[0, 0]
+        if evidence is not None and evidence.shape == tuple(sdf.shape):
+            flagged, supported = surface_classes(evidence, sdf, self.field.voxel, sc.phantom_min_hits,
+                                                 sc.phantom_ratio, sc.open_keep_ratio)
+        record = {"step": step, "flagged": 0 if flagged is None else int(flagged.sum())}
         kept = None
-        if record["flagged"] >= self.sc.open_min_flagged:  # a handful of flagged nodes is noise, not a lid
+        if record["flagged"] >= sc.open_min_flagged:  # a handful of flagged nodes is noise, not a lid
+            seed = self.seed * 1_000_003 + step
+            before = self._all_views_deviance(seed)
+            record["deviance"] = round(before, 5)
             kept = self._best_opening(seed, before, flagged, supported)
         if kept is None:
             self._open_misses += 1
-            self._opening = self._open_misses < self.sc.open_patience
+            self._opening = self._open_misses < sc.open_patience
         else:
             depth, opened, after = kept
             self._open_misses = 0
@@ -341,18 +364,10 @@ class FastModel:
             # lid and the new cavity blended.
             self._average = self.field.sdf.detach().clone()
             self._band = None
+            # The erosion's returns so far lay on the surface the jump removed.
+            self._evidence = ReturnEvidence(tuple(sdf.shape), self.device)
         record["seconds"] = round(time.perf_counter() - started, 2)
         self.openings.append(record)
-
-    def _opening_evidence(self, seed: int) -> tuple[float, torch.Tensor, torch.Tensor]:
-        """(deviance per bin over all views with the rays `seed` draws, flagged nodes, supported nodes), from
-        `open_passes` passes over all views."""
-        sc = self.sc
-        evidence = ReturnEvidence(tuple(self.field.sdf.shape[2:]), self.device)
-        before = self._all_views_deviance(seed, evidence)
-        for k in range(1, sc.open_passes):
-            self._all_views_deviance(seed + k, evidence)
-        return (before, *evidence.classify(sc.phantom_min_hits, sc.phantom_ratio, sc.open_keep_ratio))
 
     def _best_opening(self, seed: int, before: float, flagged: torch.Tensor,
                       supported: torch.Tensor) -> tuple[float, int, float] | None:

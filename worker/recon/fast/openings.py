@@ -10,20 +10,21 @@ get there, a jump can.
 So every `schedule.open_every_steps` steps the model proposes jumps and keeps the best one that the likelihood
 prefers:
 
-1. One pass over all views (and `open_passes - 1` more with other rays) gathers the same per-node evidence as the
-   erosion: the log of measured over expected photons at each ray's return. Nodes with at least `phantom_min_hits`
-   returns whose mean ratio is below `phantom_ratio` are *flagged* (phantom surface); those whose mean ratio is
-   at least `open_keep_ratio` are *supported* (surface the data holds). With fewer than `open_min_flagged` flagged
-   nodes the round makes no proposals.
+1. The training steps of the last `open_passes` passes' worth of views before the round gather the same per-node
+   evidence as the erosion: the log of measured over expected photons at each ray's return. Among the nodes at the
+   surface as it is now (within a voxel of the zero level: the window also saw the surface where it was a few
+   erosions ago), those with at least `phantom_min_hits` returns whose mean ratio is below `phantom_ratio` are
+   *flagged* (phantom surface); those whose mean ratio is at least `open_keep_ratio` are *supported* (surface the
+   data holds). With fewer than `open_min_flagged` flagged nodes the round makes no proposals and renders nothing.
 2. For each depth D in `open_depths_m`: the solid within D of a flagged node and more than `open_keep_m` from every
    supported node (and from the floor, which the model counts as supported) is opened (`opened_field`): there the
    field becomes min(D - distance to the flagged nodes, distance to the supported ones - keep), a distance field of
    the opened region, where that is above the current value; only the pieces of that region that reach a flagged
    node open. The kept margin spares the walls the data
    holds, and the fine level then moves them to where the data puts them.
-3. Each proposal is rendered over all views with the rays of the first pass (common random numbers: the comparison
-   does not see the sampling noise) and kept if it lowers the deviance per bin by at least `open_min_gain`; the best
-   such proposal wins. After `open_patience` proposals in a row that none of the depths improves, the model stops
+3. The current field and each proposal are rendered over all views with the same rays (common random numbers: the
+   comparison does not see the sampling noise), and a proposal is kept if it lowers the deviance per bin by at least
+   `open_min_gain`; the best such proposal wins. After `open_patience` proposals in a row that none of the depths improves, the model stops
    proposing (each round costs about as much as 30 steps).
 
 The minimum gain matters: on the built-in lamp, proposals from a handful of flagged nodes gained 0.0001-0.0002 per
@@ -57,6 +58,22 @@ def opening_distances(flagged: torch.Tensor, supported: torch.Tensor,
     return distance(flagged), distance(supported)
 
 
+def surface_classes(evidence, sdf: torch.Tensor, voxel: float, min_hits: int, low: float,
+                    high: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(flagged, supported): `ReturnEvidence.classify(min_hits, low, high)` of `evidence`, restricted to the nodes
+    within one voxel (metres) of the zero level of the SDF grid `sdf` (nz, ny, nx, metres, the evidence's grid). A
+    round's evidence spans the steps before it, and some of its returns lay where the surface was, on a lid the
+    erosion has sunk since: on the built-in lamp 117 nodes were flagged at step 150 without this, 12 with it (one
+    pass over all views under the current field flags 4)."""
+    if tuple(sdf.shape) != evidence.shape:
+        raise ValueError(f"grid {tuple(sdf.shape)} and evidence {evidence.shape} must have one shape")
+    if not voxel > 0:
+        raise ValueError(f"voxel {voxel} m must be > 0")
+    flagged, supported = evidence.classify(min_hits, low, high)
+    now = sdf.abs() <= voxel
+    return flagged & now, supported & now
+
+
 def opened_field(sdf: torch.Tensor, flagged: torch.Tensor, distances: tuple[torch.Tensor, torch.Tensor],
                  depth_m: float, keep_m: float) -> tuple[torch.Tensor, int]:
     """The SDF grid (nz, ny, nx, metres) with the solid behind flagged nodes opened (see the module).
@@ -86,4 +103,4 @@ def opened_field(sdf: torch.Tensor, flagged: torch.Tensor, distances: tuple[torc
     return torch.where(rise, value, sdf), int(rise.sum())
 
 
-__all__ = ["opened_field", "opening_distances"]
+__all__ = ["opened_field", "opening_distances", "surface_classes"]
