@@ -155,16 +155,19 @@ class FastScheduleConfig:
     open_passes: int = 3
     """A round's evidence is the returns of the training steps just before it: the last this many passes' worth of
     views (each view about this many times; 48 steps at 256 views and 16 views a step), at most `open_every_steps`."""
-    open_min_gain: float = 0.001
-    """A proposal is kept only if it lowers the deviance over all views by at least this much per bin: smaller
-    gains are within the noise of the comparison (on the built-in lamp such proposals took off the top of its
-    stem)."""
+    open_min_gain: float = 0.005
+    """A proposal is kept only if it lowers the deviance over all views by at least this much per bin. The lids of
+    the built-in cup and goblet gain 0.025-0.035 (at 64 and at 256 views); on scenes without phantom surface, proposals
+    gained up to 0.0013, and kept, they cut into the object: the top of the built-in lamp's stem (0.0001-0.0002
+    per bin), 2 cm into the built-in sphere at step 150 (0.0013; 1.21 -> 1.94 mm at 180 s)."""
     open_min_flagged: int = 50
-    """Rounds with fewer flagged nodes than this make no proposals (and count as rounds without a kept one): in the
-    180 s benchmark the scenes without phantom surface flagged 0-42 nodes a round after step 150 (the cup 952, the
-    goblet 512), and on the lamp proposals from 4-16 nodes took off the top of its stem."""
+    """Rounds with fewer flagged nodes than this make no proposals, and render nothing (they count as rounds without
+    a kept one). In the 180 s benchmark the scenes without phantom surface flagged 5-46 nodes at step 150 (the
+    built-in sphere 160: its proposals gained too little to be kept) and 3-45 later; the cup's and the goblet's lids
+    507 and 584. On the lamp, proposals from 4-16 nodes took off the top of its stem."""
     open_patience: int = 2
-    """Rounds in a row without a kept proposal after which no more are made (a round costs about 30 steps)."""
+    """Rounds in a row without a kept proposal after which no more are made (a round with proposals costs about 25
+    steps, one without them nothing)."""
     patience_steps: int = 600
     """After the last refinement, the run reports `converged` (and, with `early_stop`, ends) once the data term,
     averaged over windows of patience/6 steps, has not beaten its best window by `min_rel_improvement` for this
