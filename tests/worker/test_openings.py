@@ -125,17 +125,18 @@ def test_an_opening_the_likelihood_prefers_is_kept_and_the_mesh_average_follows_
 
 
 def test_a_round_weighs_the_returns_of_the_training_steps_in_its_window_only(cylinder_capture):
-    # 24 views at 8 a step: one pass's worth is 3 steps, so the round at step 6 weighs the returns of steps 4-6.
+    # 24 views at 8 a step: one pass's worth is 3 steps, so the round at step 6 weighs the returns of steps 4-6. The
+    # erosion falls on step 6 too, and comes after the round: the round still finds the erosion's evidence untaken.
     scene = load_scene(cylinder_capture)
     config = with_overrides(preset_config("fast"), {**SMALL, "field.refine_after_steps": 0,
-                                                    "schedule.open_every_steps": 6})
+                                                    "schedule.open_every_steps": 6, "schedule.phantom_every_steps": 6})
     model = make_fast_model(scene, config, "cpu", RunPlan(steps=6, budget_s=None, seed=0))
     blank_histograms(model)
     assert model._open_window == 3
     seen, round_ = [], model._open_phantoms
 
     def spy(step):
-        # The erosion's evidence holds every step's returns so far (it is taken only every 30 steps).
+        # The erosion's evidence holds every step's returns so far (it is first taken after this round).
         seen.append((float(model._open_evidence.hits.sum()), float(model._evidence.hits.sum())))
         round_(step)
 
