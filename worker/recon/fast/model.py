@@ -276,10 +276,10 @@ class FastModel:
             self._evidence = ReturnEvidence(shape, self.device)
         targets = [self._evidence]
         if self._opening:
-            every, into = self.sc.open_every_steps, self.steps % self.sc.open_every_steps
-            if into == every - self._open_window or self._open_evidence is None or self._open_evidence.shape != shape:
-                self._open_evidence = ReturnEvidence(shape, self.device)
-            if into >= every - self._open_window:
+            into, start = self.steps % self.sc.open_every_steps, self.sc.open_every_steps - self._open_window
+            if into >= start:  # in the window before the next round: nothing is gathered for it outside that
+                if into == start or self._open_evidence is None or self._open_evidence.shape != shape:
+                    self._open_evidence = ReturnEvidence(shape, self.device)
                 targets.append(self._open_evidence)
         return targets
 
