@@ -42,11 +42,16 @@ class Worker:
         """Job id -> 'done' or 'failed' for jobs this worker finished."""
         self._seen_skipped: set[str] = set()
         self._swept = False
+        self.job_env = config.job_env()
+        """Environment the job processes get on top of the worker's own (threads per job, child_env)."""
+        self.threads_note = config.threads_note()
 
     # ---- main loop -------------------------------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None) -> dict[str, str]:
         """Work until `stop` is set (or, with `once`, until the queue is drained). Returns `settled`."""
         stop = stop or asyncio.Event()
+        self.log(f"watching {self.root} with {self.config.processes} job process(es) at once, "
+                 f"{self.threads_note}")
         watcher = None
         if self.config.once:
             self._on_scan(await asyncio.to_thread(scan_once, self.root, self.queue, self.config.options))
@@ -140,7 +145,7 @@ class Worker:
             self.log(f"{job.id} failed: cannot prepare the result folder: {exc}")
             return
         proc = await spawn_job(job, self.root, scratch, outcome, log_path, recon=self.config.recon,
-                               extra_env=self.config.child_env)
+                               extra_env=self.job_env)
         self.children[job.id] = Child(claim, proc, scratch, outcome, log_path, asyncio.create_task(proc.wait()))
         self.log(f"{job.id} started (attempt {claim.attempt} of {self.queue.max_attempts}, pid {proc.pid})")
 

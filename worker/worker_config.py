@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Mapping
 
 from spadscan.protocol.errors import ConfigError
 
+from .threads import ENV as THREADS_ENV, check_threads, machine_cores, threads_per_job
 from .watcher import JobOptions
 
 
@@ -35,7 +38,37 @@ class WorkerConfig:
     recon: str | None = None
     """`module:function` replacing the reconstruction (tests only; not on the command line)."""
     child_env: dict[str, str] | None = None
-    """Extra environment variables for the job processes."""
+    """Extra environment variables for the job processes (they win over `threads`)."""
+    threads: int | None = None
+    """CPU threads per job, given to each job process as OMP_NUM_THREADS (read by torch and numpy's BLAS at start).
+    None: the worker's own OMP_NUM_THREADS when it has one (the user chose), else the machine's cores shared out
+    among `processes`, at least one. Jobs that together ask for more threads than there are cores stall each other
+    (threads.py: 20-40x slower per step with two 2-thread jobs on 2 cores)."""
+
+    def job_env(self, environ: Mapping[str, str] | None = None) -> dict[str, str]:
+        """Environment variables the job processes get on top of the worker's own (`environ`, default os.environ):
+        the threads per job, then `child_env`."""
+        environ = os.environ if environ is None else environ
+        env = {}
+        if self.threads is not None:
+            env[THREADS_ENV] = str(self.threads)
+        elif not environ.get(THREADS_ENV):
+            env[THREADS_ENV] = str(threads_per_job(self.processes))
+        return {**env, **(self.child_env or {})}
+
+    def threads_note(self, environ: Mapping[str, str] | None = None) -> str:
+        """How many CPU threads each job gets and why, for the worker's start-up line."""
+        environ = os.environ if environ is None else environ
+        value = self.job_env(environ).get(THREADS_ENV) or environ.get(THREADS_ENV)
+        if THREADS_ENV in (self.child_env or {}):
+            why = "set by child_env"
+        elif self.threads is not None:
+            why = "set by --threads"
+        elif environ.get(THREADS_ENV):
+            why = "the worker's own environment"
+        else:
+            why = f"{machine_cores()} cores shared out among {self.processes} job processes"
+        return f"{value} CPU threads per job ({THREADS_ENV}={value}: {why})"
 
     def check(self) -> "WorkerConfig":
         if not (isinstance(self.processes, int) and 1 <= self.processes <= 256):
@@ -44,6 +77,8 @@ class WorkerConfig:
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and 0 < v < 1e6):
                 raise ConfigError(f"{key.replace('_s', '')} {v} s must be > 0")
+        if self.threads is not None:
+            check_threads(self.threads)
         if not Path(self.root).is_dir():
             raise ConfigError(f"{self.root}: captures root is not a folder")
         return self

@@ -22,6 +22,10 @@ import argparse
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", required=True, metavar="CAPTURES", help="captures root whose children are scans")
     parser.add_argument("--processes", type=int, default=1, metavar="N", help="jobs run at once (default: 1)")
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help="CPU threads per job, given to each job as OMP_NUM_THREADS; default: the worker's own "
+                             "OMP_NUM_THREADS when set, else the machine's cores shared out among --processes, "
+                             "at least 1 (the start-up line says how many)")
     parser.add_argument("--preset", default="fast", help="reconstruction preset: fast or paper (default: fast)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
                         help="wall-clock budget per reconstruction in seconds (default: the preset's)")
@@ -75,7 +79,7 @@ def run(args) -> int:
         raise ConfigError(f"--steps {args.steps} must be at least 1")
     config = WorkerConfig(
         root=root, processes=args.processes, queue_dir=queue_dir, poll_s=args.poll_s, lease_s=args.lease_s,
-        max_attempts=args.max_attempts, once=args.once,
+        max_attempts=args.max_attempts, once=args.once, threads=args.threads,
         options=JobOptions(preset=args.preset, budget_s=args.budget_s, steps=args.steps, device=args.device,
                            seed=args.seed),
     )

@@ -1,0 +1,94 @@
+"""CPU threads per job: every job process is told how many threads to use (OMP_NUM_THREADS), so that jobs running at
+once share the cores instead of stalling each other (worker/threads.py has the measurements)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from spadscan.cli import main as cli_main
+from spadscan.worker.pool import Worker
+from spadscan.worker.threads import ENV, machine_cores
+from spadscan.worker.worker_config import WorkerConfig
+
+from test_watcher import make_scan
+
+HERE = Path(__file__).resolve().parent
+
+
+def threads_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+    """A stand-in reconstruction that reports the threads its process was given and the ones torch uses."""
+    import torch  # after the process started: torch reads OMP_NUM_THREADS when it is imported
+
+    report = {"omp_num_threads": os.environ.get(ENV), "torch_threads": torch.get_num_threads()}
+    (Path(out) / "report.json").write_text(json.dumps(report))
+    return report
+
+
+def run_jobs(tmp_path, monkeypatch, arun, **config) -> tuple[list[dict], list[str]]:
+    """Run a worker with `config` over two scans until both are done; the jobs' reports and the worker's log."""
+    root = tmp_path / "captures"
+    root.mkdir()
+    for name in ("a", "b"):
+        make_scan(root, name)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+    lines: list[str] = []
+    worker = Worker(WorkerConfig(root=root, once=True, poll_s=0.1, recon="test_worker_threads:threads_recon",
+                                 **config), log=lines.append)
+    assert arun(worker.run(), timeout_s=120) == {"a-fast": "done", "b-fast": "done"}, lines
+    reports = [json.loads((root / n / "recon" / f"{n}-fast" / "report.json").read_text()) for n in ("a", "b")]
+    return reports, lines
+
+
+def threads_seen(reports: list[dict]) -> list[str]:
+    """OMP_NUM_THREADS of each job, after checking torch kept to it (torch caps it at the cores it sees)."""
+    for r in reports:
+        n = int(r["omp_num_threads"])
+        assert r["torch_threads"] == 1 if n == 1 else 1 <= r["torch_threads"] <= n, r
+    return [r["omp_num_threads"] for r in reports]
+
+
+def test_jobs_share_the_cores_by_default(tmp_path, monkeypatch, arun):
+    monkeypatch.delenv(ENV, raising=False)
+    reports, lines = run_jobs(tmp_path, monkeypatch, arun, processes=2)
+    share = max(1, machine_cores() // 2)
+    assert threads_seen(reports) == [str(share)] * 2
+    assert any(f"{share} CPU threads per job" in line and "shared out among 2" in line for line in lines), lines
+
+
+def test_threads_given_are_what_each_job_gets(tmp_path, monkeypatch, arun):
+    monkeypatch.setenv(ENV, "5")  # --threads wins over the worker's own environment
+    reports, lines = run_jobs(tmp_path, monkeypatch, arun, processes=2, threads=3)
+    assert threads_seen(reports) == ["3"] * 2
+    assert any("3 CPU threads per job" in line and "--threads" in line for line in lines), lines
+
+
+def test_the_workers_own_omp_num_threads_is_kept(tmp_path, monkeypatch, arun):
+    monkeypatch.setenv(ENV, "5")
+    reports, lines = run_jobs(tmp_path, monkeypatch, arun, processes=2)
+    assert threads_seen(reports) == ["5"] * 2
+    assert any("5 CPU threads per job" in line and "own environment" in line for line in lines), lines
+
+
+def test_child_env_wins_over_threads():
+    config = WorkerConfig(root=Path("."), processes=2, threads=3, child_env={ENV: "4", "OTHER": "x"})
+    assert config.job_env({}) == {ENV: "4", "OTHER": "x"}
+    assert WorkerConfig(root=Path("."), processes=2).job_env({ENV: "7"}) == {}, "the user's choice is inherited"
+
+
+@pytest.mark.parametrize("bad", ["0", "-2", "2000"])
+def test_bad_threads_are_a_one_line_error(tmp_path, capsys, bad):
+    assert cli_main(["worker", "--root", str(tmp_path), "--once", "--threads", bad]) == 1
+    err = capsys.readouterr().err
+    assert f"threads {bad} must be an integer in [1, 1024]" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / ".queue").exists(), "nothing queued with a bad option"
+
+
+def test_help_says_what_threads_does(capsys):
+    with pytest.raises(SystemExit):
+        cli_main(["worker", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--threads N" in text and "OMP_NUM_THREADS" in text and "shared out among --processes" in text
