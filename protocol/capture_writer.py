@@ -12,6 +12,7 @@ publish costs about two journal commits (the files, then the rename) instead of 
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import os
 import shutil
@@ -32,15 +33,39 @@ def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
+def _named(exc: OSError, path) -> OSError:
+    """The same error, naming the file it happened to. A write into an open file raises without a filename, and
+    numpy's short write ("8192 requested and 3040 written", the disk filled up under it) without an errno either;
+    a user needs the path, and the CLI needs ENOSPC to say the disk is full."""
+    if exc.filename is not None:
+        return exc
+    text = str(exc)
+    if exc.errno is None and "requested and" in text and "written" in text:
+        named = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    else:
+        named = OSError(exc.errno, exc.strerror or text, str(path)) if exc.errno is not None else exc
+    return named
+
+
+def _write(fn, path, *args) -> None:
+    """fn(path, *args); an OSError names `path`."""
+    try:
+        fn(path, *args)
+    except OSError as exc:
+        named = _named(exc, path)
+        if named is exc:
+            raise
+        raise named from exc
+
+
 def _together(calls: list) -> None:
-    """Run calls [(fn, *args)] side by side (the first in this thread) and wait for all of them; then raise the
-    first error, if any. Waiting for all means no file is still being written when the caller moves on."""
+    """Run calls [(fn, path, *args)] side by side (the first in this thread) and wait for all of them; then raise
+    the first error, if any. Waiting for all means no file is still being written when the caller moves on."""
     errors: list[BaseException | None] = [None] * len(calls)
 
     def run(k: int) -> None:
-        fn, *args = calls[k]
         try:
-            fn(*args)
+            _write(*calls[k])
         except BaseException as exc:  # handed to the caller below
             errors[k] = exc
 
@@ -55,6 +80,33 @@ def _together(calls: list) -> None:
     for exc in errors:
         if exc is not None:
             raise exc
+
+
+def _drop_temporary(path: Path) -> None:
+    """Remove the hidden temporary folders and files of chunks and manifests that were never published."""
+    for p in path.iterdir():
+        if p.name.startswith(TMP_PREFIX):
+            if p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+
+
+def _occupied(path: Path) -> str:
+    """Why `create` refuses a folder with a manifest, and what to do. Only simulations and imports get here (the
+    daemon never reuses a scan name, and resumes its own scans with `resume`), and they cannot continue a capture:
+    an unfinished one must be deleted or left alone."""
+    try:
+        manifest = read_json(path / MANIFEST)
+        state, reason = manifest.get("state"), manifest.get("reason")
+    except CaptureError:  # a manifest too damaged to read still marks the folder as taken
+        state, reason = None, None
+    if state == "complete":
+        return f"{path}: already holds a capture (complete); choose another folder"
+    why = "unreadable scan.json"
+    if state is not None:
+        why = f"state {state!r}" + (f": {' '.join(str(reason).split())}" if reason else "")
+    return f"{path}: already holds a capture that was not finished ({why}); delete the folder or choose another"
 
 
 class CaptureWriter:
@@ -86,7 +138,7 @@ class CaptureWriter:
         if path.exists() and not path.is_dir():
             raise CaptureError(f"{path}: exists and is not a folder")
         if (path / MANIFEST).exists():
-            raise CaptureError(f"{path}: already holds a capture (resume it, or choose another folder)")
+            raise CaptureError(_occupied(path))
         if path.exists() and any(p.name.startswith(CHUNK_PREFIX) for p in path.iterdir()):
             raise CaptureError(f"{path}: holds chunk folders but no {MANIFEST}; refusing to mix scans")
         if not (isinstance(chunk_size, int) and 1 <= chunk_size <= 1_000_000):
@@ -97,7 +149,7 @@ class CaptureWriter:
         path.mkdir(parents=True, exist_ok=True)
         if planned_poses is not None:
             planned = check_poses(np.asarray(planned_poses, dtype=np.float64), "planned poses")
-            save_npy_durable(path / SCHEDULE, planned)
+            _write(save_npy_durable, path / SCHEDULE, planned)
         manifest = {
             "format": FORMAT,
             "version": VERSION,
@@ -116,8 +168,8 @@ class CaptureWriter:
             "scene": scene or {},
         }
         check_json(manifest, f"{path / MANIFEST}")  # fail before anything is written
-        write_json_atomic(path / MANIFEST, manifest)
-        fsync_dir(path.parent)
+        _write(write_json_atomic, path / MANIFEST, manifest)
+        _write(fsync_dir, path.parent)
         return cls(path, manifest, sensor, 0, 0, set())
 
     @classmethod
@@ -125,12 +177,7 @@ class CaptureWriter:
         """Reopen a scan to continue it: drop half-written chunks, count what was published, state -> running."""
         path = Path(path)
         reader = CaptureReader(path)
-        for p in path.iterdir():  # half-written chunks and manifests of a writer that died
-            if p.name.startswith(TMP_PREFIX):
-                if p.is_dir():
-                    shutil.rmtree(p, ignore_errors=True)
-                else:
-                    p.unlink(missing_ok=True)
+        _drop_temporary(path)  # half-written chunks and manifests of a writer that died
         names = reader.chunk_names()
         published, poses = 0, set()
         for name in names:
@@ -140,7 +187,7 @@ class CaptureWriter:
         next_chunk = (chunk_index(names[-1]) + 1) if names else 0
         manifest = dict(reader.manifest)
         manifest.update(state="running", reason=None, updated_utc=_now())
-        write_json_atomic(path / MANIFEST, manifest)
+        _write(write_json_atomic, path / MANIFEST, manifest)
         return cls(path, manifest, reader.sensor, next_chunk, published, poses)
 
     # ---- writing -------------------------------------------------------------------------------------------------
@@ -196,9 +243,9 @@ class CaptureWriter:
         if buf[0].reference is not None:
             writes.append((save_npy_durable, tmp / "reference.npy", np.stack([m.reference for m in buf])))
         _together(writes)
-        fsync_dir(tmp)
+        _write(fsync_dir, tmp)
         os.rename(tmp, self.path / name)
-        fsync_dir(self.path)
+        _write(fsync_dir, self.path)
         self._next_chunk += 1
         self.n_published += len(buf)
         self.published_pose_indices.update(m.pose_index for m in buf)
@@ -211,7 +258,24 @@ class CaptureWriter:
             raise CaptureError(f"state {state!r} is not one of {STATES}")
         check_json({"reason": reason, **extra}, f"{self.path / MANIFEST}")
         self.manifest.update(state=state, reason=reason, updated_utc=_now(), **extra)
-        write_json_atomic(self.path / MANIFEST, self.manifest)
+        _write(write_json_atomic, self.path / MANIFEST, self.manifest)
+
+    def abandon(self, doing: str, exc: BaseException) -> None:
+        """After `exc` stopped a writer that cannot be resumed (a simulation, an import): drop the buffer and mark the
+        capture aborted with why. Best effort: on a full disk the manifest may not be writable either, and `exc` is
+        the error to report, so a failure here is swallowed."""
+        self._buffer = []
+        _drop_temporary(self.path)  # frees a half-written chunk's space: the manifest may fit on a full disk then
+        if isinstance(exc, KeyboardInterrupt):
+            reason = f"{doing} interrupted"
+        elif isinstance(exc, OSError) and exc.filename and exc.strerror:
+            reason = f"{doing} failed: {exc.filename}: {exc.strerror}"
+        else:
+            reason = f"{doing} failed: {' '.join(str(exc).split()) or type(exc).__name__}"
+        try:
+            self.set_state("aborted", reason)
+        except (OSError, CaptureError):
+            pass
 
     def finish(self, state: str = "complete", reason: str | None = None) -> None:
         """Flush and mark the scan complete (or aborted, with a reason)."""

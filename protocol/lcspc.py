@@ -133,7 +133,7 @@ def import_lcspc(path, out, *, chunk_size: int = 64, scan_id: str | None = None,
                 progress("write", i + 1, n)
         writer.finish()
     except BaseException as exc:
-        writer.set_state("aborted", f"import failed: {' '.join(str(exc).split()) or type(exc).__name__}")
+        writer.abandon("import", exc)
         raise
     chunks = -(-n // chunk_size)
     return ImportSummary(Path(out), data.kind, data.sensor.name, n, tuple(data.hists.shape),

@@ -70,7 +70,9 @@ def run_command(func, args) -> int:
     from spadscan.protocol.errors import SpadscanError
 
     try:
-        return int(func(args) or 0)
+        code = int(func(args) or 0)
+        sys.stdout.flush()  # here, so that a reader that went away is handled below and not at interpreter exit
+        return code
     except SpadscanError as exc:
         print(f"spadscan: error: {exc}", file=sys.stderr)
         return 1
@@ -78,10 +80,85 @@ def run_command(func, args) -> int:
         print("spadscan: interrupted", file=sys.stderr)
         return 130
     except OSError as exc:
+        if isinstance(exc, BrokenPipeError) and _stdout_gone():
+            return _quiet_exit_on_closed_stdout()
         # A file the user named is missing, a disk is full, a socket is gone: one line, not a traceback.
-        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-        print(f"spadscan: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        print(f"spadscan: error: {describe_os_error(exc)}", file=sys.stderr)
         return 1
+
+
+SIGPIPE_EXIT = 128 + 13
+"""Exit status of a command whose reader closed its output (`spadscan ctl status | head -1`), as a shell reports a
+program ended by SIGPIPE."""
+
+
+def _stdout_gone() -> bool:
+    """True when stdout is a pipe whose reading end is closed (poll reports an error on the write end)."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, 0)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no real stdout (captured in tests): not a closed pipe
+        return False
+
+
+def _quiet_exit_on_closed_stdout() -> int:
+    """End quietly: the reader has what it wanted. Point stdout at /dev/null so that Python's final flush of the
+    unwritten rest does not complain at exit."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    finally:
+        os.close(devnull)
+    return SIGPIPE_EXIT
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for an OSError: what went wrong and with which path, with a hint where the fix is clear."""
+    import errno
+    import os
+
+    path = exc.filename
+    if is_disk_full(exc):
+        where = f"{path}: " if path else ""
+        return f"{where}the disk is full (no space left on the device); free some space or write elsewhere"
+    if isinstance(exc, FileExistsError) and path and not os.path.isdir(path):
+        return f"{path}: exists and is not a folder"
+    if isinstance(exc, NotADirectoryError) and path:
+        blocker = _file_in_the_way(path)
+        if blocker is not None:
+            return f"{blocker}: is a file, not a folder (needed for {path})"
+        return f"{path}: is not a folder"
+    if exc.errno == errno.EACCES and path:
+        return f"{path}: permission denied"
+    where = f" ({path})" if path else ""
+    return f"{exc.strerror or exc}{where}"
+
+
+def is_disk_full(exc: OSError) -> bool:
+    """ENOSPC or EDQUOT, or numpy's short write ("8192 requested and 3040 written"), which carries no errno."""
+    import errno
+
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    text = str(exc)
+    return exc.errno is None and "requested and" in text and "written" in text
+
+
+def _file_in_the_way(path) -> str | None:
+    """The first existing component of `path` that is not a folder (the reason for ENOTDIR), or None."""
+    from pathlib import Path
+
+    for parent in reversed(Path(path).parents):
+        if str(parent) not in ("", ".") and parent.exists() and not parent.is_dir():
+            return str(parent)
+    p = Path(path)
+    return str(p) if p.exists() and not p.is_dir() else None
 
 
 if __name__ == "__main__":  # pragma: no cover

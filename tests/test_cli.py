@@ -114,3 +114,85 @@ def test_command_modules_import_nothing_heavy():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout) == []
+
+
+# ---- operating-system errors: full disks, files in the way, closed pipes ----------------------------------------
+def _fail_with(exc):
+    def fail(args):
+        raise exc
+
+    return fail
+
+
+@pytest.mark.parametrize("exc", [
+    OSError(28, "No space left on device", "cap/.tmp-chunk-000001/hists.npy"),
+    OSError(122, "Disk quota exceeded", "cap/.tmp-chunk-000001/hists.npy"),
+])
+def test_a_full_disk_is_one_line_naming_the_path(capsys, exc):
+    assert run_command(_fail_with(exc), argparse.Namespace()) == 1
+    assert capsys.readouterr().err == ("spadscan: error: cap/.tmp-chunk-000001/hists.npy: the disk is full (no space "
+                                       "left on the device); free some space or write elsewhere\n")
+
+
+def test_numpys_short_write_is_a_full_disk(capsys):
+    # np.save on a full disk: no errno, no filename, only "N requested and M written"
+    assert run_command(_fail_with(OSError("8192 requested and 3040 written")), argparse.Namespace()) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("spadscan: error: the disk is full") and err.count("\n") == 1
+
+
+def test_a_file_where_a_folder_is_needed(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("x")
+
+    def mkdir(path):
+        return lambda args: __import__("pathlib").Path(path).mkdir(parents=True, exist_ok=True)
+
+    assert run_command(mkdir("afile"), argparse.Namespace()) == 1
+    assert capsys.readouterr().err == "spadscan: error: afile: exists and is not a folder\n"
+    assert run_command(mkdir("afile/sub/deeper"), argparse.Namespace()) == 1
+    assert capsys.readouterr().err == ("spadscan: error: afile: is a file, not a folder (needed for "
+                                       "afile/sub/deeper)\n")
+
+
+@pytest.mark.parametrize("command", [["reconstruct", "cap"], ["simulate", "builtin:sphere", "--views", "4"],
+                                     ["baseline", "reprojection", "cap"]])
+def test_out_pointing_at_a_file_through_main(tmp_path, capsys, monkeypatch, command):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    if command[0] != "simulate":
+        assert main(["simulate", "builtin:sphere", "--views", "4", "--out", "cap", "--no-progress"]) == 0
+        capsys.readouterr()
+    assert main([*command, "--out", "afile"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("spadscan: error: afile: ") and "not a folder" in err and err.count("\n") == 1
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+def test_a_closed_output_pipe_ends_quietly():
+    """`spadscan ctl status | head -1`: the reader has what it wanted; no error, no traceback at exit."""
+    code = ("import sys\n"
+            "from spadscan.cli import run_command\n"
+            "def lines(args):\n"
+            "    for i in range(200000):\n"
+            "        print('line', i)\n"
+            "sys.exit(run_command(lines, None))\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout.readline() == b"line 0\n"
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141 and err == ""
+
+
+def test_a_broken_pipe_elsewhere_is_still_an_error(capsys):
+    """A BrokenPipeError while stdout is still read (a socket, a child's pipe) is an error like any other."""
+    code = ("import sys\n"
+            "from spadscan.cli import run_command\n"
+            "def fail(args):\n"
+            "    print('partial')\n"
+            "    raise BrokenPipeError(32, 'Broken pipe')\n"
+            "sys.exit(run_command(fail, None))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and proc.stderr == "spadscan: error: Broken pipe\n"
+    assert run_command(_fail_with(BrokenPipeError(32, "Broken pipe")), argparse.Namespace()) == 1  # captured stdout
+    assert capsys.readouterr().err == "spadscan: error: Broken pipe\n"

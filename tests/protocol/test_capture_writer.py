@@ -98,3 +98,75 @@ def test_a_failed_write_publishes_nothing_and_leaves_no_write_running(tmp_path, 
     w.append(measurement(1, sensor))
     w.finish()
     np.testing.assert_array_equal(CaptureReader(tmp_path / "scan").load().pose_indices, [0, 1])
+
+
+def short_write(path, array):
+    """What numpy raises when the disk fills up under np.save: no errno, no filename."""
+    raise OSError(f"{array.nbytes} requested and 3040 written")
+
+
+def test_a_short_write_is_a_full_disk_that_names_the_file(tmp_path, monkeypatch):
+    sensor = sensor_preset("tmf8820")
+    w = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=1)
+    monkeypatch.setattr(cw, "save_npy_durable", short_write)
+    with pytest.raises(OSError) as info:
+        w.append(measurement(0, sensor))
+    assert info.value.errno == errno.ENOSPC
+    assert info.value.filename == str(tmp_path / "scan" / ".tmp-chunk-000000" / "hists.npy")
+    assert "requested and" in str(info.value.__cause__), "the original error stays attached"
+
+
+def test_an_error_with_an_errno_but_no_filename_gains_the_path(tmp_path, monkeypatch):
+    sensor = sensor_preset("tmf8820")
+    w = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=1)
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device")  # what f.write raises: no filename
+
+    monkeypatch.setattr(cw, "write_json_atomic", full)
+    with pytest.raises(OSError) as info:
+        w.set_state("aborted", "test")
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(tmp_path / "scan" / "scan.json")
+
+
+def test_abandon_marks_the_capture_aborted_and_frees_the_half_written_chunk(tmp_path, monkeypatch):
+    sensor = sensor_preset("tmf8820")
+    w = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=1)
+    monkeypatch.setattr(cw, "save_npy_durable", short_write)
+    with pytest.raises(OSError) as info:
+        w.append(measurement(0, sensor))
+    w.abandon("simulation", info.value)
+    m = CaptureReader(tmp_path / "scan").manifest
+    assert m["state"] == "aborted"
+    assert m["reason"] == f"simulation failed: {info.value.filename}: No space left on device"
+    assert not [p for p in (tmp_path / "scan").iterdir() if p.name.startswith(".tmp-")]
+
+
+def test_abandon_never_hides_the_error_that_stopped_the_writer(tmp_path, monkeypatch):
+    sensor = sensor_preset("tmf8820")
+    w = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=1)
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(cw, "write_json_atomic", full)
+    w.abandon("import", KeyboardInterrupt())  # the manifest cannot be written either: no new error
+    assert CaptureReader(tmp_path / "scan").manifest["state"] == "running"
+
+
+@pytest.mark.parametrize("state, reason, expect", [
+    ("complete", None, "already holds a capture (complete); choose another folder"),
+    ("running", None, "already holds a capture that was not finished (state 'running'); delete the folder or "
+                      "choose another"),
+    ("aborted", "simulation failed: disk\nfull", "(state 'aborted': simulation failed: disk full); delete the folder"),
+])
+def test_create_on_an_existing_capture_says_what_to_do(tmp_path, state, reason, expect):
+    from spadscan.protocol.errors import CaptureError
+
+    sensor = sensor_preset("tmf8820")
+    w = CaptureWriter.create(tmp_path / "scan", sensor)
+    w.set_state(state, reason)
+    with pytest.raises(CaptureError) as info:
+        CaptureWriter.create(tmp_path / "scan", sensor)
+    assert expect in str(info.value) and "resume" not in str(info.value)
+    assert "\n" not in str(info.value)
