@@ -97,6 +97,13 @@ class SimFrames:
     misses: np.ndarray | None = None
 
 
+def check_seed(seed) -> int:
+    """The seed as an int; one-line SimulationError unless it is an integer >= 0 (what numpy's SeedSequence takes)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise SimulationError(f"seed {seed!r} must be an integer >= 0")
+    return int(seed)
+
+
 def check_pose_array(poses) -> np.ndarray:
     """Poses as (n, 4, 4) float64 rigid transforms; one-line SimulationError otherwise."""
     p = np.asarray(poses, dtype=np.float64)
@@ -122,6 +129,7 @@ class Simulator:
 
     def __init__(self, mesh, sensor: SensorModel, settings: SimSettings = SimSettings(), seed: int = 0):
         settings.check()
+        check_seed(seed)
         sensor.validate()
         faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
         if len(faces) == 0:
@@ -266,17 +274,22 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
              "faces": int(len(mesh.faces))}
     writer = CaptureWriter.create(Path(out), sim.sensor, rig={"kind": "simulated"}, schedule=schedule or {},
                                   planned_poses=poses, chunk_size=chunk_size, scene=scene)
-    with tqdm(total=len(poses), desc="simulate", unit="view", disable=not progress, leave=False) as bar:
-        for start in range(0, len(poses), chunk_size):
-            fr = sim.frames(poses[start: start + chunk_size])
-            for i in range(len(fr.poses)):
-                ref = None if fr.reference is None else fr.reference[i]
-                writer.append(Measurement(fr.hists[i], fr.poses[i], start + i, 0, ref, {"simulated": True}))
-            writer.flush()
-            bar.update(len(fr.poses))
-    writer.finish("complete")
+    try:
+        with tqdm(total=len(poses), desc="simulate", unit="view", disable=not progress, leave=False) as bar:
+            for start in range(0, len(poses), chunk_size):
+                fr = sim.frames(poses[start: start + chunk_size])
+                for i in range(len(fr.poses)):
+                    ref = None if fr.reference is None else fr.reference[i]
+                    writer.append(Measurement(fr.hists[i], fr.poses[i], start + i, 0, ref, {"simulated": True}))
+                writer.flush()
+                bar.update(len(fr.poses))
+        writer.finish("complete")
+    except BaseException as exc:
+        # A simulation cannot be resumed: say in the manifest that this one stopped part-way, and why.
+        writer.abandon("simulation", exc)
+        raise
     return writer.path
 
 
-__all__ = ["SimSettings", "SimFrames", "Simulator", "simulate_capture", "check_pose_array", "MIN_RANGE_M",
-           "BACKGROUND_FLOOR"]
+__all__ = ["SimSettings", "SimFrames", "Simulator", "simulate_capture", "check_pose_array", "check_seed",
+           "MIN_RANGE_M", "BACKGROUND_FLOOR"]

@@ -52,6 +52,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
+def check_options(args) -> None:
+    """One-line errors for options that make no physical sense, before the mesh is loaded or anything written."""
+    import math
+
+    from spadscan.protocol.errors import SimulationError
+
+    if args.views < 1:
+        raise SimulationError(f"--views {args.views} must be at least 1")
+    if not (args.radius > 0 and math.isfinite(args.radius)):
+        raise SimulationError(f"--radius {args.radius} m must be a finite distance > 0")
+    if args.seed < 0:  # numpy's SeedSequence takes only non-negative integers
+        raise SimulationError(f"--seed {args.seed} must be an integer >= 0")
+    # The upper limits (jitter 180 degrees, power 1e9) are the simulator's own checks; these are the lower ones it
+    # lets through: a negative jitter would be ignored, and power 0 (the laser off, kept in the library for dark
+    # frames) makes a capture of background alone that nothing downstream can use.
+    if not (args.jitter_deg >= 0):
+        raise SimulationError(f"--jitter-deg {args.jitter_deg:g} must be >= 0 degrees (0: every view looks at the "
+                              f"target)")
+    if not (args.power > 0):
+        raise SimulationError(f"--power {args.power:g} must be > 0 (relative to the sensor preset; 0 is the laser "
+                              f"switched off)")
+
+
 def make_poses(args):
     """(poses (n, 4, 4), schedule record) from the command-line options."""
     import numpy as np
@@ -88,10 +111,7 @@ def run(args) -> int:
     from spadscan.protocol.sensor_presets import sensor_preset
     from spadscan.protocol.simulator import SimSettings, simulate_capture
 
-    if args.views < 1:
-        raise SimulationError(f"--views {args.views} must be at least 1")
-    if not (args.radius > 0):
-        raise SimulationError(f"--radius {args.radius} m must be > 0")
+    check_options(args)
     mesh, scene = load_mesh_spec(args.mesh)
     poses, schedule = make_poses(args)
     sensor = sensor_preset(args.sensor)

@@ -298,3 +298,56 @@ def test_simulate_builtin_scene(tmp_path):
     assert main(["simulate", f"builtin:{name}", "--out", str(tmp_path / "b"), "--views", "4", "--no-progress"]) == 0
     assert CaptureReader(tmp_path / "b").manifest["scene"]["builtin"] == name
     assert main(["simulate", "builtin:no-such-scene", "--out", str(tmp_path / "c")]) == 1
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--seed", "-1", "--seed -1 must be an integer >= 0"),
+    ("--jitter-deg", "-5", "--jitter-deg -5 must be >= 0 degrees"),
+    ("--jitter-deg", "nan", "--jitter-deg nan must be >= 0 degrees"),
+    ("--power", "0", "--power 0 must be > 0"),
+    ("--power", "-2", "--power -2 must be > 0"),
+    ("--radius", "inf", "--radius inf m must be a finite distance > 0"),
+])
+def test_simulate_refuses_options_that_make_no_physical_sense(tmp_path, capsys, option, value, message):
+    from spadscan.cli import main
+
+    out = tmp_path / "cap"
+    assert main(["simulate", "builtin:sphere", "--out", str(out), "--views", "4", "--no-progress",
+                 option, value]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"spadscan: error: {message}") and err.count("\n") == 1
+    assert not out.exists(), "checked before anything is written"
+
+
+def test_a_negative_seed_is_a_simulation_error():
+    for seed in (-1, 1.5, True):
+        with pytest.raises(SimulationError, match="must be an integer >= 0"):
+            Simulator(plane(0.3), cone_sensor(), seed=seed)
+
+
+def test_simulate_on_a_full_disk_says_so_and_leaves_an_aborted_capture(tmp_path, capsys, monkeypatch):
+    import spadscan.protocol.capture_writer as cw
+    from spadscan.cli import main
+    from spadscan.protocol.capture_reader import CaptureReader
+
+    real = cw.save_npy_durable
+
+    def fill_up(path, array):  # the first chunk fits; then np.save runs out of room as it does on a full disk
+        if path.parent.name == ".tmp-chunk-000001":
+            raise OSError(f"{array.nbytes} requested and 3040 written")
+        real(path, array)
+
+    monkeypatch.setattr(cw, "save_npy_durable", fill_up)
+    out = tmp_path / "cap"
+    args = ["simulate", "builtin:sphere", "--out", str(out), "--views", "8", "--chunk-size", "4", "--no-progress"]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"spadscan: error: {out / '.tmp-chunk-000001'}/")
+    assert "the disk is full" in err
+    m = CaptureReader(out).manifest
+    assert m["state"] == "aborted" and m["reason"].startswith("simulation failed: ")
+    assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
+    monkeypatch.setattr(cw, "save_npy_durable", real)
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "already holds a capture that was not finished (state 'aborted'" in err and "delete the folder" in err
