@@ -41,9 +41,14 @@ def job_id_for(scan_name: str, preset: str) -> str:
     return clean[:200]
 
 
+CHANGEABLE = ("budget_s", "steps", "device", "seed")
+"""Options a failed job may be queued again with (Queue.retry_failed); its preset is part of its id, so it stays."""
+
+
 @dataclass(frozen=True)
 class Job:
-    """What to reconstruct and how. Stored as the job file; never changed once queued."""
+    """What to reconstruct and how. Stored as the job file when queued; only `spadscan worker --retry-failed`
+    with options given queues it again with those options changed (a new job file)."""
 
     id: str
     """Deterministic id (see `job_id_for`)."""

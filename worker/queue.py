@@ -18,6 +18,8 @@ Why several workers on one machine or on a shared filesystem run each job once:
   (`running/j~T` -> `done/j`) are each won by one process: the rename is the lock.
 - A holder touches its `running/j~T` file (os.utime) every few seconds. A missing file means its lease expired and
   another worker took the job over: the holder drops its result.
+- `retry_failed` with changed options (a failed job queued again with --device cpu, say) writes a new job file,
+  registers it in ids/ and only then queues it: the queue never holds two files of one job.
 - A lease expires when that file's mtime is older than the lease (clocks of machines sharing a filesystem must agree
   to well within the lease), or at once when the holder was a process on this machine that no longer exists
   (holder.py).
@@ -35,7 +37,7 @@ from pathlib import Path
 from spadscan.protocol.errors import ConfigError
 
 from .holder import Holder, holder_gone
-from .jobs import ID_RE as _ID_RE, Job
+from .jobs import CHANGEABLE, ID_RE as _ID_RE, Job
 
 
 STATES = ("queued", "running", "done", "failed")
@@ -341,21 +343,52 @@ class Queue:
         """Number of job files in each state."""
         return {s: sum(1 for _ in (self.path / s).glob("*.json")) for s in STATES}
 
-    def retry_failed(self, job_id: str | None = None) -> list[str]:
-        """Put failed jobs (one, or all) back in the queue with a fresh attempt count."""
+    def retry_failed(self, job_id: str | None = None, *, changes: dict | None = None,
+                     preset: str | None = None) -> list[str]:
+        """Put failed jobs (one, or all; with `preset`, only those of that preset) back in the queue with a fresh
+        attempt count. `changes`: job options (jobs.CHANGEABLE: budget_s, steps, device, seed) they are queued
+        again with; the options not named keep the values the job was queued with. Returns the ids moved."""
+        bad = sorted(set(changes or {}) - set(CHANGEABLE))
+        if bad:
+            raise ConfigError(f"cannot change {', '.join(bad)} of a queued job (only {', '.join(CHANGEABLE)})")
         moved = []
         for p in sorted((self.path / "failed").glob("*.json")):
             if job_id is not None and p.stem != job_id:
                 continue
+            if preset is not None and _stored(p).get("preset") != preset:
+                continue
             folder = self.path / "attempts" / p.stem
             if folder.is_dir():
                 os.rename(folder, folder.with_name(f".{p.stem}{SEP}retired{SEP}{_new_token()}"))
-            try:
-                os.rename(p, self.path / "queued" / p.name)
+            if self._requeue_changed(p, changes) if changes else _rename(p, self.path / "queued" / p.name):
                 moved.append(p.stem)
-            except FileNotFoundError:
-                continue
         return moved
+
+    def _requeue_changed(self, path: Path, changes: dict) -> bool:
+        """Queue the failed job file `path` again as a new job file with `changes` applied; False when another
+        process moved it first.
+
+        Job files are never rewritten, so the changed job is a new file, and it becomes the job's registered one
+        (ids/) before it is queued: a crash part-way leaves in tmp/ exactly one registered file, which `repair`
+        queues (with the old options when the crash came before the new file was registered)."""
+        job_id = path.stem
+        held = self.path / "tmp" / f"{job_id}{SEP}{_new_token()}.json"
+        try:
+            os.utime(path)  # `repair` leaves a registered file in tmp/ alone for a minute after this
+        except FileNotFoundError:
+            return False
+        if not _rename(path, held):  # exactly one caller wins
+            return False
+        data = _stored(held)
+        if not {"id", "scan"} <= set(data):
+            return _rename(held, self.path / "queued" / path.name)  # unreadable: its job fails again saying why
+        fresh = self.path / "tmp" / f"{job_id}{SEP}{_new_token()}.json"
+        _write_new(fresh, {**data, **changes})
+        registered = self.path / "tmp" / f"id-{job_id}-{_new_token()}.json"  # no SEP: not a name `repair` reads
+        os.link(fresh, registered)
+        os.replace(registered, self._id_path(job_id))
+        held.unlink(missing_ok=True)
+        return _rename(fresh, self.path / "queued" / path.name)
 
     def repair(self, min_age_s: float = 60.0) -> list[str]:
         """Queue jobs whose enqueue was cut short between registering and queuing (a crash); returns their ids."""
@@ -376,6 +409,24 @@ class Queue:
             except FileNotFoundError:
                 continue
         return fixed
+
+
+def _rename(src: Path, dst: Path) -> bool:
+    """Rename `src` to `dst`; False when `src` is gone (another process moved it first)."""
+    try:
+        os.rename(src, dst)
+        return True
+    except FileNotFoundError:
+        return False
+
+
+def _stored(path: Path) -> dict:
+    """A job file's contents, or {} when it cannot be read as a JSON object."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
 
 
 def _new_token() -> str:

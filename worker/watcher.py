@@ -10,30 +10,74 @@ root) never queues a scan twice.
 from __future__ import annotations
 
 import asyncio
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.capture_format import MANIFEST
-from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.errors import CaptureError, ConfigError
 
 from .jobs import Job, job_id_for
 from .queue import QUEUE_DIRNAME, Queue
 
 
+DEVICES = ("auto", "cpu", "cuda")
+
+
 @dataclass(frozen=True)
 class JobOptions:
-    """How every scan found by the watcher is reconstructed."""
+    """How every scan found by the watcher is reconstructed. Each job keeps the options it was queued with."""
 
     preset: str = "fast"
     budget_s: float | None = None
+    """Wall-clock budget per reconstruction (seconds); None = the preset's."""
     steps: int | None = None
+    """Optimisation steps per reconstruction; None = the preset's."""
     device: str = "auto"
     seed: int = 0
+
+    def check(self) -> "JobOptions":
+        """Refuse options every job would fail on, before any job is queued with them."""
+        from spadscan.worker.recon.config import PRESETS  # plain dataclasses: no torch here
+
+        if self.preset not in PRESETS:
+            raise ConfigError(f"unknown preset {self.preset!r} (known: {', '.join(PRESETS)})")
+        if self.budget_s is not None and not (_is_number(self.budget_s) and math.isfinite(self.budget_s)
+                                              and self.budget_s > 0):
+            raise ConfigError(f"budget {self.budget_s} s must be > 0 seconds")
+        if self.steps is not None and not (_is_int(self.steps) and self.steps >= 1):
+            raise ConfigError(f"steps {self.steps} must be an integer >= 1")
+        if not (_is_int(self.seed) and self.seed >= 0):
+            raise ConfigError(f"seed {self.seed} must be an integer >= 0")
+        check_device(self.device)
+        return self
 
     def job_for(self, scan_name: str) -> Job:
         return Job(id=job_id_for(scan_name, self.preset), scan=scan_name, preset=self.preset,
                    budget_s=self.budget_s, steps=self.steps, device=self.device, seed=self.seed)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def check_device(device: str) -> str:
+    """`device` when jobs can run on it: 'auto', 'cpu', or 'cuda' where torch sees a CUDA device."""
+    if device not in DEVICES:
+        raise ConfigError(f"device {device!r} must be one of {', '.join(DEVICES)}")
+    if device == "cuda":
+        try:
+            import torch  # only for 'cuda': the worker process itself otherwise never loads torch
+        except ImportError:
+            raise ConfigError("device 'cuda' asked for, but torch is not installed") from None
+        if not torch.cuda.is_available():
+            raise ConfigError("device 'cuda' asked for, but torch sees no CUDA device (use --device cpu or auto)")
+    return device
 
 
 @dataclass

@@ -79,6 +79,7 @@ class WorkerConfig:
                 raise ConfigError(f"{key.replace('_s', '')} {v} s must be > 0")
         if self.threads is not None:
             check_threads(self.threads)
+        self.options.check()
         if not Path(self.root).is_dir():
             raise ConfigError(f"{self.root}: captures root is not a folder")
         return self

@@ -7,11 +7,23 @@ machine) and retried up to --max-attempts times. A malformed capture fails its j
 Results go to <scan>/recon/<job>/ (mesh.ply, report.json, pictures, job.log). Ctrl-C or SIGTERM stops the job
 processes and gives their jobs back to the queue.
 
+Options are frozen into each job when it is queued: --budget-s, --steps, --device and --seed apply to the scans a
+worker queues, and a job already queued (by this worker or an earlier one) runs with its own. To run failed jobs
+again with other options, give them with --retry-failed: `--retry-failed --device cpu` queues every failed job again
+with device cpu, and the options not given keep each job's own values. The preset is part of a job's id, so with
+--retry-failed, --preset picks the failed jobs of that preset. Bad options (--device cuda where torch sees no GPU,
+a negative --seed) are refused before anything is queued.
+
+Each job process gets --threads CPU threads (OMP_NUM_THREADS): by default the worker's own OMP_NUM_THREADS when it
+is set, else the machine's cores shared out among --processes. Jobs that together ask for more threads than there
+are cores stall each other (two 2-thread jobs on 2 cores run 20-40x slower per step than two 1-thread ones).
+
 Examples:
   spadscan worker --root captures --processes 2
   spadscan worker --root captures --once          # reconstruct what is there, then exit
   spadscan worker --root captures --status        # list jobs: state, attempts, last error, result
-  spadscan worker --root captures --retry-failed  # put failed jobs back in the queue
+  spadscan worker --root captures --retry-failed  # put failed jobs back in the queue, with their own options
+  spadscan worker --root captures --retry-failed --device cpu   # ... and run them on the CPU
 """
 
 from __future__ import annotations
@@ -26,14 +38,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CPU threads per job, given to each job as OMP_NUM_THREADS; default: the worker's own "
                              "OMP_NUM_THREADS when set, else the machine's cores shared out among --processes, "
                              "at least 1 (the start-up line says how many)")
-    parser.add_argument("--preset", default="fast", help="reconstruction preset: fast or paper (default: fast)")
+    parser.add_argument("--preset", default=None,
+                        help="reconstruction preset: fast or paper (default: fast; with --retry-failed: only the "
+                             "failed jobs of this preset)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
                         help="wall-clock budget per reconstruction in seconds (default: the preset's)")
     parser.add_argument("--steps", type=int, default=None, metavar="N",
                         help="optimisation steps per reconstruction (default: the preset's)")
-    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+    parser.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
                         help="where reconstructions run (default: auto)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the reconstructions (default: 0)")
+    parser.add_argument("--seed", type=int, default=None, help="random seed of the reconstructions (default: 0)")
     parser.add_argument("--once", action="store_true",
                         help="queue the complete scans there are, run until nothing is queued or running, exit")
     parser.add_argument("--poll-s", type=float, default=2.0, metavar="S",
@@ -46,7 +60,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--status", action="store_true", help="list the jobs and exit")
     parser.add_argument("--json", action="store_true", help="with --status: print JSON instead of a table")
     parser.add_argument("--retry-failed", action="store_true",
-                        help="put every failed job back in the queue with a fresh attempt count, and exit")
+                        help="put every failed job back in the queue with a fresh attempt count, and exit; "
+                             "--budget-s, --steps, --device and --seed given with it replace the jobs' own values "
+                             "(the others are kept)")
+
+
+OPTION_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "device": "--device", "seed": "--seed"}
+"""Job options that can be given on the command line, and their flags. None in `args` means not given."""
 
 
 def run(args) -> int:
@@ -65,30 +85,40 @@ def run(args) -> int:
     queue_dir = Path(args.queue) if args.queue else root / ".queue"
     if args.status:
         return _print_status(Queue(queue_dir, lease_s=args.lease_s), args.json)
+    given = _given_options(args)
     if args.retry_failed:
-        moved = Queue(queue_dir).retry_failed()
-        print(f"queued again: {', '.join(moved)}" if moved else "no failed jobs")
-        return 0
-    from spadscan.worker.recon.config import PRESETS  # plain dataclasses: no torch here
-
-    if args.preset not in PRESETS:
-        raise ConfigError(f"unknown preset {args.preset!r} (known: {', '.join(PRESETS)})")
-    if args.budget_s is not None and not args.budget_s > 0:
-        raise ConfigError(f"--budget-s {args.budget_s} must be > 0 seconds")
-    if args.steps is not None and args.steps < 1:
-        raise ConfigError(f"--steps {args.steps} must be at least 1")
+        return _retry_failed(Queue(queue_dir), given, args.preset)
+    options = JobOptions(**({"preset": args.preset} if args.preset else {}), **given)
     config = WorkerConfig(
         root=root, processes=args.processes, queue_dir=queue_dir, poll_s=args.poll_s, lease_s=args.lease_s,
-        max_attempts=args.max_attempts, once=args.once, threads=args.threads,
-        options=JobOptions(preset=args.preset, budget_s=args.budget_s, steps=args.steps, device=args.device,
-                           seed=args.seed),
+        max_attempts=args.max_attempts, once=args.once, threads=args.threads, options=options,
     )
-    settled = asyncio.run(run_worker(config))
+    settled = asyncio.run(run_worker(config))  # checks the config (options included) before queuing anything
     failed = sorted(j for j, s in settled.items() if s == "failed")
     if args.once:
         done = sum(1 for s in settled.values() if s == "done")
         print(f"spadscan worker: {done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else ""))
     return 1 if args.once and failed else 0
+
+
+def _given_options(args) -> dict:
+    """The job options given on the command line (the ones left out stay at their defaults, or at a failed job's
+    own values with --retry-failed)."""
+    return {key: getattr(args, key) for key in OPTION_FLAGS if getattr(args, key) is not None}
+
+
+def _retry_failed(queue, given: dict, preset: str | None) -> int:
+    """Queue failed jobs again (those of `preset`, if given), with the options `given` on the command line."""
+    from spadscan.worker.watcher import JobOptions
+
+    JobOptions(**({"preset": preset} if preset else {}), **given).check()  # before any job moves
+    moved = queue.retry_failed(changes=given, preset=preset)
+    changed = ", ".join(f"{OPTION_FLAGS[k]} {v}" for k, v in given.items())
+    if not moved:
+        print("no failed jobs" + (f" of preset {preset}" if preset else ""))
+    else:
+        print(f"queued again: {', '.join(moved)}" + (f" (with {changed})" if changed else " (with their own options)"))
+    return 0
 
 
 def _print_status(queue, as_json: bool) -> int:

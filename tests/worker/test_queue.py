@@ -197,6 +197,68 @@ def test_retry_failed_starts_the_count_again(tmp_path):
     assert row.state == "done" and row.error is None
 
 
+def _failed(q: Queue, job: Job) -> None:
+    q.enqueue(job)
+    q.fail(q.claim(), "device 'cuda' asked for, but torch sees no CUDA device", retry=False)
+
+
+def test_retry_failed_with_changes_queues_the_job_with_them(tmp_path):
+    q = Queue(tmp_path / "q", max_attempts=1)
+    _failed(q, Job(id="s-fast", scan="s", device="cuda", seed=7, steps=5, budget_s=30.0))
+    assert q.retry_failed(changes={"device": "cpu"}) == ["s-fast"]
+    assert q.counts() == {"queued": 1, "running": 0, "done": 0, "failed": 0}
+    claim = q.claim()
+    assert (claim.job.device, claim.job.seed, claim.job.steps, claim.job.budget_s) == ("cpu", 7, 5, 30.0)
+    assert claim.attempt == 1
+    q.fail(claim, "bad", retry=False)
+    assert q.retry_failed(changes={"seed": 3}) == ["s-fast"], "a job changed once can be changed again"
+    assert (q.claim().job.device, q.attempts("s-fast")) == ("cpu", 1)
+    assert q.repair(min_age_s=0) == [] and not list((q.path / "tmp").iterdir()), "no second copy of the job"
+
+
+def test_retry_failed_without_changes_keeps_the_jobs_options(tmp_path):
+    q = Queue(tmp_path / "q")
+    _failed(q, Job(id="s-fast", scan="s", device="cuda", seed=7))
+    assert q.retry_failed(changes={}) == ["s-fast"]
+    assert (q.claim().job.device, q.known("s-fast")) == ("cuda", True)
+
+
+def test_retry_failed_picks_a_preset_and_never_changes_one(tmp_path):
+    q = Queue(tmp_path / "q")
+    _failed(q, _job("s", "fast"))
+    _failed(q, _job("s", "paper"))
+    assert q.retry_failed(preset="paper", changes={"device": "cpu"}) == ["s-paper"]
+    assert q.counts()["failed"] == 1
+    with pytest.raises(ConfigError, match="cannot change preset"):
+        q.retry_failed(changes={"preset": "paper"})
+    assert q.counts()["failed"] == 1, "nothing moved"
+
+
+def test_a_retry_cut_short_leaves_the_job_to_repair(tmp_path, monkeypatch):
+    """A crash while the changed job file is written: `repair` queues the job as it was, once (also a job that was
+    changed before: its changed file is the registered one)."""
+    import spadscan.worker.queue as queue_module
+
+    q = Queue(tmp_path / "q")
+    _failed(q, Job(id="s-fast", scan="s", device="auto"))
+    q.retry_failed(changes={"device": "cuda"})
+    q.fail(q.claim(), "no CUDA device", retry=False)
+    hour_ago = time.time() - 3600
+    os.utime(q.path / "failed" / "s-fast.json", (hour_ago, hour_ago))  # failed long ago
+
+    def disk_full(path, data):
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(queue_module, "_write_new", disk_full)
+    with pytest.raises(OSError):
+        q.retry_failed(changes={"device": "cpu"})
+    monkeypatch.undo()
+    assert q.counts() == {"queued": 0, "running": 0, "done": 0, "failed": 0}
+    assert q.repair(min_age_s=60) == [], "a retry in progress is left alone"
+    assert q.repair(min_age_s=0) == ["s-fast"]
+    assert q.claim().job.device == "cuda" and q.claim() is None
+
+
 def test_repair_queues_a_job_whose_enqueue_was_cut_short(tmp_path):
     q = Queue(tmp_path / "q")
     job = _job("s")

@@ -228,6 +228,70 @@ def test_the_command_refuses_a_missing_root_and_an_unknown_preset(tmp_path, caps
     assert not (tmp_path / ".queue").exists(), "nothing queued with a bad preset"
 
 
+def options_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+    """A stand-in reconstruction that fails on 'cuda' as the real one does without a GPU, and reports its options."""
+    from spadscan.protocol.errors import SpadscanError
+
+    if device == "cuda":
+        raise SpadscanError("device 'cuda' asked for, but torch sees no CUDA device (use --device cpu or auto)")
+    report = {"device": device, "seed": seed, "steps": steps}
+    (Path(out) / "report.json").write_text(json.dumps(report))
+    return report
+
+
+def test_bad_seed_and_device_are_refused_before_anything_is_queued(tmp_path, capsys, monkeypatch):
+    import torch
+
+    make_scan(tmp_path, "s")
+    assert cli_main(["worker", "--root", str(tmp_path), "--once", "--seed", "-1"]) == 1
+    err = capsys.readouterr().err
+    assert "seed -1 must be an integer >= 0" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / ".queue").exists()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert cli_main(["worker", "--root", str(tmp_path), "--once", "--device", "cuda"]) == 1
+    err = capsys.readouterr().err
+    assert "torch sees no CUDA device (use --device cpu or auto)" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / ".queue").exists()
+    assert cli_main(["worker", "--root", str(tmp_path), "--retry-failed", "--device", "cuda"]) == 1
+    assert "no CUDA device" in capsys.readouterr().err, "an option given with --retry-failed is checked too"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # a GPU machine
+    assert cli_main(["worker", "--root", str(tmp_path), "--retry-failed", "--device", "cuda"]) == 0
+    assert capsys.readouterr().out.strip() == "no failed jobs"
+
+
+def test_retry_failed_queues_failed_jobs_with_the_options_given(tmp_path, arun, monkeypatch, capsys):
+    from spadscan.worker.watcher import JobOptions, scan_once
+
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "s")
+    scan_once(root, Queue.for_root(root), JobOptions(device="cuda", seed=7, steps=5))  # queued by an earlier worker
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+
+    def run_once() -> dict:
+        # This worker's own options (device auto) apply to scans it queues, not to the job already queued.
+        config = WorkerConfig(root=root, once=True, poll_s=0.1, recon="test_worker_process:options_recon")
+        return arun(Worker(config, log=lambda line: None).run(), timeout_s=120)
+
+    assert run_once() == {"s-fast": "failed"}
+    assert cli_main(["worker", "--root", str(root), "--retry-failed"]) == 0
+    assert capsys.readouterr().out.strip() == "queued again: s-fast (with their own options)"
+    assert run_once() == {"s-fast": "failed"}, "retried as it was queued: device cuda again"
+    assert cli_main(["worker", "--root", str(root), "--retry-failed", "--device", "cpu"]) == 0
+    assert capsys.readouterr().out.strip() == "queued again: s-fast (with --device cpu)"
+    assert run_once() == {"s-fast": "done"}
+    report = json.loads((root / "s" / "recon" / "s-fast" / "report.json").read_text())
+    assert report == {"device": "cpu", "seed": 7, "steps": 5}, "the options not given keep the job's own values"
+
+
+def test_help_says_what_happens_to_options(capsys):
+    with pytest.raises(SystemExit):
+        cli_main(["worker", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "Options are frozen into each job when it is queued" in text
+    assert "--retry-failed --device cpu" in text and "replace the jobs' own values" in text
+
+
 def test_jobs_find_the_ground_truth_a_capture_names(tmp_path):
     from spadscan.worker.jobs import ground_truth
 
