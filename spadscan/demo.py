@@ -23,6 +23,11 @@ from spadscan.protocol.errors import SpadscanError
 
 # Unix socket paths longer than this fail to bind (sun_path is 108 bytes on Linux).
 MAX_SOCKET_PATH = 100
+MIN_VIEWS = 4
+"""Fewest views the demo scans: fewer leave the reconstruction nothing to fit (the daemon itself accepts 1)."""
+ARMS = ("sim", "ur-sim")
+SENSORS = ("lcspc-sim", "tmf8820")
+LOG_TAIL_BYTES = 64 * 1024  # how much of a child's log is searched for the line that says why it failed
 
 
 class DemoError(SpadscanError):
@@ -143,17 +148,86 @@ settle_s = 0.0
     return path
 
 
+def check_options(opts: DemoOptions) -> None:
+    """Refuse, in one line each, the options the daemon or the worker would refuse, before anything starts (they
+    would otherwise fail only after the daemon started or the whole scan ran). The limits are theirs, read from
+    the daemon's config keys where they are declared."""
+    import math
+
+    from spadscan.daemon.config import ScanConfig, SensorConfig
+    from spadscan.protocol.scenes import BUILTIN_SCENES
+
+    if opts.scene not in BUILTIN_SCENES:
+        raise DemoError(f"unknown scene {opts.scene!r} (built-in: {', '.join(BUILTIN_SCENES)})")
+    if opts.arm not in ARMS:
+        raise DemoError(f"--arm {opts.arm!r} must be one of {', '.join(ARMS)}")
+    presets = _key(SensorConfig, "preset").choices
+    if opts.sensor not in presets:
+        raise DemoError(f"--sensor {opts.sensor!r} must be one of {', '.join(presets)}")
+    most = int(_key(ScanConfig, "views").hi)
+    if isinstance(opts.views, bool) or not isinstance(opts.views, int) or not MIN_VIEWS <= opts.views <= most:
+        raise DemoError(f"--views {opts.views} must be an integer in [{MIN_VIEWS}, {most}]")
+    # The worker's rule (spadscan worker --budget-s, and the reconstruction's own check): a finite time > 0.
+    if not (isinstance(opts.budget_s, (int, float)) and math.isfinite(opts.budget_s) and opts.budget_s > 0):
+        raise DemoError(f"--budget-s {opts.budget_s} must be a finite number of seconds > 0")
+    if opts.out.exists() and not opts.out.is_dir():
+        raise DemoError(f"{opts.out}: exists and is not a folder")
+
+
+def _key(cls, name: str):
+    """The daemon config's Key spec (kind, range, choices) of field `name` of section `cls`."""
+    from dataclasses import fields
+
+    return next(f.metadata["key"] for f in fields(cls) if f.name == name)
+
+
+def check_rig_config(config: Path) -> None:
+    """Read the rig config as the daemon will at start-up, so that anything it would refuse fails here, in one
+    line, before any process starts."""
+    from spadscan.daemon.config import load_config
+
+    load_config(config)
+
+
+def last_log_line(log: Path) -> str | None:
+    """The line of a child's log that says why it failed: its last `spadscan: error:` line (without the prefix),
+    else its last line that is neither blank nor a progress bar; None for an empty or unreadable log."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - LOG_TAIL_BYTES))
+            text = f.read().decode("utf-8", "replace")
+    except OSError:
+        return None
+    lines = [line.strip() for line in text.replace("\r", "\n").split("\n")]
+    lines = [line for line in lines if line and not _is_progress_bar(line)]
+    errors = [line for line in lines if line.startswith("spadscan: error:")]
+    if errors:
+        return errors[-1][len("spadscan: error:"):].strip()
+    return lines[-1] if lines else None
+
+
+def _is_progress_bar(line: str) -> bool:
+    """tqdm's lines ("scan:  40%|####      | 4/10 [00:01<00:02, 3.1pose/s]") say nothing about a failure."""
+    return "%|" in line and line.rstrip().endswith("]")
+
+
+def _failed(what: str, log: Path) -> DemoError:
+    """`what` failed: the error names the log and, when the log says why, repeats its last meaningful line."""
+    why = last_log_line(log)
+    return DemoError(f"{what}: {why} (log: {log})" if why else f"{what} (log: {log})")
+
+
 def _wait_for_daemon(sock: Path, proc: subprocess.Popen, log: Path, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise DemoError(f"the daemon exited with code {proc.returncode} at start-up (log: {log})")
+            raise _failed(f"the daemon exited with code {proc.returncode} at start-up", log)
         try:
             call(sock, "status", timeout_s=2.0)
             return
         except ControlError:
             time.sleep(0.2)
-    raise DemoError(f"the daemon did not open its control socket within {timeout_s:.0f} s (log: {log})")
+    raise _failed(f"the daemon did not open its control socket within {timeout_s:.0f} s", log)
 
 
 def _scan(sock: Path, name: str, opts: DemoOptions, progress) -> dict:
@@ -184,10 +258,9 @@ def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path
     try:
         code = worker.wait(timeout=opts.stage_timeout_s + opts.budget_s)
     except subprocess.TimeoutExpired:
-        raise DemoError(f"the worker did not finish within {opts.stage_timeout_s + opts.budget_s:.0f} s "
-                        f"(log: {log})") from None
+        raise _failed(f"the worker did not finish within {opts.stage_timeout_s + opts.budget_s:.0f} s", log) from None
     if code != 0:
-        raise DemoError(f"the worker exited with code {code} (log: {log})")
+        raise _failed(f"the worker exited with code {code}", log)
 
 
 def _find_report(scan_dir: Path) -> Path:
@@ -202,14 +275,7 @@ def run_demo(opts: DemoOptions, progress_factory) -> dict:
 
     progress_factory(total, desc) -> an object with update(n) and close(), e.g. a tqdm bar.
     """
-    from spadscan.protocol.scenes import BUILTIN_SCENES
-
-    if opts.scene not in BUILTIN_SCENES:
-        raise DemoError(f"unknown scene {opts.scene!r} (built-in: {', '.join(BUILTIN_SCENES)})")
-    if opts.arm not in ("sim", "ur-sim"):
-        raise DemoError(f"--arm {opts.arm!r} must be 'sim' or 'ur-sim'")
-    if opts.views < 4:
-        raise DemoError(f"--views {opts.views} is too few (at least 4)")
+    check_options(opts)
     out = opts.out
     out.mkdir(parents=True, exist_ok=True)
     logs, captures = out / "logs", out / "captures"
@@ -220,12 +286,12 @@ def run_demo(opts: DemoOptions, progress_factory) -> dict:
     stages: dict[str, float] = {}
     t0 = time.monotonic()
     try:
-        ur_host = None
-        if opts.arm == "ur-sim":
-            ur_host = _free_loopback_host()
+        ur_host = _free_loopback_host() if opts.arm == "ur-sim" else None
+        config = write_rig_config(opts, captures, sock, ur_host)
+        check_rig_config(config)
+        if ur_host is not None:
             procs.start("ur-sim", [sys.executable, "-m", "spadscan.daemon.ursim", "--host", ur_host],
                         logs / "ursim.log")
-        config = write_rig_config(opts, captures, sock, ur_host)
         daemon = procs.start("daemon", _spadscan("daemon", "--config", str(config)), logs / "daemon.log")
         _wait_for_daemon(sock, daemon, logs / "daemon.log", timeout_s=60.0)
         stages["start_s"] = time.monotonic() - t0

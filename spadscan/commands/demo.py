@@ -36,10 +36,11 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from spadscan.demo import DemoOptions, run_demo
+    from spadscan.demo import DemoOptions, check_options, run_demo
 
     opts = DemoOptions(out=args.out, scene=args.scene, views=args.views, budget_s=args.budget_s, arm=args.arm,
                        sensor=args.sensor)
+    check_options(opts)  # before the banner: a refused option starts nothing and announces nothing
 
     def bar(total: int, desc: str):
         return tqdm(total=total, desc=desc, unit="pose", file=sys.stderr, leave=True)

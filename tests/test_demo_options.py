@@ -1,0 +1,126 @@
+"""`spadscan demo` refuses what the daemon or the worker would refuse before it starts anything, and when a child
+fails anyway its error repeats the line of the child's log that says why. (The whole loop: tests/e2e/test_demo.py.)"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+import pytest
+
+import spadscan.demo as demo
+from spadscan.cli import main
+from spadscan.daemon.config import ScanConfig
+from spadscan.demo import DemoError, DemoOptions, Processes, check_options, last_log_line, run_demo
+from spadscan.protocol.errors import ConfigError
+
+MOST_VIEWS = int(next(f.metadata["key"].hi for f in fields(ScanConfig) if f.name == "views"))
+
+
+@pytest.fixture
+def nothing_starts(monkeypatch):
+    """Fail the test if the demo starts a process or a progress bar."""
+    def start(self, name, argv, log):
+        raise AssertionError(f"the demo started {name} although an option is refused")
+
+    monkeypatch.setattr(Processes, "start", start)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"budget_s": 0.0}, "--budget-s 0.0 must be a finite number of seconds > 0"),
+    ({"budget_s": -3.0}, "--budget-s -3.0 must be a finite number of seconds > 0"),
+    ({"budget_s": float("inf")}, "--budget-s inf must be a finite number of seconds > 0"),
+    ({"budget_s": float("nan")}, "--budget-s nan must be a finite number of seconds > 0"),
+    ({"views": MOST_VIEWS + 1}, f"--views {MOST_VIEWS + 1} must be an integer in [4, {MOST_VIEWS}]"),
+    ({"views": 3}, f"--views 3 must be an integer in [4, {MOST_VIEWS}]"),
+    ({"scene": "teapot"}, "unknown scene 'teapot'"),
+    ({"arm": "ur"}, "--arm 'ur' must be one of sim, ur-sim"),
+    ({"sensor": "vl53l8"}, "--sensor 'vl53l8' must be one of"),
+])
+def test_refused_options_start_nothing(tmp_path, nothing_starts, changes, message):
+    opts = DemoOptions(out=tmp_path / "demo", **changes)
+    with pytest.raises(DemoError) as info:
+        run_demo(opts, progress_factory=None)
+    assert str(info.value).startswith(message) and "\n" not in str(info.value)
+    assert not opts.out.exists(), "nothing is created for refused options"
+
+
+def test_the_views_limit_is_the_daemons():
+    check_options(DemoOptions(out=Path("x"), views=MOST_VIEWS))
+    with pytest.raises(DemoError):
+        check_options(DemoOptions(out=Path("x"), views=MOST_VIEWS + 1))
+
+
+def test_an_out_that_is_a_file(tmp_path, nothing_starts):
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(DemoError, match="afile: exists and is not a folder"):
+        run_demo(DemoOptions(out=tmp_path / "afile"), progress_factory=None)
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+def test_the_rig_config_is_checked_as_the_daemon_would_before_it_starts(tmp_path, nothing_starts):
+    # frames_per_pose is no command-line option; 0 stands for anything the daemon's config check refuses
+    with pytest.raises(ConfigError, match=r"\[scan\] frames_per_pose = 0 is outside"):
+        run_demo(DemoOptions(out=tmp_path / "demo", frames_per_pose=0), progress_factory=None)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--views", "8", "--budget-s", "0"], "--budget-s 0.0 must be a finite number of seconds > 0"),
+    (["--views", "20000"], f"--views 20000 must be an integer in [4, {MOST_VIEWS}]"),
+])
+def test_through_the_command_line(tmp_path, capsys, nothing_starts, argv, message):
+    assert main(["demo", "--out", str(tmp_path / "d"), *argv]) == 1
+    captured = capsys.readouterr()
+    assert captured.err == f"spadscan: error: {message}\n", "one line, and no banner before it"
+    assert not (tmp_path / "d").exists()
+
+
+# ---- a child that fails anyway -------------------------------------------------------------------------------------
+def test_last_log_line_finds_the_reason(tmp_path):
+    log = tmp_path / "worker.log"
+    log.write_text("12:00:01 INFO queued demo-1\n"
+                   "spadscan: error: --budget-s 0.0 must be > 0 seconds\n"
+                   "fit:  40%|####      | 4/10 [00:01<00:02, 3.1step/s]\rfit: 100%|##########| 10/10 [00:03<00:00]\n"
+                   "\n")
+    assert last_log_line(log) == "--budget-s 0.0 must be > 0 seconds"
+    log.write_text("Traceback (most recent call last):\n  File \"x.py\", line 1\nValueError: bad thing\n\n")
+    assert last_log_line(log) == "ValueError: bad thing"
+    log.write_text("")
+    assert last_log_line(log) is None
+    assert last_log_line(tmp_path / "missing.log") is None
+
+
+def _child(message: str) -> list[str]:
+    return [sys.executable, "-c", f"import sys; print({message!r}, file=sys.stderr); sys.exit(1)"]
+
+
+def test_a_daemon_that_dies_at_start_up_says_why(tmp_path):
+    procs = Processes()
+    log = tmp_path / "logs" / "daemon.log"
+    proc = procs.start("daemon", _child("spadscan: error: rig.toml: [scan] views = 20000 is outside [1, 10000]"), log)
+    proc.wait(timeout=60)
+    with pytest.raises(DemoError) as info:
+        demo._wait_for_daemon(tmp_path / "no.sock", proc, log, timeout_s=30)
+    assert str(info.value) == (f"the daemon exited with code 1 at start-up: rig.toml: [scan] views = 20000 is "
+                               f"outside [1, 10000] (log: {log})")
+
+
+def test_a_worker_that_fails_says_why(tmp_path, monkeypatch):
+    monkeypatch.setattr(demo, "_spadscan", lambda *args: _child("spadscan: error: capture x: no measurements"))
+    procs = Processes()
+    with pytest.raises(DemoError) as info:
+        demo._reconstruct(DemoOptions(out=tmp_path, budget_s=5), tmp_path / "captures", procs, tmp_path / "logs")
+    log = tmp_path / "logs" / "worker.log"
+    assert str(info.value) == f"the worker exited with code 1: capture x: no measurements (log: {log})"
+    procs.stop_all()
+
+
+def test_a_silent_failure_still_names_the_log(tmp_path):
+    procs = Processes()
+    log = tmp_path / "daemon.log"
+    proc = procs.start("daemon", [sys.executable, "-c", "raise SystemExit(3)"], log)
+    proc.wait(timeout=60)
+    with pytest.raises(DemoError) as info:
+        demo._wait_for_daemon(tmp_path / "no.sock", proc, log, timeout_s=30)
+    assert str(info.value) == f"the daemon exited with code 3 at start-up (log: {log})"
