@@ -71,6 +71,8 @@ class JobStatus:
     result: str | None
     holder: str | None
     heartbeat_age_s: float | None
+    notes: list[str] = field(default_factory=list)
+    """Damaged queue files of this job (unreadable job file, unreadable attempt records): what the row cannot say."""
 
 
 def _utc() -> str:
@@ -236,7 +238,7 @@ class Queue:
         except FileNotFoundError:
             return None
         rec = self._read_record(job_id, token) or {}
-        lease = float(rec.get("lease_s") or self.lease_s)
+        lease = _number(rec.get("lease_s")) or self.lease_s
         who = f"worker {rec.get('host', '?')} pid {rec.get('pid', '?')}"
         if rec.get("holder") and holder_gone(rec["holder"]):
             return f"{who} died mid-job"
@@ -263,15 +265,26 @@ class Queue:
         return sum(1 for r in self.records(job_id) if r.get("outcome") != "interrupted")
 
     def records(self, job_id: str) -> list[dict]:
-        """Attempt records of one job, oldest first."""
+        """Attempt records of one job, oldest first; unreadable ones are left out (see `read_records`)."""
+        return self.read_records(job_id)[0]
+
+    def read_records(self, job_id: str) -> tuple[list[dict], list[Path]]:
+        """(attempt records of one job, oldest first; the record files that are not readable JSON objects).
+
+        Records are replaced whole by rename, so an unreadable one is damage (a torn file after a power cut, a file
+        emptied by hand), not one being written: it is set aside, never fatal."""
         folder = self.path / "attempts" / job_id
-        recs = []
-        for p in folder.glob("*.json") if folder.is_dir() else ():
+        recs, bad = [], []
+        for p in sorted(folder.glob("*.json")) if folder.is_dir() else ():
             try:
-                recs.append(json.loads(p.read_text()))
+                rec = json.loads(p.read_text())
             except (OSError, ValueError):
-                continue  # being replaced right now, or a torn file from a crash: not a record
-        return sorted(recs, key=lambda r: (r.get("started_unix", 0.0), r.get("token", "")))
+                rec = None
+            if isinstance(rec, dict):
+                recs.append(rec)
+            elif p.exists():  # a record replaced while being read is gone, not bad
+                bad.append(p)
+        return sorted(recs, key=lambda r: (_number(r.get("started_unix")), str(r.get("token", "")))), bad
 
     def _record(self, job_id: str, token: str, holder: Holder, **values) -> None:
         rec = {"token": token, **holder.describe(), "holder": holder.to_dict(), "lease_s": self.lease_s,
@@ -291,9 +304,10 @@ class Queue:
 
     def _read_record(self, job_id: str, token: str) -> dict | None:
         try:
-            return json.loads((self.path / "attempts" / job_id / f"{token}.json").read_text())
+            rec = json.loads((self.path / "attempts" / job_id / f"{token}.json").read_text())
         except (OSError, ValueError):
             return None
+        return rec if isinstance(rec, dict) else None
 
     def _write_record(self, job_id: str, token: str, rec: dict) -> None:
         folder = self.path / "attempts" / job_id
@@ -313,31 +327,36 @@ class Queue:
         return found
 
     def statuses(self) -> list[JobStatus]:
-        """One row per job, sorted by id."""
-        rows = []
+        """One row per job, sorted by id. Damaged files (unreadable job file or attempt records) are named in the
+        row's `notes`; the row says what the readable ones do."""
         now = time.time()
-        for job_id, (state, path) in sorted(self.job_paths().items()):
+        return [self._status(job_id, state, path, now) for job_id, (state, path) in sorted(self.job_paths().items())]
+
+    def _status(self, job_id: str, state: str, path: Path, now: float) -> JobStatus:
+        notes = []
+        try:
+            job = Job.from_dict(json.loads(path.read_text()), str(path))
+        except (OSError, ValueError, ConfigError):
+            job = Job(id=job_id, scan="?", preset="?")
+            if path.exists():  # not just moved on to another state
+                notes.append(f"unreadable job file {path}")
+        recs, bad = self.read_records(job_id)
+        notes += [f"unreadable attempt record {p}" for p in bad]
+        counted = [r for r in recs if r.get("outcome") != "interrupted"]
+        errors = [str(r["error"]) for r in counted if r.get("error")]
+        results = [str(r["result"]) for r in recs if r.get("outcome") == "done" and r.get("result")]
+        holder = age = None
+        if state == "running":
+            token = path.stem.rpartition(SEP)[2]
+            rec = next((r for r in recs if r.get("token") == token), {})
+            holder = f"{rec.get('host', '?')}:{rec.get('pid', '?')}"
             try:
-                job = Job.from_dict(json.loads(path.read_text()), str(path))
-            except (OSError, ValueError, ConfigError):
-                job = Job(id=job_id, scan="?", preset="?")
-            recs = self.records(job_id)
-            errors = [r["error"] for r in recs if r.get("error") and r.get("outcome") != "interrupted"]
-            results = [r["result"] for r in recs if r.get("outcome") == "done" and r.get("result")]
-            holder = age = None
-            if state == "running":
-                token = path.stem.rpartition(SEP)[2]
-                rec = next((r for r in recs if r.get("token") == token), {})
-                holder = f"{rec.get('host', '?')}:{rec.get('pid', '?')}"
-                try:
-                    age = max(0.0, now - path.stat().st_mtime)
-                except FileNotFoundError:
-                    age = None
-            rows.append(JobStatus(job_id, job.scan, job.preset, state,
-                                  sum(1 for r in recs if r.get("outcome") != "interrupted"),
-                                  errors[-1] if errors and state != "done" else None,
-                                  results[-1] if results else None, holder, age))
-        return rows
+                age = max(0.0, now - path.stat().st_mtime)
+            except FileNotFoundError:
+                age = None
+        return JobStatus(job_id, str(job.scan), str(job.preset), state, len(counted),
+                         errors[-1] if errors and state != "done" else None, results[-1] if results else None,
+                         holder, age, notes)
 
     def counts(self) -> dict[str, int]:
         """Number of job files in each state."""
@@ -427,6 +446,11 @@ def _stored(path: Path) -> dict:
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
+
+
+def _number(value) -> float:
+    """A record's number, or 0.0 where a damaged record holds something else."""
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else 0.0
 
 
 def _new_token() -> str:

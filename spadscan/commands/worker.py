@@ -122,6 +122,8 @@ def _retry_failed(queue, given: dict, preset: str | None) -> int:
 
 
 def _print_status(queue, as_json: bool) -> int:
+    """List the jobs. Damaged queue files never stop the listing: each row says what its readable records say and
+    names the files it could not read."""
     import json
     from dataclasses import asdict
 
@@ -137,11 +139,20 @@ def _print_status(queue, as_json: bool) -> int:
         holder = r.holder or "-"
         if r.heartbeat_age_s is not None:
             holder += f" ({r.heartbeat_age_s:.0f} s ago)"
-        detail = r.result if r.state == "done" else (r.error or "-")
-        table.append((r.id, r.state, str(r.attempts), holder, detail))
+        table.append((r.id, r.state, str(r.attempts), holder, _status_detail(r)))
     widths = [max(len(row[i]) for row in table) for i in range(4)]
     for row in table:
         print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4])
     counts = queue.counts()
     print(", ".join(f"{n} {state}" for state, n in counts.items()))
     return 0
+
+
+def _status_detail(row) -> str:
+    """The last column of a --status row: a done job's result folder, else its last error; then damaged files."""
+    if row.state == "done":
+        detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
+        notes = [] if not row.result else row.notes
+    else:
+        detail, notes = row.error or "-", row.notes
+    return "; ".join([detail, *notes])

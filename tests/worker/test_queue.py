@@ -280,6 +280,21 @@ def test_an_unreadable_job_file_fails_that_job_only(tmp_path):
     assert rows["junk"].state == "failed" and "unreadable job file" in rows["junk"].error
 
 
+def test_damaged_attempt_records_never_stop_the_queue(tmp_path):
+    """A record that is not a JSON object is set aside, and a record's damaged numbers read as unknown: claims,
+    expiry and retries go on."""
+    q = Queue(tmp_path / "q", lease_s=5)
+    q.enqueue(_job("s"))
+    first = q.claim(_elsewhere())
+    (q.path / "attempts" / "s-fast" / f"{first.token}.json").write_text('{"lease_s": "y", "started_unix": "x"}')
+    (q.path / "attempts" / "s-fast" / "0000000000000000.json").write_text("[]")
+    assert q.reclaim_expired(now=time.time() + 60) == [("s-fast", "queued")]
+    claim = q.claim()
+    assert claim is not None and claim.attempt == 2, "the damaged record is not an attempt"
+    records, bad = q.read_records("s-fast")
+    assert [p.name for p in bad] == ["0000000000000000.json"] and len(records) == 2
+
+
 def test_a_claim_is_dead_only_when_it_can_never_publish(tmp_path):
     q = Queue(tmp_path / "q", lease_s=5)
     for name in ("live", "gone", "far", "done"):

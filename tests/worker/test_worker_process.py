@@ -220,6 +220,45 @@ def test_status_lists_jobs_as_a_table_and_as_json(tmp_path, capsys):
     assert rows["a-fast"]["state"] == "failed" and rows["b-fast"]["state"] == "queued"
 
 
+def test_status_lists_jobs_whose_queue_files_are_damaged(tmp_path, capsys):
+    """Empty or foreign attempt records and empty job files: every row is printed, the damage named, no traceback."""
+    from spadscan.worker.watcher import JobOptions, scan_once
+
+    root = tmp_path / "captures"
+    root.mkdir()
+    for name in ("empty", "list", "odd", "nojob", "ok"):
+        make_scan(root, name)
+    q = Queue.for_root(root)
+    scan_once(root, q, JobOptions())
+    while (c := q.claim()) is not None:
+        if c.job.scan == "odd":
+            q.fail(c, "boom", retry=False)
+        else:
+            q.finish(c, f"/results/{c.job.scan}")
+    (record,) = (q.path / "attempts" / "empty-fast").glob("*.json")
+    record.write_text("")
+    (record,) = (q.path / "attempts" / "list-fast").glob("*.json")
+    record.write_text("[1, 2]")
+    (record,) = (q.path / "attempts" / "odd-fast").glob("*.json")
+    record.write_text('{"outcome": "failed", "error": 5, "started_unix": null}')
+    (q.path / "done" / "nojob-fast.json").write_text("")
+    (q.path / "ids" / "ok-fast.json").unlink()  # a hard link of the job file: emptying it would empty both
+    (q.path / "ids" / "ok-fast.json").write_text("")
+    assert cli_main(["worker", "--root", str(root), "--status"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    lines = {line.split()[0]: line for line in captured.out.splitlines()}
+    assert "result: unknown (unreadable attempt record" in lines["empty-fast"]
+    assert "result: unknown (unreadable attempt record" in lines["list-fast"]
+    assert lines["odd-fast"].split()[1:4] == ["failed", "1", "-"] and lines["odd-fast"].endswith("  5")
+    assert "/results/nojob" in lines["nojob-fast"] and "unreadable job file" in lines["nojob-fast"]
+    assert lines["ok-fast"].endswith("/results/ok")
+    assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
+    rows = {r["id"]: r for r in json.loads(capsys.readouterr().out)}
+    assert rows["empty-fast"]["result"] is None and "unreadable attempt record" in rows["empty-fast"]["notes"][0]
+    assert rows["ok-fast"]["notes"] == []
+
+
 def test_the_command_refuses_a_missing_root_and_an_unknown_preset(tmp_path, capsys):
     assert cli_main(["worker", "--root", str(tmp_path / "nope"), "--once"]) == 1
     assert "captures root is not a folder" in capsys.readouterr().err
