@@ -9,8 +9,8 @@ from typing import Iterator
 
 import numpy as np
 
-from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, Chunk, check_hists, check_poses, chunk_index,
-                             one_line, read_json, read_npy)
+from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, VERSION, Chunk, check_hists, check_poses,
+                             chunk_index, one_line, read_json, read_npy)
 from .errors import CaptureError, SensorModelError
 from .sensor_model import SensorModel
 
@@ -30,6 +30,18 @@ class CaptureData:
     @property
     def pose_indices(self) -> np.ndarray:
         return np.array([m["pose_index"] for m in self.meta], dtype=np.int64)
+
+
+def _check_version(version, where) -> None:
+    """Refuse a manifest of a format version this reader does not know: a newer writer may have changed what the
+    files mean, and reading them as version VERSION would be silently wrong. A manifest without one is version 1."""
+    if version is None:
+        return
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise CaptureError(f"{where}: version {version!r} must be a positive integer")
+    if version > VERSION:
+        raise CaptureError(f"{where}: capture format version {version} is newer than this spadscan reads "
+                           f"(version {VERSION}); upgrade spadscan to read it")
 
 
 class CaptureReader:
@@ -58,6 +70,7 @@ class CaptureReader:
         m = read_json(where)
         if m.get("format") != FORMAT:
             raise CaptureError(f"{where}: not a spadscan capture (format {m.get('format')!r})")
+        _check_version(m.get("version"), where)
         for key in ("state", "sensor", "chunk_size"):
             if key not in m:
                 raise CaptureError(f"{where}: lacks {key!r}")

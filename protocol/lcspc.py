@@ -49,6 +49,8 @@ class LcspcData:
     reference: np.ndarray | None
     meta: list[dict]
     sha256: str
+    notes: tuple[str, ...] = ()
+    """What was read but not kept as given (one line each), for the user to see."""
 
 
 def read_lcspc(path, progress: Progress | None = None) -> LcspcData:
@@ -80,7 +82,7 @@ def read_lcspc(path, progress: Progress | None = None) -> LcspcData:
         raise DatasetError(str(exc)) from None
     reference = _references(path, records, sensor)
     meta = [_meta(path, i, r) for i, r in enumerate(records)]
-    return LcspcData(path, kind, sensor, hists, poses, reference, meta, digest)
+    return LcspcData(path, kind, sensor, hists, poses, reference, meta, digest, _temperature_notes(records))
 
 
 def detect_kind(path, hists) -> tuple[str, SensorModel]:
@@ -137,7 +139,7 @@ def import_lcspc(path, out, *, chunk_size: int = 64, scan_id: str | None = None,
         raise
     chunks = -(-n // chunk_size)
     return ImportSummary(Path(out), data.kind, data.sensor.name, n, tuple(data.hists.shape),
-                         None if data.reference is None else tuple(data.reference.shape), chunks, gt)
+                         None if data.reference is None else tuple(data.reference.shape), chunks, gt, data.notes)
 
 
 @dataclass
@@ -152,6 +154,8 @@ class ImportSummary:
     reference_shape: tuple[int, ...] | None
     chunks: int
     ground_truth: Path | None
+    notes: tuple[str, ...] = ()
+    """What was read but not kept as given (LcspcData.notes)."""
 
 
 # ---- helpers ---------------------------------------------------------------------------------------------------------
@@ -235,7 +239,30 @@ def _meta(path, i: int, rec: dict) -> dict:
         ok = isinstance(q, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in q)
         if not ok or len(q) != 6 or not np.all(np.isfinite(q)):
             raise DatasetError(f"{path}: measurement {i} has joint_angles {str(q)[:80]}, expected 6 finite numbers")
-    dist = rec.get("distances")
-    if isinstance(dist, list) and dist and isinstance(dist[0], dict) and "temperature" in dist[0]:
-        meta["temperature_c"] = dist[0]["temperature"]
+    celsius = _temperature(rec)[1]
+    if celsius is not None:
+        meta["temperature_c"] = celsius
     return meta
+
+
+def _temperature(rec: dict) -> tuple[bool, float | None]:
+    """The on-chip temperature, distances[0].temperature: (given, value); value is None unless a finite number.
+    Readers of temperature_c expect a number (the daemon stores one), so anything else is not copied there."""
+    dist = rec.get("distances")
+    if not (isinstance(dist, list) and dist and isinstance(dist[0], dict) and "temperature" in dist[0]):
+        return False, None
+    value = dist[0]["temperature"]
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+    return True, value if ok else None
+
+
+def _temperature_notes(records: list[dict]) -> tuple[str, ...]:
+    """One note naming how many measurements give a temperature that is not a number, and the first of them."""
+    bad = [i for i, rec in enumerate(records) if _temperature(rec) == (True, None)]
+    if not bad:
+        return ()
+    value = repr(records[bad[0]]["distances"][0]["temperature"])
+    value = value if len(value) <= 40 else value[:37] + "..."
+    many = f"{len(bad)} measurements give" if len(bad) > 1 else "1 measurement gives"
+    return (f"{many} a distances[0].temperature that is not a number (first: measurement {bad[0]}, {value}); "
+            f"stored without temperature_c (the original stays in its 'distances')",)

@@ -24,12 +24,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="do not show progress bars")
 
 
+def check_scan_id(scan_id: str, out) -> None:
+    """A scan id is a plain name, by the daemon's own rule for scan names (it names folders and jobs)."""
+    from pathlib import Path
+
+    from spadscan.daemon.scan_job import check_scan_name
+    from spadscan.protocol.errors import ConfigError
+
+    try:
+        check_scan_name(scan_id, Path(out).parent)
+    except ConfigError as exc:
+        raise ConfigError(f"--scan-id: {exc}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     import sys
 
     from tqdm import tqdm
 
     from spadscan.protocol.lcspc import import_lcspc
+
+    if args.scan_id is not None:
+        check_scan_id(args.scan_id, args.out)
 
     bars: dict[str, tqdm] = {}
 
@@ -48,6 +64,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for bar in bars.values():
             bar.close()
+    for note in s.notes:
+        print(f"spadscan: note: {note}", file=sys.stderr)
     shape = " x ".join(str(v) for v in s.hists_shape[1:])
     ref = "" if s.reference_shape is None else ", reference histograms"
     print(f"imported {s.measurements} measurements ({s.kind}, sensor {s.sensor}, histograms {shape}{ref}) "

@@ -462,6 +462,8 @@ CORRUPTIONS = {
     "bad hand-eye": (_patch_manifest(_set("hand_eye", "identity")), MANIFEST),
     "ragged hand-eye": (_patch_manifest(_set("hand_eye", [[1, 0], [0, 1, 0]])), MANIFEST),
     "bad schedule file": (lambda p: (p / "schedule.npy").write_bytes(b"\x93NUMPY junk"), "schedule.npy"),
+    "newer version": (_patch_manifest(_set("version", 99)), MANIFEST),
+    "version not a number": (_patch_manifest(_set("version", "1")), MANIFEST),
 }
 
 
@@ -477,6 +479,27 @@ def test_corrupt_files_give_one_line_errors_naming_the_file(tmp_path, name):
         r.planned_poses()
     msg = str(info.value)
     assert "\n" not in msg and filename in msg, msg
+
+
+def test_a_newer_format_version_is_refused_naming_the_one_this_reads(tmp_path):
+    from spadscan.protocol.capture_format import VERSION
+
+    path = tmp_path / "scan"
+    write(path, 2, 2)
+    _patch_manifest(_set("version", VERSION + 98))(path)
+    with pytest.raises(CaptureError) as info:
+        CaptureReader(path)
+    assert str(info.value) == (f"{path / MANIFEST}: capture format version {VERSION + 98} is newer than this "
+                               f"spadscan reads (version {VERSION}); upgrade spadscan to read it")
+    with pytest.raises(CaptureError, match="is newer"):
+        CaptureWriter.resume(path)  # nor is it rewritten as the version this writer knows
+
+
+def test_a_manifest_without_a_version_is_version_1(tmp_path):
+    path = tmp_path / "scan"
+    write(path, 2, 2)
+    _patch_manifest(lambda m: m.pop("version"))(path)
+    assert len(CaptureReader(path).load().hists) == 2
 
 
 def test_a_scan_folder_that_is_not_a_directory(tmp_path):

@@ -277,3 +277,39 @@ def test_dataset_files_import(lcspc_dataset, tmp_path, rel, kind, n, shape, gt):
     if kind == "real":
         assert data.reference.shape == (n, 128) and data.reference.argmax(axis=1).min() >= 10
         assert {"joint_angles", "distances", "time_captured", "temperature_c"} <= set(data.meta[0])
+
+
+@pytest.mark.parametrize("scan_id", ["a/b", "..", ".hidden", "../up", "with space", "x" * 101, ""])
+def test_a_scan_id_must_be_a_plain_name_as_the_daemon_requires(tmp_path, capsys, scan_id):
+    src = write_json(tmp_path / "s.json", sim_records(2))
+    assert main(["import-lcspc", str(src), "--out", str(tmp_path / "cap"), "--scan-id", scan_id]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("spadscan: error: --scan-id: scan name ") and err.count("\n") == 1
+    assert "must be" in err
+    assert not (tmp_path / "cap").exists()
+
+
+def test_a_plain_scan_id_is_recorded(tmp_path):
+    src = write_json(tmp_path / "s.json", sim_records(2))
+    assert main(["import-lcspc", str(src), "--out", str(tmp_path / "cap"), "--scan-id", "bunny_2.run-1",
+                 "--no-progress"]) == 0
+    assert CaptureReader(tmp_path / "cap").scan_id == "bunny_2.run-1"
+
+
+def test_a_temperature_that_is_not_a_number_is_left_out_with_a_note(tmp_path, capsys):
+    records = real_records(3)
+    records[0]["distances"][0]["temperature"] = "hot"
+    records[2]["distances"][0]["temperature"] = True
+    src = write_json(tmp_path / "r.json", records)
+    assert main(["import-lcspc", str(src), "--out", str(tmp_path / "cap"), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert err == ("spadscan: note: 2 measurements give a distances[0].temperature that is not a number (first: "
+                   "measurement 0, 'hot'); stored without temperature_c (the original stays in its 'distances')\n")
+    meta = CaptureReader(tmp_path / "cap").load().meta
+    assert [m.get("temperature_c") for m in meta] == [None, 23, None]
+    assert meta[0]["distances"][0]["temperature"] == "hot", "the record itself is kept verbatim"
+
+
+def test_numeric_temperatures_give_no_note(tmp_path):
+    data = read_lcspc(write_json(tmp_path / "r.json", real_records(2)))
+    assert data.notes == () and [m["temperature_c"] for m in data.meta] == [22, 23]
