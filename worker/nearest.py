@@ -16,6 +16,8 @@ NEAR_SPACINGS = 16.0
 """Queries whose nearest sample lies within this many sample spacings are answered by the KD-tree alone."""
 LEAF = 64
 """Samples per patch (and queries per block) of the far-query search."""
+BLOCKS_PER_CHUNK = 16
+"""Query blocks searched together by the far-query search: bounds its memory."""
 _TOL = 1e-9
 
 
@@ -110,13 +112,11 @@ def _far_nearest(queries: np.ndarray, data: np.ndarray) -> tuple[np.ndarray, np.
     patches = _median_split(data, LEAF)
     pp = data[patches]
     pb = _patch_bounds(pp)
-    r_patch = float(pb["radius"].max())
     m = len(queries)
     best_d, best_i = np.full(m, np.inf), np.zeros(m, np.int64)
     blocks = _median_split(queries, LEAF)
     bq = queries[blocks]  # (B, Kq, 3)
-    blo, bhi, bc = bq.min(1), bq.max(1), bq.mean(1)
-    r_block = np.sqrt(np.einsum("bki,bki->bk", bq - bc[:, None], bq - bc[:, None]).max(1))
+    bc = bq.mean(1)
     tree = cKDTree(pb["centroid"])
     _, first = tree.query(bc, eps=0.5, workers=-1)  # any patch gives a valid bound; a near one a tight bound
     for s in range(0, len(blocks), 256):
@@ -126,23 +126,37 @@ def _far_nearest(queries: np.ndarray, data: np.ndarray) -> tuple[np.ndarray, np.
         best_d[blocks[s:s + 256]] = np.take_along_axis(dd, k[..., None], 2)[..., 0]
         best_i[blocks[s:s + 256]] = patches[first[s:s + 256, None], k]
     bound = best_d[blocks].max(1) * (1 + _TOL)
-    near = tree.query_ball_point(bc, bound + r_block + r_patch, workers=-1)
+    # Blocks a chunk at a time: a far query keeps every patch within a patch's size of its nearest sample as a
+    # candidate, tens of millions of pairs in all at 300,000 samples (GBs if made at once).
+    for s in range(0, len(blocks), BLOCKS_PER_CHUNK):
+        _search_blocks(np.arange(s, min(s + BLOCKS_PER_CHUNK, len(blocks))), queries, blocks, bound, first, tree,
+                       pp, patches, pb, best_d, best_i)
+    return best_d, best_i
+
+
+def _search_blocks(sel, queries, blocks, bound, first, tree, pp, patches, pb, best_d, best_i) -> None:
+    """Search the patches that may hold a nearer sample for the queries of blocks `sel` (see `_far_nearest`)."""
+    bq = queries[blocks[sel]]  # (b, Kq, 3)
+    blo, bhi, bc = bq.min(1), bq.max(1), bq.mean(1)
+    r_block = np.sqrt(np.einsum("bki,bki->bk", bq - bc[:, None], bq - bc[:, None]).max(1))
+    r_patch = float(pb["radius"].max())
+    near = tree.query_ball_point(bc, bound[sel] + r_block + r_patch, workers=-1)
     counts = np.fromiter((len(x) for x in near), np.int64, count=len(near))
-    bi = np.repeat(np.arange(len(blocks)), counts)
+    bi = np.repeat(np.arange(len(sel)), counts)
     lj = np.fromiter(itertools.chain.from_iterable(near), np.int64, count=int(counts.sum()))
     ball = np.linalg.norm(bc[bi] - pb["centroid"][lj], axis=1) - r_block[bi] - pb["radius"][lj]
-    keep = (np.maximum(ball, _lower_bound(blo[bi], bhi[bi], pb, lj)) <= bound[bi]) & (lj != first[bi])
+    keep = (np.maximum(ball, _lower_bound(blo[bi], bhi[bi], pb, lj)) <= bound[sel][bi]) & (lj != first[sel][bi])
     bi, lj = bi[keep], lj[keep]
     pairs_q, pairs_p, pairs_lb = [], [], []
     for s in range(0, len(bi), 4096):
-        qq, pj = blocks[bi[s:s + 4096]], lj[s:s + 4096]  # (P, Kq) query indices, (P,) patches
+        qq, pj = blocks[sel[bi[s:s + 4096]]], lj[s:s + 4096]  # (P, Kq) query indices, (P,) patches
         lb = _point_lower_bound(queries[qq], {key: v[pj] for key, v in pb.items()})
         qi, col = np.nonzero(lb <= best_d[qq] * (1 + _TOL))
         pairs_q.append(qq[qi, col])
         pairs_p.append(pj[qi])
         pairs_lb.append(lb[qi, col])
     if not pairs_q:
-        return best_d, best_i
+        return
     q, p, lb = np.concatenate(pairs_q), np.concatenate(pairs_p), np.concatenate(pairs_lb)
     # The most promising patch of each query first: its distance prunes most of the other candidates.
     order = np.lexsort((lb, q))
@@ -151,7 +165,6 @@ def _far_nearest(queries: np.ndarray, data: np.ndarray) -> tuple[np.ndarray, np.
     _search_pairs(queries, pp, patches, q[head], p[head], best_d, best_i)
     rest = ~head & (lb <= best_d[q] * (1 + _TOL))
     _search_pairs(queries, pp, patches, q[rest], p[rest], best_d, best_i)
-    return best_d, best_i
 
 
 def _box_gap(alo, ahi, blo, bhi) -> np.ndarray:

@@ -195,7 +195,8 @@ def test_eval_bad_options_are_one_line_errors(capsys):
     assert capsys.readouterr().err.count("\n") == 1
 
 
-@pytest.mark.parametrize("case", ["small sphere inside a large one", "shifted 3 cm", "box beside a sphere", "close"])
+@pytest.mark.parametrize("case", ["small sphere inside a large one", "shifted 3 cm", "box beside a sphere", "close",
+                                  "40 cm apart"])
 def test_nearest_samples_are_exactly_the_kd_trees(case):
     from scipy.spatial import cKDTree
 
@@ -204,7 +205,8 @@ def test_nearest_samples_are_exactly_the_kd_trees(case):
     a, b = {"small sphere inside a large one": (ball(0.02), ball(0.05)),
             "shifted 3 cm": (ball(0.05), ball(0.05, (0.03, 0, 0.1))),
             "box beside a sphere": (trimesh.creation.box((0.05, 0.02, 0.08)), ball(0.05, (0.1, 0, 0))),
-            "close": (ball(0.05), ball(0.051))}[case]
+            "close": (ball(0.05), ball(0.051)),
+            "40 cm apart": (ball(0.05), ball(0.05, (0.5, 0, 0)))}[case]
     rng = np.random.default_rng(1)
     q, _ = sample_surface(a, 12_000, rng)
     d, _ = sample_surface(b, 9_000, rng)
