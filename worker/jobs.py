@@ -114,39 +114,92 @@ def check_capture(scan: Path) -> dict:
     return reader.manifest
 
 
-def ground_truth(manifest: dict, out: Path) -> Path | None:
-    """A ground-truth mesh for the capture, when its manifest's scene record names one: a mesh file (`ground_truth`,
-    `mesh`) or a built-in scene (`builtin`, exported into `out`)."""
-    scene = manifest.get("scene") or {}
-    for key in ("ground_truth", "mesh"):  # written by import-lcspc and by simulate
-        mesh = scene.get(key)
-        if isinstance(mesh, str) and Path(mesh).is_file():
-            return Path(mesh)
-    if isinstance(scene.get("builtin"), str):
-        try:
-            from spadscan.protocol.scenes import builtin_scene
+def ground_truth(manifest: dict, out: Path) -> tuple[Path | None, str | None]:
+    """(a usable ground-truth mesh for the capture, or None; why there is none although the manifest names one).
 
-            path = out / "ground_truth.ply"
-            builtin_scene(scene["builtin"]).export(path)
-            return path
-        except (ImportError, SpadscanError):
-            return None
+    The manifest's scene record may name a mesh file (`ground_truth`, written by import-lcspc; `mesh`, by simulate)
+    or a built-in scene (`builtin`, exported into `out`). Ground truth only adds metrics, so a missing or unreadable
+    one is a note in the job's report, never a failed job: each mesh is loaded here, before hours of training."""
+    scene = manifest.get("scene") or {}
+    if not isinstance(scene, dict):
+        return None, None
+    note = None
+    for key in ("ground_truth", "mesh"):
+        mesh = scene.get(key)
+        if isinstance(mesh, str):
+            why = _unusable_mesh(Path(mesh))
+            if why is None:
+                return Path(mesh), None
+            note = note or f"{why}; no metrics"
+    if isinstance(scene.get("builtin"), str):
+        path, why = _export_builtin(scene["builtin"], out / "ground_truth.ply")
+        if path is not None:
+            return path, None
+        note = note or f"{why}; no metrics"
+    return None, note
+
+
+def _unusable_mesh(path: Path) -> str | None:
+    """Why the mesh file `path` cannot serve as ground truth (no such file, no triangles, ...), or None."""
+    from spadscan.protocol.mesh_io import load_mesh_spec
+
+    if not path.is_file():
+        return f"{path}: no such ground-truth mesh"
+    try:
+        load_mesh_spec(str(path))
+    except SpadscanError as exc:
+        return str(exc)
     return None
 
 
+def _export_builtin(name: str, path: Path) -> tuple[Path | None, str | None]:
+    """(`path`, None) once the built-in scene `name` is written there, else (None, why)."""
+    try:
+        from spadscan.protocol.scenes import builtin_scene
+
+        builtin_scene(name).export(path)
+        return path, None
+    except (ImportError, SpadscanError) as exc:
+        return None, f"built-in scene {name!r}: {exc}"
+
+
 def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -> dict:
-    """Reconstruct the job's capture into the folder `out` (created). Returns the reconstruction's report."""
+    """Reconstruct the job's capture into the folder `out` (created). Returns the reconstruction's report, with
+    `ground_truth_note` when the capture names a ground truth that cannot be used (also added to report.json)."""
     scan = scan_path(job, root)
     manifest = check_capture(scan)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    gt = ground_truth(manifest, out)
+    gt, gt_note = ground_truth(manifest, out)
     (out / "job.json").write_text(json.dumps({**job.to_dict(), "capture": str(scan),
-                                              "gt": None if gt is None else str(gt)}, indent=1) + "\n")
+                                              "gt": None if gt is None else str(gt), "gt_note": gt_note},
+                                             indent=1) + "\n")
+    if gt_note:
+        print(f"ground truth: {gt_note}", file=sys.stderr, flush=True)
     recon = recon or load_recon()
-    report = recon(scan, out, preset=job.preset, budget_s=job.budget_s, steps=job.steps, gt=gt,
-                   device=job.device, seed=job.seed)
-    return dict(report or {})
+    report = dict(recon(scan, out, preset=job.preset, budget_s=job.budget_s, steps=job.steps, gt=gt,
+                        device=job.device, seed=job.seed) or {})
+    if gt_note:
+        report["ground_truth_note"] = gt_note
+        add_to_report(out, {"ground_truth_note": gt_note})
+    return report
+
+
+def add_to_report(out: Path, values: dict) -> None:
+    """Add `values` to the report.json the reconstruction wrote into `out` (and to its report.html page)."""
+    from spadscan.worker.report.report_html import REPORT_HTML, write_report_html
+    from spadscan.worker.report.report_json import REPORT, write_report
+
+    try:
+        report = json.loads((out / REPORT).read_text())
+    except (OSError, ValueError):
+        return  # no report to add to (a replacement reconstruction may write none)
+    if not isinstance(report, dict):
+        return
+    report.update(values)
+    write_report(out, report)
+    if (out / REPORT_HTML).exists():
+        write_report_html(report, out)
 
 
 def result_path(job: Job, root: Path) -> Path:
@@ -249,7 +302,7 @@ def child_main(argv: list[str] | None = None) -> int:
         traceback.print_exc()
         _write_outcome(outcome, {"ok": False, "kind": "crash", "error": f"{type(exc).__name__}: {exc}"})
         return EXIT_CRASH
-    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps") if k in report}
+    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note") if k in report}
     _write_outcome(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary})
     return EXIT_DONE
 

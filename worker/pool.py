@@ -203,6 +203,8 @@ class Worker:
         self.queue.record_result(claim, str(final))
         self.settled[job.id] = "done"
         extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
+        if summary.get("ground_truth_note"):
+            extra += f" (ground truth: {summary['ground_truth_note']})"
         self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}")
 
     # ---- stopping --------------------------------------------------------------------------------------------

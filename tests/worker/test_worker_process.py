@@ -336,12 +336,61 @@ def test_jobs_find_the_ground_truth_a_capture_names(tmp_path):
 
     mesh = tmp_path / "gt.obj"
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
-    assert ground_truth({"scene": {"ground_truth": str(mesh)}}, tmp_path) == mesh  # import-lcspc
-    assert ground_truth({"scene": {"mesh": str(mesh)}}, tmp_path) == mesh  # simulate MESH
-    exported = ground_truth({"scene": {"builtin": "sphere"}}, tmp_path)  # simulate builtin:NAME
-    assert exported == tmp_path / "ground_truth.ply" and exported.stat().st_size > 0
-    assert ground_truth({"scene": {"mesh": str(tmp_path / "gone.obj")}}, tmp_path) is None
-    assert ground_truth({}, tmp_path) is None
+    assert ground_truth({"scene": {"ground_truth": str(mesh)}}, tmp_path) == (mesh, None)  # import-lcspc
+    assert ground_truth({"scene": {"mesh": str(mesh)}}, tmp_path) == (mesh, None)  # simulate MESH
+    exported, note = ground_truth({"scene": {"builtin": "sphere"}}, tmp_path)  # simulate builtin:NAME
+    assert exported == tmp_path / "ground_truth.ply" and exported.stat().st_size > 0 and note is None
+    assert ground_truth({}, tmp_path) == (None, None), "no ground truth named: nothing to say"
+
+
+def test_a_ground_truth_that_cannot_be_used_is_a_note_not_a_failure(tmp_path):
+    from spadscan.worker.jobs import ground_truth
+
+    flat = tmp_path / "flat.obj"
+    flat.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")  # vertices, no faces
+    assert ground_truth({"scene": {"ground_truth": str(flat)}}, tmp_path) == (
+        None, f"{flat}: holds no triangles; no metrics")
+    gone = tmp_path / "gone.obj"
+    assert ground_truth({"scene": {"mesh": str(gone)}}, tmp_path) == (
+        None, f"{gone}: no such ground-truth mesh; no metrics")
+    gt, note = ground_truth({"scene": {"builtin": "no-such-scene"}}, tmp_path)
+    assert gt is None and note.startswith("built-in scene 'no-such-scene': ") and note.endswith("; no metrics")
+
+
+def gt_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+    """A stand-in reconstruction that writes its report as the real one does (report.json, report.html)."""
+    from spadscan.worker.report.report_html import write_report_html
+    from spadscan.worker.report.report_json import write_report
+
+    report = {"preset": preset, "capture": str(capture), "gt_given": None if gt is None else str(gt)}
+    write_report(out, report)
+    write_report_html(report, out)
+    return report
+
+
+def test_jobs_whose_ground_truth_cannot_be_used_still_reconstruct(tmp_path, arun, monkeypatch):
+    root = tmp_path / "captures"
+    root.mkdir()
+    flat = tmp_path / "flat.obj"
+    flat.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    named = {"flat": str(flat), "gone": str(tmp_path / "gone.obj")}
+    for name, mesh in named.items():
+        make_scan(root, name)
+        manifest = root / name / "scan.json"
+        manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "scene": {"ground_truth": mesh}}))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+    lines = []
+    config = WorkerConfig(root=root, once=True, poll_s=0.1, recon="test_worker_process:gt_recon")
+    assert arun(Worker(config, log=lines.append).run(), timeout_s=120) == {"flat-fast": "done", "gone-fast": "done"}
+    notes = {"flat": f"{flat}: holds no triangles; no metrics",
+             "gone": f"{tmp_path / 'gone.obj'}: no such ground-truth mesh; no metrics"}
+    for name, note in notes.items():
+        result = root / name / "recon" / f"{name}-fast"
+        report = json.loads((result / "report.json").read_text())
+        assert report["ground_truth_note"] == note and report["gt_given"] is None
+        assert note in (result / "report.html").read_text()
+        assert json.loads((result / "job.json").read_text())["gt_note"] == note
+        assert any(f"{name}-fast done" in line and f"(ground truth: {note})" in line for line in lines), lines
 
 
 def test_a_job_whose_worker_is_already_gone_exits_at_once(tmp_path, markers):
