@@ -67,7 +67,7 @@ class WorkerConfig:
         elif environ.get(THREADS_ENV):
             why = "the worker's own environment"
         else:
-            why = f"{machine_cores()} cores shared out among {self.processes} job processes"
+            why = f"{machine_cores()} cores shared out among {self.processes} job process(es)"
         return f"{value} CPU threads per job ({THREADS_ENV}={value}: {why})"
 
     def check(self) -> "WorkerConfig":
