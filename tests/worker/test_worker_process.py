@@ -298,6 +298,17 @@ def test_bad_seed_and_device_are_refused_before_anything_is_queued(tmp_path, cap
     assert capsys.readouterr().out.strip() == "no failed jobs"
 
 
+def test_checking_the_options_loads_torch_only_for_cuda(tmp_path):
+    """The worker process stays light: torch is loaded in the job processes, and in the worker only to see whether
+    a GPU asked for is there."""
+    code = ("import sys; from spadscan.worker.worker_config import WorkerConfig; "
+            "from spadscan.worker.watcher import JobOptions; "
+            "WorkerConfig(root=sys.argv[1], options=JobOptions(device='cpu', seed=3)).check(); "
+            "WorkerConfig(root=sys.argv[1]).check(); print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "False", out.stderr
+
+
 def test_retry_failed_queues_failed_jobs_with_the_options_given(tmp_path, arun, monkeypatch, capsys):
     from spadscan.worker.watcher import JobOptions, scan_once
 
