@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -53,13 +54,15 @@ def _check_run_args(budget_s, steps, seed) -> None:
 
 def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budget_s: float | None = None,
                         steps: int | None = None, gt: Path | None = None, device: str = "auto", seed: int = 0,
-                        progress: bool = True, overrides: dict | None = None) -> dict:
+                        progress: bool = True, overrides: dict | None = None, threads: int | None = None,
+                        log: Callable[[str], None] | None = None) -> dict:
     """Reconstruct `capture` into folder `out` with preset `preset`; returns the report dict (also report.json).
 
     The run stops after `steps` steps or `budget_s` seconds of training and checkpoint evaluation, whichever comes
-    first (neither: the preset's
-    defaults). `gt`: a ground-truth mesh file; adds Chamfer, accuracy, completeness, F-score and normal errors, and
-    Chamfer at every trace checkpoint. `overrides`: dotted config keys to change (see config.with_overrides)."""
+    first (neither: the preset's defaults). `gt`: a ground-truth mesh file; adds Chamfer, accuracy, completeness,
+    F-score and normal errors, and Chamfer at every trace checkpoint. `overrides`: dotted config keys to change (see
+    config.with_overrides). `threads`: torch's CPU threads (default: as torch starts, OMP_NUM_THREADS or the
+    cores). `log`: receives a line per stage after training (mesh, metrics, pictures) and warnings."""
     import torch
 
     from spadscan.worker.recon.config import load_factory, preset_config, with_overrides
@@ -67,17 +70,26 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     from spadscan.worker.recon.scene_data import load_scene
     from spadscan.worker.recon.trainer import train
 
+    from .outputs import capture_state_note, export_mesh
+    from .threads import check_threads
+
+    log = log or (lambda line: None)
     wall0 = time.perf_counter()
     _check_run_args(budget_s, steps, seed)
+    if threads is not None:
+        torch.set_num_threads(check_threads(threads))
     config = preset_config(preset)
     if overrides:
         config = with_overrides(config, overrides)
     dev = resolve_device(device)
     gt_mesh = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     dtype = torch.float64 if config.dtype == "float64" else torch.float32
     scene = load_scene(Path(capture), dev, dtype)
+    state_note = capture_state_note(capture, scene.state, scene.n_views)
+    if state_note:
+        log(f"warning: {state_note}")
+    out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder
     if steps is None and budget_s is None:
         steps, budget_s = config.default_steps, config.default_budget_s
     plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
@@ -89,15 +101,19 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     result = train(model, plan, checkpoints=config.trace_checkpoints, evaluate=evaluate, progress=progress,
                    desc=f"reconstruct ({preset})", early_stop=config.early_stop)
 
+    log(f"extracting the mesh ({config.mesh_resolution} cells a side)")
     mesh = model.extract_mesh(config.mesh_resolution)
-    mesh_path = out / "mesh.ply"
-    mesh.export(mesh_path, vertex_normal=True)
+    export_mesh(mesh, out / "mesh.ply", vertex_normal=True)
     report = _report(capture, preset, dev, config, scene, model, result, plan)
+    report["capture_state"] = scene.state
+    if state_note:
+        report["capture_note"] = state_note
     from spadscan.worker.report import pictures
 
     if gt_mesh is not None:
         from spadscan.worker.metrics import mesh_metrics
 
+        log(f"metrics against the ground truth ({config.metrics_points:,} points per mesh)")
         metrics = mesh_metrics(mesh, gt_mesh, n_points=config.metrics_points, seed=int(seed))
         report.update(metrics.to_dict())
         vertex_err = pictures.vertex_normal_error_deg(mesh, gt_mesh)
@@ -105,6 +121,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                                              "median": float(np.median(vertex_err))}
         pictures.normals_png(mesh, vertex_err, out / "normals.png")
         report["ground_truth"] = str(gt)
+    log("pictures and report")
     _pictures(out, mesh, gt_mesh, model, scene, result, preset)
     report["files"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
     report["files"] = sorted(set(report["files"]) | {"report.json", "report.html"})

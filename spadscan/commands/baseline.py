@@ -8,9 +8,9 @@ space-carving  voxels that a zone saw as empty (in its field of view, in front o
 The detection threshold T is a z-score: a bin holds a return when the pulse-filtered, background-free signal
 exceeds T standard deviations of the background noise (pile-up undone first). --calibrate tries thresholds from 3 to
 300 and keeps the one with the lowest Chamfer distance to --gt, as the paper did (and says so in the report).
-Writes DIR/mesh.ply, DIR/report.json (method, threshold, calibrated, seconds, and with --gt the metrics:
-chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg), DIR/preview.png (the mesh, and the ground
-truth beside it) and DIR/report.html (the page to open first).
+Writes into DIR (a new folder, or one without a result unless --overwrite): report.html (the page to open first),
+mesh.ply, report.json (method, threshold, calibrated, seconds, and with --gt the metrics: chamfer_mm, accuracy_mm,
+completeness_mm, fscore_5mm, normal_error_deg) and preview.png (the mesh, and the ground truth beside it).
 
 Examples:
   spadscan baseline space-carving captures/bunny --out out/bunny-carve --gt bunny.obj
@@ -26,7 +26,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("method", choices=("reprojection", "space-carving"), help="which baseline")
     parser.add_argument("capture", metavar="CAPTURE", help="capture folder (holds scan.json)")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for mesh.ply and report.json")
-    parser.add_argument("--gt", default=None, metavar="MESH", help="ground-truth mesh: adds metrics to the report")
+    parser.add_argument("--gt", default=None, metavar="MESH",
+                        help="ground-truth mesh (metres; STL in mm detected) or builtin:NAME: adds metrics to the "
+                             "report")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the result already in --out (without it, a folder that holds mesh.ply or "
+                             "report.json is refused)")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--threshold", type=float, default=None, metavar="T",
                        help="detection threshold in noise standard deviations (default: 5)")
@@ -52,6 +57,7 @@ def run(args) -> int:
 
     from spadscan.protocol.errors import ConfigError
     from spadscan.worker.baselines.run import run_baseline
+    from spadscan.worker.outputs import check_out
 
     if not 8 <= args.resolution <= 512:
         raise ConfigError(f"--resolution {args.resolution} must lie in [8, 512]")
@@ -59,6 +65,8 @@ def run(args) -> int:
         raise ConfigError(f"--margin-mm {args.margin_mm} must be >= 0")
     if args.threshold is not None and not args.threshold > 0:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
+
+    check_out(args.out, args.overwrite)
 
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)
@@ -81,10 +89,11 @@ def write_pictures_and_page(report: dict, out, gt) -> None:
     """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json."""
     from pathlib import Path
 
-    from spadscan.protocol.mesh_io import load_mesh
+    from spadscan.protocol.mesh_io import load_mesh, load_mesh_spec
     from spadscan.worker.report.pictures import preview_png
     from spadscan.worker.report.report_html import write_report_html
 
     out = Path(out)
-    preview_png(load_mesh(out / "mesh.ply"), out / "preview.png", gt=load_mesh(gt) if gt is not None else None)
+    gt_mesh = load_mesh_spec(str(gt))[0] if gt is not None else None
+    preview_png(load_mesh(out / "mesh.ply"), out / "preview.png", gt=gt_mesh)
     write_report_html(report, out)

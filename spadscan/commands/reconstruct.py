@@ -1,6 +1,7 @@
 """Reconstruct one capture into a mesh and a report, by differentiable rendering of its histograms.
 
-Writes into --out: mesh.ply (per-vertex normals from the SDF gradient), report.json (preset, device, steps,
+Writes into --out (a new folder, or one without a result unless --overwrite): report.html (the page to open first),
+mesh.ply (per-vertex normals from the SDF gradient), report.json (preset, device, steps,
 training seconds, the model terms used, final loss, the resolved config, and with --gt: chamfer_mm, accuracy_mm,
 completeness_mm, fscore_5mm, normal_error_deg plus a trace of error against training time), preview.png,
 error_vs_time.png, fit.png (measured against rendered histograms) and, with --gt, normals.png (per-vertex normal
@@ -38,19 +39,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
                         help="override a field of the preset's config, e.g. --set rays.samples_per_ray=64 "
                              "(repeatable; the resolved config is saved in report.json)")
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help="CPU threads (default: OMP_NUM_THREADS if set, else torch's choice, the cores); with "
+                             "other reconstructions running at once, share the cores out: threads that outnumber "
+                             "the cores make every step many times slower")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the result already in --out (without it, a folder that holds mesh.ply or "
+                             "report.json is refused)")
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
     from pathlib import Path
 
+    from spadscan.worker.outputs import check_out
     from spadscan.worker.recon.config import parse_override
     from spadscan.worker.reconstruct import reconstruct_capture
 
+    out = check_out(args.out, args.overwrite)
     overrides = dict(parse_override(text) for text in args.overrides)
-    report = reconstruct_capture(Path(args.capture), Path(args.out), preset=args.preset, budget_s=args.budget_s,
+
+    def log(line: str) -> None:
+        print(f"spadscan reconstruct: {line}", file=sys.stderr, flush=True)
+
+    report = reconstruct_capture(Path(args.capture), out, preset=args.preset, budget_s=args.budget_s,
                                  steps=args.steps, gt=args.gt, device=args.device, seed=args.seed,
-                                 progress=not args.no_progress, overrides=overrides or None)
+                                 progress=not args.no_progress, overrides=overrides or None, threads=args.threads,
+                                 log=log)
     line = (f"{report['preset']}: {report['steps']} steps in {report['seconds']:.1f} s on {report['device']}, "
             f"final loss {report['final_loss']:.4g}")
     if report.get("chamfer_mm") is not None:
@@ -58,5 +74,6 @@ def run(args: argparse.Namespace) -> int:
                  f"{report['completeness_mm']:.2f}), F-score@5mm {report['fscore_5mm']:.3f}, normal error "
                  f"{report['normal_error_deg']:.1f} deg")
     print(line)
-    print(f"wrote {Path(args.out) / 'mesh.ply'} and report.json, preview.png, error_vs_time.png, fit.png")
+    print(f"wrote {out / 'report.html'} (open this first), mesh.ply, report.json, preview.png, error_vs_time.png, "
+          "fit.png")
     return 0

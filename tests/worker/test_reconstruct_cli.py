@@ -1,4 +1,5 @@
-"""`spadscan reconstruct` and `reconstruct_capture`: every file written, the report's contents, one-line errors."""
+"""`spadscan reconstruct` and `reconstruct_capture`: every file written, the report's contents, one-line errors, result
+folders that keep a previous result."""
 
 from __future__ import annotations
 
@@ -7,11 +8,13 @@ import json
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from spadscan.cli import main
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
+from spadscan.worker.outputs import check_out, export_mesh
 
 SMALL = ["rays.rays_per_view=32", "rays.importance_rays_per_view=8", "rays.samples_per_ray=24",
          "rays.importance_samples=8", "field.width=48", "field.layers=3", "field.skip_layers=[2]",
@@ -227,3 +230,98 @@ def test_help_names_every_option(capsys):
     text = capsys.readouterr().out
     for flag in ("--out", "--preset", "--budget-s", "--steps", "--gt", "--device", "--seed"):
         assert flag in text
+
+
+# ---- result folders: a previous result is kept unless --overwrite, a failed write leaves the previous mesh, an
+# unfinished capture is reconstructed with a warning, and the stages after training say what they do.
+
+def _recon(cap, out, *extra):
+    return main(["reconstruct", str(cap), "--out", str(out), "--preset", "paper", "--steps", "1", "--device", "cpu",
+                 "--no-progress", *small_args(), *extra])
+
+
+def _error_lines(capsys):
+    return [line for line in capsys.readouterr().err.splitlines() if line.startswith("spadscan: error:")]
+
+
+def test_a_previous_result_is_kept_unless_overwrite(capture_and_gt, tmp_path, capsys):
+    cap, _ = capture_and_gt
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mesh.ply").write_text("the previous mesh")
+    assert _recon(cap, out) == 1
+    err = _error_lines(capsys)
+    assert len(err) == 1 and "already holds a result" in err[0] and "--overwrite" in err[0]
+    assert (out / "mesh.ply").read_text() == "the previous mesh"
+    assert _recon(cap, out, "--overwrite", "--threads", "1") == 0
+    assert len(trimesh.load(out / "mesh.ply").vertices) > 0
+    assert json.loads((out / "report.json").read_text())["torch_threads"] == 1
+
+
+def test_a_file_in_the_way_and_bad_threads_are_one_line_errors(capture_and_gt, tmp_path, capsys):
+    cap, _ = capture_and_gt
+    (tmp_path / "afile").write_text("x")
+    assert _recon(cap, tmp_path / "afile") == 1
+    assert "is not a folder" in _error_lines(capsys)[0]
+    assert _recon(cap, tmp_path / "o", "--threads", "0") == 1
+    assert "threads 0" in _error_lines(capsys)[0]
+
+
+def test_a_bad_capture_leaves_no_folder_behind(tmp_path, capsys):
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "scan.json").write_text("{not json")
+    assert _recon(tmp_path / "junk", tmp_path / "o") == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_unfinished_capture_is_reconstructed_with_a_warning(capture_and_gt, tmp_path, capsys):
+    import shutil
+
+    cap, gt = capture_and_gt
+    running = tmp_path / "running"
+    shutil.copytree(cap, running)
+    manifest = json.loads((running / "scan.json").read_text())
+    manifest["state"] = "running"
+    (running / "scan.json").write_text(json.dumps(manifest))
+    assert _recon(running, tmp_path / "o", "--gt", str(gt)) == 0
+    err = capsys.readouterr().err
+    assert "the capture is running, not complete" in err
+    # The stages after training say what they do (they can take minutes on a large mesh).
+    for stage in ("extracting the mesh", "metrics against the ground truth", "pictures and report"):
+        assert stage in err
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["capture_state"] == "running" and "not complete" in report["capture_note"]
+    out = tmp_path / "b"
+    assert main(["baseline", "space-carving", str(running), "--out", str(out), "--resolution", "16",
+                 "--gt", "builtin:sphere"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["capture_state"] == "running" and "chamfer_mm" in report  # builtin: ground truths work too
+    assert main(["baseline", "space-carving", str(running), "--out", str(out), "--resolution", "16"]) == 1
+    assert "already holds a result" in _error_lines(capsys)[0]
+
+
+def test_a_failed_mesh_write_leaves_the_previous_file(tmp_path):
+    path = tmp_path / "mesh.ply"
+    export_mesh(trimesh.creation.box(), path)
+    before = path.read_bytes()
+
+    class FullDisk(trimesh.Trimesh):
+        def export(self, file_obj=None, **kw):
+            with open(file_obj, "wb") as f:
+                f.write(b"ply\n half a mesh")
+            raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        export_mesh(FullDisk(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0]], faces=[[0, 1, 2]]), path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["mesh.ply"], "no temporary file left"
+
+
+def test_check_out(tmp_path):
+    assert check_out(tmp_path / "new", False) == tmp_path / "new"
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "report.json").write_text("{}")
+    assert check_out(tmp_path / "r", True) == tmp_path / "r"
+    (tmp_path / "r" / "notes.txt").write_text("an unrelated file does not make a result")
+    (tmp_path / "r" / "report.json").unlink()
+    assert check_out(tmp_path / "r", False) == tmp_path / "r"

@@ -5,7 +5,6 @@ Writes into the output folder: `mesh.ply`, `report.json` and, for reprojection, 
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Callable
@@ -61,7 +60,9 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     (a mesh path) instead, as the paper did. floor_z: height below which the scene is empty (None: no floor).
     """
     from spadscan.protocol.capture_reader import CaptureReader
-    from spadscan.protocol.mesh_io import load_mesh
+    from spadscan.protocol.mesh_io import load_mesh_spec
+
+    from ..outputs import capture_state_note, export_mesh
 
     if method not in METHODS:
         raise ConfigError(f"baseline {method!r} is not one of {METHODS}")
@@ -74,7 +75,10 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     log = log or (lambda line: None)
     start = time.monotonic()
     data = CaptureReader(capture).load()
-    gt_mesh = load_mesh(gt) if gt is not None else None
+    state_note = capture_state_note(capture, data.manifest["state"], len(data.hists))
+    if state_note:
+        log(f"warning: {state_note}")
+    gt_mesh = load_mesh_spec(str(gt))[0] if gt is not None else None
     opts = dict(resolution=resolution, margin_m=margin_m, floor_z=floor_z, surface=surface, edge_deg=edge_deg)
     calibration = None
     if calibrate_:
@@ -91,7 +95,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
                            f"({THRESHOLD_UNITS}); try a lower --threshold")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    mesh.export(out / "mesh.ply")
+    export_mesh(mesh, out / "mesh.ply")
     points = extras.pop("points", None)
     if points is not None:
         import trimesh
@@ -105,7 +109,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
             "note": "threshold chosen by the lowest Chamfer against the ground truth, as in the paper "
                     f"(metrics on {CALIBRATION_POINTS} samples per mesh during the search)",
             "table": calibration.table},
-        "floor_z_m": floor_z, "seconds": round(seconds, 3),
+        "floor_z_m": floor_z, "seconds": round(seconds, 3), "capture_state": data.manifest["state"],
+        **({"capture_note": state_note} if state_note else {}),
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))},
         **extras,
     }
@@ -114,13 +119,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
 
         report["gt"] = str(gt)
         report.update(mesh_metrics(mesh, gt_mesh).to_dict())
-    (out / "report.json").write_text(json.dumps(report, indent=1, default=_json_default) + "\n")
-    return report
+    from ..report.report_json import json_safe, write_report
 
-
-def _json_default(v):
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    raise TypeError(f"not JSON-able: {type(v).__name__}")
+    write_report(out, report)
+    return json_safe(report)

@@ -78,6 +78,8 @@ class SceneData:
     """Measured data (enables the TV term)."""
     scene: dict
     """The manifest's scene dict as read."""
+    state: str = "complete"
+    """The capture's state: 'complete', or 'running' / 'aborted' for a scan not (yet) finished."""
 
     def pulse(self, oversample: int = 1) -> tuple[np.ndarray, int]:
         """(kernel (K,) summing to 1, origin): kernel[origin + k] is the response k / oversample bins after the
@@ -136,6 +138,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
         reference=reference, pulse_source=pulse_source,
         background=t(background), background_source=bg_source,
         center=t(center), radius=float(radius), table=table, real=real, scene=scene,
+        state=str(data.manifest["state"]),
     )
 
 
