@@ -63,6 +63,12 @@ def run(args) -> int:
         raise ConfigError(f"--resolution {args.resolution} must lie in [8, 512]")
     if args.margin_mm is not None and not args.margin_mm >= 0:
         raise ConfigError(f"--margin-mm {args.margin_mm} must be >= 0")
+    import math
+
+    if not math.isfinite(args.floor_z):
+        raise ConfigError(f"--floor-z {args.floor_z} must be a finite height in metres (or --no-floor)")
+    if not math.isfinite(args.edge_deg):
+        raise ConfigError(f"--edge-deg {args.edge_deg} must be a finite angle in degrees")
     if args.threshold is not None and not args.threshold > 0:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
 

@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where to compute (default: auto = CUDA when available)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
-                        help="override a field of the preset's config, e.g. --set rays.samples_per_ray=64 "
+                        help="override a field of the preset's config, e.g. --set field.resolution=48 "
                              "(repeatable; the resolved config is saved in report.json)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="CPU threads (default: OMP_NUM_THREADS if set, else torch's choice, the cores); with "

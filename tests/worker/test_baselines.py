@@ -208,6 +208,15 @@ def test_calibration_needs_ground_truth(sphere_capture, tmp_path, capsys):
     assert err.startswith("spadscan: error:") and "--gt" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("option", [["--floor-z", "nan"], ["--edge-deg", "inf"]])
+def test_non_finite_options_are_one_line_errors(sphere_capture, tmp_path, capsys, option):
+    cap, _ = sphere_capture
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(tmp_path / "x"), *option]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("spadscan: error:") and option[0] in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x").exists()
+
+
 def test_baselines_do_not_import_torch():
     code = ("import sys, spadscan.worker.baselines.run, spadscan.worker.baselines.reprojection; "
             "sys.exit('torch' in sys.modules)")

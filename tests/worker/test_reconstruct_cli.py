@@ -218,6 +218,13 @@ def test_bad_arguments_are_one_line_errors(capture_and_gt, tmp_path, capsys):
     assert "steps" in one_line_error(capsys)
     assert main(base + ["--set", "rays.no_such_field=1"]) == 1
     assert "no_such_field" in one_line_error(capsys)
+    assert main(base + ["--set", "rays.samples_per_ray=-1"]) == 1
+    assert "must be >= 0" in one_line_error(capsys)
+    assert main(base + ["--set", "loss.tv_weight=1e999"]) == 1
+    assert "finite" in one_line_error(capsys)
+    fast = ["reconstruct", str(cap), "--out", str(tmp_path / "o"), "--no-progress"]
+    assert main(fast + ["--set", "rays.samples_per_ray=64"]) == 1  # the fast preset would ignore it
+    assert "does not use the 'rays' section" in one_line_error(capsys)
     if not torch.cuda.is_available():
         assert main(base + ["--device", "cuda", "--steps", "1"]) == 1
         assert "CUDA" in one_line_error(capsys)

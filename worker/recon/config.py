@@ -10,8 +10,11 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import json
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
+
+from spadscan.protocol.errors import ConfigError
 
 from .errors import ReconstructionError
 
@@ -126,6 +129,9 @@ class ReconConfig:
     """Checkpoints per run at regular training-clock intervals (their evaluation time is not counted)."""
     trace_mesh_resolution: int = 96
     """Marching-cubes resolution of the meshes extracted at checkpoints."""
+    unused_sections: tuple[str, ...] = ()
+    """Sections this preset never reads (the `fast` preset: rays, optim, sharpness): an override there is refused,
+    not silently ignored."""
 
     def to_dict(self) -> dict:
         """JSON-able form of the resolved config."""
@@ -137,7 +143,7 @@ def parse_override(text: str) -> tuple[str, Any]:
     kept as a string."""
     key, sep, raw = text.partition("=")
     if not sep or not key.strip():
-        raise ReconstructionError(f"config override {text!r} must look like KEY=VALUE (e.g. rays.samples_per_ray=64)")
+        raise ReconstructionError(f"config override {text!r} must look like KEY=VALUE (e.g. field.resolution=48)")
     try:
         value = json.loads(raw)
     except json.JSONDecodeError:
@@ -147,10 +153,14 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 def with_overrides(config: ReconConfig, overrides: dict[str, Any]) -> ReconConfig:
     """A copy of `config` with dotted keys replaced, e.g. {'rays.samples_per_ray': 32, 'field.width': 64}.
-    A value must have the type of the field it replaces (ints may stand for floats, lists for tuples)."""
+    A value must have the type of the field it replaces (ints may stand for floats, lists for tuples); numbers must
+    be finite, and a field whose preset value is positive (counts, sizes, weights, rates) takes no negative value."""
     config = _deep_copy(config)
     for key, value in overrides.items():
         *path, name = key.split(".")
+        if path and path[0] in config.unused_sections:
+            raise ReconstructionError(f"config override {key!r}: preset {config.preset!r} does not use the "
+                                      f"{path[0]!r} section")
         obj = config
         for part in path:
             obj = getattr(obj, part, None)
@@ -180,6 +190,11 @@ def _coerce(old, value, key: str):
         ok = isinstance(old, str) and isinstance(value, str)
     if not ok:
         raise ReconstructionError(f"config override {key!r}: {value!r} does not fit a field holding {old!r}")
+    if isinstance(old, (int, float)) and not isinstance(old, bool):
+        if not math.isfinite(value):
+            raise ConfigError(f"config override {key!r}: {value!r} must be a finite number")
+        if old > 0 and value < 0:
+            raise ConfigError(f"config override {key!r}: {value!r} must be >= 0 (the preset's value is {old!r})")
     return value
 
 

@@ -192,6 +192,7 @@ def fast_config():
         time_oversample=1,
         mesh_resolution=256,
         trace_mesh_resolution=128,
+        unused_sections=("rays", "optim", "sharpness"),
     )
 
 
