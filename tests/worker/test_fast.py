@@ -456,6 +456,31 @@ def test_a_table_scene_empties_thin_sheets_within_the_band_above_the_table(table
             make_fast_model(load_scene(table_capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
 
+@pytest.mark.parametrize("scene, fill_under, filled", [("table", True, True), ("table", False, False),
+                                                       ("floor", True, False)])
+def test_on_a_table_the_fit_fills_a_hollow_under_its_solid_that_opens_to_the_outside(table_capture, cylinder_capture,
+                                                                                     scene, fill_under, filled):
+    capture = table_capture if scene == "table" else cylinder_capture
+    config = with_overrides(preset_config("fast"), {**FAST_SMALL, "field.fill_under_overhangs": fill_under})
+    model = make_fast_model(load_scene(capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    assert (model.table is not None) == (scene == "table") and model.p.floor_z is not None
+    sdf, vox = model.field.sdf.detach()[0, 0], model.field.voxel
+    nodes = model.field.node_points().reshape(sdf.shape + (3,))
+    x, y, z = nodes[..., 0] - 0.005, nodes[..., 1] + 0.004, nodes[..., 2] - model.p.floor_z
+    r = torch.hypot(x, y)
+    cylinder = (r < 0.04) & (z >= 0) & (z < 0.08)
+    hollow = (r < 0.04 - 2 * vox) & (z >= 0) & (z < 0.08 - 2 * vox)  # walls and a roof two voxels thick
+    door = cylinder & (z < 0.02) & (x > 0) & (y.abs() < 0.01)  # a tunnel out through the wall at the foot
+    with torch.no_grad():
+        sdf[...] = vox
+        sdf[cylinder & ~hollow & ~door] = -vox
+    model._fill_cavities()
+    # A hollow open to the outside is no cavity; on a table it lies under the solid, which every view sees from above.
+    assert bool((sdf[hollow | door] < 0).all()) == filled
+    assert bool((sdf[hollow | door] > 0).all()) == (not filled)
+    assert bool((sdf[~cylinder & (z >= 0)] > 0).all())  # nothing beside the object
+
+
 def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_there(cylinder_capture):
     from spadscan.worker.recon.trainer import train
 

@@ -52,14 +52,20 @@ def _limits(rng, poses, sensor):
     return to_target - rng.uniform(0.02, 0.04, size=(len(poses), len(sensor.zones)))
 
 
-@pytest.mark.parametrize("preset", ["lcspc-sim", "tmf8820"])
-def test_cell_verdicts_hold_point_by_point(preset):
+def _setting(preset, seed, half_width):
+    """A sensor, 24 views of a hemisphere 0.3 m out, 1,500 cell centres uniform in a cube of `half_width` metres
+    about the origin, and the zones' empty ranges (`_limits`)."""
     sensor = sensor_preset(preset)
     poses = fibonacci_hemisphere(24, 0.3, min_elevation_deg=10, max_elevation_deg=80)
-    rng = np.random.default_rng(1)
-    centres = rng.uniform(-0.08, 0.08, size=(1500, 3))
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-half_width, half_width, size=(1500, 3))
+    return sensor, poses, centres, _limits(rng, poses, sensor)
+
+
+@pytest.mark.parametrize("preset", ["lcspc-sim", "tmf8820"])
+def test_cell_verdicts_hold_point_by_point(preset):
+    sensor, poses, centres, limit = _setting(preset, seed=1, half_width=0.08)
     radius = 0.01
-    limit = _limits(rng, poses, sensor)
     verdict = _classify_cells(centres, radius, poses, sensor, limit, final=False, min_views=0, edge_rad=0.0)
     counts = np.bincount(verdict, minlength=3)
     assert counts[DROP] > 50 and counts[KEEP] > 50 and counts[SPLIT] > 50, counts
@@ -78,12 +84,8 @@ def test_cell_verdicts_hold_point_by_point(preset):
 
 @pytest.mark.parametrize("preset", ["lcspc-sim", "tmf8820"])
 def test_final_voxels_are_kept_unless_carved_and_seen_by_their_centre(preset):
-    sensor = sensor_preset(preset)
-    poses = fibonacci_hemisphere(24, 0.3, min_elevation_deg=10, max_elevation_deg=80)
-    rng = np.random.default_rng(2)
-    centres = rng.uniform(-0.1, 0.1, size=(1500, 3))
+    sensor, poses, centres, limit = _setting(preset, seed=2, half_width=0.1)
     radius = 0.004
-    limit = _limits(rng, poses, sensor)
     min_views = 3
     verdict = _classify_cells(centres, radius, poses, sensor, limit, final=True, min_views=min_views, edge_rad=0.0)
     assert not np.any(verdict == SPLIT)

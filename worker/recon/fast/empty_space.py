@@ -75,19 +75,24 @@ def push_to_empty(grad: torch.Tensor, sdf: torch.Tensor, voxel: float, weight: t
     grad -= strength * rms * surf.to(grad.dtype) * weight
 
 
-def fill_under_overhangs(values: np.ndarray, z_nodes: np.ndarray, floor_z: float, fill_value: float) -> np.ndarray:
-    """Copy of an SDF grid (nz, ny, nx) with every empty node above the table and below a solid node of its column
-    made solid (`fill_value` < 0). z_nodes (nz,): the nodes' heights, metres.
+def under_overhangs(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float) -> np.ndarray:
+    """(nz, ny, nx) bool: the empty nodes of a solid grid that lie above the table (at floor_z) and below a solid node
+    of their column. z_nodes (nz,): the nodes' heights, metres.
 
     Sensors look at a table-top object from above: the space between an object's underside and the table is
     hidden from every view (no histogram says whether it is empty), and an empty gap there is a fit that
     the data did not ask for — it is what the object's unseen bottom and the melted skirt leave behind."""
-    v = np.array(values, np.float32, copy=True)
-    solid = v < 0
+    solid = np.asarray(solid, bool)
     above_table = (np.asarray(z_nodes) >= floor_z)[:, None, None]
     # Solid at or above each node in its column: a cumulative OR from the top of the grid down.
     covered = np.flip(np.logical_or.accumulate(np.flip(solid, axis=0), axis=0), axis=0)
-    v[(~solid) & covered & above_table] = fill_value
+    return (~solid) & covered & above_table
+
+
+def fill_under_overhangs(values: np.ndarray, z_nodes: np.ndarray, floor_z: float, fill_value: float) -> np.ndarray:
+    """Copy of an SDF grid (nz, ny, nx) with the nodes `under_overhangs` made solid (`fill_value` < 0)."""
+    v = np.array(values, np.float32, copy=True)
+    v[under_overhangs(v < 0, z_nodes, floor_z)] = fill_value
     return v
 
 
@@ -117,5 +122,5 @@ def thin_near_table(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, band
     return out
 
 
-__all__ = ["view_coverage", "pressure_weight", "push_to_empty", "fill_under_overhangs",
+__all__ = ["view_coverage", "pressure_weight", "push_to_empty", "under_overhangs", "fill_under_overhangs",
            "thin_near_table"]
