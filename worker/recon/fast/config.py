@@ -42,8 +42,10 @@ class FastFieldConfig:
     capture's scene record, or a table (named by the capture or detected in a measured one), takes precedence;
     None: no floor."""
     fill_under_overhangs: bool = True
-    """Scenes on a table only: the mesh fills the hidden space between the object's underside and the table
-    (`empty_space.fill_under_overhangs`)."""
+    """Scenes on a table only: the fit (every `band_refresh_steps`, with the cavities) and the mesh fill the hidden
+    space between the object's underside and the table (`empty_space.under_overhangs`). Filled in the mesh alone,
+    the real pyramid's fit became a hollow shell and its mesh kept shafts under the shell's pinholes (5.27 mm against
+    4.37 mm in the 300 s benchmark, benchmarks/RESULTS.md)."""
     thin_sheet_voxels: int = 2
     """Scenes on a table only, on the refined grid: every `band_refresh_steps`, solid sheets thinner than about twice
     this many voxels less than `thin_sheet_band_m` above the table are emptied (`empty_space.thin_near_table`);

@@ -11,7 +11,8 @@ completeness 4.6 mm).
 So, with a table, every step pushes the surface inward on the surface nodes that few views look at (`coverage`
 below `full_coverage`), by a fraction of the data gradient's rms: the data term holds a surface it sees, and what it
 cannot see melts away. Nodes that most views look at get no push (their surface is the data's to place), which also
-keeps the bias from digging into the object's unseen interior; pockets the solid closes are filled (`mesh.cavities`).
+keeps the bias from digging into the object's unseen interior; pockets the solid closes are filled (`mesh.cavities`),
+and so is the space under the solid (`under_overhangs`), which no view from above sees into.
 
 What the push leaves of the skirt are thin curtains standing on the table: views from above see a vertical sheet edge
 on, and within a pulse width of the table no histogram tells it from the table. Every few steps, sheets thinner than
