@@ -105,15 +105,21 @@ def short_write(path, array):
     raise OSError(f"{array.nbytes} requested and 3040 written")
 
 
-def test_a_short_write_is_a_full_disk_that_names_the_file(tmp_path, monkeypatch):
+def append_to_a_full_disk(tmp_path, monkeypatch) -> tuple[CaptureWriter, OSError]:
+    """A writer whose first append meets a full disk (`short_write`), and the error that append raised."""
     sensor = sensor_preset("tmf8820")
     w = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=1)
     monkeypatch.setattr(cw, "save_npy_durable", short_write)
     with pytest.raises(OSError) as info:
         w.append(measurement(0, sensor))
-    assert info.value.errno == errno.ENOSPC
-    assert info.value.filename == str(tmp_path / "scan" / ".tmp-chunk-000000" / "hists.npy")
-    assert "requested and" in str(info.value.__cause__), "the original error stays attached"
+    return w, info.value
+
+
+def test_a_short_write_is_a_full_disk_that_names_the_file(tmp_path, monkeypatch):
+    _, error = append_to_a_full_disk(tmp_path, monkeypatch)
+    assert error.errno == errno.ENOSPC
+    assert error.filename == str(tmp_path / "scan" / ".tmp-chunk-000000" / "hists.npy")
+    assert "requested and" in str(error.__cause__), "the original error stays attached"
 
 
 def test_an_error_with_an_errno_but_no_filename_gains_the_path(tmp_path, monkeypatch):
@@ -130,15 +136,11 @@ def test_an_error_with_an_errno_but_no_filename_gains_the_path(tmp_path, monkeyp
 
 
 def test_abandon_marks_the_capture_aborted_and_frees_the_half_written_chunk(tmp_path, monkeypatch):
-    sensor = sensor_preset("tmf8820")
-    w = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=1)
-    monkeypatch.setattr(cw, "save_npy_durable", short_write)
-    with pytest.raises(OSError) as info:
-        w.append(measurement(0, sensor))
-    w.abandon("simulation", info.value)
+    w, error = append_to_a_full_disk(tmp_path, monkeypatch)
+    w.abandon("simulation", error)
     m = CaptureReader(tmp_path / "scan").manifest
     assert m["state"] == "aborted"
-    assert m["reason"] == f"simulation failed: {info.value.filename}: No space left on device"
+    assert m["reason"] == f"simulation failed: {error.filename}: No space left on device"
     assert not [p for p in (tmp_path / "scan").iterdir() if p.name.startswith(".tmp-")]
 
 
