@@ -37,7 +37,6 @@ import numpy as np
 
 MARKS_S = (30.0, 60.0, 180.0)
 GOAL_MM = 2.0
-CUT_ABOVE_TABLE_M = 0.005
 
 
 # ---- scenes ---------------------------------------------------------------------------------------------------------
@@ -57,48 +56,23 @@ def prepare_scene(path: Path, work: Path) -> Path:
 
 
 def ground_truth(capture: Path):
-    """(mesh, crop_z or None) from the capture's scene record; crop_z cuts away a table slab in the ground truth."""
+    """The capture's ground truth as a worker.ground_truth.GroundTruth (scored above a table slab it holds), or None
+    when its scene record names none."""
     from spadscan.protocol.capture_reader import CaptureReader
-    from spadscan.protocol.mesh_io import load_mesh_spec
+    from spadscan.worker.ground_truth import load_ground_truth
 
     scene = CaptureReader(capture).manifest.get("scene") or {}
     # A dataset import names its ground-truth file; `spadscan simulate builtin:NAME` names the built-in scene.
     gt = scene.get("ground_truth") or (f"builtin:{scene['builtin']}" if scene.get("builtin") else None)
-    if not gt:
-        return None, None
-    mesh = load_mesh_spec(gt)[0]
-    normals, areas = mesh.face_normals, mesh.area_faces
-    up = normals[:, 2] > 0.99
-    crop_z = None
-    if up.any():
-        # A table slab: one upward-facing level that holds a large share of the ground truth's whole area (its top;
-        # its bottom and sides hold most of the rest).
-        heights = np.round(mesh.triangles_center[up, 2], 4)
-        levels, inverse = np.unique(heights, return_inverse=True)
-        level_area = np.bincount(inverse, weights=areas[up])
-        if level_area.max() > 0.25 * areas.sum():
-            crop_z = float(levels[np.argmax(level_area)]) + CUT_ABOVE_TABLE_M
-            # The cut keeps whole triangles (by centroid): split the object's large faces first, so that the ground
-            # truth is cut at the same height as the finely tessellated reconstruction.
-            mesh = cut_above(cut_above(mesh, crop_z).subdivide_to_size(0.002, max_iter=12), crop_z)
-    return mesh, crop_z
+    return load_ground_truth(gt) if gt else None
 
 
-def cut_above(mesh, z: float):
-    from spadscan.worker.metrics import crop_to_box
-
-    big = 1e3
-    return crop_to_box(mesh, np.array([-big, -big, z]), np.array([big, big, big]))
-
-
-def chamfer_mm(mesh, gt, crop_z, n_points: int) -> float | None:
+def chamfer_mm(mesh, truth, n_points: int) -> float | None:
+    """Chamfer (mm) of `mesh` against a GroundTruth, or None where there is no surface to compare."""
     from spadscan.protocol.errors import SpadscanError
-    from spadscan.worker.metrics import mesh_metrics
 
     try:
-        if crop_z is not None:
-            mesh = cut_above(mesh, crop_z)
-        return float(mesh_metrics(mesh, gt, n_points=n_points).chamfer_mm)
+        return float(truth.metrics(mesh, n_points=n_points).chamfer_mm)
     except SpadscanError:
         return None
 
@@ -183,7 +157,7 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     if overrides:
         config = with_overrides(config, dict(parse_override(text) for text in overrides))
     dev = resolve_device(device)
-    gt, crop_z = ground_truth(capture)
+    truth = ground_truth(capture)
     meter = MethodPeak(dev)  # from here on: loading the ground truth is the benchmark's, not the method's
     load_start = time.perf_counter()
     scene = load_scene(capture, dev, torch.float32)
@@ -198,12 +172,12 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     points = config.metrics_points
 
     def evaluate():
-        if gt is None:
+        if truth is None:
             return {}
         meter.pause()
         try:
             mesh = model.extract_mesh(resolution)
-            return {"chamfer_mm": chamfer_mm(mesh, gt, crop_z, points)}
+            return {"chamfer_mm": chamfer_mm(mesh, truth, points)}
         except Exception as exc:  # no surface yet: the trace says so
             return {"chamfer_mm": None, "note": str(exc)}
         finally:
@@ -220,7 +194,7 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
             "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": steps,
             "train_s": train_s, "stopped_by": stopped_by, "overrides": list(overrides), "trace": trace,
             "final_chamfer_mm": final,
-            "crop_z_m": crop_z, "peak_rss_mb": peak_mb,
+            "crop_z_m": None if truth is None else truth.cut_above_z_m, "peak_rss_mb": peak_mb,
             "peak_excludes_scoring": meter.excludes_scoring,
             "peak_rss_with_scoring_mb": meter.peak_with_scoring_mb(),
             "summary": _jsonable(model.summary()),
@@ -261,14 +235,15 @@ def run_baseline(capture: Path, method: str, out: Path) -> dict:
     from spadscan.worker.baselines.run import run_baseline as run
     import trimesh
 
-    gt, crop_z = ground_truth(capture)
+    truth = ground_truth(capture)
     start = time.perf_counter()
     report = run(capture, out, method)
     seconds = time.perf_counter() - start
     mesh = trimesh.load(out / "mesh.ply")
-    c = chamfer_mm(mesh, gt, crop_z, 300_000) if gt is not None else None
+    c = chamfer_mm(mesh, truth, 300_000) if truth is not None else None
     return {"method": method, "kind": "baseline", "setup_s": 0.0, "trace": [{"wall_seconds": seconds,
-            "chamfer_mm": c}], "final_chamfer_mm": c, "crop_z_m": crop_z, "threshold": report.get("threshold"),
+            "chamfer_mm": c}], "final_chamfer_mm": c, "crop_z_m": None if truth is None else truth.cut_above_z_m,
+            "threshold": report.get("threshold"),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 

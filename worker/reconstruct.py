@@ -34,13 +34,6 @@ def resolve_device(device: str):
     return torch.device(device)
 
 
-def load_ground_truth(gt):
-    """A ground-truth mesh in metres from a file path or `builtin:NAME` (a built-in scene)."""
-    from spadscan.protocol.mesh_io import load_mesh_spec
-
-    return load_mesh_spec(str(gt))[0]
-
-
 def _check_run_args(budget_s, steps, seed) -> None:
     from spadscan.worker.recon.errors import ReconstructionError
 
@@ -70,6 +63,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     from spadscan.worker.recon.scene_data import load_scene
     from spadscan.worker.recon.trainer import train
 
+    from .ground_truth import load_ground_truth
     from .outputs import capture_state_note, export_mesh
     from .threads import check_threads
 
@@ -82,7 +76,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     if overrides:
         config = with_overrides(config, overrides)
     dev = resolve_device(device)
-    gt_mesh = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
+    truth = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
     out = Path(out)
     dtype = torch.float64 if config.dtype == "float64" else torch.float32
     scene = load_scene(Path(capture), dev, dtype)
@@ -96,8 +90,8 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     model = load_factory(config)(scene, config, dev, plan)
 
     evaluate = None
-    if gt_mesh is not None:
-        evaluate = lambda: _checkpoint_metrics(model, gt_mesh, config)  # noqa: E731
+    if truth is not None:
+        evaluate = lambda: _checkpoint_metrics(model, truth, config)  # noqa: E731
     result = train(model, plan, checkpoints=config.trace_checkpoints, evaluate=evaluate, progress=progress,
                    desc=f"reconstruct ({preset})", early_stop=config.early_stop)
 
@@ -110,19 +104,21 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
         report["capture_note"] = state_note
     from spadscan.worker.report import pictures
 
-    if gt_mesh is not None:
-        from spadscan.worker.metrics import mesh_metrics
-
+    if truth is not None:
         log(f"metrics against the ground truth ({config.metrics_points:,} points per mesh)")
-        metrics = mesh_metrics(mesh, gt_mesh, n_points=config.metrics_points, seed=int(seed))
-        report.update(metrics.to_dict())
-        vertex_err = pictures.vertex_normal_error_deg(mesh, gt_mesh)
+        if truth.note():
+            log(f"scoring {truth.note()}")
+            report["ground_truth_scored"] = truth.note()
+        report["ground_truth_cut_above_z_m"] = truth.cut_above_z_m
+        report.update(truth.metrics(mesh, n_points=config.metrics_points, seed=int(seed)).to_dict())
+        scored = truth.scored(mesh)
+        vertex_err = pictures.vertex_normal_error_deg(scored, truth.mesh)
         report["vertex_normal_error_deg"] = {"mean": float(vertex_err.mean()),
                                              "median": float(np.median(vertex_err))}
-        pictures.normals_png(mesh, vertex_err, out / "normals.png")
+        pictures.normals_png(scored, vertex_err, out / "normals.png")
         report["ground_truth"] = str(gt)
     log("pictures and report")
-    _pictures(out, mesh, gt_mesh, model, scene, result, preset)
+    _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, preset)
     report["files"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
     report["files"] = sorted(set(report["files"]) | {"report.json", "report.html"})
     report["wall_seconds"] = time.perf_counter() - wall0
@@ -135,13 +131,12 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     return report
 
 
-def _checkpoint_metrics(model, gt_mesh, config) -> dict:
-    """Chamfer of the current surface at a trace checkpoint (fewer points, coarser mesh than the final one)."""
-    from spadscan.worker.metrics import mesh_metrics
-
+def _checkpoint_metrics(model, truth, config) -> dict:
+    """Chamfer of the current surface against a GroundTruth at a trace checkpoint (fewer points, coarser mesh than
+    the final one)."""
     try:
         pred = model.extract_mesh(config.trace_mesh_resolution)
-        return {"chamfer_mm": mesh_metrics(pred, gt_mesh, n_points=config.trace_points).chamfer_mm}
+        return {"chamfer_mm": truth.metrics(pred, n_points=config.trace_points).chamfer_mm}
     except SpadscanError as exc:  # no surface yet, or a degenerate one: the trace says so, the run goes on
         return {"chamfer_mm": None, "note": str(exc)}
 

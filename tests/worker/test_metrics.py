@@ -166,16 +166,25 @@ def test_eval_table_and_builtin_scenes(capsys):
     assert 0 < chamfer < 3
 
 
-def test_eval_box_crops_both_meshes(tmp_path, capsys):
+def test_eval_scores_the_object_above_a_table_in_the_ground_truth_unless_told_otherwise(tmp_path, capsys):
     plate = trimesh.creation.box([2.0, 2.0, 0.02]).apply_translation([0, 0, -0.01])
     scene = trimesh.util.concatenate([plate, ball()])
     scene.export(tmp_path / "gt.ply")
     ball().export(tmp_path / "recon.ply")
-    args = ["eval", str(tmp_path / "recon.ply"), "--gt", str(tmp_path / "gt.ply"), "--json", "--points", str(N)]
+    args = ["eval", str(tmp_path / "recon.ply"), "--gt", str(tmp_path / "gt.ply"), "--points", str(N)]
     assert main(args) == 0
-    assert json.loads(capsys.readouterr().out)["completeness_mm"] > 100  # the table dominates
-    assert main(args + ["--box", "-0.2", "-0.2", "0.001", "0.2", "0.2", "0.3"]) == 0
-    assert json.loads(capsys.readouterr().out)["chamfer_mm"] < 1.5 * floor_mm(ball(), N)
+    out = capsys.readouterr().out
+    assert "scored" in out and "the object above z = 0.0050 m" in out and "table top + 5 mm" in out
+    chamfer = float(next(line for line in out.splitlines() if line.startswith("Chamfer")).split()[1])
+    assert chamfer < 1.5 * floor_mm(ball(), N)
+    assert main(args + ["--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["cut_above_z_m"] == pytest.approx(0.005)
+    assert main(args + ["--json", "--keep-table"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    assert whole["completeness_mm"] > 100 and whole["cut_above_z_m"] is None  # the table dominates
+    assert main(args + ["--json", "--box", "-0.2", "-0.2", "0.001", "0.2", "0.2", "0.3"]) == 0
+    boxed = json.loads(capsys.readouterr().out)
+    assert boxed["chamfer_mm"] < 1.5 * floor_mm(ball(), N) and boxed["cut_above_z_m"] is None
 
 
 @pytest.mark.parametrize("content,name", [(None, "missing.obj"), ("not a mesh\n", "bad.obj"), (b"", "empty.stl")])

@@ -307,6 +307,29 @@ def test_an_unfinished_capture_is_reconstructed_with_a_warning(capture_and_gt, t
     assert "already holds a result" in _error_lines(capsys)[0]
 
 
+@pytest.mark.slow
+def test_a_ground_truth_on_a_table_is_scored_above_it(capture_and_gt, tmp_path, capsys):
+    import trimesh
+
+    cap, gt = capture_and_gt
+    slab = trimesh.creation.box([2.0, 2.0, 0.05]).apply_translation([0, 0, -0.025])  # its top: z = 0
+    on_table = tmp_path / "on_table.ply"
+    trimesh.util.concatenate([trimesh.load(gt), slab]).export(on_table)
+    assert _recon(cap, tmp_path / "r", "--gt", str(on_table)) == 0
+    assert "scoring the object above z = 0.0050 m" in capsys.readouterr().err
+    assert main(["baseline", "space-carving", str(cap), "--out", str(tmp_path / "b"), "--resolution", "16",
+                 "--gt", str(on_table)]) == 0
+    for out in ("r", "b"):
+        report = json.loads((tmp_path / out / "report.json").read_text())
+        assert report["ground_truth_cut_above_z_m"] == pytest.approx(0.005)
+        assert "table top + 5 mm" in report["ground_truth_scored"]
+        assert report["completeness_mm"] < 100, "scored whole, the 2 m slab would put it over a metre"
+    assert "table top + 5 mm" in (tmp_path / "r" / "report.html").read_text()
+    assert _recon(cap, tmp_path / "w", "--gt", str(gt)) == 0
+    whole = json.loads((tmp_path / "w" / "report.json").read_text())
+    assert whole["ground_truth_cut_above_z_m"] is None and "ground_truth_scored" not in whole
+
+
 def test_a_failed_mesh_write_leaves_the_previous_file(tmp_path):
     path = tmp_path / "mesh.ply"
     export_mesh(trimesh.creation.box(), path)

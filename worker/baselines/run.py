@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 
 from spadscan.protocol.errors import CaptureError, ConfigError
 
@@ -57,11 +56,11 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     """Run `method` on the capture folder and write the results into `out`. Returns the report (also report.json).
 
     threshold: detection threshold (see THRESHOLD_UNITS); `calibrate_` searches it for the best Chamfer against `gt`
-    (a mesh path) instead, as the paper did. floor_z: height below which the scene is empty (None: no floor).
+    (a mesh path or builtin:NAME, scored above its table when it holds one: ground_truth.py) instead, as the paper
+    did. floor_z: height below which the scene is empty (None: no floor).
     """
     from spadscan.protocol.capture_reader import CaptureReader
-    from spadscan.protocol.mesh_io import load_mesh_spec
-
+    from ..ground_truth import load_ground_truth
     from ..outputs import capture_state_note, export_mesh
 
     if method not in METHODS:
@@ -78,14 +77,14 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     state_note = capture_state_note(capture, data.manifest["state"], len(data.hists))
     if state_note:
         log(f"warning: {state_note}")
-    gt_mesh = load_mesh_spec(str(gt))[0] if gt is not None else None
+    truth = load_ground_truth(gt) if gt is not None else None
     opts = dict(resolution=resolution, margin_m=margin_m, floor_z=floor_z, surface=surface, edge_deg=edge_deg)
     calibration = None
     if calibrate_:
         def progress(t, c):
             log(f"threshold {t:g}: " + ("no surface" if c is None else f"Chamfer {c:.2f} mm"))
 
-        calibration = calibrate(lambda t: _build(method, data, t, **opts)[0], gt_mesh, progress=progress)
+        calibration = calibrate(lambda t: _build(method, data, t, **opts)[0], truth, progress=progress)
         threshold = calibration.threshold
     threshold = DEFAULT_THRESHOLD if threshold is None else float(threshold)
     mesh, extras = _build(method, data, threshold, **opts)
@@ -114,11 +113,13 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))},
         **extras,
     }
-    if gt_mesh is not None:
-        from spadscan.worker.metrics import mesh_metrics
-
+    if truth is not None:
         report["gt"] = str(gt)
-        report.update(mesh_metrics(mesh, gt_mesh).to_dict())
+        report["ground_truth_cut_above_z_m"] = truth.cut_above_z_m
+        if truth.note():
+            log(f"scoring {truth.note()}")
+            report["ground_truth_scored"] = truth.note()
+        report.update(truth.metrics(mesh).to_dict())
     from ..report.report_json import json_safe, write_report
 
     write_report(out, report)

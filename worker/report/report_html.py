@@ -31,6 +31,7 @@ NUMBERS = (
     ("fscore_5mm", "F-score at 5 mm", None), ("precision", "precision", None), ("recall", "recall", None),
     ("normal_error_deg", "normal error", "deg"), ("n_points", "metric samples per mesh", None),
     ("capture", "capture", None), ("ground_truth", "ground truth", None), ("gt", "ground truth", None),
+    ("ground_truth_scored", "scored", None),
 )
 """(report key, label, unit) of the summary table's rows, in order; keys missing from the report are left out."""
 

@@ -1,0 +1,65 @@
+"""Ground truth that includes the table the object stands on: the table is found, and the object above it scored."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from spadscan.worker.ground_truth import (CUT_ABOVE_TABLE_M, GroundTruth, load_ground_truth, object_on_table,
+                                          table_top_z)
+
+TOP = -0.156  # LCSPCData's pyramid table: a 2 m slab whose top is at this height (metres)
+
+
+def pyramid(height=0.2, half=0.08):
+    """A square pyramid standing on z = TOP."""
+    base = [[-half, -half, TOP], [half, -half, TOP], [half, half, TOP], [-half, half, TOP]]
+    mesh = trimesh.Trimesh(base + [[0, 0, TOP + height]], [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4], [0, 2, 1],
+                                                           [0, 3, 2]])
+    mesh.fix_normals()
+    return mesh
+
+
+def on_slab(obj):
+    slab = trimesh.creation.box([2.0, 2.0, 0.1]).apply_translation([0, 0, TOP - 0.05])
+    return trimesh.util.concatenate([slab, obj])
+
+
+def test_the_table_top_is_the_upward_level_that_holds_most_of_the_area():
+    assert table_top_z(on_slab(pyramid())) == pytest.approx(TOP)
+    assert table_top_z(pyramid()) is None  # its base faces down
+    assert table_top_z(trimesh.creation.box([0.1, 0.1, 0.1])) is None  # a top face holds 1/6 of a box
+    assert table_top_z(trimesh.creation.icosphere()) is None
+
+
+def test_the_object_above_the_table_is_what_is_scored():
+    truth = object_on_table(on_slab(pyramid()))
+    assert truth.cut_above_z_m == pytest.approx(TOP + CUT_ABOVE_TABLE_M)
+    # Whole triangles are kept by their centroids, after a split to 2 mm.
+    assert truth.mesh.bounds[0, 2] >= truth.cut_above_z_m - 0.002 and truth.mesh.area < pyramid().area
+    # A reconstruction (finely tessellated, as marching cubes makes them) of the pyramid, with a skirt on the table
+    # under the cut: it scores as the pyramid alone, at the sampling floor.
+    fine = pyramid().subdivide_to_size(0.002, max_iter=12)
+    skirt = trimesh.creation.box([0.3, 0.3, 0.002]).apply_translation([0, 0, TOP + 0.001])
+    m = truth.metrics(trimesh.util.concatenate([fine, skirt]), n_points=20_000)
+    floor_mm = 0.5 * np.sqrt(truth.mesh.area / 20_000) * 1e3  # two samplings of one surface lie this far apart
+    assert m.chamfer_mm < 1.2 * floor_mm, m
+    whole = GroundTruth(on_slab(pyramid())).metrics(trimesh.util.concatenate([fine, skirt]), n_points=20_000)
+    assert whole.completeness_mm > 100  # scored whole, the slab swamps it
+    # The same pyramid 4 mm off in x is scored as such.
+    assert truth.metrics(fine.copy().apply_translation([0.004, 0, 0]), n_points=20_000).chamfer_mm > m.chamfer_mm + 1
+    assert "table top + 5 mm" in truth.note() and GroundTruth(pyramid()).note() is None
+
+
+def test_a_ground_truth_without_a_table_is_scored_whole(tmp_path):
+    ball = trimesh.creation.icosphere(radius=0.05).apply_translation([0, 0, 0.05])
+    ball.export(tmp_path / "ball.ply")
+    truth = load_ground_truth(tmp_path / "ball.ply")
+    assert truth.cut_above_z_m is None and len(truth.mesh.faces) == len(ball.faces)
+    assert truth.scored(ball) is ball
+    on_slab(pyramid()).export(tmp_path / "scene.ply")
+    assert load_ground_truth(tmp_path / "scene.ply").cut_above_z_m == pytest.approx(TOP + CUT_ABOVE_TABLE_M)
+    kept = load_ground_truth(tmp_path / "scene.ply", keep_table=True)
+    assert kept.cut_above_z_m is None and np.isclose(kept.mesh.area, on_slab(pyramid()).area)
+    assert load_ground_truth("builtin:cup").cut_above_z_m is None

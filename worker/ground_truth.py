@@ -1,0 +1,95 @@
+"""Ground truth for the metrics, scored on the object alone when the mesh includes the table it stands on.
+
+A measured scene's ground truth may hold the table as a slab (LCSPCData's pyramid2.stl: a 2 m slab whose top is at
+z = -0.156 m). A reconstruction holds no table, so scored whole the slab's area swamps the object's: a 4.4 mm mesh of
+the real pyramid scored 380 mm (completeness 750 mm). Such a ground truth is scored on the object: both meshes are
+cut `CUT_ABOVE_TABLE_M` above the slab's top (as `benchmarks/error_vs_time.py` has always scored the pyramid).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+CUT_ABOVE_TABLE_M = 0.005
+"""How far above the table top (metres) both meshes are cut: a reconstruction's base meets the table over a voxel or
+two, where no histogram tells object from table."""
+
+TABLE_AREA_SHARE = 0.25
+"""A table slab is one level of upward-facing triangles holding more than this share of the mesh's whole area (its
+top; its bottom and sides hold most of the rest). An object's own flat tops hold far less of it."""
+
+_SPLIT_M = 0.002
+"""The ground truth's faces are split to this size (metres) before the cut, which keeps whole triangles: so that it
+is cut at the same height as a finely tessellated reconstruction."""
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """The mesh a reconstruction is compared with (trimesh.Trimesh, metres) and the height above which both are
+    scored (None: all of both)."""
+
+    mesh: object
+    cut_above_z_m: float | None = None
+
+    def scored(self, pred):
+        """The part of a reconstruction `pred` that is compared: what lies above the cut."""
+        return pred if self.cut_above_z_m is None else cut_above(pred, self.cut_above_z_m)
+
+    def metrics(self, pred, **options):
+        """`metrics.mesh_metrics` of the scored part of `pred` against the ground truth (options: n_points, seed,
+        fscore_threshold_m)."""
+        from spadscan.worker.metrics import mesh_metrics
+
+        return mesh_metrics(self.scored(pred), self.mesh, **options)
+
+    def note(self) -> str | None:
+        """One line for reports and the console when the table is left out, else None."""
+        if self.cut_above_z_m is None:
+            return None
+        return (f"the object above z = {self.cut_above_z_m:.4f} m (the ground truth's table top + "
+                f"{CUT_ABOVE_TABLE_M * 1e3:g} mm; a reconstruction holds no table)")
+
+
+def table_top_z(mesh) -> float | None:
+    """Height (metres) of a table slab's top in `mesh`, or None when it has none (see TABLE_AREA_SHARE)."""
+    normals, areas = mesh.face_normals, mesh.area_faces
+    up = normals[:, 2] > 0.99
+    if not up.any():
+        return None
+    heights = np.round(mesh.triangles_center[up, 2], 4)  # one level to 0.1 mm
+    levels, inverse = np.unique(heights, return_inverse=True)
+    level_area = np.bincount(inverse, weights=areas[up])
+    if level_area.max() <= TABLE_AREA_SHARE * areas.sum():
+        return None
+    return float(levels[np.argmax(level_area)])
+
+
+def cut_above(mesh, z: float):
+    """The faces of `mesh` whose centroids lie above height `z` (metres)."""
+    from spadscan.worker.metrics import crop_to_box
+
+    big = 1e6
+    return crop_to_box(mesh, np.array([-big, -big, z]), np.array([big, big, big]))
+
+
+def object_on_table(mesh) -> GroundTruth:
+    """`mesh` as ground truth: cut `CUT_ABOVE_TABLE_M` above its table slab's top when it holds one, else whole."""
+    top = table_top_z(mesh)
+    if top is None:
+        return GroundTruth(mesh)
+    z = top + CUT_ABOVE_TABLE_M
+    return GroundTruth(cut_above(cut_above(mesh, z).subdivide_to_size(_SPLIT_M, max_iter=12), z), z)
+
+
+def load_ground_truth(spec, *, units: str = "auto", keep_table: bool = False) -> GroundTruth:
+    """Ground truth from a mesh file or `builtin:NAME` (see protocol.mesh_io.load_mesh_spec); scored above its table
+    unless `keep_table`."""
+    from spadscan.protocol.mesh_io import load_mesh_spec
+
+    mesh = load_mesh_spec(str(spec), units=units)[0]
+    return GroundTruth(mesh) if keep_table else object_on_table(mesh)
+
+
+__all__ = ["CUT_ABOVE_TABLE_M", "GroundTruth", "table_top_z", "cut_above", "object_on_table", "load_ground_truth"]
