@@ -44,6 +44,14 @@ class GroundTruth:
 
         return mesh_metrics(self.scored(pred), self.mesh, **options)
 
+    def report_fields(self) -> dict:
+        """What a report.json records of how it was scored: `ground_truth_cut_above_z_m` (None: whole), and with a
+        cut, `ground_truth_scored` (the note)."""
+        fields = {"ground_truth_cut_above_z_m": self.cut_above_z_m}
+        if self.note():
+            fields["ground_truth_scored"] = self.note()
+        return fields
+
     def note(self) -> str | None:
         """One line for reports and the console when the table is left out, else None."""
         if self.cut_above_z_m is None:

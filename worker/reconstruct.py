@@ -106,12 +106,13 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
 
     if truth is not None:
         log(f"metrics against the ground truth ({config.metrics_points:,} points per mesh)")
+        from spadscan.worker.metrics import mesh_metrics
+
         if truth.note():
             log(f"scoring {truth.note()}")
-            report["ground_truth_scored"] = truth.note()
-        report["ground_truth_cut_above_z_m"] = truth.cut_above_z_m
-        report.update(truth.metrics(mesh, n_points=config.metrics_points, seed=int(seed)).to_dict())
-        scored = truth.scored(mesh)
+        report.update(truth.report_fields())
+        scored = truth.scored(mesh)  # cut once for the metrics and the normals picture
+        report.update(mesh_metrics(scored, truth.mesh, n_points=config.metrics_points, seed=int(seed)).to_dict())
         vertex_err = pictures.vertex_normal_error_deg(scored, truth.mesh)
         report["vertex_normal_error_deg"] = {"mean": float(vertex_err.mean()),
                                              "median": float(np.median(vertex_err))}

@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 from typing import Callable
 
-
 from spadscan.protocol.errors import CaptureError, ConfigError
 
 from .common import CALIBRATION_POINTS, calibrate
@@ -60,6 +59,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     did. floor_z: height below which the scene is empty (None: no floor).
     """
     from spadscan.protocol.capture_reader import CaptureReader
+
     from ..ground_truth import load_ground_truth
     from ..outputs import capture_state_note, export_mesh
 
@@ -115,10 +115,9 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     }
     if truth is not None:
         report["gt"] = str(gt)
-        report["ground_truth_cut_above_z_m"] = truth.cut_above_z_m
         if truth.note():
             log(f"scoring {truth.note()}")
-            report["ground_truth_scored"] = truth.note()
+        report.update(truth.report_fields())
         report.update(truth.metrics(mesh).to_dict())
     from ..report.report_json import json_safe, write_report
 
