@@ -34,8 +34,16 @@ class GroundTruth:
     cut_above_z_m: float | None = None
 
     def scored(self, pred):
-        """The part of a reconstruction `pred` that is compared: what lies above the cut."""
-        return pred if self.cut_above_z_m is None else cut_above(pred, self.cut_above_z_m)
+        """The part of a reconstruction `pred` that is compared: what lies above the cut. A MeshError names the cut
+        when nothing does."""
+        if self.cut_above_z_m is None:
+            return pred
+        if not np.any(pred.triangles_center[:, 2] > self.cut_above_z_m):
+            from spadscan.protocol.errors import MeshError
+
+            raise MeshError(f"the reconstruction has nothing above z = {self.cut_above_z_m:.4f} m, where the ground "
+                            f"truth's object is scored (its table top + {CUT_ABOVE_TABLE_M * 1e3:g} mm)")
+        return cut_above(pred, self.cut_above_z_m)
 
     def metrics(self, pred, **options):
         """`metrics.mesh_metrics` of the scored part of `pred` against the ground truth (options: n_points, seed,

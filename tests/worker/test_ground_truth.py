@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from spadscan.protocol.errors import MeshError
 from spadscan.worker.ground_truth import (CUT_ABOVE_TABLE_M, GroundTruth, load_ground_truth, object_on_table,
                                           table_top_z)
 
@@ -63,3 +64,11 @@ def test_a_ground_truth_without_a_table_is_scored_whole(tmp_path):
     kept = load_ground_truth(tmp_path / "scene.ply", keep_table=True)
     assert kept.cut_above_z_m is None and np.isclose(kept.mesh.area, on_slab(pyramid()).area)
     assert load_ground_truth("builtin:cup").cut_above_z_m is None
+
+
+def test_a_reconstruction_with_nothing_above_the_cut_is_a_one_line_error_that_names_it():
+    truth = object_on_table(on_slab(pyramid()))
+    flat = trimesh.creation.box([0.2, 0.2, 0.004]).apply_translation([0, 0, TOP + 0.002])
+    with pytest.raises(MeshError, match=r"nothing above z = -0\.1510 m.*table top \+ 5 mm") as info:
+        truth.metrics(flat, n_points=1000)
+    assert "\n" not in str(info.value)
