@@ -9,6 +9,7 @@ cut `CUT_ABOVE_TABLE_M` above the slab's top (as `benchmarks/error_vs_time.py` h
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -108,4 +109,60 @@ def load_ground_truth(spec, *, units: str = "auto", keep_table: bool = False) ->
     return GroundTruth(mesh) if keep_table else object_on_table(mesh)
 
 
-__all__ = ["CUT_ABOVE_TABLE_M", "GroundTruth", "table_top_z", "cut_above", "object_on_table", "load_ground_truth"]
+def named_ground_truth(manifest: dict) -> tuple[str | None, str | None]:
+    """(the ground truth a capture's manifest names, as a mesh path or `builtin:NAME` that loads, or None; why there
+    is none although the manifest names one, or None).
+
+    The scene record may name a mesh file (`ground_truth`, written by import-lcspc; `mesh`, by simulate) or a built-in
+    scene (`builtin`); the first that loads wins. Ground truth only adds metrics, so one that does not load is a
+    reason to say, never an error: each is loaded here, before hours of training."""
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.protocol.mesh_io import BUILTIN_PREFIX, load_mesh_spec
+
+    scene = manifest.get("scene") if isinstance(manifest, dict) else None
+    if not isinstance(scene, dict):
+        return None, None
+    named = [(key, scene[key]) for key in ("ground_truth", "mesh", "builtin") if isinstance(scene.get(key), str)]
+    why = None
+    for key, value in named:
+        spec = BUILTIN_PREFIX + value if key == "builtin" else value
+        if key != "builtin" and not Path(value).is_file():
+            why = why or f"{value}: no such ground-truth mesh"
+            continue
+        try:
+            load_mesh_spec(spec)
+        except SpadscanError as exc:
+            why = why or (f"built-in scene {value!r}: {exc}" if key == "builtin" else str(exc))
+            continue
+        return spec, None
+    return None, None if why is None else f"{why}; no metrics"
+
+
+def capture_ground_truth(capture) -> tuple[str | None, str | None]:
+    """`named_ground_truth` of the capture folder `capture`; (None, None) when its manifest cannot be read (reading
+    the capture says why)."""
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.protocol.errors import SpadscanError
+
+    try:
+        manifest = CaptureReader(capture).manifest
+    except (OSError, SpadscanError):
+        return None, None
+    return named_ground_truth(manifest)
+
+
+def ground_truth_for_run(capture, gt, no_gt: bool, log) -> str | None:
+    """The ground truth a command scores the capture's reconstruction against: `gt` when given, none with `no_gt`,
+    else the one the capture names (`capture_ground_truth`), said through `log` (a line each) with how to skip it."""
+    if gt is not None or no_gt:
+        return gt
+    spec, why = capture_ground_truth(capture)
+    if spec is not None:
+        log(f"ground truth: {spec}, named by the capture (--gt MESH for another, --no-gt for none)")
+    elif why is not None:
+        log(f"ground truth: {why}")
+    return spec
+
+
+__all__ = ["CUT_ABOVE_TABLE_M", "GroundTruth", "table_top_z", "cut_above", "object_on_table", "load_ground_truth",
+           "named_ground_truth", "capture_ground_truth", "ground_truth_for_run"]

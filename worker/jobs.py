@@ -115,52 +115,26 @@ def check_capture(scan: Path) -> dict:
 
 
 def ground_truth(manifest: dict, out: Path) -> tuple[Path | None, str | None]:
-    """(a usable ground-truth mesh for the capture, or None; why there is none although the manifest names one).
+    """(a usable ground-truth mesh file for the capture, or None; why there is none although the manifest names one).
 
-    The manifest's scene record may name a mesh file (`ground_truth`, written by import-lcspc; `mesh`, by simulate)
-    or a built-in scene (`builtin`, exported into `out`). Ground truth only adds metrics, so a missing or unreadable
-    one is a note in the job's report, never a failed job: each mesh is loaded here, before hours of training."""
-    scene = manifest.get("scene") or {}
-    if not isinstance(scene, dict):
-        return None, None
-    note = None
-    for key in ("ground_truth", "mesh"):
-        mesh = scene.get(key)
-        if isinstance(mesh, str):
-            why = _unusable_mesh(Path(mesh))
-            if why is None:
-                return Path(mesh), None
-            note = note or f"{why}; no metrics"
-    if isinstance(scene.get("builtin"), str):
-        path, why = _export_builtin(scene["builtin"], out / "ground_truth.ply")
-        if path is not None:
-            return path, None
-        note = note or f"{why}; no metrics"
-    return None, note
+    See `ground_truth.named_ground_truth`; a built-in scene is exported into `out` (ground_truth.ply), so that the
+    job's results hold what they were scored against."""
+    from spadscan.protocol.mesh_io import BUILTIN_PREFIX
 
+    from .ground_truth import named_ground_truth
 
-def _unusable_mesh(path: Path) -> str | None:
-    """Why the mesh file `path` cannot serve as ground truth (no such file, no triangles, ...), or None."""
-    from spadscan.protocol.mesh_io import load_mesh_spec
-
-    if not path.is_file():
-        return f"{path}: no such ground-truth mesh"
-    try:
-        load_mesh_spec(str(path))
-    except SpadscanError as exc:
-        return str(exc)
-    return None
-
-
-def _export_builtin(name: str, path: Path) -> tuple[Path | None, str | None]:
-    """(`path`, None) once the built-in scene `name` is written there, else (None, why)."""
+    spec, note = named_ground_truth(manifest)
+    if spec is None or not spec.startswith(BUILTIN_PREFIX):
+        return (None if spec is None else Path(spec)), note
+    name = spec[len(BUILTIN_PREFIX):]
     try:
         from spadscan.protocol.scenes import builtin_scene
 
+        path = out / "ground_truth.ply"
         builtin_scene(name).export(path)
         return path, None
-    except (ImportError, SpadscanError) as exc:
-        return None, f"built-in scene {name!r}: {exc}"
+    except (ImportError, OSError, SpadscanError) as exc:
+        return None, f"built-in scene {name!r}: {exc}; no metrics"
 
 
 def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -> dict:

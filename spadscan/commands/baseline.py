@@ -7,10 +7,12 @@ space-carving  voxels that a zone saw as empty (in its field of view, in front o
 
 The detection threshold T is a z-score: a bin holds a return when the pulse-filtered, background-free signal
 exceeds T standard deviations of the background noise (pile-up undone first). --calibrate tries thresholds from 3 to
-300 and keeps the one with the lowest Chamfer distance to --gt, as the paper did (and says so in the report).
-Writes into DIR (a new folder, or one without a result unless --overwrite): report.html (the page to open first),
-mesh.ply, report.json (method, threshold, calibrated, seconds, and with --gt the metrics: chamfer_mm, accuracy_mm,
-completeness_mm, fscore_5mm, normal_error_deg) and preview.png (the mesh, and the ground truth beside it).
+300 and keeps the one with the lowest Chamfer distance to the ground truth, as the paper did (and says so in the
+report). Without --gt, the ground truth that the capture names is used (import-lcspc and simulate record theirs);
+--no-gt skips it. Writes into DIR (a new folder, or one without a result unless --overwrite): report.html (the page to
+open first), mesh.ply, report.json (method, threshold, calibrated, seconds, and with a ground truth the metrics:
+chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg) and preview.png (the mesh, and the ground
+truth beside it).
 
 Examples:
   spadscan baseline space-carving captures/bunny --out out/bunny-carve --gt bunny.obj
@@ -26,9 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("method", choices=("reprojection", "space-carving"), help="which baseline")
     parser.add_argument("capture", metavar="CAPTURE", help="capture folder (holds scan.json)")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for mesh.ply and report.json")
-    parser.add_argument("--gt", default=None, metavar="MESH",
-                        help="ground-truth mesh (metres; STL in mm detected) or builtin:NAME: adds metrics to the "
-                             "report")
+    truth = parser.add_mutually_exclusive_group()
+    truth.add_argument("--gt", default=None, metavar="MESH",
+                       help="ground-truth mesh (metres; STL in mm detected) or builtin:NAME: adds metrics to the "
+                            "report (default: the one the capture names, as import-lcspc and simulate record it)")
+    truth.add_argument("--no-gt", action="store_true",
+                       help="no metrics, even when the capture names a ground truth")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out (without it, a folder that holds mesh.ply or "
                              "report.json is refused)")
@@ -36,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--threshold", type=float, default=None, metavar="T",
                        help="detection threshold in noise standard deviations (default: 5)")
     group.add_argument("--calibrate", action="store_true",
-                       help="search the threshold for the best Chamfer against --gt (as the paper did)")
+                       help="search the threshold for the best Chamfer against the ground truth (as the paper did)")
     parser.add_argument("--resolution", type=int, default=128, metavar="R",
                         help="space carving: voxels along each side of the grid (default: 128)")
     parser.add_argument("--margin-mm", type=float, default=None, metavar="MM",
@@ -57,6 +62,7 @@ def run(args) -> int:
 
     from spadscan.protocol.errors import ConfigError
     from spadscan.worker.baselines.run import run_baseline
+    from spadscan.worker.ground_truth import ground_truth_for_run
     from spadscan.worker.outputs import check_out
 
     if not 8 <= args.resolution <= 512:
@@ -77,11 +83,12 @@ def run(args) -> int:
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)
 
+    gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     report = run_baseline(
-        args.capture, args.out, args.method, gt=args.gt, threshold=args.threshold, calibrate_=args.calibrate,
+        args.capture, args.out, args.method, gt=gt, threshold=args.threshold, calibrate_=args.calibrate,
         resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
         floor_z=None if args.no_floor else args.floor_z, surface=args.surface, edge_deg=args.edge_deg, log=log)
-    write_pictures_and_page(report, args.out, args.gt)
+    write_pictures_and_page(report, args.out, gt)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
     line += f", {report['seconds']:.1f} s"
     if "chamfer_mm" in report:

@@ -1,13 +1,14 @@
 """Reconstruct one capture into a mesh and a report, by differentiable rendering of its histograms.
 
 Writes into --out (a new folder, or one without a result unless --overwrite): report.html (the page to open first),
-mesh.ply (per-vertex normals from the SDF gradient), report.json (preset, device, steps,
-training seconds, the model terms used, final loss, the resolved config, and with --gt: chamfer_mm, accuracy_mm,
-completeness_mm, fscore_5mm, normal_error_deg plus a trace of error against training time), preview.png,
-error_vs_time.png, fit.png (measured against rendered histograms) and, with --gt, normals.png (per-vertex normal
-error). The run stops at --steps or --budget-s, whichever comes first; with neither, the preset's default. The
-`fast` preset also stops early once its data term has stopped improving (report.json: stopped_by 'converged'); turn
-that off with --set early_stop=false.
+mesh.ply (per-vertex normals from the SDF gradient), report.json (preset, device, steps, training seconds, the model
+terms used, final loss, the resolved config, and with a ground truth: chamfer_mm, accuracy_mm, completeness_mm,
+fscore_5mm, normal_error_deg plus a trace of error against training time), preview.png, error_vs_time.png, fit.png
+(measured against rendered histograms) and, with a ground truth, normals.png (per-vertex normal error). Without --gt,
+the ground truth that the capture names is used (import-lcspc and simulate record theirs); --no-gt skips the metrics.
+The run stops at --steps or --budget-s, whichever comes first; with neither, the preset's default. The `fast` preset
+also stops early once its data term has stopped improving (report.json: stopped_by 'converged'); turn that off with
+--set early_stop=false.
 
 Presets: `fast` (default) is an SDF grid that reaches good meshes in minutes on a CPU; `paper` is the published
 method (an MLP SDF, 300K steps nominal: hours on a GPU).
@@ -28,11 +29,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="fast", choices=("paper", "fast"),
                         help="reconstruction method (default: fast)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
-                        help="stop after S seconds of wall time, checkpoint evaluation with --gt included (the "
+                        help="stop after S seconds of wall time, checkpoint scoring included (the "
                              "final mesh, metrics and pictures come after)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N optimisation steps")
-    parser.add_argument("--gt", default=None, metavar="MESH",
-                        help="ground-truth mesh (metres; STL in mm detected) or builtin:NAME, for the metrics")
+    truth = parser.add_mutually_exclusive_group()
+    truth.add_argument("--gt", default=None, metavar="MESH",
+                       help="ground-truth mesh (metres; STL in mm detected) or builtin:NAME, for the metrics "
+                            "(default: the one the capture names, as import-lcspc and simulate record it)")
+    truth.add_argument("--no-gt", action="store_true",
+                       help="no metrics, even when the capture names a ground truth")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                         help="where to compute (default: auto = CUDA when available)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
@@ -53,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
     from pathlib import Path
 
+    from spadscan.worker.ground_truth import ground_truth_for_run
     from spadscan.worker.outputs import check_out
     from spadscan.worker.recon.config import parse_override
     from spadscan.worker.reconstruct import reconstruct_capture
@@ -63,8 +69,9 @@ def run(args: argparse.Namespace) -> int:
     def log(line: str) -> None:
         print(f"spadscan reconstruct: {line}", file=sys.stderr, flush=True)
 
+    gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     report = reconstruct_capture(Path(args.capture), out, preset=args.preset, budget_s=args.budget_s,
-                                 steps=args.steps, gt=args.gt, device=args.device, seed=args.seed,
+                                 steps=args.steps, gt=gt, device=args.device, seed=args.seed,
                                  progress=not args.no_progress, overrides=overrides or None, threads=args.threads,
                                  log=log)
     line = (f"{report['preset']}: {report['steps']} steps in {report['seconds']:.1f} s on {report['device']}, "

@@ -72,3 +72,20 @@ def test_a_reconstruction_with_nothing_above_the_cut_is_a_one_line_error_that_na
     with pytest.raises(MeshError, match=r"nothing above z = -0\.1510 m.*table top \+ 5 mm") as info:
         truth.metrics(flat, n_points=1000)
     assert "\n" not in str(info.value)
+
+
+def test_the_ground_truth_a_manifest_names(tmp_path):
+    from spadscan.worker.ground_truth import capture_ground_truth, named_ground_truth
+
+    mesh = tmp_path / "gt.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert named_ground_truth({"scene": {"ground_truth": str(mesh)}}) == (str(mesh), None)
+    assert named_ground_truth({"scene": {"builtin": "sphere"}}) == ("builtin:sphere", None)
+    # The first one that loads wins; the reason the first failed is kept only when none loads.
+    assert named_ground_truth({"scene": {"ground_truth": str(tmp_path / "x.ply"), "builtin": "cup"}}) == (
+        "builtin:cup", None)
+    spec, why = named_ground_truth({"scene": {"mesh": str(tmp_path / "x.ply"), "builtin": "nope"}})
+    assert spec is None and why == f"{tmp_path / 'x.ply'}: no such ground-truth mesh; no metrics"
+    for manifest in ({}, {"scene": None}, {"scene": {"mesh": 3}}, []):
+        assert named_ground_truth(manifest) == (None, None)
+    assert capture_ground_truth(tmp_path / "not-a-capture") == (None, None)

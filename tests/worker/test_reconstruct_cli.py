@@ -355,3 +355,52 @@ def test_check_out(tmp_path):
     (tmp_path / "r" / "notes.txt").write_text("an unrelated file does not make a result")
     (tmp_path / "r" / "report.json").unlink()
     assert check_out(tmp_path / "r", False) == tmp_path / "r"
+
+
+def _naming(cap, dest, scene: dict):
+    """A copy of capture `cap` at `dest` whose manifest's scene record holds `scene` (as simulate and import-lcspc
+    write it)."""
+    import shutil
+
+    shutil.copytree(cap, dest)
+    manifest = json.loads((dest / "scan.json").read_text())
+    manifest["scene"] = {**manifest.get("scene", {}), **scene}
+    (dest / "scan.json").write_text(json.dumps(manifest))
+    return dest
+
+
+def test_the_ground_truth_a_capture_names_is_used_unless_no_gt(capture_and_gt, tmp_path, capsys):
+    cap, gt = capture_and_gt
+    named = _naming(cap, tmp_path / "named", {"mesh": str(gt)})
+    assert _recon(named, tmp_path / "r") == 0
+    assert f"ground truth: {gt}, named by the capture" in capsys.readouterr().err
+    report = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert np.isfinite(report["chamfer_mm"]) and report["ground_truth"] == str(gt)
+    assert (tmp_path / "r" / "normals.png").exists()
+    assert _recon(named, tmp_path / "n", "--no-gt") == 0
+    assert "ground truth" not in capsys.readouterr().err
+    report = json.loads((tmp_path / "n" / "report.json").read_text())
+    assert "chamfer_mm" not in report and not (tmp_path / "n" / "normals.png").exists()
+    assert main(["baseline", "space-carving", str(named), "--out", str(tmp_path / "b"), "--resolution", "16"]) == 0
+    assert "named by the capture" in capsys.readouterr().err
+    assert "chamfer_mm" in json.loads((tmp_path / "b" / "report.json").read_text())
+
+
+def test_a_named_ground_truth_that_cannot_be_used_is_said_and_the_run_goes_on(capture_and_gt, tmp_path, capsys):
+    cap, _ = capture_and_gt
+    gone = tmp_path / "gone.ply"
+    named = _naming(cap, tmp_path / "named", {"ground_truth": str(gone)})
+    assert _recon(named, tmp_path / "r") == 0
+    assert f"ground truth: {gone}: no such ground-truth mesh; no metrics" in capsys.readouterr().err
+    assert "chamfer_mm" not in json.loads((tmp_path / "r" / "report.json").read_text())
+    # --calibrate needs a ground truth; the one the capture names serves, and a missing one is the same error.
+    assert main(["baseline", "reprojection", str(named), "--out", str(tmp_path / "b"), "--calibrate"]) == 1
+    assert "--calibrate needs a ground truth" in _error_lines(capsys)[0]
+
+
+def test_gt_and_no_gt_exclude_each_other(capture_and_gt, tmp_path, capsys):
+    cap, gt = capture_and_gt
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(cap), "--out", str(tmp_path / "o"), "--gt", str(gt), "--no-gt"])
+    assert "not allowed with argument" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -70,7 +70,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     if calibrate_ and threshold is not None:
         raise ConfigError("give either a threshold or --calibrate, not both")
     if calibrate_ and gt is None:
-        raise ConfigError("--calibrate needs --gt: the threshold is chosen by its Chamfer against the ground truth")
+        raise ConfigError("--calibrate needs a ground truth (--gt MESH, or a capture that names one): the threshold "
+                          "is chosen by its Chamfer against it")
     log = log or (lambda line: None)
     start = time.monotonic()
     data = CaptureReader(capture).load()
