@@ -141,6 +141,11 @@ class CaptureWriter:
             raise CaptureError(_occupied(path))
         if path.exists() and any(p.name.startswith(CHUNK_PREFIX) for p in path.iterdir()):
             raise CaptureError(f"{path}: holds chunk folders but no {MANIFEST}; refusing to mix scans")
+        if path.exists() and (others := sorted(p.name for p in path.iterdir())):
+            # A capture's folder is the capture: files of another kind in it would be mixed into it, and removing
+            # the capture later would take them along.
+            shown = ", ".join(others[:3]) + (f" and {len(others) - 3} more" if len(others) > 3 else "")
+            raise CaptureError(f"{path}: holds other files ({shown}); a capture needs a new or empty folder")
         if not (isinstance(chunk_size, int) and 1 <= chunk_size <= 1_000_000):
             raise CaptureError(f"chunk size {chunk_size} must be an integer in [1, 1000000]")
         sensor.validate()

@@ -46,6 +46,8 @@ def load_mesh(path, *, units: str = "auto"):
     mesh = trimesh.Trimesh(verts * scale, np.asarray(loaded.faces), process=True)
     if len(mesh.faces) == 0 or not mesh.area > 0:
         raise MeshError(f"{path}: all triangles are degenerate (zero area)")
+    # Which unit the file was read in, so that a caller can say so: a silent x1000 is a surprise otherwise.
+    mesh.metadata["units_read"] = "mm" if scale != 1.0 else "m"
     return mesh
 
 
@@ -56,11 +58,16 @@ def load_mesh_spec(spec: str, *, units: str = "auto"):
     """A mesh in metres from a file path or `builtin:NAME` (a scene of spadscan.protocol.scenes).
 
     Returns (mesh, record): the record is what captures store in their manifest's `scene` dict so that the worker
-    can find the ground truth again: {"builtin": NAME} or {"mesh": absolute path}.
+    can find the ground truth again: {"builtin": NAME} or {"mesh": absolute path}, with "mesh_units": "mm" when the
+    file was read as millimetres.
     """
     if spec.startswith(BUILTIN_PREFIX):
         from .scenes import builtin_scene  # lazily: building the scenes costs time nobody else should pay
 
         name = spec[len(BUILTIN_PREFIX):]
         return builtin_scene(name), {"builtin": name}
-    return load_mesh(spec, units=units), {"mesh": str(Path(spec).resolve())}
+    mesh = load_mesh(spec, units=units)
+    record = {"mesh": str(Path(spec).resolve())}
+    if mesh.metadata.get("units_read") == "mm":
+        record["mesh_units"] = "mm"
+    return mesh, record

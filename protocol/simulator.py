@@ -89,12 +89,14 @@ class SimSettings:
 class SimFrames:
     """Simulated measurements. hists: (n, zones, bins) uint32 counts; reference: (n, bins) uint32 or None;
     poses: (n, 4, 4) float64 sensor-to-world (metres); misses: (n, zones) int64 cycles that detected nothing in
-    the histogram window (before clipping to max_count, hists.sum(-1) + misses == cycles)."""
+    the histogram window (before clipping to max_count, hists.sum(-1) + misses == cycles); signal_photons: (n,)
+    float64 expected signal photons of each view, all zones and cycles (before pile-up; 0: it sees nothing)."""
 
     hists: np.ndarray
     reference: np.ndarray | None
     poses: np.ndarray
     misses: np.ndarray | None = None
+    signal_photons: np.ndarray | None = None
 
 
 def check_seed(seed) -> int:
@@ -248,18 +250,21 @@ class Simulator:
     def frames(self, poses) -> SimFrames:
         """Photon-count histograms for poses (n, 4, 4); advances the generator (deterministic for the seed)."""
         poses = check_pose_array(poses)
-        hists, misses = self.draw_counts(self.expected_rates(poses))
+        signal = self.signal_rates(poses)
+        hists, misses = self.draw_counts(signal + max(self.sensor.background, BACKGROUND_FLOOR))
         ref = self.reference_rates(len(poses))
-        return SimFrames(hists, None if ref is None else self.draw_counts(ref)[0], poses.copy(), misses)
+        photons = signal.sum(axis=(1, 2)) * self.sensor.cycles
+        return SimFrames(hists, None if ref is None else self.draw_counts(ref)[0], poses.copy(), misses, photons)
 
 
 def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSettings = SimSettings(), seed: int = 0,
                      chunk_size: int = 64, scene: dict | None = None, schedule: dict | None = None,
-                     progress: bool = True):
+                     progress: bool = True, log=None):
     """Render `poses` (n, 4, 4) of `mesh` into a complete capture folder `out` (which must not hold a capture).
 
     The manifest records the effective sensor model (settings folded in), `scene` (plus the albedo) and `schedule`.
-    Shows a progress bar on stderr unless `progress` is False. Returns the capture's path.
+    Shows a progress bar on stderr unless `progress` is False. `log` (a function of one line) hears of views that see
+    nothing of the mesh (see `blind_views_note`). Returns the capture's path.
     """
     from pathlib import Path
 
@@ -274,10 +279,12 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
              "faces": int(len(mesh.faces))}
     writer = CaptureWriter.create(Path(out), sim.sensor, rig={"kind": "simulated"}, schedule=schedule or {},
                                   planned_poses=poses, chunk_size=chunk_size, scene=scene)
+    photons = []
     try:
         with tqdm(total=len(poses), desc="simulate", unit="view", disable=not progress, leave=False) as bar:
             for start in range(0, len(poses), chunk_size):
                 fr = sim.frames(poses[start: start + chunk_size])
+                photons.append(fr.signal_photons)
                 for i in range(len(fr.poses)):
                     ref = None if fr.reference is None else fr.reference[i]
                     writer.append(Measurement(fr.hists[i], fr.poses[i], start + i, 0, ref, {"simulated": True}))
@@ -288,8 +295,28 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
         # A simulation cannot be resumed: say in the manifest that this one stopped part-way, and why.
         writer.abandon("simulation", exc)
         raise
+    note = blind_views_note(np.concatenate(photons), mesh)
+    if note and log is not None:
+        log(note)
     return writer.path
 
 
-__all__ = ["SimSettings", "SimFrames", "Simulator", "simulate_capture", "check_pose_array", "check_seed",
-           "MIN_RANGE_M", "BACKGROUND_FLOOR"]
+MIN_SIGNAL_PHOTONS = 1.0
+"""A view whose histograms expect fewer signal photons than this (all zones and cycles) holds background alone."""
+
+
+def blind_views_note(signal_photons: np.ndarray, mesh) -> str | None:
+    """A line saying how many views see nothing of `mesh` (fewer than MIN_SIGNAL_PHOTONS signal photons expected),
+    with the mesh's bounds to compare with the schedule's target and radius; None when every view sees it. Such
+    views are background alone: a mesh placed away from the target, or a schedule that looks past it."""
+    blind = int(np.count_nonzero(np.asarray(signal_photons) < MIN_SIGNAL_PHOTONS))
+    if blind == 0:
+        return None
+    lo, hi = (np.round(b, 3).tolist() for b in mesh.bounds)
+    which = "none of the" if blind == len(signal_photons) else f"{blind} of"
+    return (f"warning: {which} {len(signal_photons)} views see the mesh (under {MIN_SIGNAL_PHOTONS:g} signal photon "
+            f"expected); the mesh lies within {lo} .. {hi} m: check the target and radius")
+
+
+__all__ = ["SimSettings", "SimFrames", "Simulator", "simulate_capture", "blind_views_note", "check_pose_array",
+           "check_seed", "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS"]

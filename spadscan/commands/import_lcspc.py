@@ -43,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from spadscan.protocol.lcspc import import_lcspc
+    from spadscan.signals import terminate_as_interrupt
 
     if args.scan_id is not None:
         check_scan_id(args.scan_id, args.out)
@@ -60,7 +61,9 @@ def run(args: argparse.Namespace) -> int:
         bar.update(done - bar.n)
 
     try:
-        s = import_lcspc(args.file, args.out, chunk_size=args.chunk_size, scan_id=args.scan_id, progress=progress)
+        with terminate_as_interrupt():
+            s = import_lcspc(args.file, args.out, chunk_size=args.chunk_size, scan_id=args.scan_id,
+                             progress=progress)
     finally:
         for bar in bars.values():
             bar.close()

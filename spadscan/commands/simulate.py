@@ -1,8 +1,8 @@
 """Render a simulated capture of a mesh: poses from a schedule, ray-cast transients, pulse, background, pile-up and
 photon counts, written as a complete capture folder.
 
-MESH is a mesh file (OBJ, PLY, STL, ...; metres, STL in millimetres is detected) or `builtin:NAME` for a built-in
-scene. The sensor circles TARGET at RADIUS metres on a Fibonacci spiral (like LCSPCData: 256 views, 0.5 m, from
+MESH is a mesh file (OBJ, PLY, STL, OFF, ...; metres: one of those four formats over 5 m across is read as
+millimetres, and said so) or `builtin:NAME` for a built-in scene. The sensor circles TARGET at RADIUS metres on a Fibonacci spiral (like LCSPCData: 256 views, 0.5 m, from
 86 degrees down to the horizon) or on elevation rings, always looking at TARGET; --jitter-deg turns each view by a
 random rotation about the sensor, like the dataset's `_random` captures.
 
@@ -18,7 +18,7 @@ SCHEDULES = ("fibonacci", "rings")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("mesh", metavar="MESH", help="mesh file in metres, or builtin:NAME for a built-in scene")
+    parser.add_argument("mesh", metavar="MESH", help="mesh file in metres (millimetres detected), or builtin:NAME for a built-in scene")
     parser.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to create (holds scan.json)")
     parser.add_argument("--sensor", default="lcspc-sim", choices=("tmf8820", "lcspc-sim"),
                         help="sensor model preset (default: lcspc-sim)")
@@ -107,20 +107,24 @@ def run(args) -> int:
     import time
 
     from spadscan.protocol.errors import SimulationError
-    from spadscan.protocol.mesh_io import load_mesh_spec
+    from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.protocol.sensor_presets import sensor_preset
     from spadscan.protocol.simulator import SimSettings, simulate_capture
+    from spadscan.signals import terminate_as_interrupt
 
     check_options(args)
     mesh, scene = load_mesh_spec(args.mesh)
+    if scene.get("mesh_units") == "mm":
+        print(f"{args.mesh}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)", file=sys.stderr)
     poses, schedule = make_poses(args)
     sensor = sensor_preset(args.sensor)
     settings = SimSettings(power=args.power, ambient=args.ambient, cycles=args.cycles, albedo=args.albedo,
                            **({} if args.rays_per_zone is None else {"rays_per_zone": args.rays_per_zone}))
     start = time.monotonic()
-    path = simulate_capture(mesh, sensor, poses, args.out, settings=settings, seed=args.seed,
-                            chunk_size=args.chunk_size, scene=scene, schedule=schedule,
-                            progress=not args.no_progress)
+    with terminate_as_interrupt():
+        path = simulate_capture(mesh, sensor, poses, args.out, settings=settings, seed=args.seed,
+                                chunk_size=args.chunk_size, scene=scene, schedule=schedule,
+                                progress=not args.no_progress, log=lambda line: print(line, file=sys.stderr))
     print(f"wrote {len(poses)} views of {len(mesh.faces)} faces with sensor {sensor.name} to {path} "
           f"in {time.monotonic() - start:.1f} s", file=sys.stderr)
     return 0

@@ -351,3 +351,83 @@ def test_simulate_on_a_full_disk_says_so_and_leaves_an_aborted_capture(tmp_path,
     assert main(args) == 1
     err = capsys.readouterr().err
     assert "already holds a capture that was not finished (state 'aborted'" in err and "delete the folder" in err
+
+
+def test_sigterm_ends_a_simulation_as_ctrl_c_does(tmp_path):
+    """`kill` (SIGTERM) mid-simulation: exit 130 and a manifest that says the capture was interrupted, not one
+    left 'running' as if it were still being written."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "cap"
+    proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "simulate", "builtin:sphere", "--out", str(out),
+                             "--views", "4000", "--chunk-size", "4", "--no-progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.glob("chunk-*")) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert proc.poll() is None, "the simulation ended before it could be stopped"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "spadscan: interrupted"
+    manifest = json.loads((out / "scan.json").read_text())
+    assert manifest["state"] == "aborted" and "interrupted" in manifest["reason"]
+
+
+def test_views_that_see_nothing_of_the_mesh_are_said(tmp_path, capsys):
+    from spadscan.cli import main
+
+    far = trimesh.creation.icosphere(radius=0.05).apply_translation([5.0, 0, 0])
+    far.export(tmp_path / "far.ply")
+    assert main(["simulate", str(tmp_path / "far.ply"), "--out", str(tmp_path / "a"), "--views", "6",
+                 "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: none of the 6 views see the mesh" in err and "[4.95, -0.05, -0.05]" in err
+    # A target above the mesh: the views near the horizon look past it, those from above see it.
+    assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "b"), "--views", "16", "--no-progress",
+                 "--target", "0", "0", "0.3", "--radius", "0.3"]) == 0
+    line = next(x for x in capsys.readouterr().err.splitlines() if x.startswith("warning:"))
+    blind = int(line.split()[1])
+    assert 0 < blind < 16 and line.startswith(f"warning: {blind} of 16 views see the mesh")
+    assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "c"), "--views", "6", "--no-progress"]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
+def test_a_mesh_read_as_millimetres_is_said_and_recorded(tmp_path, capsys):
+    import json
+
+    from spadscan.cli import main
+
+    trimesh.creation.icosphere(radius=40.0).apply_translation([0, 0, 40.0]).export(tmp_path / "mm.obj")
+    assert main(["simulate", str(tmp_path / "mm.obj"), "--out", str(tmp_path / "a"), "--views", "4",
+                 "--no-progress"]) == 0
+    assert f"{tmp_path / 'mm.obj'}: read as millimetres" in capsys.readouterr().err
+    scene = json.loads((tmp_path / "a" / "scan.json").read_text())["scene"]
+    assert scene["mesh_units"] == "mm"
+    trimesh.creation.icosphere(radius=0.04).export(tmp_path / "m.obj")
+    assert main(["simulate", str(tmp_path / "m.obj"), "--out", str(tmp_path / "b"), "--views", "4",
+                 "--no-progress"]) == 0
+    assert "millimetres" not in capsys.readouterr().err
+    assert "mesh_units" not in json.loads((tmp_path / "b" / "scan.json").read_text())["scene"]
+
+
+def test_a_capture_is_not_written_among_other_files(tmp_path, capsys):
+    from spadscan.cli import main
+
+    out = tmp_path / "notes"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    assert main(["simulate", "builtin:sphere", "--out", str(out), "--views", "4", "--no-progress"]) == 1
+    assert capsys.readouterr().err == (f"spadscan: error: {out}: holds other files (notes.txt); a capture needs a "
+                                       f"new or empty folder\n")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["simulate", "builtin:sphere", "--out", str(empty), "--views", "4", "--no-progress"]) == 0
