@@ -1,8 +1,9 @@
 """The daemon process: devices up (in parallel), the control socket, the scan runner; a clean shutdown on SIGTERM,
-SIGINT or `ctl shutdown`.
+SIGINT, SIGHUP or `ctl shutdown`.
 
 Start-up order keeps anything from moving before the whole config is known good: config and default scan plan
-checked, devices built, socket path claimed, then devices connected and prepared. Whatever happens afterwards, the
+checked, devices built, socket path claimed, captures root locked (one daemon per root), then devices connected and
+prepared. Whatever happens afterwards, the
 runner stops the arm and records the scan's state, every device is released and closed, and the socket file goes.
 """
 
@@ -18,8 +19,9 @@ from spadscan.protocol.errors import ConfigError, DeviceError
 
 from .backends import build_devices, rig_record
 from .config import DaemonConfig
-from .control import ControlServer, claim_socket_path
+from .control import ControlServer, check_socket_path, claim_socket_path
 from .devices import Device
+from .root_lock import RootLock, check_root_free
 from .runner import ScanRunner
 from .scan_plan import build_plan
 
@@ -121,8 +123,9 @@ class Dispatcher:
 def check_config(cfg: DaemonConfig):
     """Everything start-up checks before a device is touched, creating, claiming and opening nothing (also what
     `spadscan daemon --check` runs): the default scan plan, the devices built (a sim sensor's mesh loaded, the
-    sensor model), an I2C sensor's firmware image read and parsed, the socket path not taken by another file.
-    Returns (plan, arm, sensor), neither device connected."""
+    sensor model), an I2C sensor's firmware image read and parsed, its bus or a serial sensor's port present, the
+    socket path neither taken by another file nor served by another daemon, the captures root not held by another
+    daemon. Returns (plan, arm, sensor), neither device connected."""
     plan = build_plan(cfg.scan, cfg.arm, where=f"{cfg.source}: [scan] defaults")
     arm, sensor = build_devices(cfg)
     if cfg.sensor.backend == "i2c":
@@ -132,27 +135,60 @@ def check_config(cfg: DaemonConfig):
             load_firmware(cfg.sensor.firmware)
         except DeviceError as exc:
             raise ConfigError(f"{cfg.source}: [sensor] firmware: {exc}") from None
-    if cfg.socket.is_symlink() or (cfg.socket.exists() and not cfg.socket.is_socket()):
-        raise ConfigError(f"socket path {cfg.socket} exists and is not a socket; refusing to replace it")
+    _check_sensor_device(cfg)
+    _in_config(cfg, check_socket_path, cfg.socket)
+    check_root_free(cfg.captures)
     return plan, arm, sensor
 
 
-def check_startup(cfg: DaemonConfig):
-    """Everything that can be checked before a device is touched; returns (arm, sensor), not yet connected."""
+def _check_sensor_device(cfg: DaemonConfig) -> None:
+    """The sensor's device file exists: looking at the path opens nothing (a missing USB bridge or a disabled I2C
+    bus would otherwise show only as a failed connect)."""
+    s = cfg.sensor
+    if s.backend == "serial" and not os.path.exists(s.port):
+        raise ConfigError(f"{cfg.source}: [sensor] port {s.port}: no such device (is the bridge plugged in? "
+                          f"/dev/serial/by-id/ lists the connected ones)")
+    if s.backend == "i2c" and not os.path.exists(f"/dev/i2c-{s.bus}"):
+        raise ConfigError(f"{cfg.source}: [sensor] bus {s.bus}: /dev/i2c-{s.bus}: no such device (is I2C enabled?)")
+
+
+def _in_config(cfg: DaemonConfig, check, *args):
+    """check(*args), its ConfigError prefixed with the config file, as every other config error is."""
+    try:
+        return check(*args)
+    except ConfigError as exc:
+        raise ConfigError(f"{cfg.source}: {exc}") from None
+
+
+def check_startup(cfg: DaemonConfig) -> tuple[Device, Device, RootLock]:
+    """Everything that can be checked before a device is touched, then the captures root created and locked and
+    the socket path claimed; returns (arm, sensor, lock): the devices not yet connected, the lock held (release
+    it when the daemon ends)."""
     _, arm, sensor = check_config(cfg)
     cfg.captures.mkdir(parents=True, exist_ok=True)
-    claim_socket_path(cfg.socket)
-    return arm, sensor
+    _in_config(cfg, claim_socket_path, cfg.socket)
+    lock = RootLock(cfg.captures)
+    lock.acquire()
+    return arm, sensor, lock
 
 
-async def serve(cfg: DaemonConfig, arm=None, sensor=None) -> None:
-    """Run the daemon until SIGTERM, SIGINT or `ctl shutdown`."""
-    if arm is None or sensor is None:
-        arm, sensor = check_startup(cfg)
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+"""Each ends the daemon cleanly. SIGHUP too: it is what a foreground daemon gets when its SSH session drops, and
+its default action would kill the daemon with the arm moving and the scan left unrecorded."""
+
+
+async def serve(cfg: DaemonConfig, arm, sensor) -> None:
+    """Run the daemon until SIGTERM, SIGINT, SIGHUP or `ctl shutdown`. The caller has run check_startup and holds
+    its lock."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+
+    def on_signal(sig: signal.Signals) -> None:
+        log.info("%s received", sig.name)
+        stop.set()
+
+    for sig in STOP_SIGNALS:
+        loop.add_signal_handler(sig, on_signal, sig)
     try:
         async with DeviceSession([arm, sensor]):
             rig, scene = rig_record(cfg)
@@ -166,5 +202,5 @@ async def serve(cfg: DaemonConfig, arm=None, sensor=None) -> None:
             finally:
                 await runner.shutdown()
     finally:
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)

@@ -40,10 +40,18 @@ Handler = Callable[[dict], Awaitable[dict]]
 
 def claim_socket_path(path: Path) -> None:
     """Make sure `path` is free for a new socket: remove a stale socket, refuse a live one or any other file."""
+    if check_socket_path(path) == "stale":
+        with contextlib.suppress(FileNotFoundError):  # a crashed daemon's socket: nobody listens
+            os.unlink(path)
+
+
+def check_socket_path(path: Path) -> str:
+    """'free' (nothing there) or 'stale' (a socket nobody listens on); raises ConfigError for a live socket (another
+    daemon) or any other file. Changes nothing: also what `spadscan daemon --check` runs."""
     try:
         st = os.lstat(path)
     except FileNotFoundError:
-        return
+        return "free"
     if not stat.S_ISSOCK(st.st_mode):
         raise ConfigError(f"socket path {path} exists and is not a socket; refusing to replace it")
     probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -51,8 +59,7 @@ def claim_socket_path(path: Path) -> None:
     try:
         probe.connect(str(path))
     except (ConnectionRefusedError, FileNotFoundError):
-        os.unlink(path)  # a crashed daemon's socket: nobody listens
-        return
+        return "stale"
     except OSError as exc:
         raise ConfigError(f"socket path {path}: cannot tell whether a daemon listens ({exc.strerror or exc})") from None
     finally:

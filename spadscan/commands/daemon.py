@@ -1,12 +1,15 @@
 """Run the acquisition daemon: one process that owns the arm and the sensor, scans on request and writes capture
 folders under the config's captures root.
 
-    spadscan daemon --config rig.toml            run until SIGTERM, Ctrl-C or `spadscan ctl shutdown`
+    spadscan daemon --config rig.toml            run until SIGTERM, SIGHUP, Ctrl-C or `spadscan ctl shutdown`
     spadscan daemon --config rig.toml --check    validate everything start-up validates, touch no device
 
 The config is checked completely (unknown keys, bad values, missing or unreadable mesh and firmware files, an
-unreachable default scan, a socket path taken by another file) before any device is touched; `--check` runs the same
-checks without connecting, creating the captures root or claiming the socket. Control it with `spadscan ctl`; examples/README.md documents every config key.
+unreachable default scan, a missing serial port or I2C bus, a socket path taken by another file or served by another
+daemon, a captures root another daemon holds) before any device is touched; `--check` runs the same checks without
+connecting, creating the captures root or claiming the socket. One daemon runs per captures root: it holds a lock on
+<captures>/.spadscan-daemon.lock for its life (released by the kernel if it dies). Control it with `spadscan ctl`;
+examples/README.md documents every config key.
 """
 
 from __future__ import annotations
@@ -17,8 +20,8 @@ import sys
 def add_arguments(parser) -> None:
     parser.add_argument("--config", required=True, metavar="RIG.toml", help="rig config (TOML; see examples/)")
     parser.add_argument("--check", action="store_true",
-                        help="run every start-up check (config, default scan, mesh, firmware image), then exit without "
-                             "touching devices")
+                        help="run every start-up check (config, default scan, mesh, firmware image, sensor port, "
+                             "socket and captures root free), then exit without touching devices")
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
                         help="how much the daemon logs to stderr (default: info)")
 
@@ -38,6 +41,7 @@ def run(args) -> int:
         print(f"{cfg.source}: ok ({cfg.arm.backend} arm, {cfg.sensor.backend} sensor, default scan of {len(plan)} "
               f"poses, {plan.description['travel_m']:.2f} m of travel)")
         return 0
-    arm, sensor = check_startup(cfg)
-    asyncio.run(serve(cfg, arm, sensor))
+    arm, sensor, lock = check_startup(cfg)
+    with lock:  # held until the daemon has stopped: another daemon may then take the captures root
+        asyncio.run(serve(cfg, arm, sensor))
     return 0

@@ -177,3 +177,18 @@ def test_check_passes_a_good_config_and_touches_nothing(tmp_path, capsys):
     code, out, err = check(write_check_rig(tmp_path, 'backend = "sim"\nmesh = "builtin:sphere"'), capsys)
     assert code == 0 and "ok (sim arm, sim sensor, default scan of 8 poses" in out, err
     assert not (tmp_path / "caps").exists() and not (tmp_path / "d.sock").exists()
+
+
+
+@pytest.mark.parametrize("sensor, word", [
+    ('backend = "serial"\nport = "{tmp}/ttyACM9"', "port {tmp}/ttyACM9: no such device"),
+    ('backend = "i2c"\nbus = 250\nfirmware = "app.hex"', "bus 250: /dev/i2c-250: no such device")])
+def test_check_refuses_a_sensor_device_that_is_not_there(tmp_path, capsys, sensor, word):
+    """A serial port or I2C bus that does not exist is refused by `--check` (looking at the path opens nothing), as
+    by start-up, in one line naming the file and the key."""
+    (tmp_path / "app.hex").write_text(":0400000001020304F2\n:00000001FF\n")  # a valid image: one record, then EOF
+    rig = write_check_rig(tmp_path, sensor.format(tmp=tmp_path))
+    code, out, err = check(rig, capsys)
+    assert code == 1 and out == "" and err.count("\n") == 1, err
+    assert f"{rig}: [sensor] " + word.format(tmp=tmp_path) in err
+    assert not (tmp_path / "caps").exists()

@@ -1,0 +1,91 @@
+"""One daemon per captures root: an advisory lock (flock) on `<captures>/.spadscan-daemon.lock`, held for the daemon's
+life.
+
+Two daemons on one captures root would both take over the same interrupted scan and write the same folder; the
+control socket cannot guard against that, since two configs may name different sockets. The kernel drops a flock
+when its holder dies, so a crash or a power cut never leaves a stale lock to clear by hand. The lock file itself is
+never removed: unlinking it while another daemon waits to open it would let two daemons lock two different files.
+It holds the holder's pid, only to name it in the refusal.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+from pathlib import Path
+
+from spadscan.protocol.errors import ConfigError
+
+LOCK_NAME = ".spadscan-daemon.lock"
+"""Hidden: the worker and the daemon's own scan search skip names that start with a dot."""
+
+
+class RootLock:
+    """`with RootLock(root):` holds the captures root for this process; raises ConfigError when another holds it."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.path = self.root / LOCK_NAME
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            raise ConfigError(f"cannot lock captures root {self.root}: {exc.strerror or exc} ({self.path})") from None
+        try:
+            _lock(fd, fcntl.LOCK_EX, self.root)
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd = fd
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the only descriptor drops the flock
+            self._fd = None
+
+    def __enter__(self) -> "RootLock":
+        if self._fd is None:
+            self.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def check_root_free(root: Path) -> None:
+    """Raise the refusal RootLock would raise, creating and holding nothing (for `spadscan daemon --check`)."""
+    path = Path(root) / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return  # a daemon that holds the root has this file open
+    except OSError as exc:
+        raise ConfigError(f"cannot read the lock of captures root {root}: {exc.strerror or exc} ({path})") from None
+    try:
+        _lock(fd, fcntl.LOCK_SH, root)  # refused while a daemon holds its exclusive lock
+    finally:
+        os.close(fd)
+
+
+def _lock(fd: int, kind: int, root: Path) -> None:
+    try:
+        fcntl.flock(fd, kind | fcntl.LOCK_NB)
+    except OSError as exc:
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+            raise ConfigError(f"cannot lock captures root {root}: {exc.strerror or exc}") from None
+        raise ConfigError(f"captures root {root} is in use by another daemon{_holder(fd)}; stop that daemon, or "
+                          f"give this rig another `captures` folder") from None
+
+
+def _holder(fd: int) -> str:
+    """' (pid N)' from the lock file, or '' while its holder has not written it yet."""
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+    except OSError:
+        return ""
+    return f" (pid {text})" if text.isdigit() else ""

@@ -1,0 +1,82 @@
+"""`spadscan daemon` as a real process: one daemon per captures root (whatever its socket), a clean shutdown on
+SIGHUP, and `--check` refusing what start-up refuses while another daemon runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import pytest
+
+from spadscan.daemon.client import call
+from spadscan.protocol.capture_reader import CaptureReader
+
+from test_daemon_process import RIG, Daemons, spadscan, wait_for
+
+
+@pytest.fixture
+def daemons(tmp_path):
+    d = Daemons(tmp_path)
+    yield d
+    d.stop_all()
+
+
+def rig_on(tmp_path: Path, name: str, views: int = 24) -> tuple[Path, Path]:
+    """A rig config `name`.toml on the shared captures root tmp_path/caps, with a socket of its own."""
+    sock = tmp_path / f"{name}.sock"
+    rig = tmp_path / f"{name}.toml"
+    rig.write_text(RIG.format(socket=sock, auto="true").replace("views = 24", f"views = {views}"))
+    return rig, sock
+
+
+def one_line_error(r) -> str:
+    assert r.returncode == 1, (r.returncode, r.stdout, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("spadscan: error: ") and "Traceback" not in r.stderr, r.stderr
+    return lines[0]
+
+
+def test_a_second_daemon_on_the_same_captures_root_is_refused(tmp_path, daemons):
+    rig_a, sock_a = rig_on(tmp_path, "a", views=400)
+    rig_b, sock_b = rig_on(tmp_path, "b")
+    a = daemons.start(rig_a, sock_a)
+    call(sock_a, "scan", name="shared")
+    wait_for(lambda: call(sock_a, "status")["pose"] >= 2, "a few poses")
+
+    for args in (("daemon", "--config", rig_b, "--check"), ("daemon", "--config", rig_b)):
+        line = one_line_error(spadscan(*args))
+        assert f"captures root {tmp_path / 'caps'} is in use by another daemon (pid {a.pid})" in line, line
+    assert not sock_b.exists()
+    assert call(sock_a, "status")["state"] == "scanning"  # A's scan goes on, untouched
+
+    # A dies without cleaning up: the kernel drops its lock, and B takes the root (and the interrupted scan) over.
+    os.kill(a.pid, signal.SIGKILL)
+    a.wait(timeout=30)
+    daemons.start(rig_b, sock_b)
+    status = call(sock_b, "status")
+    assert status["scan"] == "shared", status
+    assert spadscan("ctl", "--socket", sock_b, "abort").returncode == 0
+
+
+def test_sighup_shuts_the_daemon_down_cleanly(tmp_path, daemons):
+    rig, sock = rig_on(tmp_path, "hup", views=400)
+    proc = daemons.start(rig, sock)
+    call(sock, "scan", name="hup")
+    wait_for(lambda: call(sock, "status")["pose"] >= 2, "a few poses")
+    proc.send_signal(signal.SIGHUP)
+    assert proc.wait(timeout=30) == 0, daemons.log(proc)
+    log = daemons.log(proc)
+    assert "SIGHUP received" in log and "shutting down" in log, log
+    assert not sock.exists()
+    capture = CaptureReader(tmp_path / "caps" / "hup")
+    assert capture.state == "running"  # left resumable, and its reason recorded
+    assert "daemon stopped" in json.dumps(capture.manifest)
+
+
+def test_check_refuses_a_socket_another_daemon_serves(tmp_path, daemons):
+    rig, sock = rig_on(tmp_path, "a")
+    daemons.start(rig, sock)
+    line = one_line_error(spadscan("daemon", "--config", rig, "--check"))
+    assert f"another daemon is already listening on {sock}" in line and str(rig) in line, line
