@@ -1,7 +1,9 @@
 """What a job is and what running one means: check the capture, reconstruct it, publish the results under the scan.
 
 A job's results land in `<scan>/recon/<job id>/` (mesh.ply, report.json, pictures, job.json). They are written into
-a hidden temporary folder beside it and published by one rename, so a reader never sees half a result.
+a hidden temporary folder beside it and published by one rename, so a reader never sees half a result. A result
+is never replaced in silence: the worker does not run a job whose folder already holds one (it records the job as
+done), and `publish` moves an earlier folder aside instead of deleting it.
 
 `python -m spadscan.worker.jobs` is the child process the worker pool starts for each job: it runs one job into the
 folder the pool names and writes an outcome file the pool reads (exit 0 done, 3 the input is at fault and a retry
@@ -26,6 +28,8 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
+
+from .outputs import RESULT_FILES
 
 ID_RE = re.compile(r"[^A-Za-z0-9._-]+")
 RECON_DIR = "recon"
@@ -203,24 +207,35 @@ def scratch_folders(root: Path) -> list[tuple[Path, str, str]]:
     return found
 
 
-def publish(scratch: Path, final: Path) -> Path:
-    """Move a finished scratch folder into place by rename, replacing an earlier result of the same job."""
-    old = None
+def existing_result(job: Job, root: Path) -> Path | None:
+    """`<scan>/recon/<job id>/` when it already holds a result (outputs.RESULT_FILES), else None."""
+    try:
+        final = result_path(job, root)
+    except ConfigError:
+        return None  # a scan outside the root: the job fails later, saying so
+    return final if any((final / name).exists() for name in RESULT_FILES) else None
+
+
+def publish(scratch: Path, final: Path) -> tuple[Path, Path | None]:
+    """Move a finished scratch folder into place by rename. An earlier folder of the same job is never deleted: it
+    is renamed aside to `<job id>.replaced-<UTC time>` first. Returns (final, the earlier folder's new path or
+    None)."""
+    aside = None
     if final.exists():
-        old = final.with_name(f".old-{final.name}-{secrets.token_hex(4)}")
-        os.rename(final, old)
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        aside = final.with_name(f"{final.name}.replaced-{stamp}-{secrets.token_hex(2)}")
+        os.rename(final, aside)
     os.rename(scratch, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-    return final
+    return final, aside
 
 
 def run_job(job: Job, root: Path, *, recon: ReconFn | None = None) -> Path:
-    """Run one job in this process and publish its results; returns `<scan>/recon/<job id>/`."""
+    """Run one job in this process and publish its results; returns `<scan>/recon/<job id>/` (an earlier result
+    there is moved aside, see `publish`)."""
     scratch = scratch_path(job, root)
     try:
         execute_job(job, root, scratch, recon)
-        return publish(scratch, result_path(job, root))
+        return publish(scratch, result_path(job, root))[0]
     finally:
         if scratch.exists():
             shutil.rmtree(scratch, ignore_errors=True)

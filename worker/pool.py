@@ -21,7 +21,7 @@ from typing import Callable
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
-from .jobs import publish, result_path, scratch_folders, scratch_path
+from .jobs import CHANGEABLE, existing_result, publish, result_path, scratch_folders, scratch_path
 from .queue import SEP, Claim, Queue
 from .watcher import ScanReport, scan_once, watch
 from .worker_config import WorkerConfig
@@ -39,12 +39,14 @@ class Worker:
         self.log = log or (lambda line: print(f"spadscan worker: {line}", file=sys.stderr, flush=True))
         self.children: dict[str, Child] = {}
         self.settled: dict[str, str] = {}
-        """Job id -> 'done' or 'failed' for jobs this worker finished."""
+        """Job id -> 'done' or 'failed' for jobs this worker finished, 'kept' for jobs it did not run because their
+        results folder already held a result."""
         self._seen_skipped: set[str] = set()
         self._swept = False
         self.job_env = config.job_env()
         """Environment the job processes get on top of the worker's own (threads per job, child_env)."""
         self.threads_note = config.threads_note()
+        self.threads_warnings = config.threads_warnings()
 
     # ---- main loop -------------------------------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None) -> dict[str, str]:
@@ -52,6 +54,11 @@ class Worker:
         stop = stop or asyncio.Event()
         self.log(f"watching {self.root} with {self.config.processes} job process(es) at once, "
                  f"{self.threads_note}")
+        for warning in self.threads_warnings:
+            self.log(f"warning: {warning}")
+        frozen = await asyncio.to_thread(self._frozen_options_note)  # before this worker queues jobs of its own
+        if frozen:
+            self.log(frozen)
         watcher = None
         if self.config.once:
             self._on_scan(await asyncio.to_thread(scan_once, self.root, self.queue, self.config.options))
@@ -120,6 +127,24 @@ class Worker:
                 removed.append(path)
         return removed
 
+    def _frozen_options_note(self, most: int = 10) -> str | None:
+        """A line naming the queued jobs that will run with options other than the ones this worker was given
+        (a job keeps the options it was queued with), or None."""
+        given = self.config.options_given
+        keys = [k for k in CHANGEABLE if given is None or k in given]
+        mine = self.config.options
+        differ = []
+        for job in self.queue.queued_jobs():
+            own = [f"{k} {_shown(getattr(job, k))}" for k in keys if getattr(job, k) != getattr(mine, k)]
+            if own:
+                differ.append(f"{job.id} ({', '.join(own)})")
+        if not differ:
+            return None
+        more = f" and {len(differ) - most} more" if len(differ) > most else ""
+        asked = ", ".join(f"{k} {_shown(getattr(mine, k))}" for k in keys)
+        return (f"{len(differ)} job(s) queued earlier keep the options they were queued with, not {asked}: "
+                f"{', '.join(differ[:most])}{more}")
+
     def _on_scan(self, report: ScanReport) -> None:
         for name in report.queued:
             self.log(f"queued scan {name}")
@@ -133,6 +158,10 @@ class Worker:
     # ---- one job ---------------------------------------------------------------------------------------------
     async def _start(self, claim: Claim) -> None:
         job = claim.job
+        existing = await asyncio.to_thread(existing_result, job, self.root)
+        if existing is not None:
+            await asyncio.to_thread(self._keep, claim, existing)
+            return
         stem = f"{job.id}{SEP}{claim.token}"
         log_path = self.queue.path / "logs" / f"{stem}.log"
         outcome = self.queue.path / "tmp" / f"outcome-{stem}.json"
@@ -148,6 +177,15 @@ class Worker:
                                extra_env=self.job_env)
         self.children[job.id] = Child(claim, proc, scratch, outcome, log_path, asyncio.create_task(proc.wait()))
         self.log(f"{job.id} started (attempt {claim.attempt} of {self.queue.max_attempts}, pid {proc.pid})")
+
+    def _keep(self, claim: Claim, existing: Path) -> None:
+        """Record a job whose results folder already holds a result as done, without running it: a result is never
+        replaced in silence (it may come from another queue, or from before the queue was deleted)."""
+        if not self.queue.finish(claim, str(existing), kept=True):
+            return
+        self.settled[claim.job.id] = "kept"
+        self.log(f"{claim.job.id}: not run, {existing} already holds a result; kept it and recorded the job as done "
+                 "(move that folder away and queue the job again to reconstruct the scan again)")
 
     def _heartbeat(self) -> None:
         now = time.monotonic()
@@ -199,13 +237,15 @@ class Worker:
             self.log(f"{job.id}: finished, but its lease had been taken over; result dropped")
             return
         shutil.copyfile(child.log, child.scratch / "job.log")
-        final = publish(child.scratch, result_path(job, self.root))
+        final, aside = publish(child.scratch, result_path(job, self.root))
         self.queue.record_result(claim, str(final))
         self.settled[job.id] = "done"
         extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
         if summary.get("ground_truth_note"):
             extra += f" (ground truth: {summary['ground_truth_note']})"
         self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}")
+        if aside is not None:  # written there while the job ran (another worker on another queue, say)
+            self.log(f"{job.id}: {final} held a result that appeared while the job ran; moved it to {aside}")
 
     # ---- stopping --------------------------------------------------------------------------------------------
     async def _shutdown(self) -> None:
@@ -226,6 +266,11 @@ class Worker:
             child.outcome.unlink(missing_ok=True)
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()
+
+
+def _shown(value) -> str:
+    """A job option's value as a log line shows it (None: the preset's default)."""
+    return "default" if value is None else str(value)
 
 
 async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = None,

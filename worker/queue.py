@@ -73,6 +73,14 @@ class JobStatus:
     heartbeat_age_s: float | None
     notes: list[str] = field(default_factory=list)
     """Damaged queue files of this job (unreadable job file, unreadable attempt records): what the row cannot say."""
+    stale: str | None = None
+    """For a running job whose holder seems gone: why (its process died, its lease expired, or it has missed
+    heartbeats); None while its holder keeps renewing the lease."""
+    shown_state: str = ""
+    """`state` as --status shows it: 'stale' for a running job whose holder died or whose lease expired (the next
+    worker takes it over), 'running?' for one whose holder has missed heartbeats while its lease still holds."""
+    kept: bool = False
+    """A done job that was not run: its results folder already held a result, which was kept."""
 
 
 def _utc() -> str:
@@ -82,7 +90,9 @@ def _utc() -> str:
 class Queue:
     """A job queue in one folder. Methods are safe to call from several processes at once."""
 
-    def __init__(self, path, *, lease_s: float = 60.0, max_attempts: int = 3):
+    def __init__(self, path, *, lease_s: float = 60.0, max_attempts: int = 3, create: bool = True):
+        """`create`: make the queue's folders; False for read-only uses (listing), which see a missing queue as
+        empty."""
         if not (lease_s > 0):
             raise ConfigError(f"lease {lease_s} s must be > 0")
         if not (isinstance(max_attempts, int) and max_attempts >= 1):
@@ -90,7 +100,7 @@ class Queue:
         self.path = Path(path)
         self.lease_s = float(lease_s)
         self.max_attempts = max_attempts
-        for sub in ("ids", "tmp", "attempts", *STATES):
+        for sub in ("ids", "tmp", "attempts", *STATES) if create else ():
             (self.path / sub).mkdir(parents=True, exist_ok=True)
 
     @classmethod
@@ -159,11 +169,12 @@ class Queue:
             return False
 
     # ---- finishing -------------------------------------------------------------------------------------------
-    def finish(self, claim: Claim, result: str | None = None) -> bool:
-        """Move a held job to done/; False (and nothing changes) when the lease was lost."""
+    def finish(self, claim: Claim, result: str | None = None, *, kept: bool = False) -> bool:
+        """Move a held job to done/; False (and nothing changes) when the lease was lost. `kept`: the job was not
+        run because `result` already held one (recorded, so that --status can say so)."""
         if not self._settle(claim.path, claim.job.id, "done"):
             return False
-        self._update(claim, outcome="done", result=result)
+        self._update(claim, outcome="done", result=result, **({"kept": True} if kept else {}))
         return True
 
     def record_result(self, claim: Claim, result: str) -> None:
@@ -317,6 +328,16 @@ class Queue:
         os.replace(tmp, folder / f"{token}.json")
 
     # ---- listing and maintenance -----------------------------------------------------------------------------
+    def queued_jobs(self) -> list[Job]:
+        """The jobs waiting in queued/, sorted by id; unreadable job files are left out (their claim fails them)."""
+        jobs = []
+        for p in sorted((self.path / "queued").glob("*.json")):
+            try:
+                jobs.append(Job.from_dict(json.loads(p.read_text()), str(p)))
+            except (OSError, ValueError, ConfigError):
+                continue
+        return jobs
+
     def job_paths(self) -> dict[str, tuple[str, Path]]:
         """Every job file by id: (state, path). A job moving between listings may appear in either state."""
         found: dict[str, tuple[str, Path]] = {}
@@ -345,7 +366,8 @@ class Queue:
         counted = [r for r in recs if r.get("outcome") != "interrupted"]
         errors = [str(r["error"]) for r in counted if r.get("error")]
         results = [str(r["result"]) for r in recs if r.get("outcome") == "done" and r.get("result")]
-        holder = age = None
+        holder = age = stale = None
+        shown = state
         if state == "running":
             token = path.stem.rpartition(SEP)[2]
             rec = next((r for r in recs if r.get("token") == token), {})
@@ -354,9 +376,25 @@ class Queue:
                 age = max(0.0, now - path.stat().st_mtime)
             except FileNotFoundError:
                 age = None
+            shown, stale = self._stale(path, job_id, token, age, now) or (state, None)
+        done = [r for r in recs if r.get("outcome") == "done"]
         return JobStatus(job_id, str(job.scan), str(job.preset), state, len(counted),
                          errors[-1] if errors and state != "done" else None, results[-1] if results else None,
-                         holder, age, notes)
+                         holder, age, notes, stale, shown, bool(done and done[-1].get("kept")))
+
+    def _stale(self, path: Path, job_id: str, token: str, age: float | None,
+               now: float) -> tuple[str, str] | None:
+        """('stale' or 'running?', why) for a running job whose holder seems gone; None while it renews its lease.
+
+        Holders renew every quarter lease (pool.py), so one silent for over half a lease has missed two renewals:
+        probably dead, though its lease still holds and no worker will take the job over before it expires."""
+        expired = self._expired(path, job_id, token, now)
+        if expired is not None:
+            return "stale", f"{expired}; the next worker to look at the queue takes it over"
+        lease = _number((self._read_record(job_id, token) or {}).get("lease_s")) or self.lease_s
+        if age is not None and age > lease / 2:
+            return "running?", f"worker silent for {age:.0f} s (its lease of {lease:.0f} s has not expired yet)"
+        return None
 
     def counts(self) -> dict[str, int]:
         """Number of job files in each state."""
