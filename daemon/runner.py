@@ -122,7 +122,8 @@ class ScanRunner:
             return
         reopen_error = None
         try:
-            job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye)
+            job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
+                                          rig_now=self.rig, scene_now=self.scene)
             try:
                 job.writer = await self._io(CaptureWriter.resume, path)
                 job.record_progress(job.writer)

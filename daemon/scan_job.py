@@ -9,6 +9,7 @@ tool's interrupted capture under the captures root (say `spadscan simulate --out
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import logging
 import re
 import time
@@ -22,6 +23,7 @@ from spadscan.protocol.capture_format import MANIFEST, read_json
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError, ConfigError
+from spadscan.protocol.sensor_model import SensorModel
 
 from .config import ScanConfig, scan_with
 from .scan_plan import tcp_from_sensor
@@ -136,11 +138,14 @@ def find_interrupted(root: Path) -> Path | None:
     return best
 
 
-def load_job(path: Path, hand_eye_now: np.ndarray) -> ScanJob:
+def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | None = None,
+             rig_now: dict | None = None, scene_now: dict | None = None) -> ScanJob:
     """Reopen an interrupted scan's plan and settings (not its writer) from its folder.
 
     The plan's TCP poses come from the capture's own hand-eye; when the rig's hand-eye differs, the job is marked
-    blocked (resuming would put the sensor elsewhere than planned).
+    blocked (resuming would put the sensor elsewhere than planned). So it is when the rig's sensor differs from the
+    one the capture records (sensor_now: the sensor model now; rig_now, scene_now: the rig and scene records a new
+    capture would get): resuming would mix two sensors in one capture.
     """
     reader = CaptureReader(path)
     planned = reader.planned_poses()
@@ -154,7 +159,46 @@ def load_job(path: Path, hand_eye_now: np.ndarray) -> ScanJob:
         raise CaptureError(str(exc)) from None
     job = ScanJob(name=path.name, path=Path(path), scan=scan, sensor_poses=planned,
                   tcp_poses=tcp_from_sensor(planned, reader.hand_eye), hand_eye=reader.hand_eye)
+    changed = []
     if not np.allclose(reader.hand_eye, hand_eye_now, atol=1e-6):
-        job.blocked = (f"the rig's [arm] hand_eye differs from the one scan {path.name!r} was planned with; "
-                       f"restore it to resume, or abort the scan")
+        changed.append(f"the rig's [arm] hand_eye differs from the one scan {path.name!r} was planned with")
+    keys = [] if sensor_now is None else sensor_changes(reader, sensor_now, rig_now or {}, scene_now or {})
+    if keys:
+        changed.append(f"the rig's [sensor] differs from the one scan {path.name!r} was planned with "
+                       f"({', '.join(keys)})")
+    if changed:
+        job.blocked = "; ".join(changed) + "; restore it to resume, or abort the scan"
     return job
+
+
+MODEL_KEYS = {"signal_scale": "power", "background": "ambient", "cycles": "cycles"}
+"""Sensor model fields a [sensor] key sets (sim: power, ambient, cycles); every other field is the preset's."""
+SCENE_KEYS = {"builtin": "mesh", "mesh": "mesh", "mesh_offset_m": "mesh_offset_m", "albedo": "albedo"}
+"""Scene record fields (sim) that change what the sensor sees, and the [sensor] key of each."""
+
+
+def sensor_changes(reader: CaptureReader, model_now: SensorModel, rig_now: dict, scene_now: dict) -> list[str]:
+    """The [sensor] keys whose change since the capture began changes what it measures: its sensor model (the
+    preset and the sim's photon keys), the sensor backend and (sim) the scene. Records absent on either side (a
+    capture another way made) are not compared."""
+    then, now = _plain(reader.sensor.to_dict()), _plain(model_now.to_dict())
+    keys = set()
+    if then["name"] != now["name"]:
+        keys.add("preset")
+    else:
+        for name in set(then) | set(now):
+            if then.get(name) != now.get(name):
+                keys.add(MODEL_KEYS.get(name, "preset"))
+    rig_then = (reader.manifest.get("rig") or {}).get("sensor") or {}
+    rig_now = rig_now.get("sensor") or {}
+    if rig_then and rig_now and rig_then.get("backend") != rig_now.get("backend"):
+        keys.add("backend")
+    scene_then = reader.manifest.get("scene") or {}
+    if scene_then and scene_now:
+        keys.update(key for name, key in SCENE_KEYS.items() if scene_then.get(name) != scene_now.get(name))
+    return sorted(keys)
+
+
+def _plain(record: dict) -> dict:
+    """A record as JSON has it (tuples as lists), so that a stored one and a fresh one compare equal."""
+    return json.loads(json.dumps(record))

@@ -1,0 +1,85 @@
+"""A restarted daemon resumes an interrupted scan only on the rig it was planned with: a changed hand-eye or a
+changed sensor (its model, backend or simulated scene) blocks the scan with the keys that differ, so that one
+capture never mixes two sensors."""
+
+from __future__ import annotations
+
+import pytest
+
+from spadscan.daemon.app import DeviceSession
+from spadscan.daemon.backends import build_devices, rig_record
+from spadscan.daemon.config import config_from_dict
+from spadscan.daemon.runner import ScanRunner
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.errors import ConfigError
+
+from test_runner import until
+
+SENSOR = {"backend": "sim", "mesh": "builtin:sphere", "rays_per_zone": 4}
+
+
+def make_cfg(tmp_path, hand_eye_z: float = 0.05, **sensor):
+    hand_eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, hand_eye_z], [0, 0, 0, 1]]
+    return config_from_dict({
+        "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"),
+        "arm": {"backend": "sim", "motion_time_s": 0.0, "hand_eye": hand_eye},
+        "sensor": {**SENSOR, **sensor},
+        "scan": {"views": 40, "settle_s": 0.0, "radius_m": 0.4, "target": [0, 0, 0.1]}}, tmp_path / "rig.toml")
+
+
+async def interrupt(cfg) -> None:
+    """A daemon on cfg starts scan 'mix' and stops (as on SIGTERM) with a few poses published."""
+    arm, sensor = build_devices(cfg)
+    async with DeviceSession([arm, sensor]):
+        rig, scene = rig_record(cfg)
+        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+        await runner.start("mix")
+        await until(lambda: runner.job.next_pose >= 3, "three poses")
+        await runner.shutdown()
+
+
+async def restart(cfg) -> tuple[dict, str | None]:
+    """A daemon on cfg takes the scan over; returns its status and why `resume` was refused (None: it resumed)."""
+    arm, sensor = build_devices(cfg)
+    async with DeviceSession([arm, sensor]):
+        rig, scene = rig_record(cfg)
+        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+        try:
+            await runner.recover()
+            status = runner.status()
+            try:
+                await runner.resume()
+            except ConfigError as exc:
+                return status, str(exc)
+            await runner.abort()
+            return status, None
+        finally:
+            await runner.shutdown()
+
+
+@pytest.mark.parametrize("change, keys", [
+    ({"power": 5.0}, "(power)"),
+    ({"preset": "lcspc-sim"}, "(preset)"),
+    ({"ambient": 0.01, "cycles": 1000}, "(ambient, cycles)"),
+    ({"mesh": "builtin:cup", "albedo": 0.5}, "(albedo, mesh)"),
+])
+def test_a_changed_sensor_blocks_the_resume(arun, tmp_path, change, keys):
+    arun(interrupt(make_cfg(tmp_path)))
+    status, refused = arun(restart(make_cfg(tmp_path, **change)))
+    said = f"the rig's [sensor] differs from the one scan 'mix' was planned with {keys}"
+    assert status["state"] == "paused" and said in status["reason"], status
+    assert refused is not None and said in refused and "abort the scan" in refused
+    assert CaptureReader(tmp_path / "caps" / "mix").state == "running"  # nothing was written meanwhile
+
+
+def test_the_same_sensor_resumes(arun, tmp_path):
+    """Keys that change neither the model nor the scene (the noise seed, the frame timeout) do not block."""
+    arun(interrupt(make_cfg(tmp_path)))
+    status, refused = arun(restart(make_cfg(tmp_path, seed=7, frame_timeout_s=2.0)))
+    assert refused is None and "interrupted at pose" in status["reason"], status
+
+
+def test_hand_eye_and_sensor_changed_together_are_both_named(arun, tmp_path):
+    arun(interrupt(make_cfg(tmp_path)))
+    status, refused = arun(restart(make_cfg(tmp_path, hand_eye_z=0.04, power=2.0)))
+    assert "[arm] hand_eye differs" in refused and "[sensor] differs" in refused and "(power)" in refused
