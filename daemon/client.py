@@ -19,6 +19,10 @@ class ControlError(SpadscanError):
     """The daemon is unreachable, did not answer in time, or refused a request (its reason is the message)."""
 
 
+class ControlTimeout(ControlError):
+    """The daemon did not answer within the caller's timeout (for `wait`, the scan may simply still be running)."""
+
+
 def default_socket_path() -> str:
     """$SPADSCAN_SOCKET, else $XDG_RUNTIME_DIR/spadscan.sock, else /tmp/spadscan-<uid>.sock."""
     env = os.environ.get("SPADSCAN_SOCKET")
@@ -50,7 +54,7 @@ def request(socket_path, message: dict, timeout_s: float | None = 10.0) -> dict:
             sock.sendall((json.dumps(message) + "\n").encode())
             return _read_reply(sock, path, op)
         except socket.timeout:
-            raise ControlError(f"daemon on {path} did not answer {op!r} within {timeout_s:g} s") from None
+            raise ControlTimeout(f"daemon on {path} did not answer {op!r} within {timeout_s:g} s") from None
         except OSError as exc:
             raise ControlError(f"lost the connection to the daemon on {path} during {op!r}: "
                                f"{exc.strerror or exc}") from None

@@ -4,7 +4,9 @@
     spadscan ctl scan --name bunny --views 128  start a scan; it is written to <captures>/bunny/
     spadscan ctl pause | resume | abort         pause after the pose in flight, continue, or stop for good
     spadscan ctl wait bunny                     block until the scan is complete (exit 0) or aborted (exit 1);
-                                                on a terminal a progress bar (pose i/n) runs on stderr
+                                                on a terminal a progress bar (pose i/n) runs on stderr, otherwise
+                                                a line on stderr says why whenever the scan pauses; Ctrl-C stops
+                                                only the waiting, the scan goes on
     spadscan ctl shutdown                       stop the daemon (a scan in flight stays resumable)
 
 Units: metres, seconds, degrees. The socket defaults to $SPADSCAN_SOCKET, else $XDG_RUNTIME_DIR/spadscan.sock, else
@@ -122,12 +124,13 @@ def run(args) -> int:
 
 
 def _wait(path: str, name: str, timeout: float | None) -> int:
-    from spadscan.daemon.client import call
-
-    if sys.stderr.isatty():
-        reply = wait_with_progress(path, name, timeout, sys.stderr)
-    else:
-        reply = call(path, "wait", timeout, name=name)
+    try:
+        reply = wait_for_scan(path, name, timeout, sys.stderr)
+    except KeyboardInterrupt:
+        # Only this client stops waiting: the daemon drops the abandoned request and the scan goes on.
+        print(f"spadscan: interrupted; scan {name!r} goes on in the daemon (`spadscan ctl wait {name}` waits again, "
+              f"`spadscan ctl abort` stops it)", file=sys.stderr)
+        return 130
     reply.pop("ok", None)
     print(json.dumps(reply))
     if reply.get("state") != "complete":
@@ -136,15 +139,14 @@ def _wait(path: str, name: str, timeout: float | None) -> int:
     return 0
 
 
-def wait_with_progress(path: str, name: str, timeout: float | None, stream) -> dict:
-    """The `wait` reply for scan `name`, with a progress bar (poses published / planned, state, pause reason) on
-    `stream` meanwhile: the blocking `wait` request runs on a thread while `status` is polled every
-    PROGRESS_POLL_S seconds."""
+def wait_for_scan(path: str, name: str, timeout: float | None, stream) -> dict:
+    """The `wait` reply for scan `name`. The blocking `wait` request runs on a thread while `status` is polled every
+    PROGRESS_POLL_S seconds: on a terminal `stream` shows a progress bar (poses published / planned, state, pause
+    reason); otherwise it gets one line each time the scan pauses, so that a script's log says why it blocks. A
+    `wait` that runs out of time says how far the scan got."""
     import threading
 
-    from tqdm import tqdm  # only here: `ctl status` and friends stay light
-
-    from spadscan.daemon.client import ControlError, call
+    from spadscan.daemon.client import ControlTimeout, call
 
     outcome: dict = {}
 
@@ -156,27 +158,92 @@ def wait_with_progress(path: str, name: str, timeout: float | None, stream) -> d
 
     waiter = threading.Thread(target=wait, name="ctl wait", daemon=True)
     waiter.start()
-    bar = None
+    shown = ProgressBar(name, stream) if stream.isatty() else PauseNotes(name, stream)
     try:
+        waiter.join(PROGRESS_POLL_S)  # a scan that is already over needs no status
         while waiter.is_alive():
-            try:
-                status = call(path, "status", 10.0)
-            except ControlError:  # the wait request says what went wrong
-                status = {}
-            if status.get("scan") == name:
-                if bar is None:
-                    bar = tqdm(total=status["poses"], desc=name, unit="pose", file=stream, dynamic_ncols=True)
-                bar.n = status["pose"]
-                reason = status.get("reason")
-                bar.set_postfix_str(status["state"] + (f": {reason}" if reason else ""), refresh=False)
-                bar.refresh()
+            shown.update(_status(path))
             waiter.join(PROGRESS_POLL_S)
-        if bar is not None and outcome.get("reply", {}).get("state") == "complete":
-            bar.n = bar.total
-            bar.set_postfix_str("complete", refresh=False)
+        shown.finish(outcome.get("reply", {}).get("state"))
     finally:
-        if bar is not None:
-            bar.close()
-    if "error" in outcome:
-        raise outcome["error"]
+        shown.close()
+    error = outcome.get("error")
+    if isinstance(error, ControlTimeout):
+        raise _still_running(path, name, timeout) or error
+    if error is not None:
+        raise error
     return outcome["reply"]
+
+
+def _status(path: str) -> dict:
+    """The daemon's status, or {} when it does not answer (the `wait` request then says what went wrong)."""
+    from spadscan.daemon.client import ControlError, call
+
+    try:
+        return call(path, "status", 10.0)
+    except ControlError:
+        return {}
+
+
+def _still_running(path: str, name: str, timeout: float):
+    """The error for a `wait` that timed out on a scan that is still going (None when the daemon says otherwise)."""
+    from spadscan.daemon.client import ControlError
+
+    status = _status(path)
+    if status.get("scan") != name:
+        return None
+    reason = status.get("reason")
+    return ControlError(f"scan {name!r} still {status.get('state')} at pose {status.get('progress')} after "
+                        f"{timeout:g} s" + (f" ({reason})" if reason else ""))
+
+
+class PauseNotes:
+    """Without a terminal: one line on the stream each time scan `name` pauses, with the reason."""
+
+    def __init__(self, name: str, stream):
+        self.name, self.stream = name, stream
+        self.noted = False
+
+    def update(self, status: dict) -> None:
+        paused = status.get("scan") == self.name and status.get("state") == "paused"
+        if paused and not self.noted:
+            print(f"spadscan: scan {self.name!r} paused at pose {status.get('progress')}: "
+                  f"{status.get('reason') or 'no reason given'} (`spadscan ctl resume` continues it)",
+                  file=self.stream, flush=True)
+        self.noted = paused
+
+    def finish(self, state: str | None) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class ProgressBar:
+    """On a terminal: a progress bar of scan `name` (tqdm, imported only here: `ctl status` and friends stay
+    light)."""
+
+    def __init__(self, name: str, stream):
+        self.name, self.stream = name, stream
+        self.bar = None
+
+    def update(self, status: dict) -> None:
+        if status.get("scan") != self.name:
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=status["poses"], desc=self.name, unit="pose", file=self.stream, dynamic_ncols=True)
+        self.bar.n = status["pose"]
+        reason = status.get("reason")
+        self.bar.set_postfix_str(status["state"] + (f": {reason}" if reason else ""), refresh=False)
+        self.bar.refresh()
+
+    def finish(self, state: str | None) -> None:
+        if self.bar is not None and state == "complete":
+            self.bar.n = self.bar.total
+            self.bar.set_postfix_str("complete", refresh=False)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

@@ -10,6 +10,7 @@ import json
 import os
 import pty
 import select
+import signal
 import socketserver
 import struct
 import subprocess
@@ -26,22 +27,29 @@ POSES = 6
 
 
 class FakeDaemon(socketserver.ThreadingUnixStreamServer):
-    """Answers `status` with a scan that advances one pose per status request, and `wait` once it is done."""
+    """Answers `status` with a scan that advances `step` poses per status request (after `paused_polls` requests
+    that find it paused), and `wait` once it is done."""
 
     daemon_threads = True
 
     def __init__(self, path: str):
-        self.pose, self.step = 0, 1
+        self.pose, self.step, self.paused_polls = 0, 1, 0
         self.requests: list[str] = []
         self.lock = threading.Lock()
+        self.closing = False
         super().__init__(path, Handler)
 
     def status(self) -> dict:
         with self.lock:
-            self.pose = min(POSES, self.pose + self.step)
+            paused = self.paused_polls > 0
+            if paused:
+                self.paused_polls -= 1
+            else:
+                self.pose = min(POSES, self.pose + self.step)
             pose = self.pose
-        return {"ok": True, "state": "scanning" if pose < POSES else "idle", "scan": "mug", "pose": pose,
-                "poses": POSES, "reason": None}
+        state = "paused" if paused else "scanning" if pose < POSES else "idle"
+        return {"ok": True, "state": state, "scan": "mug", "pose": pose, "poses": POSES,
+                "progress": f"{pose}/{POSES}", "reason": "sensor silent: no frame" if paused else None}
 
 
 class Handler(socketserver.StreamRequestHandler):
@@ -51,7 +59,7 @@ class Handler(socketserver.StreamRequestHandler):
         if req["op"] == "status":
             reply = self.server.status()
         elif req["op"] == "wait":
-            while self.server.pose < POSES:
+            while self.server.pose < POSES and not self.server.closing:
                 time.sleep(0.01)
             reply = {"ok": True, "name": req["name"], "state": "complete"}
         else:
@@ -65,6 +73,7 @@ def fake_daemon(tmp_path):
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01})
     thread.start()
     yield server, str(tmp_path / "ctl.sock")
+    server.closing = True  # ends a `wait` still pending
     server.shutdown()
     server.server_close()
     thread.join()
@@ -104,6 +113,46 @@ def test_wait_without_a_terminal_prints_only_the_result(fake_daemon, capsys):
     out, err = capsys.readouterr()
     assert json.loads(out) == {"name": "mug", "state": "complete"} and err == ""
     assert server.requests == ["wait"]
+
+
+def test_wait_without_a_terminal_says_once_why_the_scan_paused(fake_daemon, monkeypatch, capsys):
+    server, path = fake_daemon
+    server.pose, server.paused_polls = 2, 5
+    monkeypatch.setattr("spadscan.commands.ctl.PROGRESS_POLL_S", 0.01)
+    assert main(["ctl", "--socket", path, "--timeout", "5", "wait", "mug"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out) == {"name": "mug", "state": "complete"}
+    assert err == "spadscan: scan 'mug' paused at pose 2/6: sensor silent: no frame (`spadscan ctl resume` " \
+                  "continues it)\n", err
+
+
+def test_wait_that_runs_out_of_time_says_how_far_the_scan_got(fake_daemon, monkeypatch, capsys):
+    server, path = fake_daemon
+    server.pose, server.step = 3, 0  # a healthy scan that is not done in time
+    monkeypatch.setattr("spadscan.commands.ctl.PROGRESS_POLL_S", 0.01)
+    assert main(["ctl", "--socket", path, "--timeout", "0.2", "wait", "mug"]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and err == "spadscan: error: scan 'mug' still scanning at pose 3/6 after 0.2 s\n", err
+
+
+def test_ctrl_c_during_wait_says_the_scan_goes_on(fake_daemon):
+    server, path = fake_daemon
+    server.step = 0
+    proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path, "wait", "mug"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while "wait" not in server.requests and time.monotonic() < deadline:
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and out == ""
+    assert err == "spadscan: interrupted; scan 'mug' goes on in the daemon (`spadscan ctl wait mug` waits again, " \
+                  "`spadscan ctl abort` stops it)\n", err
 
 
 def imported(importtime_output: str) -> set[str]:
