@@ -40,4 +40,31 @@ def check_threads(threads) -> int:
     return threads
 
 
-__all__ = ["ENV", "machine_cores", "threads_per_job", "check_threads"]
+def inherited_threads(environ) -> tuple[int | None, str | None]:
+    """(the threads `environ`'s OMP_NUM_THREADS asks for, or None when unset or unusable; a warning when it is set
+    but not a whole number >= 1, which torch would reject or misread)."""
+    raw = environ.get(ENV)
+    if not raw or not raw.strip():
+        return None, None
+    try:
+        return check_threads(int(raw)), None
+    except (ValueError, ConfigError):
+        return None, f"{ENV}={raw!r} in the worker's environment is not a whole number in [1, 1024]: ignored"
+
+
+def oversubscribed(processes: int, threads: int, cores: int | None = None) -> str | None:
+    """A one-line warning when `processes` jobs of `threads` threads each ask for more threads than there are
+    `cores` (default: this machine's), else None."""
+    cores = cores or machine_cores()
+    if processes * threads <= cores:
+        return None
+    if threads > 1:
+        advice = (f"OpenMP threads that lose their core stall each other, each step 20-40x slower; use --threads "
+                  f"{max(1, cores // processes)}")
+    else:
+        advice = f"the jobs take turns on the cores; --processes {cores} runs as many at once as there are cores"
+    return (f"{processes} job process(es) x {threads} CPU thread(s) = {processes * threads} threads on "
+            f"{cores} cores: {advice}")
+
+
+__all__ = ["ENV", "machine_cores", "threads_per_job", "check_threads", "inherited_threads", "oversubscribed"]

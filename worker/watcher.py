@@ -93,6 +93,18 @@ class ScanReport:
     """Queued although their manifest could not be read (their job will fail with the reason)."""
 
 
+def check_root(root) -> Path:
+    """`root` as a Path when it can be a captures root: a folder that is not itself a capture (a worker pointed at
+    one capture would find no scans in it and leave its queue inside the capture)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ConfigError(f"{root}: captures root is not a folder")
+    if (root / MANIFEST).is_file():
+        parent = root.parent if root.name else root.resolve().parent
+        raise ConfigError(f"{root} holds {MANIFEST}: it is a capture, not a captures root (use --root {parent})")
+    return root
+
+
 def scan_folders(root: Path) -> list[Path]:
     """Children of the root that hold a scan manifest, sorted by name; hidden folders (the queue) are left out."""
     root = Path(root)

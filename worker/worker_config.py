@@ -9,8 +9,9 @@ from typing import Mapping
 
 from spadscan.protocol.errors import ConfigError
 
-from .threads import ENV as THREADS_ENV, check_threads, machine_cores, threads_per_job
-from .watcher import JobOptions
+from .threads import (ENV as THREADS_ENV, check_threads, inherited_threads, machine_cores, oversubscribed,
+                      threads_per_job)
+from .watcher import JobOptions, check_root
 
 
 @dataclass
@@ -23,6 +24,9 @@ class WorkerConfig:
     """Jobs run at once (one child process each)."""
     options: JobOptions = field(default_factory=JobOptions)
     """Preset, budget, device, seed of the jobs this worker queues."""
+    options_given: tuple[str, ...] | None = None
+    """The job options (jobs.CHANGEABLE) that were asked for (given on the command line); queued jobs whose own
+    values of these differ are named at start-up, since they keep their own. None: all of them."""
     queue_dir: Path | None = None
     """Queue folder; default `<root>/.queue`."""
     poll_s: float = 2.0
@@ -52,9 +56,32 @@ class WorkerConfig:
         env = {}
         if self.threads is not None:
             env[THREADS_ENV] = str(self.threads)
-        elif not environ.get(THREADS_ENV):
+        elif inherited_threads(environ)[0] is None:  # unset, or a value torch cannot use: replaced
             env[THREADS_ENV] = str(threads_per_job(self.processes))
         return {**env, **(self.child_env or {})}
+
+    def job_threads(self, environ: Mapping[str, str] | None = None) -> int | None:
+        """CPU threads each job process gets (None when child_env sets something that is not a number)."""
+        environ = os.environ if environ is None else environ
+        value = self.job_env(environ).get(THREADS_ENV) or environ.get(THREADS_ENV, "")
+        try:
+            return int(value)
+        except ValueError:
+            return None
+
+    def threads_warnings(self, environ: Mapping[str, str] | None = None) -> list[str]:
+        """One-line warnings about the threads per job: an unusable OMP_NUM_THREADS that was ignored, and jobs that
+        together ask for more threads than there are cores."""
+        environ = os.environ if environ is None else environ
+        warnings = []
+        bad = inherited_threads(environ)[1]
+        if bad and self.threads is None and THREADS_ENV not in (self.child_env or {}):
+            warnings.append(bad)
+        threads = self.job_threads(environ)
+        over = oversubscribed(self.processes, threads) if threads else None
+        if over:
+            warnings.append(over)
+        return warnings
 
     def threads_note(self, environ: Mapping[str, str] | None = None) -> str:
         """How many CPU threads each job gets and why, for the worker's start-up line."""
@@ -64,7 +91,7 @@ class WorkerConfig:
             why = "set by child_env"
         elif self.threads is not None:
             why = "set by --threads"
-        elif environ.get(THREADS_ENV):
+        elif inherited_threads(environ)[0] is not None:
             why = "the worker's own environment"
         else:
             why = f"{machine_cores()} cores shared out among {self.processes} job process(es)"
@@ -80,6 +107,5 @@ class WorkerConfig:
         if self.threads is not None:
             check_threads(self.threads)
         self.options.check()
-        if not Path(self.root).is_dir():
-            raise ConfigError(f"{self.root}: captures root is not a folder")
+        check_root(self.root)
         return self

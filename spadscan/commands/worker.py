@@ -33,7 +33,7 @@ import argparse
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", required=True, metavar="CAPTURES", help="captures root whose children are scans")
-    parser.add_argument("--processes", type=int, default=1, metavar="N", help="jobs run at once (default: 1)")
+    parser.add_argument("--processes", type=int, default=None, metavar="N", help="jobs run at once (default: 1)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="CPU threads per job, given to each job as OMP_NUM_THREADS; default: the worker's own "
                              "OMP_NUM_THREADS when set, else the machine's cores shared out among --processes, "
@@ -50,14 +50,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="random seed of the reconstructions (default: 0)")
     parser.add_argument("--once", action="store_true",
                         help="queue the complete scans there are, run until nothing is queued or running, exit")
-    parser.add_argument("--poll-s", type=float, default=2.0, metavar="S",
+    parser.add_argument("--poll-s", type=float, default=None, metavar="S",
                         help="seconds between looks at the root and the queue (default: 2)")
-    parser.add_argument("--lease-s", type=float, default=60.0, metavar="S",
+    parser.add_argument("--lease-s", type=float, default=None, metavar="S",
                         help="a job whose worker has not renewed its lease for S seconds is taken over (default: 60)")
-    parser.add_argument("--max-attempts", type=int, default=3, metavar="N",
+    parser.add_argument("--max-attempts", type=int, default=None, metavar="N",
                         help="tries of a job whose process or worker died before it fails (default: 3)")
     parser.add_argument("--queue", default=None, metavar="DIR", help="queue folder (default: ROOT/.queue)")
-    parser.add_argument("--status", action="store_true", help="list the jobs and exit")
+    parser.add_argument("--status", action="store_true",
+                        help="list the jobs and exit (changes nothing; only --queue, --json and --lease-s go with "
+                             "it); a running job whose worker seems gone shows as 'stale' or 'running?'")
     parser.add_argument("--json", action="store_true", help="with --status: print JSON instead of a table")
     parser.add_argument("--retry-failed", action="store_true",
                         help="put every failed job back in the queue with a fresh attempt count, and exit; "
@@ -68,37 +70,66 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 OPTION_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "device": "--device", "seed": "--seed"}
 """Job options that can be given on the command line, and their flags. None in `args` means not given."""
 
+RUN_FLAGS = {"once": "--once", "processes": "--processes", "threads": "--threads", "poll_s": "--poll-s",
+             "max_attempts": "--max-attempts"}
+"""Flags that only say how the worker runs jobs: meaningless with --status and --retry-failed, which run none."""
+
+DEFAULTS = {"processes": 1, "poll_s": 2.0, "lease_s": 60.0, "max_attempts": 3}
+"""Values of the flags left out (their default is None in `args`, so that a flag given can be told from one not)."""
+
 
 def run(args) -> int:
     import asyncio
     from pathlib import Path
 
-    from spadscan.protocol.errors import ConfigError
     from spadscan.worker.pool import run_worker
     from spadscan.worker.queue import Queue
-    from spadscan.worker.watcher import JobOptions
+    from spadscan.worker.watcher import JobOptions, check_root
     from spadscan.worker.worker_config import WorkerConfig
 
-    root = Path(args.root)
-    if not root.is_dir():
-        raise ConfigError(f"{root}: captures root is not a folder")
+    _refuse_combinations(args)
+    root = check_root(args.root)
     queue_dir = Path(args.queue) if args.queue else root / ".queue"
-    if args.status:
-        return _print_status(Queue(queue_dir, lease_s=args.lease_s), args.json)
+    lease_s = DEFAULTS["lease_s"] if args.lease_s is None else args.lease_s
+    if args.status:  # a query: a root without a queue yet is listed as empty, not given one
+        return _print_status(Queue(queue_dir, lease_s=lease_s, create=False), args.json)
     given = _given_options(args)
     if args.retry_failed:
-        return _retry_failed(Queue(queue_dir), given, args.preset)
+        return _retry_failed(Queue(queue_dir, create=False), given, args.preset)
     options = JobOptions(**({"preset": args.preset} if args.preset else {}), **given)
+    value = {key: DEFAULTS[key] if getattr(args, key) is None else getattr(args, key) for key in DEFAULTS}
     config = WorkerConfig(
-        root=root, processes=args.processes, queue_dir=queue_dir, poll_s=args.poll_s, lease_s=args.lease_s,
-        max_attempts=args.max_attempts, once=args.once, threads=args.threads, options=options,
+        root=root, processes=value["processes"], queue_dir=queue_dir, poll_s=value["poll_s"], lease_s=lease_s,
+        max_attempts=value["max_attempts"], once=args.once, threads=args.threads, options=options,
+        options_given=tuple(given),
     )
     settled = asyncio.run(run_worker(config))  # checks the config (options included) before queuing anything
     failed = sorted(j for j, s in settled.items() if s == "failed")
     if args.once:
         done = sum(1 for s in settled.values() if s == "done")
-        print(f"spadscan worker: {done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else ""))
+        kept = sum(1 for s in settled.values() if s == "kept")
+        print(f"spadscan worker: {done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else "")
+              + (f", {kept} not run (their results were already there)" if kept else ""))
     return 1 if args.once and failed else 0
+
+
+def _refuse_combinations(args) -> None:
+    """Flags that would be ignored in this combination are an error, not a surprise later."""
+    from spadscan.protocol.errors import ConfigError
+
+    if args.json and not args.status:
+        raise ConfigError("--json goes only with --status (it prints the job list as JSON)")
+    if args.status:
+        extra = {**RUN_FLAGS, **OPTION_FLAGS, "preset": "--preset", "retry_failed": "--retry-failed"}
+        action = "--status only lists the jobs"
+    elif args.retry_failed:
+        extra = {**RUN_FLAGS, "lease_s": "--lease-s"}
+        action = "--retry-failed only queues failed jobs again and exits (run the worker after it)"
+    else:
+        return
+    given = [flag for key, flag in extra.items() if getattr(args, key) not in (None, False)]
+    if given:
+        raise ConfigError(f"{action}: {', '.join(given)} {'does' if len(given) == 1 else 'do'} not go with it")
 
 
 def _given_options(args) -> dict:
@@ -139,7 +170,7 @@ def _print_status(queue, as_json: bool) -> int:
         holder = r.holder or "-"
         if r.heartbeat_age_s is not None:
             holder += f" ({r.heartbeat_age_s:.0f} s ago)"
-        table.append((r.id, r.state, str(r.attempts), holder, _status_detail(r)))
+        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, _status_detail(r)))
     widths = [max(len(row[i]) for row in table) for i in range(4)]
     for row in table:
         print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4])
@@ -149,10 +180,15 @@ def _print_status(queue, as_json: bool) -> int:
 
 
 def _status_detail(row) -> str:
-    """The last column of a --status row: a done job's result folder, else its last error; then damaged files."""
+    """The last column of a --status row: a done job's result folder, else its last error; then damaged files.
+    A stale running job's row says why first."""
     if row.state == "done":
         detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
+        if row.result and row.kept:
+            detail += " (already there when the job was claimed: kept, not run)"
         notes = [] if not row.result else row.notes
     else:
         detail, notes = row.error or "-", row.notes
+        if row.stale:
+            detail, notes = row.stale, [n for n in [row.error, *notes] if n]
     return "; ".join([detail, *notes])

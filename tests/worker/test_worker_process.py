@@ -259,6 +259,45 @@ def test_status_lists_jobs_whose_queue_files_are_damaged(tmp_path, capsys):
     assert rows["ok-fast"]["notes"] == []
 
 
+def test_status_marks_running_jobs_whose_worker_seems_gone(tmp_path, capsys):
+    """A dead holder on this machine or an expired lease: 'stale'; missed heartbeats within the lease: 'running?'."""
+    from spadscan.worker.holder import Holder
+    from spadscan.worker.jobs import Job
+
+    root = tmp_path / "captures"
+    root.mkdir()
+    queue = Queue.for_root(root, lease_s=60)
+    names = ("dead", "expired", "silent", "live")
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    elsewhere = Holder("another-host", 4242, "other-boot", "pid:[1]", "1")  # never judged alive or dead from here
+    holders = {"dead": Holder(**{**Holder.current().to_dict(), "pid": gone.pid, "pid_start": ""}),
+               "expired": elsewhere, "silent": elsewhere, "live": Holder.current()}
+    claims = {}
+    for name in names:  # one at a time: a claim takes the first queued job by name
+        make_scan(root, name)
+        queue.enqueue(Job(id=f"{name}-fast", scan=name))
+        claims[name] = queue.claim(holders[name])
+    now = time.time()
+    os.utime(claims["expired"].path, (now - 90, now - 90))
+    os.utime(claims["silent"].path, (now - 40, now - 40))
+    assert cli_main(["worker", "--root", str(root), "--status"]) == 0
+    rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()}
+    assert rows["dead-fast"].split()[1] == "stale" and f"pid {gone.pid} died mid-job" in rows["dead-fast"]
+    assert rows["expired-fast"].split()[1] == "stale" and "stopped renewing its lease (90 s > 60 s)" in rows[
+        "expired-fast"] and "the next worker to look at the queue takes it over" in rows["expired-fast"]
+    assert rows["silent-fast"].split()[1] == "running?"
+    assert "worker silent for 40 s (its lease of 60 s has not expired yet)" in rows["silent-fast"]
+    assert rows["live-fast"].split()[1] == "running" and rows["live-fast"].rstrip().endswith("-")
+    assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
+    by_id = {r["id"]: r for r in json.loads(capsys.readouterr().out)}
+    assert {k: (r["state"], r["shown_state"]) for k, r in by_id.items()} == {
+        "dead-fast": ("running", "stale"), "expired-fast": ("running", "stale"),
+        "silent-fast": ("running", "running?"), "live-fast": ("running", "running")}
+    assert by_id["live-fast"]["stale"] is None and "died mid-job" in by_id["dead-fast"]["stale"]
+    assert queue.counts()["running"] == 4, "a status query takes nothing over"
+
+
 def test_the_command_refuses_a_missing_root_and_an_unknown_preset(tmp_path, capsys):
     assert cli_main(["worker", "--root", str(tmp_path / "nope"), "--once"]) == 1
     assert "captures root is not a folder" in capsys.readouterr().err

@@ -92,3 +92,48 @@ def test_help_says_what_threads_does(capsys):
         cli_main(["worker", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "--threads N" in text and "OMP_NUM_THREADS" in text and "shared out among --processes" in text
+
+
+def two_cores(monkeypatch):
+    import spadscan.worker.threads as threads
+
+    monkeypatch.setattr(threads, "machine_cores", lambda: 2)
+
+
+@pytest.mark.parametrize("processes, threads, environ, total", [
+    (2, 4, {}, 8),  # --processes 2 --threads 4
+    (2, None, {ENV: "8"}, 16),  # an inherited OMP_NUM_THREADS
+    (4, 1, {}, 4),  # more single-threaded jobs than cores
+])
+def test_more_threads_than_cores_is_a_warning(monkeypatch, processes, threads, environ, total):
+    two_cores(monkeypatch)
+    config = WorkerConfig(root=Path("."), processes=processes, threads=threads)
+    (warning,) = config.threads_warnings(environ)
+    assert warning.startswith(f"{processes} job process(es) x {total // processes} CPU thread(s) = {total} threads "
+                              "on 2 cores")
+    assert ("20-40x slower; use --threads 1" in warning) == (total // processes > 1)
+
+
+def test_threads_that_fit_the_cores_are_no_warning(monkeypatch):
+    two_cores(monkeypatch)
+    assert WorkerConfig(root=Path("."), processes=2).threads_warnings({}) == []
+    assert WorkerConfig(root=Path("."), processes=1, threads=2).threads_warnings({ENV: "8"}) == []
+
+
+@pytest.mark.parametrize("bad", ["abc", "0", "-1", "2.5"])
+def test_an_unusable_omp_num_threads_is_ignored_with_a_warning(monkeypatch, bad):
+    two_cores(monkeypatch)
+    config = WorkerConfig(root=Path("."), processes=2)
+    assert config.job_env({ENV: bad}) == {ENV: "1"}, "the jobs get the cores shared out instead"
+    assert config.threads_warnings({ENV: bad}) == [
+        f"{ENV}={bad!r} in the worker's environment is not a whole number in [1, 1024]: ignored"]
+    assert config.threads_note({ENV: bad}).startswith("1 CPU threads per job (OMP_NUM_THREADS=1: 2 cores shared")
+    assert WorkerConfig(root=Path("."), processes=2, threads=1).threads_warnings({ENV: bad}) == [], \
+        "--threads given: the environment's value does not matter"
+
+
+def test_the_worker_logs_its_thread_warnings(tmp_path, monkeypatch, arun):
+    monkeypatch.setenv(ENV, "abc")
+    reports, lines = run_jobs(tmp_path, monkeypatch, arun, processes=2)
+    assert threads_seen(reports) == [str(max(1, machine_cores() // 2))] * 2
+    assert f"warning: {ENV}='abc' in the worker's environment is not a whole number in [1, 1024]: ignored" in lines
