@@ -155,7 +155,8 @@ class ScanRunner:
         if self.state == "scanning":
             self._pause_requested = True
             self._set_state("pausing")
-            log.info("scan %s: pause requested at pose %s", self.job.name, self._progress())
+            log.info("scan %s: pause requested at pose %s; pausing at pose %s, once the pose in flight is published",
+                     self.job.name, self._progress(), self._pause_at())
         elif self.state not in ("pausing", "paused"):
             raise ConfigError(f"nothing to pause (daemon is {self.state})")
         return self.status()
@@ -217,6 +218,8 @@ class ScanRunner:
                        progress=self._progress(), frames=job.frames, frames_per_pose=job.scan.frames_per_pose,
                        dropped_frames=job.dropped, rate_hz=round(job.rate_hz(), 2), reason=job.reason,
                        elapsed_s=round(time.monotonic() - job.started, 3))
+            if self.state == "pausing":
+                out["pausing_at"] = self._pause_at()
         if self.finished:
             name = next(reversed(self.finished))
             out["last_scan"] = {"name": name, "state": self.finished[name]}
@@ -294,6 +297,7 @@ class ScanRunner:
                 self._check_end()
                 if self._pause_requested:
                     break
+                job.in_flight = i
                 t_stop = await self._move(job, i)
                 if job.scan.settle_s > 0:
                     await asyncio.sleep(job.scan.settle_s)
@@ -310,13 +314,16 @@ class ScanRunner:
                 pending = asyncio.ensure_future(self._io(self._publish, job.writer, _measurements(job, i, frames,
                                                                                                    arm)))
         finally:
-            if pending is not None:  # let the publish land before anything else touches the writer
-                try:
-                    await asyncio.shield(pending)
-                finally:
-                    if pending.done() and not pending.cancelled() and pending.exception() is None:
-                        job.record_progress(job.writer)
-                        self._notify()
+            try:
+                if pending is not None:  # let the publish land before anything else touches the writer
+                    try:
+                        await asyncio.shield(pending)
+                    finally:
+                        if pending.done() and not pending.cancelled() and pending.exception() is None:
+                            job.record_progress(job.writer)
+                            self._notify()
+            finally:
+                job.in_flight = None
 
     def _check_end(self) -> None:
         """Honour an abort or shutdown even if its cancellation was absorbed by a device call that finished at the
@@ -455,6 +462,13 @@ class ScanRunner:
 
     def _progress(self) -> str:
         return f"{self.job.next_pose}/{self.job.n_poses}" if self.job else "-"
+
+    def _pause_at(self) -> str:
+        """The progress a requested pause stops at: a pose already in flight is finished and published first, so
+        the count can be one or two ahead of the published poses (one waiting to be written, one being captured)."""
+        job = self.job
+        at = job.next_pose if job.in_flight is None else max(job.next_pose, job.in_flight + 1)
+        return f"{at}/{job.n_poses}"
 
     async def _io(self, fn, *args, **kwargs):
         """Run capture I/O on the writer thread (one thread: writes never interleave)."""

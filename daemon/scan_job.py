@@ -74,6 +74,8 @@ class ScanJob:
     reason: str | None = None
     blocked: str | None = None
     """Why this scan cannot resume (e.g. the rig's hand-eye changed); None when it can."""
+    in_flight: int | None = None
+    """The pose being captured, or captured and not yet published (the runner finishes it before it pauses)."""
     arm_fix: str | None = None
     """What the arm needs before its next move after a fault: 'reconnect' (lost link), 'clear' (arm fault) or None."""
     started: float = field(default_factory=time.monotonic)
