@@ -220,13 +220,20 @@ def publish(scratch: Path, final: Path) -> tuple[Path, Path | None]:
     """Move a finished scratch folder into place by rename. An earlier folder of the same job is never deleted: it
     is renamed aside to `<job id>.replaced-<UTC time>` first. Returns (final, the earlier folder's new path or
     None)."""
-    aside = None
-    if final.exists():
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        aside = final.with_name(f"{final.name}.replaced-{stamp}-{secrets.token_hex(2)}")
-        os.rename(final, aside)
+    aside = move_aside(final)
     os.rename(scratch, final)
     return final, aside
+
+
+def move_aside(final: Path) -> Path | None:
+    """Rename a results folder to `<name>.replaced-<UTC time>-<random>` beside it; returns the new path, or None
+    when there is no such folder."""
+    if not final.exists():
+        return None
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    aside = final.with_name(f"{final.name}.replaced-{stamp}-{secrets.token_hex(2)}")
+    os.rename(final, aside)
+    return aside
 
 
 def run_job(job: Job, root: Path, *, recon: ReconFn | None = None) -> Path:

@@ -185,7 +185,7 @@ class Worker:
             return
         self.settled[claim.job.id] = "kept"
         self.log(f"{claim.job.id}: not run, {existing} already holds a result; kept it and recorded the job as done "
-                 "(move that folder away and queue the job again to reconstruct the scan again)")
+                 f"(`spadscan worker --redo {claim.job.id}` reconstructs it again, keeping this one aside)")
 
     def _heartbeat(self) -> None:
         now = time.monotonic()

@@ -405,11 +405,19 @@ class Queue:
         """Put failed jobs (one, or all; with `preset`, only those of that preset) back in the queue with a fresh
         attempt count. `changes`: job options (jobs.CHANGEABLE: budget_s, steps, device, seed) they are queued
         again with; the options not named keep the values the job was queued with. Returns the ids moved."""
+        return self.requeue("failed", job_id, changes=changes, preset=preset)
+
+    def requeue(self, state: str, job_id: str | None = None, *, changes: dict | None = None,
+                preset: str | None = None) -> list[str]:
+        """`retry_failed` for the jobs in `state` ('failed', or 'done' to run finished jobs again: their results
+        are the caller's to move aside first, since a worker keeps a result it finds)."""
+        if state not in ("failed", "done"):
+            raise ConfigError(f"only failed or done jobs can be queued again, not {state} ones")
         bad = sorted(set(changes or {}) - set(CHANGEABLE))
         if bad:
             raise ConfigError(f"cannot change {', '.join(bad)} of a queued job (only {', '.join(CHANGEABLE)})")
         moved = []
-        for p in sorted((self.path / "failed").glob("*.json")):
+        for p in sorted((self.path / state).glob("*.json")):
             if job_id is not None and p.stem != job_id:
                 continue
             if preset is not None and _stored(p).get("preset") != preset:
@@ -422,8 +430,8 @@ class Queue:
         return moved
 
     def _requeue_changed(self, path: Path, changes: dict) -> bool:
-        """Queue the failed job file `path` again as a new job file with `changes` applied; False when another
-        process moved it first.
+        """Queue the failed (or done) job file `path` again as a new job file with `changes` applied; False when
+        another process moved it first.
 
         Job files are never rewritten, so the changed job is a new file, and it becomes the job's registered one
         (ids/) before it is queued: a crash part-way leaves in tmp/ exactly one registered file, which `repair`

@@ -7,16 +7,28 @@ machine) and retried up to --max-attempts times. A malformed capture fails its j
 Results go to <scan>/recon/<job>/ (mesh.ply, report.json, pictures, job.log). Ctrl-C or SIGTERM stops the job
 processes and gives their jobs back to the queue.
 
+A result is never replaced in silence: a job whose <scan>/recon/<job>/ already holds one (from another queue, or
+from before the queue was deleted) is not run; it is recorded as done, and the log and --status say so. To
+reconstruct finished scans again, `--redo JOB...` moves each one's results folder aside to
+<scan>/recon/<job>.replaced-<UTC time>/ and queues the job again.
+
 Options are frozen into each job when it is queued: --budget-s, --steps, --device and --seed apply to the scans a
-worker queues, and a job already queued (by this worker or an earlier one) runs with its own. To run failed jobs
-again with other options, give them with --retry-failed: `--retry-failed --device cpu` queues every failed job again
-with device cpu, and the options not given keep each job's own values. The preset is part of a job's id, so with
---retry-failed, --preset picks the failed jobs of that preset. Bad options (--device cuda where torch sees no GPU,
+worker queues, and a job already queued (by this worker or an earlier one) runs with its own (the worker names, when
+it starts, the queued jobs whose own values differ from the ones given). To run failed jobs again with other options,
+give them with --retry-failed: `--retry-failed --device cpu` queues every failed job again with device cpu, and the
+options not given keep each job's own values. The preset is part of a job's id, so with --retry-failed, --preset
+picks the failed jobs of that preset. Bad options (--device cuda where torch sees no GPU,
 a negative --seed) are refused before anything is queued.
 
 Each job process gets --threads CPU threads (OMP_NUM_THREADS): by default the worker's own OMP_NUM_THREADS when it
 is set, else the machine's cores shared out among --processes. Jobs that together ask for more threads than there
-are cores stall each other (two 2-thread jobs on 2 cores run 20-40x slower per step than two 1-thread ones).
+are cores stall each other (two 2-thread jobs on 2 cores run 20-40x slower per step than two 1-thread ones): the
+worker warns when --processes x threads is more than the cores. An OMP_NUM_THREADS that is not a whole number >= 1
+is ignored, with a warning.
+
+--status lists the jobs and changes nothing. A running job whose worker died or stopped renewing its lease shows as
+`stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
+still holds shows as `running?`.
 
 Examples:
   spadscan worker --root captures --processes 2
@@ -24,6 +36,7 @@ Examples:
   spadscan worker --root captures --status        # list jobs: state, attempts, last error, result
   spadscan worker --root captures --retry-failed  # put failed jobs back in the queue, with their own options
   spadscan worker --root captures --retry-failed --device cpu   # ... and run them on the CPU
+  spadscan worker --root captures --redo mug-fast --steps 400    # reconstruct a finished scan again
 """
 
 from __future__ import annotations
@@ -65,6 +78,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="put every failed job back in the queue with a fresh attempt count, and exit; "
                              "--budget-s, --steps, --device and --seed given with it replace the jobs' own values "
                              "(the others are kept)")
+    parser.add_argument("--redo", nargs="+", default=None, metavar="JOB",
+                        help="reconstruct these done jobs again, and exit: each one's results folder is moved aside "
+                             "to <scan>/recon/<job>.replaced-<UTC time>/ (never deleted; the new name is printed) "
+                             "and the job is queued again; --budget-s, --steps, --device and --seed given with it "
+                             "replace the jobs' own values (the others are kept)")
 
 
 OPTION_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "device": "--device", "seed": "--seed"}
@@ -96,6 +114,8 @@ def run(args) -> int:
     given = _given_options(args)
     if args.retry_failed:
         return _retry_failed(Queue(queue_dir, create=False), given, args.preset)
+    if args.redo:
+        return _redo(Queue(queue_dir, create=False), root, args.redo, given)
     options = JobOptions(**({"preset": args.preset} if args.preset else {}), **given)
     value = {key: DEFAULTS[key] if getattr(args, key) is None else getattr(args, key) for key in DEFAULTS}
     config = WorkerConfig(
@@ -120,8 +140,12 @@ def _refuse_combinations(args) -> None:
     if args.json and not args.status:
         raise ConfigError("--json goes only with --status (it prints the job list as JSON)")
     if args.status:
-        extra = {**RUN_FLAGS, **OPTION_FLAGS, "preset": "--preset", "retry_failed": "--retry-failed"}
+        extra = {**RUN_FLAGS, **OPTION_FLAGS, "preset": "--preset", "retry_failed": "--retry-failed",
+                 "redo": "--redo"}
         action = "--status only lists the jobs"
+    elif args.redo:
+        extra = {**RUN_FLAGS, "lease_s": "--lease-s", "retry_failed": "--retry-failed", "preset": "--preset"}
+        action = "--redo only queues the done jobs it names again and exits (their ids name their preset)"
     elif args.retry_failed:
         extra = {**RUN_FLAGS, "lease_s": "--lease-s"}
         action = "--retry-failed only queues failed jobs again and exits (run the worker after it)"
@@ -150,6 +174,44 @@ def _retry_failed(queue, given: dict, preset: str | None) -> int:
     else:
         print(f"queued again: {', '.join(moved)}" + (f" (with {changed})" if changed else " (with their own options)"))
     return 0
+
+
+def _redo(queue, root, job_ids: list[str], given: dict) -> int:
+    """Queue done jobs again, each one's results folder moved aside first: a worker keeps a result it finds."""
+    from spadscan.protocol.errors import ConfigError
+    from spadscan.worker.jobs import move_aside, result_path
+    from spadscan.worker.watcher import JobOptions
+
+    JobOptions(**given).check()  # before any folder moves
+    jobs = [_done_job(queue, job_id) for job_id in dict.fromkeys(job_ids)]
+    changed = ", ".join(f"{OPTION_FLAGS[k]} {v}" for k, v in given.items()) or "their own options"
+    for job in jobs:
+        aside = move_aside(result_path(job, root))
+        if not queue.requeue("done", job.id, changes=given):
+            raise ConfigError(f"{job.id}: another process moved the job while it was being queued again"
+                              + (f"; its earlier result is in {aside}" if aside else ""))
+        kept = f"; its earlier result is now {aside}" if aside else "; it had no results folder"
+        print(f"queued again: {job.id} (with {changed}){kept}")
+    return 0
+
+
+def _done_job(queue, job_id: str):
+    """The done job `job_id` of `queue`; a one-line error when there is none or its job file cannot be read."""
+    import json
+
+    from spadscan.protocol.errors import ConfigError
+    from spadscan.worker.jobs import Job
+
+    state, path = queue.job_paths().get(job_id, (None, None))
+    if state is None:
+        raise ConfigError(f"no job {job_id} in {queue.path} (`--status` lists the jobs)")
+    if state != "done":
+        raise ConfigError(f"{job_id} is {state}, not done: --redo runs finished jobs again"
+                          + (" (--retry-failed runs failed ones)" if state == "failed" else ""))
+    try:
+        return Job.from_dict(json.loads(path.read_text()), str(path))
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{path}: cannot read the job file: {exc}") from None
 
 
 def _print_status(queue, as_json: bool) -> int:

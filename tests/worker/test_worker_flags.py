@@ -52,6 +52,10 @@ def test_a_capture_given_as_the_root_is_refused_by_the_config_too(tmp_path):
      "--status only lists the jobs: --processes, --steps do not go with it"),
     (["--retry-failed", "--once"], "--retry-failed only queues failed jobs again and exits (run the worker after "
                                    "it): --once does not go with it"),
+    (["--redo", "s-fast", "--once", "--preset", "paper"], "--redo only queues the done jobs it names again and exits "
+                                                          "(their ids name their preset): --once, --preset do not go "
+                                                          "with it"),
+    (["--status", "--redo", "s-fast"], "--status only lists the jobs: --redo does not go with it"),
 ])
 def test_flags_that_would_be_ignored_are_refused(tmp_path, capsys, flags, message):
     make_scan(tmp_path, "s")

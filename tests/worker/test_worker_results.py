@@ -8,6 +8,8 @@ import os
 import shutil
 from pathlib import Path
 
+import pytest
+
 from spadscan.cli import main as cli_main
 from spadscan.worker.jobs import publish
 from spadscan.worker.pool import Worker
@@ -102,3 +104,49 @@ def test_publishing_moves_an_earlier_result_aside(tmp_path):
     assert (aside / "mesh.ply").read_text() == "old"
     (tmp_path / "other").mkdir()
     assert publish(tmp_path / "other", tmp_path / "recon" / "t-fast") == (tmp_path / "recon" / "t-fast", None)
+
+
+def test_redo_moves_the_result_aside_and_runs_the_job_again(tmp_path, arun, monkeypatch, capsys):
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "s")
+    make_scan(root, "t")
+    assert run_once(root, arun, steps=20)[0] == {"s-fast": "done", "t-fast": "done"}
+    assert cli_main(["worker", "--root", str(root), "--redo", "s-fast", "--steps", "3"]) == 0
+    out = capsys.readouterr().out.strip()
+    (aside,) = [p for p in (root / "s" / "recon").iterdir() if p.name.startswith("s-fast.replaced-")]
+    assert out == f"queued again: s-fast (with --steps 3); its earlier result is now {aside}"
+    assert json.loads((aside / "report.json").read_text())["steps"] == 20
+    assert run_once(root, arun, steps=20)[0] == {"s-fast": "done"}, "only the job named runs again"
+    assert report_of(root, "s")["steps"] == 3 and report_of(root, "t")["steps"] == 20
+    (row,) = [r for r in Queue.for_root(root).statuses() if r.id == "s-fast"]
+    assert (row.state, row.attempts, row.kept) == ("done", 1, False)
+
+
+@pytest.mark.parametrize("job, message", [
+    ("nope-fast", "no job nope-fast in {queue} (`--status` lists the jobs)"),
+    ("q-fast", "q-fast is queued, not done: --redo runs finished jobs again"),
+    ("f-fast", "f-fast is failed, not done: --redo runs finished jobs again (--retry-failed runs failed ones)"),
+])
+def test_redo_refuses_jobs_that_are_not_done_and_moves_nothing(tmp_path, capsys, job, message):
+    from spadscan.worker.watcher import scan_once
+
+    for name in ("done", "q", "f"):
+        make_scan(tmp_path, name)
+    queue = Queue.for_root(tmp_path)
+    scan_once(tmp_path, queue, JobOptions())
+    while (claim := queue.claim()) is not None and claim.job.id != "q-fast":
+        if claim.job.id == "f-fast":
+            queue.fail(claim, "boom", retry=False)
+        else:
+            queue.finish(claim, "x")
+    queue.release(claim)
+    result = tmp_path / "done" / "recon" / "done-fast"
+    result.mkdir(parents=True)
+    (result / "report.json").write_text("{}")
+    assert cli_main(["worker", "--root", str(tmp_path), "--redo", "done-fast", job]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.strip() == "spadscan: error: " + message.format(queue=queue.path) and captured.out == ""
+    assert (result / "report.json").exists(), "nothing moved when one of the jobs named cannot be redone"
+    assert queue.counts() == {"queued": 1, "running": 0, "done": 1, "failed": 1}
