@@ -264,7 +264,9 @@ def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path
 
 
 def _find_report(scan_dir: Path) -> Path:
-    reports = sorted((scan_dir / "recon").glob("*/report.json"), key=lambda p: p.stat().st_mtime)
+    # Earlier results that a worker moved aside (`<job>.replaced-<time>`) are not this run's.
+    reports = sorted((p for p in (scan_dir / "recon").glob("*/report.json") if ".replaced-" not in p.parent.name),
+                     key=lambda p: p.stat().st_mtime)
     if not reports:
         raise DemoError(f"the worker wrote no report under {scan_dir / 'recon'}")
     return reports[-1]

@@ -124,3 +124,19 @@ def test_a_silent_failure_still_names_the_log(tmp_path):
     with pytest.raises(DemoError) as info:
         demo._wait_for_daemon(tmp_path / "no.sock", proc, log, timeout_s=30)
     assert str(info.value) == f"the daemon exited with code 3 at start-up (log: {log})"
+
+
+def test_the_demo_reads_its_own_report_not_one_moved_aside(tmp_path):
+    import os
+
+    from spadscan.demo import _find_report
+
+    recon = tmp_path / "scan" / "recon"
+    with pytest.raises(DemoError, match="wrote no report"):
+        _find_report(tmp_path / "scan")
+    current, aside = recon / "scan-fast", recon / "scan-fast.replaced-20261125T200000Z-ab12"
+    for folder in (current, aside):
+        folder.mkdir(parents=True)
+        (folder / "report.json").write_text("{}")
+    os.utime(current / "report.json", (1_000, 1_000))  # the folder moved aside is the newer file
+    assert _find_report(tmp_path / "scan") == current / "report.json"
