@@ -121,7 +121,7 @@ def sensor_model(cfg: DaemonConfig):
     try:
         return model.with_(**changes) if changes else model
     except SensorModelError as exc:
-        raise ConfigError(f"{_where(cfg)} [sensor]: {exc}") from None
+        raise ConfigError(f"{_where(cfg)}: [sensor]: {exc}") from None
 
 
 def build_sensor(cfg: DaemonConfig, arm: Arm) -> Sensor:
@@ -140,11 +140,11 @@ def build_sensor(cfg: DaemonConfig, arm: Arm) -> Sensor:
 
     from .sensor import SimSensor
 
-    mesh = load_scene(mesh_path(cfg), s.mesh_offset_m, f"{_where(cfg)} [sensor]")
+    mesh = load_scene(mesh_path(cfg), s.mesh_offset_m, f"{_where(cfg)}: [sensor]")
     try:
         settings = SimSettings(albedo=s.albedo, rays_per_zone=s.rays_per_zone).check()
     except SimulationError as exc:
-        raise ConfigError(f"{_where(cfg)} [sensor]: {exc}") from None
+        raise ConfigError(f"{_where(cfg)}: [sensor]: {exc}") from None
     return SimSensor(model, mesh, pose_provider(arm, cfg.arm.hand_eye), settings=settings, seed=s.seed,
                      frame_time_s=s.frame_time_s, silence_on_frames=s.silence_on_frames, silence_s=s.silence_s)
 

@@ -231,6 +231,16 @@ def scan_with(base: ScanConfig, overrides: dict, where: str = "scan request") ->
     return scan
 
 
+def scan_request(base: ScanConfig, overrides: dict, where: str = "scan request") -> ScanConfig:
+    """scan_with for a request (`ctl scan`): also refuses keys that the request sets and its schedule ignores, so
+    that `--rings 3` with the Fibonacci schedule is not silently dropped."""
+    scan = scan_with(base, overrides, where)
+    if "rings" in overrides and scan.schedule != "rings":
+        raise ConfigError(f"{where} rings applies only to schedule 'rings', not {scan.schedule!r} (add "
+                          f"--schedule rings, or leave --rings out)")
+    return scan
+
+
 def scan_to_dict(scan: ScanConfig) -> dict:
     """JSON form of a scan config (stored in the capture's manifest, read back by `scan_from_dict`)."""
     out = {}
@@ -308,9 +318,14 @@ def _check_range(v, spec: Key, where: str) -> None:
     lo_bad = spec.lo is not None and (v <= spec.lo if spec.lo_open else v < spec.lo)
     hi_bad = spec.hi is not None and v > spec.hi
     if lo_bad or hi_bad:
-        lo = "-inf" if spec.lo is None else f"{spec.lo:g}"
-        hi = "inf" if spec.hi is None else f"{spec.hi:g}"
+        lo = "-inf" if spec.lo is None else _bound(spec.lo, spec)
+        hi = "inf" if spec.hi is None else _bound(spec.hi, spec)
         raise ConfigError(f"{where} = {v!r}{_unit(spec)} is outside {'(' if spec.lo_open else '['}{lo}, {hi}]")
+
+
+def _bound(v: float, spec: Key) -> str:
+    """A range bound as the user types it: an integer key's in full (9223372036854775807, not 9.22337e+18)."""
+    return str(int(v)) if spec.kind in ("int", "ints") else f"{v:g}"
 
 
 def _check_rigid(m: np.ndarray, where: str) -> None:
@@ -352,9 +367,11 @@ def _check_sensor(sensor: SensorConfig, where: str) -> None:
 
 def check_scan(scan: ScanConfig, where: str) -> None:
     """Cross-key checks of a scan config (elevation order, rings, chunk size)."""
-    if scan.min_elevation_deg >= scan.max_elevation_deg:
-        raise ConfigError(f"{where} min_elevation_deg {scan.min_elevation_deg} must be below max_elevation_deg "
-                          f"{scan.max_elevation_deg} (degrees)")
+    single_ring = scan.schedule == "rings" and scan.rings == 1  # its elevation is midway: min = max places it
+    if scan.min_elevation_deg > scan.max_elevation_deg or (scan.min_elevation_deg == scan.max_elevation_deg
+                                                           and not single_ring):
+        raise ConfigError(f"{where} min_elevation_deg {scan.min_elevation_deg:g} must be below max_elevation_deg "
+                          f"{scan.max_elevation_deg:g} (degrees; equal only for one ring: schedule 'rings', rings 1)")
     if scan.schedule == "rings" and scan.views % scan.rings:
         raise ConfigError(f"{where} views {scan.views} must be a multiple of rings {scan.rings}")
     if scan.chunk_size < scan.frames_per_pose:

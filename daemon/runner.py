@@ -31,7 +31,7 @@ from spadscan.protocol.capture_format import MANIFEST, Measurement, read_json
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
-from .config import DaemonConfig, scan_to_dict, scan_with
+from .config import DaemonConfig, scan_request
 from .devices import Arm, ArmFault, Frame, LinkLost, Sensor, SensorSilent
 from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
 from .scan_plan import build_plan, check_workspace, sensor_from_tcp
@@ -91,7 +91,7 @@ class ScanRunner:
         path = self.root / name
         if path.exists():
             raise ConfigError(f"scan {name!r} already exists in {self.root} (choose another name)")
-        scan = scan_with(self.cfg.scan, overrides or {})
+        scan = scan_request(self.cfg.scan, overrides or {})
         start = (await self._arm_state()).tcp_pose
         plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
         hand_eye = self.cfg.arm.hand_eye
@@ -370,6 +370,10 @@ class ScanRunner:
             except TimeoutError:
                 raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
                                    f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
+            except SensorSilent:
+                # The sensor names the rest of the timeout it was given (0.953291 s); the operator set the whole.
+                raise SensorSilent(f"{self.sensor.name}: no complete frame within {timeout:g} s (frame_timeout_s) "
+                                   f"at pose {i}") from None
             if f.t_start < ready_t:
                 job.dropped += 1
                 continue

@@ -44,6 +44,15 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _socket(text: str) -> str:
+    """argparse type of --socket: a path, never empty (an empty one would quietly mean the default socket)."""
+    import argparse
+
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path names no socket (leave --socket out for the default)")
+    return text
+
+
 def _target(text: str) -> list[float]:
     import argparse
 
@@ -62,7 +71,7 @@ def add_arguments(parser) -> None:
     import argparse
 
     def common(p, default):
-        p.add_argument("--socket", default=default, metavar="PATH",
+        p.add_argument("--socket", type=_socket, default=default, metavar="PATH",
                        help=f"the daemon's control socket (default: {default_socket_path()})")
         p.add_argument("--timeout", type=_seconds, default=default, metavar="S",
                        help="seconds to wait for the reply, > 0 (default: 30; `wait` and `scan --wait`: forever)")
@@ -72,40 +81,56 @@ def add_arguments(parser) -> None:
     common(shared, argparse.SUPPRESS)  # also accepted after the operation: `ctl status --socket PATH`
     sub = parser.add_subparsers(dest="op", required=True, metavar="OP")
 
-    def op(name: str, help_: str):
-        return sub.add_parser(name, help=help_, parents=[shared])
+    def op(name: str, help_: str, description: str | None = None):
+        return sub.add_parser(name, help=help_, description=description or help_, parents=[shared])
 
     op("status", "print the daemon's state as JSON")
-    scan = op("scan", "start a scan (options override the config's [scan] defaults)")
+    scan = op("scan", "start a scan (options override the config's [scan] defaults)",
+              "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
+              "config (examples/README.md documents each key).")
     scan.add_argument("--name", help="scan name: the capture goes to <captures>/NAME/ (default: scan-<time>)")
-    scan.add_argument("--views", type=int, help="number of sensor poses")
-    scan.add_argument("--schedule", choices=("fibonacci", "rings"), help="pose layout")
-    scan.add_argument("--rings", type=int, help="elevation rings (schedule 'rings'; views must be a multiple)")
-    scan.add_argument("--radius", type=float, metavar="M", help="sensor-to-target distance (m)")
-    scan.add_argument("--target", type=_target, metavar="X,Y,Z", help="point every view looks at, base frame (m)")
-    scan.add_argument("--min-elevation", type=float, metavar="DEG", help="lowest view elevation (degrees)")
-    scan.add_argument("--max-elevation", type=float, metavar="DEG", help="highest view elevation (degrees)")
-    scan.add_argument("--jitter", type=float, metavar="DEG", help="largest random tilt off the target (degrees)")
-    scan.add_argument("--seed", type=int, help="random seed of the jitter")
-    scan.add_argument("--order", choices=("nearest", "serpentine", "planned"), help="visiting order")
-    scan.add_argument("--frames-per-pose", type=int, metavar="K", help="frames stored per pose (never summed)")
-    scan.add_argument("--settle", type=float, metavar="S", help="wait after each move before frames count (s)")
-    scan.add_argument("--chunk-size", type=int, metavar="N", help="largest chunk, >= frames per pose (each pose is published as its own chunk)")
     scan.add_argument("--wait", action="store_true",
                       help="block until the scan is complete or aborted (a progress bar on stderr when a terminal)")
+    settings = scan.add_argument_group("scan settings", "each defaults to the rig config's [scan] key named in "
+                                                        "brackets")
+    settings.add_argument("--views", type=int, help="number of sensor poses [views]")
+    settings.add_argument("--schedule", choices=("fibonacci", "rings"), help="pose layout [schedule]")
+    settings.add_argument("--rings", type=int,
+                          help="elevation rings; schedule 'rings' only, views must be a multiple [rings]")
+    settings.add_argument("--radius", type=float, metavar="M", help="sensor-to-target distance (m) [radius_m]")
+    settings.add_argument("--target", type=_target, metavar="X,Y,Z",
+                          help="point every view looks at, base frame (m) [target]")
+    settings.add_argument("--min-elevation", type=float, metavar="DEG",
+                          help="lowest view elevation (degrees) [min_elevation_deg]")
+    settings.add_argument("--max-elevation", type=float, metavar="DEG",
+                          help="highest view elevation (degrees) [max_elevation_deg]")
+    settings.add_argument("--jitter", type=float, metavar="DEG",
+                          help="largest random tilt off the target (degrees) [jitter_deg]")
+    settings.add_argument("--seed", type=int, help="random seed of the jitter [seed]")
+    settings.add_argument("--order", choices=("nearest", "serpentine", "planned"), help="visiting order [order]")
+    settings.add_argument("--frames-per-pose", type=int, metavar="K",
+                          help="frames stored per pose, never summed [frames_per_pose]")
+    settings.add_argument("--settle", type=float, metavar="S",
+                          help="wait after each move before frames count (s) [settle_s]")
+    settings.add_argument("--chunk-size", type=int, metavar="N",
+                          help="largest chunk, >= frames per pose; each pose is published as its own chunk "
+                               "[chunk_size]")
     op("pause", "pause after the pose in flight is published")
     op("resume", "continue a paused or interrupted scan at its first unpublished pose")
     abort = op("abort", "stop the scan for good (published poses stay)")
     abort.add_argument("--reason", help="why (recorded in the capture)")
-    wait = op("wait", "block until scan NAME is complete (exit 0) or aborted (exit 1)")
-    wait.add_argument("name", metavar="NAME")
+    wait = op("wait", "block until scan NAME is complete (exit 0) or aborted (exit 1)",
+              "Block until scan NAME is complete (exit 0) or aborted (exit 1). On a terminal a progress bar runs on "
+              "stderr; otherwise a line on stderr says why whenever the scan pauses. Ctrl-C stops only the "
+              "waiting: the scan goes on in the daemon.")
+    wait.add_argument("name", metavar="NAME", help="the scan's name (its folder under the captures root)")
     op("shutdown", "stop the daemon; a scan in flight stays resumable")
 
 
 def run(args) -> int:
     from spadscan.daemon.client import call, default_socket_path
 
-    path = args.socket or default_socket_path()
+    path = default_socket_path() if args.socket is None else args.socket
     timeout = 30.0 if args.timeout is None else args.timeout
     if args.op == "wait":
         return _wait(path, args.name, args.timeout)

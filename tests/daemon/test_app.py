@@ -170,6 +170,9 @@ def test_check_refuses_what_start_up_refuses(tmp_path, capsys, what):
     assert code == 1 and out == "" and err.count("\n") == 1 and err.startswith("spadscan: error:"), err
     assert {"builtin": "nope", "mesh-file": "garbage.stl", "firmware": "firmware", "socket": "not a socket"}[what] \
         in err
+    where = {"builtin": "[sensor] mesh: ", "mesh-file": "[sensor] mesh: ", "firmware": "[sensor] firmware: ",
+             "socket": "socket path "}[what]
+    assert err.startswith(f"spadscan: error: {tmp_path / 'rig.toml'}: {where}"), err  # FILE: [section] key
     assert not (tmp_path / "caps").exists()
 
 

@@ -102,5 +102,5 @@ def test_hardware_backends_are_built_without_touching_hardware(tmp_path):
 
 def test_unknown_builtin_scene_is_a_config_error(tmp_path):
     cfg = cfg_of(tmp_path, {"backend": "sim"}, {"backend": "sim", "mesh": "builtin:teapot"})
-    with pytest.raises(ConfigError, match=r"rig.toml \[sensor\] mesh: unknown built-in scene 'teapot'"):
+    with pytest.raises(ConfigError, match=r"rig.toml: \[sensor\] mesh: unknown built-in scene 'teapot'"):
         build_devices(cfg)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from spadscan.cli import main
-from spadscan.daemon.config import ScanConfig, config_from_dict, load_config, scan_with
+from spadscan.daemon.config import ScanConfig, config_from_dict, load_config, scan_request, scan_with
 from spadscan.protocol.errors import ConfigError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -87,6 +87,10 @@ def test_defaults_and_relative_paths(tmp_path):
     (SIM.replace("views = 8", "views = 8\nview = 3"), ["[scan]", "unknown key 'view'"]),
     (SIM.replace('backend = "sim"\nmotion', 'backend = "sim"\nspeed = -1\nmotion'), ["[arm] speed", "-1"]),
     (SIM.replace("views = 8", "views = 0"), ["[scan] views", "outside"]),
+    (SIM.replace("views = 8", "views = 8\nseed = -1"), ["[scan] seed = -1 is outside [0, 9223372036854775807]"]),
+    (SIM.replace("views = 8", "views = 8\nchunk_size = 0"), ["[scan] chunk_size = 0 is outside [1, 1000000]"]),
+    (SIM.replace("views = 8", "views = 8\nmin_elevation_deg = 45\nmax_elevation_deg = 45"),
+     ["min_elevation_deg 45 must be below max_elevation_deg 45", "equal only for one ring"]),
     (SIM.replace("views = 8", "views = 'many'"), ["[scan] views", "integer"]),
     (SIM.replace("views = 8", "views = 8\nradius_m = true"), ["radius_m", "number"]),
     (SIM.replace("views = 8", "views = 8\ntarget = [0, 0]"), ["target", "[x, y, z]"]),
@@ -128,6 +132,29 @@ def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, wor
     assert "rig.toml" in msg
     for w in words:
         assert w in msg, msg
+
+
+def test_one_ring_may_sit_at_one_elevation():
+    """A single ring of views at 45 degrees: min_elevation_deg = max_elevation_deg places it."""
+    from spadscan.daemon.config import ArmConfig
+    from spadscan.daemon.scan_plan import build_plan
+
+    scan = scan_with(ScanConfig(), {"schedule": "rings", "rings": 1, "views": 8, "min_elevation_deg": 45.0,
+                                    "max_elevation_deg": 45.0, "radius_m": 0.5})
+    pos = build_plan(scan, ArmConfig()).sensor_poses[:, :3, 3]
+    assert len(pos) == 8 and np.allclose(pos[:, 2], 0.5 * np.sin(np.radians(45)))
+    with pytest.raises(ConfigError, match="equal only for one ring"):
+        scan_with(scan, {"rings": 2})
+
+
+def test_a_scan_request_that_sets_rings_needs_the_rings_schedule():
+    """`ctl scan --rings 3` with the Fibonacci schedule is refused rather than ignored; a [scan] table may keep
+    rings for the scans that choose schedule 'rings'."""
+    base = ScanConfig(rings=3)
+    with pytest.raises(ConfigError, match="rings applies only to schedule 'rings', not 'fibonacci'"):
+        scan_request(base, {"rings": 3})
+    assert scan_request(base, {"rings": 2, "schedule": "rings", "views": 8}).rings == 2
+    assert scan_request(base, {"views": 9}).rings == 3
 
 
 def test_missing_config_file(tmp_path):

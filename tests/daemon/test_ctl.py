@@ -93,6 +93,25 @@ def test_timeout_must_be_positive_and_finite(value, capsys, tmp_path):
     assert f"{value!r} is not a positive number of seconds" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_an_empty_socket_path_is_refused(where, capsys):
+    """`--socket ''` is an error, not the default socket."""
+    argv = ["ctl", "--socket", "", "status"] if where == "before" else ["ctl", "status", "--socket", " "]
+    with pytest.raises(SystemExit) as exited:
+        main(argv)
+    assert exited.value.code == 2 and "an empty path names no socket" in capsys.readouterr().err
+
+
+def test_help_of_scan_and_wait(capsys):
+    for op in ("scan", "wait"):
+        with pytest.raises(SystemExit):
+            main(["ctl", op, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "Every scan setting left out takes the daemon's default: the [scan] value of its rig config" in text
+    assert "--views VIEWS number of sensor poses [views]" in text
+    assert "NAME the scan's name (its folder under the captures root)" in text
+
+
 def test_wait_on_a_terminal_shows_pose_progress(fake_daemon, monkeypatch, capsys):
     server, path = fake_daemon
     terminal = Terminal()

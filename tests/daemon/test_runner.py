@@ -227,7 +227,8 @@ def test_sensor_silence_pauses_and_resumes(arun, tmp_path, sphere):
                 await runner.shutdown()
 
     paused, done = arun(scenario())
-    assert paused["reason"].startswith("sensor silent: sensor sim")
+    assert paused["reason"].startswith("sensor silent: sensor sim: no complete frame within 0.2 s (frame_timeout_s) "
+                                       "at pose "), paused["reason"]  # the configured timeout, not what was left of it
     assert done["state"] == "complete"
     check_capture(tmp_path / "caps" / "quiet", 8, 2)
 
