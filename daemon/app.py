@@ -121,7 +121,7 @@ class Dispatcher:
 
 
 def check_config(cfg: DaemonConfig):
-    """Everything start-up checks before a device is touched, creating, claiming and opening nothing (also what
+    """Everything start-up checks before a device is touched, creating, claiming and holding nothing (also what
     `spadscan daemon --check` runs): the default scan plan, the devices built (a sim sensor's mesh loaded, the
     sensor model), an I2C sensor's firmware image read and parsed, its bus or a serial sensor's port present, the
     socket path neither taken by another file nor served by another daemon, the captures root not held by another
