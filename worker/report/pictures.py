@@ -58,31 +58,73 @@ def preview_png(mesh, path, gt=None, pixels: int = 280) -> Path:
     return Path(path)
 
 
+ERROR_TITLE = "error against run time"
+LOSS_TITLE = "loss against run time (no checkpoint Chamfer)"
+"""What error_vs_time.png shows: the Chamfer with the loss, or the loss alone when no checkpoint has a Chamfer (no
+ground truth, or none of its evaluations gave a surface)."""
+
+
 def error_vs_time_png(trace: list[dict], path, title: str = "") -> Path:
-    """Chamfer (mm, where known) and loss against training seconds, one point per checkpoint."""
+    """Chamfer (mm, where known) and loss against training seconds, one point per checkpoint.
+
+    The words "error against run time" in title (its default) become "loss against run time ..." when no checkpoint
+    has a Chamfer, so that the title names what is plotted."""
+    plt = _plt()
+    fig = error_vs_time_figure(trace, title)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
+def error_vs_time_figure(trace: list[dict], title: str = ""):
+    """The matplotlib figure error_vs_time_png saves."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))
-    sec = [p["seconds"] for p in trace]
-    loss = [p.get("loss") for p in trace]
-    ch = [(p["seconds"], p["chamfer_mm"]) for p in trace if p.get("chamfer_mm") is not None]
+    ch = chamfer_points(trace)
     if ch:
         ax.plot(*zip(*ch), "o-", color="tab:blue", label="Chamfer (mm)")
         ax.set_ylabel("Chamfer distance (mm)", color="tab:blue")
         ax2 = ax.twinx()
     else:
         ax2 = ax
-    pts = [(s, v) for s, v in zip(sec, loss) if v is not None and v > 0]
+    pts = [(p["seconds"], p["loss"]) for p in trace if p.get("loss") is not None and p["loss"] > 0]
     if pts:
         ax2.plot(*zip(*pts), "s--", color="tab:red", label="loss", markersize=3)
         ax2.set_yscale("log")
+        plain_log_ticks(ax2.yaxis)
         ax2.set_ylabel("loss", color="tab:red")
     ax.set_xlabel("training time (s, checkpoint evaluation excluded)")
-    ax.set_title(title or "error against run time", fontsize=10)
+    title = title or ERROR_TITLE
+    ax.set_title(title if ch else title.replace(ERROR_TITLE, LOSS_TITLE), fontsize=10)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
+    return fig
+
+
+def chamfer_points(trace) -> list[tuple[float, float]]:
+    """(seconds, Chamfer mm) of the trace's checkpoints that have a Chamfer."""
+    return [(p["seconds"], p["chamfer_mm"]) for p in trace or []
+            if isinstance(p, dict) and p.get("chamfer_mm") is not None]
+
+
+def plain_log_ticks(axis) -> None:
+    """Label a log axis's ticks with plain numbers (20, 0.05) rather than 2x10^1, keeping matplotlib's choice of
+    which ticks get a label. An axis that reaches below 1e-4 or above 1e6 keeps the scientific form throughout:
+    plain numbers there are long, and one axis should not mix the two."""
+    from matplotlib.ticker import LogFormatterSciNotation
+
+    class Plain(LogFormatterSciNotation):
+        def __call__(self, x, pos=None):
+            label = super().__call__(x, pos)
+            lo, hi = sorted(self.axis.get_view_interval()) if self.axis is not None else (x, x)
+            return _plain_number(x) if label and 1e-4 <= lo and hi < 1e6 else label
+
+    axis.set_major_formatter(Plain())
+    axis.set_minor_formatter(Plain(labelOnlyBase=False))
+
+
+def _plain_number(x: float) -> str:
+    return np.format_float_positional(float(x), precision=4, unique=True, fractional=False, trim="-")
 
 
 def fit_png(measured: np.ndarray, rendered: np.ndarray, view_ids, path, zones=None) -> Path:
@@ -139,6 +181,13 @@ def vertex_normal_error_deg(mesh, gt, n_gt: int = 300_000, seed: int = 0) -> np.
     return np.degrees(np.arccos(cos))
 
 
+def normals_title(vertex_error_deg: np.ndarray) -> str:
+    """normals.png's title. It names its measure: the metrics' "normal error" (area samples of both meshes, each
+    against the other) is a different number for the same run, and the two must not read as disagreeing."""
+    return (f"per-vertex normal error (mesh vertices against the nearest ground-truth normal): "
+            f"mean {vertex_error_deg.mean():.1f} deg, median {np.median(vertex_error_deg):.1f} deg")
+
+
 def normals_png(mesh, vertex_error_deg: np.ndarray, path, pixels: int = 300, vmax: float = 45.0) -> Path:
     """The mesh coloured by per-vertex normal error (degrees, 0 .. vmax), from four angles, with a colour bar."""
     plt = _plt()
@@ -159,9 +208,8 @@ def normals_png(mesh, vertex_error_deg: np.ndarray, path, pixels: int = 300, vma
         axes[0, c].set_yticks([])
         axes[0, c].set_title(f"az {az:.0f} el {el:.0f}", fontsize=8)
     sm = mpl.cm.ScalarMappable(norm=mpl.colors.Normalize(0, vmax), cmap=cmap)
-    fig.colorbar(sm, ax=axes[0, :].tolist(), fraction=0.02, label="normal error (deg)")
-    fig.suptitle(f"normal error per vertex: mean {vertex_error_deg.mean():.1f} deg, "
-                 f"median {np.median(vertex_error_deg):.1f} deg", fontsize=9)
+    fig.colorbar(sm, ax=axes[0, :].tolist(), fraction=0.02, label="per-vertex normal error (deg)")
+    fig.suptitle(normals_title(vertex_error_deg), fontsize=9)
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return Path(path)
