@@ -99,12 +99,99 @@ def test_every_string_from_the_report_is_escaped(folder):
     assert "script" not in parse(text).tags
 
 
+def summary_of(text: str) -> str:
+    """The page from its top to the pictures: what a reader sees first (the raw JSON dump comes last)."""
+    return text.split("<h2>Pictures", 1)[0]
+
+
 def test_a_baseline_report_without_trace_or_pictures(tmp_path):
     (tmp_path / "mesh.ply").write_text("ply\n")
     text = render_html({"method": "space-carving", "threshold": 5.0, "calibrated": False, "seconds": 1.25,
                         "capture": "c"}, tmp_path)
     assert "space-carving" in text and "1.25 s" in text and "<img" not in text
     assert "<h2>Trace" not in text and 'href="mesh.ply"' in text
+
+
+def a_baseline(**extra) -> dict:
+    return {"method": "space-carving", "capture": "/c/pyramid", "threshold": 5.0,
+            "threshold_units": "standard deviations of the matched-filtered background noise (z-score)",
+            "calibrated": False, "seconds": 3.008, "capture_state": "complete", **extra}
+
+
+def test_a_baseline_page_says_run_time_and_the_thresholds_unit(tmp_path):
+    (tmp_path / "preview.png").write_bytes(PNG)
+    summary = summary_of(render_html(a_baseline(), tmp_path))
+    assert "<th>run time</th><td class=num>3.008 s</td>" in summary and "training" not in summary
+    assert "5 standard deviations of the matched-filtered background noise (z-score)" in summary
+    assert "space-carving baseline" in summary
+
+
+def test_a_baseline_page_does_not_report_pictures_baselines_never_draw(tmp_path):
+    text = render_html(a_baseline(), tmp_path)
+    assert "no picture (preview.png was not written)" in text  # a baseline does draw its preview
+    assert "error_vs_time.png" not in text and "fit.png" not in text and "Error" not in text
+
+
+def test_a_picture_the_report_lists_is_reported_missing_even_for_a_baseline(tmp_path):
+    text = render_html(a_baseline(files=["fit.png", "mesh.ply"]), tmp_path)
+    assert "no picture (fit.png was not written)" in text and "error_vs_time.png" not in text
+
+
+def test_a_reconstruction_missing_normals_it_computed_says_so(folder):
+    (folder / "normals.png").unlink()
+    assert "no picture (normals.png was not written)" in render_html(a_report(), folder)
+    report = a_report()
+    del report["vertex_normal_error_deg"]  # no ground truth, no normals picture: its absence is no news
+    assert "normals.png" not in render_html(report, folder)
+
+
+def test_an_incomplete_capture_is_a_warning_at_the_top(folder):
+    note = "cap/c: the capture is running, not complete: reconstructing the 128 views it holds so far"
+    summary = summary_of(render_html(a_report(capture_state="running", capture_note=note), folder))
+    warning = summary.split("<table>", 1)[0]
+    assert "class=warning" in warning and note in warning
+    assert "<th>capture state</th><td class=num>running</td>" in summary
+
+
+def test_an_incomplete_capture_without_its_note_still_warns(folder):
+    summary = summary_of(render_html(a_report(capture_state="paused"), folder))
+    assert "class=warning" in summary and "the capture is paused, not complete" in summary
+
+
+def test_a_complete_capture_has_no_warning(folder):
+    assert "class=warning" not in render_html(a_report(capture_state="complete"), folder)
+
+
+def test_ground_truth_notes_are_in_the_summary(folder):
+    note = "/gt/flat.obj: holds no triangles; no metrics"
+    scored = "the object above z = -0.1510 m (the ground truth's table top + 5 mm; a reconstruction holds no table)"
+    summary = summary_of(render_html(a_report(ground_truth_note=note, ground_truth_scored=scored), folder))
+    assert "class=warning" in summary and "ground truth was not used: " + note in summary
+    assert "table top + 5 mm" in summary
+
+
+def test_the_two_normal_errors_are_named_apart(folder):
+    summary = summary_of(render_html(a_report(), folder))
+    assert "<th>normal error (sampled points)</th><td class=num>12.5 deg</td>" in summary
+    assert "<th>per-vertex normal error (normals.png, deg)</th><td class=num>mean 11, median 8.25</td>" in summary
+
+
+def test_a_trace_without_chamfer_is_loss_against_run_time(folder):
+    trace = [{"step": 0, "seconds": 0.0, "loss": None}, {"step": 5, "seconds": 1.0, "loss": 0.5}]
+    note = ("'seconds' is training time only: evaluation is excluded; checkpoint Chamfer uses 30000 points per "
+            "mesh; 'loss' is the mean since the previous checkpoint")
+    text = render_html(a_report(trace=trace, trace_note=note), folder)
+    pictures = text.split("<h2>Pictures", 1)[1].split("<h2>", 1)[0]
+    assert "Loss against run time" in pictures and "Error" not in pictures
+    assert "<h2>Trace: loss against run time</h2>" in text
+    shown_note = text.split("<h2>Trace", 1)[1].split("<table>", 1)[0]
+    assert "training time only" in shown_note and "mean since the previous" in shown_note
+    assert "Chamfer" not in shown_note
+
+
+def test_a_trace_with_chamfer_keeps_its_note_and_error_title(folder):
+    text = render_html(a_report(trace_note="a; checkpoint Chamfer uses 30000 points"), folder)
+    assert "<h2>Trace: error against run time</h2>" in text and "checkpoint Chamfer uses 30000 points" in text
 
 
 @pytest.mark.parametrize("value, text", [(None, "-"), (True, "yes"), (0.000123456, "0.0001235"), (float("nan"), "nan"),

@@ -16,11 +16,18 @@ REPORT_HTML = "report.html"
 
 PICTURES = (
     ("preview.png", "Reconstruction (top row) and ground truth (bottom row, when given)"),
-    ("error_vs_time.png", "Error against run time"),
+    ("error_vs_time.png", "Error (Chamfer) and loss against run time"),
     ("fit.png", "Measured (dots) against rendered (lines) histograms for a few views"),
-    ("normals.png", "Normal error per vertex"),
+    ("normals.png", ("Per-vertex normal error of the mesh (the summary's 'per-vertex normal error', not its "
+                     "'normal error (sampled points)')")),
 )
 """(file name, caption) of the pictures the page shows when they exist in the folder."""
+
+LOSS_CAPTION = "Loss against run time (no checkpoint has a Chamfer: no ground truth, or no surface to score)"
+"""error_vs_time.png's caption when it plots the loss alone."""
+
+RECONSTRUCTION_PICTURES = ("preview.png", "error_vs_time.png", "fit.png")
+"""Pictures every reconstruction writes: the page names one that is missing. A baseline writes only preview.png."""
 
 NUMBERS = (
     ("preset", "preset", None), ("method", "baseline", None), ("device", "device", None),
@@ -29,11 +36,17 @@ NUMBERS = (
     ("calibrated", "threshold calibrated against ground truth", None), ("final_loss", "final loss", None),
     ("chamfer_mm", "Chamfer", "mm"), ("accuracy_mm", "accuracy", "mm"), ("completeness_mm", "completeness", "mm"),
     ("fscore_5mm", "F-score at 5 mm", None), ("precision", "precision", None), ("recall", "recall", None),
-    ("normal_error_deg", "normal error", "deg"), ("n_points", "metric samples per mesh", None),
-    ("capture", "capture", None), ("ground_truth", "ground truth", None), ("gt", "ground truth", None),
-    ("ground_truth_scored", "scored", None),
+    ("normal_error_deg", "normal error (sampled points)", "deg"), ("n_points", "metric samples per mesh", None),
+    ("capture", "capture", None), ("capture_state", "capture state", None), ("ground_truth", "ground truth", None),
+    ("gt", "ground truth", None), ("ground_truth_scored", "scored against", None),
 )
 """(report key, label, unit) of the summary table's rows, in order; keys missing from the report are left out."""
+
+BASELINE_LABELS = {"seconds": "run time"}
+"""Labels that differ for a baseline: it does not train."""
+
+UNIT_KEYS = {"threshold": "threshold_units"}
+"""Rows whose unit the report gives in another key."""
 
 TRACE_COLUMNS = ("step", "seconds", "loss", "chamfer_mm", "note")
 
@@ -45,6 +58,7 @@ td.num { text-align: right; font-family: monospace; }
 figure { margin: 1em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
 pre { background: #f6f6f6; padding: 0.8em; overflow-x: auto; font-size: 0.8em; }
 .missing { color: #999; font-style: italic; }
+.warning { background: #fff3cd; border: 1px solid #e0b000; padding: 0.5em 0.8em; margin: 0.5em 0; }
 """
 
 
@@ -65,12 +79,39 @@ def format_value(value) -> str:
     return str(value)
 
 
+def is_baseline(report: dict) -> bool:
+    """A baseline's report names its method and no preset; it has no training, trace, fit or error_vs_time."""
+    return "method" in report and "preset" not in report
+
+
+def warnings(report: dict) -> list[str]:
+    """What makes the run's result doubtful or unscored, for the top of the page: an incomplete capture and a named
+    ground truth that could not be used."""
+    found = []
+    state = report.get("capture_state")
+    if state not in (None, "complete"):
+        found.append(str(report.get("capture_note") or f"the capture is {state}, not complete"))
+    if report.get("ground_truth_note"):
+        found.append(f"the named ground truth was not used: {report['ground_truth_note']}")
+    return found
+
+
+def _warnings_html(report: dict) -> str:
+    return "\n".join(f"<p class=warning><strong>Warning:</strong> {_esc(w)}</p>" for w in warnings(report))
+
+
+def _row(report: dict, key: str, label: str, unit) -> str:
+    if is_baseline(report):
+        label = BASELINE_LABELS.get(key, label)
+        if key == "n_points" and "chamfer_mm" not in report:
+            label = "points"  # without metrics it is the baseline's own point count, not metric samples
+    unit = (report.get(UNIT_KEYS[key]) or unit) if key in UNIT_KEYS else unit
+    text = format_value(report[key]) + (f" {unit}" if unit and report[key] is not None else "")
+    return f"<tr><th>{_esc(label)}</th><td class=num>{_esc(text)}</td></tr>"
+
+
 def _summary(report: dict) -> str:
-    rows = []
-    for key, label, unit in NUMBERS:
-        if key in report:
-            text = format_value(report[key]) + (f" {unit}" if unit and report[key] is not None else "")
-            rows.append(f"<tr><th>{_esc(label)}</th><td class=num>{_esc(text)}</td></tr>")
+    rows = [_row(report, key, label, unit) for key, label, unit in NUMBERS if key in report]
     terms = report.get("terms")
     if isinstance(terms, dict):
         used = [k for k, v in terms.items() if v] or ["none"]
@@ -80,19 +121,55 @@ def _summary(report: dict) -> str:
     vne = report.get("vertex_normal_error_deg")
     if isinstance(vne, dict):
         text = ", ".join(f"{k} {format_value(v)}" for k, v in vne.items())
-        rows.append(f"<tr><th>vertex normal error (deg)</th><td class=num>{_esc(text)}</td></tr>")
+        rows.append(f"<tr><th>per-vertex normal error (normals.png, deg)</th><td class=num>{_esc(text)}</td></tr>")
     return "<table>\n" + "\n".join(rows) + "\n</table>"
 
 
-def _pictures(folder: Path) -> str:
+def expected_pictures(report: dict) -> set[str]:
+    """The pictures whose absence the page reports: those the report lists as written, those every reconstruction
+    writes, and normals.png where per-vertex normal errors were computed for it. Others (a baseline's missing
+    error_vs_time.png) are left out without comment: not writing them is no failure."""
+    files = report.get("files")
+    expected = {"preview.png"} | (set(map(str, files)) if isinstance(files, list) else set())
+    if not is_baseline(report):
+        expected |= set(RECONSTRUCTION_PICTURES)
+    if "vertex_normal_error_deg" in report:
+        expected.add("normals.png")
+    return expected
+
+
+def _caption(name: str, caption: str, report: dict) -> str:
+    if name == "error_vs_time.png" and "trace" in report and not chamfer_in_trace(report):
+        return LOSS_CAPTION
+    return caption
+
+
+def _pictures(folder: Path, report: dict) -> str:
     parts = []
+    expected = expected_pictures(report)
     for name, caption in PICTURES:
+        caption = _caption(name, caption, report)
         if (folder / name).is_file():
             parts.append(f'<figure><img src="{_esc(name)}" alt="{_esc(caption)}">'
                          f"<figcaption>{_esc(caption)}</figcaption></figure>")
-        elif name != "normals.png":  # normals.png exists only with ground truth: its absence is no news
+        elif name in expected:
             parts.append(f'<p class=missing>{_esc(caption)}: no picture ({_esc(name)} was not written)</p>')
     return "\n".join(parts)
+
+
+def chamfer_in_trace(report: dict) -> bool:
+    """Whether any trace checkpoint has a Chamfer (none without a ground truth)."""
+    trace = report.get("trace")
+    return isinstance(trace, list) and any(isinstance(p, dict) and p.get("chamfer_mm") is not None for p in trace)
+
+
+def trace_note(report: dict) -> str:
+    """The report's trace_note, less its clauses ('; '-separated) about checkpoint Chamfer when no checkpoint has
+    one: they describe a measurement that was not made."""
+    note = str(report.get("trace_note") or "")
+    if chamfer_in_trace(report):
+        return note
+    return "; ".join(c for c in note.split("; ") if "chamfer" not in c.lower())
 
 
 def _trace(trace) -> str:
@@ -115,17 +192,18 @@ def _files(folder: Path) -> str:
 def render_html(report: dict, folder) -> str:
     """The page for `report` (a report.json dict) whose files lie in `folder`, as a string."""
     folder = Path(folder)
-    kind = report.get("preset") or report.get("method") or "run"
+    kind = report.get("preset") or (f"{report['method']} baseline" if is_baseline(report) else "run")
     title = f"spadscan: {kind} reconstruction of {Path(str(report.get('capture', '?'))).name}"
     sections = [
         f"<h1>{_esc(title)}</h1>",
-        "<h2>Summary</h2>", _summary(report),
-        "<h2>Pictures</h2>", _pictures(folder),
+        "<h2>Summary</h2>", _warnings_html(report), _summary(report),
+        "<h2>Pictures</h2>", _pictures(folder, report),
     ]
     if "trace" in report:
-        sections += ["<h2>Trace: error against run time</h2>"]
-        if report.get("trace_note"):
-            sections.append(f"<p>{_esc(report['trace_note'])}</p>")
+        measured = "error" if chamfer_in_trace(report) else "loss"
+        sections += [f"<h2>Trace: {measured} against run time</h2>"]
+        if trace_note(report):
+            sections.append(f"<p>{_esc(trace_note(report))}</p>")
         sections.append(_trace(report.get("trace")))
     sections += ["<h2>Files</h2>", _files(folder),
                  "<h2>Full report</h2>", f"<pre>{_esc(json.dumps(report, indent=1, default=str))}</pre>"]
