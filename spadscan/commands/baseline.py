@@ -50,9 +50,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--edge-deg", type=float, default=1.0, metavar="DEG",
                         help="space carving: trust each zone's field of view only this far inside its edges "
                              "(default: 1 degree)")
-    parser.add_argument("--floor-z", type=float, default=0.0, metavar="M",
-                        help="height of the floor the object stands on, metres; below it is empty (default: 0)")
-    parser.add_argument("--no-floor", action="store_true", help="do not assume a floor")
+    floor = parser.add_mutually_exclusive_group()
+    floor.add_argument("--floor-z", type=float, default=None, metavar="M",
+                       help="height of the floor the object stands on, metres; below it is empty (default: a "
+                            "measured capture's table, found in its histograms as the fast reconstruction finds it; "
+                            "z = 0 for a simulated one)")
+    floor.add_argument("--no-floor", action="store_true", help="do not assume a floor")
     parser.add_argument("--surface", choices=("occupancy", "convex-hull"), default="occupancy",
                         help="reprojection: how the points become a surface (default: occupancy)")
 
@@ -71,7 +74,7 @@ def run(args) -> int:
         raise ConfigError(f"--margin-mm {args.margin_mm} must be >= 0")
     import math
 
-    if not math.isfinite(args.floor_z):
+    if args.floor_z is not None and not math.isfinite(args.floor_z):
         raise ConfigError(f"--floor-z {args.floor_z} must be a finite height in metres (or --no-floor)")
     if not math.isfinite(args.edge_deg):
         raise ConfigError(f"--edge-deg {args.edge_deg} must be a finite angle in degrees")
@@ -87,7 +90,8 @@ def run(args) -> int:
     report = run_baseline(
         args.capture, args.out, args.method, gt=gt, threshold=args.threshold, calibrate_=args.calibrate,
         resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
-        floor_z=None if args.no_floor else args.floor_z, surface=args.surface, edge_deg=args.edge_deg, log=log)
+        floor_z=None if args.no_floor else ("auto" if args.floor_z is None else args.floor_z), surface=args.surface,
+        edge_deg=args.edge_deg, log=log)
     write_pictures_and_page(report, args.out, gt)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
     line += f", {report['seconds']:.1f} s"
@@ -102,11 +106,14 @@ def write_pictures_and_page(report: dict, out, gt) -> None:
     """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json."""
     from pathlib import Path
 
-    from spadscan.protocol.mesh_io import load_mesh, load_mesh_spec
+    from spadscan.protocol.mesh_io import load_mesh
+    from spadscan.worker.ground_truth import load_ground_truth
     from spadscan.worker.report.pictures import preview_png
     from spadscan.worker.report.report_html import write_report_html
 
     out = Path(out)
-    gt_mesh = load_mesh_spec(str(gt))[0] if gt is not None else None
+    # The part of the ground truth that was scored (above its table, when it holds one), as reconstruct shows it:
+    # a 2 m table slab beside the object would shrink the object to a speck.
+    gt_mesh = load_ground_truth(gt).mesh if gt is not None else None
     preview_png(load_mesh(out / "mesh.ply"), out / "preview.png", gt=gt_mesh)
     write_report_html(report, out)

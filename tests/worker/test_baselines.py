@@ -218,6 +218,56 @@ def test_non_finite_options_are_one_line_errors(sphere_capture, tmp_path, capsys
 
 
 def test_baselines_do_not_import_torch():
-    code = ("import sys, spadscan.worker.baselines.run, spadscan.worker.baselines.reprojection; "
+    code = ("import sys, spadscan.worker.baselines.run, spadscan.worker.baselines.reprojection, "
+            "spadscan.worker.baselines.floor, spadscan.worker.table_height, spadscan.worker.recon.pulse; "
             "sys.exit('torch' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+@pytest.fixture(scope="module")
+def measured_on_table(tmp_path_factory):
+    """24 views of the built-in pyramid on a wide slab whose top lies at z = -0.12 m, by the TMF8820 model, with the
+    capture marked as measured (as an import of the dataset's real pyramid is): its table is not at z = 0."""
+    slab = trimesh.creation.box([1.2, 1.2, 0.02]).apply_translation([0.0, 0.0, -0.13])
+    scene = trimesh.util.concatenate([builtin_scene("pyramid").apply_translation([0, 0, -0.12]), slab])
+    poses = fibonacci_hemisphere(24, 0.35, target=(0, 0, -0.08), min_elevation_deg=30)
+    path = tmp_path_factory.mktemp("table") / "pyramid"
+    simulate_capture(scene, sensor_preset("tmf8820"), poses, path, settings=SimSettings(rays_per_zone=256), seed=2,
+                     progress=False, scene={"real": True})
+    return path
+
+
+def test_a_measured_scene_stands_on_its_table_found_in_the_histograms(measured_on_table, sphere_capture):
+    import json
+
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.worker.baselines.floor import SIMULATED_FLOOR_Z, scene_floor
+
+    height, source = scene_floor(CaptureReader(measured_on_table).load())
+    assert height == pytest.approx(-0.12, abs=0.01) and source == "the table, found in the histograms"
+    assert scene_floor(CaptureReader(sphere_capture[0]).load()) == (SIMULATED_FLOOR_Z, "a simulated scene's floor")
+    data = CaptureReader(measured_on_table).load()
+    for table, expected in (({"z": -0.2}, -0.2), ({"normal": [0, 0, 2], "offset": -0.3}, -0.15)):
+        data.manifest["scene"]["table"] = table
+        assert scene_floor(data) == (pytest.approx(expected), "the table the capture names")
+    manifest = json.loads((measured_on_table / "scan.json").read_text())
+    assert "table" not in manifest["scene"]
+
+
+def test_the_baseline_command_uses_the_table_unless_told(measured_on_table, tmp_path, capsys):
+    out = tmp_path / "auto"
+    assert cli_main(["baseline", "reprojection", str(measured_on_table), "--out", str(out), "--no-gt"]) == 0
+    assert "floor at z = -0.1" in capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    assert report["floor_z_m"] == pytest.approx(-0.12, abs=0.01)
+    assert report["floor_source"] == "the table, found in the histograms"
+    lowest = trimesh.load(out / "points.ply").vertices[:, 2].min()
+    assert lowest < -0.05, "points of the object's lower part are kept"
+    assert cli_main(["baseline", "reprojection", str(measured_on_table), "--out", str(tmp_path / "zero"),
+                     "--no-gt", "--floor-z", "0"]) == 0
+    assert trimesh.load(tmp_path / "zero" / "points.ply").vertices[:, 2].min() >= -0.005
+    assert json.loads((tmp_path / "zero" / "report.json").read_text())["floor_source"] == "given"
+    with pytest.raises(SystemExit):
+        cli_main(["baseline", "reprojection", str(measured_on_table), "--out", str(tmp_path / "x"), "--floor-z",
+                  "0", "--no-floor"])
+    assert "not allowed with argument" in capsys.readouterr().err

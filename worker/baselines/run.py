@@ -49,14 +49,15 @@ def _build(method: str, data, threshold: float, *, resolution: int, margin_m, fl
 
 
 def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None = None, calibrate_: bool = False,
-                 resolution: int = 128, margin_m: float | None = None, floor_z: float | None = 0.0,
+                 resolution: int = 128, margin_m: float | None = None, floor_z: float | str | None = "auto",
                  surface: str = "occupancy", edge_deg: float = DEFAULT_EDGE_DEG,
                  log: Callable[[str], None] | None = None) -> dict:
     """Run `method` on the capture folder and write the results into `out`. Returns the report (also report.json).
 
     threshold: detection threshold (see THRESHOLD_UNITS); `calibrate_` searches it for the best Chamfer against `gt`
     (a mesh path or builtin:NAME, scored above its table when it holds one: ground_truth.py) instead, as the paper
-    did. floor_z: height below which the scene is empty (None: no floor).
+    did. floor_z: height (metres) below which the scene is empty; None: no floor; "auto": a measured scene's table,
+    found in its histograms, else z = 0 (`floor.scene_floor`).
     """
     from spadscan.protocol.capture_reader import CaptureReader
 
@@ -79,6 +80,14 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     if state_note:
         log(f"warning: {state_note}")
     truth = load_ground_truth(gt) if gt is not None else None
+    floor_source = "given" if floor_z is not None else "none"
+    if isinstance(floor_z, str):
+        if floor_z != "auto":
+            raise ConfigError(f"floor {floor_z!r} must be a height in metres, None or 'auto'")
+        from .floor import scene_floor
+
+        floor_z, floor_source = scene_floor(data)
+        log(f"floor at z = {floor_z:.4f} m: {floor_source}")
     opts = dict(resolution=resolution, margin_m=margin_m, floor_z=floor_z, surface=surface, edge_deg=edge_deg)
     calibration = None
     if calibrate_:
@@ -109,7 +118,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
             "note": "threshold chosen by the lowest Chamfer against the ground truth, as in the paper "
                     f"(metrics on {CALIBRATION_POINTS} samples per mesh during the search)",
             "table": calibration.table},
-        "floor_z_m": floor_z, "seconds": round(seconds, 3), "capture_state": data.manifest["state"],
+        "floor_z_m": floor_z, "floor_source": floor_source, "seconds": round(seconds, 3), "capture_state": data.manifest["state"],
         **({"capture_note": state_note} if state_note else {}),
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))},
         **extras,

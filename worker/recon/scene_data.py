@@ -27,6 +27,7 @@ from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_model import SensorModel
 
+from ..capture_kind import is_measured
 from .pulse import pulse_kernel
 
 RADIUS_FRACTION = 0.6  # scene radius / nearest sensor's distance, when no return locates the object
@@ -124,7 +125,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
 
     scene = dict(data.manifest.get("scene") or {})
     center, radius = _scene_sphere(scene, poses, counts, sensor, capture)
-    real = _is_real(scene, data.manifest, sensor)
+    real = is_measured(scene, data.manifest, sensor)
     table = _table(scene, center, radius, real, first_returns(counts, poses, sensor), capture)
     reference = data.reference.mean(axis=0) if (real and data.reference is not None) else None
     kernel, origin, pulse_source = pulse_kernel(sensor, reference)
@@ -140,19 +141,6 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
         center=t(center), radius=float(radius), table=table, real=real, scene=scene,
         state=str(data.manifest["state"]),
     )
-
-
-def _is_real(scene: dict, manifest: dict, sensor: SensorModel) -> bool:
-    """Measured data? The scene's `real` flag when given; else not when the rig or its sensor is simulated; else
-    whether the sensor model is a hardware one (it carries reference histograms)."""
-    if "real" in scene:
-        return bool(scene["real"])
-    rig = manifest.get("rig") or {}
-    if rig.get("kind") == "simulated":  # written by `spadscan simulate`
-        return False
-    if (rig.get("sensor") or {}).get("backend") == "sim":  # the daemon's simulated sensor
-        return False
-    return bool(sensor.has_reference)
 
 
 def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) -> np.ndarray:

@@ -68,14 +68,14 @@ def _table_plane(scene, forward_kernel, zone_dirs, zone_weights):
     """(normal, offset, fitted, source) of the table, or None.
 
     A plane the capture fixes is used as given. A fitted horizontal table (the capture says only that there is
-    one) starts where `table.detect_height` finds it in the histograms, else where the scene data put it."""
+    one) starts where `table_height.detect_height` finds it in the histograms, else where the scene data put it."""
     t = scene.table
     if t is None:
         return None
     normal = np.asarray(t.normal, float)
     if not t.fitted or abs(normal[2]) < 0.99:
         return normal, float(t.offset), bool(t.fitted), "capture"
-    from .table import detect_height
+    from spadscan.worker.table_height import detect_height
 
     kernel, origin = forward_kernel
     h = detect_height(scene.counts.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),

@@ -5,9 +5,8 @@ forward model, not noise to be explained by the object. Rays that enter the hull
 by the round-trip transmittance through the hull segment; rays that miss the hull see it directly — all of those are
 rendered every step (cheap: one plane intersection each), so the table adds no sampling noise.
 
-When the capture names no table height (a fitted table of a measured capture), `detect_height` finds a horizontal
-one: the table is the farthest surface every zone sees, so at the right height the plane's predicted peak falls on
-each zone's last significant peak and nothing is ever measured behind it; the best height starts the fit.
+When the capture names no table height (a fitted table of a measured capture), `table_height.detect_height` finds a
+horizontal one, which starts the fit.
 """
 
 from __future__ import annotations
@@ -74,76 +73,4 @@ class TableModel:
                 "table_normal": self.normal.cpu().tolist(), "table_z_m": z, "table_fitted": self.fit_offset}
 
 
-def last_peaks(counts: np.ndarray, cycles: np.ndarray, background: np.ndarray, ignore_bins=()) -> np.ndarray:
-    """Bin of the last significant peak of every histogram (V, Z), or -1 where there is none.
-
-    counts (V, Z, B); cycles (V,); background (V, Z) per bin per cycle. A peak is a local maximum of the 3-bin mean
-    excess rate that stands 5 Poisson sigmas above the background and at 5% of the histogram's highest excess.
-    """
-    V, Z, B = counts.shape
-    excess = counts / cycles[:, None, None] - background[..., None]
-    if ignore_bins:
-        excess[..., list(ignore_bins)] = 0.0
-    sm = excess.copy()
-    sm[..., 1:-1] = (excess[..., :-2] + excess[..., 1:-1] + excess[..., 2:]) / 3
-    sd = np.sqrt(np.maximum(counts, 1.0)) / cycles[:, None, None] / math.sqrt(3)
-    significant = (sm > 5 * sd) & (sm > 0.05 * sm.max(axis=-1, keepdims=True))
-    local = np.zeros_like(significant)
-    local[..., 1:-1] = (sm[..., 1:-1] >= sm[..., :-2]) & (sm[..., 1:-1] >= sm[..., 2:])
-    return np.where(significant & local, np.arange(B), -1).max(axis=-1)
-
-
-def plane_peak_bins(height: float, poses: np.ndarray, zone_dirs: np.ndarray, zone_weights: np.ndarray, sensor,
-                    kernel: np.ndarray, origin: int) -> np.ndarray:
-    """Bin (V, Z) where a horizontal plane at `height` alone would put each histogram's peak; -1 if out of view."""
-    V, B = len(poses), sensor.n_bins
-    dirs = np.einsum("vij,zdj->vzdi", poses[:, :3, :3], zone_dirs)
-    down = dirs[..., 2] < -1e-3
-    t = (height - poses[:, 2, 3][:, None, None]) / np.where(down, dirs[..., 2], -1.0)
-    ok = down & (t > MIN_RANGE_M)
-    b = np.floor(sensor.zero_bin + np.where(ok, t, 0.0) / sensor.bin_width_m).astype(int)
-    good = ok & (b >= 0) & (b < B)
-    raw = np.zeros((V, zone_dirs.shape[0], B))
-    vi, zi, _ = np.nonzero(good)
-    np.add.at(raw, (vi, zi, b[good]), (zone_weights[None] * -dirs[..., 2] / np.maximum(t, MIN_RANGE_M) ** 2)[good])
-    lag = np.arange(B)[None, :] - np.arange(B)[:, None] + origin  # conv[b, i] = kernel[origin + i - b]
-    conv = np.where((lag >= 0) & (lag < kernel.size), kernel[np.clip(lag, 0, kernel.size - 1)], 0.0)
-    pred = raw @ conv
-    return np.where(pred.max(axis=-1) > 0, pred.argmax(axis=-1), -1)
-
-
-def detect_height(counts: np.ndarray, cycles: np.ndarray, background: np.ndarray, poses: np.ndarray,
-                  zone_dirs: np.ndarray, zone_weights: np.ndarray, sensor, kernel: np.ndarray, origin: int,
-                  *, depth_m: float = 0.6, step_m: float = 0.02, min_score: float = 0.1,
-                  ignore_bins=()) -> float | None:
-    """Height (metres) of a horizontal table below every sensor, or None when no height explains the data.
-
-    The table is the farthest surface each zone sees: a plane at the right height puts its peak where the zone's
-    last significant peak is, and nothing is ever measured behind it. The score of a height is the fraction of zones
-    (that would see the plane) whose last peak lies within 1.5 bins of the plane's, less the fraction whose last peak
-    lies more than 1.5 bins behind it. Heights from 2 cm below the lowest sensor down `depth_m` are tried every
-    `step_m`, then every step_m / 10 around the best. counts (V, Z, B); cycles (V,); background (V, Z);
-    poses (V, 4, 4); zone_dirs (Z, D, 3) and zone_weights (Z, D) in the sensor frame; kernel/origin: the pulse.
-    """
-    last = last_peaks(counts, cycles, background, ignore_bins)
-    k = np.asarray(kernel, float)
-    thin = max(1, zone_dirs.shape[1] // 48)  # ~48 rays per zone place a peak to a bin; more only cost time
-    zone_dirs, zone_weights = zone_dirs[:, ::thin], zone_weights[:, ::thin]
-
-    def score(h: float) -> float:
-        pb = plane_peak_bins(h, poses, zone_dirs, zone_weights, sensor, k, origin)
-        m = (pb >= 0) & (last >= 0)
-        if not m.any():
-            return -1.0
-        return float((np.abs(pb - last)[m] <= 1.5).mean() - (last > pb + 1.5)[m].mean())
-
-    top = float(poses[:, 2, 3].min()) - 0.02
-    coarse = np.arange(top, top - depth_m, -step_m)
-    h0 = float(coarse[int(np.argmax([score(h) for h in coarse]))])
-    fine = np.arange(h0 + step_m, h0 - step_m, -step_m / 10)
-    scores = [score(h) for h in fine]
-    i = int(np.argmax(scores))
-    return float(fine[i]) if scores[i] >= min_score else None
-
-
-__all__ = ["TableModel", "detect_height", "last_peaks", "plane_peak_bins"]
+__all__ = ["TableModel"]
