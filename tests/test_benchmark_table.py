@@ -1,4 +1,5 @@
-"""benchmarks/error_vs_time.py's table: the columns it prints, the marks it accepts, and the overrides it passes on."""
+"""benchmarks/error_vs_time.py's table: the columns it prints and their units, the marks it accepts, and the overrides
+it passes on."""
 
 from __future__ import annotations
 
@@ -30,10 +31,20 @@ def test_marks_are_columns_and_the_budget_mark_shows_the_final_checkpoint(bench)
     result = run([(2.8, 22.4), (4.8, 2.91), (6.8, 1.89), (10.8, 1.91), (20.04, 1.58)], 1.58)
     text = bench.table([result], 20.0, (5.0, 10.0, 20.0, 30.0))
     head, _, row = text.splitlines()
-    assert [c.strip() for c in head.strip("|").split("|")][2:5] == ["@5 s", "@10 s", "@20 s"]  # 30 s > budget
+    assert [c.strip() for c in head.strip("|").split("|")][2:5] == ["mm @5 s", "mm @10 s", "mm @20 s"]  # 30 > 20 s
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[2:6] == ["2.91", "1.89", "1.58", "1.58"]
     assert cells[7] == "6.80 s"  # the first checkpoint at or under 2 mm
+
+
+def test_every_figure_column_names_its_unit(bench):
+    text = bench.table([run([(2.8, 22.4), (20.0, 1.58)], 1.58)], 60.0, (30.0, 60.0))
+    head, rule, row = text.splitlines()
+    cells = [c.strip() for c in head.strip("|").split("|")]
+    assert cells == ["scene", "method", "mm @30 s", "mm @60 s", "final mm", "ended", "to 2 mm", "peak MB"]
+    assert [c.strip() for c in row.strip("|").split("|")] == ["bunny", "fast", "1.58", "1.58", "1.58", "budget",
+                                                               "20.00 s", "2000"]
+    assert set(rule) == {"|", "-"}
 
 
 def test_a_mark_before_the_first_checkpoint_is_a_dash(bench):
@@ -121,3 +132,4 @@ def test_the_method_peak_memory_leaves_the_scoring_of_checkpoints_out(bench):
     peak = meter.peak_mb()
     assert base_mb + 150 < peak < base_mb + 450
     assert meter.peak_with_scoring_mb() > base_mb + 550  # what the whole process took, scoring included
+
