@@ -372,19 +372,42 @@ def speedups(results: list[dict]) -> list[str]:
     return out
 
 
-def plot(results: list[dict], path: Path) -> None:
+def plotted(results: list[dict]) -> dict[str, list[tuple[dict, list]]]:
+    """scene -> [(result, [(wall seconds, Chamfer mm)])] for the results that have a Chamfer to plot."""
+    by_scene: dict[str, list[tuple[dict, list]]] = {}
+    for r in results:
+        pts = [(e["wall_seconds"], e["chamfer_mm"]) for e in r.get("trace", []) if e.get("chamfer_mm") is not None]
+        if pts:
+            by_scene.setdefault(r["scene"], []).append((r, pts))
+    return dict(sorted(by_scene.items()))
+
+
+def plain_log_ticks(axis) -> None:
+    """Tick labels of a log axis as plain numbers ('20', '3', '0.5'), not '2x10^1'; which ticks get a label stays
+    matplotlib's choice (the minor ticks' labels only where the axis spans little more than a decade)."""
+    from matplotlib.ticker import LogFormatter
+
+    class Plain(LogFormatter):
+        def __call__(self, x, pos=None):
+            return super().__call__(x, pos) and f"{x:g}"  # '' where matplotlib leaves a tick unlabelled
+
+    axis.set_major_formatter(Plain(base=10))
+    axis.set_minor_formatter(Plain(base=10, labelOnlyBase=False))
+
+
+def figure(results: list[dict]):
+    """The error-against-time figure (one panel per scene with a Chamfer to plot), or None when no result has one."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    scenes = sorted({r["scene"] for r in results})
-    fig, axes = plt.subplots(1, len(scenes), figsize=(4.5 * len(scenes), 3.6), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
-        for r in (r for r in results if r["scene"] == scene):
-            pts = [(e["wall_seconds"], e["chamfer_mm"]) for e in r["trace"] if e.get("chamfer_mm") is not None]
-            if not pts:
-                continue
+    by_scene = plotted(results)
+    if not by_scene:
+        return None
+    fig, axes = plt.subplots(1, len(by_scene), figsize=(4.5 * len(by_scene), 3.6), squeeze=False)
+    for ax, (scene, runs) in zip(axes[0], by_scene.items()):
+        for r, pts in runs:
             t, c = zip(*pts)
             if r["kind"] == "baseline":
                 ax.plot(t, c, "s", label=r["method"])
@@ -393,14 +416,27 @@ def plot(results: list[dict], path: Path) -> None:
         ax.axhline(GOAL_MM, color="gray", ls=":", lw=1)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        plain_log_ticks(ax.xaxis)
+        plain_log_ticks(ax.yaxis)
         ax.set_title(scene)
         ax.set_xlabel("wall time (s)")
         ax.set_ylabel("Chamfer (mm)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
+    return fig
+
+
+def plot(results: list[dict], path: Path) -> bool:
+    """Save the figure to `path`; False (nothing written) when no result has a Chamfer to plot."""
+    fig = figure(results)
+    if fig is None:
+        return False
+    import matplotlib.pyplot as plt
+
     fig.savefig(path, dpi=120)
     plt.close(fig)
+    return True
 
 
 # ---- driver -----------------------------------------------------------------------------------------------------
@@ -518,8 +554,10 @@ def main(argv=None) -> int:
     (args.out / "results.json").write_text(json.dumps({"machine": header, "budget_s": args.budget_s,
                                                        "results": results}, indent=1))
     (args.out / "table.md").write_text("\n".join(text) + "\n")
-    plot(results, args.out / "error_vs_time.png")
-    print(f"plot: {args.out / 'error_vs_time.png'}", file=sys.stderr)
+    if plot(results, args.out / "error_vs_time.png"):
+        print(f"plot: {args.out / 'error_vs_time.png'}", file=sys.stderr)
+    else:
+        print("no plot: no run has a Chamfer" + ("" if results else " (no run finished)"), file=sys.stderr)
     return 0
 
 

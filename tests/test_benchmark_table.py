@@ -1,5 +1,5 @@
-"""benchmarks/error_vs_time.py's table: the columns it prints and their units, the marks it accepts, and the overrides
-it passes on."""
+"""benchmarks/error_vs_time.py's table and plot: the columns it prints and their units, the marks it accepts, the
+overrides it passes on, and the plot's tick labels."""
 
 from __future__ import annotations
 
@@ -133,3 +133,40 @@ def test_the_method_peak_memory_leaves_the_scoring_of_checkpoints_out(bench):
     assert base_mb + 150 < peak < base_mb + 450
     assert meter.peak_with_scoring_mb() > base_mb + 550  # what the whole process took, scoring included
 
+
+def result(scene, points, kind="preset", method="fast"):
+    return {"scene": scene, "method": method, "kind": kind,
+            "trace": [{"wall_seconds": t, "chamfer_mm": c} for t, c in points]}
+
+
+def tick_labels(fig) -> list[str]:
+    """The tick labels drawn inside each axis's view."""
+    fig.canvas.draw()
+    labels = []
+    for ax in fig.axes:
+        for axis, (lo, hi) in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
+            for ticks, locs in ((axis.get_majorticklabels(), axis.get_majorticklocs()),
+                                (axis.get_minorticklabels(), axis.get_minorticklocs())):
+                labels += [t.get_text() for t, v in zip(ticks, locs) if t.get_text() and lo <= v <= hi]
+    return labels
+
+
+def test_log_axes_are_labelled_with_plain_numbers(bench):
+    import matplotlib.pyplot as plt
+
+    # Less than a decade on both axes of the sphere (minor ticks get labels), three decades on the bunny's.
+    fig = bench.figure([result("sphere", [(2.8, 24.3), (4.7, 4.29)]),
+                        result("bunny", [(1.0, 100.0), (30.0, 2.0), (600.0, 0.5)]),
+                        result("bunny", [(3.0, 16.6)], kind="baseline", method="space-carving")])
+    labels = tick_labels(fig)
+    plt.close(fig)
+    assert {"3", "4", "20", "1", "10", "100"} <= set(labels)
+    for text in labels:
+        assert text == f"{float(text):g}", text  # '20', never '2 x 10^1' or '$\\mathdefault{...}$'
+
+
+def test_no_plot_without_a_chamfer(bench, tmp_path):
+    path = tmp_path / "error_vs_time.png"
+    assert bench.plot([], path) is False and not path.exists()
+    assert bench.plot([result("bunny", [(3.0, None)])], path) is False and not path.exists()
+    assert bench.plot([result("bunny", [(3.0, None)]), result("soap", [(3.0, 4.0)])], path) and path.is_file()
