@@ -1,8 +1,8 @@
 """Error against run time: every preset and baseline on every scene for the same wall-clock budget.
 
     python benchmarks/error_vs_time.py --scenes DIR... --budget-s S [--presets fast,paper] [--baselines]
-                                       [--out FOLDER] [--device auto|cpu|cuda] [--every-s 5] [--seed 0]
-                                       [--marks 30,60,180] [--set KEY=VALUE ...]
+                                       [--out FOLDER] [--overwrite] [--device auto|cpu|cuda] [--every-s 5]
+                                       [--seed 0] [--marks 30,60,180] [--set KEY=VALUE ...]
 
 A scene is a capture folder (holds scan.json) or a folder of the public dataset (holds <name>.json, imported once
 into --out). Each preset runs in its own process (clean peak memory, nothing shared) through the shared pieces of
@@ -19,6 +19,12 @@ reach 2 mm, peak memory of the method, its checkpoints' scoring left out), the s
 
 A run writes its checkpoints so far to runs/<scene>-<method>.partial.json as it goes. If it is killed (Ctrl-C, or a
 time limit's SIGTERM to this script), the table still comes out, with that run's checkpoints marked "cut off".
+
+Every option is checked before the first run starts (presets, --set overrides against each preset, scene folders,
+the device, --out); each problem is a one-line error and the exit status is 2. An --out that holds an earlier run
+(runs/, results.json, table.md, error_vs_time.png) is refused unless --overwrite is given, which deletes that run's
+files first (captures imported from the dataset, in captures/, are kept). A run that fails is named in one line and
+the others go on; the exit status is then 1, after the table of the runs that did finish.
 """
 
 from __future__ import annotations
@@ -40,31 +46,83 @@ GOAL_MM = 2.0
 
 
 # ---- scenes ---------------------------------------------------------------------------------------------------------
+def dataset_file(path: Path) -> Path | None:
+    """The dataset scene file (<name>.json) in a dataset folder, or None."""
+    files = sorted(p for p in path.glob("*.json") if not p.name.endswith("_random.json"))
+    return files[0] if files else None
+
+
+def scene_problem(path: Path) -> str | None:
+    """Why `path` cannot be a --scenes argument (one line), or None. Reads, never writes: a dataset folder is only
+    imported once every option has been checked."""
+    if not path.exists():
+        return f"scene {path}: no such folder"
+    if not path.is_dir():
+        return f"scene {path}: not a folder (give a capture folder, or a dataset folder holding <name>.json)"
+    if (path / "scan.json").is_file():
+        return capture_problem(path)
+    if dataset_file(path) is None:
+        return f"scene {path}: holds neither scan.json (a capture) nor a dataset <name>.json"
+    return None
+
+
+def capture_problem(capture: Path) -> str | None:
+    """Why the capture folder cannot be benchmarked (one line), or None: it must read, hold views, and any ground
+    truth its manifest names must load (a capture that names none is run, without Chamfer figures)."""
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.worker.ground_truth import named_ground_truth
+
+    try:
+        reader = CaptureReader(capture)
+        if not reader.chunk_names():
+            return f"scene {capture}: the capture holds no views"
+    except (OSError, SpadscanError) as exc:
+        return f"scene {capture}: {exc}"
+    spec, why = named_ground_truth(reader.manifest)
+    if spec is None and why is not None:
+        return f"scene {capture}: its ground truth cannot be used ({why})"
+    return None
+
+
 def prepare_scene(path: Path, work: Path) -> Path:
-    """A capture folder for a scene argument: the folder itself, or the dataset file inside it imported once."""
+    """A capture folder for a scene argument: the folder itself, or the dataset file inside it imported once into
+    work/captures/<folder name> (imported again when the capture there came from another file)."""
     if (path / "scan.json").is_file():
         return path
-    files = sorted(p for p in path.glob("*.json") if not p.name.endswith("_random.json"))
-    if not files:
+    source = dataset_file(path)
+    if source is None:
         raise SystemExit(f"error: {path} holds neither scan.json nor a dataset <name>.json")
     cap = work / "captures" / path.name
+    if (cap / "scan.json").is_file() and imported_from(cap) != str(source.resolve()):
+        import shutil
+
+        shutil.rmtree(cap)
     if not (cap / "scan.json").is_file():
         from spadscan.protocol.lcspc import import_lcspc
 
-        import_lcspc(files[0], cap)
+        import_lcspc(source, cap)
     return cap
+
+
+def imported_from(capture: Path) -> str | None:
+    """The dataset file an imported capture was made from (its manifest's scene source), or None."""
+    try:
+        scene = json.loads((capture / "scan.json").read_text()).get("scene") or {}
+        return scene.get("source") if isinstance(scene, dict) else None
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def ground_truth(capture: Path):
     """The capture's ground truth as a worker.ground_truth.GroundTruth (scored above a table slab it holds), or None
-    when its scene record names none."""
+    when its scene record names none that loads (worker.ground_truth.named_ground_truth: a dataset import's
+    `ground_truth`, a simulated capture's `mesh` or `builtin` scene)."""
     from spadscan.protocol.capture_reader import CaptureReader
-    from spadscan.worker.ground_truth import load_ground_truth
+    from spadscan.worker.ground_truth import load_ground_truth, named_ground_truth
 
-    scene = CaptureReader(capture).manifest.get("scene") or {}
-    # A dataset import names its ground-truth file; `spadscan simulate builtin:NAME` names the built-in scene.
-    gt = scene.get("ground_truth") or (f"builtin:{scene['builtin']}" if scene.get("builtin") else None)
-    return load_ground_truth(gt) if gt else None
+    spec, _ = named_ground_truth(CaptureReader(capture).manifest)
+    return load_ground_truth(spec) if spec else None
 
 
 def chamfer_mm(mesh, truth, n_points: int) -> float | None:
@@ -468,11 +526,114 @@ def parse_marks(text: str) -> tuple[float, ...]:
     return marks
 
 
-def run_all(args, methods: list[str], results: list[dict]) -> None:
-    """Each method on each scene, each in its own process; appends to `results` as runs end. A run that fails or is
-    killed contributes the checkpoints it left behind (its partial file), if any."""
-    for scene_dir in args.scenes:
-        capture = prepare_scene(scene_dir.resolve(), args.out.resolve())
+BASELINES = ("space-carving", "reprojection")
+EARLIER_RUN = ("runs", "results.json", "table.md", "error_vs_time.png")
+"""What a run leaves in --out (besides captures/, the dataset imports it reuses)."""
+
+
+def presets_of(text: str) -> list[str]:
+    """'fast, paper' -> ['fast', 'paper'] ('' -> [])."""
+    return [p.strip() for p in text.split(",") if p.strip()]
+
+
+def check_options(args) -> list[str]:
+    """Every problem with the options, one line each ([] when the runs can start). Reads, never writes."""
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.worker.recon.config import PRESETS, load_factory, parse_override, preset_config, with_overrides
+    from spadscan.worker.reconstruct import resolve_device
+
+    problems = []
+    presets = presets_of(args.presets)
+    if not presets and not args.baselines:
+        problems.append("nothing to run: --presets is empty and --baselines is not given")
+    seen = set()
+    configs = {}
+    for name in presets:
+        if name in seen:
+            problems.append(f"--presets: {name!r} is named twice")
+            continue
+        seen.add(name)
+        if name in BASELINES:
+            problems.append(f"--presets: {name!r} is a baseline, not a preset (known presets: {', '.join(PRESETS)}); "
+                            "--baselines runs the baselines")
+            continue
+        try:
+            configs[name] = preset_config(name)
+            load_factory(configs[name])
+        except SpadscanError as exc:
+            configs.pop(name, None)
+            problems.append(f"--presets: {exc}")
+    overrides = {}
+    for text in args.overrides:
+        try:
+            key, value = parse_override(text)
+            overrides[key] = value
+        except SpadscanError as exc:
+            problems.append(f"--set: {exc}")
+    if args.overrides and not presets:
+        problems.append("--set changes the presets' configs, and no preset is run (--presets is empty)")
+    for name, config in configs.items():
+        try:
+            with_overrides(config, overrides)
+        except SpadscanError as exc:
+            problems.append(f"--set: preset {name!r}: {exc}")
+    try:
+        resolve_device(args.device)
+    except SpadscanError as exc:
+        problems.append(f"--device: {exc}")
+    names: dict[str, Path] = {}
+    for scene in args.scenes:
+        why = scene_problem(scene)
+        if why:
+            problems.append(why)
+            continue
+        name = scene.resolve().name
+        if name in names and names[name].resolve() == scene.resolve():
+            problems.append(f"scene {scene} is named twice")
+        elif name in names:
+            problems.append(f"scenes {names[name]} and {scene} share the name {name!r} (their runs would share "
+                            f"runs/{name}-METHOD.json)")
+        names[name] = scene
+    out = args.out
+    if out.exists() and not out.is_dir():
+        problems.append(f"--out {out}: exists and is not a folder")
+    elif not args.overwrite:
+        held = earlier_run(out)
+        if held:
+            problems.append(f"--out {out}: already holds an earlier run ({', '.join(held)}); choose another --out, "
+                            "or pass --overwrite to replace it")
+    return problems
+
+
+def earlier_run(out: Path) -> list[str]:
+    """The files and folders of an earlier run that `out` holds (runs/ only when it holds something)."""
+    held = []
+    for name in EARLIER_RUN:
+        p = out / name
+        if p.is_dir() and any(p.iterdir()) or p.exists() and not p.is_dir():
+            held.append(name + "/" if p.is_dir() else name)
+    return held
+
+
+def clear_earlier_run(out: Path) -> list[str]:
+    """Delete what an earlier run left in `out` (EARLIER_RUN); returns what was there."""
+    import shutil
+
+    held = earlier_run(out)
+    for name in EARLIER_RUN:
+        p = out / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()
+    return held
+
+
+def run_all(args, captures: list[Path], methods: list[str], results: list[dict], failed: list[str]) -> None:
+    """Each method on each capture, each in its own process; appends to `results` as runs end, and the runs that
+    failed to `failed` ('sphere fast (exit 1)'). A run that fails or is killed contributes the checkpoints it left
+    behind (its partial file), if any."""
+    for capture in captures:
         for method in methods:
             result = args.out / "runs" / f"{capture.name}-{method}.json"
             result.parent.mkdir(parents=True, exist_ok=True)
@@ -489,62 +650,110 @@ def run_all(args, methods: list[str], results: list[dict]) -> None:
                 finished = proc.returncode == 0 and result.is_file()
                 if not finished:
                     print(f"{capture.name}: {method} failed (exit {proc.returncode})", file=sys.stderr)
+                    failed.append(f"{capture.name} {method} (exit {proc.returncode})")
             finally:  # also on Ctrl-C: the run in progress counts as far as it got
                 res = json.loads(result.read_text()) if finished else cut_off_result(partial_path(result))
                 if res is not None:
                     results.append({**res, "scene": capture.name})
 
 
+class Parser(argparse.ArgumentParser):
+    """Usage errors in one line (the usage itself is in --help)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive, finite number of seconds")
+    return value
+
+
+def int_at_least(low: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < low:
+            raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= {low}")
+        return value
+    return parse
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    ap = Parser(prog=Path(__file__).name, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--scenes", nargs="+", required=True, type=Path, metavar="DIR",
                     help="capture folders, or dataset folders holding <name>.json (imported into --out)")
-    ap.add_argument("--budget-s", type=float, required=True, help="wall-clock seconds per preset and scene")
-    ap.add_argument("--presets", default="fast", help="comma-separated presets (default: fast)")
+    ap.add_argument("--budget-s", type=positive_seconds, required=True, help="wall-clock seconds per preset and scene")
+    ap.add_argument("--presets", default="fast", help="comma-separated presets (default: fast; '' with --baselines: "
+                                                      "the baselines alone)")
     ap.add_argument("--baselines", action="store_true", help="also run space carving and reprojection")
     ap.add_argument("--out", type=Path, default=Path("benchmark-out"), help="output folder (default: benchmark-out)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace the earlier run in --out: its runs/, results.json, table.md and error_vs_time.png\n"
+                         "are deleted before the first run (without it, an --out holding any of them is refused;\n"
+                         "captures/ imported from the dataset are kept and reused)")
     ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
-    ap.add_argument("--every-s", type=float, default=5.0, help="seconds between checkpoints (default: 5)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--every-s", type=positive_seconds, default=5.0,
+                    help="seconds between checkpoints (default: 5)")
+    ap.add_argument("--seed", type=int_at_least(0), default=0)
     ap.add_argument("--marks", type=parse_marks, default=MARKS_S, metavar="S,S,...",
                     help="wall times (s) of the table's Chamfer columns (default: 30,60,180; on a GPU, where the goal "
-                         "is 2 mm in 10 s, e.g. 5,10,30)")
-    ap.add_argument("--eval-resolution", type=int, default=None, metavar="N",
+                         "is 2 mm in 10 s, e.g. 5,10,30;\nmarks after --budget-s get no column)")
+    ap.add_argument("--eval-resolution", type=int_at_least(2), default=None, metavar="N",
                     help="marching-cubes cells along the longest side for every checkpoint (default: each preset's "
                          "mesh resolution; an MLP's 256^3 evaluation takes minutes on a CPU: 128 keeps paper runs "
                          "short, at about a millimetre of added error)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
                     help="override a field of every preset's config, as `spadscan reconstruct --set` does "
-                         "(repeatable; a key a preset lacks fails that preset's runs)")
+                         "(repeatable; checked against every preset before the first run)")
     ap.add_argument("--one", nargs=3, metavar=("CAPTURE", "METHOD", "RESULT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    if args.budget_s <= 0 or args.every_s <= 0:
-        raise SystemExit("error: --budget-s and --every-s must be > 0")
     if args.one:  # child process: one method on one capture
-        capture, method, result = Path(args.one[0]), args.one[1], Path(args.one[2])
-        out = result.parent / (result.stem + "-files")
-        if method in ("space-carving", "reprojection"):
-            res = run_baseline(capture, method, out)
-        else:
-            try:
-                res = run_preset(capture, method, args.budget_s, args.every_s, args.device, args.seed, out,
-                                 args.eval_resolution, args.overrides, partial_path(result))
-            except KeyboardInterrupt:  # the parent reads the partial file
-                return 130
-        write_atomic(result, res)
-        partial_path(result).unlink(missing_ok=True)
-        return 0
+        return run_one(args)
 
+    from spadscan.protocol.errors import SpadscanError
+
+    problems = check_options(args)
+    for line in problems:
+        print(f"{ap.prog}: error: {line}", file=sys.stderr)
+    if problems:
+        return 2
+    dropped = [m for m in args.marks if m not in shown_marks(args.marks, args.budget_s)]
+    if dropped:
+        print(f"note: marks {', '.join(f'{m:g}' for m in dropped)} s come after the {args.budget_s:g} s budget: "
+              "no column for them", file=sys.stderr)
+    if args.overwrite:
+        held = clear_earlier_run(args.out)
+        if held:
+            print(f"--overwrite: deleted the earlier run's {', '.join(held)} in {args.out}", file=sys.stderr)
     args.out.mkdir(parents=True, exist_ok=True)
-    presets = [p for p in args.presets.split(",") if p]
-    methods = presets + (["space-carving", "reprojection"] if args.baselines else [])
+    captures = []
+    for scene_dir in args.scenes:
+        try:
+            capture = prepare_scene(scene_dir.resolve(), args.out.resolve())
+        except (OSError, SpadscanError) as exc:
+            print(f"{ap.prog}: error: scene {scene_dir}: cannot import it ({exc})", file=sys.stderr)
+            return 1
+        why = capture_problem(capture) if capture != scene_dir.resolve() else None  # an import, checked now
+        if why:
+            print(f"{ap.prog}: error: {why}", file=sys.stderr)
+            return 1
+        captures.append(capture)
+    methods = presets_of(args.presets) + (list(BASELINES) if args.baselines else [])
     header = machine()
     print(f"machine: {header}", file=sys.stderr)
-    results = []
+    results, failed = [], []
     # A time limit's SIGTERM ends the runs like Ctrl-C does: the table still comes out.
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
-        run_all(args, methods, results)
+        run_all(args, captures, methods, results, failed)
     except KeyboardInterrupt:  # Ctrl-C: the table of the runs so far, the one in progress as far as it got
         print("interrupted: the table holds the runs so far", file=sys.stderr)
     text = [f"Machine: {header}", f"Budget: {args.budget_s:g} s wall per run (set-up included)"]
@@ -556,8 +765,37 @@ def main(argv=None) -> int:
     (args.out / "table.md").write_text("\n".join(text) + "\n")
     if plot(results, args.out / "error_vs_time.png"):
         print(f"plot: {args.out / 'error_vs_time.png'}", file=sys.stderr)
+    elif not results:
+        print("no plot: every run failed" if failed and len(failed) == len(captures) * len(methods)
+              else "no plot: no run finished", file=sys.stderr)
     else:
-        print("no plot: no run has a Chamfer" + ("" if results else " (no run finished)"), file=sys.stderr)
+        print("no plot: no run has a Chamfer (its capture names no ground truth)", file=sys.stderr)
+    if failed:
+        print(f"{len(failed)} of {len(captures) * len(methods)} runs failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run_one(args) -> int:
+    """The child process: one method on one capture, its result written to RESULT. A problem is one line on stderr
+    (exit 1): the parent names the run that failed."""
+    from spadscan.protocol.errors import SpadscanError
+
+    capture, method, result = Path(args.one[0]), args.one[1], Path(args.one[2])
+    out = result.parent / (result.stem + "-files")
+    try:
+        if method in BASELINES:
+            res = run_baseline(capture, method, out)
+        else:
+            res = run_preset(capture, method, args.budget_s, args.every_s, args.device, args.seed, out,
+                             args.eval_resolution, args.overrides, partial_path(result))
+    except KeyboardInterrupt:  # the parent reads the partial file
+        return 130
+    except SpadscanError as exc:
+        print(f"error: {capture.name}: {method}: {exc}", file=sys.stderr)
+        return 1
+    write_atomic(result, res)
+    partial_path(result).unlink(missing_ok=True)
     return 0
 
 
