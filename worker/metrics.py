@@ -53,7 +53,12 @@ class MeshMetrics:
     seed: int
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The fields as a dict; the F-score's key names its threshold (`fscore_5mm`, or e.g. `fscore_10mm`), so that
+        a script reading `fscore_5mm` never gets an F-score at another threshold."""
+        d = asdict(self)
+        if self.fscore_threshold_mm != 5.0:
+            d[f"fscore_{self.fscore_threshold_mm:g}mm"] = d.pop("fscore_5mm")
+        return d
 
 
 def check_mesh(mesh, what: str) -> None:

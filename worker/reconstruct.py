@@ -98,7 +98,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     log(f"extracting the mesh ({config.mesh_resolution} cells a side)")
     mesh = model.extract_mesh(config.mesh_resolution)
     export_mesh(mesh, out / "mesh.ply", vertex_normal=True)
-    report = _report(capture, preset, dev, config, scene, model, result, plan)
+    report = _report(capture, preset, dev, config, scene, model, result, plan, scored=truth is not None)
     report["capture_state"] = scene.state
     if state_note:
         report["capture_note"] = state_note
@@ -142,7 +142,19 @@ def _checkpoint_metrics(model, truth, config) -> dict:
         return {"chamfer_mm": None, "note": str(exc)}
 
 
-def _report(capture, preset, dev, config, scene, model, result, plan) -> dict:
+def _trace_note(eval_seconds: float, config, scored: bool) -> str:
+    """What the trace's figures mean; the clause on checkpoint Chamfer only when there is a ground truth to score."""
+    parts = [f"'seconds' is training time only: checkpoint evaluation ({eval_seconds:.1f} s in all) is excluded (a "
+             f"time budget counts it)"]
+    if scored:
+        parts.append(f"checkpoint Chamfer uses {config.trace_points} points per mesh on a "
+                     f"{config.trace_mesh_resolution}-cell marching-cubes grid, the final metrics "
+                     f"{config.metrics_points} points on {config.mesh_resolution} cells")
+    parts.append("'loss' is the mean since the previous checkpoint")
+    return "; ".join(parts)
+
+
+def _report(capture, preset, dev, config, scene, model, result, plan, scored: bool) -> dict:
     import torch
 
     import spadscan
@@ -167,10 +179,7 @@ def _report(capture, preset, dev, config, scene, model, result, plan) -> dict:
         "final_loss_mean_last_10pct": float(np.mean(tail)) if tail else None,
         "loss_parts": last,
         "trace": result.trace,
-        "trace_note": (f"'seconds' is training time only: checkpoint evaluation ({result.eval_seconds:.1f} s in all) "
-                       f"is excluded (a time budget counts it); checkpoint Chamfer uses {config.trace_points} points per mesh on a "
-                       f"{config.trace_mesh_resolution}-cell marching-cubes grid, the final metrics 300000 points on "
-                       f"{config.mesh_resolution} cells; 'loss' is the mean since the previous checkpoint"),
+        "trace_note": _trace_note(result.eval_seconds, config, scored),
         "model": model.summary(),
         "scene": {
             "views": scene.n_views, "zones": scene.sensor.n_zones, "bins": scene.sensor.n_bins,

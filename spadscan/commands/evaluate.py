@@ -62,11 +62,16 @@ def format_table(metrics, mesh: str, gt: str, scored: str | None = None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import math
+
+    from spadscan.protocol.errors import ConfigError
 
     from spadscan.protocol.mesh_io import load_mesh_spec
     from spadscan.worker.ground_truth import GroundTruth, load_ground_truth
     from spadscan.worker.metrics import crop_to_box
 
+    if not (math.isfinite(args.threshold_mm) and 0 < args.threshold_mm < 10_000):
+        raise ConfigError(f"--threshold-mm {args.threshold_mm:g} must be a distance in (0, 10000) mm")
     pred = load_mesh_spec(args.mesh, units=args.units)[0]
     truth = load_ground_truth(args.gt, units=args.units, keep_table=args.keep_table or args.box is not None)
     if args.box is not None:

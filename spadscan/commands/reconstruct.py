@@ -78,8 +78,8 @@ def run(args: argparse.Namespace) -> int:
             f"final loss {report['final_loss']:.4g}")
     if report.get("chamfer_mm") is not None:
         line += (f"; Chamfer {report['chamfer_mm']:.2f} mm (accuracy {report['accuracy_mm']:.2f}, completeness "
-                 f"{report['completeness_mm']:.2f}), F-score@5mm {report['fscore_5mm']:.3f}, normal error "
-                 f"{report['normal_error_deg']:.1f} deg")
+                 f"{report['completeness_mm']:.2f}), F-score@5mm {report['fscore_5mm']:.3f}, normal error (sampled "
+                 f"points) {report['normal_error_deg']:.1f} deg")
     print(line)
     print(f"wrote {out / 'report.html'} (open this first), mesh.ply, report.json, preview.png, error_vs_time.png, "
           "fit.png")

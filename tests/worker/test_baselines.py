@@ -198,7 +198,7 @@ def test_calibration_picks_the_best_threshold(sphere_capture, tmp_path, monkeypa
     assert report["calibrated"] is True and [row["threshold"] for row in table] == [4.0, 12.0]
     best = min(table, key=lambda row: row["chamfer_mm"])
     assert report["threshold"] == best["threshold"]
-    assert (out / "points.ply").exists() and report["n_points"] > 50
+    assert (out / "points.ply").exists() and report["reprojected_points"] > 50
 
 
 def test_calibration_needs_ground_truth(sphere_capture, tmp_path, capsys):

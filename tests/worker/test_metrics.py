@@ -157,6 +157,18 @@ def test_eval_detects_millimetre_stl_and_prints_json(tmp_path, capsys):
     assert {"accuracy_mm", "completeness_mm", "normal_error_deg", "mesh", "gt"} <= set(out)
 
 
+def test_the_f_score_key_names_its_threshold(tmp_path, capsys):
+    ball().export(tmp_path / "gt.ply")
+    base = ["eval", str(tmp_path / "gt.ply"), "--gt", str(tmp_path / "gt.ply"), "--json", "--points", "2000"]
+    assert main([*base, "--threshold-mm", "10"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["fscore_10mm"] > 0.9 and "fscore_5mm" not in out and out["fscore_threshold_mm"] == 10.0
+    assert main(base) == 0
+    assert "fscore_5mm" in json.loads(capsys.readouterr().out)
+    assert main([*base, "--threshold-mm", "0"]) == 1
+    assert capsys.readouterr().err == "spadscan: error: --threshold-mm 0 must be a distance in (0, 10000) mm\n"
+
+
 def test_eval_table_and_builtin_scenes(capsys):
     assert main(["eval", "builtin:cup", "--gt", "builtin:cup", "--points", "5000", "--seed", "2"]) == 0
     out = capsys.readouterr().out

@@ -33,7 +33,7 @@ def _build(method: str, data, threshold: float, *, resolution: int, margin_m, fl
         rep = reprojection(data.hists, data.poses, data.sensor, threshold=threshold, surface=surface,
                            floor_z=floor_z)
         return rep.mesh, {"points": rep.points, "surface": surface, "surface_method": SURFACES[surface],
-                          "n_points": int(len(rep.points))}
+                          "reprojected_points": int(len(rep.points))}
     res = carve_scene(data.hists, data.poses, data.sensor, resolution=resolution, threshold=threshold,
                       margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg)
     occ = main_components(res.occupancy, 0.01)

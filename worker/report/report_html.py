@@ -37,6 +37,7 @@ NUMBERS = (
     ("chamfer_mm", "Chamfer", "mm"), ("accuracy_mm", "accuracy", "mm"), ("completeness_mm", "completeness", "mm"),
     ("fscore_5mm", "F-score at 5 mm", None), ("precision", "precision", None), ("recall", "recall", None),
     ("normal_error_deg", "normal error (sampled points)", "deg"), ("n_points", "metric samples per mesh", None),
+    ("reprojected_points", "reprojected points", None),
     ("capture", "capture", None), ("capture_state", "capture state", None), ("ground_truth", "ground truth", None),
     ("gt", "ground truth", None), ("ground_truth_scored", "scored against", None),
 )
@@ -103,8 +104,6 @@ def _warnings_html(report: dict) -> str:
 def _row(report: dict, key: str, label: str, unit) -> str:
     if is_baseline(report):
         label = BASELINE_LABELS.get(key, label)
-        if key == "n_points" and "chamfer_mm" not in report:
-            label = "points"  # without metrics it is the baseline's own point count, not metric samples
     unit = (report.get(UNIT_KEYS[key]) or unit) if key in UNIT_KEYS else unit
     text = format_value(report[key]) + (f" {unit}" if unit and report[key] is not None else "")
     return f"<tr><th>{_esc(label)}</th><td class=num>{_esc(text)}</td></tr>"
