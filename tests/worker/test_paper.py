@@ -123,6 +123,27 @@ def test_registry_and_overrides():
     assert preset_config("paper").rays.samples_per_ray == 256  # overrides never touch the registry's copy
 
 
+@pytest.mark.parametrize("preset, key, value, message", [
+    ("fast", "preset", "paper", "fixed by the preset"),
+    ("fast", "model_factory", "os:system", "fixed by the preset"),
+    ("paper", "unused_fields", [], "fixed by the preset"),
+    ("paper", "dtype", "float16", "'float16' is not one of float32, float64"),
+    ("paper", "loss.kind", "foo", "'foo' is not one of l2, nll"),
+    ("fast", "dtype", "float64", "preset 'fast' does not use it"),
+    ("fast", "loss.kind", "l2", "preset 'fast' does not use it"),
+    ("paper", "early_stop", True, "preset 'paper' does not use it"),
+])
+def test_overrides_that_would_not_do_what_they_say_are_refused(preset, key, value, message):
+    with pytest.raises(ReconstructionError, match=message):
+        with_overrides(preset_config(preset), {key: value})
+
+
+def test_overrides_a_preset_reads_are_taken():
+    cfg = with_overrides(preset_config("paper"), {"dtype": "float64", "loss.kind": "nll"})
+    assert (cfg.dtype, cfg.loss.kind) == ("float64", "nll")
+    assert with_overrides(preset_config("fast"), {"early_stop": False}).early_stop is False
+
+
 def test_missing_fast_preset_is_a_clear_error(monkeypatch):
     def missing(name, *a, **k):
         raise ModuleNotFoundError(f"No module named {name!r}", name=name)

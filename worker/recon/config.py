@@ -132,6 +132,8 @@ class ReconConfig:
     unused_sections: tuple[str, ...] = ()
     """Sections this preset never reads (the `fast` preset: rays, optim, sharpness): an override there is refused,
     not silently ignored."""
+    unused_fields: tuple[str, ...] = ()
+    """Dotted keys of fields this preset never reads (the `fast` preset: dtype, loss.kind): refused likewise."""
 
     def to_dict(self) -> dict:
         """JSON-able form of the resolved config."""
@@ -151,16 +153,33 @@ def parse_override(text: str) -> tuple[str, Any]:
     return key.strip(), value
 
 
+FIXED_FIELDS = ("preset", "model_factory", "unused_sections", "unused_fields")
+"""What makes a preset the preset it is: chosen with --preset, never overridden (a report would name one preset and
+run another)."""
+
+CHOICES = {"dtype": ("float32", "float64"), "loss.kind": ("l2", "nll")}
+"""The values a text field may take."""
+
+
 def with_overrides(config: ReconConfig, overrides: dict[str, Any]) -> ReconConfig:
     """A copy of `config` with dotted keys replaced, e.g. {'rays.samples_per_ray': 32, 'field.width': 64}.
-    A value must have the type of the field it replaces (ints may stand for floats, lists for tuples); numbers must
-    be finite, and a field whose preset value is positive (counts, sizes, weights, rates) takes no negative value."""
+    A value must have the type of the field it replaces (ints may stand for floats, lists for tuples) and one of
+    CHOICES where it names them; numbers must be finite, and a field whose preset value is positive (counts, sizes,
+    weights, rates) takes no negative value. FIXED_FIELDS and what the preset does not read are refused."""
     config = _deep_copy(config)
     for key, value in overrides.items():
         *path, name = key.split(".")
+        if key in FIXED_FIELDS:
+            raise ReconstructionError(f"config override {key!r}: fixed by the preset (choose the preset with "
+                                      f"--preset)")
         if path and path[0] in config.unused_sections:
             raise ReconstructionError(f"config override {key!r}: preset {config.preset!r} does not use the "
                                       f"{path[0]!r} section")
+        if key in config.unused_fields:
+            raise ReconstructionError(f"config override {key!r}: preset {config.preset!r} does not use it")
+        if key in CHOICES and value not in CHOICES[key]:
+            raise ReconstructionError(f"config override {key!r}: {value!r} is not one of "
+                                      f"{', '.join(CHOICES[key])}")
         obj = config
         for part in path:
             obj = getattr(obj, part, None)

@@ -195,6 +195,8 @@ def fast_config():
         mesh_resolution=256,
         trace_mesh_resolution=128,
         unused_sections=("rays", "optim", "sharpness"),
+        # The grid is fitted in float32 (its sums that need more are float64 inside), by its own likelihood.
+        unused_fields=("dtype", "loss.kind", "loss.eikonal_points"),
     )
 
 
