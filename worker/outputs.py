@@ -12,16 +12,30 @@ RESULT_FILES = ("mesh.ply", "report.json")
 """Files whose presence means a folder holds a result."""
 
 
-def check_out(out, overwrite: bool) -> Path:
-    """`out` as a Path, refused when it is a file, or holds a result and `overwrite` is not set."""
+def check_out(out, overwrite: bool, capture=None) -> Path:
+    """`out` as a Path, refused when it is a file, or holds a result and `overwrite` is not set, or lies inside the
+    folder of `capture` (when given) anywhere but under its recon/ folder, where the worker puts results."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
+    if capture is not None:
+        inside = _relative_to(out, Path(capture))
+        if inside is not None and (not inside.parts or inside.parts[0] != "recon"):
+            raise ConfigError(f"--out {out} lies inside the capture {capture}: results there would be mixed into "
+                              f"its measurements; choose a folder outside it (or under its recon/ folder)")
     held = [name for name in RESULT_FILES if (out / name).exists()]
     if held and not overwrite:
         raise ConfigError(f"{out}: already holds a result ({', '.join(held)}); choose another --out, or pass "
                           "--overwrite to replace it")
     return out
+
+
+def _relative_to(path: Path, folder: Path) -> Path | None:
+    """`path` relative to `folder` when it lies inside it (or is it), both resolved; else None."""
+    try:
+        return path.resolve().relative_to(folder.resolve())
+    except ValueError:
+        return None
 
 
 def export_mesh(mesh, path, **options) -> Path:

@@ -65,13 +65,16 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
 
     from .ground_truth import load_ground_truth
     from .outputs import capture_state_note, export_mesh
-    from .threads import check_threads
+    from .threads import check_threads, machine_cores
 
     log = log or (lambda line: None)
     wall0 = time.perf_counter()
     _check_run_args(budget_s, steps, seed)
     if threads is not None:
         torch.set_num_threads(check_threads(threads))
+        if threads > machine_cores():
+            log(f"warning: {threads} CPU threads on {machine_cores()} cores: OpenMP threads that lose their core "
+                f"stall each other, each step many times slower (--threads {machine_cores()} or fewer)")
     config = preset_config(preset)
     if overrides:
         config = with_overrides(config, overrides)

@@ -81,7 +81,7 @@ def run(args) -> int:
     if args.threshold is not None and not args.threshold > 0:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
 
-    check_out(args.out, args.overwrite)
+    check_out(args.out, args.overwrite, capture=args.capture)
 
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)

@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from spadscan.worker.recon.config import parse_override
     from spadscan.worker.reconstruct import reconstruct_capture
 
-    out = check_out(args.out, args.overwrite)
+    out = check_out(args.out, args.overwrite, capture=args.capture)
     overrides = dict(parse_override(text) for text in args.overrides)
 
     def log(line: str) -> None:

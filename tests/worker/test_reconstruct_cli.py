@@ -404,3 +404,26 @@ def test_gt_and_no_gt_exclude_each_other(capture_and_gt, tmp_path, capsys):
         main(["reconstruct", str(cap), "--out", str(tmp_path / "o"), "--gt", str(gt), "--no-gt"])
     assert "not allowed with argument" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_results_are_never_written_among_a_captures_measurements(capture_and_gt, tmp_path, capsys):
+    cap, _ = capture_and_gt
+    for out in (cap, cap / "chunk-000000", cap / "results"):
+        assert _recon(cap, out) == 1
+        assert f"--out {out} lies inside the capture {cap}" in _error_lines(capsys)[0]
+        assert main(["baseline", "reprojection", str(cap), "--out", str(out), "--no-gt"]) == 1
+        assert "lies inside the capture" in _error_lines(capsys)[0]
+    assert not (cap / "results").exists() and not (cap / "mesh.ply").exists()
+    check_out(cap / "recon" / "by-hand", False, capture=cap)  # where the worker puts its results: allowed
+
+
+def test_more_threads_than_cores_is_a_warning(capture_and_gt, tmp_path, capsys, monkeypatch):
+    import spadscan.worker.threads as threads
+
+    cap, _ = capture_and_gt
+    monkeypatch.setattr(threads, "machine_cores", lambda: 1)
+    assert _recon(cap, tmp_path / "o", "--threads", "2") == 0
+    assert "warning: 2 CPU threads on 1 cores" in capsys.readouterr().err
+    monkeypatch.setattr(threads, "machine_cores", lambda: 2)
+    assert _recon(cap, tmp_path / "p", "--threads", "2") == 0
+    assert "CPU threads on" not in capsys.readouterr().err
