@@ -687,7 +687,8 @@ def int_at_least(low: int):
 
 
 def main(argv=None) -> int:
-    ap = Parser(prog=Path(__file__).name, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    ap = Parser(prog=Path(__file__).name, description=__doc__.split("\n\n")[0],
+                formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--scenes", nargs="+", required=True, type=Path, metavar="DIR",
                     help="capture folders, or dataset folders holding <name>.json (imported into --out)")
     ap.add_argument("--budget-s", type=positive_seconds, required=True, help="wall-clock seconds per preset and scene")

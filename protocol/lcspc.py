@@ -161,7 +161,7 @@ class ImportSummary:
 # ---- helpers ---------------------------------------------------------------------------------------------------------
 def _read_bytes(path: Path, progress: Progress | None) -> tuple[bytes, str]:
     if not path.is_file():
-        raise DatasetError(f"{path}: {'is a folder, not' if path.is_dir() else 'no such'} LCSPCData JSON file")
+        raise DatasetError(f"{path}: {'is a folder, not a' if path.is_dir() else 'no such'} LCSPCData JSON file")
     total = path.stat().st_size
     parts, done, digest = [], 0, hashlib.sha256()
     with open(path, "rb") as f:

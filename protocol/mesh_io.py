@@ -26,7 +26,7 @@ def load_mesh(path, *, units: str = "auto"):
 
     path = Path(path)
     if not path.is_file():
-        raise MeshError(f"{path}: {'is a folder, not' if path.is_dir() else 'no such'} mesh file")
+        raise MeshError(f"{path}: {'is a folder, not a' if path.is_dir() else 'no such'} mesh file")
     if units not in ("auto", "m", "mm"):
         raise MeshError(f"units {units!r} must be 'auto', 'm' or 'mm'")
     try:

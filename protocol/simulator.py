@@ -315,7 +315,7 @@ def blind_views_note(signal_photons: np.ndarray, mesh) -> str | None:
     lo, hi = (np.round(b, 3).tolist() for b in mesh.bounds)
     which = "none of the" if blind == len(signal_photons) else f"{blind} of"
     return (f"warning: {which} {len(signal_photons)} views see the mesh (under {MIN_SIGNAL_PHOTONS:g} signal photon "
-            f"expected); the mesh lies within {lo} .. {hi} m: check the target and radius")
+            f"expected); the mesh lies within {lo} .. {hi} m: check the target and radius (or the albedo and power)")
 
 
 __all__ = ["SimSettings", "SimFrames", "Simulator", "simulate_capture", "blind_views_note", "check_pose_array",

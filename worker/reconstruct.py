@@ -45,6 +45,10 @@ def _check_run_args(budget_s, steps, seed) -> None:
         raise ReconstructionError(f"seed {seed} must be an integer >= 0")
 
 
+LONG_CPU_STEPS = 20_000
+"""A default step count this large is worth a warning on a CPU (the paper preset: seconds a step there)."""
+
+
 def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budget_s: float | None = None,
                         steps: int | None = None, gt: Path | None = None, device: str = "auto", seed: int = 0,
                         progress: bool = True, overrides: dict | None = None, threads: int | None = None,
@@ -89,6 +93,9 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder
     if steps is None and budget_s is None:
         steps, budget_s = config.default_steps, config.default_budget_s
+        if budget_s is None and dev.type == "cpu" and (steps or 0) >= LONG_CPU_STEPS:
+            log(f"warning: preset {preset!r} runs {steps:,} steps by default: days on a CPU (--budget-s or --steps "
+                f"to bound it)")
     plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
     model = load_factory(config)(scene, config, dev, plan)
 

@@ -6,9 +6,9 @@ terms used, final loss, the resolved config, and with a ground truth: chamfer_mm
 fscore_5mm, normal_error_deg plus a trace of error against training time), preview.png, error_vs_time.png, fit.png
 (measured against rendered histograms) and, with a ground truth, normals.png (per-vertex normal error). Without --gt,
 the ground truth that the capture names is used (import-lcspc and simulate record theirs); --no-gt skips the metrics.
-The run stops at --steps or --budget-s, whichever comes first; with neither, the preset's default. The `fast` preset
-also stops early once its data term has stopped improving (report.json: stopped_by 'converged'); turn that off with
---set early_stop=false.
+The run stops at --steps or --budget-s, whichever comes first; with neither, the preset's default (fast: 120 s of
+training; paper: 300,000 steps, hours on a GPU and days on a CPU). The `fast` preset also stops early once its data
+term has stopped improving (report.json: stopped_by 'converged'); turn that off with --set early_stop=false.
 
 Presets: `fast` (default) is an SDF grid that reaches good meshes in minutes on a CPU; `paper` is the published
 method (an MLP SDF, 300K steps nominal: hours on a GPU).
@@ -74,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
                                  steps=args.steps, gt=gt, device=args.device, seed=args.seed,
                                  progress=not args.no_progress, overrides=overrides or None, threads=args.threads,
                                  log=log)
-    line = (f"{report['preset']}: {report['steps']} steps in {report['seconds']:.1f} s on {report['device']}, "
+    steps = f"{report['steps']} step{'' if report['steps'] == 1 else 's'}"
+    line = (f"{report['preset']}: {steps} in {report['seconds']:.1f} s on {report['device']}, "
             f"final loss {report['final_loss']:.4g}")
     if report.get("chamfer_mm") is not None:
         line += (f"; Chamfer {report['chamfer_mm']:.2f} mm (accuracy {report['accuracy_mm']:.2f}, completeness "

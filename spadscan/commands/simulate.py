@@ -2,9 +2,10 @@
 photon counts, written as a complete capture folder.
 
 MESH is a mesh file (OBJ, PLY, STL, OFF, ...; metres: one of those four formats over 5 m across is read as
-millimetres, and said so) or `builtin:NAME` for a built-in scene. The sensor circles TARGET at RADIUS metres on a Fibonacci spiral (like LCSPCData: 256 views, 0.5 m, from
-86 degrees down to the horizon) or on elevation rings, always looking at TARGET; --jitter-deg turns each view by a
-random rotation about the sensor, like the dataset's `_random` captures.
+millimetres, and said so) or `builtin:NAME` for a built-in scene: sphere, cup, lamp, pyramid or demo (a goblet). The
+sensor circles TARGET at RADIUS metres on a Fibonacci spiral (like LCSPCData: 256 views, 0.5 m, from 86 degrees down
+to the horizon) or on elevation rings, always looking at TARGET; --jitter-deg turns each view by a random rotation
+about the sensor, like the dataset's `_random` captures.
 
 Example:
   spadscan simulate bunny.obj --out captures/bunny-sim --sensor lcspc-sim --views 256
@@ -15,17 +16,20 @@ from __future__ import annotations
 import argparse
 
 SCHEDULES = ("fibonacci", "rings")
+DEFAULT_RINGS = 4
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("mesh", metavar="MESH", help="mesh file in metres (millimetres detected), or builtin:NAME for a built-in scene")
+    parser.add_argument("mesh", metavar="MESH",
+                        help="mesh file in metres (millimetres detected), or builtin:NAME for a built-in scene")
     parser.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to create (holds scan.json)")
     parser.add_argument("--sensor", default="lcspc-sim", choices=("tmf8820", "lcspc-sim"),
                         help="sensor model preset (default: lcspc-sim)")
     parser.add_argument("--views", type=int, default=256, help="number of views (default: 256)")
     parser.add_argument("--schedule", default="fibonacci", choices=SCHEDULES,
                         help="fibonacci: equal-area spiral (default); rings: --rings elevation rings of views/rings")
-    parser.add_argument("--rings", type=int, default=4, help="number of elevation rings for --schedule rings")
+    parser.add_argument("--rings", type=int, default=None,
+                        help=f"number of elevation rings for --schedule rings (default: {DEFAULT_RINGS})")
     parser.add_argument("--min-elevation", type=float, default=0.0, metavar="DEG",
                         help="lowest elevation of the schedule band in degrees (default: 0)")
     parser.add_argument("--max-elevation", type=float, default=90.0, metavar="DEG",
@@ -88,8 +92,11 @@ def make_poses(args):
               "min_elevation_deg": args.min_elevation, "max_elevation_deg": args.max_elevation,
               "jitter_deg": args.jitter_deg, "seed": args.seed}
     if args.schedule == "fibonacci":
+        if args.rings is not None:
+            raise SimulationError(f"--rings {args.rings} is for --schedule rings (the fibonacci spiral has none)")
         poses = schedules.fibonacci_hemisphere(args.views, **common)
     else:
+        args.rings = DEFAULT_RINGS if args.rings is None else args.rings
         if not (1 <= args.rings <= args.views):
             raise SimulationError(f"--rings {args.rings} must lie in [1, views = {args.views}]")
         if args.views % args.rings:

@@ -431,3 +431,18 @@ def test_a_capture_is_not_written_among_other_files(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
     assert main(["simulate", "builtin:sphere", "--out", str(empty), "--views", "4", "--no-progress"]) == 0
+
+
+def test_rings_without_the_rings_schedule_is_refused_and_the_help_names_the_builtin_scenes(tmp_path, capsys):
+    import spadscan.commands.simulate as command
+    from spadscan.cli import main
+    from spadscan.protocol.scenes import BUILTIN_SCENES
+
+    assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "a"), "--views", "4", "--rings", "3"]) == 1
+    assert capsys.readouterr().err == "spadscan: error: --rings 3 is for --schedule rings (the fibonacci spiral has " \
+                                      "none)\n"
+    assert not (tmp_path / "a").exists()
+    assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "b"), "--views", "8", "--schedule", "rings",
+                 "--no-progress"]) == 0  # the default ring count
+    doc = " ".join(command.__doc__.split())
+    assert all(name in doc for name in BUILTIN_SCENES)

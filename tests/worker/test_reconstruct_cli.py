@@ -427,3 +427,21 @@ def test_more_threads_than_cores_is_a_warning(capture_and_gt, tmp_path, capsys, 
     monkeypatch.setattr(threads, "machine_cores", lambda: 2)
     assert _recon(cap, tmp_path / "p", "--threads", "2") == 0
     assert "CPU threads on" not in capsys.readouterr().err
+
+
+def test_a_default_run_of_days_on_a_cpu_is_a_warning(capture_and_gt, tmp_path, capsys, monkeypatch):
+    import dataclasses
+
+    import spadscan.worker.reconstruct as reconstruct
+    from spadscan.worker.recon import config as recon_config
+
+    cap, _ = capture_and_gt
+    # The paper preset's 300,000 default steps, made one so that the run ends at once; the warning's bar made one too.
+    monkeypatch.setattr(reconstruct, "LONG_CPU_STEPS", 1)
+    real = recon_config.preset_config
+    monkeypatch.setattr(recon_config, "preset_config", lambda name: dataclasses.replace(real(name), default_steps=1))
+    base = ["reconstruct", str(cap), "--preset", "paper", "--device", "cpu", "--no-progress", *small_args()]
+    assert main([*base, "--out", str(tmp_path / "p")]) == 0
+    assert "warning: preset 'paper' runs 1 steps by default: days on a CPU" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "s"), "--steps", "1"]) == 0
+    assert "by default" not in capsys.readouterr().err

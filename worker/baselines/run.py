@@ -118,7 +118,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
             "note": "threshold chosen by the lowest Chamfer against the ground truth, as in the paper "
                     f"(metrics on {CALIBRATION_POINTS} samples per mesh during the search)",
             "table": calibration.table},
-        "floor_z_m": floor_z, "floor_source": floor_source, "seconds": round(seconds, 3), "capture_state": data.manifest["state"],
+        "floor_z_m": floor_z, "floor_source": floor_source, "seconds": round(seconds, 3),
+        "capture_state": data.manifest["state"],
         **({"capture_note": state_note} if state_note else {}),
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))},
         **extras,
