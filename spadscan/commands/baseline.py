@@ -23,6 +23,12 @@ from __future__ import annotations
 
 import argparse
 
+DEFAULTS = {"resolution": 128, "edge_deg": 1.0, "surface": "occupancy"}
+"""Defaults of the options only one method reads (filled in after the check that the method reads them)."""
+
+ONLY_FOR = {"space-carving": ("resolution", "margin_mm", "edge_deg"), "reprojection": ("surface",)}
+"""The options each method alone reads: given to the other method, they are refused, not silently ignored."""
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("method", choices=("reprojection", "space-carving"), help="which baseline")
@@ -42,22 +48,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="detection threshold in noise standard deviations (default: 5)")
     group.add_argument("--calibrate", action="store_true",
                        help="search the threshold for the best Chamfer against the ground truth (as the paper did)")
-    parser.add_argument("--resolution", type=int, default=128, metavar="R",
-                        help="space carving: voxels along each side of the grid (default: 128)")
+    parser.add_argument("--resolution", type=int, default=None, metavar="R",
+                        help=f"space carving: voxels along each side of the grid (default: {DEFAULTS['resolution']})")
     parser.add_argument("--margin-mm", type=float, default=None, metavar="MM",
                         help="space carving: range left uncarved in front of each first return, mm "
                              "(default: one bin, at least 2 mm)")
-    parser.add_argument("--edge-deg", type=float, default=1.0, metavar="DEG",
+    parser.add_argument("--edge-deg", type=float, default=None, metavar="DEG",
                         help="space carving: trust each zone's field of view only this far inside its edges "
-                             "(default: 1 degree)")
+                             f"(default: {DEFAULTS['edge_deg']:g} degree)")
     floor = parser.add_mutually_exclusive_group()
     floor.add_argument("--floor-z", type=float, default=None, metavar="M",
                        help="height of the floor the object stands on, metres; below it is empty (default: a "
                             "measured capture's table, found in its histograms as the fast reconstruction finds it; "
                             "z = 0 for a simulated one)")
     floor.add_argument("--no-floor", action="store_true", help="do not assume a floor")
-    parser.add_argument("--surface", choices=("occupancy", "convex-hull"), default="occupancy",
-                        help="reprojection: how the points become a surface (default: occupancy)")
+    parser.add_argument("--surface", choices=("occupancy", "convex-hull"), default=None,
+                        help=f"reprojection: how the points become a surface (default: {DEFAULTS['surface']})")
+
+
+def check_method_options(args) -> None:
+    """Refuse an option the chosen method does not read, then fill in the defaults of those it does."""
+    from spadscan.protocol.errors import ConfigError
+
+    for method, names in ONLY_FOR.items():
+        given = [name for name in names if getattr(args, name) is not None]
+        if method != args.method and given:
+            flags = ", ".join("--" + name.replace("_", "-") for name in given)
+            raise ConfigError(f"{flags}: only {method} reads {'it' if len(given) == 1 else 'them'}, not "
+                              f"{args.method}")
+    for name, value in DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
 
 
 def run(args) -> int:
@@ -68,6 +89,7 @@ def run(args) -> int:
     from spadscan.worker.ground_truth import ground_truth_for_run
     from spadscan.worker.outputs import check_out
 
+    check_method_options(args)
     if not 8 <= args.resolution <= 512:
         raise ConfigError(f"--resolution {args.resolution} must lie in [8, 512]")
     if args.margin_mm is not None and not args.margin_mm >= 0:

@@ -271,3 +271,16 @@ def test_the_baseline_command_uses_the_table_unless_told(measured_on_table, tmp_
         cli_main(["baseline", "reprojection", str(measured_on_table), "--out", str(tmp_path / "x"), "--floor-z",
                   "0", "--no-floor"])
     assert "not allowed with argument" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("method, option, message", [
+    ("space-carving", ["--surface", "convex-hull"], "--surface: only reprojection reads it, not space-carving"),
+    ("reprojection", ["--resolution", "32"], "--resolution: only space-carving reads it, not reprojection"),
+    ("reprojection", ["--edge-deg", "2", "--margin-mm", "3"],
+     "--margin-mm, --edge-deg: only space-carving reads them, not reprojection"),
+])
+def test_an_option_the_method_does_not_read_is_refused(sphere_capture, tmp_path, capsys, method, option, message):
+    cap, _ = sphere_capture
+    assert cli_main(["baseline", method, str(cap), "--out", str(tmp_path / "x"), "--no-gt", *option]) == 1
+    assert capsys.readouterr().err == f"spadscan: error: {message}\n"
+    assert not (tmp_path / "x").exists()
