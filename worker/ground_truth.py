@@ -33,6 +33,8 @@ class GroundTruth:
 
     mesh: object
     cut_above_z_m: float | None = None
+    units_read: str = "m"
+    """The unit its file was read in ('mm' when millimetres were detected: protocol.mesh_io.load_mesh)."""
 
     def scored(self, pred):
         """The part of a reconstruction `pred` that is compared: what lies above the cut. A MeshError names the cut
@@ -105,8 +107,11 @@ def load_ground_truth(spec, *, units: str = "auto", keep_table: bool = False) ->
     unless `keep_table`."""
     from spadscan.protocol.mesh_io import load_mesh_spec
 
+    import dataclasses
+
     mesh = load_mesh_spec(str(spec), units=units)[0]
-    return GroundTruth(mesh) if keep_table else object_on_table(mesh)
+    truth = GroundTruth(mesh) if keep_table else object_on_table(mesh)
+    return dataclasses.replace(truth, units_read=mesh.metadata.get("units_read", "m"))
 
 
 def named_ground_truth(manifest: dict) -> tuple[str | None, str | None]:

@@ -84,6 +84,10 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
         config = with_overrides(config, overrides)
     dev = resolve_device(device)
     truth = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
+    if truth is not None and truth.units_read == "mm":
+        from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
+
+        log(f"ground truth {gt}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)")
     out = Path(out)
     dtype = torch.float64 if config.dtype == "float64" else torch.float32
     scene = load_scene(Path(capture), dev, dtype)

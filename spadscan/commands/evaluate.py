@@ -63,10 +63,11 @@ def format_table(metrics, mesh: str, gt: str, scored: str | None = None) -> str:
 def run(args: argparse.Namespace) -> int:
     import json
     import math
+    import sys
 
     from spadscan.protocol.errors import ConfigError
 
-    from spadscan.protocol.mesh_io import load_mesh_spec
+    from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.worker.ground_truth import GroundTruth, load_ground_truth
     from spadscan.worker.metrics import crop_to_box
 
@@ -74,12 +75,18 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--threshold-mm {args.threshold_mm:g} must be a distance in (0, 10000) mm")
     pred = load_mesh_spec(args.mesh, units=args.units)[0]
     truth = load_ground_truth(args.gt, units=args.units, keep_table=args.keep_table or args.box is not None)
+    units = {"mesh": pred.metadata.get("units_read", "m"), "gt": truth.units_read}
+    for what, unit in units.items():
+        if unit == "mm" and args.units == "auto":  # said, since a silent x1000 is a surprise
+            print(f"{getattr(args, what)}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres; "
+                  f"--units m to read it as metres)", file=sys.stderr)
     if args.box is not None:
         pred = crop_to_box(pred, args.box[:3], args.box[3:])
         truth = GroundTruth(crop_to_box(truth.mesh, args.box[:3], args.box[3:]))
     metrics = truth.metrics(pred, n_points=args.points, seed=args.seed, fscore_threshold_m=args.threshold_mm * 1e-3)
     if args.json:
-        print(json.dumps({"mesh": args.mesh, "gt": args.gt, "cut_above_z_m": truth.cut_above_z_m,
+        print(json.dumps({"mesh": args.mesh, "gt": args.gt, "mesh_units": units["mesh"], "gt_units": units["gt"],
+                          "cut_above_z_m": truth.cut_above_z_m,
                           **metrics.to_dict()}))
     else:
         print(format_table(metrics, args.mesh, args.gt, truth.note()))

@@ -152,8 +152,12 @@ def test_eval_detects_millimetre_stl_and_prints_json(tmp_path, capsys):
     ball(100.0, (0, 0, 100.0)).export(tmp_path / "recon.stl")  # the same ball, in millimetres
     rc = main(["eval", str(tmp_path / "recon.stl"), "--gt", str(tmp_path / "gt.obj"), "--json", "--points", str(N)])
     assert rc == 0
-    out = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
     assert out["chamfer_mm"] < 1.5 * floor_mm(gt, N) and out["fscore_5mm"] == 1.0 and out["n_points"] == N
+    assert (out["mesh_units"], out["gt_units"]) == ("mm", "m")
+    assert captured.err == f"{tmp_path / 'recon.stl'}: read as millimetres (over 5 m across as metres; --units m " \
+                           f"to read it as metres)\n"
     assert {"accuracy_mm", "completeness_mm", "normal_error_deg", "mesh", "gt"} <= set(out)
 
 
