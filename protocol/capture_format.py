@@ -158,6 +158,9 @@ def read_npy(path: Path) -> np.ndarray:
     except FileNotFoundError:
         raise CaptureError(f"{path}: missing") from None
     except (OSError, ValueError, EOFError) as exc:
+        if "allow_pickle" in str(exc):  # numpy's own advice there (load it unsafely) is no advice for a capture
+            raise CaptureError(f"{path}: holds Python objects, not a plain array; a capture never writes such a "
+                               f"file") from None
         raise CaptureError(f"{path}: corrupt or truncated .npy ({one_line(exc)})") from None
     if not isinstance(array, np.ndarray):  # an .npz archive under an .npy name
         getattr(array, "close", lambda: None)()

@@ -437,6 +437,8 @@ CORRUPTIONS = {
     "truncated header": (lambda p: _truncate(p / chunk_name(0) / "hists.npy", lambda n: 40), "hists.npy"),
     "empty poses": (lambda p: _truncate(p / chunk_name(0) / "poses.npy", lambda n: 0), "poses.npy"),
     "npz hists": (_npz_instead, "hists.npy"),
+    "pickled hists": (lambda p: np.save(p / chunk_name(0) / "hists.npy", np.array([{"a": 1}], dtype=object),
+                                        allow_pickle=True), "hists.npy"),
     "missing hists": (lambda p: (p / chunk_name(0) / "hists.npy").unlink(), "hists.npy"),
     "garbage meta": (lambda p: (p / chunk_name(0) / "meta.json").write_text("{not json"), "meta.json"),
     "meta not object": (lambda p: (p / chunk_name(0) / "meta.json").write_text("[1, 2]"), "meta.json"),
@@ -479,6 +481,7 @@ def test_corrupt_files_give_one_line_errors_naming_the_file(tmp_path, name):
         r.planned_poses()
     msg = str(info.value)
     assert "\n" not in msg and filename in msg, msg
+    assert "allow_pickle" not in msg, "numpy's advice to load the file unsafely is not passed on"
 
 
 def test_a_newer_format_version_is_refused_naming_the_one_this_reads(tmp_path):
