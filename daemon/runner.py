@@ -96,14 +96,24 @@ class ScanRunner:
         plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
         hand_eye = self.cfg.arm.hand_eye
         try:
+            # Made here, exclusively: planning took a while, and a folder that appeared meanwhile (another program
+            # writing there) is not ours to fill, nor to remove if the start fails.
+            await self._io(path.mkdir)
+        except FileExistsError:
+            raise ConfigError(f"scan {name!r} already exists in {self.root} (choose another name)") from None
+        except OSError as exc:
+            self.last_error = f"cannot start scan {name!r}: {_describe(exc, 'creating the scan folder')}"
+            log.warning("%s", self.last_error)
+            raise CaptureError(self.last_error) from None
+        try:
             writer = await self._io(CaptureWriter.create, path, self.sensor.model, scan_id=name,
                                     rig={**self.rig, "writer": WRITER}, hand_eye=hand_eye,
                                     schedule=plan.description, planned_poses=plan.sensor_poses,
                                     chunk_size=scan.chunk_size, scene=self.scene,
                                     frames_per_pose=scan.frames_per_pose)
         except (OSError, CaptureError) as exc:
-            # The folder did not exist before (checked above, and only one scan is planned at a time): whatever
-            # create left of it is ours to remove, so that the name is free again once the disk has room.
+            # The folder was made above, by this call: whatever create left of it is ours to remove, so that the
+            # name is free again once the disk has room.
             await self._io(_remove_partial, path)
             what = _describe(exc, "creating the scan folder") if isinstance(exc, OSError) else str(exc)
             self.last_error = f"cannot start scan {name!r}: {what}"

@@ -541,3 +541,33 @@ def test_only_scans_the_daemon_wrote_are_taken_over(arun, tmp_path, sphere, capl
         assert r.state == "running" and r.chunk_names() == []  # untouched
     assert CaptureReader(tmp_path / "caps" / "mine").manifest["rig"]["writer"] == "spadscan-daemon"
     assert any(r.getMessage().startswith("took over interrupted scan mine at pose ") for r in caplog.records)
+
+
+def test_a_folder_that_appears_while_a_scan_is_planned_is_left_alone(arun, tmp_path, sphere, monkeypatch):
+    """The scan's folder is made exclusively once its plan is ready: one that another program made meanwhile is
+    refused and kept as it is, never filled nor removed."""
+    import spadscan.daemon.runner as runner_module
+
+    cfg = make_cfg(tmp_path, views=4, frames_per_pose=1)
+    theirs = tmp_path / "caps" / "raced"
+    real = runner_module.build_plan
+
+    def plan_while_another_program_writes(*args, **kwargs):
+        theirs.mkdir(parents=True)
+        (theirs / "theirs.txt").write_text("keep")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(runner_module, "build_plan", plan_while_another_program_writes)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                with pytest.raises(ConfigError, match="already exists"):
+                    await runner.start("raced")
+            finally:
+                await runner.shutdown()
+
+    arun(scenario())
+    assert sorted(p.name for p in theirs.iterdir()) == ["theirs.txt"]
