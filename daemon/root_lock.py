@@ -13,12 +13,18 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import time
 from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 
 LOCK_NAME = ".spadscan-daemon.lock"
 """Hidden: the worker and the daemon's own scan search skip names that start with a dot."""
+
+LOCK_TRIES = 20
+LOCK_RETRY_S = 0.05
+"""A held lock is tried again for about a second before it is refused: `spadscan daemon --check` takes the lock for
+a moment to look, and a daemon starting in that moment must not take the look for another daemon."""
 
 
 class RootLock:
@@ -28,23 +34,27 @@ class RootLock:
         self.root = Path(root)
         self.path = self.root / LOCK_NAME
         self._fd: int | None = None
+        self._writable = False
 
     def acquire(self) -> None:
+        fd, writable = _open_lock_file(self.path, self.root)
         try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
-        except OSError as exc:
-            raise ConfigError(f"cannot lock captures root {self.root}: {exc.strerror or exc} ({self.path})") from None
-        try:
-            _lock(fd, fcntl.LOCK_EX, self.root)
-            os.ftruncate(fd, 0)
-            os.write(fd, f"{os.getpid()}\n".encode())
+            _lock_retrying(fd, self.root)
+            if writable:  # the pid only names the holder in a refusal: a read-only lock file still locks
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
         except BaseException:
             os.close(fd)
             raise
-        self._fd = fd
+        self._fd, self._writable = fd, writable
 
     def release(self) -> None:
         if self._fd is not None:
+            if self._writable:
+                try:
+                    os.ftruncate(self._fd, 0)  # so that a later refusal never names this pid
+                except OSError:
+                    pass
             os.close(self._fd)  # closing the only descriptor drops the flock
             self._fd = None
 
@@ -70,6 +80,33 @@ def check_root_free(root: Path) -> None:
         _lock(fd, fcntl.LOCK_SH, root)  # refused while a daemon holds its exclusive lock
     finally:
         os.close(fd)
+
+
+def _open_lock_file(path: Path, root: Path) -> tuple[int, bool]:
+    """(descriptor, writable) of the lock file, created if missing; read-only when another user made it (a daemon
+    once run with sudo): flock needs no write access."""
+    try:
+        return os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644), True
+    except PermissionError:
+        pass
+    except OSError as exc:
+        raise ConfigError(f"cannot lock captures root {root}: {exc.strerror or exc} ({path})") from None
+    try:
+        return os.open(path, os.O_RDONLY | os.O_CLOEXEC), False
+    except OSError as exc:
+        raise ConfigError(f"cannot lock captures root {root}: {exc.strerror or exc} ({path})") from None
+
+
+def _lock_retrying(fd: int, root: Path) -> None:
+    """An exclusive lock on `fd`, tried LOCK_TRIES times LOCK_RETRY_S apart; the last refusal is raised."""
+    for attempt in range(LOCK_TRIES):
+        try:
+            _lock(fd, fcntl.LOCK_EX, root)
+            return
+        except ConfigError:
+            if attempt == LOCK_TRIES - 1:
+                raise
+            time.sleep(LOCK_RETRY_S)
 
 
 def _lock(fd: int, kind: int, root: Path) -> None:

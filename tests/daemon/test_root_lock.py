@@ -33,3 +33,44 @@ def test_check_creates_nothing(tmp_path):
 def test_an_unusable_root_is_one_line(tmp_path):
     with pytest.raises(ConfigError, match="cannot lock captures root .*missing"):
         RootLock(tmp_path / "missing").acquire()
+
+
+def test_a_look_that_overlaps_a_start_does_not_refuse_it(tmp_path, monkeypatch):
+    """`daemon --check` takes a shared lock for a moment; a daemon that starts in that moment waits it out, and a
+    refusal never names a holder that has let go (the file is emptied on release)."""
+    import fcntl
+    import threading
+
+    import spadscan.daemon.root_lock as root_lock
+
+    with RootLock(tmp_path):
+        pass
+    assert (tmp_path / LOCK_NAME).read_text() == ""
+    fd = os.open(tmp_path / LOCK_NAME, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_SH)
+    threading.Timer(0.2, os.close, (fd,)).start()  # the look ends while the start is retrying
+    with RootLock(tmp_path):
+        assert (tmp_path / LOCK_NAME).read_text() == f"{os.getpid()}\n"
+    monkeypatch.setattr(root_lock, "LOCK_TRIES", 2)
+    with RootLock(tmp_path):
+        with pytest.raises(ConfigError, match=r"in use by another daemon \(pid"):
+            RootLock(tmp_path).acquire()
+
+
+def test_a_lock_file_another_user_made_still_locks(tmp_path, monkeypatch):
+    """A lock file this user cannot write (left by a daemon once run with sudo) is locked read-only."""
+    import spadscan.daemon.root_lock as root_lock
+
+    (tmp_path / LOCK_NAME).write_text("")
+    real_open = os.open
+
+    def no_write(path, flags, *mode):
+        if flags & os.O_RDWR:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, flags, *mode)
+
+    monkeypatch.setattr(root_lock.os, "open", no_write)
+    with RootLock(tmp_path):
+        with pytest.raises(ConfigError, match="in use by another daemon"):
+            check_root_free(tmp_path)
+    check_root_free(tmp_path)
