@@ -132,6 +132,11 @@ def test_registry_and_overrides():
     ("fast", "dtype", "float64", "preset 'fast' does not use it"),
     ("fast", "loss.kind", "l2", "preset 'fast' does not use it"),
     ("paper", "early_stop", True, "preset 'paper' does not use it"),
+    ("fast", "albedo_init", 0.5, "preset 'fast' does not use it"),
+    ("fast", "schedule", None, "a config section; set its fields"),
+    ("fast", "mesh_resolution", None, "the field takes no null"),
+    ("paper", "default_budget_s", "abc", "must be null or a finite number > 0"),
+    ("paper", "default_budget_s", -5, "must be null or a finite number > 0"),
 ])
 def test_overrides_that_would_not_do_what_they_say_are_refused(preset, key, value, message):
     with pytest.raises(ReconstructionError, match=message):
@@ -142,6 +147,9 @@ def test_overrides_a_preset_reads_are_taken():
     cfg = with_overrides(preset_config("paper"), {"dtype": "float64", "loss.kind": "nll"})
     assert (cfg.dtype, cfg.loss.kind) == ("float64", "nll")
     assert with_overrides(preset_config("fast"), {"early_stop": False}).early_stop is False
+    assert with_overrides(preset_config("paper"), {"default_budget_s": 60}).default_budget_s == 60
+    assert with_overrides(preset_config("fast"), {"schedule.coarse_smooth_height_m": None}).schedule \
+        .coarse_smooth_height_m is None  # a field that takes None
 
 
 def test_missing_fast_preset_is_a_clear_error(monkeypatch):

@@ -185,16 +185,28 @@ def with_overrides(config: ReconConfig, overrides: dict[str, Any]) -> ReconConfi
             obj = getattr(obj, part, None)
             if obj is None or not dataclasses.is_dataclass(obj):
                 raise ReconstructionError(f"config override {key!r}: {part!r} is not a config section")
-        if not any(f.name == name for f in dataclasses.fields(obj)):
+        field_ = next((f for f in dataclasses.fields(obj) if f.name == name), None)
+        if field_ is None:
             raise ReconstructionError(f"config override {key!r}: no field {name!r} in {type(obj).__name__}")
+        if dataclasses.is_dataclass(getattr(obj, name)):
+            raise ReconstructionError(f"config override {key!r}: a config section; set its fields ({key}.NAME=VALUE)")
+        if value is None and "None" not in str(field_.type):
+            raise ReconstructionError(f"config override {key!r}: the field takes no null (it holds "
+                                      f"{getattr(obj, name)!r})")
         setattr(obj, name, _coerce(getattr(obj, name), value, key))
     return config
 
 
 def _coerce(old, value, key: str):
     """value, converted to the type of the field's current value `old`; a one-line error when it does not fit."""
-    if old is None or value is None:
+    if value is None:
         return value
+    if old is None:
+        if value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)
+                             and math.isfinite(value) and value > 0):
+            return value
+        # The fields that start as None are optional limits (default_steps, default_budget_s, ...).
+        raise ReconstructionError(f"config override {key!r}: {value!r} must be null or a finite number > 0")
     if isinstance(old, bool):
         ok = isinstance(value, bool)
     elif isinstance(old, int):

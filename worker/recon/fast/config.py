@@ -2,9 +2,9 @@
 
 `fast_config()` returns the shared `ReconConfig` with this preset's own sections: `field` (`FastFieldConfig`: hull,
 grid, rendering) and `schedule` (`FastScheduleConfig`: rays, samples, optimiser, stopping). Of the shared sections it
-uses `loss.eikonal_weight` and `loss.tv_weight` (the grid's Eikonal and smoothness weights), `time_oversample`,
-`dtype` (float32) and the mesh and trace settings; `rays`, `optim` and `sharpness` belong to the paper preset and are
-not read. One set of defaults serves every scene: lengths that should follow the grid are in voxels, physical ones
+uses `loss.eikonal_weight` and `loss.tv_weight` (the grid's Eikonal and smoothness weights), `time_oversample` and
+the mesh and trace settings; `rays`, `optim` and `sharpness` belong to the paper preset and are not read, nor are
+`dtype` (the grid is float32), `loss.kind` (its own likelihood), `loss.eikonal_points` and `albedo_init`. One set of defaults serves every scene: lengths that should follow the grid are in voxels, physical ones
 in metres.
 """
 
@@ -196,7 +196,7 @@ def fast_config():
         trace_mesh_resolution=128,
         unused_sections=("rays", "optim", "sharpness"),
         # The grid is fitted in float32 (its sums that need more are float64 inside), by its own likelihood.
-        unused_fields=("dtype", "loss.kind", "loss.eikonal_points"),
+        unused_fields=("dtype", "loss.kind", "loss.eikonal_points", "albedo_init"),
     )
 
 
