@@ -245,11 +245,22 @@ def test_a_measured_scene_stands_on_its_table_found_in_the_histograms(measured_o
 
     height, source = scene_floor(CaptureReader(measured_on_table).load())
     assert height == pytest.approx(-0.12, abs=0.01) and source == "the table, found in the histograms"
-    assert scene_floor(CaptureReader(sphere_capture[0]).load()) == (SIMULATED_FLOOR_Z, "a simulated scene's floor")
+    assert scene_floor(CaptureReader(sphere_capture[0]).load()) == (SIMULATED_FLOOR_Z, "a scene without a table: z = 0")
     data = CaptureReader(measured_on_table).load()
     for table, expected in (({"z": -0.2}, -0.2), ({"normal": [0, 0, 2], "offset": -0.3}, -0.15)):
         data.manifest["scene"]["table"] = table
         assert scene_floor(data) == (pytest.approx(expected), "the table the capture names")
+    # As the reconstruction reads the scene: a table to fit is found in the histograms; none means z = 0.
+    data.manifest["scene"]["table"] = {"z": -0.2, "fit": True}
+    assert scene_floor(data) == (pytest.approx(-0.12, abs=0.01), "the table, found in the histograms")
+    for table in (False, None):
+        data.manifest["scene"]["table"] = table
+        assert scene_floor(data) == (SIMULATED_FLOOR_Z, "a scene without a table: z = 0")
+    data.manifest["scene"]["table"] = {"normal": [0, 1, 1], "offset": 0.0}
+    assert scene_floor(data) == (None, "a tilted table: no horizontal floor")
+    data.manifest["scene"]["table"] = {"z": "low"}
+    with pytest.raises(CaptureError, match="scene table needs a number 'z'"):
+        scene_floor(data)
     manifest = json.loads((measured_on_table / "scan.json").read_text())
     assert "table" not in manifest["scene"]
 

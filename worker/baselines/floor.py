@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from spadscan.protocol.errors import CaptureError
+
 SIMULATED_FLOOR_Z = 0.0
 """Metres: the floor of a simulated scene, and of a measured one whose table cannot be found."""
 
@@ -18,36 +20,52 @@ RAYS_PER_ZONE = 48
 """Rays per zone for the table's predicted peaks: enough to place a peak to a bin (as the reconstruction uses)."""
 
 
-def scene_floor(data) -> tuple[float, str]:
-    """(floor height in metres, where it comes from) for a capture's data (protocol.capture_reader.CaptureData)."""
+def scene_floor(data) -> tuple[float | None, str]:
+    """(floor height in metres, or None for no floor; where it comes from) for a capture's data
+    (protocol.capture_reader.CaptureData). The scene's `table` is read as the reconstruction reads it
+    (recon/scene_data.py): a measured scene that says nothing stands on a table; `true`, or a horizontal table with
+    `"fit": true`, is found in the histograms (a named height is the fallback); a named one without `fit` is used
+    as given; none (`false`, or a simulated scene that says nothing) leaves the floor at z = 0."""
     from ..capture_kind import is_measured
 
     scene = data.manifest.get("scene") or {}
-    spec = scene.get("table") if isinstance(scene, dict) else None
+    if not isinstance(scene, dict):
+        scene = {}
+    spec = scene.get("table", True if is_measured(scene, data.manifest, data.sensor) else None)
+    if not spec:
+        return SIMULATED_FLOOR_Z, "a scene without a table: z = 0"
+    named = None
     if isinstance(spec, dict):
         named = _named_height(spec)
-        if named is not None:
+        if named is None:
+            return None, "a tilted table: no horizontal floor"
+        if not spec.get("fit", False):
             return named, "the table the capture names"
-    if not isinstance(scene, dict) or spec is False or not is_measured(scene, data.manifest, data.sensor):
-        return SIMULATED_FLOOR_Z, "a simulated scene's floor"
+    elif spec is not True:
+        raise CaptureError("scene table must be true or a dict with 'z' or 'normal' and 'offset'")
     height = measured_table_height(data)
-    if height is None:
-        return SIMULATED_FLOOR_Z, "no table found in the histograms; z = 0 assumed (--floor-z to set it)"
-    return height, "the table, found in the histograms"
+    if height is not None:
+        return height, "the table, found in the histograms"
+    if named is not None:
+        return named, "the table the capture names (not found in the histograms)"
+    return SIMULATED_FLOOR_Z, "no table found in the histograms; z = 0 assumed (--floor-z to set it)"
 
 
 def _named_height(spec: dict) -> float | None:
-    """Height (metres) of a horizontal table given as {"z": h} or {"normal": n, "offset": d}; None otherwise."""
+    """Height (metres) of a table given as {"z": h} or {"normal": n, "offset": d}; None when it is not horizontal.
+    A malformed one is a CaptureError, as the reconstruction makes it."""
     try:
         if "z" in spec:
             return float(spec["z"])
         normal = np.asarray(spec.get("normal", (0, 0, 1)), float)
         norm = float(np.linalg.norm(normal))
-        if normal.shape == (3,) and norm > 0 and abs(normal[2]) / norm > 0.99 and "offset" in spec:
-            return float(spec["offset"]) / float(normal[2])
+        if normal.shape != (3,) or not np.isfinite(norm) or norm < 1e-9 or "offset" not in spec:
+            raise ValueError("bad plane")
+        offset = float(spec["offset"])
     except (TypeError, ValueError):
-        pass
-    return None
+        raise CaptureError("scene table needs a number 'z', or a non-zero 3-vector 'normal' and an 'offset' in "
+                           "metres") from None
+    return offset / float(normal[2]) if abs(normal[2]) / norm > 0.99 else None
 
 
 def measured_table_height(data) -> float | None:
@@ -60,15 +78,19 @@ def measured_table_height(data) -> float | None:
     from ..table_height import detect_height
 
     sensor = data.sensor
-    counts = np.asarray(data.hists, np.float64)
-    if len(counts) == 0:
+    if len(data.hists) == 0:
         return None
-    cycles = np.full(len(counts), float(sensor.cycles))
+    # The frames of one pose summed, as the reconstruction sums them: the peak test sees all their counts.
+    poses_of, group = np.unique(data.pose_indices, return_inverse=True)
+    counts = np.zeros((len(poses_of),) + data.hists.shape[1:])
+    np.add.at(counts, group, data.hists.astype(np.float64))
+    cycles = np.bincount(group, minlength=len(poses_of)) * float(sensor.cycles)
+    poses = np.asarray(data.poses, np.float64)[[int(np.flatnonzero(group == g)[0]) for g in range(len(poses_of))]]
     background = np.median(counts, axis=-1) / cycles[:, None]
     reference = None if data.reference is None else np.asarray(data.reference, np.float64).mean(axis=0)
     kernel, origin, _ = pulse_kernel(sensor, reference)
     rays = zone_rays(sensor.zones, RAYS_PER_ZONE, 0)
-    return detect_height(counts, cycles, background, np.asarray(data.poses, np.float64), rays.directions,
+    return detect_height(counts, cycles, background, poses, rays.directions,
                          rays.weights, sensor, np.asarray(kernel, float), origin, ignore_bins=sensor.ignore_bins)
 
 

@@ -86,8 +86,11 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
             raise ConfigError(f"floor {floor_z!r} must be a height in metres, None or 'auto'")
         from .floor import scene_floor
 
-        floor_z, floor_source = scene_floor(data)
-        log(f"floor at z = {floor_z:.4f} m: {floor_source}")
+        try:
+            floor_z, floor_source = scene_floor(data)
+        except CaptureError as exc:
+            raise CaptureError(f"{Path(capture) / 'scan.json'}: {exc}") from None
+        log(f"floor: {floor_source}" if floor_z is None else f"floor at z = {floor_z:.4f} m: {floor_source}")
     opts = dict(resolution=resolution, margin_m=margin_m, floor_z=floor_z, surface=surface, edge_deg=edge_deg)
     calibration = None
     if calibrate_:
