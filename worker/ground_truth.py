@@ -143,6 +143,17 @@ def named_ground_truth(manifest: dict) -> tuple[str | None, str | None]:
     return None, None if why is None else f"{why}; no metrics"
 
 
+def scene_offset_m(manifest: dict) -> np.ndarray | None:
+    """The translation (metres) by which the capture's scene was placed (the daemon's simulated sensor records
+    `mesh_offset_m`), or None when there is none: the named mesh is the scene only once moved by it."""
+    scene = manifest.get("scene") if isinstance(manifest, dict) else None
+    try:
+        offset = np.asarray((scene or {}).get("mesh_offset_m", (0.0, 0.0, 0.0)), float).reshape(3)
+    except (TypeError, ValueError):
+        return None
+    return offset if np.all(np.isfinite(offset)) and np.any(offset != 0) else None
+
+
 def capture_ground_truth(capture) -> tuple[str | None, str | None]:
     """`named_ground_truth` of the capture folder `capture`; (None, None) when its manifest cannot be read (reading
     the capture says why)."""
@@ -153,7 +164,12 @@ def capture_ground_truth(capture) -> tuple[str | None, str | None]:
         manifest = CaptureReader(capture).manifest
     except (OSError, SpadscanError):
         return None, None
-    return named_ground_truth(manifest)
+    spec, why = named_ground_truth(manifest)
+    offset = scene_offset_m(manifest)
+    if spec is not None and offset is not None:
+        return None, (f"{spec} stood offset by mesh_offset_m {offset.tolist()} in the capture's scene; give --gt "
+                      f"a mesh placed as scanned for metrics")
+    return spec, why
 
 
 def ground_truth_for_run(capture, gt, no_gt: bool, log) -> str | None:
@@ -170,4 +186,5 @@ def ground_truth_for_run(capture, gt, no_gt: bool, log) -> str | None:
 
 
 __all__ = ["CUT_ABOVE_TABLE_M", "GroundTruth", "table_top_z", "cut_above", "object_on_table", "load_ground_truth",
-           "named_ground_truth", "capture_ground_truth", "ground_truth_for_run"]
+           "named_ground_truth", "scene_offset_m", "capture_ground_truth",
+           "ground_truth_for_run"]

@@ -121,13 +121,17 @@ def check_capture(scan: Path) -> dict:
 def ground_truth(manifest: dict, out: Path) -> tuple[Path | None, str | None]:
     """(a usable ground-truth mesh file for the capture, or None; why there is none although the manifest names one).
 
-    See `ground_truth.named_ground_truth`; a built-in scene is exported into `out` (ground_truth.ply), so that the
-    job's results hold what they were scored against."""
+    See `ground_truth.named_ground_truth`; a built-in scene, or any scene the capture placed with `mesh_offset_m`, is
+    exported into `out` (ground_truth.ply) as it stood, so that the job's results hold what they were scored
+    against."""
     from spadscan.protocol.mesh_io import BUILTIN_PREFIX
 
-    from .ground_truth import named_ground_truth
+    from .ground_truth import named_ground_truth, scene_offset_m
 
     spec, note = named_ground_truth(manifest)
+    offset = scene_offset_m(manifest)
+    if spec is not None and offset is not None:
+        return _export_moved(spec, offset, out / "ground_truth.ply")
     if spec is None or not spec.startswith(BUILTIN_PREFIX):
         return (None if spec is None else Path(spec)), note
     name = spec[len(BUILTIN_PREFIX):]
@@ -139,6 +143,20 @@ def ground_truth(manifest: dict, out: Path) -> tuple[Path | None, str | None]:
         return path, None
     except (ImportError, OSError, SpadscanError) as exc:
         return None, f"built-in scene {name!r}: {exc}; no metrics"
+
+
+def _export_moved(spec: str, offset, path: Path) -> tuple[Path | None, str | None]:
+    """(`path`, None) once the mesh `spec` moved by `offset` (metres) is written there, as the scene stood when
+    scanned; else (None, why)."""
+    try:
+        from spadscan.protocol.mesh_io import load_mesh_spec
+
+        mesh = load_mesh_spec(spec)[0].copy()
+        mesh.apply_translation(offset)
+        mesh.export(path)
+        return path, None
+    except (ImportError, OSError, SpadscanError) as exc:
+        return None, f"{spec} moved by {list(offset)}: {exc}; no metrics"
 
 
 def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -> dict:

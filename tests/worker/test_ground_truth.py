@@ -89,3 +89,32 @@ def test_the_ground_truth_a_manifest_names(tmp_path):
     for manifest in ({}, {"scene": None}, {"scene": {"mesh": 3}}, []):
         assert named_ground_truth(manifest) == (None, None)
     assert capture_ground_truth(tmp_path / "not-a-capture") == (None, None)
+
+
+def test_a_scene_placed_with_an_offset_is_scored_where_it_stood(tmp_path):
+    import json
+
+    import trimesh
+
+    from spadscan.worker.ground_truth import capture_ground_truth, scene_offset_m
+    from spadscan.worker.jobs import ground_truth
+
+    manifest = {"scene": {"builtin": "sphere", "mesh_offset_m": [0.1, 0.0, 0.02]}}
+    assert scene_offset_m(manifest).tolist() == [0.1, 0.0, 0.02]
+    assert scene_offset_m({"scene": {"builtin": "sphere", "mesh_offset_m": [0, 0, 0]}}) is None
+    path, note = ground_truth(manifest, tmp_path)
+    assert note is None and path == tmp_path / "ground_truth.ply"
+    from spadscan.protocol.scenes import builtin_scene
+
+    moved, still = trimesh.load(path), builtin_scene("sphere")
+    assert abs(moved.bounds - (still.bounds + [0.1, 0.0, 0.02])).max() < 1e-6
+    # A command reading the capture itself cannot place it: it says so and scores nothing.
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+    cap = simulate_capture(still, sensor_preset("lcspc-sim"), fibonacci_hemisphere(2, 0.5), tmp_path / "cap",
+                           settings=SimSettings(rays_per_zone=64), progress=False, scene=manifest["scene"])
+    spec, why = capture_ground_truth(cap)
+    assert spec is None and "offset by mesh_offset_m [0.1, 0.0, 0.02]" in why
+    assert json.loads((cap / "scan.json").read_text())["scene"]["mesh_offset_m"] == [0.1, 0.0, 0.02]
