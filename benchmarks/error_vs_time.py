@@ -95,6 +95,9 @@ def prepare_scene(path: Path, work: Path) -> Path:
         raise SystemExit(f"error: {path} holds neither scan.json nor a dataset <name>.json")
     cap = work / "captures" / path.name
     if (cap / "scan.json").is_file() and imported_from(cap) != str(source.resolve()):
+        if imported_from(cap) is None:  # not an import of this script's: somebody's capture, never deleted
+            raise SystemExit(f"error: {cap} holds a capture that is no dataset import; move it, or choose another "
+                             f"--out")
         import shutil
 
         shutil.rmtree(cap)

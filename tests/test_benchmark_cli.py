@@ -229,3 +229,12 @@ def test_a_dataset_folder_is_imported_again_when_its_file_changed(bench, tmp_pat
     bench.prepare_scene(tmp_path / "two" / "sphere", work)  # another folder of the same name: not the cached import
     assert imports == ["sphere.json", "sphere.json"]
     assert bench.imported_from(first) == str((tmp_path / "two" / "sphere" / "sphere.json").resolve())
+    # A capture there that is no dataset import (made or copied by someone) is never deleted.
+    mine = work / "captures" / "mine"
+    mine.mkdir(parents=True)
+    (mine / "scan.json").write_text(json.dumps({"scene": {}}))
+    (tmp_path / "three" / "mine").mkdir(parents=True)
+    (tmp_path / "three" / "mine" / "mine.json").write_text("{}")
+    with pytest.raises(SystemExit, match="holds a capture that is no dataset import"):
+        bench.prepare_scene(tmp_path / "three" / "mine", work)
+    assert (mine / "scan.json").is_file()
