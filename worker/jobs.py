@@ -236,8 +236,8 @@ def existing_result(job: Job, root: Path) -> Path | None:
 
 def publish(scratch: Path, final: Path) -> tuple[Path, Path | None]:
     """Move a finished scratch folder into place by rename. An earlier folder of the same job is never deleted: it
-    is renamed aside to `<job id>.replaced-<UTC time>` first. Returns (final, the earlier folder's new path or
-    None)."""
+    is renamed aside to `<job id>.replaced-<UTC time>-<4 hex digits>` first. Returns (final, the earlier folder's new
+    path or None)."""
     aside = move_aside(final)
     os.rename(scratch, final)
     return final, aside

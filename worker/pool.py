@@ -185,7 +185,13 @@ class Worker:
             return
         self.settled[claim.job.id] = "kept"
         self.log(f"{claim.job.id}: not run, {existing} already holds a result; kept it and recorded the job as done "
-                 f"(`spadscan worker --redo {claim.job.id}` reconstructs it again, keeping this one aside)")
+                 f"(`spadscan worker --root {self.root}{self._queue_flag()} --redo {claim.job.id}` reconstructs it "
+                 f"again, keeping this one aside)")
+
+    def _queue_flag(self) -> str:
+        """' --queue DIR' when this worker's queue is not the root's default one, for commands it suggests."""
+        default = self.root / ".queue"
+        return "" if self.queue.path == default else f" --queue {self.queue.path}"
 
     def _heartbeat(self) -> None:
         now = time.monotonic()

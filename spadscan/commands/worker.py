@@ -10,7 +10,7 @@ processes and gives their jobs back to the queue.
 A result is never replaced in silence: a job whose <scan>/recon/<job>/ already holds one (from another queue, or
 from before the queue was deleted) is not run; it is recorded as done, and the log and --status say so. To
 reconstruct finished scans again, `--redo JOB...` moves each one's results folder aside to
-<scan>/recon/<job>.replaced-<UTC time>/ and queues the job again.
+<scan>/recon/<job>.replaced-<UTC time>-<4 hex digits>/ and queues the job again.
 
 Options are frozen into each job when it is queued: --budget-s, --steps, --device and --seed apply to the scans a
 worker queues, and a job already queued (by this worker or an earlier one) runs with its own (the worker names, when
@@ -80,9 +80,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(the others are kept)")
     parser.add_argument("--redo", nargs="+", default=None, metavar="JOB",
                         help="reconstruct these done jobs again, and exit: each one's results folder is moved aside "
-                             "to <scan>/recon/<job>.replaced-<UTC time>/ (never deleted; the new name is printed) "
-                             "and the job is queued again; --budget-s, --steps, --device and --seed given with it "
-                             "replace the jobs' own values (the others are kept)")
+                             "to <scan>/recon/<job>.replaced-<UTC time>-<4 hex digits>/ (never deleted; the new name "
+                             "is printed) and the job is queued again; --budget-s, --steps, --device and --seed given "
+                             "with it replace the jobs' own values (the others are kept)")
 
 
 OPTION_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "device": "--device", "seed": "--seed"}

@@ -48,6 +48,8 @@ def test_a_fresh_queue_keeps_the_results_already_there(tmp_path, arun, monkeypat
     assert report_of(root, "new")["steps"] == 3
     result = root / "s" / "recon" / "s-fast"
     assert any(f"s-fast: not run, {result} already holds a result" in line for line in lines), lines
+    redo = f"`spadscan worker --root {root} --queue {tmp_path / 'q2'} --redo s-fast`"
+    assert any(redo in line for line in lines), "the command it suggests names this worker's queue"
     rows = {r.id: r for r in Queue(tmp_path / "q2").statuses()}
     assert (rows["s-fast"].state, rows["s-fast"].result, rows["s-fast"].kept) == ("done", str(result), True)
     assert rows["new-fast"].kept is False
@@ -75,6 +77,7 @@ def test_the_command_says_how_many_jobs_it_did_not_run(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "0 done, 0 failed, 1 not run (their results were already there)" in captured.out
     assert f"s-fast: not run, {result} already holds a result" in captured.err
+    assert f"`spadscan worker --root {tmp_path} --redo s-fast`" in captured.err  # the default queue: no --queue
     assert json.loads((result / "report.json").read_text()) == {"steps": 20}
     assert cli_main(["worker", "--root", str(tmp_path), "--status"]) == 0
     assert "kept, not run" in capsys.readouterr().out
