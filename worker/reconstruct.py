@@ -176,7 +176,7 @@ def _report(capture, preset, dev, config, scene, model, result, plan, scored: bo
     last = result.last
     tail = result.losses[-max(1, len(result.losses) // 10):] if result.losses else []
     return {
-        "capture": str(capture),
+        "capture": str(Path(capture).resolve()),
         "preset": preset,
         "device": str(dev),
         "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",

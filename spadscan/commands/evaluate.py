@@ -85,8 +85,10 @@ def run(args: argparse.Namespace) -> int:
         truth = GroundTruth(crop_to_box(truth.mesh, args.box[:3], args.box[3:]))
     metrics = truth.metrics(pred, n_points=args.points, seed=args.seed, fscore_threshold_m=args.threshold_mm * 1e-3)
     if args.json:
-        print(json.dumps({"mesh": args.mesh, "gt": args.gt, "mesh_units": units["mesh"], "gt_units": units["gt"],
-                          "cut_above_z_m": truth.cut_above_z_m,
+        # ground_truth and ground_truth_cut_above_z_m: the keys reconstruct's and baseline's reports use.
+        print(json.dumps({"mesh": args.mesh, "gt": args.gt, "ground_truth": args.gt, "mesh_units": units["mesh"],
+                          "gt_units": units["gt"], "cut_above_z_m": truth.cut_above_z_m,
+                          "ground_truth_cut_above_z_m": truth.cut_above_z_m,
                           **metrics.to_dict()}))
     else:
         print(format_table(metrics, args.mesh, args.gt, truth.note()))

@@ -174,6 +174,7 @@ def test_baseline_command_writes_a_mesh_and_a_report(sphere_capture, tmp_path, c
                      "--resolution", "48"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["method"] == "space-carving" and report["threshold"] == 5.0 and report["calibrated"] is False
+    assert report["ground_truth"] == report["gt"] == str(gt)  # the key reconstruct and eval use too
     assert "standard deviations" in report["threshold_units"]
     for key in ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg", "seconds"):
         assert np.isfinite(report[key])

@@ -156,6 +156,7 @@ def test_eval_detects_millimetre_stl_and_prints_json(tmp_path, capsys):
     out = json.loads(captured.out)
     assert out["chamfer_mm"] < 1.5 * floor_mm(gt, N) and out["fscore_5mm"] == 1.0 and out["n_points"] == N
     assert (out["mesh_units"], out["gt_units"]) == ("mm", "m")
+    assert out["ground_truth"] == out["gt"] and out["ground_truth_cut_above_z_m"] is None  # as in the reports
     assert captured.err == f"{tmp_path / 'recon.stl'}: read as millimetres (over 5 m across as metres; --units m " \
                            f"to read it as metres)\n"
     assert {"accuracy_mm", "completeness_mm", "normal_error_deg", "mesh", "gt"} <= set(out)

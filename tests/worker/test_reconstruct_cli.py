@@ -58,6 +58,7 @@ def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     assert report["preset"] == "paper" and report["device"] == "cpu" and report["steps"] == 2
     assert report["seed"] == 3 and report["stopped_by"] == "steps" and report["seconds"] > 0
+    assert report["capture"] == str(cap.resolve())
     assert set(report["terms"]) == {"pileup", "crosstalk", "table", "tv", "reference_pulse"}
     assert report["terms"]["pileup"] and not report["terms"]["crosstalk"] and not report["terms"]["table"]
     assert np.isfinite(report["final_loss"])

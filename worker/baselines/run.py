@@ -129,6 +129,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     }
     if truth is not None:
         report["gt"] = str(gt)
+        report["ground_truth"] = str(gt)  # the key reconstruct and eval use too
         if truth.note():
             log(f"scoring {truth.note()}")
         report.update(truth.report_fields())
