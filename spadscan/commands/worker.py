@@ -186,6 +186,7 @@ def _redo(queue, root, job_ids: list[str], given: dict) -> int:
     jobs = [_done_job(queue, job_id) for job_id in dict.fromkeys(job_ids)]
     changed = ", ".join(f"{OPTION_FLAGS[k]} {v}" for k, v in given.items()) or "their own options"
     for job in jobs:
+        _wait_for_publish(queue, job, result_path(job, root))
         aside = move_aside(result_path(job, root))
         if not queue.requeue("done", job.id, changes=given):
             raise ConfigError(f"{job.id}: another process moved the job while it was being queued again"
@@ -193,6 +194,25 @@ def _redo(queue, root, job_ids: list[str], given: dict) -> int:
         kept = f"; its earlier result is now {aside}" if aside else "; it had no results folder"
         print(f"queued again: {job.id} (with {changed}){kept}")
     return 0
+
+
+PUBLISH_WAIT_S = 5.0
+"""How long --redo waits for a job that has just finished to have its results moved into place."""
+
+
+def _wait_for_publish(queue, job, folder, wait_s: float | None = None) -> None:
+    """A worker marks a job done a moment before it moves the results into place (the lease is settled first).
+    Wait that moment out, so that the result is moved aside with the others and not found, and kept, when the job
+    runs again. A done job whose record names no result and whose folder stays missing is given up on after
+    PUBLISH_WAIT_S: its results were removed by hand, say."""
+    import time
+
+    deadline = time.monotonic() + (PUBLISH_WAIT_S if wait_s is None else wait_s)
+    while True:
+        done = [r for r in queue.read_records(job.id)[0] if r.get("outcome") == "done"]
+        if not done or done[-1].get("result") or folder.exists() or time.monotonic() >= deadline:
+            return
+        time.sleep(0.05)
 
 
 def _done_job(queue, job_id: str):
