@@ -55,7 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="reconstruction preset: fast or paper (default: fast; with --retry-failed: only the "
                              "failed jobs of this preset)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
-                        help="wall-clock budget per reconstruction in seconds (default: the preset's)")
+                        help="training seconds per reconstruction, checkpoint scoring included, as `spadscan "
+                             "reconstruct --budget-s` (default: the preset's)")
     parser.add_argument("--steps", type=int, default=None, metavar="N",
                         help="optimisation steps per reconstruction (default: the preset's)")
     parser.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),

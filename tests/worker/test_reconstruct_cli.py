@@ -78,6 +78,8 @@ def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
     assert b"property float nx" in header or b"property double nx" in header  # per-vertex normals are stored
     summary = capsys.readouterr().out
     assert "paper: 2 steps" in summary and "Chamfer" in summary
+    # Both clocks: training (what --budget-s bounds) and the whole run (set-up, mesh and metrics too).
+    assert f"in {report['seconds']:.1f} s of training ({report['wall_seconds']:.1f} s in all)" in summary
 
 
 @pytest.mark.slow
