@@ -31,6 +31,27 @@ class CaptureData:
     def pose_indices(self) -> np.ndarray:
         return np.array([m["pose_index"] for m in self.meta], dtype=np.int64)
 
+    def by_pose(self) -> "PoseSums":
+        """The frames of each pose summed into one view, views in pose-index order (what the reconstruction and
+        the baselines' table search fit)."""
+        _, first, group = np.unique(self.pose_indices, return_index=True, return_inverse=True)
+        counts = np.zeros((len(first),) + self.hists.shape[1:], np.float64)
+        np.add.at(counts, group, self.hists.astype(np.float64))
+        return PoseSums(group=group, first=first, counts=counts,
+                        frames=np.bincount(group, minlength=len(first)).astype(np.float64))
+
+
+@dataclass
+class PoseSums:
+    """A capture's measurements grouped by pose. group (N,): the view of each measurement; first (V,): each view's
+    first measurement (its pose is the view's); counts (V, zones, bins) float64: the frames' counts summed;
+    frames (V,) float64: frames per view."""
+
+    group: np.ndarray
+    first: np.ndarray
+    counts: np.ndarray
+    frames: np.ndarray
+
 
 def _check_version(version, where) -> None:
     """Refuse a manifest of a format version this reader does not know: a newer writer may have changed what the

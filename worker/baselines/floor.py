@@ -81,11 +81,9 @@ def measured_table_height(data) -> float | None:
     if len(data.hists) == 0:
         return None
     # The frames of one pose summed, as the reconstruction sums them: the peak test sees all their counts.
-    poses_of, group = np.unique(data.pose_indices, return_inverse=True)
-    counts = np.zeros((len(poses_of),) + data.hists.shape[1:])
-    np.add.at(counts, group, data.hists.astype(np.float64))
-    cycles = np.bincount(group, minlength=len(poses_of)) * float(sensor.cycles)
-    poses = np.asarray(data.poses, np.float64)[[int(np.flatnonzero(group == g)[0]) for g in range(len(poses_of))]]
+    views = data.by_pose()
+    counts, cycles = views.counts, views.frames * float(sensor.cycles)
+    poses = np.asarray(data.poses, np.float64)[views.first]
     background = np.median(counts, axis=-1) / cycles[:, None]
     reference = None if data.reference is None else np.asarray(data.reference, np.float64).mean(axis=0)
     kernel, origin, _ = pulse_kernel(sensor, reference)

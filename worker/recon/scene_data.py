@@ -109,15 +109,11 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     sensor = data.sensor
     if data.hists.shape[0] == 0:
         raise CaptureError(f"{capture}: holds no measurements")
-    order, groups = np.unique(data.pose_indices, return_inverse=True)
-    n_views = len(order)
-    counts = np.zeros((n_views,) + data.hists.shape[1:], np.float64)
-    np.add.at(counts, groups, data.hists.astype(np.float64))
-    frames = np.bincount(groups, minlength=n_views).astype(np.float64)
+    views = data.by_pose()
+    counts, frames = views.counts, views.frames
     saturated = np.zeros(counts.shape, bool)
-    np.logical_or.at(saturated, groups, data.hists >= sensor.max_count)
-    first = np.array([np.flatnonzero(groups == g)[0] for g in range(n_views)])
-    poses = data.poses[first]
+    np.logical_or.at(saturated, views.group, data.hists >= sensor.max_count)
+    poses = data.poses[views.first]
     valid = ~saturated
     if sensor.ignore_bins:
         valid[..., list(sensor.ignore_bins)] = False
@@ -135,7 +131,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
     return SceneData(
         capture=capture, sensor=sensor, counts=t(counts), cycles=t(cycles),
-        valid=torch.as_tensor(valid, device=device), poses=t(poses), pose_index=order,
+        valid=torch.as_tensor(valid, device=device), poses=t(poses), pose_index=data.pose_indices[views.first],
         reference=reference, pulse_source=pulse_source,
         background=t(background), background_source=bg_source,
         center=t(center), radius=float(radius), table=table, real=real, scene=scene,
