@@ -30,3 +30,14 @@ def cylinder_capture(tmp_path_factory):
     simulate_capture(cylinder_mesh(), sensor_preset("lcspc-sim"), poses, path,
                      settings=SimSettings(rays_per_zone=1024), seed=3, progress=False)
     return path
+
+
+@pytest.fixture
+def recon_stand_ins(monkeypatch):
+    """Job child processes can import the stand-in reconstructions that live beside the tests (RECON strings like
+    'test_worker_process:options_recon'): this folder goes on their PYTHONPATH."""
+    import os
+    from pathlib import Path
+
+    here = str(Path(__file__).resolve().parent)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([here, os.environ.get("PYTHONPATH", "")]))

@@ -3,7 +3,6 @@ together; and it says when the options given do not apply (jobs queued earlier k
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -15,8 +14,6 @@ from spadscan.worker.watcher import JobOptions, scan_once
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
-
-HERE = Path(__file__).resolve().parent
 
 
 def one_line_error(capsys) -> str:
@@ -83,8 +80,8 @@ def run_once(root: Path, arun, **config) -> list[str]:
     return lines
 
 
-def test_queued_jobs_whose_frozen_options_differ_are_named(tmp_path, arun, monkeypatch):
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_queued_jobs_whose_frozen_options_differ_are_named(tmp_path, arun):
     for name in ("a", "b", "c"):
         make_scan(tmp_path, name)
     scan_once(tmp_path, Queue.for_root(tmp_path), JobOptions(steps=20, seed=4))  # queued by an earlier worker
@@ -94,8 +91,8 @@ def test_queued_jobs_whose_frozen_options_differ_are_named(tmp_path, arun, monke
                     "a-fast (steps 20), b-fast (steps 20), c-fast (steps 20)"], lines
 
 
-def test_no_note_when_the_options_given_match_or_none_are_given(tmp_path, arun, monkeypatch):
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_no_note_when_the_options_given_match_or_none_are_given(tmp_path, arun):
     make_scan(tmp_path, "a")
     scan_once(tmp_path, Queue.for_root(tmp_path), JobOptions(steps=20))
     lines = run_once(tmp_path, arun, options=JobOptions(seed=0), options_given=("seed",))

@@ -175,6 +175,7 @@ def _corrupt_chunk(scan: Path) -> None:
     (scan / "chunk-000000" / "hists.npy").write_bytes(b"\x93NUMPY garbage")
 
 
+@pytest.mark.usefixtures("recon_stand_ins")
 def test_bad_captures_fail_their_jobs_and_the_worker_goes_on(tmp_path, markers, arun, monkeypatch):
     root = tmp_path / "captures"
     root.mkdir()
@@ -184,7 +185,6 @@ def test_bad_captures_fail_their_jobs_and_the_worker_goes_on(tmp_path, markers, 
     make_scan(root, "crashes")
     (root / "broken").mkdir()
     (root / "broken" / "scan.json").write_text("[]")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
     monkeypatch.setenv("MARKERS", str(markers))
     monkeypatch.setenv("RECON_FAIL", "crashes")
     lines = []
@@ -348,14 +348,14 @@ def test_checking_the_options_loads_torch_only_for_cuda(tmp_path):
     assert out.stdout.strip() == "False", out.stderr
 
 
-def test_retry_failed_queues_failed_jobs_with_the_options_given(tmp_path, arun, monkeypatch, capsys):
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_retry_failed_queues_failed_jobs_with_the_options_given(tmp_path, arun, capsys):
     from spadscan.worker.watcher import JobOptions, scan_once
 
     root = tmp_path / "captures"
     root.mkdir()
     make_scan(root, "s")
     scan_once(root, Queue.for_root(root), JobOptions(device="cuda", seed=7, steps=5))  # queued by an earlier worker
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
 
     def run_once() -> dict:
         # This worker's own options (device auto) apply to scans it queues, not to the job already queued.
@@ -418,7 +418,8 @@ def gt_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None,
     return report
 
 
-def test_jobs_whose_ground_truth_cannot_be_used_still_reconstruct(tmp_path, arun, monkeypatch):
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_jobs_whose_ground_truth_cannot_be_used_still_reconstruct(tmp_path, arun):
     root = tmp_path / "captures"
     root.mkdir()
     flat = tmp_path / "flat.obj"
@@ -428,7 +429,6 @@ def test_jobs_whose_ground_truth_cannot_be_used_still_reconstruct(tmp_path, arun
         make_scan(root, name)
         manifest = root / name / "scan.json"
         manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "scene": {"ground_truth": mesh}}))
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
     lines = []
     config = WorkerConfig(root=root, once=True, poll_s=0.1, recon="test_worker_process:gt_recon")
     assert arun(Worker(config, log=lines.append).run(), timeout_s=120) == {"flat-fast": "done", "gone-fast": "done"}
@@ -467,6 +467,7 @@ def test_a_job_whose_worker_is_already_gone_exits_at_once(tmp_path, markers):
     assert json.loads(outcome.read_text())["ok"] and markers_of(markers, "s", "start")
 
 
+@pytest.mark.usefixtures("recon_stand_ins")
 def test_partial_results_of_dead_claims_are_removed_and_live_ones_kept(tmp_path, markers, arun, monkeypatch):
     """A worker removes the scratch folder a dead worker left, never one of a job another worker is running."""
     from spadscan.worker.jobs import Job, scratch_path
@@ -489,7 +490,6 @@ def test_partial_results_of_dead_claims_are_removed_and_live_ones_kept(tmp_path,
     for folder in folders.values():
         folder.mkdir(parents=True)
         (folder / "mesh.ply").write_text("partial")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
     monkeypatch.setenv("MARKERS", str(markers))
     lines = []
     worker = Worker(WorkerConfig(root=root, poll_s=0.1, lease_s=3600, recon=RECON), log=lines.append)

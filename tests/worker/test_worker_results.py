@@ -4,7 +4,6 @@ fresh queue, a deleted queue), and a result that appears while a job runs is mov
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -19,7 +18,6 @@ from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
 
-HERE = Path(__file__).resolve().parent
 RECON = "test_worker_process:options_recon"  # writes {"device", "seed", "steps"} into report.json
 
 
@@ -34,8 +32,8 @@ def report_of(root: Path, scan: str) -> dict:
     return json.loads((root / scan / "recon" / f"{scan}-fast" / "report.json").read_text())
 
 
-def test_a_fresh_queue_keeps_the_results_already_there(tmp_path, arun, monkeypatch):
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_a_fresh_queue_keeps_the_results_already_there(tmp_path, arun):
     root = tmp_path / "captures"
     root.mkdir()
     make_scan(root, "s")
@@ -56,8 +54,8 @@ def test_a_fresh_queue_keeps_the_results_already_there(tmp_path, arun, monkeypat
     assert [p.name for p in (root / "s" / "recon").iterdir()] == ["s-fast"], "nothing moved aside or left over"
 
 
-def test_a_deleted_queue_does_not_rerun_finished_jobs(tmp_path, arun, monkeypatch):
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_a_deleted_queue_does_not_rerun_finished_jobs(tmp_path, arun):
     root = tmp_path / "captures"
     root.mkdir()
     make_scan(root, "s")
@@ -83,8 +81,8 @@ def test_the_command_says_how_many_jobs_it_did_not_run(tmp_path, capsys):
     assert "kept, not run" in capsys.readouterr().out
 
 
-def test_an_empty_results_folder_is_not_a_result(tmp_path, arun, monkeypatch):
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_an_empty_results_folder_is_not_a_result(tmp_path, arun):
     root = tmp_path / "captures"
     root.mkdir()
     make_scan(root, "s")
@@ -109,8 +107,8 @@ def test_publishing_moves_an_earlier_result_aside(tmp_path):
     assert publish(tmp_path / "other", tmp_path / "recon" / "t-fast") == (tmp_path / "recon" / "t-fast", None)
 
 
-def test_redo_moves_the_result_aside_and_runs_the_job_again(tmp_path, arun, monkeypatch, capsys):
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_redo_moves_the_result_aside_and_runs_the_job_again(tmp_path, arun, capsys):
     root = tmp_path / "captures"
     root.mkdir()
     make_scan(root, "s")
