@@ -172,6 +172,17 @@ def capture_ground_truth(capture) -> tuple[str | None, str | None]:
     return spec, why
 
 
+def add_ground_truth_options(parser, what: str) -> None:
+    """--gt MESH and --no-gt (exclusive), as `ground_truth_for_run` reads them; `what` ends --gt's help: what the
+    ground truth is for."""
+    truth = parser.add_mutually_exclusive_group()
+    truth.add_argument("--gt", default=None, metavar="MESH",
+                       help=f"ground-truth mesh (metres; STL in mm detected) or builtin:NAME{what} (default: the "
+                            "one the capture names, as import-lcspc and simulate record it)")
+    truth.add_argument("--no-gt", action="store_true",
+                       help="no metrics, even when the capture names a ground truth")
+
+
 def ground_truth_for_run(capture, gt, no_gt: bool, log) -> str | None:
     """The ground truth a command scores the capture's reconstruction against: `gt` when given, none with `no_gt`,
     else the one the capture names (`capture_ground_truth`), said through `log` (a line each) with how to skip it."""
@@ -187,4 +198,4 @@ def ground_truth_for_run(capture, gt, no_gt: bool, log) -> str | None:
 
 __all__ = ["CUT_ABOVE_TABLE_M", "GroundTruth", "table_top_z", "cut_above", "object_on_table", "load_ground_truth",
            "named_ground_truth", "scene_offset_m", "capture_ground_truth",
-           "ground_truth_for_run"]
+           "add_ground_truth_options", "ground_truth_for_run"]

@@ -34,12 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("method", choices=("reprojection", "space-carving"), help="which baseline")
     parser.add_argument("capture", metavar="CAPTURE", help="capture folder (holds scan.json)")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for mesh.ply and report.json")
-    truth = parser.add_mutually_exclusive_group()
-    truth.add_argument("--gt", default=None, metavar="MESH",
-                       help="ground-truth mesh (metres; STL in mm detected) or builtin:NAME: adds metrics to the "
-                            "report (default: the one the capture names, as import-lcspc and simulate record it)")
-    truth.add_argument("--no-gt", action="store_true",
-                       help="no metrics, even when the capture names a ground truth")
+    from spadscan.worker.ground_truth import add_ground_truth_options
+
+    add_ground_truth_options(parser, ": adds metrics to the report")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out (without it, a folder that holds mesh.ply or "
                              "report.json is refused)")

@@ -32,12 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after S seconds of training, checkpoint scoring included (the set-up before it, "
                              "and the final mesh, metrics and pictures after it, are not counted)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N optimisation steps")
-    truth = parser.add_mutually_exclusive_group()
-    truth.add_argument("--gt", default=None, metavar="MESH",
-                       help="ground-truth mesh (metres; STL in mm detected) or builtin:NAME, for the metrics "
-                            "(default: the one the capture names, as import-lcspc and simulate record it)")
-    truth.add_argument("--no-gt", action="store_true",
-                       help="no metrics, even when the capture names a ground truth")
+    from spadscan.worker.ground_truth import add_ground_truth_options
+
+    add_ground_truth_options(parser, ", for the metrics")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                         help="where to compute (default: auto = CUDA when available)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
