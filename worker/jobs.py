@@ -130,33 +130,25 @@ def ground_truth(manifest: dict, out: Path) -> tuple[Path | None, str | None]:
 
     spec, note = named_ground_truth(manifest)
     offset = scene_offset_m(manifest)
-    if spec is not None and offset is not None:
-        return _export_moved(spec, offset, out / "ground_truth.ply")
-    if spec is None or not spec.startswith(BUILTIN_PREFIX):
+    if spec is None or (offset is None and not spec.startswith(BUILTIN_PREFIX)):
         return (None if spec is None else Path(spec)), note
-    name = spec[len(BUILTIN_PREFIX):]
-    try:
-        from spadscan.protocol.scenes import builtin_scene
-
-        path = out / "ground_truth.ply"
-        builtin_scene(name).export(path)
-        return path, None
-    except (ImportError, OSError, SpadscanError) as exc:
-        return None, f"built-in scene {name!r}: {exc}; no metrics"
+    return _export_placed(spec, offset, out / "ground_truth.ply")
 
 
-def _export_moved(spec: str, offset, path: Path) -> tuple[Path | None, str | None]:
-    """(`path`, None) once the mesh `spec` moved by `offset` (metres) is written there, as the scene stood when
-    scanned; else (None, why)."""
+def _export_placed(spec: str, offset, path: Path) -> tuple[Path | None, str | None]:
+    """(`path`, None) once the mesh `spec` (a file or builtin:NAME), moved by `offset` (metres) when not None, is
+    written there as the scene stood when scanned; else (None, why)."""
     try:
         from spadscan.protocol.mesh_io import load_mesh_spec
 
-        mesh = load_mesh_spec(spec)[0].copy()
-        mesh.apply_translation(offset)
+        mesh = load_mesh_spec(spec)[0]  # a new mesh each time: moving it moves no one else's
+        if offset is not None:
+            mesh.apply_translation(offset)
         mesh.export(path)
         return path, None
     except (ImportError, OSError, SpadscanError) as exc:
-        return None, f"{spec} moved by {list(offset)}: {exc}; no metrics"
+        moved = "" if offset is None else f" moved by {list(offset)}"
+        return None, f"{spec}{moved}: {exc}; no metrics"
 
 
 def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -> dict:
