@@ -8,10 +8,46 @@ measured behind it.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
+from spadscan.protocol.errors import CaptureError
+
 MIN_RANGE_M = 1e-3
+
+
+@dataclass
+class TablePlane:
+    """The plane n . x = offset (n unit, pointing into the free half-space); `fitted` = its offset is learned."""
+
+    normal: np.ndarray
+    offset: float
+    fitted: bool
+
+    def height(self) -> float | None:
+        """Height (metres) of a horizontal table, or None when it is tilted."""
+        return self.offset / float(self.normal[2]) if abs(float(self.normal[2])) > 0.99 else None
+
+
+def named_table(spec) -> TablePlane:
+    """The table a capture's scene record gives: {"z": h} (horizontal) or {"normal": n, "offset": d}, either with
+    "fit": true when its offset is to be learned. A malformed one is a one-line CaptureError (the caller names the
+    manifest)."""
+    if not isinstance(spec, dict):
+        raise CaptureError("scene table must be true or a dict with 'z' or 'normal' and 'offset'")
+    fitted = bool(spec.get("fit", False))
+    try:
+        if "z" in spec:
+            return TablePlane(np.array([0.0, 0.0, 1.0]), float(spec["z"]), fitted)
+        normal = np.asarray(spec.get("normal", (0, 0, 1)), float)
+        norm = float(np.linalg.norm(normal))
+        if normal.shape != (3,) or not np.isfinite(norm) or norm < 1e-9 or "offset" not in spec:
+            raise ValueError("not a plane")
+        return TablePlane(normal / norm, float(spec["offset"]) / norm, fitted)
+    except (TypeError, ValueError):
+        raise CaptureError("scene table needs a number 'z', or a non-zero 3-vector 'normal' and an 'offset' in "
+                           "metres") from None
 
 
 def last_peaks(counts: np.ndarray, cycles: np.ndarray, background: np.ndarray, ignore_bins=()) -> np.ndarray:
@@ -86,4 +122,4 @@ def detect_height(counts: np.ndarray, cycles: np.ndarray, background: np.ndarray
     return float(fine[i]) if scores[i] >= min_score else None
 
 
-__all__ = ["detect_height", "last_peaks", "plane_peak_bins"]
+__all__ = ["TablePlane", "named_table", "detect_height", "last_peaks", "plane_peak_bins"]

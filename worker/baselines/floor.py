@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from spadscan.protocol.errors import CaptureError
+from ..table_height import named_table
 
 SIMULATED_FLOOR_Z = 0.0
 """Metres: the floor of a simulated scene, and of a measured one whose table cannot be found."""
@@ -35,37 +35,18 @@ def scene_floor(data) -> tuple[float | None, str]:
     if not spec:
         return SIMULATED_FLOOR_Z, "a scene without a table: z = 0"
     named = None
-    if isinstance(spec, dict):
-        named = _named_height(spec)
+    if spec is not True:
+        named = named_table(spec).height()
         if named is None:
             return None, "a tilted table: no horizontal floor"
         if not spec.get("fit", False):
             return named, "the table the capture names"
-    elif spec is not True:
-        raise CaptureError("scene table must be true or a dict with 'z' or 'normal' and 'offset'")
     height = measured_table_height(data)
     if height is not None:
         return height, "the table, found in the histograms"
     if named is not None:
         return named, "the table the capture names (not found in the histograms)"
     return SIMULATED_FLOOR_Z, "no table found in the histograms; z = 0 assumed (--floor-z to set it)"
-
-
-def _named_height(spec: dict) -> float | None:
-    """Height (metres) of a table given as {"z": h} or {"normal": n, "offset": d}; None when it is not horizontal.
-    A malformed one is a CaptureError, as the reconstruction makes it."""
-    try:
-        if "z" in spec:
-            return float(spec["z"])
-        normal = np.asarray(spec.get("normal", (0, 0, 1)), float)
-        norm = float(np.linalg.norm(normal))
-        if normal.shape != (3,) or not np.isfinite(norm) or norm < 1e-9 or "offset" not in spec:
-            raise ValueError("bad plane")
-        offset = float(spec["offset"])
-    except (TypeError, ValueError):
-        raise CaptureError("scene table needs a number 'z', or a non-zero 3-vector 'normal' and an 'offset' in "
-                           "metres") from None
-    return offset / float(normal[2]) if abs(normal[2]) / norm > 0.99 else None
 
 
 def measured_table_height(data) -> float | None:

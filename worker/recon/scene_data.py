@@ -28,19 +28,11 @@ from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..capture_kind import is_measured
+from ..table_height import TablePlane, named_table
 from .pulse import pulse_kernel
 
 RADIUS_FRACTION = 0.6  # scene radius / nearest sensor's distance, when no return locates the object
 RADIUS_FRACTION_MAX = 0.8  # the scene sphere never reaches closer to a sensor than this fraction
-
-
-@dataclass
-class TablePlane:
-    """The plane n . x = offset (n unit, pointing into the free half-space); `fitted` = its offset is learned."""
-
-    normal: np.ndarray
-    offset: float
-    fitted: bool
 
 
 @dataclass
@@ -206,15 +198,10 @@ def _table(scene: dict, center: np.ndarray, radius: float, real: bool, points: n
     if spec is True:
         start = float(np.percentile(points[:, 2], 5)) if len(points) >= 3 else float(center[2] - radius)
         return TablePlane(np.array([0.0, 0.0, 1.0]), max(start, float(center[2] - radius)), fitted=True)
-    if not isinstance(spec, dict):
-        raise CaptureError(f"{where}: scene table must be true or a dict with 'z' or 'normal' and 'offset'")
-    if "z" in spec:
-        return TablePlane(np.array([0.0, 0.0, 1.0]), float(spec["z"]), fitted=bool(spec.get("fit", False)))
-    normal = np.asarray(spec.get("normal", (0, 0, 1)), float)
-    norm = np.linalg.norm(normal)
-    if normal.shape != (3,) or not np.isfinite(norm) or norm < 1e-9 or "offset" not in spec:
-        raise CaptureError(f"{where}: scene table needs a non-zero 3-vector 'normal' and an 'offset' in metres")
-    return TablePlane(normal / norm, float(spec["offset"]) / norm, fitted=bool(spec.get("fit", False)))
+    try:
+        return named_table(spec)
+    except CaptureError as exc:
+        raise CaptureError(f"{where}: {exc}") from None
 
 
 def _background(counts, cycles, poses, center, radius, sensor: SensorModel, pulse_origin: int, real: bool):
