@@ -10,6 +10,7 @@ import torch
 
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
@@ -168,6 +169,17 @@ def write_capture(path, sensor, hists, poses, *, frames_per_pose=1, reference=No
             w.append(Measurement(h, p, i // frames_per_pose, i % frames_per_pose, ref))
         w.finish("complete")
     return path
+
+
+@pytest.mark.parametrize("table", [{"z": "low"}, {"normal": [0, 0, 0], "offset": 0.0}, "yes"])
+def test_a_malformed_scene_table_is_a_one_line_error_naming_the_capture(tmp_path, table):
+    sensor = sensor_preset("tmf8820")
+    poses = np.stack([look_at(np.array([0.3, 0.0, 0.2]), np.zeros(3))])
+    cap = write_capture(tmp_path / "c", sensor, np.full((1, 9, 128), 100, np.uint32), poses,
+                        scene={"table": table, "real": False})
+    with pytest.raises(CaptureError) as info:
+        load_scene(cap)
+    assert str(info.value).startswith(f"{cap}: scene table ") and "\n" not in str(info.value)
 
 
 def test_scene_loading_sums_frames_masks_bad_bins_and_bounds_the_scene(tmp_path):
