@@ -11,6 +11,7 @@ import itertools
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 NEAR_SPACINGS = 16.0
 """Queries whose nearest sample lies within this many sample spacings are answered by the KD-tree alone."""
@@ -30,8 +31,6 @@ def nearest_samples(queries: np.ndarray, data: np.ndarray, *, spacing_m: float |
     small sphere inside a large one took minutes at 100,000 points). So the tree answers only the queries within
     NEAR_SPACINGS sample spacings (`spacing_m`, default from the data's extent) of a sample; the rest are answered by
     `_far_nearest`, whose patches of samples are bounded by thin slabs along their normals as well as by boxes."""
-    from scipy.spatial import cKDTree
-
     queries, data = np.asarray(queries, np.float64), np.asarray(data, np.float64)
     if spacing_m is None:
         extent = float(np.linalg.norm(np.ptp(data, axis=0))) if len(data) else 0.0
@@ -53,8 +52,6 @@ def _maybe_near(queries: np.ndarray, data: np.ndarray, near: float) -> np.ndarra
     """(m,) bool: False for queries certainly farther than `near` from every sample. Even a bounded KD-tree search
     is slow for those (its upper boxes span the hollow the query sits in), so they skip it. Judged per block of
     queries against patch centroids: |q - p| >= |c_block - c_patch| - r_block - r_patch."""
-    from scipy.spatial import cKDTree
-
     out = np.ones(len(queries), bool)
     if len(queries) < 4 * LEAF or len(data) < 4 * LEAF:
         return out
@@ -107,8 +104,6 @@ def _far_nearest(queries: np.ndarray, data: np.ndarray) -> tuple[np.ndarray, np.
     the block's centre gives every query an upper bound (its nearest sample there); the patches whose centroid lies
     within that bound plus both radii are then checked against lower bounds (boxes, and the slab along the patch's
     normal), and only those within a query's own bound are searched."""
-    from scipy.spatial import cKDTree
-
     patches = _median_split(data, LEAF)
     pp = data[patches]
     pb = _patch_bounds(pp)

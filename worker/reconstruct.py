@@ -1,30 +1,45 @@
 """Reconstruct one capture: load it, build the preset's model, train, extract the mesh, write the report.
 
 `reconstruct_capture` is what `spadscan reconstruct` and the worker's job processes call. It writes into `out`:
-mesh.ply (per-vertex normals from the SDF gradient), report.json, report.html (the page to open first), preview.png,
-error_vs_time.png, fit.png, and with ground truth normals.png (per-vertex normal error).
+mesh.ply (per-vertex normals from the SDF gradient), report.json, report.html (the page to open first),
+preview.png, error_vs_time.png, fit.png, and with ground truth normals.png (per-vertex normal error). `set_up_run`
+is its first half (the resolved config, the loaded capture, the model, the plan), which the benchmarks share.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
 
+import spadscan
 from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
+
+from .ground_truth import load_ground_truth
+from .metrics import mesh_metrics
+from .outputs import capture_state_note, export_mesh
+from .recon.config import ReconConfig, with_overrides
+from .recon.errors import ReconstructionError
+from .recon.model_api import ReconModel, RunPlan
+from .recon.presets import make_model, preset_config
+from .recon.scene_data import SceneData, load_scene
+from .recon.trainer import train
+from .report import pictures
+from .report.report_html import write_report_html
+from .report.report_json import json_safe, write_report
+from .threads import check_threads, machine_cores
 
 DEVICES = ("auto", "cpu", "cuda")
 FIT_VIEWS = 4
 
 
-def resolve_device(device: str):
+def resolve_device(device: str) -> torch.device:
     """torch.device for 'auto' (CUDA when torch sees a GPU, else CPU), 'cpu' or 'cuda' (an error without a GPU)."""
-    import torch
-
-    from spadscan.worker.recon.errors import ReconstructionError
-
     if device not in DEVICES:
         raise ReconstructionError(f"device {device!r} must be one of {', '.join(DEVICES)}")
     if device == "auto":
@@ -35,8 +50,6 @@ def resolve_device(device: str):
 
 
 def _check_run_args(budget_s, steps, seed) -> None:
-    from spadscan.worker.recon.errors import ReconstructionError
-
     if budget_s is not None and not (isinstance(budget_s, (int, float)) and np.isfinite(budget_s) and budget_s > 0):
         raise ReconstructionError(f"time budget {budget_s} s must be a positive number of seconds")
     if steps is not None and not (isinstance(steps, (int, np.integer)) and steps >= 1):
@@ -45,8 +58,53 @@ def _check_run_args(budget_s, steps, seed) -> None:
         raise ReconstructionError(f"seed {seed} must be an integer >= 0")
 
 
+def run_config(preset: str, overrides: dict | None = None) -> ReconConfig:
+    """The resolved config of `preset` with dotted-key `overrides` (see config.with_overrides)."""
+    config = preset_config(preset)
+    return with_overrides(config, overrides) if overrides else config
+
+
 LONG_CPU_STEPS = 20_000
 """A default step count this large is worth a warning on a CPU (the paper preset: seconds a step there)."""
+
+
+@dataclass
+class Run:
+    """A reconstruction set up and ready to train."""
+
+    config: ReconConfig
+    """The resolved config (overrides included)."""
+    scene: SceneData
+    """The loaded capture."""
+    model: ReconModel
+    """The preset's model, built on the scene."""
+    plan: RunPlan
+    """Steps and time budget the model was laid out for, and the seed."""
+    device: torch.device
+    state_note: str | None
+    """Why the capture may be doubtful (not complete), or None."""
+    setup_s: float
+    """Wall seconds that loading the capture and building the model took."""
+
+
+def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, steps: int | None,
+               budget_s: float | None, seed: int, log: Callable[[str], None]) -> Run:
+    """Load the capture and build the preset's model: what every run does before it trains. With neither `steps`
+    nor `budget_s`, the preset's defaults bound the run."""
+    t0 = time.perf_counter()
+    dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
+    scene = load_scene(Path(capture), device, dtype)
+    state_note = capture_state_note(capture, scene.state, scene.n_views)
+    if state_note:
+        log(f"warning: {state_note}")
+    if steps is None and budget_s is None:
+        steps, budget_s = config.default_steps, config.default_budget_s
+        if budget_s is None and device.type == "cpu" and (steps or 0) >= LONG_CPU_STEPS:
+            log(f"warning: preset {config.preset!r} runs {steps:,} steps by default: days on a CPU (--budget-s or "
+                f"--steps to bound it)")
+    plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
+    model = make_model(scene, config, device, plan)
+    return Run(config, scene, model, plan, device, state_note, time.perf_counter() - t0)
 
 
 def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budget_s: float | None = None,
@@ -60,17 +118,6 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     F-score and normal errors, and Chamfer at every trace checkpoint. `overrides`: dotted config keys to change (see
     config.with_overrides). `threads`: torch's CPU threads (default: as torch starts, OMP_NUM_THREADS or the
     cores). `log`: receives a line per stage after training (mesh, metrics, pictures) and warnings."""
-    import torch
-
-    from spadscan.worker.recon.config import load_factory, preset_config, with_overrides
-    from spadscan.worker.recon.model_api import RunPlan
-    from spadscan.worker.recon.scene_data import load_scene
-    from spadscan.worker.recon.trainer import train
-
-    from .ground_truth import load_ground_truth
-    from .outputs import capture_state_note, export_mesh
-    from .threads import check_threads, machine_cores
-
     log = log or (lambda line: None)
     wall0 = time.perf_counter()
     _check_run_args(budget_s, steps, seed)
@@ -79,74 +126,65 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
         if threads > machine_cores():
             log(f"warning: {threads} CPU threads on {machine_cores()} cores: OpenMP threads that lose their core "
                 f"stall each other, each step many times slower (--threads {machine_cores()} or fewer)")
-    config = preset_config(preset)
-    if overrides:
-        config = with_overrides(config, overrides)
+    config = run_config(preset, overrides)
     dev = resolve_device(device)
     truth = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
     if truth is not None and truth.units_read == "mm":
-        from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
-
         log(f"ground truth {gt}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)")
+    run = set_up_run(capture, config, dev, steps=steps, budget_s=budget_s, seed=seed, log=log)
+    model, scene, plan = run.model, run.scene, run.plan
     out = Path(out)
-    dtype = torch.float64 if config.dtype == "float64" else torch.float32
-    scene = load_scene(Path(capture), dev, dtype)
-    state_note = capture_state_note(capture, scene.state, scene.n_views)
-    if state_note:
-        log(f"warning: {state_note}")
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder
-    if steps is None and budget_s is None:
-        steps, budget_s = config.default_steps, config.default_budget_s
-        if budget_s is None and dev.type == "cpu" and (steps or 0) >= LONG_CPU_STEPS:
-            log(f"warning: preset {preset!r} runs {steps:,} steps by default: days on a CPU (--budget-s or --steps "
-                f"to bound it)")
-    plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
-    model = load_factory(config)(scene, config, dev, plan)
 
     evaluate = None
     if truth is not None:
         evaluate = lambda: _checkpoint_metrics(model, truth, config)  # noqa: E731
     result = train(model, plan, checkpoints=config.trace_checkpoints, evaluate=evaluate, progress=progress,
-                   desc=f"reconstruct ({preset})", early_stop=config.early_stop)
+                   desc=f"reconstruct ({preset})", score_note=f"({checkpoint_scoring(config)})",
+                   early_stop=config.early_stop)
 
     log(f"extracting the mesh ({config.mesh_resolution} cells a side)")
     mesh = model.extract_mesh(config.mesh_resolution)
     export_mesh(mesh, out / "mesh.ply", vertex_normal=True)
     report = _report(capture, preset, dev, config, scene, model, result, plan, scored=truth is not None)
     report["capture_state"] = scene.state
-    if state_note:
-        report["capture_note"] = state_note
-    from spadscan.worker.report import pictures
-
+    if run.state_note:
+        report["capture_note"] = run.state_note
     if truth is not None:
         log(f"metrics against the ground truth ({config.metrics_points:,} points per mesh)")
-        from spadscan.worker.metrics import mesh_metrics
-
         if truth.note():
             log(f"scoring {truth.note()}")
         report.update(truth.report_fields())
         scored = truth.scored(mesh)  # cut once for the metrics and the normals picture
         report.update(mesh_metrics(scored, truth.mesh, n_points=config.metrics_points, seed=int(seed)).to_dict())
+        report["chamfer_scoring"] = final_scoring(config)
         vertex_err = pictures.vertex_normal_error_deg(scored, truth.mesh)
         report["vertex_normal_error_deg"] = {"mean": float(vertex_err.mean()),
                                              "median": float(np.median(vertex_err))}
         pictures.normals_png(scored, vertex_err, out / "normals.png")
         report["ground_truth"] = str(gt)
     log("pictures and report")
-    _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, preset)
+    _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
     report["files"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
     report["files"] = sorted(set(report["files"]) | {"report.json", "report.html"})
     report["wall_seconds"] = time.perf_counter() - wall0
-    from spadscan.worker.report.report_html import write_report_html
-    from spadscan.worker.report.report_json import json_safe, write_report
-
     write_report(out, report)
     report = json_safe(report)
     write_report_html(report, out)
     return report
 
 
-def _checkpoint_metrics(model, truth, config) -> dict:
+def checkpoint_scoring(config: ReconConfig) -> str:
+    """How checkpoints are scored, for every place their Chamfer is shown: coarser than the final mesh."""
+    return f"{config.trace_mesh_resolution}-cell mesh, {config.trace_points:,} points"
+
+
+def final_scoring(config: ReconConfig) -> str:
+    """How the final mesh is scored (the summary's Chamfer)."""
+    return f"final {config.mesh_resolution}-cell mesh, {config.metrics_points:,} points"
+
+
+def _checkpoint_metrics(model, truth, config: ReconConfig) -> dict:
     """Chamfer of the current surface against a GroundTruth at a trace checkpoint (fewer points, coarser mesh than
     the final one)."""
     try:
@@ -169,10 +207,6 @@ def _trace_note(eval_seconds: float, config, scored: bool) -> str:
 
 
 def _report(capture, preset, dev, config, scene, model, result, plan, scored: bool) -> dict:
-    import torch
-
-    import spadscan
-
     last = result.last
     tail = result.losses[-max(1, len(result.losses) // 10):] if result.losses else []
     return {
@@ -207,11 +241,11 @@ def _report(capture, preset, dev, config, scene, model, result, plan, scored: bo
     }
 
 
-def _pictures(out: Path, mesh, gt_mesh, model, scene, result, preset) -> None:
-    from spadscan.worker.report import pictures
-
+def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig) -> None:
     pictures.preview_png(mesh, out / "preview.png", gt=gt_mesh)
-    pictures.error_vs_time_png(result.trace, out / "error_vs_time.png", title=f"{preset}: error against run time")
+    pictures.error_vs_time_png(result.trace, out / "error_vs_time.png",
+                               title=f"{config.preset}: error against run time (checkpoints: "
+                                     f"{checkpoint_scoring(config)})")
     n = scene.n_views
     views = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(FIT_VIEWS, n))})
     rendered = model.render_histograms(views)

@@ -39,10 +39,10 @@ class JobOptions:
 
     def check(self) -> "JobOptions":
         """Refuse options every job would fail on, before any job is queued with them."""
-        from spadscan.worker.recon.config import PRESETS  # plain dataclasses: no torch here
+        from spadscan.worker.recon.config import PRESET_NAMES  # plain dataclasses: no torch here
 
-        if self.preset not in PRESETS:
-            raise ConfigError(f"unknown preset {self.preset!r} (known: {', '.join(PRESETS)})")
+        if self.preset not in PRESET_NAMES:
+            raise ConfigError(f"unknown preset {self.preset!r} (known: {', '.join(PRESET_NAMES)})")
         if self.budget_s is not None and not (_is_number(self.budget_s) and math.isfinite(self.budget_s)
                                               and self.budget_s > 0):
             raise ConfigError(f"budget {self.budget_s} s must be > 0 seconds")

@@ -11,7 +11,15 @@ training; paper: 300,000 steps, hours on a GPU and days on a CPU). The `fast` pr
 term has stopped improving (report.json: stopped_by 'converged'); turn that off with --set early_stop=false.
 
 Presets: `fast` (default) is an SDF grid that reaches good meshes in minutes on a CPU; `paper` is the published
-method (an MLP SDF, 300K steps nominal: hours on a GPU).
+method (an MLP SDF, 300K steps nominal: hours on a GPU). The `fast` preset's mechanisms are parts (refinement,
+hull_projection, table, cavities, thin_sheets, coarse_smoothing, openings, erosion, blur, empty_space, average,
+plateau), each with its settings under parts.NAME; report.json's model.parts lists those that ran with their
+settings, and model.parts_left_out why the others did not (switched off, or not for this scene). Switch one off
+with --set parts.NAME.enabled=false.
+
+The progress bar's Chamfer is the last checkpoint's, scored on a coarser mesh with fewer points than the final
+figure (fast: 128 cells and 30,000 points against 256 cells and 300,000), so it reads higher than the summary line's;
+both say how they were scored.
 
 Examples:
   spadscan reconstruct captures/bunny --out results/bunny --budget-s 180 --gt bunny.obj
@@ -22,11 +30,13 @@ from __future__ import annotations
 
 import argparse
 
+from spadscan.worker.recon.config import PRESET_NAMES
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", metavar="CAPTURE", help="capture folder (holds scan.json)")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for the mesh, report and pictures")
-    parser.add_argument("--preset", default="fast", choices=("paper", "fast"),
+    parser.add_argument("--preset", default="fast", choices=PRESET_NAMES,
                         help="reconstruction method (default: fast)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
                         help="stop after S seconds of training, checkpoint scoring included (the set-up before it, "
@@ -39,8 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where to compute (default: auto = CUDA when available)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
-                        help="override a field of the preset's config, e.g. --set field.resolution=48 "
-                             "(repeatable; the resolved config is saved in report.json)")
+                        help="override a field of the preset's config, e.g. --set field.resolution=48, or switch "
+                             "one of the fast preset's parts off: --set parts.openings.enabled=false (repeatable; "
+                             "the resolved config and the parts that ran are saved in report.json)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="CPU threads (default: OMP_NUM_THREADS if set, else torch's choice, the cores); with "
                              "other reconstructions running at once, share the cores out: threads that outnumber "
@@ -76,9 +87,9 @@ def run(args: argparse.Namespace) -> int:
     line = (f"{report['preset']}: {steps} in {report['seconds']:.1f} s of training ({report['wall_seconds']:.1f} s "
             f"in all) on {report['device']}, final loss {report['final_loss']:.4g}")
     if report.get("chamfer_mm") is not None:
-        line += (f"; Chamfer {report['chamfer_mm']:.2f} mm (accuracy {report['accuracy_mm']:.2f}, completeness "
-                 f"{report['completeness_mm']:.2f}), F-score@5mm {report['fscore_5mm']:.3f}, normal error (sampled "
-                 f"points) {report['normal_error_deg']:.1f} deg")
+        line += (f"; Chamfer {report['chamfer_mm']:.2f} mm ({report['chamfer_scoring']}; accuracy "
+                 f"{report['accuracy_mm']:.2f}, completeness {report['completeness_mm']:.2f}), F-score@5mm "
+                 f"{report['fscore_5mm']:.3f}, normal error (sampled points) {report['normal_error_deg']:.1f} deg")
     print(line)
     print(f"wrote {out / 'report.html'} (open this first), mesh.ply, report.json, preview.png, error_vs_time.png, "
           "fit.png")

@@ -220,7 +220,7 @@ def test_non_finite_options_are_one_line_errors(sphere_capture, tmp_path, capsys
 
 def test_baselines_do_not_import_torch():
     code = ("import sys, spadscan.worker.baselines.run, spadscan.worker.baselines.reprojection, "
-            "spadscan.worker.baselines.floor, spadscan.worker.table_height, spadscan.worker.recon.pulse; "
+            "spadscan.worker.baselines.floor, spadscan.worker.table_height, spadscan.worker.pulse, spadscan.worker.carving; "
             "sys.exit('torch' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 

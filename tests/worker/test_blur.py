@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from spadscan.worker.recon.fast.blur import blur3
+from spadscan.worker.recon.fast.parts.blur import blur3
 
 
 def reference(a: np.ndarray, passes: int) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""The empty-space bias of table scenes (worker/recon/fast/empty_space.py) and the hidden-space fills of meshes."""
+"""The empty-space bias of table scenes (worker/recon/fast/parts/empty_space.py), the thin sheets it leaves
+(parts/thin_sheets.py) and the hidden-space fills of fits and meshes (grid_ops.py, mesh.py)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.sensor_model import Zone
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.recon.fast.empty_space import (fill_under_overhangs, pressure_weight,
-                                                    push_to_empty, thin_near_table, view_coverage)
-from spadscan.worker.recon.fast.mesh import cavities, clean_solid
+from spadscan.worker.recon.fast.grid_ops import cavities, fill_under_overhangs
+from spadscan.worker.recon.fast.mesh import FLOATER_FRACTION, clean_solid
+from spadscan.worker.recon.fast.parts.empty_space import pressure_weight, push_to_empty, view_coverage
+from spadscan.worker.recon.fast.parts.thin_sheets import thin_near_table
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -122,8 +124,6 @@ def test_pockets_closed_by_the_floor_are_cavities_only_when_the_floor_is_given()
 
 
 def test_pieces_much_smaller_than_the_object_are_removed_and_comparable_ones_kept():
-    from spadscan.worker.recon.fast.mesh import FLOATER_FRACTION
-
     solid = np.zeros((30, 30, 30), bool)
     solid[2:22, 2:22, 2:22] = True  # the object: 8,000 nodes
     solid[2:4, 25:27, 25:27] = True  # 8 nodes: a floater (0.1%)

@@ -14,10 +14,10 @@ from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, Simulator
 from spadscan.worker.recon.errors import ReconstructionError
 from spadscan.worker.recon.forward import choose_terms
-from spadscan.worker.recon.pipeline import render_transients, world_rays
-from spadscan.worker.recon.rays import zone_rays
-from spadscan.worker.recon.render import SphereField
-from spadscan.worker.recon.sampler import sphere_interval, stratified
+from spadscan.worker.recon.paper.pipeline import render_transients, world_rays
+from spadscan.worker.recon.paper.rays import zone_rays
+from spadscan.worker.recon.paper.render import SphereField
+from spadscan.worker.recon.paper.sampler import sphere_interval, stratified
 from worker_helpers import sensor_forward
 
 F64 = torch.float64

@@ -12,8 +12,8 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.recon.config import preset_config, with_overrides
 from spadscan.worker.recon.fast.model import FastModel, make_fast_model
-from spadscan.worker.recon.fast.openings import opened_field, opening_distances, surface_classes
-from spadscan.worker.recon.fast.phantoms import ReturnEvidence
+from spadscan.worker.recon.fast.evidence import ReturnEvidence
+from spadscan.worker.recon.fast.parts.openings import opened_field, opening_distances, surface_classes
 from spadscan.worker.recon.model_api import RunPlan
 from spadscan.worker.recon.scene_data import load_scene
 from worker_helpers import FAST_SMALL, blank_histograms

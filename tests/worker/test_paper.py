@@ -21,7 +21,7 @@ from spadscan.worker.recon.model_api import ReconModel, RunPlan
 from spadscan.worker.recon.paper.config import MLPFieldConfig
 from spadscan.worker.recon.paper.field import MLPField
 from spadscan.worker.recon.paper.model import make_paper_model
-from spadscan.worker.recon.pulse import KERNEL_BEFORE
+from spadscan.worker.pulse import KERNEL_BEFORE
 from spadscan.worker.recon.scene_data import load_scene
 from worker_helpers import PAPER_SMALL
 

@@ -1,5 +1,5 @@
-"""Erosion of surface the histograms do not show (worker/recon/fast/phantoms.py): the photon ratio test, the per-node
-evidence, and the erosion itself."""
+"""Erosion of surface the histograms do not show: the photon ratio test and the per-node evidence
+(worker/recon/fast/evidence.py), and the erosion itself (worker/recon/fast/parts/erosion.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import math
 import pytest
 import torch
 
-from spadscan.worker.recon.fast.phantoms import ReturnEvidence, erode_at, return_ratios
+from spadscan.worker.recon.fast.evidence import ReturnEvidence, return_ratios
+from spadscan.worker.recon.fast.parts.erosion import erode_at
 
 
 def peak(n_bins: int, at: int, photons: float) -> torch.Tensor:

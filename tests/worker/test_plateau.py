@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from spadscan.protocol.errors import ConfigError
-from spadscan.worker.recon.fast.plateau import Plateau
+from spadscan.worker.recon.fast.parts.plateau import Plateau
 
 
 def first_reached(plateau: Plateau, losses) -> int | None:

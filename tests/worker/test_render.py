@@ -9,9 +9,10 @@ import pytest
 import torch
 
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.recon.rays import ZoneGrid, mixture_weights, zone_rays
-from spadscan.worker.recon.render import SDFField, SphereField, Table, opacity, render_rays, round_trip_transmittance
-from spadscan.worker.recon.sampler import importance, sphere_interval, stratified
+from spadscan.worker.recon.paper.rays import ZoneGrid, mixture_weights, zone_rays
+from spadscan.worker.recon.paper.render import (SDFField, SphereField, Table, opacity, render_rays,
+                                               round_trip_transmittance)
+from spadscan.worker.recon.paper.sampler import importance, sphere_interval, stratified
 
 F64 = torch.float64
 

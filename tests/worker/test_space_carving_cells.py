@@ -12,7 +12,7 @@ import pytest
 
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.baselines.space_carving import DROP, KEEP, SPLIT, _classify_cells
+from spadscan.worker.carving.space_carving import DROP, KEEP, SPLIT, _classify_cells
 
 
 def _in_zone(local: np.ndarray, zone) -> np.ndarray:

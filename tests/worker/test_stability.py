@@ -14,12 +14,12 @@ import torch
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.worker.recon.errors import ReconstructionError
 from spadscan.worker.recon.forward import ModelTerms, TransientForward
-from spadscan.worker.recon.loss import hist_l2, hist_scale
-from spadscan.worker.recon.mesh import marching_cubes_mesh
+from spadscan.worker.recon.paper.loss import hist_l2, hist_scale
+from spadscan.worker.recon.paper.mesh import marching_cubes_mesh
 from spadscan.worker.recon.paper.config import MLPFieldConfig
 from spadscan.worker.recon.paper.field import MLPField
-from spadscan.worker.recon.rays import ZoneGrid
-from spadscan.worker.recon.render import SphereField, render_rays
+from spadscan.worker.recon.paper.rays import ZoneGrid
+from spadscan.worker.recon.paper.render import SphereField, render_rays
 from worker_helpers import sensor_forward
 
 F32, F64 = torch.float32, torch.float64

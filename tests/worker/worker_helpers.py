@@ -5,14 +5,14 @@ from __future__ import annotations
 import torch
 
 from spadscan.worker.recon.forward import ModelTerms, TransientForward
-from spadscan.worker.recon.pulse import pulse_kernel
+from spadscan.worker.pulse import pulse_kernel
 
 PAPER_SMALL = {"rays.rays_per_view": 48, "rays.importance_rays_per_view": 16, "rays.samples_per_ray": 32,
                "rays.importance_samples": 16, "field.width": 64, "field.layers": 4, "field.skip_layers": [2],
                "optim.lr": 1e-3}
 """The paper's method at a size a unit test can afford (the network and the ray counts shrink, nothing else)."""
 
-FAST_SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine_after_steps": 4,
+FAST_SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "parts.refinement.after_steps": 4,
               "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
 """The fast preset at a size a unit test can afford (a coarse grid refined after 4 steps, few views and rays)."""
 
@@ -20,8 +20,9 @@ FAST_SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "field.refine
 def blank_histograms(model) -> None:
     """Replace a fast model's histograms with background alone (Poisson, seed 0): every return it renders is then
     one the histograms do not show."""
-    bg = model.p.background[..., None] * model.p.cycles[:, None, None]
-    model.p.counts = torch.poisson(bg.expand_as(model.p.counts), generator=torch.Generator().manual_seed(0))
+    bg = model.problem.background[..., None] * model.problem.cycles[:, None, None]
+    model.problem.counts = torch.poisson(bg.expand_as(model.problem.counts),
+                                         generator=torch.Generator().manual_seed(0))
 
 
 def cylinder_mesh():

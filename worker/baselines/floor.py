@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..table_height import named_table
+from spadscan.protocol.raycast import zone_rays
+
+from ..capture_kind import is_measured
+from ..pulse import pulse_kernel
+from ..table_height import detect_height, named_table
 
 SIMULATED_FLOOR_Z = 0.0
 """Metres: the floor of a simulated scene, and of a measured one whose table cannot be found."""
@@ -26,8 +30,6 @@ def scene_floor(data) -> tuple[float | None, str]:
     (recon/scene_data.py): a measured scene that says nothing stands on a table; `true`, or a horizontal table with
     `"fit": true`, is found in the histograms (a named height is the fallback); a named one without `fit` is used
     as given; none (`false`, or a simulated scene that says nothing) leaves the floor at z = 0."""
-    from ..capture_kind import is_measured
-
     scene = data.manifest.get("scene") or {}
     if not isinstance(scene, dict):
         scene = {}
@@ -53,11 +55,6 @@ def measured_table_height(data) -> float | None:
     """Height (metres) of the horizontal table under a measured capture, or None when the histograms show none.
 
     Each histogram's background is its median bin (a TMF8820 histogram holds one or two returns in 128 bins)."""
-    from spadscan.protocol.raycast import zone_rays
-
-    from ..recon.pulse import pulse_kernel
-    from ..table_height import detect_height
-
     sensor = data.sensor
     if len(data.hists) == 0:
         return None

@@ -15,8 +15,9 @@ import numpy as np
 
 from spadscan.protocol.sensor_model import SensorModel
 
-from .common import points_mesh, zone_axis
-from .returns import DEFAULT_THRESHOLD, check_inputs, first_returns
+from ..carving.bounds import zone_axis
+from ..carving.returns import DEFAULT_THRESHOLD, check_inputs, first_returns
+from .common import points_mesh
 
 
 @dataclass

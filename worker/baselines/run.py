@@ -9,11 +9,19 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import trimesh
+
+from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError, ConfigError
 
+from ..carving.returns import DEFAULT_THRESHOLD
+from ..carving.space_carving import DEFAULT_EDGE_DEG, carve_scene, main_components, occupancy_mesh
+from ..ground_truth import load_ground_truth
+from ..outputs import capture_state_note, export_mesh
+from ..report.report_json import json_safe, write_report
 from .common import CALIBRATION_POINTS, calibrate
-from .returns import DEFAULT_THRESHOLD
-from .space_carving import DEFAULT_EDGE_DEG, carve_scene, main_components
+from .floor import scene_floor
+from .reprojection import reprojection
 
 METHODS = ("reprojection", "space-carving")
 SURFACES = {
@@ -28,8 +36,6 @@ def _build(method: str, data, threshold: float, *, resolution: int, margin_m, fl
            edge_deg: float) -> tuple[object, dict]:
     """(mesh or None, extras for the report) for one threshold."""
     if method == "reprojection":
-        from .reprojection import reprojection
-
         rep = reprojection(data.hists, data.poses, data.sensor, threshold=threshold, surface=surface,
                            floor_z=floor_z)
         return rep.mesh, {"points": rep.points, "surface": surface, "surface_method": SURFACES[surface],
@@ -37,8 +43,6 @@ def _build(method: str, data, threshold: float, *, resolution: int, margin_m, fl
     res = carve_scene(data.hists, data.poses, data.sensor, resolution=resolution, threshold=threshold,
                       margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg)
     occ = main_components(res.occupancy, 0.01)
-    from .space_carving import occupancy_mesh
-
     mesh = occupancy_mesh(occ, res.origin, res.voxel_m)
     return mesh, {"resolution": resolution, "voxel_mm": (res.voxel_m * 1e3).round(3).tolist(),
                   "margin_mm": round(res.margin_m * 1e3, 3), "edge_deg": edge_deg,
@@ -59,11 +63,6 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     did. floor_z: height (metres) below which the scene is empty; None: no floor; "auto": a measured scene's table,
     found in its histograms, else z = 0 (`floor.scene_floor`).
     """
-    from spadscan.protocol.capture_reader import CaptureReader
-
-    from ..ground_truth import load_ground_truth
-    from ..outputs import capture_state_note, export_mesh
-
     if method not in METHODS:
         raise ConfigError(f"baseline {method!r} is not one of {METHODS}")
     if surface not in SURFACES:
@@ -84,8 +83,6 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     if isinstance(floor_z, str):
         if floor_z != "auto":
             raise ConfigError(f"floor {floor_z!r} must be a height in metres, None or 'auto'")
-        from .floor import scene_floor
-
         try:
             floor_z, floor_source = scene_floor(data)
         except CaptureError as exc:
@@ -110,8 +107,6 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     export_mesh(mesh, out / "mesh.ply")
     points = extras.pop("points", None)
     if points is not None:
-        import trimesh
-
         trimesh.PointCloud(points).export(out / "points.ply")
     report = {
         "method": method, "capture": str(Path(capture).resolve()), "sensor": data.sensor.name,
@@ -134,7 +129,5 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
             log(f"scoring {truth.note()}")
         report.update(truth.report_fields())
         report.update(truth.metrics(mesh).to_dict())
-    from ..report.report_json import json_safe, write_report
-
     write_report(out, report)
     return json_safe(report)

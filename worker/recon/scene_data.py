@@ -28,8 +28,8 @@ from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..capture_kind import is_measured
+from ..pulse import pulse_kernel
 from ..table_height import TablePlane, named_table
-from .pulse import pulse_kernel
 
 RADIUS_FRACTION = 0.6  # scene radius / nearest sensor's distance, when no return locates the object
 RADIUS_FRACTION_MAX = 0.8  # the scene sphere never reaches closer to a sensor than this fraction

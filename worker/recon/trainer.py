@@ -1,11 +1,12 @@
-"""The training loop shared by the presets: steps until the step count or the time budget runs out (or, with
-`early_stop`, until the model reports `converged`), with checkpoints at regular intervals of training time that
-record the loss and (through a callback) the error.
+"""The one training loop of every preset, for `spadscan reconstruct`, the worker and the benchmarks: steps until the
+step count or the time budget runs out (or, with `early_stop`, until the model reports `converged`), with checkpoints
+at regular intervals that record the loss and (through a callback) the error.
 
 The training clock counts only `model.step()`; checkpoint evaluation (mesh extraction, Chamfer) is timed apart and
-never charged to the trace, so that error-versus-time curves compare methods fairly. The time budget, though, bounds
-the wall time of the whole loop, evaluation included: a run with ground truth ends when its budget is spent, and a
-checkpoint whose evaluation would not fit in what is left records its loss only.
+never charged to the trace, so that error-versus-time curves compare methods fairly. By default the time budget
+bounds the wall time of the whole loop, evaluation included: a run with ground truth ends when its budget is spent,
+and a checkpoint whose evaluation would not fit in what is left records its loss only. A benchmark that compares
+methods at equal training time leaves the scoring out of the budget (`scoring_in_budget=False`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import sys
 import time
 from dataclasses import dataclass, field
 from typing import Callable
+
+from tqdm import tqdm
 
 from .errors import ReconstructionError
 from .model_api import ReconModel, RunPlan
@@ -33,36 +36,45 @@ class TrainResult:
     losses: list[float] = field(default_factory=list)
 
 
-def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
-          evaluate: Callable[[], dict] | None = None, progress: bool = True, desc: str = "reconstruct",
-          early_stop: bool = False) -> TrainResult:
-    """Run model.step() until plan.steps steps or plan.budget_s seconds of wall time (training and checkpoint
-    evaluation together), whichever comes first; with `early_stop`, also as soon as a step reports
-    `converged: True` (stopped_by 'converged').
+def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: float | None = None,
+          evaluate: Callable[[], dict] | None = None, scoring_in_budget: bool = True,
+          on_checkpoint: Callable[[list[dict]], None] | None = None, progress: bool = True,
+          desc: str = "reconstruct", score_note: str = "", early_stop: bool = False) -> TrainResult:
+    """Run model.step() until plan.steps steps or plan.budget_s seconds, whichever comes first; with `early_stop`,
+    also as soon as a step reports `converged: True` (stopped_by 'converged'). The budget counts training and
+    checkpoint evaluation together, or training alone when `scoring_in_budget` is False (then no evaluation is
+    skipped).
 
-    Checkpoints: at the start, every 1/checkpoints of the run (of the budget when there is one, else of the steps)
-    and at the end; each records the step, training seconds, the mean loss since the previous checkpoint and
-    whatever `evaluate()` returns. A tqdm bar on stderr shows progress unless `progress` is False."""
-    from tqdm import tqdm
-
+    Checkpoints: at the start, every `every_s` seconds of training (default: every 1/checkpoints of the budget when
+    there is one, else of the steps; 0: after every step) and at the end; each records the step, training seconds,
+    the mean loss since the previous checkpoint and whatever `evaluate()` returns. `on_checkpoint(trace)` sees the
+    trace after each one (a benchmark keeps it on disk as it goes). A tqdm bar on stderr shows progress unless
+    `progress` is False; its `checkpoint Chamfer` is the last checkpoint's, described by `score_note` (checkpoint
+    meshes are coarser than the final one)."""
     if not plan.steps and not plan.budget_s:
         raise ReconstructionError("a run needs a step count or a time budget (give --steps or --budget-s)")
+    if every_s is not None and not (math.isfinite(every_s) and every_s >= 0):
+        raise ReconstructionError(f"checkpoint interval {every_s} s must be finite and >= 0")
     by_time = bool(plan.budget_s)
-    every = plan.budget_s / checkpoints if by_time else max(1, math.ceil(plan.steps / checkpoints))
+    marks_by_time = by_time or every_s is not None
+    if every_s is not None:
+        every = every_s
+    else:
+        every = plan.budget_s / checkpoints if by_time else max(1, math.ceil(plan.steps / checkpoints))
     result = TrainResult(steps=0, seconds=0.0, stopped_by="", last={})
     window: list[float] = []
 
     eval_cost = [0.0]  # the last evaluation's seconds: what the next one is expected to take
 
     def spent() -> float:
-        return result.seconds + result.eval_seconds
+        return result.seconds + (result.eval_seconds if scoring_in_budget else 0.0)
 
     def checkpoint(final: bool = False):
         t0 = time.perf_counter()
         entry = {"step": result.steps, "seconds": round(result.seconds, 4),
                  "loss": (sum(window) / len(window)) if window else None}
         if evaluate is not None:
-            if final or not by_time or spent() + eval_cost[0] <= plan.budget_s:
+            if final or not (by_time and scoring_in_budget) or spent() + eval_cost[0] <= plan.budget_s:
                 entry.update(evaluate())
                 eval_cost[0] = time.perf_counter() - t0
             else:
@@ -70,6 +82,8 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
         result.trace.append(entry)
         window.clear()
         result.eval_seconds += time.perf_counter() - t0
+        if on_checkpoint is not None:
+            on_checkpoint(result.trace)
         return entry
 
     total = plan.budget_s if by_time else plan.steps
@@ -96,13 +110,14 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
                 result.stopped_by = "converged"
             window.append(float(last["loss"]))
             bar.update(min(spent() - bar.n, max(0.0, plan.budget_s - bar.n)) if by_time else 1)
-            done = result.seconds if by_time else result.steps
+            done = result.seconds if marks_by_time else result.steps
             if done >= next_mark:
                 entry = checkpoint()
                 next_mark += every
                 post = {"loss": f"{entry['loss']:.3g}"}
                 if entry.get("chamfer_mm") is not None:
-                    post["chamfer"] = f"{entry['chamfer_mm']:.2f}mm"
+                    note = f" {score_note}" if score_note else ""
+                    post["checkpoint Chamfer"] = f"{entry['chamfer_mm']:.2f}mm{note}"
                 bar.set_postfix(post)
             if result.stopped_by:
                 break
@@ -115,4 +130,6 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12,
             del last["note"]
             last.update(evaluate())
             result.eval_seconds += time.perf_counter() - t0
+            if on_checkpoint is not None:
+                on_checkpoint(result.trace)
     return result

@@ -4,37 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import trimesh
+from scipy import ndimage
+from skimage.measure import marching_cubes
 
 from ..errors import ReconstructionError
-
-
-def node_heights(nz: int, origin_z: float, spacing_z: float) -> np.ndarray:
-    """(nz,) heights (metres) of a grid's node rows: row k at origin_z + k * spacing_z."""
-    return origin_z + np.arange(nz) * spacing_z
-
-
-def below_floor(shape: tuple[int, int, int], origin_z: float, spacing_z: float, floor_z: float | None):
-    """(nz, ny, nx) bool view: the nodes of a grid (rows at `node_heights`) that lie under the floor at floor_z;
-    None when there is no floor."""
-    if floor_z is None:
-        return None
-    z = node_heights(shape[0], origin_z, spacing_z)
-    return np.broadcast_to((z < floor_z)[:, None, None], shape)
-
-
-def cavities(solid: np.ndarray, below_floor: np.ndarray | None = None) -> np.ndarray:
-    """Empty nodes of a boolean grid (nz, ny, nx) that no path through empty nodes links to the grid's boundary.
-
-    below_floor: nodes under the floor the object stands on (or None); they count as solid, since no sensor sees from
-    under the floor: a pocket closed by the object and the floor is as hidden as one closed by the object alone."""
-    from scipy import ndimage
-
-    wall = solid if below_floor is None else (solid | below_floor)
-    empty_lab, _ = ndimage.label(~wall)
-    border = np.unique(np.concatenate([empty_lab[[0, -1]].ravel(), empty_lab[:, [0, -1]].ravel(),
-                                       empty_lab[:, :, [0, -1]].ravel()]))
-    return (~wall) & ~np.isin(empty_lab, border[border > 0])
-
+from .grid_ops import below_floor, cavities, fill_under_overhangs, node_heights
 
 FLOATER_FRACTION = 0.02
 """Solid pieces of a mesh's grid smaller than this fraction of the largest piece (by node count) are floaters. On
@@ -52,8 +27,6 @@ def clean_solid(values: np.ndarray, min_fraction: float = FLOATER_FRACTION,
     piece (by node count) are floaters: they are emptied. Filled and emptied nodes get a value of half a node
     spacing's worth (+-1e-3 of the field's scale), so the surface moves only where something was removed.
     """
-    from scipy import ndimage
-
     v = np.array(values, np.float32, copy=True)
     solid = v < 0
     if not solid.any():
@@ -74,9 +47,6 @@ def mesh_from_values(values: np.ndarray, origin, spacing):
     spacing: a voxel size or (3,) sizes along x, y, z (metres). Raises ReconstructionError when the grid holds no
     surface (all inside or all outside) or is not finite.
     """
-    import trimesh
-    from skimage.measure import marching_cubes
-
     v = np.asarray(values, np.float32)
     if v.ndim != 3 or not np.all(np.isfinite(v)):
         raise ReconstructionError(f"the SDF grid must be a finite 3-D array (the fit diverged?), got shape {v.shape}")
@@ -94,7 +64,7 @@ def mesh_from_field(field, resolution: int | None = None, floor_z: float | None 
     """Marching cubes of a GridField (cleaned by `clean_solid`, with the floor at height `floor_z` metres, if any),
     on its own nodes or resampled to `resolution` cells along its longest side, with vertex normals from the field's
     gradient (central differences). fill_under (a table at floor_z): fill the hidden space under overhangs first
-    (`empty_space.fill_under_overhangs`)."""
+    (`grid_ops.fill_under_overhangs`)."""
     vals = field.sdf.detach()
     n = max(field.counts) - 1
     spacing = np.full(3, field.voxel)
@@ -110,8 +80,6 @@ def mesh_from_field(field, resolution: int | None = None, floor_z: float | None 
     grid = vals[0, 0].cpu().numpy()
     below = below_floor(grid.shape, float(field.origin[2]), float(spacing[2]), floor_z)
     if below is not None and fill_under:
-        from .empty_space import fill_under_overhangs
-
         z = node_heights(grid.shape[0], float(field.origin[2]), float(spacing[2]))
         grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)))
     mesh = mesh_from_values(clean_solid(grid, below_floor=below), field.origin.cpu().numpy(), spacing)
@@ -132,5 +100,4 @@ def vertex_normals(field, points: np.ndarray, chunk: int = 1 << 16) -> np.ndarra
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
-__all__ = ["FLOATER_FRACTION", "node_heights", "below_floor", "cavities", "clean_solid", "mesh_from_values",
-           "mesh_from_field", "vertex_normals"]
+__all__ = ["FLOATER_FRACTION", "clean_solid", "mesh_from_values", "mesh_from_field", "vertex_normals"]

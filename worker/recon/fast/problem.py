@@ -1,6 +1,6 @@
 """Everything the fast model fits, built from a SceneData: counts, sensor model, candidate rays, hull, table.
 
-The hull comes from the shared space carving (`baselines.space_carving.carve_scene`) inside the scene's box; the
+The hull comes from the space carving the baselines share (`worker.carving.carve_scene`) inside the scene's box; the
 SDF grid's box is the hull's bounding box plus a few voxels. With a table (named by the capture, or detected in the
 histograms of a measured capture) the carving and the object stay above it, and the plane is rendered exactly.
 """
@@ -15,9 +15,13 @@ import torch
 
 from spadscan.protocol.raycast import zone_rays
 
+from ...carving.returns import first_returns
+from ...carving.space_carving import carve_scene
+from ...table_height import detect_height
 from ..errors import ReconstructionError
 from ..forward import TransientForward
 from .grid_field import GridField
+from .hull import hull_field, object_hull
 
 
 HULL_MIN_VOTES = 0.2
@@ -75,8 +79,6 @@ def _table_plane(scene, forward_kernel, zone_dirs, zone_weights):
     normal = np.asarray(t.normal, float)
     if not t.fitted or abs(normal[2]) < 0.99:
         return normal, float(t.offset), bool(t.fitted), "capture"
-    from spadscan.worker.table_height import detect_height
-
     kernel, origin = forward_kernel
     h = detect_height(scene.counts.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
                       scene.background.double().cpu().numpy(), scene.poses.double().cpu().numpy(),
@@ -104,12 +106,8 @@ def build_problem(scene, config, device, terms) -> FastProblem:
         floor_z, floor_source = table[1] / table[0][2], "table"
     notes = {"table": None if table is None else table[3], "floor": floor_source}
     hull_res = _carve(scene, fc, floor_z)
-    from .hull import hull_field, object_hull
-
     voxel = float(np.min(hull_res.voxel_m))
     occ = np.transpose(hull_res.occupancy, (2, 1, 0))  # (x, y, z) -> (z, y, x)
-    from spadscan.worker.baselines.returns import first_returns
-
     counts_np, poses_np = scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy()
     onset = first_returns(counts_np, sensor, fc.carve_threshold, "leading").onset_range_m(sensor)
     occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=HULL_MIN_VOTES)
@@ -135,8 +133,6 @@ def build_problem(scene, config, device, terms) -> FastProblem:
 
 
 def _carve(scene, fc, floor_z):
-    from spadscan.worker.baselines.space_carving import carve_scene
-
     box = scene.box.double().cpu().numpy()
     return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,

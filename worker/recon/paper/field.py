@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from ..errors import ReconstructionError
-from ..render import SDFField
+from .render import SDFField
 from .config import MLPFieldConfig
 
 

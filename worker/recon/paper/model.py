@@ -15,22 +15,22 @@ import time
 import numpy as np
 import torch
 
-from ..config import ReconConfig
 from ..errors import ReconstructionError
 from ..forward import TransientForward, choose_terms
-from ..loss import eikonal, hist_l2, hist_scale, normal_tv
-from ..mesh import marching_cubes_mesh
-from ..numerics import flush_denormals
 from ..model_api import RunPlan
-from ..rays import ZoneGrid, mixture_weights
-from ..render import Table, table_hit
-from ..sampler import importance, merge, sphere_interval, stratified
+from ..numerics import flush_denormals
 from ..scene_data import SceneData
-from ..batch import RayBatch, backprop_batch, batch_transient
+from .batch import RayBatch, backprop_batch, batch_transient
+from .config import PaperConfig
 from .field import MLPField
+from .loss import eikonal, hist_l2, hist_scale, normal_tv
+from .mesh import marching_cubes_mesh
+from .rays import ZoneGrid, mixture_weights
+from .render import Table, table_hit
+from .sampler import importance, merge, sphere_interval, stratified
 
 
-def make_paper_model(scene: SceneData, config: ReconConfig, device, plan: RunPlan) -> "PaperModel":
+def make_paper_model(scene: SceneData, config: PaperConfig, device, plan: RunPlan) -> "PaperModel":
     """The model factory named by the `paper` preset."""
     return PaperModel(scene, config, torch.device(device), plan)
 
@@ -46,7 +46,7 @@ def cosine_lr(progress: float, warmup: float, floor: float) -> float:
 class PaperModel:
     """Implements model_api.ReconModel for the `paper` preset."""
 
-    def __init__(self, scene: SceneData, config: ReconConfig, device: torch.device, plan: RunPlan):
+    def __init__(self, scene: SceneData, config: PaperConfig, device: torch.device, plan: RunPlan):
         self.scene, self.config, self.device, self.plan = scene, config, device, plan
         self.dtype = {"float32": torch.float32, "float64": torch.float64}.get(config.dtype)
         if self.dtype is None:

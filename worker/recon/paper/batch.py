@@ -14,7 +14,7 @@ from typing import Callable
 
 import torch
 
-from .forward import TransientForward
+from ..forward import TransientForward
 from .render import SDFField, Table, opacity, render_rays, round_trip_transmittance
 
 

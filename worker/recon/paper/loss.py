@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from .forward import TransientForward
+from ..forward import TransientForward
 
 
 def hist_l2(forward: TransientForward, lam: torch.Tensor, counts: torch.Tensor, cycles: torch.Tensor,

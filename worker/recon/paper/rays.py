@@ -18,7 +18,7 @@ import torch
 
 from spadscan.protocol.sensor_model import SensorModel
 
-from .errors import ReconstructionError
+from ..errors import ReconstructionError
 
 
 class ZoneGrid:

@@ -1,23 +1,10 @@
-"""Eroding surface that the histograms do not show.
+"""What the histograms say about each surface node: measured against expected photons at the rays' returns.
 
-A carved hull is solid wherever no zone proved it empty, so a fit starts with surface where there is none: across a
-cup's opening, carving from first returns leaves a lid at the rim (the zone's first return is the rim, and nothing
-beyond it is proven empty). The likelihood's gradient sinks such a lid only slowly. A return that the data does not
-hold can move (towards the nearest measured photons, which are the rim's) or fade, and a surface over solid does not
-fade. Summed over all views, the data gradient on the built-in cup's lid nodes is 5% of its mean magnitude; the lid
-sank from 16 cm to 10-14 cm in 2,400 steps, and it was most of the Chamfer.
-
-What the data does say directly is how many photons came back near each ray's return. Each step, every rendered ray
-with an opaque return compares the measured photons of its histogram within +-`window` bins of the return's bin
-with the model's (both less the background), and adds the log of the ratio to the grid node nearest the return.
-Every few steps, nodes with enough hits whose mean ratio is below a threshold are eroded: the field is raised by one
-voxel within one node of them, which moves the surface one voxel inward there and keeps it a distance field. On the
-cup, the lid's nodes read a median ratio of 0.57 and the walls' 0.94 (the bottom's 0.92).
-
-The test trusts the sensor model to predict a surface's photons within tens of percent. On measured data it does not:
-on LCSPCData's real pyramid the measured counts are 0.44x the model's three bins before a peak and 1.19x at it, and
-the erosion made the fit worse (5.71 mm against 5.14 mm at 1,500 steps). So the model enables it for simulated
-captures only (`FastProblem.measured` false).
+Each step, every rendered ray with an opaque return compares the measured photons of its histogram within
++-`window` bins of the return's bin with the model's (both less the background), and the log of the ratio goes to
+the grid node nearest the return. Surface that the data holds reads a mean ratio near one; surface where the model
+predicts photons that never came back (a lid the carving left over a cup's opening) reads well below one. The
+erosion and the openings (parts/erosion.py, parts/openings.py) act on that evidence.
 """
 
 from __future__ import annotations
@@ -91,16 +78,30 @@ class ReturnEvidence:
         return enough & (mean < math.log(low)), enough & (mean >= math.log(high))
 
 
-def erode_at(sdf: torch.Tensor, nodes: torch.Tensor, voxel: float, radius: int = 1) -> int:
-    """Raise the SDF grid (nz, ny, nx) by one voxel (metres) within `radius` nodes of `nodes` (bool, same shape), in
-    place: the surface moves one voxel inward there. Returns the number of nodes flagged."""
-    n = int(nodes.sum())
-    if n == 0:
-        return 0
-    region = F.max_pool3d(nodes.to(sdf.dtype)[None, None], 2 * radius + 1, 1, radius)[0, 0] > 0
-    with torch.no_grad():
-        sdf[region] += voxel
-    return n
+def step_returns(problem, step, window: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(points (m, 3) world metres, log ratio (m,)) of a step's opaque returns whose expected signal is significant
+    (`return_ratios` within `window` bins), or None when the step recorded none. problem: the FastProblem; step: the
+    StepRecord (its views, rates and hits). Computed once per step and window, however many parts read it."""
+    if step.hits is None or step.hits[0].numel() == 0:
+        return None
+    key = ("returns", window)
+    if key not in step.cache:
+        step.cache[key] = _log_ratios(problem, step.views, step.rates, step.hits, window)
+    return step.cache[key]
 
 
-__all__ = ["return_ratios", "ReturnEvidence", "erode_at"]
+def _log_ratios(problem, views: torch.Tensor, rates: torch.Tensor, hits: tuple, window: int):
+    fwd, n_bins = problem.forward, problem.counts.shape[-1]
+    cycles = problem.cycles[views]
+    expected = fwd.expected_counts(rates, cycles).reshape(-1, n_bins)
+    bg = (problem.background[views] * cycles[:, None]).reshape(-1)
+    ratio, significant = return_ratios(expected, problem.counts[views].reshape(-1, n_bins), bg,
+                                       problem.valid[views].reshape(-1, n_bins), window)
+    hist, points, ranges = hits
+    s = fwd.sensor
+    b = torch.floor(s.zero_bin + ranges / s.bin_width_m).long().clamp(0, n_bins - 1)
+    keep = significant[hist, b]
+    return points[keep], torch.log(ratio[hist, b][keep])
+
+
+__all__ = ["return_ratios", "ReturnEvidence", "step_returns"]

@@ -6,17 +6,24 @@ by the round-trip transmittance through the hull segment; rays that miss the hul
 rendered every step (cheap: one plane intersection each), so the table adds no sampling noise.
 
 When the capture names no table height (a fitted table of a measured capture), `table_height.detect_height` finds a
-horizontal one, which starts the fit.
+horizontal one, which starts the fit (problem.py).
+
+Switched off, a scene on a table is fitted without the plane in its forward model; the table still sets the floor
+that the hull and the other parts go by.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from .sampler import HullRays
+from spadscan.protocol.errors import ConfigError
+
+from ..sampler import HullRays
+from .part import Model, Part, PartConfig
 
 MIN_RANGE_M = 1e-3
 
@@ -73,4 +80,48 @@ class TableModel:
                 "table_normal": self.normal.cpu().tolist(), "table_z_m": z, "table_fitted": self.fit_offset}
 
 
-__all__ = ["TableModel"]
+@dataclass
+class TableConfig(PartConfig):
+    """The table's start and learning rate."""
+
+    albedo_init: float = 1.0
+    """Initial albedo of the table plane, relative to the sensor model's signal scale."""
+    lr_m: float = 2e-4
+    """Adam learning rate of a fitted table's height (metres per step); its albedo learns at
+    `schedule.albedo_lr`."""
+
+    def check(self, key: str) -> None:
+        super().check(key)
+        if not (math.isfinite(self.albedo_init) and self.albedo_init > 0):
+            raise ConfigError(f"{key}.albedo_init {self.albedo_init} must be > 0")
+
+
+class TableFit(Part):
+    """Holds the `TableModel` that the renderer adds to every histogram, and its parameters for the optimiser."""
+
+    name = "table"
+
+    def __init__(self, config: TableConfig, model: Model):
+        super().__init__(config, model)
+        normal, offset, fitted = model.problem.table_plane
+        self.table = TableModel(normal, offset, config.albedo_init, fitted, model.rays.missed,
+                                model.problem.forward, model.device)
+
+    @classmethod
+    def left_out(cls, config: TableConfig, model: Model) -> str | None:
+        if not model.on_table:
+            return "no table under the object"
+        return None
+
+    def param_groups(self, albedo_lr: float) -> list[tuple[list[torch.Tensor], float]]:
+        """(tensors, learning rate) for the optimiser: the table's log albedo and, when fitted, its offset."""
+        groups = [([self.table.log_albedo], albedo_lr)]
+        if self.table.fit_offset:
+            groups.append(([self.table.offset], self.config.lr_m))
+        return groups
+
+    def summary(self) -> dict:
+        return self.table.summary()
+
+
+__all__ = ["TableFit", "TableConfig", "TableModel"]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .forward import TransientForward
+from ..forward import TransientForward
 from .render import Rendered, SDFField, Table, render_rays
 
 

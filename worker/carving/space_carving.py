@@ -1,4 +1,4 @@
-"""Space carving (the paper's baseline, and the fast reconstruction's initial hull): voxels seen empty are removed.
+"""Space carving (the paper's baseline, and the `fast` preset's initial hull): voxels seen empty are removed.
 
 A zone that detected its first return at range r has seen empty space in every direction of its field of view up to
 r; a zone that detected nothing has seen empty space up to the histogram's last bin. A voxel is carved when one view
@@ -21,11 +21,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
+from scipy.ndimage import distance_transform_edt, gaussian_filter, label, map_coordinates
+from skimage.measure import marching_cubes
 
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_model import SensorModel
 
-from .returns import DEFAULT_THRESHOLD, check_inputs, first_returns
+from .bounds import cube_around, scene_bounds
+from .returns import DEFAULT_THRESHOLD, check_inputs, detection_filter, first_returns, matched_filter_z
 
 DEFAULT_EDGE_DEG = 1.0
 """Carving trusts each zone's field of view only this far (degrees) inside its edges."""
@@ -54,8 +58,6 @@ class CarveResult:
 
         From Euclidean distance transforms between voxel centres, so it is exact to about half a voxel.
         """
-        from scipy.ndimage import distance_transform_edt
-
         occ = self.occupancy
         if not occ.any():
             return np.full(occ.shape, np.inf, np.float32)
@@ -68,8 +70,6 @@ class CarveResult:
 
     def contains(self, points, margin_m: float = 0.0) -> np.ndarray:
         """(n,) bool: points (n, 3) lie inside the hull or within `margin_m` of it (by the SDF, trilinear)."""
-        from scipy.ndimage import map_coordinates
-
         pts = np.asarray(points, dtype=np.float64)
         idx = ((pts - self.origin) / self.voxel_m).T
         sdf = self.sdf().astype(np.float64)
@@ -84,10 +84,6 @@ class CarveResult:
 
 def occupancy_mesh(occupancy: np.ndarray, origin, voxel_m, smooth_voxels: float = 0.7):
     """Marching cubes of a boolean grid at level 0.5 after a Gaussian blur; closed (the grid is padded with empty)."""
-    import trimesh
-    from scipy.ndimage import gaussian_filter
-    from skimage.measure import marching_cubes
-
     if not occupancy.any():
         return None
     field = np.pad(occupancy.astype(np.float32), 2)
@@ -228,8 +224,6 @@ def _classify_cells(centres: np.ndarray, radius: float, poses: np.ndarray, senso
 def main_components(occupancy: np.ndarray, min_fraction: float) -> np.ndarray:
     """The occupancy without connected pieces smaller than `min_fraction` of the largest (specks left at the box's
     walls and beside sensors, where few views looked)."""
-    from scipy.ndimage import label
-
     lab, n = label(occupancy)
     if n <= 1:
         return occupancy.copy()
@@ -260,8 +254,6 @@ def carve_limits(hists, sensor: SensorModel, threshold: float, margin_m: float,
     drops below it again before the strong return, that weak return's onset is kept; a zone that saw nothing above
     the default threshold is carved to the end of its histogram.
     """
-    from .returns import detection_filter, matched_filter_z
-
     lag = detection_filter(sensor, filter)[2]
     z = matched_filter_z(np.asarray(hists, dtype=np.float64), sensor, filter)
     weak_level = min(threshold, DEFAULT_THRESHOLD)
@@ -343,8 +335,6 @@ def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, thr
                 edge_deg: float = DEFAULT_EDGE_DEG, coarse: int = 48) -> CarveResult:
     """Space carving without knowing the scene's box: carve coarsely inside the first returns' footprints (or
     `bounds`, a pair of (3,) corners in metres), then again at `resolution` in a cube around what is left."""
-    from .common import cube_around, scene_bounds
-
     h, p = check_inputs(hists, poses, sensor)
     if bounds is None:
         lo, hi = scene_bounds(first_returns(h, sensor, threshold, "matched"), p, sensor, floor_z=floor_z)

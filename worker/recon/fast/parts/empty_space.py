@@ -11,18 +11,76 @@ completeness 4.6 mm).
 So, with a table, every step pushes the surface inward on the surface nodes that few views look at (`coverage`
 below `full_coverage`), by a fraction of the data gradient's rms: the data term holds a surface it sees, and what it
 cannot see melts away. Nodes that most views look at get no push (their surface is the data's to place), which also
-keeps the bias from digging into the object's unseen interior; pockets the solid closes are filled (`mesh.cavities`),
-and so is the space under the solid (`under_overhangs`), which no view from above sees into.
+keeps the bias from digging into the object's unseen interior; pockets the solid closes are filled, and so is the
+space under the solid, which no view from above sees into (cavities.py). What the push leaves of the skirt are thin
+curtains standing on the table, which thin_sheets.py empties.
 
-What the push leaves of the skirt are thin curtains standing on the table: views from above see a vertical sheet edge
-on, and within a pulse width of the table no histogram tells it from the table. Every few steps, sheets thinner than
-a few voxels in that band are emptied (`thin_near_table`).
+The push acts on the data term's gradient after its blur (blur.py), before the regularisers' gradient is added.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
+
+from spadscan.protocol.errors import ConfigError
+
+from .part import Model, Part, PartConfig
+
+
+@dataclass
+class EmptySpaceConfig(PartConfig):
+    """How hard the push is, and where it fades out."""
+
+    pressure: float = 0.2
+    """The push on a surface node no view looks at, as a fraction of the data gradient's rms over the surface."""
+    coverage: float = 0.6
+    """The push is full where no view looks and fades to nothing where this fraction of the views (or more) has the
+    node in its field of view. (On LCSPCData's real pyramid the surface 1 cm or more off the object after a fit lay
+    where a median 31% of the views look; the object's own faces, where a median 59% do: the data holds those against
+    the push.)"""
+
+    def check(self, key: str) -> None:
+        super().check(key)
+        if not self.pressure > 0:
+            raise ConfigError(f"{key}.pressure {self.pressure} must be > 0 ({key}.enabled=false: off)")
+        if not 0 < self.coverage <= 1:
+            raise ConfigError(f"{key}.coverage {self.coverage} must be in (0, 1]")
+
+
+class EmptySpacePush(Part):
+    """Adds the push to the data term's gradient on scenes on a table."""
+
+    name = "empty_space"
+
+    def __init__(self, config: EmptySpaceConfig, model: Model):
+        super().__init__(config, model)
+        self._weight: torch.Tensor | None = None
+
+    @classmethod
+    def left_out(cls, config: EmptySpaceConfig, model: Model) -> str | None:
+        if not model.on_table:
+            return "no table under the object: every zone that looks past it proves its view empty"
+        return None
+
+    def after_gradient(self, model: Model, grad: torch.Tensor) -> torch.Tensor:
+        push_to_empty(grad, model.field.sdf, model.field.voxel, self.weight(model), self.config.pressure)
+        return grad
+
+    def weight(self, model: Model) -> torch.Tensor:
+        """The push's weight on the current grid's nodes (1, 1, nz, ny, nx): from the views' coverage, computed once
+        on the coarse grid (a second on 64^3 nodes x 128 views) and interpolated onto a refined one."""
+        shape = tuple(model.field.sdf.shape)
+        if self._weight is None:
+            with torch.no_grad():
+                cov = view_coverage(model.field.node_points(), model.problem.poses, model.problem.forward.sensor.zones)
+            self._weight = pressure_weight(cov, self.config.coverage)[None, None].contiguous()
+        if tuple(self._weight.shape) != shape:
+            self._weight = torch.nn.functional.interpolate(self._weight, size=shape[2:], mode="trilinear",
+                                                           align_corners=True)
+        return self._weight
 
 
 def view_coverage(points: torch.Tensor, poses: torch.Tensor, zones, chunk: int = 1 << 16) -> torch.Tensor:
@@ -56,8 +114,6 @@ def view_coverage(points: torch.Tensor, poses: torch.Tensor, zones, chunk: int =
 def pressure_weight(coverage: torch.Tensor, full_coverage: float) -> torch.Tensor:
     """1 where no view looks, falling linearly to 0 where `full_coverage` (a fraction of the views) or more look."""
     if not 0 < full_coverage <= 1:
-        from spadscan.protocol.errors import ConfigError
-
         raise ConfigError(f"pressure coverage {full_coverage} must be in (0, 1]")
     return (1.0 - coverage / full_coverage).clamp(0.0, 1.0)
 
@@ -76,52 +132,4 @@ def push_to_empty(grad: torch.Tensor, sdf: torch.Tensor, voxel: float, weight: t
     grad -= strength * rms * surf.to(grad.dtype) * weight
 
 
-def under_overhangs(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float) -> np.ndarray:
-    """(nz, ny, nx) bool: the empty nodes of a solid grid that lie above the table (at floor_z) and below a solid node
-    of their column. z_nodes (nz,): the nodes' heights, metres.
-
-    Sensors look at a table-top object from above: the space between an object's underside and the table is
-    hidden from every view (no histogram says whether it is empty), and an empty gap there is a fit that
-    the data did not ask for — it is what the object's unseen bottom and the melted skirt leave behind."""
-    solid = np.asarray(solid, bool)
-    above_table = (np.asarray(z_nodes) >= floor_z)[:, None, None]
-    # Solid at or above each node in its column: a cumulative OR from the top of the grid down.
-    covered = np.flip(np.logical_or.accumulate(np.flip(solid, axis=0), axis=0), axis=0)
-    return (~solid) & covered & above_table
-
-
-def fill_under_overhangs(values: np.ndarray, z_nodes: np.ndarray, floor_z: float, fill_value: float) -> np.ndarray:
-    """Copy of an SDF grid (nz, ny, nx) with the nodes `under_overhangs` made solid (`fill_value` < 0)."""
-    v = np.array(values, np.float32, copy=True)
-    v[under_overhangs(v < 0, z_nodes, floor_z)] = fill_value
-    return v
-
-
-def thin_near_table(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, band_m: float, radius: int) -> np.ndarray:
-    """(nz, ny, nx) bool: the solid nodes less than `band_m` above the table (at floor_z) that a morphological opening
-    of `radius` node steps removes — sheets and fins thinner than about 2 x radius nodes. z_nodes (nz,): heights of
-    the node rows, metres, increasing; the space under the table counts as solid, so the object's base is not eroded
-    from below.
-
-    Near the table the histograms cannot tell a thin sheet from the table behind it, and views from above see a
-    vertical sheet edge on: such curtains are what the carved hull's skirt melts into, and nothing in the data
-    removes them (on LCSPCData's real pyramid, a fifth of the surface lay 1-3 cm outside the object, in curtains up
-    to 8 cm high; `field.thin_sheet_band_m` sets band_m)."""
-    from scipy import ndimage
-
-    out = np.zeros(solid.shape, bool)
-    z = np.asarray(z_nodes, np.float64)
-    in_band = (z >= floor_z) & (z < floor_z + band_m)
-    if radius <= 0 or not in_band.any():
-        return out
-    # The opening reaches 2 x radius rows: a slab that far above the band gives exact answers inside it.
-    top = min(len(z), int(np.flatnonzero(in_band)[-1]) + 2 * radius + 2)
-    wall = solid[:top] | (z[:top] < floor_z)[:, None, None]
-    cross = ndimage.generate_binary_structure(3, 1)
-    opened = ndimage.binary_opening(wall, structure=cross, iterations=radius)
-    out[:top] = solid[:top] & ~opened & in_band[:top, None, None]
-    return out
-
-
-__all__ = ["view_coverage", "pressure_weight", "push_to_empty", "under_overhangs", "fill_under_overhangs",
-           "thin_near_table"]
+__all__ = ["EmptySpacePush", "EmptySpaceConfig", "view_coverage", "pressure_weight", "push_to_empty"]

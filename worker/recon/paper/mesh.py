@@ -6,8 +6,10 @@ from typing import Callable
 
 import numpy as np
 import torch
+import trimesh
+from skimage.measure import marching_cubes
 
-from .errors import ReconstructionError
+from ..errors import ReconstructionError
 
 
 def sdf_grid(sdf: Callable[[torch.Tensor], torch.Tensor], box: torch.Tensor, resolution: int,
@@ -37,9 +39,6 @@ def marching_cubes_mesh(sdf: Callable[[torch.Tensor], torch.Tensor],
 
     grad: (N, 3) -> (N, 3) SDF gradient for the normals (None: the mesh's own). Raises ReconstructionError when the
     field has no zero crossing in the box (all inside or all outside) or is not finite."""
-    import trimesh
-    from skimage.measure import marching_cubes
-
     values, spacing = sdf_grid(sdf, box, resolution)
     if not np.all(np.isfinite(values)):
         raise ReconstructionError("the SDF is not finite on the mesh grid (the fit diverged)")
