@@ -5,17 +5,19 @@
                                        [--seed 0] [--marks 30,60,180] [--set KEY=VALUE ...]
 
 A scene is a capture folder (holds scan.json) or a folder of the public dataset (holds <name>.json, imported once
-into --out). Each preset runs in its own process (clean peak memory, nothing shared) through the shared pieces of
-`spadscan reconstruct` (load_scene, the preset's model, the training loop), with checkpoints every --every-s seconds
-that record the Chamfer distance against the capture's ground truth. Run time is wall time from the start of loading
-the capture — set-up (carving, ray tables) included — less the time spent evaluating checkpoints. On a real scene
+into --out). Each preset runs in its own process (clean peak memory, nothing shared) through `spadscan reconstruct`'s
+own set-up (`set_up_run`: the capture loaded, the preset's model built) and its training loop (`train`, with its
+checkpoint scoring left out of the budget), with checkpoints every --every-s seconds of training that record the
+Chamfer distance against the capture's ground truth. Run time is wall time from the start of loading the capture —
+set-up (carving, ray tables) included — less the time spent evaluating checkpoints. On a real scene
 with a table, Chamfer is measured on the object above the table: both meshes are cut 5 mm above the table top
 (found in the ground truth as the largest horizontal face area). Baselines run once and are timed whole.
 
 Prints one table (scene x method: Chamfer at each of --marks (default 30 s, 60 s, 180 s) and at the end, time to
 reach 2 mm, peak memory of the method, its checkpoints' scoring left out), the speed-up of `fast` over `paper`
 (time for `fast` to reach the Chamfer `paper` reaches at the end of its budget), and saves one plot
-(error_vs_time.png) and all numbers (results.json) in --out.
+(error_vs_time.png) and all numbers (results.json) in --out. Every result records the commit of the code that made it
+(with a note when the working tree held uncommitted changes) and its preset's resolved config.
 
 A run writes its checkpoints so far to runs/<scene>-<method>.partial.json as it goes. If it is killed (Ctrl-C, or a
 time limit's SIGTERM to this script), the table still comes out, with that run's checkpoints marked "cut off".
@@ -208,33 +210,25 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     (a time limit, Ctrl-C) still leaves its checkpoints behind."""
     import torch
 
-    from spadscan.worker.reconstruct import resolve_device
-    from spadscan.worker.recon.config import load_factory, parse_override, preset_config, with_overrides
+    from spadscan.worker.recon.config import parse_override
     from spadscan.worker.recon.model_api import RunPlan
-    from spadscan.worker.recon.scene_data import load_scene
+    from spadscan.worker.recon.trainer import train
+    from spadscan.worker.reconstruct import resolve_device, run_config, set_up_run
 
     t0 = time.perf_counter()
-    config = preset_config(preset)
-    if overrides:
-        config = with_overrides(config, dict(parse_override(text) for text in overrides))
+    config = run_config(preset, dict(parse_override(text) for text in overrides))
     dev = resolve_device(device)
     truth = ground_truth(capture)
     meter = MethodPeak(dev)  # from here on: loading the ground truth is the benchmark's, not the method's
-    load_start = time.perf_counter()
-    scene = load_scene(capture, dev, torch.float32)
-    plan = RunPlan(steps=None, budget_s=None, seed=seed)
-    model = load_factory(config)(scene, config, dev, plan)
-    setup_s = time.perf_counter() - load_start
-    # The training budget is what is left of the wall budget after set-up.
-    plan = RunPlan(steps=None, budget_s=max(1.0, budget_s - setup_s), seed=seed)
+    # The model is laid out for the whole wall budget; it trains for what set-up leaves of it.
+    run = set_up_run(capture, config, dev, steps=None, budget_s=budget_s, seed=seed, log=lambda line: None)
+    setup_s, model = run.setup_s, run.model
     # Checkpoints are scored exactly like the final mesh (DESIGN §6: 300,000 points, the full mesh resolution): their
     # time is not counted, and fewer points would raise the estimate's floor (~1.1 mm at 30,000 points).
     resolution = eval_resolution or config.mesh_resolution
     points = config.metrics_points
 
     def evaluate():
-        if truth is None:
-            return {}
         meter.pause()
         try:
             mesh = model.extract_mesh(resolution)
@@ -244,50 +238,37 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
         finally:
             meter.resume()
 
-    keep = None if partial is None else partial_writer(partial, preset, str(dev), setup_s)
-    trace, steps, train_s, stopped_by = training_trace(model, plan.budget_s, every_s, evaluate, config.early_stop,
-                                                       keep)
-    trace = with_wall_seconds(trace, setup_s)
+    provenance = {"commit": source_commit(), "config": config.to_dict()}
+    keep = None if partial is None else partial_writer(partial, preset, str(dev), setup_s, provenance)
+    plan = RunPlan(steps=None, budget_s=max(1.0, budget_s - setup_s), seed=seed)
+    result = train(model, plan, every_s=every_s, evaluate=None if truth is None else evaluate,
+                   scoring_in_budget=False, on_checkpoint=keep, progress=False, early_stop=config.early_stop)
+    trace = with_wall_seconds(result.trace, setup_s)
     final = trace[-1].get("chamfer_mm")  # the last checkpoint is the end of the run
     peak_mb = meter.peak_mb()
     return {"method": preset, "kind": "preset", "device": str(dev),
             "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or "cpu",
-            "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": steps,
-            "train_s": train_s, "stopped_by": stopped_by, "overrides": list(overrides), "trace": trace,
+            "threads": torch.get_num_threads(), "setup_s": setup_s, "steps": result.steps,
+            "train_s": result.seconds, "stopped_by": result.stopped_by, "overrides": list(overrides), "trace": trace,
             "final_chamfer_mm": final,
             "crop_z_m": None if truth is None else truth.cut_above_z_m, "peak_rss_mb": peak_mb,
             "peak_excludes_scoring": meter.excludes_scoring,
             "peak_rss_with_scoring_mb": meter.peak_with_scoring_mb(),
             "summary": _jsonable(model.summary()),
-            "total_s": time.perf_counter() - t0}
+            "total_s": time.perf_counter() - t0, **provenance}
 
 
-def training_trace(model, budget_s: float, every_s: float, evaluate, early_stop: bool,
-                   on_checkpoint=None) -> tuple[list[dict], int, float, str]:
-    """Step the model for budget_s seconds of training time (or, with early_stop, until a step reports `converged`),
-    evaluating every every_s seconds of it (and at the start and the end). Evaluation time is not training time: the
-    curve is error against the time the method itself took. A run that stops early keeps its last mesh: the tables
-    carry its final Chamfer forward to the later columns. on_checkpoint(trace) is called after each checkpoint.
-    Returns (trace [{step, seconds, loss, chamfer_mm}], steps, training seconds, 'budget' or 'converged')."""
-    trace, steps, seconds, losses, next_mark, stopped_by = [], 0, 0.0, [], 0.0, ""
-    while True:
-        if seconds >= next_mark or seconds >= budget_s or stopped_by:
-            entry = {"step": steps, "seconds": round(seconds, 3),
-                     "loss": float(np.mean(losses)) if losses else None, **evaluate()}
-            trace.append(entry)
-            if on_checkpoint is not None:
-                on_checkpoint(trace)
-            losses.clear()
-            next_mark += every_s
-            if seconds >= budget_s or stopped_by:
-                return trace, steps, seconds, stopped_by or "budget"
-        t0 = time.perf_counter()
-        out = model.step()
-        seconds += time.perf_counter() - t0
-        steps += 1
-        losses.append(float(out["loss"]))
-        if early_stop and out.get("converged"):
-            stopped_by = "converged"
+def source_commit() -> str:
+    """The commit of the code being measured ('unknown' outside a git checkout), with ' + uncommitted changes' when
+    the working tree differs from it."""
+    git = ["git", "-C", str(Path(__file__).resolve().parents[1])]
+    try:
+        head = subprocess.check_output(git + ["rev-parse", "HEAD"], text=True, stderr=subprocess.DEVNULL, timeout=30)
+        dirty = subprocess.check_output(git + ["status", "--porcelain", "--untracked-files=no"], text=True,
+                                        stderr=subprocess.DEVNULL, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return head.strip() + (" + uncommitted changes" if dirty.strip() else "")
 
 
 def run_baseline(capture: Path, method: str, out: Path) -> dict:
@@ -305,7 +286,7 @@ def run_baseline(capture: Path, method: str, out: Path) -> dict:
     return {"method": method, "kind": "baseline", "setup_s": 0.0, "trace": [{"wall_seconds": seconds,
             "chamfer_mm": c}], "final_chamfer_mm": c, "crop_z_m": None if truth is None else truth.cut_above_z_m,
             "threshold": report.get("threshold"),
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "commit": source_commit()}
 
 
 def write_atomic(path: Path, record: dict) -> None:
@@ -319,11 +300,12 @@ def _jsonable(obj):
     return json.loads(json.dumps(obj, default=lambda v: v.tolist() if hasattr(v, "tolist") else str(v)))
 
 
-def partial_writer(path: Path, preset: str, device: str, setup_s: float):
-    """A checkpoint callback for training_trace that rewrites `path` with the trace so far, as a 'cut off' result."""
+def partial_writer(path: Path, preset: str, device: str, setup_s: float, provenance: dict | None = None):
+    """A checkpoint callback for the trainer (`on_checkpoint`) that rewrites `path` with the trace so far, as a
+    'cut off' result; `provenance` (commit, config) goes with it."""
     def keep(trace_so_far: list[dict]) -> None:
         write_atomic(path, {"method": preset, "kind": "preset", "device": device, "setup_s": setup_s,
-                            "stopped_by": "cut off",
+                            "stopped_by": "cut off", **(provenance or {}),
                             "trace": with_wall_seconds(trace_so_far, setup_s)})
     return keep
 
@@ -542,7 +524,8 @@ def presets_of(text: str) -> list[str]:
 def check_options(args) -> list[str]:
     """Every problem with the options, one line each ([] when the runs can start). Reads, never writes."""
     from spadscan.protocol.errors import SpadscanError
-    from spadscan.worker.recon.config import PRESETS, load_factory, parse_override, preset_config, with_overrides
+    from spadscan.worker.recon.config import parse_override, with_overrides
+    from spadscan.worker.recon.presets import PRESETS, preset_config
     from spadscan.worker.reconstruct import resolve_device
 
     problems = []
@@ -562,7 +545,6 @@ def check_options(args) -> list[str]:
             continue
         try:
             configs[name] = preset_config(name)
-            load_factory(configs[name])
         except SpadscanError as exc:
             configs.pop(name, None)
             problems.append(f"--presets: {exc}")
@@ -751,8 +733,8 @@ def main(argv=None) -> int:
             return 1
         captures.append(capture)
     methods = presets_of(args.presets) + (list(BASELINES) if args.baselines else [])
-    header = machine()
-    print(f"machine: {header}", file=sys.stderr)
+    header, commit = machine(), source_commit()
+    print(f"machine: {header}; commit {commit}", file=sys.stderr)
     results, failed = [], []
     # A time limit's SIGTERM ends the runs like Ctrl-C does: the table still comes out.
     signal.signal(signal.SIGTERM, signal.default_int_handler)
@@ -760,11 +742,11 @@ def main(argv=None) -> int:
         run_all(args, captures, methods, results, failed)
     except KeyboardInterrupt:  # Ctrl-C: the table of the runs so far, the one in progress as far as it got
         print("interrupted: the table holds the runs so far", file=sys.stderr)
-    text = [f"Machine: {header}", f"Budget: {args.budget_s:g} s wall per run (set-up included)"]
+    text = [f"Machine: {header}", f"Commit: {commit}", f"Budget: {args.budget_s:g} s wall per run (set-up included)"]
     text += [f"Overrides: {' '.join(args.overrides)}"] if args.overrides else []
     text += ["", table(results, args.budget_s, args.marks), ""] + speedups(results)
     print("\n".join(text))
-    (args.out / "results.json").write_text(json.dumps({"machine": header, "budget_s": args.budget_s,
+    (args.out / "results.json").write_text(json.dumps({"machine": header, "commit": commit, "budget_s": args.budget_s,
                                                        "results": results}, indent=1))
     (args.out / "table.md").write_text("\n".join(text) + "\n")
     if plot(results, args.out / "error_vs_time.png"):

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+REAL_RUN = subprocess.run
+"""subprocess.run before a test stands in for it (the benchmark's git queries still run)."""
 
 
 @pytest.fixture(scope="module")
@@ -45,6 +47,8 @@ class FakeRuns:
         self.returncode, self.runs = returncode, []
 
     def __call__(self, cmd, *args, **kwargs):
+        if cmd[0] == "git":  # the benchmark asks which commit it measures
+            return REAL_RUN(cmd, *args, **kwargs)
         assert "--one" in cmd
         method, result = cmd[-2], Path(cmd[-1])
         self.runs.append(method)
@@ -57,6 +61,8 @@ class FakeRuns:
 
 
 def no_runs(cmd, *args, **kwargs):
+    if cmd[0] == "git":
+        return REAL_RUN(cmd, *args, **kwargs)
     raise AssertionError(f"a run started: {cmd}")
 
 
@@ -228,3 +234,39 @@ def test_a_dataset_folder_is_imported_again_when_its_file_changed(bench, tmp_pat
     with pytest.raises(SystemExit, match="holds a capture that is no dataset import"):
         bench.prepare_scene(tmp_path / "three" / "mine", work)
     assert (mine / "scan.json").is_file()
+
+
+@pytest.fixture(scope="module")
+def views_of_a_box(tmp_path_factory):
+    """Twelve simulated views of a box: enough for the fast preset to carve a hull and train."""
+    import trimesh
+
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+    mesh = trimesh.creation.box(extents=(0.07, 0.05, 0.09))
+    mesh.apply_translation([0.0, 0.0, 0.045])
+    poses = fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
+    return simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, tmp_path_factory.mktemp("bench") / "box",
+                            settings=SimSettings(rays_per_zone=256), progress=False)
+
+
+def test_a_preset_run_goes_through_the_products_trainer_and_records_its_commit_and_config(bench, views_of_a_box,
+                                                                                         tmp_path):
+    # The child process's side, for real: a tiny fast run of 2 s.
+    capture = views_of_a_box
+    result = tmp_path / "box-fast.json"
+    small = ["field.resolution=12", "field.hull_resolution=24", "schedule.views_per_step=2",
+             "schedule.rays_per_sr=200", "schedule.candidate_rays_per_sr=1000", "parts.openings.enabled=false"]
+    argv = ["--scenes", capture, "--budget-s", 2, "--every-s", 0.5, "--device", "cpu"]
+    argv += [x for kv in small for x in ("--set", kv)]
+    assert call(bench, argv + ["--one", capture, "fast", result]) == 0
+    res = json.loads(result.read_text())
+    assert res["stopped_by"] in ("budget", "converged") and res["steps"] >= 1
+    assert res["commit"] and res["config"]["preset"] == "fast"
+    assert res["config"]["parts"]["openings"]["enabled"] is False and res["config"]["field"]["resolution"] == 12
+    assert "openings" in res["summary"]["parts_left_out"]  # the run did what its config says
+    walls = [e["wall_seconds"] for e in res["trace"]]
+    assert walls == sorted(walls) and walls[0] == pytest.approx(res["setup_s"]) and len(walls) >= 2
+    assert not bench.partial_path(result).exists()  # a finished run leaves no partial file

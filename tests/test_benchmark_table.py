@@ -79,21 +79,49 @@ class StoppedModel:
 
 
 def test_a_run_killed_mid_way_leaves_its_checkpoints_for_the_table(bench, tmp_path):
+    from spadscan.worker.recon.model_api import RunPlan
+    from spadscan.worker.recon.trainer import train
+
     partial = bench.partial_path(tmp_path / "bunny-fast.json")
-    keep = bench.partial_writer(partial, "fast", "cpu", setup_s=3.0)
+    keep = bench.partial_writer(partial, "fast", "cpu", setup_s=3.0,
+                                provenance={"commit": "abc123", "config": {"preset": "fast"}})
     chamfers = iter([20.0, 5.0, 2.5, 1.9])
     with pytest.raises(KeyboardInterrupt):
-        # every_s=0: a checkpoint before every step; the 4th step is interrupted after the 4th checkpoint.
-        bench.training_trace(StoppedModel(4), 100.0, 0.0, lambda: {"chamfer_mm": next(chamfers)}, False, keep)
+        # The product's trainer, as run_preset calls it; every_s=0: a checkpoint at the start and after every step,
+        # so the 4th step is interrupted after the 4th checkpoint.
+        train(StoppedModel(4), RunPlan(steps=None, budget_s=100.0, seed=0), every_s=0.0,
+              evaluate=lambda: {"chamfer_mm": next(chamfers)}, scoring_in_budget=False, on_checkpoint=keep,
+              progress=False)
     res = bench.cut_off_result(partial)
     assert [e["chamfer_mm"] for e in res["trace"]] == [20.0, 5.0, 2.5, 1.9]
     assert all(e["wall_seconds"] >= 3.0 for e in res["trace"])  # set-up counts
     assert res["final_chamfer_mm"] == 1.9 and res["peak_rss_mb"] is None
+    assert (res["commit"], res["config"]) == ("abc123", {"preset": "fast"})  # every figure says what made it
     cells = [c.strip() for c in bench.table([{**res, "scene": "bunny"}], 100.0, (3.0, 30.0)).splitlines()[2]
              .strip("|").split("|")]
     # At 3 s: the last checkpoint (the steps took no time); at 30 s, after it was cut off: nothing is known.
     assert cells[2:5] == ["1.90", "-", "1.90"]
     assert cells[5].startswith("cut off") and cells[7] == "-"  # peak memory unknown
+
+
+def test_the_commit_names_uncommitted_changes(bench, monkeypatch):
+    import subprocess
+
+    answers = {"rev-parse": "0123abcd\n", "status": ""}
+
+    def fake(cmd, **kwargs):
+        return answers[cmd[3]]
+
+    monkeypatch.setattr(bench.subprocess, "check_output", fake)
+    assert bench.source_commit() == "0123abcd"
+    answers["status"] = " M worker/recon/fast/model.py\n"
+    assert bench.source_commit() == "0123abcd + uncommitted changes"
+
+    def no_git(cmd, **kwargs):
+        raise subprocess.CalledProcessError(128, cmd)
+
+    monkeypatch.setattr(bench.subprocess, "check_output", no_git)
+    assert bench.source_commit() == "unknown"
 
 
 def test_no_partial_or_an_empty_one_is_no_result(bench, tmp_path):

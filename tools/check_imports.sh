@@ -9,4 +9,4 @@ mkdir -p "$tmp/spadscan"
 cp -r "$repo"/spadscan/. "$tmp/spadscan/"
 for part in protocol daemon worker; do cp -r "$repo/$part" "$tmp/spadscan/$part"; done
 cp "$repo/pyproject.toml" "$tmp/"
-cd "$tmp" && PYTHONPATH="$tmp" lint-imports --config "$tmp/pyproject.toml"
+cd "$tmp" && PYTHONPATH="$tmp" lint-imports --no-cache "$tmp/pyproject.toml"

@@ -22,6 +22,13 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import math
+import sys
+from pathlib import Path
+
+from spadscan.protocol.errors import ConfigError
+from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run, load_ground_truth
+from spadscan.worker.outputs import check_out
 
 DEFAULTS = {"resolution": 128, "edge_deg": 1.0, "surface": "occupancy"}
 """Defaults of the options only one method reads (filled in after the check that the method reads them)."""
@@ -34,8 +41,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("method", choices=("reprojection", "space-carving"), help="which baseline")
     parser.add_argument("capture", metavar="CAPTURE", help="capture folder (holds scan.json)")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for mesh.ply and report.json")
-    from spadscan.worker.ground_truth import add_ground_truth_options
-
     add_ground_truth_options(parser, ": adds metrics to the report")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out (without it, a folder that holds mesh.ply or "
@@ -65,8 +70,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def check_method_options(args) -> None:
     """Refuse an option the chosen method does not read, then fill in the defaults of those it does."""
-    from spadscan.protocol.errors import ConfigError
-
     for method, names in ONLY_FOR.items():
         given = [name for name in names if getattr(args, name) is not None]
         if method != args.method and given:
@@ -79,20 +82,13 @@ def check_method_options(args) -> None:
 
 
 def run(args) -> int:
-    import sys
-
-    from spadscan.protocol.errors import ConfigError
-    from spadscan.worker.baselines.run import run_baseline
-    from spadscan.worker.ground_truth import ground_truth_for_run
-    from spadscan.worker.outputs import check_out
+    from spadscan.worker.baselines.run import run_baseline  # numpy, scipy and trimesh: only when a baseline runs
 
     check_method_options(args)
     if not 8 <= args.resolution <= 512:
         raise ConfigError(f"--resolution {args.resolution} must lie in [8, 512]")
     if args.margin_mm is not None and not args.margin_mm >= 0:
         raise ConfigError(f"--margin-mm {args.margin_mm} must be >= 0")
-    import math
-
     if args.floor_z is not None and not math.isfinite(args.floor_z):
         raise ConfigError(f"--floor-z {args.floor_z} must be a finite height in metres (or --no-floor)")
     if not math.isfinite(args.edge_deg):
@@ -123,10 +119,7 @@ def run(args) -> int:
 
 def write_pictures_and_page(report: dict, out, gt) -> None:
     """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json."""
-    from pathlib import Path
-
-    from spadscan.protocol.mesh_io import load_mesh
-    from spadscan.worker.ground_truth import load_ground_truth
+    from spadscan.protocol.mesh_io import load_mesh  # trimesh and matplotlib: only when a baseline ran
     from spadscan.worker.report.pictures import preview_png
     from spadscan.worker.report.report_html import write_report_html
 

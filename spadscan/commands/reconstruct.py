@@ -29,8 +29,12 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
-from spadscan.worker.recon.config import PRESET_NAMES
+from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run
+from spadscan.worker.outputs import check_out
+from spadscan.worker.recon.config import PRESET_NAMES, parse_override
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,8 +46,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after S seconds of training, checkpoint scoring included (the set-up before it, "
                              "and the final mesh, metrics and pictures after it, are not counted)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N optimisation steps")
-    from spadscan.worker.ground_truth import add_ground_truth_options
-
     add_ground_truth_options(parser, ", for the metrics")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                         help="where to compute (default: auto = CUDA when available)")
@@ -63,13 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import sys
-    from pathlib import Path
-
-    from spadscan.worker.ground_truth import ground_truth_for_run
-    from spadscan.worker.outputs import check_out
-    from spadscan.worker.recon.config import parse_override
-    from spadscan.worker.reconstruct import reconstruct_capture
+    from spadscan.worker.reconstruct import reconstruct_capture  # torch: only when a reconstruction runs
 
     out = check_out(args.out, args.overwrite, capture=args.capture)
     overrides = dict(parse_override(text) for text in args.overrides)

@@ -32,6 +32,26 @@ def cylinder_capture(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def table_capture(tmp_path_factory):
+    """12 simulated views of a cylinder standing on a wide slab whose top is the table (z = 0)."""
+    import trimesh
+
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+    from worker_helpers import cylinder_mesh
+
+    slab = trimesh.creation.box([0.6, 0.6, 0.02])
+    slab.apply_translation([0.0, 0.0, -0.01])
+    path = tmp_path_factory.mktemp("fast") / "table"
+    poses = fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.03), min_elevation_deg=35)
+    simulate_capture(trimesh.util.concatenate([cylinder_mesh(), slab]), sensor_preset("lcspc-sim"), poses, path,
+                     settings=SimSettings(rays_per_zone=512), seed=5, progress=False, scene={"table": True})
+    return path
+
+
 @pytest.fixture
 def recon_stand_ins(monkeypatch):
     """Job child processes can import the stand-in reconstructions that live beside the tests (RECON strings like

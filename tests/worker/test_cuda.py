@@ -12,11 +12,12 @@ import pytest
 import torch
 
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.recon.config import preset_config, with_overrides
+from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.fast.grid_field import GridField
 from spadscan.worker.recon.fast.model import make_fast_model
 from spadscan.worker.recon.fast.render import render_returns
 from spadscan.worker.recon.model_api import RunPlan
+from spadscan.worker.recon.presets import preset_config
 from spadscan.worker.recon.scene_data import load_scene
 from worker_helpers import PAPER_SMALL, cylinder_mesh, sensor_forward
 
@@ -88,7 +89,7 @@ def test_the_grid_renderer_in_float32_on_cuda_matches_float64_on_the_cpu():
     assert rel_err(g32, g64) < 1e-3 and bool(torch.isfinite(g32).all())
 
 
-SMALL = {"field.resolution": 32, "field.hull_resolution": 48, "field.refine_after_steps": 60,
+SMALL = {"field.resolution": 32, "field.hull_resolution": 48, "parts.refinement.after_steps": 60,
          "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
 
 

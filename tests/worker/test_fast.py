@@ -1,5 +1,6 @@
-"""The `fast` preset: grid field, hull constraint, sampler, renderer, regularisers, optimiser, table, and runs on
-captures made by the simulator (a two-step smoke run, and a short run that must lower the loss and the Chamfer)."""
+"""The `fast` preset: grid field, hull constraint, sampler, renderer, regularisers, optimiser, and its parts at work
+in runs on captures made by the simulator (a two-step smoke run, and a short run that must lower the loss and the
+Chamfer). The parts' framework (hook order, switching one off, the report) is tested in test_parts.py."""
 
 from __future__ import annotations
 
@@ -11,10 +12,7 @@ import pytest
 import torch
 
 from spadscan.protocol.errors import ConfigError
-from spadscan.protocol.schedules import fibonacci_hemisphere
-from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.protocol.simulator import SimSettings, simulate_capture
-from spadscan.worker.recon.config import preset_config, with_overrides
+from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.errors import ReconstructionError
 from spadscan.worker.recon.fast.grid_field import GridField, grid_shape
 from spadscan.worker.recon.fast.hull import HullConstraint, hull_field, object_hull, signed_distance
@@ -24,6 +22,7 @@ from spadscan.worker.recon.fast.regularizers import band_nodes, grid_regularizer
 from spadscan.worker.recon.fast.render import section_ranges, section_weights
 from spadscan.worker.recon.fast.sampler import around_crossing, hull_rays
 from spadscan.worker.recon.model_api import ReconModel, RunPlan
+from spadscan.worker.recon.presets import preset_config
 from spadscan.worker.recon.scene_data import load_scene
 from worker_helpers import FAST_SMALL, blank_histograms, cylinder_mesh
 
@@ -255,7 +254,7 @@ def test_meshes_come_from_the_moving_average_of_the_grid_restarted_at_refinement
     scene = load_scene(cylinder_capture)
     decay = 0.8
     model = make_fast_model(scene,
-                            with_overrides(preset_config("fast"), {**FAST_SMALL, "schedule.average_decay": decay}),
+                            with_overrides(preset_config("fast"), {**FAST_SMALL, "parts.average.decay": decay}),
                             "cpu", RunPlan(steps=8, budget_s=None, seed=0))
     assert model.mesh_field() is model.field  # nothing to average before the first step
     average, n = None, 0
@@ -274,16 +273,18 @@ def test_meshes_come_from_the_moving_average_of_the_grid_restarted_at_refinement
     torch.testing.assert_close(averaged.origin, model.field.origin)
     assert averaged.voxel == model.field.voxel
     assert len(model.extract_mesh(32).faces) > 0
-    assert model.summary()["mesh_average_decay"] == decay  # the report says what the mesh was taken from
+    # The report says what the mesh was taken from.
+    assert model.summary()["parts"]["average"]["config"]["decay"] == decay
 
-    plain = make_fast_model(scene, with_overrides(preset_config("fast"), {**FAST_SMALL, "schedule.average_decay": 0.0}),
+    plain = make_fast_model(scene, with_overrides(preset_config("fast"), {**FAST_SMALL,
+                                                                          "parts.average.enabled": False}),
                             "cpu", RunPlan(steps=1, budget_s=None, seed=0))
     plain.step()
-    assert plain.mesh_field() is plain.field
-    for bad in (1.0, -0.1):
-        with pytest.raises(ConfigError, match="schedule.average_decay"):
+    assert plain.mesh_field() is plain.field and "average" in plain.summary()["parts_left_out"]
+    for bad in (1.0, 0.0, -0.1):
+        with pytest.raises(ConfigError, match="parts.average.decay"):
             make_fast_model(scene, _unchecked(with_overrides(preset_config("fast"), FAST_SMALL),
-                                              {"schedule.average_decay": bad}),
+                                              {"parts.average.decay": bad}),
                             "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
 
@@ -301,9 +302,11 @@ def test_the_coarse_level_smooths_only_near_the_floor_of_a_scene_without_a_table
     monkeypatch.setattr(fast_model, "grid_regularizers", spy)
     scene = load_scene(cylinder_capture)
     model = make_fast_model(scene, with_overrides(preset_config("fast"), {
-        **FAST_SMALL, "schedule.coarse_smooth_height_m": 0.03}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
-    assert model.p.floor_z == 0.0 and model.summary()["coarse_smooth_below_z_m"] == pytest.approx(0.03)
-    layers = model._coarse_smooth_layers
+        **FAST_SMALL, "parts.coarse_smoothing.height_m": 0.03}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
+    part = model.part("coarse_smoothing")
+    assert model.problem.floor_z == 0.0 and model.summary()["parts"]["coarse_smoothing"]["below_z_m"] == \
+        pytest.approx(0.03)
+    layers = part.layers
     z0, vox = float(model.field.origin[2]), model.field.voxel
     assert z0 + (layers - 1) * vox < 0.03 <= z0 + layers * vox  # the layers whose nodes lie below 3 cm
     for _ in range(6):
@@ -311,17 +314,18 @@ def test_the_coarse_level_smooths_only_near_the_floor_of_a_scene_without_a_table
     assert seen == [layers] * 4 + [None] * 2  # the fine level (after 4 steps) smooths everywhere
 
     seen.clear()
-    for overrides, target in ((FAST_SMALL, table_capture), ({**FAST_SMALL, "schedule.coarse_smooth_height_m": None},
-                                                       cylinder_capture)):
+    for overrides, target, why in ((FAST_SMALL, table_capture, "a table"),
+                                   ({**FAST_SMALL, "parts.coarse_smoothing.enabled": False}, cylinder_capture,
+                                    "switched off")):
         model = make_fast_model(load_scene(target), with_overrides(preset_config("fast"), overrides), "cpu",
                                 RunPlan(steps=1, budget_s=None, seed=0))
         model.step()
-        assert model.summary()["coarse_smooth_below_z_m"] is None
+        assert model.part("coarse_smoothing") is None and why in model.summary()["parts_left_out"]["coarse_smoothing"]
     assert seen == [None, None]  # on a table, or when switched off, the coarse level smooths everywhere
     for bad in (-0.01, float("nan"), 2.0, "low"):
         config = with_overrides(preset_config("fast"), FAST_SMALL)
-        config.schedule.coarse_smooth_height_m = bad
-        with pytest.raises(ConfigError, match="coarse_smooth_height_m"):
+        config.parts.coarse_smoothing.height_m = bad
+        with pytest.raises(ConfigError, match="parts.coarse_smoothing.height_m"):
             make_fast_model(scene, config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
 
@@ -337,7 +341,7 @@ def test_a_grid_with_no_surface_is_a_one_line_error(cylinder_capture):
 def test_a_bubble_inside_the_solid_is_filled_and_only_a_table_scene_gets_the_empty_space_push(cylinder_capture):
     model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
                             RunPlan(steps=1, budget_s=None, seed=0))
-    assert not model.empty_space and model.summary()["empty_space_push"] is False  # no table in this scene
+    assert model.part("empty_space") is None and "no table" in model.summary()["parts_left_out"]["empty_space"]
     sdf = model.field.sdf.detach()[0, 0]
     deepest = np.unravel_index(int(torch.argmin(sdf)), tuple(sdf.shape))
     assert float(sdf[deepest]) < -2 * model.field.voxel
@@ -354,11 +358,11 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
 
     scene = load_scene(cylinder_capture)
     config = with_overrides(preset_config("fast"), {**FAST_SMALL, "field.resolution": 40,
-                                                    "schedule.phantom_every_steps": 3,
-                                                    "schedule.phantom_min_hits": 1})
+                                                    "parts.erosion.every_steps": 3,
+                                                    "parts.erosion.min_hits": 1})
 
-    def run(blank: bool, ratio: float):
-        cfg = with_overrides(config, {"schedule.phantom_ratio": ratio})
+    def run(blank: bool, erosion: bool):
+        cfg = with_overrides(config, {"parts.erosion.enabled": erosion})
         model = make_fast_model(scene, cfg, "cpu", RunPlan(steps=3, budget_s=None, seed=0))
         if blank:  # the histograms hold only the background: every rendered return is one they do not show
             blank_histograms(model)
@@ -367,12 +371,12 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
             assert math.isfinite(model.step()["loss"])
         return model, int((start < 0).sum() - (model.field.sdf.detach() < 0).sum())
 
-    blank, blank_lost = run(True, 0.6)
-    assert blank.phantoms and blank.summary()["phantom_erosion"] is True
-    assert blank.eroded_nodes > 0 and blank.summary()["eroded_nodes"] == blank.eroded_nodes
-    _, kept_lost = run(True, 0.0)  # the same fit without the erosion
-    assert blank_lost > kept_lost + blank.eroded_nodes // 2
-    true, _ = run(False, 0.6)  # the carved hull around the cylinder is eroded, never the cylinder itself
+    blank, blank_lost = run(True, True)
+    eroded = blank.part("erosion").eroded_nodes
+    assert eroded > 0 and blank.summary()["parts"]["erosion"]["eroded_nodes"] == eroded
+    _, kept_lost = run(True, False)  # the same fit without the erosion
+    assert blank_lost > kept_lost + eroded // 2
+    true, _ = run(False, True)  # the carved hull around the cylinder is eroded, never the cylinder itself
     pts = true.field.node_points()
     r = torch.sqrt((pts[..., 0] - 0.005) ** 2 + (pts[..., 1] + 0.004) ** 2)
     depth = torch.minimum(0.04 - r, torch.minimum(pts[..., 2], 0.08 - pts[..., 2]))  # inside the cylinder, metres
@@ -388,55 +392,43 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
     true.rays.count.zero_()
     assert math.isfinite(true.step()["loss"])
 
-    measured = FastModel(dataclasses.replace(blank.p, measured=True), config, seed=0, terms=blank.terms)
-    assert not measured.phantoms and measured.summary()["phantom_erosion"] is False
-    for key, bad in (("schedule.phantom_ratio", 1.0), ("schedule.phantom_ratio", -0.1),
-                     ("schedule.phantom_every_steps", 0), ("schedule.phantom_window_bins", -1)):
-        with pytest.raises(ConfigError, match=key.split(".")[1]):
+    measured = FastModel(dataclasses.replace(blank.problem, measured=True), config, seed=0, terms=blank.terms)
+    assert measured.part("erosion") is None and "measured" in measured.summary()["parts_left_out"]["erosion"]
+    for key, bad in (("parts.erosion.ratio", 1.0), ("parts.erosion.ratio", 0.0), ("parts.erosion.ratio", -0.1),
+                     ("parts.erosion.every_steps", 0), ("parts.erosion.window_bins", -1)):
+        with pytest.raises(ConfigError, match=key):
             make_fast_model(scene, _unchecked(config, {key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
-
-
-@pytest.fixture(scope="module")
-def table_capture(tmp_path_factory):
-    """12 simulated views of a cylinder standing on a wide slab whose top is the table (z = 0)."""
-    import trimesh
-
-    slab = trimesh.creation.box([0.6, 0.6, 0.02])
-    slab.apply_translation([0.0, 0.0, -0.01])
-    path = tmp_path_factory.mktemp("fast") / "table"
-    poses = fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.03), min_elevation_deg=35)
-    simulate_capture(trimesh.util.concatenate([cylinder_mesh(), slab]), sensor_preset("lcspc-sim"), poses, path,
-                     settings=SimSettings(rays_per_zone=512), seed=5, progress=False, scene={"table": True})
-    return path
 
 
 def test_a_table_scene_pushes_where_few_views_look_and_meshes_above_the_table(table_capture):
     model = make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
                             RunPlan(steps=3, budget_s=None, seed=0))
-    assert model.table is not None and model.empty_space and model.summary()["empty_space_push"] is True
+    push = model.part("empty_space")
+    assert model.table is not None and push is not None and "empty_space" in model.summary()["parts"]
     for _ in range(3):
         assert math.isfinite(model.step()["loss"])
-    w = model._pressure_weight()
+    w = push.weight(model)
     assert w.shape == model.field.sdf.shape and float(w.min()) >= 0 and float(w.max()) <= 1
     # Straight under the views' target every view looks: no push there.
     nodes = model.field.node_points()
     centre = torch.argmin(((nodes - torch.tensor([0.0, 0.0, 0.03], dtype=nodes.dtype)) ** 2).sum(-1))
     assert float(w.reshape(-1)[centre]) == 0.0
     mesh = model.extract_mesh(32)
-    assert mesh.bounds[0, 2] >= model.p.floor_z - 2 * model.field.voxel
+    assert mesh.bounds[0, 2] >= model.problem.floor_z - 2 * model.field.voxel
 
 
 def test_a_table_scene_empties_thin_sheets_within_the_band_above_the_table(table_capture):
     model = make_fast_model(load_scene(table_capture), with_overrides(preset_config("fast"), {
-        **FAST_SMALL, "field.thin_sheet_band_m": 0.05}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
-    assert model.fc.thin_sheet_band_m == 0.05
+        **FAST_SMALL, "parts.thin_sheets.band_m": 0.05}), "cpu", RunPlan(steps=6, budget_s=None, seed=0))
+    sheets = model.part("thin_sheets")
+    assert sheets.config.band_m == 0.05
     for _ in range(6):
         model.step()
-    assert model.refined
+    assert model.last_level and model.level == 1
     sdf, vox = model.field.sdf.detach()[0, 0], model.field.voxel
-    model.fc.thin_sheet_band_m = 4.5 * vox  # a band four node rows high on this coarse test grid
+    sheets.config.band_m = 4.5 * vox  # a band four node rows high on this coarse test grid
     nodes = model.field.node_points().reshape(sdf.shape + (3,))
-    z = nodes[..., 2] - model.p.floor_z
+    z = nodes[..., 2] - model.problem.floor_z
     r = torch.hypot(nodes[..., 0] - 0.005, nodes[..., 1] + 0.004)
     curtain = (z >= 0) & (z < 4 * vox) & (r > 0.06) & (r < 0.06 + 1.5 * vox)  # a thin ring 2 cm off the cylinder
     body = (z >= 0) & (z < 4 * vox) & (r < 0.02)  # the cylinder's inside, just above the table
@@ -445,13 +437,13 @@ def test_a_table_scene_empties_thin_sheets_within_the_band_above_the_table(table
         sdf[(z >= 0) & (r > 0.05)] = vox  # empty space around the cylinder...
         sdf[curtain] = -0.5 * vox  # ...but for the curtain
         sdf[body] = -2 * vox
-    model._empty_thin_sheets()
+    sheets.empty(model)
     # The curtain is gone (but for its foot, which may pass for a thickening of the table).
     assert bool((sdf[curtain & (z > 1.5 * vox)] > 0).all())
     assert bool((sdf[body] < 0).all())
-    for key, bad in (("field.thin_sheet_voxels", -1), ("field.thin_sheet_band_m", -0.01),
-                     ("field.thin_sheet_band_m", float("nan"))):
-        with pytest.raises(ConfigError, match=key.split(".")[1]):
+    for key, bad in (("parts.thin_sheets.voxels", 0), ("parts.thin_sheets.voxels", -1),
+                     ("parts.thin_sheets.band_m", -0.01), ("parts.thin_sheets.band_m", float("nan"))):
+        with pytest.raises(ConfigError, match=key):
             config = _unchecked(with_overrides(preset_config("fast"), FAST_SMALL), {key: bad})
             make_fast_model(load_scene(table_capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 
@@ -461,12 +453,12 @@ def test_a_table_scene_empties_thin_sheets_within_the_band_above_the_table(table
 def test_on_a_table_the_fit_fills_a_hollow_under_its_solid_that_opens_to_the_outside(table_capture, cylinder_capture,
                                                                                      scene, fill_under, filled):
     capture = table_capture if scene == "table" else cylinder_capture
-    config = with_overrides(preset_config("fast"), {**FAST_SMALL, "field.fill_under_overhangs": fill_under})
+    config = with_overrides(preset_config("fast"), {**FAST_SMALL, "parts.cavities.under_overhangs": fill_under})
     model = make_fast_model(load_scene(capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
-    assert (model.table is not None) == (scene == "table") and model.p.floor_z is not None
+    assert (model.table is not None) == (scene == "table") and model.problem.floor_z is not None
     sdf, vox = model.field.sdf.detach()[0, 0], model.field.voxel
     nodes = model.field.node_points().reshape(sdf.shape + (3,))
-    x, y, z = nodes[..., 0] - 0.005, nodes[..., 1] + 0.004, nodes[..., 2] - model.p.floor_z
+    x, y, z = nodes[..., 0] - 0.005, nodes[..., 1] + 0.004, nodes[..., 2] - model.problem.floor_z
     r = torch.hypot(x, y)
     cylinder = (r < 0.04) & (z >= 0) & (z < 0.08)
     hollow = (r < 0.04 - 2 * vox) & (z >= 0) & (z < 0.08 - 2 * vox)  # walls and a roof two voxels thick
@@ -474,7 +466,7 @@ def test_on_a_table_the_fit_fills_a_hollow_under_its_solid_that_opens_to_the_out
     with torch.no_grad():
         sdf[...] = vox
         sdf[cylinder & ~hollow & ~door] = -vox
-    model._fill_cavities()
+    model.part("cavities").fill(model)
     # A hollow open to the outside is no cavity; on a table it lies under the solid, which every view sees from above.
     assert bool((sdf[hollow | door] < 0).all()) == filled
     assert bool((sdf[hollow | door] > 0).all()) == (not filled)
@@ -487,8 +479,9 @@ def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_
     scene = load_scene(cylinder_capture)
     # A margin no window can beat: the plateau is reached one patience (30 steps) after the first window (10 steps)
     # of the refined level, which starts after 4 steps.
-    flat = {**FAST_SMALL, "schedule.patience_steps": 30, "schedule.min_rel_improvement": 0.9}
-    coarse = make_fast_model(scene, with_overrides(preset_config("fast"), {**flat, "field.refine_after_steps": 1000}),
+    flat = {**FAST_SMALL, "parts.plateau.patience_steps": 30, "parts.plateau.min_rel_improvement": 0.9}
+    coarse = make_fast_model(scene, with_overrides(preset_config("fast"), {**flat,
+                                                                           "parts.refinement.after_steps": 1000}),
                              "cpu", RunPlan(steps=60, budget_s=None, seed=0))
     assert not any(coarse.step()["converged"] for _ in range(60))
     config = with_overrides(preset_config("fast"), flat)
@@ -499,13 +492,16 @@ def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_
     assert model.summary()["converged"] is True
 
 
-def test_a_bad_patience_on_the_command_line_is_a_one_line_error(cylinder_capture, tmp_path, capsys):
+@pytest.mark.parametrize("key", ["parts.plateau.patience_steps", "schedule.patience_steps"])
+def test_a_bad_patience_on_the_command_line_is_a_one_line_error(cylinder_capture, tmp_path, capsys, key):
     from spadscan.cli import main
 
+    # The key of earlier versions names the new one.
     rc = main(["reconstruct", str(cylinder_capture), "--out", str(tmp_path / "o"), "--no-progress",
-               "--set", "schedule.patience_steps=0"])
+               "--set", f"{key}=0"])
     err = capsys.readouterr().err.strip()
-    assert rc != 0 and "schedule.patience_steps" in err and len(err.splitlines()) == 1, err
+    assert rc != 0 and "parts.plateau.patience_steps" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()  # refused before the capture was loaded
 
 
 @pytest.mark.slow
@@ -514,7 +510,7 @@ def test_short_run_lowers_loss_and_chamfer(cylinder_capture):
 
     scene = load_scene(cylinder_capture)
     config = with_overrides(preset_config("fast"), {**FAST_SMALL, "field.resolution": 32,
-                                                    "field.refine_after_steps": 60})
+                                                    "parts.refinement.after_steps": 60})
     model = make_fast_model(scene, config, "cpu", RunPlan(steps=100, budget_s=None, seed=0))
     gt = cylinder_mesh()
     chamfer0 = mesh_metrics(model.extract_mesh(48), gt, n_points=5000).chamfer_mm

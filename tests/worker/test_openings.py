@@ -1,5 +1,5 @@
-"""Opening the solid behind phantom surface (worker/recon/fast/openings.py): the proposal field, the evidence's
-classes, and the model's rounds of proposals kept only where the likelihood prefers them."""
+"""Opening the solid behind phantom surface (worker/recon/fast/parts/openings.py): the proposal field, the evidence's
+classes, and the part's rounds of proposals kept only where the likelihood prefers them."""
 
 from __future__ import annotations
 
@@ -10,11 +10,12 @@ import pytest
 import torch
 
 from spadscan.protocol.errors import ConfigError
-from spadscan.worker.recon.config import preset_config, with_overrides
-from spadscan.worker.recon.fast.model import FastModel, make_fast_model
+from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.fast.evidence import ReturnEvidence
-from spadscan.worker.recon.fast.parts.openings import opened_field, opening_distances, surface_classes
+from spadscan.worker.recon.fast.model import FastModel, make_fast_model
+from spadscan.worker.recon.fast.parts.openings import Openings, opened_field, opening_distances, surface_classes
 from spadscan.worker.recon.model_api import RunPlan
+from spadscan.worker.recon.presets import preset_config
 from spadscan.worker.recon.scene_data import load_scene
 from worker_helpers import FAST_SMALL, blank_histograms
 
@@ -101,8 +102,8 @@ def test_only_nodes_at_the_surface_as_it_is_now_are_classed():
         surface_classes(ev, sdf, 0.0, 3, 0.6, 0.8)
 
 
-SMALL = {**FAST_SMALL, "schedule.views_per_step": 8, "schedule.phantom_min_hits": 1,
-         "schedule.open_every_steps": 2, "schedule.open_passes": 1, "schedule.open_min_flagged": 1}
+SMALL = {**FAST_SMALL, "schedule.views_per_step": 8, "parts.erosion.min_hits": 1, "parts.openings.min_hits": 1,
+         "parts.openings.every_steps": 2, "parts.openings.passes": 1, "parts.openings.min_flagged": 1}
 
 
 def test_an_opening_the_likelihood_prefers_is_kept_and_the_mesh_average_follows_it(cylinder_capture):
@@ -113,12 +114,15 @@ def test_an_opening_the_likelihood_prefers_is_kept_and_the_mesh_average_follows_
     solid_before = int((model.field.sdf.detach() < 0).sum())
     for _ in range(2):
         assert math.isfinite(model.step()["loss"])
-    (round_,) = model.openings
+    openings = model.part("openings")
+    (round_,) = openings.rounds
     assert round_["step"] == 2 and round_["flagged"] > 0
-    assert round_["depth_m"] in preset_config("fast").schedule.open_depths_m
-    assert round_["deviance_after"] < round_["deviance"] - model.sc.open_min_gain
+    assert round_["depth_m"] in preset_config("fast").parts.openings.depths_m
+    assert round_["deviance_after"] < round_["deviance"] - openings.config.min_gain
     assert round_["seconds"] > 0
-    assert model.opened_nodes == round_["opened"] > 0 and model.summary()["opened_nodes"] == model.opened_nodes
+    reported = model.summary()["parts"]["openings"]
+    assert openings.opened_nodes == round_["opened"] > 0 and reported["opened_nodes"] == openings.opened_nodes
+    assert reported["rounds"] == [round_]
     assert int((model.field.sdf.detach() < 0).sum()) < solid_before
     assert torch.equal(model.mesh_field().sdf.detach(), model.field.sdf.detach())  # the average restarts at the jump
     assert torch.isfinite(model.field.sdf.detach()).all()
@@ -128,80 +132,82 @@ def test_a_round_weighs_the_returns_of_the_training_steps_in_its_window_only(cyl
     # 24 views at 8 a step: one pass's worth is 3 steps, so the round at step 6 weighs the returns of steps 4-6. The
     # erosion falls on step 6 too, and comes after the round: the round still finds the erosion's evidence untaken.
     scene = load_scene(cylinder_capture)
-    config = with_overrides(preset_config("fast"), {**SMALL, "field.refine_after_steps": 0,
-                                                    "schedule.open_every_steps": 6, "schedule.phantom_every_steps": 6})
+    config = with_overrides(preset_config("fast"), {**SMALL, "parts.refinement.enabled": False,
+                                                    "parts.openings.every_steps": 6, "parts.erosion.every_steps": 6})
     model = make_fast_model(scene, config, "cpu", RunPlan(steps=6, budget_s=None, seed=0))
     blank_histograms(model)
-    assert model._open_window == 3
-    seen, round_ = [], model._open_phantoms
+    openings, erosion = model.part("openings"), model.part("erosion")
+    assert openings.window == 3
+    seen, round_ = [], openings._round
 
-    def spy(step):
+    def spy(m):
         # The erosion's evidence holds every step's returns so far (it is first taken after this round).
-        seen.append((float(model._open_evidence.hits.sum()), float(model._evidence.hits.sum())))
-        round_(step)
+        seen.append((float(openings.evidence.hits.sum()), float(erosion.evidence.hits.sum())))
+        round_(m)
 
-    model._open_phantoms = spy
+    openings._round = spy
     totals = []
     for _ in range(6):
         model.step()
-        totals.append(float(model._evidence.hits.sum()))
-    assert len(seen) == 1 and len(model.openings) == 1
+        totals.append(float(erosion.evidence.hits.sum()))
+    assert len(seen) == 1 and len(openings.rounds) == 1
     window, all_steps = seen[0]
     assert 0 < window == all_steps - totals[2] < all_steps
-    assert model.openings[0]["flagged"] > 0 and model._open_evidence is None  # a round consumes its evidence
-    assert "depth_m" in model.openings[0] and totals[5] == 0  # a kept jump restarts the erosion's evidence
+    assert openings.rounds[0]["flagged"] > 0 and openings.evidence is None  # a round consumes its evidence
+    assert "depth_m" in openings.rounds[0] and totals[5] == 0  # a kept jump restarts the erosion's evidence
 
 
 def test_rounds_that_gain_nothing_are_undone_and_stop_after_the_patience(cylinder_capture):
     scene = load_scene(cylinder_capture)
-    config = with_overrides(preset_config("fast"), {**SMALL, "schedule.open_min_gain": 1e9,
-                                                    "schedule.open_patience": 2})
+    config = with_overrides(preset_config("fast"), {**SMALL, "parts.openings.min_gain": 1e9,
+                                                    "parts.openings.patience": 2})
     model = make_fast_model(scene, config, "cpu", RunPlan(steps=8, budget_s=None, seed=0))
     blank_histograms(model)
     for _ in range(3):
         model.step()
     model.step()  # step 4: the second round, whose proposals are all rejected and undone
     after_rounds = model.field.sdf.detach().clone()
-    assert len(model.openings) == 2 and "depth_m" not in model.openings[1] and model.opened_nodes == 0
-    assert not model._opening
+    openings = model.part("openings")
+    assert len(openings.rounds) == 2 and "depth_m" not in openings.rounds[1] and openings.opened_nodes == 0
+    assert not openings.proposing and not openings.wants_returns
     for _ in range(4):
         model.step()
-    assert len(model.openings) == 2  # no rounds after the patience ran out
-    # A rejected round leaves the grid as the step made it: the same as a run with the rounds switched off.
-    off = make_fast_model(scene, with_overrides(config, {"schedule.open_every_steps": 0}), "cpu",
+    assert len(openings.rounds) == 2  # no rounds after the patience ran out
+    # A rejected round leaves the grid as the step made it: the same as a run with the part switched off.
+    off = make_fast_model(scene, with_overrides(config, {"parts.openings.enabled": False}), "cpu",
                           RunPlan(steps=8, budget_s=None, seed=0))
     blank_histograms(off)
     for _ in range(4):
         off.step()
-    assert not off.openings and torch.equal(off.field.sdf.detach(), after_rounds)
+    assert off.part("openings") is None and torch.equal(off.field.sdf.detach(), after_rounds)
 
 
 def test_a_round_with_fewer_flagged_nodes_than_the_minimum_proposes_nothing(cylinder_capture):
     scene = load_scene(cylinder_capture)
-    config = with_overrides(preset_config("fast"), {**SMALL, "schedule.open_min_gain": 0.0})
+    config = with_overrides(preset_config("fast"), {**SMALL, "parts.openings.min_gain": 0.0})
     runs = {}
     for minimum in (1, 10**9):
-        model = make_fast_model(scene, with_overrides(config, {"schedule.open_min_flagged": minimum}), "cpu",
+        model = make_fast_model(scene, with_overrides(config, {"parts.openings.min_flagged": minimum}), "cpu",
                                 RunPlan(steps=2, budget_s=None, seed=0))
         blank_histograms(model)
         for _ in range(2):
             model.step()
-        runs[minimum] = model
-    assert runs[1].openings[0]["flagged"] > 0 and "depth_m" in runs[1].openings[0]
-    (round_,) = runs[10**9].openings
-    assert round_["flagged"] == runs[1].openings[0]["flagged"] and "depth_m" not in round_
-    assert runs[10**9].opened_nodes == 0 and runs[10**9]._open_misses == 1
+        runs[minimum] = model.part("openings")
+    assert runs[1].rounds[0]["flagged"] > 0 and "depth_m" in runs[1].rounds[0]
+    (round_,) = runs[10**9].rounds
+    assert round_["flagged"] == runs[1].rounds[0]["flagged"] and "depth_m" not in round_
+    assert runs[10**9].opened_nodes == 0 and runs[10**9].misses == 1
 
 
 def test_the_floor_is_kept_like_supported_surface(cylinder_capture):
     scene = load_scene(cylinder_capture)
     model = make_fast_model(scene, with_overrides(preset_config("fast"), SMALL), "cpu",
                             RunPlan(steps=1, budget_s=None, seed=0))
-    assert model.p.floor_z == 0.0
+    assert model.problem.floor_z == 0.0
     sdf = model.field.sdf.detach()[0, 0]
     flagged, nothing = torch.zeros_like(sdf, dtype=torch.bool), torch.zeros_like(sdf, dtype=torch.bool)
     flagged[-3, 5, 5] = True
-    d_flagged, d_supported = model._opening_distances(flagged, nothing)
+    d_flagged, d_supported = Openings._distances(model, flagged, nothing)
     heights = model.field.origin[2] + torch.arange(sdf.shape[0]) * model.field.voxel
     assert torch.allclose(d_supported[:, 2, 7], heights.clamp(min=0.0), atol=1e-6)
     assert float(d_flagged[-3, 5, 5]) == 0.0
@@ -215,11 +221,27 @@ def test_no_openings_on_measured_captures_and_bad_settings_are_one_line_errors(c
     scene = load_scene(cylinder_capture)
     config = with_overrides(preset_config("fast"), SMALL)
     model = make_fast_model(scene, config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
-    measured = FastModel(dataclasses.replace(model.p, measured=True), config, seed=0, terms=model.terms)
-    assert not measured._opening
-    for key, bad in (("schedule.open_every_steps", -1), ("schedule.open_depths_m", [0.02, -0.01]),
-                     ("schedule.open_keep_m", 0.5), ("schedule.open_keep_ratio", 0.5),
-                     ("schedule.open_passes", 0), ("schedule.open_min_gain", -1.0),
-                     ("schedule.open_min_flagged", 0)):
-        with pytest.raises(ConfigError, match=key.split(".")[1]):
-            make_fast_model(scene, with_overrides(config, {key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    measured = FastModel(dataclasses.replace(model.problem, measured=True), config, seed=0, terms=model.terms)
+    assert measured.part("openings") is None and "measured" in measured.summary()["parts_left_out"]["openings"]
+    for key, bad in (("parts.openings.every_steps", 0), ("parts.openings.depths_m", [0.02, -0.01]),
+                     ("parts.openings.depths_m", []), ("parts.openings.keep_m", 0.5),
+                     ("parts.openings.keep_ratio", 0.5), ("parts.openings.passes", 0),
+                     ("parts.openings.min_gain", -1.0), ("parts.openings.min_flagged", 0)):
+        with pytest.raises(ConfigError, match=key.split(".")[-1]):
+            make_fast_model(scene, _unchecked(config, {key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+        with pytest.raises(ConfigError, match=key.split(".")[-1]):  # refused before any capture is loaded, too
+            with_overrides(config, {key: bad})
+
+
+def _unchecked(config, values: dict):
+    """A copy of config with dotted keys set as given, past `with_overrides`' checks."""
+    import copy
+
+    config = copy.deepcopy(config)
+    for key, value in values.items():
+        *path, name = key.split(".")
+        obj = config
+        for part in path:
+            obj = getattr(obj, part)
+        setattr(obj, name, tuple(value) if isinstance(value, list) else value)
+    return config

@@ -10,17 +10,17 @@ import torch
 
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_writer import CaptureWriter
-from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.errors import CaptureError, SpadscanError
 from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
-from spadscan.worker.recon import config as recon_config
-from spadscan.worker.recon.config import preset_config, with_overrides
+from spadscan.worker.recon.config import PRESET_NAMES, with_overrides
 from spadscan.worker.recon.errors import ReconstructionError
 from spadscan.worker.recon.model_api import ReconModel, RunPlan
 from spadscan.worker.recon.paper.config import MLPFieldConfig
 from spadscan.worker.recon.paper.field import MLPField
 from spadscan.worker.recon.paper.model import make_paper_model
+from spadscan.worker.recon.presets import PRESETS, preset_config
 from spadscan.worker.pulse import KERNEL_BEFORE
 from spadscan.worker.recon.scene_data import load_scene
 from worker_helpers import PAPER_SMALL
@@ -126,21 +126,28 @@ def test_registry_and_overrides():
 
 @pytest.mark.parametrize("preset, key, value, message", [
     ("fast", "preset", "paper", "fixed by the preset"),
-    ("fast", "model_factory", "os:system", "fixed by the preset"),
-    ("paper", "unused_fields", [], "fixed by the preset"),
+    ("paper", "model_factory", "os:system", "preset 'paper' does not use it"),
     ("paper", "dtype", "float16", "'float16' is not one of float32, float64"),
     ("paper", "loss.kind", "foo", "'foo' is not one of l2, nll"),
     ("fast", "dtype", "float64", "preset 'fast' does not use it"),
     ("fast", "loss.kind", "l2", "preset 'fast' does not use it"),
+    ("fast", "loss.eikonal_points", 64, "preset 'fast' does not use it"),
+    ("fast", "rays.samples_per_ray", 64, "preset 'fast' has no section 'rays'"),
+    ("paper", "parts.openings.enabled", False, "preset 'paper' has no section 'parts'"),
     ("paper", "early_stop", True, "preset 'paper' does not use it"),
     ("fast", "albedo_init", 0.5, "preset 'fast' does not use it"),
+    ("fast", "loss.tv_weight", 0.1, "has moved it: loss.smooth_weight"),
+    ("fast", "schedule.grad_blur_passes", 0, "has moved it: parts.blur.passes"),
+    ("fast", "field.refine_after_steps", 0, "parts.refinement.enabled=false"),
+    ("fast", "parts.nothing.enabled", False, "parts has no section 'nothing'"),
+    ("fast", "mesh_resolution", 4, "mesh_resolution 4 must be in \\[8, 1024\\]"),
     ("fast", "schedule", None, "a config section; set its fields"),
     ("fast", "mesh_resolution", None, "the field takes no null"),
     ("paper", "default_budget_s", "abc", "must be null or a finite number > 0"),
     ("paper", "default_budget_s", -5, "must be null or a finite number > 0"),
 ])
 def test_overrides_that_would_not_do_what_they_say_are_refused(preset, key, value, message):
-    with pytest.raises(ReconstructionError, match=message):
+    with pytest.raises(SpadscanError, match=message):
         with_overrides(preset_config(preset), {key: value})
 
 
@@ -149,17 +156,18 @@ def test_overrides_a_preset_reads_are_taken():
     assert (cfg.dtype, cfg.loss.kind) == ("float64", "nll")
     assert with_overrides(preset_config("fast"), {"early_stop": False}).early_stop is False
     assert with_overrides(preset_config("paper"), {"default_budget_s": 60}).default_budget_s == 60
-    assert with_overrides(preset_config("fast"), {"schedule.coarse_smooth_height_m": None}).schedule \
-        .coarse_smooth_height_m is None  # a field that takes None
+    assert with_overrides(preset_config("fast"), {"field.floor_z": None}).field.floor_z is None  # a field that takes None
+    assert with_overrides(preset_config("fast"), {"loss.smooth_weight": 0.1}).loss.smooth_weight == 0.1
+    assert with_overrides(preset_config("paper"), {"loss.tv_weight": 0.1}).loss.tv_weight == 0.1
 
 
-def test_missing_fast_preset_is_a_clear_error(monkeypatch):
-    def missing(name, *a, **k):
-        raise ModuleNotFoundError(f"No module named {name!r}", name=name)
-
-    monkeypatch.setattr(recon_config.importlib, "import_module", missing)
-    with pytest.raises(ReconstructionError, match="preset 'fast' is not installed"):
-        preset_config("fast")
+def test_the_registry_holds_every_preset_under_the_names_the_light_modules_use():
+    assert tuple(PRESETS) == PRESET_NAMES
+    for name, preset in PRESETS.items():
+        config = preset.config()
+        assert config.preset == name and preset.name == name
+        assert config is not preset.config()  # a fresh copy each time
+        json.dumps(config.to_dict())
 
 
 def write_capture(path, sensor, hists, poses, *, frames_per_pose=1, reference=None, scene=None, rig=None):

@@ -78,6 +78,10 @@ def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
     assert b"property float nx" in header or b"property double nx" in header  # per-vertex normals are stored
     summary = capsys.readouterr().out
     assert "paper: 2 steps" in summary and "Chamfer" in summary
+    # The final figure says how it was scored: the checkpoints' (the trace, the bar) are coarser.
+    assert report["chamfer_scoring"] == "final 40-cell mesh, 5,000 points"
+    assert f"Chamfer {report['chamfer_mm']:.2f} mm (final 40-cell mesh, 5,000 points;" in summary
+    assert "2000 points per mesh on a 24-cell marching-cubes grid" in report["trace_note"]
     # Both clocks: training (what --budget-s bounds) and the whole run (set-up, mesh and metrics too).
     assert f"in {report['seconds']:.1f} s of training ({report['wall_seconds']:.1f} s in all)" in summary
 
@@ -183,6 +187,16 @@ def test_early_stop_ends_the_run_at_the_first_converged_step(early_stop, steps, 
     assert result.trace[-1]["step"] == steps and result.trace[-1]["chamfer_mm"] == 1.0  # the end is evaluated
 
 
+def test_the_progress_bar_labels_its_chamfer_as_the_checkpoints(capsys):
+    from spadscan.worker.recon.model_api import RunPlan
+    from spadscan.worker.recon.trainer import train
+
+    train(ConvergesAt(100), RunPlan(steps=4, budget_s=None, seed=0), checkpoints=2,
+          evaluate=lambda: {"chamfer_mm": 1.4321}, progress=True, score_note="(128-cell mesh, 30,000 points)")
+    err = capsys.readouterr().err
+    assert "checkpoint Chamfer=1.43mm (128-cell mesh, 30,000 points)" in err
+
+
 @pytest.mark.slow
 def test_a_short_budget_with_ground_truth_ends_near_its_budget(capture_and_gt, tmp_path):
     from spadscan.worker.reconstruct import reconstruct_capture
@@ -227,7 +241,9 @@ def test_bad_arguments_are_one_line_errors(capture_and_gt, tmp_path, capsys):
     assert "finite" in one_line_error(capsys)
     fast = ["reconstruct", str(cap), "--out", str(tmp_path / "o"), "--no-progress"]
     assert main(fast + ["--set", "rays.samples_per_ray=64"]) == 1  # the fast preset would ignore it
-    assert "does not use the 'rays' section" in one_line_error(capsys)
+    assert "preset 'fast' has no section 'rays'" in one_line_error(capsys)
+    assert main(fast + ["--set", "schedule.grad_blur_passes=0"]) == 1  # a key of earlier versions
+    assert "parts.blur.passes (parts.blur.enabled=false: off)" in one_line_error(capsys)
     if not torch.cuda.is_available():
         assert main(base + ["--device", "cuda", "--steps", "1"]) == 1
         assert "CUDA" in one_line_error(capsys)
@@ -421,13 +437,13 @@ def test_results_are_never_written_among_a_captures_measurements(capture_and_gt,
 
 
 def test_more_threads_than_cores_is_a_warning(capture_and_gt, tmp_path, capsys, monkeypatch):
-    import spadscan.worker.threads as threads
+    import spadscan.worker.reconstruct as reconstruct
 
     cap, _ = capture_and_gt
-    monkeypatch.setattr(threads, "machine_cores", lambda: 1)
+    monkeypatch.setattr(reconstruct, "machine_cores", lambda: 1)
     assert _recon(cap, tmp_path / "o", "--threads", "2") == 0
     assert "warning: 2 CPU threads on 1 cores" in capsys.readouterr().err
-    monkeypatch.setattr(threads, "machine_cores", lambda: 2)
+    monkeypatch.setattr(reconstruct, "machine_cores", lambda: 2)
     assert _recon(cap, tmp_path / "p", "--threads", "2") == 0
     assert "CPU threads on" not in capsys.readouterr().err
 
@@ -436,13 +452,12 @@ def test_a_default_run_of_days_on_a_cpu_is_a_warning(capture_and_gt, tmp_path, c
     import dataclasses
 
     import spadscan.worker.reconstruct as reconstruct
-    from spadscan.worker.recon import config as recon_config
 
     cap, _ = capture_and_gt
     # The paper preset's 300,000 default steps, made one so that the run ends at once; the warning's bar made one too.
     monkeypatch.setattr(reconstruct, "LONG_CPU_STEPS", 1)
-    real = recon_config.preset_config
-    monkeypatch.setattr(recon_config, "preset_config", lambda name: dataclasses.replace(real(name), default_steps=1))
+    real = reconstruct.preset_config
+    monkeypatch.setattr(reconstruct, "preset_config", lambda name: dataclasses.replace(real(name), default_steps=1))
     base = ["reconstruct", str(cap), "--preset", "paper", "--device", "cpu", "--no-progress", *small_args()]
     assert main([*base, "--out", str(tmp_path / "p")]) == 0
     assert "warning: preset 'paper' runs 1 steps by default: days on a CPU" in capsys.readouterr().err

@@ -92,9 +92,6 @@ def hull_field(occupancy: np.ndarray, origin, voxel: float, device, dtype=torch.
     return GridField(origin, voxel, torch.as_tensor(sd, device=device, dtype=dtype))
 
 
-__all__ = ["HullConstraint", "hull_field", "signed_distance"]
-
-
 def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, zone_dirs: np.ndarray,
                 onset_m: np.ndarray, *, min_views: float = 0.2, depths_m=(0.0, 0.01, 0.02, 0.04)) -> np.ndarray:
     """The part of a carved occupancy (nz, ny, nx) that the histograms' first returns come from.
@@ -106,8 +103,6 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     piece of the hull they fall in. Pieces with fewer than `min_views` of the best piece's votes are dropped.
     Returns the cleaned copy.
     """
-    from scipy import ndimage
-
     occ = np.asarray(occupancy, bool)
     lab, n = ndimage.label(occ)
     if n <= 1:
@@ -130,3 +125,6 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     keep = votes >= min_views * votes.max()
     keep[0] = False
     return keep[lab]
+
+
+__all__ = ["HullConstraint", "hull_field", "signed_distance", "object_hull"]

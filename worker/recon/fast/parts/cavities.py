@@ -57,8 +57,11 @@ class Cavities(Part):
         return self.config.under_overhangs and model.on_table and model.problem.floor_z is not None
 
     def before_step(self, model: Model) -> None:
-        if model.level_steps % self.config.every_steps:
-            return
+        if model.level_steps % self.config.every_steps == 0:
+            self.fill(model)
+
+    def fill(self, model: Model) -> None:
+        """Fill the hidden space of the model's grid now, and project the field back into the hull."""
         field = model.field
         sdf = field.sdf.detach()[0, 0]
         solid = (sdf < 0).cpu().numpy()

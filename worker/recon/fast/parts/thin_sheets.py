@@ -59,8 +59,11 @@ class ThinSheets(Part):
         return None
 
     def before_step(self, model: Model) -> None:
-        if not model.last_level or model.level_steps % self.config.every_steps:
-            return
+        if model.last_level and model.level_steps % self.config.every_steps == 0:
+            self.empty(model)
+
+    def empty(self, model: Model) -> None:
+        """Empty the thin sheets near the table of the model's grid now."""
         field = model.field
         sdf = field.sdf.detach()[0, 0]
         z = node_heights(sdf.shape[0], float(field.origin[2]), field.voxel)

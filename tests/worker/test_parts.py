@@ -1,0 +1,116 @@
+"""The fast preset's parts (worker/recon/fast/parts/): one per mechanism, each with its config section, switched off
+by one config value, its hooks called in one order, and reported exactly as it ran."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from spadscan.worker.recon.config import with_overrides
+from spadscan.worker.recon.fast.model import make_fast_model
+from spadscan.worker.recon.fast.parts import PARTS, FastPartsConfig, PartConfig
+from spadscan.worker.recon.model_api import RunPlan
+from spadscan.worker.recon.presets import preset_config
+from spadscan.worker.recon.scene_data import load_scene
+from worker_helpers import FAST_SMALL
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+NAMES = [cls.name for cls in PARTS]
+ON_A_TABLE = ("table", "thin_sheets", "empty_space")
+"""Parts that apply only to a scene on a table (the others are tried on the cylinder on the floor)."""
+HOOKS = ("before_step", "before_loss", "after_gradient", "after_step")
+
+
+def fast(**overrides):
+    return with_overrides(preset_config("fast"), {**FAST_SMALL, **overrides})
+
+
+def model_on(capture, config, steps: int):
+    model = make_fast_model(load_scene(capture), config, "cpu", RunPlan(steps=steps, budget_s=None, seed=0))
+    for _ in range(steps):
+        assert math.isfinite(model.step()["loss"])
+    return model
+
+
+def test_every_part_has_one_config_section_in_the_order_its_hooks_run():
+    assert NAMES == [f.name for f in dataclasses.fields(FastPartsConfig)]
+    assert len(set(NAMES)) == len(NAMES)
+    parts = preset_config("fast").parts
+    for name in NAMES:
+        section = getattr(parts, name)
+        assert isinstance(section, PartConfig) and section.enabled is True
+
+
+@pytest.fixture(scope="module")
+def running(cylinder_capture, table_capture):
+    """Every part on, 6 steps (the grid is refined after 4), on each scene."""
+    return {scene: model_on(capture, fast(), 6)
+            for scene, capture in (("floor", cylinder_capture), ("table", table_capture))}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_each_part_switches_off_alone_and_the_report_lists_what_ran(name, running, cylinder_capture, table_capture):
+    scene = "table" if name in ON_A_TABLE else "floor"
+    on = running[scene]
+    off = model_on(table_capture if scene == "table" else cylinder_capture, fast(**{f"parts.{name}.enabled": False}), 6)
+    ran = [part.name for part in on.parts]
+    assert name in ran and on.part(name) is not None
+    assert [part.name for part in off.parts] == [n for n in ran if n != name]  # nothing else changes
+    for model in (on, off):
+        summary = model.summary()
+        assert list(summary["parts"]) == [part.name for part in model.parts]  # exactly the parts that ran
+        assert set(summary["parts"]) | set(summary["parts_left_out"]) == set(NAMES)
+        for part in model.parts:
+            assert summary["parts"][part.name]["config"] == dataclasses.asdict(getattr(model.config.parts, part.name))
+    assert off.summary()["parts_left_out"][name] == f"switched off (parts.{name}.enabled=false)"
+    assert off.part(name) is None
+
+
+def test_without_refinement_the_coarse_grid_is_the_last_level(cylinder_capture, running):
+    off = model_on(cylinder_capture, fast(**{"parts.refinement.enabled": False}), 6)
+    on = running["floor"]
+    assert (off.level, off.last_level) == (0, True) and (on.level, on.last_level) == (1, True)
+    assert max(off.field.counts) < max(on.field.counts)
+    assert off.summary()["refined"] is False and on.summary()["parts"]["refinement"]["refined_at_step"] == 4
+
+
+def test_without_the_table_part_a_table_scene_keeps_its_floor_and_renders_no_plane(table_capture, running):
+    off = model_on(table_capture, fast(**{"parts.table.enabled": False}), 2)
+    assert off.table is None and off.rays.missed is None and "table_albedo" not in off.step()
+    assert off.on_table and off.problem.floor_z == running["table"].problem.floor_z
+    assert off.part("empty_space") is not None  # the scene still stands on a table
+
+
+def test_the_parts_hooks_run_in_their_order_within_each_point_of_the_step(cylinder_capture):
+    model = make_fast_model(load_scene(cylinder_capture), fast(), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    calls = []
+    for part in model.parts:
+        for hook in HOOKS:
+            real = getattr(part, hook)
+
+            def spy(*args, _real=real, _hook=hook, _name=part.name):
+                calls.append((_hook, _name))
+                return _real(*args)
+
+            setattr(part, hook, spy)
+    model.step()
+    assert [hook for hook, _ in calls] == sorted((h for h, _ in calls), key=HOOKS.index)  # the step reads top-down
+    for hook in HOOKS:
+        names = [name for h, name in calls if h == hook]
+        assert names == [part.name for part in model.parts]  # every part, in the registry's order
+
+
+def test_the_empty_space_push_acts_whether_or_not_the_gradient_is_blurred(table_capture):
+    # It used to run inside the blur's branch only: with the blur off, the push was silently skipped while the report
+    # said it ran.
+    fields = {}
+    for push in (True, False):
+        model = model_on(table_capture, fast(**{"parts.blur.enabled": False, "parts.empty_space.enabled": push}), 1)
+        fields[push] = model.field.sdf.detach().clone()
+        assert ("empty_space" in model.summary()["parts"]) == push
+    moved = (fields[True] - fields[False]).abs()
+    assert float(moved.max()) > 0, "the push changed nothing with the blur off"
