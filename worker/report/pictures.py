@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from ..metrics import vertex_normal_error_deg
-from .mesh_pictures import normals_png, preview_png
+from .mesh_pictures import VIEWS, normals_png, preview_png
 
-__all__ = ["preview_png", "normals_png", "vertex_normal_error_deg", "error_vs_time_png", "error_vs_time_figure",
+__all__ = ["VIEWS", "preview_png", "normals_png", "vertex_normal_error_deg", "error_vs_time_png", "error_vs_time_figure",
            "fit_png", "normals_title", "chamfer_points", "plain_log_ticks"]
 
 

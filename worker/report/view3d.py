@@ -105,8 +105,9 @@ PANEL = """<div id="spadscan-scene" style="position:fixed;top:0;left:0;right:0;b
     return (node.tagName === "LINK" && /^https?:/i.test(node.getAttribute("href") || "")) ? node : append(node);
   }};
   function actors() {{
-    var rw = (window.global || {{}}).renderWindow;
-    return rw ? [rw, rw.getRenderers()[0].getActors()] : [null, []];
+    // The scene's renderer is the last one: the viewer's window starts with an empty renderer of its own.
+    var rw = (window.global || {{}}).renderWindow, renderers = rw ? rw.getRenderers() : [];
+    return renderers.length ? [rw, renderers[renderers.length - 1].getActors()] : [null, []];
   }}
   function show(box) {{
     var found = actors(), actor = found[1][Number(box.dataset.layer)];
