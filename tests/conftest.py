@@ -4,12 +4,24 @@ from __future__ import annotations
 
 import asyncio
 import os
+import signal
 from pathlib import Path
 
 import pytest
 
 DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "lcspc"
 BENCHMARK_SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "error_vs_time.py"
+
+
+def pytest_configure(config):
+    """Ctrl-C reaches the commands the tests start, however the suite was started.
+
+    A run started in the background (`bash tests/run.sh &`, nohup, many CI runners) inherits SIGINT ignored, every
+    process it starts inherits that, and Python leaves an ignored SIGINT ignored: a test that interrupts a command
+    then waits for an exit that never comes. A handler (unlike an ignored signal) is reset to the default by exec,
+    so installing Python's own here gives every child the default again."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="module")
