@@ -3,11 +3,16 @@ ignored (in the background, under nohup, by a CI runner)."""
 
 from __future__ import annotations
 
+import importlib.util
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
-import conftest
+# By its path: `import conftest` finds whichever folder's conftest pytest loaded first.
+_spec = importlib.util.spec_from_file_location("suite_conftest", Path(__file__).with_name("conftest.py"))
+conftest = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(conftest)
 
 CHILD = "import signal; print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)"
 
