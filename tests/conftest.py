@@ -76,7 +76,7 @@ def no_leaked_processes():
 def arun():
     """Run a coroutine in a fresh event loop and fail if it leaves tasks behind."""
 
-    def run(coro, timeout_s: float = 60.0):
+    def run(coro, timeout_s: float = 120.0):
         async def wrapper():
             result = await asyncio.wait_for(coro, timeout_s)
             await asyncio.sleep(0)
