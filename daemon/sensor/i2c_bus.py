@@ -310,8 +310,9 @@ def _bus_error(what: str, exc: OSError) -> LinkDown:
 class I2CSensor(TMF8820):
     """A TMF8820 on I2C `bus` at `address`; `firmware` is the path to the user's copy of the application image.
 
-    period_ms: measurement period (the sensor runs back to back when a measurement takes longer); kilo_iterations:
-    laser cycles per measurement in thousands (4000 ~ the ~4 M cycles fitted to LCSPCData's captures).
+    period_ms: measurement period, ms; kilo_iterations: laser cycles per measurement in units of 1024 (ams' register
+    0x26; 4000 ~ the ~4 M cycles the `tmf8820` model was fitted with); spad_map: ams' SPAD map id, one that is not
+    time-multiplexed (1 is the `tmf8820` model's). firmware_notes/modes.md explains each.
     """
 
     def __init__(self, bus: int | str, address: int = 0x41, firmware: Path | None = None, *,
