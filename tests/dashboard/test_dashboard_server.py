@@ -130,3 +130,18 @@ def test_five_hundred_scans_cost_one_read_each_once_and_nothing_after(tmp_path):
         seconds = time.perf_counter() - t0
         assert dashboard.scans.reads == first_reads  # nothing changed, nothing read again
     assert seconds < 1.0, f"a poll of 500 unchanged scans took {seconds:.2f} s"
+
+
+def test_a_live_mesh_gets_its_3d_view_made_on_demand(tmp_path):
+    import trimesh
+
+    complete_scan(tmp_path / "scan", 2)
+    live = tmp_path / "scan" / "recon" / "live"
+    live.mkdir(parents=True)
+    (live / "status.json").write_text(json.dumps({"views_used": 2, "steps": 10}))
+    trimesh.creation.icosphere(subdivisions=2, radius=0.05).export(live / "mesh.ply")
+    with serving(tmp_path) as server:
+        (recon,) = status(server)["scans"][0]["recons"]
+        code, page = get(server, recon["files"]["view3d.html"])
+        assert code == 200 and b"OfflineLocalView.load" in page and b"scan (live)" in page
+        assert get(server, recon["files"]["view3d.html"]) == (200, page)  # kept while the mesh is unchanged

@@ -96,6 +96,9 @@ def test_the_3d_view_draws_offline_and_its_layers_hide(result_folder):
         for layer in ("0", "2"):
             frame.locator(f"input[data-layer='{layer}']").uncheck()
         assert drawn_share(_scene_pixels(page, iframe)) < 0.002  # every layer hidden: nothing left
+        page.goto((out / VIEW3D).as_uri())  # the view on its own page, as the report's link opens it
+        _scene_loaded(page)
+        page.wait_for_timeout(500)  # a page asks for its icons once it has loaded
     assert not seen.errors, seen.errors
     folder = out.as_uri() + "/"
     assert seen.requests and all(url.startswith(folder) for url in seen.requests), seen.requests
