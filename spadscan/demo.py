@@ -261,13 +261,13 @@ def _scan(sock: Path, name: str, opts: DemoOptions, progress) -> dict:
 def running_job_progress(captures: Path):
     """The progress (dashboard.job_progress.JobProgress) of a job the worker is running on `captures`, read from
     its log in the queue; None while none runs or its log shows no progress yet."""
-    from spadscan.dashboard.job_progress import read_progress
+    from spadscan.dashboard.job_progress import claim_log, read_progress
     from spadscan.worker.queue import Queue
 
     queue = Queue.for_root(captures, create=False)
     for state, path in queue.job_paths().values():
         if state == "running":
-            return read_progress(queue.path / "logs" / f"{path.stem}.log")
+            return read_progress(claim_log(queue.path, path))
     return None
 
 

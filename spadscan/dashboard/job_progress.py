@@ -74,6 +74,12 @@ def parse_progress(text: str) -> JobProgress | None:
                        found["elapsed"].strip(), found["remaining"].strip(), fields)
 
 
+def claim_log(queue_dir: Path, running_file: Path) -> Path:
+    """The log of a running job: the worker logs a job's process to `<queue>/logs/<job>~<claim>.log`, the name of
+    its `running/` file."""
+    return Path(queue_dir) / "logs" / f"{Path(running_file).stem}.log"
+
+
 def read_progress(log: Path, tail_bytes: int = TAIL_BYTES) -> JobProgress | None:
     """The job's progress from the tail of its log file; None when the log is missing or shows no bar yet."""
     try:

@@ -9,7 +9,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from .job_progress import read_progress
+from .job_progress import claim_log, read_progress
 from .results import ResultIndex
 from .scans import ScanIndex, scan_detail
 
@@ -25,8 +25,7 @@ def queue_status(queue_dir: Path) -> dict:
         job = asdict(row)
         state, path = paths.get(row.id, (None, None))
         if row.state == "running" and state == "running":
-            # The worker logs a job's process to <queue>/logs/<job>~<claim>.log (its running file's name).
-            progress = read_progress(queue.path / "logs" / f"{path.stem}.log")
+            progress = read_progress(claim_log(queue.path, path))
             job["progress"] = progress.to_dict() if progress else None
         jobs.append(job)
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
