@@ -24,7 +24,9 @@ from . import offscreen
 
 VIEW3D = "view3d.html"
 CONE_SHARE = 0.05
-"""A pose cone's length as a share of the sensors' median distance from the object (2.5 cm at 0.5 m)."""
+"""A pose cone's length as a share of the sensors' median distance from the object (2.5 cm at 0.5 m), for up to
+CONE_FULL_SIZE poses; more poses get smaller cones (by the square root of their number) so as not to hide the object."""
+CONE_FULL_SIZE = 64
 CONE_HALF_ANGLE_DEG = 15.0
 
 
@@ -43,7 +45,8 @@ def pose_cones(poses: np.ndarray, center: np.ndarray) -> object:
 
     poses = np.asarray(poses, dtype=np.float64)
     origins, axes = poses[:, :3, 3], poses[:, :3, 2]
-    length = CONE_SHARE * float(np.median(np.linalg.norm(origins - center, axis=1)) or 1.0)
+    crowd = min(1.0, float(np.sqrt(CONE_FULL_SIZE / len(poses))))
+    length = CONE_SHARE * crowd * float(np.median(np.linalg.norm(origins - center, axis=1)) or 1.0)
     radius = length * np.tan(np.radians(CONE_HALF_ANGLE_DEG))
     cones = [pv.Cone(center=o + a * length / 2, direction=-a, height=length, radius=radius, resolution=12)
              for o, a in zip(origins, axes)]
