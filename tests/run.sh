@@ -10,7 +10,8 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     [ -x /usr/bin/chromium ] || missing+=(chromium)
     ldconfig -p | grep 'libEGL_mesa\.so' >/dev/null || missing+=(libegl1 libegl-mesa0)
     if [ "${#missing[@]}" -gt 0 ]; then
-        apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
+        { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null; } ||
+            echo "tests/run.sh: could not install ${missing[*]}; the tests that need them skip or say why" >&2
     fi
 fi
 # A CPU build of torch first: a range alone could pull the registry's multi-GB CUDA build.
