@@ -223,8 +223,8 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     # The model is laid out for the whole wall budget; it trains for what set-up leaves of it.
     run = set_up_run(capture, config, dev, steps=None, budget_s=budget_s, seed=seed, log=lambda line: None)
     setup_s, model = run.setup_s, run.model
-    # Checkpoints are scored exactly like the final mesh (DESIGN §6: 300,000 points, the full mesh resolution): their
-    # time is not counted, and fewer points would raise the estimate's floor (~1.1 mm at 30,000 points).
+    # Checkpoints are scored exactly like the final mesh (docs/metrics.md: 300,000 points, the full mesh resolution):
+    # their time is not counted, and fewer points would raise the estimate's floor (~1.1 mm at 30,000 points).
     resolution = eval_resolution or config.mesh_resolution
     points = config.metrics_points
 

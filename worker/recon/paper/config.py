@@ -1,5 +1,5 @@
-"""The `paper` preset's config: the reference method as published (an MLP SDF rendered NeuS-style), on the shared
-run settings of `ReconConfig`."""
+"""The `paper` preset's config: the reference method as published (docs/paper_preset.md), on the shared run
+settings of `ReconConfig`."""
 
 from __future__ import annotations
 
