@@ -140,7 +140,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     if truth is not None:
         evaluate = lambda: _checkpoint_metrics(model, truth, config)  # noqa: E731
     result = train(model, plan, checkpoints=config.trace_checkpoints, evaluate=evaluate, progress=progress,
-                   desc=f"reconstruct ({preset})", score_note=f"({checkpoint_scoring(config)})",
+                   desc=f"reconstruct ({preset})", score_note=f"checkpoint {checkpoint_scoring(config, short=True)}",
                    early_stop=config.early_stop)
 
     log(f"extracting the mesh ({config.mesh_resolution} cells a side)")
@@ -174,9 +174,11 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     return report
 
 
-def checkpoint_scoring(config: ReconConfig) -> str:
-    """How checkpoints are scored, for every place their Chamfer is shown: coarser than the final mesh."""
-    return f"{config.trace_mesh_resolution}-cell mesh, {config.trace_points:,} points"
+def checkpoint_scoring(config: ReconConfig, short: bool = False) -> str:
+    """How checkpoints are scored, for every place their Chamfer is shown: coarser than the final mesh. short: no
+    commas (for the progress bar's fields)."""
+    points = f"{config.trace_points / 1000:g}k" if short and config.trace_points >= 1000 else f"{config.trace_points:,}"
+    return f"{config.trace_mesh_resolution}-cell mesh{';' if short else ','} {points} points"
 
 
 def final_scoring(config: ReconConfig) -> str:
@@ -243,9 +245,9 @@ def _report(capture, preset, dev, config, scene, model, result, plan, scored: bo
 
 def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig) -> None:
     pictures.preview_png(mesh, out / "preview.png", gt=gt_mesh)
+    scoring = "" if gt_mesh is None else f" (checkpoint Chamfer: {checkpoint_scoring(config)})"
     pictures.error_vs_time_png(result.trace, out / "error_vs_time.png",
-                               title=f"{config.preset}: error against run time (checkpoints: "
-                                     f"{checkpoint_scoring(config)})")
+                               title=f"{config.preset}: error against run time{scoring}")
     n = scene.n_views
     views = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(FIT_VIEWS, n))})
     rendered = model.render_histograms(views)

@@ -17,9 +17,9 @@ from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, Simulator, simulate_capture
-from spadscan.worker.baselines import carve_hull, first_returns
-from spadscan.worker.baselines.common import cube_around
 from spadscan.worker.baselines.reprojection import reproject_points
+from spadscan.worker.carving import carve_hull, first_returns
+from spadscan.worker.carving.bounds import cube_around
 from spadscan.worker.metrics import mesh_metrics
 
 
@@ -220,7 +220,8 @@ def test_non_finite_options_are_one_line_errors(sphere_capture, tmp_path, capsys
 
 def test_baselines_do_not_import_torch():
     code = ("import sys, spadscan.worker.baselines.run, spadscan.worker.baselines.reprojection, "
-            "spadscan.worker.baselines.floor, spadscan.worker.table_height, spadscan.worker.pulse, spadscan.worker.carving; "
+            "spadscan.worker.baselines.floor, spadscan.worker.table_height, spadscan.worker.pulse, "
+            "spadscan.worker.carving; "
             "sys.exit('torch' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 

@@ -1,11 +1,11 @@
-"""The pulse derived from a measured capture's reference histogram (worker/recon/pulse.py)."""
+"""The pulse derived from a measured capture's reference histogram (worker/pulse.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from spadscan.worker.recon import pulse
+from spadscan.worker import pulse
 
 
 def reference(n: int = 64, peak: float = 20.3, floor: float = 50.0) -> np.ndarray:

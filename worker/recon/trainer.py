@@ -49,8 +49,9 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     there is one, else of the steps; 0: after every step) and at the end; each records the step, training seconds,
     the mean loss since the previous checkpoint and whatever `evaluate()` returns. `on_checkpoint(trace)` sees the
     trace after each one (a benchmark keeps it on disk as it goes). A tqdm bar on stderr shows progress unless
-    `progress` is False; its `checkpoint Chamfer` is the last checkpoint's, described by `score_note` (checkpoint
-    meshes are coarser than the final one)."""
+    `progress` is False: `loss=`, and with an evaluation `chamfer=` (the last checkpoint's) and `scored=` with
+    `score_note`, how checkpoints are scored (coarser than the final mesh). The lab dashboard reads these fields
+    from a job's log: keep them `key=value` without commas."""
     if not plan.steps and not plan.budget_s:
         raise ReconstructionError("a run needs a step count or a time budget (give --steps or --budget-s)")
     if every_s is not None and not (math.isfinite(every_s) and every_s >= 0):
@@ -116,8 +117,9 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
                 next_mark += every
                 post = {"loss": f"{entry['loss']:.3g}"}
                 if entry.get("chamfer_mm") is not None:
-                    note = f" {score_note}" if score_note else ""
-                    post["checkpoint Chamfer"] = f"{entry['chamfer_mm']:.2f}mm{note}"
+                    post["chamfer"] = f"{entry['chamfer_mm']:.2f}mm"
+                    if score_note:
+                        post["scored"] = score_note
                 bar.set_postfix(post)
             if result.stopped_by:
                 break
