@@ -15,9 +15,8 @@ REAL_RUN = subprocess.run
 """subprocess.run before a test stands in for it (the benchmark's git queries still run)."""
 
 
-@pytest.fixture(scope="module")
-def capture(tmp_path_factory):
-    """Two simulated views of a box: a capture that reads (the runs never start on it here)."""
+def simulated_box(folder: Path, views: int, rays_per_zone: int) -> Path:
+    """A capture of a box seen from `views` simulated views at 0.3 m."""
     import trimesh
 
     from spadscan.protocol.schedules import fibonacci_hemisphere
@@ -26,9 +25,15 @@ def capture(tmp_path_factory):
 
     mesh = trimesh.creation.box(extents=(0.07, 0.05, 0.09))
     mesh.apply_translation([0.0, 0.0, 0.045])
-    poses = fibonacci_hemisphere(2, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
-    return simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, tmp_path_factory.mktemp("bench") / "box",
-                            settings=SimSettings(rays_per_zone=64), progress=False)
+    poses = fibonacci_hemisphere(views, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
+    return simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, folder / "box",
+                            settings=SimSettings(rays_per_zone=rays_per_zone), progress=False)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    """Two simulated views of a box: a capture that reads (the runs never start on it here)."""
+    return simulated_box(tmp_path_factory.mktemp("bench"), 2, 64)
 
 
 def call(bench, argv) -> int:
@@ -239,17 +244,7 @@ def test_a_dataset_folder_is_imported_again_when_its_file_changed(bench, tmp_pat
 @pytest.fixture(scope="module")
 def views_of_a_box(tmp_path_factory):
     """Twelve simulated views of a box: enough for the fast preset to carve a hull and train."""
-    import trimesh
-
-    from spadscan.protocol.schedules import fibonacci_hemisphere
-    from spadscan.protocol.sensor_presets import sensor_preset
-    from spadscan.protocol.simulator import SimSettings, simulate_capture
-
-    mesh = trimesh.creation.box(extents=(0.07, 0.05, 0.09))
-    mesh.apply_translation([0.0, 0.0, 0.045])
-    poses = fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
-    return simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, tmp_path_factory.mktemp("bench") / "box",
-                            settings=SimSettings(rays_per_zone=256), progress=False)
+    return simulated_box(tmp_path_factory.mktemp("bench"), 12, 256)
 
 
 def test_a_preset_run_goes_through_the_products_trainer_and_records_its_commit_and_config(bench, views_of_a_box,

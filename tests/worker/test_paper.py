@@ -156,7 +156,8 @@ def test_overrides_a_preset_reads_are_taken():
     assert (cfg.dtype, cfg.loss.kind) == ("float64", "nll")
     assert with_overrides(preset_config("fast"), {"early_stop": False}).early_stop is False
     assert with_overrides(preset_config("paper"), {"default_budget_s": 60}).default_budget_s == 60
-    assert with_overrides(preset_config("fast"), {"field.floor_z": None}).field.floor_z is None  # a field that takes None
+    # A field that takes None:
+    assert with_overrides(preset_config("fast"), {"field.floor_z": None}).field.floor_z is None
     assert with_overrides(preset_config("fast"), {"loss.smooth_weight": 0.1}).loss.smooth_weight == 0.1
     assert with_overrides(preset_config("paper"), {"loss.tv_weight": 0.1}).loss.tv_weight == 0.1
 

@@ -1,14 +1,17 @@
-"""Reconstruction by differentiable transient rendering.
+"""Reconstruction by differentiable transient rendering: two presets on a few shared modules.
 
-The parts are separate, as in a radiance-field library, so that the presets share everything except the field and
-its schedule:
+Shared by both presets (and by the run code, `worker/reconstruct.py`):
 
-- `config`: dataclass configs and the one registry of presets (`paper`, `fast`);
+- `presets`: the one registry of presets (`paper`, `fast`), each its config and its model factory;
+- `config`: the run settings every preset's config shares, and `--set KEY=VALUE` overrides;
 - `scene_data`: a capture loaded into tensors (counts, poses, sensor, pulse, bounds, table);
-- `rays`: rays stratified in solid angle over each zone's field of view, with importance resampling;
-- `render`: NeuS-style volume rendering of an SDF field along rays (opacity, round-trip transmittance, radiance);
 - `forward`: the sensor model in torch (range binning, pulse, gains, crosstalk, background, pile-up, likelihoods);
 - `model_api`: the protocol every preset's model implements (`step`, `extract_mesh`, `render_histograms`);
-- `mesh`: marching cubes of an SDF with normals from its gradient;
-- `paper/`: the paper's method (MLP SDF with positional encoding).
+- `trainer`: the one training loop (budget, steps, checkpoints, early stop);
+- `errors`, `numerics`.
+
+Each preset keeps its own field, sampler, renderer, losses and meshing: `fast/` (an SDF grid started and bounded by
+the space-carving hull, its mechanisms as parts) and `paper/` (the published method: an MLP SDF rendered NeuS-style).
+What the histograms show without a model (first returns, carving, the pulse, the table height) lives outside, in
+`worker.carving`, `worker.pulse` and `worker.table_height`, which the baselines share.
 """

@@ -1,12 +1,12 @@
 """The protocol every preset's model implements, and what a run tells it.
 
-`reconstruct_capture` builds a model with the preset's factory (named in `ReconConfig.model_factory`):
+`reconstruct_capture` builds a model with the preset's factory (`presets.PRESETS[name].make_model`):
 
-    factory(scene: SceneData, config: ReconConfig, device: torch.device, plan: RunPlan) -> ReconModel
+    make_model(scene: SceneData, config: ReconConfig, device: torch.device, plan: RunPlan) -> ReconModel
 
-then calls `step()` until the step count or the time budget runs out, `extract_mesh` at trace checkpoints and at the
-end, and `render_histograms` for the fit picture. The model owns its field, optimiser and schedule; everything else
-(rays, sampler, renderer, forward model, losses, mesh extraction) comes from the shared modules.
+then `trainer.train` calls `step()` until the step count or the time budget runs out, `extract_mesh` at trace
+checkpoints and at the end, and `render_histograms` for the fit picture. The model owns its field, sampler,
+renderer, optimiser and schedule; the capture's tensors (scene_data) and the sensor model (forward) are shared.
 """
 
 from __future__ import annotations
