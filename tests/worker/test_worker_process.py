@@ -58,9 +58,11 @@ asyncio.run(run_worker(config))
 
 
 def start_worker(root: Path, markers: Path, *, once: bool, sleep_s: float, lease_s: float = 30.0,
-                 host: str | None = None):
+                 host: str | None = None, env: dict[str, str] | None = None):
+    """A worker process (2 job processes at once, stand-in reconstruction `marker_recon`); `env`: variables added
+    to its environment."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]),
-           "MARKERS": str(markers), "SLEEP_S": str(sleep_s)}
+           "MARKERS": str(markers), "SLEEP_S": str(sleep_s), **(env or {})}
     args = [str(root), "once" if once else "serve", str(lease_s)] + ([host] if host else [])
     return subprocess.Popen([sys.executable, "-c", LAUNCH, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
