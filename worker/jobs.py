@@ -103,10 +103,12 @@ def scan_path(job: Job, root: Path) -> Path:
     return path
 
 
-def check_capture(scan: Path) -> dict:
-    """Validate a capture before reconstructing it: manifest, state 'complete', every chunk readable.
+def check_capture(scan: Path) -> tuple[dict, str | None]:
+    """Validate a capture before reconstructing it: manifest, state 'complete', every chunk readable, counts a
+    sensor could have produced.
 
-    Returns the manifest. Raises CaptureError with the one-line reason otherwise.
+    Returns (the manifest, a one-line warning about some of its counts or None). Raises CaptureError with the
+    one-line reason otherwise.
     """
     from spadscan.protocol.capture_reader import CaptureReader
 
@@ -116,7 +118,7 @@ def check_capture(scan: Path) -> dict:
     data = reader.load()  # reads and checks every chunk: shapes, dtypes, finite rigid poses
     if len(data.hists) == 0:
         raise CaptureError(f"{scan}: holds no measurements")
-    return reader.manifest
+    return reader.manifest, data.check_counts(scan)
 
 
 def ground_truth(manifest: dict, out: Path) -> tuple[Path | None, str | None]:
@@ -156,9 +158,11 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -
     """Reconstruct the job's capture into the folder `out` (created), to be published as `result_path(job, root)`:
     paths into `out` that the results record (job.json, report.json, report.html) name the published folder. Returns
     the reconstruction's report, with `ground_truth_note` when the capture names a ground truth that cannot be used
-    (also added to report.json)."""
+    and `capture_counts_note` when some of its histograms are implausible (both also added to report.json)."""
     scan = scan_path(job, root)
-    manifest = check_capture(scan)
+    manifest, counts_note = check_capture(scan)
+    if counts_note:
+        print(f"warning: {counts_note}", file=sys.stderr, flush=True)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     final = result_path(job, root)
@@ -173,7 +177,8 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -
                         device=job.device, seed=job.seed) or {})
     moved = {k: str(published_path(Path(v), out, final)) for k, v in report.items()
              if isinstance(v, str) and Path(v).is_relative_to(out)}
-    extra = {**moved, **({"ground_truth_note": gt_note} if gt_note else {})}
+    extra = {**moved, **({"ground_truth_note": gt_note} if gt_note else {}),
+             **({"capture_counts_note": counts_note} if counts_note else {})}
     if extra:
         report.update(extra)
         add_to_report(out, extra)
@@ -353,7 +358,8 @@ def child_main(argv: list[str] | None = None) -> int:
         traceback.print_exc()
         _write_outcome(outcome, {"ok": False, "kind": "crash", "error": f"{type(exc).__name__}: {exc}"})
         return EXIT_CRASH
-    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note") if k in report}
+    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note", "capture_counts_note")
+               if k in report}
     _write_outcome(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary})
     return EXIT_DONE
 

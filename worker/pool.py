@@ -256,6 +256,8 @@ class Worker:
         extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
         if summary.get("ground_truth_note"):
             extra += f" (ground truth: {summary['ground_truth_note']})"
+        if summary.get("capture_counts_note"):
+            extra += f" (warning: {summary['capture_counts_note']})"
         self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}")
         if aside is not None:  # written there while the job ran (another worker on another queue, say)
             self.log(f"{job.id}: {final} held a result that appeared while the job ran; moved it to {aside}")

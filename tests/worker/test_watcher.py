@@ -15,11 +15,12 @@ from spadscan.worker.watcher import JobOptions, scan_folders, scan_once, watch
 
 
 def make_scan(root, name, state="complete", n=2):
-    """A tiny capture folder (n flat histograms) in the given state; returns its writer."""
+    """A tiny capture folder (n histograms of background counts) in the given state; returns its writer."""
     sensor = sensor_preset("lcspc-sim")
+    rng = np.random.default_rng(0)
     w = CaptureWriter.create(root / name, sensor, chunk_size=4)
     for i in range(n):
-        w.append(Measurement(np.ones((1, sensor.n_bins), np.uint32), np.eye(4), i))
+        w.append(Measurement(rng.poisson(2.0, (1, sensor.n_bins)).astype(np.uint32), np.eye(4), i))
     if state == "running":
         w.flush()
     else:
