@@ -233,8 +233,8 @@ def test_soak_kill_9_stops_and_silences_every_scan_complete_every_job_one_result
     with capsys.disabled():
         print(f"\nsoak (seed {SEED}, {elapsed:.0f} s): faults injected "
               + ", ".join(f"{kind} x{len(t)}" for kind, t in sorted(hit.items()))
-              + f" ({sum(t != IDLE for t in hit['worker kill -9'])} of the worker kills while it held one of "
-              f"{len(set(hit['worker kill -9']) - {IDLE})} jobs)"
+              + f" ({sum(t != IDLE for t in hit['worker kill -9'])} of them while the worker held a job, "
+              f"{len(set(hit['worker kill -9']) - {IDLE})} jobs hit)"
               + "; survived " + ", ".join(f"{kind} x{n}" for kind, n in sorted(survived.items()))
               + f"; {len(SCANS)} scans complete with every pose once, {len(SCANS)} jobs with one result each")
     assert len(hit["daemon kill -9"]) >= 1 and set(hit["worker kill -9"]) - {IDLE}, "kills mid-scan and mid-job"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 import numpy as np
 
@@ -79,11 +80,11 @@ def test_watch_polls_until_stopped(tmp_path, arun):
     async def main():
         stop = asyncio.Event()
         task = asyncio.create_task(watch(tmp_path, q, JobOptions(), stop, poll_s=0.05, on_report=reports.append))
-        await asyncio.sleep(0.1)
+        while not reports:  # a first pass that found nothing
+            await asyncio.sleep(0.01)
         make_scan(tmp_path, "late")
-        for _ in range(200):
-            if q.known("late-fast"):
-                break
+        deadline = time.monotonic() + 60
+        while not q.known("late-fast") and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
         stop.set()
         await task
