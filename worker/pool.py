@@ -21,7 +21,7 @@ from typing import Callable
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
-from .jobs import CHANGEABLE, existing_result, result_path, scratch_path
+from .jobs import CHANGEABLE, completion, existing_result, result_path, scratch_path
 from .publishing import own_result, publish_claim, reconcile
 from .queue import SEP, Claim, Queue
 from .watcher import ScanReport, scan_once, watch
@@ -242,7 +242,7 @@ class Worker:
                     again = "queued again" if state == "queued" else "giving up"
                     self.log(f"{job.id} crashed after {seconds:.1f} s: {reason}; {again}")
         finally:
-            if child.scratch.exists():
+            if child.scratch.exists() and completion(child.scratch) is None:  # a complete result is never removed
                 shutil.rmtree(child.scratch, ignore_errors=True)
 
     def _settle_done(self, child: Child, seconds: float, summary: dict) -> None:
