@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 import spadscan
+from spadscan.protocol.capture_reader import check_capture_counts
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
@@ -92,6 +93,7 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     """Load the capture and build the preset's model: what every run does before it trains. With neither `steps`
     nor `budget_s`, the preset's defaults bound the run."""
     t0 = time.perf_counter()
+    check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
     scene = load_scene(Path(capture), device, dtype)
     state_note = capture_state_note(capture, scene.state, scene.n_views)
