@@ -1,7 +1,8 @@
 """Built-in objects made of simple solids blended together (sdf.py), meshed by marching cubes (sdf_mesh.py).
 
-Each maker returns a new watertight trimesh.Trimesh in metres, standing on z = 0 and centred on the z axis. Faces
-point +y where an object has a front. The voxel sizes keep the meshing error well under a millimetre (marching cubes
+Each maker returns a SolidScene: the signed distance function and the box and voxel to mesh it in. Its `mesh()` is a
+new watertight trimesh.Trimesh in metres, standing on z = 0 and centred on the z axis. Faces point +y where an
+object has a front. The voxel sizes keep the meshing error well under a millimetre (marching cubes
 on a smooth surface of radius R errs by about voxel^2 / 8R: 0.04 mm on the teddy's 7 mm thick ear at 1.5 mm voxels) and the build
 at a second or two.
 """
@@ -9,15 +10,29 @@ at a second or two.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from .sdf import (box, capsule, cylinder, ellipsoid, intersect, rotated, shell, smooth_union, sphere, subtract,
-                  torus)
+from .sdf import (Shape, box, capsule, cylinder, ellipsoid, intersect, rotated, shell, smooth_union, sphere,
+                  subtract, torus)
 from .sdf_mesh import mesh_sdf
 
 VOXEL_M = 0.0015
 """Default meshing voxel (metres)."""
+
+
+@dataclass(frozen=True)
+class SolidScene:
+    """A shape (metres) and where to mesh it: |x|, |y| <= half_xy, 0 <= z <= height, voxels of `voxel`."""
+
+    shape: Shape
+    half_xy: float
+    height: float
+    voxel: float = VOXEL_M
+
+    def mesh(self):
+        return mesh_sdf(self.shape, self.half_xy, self.height, self.voxel)
 
 
 def teddy():
@@ -35,7 +50,7 @@ def teddy():
         parts.append(sphere((side * 0.076, 0.050, 0.064), 0.021))                                # paw
         parts.append(capsule((side * 0.034, 0.020, 0.030), (side * 0.046, 0.086, 0.026), 0.025))  # leg
         parts.append(ellipsoid((side * 0.048, 0.102, 0.032), (0.023, 0.014, 0.032)))            # foot
-    return mesh_sdf(smooth_union(0.010, *parts), 0.13, 0.26, VOXEL_M)
+    return SolidScene(smooth_union(0.010, *parts), 0.13, 0.26)
 
 
 def _head(base_z: float):
@@ -57,7 +72,7 @@ def _head(base_z: float):
 def head():
     """A sculpted head on a square plinth, 0.35 m: a 14 cm square block 6 cm tall, neck, skull, nose, ears."""
     plinth = box((0, 0, 0.030), (0.070, 0.070, 0.030), rounding=0.002)
-    return mesh_sdf(smooth_union(0.006, plinth, _head(0.058)), 0.12, 0.36, VOXEL_M)
+    return SolidScene(smooth_union(0.006, plinth, _head(0.058)), 0.12, 0.36)
 
 
 def duck():
@@ -67,7 +82,7 @@ def duck():
              lambda x, y, z: tail(x, y + 0.060, z - 0.068),
              sphere((0, 0.040, 0.117), 0.032),
              ellipsoid((0, 0.078, 0.110), (0.015, 0.024, 0.007))]
-    return mesh_sdf(smooth_union(0.018, *parts), 0.11, 0.16, VOXEL_M)
+    return SolidScene(smooth_union(0.018, *parts), 0.11, 0.16)
 
 
 def stool():
@@ -85,7 +100,7 @@ def stool():
         a = feet[k] + t * (tops[k] - feet[k])
         b = feet[(k + 1) % 3] + t * (tops[(k + 1) % 3] - feet[(k + 1) % 3])
         parts.append(capsule(a, b, 0.004))
-    return mesh_sdf(smooth_union(0.003, *parts), 0.10, 0.21, 0.0012)
+    return SolidScene(smooth_union(0.003, *parts), 0.10, 0.21, 0.0012)
 
 
 def mug():
@@ -96,7 +111,7 @@ def mug():
     body = subtract(outer, bore)
     ring = rotated(torus((0, 0, 0), 0.036, 0.007), (1, 0, 0), math.pi / 2)
     handle = subtract(lambda x, y, z: ring(x - 0.056, y, z - 0.078), cylinder((0, 0), 0.046, -0.01, 0.2))
-    return mesh_sdf(smooth_union(0.004, body, handle), 0.12, 0.16, VOXEL_M)
+    return SolidScene(smooth_union(0.004, body, handle), 0.12, 0.16)
 
 
 def bowl():
@@ -104,22 +119,18 @@ def bowl():
     outer = ellipsoid((0, 0, 0.118), (0.150, 0.150, 0.110))
     wall = intersect(shell(outer, 0.006), lambda x, y, z: z - 0.110)
     foot = subtract(cylinder((0, 0), 0.060, -0.01, 0.016), cylinder((0, 0), 0.052, -0.02, 0.012))
-    return mesh_sdf(smooth_union(0.004, wall, foot), 0.16, 0.12, VOXEL_M)
+    return SolidScene(smooth_union(0.004, wall, foot), 0.16, 0.12)
 
 
 def head_on_can():
     """A mannequin head on a can, 0.50 m: a 12 cm wide, 22 cm tall cylinder with rounded rims, the head above."""
     can = cylinder((0, 0), 0.060, -0.01, 0.220, rounding=0.004)
-    return mesh_sdf(smooth_union(0.006, can, _head(0.218)), 0.12, 0.52, VOXEL_M)
+    return SolidScene(smooth_union(0.006, can, _head(0.218)), 0.12, 0.52)
 
 
-def tall_block():
-    """A tall block, 0.30 m: a 10 x 10 cm square column with sharp edges."""
-    import trimesh
-
-    mesh = trimesh.creation.box((0.10, 0.10, 0.30))
-    mesh.apply_translation((0, 0, 0.15))
-    return mesh
+SOLID_SCENES = {"teddy": teddy, "head": head, "duck": duck, "stool": stool, "mug": mug, "bowl": bowl,
+                "head-on-can": head_on_can}
+"""Built-in scene name -> maker of its SolidScene."""
 
 
-__all__ = ["teddy", "head", "duck", "stool", "mug", "bowl", "head_on_can", "tall_block", "VOXEL_M"]
+__all__ = ["SolidScene", "SOLID_SCENES", "VOXEL_M", "teddy", "head", "duck", "stool", "mug", "bowl", "head_on_can"]

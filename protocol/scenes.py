@@ -53,12 +53,10 @@ SECTIONS = 96  # segments around the axis: facets of ~2 mm on a 0.05 m radius
 
 def builtin_scene(name: str):
     """The built-in scene called `name` (see BUILTIN_SCENES) as a new trimesh.Trimesh in metres."""
-    from . import scene_shapes as shapes
+    from .scene_shapes import SOLID_SCENES  # lazily: only the blended solids need scikit-image
 
     makers = {"sphere": _sphere, "cup": _cup, "lamp": _lamp, "pyramid": _pyramid, "demo": _goblet,
-              "teddy": shapes.teddy, "head": shapes.head, "duck": shapes.duck, "stool": shapes.stool,
-              "mug": shapes.mug, "bowl": shapes.bowl, "head-on-can": shapes.head_on_can,
-              "tall-block": shapes.tall_block}
+              "tall-block": _tall_block, **{n: (lambda m=m: m().mesh()) for n, m in SOLID_SCENES.items()}}
     if name not in makers:
         raise MeshError(f"unknown built-in scene {name!r} (known: {', '.join(BUILTIN_SCENES)})")
     return makers[name]()
@@ -152,4 +150,12 @@ def _pyramid():
 
     mesh = trimesh.creation.cone(radius=0.075 * np.sqrt(2), height=0.15, sections=4)
     mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 4, [0, 0, 1]))
+    return mesh
+
+
+def _tall_block():
+    import trimesh
+
+    mesh = trimesh.creation.box((0.10, 0.10, 0.30))
+    mesh.apply_translation((0, 0, 0.15))
     return mesh
