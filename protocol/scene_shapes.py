@@ -2,9 +2,9 @@
 
 Each maker returns a SolidScene: the signed distance function and the box and voxel to mesh it in. Its `mesh()` is a
 new watertight trimesh.Trimesh in metres, standing on z = 0 and centred on the z axis. Faces point +y where an
-object has a front. The voxel sizes keep the meshing error well under a millimetre (marching cubes
-on a smooth surface of radius R errs by about voxel^2 / 8R: 0.04 mm on the teddy's 7 mm thick ear at 1.5 mm voxels) and the build
-at a second or two.
+object has a front. The voxel sizes keep the meshing error well under a millimetre (marching cubes on a smooth
+surface of radius R errs by about voxel^2 / 8R: 0.04 mm on the teddy's 7 mm thick ear at 1.5 mm voxels) and the
+build at a second or two.
 """
 
 from __future__ import annotations

@@ -6,12 +6,12 @@ A hit at one-way range r with incidence cosine cos_i adds
 
     signal_scale * power * albedo * weight * cos_i / r^2        (weight: the ray's solid angle, steradians)
 
-photons per cycle, arriving at bin coordinate zero_bin + r / bin_width. With a table (sim_table.py), a ray that meets
-the table before the mesh returns from the table, with the table's albedo. The returns are convolved with the laser pulse
-on an oversampled axis and integrated back to bins, scaled by zone gains, mixed by crosstalk (each zone also gets
-`crosstalk` x the sum of all zones' signal) and lifted by a flat background. Coates pile-up turns these rates into
-per-cycle detection probabilities, timing jitter blurs them, and N cycles give multinomial counts (detections per bin
-plus a "no photon" outcome), clipped to the sensor's counter size.
+photons per cycle, arriving at bin coordinate zero_bin + r / bin_width. With a table (sim_table.py), a ray that
+meets the table before the mesh returns from the table, with the table's albedo. The returns are convolved with the
+laser pulse on an oversampled axis and integrated back to bins, scaled by zone gains, mixed by crosstalk (each zone
+also gets `crosstalk` x the sum of all zones' signal) and lifted by a flat background. Coates pile-up turns these
+rates into per-cycle detection probabilities, timing jitter blurs them, and N cycles give multinomial counts
+(detections per bin plus a "no photon" outcome), clipped to the sensor's counter size.
 
 Rules at the edges: a surface closer than MIN_RANGE_M counts as if it were at MIN_RANGE_M (finite, saturating flux at
 the start of the histogram); returns whose pulse cannot reach the histogram (far beyond the last bin, or well before
@@ -342,5 +342,5 @@ def blind_views_note(signal_photons: np.ndarray, mesh) -> str | None:
             f"expected); the mesh lies within {lo} .. {hi} m: check the target and radius (or the albedo and power)")
 
 
-__all__ = ["SimSettings", "SimFrames", "SimTable", "Simulator", "simulate_capture", "blind_views_note", "check_pose_array",
-           "check_seed", "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS"]
+__all__ = ["SimSettings", "SimFrames", "SimTable", "Simulator", "simulate_capture", "blind_views_note",
+           "check_pose_array", "check_seed", "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS"]

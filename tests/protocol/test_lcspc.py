@@ -236,7 +236,7 @@ def test_missing_file_and_folder(tmp_path):
         read_lcspc(tmp_path)
 
 
-# ---- the command -------------------------------------------------------------------------------------------------------
+# ---- the command -----------------------------------------------------------------------------------------------------
 def test_cli_imports_and_reports(tmp_path, capsys):
     src = write_json(tmp_path / "r.json", real_records(3))
     assert main(["import-lcspc", str(src), "--out", str(tmp_path / "cap"), "--chunk-size", "2", "--no-progress"]) == 0
@@ -259,7 +259,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "bad.json" in err and err.count("\n") == 1 and not (tmp_path / "c2").exists()
 
 
-# ---- the public dataset ------------------------------------------------------------------------------------------------
+# ---- the public dataset ----------------------------------------------------------------------------------------------
 @pytest.mark.dataset
 @pytest.mark.parametrize("rel,kind,n,shape,gt", [
     ("simulated/bunny/bunny.json", "simulated", 256, (1, 1024), "bunny.obj"),
@@ -315,7 +315,7 @@ def test_numeric_temperatures_give_no_note(tmp_path):
     assert data.notes == () and [m["temperature_c"] for m in data.meta] == [22, 23]
 
 
-# ---- poses stored without their last row -------------------------------------------------------------------------------
+# ---- poses stored without their last row -----------------------------------------------------------------------------
 def _zero_last_rows(records, which):
     for i in which:
         records[i]["pose"][3] = [0, 0, 0, 0]

@@ -183,7 +183,7 @@ def test_head_on_can_is_a_head_on_a_cylinder(meshes):
     assert _area(skull) > 1.5 * _area(can)
 
 
-# ---- meshing a signed distance function --------------------------------------------------------------------------------
+# ---- meshing a signed distance function ------------------------------------------------------------------------------
 def test_a_meshed_sphere_and_box_lie_on_the_true_surface_to_well_under_a_millimetre():
     from spadscan.protocol import sdf
     from spadscan.protocol.sdf_mesh import mesh_sdf

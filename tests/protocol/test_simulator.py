@@ -450,7 +450,7 @@ def test_rings_without_the_rings_schedule_is_refused_and_the_help_names_the_buil
     assert "validation split" in listing and "tuning split" in listing
 
 
-# ---- the table ---------------------------------------------------------------------------------------------------------
+# ---- the table -------------------------------------------------------------------------------------------------------
 def far_ball():
     """A small ball far outside every view of the table tests: the simulator needs a mesh."""
     ball = trimesh.creation.icosphere(subdivisions=1, radius=0.01)
