@@ -11,8 +11,8 @@ for a real capture.
 
 Examples:
   spadscan simulate bunny.obj --out captures/bunny-sim --sensor lcspc-sim --views 256
-  spadscan simulate builtin:head-on-can --out captures/head-on-can --sensor tmf8820 --table \
-      --views 128 --schedule rings --rings 8 --min-elevation 36 --max-elevation 83 --radius 0.5 --target 0 0 0.25
+  spadscan simulate builtin:head-on-can --out captures/head-on-can --sensor tmf8820 --table \\
+      --views 120 --schedule rings --rings 8 --min-elevation 36 --max-elevation 83 --radius 0.45 --target 0 0 0.25
 """
 
 from __future__ import annotations
