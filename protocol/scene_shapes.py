@@ -86,8 +86,10 @@ def duck():
 
 
 def stool():
-    """A three-legged stool, 0.20 m: a round seat on three splayed 12 mm legs joined by 8 mm rungs (thin parts)."""
-    parts = [cylinder((0, 0), 0.090, 0.180, 0.200, rounding=0.003)]
+    """A three-legged stool, 0.20 m: a round seat, dished 4 mm, on three splayed 12 mm legs joined by 8 mm rungs
+    (thin parts)."""
+    dish = sphere((0, 0, 0.196 + 0.705), 0.705)  # a cap 4 mm deep and 15 cm across
+    parts = [subtract(cylinder((0, 0), 0.090, 0.180, 0.200, rounding=0.003), dish)]
     feet, tops = [], []
     for k in range(3):
         a = 2 * math.pi * k / 3 + math.pi / 2

@@ -28,7 +28,7 @@ BUILTIN_SCENES: dict[str, str] = {
     "teddy": "a 0.25 m sitting teddy bear: round body and head, thin ears, arms with paws (smooth, small parts)",
     "head": "a 0.35 m sculpted head on a 14 cm square plinth: nose, ears, eye sockets (smooth, large)",
     "duck": "a 0.15 m bath duck: egg-shaped body, raised tail, round head, flat beak (small, smooth)",
-    "stool": "a 0.20 m three-legged stool: round seat, 12 mm legs, 8 mm rungs (thin parts)",
+    "stool": "a 0.20 m three-legged stool: dished round seat, 12 mm legs, 8 mm rungs (thin parts)",
     "mug": "a 0.15 m mug: 5 mm wall round a 9 cm bore, a ring handle (concavity, a hole)",
     "bowl": "a 0.30 m wide, 0.11 m tall bowl with a 6 mm wall on a foot ring (large, shallow concavity)",
     "head-on-can": "a 0.50 m mannequin head on a 12 cm wide can (tall: for a table)",
