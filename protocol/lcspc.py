@@ -7,7 +7,9 @@ A file is a JSON list of measurements. Two kinds exist, told apart by the shape 
   "distances": [{on-chip depths mm, confidences, temperature C, tick, ...}], "time_captured": ...}`
   -> sensor preset `tmf8820`, nine zones in the sensor's channel order, the reference histogram kept.
 
-Poses are sensor-to-world in metres with the sensor looking along +z, as in spadscan. Every key other than `hists`,
+Poses are sensor-to-world in metres with the sensor looking along +z, as in spadscan; a pose stored with the last row
+[0, 0, 0, 0] (some real captures do) is read as the rigid transform it is when its 3x3 block is a rotation, with a
+warning. Every key other than `hists`,
 `pose` and `reference_hist` is kept verbatim in the measurement's metadata, plus `source_index` (the position in the
 file) and `temperature_c` when the on-chip record gives one.
 """
@@ -22,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from .capture_format import Measurement, check_poses
+from .capture_format import POSE_TOL, Measurement, check_poses
 from .errors import CaptureError, DatasetError
 from .sensor_model import SensorModel
 from .sensor_presets import sensor_preset
@@ -51,6 +53,8 @@ class LcspcData:
     sha256: str
     notes: tuple[str, ...] = ()
     """What was read but not kept as given (one line each), for the user to see."""
+    warnings: tuple[str, ...] = ()
+    """What was malformed in the file but repaired without doubt (one line each), for the user to see."""
 
 
 def read_lcspc(path, progress: Progress | None = None) -> LcspcData:
@@ -76,13 +80,15 @@ def read_lcspc(path, progress: Progress | None = None) -> LcspcData:
     hists = np.stack([_array(path, i, "hists", r["hists"], shape) for i, r in enumerate(records)])
     hists = _counts(path, "hists", hists, sensor.max_count)
     poses = np.stack([_array(path, i, "pose", r["pose"], (4, 4)) for i, r in enumerate(records)])
+    poses, warnings = _complete_last_rows(path, poses.astype(np.float64))
     try:
-        poses = check_poses(poses.astype(np.float64), str(path))
+        poses = check_poses(poses, str(path))
     except CaptureError as exc:
         raise DatasetError(str(exc)) from None
     reference = _references(path, records, sensor)
     meta = [_meta(path, i, r) for i, r in enumerate(records)]
-    return LcspcData(path, kind, sensor, hists, poses, reference, meta, digest, _temperature_notes(records))
+    return LcspcData(path, kind, sensor, hists, poses, reference, meta, digest, _temperature_notes(records),
+                     warnings)
 
 
 def detect_kind(path, hists) -> tuple[str, SensorModel]:
@@ -124,6 +130,8 @@ def import_lcspc(path, out, *, chunk_size: int = 64, scan_id: str | None = None,
              "kind": data.kind, "name": data.source.stem, "measurements": len(data.meta)}
     if gt is not None:
         scene["ground_truth"] = str(gt.resolve())
+    if data.warnings:
+        scene["import_warnings"] = list(data.warnings)
     writer = CaptureWriter.create(out, data.sensor, scan_id=scan_id, chunk_size=chunk_size, scene=scene,
                                   planned_poses=data.poses, schedule={"kind": "lcspc", "views": len(data.meta)})
     n = len(data.meta)
@@ -139,7 +147,8 @@ def import_lcspc(path, out, *, chunk_size: int = 64, scan_id: str | None = None,
         raise
     chunks = -(-n // chunk_size)
     return ImportSummary(Path(out), data.kind, data.sensor.name, n, tuple(data.hists.shape),
-                         None if data.reference is None else tuple(data.reference.shape), chunks, gt, data.notes)
+                         None if data.reference is None else tuple(data.reference.shape), chunks, gt, data.notes,
+                         data.warnings)
 
 
 @dataclass
@@ -156,6 +165,8 @@ class ImportSummary:
     ground_truth: Path | None
     notes: tuple[str, ...] = ()
     """What was read but not kept as given (LcspcData.notes)."""
+    warnings: tuple[str, ...] = ()
+    """What was malformed but repaired (LcspcData.warnings)."""
 
 
 # ---- helpers ---------------------------------------------------------------------------------------------------------
@@ -243,6 +254,30 @@ def _meta(path, i: int, rec: dict) -> dict:
     if celsius is not None:
         meta["temperature_c"] = celsius
     return meta
+
+
+def _complete_last_rows(path, poses: np.ndarray) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Poses (N, 4, 4) whose last row is [0, 0, 0, 0] (some real captures store every pose so) get [0, 0, 0, 1]: the
+    last row of any rigid transform, so nothing is guessed when the 3x3 block is a rotation. Such a pose whose block
+    is not a rotation is a one-line DatasetError; every other pose is left for `check_poses`. Returns the poses and
+    a warning line when any was completed."""
+    zero_last = np.all(np.abs(poses[:, 3]) <= POSE_TOL, axis=1)
+    if not zero_last.any():
+        return poses, ()
+    rot = poses[zero_last, :3, :3]
+    err = np.abs(np.einsum("nij,nkj->nik", rot, rot) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(rot)
+    bad = np.flatnonzero((err > POSE_TOL) | (np.abs(det - 1) > POSE_TOL))
+    if bad.size:
+        i, k = int(np.flatnonzero(zero_last)[bad[0]]), int(bad[0])
+        raise DatasetError(f"{path}: pose {i} has last row [0, 0, 0, 0] and a 3x3 block that is not a rotation "
+                           f"(|R R^T - I| = {err[k]:.2g}, det R = {det[k]:.4g})")
+    poses = poses.copy()
+    poses[zero_last, 3] = (0.0, 0.0, 0.0, 1.0)
+    n, first = int(zero_last.sum()), int(np.argmax(zero_last))
+    which = f"all {n} poses have" if n == len(poses) else f"{n} of {len(poses)} poses (first: pose {first}) have"
+    return poses, (f"{which} last row [0, 0, 0, 0]; read as [0, 0, 0, 1], the last row of every rigid transform "
+                   f"(their rotations and translations are valid)",)
 
 
 def _temperature(rec: dict) -> tuple[bool, float | None]:

@@ -1,15 +1,17 @@
-"""The physically based simulator (docs/forward_model.md): mesh + sensor model + poses -> photon-count histograms.
+"""The physically based simulator (docs/forward_model.md): mesh (and optionally a table) + sensor model + poses ->
+photon-count histograms.
 
 For each pose and zone, rays spread evenly over the zone's field of view find their first surface hit by ray casting.
 A hit at one-way range r with incidence cosine cos_i adds
 
     signal_scale * power * albedo * weight * cos_i / r^2        (weight: the ray's solid angle, steradians)
 
-photons per cycle, arriving at bin coordinate zero_bin + r / bin_width. The returns are convolved with the laser pulse
-on an oversampled axis and integrated back to bins, scaled by zone gains, mixed by crosstalk (each zone also gets
-`crosstalk` x the sum of all zones' signal) and lifted by a flat background. Coates pile-up turns these rates into
-per-cycle detection probabilities, timing jitter blurs them, and N cycles give multinomial counts (detections per bin
-plus a "no photon" outcome), clipped to the sensor's counter size.
+photons per cycle, arriving at bin coordinate zero_bin + r / bin_width. With a table (sim_table.py), a ray that
+meets the table before the mesh returns from the table, with the table's albedo. The returns are convolved with the
+laser pulse on an oversampled axis and integrated back to bins, scaled by zone gains, mixed by crosstalk (each zone
+also gets `crosstalk` x the sum of all zones' signal) and lifted by a flat background. Coates pile-up turns these
+rates into per-cycle detection probabilities, timing jitter blurs them, and N cycles give multinomial counts
+(detections per bin plus a "no photon" outcome), clipped to the sensor's counter size.
 
 Rules at the edges: a surface closer than MIN_RANGE_M counts as if it were at MIN_RANGE_M (finite, saturating flux at
 the start of the histogram); returns whose pulse cannot reach the histogram (far beyond the last bin, or well before
@@ -27,6 +29,7 @@ from . import pileup
 from .errors import SimulationError
 from .raycast import first_hits, make_intersector, zone_rays
 from .sensor_model import SensorModel
+from .sim_table import SimTable
 from .transient import FineAxis, convolve_pulse, pulse_pad_bins
 
 MIN_RANGE_M = 1e-3
@@ -129,8 +132,10 @@ class Simulator:
     photons from a generator seeded by `seed`, so the same calls in the same order give the same counts.
     """
 
-    def __init__(self, mesh, sensor: SensorModel, settings: SimSettings = SimSettings(), seed: int = 0):
+    def __init__(self, mesh, sensor: SensorModel, settings: SimSettings = SimSettings(), seed: int = 0,
+                 table: SimTable | None = None):
         settings.check()
+        self.table = None if table is None else table.check()
         check_seed(seed)
         sensor.validate()
         faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
@@ -171,14 +176,28 @@ class Simulator:
             dirs = np.matmul(self.rays.directions.reshape(1, -1, 3), p[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3)
             origins = np.repeat(p[:, :3, 3], per_view, axis=0)
             ray, rng_m, cos_i = first_hits(self._intersector, self.mesh, origins, dirs)
+            albedo = np.full(len(ray), self.settings.albedo)
+            if self.table is not None:
+                ray, rng_m, cos_i, albedo = self._with_table(origins, dirs, ray, rng_m, cos_i, albedo)
             rng_m = np.maximum(rng_m, MIN_RANGE_M)
             w = self.rays.weights.reshape(-1)[ray % per_view]
             channel = start * z + ray // r
-            out.append((channel, self.sensor.bin_of_range(rng_m),
-                        self.settings.albedo * w * cos_i / (rng_m * rng_m)))
+            out.append((channel, self.sensor.bin_of_range(rng_m), albedo * w * cos_i / (rng_m * rng_m)))
         if not out:
             return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
         return tuple(np.concatenate(parts) for parts in zip(*out))
+
+    def _with_table(self, origins, dirs, ray, rng_m, cos_i, albedo):
+        """The mesh's first hits (ray, range, cos, albedo) merged with the table's: each ray returns from whichever
+        it meets first."""
+        t_table, cos_table = self.table.hits(origins, dirs)
+        mesh_first = rng_m <= t_table[ray]
+        ray, rng_m, cos_i, albedo = ray[mesh_first], rng_m[mesh_first], cos_i[mesh_first], albedo[mesh_first]
+        on_table = np.isfinite(t_table)
+        on_table[ray] = False
+        hit = np.flatnonzero(on_table)
+        return (np.concatenate([ray, hit]), np.concatenate([rng_m, t_table[hit]]),
+                np.concatenate([cos_i, cos_table[hit]]), np.concatenate([albedo, np.full(len(hit), self.table.albedo)]))
 
     def transient(self, poses) -> np.ndarray:
         """Ideal transient h: albedo x integral of cos_i / r^2 dOmega per bin (sr/m^2), no pulse, gains or noise.
@@ -259,10 +278,13 @@ class Simulator:
 
 def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSettings = SimSettings(), seed: int = 0,
                      chunk_size: int = 64, scene: dict | None = None, schedule: dict | None = None,
-                     progress: bool = True, log=None):
-    """Render `poses` (n, 4, 4) of `mesh` into a complete capture folder `out` (which must not hold a capture).
+                     progress: bool = True, log=None, table: SimTable | None = None):
+    """Render `poses` (n, 4, 4) of `mesh` (on `table`, if given) into a complete capture folder `out` (which must not
+    hold a capture).
 
     The manifest records the effective sensor model (settings folded in), `scene` (plus the albedo) and `schedule`.
+    A table is recorded as a measured capture's is to the reconstruction, `"table": true` (there is one, its height is
+    to be found), and in full as `"simulated_table"` (its height `z`, `albedo` and `half_size_m`) for scoring.
     Shows a progress bar on stderr unless `progress` is False. `log` (a function of one line) hears of views that see
     nothing of the mesh (see `blind_views_note`). Returns the capture's path.
     """
@@ -274,9 +296,11 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
     from .capture_writer import CaptureWriter
 
     poses = check_pose_array(poses)
-    sim = Simulator(mesh, sensor, settings, seed)
+    sim = Simulator(mesh, sensor, settings, seed, table)
     scene = {**(scene or {}), "albedo": settings.albedo, "seed": int(seed), "rays_per_zone": sim.rays.n_rays,
              "faces": int(len(mesh.faces))}
+    if table is not None:
+        scene.update(table=True, simulated_table=table.record())
     writer = CaptureWriter.create(Path(out), sim.sensor, rig={"kind": "simulated"}, schedule=schedule or {},
                                   planned_poses=poses, chunk_size=chunk_size, scene=scene)
     photons = []
@@ -318,5 +342,5 @@ def blind_views_note(signal_photons: np.ndarray, mesh) -> str | None:
             f"expected); the mesh lies within {lo} .. {hi} m: check the target and radius (or the albedo and power)")
 
 
-__all__ = ["SimSettings", "SimFrames", "Simulator", "simulate_capture", "blind_views_note", "check_pose_array",
-           "check_seed", "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS"]
+__all__ = ["SimSettings", "SimFrames", "SimTable", "Simulator", "simulate_capture", "blind_views_note",
+           "check_pose_array", "check_seed", "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS"]

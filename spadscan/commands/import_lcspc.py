@@ -3,8 +3,10 @@
 FILE.json is a JSON list of measurements. The kind is read from the data: 1024-bin single histograms are the
 dataset's simulated scenes (sensor preset lcspc-sim); 9 x 128 histograms with a reference histogram are its real
 TMF8820 captures (preset tmf8820), whose joint angles, on-chip depths, confidences, temperature and tick are kept in
-each measurement's metadata. The capture's scene record names the source file, its SHA-256, the kind and, when a
-ground-truth mesh lies beside the file (<scene>.obj, or the folder's only .stl for real scenes), its path.
+each measurement's metadata. Poses stored with a last row of [0, 0, 0, 0] (some real captures) are read as the
+rigid transforms they are, with one warning line, when their rotation is valid. The capture's scene record names the
+source file, its SHA-256, the kind and, when a ground-truth mesh lies beside the file (<scene>.obj, or the folder's
+only .stl for real scenes), its path.
 
 Examples:
   spadscan import-lcspc LCSPCData/simulated/bunny/bunny.json --out captures/bunny
@@ -67,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for bar in bars.values():
             bar.close()
+    for warning in s.warnings:
+        print(f"spadscan: warning: {warning}", file=sys.stderr)
     for note in s.notes:
         print(f"spadscan: note: {note}", file=sys.stderr)
     shape = " x ".join(str(v) for v in s.hists_shape[1:])

@@ -2,18 +2,25 @@
 photon counts, written as a complete capture folder.
 
 MESH is a mesh file (OBJ, PLY, STL, OFF, ...; metres: one of those four formats over 5 m across is read as
-millimetres, and said so) or `builtin:NAME` for a built-in scene: sphere, cup, lamp, pyramid or demo (a goblet). The
-sensor circles TARGET at RADIUS metres on a Fibonacci spiral (like LCSPCData: 256 views, 0.5 m, from 86 degrees down
-to the horizon) or on elevation rings, always looking at TARGET; --jitter-deg turns each view by a random rotation
-about the sensor, like the dataset's `_random` captures.
+millimetres, and said so) or `builtin:NAME` for a built-in scene (listed below, with the split each belongs to).
+The sensor circles TARGET at RADIUS metres on a Fibonacci spiral (like LCSPCData: 256 views, 0.5 m, from 86 degrees
+down to the horizon) or on elevation rings, always looking at TARGET; --jitter-deg turns each view by a random
+rotation about the sensor, like the dataset's `_random` captures. --table puts the object on a horizontal table
+(black by default), which real captures see in every histogram; the reconstruction then finds its height, as it does
+for a real capture.
 
-Example:
+Examples:
   spadscan simulate bunny.obj --out captures/bunny-sim --sensor lcspc-sim --views 256
+  spadscan simulate builtin:head-on-can --out captures/head-on-can --sensor tmf8820 --table \\
+      --views 120 --schedule rings --rings 8 --min-elevation 36 --max-elevation 83 --radius 0.45 --target 0 0 0.25
 """
 
 from __future__ import annotations
 
 import argparse
+
+from spadscan.protocol.scenes import scene_listing
+from spadscan.protocol.sim_table import DEFAULT_ALBEDO as DEFAULT_TABLE_ALBEDO
 
 SCHEDULES = ("fibonacci", "rings")
 DEFAULT_RINGS = 4
@@ -51,9 +58,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rays-per-zone", type=int, default=None, metavar="R",
                         help="rays cast per zone per view (default: 4096 per view shared by the zones, "
                              "at least 512 each)")
+    table = parser.add_argument_group("table")
+    table.add_argument("--table", action="store_true",
+                       help="stand the object on a horizontal table (a 2 m square at --table-height)")
+    table.add_argument("--table-albedo", type=float, default=None, metavar="A",
+                       help=f"Lambertian albedo of the table, relative to the sensor preset like --albedo (default: "
+                            f"{DEFAULT_TABLE_ALBEDO:g}, a black table)")
+    table.add_argument("--table-height", type=float, default=None, metavar="M",
+                       help="height of the table top in metres (default: 0, where built-in scenes stand)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
     parser.add_argument("--chunk-size", type=int, default=64, metavar="K", help="measurements per chunk (default: 64)")
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
+    parser.epilog = scene_listing()
 
 
 def check_options(args) -> None:
@@ -77,6 +93,19 @@ def check_options(args) -> None:
     if not (args.power > 0):
         raise SimulationError(f"--power {args.power:g} must be > 0 (relative to the sensor preset; 0 is the laser "
                               f"switched off)")
+    for option, value in (("--table-albedo", args.table_albedo), ("--table-height", args.table_height)):
+        if value is not None and not args.table:
+            raise SimulationError(f"{option} {value:g} is for a table: add --table")
+
+
+def make_table(args):
+    """The table the options ask for (a SimTable), or None."""
+    from spadscan.protocol.sim_table import SimTable
+
+    if not args.table:
+        return None
+    return SimTable(height_m=0.0 if args.table_height is None else args.table_height,
+                    albedo=DEFAULT_TABLE_ALBEDO if args.table_albedo is None else args.table_albedo).check()
 
 
 def make_poses(args):
@@ -120,6 +149,7 @@ def run(args) -> int:
     from spadscan.signals import terminate_as_interrupt
 
     check_options(args)
+    table = make_table(args)
     mesh, scene = load_mesh_spec(args.mesh)
     if scene.get("mesh_units") == "mm":
         print(f"{args.mesh}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)", file=sys.stderr)
@@ -131,7 +161,9 @@ def run(args) -> int:
     with terminate_as_interrupt():
         path = simulate_capture(mesh, sensor, poses, args.out, settings=settings, seed=args.seed,
                                 chunk_size=args.chunk_size, scene=scene, schedule=schedule,
-                                progress=not args.no_progress, log=lambda line: print(line, file=sys.stderr))
-    print(f"wrote {len(poses)} views of {len(mesh.faces)} faces with sensor {sensor.name} to {path} "
+                                progress=not args.no_progress, log=lambda line: print(line, file=sys.stderr),
+                                table=table)
+    on_table = "" if table is None else f" on a table at z = {table.height_m:g} m (albedo {table.albedo:g})"
+    print(f"wrote {len(poses)} views of {len(mesh.faces)} faces{on_table} with sensor {sensor.name} to {path} "
           f"in {time.monotonic() - start:.1f} s", file=sys.stderr)
     return 0

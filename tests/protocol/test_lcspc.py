@@ -236,7 +236,7 @@ def test_missing_file_and_folder(tmp_path):
         read_lcspc(tmp_path)
 
 
-# ---- the command -------------------------------------------------------------------------------------------------------
+# ---- the command -----------------------------------------------------------------------------------------------------
 def test_cli_imports_and_reports(tmp_path, capsys):
     src = write_json(tmp_path / "r.json", real_records(3))
     assert main(["import-lcspc", str(src), "--out", str(tmp_path / "cap"), "--chunk-size", "2", "--no-progress"]) == 0
@@ -259,7 +259,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "bad.json" in err and err.count("\n") == 1 and not (tmp_path / "c2").exists()
 
 
-# ---- the public dataset ------------------------------------------------------------------------------------------------
+# ---- the public dataset ----------------------------------------------------------------------------------------------
 @pytest.mark.dataset
 @pytest.mark.parametrize("rel,kind,n,shape,gt", [
     ("simulated/bunny/bunny.json", "simulated", 256, (1, 1024), "bunny.obj"),
@@ -313,3 +313,60 @@ def test_a_temperature_that_is_not_a_number_is_left_out_with_a_note(tmp_path, ca
 def test_numeric_temperatures_give_no_note(tmp_path):
     data = read_lcspc(write_json(tmp_path / "r.json", real_records(2)))
     assert data.notes == () and [m["temperature_c"] for m in data.meta] == [22, 23]
+
+
+# ---- poses stored without their last row -----------------------------------------------------------------------------
+def _zero_last_rows(records, which):
+    for i in which:
+        records[i]["pose"][3] = [0, 0, 0, 0]
+    return records
+
+
+def test_poses_with_a_zero_last_row_are_completed_with_one_warning_line(tmp_path, capsys):
+    records = real_records(4)
+    src = write_json(tmp_path / "r.json", _zero_last_rows(records, range(4)))
+    assert main(["import-lcspc", str(src), "--out", str(tmp_path / "cap"), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert err == ("spadscan: warning: all 4 poses have last row [0, 0, 0, 0]; read as [0, 0, 0, 1], the last row of "
+                   "every rigid transform (their rotations and translations are valid)\n")
+    data = CaptureReader(tmp_path / "cap").load()
+    expect = np.array([look_at_pose(k, 4) for k in range(4)])
+    np.testing.assert_array_equal(data.poses, expect)  # rotation and translation kept exactly, last row completed
+    assert data.manifest["scene"]["import_warnings"] == [err.split("warning: ", 1)[1].strip()]
+
+
+def test_some_poses_with_a_zero_last_row_are_counted_and_the_first_named(tmp_path):
+    data = read_lcspc(write_json(tmp_path / "r.json", _zero_last_rows(sim_records(5), [2, 4])))
+    assert data.warnings == ("2 of 5 poses (first: pose 2) have last row [0, 0, 0, 0]; read as [0, 0, 0, 1], the "
+                             "last row of every rigid transform (their rotations and translations are valid)",)
+    np.testing.assert_array_equal(data.poses[:, 3], np.tile([0, 0, 0, 1.0], (5, 1)))
+    assert read_lcspc(write_json(tmp_path / "ok.json", sim_records(2))).warnings == ()
+
+
+def _scaled_rotation(recs):
+    _pose_scale(recs)
+    recs[1]["pose"][3] = [0, 0, 0, 0]
+
+
+def _reflection(recs):
+    p = np.array(recs[2]["pose"])
+    p[:3, 0] *= -1
+    p[3] = 0
+    recs[2]["pose"] = p.tolist()
+
+
+@pytest.mark.parametrize("edit, why", [
+    (_scaled_rotation, "pose 1 has last row [0, 0, 0, 0] and a 3x3 block that is not a rotation"),
+    (_reflection, "pose 2 has last row [0, 0, 0, 0] and a 3x3 block that is not a rotation"),
+    (_set(0, "pose", (np.eye(4) * [1, 1, 1, 2]).tolist()), "pose 0 has last row [0.0, 0.0, 0.0, 2.0]"),
+    (_set(3, "pose", np.vstack([np.eye(4)[:3], [0.5, 0, 0, 1]]).tolist()), "pose 3 has last row [0.5, 0.0, 0.0, 1.0]"),
+    (_set(1, "pose", np.vstack([np.eye(4)[:3], [0, 0, 0, 1e-3]]).tolist()), "pose 1 has last row"),
+])
+def test_poses_that_are_really_broken_are_still_refused(tmp_path, edit, why):
+    recs = sim_records(4)
+    edit(recs)
+    with pytest.raises(DatasetError) as info:
+        import_lcspc(write_json(tmp_path / "bad.json", recs), tmp_path / "cap")
+    msg = str(info.value)
+    assert "\n" not in msg and "bad.json" in msg and why in msg, msg
+    assert not (tmp_path / "cap").exists()

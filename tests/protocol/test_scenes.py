@@ -6,19 +6,37 @@ import numpy as np
 import pytest
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.scenes import BUILTIN_SCENES, builtin_scene, revolve_profile
+from spadscan.protocol.scenes import (BUILTIN_SCENES, DATASET_SCENES, SPLITS, TABLE_SCENES, builtin_scene,
+                                      revolve_profile, scene_listing, split_of)
+
+
+HEIGHT_M = {"sphere": 0.20, "cup": 0.16, "lamp": 0.20, "pyramid": 0.15, "demo": 0.20, "teddy": 0.25, "head": 0.35,
+            "duck": 0.15, "stool": 0.20, "mug": 0.15, "bowl": 0.11, "head-on-can": 0.50, "tall-block": 0.30}
+"""Each scene's height as its description gives it (metres, to the centimetre)."""
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    """Every built-in scene, built once for the module's tests (each test gets a copy)."""
+    built = {name: builtin_scene(name) for name in BUILTIN_SCENES}
+    return lambda name: built[name].copy()
 
 
 @pytest.mark.parametrize("name", list(BUILTIN_SCENES))
-def test_scene_is_a_closed_solid_standing_on_the_ground(name):
-    mesh = builtin_scene(name)
+def test_scene_is_a_closed_solid_standing_on_the_ground(name, meshes):
+    mesh = meshes(name)
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
     assert len(mesh.split(only_watertight=False)) == 1
+    assert np.all(mesh.area_faces > 0), "no degenerate triangles"
     lo, hi = mesh.bounds
-    assert abs(lo[2]) < 1e-9, "stands on z = 0"
-    assert 0.15 - 1e-9 <= hi[2] <= 0.25
+    assert lo[2] == 0.0, "stands on z = 0"
     np.testing.assert_allclose((lo[:2] + hi[:2]) / 2, 0, atol=1e-6)  # centred on the z axis
-    assert np.all(hi[:2] - lo[:2] < 0.25)
+    assert hi[2] == pytest.approx(HEIGHT_M[name], abs=0.0075), "as tall as its description says"
+    if name in TABLE_SCENES:
+        assert 0.30 - 1e-9 <= hi[2] <= 0.51 and np.all(hi[:2] - lo[:2] < 0.2), "tall and narrow"
+    else:
+        size = (hi - lo).max()
+        assert 0.15 - 1e-9 <= size <= 0.35, f"the dataset's size (15-35 cm), got {size:.3f} m"
     # Normals point outward: a step along a face normal leaves the solid, a step against it enters.
     faces = np.random.default_rng(0).choice(len(mesh.faces), size=min(200, len(mesh.faces)), replace=False)
     centre, normal = mesh.triangles_center[faces], mesh.face_normals[faces]
@@ -27,7 +45,7 @@ def test_scene_is_a_closed_solid_standing_on_the_ground(name):
     assert BUILTIN_SCENES[name] and "\n" not in BUILTIN_SCENES[name]
 
 
-@pytest.mark.parametrize("name", list(BUILTIN_SCENES))
+@pytest.mark.parametrize("name", ["sphere", "pyramid", "duck", "tall-block"])  # revolved, trimesh-made, meshed
 def test_each_call_returns_a_fresh_mesh(name):
     a = builtin_scene(name)
     a.apply_translation([1, 0, 0])
@@ -77,3 +95,147 @@ def test_revolve_refuses_open_profiles():
         revolve_profile(np.array([[0.01, 0], [0.05, 0], [0, 0.1]]))
     mesh = revolve_profile(np.array([[0, 0.1], [0.05, 0.05], [0, 0]]))  # walked the other way: still outward
     assert mesh.volume > 0 and mesh.is_watertight
+
+
+# ---- the splits ----------------------------------------------------------------------------------------------------
+def test_every_builtin_is_in_one_split_or_a_table_scene_and_the_splits_do_not_overlap():
+    tuning, validation = set(SPLITS["tuning"]), set(SPLITS["validation"])
+    assert set(SPLITS) == {"tuning", "validation"} and not tuning & validation
+    assert tuning == {f"builtin:{n}" for n in ("sphere", "cup", "lamp", "pyramid", "demo")} | set(DATASET_SCENES)
+    assert set(DATASET_SCENES) == {"lcspc:sphere", "lcspc:bunny", "lcspc:soap"}
+    for name in BUILTIN_SCENES:
+        homes = [f"builtin:{name}" in tuning, f"builtin:{name}" in validation, name in TABLE_SCENES]
+        assert sum(homes) == 1, name
+        assert split_of(name) == ("tuning" if homes[0] else "validation" if homes[1] else None)
+    assert all(m.split(":", 1)[1] in BUILTIN_SCENES for m in validation | tuning if m.startswith("builtin:"))
+
+
+def test_the_listing_names_every_scene_under_its_split():
+    text = scene_listing()
+    validation_at, table_at = text.index("validation split"), text.index("tall objects")
+    for name in BUILTIN_SCENES:
+        at = text.index(f"    {name} ")
+        group = "tuning" if at < validation_at else "validation" if at < table_at else None
+        assert group == split_of(name), name
+    assert all(n.split(":")[1] in text[:validation_at] for n in DATASET_SCENES)
+
+
+# ---- what each new scene promises ------------------------------------------------------------------------------------
+def _section_parts(mesh, z):
+    """The closed outlines (k, 2) of the horizontal section at height z (m), x and y in metres."""
+    section = mesh.section(plane_origin=[0, 0, z], plane_normal=[0, 0, 1])
+    return [loop[:, :2] for loop in section.discrete]
+
+
+def _area(loop):
+    x, y = loop[:, 0], loop[:, 1]
+    return 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
+
+
+def _extent(loop):
+    return loop.max(axis=0) - loop.min(axis=0)
+
+
+def test_teddy_has_two_thin_ears_above_its_head(meshes):
+    ears = _section_parts(meshes("teddy"), 0.240)
+    assert len(ears) == 2
+    for ear in ears:
+        dx, dy = _extent(ear)
+        assert 0.005 <= dy <= 0.016 and dx > dy, "thin, and broad across the head"
+    gap = np.linalg.norm(ears[0][:, None] - ears[1][None], axis=-1).min()
+    assert gap > 0.03, "standing apart"
+
+
+def test_head_stands_on_a_square_plinth(meshes):
+    mesh = meshes("head")
+    (plinth,) = _section_parts(mesh, 0.03)
+    dx, dy = _extent(plinth)
+    assert dx == pytest.approx(0.14, abs=0.003) and dy == pytest.approx(0.14, abs=0.003)
+    assert _area(plinth) == pytest.approx(dx * dy, rel=0.01), "square, not round"
+    (neck,) = _section_parts(mesh, 0.12)
+    assert _area(neck) < 0.3 * _area(plinth), "a neck on it, narrower"
+
+
+def test_stool_legs_and_rungs_are_thin(meshes):
+    mesh = meshes("stool")
+    legs = _section_parts(mesh, 0.12)
+    assert len(legs) == 3
+    assert all(0.010 <= 2 * np.sqrt(_area(leg) / np.pi) <= 0.014 for leg in legs), "12 mm legs"
+    assert mesh.euler_number < 2, "the rungs close loops between the legs"
+
+
+@pytest.mark.parametrize("name, depth", [("mug", 0.12), ("bowl", 0.08)])
+def test_mug_and_bowl_are_open_to_the_top(name, depth, meshes):
+    mesh = meshes(name)
+    assert _first_hit_z(mesh) < mesh.bounds[1, 2] - depth
+
+
+def test_mug_handle_has_a_hole_through_it(meshes):
+    mesh = meshes("mug")
+    assert mesh.euler_number == 0, "one hole: the handle's"
+
+
+def test_head_on_can_is_a_head_on_a_cylinder(meshes):
+    mesh = meshes("head-on-can")
+    (can,) = _section_parts(mesh, 0.10)
+    assert 2 * np.sqrt(_area(can) / np.pi) == pytest.approx(0.12, abs=0.002)
+    (skull,) = _section_parts(mesh, 0.40)
+    assert _area(skull) > 1.5 * _area(can)
+
+
+# ---- meshing a signed distance function ------------------------------------------------------------------------------
+def test_a_meshed_sphere_and_box_lie_on_the_true_surface_to_well_under_a_millimetre():
+    from spadscan.protocol import sdf
+    from spadscan.protocol.sdf_mesh import mesh_sdf
+
+    ball = mesh_sdf(sdf.sphere((0, 0, 0.05), 0.06), 0.08, 0.12, 0.002)
+    r = np.linalg.norm(ball.vertices - [0, 0, 0.05], axis=1)
+    floor = ball.vertices[:, 2] == 0
+    smooth = ball.vertices[:, 2] > 0.004  # two voxels above the crease where the floor cuts the ball
+    assert np.abs(r[smooth] - 0.06).max() < 0.03e-3  # marching cubes on a 6 cm ball at 2 mm: ~10 um
+    assert np.abs(r[~floor] - 0.06).max() < 0.3e-3  # at the crease, a fraction of a voxel
+    assert floor.any() and ball.bounds[0, 2] == 0.0, "cut flat at z = 0"
+    assert ball.is_watertight and ball.volume == pytest.approx(
+        np.pi / 3 * (0.11 ** 2) * (3 * 0.06 - 0.11), rel=2e-3)  # the cap above z = 0 of a ball of radius 6 cm
+    block = mesh_sdf(sdf.box((0, 0, 0.05), (0.03, 0.02, 0.05)), 0.05, 0.12, 0.002)
+    np.testing.assert_allclose(block.bounds, [[-0.03, -0.02, 0], [0.03, 0.02, 0.1]], atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["teddy", "head", "duck", "stool", "mug", "bowl", "head-on-can"])
+def test_the_sparse_grid_agrees_with_evaluating_every_node(name):
+    """The coarse-to-fine evaluation skips nodes far from the surface: every sign must still be right and every node
+    near the surface exact, at any grid (here a coarser one, to keep the dense evaluation cheap)."""
+    from spadscan.protocol.scene_shapes import SOLID_SCENES
+    from spadscan.protocol.sdf_mesh import grid_values
+
+    scene = SOLID_SCENES[name]()
+    voxel = 0.004
+    xs = (np.arange(-int(scene.half_xy / voxel) - 2, int(scene.half_xy / voxel) + 2) + 0.5) * voxel
+    zs = (np.arange(-2, int(scene.height / voxel) + 2) + 0.5) * voxel
+    sparse = grid_values(scene.shape, xs, xs, zs, voxel)
+    f32 = [a.astype(np.float32) for a in (xs, zs)]
+    dense = scene.shape(f32[0][:, None, None], f32[0][None, :, None], f32[1][None, None, :])
+    assert np.array_equal(sparse < 0, dense < 0)
+    near = np.abs(dense) < 2 * voxel * np.sqrt(3)
+    np.testing.assert_array_equal(sparse[near], dense[near])
+    assert np.all(np.abs(sparse) <= np.abs(dense) + 1e-7), "elsewhere a bound, never more than the truth"
+    assert near.mean() < 0.5, "and most nodes were skipped"
+
+
+def test_a_solid_that_reaches_the_meshing_box_or_holds_nothing_is_a_one_line_error():
+    from spadscan.protocol import sdf
+    from spadscan.protocol.sdf_mesh import mesh_sdf
+
+    with pytest.raises(SpadscanError, match="reaches the meshing box"):
+        mesh_sdf(sdf.sphere((0, 0, 0.05), 0.06), 0.04, 0.12, 0.002)
+    with pytest.raises(SpadscanError, match="no solid"):
+        mesh_sdf(sdf.sphere((0, 0, -0.5), 0.06), 0.04, 0.12, 0.002)
+
+
+@pytest.mark.parametrize("name", list(BUILTIN_SCENES))
+def test_no_scene_is_scored_as_an_object_on_a_table_slab(name, meshes):
+    """The metrics cut a ground truth above its largest flat upward level when that holds over a quarter of its area
+    (a table slab, as in the dataset's real pyramid): a built-in's own flat top must stay well under that."""
+    from spadscan.worker.ground_truth import table_top_z
+
+    assert table_top_z(meshes(name)) is None

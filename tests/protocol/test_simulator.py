@@ -434,7 +434,6 @@ def test_a_capture_is_not_written_among_other_files(tmp_path, capsys):
 
 
 def test_rings_without_the_rings_schedule_is_refused_and_the_help_names_the_builtin_scenes(tmp_path, capsys):
-    import spadscan.commands.simulate as command
     from spadscan.cli import main
     from spadscan.protocol.scenes import BUILTIN_SCENES
 
@@ -444,5 +443,129 @@ def test_rings_without_the_rings_schedule_is_refused_and_the_help_names_the_buil
     assert not (tmp_path / "a").exists()
     assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "b"), "--views", "8", "--schedule", "rings",
                  "--no-progress"]) == 0  # the default ring count
-    doc = " ".join(command.__doc__.split())
-    assert all(name in doc for name in BUILTIN_SCENES)
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    listing = capsys.readouterr().out.split("built-in scenes (builtin:NAME):", 1)[1]
+    assert all(f"    {name} " in listing for name in BUILTIN_SCENES)
+    assert "validation split" in listing and "tuning split" in listing
+
+
+# ---- the table -------------------------------------------------------------------------------------------------------
+def far_ball():
+    """A small ball far outside every view of the table tests: the simulator needs a mesh."""
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=0.01)
+    ball.apply_translation([50.0, 0, 0])
+    return ball
+
+
+def down_from(height_m, tilt_deg=0.0):
+    """A sensor at (0, 0, height_m) looking down, tilted by tilt_deg towards +y."""
+    t = math.radians(tilt_deg)
+    return look_at([0, 0, height_m], [0, height_m * math.tan(t), 0])[None]
+
+
+@pytest.mark.parametrize("height, table_z", [(0.3 + 0.4 * W, 0.0), (0.25 + 0.4 * W, -0.1)])
+def test_table_returns_from_where_its_plane_is_with_the_closed_form_strength(height, table_z):
+    from spadscan.protocol.sim_table import SimTable
+
+    sim = Simulator(far_ball(), cone_sensor(), SimSettings(), table=SimTable(height_m=table_z, albedo=0.08))
+    h = sim.transient(down_from(height))[0, 0]
+    d = height - table_z
+    assert h.sum() == pytest.approx(0.08 * plane_integral(d, math.radians(15)), rel=2e-3)
+    assert np.flatnonzero(h)[0] == math.floor(2.0 + d / W)
+    assert np.flatnonzero(h)[-1] == math.floor(2.0 + d / math.cos(math.radians(15)) / W)
+    # seen obliquely, the boresight meets the table at d / cos(tilt), and the return weakens with the incidence
+    oblique = Simulator(far_ball(), cone_sensor(half_angle_deg=0.5), table=SimTable(table_z, 0.08))
+    straight = oblique.transient(down_from(height))[0, 0].sum()
+    tilted = oblique.transient(down_from(height, 40.0))[0, 0]
+    centres = np.arange(tilted.size) + 0.5
+    assert (centres * tilted).sum() / tilted.sum() == pytest.approx(2.0 + d / math.cos(math.radians(40)) / W, abs=0.6)
+    assert tilted.sum() / straight == pytest.approx(math.cos(math.radians(40)) ** 3, rel=0.01)  # cos / r^2
+
+
+def test_table_strength_scales_with_its_albedo_alone():
+    from spadscan.protocol.sim_table import SimTable
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    ball.apply_translation([0, 0, 0.05])
+    pose = down_from(0.4, 10.0)
+    parts = {a: Simulator(ball, cone_sensor(), SimSettings(albedo=0.5), table=SimTable(0.0, a)).transient(pose)[0, 0]
+             for a in (0.0, 0.05, 0.1)}
+    table_05, table_10 = parts[0.05] - parts[0.0], parts[0.1] - parts[0.0]
+    assert table_05.sum() > 0
+    np.testing.assert_allclose(table_10, 2 * table_05, rtol=1e-9, atol=1e-12)
+    # the ball is the same in all three: its return (nearer than the table under the sensor) does not change
+    ball_bins = slice(0, math.floor(2.0 + 0.29 / W))
+    np.testing.assert_array_equal(parts[0.0][ball_bins], parts[0.1][ball_bins])
+
+
+def test_the_object_hides_the_table_behind_it():
+    from spadscan.protocol.sim_table import SimTable
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    ball.apply_translation([0, 0, 0.05])
+    pose = down_from(0.3)
+    table = SimTable(0.0, 0.1)
+    alone = Simulator(far_ball(), cone_sensor(), table=table).transient(pose)[0, 0]
+    both = Simulator(ball, cone_sensor(), SimSettings(albedo=0.0), table=table).transient(pose)[0, 0]
+    # the ball (black here) covers a cone of half-angle asin(0.05 / 0.25) around the boresight: the table's returns
+    # from inside it, the nearest ones, are gone; those from outside it are unchanged
+    hidden = math.asin(0.05 / 0.25)
+    edge_bin = math.floor(2.0 + 0.3 / math.cos(hidden) / W)
+    assert both[: edge_bin - 1].sum() == 0 and alone[: edge_bin - 1].sum() > 0
+    np.testing.assert_allclose(both[edge_bin + 2:], alone[edge_bin + 2:])
+
+
+def test_table_is_a_finite_square_opaque_from_both_sides():
+    from spadscan.protocol.sim_table import SimTable
+
+    sensor = cone_sensor(half_angle_deg=2.0)
+    table = SimTable(0.0, 0.1, half_size_m=0.5)
+    sim = Simulator(far_ball(), sensor, table=table)
+    over = look_at([0.3, 0, 0.2], [0.3, 0, 0])[None]
+    beyond = look_at([0.8, 0, 0.2], [0.8, 0, 0])[None]
+    under = look_at([0.3, 0, -0.2], [0.3, 0, 0])[None]
+    h = sim.transient(np.concatenate([over, beyond, under]))[:, 0]
+    assert h[0].sum() > 0 and h[1].sum() == 0
+    np.testing.assert_allclose(h[2], h[0])  # from below: the same plane, the same range
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"albedo": -0.1}, "table albedo = -0.1"), ({"height_m": float("nan")}, "table height_m = nan"),
+    ({"half_size_m": 0.0}, "table half_size_m = 0.0"),
+])
+def test_a_bad_table_is_a_one_line_error(changes, message):
+    from spadscan.protocol.sim_table import SimTable
+
+    with pytest.raises(SimulationError) as info:
+        Simulator(far_ball(), cone_sensor(), table=SimTable(**changes))
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_simulate_with_a_table_records_it_as_a_table_to_find_and_the_floor_finds_it(tmp_path, capsys):
+    from spadscan.cli import main
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.worker.baselines.floor import scene_floor
+
+    out = tmp_path / "cap"
+    assert main(["simulate", "builtin:pyramid", "--out", str(out), "--sensor", "tmf8820", "--table",
+                 "--table-albedo", "0.3", "--table-height", "-0.02", "--views", "24", "--schedule", "rings",
+                 "--rings", "3", "--min-elevation", "36", "--max-elevation", "83", "--radius", "0.3",
+                 "--rays-per-zone", "64", "--no-progress"]) == 0
+    assert "on a table at z = -0.02 m (albedo 0.3)" in capsys.readouterr().err
+    data = CaptureReader(out).load()
+    scene = data.manifest["scene"]
+    assert scene["table"] is True
+    assert scene["simulated_table"] == {"z": -0.02, "albedo": 0.3, "half_size_m": 1.0}
+    height, source = scene_floor(data)  # the table search of measured captures, on the histograms alone
+    assert source == "the table, found in the histograms" and height == pytest.approx(-0.02, abs=0.015)
+
+
+@pytest.mark.parametrize("option", [["--table-albedo", "0.2"], ["--table-height", "0.1"]])
+def test_table_options_without_a_table_are_refused(tmp_path, capsys, option):
+    from spadscan.cli import main
+
+    assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "c"), "--views", "4", *option]) == 1
+    err = capsys.readouterr().err
+    assert err == f"spadscan: error: {option[0]} {option[1]} is for a table: add --table\n"
+    assert not (tmp_path / "c").exists()

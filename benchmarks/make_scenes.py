@@ -1,0 +1,94 @@
+"""Simulated captures of the built-in validation split and of the tall objects on a table, for the benchmarks.
+
+    python benchmarks/make_scenes.py --out FOLDER [--groups validation,table] [--seed 0] [--overwrite]
+
+Writes one capture folder per scene into FOLDER, each through `spadscan simulate` with a fixed command line (printed
+as it goes), so the same seed gives the same captures on any machine:
+
+- validation: the validation split (protocol/scenes.py SPLITS) in the public dataset's simulated format: sensor
+  lcspc-sim, 256 views on the Fibonacci spiral at 0.5 m looking at the origin, no table.
+- table: the tall objects (TABLE_SCENES) on a black table, as a real capture sees them: sensor tmf8820, 120 views
+  on 8 elevation rings from 36 to 83 degrees (the real captures' layout), looking at the object's mid-height from
+  0.45 m (head on a can) or 0.40 m (tall block), so that the sensor stays 0.2-0.6 m from the surface.
+
+Then run, e.g.:
+
+    python benchmarks/error_vs_time.py --scenes FOLDER/* --budget-s 180 --out benchmark-out/validation
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from spadscan.cli import main as spadscan
+from spadscan.protocol.scenes import SPLITS, TABLE_SCENES, builtin_scene
+
+VALIDATION_OPTIONS = ["--sensor", "lcspc-sim", "--views", "256"]
+"""LCSPCData's simulated scenes: the spiral's defaults (0.5 m, elevations up to 86 degrees) with its sensor."""
+
+TABLE_OPTIONS = ["--sensor", "tmf8820", "--table", "--views", "120", "--schedule", "rings", "--rings", "8",
+                 "--min-elevation", "36", "--max-elevation", "83"]
+"""The real captures' layout (8 elevation rings from 36 to 83 degrees, 15-16 azimuths each) with the real sensor."""
+
+TABLE_RADIUS_M = {"head-on-can": 0.45, "tall-block": 0.40}
+"""Distance from the sensor to the object's mid-height: the sensor 0.2-0.6 m from the surface."""
+
+GROUPS = ("validation", "table")
+
+
+def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
+    """(capture folder name, `spadscan simulate` arguments without --out) for every scene of the groups."""
+    out = []
+    if "validation" in groups:
+        for spec in SPLITS["validation"]:
+            name = spec.split(":", 1)[1]
+            out.append((name, [spec, *VALIDATION_OPTIONS, "--seed", str(seed)]))
+    if "table" in groups:
+        for name in TABLE_SCENES:
+            mid = round(float(builtin_scene(name).bounds[1, 2]) / 2, 3)
+            out.append((f"{name}-table", [f"builtin:{name}", *TABLE_OPTIONS, "--radius", str(TABLE_RADIUS_M[name]),
+                                          "--target", "0", "0", str(mid), "--seed", str(seed)]))
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True, type=Path, help="folder to write one capture folder per scene into")
+    parser.add_argument("--groups", default=",".join(GROUPS),
+                        help=f"comma-separated groups of scenes (default: {','.join(GROUPS)})")
+    parser.add_argument("--seed", type=int, default=0, help="simulation seed of every capture (default: 0)")
+    parser.add_argument("--overwrite", action="store_true", help="replace captures of the same names in --out")
+    args = parser.parse_args(argv)
+    groups = [g for g in args.groups.split(",") if g]
+    unknown = sorted(set(groups) - set(GROUPS))
+    if unknown or not groups:
+        parser.error(f"--groups {args.groups!r}: choose from {', '.join(GROUPS)}")
+    if args.seed < 0:
+        parser.error(f"--seed {args.seed} must be >= 0")
+    todo = plans(groups, args.seed)
+    existing = [name for name, _ in todo if (args.out / name).exists()]
+    if existing and not args.overwrite:
+        parser.error(f"{args.out} already holds {', '.join(existing)} (add --overwrite to replace them)")
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name, sim_args in todo:
+        target = args.out / name
+        if target.exists():
+            shutil.rmtree(target)
+        command = ["simulate", *sim_args, "--out", str(target), "--no-progress"]
+        print("spadscan " + " ".join(command), flush=True)
+        start = time.monotonic()
+        if spadscan(command) != 0:
+            print(f"make_scenes: {name} failed (see above)", file=sys.stderr)
+            return 1
+        print(f"  {name}: {time.monotonic() - start:.1f} s", flush=True)
+    print(f"{len(todo)} captures in {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
