@@ -1,0 +1,117 @@
+"""`spadscan sweep` on a real Dask cluster: two workers on loopback, one point that fails, one worker killed in the
+middle of a point. Every other point finishes exactly once, the killed one runs again on the other worker, and a
+re-run runs only the failed point. The embedded LocalCluster path runs the same sweep."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from sweep_helpers import FAILING_POWER, spadscan
+
+from spadscan.sweep.plan import make_plan
+from spadscan.sweep.spec import load_spec
+
+pytestmark = pytest.mark.slow
+
+
+def read_log(out: Path) -> list[dict]:
+    path = out / "log.jsonl"
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.endswith("}")]
+
+
+def wait_for(condition, deadline_s: float, what: str, proc=None):
+    end = time.monotonic() + deadline_s
+    while True:
+        value = condition()
+        if value:
+            return value
+        if proc is not None and proc.poll() is not None:
+            raise AssertionError(f"the sweep ended before {what}: rc {proc.returncode}")
+        if time.monotonic() > end:
+            raise AssertionError(f"no {what} within {deadline_s} s")
+        time.sleep(0.05)
+
+
+def test_two_workers_one_killed_mid_point_one_point_failing(dask_cluster, tiny_sweep, tmp_path):
+    import subprocess
+    import sys
+
+    plan = make_plan(load_spec(tiny_sweep))
+    failing = {pid for pid, t in plan.points.items() if t.params["power"] == FAILING_POWER}
+    assert len(plan.points) == 3 and len(failing) == 1
+    out = tmp_path / "out"
+    log_file = open(tmp_path / "sweep.out", "w")
+    sweep = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "sweep", str(tiny_sweep), "--out", str(out),
+                              "--scheduler", dask_cluster.address, "--no-progress"],
+                             stdout=log_file, stderr=subprocess.STDOUT, text=True)
+    try:
+        # Kill the worker that is reconstructing a point that would succeed, while it reconstructs.
+        def reconstructing():
+            return next((e for e in read_log(out) if e["event"] == "stage" and e["stage"] == "fast"
+                         and e["point"] not in failing), None)
+
+        victim = wait_for(reconstructing, 300, "point reaching its reconstruction", sweep)
+        dask_cluster.kill(victim["name"])
+        assert sweep.wait(timeout=400) == 0, (tmp_path / "sweep.out").read_text()
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+            sweep.wait()
+        log_file.close()
+    output = (tmp_path / "sweep.out").read_text()
+    events = read_log(out)
+    killed = victim["point"]
+    finished = Counter(e["point"] for e in events if e["event"] in ("done", "failed"))
+    starts = Counter(e["point"] for e in events if e["event"] == "start")
+    assert not any(e["event"] in ("done", "failed") and e["name"] == victim["name"] and e["point"] == killed
+                   for e in events), "the point ended before its worker was killed: the kill came too late"
+    # Every point ended exactly once; the killed one was started twice, the second time on the other worker.
+    assert finished == {pid: 1 for pid in plan.points}, events
+    assert starts[killed] == 2 and all(starts[p] == 1 for p in plan.points if p != killed), starts
+    second = [e for e in events if e["event"] == "start" and e["point"] == killed][1]
+    assert second["name"] != victim["name"]
+    results = {pid: json.loads((out / "points" / f"{pid}.json").read_text()) for pid in plan.points}
+    assert results[killed]["status"] == "done" and results[killed]["worker"]["name"] == second["name"]
+    for pid, result in results.items():
+        if pid in failing:
+            assert result["status"] == "failed" and "fast: " in result["reason"], result["reason"]
+            assert "\n" not in result["reason"]
+        else:
+            assert result["status"] == "done", result["reason"]
+            assert all(m["status"] == "done" and m["chamfer_mm"] > 0 for m in result["methods"].values())
+    assert "3 points: 0 done earlier, 3 run now (2 done, 1 failed)" in output, output
+    rows = (out / "results.csv").read_text().splitlines()
+    assert len(rows) == 1 + 4  # a header and the four grid entries (the base point sits on both axes)
+
+    # A re-run runs the failed point alone.
+    before = len(events)
+    rerun = spadscan("sweep", str(tiny_sweep), "--out", str(out), "--scheduler", dask_cluster.address,
+                     "--no-progress")
+    assert rerun.returncode == 0, rerun.stderr
+    new = read_log(out)[before:]
+    assert {e["point"] for e in new if e["event"] == "start"} == failing, new
+    assert "3 points: 2 done earlier, 1 run now (0 done, 1 failed)" in rerun.stdout, rerun.stdout
+
+
+def test_local_cluster_runs_the_sweep_and_reruns_only_the_failed_point(tiny_sweep, tmp_path):
+    out = tmp_path / "out"
+    first = spadscan("sweep", str(tiny_sweep), "--out", str(out), "--workers", "2", "--no-progress")
+    assert first.returncode == 0, first.stderr
+    assert "local cluster: 2 worker processes" in first.stderr
+    assert "3 points: 0 done earlier, 3 run now (2 done, 1 failed)" in first.stdout, first.stdout
+    assert "failed: builtin:sphere views=12 power=1e-07" in first.stdout
+    plan = make_plan(load_spec(tiny_sweep))
+    events = read_log(out)
+    assert Counter(e["point"] for e in events if e["event"] == "start") == {pid: 1 for pid in plan.points}
+    second = spadscan("sweep", str(tiny_sweep), "--out", str(out), "--workers", "1", "--no-progress")
+    assert second.returncode == 0, second.stderr
+    assert "3 points: 2 done earlier, 1 run now (0 done, 1 failed)" in second.stdout, second.stdout
+    started = [e["point"] for e in read_log(out)[len(events):] if e["event"] == "start"]
+    assert [plan.points[p].params["power"] for p in started] == [FAILING_POWER]
