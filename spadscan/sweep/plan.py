@@ -16,6 +16,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from spadscan.protocol.errors import ConfigError
+
 from .params import check_point
 from .scenes import Scene, load_scene
 from .spec import BaselineRun, PresetRun, SweepSpec
@@ -87,7 +89,13 @@ def make_plan(spec: SweepSpec, lcspc_root: Path | None = None) -> Plan:
         for axis, value, params in _grid_points(spec):
             key = canonical_hash(params)
             if key not in sensors:
-                sensors[key] = check_point(params, spec.base["bin_ps"])
+                try:
+                    sensors[key] = check_point(params, spec.base["bin_ps"])
+                except ConfigError as exc:
+                    at = "the base condition" if axis == "base" else (
+                        f"[grid] {axis} = {value:g}" if axis != PRODUCT_AXIS else
+                        "[grid] " + ", ".join(f"{a} = {params[a]:g}" for a in spec.grid))
+                    raise ConfigError(f"{spec.path}: {at}: {exc}") from None
             record = {"format": FORMAT, "scene": scene.record(), "params": params, "sensor": sensors[key], **methods}
             pid = canonical_hash(record)[:16]
             if pid not in plan.points:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.ticker import FuncFormatter, NullFormatter, NullLocator
 from matplotlib.transforms import blended_transform_factory
 
 from .params import PARAMS
@@ -72,7 +73,7 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
     any_value = False
     for g, group in enumerate(groups):
         alpha = 1.0 if g == 0 else max(0.25, 1.0 - 0.15 * g)
-        for method in results.methods:
+        for m, method in enumerate(results.methods):
             pts = sorted((x, results.method_value(r, method)) for r in group
                          if (x := number(r.get(axis))) is not None and not results.method_failed(r, method))
             failed = sorted(x for r in group if (x := number(r.get(axis))) is not None
@@ -82,16 +83,27 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
                 ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=4, color=colour, alpha=alpha)
                 any_value = True
             if failed:
-                ax.plot(failed, [0.97] * len(failed), marker="x", ms=7, mew=2, linestyle="none", color=colour,
+                # Stacked down from the top edge, one row per method, so that crosses at one x all show.
+                ax.plot(failed, [0.96 - 0.06 * m] * len(failed), marker="x", ms=7, mew=2, linestyle="none", color=colour,
                         alpha=alpha, transform=top, clip_on=False)
     values = [v for v in results.grid.get(axis, []) if isinstance(v, (int, float))]
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
     if any_value:
         ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(plain)
+        low, high = ax.get_ylim()
+        # Under a decade the major ticks alone say too little: label the minor ones too.
+        ax.yaxis.set_minor_formatter(plain if high / low < 10 else NullFormatter())
     if PARAMS.get(axis) is not None and PARAMS[axis].log and values and min(values) > 0:
         ax.set_xscale("log")
-    elif values and min(values) == 0 and max(values) > 0 and axis == "ambient":
-        positive = [v for v in values if v > 0]
-        ax.set_xscale("symlog", linthresh=min(positive))
+    elif values and min(values) == 0 and max(values) > 0:
+        ax.set_xscale("symlog", linthresh=min(v for v in values if v > 0))
+    if values:
+        ax.set_xticks(sorted(values))
+        ax.xaxis.set_major_formatter(plain)
+        ax.xaxis.set_minor_locator(NullLocator())
+        if len(values) > 4:
+            ax.tick_params(axis="x", labelrotation=45)
     base = results.base.get(axis)
     if results.mode == "one-at-a-time" and isinstance(base, (int, float)):
         ax.axvline(base, color="0.5", linestyle=":", linewidth=1)
