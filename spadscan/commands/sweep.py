@@ -68,9 +68,8 @@ def run(args) -> int:
                         keep=args.keep, progress=not args.no_progress, log=log)
     print(f"{summary.points} points: {summary.earlier} done earlier, {summary.ran} run now "
           f"({summary.done} done, {len(summary.failed)} failed)")
-    axes = list(spec.grid)
     for task, reason in summary.failed:
-        print(f"  failed: {task.describe(axes)} [{task.id}]: {reason}")
+        print(f"  failed: {task.describe(spec.base)} [{task.id}]: {reason}")
     print(f"results: {Path(args.out) / 'results.csv'} ({summary.rows} rows); plot: spadscan sweep-plot {args.out}")
     return 0
 
@@ -79,12 +78,11 @@ def _dry_run(plan, out) -> int:
     from spadscan.sweep.store import SweepDir
 
     store = SweepDir(out)
-    axes = list(plan.spec.grid)
     done = 0
     for task in plan.points.values():
         result = store.read_point(task.id) if out.is_dir() else None
         status = (result or {}).get("status", "to run")
         done += status == "done"
-        print(f"{task.id}  {status:<7} {task.describe(axes)}")
+        print(f"{task.id}  {status:<7} {task.describe(plan.spec.base)}")
     print(f"{len(plan.points)} points, {done} done, {len(plan.points) - done} to run")
     return 0

@@ -54,11 +54,13 @@ class PointTask:
     base_bin_ps: float
     """The base condition's bin size, to which `ambient` refers."""
 
-    def describe(self, axes=()) -> str:
-        """A short name for messages: the scene and the values of `axes`."""
-        parts = [f"{a}={self.params[a]:g}" if isinstance(self.params[a], (int, float)) else f"{a}={self.params[a]}"
-                 for a in axes]
-        return " ".join([self.scene.label, *parts])
+    def describe(self, base: dict | None = None) -> str:
+        """A short name for messages: the scene and the parameters that differ from `base` (all varied axes of a
+        one-at-a-time sweep are one of them)."""
+        changed = [k for k, v in self.params.items() if base is not None and base.get(k) != v]
+        parts = [f"{k}={self.params[k]:g}" if isinstance(self.params[k], (int, float)) else f"{k}={self.params[k]}"
+                 for k in changed]
+        return " ".join([self.scene.label, *(parts or ["(base condition)"])])
 
 
 @dataclass

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import secrets
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -32,6 +33,9 @@ from .store import SweepDir
 EVENT_TOPIC = "spadscan-sweep"
 DEVICES = ("cpu", "cuda", "auto")
 CONNECT_TIMEOUT_S = 30
+RESULTS_EVERY_S = 10.0
+"""results.csv is gathered again at most this often while points finish (it reads every point's file), and at the
+end."""
 
 
 def dask_point(task: PointTask, out: str, device: str, keep: bool) -> dict:
@@ -60,6 +64,8 @@ class Summary:
     failed: list[tuple[PointTask, str]] = field(default_factory=list)
     rows: int = 0
     """Rows of results.csv."""
+    startup_s: float = 0.0
+    """Seconds to start (or reach) the cluster."""
 
 
 def cores() -> int:
@@ -70,10 +76,12 @@ def cores() -> int:
 
 
 def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | None = None, device: str = "cpu",
-              keep: bool = False, progress: bool = True, log: Callable[[str], None] | None = None) -> Summary:
+              keep: bool = False, progress: bool = True, log: Callable[[str], None] | None = None,
+              point: Callable[..., dict] = dask_point) -> Summary:
     """Run every point of `plan` that DIR `out` does not hold as done; returns the summary. `scheduler`: the
     address of a running Dask scheduler (tcp://host:8786); None starts a LocalCluster of `workers` processes (default:
-    one per core; one for CUDA)."""
+    one per core; one for CUDA). `point`: the task each point runs, point(task, out, device, keep) -> a summary
+    dict with id and status (dask_point; benchmarks/sweep_overhead.py times Dask with one that does nothing)."""
     log = log or (lambda line: None)
     if device not in DEVICES:
         raise ConfigError(f"device {device!r} is not one of {', '.join(DEVICES)}")
@@ -88,56 +96,64 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
         todo = [t for t in plan.points.values() if (store.read_point(t.id) or {}).get("status") != "done"]
         summary = Summary(len(plan.points), len(plan.points) - len(todo))
         if todo:
-            _run_on_dask(plan, todo, store, summary, scheduler, workers, device, keep, progress, log)
+            _run_on_dask(plan, todo, store, summary, _client(scheduler, workers, device, log),
+                         lambda task: (point, task, str(store.path.resolve()), device, keep), device, progress)
         summary.rows = store.write_results(plan)
         return summary
     finally:
         store.close()
 
 
-def _run_on_dask(plan, todo, store, summary, scheduler, workers, device, keep, progress, log) -> None:
+def _run_on_dask(plan, todo, store, summary, connect, call, device, progress) -> None:
+    """Submit a task per point of `todo` (`call(task)` gives the function and its arguments) to the client that
+    `connect` opens, and record each as it finishes."""
     def on_event(event) -> None:
         _, message = event
         if isinstance(message, dict):
             store.append_log(message)
 
-    with _client(scheduler, workers, device, log) as client:
+    start = time.monotonic()
+    with connect as client:
+        summary.startup_s = time.monotonic() - start
         client.subscribe_topic(EVENT_TOPIC, on_event)
         token = secrets.token_hex(4)  # keys of this run only: another client's tasks never stand in for these
         resources = {"GPU": 1} if device == "cuda" else None
-        out = str(store.path.resolve())
         futures = {}
         for task in todo:
-            future = client.submit(dask_point, task, out, device, keep, key=f"spadscan-point-{task.id}-{token}",
-                                   resources=resources, pure=False)
+            future = client.submit(*call(task), key=f"spadscan-point-{task.id}-{token}", resources=resources,
+                                   pure=False)
             futures[future] = task
-        axes = list(plan.spec.grid)
+        gathered = time.monotonic()
         with tqdm(total=len(todo), desc="sweep", unit="point", disable=not progress) as bar:
-            for future in as_completed(futures):
+            # Results come with the futures (fetched in the background), not one round trip per point.
+            for future, outcome in as_completed(futures, with_results=True, raise_errors=False):
                 task = futures.pop(future)
-                result = _outcome(future, task, store, device)
+                result = _outcome(outcome, task, store, device)
                 future.release()
                 summary.ran += 1
                 if result["status"] == "done":
                     summary.done += 1
                 else:
                     summary.failed.append((task, result.get("reason") or "failed"))
-                    bar.write(f"failed: {task.describe(axes)}: {result.get('reason')}")
+                    bar.write(f"failed: {task.describe(plan.spec.base)}: {result.get('reason')}")
                 bar.set_postfix(failed=len(summary.failed), refresh=False)
                 bar.update(1)
-                store.write_results(plan)  # results.csv follows the run, so a look at it mid-sweep is current
+                if time.monotonic() - gathered > RESULTS_EVERY_S:  # a look at results.csv mid-sweep is current
+                    store.write_results(plan)
+                    gathered = time.monotonic()
         client.unsubscribe_topic(EVENT_TOPIC)
 
 
-def _outcome(future, task: PointTask, store: SweepDir, device: str) -> dict:
-    """The summary a finished future carries; a task Dask gave up on (its workers died) is recorded as failed."""
-    try:
-        return future.result()
-    except KilledWorker as exc:
+def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
+    """The summary a finished task returned, or for a task that raised (Dask gave up on it when its workers died, or
+    the task could not run at all) a failed point, recorded."""
+    if not isinstance(outcome, BaseException):
+        return outcome
+    if isinstance(outcome, KilledWorker):
         reason = (f"the worker running it died each time it was tried (killed, or out of memory?): "
-                  f"{' '.join(str(exc).split())[:200]}")
-    except Exception as exc:  # noqa: BLE001 - whatever Dask raises for one task, the sweep goes on
-        reason = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
+                  f"{' '.join(str(outcome).split())[:200]}")
+    else:
+        reason = f"{type(outcome).__name__}: {' '.join(str(outcome).split())[:300]}"
     result = {"id": task.id, "status": "failed", "reason": reason, "scene": task.scene.label,
               "params": task.params, "methods": {}, "device": device, "record": task.record}
     store.write_point(result)
@@ -164,8 +180,11 @@ class _client:
                      ("" if n else "; points wait until one connects (dask worker " + self.scheduler + ")"))
             return self.client
         n = self.workers or (1 if self.device == "cuda" else cores())
-        self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                    silence_logs=logging.ERROR,
+        # Loopback only; no dashboard, and the scheduler's HTTP server (health, metrics) on a free port: a fixed
+        # 8787 would clash with another cluster on the machine.
+        self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                    dashboard_address=None, silence_logs=logging.ERROR,
+                                    scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
                                     **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
         self.client = Client(self.cluster)
         self.log(f"local cluster: {n} worker process{'' if n == 1 else 'es'}, one thread each")

@@ -106,7 +106,7 @@ def test_local_cluster_runs_the_sweep_and_reruns_only_the_failed_point(tiny_swee
     assert first.returncode == 0, first.stderr
     assert "local cluster: 2 worker processes" in first.stderr
     assert "3 points: 0 done earlier, 3 run now (2 done, 1 failed)" in first.stdout, first.stdout
-    assert "failed: builtin:sphere views=12 power=1e-07" in first.stdout
+    assert "failed: builtin:sphere power=1e-07" in first.stdout
     plan = make_plan(load_spec(tiny_sweep))
     events = read_log(out)
     assert Counter(e["point"] for e in events if e["event"] == "start") == {pid: 1 for pid in plan.points}
