@@ -62,10 +62,13 @@ def run(args) -> int:
         f"{', '.join(spec.methods)}")
     if args.dry_run:
         return _dry_run(plan, Path(args.out))
+    from spadscan.signals import terminate_as_interrupt
     from spadscan.sweep.runner import run_sweep
 
-    summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers, device=args.device,
-                        keep=args.keep, progress=not args.no_progress, log=log)
+    # SIGTERM as Ctrl-C: the local cluster's worker processes are stopped, not left running without a client.
+    with terminate_as_interrupt():
+        summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers,
+                            device=args.device, keep=args.keep, progress=not args.no_progress, log=log)
     print(f"{summary.points} points: {summary.earlier} done earlier, {summary.ran} run now "
           f"({summary.done} done, {len(summary.failed)} failed)")
     for task, reason in summary.failed:

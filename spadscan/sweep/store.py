@@ -46,20 +46,9 @@ PRESET_COLUMNS = ("steps", "stopped_by")
 BASELINE_COLUMNS = ("threshold",)
 
 
-def write_json_atomic(path: Path, data: dict) -> None:
-    """Replace `path` atomically, from a temporary file whose name no other writer uses (two attempts at one point
-    may end at once on two machines)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
-    try:
-        write_durable(tmp, (json.dumps(data, indent=1, allow_nan=False) + "\n").encode())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    fsync_dir(path.parent)
-
-
 def write_text_atomic(path: Path, text: str) -> None:
+    """Replace `path` atomically (a durable temporary file, renamed, the folder synced). The temporary file's name
+    is this writer's own: two attempts at one point may end at once on two machines."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
     try:
@@ -67,6 +56,11 @@ def write_text_atomic(path: Path, text: str) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+    fsync_dir(path.parent)
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    write_text_atomic(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
 
 
 def column_name(method: str) -> str:

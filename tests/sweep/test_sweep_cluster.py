@@ -100,18 +100,56 @@ def test_two_workers_one_killed_mid_point_one_point_failing(dask_cluster, tiny_s
     assert "3 points: 2 done earlier, 1 run now (0 done, 1 failed)" in rerun.stdout, rerun.stdout
 
 
-def test_local_cluster_runs_the_sweep_and_reruns_only_the_failed_point(tiny_sweep, tmp_path):
+def pid_alive(pid: int) -> bool:
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    state = Path(f"/proc/{pid}/stat")
+    return not (state.exists() and state.read_text().rsplit(")", 1)[1].split()[0] == "Z")
+
+
+def test_local_cluster_stops_cleanly_and_resumes_where_it_stopped(tiny_sweep, tmp_path):
+    import signal
+    import subprocess
+    import sys
+
     out = tmp_path / "out"
-    first = spadscan("sweep", str(tiny_sweep), "--out", str(out), "--workers", "2", "--no-progress")
-    assert first.returncode == 0, first.stderr
-    assert "local cluster: 2 worker processes" in first.stderr
-    assert "3 points: 0 done earlier, 3 run now (2 done, 1 failed)" in first.stdout, first.stdout
-    assert "failed: builtin:sphere power=1e-07" in first.stdout
     plan = make_plan(load_spec(tiny_sweep))
+    sweep = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "sweep", str(tiny_sweep), "--out", str(out),
+                              "--workers", "2", "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    try:
+        wait_for(lambda: any(e["event"] == "done" for e in read_log(out)), 300, "point done", sweep)
+        sweep.send_signal(signal.SIGTERM)  # a service stop, a time limit: as Ctrl-C
+        _, err = sweep.communicate(timeout=120)
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+            sweep.wait()
+    assert sweep.returncode == 130, err
+    assert "local cluster: 2 worker processes" in err and "interrupted" in err
     events = read_log(out)
-    assert Counter(e["point"] for e in events if e["event"] == "start") == {pid: 1 for pid in plan.points}
-    second = spadscan("sweep", str(tiny_sweep), "--out", str(out), "--workers", "1", "--no-progress")
-    assert second.returncode == 0, second.stderr
-    assert "3 points: 2 done earlier, 1 run now (0 done, 1 failed)" in second.stdout, second.stdout
-    started = [e["point"] for e in read_log(out)[len(events):] if e["event"] == "start"]
-    assert [plan.points[p].params["power"] for p in started] == [FAILING_POWER]
+    workers = {e["pid"] for e in events if "pid" in e}
+    wait_for(lambda: not any(pid_alive(p) for p in workers), 60, "worker processes ending with their sweep")
+    # The points' files are the truth (a point may end after the client stopped listening to its events).
+    done = {p for p in plan.points if json.loads((out / "points" / f"{p}.json").read_text()
+                                                  if (out / "points" / f"{p}.json").exists() else "{}").get("status")
+            == "done"}
+    assert {e["point"] for e in events if e["event"] == "done"} <= done and done
+
+    resumed = spadscan("sweep", str(tiny_sweep), "--out", str(out), "--workers", "2", "--no-progress")
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"3 points: {len(done)} done earlier, {3 - len(done)} run now" in resumed.stdout, resumed.stdout
+    assert "failed: builtin:sphere power=1e-07" in resumed.stdout
+    started = Counter(e["point"] for e in read_log(out)[len(events):] if e["event"] == "start")
+    assert set(started) == set(plan.points) - done and set(started.values()) == {1}
+
+    before = len(read_log(out))
+    again = spadscan("sweep", str(tiny_sweep), "--out", str(out), "--workers", "1", "--no-progress")
+    assert again.returncode == 0, again.stderr
+    assert "3 points: 2 done earlier, 1 run now (0 done, 1 failed)" in again.stdout, again.stdout
+    rerun = [e["point"] for e in read_log(out)[before:] if e["event"] == "start"]
+    assert [plan.points[p].params["power"] for p in rerun] == [FAILING_POWER]
