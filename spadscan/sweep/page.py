@@ -25,32 +25,37 @@ def _fmt(value) -> str:
     return f"{v:.4g}"
 
 
+def _cell(text: str, css: str = "", title: str = "") -> str:
+    attrs = (f' class="{css}"' if css else "") + (f' title="{_esc(title)}"' if title else "")
+    return f"<td{attrs}>{text}</td>"
+
+
+def _row(results: SweepResults, r: dict) -> str:
+    if r["value"] != "":
+        where = [_cell(_esc(r["axis"])), _cell(_fmt(r["value"]), "num")]
+    else:  # a product sweep's entry: every varied parameter's value
+        where = [_cell(_esc(r["axis"])), _cell(_esc(" ".join(f"{a}={_fmt(r.get(a))}" for a in results.grid)))]
+    status = _esc(r["status"]) if r["status"] == "done" else f"{_esc(r['status'])}: {_esc(r['reason'])}"
+    cells = [*where, _cell(f"<code>{_esc(r['point'])}</code>"),
+             _cell(status, "" if r["status"] == "done" else "failed")]
+    for m in results.methods:
+        v = results.method_value(r, m)
+        cells.append(_cell(f"{v:.3f}", "num") if v is not None else _cell("failed", "missing"))
+    for m in results.methods:
+        if m not in results.presets:
+            t = results.method_value(r, m, "threshold")
+            cells.append(_cell(f"{t:g}", "num") if t is not None else _cell("-", "missing"))
+    return "<tr>" + "".join(cells) + "</tr>"
+
+
 def _table(results: SweepResults, scene: str) -> str:
     head = ["parameter", "value", "point", "status"] + [f"{method_label(m)}: Chamfer (mm)" for m in results.methods]
     head += [f"{method_label(m)}: threshold" for m in results.methods if m not in results.presets]
-    lines = ["<table>", "<tr>" + "".join(f"<th>{_esc(h)}</th>" for h in head) + "</tr>"]
     order = {axis: i for i, axis in enumerate(results.grid)}
     rows = sorted((r for r in results.rows if r["scene"] == scene),
                   key=lambda r: (order.get(r["axis"], len(order)), number(r["value"]) or 0.0, r["point"]))
-    for r in rows:
-        value = r["value"] if r["value"] != "" else " ".join(f"{a}={_fmt(r.get(a))}" for a in results.grid)
-        status = r["status"]
-        cells = [_esc(r["axis"]), f'<td class="num">{_fmt(value)}</td>' if r["value"] != "" else _esc(value),
-                 f"<code>{_esc(r['point'])}</code>",
-                 _esc(status) if status == "done" else f'<span class="failed" title="{_esc(r["reason"])}">'
-                                                       f'{_esc(status)}: {_esc(r["reason"])}</span>']
-        tds = [c if c.startswith("<td") else f"<td>{c}</td>" for c in cells]
-        for m in results.methods:
-            v = results.method_value(r, m)
-            tds.append(f'<td class="num">{v:.3f}</td>' if v is not None else
-                       '<td class="missing">failed</td>')
-        for m in results.methods:
-            if m not in results.presets:
-                t = results.method_value(r, m, "threshold")
-                tds.append(f'<td class="num">{t:g}</td>' if t is not None else '<td class="missing">-</td>')
-        lines.append("<tr>" + "".join(tds) + "</tr>")
-    lines.append("</table>")
-    return "\n".join(lines)
+    return "\n".join(["<table>", "<tr>" + "".join(f"<th>{_esc(h)}</th>" for h in head) + "</tr>",
+                      *(_row(results, r) for r in rows), "</table>"])
 
 
 def write_page(results: SweepResults, pictures: dict[str, str], folder) -> Path:

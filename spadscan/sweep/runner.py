@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import secrets
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,14 +129,17 @@ def _run_on_dask(plan, todo, store, summary, connect, call, device, progress) ->
             # Results come with the futures (fetched in the background), not one round trip per point.
             for future, outcome in as_completed(futures, with_results=True, raise_errors=False):
                 task = futures.pop(future)
-                result = _outcome(outcome, task, store, device)
+                # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
+                result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device)
                 future.release()
                 summary.ran += 1
                 if result["status"] == "done":
                     summary.done += 1
                 else:
                     summary.failed.append((task, result.get("reason") or "failed"))
-                    bar.write(f"failed: {task.describe(plan.spec.base)}: {result.get('reason')}")
+                    # Above the bar, on stderr with it: stdout holds the summary alone.
+                    bar.write(f"spadscan sweep: failed: {task.describe(plan.spec.base)}: {result.get('reason')}",
+                              file=sys.stderr)
                 bar.set_postfix(failed=len(summary.failed), refresh=False)
                 bar.update(1)
                 if time.monotonic() - gathered > RESULTS_EVERY_S:  # a look at results.csv mid-sweep is current
@@ -150,8 +154,9 @@ def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
     if not isinstance(outcome, BaseException):
         return outcome
     if isinstance(outcome, KilledWorker):
-        reason = (f"the worker running it died each time it was tried (killed, or out of memory?): "
-                  f"{' '.join(str(outcome).split())[:200]}")
+        tries = outcome.allowed_failures + 1
+        reason = (f"the worker running it died each time it was tried ({tries} workers: killed, or out of memory?); "
+                  f"their logs say why")
     else:
         reason = f"{type(outcome).__name__}: {' '.join(str(outcome).split())[:300]}"
     result = {"id": task.id, "status": "failed", "reason": reason, "scene": task.scene.label,
@@ -175,9 +180,13 @@ class _client:
             except (OSError, TimeoutError) as exc:
                 raise ConfigError(f"cannot reach the Dask scheduler at {self.scheduler} "
                                   f"({' '.join(str(exc).split())[:200]})") from None
-            n = len(self.client.scheduler_info().get("workers", {}))
+            workers = self.client.scheduler_info().get("workers", {})
+            n = len(workers)
             self.log(f"scheduler {self.scheduler}: {n} worker{'' if n == 1 else 's'} connected" +
                      ("" if n else "; points wait until one connects (dask worker " + self.scheduler + ")"))
+            if self.device == "cuda" and n and not any(w.get("resources", {}).get("GPU") for w in workers.values()):
+                self.log("warning: no connected worker has the resource GPU=1; the points wait for one "
+                         "(dask worker ... --resources GPU=1)")
             return self.client
         n = self.workers or (1 if self.device == "cuda" else cores())
         # Loopback only; no dashboard, and the scheduler's HTTP server (health, metrics) on a free port: a fixed

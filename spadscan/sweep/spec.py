@@ -228,6 +228,8 @@ def _preset(name: str, table: dict, where: str) -> PresetRun:
         raise ConfigError(f"{where}: [{name}] set must be a table of config keys, e.g. "
                           f"set = {{ \"field.resolution\" = 48 }}")
     overrides = _flatten(overrides)
+    if "metrics_points" in overrides:
+        raise ConfigError(f"{where}: [{name}] set: metrics_points is [metrics] points (every method is scored alike)")
     # Check the overrides against the preset's config now, not on a worker hours later.
     try:
         with_overrides(preset_config(name), overrides)

@@ -225,7 +225,7 @@ def results_row(entry, result: dict, methods, spec) -> list:
     params = result.get("params", {})
     presets = {p.name for p in spec.presets}
     bin_mm = params["bin_ps"] * 1e-12 * C_M_PER_S / 2 * 1e3 if "bin_ps" in params else ""
-    row = [entry.scene, entry.axis, "" if entry.value is None else entry.value, entry.point_id,
+    row = [entry.scene, entry.axis, "" if entry.value is None else _cell(entry.value), entry.point_id,
            result.get("status", ""), result.get("reason") or "", *(_cell(params.get(c)) for c in PARAM_COLUMNS),
            _cell(bin_mm)]
     for m in methods:

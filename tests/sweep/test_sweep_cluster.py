@@ -153,3 +153,45 @@ def test_local_cluster_stops_cleanly_and_resumes_where_it_stopped(tiny_sweep, tm
     assert "3 points: 2 done earlier, 1 run now (0 done, 1 failed)" in again.stdout, again.stdout
     rerun = [e["point"] for e in read_log(out)[before:] if e["event"] == "start"]
     assert [plan.points[p].params["power"] for p in rerun] == [FAILING_POWER]
+
+
+KILLER = """
+import sys
+from pathlib import Path
+
+import dask
+
+from spadscan.sweep.plan import make_plan
+from spadscan.sweep.runner import run_sweep
+from spadscan.sweep.spec import load_spec
+
+
+def dies_every_time(task, out, device, keep):
+    import os
+
+    os._exit(1)  # takes its worker down with it, as running out of memory does
+
+
+if __name__ == "__main__":
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        summary = run_sweep(make_plan(load_spec(sys.argv[1])), Path(sys.argv[2]), workers=1, progress=False,
+                            point=dies_every_time)
+    print(summary.ran, summary.done, len(summary.failed))
+"""
+
+
+def test_a_point_that_kills_every_worker_it_runs_on_is_recorded_as_failed(tiny_sweep, tmp_path):
+    import subprocess
+    import sys
+
+    script = tmp_path / "killer.py"
+    script.write_text(KILLER)
+    run = subprocess.run([sys.executable, str(script), str(tiny_sweep), str(tmp_path / "out")], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.split() == ["3", "0", "3"]
+    for task in make_plan(load_spec(tiny_sweep)).points.values():
+        stored = json.loads((tmp_path / "out" / "points" / f"{task.id}.json").read_text())
+        assert stored["status"] == "failed"
+        assert stored["reason"] == ("the worker running it died each time it was tried (2 workers: killed, or out "
+                                    "of memory?); their logs say why")
