@@ -85,9 +85,15 @@ class SweepDir:
         if self.path.exists() and not self.path.is_dir():
             raise ConfigError(f"{self.path}: exists and is not a folder")
         self.path.mkdir(parents=True, exist_ok=True)
+        new_lock = not (self.path / LOCK).exists()
         self._lock()
         try:
-            self._check_fingerprint(plan)
+            try:
+                self._check_fingerprint(plan)
+            except ConfigError:
+                if new_lock:  # a refused folder is left as it was found
+                    (self.path / LOCK).unlink(missing_ok=True)
+                raise
             self.points.mkdir(exist_ok=True)
             self.work.mkdir(exist_ok=True)
             for stale in self.work.glob(f"*{RUNNING_MARK}*"):
@@ -120,9 +126,9 @@ class SweepDir:
     def _check_fingerprint(self, plan) -> None:
         path = self.path / SWEEP_JSON
         if not path.exists():
-            if self.points.is_dir() and any(self.points.glob("*.json")):
-                raise ConfigError(f"{self.path}: holds points but no {SWEEP_JSON}; it is not a sweep folder this "
-                                  f"version can add to (choose another --out)")
+            if any(p.name != LOCK for p in self.path.iterdir()):
+                raise ConfigError(f"{self.path}: holds other files and no {SWEEP_JSON}: not a sweep's folder (choose "
+                                  f"a new or empty --out)")
             return
         try:
             old = json.loads(path.read_text())

@@ -153,6 +153,7 @@ def test_local_cluster_stops_cleanly_and_resumes_where_it_stopped(tiny_sweep, tm
     assert "3 points: 2 done earlier, 1 run now (0 done, 1 failed)" in again.stdout, again.stdout
     rerun = [e["point"] for e in read_log(out)[before:] if e["event"] == "start"]
     assert [plan.points[p].params["power"] for p in rerun] == [FAILING_POWER]
+    assert not list((out / "work").iterdir())  # the interrupted points' work folders went with the next run
 
 
 KILLER = """

@@ -52,6 +52,15 @@ def test_a_changed_base_condition_is_refused_and_a_grown_grid_is_not(tmp_path):
     assert len(json.loads((tmp_path / "out" / "sweep.json").read_text())["entries"]) == 5
 
 
+def test_a_folder_of_other_files_is_not_swept_into(tmp_path):
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "thesis.tex").write_text("...")
+    with pytest.raises(ConfigError, match="holds other files and no sweep.json"):
+        SweepDir(tmp_path / "out").open(plan)
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["thesis.tex"]  # left as it was found
+
+
 def test_one_sweep_at_a_time_on_a_folder(tmp_path):
     plan = make_plan(load_spec(write_tiny(tmp_path)))
     first = SweepDir(tmp_path / "out")
@@ -106,11 +115,13 @@ def test_a_failing_method_is_recorded_and_the_others_still_run(tmp_path):
     out.close()
     task = next(t for t in plan.points.values() if t.params["views"] == 8)
     events = []
-    result = run_point(task, str(tmp_path / "out"), device="cuda",
+    result = run_point(task, str(tmp_path / "out"), device="cuda", keep=True,
                        emit=lambda event, **fields: events.append((event, fields.get("stage"))))
     assert result["status"] == "failed" and result["reason"].startswith("fast: device 'cuda' asked for")
     assert "\n" not in result["reason"] and "traceback" not in result["methods"]["fast"]
     assert all(result["methods"][m]["status"] == "done" for m in ("reprojection", "space-carving"))
     assert [e for e, _ in events] == ["start", "stage", "stage", "stage", "stage", "failed"]
     assert json.loads((tmp_path / "out" / "points" / f"{task.id}.json").read_text())["status"] == "failed"
-    assert not list((tmp_path / "out" / "work").iterdir())  # the capture is gone: --keep was not given
+    kept = tmp_path / "out" / "work" / task.id  # --keep: the capture and each method's outputs, under the point's id
+    assert result["work"] == str(kept) and [p.name for p in (tmp_path / "out" / "work").iterdir()] == [task.id]
+    assert (kept / "capture" / "scan.json").is_file() and (kept / "space-carving" / "mesh.ply").is_file()
