@@ -19,7 +19,6 @@ import secrets
 import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable
 
 from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
