@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import shutil
-import subprocess
-
+import numpy as np
 import pytest
 
 from spadscan.cli import main
@@ -12,8 +10,9 @@ from spadscan.sweep.plan import make_plan
 from spadscan.sweep.spec import load_spec
 from spadscan.sweep.store import SweepDir
 
-from test_sweep_store import fake_result
+from page_helpers import browser_page, screenshot_pixels
 from sweep_helpers import FAILING_POWER, write_tiny
+from test_sweep_store import fake_result
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -49,25 +48,17 @@ def test_sweep_plot_of_a_folder_that_is_not_a_sweep_is_one_line(tmp_path, capsys
     assert "holds no sweep.json" in err and err.count("\n") == 1
 
 
-def test_the_page_shows_in_a_browser(finished_sweep, tmp_path):
-    browser = shutil.which("chromium") or shutil.which("chromium-browser")
-    if browser is None:
-        pytest.skip("no chromium on this machine")
+def test_the_page_shows_in_a_browser(finished_sweep):
     assert main(["sweep-plot", str(finished_sweep)]) == 0
-    shot = tmp_path / "shot.png"
-    common = [browser, "--headless", "--no-sandbox", "--disable-gpu", f"--user-data-dir={tmp_path / 'profile'}"]
-    url = (finished_sweep / "figure_a.html").as_uri()
-    dom = subprocess.run([*common, "--dump-dom", url], capture_output=True, text=True, timeout=120)
-    assert dom.returncode == 0, dom.stderr[-2000:]
-    assert dom.stdout.count("<tr>") == 5 and 'src="figure_a.png"' in dom.stdout
-    grab = subprocess.run([*common, f"--screenshot={shot}", "--window-size=1200,900", url], capture_output=True,
-                          text=True, timeout=120)
-    assert grab.returncode == 0 and shot.read_bytes().startswith(PNG)
-    # The figure drew: the browser's picture holds the blue of the fast method's line (nothing else on the page is
-    # that colour).
-    import matplotlib.image
-    import numpy as np
-
-    pixels = (matplotlib.image.imread(shot)[..., :3] * 255).round().astype(int)
-    blue = np.all(np.abs(pixels - [31, 119, 180]) <= 12, axis=-1)
-    assert blue.sum() > 50
+    with browser_page() as (page, seen):
+        page.goto((finished_sweep / "figure_a.html").as_uri())
+        page.wait_for_load_state("load")
+        assert page.locator("table tr").count() == 5
+        image = page.locator("img")
+        assert image.evaluate("img => img.complete && img.naturalWidth") > 500  # the PNG loaded
+        # The figure drew: its picture holds the blue of the fast method's line.
+        pixels = screenshot_pixels(image).astype(int)
+        assert np.all(np.abs(pixels - [31, 119, 180]) <= 12, axis=-1).sum() > 50
+        assert page.locator("td.failed").count() == 1
+    assert not seen.errors, seen.errors
+    assert all(url.startswith("file://") for url in seen.requests), seen.requests  # nothing from the network
