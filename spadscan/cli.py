@@ -23,6 +23,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "baseline": ("baseline", "run a baseline reconstruction (reprojection, space carving)"),
     "demo": ("demo", "run the whole loop on simulated devices: daemon -> capture -> worker -> mesh"),
     "dashboard": ("dashboard", "serve a local web page that follows the scans, the queue and the reconstructions"),
+    "sweep": ("sweep", "sensitivity sweep on Dask: simulate -> reconstruct -> baselines -> metrics over a grid"),
+    "sweep-plot": ("sweep_plot", "draw a sweep's Figure A (Chamfer against each parameter) and its HTML table"),
 }
 
 
