@@ -37,7 +37,8 @@ from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError, SpadscanError
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.recon.config import preset_config, with_overrides
+from spadscan.worker.recon.config import with_overrides
+from spadscan.worker.recon.presets import preset_config
 
 from .params import PARAMS, bin_ps_of, check_value, defaults_for
 
