@@ -70,7 +70,7 @@ def test_i2c_example_needs_the_users_firmware(tmp_path):
     image = tmp_path / "app.hex"
     image.write_text(":00000001FF\n")
     cfg = load_config(write(tmp_path, text.replace("/home/lab/tmf8820/tmf8820_app.hex", str(image))))
-    assert cfg.sensor.firmware == image and cfg.sensor.address == 0x41 and cfg.sensor.bus == 1
+    assert cfg.sensor.device.firmware == image and cfg.sensor.device.address == 0x41 and cfg.sensor.device.bus == 1
 
 
 def test_defaults_and_relative_paths(tmp_path):
@@ -201,16 +201,15 @@ def test_check_flag_validates_without_devices(tmp_path, capsys):
 
 
 def test_example_readme_documents_every_key():
-    from dataclasses import fields
-
+    """Every key of every section and every backend (the registry's), so a new backend's keys are documented too."""
+    from spadscan.daemon.backends import ARM_BACKENDS, SENSOR_BACKENDS
     from spadscan.daemon.config import ArmConfig, DaemonConfig, SensorConfig
+    from spadscan.daemon.config_keys import key_names
 
     readme = (EXAMPLES / "README.md").read_text()
-    for cls in (DaemonConfig, ArmConfig, SensorConfig, ScanConfig):
-        for f in fields(cls):
-            if f.name in ("arm", "sensor", "scan", "source"):
-                continue
-            assert f"`{f.name}`" in readme, f"examples/README.md lacks {cls.__name__}.{f.name}"
+    for cls in (DaemonConfig, ArmConfig, SensorConfig, ScanConfig, *ARM_BACKENDS.values(), *SENSOR_BACKENDS.values()):
+        for name in key_names(cls):
+            assert f"`{name}`" in readme, f"examples/README.md lacks {cls.__name__}.{name}"
 
 
 def test_examples_copy_runs_check(tmp_path):

@@ -14,7 +14,7 @@ import pytest
 
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.arm.ur import URArm
-from spadscan.daemon.backends import TrackedArm, build_devices, build_sensor
+from spadscan.daemon.rig import TrackedArm, build_devices, build_sensor
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.scan_plan import tcp_from_sensor
@@ -64,7 +64,7 @@ def ur_config(tmp_path, host: str):
 
 def quick_rig(cfg):
     """The config's rig, with a UR arm that gives up on a silent link after 5 s instead of 10 s."""
-    arm = TrackedArm(URArm(cfg.arm.host, speed=cfg.arm.speed, accel=cfg.arm.acceleration, timeout_s=5.0,
+    arm = TrackedArm(URArm(cfg.arm.device.host, speed=cfg.arm.speed, accel=cfg.arm.acceleration, timeout_s=5.0,
                            stale_after_s=1.0))
     return arm, build_sensor(cfg, arm)
 
