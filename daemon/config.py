@@ -44,6 +44,12 @@ class ArmConfig:
     """Smallest allowed distance of the TCP from the base origin (m); keeps moves clear of the arm's own base."""
     max_reach_m: float | None = key(None, "float", lo=0.0, hi=10.0, lo_open=True, unit="m")
     """Largest allowed distance of the TCP from the base origin (m), e.g. 0.85 for a UR5e."""
+    keepout_radius_m: float = key(0.0, "float", lo=0.0, hi=10.0, unit="m")
+    """Smallest allowed horizontal distance from the base's vertical axis (m): a cylinder around the arm's own column
+    that the TCP, the sensor and its bracket, and every straight move, must keep out of."""
+    bracket_radius_m: float = key(0.0, "float", lo=0.0, hi=1.0, unit="m")
+    """Radius of the bracket and sensor around the line from the flange to the sensor (m): that capsule, not only the
+    flange, must stay inside the workspace and clear of the base."""
     move_timeout_s: float = key(60.0, "float", lo=0.0, hi=3600.0, lo_open=True, unit="s")
     """How long one move may take before the scan pauses with a timeout (s)."""
     device: ArmBackend = field(default_factory=ARM_BACKENDS["sim"])

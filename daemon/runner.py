@@ -34,7 +34,8 @@ from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, Spa
 from .config import DaemonConfig, scan_request
 from .devices import Arm, ArmFault, Frame, LinkLost, Sensor, SensorSilent
 from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
-from .scan_plan import build_plan, check_workspace, sensor_from_tcp
+from .scan_plan import build_plan, sensor_from_tcp
+from .workspace import check_workspace, first_move_problem
 
 log = logging.getLogger("spadscan.daemon")
 STATE_TIMEOUT_S = 5.0  # how long arm.state() may take
@@ -307,6 +308,8 @@ class ScanRunner:
                 self._check_end()
                 if self._pause_requested:
                     break
+                if i == job.next_pose:
+                    await self._check_first_move(job, i)
                 job.in_flight = i
                 t_stop = await self._move(job, i)
                 if job.scan.settle_s > 0:
@@ -334,6 +337,16 @@ class ScanRunner:
                             self._notify()
             finally:
                 job.in_flight = None
+
+    async def _check_first_move(self, job: ScanJob, i: int) -> None:
+        """The first move of a run starts wherever the arm is now (after a pause it may have been jogged anywhere):
+        check it as every planned move was checked, and refuse it with the reason."""
+        now = np.asarray((await self._arm_state()).tcp_pose, dtype=np.float64)
+        problem = first_move_problem(now, job.tcp_poses[i], self.cfg.arm)
+        if problem:
+            at = ", ".join(f"{v:.3f}" for v in now[:3, 3])
+            raise _Fault(f"{self.arm.name} at [{at}] m is not moved to pose {i}: {problem} ([arm] limits); jog it "
+                         f"back into the workspace near pose {i}, then `spadscan ctl resume`")
 
     def _check_end(self) -> None:
         """Honour an abort or shutdown even if its cancellation was absorbed by a device call that finished at the

@@ -34,11 +34,12 @@ def sphere():
     return builtin_scene("sphere")
 
 
-def make_cfg(tmp_path: Path, *, auto_resume: bool = False, frame_timeout_s: float = 5.0, **scan):
+def make_cfg(tmp_path: Path, *, auto_resume: bool = False, frame_timeout_s: float = 5.0, arm: dict | None = None,
+             **scan):
     scan = {"views": 10, "frames_per_pose": 2, "settle_s": 0.0, "radius_m": 0.4, "target": [0, 0, 0.1], **scan}
     return config_from_dict({
         "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"), "auto_resume": auto_resume,
-        "arm": {"backend": "sim", "hand_eye": HAND_EYE},
+        "arm": {"backend": "sim", "hand_eye": HAND_EYE, **(arm or {})},
         "sensor": {"backend": "sim", "mesh": "builtin:sphere", "rays_per_zone": 16,
                    "frame_timeout_s": frame_timeout_s},
         "scan": scan}, tmp_path / "rig.toml")
@@ -178,6 +179,72 @@ def test_pause_resume_abort(arun, tmp_path, sphere, caplog):
     assert any(m.startswith("scan p: pause requested at pose") for m in said), said
     assert any(m == f"scan p paused by user at pose {held}/30" for m in said), said
     assert any(m.startswith(f"scan p: resumed at pose {held}/30 (was paused: paused by user)") for m in said), said
+
+
+def test_the_first_move_after_a_resume_is_checked_like_every_planned_one(arun, tmp_path, sphere):
+    """While paused, the arm is jogged out of the workspace, under the box and across the base from the scan. The
+    straight move back would pass close to the base: resuming refuses it with the reason and moves nothing; once the
+    arm is back near the next pose, resuming goes on."""
+    limits = {"workspace_min": [-0.8, -0.8, 0.08], "workspace_max": [0.8, 0.8, 0.8], "min_reach_m": 0.2}
+    cfg = make_cfg(tmp_path, views=12, frames_per_pose=1, target=[0.4, 0.0, 0.1], radius_m=0.25, arm=limits)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("jog")
+                await until(lambda: runner.job.next_pose >= 2, "two poses")
+                await runner.pause()
+                await until(lambda: runner.state == "paused", "paused")
+                moves = arm.moves
+                arm.jog(np.array([[1.0, 0, 0, -0.35], [0, -1, 0, 0], [0, 0, -1, 0.04], [0, 0, 0, 1]]))
+                await runner.resume()
+                await until(lambda: runner.state == "paused" and runner.job.reason, "the refusal")
+                refused, moved = runner.status(), arm.moves - moves
+                arm.jog(runner.job.tcp_poses[runner.job.next_pose])  # the operator brings it back
+                await runner.resume()
+                return refused, moved, await runner.wait("jog")
+            finally:
+                await runner.shutdown()
+
+    refused, moved, done = arun(scenario())
+    reason = refused["reason"]
+    assert moved == 0 and refused["state"] == "paused"
+    assert "at [-0.350, 0.000, 0.040] m is not moved to pose" in reason and "z = 0.040 m is below workspace_min" in reason
+    assert "jog it back into the workspace" in reason and "\n" not in reason
+    assert done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "jog", 12, 1)
+
+
+def test_a_first_move_through_the_base_is_refused_even_from_inside_the_workspace(arun, tmp_path, sphere):
+    """Jogged to the far side of the base, inside the box: the straight move back passes within min_reach_m."""
+    limits = {"workspace_min": [-0.8, -0.8, 0.0], "workspace_max": [0.8, 0.8, 0.8], "min_reach_m": 0.2}
+    cfg = make_cfg(tmp_path, views=6, frames_per_pose=1, target=[0.4, 0.0, 0.05], radius_m=0.2, arm=limits)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("across")
+                await until(lambda: runner.job.next_pose >= 1, "a pose")
+                await runner.pause()
+                await until(lambda: runner.state == "paused", "paused")
+                target = runner.job.tcp_poses[runner.job.next_pose]
+                across = target.copy()
+                across[:3, 3] = [-target[0, 3], -target[1, 3], 0.05]  # mirrored through the base's axis, low
+                arm.jog(across)
+                await runner.resume()
+                await until(lambda: runner.state == "paused" and runner.job.reason, "the refusal")
+                reason = runner.status()["reason"]
+                await runner.abort("done")
+                return reason
+            finally:
+                await runner.shutdown()
+
+    reason = arun(scenario())
+    assert "the straight move there passes" in reason and "from the base, inside min_reach_m 0.2" in reason
 
 
 def test_protective_stop_pauses_with_reason_and_resume_clears_it(arun, tmp_path, sphere):
