@@ -116,7 +116,8 @@ class DaemonConfig:
     """Control socket path (mode 0600); default (the same as `spadscan ctl`'s): $SPADSCAN_SOCKET, else
     $XDG_RUNTIME_DIR/spadscan.sock, else /tmp/spadscan-<uid>.sock."""
     auto_resume: bool = key(False, "bool")
-    """Resume an interrupted scan by itself at start-up (otherwise it waits, paused, for `ctl resume`)."""
+    """Resume an interrupted scan by itself at start-up (otherwise it waits, paused, for `ctl resume`). A real arm
+    needs its backend's confirmation too ([arm] allow_auto_resume for 'ur')."""
     arm: ArmConfig = field(default_factory=ArmConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     scan: ScanConfig = field(default_factory=ScanConfig)
@@ -155,6 +156,10 @@ def config_from_dict(data: dict, path: Path) -> DaemonConfig:
         values["socket"] = Path(default_socket_path())
     cfg = DaemonConfig(**values, **sections, source=path)
     _check_arm(cfg.arm, f"{path}: [arm]")
+    if cfg.auto_resume and not cfg.arm.device.confirms_unattended_resume():
+        raise ConfigError(f"{path}: auto_resume = true would let the daemon move the real {cfg.arm.backend!r} arm "
+                          f"by itself after a restart, with nobody at the rig: confirm it with [arm] allow_auto_resume "
+                          f"= true (a guarded cell only), or leave auto_resume false")
     check_scan(cfg.scan, f"{path}: [scan]")
     _check_paths(cfg, str(path))
     return cfg

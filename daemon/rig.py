@@ -55,6 +55,9 @@ class TrackedArm(Arm):
     async def clear_fault(self) -> None:
         await self.inner.clear_fault()
 
+    async def check_poses(self, tcp_poses: np.ndarray, first_index: int = 0) -> None:
+        await self.inner.check_poses(tcp_poses, first_index)
+
     def actual_pose(self) -> np.ndarray:
         return self.last_tcp_pose.copy()
 

@@ -95,6 +95,10 @@ class ScanRunner:
         scan = scan_request(self.cfg.scan, overrides or {})
         start = (await self._arm_state()).tcp_pose
         plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
+        try:
+            await self.arm.check_poses(plan.tcp_poses)  # the controller's own limits, before anything is created
+        except ArmFault as exc:
+            raise ConfigError(f"scan {name!r}: {exc}") from None
         hand_eye = self.cfg.arm.hand_eye
         try:
             # Made here, exclusively: planning took a while, and a folder that appeared meanwhile (another program
@@ -121,7 +125,7 @@ class ScanRunner:
             log.warning("%s", self.last_error)
             raise CaptureError(self.last_error) from None
         self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,
-                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer)
+                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer, controller_checked=True)
         self._launch("scanning")
         log.info("scan %s: %d poses x %d frames -> %s", name, len(plan), scan.frames_per_pose, path)
         return self.status()
@@ -340,7 +344,11 @@ class ScanRunner:
 
     async def _check_first_move(self, job: ScanJob, i: int) -> None:
         """The first move of a run starts wherever the arm is now (after a pause it may have been jogged anywhere):
-        check it as every planned move was checked, and refuse it with the reason."""
+        check it as every planned move was checked, and refuse it with the reason. After a pause or a restart the
+        arm's controller is asked again about the poses still to come (its limits may have changed meanwhile)."""
+        if not job.controller_checked:
+            await self.arm.check_poses(job.tcp_poses[i:], first_index=i)
+            job.controller_checked = True
         now = np.asarray((await self._arm_state()).tcp_pose, dtype=np.float64)
         problem = first_move_problem(now, job.tcp_poses[i], self.cfg.arm)
         if problem:
@@ -442,6 +450,7 @@ class ScanRunner:
         # The event is cleared after each resume and only set while the state is 'paused', so a resume that lands
         # between 'paused' being announced and this wait starting is not lost.
         self._pause_requested = False
+        job.controller_checked = False
         self._set_state("paused")
         await self._resume.wait()
         self._resume.clear()

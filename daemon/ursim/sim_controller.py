@@ -161,6 +161,10 @@ class SimURController:
                 self.model.set_speed_slider(float(settings.pop("speed_slider")))
             except ValueError as exc:
                 raise DeviceError(str(exc)) from None
+        for name in ("pose_noise_m", "reach_m"):
+            value = settings.get(name, 0.0)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise DeviceError(f"{name} must be a finite number >= 0 (m), got {value!r}")
         for name, value in settings.items():
             setattr(self.model, name, value)
 

@@ -134,6 +134,35 @@ def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, wor
         assert w in msg, msg
 
 
+UR = SIM.replace('backend = "sim"\nmotion_time_s = 0.0', 'backend = "ur"\nhost = "10.0.0.9"\n'
+                 'workspace_min = [-1, -1, 0]\nworkspace_max = [1, 1, 1]')
+
+
+def test_auto_resume_of_a_real_arm_needs_a_second_confirming_key(tmp_path):
+    """auto_resume = true moves the arm after a restart with nobody watching: a simulated arm may, a real 'ur' arm
+    only with [arm] allow_auto_resume = true as well."""
+    assert load_config(write(tmp_path, "auto_resume = true\n" + SIM)).auto_resume
+    assert not load_config(write(tmp_path, UR)).auto_resume
+    msg = error_of(tmp_path, "auto_resume = true\n" + UR)
+    assert "auto_resume = true would let the daemon move the real 'ur' arm by itself" in msg
+    assert "[arm] allow_auto_resume = true" in msg and "rig.toml" in msg
+    cfg = load_config(write(tmp_path, "auto_resume = true\n" + UR.replace("[sensor]", "allow_auto_resume = true\n"
+                                                                           "[sensor]")))
+    assert cfg.auto_resume and cfg.arm.device.allow_auto_resume
+    assert "allow_auto_resume applies only to backend 'ur'" in error_of(
+        tmp_path, SIM.replace("motion_time_s = 0.0", "allow_auto_resume = true"))
+
+
+def test_the_ur_watchdog_frequency_reaches_the_arm(tmp_path):
+    from spadscan.daemon.rig import build_arm
+
+    cfg = load_config(write(tmp_path, UR.replace("[sensor]", "watchdog_hz = 10\n[sensor]")))
+    assert build_arm(cfg).watchdog_hz == 10.0
+    assert build_arm(load_config(write(tmp_path, UR))).watchdog_hz == 4.0
+    assert "watchdog_hz = 0.1 (Hz) is outside [0.5, 100]" in error_of(
+        tmp_path, UR.replace("[sensor]", "watchdog_hz = 0.1\n[sensor]"))
+
+
 def test_one_ring_may_sit_at_one_elevation():
     """A single ring of views at 45 degrees: min_elevation_deg = max_elevation_deg places it."""
     from spadscan.daemon.config import ArmConfig
