@@ -227,8 +227,8 @@ def run_preset(capture: Path, preset: str, budget_s: float, every_s: float, devi
     setup_s = time.perf_counter() - load_start
     # The training budget is what is left of the wall budget after set-up.
     plan = RunPlan(steps=None, budget_s=max(1.0, budget_s - setup_s), seed=seed)
-    # Checkpoints are scored exactly like the final mesh (DESIGN §6: 300,000 points, the full mesh resolution): their
-    # time is not counted, and fewer points would raise the estimate's floor (~1.1 mm at 30,000 points).
+    # Checkpoints are scored exactly like the final mesh (docs/metrics.md: 300,000 points, the full mesh resolution):
+    # their time is not counted, and fewer points would raise the estimate's floor (~1.1 mm at 30,000 points).
     resolution = eval_resolution or config.mesh_resolution
     points = config.metrics_points
 

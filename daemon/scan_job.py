@@ -1,9 +1,9 @@
 """One scan in the daemon's hands: its folder, plan and progress; scan names; finding a scan a crash interrupted.
 
-A scan named N lives in `<captures>/N/` (DESIGN §2). Its `schedule.npy` holds the planned sensor poses in visiting
-order and `scan.json` the scan settings, so a restarted daemon can continue it at the first pose not yet published.
-The daemon marks the scans it writes (`rig.writer` = WRITER in the manifest) and takes over only those: another
-tool's interrupted capture under the captures root (say `spadscan simulate --out <captures>/x`) is never driven.
+A scan named N lives in `<captures>/N/` (docs/capture_format.md). Its `schedule.npy` holds the planned sensor poses in
+visiting order and `scan.json` the scan settings, so a restarted daemon can continue it at the first pose not yet
+published. The daemon marks the scans it writes (`rig.writer` = WRITER in the manifest) and takes over only those:
+another tool's interrupted capture under the captures root (say `spadscan simulate --out <captures>/x`) is never driven.
 """
 
 from __future__ import annotations

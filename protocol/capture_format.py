@@ -1,4 +1,4 @@
-"""The capture folder's data types and checks (DESIGN §2), shared by the writer and the reader.
+"""The capture folder's data types and checks (docs/capture_format.md), shared by the writer and the reader.
 
 ```
 CAPTURE/scan.json              manifest: sensor model, rig, hand-eye, schedule, state (running | complete | aborted)

@@ -32,8 +32,7 @@ def load_mesh(path, *, units: str = "auto"):
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files; all mean "cannot read this mesh"
-        detail = " ".join(str(exc).split())
-        raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {detail})") from None
+        raise MeshError(_unreadable(path, exc, trimesh.available_formats())) from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise MeshError(f"{path}: holds no triangles")
     verts = np.asarray(loaded.vertices, dtype=np.float64)
@@ -49,6 +48,17 @@ def load_mesh(path, *, units: str = "auto"):
     # Which unit the file was read in, so that a caller can say so: a silent x1000 is a surprise otherwise.
     mesh.metadata["units_read"] = "mm" if scale != 1.0 else "m"
     return mesh
+
+
+def _unreadable(path: Path, exc: Exception, formats) -> str:
+    """Why a file that trimesh could not load is no mesh, in one line. The parser's own words ("list index out of
+    range") come last: they help someone who debugs a file, and say nothing to someone who named the wrong one."""
+    suffix = path.suffix.lower().lstrip(".")
+    if suffix not in formats:
+        return (f"{path}: not a mesh file spadscan can read (format '.{suffix}'; use PLY, STL, OBJ, OFF or GLB)")
+    detail = " ".join(str(exc).split()) or type(exc).__name__
+    return (f"{path}: not a valid {suffix.upper()} mesh: damaged, truncated or not a mesh at all (the reader "
+            f"stopped with: {detail})")
 
 
 BUILTIN_PREFIX = "builtin:"

@@ -1,6 +1,6 @@
 """Sensor model presets: `tmf8820` (the real ams sensor) and `lcspc-sim` (the LCSPCData simulator).
 
-Numbers come from SENSOR_FACTS (fits of a ray-cast forward model to the public dataset) and are re-fitted by
+Numbers come from docs/sensor_models.md (fits of a ray-cast forward model to the public dataset) and are re-fitted by
 `tools/fit_sensor.py`; each preset's `notes` field says where its values come from.
 """
 
@@ -29,7 +29,7 @@ def _tmf8820_zones() -> tuple[Zone, ...]:
     return tuple(zones)
 
 
-# The pulse p(t) = [ref_n(14.27 + (t - 12.66) / 1.10)]^1.5 of SENSOR_FACTS, sampled per bin from the mean
+# The pulse p(t) = [ref_n(14.27 + (t - 12.66) / 1.10)]^1.5 of docs/sensor_models.md, sampled per bin from the mean
 # floor-subtracted reference histogram of LCSPCData's real pyramid (tools/fit_sensor.py --tmf); index 4 = the peak.
 _TMF_PULSE = (4e-05, 0.00127, 0.06735, 0.44106, 0.91603, 0.61716, 0.26309, 0.11118, 0.06974, 0.04889, 0.03573,
               0.02688, 0.02015, 0.01529, 0.01193, 0.00933, 0.00758, 0.00618, 0.00507, 0.00435, 0.0037, 0.00324,
@@ -40,12 +40,12 @@ _TMF_PULSE = (4e-05, 0.00127, 0.06735, 0.44106, 0.91603, 0.61716, 0.26309, 0.111
 def tmf8820() -> SensorModel:
     """ams TMF8820 in short-range high-accuracy mode, 3x3 zones on SPAD map 1, full histograms.
 
-    Zones, gains, crosstalk and cycles from SENSOR_FACTS. Pulse: the reference-derived table above (arrival = its
-    peak). Loose fit on the real pyramid (tools/fit_sensor.py --tmf, 128 frames x 9 zones, table and pyramid from
-    the STL, albedo 1): zero_bin 12.40 (peak at 12.40 + 73.48 r with bin i centred at i + 0.5; SENSOR_FACTS' peak
+    Zones, gains, crosstalk and cycles from docs/sensor_models.md. Pulse: the reference-derived table above (arrival =
+    its peak). Loose fit on the real pyramid (tools/fit_sensor.py --tmf, 128 frames x 9 zones, table and pyramid from
+    the STL, albedo 1): zero_bin 12.40 (peak at 12.40 + 73.48 r with bin i centred at i + 0.5; the dataset's peak
     regression 12.1 + 73.7 r in bin indices agrees within 0.3 bins); peak error sd 2.6 bins (79% within 1 bin; the
     rest are frames where table and pyramid returns compete); signal_scale 0.27 photons/cycle per unit albedo x
-    int cos/r^2 dOmega (interquartile ratio 2.6-3.1 x the old 0.095: SENSOR_FACTS' 0.08-0.11 is about this / pi,
+    int cos/r^2 dOmega (interquartile ratio 2.6-3.1 x the old 0.095: the sheet's 0.08-0.11 is about this / pi,
     i.e. it counts albedo as rho/pi); background 1e2-2e2 counts/bin (3e-5 photons/bin/cycle ~ 120 counts).
     """
     return SensorModel(
@@ -67,8 +67,8 @@ def tmf8820() -> SensorModel:
         notes=("Time axis 73.48 bins/m (ams), zero range at bin 12.40 and signal 0.27 photons/cycle per unit albedo x "
                "int cos/r^2 dOmega from a loose fit to LCSPCData's real pyramid (tools/fit_sensor.py --tmf); pulse "
                "table from the reference histogram, p(t) = ref_n(14.27 + (t - 12.66)/1.10)^1.5; zones, gains, "
-               "crosstalk 0.021, ~4 M cycles per frame and background ~120 counts/bin from SENSOR_FACTS. Captures "
-               "carry the reference histogram per frame; calibrate gains and signal per sensor."),
+               "crosstalk 0.021, ~4 M cycles per frame and background ~120 counts/bin from docs/sensor_models.md. "
+               "Captures carry the reference histogram per frame; calibrate gains and signal per sensor."),
     ).validate()
 
 
@@ -94,8 +94,8 @@ def lcspc_sim() -> SensorModel:
     0.4 m within 0.25 bins (0.3 mm) of each other. Residuals with the joint values: mean Poisson deviance per bin
     1.0017 on the sphere and 1.0792 on the bunny, against 0.9949 and 1.0756 for the model scored on its own photon
     draws (noise level); per-view total counts within 1.2% / 1.4% rms (4.0% / 4.8% max); smoothed peak bin 0.44 /
-    0.89 bins mean absolute error (the bunny's two-peaked views swap peaks). SENSOR_FACTS agrees (800-802 bins/m,
-    sigma ~2.0, tau 3.5-3.8, 15-15.5 deg, 1.1, 2.48e-4).
+    0.89 bins mean absolute error (the bunny's two-peaked views swap peaks). docs/sensor_models.md agrees (800-802
+    bins/m, sigma ~2.0, tau 3.5-3.8, 15-15.5 deg, 1.1, 2.48e-4).
     """
     return SensorModel(
         name="lcspc-sim",

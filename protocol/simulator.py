@@ -1,4 +1,4 @@
-"""The physically based transient simulator (DESIGN §4): mesh + sensor model + poses -> photon-count histograms.
+"""The physically based simulator (docs/forward_model.md): mesh + sensor model + poses -> photon-count histograms.
 
 For each pose and zone, rays spread evenly over the zone's field of view find their first surface hit by ray casting.
 A hit at one-way range r with incidence cosine cos_i adds

@@ -8,7 +8,7 @@ background. Rays are cast once over a cone wider than any candidate; the half-an
 ring wide, which keeps the deviance continuous for the derivative-free (Nelder-Mead) search.
 
 `tmf8820` (--tmf): the pulse table p(t) = [ref_n(14.27 + (t - 12.66) / 1.10)]^1.5 built from the real pyramid's
-mean reference histogram (SENSOR_FACTS); with it, a loose fit of zero_bin and signal_scale to the real
+mean reference histogram (docs/sensor_models.md); with it, a loose fit of zero_bin and signal_scale to the real
 pyramid's peaks and return photons (poses and table-and-pyramid STL from the dataset).
 
     python tools/fit_sensor.py [--dataset DIR] [--scenes sphere bunny] [--rays 8192] [--json out.json]
@@ -177,7 +177,7 @@ def fit_lcspc(root: Path, scene_names, n_rays: int, iters: int):
 
 
 def tmf_pulse_table(root: Path, before: int = 4, after: int = 40) -> tuple[tuple[float, ...], int]:
-    """SENSOR_FACTS' TMF8820 pulse from the mean floor-subtracted reference of the real pyramid captures."""
+    """The TMF8820 pulse (docs/sensor_models.md) from the mean floor-subtracted reference of the real pyramid."""
     refs = []
     for f in sorted((root / "real" / "pyramid").glob("*.json")):
         refs += [m["reference_hist"] for m in json.loads(f.read_text())]

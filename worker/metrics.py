@@ -1,4 +1,4 @@
-"""Mesh quality metrics by the project's convention (DESIGN §6), numpy + trimesh + a KD-tree, no torch.
+"""Mesh quality metrics by the project's convention (docs/metrics.md), numpy + trimesh + a KD-tree, no torch.
 
 Both meshes are sampled uniformly by area (`n_points` each, from a fixed seed); distances are between those samples:
 

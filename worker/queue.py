@@ -1,4 +1,4 @@
-"""The durable job queue (DESIGN §2): job files moved between state folders by atomic rename, with expiring leases.
+"""Durable job queue (docs/job_queue.md): job files moved between state folders by atomic rename, with expiring leases.
 
 Layout of a queue folder (by default `<captures root>/.queue/`):
 

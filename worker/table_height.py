@@ -1,8 +1,8 @@
 """The height of the table under a measured object, found in the histograms (numpy only: the baselines use it too).
 
-The table is the farthest surface every zone sees (SENSOR_FACTS: it is in every histogram of a real capture), so at
-the right height a horizontal plane's predicted peak falls on each zone's last significant peak and nothing is ever
-measured behind it.
+The table is the farthest surface every zone sees (docs/sensor_models.md: it is in every histogram of a real capture),
+so at the right height a horizontal plane's predicted peak falls on each zone's last significant peak and nothing is
+ever measured behind it.
 """
 
 from __future__ import annotations

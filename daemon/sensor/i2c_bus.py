@@ -1,31 +1,38 @@
-"""The TMF8820 on an I2C bus (smbus2): boot, firmware download, short-range mode, configuration and readout.
+"""The TMF8820 on an I2C bus (smbus2): boot, firmware download, accuracy mode, configuration and readout.
 
-The sequence `start` runs (the fake in `sim_i2c` enforces the same order):
+The sequence `start` runs (the facts come from ams' Python, Linux and Arduino drivers; the fake in `sim_i2c` models
+the chip the same way):
 
-1. ENABLE 0xE0 <- 0x01 (PON); poll ENABLE until bit 6 (cpu_ready) is set.
+1. Power on: read ENABLE 0xE0; unless PON (bit 0) and cpu_ready (bit 6) are set, write it back with PON set. This is
+   a read-modify-write: the power-up select bits 4:5 say what the CPU starts after a wake-up (2: the application in
+   RAM, which RAMREMAP sets) and must survive; the cpu_reset bit 7 is never written. Then wait SETTLE_S (10 ms, as
+   the references do: the chip does not answer while its CPU starts) and poll ENABLE until cpu_ready.
 2. APP_ID 0x00: 0x80 = bootloader -> download the image; 0x03 = the application already runs (no power loss since
    the last download) -> stop it (0xFF) in case a previous session left it measuring; anything else is an error.
 3. Download: bootloader frames written to 0x08 with `i2c_rdwr` (up to 131 bytes, beyond SMBus's 32): SET_ADDR, then
-   W_RAM chunks of <= 128 bytes; after each, the 3-byte bootloader status at 0x08 (`[status, 0, ~status]`) is
-   polled while busy (0x10) and must read 0x00. RAMREMAP then hands over to the application, so instead of the
-   bootloader's status we poll APP_ID until it reads 0x03.
-4. CMD_STAT 0x08 <- 0x6E (short-range high-accuracy mode), then 0x16 (load the common config page; 0x20 reads 0x16),
-   config registers period ms 0x24 (u16 LE), kilo-iterations 0x26 (u16 LE), SPAD map 0x34, HIST_DUMP 0x39 = 1 (raw
-   histograms), then 0x15 (write config). After each command CMD_STAT reads the command while busy, then 0x00 (ok)
-   or 0x01 (accepted); 0x02..0x0F are errors.
-5. INT_STATUS 0xE1 <- 0xFF (clear), CMD_STAT <- 0x10 (measure).
+   W_RAM chunks of <= 128 bytes. After each, the bootloader status `[status, size, checksum]` at 0x08 is polled
+   while status >= 0x10 (busy: the register echoes the command it runs, 0x43, 0x41, ...) and must then read 0x00.
+   RAMREMAP is not answered (the CPU restarts into the application): wait SETTLE_S, then poll APP_ID until 0x03.
+4. Accuracy mode: ACTIVE_RANGE 0x19 reads 0x6E (short-range high accuracy), 0x6F (long range, the default) or 0x00
+   (this firmware has no accuracy modes). On 0x6F CMD_STAT 0x08 <- 0x6E. A firmware that cannot switch is not an
+   error: the mode it measures in is logged and kept in the counters (`active_range`).
+5. Configure: 0x16 (load the common config page; 0x20 then reads 0x16), period ms 0x24 (u16 LE), kilo-iterations
+   0x26 (u16 LE), SPAD map 0x34, HIST_DUMP 0x39 = 1 (raw histograms), then 0x15 (write config). After each command
+   CMD_STAT echoes the command while busy (>= 0x10), then reads 0x00 (ok) or 0x01 (accepted); 0x02..0x0F are errors.
+6. Interrupts: INT_STATUS 0xE1 <- 0xFF (write 1 to clear), then INT_ENAB 0xE2 |= result (0x02) and raw histogram
+   (0x08) bits, read-modify-write, as every reference does before measuring (the enables drive the INT pin).
+7. Measure: CMD_STAT <- 0x10 (accepted: 0x01).
 
-Readout polls INT_STATUS: bit 0x08 = a histogram sub-packet waits at 0x20 (135 bytes: RID 0x81, TID, size LE 131,
-sub-packet no, payload len 128, config, 128 bytes), bit 0x02 = a result (132 bytes: RID 0x10, TID, size LE 128,
-result no, temperature int8, n valid, reserved, ambient u32, photon count u32, reference count u32, systick u32,
-36 x {confidence u8, distance mm u16 LE}). Each is read in one `i2c_rdwr` transfer and its bit cleared by writing it
-back. If no record arrives for `watchdog_s`, APP_ID is checked: a sensor that lost power is back in its bootloader,
-which the device treats as a dropped link (it boots and downloads again).
+Readout polls INT_STATUS: bit 0x08 = a histogram sub-packet waits at 0x20, bit 0x02 = a result (layouts in
+`i2c_records`). Each is read in one `i2c_rdwr` transfer and its bit cleared by writing it back. If no record arrives
+for `watchdog_s`, APP_ID is checked: a sensor that lost power is back in its bootloader, which the device treats as
+a dropped link (it boots and downloads again). `stop` sends 0xFF and clears its INT_ENAB bits again.
 """
 
 from __future__ import annotations
 
 import errno
+import logging
 import time
 from pathlib import Path
 from typing import Callable
@@ -34,48 +41,38 @@ from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
 
 from .firmware import FirmwareImage, download_frames, load_firmware
+from .i2c_records import HIST_RECORD, RESULT_RECORD, parse_histogram_record, parse_result_record
 from .tmf8820 import TMF8820
-from .transport import N_RESULTS, N_SUBPACKETS, SUBPACKET_BYTES, HistogramPacket, LinkDown, Packet, ResultPacket, Transport
+from .transport import LinkDown, Packet, Transport
 
-REG_APP_ID, REG_CMD_STAT, REG_PAGE, REG_ENABLE, REG_INT_STATUS = 0x00, 0x08, 0x20, 0xE0, 0xE1
+log = logging.getLogger("spadscan.daemon")
+
+REG_APP_ID, REG_CMD_STAT, REG_ACTIVE_RANGE, REG_PAGE = 0x00, 0x08, 0x19, 0x20
+REG_ENABLE, REG_INT_STATUS, REG_INT_ENAB = 0xE0, 0xE1, 0xE2
 REG_PERIOD, REG_KILO_ITER, REG_SPAD_MAP, REG_HIST_DUMP = 0x24, 0x26, 0x34, 0x39
+ENABLE_PON, ENABLE_CPU_READY, ENABLE_CPU_RESET = 0x01, 0x40, 0x80
 APP_BOOTLOADER, APP_RUNNING = 0x80, 0x03
 CMD_MEASURE, CMD_STOP, CMD_LOAD_CONFIG, CMD_WRITE_CONFIG, CMD_SHORT_RANGE = 0x10, 0xFF, 0x16, 0x15, 0x6E
+RANGE_NONE, RANGE_SHORT, RANGE_LONG = 0x00, 0x6E, 0x6F
+RANGE_NAMES = {RANGE_NONE: "no accuracy modes", RANGE_SHORT: "short range", RANGE_LONG: "long range"}
 INT_RESULT, INT_HISTOGRAM = 0x02, 0x08
-HIST_RECORD, RESULT_RECORD = 7 + SUBPACKET_BYTES, 24 + 3 * N_RESULTS  # 135 and 132 bytes
-BL_BUSY = 0x10
+BUSY = 0x10
+"""CMD_STAT (bootloader and application) at or above this value: a command is still running."""
+SETTLE_S = 0.010
+"""Wait after setting PON and after RAMREMAP before the chip is addressed again (the references wait 10 ms)."""
+TIME_MULTIPLEXED_MAPS = frozenset({4, 5, 7, 10, 13, 15})
+"""ams' predefined SPAD maps that take two sub-captures per result (4x4, 3x6, 8x8): not one 3x3 frame."""
 BL_ERRORS = {0x01: "size error", 0x02: "checksum error", 0x03: "resource error", 0x04: "application error",
              0x05: "timeout", 0x06: "locked", 0x07: "address out of range", 0x08: "more data expected"}
 COMMAND_NAMES = {CMD_MEASURE: "measure", CMD_STOP: "stop", CMD_LOAD_CONFIG: "load common config",
                  CMD_WRITE_CONFIG: "write config", CMD_SHORT_RANGE: "short-range mode"}
 
 
-def parse_histogram_record(buf: bytes, t: float) -> HistogramPacket | None:
-    """A 135-byte histogram record, or None when its header is not one."""
-    if (len(buf) != HIST_RECORD or buf[0] != 0x81 or buf[2] | buf[3] << 8 != HIST_RECORD - 4
-            or buf[4] >= N_SUBPACKETS or buf[5] != SUBPACKET_BYTES):
-        return None
-    return HistogramPacket(index=buf[4], payload=bytes(buf[7:]), t=t)
-
-
-def parse_result_record(buf: bytes, t: float) -> ResultPacket | None:
-    """A 132-byte result record, or None when its header is not one."""
-    if len(buf) != RESULT_RECORD or buf[0] != 0x10 or buf[2] | buf[3] << 8 != RESULT_RECORD - 4 or buf[6] > N_RESULTS:
-        return None
-    u32 = [int.from_bytes(buf[k:k + 4], "little") for k in (8, 12, 16, 20)]
-    body = buf[24:]
-    return ResultPacket(result_no=buf[4], temperature_c=float(buf[5] - 256 if buf[5] > 127 else buf[5]),
-                        n_valid=buf[6], systick=u32[3],
-                        distances_mm=[body[3 * k + 1] | body[3 * k + 2] << 8 for k in range(N_RESULTS)],
-                        confidences=[body[3 * k] for k in range(N_RESULTS)], t=t,
-                        extra={"ambient": u32[0], "photon_count": u32[1], "reference_count": u32[2]})
-
-
 class I2CTransport(Transport):
     """smbus2 link to a TMF8820 at `address` on `bus` (a number or a /dev/i2c-N path).
 
     smbus_factory(bus) returns an SMBus-like object (default `smbus2.SMBus`; tests pass the fake). Counters:
-    records, bad_records, boots, downloads.
+    records, bad_records, boots, downloads, and active_range (the accuracy mode the sensor measures in).
     """
 
     def __init__(self, bus: int | str, address: int = 0x41, firmware: Path | None = None, *, period_ms: int = 100,
@@ -85,6 +82,9 @@ class I2CTransport(Transport):
                            ("spad_map", spad_map, 0xFF), ("address", address, 0x7F)):
             if not (isinstance(v, int) and 0 < v <= hi):
                 raise DeviceError(f"i2c sensor: {key} = {v} must be an integer in [1, {hi}]")
+        if spad_map in TIME_MULTIPLEXED_MAPS:
+            raise DeviceError(f"i2c sensor: spad_map = {spad_map} is time-multiplexed (two sub-captures per result); "
+                              "frames need one 3x3 capture: use SPAD map 1 (the `tmf8820` sensor model's)")
         self.bus_id, self.address = bus, address
         self.firmware_path = None if firmware is None else Path(firmware)
         self.period_ms, self.kilo_iterations, self.spad_map = period_ms, kilo_iterations, spad_map
@@ -94,7 +94,7 @@ class I2CTransport(Transport):
         self._bus = None
         self._image: FirmwareImage | None = None
         self._last_record = 0.0
-        self._counts = {"records": 0, "bad_records": 0, "boots": 0, "downloads": 0}
+        self._counts: dict[str, int | str] = {"records": 0, "bad_records": 0, "boots": 0, "downloads": 0}
 
     # ---- lifecycle -----------------------------------------------------------------------------------------------
     def open(self) -> None:
@@ -113,8 +113,7 @@ class I2CTransport(Transport):
 
     def start(self) -> None:
         self._counts["boots"] += 1
-        self._write(REG_ENABLE, 0x01)
-        self._wait(lambda: self._read(REG_ENABLE) & 0x40, "cpu_ready (ENABLE bit 6) after power-on")
+        self._power_on()
         app = self._read(REG_APP_ID)
         if app == APP_BOOTLOADER:
             self._download()
@@ -123,7 +122,7 @@ class I2CTransport(Transport):
         else:
             raise DeviceError(f"unexpected APP_ID {app:#04x} (expected {APP_BOOTLOADER:#04x} for the bootloader or "
                               f"{APP_RUNNING:#04x} for the application): is this a TMF8820?")
-        self._command(CMD_SHORT_RANGE)
+        self._short_range_mode()
         self._command(CMD_LOAD_CONFIG)
         page = self._read(REG_PAGE)
         if page != CMD_LOAD_CONFIG:
@@ -134,12 +133,14 @@ class I2CTransport(Transport):
         self._write(REG_HIST_DUMP, 0x01)
         self._command(CMD_WRITE_CONFIG)
         self._write(REG_INT_STATUS, 0xFF)
+        self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) | INT_RESULT | INT_HISTOGRAM)
         self._command(CMD_MEASURE)
         self._last_record = time.monotonic()
 
     def stop(self) -> None:
         if self._bus is not None:
             self._command(CMD_STOP)
+            self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) & ~(INT_RESULT | INT_HISTOGRAM))
 
     def close(self) -> None:
         bus, self._bus = self._bus, None
@@ -180,6 +181,13 @@ class I2CTransport(Transport):
             time.sleep(min(self.poll_s, max(0.0, deadline - now)))
 
     # ---- boot steps ----------------------------------------------------------------------------------------------
+    def _power_on(self) -> None:
+        enable = self._read(REG_ENABLE)
+        if enable & (ENABLE_PON | ENABLE_CPU_READY) != ENABLE_PON | ENABLE_CPU_READY:
+            self._write(REG_ENABLE, (enable | ENABLE_PON) & ~(ENABLE_CPU_RESET | ENABLE_CPU_READY))
+            time.sleep(SETTLE_S)
+        self._wait(lambda: self._read(REG_ENABLE) & ENABLE_CPU_READY, "cpu_ready (ENABLE bit 6) after power-on")
+
     def _download(self) -> None:
         if self._image is None:
             raise DeviceError("the sensor is in its bootloader and needs the firmware image: set the path to your "
@@ -189,16 +197,17 @@ class I2CTransport(Transport):
             self._rdwr_write(bytes([REG_CMD_STAT]) + frame)
             if label != "RAMREMAP":
                 self._bootloader_ok(label)
+        time.sleep(SETTLE_S)
         self._wait(lambda: self._read(REG_APP_ID) == APP_RUNNING,
                    f"the application to start after the download of {self._image.path} (APP_ID 0x03)")
 
     def _bootloader_ok(self, label: str) -> None:
         def ready():
             status, size, csum = self._block_read(REG_CMD_STAT, 3)
+            if status >= BUSY:
+                return False  # the bootloader still runs the command (the register echoes it)
             if csum != ~(status + size) & 0xFF:
                 return False  # a garbled status read: read it again
-            if status == BL_BUSY:
-                return False
             if status != 0x00:
                 raise DeviceError(f"bootloader rejected {label}: {BL_ERRORS.get(status, 'error')} "
                                   f"(status {status:#04x})")
@@ -206,19 +215,39 @@ class I2CTransport(Transport):
 
         self._wait(ready, f"the bootloader to accept {label}")
 
+    def _short_range_mode(self) -> None:
+        """Ask for short-range high-accuracy mode where the firmware has accuracy modes; record the mode it runs."""
+        mode = self._read(REG_ACTIVE_RANGE)
+        status = None
+        if mode == RANGE_LONG:
+            status = self._send(CMD_SHORT_RANGE)
+            mode = self._read(REG_ACTIVE_RANGE)
+        name = RANGE_NAMES.get(mode, f"unknown ({mode:#04x})")
+        self._counts["active_range"] = name
+        if mode != RANGE_SHORT:
+            refused = "" if status is None else f"; command 0x6e answered {status:#04x}"
+            log.warning("%s: the sensor measures in %s mode (ACTIVE_RANGE 0x19 reads %#04x%s), not short-range "
+                        "high accuracy: its time axis is not the one the tmf8820 sensor model describes",
+                        self.name, name, mode, refused)
+
     def _command(self, cmd: int) -> None:
-        name = f"command {cmd:#04x} ({COMMAND_NAMES[cmd]})"
+        """Send an application command and require it to succeed (status 0x00 ok or 0x01 accepted)."""
+        status = self._send(cmd)
+        if status > 0x01:
+            raise DeviceError(f"command {cmd:#04x} ({COMMAND_NAMES[cmd]}) failed with status {status:#04x}")
+
+    def _send(self, cmd: int) -> int:
+        """Write an application command to CMD_STAT and return its status once it no longer runs."""
         self._write(REG_CMD_STAT, cmd)
+        status = BUSY
 
         def done():
+            nonlocal status
             status = self._read(REG_CMD_STAT)
-            if status >= 0x10:
-                return False
-            if status > 0x01:
-                raise DeviceError(f"{name} failed with status {status:#04x}")
-            return True
+            return status < BUSY  # while it runs the register echoes the command
 
-        self._wait(done, name)
+        self._wait(done, f"command {cmd:#04x} ({COMMAND_NAMES[cmd]})")
+        return status
 
     def _wait(self, ready: Callable[[], bool], what: str) -> None:
         deadline = time.monotonic() + self.timeout_s
@@ -281,8 +310,9 @@ def _bus_error(what: str, exc: OSError) -> LinkDown:
 class I2CSensor(TMF8820):
     """A TMF8820 on I2C `bus` at `address`; `firmware` is the path to the user's copy of the application image.
 
-    period_ms: measurement period (the sensor runs back to back when a measurement takes longer); kilo_iterations:
-    laser cycles per measurement in thousands (4000 ~ the ~4 M cycles fitted to LCSPCData's captures).
+    period_ms: measurement period, ms; kilo_iterations: laser cycles per measurement in units of 1024 (ams' register
+    0x26; 4000 ~ the ~4 M cycles the `tmf8820` model was fitted with); spad_map: ams' SPAD map id, one that is not
+    time-multiplexed (1 is the `tmf8820` model's). firmware_notes/modes.md explains each.
     """
 
     def __init__(self, bus: int | str, address: int = 0x41, firmware: Path | None = None, *,

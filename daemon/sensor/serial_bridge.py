@@ -3,12 +3,13 @@
 Line format (one record per line, fields separated by commas, an optional trailing comma, `\\n` or `\\r\\n`):
 
     #Raw,<i2c addr>,<sub-packet 0..29>,<128 byte values 0..255>          131 fields
-    #Obj,<i2c addr>,<result no>,<temperature C>,<n valid>,<systick>,
+    #Obj,<i2c addr>,<result no>,<temperature>,<n valid>,<systick>,
          <distance mm>,<confidence> x 36                                  78 fields
     #Obj                                                                  a separator, ignored
     #Err,<text...>   #Vers,<text...>                                      status lines
 
-The bridge has no checksum: a line is accepted when its tag, field count and every value are well-formed and in
+The temperature is the result record's byte printed unsigned (0..255): it carries degrees C in two's complement, so
+values above 127 are below 0 C (250 is -6 C). The bridge has no checksum: a line is accepted when its tag, field count and every value are well-formed and in
 range; anything else (a partial line after a mid-line start or an unplug, two lines run together, line noise) is
 skipped and counted, and the frame it belonged to is dropped by the frame assembler.
 """
@@ -22,6 +23,7 @@ import serial
 
 from spadscan.protocol.sensor_model import SensorModel
 
+from .i2c_records import signed_byte
 from .tmf8820 import TMF8820
 from .transport import (N_RESULTS, N_SUBPACKETS, SUBPACKET_BYTES, HistogramPacket, LinkDown, Packet, ResultPacket,
                         StatusPacket, Transport)
@@ -65,15 +67,13 @@ def parse_line(line: bytes, t: float, address: int | None) -> Packet | str:
             if len(fields) != OBJ_FIELDS:
                 return "corrupt"
             addr = _uint(fields[1], 127)
-            temp = float(fields[3])
-            if not -60.0 <= temp <= 150.0:
-                return "corrupt"
+            temp = signed_byte(_uint(fields[3], 255))
             pairs = [_uint(f, 65535) for f in fields[6:]]
             if any(c > 255 for c in pairs[1::2]):
                 return "corrupt"
             if address is not None and addr != address:
                 return "other_address"
-            return ResultPacket(result_no=_uint(fields[2], 255), temperature_c=temp,
+            return ResultPacket(result_no=_uint(fields[2], 255), temperature_c=float(temp),
                                 n_valid=_uint(fields[4], N_RESULTS), systick=_uint(fields[5], 2**32 - 1),
                                 distances_mm=pairs[0::2], confidences=pairs[1::2], t=t)
         if tag in (b"#Err", b"#Vers"):

@@ -29,7 +29,7 @@ FAULTS = ("drop", "duplicate", "swap", "truncate", "garble", "out_of_range", "me
 
 @dataclass
 class BridgeResult:
-    """The `#Obj` record that closes a frame: 36 distances (mm) and confidences."""
+    """The `#Obj` record that closes a frame: temperature (deg C), 36 distances (mm) and confidences."""
 
     result_no: int = 0
     temperature_c: int = 25
@@ -52,9 +52,11 @@ def raw_lines(counts: np.ndarray, address: int = 0x41) -> list[bytes]:
 
 
 def obj_line(result: BridgeResult, address: int = 0x41) -> bytes:
-    """The `#Obj` line (78 fields, trailing comma as the bridge prints it)."""
+    """The `#Obj` line (78 fields, trailing comma as the bridge prints it; the temperature byte printed unsigned)."""
+    if not -128 <= result.temperature_c <= 127:
+        raise ValueError(f"bridge temperature {result.temperature_c} C is outside a signed byte [-128, 127]")
     pairs = [v for d, c in zip(result.distances_mm, result.confidences) for v in (d, c)]
-    head = [address, result.result_no, result.temperature_c, result.n_valid, result.systick]
+    head = [address, result.result_no, result.temperature_c & 0xFF, result.n_valid, result.systick]
     return ("#Obj," + ",".join(map(str, head + pairs)) + ",\r\n").encode()
 
 

@@ -1,17 +1,32 @@
 """A register-level fake of the TMF8820 behind an object that quacks like `smbus2.SMBus`.
 
 It answers `write_byte_data`, `read_byte_data`, `write_i2c_block_data` / `read_i2c_block_data` (32 bytes at most,
-as smbus2) and `i2c_rdwr` with `smbus2.i2c_msg` messages, and enforces the sequence documented in `i2c_bus`:
-nothing but ENABLE answers before PON and cpu_ready; the bootloader checks every frame's length and checksum and, at
-RAMREMAP, that every byte of the expected image arrived (else the application does not start); commands need the
-application; config registers only take writes while the config page is loaded; measure needs a written config.
-Misuse is answered as the chip would (error status, ignored write, NACK) and recorded in `violations`.
+as smbus2) and `i2c_rdwr` with `smbus2.i2c_msg` messages. What it models, as ams' drivers and register map describe
+the chip (misuse is answered as the chip would - an error status, an ignored write, a missing acknowledge - and
+recorded in `violations`):
 
-While measuring it makes one frame per `frame_interval_s`: 30 histogram records (when HIST_DUMP bit 0 is set) then
-a result record, each raised in INT_STATUS until its bit is cleared. What it sent is kept in `produced`.
-Faults: `unplug`/`replug` (every transfer NACKs), `power_cycle` (powered down: back to the bootloader, RAM lost),
-`crash` (the chip resets itself into the bootloader but keeps answering),
-`corrupt_next_record`, `app_id` (a wrong chip), `ready_after_polls=None` (cpu_ready never comes).
+- ENABLE 0xE0: PON (bit 0), power-up select (bits 4:5, kept as written; RAMREMAP sets 2, "start the application in
+  RAM"), cpu_ready (bit 6). Setting PON wakes the CPU: for `startup_s` (5 ms, within the 10 ms the references wait)
+  the chip acknowledges nothing, then cpu_ready shows after `ready_after_polls` reads of ENABLE; until then only
+  ENABLE answers. The CPU starts what power-up select says: 2 restarts the application kept in RAM through a standby
+  (PON cleared), anything else the bootloader. The chip starts asleep (PON 0) after power comes.
+- The bootloader (APP_ID 0x80) checks every frame's length and checksum; while it runs a command (`busy_polls`
+  status reads) the status register echoes that command (0x43, 0x41, ...), then reads 0x00 or an error. RAMREMAP
+  is not answered: after checking that every byte of the expected image arrived it restarts into the application
+  (again no acknowledge for `startup_s`).
+- The application (APP_ID 0x03): CMD_STAT echoes a command while it runs (`busy_polls` reads), then 0x00 / 0x01 or
+  an error. ACTIVE_RANGE 0x19 reads 0x6F (long range) after the start and 0x6E after command 0x6E; a firmware without
+  accuracy modes (`accuracy_modes=False`) reads 0x00 there and answers 0x6E with 0x06 (unknown command). Config
+  registers take writes only while the common page (0x16) is loaded; 0x15 writes it. Measuring needs neither 0x6E nor
+  a written config (the chip measures with its defaults).
+- INT_STATUS 0xE1 shows the bit of the record waiting at 0x20 (0x08 histogram sub-packet, 0x02 result) whether or not
+  it is enabled; INT_ENAB 0xE2 only decides whether the INT pin is pulled low (`int_pin_low`). Writing 1 clears a bit.
+
+While measuring it makes one frame per `frame_interval_s`: 30 histogram sub-packets (when HIST_DUMP bit 0 is set) then
+a result, laid out as `i2c_records` describes. What it sent is kept in `produced`. Faults: `unplug`/`replug` (every
+transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back to the bootloader, RAM lost), `crash` (the
+chip resets itself into the bootloader but keeps answering), `corrupt_next_record`, `app_id` (a wrong chip),
+`ready_after_polls=None` (cpu_ready never comes).
 """
 
 from __future__ import annotations
@@ -23,16 +38,37 @@ import time
 
 import numpy as np
 
+ENABLE, INT_STATUS, INT_ENAB, CMD_STAT, ACTIVE_RANGE, APP_ID = 0xE0, 0xE1, 0xE2, 0x08, 0x19, 0x00
+START_RAM_APP = 2
+"""ENABLE power-up select (bits 4:5) value: start the application in RAM."""
+
+
+def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid) -> list[tuple[int, bytes]]:
+    """The (INT_STATUS bit, bytes) records of one frame: 30 raw histogram sub-packets (when `hist_dump`), a result."""
+    records = []
+    if hist_dump:
+        for k in range(30):
+            plane = ((counts[k % 10] >> (8 * (k // 10))) & 0xFF).astype(np.uint8).tobytes()
+            size = (30 - k) * 128  # the message still to come, sub-packet headers excluded
+            records.append((0x08, bytes([0x81, next_tid(), size & 0xFF, size >> 8, k, 128, 0]) + plane))
+    head = bytearray([0x10, next_tid(), 128, 0, result["result_no"], result["temperature_c"] & 0xFF, 9, 0])
+    head += b"".join(int(v).to_bytes(4, "little") for v in (1000, 200_000, 50_000, result["systick"]))
+    body = b"".join(bytes([c]) + int(d).to_bytes(2, "little")
+                    for c, d in zip(result["confidences"], result["distances_mm"]))
+    records.append((0x02, bytes(head + body)))
+    return records
+
 
 class SimTMF8820Bus:
     """The fake bus with one TMF8820 at `address`. `image`: the bytes the download must deliver (None: any)."""
 
     def __init__(self, *, address: int = 0x41, image: bytes | None = None, seed: int = 0, frame_interval_s=0.0,
                  ready_after_polls: int | None = 2, busy_polls: int = 1, app_id: int | None = None,
-                 load_address: int = 0):
+                 load_address: int = 0, accuracy_modes: bool = True, startup_s: float = 0.005):
         self.address, self.image, self.load_address = address, image, load_address
         self.frame_interval_s, self.ready_after_polls, self.busy_polls = frame_interval_s, ready_after_polls, busy_polls
         self.app_id_override = app_id
+        self.accuracy_modes, self.startup_s = accuracy_modes, startup_s
         self.rng = np.random.default_rng(seed)
         self.produced: list[tuple[np.ndarray, dict]] = []
         self.violations: list[str] = []
@@ -68,6 +104,12 @@ class SimTMF8820Bus:
     def corrupt_next_record(self, k: int = 7) -> None:
         """Spoil the header of the k-th histogram record of the next frame made."""
         self._corrupt.add(k)
+
+    def int_pin_low(self) -> bool:
+        """The open-drain INT pin: pulled low while a waiting record's INT_STATUS bit is enabled in INT_ENAB."""
+        with self._lock:
+            self._make_frame()
+            return bool(self.records and self.records[0][0] & self.int_enab)
 
     # ---- the smbus2.SMBus surface --------------------------------------------------------------------------------
     def __call__(self, bus):
@@ -129,16 +171,20 @@ class SimTMF8820Bus:
     # ---- the chip ------------------------------------------------------------------------------------------------
     def _power_on_reset(self) -> None:
         self.pon = False
+        self.powerup_select = 0
         self.ready_countdown = None
-        self.app_running = False
+        self.starting_until = 0.0  # monotonic time until which the CPU starts and nothing is acknowledged
+        self.app_running = self.app_in_ram = False
         self.ram = bytearray(0x10000)
         self.written = np.zeros(0x10000, bool)
         self.ram_ptr = 0
-        self.bl_status, self.bl_busy = 0x00, 0
+        self.bl_status, self.bl_cmd, self.bl_busy = 0x00, 0x00, 0
         self.cmd_stat, self.cmd_busy = 0x00, 0
+        self.int_enab = 0x00
         self.page = bytearray(0x80)  # registers 0x20..0x9F
-        self.config_loaded = self.config_written = self.short_range = self.measuring = False
-        self.config = {"period_ms": 0, "kilo_iterations": 537, "spad_map": 6, "hist_dump": 0}
+        self.config_loaded = self.measuring = False
+        self.active_range = 0x00
+        self.config = {"period_ms": 33, "kilo_iterations": 537, "spad_map": 6, "hist_dump": 0}
         self.records: list[tuple[int, bytes]] = []  # (INT_STATUS bit, record bytes) waiting for the host
         self.tid = 0
         self.next_frame_t = 0.0
@@ -146,32 +192,46 @@ class SimTMF8820Bus:
     def _select(self, addr: int, register: int) -> None:
         if addr != self.address or not self.plugged:
             raise OSError(errno.EREMOTEIO, "Remote I/O error")  # nobody acknowledged the address
-        if register != 0xE0 and not self._cpu_ready():
+        if time.monotonic() < self.starting_until:
+            self.violations.append(f"access to register {register:#04x} while the CPU starts (PON or RAMREMAP less "
+                                   f"than {self.startup_s:g} s ago)")
+            raise OSError(errno.EREMOTEIO, "Remote I/O error")
+        if register != ENABLE and not self._cpu_ready():
             self.violations.append(f"access to register {register:#04x} before cpu_ready")
             raise OSError(errno.EREMOTEIO, "Remote I/O error")
 
     def _cpu_ready(self) -> bool:
         return self.pon and self.ready_countdown == 0
 
+    def _start_cpu(self) -> None:
+        """The CPU (re)starts: no acknowledge for startup_s, then cpu_ready after ready_after_polls reads."""
+        self.starting_until = time.monotonic() + self.startup_s
+        self.ready_countdown = self.ready_after_polls
+
     def _read(self, reg: int, n: int) -> bytes:
-        if reg == 0xE0:
+        if reg == ENABLE:
             if self.pon and self.ready_countdown:
                 self.ready_countdown -= 1
-            return bytes([(0x01 if self.pon else 0) | (0x40 if self._cpu_ready() else 0)])
-        if reg == 0x00:
+            value = (0x01 if self.pon else 0) | self.powerup_select << 4 | (0x40 if self._cpu_ready() else 0)
+            return bytes([value]).ljust(n, b"\0")
+        if reg == APP_ID:
             app = 0x03 if self.app_running else 0x80
-            return bytes([self.app_id_override if self.app_id_override is not None else app])
-        if reg == 0xE1:
+            return bytes([self.app_id_override if self.app_id_override is not None else app]).ljust(n, b"\0")
+        if reg == INT_STATUS:
             self._make_frame()
             return bytes([self.records[0][0] if self.records else 0])
-        if reg == 0x08 and not self.app_running:
-            status = 0x10 if self.bl_busy else self.bl_status
+        if reg == INT_ENAB:
+            return bytes([self.int_enab])
+        if reg == CMD_STAT and not self.app_running:
+            status = self.bl_cmd if self.bl_busy else self.bl_status  # busy: the command it runs is echoed
             self.bl_busy = max(0, self.bl_busy - 1)
             return bytes([status, 0, ~status & 0xFF])[:n].ljust(n, b"\0")
-        if reg == 0x08:
-            status = self.commands[-1] if self.cmd_busy and self.commands else self.cmd_stat
+        if reg == CMD_STAT:
+            status = self.commands[-1] if self.cmd_busy else self.cmd_stat
             self.cmd_busy = max(0, self.cmd_busy - 1)
             return bytes([status]).ljust(n, b"\0")
+        if reg == ACTIVE_RANGE:
+            return bytes([self.active_range if self.app_running else 0]).ljust(n, b"\0")
         if 0x20 <= reg < 0xA0 and self.app_running:
             src = self.records[0][1] if self.measuring and self.records else bytes(self.page)
             off = reg - 0x20
@@ -179,19 +239,17 @@ class SimTMF8820Bus:
         return bytes(n)
 
     def _write(self, reg: int, data: bytes) -> None:
-        if reg == 0xE0:
-            on = bool(data[0] & 0x01)
-            if on and not self.pon:
-                self.ready_countdown = self.ready_after_polls
-            self.pon = on
-            return
-        if reg == 0x08 and not self.app_running:
+        if reg == ENABLE:
+            self._enable(data[0])
+        elif reg == CMD_STAT and not self.app_running:
             self._bootloader(data)
-        elif reg == 0x08:
+        elif reg == CMD_STAT:
             self._command(data[0])
-        elif reg == 0xE1:
+        elif reg == INT_STATUS:
             if self.records and data[0] & self.records[0][0]:
                 self.records.pop(0)
+        elif reg == INT_ENAB:
+            self.int_enab = data[0]
         elif 0x24 <= reg < 0xA0 and self.app_running:
             if not self.config_loaded:
                 self.violations.append(f"config write at {reg:#04x} without a loaded config page (ignored)")
@@ -199,8 +257,20 @@ class SimTMF8820Bus:
             off = reg - 0x20
             self.page[off:off + len(data)] = data
 
+    def _enable(self, value: int) -> None:
+        self.powerup_select = (value >> 4) & 0x3
+        on = bool(value & 0x01)
+        if on and not self.pon:
+            # Wake-up: the CPU starts the application kept in RAM when power-up select says so, else the bootloader.
+            self.app_running = self.powerup_select == START_RAM_APP and self.app_in_ram
+            self.bl_status, self.bl_busy = 0x00, 0
+            self._start_cpu()
+        elif self.pon and not on:  # standby: the CPU stops, RAM (and the application in it) stays
+            self.ready_countdown, self.measuring, self.records = None, False, []
+        self.pon = on
+
     def _bootloader(self, frame: bytes) -> None:
-        self.bl_busy = self.busy_polls
+        self.bl_busy, self.bl_cmd = self.busy_polls, frame[0] if frame else 0
         if len(frame) < 3 or frame[1] != len(frame) - 3:
             self.bl_status = 0x01
             self.violations.append(f"bootloader frame of {len(frame)} bytes has a wrong length field")
@@ -236,30 +306,34 @@ class SimTMF8820Bus:
                 self.bl_status = 0x04
                 self.violations.append(f"RAMREMAP with {missing} image bytes missing and {wrong} wrong")
                 return
-        self.app_running = True
+        self.app_running = self.app_in_ram = True
+        self.powerup_select = START_RAM_APP
+        self.active_range = 0x6F if self.accuracy_modes else 0x00
         self.cmd_stat, self.cmd_busy = 0x00, 0
+        self._start_cpu()
+        self.ready_countdown = 0
 
     def _command(self, cmd: int) -> None:
         self.commands.append(cmd)
         self.cmd_busy = self.busy_polls
         ok = 0x00
         if cmd == 0x10:
-            why = ("while measuring" if self.measuring else "before write config" if not self.config_written
-                   else "without short-range mode (0x6E)" if not self.short_range else "")
-            if why:
-                self.violations.append(f"measure {why}")
+            if self.measuring:
+                self.violations.append("measure while measuring")
                 ok = 0x02
             else:
                 self.measuring, ok = True, 0x01
                 self.next_frame_t = time.monotonic() + self.frame_interval_s
         elif cmd == 0xFF:
             self.measuring, self.records = False, []
-        elif cmd in (0x6E, 0x16) and self.measuring:
+        elif cmd in (0x6E, 0x6F, 0x16) and self.measuring:
             self.violations.append(f"command {cmd:#04x} while measuring")
             ok = 0x02
-        elif cmd == 0x6E:
-            # A mode switch reloads the mode's defaults: a config written before it is gone.
-            self.short_range, self.config_loaded, self.config_written = True, False, False
+        elif cmd in (0x6E, 0x6F):
+            if self.accuracy_modes:
+                self.active_range = cmd
+            else:
+                ok = 0x06  # unknown command: this firmware has no accuracy modes
         elif cmd == 0x16:
             self.page[:] = bytes(0x80)
             self.page[0], self.page[2] = 0x16, 0x7C
@@ -271,10 +345,12 @@ class SimTMF8820Bus:
             p = self.page
             self.config = {"period_ms": p[4] | p[5] << 8, "kilo_iterations": p[6] | p[7] << 8,
                            "spad_map": p[0x14], "hist_dump": p[0x19]}
-            self.config_written = True
-        else:
-            self.violations.append(f"command {cmd:#04x} refused in this state")
+        elif cmd == 0x15:
+            self.violations.append("write config without a loaded config page")
             ok = 0x02
+        else:
+            self.violations.append(f"unknown command {cmd:#04x}")
+            ok = 0x06
         self.cmd_stat = ok
 
     def _make_frame(self) -> None:
@@ -289,20 +365,14 @@ class SimTMF8820Bus:
                   "systick": int(self.rng.integers(0, 2**32)), "distances_mm": self.rng.integers(0, 5000, 36).tolist(),
                   "confidences": self.rng.integers(0, 256, 36).tolist()}
         self.produced.append((counts, result))
-        if self.config["hist_dump"] & 0x01:
-            for k in range(30):
-                plane = ((counts[k % 10] >> (8 * (k // 10))) & 0xFF).astype(np.uint8).tobytes()
-                rec = bytearray([0x81, self._tid(), 131, 0, k, 128, 0]) + plane
-                if k in self._corrupt:
-                    rec[0] = 0x7F
-                    self.spoiled.append(n)
-                self.records.append((0x08, bytes(rec)))
-            self._corrupt.clear()
-        head = bytearray([0x10, self._tid(), 128, 0, result["result_no"], result["temperature_c"] & 0xFF, 9, 0])
-        head += b"".join(int(v).to_bytes(4, "little") for v in (1000, 200_000, 50_000, result["systick"]))
-        body = b"".join(bytes([c]) + int(d).to_bytes(2, "little")
-                        for c, d in zip(result["confidences"], result["distances_mm"]))
-        self.records.append((0x02, bytes(head + body)))
+        records = frame_records(counts, result, bool(self.config["hist_dump"] & 0x01), self._tid)
+        for k in sorted(self._corrupt):
+            if k < len(records) - 1:
+                bit, rec = records[k]
+                records[k] = (bit, b"\x7f" + rec[1:])
+                self.spoiled.append(n)
+        self._corrupt.clear()
+        self.records.extend(records)
 
     def _tid(self) -> int:
         self.tid = (self.tid + 1) & 0xFF

@@ -1,6 +1,6 @@
 """Compare a mesh with ground truth: Chamfer, accuracy, completeness (mm), F-score at 5 mm, normal error (degrees).
 
-Both meshes are sampled uniformly by area (--points each, fixed --seed) and compared point to point (DESIGN §6):
+Both meshes are sampled uniformly by area (--points each, fixed --seed) and compared point to point (docs/metrics.md):
 accuracy = mean distance MESH -> GT, completeness = mean GT -> MESH, Chamfer = (accuracy + completeness) / 2.
 Identical meshes score about 0.5 sqrt(area / points) (~0.35 mm for the bunny at 300,000 points), the floor of this
 estimate. Meshes are read in metres; STL (and OBJ/PLY/OFF) files larger than 5 m are taken to be in millimetres.

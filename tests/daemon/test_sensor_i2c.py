@@ -1,27 +1,32 @@
 """The I2C backend: smbus2 messages against the register-level fake of the TMF8820.
 
-Boot, firmware download (the fake checks checksums and that every byte arrived), short-range configuration,
-measure, 30 sub-packets read with i2c_rdwr; decoded histograms must equal what the fake holds, bit for bit."""
+Boot, firmware download (the fake checks checksums and that every byte arrived), accuracy mode, configuration,
+interrupt enables, measure, 30 sub-packets read with i2c_rdwr; decoded histograms must equal what the fake holds, bit
+for bit. The record layout is also checked against bytes built here from the protocol, independently of the fake."""
 
 from __future__ import annotations
 
 import asyncio
-import os
-import threading
+import ctypes
+import logging
+import re
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 from smbus2 import i2c_msg
 
 from spadscan.daemon.devices import LinkLost
+from spadscan.daemon.sensor.assembly import FrameAssembler
 from spadscan.daemon.sensor.firmware import bootloader_frame, download_frames, load_firmware
 from spadscan.daemon.sensor.i2c_bus import I2CSensor, I2CTransport
-from spadscan.daemon.sensor.sim_i2c import SimTMF8820Bus
+from spadscan.daemon.sensor.sim_i2c import SimTMF8820Bus, frame_records
 from spadscan.daemon.sensor.tmf8820 import TMF8820
 from spadscan.protocol.errors import DeviceError
 
 EXPECTED_COMMANDS = [0x6E, 0x16, 0x15, 0x10]  # short range, load config, write config, measure
+NOTES = Path(__file__).resolve().parents[2] / "firmware_notes"
 
 
 pytestmark = pytest.mark.usefixtures("no_leaked_threads_or_fds")
@@ -49,6 +54,181 @@ async def _run(sensor, n_frames=3, during=None):
         await sensor.close()
 
 
+def wake(fake, deadline_s=10.0):
+    """Set PON on the fake as a test host and wait for cpu_ready, through the start-up without acknowledges."""
+    fake.write_byte_data(0x41, 0xE0, 0x01)
+    deadline = time.monotonic() + deadline_s
+    while True:
+        try:
+            if fake.read_byte_data(0x41, 0xE0) & 0x40:
+                return
+        except OSError:
+            pass  # the CPU is starting: nothing is acknowledged yet
+        assert time.monotonic() < deadline, "cpu_ready never came"
+
+
+def reference_records(counts, result_no, temperature_c, systick, distances, confidences):
+    """One frame's (INT_STATUS bit, bytes) records, laid out here from the protocol as ams' drivers decode it.
+
+    Header: RID, TID, size u16 LE. Raw histogram sub-packet n (RID 0x81): sub-header {n, payload length 128, config
+    id 0}, then byte plane n // 10 of channel n % 10; its size is the message still to come without sub-headers,
+    128 x (30 - n). Result (RID 0x10, size 128): number, temperature (two's complement byte), valid count, reserved,
+    ambient, photon count, reference count, systick (u32 LE each), 36 x {confidence, distance mm u16 LE}.
+    """
+    records = []
+    for n in range(30):
+        plane = bytes((int(v) >> (8 * (n // 10))) & 0xFF for v in counts[n % 10])
+        header = bytes([0x81, n + 1]) + (128 * (30 - n)).to_bytes(2, "little") + bytes([n, 128, 0])
+        records.append((0x08, header + plane))
+    head = bytes([0x10, 31]) + (128).to_bytes(2, "little") + bytes([result_no, temperature_c % 256, 9, 0])
+    head += b"".join(v.to_bytes(4, "little") for v in (1000, 200_000, 50_000, systick))
+    body = b"".join(bytes([c]) + d.to_bytes(2, "little") for d, c in zip(distances, confidences))
+    records.append((0x02, head + body))
+    return records
+
+
+class ReplayBus:
+    """Serves prepared records as the chip does: INT_STATUS shows the next record's bit, 0x20 holds its bytes."""
+
+    def __init__(self, records):
+        self.records = list(records)
+
+    def read_byte_data(self, addr, register, force=None):
+        assert register == 0xE1
+        return self.records[0][0] if self.records else 0
+
+    def write_byte_data(self, addr, register, value, force=None):
+        assert register == 0xE1
+        if self.records and value & self.records[0][0]:
+            self.records.pop(0)
+
+    def i2c_rdwr(self, write, read):
+        assert list(write) == [0x20]
+        ctypes.memmove(read.buf, self.records[0][1][:read.len].ljust(read.len, b"\0"), read.len)
+
+    def close(self):
+        pass
+
+
+def test_a_frame_laid_out_as_the_protocol_says_decodes_bit_for_bit():
+    rng = np.random.default_rng(11)
+    counts = rng.integers(0, 1 << 24, (10, 128))
+    distances, confidences = rng.integers(0, 5000, 36).tolist(), rng.integers(0, 256, 36).tolist()
+    records = reference_records(counts, 7, -12, 123457, distances, confidences)
+    assert [len(r) for _, r in records] == [135] * 30 + [132]
+    assert records[0][1][2:4] == b"\x00\x0f" and records[29][1][2:4] == b"\x80\x00"  # 3840 ... 128
+    # The fake lays a frame out the same way, byte for byte.
+    tids = iter(range(1, 100))
+    result = {"result_no": 7, "temperature_c": -12, "systick": 123457, "distances_mm": distances,
+              "confidences": confidences}
+    assert frame_records(counts, result, True, lambda: next(tids)) == records
+
+    transport = I2CTransport(1, smbus_factory=lambda bus: ReplayBus(records))
+    transport.open()
+    assembler = FrameAssembler()
+    frames = [f for f in (assembler.feed(transport.read_packet(1.0)) for _ in range(31)) if f is not None]
+    assert len(frames) == 1 and transport.counters()["bad_records"] == 0
+    (frame,) = frames
+    assert np.array_equal(frame.reference, counts[0]) and np.array_equal(frame.hists, counts[1:])
+    assert frame.temperature_c == -12.0 and frame.extra["systick"] == 123457 and frame.extra["result_no"] == 7
+    assert frame.depths_mm == [float(d) for d in distances] and frame.confidences == confidences
+
+    # A size field that is not the rest of the message (131, the record's own length; 3840 in every sub-packet) is
+    # not a sub-packet of this protocol.
+    for size in (131, 3840):
+        spoiled = [(bit, rec[:2] + size.to_bytes(2, "little") + rec[4:]) if k == 5 else (bit, rec)
+                   for k, (bit, rec) in enumerate(records)]
+        transport = I2CTransport(1, smbus_factory=lambda bus: ReplayBus(spoiled))
+        transport.open()
+        packets = [transport.read_packet(0.0) for _ in range(30)]
+        assert transport.counters()["bad_records"] == 1 and [p.index for p in packets[:29]] == [
+            k for k in range(30) if k != 5]
+
+
+def test_the_bootloader_echoes_the_command_it_runs_and_the_driver_waits(arun, image):
+    path, data = image
+    fake = SimTMF8820Bus(image=data, busy_polls=3)
+    wake(fake)
+    fake.violations.clear()
+    fake.i2c_rdwr(i2c_msg.write(0x41, b"\x08" + bootloader_frame(0x43, b"\x00\x00")))
+    statuses = []
+    for _ in range(4):
+        status = i2c_msg.read(0x41, 3)
+        fake.i2c_rdwr(i2c_msg.write(0x41, [0x08]), status)
+        statuses.append(list(status)[0])
+    assert statuses == [0x43, 0x43, 0x43, 0x00]  # busy: the command is echoed; then ready
+
+    fake = SimTMF8820Bus(image=data, busy_polls=3)
+    frames = arun(_run(I2CSensor(1, firmware=path, smbus_factory=fake), n_frames=1))
+    assert len(frames) == 1 and fake.violations == [] and bytes(fake.ram[:len(data)]) == data
+
+
+def test_measuring_enables_the_result_and_histogram_interrupts(image):
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+    fake.int_enab = 0x40  # an enable someone else set is kept
+    transport = I2CTransport(1, firmware=path, smbus_factory=fake)
+    transport.open()
+    try:
+        transport.start()
+        assert fake.int_enab == 0x40 | 0x02 | 0x08
+        assert fake.int_pin_low()  # the first sub-packet waits and its interrupt reaches the INT pin
+        assert transport.read_packet(5.0).index == 0
+        transport.stop()
+        assert fake.int_enab == 0x40 and not fake.int_pin_low()
+    finally:
+        transport.close()
+    assert fake.violations == []
+
+
+def test_a_firmware_without_accuracy_modes_measures_in_its_own_mode(arun, image, caplog):
+    path, data = image
+    fake = SimTMF8820Bus(image=data, accuracy_modes=False)
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake)
+    with caplog.at_level(logging.WARNING, logger="spadscan.daemon"):
+        frames = arun(_run(sensor, n_frames=2))
+    assert len(frames) == 2 and fake.violations == []
+    assert 0x6E not in fake.commands and fake.commands[:2] == [0x16, 0x15]  # ACTIVE_RANGE 0x00: nothing to switch
+    assert sensor.counters()["active_range"] == "no accuracy modes"
+    assert re.search(r"i2c bus 1 addr 0x41: the sensor measures in no accuracy modes mode \(ACTIVE_RANGE 0x19 "
+                     r"reads 0x00\)", caplog.text)
+
+
+def test_the_chip_is_not_addressed_while_its_cpu_starts(arun, image):
+    """After PON and after RAMREMAP the chip acknowledges nothing for a while; the driver waits as the references do."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data, startup_s=0.008)
+    frames = arun(_run(I2CSensor(1, firmware=path, smbus_factory=fake), n_frames=1))
+    assert len(frames) == 1 and fake.violations == []
+
+
+def test_power_on_keeps_the_power_up_select_bits(arun, image):
+    """ENABLE is read-modify-written: after a standby the chip wakes into the application kept in RAM."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+    arun(_run(I2CSensor(1, firmware=path, smbus_factory=fake), n_frames=1))
+    assert fake.read_byte_data(0x41, 0xE0) & 0x30 == 0x20  # RAMREMAP selected "start the application in RAM"
+    fake.write_byte_data(0x41, 0xE0, fake.read_byte_data(0x41, 0xE0) & ~0x01)  # a host puts it in standby
+    assert fake.read_byte_data(0x41, 0xE0) == 0x20
+    sensor = I2CSensor(1, smbus_factory=fake)  # no firmware: the application must still be there
+    frames = arun(_run(sensor, n_frames=1))
+    assert len(frames) == 1 and sensor.counters()["downloads"] == 0 and fake.violations == []
+    assert fake.read_byte_data(0x41, 0xE0) & 0x30 == 0x20
+
+
+def test_the_fake_measures_without_short_range_mode_or_a_written_config():
+    """No invented preconditions: after RAMREMAP the application measures with its defaults."""
+    fake = SimTMF8820Bus(startup_s=0.0)
+    wake(fake)
+    fake.i2c_rdwr(i2c_msg.write(0x41, b"\x08" + bootloader_frame(0x11)))
+    assert fake.read_byte_data(0x41, 0x00) == 0x03 and fake.read_byte_data(0x41, 0x19) == 0x6F
+    fake.write_byte_data(0x41, 0x08, 0x10)
+    while fake.read_byte_data(0x41, 0x08) >= 0x10:
+        pass
+    assert fake.read_byte_data(0x41, 0x08) == 0x01 and fake.read_byte_data(0x41, 0xE1) == 0x02  # no HIST_DUMP
+    assert fake.violations == []
+
+
 def test_boot_download_configure_measure_bit_for_bit(arun, image):
     path, data = image
     fake = SimTMF8820Bus(image=data)
@@ -58,7 +238,7 @@ def test_boot_download_configure_measure_bit_for_bit(arun, image):
     assert fake.app_running and bytes(fake.ram[:len(data)]) == data and fake.written.sum() == len(data)
     assert fake.commands == EXPECTED_COMMANDS + [0xFF]  # ... and stop on release
     assert fake.config == {"period_ms": 250, "kilo_iterations": 4000, "spad_map": 1, "hist_dump": 1}
-    assert fake.short_range and fake.closed
+    assert fake.active_range == 0x6E and fake.int_enab == 0 and fake.closed  # stop disables its interrupts again
     for frame, (counts, result) in zip(frames, fake.produced):
         assert np.array_equal(frame.hists, counts[1:]) and np.array_equal(frame.reference, counts[0])
         assert frame.hists.dtype == np.uint32
@@ -67,6 +247,7 @@ def test_boot_download_configure_measure_bit_for_bit(arun, image):
         assert frame.extra["systick"] == result["systick"] and frame.extra["result_no"] == result["result_no"]
     c = sensor.counters()
     assert c["downloads"] == 1 and c["bad_records"] == 0 and c["frames_dropped"] == 0
+    assert c["active_range"] == "short range"
 
 
 def test_download_frames_cover_the_image_in_chunks_of_128(image):
@@ -83,9 +264,7 @@ def test_download_frames_cover_the_image_in_chunks_of_128(image):
 def test_the_fake_rejects_a_bad_checksum_and_an_incomplete_image():
     data = bytes(range(200))
     fake = SimTMF8820Bus(image=data, busy_polls=0)
-    fake.write_byte_data(0x41, 0xE0, 0x01)
-    while not fake.read_byte_data(0x41, 0xE0) & 0x40:
-        pass
+    wake(fake)
     frame = bytearray(bootloader_frame(0x41, data[:128]))
     frame[-1] ^= 0x01
     fake.i2c_rdwr(i2c_msg.write(0x41, b"\x08" + bytes(frame)))
@@ -116,7 +295,7 @@ def test_the_app_already_running_is_stopped_and_reused(arun, image):
     before = len(fake.produced)
     frames = arun(_run(I2CSensor(1, smbus_factory=fake), n_frames=1))  # no firmware needed: it still runs
     assert fake.violations == [] and len(frames) == 1
-    assert fake.commands == EXPECTED_COMMANDS + [0xFF, 0xFF] + EXPECTED_COMMANDS + [0xFF]
+    assert fake.commands == EXPECTED_COMMANDS + [0xFF, 0xFF] + EXPECTED_COMMANDS[1:] + [0xFF]
     assert np.array_equal(frames[0].hists, fake.produced[before][0][1:])  # the first frame of the new session
 
 
@@ -124,7 +303,7 @@ def test_the_app_already_running_is_stopped_and_reused(arun, image):
     ({"app_id": 0x42}, {}, r"unexpected APP_ID 0x42 \(expected 0x80 for the bootloader or 0x03"),
     ({"ready_after_polls": None}, {}, r"timed out after 0.2 s waiting for cpu_ready \(ENABLE bit 6\)"),
     ({}, {"firmware": None}, r"the sensor is in its bootloader and needs the firmware image"),
-    ({"address": 0x29}, {}, r"i2c write of register 0xe0: no acknowledge \(is the sensor wired, powered"),
+    ({"address": 0x29}, {}, r"i2c read of register 0xe0: no acknowledge \(is the sensor wired, powered"),
 ])
 def test_boot_failures_are_named(arun, image, fake_kw, sensor_kw, message):
     path, data = image
@@ -229,3 +408,12 @@ def test_bad_settings_are_refused():
         I2CSensor(1, period_ms=0)
     with pytest.raises(DeviceError, match="kilo_iterations = 70000"):
         I2CSensor(1, kilo_iterations=70000)
+    with pytest.raises(DeviceError, match="spad_map = 7 is time-multiplexed"):
+        I2CSensor(1, spad_map=7)
+
+
+def test_the_lab_notes_list_exactly_the_notes_there_are():
+    readme = (NOTES / "README.md").read_text()
+    listed = set(re.findall(r"\]\(([^)#]+\.md)\)", readme))
+    assert listed == {p.name for p in NOTES.glob("*.md")} - {"README.md"}
+    assert {"modes.md", "calibration.md"} <= listed

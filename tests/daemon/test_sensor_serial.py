@@ -6,6 +6,7 @@ reordered lines must never come out, and the counters must say why."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import threading
 import time
@@ -29,7 +30,7 @@ def counts(seed):
 
 def result(seed):
     rng = np.random.default_rng(seed)
-    return BridgeResult(result_no=seed % 256, temperature_c=int(rng.integers(10, 50)), n_valid=9,
+    return BridgeResult(result_no=seed % 256, temperature_c=int(rng.integers(-20, 50)), n_valid=9,
                         systick=int(rng.integers(0, 2**32)), distances_mm=rng.integers(0, 5000, 36).tolist(),
                         confidences=rng.integers(0, 256, 36).tolist())
 
@@ -51,6 +52,17 @@ def test_parse_raw_and_obj_lines():
     assert obj.distances_mm == res.distances_mm and obj.confidences == res.confidences
 
 
+@pytest.mark.parametrize("printed, celsius", [(b"0", 0.0), (b"31", 31.0), (b"127", 127.0), (b"128", -128.0),
+                                              (b"250", -6.0), (b"255", -1.0)])
+def test_the_temperature_byte_is_printed_unsigned_and_decoded_signed(printed, celsius):
+    """The firmware prints the result's temperature byte as an unsigned number: above 127 is below 0 C."""
+    line = b"#Obj,65,1," + printed + b",9,100," + b",".join([b"1", b"3"] * 36) + b","
+    obj = parse_line(line, 0.0, 0x41)
+    assert isinstance(obj, ResultPacket) and obj.temperature_c == celsius
+    if celsius < 0:
+        assert obj_line(BridgeResult(temperature_c=int(celsius))).split(b",")[3] == printed
+
+
 @pytest.mark.parametrize("line, why", [
     (b"#Obj", "separator"),
     (b"#Raw,65,3,1,2,3", "corrupt"),  # truncated
@@ -60,6 +72,8 @@ def test_parse_raw_and_obj_lines():
     (b"#Raw,65,3," + b",".join([b"1"] * 127) + b", 1", "corrupt"),
     (b"#Obj,65,1,25,9,100," + b",".join([b"1", b"300"] * 36), "corrupt"),  # confidence > 255
     (b"#Obj,65,1,nan,9,100," + b",".join([b"1", b"3"] * 36), "corrupt"),
+    (b"#Obj,65,1,256,9,100," + b",".join([b"1", b"3"] * 36), "corrupt"),  # more than a byte
+    (b"#Obj,65,1,-6,9,100," + b",".join([b"1", b"3"] * 36), "corrupt"),  # the firmware never prints a sign
     (b"#Obj,65,1,25,9,100," + b",".join([b"1", b"3"] * 35), "corrupt"),
     (b"12,13,14,15", "corrupt"),  # the tail of a line: a mid-line start
     (b"\xff\xfe#R", "corrupt"),
@@ -84,16 +98,18 @@ def test_every_bridge_fault_spoils_the_frame(fault):
 
 
 # ---- end to end over a pty ---------------------------------------------------------------------------------------
-async def _open(bridge, **kw):
+@contextlib.asynccontextmanager
+async def streaming(bridge, **kw):
+    """A SerialSensor streaming from the bridge's port; released and closed even when the test fails (no thread
+    is left behind to hang the run)."""
     sensor = SerialSensor(bridge.port, **kw)
-    await sensor.connect()
-    await sensor.prepare()
-    return sensor
-
-
-async def _close(sensor):
-    await sensor.release()
-    await sensor.close()
+    try:
+        await sensor.connect()
+        await sensor.prepare()
+        yield sensor
+    finally:
+        await sensor.release()
+        await sensor.close()
 
 
 def test_frames_arrive_bit_for_bit_and_corrupt_frames_never_do(arun):
@@ -101,20 +117,19 @@ def test_frames_arrive_bit_for_bit_and_corrupt_frames_never_do(arun):
 
     async def main():
         with SimBridge() as bridge:
-            sensor = await _open(bridge)
-            bridge.send(b"1,2,3,4\n")  # we joined mid-line
-            bridge.send(b"#Vers,1.0.4\r\n#Err,no target\r\n#Obj\n")
-            bridge.send(b"".join(raw_lines(counts(99))[5:]))  # ... and mid-frame
-            bridge.send(b"#Raw,66,0," + b",".join([b"7"] * 128) + b"\n")  # another sensor on the bridge
-            for k, fault in enumerate((None,) + FAULTS + (None,)):
-                bridge.send_frame(counts(k), result(k), fault=fault)
-                if fault is None:
-                    sent_good.append(k)
-                bridge.send_frame(counts(100 + k), result(100 + k))  # a good frame after every fault
-                sent_good.append(100 + k)
-            got = [await sensor.next_frame(10) for _ in sent_good]
-            counters = sensor.counters()
-            await _close(sensor)
+            async with streaming(bridge) as sensor:
+                bridge.send(b"1,2,3,4\n")  # we joined mid-line
+                bridge.send(b"#Vers,1.0.4\r\n#Err,no target\r\n#Obj\n")
+                bridge.send(b"".join(raw_lines(counts(99))[5:]))  # ... and mid-frame
+                bridge.send(b"#Raw,66,0," + b",".join([b"7"] * 128) + b"\n")  # another sensor on the bridge
+                for k, fault in enumerate((None,) + FAULTS + (None,)):
+                    bridge.send_frame(counts(k), result(k), fault=fault)
+                    if fault is None:
+                        sent_good.append(k)
+                    bridge.send_frame(counts(100 + k), result(100 + k))  # a good frame after every fault
+                    sent_good.append(100 + k)
+                got = [await sensor.next_frame(10) for _ in sent_good]
+                counters = sensor.counters()
             return got, counters
 
     got, c = arun(main())
@@ -138,21 +153,20 @@ def test_frames_arrive_bit_for_bit_and_corrupt_frames_never_do(arun):
 def test_unplug_and_replug(arun):
     async def main():
         with SimBridge() as bridge:
-            sensor = await _open(bridge, link_grace_s=0.3)
-            bridge.send_frame(counts(1))
-            first = await sensor.next_frame(10)
-            bridge.send(b"".join(raw_lines(counts(2))[:9]) + b"#Raw,65,9,1,2")  # unplugged mid-frame, mid-line
-            bridge.flush()
-            bridge.unplug()
-            with pytest.raises(LinkLost, match="sensor serial .*link down .*grace 0.3 s"):
-                await sensor.next_frame(30)
-            bridge.replug()
-            while sensor.counters()["link"] == "down":
-                await asyncio.sleep(0.01)
-            bridge.send_frame(counts(3))
-            after = await sensor.next_frame(10)
-            counters = sensor.counters()
-            await _close(sensor)
+            async with streaming(bridge, link_grace_s=0.3) as sensor:
+                bridge.send_frame(counts(1))
+                first = await sensor.next_frame(10)
+                bridge.send(b"".join(raw_lines(counts(2))[:9]) + b"#Raw,65,9,1,2")  # unplugged mid-frame, mid-line
+                bridge.flush()
+                bridge.unplug()
+                with pytest.raises(LinkLost, match="sensor serial .*link down .*grace 0.3 s"):
+                    await sensor.next_frame(30)
+                bridge.replug()
+                while sensor.counters()["link"] == "down":
+                    await asyncio.sleep(0.01)
+                bridge.send_frame(counts(3))
+                after = await sensor.next_frame(10)
+                counters = sensor.counters()
             return first, after, counters
 
     first, after, c = arun(main())
@@ -164,15 +178,14 @@ def test_unplug_and_replug(arun):
 def test_a_short_unplug_within_the_grace_loses_no_later_frame(arun):
     async def main():
         with SimBridge() as bridge:
-            sensor = await _open(bridge, link_grace_s=30)
-            bridge.unplug()
-            bridge.replug()
-            bridge.flush()
-            while sensor.counters()["reconnects"] < 1:
-                await asyncio.sleep(0.01)
-            bridge.send_frame(counts(4))
-            frame = await sensor.next_frame(10)
-            await _close(sensor)
+            async with streaming(bridge, link_grace_s=30) as sensor:
+                bridge.unplug()
+                bridge.replug()
+                bridge.flush()
+                while sensor.counters()["reconnects"] < 1:
+                    await asyncio.sleep(0.01)
+                bridge.send_frame(counts(4))
+                frame = await sensor.next_frame(10)
             return frame
 
     assert np.array_equal(arun(main()).hists, counts(4)[1:])
@@ -200,12 +213,11 @@ def test_a_streaming_bridge_with_faults_delivers_only_whole_frames(arun):
 
     async def main():
         with SimBridge() as bridge:
-            sensor = await _open(bridge)
-            bridge.start_stream(source, period_s=0.01, fault_every=3)
-            got = [await sensor.next_frame(10) for _ in range(8)]
-            bridge.stop_stream()
-            counters = sensor.counters()
-            await _close(sensor)
+            async with streaming(bridge) as sensor:
+                bridge.start_stream(source, period_s=0.01, fault_every=3)
+                got = [await sensor.next_frame(10) for _ in range(8)]
+                bridge.stop_stream()
+                counters = sensor.counters()
             return got, counters
 
     got, c = arun(main())

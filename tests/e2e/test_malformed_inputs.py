@@ -8,9 +8,12 @@ import shutil
 import socket
 import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
+
+from spadscan.worker.queue import Queue
 
 from e2e_helpers import (drop_ground_truth, one_line_error, open_fds, rig_dict, settled_fds, spadscan,
                          spadscan_argv, toml_text, wait_for)
@@ -109,11 +112,15 @@ def test_malformed_meshes_are_one_line_errors(tmp_path):
 
 
 # ---- captures --------------------------------------------------------------------------------------------------------
-def make_capture(folder) -> None:
+@pytest.fixture(scope="module")
+def good_capture(tmp_path_factory) -> Path:
+    """A small simulated capture without a ground truth, made once for the capture tests (copy it to change it)."""
+    folder = tmp_path_factory.mktemp("captures") / "good"
     r = spadscan("simulate", "builtin:sphere", "--out", folder, "--views", 4, "--rays-per-zone", 16, "--sensor",
                  "tmf8820", "--no-progress")
     assert r.returncode == 0, r.stderr
     drop_ground_truth(folder)
+    return folder
 
 
 def corrupt(good, folder, how: str) -> None:
@@ -134,11 +141,10 @@ def corrupt(good, folder, how: str) -> None:
 
 
 @pytest.mark.slow
-def test_corrupt_captures_are_one_line_errors_in_reconstruct(tmp_path):
-    make_capture(tmp_path / "good")
+def test_corrupt_captures_are_one_line_errors_in_reconstruct(tmp_path, good_capture):
     cases, expect = {}, {}
     for how, words in (("hists", "hists.npy"), ("pose", "pose"), ("manifest", "scan.json")):
-        corrupt(tmp_path / "good", tmp_path / how, how)
+        corrupt(good_capture, tmp_path / how, how)
         cases[how] = ["reconstruct", tmp_path / how, "--out", tmp_path / f"out-{how}", "--steps", 2, "--device",
                       "cpu", "--no-progress"]
         expect[how] = words
@@ -146,25 +152,23 @@ def test_corrupt_captures_are_one_line_errors_in_reconstruct(tmp_path):
 
 
 @pytest.mark.slow
-def test_worker_fails_a_corrupt_capture_in_one_line_and_keeps_serving(tmp_path, procs):
+def test_worker_fails_a_corrupt_capture_in_one_line_and_keeps_serving(tmp_path, procs, good_capture):
     root = tmp_path / "captures"
     root.mkdir()
-    make_capture(tmp_path / "good")
-    corrupt(tmp_path / "good", root / "bad", "meta")
+    corrupt(good_capture, root / "bad", "meta")
     worker = procs.start(spadscan_argv("worker", "--root", root, "--steps", 2, "--device", "cpu", "--poll-s", 0.2),
                          "worker")
 
-    def states():
-        r = spadscan("worker", "--root", root, "--status", "--json")
-        assert r.returncode == 0, r.stderr
-        return {row["id"]: row for row in json.loads(r.stdout)}
+    def states():  # read in this process: a `--status` process every poll would load the machine
+        return {row.id: row.state for row in Queue.for_root(root, create=False).statuses()}
 
-    wait_for(lambda: {k: v["state"] for k, v in states().items()} == {"bad-fast": "failed"}, "the bad job to fail",
-             120, poll_s=0.5)
-    shutil.copytree(tmp_path / "good", root / "later")  # a scan that arrives afterwards is still served
-    rows = wait_for(lambda: (s := states()).get("later-fast", {}).get("state") == "done" and s,
-                    "the later scan reconstructed", 240, poll_s=0.5)
+    wait_for(lambda: states() == {"bad-fast": "failed"}, "the bad job to fail", 120, poll_s=0.2)
+    shutil.copytree(good_capture, root / "later")  # a scan that arrives afterwards is still served
+    wait_for(lambda: states().get("later-fast") == "done", "the later scan reconstructed", 240, poll_s=0.2)
     assert worker.poll() is None, "the worker is still serving"
+    r = spadscan("worker", "--root", root, "--status", "--json")
+    assert r.returncode == 0, r.stderr
+    rows = {row["id"]: row for row in json.loads(r.stdout)}
     bad = rows["bad-fast"]
     assert bad["attempts"] == 1, "a bad input is not retried"
     assert "meta.json" in bad["error"] and "\n" not in bad["error"] and "Traceback" not in bad["error"]
@@ -263,5 +267,5 @@ def test_clients_that_hang_up_on_wait_release_their_connections(make_daemon):
     for _ in range(20):
         hang_up(daemon.sock, b'{"op": "wait", "name": "held"}\n')
     assert daemon.status()["state"] == "paused"
-    wait_for(lambda: len(open_fds(daemon.pid)) <= before, "the abandoned wait connections to be closed", 10)
+    wait_for(lambda: len(open_fds(daemon.pid)) <= before, "the abandoned wait connections to be closed", 60)
     assert daemon.stop() == 0, daemon.log()

@@ -32,34 +32,38 @@ class Feeder:
         self.k = 0
         self._stop = threading.Event()
         self._running = threading.Event()
+        self._sending = threading.Lock()  # held while one frame (and its junk) is queued
         self._thread = threading.Thread(target=self._run, name="e2e-bridge-feeder", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         while not self._stop.wait(self.period_s):
-            if not self._running.is_set():
-                continue
-            self.k += 1
-            k = self.k
-            counts = self.rng.integers(0, 1 << 24, size=(10, 128), dtype=np.int64)  # all three byte planes
-            counts[:, 0] = k
-            fault = FAULTS[(k // 3) % len(FAULTS)] if k % 3 == 0 else None
-            if fault is None:
-                self.good[k] = counts
-            else:
-                self.bad[k] = fault
-            self.bridge.send_frame(counts, BridgeResult(result_no=k % 256, systick=k), fault=fault,
-                                   at=1 + k % 27)
-            if k % 5 == 0:
-                self.bridge.send(JUNK[(k // 5) % len(JUNK)])
+            with self._sending:
+                if self._running.is_set():
+                    self._send_next()
+
+    def _send_next(self) -> None:
+        self.k += 1
+        k = self.k
+        counts = self.rng.integers(0, 1 << 24, size=(10, 128), dtype=np.int64)  # all three byte planes
+        counts[:, 0] = k
+        fault = FAULTS[(k // 3) % len(FAULTS)] if k % 3 == 0 else None
+        if fault is None:
+            self.good[k] = counts
+        else:
+            self.bad[k] = fault
+        self.bridge.send_frame(counts, BridgeResult(result_no=k % 256, systick=k), fault=fault,
+                               at=1 + k % 27)
+        if k % 5 == 0:
+            self.bridge.send(JUNK[(k // 5) % len(JUNK)])
 
     def start(self) -> None:
         self._running.set()
 
     def hold(self) -> None:
         """Stop sending (the sensor goes silent) and wait until what was queued is written."""
-        self._running.clear()
-        time.sleep(2 * self.period_s)
+        with self._sending:  # a frame being queued now is queued whole before this returns
+            self._running.clear()
         self.bridge.flush()
 
     def close(self) -> None:

@@ -60,8 +60,10 @@ BAD = {
     "points.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no triangles"),
     "nan.obj": ("v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "non-finite"),
     "flat.obj": ("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "degenerate"),
-    "index.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "cannot read"),
-    "mesh.xyzq": ("1 2 3\n", "cannot read"),
+    "index.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "not a valid OBJ mesh"),
+    "mesh.xyzq": ("1 2 3\n", "not a mesh file spadscan can read"),
+    "header.ply": ("ply\n", "not a valid PLY mesh"),
+    "random.ply": (b"ply\n\xa0\x13\xff" + bytes(range(256)), "not a valid PLY mesh"),
 }
 
 
@@ -72,6 +74,7 @@ def test_bad_files_are_one_line_errors_naming_the_file(tmp_path, name):
     with pytest.raises(MeshError, match=why) as info:
         load_mesh(path)
     assert "\n" not in str(info.value) and name in str(info.value)
+    assert "Error:" not in str(info.value)  # the parser's exception class is no message for a user
 
 
 def test_missing_file_and_folder(tmp_path):

@@ -1,9 +1,9 @@
 """The laser pulse used by the forward model: the sensor model's, or one derived from reference histograms.
 
 For the real TMF8820 the reference channel records the emitted pulse through an internal path. Fitted against the
-zones (SENSOR_FACTS), the zones' pulse is the floor-subtracted reference, normalised to peak 1, shifted, stretched
-by 1.10 in time and raised to the power 1.5: p(i) = ref_n(peak_ref + (i - (zero_bin - 0.59)) / 1.10) ** 1.5 for a
-return at zero range (i a bin index, peak_ref the reference's peak index, found per capture). That fit holds for
+zones (docs/sensor_models.md), the zones' pulse is the floor-subtracted reference, normalised to peak 1, shifted,
+stretched by 1.10 in time and raised to the power 1.5: p(i) = ref_n(peak_ref + (i - (zero_bin - 0.59)) / 1.10) ** 1.5
+for a return at zero range (i a bin index, peak_ref the reference's peak index, found per capture). That fit holds for
 measured data only: a simulator that draws its reference from the sensor model's own pulse needs no such mapping.
 
 That mapping still rises too slowly: a pulse fitted freely to the real pyramid's histograms (the geometry held) puts

@@ -1,7 +1,7 @@
 """The table under a real object: a plane rendered exactly, with its own albedo and (optionally) a fitted height.
 
-Every zone of a real capture sees the table (SENSOR_FACTS: it is in every histogram), so its return is part of the
-forward model, not noise to be explained by the object. Rays that enter the hull see it behind the object, dimmed
+Every zone of a real capture sees the table (docs/sensor_models.md: it is in every histogram), so its return is part of
+the forward model, not noise to be explained by the object. Rays that enter the hull see it behind the object, dimmed
 by the round-trip transmittance through the hull segment; rays that miss the hull see it directly — all of those are
 rendered every step (cheap: one plane intersection each), so the table adds no sampling noise.
 

@@ -1,4 +1,4 @@
-"""The `paper` preset: the reference method as published (DESIGN §4), on the shared parts."""
+"""The `paper` preset: the reference method as published (docs/paper_preset.md), on the shared parts."""
 
 from __future__ import annotations
 
