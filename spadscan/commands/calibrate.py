@@ -20,7 +20,7 @@ import numpy as np
 def add_arguments(parser) -> None:
     sub = parser.add_subparsers(dest="what", required=True, metavar="WHAT")
     he = sub.add_parser("hand-eye", help="fit [arm] hand_eye from a capture of a known plane or sphere",
-                        description=__doc__.splitlines()[0] + ": the flange-to-sensor transform [arm] hand_eye.")
+                        description=__doc__, formatter_class=parser.formatter_class)
     he.add_argument("capture", metavar="CAPTURE", help="the capture folder (holds scan.json)")
     he.add_argument("--plane", metavar="X,Y,Z,NX,NY,NZ",
                     help="the target is a plane through point X,Y,Z with normal NX,NY,NZ (base frame, metres)")
