@@ -35,6 +35,7 @@ from .config import DaemonConfig, scan_request
 from .devices import Arm, ArmFault, Frame, LinkLost, Sensor, SensorSilent
 from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
 from .scan_plan import build_plan, sensor_from_tcp
+from .stall import StallWatch
 from .workspace import check_workspace, first_move_problem
 
 log = logging.getLogger("spadscan.daemon")
@@ -68,6 +69,9 @@ class ScanRunner:
         self._end: tuple[str, str] | None = None  # (state, reason) the scan ends in when its task is cancelled
         self._changed = asyncio.Event()
         self._io_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
+        self.stalls = StallWatch()
+        self.frame_waits_retried = 0
+        """Frame waits begun again because the daemon itself had not run (see `stall.py`), not the sensor."""
 
     # ---- requests --------------------------------------------------------------------------------------------------
     async def start(self, name: str | None = None, overrides: dict | None = None) -> dict:
@@ -238,6 +242,7 @@ class ScanRunner:
         if self.finished:
             name = next(reversed(self.finished))
             out["last_scan"] = {"name": name, "state": self.finished[name]}
+        out["daemon_stalls"] = {**self.stalls.counters(), "frame_waits_retried": self.frame_waits_retried}
         return out
 
     # ---- the scan task ---------------------------------------------------------------------------------------------
@@ -249,6 +254,14 @@ class ScanRunner:
         self._task = asyncio.create_task(self._run(self.job, paused=(state == "paused")), name=f"scan {self.job.name}")
 
     async def _run(self, job: ScanJob, paused: bool) -> None:
+        watch = asyncio.ensure_future(self.stalls.run())
+        try:
+            await self._run_scan(job, paused)
+        finally:
+            watch.cancel()
+            await asyncio.gather(watch, return_exceptions=True)
+
+    async def _run_scan(self, job: ScanJob, paused: bool) -> None:
         try:
             if paused:
                 await self._wait_resume(job)
@@ -385,23 +398,37 @@ class ScanRunner:
         return time.monotonic()
 
     async def _frames(self, job: ScanJob, i: int, ready_t: float) -> list[Frame]:
-        """K frames that began at or after ready_t; earlier ones (exposed while moving or settling) are dropped."""
+        """K frames that began at or after ready_t; earlier ones (exposed while moving or settling) are dropped.
+        A wait the daemon itself slept through (stopped, suspended: `stall.py`) is begun again, not blamed on the
+        sensor."""
         timeout = self.cfg.sensor.frame_timeout_s
         model = self.sensor.model
         frames: list[Frame] = []
-        deadline = time.monotonic() + timeout
+        since = time.monotonic()
+        deadline, dropped = since + timeout, job.dropped
         while len(frames) < job.scan.frames_per_pose:
             left = deadline - time.monotonic()
             if left <= 0:
+                if self._slept_through(job, i, since):
+                    since = time.monotonic()
+                    deadline, dropped = since + timeout, job.dropped
+                    continue
+                if job.dropped > dropped:
+                    raise SensorSilent(f"{self.sensor.name}: {job.dropped - dropped} frames in {timeout:g} s "
+                                       f"(frame_timeout_s) at pose {i}, none begun after the arm settled")
                 raise SensorSilent(f"{self.sensor.name}: no frame that began after the arm settled within "
                                    f"{timeout:g} s at pose {i}")
             try:
                 async with asyncio.timeout(left + FRAME_GRACE_S):
                     f = await self.sensor.next_frame(left)
-            except TimeoutError:
-                raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
-                                   f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
-            except SensorSilent:
+            except (TimeoutError, SensorSilent) as exc:
+                if self._slept_through(job, i, since):
+                    since = time.monotonic()
+                    deadline, dropped = since + timeout, job.dropped
+                    continue
+                if isinstance(exc, TimeoutError):
+                    raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
+                                       f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
                 # The sensor names the rest of the timeout it was given (0.953291 s); the operator set the whole.
                 raise SensorSilent(f"{self.sensor.name}: no complete frame within {timeout:g} s (frame_timeout_s) "
                                    f"at pose {i}") from None
@@ -412,8 +439,20 @@ class ScanRunner:
                 raise DeviceError(f"{self.sensor.name}: frame of shape {np.shape(f.hists)}, expected "
                                   f"({model.n_zones}, {model.n_bins})")
             frames.append(f)
-            deadline = time.monotonic() + timeout
+            since = time.monotonic()
+            deadline = since + timeout
         return frames
+
+    def _slept_through(self, job: ScanJob, i: int, since: float) -> bool:
+        """Whether the daemon itself stood still while it waited for a frame since `since` (then the wait is begun
+        again and counted in status' daemon_stalls)."""
+        stalled = self.stalls.stalled_between(since, time.monotonic())
+        if stalled <= 0:
+            return False
+        self.frame_waits_retried += 1
+        log.warning("scan %s: the daemon itself did not run for %.1f s while it waited for a frame at pose %d "
+                    "(stopped or suspended); waiting for the frame again", job.name, stalled, i)
+        return True
 
     @staticmethod
     def _publish(writer: CaptureWriter, measurements: list[Measurement]) -> None:
