@@ -296,8 +296,42 @@ def test_sensor_silence_pauses_and_resumes(arun, tmp_path, sphere):
     paused, done = arun(scenario())
     assert paused["reason"].startswith("sensor silent: sensor sim: no complete frame within 0.2 s (frame_timeout_s) "
                                        "at pose "), paused["reason"]  # the configured timeout, not what was left of it
+    # The reason and the counters agree: the sensor counted its silence, the daemon did not stall.
+    assert paused["sensor"]["silent_timeouts"] >= 1 and paused["daemon_stalls"]["frame_waits_retried"] == 0
     assert done["state"] == "complete"
     check_capture(tmp_path / "caps" / "quiet", 8, 2)
+
+
+class StaleSensor(SimSensor):
+    """Delivers frames that all began long ago (a backlog that never drains)."""
+
+    async def next_frame(self, timeout_s):
+        frame = await super().next_frame(timeout_s)
+        frame.t_start = -1.0
+        return frame
+
+
+def test_frames_that_all_began_too_early_are_not_called_a_silent_sensor(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=4, frame_timeout_s=0.3)
+
+    async def scenario():
+        arm = TimedArm(motion_time_s=0.0)
+        sensor = StaleSensor(sensor_preset("tmf8820"), sphere, pose_provider(arm, cfg.arm.hand_eye),
+                             settings=SimSettings(rays_per_zone=16), seed=1, frame_time_s=0.02)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("stale")
+                await until(lambda: runner.state == "paused", "the pause")
+                status = runner.status()
+                await runner.abort()
+                return status
+            finally:
+                await runner.shutdown()
+
+    status = arun(scenario())
+    assert "frames in 0.3 s (frame_timeout_s) at pose 0, none begun after the arm settled" in status["reason"]
+    assert status["dropped_frames"] > 0 and status["sensor"]["silent_timeouts"] == 0
 
 
 def test_disk_full_pauses_and_loses_nothing_published(arun, tmp_path, sphere, monkeypatch):
