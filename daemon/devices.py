@@ -28,6 +28,10 @@ class SensorSilent(DeviceError):
     """The sensor delivered no frame within its timeout."""
 
 
+class FramesTooEarly(DeviceError):
+    """The sensor delivered frames, but every one began before the arm had settled (a backlog that does not drain)."""
+
+
 @dataclass
 class ArmState:
     """What the arm reports: actual TCP pose (4x4, base frame, metres), joint angles (rad), controller time (s)."""

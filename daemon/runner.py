@@ -7,7 +7,9 @@ overlaps the next pose's move, settle and frames; pose i+1 is handed to the writ
 landed. So at any moment at most one *finished* pose is unpublished (a kill -9 loses it and the frames of the pose
 being captured, nothing else), and a pose counts only once its chunk is published.
 
-Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent), a protective stop or lost link
+Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent; not when the daemon itself was not
+running meanwhile: `stall.py`, the wait begins again), frames that all began too early (FramesTooEarly), a
+protective stop or lost link
 (ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The writer is then
 dropped and reopened on resume, which continues at the first unpublished pose (`CaptureWriter.next_pose_index`).
 Before the first move after such a resume the arm is readied: after LinkLost it reconnects (`Arm.reconnect`: fresh
@@ -32,7 +34,7 @@ from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
 from .config import DaemonConfig, scan_request
-from .devices import Arm, ArmFault, Frame, LinkLost, Sensor, SensorSilent
+from .devices import Arm, ArmFault, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
 from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
 from .scan_plan import build_plan, sensor_from_tcp
 from .stall import StallWatch
@@ -413,11 +415,8 @@ class ScanRunner:
                     since = time.monotonic()
                     deadline, dropped = since + timeout, job.dropped
                     continue
-                if job.dropped > dropped:
-                    raise SensorSilent(f"{self.sensor.name}: {job.dropped - dropped} frames in {timeout:g} s "
-                                       f"(frame_timeout_s) at pose {i}, none begun after the arm settled")
-                raise SensorSilent(f"{self.sensor.name}: no frame that began after the arm settled within "
-                                   f"{timeout:g} s at pose {i}")
+                raise self._too_late(job, i, dropped) or SensorSilent(
+                    f"{self.sensor.name}: no frame that began after the arm settled within {timeout:g} s at pose {i}")
             try:
                 async with asyncio.timeout(left + FRAME_GRACE_S):
                     f = await self.sensor.next_frame(left)
@@ -426,6 +425,9 @@ class ScanRunner:
                     since = time.monotonic()
                     deadline, dropped = since + timeout, job.dropped
                     continue
+                too_late = self._too_late(job, i, dropped)
+                if too_late is not None:
+                    raise too_late from None
                 if isinstance(exc, TimeoutError):
                     raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
                                        f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
@@ -442,6 +444,14 @@ class ScanRunner:
             since = time.monotonic()
             deadline = since + timeout
         return frames
+
+    def _too_late(self, job: ScanJob, i: int, dropped_before: int) -> FramesTooEarly | None:
+        """The fault when every frame of a wait came but began too early (the count is status' dropped_frames)."""
+        if job.dropped <= dropped_before:
+            return None
+        return FramesTooEarly(f"{self.sensor.name}: {job.dropped - dropped_before} frames in "
+                            f"{self.cfg.sensor.frame_timeout_s:g} s (frame_timeout_s) at pose {i}, none begun after "
+                            f"the arm settled")
 
     def _slept_through(self, job: ScanJob, i: int, since: float) -> bool:
         """Whether the daemon itself stood still while it waited for a frame since `since` (then the wait is begun

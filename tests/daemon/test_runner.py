@@ -330,8 +330,9 @@ def test_frames_that_all_began_too_early_are_not_called_a_silent_sensor(arun, tm
                 await runner.shutdown()
 
     status = arun(scenario())
+    assert status["reason"].startswith("sensor sim: ") and "sensor silent" not in status["reason"]
     assert "frames in 0.3 s (frame_timeout_s) at pose 0, none begun after the arm settled" in status["reason"]
-    assert status["dropped_frames"] > 0 and status["sensor"]["silent_timeouts"] == 0
+    assert status["dropped_frames"] > 0
 
 
 def test_disk_full_pauses_and_loses_nothing_published(arun, tmp_path, sphere, monkeypatch):
