@@ -8,13 +8,15 @@ landed. So at any moment at most one *finished* pose is unpublished (a kill -9 l
 being captured, nothing else), and a pose counts only once its chunk is published.
 
 Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent; not when the daemon itself was not
-running meanwhile: `stall.py`, the wait begins again), frames that all began too early (FramesTooEarly), a
-protective stop or lost link
-(ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The writer is then
-dropped and reopened on resume, which continues at the first unpublished pose (`CaptureWriter.next_pose_index`).
-Before the first move after such a resume the arm is readied: after LinkLost it reconnects (`Arm.reconnect`: fresh
-interfaces), after ArmFault `Arm.clear_fault` runs (the sim arm clears its protective stop; a real UR arm's stop is
-cleared by the operator on the pendant before `ctl resume`).
+running meanwhile, `stall.py`: that wait begins again), frames that all began too early (FramesTooEarly), a safety
+stop or lost link (ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The
+writer is then dropped and reopened on resume, which continues at the first unpublished pose
+(`CaptureWriter.next_pose_index`). Before the first move after such a resume the arm is readied: after LinkLost it
+reconnects (`Arm.reconnect`: fresh interfaces), after ArmFault `Arm.clear_fault` runs (the sim arm clears its
+protective stop; a real UR arm's stop is cleared by the operator on the pendant before `ctl resume`, and the arm
+uploads its control script again if the fault stopped it). The first move of every run starts wherever the arm
+stands: it is checked like the planned moves (`workspace.first_move_problem`), and after a pause the arm's controller
+is asked again about the poses still to come (`Arm.check_poses`).
 """
 
 from __future__ import annotations
