@@ -53,6 +53,30 @@ def test_socket_is_private_and_removed(arun, tmp_path):
     assert not path.exists()
 
 
+def test_a_request_without_its_newline_is_answered_when_the_sender_closes_its_side(arun, tmp_path):
+    """`printf '{"op": "status"}' | nc -U -q 5 SOCKET`: a complete request, no newline, then the sending side shut;
+    the client still reads its reply."""
+    path = tmp_path / "ctl.sock"
+
+    async def scenario():
+        async with ControlServer(path, echo):
+            reader, writer = await asyncio.open_unix_connection(str(path))
+            try:
+                writer.write(b'{"op": "status"}\n{"op": "last"}')
+                writer.write_eof()
+                first = json.loads(await asyncio.wait_for(reader.readline(), 5))
+                last = await asyncio.wait_for(reader.readline(), 5)
+                tail = await asyncio.wait_for(reader.read(), 5)
+            finally:
+                writer.close()
+                await writer.wait_closed()
+            return first, last, tail
+
+    first, last, tail = arun(scenario())
+    assert first == {"ok": True, "echo": "status"}
+    assert json.loads(last) == {"ok": True, "echo": "last"} and tail == b""
+
+
 def test_bad_lines_get_errors_and_the_server_keeps_serving(arun, tmp_path):
     path = tmp_path / "ctl.sock"
     big = b'{"op": "' + b"x" * 200_000 + b'"}\n'
