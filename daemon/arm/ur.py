@@ -56,6 +56,8 @@ STOP_DECEL = 10.0
 """m/s^2: tool deceleration of stop() (ur_rtde's stopL default)."""
 STOP_ON_LOSS_S = 1.0
 """s: how long the stopL sent before a lost link is dropped may take."""
+CLEARED_WITHIN_S = 2.0
+"""s: on resume, how long a safety stop the operator has just cleared may still show in the data before it counts."""
 SAFETY_MODES = {1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery", 5: "safeguard stop",
                 6: "system emergency stop", 7: "robot emergency stop", 8: "violation", 9: "fault",
                 12: "automatic mode safeguard stop", 13: "system three position enabling stop"}
@@ -167,6 +169,10 @@ class URArm(Arm):
         and the watchdog armed again; a safety stop still active is left to the next move to report."""
         self._require_open()
         reading = await self._fresh("the control script's state")
+        deadline = time.monotonic() + CLEARED_WITHIN_S
+        while (reading.protective or reading.emergency or reading.safeguard) and time.monotonic() < deadline:
+            await asyncio.sleep(self.poll_s)  # a stop cleared just now may still show in the data already sent
+            reading = await self._fresh("the control script's state")
         if not reading.program_running:
             await self._call("reuploadScript", "reupload")
             if not await self._script_started():

@@ -565,7 +565,7 @@ def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, 
     import spadscan.daemon.runner as runner_mod
     import spadscan.protocol.capture_writer as cw
 
-    monkeypatch.setattr(runner_mod, "PUBLISH_TIMEOUT_S", 0.2)
+    monkeypatch.setattr(runner_mod, "PUBLISH_TIMEOUT_S", 1.0)  # a loaded machine's fsync stays well inside it
     cfg = make_cfg(tmp_path, views=6)
     real = cw.save_npy_durable
     stall = {"once": False}
@@ -573,7 +573,7 @@ def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, 
     def save(path, array):
         if stall["once"]:
             stall["once"] = False
-            time.sleep(0.6)  # a disk that stalls, then completes the write
+            time.sleep(3.0)  # a disk that stalls, then completes the write
         real(path, array)
 
     monkeypatch.setattr(cw, "save_npy_durable", save)
@@ -594,7 +594,7 @@ def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, 
                 await runner.shutdown()
 
     reason, done = arun(scenario())
-    assert "did not finish within 0.2 s" in reason and done["state"] == "complete"
+    assert "did not finish within 1 s" in reason and done["state"] == "complete"
     check_capture(tmp_path / "caps" / "stall", 6, 2)
 
 
