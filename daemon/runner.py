@@ -48,6 +48,7 @@ STOP_TIMEOUT_S = 5.0  # how long arm.stop() may take
 FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before the runner gives up on it
 PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may take
 READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting) may take
+STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
 
 
 class _Fault(SpadscanError):
@@ -491,11 +492,20 @@ class ScanRunner:
     # ---- pausing, ending -------------------------------------------------------------------------------------------
     async def _fault(self, job: ScanJob, reason: str) -> None:
         """Pause on a fault: stop the arm, drop the writer (reopened on resume), wait for `ctl resume`."""
+        reason += self._stall_note()
         log.warning("scan %s paused: %s", job.name, reason)
         await self._stop_arm()
         job.writer = None
         job.reason = self.last_error = reason
         await self._wait_resume(job)
+
+    def _stall_note(self) -> str:
+        """What to add to a pause's reason when the daemon itself stood still just before (the UR watchdog stops the
+        arm then, a device's timeout may fire): the fault may be the stall's, not the device's."""
+        last = self.stalls.last_stall()
+        if last is None or time.monotonic() - last[1] > STALL_NOTE_S:
+            return ""
+        return f"; the daemon itself had not run for {last[1] - last[0]:.1f} s just before (stopped or suspended)"
 
     async def _wait_resume(self, job: ScanJob) -> None:
         # The event is cleared after each resume and only set while the state is 'paused', so a resume that lands

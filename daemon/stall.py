@@ -60,8 +60,9 @@ class StallWatch:
         return sum(max(0.0, min(b, t1) - max(a, t0)) for a, b in spans)
 
     def last_stall(self) -> tuple[float, float] | None:
-        """(start, end) of the latest recorded stall, or None."""
-        return self._stalls[-1] if self._stalls else None
+        """(start, end) of the latest stall (one still open ends now), or None."""
+        gap = self._open_gap(self.clock())
+        return gap if gap is not None else self._stalls[-1] if self._stalls else None
 
     def counters(self) -> dict:
         return {"count": self.count, "total_s": round(self.total_s, 3)}

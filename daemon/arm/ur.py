@@ -98,7 +98,7 @@ class URArm(Arm):
     def __init__(self, host: str, *, speed: float = 0.1, accel: float = 0.3, timeout_s: float = 10.0,
                  stale_after_s: float = 0.5, frequency: float | None = None, position_tol_m: float = 1e-3,
                  rotation_tol_rad: float = 0.01, rest_speed: float = 2e-3, rest_angular_speed: float = 0.02,
-                 poll_s: float = 0.005, watchdog_hz: float = 4.0):
+                 poll_s: float = 0.005, watchdog_hz: float = 2.0):
         if not isinstance(host, str) or not host:
             raise ConfigError(f"UR arm host must be a non-empty string, got {host!r}")
         for label, value, hi in (("speed", speed, MAX_TOOL_SPEED), ("accel", accel, MAX_TOOL_ACCEL),

@@ -20,7 +20,7 @@ class URArmSettings(ArmBackend):
 
     host: str | None = key(None, "str")
     """The UR controller's IP address or host name (required for 'ur')."""
-    watchdog_hz: float = key(4.0, "float", lo=0.5, hi=100.0, unit="Hz")
+    watchdog_hz: float = key(2.0, "float", lo=0.5, hi=100.0, unit="Hz")
     """The controller's RTDE watchdog: it stops the arm when the daemon sends nothing for 1/watchdog_hz s (a killed,
     stopped or hung daemon)."""
     allow_auto_resume: bool = key(False, "bool")

@@ -158,7 +158,7 @@ def test_the_ur_watchdog_frequency_reaches_the_arm(tmp_path):
 
     cfg = load_config(write(tmp_path, UR.replace("[sensor]", "watchdog_hz = 10\n[sensor]")))
     assert build_arm(cfg).watchdog_hz == 10.0
-    assert build_arm(load_config(write(tmp_path, UR))).watchdog_hz == 4.0
+    assert build_arm(load_config(write(tmp_path, UR))).watchdog_hz == 2.0
     assert "watchdog_hz = 0.1 (Hz) is outside [0.5, 100]" in error_of(
         tmp_path, UR.replace("[sensor]", "watchdog_hz = 0.1\n[sensor]"))
 

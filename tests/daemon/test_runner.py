@@ -274,6 +274,32 @@ def test_protective_stop_pauses_with_reason_and_resume_clears_it(arun, tmp_path,
     check_capture(tmp_path / "caps" / "stop", 8, 2)
 
 
+def test_a_fault_soon_after_the_daemon_stood_still_says_so(arun, tmp_path, sphere):
+    """The event loop stands still for 1.2 s (as in a SIGSTOP), then the arm stops protectively: the reason names
+    the arm's fault and adds that the daemon itself had not run (a watchdog may have stopped the arm for that)."""
+    cfg = make_cfg(tmp_path, views=8)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("still")
+                await until(lambda: runner.job.next_pose >= 1, "a pose")
+                time.sleep(1.2)  # the whole loop stands still
+                arm.trigger_protective_stop()
+                await until(lambda: runner.state == "paused", "the pause")
+                status = runner.status()
+                await runner.abort()
+                return status
+            finally:
+                await runner.shutdown()
+
+    status = arun(scenario())
+    assert "protective stop" in status["reason"], status["reason"]
+    assert "; the daemon itself had not run for 1." in status["reason"] and status["daemon_stalls"]["count"] >= 1
+
+
 def test_sensor_silence_pauses_and_resumes(arun, tmp_path, sphere):
     cfg = make_cfg(tmp_path, views=8, frame_timeout_s=0.2)
 

@@ -78,6 +78,7 @@ def test_the_watch_counts_a_gap_between_ticks_and_one_still_open():
     clock.t += 10.0  # stopped: the next tick comes 10 s late
     # Asked before the watch's own tick runs (the timeout that asks may run first): the open gap counts.
     assert abs(watch.stalled_between(start, clock.t) - 9.9) < 1e-9
+    assert watch.last_stall() == (start + 0.1, clock.t)
     watch.tick()
     assert watch.count == 1 and abs(watch.total_s - 9.9) < 1e-9
     assert abs(watch.stalled_between(start + 5.0, clock.t) - 5.0) < 1e-9  # only the part inside the window
