@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "reconstruct": ("reconstruct", "reconstruct one capture into a mesh and a report"),
     "baseline": ("baseline", "run a baseline reconstruction (reprojection, space carving)"),
     "demo": ("demo", "run the whole loop on simulated devices: daemon -> capture -> worker -> mesh"),
+    "dashboard": ("dashboard", "serve a local web page that follows the scans, the queue and the reconstructions"),
 }
 
 

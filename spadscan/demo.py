@@ -55,6 +55,10 @@ class DemoOptions:
     """Frames stored per pose."""
     stage_timeout_s: float = 600.0
     """Longest any one stage may take before the demo gives up (s)."""
+    dashboard: bool = False
+    """Serve the lab dashboard (`spadscan dashboard`) on the demo's captures while the demo runs."""
+    dashboard_port: int = 8765
+    """Port the dashboard listens on (127.0.0.1); a free one is taken when it is busy."""
 
 
 @dataclass
@@ -172,6 +176,9 @@ def check_options(opts: DemoOptions) -> None:
         raise DemoError(f"--budget-s {opts.budget_s} must be a finite number of seconds > 0")
     if opts.out.exists() and not opts.out.is_dir():
         raise DemoError(f"{opts.out}: exists and is not a folder")
+    port = opts.dashboard_port
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise DemoError(f"--dashboard-port {port} must be an integer in [0, 65535]")
 
 
 def _key(cls, name: str):
@@ -251,16 +258,101 @@ def _scan(sock: Path, name: str, opts: DemoOptions, progress) -> dict:
     raise DemoError(f"scan {name} did not finish within {opts.stage_timeout_s:.0f} s")
 
 
-def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path) -> None:
+def running_job_progress(captures: Path):
+    """The progress (dashboard.job_progress.JobProgress) of a job the worker is running on `captures`, read from
+    its log in the queue; None while none runs or its log shows no progress yet."""
+    from spadscan.dashboard.job_progress import claim_log, read_progress
+    from spadscan.worker.queue import Queue
+
+    queue = Queue.for_root(captures, create=False)
+    for state, path in queue.job_paths().values():
+        if state == "running":
+            return read_progress(claim_log(queue.path, path))
+    return None
+
+
+def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path, progress=None) -> None:
+    """Run a worker over the captures until it has reconstructed them; `progress` receives the running job's
+    progress (or None) about twice a second."""
     log = logs / "worker.log"
     worker = procs.start("worker", _spadscan("worker", "--root", str(captures), "--once", "--processes", "1",
                                              "--budget-s", f"{opts.budget_s:g}", "--poll-s", "0.5"), log)
-    try:
-        code = worker.wait(timeout=opts.stage_timeout_s + opts.budget_s)
-    except subprocess.TimeoutExpired:
-        raise _failed(f"the worker did not finish within {opts.stage_timeout_s + opts.budget_s:.0f} s", log) from None
+    limit = opts.stage_timeout_s + opts.budget_s
+    deadline = time.monotonic() + limit
+    while True:
+        try:
+            code = worker.wait(timeout=0.5)
+            break
+        except subprocess.TimeoutExpired:
+            if time.monotonic() > deadline:
+                raise _failed(f"the worker did not finish within {limit:.0f} s", log) from None
+            if progress is not None:
+                progress(running_job_progress(captures))
     if code != 0:
         raise _failed(f"the worker exited with code {code}", log)
+
+
+def _free_port(host: str, port: int) -> int:
+    """`port` when it is free on `host`, else one the system has free."""
+    for candidate in (port, 0):
+        with socket.socket() as s:
+            try:
+                s.bind((host, candidate))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+    raise DemoError(f"no free port on {host} for the dashboard")
+
+
+def _start_dashboard(opts: DemoOptions, captures: Path, procs: Processes, logs: Path, timeout_s: float = 60.0) -> str:
+    """Serve the dashboard on the captures (a child process, stopped with the others); returns its address once it
+    answers."""
+    import urllib.request
+
+    host = "127.0.0.1"
+    port = _free_port(host, opts.dashboard_port)
+    log = logs / "dashboard.log"
+    proc = procs.start("dashboard", _spadscan("dashboard", "--root", str(captures), "--host", host,
+                                              "--port", str(port)), log)
+    url = f"http://{host}:{port}/"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise _failed(f"the dashboard exited with code {proc.returncode} at start-up", log)
+        try:
+            with urllib.request.urlopen(url + "api/status", timeout=5):
+                return url
+        except OSError:
+            time.sleep(0.2)
+    raise _failed(f"the dashboard did not answer within {timeout_s:.0f} s", log)
+
+
+class ReconProgress:
+    """Shows a job's progress on a bar made by a progress_factory: seconds of the budget done, and the loss, step
+    and Chamfer the job's own bar carries."""
+
+    def __init__(self, bar):
+        self.bar = bar
+        self.shown = 0.0
+
+    AFTER = "reconstruction: mesh, metrics, pictures, report"
+    """The bar's description once training is over: the job then extracts the mesh and writes its report."""
+
+    def __call__(self, progress) -> None:
+        if progress is None:
+            return
+        done = min(progress.done, progress.total)
+        self.bar.update(max(0.0, done - self.shown))
+        self.shown = max(self.shown, done)
+        if progress.done >= progress.total and hasattr(self.bar, "set_description_str"):
+            self.bar.set_description_str(self.AFTER)
+        fields = [f"step {progress.fields['step']}"] if "step" in progress.fields else []
+        if "loss" in progress.fields:
+            fields.append(f"loss {progress.fields['loss']}")
+        if progress.chamfer_mm is not None:
+            fields.append(f"Chamfer {progress.chamfer_mm:.2f} mm")
+        if fields and hasattr(self.bar, "set_postfix_str"):
+            self.bar.set_postfix_str(", ".join(fields))
 
 
 def _find_report(scan_dir: Path) -> Path:
@@ -272,11 +364,14 @@ def _find_report(scan_dir: Path) -> Path:
     return reports[-1]
 
 
-def run_demo(opts: DemoOptions, progress_factory) -> dict:
+def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
     """Run the loop and return the summary (also written to OUT/summary.json).
 
-    progress_factory(total, desc) -> an object with update(n) and close(), e.g. a tqdm bar.
+    progress_factory(total, desc, unit) -> an object with update(n) and close() (and set_postfix_str(text), where it
+    has one), e.g. a tqdm bar: one for the scan's poses, one for the reconstruction's seconds. `say(line)` receives
+    what the user should know while the demo runs (the dashboard's address).
     """
+    say = say or (lambda line: None)
     check_options(opts)
     out = opts.out
     out.mkdir(parents=True, exist_ok=True)
@@ -285,6 +380,7 @@ def run_demo(opts: DemoOptions, progress_factory) -> dict:
     name = f"{opts.scene}-{time.strftime('%Y%m%d-%H%M%S')}"
     sock, sock_tmp = _socket_path(out)
     procs = Processes()
+    dashboard = None
     stages: dict[str, float] = {}
     t0 = time.monotonic()
     try:
@@ -296,10 +392,13 @@ def run_demo(opts: DemoOptions, progress_factory) -> dict:
                         logs / "ursim.log")
         daemon = procs.start("daemon", _spadscan("daemon", "--config", str(config)), logs / "daemon.log")
         _wait_for_daemon(sock, daemon, logs / "daemon.log", timeout_s=60.0)
+        if opts.dashboard:
+            dashboard = _start_dashboard(opts, captures, procs, logs)
+            say(f"dashboard: {dashboard} (open it in a browser; it stops with the demo)")
         stages["start_s"] = time.monotonic() - t0
 
         t = time.monotonic()
-        bar = progress_factory(opts.views, "scan (poses)")
+        bar = progress_factory(opts.views, "scan (poses)", "pose")
         try:
             _scan(sock, name, opts, bar)
         finally:
@@ -308,7 +407,11 @@ def run_demo(opts: DemoOptions, progress_factory) -> dict:
         call(sock, "shutdown")
 
         t = time.monotonic()
-        _reconstruct(opts, captures, procs, logs)
+        bar = progress_factory(opts.budget_s, "reconstruction (training s)", "s")
+        try:
+            _reconstruct(opts, captures, procs, logs, ReconProgress(bar))
+        finally:
+            bar.close()
         stages["reconstruct_s"] = time.monotonic() - t
     finally:
         procs.stop_all()
@@ -324,10 +427,14 @@ def run_demo(opts: DemoOptions, progress_factory) -> dict:
         "report": str(report_path),
         "report_html": str(report_path.parent / "report.html"),
         "pictures": sorted(str(p) for p in report_path.parent.glob("*.png")),
+        "view3d": str(report_path.parent / "view3d.html"),
         "chamfer_mm": report.get("chamfer_mm"),
+        "converged": report.get("converged"),
+        "warnings": report.get("warnings") or [],
         "fscore_5mm": report.get("fscore_5mm"),
         "preset": report.get("preset"),
         "seconds": {k: round(v, 2) for k, v in stages.items()},
+        "dashboard": dashboard,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

@@ -2,6 +2,18 @@
 # The project's one test command: installs what the tests need, checks the import boundaries, runs the suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# The pages' tests drive the system's Chromium (Playwright never downloads a browser here), and the mesh pictures
+# draw through EGL without a display: install what is missing where we may (CI runs as root on Debian). Elsewhere
+# the browser tests skip, saying why.
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    missing=()
+    [ -x /usr/bin/chromium ] || missing+=(chromium)
+    ldconfig -p | grep 'libEGL_mesa\.so' >/dev/null || missing+=(libegl1 libegl-mesa0)
+    if [ "${#missing[@]}" -gt 0 ]; then
+        { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null; } ||
+            echo "tests/run.sh: could not install ${missing[*]}; the tests that need them skip or say why" >&2
+    fi
+fi
 # A CPU build of torch first: a range alone could pull the registry's multi-GB CUDA build.
 python -c "import torch" 2>/dev/null || python -m pip install -q "torch==2.13.0"
 python -m pip install -q -e ".[test]"

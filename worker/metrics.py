@@ -75,8 +75,10 @@ def check_mesh(mesh, what: str) -> None:
         raise MeshError(f"{what}: has zero surface area")
 
 
-def sample_surface(mesh, n_points: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Sample points uniformly by area. Returns points (n, 3) metres and their faces' unit normals (n, 3)."""
+def sample_surface(mesh, n_points: int, rng: np.random.Generator,
+                   smooth: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points uniformly by area. Returns points (n, 3) metres and unit normals (n, 3): their faces' normals,
+    or with `smooth` the mesh's vertex normals interpolated across the face (the SDF gradient, for our meshes)."""
     tri = np.asarray(mesh.triangles, dtype=np.float64)  # (F, 3, 3)
     edge1, edge2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     cross = np.cross(edge1, edge2)
@@ -88,8 +90,25 @@ def sample_surface(mesh, n_points: int, rng: np.random.Generator) -> tuple[np.nd
     flip = u + v > 1  # reflect the unit square's upper half back into the triangle
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     points = tri[face, 0] + u[:, None] * edge1[face] + v[:, None] * edge2[face]
-    normals = cross[face] / double_area[face, None]  # sampled faces have area > 0 by construction
-    return points, normals
+    if not smooth:
+        return points, cross[face] / double_area[face, None]  # sampled faces have area > 0 by construction
+    corner = np.asarray(mesh.vertex_normals, dtype=np.float64)[np.asarray(mesh.faces)[face]]  # (n, 3, 3)
+    normals = (1 - u - v)[:, None] * corner[:, 0] + u[:, None] * corner[:, 1] + v[:, None] * corner[:, 2]
+    return points, normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+
+def vertex_normal_error_deg(mesh, gt, n_gt: int = 300_000, seed: int = 0) -> np.ndarray:
+    """Per-vertex angle (degrees) between the mesh's vertex normal and the ground truth's normal at the nearest of
+    n_gt area-uniform ground-truth samples (vertex normals interpolated), using |<n, n~>| (orientation-free, as in
+    the paper). (n_vertices,)."""
+    check_mesh(mesh, "reconstruction")
+    check_mesh(gt, "ground truth")
+    g_pts, g_nrm = sample_surface(gt, int(n_gt), np.random.default_rng(seed), smooth=True)
+    _, idx = nearest_samples(np.asarray(mesh.vertices, dtype=np.float64), g_pts,
+                             spacing_m=math.sqrt(gt.area / n_gt))
+    vn = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    cos = np.clip(np.abs(np.einsum("ij,ij->i", vn, g_nrm[idx])), 0.0, 1.0)
+    return np.degrees(np.arccos(cos))
 
 
 def mesh_metrics(pred, gt, *, n_points: int = 300_000, seed: int = 0,

@@ -2,8 +2,10 @@
 
 Starts the acquisition daemon (simulated arm, or the real ur_rtde client against a simulated UR controller with
 --arm ur-sim) with a simulated sensor rendering a built-in scene, scans it through the control socket, lets a worker
-process reconstruct the capture, and ends with a summary: the mesh, the pictures, the HTML report, the Chamfer
-distance against the scene's ground truth and the time each stage took (also in OUT/summary.json).
+process reconstruct the capture, and ends with a summary: the mesh, the pictures, the HTML report (with a 3D view
+to turn), the Chamfer distance against the scene's ground truth and the time each stage took (also in
+OUT/summary.json). While the reconstruction runs, a progress line shows its training time, loss and Chamfer.
+With --dashboard it also serves the lab dashboard on its captures and prints the address to open.
 Every process it starts is stopped again, also on Ctrl-C.
 """
 
@@ -30,6 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "controller on loopback (default: sim)")
     parser.add_argument("--sensor", choices=("lcspc-sim", "tmf8820"), default="lcspc-sim",
                         help="simulated sensor model (default: lcspc-sim)")
+    parser.add_argument("--dashboard", action="store_true",
+                        help="serve the lab dashboard (`spadscan dashboard`) on the demo's captures while it runs, "
+                             "and print its address")
+    parser.add_argument("--dashboard-port", type=int, default=8765, metavar="PORT",
+                        help="the dashboard's port on 127.0.0.1 (default: 8765; a free one when it is busy)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,23 +47,33 @@ def run(args: argparse.Namespace) -> int:
     from spadscan.demo import DemoOptions, check_options, run_demo
 
     opts = DemoOptions(out=args.out, scene=args.scene, views=args.views, budget_s=args.budget_s, arm=args.arm,
-                       sensor=args.sensor)
+                       sensor=args.sensor, dashboard=args.dashboard, dashboard_port=args.dashboard_port)
     check_options(opts)  # before the banner: a refused option starts nothing and announces nothing
 
-    def bar(total: int, desc: str):
-        return tqdm(total=total, desc=desc, unit="pose", file=sys.stderr, leave=True)
+    def bar(total: float, desc: str, unit: str):
+        return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=True,
+                    bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]")
+
+    def say(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
 
     print(f"spadscan demo: scene {opts.scene}, {opts.views} views, {opts.arm} arm, {opts.sensor} sensor, "
           f"reconstruction budget {opts.budget_s:g} s; logs in {opts.out / 'logs'}", file=sys.stderr)
-    s = run_demo(opts, bar)
+    s = run_demo(opts, bar, say)
     chamfer = s["chamfer_mm"]
     secs = s["seconds"]
     print(f"mesh:     {s['mesh']}")
-    print(f"report:   {s['report_html']}  ({s['report']})")
+    for warning in s["warnings"]:
+        print(f"warning:  {warning}")
+    if s["converged"] is False and not s["warnings"]:
+        print("warning:  the reconstruction did not converge")
     print(f"pictures: {', '.join(s['pictures']) or '-'}")
     print(f"chamfer:  {'n/a' if chamfer is None else f'{chamfer:.2f} mm'} against the scene's ground truth "
           f"(preset {s['preset']})")
     print(f"time:     start {secs['start_s']:.1f} s, scan {secs['scan_s']:.1f} s, reconstruction "
           f"{secs['reconstruct_s']:.1f} s, total {secs['total_s']:.1f} s")
     print(f"summary:  {opts.out / 'summary.json'}")
+    if s["dashboard"]:
+        print(f"dashboard: stopped; to look again: spadscan dashboard --root {opts.out / 'captures'}")
+    print(f"report:   {s['report_html']}  (open it in a browser: the 3D view, the pictures and the numbers)")
     return 0

@@ -76,3 +76,61 @@ def test_the_normals_picture_names_its_per_vertex_measure(tmp_path, monkeypatch)
     pictures.normals_png(mesh, err, tmp_path / "n.png", pixels=32)
     assert titles == [pictures.normals_title(err)]
     assert titles[0].startswith("per-vertex normal error") and "mean 20.0 deg, median 20.0 deg" in titles[0]
+
+
+def sphere(center, radius=0.05):
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    mesh.apply_translation(center)
+    return mesh
+
+
+def drawn(panel: np.ndarray) -> np.ndarray:
+    """Mask of a panel's pixels that are not the white background."""
+    return (255 - panel.astype(int)).max(axis=2) > 12
+
+
+def test_the_preview_shows_the_reconstruction_where_it_is_and_the_ground_truth_below_it(tmp_path):
+    import matplotlib.image
+
+    px = 96
+    # The reconstruction stands 10 cm above the ground truth: at one scale, it must show higher in every side view.
+    path = pictures.preview_png(sphere((0, 0, 0.1)), tmp_path / "preview.png", gt=sphere((0, 0, 0)), pixels=px)
+    image = (matplotlib.image.imread(path)[..., :3] * 255).astype(np.uint8)
+    assert image.shape[:2] == (2 * px, 4 * px)
+    for col, (az, el) in enumerate(pictures.VIEWS):
+        recon, truth = (drawn(image[r * px:(r + 1) * px, col * px:(col + 1) * px]) for r in (0, 1))
+        assert recon.mean() > 0.02 and truth.mean() > 0.02, (az, el)  # both drawn, shaded, in every panel
+        assert not recon[:, :3].any() and not recon[:, -3:].any(), (az, el)  # framed: nothing cut at the sides
+        if el < 80:
+            rows = np.arange(px)[:, None]
+            recon_y, truth_y = (float((rows * m).sum() / m.sum()) for m in (recon, truth))
+            assert recon_y < truth_y - 0.1 * px, (az, el, recon_y, truth_y)
+
+
+def test_the_preview_without_ground_truth_is_one_row(tmp_path):
+    import matplotlib.image
+
+    path = pictures.preview_png(sphere((0, 0, 0)), tmp_path / "preview.png", pixels=64)
+    assert matplotlib.image.imread(path).shape[:2] == (64, 4 * 64)
+
+
+def test_a_machine_that_cannot_draw_off_screen_gets_a_warning_and_no_picture(tmp_path, monkeypatch, capsys):
+    from spadscan.worker.report import offscreen
+
+    for name in ("DISPLAY", "WAYLAND_DISPLAY", "VTK_DEFAULT_OPENGL_WINDOW"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(offscreen.ctypes.util, "find_library", lambda name: None)
+    assert pictures.preview_png(sphere((0, 0, 0)), tmp_path / "preview.png") is None
+    assert not (tmp_path / "preview.png").exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no preview.png" in err[0] and "libegl1" in err[0] and "libosmesa6" in err[0]
+
+
+def test_log_axes_for_error_against_time():
+    fig = pictures.error_vs_time_figure(CHAMFER_TRACE)
+    assert fig.axes[0].get_xscale() == "log" and fig.axes[0].get_yscale() == "log"
+    (line,) = fig.axes[0].get_lines()
+    assert list(line.get_xdata()) == [2.0, 4.0]  # the checkpoint at 0 s has no place on a log axis
+    assert "0 s is off this log axis" in fig.axes[0].get_xlabel()

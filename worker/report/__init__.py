@@ -1,5 +1,6 @@
-"""Reports of a reconstruction run: report.json and pictures (preview, error against time, histogram fit, normals).
+"""Reports of a reconstruction run: report.json, report.html, pictures (preview, error against time, histogram fit,
+normals) and view3d.html, the 3D view you can turn.
 
-Pictures are drawn with matplotlib's Agg backend (headless); meshes are drawn by a small z-buffer point renderer
-(`raster`), which handles meshes of any size without a display or OpenGL.
+Plots are drawn with matplotlib's Agg backend; meshes by pyvista (VTK) off screen, which needs no display but an
+off-screen OpenGL (EGL or OSMesa, see offscreen.py); the 3D view is vtk.js, shipped by trame-vtk, in one page.
 """

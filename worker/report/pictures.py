@@ -1,6 +1,8 @@
 """The report's pictures: mesh preview, error against time, measured versus rendered histograms, normal errors.
 
-Every function writes one PNG with matplotlib's Agg backend (no display needed) and returns its path.
+Plots are drawn with matplotlib's Agg backend (no display needed); meshes by pyvista off screen (mesh_pictures.py,
+whose functions are named here too, with the per-vertex normal error they colour by). Each function writes one PNG
+and returns its path.
 """
 
 from __future__ import annotations
@@ -9,10 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .raster import shade, splat, surface_samples, view_rotation
+from ..metrics import vertex_normal_error_deg
+from .mesh_pictures import VIEWS, normals_png, preview_png
 
-VIEWS = ((30.0, 25.0), (150.0, 25.0), (270.0, 25.0), (0.0, 89.0))
-"""(azimuth, elevation) degrees of the preview's panels."""
+__all__ = ["VIEWS", "preview_png", "normals_png", "vertex_normal_error_deg", "error_vs_time_png", "error_vs_time_figure",
+           "fit_png", "normals_title", "chamfer_points", "plain_log_ticks"]
 
 
 def _plt():
@@ -22,40 +25,6 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def _frame(meshes) -> tuple[np.ndarray, float]:
-    lo = np.min([m.bounds[0] for m in meshes], axis=0)
-    hi = np.max([m.bounds[1] for m in meshes], axis=0)
-    return 0.5 * (lo + hi), 0.55 * float(np.linalg.norm(hi - lo)) + 1e-6
-
-
-def _mesh_image(mesh, rot, center, half, pixels, values=None, samples=None):
-    pts, nrm, _ = samples if samples is not None else surface_samples(mesh, 12 * pixels * pixels // 4)
-    vals = shade(nrm, rot)[:, None] if values is None else values
-    return splat(pts, vals, rot, center, half, pixels)
-
-
-def preview_png(mesh, path, gt=None, pixels: int = 280) -> Path:
-    """The mesh from four angles (three around, one from above); a second row shows the ground truth if given."""
-    plt = _plt()
-    rows = [("reconstruction", mesh)] + ([("ground truth", gt)] if gt is not None else [])
-    center, half = _frame([m for _, m in rows])
-    fig, axes = plt.subplots(len(rows), len(VIEWS), figsize=(3 * len(VIEWS), 3 * len(rows)), squeeze=False)
-    for r, (name, m) in enumerate(rows):
-        samples = surface_samples(m, 12 * pixels * pixels // 4)
-        for c, (az, el) in enumerate(VIEWS):
-            rot = view_rotation(az, el)
-            img, mask = _mesh_image(m, rot, center, half, pixels, samples=samples)
-            ax = axes[r, c]
-            ax.imshow(np.where(mask, img[..., 0], 1.0), cmap="gray", vmin=0, vmax=1)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            ax.set_title(f"{name}, az {az:.0f} el {el:.0f}", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
 
 
 ERROR_TITLE = "error against run time"
@@ -77,26 +46,36 @@ def error_vs_time_png(trace: list[dict], path, title: str = "") -> Path:
 
 
 def error_vs_time_figure(trace: list[dict], title: str = ""):
-    """The matplotlib figure error_vs_time_png saves."""
+    """The matplotlib figure error_vs_time_png saves: log axes both ways, so that the first checkpoints (tens of
+    millimetres) do not flatten the last ones. A checkpoint at 0 s has no place on a log axis and is left out (the
+    x label says so)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))
-    ch = chamfer_points(trace)
+    ch = [(t, c) for t, c in chamfer_points(trace) if t > 0 and c > 0]
     if ch:
         ax.plot(*zip(*ch), "o-", color="tab:blue", label="Chamfer (mm)")
+        ax.set_yscale("log")
+        plain_log_ticks(ax.yaxis)
         ax.set_ylabel("Chamfer distance (mm)", color="tab:blue")
         ax2 = ax.twinx()
     else:
         ax2 = ax
-    pts = [(p["seconds"], p["loss"]) for p in trace if p.get("loss") is not None and p["loss"] > 0]
+    pts = [(p["seconds"], p["loss"]) for p in trace if p.get("loss") is not None and p["loss"] > 0
+           and p.get("seconds") is not None and p["seconds"] > 0]
     if pts:
         ax2.plot(*zip(*pts), "s--", color="tab:red", label="loss", markersize=3)
         ax2.set_yscale("log")
         plain_log_ticks(ax2.yaxis)
         ax2.set_ylabel("loss", color="tab:red")
-    ax.set_xlabel("training time (s, checkpoint evaluation excluded)")
+    if ch or pts:
+        ax.set_xscale("log")
+        plain_log_ticks(ax.xaxis)
+    at_zero = any(isinstance(p, dict) and p.get("seconds") == 0 for p in trace or [])
+    ax.set_xlabel("training time (s, checkpoint evaluation excluded" + ("; the start at 0 s is off this log axis)"
+                                                                      if at_zero else ")"))
     title = title or ERROR_TITLE
-    ax.set_title(title if ch else title.replace(ERROR_TITLE, LOSS_TITLE), fontsize=10)
-    ax.grid(alpha=0.3)
+    ax.set_title(title if chamfer_points(trace) else title.replace(ERROR_TITLE, LOSS_TITLE), fontsize=10)
+    ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
     return fig
 
@@ -169,47 +148,8 @@ def _signal_range(meas: np.ndarray, rend: np.ndarray) -> tuple[int, int]:
     return max(0, idx[0] - pad), min(b, idx[-1] + pad + 1)
 
 
-def vertex_normal_error_deg(mesh, gt, n_gt: int = 300_000, seed: int = 0) -> np.ndarray:
-    """Per-vertex angle (degrees) between the mesh's vertex normal and the ground truth's normal at the nearest of
-    n_gt area-uniform ground-truth samples, using |<n, n~>| (orientation-free, as in the paper). (n_vertices,)."""
-    from scipy.spatial import cKDTree
-
-    g_pts, g_nrm, _ = surface_samples(gt, n_gt, seed)
-    _, idx = cKDTree(g_pts).query(np.asarray(mesh.vertices), workers=-1)
-    vn = np.asarray(mesh.vertex_normals)
-    cos = np.clip(np.abs(np.einsum("ij,ij->i", vn, g_nrm[idx])), 0.0, 1.0)
-    return np.degrees(np.arccos(cos))
-
-
 def normals_title(vertex_error_deg: np.ndarray) -> str:
     """normals.png's title. It names its measure: the metrics' "normal error" (area samples of both meshes, each
     against the other) is a different number for the same run, and the two must not read as disagreeing."""
     return (f"per-vertex normal error (mesh vertices against the nearest ground-truth normal): "
             f"mean {vertex_error_deg.mean():.1f} deg, median {np.median(vertex_error_deg):.1f} deg")
-
-
-def normals_png(mesh, vertex_error_deg: np.ndarray, path, pixels: int = 300, vmax: float = 45.0) -> Path:
-    """The mesh coloured by per-vertex normal error (degrees, 0 .. vmax), from four angles, with a colour bar."""
-    plt = _plt()
-    import matplotlib as mpl
-
-    cmap = mpl.colormaps["viridis"]
-    pts, nrm, face = surface_samples(mesh, 12 * pixels * pixels // 4)
-    err = vertex_error_deg[np.asarray(mesh.faces)[face]].mean(1)  # face-average of its vertices' errors
-    center, half = _frame([mesh])
-    fig, axes = plt.subplots(1, len(VIEWS), figsize=(3.2 * len(VIEWS), 3.4), squeeze=False)
-    for c, (az, el) in enumerate(VIEWS):
-        rot = view_rotation(az, el)
-        colour = cmap(np.clip(err / vmax, 0, 1))[:, :3] * shade(nrm, rot)[:, None] ** 0.5
-        img, mask = splat(pts, colour, rot, center, half, pixels)
-        img[~mask] = 1.0
-        axes[0, c].imshow(img)
-        axes[0, c].set_xticks([])
-        axes[0, c].set_yticks([])
-        axes[0, c].set_title(f"az {az:.0f} el {el:.0f}", fontsize=8)
-    sm = mpl.cm.ScalarMappable(norm=mpl.colors.Normalize(0, vmax), cmap=cmap)
-    fig.colorbar(sm, ax=axes[0, :].tolist(), fraction=0.02, label="per-vertex normal error (deg)")
-    fig.suptitle(normals_title(vertex_error_deg), fontsize=9)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)

@@ -1,7 +1,9 @@
 """report.html: one static page per run, next to report.json, that a researcher opens first.
 
 The page needs no server and nothing from the network: the pictures are relative links to the PNG files beside it,
-the styling is inline, and there is no script. Every string taken from the report is HTML-escaped.
+the styling is inline, and the 3D view is view3d.html beside it (folder_view.py: the viewer and its scene in one
+file), shown in a frame. The folder can be zipped and mailed as it is. Every string taken from the report is
+HTML-escaped.
 """
 
 from __future__ import annotations
@@ -12,18 +14,23 @@ import math
 import os
 from pathlib import Path
 
+from .folder_view import MESH, ensure_view3d
+from .view3d import VIEW3D
+
 REPORT_HTML = "report.html"
 
 PICTURES = (
-    ("preview.png", "Reconstruction (top row) and ground truth (bottom row, when given)"),
-    ("error_vs_time.png", "Error (Chamfer) and loss against run time"),
+    ("preview.png", "Reconstruction (top row) and, below each view, the ground truth from the same angle at the same "
+                    "scale (when given)"),
+    ("error_vs_time.png", "Error (Chamfer) and loss against run time, on log axes"),
     ("fit.png", "Measured (dots) against rendered (lines) histograms for a few views"),
     ("normals.png", ("Per-vertex normal error of the mesh (the summary's 'per-vertex normal error', not its "
                      "'normal error (sampled points)')")),
 )
 """(file name, caption) of the pictures the page shows when they exist in the folder."""
 
-LOSS_CAPTION = "Loss against run time (no checkpoint has a Chamfer: no ground truth, or no surface to score)"
+LOSS_CAPTION = ("Loss against run time, on log axes (no checkpoint has a Chamfer: no ground truth, or no surface to "
+                "score)")
 """error_vs_time.png's caption when it plots the loss alone."""
 
 RECONSTRUCTION_PICTURES = ("preview.png", "error_vs_time.png", "fit.png")
@@ -32,7 +39,8 @@ RECONSTRUCTION_PICTURES = ("preview.png", "error_vs_time.png", "fit.png")
 NUMBERS = (
     ("preset", "preset", None), ("method", "baseline", None), ("device", "device", None),
     ("device_name", "device name", None), ("steps", "steps", None), ("seconds", "training seconds", "s"),
-    ("wall_seconds", "wall seconds", "s"), ("stopped_by", "stopped by", None), ("threshold", "threshold", None),
+    ("wall_seconds", "wall seconds", "s"), ("stopped_by", "stopped by", None), ("converged", "converged", None),
+    ("threshold", "threshold", None),
     ("calibrated", "threshold calibrated against ground truth", None), ("final_loss", "final loss", None),
     ("chamfer_mm", "Chamfer", "mm"), ("accuracy_mm", "accuracy", "mm"), ("completeness_mm", "completeness", "mm"),
     ("fscore_5mm", "F-score at 5 mm", None), ("precision", "precision", None), ("recall", "recall", None),
@@ -60,6 +68,7 @@ figure { margin: 1em 0; } figure img { max-width: 100%; border: 1px solid #ddd; 
 pre { background: #f6f6f6; padding: 0.8em; overflow-x: auto; font-size: 0.8em; }
 .missing { color: #999; font-style: italic; }
 .warning { background: #fff3cd; border: 1px solid #e0b000; padding: 0.5em 0.8em; margin: 0.5em 0; }
+iframe.view3d { width: 100%; height: 560px; border: 1px solid #ddd; }
 """
 
 
@@ -86,9 +95,13 @@ def is_baseline(report: dict) -> bool:
 
 
 def warnings(report: dict) -> list[str]:
-    """What makes the run's result doubtful or unscored, for the top of the page: an incomplete capture and a named
-    ground truth that could not be used."""
-    found = []
+    """What makes the run's result doubtful or unscored, for the top of the page: the run's own warnings (report.json's
+    "warnings", one line each), a run that did not converge, an incomplete capture and a named ground truth that
+    could not be used."""
+    own = report.get("warnings")
+    found = [str(w) for w in own if str(w).strip()] if isinstance(own, list) else []
+    if report.get("converged") is False and not found:
+        found.append("the run did not converge: its mesh may still be changing")
     state = report.get("capture_state")
     if state not in (None, "complete"):
         found.append(str(report.get("capture_note") or f"the capture is {state}, not complete"))
@@ -156,6 +169,16 @@ def _pictures(folder: Path, report: dict) -> str:
     return "\n".join(parts)
 
 
+def _view3d(folder: Path) -> str:
+    if (folder / VIEW3D).is_file():
+        return (f'<iframe class=view3d src="{VIEW3D}" title="3D view"></iframe>\n'
+                f'<p>Drag to turn, shift-drag to pan, the wheel to zoom; the panel shows or hides each layer. '
+                f'<a href="{VIEW3D}">Open the 3D view on its own page</a>.</p>')
+    if (folder / MESH).is_file():
+        return f"<p class=missing>no 3D view ({VIEW3D} was not written)</p>"
+    return ""
+
+
 def chamfer_in_trace(report: dict) -> bool:
     """Whether any trace checkpoint has a Chamfer (none without a ground truth)."""
     trace = report.get("trace")
@@ -195,9 +218,12 @@ def render_html(report: dict, folder) -> str:
     title = f"spadscan: {kind} reconstruction of {Path(str(report.get('capture', '?'))).name}"
     sections = [
         f"<h1>{_esc(title)}</h1>",
-        "<h2>Summary</h2>", _warnings_html(report), _summary(report),
-        "<h2>Pictures</h2>", _pictures(folder, report),
+        _warnings_html(report), "<h2>Summary</h2>", _summary(report),
     ]
+    view = _view3d(folder)
+    if view:
+        sections += ["<h2>3D view</h2>", view]
+    sections += ["<h2>Pictures</h2>", _pictures(folder, report)]
     if "trace" in report:
         measured = "error" if chamfer_in_trace(report) else "loss"
         sections += [f"<h2>Trace: {measured} against run time</h2>"]
@@ -212,8 +238,10 @@ def render_html(report: dict, folder) -> str:
 
 
 def write_report_html(report: dict, folder) -> Path:
-    """Write `folder`/report.html for `report` (temporary file, then rename). Returns its path."""
+    """Write `folder`/report.html for `report` (temporary file, then rename), and its 3D view beside it when the
+    folder holds a mesh and no view of it yet. Returns the page's path."""
     folder = Path(folder)
+    ensure_view3d(report, folder)
     path = folder / REPORT_HTML
     tmp = folder / f".{REPORT_HTML}.tmp"
     tmp.write_text(render_html(report, folder), encoding="utf-8")

@@ -1,0 +1,167 @@
+"""The scans under a captures root as the dashboard lists them: state and progress, read with protocol's capture
+reader, and remembered between polls so that a root of hundreds of finished scans costs a stat per scan per poll.
+
+A finished scan never changes until its manifest does (published chunks are never rewritten), so its row is kept
+until `scan.json` changes; a running scan's row is kept until its chunk listing changes too. `reads` counts the
+files parsed, so that the cost of a poll can be checked without a clock.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from spadscan.protocol.capture_format import MANIFEST, chunk_index, read_json
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.errors import SpadscanError
+
+RATE_FRAMES = 16
+"""The frame rate is measured over (at most) this many of the last frames."""
+MAX_PLOT_BINS = 256
+"""Histograms are max-pooled to at most this many bins for the page's plot (a return stays visible)."""
+
+
+@dataclass
+class ScanRow:
+    """One scan: its folder name under the root, state, poses published and planned (progress = their ratio)."""
+
+    name: str
+    state: str
+    poses: int = 0
+    planned: int | None = None
+    progress: float | None = None
+    updated_utc: str | None = None
+    reason: str | None = None
+    error: str | None = None
+    """Why the capture cannot be read (a malformed capture is an error row, never a crash)."""
+    chunks: list[str] = field(default_factory=list, repr=False)
+    mtime: float = 0.0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        del d["chunks"], d["mtime"]
+        return d
+
+
+def _planned(manifest: dict) -> int | None:
+    planned = manifest.get("planned_poses")
+    if planned is None:
+        planned = (manifest.get("schedule") or {}).get("views")
+    return int(planned) if isinstance(planned, int) and not isinstance(planned, bool) and planned > 0 else None
+
+
+class ScanIndex:
+    """The scans of one root, remembered between polls (not thread-safe: the server holds a lock)."""
+
+    def __init__(self, root):
+        self.root = Path(root)
+        self.reads = 0
+        self._rows: dict[str, tuple[tuple, ScanRow]] = {}
+
+    def rows(self) -> list[ScanRow]:
+        """Every scan under the root: running ones first, then the most recently changed."""
+        rows, seen = [], set()
+        with os.scandir(self.root) as entries:
+            for entry in entries:
+                if entry.name.startswith(".") or not entry.is_dir():
+                    continue
+                manifest = os.path.join(entry.path, MANIFEST)
+                try:
+                    st = os.stat(manifest)
+                except OSError:
+                    continue  # not a capture folder
+                seen.add(entry.name)
+                rows.append(self._row(entry.name, st))
+        for gone in set(self._rows) - seen:
+            del self._rows[gone]
+        rows.sort(key=lambda r: (r.state != "running", -r.mtime, r.name))
+        return rows
+
+    def _row(self, name: str, st: os.stat_result) -> ScanRow:
+        path = self.root / name
+        key: tuple = (st.st_mtime_ns, st.st_size)
+        cached = self._rows.get(name)
+        if cached and cached[0][:2] == key and cached[1].state != "running":
+            return cached[1]
+        chunks = _chunk_names(path)
+        key += (len(chunks), chunks[-1] if chunks else None)
+        if cached and cached[0] == key:
+            return cached[1]
+        row = self._read(name, path, chunks)
+        row.mtime = st.st_mtime
+        self._rows[name] = (key, row)
+        return row
+
+    def _read(self, name: str, path: Path, chunks: list[str]) -> ScanRow:
+        self.reads += 1
+        try:
+            manifest = CaptureReader(path).manifest
+        except SpadscanError as exc:
+            return ScanRow(name, "error", error=str(exc))
+        row = ScanRow(name, manifest["state"], planned=_planned(manifest), updated_utc=manifest.get("updated_utc"),
+                      reason=manifest.get("reason"), chunks=chunks)
+        if chunks:
+            try:
+                self.reads += 1
+                meta = read_json(path / chunks[-1] / "meta.json").get("measurements") or []
+                row.poses = int(meta[-1]["pose_index"]) + 1  # poses are published in order
+            except (SpadscanError, LookupError, TypeError, ValueError) as exc:
+                row.error = f"{path / chunks[-1]}: unreadable measurement records ({exc})"
+        if row.planned:
+            row.progress = min(1.0, row.poses / row.planned)
+        return row
+
+
+def _chunk_names(path: Path) -> list[str]:
+    try:
+        return sorted(e.name for e in os.scandir(path) if chunk_index(e.name) is not None and e.is_dir())
+    except OSError:
+        return []
+
+
+def scan_detail(root: Path, row: ScanRow) -> dict:
+    """What the dashboard shows of the scan in hand: its row, frame rate over its last frames and its last
+    histograms (zones, at most MAX_PLOT_BINS bins, with the distance of the first bin and the bin width in metres)."""
+    detail = row.to_dict()
+    if row.error or not row.chunks:
+        return detail
+    try:
+        reader = CaptureReader(Path(root) / row.name)
+        frames = []
+        for name in reversed(row.chunks):
+            chunk = reader.read_chunk(name)
+            if not frames:
+                detail["histograms"] = plot_histograms(chunk.hists[-1], reader.sensor)
+            frames = list(chunk.meta) + frames
+            if len(frames) >= RATE_FRAMES:
+                break
+    except SpadscanError as exc:
+        detail["error"] = str(exc)
+        return detail
+    detail.update(frame_rates(frames[-RATE_FRAMES:]))
+    return detail
+
+
+def frame_rates(meta: list[dict]) -> dict:
+    """Frames per second and poses per minute over measurement records in order (their t_end, seconds)."""
+    times = [m.get("t_end") for m in meta]
+    times = [float(t) for t in times if isinstance(t, (int, float)) and not isinstance(t, bool)]
+    if len(times) < 2 or times[-1] <= times[0]:
+        return {"frames_per_s": None, "poses_per_min": None}
+    span = times[-1] - times[0]
+    poses = len({m.get("pose_index") for m in meta})
+    return {"frames_per_s": (len(times) - 1) / span, "poses_per_min": 60.0 * max(0, poses - 1) / span}
+
+
+def plot_histograms(hist: np.ndarray, sensor) -> dict:
+    """A (zones, bins) histogram max-pooled to at most MAX_PLOT_BINS bins, for the page's small plot."""
+    hist = np.asarray(hist, dtype=np.float64)
+    pool = int(np.ceil(hist.shape[1] / MAX_PLOT_BINS))
+    bins = hist.shape[1] // pool * pool
+    pooled = hist[:, :bins].reshape(hist.shape[0], -1, pool).max(axis=2) if pool > 1 else hist
+    width = float(sensor.bin_width_m) * pool
+    return {"counts": pooled.round(1).tolist(), "first_m": (pool / 2 - 0.5 - float(sensor.zero_bin)) *
+            float(sensor.bin_width_m), "bin_m": width, "zones": int(hist.shape[0])}

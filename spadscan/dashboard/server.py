@@ -1,0 +1,150 @@
+"""The dashboard's web server: the standard library's ThreadingHTTPServer, read-only, serving one captures root.
+
+Routes (GET and HEAD only):
+  /               the page (page.html), which polls /api/status
+  /api/status     the state of the root as JSON (status.py)
+  /files/PATH     a file under the root; anything that resolves outside it, hidden folders (the queue, a job being
+                  written) and folders are 404
+  /live3d/SCAN    the 3D view of SCAN's live reconstruction (recon/live/mesh.ply), made on demand and remembered
+                  until the mesh changes
+"""
+
+from __future__ import annotations
+
+import json
+import mimetypes
+import threading
+from functools import partial
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+from spadscan.protocol.errors import SpadscanError
+
+from .results import LIVE, RECON
+from .status import Dashboard
+
+PAGE = "page.html"
+
+
+def safe_path(root: Path, url_path: str) -> Path | None:
+    """The file under `root` that `url_path` (percent-encoded, '/'-separated, relative to root) names, or None when
+    it names anything outside the root (after '..' and links are resolved), a hidden component or no regular file."""
+    parts = [p for p in unquote(url_path).split("/") if p not in ("", ".")]
+    if not parts or any(p.startswith(".") or "\\" in p or "\x00" in p for p in parts):
+        return None  # '..' starts with a dot too
+    root = root.resolve()
+    try:
+        path = root.joinpath(*parts).resolve()
+    except (OSError, RuntimeError, ValueError):
+        return None
+    if root not in path.parents or not path.is_file():
+        return None
+    return path
+
+
+class LiveViews:
+    """3D views of live meshes, made on demand and kept until the mesh file changes."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._pages: dict[Path, tuple[int, bytes]] = {}
+
+    def page(self, mesh_path: Path, title: str) -> bytes:
+        from spadscan.protocol.mesh_io import load_mesh
+        from spadscan.worker.report.view3d import view3d_html
+
+        with self._lock:
+            stamp = mesh_path.stat().st_mtime_ns
+            cached = self._pages.get(mesh_path)
+            if cached is None or cached[0] != stamp:
+                page = view3d_html(load_mesh(mesh_path, units="m"), title=title).encode("utf-8")
+                self._pages[mesh_path] = cached = (stamp, page)
+            return cached[1]
+
+
+class Handler(BaseHTTPRequestHandler):
+    """One request. `dashboard` and `live` are bound by make_server."""
+
+    server_version = "spadscan-dashboard"
+    dashboard: Dashboard
+    live: LiveViews
+
+    def __init__(self, *args, dashboard: Dashboard, live: LiveViews, **kwargs):
+        self.dashboard, self.live = dashboard, live
+        super().__init__(*args, **kwargs)
+
+    def log_message(self, format, *args):  # noqa: A002 - the standard library's name
+        pass  # a poll a second would drown the terminal
+
+    def do_HEAD(self):
+        self.do_GET(head=True)
+
+    def do_GET(self, head: bool = False):
+        path = urlsplit(self.path).path
+        try:
+            if path in ("/", "/index.html"):
+                body = resources.files("spadscan.dashboard").joinpath(PAGE).read_bytes()
+                return self._send(HTTPStatus.OK, body, "text/html; charset=utf-8", head)
+            if path == "/api/status":
+                body = json.dumps(self.dashboard.status(), default=str).encode("utf-8")
+                return self._send(HTTPStatus.OK, body, "application/json", head)
+            if path.startswith("/files/"):
+                return self._file(path[len("/files/"):], head)
+            if path.startswith("/live3d/"):
+                return self._live(path[len("/live3d/"):], head)
+        except (BrokenPipeError, ConnectionResetError):
+            return None
+        except (SpadscanError, OSError) as exc:
+            return self._send(HTTPStatus.SERVICE_UNAVAILABLE, f"{exc}\n".encode(), "text/plain; charset=utf-8", head)
+        return self._not_found(head)
+
+    def _file(self, rel: str, head: bool):
+        path = safe_path(self.dashboard.root, rel)
+        if path is None:
+            return self._not_found(head)
+        kind = mimetypes.guess_type(path.name)[0] or "application/octet-stream"
+        if kind.startswith("text/"):
+            kind += "; charset=utf-8"
+        return self._send(HTTPStatus.OK, path.read_bytes(), kind, head)
+
+    def _live(self, scan: str, head: bool):
+        mesh = safe_path(self.dashboard.root, f"{scan}/{RECON}/{LIVE}/mesh.ply")
+        if mesh is None or "/" in unquote(scan).strip("/"):
+            return self._not_found(head)
+        body = self.live.page(mesh, title=f"{unquote(scan)} (live)")
+        return self._send(HTTPStatus.OK, body, "text/html; charset=utf-8", head)
+
+    def _not_found(self, head: bool):
+        return self._send(HTTPStatus.NOT_FOUND, b"not found\n", "text/plain; charset=utf-8", head)
+
+    def _send(self, status: HTTPStatus, body: bytes, kind: str, head: bool):
+        self.send_response(status)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        if not head:
+            self.wfile.write(body)
+
+
+def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None) -> ThreadingHTTPServer:
+    """A server for the captures root `root` bound to (host, port) (port 0: any free one); call serve_forever."""
+    root = Path(root)
+    if not root.is_dir():
+        raise SpadscanError(f"{root}: no such captures root")
+    handler = partial(Handler, dashboard=Dashboard(root, queue_dir), live=LiveViews())
+    try:
+        server = ThreadingHTTPServer((host, port), handler)
+    except OSError as exc:
+        raise SpadscanError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+    server.daemon_threads = True
+    return server
+
+
+def address(server: ThreadingHTTPServer) -> str:
+    """The page's address, e.g. http://127.0.0.1:8765/."""
+    host, port = server.server_address[:2]
+    return f"http://{'[' + host + ']' if ':' in host else host}:{port}/"

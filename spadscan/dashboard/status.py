@@ -1,0 +1,68 @@
+"""What `/api/status` answers: the scans under the root, the scan in hand in detail, each scan's reconstructions and
+the reconstruction queue (the worker's read-only status view, with each running job's progress from its log).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from .job_progress import claim_log, read_progress
+from .results import ResultIndex
+from .scans import ScanIndex, scan_detail
+
+
+def queue_status(queue_dir: Path) -> dict:
+    """The queue's jobs as `spadscan worker --status --json` lists them, a running job with its progress."""
+    from spadscan.worker.queue import Queue
+
+    queue = Queue(queue_dir, create=False)
+    paths = queue.job_paths()
+    jobs = []
+    for row in queue.statuses():
+        job = asdict(row)
+        state, path = paths.get(row.id, (None, None))
+        if row.state == "running" and state == "running":
+            progress = read_progress(claim_log(queue.path, path))
+            job["progress"] = progress.to_dict() if progress else None
+        jobs.append(job)
+    return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
+
+
+class Dashboard:
+    """The state of one captures root (and its queue), read again at each poll; safe to call from several threads."""
+
+    def __init__(self, root, queue_dir=None):
+        self.root = Path(root)
+        self.queue_dir = Path(queue_dir) if queue_dir else self.root / ".queue"
+        self.scans = ScanIndex(self.root)
+        self.results = ResultIndex(self.root)
+        self._lock = threading.Lock()
+        self._detail: tuple[tuple, dict] | None = None
+
+    def _scan_detail(self, row) -> dict:
+        """The detail of the scan in hand, read again only when it has published a chunk or changed state."""
+        key = (row.name, row.state, row.updated_utc, tuple(row.chunks[-1:]), row.error)
+        if self._detail is None or self._detail[0] != key:
+            self._detail = (key, scan_detail(self.root, row))
+        return self._detail[1]
+
+    def status(self) -> dict:
+        with self._lock:
+            rows = self.scans.rows()
+            scans = []
+            for row in rows:
+                entry = row.to_dict()
+                entry["recons"] = self.results.for_scan(row.name)
+                scans.append(entry)
+            current = next((r for r in rows if r.state == "running"), None) or next(
+                (r for r in rows if r.state != "error"), None)
+            detail = self._scan_detail(current) if current is not None else None
+        try:
+            queue = queue_status(self.queue_dir)
+        except OSError as exc:
+            queue = {"path": str(self.queue_dir), "jobs": [], "counts": {}, "error": str(exc)}
+        return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                "scans": scans, "current": detail, "queue": queue}

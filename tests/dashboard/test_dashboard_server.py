@@ -1,0 +1,147 @@
+"""The dashboard's server: what /api/status says of a root, that nothing outside the root is served, that a malformed
+capture is an error row, and that a root of 500 scans costs a stat per scan per poll once read."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from dashboard_helpers import complete_scan, get, serving, status
+from page_helpers import add_pose, start_scan
+from spadscan.dashboard.job_progress import parse_progress
+
+
+def test_status_lists_scans_with_progress_and_the_scan_in_hand(tmp_path):
+    complete_scan(tmp_path / "done", 3)
+    writer, poses = start_scan(tmp_path / "going", 8)
+    for i in range(3):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    with serving(tmp_path) as server:
+        st = status(server)
+        rows = {s["name"]: s for s in st["scans"]}
+        assert rows["done"]["state"] == "complete" and rows["done"]["poses"] == 3 and rows["done"]["progress"] == 1
+        assert rows["going"]["state"] == "running" and (rows["going"]["poses"], rows["going"]["planned"]) == (3, 8)
+        assert st["scans"][0]["name"] == "going"  # running scans first
+        current = st["current"]
+        assert current["name"] == "going"
+        assert current["frames_per_s"] == pytest.approx(2.0)  # t_end 10.25, 10.75, 11.25
+        hist = current["histograms"]
+        assert hist["zones"] == 9 and len(hist["counts"]) == 9 and max(hist["counts"][8]) == 280
+        add_pose(writer, poses, 3)
+        assert {s["name"]: s for s in status(server)["scans"]}["going"]["poses"] == 4
+
+
+def test_nothing_outside_the_root_is_served(tmp_path):
+    root = tmp_path / "captures"
+    complete_scan(root / "scan", 1)
+    (root / "scan" / "note.txt").write_text("inside")
+    (tmp_path / "secret.txt").write_text("outside")
+    (root / "scan" / "link.txt").symlink_to(tmp_path / "secret.txt")
+    (root / ".queue").mkdir()
+    (root / ".queue" / "job.json").write_text("{}")
+    with serving(root) as server:
+        assert get(server, "/files/scan/note.txt") == (200, b"inside")
+        for path in ("/files/../secret.txt", "/files/scan/../../secret.txt", "/files/%2e%2e/secret.txt",
+                     "/files/scan/%2e%2e/%2e%2e/secret.txt", "/files/scan%2f..%2f..%2fsecret.txt",
+                     "/files//" + str(tmp_path / "secret.txt"), "/files/scan/link.txt", "/files/.queue/job.json",
+                     "/files/scan", "/files/", "/../secret.txt", "/live3d/..", "/live3d/scan", "/nowhere"):
+            code, body = get(server, path)
+            assert code == 404 and b"outside" not in body, path
+
+
+def test_a_malformed_capture_is_an_error_row(tmp_path):
+    complete_scan(tmp_path / "good", 2)
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "scan.json").write_text("{ not json")
+    (tmp_path / "stranger").mkdir()
+    (tmp_path / "stranger" / "scan.json").write_text(json.dumps({"format": "something-else"}))
+    with serving(tmp_path) as server:
+        rows = {s["name"]: s for s in status(server)["scans"]}
+    assert rows["good"]["state"] == "complete" and rows["good"]["error"] is None
+    for name in ("broken", "stranger"):
+        assert rows[name]["state"] == "error" and name in rows[name]["error"], rows[name]
+        assert "\n" not in rows[name]["error"]
+
+
+def test_the_queue_and_each_running_jobs_progress(tmp_path):
+    from spadscan.worker.jobs import Job
+    from spadscan.worker.queue import Queue
+
+    complete_scan(tmp_path / "scan", 2)
+    queue = Queue.for_root(tmp_path)
+    queue.enqueue(Job(id="scan-fast", scan="scan"))
+    claim = queue.claim()
+    (queue.path / "logs").mkdir(exist_ok=True)
+    (queue.path / "logs" / f"{claim.path.stem}.log").write_text(
+        "reconstruct (fast):  10%|#  | 12/120 s [00:12<01:48, loss=9.1]\r"
+        "reconstruct (fast):  58%|#####     | 70/120 s [01:10<00:50, loss=2.25, chamfer=1.86mm]\r")
+    with serving(tmp_path) as server:
+        (job,) = status(server)["queue"]["jobs"]
+    assert job["id"] == "scan-fast" and job["state"] == "running"
+    assert job["progress"]["fraction"] == pytest.approx(70 / 120) and job["progress"]["chamfer_mm"] == 1.86
+    assert job["progress"]["line"].startswith("reconstruct (fast): 70/120 s, loss 2.25, Chamfer 1.86 mm")
+
+
+def test_a_progress_bar_is_read_with_every_field_it_carries():
+    p = parse_progress("junk\rreconstruct (fast):  5%|   | 3/60 s [00:03<00:57, step=40, loss=3.2e+03]\r")
+    assert (p.done, p.total, p.unit, p.fields) == (3.0, 60.0, "s", {"step": "40", "loss": "3.2e+03"})
+    assert "step 40" in p.line() and p.chamfer_mm is None
+    assert parse_progress("no bar here") is None
+
+
+def test_finished_and_live_reconstructions_with_their_pages(tmp_path):
+    complete_scan(tmp_path / "scan", 2)
+    final = tmp_path / "scan" / "recon" / "scan-fast"
+    final.mkdir(parents=True)
+    (final / "report.json").write_text(json.dumps({"preset": "fast", "chamfer_mm": 1.5, "converged": False,
+                                                   "warnings": ["stopped on its budget at 3% of its steps"]}))
+    (final / "report.html").write_text("<html></html>")
+    live = tmp_path / "scan" / "recon" / "live"
+    live.mkdir()
+    (live / "status.json").write_text(json.dumps({"views_used": 12, "steps": 300, "converged": False}))
+    (live / "preview.png").write_bytes(b"\x89PNG")
+    (tmp_path / "scan" / "recon" / "scan-fast.replaced-20260101T000000Z-abcd").mkdir()
+    with serving(tmp_path) as server:
+        (scan,) = status(server)["scans"]
+        first, second = scan["recons"]
+        assert first["kind"] == "live" and first["summary"]["views_used"] == 12
+        assert "view3d.html" not in first["files"]  # no live mesh yet
+        assert second["summary"]["warnings"] == ["stopped on its budget at 3% of its steps"]
+        assert second["summary"]["converged"] is False
+        assert get(server, second["files"]["report.html"]) == (200, b"<html></html>")
+        assert get(server, first["files"]["preview.png"])[0] == 200
+
+
+def test_five_hundred_scans_cost_one_read_each_once_and_nothing_after(tmp_path):
+    import shutil
+
+    complete_scan(tmp_path / "scan-000", 2)
+    for i in range(1, 500):
+        shutil.copytree(tmp_path / "scan-000", tmp_path / f"scan-{i:03d}")
+    with serving(tmp_path) as server:
+        dashboard = server.RequestHandlerClass.keywords["dashboard"]
+        assert len(status(server)["scans"]) == 500
+        first_reads = dashboard.scans.reads
+        assert first_reads <= 2 * 500  # each manifest and the last chunk's records, once
+        t0 = time.perf_counter()
+        assert len(status(server)["scans"]) == 500
+        seconds = time.perf_counter() - t0
+        assert dashboard.scans.reads == first_reads  # nothing changed, nothing read again
+    assert seconds < 1.0, f"a poll of 500 unchanged scans took {seconds:.2f} s"
+
+
+def test_a_live_mesh_gets_its_3d_view_made_on_demand(tmp_path):
+    import trimesh
+
+    complete_scan(tmp_path / "scan", 2)
+    live = tmp_path / "scan" / "recon" / "live"
+    live.mkdir(parents=True)
+    (live / "status.json").write_text(json.dumps({"views_used": 2, "steps": 10}))
+    trimesh.creation.icosphere(subdivisions=2, radius=0.05).export(live / "mesh.ply")
+    with serving(tmp_path) as server:
+        (recon,) = status(server)["scans"][0]["recons"]
+        code, page = get(server, recon["files"]["view3d.html"])
+        assert code == 200 and b"OfflineLocalView.load" in page and b"scan (live)" in page
+        assert get(server, recon["files"]["view3d.html"]) == (200, page)  # kept while the mesh is unchanged

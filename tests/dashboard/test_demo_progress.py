@@ -1,0 +1,71 @@
+"""The demo shows what it is doing: the reconstruction's progress line (from the job's log, through the queue), the
+dashboard's address while it runs and the report's path at the end."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+import pytest
+
+from spadscan.dashboard.job_progress import parse_progress
+from spadscan.demo import ReconProgress, running_job_progress
+
+
+class Bar:
+    """What the demo's tqdm bar is told."""
+
+    def __init__(self):
+        self.n, self.postfix, self.desc = 0.0, "", ""
+
+    def update(self, n):
+        self.n += n
+
+    def set_postfix_str(self, text):
+        self.postfix = text
+
+    def set_description_str(self, text):
+        self.desc = text
+
+
+def test_the_progress_line_shows_seconds_loss_and_chamfer_then_what_follows_training():
+    bar = Bar()
+    show = ReconProgress(bar)
+    show(None)  # no job running yet
+    show(parse_progress("reconstruct (fast):  20%|##   | 12/60 s [00:12<00:48, loss=3.1]"))
+    assert (bar.n, bar.postfix) == (12, "loss 3.1")
+    show(parse_progress("reconstruct (fast):  50%|#####| 30/60 s [00:30<00:30, step=800, loss=2.2, chamfer=3.40mm]"))
+    assert (bar.n, bar.postfix, bar.desc) == (30, "step 800, loss 2.2, Chamfer 3.40 mm", "")
+    show(parse_progress("reconstruct (fast): 100%|#####| 60/60 s [01:00<00:00, loss=1.9, chamfer=2.10mm]"))
+    assert bar.n == 60 and bar.desc == ReconProgress.AFTER
+
+
+def test_the_running_jobs_progress_is_found_through_the_queue(tmp_path):
+    from spadscan.worker.jobs import Job
+    from spadscan.worker.queue import Queue
+
+    assert running_job_progress(tmp_path) is None  # no queue yet: nothing runs
+    queue = Queue.for_root(tmp_path)
+    queue.enqueue(Job(id="scan-fast", scan="scan"))
+    assert running_job_progress(tmp_path) is None  # queued, not running
+    claim = queue.claim()
+    (queue.path / "logs").mkdir(exist_ok=True)
+    (queue.path / "logs" / f"{claim.path.stem}.log").write_text("reconstruct (fast):  5%|  | 3/60 s [00:03<00:57]")
+    assert running_job_progress(tmp_path).done == 3
+
+
+@pytest.mark.slow
+def test_the_demo_prints_the_dashboard_progress_and_report(tmp_path):
+    out = tmp_path / "demo"
+    r = subprocess.run([sys.executable, "-m", "spadscan.cli", "demo", "--out", str(out), "--views", "8",
+                        "--budget-s", "3", "--dashboard", "--dashboard-port", "0"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    address = re.search(r"^dashboard: (http://127\.0\.0\.1:\d+/) ", r.stderr, re.M)
+    assert address, r.stderr[-2000:]
+    assert re.search(r"reconstruction \(training s\):.*\d+/3 s", r.stderr), r.stderr[-2000:]
+    assert "loss " in r.stderr
+    last = r.stdout.strip().splitlines()[-1]
+    assert last.startswith("report:") and last.split()[1].endswith("report.html")
+    assert (out / "summary.json").is_file() and (out / "logs" / "dashboard.log").is_file()

@@ -1,0 +1,74 @@
+"""The 3D view of a results folder: its mesh.ply, the ground truth its report names (the part that was scored) and
+the sensor poses of the capture it came from, written as view3d.html beside report.html.
+
+Every reconstruction and baseline writes its report page through report_html, which asks for this view: so every
+report has one, whoever wrote it. A view newer than its mesh is kept; one that cannot be made is a warning, never
+a failed run.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from spadscan.protocol.errors import SpadscanError
+
+from . import offscreen
+from .view3d import VIEW3D, write_view3d
+
+MESH = "mesh.ply"
+GT_KEYS = ("ground_truth", "gt")
+"""Report keys that name the ground-truth file it was scored against (baselines and older reports say 'gt')."""
+
+
+def ground_truth_file(report: dict, folder: Path) -> Path | None:
+    """The ground-truth file the report names: a file of that name in the folder first (a job's results name the
+    file in the folder they were written in, before it was renamed into place), else the path itself."""
+    for key in GT_KEYS:
+        named = report.get(key)
+        if not isinstance(named, str) or not named:
+            continue
+        for candidate in (folder / Path(named).name, Path(named)):
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def capture_poses(capture) -> np.ndarray | None:
+    """One sensor pose per scanned pose (P, 4, 4) of the capture folder `capture`, or None when it cannot be read."""
+    from spadscan.protocol.capture_reader import CaptureReader
+
+    if not isinstance(capture, str) or not capture:
+        return None
+    try:
+        data = CaptureReader(capture).load()
+    except SpadscanError:
+        return None
+    _, first = np.unique(data.pose_indices, return_index=True)
+    return data.poses[np.sort(first)]
+
+
+def ensure_view3d(report: dict, folder) -> Path | None:
+    """`folder`/view3d.html for the folder's mesh.ply, made unless one newer than the mesh is there; None when the
+    folder holds no mesh or the view cannot be made (a warning line says why)."""
+    from spadscan.protocol.mesh_io import load_mesh
+
+    from ..ground_truth import load_ground_truth
+
+    folder = Path(folder)
+    mesh_path, path = folder / MESH, folder / VIEW3D
+    if not mesh_path.is_file():
+        return None
+    if path.is_file() and path.stat().st_mtime_ns >= mesh_path.stat().st_mtime_ns:
+        return path
+    try:
+        mesh = load_mesh(mesh_path, units="m")
+        gt_file = ground_truth_file(report, folder)
+        gt = load_ground_truth(str(gt_file)).mesh if gt_file is not None else None
+        name = Path(str(report.get("capture", folder.name))).name
+        kind = report.get("preset") or report.get("method") or "reconstruction"
+        return write_view3d(folder, mesh, gt, capture_poses(report.get("capture")), title=f"{name} ({kind})")
+    except (SpadscanError, OSError) as exc:
+        offscreen.warn(f"no {VIEW3D} in {folder}: {exc}")
+        return None
