@@ -5,13 +5,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
 from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, VERSION, Chunk, check_hists, check_poses,
                              chunk_index, one_line, read_json, read_npy)
 from .errors import CaptureError, SensorModelError
+from .plausibility import check_counts
 from .sensor_model import SensorModel
 
 
@@ -30,6 +31,16 @@ class CaptureData:
     @property
     def pose_indices(self) -> np.ndarray:
         return np.array([m["pose_index"] for m in self.meta], dtype=np.int64)
+
+    def check_counts(self, where, warn: Callable[[str], None] | None = None) -> str | None:
+        """Refuse (CaptureError naming `where`) a capture whose histograms no sensor could have produced (saturated,
+        above the sensor's counter, all zero, all equal: see plausibility.py); when only some are, or some bins are
+        clipped, return a one-line warning (also passed to `warn` as 'warning: ...'), else None. For the readers
+        that fit the counts (reconstruction, baselines); reading a capture does not check them."""
+        note = check_counts(self.hists, self.sensor.max_count, self.sensor.ignore_bins, str(where))
+        if note and warn is not None:
+            warn(f"warning: {note}")
+        return note
 
     def by_pose(self) -> "PoseSums":
         """The frames of each pose summed into one view, views in pose-index order (what the reconstruction and
@@ -193,3 +204,9 @@ class CaptureReader:
             meta=[m for c in chunks for m in c.meta],
             manifest=self.manifest,
         )
+
+
+def check_capture_counts(capture, warn: Callable[[str], None] | None = None) -> str | None:
+    """Read the capture folder `capture` and check its counts (CaptureData.check_counts): a CaptureError for
+    histograms no sensor could have produced, a warning (returned, and passed to `warn`) when only some are."""
+    return CaptureReader(capture).load().check_counts(capture, warn)

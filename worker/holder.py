@@ -51,7 +51,11 @@ class Holder:
 
     @classmethod
     def current(cls) -> "Holder":
-        pid = os.getpid()
+        return cls.of_pid(os.getpid())
+
+    @classmethod
+    def of_pid(cls, pid: int) -> "Holder":
+        """Process `pid` of this machine (a job process the worker started, say)."""
         return cls(socket.gethostname(), pid, _read("/proc/sys/kernel/random/boot_id"), _pid_namespace(),
                    _pid_start(pid))
 
@@ -62,14 +66,27 @@ class Holder:
         return {"host": self.host, "pid": self.pid}
 
 
-def holder_gone(data: dict) -> bool:
-    """True only when `data` (Holder.to_dict) names a process on this machine that no longer exists."""
+def holder_alive(data: dict) -> bool:
+    """True only when `data` (Holder.to_dict) names a process on this machine that still exists."""
+    return _here(data) is not None and not holder_gone(data)
+
+
+def _here(data: dict) -> Holder | None:
+    """`data` as a Holder when it names a process on this machine (same host, boot and pid namespace), else None."""
     me = Holder.current()
     try:
         h = Holder(**data)
     except TypeError:
-        return False
+        return None
     if (h.host, h.boot_id, h.pid_ns) != (me.host, me.boot_id, me.pid_ns) or not h.boot_id:
+        return None
+    return h
+
+
+def holder_gone(data: dict) -> bool:
+    """True only when `data` (Holder.to_dict) names a process on this machine that no longer exists."""
+    h = _here(data)
+    if h is None:
         return False
     try:
         os.kill(h.pid, 0)

@@ -1,9 +1,10 @@
 """What a job is and what running one means: check the capture, reconstruct it, publish the results under the scan.
 
 A job's results land in `<scan>/recon/<job id>/` (mesh.ply, report.json, pictures, job.json). They are written into
-a hidden temporary folder beside it and published by one rename, so a reader never sees half a result. A result
-is never replaced in silence: the worker does not run a job whose folder already holds one (it records the job as
-done), and `publish` moves an earlier folder aside instead of deleting it.
+a hidden temporary folder beside it and published by one rename, so a reader never sees half a result; every path
+a result records (the ground truth it was scored against, say) is the one it has once published. A result is never
+replaced in silence: the worker does not run a job whose folder already holds one (it records the job as done), and
+`publish` moves an earlier folder aside instead of deleting it.
 
 `python -m spadscan.worker.jobs` is the child process the worker pool starts for each job: it runs one job into the
 folder the pool names and writes an outcome file the pool reads (exit 0 done, 3 the input is at fault and a retry
@@ -102,10 +103,12 @@ def scan_path(job: Job, root: Path) -> Path:
     return path
 
 
-def check_capture(scan: Path) -> dict:
-    """Validate a capture before reconstructing it: manifest, state 'complete', every chunk readable.
+def check_capture(scan: Path) -> tuple[dict, str | None]:
+    """Validate a capture before reconstructing it: manifest, state 'complete', every chunk readable, counts a
+    sensor could have produced.
 
-    Returns the manifest. Raises CaptureError with the one-line reason otherwise.
+    Returns (the manifest, a one-line warning about some of its counts or None). Raises CaptureError with the
+    one-line reason otherwise.
     """
     from spadscan.protocol.capture_reader import CaptureReader
 
@@ -115,7 +118,7 @@ def check_capture(scan: Path) -> dict:
     data = reader.load()  # reads and checks every chunk: shapes, dtypes, finite rigid poses
     if len(data.hists) == 0:
         raise CaptureError(f"{scan}: holds no measurements")
-    return reader.manifest
+    return reader.manifest, data.check_counts(scan)
 
 
 def ground_truth(manifest: dict, out: Path) -> tuple[Path | None, str | None]:
@@ -152,25 +155,41 @@ def _export_placed(spec: str, offset, path: Path) -> tuple[Path | None, str | No
 
 
 def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -> dict:
-    """Reconstruct the job's capture into the folder `out` (created). Returns the reconstruction's report, with
-    `ground_truth_note` when the capture names a ground truth that cannot be used (also added to report.json)."""
+    """Reconstruct the job's capture into the folder `out` (created), to be published as `result_path(job, root)`:
+    paths into `out` that the results record (job.json, report.json, report.html) name the published folder. Returns
+    the reconstruction's report, with `ground_truth_note` when the capture names a ground truth that cannot be used
+    and `capture_counts_note` when some of its histograms are implausible (both also added to report.json)."""
     scan = scan_path(job, root)
-    manifest = check_capture(scan)
+    manifest, counts_note = check_capture(scan)
+    if counts_note:
+        print(f"warning: {counts_note}", file=sys.stderr, flush=True)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    final = result_path(job, root)
     gt, gt_note = ground_truth(manifest, out)
     (out / "job.json").write_text(json.dumps({**job.to_dict(), "capture": str(scan),
-                                              "gt": None if gt is None else str(gt), "gt_note": gt_note},
-                                             indent=1) + "\n")
+                                              "gt": None if gt is None else str(published_path(gt, out, final)),
+                                              "gt_note": gt_note}, indent=1) + "\n")
     if gt_note:
         print(f"ground truth: {gt_note}", file=sys.stderr, flush=True)
     recon = recon or load_recon()
     report = dict(recon(scan, out, preset=job.preset, budget_s=job.budget_s, steps=job.steps, gt=gt,
                         device=job.device, seed=job.seed) or {})
-    if gt_note:
-        report["ground_truth_note"] = gt_note
-        add_to_report(out, {"ground_truth_note": gt_note})
+    moved = {k: str(published_path(Path(v), out, final)) for k, v in report.items()
+             if isinstance(v, str) and Path(v).is_relative_to(out)}
+    extra = {**moved, **({"ground_truth_note": gt_note} if gt_note else {}),
+             **({"capture_counts_note": counts_note} if counts_note else {})}
+    if extra:
+        report.update(extra)
+        add_to_report(out, extra)
     return report
+
+
+def published_path(path: Path, scratch: Path, final: Path) -> Path:
+    """Where `path`, inside the scratch folder a job writes into, will be once that folder is published as `final`
+    (other paths are returned unchanged)."""
+    path = Path(path)
+    return final / path.relative_to(scratch) if path.is_relative_to(scratch) else path
 
 
 def add_to_report(out: Path, values: dict) -> None:
@@ -215,6 +234,37 @@ def scratch_folders(root: Path) -> list[tuple[Path, str, str]]:
         if m and path.is_dir():
             found.append((path, m["job"], m["token"]))
     return found
+
+
+COMPLETE = ".complete"
+"""Marker written last into a job's scratch folder, once everything else is in it (report, mesh, pictures, job.log):
+{"job": id, "token": claim token, "queue": queue folder}. A scratch folder without it may be partial; a result folder
+with it names the claim that produced it."""
+
+
+def mark_complete(folder: Path, job_id: str, token: str, queue: Path) -> None:
+    """Write the completion marker into `folder` (a temporary file renamed into place, fsynced with the folder)."""
+    folder = Path(folder)
+    tmp = folder / f"{COMPLETE}.tmp"
+    with open(tmp, "w") as f:
+        json.dump({"job": job_id, "token": token, "queue": str(queue)}, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, folder / COMPLETE)
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def completion(folder: Path) -> dict | None:
+    """The completion marker of a scratch or result folder, or None when there is none (or it is unreadable)."""
+    try:
+        data = json.loads((Path(folder) / COMPLETE).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
 
 
 def existing_result(job: Job, root: Path) -> Path | None:
@@ -308,7 +358,8 @@ def child_main(argv: list[str] | None = None) -> int:
         traceback.print_exc()
         _write_outcome(outcome, {"ok": False, "kind": "crash", "error": f"{type(exc).__name__}: {exc}"})
         return EXIT_CRASH
-    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note") if k in report}
+    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note", "capture_counts_note")
+               if k in report}
     _write_outcome(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary})
     return EXIT_DONE
 

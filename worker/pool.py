@@ -21,7 +21,8 @@ from typing import Callable
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
-from .jobs import CHANGEABLE, existing_result, publish, result_path, scratch_folders, scratch_path
+from .jobs import CHANGEABLE, completion, existing_result, result_path, scratch_path
+from .publishing import own_result, publish_claim, reconcile
 from .queue import SEP, Claim, Queue
 from .watcher import ScanReport, scan_once, watch
 from .worker_config import WorkerConfig
@@ -42,7 +43,9 @@ class Worker:
         """Job id -> 'done' or 'failed' for jobs this worker finished, 'kept' for jobs it did not run because their
         results folder already held a result."""
         self._seen_skipped: set[str] = set()
-        self._swept = False
+        self._reconciled = False
+        """Whether the queue and the result folders were reconciled at start-up (publishing.reconcile)."""
+        self._reconcile_due = True
         self.job_env = config.job_env()
         """Environment the job processes get on top of the worker's own (threads per job, child_env)."""
         self.threads_note = config.threads_note()
@@ -97,15 +100,15 @@ class Worker:
             await asyncio.gather(stopper, return_exceptions=True)
 
     async def _poll_queue(self) -> None:
-        """Take over jobs of dead workers, remove their partial results, finish cut-short enqueues, claim jobs for
-        the free slots."""
+        """Reconcile the queue with the result folders (at start-up, and after dead workers' jobs were taken over),
+        take over jobs of dead workers, finish cut-short enqueues, claim jobs for the free slots."""
+        if self._reconcile_due:
+            await asyncio.to_thread(self._reconcile)
         reclaimed = await asyncio.to_thread(self.queue.reclaim_expired)
         for job_id, state in reclaimed:
             self.log(f"{job_id}: its worker stopped; {'queued again' if state == 'queued' else 'failed'}")
-        if reclaimed or not self._swept:
-            self._swept = True
-            for path in await asyncio.to_thread(self._sweep_scratch):
-                self.log(f"removed the partial result {path} of a dead worker")
+        if reclaimed:
+            await asyncio.to_thread(self._reconcile)
         await asyncio.to_thread(self.queue.repair)
         while len(self.children) < self.config.processes:
             claim = await asyncio.to_thread(self.queue.claim)
@@ -113,19 +116,15 @@ class Worker:
                 break
             await self._start(claim)
 
-    def _sweep_scratch(self) -> list[Path]:
-        """Remove the scratch folders of claims that can never publish (their worker died or lost the lease).
+    def _reconcile(self) -> None:
+        """publishing.reconcile: publish the finished results dead workers left, remove their partial ones, settle
+        jobs whose results are in place, and (at start-up) queue again done jobs whose results are gone.
 
         Folders are listed before their claims are looked at: a claim's record is written before its scratch
         folder is made, so a folder in use always has a record that names a live holder."""
-        removed = []
-        for path, job_id, token in scratch_folders(self.root):
-            if any(c.claim.token == token for c in self.children.values()):
-                continue
-            if self.queue.claim_is_dead(job_id, token):
-                shutil.rmtree(path, ignore_errors=True)
-                removed.append(path)
-        return removed
+        busy = {c.claim.token for c in self.children.values()}
+        self._reconcile_due = reconcile(self.queue, self.root, self.log, busy=busy, startup=not self._reconciled)
+        self._reconciled = True
 
     def _frozen_options_note(self, most: int = 10) -> str | None:
         """A line naming the queued jobs that will run with options other than the ones this worker was given
@@ -176,11 +175,20 @@ class Worker:
         proc = await spawn_job(job, self.root, scratch, outcome, log_path, recon=self.config.recon,
                                extra_env=self.job_env)
         self.children[job.id] = Child(claim, proc, scratch, outcome, log_path, asyncio.create_task(proc.wait()))
+        await asyncio.to_thread(self.queue.note_job_process, claim, proc.pid)
         self.log(f"{job.id} started (attempt {claim.attempt} of {self.queue.max_attempts}, pid {proc.pid})")
 
     def _keep(self, claim: Claim, existing: Path) -> None:
         """Record a job whose results folder already holds a result as done, without running it: a result is never
-        replaced in silence (it may come from another queue, or from before the queue was deleted)."""
+        replaced in silence (it may come from another queue, or from before the queue was deleted). A result that
+        an earlier claim of this job in this queue published (its worker died before it recorded the job as done)
+        is the job's own: the job is done, not 'kept'."""
+        if own_result(self.queue, claim.job.id, existing) is not None:
+            if self.queue.finish(claim, str(existing)):
+                self.settled[claim.job.id] = "done"
+                self.log(f"{claim.job.id}: its result {existing} was published by an earlier attempt whose worker "
+                         "died before recording it; recorded the job as done")
+            return
         if not self.queue.finish(claim, str(existing), kept=True):
             return
         self.settled[claim.job.id] = "kept"
@@ -234,21 +242,22 @@ class Worker:
                     again = "queued again" if state == "queued" else "giving up"
                     self.log(f"{job.id} crashed after {seconds:.1f} s: {reason}; {again}")
         finally:
-            if child.scratch.exists():
+            if child.scratch.exists() and completion(child.scratch) is None:  # a complete result is never removed
                 shutil.rmtree(child.scratch, ignore_errors=True)
 
     def _settle_done(self, child: Child, seconds: float, summary: dict) -> None:
         claim, job = child.claim, child.claim.job
-        if not self.queue.finish(claim):
+        published = publish_claim(self.queue, claim, child.scratch, result_path(job, self.root), child.log)
+        if published is None:
             self.log(f"{job.id}: finished, but its lease had been taken over; result dropped")
             return
-        shutil.copyfile(child.log, child.scratch / "job.log")
-        final, aside = publish(child.scratch, result_path(job, self.root))
-        self.queue.record_result(claim, str(final))
+        final, aside = published
         self.settled[job.id] = "done"
         extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
         if summary.get("ground_truth_note"):
             extra += f" (ground truth: {summary['ground_truth_note']})"
+        if summary.get("capture_counts_note"):
+            extra += f" (warning: {summary['capture_counts_note']})"
         self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}")
         if aside is not None:  # written there while the job ran (another worker on another queue, say)
             self.log(f"{job.id}: {final} held a result that appeared while the job ran; moved it to {aside}")

@@ -6,7 +6,7 @@ Layout of a queue folder (by default `<captures root>/.queue/`):
 ids/<job>.json                 registry: one entry per job ever queued, so a scan is queued once
 queued/<job>.json              waiting to be claimed
 running/<job>~<token>.json     claimed; <token> names the claim, the file's mtime is the holder's last heartbeat
-done/<job>.json                finished; the result folder is in the job's last attempt record
+done/<job>.json                finished, its result in place; the result folder is in its attempt records
 failed/<job>.json              gave up; the one-line reason is in the job's last attempt record
 attempts/<job>/<token>.json    one record per claim: holder (host, pid), times, outcome, error, result
 tmp/                           files being written
@@ -20,6 +20,8 @@ Why several workers on one machine or on a shared filesystem run each job once:
   another worker took the job over: the holder drops its result.
 - `retry_failed` with changed options (a failed job queued again with --device cpu, say) writes a new job file,
   registers it in ids/ and only then queues it: the queue never holds two files of one job.
+- A job reaches done/ only once its result is in place (publishing.py): the queue never says done about a result
+  that a crash can still lose.
 - A lease expires when that file's mtime is older than the lease (clocks of machines sharing a filesystem must agree
   to well within the lease), or at once when the holder was a process on this machine that no longer exists
   (holder.py).
@@ -36,8 +38,9 @@ from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 
-from .holder import Holder, holder_gone
+from .holder import Holder, holder_alive, holder_gone
 from .jobs import CHANGEABLE, ID_RE as _ID_RE, Job
+from .kill_points import kill_point
 
 
 STATES = ("queued", "running", "done", "failed")
@@ -170,16 +173,73 @@ class Queue:
 
     # ---- finishing -------------------------------------------------------------------------------------------
     def finish(self, claim: Claim, result: str | None = None, *, kept: bool = False) -> bool:
-        """Move a held job to done/; False (and nothing changes) when the lease was lost. `kept`: the job was not
-        run because `result` already held one (recorded, so that --status can say so)."""
+        """Move a held job to done/; False (and nothing changes) when the lease was lost. Call it only once the
+        job's result is in place (publishing.py). `kept`: the job was not run because `result` already held one
+        (recorded, so that --status can say so)."""
         if not self._settle(claim.path, claim.job.id, "done"):
             return False
+        kill_point("settled")
         self._update(claim, outcome="done", result=result, **({"kept": True} if kept else {}))
         return True
 
     def record_result(self, claim: Claim, result: str) -> None:
-        """Note where a finished job's results were published."""
-        self._update(claim, result=result)
+        """Note in a held job's attempt record the folder its result is being published to (before `finish`, so
+        that a done job's record always names its result, even when its worker died between the two)."""
+        self._patch_record(claim.job.id, claim.token, result=result)
+
+    def note_job_process(self, claim: Claim, pid: int) -> None:
+        """Record the process that runs a held job, so that another worker can tell when it has exited (an orphan
+        may write into its scratch folder for a moment after its worker died)."""
+        self._patch_record(claim.job.id, claim.token, job_process=Holder.of_pid(pid).to_dict())
+
+    def job_process_gone(self, job_id: str, token: str) -> bool:
+        """False while the job process of claim `token` is seen running on this machine; True otherwise (it has
+        exited, none was recorded, or it ran elsewhere: a claim from another machine is taken over only once its
+        lease has expired, long after its orphaned job process noticed that its worker was gone)."""
+        proc = (self._read_record(job_id, token) or {}).get("job_process")
+        return not (isinstance(proc, dict) and holder_alive(proc))
+
+    def adopt(self, job_id: str, path: Path, dead_token: str, *, why: str,
+              holder: Holder | None = None) -> Claim | None:
+        """Take a job over to settle it with the finished result that claim `dead_token`, whose holder died, left
+        behind, without running it again. `path` is the job's file wherever it is now: running/ under a dead claim
+        (that one, or one that adopted it and died too), or queued/ or failed/ (a worker took the dead claim over
+        meanwhile). Exactly one caller wins (the rename); None for the others. The new claim is not an attempt:
+        it is marked adopted, and the dead claims' records say why they ended (`why`)."""
+        holder = holder or Holder.current()
+        new = _new_token()
+        dst = self.path / "running" / f"{job_id}{SEP}{new}.json"
+        self._record(job_id, new, holder, outcome="running", adopted=dead_token)  # before the rename: never unnamed
+        try:
+            os.utime(path)  # the lease starts now: a rename keeps the old mtime
+            os.rename(path, dst)
+        except FileNotFoundError:
+            (self.path / "attempts" / job_id / f"{new}.json").unlink(missing_ok=True)
+            return None
+        kill_point("adopted")
+        held = path.stem.rpartition(SEP)[2] if path.parent.name == "running" else None
+        for token in dict.fromkeys(t for t in (dead_token, held) if t):
+            self._patch_record(job_id, token, outcome="lost", error=_one_line(why), ended_utc=_utc(), retried=False)
+        try:
+            job = Job.from_dict(json.loads(dst.read_text()), str(dst))
+        except (OSError, ValueError, ConfigError):
+            job = Job(id=job_id, scan="?")
+        return Claim(job, new, dst, self.attempts(job_id))
+
+    def record_done(self, job_id: str, result: str) -> bool:
+        """A done job whose last attempt record does not say so with its result (its worker died between moving the
+        job file to done/ and updating the record, or before it recorded where it published the result): complete
+        that record. True when it was changed."""
+        recs = self.records(job_id)
+        if not recs or not recs[-1].get("token") or (recs[-1].get("outcome") == "done" and recs[-1].get("result")):
+            return False
+        self._patch_record(job_id, str(recs[-1]["token"]), outcome="done", result=result,
+                           ended_utc=recs[-1].get("ended_utc") or _utc())
+        return True
+
+    def record(self, job_id: str, token: str) -> dict | None:
+        """The attempt record of claim `token`, or None when it is missing or unreadable."""
+        return self._read_record(job_id, token)
 
     def fail(self, claim: Claim, reason: str, *, retry: bool) -> str | None:
         """A claim ended in error. With `retry` and attempts left the job goes back to queued/, else to failed/.
@@ -272,8 +332,8 @@ class Queue:
 
     # ---- attempt records -------------------------------------------------------------------------------------
     def attempts(self, job_id: str) -> int:
-        """Claims of this job that counted as attempts (interrupted ones do not)."""
-        return sum(1 for r in self.records(job_id) if r.get("outcome") != "interrupted")
+        """Claims of this job that counted as attempts (interrupted and adopted ones do not)."""
+        return sum(1 for r in self.records(job_id) if _counted(r))
 
     def records(self, job_id: str) -> list[dict]:
         """Attempt records of one job, oldest first; unreadable ones are left out (see `read_records`)."""
@@ -363,9 +423,12 @@ class Queue:
                 notes.append(f"unreadable job file {path}")
         recs, bad = self.read_records(job_id)
         notes += [f"unreadable attempt record {p}" for p in bad]
-        counted = [r for r in recs if r.get("outcome") != "interrupted"]
+        counted = [r for r in recs if _counted(r)]
         errors = [str(r["error"]) for r in counted if r.get("error")]
-        results = [str(r["result"]) for r in recs if r.get("outcome") == "done" and r.get("result")]
+        # A done job's result: its done record's; else the one its last claim recorded before settling (its worker
+        # died between moving the job to done/ and updating the record).
+        results = ([str(r["result"]) for r in recs if r.get("outcome") == "done" and r.get("result")]
+                   or ([str(r["result"]) for r in recs if r.get("result")] if state == "done" else []))
         holder = age = stale = None
         shown = state
         if state == "running":
@@ -474,6 +537,12 @@ class Queue:
             except FileNotFoundError:
                 continue
         return fixed
+
+
+def _counted(rec: dict) -> bool:
+    """Whether an attempt record counts as an attempt: interrupted claims (the worker was asked to stop) and adopted
+    ones (a finished result published for a dead worker) do not."""
+    return rec.get("outcome") != "interrupted" and not rec.get("adopted")
 
 
 def _rename(src: Path, dst: Path) -> bool:

@@ -62,6 +62,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     cores). `log`: receives a line per stage after training (mesh, metrics, pictures) and warnings."""
     import torch
 
+    from spadscan.protocol.capture_reader import check_capture_counts
     from spadscan.worker.recon.config import load_factory, preset_config, with_overrides
     from spadscan.worker.recon.model_api import RunPlan
     from spadscan.worker.recon.scene_data import load_scene
@@ -89,6 +90,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
 
         log(f"ground truth {gt}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)")
     out = Path(out)
+    check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     dtype = torch.float64 if config.dtype == "float64" else torch.float32
     scene = load_scene(Path(capture), dev, dtype)
     state_note = capture_state_note(capture, scene.state, scene.n_views)

@@ -26,6 +26,11 @@ are cores stall each other (two 2-thread jobs on 2 cores run 20-40x slower per s
 worker warns when --processes x threads is more than the cores. An OMP_NUM_THREADS that is not a whole number >= 1
 is ignored, with a warning.
 
+A job is recorded as done only once its result is in place, so a worker killed at any moment loses nothing: the
+next worker to start reconciles the queue with the result folders. It publishes the finished result a dead worker
+left in a scratch folder (<scan>/recon/.tmp-<job>-<claim>/, complete once its marker .complete is written), records
+as done a job whose result is in place, removes partial results, and queues again a done job whose result is gone.
+
 --status lists the jobs and changes nothing. A running job whose worker died or stopped renewing its lease shows as
 `stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
 still holds shows as `running?`.
@@ -187,33 +192,13 @@ def _redo(queue, root, job_ids: list[str], given: dict) -> int:
     jobs = [_done_job(queue, job_id) for job_id in dict.fromkeys(job_ids)]
     changed = ", ".join(f"{OPTION_FLAGS[k]} {v}" for k, v in given.items()) or "their own options"
     for job in jobs:
-        _wait_for_publish(queue, job, result_path(job, root))
-        aside = move_aside(result_path(job, root))
+        aside = move_aside(result_path(job, root))  # a done job's result is in place: it is published first
         if not queue.requeue("done", job.id, changes=given):
             raise ConfigError(f"{job.id}: another process moved the job while it was being queued again"
                               + (f"; its earlier result is in {aside}" if aside else ""))
         kept = f"; its earlier result is now {aside}" if aside else "; it had no results folder"
         print(f"queued again: {job.id} (with {changed}){kept}")
     return 0
-
-
-PUBLISH_WAIT_S = 5.0
-"""How long --redo waits for a job that has just finished to have its results moved into place."""
-
-
-def _wait_for_publish(queue, job, folder, wait_s: float | None = None) -> None:
-    """A worker marks a job done a moment before it moves the results into place (the lease is settled first).
-    Wait that moment out, so that the result is moved aside with the others and not found, and kept, when the job
-    runs again. A done job whose record names no result and whose folder stays missing is given up on after
-    PUBLISH_WAIT_S: its results were removed by hand, say."""
-    import time
-
-    deadline = time.monotonic() + (PUBLISH_WAIT_S if wait_s is None else wait_s)
-    while True:
-        done = [r for r in queue.read_records(job.id)[0] if r.get("outcome") == "done"]
-        if not done or done[-1].get("result") or folder.exists() or time.monotonic() >= deadline:
-            return
-        time.sleep(0.05)
 
 
 def _done_job(queue, job_id: str):

@@ -1,4 +1,4 @@
-"""kill -9 of a worker mid-job: two `spadscan worker` processes serve one captures root with a short lease; the one
+"""kill -9 of a worker mid-job: two `spadscan worker` processes serve one captures root; the one
 running a job is killed; the job finishes on the other worker and every scan is reconstructed exactly once (a real
 reconstruction, two optimisation steps)."""
 
@@ -52,8 +52,10 @@ def make_captures(root: Path) -> None:
 def test_a_killed_workers_job_finishes_on_the_other_worker_once(tmp_path, procs):
     root = tmp_path / "captures"
     make_captures(root)
+    # The default lease: on one machine a dead worker's job is taken over at once, and a live worker that a busy
+    # machine holds up for a few seconds keeps its job.
     argv = spadscan_argv("worker", "--root", root, "--processes", 1, "--steps", 2, "--device", "cpu",
-                         "--lease-s", 3, "--poll-s", 0.2)
+                         "--poll-s", 0.2)
     workers = {p.pid: p for p in (procs.start(argv, "worker-a"), procs.start(argv, "worker-b"))}
 
     # The first job process to appear: its worker is the one to kill, mid-job, once the job watches its parent.
@@ -66,7 +68,7 @@ def test_a_killed_workers_job_finishes_on_the_other_worker_once(tmp_path, procs)
     wait_for(lambda: job_pid not in job_processes(root), "the orphaned job process to exit", 30)
 
     queue = Queue.for_root(root)
-    wait_for(lambda: queue.counts()["done"] == len(SCANS), "every job done", 180, poll_s=0.2)
+    wait_for(lambda: queue.counts()["done"] == len(SCANS), "every job done", 400, poll_s=0.2)
     assert procs.stop(survivor) == 0, procs.log(survivor)
     assert not job_processes(root), "a job process outlived its worker"
 
@@ -128,7 +130,7 @@ def test_a_job_whose_worker_died_before_it_started_exits(tmp_path, procs):
         worker.kill()  # the worker dies while its job is starting
         worker.wait(timeout=30)
         os.kill(job, signal.SIGCONT)
-        wait_for(lambda: not alive(job), "the orphaned job process to exit", 15, poll_s=0.1)
+        wait_for(lambda: not alive(job), "the orphaned job process to exit", 60, poll_s=0.1)
     finally:
         if alive(job):
             os.kill(job, signal.SIGKILL)

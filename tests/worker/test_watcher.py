@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 import numpy as np
 
@@ -15,11 +16,12 @@ from spadscan.worker.watcher import JobOptions, scan_folders, scan_once, watch
 
 
 def make_scan(root, name, state="complete", n=2):
-    """A tiny capture folder (n flat histograms) in the given state; returns its writer."""
+    """A tiny capture folder (n histograms of background counts) in the given state; returns its writer."""
     sensor = sensor_preset("lcspc-sim")
+    rng = np.random.default_rng(0)
     w = CaptureWriter.create(root / name, sensor, chunk_size=4)
     for i in range(n):
-        w.append(Measurement(np.ones((1, sensor.n_bins), np.uint32), np.eye(4), i))
+        w.append(Measurement(rng.poisson(2.0, (1, sensor.n_bins)).astype(np.uint32), np.eye(4), i))
     if state == "running":
         w.flush()
     else:
@@ -78,11 +80,11 @@ def test_watch_polls_until_stopped(tmp_path, arun):
     async def main():
         stop = asyncio.Event()
         task = asyncio.create_task(watch(tmp_path, q, JobOptions(), stop, poll_s=0.05, on_report=reports.append))
-        await asyncio.sleep(0.1)
+        while not reports:  # a first pass that found nothing
+            await asyncio.sleep(0.01)
         make_scan(tmp_path, "late")
-        for _ in range(200):
-            if q.known("late-fast"):
-                break
+        deadline = time.monotonic() + 60
+        while not q.known("late-fast") and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
         stop.set()
         await task

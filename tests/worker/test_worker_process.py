@@ -58,9 +58,11 @@ asyncio.run(run_worker(config))
 
 
 def start_worker(root: Path, markers: Path, *, once: bool, sleep_s: float, lease_s: float = 30.0,
-                 host: str | None = None):
+                 host: str | None = None, env: dict[str, str] | None = None):
+    """A worker process (2 job processes at once, stand-in reconstruction `marker_recon`); `env`: variables added
+    to its environment."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]),
-           "MARKERS": str(markers), "SLEEP_S": str(sleep_s)}
+           "MARKERS": str(markers), "SLEEP_S": str(sleep_s), **(env or {})}
     args = [str(root), "once" if once else "serve", str(lease_s)] + ([host] if host else [])
     return subprocess.Popen([sys.executable, "-c", LAUNCH, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
@@ -508,3 +510,36 @@ def test_partial_results_of_dead_claims_are_removed_and_live_ones_kept(tmp_path,
     assert folders["outside the queue"].exists(), "a folder no claim names is not the queue's to remove"
     assert (root / "dead" / "recon" / "dead-fast" / "report.json").is_file()
     assert any("removed the partial result" in line for line in lines)
+
+
+def scored_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+    """A stand-in reconstruction that reads the ground truth it is given and records its path, as the real one does
+    (report.json and report.html)."""
+    from spadscan.worker.report.report_html import write_report_html
+    from spadscan.worker.report.report_json import write_report
+
+    assert Path(gt).stat().st_size > 0
+    report = {"preset": preset, "capture": str(capture), "ground_truth": str(gt)}
+    write_report(out, report)
+    write_report_html(report, out)
+    return report
+
+
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_every_path_a_published_result_records_is_valid_after_publishing(tmp_path, arun):
+    """A built-in scene's ground truth is exported into the job's folder: the results name it where it is once
+    published, not in the scratch folder the job was written into."""
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "s")
+    manifest = root / "s" / "scan.json"
+    manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "scene": {"builtin": "sphere"}}))
+    config = WorkerConfig(root=root, once=True, poll_s=0.1, recon="test_worker_process:scored_recon")
+    assert arun(Worker(config, log=lambda line: None).run(), timeout_s=120) == {"s-fast": "done"}
+    result = root / "s" / "recon" / "s-fast"
+    report = json.loads((result / "report.json").read_text())
+    job = json.loads((result / "job.json").read_text())
+    assert report["ground_truth"] == job["gt"] == str(result / "ground_truth.ply")
+    assert (result / "ground_truth.ply").stat().st_size > 0
+    html = (result / "report.html").read_text()
+    assert str(result / "ground_truth.ply") in html and ".tmp-" not in html

@@ -151,29 +151,3 @@ def test_redo_refuses_jobs_that_are_not_done_and_moves_nothing(tmp_path, capsys,
     assert captured.err.strip() == "spadscan: error: " + message.format(queue=queue.path) and captured.out == ""
     assert (result / "report.json").exists(), "nothing moved when one of the jobs named cannot be redone"
     assert queue.counts() == {"queued": 1, "running": 0, "done": 1, "failed": 1}
-
-
-def test_redo_waits_for_a_result_that_is_being_published(tmp_path, capsys):
-    """A worker marks a job done a moment before its result is in place: a --redo in that moment moves the result
-    aside once it lands, rather than report no results folder and let the worker keep it."""
-    import threading
-
-    from spadscan.worker.watcher import scan_once
-
-    make_scan(tmp_path, "s")
-    queue = Queue.for_root(tmp_path)
-    scan_once(tmp_path, queue, JobOptions())
-    claim = queue.claim()
-    assert queue.finish(claim)  # done, its result not yet published
-    result = tmp_path / "s" / "recon" / "s-fast"
-
-    def publish_late():
-        result.mkdir(parents=True)
-        (result / "report.json").write_text('{"steps": 20}')
-        queue.record_result(claim, str(result))
-
-    threading.Timer(0.3, publish_late).start()
-    assert cli_main(["worker", "--root", str(tmp_path), "--redo", "s-fast"]) == 0
-    (aside,) = [p for p in (tmp_path / "s" / "recon").iterdir() if p.name.startswith("s-fast.replaced-")]
-    assert capsys.readouterr().out.strip().endswith(f"its earlier result is now {aside}")
-    assert json.loads((aside / "report.json").read_text()) == {"steps": 20} and not result.exists()

@@ -76,6 +76,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     log = log or (lambda line: None)
     start = time.monotonic()
     data = CaptureReader(capture).load()
+    data.check_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     state_note = capture_state_note(capture, data.manifest["state"], len(data.hists))
     if state_note:
         log(f"warning: {state_note}")

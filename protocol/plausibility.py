@@ -1,0 +1,134 @@
+"""Histograms no sensor could produce: refused before a reconstruction or a baseline fits them, or warned about.
+
+A reconstruction fits whatever counts it is given. A capture whose every bin holds 2**32-1 (a corrupt file, a
+converter that wrote -1 as unsigned) used to reconstruct with exit status 0, every loss term exactly 0 (saturated
+bins are left out of the fit, so nothing was left to fit) and a meaningless mesh. These histograms (one zone of one
+measurement) are implausible:
+
+- saturated: every bin at the counter's limit (the sensor model's max_count, at most the uint32 maximum 2**32-1);
+- over the counter: a bin above max_count, which the sensor's counter cannot hold (above 2**24-1 for the TMF8820's
+  24-bit counters);
+- all zero: not one count, where every real sensor sees ambient light and dark counts in every bin;
+- all equal: every bin the same non-zero count, which photon noise never gives.
+
+The bins a sensor model ignores (the TMF8820's bin 0) are left out of these tests. A capture whose histograms are
+all implausible is refused (CaptureError); one where only some are gets a one-line warning, as does one with bins
+clipped at the counter's limit in otherwise plausible histograms (those bins carry no information). The real
+TMF8820 captures of LCSPCData (ambient ~120 counts a bin, peaks below 10**6) and simulated captures pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import CaptureError
+
+UINT32_MAX = 2**32 - 1
+
+KINDS = ("over the counter", "saturated", "all zero", "all equal")
+"""Implausible kinds, in the order a histogram is classified (one kind each)."""
+
+
+@dataclass(frozen=True)
+class CountSurvey:
+    """What `survey_counts` found in a set of histograms."""
+
+    histograms: int
+    """Histograms looked at (measurements x zones)."""
+    limit: int
+    """The counter's limit: the sensor model's max_count (at most 2**32-1)."""
+    implausible: dict[str, int] = field(default_factory=dict)
+    """Histograms of each implausible kind (KINDS), kinds with none left out."""
+    clipped: int = 0
+    """Otherwise plausible histograms with some bins at the counter's limit."""
+
+    @property
+    def n_implausible(self) -> int:
+        return sum(self.implausible.values())
+
+    def refusal(self, where: str) -> str | None:
+        """The one-line reason to refuse the capture (every histogram implausible), or None."""
+        if self.histograms == 0 or self.n_implausible < self.histograms:
+            return None
+        found = [kind for kind, n in self.implausible.items() if n]
+        if len(found) == 1:
+            what = f"all {self.histograms:,} histograms {self._phrases()[found[0]][0]}"
+        else:
+            what = f"of its {self.histograms:,} histograms, {self._listed()}"
+        return f"{where}: no sensor could have produced these counts: {what}; refusing to fit them"
+
+    def warning(self, where: str) -> str | None:
+        """A one-line warning when only some histograms are implausible or clipped, or None."""
+        if self.refusal(where) is not None:
+            return None
+        parts = []
+        if self.n_implausible:
+            parts.append(f"{self.n_implausible:,} of {self.histograms:,} histograms no sensor could have produced "
+                         f"({self._listed()})")
+        if self.clipped:
+            parts.append(f"{self.clipped:,} of {self.histograms:,} histograms with bins clipped at the counter's "
+                         f"limit {self.limit:,}")
+        return f"{where}: {'; '.join(parts)}" if parts else None
+
+    def _phrases(self) -> dict[str, tuple[str, str]]:
+        """Each kind as (what 'all N histograms' do, how a count of them is labelled)."""
+        limit = f"the {_bits(self.limit)} counter's limit {self.limit:,}"
+        return {
+            "over the counter": (f"hold counts above {limit}", f"with counts above {limit}"),
+            "saturated": (f"are saturated (every bin at {limit})", f"saturated (every bin at {limit})"),
+            "all zero": ("are all zero", "all zero"),
+            "all equal": ("have every bin equal", "with every bin equal"),
+        }
+
+    def _listed(self) -> str:
+        """'3 all zero, 2 with every bin equal': the implausible kinds found, with their counts."""
+        phrases = self._phrases()
+        return ", ".join(f"{n:,} {phrases[kind][1]}" for kind, n in self.implausible.items() if n)
+
+
+def survey_counts(hists: np.ndarray, max_count: int = UINT32_MAX, ignore_bins=()) -> CountSurvey:
+    """Classify histograms (..., bins) of whole counts: see the module's docstring. `max_count`: the sensor's
+    largest count; `ignore_bins`: bins left out of the tests (kept when they are all the bins there are)."""
+    hists = np.asarray(hists)
+    if hists.ndim < 1 or hists.dtype.kind not in "iu":
+        raise ValueError(f"histograms must be an integer array (..., bins), got {hists.dtype} {hists.shape}")
+    limit = int(min(max_count, UINT32_MAX))
+    keep = [b for b in range(hists.shape[-1]) if b not in set(ignore_bins)] or list(range(hists.shape[-1]))
+    h = hists.reshape(-1, hists.shape[-1])[:, keep]
+    if h.shape[0] == 0 or h.shape[1] == 0:
+        return CountSurvey(h.shape[0], limit)
+    hi, lo = h.max(axis=1), h.min(axis=1)
+    at_limit = h >= limit
+    kinds = {
+        "over the counter": hi > limit,
+        "saturated": lo >= limit,
+        "all zero": hi == 0,
+        "all equal": hi == lo,
+    }
+    left = np.ones(h.shape[0], bool)
+    found = {}
+    for kind in KINDS:
+        hit = kinds[kind] & left
+        left &= ~hit
+        if hit.any():
+            found[kind] = int(hit.sum())
+    clipped = int((at_limit.any(axis=1) & left).sum())
+    return CountSurvey(h.shape[0], limit, found, clipped)
+
+
+def check_counts(hists: np.ndarray, max_count: int, ignore_bins, where: str) -> str | None:
+    """Refuse (CaptureError, one line naming `where`) histograms no sensor could have produced; return a one-line
+    warning when only some are (or some bins are clipped), else None."""
+    survey = survey_counts(hists, max_count, ignore_bins)
+    reason = survey.refusal(where)
+    if reason is not None:
+        raise CaptureError(reason)
+    return survey.warning(where)
+
+
+def _bits(limit: int) -> str:
+    """'24-bit' for a limit of 2**24-1; 'sensor's' for one that is not a power of two less one."""
+    bits = limit.bit_length()
+    return f"{bits}-bit" if limit == 2**bits - 1 else "sensor's"

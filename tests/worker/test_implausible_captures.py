@@ -1,0 +1,91 @@
+"""A capture whose counts no sensor could produce is refused in one line by `spadscan reconstruct`, `spadscan
+baseline` and the worker's jobs (it used to reconstruct with exit status 0 and every loss term 0); a capture with
+only some such histograms is reconstructed with a one-line warning that its results keep."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from spadscan.cli import main as cli_main
+from spadscan.protocol.capture_format import Measurement
+from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.schedules import fibonacci_hemisphere
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.worker.pool import Worker
+from spadscan.worker.queue import Queue
+from spadscan.worker.worker_config import WorkerConfig
+
+SATURATED = 2**32 - 1
+
+
+def capture(path, counts: np.ndarray, preset: str = "lcspc-sim"):
+    """A complete capture of `counts` (views, zones, bins) looking at the origin from a hemisphere."""
+    sensor = sensor_preset(preset)
+    poses = fibonacci_hemisphere(len(counts), 0.3, target=(0, 0, 0.0), min_elevation_deg=10)
+    w = CaptureWriter.create(path, sensor, chunk_size=8)
+    for i, (h, pose) in enumerate(zip(counts, poses)):
+        ref = np.full(sensor.n_bins, 50, np.uint32) if sensor.has_reference else None
+        w.append(Measurement(h, pose, i, reference=ref))
+    w.finish("complete")
+    return path
+
+
+def one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize("preset, shape", [("lcspc-sim", (8, 1, 1024)), ("tmf8820", (8, 9, 128))])
+def test_reconstruct_refuses_a_capture_whose_every_count_is_the_uint32_maximum(tmp_path, capsys, preset, shape):
+    cap = capture(tmp_path / "cap", np.full(shape, SATURATED, np.uint32), preset)
+    assert cli_main(["reconstruct", str(cap), "--out", str(tmp_path / "out"), "--steps", "2", "--device", "cpu",
+                     "--no-progress"]) == 1
+    err = one_line_error(capsys)
+    assert err.startswith(f"spadscan: error: {cap}: no sensor could have produced these counts: all ") and (
+        "saturated" in err if preset == "lcspc-sim" else "above the 24-bit counter's limit" in err)
+    assert not (tmp_path / "out" / "mesh.ply").exists()
+
+
+@pytest.mark.parametrize("method, count, words", [
+    ("reprojection", 0, "are all zero"), ("space-carving", 0, "are all zero"),
+    ("space-carving", 2**24 - 1, "are saturated (every bin at the 24-bit counter's limit 16,777,215)")])
+def test_baselines_refuse_a_capture_no_sensor_could_produce(tmp_path, capsys, method, count, words):
+    cap = capture(tmp_path / "cap", np.full((8, 9, 128), count, np.uint32), "tmf8820")
+    assert cli_main(["baseline", method, str(cap), "--out", str(tmp_path / "out"), "--no-gt"]) == 1
+    assert one_line_error(capsys) == (f"spadscan: error: {cap}: no sensor could have produced these counts: all 72 "
+                                      f"histograms {words}; refusing to fit them")
+
+
+def counts_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+    """A stand-in reconstruction that leaves a report (the counts were checked before it is called)."""
+    report = {"preset": preset}
+    (out / "report.json").write_text(json.dumps(report))
+    return report
+
+
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_the_worker_fails_an_implausible_capture_once_and_warns_about_a_partly_implausible_one(tmp_path, arun):
+    root = tmp_path / "captures"
+    root.mkdir()
+    rng = np.random.default_rng(0)
+    capture(root / "flat", np.full((8, 1, 1024), 7, np.uint32))
+    some = rng.poisson(2.0, (8, 1, 1024)).astype(np.uint32)
+    some[3] = SATURATED
+    capture(root / "some", some)
+    lines: list[str] = []
+    config = WorkerConfig(root=root, once=True, poll_s=0.1, recon="test_implausible_captures:counts_recon")
+    assert arun(Worker(config, log=lines.append).run(), timeout_s=120) == {"flat-fast": "failed", "some-fast": "done"}
+    rows = {r.id: r for r in Queue.for_root(root).statuses()}
+    assert rows["flat-fast"].attempts == 1, "bad input is not retried"
+    assert rows["flat-fast"].error == (f"{root / 'flat'}: no sensor could have produced these counts: all 8 "
+                                       "histograms have every bin equal; refusing to fit them")
+    note = (f"{root / 'some'}: 1 of 8 histograms no sensor could have produced (1 saturated (every bin at the 32-bit "
+            "counter's limit 4,294,967,295))")
+    result = root / "some" / "recon" / "some-fast"
+    assert json.loads((result / "report.json").read_text())["capture_counts_note"] == note
+    assert f"warning: {note}" in (result / "job.log").read_text()
+    assert any("some-fast done" in line and f"(warning: {note})" in line for line in lines), lines
