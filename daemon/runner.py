@@ -411,6 +411,7 @@ class ScanRunner:
         frames: list[Frame] = []
         since = time.monotonic()
         deadline, dropped = since + timeout, job.dropped
+        last_arrival = since  # when the sensor last delivered a frame, dropped or kept
         while len(frames) < job.scan.frames_per_pose:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -428,8 +429,9 @@ class ScanRunner:
                     since = time.monotonic()
                     deadline, dropped = since + timeout, job.dropped
                     continue
+                # Frames kept coming until just now (a backlog of early ones): not silence.
                 too_late = self._too_late(job, i, dropped)
-                if too_late is not None:
+                if too_late is not None and time.monotonic() - last_arrival < timeout / 2:
                     raise too_late from None
                 if isinstance(exc, TimeoutError):
                     raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
@@ -437,6 +439,7 @@ class ScanRunner:
                 # The sensor names the rest of the timeout it was given (0.953291 s); the operator set the whole.
                 raise SensorSilent(f"{self.sensor.name}: no complete frame within {timeout:g} s (frame_timeout_s) "
                                    f"at pose {i}") from None
+            last_arrival = time.monotonic()
             if f.t_start < ready_t:
                 job.dropped += 1
                 continue
@@ -445,7 +448,7 @@ class ScanRunner:
                                   f"({model.n_zones}, {model.n_bins})")
             frames.append(f)
             since = time.monotonic()
-            deadline = since + timeout
+            deadline, dropped = since + timeout, job.dropped  # each kept frame starts a wait of its own
         return frames
 
     def _too_late(self, job: ScanJob, i: int, dropped_before: int) -> FramesTooEarly | None:
