@@ -221,6 +221,9 @@ class URArm(Arm):
             return
         vecs = [[float(x) for x in pose_to_vector(p)] for p in poses]
         n = first_index + len(vecs)
+        # A controller stopped for safety, or without its script, cannot answer: say which (as a move would).
+        self._raise_if_stopped(await self._fresh("the safety state before the pose checks"),
+                               "the controller cannot check the planned poses")
         try:
             result = await self._call(f"the controller's checks of {len(vecs)} poses", "check_poses", vecs,
                                       timeout_s=self.timeout_s + 0.25 * len(vecs))
