@@ -230,6 +230,9 @@ class URArm(Arm):
         except LinkLost:
             raise
         except DeviceError as exc:
+            for _ in range(3):  # a stop that came meanwhile shows in the receive data a package or two later
+                self._raise_if_stopped(await self._fresh("the safety state after the pose checks failed"),
+                                       "the controller cannot check the planned poses")
             raise ArmFault(f"{self.name}: cannot ask the controller about the planned poses: {exc}") from None
         i = result["index"]
         if i >= 0:
