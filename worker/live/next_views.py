@@ -6,9 +6,27 @@ candidate poses, and writes the best ones into the capture's next_views.json.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from .snapshot import LiveSnapshot
+
+
+def is_adaptive(manifest: dict) -> bool:
+    """Whether the capture's scan chooses its views from next_views.json (its manifest's schedule kind is
+    'adaptive'): only then does the live job rank candidates and write that file."""
+    schedule = manifest.get("schedule") if isinstance(manifest, dict) else None
+    return isinstance(schedule, dict) and schedule.get("kind") == "adaptive"
+
+
+def update_next_views(capture: Path, manifest: dict, snapshot: LiveSnapshot) -> Path | None:
+    """Rank candidate poses for the scan in `capture` from `snapshot` and write them as the capture's
+    next_views.json (atomically); returns its path, or None when nothing was written. The live job calls it every
+    few seconds while an adaptive scan runs (`is_adaptive`).
+
+    Placeholder until the candidates and the file format land: writes nothing."""
+    return None
 
 
 def rank_candidates(snapshot: LiveSnapshot, candidates: np.ndarray) -> np.ndarray:
@@ -38,4 +56,4 @@ def rank_candidates(snapshot: LiveSnapshot, candidates: np.ndarray) -> np.ndarra
     return np.nan_to_num(scores, nan=-1.0)
 
 
-__all__ = ["rank_candidates"]
+__all__ = ["rank_candidates", "is_adaptive", "update_next_views"]
