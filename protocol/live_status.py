@@ -39,6 +39,9 @@ LIVE_DIR = "live"
 """The live results' folder under a capture's `recon/`."""
 STATUS = "status.json"
 STATES = ("waiting", "live", "final", "done", "aborted", "stopped")
+SAID = {"waiting": "waiting for views", "live": "following the scan", "final": "finishing", "done": "done",
+        "aborted": "ended (the scan was aborted)", "stopped": "stopped"}
+"""Each state as people read it."""
 
 
 def utc_now() -> str:
@@ -81,8 +84,7 @@ class LiveStatus:
     def summary(self, now: _dt.datetime | None = None) -> str:
         """One line for people: state, views used of published (of planned), steps, Chamfer, last update."""
         planned = f" of {self.views_planned} planned" if self.views_planned else ""
-        parts = [f"live {self.state}", f"{self.views_used}/{self.views_published} views{planned}",
-                 f"{self.steps} steps"]
+        parts = [f"{self.views_used}/{self.views_published} views{planned}", f"{self.steps} steps"]
         if self.converged:
             parts.append("converged")
         if self.chamfer_mm is not None:
@@ -92,7 +94,7 @@ class LiveStatus:
             parts.append(f"updated {age:.0f} s ago")
         if self.note:
             parts.append(self.note)
-        return ", ".join(parts)
+        return f"live reconstruction {SAID.get(self.state, self.state)}: " + ", ".join(parts)
 
 
 def status_path(capture) -> Path:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from spadscan.protocol.errors import CaptureError, SpadscanError
+from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.live_status import LiveStatus
 
 from .follower import ScanFollower, ScanProgress
@@ -63,6 +63,12 @@ class LiveSettings:
     final_lr_decay_share: float = 0.5
     """The final run's learning-rate decay is laid out over the steps this share of its budget is expected to take
     (at the live fit's measured rate)."""
+    live_threads: int = 1
+    """CPU threads of the live fit while the scan runs (the final run gets the job's own): the daemon beside it keeps
+    a core."""
+    overrides: tuple = ()
+    """(dotted key, value) pairs changing the preset's config, for the live fit and the final run alike (as
+    `spadscan reconstruct --set`; benchmarks and tests make small fits with it)."""
 
 
 class ScanAborted(SpadscanError):
@@ -91,16 +97,20 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     runner = LiveRun(job, scan, folder, follower, settings, log)
     gt, _ = ground_truth(progress.manifest, out)
     runner.start(progress, gt)
-    progress = runner.follow(progress)
+    try:
+        progress = runner.follow(progress)
+        if progress.state == "complete" and runner.fit.model is not None:
+            runner.publish(progress, state="final", force=True)
+    finally:
+        runner.restore_threads()
     if progress.state == "aborted":
         runner.stopped("aborted", f"scan aborted: {progress.reason or 'no reason given'}")
         raise ScanAborted(f"scan {scan.name} was aborted ({progress.reason or 'no reason given'}): its live job "
                           f"ended; the last live result stays in {folder}")
-    if runner.fit is None or runner.fit.model is None:
-        runner.stopped("final", f"the scan completed before the live fit started ({runner.fit_views} views): "
-                                "reconstructing from scratch")
+    if runner.fit.model is None:
+        runner.stopped("final", f"the scan completed with {progress.views_published} views before the live fit "
+                                "started: reconstructing it from scratch")
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
-    runner.publish(progress, state="final", force=True)
     budget = job.budget_s if job.budget_s is not None else settings.final_budget_s
     final = dataclasses.replace(job, live=False, budget_s=budget)
     live_report = runner.fit.report()
@@ -137,11 +147,15 @@ class LiveRun:
     # ---- set-up --------------------------------------------------------------------------------------------------
     def start(self, progress: ScanProgress, gt: Path | None) -> None:
         """Load the reconstruction's settings, the device and the ground truth (torch is imported here)."""
+        import torch
+
         from ..ground_truth import load_ground_truth
         from ..reconstruct import resolve_device, run_config
         from .live_fit import LiveFit
 
-        config = run_config(self.job.preset)
+        self.threads = torch.get_num_threads()
+        torch.set_num_threads(max(1, min(self.threads, self.settings.live_threads)))
+        config = run_config(self.job.preset, dict(self.settings.overrides) or None)
         self.config = config
         self.fit = LiveFit(self.scan, config, resolve_device(self.job.device), self.job.seed, self.log)
         if gt is not None:
@@ -150,6 +164,12 @@ class LiveRun:
             except SpadscanError as exc:
                 self.log(f"live: no Chamfer while scanning: {exc}")
         self.publish(progress, state="waiting", force=True)
+
+    def restore_threads(self) -> None:
+        """Give the final run the job's own CPU threads back."""
+        import torch
+
+        torch.set_num_threads(self.threads)
 
     # ---- following -----------------------------------------------------------------------------------------------
     def follow(self, progress: ScanProgress) -> ScanProgress:
@@ -244,7 +264,7 @@ class LiveRun:
         rate = self.fit.steps_per_s() or 10.0
         steps = max(50, int(rate * budget_s * self.settings.final_lr_decay_share))
         return functools.partial(reconstruct_capture, make=self.fit.warm_factory(),
-                                 overrides={"schedule.fine_steps": steps})
+                                 overrides={**dict(self.settings.overrides), "schedule.fine_steps": steps})
 
 
 __all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun"]

@@ -13,7 +13,6 @@ from collections import deque
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from spadscan.protocol.errors import SpadscanError
