@@ -69,9 +69,15 @@ class Job:
     """'auto', 'cpu' or 'cuda'."""
     seed: int = 0
     created_utc: str = ""
+    live: bool = False
+    """Reconstruct while the scan is recorded (`spadscan worker --live`): the job starts at the scan's first chunk,
+    follows it and finishes from the live state (`worker/live/job.py`); `budget_s` then bounds that final run."""
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        data = asdict(self)
+        if not self.live:
+            del data["live"]  # an ordinary job's file is as it always was
+        return data
 
     @classmethod
     def from_dict(cls, data: dict, where: str = "job") -> "Job":
@@ -159,6 +165,10 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -
     paths into `out` that the results record (job.json, report.json, report.html) name the published folder. Returns
     the reconstruction's report, with `ground_truth_note` when the capture names a ground truth that cannot be used
     and `capture_counts_note` when some of its histograms are implausible (both also added to report.json)."""
+    if job.live:
+        from .live.job import execute_live_job
+
+        return execute_live_job(job, root, out, recon)
     scan = scan_path(job, root)
     manifest, counts_note = check_capture(scan)
     if counts_note:

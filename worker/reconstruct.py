@@ -89,9 +89,10 @@ class Run:
 
 
 def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, steps: int | None,
-               budget_s: float | None, seed: int, log: Callable[[str], None]) -> Run:
+               budget_s: float | None, seed: int, log: Callable[[str], None], make: Callable | None = None) -> Run:
     """Load the capture and build the preset's model: what every run does before it trains. With neither `steps`
-    nor `budget_s`, the preset's defaults bound the run."""
+    nor `budget_s`, the preset's defaults bound the run. `make`: a model factory (scene, config, device, plan) ->
+    model in place of the preset's (a live job's final run starts its model from the live fit)."""
     t0 = time.perf_counter()
     check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
@@ -105,21 +106,22 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
             log(f"warning: preset {config.preset!r} runs {steps:,} steps by default: days on a CPU (--budget-s or "
                 f"--steps to bound it)")
     plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
-    model = make_model(scene, config, device, plan)
+    model = (make or make_model)(scene, config, device, plan)
     return Run(config, scene, model, plan, device, state_note, time.perf_counter() - t0)
 
 
 def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budget_s: float | None = None,
                         steps: int | None = None, gt: Path | None = None, device: str = "auto", seed: int = 0,
                         progress: bool = True, overrides: dict | None = None, threads: int | None = None,
-                        log: Callable[[str], None] | None = None) -> dict:
+                        log: Callable[[str], None] | None = None, make: Callable | None = None) -> dict:
     """Reconstruct `capture` into folder `out` with preset `preset`; returns the report dict (also report.json).
 
     The run stops after `steps` steps or `budget_s` seconds of training and checkpoint evaluation, whichever comes
     first (neither: the preset's defaults). `gt`: a ground-truth mesh file; adds Chamfer, accuracy, completeness,
     F-score and normal errors, and Chamfer at every trace checkpoint. `overrides`: dotted config keys to change (see
     config.with_overrides). `threads`: torch's CPU threads (default: as torch starts, OMP_NUM_THREADS or the
-    cores). `log`: receives a line per stage after training (mesh, metrics, pictures) and warnings."""
+    cores). `log`: receives a line per stage after training (mesh, metrics, pictures) and warnings. `make`: a model
+    factory in place of the preset's (see `set_up_run`)."""
     log = log or (lambda line: None)
     wall0 = time.perf_counter()
     _check_run_args(budget_s, steps, seed)
@@ -133,7 +135,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     truth = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
     if truth is not None and truth.units_read == "mm":
         log(f"ground truth {gt}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)")
-    run = set_up_run(capture, config, dev, steps=steps, budget_s=budget_s, seed=seed, log=log)
+    run = set_up_run(capture, config, dev, steps=steps, budget_s=budget_s, seed=seed, log=log, make=make)
     model, scene, plan = run.model, run.scene, run.plan
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder

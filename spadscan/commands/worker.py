@@ -26,6 +26,15 @@ are cores stall each other (two 2-thread jobs on 2 cores run 20-40x slower per s
 worker warns when --processes x threads is more than the cores. An OMP_NUM_THREADS that is not a whole number >= 1
 is ignored, with a warning.
 
+--live reconstructs while the arm scans: a scan is queued as soon as its first chunk is published, and its job
+follows it (each new chunk is read as it lands; the views in use grow, nothing restarts). Every few seconds it
+publishes <scan>/recon/live/ (mesh.ply, preview.png, status.json with views_used, views_published, steps,
+updated_utc, converged and, with a ground truth, chamfer_mm; `spadscan ctl status` shows it). When the scan is
+complete the job finishes from the live state, for --budget-s seconds (default for live jobs: 20), and publishes its
+result where every job does. An aborted scan's live job ends (failed, with the scan's reason; the live folder keeps
+its last state). A live job holds its job process from the scan's first chunk to its end: give the worker a process
+for each scan that may run at once (--processes). Live jobs run the fast preset.
+
 A job is recorded as done only once its result is in place, so a worker killed at any moment loses nothing: the
 next worker to start reconciles the queue with the result folders. It publishes the finished result a dead worker
 left in a scratch folder (<scan>/recon/.tmp-<job>-<claim>/, complete once its marker .complete is written), records
@@ -38,6 +47,7 @@ still holds shows as `running?`.
 Examples:
   spadscan worker --root captures --processes 2
   spadscan worker --root captures --once          # reconstruct what is there, then exit
+  spadscan worker --root captures --live          # reconstruct scans while they are recorded
   spadscan worker --root captures --status        # list jobs: state, attempts, last error, result
   spadscan worker --root captures --retry-failed  # put failed jobs back in the queue, with their own options
   spadscan worker --root captures --retry-failed --device cpu   # ... and run them on the CPU
@@ -69,6 +79,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="random seed of the reconstructions (default: 0)")
     parser.add_argument("--once", action="store_true",
                         help="queue the complete scans there are, run until nothing is queued or running, exit")
+    parser.add_argument("--live", action="store_true",
+                        help="start each scan's reconstruction at its first published chunk and follow the scan, "
+                             "publishing <scan>/recon/live/ every few seconds; --budget-s then bounds the final run "
+                             "after the scan ends (default 20 s; fast preset only)")
     parser.add_argument("--poll-s", type=float, default=None, metavar="S",
                         help="seconds between looks at the root and the queue (default: 2)")
     parser.add_argument("--lease-s", type=float, default=None, metavar="S",
@@ -95,7 +109,7 @@ OPTION_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "device": "--devic
 """Job options that can be given on the command line, and their flags. None in `args` means not given."""
 
 RUN_FLAGS = {"once": "--once", "processes": "--processes", "threads": "--threads", "poll_s": "--poll-s",
-             "max_attempts": "--max-attempts"}
+             "max_attempts": "--max-attempts", "live": "--live"}
 """Flags that only say how the worker runs jobs: meaningless with --status and --retry-failed, which run none."""
 
 DEFAULTS = {"processes": 1, "poll_s": 2.0, "lease_s": 60.0, "max_attempts": 3}
@@ -122,7 +136,7 @@ def run(args) -> int:
         return _retry_failed(Queue(queue_dir, create=False), given, args.preset)
     if args.redo:
         return _redo(Queue(queue_dir, create=False), root, args.redo, given)
-    options = JobOptions(**({"preset": args.preset} if args.preset else {}), **given)
+    options = JobOptions(**({"preset": args.preset} if args.preset else {}), **given, live=args.live)
     value = {key: DEFAULTS[key] if getattr(args, key) is None else getattr(args, key) for key in DEFAULTS}
     config = WorkerConfig(
         root=root, processes=value["processes"], queue_dir=queue_dir, poll_s=value["poll_s"], lease_s=lease_s,
