@@ -49,7 +49,9 @@ def parse_args(argv=None):
     p.add_argument("--scenes", nargs="+", required=True, help="builtin:NAME or mesh files")
     p.add_argument("--measures", default="coverage", help="comma-separated ranking measures (coverage, "
                                                           "disagreement, sensitivity)")
-    p.add_argument("--counts", default="16,24,32,48,64,96,128", help="views at which both schedules are scored")
+    p.add_argument("--counts", default="16,24,32,48,64,96,128", help="views at which both schedules are scored; "
+                                                                      "the smallest is the adaptive scan's initial views")
+    p.add_argument("--views", type=int, default=128, help="views of the adaptive scan's plan (default 128)")
     p.add_argument("--steps", type=int, default=1000, help="steps of every scored fit (default 1000)")
     p.add_argument("--batch", type=int, default=8, help="views taken per ranking in the adaptive loop (default 8)")
     p.add_argument("--live-steps", type=int, default=150, help="live-fit steps per ranking (default 150)")
@@ -68,6 +70,8 @@ def parse_args(argv=None):
         args.counts = sorted({int(c) for c in args.counts.split(",")})
     except ValueError:
         p.error(f"--counts {args.counts!r} must be comma-separated integers")
+    if args.counts[-1] > args.views:
+        p.error(f"--counts go up to {args.counts[-1]}, beyond the plan's --views {args.views}")
     if args.counts[0] < 4 or args.steps < 1 or args.batch < 1 or args.live_steps < 3:
         p.error("--counts must be >= 4, --steps and --batch >= 1, --live-steps >= 3")
     return args
@@ -185,9 +189,9 @@ class LiveLoop:
                             poses=scene.poses.double().numpy(), sensor=scene.sensor, floor_z=model.problem.floor_z)
 
 
-def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, args, work: Path) -> dict:
-    """The poses an adaptive scan of `views` takes on `scene` (see the module docstring), their histograms and why
-    each was taken."""
+def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, upto: int, args, work: Path) -> dict:
+    """The first `upto` poses an adaptive scan of `views` takes on `scene` (see the module docstring) and why each
+    was taken."""
     from spadscan.daemon.adaptive import ViewChooser
     from spadscan.daemon.config import ArmConfig, scan_to_dict
     from spadscan.daemon.scan_plan import build_plan
@@ -204,7 +208,7 @@ def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, args
     why, poses = [], []
     loop = LiveLoop(args.seed)
     rank_s = []
-    while len(poses) < views:
+    while len(poses) < upto:
         n = len(poses)
         if n >= initial:
             capture = scene.capture(work / "stage", np.array(poses), scene.frames(np.array(poses)))
@@ -213,7 +217,7 @@ def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, args
             scores = rank_candidates(snap, candidates, measure)
             rank_s.append(time.perf_counter() - t0)
             write_next_views(live, ranked(candidates, scores, n, measure))
-        for i in range(n, min(views, n + (initial if n < initial else args.batch))):
+        for i in range(n, min(upto, n + (initial if n < initial else args.batch))):
             choice, plan = chooser.choose(plan, i)
             poses.append(choice.pose)
             why.append(choice.why)
@@ -262,10 +266,10 @@ def run(args) -> dict:
 
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    settings = {"counts": args.counts, "steps": args.steps, "batch": args.batch, "live_steps": args.live_steps,
+    settings = {"views": args.views, "steps": args.steps, "batch": args.batch, "live_steps": args.live_steps,
                 "seed": args.seed, "sensor": SENSOR, "live_first_steps": LIVE_FIRST_STEPS}
     results = Results(args.out / "results.json", settings)
-    views, initial = max(args.counts), min(args.counts)
+    initial = min(args.counts)
     for spec in args.scenes:
         scene = Scene(spec, args.seed)
         work = args.out / "work" / scene.name
@@ -279,7 +283,7 @@ def run(args) -> dict:
                     results.put(key, {**entry, "poses_digest": digest(poses)})
                     print(f"{key}: {entry['chamfer_mm']:.2f} mm", file=sys.stderr)
         for measure in args.measures:
-            seq = sequence(scene, measure, views, initial, args, work)
+            seq = sequence(scene, measure, initial, max(args.counts), args, work)
             for n in args.counts:
                 poses = seq["poses"][:n]
                 key = f"{scene.name}|adaptive-{measure}|{n}"
@@ -293,25 +297,27 @@ def run(args) -> dict:
     return results.data
 
 
-def sequence(scene: Scene, measure: str, views: int, initial: int, args, work: Path) -> dict:
-    """The adaptive sequence, from sequences/ when a run with the same settings made it."""
+def sequence(scene: Scene, measure: str, initial: int, upto: int, args, work: Path) -> dict:
+    """The adaptive sequence's first `upto` poses, from sequences/ when a run with the same settings made as many."""
     folder = args.out / "sequences"
     folder.mkdir(exist_ok=True)
-    tag = f"{scene.name}-{measure}-{views}-{initial}-b{args.batch}-l{args.live_steps}-s{args.seed}"
+    tag = f"{scene.name}-{measure}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}-s{args.seed}"
     path = folder / f"{tag}.npz"
     if path.is_file():
         saved = np.load(path, allow_pickle=False)
-        return {"poses": saved["poses"], "why": saved["why"].tolist(), "rank_seconds": float(saved["rank_seconds"])}
+        if len(saved["poses"]) >= upto:
+            return {"poses": saved["poses"], "why": saved["why"].tolist(),
+                    "rank_seconds": float(saved["rank_seconds"])}
     t0 = time.perf_counter()
-    seq = adaptive_sequence(scene, measure, views, initial, args, work / measure)
-    print(f"{scene.name} {measure}: sequence of {views} views in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    seq = adaptive_sequence(scene, measure, args.views, initial, upto, args, work / measure)
+    print(f"{scene.name} {measure}: first {upto} views of {args.views} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     np.savez(path, poses=seq["poses"], why=np.array(seq["why"]), rank_seconds=seq["rank_seconds"])
     return seq
 
 
 # ---- the table and the plot ---------------------------------------------------------------------------------------
 def table(data: dict) -> str:
-    counts = data["settings"]["counts"]
+    counts = sorted({int(k.split("|")[2]) for k in data["fits"]})
     rows: dict[tuple[str, str], dict[int, float]] = {}
     for key, entry in data["fits"].items():
         scene, schedule, n = key.split("|")
