@@ -1,10 +1,9 @@
 """Rays through a snapshot's SDF grid, for view ranking: first surface hits by sphere tracing, and whether a
 segment is free of surface. Torch on the CPU (one grid_sample per step for every ray at once); metres throughout.
 
-Outside the grid's box a point reads its distance to the box (empty, as `snapshot.GridSnapshot.sample` says), so a
-ray from a sensor half a metre away reaches the box in one step. Inside, a step is the SDF value (never less than
-MIN_STEP_VOXELS, never more than MAX_STEP_VOXELS: the grid is a true distance only near the surface), and a hit is
-placed between the last two samples by linear interpolation.
+Only the part of a ray inside the grid's box is traced (outside it, as `snapshot.GridSnapshot.sample` says, all is
+empty). A step is the SDF value (never less than MIN_STEP_VOXELS, never more than MAX_STEP_VOXELS: the grid is a true
+distance only near the surface), and a hit is placed between the last two samples by linear interpolation.
 """
 
 from __future__ import annotations
@@ -19,14 +18,15 @@ from .snapshot import GridSnapshot
 
 MIN_STEP_VOXELS = 0.5
 MAX_STEP_VOXELS = 3.0
-TRACE_STEPS = 96
-"""Sphere-tracing iterations: enough to cross a 64-voxel box at the smallest useful step from outside it."""
+TRACE_STEPS = 128
+"""Sphere-tracing iterations at most: enough to cross a 64-voxel box diagonally at one voxel a step."""
 
 
 @dataclass
 class Hits:
-    """First hits of rays (N,): hit (bool), t (metres along the ray; the far limit where there is no hit), point (N, 3),
-    normal (N, 3) unit outward (zero where no hit)."""
+    """First hits of rays (N,): hit (bool), t (metres along the ray; where there is no hit, where the ray leaves the
+    grid's box, or the far limit when it never enters it), point (N, 3), normal (N, 3) unit outward (zero where no
+    hit)."""
 
     hit: torch.Tensor
     t: torch.Tensor
@@ -62,42 +62,50 @@ class TracedField:
                             for e in torch.eye(3, dtype=points.dtype)], dim=-1)
         return grad / grad.norm(dim=-1, keepdim=True).clamp(min=1e-12)
 
-    def trace(self, origins: torch.Tensor, dirs: torch.Tensor, t_max: float | torch.Tensor) -> Hits:
-        """First surface hits of rays origins + t dirs (N, 3) with 0 < t < t_max."""
-        t_max = torch.as_tensor(t_max, dtype=torch.float32).expand(len(origins))
-        t = torch.zeros(len(origins))
-        prev_t, prev_v = t.clone(), self.sample(origins)
-        hit = torch.zeros(len(origins), dtype=torch.bool)
-        alive = prev_v > 0
+    def trace(self, origins: torch.Tensor, dirs: torch.Tensor, t_max: float | torch.Tensor,
+              normals: bool = True) -> Hits:
+        """First surface hits of rays origins + t dirs (N, 3) (unit dirs) with 0 < t < t_max; the normals at the hits
+        unless `normals` is False (then zero). Only the part of each ray inside the grid's box is traced: nothing
+        stands outside it."""
+        n = len(origins)
+        t_max = torch.as_tensor(t_max, dtype=torch.float32).expand(n)
+        t_in, t_out = self._box_span(origins, dirs)
+        t_out = torch.minimum(t_out, t_max)
+        t_hit = torch.where(t_in < t_out, t_out, t_max)  # a ray that hits nothing: where it leaves the box
+        hit = torch.zeros(n, dtype=torch.bool)
+        idx = torch.nonzero(t_in < t_out)[:, 0]
+        o, d, end = origins[idx], dirs[idx], t_out[idx]
+        t = t_in[idx]
+        v = self.sample(o + t[:, None] * d)
+        keep = v > 0  # a ray that starts inside the surface has no first hit in front of it
+        idx, o, d, end, t, v = idx[keep], o[keep], d[keep], end[keep], t[keep], v[keep]
         lo, hi = MIN_STEP_VOXELS * self.voxel, MAX_STEP_VOXELS * self.voxel
         for _ in range(TRACE_STEPS):
-            if not bool(alive.any()):
+            if len(idx) == 0:
                 break
-            idx = torch.nonzero(alive)[:, 0]
-            v = prev_v[idx]
-            out = self._box_distance(origins[idx] + t[idx, None] * dirs[idx])  # outside the box: straight to it
-            step = torch.where(out > 0, out.clamp(min=lo), v.clamp(lo, hi))
-            t_new = t[idx] + step
-            v_new = self.sample(origins[idx] + t_new[:, None] * dirs[idx])
+            step = v.clamp(lo, hi)
+            t_new = t + step
+            v_new = self.sample(o + t_new[:, None] * d)
             crossed = v_new <= 0
-            # the crossing, between the last two samples
-            frac = v / (v - v_new).clamp(min=1e-12)
-            t_hit = t[idx] + frac * step
-            done = crossed & (t_hit < t_max[idx])
-            hit[idx[done]] = True
-            t[idx] = torch.where(crossed, t_hit, t_new)
-            prev_v[idx] = v_new
-            alive[idx[crossed | (t_new >= t_max[idx])]] = False
-        t = torch.where(hit, t, t_max)
-        point = origins + t[:, None] * dirs
+            at = t + v / (v - v_new).clamp(min=1e-12) * step  # the crossing, between the last two samples
+            found = crossed & (at < end)
+            hit[idx[found]] = True
+            t_hit[idx[found]] = at[found]
+            going = ~crossed & (t_new < end)
+            idx, o, d, end, t, v = idx[going], o[going], d[going], end[going], t_new[going], v_new[going]
+        point = origins + t_hit[:, None] * dirs
         normal = torch.zeros_like(point)
-        if bool(hit.any()):
+        if normals and bool(hit.any()):
             normal[hit] = self.normal(point[hit])
-        return Hits(hit, t, point, normal)
+        return Hits(hit, t_hit, point, normal)
 
-    def _box_distance(self, points: torch.Tensor) -> torch.Tensor:
-        inside = torch.minimum(torch.maximum(points, self.origin), self.hi)
-        return torch.linalg.vector_norm(points - inside, dim=-1)
+    def _box_span(self, origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(t_in, t_out) (N,) of each ray's part inside the box, t_in >= 0; t_in >= t_out where it misses."""
+        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+        a, b = (self.origin - origins) * inv, (self.hi - origins) * inv
+        t_in = torch.minimum(a, b).amax(dim=-1).clamp(min=0.0)
+        t_out = torch.maximum(a, b).amin(dim=-1)
+        return t_in, t_out
 
     def surface(self, floor_z: float | None, max_points: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray,
                                                                                          np.ndarray]:

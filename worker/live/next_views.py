@@ -37,7 +37,7 @@ MEASURES = ("coverage", "disagreement", "sensitivity")
 DEFAULT_MEASURE = "coverage"
 RAYS_PER_VIEW = 96
 """Rays traced per candidate for the ray-based measures, shared by the zones (at least 8 per zone)."""
-SURFACE_POINTS = 2000
+SURFACE_POINTS = 1500
 """Surface patches the coverage measure weighs."""
 MIN_COS = 0.1
 """A patch seen more obliquely than this (incidence cosine) is not seen: its return is weak and smeared."""
@@ -98,11 +98,12 @@ def _seen_cos(field: TracedField, sensor, points: np.ndarray, normals: np.ndarra
     out = np.zeros((len(poses), len(points)))
     if len(poses) == 0:
         return out
-    o = poses[:, :3, 3]
+    points, normals = points.astype(np.float32), normals.astype(np.float32)
+    o = poses[:, :3, 3].astype(np.float32)
     to_sensor = o[:, None, :] - points[None]  # (n, M, 3)
-    dist = np.linalg.norm(to_sensor, axis=-1)
+    dist = np.sqrt(np.einsum("nmk,nmk->nm", to_sensor, to_sensor))
     cos = np.einsum("nmk,mk->nm", to_sensor, normals) / np.maximum(dist, 1e-12)
-    local = np.einsum("nkj,nmk->nmj", poses[:, :3, :3], -to_sensor)  # patch in each sensor's frame
+    local = np.matmul(-to_sensor, poses[:, :3, :3].astype(np.float32))  # patch in each sensor's frame
     ok = (cos > MIN_COS) & _in_zones(sensor, local)
     view, patch = np.nonzero(ok)
     if len(view) == 0:
@@ -110,7 +111,7 @@ def _seen_cos(field: TracedField, sensor, points: np.ndarray, normals: np.ndarra
     start = torch.as_tensor(points[patch] + normals[patch] * 1.5 * field.voxel, dtype=torch.float32)
     d = torch.as_tensor(to_sensor[view, patch] / dist[view, patch, None], dtype=torch.float32)
     reach = torch.as_tensor(dist[view, patch] - 1.5 * field.voxel, dtype=torch.float32)
-    blocked = field.trace(start, d, reach).hit.numpy()
+    blocked = field.trace(start, d, reach, normals=False).hit.numpy()
     out[view[~blocked], patch[~blocked]] = cos[view, patch][~blocked]
     return out
 
