@@ -17,7 +17,6 @@ measurement records why its pose was taken (`view_choice` in its meta: `initial`
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.errors import CaptureError, ConfigError
+from spadscan.protocol.live_status import read_status, status_path
 from spadscan.protocol.next_views import (FILE, NextViews, candidate_poses, read_next_views, too_close,
                                           view_angles_deg)
 
@@ -33,8 +33,6 @@ from .scan_plan import tcp_from_sensor
 from .workspace import check_workspace
 
 log = logging.getLogger("spadscan.daemon")
-LIVE_STATUS = Path("recon") / "live" / "status.json"
-"""The live reconstruction's status file in a capture: its "converged" ends a scan with stop_when_converged."""
 
 
 @dataclass
@@ -204,19 +202,16 @@ def _pose_ok(tcp: np.ndarray, arm: ArmConfig) -> bool:
 
 
 def live_converged(capture: Path, min_views: int) -> str | None:
-    """Why the scan may end now: the live reconstruction's recon/live/status.json says "converged": true with at
-    least min_views views used; else None (also for a missing or unreadable file: a worker's file never stops a
-    scan by being broken)."""
+    """Why the scan may end now: the live reconstruction's recon/live/status.json (`protocol.live_status`) says it
+    converged with at least min_views views used; else None (also for a missing or malformed file: a worker's file
+    never stops a scan by being broken)."""
     try:
-        status = json.loads((Path(capture) / LIVE_STATUS).read_text())
-    except (OSError, UnicodeDecodeError, ValueError):
+        status = read_status(status_path(capture))
+    except CaptureError:
         return None
-    if not isinstance(status, dict) or status.get("converged") is not True:
+    if not status.converged or status.views_used < min_views:
         return None
-    used = status.get("views_used")
-    if not isinstance(used, int) or isinstance(used, bool) or used < min_views:
-        return None
-    return f"the live reconstruction converged with {used} views"
+    return f"the live reconstruction converged with {status.views_used} views"
 
 
-__all__ = ["ViewChooser", "Choice", "live_converged", "LIVE_STATUS"]
+__all__ = ["ViewChooser", "Choice", "live_converged"]

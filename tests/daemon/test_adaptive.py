@@ -18,6 +18,7 @@ from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.scan_plan import build_plan
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.live_status import LiveStatus, write_status
 from spadscan.protocol.next_views import (FILE, candidate_poses, ranked, read_next_views, view_angles_deg,
                                           write_next_views)
 
@@ -153,13 +154,17 @@ def test_the_fallback_plan_when_the_ranking_cannot_be_used(arun, tmp_path, spher
     assert detail in why[INITIAL]["detail"], why[INITIAL]["detail"]
 
 
+def live_status(folder: Path, **fields) -> None:
+    live = folder / "recon" / "live"
+    live.mkdir(parents=True)
+    write_status(live, LiveStatus(views_published=fields["views_used"], steps=100, **fields))
+
+
 def test_the_scan_ends_when_the_live_reconstruction_has_converged(arun, tmp_path, sphere):
     cfg = make_cfg(tmp_path, **ADAPTIVE, stop_when_converged=True)
 
     def converged(folder: Path):
-        live = folder / "recon" / "live"
-        live.mkdir(parents=True)
-        (live / "status.json").write_text(json.dumps({"views_used": INITIAL, "converged": True}))
+        live_status(folder, views_used=INITIAL, converged=True)
 
     done, status = run_scan(arun, cfg, sphere, before=converged)
     assert done["state"] == "complete"
@@ -174,9 +179,7 @@ def test_a_status_without_convergence_never_ends_the_scan(arun, tmp_path, sphere
     cfg = make_cfg(tmp_path, **ADAPTIVE, stop_when_converged=True)
 
     def not_yet(folder: Path):
-        live = folder / "recon" / "live"
-        live.mkdir(parents=True)
-        (live / "status.json").write_text(json.dumps({"views_used": 2, "converged": True}))  # fewer than initial
+        live_status(folder, views_used=INITIAL - 1, converged=True)  # fewer views than the initial ones
 
     run_scan(arun, cfg, sphere, before=not_yet)
     check_capture(cfg.captures / "a", VIEWS, 1)
