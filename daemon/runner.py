@@ -341,6 +341,7 @@ class ScanRunner:
         scan chooses each pose first (`_choose`), and ends here when the live reconstruction has converged."""
         pending = None  # the previous pose's publish, overlapping this pose's move, settle and frames
         replan = None  # an adaptive scan's schedule.npy being rewritten for this pose, overlapping its move
+        ahead = None  # an adaptive scan's choice of the next pose, made while this pose's frames are taken
         try:
             for i in range(job.next_pose, job.n_poses):
                 self._check_end()
@@ -349,11 +350,13 @@ class ScanRunner:
                 if job.chooser is not None:
                     if await self._converged(job, i):
                         break
-                    replan = await self._choose(job, i)
+                    replan, ahead = await self._choose(job, i, ahead), None
                 if i == job.next_pose:
                     await self._check_first_move(job, i)
                 job.in_flight = i
                 t_stop = await self._move(job, i)
+                if job.chooser is not None and i + 1 < job.n_poses:
+                    ahead = asyncio.ensure_future(asyncio.to_thread(job.chooser.choose, job.sensor_poses, i + 1))
                 if job.scan.settle_s > 0:
                     await asyncio.sleep(job.scan.settle_s)
                 frames = await self._frames(job, i, t_stop + job.scan.settle_s)
@@ -374,8 +377,9 @@ class ScanRunner:
                                                          _measurements(job, i, frames, arm, job.choices.get(i))))
         finally:
             try:
-                if replan is not None:  # a rewrite of schedule.npy lands before the writer is reopened
-                    await asyncio.gather(replan, return_exceptions=True)
+                if replan is not None or ahead is not None:  # a rewrite of schedule.npy lands before the writer is
+                    # reopened; a choice made ahead is dropped (the next run chooses afresh)
+                    await asyncio.gather(*(f for f in (replan, ahead) if f is not None), return_exceptions=True)
                 if pending is not None:  # let the publish land before anything else touches the writer
                     try:
                         await asyncio.shield(pending)
@@ -387,13 +391,17 @@ class ScanRunner:
             finally:
                 job.in_flight = None
 
-    async def _choose(self, job: ScanJob, i: int) -> asyncio.Future | None:
-        """Choose pose i of an adaptive scan (`adaptive.ViewChooser`); returns the rewrite of schedule.npy it needs
-        (None when row i stays), which runs beside the move. A ranked view the arm's controller refuses is passed
-        over (CONTROLLER_TRIES at most, then the fallback plan)."""
+    async def _choose(self, job: ScanJob, i: int, ahead: asyncio.Future | None = None) -> asyncio.Future | None:
+        """Choose pose i of an adaptive scan (`adaptive.ViewChooser`; `ahead`: that choice, begun while the pose
+        before was captured, so that reading next_views.json costs the scan no time); returns the rewrite of
+        schedule.npy it needs (None when row i stays), which runs beside the move. A ranked view the arm's controller
+        refuses is passed over (CONTROLLER_TRIES at most, then the fallback plan)."""
         plan = job.sensor_poses
         for _ in range(CONTROLLER_TRIES):
-            choice, rows = await asyncio.to_thread(job.chooser.choose, plan, i)
+            if ahead is not None:
+                (choice, rows), ahead = await ahead, None
+            else:
+                choice, rows = await asyncio.to_thread(job.chooser.choose, plan, i)
             if choice.why != "adaptive":
                 break
             try:
