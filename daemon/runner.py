@@ -161,7 +161,7 @@ class ScanRunner:
                 reopen_error = _describe(exc, "reopening the capture")
                 await asyncio.to_thread(job.count_published)
             if job.blocked is None:
-                check_workspace(job.tcp_poses[job.next_pose:], self.cfg.arm, f"scan {job.name!r}")
+                _check_left(job, self.cfg.arm)
             if job.scan.schedule == "adaptive":
                 job.chooser = await asyncio.to_thread(ViewChooser, job.scan, self.cfg.arm, job.hand_eye, path)
                 await asyncio.to_thread(job.count_choices)
@@ -677,6 +677,18 @@ def _measurements(job: ScanJob, i: int, frames: list[Frame], arm, choice: dict |
             meta["view_choice"] = choice
         out.append(Measurement(f.hists, sensor_pose, i, k, f.reference, meta))
     return out
+
+
+def _check_left(job: ScanJob, arm) -> None:
+    """Check the poses a scan has left against the workspace: as a path for a planned scan; pose by pose for an
+    adaptive one, whose moves are checked as each pose is chosen (the row being taken when it stopped may be a
+    ranked view that the rest of the plan was never meant to follow)."""
+    left, where = job.tcp_poses[job.next_pose:], f"scan {job.name!r}"
+    if job.scan.schedule != "adaptive":
+        check_workspace(left, arm, where)
+        return
+    for k, tcp in enumerate(left):
+        check_workspace(tcp[None], arm, f"{where} pose {job.next_pose + k}")
 
 
 def _finish_capture(job: ScanJob) -> None:

@@ -139,7 +139,14 @@ def build_plan(scan: ScanConfig, arm: ArmConfig, *, start_tcp: np.ndarray | None
         perm = perm[first]
         extra = {"candidates": CANDIDATES, "fallback": "fibonacci"}
     sensor, tcp = sensor[perm], tcp[perm]
-    check_workspace(tcp, arm, where, None if start_tcp is None else np.asarray(start_tcp, float))
+    start = None if start_tcp is None else np.asarray(start_tcp, float)
+    if scan.schedule == "adaptive":
+        # Only the initial views are a path; every later move is checked when its pose is chosen.
+        check_workspace(tcp[:scan.initial_views], arm, where, start)
+        for k in range(scan.initial_views, len(tcp)):
+            check_workspace(tcp[k:k + 1], arm, f"{where} pose {k}")
+    else:
+        check_workspace(tcp, arm, where, start)
     description = {**scan_to_dict(scan), **extra, "travel_m": round(path_length(tcp[:, :3, 3]), 4),
                    "generated_order": perm.tolist()}
     return ScanPlan(sensor, tcp, description)
@@ -163,10 +170,12 @@ def spread_subset(directions: np.ndarray, k: int, first: int = 0) -> np.ndarray:
 def initial_first(sensor: np.ndarray, target: np.ndarray, n_initial: int, tcp: np.ndarray) -> np.ndarray:
     """A permutation of a plan in visiting order (sensor and tcp (P, 4, 4)) that puts a well-spread subset of
     n_initial poses first (`spread_subset`, from the plan's first pose; visited by a nearest-neighbour tour from it),
-    then the others in their visiting order: an adaptive scan's initial views, then its fallback plan."""
+    then the others by a nearest-neighbour tour from the last of them: an adaptive scan's initial views, then its
+    fallback plan."""
     d = sensor[:, :3, 3] - target
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
     initial = spread_subset(d, n_initial, 0)
     initial = initial[order_nearest(tcp[initial, :3, 3], tcp[0, :3, 3])]
-    rest = np.setdiff1d(np.arange(len(sensor)), initial)  # sorted: their visiting order
+    rest = np.setdiff1d(np.arange(len(sensor)), initial)
+    rest = rest[order_nearest(tcp[rest, :3, 3], tcp[initial[-1], :3, 3])]  # a tour on from the last initial view
     return np.concatenate([initial, rest])

@@ -19,10 +19,11 @@ from spadscan.daemon.scan_plan import build_plan
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.live_status import LiveStatus, write_status
+from spadscan.protocol.schedules import look_at
 from spadscan.protocol.next_views import (FILE, candidate_poses, ranked, read_next_views, view_angles_deg,
                                           write_next_views)
 
-from test_runner import check_capture, make_cfg, make_rig
+from test_runner import check_capture, make_cfg, make_rig, until
 
 VIEWS, INITIAL = 7, 3
 ADAPTIVE = {"schedule": "adaptive", "views": VIEWS, "initial_views": INITIAL, "frames_per_pose": 1,
@@ -257,3 +258,53 @@ def test_ctl_scan_asks_for_an_adaptive_scan(monkeypatch, capsys):
                  "--stop-when-converged", "--socket", "/tmp/x.sock"]) == 0
     assert sent == [("scan", {"name": "s", "options": {"schedule": "adaptive", "initial_views": 12,
                                                          "stop_when_converged": True}})]
+
+
+def test_a_scan_stopped_on_a_ranked_view_is_taken_over(arun, tmp_path, sphere):
+    """A daemon stopped after it wrote a ranked view into schedule.npy, before that pose was published: the rest of
+    the plan does not follow on from that view as a path, and the restarted daemon still takes the scan over (each
+    move is checked as its pose is chosen) and completes it, every pose once."""
+    arm = {"keepout_radius_m": 0.08}
+    cfg = make_cfg(tmp_path, **{**ADAPTIVE, "views": 9, "max_elevation_deg": 50.0}, arm=arm)
+    home = np.eye(4)
+    home[:3, 3] = [0.45, 0.0, 0.3]  # beside the scan, clear of the base's column
+
+    async def first():
+        arm_, sensor = make_rig(cfg, sphere, motion_time_s=0.01, home=home)
+        async with DeviceSession([arm_, sensor]):
+            runner = ScanRunner(arm_, sensor, cfg)
+            await runner.start("k")
+            await until(lambda: runner.job.next_pose >= INITIAL + 1, "a pose after the initial ones")
+            await runner.pause()
+            await until(lambda: runner.state == "paused", "paused")
+            await runner.shutdown()
+
+    arun(first())
+    folder = cfg.captures / "k"
+    done = CaptureReader(folder).load().pose_indices.max() + 1
+    rows = np.load(folder / "schedule.npy")
+    # as if a ranked view straight across the target from the next planned pose had been chosen for the next pose
+    eye = rows[done + 1][:3, 3].copy()
+    eye[:2] = 2 * np.asarray(cfg.scan.target)[:2] - eye[:2]
+    rows[done] = look_at(eye, cfg.scan.target)
+    np.save(folder / "schedule.npy", rows)
+    from spadscan.daemon.scan_plan import tcp_from_sensor
+    from spadscan.daemon.workspace import check_workspace
+
+    with pytest.raises(ConfigError, match="keepout"):  # the rows left, as a path, break the keep-out
+        check_workspace(tcp_from_sensor(rows[done:], cfg.arm.hand_eye), cfg.arm, "left")
+
+    async def second():
+        arm_, sensor = make_rig(cfg, sphere, motion_time_s=0.01, home=home)
+        async with DeviceSession([arm_, sensor]):
+            runner = ScanRunner(arm_, sensor, cfg)
+            try:
+                await runner.recover()
+                assert runner.state == "paused" and runner.last_error is None, runner.last_error
+                await runner.resume()
+                return await runner.wait("k")
+            finally:
+                await runner.shutdown()
+
+    assert arun(second())["state"] == "complete"
+    check_capture(folder, 9, 1)
