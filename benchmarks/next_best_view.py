@@ -46,7 +46,10 @@ SENSOR = "lcspc-sim"
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenes", nargs="+", required=True, help="builtin:NAME or mesh files")
+    p.add_argument("--scenes", nargs="+", default=[], help="builtin:NAME or mesh files")
+    p.add_argument("--combine", nargs="+", type=Path, default=[], metavar="FOLDER",
+                   help="make the table and plot in --out from the results.json of these earlier --out folders "
+                        "(runs split over processes), running nothing")
     p.add_argument("--measures", default="coverage", help="comma-separated ranking measures (coverage, "
                                                           "disagreement, sensitivity)")
     p.add_argument("--counts", default="16,24,32,48,64,96,128", help="views at which both schedules are scored; "
@@ -60,6 +63,8 @@ def parse_args(argv=None):
     p.add_argument("--out", type=Path, default=Path("benchmark-nbv"))
     p.add_argument("--no-fibonacci", action="store_true", help="score the adaptive runs only")
     args = p.parse_args(argv)
+    if not args.scenes and not args.combine:
+        p.error("give --scenes to run, or --combine FOLDER... to tabulate earlier runs")
     from spadscan.worker.live.next_views import MEASURES
 
     args.measures = [m for m in args.measures.split(",") if m]
@@ -361,9 +366,22 @@ def plot(data: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def combine(folders: list[Path]) -> dict:
+    """The fits of several runs' results.json in one (runs split over processes; their settings must agree)."""
+    data = {"fits": {}}
+    for folder in folders:
+        part = json.loads((folder / "results.json").read_text())
+        if data.get("settings") not in (None, part["settings"]):
+            raise SystemExit(f"{folder}: made with other settings ({part['settings']}) than {folders[0]}")
+        data["settings"] = part["settings"]
+        data["fits"].update(part["fits"])
+    return data
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
-    data = run(args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    data = combine(args.combine) if args.combine else run(args)
     text = table(data)
     print(text)
     (args.out / "table.md").write_text(text + "\n")
