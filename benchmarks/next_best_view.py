@@ -13,7 +13,7 @@ one 15-degree cone, 1024 bins, 5,000 cycles per view) on the daemon's default ba
 - `adaptive` (one per --measures): the daemon's adaptive plan of max(--counts) views. Its first min(--counts)
   views are the well-spread initial ones; then the loop a live job and the daemon run, offline: the views so far are
   simulated, a live model fits them (warm-started from the previous model, --live-steps steps, the first fit
-  LIVE_FIRST_STEPS; a field snapshot every third of them), `worker.live.next_views.rank_candidates` ranks the
+  --live-first-steps; a field snapshot every third of them), `worker.live.next_views.rank_candidates` ranks the
   candidates with the measure, the ranking is written as next_views.json, and the daemon's own `ViewChooser` (the
   same freshness, spacing and workspace checks as a scan, with the default sim arm) takes the next --batch poses
   from it, one after the other. A real scan ranks every few seconds, about every pose or two; --batch 8 is coarser.
@@ -58,6 +58,8 @@ def parse_args(argv=None):
     p.add_argument("--steps", type=int, default=1000, help="steps of every scored fit (default 1000)")
     p.add_argument("--batch", type=int, default=8, help="views taken per ranking in the adaptive loop (default 8)")
     p.add_argument("--live-steps", type=int, default=150, help="live-fit steps per ranking (default 150)")
+    p.add_argument("--live-first-steps", type=int, default=LIVE_FIRST_STEPS,
+                   help=f"steps of the first live fit, a cold start (default {LIVE_FIRST_STEPS})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     p.add_argument("--out", type=Path, default=Path("benchmark-nbv"))
@@ -77,8 +79,8 @@ def parse_args(argv=None):
         p.error(f"--counts {args.counts!r} must be comma-separated integers")
     if args.counts[-1] > args.views:
         p.error(f"--counts go up to {args.counts[-1]}, beyond the plan's --views {args.views}")
-    if args.counts[0] < 4 or args.steps < 1 or args.batch < 1 or args.live_steps < 3:
-        p.error("--counts must be >= 4, --steps and --batch >= 1, --live-steps >= 3")
+    if args.counts[0] < 4 or args.steps < 1 or args.batch < 1 or min(args.live_steps, args.live_first_steps) < 3:
+        p.error("--counts must be >= 4, --steps and --batch >= 1, --live-steps and --live-first-steps >= 3")
     return args
 
 
@@ -217,7 +219,7 @@ def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, upto
         n = len(poses)
         if n >= initial:
             capture = scene.capture(work / "stage", np.array(poses), scene.frames(np.array(poses)))
-            snap = loop.snapshot(capture, LIVE_FIRST_STEPS if loop.model is None else args.live_steps)
+            snap = loop.snapshot(capture, args.live_first_steps if loop.model is None else args.live_steps)
             t0 = time.perf_counter()
             scores = rank_candidates(snap, candidates, measure)
             rank_s.append(time.perf_counter() - t0)
@@ -272,7 +274,7 @@ def run(args) -> dict:
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     settings = {"views": args.views, "steps": args.steps, "batch": args.batch, "live_steps": args.live_steps,
-                "seed": args.seed, "sensor": SENSOR, "live_first_steps": LIVE_FIRST_STEPS}
+                "seed": args.seed, "sensor": SENSOR, "live_first_steps": args.live_first_steps}
     results = Results(args.out / "results.json", settings)
     initial = min(args.counts)
     for spec in args.scenes:
@@ -306,7 +308,7 @@ def sequence(scene: Scene, measure: str, initial: int, upto: int, args, work: Pa
     """The adaptive sequence's first `upto` poses, from sequences/ when a run with the same settings made as many."""
     folder = args.out / "sequences"
     folder.mkdir(exist_ok=True)
-    tag = f"{scene.name}-{measure}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}-s{args.seed}"
+    tag = f"{scene.name}-{measure}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}-f{args.live_first_steps}-s{args.seed}"
     path = folder / f"{tag}.npz"
     if path.is_file():
         saved = np.load(path, allow_pickle=False)
