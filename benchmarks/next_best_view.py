@@ -3,7 +3,7 @@ Fibonacci schedule, with the same photon budget per view and the same reconstruc
 
     python benchmarks/next_best_view.py --scenes builtin:cup builtin:lamp builtin:teddy PATH/bunny.obj
         [--measures coverage] [--counts 16,24,32,48,64,96,128] [--steps 1000] [--batch 8] [--live-steps 150]
-        [--seed 0] [--out benchmark-nbv] [--threads 1]
+        [--score 128,64] [--seed 0] [--out benchmark-nbv] [--threads 1]
 
 A scene is `builtin:NAME` or a mesh file (the dataset's bunny.obj), simulated with the dataset's sensor (`lcspc-sim`:
 one 15-degree cone, 1024 bins, 5,000 cycles per view) on the daemon's default band: 10-80 degrees of elevation,
@@ -54,6 +54,8 @@ def parse_args(argv=None):
                                                           "disagreement, sensitivity)")
     p.add_argument("--counts", default="16,24,32,48,64,96,128", help="views at which both schedules are scored; "
                                                                       "the smallest is the adaptive scan's initial views")
+    p.add_argument("--score", default="", help="comma-separated counts to fit in this run (default: all of --counts; "
+                                               "a run split over time scores the counts that decide the goal first)")
     p.add_argument("--views", type=int, default=128, help="views of the adaptive scan's plan (default 128)")
     p.add_argument("--steps", type=int, default=1000, help="steps of every scored fit (default 1000)")
     p.add_argument("--batch", type=int, default=8, help="views taken per ranking in the adaptive loop (default 8)")
@@ -77,6 +79,12 @@ def parse_args(argv=None):
         args.counts = sorted({int(c) for c in args.counts.split(",")})
     except ValueError:
         p.error(f"--counts {args.counts!r} must be comma-separated integers")
+    try:
+        args.score = sorted({int(c) for c in args.score.split(",") if c} or args.counts, reverse=True)
+    except ValueError:
+        p.error(f"--score {args.score!r} must be comma-separated integers")
+    if not set(args.score) <= set(args.counts):
+        p.error(f"--score {args.score} must be among --counts {args.counts}")
     if args.counts[-1] > args.views:
         p.error(f"--counts go up to {args.counts[-1]}, beyond the plan's --views {args.views}")
     if args.counts[0] < 4 or args.steps < 1 or args.batch < 1 or min(args.live_steps, args.live_first_steps) < 3:
@@ -281,7 +289,7 @@ def run(args) -> dict:
         scene = Scene(spec, args.seed)
         work = args.out / "work" / scene.name
         if not args.no_fibonacci:
-            for n in args.counts:
+            for n in args.score:
                 poses = fibonacci_poses(n)
                 key = f"{scene.name}|fibonacci|{n}"
                 if results.get(key, digest(poses)) is None:
@@ -291,7 +299,7 @@ def run(args) -> dict:
                     print(f"{key}: {entry['chamfer_mm']:.2f} mm", file=sys.stderr)
         for measure in args.measures:
             seq = sequence(scene, measure, initial, max(args.counts), args, work)
-            for n in args.counts:
+            for n in args.score:
                 poses = seq["poses"][:n]
                 key = f"{scene.name}|adaptive-{measure}|{n}"
                 if results.get(key, digest(poses)) is None:

@@ -50,3 +50,11 @@ def test_combine_refuses_runs_made_with_other_settings(nbv, tmp_path):
     with pytest.raises(SystemExit, match="other settings"):
         nbv.combine([tmp_path / "a", tmp_path / "c"])
 
+
+
+def test_score_picks_counts_to_fit_largest_first_and_only_among_the_counts(nbv):
+    args = nbv.parse_args(["--scenes", "builtin:cup", "--counts", "16,32,64", "--score", "16,64"])
+    assert args.score == [64, 16]
+    assert nbv.parse_args(["--scenes", "builtin:cup", "--counts", "16,32"]).score == [32, 16]
+    with pytest.raises(SystemExit):
+        nbv.parse_args(["--scenes", "builtin:cup", "--counts", "16,32", "--score", "24"])
