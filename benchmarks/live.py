@@ -13,8 +13,10 @@ simulated TMF8820 delivering a frame every --frame-time-s, 0.33 s: the real sens
   benchmark polls it every 0.1 s) to the moment the final result folder is in place.
 
 Both scans follow the same plan and render the same frames, so their durations, taken from the capture's own frame
-timestamps (the daemon's clock), give the daemon's time per pose with and without a live job beside it. Every
-figure is printed side by side with its peer; the JSON of every run goes to --out. Goal: the final mesh within 30 s
+timestamps (the daemon's clock), give the daemon's time per pose with and without a live job beside it. On the first
+scene the daemon's own per-pose overhead (benchmarks/daemon_overhead.py: moves and frames of zero time, so that only
+the daemon's work counts) is measured too, alone and again while the live job trains. Every figure is printed side
+by side with its peer; the JSON of every run goes to --out. Goal: the final mesh within 30 s
 of the scan's end on 2 cores, at a Chamfer no worse than the offline job's.
 """
 
@@ -23,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -96,13 +99,29 @@ class Rig:
         shutil.rmtree(self.sock_dir, ignore_errors=True)
 
 
-def scan_and_follow(rig: Rig, name: str, capture: Path, live: bool, timeout_s: float) -> dict:
+OVERHEAD_ROW = re.compile(r"per-pose overhead, K=1, (?P<what>[^<]+?)\s{2,}<[^m]+ms\s+(?P<ms>[\d.]+) ms")
+
+
+def daemon_overhead(folder: Path, poses: int) -> dict:
+    """benchmarks/daemon_overhead.py's per-pose overhead figures (ms, by run), its captures under `folder`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run([sys.executable, str(Path(__file__).with_name("daemon_overhead.py")), "--dir", str(folder),
+                        "--poses", str(poses), "--frames", "8"], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"daemon_overhead.py failed: {r.stderr.strip().splitlines()[-1:]}")
+    return {m["what"].strip(): float(m["ms"]) for m in OVERHEAD_ROW.finditer(r.stdout)}
+
+
+def scan_and_follow(rig: Rig, name: str, capture: Path, live: bool, timeout_s: float,
+                    while_live=None) -> dict:
     """Start the scan, poll its manifest (and live status) every 0.1 s; returns when the scan is complete and, with
-    `live`, when its final result is in place."""
+    `live`, when its final result is in place. `while_live()` runs once the live job has fitted views (the scan
+    goes on meanwhile); its result is returned as `while_live`."""
     call(rig.sock, "scan", timeout_s=30, name=name, options={})
     t0 = time.monotonic()
     ended = None
     trace = []
+    extra = None
     result = capture / "recon" / f"{name}-fast" / "report.json"
     while time.monotonic() - t0 < timeout_s:
         now = time.monotonic()
@@ -120,10 +139,13 @@ def scan_and_follow(rig: Rig, name: str, capture: Path, live: bool, timeout_s: f
                 st = read_status(status_path(capture))
                 if not trace or trace[-1]["updated_utc"] != st.updated_utc:
                     trace.append({"t_s": round(now - t0, 2), **st.to_dict()})
+                if while_live is not None and extra is None and st.state == "live" and ended is None:
+                    extra = while_live()
+                    continue
             except CaptureError:
                 pass
             if ended is not None and result.exists() and _daemon_done(rig, name):
-                return {"scan_wall_s": ended - t0, "after_end_s": now - ended, "trace": trace}
+                return {"scan_wall_s": ended - t0, "after_end_s": now - ended, "trace": trace, "while_live": extra}
         elif ended is not None and _daemon_done(rig, name):
             return {"scan_wall_s": ended - t0}
         time.sleep(0.1)
@@ -153,6 +175,9 @@ def report_of(capture: Path, job: str) -> dict:
 def run_scene(scene: str, out: Path, args) -> dict:
     name = scene
     row = {"scene": scene}
+    overhead = args.overhead_poses if scene == args.scenes.split(",")[0] else 0
+    if overhead:
+        row["overhead_alone_ms"] = daemon_overhead(out / scene / "overhead-alone", overhead)
     # 1. Alone, then today's offline job on its capture.
     rig = Rig(out / scene / "alone", scene, args)
     try:
@@ -178,7 +203,9 @@ def run_scene(scene: str, out: Path, args) -> dict:
     try:
         budget = ["--budget-s", args.final_budget_s] if args.final_budget_s else []
         rig.start("worker", spadscan("worker", "--root", rig.captures, "--live", "--poll-s", 0.5, *budget), env)
-        followed = scan_and_follow(rig, name, rig.captures / name, live=True, timeout_s=args.timeout_s)
+        measure = (lambda: daemon_overhead(out / scene / "overhead-live", overhead)) if overhead else None
+        followed = scan_and_follow(rig, name, rig.captures / name, live=True, timeout_s=args.timeout_s,
+                                   while_live=measure)
     finally:
         rig.close()
     capture = rig.captures / name
@@ -189,6 +216,8 @@ def run_scene(scene: str, out: Path, args) -> dict:
     at_end = [t for t in followed["trace"] if t["state"] in ("live", "final")]
     row["live_chamfer_at_scan_end_mm"] = at_end[-1].get("chamfer_mm") if at_end else None
     row["live_trace"] = followed["trace"]
+    if overhead:
+        row["overhead_with_live_ms"] = followed["while_live"]
     (out / scene / "row.json").write_text(json.dumps(row, indent=1) + "\n")
     return row
 
@@ -207,6 +236,13 @@ def table(rows: list[dict]) -> str:
                      f"{w['per_pose_s']:.3f} s | {r['live_s']:.1f} s | {fmt(r['live']['chamfer_mm'])} | "
                      f"{r['offline_s']:.1f} s | {fmt(r['offline']['chamfer_mm'])} | "
                      f"{fmt(r['live_chamfer_at_scan_end_mm'])} |")
+    for r in rows:
+        if r.get("overhead_alone_ms") and r.get("overhead_with_live_ms"):
+            lines.append("")
+            with_live = r["overhead_with_live_ms"]
+            lines.append(f"daemon per-pose overhead (daemon_overhead.py, during the {r['scene']} scan): " + "; ".join(
+                f"{what}: alone {ms:.2f} ms, with a live job {with_live.get(what, float('nan')):.2f} ms"
+                for what, ms in r["overhead_alone_ms"].items()))
     return "\n".join(lines)
 
 
@@ -230,6 +266,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None,
                     help="OMP_NUM_THREADS of the workers (default: theirs, the cores shared among their jobs)")
     ap.add_argument("--timeout-s", type=float, default=3600.0, help="longest one scan and its job may take")
+    ap.add_argument("--overhead-poses", type=int, default=100,
+                    help="poses of each daemon_overhead.py run on the first scene (0: skip them; default 100)")
     ap.add_argument("--out", type=Path, default=None, help="folder for captures, logs and JSON (default: a new "
                                                             "temporary folder, kept)")
     args = ap.parse_args(argv)

@@ -151,3 +151,18 @@ def test_a_live_job_of_a_complete_scan_is_an_ordinary_job(cylinder_capture, tmp_
     report = LiveJobThread(root, "cyl", small_settings(), budget_s=7.0, recon=stand_in).join()
     assert report["asked"]["budget_s"] == 7.0
     assert not status_path(root / "cyl").exists()  # nothing live to show
+
+
+def test_a_chunk_that_cannot_be_read_stops_the_live_job_saying_why(cylinder_capture, tmp_path):
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.publish(2)
+    live = LiveJobThread(root, "cyl", small_settings(min_views=100), recon=stand_in)
+    live.wait_status(lambda s: s.state == "waiting", "the job waiting")
+    bad = root / "cyl" / "chunk-000777"
+    bad.mkdir()
+    (bad / "hists.npy").write_bytes(b"not an array")
+    with pytest.raises(CaptureError, match="chunk-000777") as err:
+        live.join()
+    status = read_status(status_path(root / "cyl"))
+    assert status.state == "stopped" and status.note == str(err.value)

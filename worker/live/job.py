@@ -101,6 +101,9 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         progress = runner.follow(progress)
         if progress.state == "complete" and runner.fit.model is not None:
             runner.publish(progress, state="final", force=True)
+    except SpadscanError as exc:  # a chunk or manifest that cannot be read: the job fails saying why
+        runner.stopped("stopped", str(exc))
+        raise
     finally:
         runner.restore_threads()
     if progress.state == "aborted":
