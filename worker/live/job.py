@@ -60,9 +60,6 @@ class LiveSettings:
     final_budget_s: float = 20.0
     """The final reconstruction's budget when the job names none: it continues from the live fit, so it polishes
     rather than fits."""
-    final_lr_decay_share: float = 0.5
-    """The final run's learning-rate decay is laid out over the steps this share of its budget is expected to take
-    (at the live fit's measured rate)."""
     live_threads: int = 1
     """CPU threads of the live fit while the scan runs (the final run gets the job's own): the daemon beside it keeps
     a core."""
@@ -119,7 +116,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     live_report = runner.fit.report()
     log(f"live: scan complete; the final reconstruction continues from the live fit ({live_report['views_used']} "
         f"views, {live_report['steps']} steps) for {budget:g} s")
-    report = execute_job(final, root, out, runner.final_recon(recon, budget))
+    report = execute_job(final, root, out, runner.final_recon(recon))
     extra = {"live": {**live_report, "final_budget_s": budget}}
     add_to_report(out, extra)
     report.update(extra)
@@ -256,18 +253,16 @@ class LiveRun:
         self.write_status(self.last, state, note)
 
     # ---- the final run -------------------------------------------------------------------------------------------
-    def final_recon(self, recon: Callable | None, budget_s: float) -> Callable:
-        """The reconstruction function of the final run: the ordinary one with its model warm-started from the live
-        fit and its learning-rate decay laid out over the steps the budget allows. A replacement reconstruction
-        (`--recon`, tests) is used as it is."""
+    def final_recon(self, recon: Callable | None) -> Callable:
+        """The reconstruction function of the final run: the ordinary one, its model warm-started from the live fit
+        (the field, the level and where its learning-rate decay stands). A replacement reconstruction (`--recon`,
+        tests) is used as it is."""
         from ..reconstruct import reconstruct_capture
 
         if recon is not None and recon is not reconstruct_capture:
             return recon
-        rate = self.fit.steps_per_s() or 10.0
-        steps = max(50, int(rate * budget_s * self.settings.final_lr_decay_share))
         return functools.partial(reconstruct_capture, make=self.fit.warm_factory(),
-                                 overrides={**dict(self.settings.overrides), "schedule.fine_steps": steps})
+                                 overrides=dict(self.settings.overrides) or None)
 
 
 __all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun"]
