@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import LiveStatus
+from spadscan.protocol.live_status import LiveStatus, read_status, status_path
 
 from .follower import ScanFollower, ScanProgress
 from .next_views import is_adaptive, update_next_views
@@ -68,6 +68,21 @@ class LiveSettings:
     `spadscan reconstruct --set`; benchmarks and tests make small fits with it)."""
 
 
+def status_finishing(scan: Path, job, progress: ScanProgress, note: str) -> None:
+    """The live status of a job that found its scan complete (a fast scan, or a job taken over after the scan's end):
+    'final', so that whoever follows it sees the final run and, once published, its result. What an earlier
+    attempt fitted stays in it."""
+    folder = live_folder(scan)
+    clear_leftovers(folder)
+    try:
+        before = read_status(status_path(scan))
+    except SpadscanError:
+        before = LiveStatus(views_used=0, views_published=progress.views_published, steps=0, job=job.id)
+    publish_status(folder, dataclasses.replace(before, state="final", views_published=progress.views_published,
+                                               views_planned=progress.views_planned, job=job.id, note=note,
+                                               updated_utc=""))
+
+
 class ScanAborted(SpadscanError):
     """The scan a live job followed was aborted: the job ends (not retried)."""
 
@@ -87,7 +102,9 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     follower = ScanFollower(scan)
     progress = follower.poll()
     if progress.ended and progress.state == "complete":
-        log(f"live: scan {scan.name} is already complete: reconstructing it as an ordinary job")
+        note = f"scan {scan.name} was already complete when its live job started: reconstructing it from scratch"
+        log(f"live: {note}")
+        status_finishing(scan, job, progress, note)
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
     folder = live_folder(scan)
     clear_leftovers(folder)
