@@ -327,7 +327,7 @@ def test_an_unfinished_capture_is_reconstructed_with_a_warning(capture_and_gt, t
     assert report["capture_state"] == "running" and "not complete" in report["capture_note"]
     out = tmp_path / "b"
     assert main(["baseline", "space-carving", str(running), "--out", str(out), "--resolution", "16",
-                 "--gt", "builtin:sphere"]) == 0
+                 "--gt", "builtin:sphere", "--points", "5000"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["capture_state"] == "running" and "chamfer_mm" in report  # builtin: ground truths work too
     assert main(["baseline", "space-carving", str(running), "--out", str(out), "--resolution", "16"]) == 1
@@ -345,7 +345,7 @@ def test_a_ground_truth_on_a_table_is_scored_above_it(capture_and_gt, tmp_path, 
     assert _recon(cap, tmp_path / "r", "--gt", str(on_table)) == 0
     assert "scoring the object above z = 0.0050 m" in capsys.readouterr().err
     assert main(["baseline", "space-carving", str(cap), "--out", str(tmp_path / "b"), "--resolution", "16",
-                 "--gt", str(on_table)]) == 0
+                 "--gt", str(on_table), "--points", "5000"]) == 0
     for out in ("r", "b"):
         report = json.loads((tmp_path / out / "report.json").read_text())
         assert report["ground_truth_cut_above_z_m"] == pytest.approx(0.005)
@@ -408,7 +408,8 @@ def test_the_ground_truth_a_capture_names_is_used_unless_no_gt(capture_and_gt, t
     assert "ground truth" not in capsys.readouterr().err
     report = json.loads((tmp_path / "n" / "report.json").read_text())
     assert "chamfer_mm" not in report and not (tmp_path / "n" / "normals.png").exists()
-    assert main(["baseline", "space-carving", str(named), "--out", str(tmp_path / "b"), "--resolution", "16"]) == 0
+    assert main(["baseline", "space-carving", str(named), "--out", str(tmp_path / "b"), "--resolution", "16",
+                 "--points", "5000"]) == 0
     assert "named by the capture" in capsys.readouterr().err
     assert "chamfer_mm" in json.loads((tmp_path / "b" / "report.json").read_text())
 

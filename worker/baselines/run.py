@@ -54,14 +54,14 @@ def _build(method: str, data, threshold: float, *, resolution: int, margin_m, fl
 
 def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None = None, calibrate_: bool = False,
                  resolution: int = 128, margin_m: float | None = None, floor_z: float | str | None = "auto",
-                 surface: str = "occupancy", edge_deg: float = DEFAULT_EDGE_DEG,
+                 surface: str = "occupancy", edge_deg: float = DEFAULT_EDGE_DEG, points: int = 300_000,
                  log: Callable[[str], None] | None = None) -> dict:
     """Run `method` on the capture folder and write the results into `out`. Returns the report (also report.json).
 
     threshold: detection threshold (see THRESHOLD_UNITS); `calibrate_` searches it for the best Chamfer against `gt`
     (a mesh path or builtin:NAME, scored above its table when it holds one: ground_truth.py) instead, as the paper
     did. floor_z: height (metres) below which the scene is empty; None: no floor; "auto": a measured scene's table,
-    found in its histograms, else z = 0 (`floor.scene_floor`).
+    found in its histograms, else z = 0 (`floor.scene_floor`). points: sample points per mesh of the metrics.
     """
     if method not in METHODS:
         raise ConfigError(f"baseline {method!r} is not one of {METHODS}")
@@ -129,6 +129,6 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         if truth.note():
             log(f"scoring {truth.note()}")
         report.update(truth.report_fields())
-        report.update(truth.metrics(mesh).to_dict())
+        report.update(truth.metrics(mesh, n_points=points).to_dict())
     write_report(out, report)
     return json_safe(report)
