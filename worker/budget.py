@@ -122,8 +122,12 @@ class EndCosts:
         if points:
             total += self.metrics_s(points)
         if checkpoint is not None:
-            total += self.mesh_s(checkpoint[0]) + SAFETY * self.metrics_s_per_point * checkpoint[1] * 2
+            total += self.checkpoint_s(*checkpoint)
         return total
+
+    def checkpoint_s(self, resolution: int, points: int) -> float:
+        """Seconds of one checkpoint's evaluation: a mesh at `resolution` scored on `points` points (both ways)."""
+        return self.mesh_s(resolution) + SAFETY * self.metrics_s_per_point * points * 2
 
 
 def training_budget(clock: RunClock, end_s: float) -> float | None:
@@ -150,9 +154,9 @@ def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
     thousand when cut)."""
     if costs.metrics_s(want) <= seconds:
         return int(want)
-    fit = int(seconds / max(costs.metrics_s(1), 1e-12))
+    fit = int(seconds / max(costs.metrics_s(1), 1e-12) * (1 + 1e-9))
     return int(min(want, max(MIN_METRIC_POINTS, fit // 1000 * 1000)))
 
 
-__all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within", "metric_points_within",
-           "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS", "PROBE_RESOLUTIONS", "PROBE_POINTS"]
+__all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within",
+           "metric_points_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS", "PROBE_RESOLUTIONS", "PROBE_POINTS"]

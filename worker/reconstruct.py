@@ -23,8 +23,9 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
-from .budget import (FIXED_S, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS, PROBE_RESOLUTIONS, EndCosts,
-                     RunClock, mesh_resolution_within, metric_points_within, training_budget)
+from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
+                     PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within, metric_points_within,
+                     training_budget)
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
@@ -165,6 +166,8 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
         end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
     plan = RunPlan(steps=run.plan.steps, budget_s=training_budget(run_clock, end_s), seed=run.plan.seed)
 
+    # The least the stages after training can take: the coarsest mesh, the fewest points, the pictures.
+    min_end = costs.end_s(MIN_MESH_RESOLUTION, MIN_METRIC_POINTS if truth else None)
     governor = None
     if dev.type == "cpu" and not threads_fixed(threads, os.environ) and torch.get_num_threads() > 1:
         governor = ThreadGovernor(torch.get_num_threads(), torch.set_num_threads)
@@ -174,7 +177,9 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     result = train(model, plan, checkpoints=config.trace_checkpoints, evaluate=evaluate, progress=progress,
                    desc=f"reconstruct ({preset})", score_note=f"checkpoint {checkpoint_scoring(config, short=True)}",
                    early_stop=config.early_stop, on_step=None if governor is None else governor.step_done,
-                   clock=clock, cpu_clock=cpu_clock)
+                   clock=clock, cpu_clock=cpu_clock,
+                   eval_estimate_s=0.0 if checkpoint_cost is None else costs.checkpoint_s(*checkpoint_cost),
+                   end_evaluation=None if budget_s is None else lambda seconds: seconds <= run_clock.left() - min_end)
     stages = {"set_up_s": run_clock.elapsed() - result.seconds - result.eval_seconds}
     t_end = clock()
 

@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from spadscan.worker.end_of_run import (EXACT_BELOW, NOISE_RATIO, RunFacts, converged, fit_noise, late_drop, noise_deviance,
-                                        warnings)
+from spadscan.worker.end_of_run import (EXACT_BELOW, NOISE_RATIO, RunFacts, converged, fit_noise, late_drop,
+                                        noise_deviance, warnings)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

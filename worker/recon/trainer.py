@@ -46,12 +46,15 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
           on_checkpoint: Callable[[list[dict]], None] | None = None, progress: bool = True,
           desc: str = "reconstruct", score_note: str = "", early_stop: bool = False,
           on_step: Callable[[float], None] | None = None, clock: Callable[[], float] = time.perf_counter,
-          cpu_clock: Callable[[], float] = time.process_time, max_eval_share: float = 0.25) -> TrainResult:
+          cpu_clock: Callable[[], float] = time.process_time, max_eval_share: float = 0.25,
+          eval_estimate_s: float = 0.0, end_evaluation: Callable[[float], bool] | None = None) -> TrainResult:
     """Run model.step() until plan.steps steps or plan.budget_s seconds, whichever comes first; with `early_stop`,
     also as soon as a step reports `converged: True` (stopped_by 'converged'). The budget counts training and
     checkpoint evaluation together, or training alone when `scoring_in_budget` is False (then no evaluation is
     skipped). Counted in the budget, evaluations take at most `max_eval_share` of it: one that would take more, or
-    not fit in what is left, is skipped (its checkpoint records the loss only).
+    not fit in what is left, is skipped (its checkpoint records the loss only); `eval_estimate_s` is what the first
+    one is expected to take (later ones: what the last one took). The end of a run is evaluated unless
+    `end_evaluation(expected seconds)` says there is no time for it (a whole-run budget nearly spent).
 
     Checkpoints: at the start, every `every_s` seconds of training (default: every 1/checkpoints of the budget when
     there is one, else of the steps; 0: after every step) and at the end; each records the step, training seconds,
@@ -76,7 +79,7 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     result = TrainResult(steps=0, seconds=0.0, stopped_by="", last={})
     window: list[float] = []
 
-    eval_cost = [0.0]  # the last evaluation's seconds: what the next one is expected to take
+    eval_cost = [float(eval_estimate_s)]  # the last evaluation's seconds: what the next one is expected to take
 
     def spent() -> float:
         return result.seconds + (result.eval_seconds if scoring_in_budget else 0.0)
@@ -86,9 +89,14 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
         entry = {"step": result.steps, "seconds": round(result.seconds, 4),
                  "loss": (sum(window) / len(window)) if window else None}
         if evaluate is not None:
-            fits = (spent() + eval_cost[0] <= plan.budget_s
-                    and result.eval_seconds + eval_cost[0] <= max_eval_share * plan.budget_s)
-            if final or not (by_time and scoring_in_budget) or fits:
+            if final:
+                due = end_evaluation is None or end_evaluation(eval_cost[0])
+            elif by_time and scoring_in_budget:
+                due = (spent() + eval_cost[0] <= plan.budget_s
+                       and result.eval_seconds + eval_cost[0] <= max_eval_share * plan.budget_s)
+            else:
+                due = True
+            if due:
                 entry.update(evaluate())
                 eval_cost[0] = clock() - t0
             else:
@@ -147,7 +155,8 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
             bar.set_postfix(post)  # the last step's fields are drawn, whenever the bar last was
         if window or not result.trace or result.trace[-1]["step"] != result.steps:
             checkpoint(final=True)
-        elif evaluate is not None and "note" in result.trace[-1]:
+        elif evaluate is not None and "note" in result.trace[-1] and (end_evaluation is None
+                                                                       or end_evaluation(eval_cost[0])):
             # The run ended on a checkpoint whose evaluation was skipped: the end of a run is always evaluated.
             t0 = clock()
             last = result.trace[-1]
