@@ -108,16 +108,19 @@ class ThreadGovernor:
     `most`; after `warmup` steps it times `block` steps of the current choice, then up to `block` of the other (a
     probe, cut short at the first step over `abort` times the current median: a stalled probe costs one step), and
     keeps the faster by medians (many threads only when they are `margin` faster: one thread never stalls). It holds
-    its choice for `hold` steps, twice as long after each probe that confirms it (at most `max_hold`), and probes
-    again at once when a step of many threads takes over `stall` times their median (a competitor just started)."""
+    its choice for `hold` steps, twice as long after each probe that confirms it (at most `max_hold`), and long
+    enough that probes take at most `probe_share` of the time (a stalled probe step may cost 40 ordinary ones); it
+    probes again at once when two steps of many threads take over `stall` times their median (a competitor just
+    started)."""
 
     def __init__(self, most: int, set_threads: Callable[[int], None], *, warmup: int = 5, block: int = 8,
                  hold: int = 40, max_hold: int = 640, abort: float = 2.5, stall: float = 3.0,
-                 margin: float = 0.03):
+                 margin: float = 0.03, probe_share: float = 0.05):
         if not (isinstance(most, int) and most >= 2):
             raise ConfigError(f"a thread governor needs at least 2 threads to choose from, got {most}")
         self.most, self.set_threads = most, set_threads
         self.warmup, self.block, self.abort, self.stall, self.margin = warmup, block, abort, stall, margin
+        self.probe_share = probe_share
         self.hold0, self.max_hold, self.hold = hold, max_hold, hold
         self.current = most
         self.phase, self.left = "warmup", warmup
@@ -161,9 +164,9 @@ class ThreadGovernor:
             self.times.append(seconds)
             base = self.medians.get(self.current)
             recent = self.times[-2:]
-            if (self.current > 1 and base and len(recent) == 2 and min(recent) > self.stall * base) or self.left <= 0:
-                self.times = self.times[-self.block:]
-                self.medians[self.current] = statistics.median(self.times)
+            stalled = self.current > 1 and base and len(recent) == 2 and min(recent) > self.stall * base
+            if stalled or self.left <= 0:
+                self.medians[self.current] = statistics.median(recent if stalled else self.times[-self.block:])
                 self._probe()
 
     def _start(self, phase: str, steps: int) -> None:
@@ -183,8 +186,11 @@ class ThreadGovernor:
         else:
             self.hold = self.hold0
             self.switches += 1
+        # A probe costs at most `probe_share` of the time: a stalled one (seconds a step) is followed by a long hold.
+        probe_s, best_s = sum(self.times), self.medians.get(best) or 0.0
+        hold = self.hold if best_s <= 0 else max(self.hold, math.ceil(probe_s / (self.probe_share * best_s)))
         self._use(best)
-        self._start("hold", self.hold)
+        self._start("hold", hold)
 
     def summary(self) -> dict:
         """JSON-able: the ceiling, the threads now, steps run with each count, probes and switches, the last
