@@ -100,9 +100,10 @@ class Run:
 
 
 def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, steps: int | None,
-               budget_s: float | None, seed: int, log: Callable[[str], None]) -> Run:
+               budget_s: float | None, seed: int, log: Callable[[str], None], defaulted: bool = False) -> Run:
     """Load the capture and build the preset's model: what every run does before it trains. With neither `steps`
-    nor `budget_s`, the preset's defaults bound the run."""
+    nor `budget_s`, the preset's defaults bound the run (`defaulted`: the caller already put them in); a default
+    of days on a CPU is warned about once the capture has loaded (a bad capture is one error line, nothing more)."""
     t0 = time.perf_counter()
     check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
@@ -111,7 +112,8 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     if state_note:
         log(f"warning: {state_note}")
     if steps is None and budget_s is None:
-        steps, budget_s = config.default_steps, config.default_budget_s
+        steps, budget_s, defaulted = config.default_steps, config.default_budget_s, True
+    if defaulted:
         _warn_long_default(config, device, steps, budget_s, log)
     plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
     model = make_model(scene, config, device, plan)
@@ -149,15 +151,15 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     truth = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
     if truth is not None and truth.units_read == "mm":
         log(f"ground truth {gt}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)")
-    if steps is None and budget_s is None:
+    defaulted = steps is None and budget_s is None
+    if defaulted:
         steps, budget_s = config.default_steps, config.default_budget_s
-        _warn_long_default(config, dev, steps, budget_s, log)
     run_clock.budget_s = budget_s
     costs = EndCosts(fixed_s=FIXED_S + (NORMALS_PICTURE_S if truth is not None else 0.0))
     checkpoint_cost = (config.trace_mesh_resolution, config.trace_points) if truth is not None else None
     end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
     run = set_up_run(capture, config, dev, steps=steps, budget_s=training_budget(run_clock, end_s), seed=seed,
-                     log=log)
+                     log=log, defaulted=defaulted)
     model, scene = run.model, run.scene
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder

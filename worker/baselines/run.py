@@ -106,9 +106,9 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     export_mesh(mesh, out / "mesh.ply")
-    points = extras.pop("points", None)
-    if points is not None:
-        trimesh.PointCloud(points).export(out / "points.ply")
+    cloud = extras.pop("points", None)  # reprojection's point cloud (`points` is the metrics' sample count)
+    if cloud is not None:
+        trimesh.PointCloud(cloud).export(out / "points.ply")
     report = {
         "method": method, "capture": str(Path(capture).resolve()), "sensor": data.sensor.name,
         "views": int(len(data.hists)), "zones": int(data.sensor.n_zones),
