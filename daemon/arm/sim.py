@@ -129,6 +129,12 @@ class SimArm(Arm):
     def restore_link(self) -> None:
         self.link_up = True
 
+    def jog(self, tcp_pose: np.ndarray) -> None:
+        """Put the arm at a TCP pose (4, 4) at once, as an operator does with the teach pendant's jog buttons while
+        a scan is paused."""
+        self._motion = None
+        self._pose = np.array(tcp_pose, dtype=float)
+
     # ---- motion ------------------------------------------------------------------------------------------------
     def actual_pose(self) -> np.ndarray:
         """The actual TCP pose (4, 4) now, also mid-move (thread-safe: reads one snapshot of the motion)."""

@@ -112,7 +112,7 @@ def run(args) -> int:
         args.capture, args.out, args.method, gt=gt, threshold=args.threshold, calibrate_=args.calibrate,
         resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
         floor_z=None if args.no_floor else ("auto" if args.floor_z is None else args.floor_z), surface=args.surface,
-        edge_deg=args.edge_deg, points=args.points, log=log)
+        edge_deg=args.edge_deg, metrics_points=args.points, log=log)
     write_pictures_and_page(report, args.out, gt)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
     line += f", {report['seconds']:.1f} s"
