@@ -25,8 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sensor poses in the scan (default: 128; with 64 the goblet's fit is coarser and "
                              "varies more from seed to seed)")
     parser.add_argument("--budget-s", type=float, default=120.0, metavar="S",
-                        help="training seconds of the reconstruction, as `spadscan reconstruct --budget-s` "
-                             "(default: 120)")
+                        help="seconds of the whole reconstruction job, from its start to its report, as "
+                             "`spadscan worker --budget-s` (default: 120)")
     parser.add_argument("--arm", choices=("sim", "ur-sim"), default="sim",
                         help="sim: simulated arm; ur-sim: the real ur_rtde client against a simulated UR "
                              "controller on loopback (default: sim)")
