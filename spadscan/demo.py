@@ -50,7 +50,8 @@ class DemoOptions:
     """Sensor poses in the scan. 128: on the goblet, 64 views leave the fit short of data and its result depends on
     the seed (1.8-2.3 mm against 0.9-1.1 mm with 128; benchmarks/RESULTS.md); the scan itself takes seconds."""
     budget_s: float = 120.0
-    """Wall-clock budget of the reconstruction (s); with `live`, of the final run that continues from the live fit."""
+    """Wall-clock budget of the whole reconstruction job, from its start to its report (s); with `live`, of the final
+    run that continues from the live fit once the scan is complete."""
     live: bool = True
     """Reconstruct while the scan runs (`spadscan worker --live`) and show the live state; False: reconstruct once
     the scan is complete (`spadscan worker --once`)."""
@@ -281,6 +282,18 @@ def running_job_progress(captures: Path):
     return None
 
 
+def finished_job_progress(scan_dir: Path):
+    """The last progress (dashboard.job_progress.JobProgress) in the log of the scan's newest published result, or
+    None."""
+    from spadscan.dashboard.job_progress import read_progress
+
+    try:
+        report = _find_report(scan_dir)
+    except DemoError:
+        return None
+    return read_progress(report.parent / "job.log")
+
+
 def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path, progress=None) -> None:
     """Run a worker over the captures until it has reconstructed them; `progress` receives the running job's
     progress (or None) about twice a second."""
@@ -499,11 +512,14 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         desc = "final reconstruction, from the live fit (training s)" if opts.live else "reconstruction (training s)"
         bar = progress_factory(opts.budget_s, desc, "s")
         try:
+            show = ReconProgress(bar)
             if watch is not None:
                 watch.bar = None  # the final run's own progress goes on this bar
-                _finish_live(opts, captures, name, worker, logs, watch, ReconProgress(bar))
+                _finish_live(opts, captures, name, worker, logs, watch, show)
             else:
-                _reconstruct(opts, captures, procs, logs, ReconProgress(bar))
+                _reconstruct(opts, captures, procs, logs, show)
+            # The job's last progress, from its published log: a short job may end between two looks at its live one.
+            show(finished_job_progress(captures / name))
         finally:
             bar.close()
         stages["reconstruct_s"] = time.monotonic() - t

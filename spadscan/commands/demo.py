@@ -29,8 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sensor poses in the scan (default: 128; with 64 the goblet's fit is coarser and "
                              "varies more from seed to seed)")
     parser.add_argument("--budget-s", type=float, default=120.0, metavar="S",
-                        help="training seconds of the reconstruction, as `spadscan reconstruct --budget-s`; "
-                             "live, of the final run that continues from the live fit (default: 120)")
+                        help="seconds of the whole reconstruction job, from its start to its report, as "
+                             "`spadscan worker --budget-s`; live, of the final run that continues from the live fit "
+                             "once the scan is complete (default: 120)")
     parser.add_argument("--offline", action="store_true",
                         help="reconstruct only once the scan is complete (`spadscan worker --once`) instead of "
                              "live while it runs")
