@@ -21,7 +21,7 @@ import numpy as np
 
 from spadscan.protocol.errors import ConfigError
 
-from .arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
+from .arm.pose_convert import matrix_to_rotvec
 from .config import ArmConfig
 
 MOVE_STEP_M = 0.005
@@ -150,7 +150,17 @@ def _move_samples(a: np.ndarray, b: np.ndarray, hand_eye: np.ndarray) -> tuple[n
     s = np.linspace(0.0, 1.0, k)
     flange = a[:3, 3] + s[:, None] * (b[:3, 3] - a[:3, 3])
     offset = hand_eye[:3, 3]
-    sensor = np.stack([flange[i] + a[:3, :3] @ rotvec_to_matrix(s[i] * turn) @ offset for i in range(k)])
+    # The tool turns about one fixed axis (turn's direction) by s x its angle: Rodrigues' formula applied to the one
+    # vector `offset` for every sample at once (a 2,000-pose plan has 300,000 samples: a matrix each took seconds).
+    angle = float(np.linalg.norm(turn))
+    if angle < 1e-12:
+        turned = np.broadcast_to(offset, (k, 3))
+    else:
+        axis = turn / angle
+        phi = s[:, None] * angle
+        turned = (offset * np.cos(phi) + np.cross(axis, offset) * np.sin(phi)
+                  + axis * float(axis @ offset) * (1.0 - np.cos(phi)))
+    sensor = flange + turned @ a[:3, :3].T
     return flange, sensor
 
 

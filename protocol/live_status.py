@@ -8,19 +8,22 @@ torn one, and a status no newer than the mesh beside it.
 The format is a JSON object; readers accept unknown keys. Standard library only: the daemon-side client
 (`spadscan ctl`) reads it without loading numpy or the worker.
 
-| key | type | meaning |
-|---|---|---|
-| `views_used` | int >= 0 | views (poses) the live model is fitting |
-| `views_published` | int >= 0 | views of the scan published so far (the model may lag behind by a few) |
-| `steps` | int >= 0 | optimisation steps the live job has taken over all its models |
-| `updated_utc` | string | when this status was written, ISO 8601 UTC with milliseconds |
-| `converged` | bool | the live model's fit has plateaued on the views it has |
-| `chamfer_mm` | number | Chamfer distance of the published mesh to the ground truth (mm); only when the capture names one |
-| `state` | string | `waiting` (too few views yet), `live` (following the scan), `final` (the scan is complete: the final reconstruction runs from the live state), `done` (the final result is published: `result`), `aborted` (the scan was aborted; the job ended) or `stopped` (the job ended otherwise: `note`) |
-| `views_planned` | int or null | poses the scan plans, when the capture says |
-| `job` | string | the queue's job id |
-| `result` | string or null | the final result folder, once `done` |
-| `note` | string or null | one line worth knowing (why the job ended, a warning) |
+Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people read it):
+
+- `views_used` (int >= 0): views (poses) the live model is fitting;
+- `views_published` (int >= 0): views of the scan published so far (the model may lag behind by a few);
+- `steps` (int >= 0): optimisation steps the live job has taken over all its models;
+- `updated_utc` (string): when this status was written, ISO 8601 UTC with milliseconds;
+- `converged` (bool): the live model's fit has plateaued on the views it has;
+- `chamfer_mm` (number): Chamfer distance of the published mesh to the ground truth; only when the capture names
+  one;
+- `state` (string): `waiting` (too few views yet), `live` (following the scan), `final` (the scan is complete: the
+  final reconstruction runs from the live state), `done` (the final result is published: `result`), `aborted` (the
+  scan was aborted; the job ended) or `stopped` (the job ended otherwise: `note`);
+- `views_planned` (int or null): poses the scan plans, when the capture says;
+- `job` (string): the queue's job id;
+- `result` (string or null): the final result folder, once `done`;
+- `note` (string or null): one line worth knowing (why the job ended, a warning).
 """
 
 from __future__ import annotations

@@ -263,6 +263,10 @@ class Worker:
             extra += f" (ground truth: {summary['ground_truth_note']})"
         if summary.get("capture_counts_note"):
             extra += f" (warning: {summary['capture_counts_note']})"
+        if summary.get("converged") is False:
+            extra += ", not converged"
+        for warning in summary.get("warnings") or []:
+            extra += f" (warning: {warning})"
         self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}")
         if aside is not None:  # written there while the job ran (another worker on another queue, say)
             self.log(f"{job.id}: {final} held a result that appeared while the job ran; moved it to {aside}")

@@ -12,6 +12,11 @@ from before the queue was deleted) is not run; it is recorded as done, and the l
 reconstruct finished scans again, `--redo JOB...` moves each one's results folder aside to
 <scan>/recon/<job>.replaced-<UTC time>-<4 hex digits>/ and queues the job again.
 
+--budget-s bounds each job's whole run, from its process's start to its report (within 10 % or 10 s, whichever is
+larger): the mesh is coarser and the metrics use fewer points when time is short. --status shows, for each done
+job, whether its reconstruction converged and the warnings its report gives (a run cut short, starved of CPU, or
+whose fit is far from the photon noise).
+
 Options are frozen into each job when it is queued: --budget-s, --steps, --device and --seed apply to the scans a
 worker queues, and a job already queued (by this worker or an earlier one) runs with its own (the worker names, when
 it starts, the queued jobs whose own values differ from the ones given). To run failed jobs again with other options,
@@ -70,8 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="reconstruction preset: fast or paper (default: fast; with --retry-failed: only the "
                              "failed jobs of this preset)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
-                        help="training seconds per reconstruction, checkpoint scoring included, as `spadscan "
-                             "reconstruct --budget-s` (default: the preset's)")
+                        help="seconds per job, from the job's start to its report (set-up, training, mesh, metrics "
+                             "and pictures), as `spadscan reconstruct --budget-s` (default: the preset's)")
     parser.add_argument("--steps", type=int, default=None, metavar="N",
                         help="optimisation steps per reconstruction (default: the preset's)")
     parser.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
@@ -242,7 +247,7 @@ def _print_status(queue, as_json: bool) -> int:
 
     rows = queue.statuses()
     if as_json:
-        print(json.dumps([asdict(r) for r in rows], indent=1))
+        print(json.dumps([{**asdict(r), **_result_health(r)} for r in rows], indent=1))
         return 0
     if not rows:
         print(f"no jobs in {queue.path}")
@@ -261,6 +266,25 @@ def _print_status(queue, as_json: bool) -> int:
     return 0
 
 
+def _result_health(row) -> dict:
+    """{"converged": bool, "warnings": [...]} from a done job's report.json (what its reconstruction said about
+    itself); {} when there is none to read."""
+    import json
+    from pathlib import Path
+
+    if row.state != "done" or not row.result:
+        return {}
+    try:
+        report = json.loads((Path(row.result) / "report.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(report, dict):
+        return {}
+    warnings = report.get("warnings")
+    return {"converged": report.get("converged"),
+            "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else []}
+
+
 def _status_detail(row) -> str:
     """The last column of a --status row: a done job's result folder, else its last error; then damaged files.
     A stale running job's row says why first."""
@@ -268,7 +292,10 @@ def _status_detail(row) -> str:
         detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
         if row.result and row.kept:
             detail += " (already there when the job was claimed: kept, not run)"
-        notes = [] if not row.result else row.notes
+        health = _result_health(row)
+        if health.get("converged") is False:
+            detail += " (not converged)"
+        notes = [f"warning: {w}" for w in health.get("warnings", [])] + ([] if not row.result else row.notes)
     else:
         detail, notes = row.error or "-", row.notes
         if row.stale:

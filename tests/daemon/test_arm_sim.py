@@ -155,8 +155,9 @@ def test_protective_stop_on_demand_and_stop(arun):
         task = asyncio.create_task(arm.move_to(pose_at(0.4, 0.2, 0.3), 0.1, 0.5))
         await asyncio.sleep(0.05)
         await arm.stop()
+        # The stopped move returns at once, as a real moveL does, not after the 30 s the move would have taken.
         with pytest.raises(ArmFault, match="stopped before it arrived"):
-            await task
+            await asyncio.wait_for(task, 10.0)
         stopped = arm.actual_pose()
         await asyncio.sleep(0.05)
         still = arm.actual_pose()
@@ -164,7 +165,7 @@ def test_protective_stop_on_demand_and_stop(arun):
         await asyncio.sleep(0.05)
         arm.trigger_protective_stop()
         with pytest.raises(ArmFault, match="protective stop"):
-            await task
+            await asyncio.wait_for(task, 10.0)
         return stopped, still
 
     stopped, still = arun(scenario())

@@ -8,10 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from spadscan.daemon.arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
 from spadscan.daemon.config import ArmConfig, ScanConfig
 from spadscan.daemon.scan_plan import (build_plan, invert_rigid, order_nearest, order_serpentine, path_length,
                                        sensor_from_tcp, tcp_from_sensor)
-from spadscan.daemon.workspace import check_workspace
+from spadscan.daemon.workspace import _move_samples, check_workspace
 from spadscan.protocol.errors import ConfigError
 
 HAND_EYE = np.array([[0.0, -1, 0, 0.01], [1, 0, 0, -0.02], [0, 0, 1, 0.05], [0, 0, 0, 1]])
@@ -195,3 +196,19 @@ def test_non_finite_pose_is_refused():
     tcp[0, 0, 3] = math.inf
     with pytest.raises(ConfigError, match="pose 0 of 1: TCP position is not finite"):
         check_workspace(tcp, arm(), "plan")
+
+
+def test_the_sensor_samples_along_a_move_follow_the_turning_tool():
+    """The sensor's path along a straight move is the flange's plus the hand-eye offset turned by the share of the
+    move's rotation reached so far: checked against one rotation matrix per sample."""
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        a, b = np.eye(4), np.eye(4)
+        a[:3, :3], b[:3, :3] = (rotvec_to_matrix(rng.normal(size=3)) for _ in range(2))
+        a[:3, 3], b[:3, 3] = rng.uniform(-0.4, 0.4, (2, 3))
+        flange, sensor = _move_samples(a, b, HAND_EYE)
+        turn = matrix_to_rotvec(a[:3, :3].T @ b[:3, :3])
+        s = np.linspace(0.0, 1.0, len(flange))
+        expected = [f + a[:3, :3] @ rotvec_to_matrix(t * turn) @ HAND_EYE[:3, 3] for f, t in zip(flange, s)]
+        np.testing.assert_allclose(sensor, expected, atol=1e-12)
+        np.testing.assert_allclose(sensor[-1], (b @ HAND_EYE)[:3, 3], atol=1e-12)

@@ -71,7 +71,11 @@ def test_a_killed_live_job_is_taken_over_and_finishes_the_scan(make_daemon, proc
 
     daemon.call("resume")
     wait_for(lambda: (daemon.status().get("last_scan") or {}).get("state") == "complete", "the scan complete", 120.0)
-    wait_for(lambda: queue.job_paths().get("ball-fast", ("?",))[0] == "done", "the job done", SLOW_S, poll_s=0.2)
+    # The queue moves the job to done/ and then records the attempt's outcome; the live status says done after both.
+    wait_for(lambda: [r.get("outcome") for r in queue.records("ball-fast")][-1:] == ["done"], "the job done",
+             SLOW_S, poll_s=0.2)
+    wait_for(lambda: (s := live(capture)) is not None and s.state == "done", "the live status done", 60.0)
+    assert queue.job_paths()["ball-fast"][0] == "done"
     records = queue.records("ball-fast")
     assert [r["outcome"] for r in records] == ["crashed", "done"]
     assert "SIGKILL" in records[0]["error"]

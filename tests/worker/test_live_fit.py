@@ -38,9 +38,11 @@ def test_a_warm_model_starts_from_the_last_field_within_its_own_hull(cylinder_ca
     assert before.level == 1
     cold = make_fast_model(every, config, "cpu", PLAN)
     warm = make_fast_model(every, config, "cpu", PLAN)
-    warm.warm_start(before.mesh_field(), before.level)
+    warm.warm_start(before.mesh_field(), before.level, before.level_steps)
 
     assert warm.level == before.level and warm.field.voxel == cold.field.voxel / 2
+    assert warm.level_steps == before.level_steps == 8  # the learning-rate decay goes on where it was
+    assert np.isclose(warm._grid_lr() / warm.field.voxel, before._grid_lr() / before.field.voxel)
     bound = warm.constraint.bound_for(warm.field)
     values = warm.field.sdf.detach()
     assert bool((values >= bound - 1e-6).all()), "the warm field leaves the new hull"

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import LiveStatus, read_status, status_path, write_status
+from spadscan.protocol.live_status import read_status, status_path, write_status
 
 from ..jobs import Job, scan_path
 

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import LiveStatus
+from spadscan.protocol.live_status import LiveStatus, read_status, status_path
 
 from .follower import ScanFollower, ScanProgress
 from .next_views import is_adaptive, update_next_views
@@ -60,15 +60,27 @@ class LiveSettings:
     final_budget_s: float = 20.0
     """The final reconstruction's budget when the job names none: it continues from the live fit, so it polishes
     rather than fits."""
-    final_lr_decay_share: float = 0.5
-    """The final run's learning-rate decay is laid out over the steps this share of its budget is expected to take
-    (at the live fit's measured rate)."""
     live_threads: int = 1
     """CPU threads of the live fit while the scan runs (the final run gets the job's own): the daemon beside it keeps
     a core."""
     overrides: tuple = ()
     """(dotted key, value) pairs changing the preset's config, for the live fit and the final run alike (as
     `spadscan reconstruct --set`; benchmarks and tests make small fits with it)."""
+
+
+def status_finishing(scan: Path, job, progress: ScanProgress, note: str) -> None:
+    """The live status of a job that found its scan complete (a fast scan, or a job taken over after the scan's end):
+    'final', so that whoever follows it sees the final run and, once published, its result. What an earlier
+    attempt fitted stays in it."""
+    folder = live_folder(scan)
+    clear_leftovers(folder)
+    try:
+        before = read_status(status_path(scan))
+    except SpadscanError:
+        before = LiveStatus(views_used=0, views_published=progress.views_published, steps=0, job=job.id)
+    publish_status(folder, dataclasses.replace(before, state="final", views_published=progress.views_published,
+                                               views_planned=progress.views_planned, job=job.id, note=note,
+                                               updated_utc=""))
 
 
 class ScanAborted(SpadscanError):
@@ -90,7 +102,9 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     follower = ScanFollower(scan)
     progress = follower.poll()
     if progress.ended and progress.state == "complete":
-        log(f"live: scan {scan.name} is already complete: reconstructing it as an ordinary job")
+        note = f"scan {scan.name} was already complete when its live job started: reconstructing it from scratch"
+        log(f"live: {note}")
+        status_finishing(scan, job, progress, note)
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
     folder = live_folder(scan)
     clear_leftovers(folder)
@@ -101,6 +115,9 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         progress = runner.follow(progress)
         if progress.state == "complete" and runner.fit.model is not None:
             runner.publish(progress, state="final", force=True)
+    except SpadscanError as exc:  # a chunk or manifest that cannot be read: the job fails saying why
+        runner.stopped("stopped", str(exc))
+        raise
     finally:
         runner.restore_threads()
     if progress.state == "aborted":
@@ -116,7 +133,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     live_report = runner.fit.report()
     log(f"live: scan complete; the final reconstruction continues from the live fit ({live_report['views_used']} "
         f"views, {live_report['steps']} steps) for {budget:g} s")
-    report = execute_job(final, root, out, runner.final_recon(recon, budget))
+    report = execute_job(final, root, out, runner.final_recon(recon))
     extra = {"live": {**live_report, "final_budget_s": budget}}
     add_to_report(out, extra)
     report.update(extra)
@@ -253,18 +270,16 @@ class LiveRun:
         self.write_status(self.last, state, note)
 
     # ---- the final run -------------------------------------------------------------------------------------------
-    def final_recon(self, recon: Callable | None, budget_s: float) -> Callable:
-        """The reconstruction function of the final run: the ordinary one with its model warm-started from the live
-        fit and its learning-rate decay laid out over the steps the budget allows. A replacement reconstruction
-        (`--recon`, tests) is used as it is."""
+    def final_recon(self, recon: Callable | None) -> Callable:
+        """The reconstruction function of the final run: the ordinary one, its model warm-started from the live fit
+        (the field, the level and where its learning-rate decay stands). A replacement reconstruction (`--recon`,
+        tests) is used as it is."""
         from ..reconstruct import reconstruct_capture
 
         if recon is not None and recon is not reconstruct_capture:
             return recon
-        rate = self.fit.steps_per_s() or 10.0
-        steps = max(50, int(rate * budget_s * self.settings.final_lr_decay_share))
         return functools.partial(reconstruct_capture, make=self.fit.warm_factory(),
-                                 overrides={**dict(self.settings.overrides), "schedule.fine_steps": steps})
+                                 overrides=dict(self.settings.overrides) or None)
 
 
 __all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun"]

@@ -62,7 +62,7 @@ class LiveFit:
             scene = load_scene(self.capture, self.device, self.dtype)
             model = make_model(scene, self.config, self.device, RunPlan(steps=None, budget_s=None, seed=self.seed))
             if self.model is not None:
-                model.warm_start(self.model.mesh_field(), self.model.level)
+                model.warm_start(self.model.mesh_field(), self.model.level, self.model.level_steps)
         except SpadscanError as exc:
             self.log(f"live: cannot fit the views so far yet ({exc}); trying again with more")
             return False
@@ -118,11 +118,11 @@ class LiveFit:
     def warm_factory(self) -> Callable:
         """A model factory (scene, config, device, plan) -> model for the final reconstruction: the preset's model
         of the complete capture, warm-started from this fit (the final run continues from the live state)."""
-        field, level = self.model.mesh_field(), self.model.level
+        field, level, level_steps = self.model.mesh_field(), self.model.level, self.model.level_steps
 
         def make(scene, config, device, plan):
             model = make_model(scene, config, device, plan)
-            model.warm_start(field, level)
+            model.warm_start(field, level, level_steps)
             return model
 
         return make
