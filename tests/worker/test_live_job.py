@@ -23,8 +23,8 @@ DEADLINE_S = 300.0  # generous: the machine may be busy with other work
 
 
 def small_settings(**changes) -> LiveSettings:
-    return LiveSettings(**{"min_views": 6, "poll_s": 0.05, "publish_every_s": 0.2, "rebuild_share": 0.5, "rebuild_views": 1,
-                           "preview": False, "overrides": tuple(FAST_SMALL.items()), **changes})
+    return LiveSettings(**{"min_views": 6, "poll_s": 0.05, "publish_every_s": 0.2, "rebuild_share": 0.5,
+                           "rebuild_views": 1, "preview": False, "overrides": tuple(FAST_SMALL.items()), **changes})
 
 
 class LiveJobThread:
