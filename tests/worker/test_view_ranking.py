@@ -133,3 +133,19 @@ def test_spread_keeps_rankings_away_from_the_views_taken():
 
     # the measure alone: 11 degrees between two of the top four, a median of 23 among the top eight
     assert pairwise_deg(4).min() > 15.0 and np.median(pairwise_deg(8)) > 40.0
+
+
+def test_coverage_seeks_the_space_no_view_has_emptied():
+    # the surface is seen all round; a lump of the hull on the -y side, outside the surface, no view has emptied
+    taken = fibonacci_hemisphere(64, 0.5, (0, 0, 0), 10, 80)
+    hz, hy, hx = np.meshgrid(*(ORIGIN[::-1][i] + VOXEL * np.arange(N) for i in range(3)), indexing="ij")
+    lump = np.sqrt(hx ** 2 + (hy + 0.085) ** 2 + (hz - 0.07) ** 2) - 0.02
+    sphere = grid()
+    hull = GridSnapshot(np.minimum(sphere.sdf, lump).astype(np.float32), ORIGIN, VOXEL)
+    snap = LiveSnapshot([FieldSnapshot(sphere, 0, len(taken))], hull, taken, sensor_preset("lcspc-sim"), 0.0)
+    cand = candidate_poses(BAND, 256)
+    scores = rank_candidates(snap, cand, "coverage")
+    assert np.all(np.isfinite(scores))
+    y = cand[:, 1, 3]
+    assert scores[y < -0.2].mean() > 2 * scores[y > 0.2].mean()
+    assert cand[np.argmax(scores), 1, 3] < 0

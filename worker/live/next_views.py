@@ -9,7 +9,10 @@ the daemon reads before each pose. Three measures, each a score per candidate (h
   when the patch lies in one of its zones, faces it, and nothing of the field stands between them. A patch seen by
   views with incidence cosines c_1, c_2, ... holds information I = sum c_i, and its uncertainty is taken as 1 / (1 + I);
   a candidate's score is the area-weighted drop of that uncertainty it would bring, sum area x (1/(1 + I) -
-  1/(1 + I + c)). Regions of the carved hull no view has constrained (I = 0) weigh most.
+  1/(1 + I + c)). Regions of the carved hull no view has constrained (I = 0) weigh most. Space no view has seen
+  counts too: cells inside the carved hull that the field calls empty (where a fit is free to keep spurious surface)
+  are patches with I = 0 that a candidate sees (c = 1) when they lie in its zones and range with nothing of the
+  field between, all of them together weighing at most as much as the surface.
 - `disagreement`: how far apart the recent field snapshots put the surface along the candidate's rays (the variance
   of the first-hit range between snapshots, weighted by each ray's solid angle): where the shape is still moving.
 - `sensitivity`: how much the candidate's predicted histogram changes between the snapshots, against its photon
@@ -47,6 +50,8 @@ RAYS_PER_VIEW = 96
 """Rays traced per candidate for the ray-based measures, shared by the zones (at least 8 per zone)."""
 SURFACE_POINTS = 1500
 """Surface patches the coverage measure weighs."""
+UNSEEN_CELLS = 1500
+"""Cells of unseen space (inside the carved hull, outside the surface) the coverage measure weighs."""
 SPREAD_PICKS = 64
 """Places of the ranking filled greedily with the spread factor (more than any scan takes from one ranking); the
 candidates after them keep their spread score of that moment, below the last pick."""
@@ -186,7 +191,51 @@ def _coverage(snap: LiveSnapshot, cand: np.ndarray) -> _CoverageGain:
         return _CoverageGain(np.zeros(0), np.zeros((len(cand), 0)), np.zeros(0))
     info = _seen_cos(field, snap.sensor, points, normals, snap.poses).sum(axis=0)  # (M,) over the views taken
     c = _seen_cos(field, snap.sensor, points, normals, cand)  # (n, M)
-    return _CoverageGain(info, c, np.asarray(area, float))
+    area = np.asarray(area, float)
+    cells, cell_area = _unconstrained(snap, float(area.sum()))
+    if len(cells):  # unseen space: patches no view has seen (I = 0), seen head-on (c = 1) by the candidates that see them
+        info = np.concatenate([info, np.zeros(len(cells))])
+        c = np.concatenate([c, _sees_cells(field, snap.sensor, cells, cand)], axis=1)
+        area = np.concatenate([area, np.full(len(cells), cell_area)])
+    return _CoverageGain(info, c, area)
+
+
+def _sees_cells(field: TracedField, sensor, cells: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(len(poses), U) 1.0 where a pose sees the point `cells` (U, 3): in one of its zones, within the sensor's
+    range and nothing of the field between them."""
+    to_sensor = poses[:, None, :3, 3] - cells[None]  # (n, U, 3)
+    dist = np.linalg.norm(to_sensor, axis=-1)
+    ok = _in_zones(sensor, np.matmul(-to_sensor, poses[:, :3, :3])) & (dist < sensor.n_bins * sensor.bin_width_m)
+    out = np.zeros(ok.shape)
+    view, cell = np.nonzero(ok)
+    if len(view):
+        start = torch.as_tensor(cells[cell], dtype=torch.float32)
+        d = torch.as_tensor(to_sensor[view, cell] / dist[view, cell, None], dtype=torch.float32)
+        blocked = field.trace(start, d, torch.as_tensor(dist[view, cell], dtype=torch.float32), normals=False).hit
+        out[view[~blocked.numpy()], cell[~blocked.numpy()]] = 1.0
+    return out
+
+
+def _unconstrained(snap: LiveSnapshot, surface_area: float) -> tuple[np.ndarray, float]:
+    """Cells of the carved hull (no view proved them empty) that the latest field calls empty, more than two cells
+    from its surface and above the floor: where a fit is free to put spurious surface. Their centres (U, 3), at most
+    UNSEEN_CELLS of them, and the area each stands for: a cell face each, but all of them together no more than the
+    surface's area (m^2), so that unseen space and unseen surface weigh alike."""
+    hull = snap.hull
+    k, j, i = np.nonzero(hull.sdf < 0)
+    if len(i) == 0 or surface_area <= 0:
+        return np.zeros((0, 3)), 0.0
+    centres = hull.origin + hull.voxel_m * np.stack([i, j, k], axis=1)
+    keep = snap.latest.grid.sample(centres) > 2 * hull.voxel_m
+    if snap.floor_z is not None:
+        keep &= centres[:, 2] > snap.floor_z + hull.voxel_m
+    centres = centres[keep]
+    if len(centres) == 0:
+        return np.zeros((0, 3)), 0.0
+    total = min(len(centres) * hull.voxel_m ** 2, surface_area)
+    if len(centres) > UNSEEN_CELLS:
+        centres = centres[np.random.default_rng(0).choice(len(centres), UNSEEN_CELLS, replace=False)]
+    return centres, total / len(centres)
 
 
 def _seen_cos(field: TracedField, sensor, points: np.ndarray, normals: np.ndarray, poses: np.ndarray) -> np.ndarray:
