@@ -144,7 +144,7 @@ def test_coverage_seeks_the_space_no_view_has_emptied():
     hull = GridSnapshot(np.minimum(sphere.sdf, lump).astype(np.float32), ORIGIN, VOXEL)
     snap = LiveSnapshot([FieldSnapshot(sphere, 0, len(taken))], hull, taken, sensor_preset("lcspc-sim"), 0.0)
     cand = candidate_poses(BAND, 256)
-    scores = rank_candidates(snap, cand, "coverage")
+    scores = rank_candidates(snap, cand, "coverage", unseen_space=True)
     assert np.all(np.isfinite(scores))
     y = cand[:, 1, 3]
     assert scores[y < -0.2].mean() > 2 * scores[y > 0.2].mean()

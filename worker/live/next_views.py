@@ -9,8 +9,8 @@ the daemon reads before each pose. Three measures, each a score per candidate (h
   when the patch lies in one of its zones, faces it, and nothing of the field stands between them. A patch seen by
   views with incidence cosines c_1, c_2, ... holds information I = sum c_i, and its uncertainty is taken as 1 / (1 + I);
   a candidate's score is the area-weighted drop of that uncertainty it would bring, sum area x (1/(1 + I) -
-  1/(1 + I + c)). Regions of the carved hull no view has constrained (I = 0) weigh most. Space no view has seen
-  counts too: cells inside the carved hull that the field calls empty (where a fit is free to keep spurious surface)
+  1/(1 + I + c)). Regions of the carved hull no view has constrained (I = 0) weigh most. With `unseen_space`,
+  space no view has seen counts too: cells inside the carved hull that the field calls empty (where a fit is free to keep spurious surface)
   are patches with I = 0 that a candidate sees (c = 1) when they lie in its zones and range with nothing of the
   field between, all of them together weighing at most as much as the surface.
 - `disagreement`: how far apart the recent field snapshots put the surface along the candidate's rays (the variance
@@ -79,10 +79,11 @@ def update_next_views(capture: Path, manifest: dict, snapshot: LiveSnapshot | No
 
 
 def rank_candidates(snapshot: LiveSnapshot, candidates: np.ndarray, measure: str = DEFAULT_MEASURE,
-                    spread: bool = True) -> np.ndarray:
+                    spread: bool = True, unseen_space: bool = False) -> np.ndarray:
     """Scores (n,) float64 for candidate sensor poses `candidates` (n, 4, 4) sensor-to-world, metres: higher is a
     more useful next view (see the module docstring for the measures and the spread). Finite for every candidate; a
-    candidate that sees nothing of the surface scores 0."""
+    candidate that sees nothing of the surface scores 0. `unseen_space` adds the unseen space to the coverage
+    measure (off by default: it drew the bunny's views to the lowest elevations and made its fits worse)."""
     cand = np.asarray(candidates, float)
     if cand.ndim != 3 or cand.shape[1:] != (4, 4):
         raise ValueError(f"candidates must be (n, 4, 4) poses, got shape {cand.shape}")
@@ -92,7 +93,7 @@ def rank_candidates(snapshot: LiveSnapshot, candidates: np.ndarray, measure: str
         return np.zeros(0)
     with torch.no_grad():
         if measure == "coverage":
-            gain = _coverage(snapshot, cand)
+            gain = _coverage(snapshot, cand, unseen_space)
         else:
             gain = _StaticGain(_ray_measure(snapshot, cand, measure))
     if not spread:
@@ -184,7 +185,7 @@ class _CoverageGain:
         self.info = self.info + self.c[i]
 
 
-def _coverage(snap: LiveSnapshot, cand: np.ndarray) -> _CoverageGain:
+def _coverage(snap: LiveSnapshot, cand: np.ndarray, unseen_space: bool) -> _CoverageGain:
     field = TracedField(snap.latest.grid)
     points, normals, area = field.surface(snap.floor_z, SURFACE_POINTS)
     if len(points) == 0:
@@ -192,7 +193,7 @@ def _coverage(snap: LiveSnapshot, cand: np.ndarray) -> _CoverageGain:
     info = _seen_cos(field, snap.sensor, points, normals, snap.poses).sum(axis=0)  # (M,) over the views taken
     c = _seen_cos(field, snap.sensor, points, normals, cand)  # (n, M)
     area = np.asarray(area, float)
-    cells, cell_area = _unconstrained(snap, float(area.sum()))
+    cells, cell_area = _unconstrained(snap, float(area.sum())) if unseen_space else (np.zeros((0, 3)), 0.0)
     if len(cells):  # unseen space: patches no view has seen (I = 0), seen head-on (c = 1) by the candidates that see them
         info = np.concatenate([info, np.zeros(len(cells))])
         c = np.concatenate([c, _sees_cells(field, snap.sensor, cells, cand)], axis=1)
