@@ -132,8 +132,19 @@ def build_problem(scene, config, device, terms) -> FastProblem:
         measured=bool(scene.real))
 
 
+def carve_box(scene, floor_z: float | None) -> np.ndarray:
+    """(2, 3) box (metres) the hull is carved in: the scene sphere's box, reaching down to the floor.
+
+    An object stands on its floor (the table), so the box must reach it: the scene sphere is centred on the first
+    returns, which a tall object puts high up, and its box cut the lower 17 cm off a simulated 50 cm head on a can."""
+    box = scene.box.double().cpu().numpy().copy()
+    if floor_z is not None and floor_z < box[1, 2]:
+        box[0, 2] = min(box[0, 2], floor_z)
+    return box
+
+
 def _carve(scene, fc, floor_z):
-    box = scene.box.double().cpu().numpy()
+    box = carve_box(scene, floor_z)
     return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
                        floor_z=floor_z, bounds=(box[0], box[1]))
