@@ -17,10 +17,10 @@ import time
 
 from spadscan.protocol.errors import ConfigError, DeviceError
 
-from .backends import build_devices, rig_record
 from .config import DaemonConfig
 from .control import ControlServer, check_socket_path, claim_socket_path
 from .devices import Device
+from .rig import build_devices, preflight, rig_record
 from .root_lock import RootLock, check_root_free
 from .runner import ScanRunner
 from .scan_plan import build_plan
@@ -128,28 +128,10 @@ def check_config(cfg: DaemonConfig):
     daemon. Returns (plan, arm, sensor), neither device connected."""
     plan = build_plan(cfg.scan, cfg.arm, where=f"{cfg.source}: [scan] defaults")
     arm, sensor = build_devices(cfg)
-    if cfg.sensor.backend == "i2c":
-        from .sensor.firmware import load_firmware
-
-        try:
-            load_firmware(cfg.sensor.firmware)
-        except DeviceError as exc:
-            raise ConfigError(f"{cfg.source}: [sensor] firmware: {exc}") from None
-    _check_sensor_device(cfg)
+    preflight(cfg)
     _in_config(cfg, check_socket_path, cfg.socket)
     check_root_free(cfg.captures)
     return plan, arm, sensor
-
-
-def _check_sensor_device(cfg: DaemonConfig) -> None:
-    """The sensor's device file exists: looking at the path opens nothing (a missing USB bridge or a disabled I2C
-    bus would otherwise show only as a failed connect)."""
-    s = cfg.sensor
-    if s.backend == "serial" and not os.path.exists(s.port):
-        raise ConfigError(f"{cfg.source}: [sensor] port {s.port}: no such device (is the bridge plugged in? "
-                          f"/dev/serial/by-id/ lists the connected ones)")
-    if s.backend == "i2c" and not os.path.exists(f"/dev/i2c-{s.bus}"):
-        raise ConfigError(f"{cfg.source}: [sensor] bus {s.bus}: /dev/i2c-{s.bus}: no such device (is I2C enabled?)")
 
 
 def _in_config(cfg: DaemonConfig, check, *args):

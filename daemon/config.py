@@ -7,7 +7,6 @@ paths are taken relative to the config file's folder. `examples/README.md` docum
 
 from __future__ import annotations
 
-import math
 import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
@@ -17,39 +16,20 @@ import numpy as np
 
 from spadscan.protocol.errors import ConfigError
 
+from .backends import ARM_BACKENDS, SENSOR_BACKENDS, ArmBackend, SensorBackend
 from .client import default_socket_path
+from .config_keys import key, key_names, read_values
 
 SOCKET_PATH_MAX = 107  # bytes in sockaddr_un.sun_path, less the terminating NUL
 
 
 @dataclass(frozen=True)
-class Key:
-    """How one config key is read: its kind, its range (lo/hi; open bounds when lo_open/hi_open), its unit."""
-
-    kind: str  # str, float, int, bool, path, vec3, mat4, choice, ints
-    lo: float | None = None
-    hi: float | None = None
-    lo_open: bool = False
-    choices: tuple = ()
-    unit: str = ""
-    backends: tuple[str, ...] = ()  # the backends the key applies to; empty: all
-
-
-def key(default, kind: str, **spec):
-    """A dataclass field that carries its Key spec (mutable defaults become factories)."""
-    if isinstance(default, (list, np.ndarray)):
-        return field(default_factory=lambda: np.array(default, dtype=float), metadata={"key": Key(kind, **spec)})
-    return field(default=default, metadata={"key": Key(kind, **spec)})
-
-
-@dataclass(frozen=True)
 class ArmConfig:
-    """[arm]: the robot that carries the sensor."""
+    """[arm]: the robot that carries the sensor. The keys below apply to every backend; each backend's own keys
+    (`backends/arm_*.py`) are read from the same table into `device`."""
 
-    backend: str = key("sim", "choice", choices=("ur", "sim"))
+    backend: str = key("sim", "choice", choices=tuple(ARM_BACKENDS))
     """'ur' (a Universal Robots arm through ur_rtde) or 'sim' (a simulated arm)."""
-    host: str | None = key(None, "str", backends=("ur",))
-    """The UR controller's IP address or host name (required for 'ur')."""
     speed: float = key(0.1, "float", lo=0.0, hi=1.0, lo_open=True, unit="m/s")
     """Linear TCP speed of every move (m/s)."""
     acceleration: float = key(0.5, "float", lo=0.0, hi=5.0, lo_open=True, unit="m/s^2")
@@ -64,61 +44,31 @@ class ArmConfig:
     """Smallest allowed distance of the TCP from the base origin (m); keeps moves clear of the arm's own base."""
     max_reach_m: float | None = key(None, "float", lo=0.0, hi=10.0, lo_open=True, unit="m")
     """Largest allowed distance of the TCP from the base origin (m), e.g. 0.85 for a UR5e."""
+    keepout_radius_m: float = key(0.0, "float", lo=0.0, hi=10.0, unit="m")
+    """Smallest allowed horizontal distance from the base's vertical axis (m): a cylinder around the arm's own column
+    that the TCP, the sensor and its bracket, and every straight move, must keep out of."""
+    bracket_radius_m: float = key(0.0, "float", lo=0.0, hi=1.0, unit="m")
+    """Radius of the bracket and sensor around the line from the flange to the sensor (m): that capsule, not only the
+    flange, must stay inside the workspace and clear of the base."""
     move_timeout_s: float = key(60.0, "float", lo=0.0, hi=3600.0, lo_open=True, unit="s")
     """How long one move may take before the scan pauses with a timeout (s)."""
-    motion_time_s: float | None = key(None, "float", lo=0.0, hi=600.0, unit="s", backends=("sim",))
-    """Sim: a fixed duration of every move (s; 0 = instant); omitted: from distance, speed and acceleration."""
-    time_scale: float = key(1.0, "float", lo=0.0, hi=1000.0, unit="", backends=("sim",))
-    """Sim: multiplies every motion time (0.1 runs moves ten times faster than real)."""
-    pose_noise_m: float = key(0.0, "float", lo=0.0, hi=0.01, unit="m", backends=("sim",))
-    """Sim: standard deviation of the actual position around the commanded one (m)."""
-    protective_stop_on_move: tuple = key((), "ints", lo=1, backends=("sim",))
-    """Sim: move numbers (1 = first move) that end in a protective stop, to rehearse faults."""
+    device: ArmBackend = field(default_factory=ARM_BACKENDS["sim"])
+    """The chosen backend's own keys (its settings class, found once by `backend`)."""
 
 
 @dataclass(frozen=True)
 class SensorConfig:
-    """[sensor]: the time-of-flight sensor on the flange."""
+    """[sensor]: the time-of-flight sensor on the flange. The keys below apply to every backend; each backend's own
+    keys (`backends/sensor_*.py`) are read from the same table into `device`."""
 
-    backend: str = key("sim", "choice", choices=("serial", "i2c", "sim"))
+    backend: str = key("sim", "choice", choices=tuple(SENSOR_BACKENDS))
     """'serial' (TMF8820 behind the Arduino bridge), 'i2c' (TMF8820 on an I2C bus) or 'sim' (simulated)."""
     preset: str = key("tmf8820", "choice", choices=("tmf8820", "lcspc-sim"))
     """Sensor model preset stored with every capture ('tmf8820' or 'lcspc-sim')."""
-    port: str | None = key(None, "str", backends=("serial",))
-    """Serial device of the bridge, e.g. /dev/ttyACM0 (required for 'serial')."""
-    baud: int = key(1_000_000, "int", lo=1200, hi=12_000_000, backends=("serial",))
-    """Baud rate of the bridge (the firmware prints at 1000000; some sketches at 115200)."""
-    bus: int | None = key(None, "int", lo=0, hi=255, backends=("i2c",))
-    """I2C bus number, /dev/i2c-N (required for 'i2c')."""
-    address: int = key(0x41, "int", lo=0x08, hi=0x77, backends=("i2c",))
-    """7-bit I2C address of the sensor (0x41)."""
-    firmware: Path | None = key(None, "path", backends=("i2c",))
-    """Path to your copy of the ams application image (.hex) downloaded at boot (required for 'i2c'; never shipped)."""
-    mesh: str | None = key(None, "str", backends=("sim",))
-    """Sim: the scene, a mesh file (metres; STL in mm is detected) or builtin:NAME (required for 'sim')."""
-    mesh_offset_m: np.ndarray = key([0.0, 0.0, 0.0], "vec3", unit="m", backends=("sim",))
-    """Sim: where the mesh's origin sits in the arm's base frame [x, y, z] (m)."""
-    frame_time_s: float = key(0.0, "float", lo=0.0, hi=60.0, unit="s", backends=("sim",))
-    """Sim: exposure time of one frame (s; the real sensor takes ~0.3)."""
-    seed: int = key(0, "int", lo=0, hi=2**63 - 1, backends=("sim",))
-    """Sim: random seed of the photon noise."""
-    power: float = key(1.0, "float", lo=0.0, hi=1e9, backends=("sim",))
-    """Sim: laser power relative to the preset (multiplies its signal_scale)."""
-    ambient: float | None = key(None, "float", lo=0.0, hi=1.0, unit="photons/bin/cycle", backends=("sim",))
-    """Sim: ambient background, photons per bin per cycle (default: the preset's)."""
-    cycles: int | None = key(None, "int", lo=1, hi=10**10, backends=("sim",))
-    """Sim: laser cycles per histogram (default: the preset's)."""
-    albedo: float = key(1.0, "float", lo=0.0, hi=1000.0, backends=("sim",))
-    """Sim: Lambertian albedo of every surface of the mesh."""
-    rays_per_zone: int = key(4096, "int", lo=1, hi=10**7, backends=("sim",))
-    """Sim: rays cast per zone per frame (fewer renders faster, coarser)."""
-    silence_on_frames: tuple = key((), "ints", lo=0, backends=("sim",))
-    """Sim: frame numbers (0 = the first frame the sensor delivers after the daemon started, counted across scans)
-    at which the sensor falls silent for silence_s instead, to rehearse faults."""
-    silence_s: float = key(0.0, "float", lo=0.0, hi=3600.0, unit="s", backends=("sim",))
-    """Sim: how long each scheduled silence lasts (s; > 0 when silence_on_frames is set)."""
     frame_timeout_s: float = key(5.0, "float", lo=0.0, hi=600.0, lo_open=True, unit="s")
     """A sensor that delivers no frame for this long is silent: the scan pauses (s)."""
+    device: SensorBackend = field(default_factory=SENSOR_BACKENDS["sim"])
+    """The chosen backend's own keys (its settings class, found once by `backend`)."""
 
 
 @dataclass(frozen=True)
@@ -166,7 +116,8 @@ class DaemonConfig:
     """Control socket path (mode 0600); default (the same as `spadscan ctl`'s): $SPADSCAN_SOCKET, else
     $XDG_RUNTIME_DIR/spadscan.sock, else /tmp/spadscan-<uid>.sock."""
     auto_resume: bool = key(False, "bool")
-    """Resume an interrupted scan by itself at start-up (otherwise it waits, paused, for `ctl resume`)."""
+    """Resume an interrupted scan by itself at start-up (otherwise it waits, paused, for `ctl resume`). A real arm
+    needs its backend's confirmation too ([arm] allow_auto_resume for 'ur')."""
     arm: ArmConfig = field(default_factory=ArmConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     scan: ScanConfig = field(default_factory=ScanConfig)
@@ -199,34 +150,54 @@ def config_from_dict(data: dict, path: Path) -> DaemonConfig:
         if not isinstance(table, dict):
             raise ConfigError(f"{path}: [{name}] must be a table")
         sections[name] = read_section(cls, table, f"{path}: [{name}]", base)
-    values = _read_values(DaemonConfig, top, f"{path}:", base, skip=("arm", "sensor", "scan", "source"))
+    values = read_values(DaemonConfig, top, f"{path}:", base, skip=("arm", "sensor", "scan", "source"))
     values.setdefault("captures", base / "captures")
     if values.get("socket") is None:
         values["socket"] = Path(default_socket_path())
     cfg = DaemonConfig(**values, **sections, source=path)
     _check_arm(cfg.arm, f"{path}: [arm]")
-    _check_sensor(cfg.sensor, f"{path}: [sensor]")
+    if cfg.auto_resume and not cfg.arm.device.confirms_unattended_resume():
+        raise ConfigError(f"{path}: auto_resume = true would let the daemon move the real {cfg.arm.backend!r} arm "
+                          f"by itself after a restart, with nobody at the rig: confirm it with [arm] allow_auto_resume "
+                          f"= true (a guarded cell only), or leave auto_resume false")
     check_scan(cfg.scan, f"{path}: [scan]")
     _check_paths(cfg, str(path))
     return cfg
 
 
+BACKENDS = {ArmConfig: ARM_BACKENDS, SensorConfig: SENSOR_BACKENDS}
+"""The backend registry of each section that has a `backend` key."""
+
+
 def read_section(cls, table: dict, where: str, base: Path | None = None):
-    """Build a section's dataclass from a TOML table; unknown keys, bad values and keys that do not apply to the
-    section's backend are one-line errors."""
-    obj = cls(**_read_values(cls, table, where, base))
-    backend = getattr(obj, "backend", None)
-    for f in fields(cls):
-        spec = f.metadata.get("key")
-        if spec and spec.backends and backend not in spec.backends and f.name in table:
-            raise ConfigError(f"{where} {f.name} applies only to backend {' or '.join(map(repr, spec.backends))}, "
-                              f"not {backend!r}")
-    return obj
+    """Build a section's dataclass from a TOML table; unknown keys and bad values are one-line errors. A section
+    with backends reads its common keys, finds the backend by name (once) and reads the rest of the table as that
+    backend's keys: a key of another backend, or of none, names the backend chosen."""
+    registry = BACKENDS.get(cls)
+    if registry is None:
+        return cls(**read_values(cls, table, where, base))
+    common = set(key_names(cls))
+    obj = cls(**read_values(cls, {k: v for k, v in table.items() if k in common}, where, base))
+    backend = registry[obj.backend]
+    own = {k: v for k, v in table.items() if k not in common}
+    for name in own:
+        if name not in key_names(backend):
+            raise ConfigError(_not_for_backend(name, obj.backend, registry, key_names(cls)[1:], where))
+    device = backend(**read_values(backend, own, where, base)).checked(obj, where, base)
+    return replace(obj, device=device)
+
+
+def _not_for_backend(name: str, chosen: str, registry: dict, common: list[str], where: str) -> str:
+    owners = [b for b, cls in registry.items() if name in key_names(cls)]
+    if owners:
+        return f"{where} {name} applies only to backend {' or '.join(map(repr, owners))}, not {chosen!r}"
+    known = ["backend", *common, *key_names(registry[chosen])]
+    return f"{where} unknown key {name!r} for backend {chosen!r} (known: {', '.join(known)})"
 
 
 def scan_with(base: ScanConfig, overrides: dict, where: str = "scan request") -> ScanConfig:
     """The scan config with some keys replaced (from `ctl scan`), validated like the file's [scan] table."""
-    scan = replace(base, **_read_values(ScanConfig, overrides, where, None))
+    scan = replace(base, **read_values(ScanConfig, overrides, where, None))
     check_scan(scan, where)
     return scan
 
@@ -250,100 +221,8 @@ def scan_to_dict(scan: ScanConfig) -> dict:
     return out
 
 
-def _read_values(cls, table: dict, where: str, base: Path | None, skip=()) -> dict:
-    known = {f.name: f for f in fields(cls) if f.name not in skip}
-    values = {}
-    for name, value in table.items():
-        if name not in known:
-            raise ConfigError(f"{where} unknown key {name!r} (known: {', '.join(known)})")
-        values[name] = _coerce(value, known[name].metadata["key"], f"{where} {name}", base)
-    return values
-
-
-def _coerce(value, spec: Key, where: str, base: Path | None):
-    k = spec.kind
-    if k == "bool":
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where} = {value!r} must be true or false")
-        return value
-    if k in ("str", "choice", "path"):
-        if not isinstance(value, str) or not value.strip():
-            raise ConfigError(f"{where} = {value!r} must be a non-empty string")
-        if k == "choice" and value not in spec.choices:
-            raise ConfigError(f"{where} = {value!r} must be one of {', '.join(map(repr, spec.choices))}")
-        if k == "path":
-            p = Path(os.path.expanduser(value))
-            return p if (p.is_absolute() or base is None) else base / p
-        return value
-    if k == "int":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where} = {value!r} must be an integer")
-        _check_range(value, spec, where)
-        return value
-    if k == "float":
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ConfigError(f"{where} = {value!r} must be a finite number{_unit(spec)}")
-        _check_range(float(value), spec, where)
-        return float(value)
-    if k == "ints":
-        if not isinstance(value, list) or any(isinstance(v, bool) or not isinstance(v, int) for v in value):
-            raise ConfigError(f"{where} = {value!r} must be a list of integers")
-        for v in value:
-            _check_range(v, spec, where)
-        return tuple(value)
-    shape = (3,) if k == "vec3" else (4, 4)
-    try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        arr = None
-    if arr is None or arr.shape != shape or not np.all(np.isfinite(arr)) or _has_bool(value):
-        what = "[x, y, z]" if k == "vec3" else "a 4x4 array of numbers (4 rows of 4)"
-        raise ConfigError(f"{where} = {value!r} must be {what}{_unit(spec)}")
-    if k == "mat4":
-        _check_rigid(arr, where)
-    return arr
-
-
-def _has_bool(value) -> bool:
-    if isinstance(value, list):
-        return any(_has_bool(v) for v in value)
-    return isinstance(value, bool)
-
-
-def _unit(spec: Key) -> str:
-    return f" ({spec.unit})" if spec.unit else ""
-
-
-def _check_range(v, spec: Key, where: str) -> None:
-    lo_bad = spec.lo is not None and (v <= spec.lo if spec.lo_open else v < spec.lo)
-    hi_bad = spec.hi is not None and v > spec.hi
-    if lo_bad or hi_bad:
-        lo = "-inf" if spec.lo is None else _bound(spec.lo, spec)
-        hi = "inf" if spec.hi is None else _bound(spec.hi, spec)
-        raise ConfigError(f"{where} = {v!r}{_unit(spec)} is outside {'(' if spec.lo_open else '['}{lo}, {hi}]")
-
-
-def _bound(v: float, spec: Key) -> str:
-    """A range bound as the user types it: an integer key's in full (9223372036854775807, not 9.22337e+18)."""
-    return str(int(v)) if spec.kind in ("int", "ints") else f"{v:g}"
-
-
-def _check_rigid(m: np.ndarray, where: str) -> None:
-    r = m[:3, :3]
-    if (np.abs(r @ r.T - np.eye(3)).max() > 1e-4 or abs(np.linalg.det(r) - 1) > 1e-4
-            or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9):
-        raise ConfigError(f"{where} is not a rigid transform (rotation must be orthonormal with det +1, last row "
-                          f"[0, 0, 0, 1]; translation in metres)")
-    if np.abs(m[:3, 3]).max() > 1.0:
-        raise ConfigError(f"{where} translation {m[:3, 3].tolist()} exceeds 1 m: give it in metres")
-
-
 # ---- cross-key checks --------------------------------------------------------------------------------------------
 def _check_arm(arm: ArmConfig, where: str) -> None:
-    if arm.backend == "ur":
-        for name in ("host", "workspace_min", "workspace_max"):
-            if getattr(arm, name) is None:
-                raise ConfigError(f"{where} {name} is required for backend 'ur'")
     if (arm.workspace_min is None) != (arm.workspace_max is None):
         raise ConfigError(f"{where} workspace_min and workspace_max must be given together")
     if arm.workspace_min is not None and np.any(arm.workspace_min >= arm.workspace_max):
@@ -351,18 +230,6 @@ def _check_arm(arm: ArmConfig, where: str) -> None:
                           f"{arm.workspace_max.tolist()} on every axis (m)")
     if arm.max_reach_m is not None and arm.max_reach_m <= arm.min_reach_m:
         raise ConfigError(f"{where} max_reach_m {arm.max_reach_m} must exceed min_reach_m {arm.min_reach_m} (m)")
-
-
-def _check_sensor(sensor: SensorConfig, where: str) -> None:
-    required = {"serial": ("port",), "i2c": ("bus", "firmware"), "sim": ("mesh",)}[sensor.backend]
-    for name in required:
-        if getattr(sensor, name) is None:
-            raise ConfigError(f"{where} {name} is required for backend {sensor.backend!r}")
-    if sensor.silence_on_frames and sensor.silence_s <= 0:
-        raise ConfigError(f"{where} silence_on_frames {list(sensor.silence_on_frames)} needs silence_s > 0 (s)")
-    if sensor.backend in ("serial", "i2c") and sensor.preset != "tmf8820":
-        raise ConfigError(f"{where} preset {sensor.preset!r} does not describe a TMF8820 (backend "
-                          f"{sensor.backend!r} needs preset 'tmf8820')")
 
 
 def check_scan(scan: ScanConfig, where: str) -> None:
@@ -380,14 +247,6 @@ def check_scan(scan: ScanConfig, where: str) -> None:
 
 
 def _check_paths(cfg: DaemonConfig, where: str) -> None:
-    s = cfg.sensor
-    if s.backend == "i2c" and not s.firmware.is_file():
-        raise ConfigError(f"{where}: [sensor] firmware {s.firmware}: no such file (point it at your copy of the "
-                          f"ams application image)")
-    if s.backend == "sim" and not s.mesh.startswith("builtin:"):
-        mesh = mesh_path(cfg)
-        if not Path(mesh).is_file():
-            raise ConfigError(f"{where}: [sensor] mesh {mesh}: no such file (or use builtin:NAME)")
     if len(os.fsencode(str(cfg.socket))) > SOCKET_PATH_MAX:
         raise ConfigError(f"{where}: socket path {cfg.socket} is longer than {SOCKET_PATH_MAX} bytes (Unix limit)")
     if not cfg.socket.parent.is_dir():
@@ -398,12 +257,3 @@ def _check_paths(cfg: DaemonConfig, where: str) -> None:
         raise ConfigError(f"{where}: captures {root} exists and is not a folder")
     if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
         raise ConfigError(f"{where}: captures {root}: folder {probe} is missing or not writable")
-
-
-def mesh_path(cfg: DaemonConfig) -> str:
-    """The sim mesh spec with a relative file path resolved against the config file's folder."""
-    spec = cfg.sensor.mesh
-    if spec is None or spec.startswith("builtin:"):
-        return spec
-    p = Path(os.path.expanduser(spec))
-    return str(p if p.is_absolute() or cfg.source is None else cfg.source.resolve().parent / p)

@@ -171,12 +171,16 @@ class ControlServer:
 
     async def _lines(self, reader: asyncio.StreamReader) -> AsyncIterator[tuple[bytes, str | None]]:
         """Yield (line, None) per complete line, or (b'', problem) for a line over max_line bytes (whose rest is
-        skipped up to its newline)."""
+        skipped up to its newline). Text after the last newline counts as a line when the client closes its
+        sending side (it may still read the reply)."""
         buf = bytearray()
         skipping = False
         while True:
             data = await reader.read(65536)
             if not data:
+                # The client shut its sending side after a complete request without the newline: still a request.
+                if buf.strip() and not skipping and len(buf) <= self.max_line:
+                    yield bytes(buf), None
                 return
             buf += data
             while True:

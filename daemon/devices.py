@@ -28,6 +28,10 @@ class SensorSilent(DeviceError):
     """The sensor delivered no frame within its timeout."""
 
 
+class FramesTooEarly(DeviceError):
+    """The sensor delivered frames, but every one began before the arm had settled (a backlog that does not drain)."""
+
+
 @dataclass
 class ArmState:
     """What the arm reports: actual TCP pose (4x4, base frame, metres), joint angles (rad), controller time (s)."""
@@ -99,8 +103,13 @@ class Arm(Device):
         await self.connect()
 
     async def clear_fault(self) -> None:
-        """Called when the user resumes a scan that an ArmFault paused. A real arm does nothing here (the operator
-        clears a protective stop on the teach pendant before resuming); a simulated one clears its stop."""
+        """Called when the user resumes a scan that an ArmFault paused. The operator clears a real arm's safety stop
+        on the teach pendant before resuming; the UR arm uploads its control script again if a fault stopped it; a
+        simulated arm clears its stop."""
+
+    async def check_poses(self, tcp_poses: np.ndarray, first_index: int = 0) -> None:
+        """Ask the arm's controller whether it can reach every TCP pose (P, 4, 4, numbered from first_index) within
+        its own safety limits; ArmFault naming the first it refuses. Default: a controller with nothing to ask."""
 
 
 class Sensor(Device):

@@ -7,12 +7,16 @@ overlaps the next pose's move, settle and frames; pose i+1 is handed to the writ
 landed. So at any moment at most one *finished* pose is unpublished (a kill -9 loses it and the frames of the pose
 being captured, nothing else), and a pose counts only once its chunk is published.
 
-Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent), a protective stop or lost link
-(ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The writer is then
-dropped and reopened on resume, which continues at the first unpublished pose (`CaptureWriter.next_pose_index`).
-Before the first move after such a resume the arm is readied: after LinkLost it reconnects (`Arm.reconnect`: fresh
-interfaces), after ArmFault `Arm.clear_fault` runs (the sim arm clears its protective stop; a real UR arm's stop is
-cleared by the operator on the pendant before `ctl resume`).
+Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent; not when the daemon itself was not
+running meanwhile, `stall.py`: that wait begins again), frames that all began too early (FramesTooEarly), a safety
+stop or lost link (ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The
+writer is then dropped and reopened on resume, which continues at the first unpublished pose
+(`CaptureWriter.next_pose_index`). Before the first move after such a resume the arm is readied: after LinkLost it
+reconnects (`Arm.reconnect`: fresh interfaces), after ArmFault `Arm.clear_fault` runs (the sim arm clears its
+protective stop; a real UR arm's stop is cleared by the operator on the pendant before `ctl resume`, and the arm
+uploads its control script again if the fault stopped it). The first move of every run starts wherever the arm
+stands: it is checked like the planned moves (`workspace.first_move_problem`), and after a pause the arm's controller
+is asked again about the poses still to come (`Arm.check_poses`).
 """
 
 from __future__ import annotations
@@ -32,9 +36,11 @@ from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
 from .config import DaemonConfig, scan_request
-from .devices import Arm, ArmFault, Frame, LinkLost, Sensor, SensorSilent
+from .devices import Arm, ArmFault, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
 from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
-from .scan_plan import build_plan, check_workspace, sensor_from_tcp
+from .scan_plan import build_plan, sensor_from_tcp
+from .stall import StallWatch
+from .workspace import check_workspace, first_move_problem
 
 log = logging.getLogger("spadscan.daemon")
 STATE_TIMEOUT_S = 5.0  # how long arm.state() may take
@@ -42,6 +48,7 @@ STOP_TIMEOUT_S = 5.0  # how long arm.stop() may take
 FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before the runner gives up on it
 PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may take
 READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting) may take
+STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
 
 
 class _Fault(SpadscanError):
@@ -67,6 +74,9 @@ class ScanRunner:
         self._end: tuple[str, str] | None = None  # (state, reason) the scan ends in when its task is cancelled
         self._changed = asyncio.Event()
         self._io_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
+        self.stalls = StallWatch()
+        self.frame_waits_retried = 0
+        """Frame waits begun again because the daemon itself had not run (see `stall.py`), not the sensor."""
 
     # ---- requests --------------------------------------------------------------------------------------------------
     async def start(self, name: str | None = None, overrides: dict | None = None) -> dict:
@@ -94,6 +104,10 @@ class ScanRunner:
         scan = scan_request(self.cfg.scan, overrides or {})
         start = (await self._arm_state()).tcp_pose
         plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
+        try:
+            await self.arm.check_poses(plan.tcp_poses)  # the controller's own limits, before anything is created
+        except ArmFault as exc:
+            raise ConfigError(f"scan {name!r}: {exc}") from None
         hand_eye = self.cfg.arm.hand_eye
         try:
             # Made here, exclusively: planning took a while, and a folder that appeared meanwhile (another program
@@ -120,7 +134,7 @@ class ScanRunner:
             log.warning("%s", self.last_error)
             raise CaptureError(self.last_error) from None
         self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,
-                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer)
+                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer, controller_checked=True)
         self._launch("scanning")
         log.info("scan %s: %d poses x %d frames -> %s", name, len(plan), scan.frames_per_pose, path)
         return self.status()
@@ -233,6 +247,7 @@ class ScanRunner:
         if self.finished:
             name = next(reversed(self.finished))
             out["last_scan"] = {"name": name, "state": self.finished[name]}
+        out["daemon_stalls"] = {**self.stalls.counters(), "frame_waits_retried": self.frame_waits_retried}
         return out
 
     # ---- the scan task ---------------------------------------------------------------------------------------------
@@ -244,6 +259,14 @@ class ScanRunner:
         self._task = asyncio.create_task(self._run(self.job, paused=(state == "paused")), name=f"scan {self.job.name}")
 
     async def _run(self, job: ScanJob, paused: bool) -> None:
+        watch = asyncio.ensure_future(self.stalls.run())
+        try:
+            await self._run_scan(job, paused)
+        finally:
+            watch.cancel()
+            await asyncio.gather(watch, return_exceptions=True)
+
+    async def _run_scan(self, job: ScanJob, paused: bool) -> None:
         try:
             if paused:
                 await self._wait_resume(job)
@@ -307,6 +330,8 @@ class ScanRunner:
                 self._check_end()
                 if self._pause_requested:
                     break
+                if i == job.next_pose:
+                    await self._check_first_move(job, i)
                 job.in_flight = i
                 t_stop = await self._move(job, i)
                 if job.scan.settle_s > 0:
@@ -334,6 +359,20 @@ class ScanRunner:
                             self._notify()
             finally:
                 job.in_flight = None
+
+    async def _check_first_move(self, job: ScanJob, i: int) -> None:
+        """The first move of a run starts wherever the arm is now (after a pause it may have been jogged anywhere):
+        check it as every planned move was checked, and refuse it with the reason. After a pause or a restart the
+        arm's controller is asked again about the poses still to come (its limits may have changed meanwhile)."""
+        if not job.controller_checked:
+            await self.arm.check_poses(job.tcp_poses[i:], first_index=i)
+            job.controller_checked = True
+        now = np.asarray((await self._arm_state()).tcp_pose, dtype=np.float64)
+        problem = first_move_problem(now, job.tcp_poses[i], self.cfg.arm)
+        if problem:
+            at = ", ".join(f"{v:.3f}" for v in now[:3, 3])
+            raise _Fault(f"{self.arm.name} at [{at}] m is not moved to pose {i}: {problem} ([arm] limits); jog it "
+                         f"back into the workspace near pose {i}, then `spadscan ctl resume`")
 
     def _check_end(self) -> None:
         """Honour an abort or shutdown even if its cancellation was absorbed by a device call that finished at the
@@ -364,26 +403,43 @@ class ScanRunner:
         return time.monotonic()
 
     async def _frames(self, job: ScanJob, i: int, ready_t: float) -> list[Frame]:
-        """K frames that began at or after ready_t; earlier ones (exposed while moving or settling) are dropped."""
+        """K frames that began at or after ready_t; earlier ones (exposed while moving or settling) are dropped.
+        A wait the daemon itself slept through (stopped, suspended: `stall.py`) is begun again, not blamed on the
+        sensor."""
         timeout = self.cfg.sensor.frame_timeout_s
         model = self.sensor.model
         frames: list[Frame] = []
-        deadline = time.monotonic() + timeout
+        since = time.monotonic()
+        deadline, dropped = since + timeout, job.dropped
+        last_arrival = since  # when the sensor last delivered a frame, dropped or kept
         while len(frames) < job.scan.frames_per_pose:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise SensorSilent(f"{self.sensor.name}: no frame that began after the arm settled within "
-                                   f"{timeout:g} s at pose {i}")
+                if self._slept_through(job, i, since):
+                    since = time.monotonic()
+                    deadline, dropped = since + timeout, job.dropped
+                    continue
+                raise self._too_late(job, i, dropped) or SensorSilent(
+                    f"{self.sensor.name}: no frame that began after the arm settled within {timeout:g} s at pose {i}")
             try:
                 async with asyncio.timeout(left + FRAME_GRACE_S):
                     f = await self.sensor.next_frame(left)
-            except TimeoutError:
-                raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
-                                   f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
-            except SensorSilent:
+            except (TimeoutError, SensorSilent) as exc:
+                if self._slept_through(job, i, since):
+                    since = time.monotonic()
+                    deadline, dropped = since + timeout, job.dropped
+                    continue
+                # Frames kept coming until just now (a backlog of early ones): not silence.
+                too_late = self._too_late(job, i, dropped)
+                if too_late is not None and time.monotonic() - last_arrival < timeout / 2:
+                    raise too_late from None
+                if isinstance(exc, TimeoutError):
+                    raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
+                                       f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
                 # The sensor names the rest of the timeout it was given (0.953291 s); the operator set the whole.
                 raise SensorSilent(f"{self.sensor.name}: no complete frame within {timeout:g} s (frame_timeout_s) "
                                    f"at pose {i}") from None
+            last_arrival = time.monotonic()
             if f.t_start < ready_t:
                 job.dropped += 1
                 continue
@@ -391,8 +447,28 @@ class ScanRunner:
                 raise DeviceError(f"{self.sensor.name}: frame of shape {np.shape(f.hists)}, expected "
                                   f"({model.n_zones}, {model.n_bins})")
             frames.append(f)
-            deadline = time.monotonic() + timeout
+            since = time.monotonic()
+            deadline, dropped = since + timeout, job.dropped  # each kept frame starts a wait of its own
         return frames
+
+    def _too_late(self, job: ScanJob, i: int, dropped_before: int) -> FramesTooEarly | None:
+        """The fault when every frame of a wait came but began too early (the count is status' dropped_frames)."""
+        if job.dropped <= dropped_before:
+            return None
+        return FramesTooEarly(f"{self.sensor.name}: {job.dropped - dropped_before} frames in "
+                            f"{self.cfg.sensor.frame_timeout_s:g} s (frame_timeout_s) at pose {i}, none begun after "
+                            f"the arm settled")
+
+    def _slept_through(self, job: ScanJob, i: int, since: float) -> bool:
+        """Whether the daemon itself stood still while it waited for a frame since `since` (then the wait is begun
+        again and counted in status' daemon_stalls)."""
+        stalled = self.stalls.stalled_between(since, time.monotonic())
+        if stalled <= 0:
+            return False
+        self.frame_waits_retried += 1
+        log.warning("scan %s: the daemon itself did not run for %.1f s while it waited for a frame at pose %d "
+                    "(stopped or suspended); waiting for the frame again", job.name, stalled, i)
+        return True
 
     @staticmethod
     def _publish(writer: CaptureWriter, measurements: list[Measurement]) -> None:
@@ -419,16 +495,26 @@ class ScanRunner:
     # ---- pausing, ending -------------------------------------------------------------------------------------------
     async def _fault(self, job: ScanJob, reason: str) -> None:
         """Pause on a fault: stop the arm, drop the writer (reopened on resume), wait for `ctl resume`."""
+        reason += self._stall_note()
         log.warning("scan %s paused: %s", job.name, reason)
         await self._stop_arm()
         job.writer = None
         job.reason = self.last_error = reason
         await self._wait_resume(job)
 
+    def _stall_note(self) -> str:
+        """What to add to a pause's reason when the daemon itself stood still just before (the UR watchdog stops the
+        arm then, a device's timeout may fire): the fault may be the stall's, not the device's."""
+        last = self.stalls.last_stall()
+        if last is None or time.monotonic() - last[1] > STALL_NOTE_S:
+            return ""
+        return f"; the daemon itself had not run for {last[1] - last[0]:.1f} s just before (stopped or suspended)"
+
     async def _wait_resume(self, job: ScanJob) -> None:
         # The event is cleared after each resume and only set while the state is 'paused', so a resume that lands
         # between 'paused' being announced and this wait starting is not lost.
         self._pause_requested = False
+        job.controller_checked = False
         self._set_state("paused")
         await self._resume.wait()
         self._resume.clear()

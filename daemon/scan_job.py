@@ -78,6 +78,8 @@ class ScanJob:
     """The pose being captured, or captured and not yet published (the runner finishes it before it pauses)."""
     arm_fix: str | None = None
     """What the arm needs before its next move after a fault: 'reconnect' (lost link), 'clear' (arm fault) or None."""
+    controller_checked: bool = False
+    """The arm's controller has been asked about the poses still to come since the scan last started or resumed."""
     started: float = field(default_factory=time.monotonic)
     history: deque = field(default_factory=lambda: deque(maxlen=256))
     """(monotonic s, frames published) after each pose, for the rate."""

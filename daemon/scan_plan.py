@@ -1,5 +1,5 @@
-"""Scan plans: the sensor poses of a scan, their visiting order, the TCP poses that carry the sensor there, and a
-workspace check of every TCP pose before the first move.
+"""Scan plans: the sensor poses of a scan, their visiting order, the TCP poses that carry the sensor there, checked
+against the workspace (`workspace.py`) before the first move.
 
 Poses are (P, 4, 4) float64, metres, in the arm's base frame; the sensor looks along its local +z. The hand-eye
 transform X (tool flange -> sensor) links them: sensor pose = TCP pose @ X, so TCP pose = sensor pose @ inv(X).
@@ -15,6 +15,7 @@ import numpy as np
 from spadscan.protocol.errors import ConfigError, SimulationError
 
 from .config import ArmConfig, ScanConfig, scan_to_dict
+from .workspace import check_workspace
 
 
 @dataclass
@@ -115,57 +116,6 @@ def path_length(positions: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()) if len(positions) > 1 else 0.0
 
 
-def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np.ndarray | None = None) -> None:
-    """Raise ConfigError naming the first TCP pose (or straight move) that leaves the arm's workspace.
-
-    Checks every position against the box workspace_min..workspace_max and the reach shell
-    min_reach_m..max_reach_m around the base origin, and every straight move (from `start`, when given) against
-    min_reach_m (a straight line between two reachable points can cut through the base's keep-out sphere).
-    """
-    pos = np.asarray(tcp_poses, dtype=np.float64)[:, :3, 3]
-    n = len(pos)
-    if not np.all(np.isfinite(pos)):
-        i = int(np.flatnonzero(~np.isfinite(pos).all(axis=1))[0])
-        raise ConfigError(f"{where}: pose {i} of {n}: TCP position is not finite")
-    bad = np.zeros(n, dtype=bool)
-    reason = [""] * n
-    if arm.workspace_min is not None:
-        lo, hi = arm.workspace_min, arm.workspace_max
-        for i in np.flatnonzero(((pos < lo) | (pos > hi)).any(axis=1)):
-            axis = int(np.flatnonzero((pos[i] < lo) | (pos[i] > hi))[0])
-            side, limit = ("below workspace_min", lo[axis]) if pos[i, axis] < lo[axis] else \
-                ("above workspace_max", hi[axis])
-            bad[i], reason[i] = True, f"{'xyz'[axis]} = {pos[i, axis]:.3f} m is {side} {limit:.3f} m"
-    reach = np.linalg.norm(pos, axis=1)
-    for i in np.flatnonzero(~bad & (reach < arm.min_reach_m)):
-        bad[i], reason[i] = True, f"its distance {reach[i]:.3f} m from the base is below min_reach_m {arm.min_reach_m}"
-    if arm.max_reach_m is not None:
-        for i in np.flatnonzero(~bad & (reach > arm.max_reach_m)):
-            bad[i], reason[i] = True, (f"its distance {reach[i]:.3f} m from the base exceeds max_reach_m "
-                                       f"{arm.max_reach_m}")
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        p = ", ".join(f"{v:.3f}" for v in pos[i])
-        raise ConfigError(f"{where}: pose {i} of {n}: TCP at [{p}] m is unreachable: {reason[i]} ([arm] limits)")
-    if arm.min_reach_m > 0 and n:
-        a = np.vstack([start[None], pos[:-1]]) if start is not None else pos[:-1]
-        b = pos if start is not None else pos[1:]
-        d = _segment_origin_distance(a, b)
-        hits = np.flatnonzero(d < arm.min_reach_m)
-        if hits.size:
-            j = int(hits[0]) + (0 if start is not None else 1)
-            raise ConfigError(f"{where}: the straight move to pose {j} of {n} passes {d[hits[0]]:.3f} m from the "
-                              f"base, inside min_reach_m {arm.min_reach_m} ([arm] limits)")
-
-
-def _segment_origin_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance from the origin to each segment a[i]-b[i] (n, 3) -> (n,)."""
-    ab = b - a
-    L2 = np.maximum(np.sum(ab * ab, axis=1), 1e-300)
-    t = np.clip(-np.sum(a * ab, axis=1) / L2, 0.0, 1.0)
-    return np.linalg.norm(a + t[:, None] * ab, axis=1)
-
-
 def build_plan(scan: ScanConfig, arm: ArmConfig, *, start_tcp: np.ndarray | None = None,
                where: str = "scan") -> ScanPlan:
     """Generate, order and check a scan plan; start_tcp (4, 4) is where the arm is now, when known."""
@@ -183,7 +133,7 @@ def build_plan(scan: ScanConfig, arm: ArmConfig, *, start_tcp: np.ndarray | None
     else:
         perm = np.arange(len(sensor))
     sensor, tcp = sensor[perm], tcp[perm]
-    check_workspace(tcp, arm, where, None if start_tcp is None else np.asarray(start_tcp, float)[:3, 3])
+    check_workspace(tcp, arm, where, None if start_tcp is None else np.asarray(start_tcp, float))
     description = {**scan_to_dict(scan), "travel_m": round(path_length(tcp[:, :3, 3]), 4),
                    "generated_order": perm.tolist()}
     return ScanPlan(sensor, tcp, description)

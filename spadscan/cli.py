@@ -18,11 +18,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("evaluate", "compare a mesh with ground truth: Chamfer, accuracy, completeness, F-score"),
     "daemon": ("daemon", "run the acquisition daemon (arm + sensor) from a rig config"),
     "ctl": ("ctl", "talk to a running daemon over its control socket"),
+    "calibrate": ("calibrate", "calibrate the rig from a capture (hand-eye: the flange-to-sensor transform)"),
     "worker": ("worker", "watch a captures root and reconstruct every complete scan"),
     "reconstruct": ("reconstruct", "reconstruct one capture into a mesh and a report"),
     "baseline": ("baseline", "run a baseline reconstruction (reprojection, space carving)"),
     "demo": ("demo", "run the whole loop on simulated devices: daemon -> capture -> worker -> mesh"),
     "dashboard": ("dashboard", "serve a local web page that follows the scans, the queue and the reconstructions"),
+    "sweep": ("sweep", "sensitivity sweep on Dask: simulate -> reconstruct -> baselines -> metrics over a grid"),
+    "sweep-plot": ("sweep_plot", "draw a sweep's Figure A (Chamfer against each parameter) and its HTML table"),
 }
 
 

@@ -1,5 +1,9 @@
 """The whole loop on simulated devices: daemon -> capture folder -> worker -> mesh, each half in its own process.
 
+By default the worker reconstructs live (`spadscan worker --live`): it starts on the scan's first chunk, its state
+(recon/live/status.json) is shown while the scan runs, and once the scan is complete the final reconstruction
+continues from the live fit. `live=False` runs today's offline job once the scan is complete.
+
 The demo drives the same commands a lab operator uses (`spadscan daemon`, the control socket, `spadscan worker`), so
 it proves the system end to end. Every process it starts it stops again, also on Ctrl-C or an error.
 """
@@ -46,7 +50,11 @@ class DemoOptions:
     """Sensor poses in the scan. 128: on the goblet, 64 views leave the fit short of data and its result depends on
     the seed (1.8-2.3 mm against 0.9-1.1 mm with 128; benchmarks/RESULTS.md); the scan itself takes seconds."""
     budget_s: float = 120.0
-    """Wall-clock budget of the reconstruction (s)."""
+    """Wall-clock budget of the whole reconstruction job, from its start to its report (s); with `live`, of the final
+    run that continues from the live fit once the scan is complete."""
+    live: bool = True
+    """Reconstruct while the scan runs (`spadscan worker --live`) and show the live state; False: reconstruct once
+    the scan is complete (`spadscan worker --once`)."""
     arm: str = "sim"
     """'sim' (simulated arm) or 'ur-sim' (the real ur_rtde client against a simulated UR controller on loopback)."""
     sensor: str = "lcspc-sim"
@@ -237,11 +245,14 @@ def _wait_for_daemon(sock: Path, proc: subprocess.Popen, log: Path, timeout_s: f
     raise _failed(f"the daemon did not open its control socket within {timeout_s:.0f} s", log)
 
 
-def _scan(sock: Path, name: str, opts: DemoOptions, progress) -> dict:
+def _scan(sock: Path, name: str, opts: DemoOptions, progress, watch=None) -> dict:
+    """Scan and wait for its end; `watch()` runs at every poll (the live state's display)."""
     call(sock, "scan", name=name, options={"views": opts.views})
     deadline = time.monotonic() + opts.stage_timeout_s
     last = 0
     while time.monotonic() < deadline:
+        if watch is not None:
+            watch()
         st = call(sock, "status", timeout_s=10.0)
         done = int(st.get("pose") or 0) if st.get("scan") == name else last
         progress.update(max(0, done - last))
@@ -271,6 +282,18 @@ def running_job_progress(captures: Path):
     return None
 
 
+def finished_job_progress(scan_dir: Path):
+    """The last progress (dashboard.job_progress.JobProgress) in the log of the scan's newest published result, or
+    None."""
+    from spadscan.dashboard.job_progress import read_progress
+
+    try:
+        report = _find_report(scan_dir)
+    except DemoError:
+        return None
+    return read_progress(report.parent / "job.log")
+
+
 def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path, progress=None) -> None:
     """Run a worker over the captures until it has reconstructed them; `progress` receives the running job's
     progress (or None) about twice a second."""
@@ -290,6 +313,81 @@ def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path
                 progress(running_job_progress(captures))
     if code != 0:
         raise _failed(f"the worker exited with code {code}", log)
+
+
+def _start_live_worker(opts: DemoOptions, captures: Path, procs: Processes, logs: Path) -> subprocess.Popen:
+    """A worker that reconstructs scans while they are recorded; the final run gets the demo's budget."""
+    return procs.start("worker", _spadscan("worker", "--root", str(captures), "--live", "--processes", "1",
+                                           "--budget-s", f"{opts.budget_s:g}", "--poll-s", "0.5"),
+                       logs / "worker.log")
+
+
+class LiveWatch:
+    """Shows a live reconstruction's state (recon/live/status.json) as the demo runs: one line through `say` each
+    time its state changes, and its summary on the bar in front (`bar`, set by the demo stage by stage)."""
+
+    def __init__(self, capture: Path, say):
+        self.capture, self.say = capture, say
+        self.bar = None
+        self.state = None
+        self.status = None
+
+    def __call__(self):
+        """The current status (LiveStatus), or None while there is none (or it cannot be read)."""
+        from spadscan.protocol.live_status import read_status, status_path
+
+        try:
+            status = read_status(status_path(self.capture))
+        except SpadscanError:
+            return None
+        self.status = status
+        if status.state != self.state:
+            self.say(status.summary())
+            self.state = status.state
+        if self.bar is not None and hasattr(self.bar, "set_postfix_str"):
+            chamfer = "" if status.chamfer_mm is None else f", Chamfer {status.chamfer_mm:.2f} mm"
+            self.bar.set_postfix_str(f"live: {status.views_used}/{status.views_published} views, "
+                                     f"{status.steps} steps{chamfer}")
+        return status
+
+
+def scan_job_state(captures: Path, scan: str) -> str | None:
+    """The queue's state of scan `scan`'s job (a scan has one job; 'queued', 'running', 'done' or 'failed'), or
+    None while none is queued."""
+    from spadscan.worker.queue import Queue
+
+    if not (captures / ".queue").is_dir():
+        return None
+    jobs = Queue.for_root(captures, create=False).job_paths()
+    states = [state for job_id, (state, _) in jobs.items() if job_id.rpartition("-")[0] == scan]
+    return states[0] if states else None
+
+
+def _finish_live(opts: DemoOptions, captures: Path, scan: str, worker: subprocess.Popen, logs: Path,
+                 watch: LiveWatch, progress=None) -> None:
+    """Wait until the worker has published the scan's final result (the live status says `done`; the queue says so
+    too, also for a scan so quick that its job ran as an ordinary one); `progress` receives the running job's
+    progress (or None) about twice a second."""
+    log = logs / "worker.log"
+    limit = opts.stage_timeout_s + opts.budget_s
+    deadline = time.monotonic() + limit
+    while True:
+        status = watch()
+        job = scan_job_state(captures, scan)
+        if (status is not None and status.state == "done") or job == "done":
+            watch()  # the result's own line, when the live status has it by now
+            return
+        if job == "failed":
+            raise _failed("the reconstruction failed", log)
+        if status is not None and status.state in ("aborted", "stopped"):
+            raise _failed(f"the live reconstruction {status.state}: {status.note or 'no reason given'}", log)
+        if worker.poll() is not None:
+            raise _failed(f"the worker exited with code {worker.returncode}", log)
+        if time.monotonic() > deadline:
+            raise _failed(f"the live reconstruction did not finish within {limit:.0f} s", log)
+        if progress is not None:
+            progress(running_job_progress(captures))
+        time.sleep(0.5)
 
 
 def _free_port(host: str, port: int) -> int:
@@ -395,21 +493,33 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         if opts.dashboard:
             dashboard = _start_dashboard(opts, captures, procs, logs)
             say(f"dashboard: {dashboard} (open it in a browser; it stops with the demo)")
+        watch = LiveWatch(captures / name, say) if opts.live else None
+        worker = _start_live_worker(opts, captures, procs, logs) if opts.live else None
         stages["start_s"] = time.monotonic() - t0
 
         t = time.monotonic()
         bar = progress_factory(opts.views, "scan (poses)", "pose")
         try:
-            _scan(sock, name, opts, bar)
+            if watch is not None:
+                watch.bar = bar
+            _scan(sock, name, opts, bar, watch)
         finally:
             bar.close()
         stages["scan_s"] = time.monotonic() - t
         call(sock, "shutdown")
 
         t = time.monotonic()
-        bar = progress_factory(opts.budget_s, "reconstruction (training s)", "s")
+        desc = "final reconstruction, from the live fit (training s)" if opts.live else "reconstruction (training s)"
+        bar = progress_factory(opts.budget_s, desc, "s")
         try:
-            _reconstruct(opts, captures, procs, logs, ReconProgress(bar))
+            show = ReconProgress(bar)
+            if watch is not None:
+                watch.bar = None  # the final run's own progress goes on this bar
+                _finish_live(opts, captures, name, worker, logs, watch, show)
+            else:
+                _reconstruct(opts, captures, procs, logs, show)
+            # The job's last progress, from its published log: a short job may end between two looks at its live one.
+            show(finished_job_progress(captures / name))
         finally:
             bar.close()
         stages["reconstruct_s"] = time.monotonic() - t
@@ -434,6 +544,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         "fscore_5mm": report.get("fscore_5mm"),
         "preset": report.get("preset"),
         "seconds": {k: round(v, 2) for k, v in stages.items()},
+        "live": report.get("live") if opts.live else None,
         "dashboard": dashboard,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")

@@ -18,4 +18,7 @@ fi
 python -c "import torch" 2>/dev/null || python -m pip install -q "torch==2.13.0"
 python -m pip install -q -e ".[test]"
 bash tools/check_imports.sh
-python -m pytest "$@"
+# Two test processes, each taking whole files (their module fixtures are built once): most tests wait on the
+# processes they start, so two at once fit two cores. `-n 0` after the command runs everything in one process.
+# (pytest-benchmark, where a machine has it, would only warn that it cannot time under xdist: none of ours uses it.)
+python -m pytest -n 2 --dist loadfile -p no:benchmark "$@"

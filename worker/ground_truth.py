@@ -19,7 +19,11 @@ two, where no histogram tells object from table."""
 
 TABLE_AREA_SHARE = 0.25
 """A table slab is one level of upward-facing triangles holding more than this share of the mesh's whole area (its
-top; its bottom and sides hold most of the rest). An object's own flat tops hold far less of it."""
+top; its bottom and sides hold most of the rest), with an object standing on it (see OBJECT_ABOVE_M). An object's own
+flat tops hold far less of it, or have nothing above them (a stool's flat seat)."""
+
+OBJECT_ABOVE_M = 0.005
+"""A level is a table's top only where part of the mesh rises at least this far (metres) above it."""
 
 _SPLIT_M = 0.002
 """The ground truth's faces are split to this size (metres) before the cut, which keeps whole triangles: so that it
@@ -82,7 +86,10 @@ def table_top_z(mesh) -> float | None:
     level_area = np.bincount(inverse, weights=areas[up])
     if level_area.max() <= TABLE_AREA_SHARE * areas.sum():
         return None
-    return float(levels[np.argmax(level_area)])
+    top = float(levels[np.argmax(level_area)])
+    if float(mesh.vertices[:, 2].max()) < top + OBJECT_ABOVE_M:
+        return None  # the mesh's own flat top, nothing stands on it
+    return top
 
 
 def cut_above(mesh, z: float):

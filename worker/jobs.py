@@ -30,6 +30,7 @@ from typing import Callable
 
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
+from .budget import process_started
 from .outputs import RESULT_FILES
 
 ID_RE = re.compile(r"[^A-Za-z0-9._-]+")
@@ -45,6 +46,10 @@ def job_id_for(scan_name: str, preset: str) -> str:
     clean = ID_RE.sub("_", f"{scan_name}-{preset}").strip(".") or "job"
     return clean[:200]
 
+
+MIN_RECON_BUDGET_S = 0.1
+"""The least budget a job's reconstruction is given when checking the capture and loading torch took the job's whole
+budget: it then makes one step and the coarsest mesh, and ends as close to the budget as it can."""
 
 CHANGEABLE = ("budget_s", "steps", "device", "seed")
 """Options a failed job may be queued again with (Queue.retry_failed); its preset is part of its id, so it stays."""
@@ -69,9 +74,15 @@ class Job:
     """'auto', 'cpu' or 'cuda'."""
     seed: int = 0
     created_utc: str = ""
+    live: bool = False
+    """Reconstruct while the scan is recorded (`spadscan worker --live`): the job starts at the scan's first chunk,
+    follows it and finishes from the live state (`worker/live/job.py`); `budget_s` then bounds that final run."""
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        data = asdict(self)
+        if not self.live:
+            del data["live"]  # an ordinary job's file is as it always was
+        return data
 
     @classmethod
     def from_dict(cls, data: dict, where: str = "job") -> "Job":
@@ -154,11 +165,22 @@ def _export_placed(spec: str, offset, path: Path) -> tuple[Path | None, str | No
         return None, f"{spec}{moved}: {exc}; no metrics"
 
 
-def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -> dict:
+def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *,
+                started: float | None = None) -> dict:
     """Reconstruct the job's capture into the folder `out` (created), to be published as `result_path(job, root)`:
     paths into `out` that the results record (job.json, report.json, report.html) name the published folder. Returns
     the reconstruction's report, with `ground_truth_note` when the capture names a ground truth that cannot be used
-    and `capture_counts_note` when some of its histograms are implausible (both also added to report.json)."""
+    and `capture_counts_note` when some of its histograms are implausible (both also added to report.json).
+
+    The job's time budget bounds the whole job from `started` (a time.perf_counter reading; default: now): the
+    reconstruction gets what is left of it once the capture is checked, torch is loaded and the ground truth is
+    placed (report.json: `job_budget_s`). A live job (`job.live`) follows its scan first (worker/live/job.py); its
+    final run is an ordinary job, its budget counted from the scan's end."""
+    if job.live:
+        from .live.job import execute_live_job
+
+        return execute_live_job(job, root, out, recon)
+    started = time.perf_counter() if started is None else started
     scan = scan_path(job, root)
     manifest, counts_note = check_capture(scan)
     if counts_note:
@@ -173,12 +195,14 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None) -
     if gt_note:
         print(f"ground truth: {gt_note}", file=sys.stderr, flush=True)
     recon = recon or load_recon()
-    report = dict(recon(scan, out, preset=job.preset, budget_s=job.budget_s, steps=job.steps, gt=gt,
+    budget_s = None if job.budget_s is None else max(MIN_RECON_BUDGET_S, job.budget_s - (time.perf_counter() - started))
+    report = dict(recon(scan, out, preset=job.preset, budget_s=budget_s, steps=job.steps, gt=gt,
                         device=job.device, seed=job.seed) or {})
     moved = {k: str(published_path(Path(v), out, final)) for k, v in report.items()
              if isinstance(v, str) and Path(v).is_relative_to(out)}
     extra = {**moved, **({"ground_truth_note": gt_note} if gt_note else {}),
-             **({"capture_counts_note": counts_note} if counts_note else {})}
+             **({"capture_counts_note": counts_note} if counts_note else {}),
+             **({"job_budget_s": job.budget_s} if job.budget_s is not None else {})}
     if extra:
         report.update(extra)
         add_to_report(out, extra)
@@ -347,9 +371,10 @@ def child_main(argv: list[str] | None = None) -> int:
     _exit_with_parent(args.parent_pid)
     outcome = Path(args.outcome)
     t0 = time.monotonic()
+    started = process_started()  # the job's budget counts from its process's start
     try:
         job = Job.from_dict(json.loads(args.job))
-        report = execute_job(job, Path(args.root), Path(args.out), load_recon(args.recon))
+        report = execute_job(job, Path(args.root), Path(args.out), load_recon(args.recon), started=started)
     except SpadscanError as exc:
         _write_outcome(outcome, {"ok": False, "kind": "input", "error": str(exc)})
         print(f"job failed: {exc}", file=sys.stderr)
@@ -358,8 +383,8 @@ def child_main(argv: list[str] | None = None) -> int:
         traceback.print_exc()
         _write_outcome(outcome, {"ok": False, "kind": "crash", "error": f"{type(exc).__name__}: {exc}"})
         return EXIT_CRASH
-    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note", "capture_counts_note")
-               if k in report}
+    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note", "capture_counts_note",
+                                      "converged", "warnings") if k in report}
     _write_outcome(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary})
     return EXIT_DONE
 

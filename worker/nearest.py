@@ -37,25 +37,37 @@ def nearest_samples(queries: np.ndarray, data: np.ndarray, *, spacing_m: float |
         spacing_m = extent / math.sqrt(max(len(data), 1))
     near = NEAR_SPACINGS * spacing_m
     dist, idx = np.full(len(queries), np.inf), np.zeros(len(queries), np.int64)
-    maybe_near = _maybe_near(queries, data, near)
+    patches = _median_split(data, LEAF) if len(queries) >= 4 * LEAF and len(data) >= 4 * LEAF else None
+    maybe_near = _maybe_near(queries, data, near, patches)
     if maybe_near.any():
-        tree = cKDTree(data) if tree is None else tree
+        tree = kd_tree(data) if tree is None else tree
         d, i = tree.query(queries[maybe_near], distance_upper_bound=near if near > 0 else np.inf, workers=-1)
         dist[maybe_near], idx[maybe_near] = d, np.minimum(i, len(data) - 1)
     far = ~np.isfinite(dist)
     if far.any():
-        dist[far], idx[far] = _far_nearest(queries[far], data)
+        dist[far], idx[far] = _far_nearest(queries[far], data, patches)
     return dist, idx
 
 
-def _maybe_near(queries: np.ndarray, data: np.ndarray, near: float) -> np.ndarray:
+def kd_tree(points: np.ndarray) -> cKDTree:
+    """A KD-tree of surface samples, built for nearest-sample queries from another surface.
+
+    Sliding-midpoint splits with boxes that are not shrunk to their points (balanced_tree=False,
+    compact_nodes=False): for queries millimetres to centimetres off the samples' surface, scipy's defaults take
+    several times longer for the same exact answers (a goblet's reconstruction
+    against its ground truth, 300,000 samples each way, 34 s against 8 s for a plain query)."""
+    return cKDTree(points, balanced_tree=False, compact_nodes=False)
+
+
+def _maybe_near(queries: np.ndarray, data: np.ndarray, near: float, patches: np.ndarray | None) -> np.ndarray:
     """(m,) bool: False for queries certainly farther than `near` from every sample. Even a bounded KD-tree search
     is slow for those (its upper boxes span the hollow the query sits in), so they skip it. Judged per block of
-    queries against patch centroids: |q - p| >= |c_block - c_patch| - r_block - r_patch."""
+    queries against patch centroids: |q - p| >= |c_block - c_patch| - r_block - r_patch. `patches`: the data's
+    (`_median_split`), None for sets too small to split."""
     out = np.ones(len(queries), bool)
-    if len(queries) < 4 * LEAF or len(data) < 4 * LEAF:
+    if patches is None:
         return out
-    patches, blocks = _median_split(data, LEAF), _median_split(queries, LEAF)
+    blocks = _median_split(queries, LEAF)
     pc, bc = data[patches].mean(1), queries[blocks].mean(1)
     r_patch = float(np.linalg.norm(data[patches] - pc[:, None], axis=2).max())
     r_block = np.linalg.norm(queries[blocks] - bc[:, None], axis=2).max(1)
@@ -97,14 +109,15 @@ def _patch_bounds(pts: np.ndarray) -> dict:
             "omin": off.min(1), "omax": off.max(1), "radius": radius}
 
 
-def _far_nearest(queries: np.ndarray, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _far_nearest(queries: np.ndarray, data: np.ndarray,
+                 patches: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact nearest samples for queries far from `data`.
 
     Queries are grouped into small blocks and samples into patches. Per block, the patch whose centroid is nearest
     the block's centre gives every query an upper bound (its nearest sample there); the patches whose centroid lies
     within that bound plus both radii are then checked against lower bounds (boxes, and the slab along the patch's
     normal), and only those within a query's own bound are searched."""
-    patches = _median_split(data, LEAF)
+    patches = _median_split(data, LEAF) if patches is None else patches
     pp = data[patches]
     pb = _patch_bounds(pp)
     m = len(queries)

@@ -22,6 +22,7 @@ from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
 from .jobs import CHANGEABLE, completion, existing_result, result_path, scratch_path
+from .live.done import mark_live_done
 from .publishing import own_result, publish_claim, reconcile
 from .queue import SEP, Claim, Queue
 from .watcher import ScanReport, scan_once, watch
@@ -147,6 +148,8 @@ class Worker:
     def _on_scan(self, report: ScanReport) -> None:
         for name in report.queued:
             self.log(f"queued scan {name}")
+        for name in report.live:
+            self.log(f"queued scan {name} as a live job (it is still being recorded)")
         for name in report.unreadable:
             self.log(f"queued scan {name} (its manifest is unreadable: the job will say why)")
         for name in report.skipped:
@@ -252,12 +255,18 @@ class Worker:
             self.log(f"{job.id}: finished, but its lease had been taken over; result dropped")
             return
         final, aside = published
+        if job.live:
+            mark_live_done(job, self.root, final, self.log)
         self.settled[job.id] = "done"
         extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
         if summary.get("ground_truth_note"):
             extra += f" (ground truth: {summary['ground_truth_note']})"
         if summary.get("capture_counts_note"):
             extra += f" (warning: {summary['capture_counts_note']})"
+        if summary.get("converged") is False:
+            extra += ", not converged"
+        for warning in summary.get("warnings") or []:
+            extra += f" (warning: {warning})"
         self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}")
         if aside is not None:  # written there while the job ran (another worker on another queue, say)
             self.log(f"{job.id}: {final} held a result that appeared while the job ran; moved it to {aside}")

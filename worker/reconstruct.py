@@ -8,6 +8,7 @@ is its first half (the resolved config, the loaded capture, the model, the plan)
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +22,11 @@ from spadscan.protocol.capture_reader import check_capture_counts
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
+from . import end_of_run
+from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
+                     PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within, metric_points_within,
+                     training_budget)
+from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
 from .outputs import capture_state_note, export_mesh
@@ -33,10 +39,15 @@ from .recon.trainer import train
 from .report import pictures
 from .report.report_html import write_report_html
 from .report.report_json import json_safe, write_report
-from .threads import check_threads, machine_cores
+from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 
 DEVICES = ("auto", "cpu", "cuda")
 FIT_VIEWS = 4
+"""Views the fit picture shows."""
+NOISE_VIEWS = 8
+"""Views the fit is compared with the photon noise on (end_of_run.fit_noise)."""
+NOISE_RENDERS = 4
+"""Renders of each of them averaged for that comparison."""
 
 
 def resolve_device(device: str) -> torch.device:
@@ -89,9 +100,13 @@ class Run:
 
 
 def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, steps: int | None,
-               budget_s: float | None, seed: int, log: Callable[[str], None]) -> Run:
+               budget_s: float | None, seed: int, log: Callable[[str], None], defaulted: bool = False,
+               make: Callable | None = None) -> Run:
     """Load the capture and build the preset's model: what every run does before it trains. With neither `steps`
-    nor `budget_s`, the preset's defaults bound the run."""
+    nor `budget_s`, the preset's defaults bound the run (`defaulted`: the caller already put them in); a default
+    of days on a CPU is warned about once the capture has loaded (a bad capture is one error line, nothing more).
+    `make`: a model factory (scene, config, device, plan) -> model in place of the preset's (a live job's final run
+    starts its model from the live fit)."""
     t0 = time.perf_counter()
     check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
@@ -100,28 +115,34 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     if state_note:
         log(f"warning: {state_note}")
     if steps is None and budget_s is None:
-        steps, budget_s = config.default_steps, config.default_budget_s
-        if budget_s is None and device.type == "cpu" and (steps or 0) >= LONG_CPU_STEPS:
-            log(f"warning: preset {config.preset!r} runs {steps:,} steps by default: days on a CPU (--budget-s or "
-                f"--steps to bound it)")
+        steps, budget_s, defaulted = config.default_steps, config.default_budget_s, True
+    if defaulted:
+        _warn_long_default(config, device, steps, budget_s, log)
     plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
-    model = make_model(scene, config, device, plan)
+    model = (make or make_model)(scene, config, device, plan)
     return Run(config, scene, model, plan, device, state_note, time.perf_counter() - t0)
 
 
 def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budget_s: float | None = None,
                         steps: int | None = None, gt: Path | None = None, device: str = "auto", seed: int = 0,
                         progress: bool = True, overrides: dict | None = None, threads: int | None = None,
-                        log: Callable[[str], None] | None = None) -> dict:
+                        log: Callable[[str], None] | None = None, started: float | None = None,
+                        clock: Callable[[], float] = time.perf_counter,
+                        cpu_clock: Callable[[], float] = time.process_time, make: Callable | None = None) -> dict:
     """Reconstruct `capture` into folder `out` with preset `preset`; returns the report dict (also report.json).
 
-    The run stops after `steps` steps or `budget_s` seconds of training and checkpoint evaluation, whichever comes
-    first (neither: the preset's defaults). `gt`: a ground-truth mesh file; adds Chamfer, accuracy, completeness,
-    F-score and normal errors, and Chamfer at every trace checkpoint. `overrides`: dotted config keys to change (see
-    config.with_overrides). `threads`: torch's CPU threads (default: as torch starts, OMP_NUM_THREADS or the
-    cores). `log`: receives a line per stage after training (mesh, metrics, pictures) and warnings."""
+    `budget_s` bounds the whole run, from `started` (a `clock()` reading; default: now) to the report: set-up,
+    training, mesh, metrics and pictures share it (budget.py: the mesh is coarser and the metrics use fewer points
+    when time is short, and the report says so). `steps` bounds the training steps. Neither: the preset's defaults.
+    `gt`: a ground-truth mesh file; adds Chamfer, accuracy, completeness, F-score and normal errors, and Chamfer at
+    every trace checkpoint. `overrides`: dotted config keys to change (see config.with_overrides). `threads`:
+    torch's CPU threads, kept for the whole run; without it (and without a user's OMP_NUM_THREADS) a CPU run
+    chooses between torch's threads and one as it goes (threads.ThreadGovernor). `log`: receives a line per stage
+    after training (mesh, metrics, pictures) and warnings. The report says whether the run converged and why its
+    result may be doubtful (`converged`, `warnings`: end_of_run.py). `clock` (wall seconds) and `cpu_clock` (this
+    process's CPU seconds) time the run; tests inject their own."""
     log = log or (lambda line: None)
-    wall0 = time.perf_counter()
+    run_clock = RunClock(None, clock() if started is None else started, clock)
     _check_run_args(budget_s, steps, seed)
     if threads is not None:
         torch.set_num_threads(check_threads(threads))
@@ -133,47 +154,149 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     truth = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
     if truth is not None and truth.units_read == "mm":
         log(f"ground truth {gt}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)")
-    run = set_up_run(capture, config, dev, steps=steps, budget_s=budget_s, seed=seed, log=log)
-    model, scene, plan = run.model, run.scene, run.plan
+    defaulted = steps is None and budget_s is None
+    if defaulted:
+        steps, budget_s = config.default_steps, config.default_budget_s
+    run_clock.budget_s = budget_s
+    costs = EndCosts(fixed_s=FIXED_S + (NORMALS_PICTURE_S if truth is not None else 0.0))
+    checkpoint_cost = (config.trace_mesh_resolution, config.trace_points) if truth is not None else None
+    end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
+    run = set_up_run(capture, config, dev, steps=steps, budget_s=training_budget(run_clock, end_s), seed=seed,
+                     log=log, defaulted=defaulted, make=make)
+    model, scene = run.model, run.scene
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder
+    if budget_s is not None:
+        _probe_end_costs(model, truth, costs, clock)
+        end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
+    plan = RunPlan(steps=run.plan.steps, budget_s=training_budget(run_clock, end_s), seed=run.plan.seed)
 
+    # The least the stages after training can take: the coarsest mesh, the fewest points, the pictures.
+    min_end = costs.end_s(MIN_MESH_RESOLUTION, MIN_METRIC_POINTS if truth else None)
+    governor = None
+    if dev.type == "cpu" and not threads_fixed(threads, os.environ) and torch.get_num_threads() > 1:
+        governor = ThreadGovernor(torch.get_num_threads(), torch.set_num_threads)
     evaluate = None
     if truth is not None:
         evaluate = lambda: _checkpoint_metrics(model, truth, config)  # noqa: E731
     result = train(model, plan, checkpoints=config.trace_checkpoints, evaluate=evaluate, progress=progress,
                    desc=f"reconstruct ({preset})", score_note=f"checkpoint {checkpoint_scoring(config, short=True)}",
-                   early_stop=config.early_stop)
+                   early_stop=config.early_stop, on_step=None if governor is None else governor.step_done,
+                   clock=clock, cpu_clock=cpu_clock,
+                   eval_estimate_s=0.0 if checkpoint_cost is None else costs.checkpoint_s(*checkpoint_cost),
+                   end_evaluation=None if budget_s is None else lambda seconds: seconds <= run_clock.left() - min_end)
+    stages = {"set_up_s": run_clock.elapsed() - result.seconds - result.eval_seconds}
+    t_end = clock()
 
-    log(f"extracting the mesh ({config.mesh_resolution} cells a side)")
-    mesh = model.extract_mesh(config.mesh_resolution)
+    notes: list[str] = []
+    resolution = mesh_resolution_within(costs, config.mesh_resolution,
+                                        run_clock.left() - costs.fixed_s - (costs.metrics_s(MIN_METRIC_POINTS)
+                                                                            if truth else 0.0))
+    if resolution < config.mesh_resolution:
+        notes.append(f"the time budget was short: the mesh was extracted at {resolution} cells a side, not "
+                     f"{config.mesh_resolution}")
+    log(f"extracting the mesh ({resolution} cells a side)")
+    mesh = model.extract_mesh(resolution)
     export_mesh(mesh, out / "mesh.ply", vertex_normal=True)
+    stages["mesh_s"] = clock() - t_end
     report = _report(capture, preset, dev, config, scene, model, result, plan, scored=truth is not None)
     report["capture_state"] = scene.state
+    report["mesh_resolution"] = resolution
     if run.state_note:
         report["capture_note"] = run.state_note
     if truth is not None:
-        log(f"metrics against the ground truth ({config.metrics_points:,} points per mesh)")
+        scored = truth.scored(mesh)  # cut once for the metrics and the normals picture
+        points = _metric_points(scored, truth, config, costs, run_clock, clock, seed)
+        if points < config.metrics_points:
+            notes.append(f"the time budget was short: the metrics used {points:,} points per mesh, not "
+                         f"{config.metrics_points:,} (a coarser estimate)")
+        log(f"metrics against the ground truth ({points:,} points per mesh)")
         if truth.note():
             log(f"scoring {truth.note()}")
         report.update(truth.report_fields())
-        scored = truth.scored(mesh)  # cut once for the metrics and the normals picture
-        report.update(mesh_metrics(scored, truth.mesh, n_points=config.metrics_points, seed=int(seed)).to_dict())
-        report["chamfer_scoring"] = final_scoring(config)
-        vertex_err = pictures.vertex_normal_error_deg(scored, truth.mesh)
+        report.update(mesh_metrics(scored, truth.mesh, n_points=points, seed=int(seed)).to_dict())
+        report["chamfer_scoring"] = final_scoring(config, resolution, points)
+        vertex_err = pictures.vertex_normal_error_deg(scored, truth.mesh, n_gt=points)
         report["vertex_normal_error_deg"] = {"mean": float(vertex_err.mean()),
                                              "median": float(np.median(vertex_err))}
         pictures.normals_png(scored, vertex_err, out / "normals.png")
         report["ground_truth"] = str(gt)
+        stages["metrics_s"] = clock() - t_end - stages["mesh_s"]
     log("pictures and report")
-    _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
+    t_pictures = clock()
+    fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
+    facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
+                     model_converged=_model_converged(result.last), data_terms=result.data_terms,
+                     device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
+                     budget_notes=notes)
+    report["converged"] = end_of_run.converged(facts)
+    report["warnings"] = end_of_run.warnings(facts)
+    report["fit_to_noise"] = None if fit is None else fit.to_dict()
+    report["cpu_cores_used"] = end_of_run.cpu_share(facts)
+    report["threads"] = (governor.summary() if governor is not None else
+                         {"fixed": torch.get_num_threads()} if dev.type == "cpu" else None)
+    report["budget"] = {"budget_s": budget_s, "training_budget_s": plan.budget_s,
+                        "end_estimate_s": end_s, "timed": costs.probed, "notes": notes,
+                        "stages": {**stages, "pictures_s": clock() - t_pictures}}
+    for line in report["warnings"]:
+        log(f"warning: {line}")
     report["files"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
     report["files"] = sorted(set(report["files"]) | {"report.json", "report.html"})
-    report["wall_seconds"] = time.perf_counter() - wall0
+    report["wall_seconds"] = run_clock.elapsed()
     write_report(out, report)
     report = json_safe(report)
     write_report_html(report, out)
     return report
+
+
+def _warn_long_default(config: ReconConfig, dev: torch.device, steps, budget_s, log) -> None:
+    if budget_s is None and dev.type == "cpu" and (steps or 0) >= LONG_CPU_STEPS:
+        log(f"warning: preset {config.preset!r} runs {steps:,} steps by default: days on a CPU (--budget-s or "
+            f"--steps to bound it)")
+
+
+def _model_converged(last: dict) -> bool | None:
+    """The model's own convergence test at its last step, or None when it reports none (the paper preset)."""
+    value = (last or {}).get("converged")
+    return None if value is None else bool(value)
+
+
+def _probe_end_costs(model, truth, costs: EndCosts, clock) -> None:
+    """Time a small mesh extraction (and with a ground truth, small metrics) on this model and machine, so that the
+    budget keeps back what the final mesh and metrics will take here."""
+    timings = {}
+    try:
+        for resolution in PROBE_RESOLUTIONS:
+            t0 = clock()
+            mesh = model.extract_mesh(resolution)
+            timings[resolution] = clock() - t0
+    except SpadscanError:  # no surface yet: the default rates stand
+        return
+    costs.time_mesh(timings)
+    if truth is not None:
+        t0 = clock()
+        try:
+            truth.metrics(mesh, n_points=PROBE_POINTS)
+        except SpadscanError:
+            return
+        costs.time_metrics(clock() - t0, PROBE_POINTS)
+
+
+def _metric_points(scored, truth, config: ReconConfig, costs: EndCosts, run_clock: RunClock, clock,
+                   seed: int) -> int:
+    """The metric points that fit in what is left of the budget. When the full count may not fit, the metrics of
+    this very mesh are timed on a few points first (a mesh that lies far from the ground truth is slower to
+    score)."""
+    left = run_clock.left() - costs.fixed_s
+    if costs.metrics_s(config.metrics_points) <= 0.5 * left:
+        return config.metrics_points
+    t0 = clock()
+    try:
+        mesh_metrics(scored, truth.mesh, n_points=PROBE_POINTS, seed=int(seed))
+    except SpadscanError:
+        return config.metrics_points  # the full metrics fail the same way, and say why
+    costs.time_metrics(clock() - t0, PROBE_POINTS)
+    return metric_points_within(costs, config.metrics_points, run_clock.left() - costs.fixed_s)
 
 
 def checkpoint_scoring(config: ReconConfig, short: bool = False) -> str:
@@ -183,9 +306,9 @@ def checkpoint_scoring(config: ReconConfig, short: bool = False) -> str:
     return f"{config.trace_mesh_resolution}-cell mesh{';' if short else ','} {points} points"
 
 
-def final_scoring(config: ReconConfig) -> str:
-    """How the final mesh is scored (the summary's Chamfer)."""
-    return f"final {config.mesh_resolution}-cell mesh, {config.metrics_points:,} points"
+def final_scoring(config: ReconConfig, resolution: int | None = None, points: int | None = None) -> str:
+    """How the final mesh is scored (the summary's Chamfer): its resolution and points (default: the config's)."""
+    return f"final {resolution or config.mesh_resolution}-cell mesh, {points or config.metrics_points:,} points"
 
 
 def _checkpoint_metrics(model, truth, config: ReconConfig) -> dict:
@@ -245,13 +368,18 @@ def _report(capture, preset, dev, config, scene, model, result, plan, scored: bo
     }
 
 
-def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig) -> None:
+def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig) -> FitNoise | None:
+    """preview.png, error_vs_time.png and fit.png; returns the fit against the photon noise on the views the fit
+    picture shows and as many more (end_of_run.fit_noise; each rendered NOISE_RENDERS times and averaged, so that the
+    renderer's own sampling noise adds little)."""
     pictures.preview_png(mesh, out / "preview.png", gt=gt_mesh)
     scoring = "" if gt_mesh is None else f" (checkpoint Chamfer: {checkpoint_scoring(config)})"
     pictures.error_vs_time_png(result.trace, out / "error_vs_time.png",
                                title=f"{config.preset}: error against run time{scoring}")
     n = scene.n_views
-    views = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(FIT_VIEWS, n))})
-    rendered = model.render_histograms(views)
+    views = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(NOISE_VIEWS, n))})
+    rendered = np.mean([model.render_histograms(views) for _ in range(NOISE_RENDERS)], axis=0)
     measured = scene.counts[views].double().cpu().numpy()
-    pictures.fit_png(measured, rendered, views, out / "fit.png")
+    shown = sorted({int(round(i)) for i in np.linspace(0, len(views) - 1, min(FIT_VIEWS, len(views)))})
+    pictures.fit_png(measured[shown], rendered[shown], [views[i] for i in shown], out / "fit.png")
+    return fit_noise(measured, rendered, scene.valid[views].cpu().numpy(), views)

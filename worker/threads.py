@@ -6,16 +6,34 @@ another at the end of every one of a step's ~800 small operations, so a thread t
 with another process busy on one core, two threads make a step 2.7 times slower than one (104 against 39 ms); two
 reconstructions of two threads each on the two cores run 20 to 40 times slower (780-1,690 ms per step) than two of
 one thread each (39-46 ms).
+
+So a CPU reconstruction chooses its threads as it runs (`ThreadGovernor`): it times its steps with all the threads
+it may use and with one, keeps the faster, and tries the other again from time to time (sooner when its steps
+suddenly slow down), since other processes come and go. And its OpenMP threads wait for each other passively
+(`OMP_WAIT_POLICY=PASSIVE`, set for the job processes and by `spadscan reconstruct` before torch starts): a thread
+that spins while its partner has lost its core takes that core from the partner. Measured on the same busy 2-core
+machine (the cup, 40 steps each): two threads spinning 580 ms a step, two threads waiting passively 118 ms, one
+thread 64-91 ms.
 """
 
 from __future__ import annotations
 
+import math
 import os
+import statistics
+from typing import Callable, Mapping
 
 from spadscan.protocol.errors import ConfigError
 
 ENV = "OMP_NUM_THREADS"
 """Read by torch and by numpy's BLAS when they start: how a parent process sets its children's threads."""
+WAIT_ENV = "OMP_WAIT_POLICY"
+"""How idle OpenMP threads wait: PASSIVE (sleep) rather than spin. Read once, when torch's OpenMP runtime starts."""
+SPIN_ENV = "GOMP_SPINCOUNT"
+"""GNU OpenMP's own spin setting: a user who sets it has chosen, and the wait policy is left alone."""
+ADAPT_ENV = "SPADSCAN_ADAPT_THREADS"
+"""Set to 1 by the worker for jobs whose OMP_NUM_THREADS is its default share of the cores (not a user's choice): the
+job may then use fewer threads when that is faster (`ThreadGovernor`)."""
 
 
 def machine_cores() -> int:
@@ -67,4 +85,120 @@ def oversubscribed(processes: int, threads: int, cores: int | None = None) -> st
             f"{cores} cores: {advice}")
 
 
-__all__ = ["ENV", "machine_cores", "threads_per_job", "check_threads", "inherited_threads", "oversubscribed"]
+def passive_wait_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """{OMP_WAIT_POLICY: PASSIVE} unless `environ` already says how OpenMP threads wait (OMP_WAIT_POLICY or
+    GOMP_SPINCOUNT): what a process that starts torch, or its parent, adds to the environment before torch loads."""
+    if environ.get(WAIT_ENV) or environ.get(SPIN_ENV):
+        return {}
+    return {WAIT_ENV: "PASSIVE"}
+
+
+def threads_fixed(threads: int | None, environ: Mapping[str, str]) -> bool:
+    """Whether a run's CPU threads are a choice to keep (`--threads`, or a user's OMP_NUM_THREADS) rather than a
+    ceiling to adapt under (`ThreadGovernor`)."""
+    if threads is not None:
+        return True
+    return bool(environ.get(ENV, "").strip()) and environ.get(ADAPT_ENV) != "1"
+
+
+class ThreadGovernor:
+    """Chooses between `most` CPU threads and one, step by step, by the measured step time.
+
+    Feed it every step's wall seconds (`step_done`); it calls `set_threads(n)` when it switches. It starts with
+    `most`; after `warmup` steps it times `block` steps of the current choice, then up to `block` of the other (a
+    probe, cut short at the first step over `abort` times the current median: a stalled probe costs one step), and
+    keeps the faster by medians (many threads only when they are `margin` faster: one thread never stalls). It holds
+    its choice for `hold` steps, twice as long after each probe that confirms it (at most `max_hold`), and long
+    enough that probes take at most `probe_share` of the time (a stalled probe step may cost 40 ordinary ones); it
+    probes again at once when two steps of many threads take over `stall` times their median (a competitor just
+    started)."""
+
+    def __init__(self, most: int, set_threads: Callable[[int], None], *, warmup: int = 5, block: int = 8,
+                 hold: int = 40, max_hold: int = 640, abort: float = 2.5, stall: float = 3.0,
+                 margin: float = 0.03, probe_share: float = 0.05):
+        if not (isinstance(most, int) and most >= 2):
+            raise ConfigError(f"a thread governor needs at least 2 threads to choose from, got {most}")
+        self.most, self.set_threads = most, set_threads
+        self.warmup, self.block, self.abort, self.stall, self.margin = warmup, block, abort, stall, margin
+        self.probe_share = probe_share
+        self.hold0, self.max_hold, self.hold = hold, max_hold, hold
+        self.current = most
+        self.phase, self.left = "warmup", warmup
+        self.times: list[float] = []
+        self.medians: dict[int, float] = {}
+        self.steps_by_threads: dict[int, int] = {}
+        self.probes = self.switches = 0
+        self._chosen = most
+
+    @property
+    def threads(self) -> int:
+        """The threads the next step runs with."""
+        return self.current
+
+    def _use(self, n: int) -> None:
+        if n != self.current:
+            self.current = n
+            self.set_threads(n)
+
+    def step_done(self, seconds: float) -> None:
+        """Count one step that took `seconds` of wall time with `self.threads` threads."""
+        self.steps_by_threads[self.current] = self.steps_by_threads.get(self.current, 0) + 1
+        if not math.isfinite(seconds) or seconds < 0:
+            return
+        self.left -= 1
+        if self.phase == "warmup":
+            if self.left <= 0:
+                self._start("measure", self.block)
+        elif self.phase == "measure":
+            self.times.append(seconds)
+            if self.left <= 0:
+                self.medians[self.current] = statistics.median(self.times)
+                self._probe()
+        elif self.phase == "probe":
+            self.times.append(seconds)
+            base = self.medians[self._chosen]
+            if seconds > self.abort * base or self.left <= 0:
+                self.medians[self.current] = statistics.median(self.times)
+                self._decide()
+        else:  # hold
+            self.times.append(seconds)
+            base = self.medians.get(self.current)
+            recent = self.times[-2:]
+            stalled = self.current > 1 and base and len(recent) == 2 and min(recent) > self.stall * base
+            if stalled or self.left <= 0:
+                self.medians[self.current] = statistics.median(recent if stalled else self.times[-self.block:])
+                self._probe()
+
+    def _start(self, phase: str, steps: int) -> None:
+        self.phase, self.left, self.times = phase, steps, []
+
+    def _probe(self) -> None:
+        self._chosen = self.current
+        self.probes += 1
+        self._use(1 if self.current > 1 else self.most)
+        self._start("probe", self.block)
+
+    def _decide(self) -> None:
+        many, one = self.medians.get(self.most), self.medians.get(1)
+        best = self.most if (many is not None and one is not None and many < (1 - self.margin) * one) else 1
+        if best == self._chosen:
+            self.hold = min(self.max_hold, 2 * self.hold)
+        else:
+            self.hold = self.hold0
+            self.switches += 1
+        # A probe costs at most `probe_share` of the time: a stalled one (seconds a step) is followed by a long hold.
+        probe_s, best_s = sum(self.times), self.medians.get(best) or 0.0
+        hold = self.hold if best_s <= 0 else max(self.hold, math.ceil(probe_s / (self.probe_share * best_s)))
+        self._use(best)
+        self._start("hold", hold)
+
+    def summary(self) -> dict:
+        """JSON-able: the ceiling, the threads now, steps run with each count, probes and switches, the last
+        median step seconds of each count."""
+        return {"most": self.most, "now": self.current, "probes": self.probes, "switches": self.switches,
+                "steps_by_threads": {str(k): v for k, v in sorted(self.steps_by_threads.items())},
+                "median_step_s": {str(k): v for k, v in sorted(self.medians.items())}}
+
+
+__all__ = ["ENV", "WAIT_ENV", "ADAPT_ENV", "passive_wait_env", "threads_fixed", "ThreadGovernor", "machine_cores",
+           "threads_per_job", "check_threads", "inherited_threads", "oversubscribed"]

@@ -1,7 +1,9 @@
 """Watching a captures root: every complete scan is queued once (asyncio polling, no extra dependency).
 
 A scan folder is a child of the root that holds `scan.json`. Scans still `running` are looked at again on the next
-poll; `aborted` scans are skipped; a `complete` scan is queued as the job `<scan>-<preset>`. A scan whose manifest
+poll; `aborted` scans are skipped; a `complete` scan is queued as the job `<scan>-<preset>`. With `live` a `running`
+scan is queued as soon as its first chunk is published, as a live job of the same id (`Job.live`): it follows the
+scan and finishes it (worker/live/job.py), so the scan is still queued once. A scan whose manifest
 cannot be read is queued too, so that its job fails with the reason and `spadscan worker --status` shows it, instead
 of the scan being ignored in silence. Job ids are deterministic, so polling again (or another worker polling the same
 root) never queues a scan twice.
@@ -15,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from spadscan.protocol.capture_format import MANIFEST
+from spadscan.protocol.capture_format import MANIFEST, chunk_index
 from spadscan.protocol.errors import CaptureError, ConfigError
 
 from .jobs import Job, job_id_for
@@ -36,6 +38,8 @@ class JobOptions:
     """Optimisation steps per reconstruction; None = the preset's."""
     device: str = "auto"
     seed: int = 0
+    live: bool = False
+    """Queue a scan as a live job as soon as its first chunk is published (else once it is complete)."""
 
     def check(self) -> "JobOptions":
         """Refuse options every job would fail on, before any job is queued with them."""
@@ -51,11 +55,19 @@ class JobOptions:
         if not (_is_int(self.seed) and self.seed >= 0):
             raise ConfigError(f"seed {self.seed} must be an integer >= 0")
         check_device(self.device)
+        if self.live and self.preset != LIVE_PRESET:
+            raise ConfigError(f"live reconstruction runs the {LIVE_PRESET!r} preset, not {self.preset!r} (leave out "
+                              f"--live, or --preset)")
         return self
 
-    def job_for(self, scan_name: str) -> Job:
+    def job_for(self, scan_name: str, live: bool = False) -> Job:
+        """The job of scan `scan_name`; `live`: a live job (the scan is still being recorded)."""
         return Job(id=job_id_for(scan_name, self.preset), scan=scan_name, preset=self.preset,
-                   budget_s=self.budget_s, steps=self.steps, device=self.device, seed=self.seed)
+                   budget_s=self.budget_s, steps=self.steps, device=self.device, seed=self.seed, live=live)
+
+
+LIVE_PRESET = "fast"
+"""The preset a live job can run: its model grows with the views (`FastModel.warm_start`)."""
 
 
 def _is_int(v) -> bool:
@@ -85,6 +97,8 @@ class ScanReport:
     """What one pass over the root found. Lists hold scan folder names."""
 
     queued: list[str] = field(default_factory=list)
+    live: list[str] = field(default_factory=list)
+    """Scans still being recorded, queued as live jobs."""
     pending: list[str] = field(default_factory=list)
     """Scans still being recorded."""
     skipped: list[str] = field(default_factory=list)
@@ -126,8 +140,17 @@ def scan_state(folder: Path) -> str:
     return CaptureReader(folder).state
 
 
+def has_chunk(folder: Path) -> bool:
+    """Whether a capture folder holds a published chunk."""
+    try:
+        return any(chunk_index(p.name) is not None and p.is_dir() for p in Path(folder).iterdir())
+    except OSError:
+        return False
+
+
 def scan_once(root: Path, queue: Queue, options: JobOptions) -> ScanReport:
-    """One pass over the captures root: queue every complete scan that has no job yet."""
+    """One pass over the captures root: queue every complete scan that has no job yet (with `options.live`, every
+    running scan with a published chunk too, as a live job)."""
     report = ScanReport()
     for folder in scan_folders(root):
         job = options.job_for(folder.name)
@@ -138,7 +161,10 @@ def scan_once(root: Path, queue: Queue, options: JobOptions) -> ScanReport:
         except CaptureError:
             state = None
         if state == "running":
-            report.pending.append(folder.name)
+            if options.live and has_chunk(folder) and queue.enqueue(options.job_for(folder.name, live=True)):
+                report.live.append(folder.name)
+            else:
+                report.pending.append(folder.name)
             continue
         if state == "aborted":
             report.skipped.append(folder.name)

@@ -9,8 +9,8 @@ from typing import Mapping
 
 from spadscan.protocol.errors import ConfigError
 
-from .threads import (ENV as THREADS_ENV, check_threads, inherited_threads, machine_cores, oversubscribed,
-                      threads_per_job)
+from .threads import (ADAPT_ENV, ENV as THREADS_ENV, check_threads, inherited_threads, machine_cores,
+                      oversubscribed, passive_wait_env, threads_per_job)
 from .watcher import JobOptions, check_root
 
 
@@ -51,13 +51,16 @@ class WorkerConfig:
 
     def job_env(self, environ: Mapping[str, str] | None = None) -> dict[str, str]:
         """Environment variables the job processes get on top of the worker's own (`environ`, default os.environ):
-        the threads per job, then `child_env`."""
+        the threads per job, passive OpenMP waiting (threads.py), then `child_env`. Threads the worker shared out
+        itself are a ceiling the job may go under when fewer are faster (ADAPT_ENV); --threads and the worker's own
+        OMP_NUM_THREADS are kept as given."""
         environ = os.environ if environ is None else environ
-        env = {}
+        env = passive_wait_env(environ)
         if self.threads is not None:
             env[THREADS_ENV] = str(self.threads)
         elif inherited_threads(environ)[0] is None:  # unset, or a value torch cannot use: replaced
             env[THREADS_ENV] = str(threads_per_job(self.processes))
+            env[ADAPT_ENV] = "1"
         return {**env, **(self.child_env or {})}
 
     def job_threads(self, environ: Mapping[str, str] | None = None) -> int | None:

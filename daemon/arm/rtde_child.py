@@ -25,10 +25,20 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import sys
 import threading
 import time
+
+IK_QUERY_SINCE = (5, 10)
+"""PolyScope version from which ur_rtde's control script answers getInverseKinematicsHasSolution (its lines are
+marked `$5.10`; on older controllers they are left out and the answer register keeps a stale value)."""
+
+
+class CommandFailed(Exception):
+    """The controller did not carry out a command (its control script is not running, or a safety stop is active).
+    Not a RuntimeError: the parent ends the link on those, and this link is fine."""
 
 
 class Client:
@@ -37,24 +47,39 @@ class Client:
     def __init__(self):
         self.control = None
         self.receive = None
+        self.polyscope: tuple[int, int] | None = None
 
-    def open(self, host: str, frequency: float) -> None:
+    def open(self, host: str, frequency: float) -> list[int] | None:
+        """Connect both interfaces (the control interface uploads its script); returns the PolyScope version
+        [major, minor] the dashboard reports, or None when it says none."""
+        import dashboard_client
         import rtde_control
         import rtde_receive
 
         self.receive = rtde_receive.RTDEReceiveInterface(host, frequency)
         self.control = rtde_control.RTDEControlInterface(host, frequency)
+        dashboard = dashboard_client.DashboardClient(host)
+        dashboard.connect()
+        try:
+            m = re.search(r"(\d+)\.(\d+)", str(dashboard.polyscopeVersion()))
+        finally:
+            dashboard.disconnect()
+        self.polyscope = (int(m[1]), int(m[2])) if m else None
+        return list(self.polyscope) if self.polyscope else None
 
     def read(self) -> dict:
-        """One consistent reading: TCP pose vector [m, rad], joints [rad], controller timestamp [s], safety flags,
-        whether both links are up, TCP speed [m/s, rad/s]."""
+        """One consistent reading: TCP pose vector [m, rad], joints [rad], controller timestamp [s], safety flags and
+        status bits, whether both links are up and the control script runs, TCP speed [m/s, rad/s], the combined
+        speed scaling (slider x trajectory scaling, 0..1)."""
         r, c = self.receive, self.control
         if r is None or c is None:
             raise RuntimeError("interfaces are not open")
         return {"pose": list(r.getActualTCPPose()), "joints": list(r.getActualQ()), "timestamp": r.getTimestamp(),
                 "protective": bool(r.isProtectiveStopped()), "emergency": bool(r.isEmergencyStopped()),
-                "safety_mode": int(r.getSafetyMode()), "connected": bool(r.isConnected() and c.isConnected()),
-                "tcp_speed": list(r.getActualTCPSpeed())}
+                "safety_mode": int(r.getSafetyMode()), "safety_bits": int(r.getSafetyStatusBits()),
+                "connected": bool(r.isConnected() and c.isConnected()),
+                "program_running": bool(c.isProgramRunning()), "tcp_speed": list(r.getActualTCPSpeed()),
+                "speed_scaling": float(r.getSpeedScalingCombined())}
 
     def read_progress(self) -> dict:
         """`read`, plus whether an asynchronous move is still running."""
@@ -72,6 +97,47 @@ class Client:
     def program_running(self) -> bool:
         return bool(self.control.isProgramRunning())
 
+    def set_watchdog(self, min_frequency: float) -> bool:
+        """The controller stops the program when no command-register input arrives for 1/min_frequency s."""
+        return bool(self.control.setWatchdog(float(min_frequency)))
+
+    def kick(self) -> bool:
+        return bool(self.control.kickWatchdog())
+
+    def reupload(self) -> bool:
+        """Upload the control script again (after a fault stopped it)."""
+        return bool(self.control.reuploadScript())
+
+    def check_poses(self, poses: list) -> dict:
+        """Ask the controller about each TCP pose vector in turn: isPoseWithinSafetyLimits, then (where the
+        controller answers it) getInverseKinematicsHasSolution. Returns {"index": first refused or -1, "check":
+        "safety" or "ik", "ik_checked": bool}. CommandFailed when the controller cannot answer (a "no" from a
+        control script that is not running would read as a refusal)."""
+        c = self.control
+        ik = self.polyscope is not None and self.polyscope >= IK_QUERY_SINCE
+        for i, pose in enumerate(poses):
+            pose = [float(x) for x in pose]
+            if not c.isPoseWithinSafetyLimits(pose):
+                self._answering("isPoseWithinSafetyLimits")
+                return {"index": i, "check": "safety", "ik_checked": ik}
+            if ik:
+                try:
+                    has = c.getInverseKinematicsHasSolution(pose)
+                except RuntimeError as exc:  # ur_rtde's way of saying the command did not run
+                    raise CommandFailed(f"getInverseKinematicsHasSolution: {exc}") from None
+                if not has:
+                    self._answering("getInverseKinematicsHasSolution")
+                    return {"index": i, "check": "ik", "ik_checked": ik}
+        return {"index": -1, "check": "", "ik_checked": ik}
+
+    def _answering(self, what: str) -> None:
+        """CommandFailed unless the controller could have answered (script running, no safety stop)."""
+        c, r = self.control, self.receive
+        if not c.isProgramRunning():
+            raise CommandFailed(f"{what}: the RTDE control script is not running")
+        if r.isProtectiveStopped() or r.isEmergencyStopped() or r.getSafetyStatusBits() & (1 << 4):
+            raise CommandFailed(f"{what}: the arm is stopped for safety (safety mode {r.getSafetyMode()})")
+
     def close(self) -> None:
         for iface in (self.control, self.receive):
             if iface is not None:
@@ -83,7 +149,8 @@ class Client:
 
 
 OPS = {"open": Client.open, "read": Client.read, "read_progress": Client.read_progress, "moveL": Client.move_l,
-       "stopL": Client.stop_l, "program_running": Client.program_running}
+       "stopL": Client.stop_l, "program_running": Client.program_running, "set_watchdog": Client.set_watchdog,
+       "kick": Client.kick, "reupload": Client.reupload, "check_poses": Client.check_poses}
 
 
 def answer(client: Client, line: str) -> dict:

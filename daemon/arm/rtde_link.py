@@ -94,6 +94,24 @@ class RTDELink:
         with contextlib.suppress(LinkLost):
             self._send(what, op, args, None, timeout_s)
 
+    async def last_call(self, reason: str, timeout_s: float, what: str, op: str, *args) -> None:
+        """One last request before the link is given up (a stopL, so that a move the link can no longer watch does
+        not go on): wait at most timeout_s for its answer, then end the link with `reason` whatever came back. Never
+        raises LinkLost."""
+        future = None
+        try:
+            if self.alive:
+                future = asyncio.get_running_loop().create_future()
+                self._send(what, op, args, future, timeout_s)
+                async with asyncio.timeout(timeout_s):
+                    await future
+        except (LinkLost, TimeoutError):
+            pass
+        finally:
+            self.end(reason)
+            if future is not None and future.done() and not future.cancelled():
+                future.exception()  # retrieved: the answer no longer matters
+
     def end(self, reason: str) -> None:
         """End the link now (SIGKILL): waiting and later calls raise LinkLost with `reason`. Idempotent."""
         if self._ended is None:

@@ -87,6 +87,7 @@ class SimArm(Arm):
         self._rng = np.random.default_rng(seed)
         self._pose = np.array(HOME if home is None else home, dtype=float)
         self._motion: tuple[np.ndarray, np.ndarray, float, float] | None = None  # start, goal, t0, duration
+        self._ended: asyncio.Event | None = None  # set when the move in progress is stopped
         self.moves = 0
         self.commanded: list[np.ndarray] = []
         self.protective_stop = False
@@ -129,6 +130,12 @@ class SimArm(Arm):
     def restore_link(self) -> None:
         self.link_up = True
 
+    def jog(self, tcp_pose: np.ndarray) -> None:
+        """Put the arm at a TCP pose (4, 4) at once, as an operator does with the teach pendant's jog buttons while
+        a scan is paused."""
+        self._motion = None
+        self._pose = np.array(tcp_pose, dtype=float)
+
     # ---- motion ------------------------------------------------------------------------------------------------
     def actual_pose(self) -> np.ndarray:
         """The actual TCP pose (4, 4) now, also mid-move (thread-safe: reads one snapshot of the motion)."""
@@ -165,8 +172,14 @@ class SimArm(Arm):
             fault = "link"
         motion = (start, goal, time.monotonic(), duration)
         self._motion = motion
+        # A stop, a protective stop or a dropped link ends the move at once, as on a real controller (its moveL
+        # returns when stopped), instead of after the time the whole move would have taken.
+        self._ended = ended = asyncio.Event()
         try:
-            await asyncio.sleep(duration / 2 if fault else duration)
+            try:
+                await asyncio.wait_for(ended.wait(), duration / 2 if fault else duration)
+            except asyncio.TimeoutError:
+                pass
             if fault and self._motion is motion:  # half way, exactly: not wherever the clock has got to
                 self._pose, self._motion = interpolate_pose(start, goal, 0.5), None
             if fault == "stop":
@@ -196,6 +209,8 @@ class SimArm(Arm):
         if self._motion is not None:
             self._pose = self.actual_pose()
             self._motion = None
+            if self._ended is not None:
+                self._ended.set()
 
     def _check_link(self) -> None:
         if not self.link_up:

@@ -13,12 +13,24 @@ What ur_rtde does not tell by raising, this class checks:
 - after a move, the actual pose must reach the target (within `position_tol_m` / `rotation_tol_rad`) and the
   actual TCP speed fall below `rest_speed` / `rest_angular_speed`: the receive stream may lag the control stream,
   so "move finished" alone does not mean the reading shows the arm at rest.
+- safety stops: protective (safety_status_bits bit 2), emergency (bit 7) and safeguard (bit 4, safety mode 5 or 12:
+  a light curtain or a door) all raise ArmFault; a control script that is no longer running (a real controller may
+  stop it on a safety stop, the watchdog stops it, so may the pendant) raises ArmFault too, and `clear_fault()`
+  (the runner calls it when the scan resumes) uploads it again (reuploadScript; a fresh connection if that fails);
+- the speed slider: a move's time budget counts time at the controller's combined speed scaling, so a slowed arm
+  is not taken for a stuck one.
+The controller's watchdog (setWatchdog, after every connection or script upload) stops the program, and with it the
+arm, when no input arrives for 1/watchdog_hz s: the daemon's event loop kicks it (kickWatchdog) three times per
+period, so an arm whose daemon went silent (killed, stopped, hung) stops by itself. `check_poses` asks the controller
+itself about every planned pose (isPoseWithinSafetyLimits, and getInverseKinematicsHasSolution where its PolyScope
+answers it, 5.10 on).
 Any LinkLost ends the client process (a closed link's interfaces would otherwise go on reconnecting by themselves,
-which is what crashes ur_rtde), and every later call fails at once with LinkLost until `connect()` or `reconnect()`
-starts a fresh process with new interfaces (ur_rtde's own `reconnect()` can crash the process too). A dead link can
-wedge a control call for good (ur_rtde 1.6.5's stopL on a dropped link never returns), so `stop()` reads the link
-first and raises LinkLost instead of calling stopL on a dead link, and a call that outlives its timeout ends the
-process. Keeping ur_rtde out of the daemon's process also keeps its GIL traps out of the event loop (its
+which is what crashes ur_rtde), after one stopL that may take at most STOP_ON_LOSS_S (a link found stale may still
+carry it; the move it can no longer watch then stops), and every later call fails at once with LinkLost until
+`connect()` or `reconnect()` starts a fresh process with new interfaces (ur_rtde's own `reconnect()` can crash the
+process too). A dead link can wedge a control call for good (ur_rtde 1.6.5's stopL on a dropped link never returns),
+so `stop()` reads the link first and raises LinkLost instead of calling stopL on a dead link, and a call that
+outlives its timeout ends the process. Keeping ur_rtde out of the daemon's process also keeps its GIL traps out of the event loop (its
 constructors hold the GIL while they connect, its destructors for ~0.5 s each).
 """
 
@@ -42,8 +54,20 @@ MAX_TOOL_ACCEL = 150.0
 """m/s^2: ur_rtde rejects larger moveL accelerations."""
 STOP_DECEL = 10.0
 """m/s^2: tool deceleration of stop() (ur_rtde's stopL default)."""
+STOP_ON_LOSS_S = 1.0
+"""s: how long the stopL sent before a lost link is dropped may take."""
+CLEARED_WITHIN_S = 2.0
+"""s: on resume, how long a safety stop the operator has just cleared may still show in the data before it counts."""
 SAFETY_MODES = {1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery", 5: "safeguard stop",
-                6: "system emergency stop", 7: "robot emergency stop", 8: "violation", 9: "fault"}
+                6: "system emergency stop", 7: "robot emergency stop", 8: "violation", 9: "fault",
+                12: "automatic mode safeguard stop", 13: "system three position enabling stop"}
+SAFEGUARD_MODES = frozenset({5, 12, 13})
+"""Safety modes in which the arm is held by a safeguard (RTDE guide): treated like a protective stop."""
+BIT_SAFEGUARD_STOPPED = 1 << 4
+"""safety_status_bits: 'is safeguard stopped' (bit 2 protective, bit 7 emergency: ur_rtde reads those itself)."""
+MIN_SPEED_SCALING = 0.01
+"""A move's time budget runs at the speed scaling, but never slower than this (a slider at zero: the runner's own
+move_timeout_s still applies)."""
 
 
 @dataclass(frozen=True)
@@ -59,6 +83,13 @@ class _Reading:
     connected: bool
     tcp_speed: np.ndarray  # (6,) linear m/s, angular rad/s
     moving: bool = False  # an asynchronous move is still running (control interface)
+    safety_bits: int = 0  # safety_status_bits
+    program_running: bool = True  # the control script runs (commands can be taken)
+    speed_scaling: float = 1.0  # combined: speed slider x trajectory scaling
+
+    @property
+    def safeguard(self) -> bool:
+        return bool(self.safety_bits & BIT_SAFEGUARD_STOPPED) or self.safety_mode in SAFEGUARD_MODES
 
 
 class URArm(Arm):
@@ -67,14 +98,15 @@ class URArm(Arm):
     def __init__(self, host: str, *, speed: float = 0.1, accel: float = 0.3, timeout_s: float = 10.0,
                  stale_after_s: float = 0.5, frequency: float | None = None, position_tol_m: float = 1e-3,
                  rotation_tol_rad: float = 0.01, rest_speed: float = 2e-3, rest_angular_speed: float = 0.02,
-                 poll_s: float = 0.005):
+                 poll_s: float = 0.005, watchdog_hz: float = 2.0):
         if not isinstance(host, str) or not host:
             raise ConfigError(f"UR arm host must be a non-empty string, got {host!r}")
         for label, value, hi in (("speed", speed, MAX_TOOL_SPEED), ("accel", accel, MAX_TOOL_ACCEL),
                                  ("timeout_s", timeout_s, 3600.0), ("stale_after_s", stale_after_s, 60.0),
                                  ("position_tol_m", position_tol_m, 0.1), ("rotation_tol_rad", rotation_tol_rad, 1.0),
                                  ("rest_speed", rest_speed, 1.0), ("rest_angular_speed", rest_angular_speed, 1.0),
-                                 ("poll_s", poll_s, 1.0), ("frequency", 1.0 if frequency is None else frequency, 500.0)):
+                                 ("poll_s", poll_s, 1.0), ("frequency", 1.0 if frequency is None else frequency, 500.0),
+                                 ("watchdog_hz", watchdog_hz, 100.0)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 < value <= hi):
                 raise ConfigError(f"UR arm {label} must be in (0, {hi:g}], got {value!r}")
         self.host, self.speed, self.accel = host, float(speed), float(accel)
@@ -82,8 +114,11 @@ class URArm(Arm):
         self.frequency = -1.0 if frequency is None else float(frequency)  # -1: ur_rtde's default (500 Hz on e-series)
         self.position_tol_m, self.rotation_tol_rad, self.poll_s = position_tol_m, rotation_tol_rad, poll_s
         self.rest_speed, self.rest_angular_speed = rest_speed, rest_angular_speed
+        self.watchdog_hz = float(watchdog_hz)
         self.name = f"UR arm {host}"
         self._link: RTDELink | None = None  # the ur_rtde client process, once connected
+        self._kicker: asyncio.Task | None = None  # kicks the controller's watchdog while the link is open
+        self._watchdog_set = False  # setWatchdog taken by the script now running
         # The last controller timestamp seen and when it last changed.
         self._last_ts: float | None = None
         self._last_change = 0.0
@@ -117,18 +152,101 @@ class URArm(Arm):
             raise
         self._open = True
         self._last_ts = None
+        self._watchdog_set = False
+        self._kicker = asyncio.ensure_future(self._kick_watchdog())
         await self._fresh("the first data after connecting")
 
     async def prepare(self) -> None:
-        """Refuse to start while the arm is stopped for safety."""
+        """Refuse to start while the arm is stopped for safety or its control script is not running; arm the
+        watchdog."""
         reading = await self._fresh("the safety state")
         self._raise_if_stopped(reading, "cannot prepare")
+        await self._arm_watchdog()
+
+    async def clear_fault(self) -> None:
+        """The scan resumes after an arm fault (the operator has cleared any safety stop on the pendant). A control
+        script that stopped meanwhile is uploaded again (reuploadScript; a fresh connection if it does not start)
+        and the watchdog armed again; a safety stop still active is left to the next move to report."""
+        self._require_open()
+        reading = await self._fresh("the control script's state")
+        deadline = time.monotonic() + CLEARED_WITHIN_S
+        while (reading.protective or reading.emergency or reading.safeguard) and time.monotonic() < deadline:
+            await asyncio.sleep(self.poll_s)  # a stop cleared just now may still show in the data already sent
+            reading = await self._fresh("the control script's state")
+        if not reading.program_running:
+            await self._call("reuploadScript", "reupload")
+            if not await self._script_started():
+                await self.reconnect()
+            self._watchdog_set = False
+        if not (reading.protective or reading.emergency or reading.safeguard):
+            await self._arm_watchdog()
+
+    async def _script_started(self) -> bool:
+        """Whether a fresh reading shows the control script running within timeout_s."""
+        deadline = time.monotonic() + self.timeout_s
+        while time.monotonic() < deadline:
+            if (await self._fresh("the control script to start")).program_running:
+                return True
+            await asyncio.sleep(self.poll_s)
+        return False
+
+    async def _arm_watchdog(self) -> None:
+        """setWatchdog on the script now running, once: ArmFault when the controller does not take it."""
+        if self._watchdog_set:
+            return
+        if not await self._call("setWatchdog", "set_watchdog", self.watchdog_hz):
+            reading = await self._fresh("the state after setWatchdog was refused")
+            self._raise_if_stopped(reading, "setWatchdog refused")
+            raise ArmFault(f"{self.name}: the controller refused setWatchdog({self.watchdog_hz:g} Hz)")
+        self._watchdog_set = True
+
+    async def _kick_watchdog(self) -> None:
+        """Kick three times per watchdog period while the link lives (replies are not awaited: a kick queued behind
+        a slow call still goes)."""
+        period = 1.0 / (3.0 * self.watchdog_hz)
+        while True:
+            await asyncio.sleep(period)
+            link = self._link
+            if link is not None and link.alive:
+                link.post("kickWatchdog", self.timeout_s, "kick")
+
+    async def check_poses(self, tcp_poses: np.ndarray, first_index: int = 0) -> None:
+        """Ask the controller about every TCP pose (P, 4, 4) before the first move: ArmFault naming the first one
+        outside its safety limits (isPoseWithinSafetyLimits: safety planes, tool orientation limits, reach) or
+        without an inverse kinematics solution (getInverseKinematicsHasSolution, where the controller answers it).
+        Poses are numbered from first_index."""
+        self._require_open()
+        poses = np.asarray(tcp_poses, dtype=np.float64)
+        if len(poses) == 0:
+            return
+        vecs = [[float(x) for x in pose_to_vector(p)] for p in poses]
+        n = first_index + len(vecs)
+        # A controller stopped for safety, or without its script, cannot answer: say which (as a move would).
+        self._raise_if_stopped(await self._fresh("the safety state before the pose checks"),
+                               "the controller cannot check the planned poses")
+        try:
+            result = await self._call(f"the controller's checks of {len(vecs)} poses", "check_poses", vecs,
+                                      timeout_s=self.timeout_s + 0.25 * len(vecs))
+        except LinkLost:
+            raise
+        except DeviceError as exc:
+            for _ in range(3):  # a stop that came meanwhile shows in the receive data a package or two later
+                self._raise_if_stopped(await self._fresh("the safety state after the pose checks failed"),
+                                       "the controller cannot check the planned poses")
+            raise ArmFault(f"{self.name}: cannot ask the controller about the planned poses: {exc}") from None
+        i = result["index"]
+        if i >= 0:
+            p = ", ".join(f"{v:.3f}" for v in vecs[i][:3])
+            why = ("is outside the controller's safety limits (isPoseWithinSafetyLimits: its safety planes, tool "
+                   "orientation limits or reach)" if result["check"] == "safety" else
+                   "has no inverse kinematics solution on the controller (getInverseKinematicsHasSolution)")
+            raise ArmFault(f"{self.name}: pose {first_index + i} of {n}: TCP at [{p}] m {why}")
 
     async def release(self) -> None:
         """Stop any motion (stopL). Nothing to do when not connected; LinkLost without trying when the link is
         known dead (ur_rtde would block for seconds on it)."""
         if self._open:
-            self._check_link(await self._read("the arm state"))
+            await self._check_link(await self._read("the arm state"))
             await self.stop()
 
     async def close(self) -> None:
@@ -155,6 +273,7 @@ class URArm(Arm):
         self._require_open()
         start = await self._fresh("live data before moveL")
         self._raise_if_stopped(start, "moveL refused")
+        await self._arm_watchdog()
         what = f"moveL to [{target[0]:.4f}, {target[1]:.4f}, {target[2]:.4f}] m"
         vec = [float(x) for x in target]
         budget = 2.0 * _move_time(start.pose_vec, target, speed, accel) + self.timeout_s
@@ -180,29 +299,37 @@ class URArm(Arm):
         (protective or emergency stop). Raises LinkLost when the link is closed or the data stopped advancing."""
         self._require_open()
         reading = await self._read("the arm state")
-        self._check_link(reading)
+        await self._check_link(reading)
         return ArmState(tcp_pose=vector_to_pose(reading.pose_vec), joints=reading.joints.copy(),
-                        timestamp_s=reading.timestamp, protective_stop=reading.protective or reading.emergency)
+                        timestamp_s=reading.timestamp,
+                        protective_stop=reading.protective or reading.emergency or reading.safeguard)
 
     async def stop(self) -> None:
         """stopL now (decelerating at STOP_DECEL). LinkLost without trying when the link is dead: stopL would block
         the ur_rtde process for good."""
         self._require_open()
-        self._check_link(await self._read("the arm state before stopL"))
+        await self._check_link(await self._read("the arm state before stopL"))
         await self._call("stopL", "stopL", STOP_DECEL)
 
     # -- waiting ---------------------------------------------------------------------------------------------------
     async def _wait_motion(self, what: str, budget_s: float) -> None:
-        deadline = time.monotonic() + budget_s
+        """Poll until the move ends. Its budget counts motion time: wall time at the controller's speed scaling
+        (the pendant's slider at 0.25 makes a move take four times as long)."""
+        spent, last, slowest = 0.0, time.monotonic(), 1.0
         while True:
             reading = await self._read(what, progress=True)
-            self._check_link(reading)
+            await self._check_link(reading)
             self._raise_if_stopped(reading, f"{what} aborted")
             if not reading.moving:
                 return
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            scaling = min(1.0, max(MIN_SPEED_SCALING, reading.speed_scaling))
+            spent, last, slowest = spent + (now - last) * scaling, now, min(slowest, scaling)
+            if spent > budget_s:
                 await self.stop()
-                raise ArmFault(f"{self.name}: {what} did not finish within {budget_s:.1f} s; stopped")
+                slowed = f" (speed scaling down to {slowest:.2f})" if slowest < 1.0 else ""
+                raise ArmFault(f"{self.name}: {what} did not finish within {budget_s:.1f} s of motion time"
+                               f"{slowed}; stopped")
             await asyncio.sleep(self.poll_s)
 
     async def _wait_arrival(self, what: str, target: np.ndarray) -> None:
@@ -211,7 +338,7 @@ class URArm(Arm):
         first_ts = None
         while True:
             reading = await self._read(what)
-            self._check_link(reading)
+            await self._check_link(reading)
             self._raise_if_stopped(reading, f"{what} aborted")
             first_ts = reading.timestamp if first_ts is None else first_ts
             dist, angle = _pose_distance(reading.pose_vec, target)
@@ -241,38 +368,46 @@ class URArm(Arm):
         while True:
             reading = await self._read(what)
             if not reading.connected:
-                raise self._lost(f"link closed while waiting for {what}")
+                raise await self._lost(f"link closed while waiting for {what}")
             if reading.timestamp != before:
                 self._seen(reading.timestamp)
                 return reading
             waited = time.monotonic() - start
             if waited > self.stale_after_s:
-                raise self._lost(f"receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s for "
-                                 f"{waited:.2f} s (limit {self.stale_after_s:g} s) while waiting for {what}")
+                raise await self._lost(f"receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s "
+                                       f"for {waited:.2f} s (limit {self.stale_after_s:g} s) while waiting for {what}")
             await asyncio.sleep(self.poll_s)
 
     def _seen(self, ts: float) -> None:
         if ts != self._last_ts:
             self._last_ts, self._last_change = ts, time.monotonic()
 
-    def _check_link(self, reading: _Reading) -> None:
+    async def _check_link(self, reading: _Reading) -> None:
         """LinkLost when the link is closed or the timestamp has not moved for stale_after_s."""
         if not reading.connected:
-            raise self._lost("link closed (ur_rtde reports disconnected)")
+            raise await self._lost("link closed (ur_rtde reports disconnected)")
         if reading.timestamp != self._last_ts:
             self._seen(reading.timestamp)
             return
         age = time.monotonic() - self._last_change
         if age > self.stale_after_s:
-            raise self._lost(f"receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s for "
-                             f"{age:.2f} s (limit {self.stale_after_s:g} s)")
+            raise await self._lost(f"receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s for "
+                                   f"{age:.2f} s (limit {self.stale_after_s:g} s)")
 
     def _raise_if_stopped(self, reading: _Reading, doing: str) -> None:
+        """ArmFault for a safety stop (emergency, protective, safeguard) or a control script that is not running."""
         mode = f"safety mode {reading.safety_mode} ({SAFETY_MODES.get(reading.safety_mode, 'unknown')})"
         if reading.emergency:
             raise ArmFault(f"emergency stop on {self.name}: {doing} ({mode})")
         if reading.protective:
             raise ArmFault(f"protective stop on {self.name}: {doing} ({mode})")
+        if reading.safeguard:
+            raise ArmFault(f"safeguard stop on {self.name}: {doing} ({mode}; reset the safeguard, then resume)")
+        if not reading.program_running:
+            self._watchdog_set = False
+            raise ArmFault(f"{self.name}: {doing}: the RTDE control script is not running on the controller (the "
+                           f"watchdog stops it when the daemon falls silent for {1 / self.watchdog_hz:g} s; a safety "
+                           f"stop or the pendant can stop it too); resuming the scan uploads it again")
 
     async def _explain_refusal(self, what: str, final: bool) -> None:
         """The controller answered False: raise for a safety stop or a dead link; otherwise, when `final`, raise a
@@ -296,13 +431,15 @@ class URArm(Arm):
         d = await self._call(what, "read_progress" if progress else "read")
         return _Reading(np.array(d["pose"], dtype=np.float64), np.array(d["joints"], dtype=np.float64),
                         float(d["timestamp"]), d["protective"], d["emergency"], d["safety_mode"], d["connected"],
-                        np.array(d["tcp_speed"], dtype=np.float64), bool(d.get("moving", False)))
+                        np.array(d["tcp_speed"], dtype=np.float64), bool(d.get("moving", False)),
+                        int(d["safety_bits"]), bool(d["program_running"]), float(d["speed_scaling"]))
 
-    def _lost(self, reason: str) -> LinkLost:
-        """End the ur_rtde process (its interfaces are of no more use and would go on reconnecting by themselves) and
-        return the LinkLost to raise; later calls fail with the same reason until a reconnect."""
+    async def _lost(self, reason: str) -> LinkLost:
+        """Send a last stopL (it may still get through: a link found stale can carry commands), end the ur_rtde
+        process (its interfaces are of no more use and would go on reconnecting by themselves) and return the
+        LinkLost to raise; later calls fail with the same reason until a reconnect."""
         if self._link is not None:
-            self._link.end(reason)
+            await self._link.last_call(reason, STOP_ON_LOSS_S, "stopL before dropping the link", "stopL", STOP_DECEL)
         return LinkLost(f"{self.name}: {reason}")
 
     def _require_open(self) -> None:
@@ -311,6 +448,10 @@ class URArm(Arm):
 
     async def _close_link(self) -> None:
         self._open = False
+        kicker, self._kicker = self._kicker, None
+        if kicker is not None:
+            kicker.cancel()
+            await asyncio.gather(kicker, return_exceptions=True)
         link, self._link = self._link, None
         if link is not None:
             await link.stop(grace_s=self.timeout_s)

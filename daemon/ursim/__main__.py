@@ -21,11 +21,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to listen on (default 127.0.0.1)")
     parser.add_argument("--time-scale", type=float, default=1.0,
                         help="multiply every motion time by this (0 = moves finish at once; default 1)")
+    parser.add_argument("--speed-slider", type=float, default=1.0,
+                        help="the pendant's speed slider: moves run at this fraction of their speed (0 < f <= 1)")
+    parser.add_argument("--pose-noise-m", type=float, default=0.0,
+                        help="standard deviation of the reported actual TCP position, per axis (m; default 0)")
+    parser.add_argument("--stop-script-on-fault", action="store_true",
+                        help="stop the control script on a safety stop, as a real controller may (upload it again "
+                             "after clearing the stop)")
     parser.add_argument("--control-stdio", action="store_true",
                         help="take JSON-line requests on stdin, answer on stdout; stop when stdin closes")
     args = parser.parse_args(argv)
     try:
         controller = SimURController(args.host, time_scale=args.time_scale)
+        controller.configure(speed_slider=args.speed_slider, pose_noise_m=args.pose_noise_m,
+                             stop_script_on_fault=args.stop_script_on_fault)
     except SpadscanError as exc:
         print(f"ursim: error: {exc}", file=sys.stderr)
         return 1

@@ -5,10 +5,25 @@ the fault API (`set_protective_stop`, ...). It is thread-safe (one lock) so that
 own thread while the server's event loop streams. Time is controller seconds since the model was created; motion
 durations are multiplied by `time_scale` so that tests run fast.
 
-The control script uploaded by ur_rtde is not interpreted; its register protocol is emulated instead:
+The control script uploaded by ur_rtde is not interpreted; its register protocol is emulated instead (ur_rtde
+1.6.5's script, `rtde_control.script`):
 `input_int_register_0` carries a command, `output_int_register_0` is 1 (ready) while the command register is 0, a
 command is taken once, and `output_int_register_0` becomes 2 when it is done; `input_int_register_1` = 1 makes a move
 asynchronous (done at once, `output_int_register_2` then reports the move running: bit 15, and finished).
+Queries answer in `output_int_register_1` (1 = yes): 36 is_within_safety_limits(pose), 60/61
+get_inverse_kin_has_solution(pose[, qnear, errors]), from the model's reach (`kinematics.reachable`) and its safety
+planes. 35 set_watchdog: `rtde_set_watchdog("input_int_register_0", f, "stop")`, so an input package that writes the
+command register must arrive at least every 1/f s (ur_rtde's kickWatchdog writes 0 there), or the program stops
+(runtime STOPPED) and the arm halts where it is.
+
+Safety stops follow the RTDE guide: safety_mode 3 protective (status bit 2), 5 safeguard (bit 4), 7 robot
+emergency (bits 6, 7), each with bit 10 "stopped due to safety". The script takes no command while one is active; with
+`stop_script_on_fault` the program also stops, as a real controller may do, and stays stopped after the stop is
+cleared until the script is uploaded again.
+
+What a real arm adds to the ideal: `pose_noise_m` (the reported actual TCP position scatters by that standard
+deviation, per axis, per package) and `speed_slider` (the pendant's speed slider, target_speed_fraction: motion runs at
+that fraction of its programmed speed, so moves take 1/slider as long).
 """
 
 from __future__ import annotations
@@ -21,17 +36,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from spadscan.daemon.arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
-from spadscan.daemon.ursim.kinematics import Motion, forward_kinematics, inverse_kinematics
+from spadscan.daemon.ursim.kinematics import Motion, forward_kinematics, inverse_kinematics, reachable
 from spadscan.daemon.ursim.variables import OUTPUT_TYPES, ZERO
 
 MOVE_COMMANDS = {1: "moveJ", 2: "moveJ_IK", 3: "moveL", 4: "moveL_FK"}
 STOP_COMMANDS = {33: "stopL", 34: "stopJ"}
+SET_WATCHDOG, IS_POSE_WITHIN_SAFETY_LIMITS, IK_HAS_SOLUTION, IK_HAS_SOLUTION_ARGS = 35, 36, 60, 61
 STOP_SCRIPT = 255
 
-RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
+RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 ROBOT_MODE_RUNNING = 7
-SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 7
-BIT_NORMAL, BIT_PROTECTIVE_STOPPED, BIT_ROBOT_ESTOP, BIT_EMERGENCY_STOPPED = 1 << 0, 1 << 2, 1 << 6, 1 << 7
+SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_SAFEGUARD_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 5, 7
+BIT_NORMAL, BIT_PROTECTIVE_STOPPED, BIT_SAFEGUARD_STOPPED = 1 << 0, 1 << 2, 1 << 4
+BIT_ROBOT_ESTOP, BIT_EMERGENCY_STOPPED, BIT_STOPPED_DUE_TO_SAFETY = 1 << 6, 1 << 7, 1 << 10
 STATUS_POWER_ON, STATUS_PROGRAM_RUNNING = 1 << 0, 1 << 1
 JOINT_RUNNING_MODE = 253
 
@@ -54,11 +71,26 @@ class MoveRecord:
 class URControllerModel:
     """What a UR controller running ur_rtde's control script would report; see the module docstring."""
 
-    def __init__(self, *, time_scale: float = 1.0, initial_pose=(0.3, 0.0, 0.3, 0.0, math.pi, 0.0)):
+    def __init__(self, *, time_scale: float = 1.0, initial_pose=(0.3, 0.0, 0.3, 0.0, math.pi, 0.0), seed: int = 0):
         self.time_scale = float(time_scale)
         self._lock = threading.Lock()
         self._t0 = time.monotonic()
         self._pose = np.asarray(initial_pose, dtype=np.float64)
+        self._rng = np.random.default_rng(seed)
+        # Motion time runs at the speed slider's rate: tau(t) = tau_ref + (t - t_ref) * speed_slider.
+        self.speed_slider = 1.0
+        self._t_ref = self._tau_ref = 0.0
+        self.pose_noise_m = 0.0
+        self.stop_script_on_fault = False
+        self.safety_floor_z: float | None = None
+        """A safety plane: TCP positions below this height (m) are outside the safety limits."""
+        self.reach_m = 0.85
+        self.watchdog_period_s: float | None = None  # set by set_watchdog (cmd 35) until the program stops
+        self._last_kick = 0.0
+        self.watchdog_stops = 0
+        """Times the RTDE watchdog stopped the program."""
+        self.queries: list[tuple[str, tuple[float, ...], bool]] = []
+        """(query, pose, answer) of every safety-limit and inverse-kinematics question answered."""
         self._motion: Motion | None = None
         self._motion_async = False
         self._inputs: dict[str, object] = {}
@@ -66,6 +98,7 @@ class URControllerModel:
         self._out_double = [0.0] * 48
         self.runtime_state = RUNTIME_STOPPED
         self.protective_stop = False
+        self.safeguard_stop = False
         self.emergency_stop = False
         self._busy = False  # a synchronous command is executing (the script is blocked in it)
         self._executing = False  # the script took the current command and waits for the register to clear
@@ -81,13 +114,27 @@ class URControllerModel:
         """Controller time (s) since start."""
         return time.monotonic() - self._t0
 
+    def _tau(self, t: float) -> float:
+        """Motion time at controller time t: it runs at the speed slider's rate."""
+        return self._tau_ref + (t - self._t_ref) * self.speed_slider
+
+    def set_speed_slider(self, fraction: float) -> None:
+        """The pendant's speed slider, 0 < fraction <= 1: motion continues at that fraction of its speed."""
+        if not (math.isfinite(fraction) and 0.0 < fraction <= 1.0):
+            raise ValueError(f"speed slider must be in (0, 1], got {fraction}")
+        with self._lock:
+            t = self.now()
+            self._tau_ref, self._t_ref = self._tau(t), t
+            self.speed_slider = float(fraction)
+
     def _advance(self, t: float) -> None:
         """Bring the motion to time t; finish it (and signal the script) when it has arrived."""
         m = self._motion
         if m is None:
             return
-        if t < m.end_time():
-            self._pose = m.pose_at(t)
+        tau = self._tau(t)
+        if tau < m.end_time():
+            self._pose = m.pose_at(tau)
             return
         goal = m.goal if m.linear else forward_kinematics(m.goal)
         self._pose = np.concatenate([goal[:3], matrix_to_rotvec(rotvec_to_matrix(goal[3:]))])
@@ -101,7 +148,7 @@ class URControllerModel:
     def _halt(self, t: float) -> None:
         """Stop where the arm is now (stopL/stopJ, protective stop)."""
         if self._motion is not None:
-            self._pose = self._motion.pose_at(t)
+            self._pose = self._motion.pose_at(self._tau(t))
             self._motion = None
             if self._motion_async:
                 self._write_async(-1)
@@ -124,6 +171,7 @@ class URControllerModel:
             self._halt(t)
             self.scripts.append(text)
             self.runtime_state = RUNTIME_PLAYING
+            self.watchdog_period_s = None  # a new program has set no watchdog yet
             self._busy = self._executing = False
             self._write_async(-1)
             self._out_int[0] = 1
@@ -132,14 +180,19 @@ class URControllerModel:
     def write_inputs(self, values: dict[str, object]) -> None:
         """Values of one RTDE input package (name -> value); the script reacts at once."""
         with self._lock:
-            self._inputs.update(values)
             t = self.now()
             self._advance(t)
+            if "input_int_register_0" in values:  # what the watchdog watches
+                self._last_kick = t
+            self._inputs.update(values)
             self._step(t)
+
+    def _safety_stopped(self) -> bool:
+        return self.protective_stop or self.safeguard_stop or self.emergency_stop
 
     def _step(self, t: float) -> None:
         """One pass of the script's main loop (it is paused while the robot is stopped for safety)."""
-        if self.runtime_state != RUNTIME_PLAYING or self._busy or self.protective_stop or self.emergency_stop:
+        if self.runtime_state != RUNTIME_PLAYING or self._busy or self._safety_stopped():
             return
         cmd = int(self._inputs.get("input_int_register_0", 0))
         if cmd == 0:
@@ -155,6 +208,16 @@ class URControllerModel:
         if cmd == STOP_SCRIPT:
             self._halt(t)
             self.runtime_state = RUNTIME_STOPPED
+            self.watchdog_period_s = None
+            return
+        if cmd == SET_WATCHDOG:
+            self.watchdog_period_s = 1.0 / regs[0] if math.isfinite(regs[0]) and regs[0] > 0 else None
+            self._last_kick = t
+            self._out_int[0] = 2
+            return
+        if cmd in (IS_POSE_WITHIN_SAFETY_LIMITS, IK_HAS_SOLUTION, IK_HAS_SOLUTION_ARGS):
+            self._answer(cmd, np.asarray(regs[:6]))
+            self._out_int[0] = 2
             return
         name = MOVE_COMMANDS.get(cmd) or STOP_COMMANDS.get(cmd) or f"command {cmd}"
         if cmd in MOVE_COMMANDS and not (all(map(math.isfinite, regs)) and regs[6] > 0 and regs[7] > 0):
@@ -162,6 +225,7 @@ class URControllerModel:
             self.errors.append(f"{name}: target {regs[:6]} speed {regs[6]} acceleration {regs[7]} rejected")
             self._halt(t)
             self.runtime_state = RUNTIME_STOPPED
+            self.watchdog_period_s = None
             return
         self.moves.append(MoveRecord(name, cmd, tuple(regs[:6]), regs[6], regs[7], asynchronous, t))
         if cmd in MOVE_COMMANDS:
@@ -172,7 +236,7 @@ class URControllerModel:
             elif cmd == 4:
                 goal = forward_kinematics(goal)
             self._halt(t)
-            self._motion = Motion.plan(linear, self._pose, goal, regs[6], regs[7], t, self.time_scale)
+            self._motion = Motion.plan(linear, self._pose, goal, regs[6], regs[7], self._tau(t), self.time_scale)
             self._motion_async = asynchronous
             if asynchronous:
                 self._write_async(0)
@@ -184,26 +248,73 @@ class URControllerModel:
             self._halt(t)
         self._out_int[0] = 2
 
+    def _answer(self, cmd: int, pose: np.ndarray) -> None:
+        """A query's answer in output_int_register_1: 1 yes, 0 no."""
+        ok = bool(np.all(np.isfinite(pose))) and reachable(pose, self.reach_m)
+        name = "has_ik_solution"
+        if cmd == IS_POSE_WITHIN_SAFETY_LIMITS:
+            name = "within_safety_limits"
+            ok = ok and (self.safety_floor_z is None or bool(pose[2] >= self.safety_floor_z))
+        self.queries.append((name, tuple(float(x) for x in pose), ok))
+        self._out_int[1] = int(ok)
+
+    def _check_watchdog(self, t: float) -> None:
+        """Stop the program when the watchdog's input has not been written for longer than its period."""
+        period = self.watchdog_period_s
+        if period is None or self.runtime_state != RUNTIME_PLAYING or t - self._last_kick <= period:
+            return
+        self._halt(t)
+        self._busy = self._executing = False
+        self.runtime_state = RUNTIME_STOPPED
+        self.watchdog_period_s = None
+        self.watchdog_stops += 1
+        self.errors.append(f"RTDE watchdog: input_int_register_0 not written for {t - self._last_kick:.3f} s "
+                           f"(limit {period:.3f} s); program stopped")
+
+    def watchdog_due(self) -> bool:
+        """Whether the watchdog would stop the program now. The server asks, lets any input that is already waiting
+        on its sockets arrive, then calls `check_watchdog`: a real controller runs in real time, a simulated one can
+        be descheduled, and its own delay must not count against the client."""
+        with self._lock:
+            period = self.watchdog_period_s
+            return (period is not None and self.runtime_state == RUNTIME_PLAYING
+                    and self.now() - self._last_kick > period)
+
+    def check_watchdog(self) -> None:
+        """Stop the program if the watchdog is due (see `watchdog_due`)."""
+        with self._lock:
+            t = self.now()
+            self._advance(t)
+            self._check_watchdog(t)
+
     # -- faults --------------------------------------------------------------------------------------------------
     def set_protective_stop(self, on: bool) -> None:
         """Protective stop: motion halts, the script stops taking commands; clearing it aborts the halted command."""
         self._set_safety(protective=on)
 
+    def set_safeguard_stop(self, on: bool) -> None:
+        """Safeguard stop (a light curtain, a door): like a protective stop, reported as safety mode 5, bit 4."""
+        self._set_safety(safeguard=on)
+
     def set_emergency_stop(self, on: bool) -> None:
         """Robot emergency stop: like a protective stop, reported as safety mode 7."""
         self._set_safety(emergency=on)
 
-    def _set_safety(self, protective: bool | None = None, emergency: bool | None = None) -> None:
+    def _set_safety(self, protective: bool | None = None, safeguard: bool | None = None,
+                    emergency: bool | None = None) -> None:
         with self._lock:
             t = self.now()
             self._advance(t)
-            if protective is not None:
-                self.protective_stop = protective
-            if emergency is not None:
-                self.emergency_stop = emergency
-            if self.protective_stop or self.emergency_stop:
+            for name, value in (("protective_stop", protective), ("safeguard_stop", safeguard),
+                                ("emergency_stop", emergency)):
+                if value is not None:
+                    setattr(self, name, value)
+            if self._safety_stopped():
                 self._halt(t)
                 self._busy = False
+                if self.stop_script_on_fault and self.runtime_state == RUNTIME_PLAYING:
+                    self.runtime_state = RUNTIME_STOPPED
+                    self.watchdog_period_s = None
             self._step(t)
 
     # -- what RTDE reports -----------------------------------------------------------------------------------
@@ -213,7 +324,10 @@ class URControllerModel:
             t = self.now()
             self._advance(t)
             self._step(t)
-            pose = tuple(float(x) for x in self._pose)
+            pose = self._pose.copy()
+            if self.pose_noise_m > 0:
+                pose[:3] += self._rng.normal(0.0, self.pose_noise_m, 3)
+            pose = tuple(float(x) for x in pose)
             snapshot = self._snapshot(t, pose)
             snapshot.update(self._velocities(t))
             return [self._value(n, snapshot) for n in names]
@@ -224,8 +338,12 @@ class URControllerModel:
             mode, bits = SAFETY_ROBOT_EMERGENCY_STOP, BIT_ROBOT_ESTOP | BIT_EMERGENCY_STOPPED
         elif self.protective_stop:
             mode, bits = SAFETY_PROTECTIVE_STOP, BIT_PROTECTIVE_STOPPED
+        elif self.safeguard_stop:
+            mode, bits = SAFETY_SAFEGUARD_STOP, BIT_SAFEGUARD_STOPPED
         else:
             mode, bits = SAFETY_NORMAL, BIT_NORMAL
+        if mode != SAFETY_NORMAL:
+            bits |= BIT_STOPPED_DUE_TO_SAFETY
         running = self.runtime_state == RUNTIME_PLAYING
         return {
             "timestamp": t, "actual_q": q, "target_q": q, "actual_TCP_pose": pose, "target_TCP_pose": pose,
@@ -233,7 +351,7 @@ class URControllerModel:
             "safety_mode": mode, "safety_status": mode, "safety_status_bits": bits,
             "runtime_state": self.runtime_state,
             "robot_status_bits": STATUS_POWER_ON | (STATUS_PROGRAM_RUNNING if running else 0),
-            "speed_scaling": 1.0, "target_speed_fraction": 1.0, "actual_main_voltage": 48.0,
+            "speed_scaling": 1.0, "target_speed_fraction": self.speed_slider, "actual_main_voltage": 48.0,
             "actual_robot_voltage": 48.0, "joint_temperatures": (30.0,) * 6, "actual_execution_time": 0.1,
         }
 
@@ -241,10 +359,11 @@ class URControllerModel:
         """actual_TCP_speed (linear m/s, angular rad/s, base frame) and actual_qd (rad/s) by a backward difference
         over 1 ms of the motion in progress; zero at rest."""
         m = self._motion
-        if m is None or t <= m.t_start:
+        tau = self._tau(t)
+        if m is None or tau <= m.t_start:
             return {}
-        h = min(1e-3, t - m.t_start)
-        p1, p0 = m.pose_at(t), m.pose_at(t - h)
+        h = min(1e-3, (tau - m.t_start) / self.speed_slider)  # controller seconds
+        p1, p0 = m.pose_at(tau), m.pose_at(tau - h * self.speed_slider)
         r0 = rotvec_to_matrix(p0[3:])
         omega = r0 @ matrix_to_rotvec(r0.T @ rotvec_to_matrix(p1[3:])) / h
         speed = np.concatenate([(p1[:3] - p0[:3]) / h, omega])

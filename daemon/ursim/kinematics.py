@@ -26,6 +26,19 @@ MIN_RATE = 1e-6
 """Speeds and accelerations below this (or non-finite) are clamped here, so a move always ends."""
 
 
+SHOULDER_M = np.array([0.0, 0.0, 0.1625])
+"""Where the reach is measured from (a UR5e's shoulder joint height above its base)."""
+INNER_RADIUS_M = 0.05
+"""No solution this close to the base's vertical axis (the wrist cannot stand on the column)."""
+
+
+def reachable(pose_vec: np.ndarray, reach_m: float) -> bool:
+    """Whether the controller would find an inverse kinematics solution for a TCP pose vector (6,): within reach_m
+    of the shoulder and clear of the base's axis. A UR5e-sized envelope, not the geometry of any real arm."""
+    p = np.asarray(pose_vec, dtype=np.float64)[:3]
+    return bool(np.linalg.norm(p - SHOULDER_M) <= reach_m and np.hypot(p[0], p[1]) >= INNER_RADIUS_M)
+
+
 def inverse_kinematics(pose_vec: np.ndarray) -> np.ndarray:
     """Fake IK: pose vector (6,) [m, rad] -> joint angles (6,) [rad]."""
     return _M @ np.asarray(pose_vec, dtype=np.float64) + Q_HOME

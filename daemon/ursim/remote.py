@@ -18,8 +18,8 @@ from spadscan.daemon.ursim.controller import MoveRecord
 from spadscan.daemon.ursim.sim_controller import SimURController
 from spadscan.protocol.errors import DeviceError, SpadscanError
 
-_CALLS = ("protective_stop", "clear_protective_stop", "emergency_stop", "clear_emergency_stop", "drop_link",
-          "restore_link")
+_CALLS = ("protective_stop", "clear_protective_stop", "safeguard_stop", "clear_safeguard_stop", "emergency_stop",
+          "clear_emergency_stop", "drop_link", "restore_link", "configure")
 
 
 def handle(controller: SimURController, request: dict) -> object:
@@ -35,6 +35,12 @@ def handle(controller: SimURController, request: dict) -> object:
         return controller.model.set_pose(args["pose"])
     if op == "scripts":
         return len(controller.scripts)
+    if op == "state":
+        m = controller.model
+        return {"runtime_state": m.runtime_state, "watchdog_period_s": m.watchdog_period_s,
+                "watchdog_stops": m.watchdog_stops, "errors": list(m.errors), "queries": [list(q) for q in m.queries],
+                "moving": m.read(["output_int_register_2"])[0] & 32768 != 0,
+                "script_state": m.read(["output_int_register_0"])[0]}
     if op == "dashboard_log":
         return controller.dashboard_log
     if op == "rtde_log":
@@ -92,6 +98,21 @@ class SimURProcess:
 
     def clear_protective_stop(self) -> None:
         self._request("clear_protective_stop")
+
+    def safeguard_stop(self) -> None:
+        self._request("safeguard_stop")
+
+    def clear_safeguard_stop(self) -> None:
+        self._request("clear_safeguard_stop")
+
+    def configure(self, **settings) -> None:
+        """See SimURController.configure."""
+        self._request("configure", **settings)
+
+    def state(self) -> dict:
+        """runtime_state (1 stopped, 2 playing), watchdog_period_s, watchdog_stops, errors, queries (name, pose,
+        answer), whether an asynchronous move is running, script_state (1 ready for a command, 2 done with one)."""
+        return self._request("state")
 
     def emergency_stop(self) -> None:
         self._request("emergency_stop")

@@ -23,10 +23,13 @@ MAX_FREQUENCY_HZ = 500.0
 
 @dataclass
 class LinkState:
-    """Link faults shared by every session: `silent` sends nothing, `frozen` repeats the last package."""
+    """Link faults shared by every session: `silent` sends nothing, `frozen` repeats the package each session sends
+    first after the freeze (the state at that moment), timestamp included."""
 
     silent: bool = False
     frozen: bool = False
+    freezes: int = 0
+    """Counts freezes, so that each session takes its one last package after every new one."""
 
 
 @dataclass
@@ -145,12 +148,15 @@ class RTDESession:
     async def _stream_loop(self) -> None:
         period = 1.0 / self.frequency
         last: dict[int, bytes] = {}
+        frozen_at = -1  # the freeze whose last package `last` holds
         next_t = time.monotonic()
         while True:
             link = self.hub.link
             if not link.silent:
+                fresh = not link.frozen or frozen_at != link.freezes
+                frozen_at = link.freezes if link.frozen else -1
                 for rid, recipe in self.outputs.items():
-                    if not (link.frozen and rid in last):
+                    if fresh or rid not in last:
                         values = self.hub.model.read(recipe.names)
                         last[rid] = codec.pack(codec.DATA_PACKAGE,
                                                bytes([rid]) + codec.encode_values(recipe.types, values))

@@ -2,8 +2,9 @@
 
     with SimURController("127.0.0.9", time_scale=0.01) as ur:
         ... RTDEControlInterface("127.0.0.9") ...
-        ur.protective_stop(); ur.clear_protective_stop()
+        ur.protective_stop(); ur.clear_protective_stop()     # also safeguard_stop, emergency_stop
         ur.drop_link("silent"); ur.restore_link()
+        ur.configure(speed_slider=0.5, pose_noise_m=2e-4, stop_script_on_fault=True, safety_floor_z=0.05)
         ur.moves  # every command the controller took
 
 The servers run on an asyncio loop in one background thread (`start`/`stop`, or a `with` block), or in the caller's
@@ -26,6 +27,10 @@ from spadscan.daemon.ursim.script_port import serve_script_port
 from spadscan.protocol.errors import DeviceError
 
 LINK_MODES = ("close", "silent", "freeze")
+WATCHDOG_POLL_S = 0.005
+"""How often the RTDE watchdog is checked (the real controller checks every control cycle, 2 ms)."""
+SETTINGS = ("speed_slider", "pose_noise_m", "stop_script_on_fault", "safety_floor_z", "reach_m")
+"""What `configure` may change while the controller runs."""
 
 
 class SimURController:
@@ -57,12 +62,24 @@ class SimURController:
         self._loop = asyncio.get_running_loop()
         self._stop_event = asyncio.Event()
         await self._listen()
+        watchdog = self._loop.create_task(self._watch_inputs())
         try:
             if ready is not None:
                 ready()
             await self._stop_event.wait()
         finally:
+            watchdog.cancel()
+            await asyncio.gather(watchdog, return_exceptions=True)
             await self._disconnect_all()
+
+    async def _watch_inputs(self) -> None:
+        """The RTDE watchdog, independent of any connection (a client that died has none)."""
+        while True:
+            await asyncio.sleep(WATCHDOG_POLL_S)
+            if self.model.watchdog_due():
+                for _ in range(3):  # input already waiting on a socket is read first (see watchdog_due)
+                    await asyncio.sleep(0)
+                self.model.check_watchdog()
 
     def request_stop(self) -> None:
         """Ask `serve()` to finish (thread-safe)."""
@@ -119,12 +136,37 @@ class SimURController:
     def clear_protective_stop(self) -> None:
         self.model.set_protective_stop(False)
 
+    def safeguard_stop(self) -> None:
+        """Safeguard stop (safety mode 5, safety_status_bits bit 4); motion halts until it is cleared."""
+        self.model.set_safeguard_stop(True)
+
+    def clear_safeguard_stop(self) -> None:
+        self.model.set_safeguard_stop(False)
+
     def emergency_stop(self) -> None:
         """Robot emergency stop (safety mode 7, safety_status_bits bits 6 and 7)."""
         self.model.set_emergency_stop(True)
 
     def clear_emergency_stop(self) -> None:
         self.model.set_emergency_stop(False)
+
+    def configure(self, **settings) -> None:
+        """Change what makes the controller less than ideal (thread-safe): speed_slider (0 < f <= 1), pose_noise_m
+        (m), stop_script_on_fault (bool), safety_floor_z (m or None), reach_m (m)."""
+        unknown = set(settings) - set(SETTINGS)
+        if unknown:
+            raise DeviceError(f"unknown controller settings {sorted(unknown)} (known: {', '.join(SETTINGS)})")
+        if "speed_slider" in settings:
+            try:
+                self.model.set_speed_slider(float(settings.pop("speed_slider")))
+            except ValueError as exc:
+                raise DeviceError(str(exc)) from None
+        for name in ("pose_noise_m", "reach_m"):
+            value = settings.get(name, 0.0)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise DeviceError(f"{name} must be a finite number >= 0 (m), got {value!r}")
+        for name, value in settings.items():
+            setattr(self.model, name, value)
 
     def drop_link(self, mode: str = "silent") -> None:
         """Break the link. "close": close every connection and refuse new ones; "silent": connections stay open
@@ -133,6 +175,7 @@ class SimURController:
         if mode not in LINK_MODES:
             raise DeviceError(f"link drop mode must be one of {LINK_MODES}, got {mode!r}")
         if mode == "freeze":
+            self.hub.link.freezes += 1
             self.hub.link.frozen = True
             return
         self.hub.link.silent = mode == "silent"

@@ -64,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "measured capture's table, found in its histograms as the fast reconstruction finds it; "
                             "z = 0 for a simulated one)")
     floor.add_argument("--no-floor", action="store_true", help="do not assume a floor")
+    parser.add_argument("--points", type=int, default=300_000, metavar="N",
+                        help="sample points per mesh for the metrics against the ground truth (default: 300,000, "
+                             "the project's convention; fewer are faster and coarser)")
     parser.add_argument("--surface", choices=("occupancy", "convex-hull"), default=None,
                         help=f"reprojection: how the points become a surface (default: {DEFAULTS['surface']})")
 
@@ -83,6 +86,7 @@ def check_method_options(args) -> None:
 
 def run(args) -> int:
     from spadscan.worker.baselines.run import run_baseline  # numpy, scipy and trimesh: only when a baseline runs
+    from spadscan.worker.metrics import MAX_POINTS
 
     check_method_options(args)
     if not 8 <= args.resolution <= 512:
@@ -93,6 +97,8 @@ def run(args) -> int:
         raise ConfigError(f"--floor-z {args.floor_z} must be a finite height in metres (or --no-floor)")
     if not math.isfinite(args.edge_deg):
         raise ConfigError(f"--edge-deg {args.edge_deg} must be a finite angle in degrees")
+    if not 1 <= args.points <= MAX_POINTS:
+        raise ConfigError(f"--points {args.points} must be an integer in [1, {MAX_POINTS:,}]")
     if args.threshold is not None and not args.threshold > 0:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
 
@@ -106,7 +112,7 @@ def run(args) -> int:
         args.capture, args.out, args.method, gt=gt, threshold=args.threshold, calibrate_=args.calibrate,
         resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
         floor_z=None if args.no_floor else ("auto" if args.floor_z is None else args.floor_z), surface=args.surface,
-        edge_deg=args.edge_deg, log=log)
+        edge_deg=args.edge_deg, metrics_points=args.points, log=log)
     write_pictures_and_page(report, args.out, gt)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
     line += f", {report['seconds']:.1f} s"

@@ -1,13 +1,18 @@
 """Talk to a running daemon over its control socket (JSON lines).
 
-    spadscan ctl status                         state, scan, pose i/n, frames, rate, last error, sensor counters
+    spadscan ctl status                         state, scan, pose i/n, frames, rate, last error, sensor counters,
+                                                and the scan's live reconstruction (`live`) when a worker runs one
     spadscan ctl scan --name bunny --views 128  start a scan; it is written to <captures>/bunny/
     spadscan ctl pause | resume | abort         pause after the pose in flight, continue, or stop for good
     spadscan ctl wait bunny                     block until the scan is complete (exit 0) or aborted (exit 1);
                                                 on a terminal a progress bar (pose i/n) runs on stderr, otherwise
-                                                a line on stderr says why whenever the scan pauses; Ctrl-C stops
-                                                only the waiting, the scan goes on
+                                                a line on stderr says why whenever the scan pauses (and how its
+                                                live reconstruction stands); Ctrl-C stops only the waiting, the
+                                                scan goes on
     spadscan ctl shutdown                       stop the daemon (a scan in flight stays resumable)
+
+The live reconstruction (`spadscan worker --live`) is read from the scan's recon/live/status.json, beside the daemon:
+views used of those published, steps, whether it converged, the Chamfer when the scene is known, the last update.
 
 Units: metres, seconds, degrees. The socket defaults to $SPADSCAN_SOCKET, else $XDG_RUNTIME_DIR/spadscan.sock, else
 /tmp/spadscan-<uid>.sock; pass --socket to match the daemon's `socket` config key.
@@ -84,7 +89,9 @@ def add_arguments(parser) -> None:
     def op(name: str, help_: str, description: str | None = None):
         return sub.add_parser(name, help=help_, description=description or help_, parents=[shared])
 
-    op("status", "print the daemon's state as JSON")
+    op("status", "print the daemon's state as JSON",
+       "Print the daemon's state as JSON; `live` holds the scan's live reconstruction (recon/live/status.json) "
+       "when a worker runs one (`spadscan worker --live`), with `age_s`, the seconds since its last update.")
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
               "config (examples/README.md documents each key).")
@@ -142,6 +149,10 @@ def run(args) -> int:
         request = {"reason": args.reason}
     reply = call(path, args.op, timeout, **request)
     reply.pop("ok", None)
+    if args.op == "status":
+        live = live_status(reply)
+        if live is not None:
+            reply["live"] = live
     print(json.dumps(reply, indent=1 if args.op == "status" else None))
     if args.op == "scan" and args.wait:
         return _wait(path, reply["scan"], args.timeout)
@@ -200,6 +211,49 @@ def wait_for_scan(path: str, name: str, timeout: float | None, stream) -> dict:
     return outcome["reply"]
 
 
+def live_capture(status: dict) -> str | None:
+    """The capture folder of the scan a daemon status is about: the scan in flight, else the last one."""
+    import os
+
+    if status.get("path"):
+        return str(status["path"])
+    last = (status.get("last_scan") or {}).get("name")
+    captures = (status.get("daemon") or {}).get("captures")
+    return os.path.join(captures, last) if last and captures else None
+
+
+def live_status(status: dict) -> dict | None:
+    """The live reconstruction of the scan a daemon status is about, as a dict (recon/live/status.json with
+    `age_s`, or {'error': why} when that file cannot be read), or None when there is none."""
+    from spadscan.protocol.errors import CaptureError
+    from spadscan.protocol.live_status import read_status, status_path
+
+    capture = live_capture(status)
+    if capture is None or not status_path(capture).exists():
+        return None
+    try:
+        live = read_status(status_path(capture))
+    except CaptureError as exc:
+        return {"error": str(exc)}
+    age = live.age_s()
+    return {**live.to_dict(), "age_s": None if age is None else round(age, 1)}
+
+
+def live_line(live: dict | None) -> str | None:
+    """One line for people about a live reconstruction dict (`live_status`), or None."""
+    if not live:
+        return None
+    if "error" in live:
+        return f"live: {live['error']}"
+    from spadscan.protocol.live_status import LiveStatus
+
+    known = {k: v for k, v in live.items() if k in LiveStatus.__dataclass_fields__}
+    try:
+        return LiveStatus(**known).summary()
+    except TypeError:
+        return None
+
+
 def _status(path: str) -> dict:
     """The daemon's status, or {} when it does not answer (the `wait` request then says what went wrong)."""
     from spadscan.daemon.client import ControlError, call
@@ -228,6 +282,7 @@ class PauseNotes:
     def __init__(self, name: str, stream):
         self.name, self.stream = name, stream
         self.noted = False
+        self.live_state = None
 
     def update(self, status: dict) -> None:
         paused = status.get("scan") == self.name and status.get("state") == "paused"
@@ -236,6 +291,11 @@ class PauseNotes:
                   f"{status.get('reason') or 'no reason given'} (`spadscan ctl resume` continues it)",
                   file=self.stream, flush=True)
         self.noted = paused
+        live = live_status(status) if status.get("scan") == self.name else None
+        state = (live or {}).get("state")
+        if live and state != self.live_state:  # a line when the live reconstruction starts, finishes or ends
+            print(f"spadscan: scan {self.name!r} {live_line(live)}", file=self.stream, flush=True)
+        self.live_state = state or self.live_state
 
     def finish(self, state: str | None) -> None:
         pass
@@ -261,7 +321,9 @@ class ProgressBar:
             self.bar = tqdm(total=status["poses"], desc=self.name, unit="pose", file=self.stream, dynamic_ncols=True)
         self.bar.n = status["pose"]
         reason = status.get("reason")
-        self.bar.set_postfix_str(status["state"] + (f": {reason}" if reason else ""), refresh=False)
+        live = live_line(live_status(status))
+        self.bar.set_postfix_str(status["state"] + (f": {reason}" if reason else "") + (f"; {live}" if live else ""),
+                                 refresh=False)
         self.bar.refresh()
 
     def finish(self, state: str | None) -> None:

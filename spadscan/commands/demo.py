@@ -4,7 +4,11 @@ Starts the acquisition daemon (simulated arm, or the real ur_rtde client against
 --arm ur-sim) with a simulated sensor rendering a built-in scene, scans it through the control socket, lets a worker
 process reconstruct the capture, and ends with a summary: the mesh, the pictures, the HTML report (with a 3D view
 to turn), the Chamfer distance against the scene's ground truth and the time each stage took (also in
-OUT/summary.json). While the reconstruction runs, a progress line shows its training time, loss and Chamfer.
+OUT/summary.json). The worker reconstructs live by default (`spadscan worker --live`): it starts on the scan's first
+chunk, the scan's progress bar shows the live fit (views used of those published, steps, Chamfer) and a line is
+printed each time its state changes; once the scan is complete the final reconstruction continues from the live
+fit for --budget-s seconds. --offline reconstructs only once the scan is complete, as `spadscan worker --once`.
+While the final reconstruction runs, a progress line shows its training time, loss and Chamfer.
 With --dashboard it also serves the lab dashboard on its captures and prints the address to open.
 Every process it starts is stopped again, also on Ctrl-C.
 """
@@ -25,8 +29,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sensor poses in the scan (default: 128; with 64 the goblet's fit is coarser and "
                              "varies more from seed to seed)")
     parser.add_argument("--budget-s", type=float, default=120.0, metavar="S",
-                        help="training seconds of the reconstruction, as `spadscan reconstruct --budget-s` "
-                             "(default: 120)")
+                        help="seconds of the whole reconstruction job, from its start to its report, as "
+                             "`spadscan worker --budget-s`; live, of the final run that continues from the live fit "
+                             "once the scan is complete (default: 120)")
+    parser.add_argument("--offline", action="store_true",
+                        help="reconstruct only once the scan is complete (`spadscan worker --once`) instead of "
+                             "live while it runs")
     parser.add_argument("--arm", choices=("sim", "ur-sim"), default="sim",
                         help="sim: simulated arm; ur-sim: the real ur_rtde client against a simulated UR "
                              "controller on loopback (default: sim)")
@@ -47,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     from spadscan.demo import DemoOptions, check_options, run_demo
 
     opts = DemoOptions(out=args.out, scene=args.scene, views=args.views, budget_s=args.budget_s, arm=args.arm,
-                       sensor=args.sensor, dashboard=args.dashboard, dashboard_port=args.dashboard_port)
+                       sensor=args.sensor, dashboard=args.dashboard, dashboard_port=args.dashboard_port,
+                       live=not args.offline)
     check_options(opts)  # before the banner: a refused option starts nothing and announces nothing
 
     def bar(total: float, desc: str, unit: str):
@@ -58,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
         print(line, file=sys.stderr, flush=True)
 
     print(f"spadscan demo: scene {opts.scene}, {opts.views} views, {opts.arm} arm, {opts.sensor} sensor, "
-          f"reconstruction budget {opts.budget_s:g} s; logs in {opts.out / 'logs'}", file=sys.stderr)
+          f"{'live reconstruction, final run' if opts.live else 'reconstruction'} budget {opts.budget_s:g} s; "
+          f"logs in {opts.out / 'logs'}", file=sys.stderr)
     s = run_demo(opts, bar, say)
     chamfer = s["chamfer_mm"]
     secs = s["seconds"]
@@ -68,9 +78,13 @@ def run(args: argparse.Namespace) -> int:
     if s["converged"] is False and not s["warnings"]:
         print("warning:  the reconstruction did not converge")
     print(f"pictures: {', '.join(s['pictures']) or '-'}")
+    if s["live"] is not None:
+        print(f"live:     {s['live'].get('views_used')} views and {s['live'].get('steps')} steps fitted while the "
+              f"scan ran; the final run continued from them")
     print(f"chamfer:  {'n/a' if chamfer is None else f'{chamfer:.2f} mm'} against the scene's ground truth "
           f"(preset {s['preset']})")
-    print(f"time:     start {secs['start_s']:.1f} s, scan {secs['scan_s']:.1f} s, reconstruction "
+    after = "reconstruction after the scan" if s["live"] is not None else "reconstruction"
+    print(f"time:     start {secs['start_s']:.1f} s, scan {secs['scan_s']:.1f} s, {after} "
           f"{secs['reconstruct_s']:.1f} s, total {secs['total_s']:.1f} s")
     print(f"summary:  {opts.out / 'summary.json'}")
     if s["dashboard"]:

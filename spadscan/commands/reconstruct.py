@@ -6,9 +6,22 @@ terms used, final loss, the resolved config, and with a ground truth: chamfer_mm
 fscore_5mm, normal_error_deg plus a trace of error against training time), preview.png, error_vs_time.png, fit.png
 (measured against rendered histograms) and, with a ground truth, normals.png (per-vertex normal error). Without --gt,
 the ground truth that the capture names is used (import-lcspc and simulate record theirs); --no-gt skips the metrics.
-The run stops at --steps or --budget-s, whichever comes first; with neither, the preset's default (fast: 120 s of
-training; paper: 300,000 steps, hours on a GPU and days on a CPU). The `fast` preset also stops early once its data
-term has stopped improving (report.json: stopped_by 'converged'); turn that off with --set early_stop=false.
+--budget-s bounds the whole run, from the command's start to its report (within 10 % or 10 s, whichever is
+larger): loading the capture, training, the mesh, the metrics and the pictures share it, and when time is short the
+mesh is coarser and the metrics use fewer points (report.json's "budget" and "warnings" say so). --steps bounds the
+training steps; with neither, the preset's default (fast: a 120 s budget; paper: 300,000 steps, hours on a GPU and
+days on a CPU). The `fast` preset also stops early once its data term has stopped improving (report.json:
+stopped_by 'converged'); turn that off with --set early_stop=false.
+
+An honest end: report.json's "converged" says whether the fit had settled, and "warnings" (also printed, and shown
+at the top of report.html) says why a result may be doubtful: a run that stopped on its budget or step count while
+its fit was still improving, a run starved of CPU by other processes, a fit whose deviance from the measurements is
+far above what photon noise gives, a mesh or metrics made coarser to fit the budget.
+
+CPU threads: without --threads (and without OMP_NUM_THREADS), a CPU run times its steps with all the cores' threads
+and with one, keeps the faster and checks again from time to time, so that a busy machine does not make every step
+many times slower; its OpenMP threads wait passively (OMP_WAIT_POLICY=PASSIVE unless set). report.json's "threads"
+says what it chose.
 
 Presets: `fast` (default) is an SDF grid that reaches good meshes in minutes on a CPU; `paper` is the published
 method (an MLP SDF, 300K steps nominal: hours on a GPU). The `fast` preset's mechanisms are parts (refinement,
@@ -43,8 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="fast", choices=PRESET_NAMES,
                         help="reconstruction method (default: fast)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
-                        help="stop after S seconds of training, checkpoint scoring included (the set-up before it, "
-                             "and the final mesh, metrics and pictures after it, are not counted)")
+                        help="bound the whole run to S seconds, from start to report: set-up, training, mesh, "
+                             "metrics and pictures share it (default: the preset's; fast: 120)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N optimisation steps")
     add_ground_truth_options(parser, ", for the metrics")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
@@ -55,9 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "one of the fast preset's parts off: --set parts.openings.enabled=false (repeatable; "
                              "the resolved config and the parts that ran are saved in report.json)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
-                        help="CPU threads (default: OMP_NUM_THREADS if set, else torch's choice, the cores); with "
-                             "other reconstructions running at once, share the cores out: threads that outnumber "
-                             "the cores make every step many times slower")
+                        help="CPU threads, kept for the whole run (default: OMP_NUM_THREADS if set; else the "
+                             "cores' threads or one, whichever makes faster steps, chosen as the run goes); threads "
+                             "that outnumber the cores make every step many times slower")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out (without it, a folder that holds mesh.ply or "
                              "report.json is refused)")
@@ -65,6 +78,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import os
+
+    from spadscan.worker.budget import process_started
+    from spadscan.worker.threads import passive_wait_env
+
+    started = process_started()  # the budget counts from here: torch's import and the set-up are part of the run
+    os.environ.update(passive_wait_env(os.environ))  # read once, when torch's OpenMP runtime starts: before it
     from spadscan.worker.reconstruct import reconstruct_capture  # torch: only when a reconstruction runs
 
     out = check_out(args.out, args.overwrite, capture=args.capture)
@@ -77,11 +97,11 @@ def run(args: argparse.Namespace) -> int:
     report = reconstruct_capture(Path(args.capture), out, preset=args.preset, budget_s=args.budget_s,
                                  steps=args.steps, gt=gt, device=args.device, seed=args.seed,
                                  progress=not args.no_progress, overrides=overrides or None, threads=args.threads,
-                                 log=log)
+                                 log=log, started=started)
     steps = f"{report['steps']} step{'' if report['steps'] == 1 else 's'}"
-    # Training time is what --budget-s bounds (with checkpoints); the wall time adds set-up, the mesh and the metrics.
+    converged = "converged" if report.get("converged") else "not converged"
     line = (f"{report['preset']}: {steps} in {report['seconds']:.1f} s of training ({report['wall_seconds']:.1f} s "
-            f"in all) on {report['device']}, final loss {report['final_loss']:.4g}")
+            f"in all) on {report['device']}, {converged}, final loss {report['final_loss']:.4g}")
     if report.get("chamfer_mm") is not None:
         line += (f"; Chamfer {report['chamfer_mm']:.2f} mm ({report['chamfer_scoring']}; accuracy "
                  f"{report['accuracy_mm']:.2f}, completeness {report['completeness_mm']:.2f}), F-score@5mm "

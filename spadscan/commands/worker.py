@@ -12,6 +12,11 @@ from before the queue was deleted) is not run; it is recorded as done, and the l
 reconstruct finished scans again, `--redo JOB...` moves each one's results folder aside to
 <scan>/recon/<job>.replaced-<UTC time>-<4 hex digits>/ and queues the job again.
 
+--budget-s bounds each job's whole run, from its process's start to its report (within 10 % or 10 s, whichever is
+larger): the mesh is coarser and the metrics use fewer points when time is short. --status shows, for each done
+job, whether its reconstruction converged and the warnings its report gives (a run cut short, starved of CPU, or
+whose fit is far from the photon noise).
+
 Options are frozen into each job when it is queued: --budget-s, --steps, --device and --seed apply to the scans a
 worker queues, and a job already queued (by this worker or an earlier one) runs with its own (the worker names, when
 it starts, the queued jobs whose own values differ from the ones given). To run failed jobs again with other options,
@@ -26,6 +31,15 @@ are cores stall each other (two 2-thread jobs on 2 cores run 20-40x slower per s
 worker warns when --processes x threads is more than the cores. An OMP_NUM_THREADS that is not a whole number >= 1
 is ignored, with a warning.
 
+--live reconstructs while the arm scans: a scan is queued as soon as its first chunk is published, and its job
+follows it (each new chunk is read as it lands; the views in use grow, nothing restarts). Every few seconds it
+publishes <scan>/recon/live/ (mesh.ply, preview.png, status.json with views_used, views_published, steps,
+updated_utc, converged and, with a ground truth, chamfer_mm; `spadscan ctl status` shows it). When the scan is
+complete the job finishes from the live state, for --budget-s seconds (default for live jobs: 20), and publishes its
+result where every job does. An aborted scan's live job ends (failed, with the scan's reason; the live folder keeps
+its last state). A live job holds its job process from the scan's first chunk to its end: give the worker a process
+for each scan that may run at once (--processes). Live jobs run the fast preset.
+
 A job is recorded as done only once its result is in place, so a worker killed at any moment loses nothing: the
 next worker to start reconciles the queue with the result folders. It publishes the finished result a dead worker
 left in a scratch folder (<scan>/recon/.tmp-<job>-<claim>/, complete once its marker .complete is written), records
@@ -38,6 +52,7 @@ still holds shows as `running?`.
 Examples:
   spadscan worker --root captures --processes 2
   spadscan worker --root captures --once          # reconstruct what is there, then exit
+  spadscan worker --root captures --live          # reconstruct scans while they are recorded
   spadscan worker --root captures --status        # list jobs: state, attempts, last error, result
   spadscan worker --root captures --retry-failed  # put failed jobs back in the queue, with their own options
   spadscan worker --root captures --retry-failed --device cpu   # ... and run them on the CPU
@@ -60,8 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="reconstruction preset: fast or paper (default: fast; with --retry-failed: only the "
                              "failed jobs of this preset)")
     parser.add_argument("--budget-s", type=float, default=None, metavar="S",
-                        help="training seconds per reconstruction, checkpoint scoring included, as `spadscan "
-                             "reconstruct --budget-s` (default: the preset's)")
+                        help="seconds per job, from the job's start to its report (set-up, training, mesh, metrics "
+                             "and pictures), as `spadscan reconstruct --budget-s` (default: the preset's)")
     parser.add_argument("--steps", type=int, default=None, metavar="N",
                         help="optimisation steps per reconstruction (default: the preset's)")
     parser.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
@@ -69,6 +84,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="random seed of the reconstructions (default: 0)")
     parser.add_argument("--once", action="store_true",
                         help="queue the complete scans there are, run until nothing is queued or running, exit")
+    parser.add_argument("--live", action="store_true",
+                        help="start each scan's reconstruction at its first published chunk and follow the scan, "
+                             "publishing <scan>/recon/live/ every few seconds; --budget-s then bounds the final run "
+                             "after the scan ends (default 20 s; fast preset only)")
     parser.add_argument("--poll-s", type=float, default=None, metavar="S",
                         help="seconds between looks at the root and the queue (default: 2)")
     parser.add_argument("--lease-s", type=float, default=None, metavar="S",
@@ -95,7 +114,7 @@ OPTION_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "device": "--devic
 """Job options that can be given on the command line, and their flags. None in `args` means not given."""
 
 RUN_FLAGS = {"once": "--once", "processes": "--processes", "threads": "--threads", "poll_s": "--poll-s",
-             "max_attempts": "--max-attempts"}
+             "max_attempts": "--max-attempts", "live": "--live"}
 """Flags that only say how the worker runs jobs: meaningless with --status and --retry-failed, which run none."""
 
 DEFAULTS = {"processes": 1, "poll_s": 2.0, "lease_s": 60.0, "max_attempts": 3}
@@ -122,7 +141,7 @@ def run(args) -> int:
         return _retry_failed(Queue(queue_dir, create=False), given, args.preset)
     if args.redo:
         return _redo(Queue(queue_dir, create=False), root, args.redo, given)
-    options = JobOptions(**({"preset": args.preset} if args.preset else {}), **given)
+    options = JobOptions(**({"preset": args.preset} if args.preset else {}), **given, live=args.live)
     value = {key: DEFAULTS[key] if getattr(args, key) is None else getattr(args, key) for key in DEFAULTS}
     config = WorkerConfig(
         root=root, processes=value["processes"], queue_dir=queue_dir, poll_s=value["poll_s"], lease_s=lease_s,
@@ -228,7 +247,7 @@ def _print_status(queue, as_json: bool) -> int:
 
     rows = queue.statuses()
     if as_json:
-        print(json.dumps([asdict(r) for r in rows], indent=1))
+        print(json.dumps([{**asdict(r), **_result_health(r)} for r in rows], indent=1))
         return 0
     if not rows:
         print(f"no jobs in {queue.path}")
@@ -247,6 +266,25 @@ def _print_status(queue, as_json: bool) -> int:
     return 0
 
 
+def _result_health(row) -> dict:
+    """{"converged": bool, "warnings": [...]} from a done job's report.json (what its reconstruction said about
+    itself); {} when there is none to read."""
+    import json
+    from pathlib import Path
+
+    if row.state != "done" or not row.result:
+        return {}
+    try:
+        report = json.loads((Path(row.result) / "report.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(report, dict):
+        return {}
+    warnings = report.get("warnings")
+    return {"converged": report.get("converged"),
+            "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else []}
+
+
 def _status_detail(row) -> str:
     """The last column of a --status row: a done job's result folder, else its last error; then damaged files.
     A stale running job's row says why first."""
@@ -254,7 +292,10 @@ def _status_detail(row) -> str:
         detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
         if row.result and row.kept:
             detail += " (already there when the job was claimed: kept, not run)"
-        notes = [] if not row.result else row.notes
+        health = _result_health(row)
+        if health.get("converged") is False:
+            detail += " (not converged)"
+        notes = [f"warning: {w}" for w in health.get("warnings", [])] + ([] if not row.result else row.notes)
     else:
         detail, notes = row.error or "-", row.notes
         if row.stale:

@@ -36,30 +36,40 @@ def _host() -> str:
     return f"127.77.{os.getpid() % 250}.{next(_hosts) % 240 + 1}"
 
 
+def start_controller(time_scale: float) -> SimURProcess:
+    for _ in range(10):
+        try:
+            return SimURProcess(_host(), time_scale=time_scale)
+        except DeviceError:  # address in use: take the next one
+            continue
+    raise AssertionError("no free loopback address for the simulated controller")
+
+
 @pytest.fixture
 def ur():
     """A simulated controller process on a fresh loopback address; motion runs 10x faster than real."""
-    for _ in range(10):
-        try:
-            sim = SimURProcess(_host(), time_scale=0.1)
-            break
-        except DeviceError:  # address in use: take the next one
-            continue
-    else:
-        raise AssertionError("no free loopback address for the simulated controller")
+    sim = start_controller(0.1)
     yield sim
     sim.close()
 
 
-def make_arm(host: str) -> URArm:
-    # Generous timeouts: the tests share two cores with other work.
-    return URArm(host, frequency=100.0, stale_after_s=1.0, timeout_s=20.0)
+@pytest.fixture
+def ur_real_time():
+    """A simulated controller whose moves take as long as a real arm's."""
+    sim = start_controller(1.0)
+    yield sim
+    sim.close()
+
+
+def make_arm(host: str, **kw) -> URArm:
+    # Generous timeouts, and a watchdog period the tests' own event loop keeps up with: they share two cores.
+    return URArm(host, **{"frequency": 100.0, "stale_after_s": 1.0, "timeout_s": 20.0, "watchdog_hz": 1.0, **kw})
 
 
 @contextlib.asynccontextmanager
-async def connected_arm(host: str):
+async def connected_arm(host: str, **kw):
     """A connected URArm that is closed however the test ends (an unclosed one keeps reconnecting)."""
-    arm = make_arm(host)
+    arm = make_arm(host, **kw)
     try:
         await arm.connect()
         yield arm
@@ -114,6 +124,15 @@ def test_moves_arrive_at_the_commanded_poses_and_state_reports_the_actual_pose(u
         assert (move.speed, move.accel) == (SPEED, ACCEL)
 
 
+async def cleared(arm) -> None:
+    """Until the arm's own reading shows the stop cleared: the receive stream may still hold a package from before
+    the clear, and a move sent at once would be refused on it (an operator's `ctl resume` comes seconds later)."""
+    deadline = time.monotonic() + 60
+    while (await arm.state()).protective_stop:
+        assert time.monotonic() < deadline, "the arm never reported the stop cleared"
+        await asyncio.sleep(0.01)
+
+
 def test_protective_stop_refuses_the_move(ur, arun):
     async def run():
         async with connected_arm(ur.host) as arm:
@@ -125,9 +144,10 @@ def test_protective_stop_refuses_the_move(ur, arun):
             with pytest.raises(ArmFault, match="protective stop"):
                 await arm.prepare()
             ur.clear_protective_stop()
+            await cleared(arm)
             await arm.move_to(pose(0.4, 0.2, 0.3, DOWN))
-            cleared = (await arm.state()).protective_stop
-        return stopped, cleared
+            after = (await arm.state()).protective_stop
+        return stopped, after
 
     assert arun(run()) == (True, False)
     assert [m.target[1] for m in ur.moves] == [0.0, 0.2]  # the refused move never reached the controller
@@ -224,9 +244,187 @@ def test_dropped_link_is_link_lost_and_reconnect_works(ur, arun, mode):
     assert ur.host in message
     assert ("closed" if mode == "close" else "stale") in message
     assert np.allclose(state.tcp_pose, pose(0.4, 0.2, 0.3, DOWN), atol=1e-6)
-    assert [m.target[1] for m in ur.moves] == [0.0, 0.2]
+    assert [m.target[1] for m in ur.moves if m.name == "moveL"] == [0.0, 0.2]
+    if mode == "freeze":  # commands still get through a frozen data stream: the stopL sent before dropping it did
+        assert [m.name for m in ur.moves] == ["moveL", "stopL", "moveL"]
     if mode == "close":
         assert new_sessions == 2  # reconnecting built new receive and control interfaces
+
+
+async def until(pred, what: str, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        await asyncio.sleep(0.02)
+
+
+def test_a_silent_daemon_is_stopped_by_the_controllers_watchdog(ur, arun):
+    """The daemon's event loop stops (a debugger, SIGSTOP, a hang) in the middle of a long move: the controller's
+    watchdog (setWatchdog) sees no kick for a whole period, stops the program and with it the arm, far short of the
+    target. The next move says why; resuming uploads the script again and moves work."""
+    async def run():
+        async with connected_arm(ur.host, watchdog_hz=2.0) as arm:
+            await arm.prepare()
+            move = asyncio.ensure_future(arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.005, 1.0))  # 4 s scaled
+            await wait_for_moves(ur, 1)
+            time.sleep(1.5)  # the whole event loop stands still: no kick leaves
+            with pytest.raises(ArmFault, match="control script is not running"):
+                await asyncio.wait_for(move, 30)
+            stopped, where = ur.state(), ur.pose()
+            await asyncio.sleep(1.0)
+            still = ur.pose()
+            scripts = ur.scripts()
+            await arm.clear_fault()
+            await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
+            return stopped, where, still, scripts, ur.scripts(), ur.state()
+
+    stopped, where, still, scripts, scripts_after, after = arun(run())
+    assert stopped["watchdog_stops"] == 1 and stopped["runtime_state"] == 1
+    assert where[1] < 0.15 and still == where  # halted on the way, and stays there
+    assert scripts_after == scripts + 1 and after["runtime_state"] == 2 and after["watchdog_period_s"] == 0.5
+
+
+def test_a_kicked_watchdog_never_stops_a_daemon_that_waits(ur, arun):
+    """A paused scan sends no command for a long time; the kicks keep the program running."""
+    async def run():
+        async with connected_arm(ur.host, watchdog_hz=1.0) as arm:
+            await arm.prepare()
+            await asyncio.sleep(4.0)
+            await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
+            return ur.state()
+
+    state = arun(run())
+    assert state["watchdog_stops"] == 0 and state["watchdog_period_s"] == 1.0
+
+
+def test_a_lost_link_gets_a_stop_before_it_is_dropped(ur, arun):
+    """The data stream freezes mid-move (a hung controller connection): before ending the client, the arm sends
+    stopL, which the controller still takes, so the move it can no longer watch stops at once."""
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            move = asyncio.ensure_future(arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.005, 1.0))  # 4 s scaled
+            await wait_for_moves(ur, 1)
+            # Frozen while the script shows "done" (before the client cleared the move), no command could be sent.
+            await until(lambda: ur.state()["script_state"] == 1, "the client to clear the move command")
+            ur.drop_link("freeze")  # the stream then repeats the state at this moment
+            with pytest.raises(LinkLost, match="stale"):
+                await asyncio.wait_for(move, 30)
+            ur.restore_link()
+            return ur.moves, ur.state(), ur.pose()
+
+    moves, state, where = arun(run())
+    assert [m.name for m in moves] == ["moveL", "stopL"]
+    assert not state["moving"] and where[1] < 0.19
+
+
+def test_a_safeguard_stop_is_an_arm_fault_like_a_protective_stop(ur, arun):
+    """Safety mode 5, safety_status_bits bit 4 (a light curtain, a door): the move in progress is reported at once
+    with that reason, nothing moves until it is reset."""
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            move = asyncio.ensure_future(arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.005, 1.0))  # 4 s scaled
+            await wait_for_moves(ur, 1)
+            t0 = time.monotonic()
+            ur.safeguard_stop()
+            with pytest.raises(ArmFault, match=r"safeguard stop on .*aborted \(safety mode 5 \(safeguard stop\)"):
+                await asyncio.wait_for(move, 30)
+            took = time.monotonic() - t0
+            stopped = (await arm.state()).protective_stop
+            with pytest.raises(ArmFault, match="safeguard stop"):
+                await arm.prepare()
+            with pytest.raises(ArmFault, match="safeguard stop"):
+                await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
+            ur.clear_safeguard_stop()
+            await cleared(arm)
+            await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
+            return took, stopped, (await arm.state()).protective_stop
+
+    took, stopped, after = arun(run())
+    assert took < 10.0  # not the move's time budget (20 s and more) running out
+    assert stopped and not after
+    assert [m.name for m in ur.moves] == ["moveL", "moveL"]
+
+
+def test_a_control_script_stopped_by_a_protective_stop_is_uploaded_again_on_resume(ur, arun):
+    """A controller that stops the program on a protective stop: once the stop is cleared every command is refused
+    (ur_rtde: "RTDE control script is not running"). The arm says so; clear_fault (the runner's step on resume)
+    uploads the script again, and moves work."""
+    ur.configure(stop_script_on_fault=True)
+
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
+            ur.protective_stop()
+            ur.clear_protective_stop()
+            await cleared(arm)
+            with pytest.raises(ArmFault, match="control script is not running"):
+                await arm.move_to(pose(0.35, 0.1, 0.3, DOWN))
+            scripts = ur.scripts()
+            await arm.clear_fault()
+            await arm.move_to(pose(0.35, 0.1, 0.3, DOWN))
+            return scripts, ur.scripts(), await arm.state()
+
+    scripts, after, state = arun(run())
+    assert after == scripts + 1
+    assert np.allclose(state.tcp_pose, pose(0.35, 0.1, 0.3, DOWN), atol=1e-6)
+    assert [m.target[1] for m in ur.moves] == [0.0, 0.1]
+
+
+def test_the_controller_is_asked_about_every_planned_pose(ur, arun):
+    """isPoseWithinSafetyLimits and getInverseKinematicsHasSolution for each pose; the first refused is named."""
+    ur.configure(safety_floor_z=0.1)
+    ok = [pose(0.35, 0.0, 0.3, DOWN), pose(0.3, 0.1, 0.25, DOWN)]
+
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            await arm.check_poses(np.stack(ok))
+            asked = ur.state()["queries"]
+            with pytest.raises(ArmFault, match=r"pose 5 of 6: TCP at \[0.300, 0.000, 0.050\] m is outside the "
+                                               r"controller's safety limits"):
+                await arm.check_poses(np.stack([*ok, pose(0.3, 0.0, 0.05, DOWN)]), first_index=3)
+            with pytest.raises(ArmFault, match="pose 0 of 1: .* outside the controller's safety limits"):
+                await arm.check_poses(pose(1.5, 0.0, 0.3, DOWN)[None])  # beyond its reach
+        return asked
+
+    asked = arun(run())
+    assert [q[0] for q in asked] == ["within_safety_limits", "has_ik_solution"] * 2 and all(q[2] for q in asked)
+    np.testing.assert_allclose(asked[2][1][:3], [0.3, 0.1, 0.25])
+    assert ur.moves == []
+
+
+def test_a_slowed_speed_slider_is_not_a_stuck_move(ur_real_time, arun):
+    """The pendant's speed slider at 8 %: a 0.6 s move takes 7.5 s. Its time budget (twice the planned time plus
+    timeout_s: 5.2 s) counts motion time at the controller's speed scaling, so the move ends normally."""
+    ur = ur_real_time
+
+    async def run():
+        async with connected_arm(ur.host, timeout_s=4.0) as arm:
+            await arm.move_to(pose(0.3, 0.0, 0.3, DOWN), 0.2, 2.0)
+            ur.configure(speed_slider=0.08)
+            t0 = time.monotonic()
+            await arm.move_to(pose(0.3, 0.1, 0.3, DOWN), 0.2, 2.0)
+            return time.monotonic() - t0, await arm.state()
+
+    took, state = arun(run())
+    assert took > 6.0
+    assert np.allclose(state.tcp_pose, pose(0.3, 0.1, 0.3, DOWN), atol=1e-6)
+
+
+def test_moves_arrive_within_tolerance_of_a_noisy_actual_pose(ur, arun):
+    """A real controller's actual pose scatters (here 0.2 mm per axis): moves arrive within the 1 mm tolerance, and
+    the state reports the scattered actual pose, not the target."""
+    ur.configure(pose_noise_m=2e-4)
+
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            out = []
+            for y in (0.0, 0.05, 0.1):
+                await arm.move_to(pose(0.35, y, 0.3, DOWN))
+                out.append((await arm.state()).tcp_pose[:3, 3] - [0.35, y, 0.3])
+            return np.array(out)
+
+    off = np.linalg.norm(arun(run()), axis=1)
+    assert np.all(off > 0) and np.all(off < 2e-3)
 
 
 def _alive(pid: int) -> bool:
@@ -492,7 +690,7 @@ def test_rtde_child_exits_when_its_parent_is_gone_even_with_stdin_held_open(tmp_
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
     child, holder = (int(x) for x in out.stdout.split())
     try:
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 120  # it polls for its parent every second, once it has started
         while _alive(child) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert not _alive(child)

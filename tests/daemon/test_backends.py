@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from spadscan.daemon.arm.sim import SimArm
-from spadscan.daemon.backends import TrackedArm, build_devices, rig_record, sensor_model
+from spadscan.daemon.rig import TrackedArm, build_devices, rig_record, sensor_model
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon.devices import Arm, ArmState
 from spadscan.protocol.errors import ConfigError
@@ -104,3 +104,68 @@ def test_unknown_builtin_scene_is_a_config_error(tmp_path):
     cfg = cfg_of(tmp_path, {"backend": "sim"}, {"backend": "sim", "mesh": "builtin:teapot"})
     with pytest.raises(ConfigError, match=r"rig.toml: \[sensor\] mesh: unknown built-in scene 'teapot'"):
         build_devices(cfg)
+
+
+def test_every_backend_module_is_registered_by_its_name():
+    """The registry is the package: each module that defines BACKEND is found under the name it declares, with
+    its own keys (none shadowing a key every backend shares) and the methods the daemon calls."""
+    import importlib
+    import pkgutil
+
+    from spadscan.daemon import backends
+    from spadscan.daemon.backends import ARM_BACKENDS, SENSOR_BACKENDS, ArmBackend, SensorBackend
+    from spadscan.daemon.config import ArmConfig, SensorConfig
+    from spadscan.daemon.config_keys import key_names
+
+    declared = [getattr(importlib.import_module(f"spadscan.daemon.backends.{m.name}"), "BACKEND", None)
+                for m in pkgutil.iter_modules(backends.__path__)]
+    declared = {cls for cls in declared if cls is not None}
+    assert declared == {*ARM_BACKENDS.values(), *SENSOR_BACKENDS.values()}
+    assert sorted(ARM_BACKENDS) == ["sim", "ur"] and sorted(SENSOR_BACKENDS) == ["i2c", "serial", "sim"]
+    for registry, base, section in ((ARM_BACKENDS, ArmBackend, ArmConfig), (SENSOR_BACKENDS, SensorBackend,
+                                                                           SensorConfig)):
+        for name, cls in registry.items():
+            assert cls.name == name and issubclass(cls, base) and cls.build is not base.build
+            assert not set(key_names(cls)) & set(key_names(section)), f"{name} shadows a common key"
+
+
+def test_the_section_keeps_the_chosen_backends_settings(tmp_path):
+    cfg = cfg_of(tmp_path, UR, {"backend": "serial", "port": "/dev/ttyACM0"})
+    assert type(cfg.arm.device).__name__ == "URArmSettings" and cfg.arm.device.host == "127.0.0.1"
+    assert type(cfg.sensor.device).__name__ == "SerialSensorSettings" and cfg.sensor.device.baud == 1_000_000
+    assert not hasattr(cfg.arm, "host") and not hasattr(cfg.sensor, "port")  # no flat union of every backend's keys
+
+
+@pytest.mark.parametrize("arm, sensor, message", [
+    ({**UR, "colour": "red"}, {"backend": "sim", "mesh": "builtin:cup"},
+     r"\[arm\] unknown key 'colour' for backend 'ur' \(known: backend, speed, .*, host"),
+    ({"backend": "sim"}, {"backend": "sim", "mesh": "builtin:cup", "baudrate": 9600},
+     r"\[sensor\] unknown key 'baudrate' for backend 'sim'"),
+    ({**UR, "time_scale": 0.5}, {"backend": "sim", "mesh": "builtin:cup"},
+     r"\[arm\] time_scale applies only to backend 'sim', not 'ur'"),
+    ({"backend": "sim"}, {"backend": "serial", "port": "/dev/ttyACM0", "mesh": "builtin:cup"},
+     r"\[sensor\] mesh applies only to backend 'sim', not 'serial'"),
+])
+def test_a_key_the_chosen_backend_lacks_is_one_line_naming_it(tmp_path, arm, sensor, message):
+    with pytest.raises(ConfigError, match=message) as err:
+        cfg_of(tmp_path, arm, sensor)
+    assert "\n" not in str(err.value)
+
+
+def test_choosing_a_backend_loads_no_other_backends_library(tmp_path):
+    """A sim rig never imports ur_rtde, pyserial or smbus2; reading any config imports none of them."""
+    code = ("import sys, json\n"
+            "from spadscan.daemon.config import config_from_dict\n"
+            "from spadscan.daemon.rig import build_devices\n"
+            "from pathlib import Path\n"
+            f"cfg = config_from_dict({{'captures': {str(tmp_path / 'c')!r}, 'socket': {str(tmp_path / 's')!r}, "
+            "'sensor': {'backend': 'sim', 'mesh': 'builtin:cup', 'rays_per_zone': 8}}, Path('rig.toml'))\n"
+            "build_devices(cfg)\n"
+            "print(json.dumps(sorted(m for m in ('rtde_control', 'rtde_receive', 'serial', 'smbus2') "
+            "if m in sys.modules)))\n")
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == []

@@ -70,7 +70,7 @@ def test_i2c_example_needs_the_users_firmware(tmp_path):
     image = tmp_path / "app.hex"
     image.write_text(":00000001FF\n")
     cfg = load_config(write(tmp_path, text.replace("/home/lab/tmf8820/tmf8820_app.hex", str(image))))
-    assert cfg.sensor.firmware == image and cfg.sensor.address == 0x41 and cfg.sensor.bus == 1
+    assert cfg.sensor.device.firmware == image and cfg.sensor.device.address == 0x41 and cfg.sensor.device.bus == 1
 
 
 def test_defaults_and_relative_paths(tmp_path):
@@ -132,6 +132,35 @@ def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, wor
     assert "rig.toml" in msg
     for w in words:
         assert w in msg, msg
+
+
+UR = SIM.replace('backend = "sim"\nmotion_time_s = 0.0', 'backend = "ur"\nhost = "10.0.0.9"\n'
+                 'workspace_min = [-1, -1, 0]\nworkspace_max = [1, 1, 1]')
+
+
+def test_auto_resume_of_a_real_arm_needs_a_second_confirming_key(tmp_path):
+    """auto_resume = true moves the arm after a restart with nobody watching: a simulated arm may, a real 'ur' arm
+    only with [arm] allow_auto_resume = true as well."""
+    assert load_config(write(tmp_path, "auto_resume = true\n" + SIM)).auto_resume
+    assert not load_config(write(tmp_path, UR)).auto_resume
+    msg = error_of(tmp_path, "auto_resume = true\n" + UR)
+    assert "auto_resume = true would let the daemon move the real 'ur' arm by itself" in msg
+    assert "[arm] allow_auto_resume = true" in msg and "rig.toml" in msg
+    cfg = load_config(write(tmp_path, "auto_resume = true\n" + UR.replace("[sensor]", "allow_auto_resume = true\n"
+                                                                           "[sensor]")))
+    assert cfg.auto_resume and cfg.arm.device.allow_auto_resume
+    assert "allow_auto_resume applies only to backend 'ur'" in error_of(
+        tmp_path, SIM.replace("motion_time_s = 0.0", "allow_auto_resume = true"))
+
+
+def test_the_ur_watchdog_frequency_reaches_the_arm(tmp_path):
+    from spadscan.daemon.rig import build_arm
+
+    cfg = load_config(write(tmp_path, UR.replace("[sensor]", "watchdog_hz = 10\n[sensor]")))
+    assert build_arm(cfg).watchdog_hz == 10.0
+    assert build_arm(load_config(write(tmp_path, UR))).watchdog_hz == 2.0
+    assert "watchdog_hz = 0.1 (Hz) is outside [0.5, 100]" in error_of(
+        tmp_path, UR.replace("[sensor]", "watchdog_hz = 0.1\n[sensor]"))
 
 
 def test_one_ring_may_sit_at_one_elevation():
@@ -201,16 +230,15 @@ def test_check_flag_validates_without_devices(tmp_path, capsys):
 
 
 def test_example_readme_documents_every_key():
-    from dataclasses import fields
-
+    """Every key of every section and every backend (the registry's), so a new backend's keys are documented too."""
+    from spadscan.daemon.backends import ARM_BACKENDS, SENSOR_BACKENDS
     from spadscan.daemon.config import ArmConfig, DaemonConfig, SensorConfig
+    from spadscan.daemon.config_keys import key_names
 
     readme = (EXAMPLES / "README.md").read_text()
-    for cls in (DaemonConfig, ArmConfig, SensorConfig, ScanConfig):
-        for f in fields(cls):
-            if f.name in ("arm", "sensor", "scan", "source"):
-                continue
-            assert f"`{f.name}`" in readme, f"examples/README.md lacks {cls.__name__}.{f.name}"
+    for cls in (DaemonConfig, ArmConfig, SensorConfig, ScanConfig, *ARM_BACKENDS.values(), *SENSOR_BACKENDS.values()):
+        for name in key_names(cls):
+            assert f"`{name}`" in readme, f"examples/README.md lacks {cls.__name__}.{name}"
 
 
 def test_examples_copy_runs_check(tmp_path):

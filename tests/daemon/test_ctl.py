@@ -37,7 +37,13 @@ class FakeDaemon(socketserver.ThreadingUnixStreamServer):
         self.requests: list[str] = []
         self.lock = threading.Lock()
         self.closing = False
+        self.errors: list[BaseException] = []
         super().__init__(path, Handler)
+
+    def handle_error(self, request, client_address) -> None:
+        """A client that went away before its reply (Ctrl-C on `wait`) is expected: keep the error for the test
+        instead of printing socketserver's traceback among the test output."""
+        self.errors.append(sys.exc_info()[1])
 
     def status(self) -> dict:
         with self.lock:
@@ -138,7 +144,7 @@ def test_wait_without_a_terminal_says_once_why_the_scan_paused(fake_daemon, monk
     server, path = fake_daemon
     server.pose, server.paused_polls = 2, 5
     monkeypatch.setattr("spadscan.commands.ctl.PROGRESS_POLL_S", 0.01)
-    assert main(["ctl", "--socket", path, "--timeout", "5", "wait", "mug"]) == 0
+    assert main(["ctl", "--socket", path, "--timeout", "120", "wait", "mug"]) == 0
     out, err = capsys.readouterr()
     assert json.loads(out) == {"name": "mug", "state": "complete"}
     assert err == "spadscan: scan 'mug' paused at pose 2/6: sensor silent: no frame (`spadscan ctl resume` " \
@@ -155,16 +161,20 @@ def test_wait_that_runs_out_of_time_says_how_far_the_scan_got(fake_daemon, monke
 
 
 def test_ctrl_c_during_wait_says_the_scan_goes_on(fake_daemon):
+    """The interrupt comes once the daemon has the `wait` request (the client is then blocked in it), however long a
+    loaded machine takes to start the client; the fake daemon's handler, left writing to a closed connection, keeps
+    its error to itself."""
     server, path = fake_daemon
     server.step = 0
     proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path, "wait", "mug"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 30
-        while "wait" not in server.requests and time.monotonic() < deadline:
+        deadline = time.monotonic() + 300
+        while "wait" not in server.requests:
+            assert proc.poll() is None and time.monotonic() < deadline, "the client never sent its wait request"
             time.sleep(0.01)
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
+        out, err = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
             proc.kill()

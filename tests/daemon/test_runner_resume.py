@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from spadscan.daemon.app import DeviceSession
-from spadscan.daemon.backends import build_devices, rig_record
+from spadscan.daemon.rig import build_devices, rig_record
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon.runner import ScanRunner
 from spadscan.protocol.capture_reader import CaptureReader

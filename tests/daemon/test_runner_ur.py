@@ -14,12 +14,12 @@ import pytest
 
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.arm.ur import URArm
-from spadscan.daemon.backends import TrackedArm, build_devices, build_sensor
+from spadscan.daemon.rig import TrackedArm, build_devices, build_sensor
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.scan_plan import tcp_from_sensor
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.errors import DeviceError
+from spadscan.protocol.errors import ConfigError, DeviceError
 
 pytest.importorskip("spadscan.daemon.arm.ur")
 pytest.importorskip("rtde_control")
@@ -56,7 +56,7 @@ def ur_config(tmp_path, host: str):
         "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"),
         "arm": {"backend": "ur", "host": host, "speed": 0.5, "acceleration": 2.0, "hand_eye": HAND_EYE,
                 "workspace_min": [0.0, -0.5, 0.02], "workspace_max": [0.9, 0.5, 0.7], "min_reach_m": 0.1,
-                "max_reach_m": 0.85, "move_timeout_s": 30.0},
+                "max_reach_m": 0.85, "move_timeout_s": 30.0, "watchdog_hz": 1.0},
         "sensor": {"backend": "sim", "mesh": "builtin:pyramid", "mesh_offset_m": [0.4, 0, 0], "rays_per_zone": 8},
         "scan": {"views": 8, "frames_per_pose": 1, "settle_s": 0.0, "radius_m": 0.25, "target": [0.4, 0, 0.05],
                  "min_elevation_deg": 30, "max_elevation_deg": 80}}, tmp_path / "rig.toml")
@@ -64,8 +64,8 @@ def ur_config(tmp_path, host: str):
 
 def quick_rig(cfg):
     """The config's rig, with a UR arm that gives up on a silent link after 5 s instead of 10 s."""
-    arm = TrackedArm(URArm(cfg.arm.host, speed=cfg.arm.speed, accel=cfg.arm.acceleration, timeout_s=5.0,
-                           stale_after_s=1.0))
+    arm = TrackedArm(URArm(cfg.arm.device.host, speed=cfg.arm.speed, accel=cfg.arm.acceleration, timeout_s=5.0,
+                           stale_after_s=1.0, watchdog_hz=cfg.arm.device.watchdog_hz))
     return arm, build_sensor(cfg, arm)
 
 
@@ -81,7 +81,10 @@ def check_every_pose_once(path, hand_eye=HAND_EYE) -> None:
 
 @pytest.mark.slow
 def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, arun):
+    """The controller stops its program on the protective stop, as a real one may: after the operator clears the
+    stop, `resume` finds the control script not running, uploads it again and the scan completes."""
     cfg = ur_config(tmp_path, controller.host)
+    controller.configure(stop_script_on_fault=True)
 
     async def scenario():
         arm, sensor = build_devices(cfg)
@@ -95,14 +98,16 @@ def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, 
                 await until(lambda: runner.state == "paused", "the pause")
                 reason = runner.status()["reason"]
                 await asyncio.to_thread(controller.clear_protective_stop)
+                scripts = await asyncio.to_thread(controller.scripts)
                 await runner.resume()
                 done = await runner.wait("ur")
             finally:
                 await runner.shutdown()
-        return reason, done, await asyncio.to_thread(lambda: controller.moves)
+        return reason, done, await asyncio.to_thread(lambda: controller.moves), scripts, controller.scripts()
 
-    reason, done, moves = arun(scenario(), timeout_s=180)
+    reason, done, moves, scripts, scripts_after = arun(scenario(), timeout_s=180)
     assert "protective stop" in reason and done["state"] == "complete"
+    assert scripts_after == scripts + 1  # uploaded again on resume
     reader = CaptureReader(tmp_path / "caps" / "ur")
     data = reader.load()
     assert sorted(data.pose_indices.tolist()) == list(range(8))
@@ -116,6 +121,31 @@ def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, 
     assert len(targets) >= 8
     for t in targets:
         assert np.min(np.linalg.norm(planned_tcp[:, :3, 3] - t, axis=1)) < 1e-6
+
+
+def test_a_pose_the_controller_refuses_stops_the_scan_before_anything_moves(tmp_path, controller, arun):
+    """The controller's safety planes are stricter than the config's box: asked about every planned pose before the
+    first move, it refuses one, and the scan is refused in one line naming it; nothing moves, no folder is made."""
+    cfg = ur_config(tmp_path, controller.host)
+    controller.configure(safety_floor_z=0.25)
+
+    async def scenario():
+        arm, sensor = build_devices(cfg)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                with pytest.raises(ConfigError) as refused:
+                    await runner.start("ur")
+                return str(refused.value), runner.status()["state"]
+            finally:
+                await runner.shutdown()
+
+    message, state = arun(scenario(), timeout_s=120)
+    assert message.startswith("scan 'ur': UR arm") and "is outside the controller's safety limits" in message
+    assert state == "idle" and not (tmp_path / "caps" / "ur").exists()
+    assert [m.name for m in controller.moves] == ["stopL"]  # the release on the way out; no move
+    queries = controller.state()["queries"]
+    assert queries[-1][0] == "within_safety_limits" and not queries[-1][2] and queries[-1][1][2] < 0.25
 
 
 @pytest.mark.slow
@@ -179,8 +209,10 @@ def test_shutdown_on_a_dead_link_does_not_hang(tmp_path, controller, arun):
     assert "link lost" in reason
     # Only release fails, at once, with the reason the link was ended: moveL got no answer (in the arm's time, or the
     # runner gave up first and the next call found it overdue), or (when moveL returned before the link dropped) the
-    # receive data went stale; close does not wait on ur_rtde.
-    assert ("moveL" in down and "no answer" in down) or "receive data stale" in down, down
+    # receive data went stale, or ur_rtde itself gave the silent connection up first (the watchdog's kicks go out on
+    # it); close does not wait on ur_rtde.
+    assert (("moveL" in down and "no answer" in down) or "receive data stale" in down
+            or "link closed (ur_rtde reports disconnected)" in down), down
     assert "reconnect first" in down, down
     assert "did not finish" not in down and "still busy" not in down, down
     assert CaptureReader(tmp_path / "caps" / "ur").state == "running"

@@ -8,20 +8,31 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from spadscan.daemon.arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
 from spadscan.daemon.config import ArmConfig, ScanConfig
-from spadscan.daemon.scan_plan import (build_plan, check_workspace, invert_rigid, order_nearest, order_serpentine,
-                                       path_length, sensor_from_tcp, tcp_from_sensor)
+from spadscan.daemon.scan_plan import (build_plan, invert_rigid, order_nearest, order_serpentine, path_length,
+                                       sensor_from_tcp, tcp_from_sensor)
+from spadscan.daemon.workspace import _move_samples, check_workspace
 from spadscan.protocol.errors import ConfigError
 
 HAND_EYE = np.array([[0.0, -1, 0, 0.01], [1, 0, 0, -0.02], [0, 0, 1, 0.05], [0, 0, 0, 1]])
 
 
 def arm(**kw) -> ArmConfig:
-    return replace(ArmConfig(), hand_eye=HAND_EYE, **kw)
+    return replace(ArmConfig(), **{"hand_eye": HAND_EYE, **kw})
 
 
 def scan(**kw) -> ScanConfig:
     return replace(ScanConfig(), **kw)
+
+
+DOWN = np.diag([1.0, -1.0, -1.0])  # tool z pointing down
+
+
+def pose_at(xyz, rot=np.eye(3)) -> np.ndarray:
+    p = np.eye(4)
+    p[:3, :3], p[:3, 3] = rot, xyz
+    return p
 
 
 def test_invert_rigid():
@@ -103,7 +114,7 @@ def test_jitter_is_seeded_and_bounded():
 def test_workspace_box_names_the_first_bad_pose():
     s = scan(views=50, order="planned", radius_m=0.4, min_elevation_deg=5, max_elevation_deg=85)
     plan = build_plan(s, arm())
-    z = plan.tcp_poses[:, 2, 3]
+    z = np.minimum(plan.tcp_poses[:, 2, 3], plan.sensor_poses[:, 2, 3])  # the flange or the sensor, lower one
     limit = float(np.sort(z)[10])  # some poses fall below this floor
     first_bad = int(np.flatnonzero(z < limit)[0])
     a = arm(workspace_min=np.array([-1, -1, limit]), workspace_max=np.array([1.0, 1, 1]))
@@ -112,6 +123,50 @@ def test_workspace_box_names_the_first_bad_pose():
     msg = str(info.value)
     assert f"pose {first_bad} of 50" in msg and "below workspace_min" in msg and "z = " in msg
     assert "\n" not in msg and msg.startswith("scan 'x'")
+
+
+def test_the_sensor_and_its_bracket_must_stay_in_the_workspace_not_only_the_flange():
+    """The flange at z = 0.12 looking down puts a sensor 5 cm out at z = 0.07, below a 0.08 m floor."""
+    box = dict(workspace_min=np.array([-1, -1, 0.08]), workspace_max=np.array([1.0, 1, 1]))
+    he = np.eye(4)
+    he[2, 3] = 0.05
+    tcp = pose_at([0.4, 0.0, 0.12], DOWN)[None]
+    check_workspace(tcp, arm(hand_eye=np.eye(4), **box), "plan")  # a sensor at the flange would be fine
+    with pytest.raises(ConfigError, match=r"pose 0 of 1: .* the sensor \(TCP x hand_eye\) is outside the workspace: "
+                                          r"z = 0.070 m is below workspace_min 0.080 m"):
+        check_workspace(tcp, arm(hand_eye=he, **box), "plan")
+    tcp = pose_at([0.4, 0.0, 0.15], DOWN)[None]  # sensor at 0.10 m: clear of the floor, its bracket is not
+    check_workspace(tcp, arm(hand_eye=he, **box), "plan")
+    with pytest.raises(ConfigError, match="below workspace_min 0.080 m less bracket_radius_m 0.03"):
+        check_workspace(tcp, arm(hand_eye=he, bracket_radius_m=0.03, **box), "plan")
+
+
+def test_the_base_keeps_a_cylinder_clear_not_only_a_sphere():
+    """High above the base a pose is far from its origin, yet in the arm's own column."""
+    high = pose_at([0.05, 0.0, 0.7], DOWN)[None]
+    check_workspace(high, arm(hand_eye=np.eye(4), min_reach_m=0.2), "plan")
+    with pytest.raises(ConfigError, match=r"0.050 m from the base's vertical axis, inside keepout_radius_m 0.15"):
+        check_workspace(high, arm(hand_eye=np.eye(4), min_reach_m=0.2, keepout_radius_m=0.15), "plan")
+    across = np.stack([pose_at([0.3, 0.05, 0.6], DOWN), pose_at([-0.3, 0.05, 0.6], DOWN)])
+    check_workspace(across, arm(hand_eye=np.eye(4), min_reach_m=0.2), "plan")
+    with pytest.raises(ConfigError, match=r"straight move to pose 1 of 2 brings the TCP 0.050 m from the base's "
+                                          r"vertical axis"):
+        check_workspace(across, arm(hand_eye=np.eye(4), keepout_radius_m=0.15), "plan")
+
+
+def test_a_straight_move_may_not_swing_the_sensor_into_the_base():
+    """Both ends clear, the flange's straight line clear; the tool turning on the way swings a sensor 20 cm out
+    through the base's keep-out cylinder."""
+    he = np.eye(4)
+    he[2, 3] = 0.2
+    a = pose_at([0.3, -0.25, 0.35], np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]))  # sensor along -y
+    b = pose_at([0.3, 0.25, 0.35], np.array([[0.0, 0, -1], [-1, 0, 0], [0, 1, 0]]))  # sensor along -x
+    lim = arm(hand_eye=he, keepout_radius_m=0.25)
+    check_workspace(a[None], lim, "plan")
+    check_workspace(b[None], lim, "plan")
+    with pytest.raises(ConfigError, match=r"straight move to pose 1 of 2 brings the sensor 0.12[12] m from the base's "
+                                          r"vertical axis, inside keepout_radius_m 0.25"):
+        check_workspace(np.stack([a, b]), lim, "plan")
 
 
 def test_reach_limits():
@@ -133,7 +188,7 @@ def test_straight_moves_must_keep_clear_of_the_base():
         check_workspace(tcp, a, "plan")
     check_workspace(tcp[:1], a, "plan")
     with pytest.raises(ConfigError, match="straight move to pose 0 of 1"):
-        check_workspace(tcp[:1], a, "plan", start=np.array([-0.5, 0.0, 0.1]))
+        check_workspace(tcp[:1], a, "plan", start=pose_at([-0.5, 0.0, 0.1]))
 
 
 def test_non_finite_pose_is_refused():
@@ -141,3 +196,19 @@ def test_non_finite_pose_is_refused():
     tcp[0, 0, 3] = math.inf
     with pytest.raises(ConfigError, match="pose 0 of 1: TCP position is not finite"):
         check_workspace(tcp, arm(), "plan")
+
+
+def test_the_sensor_samples_along_a_move_follow_the_turning_tool():
+    """The sensor's path along a straight move is the flange's plus the hand-eye offset turned by the share of the
+    move's rotation reached so far: checked against one rotation matrix per sample."""
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        a, b = np.eye(4), np.eye(4)
+        a[:3, :3], b[:3, :3] = (rotvec_to_matrix(rng.normal(size=3)) for _ in range(2))
+        a[:3, 3], b[:3, 3] = rng.uniform(-0.4, 0.4, (2, 3))
+        flange, sensor = _move_samples(a, b, HAND_EYE)
+        turn = matrix_to_rotvec(a[:3, :3].T @ b[:3, :3])
+        s = np.linspace(0.0, 1.0, len(flange))
+        expected = [f + a[:3, :3] @ rotvec_to_matrix(t * turn) @ HAND_EYE[:3, 3] for f, t in zip(flange, s)]
+        np.testing.assert_allclose(sensor, expected, atol=1e-12)
+        np.testing.assert_allclose(sensor[-1], (b @ HAND_EYE)[:3, 3], atol=1e-12)

@@ -328,3 +328,99 @@ def test_runs_as_a_process_and_stops_on_sigterm():
             proc.kill()
         proc.wait()
         proc.stdout.close()
+
+
+class ClockedModel:
+    """The controller model on a clock the test sets (controller seconds), with the control script running."""
+
+    def __init__(self, **kw):
+        from spadscan.daemon.ursim.controller import URControllerModel
+
+        self.t = 0.0
+        self.model = URControllerModel(**kw)
+        self.model.now = lambda: self.t
+        self.model.start_script("def rtde_control():\nend")
+
+    def command(self, cmd: int, regs=(0.0,) * 8, asynchronous: int = 0) -> None:
+        self.model.write_inputs({"input_int_register_0": cmd, "input_int_register_1": asynchronous,
+                                 **{f"input_double_register_{i}": v for i, v in enumerate(regs)}})
+        self.model.write_inputs({"input_int_register_0": 0})  # the client clears the command
+
+    def read(self, *names):
+        return self.model.read(list(names))
+
+
+def test_model_watchdog_stops_the_program_when_the_command_register_goes_unwritten():
+    """ur_rtde's setWatchdog (command 35): rtde_set_watchdog("input_int_register_0", f, "stop"). A kick (a write of
+    that register) within every 1/f s keeps the program; a longer gap stops it and halts the arm."""
+    c = ClockedModel()
+    c.command(35, (2.0,) + (0.0,) * 7)  # 2 Hz: 0.5 s
+    assert c.model.watchdog_period_s == 0.5
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)  # a 2 s move
+    for c.t in (0.4, 0.8, 1.2):
+        c.model.check_watchdog()
+        c.model.write_inputs({"input_int_register_0": 0})  # kickWatchdog
+    assert c.read("runtime_state") == [2]
+    c.t = 1.6
+    c.model.check_watchdog()
+    assert c.read("runtime_state") == [2]  # 0.4 s since the last kick
+    c.t = 1.75
+    c.model.check_watchdog()
+    halted = c.read("actual_TCP_pose")[0]
+    c.t = 3.0
+    assert c.read("runtime_state", "actual_TCP_pose") == [1, halted] and halted[0] < 0.5
+    assert c.model.watchdog_stops == 1 and "RTDE watchdog" in c.model.errors[-1]
+
+
+def test_model_speed_slider_stretches_a_move_and_its_speed():
+    fast, slow = ClockedModel(), ClockedModel()
+    slow.model.set_speed_slider(0.25)
+    goal = (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0)
+    for c in (fast, slow):
+        c.command(3, goal, asynchronous=1)
+    duration = profile_duration(0.2, 0.1, 1.0)
+    for c in (fast, slow):
+        c.t = 0.5 * duration
+    assert fast.read("actual_TCP_pose")[0][0] == pytest.approx(0.4)
+    (x, *_), speed, fraction = slow.read("actual_TCP_pose", "actual_TCP_speed", "target_speed_fraction")
+    assert 0.3 < x < 0.35 and fraction == 0.25
+    fast_speed = fast.read("actual_TCP_speed")[0][0]
+    slow.t = 2.0 * duration  # half of the motion time at a quarter of the rate: where the fast one was at 0.5 d
+    assert slow.read("actual_TCP_pose")[0][0] == pytest.approx(0.4)
+    assert slow.read("actual_TCP_speed")[0][0] == pytest.approx(0.25 * fast_speed, rel=1e-3)
+    slow.t = 4.0 * duration
+    assert slow.read("actual_TCP_pose")[0][0] == pytest.approx(0.5)
+
+
+def test_model_pose_noise_scatters_the_reported_pose_only():
+    c = ClockedModel(seed=3)
+    c.model.pose_noise_m = 2e-4
+    poses = np.array([c.read("actual_TCP_pose")[0] for _ in range(400)])
+    assert np.std(poses[:, :3], axis=0) == pytest.approx([2e-4] * 3, rel=0.2)
+    assert np.allclose(poses.mean(axis=0)[:3], (0.3, 0.0, 0.3), atol=5e-5) and np.all(poses[:, 3:] == poses[0, 3:])
+
+
+def test_model_safety_stops_and_a_script_stopped_by_them():
+    c = ClockedModel()
+    c.model.set_safeguard_stop(True)
+    mode, bits = c.read("safety_mode", "safety_status_bits")
+    assert mode == 5 and bits == (1 << 4) | (1 << 10)
+    c.model.set_safeguard_stop(False)
+    c.model.stop_script_on_fault = True
+    c.model.set_protective_stop(True)
+    assert c.read("safety_mode", "safety_status_bits", "runtime_state") == [3, (1 << 2) | (1 << 10), 1]
+    c.model.set_protective_stop(False)
+    assert c.read("runtime_state") == [1]  # stays stopped until the script is uploaded again
+    c.model.start_script("def rtde_control():\nend")
+    assert c.read("runtime_state") == [2]
+
+
+def test_model_answers_safety_limit_and_inverse_kinematics_queries_from_its_reach():
+    c = ClockedModel()
+    c.model.safety_floor_z = 0.1
+    for cmd, pose, answer in ((36, (0.4, 0.0, 0.3), 1), (36, (0.4, 0.0, 0.05), 0), (60, (0.4, 0.0, 0.05), 1),
+                              (60, (1.2, 0.0, 0.3), 0), (36, (0.02, 0.0, 0.6), 0)):
+        c.command(cmd, (*pose, 0.0, math.pi, 0.0, 0.0, 0.0))
+        assert c.read("output_int_register_1") == [answer], (cmd, pose)
+    assert [q[0] for q in c.model.queries] == ["within_safety_limits"] * 2 + ["has_ik_solution"] * 2 + \
+        ["within_safety_limits"]

@@ -40,6 +40,9 @@ def test_demo_finishes_with_a_summary_and_no_process_left(tmp_path, arm, sensor)
     assert all(isinstance(v, (int, float)) and v >= 0 for v in stages.values())
     assert stages["total_s"] >= stages["scan_s"] + stages["reconstruct_s"]
     assert summary["mesh"] in r.stdout and "chamfer" in r.stdout
+    # Live by default; 8 views scan in about a second, often before the worker's first look: the job may then run
+    # as an ordinary one (tests/e2e/test_live_demo.py covers what the demo shows of a live job).
+    assert "live" in summary and "live reconstruction, final run budget 10 s" in r.stderr
     capture = CaptureReader(summary["capture"])
     assert capture.state == "complete" and len(capture.load().hists) == 8
     assert not processes_mentioning(str(out)), "the demo left a process running"

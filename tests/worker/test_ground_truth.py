@@ -34,6 +34,18 @@ def test_the_table_top_is_the_upward_level_that_holds_most_of_the_area():
     assert table_top_z(trimesh.creation.icosphere()) is None
 
 
+def test_a_flat_top_with_nothing_on_it_is_no_table():
+    """A wide flat top that holds most of the area (a stool's seat, a low wide slab alone) has nothing standing on it:
+    it is the object, not a table under one."""
+    seat = trimesh.creation.box([0.4, 0.4, 0.02])
+    seat.apply_translation([0, 0, 0.2])
+    leg = trimesh.creation.box([0.02, 0.02, 0.2])
+    leg.apply_translation([0, 0, 0.1])
+    stool = trimesh.util.concatenate([seat, leg])
+    assert table_top_z(stool) is None
+    assert table_top_z(on_slab(stool)) == pytest.approx(TOP)
+
+
 def test_the_object_above_the_table_is_what_is_scored():
     truth = object_on_table(on_slab(pyramid()))
     assert truth.cut_above_z_m == pytest.approx(TOP + CUT_ABOVE_TABLE_M)

@@ -244,13 +244,14 @@ def test_nearest_samples_are_exactly_the_kd_trees(case):
 
 
 def test_far_queries_skip_the_kd_tree():
-    from spadscan.worker.nearest import _maybe_near
+    from spadscan.worker.nearest import LEAF, _maybe_near, _median_split
 
     rng = np.random.default_rng(2)
     big, _ = sample_surface(ball(0.05), 20_000, rng)
     small, _ = sample_surface(ball(0.02), 20_000, rng)
-    assert not _maybe_near(small, big, 0.005).any(), "3 cm from every sample: none is near"
-    assert _maybe_near(big, big, 0.005).all()
+    patches = _median_split(big, LEAF)
+    assert not _maybe_near(small, big, 0.005, patches).any(), "3 cm from every sample: none is near"
+    assert _maybe_near(big, big, 0.005, patches).all()
 
 
 def test_a_small_sphere_inside_a_large_one_is_its_gap_away():

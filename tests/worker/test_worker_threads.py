@@ -11,7 +11,7 @@ import pytest
 
 from spadscan.cli import main as cli_main
 from spadscan.worker.pool import Worker
-from spadscan.worker.threads import ENV, machine_cores
+from spadscan.worker.threads import ADAPT_ENV, ENV, WAIT_ENV, ThreadGovernor, machine_cores, threads_fixed
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
@@ -75,8 +75,20 @@ def test_the_workers_own_omp_num_threads_is_kept(tmp_path, monkeypatch, arun):
 
 def test_child_env_wins_over_threads():
     config = WorkerConfig(root=Path("."), processes=2, threads=3, child_env={ENV: "4", "OTHER": "x"})
-    assert config.job_env({}) == {ENV: "4", "OTHER": "x"}
-    assert WorkerConfig(root=Path("."), processes=2).job_env({ENV: "7"}) == {}, "the user's choice is inherited"
+    assert config.job_env({}) == {ENV: "4", "OTHER": "x", WAIT_ENV: "PASSIVE"}
+    assert WorkerConfig(root=Path("."), processes=2).job_env({ENV: "7"}) == {WAIT_ENV: "PASSIVE"}, \
+        "the user's choice is inherited"
+
+
+def test_jobs_wait_passively_and_adapt_only_the_threads_the_worker_chose(monkeypatch):
+    two_cores(monkeypatch)
+    config = WorkerConfig(root=Path("."), processes=1)
+    assert config.job_env({}) == {ENV: "2", ADAPT_ENV: "1", WAIT_ENV: "PASSIVE"}
+    assert ADAPT_ENV not in WorkerConfig(root=Path("."), processes=1, threads=2).job_env({}), "--threads is kept"
+    assert config.job_env({WAIT_ENV: "ACTIVE"}) == {ENV: "2", ADAPT_ENV: "1"}, "the user's wait policy is kept"
+    assert WAIT_ENV not in config.job_env({"GOMP_SPINCOUNT": "1000"})
+    assert threads_fixed(3, {}) and threads_fixed(None, {ENV: "2"}) and not threads_fixed(None, {})
+    assert not threads_fixed(None, {ENV: "2", ADAPT_ENV: "1"})
 
 
 @pytest.mark.parametrize("bad", ["0", "-2", "2000"])
@@ -124,7 +136,8 @@ def test_threads_that_fit_the_cores_are_no_warning(monkeypatch):
 def test_an_unusable_omp_num_threads_is_ignored_with_a_warning(monkeypatch, bad):
     two_cores(monkeypatch)
     config = WorkerConfig(root=Path("."), processes=2)
-    assert config.job_env({ENV: bad}) == {ENV: "1"}, "the jobs get the cores shared out instead"
+    assert config.job_env({ENV: bad}) == {ENV: "1", ADAPT_ENV: "1", WAIT_ENV: "PASSIVE"}, \
+        "the jobs get the cores shared out instead"
     assert config.threads_warnings({ENV: bad}) == [
         f"{ENV}={bad!r} in the worker's environment is not a whole number in [1, 1024]: ignored"]
     assert config.threads_note({ENV: bad}).startswith("1 CPU threads per job (OMP_NUM_THREADS=1: 2 cores shared")
@@ -137,3 +150,58 @@ def test_the_worker_logs_its_thread_warnings(tmp_path, monkeypatch, arun):
     reports, lines = run_jobs(tmp_path, monkeypatch, arun, processes=2)
     assert threads_seen(reports) == [str(max(1, machine_cores() // 2))] * 2
     assert f"warning: {ENV}='abc' in the worker's environment is not a whole number in [1, 1024]: ignored" in lines
+
+
+# ---- choosing threads as the run goes ----------------------------------------------------------------------------
+
+class Machine:
+    """Step times of a 2-core machine: `seconds[n]` a step with n threads; `set_threads` is what torch is told."""
+
+    def __init__(self, seconds: dict[int, float]):
+        self.seconds, self.told = dict(seconds), []
+
+    def set_threads(self, n: int) -> None:
+        self.told.append(n)
+
+    def run(self, governor: ThreadGovernor, steps: int) -> list[int]:
+        used = []
+        for _ in range(steps):
+            used.append(governor.threads)
+            governor.step_done(self.seconds[governor.threads])
+        return used
+
+
+def test_an_idle_machine_keeps_both_threads_when_they_are_faster():
+    machine = Machine({2: 0.050, 1: 0.055})
+    governor = ThreadGovernor(2, machine.set_threads)
+    used = machine.run(governor, 2000)
+    assert used.count(2) > 0.97 * len(used) and governor.switches == 0
+    assert governor.probes <= 8, "a choice confirmed again and again is checked less and less often"
+
+
+def test_a_stalled_second_thread_falls_back_to_one_and_returns_when_the_competitor_leaves():
+    machine = Machine({2: 0.050, 1: 0.055})
+    governor = ThreadGovernor(2, machine.set_threads)
+    machine.run(governor, 300)
+    machine.seconds[2] = 2.6  # a competitor takes a core: two threads stall each other at every barrier
+    used = machine.run(governor, 400)
+    assert used[:3].count(2) <= 2 and used[3:].count(2) <= 1, "falls back at once; a later check costs one step"
+    assert governor.threads == 1 and sum(machine.seconds[n] for n in used) < 400 * 0.055 + 3 * 2.6
+    machine.seconds[2] = 0.050  # the competitor is gone
+    used = machine.run(governor, 3000)
+    assert used[-1000:].count(2) > 950, "two threads again once they are faster"
+
+
+def test_one_thread_is_kept_when_two_are_no_faster():
+    machine = Machine({2: 0.054, 1: 0.055})  # under the margin: one thread never stalls
+    governor = ThreadGovernor(2, machine.set_threads)
+    used = machine.run(governor, 1000)
+    assert used[-500:].count(1) > 480 and machine.told[-1] == 1
+    assert governor.summary()["steps_by_threads"]["1"] > 900
+
+
+def test_a_governor_needs_two_threads_to_choose_from():
+    from spadscan.protocol.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        ThreadGovernor(1, lambda n: None)

@@ -64,16 +64,18 @@ class Calibration:
 
 
 def calibrate(build: Callable[[float], object], truth, thresholds=None,
-              progress: Callable[[float, float | None], None] | None = None) -> Calibration:
+              progress: Callable[[float, float | None], None] | None = None,
+              n_points: int = CALIBRATION_POINTS) -> Calibration:
     """Try each threshold (default CALIBRATION_THRESHOLDS): `build(threshold)` returns a mesh (or None); keep the
-    one with the lowest Chamfer against `truth` (a ground_truth.GroundTruth)."""
+    one with the lowest Chamfer against `truth` (a ground_truth.GroundTruth), scored on `n_points` samples per
+    mesh."""
     table, best = [], None
     for t in CALIBRATION_THRESHOLDS if thresholds is None else thresholds:
         start = time.monotonic()
         mesh = build(float(t))
         chamfer = None
         if mesh is not None and len(mesh.faces) and mesh.area > 0:
-            chamfer = truth.metrics(mesh, n_points=CALIBRATION_POINTS).chamfer_mm
+            chamfer = truth.metrics(mesh, n_points=n_points).chamfer_mm
         table.append({"threshold": float(t), "chamfer_mm": chamfer, "seconds": round(time.monotonic() - start, 3)})
         if chamfer is not None and (best is None or chamfer < best[1]):
             best = (float(t), chamfer)

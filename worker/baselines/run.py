@@ -55,13 +55,16 @@ def _build(method: str, data, threshold: float, *, resolution: int, margin_m, fl
 def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None = None, calibrate_: bool = False,
                  resolution: int = 128, margin_m: float | None = None, floor_z: float | str | None = "auto",
                  surface: str = "occupancy", edge_deg: float = DEFAULT_EDGE_DEG,
-                 log: Callable[[str], None] | None = None) -> dict:
+                 log: Callable[[str], None] | None = None, thresholds=None,
+                 calibration_points: int = CALIBRATION_POINTS, metrics_points: int = 300_000) -> dict:
     """Run `method` on the capture folder and write the results into `out`. Returns the report (also report.json).
 
     threshold: detection threshold (see THRESHOLD_UNITS); `calibrate_` searches it for the best Chamfer against `gt`
     (a mesh path or builtin:NAME, scored above its table when it holds one: ground_truth.py) instead, as the paper
     did. floor_z: height (metres) below which the scene is empty; None: no floor; "auto": a measured scene's table,
-    found in its histograms, else z = 0 (`floor.scene_floor`).
+    found in its histograms, else z = 0 (`floor.scene_floor`). thresholds: those `calibrate_` tries (default
+    common.CALIBRATION_THRESHOLDS), scored on `calibration_points` samples per mesh; the final metrics use
+    `metrics_points`.
     """
     if method not in METHODS:
         raise ConfigError(f"baseline {method!r} is not one of {METHODS}")
@@ -95,7 +98,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         def progress(t, c):
             log(f"threshold {t:g}: " + ("no surface" if c is None else f"Chamfer {c:.2f} mm"))
 
-        calibration = calibrate(lambda t: _build(method, data, t, **opts)[0], truth, progress=progress)
+        calibration = calibrate(lambda t: _build(method, data, t, **opts)[0], truth, thresholds, progress=progress,
+                                n_points=calibration_points)
         threshold = calibration.threshold
     threshold = DEFAULT_THRESHOLD if threshold is None else float(threshold)
     mesh, extras = _build(method, data, threshold, **opts)
@@ -115,7 +119,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         "threshold": threshold, "threshold_units": THRESHOLD_UNITS, "calibrated": bool(calibrate_),
         "calibration": None if calibration is None else {
             "note": "threshold chosen by the lowest Chamfer against the ground truth, as in the paper "
-                    f"(metrics on {CALIBRATION_POINTS} samples per mesh during the search)",
+                    f"(metrics on {calibration_points} samples per mesh during the search)",
             "table": calibration.table},
         "floor_z_m": floor_z, "floor_source": floor_source, "seconds": round(seconds, 3),
         "capture_state": data.manifest["state"],
@@ -129,6 +133,6 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         if truth.note():
             log(f"scoring {truth.note()}")
         report.update(truth.report_fields())
-        report.update(truth.metrics(mesh).to_dict())
+        report.update(truth.metrics(mesh, n_points=metrics_points).to_dict())
     write_report(out, report)
     return json_safe(report)

@@ -34,24 +34,38 @@ class TrainResult:
     trace: list[dict] = field(default_factory=list)
     eval_seconds: float = 0.0
     losses: list[float] = field(default_factory=list)
+    data_terms: list[float] = field(default_factory=list)
+    """Each step's data term (its 'data', or its loss where the model reports no data term)."""
+    cpu_seconds: float = 0.0
+    """Process CPU seconds (all threads) spent in the steps, against `seconds` of wall time: under 1 CPU second a
+    second, the process did not get a whole core."""
 
 
 def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: float | None = None,
           evaluate: Callable[[], dict] | None = None, scoring_in_budget: bool = True,
           on_checkpoint: Callable[[list[dict]], None] | None = None, progress: bool = True,
-          desc: str = "reconstruct", score_note: str = "", early_stop: bool = False) -> TrainResult:
+          desc: str = "reconstruct", score_note: str = "", early_stop: bool = False,
+          on_step: Callable[[float], None] | None = None, clock: Callable[[], float] = time.perf_counter,
+          cpu_clock: Callable[[], float] = time.process_time, max_eval_share: float = 0.25,
+          eval_estimate_s: float = 0.0, end_evaluation: Callable[[float], bool] | None = None) -> TrainResult:
     """Run model.step() until plan.steps steps or plan.budget_s seconds, whichever comes first; with `early_stop`,
     also as soon as a step reports `converged: True` (stopped_by 'converged'). The budget counts training and
     checkpoint evaluation together, or training alone when `scoring_in_budget` is False (then no evaluation is
-    skipped).
+    skipped). Counted in the budget, evaluations take at most `max_eval_share` of it: one that would take more, or
+    not fit in what is left, is skipped (its checkpoint records the loss only); `eval_estimate_s` is what the first
+    one is expected to take (later ones: what the last one took). The end of a run is evaluated unless
+    `end_evaluation(expected seconds)` says there is no time for it (a whole-run budget nearly spent).
 
     Checkpoints: at the start, every `every_s` seconds of training (default: every 1/checkpoints of the budget when
     there is one, else of the steps; 0: after every step) and at the end; each records the step, training seconds,
     the mean loss since the previous checkpoint and whatever `evaluate()` returns. `on_checkpoint(trace)` sees the
     trace after each one (a benchmark keeps it on disk as it goes). A tqdm bar on stderr shows progress unless
-    `progress` is False: `loss=`, and with an evaluation `chamfer=` (the last checkpoint's) and `scored=` with
-    `score_note`, how checkpoints are scored (coarser than the final mesh). The lab dashboard reads these fields
-    from a job's log: keep them `key=value` without commas."""
+    `progress` is False: `step=` and `loss=`, and with an evaluation `chamfer=` (the last checkpoint's) and
+    `scored=` with `score_note`, how checkpoints are scored (coarser than the final mesh). The lab dashboard and the
+    demo read these fields from a job's log: keep them `key=value` without commas.
+
+    `on_step(seconds)` sees each step's wall time (the thread governor). `clock` (wall seconds) and `cpu_clock`
+    (this process's CPU seconds) time the steps; tests inject their own."""
     if not plan.steps and not plan.budget_s:
         raise ReconstructionError("a run needs a step count or a time budget (give --steps or --budget-s)")
     if every_s is not None and not (math.isfinite(every_s) and every_s >= 0):
@@ -65,24 +79,31 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     result = TrainResult(steps=0, seconds=0.0, stopped_by="", last={})
     window: list[float] = []
 
-    eval_cost = [0.0]  # the last evaluation's seconds: what the next one is expected to take
+    eval_cost = [float(eval_estimate_s)]  # the last evaluation's seconds: what the next one is expected to take
 
     def spent() -> float:
         return result.seconds + (result.eval_seconds if scoring_in_budget else 0.0)
 
     def checkpoint(final: bool = False):
-        t0 = time.perf_counter()
+        t0 = clock()
         entry = {"step": result.steps, "seconds": round(result.seconds, 4),
                  "loss": (sum(window) / len(window)) if window else None}
         if evaluate is not None:
-            if final or not (by_time and scoring_in_budget) or spent() + eval_cost[0] <= plan.budget_s:
+            if final:
+                due = end_evaluation is None or end_evaluation(eval_cost[0])
+            elif by_time and scoring_in_budget:
+                due = (spent() + eval_cost[0] <= plan.budget_s
+                       and result.eval_seconds + eval_cost[0] <= max_eval_share * plan.budget_s)
+            else:
+                due = True
+            if due:
                 entry.update(evaluate())
-                eval_cost[0] = time.perf_counter() - t0
+                eval_cost[0] = clock() - t0
             else:
                 entry["note"] = "evaluation skipped: it would not fit in the time budget"
         result.trace.append(entry)
         window.clear()
-        result.eval_seconds += time.perf_counter() - t0
+        result.eval_seconds += clock() - t0
         if on_checkpoint is not None:
             on_checkpoint(result.trace)
         return entry
@@ -93,29 +114,36 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
               bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]") as bar:
         checkpoint()
         next_mark = every
+        post: dict[str, str] = {}
         while True:
             if plan.steps and result.steps >= plan.steps:
                 result.stopped_by = "steps"
                 break
-            if by_time and spent() >= plan.budget_s:
+            if by_time and result.steps and spent() >= plan.budget_s:  # every run makes at least one step
                 result.stopped_by = "budget"
                 break
-            t0 = time.perf_counter()
+            t0, c0 = clock(), cpu_clock()
             last = model.step()
-            dt = time.perf_counter() - t0
+            dt = clock() - t0
+            result.cpu_seconds += cpu_clock() - c0
             result.steps += 1
             result.seconds += dt
             result.last = last
             result.losses.append(float(last["loss"]))
+            result.data_terms.append(float(last.get("data", last["loss"])))
+            if on_step is not None:
+                on_step(dt)
             if early_stop and last.get("converged"):
                 result.stopped_by = "converged"
             window.append(float(last["loss"]))
+            post["step"] = str(result.steps)
+            post["loss"] = f"{sum(window) / len(window):.3g}"  # the mean since the last checkpoint, as the trace's
+            bar.set_postfix(post, refresh=False)  # drawn with the next update
             bar.update(min(spent() - bar.n, max(0.0, plan.budget_s - bar.n)) if by_time else 1)
             done = result.seconds if marks_by_time else result.steps
             if done >= next_mark:
                 entry = checkpoint()
                 next_mark += every
-                post = {"loss": f"{entry['loss']:.3g}"}
                 if entry.get("chamfer_mm") is not None:
                     post["chamfer"] = f"{entry['chamfer_mm']:.2f}mm"
                     if score_note:
@@ -123,15 +151,18 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
                 bar.set_postfix(post)
             if result.stopped_by:
                 break
+        if post:
+            bar.set_postfix(post)  # the last step's fields are drawn, whenever the bar last was
         if window or not result.trace or result.trace[-1]["step"] != result.steps:
             checkpoint(final=True)
-        elif evaluate is not None and "note" in result.trace[-1]:
+        elif evaluate is not None and "note" in result.trace[-1] and (end_evaluation is None
+                                                                       or end_evaluation(eval_cost[0])):
             # The run ended on a checkpoint whose evaluation was skipped: the end of a run is always evaluated.
-            t0 = time.perf_counter()
+            t0 = clock()
             last = result.trace[-1]
             del last["note"]
             last.update(evaluate())
-            result.eval_seconds += time.perf_counter() - t0
+            result.eval_seconds += clock() - t0
             if on_checkpoint is not None:
                 on_checkpoint(result.trace)
     return result

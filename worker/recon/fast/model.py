@@ -184,6 +184,27 @@ class FastModel:
             part.on_refine(self)
         self._make_optimizer()
 
+    def warm_start(self, field: GridField, level: int, level_steps: int = 0) -> None:
+        """Start from another fit's field instead of the hull: a live reconstruction rebuilds its model as views
+        arrive and continues from where the last model was. The grid is refined to `level` (where refinement runs),
+        takes `field`'s values where that field's box covers it (the hull start elsewhere: the box may have grown),
+        and never lies below this model's hull bound (more views carve a tighter hull: it is the start and the
+        constraint both). The level goes on from `level_steps` steps (the last model's): its learning-rate decay
+        and its refinement continue where they were. Every part then starts afresh from it, as after a jump."""
+        while self.level < level and self.part("refinement") is not None:
+            self.refine()
+        if self.level == level:
+            self.level_steps = int(level_steps)
+        with torch.no_grad():
+            own = self.field.sdf
+            points = self.field.node_points().to(field.origin.dtype)
+            lo, hi = field.origin, field.box_max
+            covered = ((points >= lo) & (points <= hi)).all(dim=-1)
+            values = field.sample(points.to(field.sdf.device)).to(own.device, own.dtype)
+            start = torch.where(covered.to(own.device)[None, None], values[None, None], own)
+            own.copy_(torch.maximum(start, self.constraint.bound_for(self.field)))
+        self.jumped()
+
     def project(self) -> None:
         """Clamp the field into the hull's bound, where the hull projection part runs."""
         if self.part("hull_projection") is not None:

@@ -1,0 +1,187 @@
+"""`<capture>/recon/live/status.json`: what a live reconstruction has done so far, for people and for `spadscan ctl`.
+
+A live job (`spadscan worker --live`) follows a scan while it is recorded and rewrites this file every few seconds,
+beside the mesh and the preview it publishes (`recon/live/mesh.ply`, `recon/live/preview.png`). Every file there is
+written to a hidden temporary name and renamed into place, the status last: a reader sees a whole file, never a
+torn one, and a status no newer than the mesh beside it.
+
+The format is a JSON object; readers accept unknown keys. Standard library only: the daemon-side client
+(`spadscan ctl`) reads it without loading numpy or the worker.
+
+Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people read it):
+
+- `views_used` (int >= 0): views (poses) the live model is fitting;
+- `views_published` (int >= 0): views of the scan published so far (the model may lag behind by a few);
+- `steps` (int >= 0): optimisation steps the live job has taken over all its models;
+- `updated_utc` (string): when this status was written, ISO 8601 UTC with milliseconds;
+- `converged` (bool): the live model's fit has plateaued on the views it has;
+- `chamfer_mm` (number): Chamfer distance of the published mesh to the ground truth; only when the capture names
+  one;
+- `state` (string): `waiting` (too few views yet), `live` (following the scan), `final` (the scan is complete: the
+  final reconstruction runs from the live state), `done` (the final result is published: `result`), `aborted` (the
+  scan was aborted; the job ended) or `stopped` (the job ended otherwise: `note`);
+- `views_planned` (int or null): poses the scan plans, when the capture says;
+- `job` (string): the queue's job id;
+- `result` (string or null): the final result folder, once `done`;
+- `note` (string or null): one line worth knowing (why the job ended, a warning).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import secrets
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+from .errors import CaptureError
+
+LIVE_DIR = "live"
+"""The live results' folder under a capture's `recon/`."""
+STATUS = "status.json"
+STATES = ("waiting", "live", "final", "done", "aborted", "stopped")
+SAID = {"waiting": "waiting for views", "live": "following the scan", "final": "finishing", "done": "done",
+        "aborted": "ended (the scan was aborted)", "stopped": "stopped"}
+"""Each state as people read it."""
+
+
+def utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+@dataclass(frozen=True)
+class LiveStatus:
+    """One status of a live reconstruction (see the module for each field)."""
+
+    views_used: int
+    views_published: int
+    steps: int
+    converged: bool = False
+    state: str = "live"
+    updated_utc: str = ""
+    chamfer_mm: float | None = None
+    views_planned: int | None = None
+    job: str = ""
+    result: str | None = None
+    note: str | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON object written; `chamfer_mm` only when there is one."""
+        data = asdict(self)
+        if data["chamfer_mm"] is None:
+            del data["chamfer_mm"]
+        return data
+
+    def age_s(self, now: _dt.datetime | None = None) -> float | None:
+        """Seconds since `updated_utc` (None when it cannot be read)."""
+        try:
+            then = _dt.datetime.fromisoformat(self.updated_utc)
+        except (TypeError, ValueError):
+            return None
+        if then.tzinfo is None:
+            then = then.replace(tzinfo=_dt.timezone.utc)
+        return max(0.0, ((now or _dt.datetime.now(_dt.timezone.utc)) - then).total_seconds())
+
+    def summary(self, now: _dt.datetime | None = None) -> str:
+        """One line for people: state, views used of published (of planned), steps, Chamfer, last update."""
+        planned = f" of {self.views_planned} planned" if self.views_planned else ""
+        parts = [f"{self.views_used}/{self.views_published} views{planned}", f"{self.steps} steps"]
+        if self.converged:
+            parts.append("converged")
+        if self.chamfer_mm is not None:
+            parts.append(f"Chamfer {self.chamfer_mm:.2f} mm")
+        age = self.age_s(now)
+        if age is not None:
+            parts.append(f"updated {age:.0f} s ago")
+        if self.note:
+            parts.append(self.note)
+        return f"live reconstruction {SAID.get(self.state, self.state)}: " + ", ".join(parts)
+
+
+def status_path(capture) -> Path:
+    """`<capture>/recon/live/status.json`."""
+    return Path(capture) / "recon" / LIVE_DIR / STATUS
+
+
+def write_status(folder, status: LiveStatus) -> Path:
+    """Write `status` as `folder/status.json` (a temporary file renamed over it); `updated_utc` is set to now when
+    empty. Returns the path."""
+    if not status.updated_utc:
+        status = LiveStatus(**{**asdict(status), "updated_utc": utc_now()})
+    check_status(status, "live status")
+    return write_atomic(Path(folder) / STATUS, (json.dumps(status.to_dict(), indent=1) + "\n").encode())
+
+
+def write_atomic(path: Path, data: bytes) -> Path:
+    """Write `data` to `path` through a hidden temporary file in the same folder, renamed over it: a reader sees the
+    old file or the new one, never a part."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_status(path) -> LiveStatus:
+    """The status in `path` (a status.json, or a capture folder); CaptureError in one line when it is missing or
+    malformed."""
+    path = Path(path)
+    if path.is_dir():
+        path = status_path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: no live status") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise CaptureError(f"{path}: unreadable live status ({exc})") from None
+    if not isinstance(data, dict):
+        raise CaptureError(f"{path}: a live status is a JSON object")
+    known = {f.name for f in fields(LiveStatus)}
+    missing = sorted({"views_used", "views_published", "steps"} - set(data))
+    if missing:
+        raise CaptureError(f"{path}: live status lacks {', '.join(missing)}")
+    status = LiveStatus(**{k: v for k, v in data.items() if k in known})
+    check_status(status, str(path))
+    return status
+
+
+def check_status(status: LiveStatus, where: str) -> None:
+    """CaptureError naming `where` and the field when a status holds what its format does not allow."""
+    for key in ("views_used", "views_published", "steps"):
+        value = getattr(status, key)
+        if not _is_int(value) or value < 0:
+            raise CaptureError(f"{where}: {key} {value!r} must be an integer >= 0")
+    if status.views_planned is not None and (not _is_int(status.views_planned) or status.views_planned < 0):
+        raise CaptureError(f"{where}: views_planned {status.views_planned!r} must be an integer >= 0 or null")
+    if not isinstance(status.converged, bool):
+        raise CaptureError(f"{where}: converged {status.converged!r} must be true or false")
+    if status.state not in STATES:
+        raise CaptureError(f"{where}: state {status.state!r} must be one of {', '.join(STATES)}")
+    if status.chamfer_mm is not None and not (isinstance(status.chamfer_mm, (int, float))
+                                              and not isinstance(status.chamfer_mm, bool)
+                                              and math.isfinite(status.chamfer_mm) and status.chamfer_mm >= 0):
+        raise CaptureError(f"{where}: chamfer_mm {status.chamfer_mm!r} must be a finite number >= 0")
+    for key in ("updated_utc", "job"):
+        if not isinstance(getattr(status, key), str):
+            raise CaptureError(f"{where}: {key} {getattr(status, key)!r} must be a string")
+    for key in ("result", "note"):
+        value = getattr(status, key)
+        if value is not None and not isinstance(value, str):
+            raise CaptureError(f"{where}: {key} {value!r} must be a string or null")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+__all__ = ["LiveStatus", "LIVE_DIR", "STATUS", "STATES", "status_path", "write_status", "read_status",
+           "write_atomic", "utc_now", "check_status"]

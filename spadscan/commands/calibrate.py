@@ -1,0 +1,48 @@
+"""Calibrate the rig from a capture.
+
+    spadscan calibrate hand-eye CAPTURE --plane X,Y,Z,NX,NY,NZ     the flange-to-sensor transform from views of a plane
+    spadscan calibrate hand-eye CAPTURE --sphere X,Y,Z,R            ... or of a sphere
+
+`hand-eye` fits the rig config's [arm] hand_eye (X: sensor pose = TCP pose x X) to a capture of a target whose place
+in the arm's base frame you know (metres): the table (a point on it and its normal, e.g. `--plane 0,0,0.02,0,0,1`)
+or a sphere (centre and radius). It starts from the X the capture was taken with, moves it until every zone's
+return lies where the sensor model puts it, and prints the residuals before and after and the fitted X as the line
+to put in the config. Take the capture with views that tilt the tool in different directions (rings at several
+elevations with --jitter, see firmware_notes/hand_eye.md): a plane seen from one orientation fixes X only along its
+normal.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def add_arguments(parser) -> None:
+    sub = parser.add_subparsers(dest="what", required=True, metavar="WHAT")
+    he = sub.add_parser("hand-eye", help="fit [arm] hand_eye from a capture of a known plane or sphere",
+                        description=__doc__, formatter_class=parser.formatter_class)
+    he.add_argument("capture", metavar="CAPTURE", help="the capture folder (holds scan.json)")
+    he.add_argument("--plane", metavar="X,Y,Z,NX,NY,NZ",
+                    help="the target is a plane through point X,Y,Z with normal NX,NY,NZ (base frame, metres)")
+    he.add_argument("--sphere", metavar="X,Y,Z,R", help="the target is a sphere of centre X,Y,Z and radius R (m)")
+    he.add_argument("--fit-zero-bin", action="store_true",
+                    help="also fit a shift of the sensor model's zero bin (weakly separable from X's offset along "
+                         "the boresight: use views at several distances)")
+
+
+def run(args) -> int:
+    from spadscan.daemon.hand_eye import fit_hand_eye, hand_eye_toml, parse_target
+
+    target = parse_target(args.plane, args.sphere)
+    fit = fit_hand_eye(args.capture, target, fit_zero_bin=args.fit_zero_bin)
+    moved = (fit.hand_eye[:3, 3] - fit.start[:3, 3]) * 1e3
+    on = f"the {target.kind}"
+    print(f"{args.capture}: {fit.views} views, {fit.returns} zone returns on {on}")
+    print(f"residual RMS {fit.rms_start_mm:.2f} mm with the capture's hand_eye, {fit.rms_mm:.2f} mm fitted "
+          f"({fit.iterations} iterations)")
+    print(f"change: {fit.change_mm:.1f} mm ({', '.join(f'{v:+.1f}' for v in moved)} mm), {fit.change_deg:.2f} deg")
+    if args.fit_zero_bin:
+        print(f"zero bin: {fit.zero_bin_shift:+.3f} bins from the capture's sensor model")
+    print("for the rig config's [arm] table:")
+    print(hand_eye_toml(np.asarray(fit.hand_eye)))
+    return 0

@@ -1,0 +1,91 @@
+"""Run a sensitivity sweep: simulate -> reconstruct -> baselines -> metrics at every point of a grid, on Dask.
+
+SWEEP.toml names the scenes (mesh files, builtin:NAME, or lcspc:NAME with --lcspc), the base condition (sensor
+preset, schedule, views, bins, field of view, power, ambient light, laser cycles, seed) and the values of each
+parameter to vary: one axis at a time around the base (the paper's design) or every combination (mode = "product").
+At each point the capture is simulated, each preset reconstructs it, both baselines run with their threshold
+calibrated against the ground truth, and everything is scored (see examples/sweeps/ for commented files).
+
+Points run on Dask distributed: an embedded cluster of --workers processes (default: one per core), one thread each,
+or the workers of a running scheduler (--scheduler tcp://HOST:8786; the machines must share DIR and the scenes'
+files). Results survive: each finished point is written at once to DIR/points/<id>.json and gathered into
+DIR/results.csv; a re-run of the same sweep runs only the points not done (failed ones again); a point whose worker
+dies runs again on another; a sweep file whose base condition or methods differ from those DIR was run with is
+refused. Failed points are results too: they are listed at the end and marked in `spadscan sweep-plot DIR`; the exit
+status is 0 once every point has run.
+
+Examples:
+  spadscan sweep examples/sweeps/small.toml --out sweep-small && spadscan sweep-plot sweep-small
+  spadscan sweep examples/sweeps/figure_a.toml --out figure-a --lcspc ~/data/LCSPCData --scheduler tcp://head:8786
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("sweep", metavar="SWEEP.toml", help="the sweep file")
+    parser.add_argument("--out", required=True, metavar="DIR", help="results folder (created, or re-run into)")
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="a running Dask scheduler (tcp://host:8786); default: start a local cluster")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="worker processes of the local cluster (default: one per CPU core; with --device "
+                             "cuda, one)")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
+                        help="where the presets reconstruct (default: cpu); cuda points go only to workers "
+                             "started with --resources GPU=1")
+    parser.add_argument("--lcspc", default=None, metavar="DIR",
+                        help="the LCSPCData folder (the one holding simulated/) for lcspc:NAME scenes")
+    parser.add_argument("--keep", action="store_true",
+                        help="keep each point's capture and outputs in DIR/work/<id>/ (default: removed)")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="check the file and list the points and how many are done; run nothing")
+    parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
+
+
+def run(args) -> int:
+    import sys
+    from pathlib import Path
+
+    from spadscan.sweep.plan import make_plan
+    from spadscan.sweep.spec import load_spec
+
+    def log(line: str) -> None:
+        print(f"spadscan sweep: {line}", file=sys.stderr, flush=True)
+
+    spec = load_spec(args.sweep)
+    plan = make_plan(spec, None if args.lcspc is None else Path(args.lcspc))
+    entries = len(plan.entries)
+    log(f"{entries} grid entr{'y' if entries == 1 else 'ies'} on {len(plan.scenes)} scene"
+        f"{'' if len(plan.scenes) == 1 else 's'}: {len(plan.points)} distinct points; methods "
+        f"{', '.join(spec.methods)}")
+    if args.dry_run:
+        return _dry_run(plan, Path(args.out))
+    from spadscan.signals import terminate_as_interrupt
+    from spadscan.sweep.runner import run_sweep
+
+    # SIGTERM as Ctrl-C: the local cluster's worker processes are stopped, not left running without a client.
+    with terminate_as_interrupt():
+        summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers,
+                            device=args.device, keep=args.keep, progress=not args.no_progress, log=log)
+    print(f"{summary.points} points: {summary.earlier} done earlier, {summary.ran} run now "
+          f"({summary.done} done, {len(summary.failed)} failed)")
+    for task, reason in summary.failed:
+        print(f"  failed: {task.describe(spec.base)} [{task.id}]: {reason}")
+    print(f"results: {Path(args.out) / 'results.csv'} ({summary.rows} rows); plot: spadscan sweep-plot {args.out}")
+    return 0
+
+
+def _dry_run(plan, out) -> int:
+    from spadscan.sweep.store import SweepDir
+
+    store = SweepDir(out)
+    done = 0
+    for task in plan.points.values():
+        result = store.read_point(task.id) if out.is_dir() else None
+        status = (result or {}).get("status", "to run")
+        done += status == "done"
+        print(f"{task.id}  {status:<7} {task.describe(plan.spec.base)}")
+    print(f"{len(plan.points)} points, {done} done, {len(plan.points) - done} to run")
+    return 0

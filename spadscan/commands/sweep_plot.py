@@ -1,0 +1,25 @@
+"""Draw a sweep's Figure A: one panel per parameter, Chamfer distance (log axis) against it, every method.
+
+Reads DIR/sweep.json and DIR/results.csv (written by `spadscan sweep`, also while it runs) and writes into DIR
+figure_a.png (figure_a-<scene>.png for each scene of a sweep of several) and figure_a.html: the pictures and a table
+of every point. Points where a method gave no result are crosses on the panel's top edge.
+
+Example:
+  spadscan sweep-plot sweep-small
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("folder", metavar="DIR", help="the --out folder of a `spadscan sweep`")
+
+
+def run(args) -> int:
+    from spadscan.sweep.figure_a import plot_sweep
+
+    pngs, page = plot_sweep(args.folder)
+    print(f"wrote {page} (open this first), " + ", ".join(p.name for p in pngs))
+    return 0

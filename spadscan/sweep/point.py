@@ -1,0 +1,140 @@
+"""One point of a sweep: simulate the capture, run each preset and each calibrated baseline, score, record.
+
+`run_point` is what a Dask worker runs (runner.py wraps it) and what a plain loop in one process runs. It uses one
+CPU thread for torch (the cluster runs one point per worker process, one process per core), writes its result to
+DIR/points/<id>.json before it returns, and never raises for a failed stage: each method's failure is recorded with
+its one-line reason, the others still run, and the point is `failed` with the first reasons. A point whose result is
+already there as `done` (its worker died after writing it, and Dask ran it again) is not run twice.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import traceback
+from pathlib import Path
+from typing import Callable
+
+import spadscan
+from spadscan.protocol.capture_format import one_line
+from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.simulator import simulate_capture
+from spadscan.worker.baselines.run import run_baseline
+from spadscan.worker.reconstruct import reconstruct_capture
+from spadscan.worker.report.report_json import json_safe
+
+from .params import point_poses, point_sensor, point_settings
+from .plan import PointTask
+from .scenes import scene_mesh
+from .store import SweepDir
+
+Emit = Callable[..., None]
+"""emit(event, **fields): 'start', 'stage' (stage=NAME), 'done', 'failed', 'skip'."""
+
+PRESET_KEYS = ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg", "steps",
+               "stopped_by", "final_loss", "device")
+BASELINE_KEYS = ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg", "threshold",
+                 "floor_z_m")
+
+
+def run_point(task: PointTask, out: str, *, device: str = "cpu", keep: bool = False,
+              emit: Emit | None = None, worker: str | None = None) -> dict:
+    """Run `task` and store its result in the sweep folder `out`; returns the result (as stored)."""
+    emit = emit or (lambda event, **fields: None)
+    store = SweepDir(out)
+    earlier = store.read_point(task.id)
+    if earlier is not None and earlier.get("status") == "done":
+        emit("skip")
+        return earlier
+    host = socket.gethostname()
+    emit("start")
+    start = time.perf_counter()
+    work = store.new_work_dir(task.id, host)
+    methods: dict[str, dict] = {}
+    simulation: dict = {}
+    try:
+        emit("stage", stage="simulate")
+        simulation = _attempt(lambda: _simulate(task, work))
+        if simulation.get("status") == "done":
+            capture = work / "capture"
+            for preset in task.presets:
+                emit("stage", stage=preset.name)
+                methods[preset.name] = _attempt(lambda: _reconstruct(task, preset, capture, work, device))
+            for method in task.baselines.methods:
+                emit("stage", stage=method)
+                methods[method] = _attempt(lambda: _baseline(task, method, capture, work))
+    finally:
+        kept = store.finish_work_dir(work, task.id, keep)
+    failures = ([f"simulate: {simulation['reason']}"] if simulation.get("status") == "failed" else []) + [
+        f"{name}: {r['reason']}" for name, r in methods.items() if r["status"] == "failed"]
+    result = {
+        "id": task.id,
+        "status": "failed" if failures else "done",
+        "reason": "; ".join(failures) if failures else None,
+        "scene": task.scene.label,
+        "params": task.params,
+        "methods": methods,
+        "simulation": simulation,
+        "seconds": round(time.perf_counter() - start, 3),
+        "worker": {"name": worker, "host": host, "pid": os.getpid()},
+        "device": device,
+        "work": None if kept is None else str(kept),
+        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "spadscan": spadscan.__version__,
+        "record": task.record,
+    }
+    result = json_safe(result)
+    store.write_point(result)
+    emit("failed" if failures else "done", reason=result["reason"], seconds=result["seconds"])
+    return result
+
+
+def _attempt(run: Callable[[], dict]) -> dict:
+    """run() with its failure turned into {'status': 'failed', 'reason': one line} (and the traceback kept for
+    anything that is not one of spadscan's own errors)."""
+    start = time.perf_counter()
+    try:
+        result = run()
+    except SpadscanError as exc:
+        return {"status": "failed", "reason": one_line(exc), "seconds": round(time.perf_counter() - start, 3)}
+    except Exception as exc:  # noqa: BLE001 - a point's failure, whatever it is, must not stop the sweep
+        return {"status": "failed", "reason": f"{type(exc).__name__}: {one_line(exc)}",
+                "seconds": round(time.perf_counter() - start, 3), "traceback": traceback.format_exc()}
+    return {"status": "done", **result, "seconds": round(time.perf_counter() - start, 3)}
+
+
+def _simulate(task: PointTask, work: Path) -> dict:
+    mesh, scene_record = scene_mesh(task.scene)
+    poses, schedule = point_poses(task.params)
+    sensor = point_sensor(task.params)
+    settings = point_settings(task.params, task.base_bin_ps)
+    notes: list[str] = []
+    simulate_capture(mesh, sensor, poses, work / "capture", settings=settings, seed=task.params["seed"],
+                     scene=scene_record, schedule=schedule, progress=False, log=notes.append)
+    return {"views": int(len(poses)), "bins": int(sensor.n_bins), "bin_width_mm": sensor.bin_width_m * 1e3,
+            "ambient_per_bin": settings.ambient, **({"note": " ".join(notes)} if notes else {})}
+
+
+def _reconstruct(task: PointTask, preset, capture: Path, work: Path, device: str) -> dict:
+    overrides = {**preset.overrides, "metrics_points": task.metrics_points}
+    report = reconstruct_capture(capture, work / preset.name, preset=preset.name, budget_s=preset.budget_s,
+                                 steps=preset.steps, gt=task.scene.source, device=device,
+                                 seed=task.params["seed"], progress=False, overrides=overrides, threads=1)
+    out = {k: report.get(k) for k in PRESET_KEYS}
+    out["training_seconds"] = report.get("seconds")
+    return out
+
+
+def _baseline(task: PointTask, method: str, capture: Path, work: Path) -> dict:
+    b = task.baselines
+    report = run_baseline(capture, work / method, method, gt=task.scene.source, calibrate_=True,
+                          resolution=b.resolution, thresholds=b.thresholds,
+                          calibration_points=task.calibration_points, metrics_points=task.metrics_points)
+    out = {k: report.get(k) for k in BASELINE_KEYS}
+    out["calibration"] = [{"threshold": row["threshold"], "chamfer_mm": row["chamfer_mm"]}
+                          for row in (report.get("calibration") or {}).get("table", [])]
+    return out
+
+
+__all__ = ["run_point"]

@@ -1,0 +1,209 @@
+"""Running a sweep's points on Dask distributed: an embedded LocalCluster, or the workers of an existing scheduler.
+
+Each point is one Dask task (`dask_point`), one at a time per worker process, one torch thread each. The worker
+writes the point's result into DIR/points/ itself, so a result survives whatever happens to this client. When a
+worker dies mid-point (killed, out of memory, its machine gone), the scheduler hands its task to another worker
+(Dask retries a task whose worker died up to `distributed.scheduler.allowed-failures` times, 3 by default); a
+point that kills that many workers is recorded as failed. Workers report each point's start and stages as Dask
+events, which this client writes to DIR/log.jsonl.
+
+A point on a CUDA device asks for the worker resource GPU=1: start GPU workers with `--resources GPU=1`
+(one per GPU); an embedded cluster gives each of its workers one.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
+from tqdm import tqdm
+
+from spadscan.protocol.errors import ConfigError
+
+from .plan import Plan, PointTask
+from .point import run_point
+from .store import SweepDir
+
+EVENT_TOPIC = "spadscan-sweep"
+DEVICES = ("cpu", "cuda", "auto")
+CONNECT_TIMEOUT_S = 30
+RESULTS_EVERY_S = 10.0
+"""results.csv is gathered again at most this often while points finish (it reads every point's file), and at the
+end."""
+
+
+def dask_point(task: PointTask, out: str, device: str, keep: bool) -> dict:
+    """The Dask task of one point: run it on this worker, reporting events to the client; returns a summary."""
+    worker = get_worker()
+
+    def emit(event: str, **fields) -> None:
+        # Dask adds "worker" (the address) to every event; "name" is the worker's own (dask worker --name).
+        worker.log_event(EVENT_TOPIC, {"event": event, "point": task.id, "name": str(worker.name),
+                                       "pid": os.getpid(), **fields})
+
+    result = run_point(task, out, device=device, keep=keep, emit=emit, worker=str(worker.name))
+    return {"id": result["id"], "status": result["status"], "reason": result.get("reason"),
+            "seconds": result.get("seconds"), "worker": result.get("worker")}
+
+
+@dataclass
+class Summary:
+    """What a run of a sweep did."""
+
+    points: int
+    earlier: int
+    """Points done before this run (skipped)."""
+    ran: int = 0
+    done: int = 0
+    failed: list[tuple[PointTask, str]] = field(default_factory=list)
+    rows: int = 0
+    """Rows of results.csv."""
+    startup_s: float = 0.0
+    """Seconds to start (or reach) the cluster."""
+
+
+def cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | None = None, device: str = "cpu",
+              keep: bool = False, progress: bool = True, log: Callable[[str], None] | None = None,
+              point: Callable[..., dict] = dask_point) -> Summary:
+    """Run every point of `plan` that DIR `out` does not hold as done; returns the summary. `scheduler`: the
+    address of a running Dask scheduler (tcp://host:8786); None starts a LocalCluster of `workers` processes (default:
+    one per core; one for CUDA). `point`: the task each point runs, point(task, out, device, keep) -> a summary
+    dict with id and status (dask_point; benchmarks/sweep_overhead.py times Dask with one that does nothing)."""
+    log = log or (lambda line: None)
+    if device not in DEVICES:
+        raise ConfigError(f"device {device!r} is not one of {', '.join(DEVICES)}")
+    if scheduler is not None and workers is not None:
+        raise ConfigError("--workers sizes the embedded cluster; a scheduler's workers are the ones started for it "
+                          "(dask worker ADDRESS)")
+    if workers is not None and workers < 1:
+        raise ConfigError(f"--workers {workers} must be at least 1")
+    store = SweepDir(out)
+    store.open(plan)
+    try:
+        todo = [t for t in plan.points.values() if (store.read_point(t.id) or {}).get("status") != "done"]
+        summary = Summary(len(plan.points), len(plan.points) - len(todo))
+        if todo:
+            _run_on_dask(plan, todo, store, summary, _client(scheduler, workers, device, log),
+                         lambda task: (point, task, str(store.path.resolve()), device, keep), device, progress)
+        summary.rows = store.write_results(plan)
+        return summary
+    finally:
+        store.close()
+
+
+def _run_on_dask(plan, todo, store, summary, connect, call, device, progress) -> None:
+    """Submit a task per point of `todo` (`call(task)` gives the function and its arguments) to the client that
+    `connect` opens, and record each as it finishes."""
+    def on_event(event) -> None:
+        _, message = event
+        if isinstance(message, dict):
+            store.append_log(message)
+
+    start = time.monotonic()
+    with connect as client:
+        summary.startup_s = time.monotonic() - start
+        client.subscribe_topic(EVENT_TOPIC, on_event)
+        token = secrets.token_hex(4)  # keys of this run only: another client's tasks never stand in for these
+        resources = {"GPU": 1} if device == "cuda" else None
+        futures = {}
+        for task in todo:
+            future = client.submit(*call(task), key=f"spadscan-point-{task.id}-{token}", resources=resources,
+                                   pure=False)
+            futures[future] = task
+        gathered = time.monotonic()
+        with tqdm(total=len(todo), desc="sweep", unit="point", disable=not progress) as bar:
+            # Results come with the futures (fetched in the background), not one round trip per point.
+            for future, outcome in as_completed(futures, with_results=True, raise_errors=False):
+                task = futures.pop(future)
+                # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
+                result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device)
+                future.release()
+                summary.ran += 1
+                if result["status"] == "done":
+                    summary.done += 1
+                else:
+                    summary.failed.append((task, result.get("reason") or "failed"))
+                    # Above the bar, on stderr with it: stdout holds the summary alone.
+                    bar.write(f"spadscan sweep: failed: {task.describe(plan.spec.base)}: {result.get('reason')}",
+                              file=sys.stderr)
+                bar.set_postfix(failed=len(summary.failed), refresh=False)
+                bar.update(1)
+                if time.monotonic() - gathered > RESULTS_EVERY_S:  # a look at results.csv mid-sweep is current
+                    store.write_results(plan)
+                    gathered = time.monotonic()
+        client.unsubscribe_topic(EVENT_TOPIC)
+
+
+def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
+    """The summary a finished task returned, or for a task that raised (Dask gave up on it when its workers died, or
+    the task could not run at all) a failed point, recorded."""
+    if not isinstance(outcome, BaseException):
+        return outcome
+    if isinstance(outcome, KilledWorker):
+        tries = outcome.allowed_failures + 1
+        reason = (f"the worker running it died each time it was tried ({tries} workers: killed, or out of memory?); "
+                  f"their logs say why")
+    else:
+        reason = f"{type(outcome).__name__}: {' '.join(str(outcome).split())[:300]}"
+    result = {"id": task.id, "status": "failed", "reason": reason, "scene": task.scene.label,
+              "params": task.params, "methods": {}, "device": device, "record": task.record}
+    store.write_point(result)
+    store.append_log({"event": "failed", "point": task.id, "reason": reason})
+    return result
+
+
+class _client:
+    """A Dask client on `scheduler`, or on a LocalCluster it starts and stops."""
+
+    def __init__(self, scheduler, workers, device, log):
+        self.scheduler, self.workers, self.device, self.log = scheduler, workers, device, log
+        self.cluster = self.client = None
+
+    def __enter__(self):
+        if self.scheduler is not None:
+            try:
+                self.client = Client(self.scheduler, timeout=CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError) as exc:
+                raise ConfigError(f"cannot reach the Dask scheduler at {self.scheduler} "
+                                  f"({' '.join(str(exc).split())[:200]})") from None
+            workers = self.client.scheduler_info().get("workers", {})
+            n = len(workers)
+            self.log(f"scheduler {self.scheduler}: {n} worker{'' if n == 1 else 's'} connected" +
+                     ("" if n else "; points wait until one connects (dask worker " + self.scheduler + ")"))
+            if self.device == "cuda" and n and not any(w.get("resources", {}).get("GPU") for w in workers.values()):
+                self.log("warning: no connected worker has the resource GPU=1; the points wait for one "
+                         "(dask worker ... --resources GPU=1)")
+            return self.client
+        n = self.workers or (1 if self.device == "cuda" else cores())
+        # Loopback only; no dashboard, and the scheduler's HTTP server (health, metrics) on a free port: a fixed
+        # 8787 would clash with another cluster on the machine.
+        self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                    dashboard_address=None, silence_logs=logging.ERROR,
+                                    scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+                                    **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
+        self.client = Client(self.cluster)
+        self.log(f"local cluster: {n} worker process{'' if n == 1 else 'es'}, one thread each")
+        return self.client
+
+    def __exit__(self, *exc):
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+        return False
+
+
+__all__ = ["run_sweep", "dask_point", "Summary", "EVENT_TOPIC", "cores"]

@@ -1,0 +1,265 @@
+"""A sweep's results folder: what survives a crash, a killed worker and a re-run.
+
+    DIR/sweep.json          the fingerprint of the base condition and methods, the grid, the entries (see plan.py)
+    DIR/sweep.toml          a copy of the sweep file last run here
+    DIR/points/<id>.json    one finished point (done or failed), written at once and atomically by the worker
+    DIR/results.csv         every grid entry that has a result, one row each, gathered from points/
+    DIR/log.jsonl           what happened when: each point's start and stages, on which worker, and its end
+    DIR/work/               points in progress (their capture and outputs; removed when they end unless kept)
+    DIR/.lock               held by the one `spadscan sweep` that runs on DIR
+
+Machines that run points must share this folder (the same path on each).
+"""
+
+from __future__ import annotations
+
+import csv
+import fcntl
+import io
+import json
+import os
+import secrets
+import shutil
+import time
+from pathlib import Path
+
+import spadscan
+from spadscan.protocol.capture_format import fsync_dir, write_durable
+from spadscan.protocol.errors import ConfigError
+
+from .params import C_M_PER_S
+
+SWEEP_JSON = "sweep.json"
+SWEEP_TOML = "sweep.toml"
+POINTS = "points"
+RESULTS_CSV = "results.csv"
+LOG = "log.jsonl"
+WORK = "work"
+LOCK = ".lock"
+RUNNING_MARK = ".running-"
+"""In the name of a point's work folder while it runs: <id>.running-<host>-<pid>-<token>."""
+
+PARAM_COLUMNS = ("sensor", "schedule", "views", "rings", "min_elevation_deg", "max_elevation_deg", "radius_m",
+                 "bin_ps", "fov_deg", "power", "ambient", "cycles", "albedo", "rays_per_zone", "seed")
+METRIC_COLUMNS = ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg", "seconds")
+PRESET_COLUMNS = ("steps", "stopped_by")
+BASELINE_COLUMNS = ("threshold",)
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Replace `path` atomically (a durable temporary file, renamed, the folder synced). The temporary file's name
+    is this writer's own: two attempts at one point may end at once on two machines."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+    try:
+        write_durable(tmp, text.encode())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    fsync_dir(path.parent)
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    write_text_atomic(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
+
+
+def column_name(method: str) -> str:
+    """'space-carving' -> 'space_carving' (a CSV column prefix)."""
+    return method.replace("-", "_")
+
+
+class SweepDir:
+    """The results folder of a sweep (see the module docstring)."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.points = self.path / POINTS
+        self.work = self.path / WORK
+        self._lock_fd: int | None = None
+
+    # --- the client's side: open, check, gather ---------------------------------------------------------------
+
+    def open(self, plan) -> None:
+        """Create or reopen the folder for `plan`: take the lock, refuse a folder of another base condition, record
+        the plan, clear the work folders of attempts that died. Call `close` when done."""
+        if self.path.exists() and not self.path.is_dir():
+            raise ConfigError(f"{self.path}: exists and is not a folder")
+        self.path.mkdir(parents=True, exist_ok=True)
+        new_lock = not (self.path / LOCK).exists()
+        self._lock()
+        try:
+            try:
+                self._check_fingerprint(plan)
+            except ConfigError:
+                if new_lock:  # a refused folder is left as it was found
+                    (self.path / LOCK).unlink(missing_ok=True)
+                raise
+            self.points.mkdir(exist_ok=True)
+            self.work.mkdir(exist_ok=True)
+            for stale in self.work.glob(f"*{RUNNING_MARK}*"):
+                shutil.rmtree(stale, ignore_errors=True)
+            write_json_atomic(self.path / SWEEP_JSON, sweep_record(plan))
+            write_text_atomic(self.path / SWEEP_TOML, plan.spec.text)
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # releases the lock
+            self._lock_fd = None
+
+    def _lock(self) -> None:
+        fd = os.open(self.path / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
+            os.close(fd)
+            who = f" (pid {holder})" if holder else ""
+            raise ConfigError(f"{self.path}: another `spadscan sweep` is running on this folder{who}; wait for it "
+                              f"or choose another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._lock_fd = fd
+
+    def _check_fingerprint(self, plan) -> None:
+        path = self.path / SWEEP_JSON
+        if not path.exists():
+            if any(p.name != LOCK for p in self.path.iterdir()):
+                raise ConfigError(f"{self.path}: holds other files and no {SWEEP_JSON}: not a sweep's folder (choose "
+                                  f"a new or empty --out)")
+            return
+        try:
+            old = json.loads(path.read_text())
+            old_fingerprint, old_base = old["fingerprint"], old["base_record"]
+        except (OSError, ValueError, KeyError, TypeError):
+            raise ConfigError(f"{path}: unreadable; this folder cannot be checked against the sweep (choose "
+                              f"another --out)") from None
+        if old_fingerprint == plan.fingerprint:
+            return
+        changed = differences(old_base, plan.base_record)
+        shown = ", ".join(changed[:4]) + (f" and {len(changed) - 4} more" if len(changed) > 4 else "")
+        raise ConfigError(f"{self.path} holds points of another base condition ({shown or 'a different format'}); "
+                          f"its results would not be comparable with this sweep's: choose another --out, or "
+                          f"restore the sweep file it was run with ({self.path / SWEEP_TOML})")
+
+    def write_results(self, plan) -> int:
+        """Gather every grid entry of `plan` that has a result into results.csv (atomically); returns the rows."""
+        methods = plan.spec.methods
+        header = ["scene", "axis", "value", "point", "status", "reason", *PARAM_COLUMNS, "bin_mm"]
+        for m in methods:
+            extra = PRESET_COLUMNS if m in {p.name for p in plan.spec.presets} else BASELINE_COLUMNS
+            header += [f"{column_name(m)}_{c}" for c in ("status", *METRIC_COLUMNS, *extra)]
+        buf = io.StringIO()
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(header)
+        rows = 0
+        cache: dict[str, dict | None] = {}
+        for entry in plan.entries:
+            if entry.point_id not in cache:
+                cache[entry.point_id] = self.read_point(entry.point_id)
+            result = cache[entry.point_id]
+            if result is None:
+                continue
+            writer.writerow(results_row(entry, result, methods, plan.spec))
+            rows += 1
+        write_text_atomic(self.path / RESULTS_CSV, buf.getvalue())
+        return rows
+
+    # --- both sides ---------------------------------------------------------------------------------------------
+
+    def read_point(self, point_id: str) -> dict | None:
+        """The stored result of a point, or None when there is none (or it cannot be read: it runs again)."""
+        path = self.points / f"{point_id}.json"
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return None
+        return data if isinstance(data, dict) and data.get("id") == point_id else None
+
+    def write_point(self, result: dict) -> Path:
+        path = self.points / f"{result['id']}.json"
+        write_json_atomic(path, result)
+        return path
+
+    def append_log(self, event: dict) -> None:
+        """One line of log.jsonl (only the client writes it: one writer, whole lines)."""
+        line = json.dumps({"utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **event}) + "\n"
+        with open(self.path / LOG, "a") as f:
+            f.write(line)
+
+    def new_work_dir(self, point_id: str, host: str) -> Path:
+        path = self.work / f"{point_id}{RUNNING_MARK}{host}-{os.getpid()}-{secrets.token_hex(3)}"
+        path.mkdir(parents=True)
+        return path
+
+    def finish_work_dir(self, path: Path, point_id: str, keep: bool) -> Path | None:
+        """Remove a point's work folder, or with `keep` move it to work/<id> (replacing an older one)."""
+        if not keep:
+            shutil.rmtree(path, ignore_errors=True)
+            return None
+        final = self.work / point_id
+        if final.exists():
+            shutil.rmtree(final, ignore_errors=True)
+        os.replace(path, final)
+        return final
+
+
+def sweep_record(plan) -> dict:
+    """What sweep.json holds: the fingerprint and what it is made of, the grid and every entry."""
+    spec = plan.spec
+    return {
+        "format": 1,
+        "fingerprint": plan.fingerprint,
+        "base_record": plan.base_record,
+        "sweep_file": str(spec.path.resolve()),
+        "mode": spec.mode,
+        "scenes": [s.label for s in plan.scenes],
+        "methods": list(spec.methods),
+        "presets": [p.name for p in spec.presets],
+        "grid": spec.grid,
+        "base": spec.base,
+        "entries": [{"scene": e.scene, "axis": e.axis, "value": e.value, "point": e.point_id}
+                    for e in plan.entries],
+        "points": len(plan.points),
+        "spadscan": spadscan.__version__,
+    }
+
+
+def results_row(entry, result: dict, methods, spec) -> list:
+    params = result.get("params", {})
+    presets = {p.name for p in spec.presets}
+    bin_mm = params["bin_ps"] * 1e-12 * C_M_PER_S / 2 * 1e3 if "bin_ps" in params else ""
+    row = [entry.scene, entry.axis, "" if entry.value is None else _cell(entry.value), entry.point_id,
+           result.get("status", ""), result.get("reason") or "", *(_cell(params.get(c)) for c in PARAM_COLUMNS),
+           _cell(bin_mm)]
+    for m in methods:
+        r = result.get("methods", {}).get(m, {})
+        extra = PRESET_COLUMNS if m in presets else BASELINE_COLUMNS
+        row += [r.get("status", "not run"), *(_cell(r.get(c)) for c in (*METRIC_COLUMNS, *extra))]
+    return row
+
+
+def _cell(value):
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return value
+
+
+def differences(old, new, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two JSON-like dicts, as 'key: old -> new'."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for key in sorted(set(old) | set(new), key=str):
+            out += differences(old.get(key), new.get(key), f"{prefix}{key}.")
+        return out
+    if old != new:
+        return [f"{prefix.rstrip('.')}: {json.dumps(old)} -> {json.dumps(new)}"]
+    return []
+
+
+__all__ = ["SweepDir", "write_json_atomic", "differences", "column_name", "sweep_record", "SWEEP_JSON", "POINTS",
+           "RESULTS_CSV", "LOG", "WORK"]

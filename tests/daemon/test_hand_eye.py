@@ -1,0 +1,181 @@
+"""Hand-eye calibration from a capture of a known target: a simulated capture taken with a known flange-to-sensor
+transform X, recorded with a wrong one, gives X back; `spadscan calibrate hand-eye` prints it for the rig config."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from spadscan.cli import main
+from spadscan.daemon.arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
+from spadscan.daemon.hand_eye import Target, fit_hand_eye, parse_target, peak_bins, peak_positions
+from spadscan.daemon.scan_plan import invert_rigid
+from spadscan.protocol.capture_format import Measurement
+from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.simulator import SimSettings, Simulator
+
+X_TRUE = np.eye(4)
+X_TRUE[:3, :3] = rotvec_to_matrix([0.03, -0.02, 0.05])
+X_TRUE[:3, 3] = [0.012, -0.008, 0.047]
+
+
+def looking_down(position, tilt_axis, tilt_rad, spin_rad) -> np.ndarray:
+    """A sensor pose at `position` whose boresight points down, tilted about a horizontal axis and spun about it."""
+    pose = np.eye(4)
+    down = np.diag([1.0, -1.0, -1.0])
+    pose[:3, :3] = rotvec_to_matrix(np.asarray(tilt_axis, float) * tilt_rad) @ down @ rotvec_to_matrix([0, 0, spin_rad])
+    pose[:3, 3] = position
+    return pose
+
+
+def sensor_poses(n: int, seed: int = 0) -> np.ndarray:
+    """Views of the table (z = 0) from 0.2-0.35 m, tilted up to 30 degrees in every direction and spun about the
+    boresight: rotations about several axes, as the fit needs."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        az = 2 * math.pi * k / n
+        axis = [math.cos(az), math.sin(az), 0.0]
+        pos = [0.4 + 0.1 * rng.uniform(-1, 1), 0.1 * rng.uniform(-1, 1), rng.uniform(0.2, 0.35)]
+        out.append(looking_down(pos, axis, math.radians(rng.uniform(5, 30)), rng.uniform(-math.pi, math.pi)))
+    return np.array(out)
+
+
+def make_capture(path, x_recorded: np.ndarray, n: int = 24, target: Target = Target("plane", (0, 0, 0)),
+                 zero_bin_error: float = 0.0) -> None:
+    """Render the target at TCP x X_TRUE, record the capture as if X were x_recorded (the daemon's way: sensor pose
+    = actual TCP x the config's hand-eye, the TCP pose in each measurement's metadata). zero_bin_error: the unit's
+    zero bin lies this many bins after the one the capture's sensor model states."""
+    model = sensor_preset("tmf8820")
+    true_sensor = sensor_poses(n)
+    tcp = true_sensor @ invert_rigid(X_TRUE)
+    unit = model.with_(zero_bin=model.zero_bin + zero_bin_error)
+    sim = Simulator(target.mesh(), unit, SimSettings(rays_per_zone=256), seed=1)
+    frames = sim.frames(true_sensor)
+    with CaptureWriter.create(path, model, hand_eye=x_recorded, chunk_size=64) as w:
+        for i in range(n):
+            w.append(Measurement(frames.hists[i], tcp[i] @ x_recorded, i, 0, frames.reference[i],
+                                 {"tcp_pose": tcp[i].tolist()}))
+        w.finish()
+
+
+def wrong_x() -> np.ndarray:
+    """X_TRUE off by 6 mm and 2.3 degrees, as a bracket's CAD value might be."""
+    x = X_TRUE.copy()
+    x[:3, :3] = X_TRUE[:3, :3] @ rotvec_to_matrix([0.03, 0.02, -0.01])
+    x[:3, 3] += [0.004, -0.003, 0.0035]
+    return x
+
+
+def errors(x: np.ndarray) -> tuple[float, float]:
+    """(mm, degrees) from X_TRUE."""
+    return (float(np.linalg.norm(x[:3, 3] - X_TRUE[:3, 3]) * 1e3),
+            math.degrees(float(np.linalg.norm(matrix_to_rotvec(X_TRUE[:3, :3].T @ x[:3, :3])))))
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    path = tmp_path_factory.mktemp("he") / "table"
+    make_capture(path, wrong_x())
+    return path
+
+
+def test_the_fit_recovers_a_known_hand_eye_from_a_plane(capture):
+    start_mm, start_deg = errors(wrong_x())
+    fit = fit_hand_eye(capture, parse_target("0,0,0,0,0,1", None))
+    mm, deg = errors(fit.hand_eye)
+    assert start_mm > 5 and start_deg > 2
+    assert mm < 1.0 and deg < 0.3, (mm, deg)
+    assert fit.rms_mm < 0.3 * fit.rms_start_mm and fit.returns > 100 and fit.views == 24
+    assert np.allclose(fit.start, wrong_x())
+
+
+def test_the_zero_bin_can_be_fitted_with_the_hand_eye(tmp_path):
+    """A unit whose zero bin is half a bin (6.8 mm) later than its model says: fitted alone, X takes the offset
+    along the boresight; fitted with the zero bin, both come back."""
+    make_capture(tmp_path / "late", wrong_x(), zero_bin_error=0.5)
+    target = Target("plane", (0, 0, 0))
+    alone = fit_hand_eye(tmp_path / "late", target)
+    both = fit_hand_eye(tmp_path / "late", target, fit_zero_bin=True)
+    assert errors(alone.hand_eye)[0] > 4.0
+    assert errors(both.hand_eye)[0] < 1.5 and both.zero_bin_shift == pytest.approx(0.5, abs=0.12)
+    assert both.rms_mm < alone.rms_mm
+
+
+def test_a_sphere_gives_the_hand_eye_too(tmp_path):
+    """Views of a 10 cm ball from around it, aimed beside its centre: its edge crosses the zones (views aimed at the
+    centre see the same range wherever the sensor shifts sideways)."""
+    target = Target("sphere", (0.45, 0.0, 0.1), radius=0.1)
+    rng = np.random.default_rng(2)
+    poses = []
+    for k in range(20):
+        d = rng.normal(size=3)
+        d[2] = abs(d[2]) + 0.5
+        d /= np.linalg.norm(d)
+        eye = np.array(target.point) + 0.3 * d
+        aim = np.array(target.point) + rng.uniform(-0.07, 0.07, 3)
+        z = (aim - eye) / np.linalg.norm(aim - eye)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        pose = np.eye(4)
+        pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1) @ rotvec_to_matrix([0, 0, rng.uniform(-3, 3)])
+        pose[:3, 3] = eye
+        poses.append(pose)
+    model = sensor_preset("tmf8820")
+    sim = Simulator(target.mesh(), model, SimSettings(rays_per_zone=256), seed=3)
+    frames = sim.frames(np.array(poses))
+    tcp = np.array(poses) @ invert_rigid(X_TRUE)
+    with CaptureWriter.create(tmp_path / "ball", sim.sensor, hand_eye=wrong_x()) as w:
+        for i, t in enumerate(tcp):
+            w.append(Measurement(frames.hists[i], t @ wrong_x(), i, 0, frames.reference[i], {"tcp_pose": t.tolist()}))
+        w.finish()
+    mm, deg = errors(fit_hand_eye(tmp_path / "ball", target).hand_eye)
+    assert mm < 1.0 and deg < 0.5, (mm, deg)
+
+
+def test_the_peak_estimator_reads_a_pulse_where_it_is_and_refuses_noise():
+    model = sensor_preset("tmf8820")
+    kernel, origin = model.pulse.kernel(1)
+    h = np.full((3, 128), 20.0)
+    h[0, 40 - origin: 40 - origin + kernel.size] += 5000 * kernel
+    h[1, 60] += 3000
+    h[2, 70] += 15  # not 6 sigma above a background of 20
+    pos = peak_positions(h, peak_bins(h, 16))
+    assert 40.3 < pos[0] < 41.6 and pos[1] == pytest.approx(60.5) and np.isnan(pos[2])
+
+
+@pytest.mark.parametrize("plane, sphere, message", [
+    (None, None, "give the target"),
+    ("0,0,0,0,0,1", "0,0,0,1", "give the target"),
+    ("0,0,0,0,1", None, "--plane '0,0,0,0,1' must be 6 numbers X,Y,Z,NX,NY,NZ"),
+    ("0,0,0,0,0,0", None, "the normal (NX, NY, NZ) must not be zero"),
+    (None, "0,0,0,-1", "the radius -1 m must be in (0, 2]"),
+    (None, "a,b,c,d", "--sphere 'a,b,c,d' must be 4 numbers"),
+])
+def test_a_bad_target_is_one_line(plane, sphere, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        parse_target(plane, sphere)
+
+
+def test_spadscan_calibrate_hand_eye_prints_the_config_line(capture, capsys):
+    assert main(["calibrate", "hand-eye", str(capture), "--plane", "0,0,0,0,0,1"]) == 0
+    out = capsys.readouterr().out
+    assert "24 views" in out and "mm fitted" in out and "hand_eye = [[" in out
+    line = out[out.index("hand_eye = "):]
+    import tomllib
+
+    x = np.array(tomllib.loads(line)["hand_eye"])
+    assert errors(x)[0] < 1.0
+    assert main(["calibrate", "hand-eye", str(capture)]) == 1
+    assert "give the target" in capsys.readouterr().err
+    assert main(["calibrate", "hand-eye", str(capture.parent / "nope"), "--plane", "0,0,0,0,0,1"]) == 1
+    assert "no such capture folder" in capsys.readouterr().err
+
+
+def test_a_target_that_is_not_there_is_one_line(capture, capsys):
+    assert main(["calibrate", "hand-eye", str(capture), "--plane", "0,0,2,0,0,1"]) == 1
+    assert "zone returns see the target where it was said to be" in capsys.readouterr().err

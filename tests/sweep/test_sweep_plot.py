@@ -1,0 +1,64 @@
+"""`spadscan sweep-plot`: Figure A as a PNG, and a page with the picture and the table, checked in a real browser."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spadscan.cli import main
+from spadscan.sweep.plan import make_plan
+from spadscan.sweep.spec import load_spec
+from spadscan.sweep.store import SweepDir
+
+from page_helpers import browser_page, screenshot_pixels
+from sweep_helpers import FAILING_POWER, write_tiny
+from test_sweep_store import fake_result
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture
+def finished_sweep(tmp_path):
+    """The tiny sweep's folder with made-up results: the power 1e-7 point failed in every method."""
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    for task in plan.points.values():
+        failed = ("fast", "reprojection", "space-carving") if task.params["power"] == FAILING_POWER else ()
+        out.write_point(fake_result(task, failed))
+    out.write_results(plan)
+    return tmp_path / "out"
+
+
+def test_sweep_plot_writes_figure_a_and_its_page(finished_sweep, capsys):
+    assert main(["sweep-plot", str(finished_sweep)]) == 0
+    assert "figure_a.html (open this first), figure_a.png" in capsys.readouterr().out
+    png = (finished_sweep / "figure_a.png").read_bytes()
+    assert png.startswith(PNG) and len(png) > 10_000
+    page = (finished_sweep / "figure_a.html").read_text()
+    assert '<img src="figure_a.png"' in page and "(a) number of views" in page and "(b) illumination power" in page
+    assert page.count("<tr>") == 1 + 4 and page.count('class="missing">failed') == 3
+    assert "reprojection found no surface" in page
+
+
+def test_sweep_plot_of_a_folder_that_is_not_a_sweep_is_one_line(tmp_path, capsys):
+    assert main(["sweep-plot", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "holds no sweep.json" in err and err.count("\n") == 1
+
+
+def test_the_page_shows_in_a_browser(finished_sweep):
+    assert main(["sweep-plot", str(finished_sweep)]) == 0
+    with browser_page() as (page, seen):
+        page.goto((finished_sweep / "figure_a.html").as_uri())
+        page.wait_for_load_state("load")
+        assert page.locator("table tr").count() == 5
+        image = page.locator("img")
+        assert image.evaluate("img => img.complete && img.naturalWidth") > 500  # the PNG loaded
+        # The figure drew: its picture holds the blue of the fast method's line.
+        pixels = screenshot_pixels(image).astype(int)
+        assert np.all(np.abs(pixels - [31, 119, 180]) <= 12, axis=-1).sum() > 50
+        assert page.locator("td.failed").count() == 1
+    assert not seen.errors, seen.errors
+    assert all(url.startswith("file://") for url in seen.requests), seen.requests  # nothing from the network

@@ -1,0 +1,127 @@
+"""The results folder: the fingerprint that keeps incompatible points apart, the lock, results.csv, and a point that
+is already done never running twice."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+
+from spadscan.protocol.errors import ConfigError
+from spadscan.sweep.plan import make_plan
+from spadscan.sweep.point import run_point
+from spadscan.sweep.spec import load_spec
+from spadscan.sweep.store import SweepDir
+
+from sweep_helpers import FAILING_POWER, write_tiny
+
+
+def fake_result(task, failed_methods=()):
+    """A finished point as a worker writes it, with made-up metrics."""
+    methods = {}
+    for i, m in enumerate(("fast", "reprojection", "space-carving")):
+        if m in failed_methods:
+            methods[m] = {"status": "failed", "reason": f"{m} found no surface"}
+        else:
+            methods[m] = {"status": "done", "chamfer_mm": 2.0 * 10 ** i / task.params["views"] * 8,
+                          "threshold": None if m == "fast" else 5.0, "steps": 20 if m == "fast" else None}
+    failures = [f"{m}: {methods[m]['reason']}" for m in failed_methods]
+    return {"id": task.id, "status": "failed" if failures else "done", "reason": "; ".join(failures) or None,
+            "scene": task.scene.label, "params": task.params, "methods": methods}
+
+
+def test_a_changed_base_condition_is_refused_and_a_grown_grid_is_not(tmp_path):
+    tiny = write_tiny(tmp_path).read_text()
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    changed = tmp_path / "changed.toml"
+    changed.write_text(tiny.replace("views = 12\n", "views = 16\n").replace("steps = 20", "steps = 30"))
+    with pytest.raises(ConfigError) as err:
+        SweepDir(tmp_path / "out").open(make_plan(load_spec(changed)))
+    message = str(err.value)
+    assert "another base condition" in message and "base.views: 12 -> 16" in message
+    assert "presets.fast.steps: 20 -> 30" in message and "\n" not in message
+    grown = tmp_path / "grown.toml"
+    grown.write_text(tiny.replace("views = [8, 12]", "views = [8, 12, 16]"))
+    again = SweepDir(tmp_path / "out")
+    again.open(make_plan(load_spec(grown)))
+    again.close()
+    assert len(json.loads((tmp_path / "out" / "sweep.json").read_text())["entries"]) == 5
+
+
+def test_a_folder_of_other_files_is_not_swept_into(tmp_path):
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "thesis.tex").write_text("...")
+    with pytest.raises(ConfigError, match="holds other files and no sweep.json"):
+        SweepDir(tmp_path / "out").open(plan)
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["thesis.tex"]  # left as it was found
+
+
+def test_one_sweep_at_a_time_on_a_folder(tmp_path):
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    first = SweepDir(tmp_path / "out")
+    first.open(plan)
+    try:
+        with pytest.raises(ConfigError, match="another `spadscan sweep` is running on this folder"):
+            SweepDir(tmp_path / "out").open(plan)
+    finally:
+        first.close()
+    SweepDir(tmp_path / "out").open(plan)  # free again
+
+
+def test_results_csv_has_a_row_per_entry_with_a_result(tmp_path):
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    tasks = list(plan.points.values())
+    out.write_point(fake_result(tasks[0]))
+    out.write_point(fake_result(tasks[2], failed_methods=("fast",)))
+    assert out.write_results(plan) == 2  # the point in the middle (two entries) has no result yet
+    rows = list(csv.DictReader((tmp_path / "out" / "results.csv").open()))
+    assert [r["point"] for r in rows] == [tasks[0].id, tasks[2].id]
+    assert rows[1]["status"] == "failed" and rows[1]["fast_status"] == "failed" and rows[1]["fast_chamfer_mm"] == ""
+    assert rows[1]["reason"] == "fast: fast found no surface" and float(rows[1]["reprojection_chamfer_mm"]) > 0
+    assert float(rows[0]["bin_mm"]) == pytest.approx(5.0065, abs=1e-3)  # 33.4 ps of light, one way
+    assert not list((tmp_path / "out" / "points").glob(".*"))  # no temporary file left behind
+
+
+def test_a_point_already_done_is_not_run_again(tmp_path):
+    """Dask runs a task again when the worker holding its result dies before the client has it; the point's file
+    says it is done, so the second run only reads it."""
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    task = next(t for t in plan.points.values() if t.params["power"] != FAILING_POWER)
+    out.write_point(fake_result(task))
+    events = []
+    result = run_point(task, str(tmp_path / "out"), emit=lambda event, **fields: events.append(event))
+    assert events == ["skip"] and result["methods"]["fast"]["steps"] == 20
+    assert not list((tmp_path / "out" / "work").iterdir())
+
+
+def test_a_failing_method_is_recorded_and_the_others_still_run(tmp_path):
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("needs a machine without CUDA: the fast preset is made to fail by asking for it")
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    task = next(t for t in plan.points.values() if t.params["views"] == 8)
+    events = []
+    result = run_point(task, str(tmp_path / "out"), device="cuda", keep=True,
+                       emit=lambda event, **fields: events.append((event, fields.get("stage"))))
+    assert result["status"] == "failed" and result["reason"].startswith("fast: device 'cuda' asked for")
+    assert "\n" not in result["reason"] and "traceback" not in result["methods"]["fast"]
+    assert all(result["methods"][m]["status"] == "done" for m in ("reprojection", "space-carving"))
+    assert [e for e, _ in events] == ["start", "stage", "stage", "stage", "stage", "failed"]
+    assert json.loads((tmp_path / "out" / "points" / f"{task.id}.json").read_text())["status"] == "failed"
+    kept = tmp_path / "out" / "work" / task.id  # --keep: the capture and each method's outputs, under the point's id
+    assert result["work"] == str(kept) and [p.name for p in (tmp_path / "out" / "work").iterdir()] == [task.id]
+    assert (kept / "capture" / "scan.json").is_file() and (kept / "space-carving" / "mesh.ply").is_file()

@@ -1,0 +1,48 @@
+"""A stand-in for the daemon in live-job tests: replays a finished capture into a new one pose by pose, through the
+project's CaptureWriter (each pose published as its own chunk by one rename, as the daemon does)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from spadscan.protocol.capture_format import Measurement
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.capture_writer import CaptureWriter
+
+
+class ReplayScan:
+    """Publishes the poses of the complete capture `source` into the new capture `dest`, a pose at a time."""
+
+    def __init__(self, source: Path, dest: Path):
+        reader = CaptureReader(source)
+        data = reader.load()
+        m = reader.manifest
+        self.measurements = [Measurement(data.hists[i], data.poses[i], int(meta["pose_index"]),
+                                         int(meta.get("frame", 0)), None if data.reference is None
+                                         else data.reference[i], {}) for i, meta in enumerate(data.meta)]
+        self.poses = sorted({mm.pose_index for mm in self.measurements})
+        self.writer = CaptureWriter.create(
+            dest, reader.sensor, rig=m.get("rig"), schedule=m.get("schedule"), planned_poses=reader.planned_poses(),
+            chunk_size=1, scene=m.get("scene"), frames_per_pose=int(m.get("frames_per_pose", 1)))
+        self.dest = Path(dest)
+        self.published = 0
+
+    def publish(self, n: int = 1) -> int:
+        """Publish the next `n` poses (each its own chunk); returns the poses published so far."""
+        for index in self.poses[self.published:self.published + n]:
+            for mm in self.measurements:
+                if mm.pose_index == index:
+                    self.writer.append(mm)
+            self.writer.flush()
+            self.published += 1
+        return self.published
+
+    def run(self, every_s: float = 0.0, until: int | None = None) -> None:
+        """Publish poses every `every_s` seconds up to pose count `until` (default: all)."""
+        while self.published < (len(self.poses) if until is None else until):
+            self.publish(1)
+            time.sleep(every_s)
+
+    def finish(self, state: str = "complete", reason: str | None = None) -> None:
+        self.writer.finish(state, reason)

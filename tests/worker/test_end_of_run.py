@@ -1,0 +1,144 @@
+"""An honest end of run: report.json's "converged" and "warnings", each warning on a capture made to trigger it and
+its absence where nothing triggers it; the photon-noise level of the Poisson deviance that one of them compares to."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+
+import numpy as np
+import pytest
+
+from spadscan.worker.end_of_run import (EXACT_BELOW, NOISE_RATIO, RunFacts, converged, fit_noise, late_drop,
+                                        noise_deviance, warnings)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+SMALL = {"mesh_resolution": 32, "early_stop": False}
+
+
+@pytest.fixture(scope="module")
+def box_capture(tmp_path_factory):
+    """12 simulated views of a box (LCSPCData's simulated sensor)."""
+    import trimesh
+
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+    mesh = trimesh.creation.box(extents=(0.07, 0.05, 0.09)).apply_translation([0.0, 0.0, 0.045])
+    poses = fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
+    return simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, tmp_path_factory.mktemp("box") / "box",
+                            settings=SimSettings(rays_per_zone=512), progress=False)
+
+
+@pytest.fixture(scope="module")
+def ambient_capture(box_capture, tmp_path_factory):
+    """The box capture with 20 photons of ambient light per bin that its sensor model does not know of."""
+    path = tmp_path_factory.mktemp("ambient") / "ambient"
+    shutil.copytree(box_capture, path)
+    rng = np.random.default_rng(0)
+    for hists in path.glob("chunk-*/hists.npy"):
+        h = np.load(hists)
+        np.save(hists, (h + rng.poisson(20, h.shape)).astype(h.dtype))
+    return path
+
+
+def reconstruct(capture, out, **options):
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    overrides = {**SMALL, **options.pop("overrides", {})}
+    return reconstruct_capture(capture, out, progress=False, device="cpu", threads=1, overrides=overrides, **options)
+
+
+def has(report: dict, text: str) -> bool:
+    return any(text in w for w in report["warnings"])
+
+
+# ---- the noise level -------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("mu", [0.02, 0.3, 1.0, 4.0, 29.0, 31.0, 300.0])
+def test_the_noise_deviance_is_the_mean_of_poisson_draws(mu):
+    rng = np.random.default_rng(1)
+    c = rng.poisson(mu, 400_000).astype(float)
+    dev = mu - c + np.where(c > 0, c * np.log(np.maximum(c, 1) / mu), 0.0)
+    se = dev.std() / math.sqrt(len(c))
+    assert noise_deviance(np.array([mu]))[0] == pytest.approx(dev.mean(), abs=4 * se + 1e-6)
+
+
+def test_the_noise_deviance_is_half_for_large_counts_and_nothing_for_none():
+    e = noise_deviance(np.array([0.0, 1e-9, 1e6]))
+    assert e[0] == 0.0 and e[1] < 1e-7 and e[2] == pytest.approx(0.5, abs=1e-6)
+    just = noise_deviance(np.array([EXACT_BELOW - 1e-9, EXACT_BELOW]))
+    assert just[0] == pytest.approx(just[1], abs=1e-6), "the sum and the expansion meet where one takes over"
+    assert np.all(np.isfinite(noise_deviance(np.array([1e-300, 1e300]))))
+
+
+def test_poisson_draws_of_the_model_fit_it_down_to_the_noise_and_others_do_not():
+    rng = np.random.default_rng(2)
+    mu = rng.uniform(0.01, 200.0, (16, 9, 128))
+    fit = fit_noise(rng.poisson(mu), mu)
+    assert fit.ratio == pytest.approx(1.0, abs=0.02) and fit.bins == mu.size
+    assert fit_noise(rng.poisson(mu + 20.0), mu).ratio > NOISE_RATIO  # light the model does not know of
+    assert fit_noise(rng.poisson(mu), mu, np.zeros(mu.shape, bool)) is None
+
+
+# ---- the rules, on the numbers a run records ----------------------------------------------------------------------
+
+def test_a_falling_data_term_is_not_converged_and_a_flat_one_is():
+    falling, flat = list(np.linspace(2.0, 1.0, 100)), [1.0] * 100
+    assert late_drop(falling) > 0.05 and late_drop(flat) == 0.0 and late_drop(falling[:10]) is None
+    assert not converged(RunFacts("budget", 100, None, falling)) and converged(RunFacts("budget", 100, None, flat))
+    assert converged(RunFacts("converged", 100, True, falling))
+    assert not converged(RunFacts("budget", 100, False, flat)), "the model's own test, where it has one, decides"
+
+
+def test_each_rule_warns_alone():
+    falling = list(np.linspace(2.0, 1.0, 100))
+    quiet = RunFacts("converged", 100, True, falling, cpu_seconds=9.0, wall_seconds=10.0)
+    assert warnings(quiet) == []
+    assert len(warnings(RunFacts("budget", 100, False, falling))) == 1
+    starved = RunFacts("converged", 100, True, falling, cpu_seconds=2.0, wall_seconds=10.0)
+    assert warnings(starved) == [w for w in warnings(starved) if "0.20 of a CPU core" in w and "5x fewer" in w]
+    on_gpu = RunFacts("converged", 100, True, falling, device="cuda", cpu_seconds=2.0, wall_seconds=10.0)
+    assert warnings(on_gpu) == [], "a GPU run waits for its device, not for a core"
+
+
+# ---- each warning on a capture made to trigger it ----------------------------------------------------------------
+
+def test_a_run_cut_short_while_its_fit_improves_says_so_and_one_that_converged_does_not(box_capture, tmp_path):
+    calls = [0.0]
+
+    def clock():  # 50 ms a reading: the budget runs out after a fixed number of steps, however busy the machine
+        calls[0] += 0.05
+        return calls[0]
+
+    report = reconstruct(box_capture, tmp_path / "cut", budget_s=30.0, clock=clock, cpu_clock=clock)
+    assert report["stopped_by"] == "budget" and report["converged"] is False
+    assert has(report, "stopped on its time budget"), report["warnings"]
+    assert not has(report, "busy") and not has(report, "does not explain")
+    saved = json.loads((tmp_path / "cut" / "report.json").read_text())
+    assert saved["converged"] is False and saved["warnings"] == report["warnings"]
+    assert "stopped on its time budget" in (tmp_path / "cut" / "report.html").read_text()
+
+    settles = {"early_stop": True, "parts.refinement.after_steps": 5, "parts.plateau.patience_steps": 12,
+               "parts.plateau.min_rel_improvement": 0.5}
+    report = reconstruct(box_capture, tmp_path / "settled", steps=200, overrides=settles)
+    assert report["stopped_by"] == "converged" and report["converged"] is True and report["steps"] < 200
+    assert not has(report, "stopped on")
+
+
+def test_a_starved_run_and_a_fit_far_from_the_noise_say_so(ambient_capture, box_capture, tmp_path):
+    # A process that got a quarter of a core: its CPU clock runs at a quarter of the wall clock's pace.
+    report = reconstruct(ambient_capture, tmp_path / "starved", steps=10,
+                         cpu_clock=lambda: 0.25 * time.perf_counter())
+    assert has(report, "the machine was busy") and has(report, "0.25 of a CPU core"), report["warnings"]
+    assert has(report, "the fit does not explain the measurements"), report["fit_to_noise"]
+    assert report["fit_to_noise"]["ratio"] > 10
+
+    report = reconstruct(box_capture, tmp_path / "fed", steps=60, cpu_clock=time.perf_counter)
+    assert report["fit_to_noise"]["ratio"] < NOISE_RATIO
+    assert not has(report, "busy") and not has(report, "does not explain"), report["warnings"]
+    assert has(report, "stopped on its step count"), "60 steps: the fit is still improving"

@@ -1,0 +1,71 @@
+"""The live fit grows with the views: a model rebuilt on more views continues from the last one's field
+(`FastModel.warm_start`) instead of starting again from the hull, and never leaves the new, tighter hull."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from spadscan.worker.recon.config import with_overrides
+from spadscan.worker.recon.fast.model import make_fast_model
+from spadscan.worker.recon.model_api import RunPlan
+from spadscan.worker.recon.presets import preset_config
+from spadscan.worker.recon.scene_data import load_scene
+
+from live_helpers import ReplayScan
+from worker_helpers import FAST_SMALL
+
+PLAN = RunPlan(steps=None, budget_s=None, seed=0)
+
+
+def grown_scenes(source, tmp_path, first: int):
+    """(scene of the first `first` views, scene of them all), read from one capture published in two goes."""
+    scan = ReplayScan(source, tmp_path / "scan")
+    scan.publish(first)
+    few = load_scene(tmp_path / "scan")
+    scan.publish(len(scan.poses))
+    scan.finish()
+    return few, load_scene(tmp_path / "scan")
+
+
+def test_a_warm_model_starts_from_the_last_field_within_its_own_hull(cylinder_capture, tmp_path, one_thread):
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    few, every = grown_scenes(cylinder_capture, tmp_path, 10)
+    assert (few.n_views, every.n_views) == (10, 24)
+    before = make_fast_model(few, config, "cpu", PLAN)
+    for _ in range(12):  # past the refinement after 4 steps
+        before.step()
+    assert before.level == 1
+    cold = make_fast_model(every, config, "cpu", PLAN)
+    warm = make_fast_model(every, config, "cpu", PLAN)
+    warm.warm_start(before.mesh_field(), before.level, before.level_steps)
+
+    assert warm.level == before.level and warm.field.voxel == cold.field.voxel / 2
+    assert warm.level_steps == before.level_steps == 8  # the learning-rate decay goes on where it was
+    assert np.isclose(warm._grid_lr() / warm.field.voxel, before._grid_lr() / before.field.voxel)
+    bound = warm.constraint.bound_for(warm.field)
+    values = warm.field.sdf.detach()
+    assert bool((values >= bound - 1e-6).all()), "the warm field leaves the new hull"
+    with torch.no_grad():
+        old = before.mesh_field().sample(warm.field.node_points())[None, None]
+    inside = (warm.field.node_points() >= before.field.origin).all(-1) & \
+             (warm.field.node_points() <= before.field.box_max).all(-1)
+    kept = inside[None, None] & (old >= bound)
+    assert kept.float().mean() > 0.3
+    assert torch.allclose(values[kept], old[kept], atol=1e-5), "the warm field is not the last one's"
+    # The cold start is the hull itself: the warm one has already left it where the first fit moved the surface.
+    assert float((values - bound).abs().max()) > 2 * warm.field.voxel
+
+
+def test_a_warm_model_explains_the_views_better_than_a_cold_one(cylinder_capture, tmp_path, one_thread):
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    few, every = grown_scenes(cylinder_capture, tmp_path, 16)
+    before = make_fast_model(few, config, "cpu", PLAN)
+    for _ in range(40):
+        before.step()
+    cold = make_fast_model(every, config, "cpu", PLAN)
+    warm = make_fast_model(every, config, "cpu", PLAN)
+    warm.warm_start(before.mesh_field(), before.level)
+    cold.refine()  # the same grid, so that only the start differs
+    assert np.isclose(cold.field.voxel, warm.field.voxel)
+    assert warm.deviance_all_views(seed=1) < 0.9 * cold.deviance_all_views(seed=1)

@@ -1,0 +1,172 @@
+"""A live job follows a scan published pose by pose (a stand-in writer publishes each pose as a chunk, as the daemon
+does): it waits for enough views, fits them, refits warm as more land, publishes recon/live/ as it goes, and
+finishes the complete scan from the live fit; an aborted scan ends it with the scan's reason."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.live_status import LiveStatus, read_status, status_path
+from spadscan.worker.jobs import Job
+from spadscan.worker.live.job import LiveSettings, ScanAborted, execute_live_job
+
+from live_helpers import ReplayScan
+from worker_helpers import FAST_SMALL
+
+DEADLINE_S = 300.0  # generous: the machine may be busy with other work
+
+
+def small_settings(**changes) -> LiveSettings:
+    return LiveSettings(**{"min_views": 6, "poll_s": 0.05, "publish_every_s": 0.2, "rebuild_every_s": 0.5,
+                           "preview": False, "overrides": tuple(FAST_SMALL.items()), **changes})
+
+
+class LiveJobThread:
+    """`execute_live_job` on a thread, with every status it published seen on the way."""
+
+    def __init__(self, root: Path, scan: str, settings: LiveSettings, budget_s: float = 1.0, recon=None):
+        self.root, self.capture = root, root / scan
+        self.job = Job(id=f"{scan}-fast", scan=scan, live=True, budget_s=budget_s, device="cpu")
+        self.out = root / scan / "recon" / ".tmp-test"
+        self.result: dict = {}
+        self.seen: list[LiveStatus] = []
+        self.recon = recon
+        self.thread = threading.Thread(target=self._run, args=(settings,), daemon=True)
+        self.thread.start()
+
+    def _run(self, settings) -> None:
+        try:
+            self.result["report"] = execute_live_job(self.job, self.root, self.out, self.recon, settings=settings,
+                                                     log=lambda line: None)
+        except BaseException as exc:  # re-raised on the test's thread
+            self.result["error"] = exc
+
+    def wait_status(self, pred, what: str) -> LiveStatus:
+        deadline = time.monotonic() + DEADLINE_S
+        while time.monotonic() < deadline:
+            try:
+                status = read_status(status_path(self.capture))
+            except CaptureError:
+                status = None
+            if status is not None and (not self.seen or status != self.seen[-1]):
+                self.seen.append(status)
+            if status is not None and pred(status):
+                return status
+            if not self.thread.is_alive():
+                raise AssertionError(f"the live job ended before {what}: {self.result}")
+            time.sleep(0.02)
+        raise AssertionError(f"no live status with {what} within {DEADLINE_S:.0f} s; last {self.seen[-1:]}")
+
+    def join(self) -> dict:
+        self.thread.join(DEADLINE_S)
+        assert not self.thread.is_alive(), "the live job did not end"
+        if "error" in self.result:
+            raise self.result["error"]
+        return self.result["report"]
+
+
+def test_a_live_job_follows_a_scan_pose_by_pose_and_finishes_from_the_live_fit(cylinder_capture, tmp_path,
+                                                                               one_thread):
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.publish(3)
+    live = LiveJobThread(root, "cyl", small_settings())
+    waiting = live.wait_status(lambda s: s.views_published == 3, "three views published")
+    assert (waiting.state, waiting.views_used, waiting.steps) == ("waiting", 0, 0)
+
+    scan.publish(5)  # 8 published: enough to fit
+    first = live.wait_status(lambda s: s.state == "live" and s.views_used == 8 and s.steps > 0, "a fit of 8 views")
+    assert first.views_published == 8 and first.views_planned == 24
+    assert (root / "cyl" / "recon" / "live" / "mesh.ply").stat().st_size > 0
+
+    scan.publish(16)  # all 24: a refit, warm
+    grown = live.wait_status(lambda s: s.views_used == 24 and s.steps > first.steps + 5, "a fit of all 24 views")
+    assert grown.views_published == 24 and grown.state == "live"
+    scan.finish()
+    report = live.join()
+
+    steps = [s.steps for s in live.seen]
+    assert steps == sorted(steps), f"the live fit restarted: steps went {steps}"
+    assert [s.views_used for s in live.seen] == sorted(s.views_used for s in live.seen)
+    assert report["live"]["views_used"] == 24 and report["live"]["rebuilds"] >= 2
+    assert report["live"]["steps"] >= grown.steps and report["live"]["final_budget_s"] == 1.0
+    assert report["scene"]["views"] == 24 and report["capture_state"] == "complete"
+    saved = json.loads((live.out / "report.json").read_text())
+    assert saved["live"]["views_used"] == 24
+    assert (live.out / "mesh.ply").stat().st_size > 0
+    final = read_status(status_path(root / "cyl"))
+    assert final.state == "final" and final.views_used == 24 and final.views_published == 24
+    leftovers = [p.name for p in (root / "cyl" / "recon" / "live").iterdir() if p.name.startswith(".")]
+    assert leftovers == []
+
+
+def test_an_aborted_scan_ends_its_live_job_with_the_reason(cylinder_capture, tmp_path, one_thread):
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.publish(8)
+    live = LiveJobThread(root, "cyl", small_settings())
+    fitted = live.wait_status(lambda s: s.state == "live" and s.steps > 0, "a fit")
+    scan.finish("aborted", "the operator stopped the arm")
+    with pytest.raises(ScanAborted, match="the operator stopped the arm") as err:
+        live.join()
+    assert "\n" not in str(err.value) and "recon/live" in str(err.value)
+    status = read_status(status_path(root / "cyl"))
+    assert status.state == "aborted" and "the operator stopped the arm" in status.note
+    assert status.steps >= fitted.steps
+    assert (root / "cyl" / "recon" / "live" / "mesh.ply").exists()  # the last live result stays
+    assert not (live.out / "report.json").exists()
+
+
+def stand_in(scan_dir, out, **options):
+    """The ordinary reconstruction's stand-in: records what it was asked for."""
+    Path(out, "report.json").write_text(json.dumps(options))
+    return {"asked": options}
+
+
+def test_a_scan_that_completes_before_enough_views_is_reconstructed_from_scratch(cylinder_capture, tmp_path):
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.publish(2)
+    live = LiveJobThread(root, "cyl", small_settings(min_views=100), budget_s=7.0, recon=stand_in)
+    live.wait_status(lambda s: s.state == "waiting", "the job waiting")
+    scan.publish(22)
+    scan.finish()
+    report = live.join()
+    assert 0 < report["asked"]["budget_s"] <= 7.0 and "live" not in report  # the job's budget, less its set-up
+    status = read_status(status_path(root / "cyl"))
+    assert status.state == "final" and "from scratch" in status.note and status.views_published == 24
+
+
+def test_a_live_job_of_a_complete_scan_is_an_ordinary_job_and_says_so(cylinder_capture, tmp_path):
+    # A scan quicker than the worker's poll: whoever follows the live status (the demo, `ctl wait`) still sees the
+    # final run, and the worker then marks it done with its result.
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.publish(24)
+    scan.finish()
+    report = LiveJobThread(root, "cyl", small_settings(), budget_s=7.0, recon=stand_in).join()
+    assert 0 < report["asked"]["budget_s"] <= 7.0 and "live" not in report  # the job's budget, less its set-up
+    status = read_status(status_path(root / "cyl"))
+    assert (status.state, status.views_used, status.steps, status.views_published) == ("final", 0, 0, 24)
+    assert "already complete" in status.note and status.job == "cyl-fast"
+
+
+def test_a_chunk_that_cannot_be_read_stops_the_live_job_saying_why(cylinder_capture, tmp_path):
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.publish(2)
+    live = LiveJobThread(root, "cyl", small_settings(min_views=100), recon=stand_in)
+    live.wait_status(lambda s: s.state == "waiting", "the job waiting")
+    bad = root / "cyl" / "chunk-000777"
+    bad.mkdir()
+    (bad / "hists.npy").write_bytes(b"not an array")
+    with pytest.raises(CaptureError, match="chunk-000777") as err:
+        live.join()
+    status = read_status(status_path(root / "cyl"))
+    assert status.state == "stopped" and status.note == str(err.value)

@@ -1,0 +1,133 @@
+"""A time budget bounds the whole run, from start to report, within 10 % or 10 s (whichever is larger): set-up,
+training, mesh, metrics and pictures share it, for `spadscan reconstruct` (fast and paper) and for a worker's job.
+The budgets here are short, so that the 10 s dominate: a loaded machine still has them."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+
+import pytest
+
+from spadscan.worker.budget import (MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, EndCosts, RunClock,
+                                    mesh_resolution_within, metric_points_within, process_started, training_budget)
+
+BUDGET_S = 10.0
+LIMIT_S = BUDGET_S + max(0.1 * BUDGET_S, 10.0)
+PAPER_SMALL = ["rays.rays_per_view=32", "rays.importance_rays_per_view=8", "rays.samples_per_ray=24",
+               "rays.importance_samples=8", "field.width=48", "field.layers=3", "field.skip_layers=[2]",
+               "field.frequencies=4"]
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory):
+    """(a capture of 12 simulated views of a box, its ground truth as a file)."""
+    import trimesh
+
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+    root = tmp_path_factory.mktemp("budget")
+    mesh = trimesh.creation.box(extents=(0.07, 0.05, 0.09)).apply_translation([0.0, 0.0, 0.045])
+    mesh.export(root / "gt.ply")
+    poses = fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
+    cap = simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, root / "box",
+                           settings=SimSettings(rays_per_zone=512), progress=False)
+    return cap, root / "gt.ply"
+
+
+# ---- the pieces ------------------------------------------------------------------------------------------------
+
+def test_the_mesh_cost_splits_into_a_fixed_part_and_one_per_cell():
+    costs = EndCosts()
+    costs.time_mesh({32: 0.2 + 1e-7 * 32 ** 3, 64: 0.2 + 1e-7 * 64 ** 3})
+    assert costs.mesh_fixed_s == pytest.approx(0.2) and costs.mesh_s_per_cell == pytest.approx(1e-7)
+    costs.time_mesh({64: 0.3, 32: 0.4})  # noise: the larger was faster; no negative rate
+    assert costs.mesh_s_per_cell == 0.0 and costs.mesh_fixed_s == pytest.approx(0.35)
+
+
+def test_a_short_time_gets_a_coarser_mesh_and_fewer_points():
+    costs = EndCosts(mesh_s_per_cell=1e-7, metrics_s_per_point=1e-5)
+    assert mesh_resolution_within(costs, 256, 60.0) == 256
+    assert mesh_resolution_within(costs, 256, 1.0) == 128  # 1.5 x 1e-7 x 128^3 = 0.31 s
+    assert mesh_resolution_within(costs, 256, 0.0) == MIN_MESH_RESOLUTION
+    assert metric_points_within(costs, 300_000, 100.0) == 300_000
+    assert metric_points_within(costs, 300_000, 3.0) == 100_000  # 1.5 x 2 x 1e-5 s a point
+    assert metric_points_within(costs, 300_000, 0.0) == MIN_METRIC_POINTS
+
+
+def test_training_gets_what_the_end_does_not_keep_back_and_at_least_half():
+    t = [100.0]
+    clock = RunClock(60.0, 90.0, lambda: t[0])  # 10 s spent
+    assert training_budget(clock, 20.0) == pytest.approx(30.0)
+    assert training_budget(clock, 200.0) == pytest.approx(25.0), "the end keeps back at most half of what is left"
+    t[0] = 200.0
+    assert training_budget(clock, 20.0) == pytest.approx(0.01), "overspent: one step"
+    assert training_budget(RunClock(None, 0.0), 20.0) is None
+
+
+def test_the_process_start_is_before_now():
+    assert time.perf_counter() - 3600 < process_started() <= time.perf_counter()
+
+
+# ---- whole runs ------------------------------------------------------------------------------------------------
+
+def timed(cmd: list[str], env: dict | None = None) -> tuple[float, subprocess.CompletedProcess]:
+    """(wall seconds from before the process starts to its exit, the finished process)."""
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    return time.perf_counter() - t0, done
+
+
+def check_budget_notes(report: dict, config_resolution: int, config_points: int | None) -> None:
+    """What a short budget cut is said: in the report's budget notes and among its warnings."""
+    notes = report["budget"]["notes"]
+    assert (report["mesh_resolution"] < config_resolution) == any("cells a side" in n for n in notes)
+    if config_points is not None:
+        assert (report["n_points"] < config_points) == any("points per mesh" in n for n in notes)
+    assert set(notes) <= set(report["warnings"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_a_reconstruction_ends_within_its_budget(box, tmp_path, preset):
+    cap, gt = box
+    extra = [x for kv in PAPER_SMALL for x in ("--set", kv)] if preset == "paper" else []
+    cmd = [sys.executable, "-m", "spadscan.cli", "reconstruct", str(cap), "--out", str(tmp_path / "o"), "--preset",
+           preset, "--budget-s", f"{BUDGET_S:g}", "--gt", str(gt), "--device", "cpu", "--no-progress", *extra]
+    wall, done = timed(cmd)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert wall <= LIMIT_S, f"{wall:.1f} s for a {BUDGET_S:g} s budget\n{done.stderr[-2000:]}"
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["wall_seconds"] <= LIMIT_S and report["budget"]["budget_s"] == BUDGET_S
+    assert report["budget"]["training_budget_s"] < BUDGET_S, "the set-up and the end share the budget"
+    check_budget_notes(report, 256, 300_000)  # both presets' own: 256 cells, 300,000 points
+    assert report["trace"][-1]["step"] == report["steps"] and "chamfer_mm" in report
+
+
+@pytest.mark.slow
+def test_a_worker_job_ends_within_its_budget(box, tmp_path):
+    import shutil
+
+    cap, _ = box
+    root = tmp_path / "captures"
+    root.mkdir()
+    shutil.copytree(cap, root / "box")
+    cmd = [sys.executable, "-m", "spadscan.cli", "worker", "--root", str(root), "--once", "--budget-s",
+           f"{BUDGET_S:g}", "--poll-s", "0.2", "--device", "cpu"]
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    _, done = timed(cmd, env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    took = re.search(r"box-fast done in ([\d.]+) s", done.stderr)
+    assert took, done.stderr[-2000:]
+    # From the claim to the result in place: the job's process start, its whole run, and its publishing.
+    assert float(took[1]) <= LIMIT_S + 2.0, done.stderr[-2000:]
+    report = json.loads((root / "box" / "recon" / "box-fast" / "report.json").read_text())
+    assert report["job_budget_s"] == BUDGET_S and report["budget"]["budget_s"] < BUDGET_S, \
+        "the job's reconstruction gets what is left once the job has started and checked its capture"
+    assert report["threads"]["most"] >= 1 if "most" in report["threads"] else report["threads"]["fixed"] >= 1

@@ -1,0 +1,162 @@
+"""A time budget that bounds a whole reconstruction, from its start to its report.
+
+`--budget-s` (and the config key `default_budget_s`) is the wall time of the whole run: loading the capture and
+building the model, training, extracting the mesh, the metrics and the pictures share it. The run keeps back what
+the stages after training are expected to take (`EndCosts`, timed on this machine once the model is built) and
+trains for the rest; when training ends, the mesh resolution and the number of metric points are chosen to fit what
+is left (coarser or fewer than the config's when time is short; the report says so). The contract, tested: the run
+ends within 10 % or 10 s of its budget, whichever is larger.
+
+Seconds are wall seconds (time.perf_counter) throughout.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+FIXED_S = 6.0
+"""Seconds kept back for what does not scale with the mesh or the points: the preview, error-versus-time and fit
+pictures, report.html, the 3D view. Measured on the 2-core machine under a load of 11: 5-7 s (the off-screen
+renderer's start alone 2 s)."""
+NORMALS_PICTURE_S = 3.0
+"""And for the normal-error picture, drawn when there is a ground truth (3 s under that load)."""
+MESH_S_PER_CELL = 1e-7
+"""Marching-cubes seconds per grid cell before a probe is timed (the fast preset: 1.6 s at 256 cells a side)."""
+METRICS_S_PER_POINT = 5e-5
+"""Metric seconds per sample point and mesh before a probe is timed (300,000 points: 7-15 s, more when much of a
+mesh lies far from the other; the per-vertex normal error samples the ground truth once more)."""
+MAX_END_SHARE = 0.5
+"""The stages after training keep back at most this share of what is left of the budget once the model is built:
+beyond it they are made cheaper (a coarser mesh, fewer points), so that training keeps the other half."""
+MIN_MESH_RESOLUTION = 32
+"""Coarsest final mesh, cells along the longest side."""
+MIN_METRIC_POINTS = 5_000
+"""Fewest metric sample points per mesh."""
+PROBE_RESOLUTIONS = (32, 64)
+"""Mesh resolutions of the probes that time extraction on this machine and this model."""
+PROBE_POINTS = 5_000
+"""Sample points of the probe that times the metrics on this machine."""
+SAFETY = 1.5
+"""Margin on extrapolated times (a probe's overheads do not all scale, and far surfaces slow the metrics)."""
+
+
+def process_started() -> float:
+    """When this process started, as a time.perf_counter reading (Linux: from /proc, so that the interpreter's
+    start and the imports count against a budget too); elsewhere, now."""
+    now = time.perf_counter()
+    try:
+        with open("/proc/self/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        age = uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK")  # field 22 of stat: start, ticks after boot
+    except (OSError, ValueError, IndexError):
+        return now
+    return now - age if 0 <= age < 3600 else now
+
+
+@dataclass
+class RunClock:
+    """The whole run's budget: `budget_s` seconds from `start` (a `clock()` reading); None: unbounded."""
+
+    budget_s: float | None
+    start: float
+    clock: Callable[[], float] = time.perf_counter
+
+    def elapsed(self) -> float:
+        return self.clock() - self.start
+
+    def left(self) -> float:
+        """Seconds left of the budget (may be negative); inf without one."""
+        return math.inf if self.budget_s is None else self.budget_s - self.elapsed()
+
+
+@dataclass
+class EndCosts:
+    """What the stages after training are expected to take: seconds per marching-cubes cell, per metric point and
+    mesh, and the fixed part (pictures, report). Probes replace the defaults with timings on this machine."""
+
+    mesh_s_per_cell: float = MESH_S_PER_CELL
+    mesh_fixed_s: float = 0.0
+    """Seconds of an extraction that do not grow with the cells (the model's own set-up of its grid)."""
+    metrics_s_per_point: float = METRICS_S_PER_POINT
+    fixed_s: float = FIXED_S
+    probed: list[str] = field(default_factory=list)
+
+    def mesh_s(self, resolution: int) -> float:
+        return SAFETY * (self.mesh_fixed_s + self.mesh_s_per_cell * resolution ** 3)
+
+    def metrics_s(self, points: int) -> float:
+        """Metrics of one final mesh: both directions, and the per-vertex normal error against as many points."""
+        return SAFETY * self.metrics_s_per_point * points * 2
+
+    def time_mesh(self, timings: dict[int, float]) -> None:
+        """Mesh extractions took `timings` {resolution: seconds}: with two or more, a fixed part and a part that
+        grows with the cells (least squares, neither negative); with one, all of it grows with the cells."""
+        r = sorted(timings)
+        x = [float(k) ** 3 for k in r]
+        t = [max(float(timings[k]), 0.0) for k in r]
+        if len(r) >= 2:
+            mx, mt = sum(x) / len(x), sum(t) / len(t)
+            var = sum((a - mx) ** 2 for a in x)
+            per_cell = max(sum((a - mx) * (b - mt) for a, b in zip(x, t)) / var, 0.0) if var > 0 else 0.0
+            fixed = max(mt - per_cell * mx, 0.0)
+        else:
+            per_cell, fixed = t[0] / x[0], 0.0
+        self.mesh_s_per_cell, self.mesh_fixed_s = per_cell, fixed
+        self.probed.append("mesh " + ", ".join(f"{k}: {v:.2f} s" for k, v in zip(r, t)))
+
+    def time_metrics(self, seconds: float, points: int) -> None:
+        """Metrics on `points` points per mesh (both directions) took `seconds`: the rate per point from now on."""
+        self.metrics_s_per_point = max(seconds, 0.0) / (2 * points)
+        self.probed.append(f"metrics {points}: {seconds:.2f} s")
+
+    def end_s(self, resolution: int, points: int | None, checkpoint: tuple[int, int] | None = None) -> float:
+        """Seconds the stages after training take at `resolution` and `points` (None: no ground truth), plus the
+        last checkpoint's evaluation (`checkpoint` = its mesh resolution and points) where there is one."""
+        total = self.fixed_s + self.mesh_s(resolution)
+        if points:
+            total += self.metrics_s(points)
+        if checkpoint is not None:
+            total += self.checkpoint_s(*checkpoint)
+        return total
+
+    def checkpoint_s(self, resolution: int, points: int) -> float:
+        """Seconds of one checkpoint's evaluation: a mesh at `resolution` scored on `points` points (both ways)."""
+        return self.mesh_s(resolution) + SAFETY * self.metrics_s_per_point * points * 2
+
+
+def training_budget(clock: RunClock, end_s: float) -> float | None:
+    """Seconds left for training once `end_s` is kept back (at most MAX_END_SHARE of what is left); None without a
+    budget. Never below a hundredth of a second (a run makes at least one step)."""
+    if clock.budget_s is None:
+        return None
+    left = clock.left()
+    keep = min(end_s, MAX_END_SHARE * max(left, 0.0))
+    return max(0.01, left - keep)
+
+
+def mesh_resolution_within(costs: EndCosts, want: int, seconds: float) -> int:
+    """The finest resolution up to `want` whose extraction fits in `seconds` (halving from `want`, at least
+    MIN_MESH_RESOLUTION; `want` itself when it fits)."""
+    r = int(want)
+    while r > MIN_MESH_RESOLUTION and costs.mesh_s(r) > seconds:
+        r = max(MIN_MESH_RESOLUTION, r // 2)
+    return min(r, int(want))
+
+
+def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
+    """The most metric points up to `want` that fit in `seconds` (at least MIN_METRIC_POINTS, rounded down to a
+    thousand when cut)."""
+    if costs.metrics_s(want) <= seconds:
+        return int(want)
+    fit = int(seconds / max(costs.metrics_s(1), 1e-12) * (1 + 1e-9))
+    return int(min(want, max(MIN_METRIC_POINTS, fit // 1000 * 1000)))
+
+
+__all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within",
+           "metric_points_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS", "PROBE_RESOLUTIONS", "PROBE_POINTS"]

@@ -1,0 +1,172 @@
+"""How a reconstruction ended, honestly: did it converge, and what makes its result doubtful (report.json's
+"converged" and "warnings", one line each).
+
+Three checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
+
+- **Stopped early.** A run that ended on its time budget or step count while its data term was still falling:
+  the windowed data term of the last fifth of the run against the fifth before it.
+- **Starved.** A CPU run whose process got much less than one core (its CPU seconds against its wall seconds):
+  other processes took the cores, and it made that many times fewer steps than it would have alone.
+- **Far from the noise.** The measured counts against the fitted model's expected counts, as the Poisson deviance
+  per bin, divided by the deviance that photon noise alone gives on average for those expected counts
+  (`noise_deviance`): about 1 when the model explains the data down to the noise; several times that when it does
+  not (a wrong sensor model, an object that moved, a fit that went wrong).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import gammaln, xlogy
+
+STILL_FALLING = 0.01
+"""Relative drop of the windowed data term over the last fifth of a run above which it was still improving."""
+STARVED_SHARE = 0.5
+"""CPU cores' worth a CPU run's process must have had on average (CPU seconds / wall seconds): below it, warn."""
+NOISE_RATIO = 3.0
+"""Measured deviance per bin over the photon-noise expectation above which the fit does not explain the data."""
+MIN_TREND_STEPS = 50
+"""Fewest steps for the trend test: a shorter run is judged by its stop alone."""
+EXACT_BELOW = 30.0
+"""Expected counts below which the noise deviance is summed over the Poisson distribution (above: its expansion)."""
+
+
+@dataclass
+class FitNoise:
+    """The fit's data term against the photon noise, over `bins` valid bins of the views checked."""
+
+    deviance_per_bin: float
+    """Mean Poisson half-deviance per bin, mu - c + c log(c / mu), of the measured counts c (0 for a perfect fit)."""
+    noise_per_bin: float
+    """Its mean expectation if the counts were Poisson draws of the fitted expected counts mu (`noise_deviance`)."""
+    bins: int
+    views: list[int] = field(default_factory=list)
+
+    @property
+    def ratio(self) -> float:
+        return self.deviance_per_bin / self.noise_per_bin if self.noise_per_bin > 0 else math.inf
+
+    def to_dict(self) -> dict:
+        return {"deviance_per_bin": self.deviance_per_bin, "noise_per_bin": self.noise_per_bin,
+                "ratio": self.ratio, "bins": self.bins, "views": list(self.views)}
+
+
+def noise_deviance(mu: np.ndarray) -> np.ndarray:
+    """Expected Poisson half-deviance E[mu - c + c log(c / mu)] of one bin whose count c ~ Poisson(mu), per bin.
+
+    E[mu - c] = 0, so it is E[c log c] - mu log mu. Below EXACT_BELOW counts the expectation is summed over the
+    distribution (it falls to 0 with mu: a bin that expects no photon and gets none fits perfectly); above, the
+    expansion 1/2 + 1/(12 mu) + 1/(12 mu^2) + 19/(120 mu^3) (error under 1e-6). Large counts give 1/2: half a
+    chi-square with one degree of freedom."""
+    mu = np.maximum(np.asarray(mu, np.float64), 0.0)
+    out = np.empty_like(mu)
+    big = mu >= EXACT_BELOW
+    x = 1.0 / mu[big]
+    out[big] = 0.5 + x / 12.0 + x * x / 12.0 + 19.0 * x ** 3 / 120.0
+    small = mu[~big]
+    if small.size:
+        k = np.arange(int(EXACT_BELOW + 12 * math.sqrt(EXACT_BELOW) + 20), dtype=np.float64)
+        m = small[:, None]
+        with np.errstate(divide="ignore"):
+            logp = xlogy(k, m) - m - gammaln(k + 1)
+        e_clogc = (np.exp(logp) * xlogy(k, k)).sum(axis=1)
+        out[~big] = e_clogc - xlogy(small, small)
+    return np.maximum(out, 0.0)
+
+
+def fit_noise(measured: np.ndarray, expected: np.ndarray, valid: np.ndarray | None = None,
+              views=()) -> FitNoise | None:
+    """Compare measured counts with the model's expected counts (same shape, e.g. (V, Z, B)) over the `valid` bins;
+    None when there is no valid bin."""
+    c = np.asarray(measured, np.float64)
+    mu = np.maximum(np.asarray(expected, np.float64), 1e-12)
+    ok = np.isfinite(c) & np.isfinite(mu) & (np.ones(c.shape, bool) if valid is None else np.asarray(valid, bool))
+    if not ok.any():
+        return None
+    c, mu = c[ok], mu[ok]
+    dev = mu - c + xlogy(c, c / mu)
+    return FitNoise(float(dev.mean()), float(noise_deviance(mu).mean()), int(ok.sum()), [int(v) for v in views])
+
+
+def late_drop(data_terms) -> float | None:
+    """Relative drop of the mean data term from the second-last fifth of the run to the last fifth (0.02: it fell by
+    2 %); None for runs shorter than MIN_TREND_STEPS or without a finite, positive data term."""
+    d = np.asarray([x for x in data_terms if x is not None], np.float64)
+    if len(d) < MIN_TREND_STEPS or not np.all(np.isfinite(d)):
+        return None
+    n = len(d) // 5
+    before, last = float(d[-2 * n:-n].mean()), float(d[-n:].mean())
+    return (before - last) / before if before > 0 else None
+
+
+@dataclass
+class RunFacts:
+    """What the checks read, as the run recorded it."""
+
+    stopped_by: str
+    """'budget', 'steps' or 'converged'."""
+    steps: int
+    model_converged: bool | None
+    """The model's own convergence test at the last step (the fast preset's plateau), or None when it has none."""
+    data_terms: list[float]
+    """The data term of every step."""
+    device: str = "cpu"
+    cpu_seconds: float | None = None
+    """Process CPU seconds spent while training (all threads)."""
+    wall_seconds: float | None = None
+    """Wall seconds of the same stretch."""
+    fit: FitNoise | None = None
+    budget_notes: list[str] = field(default_factory=list)
+    """What a short time budget cut (a coarser mesh, fewer metric points): said as warnings too."""
+
+
+def converged(facts: RunFacts) -> bool:
+    """The model's own test where it has one; else (the paper preset) whether the data term had stopped falling
+    (under STILL_FALLING over the last fifth of at least MIN_TREND_STEPS steps)."""
+    if facts.stopped_by == "converged":
+        return True
+    if facts.model_converged is not None:
+        return bool(facts.model_converged)
+    drop = late_drop(facts.data_terms)
+    return drop is not None and drop < STILL_FALLING
+
+
+def cpu_share(facts: RunFacts) -> float | None:
+    """CPU cores' worth the process had while training (CPU seconds / wall seconds), or None where not measured."""
+    if not facts.cpu_seconds or not facts.wall_seconds or facts.wall_seconds <= 0:
+        return None
+    return facts.cpu_seconds / facts.wall_seconds
+
+
+def warnings(facts: RunFacts) -> list[str]:
+    """One line per reason to doubt the result (empty when there is none)."""
+    out = []
+    if facts.stopped_by in ("budget", "steps") and not converged(facts):
+        drop = late_drop(facts.data_terms)
+        limit = "time budget" if facts.stopped_by == "budget" else "step count"
+        flag = "--budget-s" if facts.stopped_by == "budget" else "--steps"
+        if drop is None:
+            out.append(f"the run stopped on its {limit} after only {facts.steps} step(s), before its fit could "
+                       f"settle: the mesh is a rough early state (a larger {flag} gives a better one)")
+        elif drop >= STILL_FALLING:
+            out.append(f"the run stopped on its {limit} well before convergence: its data term was still falling "
+                       f"({100 * drop:.1f} % over the last fifth of its {facts.steps} steps; a larger {flag} gives "
+                       f"a better mesh)")
+    share = cpu_share(facts)
+    if facts.device == "cpu" and share is not None and share < STARVED_SHARE:
+        out.append(f"the machine was busy: this run had {share:.2f} of a CPU core on average and made about "
+                   f"{1 / max(share, 1e-3):.0f}x fewer steps ({facts.steps}) than it would alone; stop other work "
+                   f"or give it a larger time budget")
+    if facts.fit is not None and facts.fit.ratio > NOISE_RATIO:
+        out.append(f"the fit does not explain the measurements: their deviance from the model is "
+                   f"{facts.fit.ratio:.1f}x what photon noise gives ({facts.fit.deviance_per_bin:.3g} against "
+                   f"{facts.fit.noise_per_bin:.3g} per bin); a wrong sensor model, an object that moved during the "
+                   f"scan, or a fit gone wrong")
+    out += facts.budget_notes
+    return out
+
+
+__all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "converged", "cpu_share",
+           "warnings", "STILL_FALLING", "STARVED_SHARE", "NOISE_RATIO"]

@@ -1,0 +1,285 @@
+"""A live job: reconstruct a scan while it is recorded, then finish it from the live state.
+
+The job process of a live job (`Job.live`, queued by `spadscan worker --live` as soon as a scan's first chunk is
+published) runs `execute_live_job`:
+
+1. **Follow.** Poll the capture every `poll_s`: re-read the manifest, read each new chunk. Once `min_views` views are
+   published, fit them (`LiveFit`), and refit warm on every view published so far whenever their number has grown
+   by `rebuild_growth` or `rebuild_every_s` has passed with new views; between polls, train. Every
+   `publish_every_s`, publish `<capture>/recon/live/` (mesh.ply, preview.png, status.json: `publish.py`). While an
+   adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
+2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
+   warm-started from the live fit, for the final budget (`Job.budget_s`, default `final_budget_s`): the result is
+   written into the job's scratch folder and published by the worker where every job's result goes. A live job that
+   never fitted anything (its scan was complete before it started, or held too few views) runs the ordinary job.
+3. **Abort.** When the scan is aborted the job ends at once: the live folder keeps its last state, the status says
+   `aborted`, and the job fails with the scan's reason (not retried).
+
+A live job reads the capture and writes only under its `recon/` folder; the daemon never waits for it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.live_status import LiveStatus, read_status, status_path
+
+from .follower import ScanFollower, ScanProgress
+from .next_views import is_adaptive, update_next_views
+from .publish import clear_leftovers, live_folder, publish_mesh, publish_status
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """How a live job follows its scan. Seconds are wall-clock."""
+
+    min_views: int = 8
+    """Views published before the first fit (fewer carve no useful hull)."""
+    poll_s: float = 0.5
+    """How often the capture is looked at (the model trains in between)."""
+    publish_every_s: float = 5.0
+    """How often recon/live/ is rewritten (at least; never more than a fifth of the time goes to publishing)."""
+    rebuild_growth: float = 0.25
+    """Refit once the published views outnumber the fitted ones by this fraction ..."""
+    rebuild_every_s: float = 20.0
+    """... or once this long has passed since the last refit and a view has arrived."""
+    mesh_resolution: int = 96
+    """Marching-cubes cells along the longest side of the live mesh."""
+    preview: bool = True
+    """Draw recon/live/preview.png with each mesh."""
+    rank_every_s: float = 5.0
+    """How often an adaptive scan's candidates are ranked (next_views.json)."""
+    final_budget_s: float = 20.0
+    """The final reconstruction's budget when the job names none: it continues from the live fit, so it polishes
+    rather than fits."""
+    live_threads: int = 1
+    """CPU threads of the live fit while the scan runs (the final run gets the job's own): the daemon beside it keeps
+    a core."""
+    overrides: tuple = ()
+    """(dotted key, value) pairs changing the preset's config, for the live fit and the final run alike (as
+    `spadscan reconstruct --set`; benchmarks and tests make small fits with it)."""
+
+
+def status_finishing(scan: Path, job, progress: ScanProgress, note: str) -> None:
+    """The live status of a job that found its scan complete (a fast scan, or a job taken over after the scan's end):
+    'final', so that whoever follows it sees the final run and, once published, its result. What an earlier
+    attempt fitted stays in it."""
+    folder = live_folder(scan)
+    clear_leftovers(folder)
+    try:
+        before = read_status(status_path(scan))
+    except SpadscanError:
+        before = LiveStatus(views_used=0, views_published=progress.views_published, steps=0, job=job.id)
+    publish_status(folder, dataclasses.replace(before, state="final", views_published=progress.views_published,
+                                               views_planned=progress.views_planned, job=job.id, note=note,
+                                               updated_utc=""))
+
+
+class ScanAborted(SpadscanError):
+    """The scan a live job followed was aborted: the job ends (not retried)."""
+
+
+def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
+                     settings: LiveSettings | None = None, log: Callable[[str], None] | None = None) -> dict:
+    """Run the live job `job` (see the module): follow its scan, then reconstruct the complete capture into `out`
+    (the job's scratch folder) from the live state. Returns the final report, with `live` (what the live phase
+    did). Raises ScanAborted when the scan is aborted, SpadscanError (one line) for a capture that cannot be read."""
+    from ..jobs import add_to_report, execute_job, ground_truth, scan_path
+
+    settings = settings or LiveSettings()
+    log = log or _stderr
+    scan = scan_path(job, root)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    follower = ScanFollower(scan)
+    progress = follower.poll()
+    if progress.ended and progress.state == "complete":
+        note = f"scan {scan.name} was already complete when its live job started: reconstructing it from scratch"
+        log(f"live: {note}")
+        status_finishing(scan, job, progress, note)
+        return execute_job(dataclasses.replace(job, live=False), root, out, recon)
+    folder = live_folder(scan)
+    clear_leftovers(folder)
+    runner = LiveRun(job, scan, folder, follower, settings, log)
+    gt, _ = ground_truth(progress.manifest, out)
+    runner.start(progress, gt)
+    try:
+        progress = runner.follow(progress)
+        if progress.state == "complete" and runner.fit.model is not None:
+            runner.publish(progress, state="final", force=True)
+    except SpadscanError as exc:  # a chunk or manifest that cannot be read: the job fails saying why
+        runner.stopped("stopped", str(exc))
+        raise
+    finally:
+        runner.restore_threads()
+    if progress.state == "aborted":
+        runner.stopped("aborted", f"scan aborted: {progress.reason or 'no reason given'}")
+        raise ScanAborted(f"scan {scan.name} was aborted ({progress.reason or 'no reason given'}): its live job "
+                          f"ended; the last live result stays in {folder}")
+    if runner.fit.model is None:
+        runner.stopped("final", f"the scan completed with {progress.views_published} views before the live fit "
+                                "started: reconstructing it from scratch")
+        return execute_job(dataclasses.replace(job, live=False), root, out, recon)
+    budget = job.budget_s if job.budget_s is not None else settings.final_budget_s
+    final = dataclasses.replace(job, live=False, budget_s=budget)
+    live_report = runner.fit.report()
+    log(f"live: scan complete; the final reconstruction continues from the live fit ({live_report['views_used']} "
+        f"views, {live_report['steps']} steps) for {budget:g} s")
+    report = execute_job(final, root, out, runner.final_recon(recon))
+    extra = {"live": {**live_report, "final_budget_s": budget}}
+    add_to_report(out, extra)
+    report.update(extra)
+    return report
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+class LiveRun:
+    """The follow phase of one live job: the fit, the live folder, and when to refit, train and publish."""
+
+    def __init__(self, job, scan: Path, folder: Path, follower: ScanFollower, settings: LiveSettings,
+                 log: Callable[[str], None]):
+        self.job, self.scan, self.folder, self.follower, self.settings, self.log = (job, scan, folder, follower,
+                                                                                    settings, log)
+        self.fit = None
+        self.truth = None
+        self.fit_views = 0
+        self.chamfer_mm: float | None = None
+        self.next_publish = -math.inf
+        self.publish_cost_s = 0.0
+        self.last_rebuild = -math.inf
+        self.next_rank = -math.inf
+        self.last: ScanProgress | None = None
+
+    # ---- set-up --------------------------------------------------------------------------------------------------
+    def start(self, progress: ScanProgress, gt: Path | None) -> None:
+        """Load the reconstruction's settings, the device and the ground truth (torch is imported here)."""
+        import torch
+
+        from ..ground_truth import load_ground_truth
+        from ..reconstruct import resolve_device, run_config
+        from .live_fit import LiveFit
+
+        self.threads = torch.get_num_threads()
+        torch.set_num_threads(max(1, min(self.threads, self.settings.live_threads)))
+        config = run_config(self.job.preset, dict(self.settings.overrides) or None)
+        self.config = config
+        self.fit = LiveFit(self.scan, config, resolve_device(self.job.device), self.job.seed, self.log)
+        if gt is not None:
+            try:
+                self.truth = load_ground_truth(gt)
+            except SpadscanError as exc:
+                self.log(f"live: no Chamfer while scanning: {exc}")
+        self.publish(progress, state="waiting", force=True)
+
+    def restore_threads(self) -> None:
+        """Give the final run the job's own CPU threads back."""
+        import torch
+
+        torch.set_num_threads(self.threads)
+
+    # ---- following -----------------------------------------------------------------------------------------------
+    def follow(self, progress: ScanProgress) -> ScanProgress:
+        """Refit, train and publish until the scan ends; returns the last poll (state 'complete' or 'aborted')."""
+        s = self.settings
+        while True:
+            self.last = progress
+            if progress.ended:
+                return progress
+            now = time.monotonic()
+            if self._refit_due(progress, now):
+                self.last_rebuild = now
+                if self.fit.rebuild():
+                    self.fit_views = self.fit.views_used
+                    self.log(f"live: fitting {self.fit.views_used} of {progress.views_published} published views "
+                             f"(refit {self.fit.rebuilds}, {self.fit.steps} steps so far)")
+                    self.publish(progress, force=self.fit.rebuilds == 1)
+            self.publish(progress)
+            self._rank(progress)
+            until = time.monotonic() + s.poll_s
+            if self.fit.model is not None and not self.fit.converged:
+                self.fit.train(until)
+            else:
+                time.sleep(max(0.0, until - time.monotonic()))
+            progress = self.follower.poll()
+
+    def _refit_due(self, progress: ScanProgress, now: float) -> bool:
+        s = self.settings
+        have, published = self.fit.views_used, progress.views_published
+        if published < s.min_views or published <= have:
+            return False
+        if self.fit.model is None:
+            return now - self.last_rebuild >= s.poll_s  # a failed first fit is tried again at the next poll
+        return published >= have * (1.0 + s.rebuild_growth) or now - self.last_rebuild >= s.rebuild_every_s
+
+    def _rank(self, progress: ScanProgress) -> None:
+        """Hand the live state to the view ranking of an adaptive scan, every `rank_every_s`."""
+        now = time.monotonic()
+        if self.fit.model is None or now < self.next_rank or not is_adaptive(progress.manifest):
+            return
+        self.next_rank = now + self.settings.rank_every_s
+        try:
+            update_next_views(self.scan, progress.manifest, self.fit.snapshot())
+        except (SpadscanError, ValueError) as exc:
+            self.log(f"live: no next views this time: {exc}")
+
+    # ---- publishing ----------------------------------------------------------------------------------------------
+    def publish(self, progress: ScanProgress, state: str | None = None, force: bool = False) -> None:
+        """Rewrite recon/live/ when due (or `force`): the mesh and preview of the current fit, then the status."""
+        now = time.monotonic()
+        if not force and now < self.next_publish:
+            return
+        t0 = time.perf_counter()
+        fit = self.fit
+        if fit is not None and fit.model is not None:
+            try:
+                mesh = fit.mesh(self.settings.mesh_resolution)
+                publish_mesh(self.folder, mesh, None if self.truth is None else self.truth.mesh,
+                             preview=self.settings.preview)
+                if self.truth is not None:
+                    self.chamfer_mm = self.truth.metrics(mesh, n_points=self.config.trace_points).chamfer_mm
+            except SpadscanError as exc:  # no surface yet: the status says so
+                self.log(f"live: no mesh yet: {exc}")
+            fit.remember()
+        self.write_status(progress, state or ("live" if fit is not None and fit.model is not None else "waiting"))
+        self.publish_cost_s = time.perf_counter() - t0
+        # Publishing takes at most about a fifth of the time: a slow machine publishes less often.
+        self.next_publish = time.monotonic() + max(self.settings.publish_every_s, 4.0 * self.publish_cost_s)
+
+    def write_status(self, progress: ScanProgress, state: str, note: str | None = None) -> None:
+        fit = self.fit
+        publish_status(self.folder, LiveStatus(
+            views_used=0 if fit is None else fit.views_used, views_published=progress.views_published,
+            steps=0 if fit is None else fit.steps, converged=bool(fit is not None and fit.converged), state=state,
+            chamfer_mm=None if self.chamfer_mm is None else round(float(self.chamfer_mm), 4),
+            views_planned=progress.views_planned, job=self.job.id, note=note))
+
+    def stopped(self, state: str, note: str) -> None:
+        """The follow phase ended otherwise than by a finished scan with a fit: say so in the status."""
+        self.log(f"live: {note}")
+        self.write_status(self.last, state, note)
+
+    # ---- the final run -------------------------------------------------------------------------------------------
+    def final_recon(self, recon: Callable | None) -> Callable:
+        """The reconstruction function of the final run: the ordinary one, its model warm-started from the live fit
+        (the field, the level and where its learning-rate decay stands). A replacement reconstruction (`--recon`,
+        tests) is used as it is."""
+        from ..reconstruct import reconstruct_capture
+
+        if recon is not None and recon is not reconstruct_capture:
+            return recon
+        return functools.partial(reconstruct_capture, make=self.fit.warm_factory(),
+                                 overrides=dict(self.settings.overrides) or None)
+
+
+__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun"]

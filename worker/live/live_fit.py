@@ -1,0 +1,138 @@
+"""The live model of a scan: fitted on the views published so far, rebuilt as views arrive, never from scratch.
+
+Each rebuild loads the capture as it stands (every published view), builds the `fast` problem on it (a new space
+carving: more views carve a tighter hull) and a new model, and warm-starts that model from the previous one's field
+(`FastModel.warm_start`): the old surface where the old grid covers the new one, never outside the new hull, at the
+old model's level of refinement. So the views in use grow while the fit goes on from where it was.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from spadscan.protocol.errors import SpadscanError
+
+from ..recon.config import ReconConfig
+from ..recon.model_api import RunPlan
+from ..recon.presets import make_model
+from ..recon.scene_data import SceneData, load_scene
+from .snapshot import FieldSnapshot, GridSnapshot, LiveSnapshot
+
+HISTORY = 3
+"""Field snapshots kept for ranking views (the disagreement between recent fields)."""
+
+
+def grid_snapshot(field) -> GridSnapshot:
+    """A GridField's values as plain numpy (float32 (nz, ny, nx), origin (3,), voxel)."""
+    return GridSnapshot(sdf=field.sdf.detach()[0, 0].float().cpu().numpy().copy(),
+                        origin=field.origin.detach().double().cpu().numpy().copy(), voxel_m=float(field.voxel))
+
+
+class LiveFit:
+    """A growing fit of one capture. `rebuild()` refits on every published view (warm), `train(until)` steps."""
+
+    def __init__(self, capture: Path, config: ReconConfig, device: torch.device, seed: int,
+                 log: Callable[[str], None]):
+        self.capture, self.config, self.device, self.seed, self.log = Path(capture), config, device, int(seed), log
+        self.dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
+        self.model = None
+        self.scene: SceneData | None = None
+        self.steps = 0
+        """Steps over every model of this fit."""
+        self.rebuilds = 0
+        self.rebuild_s = 0.0
+        """Wall seconds spent loading the capture and building models."""
+        self.train_s = 0.0
+        self.history: deque[FieldSnapshot] = deque(maxlen=HISTORY)
+
+    @property
+    def views_used(self) -> int:
+        return 0 if self.scene is None else self.scene.n_views
+
+    def rebuild(self) -> bool:
+        """Refit on every view published now, warm from the current model. False (the current model kept, the
+        reason logged) when the views so far cannot be fitted yet (too few to carve a hull, say)."""
+        t0 = time.perf_counter()
+        try:
+            scene = load_scene(self.capture, self.device, self.dtype)
+            model = make_model(scene, self.config, self.device, RunPlan(steps=None, budget_s=None, seed=self.seed))
+            if self.model is not None:
+                model.warm_start(self.model.mesh_field(), self.model.level, self.model.level_steps)
+        except SpadscanError as exc:
+            self.log(f"live: cannot fit the views so far yet ({exc}); trying again with more")
+            return False
+        finally:
+            self.rebuild_s += time.perf_counter() - t0
+        self.model, self.scene = model, scene
+        self.rebuilds += 1
+        return True
+
+    def train(self, until: float) -> int:
+        """Step the model until `time.monotonic()` reaches `until` (at least one step); returns the steps taken."""
+        if self.model is None:
+            return 0
+        n = 0
+        t0 = time.perf_counter()
+        while True:
+            self.model.step()
+            n += 1
+            if time.monotonic() >= until:
+                break
+        self.train_s += time.perf_counter() - t0
+        self.steps += n
+        return n
+
+    @property
+    def converged(self) -> bool:
+        return self.model is not None and bool(self.model.converged)
+
+    def steps_per_s(self) -> float | None:
+        return self.steps / self.train_s if self.train_s > 0 and self.steps else None
+
+    def mesh(self, resolution: int):
+        """The current surface (trimesh, world metres); SpadscanError when there is none yet."""
+        return self.model.extract_mesh(resolution)
+
+    def remember(self) -> None:
+        """Keep a snapshot of the current field for `snapshot` (the last HISTORY are kept)."""
+        if self.model is not None:
+            self.history.append(FieldSnapshot(grid_snapshot(self.model.mesh_field()), self.steps, self.views_used))
+
+    def snapshot(self) -> LiveSnapshot | None:
+        """The state handed to view ranking, or None before the first model."""
+        if self.model is None:
+            return None
+        if not self.history or self.history[-1].step != self.steps:
+            self.remember()
+        p = self.model.problem
+        return LiveSnapshot(fields=list(self.history), hull=grid_snapshot(p.hull),
+                            poses=self.scene.poses.detach().double().cpu().numpy().copy(), sensor=self.scene.sensor,
+                            floor_z=p.floor_z, converged=self.converged,
+                            notes={"steps": self.steps, "views_used": self.views_used})
+
+    def warm_factory(self) -> Callable:
+        """A model factory (scene, config, device, plan) -> model for the final reconstruction: the preset's model
+        of the complete capture, warm-started from this fit (the final run continues from the live state)."""
+        field, level, level_steps = self.model.mesh_field(), self.model.level, self.model.level_steps
+
+        def make(scene, config, device, plan):
+            model = make_model(scene, config, device, plan)
+            model.warm_start(field, level, level_steps)
+            return model
+
+        return make
+
+    def report(self) -> dict:
+        """What the live phase did, for the final report."""
+        rate = self.steps_per_s()
+        return {"views_used": self.views_used, "steps": self.steps, "rebuilds": self.rebuilds,
+                "rebuild_seconds": round(self.rebuild_s, 2), "train_seconds": round(self.train_s, 2),
+                "steps_per_s": None if rate is None else round(rate, 2), "level": getattr(self.model, "level", None)}
+
+
+__all__ = ["LiveFit", "grid_snapshot"]

@@ -1,0 +1,55 @@
+"""Publishing a live reconstruction's state into `<capture>/recon/live/`: mesh.ply, preview.png, status.json.
+
+Each file is written under a hidden temporary name and renamed into place (a reader sees a whole file, the old one or
+the new one), the status last, so that a status is never newer than the mesh beside it. The folder is the live job's
+own: it is not a job result (those are `<capture>/recon/<job>/`, published whole by the worker).
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from pathlib import Path
+
+from spadscan.protocol.live_status import LIVE_DIR, LiveStatus, write_status
+
+from ..outputs import export_mesh
+from ..report import pictures
+
+MESH = "mesh.ply"
+PREVIEW = "preview.png"
+
+
+def live_folder(capture: Path) -> Path:
+    """`<capture>/recon/live/`, created."""
+    folder = Path(capture) / "recon" / LIVE_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def clear_leftovers(folder: Path) -> None:
+    """Remove temporary files a killed live job left in its folder (every temporary name starts with a dot)."""
+    for path in Path(folder).glob(".*"):
+        if path.is_file():
+            path.unlink(missing_ok=True)
+
+
+def publish_mesh(folder: Path, mesh, gt_mesh=None, preview: bool = True) -> None:
+    """Write the live mesh (and, with `preview`, its preview picture beside the ground truth when known)."""
+    folder = Path(folder)
+    export_mesh(mesh, folder / MESH)
+    if preview:
+        tmp = folder / f".{PREVIEW}.{secrets.token_hex(4)}.png"  # pyvista picks the format from the extension
+        try:
+            if pictures.preview_png(mesh, tmp, gt=gt_mesh) is not None:
+                os.replace(tmp, folder / PREVIEW)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+
+def publish_status(folder: Path, status: LiveStatus) -> Path:
+    """Write status.json (last, after the files it describes)."""
+    return write_status(folder, status)
+
+
+__all__ = ["MESH", "PREVIEW", "live_folder", "clear_leftovers", "publish_mesh", "publish_status"]
