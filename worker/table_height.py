@@ -15,6 +15,8 @@ import numpy as np
 from spadscan.protocol.errors import CaptureError
 
 MIN_RANGE_M = 1e-3
+RAYS_PER_ZONE = 48
+"""Rays per zone `detect_height` wants: enough to place a plane's peak to a bin; more only cost time."""
 PROMINENCE_BINS = 8
 """A peak must rise above the lowest level of this many bins before it (`last_peaks`)."""
 
@@ -110,12 +112,13 @@ def detect_height(counts: np.ndarray, cycles: np.ndarray, background: np.ndarray
     (that would see the plane) whose last peak lies within 1.5 bins of the plane's, less the fraction whose last peak
     lies more than 1.5 bins behind it. Heights from 2 cm below the lowest sensor down `depth_m` are tried every
     `step_m`, then every step_m / 10 around the best. counts (V, Z, B); cycles (V,); background (V, Z);
-    poses (V, 4, 4); zone_dirs (Z, D, 3) and zone_weights (Z, D) in the sensor frame; kernel/origin: the pulse.
+    poses (V, 4, 4); zone_dirs (Z, D, 3) and zone_weights (Z, D) in the sensor frame, spread evenly over each zone
+    (`zone_rays(zones, RAYS_PER_ZONE, seed)`; a stride through a longer list is no such spread: every 8th ray of a
+    golden-angle spiral lies on one arm, 20 degrees on from the last, and on a wide zone looking down at a slant put
+    the plane's peak up to 10 bins off, so that a table 0.3 m under the sensor was missed); kernel/origin: the pulse.
     """
     last = last_peaks(counts, cycles, background, ignore_bins)
     k = np.asarray(kernel, float)
-    thin = max(1, zone_dirs.shape[1] // 48)  # ~48 rays per zone place a peak to a bin; more only cost time
-    zone_dirs, zone_weights = zone_dirs[:, ::thin], zone_weights[:, ::thin]
 
     def score(h: float) -> float:
         pb = plane_peak_bins(h, poses, zone_dirs, zone_weights, sensor, k, origin)
@@ -133,4 +136,4 @@ def detect_height(counts: np.ndarray, cycles: np.ndarray, background: np.ndarray
     return float(fine[i]) if scores[i] >= min_score else None
 
 
-__all__ = ["TablePlane", "named_table", "detect_height", "last_peaks", "plane_peak_bins"]
+__all__ = ["RAYS_PER_ZONE", "TablePlane", "named_table", "detect_height", "last_peaks", "plane_peak_bins"]

@@ -57,12 +57,11 @@ def tall_on_dark_table(tmp_path_factory):
 
 
 def test_a_black_table_under_a_tall_white_object_is_found(tall_on_dark_table):
-    from spadscan.worker.recon.fast.problem import _table_plane, candidate_rays
+    from spadscan.worker.recon.fast.problem import _table_plane
     from spadscan.worker.recon.scene_data import load_scene
 
     scene = load_scene(tall_on_dark_table)
-    dirs, weights = candidate_rays(scene.sensor, 2000, 0)
-    normal, offset, fitted, source = _table_plane(scene, scene.pulse(1), dirs, weights)
+    normal, offset, fitted, source = _table_plane(scene, scene.pulse(1))
     assert source == "detected, then fitted" and fitted
     assert offset == pytest.approx(0.05, abs=0.01)
 
@@ -79,3 +78,23 @@ def test_the_hull_of_a_tall_object_reaches_down_to_its_table(tall_on_dark_table)
     assert float(scene.box[0, 2]) > 0.08
     assert problem.floor_z == pytest.approx(0.05, abs=0.01)
     assert problem.box[0][2] < 0.06
+
+
+@pytest.mark.parametrize("candidate_rays_per_sr", [2000.0, None])
+def test_a_table_a_wide_zone_sees_at_a_slant_is_found_whatever_rays_the_fit_uses(table_capture, candidate_rays_per_sr):
+    # 12 views of a cylinder on a slab (top at z = 0) through one 30 degree wide zone: the slab's return is a broad
+    # ramp whose peak only rays spread over the whole zone place right. The fit's own candidate rays, thinned by a
+    # stride, lay on one arm of their spiral: at 2000 per sr the table was missed and put at the scene data's start,
+    # 6 cm up, at the cylinder's top.
+    from spadscan.worker.recon.config import with_overrides
+    from spadscan.worker.recon.fast.problem import build_problem
+    from spadscan.worker.recon.forward import choose_terms
+    from spadscan.worker.recon.presets import preset_config
+    from spadscan.worker.recon.scene_data import load_scene
+
+    config = preset_config("fast")
+    if candidate_rays_per_sr is not None:
+        config = with_overrides(config, {"schedule.candidate_rays_per_sr": candidate_rays_per_sr})
+    scene = load_scene(table_capture)
+    problem = build_problem(scene, config, "cpu", choose_terms(scene))
+    assert problem.floor_z == pytest.approx(0.0, abs=0.01)
