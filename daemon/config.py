@@ -78,8 +78,10 @@ class ScanConfig:
     views: int = key(128, "int", lo=1, hi=10_000)
     """Number of sensor poses. 128, like the paper's real captures (120-128 per scan): at 64 the reconstruction of a
     thin-walled object (the built-in goblet) is short of data and depends on the seed (benchmarks/RESULTS.md)."""
-    schedule: str = key("fibonacci", "choice", choices=("fibonacci", "rings"))
-    """'fibonacci' (a Fibonacci spiral over the hemisphere, the dataset's layout) or 'rings' (elevation rings)."""
+    schedule: str = key("fibonacci", "choice", choices=("fibonacci", "rings", "adaptive"))
+    """'fibonacci' (a Fibonacci spiral over the hemisphere, the dataset's layout), 'rings' (elevation rings) or
+    'adaptive' (a few well-spread views first, then before each pose the best view a live reconstruction ranks in the
+    capture's next_views.json, else the next pose of a Fibonacci plan of `views` poses)."""
     rings: int = key(4, "int", lo=1, hi=1000)
     """'rings' only: number of elevation rings; views must be a multiple of it."""
     radius_m: float = key(0.5, "float", lo=0.0, hi=5.0, lo_open=True, unit="m")
@@ -104,6 +106,19 @@ class ScanConfig:
     chunk_size: int = key(64, "int", lo=1, hi=1_000_000)
     """The largest chunk, in measurements; at least frames_per_pose (a pose is never split). The daemon publishes each
     pose as its own chunk as soon as it is complete, so this caps a chunk rather than batching poses."""
+    initial_views: int = key(16, "int", lo=1, hi=10_000)
+    """'adaptive' only: the well-spread views taken before any ranking is used (at most `views`)."""
+    min_view_spacing_deg: float = key(5.0, "float", lo=0.0, hi=90.0, unit="deg")
+    """'adaptive' only: a ranked view closer than this to a pose already taken (the angle between the two as seen
+    from the target, degrees) is passed over; so is a fallback pose while another one is farther."""
+    next_views_max_age_s: float = key(60.0, "float", lo=0.0, hi=86_400.0, lo_open=True, unit="s")
+    """'adaptive' only: a next_views.json older than this (s, by its created_utc) is stale: the fallback plan is
+    taken."""
+    next_views_max_lag: int = key(8, "int", lo=0, hi=10_000)
+    """'adaptive' only: a next_views.json ranked this many poses or more before the pose being chosen is stale."""
+    stop_when_converged: bool = key(False, "bool")
+    """'adaptive' only: end the scan (complete, with fewer than `views` poses) as soon as the live reconstruction's
+    recon/live/status.json says "converged": true, after at least `initial_views` poses."""
 
 
 @dataclass(frozen=True)
@@ -209,7 +224,16 @@ def scan_request(base: ScanConfig, overrides: dict, where: str = "scan request")
     if "rings" in overrides and scan.schedule != "rings":
         raise ConfigError(f"{where} rings applies only to schedule 'rings', not {scan.schedule!r} (add "
                           f"--schedule rings, or leave --rings out)")
+    for name in ADAPTIVE_KEYS:
+        if name in overrides and scan.schedule != "adaptive":
+            raise ConfigError(f"{where} {name} applies only to schedule 'adaptive', not {scan.schedule!r} (add "
+                              f"--schedule adaptive, or leave it out)")
     return scan
+
+
+ADAPTIVE_KEYS = ("initial_views", "min_view_spacing_deg", "next_views_max_age_s", "next_views_max_lag",
+                 "stop_when_converged")
+"""[scan] keys that only an adaptive scan reads."""
 
 
 def scan_to_dict(scan: ScanConfig) -> dict:
@@ -239,6 +263,9 @@ def check_scan(scan: ScanConfig, where: str) -> None:
                                                            and not single_ring):
         raise ConfigError(f"{where} min_elevation_deg {scan.min_elevation_deg:g} must be below max_elevation_deg "
                           f"{scan.max_elevation_deg:g} (degrees; equal only for one ring: schedule 'rings', rings 1)")
+    if scan.schedule == "adaptive" and scan.initial_views > scan.views:
+        raise ConfigError(f"{where} initial_views {scan.initial_views} exceeds views {scan.views}: an adaptive scan "
+                          f"begins with initial_views of its views")
     if scan.schedule == "rings" and scan.views % scan.rings:
         raise ConfigError(f"{where} views {scan.views} must be a multiple of rings {scan.rings}")
     if scan.chunk_size < scan.frames_per_pose:

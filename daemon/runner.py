@@ -38,7 +38,8 @@ from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, Spa
 from .config import DaemonConfig, scan_request
 from .devices import Arm, ArmFault, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
 from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
-from .scan_plan import build_plan, sensor_from_tcp
+from .adaptive import ViewChooser, live_converged
+from .scan_plan import build_plan, sensor_from_tcp, tcp_from_sensor
 from .stall import StallWatch
 from .workspace import check_workspace, first_move_problem
 
@@ -48,6 +49,7 @@ STOP_TIMEOUT_S = 5.0  # how long arm.stop() may take
 FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before the runner gives up on it
 PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may take
 READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting) may take
+CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controller for one pose before its fallback
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
 
 
@@ -109,6 +111,9 @@ class ScanRunner:
         except ArmFault as exc:
             raise ConfigError(f"scan {name!r}: {exc}") from None
         hand_eye = self.cfg.arm.hand_eye
+        chooser = None
+        if scan.schedule == "adaptive":
+            chooser = await asyncio.to_thread(ViewChooser, scan, self.cfg.arm, hand_eye, path)
         try:
             # Made here, exclusively: planning took a while, and a folder that appeared meanwhile (another program
             # writing there) is not ours to fill, nor to remove if the start fails.
@@ -134,7 +139,8 @@ class ScanRunner:
             log.warning("%s", self.last_error)
             raise CaptureError(self.last_error) from None
         self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,
-                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer, controller_checked=True)
+                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer, controller_checked=True,
+                           chooser=chooser)
         self._launch("scanning")
         log.info("scan %s: %d poses x %d frames -> %s", name, len(plan), scan.frames_per_pose, path)
         return self.status()
@@ -155,7 +161,10 @@ class ScanRunner:
                 reopen_error = _describe(exc, "reopening the capture")
                 await asyncio.to_thread(job.count_published)
             if job.blocked is None:
-                check_workspace(job.tcp_poses[job.next_pose:], self.cfg.arm, f"scan {job.name!r}")
+                _check_left(job, self.cfg.arm)
+            if job.scan.schedule == "adaptive":
+                job.chooser = await asyncio.to_thread(ViewChooser, job.scan, self.cfg.arm, job.hand_eye, path)
+                await asyncio.to_thread(job.count_choices)
         except (CaptureError, ConfigError, OSError) as exc:
             log.error("cannot take over interrupted scan %s: %s", path, exc)
             self.last_error = f"cannot take over interrupted scan {path.name!r}: {exc}"
@@ -241,7 +250,9 @@ class ScanRunner:
             out.update(scan=job.name, path=str(job.path), pose=job.next_pose, poses=job.n_poses,
                        progress=self._progress(), frames=job.frames, frames_per_pose=job.scan.frames_per_pose,
                        dropped_frames=job.dropped, rate_hz=round(job.rate_hz(), 2), reason=job.reason,
-                       elapsed_s=round(time.monotonic() - job.started, 3))
+                       elapsed_s=round(time.monotonic() - job.started, 3), schedule=job.scan.schedule)
+            if job.chooser is not None:
+                out["views_chosen"] = dict(sorted(job.view_counts.items()))
             if self.state == "pausing":
                 out["pausing_at"] = self._pause_at()
         if self.finished:
@@ -287,8 +298,11 @@ class ScanRunner:
                 try:
                     await self._ready_arm(job)
                     await self._poses(job)
+                    if job.ended_early is not None:
+                        await self._io(_end_early, job)
+                        break
                     if not self._pause_requested:
-                        await self._io(job.writer.finish, "complete")
+                        await self._io(_finish_capture, job)
                         break
                 except (DeviceError, OSError, CaptureError, _Fault) as exc:
                     # What the arm needs before it moves again, once the user resumes.
@@ -323,17 +337,26 @@ class ScanRunner:
         job.arm_fix = None
 
     async def _poses(self, job: ScanJob) -> None:
-        """Run poses from job.next_pose until the plan ends or a pause is requested; raises on a fault."""
+        """Run poses from job.next_pose until the plan ends or a pause is requested; raises on a fault. An adaptive
+        scan chooses each pose first (`_choose`), and ends here when the live reconstruction has converged."""
         pending = None  # the previous pose's publish, overlapping this pose's move, settle and frames
+        replan = None  # an adaptive scan's schedule.npy being rewritten for this pose, overlapping its move
+        ahead = None  # an adaptive scan's choice of the next pose, made while this pose's frames are taken
         try:
             for i in range(job.next_pose, job.n_poses):
                 self._check_end()
                 if self._pause_requested:
                     break
+                if job.chooser is not None:
+                    if await self._converged(job, i):
+                        break
+                    replan, ahead = await self._choose(job, i, ahead), None
                 if i == job.next_pose:
                     await self._check_first_move(job, i)
                 job.in_flight = i
                 t_stop = await self._move(job, i)
+                if job.chooser is not None and i + 1 < job.n_poses:
+                    ahead = asyncio.ensure_future(asyncio.to_thread(job.chooser.choose, job.sensor_poses, i + 1))
                 if job.scan.settle_s > 0:
                     await asyncio.sleep(job.scan.settle_s)
                 frames = await self._frames(job, i, t_stop + job.scan.settle_s)
@@ -345,20 +368,75 @@ class ScanRunner:
                     p, pending = pending, None
                     await self._landed(p, i - 1)
                     job.record_progress(job.writer)
+                    self._count_choice(job, i - 1)
                     self._notify()
-                pending = asyncio.ensure_future(self._io(self._publish, job.writer, _measurements(job, i, frames,
-                                                                                                   arm)))
+                if replan is not None:  # row i names this pose on disk before its chunk is published
+                    r, replan = replan, None
+                    await self._landed(r, i)
+                pending = asyncio.ensure_future(self._io(self._publish, job.writer,
+                                                         _measurements(job, i, frames, arm, job.choices.get(i))))
         finally:
             try:
+                if replan is not None or ahead is not None:  # a rewrite of schedule.npy lands before the writer is
+                    # reopened; a choice made ahead is dropped (the next run chooses afresh)
+                    await asyncio.gather(*(f for f in (replan, ahead) if f is not None), return_exceptions=True)
                 if pending is not None:  # let the publish land before anything else touches the writer
                     try:
                         await asyncio.shield(pending)
                     finally:
                         if pending.done() and not pending.cancelled() and pending.exception() is None:
                             job.record_progress(job.writer)
+                            self._count_choice(job, job.next_pose - 1)
                             self._notify()
             finally:
                 job.in_flight = None
+
+    async def _choose(self, job: ScanJob, i: int, ahead: asyncio.Future | None = None) -> asyncio.Future | None:
+        """Choose pose i of an adaptive scan (`adaptive.ViewChooser`; `ahead`: that choice, begun while the pose
+        before was captured, so that reading next_views.json costs the scan no time); returns the rewrite of
+        schedule.npy it needs (None when row i stays), which runs beside the move. A ranked view the arm's controller
+        refuses is passed over (CONTROLLER_TRIES at most, then the fallback plan)."""
+        plan = job.sensor_poses
+        for _ in range(CONTROLLER_TRIES):
+            if ahead is not None:
+                (choice, rows), ahead = await ahead, None
+            else:
+                choice, rows = await asyncio.to_thread(job.chooser.choose, plan, i)
+            if choice.why != "adaptive":
+                break
+            try:
+                await self.arm.check_poses(tcp_from_sensor(rows[i:i + 1], job.hand_eye), first_index=i)
+                break
+            except ArmFault as exc:
+                log.info("scan %s: ranked view %s for pose %d refused by the controller: %s", job.name,
+                         choice.record.get("rank"), i, exc)
+                job.chooser.refuse(choice.candidate)
+        else:
+            choice, rows = await asyncio.to_thread(job.chooser.fallback, plan, i,
+                                                   f"{CONTROLLER_TRIES} ranked views refused by the controller")
+        job.choices[i] = choice.record
+        if rows is plan or np.array_equal(rows, plan):
+            return None
+        job.sensor_poses, job.tcp_poses = rows, tcp_from_sensor(rows, job.hand_eye)
+        return asyncio.ensure_future(self._io_side(job.writer.replace_schedule, rows.copy()))
+
+    async def _converged(self, job: ScanJob, i: int) -> bool:
+        """Whether an adaptive scan with stop_when_converged ends before pose i (sets job.ended_early)."""
+        scan = job.scan
+        if not scan.stop_when_converged or i < scan.initial_views:
+            return False
+        why = await asyncio.to_thread(live_converged, job.path, scan.initial_views)
+        if why is None:
+            return False
+        job.ended_early = f"ended at {i} of {job.n_poses} poses: {why} (stop_when_converged)"
+        log.info("scan %s %s", job.name, job.ended_early)
+        return True
+
+    @staticmethod
+    def _count_choice(job: ScanJob, i: int) -> None:
+        record = job.choices.pop(i, None)
+        if record is not None:
+            job.view_counts[record["why"]] += 1
 
     async def _check_first_move(self, job: ScanJob, i: int) -> None:
         """The first move of a run starts wherever the arm is now (after a pause it may have been jogged anywhere):
@@ -575,9 +653,16 @@ class ScanRunner:
         loop = asyncio.get_running_loop()
         return await loop.run_in_executor(self._io_pool, lambda: fn(*args, **kwargs))
 
+    @staticmethod
+    async def _io_side(fn, *args):
+        """Capture I/O that may run beside the writer thread's (it touches no file the writer does: an adaptive
+        scan's schedule.npy), so that it never waits behind a publish."""
+        return await asyncio.to_thread(fn, *args)
 
-def _measurements(job: ScanJob, i: int, frames: list[Frame], arm) -> list[Measurement]:
-    """One measurement per frame at the arm's actual pose (raw counts, never summed)."""
+
+def _measurements(job: ScanJob, i: int, frames: list[Frame], arm, choice: dict | None = None) -> list[Measurement]:
+    """One measurement per frame at the arm's actual pose (raw counts, never summed); `choice`: why an adaptive scan
+    took the pose (its `view_choice`)."""
     tcp = np.asarray(arm.tcp_pose, dtype=np.float64)
     sensor_pose = sensor_from_tcp(tcp, job.hand_eye)
     common = {"tcp_pose": tcp.tolist(), "joints": np.asarray(arm.joints, float).tolist(),
@@ -588,8 +673,40 @@ def _measurements(job: ScanJob, i: int, frames: list[Frame], arm) -> list[Measur
                 "depths_mm": f.depths_mm, "confidences": f.confidences, **common}
         if f.extra:
             meta["extra"] = f.extra
+        if choice is not None:
+            meta["view_choice"] = choice
         out.append(Measurement(f.hists, sensor_pose, i, k, f.reference, meta))
     return out
+
+
+def _check_left(job: ScanJob, arm) -> None:
+    """Check the poses a scan has left against the workspace: as a path for a planned scan; pose by pose for an
+    adaptive one, whose moves are checked as each pose is chosen (the row being taken when it stopped may be a
+    ranked view that the rest of the plan was never meant to follow)."""
+    left, where = job.tcp_poses[job.next_pose:], f"scan {job.name!r}"
+    if job.scan.schedule != "adaptive":
+        check_workspace(left, arm, where)
+        return
+    for k, tcp in enumerate(left):
+        check_workspace(tcp[None], arm, f"{where} pose {job.next_pose + k}")
+
+
+def _finish_capture(job: ScanJob) -> None:
+    """Mark the capture complete; an adaptive scan's manifest also counts its poses by why they were taken."""
+    if job.chooser is None:
+        job.writer.finish("complete")
+        return
+    job.writer.flush()
+    job.writer.set_state("complete", None, view_choices=dict(sorted(job.view_counts.items())))
+
+
+def _end_early(job: ScanJob) -> None:
+    """End an adaptive scan at its published poses (job.ended_early says why): schedule.npy and planned_poses cut to
+    them first, so that the capture is complete as it stands (every planned pose published), then the state."""
+    n = job.writer.next_pose_index
+    job.writer.replace_schedule(job.sensor_poses[:n])
+    job.writer.flush()
+    job.writer.set_state("complete", job.ended_early, view_choices=dict(sorted(job.view_counts.items())))
 
 
 def _remove_partial(path: Path) -> None:

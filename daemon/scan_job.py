@@ -13,7 +13,7 @@ import json
 import logging
 import re
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -83,6 +83,14 @@ class ScanJob:
     started: float = field(default_factory=time.monotonic)
     history: deque = field(default_factory=lambda: deque(maxlen=256))
     """(monotonic s, frames published) after each pose, for the rate."""
+    chooser: object | None = None
+    """An adaptive scan's `adaptive.ViewChooser`; None for a planned scan."""
+    choices: dict = field(default_factory=dict)
+    """Pose index -> why it was taken (adaptive scans: the `view_choice` record of its measurements)."""
+    view_counts: Counter = field(default_factory=Counter)
+    """Poses published by why they were taken (adaptive scans): initial, adaptive, fallback."""
+    ended_early: str | None = None
+    """Why an adaptive scan ends before its last planned pose (the live reconstruction converged), or None."""
 
     @property
     def n_poses(self) -> int:
@@ -104,6 +112,18 @@ class ScanJob:
             poses.update(int(i) for i in chunk.pose_indices)
         self.next_pose = max(poses) + 1 if poses else 0
         self.frames = frames
+
+    def count_choices(self) -> None:
+        """view_counts read from the published measurements' meta (after a restart)."""
+        self.view_counts = Counter()
+        reader = CaptureReader(self.path)
+        for name in reader.chunk_names():
+            seen = set()
+            for m in read_json(self.path / name / "meta.json").get("measurements", []):
+                choice = m.get("view_choice") if isinstance(m, dict) else None
+                if isinstance(choice, dict) and m.get("pose_index") not in seen:
+                    seen.add(m.get("pose_index"))
+                    self.view_counts[str(choice.get("why"))] += 1
 
     def rate_hz(self, window_s: float = 10.0) -> float:
         """Histograms published per second over the last window_s seconds."""

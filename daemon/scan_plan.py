@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from spadscan.protocol.errors import ConfigError, SimulationError
+from spadscan.protocol.next_views import CANDIDATES
 
 from .config import ArmConfig, ScanConfig, scan_to_dict
 from .workspace import check_workspace
@@ -56,7 +57,7 @@ def generate_sensor_poses(scan: ScanConfig) -> np.ndarray:
     from spadscan.protocol import schedules
 
     try:
-        if scan.schedule == "fibonacci":
+        if scan.schedule in ("fibonacci", "adaptive"):  # adaptive: its fallback plan
             poses = schedules.fibonacci_hemisphere(scan.views, scan.radius_m, scan.target, scan.min_elevation_deg,
                                                    scan.max_elevation_deg)
         else:
@@ -132,8 +133,49 @@ def build_plan(scan: ScanConfig, arm: ArmConfig, *, start_tcp: np.ndarray | None
         perm = order_serpentine(sensor[:, :3, 3], np.asarray(scan.target, float), bands)
     else:
         perm = np.arange(len(sensor))
+    extra = {}
+    if scan.schedule == "adaptive":
+        first = initial_first(sensor[perm], np.asarray(scan.target, float), scan.initial_views, tcp[perm])
+        perm = perm[first]
+        extra = {"candidates": CANDIDATES, "fallback": "fibonacci"}
     sensor, tcp = sensor[perm], tcp[perm]
-    check_workspace(tcp, arm, where, None if start_tcp is None else np.asarray(start_tcp, float))
-    description = {**scan_to_dict(scan), "travel_m": round(path_length(tcp[:, :3, 3]), 4),
+    start = None if start_tcp is None else np.asarray(start_tcp, float)
+    if scan.schedule == "adaptive":
+        # Only the initial views are a path; every later move is checked when its pose is chosen.
+        check_workspace(tcp[:scan.initial_views], arm, where, start)
+        for k in range(scan.initial_views, len(tcp)):
+            check_workspace(tcp[k:k + 1], arm, f"{where} pose {k}")
+    else:
+        check_workspace(tcp, arm, where, start)
+    description = {**scan_to_dict(scan), **extra, "travel_m": round(path_length(tcp[:, :3, 3]), 4),
                    "generated_order": perm.tolist()}
     return ScanPlan(sensor, tcp, description)
+
+
+def spread_subset(directions: np.ndarray, k: int, first: int = 0) -> np.ndarray:
+    """Indices of k of the unit vectors (P, 3), each in turn the one farthest from all chosen so far (by angle),
+    beginning with `first`: a well-spread subset, in the order chosen."""
+    n = len(directions)
+    k = min(k, n)
+    chosen = [first]
+    nearest = directions @ directions[first]  # cosine to the nearest chosen: smaller is farther
+    for _ in range(1, k):
+        nearest[chosen] = np.inf
+        j = int(np.argmin(nearest))
+        chosen.append(j)
+        nearest = np.maximum(nearest, directions @ directions[j])
+    return np.asarray(chosen, dtype=np.int64)
+
+
+def initial_first(sensor: np.ndarray, target: np.ndarray, n_initial: int, tcp: np.ndarray) -> np.ndarray:
+    """A permutation of a plan in visiting order (sensor and tcp (P, 4, 4)) that puts a well-spread subset of
+    n_initial poses first (`spread_subset`, from the plan's first pose; visited by a nearest-neighbour tour from it),
+    then the others by a nearest-neighbour tour from the last of them: an adaptive scan's initial views, then its
+    fallback plan."""
+    d = sensor[:, :3, 3] - target
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    initial = spread_subset(d, n_initial, 0)
+    initial = initial[order_nearest(tcp[initial, :3, 3], tcp[0, :3, 3])]
+    rest = np.setdiff1d(np.arange(len(sensor)), initial)
+    rest = rest[order_nearest(tcp[rest, :3, 3], tcp[initial[-1], :3, 3])]  # a tour on from the last initial view
+    return np.concatenate([initial, rest])

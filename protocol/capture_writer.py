@@ -257,6 +257,20 @@ class CaptureWriter:
         self._buffer = []
         return name
 
+    def replace_schedule(self, planned_poses: np.ndarray) -> None:
+        """Replace schedule.npy atomically (temp file, fsync, rename, fsync the folder): a scan that chooses its poses
+        as it goes (adaptive) rewrites the rows it has not published. A different number of poses (a scan that ends
+        early) is recorded in the manifest's planned_poses too, after the file. Only a change of that number writes
+        the manifest: replacing the rows alone may run beside this writer's publishing, on another thread."""
+        planned = check_poses(np.asarray(planned_poses, dtype=np.float64), "planned poses")
+        tmp = self.path / f"{TMP_PREFIX}{SCHEDULE}"
+        _write(save_npy_durable, tmp, planned)
+        os.replace(tmp, self.path / SCHEDULE)
+        _write(fsync_dir, self.path)
+        if self.manifest.get("planned_poses") != len(planned):
+            self.manifest.update(planned_poses=int(len(planned)), updated_utc=_now())
+            _write(write_json_atomic, self.path / MANIFEST, self.manifest)
+
     def set_state(self, state: str, reason: str | None = None, **extra) -> None:
         """Record the scan's state (and why) in the manifest, atomically."""
         if state not in STATES:

@@ -31,7 +31,8 @@ SCAN_OPTIONS = {
     "target": ("target", None), "min_elevation": ("min_elevation_deg", float),
     "max_elevation": ("max_elevation_deg", float), "jitter": ("jitter_deg", float), "seed": ("seed", int),
     "order": ("order", str), "frames_per_pose": ("frames_per_pose", int), "settle": ("settle_s", float),
-    "chunk_size": ("chunk_size", int),
+    "chunk_size": ("chunk_size", int), "initial_views": ("initial_views", int),
+    "stop_when_converged": ("stop_when_converged", None),
 }
 
 
@@ -101,7 +102,9 @@ def add_arguments(parser) -> None:
     settings = scan.add_argument_group("scan settings", "each defaults to the rig config's [scan] key named in "
                                                         "brackets")
     settings.add_argument("--views", type=int, help="number of sensor poses [views]")
-    settings.add_argument("--schedule", choices=("fibonacci", "rings"), help="pose layout [schedule]")
+    settings.add_argument("--schedule", choices=("fibonacci", "rings", "adaptive"),
+                          help="pose layout; adaptive: views ranked by a live reconstruction, else a Fibonacci "
+                               "plan [schedule]")
     settings.add_argument("--rings", type=int,
                           help="elevation rings; schedule 'rings' only, views must be a multiple [rings]")
     settings.add_argument("--radius", type=float, metavar="M", help="sensor-to-target distance (m) [radius_m]")
@@ -122,6 +125,11 @@ def add_arguments(parser) -> None:
     settings.add_argument("--chunk-size", type=int, metavar="N",
                           help="largest chunk, >= frames per pose; each pose is published as its own chunk "
                                "[chunk_size]")
+    settings.add_argument("--initial-views", type=int, metavar="N",
+                          help="adaptive: well-spread views taken before any ranking is used [initial_views]")
+    settings.add_argument("--stop-when-converged", action="store_const", const=True, default=None,
+                          help="adaptive: end the scan once the live reconstruction reports convergence "
+                               "[stop_when_converged]")
     op("pause", "pause after the pose in flight is published")
     op("resume", "continue a paused or interrupted scan at its first unpublished pose")
     abort = op("abort", "stop the scan for good (published poses stay)")

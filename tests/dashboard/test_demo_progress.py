@@ -84,7 +84,8 @@ def test_the_demo_prints_the_dashboard_progress_and_report(tmp_path):
     # what the test waits for is the worker's exit, after which the demo shows the job's last bar from its log.
     code = ("import sys; import spadscan.demo as demo; demo.running_job_progress = lambda captures: None; "
             "from spadscan.cli import main; sys.exit(main(sys.argv[1:]))")
-    r = subprocess.run([sys.executable, "-c", code, "demo", "--out", str(out), "--views", "8",
+    # --offline: the job after the scan, whose progress line this checks (the live demo's lines: test_live_demo.py).
+    r = subprocess.run([sys.executable, "-c", code, "demo", "--out", str(out), "--views", "8", "--offline",
                         "--budget-s", "3", "--dashboard", "--dashboard-port", "0"],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]

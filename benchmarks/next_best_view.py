@@ -1,0 +1,403 @@
+"""Chamfer against the number of views taken: adaptive views (the live ranking and the daemon's choice) against the
+Fibonacci schedule, with the same photon budget per view and the same reconstruction budget per fit.
+
+    python benchmarks/next_best_view.py --scenes builtin:cup builtin:lamp builtin:teddy PATH/bunny.obj
+        [--measures coverage] [--counts 16,24,32,48,64,96,128] [--steps 1000] [--batch 8] [--live-steps 150]
+        [--score 128,64] [--seed 0] [--out benchmark-nbv] [--threads 1]
+
+A scene is `builtin:NAME` or a mesh file (the dataset's bunny.obj), simulated with the dataset's sensor (`lcspc-sim`:
+one 15-degree cone, 1024 bins, 5,000 cycles per view) on the daemon's default band: 10-80 degrees of elevation,
+0.5 m around the origin.
+
+- `fibonacci` at N views: the daemon's plan of a Fibonacci scan of N views (`scan_plan.build_plan`), simulated.
+- `adaptive` (one per --measures): the daemon's adaptive plan of max(--counts) views. Its first min(--counts)
+  views are the well-spread initial ones; then the loop a live job and the daemon run, offline: the views so far are
+  simulated, a live model fits them (warm-started from the previous model, --live-steps steps, the first fit
+  --live-first-steps; a field snapshot every third of them), `worker.live.next_views.rank_candidates` ranks the
+  candidates with the measure, the ranking is written as next_views.json, and the daemon's own `ViewChooser` (the
+  same freshness, spacing and workspace checks as a scan, with the default sim arm) takes the next --batch poses
+  from it, one after the other. A real scan ranks every few seconds, about every pose or two; --batch 8 is coarser.
+- Every count N of either schedule is then reconstructed from scratch by the `fast` preset for --steps steps (early
+  stop off, the learning rate decay laid over the steps after the coarse level, one seed) and scored like
+  `spadscan reconstruct` (the 256-cell mesh, 300,000 points per mesh): the same budget for every fit.
+
+Prints one table (scene x schedule: Chamfer in mm at each count; the fewest views of each adaptive run that reach
+fibonacci's Chamfer at the largest count) and writes table.md, results.json and nbv.png into --out. Fits are cached
+in results.json (a rerun with the same settings skips them; an adaptive sequence is kept in sequences/), so a killed
+run continues where it stopped. Step counts, not seconds: the figures do not depend on the machine's load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+LIVE_FIRST_STEPS = 400
+"""Steps of the first live fit (a cold start: the coarse level and the refinement)."""
+SENSOR = "lcspc-sim"
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenes", nargs="+", default=[], help="builtin:NAME or mesh files")
+    p.add_argument("--combine", nargs="+", type=Path, default=[], metavar="FOLDER",
+                   help="make the table and plot in --out from the results.json of these earlier --out folders "
+                        "(runs split over processes), running nothing")
+    p.add_argument("--measures", default="coverage", help="comma-separated ranking measures (coverage, "
+                                                          "disagreement, sensitivity)")
+    p.add_argument("--counts", default="16,24,32,48,64,96,128", help="views at which both schedules are scored; "
+                                                                      "the smallest is the adaptive scan's initial views")
+    p.add_argument("--score", default="", help="comma-separated counts to fit in this run (default: all of --counts; "
+                                               "a run split over time scores the counts that decide the goal first)")
+    p.add_argument("--views", type=int, default=128, help="views of the adaptive scan's plan (default 128)")
+    p.add_argument("--steps", type=int, default=1000, help="steps of every scored fit (default 1000)")
+    p.add_argument("--batch", type=int, default=8, help="views taken per ranking in the adaptive loop (default 8)")
+    p.add_argument("--live-steps", type=int, default=150, help="live-fit steps per ranking (default 150)")
+    p.add_argument("--live-first-steps", type=int, default=LIVE_FIRST_STEPS,
+                   help=f"steps of the first live fit, a cold start (default {LIVE_FIRST_STEPS})")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    p.add_argument("--out", type=Path, default=Path("benchmark-nbv"))
+    p.add_argument("--no-fibonacci", action="store_true", help="score the adaptive runs only")
+    args = p.parse_args(argv)
+    if not args.scenes and not args.combine:
+        p.error("give --scenes to run, or --combine FOLDER... to tabulate earlier runs")
+    from spadscan.worker.live.next_views import MEASURES
+
+    args.measures = [m for m in args.measures.split(",") if m]
+    bad = [m for m in args.measures if m not in MEASURES]
+    if bad:
+        p.error(f"unknown measure {bad[0]!r} (known: {', '.join(MEASURES)})")
+    try:
+        args.counts = sorted({int(c) for c in args.counts.split(",")})
+    except ValueError:
+        p.error(f"--counts {args.counts!r} must be comma-separated integers")
+    try:
+        args.score = sorted({int(c) for c in args.score.split(",") if c} or args.counts, reverse=True)
+    except ValueError:
+        p.error(f"--score {args.score!r} must be comma-separated integers")
+    if not set(args.score) <= set(args.counts):
+        p.error(f"--score {args.score} must be among --counts {args.counts}")
+    if args.counts[-1] > args.views:
+        p.error(f"--counts go up to {args.counts[-1]}, beyond the plan's --views {args.views}")
+    if args.counts[0] < 4 or args.steps < 1 or args.batch < 1 or min(args.live_steps, args.live_first_steps) < 3:
+        p.error("--counts must be >= 4, --steps and --batch >= 1, --live-steps and --live-first-steps >= 3")
+    return args
+
+
+# ---- scenes and captures ------------------------------------------------------------------------------------------
+class Scene:
+    """A mesh, its ground truth and its simulator."""
+
+    def __init__(self, spec: str, seed: int):
+        from spadscan.protocol.mesh_io import load_mesh_spec
+        from spadscan.protocol.sensor_presets import sensor_preset
+        from spadscan.protocol.simulator import SimSettings, Simulator
+        from spadscan.worker.ground_truth import load_ground_truth
+
+        self.spec = spec
+        self.name = spec.split(":", 1)[1] if spec.startswith("builtin:") else Path(spec).stem
+        self.mesh, self.record = load_mesh_spec(spec)
+        self.truth = load_ground_truth(spec)
+        self.seed = seed
+        self.sim = Simulator(self.mesh, sensor_preset(SENSOR), SimSettings(), seed)
+
+    def frames(self, poses: np.ndarray) -> np.ndarray:
+        """Histograms (n, Z, B) of these views, their photon noise drawn from a seed of the views themselves: the
+        same views give the same counts whatever ran before."""
+        from spadscan.protocol.simulator import Simulator
+
+        sim = Simulator(self.mesh, self.sim.base_sensor, self.sim.settings, (int(digest(poses), 16) + self.seed)
+                        % 2**63)
+        return sim.frames(poses).hists
+
+    def capture(self, folder: Path, poses: np.ndarray, hists: np.ndarray) -> Path:
+        """A complete capture of these views (written afresh)."""
+        import shutil
+
+        from spadscan.protocol.capture_format import Measurement
+        from spadscan.protocol.capture_writer import CaptureWriter
+
+        shutil.rmtree(folder, ignore_errors=True)
+        w = CaptureWriter.create(folder, self.sim.sensor, rig={"kind": "simulated"}, planned_poses=poses,
+                                 chunk_size=256, scene=dict(self.record))
+        for i, (p, h) in enumerate(zip(poses, hists)):
+            w.append(Measurement(h, p, i, 0, None, {"simulated": True}))
+        w.finish("complete")
+        return folder
+
+
+def scan_config(schedule: str, views: int, initial: int, batch: int):
+    from spadscan.daemon.config import ScanConfig, scan_with
+
+    extra = {"initial_views": initial, "next_views_max_lag": batch, "next_views_max_age_s": 86_400.0}
+    return scan_with(ScanConfig(), {"schedule": schedule, "views": views, **(extra if schedule == "adaptive" else {})})
+
+
+def fibonacci_poses(views: int) -> np.ndarray:
+    from spadscan.daemon.config import ArmConfig
+    from spadscan.daemon.scan_plan import build_plan
+
+    return build_plan(scan_config("fibonacci", views, 0, 1), ArmConfig()).sensor_poses
+
+
+# ---- fits ---------------------------------------------------------------------------------------------------------
+def fit_config(steps: int):
+    from spadscan.worker.reconstruct import run_config
+
+    coarse = 300
+    return run_config("fast", {"early_stop": False, "schedule.fine_steps": max(1, steps - coarse)})
+
+
+def score_fit(capture: Path, truth, steps: int, seed: int) -> dict:
+    """Reconstruct `capture` from scratch for `steps` steps; Chamfer and its parts (mm) against `truth`."""
+    import torch
+
+    from spadscan.worker.reconstruct import set_up_run
+
+    config = fit_config(steps)
+    t0 = time.perf_counter()
+    run = set_up_run(capture, config, torch.device("cpu"), steps=steps, budget_s=None, seed=seed, log=lambda s: None)
+    for _ in range(steps):
+        run.model.step()
+    fit_s = time.perf_counter() - t0
+    mesh = run.model.extract_mesh(config.mesh_resolution)
+    m = truth.metrics(mesh, n_points=config.metrics_points, seed=seed)
+    return {"chamfer_mm": m.chamfer_mm, "accuracy_mm": m.accuracy_mm, "completeness_mm": m.completeness_mm,
+            "steps": steps, "fit_seconds": round(fit_s, 1)}
+
+
+class LiveLoop:
+    """The live model of the adaptive loop: rebuilt on the views so far and warm-started from the last one."""
+
+    def __init__(self, seed: int):
+        self.model, self.seed, self.steps = None, seed, 0
+
+    def snapshot(self, capture: Path, steps: int):
+        import torch
+
+        from spadscan.worker.live.live_fit import grid_snapshot
+        from spadscan.worker.live.snapshot import FieldSnapshot, LiveSnapshot
+        from spadscan.worker.recon.model_api import RunPlan
+        from spadscan.worker.recon.presets import make_model
+        from spadscan.worker.recon.scene_data import load_scene
+
+        scene = load_scene(capture)
+        model = make_model(scene, fit_config(10_000), torch.device("cpu"), RunPlan(None, None, self.seed))
+        if self.model is not None:
+            model.warm_start(self.model.mesh_field(), self.model.level)
+        self.model = model
+        fields = []
+        for k in range(1, steps + 1):
+            model.step()
+            if k % (steps // 3) == 0 or k == steps:
+                fields.append(FieldSnapshot(grid_snapshot(model.mesh_field()), self.steps + k, scene.n_views))
+        self.steps += steps
+        return LiveSnapshot(fields=fields[-3:], hull=grid_snapshot(model.problem.hull),
+                            poses=scene.poses.double().numpy(), sensor=scene.sensor, floor_z=model.problem.floor_z)
+
+
+def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, upto: int, args, work: Path) -> dict:
+    """The first `upto` poses an adaptive scan of `views` takes on `scene` (see the module docstring) and why each
+    was taken."""
+    from spadscan.daemon.adaptive import ViewChooser
+    from spadscan.daemon.config import ArmConfig, scan_to_dict
+    from spadscan.daemon.scan_plan import build_plan
+    from spadscan.protocol.next_views import candidate_poses, ranked, write_next_views
+    from spadscan.worker.live.next_views import rank_candidates
+
+    arm = ArmConfig()
+    scan = scan_config("adaptive", views, initial, args.batch)
+    plan = build_plan(scan, arm).sensor_poses
+    live = work / "live"
+    live.mkdir(parents=True, exist_ok=True)
+    chooser = ViewChooser(scan, arm, arm.hand_eye, live)
+    candidates = candidate_poses(scan_to_dict(scan))
+    why, poses = [], []
+    loop = LiveLoop(args.seed)
+    rank_s = []
+    while len(poses) < upto:
+        n = len(poses)
+        if n >= initial:
+            capture = scene.capture(work / "stage", np.array(poses), scene.frames(np.array(poses)))
+            snap = loop.snapshot(capture, args.live_first_steps if loop.model is None else args.live_steps)
+            t0 = time.perf_counter()
+            scores = rank_candidates(snap, candidates, measure)
+            rank_s.append(time.perf_counter() - t0)
+            write_next_views(live, ranked(candidates, scores, n, measure))
+        for i in range(n, min(upto, n + (initial if n < initial else args.batch))):
+            choice, plan = chooser.choose(plan, i)
+            poses.append(choice.pose)
+            why.append(choice.why)
+    poses = np.array(poses)
+    return {"poses": poses, "why": why, "rank_seconds": float(np.mean(rank_s)) if rank_s else 0.0,
+            "live_steps": loop.steps}
+
+
+def digest(poses: np.ndarray) -> str:
+    return hashlib.sha256(np.round(np.asarray(poses), 9).tobytes()).hexdigest()[:16]
+
+
+# ---- the run --------------------------------------------------------------------------------------------------------
+class Results:
+    """results.json: every fit, keyed by scene, schedule and count, with the settings that made it."""
+
+    def __init__(self, path: Path, settings: dict):
+        self.path, self.settings = path, settings
+        self.data = json.loads(path.read_text()) if path.is_file() else {"fits": {}}
+        if self.data.get("settings") not in (None, settings):
+            self.data = {"fits": {}}  # other settings: nothing cached applies
+        self.data["settings"] = settings
+
+    def get(self, key: str, poses_digest: str) -> dict | None:
+        """The fit of `key`, also one made under another key of the same scene with the same views (the adaptive
+        runs share their initial views); None when there is none."""
+        entry = self.data["fits"].get(key)
+        if entry is not None and entry.get("poses_digest") == poses_digest:
+            return entry
+        scene = key.split("|")[0]
+        for other, e in self.data["fits"].items():
+            if other.split("|")[0] == scene and e.get("poses_digest") == poses_digest:
+                self.put(key, dict(e))
+                return e
+        return None
+
+    def put(self, key: str, entry: dict) -> None:
+        self.data["fits"][key] = entry
+        tmp = self.path.with_name(".tmp-" + self.path.name)
+        tmp.write_text(json.dumps(self.data, indent=1))
+        tmp.replace(self.path)
+
+
+def run(args) -> dict:
+    import torch
+
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    settings = {"views": args.views, "steps": args.steps, "batch": args.batch, "live_steps": args.live_steps,
+                "seed": args.seed, "sensor": SENSOR, "live_first_steps": args.live_first_steps}
+    results = Results(args.out / "results.json", settings)
+    initial = min(args.counts)
+    for spec in args.scenes:
+        scene = Scene(spec, args.seed)
+        work = args.out / "work" / scene.name
+        if not args.no_fibonacci:
+            for n in args.score:
+                poses = fibonacci_poses(n)
+                key = f"{scene.name}|fibonacci|{n}"
+                if results.get(key, digest(poses)) is None:
+                    hists = scene.frames(poses)
+                    entry = score_fit(scene.capture(work / "fit", poses, hists), scene.truth, args.steps, args.seed)
+                    results.put(key, {**entry, "poses_digest": digest(poses)})
+                    print(f"{key}: {entry['chamfer_mm']:.2f} mm", file=sys.stderr)
+        for measure in args.measures:
+            seq = sequence(scene, measure, initial, max(args.counts), args, work)
+            for n in args.score:
+                poses = seq["poses"][:n]
+                key = f"{scene.name}|adaptive-{measure}|{n}"
+                if results.get(key, digest(poses)) is None:
+                    hists = scene.frames(poses)
+                    entry = score_fit(scene.capture(work / "fit", poses, hists), scene.truth, args.steps, args.seed)
+                    counts = {w: seq["why"][:n].count(w) for w in ("initial", "adaptive", "fallback")}
+                    results.put(key, {**entry, "poses_digest": digest(poses), "view_choices": counts,
+                                      "rank_seconds": seq["rank_seconds"]})
+                    print(f"{key}: {entry['chamfer_mm']:.2f} mm", file=sys.stderr)
+    return results.data
+
+
+def sequence(scene: Scene, measure: str, initial: int, upto: int, args, work: Path) -> dict:
+    """The adaptive sequence's first `upto` poses, from sequences/ when a run with the same settings made as many."""
+    folder = args.out / "sequences"
+    folder.mkdir(exist_ok=True)
+    tag = f"{scene.name}-{measure}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}-f{args.live_first_steps}-s{args.seed}"
+    path = folder / f"{tag}.npz"
+    if path.is_file():
+        saved = np.load(path, allow_pickle=False)
+        if len(saved["poses"]) >= upto:
+            return {"poses": saved["poses"], "why": saved["why"].tolist(),
+                    "rank_seconds": float(saved["rank_seconds"])}
+    t0 = time.perf_counter()
+    seq = adaptive_sequence(scene, measure, args.views, initial, upto, args, work / measure)
+    print(f"{scene.name} {measure}: first {upto} views of {args.views} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    np.savez(path, poses=seq["poses"], why=np.array(seq["why"]), rank_seconds=seq["rank_seconds"])
+    return seq
+
+
+# ---- the table and the plot ---------------------------------------------------------------------------------------
+def table(data: dict) -> str:
+    counts = sorted({int(k.split("|")[2]) for k in data["fits"]})
+    rows: dict[tuple[str, str], dict[int, float]] = {}
+    for key, entry in data["fits"].items():
+        scene, schedule, n = key.split("|")
+        rows.setdefault((scene, schedule), {})[int(n)] = entry["chamfer_mm"]
+    head = "| scene | schedule | " + " | ".join(str(c) for c in counts) + f" | views to fibonacci@{counts[-1]} |"
+    lines = [head, "|" + "---|" * (len(counts) + 3)]
+    for (scene, schedule), by_n in sorted(rows.items()):
+        goal = rows.get((scene, "fibonacci"), {}).get(counts[-1])
+        reach = "-"
+        if goal is not None and schedule != "fibonacci":
+            hit = [n for n in counts if n in by_n and by_n[n] <= goal]
+            reach = str(hit[0]) if hit else f"> {max(by_n)}"
+        cells = [f"{by_n[c]:.2f}" if c in by_n else "" for c in counts]
+        lines.append(f"| {scene} | {schedule} | " + " | ".join(cells) + f" | {reach} |")
+    return "\n".join(lines)
+
+
+def plot(data: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    series: dict[str, dict[str, dict[int, float]]] = {}
+    for key, entry in data["fits"].items():
+        scene, schedule, n = key.split("|")
+        series.setdefault(scene, {}).setdefault(schedule, {})[int(n)] = entry["chamfer_mm"]
+    fig, axes = plt.subplots(1, len(series), figsize=(4.2 * len(series), 3.6), squeeze=False)
+    for ax, (scene, by_schedule) in zip(axes[0], sorted(series.items())):
+        for schedule, pts in sorted(by_schedule.items()):
+            n = sorted(pts)
+            ax.plot(n, [pts[k] for k in n], marker="o", label=schedule)
+        ax.set_xscale("log", base=2)
+        ax.set_title(scene)
+        ax.set_xlabel("views taken")
+        ax.set_ylabel("Chamfer (mm)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def combine(folders: list[Path]) -> dict:
+    """The fits of several runs' results.json in one (runs split over processes; their settings must agree)."""
+    data = {"fits": {}}
+    for folder in folders:
+        part = json.loads((folder / "results.json").read_text())
+        if data.get("settings") not in (None, part["settings"]):
+            raise SystemExit(f"{folder}: made with other settings ({part['settings']}) than {folders[0]}")
+        data["settings"] = part["settings"]
+        data["fits"].update(part["fits"])
+    return data
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    data = combine(args.combine) if args.combine else run(args)
+    text = table(data)
+    print(text)
+    (args.out / "table.md").write_text(text + "\n")
+    plot(data, args.out / "nbv.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

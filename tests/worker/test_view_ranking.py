@@ -1,0 +1,103 @@
+"""Ranking candidate views from a live snapshot (worker/live/next_views.py): each measure prefers the views that
+see what the model lacks, every score is finite, and the ranking reaches next_views.json as the daemon reads it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from spadscan.daemon.config import ScanConfig, scan_to_dict, scan_with
+from spadscan.protocol.next_views import candidate_poses, read_next_views
+from spadscan.protocol.schedules import fibonacci_hemisphere
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.worker.live.field_trace import TracedField
+from spadscan.worker.live.next_views import is_adaptive, rank_candidates, update_next_views
+from spadscan.worker.live.snapshot import FieldSnapshot, GridSnapshot, LiveSnapshot
+
+N, R, CENTRE = 48, 0.06, np.array([0.0, 0.0, 0.07])
+ORIGIN = np.array([-0.1, -0.1, -0.02])
+VOXEL = 0.2 / (N - 1)
+BAND = {"radius_m": 0.5, "target": [0.0, 0.0, 0.0], "min_elevation_deg": 10.0, "max_elevation_deg": 80.0}
+
+
+def grid(radius_of=lambda x, y, z: R) -> GridSnapshot:
+    z, y, x = np.meshgrid(*(ORIGIN[::-1][i] + VOXEL * np.arange(N) for i in range(3)), indexing="ij")
+    d = np.sqrt(x ** 2 + y ** 2 + (z - CENTRE[2]) ** 2)
+    return GridSnapshot((d - radius_of(x, y, z)).astype(np.float32), ORIGIN, VOXEL)
+
+
+def snapshot(fields, poses) -> LiveSnapshot:
+    return LiveSnapshot([FieldSnapshot(g, k, len(poses)) for k, g in enumerate(fields)], fields[-1], poses,
+                        sensor_preset("lcspc-sim"), 0.0)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_tracing_finds_the_sphere():
+    field = TracedField(grid())
+    o = torch.tensor([[0.5, 0.0, 0.07], [0.5, 0.0, 0.5]])
+    d = torch.tensor([[-1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    hits = field.trace(o, d, 1.0)
+    assert hits.hit.tolist() == [True, False]
+    assert abs(float(hits.t[0]) - (0.5 - R)) < 0.5 * VOXEL
+    np.testing.assert_allclose(hits.normal[0].numpy(), [1, 0, 0], atol=0.05)
+    assert float(hits.t[1]) == 1.0  # the far limit: it never enters the box
+
+
+def test_coverage_prefers_the_side_no_view_has_seen():
+    cand = candidate_poses(BAND, 128)
+    taken = fibonacci_hemisphere(64, 0.5, (0, 0, 0), 10, 80)
+    taken = taken[taken[:, 0, 3] > 0.1]  # only views from +x
+    scores = rank_candidates(snapshot([grid()], taken), cand, "coverage")
+    assert np.all(np.isfinite(scores)) and np.all(scores >= 0)
+    x = cand[:, 0, 3]
+    assert scores[x < -0.1].mean() > 3 * scores[x > 0.1].mean()
+    assert cand[np.argmax(scores), 0, 3] < 0
+
+
+@pytest.mark.parametrize("measure", ["disagreement", "sensitivity"])
+def test_ray_measures_prefer_where_the_snapshots_disagree(measure):
+    cand = candidate_poses(BAND, 128)
+    still = grid()
+    # a cap on the -y side still grows: hidden from +y
+    moving = grid(lambda x, y, z: R + 0.02 * np.clip(-y / np.sqrt(x ** 2 + y ** 2 + (z - CENTRE[2]) ** 2 + 1e-12)
+                                                     - 0.6, 0, None))
+    scores = rank_candidates(snapshot([still, still, moving], cand[:4]), cand, measure)
+    assert np.all(np.isfinite(scores))
+    y = cand[:, 1, 3]
+    assert scores[y < -0.2].mean() > 3 * scores[y > 0.2].mean()
+    # one snapshot, or snapshots that agree: nothing to choose by
+    assert not rank_candidates(snapshot([still, still], cand[:4]), cand, measure).any()
+
+
+def test_nothing_to_see_scores_zero_and_bad_input_is_refused():
+    empty = GridSnapshot(np.ones((N, N, N), np.float32), ORIGIN, VOXEL)
+    cand = candidate_poses(BAND, 16)
+    for measure in ("coverage", "disagreement", "sensitivity"):
+        assert not rank_candidates(snapshot([empty, empty], cand[:2]), cand, measure).any()
+    assert rank_candidates(snapshot([empty], cand[:2]), np.zeros((0, 4, 4))).shape == (0,)
+    with pytest.raises(ValueError, match="measure 'best'"):
+        rank_candidates(snapshot([empty], cand[:2]), cand, "best")
+    with pytest.raises(ValueError, match=r"\(n, 4, 4\)"):
+        rank_candidates(snapshot([empty], cand[:2]), cand[:, :3])
+
+
+def test_the_ranking_reaches_next_views_json(tmp_path):
+    scan = scan_with(ScanConfig(), {"schedule": "adaptive", "views": 32, "initial_views": 8})
+    manifest = {"schedule": {**scan_to_dict(scan), "candidates": 64}}
+    assert is_adaptive(manifest) and not is_adaptive({"schedule": scan_to_dict(ScanConfig())})
+    assert update_next_views(tmp_path, manifest, None) is None
+    taken = fibonacci_hemisphere(8, 0.5, (0, 0, 0), 10, 80)
+    path = update_next_views(tmp_path, manifest, snapshot([grid()], taken))
+    nv = read_next_views(tmp_path)
+    assert path == tmp_path / "next_views.json" and nv.pose_count == 8 and nv.measure == "coverage"
+    assert len(nv.poses) == 64 and np.all(np.diff(nv.scores) <= 0)
+    cand = candidate_poses(manifest["schedule"])
+    assert np.abs(nv.poses[:, None] - cand[None]).max(axis=(2, 3)).min(axis=1).max() < 1e-12  # the scan's own
