@@ -3,9 +3,12 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import torch
 
+from spadscan.worker.live.keep import keep_the_better, use_field
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.fast.model import make_fast_model
 from spadscan.worker.recon.model_api import RunPlan
@@ -69,3 +72,25 @@ def test_a_warm_model_explains_the_views_better_than_a_cold_one(cylinder_capture
     cold.refine()  # the same grid, so that only the start differs
     assert np.isclose(cold.field.voxel, warm.field.voxel)
     assert warm.deviance_all_views(seed=1) < 0.9 * cold.deviance_all_views(seed=1)
+
+
+def test_a_final_run_that_fits_worse_than_the_live_state_is_not_published(cylinder_capture, tmp_path, one_thread):
+    """The final run's field is thrown back to the hull (as a short run that went wrong would leave it): the live
+    field explains the views better, and it is what mesh.ply is made of, at no fewer cells than the live mesh."""
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    few, every = grown_scenes(cylinder_capture, tmp_path, 16)
+    live = make_fast_model(few, config, "cpu", PLAN)
+    for _ in range(40):
+        live.step()
+    field = live.mesh_field()
+    live_field = type(field)(field.origin.numpy(), field.voxel, field.sdf.detach()[0, 0].clone())
+    final = make_fast_model(every, config, "cpu", PLAN)
+    final.refine()
+    use_field(final, final.constraint.bound_for(final.field))  # the hull itself: nothing fitted
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.json").write_text(json.dumps({"mesh_resolution": 32}))
+    kept = keep_the_better(final, live_field, out, 48, None, 1000, log=lambda line: None)
+    assert kept["published"]["mesh"] == "live"
+    assert kept["published"]["deviance_live"] < kept["published"]["deviance_final"]
+    assert kept["mesh_resolution"] == 48 and (out / "mesh.ply").stat().st_size > 0

@@ -23,8 +23,8 @@ DEADLINE_S = 300.0  # generous: the machine may be busy with other work
 
 
 def small_settings(**changes) -> LiveSettings:
-    return LiveSettings(**{"min_views": 6, "poll_s": 0.05, "publish_every_s": 0.2, "rebuild_every_s": 0.5,
-                           "preview": False, "overrides": tuple(FAST_SMALL.items()), **changes})
+    return LiveSettings(**{"min_views": 6, "poll_s": 0.05, "publish_every_s": 0.2, "rebuild_share": 0.5,
+                           "rebuild_views": 1, "preview": False, "overrides": tuple(FAST_SMALL.items()), **changes})
 
 
 class LiveJobThread:
@@ -97,8 +97,13 @@ def test_a_live_job_follows_a_scan_pose_by_pose_and_finishes_from_the_live_fit(c
     assert report["live"]["views_used"] == 24 and report["live"]["rebuilds"] >= 2
     assert report["live"]["steps"] >= grown.steps and report["live"]["final_budget_s"] == 1.0
     assert report["scene"]["views"] == 24 and report["capture_state"] == "complete"
+    # The better-fitting of the live and the final field is published, never meshed coarser than the live mesh.
+    published = report["published"]
+    better = "live" if published["deviance_live"] < published["deviance_final"] else "final"
+    assert published["mesh"] == better
+    assert report["mesh_resolution"] >= LiveSettings().mesh_resolution
     saved = json.loads((live.out / "report.json").read_text())
-    assert saved["live"]["views_used"] == 24
+    assert saved["live"]["views_used"] == 24 and saved["published"] == published
     assert (live.out / "mesh.ply").stat().st_size > 0
     final = read_status(status_path(root / "cyl"))
     assert final.state == "final" and final.views_used == 24 and final.views_published == 24

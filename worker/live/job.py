@@ -4,13 +4,16 @@ The job process of a live job (`Job.live`, queued by `spadscan worker --live` as
 published) runs `execute_live_job`:
 
 1. **Follow.** Poll the capture every `poll_s`: re-read the manifest, read each new chunk. Once `min_views` views are
-   published, fit them (`LiveFit`), and refit warm on every view published so far whenever their number has grown
-   by `rebuild_growth` or `rebuild_every_s` has passed with new views; between polls, train. Every
+   published, fit them (`LiveFit`), and refit warm on every view published so far once their number has grown by
+   `rebuild_growth` or by `rebuild_views` (`refit_due`: never more than `rebuild_share` of the time goes to refits,
+   which on a loaded machine would otherwise take most of it); between polls, train. Every
    `publish_every_s`, publish `<capture>/recon/live/` (mesh.ply, preview.png, status.json: `publish.py`). While an
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
    warm-started from the live fit, for the final budget (`Job.budget_s`, default `final_budget_s`): the result is
-   written into the job's scratch folder and published by the worker where every job's result goes. A live job that
+   written into the job's scratch folder and published by the worker where every job's result goes. Of the final
+   field and the live one, the one that explains every view better is meshed (`keep.py`: a short final run never
+   publishes a worse or coarser mesh than the live one); report.json's `published` says which. A live job that
    never fitted anything (its scan was complete before it started, or held too few views) runs the ordinary job.
 3. **Abort.** When the scan is aborted the job ends at once: the live folder keeps its last state, the status says
    `aborted`, and the job fails with the scan's reason (not retried).
@@ -33,6 +36,7 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.live_status import LiveStatus, read_status, status_path
 
 from .follower import ScanFollower, ScanProgress
+from .keep import keep_the_better
 from .next_views import is_adaptive, update_next_views
 from .publish import clear_leftovers, live_folder, publish_mesh, publish_status
 
@@ -49,8 +53,11 @@ class LiveSettings:
     """How often recon/live/ is rewritten (at least; never more than a fifth of the time goes to publishing)."""
     rebuild_growth: float = 0.25
     """Refit once the published views outnumber the fitted ones by this fraction ..."""
-    rebuild_every_s: float = 20.0
-    """... or once this long has passed since the last refit and a view has arrived."""
+    rebuild_views: int = 16
+    """... or by this many views, whichever comes first ..."""
+    rebuild_share: float = 0.25
+    """... and once the training since the last refit has taken (1 / share - 1) times that refit's wall time: refits
+    (loading the capture, carving, building the problem) take at most this share of the live job's time."""
     mesh_resolution: int = 96
     """Marching-cubes cells along the longest side of the live mesh."""
     preview: bool = True
@@ -66,6 +73,17 @@ class LiveSettings:
     overrides: tuple = ()
     """(dotted key, value) pairs changing the preset's config, for the live fit and the final run alike (as
     `spadscan reconstruct --set`; benchmarks and tests make small fits with it)."""
+
+
+def refit_due(have: int, published: int, trained_s: float, last_refit_s: float, settings: LiveSettings) -> bool:
+    """Whether a fit of `have` views is refitted on the `published` ones now, `trained_s` wall seconds after the
+    last refit, which took `last_refit_s`: the views must grow by `rebuild_growth` or `rebuild_views` (a refit per
+    chunk costs more than it brings), and refits keep to `rebuild_share` of the time."""
+    s = settings
+    wanted = max(1, min(s.rebuild_views, math.ceil(s.rebuild_growth * have)))
+    if published - have < wanted:
+        return False
+    return trained_s >= last_refit_s * (1.0 / s.rebuild_share - 1.0)
 
 
 def status_finishing(scan: Path, job, progress: ScanProgress, note: str) -> None:
@@ -133,8 +151,12 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     live_report = runner.fit.report()
     log(f"live: scan complete; the final reconstruction continues from the live fit ({live_report['views_used']} "
         f"views, {live_report['steps']} steps) for {budget:g} s")
+    live_field = runner.fit.live_field()
     report = execute_job(final, root, out, runner.final_recon(recon))
     extra = {"live": {**live_report, "final_budget_s": budget}}
+    if runner.fit.final_model is not None:
+        extra.update(keep_the_better(runner.fit.final_model, live_field, out, settings.mesh_resolution,
+                                     runner.truth, runner.config.trace_points, log))
     add_to_report(out, extra)
     report.update(extra)
     return report
@@ -158,6 +180,9 @@ class LiveRun:
         self.next_publish = -math.inf
         self.publish_cost_s = 0.0
         self.last_rebuild = -math.inf
+        """When the last refit ended (time.monotonic())."""
+        self.last_rebuild_cost = 0.0
+        """Its wall seconds."""
         self.next_rank = -math.inf
         self.last: ScanProgress | None = None
 
@@ -198,8 +223,10 @@ class LiveRun:
                 return progress
             now = time.monotonic()
             if self._refit_due(progress, now):
-                self.last_rebuild = now
-                if self.fit.rebuild():
+                rebuilt = self.fit.rebuild()
+                self.last_rebuild_cost = time.monotonic() - now
+                self.last_rebuild = time.monotonic()
+                if rebuilt:
                     self.fit_views = self.fit.views_used
                     self.log(f"live: fitting {self.fit.views_used} of {progress.views_published} published views "
                              f"(refit {self.fit.rebuilds}, {self.fit.steps} steps so far)")
@@ -220,7 +247,7 @@ class LiveRun:
             return False
         if self.fit.model is None:
             return now - self.last_rebuild >= s.poll_s  # a failed first fit is tried again at the next poll
-        return published >= have * (1.0 + s.rebuild_growth) or now - self.last_rebuild >= s.rebuild_every_s
+        return refit_due(have, published, now - self.last_rebuild, self.last_rebuild_cost, s)
 
     def _rank(self, progress: ScanProgress) -> None:
         """Hand the live state to the view ranking of an adaptive scan, every `rank_every_s`."""
@@ -282,4 +309,4 @@ class LiveRun:
                                  overrides=dict(self.settings.overrides) or None)
 
 
-__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun"]
+__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun", "refit_due"]

@@ -49,6 +49,8 @@ class LiveFit:
         """Wall seconds spent loading the capture and building models."""
         self.train_s = 0.0
         self.history: deque[FieldSnapshot] = deque(maxlen=HISTORY)
+        self.final_model = None
+        """The final run's model, once `warm_factory`'s factory has made it."""
 
     @property
     def views_used(self) -> int:
@@ -117,15 +119,22 @@ class LiveFit:
 
     def warm_factory(self) -> Callable:
         """A model factory (scene, config, device, plan) -> model for the final reconstruction: the preset's model
-        of the complete capture, warm-started from this fit (the final run continues from the live state)."""
-        field, level, level_steps = self.model.mesh_field(), self.model.level, self.model.level_steps
+        of the complete capture, warm-started from this fit (the final run continues from the live state). The model
+        it makes is kept as `final_model`."""
+        field, level, level_steps = self.live_field(), self.model.level, self.model.level_steps
 
         def make(scene, config, device, plan):
             model = make_model(scene, config, device, plan)
             model.warm_start(field, level, level_steps)
+            self.final_model = model
             return model
 
         return make
+
+    def live_field(self):
+        """A copy of the field the live mesh comes from (a GridField that later steps leave as it is)."""
+        field = self.model.mesh_field()
+        return type(field)(field.origin.detach().cpu().numpy(), field.voxel, field.sdf.detach()[0, 0].clone())
 
     def report(self) -> dict:
         """What the live phase did, for the final report."""
