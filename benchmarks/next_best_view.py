@@ -66,6 +66,11 @@ def parse_args(argv=None):
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     p.add_argument("--out", type=Path, default=Path("benchmark-nbv"))
     p.add_argument("--no-fibonacci", action="store_true", help="score the adaptive runs only")
+    p.add_argument("--no-spread", action="store_true",
+                   help="rank by the measure alone, without the spread factor (schedule 'adaptive-MEASURE-nospread')")
+    p.add_argument("--unseen-space", action="store_true",
+                   help="the coverage measure also weighs space no view has emptied (schedule "
+                        "'adaptive-MEASURE-unseen')")
     args = p.parse_args(argv)
     if not args.scenes and not args.combine:
         p.error("give --scenes to run, or --combine FOLDER... to tabulate earlier runs")
@@ -229,7 +234,8 @@ def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, upto
             capture = scene.capture(work / "stage", np.array(poses), scene.frames(np.array(poses)))
             snap = loop.snapshot(capture, args.live_first_steps if loop.model is None else args.live_steps)
             t0 = time.perf_counter()
-            scores = rank_candidates(snap, candidates, measure)
+            scores = rank_candidates(snap, candidates, measure, spread=not args.no_spread,
+                                     unseen_space=args.unseen_space)
             rank_s.append(time.perf_counter() - t0)
             write_next_views(live, ranked(candidates, scores, n, measure))
         for i in range(n, min(upto, n + (initial if n < initial else args.batch))):
@@ -299,9 +305,10 @@ def run(args) -> dict:
                     print(f"{key}: {entry['chamfer_mm']:.2f} mm", file=sys.stderr)
         for measure in args.measures:
             seq = sequence(scene, measure, initial, max(args.counts), args, work)
+            label = f"adaptive-{measure}{variant_suffix(args)}"
             for n in args.score:
                 poses = seq["poses"][:n]
-                key = f"{scene.name}|adaptive-{measure}|{n}"
+                key = f"{scene.name}|{label}|{n}"
                 if results.get(key, digest(poses)) is None:
                     hists = scene.frames(poses)
                     entry = score_fit(scene.capture(work / "fit", poses, hists), scene.truth, args.steps, args.seed)
@@ -312,11 +319,16 @@ def run(args) -> dict:
     return results.data
 
 
+def variant_suffix(args) -> str:
+    """How the ranking differs from the default, in schedule names and sequence file names."""
+    return ("-nospread" if args.no_spread else "") + ("-unseen" if args.unseen_space else "")
+
+
 def sequence(scene: Scene, measure: str, initial: int, upto: int, args, work: Path) -> dict:
     """The adaptive sequence's first `upto` poses, from sequences/ when a run with the same settings made as many."""
     folder = args.out / "sequences"
     folder.mkdir(exist_ok=True)
-    tag = f"{scene.name}-{measure}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}-f{args.live_first_steps}-s{args.seed}"
+    tag = f"{scene.name}-{measure}{variant_suffix(args)}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}-f{args.live_first_steps}-s{args.seed}"
     path = folder / f"{tag}.npz"
     if path.is_file():
         saved = np.load(path, allow_pickle=False)

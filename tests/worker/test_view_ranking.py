@@ -9,7 +9,7 @@ import torch
 
 from spadscan.daemon.config import ScanConfig, scan_to_dict, scan_with
 from spadscan.protocol.next_views import candidate_poses, read_next_views
-from spadscan.protocol.schedules import fibonacci_hemisphere
+from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.worker.live.field_trace import TracedField
 from spadscan.worker.live.next_views import is_adaptive, rank_candidates, update_next_views
@@ -101,3 +101,51 @@ def test_the_ranking_reaches_next_views_json(tmp_path):
     assert len(nv.poses) == 64 and np.all(np.diff(nv.scores) <= 0)
     cand = candidate_poses(manifest["schedule"])
     assert np.abs(nv.poses[:, None] - cand[None]).max(axis=(2, 3)).min(axis=1).max() < 1e-12  # the scan's own
+
+
+def test_a_view_next_to_one_ranked_ahead_gives_way_to_an_equally_covering_far_one():
+    # a step at x = 0 faces +x: the measure alone ranks both +x candidates, 3 degrees apart, above the -x one, and a
+    # scan taking the top two would see the -x side with neither
+    bulge = grid(lambda x, y, z: R - 0.01 * (x > 0))
+    eye = lambda azim_deg: CENTRE + 0.5 * np.array([np.cos(np.radians(azim_deg)), np.sin(np.radians(azim_deg)), 0.3])
+    near, next_to_it, far = (look_at(eye(a), CENTRE) for a in (0.0, 3.0, 180.0))
+    cand = np.stack([near, next_to_it, far])
+    snap = snapshot([bulge], np.zeros((0, 4, 4)))
+    alone = rank_candidates(snap, cand, "coverage", spread=False)
+    assert alone[0] >= alone[1] > alone[2] > 0
+    spread = rank_candidates(snap, cand, "coverage")
+    assert np.all(np.isfinite(spread))
+    assert spread[0] > spread[2] > spread[1] > 0
+
+
+def test_spread_keeps_rankings_away_from_the_views_taken():
+    # views taken on +x only: the first places of the spread ranking go round the object, not back to +x
+    cand = candidate_poses(BAND, 128)
+    taken = fibonacci_hemisphere(64, 0.5, (0, 0, 0), 10, 80)
+    taken = taken[taken[:, 0, 3] > 0.1]
+    scores = rank_candidates(snapshot([grid()], taken), cand, "coverage")
+    order = np.argsort(-scores, kind="stable")
+
+    def pairwise_deg(k):
+        top = cand[order[:k], :3, 3]
+        axes = top / np.linalg.norm(top, axis=1, keepdims=True)
+        return np.degrees(np.arccos(np.clip(axes @ axes.T, -1, 1)))[np.triu_indices(k, 1)]
+
+    # the measure alone: 11 degrees between two of the top four, a median of 23 among the top eight
+    assert pairwise_deg(4).min() > 15.0 and np.median(pairwise_deg(8)) > 40.0
+
+
+def test_coverage_seeks_the_space_no_view_has_emptied():
+    # the surface is seen all round; a lump of the hull on the -y side, outside the surface, no view has emptied
+    taken = fibonacci_hemisphere(64, 0.5, (0, 0, 0), 10, 80)
+    hz, hy, hx = np.meshgrid(*(ORIGIN[::-1][i] + VOXEL * np.arange(N) for i in range(3)), indexing="ij")
+    lump = np.sqrt(hx ** 2 + (hy + 0.085) ** 2 + (hz - 0.07) ** 2) - 0.02
+    sphere = grid()
+    hull = GridSnapshot(np.minimum(sphere.sdf, lump).astype(np.float32), ORIGIN, VOXEL)
+    snap = LiveSnapshot([FieldSnapshot(sphere, 0, len(taken))], hull, taken, sensor_preset("lcspc-sim"), 0.0)
+    cand = candidate_poses(BAND, 256)
+    scores = rank_candidates(snap, cand, "coverage", unseen_space=True)
+    assert np.all(np.isfinite(scores))
+    y = cand[:, 1, 3]
+    assert scores[y < -0.2].mean() > 2 * scores[y > 0.2].mean()
+    assert cand[np.argmax(scores), 1, 3] < 0

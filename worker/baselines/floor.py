@@ -15,13 +15,10 @@ from spadscan.protocol.raycast import zone_rays
 
 from ..capture_kind import is_measured
 from ..pulse import pulse_kernel
-from ..table_height import detect_height, named_table
+from ..table_height import RAYS_PER_ZONE, detect_height, named_table
 
 SIMULATED_FLOOR_Z = 0.0
 """Metres: the floor of a simulated scene, and of a measured one whose table cannot be found."""
-
-RAYS_PER_ZONE = 48
-"""Rays per zone for the table's predicted peaks: enough to place a peak to a bin (as the reconstruction uses)."""
 
 
 def scene_floor(data) -> tuple[float | None, str]:

@@ -292,11 +292,12 @@ class FastModel:
         average = self.part("average")
         return self.field if average is None else average.mesh_field(self)
 
-    def extract_mesh(self, resolution: int | None = None):
+    def extract_mesh(self, resolution: int | None = None, averaged: bool = True):
         """The surface as a trimesh.Trimesh (world metres) with vertex normals from the grid's gradient, marching
         cubes on the grid resampled to `resolution` cells along its longest side (None: the grid's own). On a
-        table, what lies under it is cut and (with the cavities part) the space under the object filled."""
-        field = self.mesh_field()
+        table, what lies under it is cut and (with the cavities part) the space under the object filled.
+        averaged=False: from the grid as it is now, not its average (what the fit would mesh without that part)."""
+        field = self.mesh_field() if averaged else self.field
         if not self.on_table:
             return mesh_from_field(field, resolution)
         cavities = self.part("cavities")

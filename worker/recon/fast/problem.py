@@ -17,7 +17,7 @@ from spadscan.protocol.raycast import zone_rays
 
 from ...carving.returns import first_returns
 from ...carving.space_carving import carve_scene
-from ...table_height import detect_height
+from ...table_height import RAYS_PER_ZONE, detect_height
 from ..errors import ReconstructionError
 from ..forward import TransientForward
 from .grid_field import GridField
@@ -68,7 +68,7 @@ def candidate_rays(sensor, per_sr: float, seed: int) -> tuple[np.ndarray, np.nda
     return zr.directions, zr.weights
 
 
-def _table_plane(scene, forward_kernel, zone_dirs, zone_weights):
+def _table_plane(scene, forward_kernel):
     """(normal, offset, fitted, source) of the table, or None.
 
     A plane the capture fixes is used as given. A fitted horizontal table (the capture says only that there is
@@ -80,9 +80,10 @@ def _table_plane(scene, forward_kernel, zone_dirs, zone_weights):
     if not t.fitted or abs(normal[2]) < 0.99:
         return normal, float(t.offset), bool(t.fitted), "capture"
     kernel, origin = forward_kernel
+    rays = zone_rays(scene.sensor.zones, RAYS_PER_ZONE, 0)
     h = detect_height(scene.counts.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
                       scene.background.double().cpu().numpy(), scene.poses.double().cpu().numpy(),
-                      zone_dirs, zone_weights, scene.sensor, np.asarray(kernel, float), origin,
+                      rays.directions, rays.weights, scene.sensor, np.asarray(kernel, float), origin,
                       ignore_bins=scene.sensor.ignore_bins)
     if h is None:
         return normal, float(t.offset), True, "fitted from the scene data's start"
@@ -98,7 +99,7 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     forward = TransientForward(sensor, terms, torch.as_tensor(kernel, dtype=torch.float32), origin,
                                config.time_oversample).to(device)
     dirs, weights = candidate_rays(sensor, sc.candidate_rays_per_sr, 0)
-    table = _table_plane(scene, scene.pulse(1), dirs, weights)
+    table = _table_plane(scene, scene.pulse(1))
     floor_z, floor_source = fc.floor_z, "config"
     if isinstance(scene.scene.get("floor_z"), (int, float)):
         floor_z, floor_source = float(scene.scene["floor_z"]), "capture"
@@ -132,8 +133,19 @@ def build_problem(scene, config, device, terms) -> FastProblem:
         measured=bool(scene.real))
 
 
+def carve_box(scene, floor_z: float | None) -> np.ndarray:
+    """(2, 3) box (metres) the hull is carved in: the scene sphere's box, reaching down to the floor.
+
+    An object stands on its floor (the table), so the box must reach it: the scene sphere is centred on the first
+    returns, which a tall object puts high up, and its box cut the lower 17 cm off a simulated 50 cm head on a can."""
+    box = scene.box.double().cpu().numpy().copy()
+    if floor_z is not None and floor_z < box[1, 2]:
+        box[0, 2] = min(box[0, 2], floor_z)
+    return box
+
+
 def _carve(scene, fc, floor_z):
-    box = scene.box.double().cpu().numpy()
+    box = carve_box(scene, floor_z)
     return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
                        floor_z=floor_z, bounds=(box[0], box[1]))
