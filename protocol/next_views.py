@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture_format import POSE_TOL, TMP_PREFIX, fsync_dir, one_line, write_durable
+from .capture_format import POSE_TOL, one_line, write_json_atomic
 from .errors import CaptureError
 from .schedules import fibonacci_hemisphere
 
@@ -84,10 +84,7 @@ def write_next_views(capture, nv: NextViews) -> Path:
     data = {"format": FORMAT, "version": VERSION, "pose_count": int(nv.pose_count), "created_utc": nv.created_utc,
             "measure": nv.measure,
             "candidates": [{"pose": p.tolist(), "score": float(s)} for p, s in zip(nv.poses, nv.scores)]}
-    tmp = path.with_name(TMP_PREFIX + FILE)
-    write_durable(tmp, json.dumps(data).encode())
-    tmp.replace(path)
-    fsync_dir(path.parent)
+    write_json_atomic(path, data)
     return path
 
 
