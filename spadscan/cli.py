@@ -11,6 +11,8 @@ import importlib
 import importlib.util
 import sys
 
+from spadscan.parent_watch import watch_parent_from_env
+
 # name -> (module under spadscan.commands, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("simulate", "render a simulated capture of a mesh (poses, photons, pile-up)"),
@@ -61,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0 if argv else 2
     name, rest = argv[0], argv[1:]
+    watch_parent_from_env()  # a child of `spadscan demo` stops when the demo is gone (parent_watch.py)
     module = importlib.import_module(f"spadscan.commands.{COMMANDS[name][0]}")
     parser = argparse.ArgumentParser(prog=f"spadscan {name}", description=module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from spadscan.daemon.client import ControlError, call
+from spadscan.parent_watch import child_env
 from spadscan.protocol.errors import SpadscanError
 
 # Unix socket paths longer than this fail to bind (sun_path is 108 bytes on Linux).
@@ -79,8 +80,9 @@ class Processes:
         log.parent.mkdir(parents=True, exist_ok=True)
         with open(log, "ab") as f:
             # A new session: Ctrl-C in the terminal reaches only the demo, which then stops its children in order.
+            # ... and each child stops by itself if the demo is killed before it can stop them (parent_watch.py).
             proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    start_new_session=True)
+                                    start_new_session=True, env=child_env())
         self.procs.append((name, proc))
         return proc
 

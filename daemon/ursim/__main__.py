@@ -13,6 +13,7 @@ import sys
 
 from spadscan.daemon.ursim.remote import serve_stdio
 from spadscan.daemon.ursim.sim_controller import SimURController
+from spadscan.parent_watch import watch_parent_from_env
 from spadscan.protocol.errors import SpadscanError
 
 
@@ -31,6 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--control-stdio", action="store_true",
                         help="take JSON-line requests on stdin, answer on stdout; stop when stdin closes")
     args = parser.parse_args(argv)
+    watch_parent_from_env()  # started by `spadscan demo`: stop when the demo is gone
     try:
         controller = SimURController(args.host, time_scale=args.time_scale)
         controller.configure(speed_slider=args.speed_slider, pose_noise_m=args.pose_noise_m,
