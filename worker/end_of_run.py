@@ -155,7 +155,9 @@ def warnings(facts: RunFacts) -> list[str]:
                        f"({100 * drop:.1f} % over the last fifth of its {facts.steps} steps; a larger {flag} gives "
                        f"a better mesh)")
     share = cpu_share(facts)
-    if facts.device == "cpu" and share is not None and share < STARVED_SHARE:
+    # Only a run that a time budget stopped lost steps to a busy machine: one that converged, or made the steps it
+    # was asked for, has the result it would have had alone (later).
+    if facts.stopped_by == "budget" and facts.device == "cpu" and share is not None and share < STARVED_SHARE:
         out.append(f"the machine was busy: this run had {share:.2f} of a CPU core on average and made about "
                    f"{1 / max(share, 1e-3):.0f}x fewer steps ({facts.steps}) than it would alone; stop other work "
                    f"or give it a larger time budget")

@@ -97,12 +97,15 @@ def test_a_falling_data_term_is_not_converged_and_a_flat_one_is():
 
 def test_each_rule_warns_alone():
     falling = list(np.linspace(2.0, 1.0, 100))
+    flat = [1.0] * 100
     quiet = RunFacts("converged", 100, True, falling, cpu_seconds=9.0, wall_seconds=10.0)
     assert warnings(quiet) == []
     assert len(warnings(RunFacts("budget", 100, False, falling))) == 1
-    starved = RunFacts("converged", 100, True, falling, cpu_seconds=2.0, wall_seconds=10.0)
-    assert warnings(starved) == [w for w in warnings(starved) if "0.20 of a CPU core" in w and "5x fewer" in w]
-    on_gpu = RunFacts("converged", 100, True, falling, device="cuda", cpu_seconds=2.0, wall_seconds=10.0)
+    starved = RunFacts("budget", 100, True, flat, cpu_seconds=2.0, wall_seconds=10.0)
+    assert warnings(starved) and all("0.20 of a CPU core" in w and "5x fewer" in w for w in warnings(starved))
+    for stop in ("converged", "steps"):  # the same result as alone, only later: nothing to doubt
+        assert warnings(RunFacts(stop, 100, True, flat, cpu_seconds=2.0, wall_seconds=10.0)) == []
+    on_gpu = RunFacts("budget", 100, True, flat, device="cuda", cpu_seconds=2.0, wall_seconds=10.0)
     assert warnings(on_gpu) == [], "a GPU run waits for its device, not for a core"
 
 
@@ -131,9 +134,17 @@ def test_a_run_cut_short_while_its_fit_improves_says_so_and_one_that_converged_d
 
 
 def test_a_starved_run_and_a_fit_far_from_the_noise_say_so(ambient_capture, box_capture, tmp_path):
-    # A process that got a quarter of a core: its CPU clock runs at a quarter of the wall clock's pace.
-    report = reconstruct(ambient_capture, tmp_path / "starved", steps=10,
-                         cpu_clock=lambda: 0.25 * time.perf_counter())
+    # A process that got a quarter of a core: its CPU clock runs at a quarter of the wall clock's pace, and its time
+    # budget ran out (50 ms of wall clock a reading: after a fixed number of steps, however busy the real machine).
+    calls = [0.0]
+
+    def clock():
+        calls[0] += 0.05
+        return calls[0]
+
+    report = reconstruct(ambient_capture, tmp_path / "starved", budget_s=30.0, clock=clock,
+                         cpu_clock=lambda: 0.25 * calls[0])
+    assert report["stopped_by"] == "budget"
     assert has(report, "the machine was busy") and has(report, "0.25 of a CPU core"), report["warnings"]
     assert has(report, "the fit does not explain the measurements"), report["fit_to_noise"]
     assert report["fit_to_noise"]["ratio"] > 10
