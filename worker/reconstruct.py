@@ -228,7 +228,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
-                     budget_notes=notes)
+                     measured=bool(scene.real), budget_notes=notes)
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts)
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
