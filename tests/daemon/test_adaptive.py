@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -139,7 +140,8 @@ def _unreachable(cfg, folder):
 
 @pytest.mark.parametrize("make, detail", [
     (_stale_count, "next_views.json stale: ranked at 0 poses, 3 before this one (next_views_max_lag 3)"),
-    (_old, "next_views.json stale: ranked 600 s ago (next_views_max_age_s 60)"),
+    # 600 s old when written: some more by the time the scan reaches the pose, on a slow or busy machine.
+    (_old, re.compile(r"next_views\.json stale: ranked 6\d\d s ago \(next_views_max_age_s 60\)")),
     (_truncated, "next_views.json unreadable ("),
     (_not_rigid, "candidate 0: pose is not a rigid transform"),
     (_unreachable, "none of the 512 ranked views passes (512 outside the workspace)"),
@@ -152,7 +154,8 @@ def test_the_fallback_plan_when_the_ranking_cannot_be_used(arun, tmp_path, spher
     assert [c["why"] for c in why] == ["initial"] * INITIAL + ["fallback"] * (VIEWS - INITIAL)
     if make is _stale_count:  # fresh at pose 3 only if the lag were below 3: every later pose is staler
         assert all(c["detail"].startswith("next_views.json stale: ranked at 0 poses") for c in why[INITIAL:])
-    assert detail in why[INITIAL]["detail"], why[INITIAL]["detail"]
+    found = detail.search(why[INITIAL]["detail"]) if isinstance(detail, re.Pattern) else detail in why[INITIAL]["detail"]
+    assert found, why[INITIAL]["detail"]
 
 
 def live_status(folder: Path, **fields) -> None:
