@@ -202,6 +202,23 @@ def test_calibration_picks_the_best_threshold(sphere_capture, tmp_path, monkeypa
     assert (out / "points.ply").exists() and report["reprojected_points"] > 50
 
 
+def test_a_threshold_that_finds_nothing_is_one_row_of_the_calibration_not_its_end(sphere_capture, tmp_path,
+                                                                                   monkeypatch, quick_metrics):
+    """At a threshold no histogram reaches, space carving has no return to bound the scene with: that threshold
+    gives no surface, and the search goes on to the others (it used to end the whole baseline)."""
+    import spadscan.worker.baselines.common as common
+
+    monkeypatch.setattr(common, "CALIBRATION_THRESHOLDS", (4.0, 1e9))
+    monkeypatch.setattr(common, "CALIBRATION_POINTS", 20_000)
+    cap, gt = sphere_capture
+    out = tmp_path / "carve"
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(out), "--gt", str(gt), "--calibrate"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    first, second = report["calibration"]["table"]
+    assert report["threshold"] == 4.0 and first["chamfer_mm"] is not None
+    assert second["chamfer_mm"] is None and "no histogram holds a return" in second["note"]
+
+
 def test_calibration_needs_ground_truth(sphere_capture, tmp_path, capsys):
     cap, _ = sphere_capture
     assert cli_main(["baseline", "reprojection", str(cap), "--out", str(tmp_path / "x"), "--calibrate"]) == 1

@@ -72,11 +72,16 @@ def calibrate(build: Callable[[float], object], truth, thresholds=None,
     table, best = [], None
     for t in CALIBRATION_THRESHOLDS if thresholds is None else thresholds:
         start = time.monotonic()
-        mesh = build(float(t))
+        note = None
+        try:
+            mesh = build(float(t))
+        except CaptureError as exc:  # e.g. no return this high above the noise: no surface at this threshold alone
+            mesh, note = None, str(exc)
         chamfer = None
         if mesh is not None and len(mesh.faces) and mesh.area > 0:
             chamfer = truth.metrics(mesh, n_points=n_points).chamfer_mm
-        table.append({"threshold": float(t), "chamfer_mm": chamfer, "seconds": round(time.monotonic() - start, 3)})
+        row = {"threshold": float(t), "chamfer_mm": chamfer, "seconds": round(time.monotonic() - start, 3)}
+        table.append(row if note is None else {**row, "note": note})
         if chamfer is not None and (best is None or chamfer < best[1]):
             best = (float(t), chamfer)
         if progress is not None:
