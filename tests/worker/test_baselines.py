@@ -186,15 +186,20 @@ def test_baseline_command_writes_a_mesh_and_a_report(sphere_capture, tmp_path, c
     assert "space-carving" in page and f"{report['chamfer_mm']:.4g} mm" in page and 'src="preview.png"' in page
 
 
-def test_calibration_picks_the_best_threshold(sphere_capture, tmp_path, monkeypatch, quick_metrics):
+def calibrated(method: str, thresholds, sphere_capture, out, monkeypatch) -> dict:
+    """`spadscan baseline METHOD --calibrate` over `thresholds` (20,000 points a mesh); its report.json."""
     import spadscan.worker.baselines.common as common
 
-    monkeypatch.setattr(common, "CALIBRATION_THRESHOLDS", (4.0, 12.0))
+    monkeypatch.setattr(common, "CALIBRATION_THRESHOLDS", tuple(thresholds))
     monkeypatch.setattr(common, "CALIBRATION_POINTS", 20_000)
     cap, gt = sphere_capture
+    assert cli_main(["baseline", method, str(cap), "--out", str(out), "--gt", str(gt), "--calibrate"]) == 0
+    return json.loads((out / "report.json").read_text())
+
+
+def test_calibration_picks_the_best_threshold(sphere_capture, tmp_path, monkeypatch, quick_metrics):
     out = tmp_path / "reproj"
-    assert cli_main(["baseline", "reprojection", str(cap), "--out", str(out), "--gt", str(gt), "--calibrate"]) == 0
-    report = json.loads((out / "report.json").read_text())
+    report = calibrated("reprojection", (4.0, 12.0), sphere_capture, out, monkeypatch)
     table = report["calibration"]["table"]
     assert report["calibrated"] is True and [row["threshold"] for row in table] == [4.0, 12.0]
     best = min(table, key=lambda row: row["chamfer_mm"])
@@ -206,14 +211,7 @@ def test_a_threshold_that_finds_nothing_is_one_row_of_the_calibration_not_its_en
                                                                                    monkeypatch, quick_metrics):
     """At a threshold no histogram reaches, space carving has no return to bound the scene with: that threshold
     gives no surface, and the search goes on to the others (it used to end the whole baseline)."""
-    import spadscan.worker.baselines.common as common
-
-    monkeypatch.setattr(common, "CALIBRATION_THRESHOLDS", (4.0, 1e9))
-    monkeypatch.setattr(common, "CALIBRATION_POINTS", 20_000)
-    cap, gt = sphere_capture
-    out = tmp_path / "carve"
-    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(out), "--gt", str(gt), "--calibrate"]) == 0
-    report = json.loads((out / "report.json").read_text())
+    report = calibrated("space-carving", (4.0, 1e9), sphere_capture, tmp_path / "carve", monkeypatch)
     first, second = report["calibration"]["table"]
     assert report["threshold"] == 4.0 and first["chamfer_mm"] is not None
     assert second["chamfer_mm"] is None and "no histogram holds a return" in second["note"]

@@ -57,6 +57,21 @@ def has(report: dict, text: str) -> bool:
     return any(text in w for w in report["warnings"])
 
 
+class TickingClock:
+    """A wall clock that moves 50 ms at every reading: a time budget runs out after a fixed number of steps, however
+    busy the real machine. `cpu(share)` is a CPU clock that runs at `share` of its pace."""
+
+    def __init__(self, tick_s: float = 0.05):
+        self.now, self.tick_s = 0.0, tick_s
+
+    def __call__(self) -> float:
+        self.now += self.tick_s
+        return self.now
+
+    def cpu(self, share: float):
+        return lambda: share * self.now
+
+
 # ---- the noise level -------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("mu", [0.02, 0.3, 1.0, 4.0, 29.0, 31.0, 300.0])
@@ -116,12 +131,7 @@ def test_each_rule_warns_alone():
 # ---- each warning on a capture made to trigger it ----------------------------------------------------------------
 
 def test_a_run_cut_short_while_its_fit_improves_says_so_and_one_that_converged_does_not(box_capture, tmp_path):
-    calls = [0.0]
-
-    def clock():  # 50 ms a reading: the budget runs out after a fixed number of steps, however busy the machine
-        calls[0] += 0.05
-        return calls[0]
-
+    clock = TickingClock()
     report = reconstruct(box_capture, tmp_path / "cut", budget_s=30.0, clock=clock, cpu_clock=clock)
     assert report["stopped_by"] == "budget" and report["converged"] is False
     assert has(report, "stopped on its time budget"), report["warnings"]
@@ -139,15 +149,9 @@ def test_a_run_cut_short_while_its_fit_improves_says_so_and_one_that_converged_d
 
 def test_a_starved_run_and_a_fit_far_from_the_noise_say_so(ambient_capture, box_capture, tmp_path):
     # A process that got a quarter of a core: its CPU clock runs at a quarter of the wall clock's pace, and its time
-    # budget ran out (50 ms of wall clock a reading: after a fixed number of steps, however busy the real machine).
-    calls = [0.0]
-
-    def clock():
-        calls[0] += 0.05
-        return calls[0]
-
-    report = reconstruct(ambient_capture, tmp_path / "starved", budget_s=30.0, clock=clock,
-                         cpu_clock=lambda: 0.25 * calls[0])
+    # budget ran out.
+    clock = TickingClock()
+    report = reconstruct(ambient_capture, tmp_path / "starved", budget_s=30.0, clock=clock, cpu_clock=clock.cpu(0.25))
     assert report["stopped_by"] == "budget"
     assert has(report, "the machine was busy") and has(report, "0.25 of a CPU core"), report["warnings"]
     assert has(report, "the fit does not explain the measurements"), report["fit_to_noise"]
