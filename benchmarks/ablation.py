@@ -2,7 +2,7 @@
 
     python benchmarks/ablation.py --scenes DIR... --out FOLDER [--steps 3000] [--seed 0] [--threads 1]
                                   [--parts NAME,...] [--points 300000] [--set KEY=VALUE ...]
-                                  [--overwrite]
+                                  [--device cpu|cuda] [--jobs N] [--overwrite]
 
 A scene is a capture folder or a folder of the public dataset (imported once into --out, as
 benchmarks/error_vs_time.py does). For each scene the default run comes first; its report says which parts ran on
@@ -11,7 +11,9 @@ part with `--set parts.NAME.enabled=false`, except the average and the plateau t
 fit: the default run also meshes its last grid (average off) and goes on to --steps after its early stop (plateau
 off). Runs are step-based and seeded (at most --steps steps, the early stop as
 configured, one thread by default), so the figures do not depend on the machine's load; each runs in its own process
-and is scored like `spadscan reconstruct`'s final mesh (300,000 points, the full mesh resolution).
+and is scored like `spadscan reconstruct`'s final mesh (300,000 points, the full mesh resolution). `--jobs N` runs N
+at once (every scene's all-parts run first, then the ablations); `--device cuda` fits on the GPU (seeded, but CUDA's
+sums are not bit-for-bit repeatable: figures there vary a little from run to run).
 
 Writes runs/<scene>--<variant>.json as each run ends (a later call with the same --out reuses them, so an interrupted
 ablation resumes where it stopped; --overwrite starts afresh), then table.md: per part and scene, the Chamfer (mm)
@@ -26,6 +28,7 @@ import os
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -41,7 +44,8 @@ average the mesh comes from the grid as it is (the same fit, meshed from its las
 the run goes on to --steps (the same fit up to the early stop, continued)."""
 
 
-def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[str], points: int = 300_000) -> dict:
+def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[str], points: int = 300_000,
+            device: str = "cpu") -> dict:
     """One step-based run of the fast preset on `capture`, scored against its ground truth. A run with every part
     that runs also scores the `DERIVED` ablations (`derived`: part -> the same fields)."""
     import torch
@@ -54,7 +58,7 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
     torch.set_num_threads(threads)
     config = run_config("fast", dict(parse_override(text) for text in overrides))
     truth = ground_truth(capture)
-    run = set_up_run(capture, config, torch.device("cpu"), steps=steps, budget_s=None, seed=seed,
+    run = set_up_run(capture, config, torch.device(device), steps=steps, budget_s=None, seed=seed,
                      log=lambda line: None)
     model = run.model
     result = train(model, run.plan, progress=False, early_stop=config.early_stop)
@@ -69,7 +73,7 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
 
     out = scored({"steps": result.steps, "stopped_by": result.stopped_by, "train_s": result.seconds,
                   "setup_s": run.setup_s, "overrides": overrides, "summary": model.summary(),
-                  "commit": source_commit(), "config": config.to_dict(), "threads": threads})
+                  "commit": source_commit(), "config": config.to_dict(), "threads": threads, "device": device})
     ran = set(model.summary()["parts"])
     if not any(o.startswith("parts.") and o.endswith(".enabled=false") for o in overrides):
         derived = {}
@@ -87,7 +91,8 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
 def run_in_child(capture: Path, target: Path, args, overrides: list[str]) -> dict | None:
     """Run `run_one` in a fresh process (clean memory, nothing shared); its result, or None when it failed."""
     cmd = [sys.executable, __file__, "--one", str(capture), "--result", str(target), "--steps", str(args.steps),
-           "--seed", str(args.seed), "--threads", str(args.threads), "--points", str(args.points)] + [f"--set={o}" for o in overrides]
+           "--seed", str(args.seed), "--threads", str(args.threads), "--points", str(args.points), "--device", args.device]
+    cmd += [f"--set={o}" for o in overrides]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -147,17 +152,20 @@ def main(argv=None) -> int:
     parser.add_argument("--parts", default="", help="comma-separated parts to ablate (default: every part that runs)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
                         help="override of every run, all parts included (repeatable)")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the fits run (default: cpu)")
+    parser.add_argument("--jobs", type=int, default=1, help="runs at once (default: 1)")
     parser.add_argument("--overwrite", action="store_true", help="discard earlier runs in --out")
     parser.add_argument("--one", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--result", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.one is not None:
-        write_atomic(args.result, run_one(args.one, args.steps, args.seed, args.threads, args.overrides, args.points))
+        write_atomic(args.result, run_one(args.one, args.steps, args.seed, args.threads, args.overrides, args.points,
+                                          args.device))
         return 0
     if not args.scenes or args.out is None:
         parser.error("--scenes and --out are required")
-    if args.steps < 1 or args.threads < 1 or args.seed < 0 or not 1000 <= args.points <= 1_000_000:
-        parser.error("--steps and --threads must be >= 1, --seed >= 0 and --points in [1000, 1000000]")
+    if args.steps < 1 or args.threads < 1 or args.jobs < 1 or args.seed < 0 or not 1000 <= args.points <= 1_000_000:
+        parser.error("--steps, --threads and --jobs must be >= 1, --seed >= 0 and --points in [1000, 1000000]")
     from spadscan.worker.recon.config import parse_override
     from spadscan.worker.recon.fast.parts import PARTS
     from spadscan.worker.reconstruct import run_config
@@ -181,32 +189,35 @@ def main(argv=None) -> int:
         for f in runs.glob("*.json"):
             f.unlink()
     runs.mkdir(parents=True, exist_ok=True)
-    results: dict[str, dict[str, dict]] = {}
-    for scene in args.scenes:
-        capture = prepare_scene(scene, args.out)
-        name = scene.name
-        results[name] = {}
-        for variant in [ALL] + wanted:
-            if variant != ALL and (variant not in results[name].get("_ran", []) or variant in results[name]):
-                continue
-            target = runs / f"{name}--{variant.replace(' ', '-')}.json"
-            overrides = list(args.overrides) + ([] if variant == ALL else [f"parts.{variant}.enabled=false"])
-            if target.exists():
-                res = json.loads(target.read_text())
-            else:
-                t0 = time.perf_counter()
-                print(f"{name}: {variant} ...", flush=True)
-                res = run_in_child(capture, target, args, overrides)
-                if res is not None:
-                    print(f"  {fmt(res.get('chamfer_mm'))} mm, {fmt(res.get('normal_error_deg'), 1)} deg, "
-                          f"{res['steps']} steps ({time.perf_counter() - t0:.0f} s)", flush=True)
+    captures = {scene.name: prepare_scene(scene, args.out) for scene in args.scenes}
+    results: dict[str, dict[str, dict]] = {name: {} for name in captures}
+
+    def run(name: str, variant: str) -> tuple[str, str, dict | None]:
+        target = runs / f"{name}--{variant.replace(' ', '-')}.json"
+        overrides = list(args.overrides) + ([] if variant == ALL else [f"parts.{variant}.enabled=false"])
+        if target.exists():
+            return name, variant, json.loads(target.read_text())
+        t0 = time.perf_counter()
+        print(f"{name}: {variant} ...", flush=True)
+        res = run_in_child(captures[name], target, args, overrides)
+        if res is not None:
+            print(f"  {name}, {variant}: {fmt(res.get('chamfer_mm'))} mm, {fmt(res.get('normal_error_deg'), 1)} deg, "
+                  f"{res['steps']} steps ({time.perf_counter() - t0:.0f} s)", flush=True)
+        return name, variant, res
+
+    with ThreadPoolExecutor(args.jobs) as pool:
+        # Every scene's all-parts run first: its report says which parts ran there, so which to ablate.
+        for name, _, res in pool.map(lambda n: run(n, ALL), list(captures)):
             if res is None:
                 continue
-            results[name][variant] = res
-            if variant == ALL:
-                results[name]["_ran"] = parts_that_ran(res)
-                results[name].update({part: {**res, **d} for part, d in res.get("derived", {}).items()
-                                      if part in wanted})
+            results[name][ALL] = res
+            results[name]["_ran"] = parts_that_ran(res)
+            results[name].update({part: {**res, **d} for part, d in res.get("derived", {}).items() if part in wanted})
+        todo = [(name, v) for name in captures for v in wanted
+                if v in results[name].get("_ran", []) and v not in results[name]]
+        for name, variant, res in pool.map(lambda nv: run(*nv), todo):
+            if res is not None:
+                results[name][variant] = res
     text = tables(results, [ALL] + wanted)
     (args.out / "table.md").write_text(text + "\n")
     write_atomic(args.out / "results.json", results)

@@ -14,7 +14,8 @@ from spadscan.protocol.sensor_model import Zone
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.worker.recon.fast.grid_ops import cavities, fill_under_overhangs
 from spadscan.worker.recon.fast.mesh import FLOATER_FRACTION, clean_solid
-from spadscan.worker.recon.fast.parts.empty_space import pressure_weight, push_to_empty, view_coverage
+from spadscan.worker.recon.fast.parts.empty_space import (heard_bins, pressure_weight, push_to_empty, view_coverage,
+                                                          views_hearing)
 from spadscan.worker.recon.fast.parts.thin_sheets import thin_near_table
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -48,6 +49,35 @@ def test_coverage_of_a_cone_zone_and_shape_of_the_result():
     cov = view_coverage(pts, poses, zones, chunk=3)  # chunks smaller than the points change nothing
     assert cov.shape == (2, 2)
     np.testing.assert_allclose(cov.numpy(), [[1.0, 0.0], [1.0, 0.0]])
+
+
+# ---- heard ----------------------------------------------------------------------------------------------------------
+def test_a_view_hears_a_point_in_its_zone_where_its_histogram_has_a_return_at_the_points_range():
+    sensor = sensor_preset("lcspc-sim")  # one 15-degree cone
+    poses = torch.tensor(np.stack([pose_at([0, 0, -0.5]), pose_at([0, 0, -0.5]), pose_at([0, 0, 0.5])]))
+    loud = torch.zeros((3, 1, sensor.n_bins), dtype=torch.bool)
+    loud[0, 0, int(sensor.bin_of_range(0.5))] = True  # a return from 0.5 m: the point's range from the first two
+    loud[1, 0, int(sensor.bin_of_range(0.6))] = True  # a return 10 cm beyond it
+    loud[2, 0, int(sensor.bin_of_range(0.5))] = True  # the third looks away (+z from above): the point is behind it
+    pts = torch.tensor([[0.0, 0.0, 0.0],     # on every boresight, 0.5 m from each sensor
+                        [0.2, 0.0, 0.0]],    # 22 degrees off the first two's boresight: outside their cone
+                       dtype=torch.float64)
+    heard = views_hearing(pts, poses, sensor, loud, half_width_m=0.005).numpy()
+    np.testing.assert_array_equal(heard, [1, 0])
+    wide = views_hearing(pts, poses, sensor, loud, half_width_m=0.11).numpy()  # a window reaching 0.6 m
+    np.testing.assert_array_equal(wide, [2, 0])
+
+
+def test_heard_bins_are_returns_over_the_threshold_and_never_the_unreliable_bins():
+    sensor = sensor_preset("tmf8820")
+    rng = np.random.default_rng(0)
+    counts = rng.poisson(50.0, size=(1, sensor.n_zones, sensor.n_bins)).astype(float)
+    peak = 60
+    counts[0, 4, peak - 2: peak + 3] += [200, 2000, 8000, 2000, 200]
+    loud = heard_bins(torch.as_tensor(counts), sensor, 5.0).numpy()
+    assert loud[0, 4, peak] and not loud[0, 3, peak]
+    for b in sensor.ignore_bins:
+        assert loud[0, :, b].all()  # unreliable: never taken for silence
 
 
 def test_pressure_weight_falls_from_one_to_zero_with_coverage():

@@ -338,10 +338,9 @@ def test_a_grid_with_no_surface_is_a_one_line_error(cylinder_capture):
         model.extract_mesh(32)
 
 
-def test_a_bubble_inside_the_solid_is_filled_and_only_a_table_scene_gets_the_empty_space_push(cylinder_capture):
+def test_a_bubble_inside_the_solid_is_filled(cylinder_capture):
     model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
                             RunPlan(steps=1, budget_s=None, seed=0))
-    assert model.part("empty_space") is None and "no table" in model.summary()["parts_left_out"]["empty_space"]
     sdf = model.field.sdf.detach()[0, 0]
     deepest = np.unravel_index(int(torch.argmin(sdf)), tuple(sdf.shape))
     assert float(sdf[deepest]) < -2 * model.field.voxel
@@ -349,6 +348,22 @@ def test_a_bubble_inside_the_solid_is_filled_and_only_a_table_scene_gets_the_emp
         sdf[deepest] = model.field.voxel  # an empty node that no sensor can see into
     model.step()  # pockets are filled at the start of every few steps
     assert float(model.field.sdf.detach()[0, 0][deepest]) < 0
+
+
+def test_without_a_table_the_empty_space_push_acts_where_no_view_hears_a_return(cylinder_capture):
+    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
+                            RunPlan(steps=1, budget_s=None, seed=0))
+    push = model.part("empty_space")
+    assert not model.on_table and push is not None
+    weight = push.weight(model)[0, 0]
+    pts = model.field.node_points()
+    # Nodes on the cylinder's side wall (radius 4 cm about (0.005, -0.004), 1-7 cm high): every view facing them
+    # hears their return, so the data alone places them.
+    r = torch.hypot(pts[..., 0] - 0.005, pts[..., 1] + 0.004)
+    wall = ((r - 0.04).abs() < 0.5 * model.field.voxel) & (pts[..., 2] > 0.01) & (pts[..., 2] < 0.07)
+    assert int(wall.sum()) > 20 and float(weight[wall].max()) == 0.0
+    # Nodes no view hears anything at (the grid's corners beyond the cylinder's ranges) get the full push.
+    assert float(weight.max()) == 1.0
 
 
 def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cylinder_capture):

@@ -20,7 +20,7 @@ from worker_helpers import FAST_SMALL
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 NAMES = [cls.name for cls in PARTS]
-ON_A_TABLE = ("table", "thin_sheets", "empty_space")
+ON_A_TABLE = ("table", "thin_sheets")
 """Parts that apply only to a scene on a table (the others are tried on the cylinder on the floor)."""
 HOOKS = ("before_step", "before_loss", "after_gradient", "after_step")
 

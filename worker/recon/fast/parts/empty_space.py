@@ -1,19 +1,28 @@
-"""The empty-space bias of scenes on a table: what no view can decide is left empty, not solid.
+"""The empty-space bias: what no view can decide is left empty, not solid.
 
-Space carving removes only what some zone proves empty. With no table behind the object (the simulated scenes), a
-zone that looks past the object sees nothing and proves its whole field of view empty, so the hull hugs the object.
-On a table it does not: a zone's first return is the object or the table, so the layer just above the table (within
-the pulse's length of it, ~4 cm for the TMF8820) is never proven empty, and space near the edge of the views' fields
+Space carving removes only what some zone proves empty: what lies in front of its first return. Two kinds of space
+stay solid in the hull that the histograms cannot clear in a fit, and this part pushes the surface out of both.
+
+On a table, a zone's first return is the object or the table, so the layer just above the table (within the
+pulse's length of it, ~4 cm for the TMF8820) is never proven empty, and space near the edge of the views' fields
 of view is barely looked at. That hull stays solid in the fit: the histograms cannot tell a low skirt on the table
 from the table itself. Measured on LCSPCData's real pyramid, the skirt was most of the error (accuracy 23 mm against
-completeness 4.6 mm).
+completeness 4.6 mm). So on a table the push acts on the surface nodes that few views look at (`coverage` below
+`full_coverage`): the data term holds a surface it sees, and what it cannot see melts away. Nodes that most views
+look at get no push (their surface is the data's to place), which also keeps the bias from digging into the object's
+unseen interior; pockets the solid closes are filled, and so is the space under the solid, which no view from above
+sees into (cavities.py). What the push leaves of the skirt are thin curtains standing on the table, which
+thin_sheets.py empties.
 
-So, with a table, every step pushes the surface inward on the surface nodes that few views look at (`coverage`
-below `full_coverage`), by a fraction of the data gradient's rms: the data term holds a surface it sees, and what it
-cannot see melts away. Nodes that most views look at get no push (their surface is the data's to place), which also
-keeps the bias from digging into the object's unseen interior; pockets the solid closes are filled, and so is the
-space under the solid, which no view from above sees into (cavities.py). What the push leaves of the skirt are thin
-curtains standing on the table, which thin_sheets.py empties.
+Without a table, a zone that looks past the object proves its field of view empty only up to the object's nearest
+point; a wide zone (the dataset's 30-degree cone) leaves everything behind that range. Views that all look down (30
+degrees of elevation and up) leave a ring of floor-level space around the object that every view containing it
+sees only beyond the object: the fit kept it as a ring 25-33 cm from the bunny (60 mm Chamfer). Coverage cannot tell
+that ring from the object's own far parts (16% of the dataset bunny's surface, its ears, lies where under 10% of the
+views look). Whether a view *heard* anything at a node's range can: a node is heard by a view whose field of view
+holds it and whose histogram has a return within a voxel of its range; the object's surface is heard by every view
+that sees it, the ring by none. So without a table the push acts on the surface nodes that no view hears (fading to
+nothing at `heard_views` views).
 
 The push acts on the data term's gradient after its blur (blur.py), before the regularisers' gradient is added.
 """
@@ -27,6 +36,7 @@ import torch
 
 from spadscan.protocol.errors import ConfigError
 
+from ....carving.returns import matched_filter_z
 from .part import Model, Part, PartConfig
 
 
@@ -41,6 +51,12 @@ class EmptySpaceConfig(PartConfig):
     node in its field of view. (On LCSPCData's real pyramid the surface 1 cm or more off the object after a fit lay
     where a median 31% of the views look; the object's own faces, where a median 59% do: the data holds those against
     the push.)"""
+    heard_views: float = 2.0
+    """Without a table: the push is full on nodes that no view hears a return at (see the module docstring) and fades
+    to nothing where this many views do."""
+    heard_threshold: float = 3.0
+    """A return is heard where the matched-filtered histogram clears this many noise deviations (lower than the
+    carving's 5: a weak return that the carving would not trust still holds the surface against the push)."""
 
     def check(self, key: str) -> None:
         super().check(key)
@@ -48,10 +64,14 @@ class EmptySpaceConfig(PartConfig):
             raise ConfigError(f"{key}.pressure {self.pressure} must be > 0 ({key}.enabled=false: off)")
         if not 0 < self.coverage <= 1:
             raise ConfigError(f"{key}.coverage {self.coverage} must be in (0, 1]")
+        if not self.heard_views > 0:
+            raise ConfigError(f"{key}.heard_views {self.heard_views} must be > 0")
+        if not self.heard_threshold > 0:
+            raise ConfigError(f"{key}.heard_threshold {self.heard_threshold} must be > 0 (noise deviations)")
 
 
 class EmptySpacePush(Part):
-    """Adds the push to the data term's gradient on scenes on a table."""
+    """Adds the push to the data term's gradient: on a table where few views look, without one where none hears."""
 
     name = "empty_space"
 
@@ -59,24 +79,27 @@ class EmptySpacePush(Part):
         super().__init__(config, model)
         self._weight: torch.Tensor | None = None
 
-    @classmethod
-    def left_out(cls, config: EmptySpaceConfig, model: Model) -> str | None:
-        if not model.on_table:
-            return "no table under the object: every zone that looks past it proves its view empty"
-        return None
-
     def after_gradient(self, model: Model, grad: torch.Tensor) -> torch.Tensor:
         push_to_empty(grad, model.field.sdf, model.field.voxel, self.weight(model), self.config.pressure)
         return grad
 
     def weight(self, model: Model) -> torch.Tensor:
-        """The push's weight on the current grid's nodes (1, 1, nz, ny, nx): from the views' coverage, computed once
-        on the coarse grid (a second on 64^3 nodes x 128 views) and interpolated onto a refined one."""
+        """The push's weight on the current grid's nodes (1, 1, nz, ny, nx): from the views' coverage (on a table)
+        or the views that hear each node (without one), computed once on the coarse grid (a few seconds on 64^3
+        nodes x 256 views) and interpolated onto a refined one."""
         shape = tuple(model.field.sdf.shape)
         if self._weight is None:
+            p = model.problem
             with torch.no_grad():
-                cov = view_coverage(model.field.node_points(), model.problem.poses, model.problem.forward.sensor.zones)
-            self._weight = pressure_weight(cov, self.config.coverage)[None, None].contiguous()
+                if model.on_table:
+                    cov = view_coverage(model.field.node_points(), p.poses, p.forward.sensor.zones)
+                    w = pressure_weight(cov, self.config.coverage)
+                else:
+                    loud = heard_bins(p.counts, p.forward.sensor, self.config.heard_threshold)
+                    heard = views_hearing(model.field.node_points(), p.poses, p.forward.sensor, loud,
+                                          float(model.field.voxel))
+                    w = (1.0 - heard / self.config.heard_views).clamp(0.0, 1.0)
+            self._weight = w[None, None].to(model.field.sdf.dtype).contiguous()
         if tuple(self._weight.shape) != shape:
             self._weight = torch.nn.functional.interpolate(self._weight, size=shape[2:], mode="trilinear",
                                                            align_corners=True)
@@ -94,21 +117,64 @@ def view_coverage(points: torch.Tensor, poses: torch.Tensor, zones, chunk: int =
     out = torch.empty(flat.shape[0], dtype=flat.dtype, device=flat.device)
     for i in range(0, flat.shape[0], chunk):
         rel = torch.einsum("vji,pvj->pvi", rot, flat[i: i + chunk, None, :] - org[None])  # sensor frame (P, V, 3)
-        z = rel[..., 2]
-        front = z > 1e-9
-        tz = torch.where(front, z, torch.ones_like(z))
-        seen = torch.zeros(z.shape, dtype=torch.bool, device=flat.device)
+        seen = torch.zeros(rel.shape[:-1], dtype=torch.bool, device=flat.device)
         for zone in zones:
-            if zone.kind == "rect":
-                tx, ty = rel[..., 0] / tz, rel[..., 1] / tz
-                seen |= (front & (tx >= zone.tan_x[0]) & (tx <= zone.tan_x[1]) & (ty >= zone.tan_y[0])
-                         & (ty <= zone.tan_y[1]))
-            else:
-                axis = torch.as_tensor(zone.axis, dtype=rel.dtype, device=rel.device)
-                cos = (rel @ axis) / rel.norm(dim=-1).clamp(min=1e-12)
-                seen |= cos >= float(np.cos(zone.half_angle_rad))
+            seen |= zone_holds(zone, rel)
         out[i: i + chunk] = seen.to(flat.dtype).mean(dim=1)
     return out.reshape(points.shape[:-1])
+
+
+def heard_bins(counts: torch.Tensor, sensor, threshold: float) -> torch.Tensor:
+    """(V, Z, B) bool: bins whose matched-filtered signal clears `threshold` noise deviations (a return is heard
+    there), and the sensor's unreliable bins (never taken for silence)."""
+    z = matched_filter_z(counts.detach().double().cpu().numpy(), sensor, "matched")
+    loud = z > threshold
+    loud[..., list(sensor.ignore_bins)] = True
+    return torch.as_tensor(loud, device=counts.device)
+
+
+def views_hearing(points: torch.Tensor, poses: torch.Tensor, sensor, loud: torch.Tensor, half_width_m: float,
+                  chunk: int = 1 << 14) -> torch.Tensor:
+    """How many views hear a return at each point: the point lies in one of the view's zones (occlusion ignored)
+    and that zone's histogram has a loud bin within `half_width_m` (metres) of the point's range.
+
+    points (..., 3) and poses (V, 4, 4) sensor-to-world, metres; loud (V, Z, B) bool (`heard_bins`). Returns (...)."""
+    flat = points.reshape(-1, 3)
+    V, Z, B = loud.shape
+    # Loud bins within the window, by a running count: any loud bin in [lo, hi] <=> cum[hi + 1] > cum[lo].
+    cum = torch.zeros((V, Z, B + 1), dtype=torch.int32, device=flat.device)
+    cum[..., 1:] = torch.cumsum(loud.to(flat.device).to(torch.int32), dim=-1)
+    rot, org = poses[:, :3, :3].to(flat.dtype), poses[:, :3, 3].to(flat.dtype)
+    out = torch.empty(flat.shape[0], dtype=flat.dtype, device=flat.device)
+    views = torch.arange(V, device=flat.device)[None]
+    for i in range(0, flat.shape[0], chunk):
+        rel = torch.einsum("vji,pvj->pvi", rot, flat[i: i + chunk, None, :] - org[None])  # sensor frame (P, V, 3)
+        rng = rel.norm(dim=-1)
+        lo = torch.floor(torch.as_tensor(sensor.bin_of_range(0.0), dtype=rel.dtype)
+                         + (rng - half_width_m) / sensor.bin_width_m).long().clamp(0, B)
+        hi = torch.floor(torch.as_tensor(sensor.bin_of_range(0.0), dtype=rel.dtype)
+                         + (rng + half_width_m) / sensor.bin_width_m).long().clamp(-1, B - 1)
+        heard = torch.zeros(rng.shape, dtype=torch.bool, device=flat.device)
+        for z, zone in enumerate(sensor.zones):
+            inside = zone_holds(zone, rel)
+            c = cum[:, z]  # (V, B + 1)
+            n = c[views.expand_as(lo), (hi + 1).clamp(0, B)] - c[views.expand_as(lo), lo]
+            heard |= inside & (n > 0) & (hi >= lo)
+        out[i: i + chunk] = heard.to(flat.dtype).sum(dim=1)
+    return out.reshape(points.shape[:-1])
+
+
+def zone_holds(zone, rel: torch.Tensor) -> torch.Tensor:
+    """(...) bool: sensor-frame points rel (..., 3) lie in the zone's field of view (+z is the boresight)."""
+    z = rel[..., 2]
+    front = z > 1e-9
+    if zone.kind == "rect":
+        tz = torch.where(front, z, torch.ones_like(z))
+        tx, ty = rel[..., 0] / tz, rel[..., 1] / tz
+        return front & (tx >= zone.tan_x[0]) & (tx <= zone.tan_x[1]) & (ty >= zone.tan_y[0]) & (ty <= zone.tan_y[1])
+    axis = torch.as_tensor(zone.axis, dtype=rel.dtype, device=rel.device)
+    cos = (rel @ axis) / rel.norm(dim=-1).clamp(min=1e-12)
+    return cos >= float(np.cos(zone.half_angle_rad))
 
 
 def pressure_weight(coverage: torch.Tensor, full_coverage: float) -> torch.Tensor:
@@ -132,4 +198,5 @@ def push_to_empty(grad: torch.Tensor, sdf: torch.Tensor, voxel: float, weight: t
     grad -= strength * rms * surf.to(grad.dtype) * weight
 
 
-__all__ = ["EmptySpacePush", "EmptySpaceConfig", "view_coverage", "pressure_weight", "push_to_empty"]
+__all__ = ["EmptySpacePush", "EmptySpaceConfig", "view_coverage", "views_hearing", "heard_bins", "zone_holds",
+           "pressure_weight", "push_to_empty"]
