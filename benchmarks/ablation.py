@@ -213,7 +213,8 @@ def main(argv=None) -> int:
             results[name][ALL] = res
             results[name]["_ran"] = parts_that_ran(res)
             results[name].update({part: {**res, **d} for part, d in res.get("derived", {}).items() if part in wanted})
-        todo = [(name, v) for name in captures for v in wanted
+        # Part by part across the scenes: an interrupted ablation leaves whole rows of the table.
+        todo = [(name, v) for v in wanted for name in captures
                 if v in results[name].get("_ran", []) and v not in results[name]]
         for name, variant, res in pool.map(lambda nv: run(*nv), todo):
             if res is not None:
