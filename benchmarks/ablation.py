@@ -91,7 +91,8 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
 def run_in_child(capture: Path, target: Path, args, overrides: list[str]) -> dict | None:
     """Run `run_one` in a fresh process (clean memory, nothing shared); its result, or None when it failed."""
     cmd = [sys.executable, __file__, "--one", str(capture), "--result", str(target), "--steps", str(args.steps),
-           "--seed", str(args.seed), "--threads", str(args.threads), "--points", str(args.points), "--device", args.device]
+           "--seed", str(args.seed), "--threads", str(args.threads), "--points", str(args.points),
+           "--device", args.device]
     cmd += [f"--set={o}" for o in overrides]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
