@@ -94,36 +94,3 @@ def test_a_final_run_that_fits_worse_than_the_live_state_is_not_published(cylind
     assert kept["published"]["mesh"] == "live"
     assert kept["published"]["deviance_live"] < kept["published"]["deviance_final"]
     assert kept["mesh_resolution"] == 48 and (out / "mesh.ply").stat().st_size > 0
-
-
-def test_the_final_run_starts_from_the_live_surface_at_the_coarse_level(cylinder_capture, tmp_path, one_thread):
-    """The live fit has refined on the first views; the final model of the complete capture takes its surface but
-    goes through the coarse level and the refinement again, on every view."""
-    from spadscan.worker.live.live_fit import LiveFit
-
-    config = with_overrides(preset_config("fast"), FAST_SMALL)
-    scan = ReplayScan(cylinder_capture, tmp_path / "scan")
-    scan.publish(12)
-    fit = LiveFit(tmp_path / "scan", config, torch.device("cpu"), 0, log=lambda line: None)
-    assert fit.rebuild()
-    for _ in range(12):  # past the refinement after 4 steps
-        fit.model.step()
-    assert fit.model.level == 1
-    live = fit.live_field()
-    scan.publish(len(scan.poses))
-    scan.finish()
-    every = load_scene(tmp_path / "scan")
-    final = fit.warm_factory()(every, config, "cpu", PLAN)
-    assert final is fit.final_model and every.n_views == 24
-    assert (final.level, final.level_steps, final.last_level) == (0, 0, False)
-    values = final.field.sdf.detach()
-    bound = final.constraint.bound_for(final.field)
-    with torch.no_grad():
-        old = live.sample(final.field.node_points())[None, None]
-    inside = (final.field.node_points() >= live.origin).all(-1) & (final.field.node_points() <= live.box_max).all(-1)
-    kept = inside[None, None] & (old >= bound)
-    assert kept.float().mean() > 0.3
-    assert torch.allclose(values[kept], old[kept], atol=1e-5), "the final start is not the live surface"
-    for _ in range(5):
-        final.step()
-    assert final.level == 1  # refined again, on the complete capture

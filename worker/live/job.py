@@ -10,8 +10,7 @@ published) runs `execute_live_job`:
    `publish_every_s`, publish `<capture>/recon/live/` (mesh.ply, preview.png, status.json: `publish.py`). While an
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
-   warm-started from the live fit's surface (at the coarse level: `LiveFit.warm_factory`), for the final budget
-   (`Job.budget_s`, default `final_budget_s`): the result is
+   warm-started from the live fit, for the final budget (`Job.budget_s`, default `final_budget_s`): the result is
    written into the job's scratch folder and published by the worker where every job's result goes. Of the final
    field and the live one, the one that explains every view better is meshed (`keep.py`: a short final run never
    publishes a worse or coarser mesh than the live one); report.json's `published` says which. A live job that

@@ -119,17 +119,13 @@ class LiveFit:
 
     def warm_factory(self) -> Callable:
         """A model factory (scene, config, device, plan) -> model for the final reconstruction: the preset's model
-        of the complete capture, warm-started from this fit's surface at the coarse level (its first step count), so
-        the final run goes through the coarse level and the refinement again, on every view. The live fit spent its
-        coarse level and the fast start of its fine level on the first few dozen views: continuing at its level and
-        step count polished that shape (an offline emulation of the TMF8820 mug: 2.42 mm at the scan's end, 2.12
-        after 600 final steps), going through the levels again on the complete capture reshaped it (1.76; fitted
-        from scratch for 3,000 steps: 1.40). The model it makes is kept as `final_model`."""
-        field = self.live_field()
+        of the complete capture, warm-started from this fit (the final run continues from the live state). The model
+        it makes is kept as `final_model`."""
+        field, level, level_steps = self.live_field(), self.model.level, self.model.level_steps
 
         def make(scene, config, device, plan):
             model = make_model(scene, config, device, plan)
-            model.warm_start(field, 0, 0)
+            model.warm_start(field, level, level_steps)
             self.final_model = model
             return model
 
