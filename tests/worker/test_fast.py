@@ -366,6 +366,23 @@ def test_without_a_table_the_empty_space_push_acts_where_no_view_hears_a_return(
     assert float(weight.max()) == 1.0
 
 
+def test_a_refined_model_weighs_the_push_on_the_coarse_levels_nodes(cylinder_capture):
+    """A model warm-started at the fine level (a live job's) computes the push's weight on every second node, as
+    the coarse level would have, and interpolates it: the same weight as a model refined after computing it."""
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    coarse_first = make_fast_model(scene, config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    coarse_first.part("empty_space").weight(coarse_first)
+    coarse_first.refine()
+    fine_first = make_fast_model(scene, config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    fine_first.refine()
+    a = coarse_first.part("empty_space").weight(coarse_first)
+    b = fine_first.part("empty_space").weight(fine_first)
+    assert a.shape == b.shape == coarse_first.field.sdf.shape
+    assert float(a.max()) == 1.0
+    torch.testing.assert_close(a, b)
+
+
 def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cylinder_capture):
     import dataclasses
 
