@@ -97,8 +97,9 @@ class EmptySpacePush(Part):
             voxel = float(model.field.voxel) * stride
             with torch.no_grad():
                 reach = torch.ones(points.shape[:-1], dtype=torch.bool, device=points.device)
-                if model.part("hull_projection") is not None:
-                    reach = model.constraint.bound_at(points.to(model.constraint.hull.origin.dtype)) <= 2 * voxel
+                if model.part("hull_projection") is not None:  # its bound on the grid is cached by the projection
+                    bound = model.constraint.bound_for(model.field)[0, 0, ::stride, ::stride, ::stride]
+                    reach = bound.to(points.device) <= 2 * voxel
                 w = torch.zeros(points.shape[:-1], dtype=points.dtype, device=points.device)
                 if model.on_table:
                     cov = view_coverage(points[reach], p.poses, p.forward.sensor.zones)
@@ -155,19 +156,18 @@ def views_hearing(points: torch.Tensor, poses: torch.Tensor, sensor, loud: torch
     rot, org = poses[:, :3, :3].to(flat.dtype), poses[:, :3, 3].to(flat.dtype)
     out = torch.empty(flat.shape[0], dtype=flat.dtype, device=flat.device)
     views = torch.arange(V, device=flat.device)[None]
+    zero_bin = float(sensor.bin_of_range(0.0))
     for i in range(0, flat.shape[0], chunk):
         rel = torch.einsum("vji,pvj->pvi", rot, flat[i: i + chunk, None, :] - org[None])  # sensor frame (P, V, 3)
         rng = rel.norm(dim=-1)
-        lo = torch.floor(torch.as_tensor(sensor.bin_of_range(0.0), dtype=rel.dtype)
-                         + (rng - half_width_m) / sensor.bin_width_m).long().clamp(0, B)
-        hi = torch.floor(torch.as_tensor(sensor.bin_of_range(0.0), dtype=rel.dtype)
-                         + (rng + half_width_m) / sensor.bin_width_m).long().clamp(-1, B - 1)
+        lo = torch.floor(zero_bin + (rng - half_width_m) / sensor.bin_width_m).long().clamp(0, B)
+        hi = torch.floor(zero_bin + (rng + half_width_m) / sensor.bin_width_m).long().clamp(-1, B - 1)
+        rows = views.expand_as(lo)
+        window = hi >= lo
         heard = torch.zeros(rng.shape, dtype=torch.bool, device=flat.device)
         for z, zone in enumerate(sensor.zones):
-            inside = zone_holds(zone, rel)
             c = cum[:, z]  # (V, B + 1)
-            n = c[views.expand_as(lo), (hi + 1).clamp(0, B)] - c[views.expand_as(lo), lo]
-            heard |= inside & (n > 0) & (hi >= lo)
+            heard |= zone_holds(zone, rel) & window & (c[rows, (hi + 1).clamp(0, B)] > c[rows, lo])
         out[i: i + chunk] = heard.to(flat.dtype).sum(dim=1)
     return out.reshape(points.shape[:-1])
 
