@@ -221,6 +221,11 @@ def test_bad_arguments_are_one_line_errors(capture_and_gt, tmp_path, capsys):
     assert "preset 'fast' has no section 'rays'" in one_line_error(capsys)
     assert main(fast + ["--set", "schedule.grad_blur_passes=0"]) == 1  # a key of earlier versions
     assert "parts.blur.passes (parts.blur.enabled=false: off)" in one_line_error(capsys)
+    assert main(fast + ["--set", "parts.empty_space.heard_views=0"]) == 1
+    assert "parts.empty_space.heard_views 0" in one_line_error(capsys)
+    assert main(fast + ["--set", "parts.empty_space.heard_threshold=0"]) == 1
+    assert "parts.empty_space.heard_threshold 0.0 must be > 0" in one_line_error(capsys)
+    assert not (tmp_path / "o").exists()  # a refused config writes nothing
     if not torch.cuda.is_available():
         assert main(base + ["--device", "cuda", "--steps", "1"]) == 1
         assert "CUDA" in one_line_error(capsys)
