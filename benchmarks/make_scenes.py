@@ -1,11 +1,11 @@
-"""Simulated captures of the built-in validation split and of the tall objects on a table, for the benchmarks.
+"""Simulated captures of the built-in validation and holdout splits and of the tall objects on a table.
 
-    python benchmarks/make_scenes.py --out FOLDER [--groups validation,table] [--seed 0] [--overwrite]
+    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,table] [--seed 0] [--overwrite]
 
 Writes one capture folder per scene into FOLDER, each through `spadscan simulate` with a fixed command line (printed
 as it goes), so the same seed gives the same captures on any machine:
 
-- validation: the validation split (protocol/scenes.py SPLITS) in the public dataset's simulated format: sensor
+- validation, holdout: those splits (protocol/scenes.py SPLITS) in the public dataset's simulated format: sensor
   lcspc-sim, 256 views on the Fibonacci spiral at 0.5 m looking at the origin, no table.
 - table: the tall objects (TABLE_SCENES) on a black table, as a real capture sees them: sensor tmf8820, 120 views
   on 8 elevation rings from 36 to 83 degrees (the real captures' layout), looking at the object's mid-height from
@@ -37,16 +37,17 @@ TABLE_OPTIONS = ["--sensor", "tmf8820", "--table", "--views", "120", "--schedule
 TABLE_RADIUS_M = {"head-on-can": 0.45, "tall-block": 0.40}
 """Distance from the sensor to the object's mid-height: the sensor 0.2-0.6 m from the surface."""
 
-GROUPS = ("validation", "table")
+GROUPS = ("validation", "holdout", "table")
 
 
 def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
     """(capture folder name, `spadscan simulate` arguments without --out) for every scene of the groups."""
     out = []
-    if "validation" in groups:
-        for spec in SPLITS["validation"]:
-            name = spec.split(":", 1)[1]
-            out.append((name, [spec, *VALIDATION_OPTIONS, "--seed", str(seed)]))
+    for split in ("validation", "holdout"):
+        if split in groups:
+            for spec in SPLITS[split]:
+                name = spec.split(":", 1)[1]
+                out.append((name, [spec, *VALIDATION_OPTIONS, "--seed", str(seed)]))
     if "table" in groups:
         for name in TABLE_SCENES:
             mid = round(float(builtin_scene(name).bounds[1, 2]) / 2, 3)

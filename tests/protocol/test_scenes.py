@@ -11,7 +11,8 @@ from spadscan.protocol.scenes import (BUILTIN_SCENES, DATASET_SCENES, SPLITS, TA
 
 
 HEIGHT_M = {"sphere": 0.20, "cup": 0.16, "lamp": 0.20, "pyramid": 0.15, "demo": 0.20, "teddy": 0.25, "head": 0.35,
-            "duck": 0.15, "stool": 0.20, "mug": 0.15, "bowl": 0.11, "head-on-can": 0.50, "tall-block": 0.30}
+            "duck": 0.15, "stool": 0.20, "mug": 0.15, "bowl": 0.11, "head-on-can": 0.50, "tall-block": 0.30,
+            "bottle": 0.24, "mushroom": 0.18, "pawn": 0.20}
 """Each scene's height as its description gives it (metres, to the centimetre)."""
 
 
@@ -99,23 +100,29 @@ def test_revolve_refuses_open_profiles():
 
 # ---- the splits ----------------------------------------------------------------------------------------------------
 def test_every_builtin_is_in_one_split_or_a_table_scene_and_the_splits_do_not_overlap():
-    tuning, validation = set(SPLITS["tuning"]), set(SPLITS["validation"])
-    assert set(SPLITS) == {"tuning", "validation"} and not tuning & validation
+    tuning, validation, holdout = (set(SPLITS[s]) for s in ("tuning", "validation", "holdout"))
+    assert set(SPLITS) == {"tuning", "validation", "holdout"}
+    assert not tuning & validation and not tuning & holdout and not validation & holdout
     assert tuning == {f"builtin:{n}" for n in ("sphere", "cup", "lamp", "pyramid", "demo")} | set(DATASET_SCENES)
     assert set(DATASET_SCENES) == {"lcspc:sphere", "lcspc:bunny", "lcspc:soap"}
     for name in BUILTIN_SCENES:
-        homes = [f"builtin:{name}" in tuning, f"builtin:{name}" in validation, name in TABLE_SCENES]
+        homes = [f"builtin:{name}" in tuning, f"builtin:{name}" in validation, f"builtin:{name}" in holdout,
+                 name in TABLE_SCENES]
         assert sum(homes) == 1, name
-        assert split_of(name) == ("tuning" if homes[0] else "validation" if homes[1] else None)
-    assert all(m.split(":", 1)[1] in BUILTIN_SCENES for m in validation | tuning if m.startswith("builtin:"))
+        assert split_of(name) == ("tuning" if homes[0] else "validation" if homes[1] else
+                                  "holdout" if homes[2] else None)
+    everything = validation | tuning | holdout
+    assert all(m.split(":", 1)[1] in BUILTIN_SCENES for m in everything if m.startswith("builtin:"))
 
 
 def test_the_listing_names_every_scene_under_its_split():
     text = scene_listing()
-    validation_at, table_at = text.index("validation split"), text.index("tall objects")
+    validation_at, holdout_at = text.index("validation split"), text.index("holdout split")
+    table_at = text.index("tall objects")
     for name in BUILTIN_SCENES:
         at = text.index(f"    {name} ")
-        group = "tuning" if at < validation_at else "validation" if at < table_at else None
+        group = ("tuning" if at < validation_at else "validation" if at < holdout_at else
+                 "holdout" if at < table_at else None)
         assert group == split_of(name), name
     assert all(n.split(":")[1] in text[:validation_at] for n in DATASET_SCENES)
 
@@ -181,6 +188,31 @@ def test_head_on_can_is_a_head_on_a_cylinder(meshes):
     assert 2 * np.sqrt(_area(can) / np.pi) == pytest.approx(0.12, abs=0.002)
     (skull,) = _section_parts(mesh, 0.40)
     assert _area(skull) > 1.5 * _area(can)
+
+
+def _diameter(mesh, z):
+    (loop,) = _section_parts(mesh, z)
+    return 2 * np.sqrt(_area(loop) / np.pi)
+
+
+def test_bottle_is_a_closed_round_body_under_a_narrow_neck(meshes):
+    mesh = meshes("bottle")
+    assert _diameter(mesh, 0.09) == pytest.approx(0.15, abs=0.003)
+    assert _diameter(mesh, 0.215) == pytest.approx(0.04, abs=0.002)
+    assert _first_hit_z(mesh) == pytest.approx(0.24, abs=0.001), "closed on top"
+
+
+def test_mushroom_cap_overhangs_its_stem(meshes):
+    mesh = meshes("mushroom")
+    assert _diameter(mesh, 0.08) == pytest.approx(0.044, abs=0.002)
+    assert _diameter(mesh, 0.13) > 3.5 * _diameter(mesh, 0.08)
+
+
+def test_pawn_has_a_waist_under_a_collar_and_a_ball_head(meshes):
+    mesh = meshes("pawn")
+    base, waist, collar, head = (_diameter(mesh, z) for z in (0.007, 0.11, 0.124, 0.168))
+    assert base == pytest.approx(0.11, abs=0.002) and head == pytest.approx(0.064, abs=0.002)
+    assert waist < 0.6 * collar and waist < 0.7 * head
 
 
 # ---- meshing a signed distance function ------------------------------------------------------------------------------
