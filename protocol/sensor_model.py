@@ -54,6 +54,21 @@ class Zone:
         if not (math.isfinite(self.gain) and self.gain > 0):
             raise SensorModelError(f"{where}: gain {self.gain} must be positive")
 
+    def holds(self, rel):
+        """(...) bool: whether sensor-frame points or directions `rel` (..., 3) lie in the zone's field of view.
+
+        Elementwise arithmetic only, so `rel` may be a numpy array or a torch tensor (on any device) and the result is
+        of the same kind: the fit's parts and the view planner share this one test."""
+        x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
+        if self.kind == "rect":
+            front = z > 1e-9
+            tz = z * front + ~front  # z where in front, 1 elsewhere (no division by zero)
+            tx, ty = x / tz, y / tz
+            return front & (tx >= self.tan_x[0]) & (tx <= self.tan_x[1]) & (ty >= self.tan_y[0]) & (ty <= self.tan_y[1])
+        length = (x * x + y * y + z * z) ** 0.5
+        dot = x * self.axis[0] + y * self.axis[1] + z * self.axis[2]
+        return dot >= math.cos(self.half_angle_rad) * (length + 1e-12)
+
     def solid_angle_sr(self) -> float:
         """Solid angle of the zone (steradians)."""
         if self.kind == "cone":

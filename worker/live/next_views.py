@@ -264,16 +264,9 @@ def _seen_cos(field: TracedField, sensor, points: np.ndarray, normals: np.ndarra
 
 def _in_zones(sensor, local: np.ndarray) -> np.ndarray:
     """(...,) whether directions `local` (..., 3) in the sensor's frame fall in any of its zones."""
-    z = local[..., 2]
     seen = np.zeros(local.shape[:-1], dtype=bool)
-    front = z > 1e-9
-    unit = local / np.maximum(np.linalg.norm(local, axis=-1, keepdims=True), 1e-12)
     for zone in sensor.zones:
-        if zone.kind == "cone":
-            seen |= unit @ np.asarray(zone.axis, float) >= np.cos(zone.half_angle_rad)
-        else:
-            x, y = local[..., 0] / np.where(front, z, 1), local[..., 1] / np.where(front, z, 1)
-            seen |= front & (zone.tan_x[0] <= x) & (x <= zone.tan_x[1]) & (zone.tan_y[0] <= y) & (y <= zone.tan_y[1])
+        seen |= zone.holds(local)
     return seen
 
 

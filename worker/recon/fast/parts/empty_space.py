@@ -128,7 +128,7 @@ def view_coverage(points: torch.Tensor, poses: torch.Tensor, zones, chunk: int =
         rel = torch.einsum("vji,pvj->pvi", rot, flat[i: i + chunk, None, :] - org[None])  # sensor frame (P, V, 3)
         seen = torch.zeros(rel.shape[:-1], dtype=torch.bool, device=flat.device)
         for zone in zones:
-            seen |= zone_holds(zone, rel)
+            seen |= zone.holds(rel)
         out[i: i + chunk] = seen.to(flat.dtype).mean(dim=1)
     return out.reshape(points.shape[:-1])
 
@@ -167,22 +167,9 @@ def views_hearing(points: torch.Tensor, poses: torch.Tensor, sensor, loud: torch
         heard = torch.zeros(rng.shape, dtype=torch.bool, device=flat.device)
         for z, zone in enumerate(sensor.zones):
             c = cum[:, z]  # (V, B + 1)
-            heard |= zone_holds(zone, rel) & window & (c[rows, (hi + 1).clamp(0, B)] > c[rows, lo])
+            heard |= zone.holds(rel) & window & (c[rows, (hi + 1).clamp(0, B)] > c[rows, lo])
         out[i: i + chunk] = heard.to(flat.dtype).sum(dim=1)
     return out.reshape(points.shape[:-1])
-
-
-def zone_holds(zone, rel: torch.Tensor) -> torch.Tensor:
-    """(...) bool: sensor-frame points rel (..., 3) lie in the zone's field of view (+z is the boresight)."""
-    z = rel[..., 2]
-    front = z > 1e-9
-    if zone.kind == "rect":
-        tz = torch.where(front, z, torch.ones_like(z))
-        tx, ty = rel[..., 0] / tz, rel[..., 1] / tz
-        return front & (tx >= zone.tan_x[0]) & (tx <= zone.tan_x[1]) & (ty >= zone.tan_y[0]) & (ty <= zone.tan_y[1])
-    axis = torch.as_tensor(zone.axis, dtype=rel.dtype, device=rel.device)
-    cos = (rel @ axis) / rel.norm(dim=-1).clamp(min=1e-12)
-    return cos >= float(np.cos(zone.half_angle_rad))
 
 
 def pressure_weight(coverage: torch.Tensor, full_coverage: float) -> torch.Tensor:
@@ -206,5 +193,5 @@ def push_to_empty(grad: torch.Tensor, sdf: torch.Tensor, voxel: float, weight: t
     grad -= strength * rms * surf.to(grad.dtype) * weight
 
 
-__all__ = ["EmptySpacePush", "EmptySpaceConfig", "view_coverage", "views_hearing", "heard_bins", "zone_holds",
+__all__ = ["EmptySpacePush", "EmptySpaceConfig", "view_coverage", "views_hearing", "heard_bins",
            "pressure_weight", "push_to_empty"]
