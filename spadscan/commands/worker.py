@@ -15,7 +15,7 @@ reconstruct finished scans again, `--redo JOB...` moves each one's results folde
 --budget-s bounds each job's whole run, from its process's start to its report (within 10 % or 10 s, whichever is
 larger): the mesh is coarser and the metrics use fewer points when time is short. --status shows, for each done
 job, whether its reconstruction converged and the warnings its report gives (a run cut short, starved of CPU, or
-whose fit is far from the photon noise).
+whose fit does not explain the measurements).
 
 Options are frozen into each job when it is queued: --budget-s, --steps, --device and --seed apply to the scans a
 worker queues, and a job already queued (by this worker or an earlier one) runs with its own (the worker names, when
