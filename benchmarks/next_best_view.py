@@ -162,9 +162,12 @@ def fit_config(steps: int):
 
 
 def score_fit(capture: Path, truth, steps: int, seed: int) -> dict:
-    """Reconstruct `capture` from scratch for `steps` steps; Chamfer and its parts (mm) against `truth`."""
+    """Reconstruct `capture` from scratch for `steps` steps; Chamfer and its parts (mm) against `truth`. A fit that
+    leaves no surface (too few views can let it empty the grid) is a result too: chamfer_mm None and `failed` says
+    why, so one such point does not end the benchmark."""
     import torch
 
+    from spadscan.worker.recon.errors import ReconstructionError
     from spadscan.worker.reconstruct import set_up_run
 
     config = fit_config(steps)
@@ -173,7 +176,10 @@ def score_fit(capture: Path, truth, steps: int, seed: int) -> dict:
     for _ in range(steps):
         run.model.step()
     fit_s = time.perf_counter() - t0
-    mesh = run.model.extract_mesh(config.mesh_resolution)
+    try:
+        mesh = run.model.extract_mesh(config.mesh_resolution)
+    except ReconstructionError as exc:
+        return {"chamfer_mm": None, "failed": str(exc), "steps": steps, "fit_seconds": round(fit_s, 1)}
     m = truth.metrics(mesh, n_points=config.metrics_points, seed=seed)
     return {"chamfer_mm": m.chamfer_mm, "accuracy_mm": m.accuracy_mm, "completeness_mm": m.completeness_mm,
             "steps": steps, "fit_seconds": round(fit_s, 1)}
@@ -302,7 +308,7 @@ def run(args) -> dict:
                     hists = scene.frames(poses)
                     entry = score_fit(scene.capture(work / "fit", poses, hists), scene.truth, args.steps, args.seed)
                     results.put(key, {**entry, "poses_digest": digest(poses)})
-                    print(f"{key}: {entry['chamfer_mm']:.2f} mm", file=sys.stderr)
+                    print(f"{key}: {chamfer_text(entry)}", file=sys.stderr)
         for measure in args.measures:
             seq = sequence(scene, measure, initial, max(args.counts), args, work)
             label = f"adaptive-{measure}{variant_suffix(args)}"
@@ -315,7 +321,7 @@ def run(args) -> dict:
                     counts = {w: seq["why"][:n].count(w) for w in ("initial", "adaptive", "fallback")}
                     results.put(key, {**entry, "poses_digest": digest(poses), "view_choices": counts,
                                       "rank_seconds": seq["rank_seconds"]})
-                    print(f"{key}: {entry['chamfer_mm']:.2f} mm", file=sys.stderr)
+                    print(f"{key}: {chamfer_text(entry)}", file=sys.stderr)
     return results.data
 
 
@@ -343,6 +349,10 @@ def sequence(scene: Scene, measure: str, initial: int, upto: int, args, work: Pa
 
 
 # ---- the table and the plot ---------------------------------------------------------------------------------------
+def chamfer_text(entry: dict) -> str:
+    return "no surface" if entry.get("chamfer_mm") is None else f"{entry['chamfer_mm']:.2f} mm"
+
+
 def table(data: dict) -> str:
     counts = sorted({int(k.split("|")[2]) for k in data["fits"]})
     rows: dict[tuple[str, str], dict[int, float]] = {}
@@ -355,9 +365,9 @@ def table(data: dict) -> str:
         goal = rows.get((scene, "fibonacci"), {}).get(counts[-1])
         reach = "-"
         if goal is not None and schedule != "fibonacci":
-            hit = [n for n in counts if n in by_n and by_n[n] <= goal]
+            hit = [n for n in counts if by_n.get(n) is not None and by_n[n] <= goal]
             reach = str(hit[0]) if hit else f"> {max(by_n)}"
-        cells = [f"{by_n[c]:.2f}" if c in by_n else "" for c in counts]
+        cells = [("" if c not in by_n else "no surface" if by_n[c] is None else f"{by_n[c]:.2f}") for c in counts]
         lines.append(f"| {scene} | {schedule} | " + " | ".join(cells) + f" | {reach} |")
     return "\n".join(lines)
 
@@ -375,7 +385,7 @@ def plot(data: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, len(series), figsize=(4.2 * len(series), 3.6), squeeze=False)
     for ax, (scene, by_schedule) in zip(axes[0], sorted(series.items())):
         for schedule, pts in sorted(by_schedule.items()):
-            n = sorted(pts)
+            n = sorted(k for k in pts if pts[k] is not None)  # a fit with no surface has no Chamfer to draw
             ax.plot(n, [pts[k] for k in n], marker="o", label=schedule)
         ax.set_xscale("log", base=2)
         ax.set_title(scene)

@@ -41,6 +41,17 @@ def test_the_table_says_how_many_adaptive_views_reach_fibonacci_at_the_most(nbv)
     assert cells[("cup", "fibonacci")] == "-"
 
 
+def test_a_fit_with_no_surface_is_a_cell_of_the_table_and_a_gap_in_the_plot(nbv, tmp_path):
+    data = fits({("lamp", "fibonacci"): {16: 46.7, 32: 2.3, 64: 1.4},
+                 ("lamp", "adaptive-coverage"): {16: None, 32: 1.4, 64: 1.5}})
+    rows = {tuple(c.strip() for c in r.strip("|").split("|")[:2]): [c.strip() for c in r.strip("|").split("|")]
+            for r in nbv.table(data).splitlines()[2:]}
+    assert rows[("lamp", "adaptive-coverage")][2:] == ["no surface", "1.40", "1.50", "32"]
+    nbv.plot(data, tmp_path / "nbv.png")
+    assert (tmp_path / "nbv.png").stat().st_size > 0
+    assert nbv.chamfer_text({"chamfer_mm": None, "failed": "no surface"}) == "no surface"
+
+
 def test_combine_refuses_runs_made_with_other_settings(nbv, tmp_path):
     for name, steps in (("a", 800), ("b", 800), ("c", 1000)):
         (tmp_path / name).mkdir()
