@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic_files import fsync_dir, write_durable
 from .errors import CaptureError
 
 FORMAT = "spadscan-capture"
@@ -166,22 +167,6 @@ def read_npy(path: Path) -> np.ndarray:
         getattr(array, "close", lambda: None)()
         raise CaptureError(f"{path}: not a single .npy array ({type(array).__name__})")
     return array
-
-
-def fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_durable(path: Path, data: bytes) -> None:
-    """Write bytes and fsync the file (the caller renames and fsyncs the folder)."""
-    with open(path, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
 
 
 def save_npy_durable(path: Path, array: np.ndarray) -> None:

@@ -31,11 +31,10 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-import os
-import secrets
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+from .atomic_files import write_atomic
 from .errors import CaptureError
 
 LIVE_DIR = "live"
@@ -114,23 +113,6 @@ def write_status(folder, status: LiveStatus) -> Path:
     return write_atomic(Path(folder) / STATUS, (json.dumps(status.to_dict(), indent=1) + "\n").encode())
 
 
-def write_atomic(path: Path, data: bytes) -> Path:
-    """Write `data` to `path` through a hidden temporary file in the same folder, renamed over it: a reader sees the
-    old file or the new one, never a part."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
 def read_status(path) -> LiveStatus:
     """The status in `path` (a status.json, or a capture folder); CaptureError in one line when it is missing or
     malformed."""
@@ -184,4 +166,4 @@ def _is_int(value) -> bool:
 
 
 __all__ = ["LiveStatus", "LIVE_DIR", "STATUS", "STATES", "status_path", "write_status", "read_status",
-           "write_atomic", "utc_now", "check_status"]
+           "utc_now", "check_status"]

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Callable
 
+from spadscan.protocol.atomic_files import write_atomic
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
 from .budget import process_started
@@ -353,9 +354,7 @@ def _exit_with_parent(parent: int | None = None, poll_s: float = 0.5) -> None:
 
 
 def _write_outcome(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data) + "\n")
-    os.replace(tmp, path)
+    write_atomic(path, json.dumps(data) + "\n")
 
 
 def child_main(argv: list[str] | None = None) -> int:

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import html
-import os
 from pathlib import Path
 
+from spadscan.protocol.atomic_files import write_atomic
 from spadscan.worker.report.report_html import STYLE
 
 from .plot import method_label, panel_title
@@ -79,11 +79,7 @@ def write_page(results: SweepResults, pictures: dict[str, str], folder) -> Path:
     text = ("<!DOCTYPE html>\n<html lang=en>\n<head>\n<meta charset=utf-8>\n"
             f"<title>spadscan sweep {_esc(results.folder.name)}</title>\n<style>{style}</style>\n</head>\n<body>\n"
             + "\n".join(parts) + "\n</body>\n</html>\n")
-    path = folder / PAGE
-    tmp = folder / f".{PAGE}.tmp"
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    return write_atomic(folder / PAGE, text)
 
 
 __all__ = ["write_page", "PAGE"]

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import spadscan
-from spadscan.protocol.capture_format import fsync_dir, write_durable
+from spadscan.protocol.atomic_files import write_atomic
 from spadscan.protocol.errors import ConfigError
 
 from .params import C_M_PER_S
@@ -49,14 +49,7 @@ BASELINE_COLUMNS = ("threshold",)
 def write_text_atomic(path: Path, text: str) -> None:
     """Replace `path` atomically (a durable temporary file, renamed, the folder synced). The temporary file's name
     is this writer's own: two attempts at one point may end at once on two machines."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
-    try:
-        write_durable(tmp, text.encode())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    fsync_dir(path.parent)
+    write_atomic(path, text)
 
 
 def write_json_atomic(path: Path, data: dict) -> None:

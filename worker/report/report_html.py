@@ -11,8 +11,9 @@ from __future__ import annotations
 import html
 import json
 import math
-import os
 from pathlib import Path
+
+from spadscan.protocol.atomic_files import write_atomic
 
 from .folder_view import MESH, ensure_view3d
 from .view3d import VIEW3D
@@ -242,8 +243,4 @@ def write_report_html(report: dict, folder) -> Path:
     folder holds a mesh and no view of it yet. Returns the page's path."""
     folder = Path(folder)
     ensure_view3d(report, folder)
-    path = folder / REPORT_HTML
-    tmp = folder / f".{REPORT_HTML}.tmp"
-    tmp.write_text(render_html(report, folder), encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    return write_atomic(folder / REPORT_HTML, render_html(report, folder))

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
+
+from spadscan.protocol.atomic_files import write_atomic
 
 REPORT = "report.json"
 
@@ -35,12 +36,4 @@ def json_safe(value):
 def write_report(out_dir, report: dict) -> Path:
     """Write out_dir/report.json (temporary file, fsync, rename). Returns its path."""
     out_dir = Path(out_dir)
-    path = out_dir / REPORT
-    tmp = out_dir / f".{REPORT}.tmp"
-    with open(tmp, "w") as f:
-        json.dump(json_safe(report), f, indent=1)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    return path
+    return write_atomic(out_dir / REPORT, json.dumps(json_safe(report), indent=1) + "\n")

@@ -13,12 +13,13 @@ import base64
 import html
 import io
 import json
-import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from spadscan.protocol.atomic_files import write_atomic
 
 from . import offscreen
 
@@ -165,8 +166,4 @@ def view3d_html(mesh, gt=None, poses: np.ndarray | None = None, title: str = "3D
 def write_view3d(folder, mesh, gt=None, poses: np.ndarray | None = None, title: str = "3D view") -> Path:
     """Write `folder`/view3d.html (temporary file, then rename). Returns its path."""
     folder = Path(folder)
-    path = folder / VIEW3D
-    tmp = folder / f".{VIEW3D}.tmp"
-    tmp.write_text(view3d_html(mesh, gt, poses, title), encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    return write_atomic(folder / VIEW3D, view3d_html(mesh, gt, poses, title))
