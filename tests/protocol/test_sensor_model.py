@@ -43,6 +43,28 @@ def test_tmf8820_zone_layout_follows_the_channel_order():
     assert zones[4].gain == 1.0
 
 
+def test_a_zone_holds_what_lies_in_its_field_of_view_for_arrays_and_tensors_alike():
+    torch = pytest.importorskip("torch")
+    cone = Zone(kind="cone", half_angle_rad=math.radians(10), axis=(0.0, 0.0, 1.0))
+    rect = Zone(kind="rect", tan_x=(-0.1, 0.2), tan_y=(0.0, 0.3))
+    pts = np.array([[0, 0, 1.0],          # on the boresight
+                    [0.17, 0, 1.0],       # 9.6 deg off: in the cone
+                    [0.18, 0, 1.0],       # 10.2 deg off: out of the cone
+                    [0, 0, -1.0],         # behind the sensor
+                    [0.05, 0.29, 1.0],    # in the rect
+                    [0.05, 0.31, 1.0],    # above the rect
+                    [0, 0, 0.0]])         # the sensor itself
+    assert cone.holds(pts).tolist() == [True, True, False, False, False, False, False]
+    assert rect.holds(pts).tolist() == [True, True, True, False, True, False, False]  # y = 0: on its edge, held
+    rng = np.random.default_rng(0)
+    many = rng.normal(size=(5000, 3))
+    for zone in (*sensor_preset("tmf8820").zones, *sensor_preset("lcspc-sim").zones):
+        on_array = zone.holds(many)
+        assert isinstance(on_array, np.ndarray) and on_array.any() and not on_array.all()
+        assert zone.holds(torch.as_tensor(many)).numpy().tolist() == on_array.tolist()
+        assert zone.holds(3.0 * many).tolist() == on_array.tolist(), "a direction, whatever its length"
+
+
 def test_solid_angles():
     cone = Zone(kind="cone", half_angle_rad=math.radians(15))
     assert cone.solid_angle_sr() == pytest.approx(2 * math.pi * (1 - math.cos(math.radians(15))))
