@@ -291,9 +291,9 @@ def run_baseline(capture: Path, method: str, out: Path) -> dict:
 
 def write_atomic(path: Path, record: dict) -> None:
     """Write JSON so that a reader (or a kill mid-write) never sees half a file."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_jsonable(record), indent=1))
-    os.replace(tmp, path)
+    from spadscan.protocol.atomic_files import write_atomic as replace_file
+
+    replace_file(path, json.dumps(_jsonable(record), indent=1))
 
 
 def _jsonable(obj):

@@ -46,14 +46,10 @@ PRESET_COLUMNS = ("steps", "stopped_by")
 BASELINE_COLUMNS = ("threshold",)
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Replace `path` atomically (a durable temporary file, renamed, the folder synced). The temporary file's name
-    is this writer's own: two attempts at one point may end at once on two machines."""
-    write_atomic(path, text)
-
-
 def write_json_atomic(path: Path, data: dict) -> None:
-    write_text_atomic(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
+    """Replace `path` atomically (`write_atomic`: its temporary file is this writer's own, so two attempts at one
+    point that end at once on two machines do not collide)."""
+    write_atomic(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
 
 
 def column_name(method: str) -> str:
@@ -92,7 +88,7 @@ class SweepDir:
             for stale in self.work.glob(f"*{RUNNING_MARK}*"):
                 shutil.rmtree(stale, ignore_errors=True)
             write_json_atomic(self.path / SWEEP_JSON, sweep_record(plan))
-            write_text_atomic(self.path / SWEEP_TOML, plan.spec.text)
+            write_atomic(self.path / SWEEP_TOML, plan.spec.text)
         except BaseException:
             self.close()
             raise
@@ -157,7 +153,7 @@ class SweepDir:
                 continue
             writer.writerow(results_row(entry, result, methods, plan.spec))
             rows += 1
-        write_text_atomic(self.path / RESULTS_CSV, buf.getvalue())
+        write_atomic(self.path / RESULTS_CSV, buf.getvalue())
         return rows
 
     # --- both sides ---------------------------------------------------------------------------------------------
