@@ -63,14 +63,16 @@ def builtin_scene(name: str):
     from .scene_shapes import SOLID_SCENES  # lazily: only the blended solids need scikit-image
 
     makers = {"sphere": _sphere, "cup": _cup, "lamp": _lamp, "pyramid": _pyramid, "demo": _goblet,
-              "tall-block": _tall_block, "bottle": _bottle, "mushroom": _mushroom, "pawn": _pawn, **{n: (lambda m=m: m().mesh()) for n, m in SOLID_SCENES.items()}}
+              "tall-block": _tall_block, "bottle": _bottle, "mushroom": _mushroom, "pawn": _pawn,
+              **{n: (lambda m=m: m().mesh()) for n, m in SOLID_SCENES.items()}}
     if name not in makers:
         raise MeshError(f"unknown built-in scene {name!r} (known: {', '.join(BUILTIN_SCENES)})")
     return makers[name]()
 
 
 def split_of(name: str) -> str | None:
-    """The split ('tuning', 'validation' or 'holdout') that holds the built-in scene `name`, or None (the table scenes)."""
+    """The split ('tuning', 'validation' or 'holdout') that holds the built-in scene `name`, or None (the table
+    scenes)."""
     for split, members in SPLITS.items():
         if f"builtin:{name}" in members:
             return split

@@ -27,10 +27,11 @@ STILL_FALLING = 0.01
 """Relative drop of the windowed data term over the last fifth of a run above which it was still improving."""
 STARVED_SHARE = 0.5
 """CPU cores' worth a CPU run's process must have had on average (CPU seconds / wall seconds): below it, warn."""
+REAL_SENSOR_MISFIT = 0.3
+"""Relative misfit (`FitNoise.relative_misfit`) that a real sensor's own departures from its model leave on good fits
+of the public dataset's real pyramid, bright or dim (docs/end_of_run.md gives the measurements)."""
 RELATIVE_MISFIT_LIMIT = 0.6
-"""Relative misfit (`FitNoise.relative_misfit`) above which the fit does not explain a measured capture. A real
-sensor's own departures from its model leave about 0.3 on good fits of the public dataset's real pyramid
-(docs/end_of_run.md gives the measurements)."""
+"""Relative misfit above which the fit does not explain a measured capture: twice REAL_SENSOR_MISFIT."""
 NOISE_RATIO_SIMULATED = 1.1
 """The same on a simulated capture, whose sensor model is the simulator's: a fit that found the surface leaves photon
 noise alone there (1.01-1.03 on the tuning split's scenes), so 10 % more misfit means part of the surface is wrong."""
@@ -166,7 +167,7 @@ def misfit_warning(fit: FitNoise, measured: bool) -> str | None:
     if measured and fit.relative_misfit > RELATIVE_MISFIT_LIMIT:
         return (f"the fit does not explain the measurements: the model is off by {100 * fit.relative_misfit:.0f} % "
                 f"per bin where the photons are (a good fit of a real capture: about "
-                f"{100 * RELATIVE_MISFIT_LIMIT / 2:.0f} %); a wrong sensor model or calibration, an object that "
+                f"{100 * REAL_SENSOR_MISFIT:.0f} %); a wrong sensor model or calibration, an object that "
                 f"moved during the scan, or a fit gone wrong")
     if not measured and fit.ratio > NOISE_RATIO_SIMULATED:
         return (f"the fit does not explain the measurements: their deviance from the model is {fit.ratio:.2f}x what "
