@@ -9,6 +9,8 @@ import numpy as np
 import torch
 
 from spadscan.worker.live.keep import keep_the_better, use_field
+from spadscan.worker.live.live_fit import LiveFit
+from spadscan.worker.live.recoarse import RecoarsePolicy
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.fast.model import make_fast_model
 from spadscan.worker.recon.model_api import RunPlan
@@ -94,3 +96,45 @@ def test_a_final_run_that_fits_worse_than_the_live_state_is_not_published(cylind
     assert kept["published"]["mesh"] == "live"
     assert kept["published"]["deviance_live"] < kept["published"]["deviance_final"]
     assert kept["mesh_resolution"] == 48 and (out / "mesh.ply").stat().st_size > 0
+
+
+def test_recoarse_policy_wants_half_as_many_views_again_while_the_scan_is_young():
+    policy = RecoarsePolicy()  # back to the coarse level at 1.5x the views, under 3/4 of the plan
+    assert not policy.due(coarse_views=8, views=11, planned=128)
+    assert policy.due(coarse_views=8, views=12, planned=128)
+    assert policy.due(coarse_views=60, views=95, planned=128)
+    assert not policy.due(coarse_views=60, views=96, planned=128), "too late in the scan"
+    assert policy.due(coarse_views=60, views=200, planned=None), "no plan known: growth alone decides"
+    assert not RecoarsePolicy(growth=0).due(coarse_views=8, views=1000, planned=None), "growth 0: never"
+
+
+def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_views_have_grown_by_half(
+        cylinder_capture, tmp_path, one_thread):
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    scan = ReplayScan(cylinder_capture, tmp_path / "scan")
+    fit = LiveFit(tmp_path / "scan", config, torch.device("cpu"), 0, log=lambda line: None)
+    scan.publish(8)
+    assert fit.rebuild(24) and fit.model.level == 0
+    for _ in range(12):  # past the refinement after 4 steps
+        fit.model.step()
+    assert fit.model.level == 1
+
+    scan.publish(4)  # 12 views: 1.5x the 8 the coarse level began with, under 3/4 of the 24 planned
+    assert fit.rebuild(24)
+    assert fit.model.level == 0 and fit.model.level_steps == 0 and fit.recoarsened == 1
+    values = fit.model.field.sdf.detach()
+    bound = fit.model.constraint.bound_for(fit.model.field)
+    assert float((values - bound).abs().max()) > 2 * fit.model.field.voxel, "the coarse level starts from the hull"
+    for _ in range(6):
+        fit.model.step()
+    assert fit.model.level == 1
+    steps = fit.model.level_steps
+
+    scan.publish(5)  # 17 views: under 1.5x 12, so the fit goes on at the fine level
+    assert fit.rebuild(24)
+    assert (fit.model.level, fit.model.level_steps, fit.recoarsened) == (1, steps, 1)
+
+    scan.publish(7)  # 24 views, 2x 12, but the scan is past 3/4 of its plan
+    assert fit.rebuild(24)
+    assert (fit.model.level, fit.recoarsened) == (1, 1)
+    assert fit.report()["coarse_restarts"] == 1

@@ -39,6 +39,7 @@ from .follower import ScanFollower, ScanProgress
 from .keep import keep_the_better
 from .next_views import is_adaptive, update_next_views
 from .publish import clear_leftovers, live_folder, publish_mesh, publish_status
+from .recoarse import RecoarsePolicy
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,8 @@ class LiveSettings:
     final_budget_s: float = 20.0
     """The final reconstruction's budget when the job names none: it continues from the live fit, so it polishes
     rather than fits."""
+    recoarse: RecoarsePolicy = RecoarsePolicy()
+    """When a refit goes back to the coarse level (the first views see the object from one side only)."""
     live_threads: int = 1
     """CPU threads of the live fit while the scan runs (the final run gets the job's own): the daemon beside it keeps
     a core."""
@@ -199,7 +202,8 @@ class LiveRun:
         torch.set_num_threads(max(1, min(self.threads, self.settings.live_threads)))
         config = run_config(self.job.preset, dict(self.settings.overrides) or None)
         self.config = config
-        self.fit = LiveFit(self.scan, config, resolve_device(self.job.device), self.job.seed, self.log)
+        self.fit = LiveFit(self.scan, config, resolve_device(self.job.device), self.job.seed, self.log,
+                           self.settings.recoarse)
         if gt is not None:
             try:
                 self.truth = load_ground_truth(gt)
@@ -223,13 +227,15 @@ class LiveRun:
                 return progress
             now = time.monotonic()
             if self._refit_due(progress, now):
-                rebuilt = self.fit.rebuild()
+                rebuilt = self.fit.rebuild(progress.views_planned)
                 self.last_rebuild_cost = time.monotonic() - now
                 self.last_rebuild = time.monotonic()
                 if rebuilt:
                     self.fit_views = self.fit.views_used
+                    level = getattr(self.fit.model, "level", None)
+                    level = "coarse level" if level == 0 else f"level {level}"
                     self.log(f"live: fitting {self.fit.views_used} of {progress.views_published} published views "
-                             f"(refit {self.fit.rebuilds}, {self.fit.steps} steps so far)")
+                             f"(refit {self.fit.rebuilds}, {self.fit.steps} steps so far, {level})")
                     self.publish(progress, force=self.fit.rebuilds == 1)
             self.publish(progress)
             self._rank(progress)

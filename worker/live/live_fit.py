@@ -4,6 +4,9 @@ Each rebuild loads the capture as it stands (every published view), builds the `
 carving: more views carve a tighter hull) and a new model, and warm-starts that model from the previous one's field
 (`FastModel.warm_start`): the old surface where the old grid covers the new one, never outside the new hull, at the
 old model's level of refinement. So the views in use grow while the fit goes on from where it was.
+
+While the scan is young, a rebuild goes back to the coarse level instead (warm, from the live surface) each time the
+views have grown enough (`recoarse.RecoarsePolicy`: the first views see the object from one side only).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from ..recon.config import ReconConfig
 from ..recon.model_api import RunPlan
 from ..recon.presets import make_model
 from ..recon.scene_data import SceneData, load_scene
+from .recoarse import RecoarsePolicy
 from .snapshot import FieldSnapshot, GridSnapshot, LiveSnapshot
 
 HISTORY = 3
@@ -37,8 +41,13 @@ class LiveFit:
     """A growing fit of one capture. `rebuild()` refits on every published view (warm), `train(until)` steps."""
 
     def __init__(self, capture: Path, config: ReconConfig, device: torch.device, seed: int,
-                 log: Callable[[str], None]):
+                 log: Callable[[str], None], recoarse: RecoarsePolicy = RecoarsePolicy()):
         self.capture, self.config, self.device, self.seed, self.log = Path(capture), config, device, int(seed), log
+        self.recoarse = recoarse
+        self.coarse_views = 0
+        """Views the coarse level last began with."""
+        self.recoarsened = 0
+        """Rebuilds that re-entered the coarse level."""
         self.dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
         self.model = None
         self.scene: SceneData | None = None
@@ -56,20 +65,26 @@ class LiveFit:
     def views_used(self) -> int:
         return 0 if self.scene is None else self.scene.n_views
 
-    def rebuild(self) -> bool:
-        """Refit on every view published now, warm from the current model. False (the current model kept, the
-        reason logged) when the views so far cannot be fitted yet (too few to carve a hull, say)."""
+    def rebuild(self, views_planned: int | None = None) -> bool:
+        """Refit on every view published now, warm from the current model (at its level, or back at the coarse
+        level: `RecoarsePolicy`; `views_planned` is the scan's plan, None when unknown). False (the current model
+        kept, the reason logged) when the views so far cannot be fitted yet (too few to carve a hull, say)."""
         t0 = time.perf_counter()
         try:
             scene = load_scene(self.capture, self.device, self.dtype)
             model = make_model(scene, self.config, self.device, RunPlan(steps=None, budget_s=None, seed=self.seed))
+            recoarse = self.model is None or self.recoarse.due(self.coarse_views, scene.n_views, views_planned)
             if self.model is not None:
-                model.warm_start(self.model.mesh_field(), self.model.level, self.model.level_steps)
+                level, level_steps = (0, 0) if recoarse else (self.model.level, self.model.level_steps)
+                model.warm_start(self.model.mesh_field(), level, level_steps)
         except SpadscanError as exc:
             self.log(f"live: cannot fit the views so far yet ({exc}); trying again with more")
             return False
         finally:
             self.rebuild_s += time.perf_counter() - t0
+        if recoarse:
+            self.coarse_views = scene.n_views
+            self.recoarsened += self.model is not None
         self.model, self.scene = model, scene
         self.rebuilds += 1
         return True
@@ -140,7 +155,8 @@ class LiveFit:
         """What the live phase did, for the final report."""
         rate = self.steps_per_s()
         return {"views_used": self.views_used, "steps": self.steps, "rebuilds": self.rebuilds,
-                "rebuild_seconds": round(self.rebuild_s, 2), "train_seconds": round(self.train_s, 2),
+                "rebuild_seconds": round(self.rebuild_s, 2),
+                "coarse_restarts": self.recoarsened, "train_seconds": round(self.train_s, 2),
                 "steps_per_s": None if rate is None else round(rate, 2), "level": getattr(self.model, "level", None)}
 
 
