@@ -1,7 +1,7 @@
 """How a reconstruction ended, honestly: did it converge, and what makes its result doubtful (report.json's
 "converged" and "warnings", one line each).
 
-Three checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
+Four checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
 
 - **Stopped early.** A run that ended on its time budget or step count while its data term was still falling:
   the windowed data term of the last fifth of the run against the fifth before it.
@@ -13,6 +13,8 @@ Three checks, each on plain numbers the run recorded (docs/end_of_run.md derives
   On a real capture the sensor's own departures from any model of it outweigh the noise by a factor that grows with
   the photons, so the test there is scale-free: the model's error per bin relative to its expected counts
   (`FitNoise.relative_misfit`), against what a good fit of a real capture leaves.
+- **Seen by too few views.** The share of the mesh's surface (undersides left out) that fewer than three views saw
+  (`coverage.py`): there the shape is the prior's guess, however well the fit explains the measurements.
 """
 
 from __future__ import annotations
@@ -35,6 +37,9 @@ RELATIVE_MISFIT_LIMIT = 0.6
 NOISE_RATIO_SIMULATED = 1.1
 """The same on a simulated capture, whose sensor model is the simulator's: a fit that found the surface leaves photon
 noise alone there (1.01-1.03 on the tuning split's scenes), so 10 % more misfit means part of the surface is wrong."""
+COVERAGE_LIMIT = 0.2
+"""Share of the surface seen by too few views (`coverage.Coverage.share_few`) above which the result says so: twice
+the largest share a good fit of the tuning split leaves (10 %: the real pyramid, around its base on the table)."""
 MIN_TREND_STEPS = 50
 """Fewest steps for the trend test: a shorter run is judged by its stop alone."""
 EXACT_BELOW = 30.0
@@ -140,6 +145,8 @@ class RunFacts:
     """A real sensor's capture (else a simulated one: the fit is held to the photon noise more tightly)."""
     budget_notes: list[str] = field(default_factory=list)
     """What a short time budget cut (a coarser mesh, fewer metric points): said as warnings too."""
+    coverage: object | None = None
+    """The mesh's coverage by the views (a `coverage.Coverage`), or None where it was not measured."""
 
 
 def converged(facts: RunFacts) -> bool:
@@ -176,6 +183,20 @@ def misfit_warning(fit: FitNoise, measured: bool) -> str | None:
     return None
 
 
+def coverage_warning(coverage) -> str | None:
+    """The line saying that much of the surface was seen by too few views to be measured (a `coverage.Coverage`
+    whose share_few is above COVERAGE_LIMIT), or None."""
+    if coverage is None or not coverage.share_few > COVERAGE_LIMIT:
+        return None
+    where = ""
+    if coverage.few_heights_m is not None:
+        lo, hi = coverage.few_heights_m
+        where = f", mostly at heights {lo:.2f} to {hi:.2f} m"
+    return (f"{100 * coverage.share_few:.0f} % of the surface (undersides left out) was seen by fewer than "
+            f"{coverage.few_views} views{where}: its shape there comes from the fit's smoothness, not from "
+            f"measurements; scan it with views aimed at it (for a tall object, a higher target)")
+
+
 def warnings(facts: RunFacts) -> list[str]:
     """One line per reason to doubt the result (empty when there is none)."""
     out = []
@@ -200,10 +221,13 @@ def warnings(facts: RunFacts) -> list[str]:
     misfit = misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None
     if misfit:
         out.append(misfit)
+    seen = coverage_warning(facts.coverage)
+    if seen:
+        out.append(seen)
     out += facts.budget_notes
     return out
 
 
 __all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "converged", "cpu_share",
-           "warnings", "misfit_warning", "STILL_FALLING", "STARVED_SHARE", "RELATIVE_MISFIT_LIMIT",
+           "warnings", "misfit_warning", "coverage_warning", "COVERAGE_LIMIT", "STILL_FALLING", "STARVED_SHARE", "RELATIVE_MISFIT_LIMIT",
            "NOISE_RATIO_SIMULATED"]

@@ -26,6 +26,7 @@ from . import end_of_run
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
                      PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within, metric_points_within,
                      training_budget)
+from .coverage import Coverage, view_coverage
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
@@ -225,13 +226,15 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     log("pictures and report")
     t_pictures = clock()
     fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
+    coverage = _coverage(mesh, scene, log)
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
-                     measured=bool(scene.real), budget_notes=notes)
+                     measured=bool(scene.real), budget_notes=notes, coverage=coverage)
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts)
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
+    report["coverage"] = None if coverage is None else coverage.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["threads"] = (governor.summary() if governor is not None else
                          {"fixed": torch.get_num_threads()} if dev.type == "cpu" else None)
@@ -366,6 +369,16 @@ def _report(capture, preset, dev, config, scene, model, result, plan, scored: bo
         "config": config.to_dict(),
         "versions": {"spadscan": spadscan.__version__, "torch": torch.__version__},
     }
+
+
+def _coverage(mesh, scene: SceneData, log) -> Coverage | None:
+    """How many views saw each part of the mesh (coverage.py), or None (said in the log) where it cannot be
+    measured."""
+    try:
+        return view_coverage(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor)
+    except SpadscanError as exc:
+        log(f"no coverage measured: {exc}")
+        return None
 
 
 def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig) -> FitNoise | None:

@@ -11,8 +11,9 @@ import time
 import numpy as np
 import pytest
 
-from spadscan.worker.end_of_run import (EXACT_BELOW, NOISE_RATIO_SIMULATED, RELATIVE_MISFIT_LIMIT, FitNoise, RunFacts,
-                                        converged, fit_noise, late_drop, noise_deviance, warnings)
+from spadscan.worker.coverage import Coverage
+from spadscan.worker.end_of_run import (COVERAGE_LIMIT, EXACT_BELOW, NOISE_RATIO_SIMULATED, RELATIVE_MISFIT_LIMIT,
+                                        FitNoise, RunFacts, converged, fit_noise, late_drop, noise_deviance, warnings)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -22,16 +23,33 @@ SMALL = {"mesh_resolution": 32, "early_stop": False}
 @pytest.fixture(scope="module")
 def box_capture(tmp_path_factory):
     """12 simulated views of a box (LCSPCData's simulated sensor)."""
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+
+    return simulated_box(fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.05), min_elevation_deg=15),
+                         tmp_path_factory.mktemp("box") / "box")
+
+
+@pytest.fixture(scope="module")
+def one_sided_capture(tmp_path_factory):
+    """The same box seen by 8 views all on its +x side (azimuths within 25 degrees): its far side goes unseen."""
+    from spadscan.protocol.schedules import look_at
+
+    eyes = [(0.3 * math.cos(math.radians(e)) * math.cos(math.radians(a)),
+             0.3 * math.cos(math.radians(e)) * math.sin(math.radians(a)), 0.05 + 0.3 * math.sin(math.radians(e)))
+            for e in (15, 35, 55, 75) for a in (-25, 25)]
+    return simulated_box(np.stack([look_at(eye, (0, 0, 0.05)) for eye in eyes]),
+                         tmp_path_factory.mktemp("one-sided") / "box")
+
+
+def simulated_box(poses, path):
     import trimesh
 
-    from spadscan.protocol.schedules import fibonacci_hemisphere
     from spadscan.protocol.sensor_presets import sensor_preset
     from spadscan.protocol.simulator import SimSettings, simulate_capture
 
     mesh = trimesh.creation.box(extents=(0.07, 0.05, 0.09)).apply_translation([0.0, 0.0, 0.045])
-    poses = fibonacci_hemisphere(12, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
-    return simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, tmp_path_factory.mktemp("box") / "box",
-                            settings=SimSettings(rays_per_zone=512), progress=False)
+    return simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, path, settings=SimSettings(rays_per_zone=512),
+                            progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -153,6 +171,13 @@ def test_each_rule_warns_alone():
     wrong = FitNoise(deviance_per_bin=3.0, noise_per_bin=0.5, bins=1000, relative_misfit=RELATIVE_MISFIT_LIMIT + 0.1)
     (line,) = warnings(RunFacts("converged", 100, True, flat, fit=wrong))
     assert "off by 70 % per bin" in line and "does not explain" in line
+    covered = Coverage(share_few=COVERAGE_LIMIT, share_unseen=0.1, few_heights_m=(0.2, 0.3), median_views=40, points=9000)
+    assert warnings(RunFacts("converged", 100, True, flat, coverage=covered)) == [], "at the limit: quiet"
+    guessed = Coverage(share_few=COVERAGE_LIMIT + 0.05, share_unseen=0.1, few_heights_m=(0.18, 0.33), median_views=7,
+                       points=9000)
+    (line,) = warnings(RunFacts("converged", 100, True, flat, coverage=guessed))
+    assert f"{100 * (COVERAGE_LIMIT + 0.05):.0f} % of the surface" in line and "fewer than 3 views" in line
+    assert "heights 0.18 to 0.33 m" in line
     on_gpu = RunFacts("budget", 100, True, flat, device="cuda", cpu_seconds=2.0, wall_seconds=10.0)
     assert warnings(on_gpu) == [], "a GPU run waits for its device, not for a core"
 
@@ -197,6 +222,15 @@ def test_a_starved_run_and_a_fit_far_from_the_noise_say_so(ambient_capture, box_
     report = reconstruct(box_capture, tmp_path / "fed", steps=200, cpu_clock=time.perf_counter)
     assert report["fit_to_noise"]["ratio"] < NOISE_RATIO_SIMULATED
     assert not has(report, "busy") and not has(report, "does not explain"), report["warnings"]
+    assert report["coverage"]["share_seen_by_few_views"] <= COVERAGE_LIMIT and not has(report, "fewer than 3 views")
+
+
+def test_a_surface_that_few_views_saw_says_so(one_sided_capture, tmp_path):
+    report = reconstruct(one_sided_capture, tmp_path / "one-sided", steps=200)
+    assert report["coverage"]["share_seen_by_few_views"] > COVERAGE_LIMIT, report["coverage"]
+    assert has(report, "was seen by fewer than 3 views"), report["warnings"]
+    saved = json.loads((tmp_path / "one-sided" / "report.json").read_text())
+    assert saved["coverage"] == report["coverage"]
 
 
 def test_a_real_capture_whose_timing_jumped_mid_scan_says_its_fit_does_not_explain_it(tmp_path):

@@ -1,0 +1,80 @@
+"""How many views saw each part of a reconstructed surface (worker/coverage.py): exact shares on a box seen from
+known directions, undersides left out, occlusion counted, bad input refused in one line."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.worker.coverage import FEW_VIEWS, view_coverage, views_per_point
+
+SENSOR = sensor_preset("lcspc-sim")  # one 15-degree cone: a 10 cm box at 0.5 m lies wholly in it
+
+
+def box():
+    return trimesh.creation.box(extents=(0.1, 0.1, 0.1)).apply_translation([0.0, 0.0, 0.05])
+
+
+def from_azimuth_zero(elevations_deg, radius=0.5):
+    """Views in the x-z plane on the +x side, looking at the box's centre."""
+    eyes = [(radius * math.cos(math.radians(e)), 0.0, 0.05 + radius * math.sin(math.radians(e)))
+            for e in elevations_deg]
+    return np.stack([look_at(eye, (0.0, 0.0, 0.05)) for eye in eyes])
+
+
+def test_a_box_seen_all_round_is_covered_and_its_underside_left_out():
+    cov = view_coverage(box(), fibonacci_hemisphere(64, 0.5, target=(0, 0, 0.05), min_elevation_deg=10), SENSOR)
+    assert cov.share_few == 0.0 and cov.share_unseen == 0.0 and cov.few_heights_m is None
+    assert cov.median_views >= 10
+    # The bottom face (a sixth of the area) is an underside: left out of the sample.
+    assert cov.points == pytest.approx(5 / 6 * 10_000, rel=0.05)
+
+
+def test_a_box_seen_from_one_side_only_has_its_far_sides_unseen():
+    # Every view on the +x side in the x-z plane: the +x face and the top are seen by all five, the -x face and the
+    # two y faces (edge-on) by none: three of the five faces that are not the underside.
+    cov = view_coverage(box(), from_azimuth_zero([10, 25, 40, 55, 70]), SENSOR)
+    assert cov.share_few == pytest.approx(0.6, abs=0.03)
+    assert cov.share_unseen == pytest.approx(0.6, abs=0.03)
+    lo, hi = cov.few_heights_m
+    assert 0.0 <= lo < 0.03 and 0.07 < hi <= 0.1
+
+
+def test_a_face_behind_another_is_not_seen():
+    # Points on the +x face of a box 20 cm behind the first along the views' line of sight: they face the sensors
+    # and lie in every view's cone, but the first box hides them; without it, every view sees them.
+    far = box().apply_translation([-0.2, 0.0, 0.0])
+    y, z = np.meshgrid(np.linspace(-0.03, 0.03, 5), np.linspace(0.02, 0.06, 5))
+    points = np.stack([np.full(y.size, -0.15 + 1e-4), y.ravel(), z.ravel()], axis=1)
+    normals = np.tile([1.0, 0.0, 0.0], (len(points), 1))
+    poses = from_azimuth_zero([5, 10, 15], radius=0.45)
+    hidden = views_per_point(trimesh.util.concatenate([box(), far]), points, normals, poses, SENSOR)
+    alone = views_per_point(far, points, normals, poses, SENSOR)
+    assert (hidden == 0).all() and (alone == 3).all()
+
+
+def test_fewer_than_three_views_is_few():
+    assert FEW_VIEWS == 3
+    two = view_coverage(box(), from_azimuth_zero([20, 50]), SENSOR)
+    three = view_coverage(box(), from_azimuth_zero([20, 40, 60]), SENSOR)
+    assert two.share_few == pytest.approx(1.0) and two.share_unseen == pytest.approx(0.6, abs=0.03)
+    assert three.share_few == pytest.approx(0.6, abs=0.03), "the +x face and the top: three views each"
+
+
+@pytest.mark.parametrize("mesh, poses, what", [
+    (trimesh.Trimesh(), fibonacci_hemisphere(4, 0.5), "no surface"),
+    (box(), np.zeros((3, 3)), "poses must be finite"),
+    (box(), np.full((2, 4, 4), np.nan), "poses must be finite"),
+    (trimesh.Trimesh([[0, 0, 0], [0, 0.1, 0], [0.1, 0, 0]], [[0, 1, 2]]),  # one triangle facing down
+     fibonacci_hemisphere(4, 0.5), "only undersides"),
+])
+def test_bad_input_is_refused_in_one_line(mesh, poses, what):
+    with pytest.raises(SpadscanError, match=what) as info:
+        view_coverage(mesh, poses, SENSOR)
+    assert "\n" not in str(info.value)

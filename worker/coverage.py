@@ -1,0 +1,107 @@
+"""How many views saw each part of a reconstructed surface: where the mesh is a measurement and where it is a guess.
+
+A point of the surface is seen by a view when it lies in one of the sensor's zones, faces the sensor, and nothing of
+the surface stands between them. A point seen by fewer than `FEW_VIEWS` views has no position the data fixes (one
+view gives a range along a whole cone; ranges from three directions pin a point down), so its shape comes from the
+fit's smoothness prior. Undersides (normals within 45 degrees of straight down) are left out: a scan from above the
+object's base never sees them, by design, and every object has them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.sensor_model import SensorModel
+
+FEW_VIEWS = 3
+"""Views that see a point fewer than this many times leave its position to the prior (three ranges fix a point)."""
+UNDERSIDE_NZ = -math.cos(math.radians(45.0))
+"""A surface normal with a z component below this faces down: an underside, left out."""
+SAMPLE_POINTS = 10_000
+"""Surface points sampled (area-weighted) to measure the coverage."""
+OFFSET_M = 1e-4
+"""Each sample is moved this far out along its normal, so that its own face does not occlude it."""
+OCCLUSION_TOL_M = 2e-3
+"""A point is unoccluded when the first surface hit along the ray from the sensor lies no nearer than this before it."""
+
+
+@dataclass
+class Coverage:
+    """Views per surface point, summarised. Shares are of the surface area that is not an underside."""
+
+    share_few: float
+    """Share of it seen by fewer than FEW_VIEWS views."""
+    share_unseen: float
+    """Share of it seen by no view at all."""
+    few_heights_m: tuple[float, float] | None
+    """10th and 90th percentile of the height (world z, m) of its poorly seen points; None when there are none."""
+    median_views: float
+    """Median views per point."""
+    points: int
+    """Sample points that are not undersides."""
+    few_views: int = FEW_VIEWS
+    """What "few" means here: fewer views than this."""
+
+    def to_dict(self) -> dict:
+        return {"share_seen_by_few_views": self.share_few, "few_views": self.few_views,
+                "share_unseen": self.share_unseen,
+                "few_heights_m": None if self.few_heights_m is None else list(self.few_heights_m),
+                "median_views": self.median_views, "points": self.points}
+
+
+def views_per_point(mesh, points: np.ndarray, normals: np.ndarray, poses: np.ndarray,
+                    sensor: SensorModel) -> np.ndarray:
+    """(n,) int: how many of the views (poses (V, 4, 4), sensor to world, metres) see each point (n, 3) with outward
+    normal (n, 3) of `mesh` (a trimesh.Trimesh, world metres): in a zone, facing the sensor, not occluded."""
+    counts = np.zeros(len(points), np.int64)
+    for pose in poses:
+        rot, eye = pose[:3, :3], pose[:3, 3]
+        rel = (points - eye) @ rot  # sensor frame
+        inside = np.zeros(len(points), bool)
+        for zone in sensor.zones:
+            inside |= zone.holds(rel)
+        facing = np.einsum("ij,ij->i", eye - points, normals) > 0
+        cand = np.flatnonzero(inside & facing)
+        if len(cand) == 0:
+            continue
+        dirs = points[cand] - eye
+        dist = np.linalg.norm(dirs, axis=1)
+        dirs /= dist[:, None]
+        hits, ray, _ = mesh.ray.intersects_location(np.broadcast_to(eye, dirs.shape), dirs, multiple_hits=False)
+        first = np.full(len(cand), np.inf)
+        first[ray] = np.linalg.norm(hits - eye, axis=1)
+        counts[cand[first >= dist - OCCLUSION_TOL_M]] += 1
+    return counts
+
+
+def view_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = SAMPLE_POINTS,
+                  seed: int = 0) -> Coverage:
+    """The coverage of `mesh` (trimesh, world metres) by the views `poses` (V, 4, 4). SpadscanError for a mesh with
+    no faces or no surface that is not an underside."""
+    poses = np.asarray(poses, np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.all(np.isfinite(poses)):
+        raise SpadscanError(f"coverage: poses must be finite (V, 4, 4), got shape {poses.shape}")
+    if len(mesh.faces) == 0 or not mesh.area > 0:
+        raise SpadscanError("coverage: the mesh has no surface")
+    points, face = trimesh.sample.sample_surface(mesh, int(n_points), seed=seed)
+    normals = mesh.face_normals[face]
+    keep = normals[:, 2] >= UNDERSIDE_NZ
+    if not keep.any():
+        raise SpadscanError("coverage: the mesh has only undersides")
+    points, normals = points[keep] + OFFSET_M * normals[keep], normals[keep]
+    counts = views_per_point(mesh, points, normals, poses, sensor)
+    few = counts < FEW_VIEWS
+    heights = None
+    if few.any():
+        lo, hi = np.percentile(points[few, 2], [10, 90])
+        heights = (float(lo), float(hi))
+    return Coverage(share_few=float(few.mean()), share_unseen=float((counts == 0).mean()), few_heights_m=heights,
+                    median_views=float(np.median(counts)), points=int(len(points)))
+
+
+__all__ = ["Coverage", "view_coverage", "views_per_point", "FEW_VIEWS", "UNDERSIDE_NZ"]
