@@ -122,8 +122,7 @@ def follow(source: Path, work: Path, policy: RecoarsePolicy, args, truth) -> dic
             fit.model is None or refit_due(have, scan.published, math.inf, 0.0, settings))
         if due and scan.published < scan.planned:  # the complete scan goes to the final run
             fit.rebuild(scan.planned)
-        if fit.model is not None:
-            steps += step(fit.model, args.steps_per_view)
+        steps += fit.train_steps(args.steps_per_view)
     scan.writer.finish("complete")
     live = chamfer_mm(fit.mesh(MESH_CELLS), truth, SCORE_POINTS)
     final = fit.warm_factory()(load_scene(work), config, torch.device("cpu"),

@@ -12,8 +12,9 @@ one 15-degree cone, 1024 bins, 5,000 cycles per view) on the daemon's default ba
 - `fibonacci` at N views: the daemon's plan of a Fibonacci scan of N views (`scan_plan.build_plan`), simulated.
 - `adaptive` (one per --measures): the daemon's adaptive plan of max(--counts) views. Its first min(--counts)
   views are the well-spread initial ones; then the loop a live job and the daemon run, offline: the views so far are
-  simulated, a live model fits them (warm-started from the previous model, --live-steps steps, the first fit
-  --live-first-steps; a field snapshot every third of them), `worker.live.next_views.rank_candidates` ranks the
+  simulated, the live job's own model (`LiveFit`: refitted warm on the views so far, back to the coarse level as a
+  live job's refits go) fits them for --live-steps steps, the first fit --live-first-steps (a field snapshot after
+  every third of them), `worker.live.next_views.rank_candidates` ranks the
   candidates with the measure, the ranking is written as next_views.json, and the daemon's own `ViewChooser` (the
   same freshness, spacing and workspace checks as a scan, with the default sim arm) takes the next --batch poses
   from it, one after the other. A real scan ranks every few seconds, about every pose or two; --batch 8 is coarser.
@@ -186,33 +187,31 @@ def score_fit(capture: Path, truth, steps: int, seed: int) -> dict:
 
 
 class LiveLoop:
-    """The live model of the adaptive loop: rebuilt on the views so far and warm-started from the last one."""
+    """The live model of the adaptive loop: a live job's own `LiveFit` on the views so far (refitted warm, back to the
+    coarse level as a live job's refits go), stepped for a number of steps where a live job counts seconds."""
 
-    def __init__(self, seed: int):
-        self.model, self.seed, self.steps = None, seed, 0
+    def __init__(self, planned: int, seed: int):
+        self.fit, self.planned, self.seed = None, planned, seed
+
+    @property
+    def steps(self) -> int:
+        return 0 if self.fit is None else self.fit.steps
 
     def snapshot(self, capture: Path, steps: int):
+        """Refit on the views of `capture` (always the same folder, rewritten with more views), step, and return the
+        live state the ranking reads: the field after each third of the steps."""
         import torch
 
-        from spadscan.worker.live.live_fit import grid_snapshot
-        from spadscan.worker.live.snapshot import FieldSnapshot, LiveSnapshot
-        from spadscan.worker.recon.model_api import RunPlan
-        from spadscan.worker.recon.presets import make_model
-        from spadscan.worker.recon.scene_data import load_scene
+        from spadscan.worker.live.live_fit import LiveFit
 
-        scene = load_scene(capture)
-        model = make_model(scene, fit_config(10_000), torch.device("cpu"), RunPlan(None, None, self.seed))
-        if self.model is not None:
-            model.warm_start(self.model.mesh_field(), self.model.level)
-        self.model = model
-        fields = []
-        for k in range(1, steps + 1):
-            model.step()
-            if k % (steps // 3) == 0 or k == steps:
-                fields.append(FieldSnapshot(grid_snapshot(model.mesh_field()), self.steps + k, scene.n_views))
-        self.steps += steps
-        return LiveSnapshot(fields=fields[-3:], hull=grid_snapshot(model.problem.hull),
-                            poses=scene.poses.double().numpy(), sensor=scene.sensor, floor_z=model.problem.floor_z)
+        if self.fit is None:
+            self.fit = LiveFit(capture, fit_config(10_000), torch.device("cpu"), self.seed, log=lambda line: None)
+        if not self.fit.rebuild(self.planned):
+            raise SystemExit(f"the live fit cannot fit the {capture} views so far")
+        for third in range(3):
+            self.fit.train_steps(steps // 3 + (steps % 3 if third == 2 else 0))
+            self.fit.remember()
+        return self.fit.snapshot()
 
 
 def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, upto: int, args, work: Path) -> dict:
@@ -232,13 +231,13 @@ def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, upto
     chooser = ViewChooser(scan, arm, arm.hand_eye, live)
     candidates = candidate_poses(scan_to_dict(scan))
     why, poses = [], []
-    loop = LiveLoop(args.seed)
+    loop = LiveLoop(views, args.seed)
     rank_s = []
     while len(poses) < upto:
         n = len(poses)
         if n >= initial:
             capture = scene.capture(work / "stage", np.array(poses), scene.frames(np.array(poses)))
-            snap = loop.snapshot(capture, args.live_first_steps if loop.model is None else args.live_steps)
+            snap = loop.snapshot(capture, args.live_first_steps if loop.fit is None else args.live_steps)
             t0 = time.perf_counter()
             scores = rank_candidates(snap, candidates, measure, spread=not args.no_spread,
                                      unseen_space=args.unseen_space)
@@ -334,7 +333,9 @@ def sequence(scene: Scene, measure: str, initial: int, upto: int, args, work: Pa
     """The adaptive sequence's first `upto` poses, from sequences/ when a run with the same settings made as many."""
     folder = args.out / "sequences"
     folder.mkdir(exist_ok=True)
-    tag = f"{scene.name}-{measure}{variant_suffix(args)}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}-f{args.live_first_steps}-s{args.seed}"
+    # "live2": sequences of the live loop that is the live job's LiveFit (earlier ones are not reused).
+    tag = (f"{scene.name}-{measure}{variant_suffix(args)}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}"
+           f"-f{args.live_first_steps}-s{args.seed}-live2")
     path = folder / f"{tag}.npz"
     if path.is_file():
         saved = np.load(path, allow_pickle=False)

@@ -115,8 +115,7 @@ def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_
     fit = LiveFit(tmp_path / "scan", config, torch.device("cpu"), 0, log=lambda line: None)
     scan.publish(8)
     assert fit.rebuild(24) and fit.model.level == 0
-    for _ in range(12):  # past the refinement after 4 steps
-        fit.model.step()
+    assert fit.train_steps(12) == 12 and fit.steps == 12  # past the refinement after 4 steps
     assert fit.model.level == 1
 
     scan.publish(4)  # 12 views: 1.5x the 8 the coarse level began with, under 3/4 of the 24 planned
@@ -125,9 +124,8 @@ def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_
     values = fit.model.field.sdf.detach()
     bound = fit.model.constraint.bound_for(fit.model.field)
     assert float((values - bound).abs().max()) > 2 * fit.model.field.voxel, "the coarse level starts from the hull"
-    for _ in range(6):
-        fit.model.step()
-    assert fit.model.level == 1
+    fit.train_steps(6)
+    assert fit.model.level == 1 and fit.steps == 18
     steps = fit.model.level_steps
 
     scan.publish(5)  # 17 views: under 1.5x 12, so the fit goes on at the fine level

@@ -104,6 +104,20 @@ class LiveFit:
         self.steps += n
         return n
 
+    def train_steps(self, n: int) -> int:
+        """Up to `n` steps, fewer once the model has converged (a live job trains no further then); returns the steps
+        taken. For benchmarks, which count steps where a live job counts seconds."""
+        if self.model is None:
+            return 0
+        t0 = time.perf_counter()
+        taken = 0
+        while taken < n and not self.model.converged:
+            self.model.step()
+            taken += 1
+        self.train_s += time.perf_counter() - t0
+        self.steps += taken
+        return taken
+
     @property
     def converged(self) -> bool:
         return self.model is not None and bool(self.model.converged)
