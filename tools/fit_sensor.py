@@ -11,7 +11,10 @@ ring wide, which keeps the deviance continuous for the derivative-free (Nelder-M
 mean reference histogram (docs/sensor_models.md); with it, a loose fit of zero_bin and signal_scale to the real
 pyramid's peaks and return photons (poses and table-and-pyramid STL from the dataset).
 
-    python tools/fit_sensor.py [--dataset DIR] [--scenes sphere bunny] [--rays 8192] [--json out.json]
+    python tools/fit_sensor.py --dataset DIR [--scenes sphere bunny] [--rays 8192] [--json out.json]
+
+DIR is LCSPCData's folder (it holds simulated/ and real/), where it was downloaded; it is not part of the
+repository.
 """
 
 from __future__ import annotations
@@ -31,7 +34,6 @@ from spadscan.protocol.raycast import first_hits, make_intersector, zone_rays
 from spadscan.protocol.sensor_model import Pulse, Zone
 from spadscan.protocol.transient import FineAxis, convolve_pulse
 
-DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "lcspc"
 N_BINS, CYCLES, OVERSAMPLE, MAX_HALF_ANGLE_DEG = 1024, 5000, 8, 18.0
 NAMES = ("bins_per_m", "zero_bin", "sigma_bins", "tau_bins", "half_angle_deg", "signal_scale", "background")
 
@@ -233,7 +235,8 @@ def fit_tmf(root: Path, pulse_values, pulse_origin: int) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", type=Path, default=DATASET)
+    ap.add_argument("--dataset", type=Path, required=True,
+                    help="LCSPCData's folder (holds simulated/ and real/), where it was downloaded")
     ap.add_argument("--scenes", nargs="+", default=["sphere", "bunny"])
     ap.add_argument("--rays", type=int, default=8192, help="rays per view over the 18-degree fitting cone")
     ap.add_argument("--iters", type=int, default=400, help="Nelder-Mead iterations per round")
