@@ -229,5 +229,5 @@ def warnings(facts: RunFacts) -> list[str]:
 
 
 __all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "converged", "cpu_share",
-           "warnings", "misfit_warning", "coverage_warning", "COVERAGE_LIMIT", "STILL_FALLING", "STARVED_SHARE", "RELATIVE_MISFIT_LIMIT",
-           "NOISE_RATIO_SIMULATED"]
+           "warnings", "misfit_warning", "coverage_warning", "COVERAGE_LIMIT", "STILL_FALLING", "STARVED_SHARE",
+           "RELATIVE_MISFIT_LIMIT", "NOISE_RATIO_SIMULATED"]

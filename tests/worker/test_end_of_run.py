@@ -171,7 +171,8 @@ def test_each_rule_warns_alone():
     wrong = FitNoise(deviance_per_bin=3.0, noise_per_bin=0.5, bins=1000, relative_misfit=RELATIVE_MISFIT_LIMIT + 0.1)
     (line,) = warnings(RunFacts("converged", 100, True, flat, fit=wrong))
     assert "off by 70 % per bin" in line and "does not explain" in line
-    covered = Coverage(share_few=COVERAGE_LIMIT, share_unseen=0.1, few_heights_m=(0.2, 0.3), median_views=40, points=9000)
+    covered = Coverage(share_few=COVERAGE_LIMIT, share_unseen=0.1, few_heights_m=(0.2, 0.3), median_views=40,
+                       points=9000)
     assert warnings(RunFacts("converged", 100, True, flat, coverage=covered)) == [], "at the limit: quiet"
     guessed = Coverage(share_few=COVERAGE_LIMIT + 0.05, share_unseen=0.1, few_heights_m=(0.18, 0.33), median_views=7,
                        points=9000)
