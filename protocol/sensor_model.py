@@ -81,6 +81,16 @@ class Zone:
         return total
 
 
+def in_any_zone(zones, rel):
+    """(...) bool: whether sensor-frame points or directions `rel` (..., 3) lie in the field of view of any of `zones`
+    (a sensor model's, never empty), numpy or torch alike as `Zone.holds`."""
+    seen = None
+    for zone in zones:
+        held = zone.holds(rel)
+        seen = held if seen is None else seen | held
+    return seen
+
+
 @dataclass(frozen=True)
 class Pulse:
     """The laser impulse response as seen by the detector, per bin.

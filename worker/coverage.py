@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.sensor_model import SensorModel
+from spadscan.protocol.sensor_model import SensorModel, in_any_zone
 
 FEW_VIEWS = 3
 """Views that see a point fewer than this many times leave its position to the prior (three ranges fix a point)."""
@@ -62,9 +62,7 @@ def views_per_point(mesh, points: np.ndarray, normals: np.ndarray, poses: np.nda
     for pose in poses:
         rot, eye = pose[:3, :3], pose[:3, 3]
         rel = (points - eye) @ rot  # sensor frame
-        inside = np.zeros(len(points), bool)
-        for zone in sensor.zones:
-            inside |= zone.holds(rel)
+        inside = in_any_zone(sensor.zones, rel)
         facing = np.einsum("ij,ij->i", eye - points, normals) > 0
         cand = np.flatnonzero(inside & facing)
         if len(cand) == 0:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from spadscan.protocol.errors import SensorModelError
-from spadscan.protocol.sensor_model import Pulse, SensorModel, Zone
+from spadscan.protocol.sensor_model import Pulse, SensorModel, Zone, in_any_zone
 from spadscan.protocol.sensor_presets import PRESETS, sensor_preset
 
 
@@ -63,6 +63,19 @@ def test_a_zone_holds_what_lies_in_its_field_of_view_for_arrays_and_tensors_alik
         assert isinstance(on_array, np.ndarray) and on_array.any() and not on_array.all()
         assert zone.holds(torch.as_tensor(many)).numpy().tolist() == on_array.tolist()
         assert zone.holds(3.0 * many).tolist() == on_array.tolist(), "a direction, whatever its length"
+
+
+def test_a_point_in_any_zone_is_in_the_sensors_view_for_arrays_and_tensors_alike():
+    torch = pytest.importorskip("torch")
+    zones = sensor_preset("tmf8820").zones
+    many = np.random.default_rng(1).normal(size=(5000, 3))
+    union = np.zeros(len(many), bool)
+    for zone in zones:
+        union |= zone.holds(many)
+    assert union.any() and not union.all()
+    assert in_any_zone(zones, many).tolist() == union.tolist()
+    assert in_any_zone(zones, torch.as_tensor(many)).numpy().tolist() == union.tolist()
+    assert in_any_zone(zones[:1], many).tolist() == zones[0].holds(many).tolist()
 
 
 def test_solid_angles():

@@ -40,6 +40,7 @@ import torch
 
 from spadscan.protocol.next_views import candidate_poses, ranked, write_next_views
 from spadscan.protocol.raycast import zone_rays
+from spadscan.protocol.sensor_model import in_any_zone
 
 from .field_trace import TracedField
 from .snapshot import LiveSnapshot
@@ -206,7 +207,8 @@ def _sees_cells(field: TracedField, sensor, cells: np.ndarray, poses: np.ndarray
     range and nothing of the field between them."""
     to_sensor = poses[:, None, :3, 3] - cells[None]  # (n, U, 3)
     dist = np.linalg.norm(to_sensor, axis=-1)
-    ok = _in_zones(sensor, np.matmul(-to_sensor, poses[:, :3, :3])) & (dist < sensor.n_bins * sensor.bin_width_m)
+    local = np.matmul(-to_sensor, poses[:, :3, :3])
+    ok = in_any_zone(sensor.zones, local) & (dist < sensor.n_bins * sensor.bin_width_m)
     out = np.zeros(ok.shape)
     view, cell = np.nonzero(ok)
     if len(view):
@@ -250,7 +252,7 @@ def _seen_cos(field: TracedField, sensor, points: np.ndarray, normals: np.ndarra
     dist = np.sqrt(np.einsum("nmk,nmk->nm", to_sensor, to_sensor))
     cos = np.einsum("nmk,mk->nm", to_sensor, normals) / np.maximum(dist, 1e-12)
     local = np.matmul(-to_sensor, poses[:, :3, :3].astype(np.float32))  # patch in each sensor's frame
-    ok = (cos > MIN_COS) & _in_zones(sensor, local)
+    ok = (cos > MIN_COS) & in_any_zone(sensor.zones, local)
     view, patch = np.nonzero(ok)
     if len(view) == 0:
         return out
@@ -260,14 +262,6 @@ def _seen_cos(field: TracedField, sensor, points: np.ndarray, normals: np.ndarra
     blocked = field.trace(start, d, reach, normals=False).hit.numpy()
     out[view[~blocked], patch[~blocked]] = cos[view, patch][~blocked]
     return out
-
-
-def _in_zones(sensor, local: np.ndarray) -> np.ndarray:
-    """(...,) whether directions `local` (..., 3) in the sensor's frame fall in any of its zones."""
-    seen = np.zeros(local.shape[:-1], dtype=bool)
-    for zone in sensor.zones:
-        seen |= zone.holds(local)
-    return seen
 
 
 # ---- the ray measures -----------------------------------------------------------------------------------------------

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.sensor_model import in_any_zone
 
 from ....carving.returns import matched_filter_z
 from .part import Model, Part, PartConfig
@@ -126,10 +127,7 @@ def view_coverage(points: torch.Tensor, poses: torch.Tensor, zones, chunk: int =
     out = torch.empty(flat.shape[0], dtype=flat.dtype, device=flat.device)
     for i in range(0, flat.shape[0], chunk):
         rel = torch.einsum("vji,pvj->pvi", rot, flat[i: i + chunk, None, :] - org[None])  # sensor frame (P, V, 3)
-        seen = torch.zeros(rel.shape[:-1], dtype=torch.bool, device=flat.device)
-        for zone in zones:
-            seen |= zone.holds(rel)
-        out[i: i + chunk] = seen.to(flat.dtype).mean(dim=1)
+        out[i: i + chunk] = in_any_zone(zones, rel).to(flat.dtype).mean(dim=1)
     return out.reshape(points.shape[:-1])
 
 
