@@ -77,7 +77,7 @@ def views_per_point(mesh, points: np.ndarray, normals: np.ndarray, poses: np.nda
     return counts
 
 
-def view_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = SAMPLE_POINTS,
+def mesh_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = SAMPLE_POINTS,
                   seed: int = 0) -> Coverage:
     """The coverage of `mesh` (trimesh, world metres) by the views `poses` (V, 4, 4). SpadscanError for a mesh with
     no faces or no surface that is not an underside."""
@@ -102,4 +102,4 @@ def view_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = 
                     median_views=float(np.median(counts)), points=int(len(points)))
 
 
-__all__ = ["Coverage", "view_coverage", "views_per_point", "FEW_VIEWS", "UNDERSIDE_NZ"]
+__all__ = ["Coverage", "mesh_coverage", "views_per_point", "FEW_VIEWS", "UNDERSIDE_NZ"]

@@ -26,7 +26,7 @@ from . import end_of_run
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
                      PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within, metric_points_within,
                      training_budget)
-from .coverage import Coverage, view_coverage
+from .coverage import Coverage, mesh_coverage
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
@@ -375,7 +375,7 @@ def _coverage(mesh, scene: SceneData, log) -> Coverage | None:
     """How many views saw each part of the mesh (coverage.py), or None (said in the log) where it cannot be
     measured."""
     try:
-        return view_coverage(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor)
+        return mesh_coverage(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor)
     except SpadscanError as exc:
         log(f"no coverage measured: {exc}")
         return None

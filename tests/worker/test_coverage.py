@@ -12,7 +12,7 @@ import trimesh
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.coverage import FEW_VIEWS, view_coverage, views_per_point
+from spadscan.worker.coverage import FEW_VIEWS, mesh_coverage, views_per_point
 
 SENSOR = sensor_preset("lcspc-sim")  # one 15-degree cone: a 10 cm box at 0.5 m lies wholly in it
 
@@ -29,7 +29,7 @@ def from_azimuth_zero(elevations_deg, radius=0.5):
 
 
 def test_a_box_seen_all_round_is_covered_and_its_underside_left_out():
-    cov = view_coverage(box(), fibonacci_hemisphere(64, 0.5, target=(0, 0, 0.05), min_elevation_deg=10), SENSOR)
+    cov = mesh_coverage(box(), fibonacci_hemisphere(64, 0.5, target=(0, 0, 0.05), min_elevation_deg=10), SENSOR)
     assert cov.share_few == 0.0 and cov.share_unseen == 0.0 and cov.few_heights_m is None
     assert cov.median_views >= 10
     # The bottom face (a sixth of the area) is an underside: left out of the sample.
@@ -39,7 +39,7 @@ def test_a_box_seen_all_round_is_covered_and_its_underside_left_out():
 def test_a_box_seen_from_one_side_only_has_its_far_sides_unseen():
     # Every view on the +x side in the x-z plane: the +x face and the top are seen by all five, the -x face and the
     # two y faces (edge-on) by none: three of the five faces that are not the underside.
-    cov = view_coverage(box(), from_azimuth_zero([10, 25, 40, 55, 70]), SENSOR)
+    cov = mesh_coverage(box(), from_azimuth_zero([10, 25, 40, 55, 70]), SENSOR)
     assert cov.share_few == pytest.approx(0.6, abs=0.03)
     assert cov.share_unseen == pytest.approx(0.6, abs=0.03)
     lo, hi = cov.few_heights_m
@@ -61,8 +61,8 @@ def test_a_face_behind_another_is_not_seen():
 
 def test_fewer_than_three_views_is_few():
     assert FEW_VIEWS == 3
-    two = view_coverage(box(), from_azimuth_zero([20, 50]), SENSOR)
-    three = view_coverage(box(), from_azimuth_zero([20, 40, 60]), SENSOR)
+    two = mesh_coverage(box(), from_azimuth_zero([20, 50]), SENSOR)
+    three = mesh_coverage(box(), from_azimuth_zero([20, 40, 60]), SENSOR)
     assert two.share_few == pytest.approx(1.0) and two.share_unseen == pytest.approx(0.6, abs=0.03)
     assert three.share_few == pytest.approx(0.6, abs=0.03), "the +x face and the top: three views each"
 
@@ -76,5 +76,5 @@ def test_fewer_than_three_views_is_few():
 ])
 def test_bad_input_is_refused_in_one_line(mesh, poses, what):
     with pytest.raises(SpadscanError, match=what) as info:
-        view_coverage(mesh, poses, SENSOR)
+        mesh_coverage(mesh, poses, SENSOR)
     assert "\n" not in str(info.value)
