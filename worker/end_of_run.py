@@ -147,6 +147,9 @@ class RunFacts:
     """What a short time budget cut (a coarser mesh, fewer metric points): said as warnings too."""
     coverage: object | None = None
     """The mesh's coverage by the views (a `coverage.Coverage`), or None where it was not measured."""
+    continued: bool = False
+    """The run went on from another fit's field (a live job's final run): too few steps to judge a trend is then a
+    short polish, not a rough early state."""
 
 
 def converged(facts: RunFacts) -> bool:
@@ -205,8 +208,9 @@ def warnings(facts: RunFacts) -> list[str]:
         limit = "time budget" if facts.stopped_by == "budget" else "step count"
         flag = "--budget-s" if facts.stopped_by == "budget" else "--steps"
         if drop is None:
-            out.append(f"the run stopped on its {limit} after only {facts.steps} step(s), before its fit could "
-                       f"settle: the mesh is a rough early state (a larger {flag} gives a better one)")
+            if not facts.continued:
+                out.append(f"the run stopped on its {limit} after only {facts.steps} step(s), before its fit could "
+                           f"settle: the mesh is a rough early state (a larger {flag} gives a better one)")
         elif drop >= STILL_FALLING:
             out.append(f"the run stopped on its {limit} well before convergence: its data term was still falling "
                        f"({100 * drop:.1f} % over the last fifth of its {facts.steps} steps; a larger {flag} gives "

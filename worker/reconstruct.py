@@ -230,7 +230,8 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
-                     measured=bool(scene.real), budget_notes=notes, coverage=coverage)
+                     measured=bool(scene.real), budget_notes=notes, coverage=coverage,
+                     continued=bool(getattr(model, "warm_started", False)))
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts)
     report["fit_to_noise"] = None if fit is None else fit.to_dict()

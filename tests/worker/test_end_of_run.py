@@ -183,6 +183,18 @@ def test_each_rule_warns_alone():
     assert warnings(on_gpu) == [], "a GPU run waits for its device, not for a core"
 
 
+def test_a_short_run_is_a_rough_early_state_unless_it_went_on_from_another_fit():
+    """A live job's final run polishes the live fit for a few dozen steps: too few to judge a trend, but no early
+    state. A fresh run as short is one, and a polish whose data term still fell steeply says so."""
+    short = [1.0] * 30
+    for stop, flag in (("steps", "--steps"), ("budget", "--budget-s")):
+        (line,) = warnings(RunFacts(stop, 30, False, short))
+        assert "after only 30 step(s)" in line and "rough early state" in line and flag in line
+        assert warnings(RunFacts(stop, 30, False, short, continued=True)) == []
+    (line,) = warnings(RunFacts("steps", 100, False, list(np.linspace(2.0, 1.0, 100)), continued=True))
+    assert "still falling" in line
+
+
 # ---- each warning on a capture made to trigger it ----------------------------------------------------------------
 
 def test_a_run_cut_short_while_its_fit_improves_says_so_and_one_that_converged_does_not(box_capture, tmp_path):

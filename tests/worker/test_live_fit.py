@@ -3,9 +3,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import time
 
 import numpy as np
+import pytest
 import torch
 
 from spadscan.worker.live.keep import keep_the_better, use_field
@@ -92,7 +95,8 @@ def test_a_final_run_that_fits_worse_than_the_live_state_is_not_published(cylind
     out = tmp_path / "out"
     out.mkdir()
     (out / "report.json").write_text(json.dumps({"mesh_resolution": 32}))
-    kept = keep_the_better(final, live_field, out, 48, None, 1000, log=lambda line: None)
+    kept = keep_the_better(final, live_field, out, dataclasses.replace(config, mesh_resolution=40), 48, None,
+                           log=lambda line: None)
     assert kept["published"]["mesh"] == "live"
     assert kept["published"]["deviance_live"] < kept["published"]["deviance_final"]
     assert kept["mesh_resolution"] == 48 and (out / "mesh.ply").stat().st_size > 0
@@ -136,3 +140,10 @@ def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_
     assert fit.rebuild(24)
     assert (fit.model.level, fit.recoarsened) == (1, 1)
     assert fit.report()["coarse_restarts"] == 1
+
+    assert fit.recent_steps_per_s() is None, "steps counted, not timed, so far"
+    before = fit.steps
+    for _ in range(2):
+        fit.train(time.monotonic() + 0.1)
+    rate = fit.recent_steps_per_s()
+    assert rate == pytest.approx((fit.steps - before) / sum(s for _, s in fit.recent)) and rate > 0

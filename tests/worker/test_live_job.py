@@ -4,6 +4,7 @@ finishes the complete scan from the live fit; an aborted scan ends it with the s
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -14,7 +15,7 @@ import pytest
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.live_status import LiveStatus, read_status, status_path
 from spadscan.worker.jobs import Job
-from spadscan.worker.live.job import LiveSettings, ScanAborted, execute_live_job
+from spadscan.worker.live.job import LiveSettings, ScanAborted, execute_live_job, final_job
 
 from live_helpers import ReplayScan
 from worker_helpers import FAST_SMALL
@@ -30,7 +31,7 @@ def small_settings(**changes) -> LiveSettings:
 class LiveJobThread:
     """`execute_live_job` on a thread, with every status it published seen on the way."""
 
-    def __init__(self, root: Path, scan: str, settings: LiveSettings, budget_s: float = 1.0, recon=None):
+    def __init__(self, root: Path, scan: str, settings: LiveSettings, budget_s: float | None = 1.0, recon=None):
         self.root, self.capture = root, root / scan
         self.job = Job(id=f"{scan}-fast", scan=scan, live=True, budget_s=budget_s, device="cpu")
         self.out = root / scan / "recon" / ".tmp-test"
@@ -96,6 +97,7 @@ def test_a_live_job_follows_a_scan_pose_by_pose_and_finishes_from_the_live_fit(c
     assert [s.views_used for s in live.seen] == sorted(s.views_used for s in live.seen)
     assert report["live"]["views_used"] == 24 and report["live"]["rebuilds"] >= 2
     assert report["live"]["steps"] >= grown.steps and report["live"]["final_budget_s"] == 1.0
+    assert report["live"]["final_steps"] is None
     assert report["scene"]["views"] == 24 and report["capture_state"] == "complete"
     # The better-fitting of the live and the final field is published, never meshed coarser than the live mesh.
     published = report["published"]
@@ -109,6 +111,42 @@ def test_a_live_job_follows_a_scan_pose_by_pose_and_finishes_from_the_live_fit(c
     assert final.state == "final" and final.views_used == 24 and final.views_published == 24
     leftovers = [p.name for p in (root / "cyl" / "recon" / "live").iterdir() if p.name.startswith(".")]
     assert leftovers == []
+
+
+def test_with_no_budget_the_final_run_polishes_for_steps_and_says_nothing_of_a_short_budget(cylinder_capture, tmp_path,
+                                                                                          one_thread):
+    """A live job whose job names neither a budget nor steps (the worker's default): the final run takes the live
+    fit's recent step rate times `final_polish_s` in steps, and the stages after it run in full: no line about a
+    coarse mesh or few metric points, nor about a rough early state (it went on from the live fit)."""
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.publish(10)
+    live = LiveJobThread(root, "cyl", small_settings(final_polish_s=0.5, final_min_steps=7), budget_s=None)
+    live.wait_status(lambda s: s.state == "live" and s.steps > 20, "a fit")
+    scan.publish(14)
+    scan.finish()
+    report = live.join()
+    assert report["live"]["final_budget_s"] is None and report["live"]["final_steps"] >= 7
+    assert report["steps"] == report["live"]["final_steps"] and report["stopped_by"] in ("steps", "converged")
+    assert report["budget"]["notes"] == [] and report["budget"]["budget_s"] is None
+    assert not [w for w in report["warnings"] if "rough early state" in w or "time budget" in w], report["warnings"]
+
+
+def test_the_final_run_is_bounded_by_the_jobs_own_budget_or_steps_else_by_the_live_rate():
+    class Rates:  # a live fit's step rates
+        def __init__(self, recent, overall):
+            self.recent_steps_per_s, self.steps_per_s = (lambda: recent), (lambda: overall)
+
+    job = Job(id="s-fast", scan="s", live=True)
+    final, bounds = final_job(job, Rates(20.0, 50.0), LiveSettings(final_polish_s=6.0))
+    assert (final.steps, final.budget_s, final.live) == (120, None, False)
+    assert bounds == {"final_budget_s": None, "final_steps": 120}
+    assert final_job(job, Rates(None, 5.0), LiveSettings(final_polish_s=6.0))[0].steps == 30, "no recent rate yet"
+    assert final_job(job, Rates(0.5, 0.5), LiveSettings(final_min_steps=10))[0].steps == 10
+    timed, bounds = final_job(dataclasses.replace(job, budget_s=30.0), Rates(20.0, 50.0), LiveSettings())
+    assert (timed.budget_s, timed.steps) == (30.0, None) and bounds == {"final_budget_s": 30.0, "final_steps": None}
+    counted, _ = final_job(dataclasses.replace(job, steps=500), Rates(20.0, 50.0), LiveSettings())
+    assert (counted.budget_s, counted.steps) == (None, 500)
 
 
 def test_an_aborted_scan_ends_its_live_job_with_the_reason(cylinder_capture, tmp_path, one_thread):

@@ -10,7 +10,7 @@ published) runs `execute_live_job`:
    `publish_every_s`, publish `<capture>/recon/live/` (mesh.ply, preview.png, status.json: `publish.py`). While an
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
-   warm-started from the live fit, for the final budget (`Job.budget_s`, default `final_budget_s`): the result is
+   warm-started from the live fit, for the job's budget or steps, else `final_polish_s` of steps: the result is
    written into the job's scratch folder and published by the worker where every job's result goes. Of the final
    field and the live one, the one that explains every view better is meshed (`keep.py`: a short final run never
    publishes a worse or coarser mesh than the live one); report.json's `published` says which. A live job that
@@ -65,9 +65,13 @@ class LiveSettings:
     """Draw recon/live/preview.png with each mesh."""
     rank_every_s: float = 5.0
     """How often an adaptive scan's candidates are ranked (next_views.json)."""
-    final_budget_s: float = 20.0
-    """The final reconstruction's budget when the job names none: it continues from the live fit, so it polishes
-    rather than fits."""
+    final_polish_s: float = 6.0
+    """Training seconds of the final reconstruction when the job names neither a budget nor steps: it continues
+    from the live fit, so it polishes rather than fits. Given to it as a step count (the live fit's recent step rate
+    times this, at least `final_min_steps`), so that the stages after training (the full mesh, the metrics, the
+    pictures) are never cut short as a budget this short would cut them."""
+    final_min_steps: int = 10
+    """Fewest steps of that final reconstruction."""
     recoarse: RecoarsePolicy = RecoarsePolicy()
     """When a refit goes back to the coarse level (the first views see the object from one side only)."""
     live_threads: int = 1
@@ -149,20 +153,30 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         runner.stopped("final", f"the scan completed with {progress.views_published} views before the live fit "
                                 "started: reconstructing it from scratch")
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
-    budget = job.budget_s if job.budget_s is not None else settings.final_budget_s
-    final = dataclasses.replace(job, live=False, budget_s=budget)
+    final, bounds = final_job(job, runner.fit, settings)
     live_report = runner.fit.report()
     log(f"live: scan complete; the final reconstruction continues from the live fit ({live_report['views_used']} "
-        f"views, {live_report['steps']} steps) for {budget:g} s")
+        f"views, {live_report['steps']} steps) for " + (f"{final.budget_s:g} s" if final.budget_s is not None else
+                                                        f"{final.steps} steps"))
     live_field = runner.fit.live_field()
     report = execute_job(final, root, out, runner.final_recon(recon))
-    extra = {"live": {**live_report, "final_budget_s": budget}}
+    extra = {"live": {**live_report, **bounds}}
     if runner.fit.final_model is not None:
-        extra.update(keep_the_better(runner.fit.final_model, live_field, out, settings.mesh_resolution,
-                                     runner.truth, runner.config.trace_points, log))
+        extra.update(keep_the_better(runner.fit.final_model, live_field, out, runner.config,
+                                     settings.mesh_resolution, runner.truth, log))
     add_to_report(out, extra)
     report.update(extra)
     return report
+
+
+def final_job(job, fit, settings: LiveSettings) -> tuple:
+    """The final run's job and report.json's record of its bounds: the job's own budget or steps where it names
+    them; else `settings.final_polish_s` of training as a step count at the live fit's recent rate."""
+    if job.budget_s is not None or job.steps is not None:
+        return dataclasses.replace(job, live=False), {"final_budget_s": job.budget_s, "final_steps": job.steps}
+    rate = fit.recent_steps_per_s() or fit.steps_per_s() or 0.0
+    steps = max(settings.final_min_steps, round(rate * settings.final_polish_s))
+    return dataclasses.replace(job, live=False, steps=steps), {"final_budget_s": None, "final_steps": steps}
 
 
 def _stderr(line: str) -> None:

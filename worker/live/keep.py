@@ -16,12 +16,14 @@ SCORE_SEED = 0
 """The rays both fields are scored on."""
 
 
-def keep_the_better(model, live_field, out: Path, resolution: int, truth, trace_points: int,
+def keep_the_better(model, live_field, out: Path, config, live_resolution: int, truth,
                     log: Callable[[str], None]) -> dict:
     """Score the final model's mesh field and `live_field` (a GridField; projected into the final model's hull, as
     at the warm start) on every view; re-mesh `out`/mesh.ply from the live field when it is the better, or from the
-    final field when the final run meshed it coarser than `resolution`. Returns report.json's `published` (and the
-    metric fields of a mesh it rewrote, against `truth` when there is one)."""
+    final field when the final run meshed it coarser than the run's `config.mesh_resolution` or the live mesh's
+    `live_resolution`. Returns report.json's `published` (and the metric fields of a mesh it rewrote, on
+    `config.metrics_points` points against `truth` when there is one)."""
+    resolution = max(config.mesh_resolution, live_resolution)
     from ..outputs import export_mesh
 
     final_values = model.mesh_field().sdf.detach().clone()
@@ -46,7 +48,7 @@ def keep_the_better(model, live_field, out: Path, resolution: int, truth, trace_
         f"{final_dev:.4f})")
     extra = {"published": published, "mesh_resolution": res}
     if truth is not None:
-        extra.update(truth.metrics(mesh, n_points=trace_points).to_dict())
+        extra.update(truth.metrics(mesh, n_points=config.metrics_points).to_dict())
     return extra
 
 

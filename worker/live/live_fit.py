@@ -29,6 +29,8 @@ from .snapshot import FieldSnapshot, GridSnapshot, LiveSnapshot
 
 HISTORY = 3
 """Field snapshots kept for ranking views (the disagreement between recent fields)."""
+RATE_WINDOW = 10
+"""Training calls the recent step rate is measured over (`LiveFit.recent_steps_per_s`)."""
 
 
 def grid_snapshot(field) -> GridSnapshot:
@@ -57,6 +59,8 @@ class LiveFit:
         self.rebuild_s = 0.0
         """Wall seconds spent loading the capture and building models."""
         self.train_s = 0.0
+        self.recent: deque[tuple[int, float]] = deque(maxlen=RATE_WINDOW)
+        """(steps, wall seconds) of the last training calls: the rate at the model's current level."""
         self.history: deque[FieldSnapshot] = deque(maxlen=HISTORY)
         self.final_model = None
         """The final run's model, once `warm_factory`'s factory has made it."""
@@ -100,7 +104,9 @@ class LiveFit:
             n += 1
             if time.monotonic() >= until:
                 break
-        self.train_s += time.perf_counter() - t0
+        seconds = time.perf_counter() - t0
+        self.train_s += seconds
+        self.recent.append((n, seconds))
         self.steps += n
         return n
 
@@ -124,6 +130,12 @@ class LiveFit:
 
     def steps_per_s(self) -> float | None:
         return self.steps / self.train_s if self.train_s > 0 and self.steps else None
+
+    def recent_steps_per_s(self) -> float | None:
+        """Steps per wall second over the last RATE_WINDOW training calls (the current level's rate: a fine step
+        costs several coarse ones), or None before any."""
+        steps, seconds = sum(n for n, _ in self.recent), sum(s for _, s in self.recent)
+        return steps / seconds if seconds > 0 and steps else None
 
     def mesh(self, resolution: int):
         """The current surface (trimesh, world metres); SpadscanError when there is none yet."""

@@ -66,6 +66,8 @@ class FastModel:
         self.per_hist = max(self.sc.min_rays, int(round(self.sc.rays_per_sr * solid)))
         self._order = torch.empty(0, dtype=torch.long, device=dev)
         self.steps, self.level_steps, self.level = 0, 0, 0
+        self.warm_started = False
+        """Whether the field came from another fit (`warm_start`): a run of few steps then polishes, not starts."""
         self.last_level = not config.parts.refinement.enabled  # one level only: it is the last from the start
         self._band: torch.Tensor | None = None
         self.parts, self.left_out = build_parts(config.parts, self)
@@ -203,6 +205,7 @@ class FastModel:
             values = field.sample(points.to(field.sdf.device)).to(own.device, own.dtype)
             start = torch.where(covered.to(own.device)[None, None], values[None, None], own)
             own.copy_(torch.maximum(start, self.constraint.bound_for(self.field)))
+        self.warm_started = True
         self.jumped()
 
     def project(self) -> None:
