@@ -97,17 +97,22 @@ def noise_deviance(mu: np.ndarray) -> np.ndarray:
 
 
 def fit_noise(measured: np.ndarray, expected: np.ndarray, valid: np.ndarray | None = None,
-              views=()) -> FitNoise | None:
+              views=(), expected_var: np.ndarray | None = None) -> FitNoise | None:
     """Compare measured counts with the model's expected counts (same shape, e.g. (V, Z, B)) over the `valid` bins;
-    None when there is no valid bin."""
+    None when there is no valid bin. `expected_var` (same shape, counts^2): the variance of `expected` itself where it
+    is an estimate (the mean of a few renders of randomly sampled rays). An error e in mu adds e^2 / (2 mu) to a bin's
+    expected deviance (its second-order term; the first averages out), so that much is counted with the photon
+    noise: on a bright capture the renderer's own sampling noise would otherwise read as a misfit."""
     c = np.asarray(measured, np.float64)
     mu = np.maximum(np.asarray(expected, np.float64), 1e-12)
-    ok = np.isfinite(c) & np.isfinite(mu) & (np.ones(c.shape, bool) if valid is None else np.asarray(valid, bool))
+    var = np.zeros(c.shape) if expected_var is None else np.asarray(expected_var, np.float64)
+    ok = np.isfinite(c) & np.isfinite(mu) & np.isfinite(var) & (np.ones(c.shape, bool) if valid is None else
+                                                                np.asarray(valid, bool))
     if not ok.any():
         return None
-    c, mu = c[ok], mu[ok]
+    c, mu, var = c[ok], mu[ok], np.maximum(var[ok], 0.0)
     dev = mu - c + xlogy(c, c / mu)
-    noise = noise_deviance(mu)
+    noise = noise_deviance(mu) + var / (2.0 * mu)
     excess, expected = float(dev.sum() - noise.sum()), float(mu.sum())
     relative = math.sqrt(2.0 * max(excess, 0.0) / expected) if expected > 0 else 0.0
     return FitNoise(float(dev.mean()), float(noise.mean()), int(ok.sum()), [int(v) for v in views], relative)

@@ -384,16 +384,18 @@ def _coverage(mesh, scene: SceneData, log) -> Coverage | None:
 
 def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig) -> FitNoise | None:
     """preview.png, error_vs_time.png and fit.png; returns the fit against the photon noise on the views the fit
-    picture shows and as many more (end_of_run.fit_noise; each rendered NOISE_RENDERS times and averaged, so that the
-    renderer's own sampling noise adds little)."""
+    picture shows and as many more (end_of_run.fit_noise; each rendered NOISE_RENDERS times and averaged, the spread
+    of the renders giving the renderer's own sampling noise, which the check counts with the photon noise)."""
     pictures.preview_png(mesh, out / "preview.png", gt=gt_mesh)
     scoring = "" if gt_mesh is None else f" (checkpoint Chamfer: {checkpoint_scoring(config)})"
     pictures.error_vs_time_png(result.trace, out / "error_vs_time.png",
                                title=f"{config.preset}: error against run time{scoring}")
     n = scene.n_views
     views = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(NOISE_VIEWS, n))})
-    rendered = np.mean([model.render_histograms(views) for _ in range(NOISE_RENDERS)], axis=0)
+    renders = np.stack([model.render_histograms(views) for _ in range(NOISE_RENDERS)])
+    rendered = renders.mean(axis=0)
     measured = scene.counts[views].double().cpu().numpy()
     shown = sorted({int(round(i)) for i in np.linspace(0, len(views) - 1, min(FIT_VIEWS, len(views)))})
     pictures.fit_png(measured[shown], rendered[shown], [views[i] for i in shown], out / "fit.png")
-    return fit_noise(measured, rendered, scene.valid[views].cpu().numpy(), views)
+    return fit_noise(measured, rendered, scene.valid[views].cpu().numpy(), views,
+                     expected_var=renders.var(axis=0, ddof=1) / NOISE_RENDERS)

@@ -118,6 +118,27 @@ def test_poisson_draws_of_the_model_fit_it_down_to_the_noise_and_others_do_not()
     assert fit_noise(rng.poisson(mu), mu, np.zeros(mu.shape, bool)) is None
 
 
+def test_the_renderers_own_sampling_noise_is_counted_with_the_photon_noise():
+    """The model's expected counts are the mean of K renders of randomly sampled rays, each off by a few per cent:
+    on a bright capture that alone reads as a misfit several times the photon noise. Counted from the renders'
+    spread, a model that is right fits down to the noise again, dim or bright, and a wrong one still does not."""
+    rng = np.random.default_rng(5)
+    k = 4
+    for photons in (50.0, 5000.0):
+        mu = rng.uniform(0.2, 1.0, (32, 9, 64)) * photons
+        renders = mu * (1.0 + 0.05 * rng.standard_normal((k, *mu.shape)))  # 5 % sampling noise a render
+        counts = rng.poisson(mu)
+        mean, var = renders.mean(axis=0), renders.var(axis=0, ddof=1) / k
+        naive, counted = fit_noise(counts, mean), fit_noise(counts, mean, expected_var=var)
+        assert counted.ratio == pytest.approx(1.0, abs=0.03), (photons, counted.ratio)
+        assert counted.relative_misfit < 0.01
+        if photons > 1000:
+            assert naive.ratio > 2.0, "uncounted, the render noise reads as a misfit"
+        wrong = fit_noise(rng.poisson(1.1 * mu), mean, expected_var=var)
+        assert wrong.ratio > counted.ratio + 0.1
+    assert fit_noise(counts, mean, expected_var=np.full(mean.shape, np.nan)) is None, "no finite bin left"
+
+
 def test_the_relative_misfit_does_not_grow_with_the_photon_count():
     """A model that is wrong by the same relative shape error, in a dim and in a bright capture: the deviance against
     the noise grows with the photons, the relative misfit does not."""

@@ -65,7 +65,7 @@ class LiveSettings:
     """Draw recon/live/preview.png with each mesh."""
     rank_every_s: float = 5.0
     """How often an adaptive scan's candidates are ranked (next_views.json)."""
-    final_polish_s: float = 6.0
+    final_polish_s: float = 4.0
     """Training seconds of the final reconstruction when the job names neither a budget nor steps: it continues
     from the live fit, so it polishes rather than fits. Given to it as a step count (the live fit's recent step rate
     times this, at least `final_min_steps`), so that the stages after training (the full mesh, the metrics, the
@@ -139,7 +139,9 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     try:
         progress = runner.follow(progress)
         if progress.state == "complete" and runner.fit.model is not None:
-            runner.publish(progress, state="final", force=True)
+            # The status only: the live mesh is at most publish_every_s old, and meshing and drawing it again
+            # would delay the final result that replaces it.
+            runner.write_status(progress, "final")
     except SpadscanError as exc:  # a chunk or manifest that cannot be read: the job fails saying why
         runner.stopped("stopped", str(exc))
         raise
