@@ -62,14 +62,20 @@ class FitNoise:
     mu e^2 / 2, so this is the photon-weighted RMS of e (0.1: the model is 10 % off where the photons are). Unlike
     the deviance ratio it does not grow with the photon count: a real sensor's own departures from its model give
     the same figure in a bright capture as in a dim one."""
+    render_per_bin: float = 0.0
+    """The mean deviance per bin that the expected counts' own error adds (they are the mean of a few renders of
+    sampled rays: `fit_noise`'s `expected_var`); part of `deviance_per_bin`, none of the model's misfit."""
 
     @property
     def ratio(self) -> float:
-        return self.deviance_per_bin / self.noise_per_bin if self.noise_per_bin > 0 else math.inf
+        """The deviance less the renders' share, against the photon noise: about 1 for a fit down to the noise."""
+        if self.noise_per_bin <= 0:
+            return math.inf
+        return (self.deviance_per_bin - self.render_per_bin) / self.noise_per_bin
 
     def to_dict(self) -> dict:
         return {"deviance_per_bin": self.deviance_per_bin, "noise_per_bin": self.noise_per_bin,
-                "ratio": self.ratio, "relative_misfit": self.relative_misfit,
+                "render_per_bin": self.render_per_bin, "ratio": self.ratio, "relative_misfit": self.relative_misfit,
                 "bins": self.bins, "views": list(self.views)}
 
 
@@ -112,10 +118,11 @@ def fit_noise(measured: np.ndarray, expected: np.ndarray, valid: np.ndarray | No
         return None
     c, mu, var = c[ok], mu[ok], np.maximum(var[ok], 0.0)
     dev = mu - c + xlogy(c, c / mu)
-    noise = noise_deviance(mu) + var / (2.0 * mu)
-    excess, expected = float(dev.sum() - noise.sum()), float(mu.sum())
+    noise, render = noise_deviance(mu), var / (2.0 * mu)
+    excess, expected = float(dev.sum() - noise.sum() - render.sum()), float(mu.sum())
     relative = math.sqrt(2.0 * max(excess, 0.0) / expected) if expected > 0 else 0.0
-    return FitNoise(float(dev.mean()), float(noise.mean()), int(ok.sum()), [int(v) for v in views], relative)
+    return FitNoise(float(dev.mean()), float(noise.mean()), int(ok.sum()), [int(v) for v in views], relative,
+                    float(render.mean()))
 
 
 def late_drop(data_terms) -> float | None:
@@ -185,9 +192,11 @@ def misfit_warning(fit: FitNoise, measured: bool) -> str | None:
                 f"{100 * REAL_SENSOR_MISFIT:.0f} %); a wrong sensor model or calibration, an object that "
                 f"moved during the scan, or a fit gone wrong")
     if not measured and fit.ratio > NOISE_RATIO_SIMULATED:
+        rendered = (f", less {fit.render_per_bin:.3g} from the check's own renders" if fit.render_per_bin > 0
+                    else "")
         return (f"the fit does not explain the measurements: their deviance from the model is {fit.ratio:.2f}x what "
-                f"photon noise gives ({fit.deviance_per_bin:.3g} against {fit.noise_per_bin:.3g} per bin); the "
-                f"capture is simulated, so its model is exact: part of the surface is likely wrong")
+                f"photon noise gives ({fit.deviance_per_bin:.3g}{rendered}, against {fit.noise_per_bin:.3g} per bin); "
+                f"the capture is simulated, so its model is exact: part of the surface is likely wrong")
     return None
 
 

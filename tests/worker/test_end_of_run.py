@@ -132,6 +132,8 @@ def test_the_renderers_own_sampling_noise_is_counted_with_the_photon_noise():
         naive, counted = fit_noise(counts, mean), fit_noise(counts, mean, expected_var=var)
         assert counted.ratio == pytest.approx(1.0, abs=0.03), (photons, counted.ratio)
         assert counted.relative_misfit < 0.01
+        assert naive.render_per_bin == 0 and counted.render_per_bin > 0
+        assert counted.deviance_per_bin == pytest.approx(naive.deviance_per_bin), "the deviance itself is as it was"
         if photons > 1000:
             assert naive.ratio > 2.0, "uncounted, the render noise reads as a misfit"
         wrong = fit_noise(rng.poisson(1.1 * mu), mean, expected_var=var)
