@@ -23,8 +23,9 @@ def keep_the_better(model, live_field, out: Path, config, live_resolution: int, 
     final field when the final run meshed it coarser than the run's `config.mesh_resolution` or the live mesh's
     `live_resolution`. Returns report.json's `published` (and the metric fields of a mesh it rewrote, on
     `config.metrics_points` points against `truth` when there is one)."""
-    resolution = max(config.mesh_resolution, live_resolution)
     from ..outputs import export_mesh
+
+    resolution = max(config.mesh_resolution, live_resolution)
 
     final_values = model.mesh_field().sdf.detach().clone()
     use_field(model, final_values)
