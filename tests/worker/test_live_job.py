@@ -117,7 +117,8 @@ def test_with_no_budget_the_final_run_polishes_for_steps_and_says_nothing_of_a_s
                                                                                           one_thread):
     """A live job whose job names neither a budget nor steps (the worker's default): the final run takes the live
     fit's recent step rate times `final_polish_s` in steps, and the stages after it run in full: no line about a
-    coarse mesh or few metric points, nor about a rough early state (it went on from the live fit)."""
+    coarse mesh or few metric points, nor about a rough early state (it went on from the live fit). Its trace has
+    its start and its end only (`final_checkpoints`): with a ground truth each checkpoint meshes and scores."""
     root = tmp_path / "captures"
     scan = ReplayScan(cylinder_capture, root / "cyl")
     scan.publish(10)
@@ -128,6 +129,7 @@ def test_with_no_budget_the_final_run_polishes_for_steps_and_says_nothing_of_a_s
     report = live.join()
     assert report["live"]["final_budget_s"] is None and report["live"]["final_steps"] >= 7
     assert report["steps"] == report["live"]["final_steps"] and report["stopped_by"] in ("steps", "converged")
+    assert [c["step"] for c in report["trace"]] == [0, report["steps"]], report["trace"]
     assert report["budget"]["notes"] == [] and report["budget"]["budget_s"] is None
     assert not [w for w in report["warnings"] if "rough early state" in w or "time budget" in w], report["warnings"]
 
