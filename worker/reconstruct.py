@@ -45,7 +45,7 @@ from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 DEVICES = ("auto", "cpu", "cuda")
 FIT_VIEWS = 4
 """Views the fit picture shows."""
-NOISE_VIEWS = 8
+NOISE_VIEWS = 32
 """Views the fit is compared with the photon noise on (end_of_run.fit_noise)."""
 NOISE_RENDERS = 4
 """Renders of each of them averaged for that comparison."""
