@@ -129,7 +129,8 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                         progress: bool = True, overrides: dict | None = None, threads: int | None = None,
                         log: Callable[[str], None] | None = None, started: float | None = None,
                         clock: Callable[[], float] = time.perf_counter,
-                        cpu_clock: Callable[[], float] = time.process_time, make: Callable | None = None) -> dict:
+                        cpu_clock: Callable[[], float] = time.process_time, make: Callable | None = None,
+                        after_training: Callable | None = None) -> dict:
     """Reconstruct `capture` into folder `out` with preset `preset`; returns the report dict (also report.json).
 
     `budget_s` bounds the whole run, from `started` (a `clock()` reading; default: now) to the report: set-up,
@@ -187,6 +188,11 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                    eval_estimate_s=0.0 if checkpoint_cost is None else costs.checkpoint_s(*checkpoint_cost),
                    end_evaluation=None if budget_s is None else lambda seconds: seconds <= run_clock.left() - min_end)
     stages = {"set_up_s": run_clock.elapsed() - result.seconds - result.eval_seconds}
+    chosen = {}
+    if after_training is not None:
+        t_choose = clock()
+        chosen = dict(after_training(model) or {})
+        stages["after_training_s"] = clock() - t_choose
     t_end = clock()
 
     notes: list[str] = []
@@ -201,6 +207,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     export_mesh(mesh, out / "mesh.ply", vertex_normal=True)
     stages["mesh_s"] = clock() - t_end
     report = _report(capture, preset, dev, config, scene, model, result, plan, scored=truth is not None)
+    report.update(chosen)
     report["capture_state"] = scene.state
     report["mesh_resolution"] = resolution
     if run.state_note:

@@ -99,11 +99,13 @@ def test_a_live_job_follows_a_scan_pose_by_pose_and_finishes_from_the_live_fit(c
     assert report["live"]["steps"] >= grown.steps and report["live"]["final_budget_s"] == 1.0
     assert report["live"]["final_steps"] is None
     assert report["scene"]["views"] == 24 and report["capture_state"] == "complete"
-    # The better-fitting of the live and the final field is published, never meshed coarser than the live mesh.
+    # The better-fitting of the live and the final field is published; a mesh that the job's 1 s budget made coarser
+    # than the preset's says so.
     published = report["published"]
     better = "live" if published["deviance_live"] < published["deviance_final"] else "final"
     assert published["mesh"] == better
-    assert report["mesh_resolution"] >= LiveSettings().mesh_resolution
+    if report["mesh_resolution"] < 256:
+        assert any("cells a side" in note for note in report["budget"]["notes"]), report["budget"]
     saved = json.loads((live.out / "report.json").read_text())
     assert saved["live"]["views_used"] == 24 and saved["published"] == published
     assert (live.out / "mesh.ply").stat().st_size > 0

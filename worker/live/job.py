@@ -164,12 +164,8 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     log(f"live: scan complete; the final reconstruction continues from the live fit ({live_report['views_used']} "
         f"views, {live_report['steps']} steps) for " + (f"{final.budget_s:g} s" if final.budget_s is not None else
                                                         f"{final.steps} steps"))
-    live_field = runner.fit.live_field()
-    report = execute_job(final, root, out, runner.final_recon(recon))
+    report = execute_job(final, root, out, runner.final_recon(recon, runner.fit.live_field()))
     extra = {"live": {**live_report, **bounds}}
-    if runner.fit.final_model is not None:
-        extra.update(keep_the_better(runner.fit.final_model, live_field, out, runner.config,
-                                     settings.mesh_resolution, runner.truth, log))
     add_to_report(out, extra)
     report.update(extra)
     return report
@@ -323,16 +319,19 @@ class LiveRun:
         self.write_status(self.last, state, note)
 
     # ---- the final run -------------------------------------------------------------------------------------------
-    def final_recon(self, recon: Callable | None) -> Callable:
+    def final_recon(self, recon: Callable | None, live_field) -> Callable:
         """The reconstruction function of the final run: the ordinary one, its model warm-started from the live fit
-        (the field, the level and where its learning-rate decay stands). A replacement reconstruction (`--recon`,
-        tests) is used as it is."""
+        (the field, the level and where its learning-rate decay stands), and once trained holding the better of its
+        own field and `live_field` (keep.py) for its mesh, pictures and metrics. A replacement reconstruction
+        (`--recon`, tests) is used as it is."""
         from ..reconstruct import reconstruct_capture
 
         if recon is not None and recon is not reconstruct_capture:
             return recon
         overrides = {"trace_checkpoints": self.settings.final_checkpoints, **dict(self.settings.overrides)}
-        return functools.partial(reconstruct_capture, make=self.fit.warm_factory(), overrides=overrides)
+        keep = functools.partial(keep_the_better, live_field=live_field, log=self.log)
+        return functools.partial(reconstruct_capture, make=self.fit.warm_factory(), overrides=overrides,
+                                 after_training=keep)
 
 
 __all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun", "refit_due"]

@@ -62,8 +62,6 @@ class LiveFit:
         self.recent: deque[tuple[int, float]] = deque(maxlen=RATE_WINDOW)
         """(steps, wall seconds) of the last training calls: the rate at the model's current level."""
         self.history: deque[FieldSnapshot] = deque(maxlen=HISTORY)
-        self.final_model = None
-        """The final run's model, once `warm_factory`'s factory has made it."""
 
     @property
     def views_used(self) -> int:
@@ -160,14 +158,12 @@ class LiveFit:
 
     def warm_factory(self) -> Callable:
         """A model factory (scene, config, device, plan) -> model for the final reconstruction: the preset's model
-        of the complete capture, warm-started from this fit (the final run continues from the live state). The model
-        it makes is kept as `final_model`."""
+        of the complete capture, warm-started from this fit (the final run continues from the live state)."""
         field, level, level_steps = self.live_field(), self.model.level, self.model.level_steps
 
         def make(scene, config, device, plan):
             model = make_model(scene, config, device, plan)
             model.warm_start(field, level, level_steps)
-            self.final_model = model
             return model
 
         return make
