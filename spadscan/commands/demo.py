@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"mesh:     {s['mesh']}")
     for warning in s["warnings"]:
         print(f"warning:  {warning}")
-    if s["converged"] is False and not s["warnings"]:
+    if s["converged"] is False and not s["warnings"] and s["live"] is None:  # a live polish: its warnings say
         print("warning:  the reconstruction did not converge")
     print(f"pictures: {', '.join(s['pictures']) or '-'}")
     if s["live"] is not None:

@@ -162,6 +162,15 @@ def test_a_complete_capture_has_no_warning(folder):
     assert "class=warning" not in render_html(a_report(capture_state="complete"), folder)
 
 
+def test_a_run_that_did_not_converge_says_so_unless_it_polished_a_live_fit(folder):
+    """A live job's final run polishes the live fit for a few dozen steps, too few for the plateau test: its own
+    warnings say whether its data term still fell; the generic line would be said of every live result."""
+    unsettled = summary_of(render_html(a_report(capture_state="complete", converged=False, warnings=[]), folder))
+    assert "class=warning" in unsettled and "did not converge" in unsettled
+    polished = a_report(capture_state="complete", converged=False, warnings=[], live={"views_used": 128})
+    assert "did not converge" not in render_html(polished, folder)
+
+
 def test_ground_truth_notes_are_in_the_summary(folder):
     note = "/gt/flat.obj: holds no triangles; no metrics"
     scored = "the object above z = -0.1510 m (the ground truth's table top + 5 mm; a reconstruction holds no table)"
