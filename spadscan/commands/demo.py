@@ -75,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"mesh:     {s['mesh']}")
     for warning in s["warnings"]:
         print(f"warning:  {warning}")
-    if s["converged"] is False and not s["warnings"] and s["live"] is None:  # a live polish: its warnings say
+    polish = s["live"] is not None and s["live"].get("final_steps") is not None  # its own warnings say
+    if s["converged"] is False and not s["warnings"] and not polish:
         print("warning:  the reconstruction did not converge")
     print(f"pictures: {', '.join(s['pictures']) or '-'}")
     if s["live"] is not None:

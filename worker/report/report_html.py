@@ -97,13 +97,15 @@ def is_baseline(report: dict) -> bool:
 
 def warnings(report: dict) -> list[str]:
     """What makes the run's result doubtful or unscored, for the top of the page: the run's own warnings (report.json's
-    "warnings", one line each), a run that did not converge (but for a live job's final polish), an incomplete capture
+    "warnings", one line each), a run that did not converge (but for a live job's final polish of a step count), an incomplete capture
     and a named ground truth that could not be used."""
     own = report.get("warnings")
     found = [str(w) for w in own if str(w).strip()] if isinstance(own, list) else []
-    # A live job's final run polishes the live fit for a few dozen steps, too few for the plateau test: whether its
-    # data term still fell is one of its own warnings.
-    if report.get("converged") is False and not found and not isinstance(report.get("live"), dict):
+    # A live job's final run that polished the live fit for a step count (a few dozen steps, too few for the plateau
+    # test): whether its data term still fell is one of its own warnings.
+    live = report.get("live")
+    polish = isinstance(live, dict) and live.get("final_steps") is not None
+    if report.get("converged") is False and not found and not polish:
         found.append("the run did not converge: its mesh may still be changing")
     state = report.get("capture_state")
     if state not in (None, "complete"):
