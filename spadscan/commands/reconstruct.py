@@ -16,9 +16,9 @@ stopped_by 'converged'); turn that off with --set early_stop=false.
 An honest end: report.json's "converged" says whether the fit had settled, and "warnings" (also printed, and shown
 at the top of report.html) says why a result may be doubtful: a run that stopped on its budget or step count while
 its fit was still improving, a run starved of CPU by other processes, a fit that does not explain the measurements
-(a simulated capture: its deviance far above what photon noise gives; a real one: the model off by more than 60 % per
-bin, twice what a real sensor's own departures from its model leave), a mesh or metrics made coarser to fit the
-budget.
+(a simulated capture: over 10 % of its histograms off the model beyond their photon noise and by over 15 %; a real
+one: the model off by more than 60 % per bin, twice what a real sensor's own departures from its model leave), a
+surface seen by too few views, a mesh or metrics made coarser to fit the budget.
 
 CPU threads: without --threads (and without OMP_NUM_THREADS), a CPU run times its steps with all the cores' threads
 and with one, keeps the faster and checks again from time to time, so that a busy machine does not make every step
