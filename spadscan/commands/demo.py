@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from spadscan.demo import DemoOptions, check_options, run_demo
+    from spadscan.worker.report.report_html import says_unconverged
 
     opts = DemoOptions(out=args.out, scene=args.scene, views=args.views, budget_s=args.budget_s, arm=args.arm,
                        sensor=args.sensor, dashboard=args.dashboard, dashboard_port=args.dashboard_port,
@@ -75,8 +76,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"mesh:     {s['mesh']}")
     for warning in s["warnings"]:
         print(f"warning:  {warning}")
-    polish = s["live"] is not None and s["live"].get("final_steps") is not None  # its own warnings say
-    if s["converged"] is False and not s["warnings"] and not polish:
+    if says_unconverged(s):
         print("warning:  the reconstruction did not converge")
     print(f"pictures: {', '.join(s['pictures']) or '-'}")
     if s["live"] is not None:

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from spadscan.worker.report.report_html import REPORT_HTML, format_value, render_html, write_report_html
+from spadscan.worker.report.report_html import (REPORT_HTML, format_value, render_html, says_unconverged,
+                                                write_report_html)
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"\0" * 16
 
@@ -174,6 +175,11 @@ def test_a_run_that_did_not_converge_says_so_unless_it_polished_a_live_fit(folde
     budgeted = a_report(capture_state="complete", converged=False, warnings=[],
                         live={"views_used": 79, "final_steps": None, "final_budget_s": 120.0})
     assert "did not converge" in render_html(budgeted, folder), "a full run after a short scan is judged as any"
+    # The demo's summary carries the same fields (its "live" None for an offline run) and says it by the same rule.
+    assert says_unconverged({"converged": False, "warnings": [], "live": None})
+    assert not says_unconverged({"converged": False, "warnings": ["stopped early"], "live": None})
+    assert not says_unconverged({"converged": False, "warnings": [], "live": {"final_steps": 42}})
+    assert not says_unconverged({"converged": True, "warnings": [], "live": None})
 
 
 def test_ground_truth_notes_are_in_the_summary(folder):

@@ -95,17 +95,25 @@ def is_baseline(report: dict) -> bool:
     return "method" in report and "preset" not in report
 
 
-def warnings(report: dict) -> list[str]:
-    """What makes the run's result doubtful or unscored, for the top of the page: the run's own warnings (report.json's
-    "warnings", one line each), a run that did not converge (but for a live job's final polish of a step count), an incomplete capture
-    and a named ground truth that could not be used."""
+def says_unconverged(report: dict) -> bool:
+    """Whether a run's result should say that it did not converge, nothing else having said why it may be doubtful:
+    "converged" is false, it has no warning of its own, and it is not a live job's final polish of a step count (a
+    few dozen steps, too few for the plateau test: whether its data term still fell is one of its own warnings).
+    `report`: report.json's fields, or the demo's summary of them ("converged", "warnings", "live")."""
     own = report.get("warnings")
-    found = [str(w) for w in own if str(w).strip()] if isinstance(own, list) else []
-    # A live job's final run that polished the live fit for a step count (a few dozen steps, too few for the plateau
-    # test): whether its data term still fell is one of its own warnings.
+    warned = isinstance(own, list) and any(str(w).strip() for w in own)
     live = report.get("live")
     polish = isinstance(live, dict) and live.get("final_steps") is not None
-    if report.get("converged") is False and not found and not polish:
+    return report.get("converged") is False and not warned and not polish
+
+
+def warnings(report: dict) -> list[str]:
+    """What makes the run's result doubtful or unscored, for the top of the page: the run's own warnings (report.json's
+    "warnings", one line each), a run that did not converge (`says_unconverged`), an incomplete capture and a named
+    ground truth that could not be used."""
+    own = report.get("warnings")
+    found = [str(w) for w in own if str(w).strip()] if isinstance(own, list) else []
+    if says_unconverged(report):
         found.append("the run did not converge: its mesh may still be changing")
     state = report.get("capture_state")
     if state not in (None, "complete"):
