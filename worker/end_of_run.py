@@ -148,12 +148,12 @@ def fit_noise(measured: np.ndarray, expected: np.ndarray, valid: np.ndarray | No
                                                                 np.asarray(valid, bool))
     if not ok.any():
         return None
-    c, mu, var = np.where(ok, c, 0.0), np.where(ok, mu, 0.0), np.where(ok, np.maximum(var, 0.0), 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        dev = np.where(ok, mu - c + xlogy(c, c / np.where(ok, mu, 1.0)), 0.0)
-        render = np.where(ok, var / (2.0 * np.where(ok, mu, 1.0)), 0.0)
-    noise, noise_var = noise_moments(mu)
-    noise, noise_var = np.where(ok, noise, 0.0), np.where(ok, noise_var, 0.0)
+    # Bins left out keep their place (the histograms are judged whole) with a neutral mu and no weight.
+    c, mu, var = np.where(ok, c, 0.0), np.where(ok, mu, 1.0), np.where(ok, np.maximum(var, 0.0), 0.0)
+    dev = np.where(ok, mu - c + xlogy(c, c / mu), 0.0)
+    render = np.where(ok, var / (2.0 * mu), 0.0)
+    noise, noise_var = (np.where(ok, a, 0.0) for a in noise_moments(mu))
+    mu = np.where(ok, mu, 0.0)
     excess, expected = float(dev.sum() - noise.sum() - render.sum()), float(mu.sum())
     relative = math.sqrt(2.0 * max(excess, 0.0) / expected) if expected > 0 else 0.0
     checked, misfit = misfit_histograms(dev, noise, noise_var, render, mu)
