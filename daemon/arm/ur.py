@@ -58,6 +58,9 @@ STOP_ON_LOSS_S = 1.0
 """s: how long the stopL sent before a lost link is dropped may take."""
 CLEARED_WITHIN_S = 2.0
 """s: on resume, how long a safety stop the operator has just cleared may still show in the data before it counts."""
+SAFETY_CATCH_UP_S = 0.5
+"""s: how long a control script seen stopped is read again for the safety stop that may have stopped it (the
+receive stream can lag the control stream)."""
 SAFETY_MODES = {1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery", 5: "safeguard stop",
                 6: "system emergency stop", 7: "robot emergency stop", 8: "violation", 9: "fault",
                 12: "automatic mode safeguard stop", 13: "system three position enabling stop"}
@@ -160,7 +163,7 @@ class URArm(Arm):
         """Refuse to start while the arm is stopped for safety or its control script is not running; arm the
         watchdog."""
         reading = await self._fresh("the safety state")
-        self._raise_if_stopped(reading, "cannot prepare")
+        await self._raise_if_stopped(reading, "cannot prepare")
         await self._arm_watchdog()
 
     async def clear_fault(self) -> None:
@@ -196,7 +199,7 @@ class URArm(Arm):
             return
         if not await self._call("setWatchdog", "set_watchdog", self.watchdog_hz):
             reading = await self._fresh("the state after setWatchdog was refused")
-            self._raise_if_stopped(reading, "setWatchdog refused")
+            await self._raise_if_stopped(reading, "setWatchdog refused")
             raise ArmFault(f"{self.name}: the controller refused setWatchdog({self.watchdog_hz:g} Hz)")
         self._watchdog_set = True
 
@@ -222,7 +225,7 @@ class URArm(Arm):
         vecs = [[float(x) for x in pose_to_vector(p)] for p in poses]
         n = first_index + len(vecs)
         # A controller stopped for safety, or without its script, cannot answer: say which (as a move would).
-        self._raise_if_stopped(await self._fresh("the safety state before the pose checks"),
+        await self._raise_if_stopped(await self._fresh("the safety state before the pose checks"),
                                "the controller cannot check the planned poses")
         try:
             result = await self._call(f"the controller's checks of {len(vecs)} poses", "check_poses", vecs,
@@ -231,7 +234,7 @@ class URArm(Arm):
             raise
         except DeviceError as exc:
             for _ in range(3):  # a stop that came meanwhile shows in the receive data a package or two later
-                self._raise_if_stopped(await self._fresh("the safety state after the pose checks failed"),
+                await self._raise_if_stopped(await self._fresh("the safety state after the pose checks failed"),
                                        "the controller cannot check the planned poses")
             raise ArmFault(f"{self.name}: cannot ask the controller about the planned poses: {exc}") from None
         i = result["index"]
@@ -272,7 +275,7 @@ class URArm(Arm):
             raise ArmFault(f"{self.name}: bad target: {exc}") from None
         self._require_open()
         start = await self._fresh("live data before moveL")
-        self._raise_if_stopped(start, "moveL refused")
+        await self._raise_if_stopped(start, "moveL refused")
         await self._arm_watchdog()
         what = f"moveL to [{target[0]:.4f}, {target[1]:.4f}, {target[2]:.4f}] m"
         vec = [float(x) for x in target]
@@ -319,7 +322,7 @@ class URArm(Arm):
         while True:
             reading = await self._read(what, progress=True)
             await self._check_link(reading)
-            self._raise_if_stopped(reading, f"{what} aborted")
+            await self._raise_if_stopped(reading, f"{what} aborted")
             if not reading.moving:
                 return
             now = time.monotonic()
@@ -339,7 +342,7 @@ class URArm(Arm):
         while True:
             reading = await self._read(what)
             await self._check_link(reading)
-            self._raise_if_stopped(reading, f"{what} aborted")
+            await self._raise_if_stopped(reading, f"{what} aborted")
             first_ts = reading.timestamp if first_ts is None else first_ts
             dist, angle = _pose_distance(reading.pose_vec, target)
             speed, spin = (float(np.linalg.norm(reading.tcp_speed[i:i + 3])) for i in (0, 3))
@@ -394,8 +397,17 @@ class URArm(Arm):
             raise await self._lost(f"receive data stale: controller timestamp stuck at {reading.timestamp:.3f} s for "
                                    f"{age:.2f} s (limit {self.stale_after_s:g} s)")
 
-    def _raise_if_stopped(self, reading: _Reading, doing: str) -> None:
-        """ArmFault for a safety stop (emergency, protective, safeguard) or a control script that is not running."""
+    async def _raise_if_stopped(self, reading: _Reading, doing: str) -> None:
+        """ArmFault for a safety stop (emergency, protective, safeguard) or a control script that is not running.
+
+        Whether the script runs comes from the control interface's stream, the safety flags from the receive
+        interface's: a controller that stops the script on a safety stop can show the first before the second. A
+        script seen stopped with no safety flag is therefore read again for up to SAFETY_CATCH_UP_S, so that the
+        fault is named by its cause."""
+        deadline = time.monotonic() + SAFETY_CATCH_UP_S
+        while (not reading.program_running and not (reading.emergency or reading.protective or reading.safeguard)
+               and time.monotonic() < deadline):
+            reading = await self._fresh(f"the safety state after {doing}")
         mode = f"safety mode {reading.safety_mode} ({SAFETY_MODES.get(reading.safety_mode, 'unknown')})"
         if reading.emergency:
             raise ArmFault(f"emergency stop on {self.name}: {doing} ({mode})")
@@ -414,7 +426,7 @@ class URArm(Arm):
         plain refusal, else return after two fresh readings (time for the control stream to catch up)."""
         for _ in range(2):
             reading = await self._fresh(f"the safety state after {what} was refused")
-            self._raise_if_stopped(reading, f"{what} refused")
+            await self._raise_if_stopped(reading, f"{what} refused")
         if final:
             running = await self._call("the program state", "program_running")
             raise ArmFault(f"{self.name}: controller refused {what} (safety mode {reading.safety_mode}, control "

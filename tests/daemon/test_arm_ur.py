@@ -22,7 +22,7 @@ from spadscan.daemon.arm.pose_convert import (matrix_to_rotvec, pose_to_vector, 
                                               vector_to_pose)
 from spadscan.daemon.arm.rtde_child import answer
 from spadscan.daemon.arm.rtde_link import RTDELink
-from spadscan.daemon.arm.ur import URArm
+from spadscan.daemon.arm.ur import URArm, _Reading
 from spadscan.daemon.devices import ArmFault, LinkLost
 from spadscan.daemon.ursim.kinematics import inverse_kinematics
 from spadscan.daemon.ursim.remote import SimURProcess
@@ -157,9 +157,9 @@ def test_protective_stop_refuses_the_move(ur, arun):
 class ArmWithoutPreCheck(URArm):
     """Sends a move even when its own last reading shows a stop, as when the stop comes between check and send."""
 
-    def _raise_if_stopped(self, reading, doing):
+    async def _raise_if_stopped(self, reading, doing):
         if doing != "moveL refused":
-            super()._raise_if_stopped(reading, doing)
+            await super()._raise_if_stopped(reading, doing)
 
 
 def test_move_returning_false_is_explained_by_the_protective_stop(ur, arun):
@@ -175,6 +175,38 @@ def test_move_returning_false_is_explained_by_the_protective_stop(ur, arun):
 
     arun(run())
     assert ur.moves == []
+
+
+class LaggingReceive(URArm):
+    """Its receive stream shows a safety stop only `lag` readings after the control stream shows the script
+    stopped (two RTDE connections: either can be behind)."""
+
+    def __init__(self, lag: int, flag: bool = True):
+        super().__init__("127.0.0.1")
+        self.lag, self.flag, self.reads = lag, flag, 0
+
+    async def _fresh(self, what):
+        self.reads += 1
+        return reading(program_running=False, protective=self.flag and self.reads >= self.lag)
+
+
+def reading(**kw) -> _Reading:
+    return _Reading(**{"pose_vec": np.zeros(6), "joints": np.zeros(6), "timestamp": 1.0, "protective": False,
+                       "emergency": False, "safety_mode": 1, "connected": True, "tcp_speed": np.zeros(6), **kw})
+
+
+def test_a_script_stopped_by_a_protective_stop_is_named_by_the_stop_when_the_receive_stream_lags(arun):
+    arm = LaggingReceive(lag=3)
+    with pytest.raises(ArmFault, match="protective stop on .*moveL aborted"):
+        arun(arm._raise_if_stopped(reading(program_running=False), "moveL aborted"))
+    assert arm.reads == 3
+    alone = LaggingReceive(lag=0, flag=False)  # no safety stop shows: the script stopped by itself
+    with pytest.raises(ArmFault, match="control script is not running"):
+        arun(alone._raise_if_stopped(reading(program_running=False), "moveL aborted"))
+    assert alone.reads >= 1
+    running = LaggingReceive(lag=1)
+    arun(running._raise_if_stopped(reading(), "moveL aborted"))  # nothing wrong: not read again
+    assert running.reads == 0
 
 
 def test_protective_stop_during_a_move_aborts_it(ur, arun):

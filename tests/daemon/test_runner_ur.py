@@ -51,12 +51,12 @@ async def until(pred, what: str, timeout_s: float = 60.0) -> None:
         await asyncio.sleep(0.01)
 
 
-def ur_config(tmp_path, host: str):
+def ur_config(tmp_path, host: str, watchdog_hz: float = 1.0):
     return config_from_dict({
         "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"),
         "arm": {"backend": "ur", "host": host, "speed": 0.5, "acceleration": 2.0, "hand_eye": HAND_EYE,
                 "workspace_min": [0.0, -0.5, 0.02], "workspace_max": [0.9, 0.5, 0.7], "min_reach_m": 0.1,
-                "max_reach_m": 0.85, "move_timeout_s": 30.0, "watchdog_hz": 1.0},
+                "max_reach_m": 0.85, "move_timeout_s": 30.0, "watchdog_hz": watchdog_hz},
         "sensor": {"backend": "sim", "mesh": "builtin:pyramid", "mesh_offset_m": [0.4, 0, 0], "rays_per_zone": 8},
         "scan": {"views": 8, "frames_per_pose": 1, "settle_s": 0.0, "radius_m": 0.25, "target": [0.4, 0, 0.05],
                  "min_elevation_deg": 30, "max_elevation_deg": 80}}, tmp_path / "rig.toml")
@@ -83,7 +83,9 @@ def check_every_pose_once(path, hand_eye=HAND_EYE) -> None:
 def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, arun):
     """The controller stops its program on the protective stop, as a real one may: after the operator clears the
     stop, `resume` finds the control script not running, uploads it again and the scan completes."""
-    cfg = ur_config(tmp_path, controller.host)
+    # The config's slowest watchdog (2 s of silence): this test is about the protective stop, and on a busy machine
+    # a 1 s watchdog may stop the script first (its own tests are in test_arm_ur).
+    cfg = ur_config(tmp_path, controller.host, watchdog_hz=0.5)
     controller.configure(stop_script_on_fault=True)
 
     async def scenario():
@@ -97,6 +99,8 @@ def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, 
                 await asyncio.to_thread(controller.protective_stop)
                 await until(lambda: runner.state == "paused", "the pause")
                 reason = runner.status()["reason"]
+                assert "protective stop" in reason, f"paused for another reason: {reason}; controller: " \
+                    f"{(await asyncio.to_thread(controller.state))['errors']}"
                 await asyncio.to_thread(controller.clear_protective_stop)
                 scripts = await asyncio.to_thread(controller.scripts)
                 await runner.resume()
