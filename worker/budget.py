@@ -85,7 +85,14 @@ class EndCosts:
     """Seconds of an extraction that do not grow with the cells (the model's own set-up of its grid)."""
     metrics_s_per_point: float = METRICS_S_PER_POINT
     fixed_s: float = FIXED_S
+    fit_check_s: float = 0.0
+    """Seconds of the fit check (the views it renders against the photon noise), once a probe has timed a render;
+    its 32 views rendered 4 times take a second or more on 2 cores, which FIXED_S does not hold."""
     probed: list[str] = field(default_factory=list)
+
+    def pictures_s(self) -> float:
+        """The stages after the mesh that do not scale with it or with the points: the pictures, the fit check."""
+        return self.fixed_s + SAFETY * self.fit_check_s
 
     def mesh_s(self, resolution: int) -> float:
         return SAFETY * (self.mesh_fixed_s + self.mesh_s_per_cell * resolution ** 3)
@@ -115,10 +122,15 @@ class EndCosts:
         self.metrics_s_per_point = max(seconds, 0.0) / (2 * points)
         self.probed.append(f"metrics {points}: {seconds:.2f} s")
 
+    def time_fit_check(self, seconds: float, views_rendered: int, renders_needed: int) -> None:
+        """Rendering `views_rendered` views took `seconds`: the fit check renders `renders_needed` views."""
+        self.fit_check_s = max(seconds, 0.0) / max(views_rendered, 1) * renders_needed
+        self.probed.append(f"fit check {renders_needed} view renders: {self.fit_check_s:.2f} s")
+
     def end_s(self, resolution: int, points: int | None, checkpoint: tuple[int, int] | None = None) -> float:
         """Seconds the stages after training take at `resolution` and `points` (None: no ground truth), plus the
         last checkpoint's evaluation (`checkpoint` = its mesh resolution and points) where there is one."""
-        total = self.fixed_s + self.mesh_s(resolution)
+        total = self.pictures_s() + self.mesh_s(resolution)
         if points:
             total += self.metrics_s(points)
         if checkpoint is not None:

@@ -169,7 +169,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder
     if budget_s is not None:
-        _probe_end_costs(model, truth, costs, clock)
+        _probe_end_costs(model, scene.n_views, truth, costs, clock)
         end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
     plan = RunPlan(steps=run.plan.steps, budget_s=training_budget(run_clock, end_s), seed=run.plan.seed)
 
@@ -197,7 +197,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
 
     notes: list[str] = []
     resolution = mesh_resolution_within(costs, config.mesh_resolution,
-                                        run_clock.left() - costs.fixed_s - (costs.metrics_s(MIN_METRIC_POINTS)
+                                        run_clock.left() - costs.pictures_s() - (costs.metrics_s(MIN_METRIC_POINTS)
                                                                             if truth else 0.0))
     if resolution < config.mesh_resolution:
         notes.append(f"the time budget was short: the mesh was extracted at {resolution} cells a side, not "
@@ -220,7 +220,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     coverage = _coverage(mesh, scene, log)
     stages["pictures_s"] = clock() - t_pictures
     if truth is not None:
-        costs.fixed_s = NORMALS_PICTURE_S  # all that is left to draw after the metrics
+        costs.fixed_s, costs.fit_check_s = NORMALS_PICTURE_S, 0.0  # all that is left to draw after the metrics
         t_metrics = clock()
         scored = truth.scored(mesh)  # cut once for the metrics and the normals picture
         points = _metric_points(scored, truth, config, costs, run_clock, clock, seed)
@@ -277,9 +277,14 @@ def _model_converged(last: dict) -> bool | None:
     return None if value is None else bool(value)
 
 
-def _probe_end_costs(model, truth, costs: EndCosts, clock) -> None:
-    """Time a small mesh extraction (and with a ground truth, small metrics) on this model and machine, so that the
-    budget keeps back what the final mesh and metrics will take here."""
+def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock) -> None:
+    """Time a small mesh extraction, the render of two views (the fit check renders up to NOISE_VIEWS views
+    NOISE_RENDERS times) and with a ground truth small metrics, on this model and machine, so that the budget keeps
+    back what the end of the run will take here."""
+    probe_views = sorted({0, n_views // 2})
+    t0 = clock()
+    model.render_histograms(probe_views)
+    costs.time_fit_check(clock() - t0, len(probe_views), min(NOISE_VIEWS, n_views) * NOISE_RENDERS)
     timings = {}
     try:
         for resolution in PROBE_RESOLUTIONS:

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from spadscan.worker.budget import (MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, EndCosts, RunClock,
+from spadscan.worker.budget import (MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, SAFETY, EndCosts, RunClock,
                                     mesh_resolution_within, metric_points_within, process_started, training_budget)
 
 BUDGET_S = 10.0
@@ -49,6 +49,14 @@ def test_the_mesh_cost_splits_into_a_fixed_part_and_one_per_cell():
     assert costs.mesh_fixed_s == pytest.approx(0.2) and costs.mesh_s_per_cell == pytest.approx(1e-7)
     costs.time_mesh({64: 0.3, 32: 0.4})  # noise: the larger was faster; no negative rate
     assert costs.mesh_s_per_cell == 0.0 and costs.mesh_fixed_s == pytest.approx(0.35)
+
+
+def test_the_fit_check_is_kept_back_once_a_render_is_timed():
+    costs = EndCosts(fixed_s=6.0, mesh_s_per_cell=0.0)
+    before = costs.end_s(256, None)
+    costs.time_fit_check(0.05, 2, 128)  # 25 ms a view, 128 view renders
+    assert costs.fit_check_s == pytest.approx(3.2)
+    assert costs.end_s(256, None) == pytest.approx(before + SAFETY * 3.2)
 
 
 def test_a_short_time_gets_a_coarser_mesh_and_fewer_points():
@@ -107,6 +115,7 @@ def test_a_reconstruction_ends_within_its_budget(box, tmp_path, preset):
     assert report["wall_seconds"] <= LIMIT_S and report["budget"]["budget_s"] == BUDGET_S
     assert report["budget"]["training_budget_s"] < BUDGET_S, "the set-up and the end share the budget"
     check_budget_notes(report, 256, 300_000)  # both presets' own: 256 cells, 300,000 points
+    assert any(t.startswith("fit check ") for t in report["budget"]["timed"]), report["budget"]
     assert report["trace"][-1]["step"] == report["steps"] and "chamfer_mm" in report
 
 
