@@ -22,6 +22,7 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import sys
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,9 +67,14 @@ def run(args) -> int:
     from spadscan.sweep.runner import run_sweep
 
     # SIGTERM as Ctrl-C: the local cluster's worker processes are stopped, not left running without a client.
-    with terminate_as_interrupt():
-        summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers,
-                            device=args.device, keep=args.keep, progress=not args.no_progress, log=log)
+    try:
+        with terminate_as_interrupt():
+            summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers,
+                                device=args.device, keep=args.keep, progress=not args.no_progress, log=log)
+    except KeyboardInterrupt:
+        print(f"spadscan sweep: interrupted; the points finished are kept in {args.out}, and the same command runs "
+              f"the rest", file=sys.stderr)
+        return 130
     print(f"{summary.points} points: {summary.earlier} done earlier, {summary.ran} run now "
           f"({summary.done} done, {len(summary.failed)} failed)")
     for task, reason in summary.failed:

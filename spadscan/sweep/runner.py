@@ -13,12 +13,16 @@ A point on a CUDA device asks for the worker resource GPU=1: start GPU workers w
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import secrets
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
+from multiprocessing import resource_tracker
 from typing import Callable
 
 from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
@@ -165,6 +169,31 @@ def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
     return result
 
 
+@contextlib.contextmanager
+def _quiet_children():
+    """The embedded cluster's processes start with SIGINT ignored, which they inherit: a terminal's Ctrl-C goes to
+    the whole process group, and workers that died of it at once would leave this client's orderly close (the
+    points in flight end with the cluster, the points done stay done) a trail of tracebacks. The processes share
+    one resource tracker, started here: a worker stopped mid-point leaves it the semaphores of its point's own
+    processes, which it cleans up at the end, and its warning of "leaked semaphore objects" is filtered (that
+    message only, in that process)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    env = os.environ.get("PYTHONWARNINGS")
+    os.environ["PYTHONWARNINGS"] = ",".join(filter(None, [env, "ignore:resource_tracker:UserWarning"]))
+    try:
+        resource_tracker.ensure_running()
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+        if env is None:
+            os.environ.pop("PYTHONWARNINGS", None)
+        else:
+            os.environ["PYTHONWARNINGS"] = env
+
+
 class _client:
     """A Dask client on `scheduler`, or on a LocalCluster it starts and stops."""
 
@@ -190,10 +219,11 @@ class _client:
         n = self.workers or (1 if self.device == "cuda" else cores())
         # Loopback only; no dashboard, and the scheduler's HTTP server (health, metrics) on a free port: a fixed
         # 8787 would clash with another cluster on the machine.
-        self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                    dashboard_address=None, silence_logs=logging.ERROR,
-                                    scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-                                    **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
+        with _quiet_children():
+            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                        dashboard_address=None, silence_logs=logging.CRITICAL,
+                                        scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+                                        **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
         self.client = Client(self.cluster)
         self.log(f"local cluster: {n} worker process{'' if n == 1 else 'es'}, one thread each")
         return self.client

@@ -5,6 +5,7 @@ re-run runs only the failed point. The embedded LocalCluster path runs the same 
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections import Counter
 from pathlib import Path
@@ -131,6 +132,7 @@ def test_local_cluster_stops_cleanly_and_resumes_where_it_stopped(tiny_sweep, tm
             sweep.wait()
     assert sweep.returncode == 130, err
     assert "local cluster: 2 worker processes" in err and "interrupted" in err
+    assert "Traceback" not in err and "leaked" not in err, err
     events = read_log(out)
     workers = {e["pid"] for e in events if "pid" in e}
     wait_for(lambda: not any(pid_alive(p) for p in workers), 60, "worker processes ending with their sweep")
@@ -154,6 +156,32 @@ def test_local_cluster_stops_cleanly_and_resumes_where_it_stopped(tiny_sweep, tm
     rerun = [e["point"] for e in read_log(out)[before:] if e["event"] == "start"]
     assert [plan.points[p].params["power"] for p in rerun] == [FAILING_POWER]
     assert not list((out / "work").iterdir())  # the interrupted points' work folders went with the next run
+
+
+def test_ctrl_c_in_the_terminal_stops_the_sweep_in_one_line(tiny_sweep, tmp_path):
+    """A terminal's Ctrl-C reaches the whole process group, the cluster's workers too: the sweep still ends in its
+    own line, with no worker's traceback or warning, and leaves no worker behind."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    sweep = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "sweep", str(tiny_sweep), "--out", str(out),
+                              "--workers", "2", "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, start_new_session=True)
+    try:
+        wait_for(lambda: any(e["event"] == "start" for e in read_log(out)), 300, "a point started", sweep)
+        os.killpg(sweep.pid, signal.SIGINT)
+        _, err = sweep.communicate(timeout=120)
+    finally:
+        if sweep.poll() is None:
+            os.killpg(sweep.pid, signal.SIGKILL)
+            sweep.wait()
+    assert sweep.returncode == 130, err
+    assert "interrupted; the points finished are kept in" in err, err
+    assert "Traceback" not in err and "leaked" not in err and "distributed" not in err, err
+    workers = {e["pid"] for e in read_log(out) if "pid" in e}
+    wait_for(lambda: not any(pid_alive(p) for p in workers), 60, "worker processes ending with their sweep")
 
 
 KILLER = """
