@@ -14,7 +14,7 @@ When the scan is complete, the final model is the preset's model of every view, 
 job's final run), for --final-steps (35: what that 20 s final run made). Rows:
 
 - the live fit as it is (`LiveSettings().recoarse`: back to the coarse level each time the views have grown by half,
-  while under three quarters of the plan);
+  while under half the plan);
 - the same with `RecoarsePolicy(growth=0)`: never back to the coarse level (the version before);
 - the peer: an offline fit of the complete capture from the carved hull, as many steps in all.
 

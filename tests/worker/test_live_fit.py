@@ -105,11 +105,11 @@ def test_a_final_run_that_fits_worse_than_the_live_state_is_not_published(cylind
 
 
 def test_recoarse_policy_wants_half_as_many_views_again_while_the_scan_is_young():
-    policy = RecoarsePolicy()  # back to the coarse level at 1.5x the views, under 3/4 of the plan
+    policy = RecoarsePolicy()  # back to the coarse level at 1.5x the views, under half the plan
     assert not policy.due(coarse_views=8, views=11, planned=128)
     assert policy.due(coarse_views=8, views=12, planned=128)
-    assert policy.due(coarse_views=60, views=95, planned=128)
-    assert not policy.due(coarse_views=60, views=96, planned=128), "too late in the scan"
+    assert policy.due(coarse_views=40, views=63, planned=128)
+    assert not policy.due(coarse_views=40, views=64, planned=128), "too late in the scan"
     assert policy.due(coarse_views=60, views=200, planned=None), "no plan known: growth alone decides"
     assert not RecoarsePolicy(growth=0).due(coarse_views=8, views=1000, planned=None), "growth 0: never"
 
@@ -120,12 +120,12 @@ def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_
     scan = ReplayScan(cylinder_capture, tmp_path / "scan")
     fit = LiveFit(tmp_path / "scan", config, torch.device("cpu"), 0, log=lambda line: None)
     scan.publish(8)
-    assert fit.rebuild(24) and fit.model.level == 0
+    assert fit.rebuild(32) and fit.model.level == 0
     assert fit.train_steps(12) == 12 and fit.steps == 12  # past the refinement after 4 steps
     assert fit.model.level == 1
 
-    scan.publish(4)  # 12 views: 1.5x the 8 the coarse level began with, under 3/4 of the 24 planned
-    assert fit.rebuild(24)
+    scan.publish(4)  # 12 views: 1.5x the 8 the coarse level began with, under half of the 32 planned
+    assert fit.rebuild(32)
     assert fit.model.level == 0 and fit.model.level_steps == 0 and fit.recoarsened == 1
     values = fit.model.field.sdf.detach()
     bound = fit.model.constraint.bound_for(fit.model.field)
@@ -135,11 +135,11 @@ def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_
     steps = fit.model.level_steps
 
     scan.publish(5)  # 17 views: under 1.5x 12, so the fit goes on at the fine level
-    assert fit.rebuild(24)
+    assert fit.rebuild(32)
     assert (fit.model.level, fit.model.level_steps, fit.recoarsened) == (1, steps, 1)
 
-    scan.publish(7)  # 24 views, 2x 12, but the scan is past 3/4 of its plan
-    assert fit.rebuild(24)
+    scan.publish(7)  # 24 views, 2x 12, but the scan is past half its plan
+    assert fit.rebuild(32)
     assert (fit.model.level, fit.recoarsened) == (1, 1)
     assert fit.report()["coarse_restarts"] == 1
 
