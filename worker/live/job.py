@@ -164,7 +164,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     log(f"live: scan complete; the final reconstruction continues from the live fit ({live_report['views_used']} "
         f"views, {live_report['steps']} steps) for " + (f"{final.budget_s:g} s" if final.budget_s is not None else
                                                         f"{final.steps} steps"))
-    report = execute_job(final, root, out, runner.final_recon(recon, runner.fit.live_field()))
+    report = execute_job(final, root, out, runner.final_recon(recon))
     extra = {"live": {**live_report, **bounds}}
     add_to_report(out, extra)
     report.update(extra)
@@ -319,17 +319,17 @@ class LiveRun:
         self.write_status(self.last, state, note)
 
     # ---- the final run -------------------------------------------------------------------------------------------
-    def final_recon(self, recon: Callable | None, live_field) -> Callable:
+    def final_recon(self, recon: Callable | None) -> Callable:
         """The reconstruction function of the final run: the ordinary one, its model warm-started from the live fit
         (the field, the level and where its learning-rate decay stands), and once trained holding the better of its
-        own field and `live_field` (keep.py) for its mesh, pictures and metrics. A replacement reconstruction
+        own field and the live fit's (keep.py) for its mesh, pictures and metrics. A replacement reconstruction
         (`--recon`, tests) is used as it is."""
         from ..reconstruct import reconstruct_capture
 
         if recon is not None and recon is not reconstruct_capture:
             return recon
         overrides = {"trace_checkpoints": self.settings.final_checkpoints, **dict(self.settings.overrides)}
-        keep = functools.partial(keep_the_better, live_field=live_field, log=self.log)
+        keep = functools.partial(keep_the_better, live_field=self.fit.live_field(), log=self.log)
         return functools.partial(reconstruct_capture, make=self.fit.warm_factory(), overrides=overrides,
                                  after_training=keep)
 
