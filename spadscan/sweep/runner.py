@@ -26,6 +26,7 @@ from multiprocessing import resource_tracker
 from typing import Callable
 
 from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
+from distributed.utils import silence_logging_cmgr
 from tqdm import tqdm
 
 from spadscan.protocol.errors import ConfigError
@@ -120,35 +121,45 @@ def _run_on_dask(plan, todo, store, summary, connect, call, device, progress) ->
     with connect as client:
         summary.startup_s = time.monotonic() - start
         client.subscribe_topic(EVENT_TOPIC, on_event)
-        token = secrets.token_hex(4)  # keys of this run only: another client's tasks never stand in for these
-        resources = {"GPU": 1} if device == "cuda" else None
-        futures = {}
-        for task in todo:
-            future = client.submit(*call(task), key=f"spadscan-point-{task.id}-{token}", resources=resources,
-                                   pure=False)
-            futures[future] = task
-        gathered = time.monotonic()
-        with tqdm(total=len(todo), desc="sweep", unit="point", disable=not progress) as bar:
-            # Results come with the futures (fetched in the background), not one round trip per point.
-            for future, outcome in as_completed(futures, with_results=True, raise_errors=False):
-                task = futures.pop(future)
-                # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
-                result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device)
-                future.release()
-                summary.ran += 1
-                if result["status"] == "done":
-                    summary.done += 1
-                else:
-                    summary.failed.append((task, result.get("reason") or "failed"))
-                    # Above the bar, on stderr with it: stdout holds the summary alone.
-                    bar.write(f"spadscan sweep: failed: {task.describe(plan.spec.base)}: {result.get('reason')}",
-                              file=sys.stderr)
-                bar.set_postfix(failed=len(summary.failed), refresh=False)
-                bar.update(1)
-                if time.monotonic() - gathered > RESULTS_EVERY_S:  # a look at results.csv mid-sweep is current
-                    store.write_results(plan)
-                    gathered = time.monotonic()
-        client.unsubscribe_topic(EVENT_TOPIC)
+        try:
+            _submit_and_gather(plan, todo, store, summary, client, call, device, progress)
+        finally:
+            # Also when interrupted: a scheduler that still counts this client among the topic's subscribers
+            # writes the next event to its closed connection, and says so with a traceback.
+            with contextlib.suppress(OSError):  # a scheduler already gone has no subscription to end
+                client.unsubscribe_topic(EVENT_TOPIC)
+
+
+def _submit_and_gather(plan, todo, store, summary, client, call, device, progress) -> None:
+    """Submit a task per point of `todo` and record each as it finishes."""
+    token = secrets.token_hex(4)  # keys of this run only: another client's tasks never stand in for these
+    resources = {"GPU": 1} if device == "cuda" else None
+    futures = {}
+    for task in todo:
+        future = client.submit(*call(task), key=f"spadscan-point-{task.id}-{token}", resources=resources,
+                               pure=False)
+        futures[future] = task
+    gathered = time.monotonic()
+    with tqdm(total=len(todo), desc="sweep", unit="point", disable=not progress) as bar:
+        # Results come with the futures (fetched in the background), not one round trip per point.
+        for future, outcome in as_completed(futures, with_results=True, raise_errors=False):
+            task = futures.pop(future)
+            # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
+            result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device)
+            future.release()
+            summary.ran += 1
+            if result["status"] == "done":
+                summary.done += 1
+            else:
+                summary.failed.append((task, result.get("reason") or "failed"))
+                # Above the bar, on stderr with it: stdout holds the summary alone.
+                bar.write(f"spadscan sweep: failed: {task.describe(plan.spec.base)}: {result.get('reason')}",
+                          file=sys.stderr)
+            bar.set_postfix(failed=len(summary.failed), refresh=False)
+            bar.update(1)
+            if time.monotonic() - gathered > RESULTS_EVERY_S:  # a look at results.csv mid-sweep is current
+                store.write_results(plan)
+                gathered = time.monotonic()
 
 
 def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
@@ -224,14 +235,25 @@ class _client:
                                         dashboard_address=None, silence_logs=logging.CRITICAL,
                                         scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
                                         **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
-        self.client = Client(self.cluster)
+        try:
+            self.client = Client(self.cluster)
+        except BaseException:
+            self.__exit__()  # the cluster's processes are not left running without a client
+            raise
         self.log(f"local cluster: {n} worker process{'' if n == 1 else 'es'}, one thread each")
         return self.client
 
     def __exit__(self, *exc):
-        if self.client is not None:
-            self.client.close()
-        if self.cluster is not None:
+        if self.cluster is None:
+            if self.client is not None:
+                self.client.close()
+            return False
+        # The embedded scheduler runs in this process: an event a worker sent while the client closed reaches a
+        # closed connection, and the scheduler logs that as critical, with a traceback. Nothing is lost by it (every
+        # point's outcome is in the sweep's own files), so the close is silent.
+        with silence_logging_cmgr(logging.CRITICAL + 1):
+            if self.client is not None:
+                self.client.close()
             self.cluster.close()
         return False
 
