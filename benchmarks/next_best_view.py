@@ -3,7 +3,7 @@ Fibonacci schedule, with the same photon budget per view and the same reconstruc
 
     python benchmarks/next_best_view.py --scenes builtin:cup builtin:lamp builtin:teddy PATH/bunny.obj
         [--measures coverage] [--counts 16,24,32,48,64,96,128] [--steps 1000] [--batch 8] [--live-steps 150]
-        [--score 128,64] [--seed 0] [--out benchmark-nbv] [--threads 1]
+        [--score 128,64] [--seeds 0,1,2] [--out benchmark-nbv] [--threads 1]
 
 A scene is `builtin:NAME` or a mesh file (the dataset's bunny.obj), simulated with the dataset's sensor (`lcspc-sim`:
 one 15-degree cone, 1024 bins, 5,000 cycles per view) on the daemon's default band: 10-80 degrees of elevation,
@@ -22,8 +22,13 @@ one 15-degree cone, 1024 bins, 5,000 cycles per view) on the daemon's default ba
   stop off, the learning rate decay laid over the steps after the coarse level, one seed) and scored like
   `spadscan reconstruct` (the 256-cell mesh, 300,000 points per mesh): the same budget for every fit.
 
-Prints one table (scene x schedule: Chamfer in mm at each count; the fewest views of each adaptive run that reach
-fibonacci's Chamfer at the largest count) and writes table.md, results.json and nbv.png into --out. Fits are cached
+Every seed of --seeds is a run of its own: the photon noise of every view, the adaptive loop's live model and every
+fit draw from it. One seed's figures move by a millimetre on a concave scene (the cup's 64 Fibonacci views: 3.59,
+4.50 and 4.42 mm on seeds 0, 1 and 2), so a comparison rests on several.
+
+Prints one table (scene x schedule: Chamfer in mm at each count, the median over the seeds with their range; the
+fewest views of each adaptive run whose median reaches fibonacci's at the largest count) and writes table.md,
+results.json and nbv.png into --out. Fits are cached
 in results.json (a rerun with the same settings skips them; an adaptive sequence is kept in sequences/), so a killed
 run continues where it stopped. Step counts, not seconds: the figures do not depend on the machine's load.
 """
@@ -63,7 +68,7 @@ def parse_args(argv=None):
     p.add_argument("--live-steps", type=int, default=150, help="live-fit steps per ranking (default 150)")
     p.add_argument("--live-first-steps", type=int, default=LIVE_FIRST_STEPS,
                    help=f"steps of the first live fit, a cold start (default {LIVE_FIRST_STEPS})")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", default="0", help="comma-separated seeds, each a run of its own (default 0)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     p.add_argument("--out", type=Path, default=Path("benchmark-nbv"))
     p.add_argument("--no-fibonacci", action="store_true", help="score the adaptive runs only")
@@ -85,6 +90,12 @@ def parse_args(argv=None):
         args.counts = sorted({int(c) for c in args.counts.split(",")})
     except ValueError:
         p.error(f"--counts {args.counts!r} must be comma-separated integers")
+    try:
+        args.seeds = sorted({int(c) for c in args.seeds.split(",") if c})
+    except ValueError:
+        p.error(f"--seeds {args.seeds!r} must be comma-separated integers")
+    if not args.seeds:
+        p.error("--seeds names no seed")
     try:
         args.score = sorted({int(c) for c in args.score.split(",") if c} or args.counts, reverse=True)
     except ValueError:
@@ -231,7 +242,7 @@ def adaptive_sequence(scene: Scene, measure: str, views: int, initial: int, upto
     chooser = ViewChooser(scan, arm, arm.hand_eye, live)
     candidates = candidate_poses(scan_to_dict(scan))
     why, poses = [], []
-    loop = LiveLoop(views, args.seed)
+    loop = LiveLoop(views, scene.seed)
     rank_s = []
     while len(poses) < upto:
         n = len(poses)
@@ -258,7 +269,8 @@ def digest(poses: np.ndarray) -> str:
 
 # ---- the run --------------------------------------------------------------------------------------------------------
 class Results:
-    """results.json: every fit, keyed by scene, schedule and count, with the settings that made it."""
+    """results.json: every fit, keyed by scene, schedule, count and seed (`fit_key`), with the settings that made
+    it."""
 
     def __init__(self, path: Path, settings: dict):
         self.path, self.settings = path, settings
@@ -268,14 +280,15 @@ class Results:
         self.data["settings"] = settings
 
     def get(self, key: str, poses_digest: str) -> dict | None:
-        """The fit of `key`, also one made under another key of the same scene with the same views (the adaptive
-        runs share their initial views); None when there is none."""
+        """The fit of `key`, also one made under another key of the same scene and seed with the same views (the
+        adaptive runs share their initial views); None when there is none."""
         entry = self.data["fits"].get(key)
         if entry is not None and entry.get("poses_digest") == poses_digest:
             return entry
-        scene = key.split("|")[0]
+        scene, *_, seed = key.split("|")
         for other, e in self.data["fits"].items():
-            if other.split("|")[0] == scene and e.get("poses_digest") == poses_digest:
+            o_scene, *_, o_seed = other.split("|")
+            if (o_scene, o_seed) == (scene, seed) and e.get("poses_digest") == poses_digest:
                 self.put(key, dict(e))
                 return e
         return None
@@ -287,41 +300,55 @@ class Results:
         tmp.replace(self.path)
 
 
+def fit_key(scene: str, schedule: str, n: int, seed: int) -> str:
+    return f"{scene}|{schedule}|{n}|{seed}"
+
+
+def settings_of(args) -> dict:
+    """What every fit of a run depends on besides its scene, schedule, count and seed."""
+    return {"views": args.views, "steps": args.steps, "batch": args.batch, "live_steps": args.live_steps,
+            "sensor": SENSOR, "live_first_steps": args.live_first_steps}
+
+
 def run(args) -> dict:
     import torch
 
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    settings = {"views": args.views, "steps": args.steps, "batch": args.batch, "live_steps": args.live_steps,
-                "seed": args.seed, "sensor": SENSOR, "live_first_steps": args.live_first_steps}
-    results = Results(args.out / "results.json", settings)
-    initial = min(args.counts)
-    for spec in args.scenes:
-        scene = Scene(spec, args.seed)
-        work = args.out / "work" / scene.name
-        if not args.no_fibonacci:
-            for n in args.score:
-                poses = fibonacci_poses(n)
-                key = f"{scene.name}|fibonacci|{n}"
-                if results.get(key, digest(poses)) is None:
-                    hists = scene.frames(poses)
-                    entry = score_fit(scene.capture(work / "fit", poses, hists), scene.truth, args.steps, args.seed)
-                    results.put(key, {**entry, "poses_digest": digest(poses)})
-                    print(f"{key}: {chamfer_text(entry)}", file=sys.stderr)
-        for measure in args.measures:
-            seq = sequence(scene, measure, initial, max(args.counts), args, work)
-            label = f"adaptive-{measure}{variant_suffix(args)}"
-            for n in args.score:
-                poses = seq["poses"][:n]
-                key = f"{scene.name}|{label}|{n}"
-                if results.get(key, digest(poses)) is None:
-                    hists = scene.frames(poses)
-                    entry = score_fit(scene.capture(work / "fit", poses, hists), scene.truth, args.steps, args.seed)
-                    counts = {w: seq["why"][:n].count(w) for w in ("initial", "adaptive", "fallback")}
-                    results.put(key, {**entry, "poses_digest": digest(poses), "view_choices": counts,
-                                      "rank_seconds": seq["rank_seconds"]})
-                    print(f"{key}: {chamfer_text(entry)}", file=sys.stderr)
+    results = Results(args.out / "results.json", settings_of(args))
+    for seed in args.seeds:
+        for spec in args.scenes:
+            run_scene(Scene(spec, seed), args, results)
     return results.data
+
+
+def run_scene(scene: Scene, args, results: Results) -> None:
+    """Both schedules' fits of one scene and seed at the counts of --score, those not in `results` yet."""
+    seed = scene.seed
+    initial = min(args.counts)
+    work = args.out / "work" / f"{scene.name}-s{seed}"
+    if not args.no_fibonacci:
+        for n in args.score:
+            poses = fibonacci_poses(n)
+            key = fit_key(scene.name, "fibonacci", n, seed)
+            if results.get(key, digest(poses)) is None:
+                hists = scene.frames(poses)
+                entry = score_fit(scene.capture(work / "fit", poses, hists), scene.truth, args.steps, seed)
+                results.put(key, {**entry, "poses_digest": digest(poses)})
+                print(f"{key}: {chamfer_text(entry)}", file=sys.stderr)
+    for measure in args.measures:
+        seq = sequence(scene, measure, initial, max(args.counts), args, work)
+        label = f"adaptive-{measure}{variant_suffix(args)}"
+        for n in args.score:
+            poses = seq["poses"][:n]
+            key = fit_key(scene.name, label, n, seed)
+            if results.get(key, digest(poses)) is None:
+                hists = scene.frames(poses)
+                entry = score_fit(scene.capture(work / "fit", poses, hists), scene.truth, args.steps, seed)
+                counts = {w: seq["why"][:n].count(w) for w in ("initial", "adaptive", "fallback")}
+                results.put(key, {**entry, "poses_digest": digest(poses), "view_choices": counts,
+                                  "rank_seconds": seq["rank_seconds"]})
+                print(f"{key}: {chamfer_text(entry)}", file=sys.stderr)
 
 
 def variant_suffix(args) -> str:
@@ -335,7 +362,7 @@ def sequence(scene: Scene, measure: str, initial: int, upto: int, args, work: Pa
     folder.mkdir(exist_ok=True)
     # "live2": sequences of the live loop that is the live job's LiveFit (earlier ones are not reused).
     tag = (f"{scene.name}-{measure}{variant_suffix(args)}-{args.views}-{initial}-b{args.batch}-l{args.live_steps}"
-           f"-f{args.live_first_steps}-s{args.seed}-live2")
+           f"-f{args.live_first_steps}-s{scene.seed}-live2")
     path = folder / f"{tag}.npz"
     if path.is_file():
         saved = np.load(path, allow_pickle=False)
@@ -354,22 +381,52 @@ def chamfer_text(entry: dict) -> str:
     return "no surface" if entry.get("chamfer_mm") is None else f"{entry['chamfer_mm']:.2f} mm"
 
 
+def by_count(data: dict) -> dict[tuple[str, str], dict[int, list]]:
+    """{(scene, schedule): {count: [Chamfer mm or None (no surface), one per seed]}} of a results.json's fits."""
+    rows: dict[tuple[str, str], dict[int, list]] = {}
+    for key, entry in sorted(data["fits"].items()):
+        scene, schedule, n, _seed = key.split("|")
+        rows.setdefault((scene, schedule), {}).setdefault(int(n), []).append(entry["chamfer_mm"])
+    return rows
+
+
+def worst_if_none(chamfer_mm: float | None) -> float:
+    """A fit with no surface (None) ranks as the worst."""
+    return np.inf if chamfer_mm is None else chamfer_mm
+
+
+def median(values: list) -> float | None:
+    """The median Chamfer of the seeds; None when that is a fit with no surface."""
+    m = float(np.median([worst_if_none(v) for v in values]))
+    return None if not np.isfinite(m) else m
+
+
+def cell(values: list) -> str:
+    """One seed's Chamfer, or the seeds' median and range ('no surface' for a fit that left none)."""
+    m = median(values)
+    text = "no surface" if m is None else f"{m:.2f}"
+    if len(values) > 1:
+        ends = (min(values, key=worst_if_none), max(values, key=worst_if_none))
+        text += " (" + "-".join("no surface" if v is None else f"{v:.2f}" for v in ends) + ")"
+    return text
+
+
 def table(data: dict) -> str:
-    counts = sorted({int(k.split("|")[2]) for k in data["fits"]})
-    rows: dict[tuple[str, str], dict[int, float]] = {}
-    for key, entry in data["fits"].items():
-        scene, schedule, n = key.split("|")
-        rows.setdefault((scene, schedule), {})[int(n)] = entry["chamfer_mm"]
+    rows = by_count(data)
+    counts = sorted({n for by_n in rows.values() for n in by_n})
+    seeds = sorted({int(k.split("|")[3]) for k in data["fits"]})
     head = "| scene | schedule | " + " | ".join(str(c) for c in counts) + f" | views to fibonacci@{counts[-1]} |"
     lines = [head, "|" + "---|" * (len(counts) + 3)]
     for (scene, schedule), by_n in sorted(rows.items()):
-        goal = rows.get((scene, "fibonacci"), {}).get(counts[-1])
+        goal = median(rows.get((scene, "fibonacci"), {}).get(counts[-1], [None]))
         reach = "-"
         if goal is not None and schedule != "fibonacci":
-            hit = [n for n in counts if by_n.get(n) is not None and by_n[n] <= goal]
+            hit = [n for n in counts if n in by_n and median(by_n[n]) is not None and median(by_n[n]) <= goal]
             reach = str(hit[0]) if hit else f"> {max(by_n)}"
-        cells = [("" if c not in by_n else "no surface" if by_n[c] is None else f"{by_n[c]:.2f}") for c in counts]
+        cells = ["" if c not in by_n else cell(by_n[c]) for c in counts]
         lines.append(f"| {scene} | {schedule} | " + " | ".join(cells) + f" | {reach} |")
+    if len(seeds) > 1:
+        lines.append(f"\nChamfer in mm, the median of seeds {', '.join(map(str, seeds))} (their range in brackets).")
     return "\n".join(lines)
 
 
@@ -379,19 +436,21 @@ def plot(data: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    series: dict[str, dict[str, dict[int, float]]] = {}
-    for key, entry in data["fits"].items():
-        scene, schedule, n = key.split("|")
-        series.setdefault(scene, {}).setdefault(schedule, {})[int(n)] = entry["chamfer_mm"]
+    series: dict[str, dict[str, dict[int, list]]] = {}
+    for (scene, schedule), by_n in by_count(data).items():
+        series.setdefault(scene, {})[schedule] = by_n
     fig, axes = plt.subplots(1, len(series), figsize=(4.2 * len(series), 3.6), squeeze=False)
     for ax, (scene, by_schedule) in zip(axes[0], sorted(series.items())):
         for schedule, pts in sorted(by_schedule.items()):
-            n = sorted(k for k in pts if pts[k] is not None)  # a fit with no surface has no Chamfer to draw
-            ax.plot(n, [pts[k] for k in n], marker="o", label=schedule)
+            n = sorted(k for k in pts if median(pts[k]) is not None)  # a fit with no surface has no Chamfer to draw
+            mid = np.array([median(pts[k]) for k in n])
+            lo = np.array([min(v for v in pts[k] if v is not None) for k in n])
+            hi = np.array([max(v for v in pts[k] if v is not None) for k in n])
+            ax.errorbar(n, mid, yerr=[mid - lo, hi - mid] if len(n) else None, marker="o", capsize=3, label=schedule)
         ax.set_xscale("log", base=2)
         ax.set_title(scene)
         ax.set_xlabel("views taken")
-        ax.set_ylabel("Chamfer (mm)")
+        ax.set_ylabel("Chamfer (mm): median, range over seeds")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
@@ -400,14 +459,18 @@ def plot(data: dict, path: Path) -> None:
 
 
 def combine(folders: list[Path]) -> dict:
-    """The fits of several runs' results.json in one (runs split over processes; their settings must agree)."""
+    """The fits of several runs' results.json in one (runs split over processes or seeds; their settings must
+    agree). A run made before the seed was part of every key held one seed, its settings' "seed"."""
     data = {"fits": {}}
     for folder in folders:
         part = json.loads((folder / "results.json").read_text())
-        if data.get("settings") not in (None, part["settings"]):
+        settings = dict(part["settings"])
+        seed = settings.pop("seed", 0)
+        if data.get("settings") not in (None, settings):
             raise SystemExit(f"{folder}: made with other settings ({part['settings']}) than {folders[0]}")
-        data["settings"] = part["settings"]
-        data["fits"].update(part["fits"])
+        data["settings"] = settings
+        for key, entry in part["fits"].items():
+            data["fits"][key if key.count("|") == 3 else f"{key}|{seed}"] = entry
     return data
 
 

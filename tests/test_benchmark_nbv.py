@@ -20,10 +20,15 @@ def nbv():
     return module
 
 
-def fits(rows: dict) -> dict:
-    return {"settings": {"views": 128}, "fits": {f"{scene}|{schedule}|{n}": {"chamfer_mm": c}
+def fits(rows: dict, seed: int = 0) -> dict:
+    return {"settings": {"views": 128}, "fits": {f"{scene}|{schedule}|{n}|{seed}": {"chamfer_mm": c}
                                                  for (scene, schedule), by_n in rows.items()
                                                  for n, c in by_n.items()}}
+
+
+def cells_of(text: str) -> dict:
+    return {tuple(c.strip() for c in r.strip("|").split("|")[:2]): [c.strip() for c in r.strip("|").split("|")[2:]]
+            for r in text.splitlines()[2:] if r.startswith("|")}
 
 
 def test_the_table_says_how_many_adaptive_views_reach_fibonacci_at_the_most(nbv):
@@ -56,11 +61,47 @@ def test_combine_refuses_runs_made_with_other_settings(nbv, tmp_path):
     for name, steps in (("a", 800), ("b", 800), ("c", 1000)):
         (tmp_path / name).mkdir()
         (tmp_path / name / "results.json").write_text(json.dumps({"settings": {"steps": steps}, "fits": {
-            f"{name}|fibonacci|16": {"chamfer_mm": 1.0}}}))
-    assert set(nbv.combine([tmp_path / "a", tmp_path / "b"])["fits"]) == {"a|fibonacci|16", "b|fibonacci|16"}
+            f"{name}|fibonacci|16|0": {"chamfer_mm": 1.0}}}))
+    assert set(nbv.combine([tmp_path / "a", tmp_path / "b"])["fits"]) == {"a|fibonacci|16|0", "b|fibonacci|16|0"}
     with pytest.raises(SystemExit, match="other settings"):
         nbv.combine([tmp_path / "a", tmp_path / "c"])
 
+
+def test_several_seeds_give_the_median_and_its_range_and_decide_the_goal_by_the_median(nbv):
+    per_seed = [({"fibonacci": {64: 3.6, 128: 2.75}, "adaptive-coverage": {64: 4.33}}),
+                ({"fibonacci": {64: 4.5, 128: 2.81}, "adaptive-coverage": {64: 2.43}}),
+                ({"fibonacci": {64: 4.4, 128: 2.84}, "adaptive-coverage": {64: None}})]
+    data = {"settings": {}, "fits": {}}
+    for seed, rows in enumerate(per_seed):
+        data["fits"].update(fits({("cup", k): v for k, v in rows.items()}, seed)["fits"])
+    text = nbv.table(data)
+    cells = cells_of(text)
+    assert cells[("cup", "fibonacci")] == ["4.40 (3.60-4.50)", "2.81 (2.75-2.84)", "-"]
+    # The median of 2.43, 4.33 and no surface is 4.33: over Fibonacci's 2.81, so the goal is not reached.
+    assert cells[("cup", "adaptive-coverage")] == ["4.33 (2.43-no surface)", "", "> 64"]
+    assert "median of seeds 0, 1, 2" in text
+    data["fits"]["cup|adaptive-coverage|64|2"] = {"chamfer_mm": 2.09}
+    assert cells_of(nbv.table(data))[("cup", "adaptive-coverage")] == ["2.43 (2.09-4.33)", "", "64"]
+
+
+def test_combine_takes_the_seed_of_a_run_made_before_seeds_were_in_the_keys(nbv, tmp_path):
+    for name, seed in (("old", 0), ("new", 1)):
+        (tmp_path / name).mkdir()
+    (tmp_path / "old" / "results.json").write_text(json.dumps({"settings": {"steps": 500, "seed": 0}, "fits": {
+        "cup|fibonacci|64": {"chamfer_mm": 3.59}}}))
+    (tmp_path / "new" / "results.json").write_text(json.dumps({"settings": {"steps": 500}, "fits": {
+        "cup|fibonacci|64|1": {"chamfer_mm": 4.50}}}))
+    data = nbv.combine([tmp_path / "old", tmp_path / "new"])
+    assert data["fits"] == {"cup|fibonacci|64|0": {"chamfer_mm": 3.59}, "cup|fibonacci|64|1": {"chamfer_mm": 4.50}}
+    assert cells_of(nbv.table(data))[("cup", "fibonacci")] == ["4.04 (3.59-4.50)", "-"]
+
+
+
+def test_seeds_are_a_list_of_integers(nbv):
+    assert nbv.parse_args(["--scenes", "builtin:cup", "--seeds", "2,0,1"]).seeds == [0, 1, 2]
+    assert nbv.parse_args(["--scenes", "builtin:cup"]).seeds == [0]
+    with pytest.raises(SystemExit):
+        nbv.parse_args(["--scenes", "builtin:cup", "--seeds", "one"])
 
 
 def test_score_picks_counts_to_fit_largest_first_and_only_among_the_counts(nbv):
