@@ -435,6 +435,7 @@ def plot(data: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     series: dict[str, dict[str, dict[int, list]]] = {}
     for (scene, schedule), by_n in by_count(data).items():
@@ -448,6 +449,9 @@ def plot(data: dict, path: Path) -> None:
             hi = np.array([max(v for v in pts[k] if v is not None) for k in n])
             ax.errorbar(n, mid, yerr=[mid - lo, hi - mid] if len(n) else None, marker="o", capsize=3, label=schedule)
         ax.set_xscale("log", base=2)
+        ax.set_xticks(sorted({k for pts in by_schedule.values() for k in pts}))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())  # 64, not 2^6
+        ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
         ax.set_title(scene)
         ax.set_xlabel("views taken")
         ax.set_ylabel("Chamfer (mm): median, range over seeds")
