@@ -24,6 +24,9 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
 - `job` (string): the queue's job id;
 - `result` (string or null): the final result folder, once `done`;
 - `note` (string or null): one line worth knowing (why the job ended, a warning).
+
+Once `done`, the figures are the final result's (its report.json): `views_used` the views it fitted, `steps` the
+live fit's and the final run's together, `converged` and `chamfer_mm` its own (no `chamfer_mm` when it has none).
 """
 
 from __future__ import annotations

@@ -1,26 +1,61 @@
-"""The worker's last word on a live job: once its final result is published, the live status says where."""
+"""The worker's last word on a live job: once its final result is published, the live status says where, and carries
+that result's own figures instead of the live fit's at the scan's end (which an operator would read as the result)."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import read_status, status_path, write_status
+from spadscan.protocol.live_status import LiveStatus, read_status, status_path, write_status
 
 from ..jobs import Job, scan_path
 
 
 def mark_live_done(job: Job, root: Path, result: Path, log: Callable[[str], None]) -> None:
-    """Set `<scan>/recon/live/status.json` to state 'done' naming `result` (the published result folder). A live
-    status that cannot be read is left alone (the result itself is in place either way)."""
+    """Set `<scan>/recon/live/status.json` to state 'done' naming `result` (the published result folder), with the
+    final result's figures (`done_status`). A live status that cannot be read is left alone (the result itself is in
+    place either way)."""
     try:
         path = status_path(scan_path(job, root))
         status = read_status(path)
-        write_status(path.parent, dataclasses.replace(status, state="done", result=str(result), updated_utc=""))
+        write_status(path.parent, done_status(status, Path(result)))
     except (SpadscanError, OSError) as exc:
         log(f"{job.id}: its result is published, but the live status was not updated: {exc}")
 
 
-__all__ = ["mark_live_done"]
+def done_status(status: LiveStatus, result: Path) -> LiveStatus:
+    """`status` as 'done' with `result`, the figures those of the result's report.json: the views the final run
+    fitted (every published one), its steps on top of the live fit's, its convergence and its Chamfer (None when it
+    has none: the live fit's would read as the result's). Where that report cannot be read, the live fit's figures
+    stay."""
+    done = dataclasses.replace(status, state="done", result=str(result), updated_utc="")
+    try:
+        report = json.loads((result / "report.json").read_text())
+    except (OSError, ValueError):
+        return done
+    if not isinstance(report, dict):
+        return done
+    steps = report.get("steps")
+    chamfer = report.get("chamfer_mm")
+    scene = report.get("scene")
+    views = scene.get("views") if isinstance(scene, dict) else None
+    return dataclasses.replace(
+        done, views_used=views if _count(views) else status.views_published,
+        steps=status.steps + steps if _count(steps) else status.steps,
+        converged=report.get("converged") is True,
+        chamfer_mm=float(chamfer) if _number(chamfer) else None)
+
+
+def _count(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+__all__ = ["mark_live_done", "done_status"]

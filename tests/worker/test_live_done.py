@@ -1,0 +1,49 @@
+"""The live status once a live job's final result is published: 'done', with that result's figures."""
+
+from __future__ import annotations
+
+import json
+
+from spadscan.protocol.live_status import LiveStatus
+from spadscan.worker.live.done import done_status
+
+AT_SCAN_END = LiveStatus(views_used=92, views_published=128, steps=9, converged=False, state="final",
+                         updated_utc="2026-11-27T17:04:05.715+00:00", chamfer_mm=155.96, views_planned=128,
+                         job="demo-fast")
+
+
+def result_with(tmp_path, report) -> object:
+    folder = tmp_path / "demo-fast"
+    folder.mkdir()
+    (folder / "report.json").write_text(report if isinstance(report, str) else json.dumps(report))
+    return folder
+
+
+def test_done_carries_the_final_results_figures_not_the_live_fits(tmp_path):
+    result = result_with(tmp_path, {"steps": 1805, "converged": True, "chamfer_mm": 1.2449, "scene": {"views": 128}})
+    done = done_status(AT_SCAN_END, result)
+    assert (done.state, done.result, done.updated_utc) == ("done", str(result), "")
+    assert (done.views_used, done.views_published, done.steps) == (128, 128, 9 + 1805)
+    assert done.converged is True and done.chamfer_mm == 1.2449
+    assert "Chamfer 1.24 mm" in done.summary() and "155.96" not in done.summary()
+
+
+def test_a_result_without_a_chamfer_shows_none_rather_than_the_live_fits(tmp_path):
+    done = done_status(AT_SCAN_END, result_with(tmp_path, {"steps": 40, "converged": False, "scene": {"views": 128}}))
+    assert done.chamfer_mm is None and done.steps == 49 and done.converged is False
+    assert "Chamfer" not in done.summary()
+
+
+def test_an_unreadable_report_leaves_the_live_figures_and_still_says_done(tmp_path):
+    for report in ("{not json", json.dumps([1, 2]), json.dumps({"steps": True, "chamfer_mm": float("nan")})):
+        folder = result_with(tmp_path, report)
+        done = done_status(AT_SCAN_END, folder)
+        assert done.state == "done" and done.result == str(folder)
+        if report.startswith("{\""):  # a report with bad values: those values are not taken
+            assert done.steps == 9 and done.chamfer_mm is None and done.views_used == 128
+        else:
+            assert (done.steps, done.chamfer_mm, done.views_used) == (9, 155.96, 92)
+        (folder / "report.json").unlink()
+        folder.rmdir()
+    missing = done_status(AT_SCAN_END, tmp_path / "nowhere")
+    assert missing.state == "done" and missing.chamfer_mm == 155.96
