@@ -239,6 +239,7 @@ class URArm(Arm):
             raise ArmFault(f"{self.name}: cannot ask the controller about the planned poses: {exc}") from None
         i = result["index"]
         if i >= 0:
+            await self._no_stop_behind_refusal("the controller cannot check the planned poses")
             p = ", ".join(f"{v:.3f}" for v in vecs[i][:3])
             why = ("is outside the controller's safety limits (isPoseWithinSafetyLimits: its safety planes, tool "
                    "orientation limits or reach)" if result["check"] == "safety" else
@@ -420,6 +421,17 @@ class URArm(Arm):
             raise ArmFault(f"{self.name}: {doing}: the RTDE control script is not running on the controller (the "
                            f"watchdog stops it when the daemon falls silent for {1 / self.watchdog_hz:g} s; a safety "
                            f"stop or the pendant can stop it too); resuming the scan uploads it again")
+
+    async def _no_stop_behind_refusal(self, doing: str) -> None:
+        """ArmFault naming a safety stop that shows within SAFETY_CATCH_UP_S of a refused query: a controller that
+        has just stopped for safety refuses every query, and the receive stream, which carries the safety flags, can
+        show the stop only after the refusal came. Read until then before blaming the query (a refused pose is said
+        once, before a scan's first move: the wait costs nothing that counts)."""
+        deadline = time.monotonic() + SAFETY_CATCH_UP_S
+        while True:
+            await self._raise_if_stopped(await self._fresh(f"the safety state after {doing}"), doing)
+            if time.monotonic() >= deadline:
+                return
 
     async def _explain_refusal(self, what: str, final: bool) -> None:
         """The controller answered False: raise for a safety stop or a dead link; otherwise, when `final`, raise a

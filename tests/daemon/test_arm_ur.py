@@ -209,6 +209,37 @@ def test_a_script_stopped_by_a_protective_stop_is_named_by_the_stop_when_the_rec
     assert running.reads == 0
 
 
+class RefusingController(URArm):
+    """Refuses the first planned pose; its receive stream shows a protective stop from the `stop_at`-th reading on
+    (None: never), the script running until then."""
+
+    def __init__(self, stop_at: int | None):
+        super().__init__("127.0.0.1")
+        self._open, self.stop_at, self.reads = True, stop_at, 0
+
+    async def _call(self, what, method, *args, timeout_s=None):
+        assert method == "check_poses"
+        return {"index": 0, "check": "safety", "ik_checked": False}
+
+    async def _fresh(self, what):
+        self.reads += 1
+        stopped = self.stop_at is not None and self.reads >= self.stop_at
+        await asyncio.sleep(0.002)  # a reading every 2 ms, as the controller's 500 Hz stream
+        return reading(program_running=not stopped, protective=stopped)
+
+
+def test_a_pose_refused_by_a_controller_that_just_stopped_for_safety_is_named_by_the_stop(arun):
+    # The stop shows in the receive stream after the refusal: first the check before the queries, then the refusal,
+    # then a few readings later the stop.
+    late = RefusingController(stop_at=5)
+    with pytest.raises(ArmFault, match="protective stop on .*cannot check the planned poses"):
+        arun(late.check_poses(np.eye(4)[None]))
+    refused = RefusingController(stop_at=None)  # nothing shows: the pose itself is refused
+    with pytest.raises(ArmFault, match=r"pose 0 of 1: TCP at .* outside the controller's safety limits"):
+        arun(refused.check_poses(np.eye(4)[None]))
+    assert refused.reads > 5, "the safety state was read again before the pose was blamed"
+
+
 def test_protective_stop_during_a_move_aborts_it(ur, arun):
     async def run():
         async with connected_arm(ur.host) as arm:
