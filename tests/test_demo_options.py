@@ -140,3 +140,25 @@ def test_the_demo_reads_its_own_report_not_one_moved_aside(tmp_path):
         (folder / "report.json").write_text("{}")
     os.utime(current / "report.json", (1_000, 1_000))  # the folder moved aside is the newer file
     assert _find_report(tmp_path / "scan") == current / "report.json"
+
+
+def test_a_line_the_demo_says_while_a_bar_runs_starts_a_line_of_its_own(monkeypatch, tmp_path, capsys):
+    """The live job's state changes are said while the scan's bar is drawn: above the bar, never glued to its end."""
+    def fake_run_demo(opts, bar, say):
+        progress = bar(10, "scan (poses)", "pose")
+        progress.update(3)
+        say("live reconstruction following the scan: 3/3 views, 10 steps")
+        progress.update(7)
+        progress.close()
+        say("live reconstruction done: 10/10 views, 40 steps, Chamfer 1.21 mm")
+        return {"mesh": str(tmp_path / "mesh.ply"), "warnings": [], "converged": True, "pictures": [], "live": None,
+                "chamfer_mm": 1.21, "seconds": {"start_s": 0.1, "scan_s": 1.0, "reconstruct_s": 2.0, "total_s": 3.1},
+                "preset": "fast", "report_html": str(tmp_path / "report.html"), "dashboard": None}
+
+    monkeypatch.setattr(demo, "run_demo", fake_run_demo)
+    assert main(["demo", "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    said = [line for line in err.split("\n")
+            if "live reconstruction following" in line or "live reconstruction done" in line]
+    assert len(said) == 2, err
+    assert all(line.split("\r")[-1].startswith("live reconstruction") for line in said), said

@@ -65,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
                     bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]")
 
     def say(line: str) -> None:
-        print(line, file=sys.stderr, flush=True)
+        # Above the bar in front, not glued to its end: tqdm clears the bar, prints the line and draws the bar again.
+        tqdm.write(line, file=sys.stderr)
 
     print(f"spadscan demo: scene {opts.scene}, {opts.views} views, {opts.arm} arm, {opts.sensor} sensor, "
           f"{'live reconstruction, final run' if opts.live else 'reconstruction'} budget {opts.budget_s:g} s; "
