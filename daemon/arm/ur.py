@@ -233,9 +233,7 @@ class URArm(Arm):
         except LinkLost:
             raise
         except DeviceError as exc:
-            for _ in range(3):  # a stop that came meanwhile shows in the receive data a package or two later
-                await self._raise_if_stopped(await self._fresh("the safety state after the pose checks failed"),
-                                       "the controller cannot check the planned poses")
+            await self._no_stop_behind_refusal("the controller cannot check the planned poses")
             raise ArmFault(f"{self.name}: cannot ask the controller about the planned poses: {exc}") from None
         i = result["index"]
         if i >= 0:
@@ -423,10 +421,10 @@ class URArm(Arm):
                            f"stop or the pendant can stop it too); resuming the scan uploads it again")
 
     async def _no_stop_behind_refusal(self, doing: str) -> None:
-        """ArmFault naming a safety stop that shows within SAFETY_CATCH_UP_S of a refused query: a controller that
-        has just stopped for safety refuses every query, and the receive stream, which carries the safety flags, can
-        show the stop only after the refusal came. Read until then before blaming the query (a refused pose is said
-        once, before a scan's first move: the wait costs nothing that counts)."""
+        """ArmFault naming a safety stop that shows within SAFETY_CATCH_UP_S of a query refused or failed: a
+        controller that has just stopped for safety refuses every query, and the receive stream, which carries the
+        safety flags, can show the stop only after the refusal came. Read until then before blaming the query (the
+        pose checks run once, before a scan's first move: the wait costs nothing that counts)."""
         deadline = time.monotonic() + SAFETY_CATCH_UP_S
         while True:
             await self._raise_if_stopped(await self._fresh(f"the safety state after {doing}"), doing)

@@ -244,17 +244,15 @@ class _client:
         return self.client
 
     def __exit__(self, *exc):
-        if self.cluster is None:
-            if self.client is not None:
-                self.client.close()
-            return False
-        # The embedded scheduler runs in this process: an event a worker sent while the client closed reaches a
+        # An embedded scheduler runs in this process: an event a worker sent while the client closed reaches a
         # closed connection, and the scheduler logs that as critical, with a traceback. Nothing is lost by it (every
-        # point's outcome is in the sweep's own files), so the close is silent.
-        with silence_logging_cmgr(logging.CRITICAL + 1):
+        # point's outcome is in the sweep's own files), so its close is silent.
+        quiet = contextlib.nullcontext() if self.cluster is None else silence_logging_cmgr(logging.CRITICAL + 1)
+        with quiet:
             if self.client is not None:
                 self.client.close()
-            self.cluster.close()
+            if self.cluster is not None:
+                self.cluster.close()
         return False
 
 
