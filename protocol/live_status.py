@@ -143,17 +143,15 @@ def check_status(status: LiveStatus, where: str) -> None:
     """CaptureError naming `where` and the field when a status holds what its format does not allow."""
     for key in ("views_used", "views_published", "steps"):
         value = getattr(status, key)
-        if not _is_int(value) or value < 0:
+        if not is_count(value):
             raise CaptureError(f"{where}: {key} {value!r} must be an integer >= 0")
-    if status.views_planned is not None and (not _is_int(status.views_planned) or status.views_planned < 0):
+    if status.views_planned is not None and not is_count(status.views_planned):
         raise CaptureError(f"{where}: views_planned {status.views_planned!r} must be an integer >= 0 or null")
     if not isinstance(status.converged, bool):
         raise CaptureError(f"{where}: converged {status.converged!r} must be true or false")
     if status.state not in STATES:
         raise CaptureError(f"{where}: state {status.state!r} must be one of {', '.join(STATES)}")
-    if status.chamfer_mm is not None and not (isinstance(status.chamfer_mm, (int, float))
-                                              and not isinstance(status.chamfer_mm, bool)
-                                              and math.isfinite(status.chamfer_mm) and status.chamfer_mm >= 0):
+    if status.chamfer_mm is not None and not is_chamfer(status.chamfer_mm):
         raise CaptureError(f"{where}: chamfer_mm {status.chamfer_mm!r} must be a finite number >= 0")
     for key in ("updated_utc", "job"):
         if not isinstance(getattr(status, key), str):
@@ -164,9 +162,16 @@ def check_status(status: LiveStatus, where: str) -> None:
             raise CaptureError(f"{where}: {key} {value!r} must be a string or null")
 
 
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
+def is_count(value) -> bool:
+    """Whether `value` is what a count field holds: an integer >= 0 (a JSON true is not one)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def is_chamfer(value) -> bool:
+    """Whether `value` is what `chamfer_mm` holds when present: a finite number >= 0."""
+    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            and value >= 0)
 
 
 __all__ = ["LiveStatus", "LIVE_DIR", "STATUS", "STATES", "status_path", "write_status", "read_status",
-           "utc_now", "check_status"]
+           "utc_now", "check_status", "is_count", "is_chamfer"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from spadscan.protocol.live_status import LiveStatus
+from spadscan.protocol.live_status import LiveStatus, check_status
 from spadscan.worker.live.done import done_status
 
 AT_SCAN_END = LiveStatus(views_used=92, views_published=128, steps=9, converged=False, state="final",
@@ -35,12 +35,15 @@ def test_a_result_without_a_chamfer_shows_none_rather_than_the_live_fits(tmp_pat
 
 
 def test_an_unreadable_report_leaves_the_live_figures_and_still_says_done(tmp_path):
-    for report in ("{not json", json.dumps([1, 2]), json.dumps({"steps": True, "chamfer_mm": float("nan")})):
+    bad_values = [json.dumps({"steps": True, "chamfer_mm": float("nan")}),
+                  json.dumps({"steps": -3, "chamfer_mm": -1.0})]
+    for report in ("{not json", json.dumps([1, 2]), *bad_values):
         folder = result_with(tmp_path, report)
         done = done_status(AT_SCAN_END, folder)
         assert done.state == "done" and done.result == str(folder)
         if report.startswith("{\""):  # a report with bad values: those values are not taken
             assert done.steps == 9 and done.chamfer_mm is None and done.views_used == 128
+            check_status(done, "the done status")  # what the format allows: it is written, not refused
         else:
             assert (done.steps, done.chamfer_mm, done.views_used) == (9, 155.96, 92)
         (folder / "report.json").unlink()

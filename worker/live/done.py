@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import LiveStatus, read_status, status_path, write_status
+from spadscan.protocol.live_status import (LiveStatus, is_chamfer, is_count, read_status, status_path,
+                                           write_status)
 
 from ..jobs import Job, scan_path
 
@@ -44,18 +44,10 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
     scene = report.get("scene")
     views = scene.get("views") if isinstance(scene, dict) else None
     return dataclasses.replace(
-        done, views_used=views if _count(views) else status.views_published,
-        steps=status.steps + steps if _count(steps) else status.steps,
+        done, views_used=views if is_count(views) else status.views_published,
+        steps=status.steps + steps if is_count(steps) else status.steps,
         converged=report.get("converged") is True,
-        chamfer_mm=float(chamfer) if _number(chamfer) else None)
-
-
-def _count(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
-
-
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        chamfer_mm=float(chamfer) if is_chamfer(chamfer) else None)
 
 
 __all__ = ["mark_live_done", "done_status"]
