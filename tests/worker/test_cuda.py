@@ -139,7 +139,7 @@ def test_reconstruct_on_cuda_writes_every_output_and_says_cuda(cylinder_capture,
     args = ["reconstruct", str(cylinder_capture), "--out", str(out), "--device", "cuda", "--steps", "150",
             "--no-progress", "--gt", str(tmp_path / "gt.ply")]
     cylinder_mesh().export(tmp_path / "gt.ply")
-    assert main(args + ["--set", "field.resolution=32", "--set", "field.refine_after_steps=60"]) == 0
+    assert main(args + ["--set", "field.resolution=32", "--set", "parts.refinement.after_steps=60"]) == 0
     for name in ("mesh.ply", "report.json", "preview.png", "fit.png", "error_vs_time.png"):
         assert (out / name).is_file(), name
     report = json.loads((out / "report.json").read_text())
