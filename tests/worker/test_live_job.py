@@ -15,7 +15,8 @@ import pytest
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.live_status import LiveStatus, read_status, status_path
 from spadscan.worker.jobs import Job
-from spadscan.worker.live.job import LiveSettings, ScanAborted, execute_live_job, final_job
+from spadscan.worker.live.follower import ScanProgress
+from spadscan.worker.live.job import LiveRun, LiveSettings, ScanAborted, execute_live_job, final_job
 
 from live_helpers import ReplayScan
 from worker_helpers import FAST_SMALL
@@ -217,3 +218,21 @@ def test_a_chunk_that_cannot_be_read_stops_the_live_job_saying_why(cylinder_capt
         live.join()
     status = read_status(status_path(root / "cyl"))
     assert status.state == "stopped" and status.note == str(err.value)
+
+
+def test_the_status_never_says_more_views_used_than_published(tmp_path):
+    # A refit reads the capture on its own and can hold views that the follower's last poll had not seen yet.
+    class Fit:
+        model, views_used, steps, converged = object(), 101, 40, False
+
+    job = Job(id="s-fast", scan="s", live=True, device="cpu")
+    (tmp_path / "recon" / "live").mkdir(parents=True)
+    run = LiveRun(job, tmp_path, tmp_path / "recon" / "live", follower=None, settings=small_settings(),
+                  log=lambda line: None)
+    run.fit = Fit()
+    polled = ScanProgress(state="running", reason=None, views_published=98, views_planned=128, new_chunks=0)
+    run.write_status(polled, "live")
+    status = read_status(status_path(tmp_path))
+    assert (status.views_used, status.views_published, status.views_planned) == (101, 101, 128)
+    run.write_status(dataclasses.replace(polled, views_published=104), "live")
+    assert read_status(status_path(tmp_path)).views_published == 104

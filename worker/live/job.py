@@ -307,8 +307,11 @@ class LiveRun:
 
     def write_status(self, progress: ScanProgress, state: str, note: str | None = None) -> None:
         fit = self.fit
+        used = 0 if fit is None else fit.views_used
+        # A refit reads the capture itself and can see views that the last poll had not: every view it uses was
+        # published, so the status never says more views used than published ("101/98 views").
         publish_status(self.folder, LiveStatus(
-            views_used=0 if fit is None else fit.views_used, views_published=progress.views_published,
+            views_used=used, views_published=max(progress.views_published, used),
             steps=0 if fit is None else fit.steps, converged=bool(fit is not None and fit.converged), state=state,
             chamfer_mm=None if self.chamfer_mm is None else round(float(self.chamfer_mm), 4),
             views_planned=progress.views_planned, job=self.job.id, note=note))
