@@ -420,27 +420,31 @@ class URArm(Arm):
                            f"watchdog stops it when the daemon falls silent for {1 / self.watchdog_hz:g} s; a safety "
                            f"stop or the pendant can stop it too); resuming the scan uploads it again")
 
-    async def _no_stop_behind_refusal(self, doing: str) -> None:
+    async def _no_stop_behind_refusal(self, doing: str) -> _Reading:
         """ArmFault naming a safety stop that shows within SAFETY_CATCH_UP_S of a query refused or failed: a
         controller that has just stopped for safety refuses every query, and the receive stream, which carries the
-        safety flags, can show the stop only after the refusal came. Read until then before blaming the query (the
-        pose checks run once, before a scan's first move: the wait costs nothing that counts)."""
+        safety flags, can show the stop only after the refusal came. Read until then before blaming the query (it
+        is about to fail anyway: the wait costs nothing that counts). Returns the last reading."""
         deadline = time.monotonic() + SAFETY_CATCH_UP_S
         while True:
-            await self._raise_if_stopped(await self._fresh(f"the safety state after {doing}"), doing)
+            reading = await self._fresh(f"the safety state after {doing}")
+            await self._raise_if_stopped(reading, doing)
             if time.monotonic() >= deadline:
-                return
+                return reading
 
     async def _explain_refusal(self, what: str, final: bool) -> None:
         """The controller answered False: raise for a safety stop or a dead link; otherwise, when `final`, raise a
-        plain refusal, else return after two fresh readings (time for the control stream to catch up)."""
-        for _ in range(2):
-            reading = await self._fresh(f"the safety state after {what} was refused")
-            await self._raise_if_stopped(reading, f"{what} refused")
-        if final:
-            running = await self._call("the program state", "program_running")
-            raise ArmFault(f"{self.name}: controller refused {what} (safety mode {reading.safety_mode}, control "
-                           f"script {'running' if running else 'not running'})")
+        plain refusal once no stop has shown for SAFETY_CATCH_UP_S (`_no_stop_behind_refusal`), else return after two
+        fresh readings (time for the control stream to catch up before the one retry)."""
+        if not final:
+            for _ in range(2):
+                await self._raise_if_stopped(await self._fresh(f"the safety state after {what} was refused"),
+                                             f"{what} refused")
+            return
+        reading = await self._no_stop_behind_refusal(f"{what} refused")
+        running = await self._call("the program state", "program_running")
+        raise ArmFault(f"{self.name}: controller refused {what} (safety mode {reading.safety_mode}, control "
+                       f"script {'running' if running else 'not running'})")
 
     # -- the ur_rtde process --------------------------------------------------------------------------------------
     async def _call(self, what: str, op: str, *args, timeout_s: float | None = None):

@@ -218,6 +218,8 @@ class RefusingController(URArm):
         self._open, self.stop_at, self.reads = True, stop_at, 0
 
     async def _call(self, what, method, *args, timeout_s=None):
+        if method == "program_running":
+            return self.stop_at is None
         assert method == "check_poses"
         return {"index": 0, "check": "safety", "ik_checked": False}
 
@@ -238,6 +240,17 @@ def test_a_pose_refused_by_a_controller_that_just_stopped_for_safety_is_named_by
     with pytest.raises(ArmFault, match=r"pose 0 of 1: TCP at .* outside the controller's safety limits"):
         arun(refused.check_poses(np.eye(4)[None]))
     assert refused.reads > 5, "the safety state was read again before the pose was blamed"
+
+
+def test_a_move_refused_for_good_by_a_controller_that_just_stopped_for_safety_is_named_by_the_stop(arun):
+    # As for the pose checks: the stop shows a few readings after the second refusal of the move.
+    late = RefusingController(stop_at=5)
+    with pytest.raises(ArmFault, match="protective stop on .*moveL to .* refused"):
+        arun(late._explain_refusal("moveL to [0.3000, 0.0000, 0.2000] m", final=True))
+    refused = RefusingController(stop_at=None)
+    with pytest.raises(ArmFault, match=r"controller refused moveL to .* control script running"):
+        arun(refused._explain_refusal("moveL to [0.3000, 0.0000, 0.2000] m", final=True))
+    assert refused.reads > 5, "the safety state was read again before the move was blamed"
 
 
 def test_protective_stop_during_a_move_aborts_it(ur, arun):
