@@ -19,7 +19,7 @@ from spadscan.worker.recon.fast.render import render_returns
 from spadscan.worker.recon.model_api import RunPlan
 from spadscan.worker.recon.presets import preset_config
 from spadscan.worker.recon.scene_data import load_scene
-from worker_helpers import PAPER_SMALL, cylinder_mesh, sensor_forward
+from worker_helpers import CUDA_CLI_SMALL, CUDA_SMALL, PAPER_SMALL, cylinder_mesh, sensor_forward
 
 F32, F64 = torch.float32, torch.float64
 CUDA = torch.device("cuda")
@@ -89,18 +89,11 @@ def test_the_grid_renderer_in_float32_on_cuda_matches_float64_on_the_cpu():
     assert rel_err(g32, g64) < 1e-3 and bool(torch.isfinite(g32).all())
 
 
-SMALL = {"field.resolution": 32, "field.hull_resolution": 48, "parts.refinement.after_steps": 60,
-         "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
-CLI_SMALL = {"field.resolution": 32, "parts.refinement.after_steps": 60}
-"""The command line test's --set overrides (test_cuda_options.py checks them where no GPU is: CI never runs this
-module, and an override renamed since would fail only here)."""
-
-
 def test_the_fast_preset_trains_on_cuda_as_well_as_on_the_cpu(cylinder_capture):
     from spadscan.worker.metrics import mesh_metrics
 
     gt = cylinder_mesh()
-    config = with_overrides(preset_config("fast"), SMALL)
+    config = with_overrides(preset_config("fast"), CUDA_SMALL)
     result = []
     for device in ("cpu", "cuda"):
         scene = load_scene(cylinder_capture, device)
@@ -142,7 +135,7 @@ def test_reconstruct_on_cuda_writes_every_output_and_says_cuda(cylinder_capture,
     args = ["reconstruct", str(cylinder_capture), "--out", str(out), "--device", "cuda", "--steps", "150",
             "--no-progress", "--gt", str(tmp_path / "gt.ply")]
     cylinder_mesh().export(tmp_path / "gt.ply")
-    overrides = [arg for key, value in CLI_SMALL.items() for arg in ("--set", f"{key}={value}")]
+    overrides = [arg for key, value in CUDA_CLI_SMALL.items() for arg in ("--set", f"{key}={value}")]
     assert main(args + overrides) == 0
     for name in ("mesh.ply", "report.json", "preview.png", "fit.png", "error_vs_time.png"):
         assert (out / name).is_file(), name

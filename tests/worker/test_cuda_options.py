@@ -1,4 +1,5 @@
-"""The CUDA tests' config overrides are current, checked where no GPU is (the CUDA tests themselves skip there)."""
+"""The CUDA tests' config overrides are current, checked where no GPU is: the CUDA tests themselves skip there (CI
+never runs them), so an override renamed since would otherwise fail only on a GPU."""
 
 from __future__ import annotations
 
@@ -7,11 +8,11 @@ import pytest
 from spadscan.protocol.errors import SpadscanError
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.presets import preset_config
-from test_cuda import CLI_SMALL, SMALL
-from worker_helpers import PAPER_SMALL
+from worker_helpers import CUDA_CLI_SMALL, CUDA_SMALL, PAPER_SMALL
 
 
-@pytest.mark.parametrize("preset, overrides", [("fast", SMALL), ("fast", CLI_SMALL), ("paper", PAPER_SMALL)],
+@pytest.mark.parametrize("preset, overrides",
+                         [("fast", CUDA_SMALL), ("fast", CUDA_CLI_SMALL), ("paper", PAPER_SMALL)],
                          ids=["fast", "fast-command-line", "paper"])
 def test_every_override_of_the_cuda_tests_names_a_current_config_key(preset, overrides):
     config = with_overrides(preset_config(preset), overrides)
