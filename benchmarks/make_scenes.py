@@ -1,12 +1,14 @@
 """Simulated captures of the built-in validation and holdout splits and of the tall objects on a table.
 
-    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,table] [--seed 0] [--overwrite]
+    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,large,table] [--seed 0] [--overwrite]
 
 Writes one capture folder per scene into FOLDER, each through `spadscan simulate` with a fixed command line (printed
 as it goes), so the same seed gives the same captures on any machine:
 
 - validation, holdout: those splits (protocol/scenes.py SPLITS) in the public dataset's simulated format: sensor
   lcspc-sim, 256 views on the Fibonacci spiral at 0.5 m looking at the origin, no table.
+- large: the tuning split's four 0.35 m scenes (LARGE_SCENES), in the same format: their tops 0.15 m from the views
+  above them.
 - table: the tall objects (TABLE_SCENES) on a black table, as a real capture sees them: sensor tmf8820, 120 views
   on 8 elevation rings from 36 to 83 degrees (the real captures' layout), looking at the object's mid-height from
   0.45 m (head on a can) or 0.40 m (tall block), so that the sensor stays 0.2-0.6 m from the surface.
@@ -37,7 +39,10 @@ TABLE_OPTIONS = ["--sensor", "tmf8820", "--table", "--views", "120", "--schedule
 TABLE_RADIUS_M = {"head-on-can": 0.45, "tall-block": 0.40}
 """Distance from the sensor to the object's mid-height: the sensor 0.2-0.6 m from the surface."""
 
-GROUPS = ("validation", "holdout", "table")
+LARGE_SCENES = ("big-lamp", "big-cup", "big-goblet", "tall-egg")
+"""The tuning split's built-ins made 0.35 m tall (protocol/scenes.py)."""
+
+GROUPS = ("validation", "holdout", "large", "table")
 
 
 def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
@@ -48,6 +53,8 @@ def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
             for spec in SPLITS[split]:
                 name = spec.split(":", 1)[1]
                 out.append((name, [spec, *VALIDATION_OPTIONS, "--seed", str(seed)]))
+    if "large" in groups:
+        out += [(name, [f"builtin:{name}", *VALIDATION_OPTIONS, "--seed", str(seed)]) for name in LARGE_SCENES]
     if "table" in groups:
         for name in TABLE_SCENES:
             mid = round(float(builtin_scene(name).bounds[1, 2]) / 2, 3)

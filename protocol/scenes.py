@@ -8,9 +8,9 @@ concavities open to the top, thin parts that space carving can lose, small and l
 hide the table from many views.
 
 Three named splits keep the method honest (SPLITS): `tuning` holds the scenes the default reconstruction was tuned on
-(the first five built-ins and the public dataset's three simulated scenes); `validation` holds scenes it is never
-tuned on, to report separately; `holdout` holds scenes that not even the ablation deciding which parts stay has
-seen. The tall objects (TABLE_SCENES) are for developing reconstruction on a table (they
+(the first five built-ins, the public dataset's three simulated scenes, and four of those five made 0.35 m tall,
+whose tops the views above them see from 0.15 m); `validation` holds scenes it is never tuned on, to report
+separately; `holdout` holds scenes that not even the ablation deciding which parts stay has seen. The tall objects (TABLE_SCENES) are for developing reconstruction on a table (they
 are simulated with one) and belong to neither split.
 """
 
@@ -37,13 +37,18 @@ BUILTIN_SCENES: dict[str, str] = {
     "bottle": "a 0.24 m bottle: a round body 15 cm across, a 4 cm neck and a lip (smooth, a narrow part on top)",
     "mushroom": "a 0.18 m mushroom: a 4.4 cm stem under a 17 cm domed cap (overhang, smooth)",
     "pawn": "a 0.20 m chess pawn: a stepped base, a concave waist, a collar and a ball head (smooth, sharp rims)",
+    "big-lamp": "the lamp scaled to 0.35 m: a 24 cm shade whose top the views above see from 0.15 m (large, near)",
+    "big-cup": "the cup scaled to 0.35 m, 23 cm across (large concavity, its rim near the views above)",
+    "big-goblet": "the goblet scaled to 0.35 m: a 20 cm bowl high up, near the views above (large, near)",
+    "tall-egg": "a 0.35 m tall, 18 cm wide ellipsoid: the sphere stretched (smooth, its top near the views above)",
 }
 
 DATASET_SCENES = ("lcspc:sphere", "lcspc:bunny", "lcspc:soap")
 """The public dataset's simulated scenes (LCSPCData simulated/<name>/<name>.json), named as in SPLITS."""
 
 SPLITS: dict[str, tuple[str, ...]] = {
-    "tuning": ("builtin:sphere", "builtin:cup", "builtin:lamp", "builtin:pyramid", "builtin:demo") + DATASET_SCENES,
+    "tuning": ("builtin:sphere", "builtin:cup", "builtin:lamp", "builtin:pyramid", "builtin:demo") + DATASET_SCENES
+              + ("builtin:big-lamp", "builtin:big-cup", "builtin:big-goblet", "builtin:tall-egg"),
     "validation": ("builtin:teddy", "builtin:head", "builtin:duck", "builtin:stool", "builtin:mug", "builtin:bowl"),
     "holdout": ("builtin:bottle", "builtin:mushroom", "builtin:pawn"),
 }
@@ -64,6 +69,8 @@ def builtin_scene(name: str):
 
     makers = {"sphere": _sphere, "cup": _cup, "lamp": _lamp, "pyramid": _pyramid, "demo": _goblet,
               "tall-block": _tall_block, "bottle": _bottle, "mushroom": _mushroom, "pawn": _pawn,
+              "big-lamp": lambda: _scaled(_lamp(), 1.74), "big-cup": lambda: _scaled(_cup(), 2.17),
+              "big-goblet": lambda: _scaled(_goblet(), 1.74), "tall-egg": lambda: _scaled(_sphere(), 0.9, 1.74),
               **{n: (lambda m=m: m().mesh()) for n, m in SOLID_SCENES.items()}}
     if name not in makers:
         raise MeshError(f"unknown built-in scene {name!r} (known: {', '.join(BUILTIN_SCENES)})")
@@ -115,6 +122,12 @@ def _arc(center, radii, t0, t1, n):
     """n points on an ellipse arc (r, z) from angle t0 to t1 (radians), ends included."""
     t = np.linspace(t0, t1, n)
     return np.stack([center[0] + radii[0] * np.cos(t), center[1] + radii[1] * np.sin(t)], axis=1)
+
+
+def _scaled(mesh, xy: float, z: float | None = None):
+    """The mesh scaled about the origin (by `xy` across and `z`, default `xy`, up): it still stands on z = 0."""
+    mesh.apply_transform(np.diag([xy, xy, xy if z is None else z, 1.0]))
+    return mesh
 
 
 def _sphere():

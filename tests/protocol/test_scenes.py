@@ -12,7 +12,8 @@ from spadscan.protocol.scenes import (BUILTIN_SCENES, DATASET_SCENES, SPLITS, TA
 
 HEIGHT_M = {"sphere": 0.20, "cup": 0.16, "lamp": 0.20, "pyramid": 0.15, "demo": 0.20, "teddy": 0.25, "head": 0.35,
             "duck": 0.15, "stool": 0.20, "mug": 0.15, "bowl": 0.11, "head-on-can": 0.50, "tall-block": 0.30,
-            "bottle": 0.24, "mushroom": 0.18, "pawn": 0.20}
+            "bottle": 0.24, "mushroom": 0.18, "pawn": 0.20, "big-lamp": 0.35, "big-cup": 0.35, "big-goblet": 0.35,
+            "tall-egg": 0.35}
 """Each scene's height as its description gives it (metres, to the centimetre)."""
 
 
@@ -103,7 +104,8 @@ def test_every_builtin_is_in_one_split_or_a_table_scene_and_the_splits_do_not_ov
     tuning, validation, holdout = (set(SPLITS[s]) for s in ("tuning", "validation", "holdout"))
     assert set(SPLITS) == {"tuning", "validation", "holdout"}
     assert not tuning & validation and not tuning & holdout and not validation & holdout
-    assert tuning == {f"builtin:{n}" for n in ("sphere", "cup", "lamp", "pyramid", "demo")} | set(DATASET_SCENES)
+    assert tuning == {f"builtin:{n}" for n in ("sphere", "cup", "lamp", "pyramid", "demo", "big-lamp", "big-cup",
+                                                "big-goblet", "tall-egg")} | set(DATASET_SCENES)
     assert set(DATASET_SCENES) == {"lcspc:sphere", "lcspc:bunny", "lcspc:soap"}
     for name in BUILTIN_SCENES:
         homes = [f"builtin:{name}" in tuning, f"builtin:{name}" in validation, f"builtin:{name}" in holdout,

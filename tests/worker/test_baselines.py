@@ -21,6 +21,7 @@ from spadscan.worker.baselines.reprojection import reproject_points
 from spadscan.worker.carving import carve_hull, first_returns
 from spadscan.worker.carving.bounds import cube_around
 from spadscan.worker.metrics import mesh_metrics
+from spadscan.worker.recon.fast.config import fast_config
 
 
 def _render(mesh, sensor, poses, seed=1, **settings):
@@ -312,3 +313,31 @@ def test_an_option_the_method_does_not_read_is_refused(sphere_capture, tmp_path,
     assert cli_main(["baseline", method, str(cap), "--out", str(tmp_path / "x"), "--no-gt", *option]) == 1
     assert capsys.readouterr().err == f"spadscan: error: {message}\n"
     assert not (tmp_path / "x").exists()
+
+
+def test_carving_keeps_the_top_of_a_tall_object_that_few_views_see():
+    # Views aim at the origin from 0.5 m, so the top of a 34 cm column lies in only the few fields of view above
+    # it: the rule that drops space fewer than 3 views see (unscanned corners of the box) cut it off, though those
+    # views' first returns land on it. Space just beyond a first return stays.
+    column = trimesh.creation.cylinder(radius=0.06, height=0.34, sections=48)
+    column.apply_translation([0, 0, 0.17])
+    poses = fibonacci_hemisphere(128, 0.5, max_elevation_deg=90)
+    hists, sensor = _render(column, sensor_preset("lcspc-sim"), poses)
+    lo, hi = cube_around(np.array([-0.12, -0.12, 0.0]), np.array([0.12, 0.12, 0.4]))
+    pts, _ = trimesh.sample.sample_surface(column, 20000, seed=0)
+    top = pts[pts[:, 2] > 0.3]
+    kept = {}
+    for keep_m in (0.0, fast_config().field.carve_keep_returns_m):
+        res = carve_hull(hists, poses, sensor, bounds_min=lo, bounds_max=hi, resolution=64, floor_z=0.0,
+                         keep_returns_m=keep_m)
+        voxel = float(res.voxel_m.max())
+        kept[keep_m] = res.contains(top, voxel).mean()
+        if keep_m:
+            assert res.contains(pts, voxel).mean() > 0.99
+            # Still a hull, not the box: space well away from the column is carved.
+            centres = res.origin + np.argwhere(np.ones_like(res.occupancy)) * res.voxel_m
+            far = np.hypot(centres[:, 0], centres[:, 1]) > 0.1
+            assert res.occupancy.reshape(-1)[far].mean() < 0.05
+    assert kept[0.0] < 0.5 and kept[keep_m] > 0.95, kept
+    with pytest.raises(CaptureError, match="keep_returns_m"):
+        carve_hull(hists, poses, sensor, bounds_min=lo, bounds_max=hi, resolution=8, keep_returns_m=float("nan"))

@@ -134,11 +134,13 @@ DROP, KEEP, SPLIT = 0, 1, 2
 
 
 def _classify_cells(centres: np.ndarray, radius: float, poses: np.ndarray, sensor: SensorModel,
-                    limit: np.ndarray, final: bool, min_views: int, edge_rad: float) -> np.ndarray:
+                    limit: np.ndarray, final: bool, min_views: int, edge_rad: float,
+                    keep_returns_m: float = 0.0) -> np.ndarray:
     """(M,) int8 verdicts on cells (centres (M, 3) metres, bounding-sphere radius): DROP, KEEP or SPLIT.
 
     DROP: some view proves the whole cell empty, or fewer than `min_views` views can see any of it (space nobody
-    scanned, such as the box's corners beside a sensor). KEEP: no view can carve any part of it and at least
+    scanned, such as the box's corners beside a sensor) and no view that sees it has its first return there (some
+    of the cell within `keep_returns_m` beyond the range the view proved empty). KEEP: no view can carve any part of it and at least
     `min_views` views see all of it, so every voxel inside it is kept (interiors are not tested again at finer
     levels). SPLIT: undecided, test its children. A `final` voxel is never split: it is kept unless carved, and it is
     seen by a view when its centre is. limit (n, zones): range (metres) in front of which each zone saw nothing.
@@ -161,6 +163,7 @@ def _classify_cells(centres: np.ndarray, radius: float, poses: np.ndarray, senso
     cells = (centres - ref).astype(np.float32)
     lim_all = limit.astype(np.float32)
     carved = np.zeros(m, bool)
+    at_return = np.zeros(m, bool)  # some view that sees the cell has its first return there
     partly = np.zeros(m, bool)  # some view could carve part of the cell
     touched = np.zeros(m, np.int32)  # views that see some of the cell (final voxels: its centre)
     whole = np.zeros(m, np.int32)  # views that see all of it
@@ -184,6 +187,7 @@ def _classify_cells(centres: np.ndarray, radius: float, poses: np.ndarray, senso
         d = np.sqrt(np.maximum(d2, 0))
         far, near = d + r, d - r  # the cell's farthest and nearest range from the sensor
         cut = np.zeros(d.shape, bool)
+        held = np.zeros(d.shape, bool)
         part = np.zeros(d.shape, bool)
         sees = np.zeros(d.shape, np.uint8)  # zones that see it: a few, never over 255
         sees_all = np.zeros(d.shape, np.uint8)
@@ -201,13 +205,17 @@ def _classify_cells(centres: np.ndarray, radius: float, poses: np.ndarray, senso
                 depth = np.minimum(pairs[test[1]], pairs[test[2]])
             inside = depth >= r
             cut |= inside & (far <= lim)
-            sees += depth >= seen_depth
+            seen = depth >= seen_depth
+            sees += seen
+            if keep_returns_m > 0:
+                held |= seen & (far > lim) & (near <= lim + np.float32(keep_returns_m))
             if not final:
                 part |= (depth > -r) & (near < lim)
                 sees_all += inside
         touched[alive] += sees.sum(axis=0, dtype=np.int32)
         gone = cut.any(axis=0)
         carved[alive[gone]] = True
+        at_return[alive] |= held.any(axis=0)
         if not final:
             partly[alive] |= part.any(axis=0)
             whole[alive] += sees_all.sum(axis=0, dtype=np.int32)
@@ -217,7 +225,7 @@ def _classify_cells(centres: np.ndarray, radius: float, poses: np.ndarray, senso
         verdict[:] = KEEP
     else:
         verdict[~partly & (whole >= min_views)] = KEEP
-    verdict[carved | (touched < min_views)] = DROP
+    verdict[carved | ((touched < min_views) & ~at_return)] = DROP
     return verdict
 
 
@@ -274,7 +282,7 @@ def carve_limits(hists, sensor: SensorModel, threshold: float, margin_m: float,
 def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, resolution: int,
                threshold: float = DEFAULT_THRESHOLD, margin_m: float | None = None,
                floor_z: float | None = None, min_views: int = 3, edge_deg: float = DEFAULT_EDGE_DEG,
-               filter: str = "leading") -> CarveResult:
+               filter: str = "leading", keep_returns_m: float = 0.0) -> CarveResult:
     """Space-carve the box [bounds_min, bounds_max] (metres) on a resolution^3 grid.
 
     hists (n, zones, bins) counts; poses (n, 4, 4) sensor-to-world (metres, +z boresight). threshold: detection
@@ -282,6 +290,10 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
     in front of every first return (default: one bin width, at least 2 mm). floor_z: when given, space below this
     height is empty (the scene stands on a floor that the histograms do not show). min_views: space in the field of
     view of fewer views than this (corners of the box, beside a sensor) is taken to be empty: it was not scanned.
+    keep_returns_m: ...except where a view that sees it has its first return there: space up to this far (metres)
+    beyond the range a zone proved empty is kept however few views see it (0: the min_views rule alone). The top of a
+    tall object, far from the point the views aim at, lies in few views' fields of view, and the rule would cut it
+    off while those views' returns land on it.
     """
     h, p = check_inputs(hists, poses, sensor)
     lo, hi = np.asarray(bounds_min, float), np.asarray(bounds_max, float)
@@ -302,6 +314,8 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
     edge_rad = float(np.radians(edge_deg))
     if not (np.isfinite(margin_m) and margin_m >= 0):
         raise CaptureError(f"margin {margin_m} m must be finite and >= 0")
+    if not (np.isfinite(keep_returns_m) and keep_returns_m >= 0):
+        raise CaptureError(f"keep_returns_m {keep_returns_m} must be finite and >= 0 metres")
     limit = carve_limits(h, sensor, threshold, margin_m, filter)
     voxel = (hi - lo) / resolution
     # Levels: resolution / 2^k, ..., resolution, starting no coarser than 8 cells per side.
@@ -316,7 +330,7 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
         size = (hi - lo) / res
         centres = lo + (cells + 0.5) * size
         verdict = _classify_cells(centres, 0.5 * float(np.linalg.norm(size)), p, sensor, limit, final, min_views,
-                                  edge_rad)
+                                  edge_rad, keep_returns_m)
         if floor_z is not None:
             # Below the floor: empty. Final voxels go by their centres; a coarse cell across the floor is split.
             if final:
@@ -332,7 +346,7 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
 
 def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, threshold: float = DEFAULT_THRESHOLD,
                 margin_m: float | None = None, floor_z: float | None = None, bounds=None,
-                edge_deg: float = DEFAULT_EDGE_DEG, coarse: int = 48) -> CarveResult:
+                edge_deg: float = DEFAULT_EDGE_DEG, coarse: int = 48, keep_returns_m: float = 0.0) -> CarveResult:
     """Space carving without knowing the scene's box: carve coarsely inside the first returns' footprints (or
     `bounds`, a pair of (3,) corners in metres), then again at `resolution` in a cube around what is left."""
     h, p = check_inputs(hists, poses, sensor)
@@ -341,7 +355,8 @@ def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, thr
     else:
         lo, hi = (np.asarray(b, float) for b in bounds)
     lo, hi = cube_around(lo, hi)
-    kw = dict(threshold=threshold, margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg)
+    kw = dict(threshold=threshold, margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg,
+              keep_returns_m=keep_returns_m)
     first = carve_hull(h, p, sensor, bounds_min=lo, bounds_max=hi, resolution=min(coarse, resolution), **kw)
     if not first.occupancy.any():
         return first
