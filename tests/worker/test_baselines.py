@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from spadscan.worker.carving import carve_hull, first_returns
 from spadscan.worker.carving.bounds import cube_around
 from spadscan.worker.metrics import mesh_metrics
 from spadscan.worker.recon.fast.config import fast_config
+from spadscan.worker.recon.fast.problem import carve_keep_returns_m
 
 
 def _render(mesh, sensor, poses, seed=1, **settings):
@@ -341,3 +343,10 @@ def test_carving_keeps_the_top_of_a_tall_object_that_few_views_see():
     assert kept[0.0] < 0.5 and kept[keep_m] > 0.95, kept
     with pytest.raises(CaptureError, match="keep_returns_m"):
         carve_hull(hists, poses, sensor, bounds_min=lo, bounds_max=hi, resolution=8, keep_returns_m=float("nan"))
+
+
+def test_the_fast_hull_keeps_returns_beyond_few_views_on_simulated_captures_only():
+    field = fast_config().field
+    assert field.carve_keep_returns_m > 0
+    assert carve_keep_returns_m(SimpleNamespace(real=False), field) == field.carve_keep_returns_m
+    assert carve_keep_returns_m(SimpleNamespace(real=True), field) == 0.0

@@ -37,7 +37,8 @@ class FastFieldConfig:
     """Space up to this far (metres) beyond a zone's first return stays in the hull however few views see it. Views
     aim at the object's middle, so the top of a tall object lies in the fields of view of only the few views above
     it; without this, carving drops it as unscanned space (fewer than 3 views) and the fit may not grow back there:
-    a 35 cm lamp's shade lost its top 6 cm (0: the old rule)."""
+    a 35 cm lamp's shade lost its top 6 cm (0: the old rule). Simulated captures only (problem.carve_keep_returns_m:
+    on the real pyramid it kept air above the object)."""
     hull_margin_m: float = 0.004
     """How far (metres) the surface may grow outside the carved hull: keeps thin parts that carving shaved (the field
     starts on the hull grown by this much, and `parts.hull_projection` holds it there)."""

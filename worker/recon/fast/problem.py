@@ -144,11 +144,18 @@ def carve_box(scene, floor_z: float | None) -> np.ndarray:
     return box
 
 
+def carve_keep_returns_m(scene, fc) -> float:
+    """How far beyond a first return carving keeps space that few views see (`field.carve_keep_returns_m`): on
+    simulated captures only. On the real pyramid it kept 15 % more hull, all of it air 4-26 cm above the table where
+    the real zones' onsets do not mark the object (step-based 4.51 mm against 4.41)."""
+    return 0.0 if scene.real else fc.carve_keep_returns_m
+
+
 def _carve(scene, fc, floor_z):
     box = carve_box(scene, floor_z)
     return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
-                       floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=fc.carve_keep_returns_m)
+                       floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc))
 
 
 __all__ = ["FastProblem", "build_problem", "candidate_rays"]
