@@ -13,7 +13,7 @@ import pytest
 import trimesh
 
 from spadscan.cli import main as cli_main
-from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
@@ -350,3 +350,8 @@ def test_the_fast_hull_keeps_returns_beyond_few_views_on_simulated_captures_only
     assert field.carve_keep_returns_m > 0
     assert carve_keep_returns_m(SimpleNamespace(real=False), field) == field.carve_keep_returns_m
     assert carve_keep_returns_m(SimpleNamespace(real=True), field) == 0.0
+    for bad in (-0.01, float("nan"), 2.0, True):
+        config = fast_config()
+        config.field.carve_keep_returns_m = bad
+        with pytest.raises(ConfigError, match="field.carve_keep_returns_m"):
+            config.check()
