@@ -10,8 +10,9 @@ hide the table from many views.
 Three named splits keep the method honest (SPLITS): `tuning` holds the scenes the default reconstruction was tuned on
 (the first five built-ins, the public dataset's three simulated scenes, and four of those five made 0.35 m tall,
 whose tops the views above them see from 0.15 m); `validation` holds scenes it is never tuned on, to report
-separately; `holdout` holds scenes that not even the ablation deciding which parts stay has seen. The tall objects (TABLE_SCENES) are for developing reconstruction on a table (they
-are simulated with one) and belong to neither split.
+separately; `holdout` holds scenes that not even the ablation deciding which parts stay has seen. The tall objects
+(TABLE_SCENES) are for developing reconstruction on a table (they are simulated with one) and belong to neither
+split.
 """
 
 from __future__ import annotations

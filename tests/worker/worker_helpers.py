@@ -16,11 +16,11 @@ FAST_SMALL = {"field.resolution": 24, "field.hull_resolution": 48, "parts.refine
               "schedule.views_per_step": 4, "schedule.rays_per_sr": 300.0, "schedule.candidate_rays_per_sr": 2000.0}
 """The fast preset at a size a unit test can afford (a coarse grid refined after 4 steps, few views and rays)."""
 
-CUDA_SMALL = {**FAST_SMALL, "field.resolution": 32, "parts.refinement.after_steps": 60}
-"""The CUDA tests' fast preset: a finer coarse grid, refined after 60 steps."""
-
 CUDA_CLI_SMALL = {"field.resolution": 32, "parts.refinement.after_steps": 60}
-"""The CUDA command line test's --set overrides."""
+"""The CUDA command line test's --set overrides: a finer coarse grid, refined after 60 steps."""
+
+CUDA_SMALL = {**FAST_SMALL, **CUDA_CLI_SMALL}
+"""The CUDA tests' fast preset: FAST_SMALL with the command line test's grid and refinement."""
 
 
 def blank_histograms(model) -> None:

@@ -142,8 +142,9 @@ def _classify_cells(centres: np.ndarray, radius: float, poses: np.ndarray, senso
     scanned, such as the box's corners beside a sensor) and no view that sees it has its first return there (some
     of the cell within `keep_returns_m` beyond the range the view proved empty). KEEP: no view can carve any part of
     it and at least `min_views` views see all of it, so every voxel inside it is kept (interiors are not tested again
-    at finer levels). SPLIT: undecided, test its children. A `final` voxel is never split: it is kept unless carved, and it is
-    seen by a view when its centre is. limit (n, zones): range (metres) in front of which each zone saw nothing.
+    at finer levels). SPLIT: undecided, test its children. A `final` voxel is never split: it is kept unless carved,
+    and it is seen by a view when its centre is. limit (n, zones): range (metres) in front of which each zone saw
+    nothing.
     """
     tests = _zone_tests(sensor, edge_rad)
     n, m = len(poses), len(centres)
