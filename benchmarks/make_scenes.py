@@ -1,11 +1,11 @@
 """Simulated captures of the built-in validation and holdout splits and of the tall objects on a table.
 
-    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,large,table] [--seed 0] [--overwrite]
+    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,check,large,table] [--seed 0] [--overwrite]
 
 Writes one capture folder per scene into FOLDER, each through `spadscan simulate` with a fixed command line (printed
 as it goes), so the same seed gives the same captures on any machine:
 
-- validation, holdout: those splits (protocol/scenes.py SPLITS) in the public dataset's simulated format: sensor
+- validation, holdout, check: those splits (protocol/scenes.py SPLITS) in the public dataset's simulated format: sensor
   lcspc-sim, 256 views on the Fibonacci spiral at 0.5 m looking at the origin, no table.
 - large: the tuning split's four 0.35 m scenes (LARGE_SCENES), in the same format: their tops 0.15 m from the views
   above them.
@@ -42,13 +42,13 @@ TABLE_RADIUS_M = {"head-on-can": 0.45, "tall-block": 0.40}
 LARGE_SCENES = ("big-lamp", "big-cup", "big-goblet", "tall-egg")
 """The tuning split's built-ins made 0.35 m tall (protocol/scenes.py)."""
 
-GROUPS = ("validation", "holdout", "large", "table")
+GROUPS = ("validation", "holdout", "check", "large", "table")
 
 
 def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
     """(capture folder name, `spadscan simulate` arguments without --out) for every scene of the groups."""
     out = []
-    for split in ("validation", "holdout"):
+    for split in ("validation", "holdout", "check"):
         if split in groups:
             for spec in SPLITS[split]:
                 name = spec.split(":", 1)[1]

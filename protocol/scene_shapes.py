@@ -130,8 +130,81 @@ def head_on_can():
     return SolidScene(smooth_union(0.006, can, _head(0.218)), 0.12, 0.52)
 
 
+def chair():
+    """A small chair, 0.26 m: a 12 cm square seat 12 mm thick on four 10 mm legs, a back of two posts, a top rail and
+    a slat (thin parts, a gap between seat and rail)."""
+    seat = box((0, 0, 0.125), (0.060, 0.060, 0.006), rounding=0.002)
+    parts = [seat]
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            parts.append(capsule((sx * 0.052, sy * 0.052, -0.004), (sx * 0.052, sy * 0.052, 0.120), 0.005))
+        parts.append(capsule((sx * 0.052, -0.054, 0.130), (sx * 0.054, -0.064, 0.255), 0.005))   # back posts
+    parts.append(box((0, -0.064, 0.245), (0.056, 0.005, 0.012), rounding=0.002))                  # top rail
+    parts.append(box((0, -0.060, 0.190), (0.054, 0.004, 0.008), rounding=0.002))                  # slat
+    return SolidScene(smooth_union(0.003, *parts), 0.08, 0.27, 0.0012)
+
+
+def snowman():
+    """A snowman of three stacked balls, 0.28 m, with a carrot nose and two stubby arms (smooth, round)."""
+    parts = [sphere((0, 0, 0.068), 0.070), sphere((0, 0, 0.172), 0.050), sphere((0, 0, 0.245), 0.036),
+             capsule((0, 0.030, 0.248), (0, 0.062, 0.244), 0.006),                                   # nose
+             capsule((0.045, 0, 0.180), (0.090, 0.010, 0.205), 0.007),                              # arms
+             capsule((-0.045, 0, 0.180), (-0.090, 0.010, 0.205), 0.007)]
+    return SolidScene(smooth_union(0.012, *parts), 0.11, 0.29)
+
+
+def vase():
+    """A vase, 0.25 m: a round belly 15 cm across, a narrow neck open at the top (a 4 cm mouth), a 5 mm wall (a deep
+    concavity seen only through its mouth)."""
+    outer = smooth_union(0.025, ellipsoid((0, 0, 0.085), (0.075, 0.075, 0.090)),  # sunk 5 mm: a flat foot
+                         cylinder((0, 0), 0.025, 0.150, 0.250, rounding=0.003))
+    wall = shell(outer, 0.005)
+    open_top = subtract(wall, cylinder((0, 0), 0.020, 0.150, 0.30))
+    return SolidScene(intersect(open_top, lambda x, y, z: -z), 0.09, 0.26)
+
+
+def ring_stand():
+    """A ring on a stand, 0.24 m: a 16 cm upright ring of 12 mm thick section on a post and a round foot (a hole
+    through, a thin round section)."""
+    ring = rotated(torus((0, 0, 0), 0.070, 0.012), (1, 0, 0), math.pi / 2)
+    parts = [lambda x, y, z: ring(x, y, z - 0.155),
+             capsule((0, 0, 0.010), (0, 0, 0.080), 0.010),
+             cylinder((0, 0), 0.055, 0.0, 0.014, rounding=0.003)]
+    return SolidScene(smooth_union(0.008, *parts), 0.10, 0.25)
+
+
+def cat():
+    """A sitting cat, 0.23 m: a pear-shaped body, a round head with two pointed ears and a muzzle, a tail curled
+    along the ground round its front paws."""
+    parts = [ellipsoid((0, -0.005, 0.065), (0.055, 0.060, 0.068)),
+             ellipsoid((0, 0.012, 0.112), (0.040, 0.040, 0.050)),       # chest
+             sphere((0, 0.020, 0.170), 0.040),                           # head
+             ellipsoid((0, 0.055, 0.160), (0.020, 0.014, 0.013))]        # muzzle
+    for side in (-1, 1):
+        ear = rotated(ellipsoid((0, 0, 0), (0.014, 0.005, 0.022)), (0, 1, 0), side * 0.35)
+        parts.append(lambda x, y, z, ear=ear, s=side: ear(x - s * 0.024, y - 0.018, z - 0.208))
+        parts.append(capsule((side * 0.022, 0.040, 0.060), (side * 0.022, 0.058, 0.012), 0.012))   # front legs
+    tail = [(0.055, -0.030, 0.010), (0.070, 0.020, 0.010), (0.050, 0.070, 0.010), (0.000, 0.085, 0.010)]
+    parts += [capsule(a, b, 0.009) for a, b in zip(tail, tail[1:])]
+    return SolidScene(smooth_union(0.010, *parts), 0.11, 0.23)
+
+
+def lighthouse():
+    """A lighthouse, 0.34 m: a tower tapering from 13 to 8 cm across, a gallery ring near its top, a lantern and a
+    dome (tall: its top is far above the point the views aim at)."""
+    def tower(x, y, z):
+        r = 0.065 - 0.025 * np.clip(z / 0.26, 0.0, 1.0)
+        side = np.sqrt(x * x + y * y) - r
+        return np.maximum(side, np.maximum(-z, z - 0.26))
+    parts = [tower, cylinder((0, 0), 0.058, 0.255, 0.265, rounding=0.002),   # gallery
+             cylinder((0, 0), 0.030, 0.262, 0.305, rounding=0.002),           # lantern
+             sphere((0, 0, 0.305), 0.033)]                                     # dome
+    return SolidScene(smooth_union(0.004, *parts), 0.08, 0.345)
+
+
 SOLID_SCENES = {"teddy": teddy, "head": head, "duck": duck, "stool": stool, "mug": mug, "bowl": bowl,
-                "head-on-can": head_on_can}
+                "head-on-can": head_on_can, "chair": chair, "snowman": snowman, "vase": vase, "ring-stand": ring_stand,
+                "cat": cat, "lighthouse": lighthouse}
 """Built-in scene name -> maker of its SolidScene."""
 
 

@@ -7,10 +7,11 @@ matters for a transient-histogram scanner: convex blobs, smooth rounded surfaces
 concavities open to the top, thin parts that space carving can lose, small and large objects, and tall objects that
 hide the table from many views.
 
-Three named splits keep the method honest (SPLITS): `tuning` holds the scenes the default reconstruction was tuned on
+Four named splits keep the method honest (SPLITS): `tuning` holds the scenes the default reconstruction was tuned on
 (the first five built-ins, the public dataset's three simulated scenes, and four of those five made 0.35 m tall,
 whose tops the views above them see from 0.15 m); `validation` holds scenes it is never tuned on, to report
-separately; `holdout` holds scenes that not even the ablation deciding which parts stay has seen. The tall objects
+separately; `holdout` holds scenes that not even the ablation deciding which parts stay has seen; `check` holds
+scenes made after the end-of-run warnings' limits were set, to test them. The tall objects
 (TABLE_SCENES) are for developing reconstruction on a table (they are simulated with one) and belong to neither
 split.
 """
@@ -42,6 +43,12 @@ BUILTIN_SCENES: dict[str, str] = {
     "big-cup": "the cup scaled to 0.35 m, 23 cm across (large concavity, its rim near the views above)",
     "big-goblet": "the goblet scaled to 0.35 m: a 20 cm bowl high up, near the views above (large, near)",
     "tall-egg": "a 0.35 m tall, 18 cm wide ellipsoid: the sphere stretched (smooth, its top near the views above)",
+    "chair": "a 0.26 m chair: a 12 cm seat on four 10 mm legs, a back of two posts, a rail and a slat (thin parts)",
+    "snowman": "a 0.28 m snowman: three stacked balls, a carrot nose, two stubby arms (smooth, round)",
+    "vase": "a 0.25 m vase: a round belly, a narrow neck with a 4 cm mouth, a 5 mm wall (deep concavity)",
+    "ring-stand": "a 0.24 m upright ring of 12 mm section on a post and a foot (a hole through, thin)",
+    "cat": "a 0.23 m sitting cat: pear-shaped body, round head, pointed ears, a tail curled on the ground (smooth)",
+    "lighthouse": "a 0.34 m tapering tower with a gallery, a lantern and a dome (tall, its top far above the aim)",
 }
 
 DATASET_SCENES = ("lcspc:sphere", "lcspc:bunny", "lcspc:soap")
@@ -52,11 +59,15 @@ SPLITS: dict[str, tuple[str, ...]] = {
               + ("builtin:big-lamp", "builtin:big-cup", "builtin:big-goblet", "builtin:tall-egg"),
     "validation": ("builtin:teddy", "builtin:head", "builtin:duck", "builtin:stool", "builtin:mug", "builtin:bowl"),
     "holdout": ("builtin:bottle", "builtin:mushroom", "builtin:pawn"),
+    "check": ("builtin:chair", "builtin:snowman", "builtin:vase", "builtin:ring-stand", "builtin:cat",
+              "builtin:lighthouse"),
 }
 """Named scene splits: `builtin:NAME` (a built-in scene) or `lcspc:NAME` (a dataset scene). The method is tuned on
 `tuning` only; `validation` is reported apart and never tuned on. Deciding which of the method's parts stay drew on
 an ablation over `validation` (benchmarks/ablation.py); `holdout` came after those decisions and was first
-reconstructed by the method they left, so it is the split that no choice has seen."""
+reconstructed by the method they left, so it is the split that no choice of the method has seen. `check` came after
+the end-of-run warnings' limits were last set (worker/end_of_run.py): it tests whether a bad result says so and a good
+one stays quiet, on shapes no limit was set on."""
 
 TABLE_SCENES = ("head-on-can", "tall-block")
 """Tall built-ins for developing reconstruction on a table (simulate them with a table); in neither split."""
@@ -79,7 +90,7 @@ def builtin_scene(name: str):
 
 
 def split_of(name: str) -> str | None:
-    """The split ('tuning', 'validation' or 'holdout') that holds the built-in scene `name`, or None (the table
+    """The split ('tuning', 'validation', 'holdout' or 'check') that holds the built-in scene `name`, or None (the table
     scenes)."""
     for split, members in SPLITS.items():
         if f"builtin:{name}" in members:
@@ -93,6 +104,7 @@ def scene_listing() -> str:
                + ", ".join(n.split(":", 1)[1] for n in DATASET_SCENES) + ")", "tuning"),
               ("validation split (never tuned on: report it apart)", "validation"),
               ("holdout split (not even the ablation that chose the method's parts saw these)", "holdout"),
+              ("check split (made after the end-of-run warnings' limits: do they hold?)", "check"),
               ("tall objects, for a table (--table); in neither split", None)]
     width = max(len(n) for n in BUILTIN_SCENES)
     lines = ["built-in scenes (builtin:NAME):"]

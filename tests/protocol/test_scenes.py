@@ -13,7 +13,8 @@ from spadscan.protocol.scenes import (BUILTIN_SCENES, DATASET_SCENES, SPLITS, TA
 HEIGHT_M = {"sphere": 0.20, "cup": 0.16, "lamp": 0.20, "pyramid": 0.15, "demo": 0.20, "teddy": 0.25, "head": 0.35,
             "duck": 0.15, "stool": 0.20, "mug": 0.15, "bowl": 0.11, "head-on-can": 0.50, "tall-block": 0.30,
             "bottle": 0.24, "mushroom": 0.18, "pawn": 0.20, "big-lamp": 0.35, "big-cup": 0.35, "big-goblet": 0.35,
-            "tall-egg": 0.35}
+            "tall-egg": 0.35, "chair": 0.26, "snowman": 0.28, "vase": 0.25, "ring-stand": 0.24, "cat": 0.23,
+            "lighthouse": 0.34}
 """Each scene's height as its description gives it (metres, to the centimetre)."""
 
 
@@ -101,32 +102,35 @@ def test_revolve_refuses_open_profiles():
 
 # ---- the splits ----------------------------------------------------------------------------------------------------
 def test_every_builtin_is_in_one_split_or_a_table_scene_and_the_splits_do_not_overlap():
-    tuning, validation, holdout = (set(SPLITS[s]) for s in ("tuning", "validation", "holdout"))
-    assert set(SPLITS) == {"tuning", "validation", "holdout"}
-    assert not tuning & validation and not tuning & holdout and not validation & holdout
-    assert tuning == {f"builtin:{n}" for n in ("sphere", "cup", "lamp", "pyramid", "demo", "big-lamp", "big-cup",
-                                                "big-goblet", "tall-egg")} | set(DATASET_SCENES)
+    order = ("tuning", "validation", "holdout", "check")
+    assert tuple(SPLITS) == order
+    splits = [set(SPLITS[s]) for s in order]
+    for i, a in enumerate(splits):
+        assert all(not a & b for b in splits[i + 1:])
+    assert splits[0] == {f"builtin:{n}" for n in ("sphere", "cup", "lamp", "pyramid", "demo", "big-lamp", "big-cup",
+                                                   "big-goblet", "tall-egg")} | set(DATASET_SCENES)
     assert set(DATASET_SCENES) == {"lcspc:sphere", "lcspc:bunny", "lcspc:soap"}
     for name in BUILTIN_SCENES:
-        homes = [f"builtin:{name}" in tuning, f"builtin:{name}" in validation, f"builtin:{name}" in holdout,
-                 name in TABLE_SCENES]
+        homes = [f"builtin:{name}" in split for split in splits] + [name in TABLE_SCENES]
         assert sum(homes) == 1, name
-        assert split_of(name) == ("tuning" if homes[0] else "validation" if homes[1] else
-                                  "holdout" if homes[2] else None)
-    everything = validation | tuning | holdout
+        assert split_of(name) == (order[homes.index(True)] if any(homes[:4]) else None)
+    everything = set().union(*splits)
     assert all(m.split(":", 1)[1] in BUILTIN_SCENES for m in everything if m.startswith("builtin:"))
 
 
 def test_the_listing_names_every_scene_under_its_split():
     text = scene_listing()
-    validation_at, holdout_at = text.index("validation split"), text.index("holdout split")
-    table_at = text.index("tall objects")
+    starts = [(text.index(title), split) for title, split in (("validation split", "validation"),
+                                                              ("holdout split", "holdout"), ("check split", "check"),
+                                                              ("tall objects", None))]
     for name in BUILTIN_SCENES:
         at = text.index(f"    {name} ")
-        group = ("tuning" if at < validation_at else "validation" if at < holdout_at else
-                 "holdout" if at < table_at else None)
+        group = "tuning"
+        for start, split in starts:
+            if at > start:
+                group = split
         assert group == split_of(name), name
-    assert all(n.split(":")[1] in text[:validation_at] for n in DATASET_SCENES)
+    assert all(n.split(":")[1] in text[:starts[0][0]] for n in DATASET_SCENES)
 
 
 # ---- what each new scene promises ------------------------------------------------------------------------------------
