@@ -240,6 +240,9 @@ def test_each_rule_warns_alone():
     (line,) = warnings(RunFacts("converged", 100, True, flat, coverage=guessed))
     assert f"{100 * (COVERAGE_LIMIT + 0.05):.0f} % of the surface" in line and "fewer than 3 views" in line
     assert "heights 0.18 to 0.33 m" in line
+    assert "may have moved during the scan" in line, "a measured capture: an object moved mid-scan leaves this too"
+    (line,) = warnings(RunFacts("converged", 100, True, flat, coverage=guessed, measured=False))
+    assert "fewer than 3 views" in line and "moved" not in line, "a simulated object never moves"
     on_gpu = RunFacts("budget", 100, True, flat, device="cuda", cpu_seconds=2.0, wall_seconds=10.0)
     assert warnings(on_gpu) == [], "a GPU run waits for its device, not for a core"
 
