@@ -12,7 +12,7 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.sensor_model import Zone
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.recon.fast.grid_ops import cavities, fill_under_overhangs
+from spadscan.worker.recon.fast.grid_ops import cavities, fill_under_overhangs, under_overhangs
 from spadscan.worker.recon.fast.mesh import FLOATER_FRACTION, clean_solid
 from spadscan.worker.recon.fast.parts.empty_space import (heard_bins, pressure_weight, push_to_empty, view_coverage,
                                                           views_hearing)
@@ -137,6 +137,30 @@ def test_space_under_an_overhang_is_filled_down_to_the_table_only():
     assert np.all(out[:2] == values[:2])  # under the table: untouched
     assert np.all(out[:, 0:2] > 0) and np.all(out[10:] > 0)  # beside and above the cap: still empty
     assert np.all(values[2:8, 2:5, 2:5] > 0)  # (the input is not changed)
+
+
+def test_space_under_an_overhang_is_left_empty_where_a_wide_gap_opens_it_to_the_side():
+    """A head on a post: the air round the post under the head is open to the side (views see into it), so it is
+    no hidden space once gaps wider than 2 x 2 + 1 nodes count as open. A hollow under a roof whose only opening
+    is a slot 3 nodes wide stays hidden, and is filled either way."""
+    n = 40
+    z = np.arange(n, dtype=float)
+    solid = np.zeros((n, n, n), bool)
+    solid[2:25, 18:22, 18:22] = True   # a post 4 nodes wide on the floor at z = 2
+    solid[25:31, 12:28, 12:28] = True  # a head 16 nodes wide above it: 6 nodes of air under it on every side
+    under = 23 * (16 * 16 - 4 * 4)
+    assert under_overhangs(solid, z, 2.0)[2:25, 12:28, 12:28].sum() == under
+    # Left filled: only the nodes in the corner between the post and the floor, which the opening rounds off.
+    assert under_overhangs(solid, z, 2.0, open_nodes=2).sum() < 0.02 * under
+    shell = np.zeros((n, n, n), bool)
+    shell[2:20, 5:35, 5:35] = True
+    shell[2:17, 8:32, 8:32] = False      # a hollow on the floor under a roof 3 nodes thick, walls 3 nodes thick
+    shell[2:5, 8:11, 5:8] = False        # a slot 3 nodes wide through a wall at the foot
+    hollow = under_overhangs(shell, z, 2.0)
+    assert hollow[2:17, 8:32, 8:32].all()
+    assert under_overhangs(shell, z, 2.0, open_nodes=2)[2:17, 8:32, 8:32].all(), "a narrow slot is no view into it"
+    opened = under_overhangs(shell, z, 2.0, open_nodes=1)[2:17, 8:32, 8:32]
+    assert opened.sum() < 0.05 * hollow[2:17, 8:32, 8:32].sum(), "a slot 3 nodes wide is open at 1"
 
 
 def test_pockets_closed_by_the_floor_are_cavities_only_when_the_floor_is_given():

@@ -505,6 +505,35 @@ def test_on_a_table_the_fit_fills_a_hollow_under_its_solid_that_opens_to_the_out
     assert bool((sdf[~cylinder & (z >= 0)] > 0).all())  # nothing beside the object
 
 
+def test_on_a_table_space_under_the_solid_that_a_wide_gap_opens_to_the_side_stays_empty(table_capture):
+    """A roof on a post, as a head on a neck: the air under the roof is open to the side, where views see into it,
+    so it is no hidden space (a head on a can came out a pillar as wide as the head down to the table)."""
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    model = make_fast_model(load_scene(table_capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    sdf, vox = model.field.sdf.detach()[0, 0], model.field.voxel
+    assert model.part("cavities").config.open_width_m < 0.02
+    nodes = model.field.node_points().reshape(sdf.shape + (3,))
+    x, y, z = nodes[..., 0] - 0.005, nodes[..., 1] + 0.004, nodes[..., 2] - model.problem.floor_z
+    r = torch.hypot(x, y)
+    post = (r < 0.012) & (z >= 0) & (z < 0.05)
+    roof = (r < 0.04) & (z >= 0.05) & (z < 0.08)
+    under = (r > 0.012 + vox) & (r < 0.04) & (z >= 0) & (z < 0.05 - vox)  # 2.8 cm of air round the post
+    with torch.no_grad():
+        sdf[...] = vox
+        sdf[post | roof] = -vox
+    model.part("cavities").fill(model)
+    assert bool((sdf[under] > 0).all()), "open to the side: left empty"
+    assert bool((sdf[post | roof] < 0).all())
+    mesh = model.extract_mesh(averaged=False)
+    hidden = mesh.contains(np.array([[0.005 + 0.03, -0.004, model.problem.floor_z + 0.025]]))
+    assert not hidden[0], "nor filled in the mesh"
+    for bad in (-0.01, 0.5, float("nan"), True):
+        with pytest.raises(ConfigError, match="parts.cavities.open_width_m"):
+            make_fast_model(load_scene(table_capture),
+                            _unchecked(config, {"parts.cavities.open_width_m": bad}), "cpu",
+                            RunPlan(steps=1, budget_s=None, seed=0))
+
+
 def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_there(cylinder_capture):
     from spadscan.worker.recon.trainer import train
 

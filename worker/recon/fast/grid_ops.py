@@ -33,25 +33,50 @@ def cavities(solid: np.ndarray, below_floor: np.ndarray | None = None) -> np.nda
     return (~wall) & ~np.isin(empty_lab, border[border > 0])
 
 
-def under_overhangs(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float) -> np.ndarray:
+def under_overhangs(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, open_nodes: int = 0) -> np.ndarray:
     """(nz, ny, nx) bool: the empty nodes of a solid grid that lie above the table (at floor_z) and below a solid node
-    of their column. z_nodes (nz,): the nodes' heights, metres.
+    of their column, less those that an opening at least 2 `open_nodes` + 1 nodes wide joins to the space around
+    the object (`open_to_outside`; 0: none left out). z_nodes (nz,): the nodes' heights, metres.
 
     Sensors look at a table-top object from above: the space between an object's underside and the table is
     hidden from every view (no histogram says whether it is empty), and an empty gap there is a fit that
-    the data did not ask for — it is what the object's unseen bottom and the melted skirt leave behind."""
+    the data did not ask for — it is what the object's unseen bottom and the melted skirt leave behind. Space under
+    an overhang that a wide gap opens to the side is not hidden: the views from the side see into it (the neck
+    under a head standing on a can)."""
     solid = np.asarray(solid, bool)
-    above_table = (np.asarray(z_nodes) >= floor_z)[:, None, None]
+    above_table = np.broadcast_to((np.asarray(z_nodes) >= floor_z)[:, None, None], solid.shape)
     # Solid at or above each node in its column: a cumulative OR from the top of the grid down.
     covered = np.flip(np.logical_or.accumulate(np.flip(solid, axis=0), axis=0), axis=0)
-    return (~solid) & covered & above_table
+    under = (~solid) & covered & above_table
+    if open_nodes > 0 and under.any():
+        under &= ~open_to_outside((~solid) & above_table, open_nodes)
+    return under
 
 
-def fill_under_overhangs(values: np.ndarray, z_nodes: np.ndarray, floor_z: float, fill_value: float) -> np.ndarray:
+def open_to_outside(empty: np.ndarray, width: int) -> np.ndarray:
+    """(nz, ny, nx) bool: the `empty` nodes that passages at least 2 `width` + 1 nodes wide link to the grid's
+    boundary: the empty space's morphological opening (erode by `width` nodes, keep what still reaches the
+    boundary, dilate back), within the empty space."""
+    cross = ndimage.generate_binary_structure(3, 1)
+    pad = width + 1
+    # The boundary is open: a shell of empty nodes around the grid, thicker than the erosion, keeps it so.
+    space = np.pad(np.asarray(empty, bool), pad, constant_values=True)
+    core = ndimage.binary_erosion(space, cross, iterations=width)
+    labels, _ = ndimage.label(core)
+    shell = np.ones(space.shape, bool)
+    shell[pad:-pad, pad:-pad, pad:-pad] = False
+    ids = np.unique(labels[shell & core])
+    outside = np.isin(labels, ids[ids > 0])  # what still reaches the shell: the space around the object
+    reached = ndimage.binary_dilation(outside, cross, iterations=width) & space
+    return reached[pad:-pad, pad:-pad, pad:-pad]
+
+
+def fill_under_overhangs(values: np.ndarray, z_nodes: np.ndarray, floor_z: float, fill_value: float,
+                         open_nodes: int = 0) -> np.ndarray:
     """Copy of an SDF grid (nz, ny, nx) with the nodes `under_overhangs` made solid (`fill_value` < 0)."""
     v = np.array(values, np.float32, copy=True)
-    v[under_overhangs(v < 0, z_nodes, floor_z)] = fill_value
+    v[under_overhangs(v < 0, z_nodes, floor_z, open_nodes)] = fill_value
     return v
 
 
-__all__ = ["node_heights", "below_floor", "cavities", "under_overhangs", "fill_under_overhangs"]
+__all__ = ["node_heights", "below_floor", "cavities", "under_overhangs", "open_to_outside", "fill_under_overhangs"]

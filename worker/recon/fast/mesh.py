@@ -60,11 +60,12 @@ def mesh_from_values(values: np.ndarray, origin, spacing):
     return trimesh.Trimesh(verts, faces[:, ::-1], process=True)
 
 
-def mesh_from_field(field, resolution: int | None = None, floor_z: float | None = None, fill_under: bool = False):
+def mesh_from_field(field, resolution: int | None = None, floor_z: float | None = None, fill_under: bool = False,
+                    open_m: float = 0.0):
     """Marching cubes of a GridField (cleaned by `clean_solid`, with the floor at height `floor_z` metres, if any),
     on its own nodes or resampled to `resolution` cells along its longest side, with vertex normals from the field's
     gradient (central differences). fill_under (a table at floor_z): fill the hidden space under overhangs first
-    (`grid_ops.fill_under_overhangs`)."""
+    (`grid_ops.fill_under_overhangs`), less what a gap of over 2 `open_m` metres opens to the side."""
     vals = field.sdf.detach()
     n = max(field.counts) - 1
     spacing = np.full(3, field.voxel)
@@ -81,7 +82,8 @@ def mesh_from_field(field, resolution: int | None = None, floor_z: float | None 
     below = below_floor(grid.shape, float(field.origin[2]), float(spacing[2]), floor_z)
     if below is not None and fill_under:
         z = node_heights(grid.shape[0], float(field.origin[2]), float(spacing[2]))
-        grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)))
+        grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)),
+                                    open_nodes=int(round(open_m / float(np.min(spacing)))))
     mesh = mesh_from_values(clean_solid(grid, below_floor=below), field.origin.cpu().numpy(), spacing)
     mesh.vertex_normals = vertex_normals(field, mesh.vertices)
     return mesh

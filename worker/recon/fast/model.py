@@ -304,8 +304,9 @@ class FastModel:
         if not self.on_table:
             return mesh_from_field(field, resolution)
         cavities = self.part("cavities")
-        return mesh_from_field(field, resolution, self.problem.floor_z,
-                               fill_under=cavities is not None and cavities.config.under_overhangs)
+        fill = cavities is not None and cavities.config.under_overhangs
+        return mesh_from_field(field, resolution, self.problem.floor_z, fill_under=fill,
+                               open_m=cavities.config.open_width_m if fill else 0.0)
 
     def summary(self) -> dict:
         """JSON-able state: grid, hull, rays, albedo, convergence, and each part that ran with its config and what
