@@ -1,6 +1,7 @@
 """Simulated captures of the built-in validation and holdout splits and of the tall objects on a table.
 
-    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,check,large,table] [--seed 0] [--overwrite]
+    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,check,large,table] [--seed 0]
+                                     [--overwrite]
 
 Writes one capture folder per scene into FOLDER, each through `spadscan simulate` with a fixed command line (printed
 as it goes), so the same seed gives the same captures on any machine:

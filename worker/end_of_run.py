@@ -51,8 +51,8 @@ at a sharp edge that a smooth field rounds off is not a wrong surface."""
 COVERAGE_LIMIT = 0.12
 """Share of the surface seen by too few views (`coverage.Coverage.share_few`) above which the result says so: between
 the largest share that a good fit of a tuning capture leaves (11.4 %: the tuning lamp scanned from 0.35 m, 1.5 mm;
-the real pyramid within its 5 mm goal 10.4 %) and the smallest that one over 2 mm leaves (13.1 %: the tall egg at 3.0 mm);
-docs/end_of_run.md lists them."""
+the real pyramid within its 5 mm goal 10.4 %) and the smallest that one over 2 mm leaves (13.1 %: the tall egg at
+3.0 mm); docs/end_of_run.md lists them."""
 MIN_TREND_STEPS = 50
 """Fewest steps for the trend test: a shorter run is judged by its stop alone."""
 EXACT_BELOW = 30.0

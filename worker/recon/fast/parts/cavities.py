@@ -16,7 +16,7 @@ Space under an overhang is hidden only when the solid closes it in: where a gap 
 `open_width_m` opens it to the side, the views from the side see into it, and it stays as the fit leaves it
 (`grid_ops.open_to_outside`). Filling it all made a simulated head on a can (TMF8820, 120 views, on a table) a
 pillar as wide as the head down to the table: 19.25 mm, 0.98 mm with the gap rule (step-based, one thread, seed 0);
-a tall block 3.7 -> 0.89 mm (its carved skirt was filled); the real pyramid, whose hollow opens through pinholes,
+a tall block 3.85 -> 0.89 mm (its carved skirt was filled); the real pyramid, whose hollow opens through pinholes,
 4.41 -> 4.48 and its jittered twin 4.49 -> 4.53 (both 8.9 mm with no fill under the solid at all).
 """
 
