@@ -1,4 +1,5 @@
-"""Simulated captures of the built-in validation and holdout splits and of the tall objects on a table.
+"""Simulated captures of the built-in validation, holdout and check splits, of the large tuning scenes and of the tall
+objects on a table.
 
     python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,check,large,table] [--seed 0]
                                      [--overwrite]
