@@ -44,7 +44,7 @@ def under_overhangs(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, open
     an overhang that a wide gap opens to the side is not hidden: the views from the side see into it (the neck
     under a head standing on a can)."""
     solid = np.asarray(solid, bool)
-    above_table = np.broadcast_to((np.asarray(z_nodes) >= floor_z)[:, None, None], solid.shape)
+    above_table = (np.asarray(z_nodes) >= floor_z)[:, None, None]
     # Solid at or above each node in its column: a cumulative OR from the top of the grid down.
     covered = np.flip(np.logical_or.accumulate(np.flip(solid, axis=0), axis=0), axis=0)
     under = (~solid) & covered & above_table
