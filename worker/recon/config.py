@@ -176,6 +176,13 @@ def _coerce(old, value, key: str):
     return value
 
 
+def check_in_range(key: str, value, lo: float, hi: float, unit: str = "metres", hint: str = "") -> None:
+    """Raise ConfigError naming `key` unless `value` is a number (not a bool) in [lo, hi]; NaN is refused too (every
+    comparison with it is false). `hint`, when given, follows in brackets: what the bounds mean."""
+    if not (isinstance(value, (int, float)) and not isinstance(value, bool) and lo <= value <= hi):
+        raise ConfigError(f"{key} {value!r} must be in [{lo:g}, {hi:g}] {unit}" + (f" ({hint})" if hint else ""))
+
+
 def _deep_copy(obj):
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return dataclasses.replace(obj, **{f.name: _deep_copy(getattr(obj, f.name)) for f in dataclasses.fields(obj)
@@ -183,4 +190,4 @@ def _deep_copy(obj):
     return obj
 
 
-__all__ = ["PRESET_NAMES", "ReconConfig", "parse_override", "with_overrides", "FIXED_FIELDS"]
+__all__ = ["PRESET_NAMES", "ReconConfig", "parse_override", "with_overrides", "FIXED_FIELDS", "check_in_range"]

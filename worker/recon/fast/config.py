@@ -14,7 +14,7 @@ from typing import ClassVar
 
 from spadscan.protocol.errors import ConfigError
 
-from ..config import ReconConfig
+from ..config import ReconConfig, check_in_range
 from .parts import FastPartsConfig
 
 
@@ -152,9 +152,7 @@ class FastConfig(ReconConfig):
             if not (isinstance(value, int) and 4 <= value <= 1024):
                 raise ConfigError(f"field.{key} {value!r} must be an integer in [4, 1024]")
         for key in ("carve_margin_m", "carve_keep_returns_m"):
-            value = getattr(self.field, key)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and 0.0 <= value <= 1.0):
-                raise ConfigError(f"field.{key} {value!r} must be in [0, 1] metres")  # also refuses NaN
+            check_in_range(f"field.{key}", getattr(self.field, key), 0.0, 1.0)
         for key in ("views_per_step", "band_refresh_steps", "min_rays", "coarse_samples", "fine_samples",
                     "reg_points"):
             value = getattr(self.schedule, key)

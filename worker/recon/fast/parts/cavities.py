@@ -29,6 +29,7 @@ import torch
 
 from spadscan.protocol.errors import ConfigError
 
+from ...config import check_in_range
 from ..grid_ops import below_floor, cavities, node_heights, under_overhangs
 from .part import Model, Part, PartConfig
 
@@ -50,10 +51,8 @@ class CavitiesConfig(PartConfig):
         super().check(key)
         if not (isinstance(self.every_steps, int) and self.every_steps >= 1):
             raise ConfigError(f"{key}.every_steps {self.every_steps!r} must be an integer >= 1")
-        w = self.open_width_m
-        if not (isinstance(w, (int, float)) and not isinstance(w, bool) and 0.0 <= w <= 0.2):  # also refuses NaN
-            raise ConfigError(f"{key}.open_width_m {w!r} must be in [0, 0.2] metres (0: fill all the space under "
-                              f"the object)")
+        check_in_range(f"{key}.open_width_m", self.open_width_m, 0.0, 0.2,
+                       hint="0: fill all the space under the object")
 
 
 class Cavities(Part):

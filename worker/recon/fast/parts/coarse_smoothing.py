@@ -14,8 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from spadscan.protocol.errors import ConfigError
-
+from ...config import check_in_range
 from ..grid_ops import node_heights
 from .part import Model, Part, PartConfig, StepRecord
 
@@ -29,10 +28,7 @@ class CoarseSmoothingConfig(PartConfig):
 
     def check(self, key: str) -> None:
         super().check(key)
-        h = self.height_m
-        if not (isinstance(h, (int, float)) and not isinstance(h, bool) and 0.0 <= h <= 1.0):  # also refuses NaN
-            raise ConfigError(f"{key}.height_m {h!r} must be in [0, 1] metres ({key}.enabled=false: smooth "
-                              f"everywhere)")
+        check_in_range(f"{key}.height_m", self.height_m, 0.0, 1.0, hint=f"{key}.enabled=false: smooth everywhere")
 
 
 class CoarseSmoothing(Part):
