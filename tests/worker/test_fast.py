@@ -228,6 +228,46 @@ def test_adam_leaves_untouched_elements_where_they_are():
     assert float(moved.abs().max()) == 0.0
 
 
+def test_adam_floor_steps_weak_gradients_in_proportion_and_strong_ones_as_plain_adam():
+    """With a floor of 1, a node whose gradient is a thousandth of the others' moves about a thousandth as far (plain
+    Adam moves it a full step); the nodes with the typical gradient move as plain Adam moves them; untouched ones stay."""
+    grads = torch.tensor([1e-3, 1.0, 0.0, 1.0])
+    moves = []
+    for floor in (0.0, 1.0):
+        x = torch.zeros(4, requires_grad=True)
+        opt = Adam([([x], 0.01)], floor=(floor,))
+        for _ in range(3):
+            opt.zero_grad()
+            x.grad = grads.clone()
+            opt.step()
+        moves.append(-x.detach())
+    plain, floored = moves
+    assert float(plain[0]) == pytest.approx(0.03, rel=1e-3)
+    assert float(floored[1]) == pytest.approx(float(plain[1]), rel=1e-6)
+    mean_v = float((grads[grads > 0] ** 2).mean())
+    assert float(floored[0]) == pytest.approx(0.03 * 1e-3 / mean_v ** 0.5, rel=1e-3)
+    assert float(floored[2]) == 0.0 and bool(torch.isfinite(floored).all())
+    for bad in ((-1.0,), (float("nan"),), (1.0, 1.0)):
+        with pytest.raises(ValueError):
+            Adam([([torch.zeros(2, requires_grad=True)], 0.01)], floor=bad)
+
+
+def test_the_adam_floor_acts_on_the_last_level_only(cylinder_capture):
+    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
+                            RunPlan(steps=1, budget_s=None, seed=0))
+    assert model.opt.floor[0] == 0.0 and not model.last_level
+    model.refine()
+    assert model.last_level and model.opt.floor[0] == model.sc.adam_floor > 0
+    assert set(model.opt.floor[1:]) == {0.0}  # the albedos: plain Adam
+    for bad in (-1.0, float("nan"), True):
+        config = with_overrides(preset_config("fast"), FAST_SMALL)
+        config.schedule.adam_floor = bad
+        with pytest.raises(ConfigError, match="schedule.adam_floor"):
+            config.check()
+    with pytest.raises(ReconstructionError, match="schedule.adam_floor"):
+        with_overrides(preset_config("fast"), {"schedule.shared_adam": True})
+
+
 # ---- runs on simulated captures -----------------------------------------------------------------------------------
 
 

@@ -167,7 +167,9 @@ class FastModel:
         table = self.part("table")
         if table is not None:
             groups += table.param_groups(self.sc.albedo_lr)
-        self.opt = Adam(groups, shared=(self.sc.shared_adam,) + (False,) * (len(groups) - 1))
+        # The floor on the grid's last level only (the config's adam_floor says why); albedos and table: plain Adam.
+        floor = self.sc.adam_floor if self.last_level else 0.0
+        self.opt = Adam(groups, floor=(floor,) + (0.0,) * (len(groups) - 1))
 
     def _grid_lr(self) -> float:
         """Learning rate of the grid (metres per step): constant before the last level, cosine-decayed on it."""

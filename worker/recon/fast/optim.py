@@ -14,23 +14,26 @@ import torch
 class Adam:
     """Adam over groups [(tensors, lr), ...]; `step()` reads each tensor's .grad.
 
-    shared=True (per tensor) replaces the per-element second moment by one scalar, the mean square of the tensor's
-    non-zero gradient entries: updates then stay proportional to each element's gradient. This is what a grid
-    touched by a few thousand rays per step needs: plain Adam gives a node that a ray grazed once the same full
-    step as a node on a well-observed surface, and the grid crumples into floaters.
+    floor (one per group, default 0): each element's second moment is taken as at least this many times the mean
+    second moment of the tensor's elements touched so far (those with a gradient at some step). Plain Adam (0) gives
+    an element the same full step whatever the size of its gradient: a grid node that a ray grazed now and then
+    moves as far as one on a well-observed surface, and on a surface that few rays fix the noise of the sampled
+    rays' gradients moves the grid as far as the signal. With a floor of 1, elements whose gradients are smaller
+    than the tensor's typical one step in proportion to them, and the well-observed ones as plain Adam does.
     """
 
-    def __init__(self, groups, betas=(0.9, 0.99), eps: float = 1e-12, shared: tuple[bool, ...] | None = None):
+    def __init__(self, groups, betas=(0.9, 0.99), eps: float = 1e-12, floor: tuple[float, ...] | None = None):
         self.groups = [(list(params), float(lr)) for params, lr in groups]
         self.b1, self.b2 = betas
         self.eps = eps
         self.t = 0
-        self.shared = tuple(shared) if shared is not None else (False,) * len(self.groups)
+        self.floor = tuple(float(f) for f in floor) if floor is not None else (0.0,) * len(self.groups)
+        if len(self.floor) != len(self.groups) or not all(math.isfinite(f) and f >= 0 for f in self.floor):
+            raise ValueError(f"floor {floor} must give one finite number >= 0 per group")
         self.state = {}
-        for (ps, _), sh in zip(self.groups, self.shared):
+        for ps, _ in self.groups:
             for p in ps:
-                self.state[id(p)] = (torch.zeros_like(p), torch.zeros((), device=p.device, dtype=p.dtype) if sh
-                                     else torch.zeros_like(p))
+                self.state[id(p)] = (torch.zeros_like(p), torch.zeros_like(p))
 
     def zero_grad(self) -> None:
         for ps, _ in self.groups:
@@ -42,22 +45,21 @@ class Adam:
         self.t += 1
         c1 = 1.0 - self.b1 ** self.t
         c2 = 1.0 - self.b2 ** self.t
-        for (ps, lr), sh in zip(self.groups, self.shared):
+        for (ps, lr), floor in zip(self.groups, self.floor):
             for p in ps:
                 if p.grad is None:
                     continue
                 m, v = self.state[id(p)]
                 g = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
                 m.mul_(self.b1).add_(g, alpha=1.0 - self.b1)
-                if sh:
-                    sq = g * g
-                    nz = (sq > 0).sum().clamp(min=1)
-                    v.mul_(self.b2).add_(sq.sum() / nz, alpha=1.0 - self.b2)
-                else:
-                    v.mul_(self.b2).addcmul_(g, g, value=1.0 - self.b2)
+                v.mul_(self.b2).addcmul_(g, g, value=1.0 - self.b2)
+                denom = v / c2
+                if floor > 0:
+                    touched = (denom > 0).sum().clamp(min=1)
+                    denom.clamp_min_(denom.sum() * floor / touched)
                 # sqrt(v + eps^2) rather than sqrt(v) + eps: the same where it matters (v >> eps^2), and the square
                 # root of the exact zeros of never-touched nodes is several times slower on CPU than of a normal number.
-                denom = (v / c2).add_(self.eps * self.eps).sqrt_()
+                denom.add_(self.eps * self.eps).sqrt_()
                 p.addcdiv_(m, denom, value=-lr / c1)
 
     def set_lr(self, group: int, lr: float) -> None:
