@@ -53,6 +53,12 @@ def under_overhangs(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, open
     return under
 
 
+def open_nodes(width_m: float, voxel_m: float) -> int:
+    """`under_overhangs`'s open_nodes for a gap half-width of `width_m` metres on a grid of `voxel_m` metre cells: the
+    fit and the mesh convert it alike, so that the mesh keeps open what the fit kept open."""
+    return int(round(width_m / voxel_m))
+
+
 def open_to_outside(empty: np.ndarray, width: int) -> np.ndarray:
     """(nz, ny, nx) bool: the `empty` nodes that passages at least 2 `width` + 1 nodes wide link to the grid's
     boundary: the empty space's morphological opening (erode by `width` nodes, keep what still reaches the
@@ -79,4 +85,5 @@ def fill_under_overhangs(values: np.ndarray, z_nodes: np.ndarray, floor_z: float
     return v
 
 
-__all__ = ["node_heights", "below_floor", "cavities", "under_overhangs", "open_to_outside", "fill_under_overhangs"]
+__all__ = ["node_heights", "below_floor", "cavities", "under_overhangs", "open_nodes", "open_to_outside",
+           "fill_under_overhangs"]

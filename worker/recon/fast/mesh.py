@@ -9,7 +9,7 @@ from scipy import ndimage
 from skimage.measure import marching_cubes
 
 from ..errors import ReconstructionError
-from .grid_ops import below_floor, cavities, fill_under_overhangs, node_heights
+from .grid_ops import below_floor, cavities, fill_under_overhangs, node_heights, open_nodes
 
 FLOATER_FRACTION = 0.02
 """Solid pieces of a mesh's grid smaller than this fraction of the largest piece (by node count) are floaters. On
@@ -83,7 +83,7 @@ def mesh_from_field(field, resolution: int | None = None, floor_z: float | None 
     if below is not None and fill_under:
         z = node_heights(grid.shape[0], float(field.origin[2]), float(spacing[2]))
         grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)),
-                                    open_nodes=int(round(open_m / float(np.min(spacing)))))
+                                    open_nodes=open_nodes(open_m, float(np.min(spacing))))
     mesh = mesh_from_values(clean_solid(grid, below_floor=below), field.origin.cpu().numpy(), spacing)
     mesh.vertex_normals = vertex_normals(field, mesh.vertices)
     return mesh

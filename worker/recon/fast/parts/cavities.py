@@ -30,7 +30,7 @@ import torch
 from spadscan.protocol.errors import ConfigError
 
 from ...config import check_in_range
-from ..grid_ops import below_floor, cavities, node_heights, under_overhangs
+from ..grid_ops import below_floor, cavities, node_heights, open_nodes, under_overhangs
 from .part import Model, Part, PartConfig
 
 
@@ -82,7 +82,7 @@ class Cavities(Part):
         fill = np.zeros_like(solid)
         if self.fills_under(model):
             z = node_heights(solid.shape[0], float(field.origin[2]), field.voxel)
-            fill = under_overhangs(solid, z, model.problem.floor_z, int(round(self.config.open_width_m / field.voxel)))
+            fill = under_overhangs(solid, z, model.problem.floor_z, open_nodes(self.config.open_width_m, field.voxel))
         fill |= cavities(solid | fill, below)
         if fill.any():
             self.filled_nodes += int(fill.sum())
