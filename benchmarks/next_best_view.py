@@ -467,6 +467,9 @@ def combine(folders: list[Path]) -> dict:
     agree). A run made before the seed was part of every key held one seed, its settings' "seed"."""
     data = {"fits": {}}
     for folder in folders:
+        if not (folder / "results.json").is_file():
+            raise SystemExit(f"{folder}: no results.json here (--combine takes the folders that earlier runs "
+                             "wrote with --out)")
         part = json.loads((folder / "results.json").read_text())
         settings = dict(part["settings"])
         seed = settings.pop("seed", 0)

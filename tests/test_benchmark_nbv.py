@@ -67,6 +67,15 @@ def test_combine_refuses_runs_made_with_other_settings(nbv, tmp_path):
         nbv.combine([tmp_path / "a", tmp_path / "c"])
 
 
+def test_combine_says_which_argument_is_not_a_run_folder(nbv, tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "results.json").write_text(json.dumps({"settings": {"steps": 800}, "fits": {}}))
+    (tmp_path / "a.log").write_text("a log, not a run folder")
+    for other in (tmp_path / "a.log", tmp_path / "missing"):
+        with pytest.raises(SystemExit, match=f"{other.name}: no results.json here"):
+            nbv.combine([tmp_path / "a", other])
+
+
 def test_several_seeds_give_the_median_and_its_range_and_decide_the_goal_by_the_median(nbv):
     per_seed = [({"fibonacci": {64: 3.6, 128: 2.75}, "adaptive-coverage": {64: 4.33}}),
                 ({"fibonacci": {64: 4.5, 128: 2.81}, "adaptive-coverage": {64: 2.43}}),
