@@ -250,15 +250,31 @@ def test_adam_floor_steps_weak_gradients_in_proportion_and_strong_ones_as_plain_
     for bad in ((-1.0,), (float("nan"),), (1.0, 1.0)):
         with pytest.raises(ValueError):
             Adam([([torch.zeros(2, requires_grad=True)], 0.01)], floor=bad)
+    for bad in (-1.0, float("inf")):
+        with pytest.raises(ValueError):
+            opt.set_floor(0, bad)
 
 
-def test_the_adam_floor_acts_on_the_last_level_only(cylinder_capture):
-    model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
-                            RunPlan(steps=1, budget_s=None, seed=0))
-    assert model.opt.floor[0] == 0.0 and not model.last_level
+def test_the_adam_floor_sets_in_after_the_coarse_levels_first_steps_and_stays_on_every_level(cylinder_capture):
+    config = with_overrides(preset_config("fast"), {**FAST_SMALL, "schedule.adam_floor_after_steps": 3,
+                                                    "parts.refinement.after_steps": 10})
+    model = make_fast_model(load_scene(cylinder_capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    floors = []
+    for _ in range(5):
+        model.step()
+        floors.append(model.opt.floor[0])
+    # The floor in force at each of the 5 steps: plain Adam for the first 3, then the floor.
+    assert floors == [0.0, 0.0, 0.0] + [model.sc.adam_floor] * 2 and model.sc.adam_floor > 0 and not model.last_level
     model.refine()
-    assert model.last_level and model.opt.floor[0] == model.sc.adam_floor > 0
+    assert model.last_level and model.opt.floor[0] == model.sc.adam_floor
+    model.step()
+    assert model.opt.floor[0] == model.sc.adam_floor
     assert set(model.opt.floor[1:]) == {0.0}  # the albedos: plain Adam
+    for key, bad in (("adam_floor_after_steps", -1), ("adam_floor_after_steps", 2.5), ("adam_floor_after_steps", True)):
+        config = with_overrides(preset_config("fast"), FAST_SMALL)
+        setattr(config.schedule, key, bad)
+        with pytest.raises(ConfigError, match=f"schedule.{key}"):
+            config.check()
     for bad in (-1.0, float("nan"), True):
         config = with_overrides(preset_config("fast"), FAST_SMALL)
         config.schedule.adam_floor = bad

@@ -81,11 +81,15 @@ class FastScheduleConfig:
     fine_steps: int = 1200
     """Steps the last level's learning-rate decay is laid out over."""
     adam_floor: float = 1.0
-    """On the last level, each grid node's Adam second moment is taken as at least this many times the grid's mean
-    (`optim.Adam`'s floor): nodes whose gradients are smaller than the grid's typical one step in proportion to
-    them, not a full step, so the noise of the few rays that reach a surface moves it less (0: plain Adam). The
-    coarse level keeps plain Adam: it carves the hull down to the object in its few hundred steps, and a floor
-    there slowed that (the tuning lamp 1.24 -> 1.83 mm with the floor on both levels, 1.03 on the last only)."""
+    """Each grid node's Adam second moment is taken as at least this many times the grid's mean (`optim.Adam`'s
+    floor): nodes whose gradients are smaller than the grid's typical one step in proportion to them, not a full
+    step, so the noise of the few rays that reach a surface moves it less (0: plain Adam). On every level, after
+    the first `adam_floor_after_steps` steps of the run."""
+    adam_floor_after_steps: int = 50
+    """Plain Adam for this many steps of the coarse level before the floor sets in: they carve the hull down to the
+    object, which the floor slows (the tuning lamp 1.03 -> 1.83 mm and the mug 1.15 -> 5.05 with the floor from the
+    first step; plain Adam on the whole coarse level left phantom blobs on a head, 3.80 mm, and the mushroom's
+    underside filled, 2.11; benchmarks/RESULTS.md)."""
     albedo_lr: float = 0.02
     """Adam learning rate of the log albedos (object and table)."""
     band_voxels: float = 4.0
@@ -160,6 +164,10 @@ class FastConfig(ReconConfig):
             check_in_range(f"field.{key}", getattr(self.field, key), 0.0, 1.0)
         check_in_range("schedule.adam_floor", self.schedule.adam_floor, 0.0, 1e6, unit="times the mean",
                        hint="0: plain Adam")
+        after = self.schedule.adam_floor_after_steps
+        if not (isinstance(after, int) and not isinstance(after, bool) and after >= 0):
+            raise ConfigError(f"schedule.adam_floor_after_steps {after!r} must be an integer >= 0 (0: the floor "
+                              f"from the first step)")
         for key in ("views_per_step", "band_refresh_steps", "min_rays", "coarse_samples", "fine_samples",
                     "reg_points"):
             value = getattr(self.schedule, key)

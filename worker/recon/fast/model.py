@@ -130,6 +130,7 @@ class FastModel:
         if reg.requires_grad:
             reg.backward()
         self.opt.set_lr(0, self._grid_lr())
+        self.opt.set_floor(0, self._grid_floor())
         self.opt.step()
         self.steps += 1
         self.level_steps += 1
@@ -167,9 +168,14 @@ class FastModel:
         table = self.part("table")
         if table is not None:
             groups += table.param_groups(self.sc.albedo_lr)
-        # The floor on the grid's last level only (the config's adam_floor says why); albedos and table: plain Adam.
-        floor = self.sc.adam_floor if self.last_level else 0.0
-        self.opt = Adam(groups, floor=(floor,) + (0.0,) * (len(groups) - 1))
+        # The floor on the grid (after the coarse level's first steps: `_grid_floor`); albedos and table: plain Adam.
+        self.opt = Adam(groups, floor=(self._grid_floor(),) + (0.0,) * (len(groups) - 1))
+
+    def _grid_floor(self) -> float:
+        """The grid's Adam floor: none for the coarse level's first `adam_floor_after_steps` steps (the config says
+        why), `adam_floor` after them and on every later level."""
+        warming = self.level == 0 and self.level_steps < self.sc.adam_floor_after_steps
+        return 0.0 if warming else self.sc.adam_floor
 
     def _grid_lr(self) -> float:
         """Learning rate of the grid (metres per step): constant before the last level, cosine-decayed on it."""

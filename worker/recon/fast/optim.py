@@ -62,6 +62,11 @@ class Adam:
                 denom.add_(self.eps * self.eps).sqrt_()
                 p.addcdiv_(m, denom, value=-lr / c1)
 
+    def set_floor(self, group: int, floor: float) -> None:
+        if not (math.isfinite(floor) and floor >= 0):
+            raise ValueError(f"floor {floor} must be finite and >= 0")
+        self.floor = self.floor[:group] + (float(floor),) + self.floor[group + 1:]
+
     def set_lr(self, group: int, lr: float) -> None:
         params, _ = self.groups[group]
         if not (math.isfinite(lr) and lr >= 0):
