@@ -284,6 +284,19 @@ def test_the_adam_floor_sets_in_after_the_coarse_levels_first_steps_and_stays_on
         with_overrides(preset_config("fast"), {"schedule.shared_adam": True})
 
 
+def test_on_a_table_the_coarse_level_keeps_plain_adam_and_the_fine_level_gets_the_floor(table_capture):
+    config = with_overrides(preset_config("fast"), {**FAST_SMALL, "schedule.adam_floor_after_steps": 1,
+                                                    "parts.refinement.after_steps": 10})
+    model = make_fast_model(load_scene(table_capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    assert model.on_table
+    for _ in range(3):
+        model.step()
+        assert model.opt.floor[0] == 0.0
+    model.refine()
+    model.step()
+    assert model.opt.floor[0] == model.sc.adam_floor > 0
+
+
 # ---- runs on simulated captures -----------------------------------------------------------------------------------
 
 

@@ -172,10 +172,11 @@ class FastModel:
         self.opt = Adam(groups, floor=(self._grid_floor(),) + (0.0,) * (len(groups) - 1))
 
     def _grid_floor(self) -> float:
-        """The grid's Adam floor: none for the coarse level's first `adam_floor_after_steps` steps (the config says
-        why), `adam_floor` after them and on every later level."""
-        warming = self.level == 0 and self.level_steps < self.sc.adam_floor_after_steps
-        return 0.0 if warming else self.sc.adam_floor
+        """The grid's Adam floor (the config's `adam_floor` says why): none for the coarse level's first
+        `adam_floor_after_steps` steps, and none on the whole coarse level of a scene on a table, `adam_floor` on
+        the levels after it."""
+        plain = self.level == 0 and (self.on_table or self.level_steps < self.sc.adam_floor_after_steps)
+        return 0.0 if plain else self.sc.adam_floor
 
     def _grid_lr(self) -> float:
         """Learning rate of the grid (metres per step): constant before the last level, cosine-decayed on it."""
