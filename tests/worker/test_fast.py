@@ -270,10 +270,10 @@ def test_the_adam_floor_sets_in_after_the_coarse_levels_first_steps_and_stays_on
     model.step()
     assert model.opt.floor[0] == model.sc.adam_floor
     assert set(model.opt.floor[1:]) == {0.0}  # the albedos: plain Adam
-    for key, bad in (("adam_floor_after_steps", -1), ("adam_floor_after_steps", 2.5), ("adam_floor_after_steps", True)):
+    for bad in (-1, 2.5, True):
         config = with_overrides(preset_config("fast"), FAST_SMALL)
-        setattr(config.schedule, key, bad)
-        with pytest.raises(ConfigError, match=f"schedule.{key}"):
+        config.schedule.adam_floor_after_steps = bad
+        with pytest.raises(ConfigError, match="schedule.adam_floor_after_steps"):
             config.check()
     for bad in (-1.0, float("nan"), True):
         config = with_overrides(preset_config("fast"), FAST_SMALL)
