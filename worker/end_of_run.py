@@ -1,7 +1,7 @@
 """How a reconstruction ended, honestly: did it converge, and what makes its result doubtful (report.json's
 "converged" and "warnings", one line each).
 
-Four checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
+Five checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
 
 - **Stopped early.** A run that ended on its time budget or step count while its data term was still falling:
   the windowed data term of the last fifth of the run against the fifth before it.
@@ -17,6 +17,8 @@ Four checks, each on plain numbers the run recorded (docs/end_of_run.md derives 
   all the histograms (`FitNoise.relative_misfit`), against what a good fit of a real capture leaves.
 - **Seen by too few views.** The share of the mesh's surface (undersides left out) that fewer than three views saw
   (`coverage.py`): there the shape is the prior's guess, however well the fit explains the measurements.
+- **In pieces.** The mesh falls apart into more than one piece of note (`pieces.py`): a thin part broke where the
+  fit could not hold it, or surface stands apart where there is none. Neither need show in the fit's misfit.
 """
 
 from __future__ import annotations
@@ -214,6 +216,8 @@ class RunFacts:
     """What a short time budget cut (a coarser mesh, fewer metric points): said as warnings too."""
     coverage: object | None = None
     """The mesh's coverage by the views (a `coverage.Coverage`), or None where it was not measured."""
+    pieces: object | None = None
+    """The mesh's connected pieces (a `pieces.Pieces`), or None where they were not counted."""
     continued: bool = False
     """The run went on from another fit's field (a live job's final run): too few steps to judge a trend is then a
     short polish, not a rough early state."""
@@ -272,6 +276,15 @@ def coverage_warning(coverage, measured: bool = False) -> str | None:
             + ("; if the views did aim at it, the object may have moved during the scan" if measured else ""))
 
 
+def pieces_warning(pieces) -> str | None:
+    """The line saying that the mesh is in more than one piece of note (a `pieces.Pieces`), or None."""
+    if pieces is None or pieces.count < 2:
+        return None
+    return (f"the mesh is in {pieces.count} pieces, {100 * pieces.share_apart:.0f} % of its surface apart from the "
+            f"largest: if the object is one piece, a thin part of it broke off or a lump stands where there is "
+            f"nothing; look at preview.png")
+
+
 def warnings(facts: RunFacts) -> list[str]:
     """One line per reason to doubt the result (empty when there is none)."""
     out = []
@@ -300,12 +313,15 @@ def warnings(facts: RunFacts) -> list[str]:
     seen = coverage_warning(facts.coverage, facts.measured)
     if seen:
         out.append(seen)
+    apart = pieces_warning(facts.pieces)
+    if apart:
+        out.append(apart)
     out += facts.budget_notes
     return out
 
 
 __all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "converged", "cpu_share",
-           "warnings", "misfit_warning", "coverage_warning", "COVERAGE_LIMIT", "STILL_FALLING", "STARVED_SHARE",
+           "warnings", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT", "STILL_FALLING", "STARVED_SHARE",
            "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED", "MISFIT_Z", "MISFIT_RELATIVE",
            "MISFIT_MIN_HISTOGRAMS",
            "noise_moments", "misfit_histograms"]

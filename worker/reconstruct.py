@@ -27,6 +27,7 @@ from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PI
                      PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within, metric_points_within,
                      training_budget)
 from .coverage import Coverage, mesh_coverage
+from .pieces import mesh_pieces
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
@@ -218,6 +219,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     t_pictures = clock()
     fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
     coverage = _coverage(mesh, scene, log)
+    pieces = mesh_pieces(mesh) if len(mesh.faces) and mesh.area > 0 else None
     stages["pictures_s"] = clock() - t_pictures
     if truth is not None:
         costs.fixed_s, costs.fit_check_s = NORMALS_PICTURE_S, 0.0  # all that is left to draw after the metrics
@@ -242,12 +244,13 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
-                     measured=bool(scene.real), budget_notes=notes, coverage=coverage,
+                     measured=bool(scene.real), budget_notes=notes, coverage=coverage, pieces=pieces,
                      continued=bool(getattr(model, "warm_started", False)))
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts)
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
     report["coverage"] = None if coverage is None else coverage.to_dict()
+    report["pieces"] = None if pieces is None else pieces.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["threads"] = (governor.summary() if governor is not None else
                          {"fixed": torch.get_num_threads()} if dev.type == "cpu" else None)

@@ -16,6 +16,7 @@ from spadscan.worker.end_of_run import (COVERAGE_LIMIT, EXACT_BELOW, MISFIT_MIN_
                                         MISFIT_SHARE_SIMULATED,
                                         RELATIVE_MISFIT_LIMIT, FitNoise, RunFacts, converged, fit_noise, late_drop,
                                         noise_deviance, noise_moments, warnings)
+from spadscan.worker.pieces import Pieces
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -243,6 +244,11 @@ def test_each_rule_warns_alone():
     assert "may have moved during the scan" in line, "a measured capture: an object moved mid-scan leaves this too"
     (line,) = warnings(RunFacts("converged", 100, True, flat, coverage=guessed, measured=False))
     assert "fewer than 3 views" in line and "moved" not in line, "a simulated object never moves"
+    whole = Pieces(count=1, share_apart=0.004, specks=3)
+    assert warnings(RunFacts("converged", 100, True, flat, pieces=whole)) == [], "one piece and specks: quiet"
+    broken = Pieces(count=3, share_apart=0.16, specks=5)
+    (line,) = warnings(RunFacts("converged", 100, True, flat, pieces=broken))
+    assert "in 3 pieces, 16 % of its surface apart from the largest" in line and "broke off" in line
     on_gpu = RunFacts("budget", 100, True, flat, device="cuda", cpu_seconds=2.0, wall_seconds=10.0)
     assert warnings(on_gpu) == [], "a GPU run waits for its device, not for a core"
 
@@ -301,6 +307,7 @@ def test_a_starved_run_and_a_fit_far_from_the_noise_say_so(ambient_capture, box_
     assert report["fit_to_noise"]["misfit_histograms"] < MISFIT_MIN_HISTOGRAMS, report["fit_to_noise"]
     assert not has(report, "busy") and not has(report, "does not explain"), report["warnings"]
     assert report["coverage"]["share_seen_by_few_views"] <= COVERAGE_LIMIT and not has(report, "fewer than 3 views")
+    assert report["pieces"]["count"] == 1 and not has(report, "pieces"), report["pieces"]
 
 
 def test_a_surface_that_few_views_saw_says_so(one_sided_capture, tmp_path):
@@ -309,6 +316,26 @@ def test_a_surface_that_few_views_saw_says_so(one_sided_capture, tmp_path):
     assert has(report, "was seen by fewer than 3 views"), report["warnings"]
     saved = json.loads((tmp_path / "one-sided" / "report.json").read_text())
     assert saved["coverage"] == report["coverage"]
+
+
+def test_a_mesh_in_pieces_says_so(tmp_path):
+    """Two boxes 12 cm apart, seen all round: the fit is two pieces, and the run says so (with one object that is
+    the sign of a part broken off)."""
+    import trimesh
+
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+    boxes = trimesh.util.concatenate([trimesh.creation.box(extents=(0.05, 0.05, 0.08)).apply_translation([x, 0, 0.04])
+                                      for x in (-0.06, 0.06)])
+    poses = fibonacci_hemisphere(16, 0.35, target=(0, 0, 0.04), min_elevation_deg=15)
+    capture = simulate_capture(boxes, sensor_preset("lcspc-sim"), poses, tmp_path / "two",
+                               settings=SimSettings(rays_per_zone=512), progress=False)
+    report = reconstruct(capture, tmp_path / "out", steps=200)
+    assert report["pieces"]["count"] == 2 and report["pieces"]["share_apart"] > 0.3, report["pieces"]
+    assert has(report, "the mesh is in 2 pieces"), report["warnings"]
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["pieces"] == report["pieces"]
 
 
 def test_a_real_capture_whose_timing_jumped_mid_scan_says_its_fit_does_not_explain_it(tmp_path):
