@@ -202,9 +202,37 @@ def lighthouse():
     return SolidScene(smooth_union(0.004, *parts), 0.08, 0.345)
 
 
+def candlestick():
+    """A candlestick, 0.27 m: a round foot 11 cm across, a 12 mm column 18 cm tall, a drip pan 7 cm across and a
+    candle on top (a thin column between two masses)."""
+    parts = [cylinder((0, 0), 0.055, 0.0, 0.012, rounding=0.003),
+             capsule((0, 0, 0.010), (0, 0, 0.196), 0.006),
+             subtract(cylinder((0, 0), 0.035, 0.192, 0.208, rounding=0.002), cylinder((0, 0), 0.030, 0.198, 0.3)),
+             cylinder((0, 0), 0.011, 0.196, 0.270, rounding=0.002)]
+    return SolidScene(smooth_union(0.004, *parts), 0.06, 0.28, 0.0012)
+
+
+def kettle():
+    """A kettle, 0.18 m: a round body 17 cm across with a flat foot, a lid knob, a spout rising at the front and a
+    14 mm handle arching over the back (smooth, a loop)."""
+    body = intersect(ellipsoid((0, 0, 0.075), (0.085, 0.085, 0.085)), lambda x, y, z: -z)
+    ring = rotated(torus((0, 0, 0), 0.050, 0.007), (0, 1, 0), math.pi / 2)
+    parts = [body, sphere((0, 0, 0.162), 0.014),                               # lid knob
+             capsule((0, 0.055, 0.060), (0, 0.125, 0.135), 0.011),             # spout
+             lambda x, y, z: ring(x, y + 0.070, z - 0.115)]                     # handle
+    return SolidScene(smooth_union(0.008, *parts), 0.14, 0.19)
+
+
+def pear():
+    """A pear, 0.20 m: a round bottom 11 cm across and a narrower top blended into it, a stalk (smooth, organic)."""
+    fruit = smooth_union(0.040, ellipsoid((0, 0, 0.052), (0.055, 0.055, 0.060)), sphere((0, 0, 0.130), 0.034))
+    parts = [intersect(fruit, lambda x, y, z: -z), capsule((0, 0, 0.160), (0.008, 0, 0.195), 0.0035)]
+    return SolidScene(smooth_union(0.004, *parts), 0.07, 0.20, 0.0012)
+
+
 SOLID_SCENES = {"teddy": teddy, "head": head, "duck": duck, "stool": stool, "mug": mug, "bowl": bowl,
                 "head-on-can": head_on_can, "chair": chair, "snowman": snowman, "vase": vase, "ring-stand": ring_stand,
-                "cat": cat, "lighthouse": lighthouse}
+                "cat": cat, "lighthouse": lighthouse, "candlestick": candlestick, "kettle": kettle, "pear": pear}
 """Built-in scene name -> maker of its SolidScene."""
 
 
