@@ -321,7 +321,7 @@ def warnings(facts: RunFacts) -> list[str]:
 
 
 __all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "converged", "cpu_share",
-           "warnings", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT", "STILL_FALLING", "STARVED_SHARE",
-           "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED", "MISFIT_Z", "MISFIT_RELATIVE",
+           "warnings", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT", "STILL_FALLING",
+           "STARVED_SHARE", "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED", "MISFIT_Z", "MISFIT_RELATIVE",
            "MISFIT_MIN_HISTOGRAMS",
            "noise_moments", "misfit_histograms"]

@@ -27,11 +27,11 @@ from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PI
                      PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within, metric_points_within,
                      training_budget)
 from .coverage import Coverage, mesh_coverage
-from .pieces import mesh_pieces
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
 from .outputs import capture_state_note, export_mesh
+from .pieces import mesh_pieces
 from .recon.config import ReconConfig, with_overrides
 from .recon.errors import ReconstructionError
 from .recon.model_api import ReconModel, RunPlan
