@@ -31,7 +31,7 @@ from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
 from .outputs import capture_state_note, export_mesh
-from .pieces import mesh_pieces
+from .pieces import Pieces, mesh_pieces
 from .recon.config import ReconConfig, with_overrides
 from .recon.errors import ReconstructionError
 from .recon.model_api import ReconModel, RunPlan
@@ -219,7 +219,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     t_pictures = clock()
     fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
     coverage = _coverage(mesh, scene, log)
-    pieces = mesh_pieces(mesh) if len(mesh.faces) and mesh.area > 0 else None
+    pieces = _pieces(mesh, log)
     stages["pictures_s"] = clock() - t_pictures
     if truth is not None:
         costs.fixed_s, costs.fit_check_s = NORMALS_PICTURE_S, 0.0  # all that is left to draw after the metrics
@@ -399,6 +399,15 @@ def _coverage(mesh, scene: SceneData, log) -> Coverage | None:
         return mesh_coverage(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor)
     except SpadscanError as exc:
         log(f"no coverage measured: {exc}")
+        return None
+
+
+def _pieces(mesh, log) -> Pieces | None:
+    """The mesh's connected pieces (pieces.py), or None (said in the log) for a mesh without surface."""
+    try:
+        return mesh_pieces(mesh)
+    except SpadscanError as exc:
+        log(f"no pieces counted: {exc}")
         return None
 
 
