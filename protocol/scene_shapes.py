@@ -230,9 +230,27 @@ def pear():
     return SolidScene(smooth_union(0.004, *parts), 0.07, 0.20, 0.0012)
 
 
+def plant_stand():
+    """A plant stand, 0.18 m: a 13 cm square top 15 mm thick on four splayed 10 mm legs, joined near the floor by
+    6 mm braces (thin parts: for tuning what thin legs and rungs need)."""
+    parts = [box((0, 0, 0.1725), (0.065, 0.065, 0.0075), rounding=0.002)]
+    tops, feet = [], []
+    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+        tops.append(np.array([0.048 * sx, 0.048 * sy, 0.168]))
+        feet.append(np.array([0.068 * sx, 0.068 * sy, -0.008]))
+        parts.append(capsule(tops[-1], feet[-1], 0.005))
+    t = (0.055 + 0.008) / 0.176  # braces 5.5 cm above the floor
+    for k in range(4):
+        a = feet[k] + t * (tops[k] - feet[k])
+        b = feet[(k + 1) % 4] + t * (tops[(k + 1) % 4] - feet[(k + 1) % 4])
+        parts.append(capsule(a, b, 0.003))
+    return SolidScene(smooth_union(0.003, *parts), 0.08, 0.185, 0.0010)
+
+
 SOLID_SCENES = {"teddy": teddy, "head": head, "duck": duck, "stool": stool, "mug": mug, "bowl": bowl,
                 "head-on-can": head_on_can, "chair": chair, "snowman": snowman, "vase": vase, "ring-stand": ring_stand,
-                "cat": cat, "lighthouse": lighthouse, "candlestick": candlestick, "kettle": kettle, "pear": pear}
+                "cat": cat, "lighthouse": lighthouse, "candlestick": candlestick, "kettle": kettle, "pear": pear,
+                "plant-stand": plant_stand}
 """Built-in scene name -> maker of its SolidScene."""
 
 
