@@ -183,7 +183,9 @@ def test_pieces_much_smaller_than_the_object_are_removed_and_comparable_ones_kep
     solid[2:4, 25:27, 25:27] = True  # 8 nodes: a floater (0.1%)
     solid[2:12, 25:29, 2:12] = True  # 400 nodes (5%): a second object
     assert 8 < FLOATER_FRACTION * 8000 < 400
-    out = clean_solid(np.where(solid, -1.0, 1.0).astype(np.float32))
+    values = np.where(solid, -1.0, 1.0).astype(np.float32)
+    assert np.array_equal(clean_solid(values) < 0, solid), "by default (no table) every piece stays"
+    out = clean_solid(values, FLOATER_FRACTION)
     assert np.all(out[2:4, 25:27, 25:27] > 0)
     assert np.all(out[2:22, 2:22, 2:22] < 0) and np.all(out[2:12, 25:29, 2:12] < 0)
     assert np.all((out < 0) == (solid & ~np.pad(np.ones((2, 2, 2), bool), ((2, 26), (25, 3), (25, 3)))))

@@ -16,6 +16,7 @@ from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.errors import ReconstructionError
 from spadscan.worker.recon.fast.grid_field import GridField, grid_shape
 from spadscan.worker.recon.fast.hull import HullConstraint, hull_field, object_hull, signed_distance
+from spadscan.worker.recon.fast.mesh import FLOATER_FRACTION
 from spadscan.worker.recon.fast.model import make_fast_model
 from spadscan.worker.recon.fast.optim import Adam
 from spadscan.worker.recon.fast.regularizers import band_nodes, grid_regularizers
@@ -417,6 +418,40 @@ def test_a_bubble_inside_the_solid_is_filled(cylinder_capture):
         sdf[deepest] = model.field.voxel  # an empty node that no sensor can see into
     model.step()  # pockets are filled at the start of every few steps
     assert float(model.field.sdf.detach()[0, 0][deepest]) < 0
+
+
+def _solid_with_a_small_piece_apart(model):
+    """Sets the model's grid to a block above the floor and, 3 voxels beside it, a 2 x 2 x 2 node piece (well under
+    FLOATER_FRACTION of the block); returns the small piece's centre (metres)."""
+    sdf, vox = model.field.sdf.detach()[0, 0], model.field.voxel
+    nz, ny, nx = sdf.shape
+    floor = model.problem.floor_z if model.problem.floor_z is not None else -1.0
+    z = model.field.origin[2].item() + vox * np.arange(nz)
+    lo = int(np.argmax(z > floor + 1.5 * vox))
+    assert nz - lo >= 8 and min(ny, nx) >= 16
+    with torch.no_grad():
+        sdf[...] = vox
+        sdf[lo:nz - 2, 2:ny - 8, 2:nx - 2] = -vox  # the object
+        sdf[lo + 2:lo + 4, ny - 5:ny - 3, 4:6] = -vox  # 8 nodes apart from it
+    assert 8 < FLOATER_FRACTION * (nz - 2 - lo) * (ny - 10) * (nx - 4)
+    idx = torch.tensor([4.5, ny - 4.5, lo + 2.5], dtype=model.field.sdf.dtype)  # (x, y, z) node coordinates
+    return (model.field.origin.cpu() + vox * idx).numpy()
+
+
+def test_without_a_table_a_small_piece_apart_stays_in_the_mesh_and_on_a_table_it_goes(cylinder_capture,
+                                                                                       table_capture):
+    # Without a table a fit's small pieces are the object's thin parts broken off (a plant stand's legs): kept.
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    model = make_fast_model(load_scene(cylinder_capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    piece = _solid_with_a_small_piece_apart(model)
+    mesh = model.extract_mesh(averaged=False)
+    assert len(mesh.split(only_watertight=False)) == 2 and mesh.contains(piece[None])[0]
+    # On a table a small piece is a low wall the fit left beside the object: removed.
+    model = make_fast_model(load_scene(table_capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+    assert model.on_table
+    piece = _solid_with_a_small_piece_apart(model)
+    mesh = model.extract_mesh(averaged=False)
+    assert len(mesh.split(only_watertight=False)) == 1 and not mesh.contains(piece[None])[0]
 
 
 def test_without_a_table_the_empty_space_push_acts_where_no_view_hears_a_return(cylinder_capture):

@@ -12,20 +12,24 @@ from ..errors import ReconstructionError
 from .grid_ops import below_floor, cavities, fill_under_overhangs, node_heights, open_nodes
 
 FLOATER_FRACTION = 0.02
-"""Solid pieces of a mesh's grid smaller than this fraction of the largest piece (by node count) are floaters. On
-LCSPCData's real pyramid the fits leave one to three such pieces on the table, 0.5-0.7% of the object's volume, 1-2
-cm outside its base (a wall up to 6 cm tall); removing them lowered the Chamfer by 0.05-0.24 mm in four fits (the
-previous cut, 0.5%, kept them)."""
+"""On a table, solid pieces of a mesh's grid smaller than this fraction of the largest piece (by node count) are
+floaters. On LCSPCData's real pyramid the fits leave one to three such pieces on the table, 0.5-0.7% of the object's
+volume, 1-2 cm outside its base (a wall up to 6 cm tall); removing them lowered the Chamfer by 0.05-0.24 mm in four
+fits (the previous cut, 0.5%, kept them). Without a table nothing is removed: there a fit's small pieces are mostly
+the object's own thin parts broken off, and removing them cost up to 1.5 mm (a plant stand's legs: 3.87 mm removed,
+2.37 kept; the stool 3.95 against 3.04) where it bought at most 0.05 mm (specks beside the demo goblet), step-based
+on every scene without a table (benchmarks/RESULTS.md, "Small pieces kept")."""
 
 
-def clean_solid(values: np.ndarray, min_fraction: float = FLOATER_FRACTION,
+def clean_solid(values: np.ndarray, min_fraction: float = 0.0,
                 below_floor: np.ndarray | None = None) -> np.ndarray:
     """Remove what the histograms cannot have seen from an SDF grid (nz, ny, nx) -> cleaned copy.
 
     Cavities (`cavities`: empty regions closed by the solid, and by the floor when `below_floor` marks it) lie behind
     every surface a sensor outside can see: they are filled. Solid pieces smaller than `min_fraction` of the largest
-    piece (by node count) are floaters: they are emptied. Filled and emptied nodes get a value of half a node
-    spacing's worth (+-1e-3 of the field's scale), so the surface moves only where something was removed.
+    piece (by node count) are floaters: they are emptied (0, the default: none is). Filled and emptied nodes get a
+    value of half a node spacing's worth (+-1e-3 of the field's scale), so the surface moves only where something was
+    removed.
     """
     v = np.array(values, np.float32, copy=True)
     solid = v < 0
@@ -34,7 +38,7 @@ def clean_solid(values: np.ndarray, min_fraction: float = FLOATER_FRACTION,
     eps = 1e-4 * max(float(np.abs(v).max()), 1e-6)
     v[cavities(solid, below_floor)] = -eps
     lab, n = ndimage.label(v < 0)
-    if n > 1:
+    if n > 1 and min_fraction > 0:
         sizes = np.bincount(lab.ravel())[1:]
         small = np.flatnonzero(sizes < min_fraction * sizes.max()) + 1
         v[np.isin(lab, small)] = eps
@@ -61,11 +65,12 @@ def mesh_from_values(values: np.ndarray, origin, spacing):
 
 
 def mesh_from_field(field, resolution: int | None = None, floor_z: float | None = None, fill_under: bool = False,
-                    open_m: float = 0.0):
+                    open_m: float = 0.0, floater_fraction: float = 0.0):
     """Marching cubes of a GridField (cleaned by `clean_solid`, with the floor at height `floor_z` metres, if any),
     on its own nodes or resampled to `resolution` cells along its longest side, with vertex normals from the field's
     gradient (central differences). fill_under (a table at floor_z): fill the hidden space under overhangs first
-    (`grid_ops.fill_under_overhangs`), less what a gap of over 2 `open_m` metres opens to the side."""
+    (`grid_ops.fill_under_overhangs`), less what a gap of over 2 `open_m` metres opens to the side.
+    floater_fraction: remove solid pieces smaller than this fraction of the largest (FLOATER_FRACTION on a table)."""
     vals = field.sdf.detach()
     n = max(field.counts) - 1
     spacing = np.full(3, field.voxel)
@@ -84,7 +89,7 @@ def mesh_from_field(field, resolution: int | None = None, floor_z: float | None 
         z = node_heights(grid.shape[0], float(field.origin[2]), float(spacing[2]))
         grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)),
                                     open_nodes=open_nodes(open_m, float(np.min(spacing))))
-    mesh = mesh_from_values(clean_solid(grid, below_floor=below), field.origin.cpu().numpy(), spacing)
+    mesh = mesh_from_values(clean_solid(grid, floater_fraction, below), field.origin.cpu().numpy(), spacing)
     mesh.vertex_normals = vertex_normals(field, mesh.vertices)
     return mesh
 

@@ -22,7 +22,7 @@ from ..numerics import flush_denormals
 from .config import FastConfig
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
-from .mesh import mesh_from_field
+from .mesh import FLOATER_FRACTION, mesh_from_field
 from .optim import Adam
 from .parts import Part, StepRecord, build_parts
 from .problem import FastProblem, build_problem
@@ -307,7 +307,8 @@ class FastModel:
     def extract_mesh(self, resolution: int | None = None, averaged: bool = True):
         """The surface as a trimesh.Trimesh (world metres) with vertex normals from the grid's gradient, marching
         cubes on the grid resampled to `resolution` cells along its longest side (None: the grid's own). On a
-        table, what lies under it is cut and (with the cavities part) the space under the object filled.
+        table, what lies under it is cut, (with the cavities part) the space under the object filled, and small
+        pieces on the table removed (mesh.FLOATER_FRACTION); without one, every piece stays.
         averaged=False: from the grid as it is now, not its average (what the fit would mesh without that part)."""
         field = self.mesh_field() if averaged else self.field
         if not self.on_table:
@@ -315,7 +316,7 @@ class FastModel:
         cavities = self.part("cavities")
         fill = cavities is not None and cavities.config.under_overhangs
         return mesh_from_field(field, resolution, self.problem.floor_z, fill_under=fill,
-                               open_m=cavities.config.open_width_m if fill else 0.0)
+                               open_m=cavities.config.open_width_m if fill else 0.0, floater_fraction=FLOATER_FRACTION)
 
     def summary(self) -> dict:
         """JSON-able state: grid, hull, rays, albedo, convergence, and each part that ran with its config and what
