@@ -247,10 +247,41 @@ def plant_stand():
     return SolidScene(smooth_union(0.003, *parts), 0.08, 0.185, 0.0010)
 
 
+def easel():
+    """A table easel, 0.30 m: two 10 mm front legs and a 10 mm back leg meeting at the top, a 6 mm crossbar and a
+    ledge 12 cm wide holding a board 18 x 13 cm, 6 mm thick, on a head that joins the legs (thin legs, a flat plate
+    leaning back)."""
+    top = np.array([0.0, 0.0, 0.288])
+    parts = [box(top, (0.020, 0.010, 0.010), rounding=0.003)]                              # the head joining the legs
+    for sx in (-1, 1):
+        parts.append(capsule(top + (sx * 0.012, 0.004, 0), (sx * 0.070, 0.045, 0.0), 0.005))   # front legs
+    parts.append(capsule(top + (0, -0.006, 0), (0.0, -0.080, 0.0), 0.005))                         # back leg
+    parts.append(capsule((-0.058, 0.037, 0.050), (0.058, 0.037, 0.050), 0.003))                    # crossbar
+    tilt = math.atan2(0.045, 0.295)
+    board = rotated(box((0, 0, 0), (0.090, 0.003, 0.065), rounding=0.0015), (1, 0, 0), tilt)
+    parts.append(lambda x, y, z: board(x, y - 0.027, z - 0.180))                                  # board on the legs
+    parts.append(box((0, 0.046, 0.110), (0.060, 0.012, 0.004), rounding=0.0015))                 # ledge
+    return SolidScene(smooth_union(0.003, *parts), 0.10, 0.30, 0.0010)
+
+
+def coat_rack():
+    """A coat rack, 0.32 m: a 12 mm pole on four 10 mm feet splayed 12 cm, four 8 mm hooks near its top, a ball
+    finial (a thin pole, thin parts sticking out)."""
+    parts = [capsule((0, 0, 0.010), (0, 0, 0.300), 0.006), sphere((0, 0, 0.302), 0.014)]
+    for k in range(4):
+        a = math.pi / 4 + k * math.pi / 2
+        c, s = math.cos(a), math.sin(a)
+        parts.append(capsule((0.008 * c, 0.008 * s, 0.040), (0.060 * c, 0.060 * s, 0.004), 0.005))  # feet
+        b = a + math.pi / 4
+        cb, sb = math.cos(b), math.sin(b)
+        parts.append(capsule((0, 0, 0.255), (0.045 * cb, 0.045 * sb, 0.275), 0.004))               # hooks
+    return SolidScene(smooth_union(0.003, *parts), 0.08, 0.32, 0.0010)
+
+
 SOLID_SCENES = {"teddy": teddy, "head": head, "duck": duck, "stool": stool, "mug": mug, "bowl": bowl,
                 "head-on-can": head_on_can, "chair": chair, "snowman": snowman, "vase": vase, "ring-stand": ring_stand,
                 "cat": cat, "lighthouse": lighthouse, "candlestick": candlestick, "kettle": kettle, "pear": pear,
-                "plant-stand": plant_stand}
+                "plant-stand": plant_stand, "easel": easel, "coat-rack": coat_rack}
 """Built-in scene name -> maker of its SolidScene."""
 
 

@@ -15,7 +15,7 @@ HEIGHT_M = {"sphere": 0.20, "cup": 0.16, "lamp": 0.20, "pyramid": 0.15, "demo": 
             "bottle": 0.24, "mushroom": 0.18, "pawn": 0.20, "big-lamp": 0.35, "big-cup": 0.35, "big-goblet": 0.35,
             "tall-egg": 0.35, "chair": 0.26, "snowman": 0.28, "vase": 0.25, "ring-stand": 0.24, "cat": 0.23,
             "lighthouse": 0.34, "candlestick": 0.27, "kettle": 0.18, "pear": 0.20,
-            "plant-stand": 0.18}
+            "plant-stand": 0.18, "easel": 0.30, "coat-rack": 0.32}
 """Each scene's height as its description gives it (metres, to the centimetre)."""
 
 
