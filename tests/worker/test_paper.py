@@ -11,6 +11,7 @@ import torch
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError, SpadscanError
+from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
@@ -218,6 +219,19 @@ def test_scene_sphere_from_first_returns_holds_the_object_and_no_sensor(box_capt
     assert np.linalg.norm(box_mesh().vertices - c, axis=1).max() < r
     assert np.linalg.norm(scene.poses[:, :3, 3].double().numpy() - c, axis=1).min() > r
     assert scene.table is None and not scene.real  # simulated: no table, no TV
+
+
+def test_scene_sphere_holds_a_thin_tall_object_whose_top_only_the_views_above_see(tmp_path):
+    # Views aimed at the middle of a coat rack return mostly from near it; its top returns in the few views above.
+    rack = builtin_scene("coat-rack")
+    poses = fibonacci_hemisphere(64, 0.5, target=(0, 0, 0))
+    cap = tmp_path / "rack"
+    simulate_capture(rack, sensor_preset("lcspc-sim"), poses, cap, settings=SimSettings(rays_per_zone=1024),
+                     progress=False)
+    scene = load_scene(cap)
+    c, r = scene.center.double().numpy(), scene.radius
+    assert np.linalg.norm(rack.vertices - c, axis=1).max() < r, "the top of the rack is inside the sphere"
+    assert np.linalg.norm(scene.poses[:, :3, 3].double().numpy() - c, axis=1).min() > r
 
 
 def test_measured_capture_takes_its_pulse_from_the_reference_and_estimates_background(tmp_path):
