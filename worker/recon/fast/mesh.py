@@ -37,11 +37,12 @@ def clean_solid(values: np.ndarray, min_fraction: float = 0.0,
         return v
     eps = 1e-4 * max(float(np.abs(v).max()), 1e-6)
     v[cavities(solid, below_floor)] = -eps
-    lab, n = ndimage.label(v < 0)
-    if n > 1 and min_fraction > 0:
-        sizes = np.bincount(lab.ravel())[1:]
-        small = np.flatnonzero(sizes < min_fraction * sizes.max()) + 1
-        v[np.isin(lab, small)] = eps
+    if min_fraction > 0:
+        lab, n = ndimage.label(v < 0)
+        if n > 1:
+            sizes = np.bincount(lab.ravel())[1:]
+            small = np.flatnonzero(sizes < min_fraction * sizes.max()) + 1
+            v[np.isin(lab, small)] = eps
     return v
 
 
