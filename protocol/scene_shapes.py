@@ -85,6 +85,16 @@ def duck():
     return SolidScene(smooth_union(0.018, *parts), 0.11, 0.16)
 
 
+def _rungs(tops, feet, t: float, radius: float) -> list:
+    """Capsules of `radius` (metres) joining each leg to the next, all round, at the fraction t of the way from the
+    legs' feet to their tops (points (3,) in metres)."""
+    out = []
+    for k in range(len(tops)):
+        j = (k + 1) % len(tops)
+        out.append(capsule(feet[k] + t * (tops[k] - feet[k]), feet[j] + t * (tops[j] - feet[j]), radius))
+    return out
+
+
 def stool():
     """A three-legged stool, 0.20 m: a round seat, dished 4 mm, on three splayed 12 mm legs joined by 8 mm rungs
     (thin parts)."""
@@ -97,11 +107,7 @@ def stool():
         tops.append(np.array([0.060 * c, 0.060 * s, 0.182]))
         feet.append(np.array([0.085 * c, 0.085 * s, -0.010]))
         parts.append(capsule(tops[-1], feet[-1], 0.006))
-    for k in range(3):  # rungs at 7 cm between neighbouring legs
-        t = (0.070 + 0.010) / 0.192
-        a = feet[k] + t * (tops[k] - feet[k])
-        b = feet[(k + 1) % 3] + t * (tops[(k + 1) % 3] - feet[(k + 1) % 3])
-        parts.append(capsule(a, b, 0.004))
+    parts += _rungs(tops, feet, (0.070 + 0.010) / 0.192, 0.004)  # rungs at 7 cm between neighbouring legs
     return SolidScene(smooth_union(0.003, *parts), 0.10, 0.21, 0.0012)
 
 
@@ -239,11 +245,7 @@ def plant_stand():
         tops.append(np.array([0.048 * sx, 0.048 * sy, 0.168]))
         feet.append(np.array([0.068 * sx, 0.068 * sy, -0.008]))
         parts.append(capsule(tops[-1], feet[-1], 0.005))
-    t = (0.055 + 0.008) / 0.176  # braces 5.5 cm above the floor
-    for k in range(4):
-        a = feet[k] + t * (tops[k] - feet[k])
-        b = feet[(k + 1) % 4] + t * (tops[(k + 1) % 4] - feet[(k + 1) % 4])
-        parts.append(capsule(a, b, 0.003))
+    parts += _rungs(tops, feet, (0.055 + 0.008) / 0.176, 0.003)  # braces 5.5 cm above the floor
     return SolidScene(smooth_union(0.003, *parts), 0.08, 0.185, 0.0010)
 
 
