@@ -249,6 +249,17 @@ def plant_stand():
     return SolidScene(smooth_union(0.003, *parts), 0.08, 0.185, 0.0010)
 
 
+def side_table():
+    """A side table, 0.205 m: a round top 20 cm across and 15 mm thick, overhanging four splayed 12 mm legs by 4 cm
+    (a wide overhang on thin parts: the space under it is seen only between the legs, from low views)."""
+    parts = [cylinder((0, 0), 0.100, 0.190, 0.205, rounding=0.003)]
+    for k in range(4):
+        a = 2 * math.pi * k / 4 + math.pi / 4
+        c, s = math.cos(a), math.sin(a)
+        parts.append(capsule((0.060 * c, 0.060 * s, 0.192), (0.085 * c, 0.085 * s, -0.010), 0.006))
+    return SolidScene(smooth_union(0.003, *parts), 0.11, 0.21, 0.0012)
+
+
 def easel():
     """A table easel, 0.30 m: two 10 mm front legs and a 10 mm back leg meeting at the top, a 6 mm crossbar and a
     ledge 12 cm wide holding a board 18 x 13 cm, 6 mm thick, on a head that joins the legs (thin legs, a flat plate
@@ -283,7 +294,8 @@ def coat_rack():
 SOLID_SCENES = {"teddy": teddy, "head": head, "duck": duck, "stool": stool, "mug": mug, "bowl": bowl,
                 "head-on-can": head_on_can, "chair": chair, "snowman": snowman, "vase": vase, "ring-stand": ring_stand,
                 "cat": cat, "lighthouse": lighthouse, "candlestick": candlestick, "kettle": kettle, "pear": pear,
-                "plant-stand": plant_stand, "easel": easel, "coat-rack": coat_rack}
+                "plant-stand": plant_stand, "easel": easel, "coat-rack": coat_rack,
+                "side-table": side_table}
 """Built-in scene name -> maker of its SolidScene."""
 
 

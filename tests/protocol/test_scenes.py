@@ -15,7 +15,7 @@ HEIGHT_M = {"sphere": 0.20, "cup": 0.16, "lamp": 0.20, "pyramid": 0.15, "demo": 
             "bottle": 0.24, "mushroom": 0.18, "pawn": 0.20, "big-lamp": 0.35, "big-cup": 0.35, "big-goblet": 0.35,
             "tall-egg": 0.35, "chair": 0.26, "snowman": 0.28, "vase": 0.25, "ring-stand": 0.24, "cat": 0.23,
             "lighthouse": 0.34, "candlestick": 0.27, "kettle": 0.18, "pear": 0.20,
-            "plant-stand": 0.18, "easel": 0.30, "coat-rack": 0.32}
+            "plant-stand": 0.18, "easel": 0.30, "coat-rack": 0.32, "side-table": 0.205}
 """Each scene's height as its description gives it (metres, to the centimetre)."""
 
 
@@ -109,7 +109,7 @@ def test_every_builtin_is_in_one_split_or_a_table_scene_and_the_splits_do_not_ov
     for i, a in enumerate(splits):
         assert all(not a & b for b in splits[i + 1:])
     assert splits[0] == {f"builtin:{n}" for n in ("sphere", "cup", "lamp", "pyramid", "demo", "big-lamp", "big-cup",
-                                                   "big-goblet", "tall-egg", "plant-stand")} | set(DATASET_SCENES)
+                                                   "big-goblet", "tall-egg", "plant-stand", "side-table")} | set(DATASET_SCENES)
     assert set(DATASET_SCENES) == {"lcspc:sphere", "lcspc:bunny", "lcspc:soap"}
     for name in BUILTIN_SCENES:
         homes = [f"builtin:{name}" in split for split in splits] + [name in TABLE_SCENES]
@@ -176,6 +176,19 @@ def test_stool_legs_and_rungs_are_thin(meshes):
     assert len(legs) == 3
     assert all(0.010 <= 2 * np.sqrt(_area(leg) / np.pi) <= 0.014 for leg in legs), "12 mm legs"
     assert mesh.euler_number < 2, "the rungs close loops between the legs"
+
+
+def test_side_table_has_a_wide_top_over_four_thin_legs(meshes):
+    mesh = meshes("side-table")
+    legs = _section_parts(mesh, 0.10)
+    assert len(legs) == 4
+    assert all(0.010 <= 2 * np.sqrt(_area(leg) / np.pi) <= 0.014 for leg in legs), "12 mm legs"
+    assert _first_hit_z(mesh, 0.0, 0.0) == pytest.approx(0.205, abs=2e-3)  # the top, solid over the middle
+    under = mesh.ray.intersects_location([[0, 0, 0.05]], [[0, 0, 1.0]])[0]
+    assert under[:, 2].min() == pytest.approx(0.190, abs=2e-3), "nothing under the top's middle but air"
+    top = max(np.linalg.norm(loop, axis=1).max() for loop in _section_parts(mesh, 0.198))
+    legs_top = max(np.linalg.norm(loop, axis=1).max() for loop in _section_parts(mesh, 0.17))
+    assert top == pytest.approx(0.100, abs=2e-3) and top - legs_top > 0.025, "the top overhangs the legs"
 
 
 @pytest.mark.parametrize("name, depth", [("mug", 0.12), ("bowl", 0.08)])
