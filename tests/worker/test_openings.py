@@ -12,6 +12,7 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.fast.evidence import ReturnEvidence
+from spadscan.worker.recon.fast.grid_ops import redistanced
 from spadscan.worker.recon.fast.model import FastModel, make_fast_model
 from spadscan.worker.recon.fast.parts.openings import Openings, opened_field, opening_distances, surface_classes
 from spadscan.worker.recon.model_api import RunPlan
@@ -126,6 +127,40 @@ def test_an_opening_the_likelihood_prefers_is_kept_and_the_mesh_average_follows_
     assert int((model.field.sdf.detach() < 0).sum()) < solid_before
     assert torch.equal(model.mesh_field().sdf.detach(), model.field.sdf.detach())  # the average restarts at the jump
     assert torch.isfinite(model.field.sdf.detach()).all()
+
+
+@pytest.mark.parametrize("redistance", [True, False])
+def test_a_kept_opening_leaves_a_signed_distance_unless_told_not_to(cylinder_capture, redistance):
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), {**SMALL, "parts.openings.redistance": redistance})
+    model = make_fast_model(scene, config, "cpu", RunPlan(steps=2, budget_s=None, seed=0))
+    blank_histograms(model)
+    for _ in range(2):
+        model.step()
+    assert "depth_m" in model.part("openings").rounds[0]
+    grid = model.field.sdf.detach()[0, 0].numpy()
+    again = redistanced(grid, model.field.voxel)
+    # Redistanced, the grid is its own redistancing; as opened, its values rise towards the opened surface.
+    assert (abs(again - grid).max() < 1e-6) == redistance
+
+
+def test_redistancing_keeps_every_sign_and_the_surface_and_makes_the_rest_a_distance():
+    sdf = slab()  # solid below layer 15, its surface on that layer
+    junk = sdf.clone()
+    junk[18:] = 0.5  # far above: no distance
+    junk[:10] = -0.001  # deep inside: barely solid, as an opening leaves the solid beyond its depth
+    out = torch.from_numpy(redistanced(junk.numpy(), VOXEL))
+    assert torch.equal(out < 0, junk < 0)
+    assert torch.equal(out[14:16], junk[14:16])  # the surface's sub-voxel position stays (the layers beside it)
+    column = out[:, 10, 10]
+    assert torch.allclose(column[17:] - column[16:-1], torch.full((3,), VOXEL))  # one voxel a node outside
+    assert float(column[16]) == pytest.approx(1.5 * VOXEL)  # half a voxel past the nearest solid node's
+    assert torch.allclose(column[1:14] - column[:13], torch.full((13,), VOXEL))  # and inside, though the junk
+    assert float(column[0]) == pytest.approx(-14.5 * VOXEL)  # there was within a voxel of zero
+    for same in (torch.full((4, 4, 4), 0.3), torch.full((4, 4, 4), -0.3)):  # one sign only: nothing to measure to
+        assert torch.equal(torch.from_numpy(redistanced(same.numpy(), VOXEL)), same)
+    with pytest.raises(ValueError, match="voxel"):
+        redistanced(sdf.numpy(), 0.0)
 
 
 def test_a_round_weighs_the_returns_of_the_training_steps_in_its_window_only(cylinder_capture):

@@ -53,6 +53,24 @@ def under_overhangs(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, open
     return under
 
 
+def redistanced(values: np.ndarray, voxel: float) -> np.ndarray:
+    """The grid `values` (nz, ny, nx, metres) made a signed distance again away from its zero level: a node with a
+    neighbour of the other sign keeps its value, clamped to a voxel (the surface's sub-voxel position); every other
+    node gets its distance (metres) to the nearest node of the other sign less half a voxel, negative inside. Same
+    shape and dtype; the sign of every node is kept."""
+    if not voxel > 0:
+        raise ValueError(f"voxel {voxel} m must be > 0")
+    inside = values < 0
+    if inside.all() or not inside.any():
+        return values.copy()
+    depth = ndimage.distance_transform_edt(inside)  # inside: nodes to the nearest empty node
+    height = ndimage.distance_transform_edt(~inside)  # outside: nodes to the nearest solid node
+    far = np.where(inside, -(depth - 0.5), height - 0.5) * voxel
+    at_surface = np.where(inside, depth, height) <= 1.0  # a face neighbour of the other sign
+    near = np.clip(values, -voxel, voxel)
+    return np.where(at_surface, near, far).astype(values.dtype)
+
+
 def open_nodes(width_m: float, voxel_m: float) -> int:
     """`under_overhangs`'s open_nodes for a gap half-width of `width_m` metres on a grid of `voxel_m` metre cells: the
     fit and the mesh convert it alike, so that the mesh keeps open what the fit kept open."""
@@ -85,5 +103,5 @@ def fill_under_overhangs(values: np.ndarray, z_nodes: np.ndarray, floor_z: float
     return v
 
 
-__all__ = ["node_heights", "below_floor", "cavities", "under_overhangs", "open_nodes", "open_to_outside",
+__all__ = ["node_heights", "below_floor", "cavities", "under_overhangs", "redistanced", "open_nodes", "open_to_outside",
            "fill_under_overhangs"]
