@@ -10,11 +10,11 @@ hide the table from many views.
 Four named splits keep the method honest (SPLITS): `tuning` holds the scenes the default reconstruction was tuned on
 (the first five built-ins, the public dataset's three simulated scenes, four of those five made 0.35 m tall, whose
 tops the views above them see from 0.15 m, a plant stand on thin legs, and a side table whose wide top hides the
-space under it from all but the lowest views); `validation` holds scenes it is never
-tuned on, to report separately; `holdout` holds scenes that not even the ablation deciding which parts stay has
-seen; `check` holds scenes made after the end-of-run warnings' limits were set, to test them, and later ones made
-after a change to the method. The tall objects (TABLE_SCENES) are for developing reconstruction on a table (they are
-simulated with one) and belong to neither split.
+space under it from all but the lowest views); `validation` holds scenes it is never tuned on, to report
+separately; `holdout` holds scenes that not even the ablation deciding which parts stay has seen; `check` holds
+scenes made after the end-of-run warnings' limits were set, to test them, and later ones made after a change to
+the method. The tall objects (TABLE_SCENES) are for developing reconstruction on a table (they are simulated with
+one) and belong to neither split.
 """
 
 from __future__ import annotations
