@@ -192,6 +192,39 @@ def test_a_round_weighs_the_returns_of_the_training_steps_in_its_window_only(cyl
     assert "depth_m" in openings.rounds[0] and totals[5] == 0  # a kept jump restarts the erosion's evidence
 
 
+@pytest.mark.parametrize("deviances, kept", [
+    ((1.0, 0.90, 0.80, 0.85), 0.08),  # every depth gains enough: the deepest, though 4 cm gains more
+    ((1.0, 0.90, 0.80, 0.999), 0.04),  # 8 cm gains too little: the deepest of those that gain enough
+    ((1.0, 0.999, 0.998, 0.997), None),  # none does: the field stays as it was
+])
+def test_the_deepest_opening_that_gains_enough_is_kept(cylinder_capture, deviances, kept):
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), {**SMALL, "parts.openings.depths_m": [0.08, 0.02, 0.04],
+                                                    "parts.openings.min_gain": 0.05})
+    model = make_fast_model(scene, config, "cpu", RunPlan(steps=2, budget_s=None, seed=0))
+    blank_histograms(model)
+    model.step()
+    rendered = []  # the solid nodes of each field the round renders: the current one, then each proposal
+
+    def deviance(seed):
+        rendered.append(int((model.field.sdf.detach() < 0).sum()))
+        return deviances[len(rendered) - 1]
+
+    model.deviance_all_views = deviance
+    model.step()
+    (round_,) = model.part("openings").rounds
+    assert round_["deviance"] == 1.0 and round_["proposals"] == {"0.02": deviances[1], "0.04": deviances[2],
+                                                                 "0.08": deviances[3]}
+    assert rendered[0] > rendered[1] > rendered[2] > rendered[3]  # proposed shallow to deep, whatever the order
+    assert round_.get("depth_m") == kept
+    solid_now = int((model.field.sdf.detach() < 0).sum())
+    if kept is None:
+        assert solid_now == rendered[0] and "deviance_after" not in round_
+    else:
+        index = 1 + [0.02, 0.04, 0.08].index(kept)
+        assert round_["deviance_after"] == deviances[index] and solid_now == rendered[index]
+
+
 def test_rounds_that_gain_nothing_are_undone_and_stop_after_the_patience(cylinder_capture):
     scene = load_scene(cylinder_capture)
     config = with_overrides(preset_config("fast"), {**SMALL, "parts.openings.min_gain": 1e9,
