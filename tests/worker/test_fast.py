@@ -14,8 +14,8 @@ import torch
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.errors import ReconstructionError
-from spadscan.worker.recon.fast.grid_field import GridField, grid_shape
-from spadscan.worker.recon.fast.hull import HullConstraint, hull_field, object_hull, signed_distance
+from spadscan.worker.recon.fast.grid_field import GridField, grid_shape, signed_distance
+from spadscan.worker.recon.fast.hull import HullConstraint, hull_field, object_hull
 from spadscan.worker.recon.fast.mesh import FLOATER_FRACTION
 from spadscan.worker.recon.fast.model import make_fast_model
 from spadscan.worker.recon.fast.optim import Adam

@@ -13,6 +13,7 @@ import math
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy import ndimage
 
 from spadscan.protocol.errors import ConfigError
 
@@ -31,6 +32,25 @@ def grid_shape(bounds_min, bounds_max, resolution: int) -> tuple[tuple[int, int,
     voxel = float(ext.max()) / (resolution - 1)
     counts = tuple(int(max(2, math.ceil(e / voxel - 1e-6) + 1)) for e in ext)
     return counts, voxel
+
+
+def signed_distance(occupancy: np.ndarray, voxel: float) -> np.ndarray:
+    """Signed distance (metres, negative inside) of a boolean voxel grid (nz, ny, nx) -> float32 (nz, ny, nx).
+
+    Each node's distance is to the nearest node of the other kind, less half a voxel, so the zero level lies halfway
+    between an occupied and an empty node. An empty grid reads +inf-free: its distance is the grid's diagonal.
+    """
+    occ = np.asarray(occupancy, bool)
+    if occ.ndim != 3:
+        raise ConfigError(f"occupancy must be a 3-D grid (nz, ny, nx), got shape {occ.shape}")
+    if not occ.any():
+        return np.full(occ.shape, float(np.linalg.norm(occ.shape)) * voxel, np.float32)
+    if occ.all():
+        return np.full(occ.shape, -float(np.linalg.norm(occ.shape)) * voxel, np.float32)
+    outside = ndimage.distance_transform_edt(~occ)  # distance to the nearest occupied node, for empty nodes
+    inside = ndimage.distance_transform_edt(occ)  # distance to the nearest empty node, for occupied nodes
+    d = np.where(occ, -(inside - 0.5), outside - 0.5) * voxel
+    return d.astype(np.float32)
 
 
 class GridField(torch.nn.Module):
@@ -122,4 +142,4 @@ class GridField(torch.nn.Module):
         return F.interpolate(values, size=(nz, ny, nx), mode="trilinear", align_corners=True)
 
 
-__all__ = ["GridField", "grid_shape"]
+__all__ = ["GridField", "grid_shape", "signed_distance"]

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .grid_field import signed_distance
+
 
 def node_heights(nz: int, origin_z: float, spacing_z: float) -> np.ndarray:
     """(nz,) heights (metres) of a grid's node rows: row k at origin_z + k * spacing_z."""
@@ -56,17 +58,17 @@ def under_overhangs(solid: np.ndarray, z_nodes: np.ndarray, floor_z: float, open
 def redistanced(values: np.ndarray, voxel: float) -> np.ndarray:
     """The grid `values` (nz, ny, nx, metres) made a signed distance again away from its zero level: a node with a
     neighbour of the other sign keeps its value, clamped to a voxel (the surface's sub-voxel position); every other
-    node gets its distance (metres) to the nearest node of the other sign less half a voxel, negative inside. Same
-    shape and dtype; the sign of every node is kept."""
+    node gets its distance (metres) to the nearest node of the other sign less half a voxel, negative inside
+    (`grid_field.signed_distance` of the solid nodes). Same shape and dtype; the sign of every node is kept."""
     if not voxel > 0:
         raise ValueError(f"voxel {voxel} m must be > 0")
     inside = values < 0
     if inside.all() or not inside.any():
         return values.copy()
-    depth = ndimage.distance_transform_edt(inside)  # inside: nodes to the nearest empty node
-    height = ndimage.distance_transform_edt(~inside)  # outside: nodes to the nearest solid node
-    far = np.where(inside, -(depth - 0.5), height - 0.5) * voxel
-    at_surface = np.where(inside, depth, height) <= 1.0  # a face neighbour of the other sign
+    far = signed_distance(inside, voxel)
+    # A face neighbour of the other sign puts a node half a voxel from the zero level; the next nearest, a diagonal
+    # one, 0.91 voxel.
+    at_surface = np.abs(far) < 0.7 * voxel
     near = np.clip(values, -voxel, voxel)
     return np.where(at_surface, near, far).astype(values.dtype)
 

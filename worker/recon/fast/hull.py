@@ -19,26 +19,7 @@ from scipy import ndimage
 
 from spadscan.protocol.errors import ConfigError
 
-from .grid_field import GridField
-
-
-def signed_distance(occupancy: np.ndarray, voxel: float) -> np.ndarray:
-    """Signed distance (metres, negative inside) of a boolean voxel grid (nz, ny, nx) -> float32 (nz, ny, nx).
-
-    Each node's distance is to the nearest node of the other kind, less half a voxel, so the zero level lies halfway
-    between an occupied and an empty node. An empty grid reads +inf-free: its distance is the grid's diagonal.
-    """
-    occ = np.asarray(occupancy, bool)
-    if occ.ndim != 3:
-        raise ConfigError(f"occupancy must be a 3-D grid (nz, ny, nx), got shape {occ.shape}")
-    if not occ.any():
-        return np.full(occ.shape, float(np.linalg.norm(occ.shape)) * voxel, np.float32)
-    if occ.all():
-        return np.full(occ.shape, -float(np.linalg.norm(occ.shape)) * voxel, np.float32)
-    outside = ndimage.distance_transform_edt(~occ)  # distance to the nearest occupied node, for empty nodes
-    inside = ndimage.distance_transform_edt(occ)  # distance to the nearest empty node, for occupied nodes
-    d = np.where(occ, -(inside - 0.5), outside - 0.5) * voxel
-    return d.astype(np.float32)
+from .grid_field import GridField, signed_distance
 
 
 class HullConstraint:
@@ -127,4 +108,4 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     return keep[lab]
 
 
-__all__ = ["HullConstraint", "hull_field", "signed_distance", "object_hull"]
+__all__ = ["HullConstraint", "hull_field", "object_hull"]
