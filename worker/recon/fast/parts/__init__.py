@@ -14,6 +14,8 @@ holds in this order; see `part.Part` for the hooks):
   erosion           before_loss   gather the returns' photon ratios, and every few steps erode surface they do not
                     after_step    show (simulated captures)
   blur              after_gradient  blur the data term's gradient
+  unseen            after_gradient  keep the data gradient's moving average (after the blur); on the last level
+                    after_step    relax the air side of surface no ray reaches towards its neighbours
   empty_space       after_gradient  on a table, push surface few views look at inward (after the blur)
   average           after_step    keep the moving average of the grid that meshes come from
   plateau           after_step    test whether the data term has stopped improving on the last level
@@ -40,9 +42,10 @@ from .plateau import PlateauConfig, PlateauPart
 from .refinement import Refinement, RefinementConfig
 from .table import TableConfig, TableFit
 from .thin_sheets import ThinSheets, ThinSheetsConfig
+from .unseen import UnseenConfig, UnseenRelaxation
 
 PARTS: tuple[type[Part], ...] = (Refinement, HullProjection, TableFit, Cavities, ThinSheets, CoarseSmoothing, Openings,
-                                 Erosion, GradientBlur, EmptySpacePush, Average, PlateauPart)
+                                 Erosion, GradientBlur, UnseenRelaxation, EmptySpacePush, Average, PlateauPart)
 """Every part, in the order its hooks run."""
 
 
@@ -59,6 +62,7 @@ class FastPartsConfig:
     openings: OpeningsConfig = field(default_factory=OpeningsConfig)
     erosion: ErosionConfig = field(default_factory=ErosionConfig)
     blur: BlurConfig = field(default_factory=BlurConfig)
+    unseen: UnseenConfig = field(default_factory=UnseenConfig)
     empty_space: EmptySpaceConfig = field(default_factory=EmptySpaceConfig)
     average: AverageConfig = field(default_factory=AverageConfig)
     plateau: PlateauConfig = field(default_factory=PlateauConfig)
