@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from spadscan.protocol.errors import ConfigError
-from spadscan.worker.recon.fast.parts.unseen import UnseenConfig, relax_air_side, unseen_nodes
+from spadscan.worker.recon.fast.parts.unseen import UnseenConfig, UnseenRelaxation, relax_air_side, unseen_nodes
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -104,3 +104,37 @@ def test_relaxing_without_nodes_changes_nothing():
 def test_bad_settings_are_refused_with_their_key(field, value):
     with pytest.raises(ConfigError, match=f"parts.unseen.{field}"):
         UnseenConfig(**{field: value}).check("parts.unseen")
+
+
+class StandInField:
+    def __init__(self, values: torch.Tensor):
+        self.sdf, self.voxel = values[None, None], VOXEL
+
+
+class StandInModel:
+    """What the part reads of a model: the field, whether this is the last level, and the level's step count."""
+
+    def __init__(self, values: torch.Tensor, level_steps: int):
+        self.field, self.last_level, self.level_steps = StandInField(values), True, level_steps
+
+
+def test_a_model_warm_started_late_in_its_last_level_waits_for_its_own_gradients():
+    """A live refit starts a model at the last model's level and step count (800 here): the part relaxes nothing
+    until `after_steps` gradients of its own are in its moving average, and then relaxes what none of them reached."""
+    x = torch.arange(24, dtype=torch.float64)
+    wall = ((x - 2.5) * VOXEL).expand(24, 24, 24)  # solid below x = 2.5 nodes
+    values = torch.minimum(ball(2.6, n=24), wall).contiguous()
+    model = StandInModel(values, level_steps=800)
+    part = UnseenRelaxation(UnseenConfig(after_steps=5), model)
+    grad = torch.zeros_like(values)[None, None]
+    grad[0, 0, :, :, :5] = 1.0  # the data reaches the wall, not the ball
+    before = values.clone()
+    for k in range(5):
+        part.after_gradient(model, grad)
+        part.after_step(model, None)
+        if k < 4:
+            assert torch.equal(values, before), f"relaxed after {k + 1} gradient(s)"
+    assert part.summary()["relaxed_nodes"] > 0 and not torch.equal(values, before)
+    assert torch.equal(values[:, :, :5], before[:, :, :5])  # what the data reaches is left to it
+    part.on_refine(model)  # a new level: the average starts again
+    assert part.samples == 0 and part.seen is None

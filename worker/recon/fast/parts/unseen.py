@@ -45,7 +45,8 @@ class UnseenConfig(PartConfig):
     decay: float = 0.98
     """Decay per step of the moving average of the data gradient's square (about 50 steps)."""
     after_steps: int = 100
-    """Steps of the last level before any relaxing: the moving average starts afresh with the level."""
+    """Steps of the moving average before any relaxing: it starts afresh with the last level (or with the model,
+    where that is warm-started)."""
     band_voxels: float = 3.0
     """Nodes within this many voxels of the surface (air side) can be relaxed."""
     iterations: int = 4
@@ -84,11 +85,14 @@ class UnseenRelaxation(Part):
         super().__init__(config, model)
         self.seen: torch.Tensor | None = None
         """Moving average of the data gradient's square per node, (nz, ny, nx); None before the last level."""
+        self.samples = 0
+        """Gradients in `seen` so far: a model warm-started late in its last level (a live refit) waits for
+        `after_steps` of its own, not the level's count."""
         self.nodes: torch.Tensor | None = None
         self.relaxed_nodes = 0
 
     def on_refine(self, model: Model) -> None:
-        self.seen, self.nodes = None, None
+        self.seen, self.nodes, self.samples = None, None, 0
 
     def on_jump(self, model: Model) -> None:
         self.nodes = None
@@ -100,11 +104,12 @@ class UnseenRelaxation(Part):
             if self.seen is None:
                 self.seen = torch.zeros_like(g)
             self.seen.mul_(d).addcmul_(g, g, value=1 - d)
+            self.samples += 1
         return grad
 
     def after_step(self, model: Model, step: StepRecord) -> None:
         cfg = self.config
-        if self.seen is None or model.level_steps < cfg.after_steps:
+        if self.seen is None or self.samples < cfg.after_steps:
             return
         values = model.field.sdf.detach()[0, 0]
         if self.nodes is None or model.level_steps % cfg.refresh_steps == 0:
