@@ -114,3 +114,9 @@ def test_the_empty_space_push_acts_whether_or_not_the_gradient_is_blurred(table_
         assert ("empty_space" in model.summary()["parts"]) == push
     moved = (fields[True] - fields[False]).abs()
     assert float(moved.max()) > 0, "the push changed nothing with the blur off"
+
+
+def test_the_unseen_relaxation_runs_only_without_a_table(running):
+    assert running["floor"].part("unseen") is not None
+    assert running["table"].part("unseen") is None
+    assert "empty-space push" in running["table"].summary()["parts_left_out"]["unseen"]
