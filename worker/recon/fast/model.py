@@ -100,10 +100,12 @@ class FastModel:
         3. before_loss      coarse_smoothing (keep the coarse level's smoothness near the floor), openings and
                             erosion (gather the returns' photon ratios, simulated captures)
         4. regularisers     Eikonal and smoothness on the band of nodes near the surface
-        5. data gradient    backward of the data term alone, then after_gradient: blur, empty_space (on a table)
+        5. data gradient    backward of the data term alone, then after_gradient: blur, unseen (its moving average
+                            of the gradient; without a table), empty_space
         6. regulariser gradient added, Adam steps the grid and the albedos; the step is counted
         7. after_step       hull_projection (clamp into the hull), openings (a round every few steps; a kept one
-                            is a jump: `jumped`), erosion (every few steps), average, plateau
+                            is a jump: `jumped`), erosion (every few steps), unseen (relax the air side of surface
+                            no ray reaches, last level), average, plateau
         """
         for part in self.parts:
             part.before_step(self)
