@@ -34,6 +34,7 @@ import torch
 
 from spadscan.protocol.errors import ConfigError
 
+from ..regularizers import band_nodes
 from .part import Model, Part, PartConfig, StepRecord
 
 
@@ -133,17 +134,16 @@ class UnseenRelaxation(Part):
 def unseen_nodes(values: torch.Tensor, seen: torch.Tensor, band_m: float, threshold: float) -> torch.Tensor:
     """Flat indices of the interior nodes of a grid (nz, ny, nx) within band_m (metres) of the surface on its air
     side (0 < value < band_m) whose `seen` (the data gradient's mean square) is below threshold x its mean over the
-    nodes within band_m on either side. Empty where the band is empty or nothing was seen."""
-    near = torch.zeros_like(values, dtype=torch.bool)
-    near[1:-1, 1:-1, 1:-1] = True
-    near &= values.abs() < band_m
-    if not near.any():
-        return torch.zeros(0, dtype=torch.long, device=values.device)
-    ref = seen[near].mean()
+    nodes within band_m on either side (the regularisers' band). Empty where the band is empty or nothing was
+    seen."""
+    band = band_nodes(values[None, None], band_m)
+    if band.numel() == 0:
+        return band
+    seen_band = seen.reshape(-1)[band]
+    ref = seen_band.mean()
     if not ref > 0:
-        return torch.zeros(0, dtype=torch.long, device=values.device)
-    pick = near & (values > 0) & (seen < threshold * ref)
-    return torch.nonzero(pick.reshape(-1))[:, 0]
+        return band[:0]
+    return band[(values.reshape(-1)[band] > 0) & (seen_band < threshold * ref)]
 
 
 def relax_air_side(values: torch.Tensor, nodes: torch.Tensor, iterations: int, alpha: float) -> None:
