@@ -21,6 +21,7 @@ from spadscan.protocol.simulator import SimSettings, Simulator, simulate_capture
 from spadscan.worker.baselines.reprojection import reproject_points
 from spadscan.worker.carving import carve_hull, first_returns
 from spadscan.worker.carving.bounds import cube_around
+from spadscan.worker.carving.space_carving import carve_limits
 from spadscan.worker.metrics import mesh_metrics
 from spadscan.worker.recon.fast.config import fast_config
 from spadscan.worker.recon.fast.problem import carve_keep_returns_m
@@ -95,6 +96,17 @@ def test_a_high_threshold_tightens_the_hull(lamp):
     vol = [carve_hull(hists, poses, sensor, bounds_min=lo, bounds_max=hi, resolution=48, threshold=t,
                       floor_z=0.0).occupancy.sum() for t in (5.0, 15.0)]
     assert vol[1] < vol[0]
+
+
+def test_a_weak_level_stops_carving_at_faint_returns_and_leaves_strong_leading_edges(lamp):
+    _, hists, poses, sensor = lamp
+    strict = carve_limits(hists, sensor, 5.0, 0.002)
+    weak = carve_limits(hists, sensor, 5.0, 0.002, weak_threshold=4.0)
+    lower = carve_limits(hists, sensor, 4.0, 0.002)
+    assert np.all(weak <= strict), "a weak level never carves more"
+    assert 0 < np.mean(weak < strict) < 0.1, "a few zones held a faint run of bins in front of their strong return"
+    # The threshold itself lowered moves every strong return's onset up its leading edge.
+    assert np.mean(lower < strict) > 0.3
 
 
 def test_hull_sdf_is_negative_inside_and_positive_outside(lamp):

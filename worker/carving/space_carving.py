@@ -254,18 +254,19 @@ def _paint(occ: np.ndarray, cells: np.ndarray, factor: int) -> None:
 
 
 def carve_limits(hists, sensor: SensorModel, threshold: float, margin_m: float,
-                 filter: str = "leading") -> np.ndarray:
+                 filter: str = "leading", weak_threshold: float | None = None) -> np.ndarray:
     """(n, zones) range (metres) up to which each view's zone saw empty space, less the margin.
 
     The onset is where the filtered signal first clears `threshold`. A higher threshold moves the onset up the
     leading edge of a strong return (a tighter hull), but must not carve away a weak return in front of it (a thin
     part, a surface at the edge of the field of view): when the signal clears the default threshold earlier and
     drops below it again before the strong return, that weak return's onset is kept; a zone that saw nothing above
-    the default threshold is carved to the end of its histogram.
+    the default threshold is carved to the end of its histogram. `weak_threshold` (noise standard deviations, None:
+    the default threshold) sets that weak level instead, capped at `threshold`.
     """
     lag = detection_filter(sensor, filter)[2]
     z = matched_filter_z(np.asarray(hists, dtype=np.float64), sensor, filter)
-    weak_level = min(threshold, DEFAULT_THRESHOLD)
+    weak_level = min(threshold, DEFAULT_THRESHOLD if weak_threshold is None else weak_threshold)
     weak = z > weak_level
     strong = z > threshold
     has_weak, has_strong = weak.any(axis=-1), strong.any(axis=-1)
@@ -283,7 +284,8 @@ def carve_limits(hists, sensor: SensorModel, threshold: float, margin_m: float,
 def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, resolution: int,
                threshold: float = DEFAULT_THRESHOLD, margin_m: float | None = None,
                floor_z: float | None = None, min_views: int = 3, edge_deg: float = DEFAULT_EDGE_DEG,
-               filter: str = "leading", keep_returns_m: float = 0.0) -> CarveResult:
+               filter: str = "leading", keep_returns_m: float = 0.0,
+               weak_threshold: float | None = None) -> CarveResult:
     """Space-carve the box [bounds_min, bounds_max] (metres) on a resolution^3 grid.
 
     hists (n, zones, bins) counts; poses (n, 4, 4) sensor-to-world (metres, +z boresight). threshold: detection
@@ -294,7 +296,8 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
     keep_returns_m: ...except where a view that sees it has its first return there: space up to this far (metres)
     beyond the range a zone proved empty is kept however few views see it (0: the min_views rule alone). The top of a
     tall object, far from the point the views aim at, lies in few views' fields of view, and the rule would cut it
-    off while those views' returns land on it.
+    off while those views' returns land on it. weak_threshold: a run of bins above this level that ends before the
+    signal clears `threshold` stops carving there (see `carve_limits`; None: the default threshold).
     """
     h, p = check_inputs(hists, poses, sensor)
     lo, hi = np.asarray(bounds_min, float), np.asarray(bounds_max, float)
@@ -317,7 +320,7 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
         raise CaptureError(f"margin {margin_m} m must be finite and >= 0")
     if not (np.isfinite(keep_returns_m) and keep_returns_m >= 0):
         raise CaptureError(f"keep_returns_m {keep_returns_m} must be finite and >= 0 metres")
-    limit = carve_limits(h, sensor, threshold, margin_m, filter)
+    limit = carve_limits(h, sensor, threshold, margin_m, filter, weak_threshold)
     voxel = (hi - lo) / resolution
     # Levels: resolution / 2^k, ..., resolution, starting no coarser than 8 cells per side.
     levels = [int(resolution)]
@@ -347,7 +350,8 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
 
 def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, threshold: float = DEFAULT_THRESHOLD,
                 margin_m: float | None = None, floor_z: float | None = None, bounds=None,
-                edge_deg: float = DEFAULT_EDGE_DEG, coarse: int = 48, keep_returns_m: float = 0.0) -> CarveResult:
+                edge_deg: float = DEFAULT_EDGE_DEG, coarse: int = 48, keep_returns_m: float = 0.0,
+                weak_threshold: float | None = None) -> CarveResult:
     """Space carving without knowing the scene's box: carve coarsely inside the first returns' footprints (or
     `bounds`, a pair of (3,) corners in metres), then again at `resolution` in a cube around what is left."""
     h, p = check_inputs(hists, poses, sensor)
@@ -357,7 +361,7 @@ def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, thr
         lo, hi = (np.asarray(b, float) for b in bounds)
     lo, hi = cube_around(lo, hi)
     kw = dict(threshold=threshold, margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg,
-              keep_returns_m=keep_returns_m)
+              keep_returns_m=keep_returns_m, weak_threshold=weak_threshold)
     first = carve_hull(h, p, sensor, bounds_min=lo, bounds_max=hi, resolution=min(coarse, resolution), **kw)
     if not first.occupancy.any():
         return first

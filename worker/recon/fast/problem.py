@@ -155,7 +155,8 @@ def _carve(scene, fc, floor_z):
     box = carve_box(scene, floor_z)
     return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
-                       floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc))
+                       floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc),
+                       weak_threshold=fc.carve_weak_threshold)
 
 
 __all__ = ["FastProblem", "build_problem", "candidate_rays"]
