@@ -24,7 +24,7 @@ from spadscan.worker.carving.bounds import cube_around
 from spadscan.worker.carving.space_carving import carve_limits
 from spadscan.worker.metrics import mesh_metrics
 from spadscan.worker.recon.fast.config import fast_config
-from spadscan.worker.recon.fast.problem import carve_keep_returns_m
+from spadscan.worker.recon.fast.problem import carve_keep_returns_m, carve_weak_threshold
 
 
 def _render(mesh, sensor, poses, seed=1, **settings):
@@ -367,3 +367,9 @@ def test_the_fast_hull_keeps_returns_beyond_few_views_on_simulated_captures_only
         config.field.carve_keep_returns_m = bad
         with pytest.raises(ConfigError, match="field.carve_keep_returns_m"):
             config.check()
+
+
+def test_faint_runs_stop_carving_only_without_a_table():
+    field = fast_config().field
+    assert carve_weak_threshold(field, on_table=False) == field.carve_weak_threshold < field.carve_threshold
+    assert carve_weak_threshold(field, on_table=True) is None

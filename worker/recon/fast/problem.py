@@ -106,7 +106,7 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     if table is not None and abs(table[0][2]) > 0.99:
         floor_z, floor_source = table[1] / table[0][2], "table"
     notes = {"table": None if table is None else table[3], "floor": floor_source}
-    hull_res = _carve(scene, fc, floor_z)
+    hull_res = _carve(scene, fc, floor_z, on_table=table is not None)
     voxel = float(np.min(hull_res.voxel_m))
     occ = np.transpose(hull_res.occupancy, (2, 1, 0))  # (x, y, z) -> (z, y, x)
     counts_np, poses_np = scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy()
@@ -151,12 +151,20 @@ def carve_keep_returns_m(scene, fc) -> float:
     return 0.0 if scene.real else fc.carve_keep_returns_m
 
 
-def _carve(scene, fc, floor_z):
+def carve_weak_threshold(fc, on_table: bool) -> float | None:
+    """The level of faint runs of bins that stop carving (`field.carve_weak_threshold`), or None on a table (the
+    carving's default level, as high as `field.carve_threshold`). With it on a table, the simulated head on a can's
+    hull grew by 1.1 % and its fit stood on a skirt round the can's base (1.22 -> 1.79 mm; its lowest 6 cm 33 % over
+    5 mm off); the tall block 0.83 -> 0.85, the real pyramid's hull and fit unchanged."""
+    return None if on_table else fc.carve_weak_threshold
+
+
+def _carve(scene, fc, floor_z, on_table: bool):
     box = carve_box(scene, floor_z)
     return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
                        floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc),
-                       weak_threshold=fc.carve_weak_threshold)
+                       weak_threshold=carve_weak_threshold(fc, on_table))
 
 
 __all__ = ["FastProblem", "build_problem", "candidate_rays"]
