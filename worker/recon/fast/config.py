@@ -36,8 +36,8 @@ class FastFieldConfig:
     faint return in front of the strong one, and carving stops at it; a strong return's own leading edge still sets
     the onset at `carve_threshold`. One zone that misses a return proves its space empty: at 5 alone, some of the
     256 views of the check split's coat rack saw its 12 mm pole at 4-5 deviations and carving removed the pole from
-    8 cm up (the fit 49.7 mm). With 4 here the hull keeps all of it and the other scenes' hulls grow by under 1 %
-    (4 as the threshold itself: by 1-4 %, every leading edge moving out). Not on a table
+    8 cm up (the fit 49.7 mm). With 4 here the hull keeps all of it and the other scenes' hulls grow by 0-2.1 %
+    (4 as the threshold itself: by 0.1-4.5 %, every leading edge moving out). Not on a table
     (`problem.carve_weak_threshold`)."""
     carve_margin_m: float = 0.002
     """Range (metres) left uncarved in front of every first return."""
