@@ -320,6 +320,8 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
         raise CaptureError(f"margin {margin_m} m must be finite and >= 0")
     if not (np.isfinite(keep_returns_m) and keep_returns_m >= 0):
         raise CaptureError(f"keep_returns_m {keep_returns_m} must be finite and >= 0 metres")
+    if weak_threshold is not None and not (np.isfinite(weak_threshold) and weak_threshold > 0):
+        raise CaptureError(f"weak detection threshold {weak_threshold} must be > 0 (standard deviations of the noise)")
     limit = carve_limits(h, sensor, threshold, margin_m, filter, weak_threshold)
     voxel = (hi - lo) / resolution
     # Levels: resolution / 2^k, ..., resolution, starting no coarser than 8 cells per side.
