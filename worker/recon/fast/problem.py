@@ -153,7 +153,7 @@ def carve_keep_returns_m(scene, fc) -> float:
 
 def carve_weak_threshold(fc, on_table: bool) -> float | None:
     """The level of faint runs of bins that stop carving (`field.carve_weak_threshold`), or None on a table (the
-    carving's default level, as high as `field.carve_threshold`). With it on a table, the simulated head on a can's
+    carving's own default level, as before the setting existed). With it on a table, the simulated head on a can's
     hull grew by 1.1 % and its fit stood on a skirt round the can's base (1.22 -> 1.79 mm; its lowest 6 cm 33 % over
     5 mm off); the tall block 0.83 -> 0.85, the real pyramid's hull and fit unchanged."""
     return None if on_table else fc.carve_weak_threshold
