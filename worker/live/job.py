@@ -10,7 +10,9 @@ published) runs `execute_live_job`:
    `publish_every_s`, publish `<capture>/recon/live/` (mesh.ply, preview.png, status.json: `publish.py`). While an
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
-   warm-started from the live fit, for the job's budget or steps, else `final_polish_s` of steps: the result is
+   warm-started from the live fit once that has left its coarse level (`LiveFit.continuable`; before, from the
+   carved hull), for the job's budget or steps, else `final_polish_s` of steps (the preset's budget when it starts
+   from the hull): the result is
    written into the job's scratch folder and published by the worker where every job's result goes. Of the final
    field and the live one, the one that explains every view better is meshed (`keep.py`: a short final run never
    publishes a worse or coarser mesh than the live one); report.json's `published` says which. A live job that
@@ -161,11 +163,14 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
     final, bounds = final_job(job, runner.fit, settings)
     live_report = runner.fit.report()
-    log(f"live: scan complete; the final reconstruction continues from the live fit ({live_report['views_used']} "
-        f"views, {live_report['steps']} steps) for " + (f"{final.budget_s:g} s" if final.budget_s is not None else
-                                                        f"{final.steps} steps"))
+    length = (f"{final.budget_s:g} s" if final.budget_s is not None else
+              f"{final.steps} steps" if final.steps is not None else "the preset's budget")
+    start = ("continues from the live fit" if runner.fit.continuable else
+             "starts from the carved hull: the live fit is still on its coarse level")
+    log(f"live: scan complete ({live_report['views_used']} views fitted, {live_report['steps']} steps); the final "
+        f"reconstruction {start}, for {length}")
     report = execute_job(final, root, out, runner.final_recon(recon))
-    extra = {"live": {**live_report, **bounds}}
+    extra = {"live": {**live_report, **bounds, **runner.fit.final_start}}
     add_to_report(out, extra)
     report.update(extra)
     return report
@@ -173,9 +178,12 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
 
 def final_job(job, fit, settings: LiveSettings) -> tuple:
     """The final run's job and report.json's record of its bounds: the job's own budget or steps where it names
-    them; else `settings.final_polish_s` of training as a step count at the live fit's recent rate."""
+    them; else, once the live fit is on its last level, `settings.final_polish_s` of training as a step count at the
+    live fit's recent rate, and before that the preset's own budget (both None)."""
     if job.budget_s is not None or job.steps is not None:
         return dataclasses.replace(job, live=False), {"final_budget_s": job.budget_s, "final_steps": job.steps}
+    if not fit.continuable:  # the final run starts from the carved hull: a polish cannot fit the object
+        return dataclasses.replace(job, live=False), {"final_budget_s": None, "final_steps": None}
     rate = fit.recent_steps_per_s() or fit.steps_per_s() or 0.0
     steps = max(settings.final_min_steps, round(rate * settings.final_polish_s))
     return dataclasses.replace(job, live=False, steps=steps), {"final_budget_s": None, "final_steps": steps}
