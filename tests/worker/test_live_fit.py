@@ -149,3 +149,31 @@ def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_
         fit.train(time.monotonic() + 0.1)
     rate = fit.recent_steps_per_s()
     assert rate == pytest.approx((fit.steps - before) / sum(s for _, s in fit.recent)) and rate > 0
+
+
+def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_level(cylinder_capture, tmp_path,
+                                                                                      one_thread):
+    """A scan that ends before the live fit has left its coarse level (the demo's simulated scan takes 4 s): the
+    final run's model starts from the carved hull, not from those few steps; once the fit is on its last level the
+    final run continues from it."""
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    scan = ReplayScan(cylinder_capture, tmp_path / "scan")
+    fit = LiveFit(tmp_path / "scan", config, torch.device("cpu"), 0, log=lambda line: None)
+    scan.publish(len(scan.poses))
+    scan.finish()
+    every = load_scene(tmp_path / "scan")
+    assert fit.rebuild(None) and fit.train_steps(2) == 2 and fit.model.level == 0
+    assert not fit.continuable
+    young = fit.warm_factory()(every, config, "cpu", PLAN)
+    assert fit.final_start == {"final_start": "hull"}
+    cold = make_fast_model(every, config, "cpu", PLAN)
+    assert not young.warm_started and young.level == 0 and young.level_steps == 0
+    assert torch.equal(young.field.sdf, cold.field.sdf), "the hull, as an ordinary run starts"
+
+    fit.train_steps(6)  # past the refinement after 4 steps
+    assert fit.model.level == 1 and fit.continuable
+    grown = fit.warm_factory()(every, config, "cpu", PLAN)
+    assert fit.final_start == {"final_start": "live"}
+    assert grown.warm_started and grown.level == 1 and grown.level_steps == fit.model.level_steps
+    live = fit.live_field().sdf.detach()
+    assert torch.allclose(grown.field.sdf, torch.maximum(live, grown.constraint.bound_for(grown.field)), atol=1e-6)

@@ -98,7 +98,7 @@ def test_a_live_job_follows_a_scan_pose_by_pose_and_finishes_from_the_live_fit(c
     assert [s.views_used for s in live.seen] == sorted(s.views_used for s in live.seen)
     assert report["live"]["views_used"] == 24 and report["live"]["rebuilds"] >= 2
     assert report["live"]["steps"] >= grown.steps and report["live"]["final_budget_s"] == 1.0
-    assert report["live"]["final_steps"] is None
+    assert report["live"]["final_steps"] is None and report["live"]["final_start"] == "live"
     assert report["scene"]["views"] == 24 and report["capture_state"] == "complete"
     # The better-fitting of the live and the final field is published; a mesh that the job's 1 s budget made coarser
     # than the preset's says so.
@@ -138,9 +138,10 @@ def test_with_no_budget_the_final_run_polishes_for_steps_and_says_nothing_of_a_s
 
 
 def test_the_final_run_is_bounded_by_the_jobs_own_budget_or_steps_else_by_the_live_rate():
-    class Rates:  # a live fit's step rates
-        def __init__(self, recent, overall):
+    class Rates:  # a live fit's step rates, and whether it has left its coarse level
+        def __init__(self, recent, overall, continuable=True):
             self.recent_steps_per_s, self.steps_per_s = (lambda: recent), (lambda: overall)
+            self.continuable = continuable
 
     job = Job(id="s-fast", scan="s", live=True)
     final, bounds = final_job(job, Rates(20.0, 50.0), LiveSettings(final_polish_s=6.0))
@@ -152,6 +153,12 @@ def test_the_final_run_is_bounded_by_the_jobs_own_budget_or_steps_else_by_the_li
     assert (timed.budget_s, timed.steps) == (30.0, None) and bounds == {"final_budget_s": 30.0, "final_steps": None}
     counted, _ = final_job(dataclasses.replace(job, steps=500), Rates(20.0, 50.0), LiveSettings())
     assert (counted.budget_s, counted.steps) == (None, 500)
+    # A fit still on its coarse level: the final run starts from the hull, with the preset's own budget, not a polish.
+    young, bounds = final_job(job, Rates(20.0, 50.0, continuable=False), LiveSettings(final_polish_s=6.0))
+    assert (young.steps, young.budget_s, young.live) == (None, None, False)
+    assert bounds == {"final_budget_s": None, "final_steps": None}
+    assert final_job(dataclasses.replace(job, budget_s=30.0), Rates(20.0, 50.0, continuable=False),
+                     LiveSettings())[0].budget_s == 30.0, "the job's own budget still bounds it"
 
 
 def test_an_aborted_scan_ends_its_live_job_with_the_reason(cylinder_capture, tmp_path, one_thread):
