@@ -165,7 +165,6 @@ def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_
     assert fit.rebuild(None) and fit.train_steps(2) == 2 and fit.model.level == 0
     assert not fit.continuable
     young = fit.warm_factory()(every, config, "cpu", PLAN)
-    assert fit.final_start == {"final_start": "hull"}
     cold = make_fast_model(every, config, "cpu", PLAN)
     assert not young.warm_started and young.level == 0 and young.level_steps == 0
     assert torch.equal(young.field.sdf, cold.field.sdf), "the hull, as an ordinary run starts"
@@ -173,7 +172,6 @@ def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_
     fit.train_steps(6)  # past the refinement after 4 steps
     assert fit.model.level == 1 and fit.continuable
     grown = fit.warm_factory()(every, config, "cpu", PLAN)
-    assert fit.final_start == {"final_start": "live"}
     assert grown.warm_started and grown.level == 1 and grown.level_steps == fit.model.level_steps
     live = fit.live_field().sdf.detach()
     assert torch.allclose(grown.field.sdf, torch.maximum(live, grown.constraint.bound_for(grown.field)), atol=1e-6)

@@ -165,12 +165,13 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     live_report = runner.fit.report()
     length = (f"{final.budget_s:g} s" if final.budget_s is not None else
               f"{final.steps} steps" if final.steps is not None else "the preset's budget")
-    start = ("continues from the live fit" if runner.fit.continuable else
-             "starts from the carved hull: the live fit is still on its coarse level")
+    start = "live" if runner.fit.continuable else "hull"
+    how = ("continues from the live fit" if start == "live" else
+           "starts from the carved hull: the live fit is still on its coarse level")
     log(f"live: scan complete ({live_report['views_used']} views fitted, {live_report['steps']} steps); the final "
-        f"reconstruction {start}, for {length}")
+        f"reconstruction {how}, for {length}")
     report = execute_job(final, root, out, runner.final_recon(recon))
-    extra = {"live": {**live_report, **bounds, **runner.fit.final_start}}
+    extra = {"live": {**live_report, **bounds, "final_start": start}}
     add_to_report(out, extra)
     report.update(extra)
     return report

@@ -62,8 +62,6 @@ class LiveFit:
         self.recent: deque[tuple[int, float]] = deque(maxlen=RATE_WINDOW)
         """(steps, wall seconds) of the last training calls: the rate at the model's current level."""
         self.history: deque[FieldSnapshot] = deque(maxlen=HISTORY)
-        self.final_start: dict = {}
-        """How the final run starts (`warm_factory`): `final_start` "live" or "hull"; empty before it."""
 
     @property
     def views_used(self) -> int:
@@ -167,7 +165,7 @@ class LiveFit:
     def warm_factory(self) -> Callable:
         """A model factory (scene, config, device, plan) -> model for the final reconstruction: the preset's model
         of the complete capture, warm-started from this fit where it is `continuable` (the final run continues from
-        the live state), else that model as it starts, from the carved hull (`final_start` records which).
+        the live state), else that model as it starts, from the carved hull.
 
         A fit still on its coarse level is a worse start than the hull: the demo's simulated scan takes 4 s, in
         which the live fit took 6-8 coarse steps, and the final runs that continued from them ended shredded (the
@@ -176,12 +174,11 @@ class LiveFit:
         live fields read better than the hull (deviance per bin 1.18 against 2.49), so the likelihood cannot make
         this choice: the hull's phantom surfaces cost it more than the live field's shreds."""
         field, level, level_steps = self.live_field(), self.model.level, self.model.level_steps
-        start = "live" if self.continuable else "hull"
-        self.final_start = {"final_start": start}
+        continued = self.continuable
 
         def make(scene, config, device, plan):
             model = make_model(scene, config, device, plan)
-            if start == "live":
+            if continued:
                 model.warm_start(field, level, level_steps)
             return model
 
