@@ -272,22 +272,18 @@ def _scan(sock: Path, name: str, opts: DemoOptions, progress, watch=None) -> dic
 
 
 def running_job_progress(captures: Path):
-    """The progress (dashboard.job_progress.JobProgress) of a job the worker is running on `captures`, read from
+    """The progress (worker.job_progress.JobProgress) of a job the worker is running on `captures`, read from
     its log in the queue; None while none runs or its log shows no progress yet."""
-    from spadscan.dashboard.job_progress import claim_log, read_progress
+    from spadscan.worker.job_progress import running_progress
     from spadscan.worker.queue import Queue
 
-    queue = Queue.for_root(captures, create=False)
-    for state, path in queue.job_paths().values():
-        if state == "running":
-            return read_progress(claim_log(queue.path, path))
-    return None
+    return next(iter(running_progress(Queue.for_root(captures, create=False)).values()), None)
 
 
 def finished_job_progress(scan_dir: Path):
-    """The last progress (dashboard.job_progress.JobProgress) in the log of the scan's newest published result, or
+    """The last progress (worker.job_progress.JobProgress) in the log of the scan's newest published result, or
     None."""
-    from spadscan.dashboard.job_progress import read_progress
+    from spadscan.worker.job_progress import read_progress
 
     try:
         report = _find_report(scan_dir)

@@ -45,7 +45,9 @@ next worker to start reconciles the queue with the result folders. It publishes 
 left in a scratch folder (<scan>/recon/.tmp-<job>-<claim>/, complete once its marker .complete is written), records
 as done a job whose result is in place, removes partial results, and queues again a done job whose result is gone.
 
---status lists the jobs and changes nothing. A running job whose worker died or stopped renewing its lease shows as
+--status lists the jobs and changes nothing. A running job shows how far it has got (its progress bar: seconds of
+its budget or steps, the step, the loss and, where the scene is known, the last checkpoint's Chamfer; --json:
+`progress`). A running job whose worker died or stopped renewing its lease shows as
 `stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
 still holds shows as `running?`.
 
@@ -97,7 +99,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--queue", default=None, metavar="DIR", help="queue folder (default: ROOT/.queue)")
     parser.add_argument("--status", action="store_true",
                         help="list the jobs and exit (changes nothing; only --queue, --json and --lease-s go with "
-                             "it); a running job whose worker seems gone shows as 'stale' or 'running?'")
+                             "it): a running job with its progress; one whose worker seems gone shows as 'stale' or "
+                             "'running?'")
     parser.add_argument("--json", action="store_true", help="with --status: print JSON instead of a table")
     parser.add_argument("--retry-failed", action="store_true",
                         help="put every failed job back in the queue with a fresh attempt count, and exit; "
@@ -245,9 +248,12 @@ def _print_status(queue, as_json: bool) -> int:
     import json
     from dataclasses import asdict
 
+    from spadscan.worker.job_progress import running_progress
+
     rows = queue.statuses()
+    running = running_progress(queue)
     if as_json:
-        print(json.dumps([{**asdict(r), **_result_health(r)} for r in rows], indent=1))
+        print(json.dumps([{**asdict(r), **_result_health(r), **_progress_entry(r, running)} for r in rows], indent=1))
         return 0
     if not rows:
         print(f"no jobs in {queue.path}")
@@ -257,7 +263,7 @@ def _print_status(queue, as_json: bool) -> int:
         holder = r.holder or "-"
         if r.heartbeat_age_s is not None:
             holder += f" ({r.heartbeat_age_s:.0f} s ago)"
-        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, _status_detail(r)))
+        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, _status_detail(r, running)))
     widths = [max(len(row[i]) for row in table) for i in range(4)]
     for row in table:
         print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4])
@@ -285,9 +291,19 @@ def _result_health(row) -> dict:
             "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else []}
 
 
-def _status_detail(row) -> str:
-    """The last column of a --status row: a done job's result folder, else its last error; then damaged files.
-    A stale running job's row says why first."""
+def _progress_entry(row, running: dict) -> dict:
+    """{"progress": ...} for a running job (its log's progress bar as a dict, None before the bar's first line);
+    {} for the others."""
+    if row.state != "running" or row.id not in running:
+        return {}
+    progress = running[row.id]
+    return {"progress": progress.to_dict() if progress else None}
+
+
+def _status_detail(row, running: dict | None = None) -> str:
+    """The last column of a --status row: a done job's result folder, a running job's progress (its log's progress
+    bar, `running`: job_progress.running_progress), else its last error; then damaged files. A stale running job's
+    row says why first."""
     if row.state == "done":
         detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
         if row.result and row.kept:
@@ -297,7 +313,10 @@ def _status_detail(row) -> str:
             detail += " (not converged)"
         notes = [f"warning: {w}" for w in health.get("warnings", [])] + ([] if not row.result else row.notes)
     else:
-        detail, notes = row.error or "-", row.notes
+        progress = (running or {}).get(row.id) if row.state == "running" else None
+        detail, notes = (progress.line() if progress else row.error or "-"), row.notes
+        if progress and row.error:
+            notes = [f"last error: {row.error}", *notes]
         if row.stale:
             detail, notes = row.stale, [n for n in [row.error, *notes] if n]
     return "; ".join([detail, *notes])

@@ -9,7 +9,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from .job_progress import claim_log, read_progress
+from spadscan.worker.job_progress import running_progress
 from .results import ResultIndex
 from .scans import ScanIndex, scan_detail
 
@@ -19,13 +19,12 @@ def queue_status(queue_dir: Path) -> dict:
     from spadscan.worker.queue import Queue
 
     queue = Queue(queue_dir, create=False)
-    paths = queue.job_paths()
+    running = running_progress(queue)
     jobs = []
     for row in queue.statuses():
         job = asdict(row)
-        state, path = paths.get(row.id, (None, None))
-        if row.state == "running" and state == "running":
-            progress = read_progress(claim_log(queue.path, path))
+        if row.state == "running" and row.id in running:
+            progress = running[row.id]
             job["progress"] = progress.to_dict() if progress else None
         jobs.append(job)
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}

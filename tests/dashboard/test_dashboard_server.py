@@ -10,7 +10,7 @@ import pytest
 
 from dashboard_helpers import complete_scan, get, serving, status
 from page_helpers import add_pose, start_scan
-from spadscan.dashboard.job_progress import parse_progress
+from spadscan.worker.job_progress import parse_progress
 
 
 def test_status_lists_scans_with_progress_and_the_scan_in_hand(tmp_path):

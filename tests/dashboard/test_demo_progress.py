@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from spadscan.dashboard.job_progress import parse_progress
+from spadscan.worker.job_progress import parse_progress
 from spadscan.demo import ReconProgress, running_job_progress
 
 

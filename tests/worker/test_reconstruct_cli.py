@@ -171,7 +171,7 @@ def test_early_stop_ends_the_run_at_the_first_converged_step(early_stop, steps, 
 
 
 def test_the_progress_bar_labels_its_chamfer_as_the_checkpoints(capsys):
-    from spadscan.dashboard.job_progress import parse_progress
+    from spadscan.worker.job_progress import parse_progress
     from spadscan.worker.recon.model_api import RunPlan
     from spadscan.worker.recon.trainer import train
     from spadscan.worker.reconstruct import checkpoint_scoring

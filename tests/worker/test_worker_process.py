@@ -36,6 +36,11 @@ def marker_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=N
     (markers / f"{name}.start").write_text("")
     if os.environ.get("RECON_FAIL") == Path(capture).name:
         raise RuntimeError("simulated crash")
+    if os.environ.get("PROGRESS_BAR"):  # what the reconstruction's progress bar writes to the job's log
+        print(os.environ["PROGRESS_BAR"], end="\r", file=sys.stderr, flush=True)
+    if os.environ.get("RELEASE"):  # hold the job until the test lets it end
+        while not Path(os.environ["RELEASE"]).exists():
+            time.sleep(0.02)
     time.sleep(float(os.environ.get("SLEEP_S", "0")))
     report = {"preset": preset, "chamfer_mm": 1.5, "capture": str(capture)}
     (Path(out) / "report.json").write_text(json.dumps(report))
@@ -220,6 +225,38 @@ def test_status_lists_jobs_as_a_table_and_as_json(tmp_path, capsys):
     assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
     rows = {r["id"]: r for r in json.loads(capsys.readouterr().out)}
     assert rows["a-fast"]["state"] == "failed" and rows["b-fast"]["state"] == "queued"
+
+
+def test_status_shows_how_far_a_running_job_has_got(tmp_path, markers, capsys):
+    """A worker runs a job whose reconstruction has drawn its progress bar: --status shows the bar's reading on the
+    job's row (and --json as `progress`); once the job is done, its result."""
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "a")
+    bar = ("reconstruct (fast):  58%|#####     | 70/120 s [01:10<00:50, step=340, loss=0.912, chamfer=2.10mm, "
+           "scored=checkpoint 128-cell mesh; 30k points]")
+    release = tmp_path / "release"
+    worker = start_worker(root, markers, once=True, sleep_s=0, env={"PROGRESS_BAR": bar, "RELEASE": str(release)})
+    try:
+        wait_for(lambda: markers_of(markers, "a", "start"))
+
+        def row_of_a() -> str:
+            assert cli_main(["worker", "--root", str(root), "--status"]) == 0
+            return next(line for line in capsys.readouterr().out.splitlines() if line.startswith("a-fast"))
+
+        wait_for(lambda: "step 340" in row_of_a())  # the bar reaches the log once the job's process has flushed it
+        row = row_of_a()
+        assert row.split()[1] == "running"
+        assert "reconstruct (fast): 70/120 s, step 340, loss 0.912, Chamfer 2.10 mm" in row and "[01:10 elapsed" in row
+        assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
+        (row,) = json.loads(capsys.readouterr().out)
+        assert row["progress"]["done"] == 70 and row["progress"]["chamfer_mm"] == 2.10
+    finally:
+        release.write_text("")
+        worker.communicate(timeout=120)
+    assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)
+    assert row["state"] == "done" and "progress" not in row, "a finished job shows its result, not its progress"
 
 
 def test_status_lists_jobs_whose_queue_files_are_damaged(tmp_path, capsys):

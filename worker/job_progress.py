@@ -1,4 +1,5 @@
-"""How far a reconstruction job has got, read from the progress bar it writes to its log.
+"""How far a reconstruction job has got, read from the progress bar it writes to its log (for `spadscan worker
+--status`, the dashboard and the demo).
 
 A job's process prints a tqdm bar to its log (the worker's `<queue>/logs/<job>~<claim>.log`, copied to the results'
 job.log at the end), redrawn in place with carriage returns:
@@ -88,3 +89,10 @@ def read_progress(log: Path, tail_bytes: int = TAIL_BYTES) -> JobProgress | None
             return parse_progress(f.read().decode("utf-8", "replace"))
     except OSError:
         return None
+
+
+def running_progress(queue) -> dict[str, JobProgress | None]:
+    """Each running job of a queue (worker.queue.Queue) by id: its progress, or None where its log shows no bar
+    yet."""
+    return {job_id: read_progress(claim_log(queue.path, path))
+            for job_id, (state, path) in queue.job_paths().items() if state == "running"}
