@@ -77,22 +77,54 @@ def views_per_point(mesh, points: np.ndarray, normals: np.ndarray, poses: np.nda
     return counts
 
 
-def mesh_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = SAMPLE_POINTS,
-                  seed: int = 0) -> Coverage:
-    """The coverage of `mesh` (trimesh, world metres) by the views `poses` (V, 4, 4). SpadscanError for a mesh with
-    no faces or no surface that is not an underside."""
+@dataclass
+class SurfaceViews:
+    """Area-uniform sample points of a mesh's surface, undersides included, and how many views see each."""
+
+    points: np.ndarray
+    """(n, 3) world metres (moved OFFSET_M out along their normals)."""
+    normals: np.ndarray
+    """(n, 3) outward unit normals (their faces')."""
+    counts: np.ndarray
+    """(n,) int: views that see each point (views_per_point)."""
+
+    @property
+    def underside(self) -> np.ndarray:
+        """(n,) bool: points whose normal faces down (left out of Coverage's shares)."""
+        return self.normals[:, 2] < UNDERSIDE_NZ
+
+
+def surface_views(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = SAMPLE_POINTS,
+                  seed: int = 0) -> SurfaceViews:
+    """How many of the views `poses` (V, 4, 4, sensor to world) see each of n_points samples of `mesh` (trimesh,
+    world metres), undersides included. SpadscanError for a mesh with no faces or poses that are not finite
+    (V, 4, 4)."""
     poses = np.asarray(poses, np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.all(np.isfinite(poses)):
         raise SpadscanError(f"coverage: poses must be finite (V, 4, 4), got shape {poses.shape}")
     if len(mesh.faces) == 0 or not mesh.area > 0:
         raise SpadscanError("coverage: the mesh has no surface")
     points, face = trimesh.sample.sample_surface(mesh, int(n_points), seed=seed)
-    normals = mesh.face_normals[face]
-    keep = normals[:, 2] >= UNDERSIDE_NZ
+    normals = np.asarray(mesh.face_normals[face], np.float64)
+    points = np.asarray(points, np.float64) + OFFSET_M * normals
+    return SurfaceViews(points, normals, views_per_point(mesh, points, normals, poses, sensor))
+
+
+def vertex_views(mesh, samples: SurfaceViews) -> np.ndarray:
+    """(n_vertices,) int: each vertex of `mesh` takes the views of its nearest sample (for a picture of where the
+    mesh is measured and where it is a guess)."""
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(samples.points).query(np.asarray(mesh.vertices, np.float64))
+    return samples.counts[nearest]
+
+
+def summarize(samples: SurfaceViews) -> Coverage:
+    """The coverage of the surface that is not an underside. SpadscanError where all of it is underside."""
+    keep = ~samples.underside
     if not keep.any():
         raise SpadscanError("coverage: the mesh has only undersides")
-    points, normals = points[keep] + OFFSET_M * normals[keep], normals[keep]
-    counts = views_per_point(mesh, points, normals, poses, sensor)
+    points, counts = samples.points[keep], samples.counts[keep]
     few = counts < FEW_VIEWS
     heights = None
     if few.any():
@@ -102,4 +134,12 @@ def mesh_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = 
                     median_views=float(np.median(counts)), points=int(len(points)))
 
 
-__all__ = ["Coverage", "mesh_coverage", "views_per_point", "FEW_VIEWS", "UNDERSIDE_NZ"]
+def mesh_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = SAMPLE_POINTS,
+                  seed: int = 0) -> Coverage:
+    """The coverage of `mesh` (trimesh, world metres) by the views `poses` (V, 4, 4). SpadscanError for a mesh with
+    no faces or no surface that is not an underside."""
+    return summarize(surface_views(mesh, poses, sensor, n_points, seed))
+
+
+__all__ = ["Coverage", "SurfaceViews", "mesh_coverage", "surface_views", "summarize", "vertex_views",
+           "views_per_point", "FEW_VIEWS", "UNDERSIDE_NZ"]

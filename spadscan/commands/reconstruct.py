@@ -4,7 +4,8 @@ Writes into --out (a new folder, or one without a result unless --overwrite): re
 mesh.ply (per-vertex normals from the SDF gradient), report.json (preset, device, steps, training seconds, the model
 terms used, final loss, the resolved config, and with a ground truth: chamfer_mm, accuracy_mm, completeness_mm,
 fscore_5mm, normal_error_deg plus a trace of error against training time), preview.png, error_vs_time.png, fit.png
-(measured against rendered histograms) and, with a ground truth, normals.png (per-vertex normal error). Without --gt,
+(measured against rendered histograms), coverage.png (the mesh coloured by how many views saw each part: red where
+none did, its shape a guess) and, with a ground truth, normals.png (per-vertex normal error). Without --gt,
 the ground truth that the capture names is used (import-lcspc and simulate record theirs); --no-gt skips the metrics.
 --budget-s bounds the whole run, from the command's start to its report (within 10 % or 10 s, whichever is
 larger): loading the capture, training, the mesh, the metrics and the pictures share it, and when time is short the
@@ -109,6 +110,6 @@ def run(args: argparse.Namespace) -> int:
                  f"{report['accuracy_mm']:.2f}, completeness {report['completeness_mm']:.2f}), F-score@5mm "
                  f"{report['fscore_5mm']:.3f}, normal error (sampled points) {report['normal_error_deg']:.1f} deg")
     print(line)
-    print(f"wrote {out / 'report.html'} (open this first), mesh.ply, report.json, preview.png, error_vs_time.png, "
-          "fit.png")
+    written = [str(name) for name in report.get("files") or () if name != "report.html"]
+    print(f"wrote {out / 'report.html'} (open this first), " + ", ".join(written))
     return 0

@@ -1,5 +1,6 @@
 """How many views saw each part of a reconstructed surface (worker/coverage.py): exact shares on a box seen from
-known directions, undersides left out, occlusion counted, bad input refused in one line."""
+known directions, undersides left out of the shares (and counted for the picture), occlusion counted, each vertex
+given its nearest sample's views, bad input refused in one line."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import trimesh
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
 from spadscan.protocol.sensor_presets import sensor_preset
-from spadscan.worker.coverage import FEW_VIEWS, mesh_coverage, views_per_point
+from spadscan.worker.coverage import (FEW_VIEWS, mesh_coverage, summarize, surface_views, vertex_views,
+                                      views_per_point)
 
 SENSOR = sensor_preset("lcspc-sim")  # one 15-degree cone: a 10 cm box at 0.5 m lies wholly in it
 
@@ -78,3 +80,23 @@ def test_bad_input_is_refused_in_one_line(mesh, poses, what):
     with pytest.raises(SpadscanError, match=what) as info:
         mesh_coverage(mesh, poses, SENSOR)
     assert "\n" not in str(info.value)
+
+
+def test_undersides_are_counted_for_the_picture_and_left_out_of_the_shares():
+    # Seen all round from above: the bottom face (a sixth of the area) faces away from every view.
+    samples = surface_views(box(), fibonacci_hemisphere(64, 0.5, target=(0, 0, 0.05), min_elevation_deg=10), SENSOR)
+    assert len(samples.points) == 10_000
+    assert samples.underside.mean() == pytest.approx(1 / 6, abs=0.02)
+    assert (samples.counts[samples.underside] == 0).all() and (samples.counts[~samples.underside] >= 3).all()
+    assert summarize(samples).share_unseen == 0.0, "the shares leave the underside out"
+
+
+def test_each_vertex_takes_the_views_of_its_nearest_sample():
+    # Views on the +x side only: the +x face's corners are seen by all five views, the -x face's by none.
+    mesh = trimesh.creation.box(extents=(0.1, 0.1, 0.1)).subdivide().subdivide().apply_translation([0, 0, 0.05])
+    samples = surface_views(mesh, from_azimuth_zero([10, 25, 40, 55, 70]), SENSOR)
+    views = vertex_views(mesh, samples)
+    x = mesh.vertices[:, 0]
+    inner_x_face = (x > 0.0499) & (np.abs(mesh.vertices[:, 1]) < 0.04) & (mesh.vertices[:, 2] > 0.01)
+    assert views.shape == (len(mesh.vertices),)
+    assert (views[inner_x_face] == 5).all() and (views[x < -0.0499] == 0).all()

@@ -20,7 +20,7 @@ SMALL = ["rays.rays_per_view=32", "rays.importance_rays_per_view=8", "rays.sampl
          "rays.importance_samples=8", "field.width=48", "field.layers=3", "field.skip_layers=[2]",
          "field.frequencies=4", "mesh_resolution=40", "trace_mesh_resolution=24", "trace_points=2000",
          "metrics_points=5000"]
-FILES = {"mesh.ply", "report.json", "preview.png", "error_vs_time.png", "fit.png"}
+FILES = {"mesh.ply", "report.json", "preview.png", "error_vs_time.png", "fit.png", "coverage.png"}
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -72,12 +72,13 @@ def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
     assert set(report["files"]) >= FILES | {"report.html"}
     page = (out / "report.html").read_text()
     assert f"{report['chamfer_mm']:.4g} mm" in page and "paper" in page
-    for name in ("preview.png", "error_vs_time.png", "fit.png", "normals.png"):
+    for name in ("preview.png", "error_vs_time.png", "fit.png", "normals.png", "coverage.png"):
         assert f'src="{name}"' in page
     header = (out / "mesh.ply").read_bytes()[:1000]
     assert b"property float nx" in header or b"property double nx" in header  # per-vertex normals are stored
     summary = capsys.readouterr().out
     assert "paper: 2 steps" in summary and "Chamfer" in summary
+    assert "(open this first), " + ", ".join(sorted(set(report["files"]) - {"report.html"})) in summary
     # The final figure says how it was scored: the checkpoints' (the trace, the bar) are coarser.
     assert report["chamfer_scoring"] == "final 40-cell mesh, 5,000 points"
     assert f"Chamfer {report['chamfer_mm']:.2f} mm (final 40-cell mesh, 5,000 points;" in summary

@@ -134,3 +134,44 @@ def test_log_axes_for_error_against_time():
     (line,) = fig.axes[0].get_lines()
     assert list(line.get_xdata()) == [2.0, 4.0]  # the checkpoint at 0 s has no place on a log axis
     assert "0 s is off this log axis" in fig.axes[0].get_xlabel()
+
+
+def red(panel: np.ndarray) -> np.ndarray:
+    """Mask of a panel's pixels in the coverage picture's red (seen by no view), shaded."""
+    r, g, b = (panel[..., k].astype(int) for k in range(3))
+    return (r > 60) & (r > 2 * g) & (r > 2 * b)
+
+
+def test_the_coverage_picture_shows_in_red_what_no_view_sees(tmp_path):
+    from spadscan.worker.report import mesh_pictures
+
+    # A sphere whose lower half no view sees: red from below, none from above, none from the side's upper half.
+    mesh = sphere((0, 0, 0))
+    views = np.where(mesh.vertices[:, 2] < 0, 0, 7)
+    px = 96
+    image = mesh_pictures.coverage_panels(mesh, views, pixels=px)
+    assert image.shape[:2] == (px, px * len(mesh_pictures.COVERAGE_VIEWS))
+    panels = {view: image[:, c * px:(c + 1) * px] for c, view in enumerate(mesh_pictures.COVERAGE_VIEWS)}
+    assert red(panels[(30.0, -50.0)]).mean() > 0.1, "from below: the unseen half"
+    assert not red(panels[(0.0, 89.0)]).any(), "from above: all seen"
+    side = panels[(30.0, 25.0)]
+    assert red(side[: px // 3]).sum() == 0 and red(side[px // 2:]).sum() > 0, "from the side: red only below"
+    path = pictures.coverage_png(mesh, views, tmp_path / "coverage.png", area_views=np.array([0, 0, 5, 9]), pixels=48)
+    assert path.read_bytes().startswith(b"\x89PNG")
+
+
+def test_the_coverage_picture_legend_gives_each_class_its_share(tmp_path, monkeypatch):
+    import matplotlib.figure
+
+    legends = []
+    save = matplotlib.figure.Figure.savefig
+
+    def keep_legend(fig, *args, **kwargs):
+        legends.append([t.get_text() for t in fig.axes[0].get_legend().get_texts()])
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep_legend)
+    mesh = sphere((0, 0, 0))
+    pictures.coverage_png(mesh, np.zeros(len(mesh.vertices), int), tmp_path / "c.png",
+                          area_views=np.array([0, 1, 2, 3, 4, 5, 6, 7]), pixels=32)
+    assert legends == [["seen by no view: 12%", "seen by 1-2 views: 25%", "seen by 3 or more views: 62%"]]

@@ -1,5 +1,6 @@
-"""Still pictures of meshes, drawn off screen by pyvista: the preview (reconstruction with the ground truth beside it)
-and the mesh coloured by its per-vertex normal error.
+"""Still pictures of meshes, drawn off screen by pyvista: the preview (reconstruction with the ground truth beside it),
+the mesh coloured by its per-vertex normal error, and the mesh coloured by how many views see each part of it (where
+it is a measurement and where it is the prior's guess).
 
 A machine that cannot draw off screen (see offscreen.py) gets a one-line warning and no picture: the report says the
 picture was not written, and the run that asked for it goes on.
@@ -15,6 +16,11 @@ from . import offscreen
 
 VIEWS = ((30.0, 25.0), (150.0, 25.0), (270.0, 25.0), (0.0, 89.0))
 """(azimuth, elevation) degrees of the panels: three around the object and one from above."""
+COVERAGE_VIEWS = VIEWS + ((30.0, -50.0),)
+"""The coverage picture's panels: those, and one from below, where a scan from above sees least."""
+COVERAGE_CLASSES = (("seen by no view", "#d62728"), ("seen by 1-2 views", "#ff9f1c"),
+                    ("seen by 3 or more views", "#b8c4d0"))
+"""(label, colour) of the coverage picture's three classes of surface (coverage.FEW_VIEWS = 3)."""
 
 
 def _add(pl, mesh, **style) -> None:
@@ -83,5 +89,68 @@ def normals_png(mesh, vertex_error_deg: np.ndarray, path, pixels: int = 300, vma
     fig.colorbar(sm, ax=ax, fraction=0.02, label="per-vertex normal error (deg)")
     fig.suptitle(normals_title(np.asarray(vertex_error_deg)), fontsize=9)
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
+def coverage_classes(vertex_views: np.ndarray, few_views: int = 3) -> np.ndarray:
+    """(n,) float: 0 for a part seen by no view, 1 for one seen by fewer than `few_views`, 2 for the rest."""
+    v = np.asarray(vertex_views)
+    return np.where(v <= 0, 0, np.where(v < few_views, 1, 2)).astype(np.float64)
+
+
+def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: int = 260) -> np.ndarray:
+    """The mesh coloured by coverage class (COVERAGE_CLASSES: `coverage_classes` of `vertex_views`, (n_vertices,)
+    int) from each of COVERAGE_VIEWS, side by side: an RGB image (pixels, pixels x panels, 3).
+    offscreen.OffscreenUnavailable where this machine cannot draw off screen."""
+    from matplotlib.colors import ListedColormap
+
+    views = np.asarray(vertex_views)
+    if views.shape != (len(mesh.vertices),):
+        raise ValueError(f"vertex_views has shape {views.shape}, the mesh {len(mesh.vertices)} vertices")
+    pl = offscreen.plotter((1, len(COVERAGE_VIEWS)), (pixels, pixels))
+    center, half = offscreen.frame([mesh])
+    data = offscreen.polydata(mesh)
+    data.point_data["class"] = coverage_classes(views, few_views)
+    cmap = ListedColormap([colour for _, colour in COVERAGE_CLASSES])
+    try:
+        for c, (az, el) in enumerate(COVERAGE_VIEWS):
+            pl.subplot(0, c)
+            pl.add_mesh(data, scalars="class", cmap=cmap, clim=(-0.5, 2.5), smooth_shading=True,
+                        interpolate_before_map=False, show_scalar_bar=False)
+            pl.add_text(f"az {az:.0f} el {el:.0f}", position="upper_left", font_size=7, color="black")
+            offscreen.set_view(pl, center, half, az, el)
+        return pl.screenshot(return_img=True)
+    finally:
+        pl.close()
+
+
+def coverage_png(mesh, vertex_views: np.ndarray, path, few_views: int = 3, area_views: np.ndarray | None = None,
+                 pixels: int = 260) -> Path | None:
+    """coverage_panels with a legend giving each class's share of the surface (of `area_views`, the views of
+    area-uniform samples, when given, else of the vertices) and a title that says what it means. Returns the PNG's
+    path, or None when this machine cannot draw off screen (a warning says why)."""
+    from matplotlib.patches import Patch
+
+    from .pictures import _plt
+
+    try:
+        image = coverage_panels(mesh, vertex_views, few_views, pixels)
+    except offscreen.OffscreenUnavailable as exc:
+        offscreen.warn(f"no {Path(path).name}: {exc}")
+        return None
+    counted = coverage_classes(vertex_views if area_views is None else area_views, few_views)
+    shares = [float((counted == k).mean()) for k in range(3)]
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(2.9 * len(COVERAGE_VIEWS), 3.6))
+    ax.imshow(image)
+    ax.set_axis_off()
+    ax.legend(handles=[Patch(color=colour, label=f"{label}: {share:.0%}")
+                       for (label, colour), share in zip(COVERAGE_CLASSES, shares)],
+              loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False)
+    fig.suptitle(f"Where the mesh is measured: views that see each part of it (share of the "
+                 f"{'vertices' if area_views is None else 'surface'}); where fewer than {few_views} do, its shape "
+                 "is the fit's smoothness prior, not the data", fontsize=9)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return Path(path)

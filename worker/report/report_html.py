@@ -25,6 +25,8 @@ PICTURES = (
                     "scale (when given)"),
     ("error_vs_time.png", "Error (Chamfer) and loss against run time, on log axes"),
     ("fit.png", "Measured (dots) against rendered (lines) histograms for a few views"),
+    ("coverage.png", ("Where the mesh is measured: each part coloured by the views that see it (red: none, orange: "
+                      "one or two; there its shape is the fit's guess, not the data's)")),
     ("normals.png", ("Per-vertex normal error of the mesh (the summary's 'per-vertex normal error', not its "
                      "'normal error (sampled points)')")),
 )
