@@ -16,7 +16,7 @@ LIVE = "live"
 SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "steps",
                 "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
 LIVE_KEYS = ("views_used", "views_published", "steps", "updated_utc", "converged", "chamfer_mm")
-PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "mesh.ply")
+PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "coverage.png", "mesh.ply")
 
 
 def _read_json(path: Path) -> tuple[dict | None, str | None]:

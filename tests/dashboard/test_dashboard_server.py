@@ -98,6 +98,7 @@ def test_finished_and_live_reconstructions_with_their_pages(tmp_path):
     (final / "report.json").write_text(json.dumps({"preset": "fast", "chamfer_mm": 1.5, "converged": False,
                                                    "warnings": ["stopped on its budget at 3% of its steps"]}))
     (final / "report.html").write_text("<html></html>")
+    (final / "coverage.png").write_bytes(b"\x89PNG coverage")
     live = tmp_path / "scan" / "recon" / "live"
     live.mkdir()
     (live / "status.json").write_text(json.dumps({"views_used": 12, "steps": 300, "converged": False}))
@@ -112,6 +113,8 @@ def test_finished_and_live_reconstructions_with_their_pages(tmp_path):
         assert second["summary"]["converged"] is False
         assert get(server, second["files"]["report.html"]) == (200, b"<html></html>")
         assert get(server, first["files"]["preview.png"])[0] == 200
+        assert get(server, second["files"]["coverage.png"]) == (200, b"\x89PNG coverage")
+        assert "coverage.png" not in first["files"] and "preview.png" not in second["files"]
 
 
 def test_five_hundred_scans_cost_one_read_each_once_and_nothing_after(tmp_path):
