@@ -23,6 +23,9 @@ FIXED_S = 8.0
 coverage pictures, report.html, the 3D view. Measured on the 2-core machine under a load of 11: 5-7 s (the off-screen
 renderer's start alone 2 s) before the coverage picture, which takes 1.8-2.4 s more on the idle machine (its drawing;
 the views of its sample points were counted before it, for the coverage check)."""
+COVERAGE_PICTURE_S = 2.5
+"""The coverage picture is drawn only when this much is left of the budget beyond what the metrics and the normals
+picture still need: a short budget goes to the mesh and its figures first (the idle machine's 1.8-2.4 s)."""
 NORMALS_PICTURE_S = 3.0
 """And for the normal-error picture, drawn when there is a ground truth (3 s under that load)."""
 MESH_S_PER_CELL = 1e-7

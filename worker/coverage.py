@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.sensor_model import SensorModel, in_any_zone
@@ -113,8 +114,6 @@ def surface_views(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = 
 def vertex_views(mesh, samples: SurfaceViews) -> np.ndarray:
     """(n_vertices,) int: each vertex of `mesh` takes the views of its nearest sample (for a picture of where the
     mesh is measured and where it is a guess)."""
-    from scipy.spatial import cKDTree
-
     _, nearest = cKDTree(samples.points).query(np.asarray(mesh.vertices, np.float64))
     return samples.counts[nearest]
 

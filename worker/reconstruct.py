@@ -23,9 +23,9 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
-from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
-                     PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within, metric_points_within,
-                     training_budget)
+from .budget import (COVERAGE_PICTURE_S, FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S,
+                     PROBE_POINTS, PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within,
+                     metric_points_within, training_budget)
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
@@ -218,7 +218,11 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     log("pictures and report")
     t_pictures = clock()
     fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
-    coverage = _coverage(out, mesh, scene, log)
+    still_needed = costs.metrics_s(MIN_METRIC_POINTS) + NORMALS_PICTURE_S if truth is not None else 0.0
+    picture = run_clock.left() - still_needed >= COVERAGE_PICTURE_S
+    if not picture:
+        notes.append("the time budget was short: no coverage picture (coverage.png)")
+    coverage = _coverage(out if picture else None, mesh, scene, log)
     pieces = _pieces(mesh, log)
     stages["pictures_s"] = clock() - t_pictures
     if truth is not None:
@@ -392,13 +396,14 @@ def _report(capture, preset, dev, config, scene, model, result, plan, scored: bo
     }
 
 
-def _coverage(out: Path, mesh, scene: SceneData, log) -> Coverage | None:
-    """How many views saw each part of the mesh (coverage.py), and coverage.png, the mesh coloured by it; None (said
-    in the log) where it cannot be measured."""
+def _coverage(out: Path | None, mesh, scene: SceneData, log) -> Coverage | None:
+    """How many views saw each part of the mesh (coverage.py), and with `out` coverage.png there, the mesh coloured
+    by it; None (said in the log) where it cannot be measured."""
     try:
         samples = surface_views(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor)
-        pictures.coverage_png(mesh, vertex_views(mesh, samples), out / "coverage.png", few_views=FEW_VIEWS,
-                              area_views=samples.counts)
+        if out is not None:
+            pictures.coverage_png(mesh, vertex_views(mesh, samples), out / "coverage.png", few_views=FEW_VIEWS,
+                                  area_views=samples.counts)
         return summarize(samples)
     except SpadscanError as exc:
         log(f"no coverage measured: {exc}")

@@ -93,9 +93,11 @@ def timed(cmd: list[str], env: dict | None = None) -> tuple[float, subprocess.Co
 
 
 def check_budget_notes(report: dict, config_resolution: int, config_points: int | None) -> None:
-    """What a short budget cut is said: in the report's budget notes and among its warnings."""
+    """What a short budget cut is said: in the report's budget notes and among its warnings (a coverage picture left
+    out too)."""
     notes = report["budget"]["notes"]
     assert (report["mesh_resolution"] < config_resolution) == any("cells a side" in n for n in notes)
+    assert ("coverage.png" in report["files"]) != any("no coverage picture" in n for n in notes), report["files"]
     if config_points is not None:
         assert (report["n_points"] < config_points) == any("points per mesh" in n for n in notes)
     assert set(notes) <= set(report["warnings"])
