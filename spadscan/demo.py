@@ -507,7 +507,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         call(sock, "shutdown")
 
         t = time.monotonic()
-        desc = "final reconstruction, from the live fit (training s)" if opts.live else "reconstruction (training s)"
+        desc = "final reconstruction (training s)" if opts.live else "reconstruction (training s)"
         bar = progress_factory(opts.budget_s, desc, "s")
         try:
             show = ReconProgress(bar)
