@@ -96,3 +96,13 @@ def running_progress(queue) -> dict[str, JobProgress | None]:
     yet."""
     return {job_id: read_progress(claim_log(queue.path, path))
             for job_id, (state, path) in queue.job_paths().items() if state == "running"}
+
+
+def progress_field(state: str, job_id: str, running: dict) -> dict:
+    """What a job's entry in a JSON listing of the queue adds (`spadscan worker --status --json`, the dashboard):
+    {"progress": its bar as a dict, or None before the bar's first line} for a running job (`running`:
+    running_progress), {} for the others."""
+    if state != "running" or job_id not in running:
+        return {}
+    progress = running[job_id]
+    return {"progress": progress.to_dict() if progress else None}

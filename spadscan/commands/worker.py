@@ -248,12 +248,13 @@ def _print_status(queue, as_json: bool) -> int:
     import json
     from dataclasses import asdict
 
-    from spadscan.worker.job_progress import running_progress
+    from spadscan.worker.job_progress import progress_field, running_progress
 
     rows = queue.statuses()
     running = running_progress(queue)
     if as_json:
-        print(json.dumps([{**asdict(r), **_result_health(r), **_progress_entry(r, running)} for r in rows], indent=1))
+        print(json.dumps([{**asdict(r), **_result_health(r), **progress_field(r.state, r.id, running)}
+                          for r in rows], indent=1))
         return 0
     if not rows:
         print(f"no jobs in {queue.path}")
@@ -289,15 +290,6 @@ def _result_health(row) -> dict:
     warnings = report.get("warnings")
     return {"converged": report.get("converged"),
             "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else []}
-
-
-def _progress_entry(row, running: dict) -> dict:
-    """{"progress": ...} for a running job (its log's progress bar as a dict, None before the bar's first line);
-    {} for the others."""
-    if row.state != "running" or row.id not in running:
-        return {}
-    progress = running[row.id]
-    return {"progress": progress.to_dict() if progress else None}
 
 
 def _status_detail(row, running: dict | None = None) -> str:

@@ -9,7 +9,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from spadscan.worker.job_progress import running_progress
+from spadscan.worker.job_progress import progress_field, running_progress
 from .results import ResultIndex
 from .scans import ScanIndex, scan_detail
 
@@ -20,13 +20,7 @@ def queue_status(queue_dir: Path) -> dict:
 
     queue = Queue(queue_dir, create=False)
     running = running_progress(queue)
-    jobs = []
-    for row in queue.statuses():
-        job = asdict(row)
-        if row.state == "running" and row.id in running:
-            progress = running[row.id]
-            job["progress"] = progress.to_dict() if progress else None
-        jobs.append(job)
+    jobs = [{**asdict(row), **progress_field(row.state, row.id, running)} for row in queue.statuses()]
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
 
 

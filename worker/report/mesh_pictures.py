@@ -18,9 +18,8 @@ VIEWS = ((30.0, 25.0), (150.0, 25.0), (270.0, 25.0), (0.0, 89.0))
 """(azimuth, elevation) degrees of the panels: three around the object and one from above."""
 COVERAGE_VIEWS = VIEWS + ((30.0, -50.0),)
 """The coverage picture's panels: those, and one from below, where a scan from above sees least."""
-COVERAGE_CLASSES = (("seen by no view", "#d62728"), ("seen by 1-2 views", "#ff9f1c"),
-                    ("seen by 3 or more views", "#b8c4d0"))
-"""(label, colour) of the coverage picture's three classes of surface (coverage.FEW_VIEWS = 3)."""
+COVERAGE_COLOURS = ("#d62728", "#ff9f1c", "#b8c4d0")
+"""Colours of the coverage picture's three classes of surface: seen by no view, by too few, by enough."""
 
 
 def _add(pl, mesh, **style) -> None:
@@ -100,7 +99,7 @@ def coverage_classes(vertex_views: np.ndarray, few_views: int = 3) -> np.ndarray
 
 
 def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: int = 260) -> np.ndarray:
-    """The mesh coloured by coverage class (COVERAGE_CLASSES: `coverage_classes` of `vertex_views`, (n_vertices,)
+    """The mesh coloured by coverage class (COVERAGE_COLOURS: `coverage_classes` of `vertex_views`, (n_vertices,)
     int) from each of COVERAGE_VIEWS, side by side: an RGB image (pixels, pixels x panels, 3).
     offscreen.OffscreenUnavailable where this machine cannot draw off screen."""
     from matplotlib.colors import ListedColormap
@@ -112,7 +111,7 @@ def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: 
     center, half = offscreen.frame([mesh])
     data = offscreen.polydata(mesh)
     data.point_data["class"] = coverage_classes(views, few_views)
-    cmap = ListedColormap([colour for _, colour in COVERAGE_CLASSES])
+    cmap = ListedColormap(COVERAGE_COLOURS)
     try:
         for c, (az, el) in enumerate(COVERAGE_VIEWS):
             pl.subplot(0, c)
@@ -145,8 +144,9 @@ def coverage_png(mesh, vertex_views: np.ndarray, path, few_views: int = 3, area_
     fig, ax = plt.subplots(figsize=(2.9 * len(COVERAGE_VIEWS), 3.6))
     ax.imshow(image)
     ax.set_axis_off()
+    labels = ("seen by no view", f"seen by 1-{few_views - 1} views", f"seen by {few_views} or more views")
     ax.legend(handles=[Patch(color=colour, label=f"{label}: {share:.0%}")
-                       for (label, colour), share in zip(COVERAGE_CLASSES, shares)],
+                       for label, colour, share in zip(labels, COVERAGE_COLOURS, shares)],
               loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False)
     fig.suptitle(f"Where the mesh is measured: views that see each part of it (share of the "
                  f"{'vertices' if area_views is None else 'surface'}); where fewer than {few_views} do, its shape "
