@@ -166,6 +166,14 @@ def mesh_resolution_within(costs: EndCosts, want: int, seconds: float) -> int:
     return min(r, int(want))
 
 
+def coverage_picture_within(costs: EndCosts, seconds: float, scored: bool) -> bool:
+    """Whether the coverage picture (COVERAGE_PICTURE_S) fits in `seconds` and leaves, on a run scored against a
+    ground truth, what must still follow it: the metrics on MIN_METRIC_POINTS and the normals picture. The picture
+    goes before the metrics are cut any further."""
+    still_needed = costs.metrics_s(MIN_METRIC_POINTS) + NORMALS_PICTURE_S if scored else 0.0
+    return seconds - still_needed >= COVERAGE_PICTURE_S
+
+
 def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
     """The most metric points up to `want` that fit in `seconds` (at least MIN_METRIC_POINTS, rounded down to a
     thousand when cut)."""
@@ -176,4 +184,5 @@ def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
 
 
 __all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within",
-           "metric_points_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS", "PROBE_RESOLUTIONS", "PROBE_POINTS"]
+           "metric_points_within", "coverage_picture_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS",
+           "PROBE_RESOLUTIONS", "PROBE_POINTS"]

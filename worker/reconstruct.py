@@ -23,8 +23,8 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
-from .budget import (COVERAGE_PICTURE_S, FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S,
-                     PROBE_POINTS, PROBE_RESOLUTIONS, EndCosts, RunClock, mesh_resolution_within,
+from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
+                     PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
                      metric_points_within, training_budget)
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
@@ -218,8 +218,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     log("pictures and report")
     t_pictures = clock()
     fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
-    still_needed = costs.metrics_s(MIN_METRIC_POINTS) + NORMALS_PICTURE_S if truth is not None else 0.0
-    picture = run_clock.left() - still_needed >= COVERAGE_PICTURE_S
+    picture = coverage_picture_within(costs, run_clock.left(), scored=truth is not None)
     if not picture:
         notes.append("the time budget was short: no coverage picture (coverage.png)")
     coverage = _coverage(out if picture else None, mesh, scene, log)

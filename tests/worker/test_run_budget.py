@@ -13,8 +13,9 @@ import time
 
 import pytest
 
-from spadscan.worker.budget import (MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, SAFETY, EndCosts, RunClock,
-                                    mesh_resolution_within, metric_points_within, process_started, training_budget)
+from spadscan.worker.budget import (COVERAGE_PICTURE_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S,
+                                    SAFETY, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
+                                    metric_points_within, process_started, training_budget)
 
 BUDGET_S = 30.0
 """Above what a run needs whatever its budget (starting Python and torch, loading, probing, drawing: 13-15 s on the
@@ -69,6 +70,15 @@ def test_a_short_time_gets_a_coarser_mesh_and_fewer_points():
     assert metric_points_within(costs, 300_000, 100.0) == 300_000
     assert metric_points_within(costs, 300_000, 3.0) == 100_000  # 1.5 x 2 x 1e-5 s a point
     assert metric_points_within(costs, 300_000, 0.0) == MIN_METRIC_POINTS
+
+
+def test_the_coverage_picture_goes_before_the_least_metrics_and_the_normals_picture():
+    costs = EndCosts(metrics_s_per_point=1e-4)
+    least = costs.metrics_s(MIN_METRIC_POINTS) + NORMALS_PICTURE_S  # what a scored run must still do after it
+    assert coverage_picture_within(costs, COVERAGE_PICTURE_S, scored=False)
+    assert not coverage_picture_within(costs, COVERAGE_PICTURE_S - 0.1, scored=False)
+    assert not coverage_picture_within(costs, COVERAGE_PICTURE_S + least - 0.1, scored=True)
+    assert coverage_picture_within(costs, COVERAGE_PICTURE_S + least + 0.1, scored=True)
 
 
 def test_training_gets_what_the_end_does_not_keep_back_and_at_least_half():
