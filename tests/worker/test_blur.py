@@ -47,3 +47,31 @@ def test_rejects_bad_input():
         blur3(torch.zeros(1, 1, 3, 3, 3), -1)
     with pytest.raises(ValueError):
         blur3(torch.zeros(3, 3, 3), 1)
+
+
+def spread_m2(grad: torch.Tensor, voxel_m: float) -> float:
+    """Variance (square metres) along the first axis of a grid's mass around its centre node."""
+    w = grad[0, 0].sum(dim=(1, 2)).double()
+    z = (torch.arange(len(w), dtype=torch.float64) - len(w) // 2) * voxel_m
+    return float((w * z * z).sum() / w.sum())
+
+
+def test_the_physical_blur_reaches_as_far_in_metres_on_the_fine_level_as_on_the_coarse_one():
+    from types import SimpleNamespace
+
+    from spadscan.worker.recon.fast.parts.blur import BlurConfig, GradientBlur
+
+    def impulse(n):
+        g = torch.zeros(1, 1, n, n, n)
+        g[0, 0, n // 2, n // 2, n // 2] = 1.0
+        return g
+
+    coarse_voxel = 0.004
+    blur = GradientBlur(BlurConfig(physical=True), SimpleNamespace())
+    coarse = spread_m2(blur.after_gradient(SimpleNamespace(level=0), impulse(17)), coarse_voxel)
+    fine = spread_m2(blur.after_gradient(SimpleNamespace(level=1), impulse(33)), coarse_voxel / 2)
+    assert coarse == pytest.approx(0.5 * coarse_voxel ** 2)  # one pass: half a voxel squared
+    assert fine == pytest.approx(coarse)
+    fixed = GradientBlur(BlurConfig(physical=False), SimpleNamespace())
+    assert spread_m2(fixed.after_gradient(SimpleNamespace(level=1), impulse(33)), coarse_voxel / 2) == \
+        pytest.approx(coarse / 4)
