@@ -31,6 +31,8 @@ from scipy.special import gammaln, xlogy
 
 STILL_FALLING = 0.01
 """Relative drop of the windowed data term over the last fifth of a run above which it was still improving."""
+OVERRUN_SHARE = 0.1
+"""Share of its time budget beyond which a run that overran says so."""
 STARVED_SHARE = 0.5
 """CPU cores' worth a CPU run's process must have had on average (CPU seconds / wall seconds): below it, warn."""
 REAL_SENSOR_MISFIT = 0.3
@@ -218,6 +220,10 @@ class RunFacts:
     """The mesh's coverage by the views (a `coverage.Coverage`), or None where it was not measured."""
     pieces: object | None = None
     """The mesh's connected pieces (a `pieces.Pieces`), or None where they were not counted."""
+    budget_s: float | None = None
+    """The whole run's time budget (seconds), or None without one."""
+    elapsed_s: float | None = None
+    """Seconds from the process's start to the checks (what the budget counts)."""
     continued: bool = False
     """The run went on from another fit's field (a live job's final run): too few steps to judge a trend is then a
     short polish, not a rough early state."""
@@ -239,6 +245,20 @@ def cpu_share(facts: RunFacts) -> float | None:
     if not facts.cpu_seconds or not facts.wall_seconds or facts.wall_seconds <= 0:
         return None
     return facts.cpu_seconds / facts.wall_seconds
+
+
+def overrun_warning(facts: RunFacts) -> str | None:
+    """The line saying that the run took over OVERRUN_SHARE more than its time budget, or None. Training stops
+    within its share of the budget, so what overran is the start (the interpreter, the imports, the set-up) or the
+    end (the mesh, the pictures, the metrics), which the budget estimates from the machine as it was at the start: on
+    a machine that other work slowed down later, they take longer."""
+    if facts.budget_s is None or facts.elapsed_s is None or facts.elapsed_s <= (1 + OVERRUN_SHARE) * facts.budget_s:
+        return None
+    share = cpu_share(facts)
+    had = f" (it had {share:.2f} of a CPU core while training)" if share is not None and facts.device == "cpu" else ""
+    return (f"the run took {facts.elapsed_s:.0f} s of a {facts.budget_s:g} s time budget: its start and its end (the "
+            f"mesh, the pictures, the metrics) took longer than the budget left them{had}; give it a larger time "
+            f"budget or stop other work")
 
 
 def misfit_warning(fit: FitNoise, measured: bool) -> str | None:
@@ -307,6 +327,9 @@ def warnings(facts: RunFacts) -> list[str]:
         out.append(f"the machine was busy: this run had {share:.2f} of a CPU core on average and made about "
                    f"{1 / max(share, 1e-3):.0f}x fewer steps ({facts.steps}) than it would alone; stop other work "
                    f"or give it a larger time budget")
+    over = overrun_warning(facts)
+    if over:
+        out.append(over)
     misfit = misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None
     if misfit:
         out.append(misfit)
@@ -321,7 +344,7 @@ def warnings(facts: RunFacts) -> list[str]:
 
 
 __all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "converged", "cpu_share",
-           "warnings", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT", "STILL_FALLING",
-           "STARVED_SHARE", "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED", "MISFIT_Z", "MISFIT_RELATIVE",
-           "MISFIT_MIN_HISTOGRAMS",
+           "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT",
+           "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
+           "MISFIT_Z", "MISFIT_RELATIVE", "MISFIT_MIN_HISTOGRAMS",
            "noise_moments", "misfit_histograms"]

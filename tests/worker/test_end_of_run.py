@@ -13,7 +13,7 @@ import pytest
 
 from spadscan.worker.coverage import Coverage
 from spadscan.worker.end_of_run import (COVERAGE_LIMIT, EXACT_BELOW, MISFIT_MIN_HISTOGRAMS, MISFIT_RELATIVE,
-                                        MISFIT_SHARE_SIMULATED,
+                                        MISFIT_SHARE_SIMULATED, OVERRUN_SHARE,
                                         RELATIVE_MISFIT_LIMIT, FitNoise, RunFacts, converged, fit_noise, late_drop,
                                         noise_deviance, noise_moments, warnings)
 from spadscan.worker.pieces import Pieces
@@ -263,6 +263,17 @@ def test_a_short_run_is_a_rough_early_state_unless_it_went_on_from_another_fit()
         assert warnings(RunFacts(stop, 30, False, short, continued=True)) == []
     (line,) = warnings(RunFacts("steps", 100, False, list(np.linspace(2.0, 1.0, 100)), continued=True))
     assert "still falling" in line
+
+
+def test_a_run_over_its_time_budget_says_by_how_much_and_one_within_it_does_not():
+    settled = list(np.full(200, 1.0))
+    within = RunFacts("budget", 200, True, settled, cpu_seconds=9.0, wall_seconds=10.0, budget_s=30.0,
+                      elapsed_s=30.0 * (1 + OVERRUN_SHARE) - 0.1)
+    assert warnings(within) == []
+    over = RunFacts("budget", 200, True, settled, cpu_seconds=6.0, wall_seconds=10.0, budget_s=30.0, elapsed_s=41.4)
+    (line,) = warnings(over)
+    assert line.startswith("the run took 41 s of a 30 s time budget") and "0.60 of a CPU core" in line, line
+    assert warnings(RunFacts("budget", 200, True, settled, budget_s=None, elapsed_s=500.0)) == []
 
 
 # ---- each warning on a capture made to trigger it ----------------------------------------------------------------

@@ -125,10 +125,10 @@ def test_a_reconstruction_ends_within_its_budget(box, tmp_path, preset):
     wall, done = timed(cmd)
     assert done.returncode == 0, done.stderr[-2000:]
     report = json.loads((tmp_path / "o" / "report.json").read_text())
-    if wall > LIMIT_S:  # only a run starved of CPU by other work may overrun, and it must say so
+    said = any(w.startswith("the run took") for w in report["warnings"])
+    if wall > LIMIT_S:  # only a run slowed by other work may overrun, and it must say so
         share = report["cpu_cores_used"]
-        assert any(w.startswith("the machine was busy") for w in report["warnings"]), \
-            f"{wall:.1f} s for a {BUDGET_S:g} s budget, silently\n{done.stderr[-2000:]}"
+        assert said, f"{wall:.1f} s for a {BUDGET_S:g} s budget, silently\n{done.stderr[-2000:]}"
         assert wall <= LIMIT_S / share, f"{wall:.1f} s for a {BUDGET_S:g} s budget with {share:.2f} of a core"
     assert report["budget"]["budget_s"] == BUDGET_S
     assert report["budget"]["training_budget_s"] < BUDGET_S, "the set-up and the end share the budget"
