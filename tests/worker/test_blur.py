@@ -1,10 +1,12 @@
 """The fast preset's gradient blur: a separable [1, 2, 1] / 4 filter with replicated edges."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
 
-from spadscan.worker.recon.fast.parts.blur import blur3
+from spadscan.worker.recon.fast.parts.blur import BlurConfig, GradientBlur, blur3
 
 
 def reference(a: np.ndarray, passes: int) -> np.ndarray:
@@ -57,10 +59,6 @@ def spread_m2(grad: torch.Tensor, voxel_m: float) -> float:
 
 
 def test_the_physical_blur_reaches_as_far_in_metres_on_the_fine_level_as_on_the_coarse_one():
-    from types import SimpleNamespace
-
-    from spadscan.worker.recon.fast.parts.blur import BlurConfig, GradientBlur
-
     def impulse(n):
         g = torch.zeros(1, 1, n, n, n)
         g[0, 0, n // 2, n // 2, n // 2] = 1.0
