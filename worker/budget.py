@@ -45,6 +45,12 @@ PROBE_RESOLUTIONS = (32, 64)
 """Mesh resolutions of the probes that time extraction on this machine and this model."""
 PROBE_POINTS = 5_000
 """Sample points of the probe that times the metrics on this machine."""
+FINAL_PROBE_POINTS = (5_000, 20_000)
+"""Sample points of the probes that time the final mesh's metrics when their full count may not fit: two sizes,
+since their time grows faster than the points where the meshes lie far apart (a box's poor 32-cell mesh: 0.09 s at
+5,000 points, 0.51 s at 20,000, 8.2 s at 169,000)."""
+MAX_METRICS_GROWTH = 2.0
+"""Largest exponent of the metrics' time in the points that the probes may give (time ~ points ** exponent)."""
 SAFETY = 1.5
 """Margin on extrapolated times (a probe's overheads do not all scale, and far surfaces slow the metrics)."""
 
@@ -89,6 +95,10 @@ class EndCosts:
     mesh_fixed_s: float = 0.0
     """Seconds of an extraction that do not grow with the cells (the model's own set-up of its grid)."""
     metrics_s_per_point: float = METRICS_S_PER_POINT
+    """Metric seconds per sample point and mesh at `metrics_probed_points` points."""
+    metrics_probed_points: int = PROBE_POINTS
+    metrics_growth: float = 1.0
+    """Exponent of the metrics' time in the points (1: in proportion), from probes at two sizes."""
     fixed_s: float = FIXED_S
     fit_check_s: float = 0.0
     """Seconds of the fit check (the views it renders against the photon noise), once a probe has timed a render;
@@ -104,7 +114,8 @@ class EndCosts:
 
     def metrics_s(self, points: int) -> float:
         """Metrics of one final mesh: both directions, and the per-vertex normal error against as many points."""
-        return SAFETY * self.metrics_s_per_point * points * 2
+        scale = max(points, 0) / self.metrics_probed_points
+        return SAFETY * self.metrics_s_per_point * self.metrics_probed_points * 2 * scale ** self.metrics_growth
 
     def time_mesh(self, timings: dict[int, float]) -> None:
         """Mesh extractions took `timings` {resolution: seconds}: with two or more, a fixed part and a part that
@@ -122,10 +133,19 @@ class EndCosts:
         self.mesh_s_per_cell, self.mesh_fixed_s = per_cell, fixed
         self.probed.append("mesh " + ", ".join(f"{k}: {v:.2f} s" for k, v in zip(r, t)))
 
-    def time_metrics(self, seconds: float, points: int) -> None:
-        """Metrics on `points` points per mesh (both directions) took `seconds`: the rate per point from now on."""
-        self.metrics_s_per_point = max(seconds, 0.0) / (2 * points)
-        self.probed.append(f"metrics {points}: {seconds:.2f} s")
+    def time_metrics(self, timings: dict[int, float]) -> None:
+        """Metrics took `timings` {points per mesh: seconds}: the rate per point at the largest count, and with two
+        or more counts the growth between the smallest and the largest (in [1, MAX_METRICS_GROWTH]); with one,
+        time in proportion to the points."""
+        n = sorted(timings)
+        t = {k: max(float(timings[k]), 1e-6) for k in n}
+        growth = 1.0
+        if len(n) >= 2 and n[-1] > n[0]:
+            growth = math.log(t[n[-1]] / t[n[0]]) / math.log(n[-1] / n[0])
+        self.metrics_growth = min(max(growth, 1.0), MAX_METRICS_GROWTH)
+        self.metrics_probed_points = int(n[-1])
+        self.metrics_s_per_point = max(float(timings[n[-1]]), 0.0) / (2 * n[-1])
+        self.probed.append("metrics " + ", ".join(f"{k}: {max(float(timings[k]), 0.0):.2f} s" for k in n))
 
     def time_fit_check(self, seconds: float, views_rendered: int, renders_needed: int) -> None:
         """Rendering `views_rendered` views took `seconds`: the fit check renders `renders_needed` views."""
@@ -144,7 +164,7 @@ class EndCosts:
 
     def checkpoint_s(self, resolution: int, points: int) -> float:
         """Seconds of one checkpoint's evaluation: a mesh at `resolution` scored on `points` points (both ways)."""
-        return self.mesh_s(resolution) + SAFETY * self.metrics_s_per_point * points * 2
+        return self.mesh_s(resolution) + self.metrics_s(points)
 
 
 def training_budget(clock: RunClock, end_s: float) -> float | None:
@@ -179,10 +199,11 @@ def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
     thousand when cut)."""
     if costs.metrics_s(want) <= seconds:
         return int(want)
-    fit = int(seconds / max(costs.metrics_s(1), 1e-12) * (1 + 1e-9))
+    unit = max(costs.metrics_s(costs.metrics_probed_points), 1e-12)  # the time at the probed count
+    fit = int(costs.metrics_probed_points * (max(seconds, 0.0) / unit) ** (1 / costs.metrics_growth) * (1 + 1e-9))
     return int(min(want, max(MIN_METRIC_POINTS, fit // 1000 * 1000)))
 
 
 __all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within",
            "metric_points_within", "coverage_picture_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS",
-           "PROBE_RESOLUTIONS", "PROBE_POINTS"]
+           "PROBE_RESOLUTIONS", "PROBE_POINTS", "FINAL_PROBE_POINTS", "MAX_METRICS_GROWTH"]

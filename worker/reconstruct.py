@@ -23,9 +23,9 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
-from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
-                     PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
-                     metric_points_within, training_budget)
+from .budget import (FINAL_PROBE_POINTS, FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S,
+                     PROBE_POINTS, PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within,
+                     mesh_resolution_within, metric_points_within, training_budget)
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
@@ -307,23 +307,30 @@ def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock) -> None
             truth.metrics(mesh, n_points=PROBE_POINTS)
         except SpadscanError:
             return
-        costs.time_metrics(clock() - t0, PROBE_POINTS)
+        costs.time_metrics({PROBE_POINTS: clock() - t0})
 
 
 def _metric_points(scored, truth, config: ReconConfig, costs: EndCosts, run_clock: RunClock, clock,
                    seed: int) -> int:
     """The metric points that fit in what is left of the budget. When the full count may not fit, the metrics of
-    this very mesh are timed on a few points first (a mesh that lies far from the ground truth is slower to
-    score)."""
+    this very mesh (and its per-vertex normal error) are timed on FINAL_PROBE_POINTS first: a mesh that lies far
+    from the ground truth is slower to score, and more so the more points (the larger probe is left out when the
+    smaller one says it would not fit in a quarter of what is left)."""
     left = run_clock.left() - costs.fixed_s
     if costs.metrics_s(config.metrics_points) <= 0.5 * left:
         return config.metrics_points
-    t0 = clock()
-    try:
-        mesh_metrics(scored, truth.mesh, n_points=PROBE_POINTS, seed=int(seed))
-    except SpadscanError:
-        return config.metrics_points  # the full metrics fail the same way, and say why
-    costs.time_metrics(clock() - t0, PROBE_POINTS)
+    timings = {}
+    for points in FINAL_PROBE_POINTS:
+        if timings and costs.metrics_s(points) > 0.25 * (run_clock.left() - costs.fixed_s):
+            break
+        t0 = clock()
+        try:
+            mesh_metrics(scored, truth.mesh, n_points=points, seed=int(seed))
+        except SpadscanError:
+            return config.metrics_points  # the full metrics fail the same way, and say why
+        pictures.vertex_normal_error_deg(scored, truth.mesh, n_gt=points)
+        timings[points] = clock() - t0
+        costs.time_metrics(timings)
     return metric_points_within(costs, config.metrics_points, run_clock.left() - costs.fixed_s)
 
 

@@ -13,9 +13,9 @@ import time
 
 import pytest
 
-from spadscan.worker.budget import (COVERAGE_PICTURE_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S,
-                                    SAFETY, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
-                                    metric_points_within, process_started, training_budget)
+from spadscan.worker.budget import (COVERAGE_PICTURE_S, MAX_METRICS_GROWTH, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS,
+                                    NORMALS_PICTURE_S, SAFETY, EndCosts, RunClock, coverage_picture_within,
+                                    mesh_resolution_within, metric_points_within, process_started, training_budget)
 
 BUDGET_S = 30.0
 """Above what a run needs whatever its budget (starting Python and torch, loading, probing, drawing: 13-15 s on the
@@ -70,6 +70,32 @@ def test_a_short_time_gets_a_coarser_mesh_and_fewer_points():
     assert metric_points_within(costs, 300_000, 100.0) == 300_000
     assert metric_points_within(costs, 300_000, 3.0) == 100_000  # 1.5 x 2 x 1e-5 s a point
     assert metric_points_within(costs, 300_000, 0.0) == MIN_METRIC_POINTS
+
+
+def test_metrics_whose_time_grows_faster_than_their_points_get_fewer_points():
+    """Two probe sizes give the growth (time ~ points ** growth); the points chosen invert it. The box's poor
+    32-cell mesh: 0.09 s at 5,000 points, 0.51 s at 20,000, 8.2 s at 169,000 (growth 1.25, then 1.3)."""
+    costs = EndCosts()
+    costs.time_metrics({5_000: 0.1, 20_000: 0.8})  # 8 x the time for 4 x the points: growth 1.5
+    assert costs.metrics_growth == pytest.approx(1.5)
+    assert costs.metrics_s(20_000) == pytest.approx(SAFETY * 0.8)
+    assert costs.metrics_s(80_000) == pytest.approx(SAFETY * 0.8 * 8)
+    assert metric_points_within(costs, 300_000, SAFETY * 0.8 * 8) == 80_000
+    assert metric_points_within(costs, 300_000, SAFETY * 0.8 * 8 - 0.1) == 79_000
+    linear = EndCosts()
+    linear.time_metrics({20_000: 0.8})
+    assert metric_points_within(linear, 300_000, SAFETY * 0.8 * 8) == 160_000, "one probe: in proportion"
+    assert "metrics 5000: 0.10 s, 20000: 0.80 s" in costs.probed
+
+
+def test_the_growth_of_the_metrics_time_is_bounded():
+    costs = EndCosts()
+    costs.time_metrics({5_000: 0.5, 20_000: 0.4})  # noise: faster with more points
+    assert costs.metrics_growth == 1.0
+    costs.time_metrics({5_000: 0.001, 20_000: 10.0})
+    assert costs.metrics_growth == MAX_METRICS_GROWTH
+    costs.time_metrics({5_000: 0.0, 20_000: 0.0})  # a clock too coarse to see them
+    assert costs.metrics_growth == 1.0 and costs.metrics_s(300_000) == 0.0
 
 
 def test_the_coverage_picture_goes_before_the_least_metrics_and_the_normals_picture():
