@@ -138,14 +138,14 @@ class EndCosts:
         or more counts the growth between the smallest and the largest (in [1, MAX_METRICS_GROWTH]); with one,
         time in proportion to the points."""
         n = sorted(timings)
-        t = {k: max(float(timings[k]), 1e-6) for k in n}
+        t = {k: max(float(timings[k]), 0.0) for k in n}
         growth = 1.0
-        if len(n) >= 2 and n[-1] > n[0]:
-            growth = math.log(t[n[-1]] / t[n[0]]) / math.log(n[-1] / n[0])
+        if len(n) >= 2 and n[-1] > n[0]:  # a clock too coarse to see a probe reads it as a microsecond
+            growth = math.log(max(t[n[-1]], 1e-6) / max(t[n[0]], 1e-6)) / math.log(n[-1] / n[0])
         self.metrics_growth = min(max(growth, 1.0), MAX_METRICS_GROWTH)
         self.metrics_probed_points = int(n[-1])
-        self.metrics_s_per_point = max(float(timings[n[-1]]), 0.0) / (2 * n[-1])
-        self.probed.append("metrics " + ", ".join(f"{k}: {max(float(timings[k]), 0.0):.2f} s" for k in n))
+        self.metrics_s_per_point = t[n[-1]] / (2 * n[-1])
+        self.probed.append("metrics " + ", ".join(f"{k}: {t[k]:.2f} s" for k in n))
 
     def time_fit_check(self, seconds: float, views_rendered: int, renders_needed: int) -> None:
         """Rendering `views_rendered` views took `seconds`: the fit check renders `renders_needed` views."""
