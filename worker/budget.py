@@ -45,12 +45,17 @@ PROBE_RESOLUTIONS = (32, 64)
 """Mesh resolutions of the probes that time extraction on this machine and this model."""
 PROBE_POINTS = 5_000
 """Sample points of the probe that times the metrics on this machine."""
-FINAL_PROBE_POINTS = (5_000, 20_000)
-"""Sample points of the probes that time the final mesh's metrics when their full count may not fit: two sizes,
-since their time grows faster than the points where the meshes lie far apart (a box's poor 32-cell mesh: 0.09 s at
-5,000 points, 0.51 s at 20,000, 8.2 s at 169,000)."""
+FINAL_PROBE_POINTS = (5_000, 20_000, 80_000)
+"""Sample points of the probes that time the final mesh's metrics when their full count may not fit, each taken
+while the forecast says it fits: their time grows faster than the points where the meshes lie far apart, and faster
+the more points (a box's poor 128-cell mesh: 0.07 s at 5,000 points, 0.29 s at 20,000, 8.0 s at 227,000: growth
+1.03 between the first two, 1.36 beyond), so the growth is read from the two largest."""
 MAX_METRICS_GROWTH = 2.0
 """Largest exponent of the metrics' time in the points that the probes may give (time ~ points ** exponent)."""
+MAX_PROBE_REACH = 4
+"""The final metrics use at most this many times the points of the largest probe taken: beyond it the growth read
+at smaller counts falls short (the box's 128-cell mesh: 1.03 from 5,000 to 20,000 points foretold 6 s at 238,000;
+they took 13.6 s)."""
 SAFETY = 1.5
 """Margin on extrapolated times (a probe's overheads do not all scale, and far surfaces slow the metrics)."""
 
@@ -135,13 +140,13 @@ class EndCosts:
 
     def time_metrics(self, timings: dict[int, float]) -> None:
         """Metrics took `timings` {points per mesh: seconds}: the rate per point at the largest count, and with two
-        or more counts the growth between the smallest and the largest (in [1, MAX_METRICS_GROWTH]); with one,
-        time in proportion to the points."""
+        or more counts the growth between the two largest, nearest the counts it is extrapolated to (in [1,
+        MAX_METRICS_GROWTH]); with one, time in proportion to the points."""
         n = sorted(timings)
         t = {k: max(float(timings[k]), 0.0) for k in n}
         growth = 1.0
-        if len(n) >= 2 and n[-1] > n[0]:  # a clock too coarse to see a probe reads it as a microsecond
-            growth = math.log(max(t[n[-1]], 1e-6) / max(t[n[0]], 1e-6)) / math.log(n[-1] / n[0])
+        if len(n) >= 2 and n[-1] > n[-2]:  # a clock too coarse to see a probe reads it as a microsecond
+            growth = math.log(max(t[n[-1]], 1e-6) / max(t[n[-2]], 1e-6)) / math.log(n[-1] / n[-2])
         self.metrics_growth = min(max(growth, 1.0), MAX_METRICS_GROWTH)
         self.metrics_probed_points = int(n[-1])
         self.metrics_s_per_point = t[n[-1]] / (2 * n[-1])
@@ -206,4 +211,4 @@ def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
 
 __all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within",
            "metric_points_within", "coverage_picture_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS",
-           "PROBE_RESOLUTIONS", "PROBE_POINTS", "FINAL_PROBE_POINTS", "MAX_METRICS_GROWTH"]
+           "PROBE_RESOLUTIONS", "PROBE_POINTS", "FINAL_PROBE_POINTS", "MAX_METRICS_GROWTH", "MAX_PROBE_REACH"]

@@ -23,8 +23,8 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
-from .budget import (FINAL_PROBE_POINTS, FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S,
-                     PROBE_POINTS, PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within,
+from .budget import (FINAL_PROBE_POINTS, FIXED_S, MAX_PROBE_REACH, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS,
+                     NORMALS_PICTURE_S, PROBE_POINTS, PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within,
                      mesh_resolution_within, metric_points_within, training_budget)
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
@@ -314,9 +314,10 @@ def _metric_points(scored, truth, config: ReconConfig, costs: EndCosts, run_cloc
                    seed: int) -> int:
     """The metric points that fit in what is left of the budget. When the full count may not fit, the metrics of
     this very mesh are timed on FINAL_PROBE_POINTS first: a mesh that lies far from the ground truth is slower to
-    score, and more so the more points (the larger probe is left out when the smaller one says it would not fit in a
-    quarter of what is left). The per-vertex normal error is left out of the probes: its cost grows with the mesh's
-    vertices, not with the points (a 256-cell bunny: 0.5 s at 5,000 points), and SAFETY holds it."""
+    score, and more so the more points (a larger probe is left out when those before it say it would not fit in a
+    quarter of what is left). The count stays within MAX_PROBE_REACH times the largest probe, beyond which the
+    growth read at smaller counts falls short. The per-vertex normal error is left out of the probes: its cost grows
+    with the mesh's vertices, not with the points (a 256-cell bunny: 0.5 s at 5,000 points), and SAFETY holds it."""
     left = run_clock.left() - costs.fixed_s
     if costs.metrics_s(config.metrics_points) <= 0.5 * left:
         return config.metrics_points
@@ -331,7 +332,8 @@ def _metric_points(scored, truth, config: ReconConfig, costs: EndCosts, run_cloc
             return config.metrics_points  # the full metrics fail the same way, and say why
         timings[points] = clock() - t0
         costs.time_metrics(timings)
-    return metric_points_within(costs, config.metrics_points, run_clock.left() - costs.fixed_s)
+    within = metric_points_within(costs, config.metrics_points, run_clock.left() - costs.fixed_s)
+    return min(within, MAX_PROBE_REACH * max(timings))  # the first probe is always taken
 
 
 def checkpoint_scoring(config: ReconConfig, short: bool = False) -> str:

@@ -88,6 +88,16 @@ def test_metrics_whose_time_grows_faster_than_their_points_get_fewer_points():
     assert "metrics 5000: 0.10 s, 20000: 0.80 s" in costs.probed
 
 
+def test_the_growth_is_read_from_the_two_largest_probes():
+    """The growth rises with the points on a poor mesh (a box's 128-cell mesh: 0.07 s at 5,000 points, 0.29 s at
+    20,000, 8.0 s at 227,000): the two largest probes, nearest the count chosen, give it."""
+    costs = EndCosts()
+    costs.time_metrics({5_000: 0.07, 20_000: 0.28, 80_000: 2.24})  # growth 1.0, then 1.5
+    assert costs.metrics_growth == pytest.approx(1.5)
+    assert costs.metrics_probed_points == 80_000
+    assert costs.metrics_s(320_000) == pytest.approx(SAFETY * 2.24 * 8)
+
+
 def test_the_growth_of_the_metrics_time_is_bounded():
     costs = EndCosts()
     costs.time_metrics({5_000: 0.5, 20_000: 0.4})  # noise: faster with more points
