@@ -10,12 +10,15 @@ import re
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import pytest
 
-from spadscan.worker.budget import (COVERAGE_PICTURE_S, MAX_METRICS_GROWTH, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS,
-                                    NORMALS_PICTURE_S, SAFETY, EndCosts, RunClock, coverage_picture_within,
-                                    mesh_resolution_within, metric_points_within, process_started, training_budget)
+from spadscan.worker import reconstruct
+from spadscan.worker.budget import (COVERAGE_PICTURE_S, MAX_METRICS_GROWTH, MAX_PROBE_REACH, MIN_MESH_RESOLUTION,
+                                    MIN_METRIC_POINTS, NORMALS_PICTURE_S, SAFETY, EndCosts, RunClock,
+                                    coverage_picture_within, mesh_resolution_within, metric_points_within,
+                                    process_started, training_budget)
 
 BUDGET_S = 30.0
 """Above what a run needs whatever its budget (starting Python and torch, loading, probing, drawing: 13-15 s on the
@@ -194,3 +197,22 @@ def test_a_worker_job_ends_within_its_budget(box, tmp_path):
     assert report["job_budget_s"] == BUDGET_S and report["budget"]["budget_s"] < BUDGET_S, \
         "the job's reconstruction gets what is left once the job has started and checked its capture"
     assert report["threads"]["most"] >= 1 if "most" in report["threads"] else report["threads"]["fixed"] >= 1
+
+
+def test_the_final_metrics_stay_within_reach_of_the_largest_probe(monkeypatch):
+    """Metrics that cost 1 s per 5,000 points (growth 1): with 60 s left the 5,000 and 20,000-point probes are taken,
+    the 80,000-point one would not fit in a quarter of what is left, and the forecast's 183,000 points are cut to
+    MAX_PROBE_REACH x 20,000 (beyond that the growth read at small counts falls short)."""
+    now = [0.0]
+    probed = []
+
+    def metrics(scored, gt, n_points, seed):
+        probed.append(n_points)
+        now[0] += n_points / 5_000
+
+    monkeypatch.setattr(reconstruct, "mesh_metrics", metrics)
+    clock = lambda: now[0]  # noqa: E731
+    points = reconstruct._metric_points(None, SimpleNamespace(mesh=None), SimpleNamespace(metrics_points=300_000),
+                                        EndCosts(fixed_s=0.0), RunClock(60.0, 0.0, clock), clock, seed=0)
+    assert probed == [5_000, 20_000]
+    assert points == MAX_PROBE_REACH * 20_000
