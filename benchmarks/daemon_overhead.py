@@ -168,8 +168,13 @@ def main(argv=None) -> None:
     ap.add_argument("--frame-ms", type=float, default=50.0, help="frame time of the overlapped-publish run")
     ap.add_argument("--sim-sensor", action="store_true", help="render frames live with the simulator")
     args = ap.parse_args(argv)
-    dirs = [Path(d) for d in args.dir] if args.dir else [Path(tempfile.gettempdir())] + \
+    # Absolute, as in live.py: the rig config built under each reads its relative paths from its own folder.
+    dirs = [Path(d).resolve() for d in args.dir] if args.dir else [Path(tempfile.gettempdir())] + \
         ([Path("/dev/shm")] if Path("/dev/shm").is_dir() else [])
+    for d in dirs:
+        if d.exists() and not d.is_dir():
+            ap.error(f"--dir {d} is a file, not a folder")
+        d.mkdir(parents=True, exist_ok=True)
 
     mesh = builtin_scene("sphere")
     model = sensor_preset("tmf8820")

@@ -277,7 +277,9 @@ def main(argv=None) -> int:
     unknown = [s for s in scenes if s not in BUILTIN_SCENES]
     if unknown:
         ap.error(f"unknown scene(s) {', '.join(unknown)} (built-in: {', '.join(BUILTIN_SCENES)})")
-    out = args.out or Path(tempfile.mkdtemp(prefix="spadscan-live-bench-"))
+    # Absolute: the rig.toml written under it names its folders, and a rig file's relative paths are read from its
+    # own folder, so a relative --out would name them twice over.
+    out = (args.out or Path(tempfile.mkdtemp(prefix="spadscan-live-bench-"))).resolve()
     out.mkdir(parents=True, exist_ok=True)
     print(f"machine before: {machine_note()}; runs in {out}", flush=True)
     rows = []

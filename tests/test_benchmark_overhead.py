@@ -1,0 +1,38 @@
+"""benchmarks/daemon_overhead.py run as a user runs it: a relative --dir (benchmarks/live.py gives it one under its
+own --out), a folder that does not exist yet, a file where a folder should be."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "daemon_overhead.py"
+
+
+@pytest.fixture(scope="module")
+def overhead():
+    spec = importlib.util.spec_from_file_location("daemon_overhead", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_relative_dir_that_does_not_exist_yet_is_measured_there(overhead, tmp_path, monkeypatch, capsys):
+    # The rig config built under --dir reads its relative paths from its own folder: a relative --dir passed on as it
+    # is names every path twice over (and its socket path runs past the Unix limit).
+    monkeypatch.chdir(tmp_path)
+    overhead.main(["--dir", "r/s", "--poses", "3", "--frames", "64"])
+    out = capsys.readouterr().out
+    assert f"({tmp_path / 'r' / 's'}):" in out  # the folder it measured, named absolute
+    assert "histograms written per s" in out
+    assert list((tmp_path / "r" / "s").iterdir()) == []  # its temporary captures removed
+
+
+def test_a_file_as_dir_is_a_one_line_usage_error(overhead, tmp_path, capsys):
+    (tmp_path / "f").write_text("")
+    with pytest.raises(SystemExit) as stop:
+        overhead.main(["--dir", str(tmp_path / "f"), "--poses", "3"])
+    assert stop.value.code == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
