@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from benchmark_helpers import load_benchmark
+
 DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "lcspc"
-BENCHMARK_SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "error_vs_time.py"
 
 
 def pytest_configure(config):
@@ -27,12 +28,7 @@ def pytest_configure(config):
 @pytest.fixture(scope="module")
 def bench():
     """benchmarks/error_vs_time.py loaded as a module (a script, not part of the package)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("error_vs_time", BENCHMARK_SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("error_vs_time")
 
 
 def _children() -> set[int]:

@@ -3,21 +3,16 @@ count) and the runs it combines."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "next_best_view.py"
+from benchmark_helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def nbv():
-    spec = importlib.util.spec_from_file_location("next_best_view", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("next_best_view")
 
 
 def fits(rows: dict, seed: int = 0) -> dict:

@@ -3,20 +3,14 @@ own --out), a folder that does not exist yet, a file where a folder should be.""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "daemon_overhead.py"
+from benchmark_helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def overhead():
-    spec = importlib.util.spec_from_file_location("daemon_overhead", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("daemon_overhead")
 
 
 def test_a_relative_dir_that_does_not_exist_yet_is_measured_there(overhead, tmp_path, monkeypatch, capsys):
