@@ -59,15 +59,16 @@ class Zone:
 
         Elementwise arithmetic only, so `rel` may be a numpy array or a torch tensor (on any device) and the result is
         of the same kind: the fit's parts and the view planner share this one test."""
-        x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
         if self.kind == "rect":
-            front = z > 1e-9
-            tz = z * front + ~front  # z where in front, 1 elsewhere (no division by zero)
-            tx, ty = x / tz, y / tz
-            return front & (tx >= self.tan_x[0]) & (tx <= self.tan_x[1]) & (ty >= self.tan_y[0]) & (ty <= self.tan_y[1])
+            return self.holds_tangents(*front_tangents(rel))
+        x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
         length = (x * x + y * y + z * z) ** 0.5
         dot = x * self.axis[0] + y * self.axis[1] + z * self.axis[2]
         return dot >= math.cos(self.half_angle_rad) * (length + 1e-12)
+
+    def holds_tangents(self, front, tx, ty):
+        """`holds` for a rect zone, from `front_tangents` of the points (shared by every rect zone of a sensor)."""
+        return front & (tx >= self.tan_x[0]) & (tx <= self.tan_x[1]) & (ty >= self.tan_y[0]) & (ty <= self.tan_y[1])
 
     def solid_angle_sr(self) -> float:
         """Solid angle of the zone (steradians)."""
@@ -81,12 +82,34 @@ class Zone:
         return total
 
 
+def front_tangents(rel):
+    """(front, tx, ty) of sensor-frame points or directions `rel` (..., 3): whether each lies in front of the sensor
+    (z > 0), and x/z, y/z there (0 behind it: no division by zero). Numpy or torch alike."""
+    x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
+    front = z > 1e-9
+    tz = z * front + ~front  # z where in front, 1 elsewhere
+    return front, x / tz, y / tz
+
+
+def zone_masks(zones, rel) -> list:
+    """[(...) bool for each of `zones`]: `Zone.holds` of `rel` (..., 3), with the rect zones' tangents computed once
+    for all of them (a TMF8820's nine zones cost one division, not nine)."""
+    tangents = None
+    masks = []
+    for zone in zones:
+        if zone.kind == "rect":
+            tangents = front_tangents(rel) if tangents is None else tangents
+            masks.append(zone.holds_tangents(*tangents))
+        else:
+            masks.append(zone.holds(rel))
+    return masks
+
+
 def in_any_zone(zones, rel):
     """(...) bool: whether sensor-frame points or directions `rel` (..., 3) lie in the field of view of any of `zones`
     (a sensor model's, never empty), numpy or torch alike as `Zone.holds`."""
     seen = None
-    for zone in zones:
-        held = zone.holds(rel)
+    for held in zone_masks(zones, rel):
         seen = held if seen is None else seen | held
     return seen
 

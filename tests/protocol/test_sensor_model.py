@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from spadscan.protocol.errors import SensorModelError
-from spadscan.protocol.sensor_model import Pulse, SensorModel, Zone, in_any_zone
+from spadscan.protocol.sensor_model import Pulse, SensorModel, Zone, in_any_zone, zone_masks
 from spadscan.protocol.sensor_presets import PRESETS, sensor_preset
 
 
@@ -161,3 +161,21 @@ def test_with_validates():
     assert model.with_(cycles=10).cycles == 10
     with pytest.raises(SensorModelError):
         model.with_(signal_scale=-1.0)
+
+
+def test_zone_masks_are_each_zones_own_test_whatever_the_kinds_in_between():
+    """The rect zones share one division (the tangents); a cone between them is tested on its own."""
+    torch = pytest.importorskip("torch")
+    rects = sensor_preset("tmf8820").zones
+    zones = (rects[0], Zone(kind="cone", half_angle_rad=0.3), rects[4], Zone(kind="cone", half_angle_rad=0.05,
+                                                                              axis=(0.0, 0.6, 0.8)), rects[8])
+    many = np.random.default_rng(2).normal(size=(5000, 3))
+    many[:, 2] = np.abs(many[:, 2]) * 4  # mostly in front, so that every zone holds some
+    many[:10, 2] = 0.0  # in the sensor's plane: held by no rect zone
+    for rel in (many, torch.as_tensor(many)):
+        masks = zone_masks(zones, rel)
+        assert len(masks) == len(zones)
+        for zone, mask in zip(zones, masks):
+            own = zone.holds(rel)
+            assert type(mask) is type(own) and mask.tolist() == own.tolist() and 0 < int(mask.sum()) < len(many)
+    assert not any(bool(m[:10].any()) for m in zone_masks(rects, many))

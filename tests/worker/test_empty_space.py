@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -66,6 +67,42 @@ def test_a_view_hears_a_point_in_its_zone_where_its_histogram_has_a_return_at_th
     np.testing.assert_array_equal(heard, [1, 0])
     wide = views_hearing(pts, poses, sensor, loud, half_width_m=0.11).numpy()  # a window reaching 0.6 m
     np.testing.assert_array_equal(wide, [2, 0])
+
+
+def heard_one_by_one(points, poses, sensor, loud, half_width_m):
+    """views_hearing's definition, point by point, view by view, zone by zone (the reference for the fast one)."""
+    counts = []
+    for p in points.numpy():
+        n = 0
+        for v, pose in enumerate(poses.numpy()):
+            rel = pose[:3, :3].T @ (p - pose[:3, 3])
+            rng = float(np.linalg.norm(rel))
+            lo = max(0, math.floor(sensor.bin_of_range(0.0) + (rng - half_width_m) / sensor.bin_width_m))
+            hi = min(sensor.n_bins - 1, math.floor(sensor.bin_of_range(0.0) + (rng + half_width_m) / sensor.bin_width_m))
+            n += any(bool(zone.holds(rel)) and lo <= hi and bool(loud[v, z, lo: hi + 1].any())
+                     for z, zone in enumerate(sensor.zones))
+        counts.append(n)
+    return np.array(counts, float)
+
+
+@pytest.mark.parametrize("zones", ["tmf8820", "overlapping"])
+def test_views_hearing_counts_as_the_definition_does_point_by_point(zones):
+    """The TMF8820's nine rect zones tile its view; the other sensor's zones overlap (a wide cone over a rect zone
+    and a narrow cone inside it), so that a (point, view) lies in several and any of them may hear it."""
+    sensor = sensor_preset("tmf8820")
+    if zones == "overlapping":
+        sensor = replace(sensor, zones=(Zone(kind="rect", tan_x=(-0.2, 0.1), tan_y=(-0.1, 0.2)),
+                                        Zone(kind="cone", half_angle_rad=math.radians(14.0)),
+                                        Zone(kind="cone", half_angle_rad=math.radians(5.0))))
+    rng = np.random.default_rng(3)
+    down = np.diag([1.0, -1.0, -1.0])
+    poses = torch.tensor(np.stack([pose_at([x, y, 0.5], down) for x, y in rng.uniform(-0.05, 0.05, (5, 2))]))
+    points = torch.tensor(rng.uniform([-0.12, -0.12, -0.1], [0.12, 0.12, 0.1], (300, 3)))
+    loud = torch.as_tensor(rng.random((5, len(sensor.zones), sensor.n_bins)) < 0.08)
+    expected = heard_one_by_one(points, poses, sensor, loud, 0.004)
+    assert expected.min() == 0 and expected.max() >= 3  # some points heard by none, some by several
+    got = views_hearing(points, poses, sensor, loud, half_width_m=0.004, chunk=64)
+    np.testing.assert_array_equal(got.numpy(), expected)
 
 
 def test_heard_bins_are_returns_over_the_threshold_and_never_the_unreliable_bins():

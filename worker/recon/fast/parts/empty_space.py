@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from spadscan.protocol.errors import ConfigError
-from spadscan.protocol.sensor_model import in_any_zone
+from spadscan.protocol.sensor_model import in_any_zone, zone_masks
 
 from ....carving.returns import matched_filter_z
 from .part import Model, Part, PartConfig
@@ -141,31 +141,41 @@ def heard_bins(counts: torch.Tensor, sensor, threshold: float) -> torch.Tensor:
 
 
 def views_hearing(points: torch.Tensor, poses: torch.Tensor, sensor, loud: torch.Tensor, half_width_m: float,
-                  chunk: int = 1 << 14) -> torch.Tensor:
+                  chunk: int = 1 << 12) -> torch.Tensor:
     """How many views hear a return at each point: the point lies in one of the view's zones (occlusion ignored)
     and that zone's histogram has a loud bin within `half_width_m` (metres) of the point's range.
 
     points (..., 3) and poses (V, 4, 4) sensor-to-world, metres; loud (V, Z, B) bool (`heard_bins`). Returns (...)."""
     flat = points.reshape(-1, 3)
     V, Z, B = loud.shape
-    # Loud bins within the window, by a running count: any loud bin in [lo, hi] <=> cum[hi + 1] > cum[lo].
-    cum = torch.zeros((V, Z, B + 1), dtype=torch.int32, device=flat.device)
-    cum[..., 1:] = torch.cumsum(loud.to(flat.device).to(torch.int32), dim=-1)
+    # Loud bins within the window, by a running count: any loud bin in [lo, hi] <=> cum[hi + 1] > cum[lo]. The
+    # counts lie flat, zone by zone and view by view, so that one gather reads each (point, view)'s own zone.
+    cum = torch.zeros((Z, V, B + 1), dtype=torch.int32, device=flat.device)
+    cum[..., 1:] = torch.cumsum(loud.to(flat.device).to(torch.int32).permute(1, 0, 2), dim=-1)
+    cum = cum.reshape(-1)
     rot, org = poses[:, :3, :3].to(flat.dtype), poses[:, :3, 3].to(flat.dtype)
     out = torch.empty(flat.shape[0], dtype=flat.dtype, device=flat.device)
-    views = torch.arange(V, device=flat.device)[None]
+    row = torch.arange(V, device=flat.device)[None] * (B + 1)
+    zone_size = V * (B + 1)
     zero_bin = float(sensor.bin_of_range(0.0))
     for i in range(0, flat.shape[0], chunk):
         rel = torch.einsum("vji,pvj->pvi", rot, flat[i: i + chunk, None, :] - org[None])  # sensor frame (P, V, 3)
         rng = rel.norm(dim=-1)
         lo = torch.floor(zero_bin + (rng - half_width_m) / sensor.bin_width_m).long().clamp(0, B)
         hi = torch.floor(zero_bin + (rng + half_width_m) / sensor.bin_width_m).long().clamp(-1, B - 1)
-        rows = views.expand_as(lo)
-        window = hi >= lo
-        heard = torch.zeros(rng.shape, dtype=torch.bool, device=flat.device)
-        for z, zone in enumerate(sensor.zones):
-            c = cum[:, z]  # (V, B + 1)
-            heard |= zone.holds(rel) & window & (c[rows, (hi + 1).clamp(0, B)] > c[rows, lo])
+        first, past = row + lo, row + (hi + 1).clamp(0, B)
+        held = torch.stack(zone_masks(sensor.zones, rel), dim=-1) & (hi >= lo)[..., None]  # (P, V, Z)
+        # A (point, view) lies in one zone of a tiling (the TMF8820's): read the first zone that holds it, then
+        # the others only for the few that more than one holds (overlapping zones, shared edges).
+        count = held.sum(dim=-1)
+        offset = held.to(torch.uint8).argmax(dim=-1) * zone_size
+        heard = (count > 0) & (cum.take(offset + past) > cum.take(offset + first))
+        several = count > 1
+        if bool(several.any()):
+            for z in range(1, Z):
+                pick = (several & held[..., z]).nonzero(as_tuple=True)
+                offset = z * zone_size
+                heard[pick] |= cum.take(offset + past[pick]) > cum.take(offset + first[pick])
         out[i: i + chunk] = heard.to(flat.dtype).sum(dim=1)
     return out.reshape(points.shape[:-1])
 
