@@ -84,7 +84,8 @@ class Zone:
 
 def front_tangents(rel):
     """(front, tx, ty) of sensor-frame points or directions `rel` (..., 3): whether each lies in front of the sensor
-    (z > 0), and x/z, y/z there (0 behind it: no division by zero). Numpy or torch alike."""
+    (z > 0), and x/z, y/z there (x and y behind it, where `front` rules them out: no division by zero). Numpy or
+    torch alike."""
     x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
     front = z > 1e-9
     tz = z * front + ~front  # z where in front, 1 elsewhere
