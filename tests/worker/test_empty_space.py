@@ -71,14 +71,14 @@ def test_a_view_hears_a_point_in_its_zone_where_its_histogram_has_a_return_at_th
 
 def heard_one_by_one(points, poses, sensor, loud, half_width_m):
     """views_hearing's definition, point by point, view by view, zone by zone (the reference for the fast one)."""
-    counts = []
+    zero_bin, counts = sensor.bin_of_range(0.0), []
     for p in points.numpy():
         n = 0
         for v, pose in enumerate(poses.numpy()):
             rel = pose[:3, :3].T @ (p - pose[:3, 3])
             rng = float(np.linalg.norm(rel))
-            lo = max(0, math.floor(sensor.bin_of_range(0.0) + (rng - half_width_m) / sensor.bin_width_m))
-            hi = min(sensor.n_bins - 1, math.floor(sensor.bin_of_range(0.0) + (rng + half_width_m) / sensor.bin_width_m))
+            lo = max(0, math.floor(zero_bin + (rng - half_width_m) / sensor.bin_width_m))
+            hi = min(sensor.n_bins - 1, math.floor(zero_bin + (rng + half_width_m) / sensor.bin_width_m))
             n += any(bool(zone.holds(rel)) and lo <= hi and bool(loud[v, z, lo: hi + 1].any())
                      for z, zone in enumerate(sensor.zones))
         counts.append(n)

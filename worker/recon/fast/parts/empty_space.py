@@ -175,8 +175,8 @@ def views_hearing(points: torch.Tensor, poses: torch.Tensor, sensor, loud: torch
         if bool(several.any()):
             for z in range(1, Z):
                 pick = (several & held[..., z]).nonzero(as_tuple=True)
-                offset = z * zone_size
-                heard[pick] |= cum.take(offset + past[pick]) > cum.take(offset + first[pick])
+                start = z * zone_size
+                heard[pick] |= cum.take(start + past[pick]) > cum.take(start + first[pick])
         out[i: i + chunk] = heard.to(flat.dtype).sum(dim=1)
     return out.reshape(points.shape[:-1])
 
