@@ -19,15 +19,20 @@ takes about 30 s; for samples far from the other surface `nearest_samples` uses 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import numpy as np
 
 from spadscan.protocol.errors import MeshError
 
-from .nearest import nearest_samples
+from .nearest import SampleIndex, nearest_samples
 
 MAX_POINTS = 20_000_000
+FIRST_QUERIES = 5_000
+"""Samples per mesh whose distances are measured before a deadline is looked at: the fewest that metrics stopped
+by one rest on. Later chunks double."""
 
 
 @dataclass(frozen=True)
@@ -50,7 +55,11 @@ class MeshMetrics:
     """Mean unsigned normal angle error, both directions averaged."""
     fscore_threshold_mm: float
     n_points: int
+    """Samples per mesh: the density each side's nearest distances are measured against."""
     seed: int
+    queries: int
+    """Samples per mesh whose nearest distance was measured: `n_points` unless a deadline stopped the metrics early
+    (the first samples drawn, themselves uniform by area, so the figures are a coarser estimate, not a biased one)."""
 
     def to_dict(self) -> dict:
         """The fields as a dict; the F-score's key names its threshold (`fscore_5mm`, or e.g. `fscore_10mm`), so that
@@ -111,9 +120,14 @@ def vertex_normal_error_deg(mesh, gt, n_gt: int = 300_000, seed: int = 0) -> np.
     return np.degrees(np.arccos(cos))
 
 
-def mesh_metrics(pred, gt, *, n_points: int = 300_000, seed: int = 0,
-                 fscore_threshold_m: float = 0.005) -> MeshMetrics:
-    """Compare a reconstruction `pred` with ground truth `gt` (both trimesh.Trimesh in metres)."""
+def mesh_metrics(pred, gt, *, n_points: int = 300_000, seed: int = 0, fscore_threshold_m: float = 0.005,
+                 deadline: float | None = None, clock: Callable[[], float] = time.perf_counter) -> MeshMetrics:
+    """Compare a reconstruction `pred` with ground truth `gt` (both trimesh.Trimesh in metres).
+
+    With a `deadline` (a `clock()` reading), the samples' distances are measured in chunks, and no chunk is begun
+    that the last one's pace says would end after it: a time budget's run ends on time however far the meshes lie
+    apart (their metrics' time grows faster than the points, by a factor no probe foretells well). At least
+    FIRST_QUERIES samples per mesh are measured; `queries` says how many were."""
     check_mesh(pred, "reconstruction")
     check_mesh(gt, "ground truth")
     if not (isinstance(n_points, (int, np.integer)) and 1 <= n_points <= MAX_POINTS):
@@ -126,16 +140,39 @@ def mesh_metrics(pred, gt, *, n_points: int = 300_000, seed: int = 0,
     rng_pred, rng_gt = (np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(2))
     p_pts, p_nrm = sample_surface(pred, int(n_points), rng_pred)
     g_pts, g_nrm = sample_surface(gt, int(n_points), rng_gt)
-    d_pg, i_pg = nearest_samples(p_pts, g_pts, spacing_m=math.sqrt(gt.area / n_points))
-    d_gp, i_gp = nearest_samples(g_pts, p_pts, spacing_m=math.sqrt(pred.area / n_points))
+    to_gt = SampleIndex(g_pts, spacing_m=math.sqrt(gt.area / n_points))
+    to_pred = SampleIndex(p_pts, spacing_m=math.sqrt(pred.area / n_points))
+    if deadline is not None:  # built before the first chunk, whose pace would otherwise count their set-up
+        to_gt.build(), to_pred.build()
+    (d_pg, i_pg), (d_gp, i_gp) = _measure_until(lambda a, b: (to_gt.query(p_pts[a:b]), to_pred.query(g_pts[a:b])),
+                                                int(n_points), deadline, clock)
+    queries = len(d_pg)
     precision = float(np.mean(d_pg < fscore_threshold_m))
     recall = float(np.mean(d_gp < fscore_threshold_m))
     fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
-    normal = 0.5 * (_mean_angle_deg(p_nrm, g_nrm[i_pg]) + _mean_angle_deg(g_nrm, p_nrm[i_gp]))
+    normal = 0.5 * (_mean_angle_deg(p_nrm[:queries], g_nrm[i_pg]) + _mean_angle_deg(g_nrm[:queries], p_nrm[i_gp]))
     acc, comp = float(d_pg.mean()) * 1e3, float(d_gp.mean()) * 1e3
     return MeshMetrics(chamfer_mm=0.5 * (acc + comp), accuracy_mm=acc, completeness_mm=comp, fscore_5mm=fscore,
                        precision=precision, recall=recall, normal_error_deg=normal,
-                       fscore_threshold_mm=fscore_threshold_m * 1e3, n_points=int(n_points), seed=int(seed))
+                       fscore_threshold_mm=fscore_threshold_m * 1e3, n_points=int(n_points), seed=int(seed),
+                       queries=queries)
+
+
+def _measure_until(measure: Callable[[int, int], tuple], n: int, deadline: float | None,
+                   clock: Callable[[], float]) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """`measure(a, b)` (each side's (distances, indices) for samples a..b) over 0..n: at once without a deadline,
+    else in chunks doubling from FIRST_QUERIES while the last chunk's pace says the next ends by `deadline`."""
+    if deadline is None:
+        return measure(0, n)
+    parts, done, size = [], 0, min(FIRST_QUERIES, n)
+    while done < n:
+        t0 = clock()
+        parts.append(measure(done, done + size))
+        took, done = clock() - t0, done + size
+        size, last = min(2 * size, n - done), size
+        if clock() + took * size / last > deadline:
+            break
+    return tuple(tuple(np.concatenate([p[side][k] for p in parts]) for k in range(2)) for side in range(2))
 
 
 def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:

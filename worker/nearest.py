@@ -22,8 +22,8 @@ BLOCKS_PER_CHUNK = 16
 _TOL = 1e-9
 
 
-def nearest_samples(queries: np.ndarray, data: np.ndarray, *, spacing_m: float | None = None,
-                    tree=None) -> tuple[np.ndarray, np.ndarray]:
+def nearest_samples(queries: np.ndarray, data: np.ndarray, *,
+                    spacing_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact Euclidean nearest neighbour in `data` (n, 3) of each of `queries` (m, 3): (distances (m,), indices (m,)).
 
     A KD-tree is fast when the nearest sample is close, and slow when it is far: a query then sits at nearly the
@@ -31,22 +31,49 @@ def nearest_samples(queries: np.ndarray, data: np.ndarray, *, spacing_m: float |
     small sphere inside a large one took minutes at 100,000 points). So the tree answers only the queries within
     NEAR_SPACINGS sample spacings (`spacing_m`, default from the data's extent) of a sample; the rest are answered by
     `_far_nearest`, whose patches of samples are bounded by thin slabs along their normals as well as by boxes."""
-    queries, data = np.asarray(queries, np.float64), np.asarray(data, np.float64)
-    if spacing_m is None:
-        extent = float(np.linalg.norm(np.ptp(data, axis=0))) if len(data) else 0.0
-        spacing_m = extent / math.sqrt(max(len(data), 1))
-    near = NEAR_SPACINGS * spacing_m
-    dist, idx = np.full(len(queries), np.inf), np.zeros(len(queries), np.int64)
-    patches = _median_split(data, LEAF) if len(queries) >= 4 * LEAF and len(data) >= 4 * LEAF else None
-    maybe_near = _maybe_near(queries, data, near, patches)
-    if maybe_near.any():
-        tree = kd_tree(data) if tree is None else tree
-        d, i = tree.query(queries[maybe_near], distance_upper_bound=near if near > 0 else np.inf, workers=-1)
-        dist[maybe_near], idx[maybe_near] = d, np.minimum(i, len(data) - 1)
-    far = ~np.isfinite(dist)
-    if far.any():
-        dist[far], idx[far] = _far_nearest(queries[far], data, patches)
-    return dist, idx
+    return SampleIndex(data, spacing_m=spacing_m).query(queries)
+
+
+class SampleIndex:
+    """`nearest_samples` over one set of samples, its KD-tree and patches built once for queries that come in
+    parts (metrics answered a chunk at a time until a deadline): at 300,000 samples the patches take 0.6 s."""
+
+    def __init__(self, data: np.ndarray, *, spacing_m: float | None = None):
+        self.data = np.asarray(data, np.float64)
+        if spacing_m is None:
+            extent = float(np.linalg.norm(np.ptp(self.data, axis=0))) if len(self.data) else 0.0
+            spacing_m = extent / math.sqrt(max(len(self.data), 1))
+        self.near = NEAR_SPACINGS * spacing_m
+        self._tree = None
+        self._patches = None
+
+    def build(self) -> None:
+        """Build the KD-tree and the patches now rather than at the first query that needs them."""
+        self._tree = kd_tree(self.data) if self._tree is None else self._tree
+        if len(self.data) >= 4 * LEAF:
+            self._split()
+
+    def query(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(distances (m,), indices (m,)) of the nearest sample to each of `queries` (m, 3)."""
+        queries, data = np.asarray(queries, np.float64), self.data
+        dist, idx = np.full(len(queries), np.inf), np.zeros(len(queries), np.int64)
+        # Patches pay off only for enough queries (a mesh's few vertices go to the tree alone).
+        patches = self._split() if len(queries) >= 4 * LEAF and len(data) >= 4 * LEAF else None
+        maybe_near = _maybe_near(queries, data, self.near, patches)
+        if maybe_near.any():
+            self._tree = kd_tree(data) if self._tree is None else self._tree
+            d, i = self._tree.query(queries[maybe_near], distance_upper_bound=self.near if self.near > 0 else np.inf,
+                                    workers=-1)
+            dist[maybe_near], idx[maybe_near] = d, np.minimum(i, len(data) - 1)
+        far = ~np.isfinite(dist)
+        if far.any():
+            dist[far], idx[far] = _far_nearest(queries[far], data, patches)
+        return dist, idx
+
+    def _split(self) -> np.ndarray:
+        if self._patches is None:
+            self._patches = _median_split(self.data, LEAF)
+        return self._patches
 
 
 def kd_tree(points: np.ndarray) -> cKDTree:
@@ -229,4 +256,4 @@ def _search_pairs(queries, pp, patches, qidx, pidx, best_d, best_i) -> None:
     best_d[uq[better]], best_i[uq[better]] = d[better], i[better]
 
 
-__all__ = ["LEAF", "NEAR_SPACINGS", "nearest_samples"]
+__all__ = ["LEAF", "NEAR_SPACINGS", "SampleIndex", "nearest_samples"]

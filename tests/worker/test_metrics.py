@@ -258,3 +258,68 @@ def test_a_small_sphere_inside_a_large_one_is_its_gap_away():
     m = mesh_metrics(ball(0.02), ball(0.05), n_points=N)
     assert m.accuracy_mm == pytest.approx(30.0, abs=0.1) and m.completeness_mm == pytest.approx(30.0, abs=0.1)
     assert m.fscore_5mm == 0.0
+
+
+def test_a_sample_index_answers_queries_in_parts_as_at_once():
+    from spadscan.worker.nearest import SampleIndex, nearest_samples
+
+    rng = np.random.default_rng(3)
+    q, _ = sample_surface(ball(0.02), 12_000, rng)  # far from the data: the patch search as well as the tree
+    d, _ = sample_surface(ball(0.05), 9_000, rng)
+    whole = nearest_samples(q, d, spacing_m=0.001)
+    index = SampleIndex(d, spacing_m=0.001)
+    parts = [index.query(q[a:a + 5_000]) for a in range(0, len(q), 5_000)]
+    for k in range(2):
+        np.testing.assert_array_equal(np.concatenate([p[k] for p in parts]), whole[k])
+
+
+class StepClock:
+    """A clock that only the measured samples move: `per_query` seconds for each query answered."""
+
+    def __init__(self, per_query: float):
+        self.t, self.per_query = 0.0, per_query
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def timed_index(clock: StepClock):
+    """metrics.SampleIndex whose queries advance `clock`."""
+    from spadscan.worker.nearest import SampleIndex
+
+    class Timed(SampleIndex):
+        def query(self, queries):
+            clock.t += clock.per_query * len(queries)
+            return super().query(queries)
+
+    return Timed
+
+
+def test_metrics_with_a_far_deadline_are_the_metrics_without_one(monkeypatch):
+    import spadscan.worker.metrics as metrics
+
+    clock = StepClock(1e-6)
+    monkeypatch.setattr(metrics, "SampleIndex", timed_index(clock))
+    a, b = ball(0.05), ball(0.05, (0.02, 0, 0.1))
+    whole = mesh_metrics(a, b, n_points=N)
+    chunked = mesh_metrics(a, b, n_points=N, deadline=1e9, clock=clock)
+    assert clock.t > 0, "the chunks were timed"
+    assert chunked == whole and chunked.queries == N
+
+
+def test_a_deadline_stops_the_metrics_at_the_chunk_that_would_pass_it(monkeypatch):
+    """Chunks of 5,000, 10,000 and 20,000 samples at 1 ms a query and side take 10, 20 and 40 s: with a deadline
+    at 45 s the third would end at 70 s, so the metrics rest on the first 15,000 samples of each mesh."""
+    import spadscan.worker.metrics as metrics
+    from spadscan.worker.metrics import FIRST_QUERIES
+
+    clock = StepClock(1e-3)
+    monkeypatch.setattr(metrics, "SampleIndex", timed_index(clock))
+    a, b = ball(0.05), ball(0.052)
+    cut = mesh_metrics(a, b, n_points=N, deadline=45.0, clock=clock)
+    assert cut.queries == 3 * FIRST_QUERIES and cut.n_points == N
+    assert clock.t == pytest.approx(30.0)
+    whole = mesh_metrics(a, b, n_points=N)
+    assert cut.chamfer_mm == pytest.approx(whole.chamfer_mm, rel=0.02), "the first samples drawn: an unbiased share"
+    late = mesh_metrics(a, b, n_points=N, deadline=-1.0, clock=StepClock(0.0))
+    assert late.queries == FIRST_QUERIES, "a deadline already past still measures the first chunk"
