@@ -4,7 +4,8 @@
 building the model, training, extracting the mesh, the metrics and the pictures share it. The run keeps back what
 the stages after training are expected to take (`EndCosts`, timed on this machine once the model is built) and
 trains for the rest; when training ends, the mesh resolution and the number of metric points are chosen to fit what
-is left (coarser or fewer than the config's when time is short; the report says so). The contract, tested: the run
+is left (coarser or fewer than the config's when time is short; the report says so), and the metrics stop at a
+deadline however far their forecast falls short (metrics.mesh_metrics). The contract, tested: the run
 ends within 10 % or 10 s of its budget, whichever is larger.
 
 Seconds are wall seconds (time.perf_counter) throughout.
@@ -45,17 +46,6 @@ PROBE_RESOLUTIONS = (32, 64)
 """Mesh resolutions of the probes that time extraction on this machine and this model."""
 PROBE_POINTS = 5_000
 """Sample points of the probe that times the metrics on this machine."""
-FINAL_PROBE_POINTS = (5_000, 20_000, 80_000)
-"""Sample points of the probes that time the final mesh's metrics when their full count may not fit, each taken
-while the forecast says it fits: their time grows faster than the points where the meshes lie far apart, and faster
-the more points (a box's poor 128-cell mesh: 0.07 s at 5,000 points, 0.29 s at 20,000, 8.0 s at 227,000: growth
-1.03 between the first two, 1.36 beyond), so the growth is read from the two largest."""
-MAX_METRICS_GROWTH = 2.0
-"""Largest exponent of the metrics' time in the points that the probes may give (time ~ points ** exponent)."""
-MAX_PROBE_REACH = 4
-"""The final metrics use at most this many times the points of the largest probe taken: beyond it the growth read
-at smaller counts falls short (the box's 128-cell mesh: 1.03 from 5,000 to 20,000 points foretold 6 s at 238,000;
-they took 13.6 s)."""
 SAFETY = 1.5
 """Margin on extrapolated times (a probe's overheads do not all scale, and far surfaces slow the metrics)."""
 
@@ -100,10 +90,8 @@ class EndCosts:
     mesh_fixed_s: float = 0.0
     """Seconds of an extraction that do not grow with the cells (the model's own set-up of its grid)."""
     metrics_s_per_point: float = METRICS_S_PER_POINT
-    """Metric seconds per sample point and mesh at `metrics_probed_points` points."""
-    metrics_probed_points: int = PROBE_POINTS
-    metrics_growth: float = 1.0
-    """Exponent of the metrics' time in the points (1: in proportion), from probes at two sizes."""
+    """Metric seconds per sample point and mesh, taken as in proportion to the points: where their time grows
+    faster (a poor mesh far from the ground truth), the final metrics' deadline holds them (metrics.mesh_metrics)."""
     fixed_s: float = FIXED_S
     fit_check_s: float = 0.0
     """Seconds of the fit check (the views it renders against the photon noise), once a probe has timed a render;
@@ -119,8 +107,7 @@ class EndCosts:
 
     def metrics_s(self, points: int) -> float:
         """Metrics of one final mesh: both directions, and the per-vertex normal error against as many points."""
-        scale = max(points, 0) / self.metrics_probed_points
-        return SAFETY * self.metrics_s_per_point * self.metrics_probed_points * 2 * scale ** self.metrics_growth
+        return SAFETY * self.metrics_s_per_point * 2 * max(points, 0)
 
     def time_mesh(self, timings: dict[int, float]) -> None:
         """Mesh extractions took `timings` {resolution: seconds}: with two or more, a fixed part and a part that
@@ -138,19 +125,10 @@ class EndCosts:
         self.mesh_s_per_cell, self.mesh_fixed_s = per_cell, fixed
         self.probed.append("mesh " + ", ".join(f"{k}: {v:.2f} s" for k, v in zip(r, t)))
 
-    def time_metrics(self, timings: dict[int, float]) -> None:
-        """Metrics took `timings` {points per mesh: seconds}: the rate per point at the largest count, and with two
-        or more counts the growth between the two largest, nearest the counts it is extrapolated to (in [1,
-        MAX_METRICS_GROWTH]); with one, time in proportion to the points."""
-        n = sorted(timings)
-        t = {k: max(float(timings[k]), 0.0) for k in n}
-        growth = 1.0
-        if len(n) >= 2 and n[-1] > n[-2]:  # a clock too coarse to see a probe reads it as a microsecond
-            growth = math.log(max(t[n[-1]], 1e-6) / max(t[n[-2]], 1e-6)) / math.log(n[-1] / n[-2])
-        self.metrics_growth = min(max(growth, 1.0), MAX_METRICS_GROWTH)
-        self.metrics_probed_points = int(n[-1])
-        self.metrics_s_per_point = t[n[-1]] / (2 * n[-1])
-        self.probed.append("metrics " + ", ".join(f"{k}: {t[k]:.2f} s" for k in n))
+    def time_metrics(self, points: int, seconds: float) -> None:
+        """Metrics of one mesh against the ground truth on `points` points took `seconds`."""
+        self.metrics_s_per_point = max(float(seconds), 0.0) / (2 * points)
+        self.probed.append(f"metrics {points}: {seconds:.2f} s")
 
     def time_fit_check(self, seconds: float, views_rendered: int, renders_needed: int) -> None:
         """Rendering `views_rendered` views took `seconds`: the fit check renders `renders_needed` views."""
@@ -204,11 +182,11 @@ def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
     thousand when cut)."""
     if costs.metrics_s(want) <= seconds:
         return int(want)
-    unit = max(costs.metrics_s(costs.metrics_probed_points), 1e-12)  # the time at the probed count
-    fit = int(costs.metrics_probed_points * (max(seconds, 0.0) / unit) ** (1 / costs.metrics_growth) * (1 + 1e-9))
+    unit = max(costs.metrics_s(1), 1e-15)
+    fit = int(max(seconds, 0.0) / unit * (1 + 1e-9))
     return int(min(want, max(MIN_METRIC_POINTS, fit // 1000 * 1000)))
 
 
 __all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within",
            "metric_points_within", "coverage_picture_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS",
-           "PROBE_RESOLUTIONS", "PROBE_POINTS", "FINAL_PROBE_POINTS", "MAX_METRICS_GROWTH", "MAX_PROBE_REACH"]
+           "PROBE_RESOLUTIONS", "PROBE_POINTS"]

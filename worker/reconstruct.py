@@ -23,9 +23,9 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
-from .budget import (FINAL_PROBE_POINTS, FIXED_S, MAX_PROBE_REACH, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS,
-                     NORMALS_PICTURE_S, PROBE_POINTS, PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within,
-                     mesh_resolution_within, metric_points_within, training_budget)
+from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
+                     PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
+                     metric_points_within, training_budget)
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
@@ -228,7 +228,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
         costs.fixed_s, costs.fit_check_s = NORMALS_PICTURE_S, 0.0  # all that is left to draw after the metrics
         t_metrics = clock()
         scored = truth.scored(mesh)  # cut once for the metrics and the normals picture
-        points = _metric_points(scored, truth, config, costs, run_clock, clock, seed)
+        points = metric_points_within(costs, config.metrics_points, run_clock.left() - costs.fixed_s)
         if points < config.metrics_points:
             notes.append(f"the time budget was short: the metrics used {points:,} points per mesh, not "
                          f"{config.metrics_points:,} (a coarser estimate)")
@@ -314,33 +314,7 @@ def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock) -> None
             truth.metrics(mesh, n_points=PROBE_POINTS)
         except SpadscanError:
             return
-        costs.time_metrics({PROBE_POINTS: clock() - t0})
-
-
-def _metric_points(scored, truth, config: ReconConfig, costs: EndCosts, run_clock: RunClock, clock,
-                   seed: int) -> int:
-    """The metric points that fit in what is left of the budget. When the full count may not fit, the metrics of
-    this very mesh are timed on FINAL_PROBE_POINTS first: a mesh that lies far from the ground truth is slower to
-    score, and more so the more points (a larger probe is left out when those before it say it would not fit in a
-    quarter of what is left). The count stays within MAX_PROBE_REACH times the largest probe, beyond which the
-    growth read at smaller counts falls short. The per-vertex normal error is left out of the probes: its cost grows
-    with the mesh's vertices, not with the points (a 256-cell bunny: 0.5 s at 5,000 points), and SAFETY holds it."""
-    left = run_clock.left() - costs.fixed_s
-    if costs.metrics_s(config.metrics_points) <= 0.5 * left:
-        return config.metrics_points
-    timings = {}
-    for points in FINAL_PROBE_POINTS:
-        if timings and costs.metrics_s(points) > 0.25 * (run_clock.left() - costs.fixed_s):
-            break
-        t0 = clock()
-        try:
-            mesh_metrics(scored, truth.mesh, n_points=points, seed=int(seed))
-        except SpadscanError:
-            return config.metrics_points  # the full metrics fail the same way, and say why
-        timings[points] = clock() - t0
-        costs.time_metrics(timings)
-    within = metric_points_within(costs, config.metrics_points, run_clock.left() - costs.fixed_s)
-    return min(within, MAX_PROBE_REACH * max(timings))  # the first probe is always taken
+        costs.time_metrics(PROBE_POINTS, clock() - t0)
 
 
 def checkpoint_scoring(config: ReconConfig, short: bool = False) -> str:

@@ -10,15 +10,13 @@ import re
 import subprocess
 import sys
 import time
-from types import SimpleNamespace
 
 import pytest
 
 from spadscan.worker import reconstruct
-from spadscan.worker.budget import (COVERAGE_PICTURE_S, MAX_METRICS_GROWTH, MAX_PROBE_REACH, MIN_MESH_RESOLUTION,
-                                    MIN_METRIC_POINTS, NORMALS_PICTURE_S, SAFETY, EndCosts, RunClock,
-                                    coverage_picture_within, mesh_resolution_within, metric_points_within,
-                                    process_started, training_budget)
+from spadscan.worker.budget import (COVERAGE_PICTURE_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S,
+                                    SAFETY, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
+                                    metric_points_within, process_started, training_budget)
 
 BUDGET_S = 30.0
 """Above what a run needs whatever its budget (starting Python and torch, loading, probing, drawing: 13-15 s on the
@@ -73,42 +71,9 @@ def test_a_short_time_gets_a_coarser_mesh_and_fewer_points():
     assert metric_points_within(costs, 300_000, 100.0) == 300_000
     assert metric_points_within(costs, 300_000, 3.0) == 100_000  # 1.5 x 2 x 1e-5 s a point
     assert metric_points_within(costs, 300_000, 0.0) == MIN_METRIC_POINTS
-
-
-def test_metrics_whose_time_grows_faster_than_their_points_get_fewer_points():
-    """Two probe sizes give the growth (time ~ points ** growth); the points chosen invert it. The box's poor
-    32-cell mesh: 0.09 s at 5,000 points, 0.51 s at 20,000, 8.2 s at 169,000 (growth 1.25, then 1.3)."""
-    costs = EndCosts()
-    costs.time_metrics({5_000: 0.1, 20_000: 0.8})  # 8 x the time for 4 x the points: growth 1.5
-    assert costs.metrics_growth == pytest.approx(1.5)
-    assert costs.metrics_s(20_000) == pytest.approx(SAFETY * 0.8)
-    assert costs.metrics_s(80_000) == pytest.approx(SAFETY * 0.8 * 8)
-    assert metric_points_within(costs, 300_000, SAFETY * 0.8 * 8) == 80_000
-    assert metric_points_within(costs, 300_000, SAFETY * 0.8 * 8 - 0.1) == 79_000
-    linear = EndCosts()
-    linear.time_metrics({20_000: 0.8})
-    assert metric_points_within(linear, 300_000, SAFETY * 0.8 * 8) == 160_000, "one probe: in proportion"
-    assert "metrics 5000: 0.10 s, 20000: 0.80 s" in costs.probed
-
-
-def test_the_growth_is_read_from_the_two_largest_probes():
-    """The growth rises with the points on a poor mesh (a box's 128-cell mesh: 0.07 s at 5,000 points, 0.29 s at
-    20,000, 8.0 s at 227,000): the two largest probes, nearest the count chosen, give it."""
-    costs = EndCosts()
-    costs.time_metrics({5_000: 0.07, 20_000: 0.28, 80_000: 2.24})  # growth 1.0, then 1.5
-    assert costs.metrics_growth == pytest.approx(1.5)
-    assert costs.metrics_probed_points == 80_000
-    assert costs.metrics_s(320_000) == pytest.approx(SAFETY * 2.24 * 8)
-
-
-def test_the_growth_of_the_metrics_time_is_bounded():
-    costs = EndCosts()
-    costs.time_metrics({5_000: 0.5, 20_000: 0.4})  # noise: faster with more points
-    assert costs.metrics_growth == 1.0
-    costs.time_metrics({5_000: 0.001, 20_000: 10.0})
-    assert costs.metrics_growth == MAX_METRICS_GROWTH
-    costs.time_metrics({5_000: 0.0, 20_000: 0.0})  # a clock too coarse to see them
-    assert costs.metrics_growth == 1.0 and costs.metrics_s(300_000) == 0.0
+    costs.time_metrics(5_000, 0.1)  # both meshes' 5,000 points: 1e-5 s a point and mesh
+    assert costs.metrics_s(20_000) == pytest.approx(SAFETY * 0.4)
+    assert "metrics 5000: 0.10 s" in costs.probed
 
 
 def test_the_coverage_picture_goes_before_the_least_metrics_and_the_normals_picture():
@@ -194,7 +159,7 @@ def test_final_metrics_slower_than_their_forecast_still_end_within_the_budget(bo
 
     cap, gt = box
     monkeypatch.setattr(metrics, "SampleIndex", Slow)
-    monkeypatch.setattr(reconstruct, "_metric_points", lambda scored, truth, config, *rest: config.metrics_points)
+    monkeypatch.setattr(reconstruct, "metric_points_within", lambda costs, want, seconds: want)
     started = time.perf_counter()
     report = reconstruct.reconstruct_capture(cap, tmp_path / "o", preset="fast", budget_s=BUDGET_S, gt=gt,
                                              device="cpu", progress=False, threads=1, started=started)
@@ -225,22 +190,3 @@ def test_a_worker_job_ends_within_its_budget(box, tmp_path):
     assert report["job_budget_s"] == BUDGET_S and report["budget"]["budget_s"] < BUDGET_S, \
         "the job's reconstruction gets what is left once the job has started and checked its capture"
     assert report["threads"]["most"] >= 1 if "most" in report["threads"] else report["threads"]["fixed"] >= 1
-
-
-def test_the_final_metrics_stay_within_reach_of_the_largest_probe(monkeypatch):
-    """Metrics that cost 1 s per 5,000 points (growth 1): with 60 s left the 5,000 and 20,000-point probes are taken,
-    the 80,000-point one would not fit in a quarter of what is left, and the forecast's 183,000 points are cut to
-    MAX_PROBE_REACH x 20,000 (beyond that the growth read at small counts falls short)."""
-    now = [0.0]
-    probed = []
-
-    def metrics(scored, gt, n_points, seed):
-        probed.append(n_points)
-        now[0] += n_points / 5_000
-
-    monkeypatch.setattr(reconstruct, "mesh_metrics", metrics)
-    clock = lambda: now[0]  # noqa: E731
-    points = reconstruct._metric_points(None, SimpleNamespace(mesh=None), SimpleNamespace(metrics_points=300_000),
-                                        EndCosts(fixed_s=0.0), RunClock(60.0, 0.0, clock), clock, seed=0)
-    assert probed == [5_000, 20_000]
-    assert points == MAX_PROBE_REACH * 20_000
