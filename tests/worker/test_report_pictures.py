@@ -175,3 +175,29 @@ def test_the_coverage_picture_legend_gives_each_class_its_share(tmp_path, monkey
     pictures.coverage_png(mesh, np.zeros(len(mesh.vertices), int), tmp_path / "c.png",
                           area_views=np.array([0, 1, 2, 3, 4, 5, 6, 7]), pixels=32)
     assert legends == [["seen by no view: 12%", "seen by 1-2 views: 25%", "seen by 3 or more views: 62%"]]
+
+
+def test_a_surface_is_shaded_by_its_own_normals_as_smooth_shading_would():
+    """offscreen.add_shaded draws a mesh as pyvista's smooth shading does (the normals computed once, from the
+    mesh, not anew for each panel), and unlike flat shading."""
+    import trimesh
+
+    from spadscan.worker.report import offscreen
+
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.05)  # coarse: flat facets show
+    data = offscreen.polydata(mesh)
+    np.testing.assert_allclose(data.point_data.active_normals, mesh.vertex_normals)
+
+    def image(add) -> np.ndarray:
+        pl = offscreen.plotter((1, 1), (96, 96))
+        try:
+            add(pl)
+            offscreen.set_view(pl, np.zeros(3), 0.06, 30.0, 25.0)
+            return pl.screenshot(return_img=True).astype(float)
+        finally:
+            pl.close()
+
+    ours = image(lambda pl: offscreen.add_shaded(pl, data, color="white"))
+    smooth = image(lambda pl: pl.add_mesh(offscreen.polydata(mesh), smooth_shading=True, color="white"))
+    flat = image(lambda pl: pl.add_mesh(offscreen.polydata(mesh), color="white"))
+    assert np.abs(ours - smooth).mean() < 0.25 * np.abs(flat - smooth).mean()

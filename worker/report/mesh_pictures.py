@@ -22,10 +22,10 @@ COVERAGE_COLOURS = ("#d62728", "#ff9f1c", "#b8c4d0")
 """Colours of the coverage picture's three classes of surface: seen by no view, by too few, by enough."""
 
 
-def _add(pl, mesh, **style) -> None:
-    data = offscreen.polydata(mesh)
+def _add(pl, mesh, data, **style) -> None:
+    """Add `mesh` as `data` (its offscreen.polydata) to the current panel: a shaded surface, or a point cloud."""
     if len(getattr(mesh, "faces", ())):
-        pl.add_mesh(data, smooth_shading=True, specular=0.15, **style)
+        offscreen.add_shaded(pl, data, specular=0.15, **style)
     else:  # a point cloud (the reprojection baseline)
         pl.add_mesh(data, render_points_as_spheres=True, point_size=3, **style)
 
@@ -44,9 +44,10 @@ def preview_png(mesh, path, gt=None, pixels: int = 280) -> Path | None:
     center, half = offscreen.frame([m for _, m, _ in rows])
     try:
         for r, (name, m, colour) in enumerate(rows):
+            data = offscreen.polydata(m)
             for c, (az, el) in enumerate(VIEWS):
                 pl.subplot(r, c)
-                _add(pl, m, color=colour)
+                _add(pl, m, data, color=colour)
                 pl.add_text(f"{name}, az {az:.0f} el {el:.0f}", position="upper_left", font_size=7, color="black")
                 offscreen.set_view(pl, center, half, az, el)
         pl.screenshot(str(path))
@@ -71,8 +72,8 @@ def normals_png(mesh, vertex_error_deg: np.ndarray, path, pixels: int = 300, vma
     try:
         for c, (az, el) in enumerate(VIEWS):
             pl.subplot(0, c)
-            pl.add_mesh(data, scalars="normal error (deg)", cmap="viridis", clim=(0.0, vmax), smooth_shading=True,
-                        show_scalar_bar=False)
+            offscreen.add_shaded(pl, data, scalars="normal error (deg)", cmap="viridis", clim=(0.0, vmax),
+                                 show_scalar_bar=False)
             pl.add_text(f"az {az:.0f} el {el:.0f}", position="upper_left", font_size=7, color="black")
             offscreen.set_view(pl, center, half, az, el)
         image = pl.screenshot(return_img=True)
@@ -115,8 +116,8 @@ def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: 
     try:
         for c, (az, el) in enumerate(COVERAGE_VIEWS):
             pl.subplot(0, c)
-            pl.add_mesh(data, scalars="class", cmap=cmap, clim=(-0.5, 2.5), smooth_shading=True,
-                        interpolate_before_map=False, show_scalar_bar=False)
+            offscreen.add_shaded(pl, data, scalars="class", cmap=cmap, clim=(-0.5, 2.5), interpolate_before_map=False,
+                                 show_scalar_bar=False)
             pl.add_text(f"az {az:.0f} el {el:.0f}", position="upper_left", font_size=7, color="black")
             offscreen.set_view(pl, center, half, az, el)
         return pl.screenshot(return_img=True)
