@@ -136,6 +136,8 @@ def mesh_metrics(pred, gt, *, n_points: int = 300_000, seed: int = 0, fscore_thr
         raise MeshError(f"seed {seed} must be an integer >= 0")
     if not (math.isfinite(fscore_threshold_m) and 0 < fscore_threshold_m < 10):
         raise MeshError(f"F-score threshold {fscore_threshold_m} m must be in (0, 10) m")
+    if deadline is not None and math.isnan(deadline):
+        raise MeshError("the metrics' deadline is NaN (a clock reading, or None for none)")
     # Two independent streams from one seed: identical meshes then show the sampling floor, not a false zero.
     rng_pred, rng_gt = (np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(2))
     p_pts, p_nrm = sample_surface(pred, int(n_points), rng_pred)

@@ -114,7 +114,8 @@ def test_sampling_is_uniform_by_area():
 
 @pytest.mark.parametrize("kwargs,match", [({"n_points": 0}, "points"), ({"seed": -1}, "seed"),
                                           ({"fscore_threshold_m": 0.0}, "threshold"),
-                                          ({"fscore_threshold_m": float("nan")}, "threshold")])
+                                          ({"fscore_threshold_m": float("nan")}, "threshold"),
+                                          ({"deadline": float("nan")}, "deadline")])
 def test_bad_parameters(kwargs, match):
     with pytest.raises(MeshError, match=match):
         mesh_metrics(ball(), ball(), **kwargs)
