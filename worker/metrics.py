@@ -145,7 +145,8 @@ def mesh_metrics(pred, gt, *, n_points: int = 300_000, seed: int = 0, fscore_thr
     to_gt = SampleIndex(g_pts, spacing_m=math.sqrt(gt.area / n_points))
     to_pred = SampleIndex(p_pts, spacing_m=math.sqrt(pred.area / n_points))
     if deadline is not None:  # built before the first chunk, whose pace would otherwise count their set-up
-        to_gt.build(), to_pred.build()
+        to_gt.build()
+        to_pred.build()
     (d_pg, i_pg), (d_gp, i_gp) = _measure_until(lambda a, b: (to_gt.query(p_pts[a:b]), to_pred.query(g_pts[a:b])),
                                                 int(n_points), deadline, clock)
     queries = len(d_pg)

@@ -49,7 +49,7 @@ class SampleIndex:
 
     def build(self) -> None:
         """Build the KD-tree and the patches now rather than at the first query that needs them."""
-        self._tree = kd_tree(self.data) if self._tree is None else self._tree
+        self._kd_tree()
         if len(self.data) >= 4 * LEAF:
             self._split()
 
@@ -61,14 +61,18 @@ class SampleIndex:
         patches = self._split() if len(queries) >= 4 * LEAF and len(data) >= 4 * LEAF else None
         maybe_near = _maybe_near(queries, data, self.near, patches)
         if maybe_near.any():
-            self._tree = kd_tree(data) if self._tree is None else self._tree
-            d, i = self._tree.query(queries[maybe_near], distance_upper_bound=self.near if self.near > 0 else np.inf,
+            d, i = self._kd_tree().query(queries[maybe_near], distance_upper_bound=self.near if self.near > 0 else np.inf,
                                     workers=-1)
             dist[maybe_near], idx[maybe_near] = d, np.minimum(i, len(data) - 1)
         far = ~np.isfinite(dist)
         if far.any():
             dist[far], idx[far] = _far_nearest(queries[far], data, patches)
         return dist, idx
+
+    def _kd_tree(self) -> cKDTree:
+        if self._tree is None:
+            self._tree = kd_tree(self.data)
+        return self._tree
 
     def _split(self) -> np.ndarray:
         if self._patches is None:
