@@ -58,10 +58,10 @@ def build_scene(mesh, gt=None, poses: np.ndarray | None = None):
     """(an off-screen pyvista Plotter holding the scene, its layers in the order of their actors)."""
     pl = offscreen.plotter((1, 1), (800, 600))
     layers = [Layer("reconstruction")]
-    pl.add_mesh(offscreen.polydata(mesh), color=offscreen.MESH_COLOUR, smooth_shading=True, specular=0.15)
+    offscreen.add_shaded(pl, offscreen.polydata(mesh), color=offscreen.MESH_COLOUR, specular=0.15)
     if gt is not None:
         layers.append(Layer("ground truth"))
-        pl.add_mesh(offscreen.polydata(gt), color=offscreen.GT_COLOUR, opacity=0.45, smooth_shading=True)
+        offscreen.add_shaded(pl, offscreen.polydata(gt), color=offscreen.GT_COLOUR, opacity=0.45)
     framed = [mesh] + ([gt] if gt is not None else [])
     center, half = offscreen.frame(framed)
     if poses is not None and len(poses):
