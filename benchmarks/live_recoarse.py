@@ -2,6 +2,7 @@
 
     python benchmarks/live_recoarse.py [--scenes mug,teddy,demo] [--captures DIR] [--steps-per-view 16]
                                        [--final-steps 35] [--seed 0]
+    python benchmarks/live_recoarse.py --capture CAPTURE [--refits JOB_LOG] [--steps-per-view 16] ...
 
 For each scene a capture is simulated as the daemon's default scan records it (`spadscan simulate builtin:NAME`: the
 TMF8820 model, 128 Fibonacci views from 10 to 80 degrees at 0.5 m; kept in --captures and reused). Its views are
@@ -20,15 +21,24 @@ job's final run), for --final-steps (35: what that 20 s final run made). Rows:
 
 Figures: Chamfer mm (300,000 points) at the scan's end and after the final steps. Step-based, one thread, seeded:
 they do not depend on the machine.
+
+**A capture the daemon recorded** (`--capture`: e.g. one that `benchmarks/live.py` keeps, OUT/SCENE/live/captures/SCENE)
+is published in its own order (its pose indices are the visiting order), in place of the simulated scenes. With
+`--refits` (that capture's live job's log, recon/<job>/job.log) a further row replays the refits the live job made
+while the scan ran, at the views and step counts its log records ("live: fitting N of M published views (refit k,
+S steps so far, ...)"), then its final run's steps: a wall-clock live run, step for step, whose figures can be set
+beside the same capture refitted by the rule at a steady step rate.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import re
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -66,23 +76,65 @@ def simulate(scene: str, captures: Path) -> Path:
     return out
 
 
+REFIT_LINE = re.compile(r"live: fitting (\d+) of \d+ published views \(refit \d+, (\d+) steps so far")
+END_LINE = re.compile(r"live: scan complete \(\d+ views fitted, (\d+) steps\); the final reconstruction "
+                      r"continues from the live fit, for (\d+) steps")
+
+
+@dataclass(frozen=True)
+class Refits:
+    """A live job's refits as its log records them."""
+
+    at: tuple[tuple[int, int], ...]
+    """(views fitted, steps taken before it) at each refit, in order."""
+    end_steps: int
+    """Steps taken when the scan completed."""
+    final_steps: int
+    """Steps of the final run, which continued from the live fit."""
+
+
+def read_refits(log: Path) -> Refits:
+    """The refits of a live job's log (recon/<job>/job.log); SystemExit (one line) when it records none, or no final
+    run that continued from the live fit (a replay has nothing to set beside it then)."""
+    try:
+        text = Path(log).read_text(errors="replace")
+    except OSError as exc:
+        raise SystemExit(f"--refits {log}: cannot read it ({exc.strerror or exc})")
+    at = tuple((int(v), int(s)) for v, s in REFIT_LINE.findall(text))
+    end = END_LINE.search(text)
+    if not at or end is None:
+        raise SystemExit(f"--refits {log}: no live refits and final run from the live fit in it (a live job's "
+                         f"job.log records them)")
+    if any(b[1] < a[1] for a, b in zip(at, at[1:])) or int(end.group(1)) < at[-1][1]:
+        raise SystemExit(f"--refits {log}: its step counts go backwards (two jobs' logs in one file?)")
+    return Refits(at=at, end_steps=int(end.group(1)), final_steps=int(end.group(2)))
+
+
 class DaemonOrderScan:
     """Publishes the poses of the complete capture `source` into `dest` one at a time, in the daemon's visiting
-    order (pose indices renumbered in that order, as the daemon numbers them)."""
+    order (pose indices renumbered in that order, as the daemon numbers them). `recorded`: the capture was
+    recorded by the daemon, its pose indices already that order (published as they are, whatever its plan)."""
 
-    def __init__(self, source: Path, dest: Path):
+    def __init__(self, source: Path, dest: Path, recorded: bool = False):
         reader = CaptureReader(source)
         data = reader.load()
-        generated = np.array([m["pose_index"] for m in data.meta])
-        plan = build_plan(ScanConfig(), ArmConfig())
-        order = np.asarray(plan.description["generated_order"])
-        if not np.allclose(plan.sensor_poses, data.poses[np.argsort(generated)][order], atol=1e-9):
-            raise SystemExit(f"{source}: its poses are not the daemon's default plan")
-        self.frames = [[i for i in range(len(data.meta)) if generated[i] == g] for g in order]
+        index = np.array([m["pose_index"] for m in data.meta])
+        indices = np.unique(index)
+        by_index = np.stack([data.poses[np.flatnonzero(index == g)[0]] for g in indices])  # a pose's first frame
+        if recorded:
+            order, planned = indices, by_index
+        else:
+            plan = build_plan(ScanConfig(), ArmConfig())
+            order = np.asarray(plan.description["generated_order"])
+            if not (np.array_equal(indices, np.arange(len(order)))
+                    and np.allclose(plan.sensor_poses, by_index[order], atol=1e-9)):
+                raise SystemExit(f"{source}: its poses are not the daemon's default plan")
+            planned = plan.sensor_poses
+        self.frames = [np.flatnonzero(index == g).tolist() for g in order]
         self.data = data
         m = reader.manifest
         self.writer = CaptureWriter.create(dest, reader.sensor, rig=m.get("rig"), schedule=m.get("schedule"),
-                                           planned_poses=plan.sensor_poses, chunk_size=1, scene=m.get("scene"))
+                                           planned_poses=planned, chunk_size=1, scene=m.get("scene"))
         self.published = 0
 
     def publish(self) -> None:
@@ -111,10 +163,9 @@ def step(model, n: int) -> int:
 def follow(source: Path, work: Path, policy: RecoarsePolicy, args, truth) -> dict:
     """The live fit of `source` published in the daemon's order, then its final run; Chamfer at both ends."""
     settings = LiveSettings()
-    config = run_config("fast", {})
-    scan = DaemonOrderScan(source, work)
-    fit = LiveFit(work, config, torch.device("cpu"), args.seed, log=lambda line: None, recoarse=policy)
-    steps = 0
+    scan = DaemonOrderScan(source, work, recorded=args.capture is not None)
+    fit = LiveFit(work, run_config("fast", {}), torch.device("cpu"), args.seed, log=lambda line: None,
+                  recoarse=policy)
     while scan.published < scan.planned:
         scan.publish()
         have = fit.views_used
@@ -122,14 +173,39 @@ def follow(source: Path, work: Path, policy: RecoarsePolicy, args, truth) -> dic
             fit.model is None or refit_due(have, scan.published, math.inf, 0.0, settings))
         if due and scan.published < scan.planned:  # the complete scan goes to the final run
             fit.rebuild(scan.planned)
-        steps += fit.train_steps(args.steps_per_view)
+        fit.train_steps(args.steps_per_view)
+    return finish(scan, fit, work, args.final_steps, args, truth)
+
+
+def replay(source: Path, work: Path, refits: Refits, args, truth) -> dict:
+    """The live fit of the recorded capture `source` refitted where a live job's log says it was (the views fitted,
+    the steps before each refit), trained to its step count at the scan's end, then its final run's steps."""
+    scan = DaemonOrderScan(source, work, recorded=True)
+    fit = LiveFit(work, run_config("fast", {}), torch.device("cpu"), args.seed, log=lambda line: None,
+                  recoarse=LiveSettings().recoarse)
+    for k, (views, _) in enumerate(refits.at):
+        if views > scan.planned:
+            raise SystemExit(f"--refits: a refit of {views} views, but the capture holds {scan.planned}")
+        while scan.published < views:
+            scan.publish()
+        fit.rebuild(scan.planned)
+        until = refits.at[k + 1][1] if k + 1 < len(refits.at) else refits.end_steps
+        fit.train_steps(until - fit.steps)
+    while scan.published < scan.planned:
+        scan.publish()
+    return finish(scan, fit, work, refits.final_steps, args, truth)
+
+
+def finish(scan: DaemonOrderScan, fit: LiveFit, work: Path, final_steps: int, args, truth) -> dict:
+    """The scan completed: Chamfer of the live fit, then of the final run (the preset's model of every view, warm
+    from the live fit, for `final_steps`)."""
     scan.writer.finish("complete")
     live = chamfer_mm(fit.mesh(MESH_CELLS), truth, SCORE_POINTS)
-    final = fit.warm_factory()(load_scene(work), config, torch.device("cpu"),
+    final = fit.warm_factory()(load_scene(work), run_config("fast", {}), torch.device("cpu"),
                                RunPlan(steps=None, budget_s=None, seed=args.seed))
-    final_steps = step(final, args.final_steps)
+    taken = step(final, final_steps)
     return {"live": live, "final": chamfer_mm(final.extract_mesh(MESH_CELLS), truth, SCORE_POINTS),
-            "steps": steps + final_steps, "coarse_restarts": fit.recoarsened, "rebuilds": fit.rebuilds}
+            "steps": fit.steps + taken, "coarse_restarts": fit.recoarsened, "rebuilds": fit.rebuilds}
 
 
 def offline(source: Path, steps: int, args, truth) -> dict:
@@ -152,17 +228,30 @@ def main(argv=None) -> int:
     ap.add_argument("--steps-per-view", type=int, default=16)
     ap.add_argument("--final-steps", type=int, default=35)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--capture", type=Path, help="a capture the daemon recorded (published in its own order), "
+                                                 "in place of --scenes")
+    ap.add_argument("--refits", type=Path, help="with --capture: its live job's log (recon/<job>/job.log), whose "
+                                                "refits are replayed in a further row")
     args = ap.parse_args(argv)
     if args.steps_per_view < 1 or args.final_steps < 0:
         ap.error("--steps-per-view must be >= 1 and --final-steps >= 0")
+    if args.refits is not None and args.capture is None:
+        ap.error("--refits replays a recorded capture's live job: give that capture with --capture")
+    if args.capture is not None and not (args.capture / "scan.json").is_file():
+        ap.error(f"--capture {args.capture}: no capture there (no scan.json)")
+    refits = None if args.refits is None else read_refits(args.refits)
     torch.set_num_threads(1)
-    args.captures.mkdir(parents=True, exist_ok=True)
     print(f"fast, one thread, seed {args.seed}; {args.steps_per_view} steps per pose published, "
           f"{args.final_steps} final steps; Chamfer mm ({SCORE_POINTS:,} points)")
     print("| scene | live fit | coarse restarts | at the scan's end | after the final steps | steps |")
     print("|---|---|---|---|---|---|")
-    for scene in [s for s in args.scenes.split(",") if s]:
-        source = simulate(scene, args.captures)
+    if args.capture is not None:
+        sources = [(args.capture.name, args.capture)]
+    else:
+        args.captures.mkdir(parents=True, exist_ok=True)
+        sources = [(scene, None) for scene in args.scenes.split(",") if scene]
+    for scene, source in sources:
+        source = source or simulate(scene, args.captures)
         truth = ground_truth(source)
         rows = []
         for name, policy in (("back to coarse (default)", LiveSettings().recoarse),
@@ -172,6 +261,12 @@ def main(argv=None) -> int:
             rows.append(r)
             print(f"| {scene} | {name} | {r['coarse_restarts']} of {r['rebuilds'] - 1} | {mm(r['live'])} | "
                   f"{mm(r['final'])} | {r['steps']} |", flush=True)
+        if refits is not None:
+            with tempfile.TemporaryDirectory(prefix="live-recoarse-") as tmp:
+                r = replay(source, Path(tmp) / "scan", refits, args, truth)
+            rows.append(r)
+            print(f"| {scene} | the live job's refits, replayed (default) | {r['coarse_restarts']} of "
+                  f"{r['rebuilds'] - 1} | {mm(r['live'])} | {mm(r['final'])} | {r['steps']} |", flush=True)
         peer = offline(source, max(r["steps"] for r in rows), args, truth)
         print(f"| {scene} | offline from the hull, every view | - | - | {mm(peer['final'])} | {peer['steps']} |",
               flush=True)
