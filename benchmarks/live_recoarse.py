@@ -52,6 +52,7 @@ from spadscan.daemon.scan_plan import build_plan  # noqa: E402
 from spadscan.protocol.capture_format import Measurement  # noqa: E402
 from spadscan.protocol.capture_reader import CaptureReader  # noqa: E402
 from spadscan.protocol.capture_writer import CaptureWriter  # noqa: E402
+from spadscan.protocol.errors import SpadscanError  # noqa: E402
 from spadscan.worker.live.job import LiveSettings, refit_due  # noqa: E402
 from spadscan.worker.live.live_fit import LiveFit  # noqa: E402
 from spadscan.worker.live.recoarse import RecoarsePolicy  # noqa: E402
@@ -240,6 +241,12 @@ def main(argv=None) -> int:
     if args.capture is not None and not (args.capture / "scan.json").is_file():
         ap.error(f"--capture {args.capture}: no capture there (no scan.json)")
     refits = None if args.refits is None else read_refits(args.refits)
+    if args.capture is not None:
+        try:
+            if ground_truth(args.capture) is None:
+                ap.error(f"--capture {args.capture}: its scene names no ground truth to score against")
+        except SpadscanError as exc:
+            ap.error(f"--capture {args.capture}: {exc}")
     torch.set_num_threads(1)
     print(f"fast, one thread, seed {args.seed}; {args.steps_per_view} steps per pose published, "
           f"{args.final_steps} final steps; Chamfer mm ({SCORE_POINTS:,} points)")

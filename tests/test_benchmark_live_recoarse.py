@@ -107,3 +107,10 @@ def test_the_command_line_refuses_refits_without_their_capture_and_a_folder_with
     assert "give that capture with --capture" in capsys.readouterr().err
     assert call(bench, ["--capture", tmp_path, "--refits", log]) == 2
     assert "no capture there" in capsys.readouterr().err
+    source, _ = recorded_capture(tmp_path / "recorded")  # its scene names nothing to score against
+    assert call(bench, ["--capture", source, "--refits", log]) == 2
+    assert "no ground truth" in capsys.readouterr().err
+    (source / "scan.json").write_text("{not json")
+    assert call(bench, ["--capture", source]) == 2
+    err = capsys.readouterr().err
+    assert f"--capture {source}:" in err and "Traceback" not in err
