@@ -185,8 +185,6 @@ def replay(source: Path, work: Path, refits: Refits, args, truth) -> dict:
     fit = LiveFit(work, run_config("fast", {}), torch.device("cpu"), args.seed, log=lambda line: None,
                   recoarse=LiveSettings().recoarse)
     for k, (views, _) in enumerate(refits.at):
-        if views > scan.planned:
-            raise SystemExit(f"--refits: a refit of {views} views, but the capture holds {scan.planned}")
         while scan.published < views:
             scan.publish()
         fit.rebuild(scan.planned)
@@ -221,6 +219,30 @@ def mm(v) -> str:
     return "no surface" if v is None else f"{v:.2f}"
 
 
+def row(scene: str, name: str, r: dict) -> str:
+    """A live fit's row of the table."""
+    return (f"| {scene} | {name} | {r['coarse_restarts']} of {r['rebuilds'] - 1} | {mm(r['live'])} | "
+            f"{mm(r['final'])} | {r['steps']} |")
+
+
+def recorded_truth(ap, capture: Path, refits: Refits | None):
+    """The ground truth of a --capture, checked before any fit runs (`ap.error`, one line, where it has none, does
+    not read, or holds fewer poses than a refit of --refits fitted)."""
+    if not (capture / "scan.json").is_file():
+        ap.error(f"--capture {capture}: no capture there (no scan.json)")
+    try:
+        truth = ground_truth(capture)
+        poses = len({m["pose_index"] for m in CaptureReader(capture).load().meta})
+    except SpadscanError as exc:
+        ap.error(f"--capture {capture}: {exc}")
+    if truth is None:
+        ap.error(f"--capture {capture}: its scene names no ground truth to score against")
+    most = 0 if refits is None else max(views for views, _ in refits.at)
+    if most > poses:
+        ap.error(f"--refits: a refit of {most} views, but --capture {capture} holds {poses} poses")
+    return truth
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="mug,teddy,demo", help="built-in scenes, comma-separated")
@@ -238,42 +260,33 @@ def main(argv=None) -> int:
         ap.error("--steps-per-view must be >= 1 and --final-steps >= 0")
     if args.refits is not None and args.capture is None:
         ap.error("--refits replays a recorded capture's live job: give that capture with --capture")
-    if args.capture is not None and not (args.capture / "scan.json").is_file():
-        ap.error(f"--capture {args.capture}: no capture there (no scan.json)")
     refits = None if args.refits is None else read_refits(args.refits)
     if args.capture is not None:
-        try:
-            if ground_truth(args.capture) is None:
-                ap.error(f"--capture {args.capture}: its scene names no ground truth to score against")
-        except SpadscanError as exc:
-            ap.error(f"--capture {args.capture}: {exc}")
+        sources = [(args.capture.name, args.capture, recorded_truth(ap, args.capture, refits))]
+    else:
+        args.captures.mkdir(parents=True, exist_ok=True)
+        sources = [(scene, None, None) for scene in args.scenes.split(",") if scene]
     torch.set_num_threads(1)
     print(f"fast, one thread, seed {args.seed}; {args.steps_per_view} steps per pose published, "
           f"{args.final_steps} final steps; Chamfer mm ({SCORE_POINTS:,} points)")
     print("| scene | live fit | coarse restarts | at the scan's end | after the final steps | steps |")
     print("|---|---|---|---|---|---|")
-    if args.capture is not None:
-        sources = [(args.capture.name, args.capture)]
-    else:
-        args.captures.mkdir(parents=True, exist_ok=True)
-        sources = [(scene, None) for scene in args.scenes.split(",") if scene]
-    for scene, source in sources:
-        source = source or simulate(scene, args.captures)
-        truth = ground_truth(source)
+    for scene, source, truth in sources:
+        if source is None:
+            source = simulate(scene, args.captures)
+            truth = ground_truth(source)
         rows = []
         for name, policy in (("back to coarse (default)", LiveSettings().recoarse),
                              ("never back to coarse", RecoarsePolicy(growth=0))):
             with tempfile.TemporaryDirectory(prefix="live-recoarse-") as tmp:
                 r = follow(source, Path(tmp) / "scan", policy, args, truth)
             rows.append(r)
-            print(f"| {scene} | {name} | {r['coarse_restarts']} of {r['rebuilds'] - 1} | {mm(r['live'])} | "
-                  f"{mm(r['final'])} | {r['steps']} |", flush=True)
+            print(row(scene, name, r), flush=True)
         if refits is not None:
             with tempfile.TemporaryDirectory(prefix="live-recoarse-") as tmp:
                 r = replay(source, Path(tmp) / "scan", refits, args, truth)
             rows.append(r)
-            print(f"| {scene} | the live job's refits, replayed (default) | {r['coarse_restarts']} of "
-                  f"{r['rebuilds'] - 1} | {mm(r['live'])} | {mm(r['final'])} | {r['steps']} |", flush=True)
+            print(row(scene, "the live job's refits, replayed (default)", r), flush=True)
         peer = offline(source, max(r["steps"] for r in rows), args, truth)
         print(f"| {scene} | offline from the hull, every view | - | - | {mm(peer['final'])} | {peer['steps']} |",
               flush=True)

@@ -3,6 +3,7 @@ its own order, and the command line's one-line refusals."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -110,6 +111,15 @@ def test_the_command_line_refuses_refits_without_their_capture_and_a_folder_with
     source, _ = recorded_capture(tmp_path / "recorded")  # its scene names nothing to score against
     assert call(bench, ["--capture", source, "--refits", log]) == 2
     assert "no ground truth" in capsys.readouterr().err
+    simulated = tmp_path / "simulated"  # a capture with a ground truth, of three poses
+    recorded_capture(simulated)
+    manifest = json.loads((simulated / "scan.json").read_text())
+    manifest["scene"] = {"builtin": "mug"}
+    (simulated / "scan.json").write_text(json.dumps(manifest))
+    many = job_log(tmp_path, [(2, 0), (5, 10)], "live: scan complete (5 views fitted, 40 steps); the final "
+                                                "reconstruction continues from the live fit, for 10 steps")
+    assert call(bench, ["--capture", simulated, "--refits", many]) == 2
+    assert "a refit of 5 views, but --capture" in capsys.readouterr().err, "refused before any fit runs"
     (source / "scan.json").write_text("{not json")
     assert call(bench, ["--capture", source]) == 2
     err = capsys.readouterr().err
