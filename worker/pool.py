@@ -44,6 +44,8 @@ class Worker:
         """Job id -> 'done' or 'failed' for jobs this worker finished, 'kept' for jobs it did not run because their
         results folder already held a result."""
         self._seen_skipped: set[str] = set()
+        self._troubles: dict[str, str] = {}
+        """What this worker failed to do, with the error last logged for it (`_trouble`)."""
         self._reconciled = False
         """Whether the queue and the result folders were reconciled at start-up (publishing.reconcile)."""
         self._reconcile_due = True
@@ -68,12 +70,19 @@ class Worker:
             self._on_scan(await asyncio.to_thread(scan_once, self.root, self.queue, self.config.options))
         else:
             watcher = asyncio.create_task(watch(self.root, self.queue, self.config.options, stop,
-                                                poll_s=self.config.poll_s, on_report=self._on_scan))
+                                                poll_s=self.config.poll_s, on_report=self._on_scan,
+                                                on_error=lambda exc: self._trouble("look for scans", exc)))
         next_poll = 0.0
         try:
             while not stop.is_set():
+                if watcher is not None and watcher.done():
+                    break  # it ended on an error it could not survive: raised below, after the jobs are stopped
                 if time.monotonic() >= next_poll:
-                    await self._poll_queue()
+                    try:
+                        await self._poll_queue()
+                        self._trouble("poll the queue", None)
+                    except OSError as exc:  # a full disk, a queue on a lost mount: try again at the next poll
+                        self._trouble("poll the queue", exc)
                     next_poll = time.monotonic() + self.config.poll_s
                 self._heartbeat()
                 if self.config.once and not self.children and self._drained():
@@ -82,10 +91,25 @@ class Worker:
                 await self._reap()
         finally:
             stop.set()
-            if watcher is not None:
-                await watcher
-            await self._shutdown()
+            try:
+                if watcher is not None:
+                    await watcher
+            finally:
+                await self._shutdown()
         return self.settled
+
+    def _trouble(self, what: str, exc: Exception | None) -> None:
+        """Log a failed attempt to `what` once, not at every poll while it keeps failing the same way, and log when it
+        works again (exc None: it worked)."""
+        line = None if exc is None else " ".join(str(exc).split())
+        if line == self._troubles.get(what):
+            return
+        if line is None:
+            self.log(f"could {what} again")
+            self._troubles.pop(what)
+        else:
+            self.log(f"could not {what}: {line}; trying again every {self.config.poll_s:g} s")
+            self._troubles[what] = line
 
     def _drained(self) -> bool:
         counts = self.queue.counts()
@@ -146,6 +170,7 @@ class Worker:
                 f"{', '.join(differ[:most])}{more}")
 
     def _on_scan(self, report: ScanReport) -> None:
+        self._trouble("look for scans", None)
         for name in report.queued:
             self.log(f"queued scan {name}")
         for name in report.live:

@@ -30,6 +30,7 @@ Why several workers on one machine or on a shared filesystem run each job once:
 from __future__ import annotations
 
 import json
+import math
 import os
 import secrets
 import time
@@ -141,9 +142,10 @@ class Queue:
 
     # ---- claiming --------------------------------------------------------------------------------------------
     def claim(self, holder: Holder | None = None) -> Claim | None:
-        """Take the oldest queued job, or None when there is none. Race-free: the one rename that succeeds wins."""
+        """Take the oldest queued job (first queued, first run: by its file's mtime, which a job gets when it is
+        queued or given back), or None when there is none. Race-free: the one rename that succeeds wins."""
         holder = holder or Holder.current()
-        for src in sorted((self.path / "queued").glob("*.json")):
+        for src in _oldest_first((self.path / "queued").glob("*.json")):
             job_id = src.stem
             token = _new_token()
             dst = self.path / "running" / f"{job_id}{SEP}{token}.json"
@@ -289,6 +291,9 @@ class Queue:
             token = _new_token()
             mine = path.with_name(f"{job_id}{SEP}{token}.json")
             try:
+                # A fresh mtime first: under its new name, with no record, the file must not look expired to another
+                # worker's reclaim before this one settles it (that one would record a claim that never ran).
+                os.utime(path)
                 os.rename(path, mine)  # exactly one reclaimer wins
             except FileNotFoundError:
                 continue
@@ -298,8 +303,8 @@ class Queue:
                 reason = f"{reason} (attempt {attempts} of {self.max_attempts}; giving up)"
             self._patch_record(job_id, old_token, outcome="lost", error=reason, ended_utc=_utc(), retried=retry)
             state = "queued" if retry else "failed"
-            self._settle(mine, job_id, state)
-            out.append((job_id, state))
+            if self._settle(mine, job_id, state):
+                out.append((job_id, state))
         return out
 
     def _expired(self, path: Path, job_id: str, token: str, now: float | None) -> str | None:
@@ -566,6 +571,16 @@ def _stored(path: Path) -> dict:
 def _number(value) -> float:
     """A record's number, or 0.0 where a damaged record holds something else."""
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else 0.0
+
+
+def _oldest_first(paths) -> list[Path]:
+    """`paths` by their files' mtime, then name (a file gone meanwhile goes last: its claim will fail)."""
+    def key(path: Path) -> tuple[float, str]:
+        try:
+            return path.stat().st_mtime, path.name
+        except FileNotFoundError:
+            return math.inf, path.name
+    return sorted(paths, key=key)
 
 
 def _new_token() -> str:

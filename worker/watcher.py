@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index
-from spadscan.protocol.errors import CaptureError, ConfigError
+from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
 from .jobs import Job, job_id_for
 from .queue import QUEUE_DIRNAME, Queue
@@ -175,11 +175,21 @@ def scan_once(root: Path, queue: Queue, options: JobOptions) -> ScanReport:
 
 
 async def watch(root: Path, queue: Queue, options: JobOptions, stop: asyncio.Event, *, poll_s: float = 2.0,
-                on_report: Callable[[ScanReport], None] | None = None) -> None:
-    """Poll the root every `poll_s` seconds until `stop` is set. The filesystem work runs in a thread."""
+                on_report: Callable[[ScanReport], None] | None = None,
+                on_error: Callable[[Exception], None] | None = None) -> None:
+    """Poll the root every `poll_s` seconds until `stop` is set. The filesystem work runs in a thread.
+
+    A pass that fails on the filesystem (a full disk while queuing, the root unmounted) goes to `on_error` and the
+    next pass tries again: one bad moment must not stop scans being queued for the rest of the worker's life."""
     while not stop.is_set():
-        report = await asyncio.to_thread(scan_once, root, queue, options)
-        if on_report is not None:
+        try:
+            report = await asyncio.to_thread(scan_once, root, queue, options)
+        except (OSError, SpadscanError) as exc:
+            if on_error is None:
+                raise
+            on_error(exc)
+            report = None
+        if on_report is not None and report is not None:
             on_report(report)
         try:
             await asyncio.wait_for(stop.wait(), poll_s)

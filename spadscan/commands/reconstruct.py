@@ -28,8 +28,8 @@ says what it chose.
 
 Presets: `fast` (default) is an SDF grid that reaches good meshes in minutes on a CPU; `paper` is the published
 method (an MLP SDF, 300K steps nominal: hours on a GPU). The `fast` preset's mechanisms are parts (refinement,
-hull_projection, table, cavities, thin_sheets, coarse_smoothing, openings, erosion, blur, empty_space, average,
-plateau), each with its settings under parts.NAME; report.json's model.parts lists those that ran with their
+hull_projection, table, cavities, thin_sheets, coarse_smoothing, openings, erosion, blur, unseen, empty_space,
+average, plateau), each with its settings under parts.NAME; report.json's model.parts lists those that ran with their
 settings, and model.parts_left_out why the others did not (switched off, or not for this scene). Switch one off
 with --set parts.NAME.enabled=false.
 

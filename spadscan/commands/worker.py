@@ -35,8 +35,9 @@ is ignored, with a warning.
 follows it (each new chunk is read as it lands; the views in use grow, nothing restarts). Every few seconds it
 publishes <scan>/recon/live/ (mesh.ply, preview.png, status.json with views_used, views_published, steps,
 updated_utc, converged and, with a ground truth, chamfer_mm; `spadscan ctl status` shows it). When the scan is
-complete the job finishes from the live state, for --budget-s seconds (default for live jobs: 20), and publishes its
-result where every job does. An aborted scan's live job ends (failed, with the scan's reason; the live folder keeps
+complete the job finishes from the live state (--budget-s bounds that final run; by default it polishes the live fit
+for about 4 s of steps, or, when the live fit is still on its coarse level, fits from the carved hull for the preset's
+budget), and publishes its result where every job does. An aborted scan's live job ends (failed, with the scan's reason; the live folder keeps
 its last state). A live job holds its job process from the scan's first chunk to its end: give the worker a process
 for each scan that may run at once (--processes). Live jobs run the fast preset.
 
@@ -89,7 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live", action="store_true",
                         help="start each scan's reconstruction at its first published chunk and follow the scan, "
                              "publishing <scan>/recon/live/ every few seconds; --budget-s then bounds the final run "
-                             "after the scan ends (default 20 s; fast preset only)")
+                             "after the scan ends (default: about 4 s of steps polishing the live fit; fast preset "
+                             "only)")
     parser.add_argument("--poll-s", type=float, default=None, metavar="S",
                         help="seconds between looks at the root and the queue (default: 2)")
     parser.add_argument("--lease-s", type=float, default=None, metavar="S",

@@ -136,6 +136,41 @@ def test_concurrent_reclaims_take_an_expired_job_once(tmp_path):
     assert q.counts()["queued"] == 1
 
 
+def test_a_job_being_taken_over_is_not_taken_over_again(tmp_path, monkeypatch):
+    """Worker B's reclaim pass runs while worker A is between renaming an expired job to its own name and settling it:
+    B must not see A's file as expired (it would record a claim that never ran and use up an attempt)."""
+    qa, qb = Queue(tmp_path / "q", lease_s=5, max_attempts=3), Queue(tmp_path / "q", lease_s=5, max_attempts=3)
+    qa.enqueue(_job("s"))
+    claim = qa.claim(_elsewhere())
+    old = time.time() - 100
+    os.utime(claim.path, (old, old))  # its holder stopped renewing the lease
+    seen_by_b = []
+    attempts = qa.attempts
+
+    def b_reclaims_meanwhile(job_id):
+        seen_by_b.extend(qb.reclaim_expired())
+        return attempts(job_id)
+
+    monkeypatch.setattr(qa, "attempts", b_reclaims_meanwhile)
+    assert qa.reclaim_expired() == [("s-fast", "queued")]
+    assert seen_by_b == []
+    assert [r.get("outcome") for r in qb.records("s-fast")] == ["lost"]
+    assert qb.attempts("s-fast") == 1
+    assert qb.claim(_elsewhere()).attempt == 2
+
+
+def test_the_oldest_queued_job_is_claimed_first(tmp_path):
+    q = Queue(tmp_path / "q")
+    for k, name in enumerate(["zebra", "apple", "mango"]):
+        q.enqueue(_job(name))
+        path = q.path / "queued" / f"{name}-fast.json"
+        os.utime(path, (1_000_000 + k, 1_000_000 + k))  # queued in this order
+    zebra = q.claim()
+    assert zebra.job.scan == "zebra"
+    q.release(zebra)  # given back: it goes behind the jobs queued before
+    assert [q.claim().job.scan for _ in range(3)] == ["apple", "mango", "zebra"]
+
+
 def test_a_dead_holder_on_this_machine_frees_its_job_at_once(tmp_path):
     q = Queue(tmp_path / "q", lease_s=3600)
     q.enqueue(_job("s"))
