@@ -7,7 +7,7 @@ settings as the manifest's `schedule` record holds them). The live reconstructio
 tell it and writes the ranking; the daemon takes the best candidate that passes its own checks and is not within
 `min_view_spacing_deg` of a pose already taken (`too_close`).
 
-The file (JSON, UTF-8, replaced atomically: written to `.tmp-next_views.json`, fsynced, renamed):
+The file (JSON, UTF-8, replaced atomically: written to a hidden file of the writer's own, fsynced, renamed):
 
     {"format": "spadscan-next-views", "version": 1,
      "pose_count": 40,                    poses published in the capture when the ranking was made
@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture_format import POSE_TOL, one_line, write_json_atomic
+from .atomic_files import write_atomic
+from .capture_format import POSE_TOL, one_line
 from .errors import CaptureError
 from .schedules import fibonacci_hemisphere
 
@@ -78,13 +79,16 @@ def ranked(poses: np.ndarray, scores: np.ndarray, pose_count: int, measure: str 
 
 
 def write_next_views(capture, nv: NextViews) -> Path:
-    """Replace `<capture>/next_views.json` atomically (temp file, fsync, rename, fsync the folder); returns its path."""
+    """Replace `<capture>/next_views.json` atomically (temp file, fsync, rename, fsync the folder); returns its path.
+
+    The temporary file is this writer's own (`write_atomic`), not one of the capture writer's `.tmp-` names: the
+    daemon drops those whenever it reopens the scan, and this file is written by the worker while the scan runs."""
     path = Path(capture) / FILE
     _check(nv, str(path))
     data = {"format": FORMAT, "version": VERSION, "pose_count": int(nv.pose_count), "created_utc": nv.created_utc,
             "measure": nv.measure,
             "candidates": [{"pose": p.tolist(), "score": float(s)} for p, s in zip(nv.poses, nv.scores)]}
-    write_json_atomic(path, data)
+    write_atomic(path, json.dumps(data, indent=1) + "\n")
     return path
 
 

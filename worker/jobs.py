@@ -268,8 +268,11 @@ with it names the claim that produced it."""
 
 
 def mark_complete(folder: Path, job_id: str, token: str, queue: Path) -> None:
-    """Write the completion marker into `folder` (a temporary file renamed into place, fsynced with the folder)."""
+    """Write the completion marker into `folder` (a temporary file renamed into place, fsynced with the folder),
+    after every file already there is on disk: the marker says the result is whole, and after a power cut it must
+    not outlive a mesh that was still in the page cache."""
     folder = Path(folder)
+    _sync_tree(folder)
     tmp = folder / f"{COMPLETE}.tmp"
     with open(tmp, "w") as f:
         json.dump({"job": job_id, "token": token, "queue": str(queue)}, f)
@@ -281,6 +284,18 @@ def mark_complete(folder: Path, job_id: str, token: str, queue: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _sync_tree(folder: Path) -> None:
+    """fsync every file and folder under `folder` (links are not followed)."""
+    for path in sorted(folder.rglob("*")):
+        if path.is_symlink() or not (path.is_file() or path.is_dir()):
+            continue
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def completion(folder: Path) -> dict | None:

@@ -104,3 +104,29 @@ def test_age_against_its_clock():
     old = (dt.datetime.now(dt.timezone.utc) - dt.timedelta(seconds=90)).isoformat()
     nv = ranked(candidate_poses(SCHEDULE, 2), [0.0, 1.0], 0, created_utc=old)
     assert 89 < nv.age_s() < 120
+
+
+def test_a_daemon_resuming_the_scan_meanwhile_does_not_break_the_write(tmp_path, monkeypatch):
+    """The daemon drops its own half-written files (`.tmp-` names) whenever it reopens a scan (a resume, a restart);
+    a ranking the worker is writing at that moment must still land."""
+    import os
+
+    from spadscan.protocol.capture_format import Measurement
+    from spadscan.protocol.capture_writer import CaptureWriter
+    from spadscan.protocol.sensor_presets import sensor_preset
+
+    sensor = sensor_preset("lcspc-sim")
+    writer = CaptureWriter.create(tmp_path / "scan", sensor, chunk_size=1)
+    writer.append(Measurement(np.zeros((1, sensor.n_bins), np.uint32), np.eye(4), 0))
+    writer.flush()
+    replace, resumed = os.replace, []
+
+    def the_daemon_resumes_first(src, dst):  # between the temporary file's write and its rename
+        if not resumed:
+            resumed.append(str(src))
+            CaptureWriter.resume(tmp_path / "scan")
+        return replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", the_daemon_resumes_first)
+    write_next_views(tmp_path / "scan", ranked(candidate_poses(SCHEDULE, 8), np.arange(8.0), 1))
+    assert resumed and read_next_views(tmp_path / "scan").pose_count == 1

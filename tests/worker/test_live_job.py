@@ -243,3 +243,75 @@ def test_the_status_never_says_more_views_used_than_published(tmp_path):
     assert (status.views_used, status.views_published, status.views_planned) == (101, 101, 128)
     run.write_status(dataclasses.replace(polled, views_published=104), "live")
     assert read_status(status_path(tmp_path)).views_published == 104
+
+
+def test_a_full_disk_skips_a_publication_and_a_ranking_without_ending_the_live_job(tmp_path, monkeypatch):
+    import errno
+
+    import spadscan.worker.live.job as live_job
+
+    class Fit:
+        model, views_used, steps, converged = object(), 12, 40, False
+
+        def mesh(self, resolution):
+            return "a mesh"
+
+        def remember(self):
+            self.remembered = True
+
+        def snapshot(self):
+            return "a snapshot"
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    for name in ("publish_mesh", "publish_status", "update_next_views"):
+        monkeypatch.setattr(live_job, name, full_disk)
+    monkeypatch.setattr(live_job, "is_adaptive", lambda manifest: True)
+    lines: list[str] = []
+    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path, tmp_path / "recon" / "live",
+                  follower=None, settings=small_settings(), log=lines.append)
+    run.fit = Fit()
+    polled = ScanProgress(state="running", reason=None, views_published=12, views_planned=128, new_chunks=0)
+    run.publish(polled, force=True)
+    run._rank(polled)
+    assert run.fit.remembered and run.next_publish > time.monotonic() - 1, "the fit went on, and publishes later"
+    assert lines == ["live: the live mesh not published this time: [Errno 28] No space left on device",
+                     "live: the live status not published this time: [Errno 28] No space left on device",
+                     "live: no next views this time: [Errno 28] No space left on device"], lines
+
+
+def test_a_scan_that_publishes_nothing_for_long_is_said_to_be_quiet_until_it_publishes_again(tmp_path):
+    import shutil
+
+    from test_watcher import make_scan
+
+    class Fit:
+        model, views_used, steps, converged = None, 0, 0, False
+
+    make_scan(tmp_path, "s", "running")
+    lines: list[str] = []
+    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path / "s",
+                  live_folder := tmp_path / "s" / "recon" / "live", follower=None,
+                  settings=small_settings(quiet_note_s=600.0), log=lines.append)
+    live_folder.mkdir(parents=True)
+    run.fit = Fit()
+    manifest = {"updated_utc": "2026-12-03T06:00:00Z"}
+    polled = ScanProgress(state="running", reason=None, views_published=3, views_planned=128, new_chunks=1,
+                          manifest=manifest)
+    run._note_quiet(polled, 1000.0)
+    run.last = nothing_new = dataclasses.replace(polled, new_chunks=0)
+    run._note_quiet(nothing_new, 1599.0)
+    assert lines == [] and run.quiet_note is None, "ten minutes are not up"
+    run._note_quiet(nothing_new, 1601.0)
+    assert len(lines) == 1 and lines[0].startswith("live: the scan has published nothing for 10 min"), lines
+    assert read_status(status_path(tmp_path / "s")).note == run.quiet_note
+    run.publish(nothing_new, force=True)
+    assert read_status(status_path(tmp_path / "s")).note == run.quiet_note, "every publication keeps saying so"
+    run._note_quiet(dataclasses.replace(nothing_new, manifest={"updated_utc": "2026-12-03T06:20:00Z"}), 1700.0)
+    assert lines[1:] == ["live: the scan publishes again"] and run.quiet_note is None
+    run.publish(nothing_new, force=True)
+    assert read_status(status_path(tmp_path / "s")).note is None
+    shutil.move(tmp_path / "s", tmp_path / "moved")
+    run.stopped("stopped", "scan.json: missing")  # the folder moved away: said in the log, no error on top
+    assert lines[-1] == "live: scan.json: missing"

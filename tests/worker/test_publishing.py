@@ -165,3 +165,28 @@ def _gone_pid() -> int:
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait()
     return gone.pid
+
+
+def test_the_completion_marker_is_written_after_every_file_of_the_result_is_on_disk(tmp_path, monkeypatch):
+    """After a power cut the marker must not outlive a mesh still in the page cache: each file and folder is synced
+    before the marker is written."""
+    import os
+
+    from spadscan.worker.jobs import mark_complete
+
+    folder = tmp_path / ".tmp-s-fast-abc"
+    (folder / "pictures").mkdir(parents=True)
+    for name in ("mesh.ply", "report.json", "pictures/mesh.png"):
+        (folder / name).write_text(name)
+    order: list[str] = []
+    fsync = os.fsync
+
+    def noted(fd):
+        order.append(os.path.relpath(os.readlink(f"/proc/self/fd/{fd}"), folder))
+        return fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", noted)
+    mark_complete(folder, "s-fast", "abc", tmp_path / ".queue")
+    marker = order.index(f"{COMPLETE}.tmp")
+    assert {"mesh.ply", "report.json", "pictures", os.path.join("pictures", "mesh.png")} <= set(order[:marker])
+    assert order[marker + 1:] == ["."], "then the folder, with the marker renamed into place"

@@ -80,6 +80,9 @@ class LiveSettings:
     over, after the scan's end, for a trace of nearly flat figures."""
     recoarse: RecoarsePolicy = RecoarsePolicy()
     """When a refit goes back to the coarse level (the first views see the object from one side only)."""
+    quiet_note_s: float = 600.0
+    """A scan that publishes nothing for this long (its daemon paused, stopped or gone) is said to be quiet, in the
+    job's log and the live status, until it publishes again; the job keeps following it (a paused scan resumes)."""
     live_threads: int = 1
     """CPU threads of the live fit while the scan runs (the final run gets the job's own): the daemon beside it keeps
     a core."""
@@ -213,6 +216,10 @@ class LiveRun:
         """Its wall seconds."""
         self.next_rank = -math.inf
         self.last: ScanProgress | None = None
+        self.last_news = time.monotonic()
+        """When the scan last published a chunk or rewrote its manifest (time.monotonic())."""
+        self.quiet_note: str | None = None
+        """What the live status says while the scan is quiet (`quiet_note_s`), else None."""
 
     # ---- set-up --------------------------------------------------------------------------------------------------
     def start(self, progress: ScanProgress, gt: Path | None) -> None:
@@ -247,10 +254,12 @@ class LiveRun:
         """Refit, train and publish until the scan ends; returns the last poll (state 'complete' or 'aborted')."""
         s = self.settings
         while True:
-            self.last = progress
             if progress.ended:
+                self.last = progress
                 return progress
             now = time.monotonic()
+            self._note_quiet(progress, now)
+            self.last = progress
             if self._refit_due(progress, now):
                 rebuilt = self.fit.rebuild(progress.views_planned)
                 self.last_rebuild_cost = time.monotonic() - now
@@ -271,6 +280,26 @@ class LiveRun:
                 time.sleep(max(0.0, until - time.monotonic()))
             progress = self.follower.poll()
 
+    def _note_quiet(self, progress: ScanProgress, now: float) -> None:
+        """Say so when the scan has published nothing for `quiet_note_s`, and when it publishes again. A scan whose
+        daemon stopped mid-scan stays 'running' until a daemon takes it over; this job holds its process till then."""
+        before = self.last
+        if before is None or progress.new_chunks or progress.manifest.get("updated_utc") != before.manifest.get(
+                "updated_utc"):
+            self.last_news = now
+            if self.quiet_note is not None:
+                self.quiet_note = None
+                self.log("live: the scan publishes again")
+            return
+        quiet_s = now - self.last_news
+        if self.quiet_note is None and quiet_s >= self.settings.quiet_note_s:
+            self.quiet_note = (f"the scan has published nothing for {quiet_s / 60:.0f} min (its daemon paused or "
+                               f"stopped?); still following it: `spadscan ctl status` says whether it is paused; a scan "
+                               f"no daemon will resume ends this job when its folder is moved out of the captures "
+                               f"root")
+            self.log(f"live: {self.quiet_note}")
+            self.publish(progress, force=True)
+
     def _refit_due(self, progress: ScanProgress, now: float) -> bool:
         s = self.settings
         have, published = self.fit.views_used, progress.views_published
@@ -288,8 +317,8 @@ class LiveRun:
         self.next_rank = now + self.settings.rank_every_s
         try:
             update_next_views(self.scan, progress.manifest, self.fit.snapshot())
-        except (SpadscanError, ValueError) as exc:
-            self.log(f"live: no next views this time: {exc}")
+        except (SpadscanError, ValueError, OSError) as exc:  # OSError: a full disk; the scan goes on without them
+            self.log(f"live: no next views this time: {' '.join(str(exc).split())}")
 
     # ---- publishing ----------------------------------------------------------------------------------------------
     def publish(self, progress: ScanProgress, state: str | None = None, force: bool = False) -> None:
@@ -308,8 +337,14 @@ class LiveRun:
                     self.chamfer_mm = self.truth.metrics(mesh, n_points=self.config.trace_points).chamfer_mm
             except SpadscanError as exc:  # no surface yet: the status says so
                 self.log(f"live: no mesh yet: {exc}")
+            except OSError as exc:  # a full disk: the fit goes on, and publishes again when there is room
+                self.log(f"live: the live mesh not published this time: {' '.join(str(exc).split())}")
             fit.remember()
-        self.write_status(progress, state or ("live" if fit is not None and fit.model is not None else "waiting"))
+        try:
+            self.write_status(progress, state or ("live" if fit is not None and fit.model is not None else "waiting"),
+                              note=self.quiet_note)
+        except OSError as exc:
+            self.log(f"live: the live status not published this time: {' '.join(str(exc).split())}")
         self.publish_cost_s = time.perf_counter() - t0
         # Publishing takes at most about a fifth of the time: a slow machine publishes less often.
         self.next_publish = time.monotonic() + max(self.settings.publish_every_s, 4.0 * self.publish_cost_s)
@@ -328,7 +363,10 @@ class LiveRun:
     def stopped(self, state: str, note: str) -> None:
         """The follow phase ended otherwise than by a finished scan with a fit: say so in the status."""
         self.log(f"live: {note}")
-        self.write_status(self.last, state, note)
+        try:
+            self.write_status(self.last, state, note)
+        except OSError:  # the scan's folder moved away (how a scan no daemon will resume is ended), a full disk
+            pass
 
     # ---- the final run -------------------------------------------------------------------------------------------
     def final_recon(self, recon: Callable | None) -> Callable:
