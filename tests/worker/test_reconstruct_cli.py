@@ -239,6 +239,13 @@ def test_help_names_every_option(capsys):
     text = capsys.readouterr().out
     for flag in ("--out", "--preset", "--budget-s", "--steps", "--gt", "--device", "--seed"):
         assert flag in text
+    from dataclasses import fields
+
+    from spadscan.worker.recon.fast.parts import FastPartsConfig
+
+    listed = " ".join(text.split())
+    missing = [f.name for f in fields(FastPartsConfig) if f.name not in listed]
+    assert not missing, f"the help's list of the fast preset's parts leaves out {missing}"
 
 
 # ---- result folders: a previous result is kept unless --overwrite, a failed write leaves the previous mesh, an
