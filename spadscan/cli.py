@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import re
 import sys
 
 from spadscan.parent_watch import watch_parent_from_env
@@ -55,8 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         if argv and argv[0] == "--version":
             from spadscan import __version__
 
-            print(f"spadscan {__version__}")
-            return 0
+            return run_command(lambda _: print(f"spadscan {__version__}"), None)
         if argv and argv[0] not in ("-h", "--help"):
             print(f"spadscan: unknown command {argv[0]!r} (run `spadscan --help` for the list)", file=sys.stderr)
             return 2
@@ -68,8 +68,26 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=f"spadscan {name}", description=module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     module.add_arguments(parser)
-    args = parser.parse_args(rest)
+    args = parser.parse_args(_negative_lists_attached(rest))
     return run_command(module.run, args)
+
+
+_NUMBER = r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+NEGATIVE_LIST = re.compile(rf"-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,{_NUMBER})+")
+"""A comma-separated list of numbers whose first is negative (`--target -0.1,0,0.1`)."""
+
+
+def _negative_lists_attached(argv: list[str]) -> list[str]:
+    """`--flag -0.1,0,0.1` -> `--flag=-0.1,0,0.1`: argparse takes a value that starts with '-' for an option and
+    refuses it, and base-frame coordinates are often negative. A list of numbers is never an option."""
+    out: list[str] = []
+    for arg in argv:
+        flag = out[-1] if out else ""
+        if NEGATIVE_LIST.fullmatch(arg) and flag.startswith("--") and flag != "--" and "=" not in flag:
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
 
 
 def run_command(func, args) -> int:

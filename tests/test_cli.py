@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 
@@ -184,6 +185,17 @@ def test_a_closed_output_pipe_ends_quietly():
     assert proc.wait(timeout=120) == 141 and err == ""
 
 
+def test_version_into_a_closed_pipe_ends_quietly():
+    """`spadscan --version` whose reader closed its end first: no traceback, the status of a SIGPIPE."""
+    code = "import sys; from spadscan.cli import main; sys.exit(main(['--version']))"
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before anything is written
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=write, stderr=subprocess.PIPE)
+    os.close(write)
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141 and err == "", err
+
+
 def test_a_broken_pipe_elsewhere_is_still_an_error(capsys):
     """A BrokenPipeError while stdout is still read (a socket, a child's pipe) is an error like any other."""
     code = ("import sys\n"
@@ -196,3 +208,13 @@ def test_a_broken_pipe_elsewhere_is_still_an_error(capsys):
     assert proc.returncode == 1 and proc.stderr == "spadscan: error: Broken pipe\n"
     assert run_command(_fail_with(BrokenPipeError(32, "Broken pipe")), argparse.Namespace()) == 1  # captured stdout
     assert capsys.readouterr().err == "spadscan: error: Broken pipe\n"
+
+
+def test_a_list_of_numbers_that_starts_negative_is_a_flags_value(tmp_path, capsys):
+    """`--plane -1,0,0,0,0,1` reaches the command (here: which says the capture is missing), not argparse's
+    'expected one argument'."""
+    missing = tmp_path / "no-capture"
+    for flag, value in (("--plane", "-1,0,0,0,0,1"), ("--sphere", "-0.1,.2,-3e-2,0.05")):
+        assert main(["calibrate", "hand-eye", str(missing), flag, value]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("spadscan: error: ") and "no-capture" in err and "expected one argument" not in err

@@ -55,6 +55,10 @@ def run(args) -> int:
     def log(line: str) -> None:
         print(f"spadscan sweep: {line}", file=sys.stderr, flush=True)
 
+    if args.scheduler is not None:
+        from spadscan.sweep.runner import check_scheduler_address
+
+        check_scheduler_address(args.scheduler)
     spec = load_spec(args.sweep)
     plan = make_plan(spec, None if args.lcspc is None else Path(args.lcspc))
     entries = len(plan.entries)

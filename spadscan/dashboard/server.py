@@ -134,7 +134,14 @@ def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None)
     """A server for the captures root `root` bound to (host, port) (port 0: any free one); call serve_forever."""
     root = Path(root)
     if not root.is_dir():
-        raise SpadscanError(f"{root}: no such captures root")
+        raise SpadscanError(f"{root}: no such captures root" + (" (a file, not a folder)" if root.exists() else ""))
+    if not str(host).strip():
+        raise SpadscanError("--host '' would listen on every interface: give 0.0.0.0 to open the page to the "
+                            "network, or leave --host out for this machine only")
+    if queue_dir is not None and not Path(queue_dir).is_dir():
+        raise SpadscanError(f"--queue {queue_dir}: no such queue folder" +
+                            (" (a file, not a folder)" if Path(queue_dir).exists() else "") +
+                            " (the worker makes CAPTURES/.queue, the default)")
     handler = partial(Handler, dashboard=Dashboard(root, queue_dir), live=LiveViews())
     try:
         server = ThreadingHTTPServer((host, port), handler)

@@ -26,6 +26,7 @@ from multiprocessing import resource_tracker
 from typing import Callable
 
 from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
+from distributed.comm.addressing import get_address_host_port
 from distributed.utils import silence_logging_cmgr
 from tqdm import tqdm
 
@@ -203,6 +204,16 @@ def _quiet_children():
             os.environ.pop("PYTHONWARNINGS", None)
         else:
             os.environ["PYTHONWARNINGS"] = env
+
+
+def check_scheduler_address(address: str) -> None:
+    """Refuse, in one line, a --scheduler that is no Dask address (a missing port, an unknown scheme), before
+    anything is written."""
+    try:
+        get_address_host_port(address)
+    except ValueError as exc:
+        raise ConfigError(f"--scheduler {address!r} is not a Dask scheduler's address, e.g. tcp://HOST:8786 "
+                          f"({' '.join(str(exc).split())[:200]})") from None
 
 
 class _client:

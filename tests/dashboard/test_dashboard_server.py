@@ -148,3 +148,18 @@ def test_a_live_mesh_gets_its_3d_view_made_on_demand(tmp_path):
         code, page = get(server, recon["files"]["view3d.html"])
         assert code == 200 and b"OfflineLocalView.load" in page and b"scan (live)" in page
         assert get(server, recon["files"]["view3d.html"]) == (200, page)  # kept while the mesh is unchanged
+
+
+def test_the_command_refuses_an_empty_host_and_a_queue_that_is_not_there_in_one_line(tmp_path, capsys):
+    from spadscan.cli import main
+
+    (tmp_path / "afile").write_text("x")
+    cases = [(["--host", ""], "--host '' would listen on every interface"),
+             (["--queue", str(tmp_path / "nope")], f"--queue {tmp_path / 'nope'}: no such queue folder"),
+             (["--queue", str(tmp_path / "afile")], "(a file, not a folder)")]
+    for extra, message in cases:
+        assert main(["dashboard", "--root", str(tmp_path), "--port", "0", *extra]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("spadscan: error: ") and message in err and err.count("\n") == 1, err
+    assert main(["dashboard", "--root", str(tmp_path / "afile")]) == 1
+    assert "no such captures root (a file, not a folder)" in capsys.readouterr().err

@@ -78,6 +78,15 @@ def test_the_cli_refuses_a_bad_file_in_one_line(tmp_path, capsys):
     assert "no such sweep file" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("address", ["bogus", "tcp://127.0.0.1", "foo://head:8786", ""])
+def test_the_cli_refuses_a_scheduler_that_is_no_address_in_one_line(tmp_path, capsys, address):
+    path = write(tmp_path, '[sweep]\nscenes = ["builtin:sphere"]\n[grid]\nfov_deg = [10, 20]\n')
+    assert main(["sweep", str(path), "--out", str(tmp_path / "out"), "--scheduler", address]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"spadscan: error: --scheduler {address!r} is not a Dask scheduler's address")
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+
+
 def test_points_are_shared_by_entries_and_their_ids_are_stable(tmp_path):
     spec = load_spec(write_tiny(tmp_path))
     plan = make_plan(spec)
