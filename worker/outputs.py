@@ -3,6 +3,8 @@ accident, never a half-written mesh left where a good one was."""
 
 from __future__ import annotations
 
+import json
+import math
 import os
 from pathlib import Path
 
@@ -49,6 +51,37 @@ def export_mesh(mesh, path, **options) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+def previous_result(out) -> set[str]:
+    """The file names of the result `out` holds before a run replaces it (--overwrite): those its report.json lists
+    (`files`), the report itself, its page and its mesh. Files it does not list (the user's own) are no part of it."""
+    out = Path(out)
+    names = {*RESULT_FILES, "report.html"}
+    try:
+        listed = json.loads((out / "report.json").read_text()).get("files")
+    except (OSError, ValueError, AttributeError):
+        listed = None
+    if isinstance(listed, list):
+        names |= {Path(str(n)).name for n in listed}
+    return {n for n in names if (out / n).is_file()}
+
+
+def files_written_since(out, since_s: float) -> set[str]:
+    """Names of the plain files in `out` (hidden ones left out) last written at or after `since_s` (time.time(),
+    taken down to the second: file systems keep mtimes as coarse as that)."""
+    since = math.floor(since_s)
+    return {p.name for p in Path(out).iterdir()
+            if p.is_file() and not p.name.startswith(".") and p.stat().st_mtime >= since}
+
+
+def drop_replaced(out, previous: set[str], written: set[str]) -> list[str]:
+    """Remove the files of the replaced result (`previous_result`) that this run did not write again: a normals
+    picture of a run with a ground truth must not stand beside a run without one. Returns the names removed."""
+    gone = sorted(previous - written)
+    for name in gone:
+        (Path(out) / name).unlink(missing_ok=True)
+    return gone
 
 
 def capture_state_note(capture, state: str, views: int) -> str | None:

@@ -30,7 +30,7 @@ from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_view
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
-from .outputs import capture_state_note, export_mesh
+from .outputs import capture_state_note, drop_replaced, export_mesh, files_written_since, previous_result
 from .pieces import Pieces, mesh_pieces
 from .recon.config import ReconConfig, with_overrides
 from .recon.errors import ReconstructionError
@@ -146,6 +146,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     process's CPU seconds) time the run; tests inject their own."""
     log = log or (lambda line: None)
     run_clock = RunClock(None, clock() if started is None else started, clock)
+    since_s, replaced = time.time(), previous_result(out)
     _check_run_args(budget_s, steps, seed)
     if threads is not None:
         torch.set_num_threads(check_threads(threads))
@@ -270,8 +271,11 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                         "stages": stages}
     for line in report["warnings"]:
         log(f"warning: {line}")
-    report["files"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
-    report["files"] = sorted(set(report["files"]) | {"report.json", "report.html"})
+    written = files_written_since(out, since_s) | {"report.json", "report.html"}
+    report["files"] = sorted(written)
+    gone = drop_replaced(out, replaced, written)
+    if gone:
+        log(f"removed the replaced result's {', '.join(gone)} (this run wrote none)")
     report["wall_seconds"] = run_clock.elapsed()
     write_report(out, report)
     report = json_safe(report)

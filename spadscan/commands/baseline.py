@@ -24,11 +24,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import time
 from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run, load_ground_truth
-from spadscan.worker.outputs import check_out
+from spadscan.worker.outputs import check_out, drop_replaced, files_written_since, previous_result
 
 DEFAULTS = {"resolution": 128, "edge_deg": 1.0, "surface": "occupancy"}
 """Defaults of the options only one method reads (filled in after the check that the method reads them)."""
@@ -43,8 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for mesh.ply and report.json")
     add_ground_truth_options(parser, ": adds metrics to the report")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace the result already in --out (without it, a folder that holds mesh.ply or "
-                             "report.json is refused)")
+                        help="replace the result already in --out: the files its report.json lists that this run "
+                             "does not write again are removed, other files left (without it, a folder that holds "
+                             "mesh.ply or report.json is refused)")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--threshold", type=float, default=None, metavar="T",
                        help="detection threshold in noise standard deviations (default: 5)")
@@ -103,6 +105,7 @@ def run(args) -> int:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
 
     check_out(args.out, args.overwrite, capture=args.capture)
+    since_s, replaced = time.time(), previous_result(args.out)
 
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)
@@ -113,7 +116,7 @@ def run(args) -> int:
         resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
         floor_z=None if args.no_floor else ("auto" if args.floor_z is None else args.floor_z), surface=args.surface,
         edge_deg=args.edge_deg, metrics_points=args.points, log=log)
-    write_pictures_and_page(report, args.out, gt)
+    write_pictures_and_page(report, args.out, gt, since_s, replaced)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
     line += f", {report['seconds']:.1f} s"
     if "chamfer_mm" in report:
@@ -123,15 +126,21 @@ def run(args) -> int:
     return 0
 
 
-def write_pictures_and_page(report: dict, out, gt) -> None:
-    """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json."""
+def write_pictures_and_page(report: dict, out, gt, since_s: float, replaced: set[str]) -> None:
+    """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json, which
+    then lists the files this run wrote (`files`); the replaced result's others go (--overwrite)."""
     from spadscan.protocol.mesh_io import load_mesh  # trimesh and matplotlib: only when a baseline ran
     from spadscan.worker.report.pictures import preview_png
     from spadscan.worker.report.report_html import write_report_html
+    from spadscan.worker.report.report_json import write_report
 
     out = Path(out)
     # The part of the ground truth that was scored (above its table, when it holds one), as reconstruct shows it:
     # a 2 m table slab beside the object would shrink the object to a speck.
     gt_mesh = load_ground_truth(gt).mesh if gt is not None else None
     preview_png(load_mesh(out / "mesh.ply"), out / "preview.png", gt=gt_mesh)
+    written = files_written_since(out, since_s) | {"report.json", "report.html"}
+    report["files"] = sorted(written)
+    write_report(out, report)
+    drop_replaced(out, replaced, written)
     write_report_html(report, out)

@@ -75,8 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "cores' threads or one, whichever makes faster steps, chosen as the run goes); threads "
                              "that outnumber the cores make every step many times slower")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace the result already in --out (without it, a folder that holds mesh.ply or "
-                             "report.json is refused)")
+                        help="replace the result already in --out: the files its report.json lists that this run "
+                             "does not write again are removed, other files left (without it, a folder that holds "
+                             "mesh.ply or report.json is refused)")
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 

@@ -203,6 +203,27 @@ def test_baseline_command_writes_a_mesh_and_a_report(sphere_capture, tmp_path, c
     assert "space-carving" in page and f"{report['chamfer_mm']:.4g} mm" in page and 'src="preview.png"' in page
 
 
+def test_a_baseline_overwriting_another_leaves_none_of_its_files(sphere_capture, tmp_path, quick_metrics):
+    """Reprojection writes points.ply; space carving over it with --overwrite does not, and must not list it."""
+    import os
+    import time
+
+    cap, gt = sphere_capture
+    out = tmp_path / "b"
+    assert cli_main(["baseline", "reprojection", str(cap), "--out", str(out), "--gt", str(gt)]) == 0
+    first = json.loads((out / "report.json").read_text())["files"]
+    assert "points.ply" in first and (out / "points.ply").exists()
+    an_hour_ago = time.time() - 3600  # the first run's time
+    for path in out.iterdir():
+        os.utime(path, (an_hour_ago, an_hour_ago))
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(out), "--gt", str(gt), "--overwrite",
+                     "--resolution", "48"]) == 0
+    files = json.loads((out / "report.json").read_text())["files"]
+    assert "points.ply" not in files and not (out / "points.ply").exists()
+    assert {"mesh.ply", "preview.png", "report.json", "report.html"} <= set(files)
+    assert "points.ply" not in (out / "report.html").read_text()
+
+
 def calibrated(method: str, thresholds, sphere_capture, out, monkeypatch) -> dict:
     """`spadscan baseline METHOD --calibrate` over `thresholds` (20,000 points a mesh); its report.json."""
     import spadscan.worker.baselines.common as common

@@ -4,6 +4,8 @@ folders that keep a previous result."""
 from __future__ import annotations
 
 import json
+import os
+import time
 
 import numpy as np
 import pytest
@@ -272,6 +274,31 @@ def test_a_previous_result_is_kept_unless_overwrite(capture_and_gt, tmp_path, ca
     assert _recon(cap, out, "--overwrite", "--threads", "1") == 0
     assert len(trimesh.load(out / "mesh.ply").vertices) > 0
     assert json.loads((out / "report.json").read_text())["torch_threads"] == 1
+
+
+def test_an_overwritten_result_leaves_none_of_its_own_files_and_lists_only_this_runs(capture_and_gt, tmp_path,
+                                                                                      capsys):
+    cap, _ = capture_and_gt
+    out = tmp_path / "out"
+    out.mkdir()
+    previous = ["mesh.ply", "normals.png", "report.html", "report.json"]
+    for name in previous[:-1]:
+        (out / name).write_text(f"the previous {name}")
+    (out / "report.json").write_text(json.dumps({"files": previous}))
+    (out / "notes.txt").write_text("the user's own notes")
+    an_hour_ago = time.time() - 3600  # the previous run's time
+    for path in out.iterdir():
+        os.utime(path, (an_hour_ago, an_hour_ago))
+    assert _recon(cap, out, "--overwrite", "--no-gt") == 0
+    report = json.loads((out / "report.json").read_text())
+    assert not (out / "normals.png").exists(), "the replaced run's normals picture does not stand beside this one"
+    assert (out / "notes.txt").read_text() == "the user's own notes"
+    assert "notes.txt" not in report["files"] and "normals.png" not in report["files"]
+    assert {"mesh.ply", "report.json", "report.html"} <= set(report["files"])
+    assert set(report["files"]) <= {p.name for p in out.iterdir()}
+    page = (out / "report.html").read_text()
+    assert "notes.txt" not in page and 'href="normals.png"' not in page
+    assert "removed the replaced result's normals.png" in capsys.readouterr().err
 
 
 def test_a_file_in_the_way_and_bad_threads_are_one_line_errors(capture_and_gt, tmp_path, capsys):

@@ -221,8 +221,11 @@ def _trace(trace) -> str:
     return f"<table>\n<tr>{head}</tr>\n{body}\n</table>"
 
 
-def _files(folder: Path) -> str:
-    names = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+def _files(folder: Path, report: dict) -> str:
+    """The run's files: those its report lists (a folder may hold the user's own files besides), else the folder's."""
+    listed = report.get("files")
+    names = (sorted(str(n) for n in listed) if isinstance(listed, list) else
+             sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")))
     return "<ul>" + "".join(f'<li><a href="{_esc(n)}">{_esc(n)}</a></li>' for n in names) + "</ul>"
 
 
@@ -245,7 +248,7 @@ def render_html(report: dict, folder) -> str:
         if trace_note(report):
             sections.append(f"<p>{_esc(trace_note(report))}</p>")
         sections.append(_trace(report.get("trace")))
-    sections += ["<h2>Files</h2>", _files(folder),
+    sections += ["<h2>Files</h2>", _files(folder, report),
                  "<h2>Full report</h2>", f"<pre>{_esc(json.dumps(report, indent=1, default=str))}</pre>"]
     return ("<!DOCTYPE html>\n<html lang=en>\n<head>\n<meta charset=utf-8>\n"
             f"<title>{_esc(title)}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n"
