@@ -91,6 +91,7 @@ def _dry_run(plan, out) -> int:
     from spadscan.sweep.store import SweepDir
 
     store = SweepDir(out)
+    store.check(plan)  # what the run would refuse, the dry run refuses too
     done = 0
     for task in plan.points.values():
         result = store.read_point(task.id) if out.is_dir() else None

@@ -93,6 +93,14 @@ class SweepDir:
             self.close()
             raise
 
+    def check(self, plan) -> None:
+        """What `open` refuses, checked without taking the lock or writing anything (`spadscan sweep --dry-run`): a
+        file in the way, a folder of other files, a folder of another base condition."""
+        if self.path.exists() and not self.path.is_dir():
+            raise ConfigError(f"{self.path}: exists and is not a folder")
+        if self.path.is_dir():
+            self._check_fingerprint(plan)
+
     def close(self) -> None:
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # releases the lock

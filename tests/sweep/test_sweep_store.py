@@ -44,6 +44,9 @@ def test_a_changed_base_condition_is_refused_and_a_grown_grid_is_not(tmp_path):
     message = str(err.value)
     assert "another base condition" in message and "base.views: 12 -> 16" in message
     assert "presets.fast.steps: 20 -> 30" in message and "\n" not in message
+    with pytest.raises(ConfigError, match="another base condition"):
+        SweepDir(tmp_path / "out").check(make_plan(load_spec(changed)))  # the dry run's check, the same verdict
+    SweepDir(tmp_path / "out").check(plan)
     grown = tmp_path / "grown.toml"
     grown.write_text(tiny.replace("views = [8, 12]", "views = [8, 12, 16]"))
     again = SweepDir(tmp_path / "out")
@@ -125,3 +128,21 @@ def test_a_failing_method_is_recorded_and_the_others_still_run(tmp_path):
     kept = tmp_path / "out" / "work" / task.id  # --keep: the capture and each method's outputs, under the point's id
     assert result["work"] == str(kept) and [p.name for p in (tmp_path / "out" / "work").iterdir()] == [task.id]
     assert (kept / "capture" / "scan.json").is_file() and (kept / "space-carving" / "mesh.ply").is_file()
+
+
+def test_a_dry_run_refuses_what_the_run_would_refuse_and_writes_nothing(tmp_path, capsys):
+    from spadscan.cli import main
+
+    tiny = write_tiny(tmp_path)
+    assert main(["sweep", str(tiny), "--out", str(tmp_path / "fresh"), "--dry-run"]) == 0
+    assert capsys.readouterr().out.strip().endswith("to run") and not (tmp_path / "fresh").exists()
+    out = SweepDir(tmp_path / "out")
+    out.open(make_plan(load_spec(tiny)))
+    out.close()
+    before = sorted(p.name for p in (tmp_path / "out").iterdir())
+    changed = tmp_path / "changed.toml"
+    changed.write_text(tiny.read_text().replace("views = 12\n", "views = 16\n"))
+    assert main(["sweep", str(changed), "--out", str(tmp_path / "out"), "--dry-run"]) == 1
+    errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("spadscan: error: ")]
+    assert len(errors) == 1 and "another base condition" in errors[0]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == before
