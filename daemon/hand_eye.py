@@ -73,7 +73,9 @@ class Target:
 
 def parse_target(plane: str | None, sphere: str | None) -> Target:
     """The target from `--plane X,Y,Z,NX,NY,NZ` or `--sphere X,Y,Z,R` (metres); one-line ConfigError otherwise."""
-    if (plane is None) == (sphere is None):
+    if plane is not None and sphere is not None:
+        raise ConfigError("give one target, --plane or --sphere, not both")
+    if plane is None and sphere is None:
         raise ConfigError("give the target: --plane X,Y,Z,NX,NY,NZ (a point on it and its normal) or "
                           "--sphere X,Y,Z,R (metres, base frame)")
     text, what, count = (plane, "--plane", 6) if plane is not None else (sphere, "--sphere", 4)

@@ -82,7 +82,8 @@ class CaptureReader:
     def __init__(self, path):
         self.path = Path(path)
         if not self.path.is_dir():
-            raise CaptureError(f"{self.path}: no such capture folder")
+            raise CaptureError(f"{self.path}: " + ("a file, not a capture folder" if self.path.exists() else
+                                                    "no such capture folder"))
         self.manifest = self._read_manifest()
         where = self.path / MANIFEST
         try:

@@ -30,6 +30,11 @@ def load_mesh(path, *, units: str = "auto"):
     if units not in ("auto", "m", "mm"):
         raise MeshError(f"units {units!r} must be 'auto', 'm' or 'mm'")
     try:
+        with open(path, "rb"):  # the file's own trouble (permissions) said as such, not as a damaged mesh
+            pass
+    except OSError as exc:
+        raise MeshError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files; all mean "cannot read this mesh"
         raise MeshError(_unreadable(path, exc, trimesh.available_formats())) from None

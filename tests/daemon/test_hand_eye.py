@@ -150,7 +150,7 @@ def test_the_peak_estimator_reads_a_pulse_where_it_is_and_refuses_noise():
 
 @pytest.mark.parametrize("plane, sphere, message", [
     (None, None, "give the target"),
-    ("0,0,0,0,0,1", "0,0,0,1", "give the target"),
+    ("0,0,0,0,0,1", "0,0,0,1", "not both"),
     ("0,0,0,0,1", None, "--plane '0,0,0,0,1' must be 6 numbers X,Y,Z,NX,NY,NZ"),
     ("0,0,0,0,0,0", None, "the normal (NX, NY, NZ) must not be zero"),
     (None, "0,0,0,-1", "the radius -1 m must be in (0, 2]"),

@@ -507,8 +507,10 @@ def test_a_manifest_without_a_version_is_version_1(tmp_path):
 
 def test_a_scan_folder_that_is_not_a_directory(tmp_path):
     (tmp_path / "file").write_text("x")
-    with pytest.raises(CaptureError, match="no such capture folder"):
+    with pytest.raises(CaptureError, match="file: a file, not a capture folder"):
         CaptureReader(tmp_path / "file")
+    with pytest.raises(CaptureError, match="nope: no such capture folder"):
+        CaptureReader(tmp_path / "nope")
 
 
 # ---- reading while the scan runs -------------------------------------------------------------------------------------

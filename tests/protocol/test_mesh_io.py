@@ -106,3 +106,21 @@ def test_load_mesh_spec_builtin_and_file(tmp_path):
     assert np.allclose(again.bounds, mesh.bounds)
     with pytest.raises(MeshError, match="unknown built-in scene 'nope'"):
         load_mesh_spec("builtin:nope")
+
+
+def test_a_mesh_file_that_cannot_be_opened_says_why_not_that_it_is_damaged(tmp_path, monkeypatch):
+    import builtins
+
+    path = tmp_path / "locked.obj"
+    sphere(0.05).export(path)
+    real_open = builtins.open
+
+    def no_permission(file, *args, **kwargs):  # what a file of another user's reads as (root would not see it)
+        if str(file) == str(path):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", no_permission)
+    with pytest.raises(MeshError) as err:
+        load_mesh(path)
+    assert str(err.value) == f"{path}: cannot be read (Permission denied)"
