@@ -31,9 +31,19 @@ import sys
 import threading
 import time
 
-IK_QUERY_SINCE = (5, 10)
+IK_QUERY_SINCE = {"e-Series": (5, 10), "CB-series": (3, 15)}
 """PolyScope version from which ur_rtde's control script answers getInverseKinematicsHasSolution (its lines are
-marked `$5.10`; on older controllers they are left out and the answer register keeps a stale value)."""
+marked `$5.10|3.15`; on older controllers they are left out and the answer register keeps a stale value)."""
+
+
+def ik_answered(polyscope: tuple[int, int] | None) -> bool:
+    """Whether a controller of PolyScope version `polyscope` (major, minor) answers the inverse-kinematics query:
+    majors 5 and later by the e-Series' mark, 3 by the CB-series' (none other is known to ur_rtde's script)."""
+    if polyscope is None:
+        return False
+    if polyscope[0] >= 5:
+        return polyscope >= IK_QUERY_SINCE["e-Series"]
+    return polyscope[0] == 3 and polyscope >= IK_QUERY_SINCE["CB-series"]
 
 
 class CommandFailed(Exception):
@@ -114,7 +124,7 @@ class Client:
         "safety" or "ik", "ik_checked": bool}. CommandFailed when the controller cannot answer (a "no" from a
         control script that is not running would read as a refusal)."""
         c = self.control
-        ik = self.polyscope is not None and self.polyscope >= IK_QUERY_SINCE
+        ik = ik_answered(self.polyscope)
         for i, pose in enumerate(poses):
             pose = [float(x) for x in pose]
             if not c.isPoseWithinSafetyLimits(pose):

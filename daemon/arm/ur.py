@@ -23,7 +23,7 @@ The controller's watchdog (setWatchdog, after every connection or script upload)
 arm, when no input arrives for 1/watchdog_hz s: the daemon's event loop kicks it (kickWatchdog) three times per
 period, so an arm whose daemon went silent (killed, stopped, hung) stops by itself. `check_poses` asks the controller
 itself about every planned pose (isPoseWithinSafetyLimits, and getInverseKinematicsHasSolution where its PolyScope
-answers it, 5.10 on).
+answers it: 5.10 on, 3.15 on a CB-series arm).
 Any LinkLost ends the client process (a closed link's interfaces would otherwise go on reconnecting by themselves,
 which is what crashes ur_rtde), after one stopL that may take at most STOP_ON_LOSS_S (a link found stale may still
 carry it; the move it can no longer watch then stops), and every later call fails at once with LinkLost until
@@ -54,6 +54,9 @@ MAX_TOOL_ACCEL = 150.0
 """m/s^2: ur_rtde rejects larger moveL accelerations."""
 STOP_DECEL = 10.0
 """m/s^2: tool deceleration of stop() (ur_rtde's stopL default)."""
+START_GRACE_S = 2.0
+"""Longest wait (s) for an asynchronous move to report itself running before "not running" is taken as its end:
+its thread starts within a controller cycle; this also covers a slow link and a busy machine."""
 STOP_ON_LOSS_S = 1.0
 """s: how long the stopL sent before a lost link is dropped may take."""
 CLEARED_WITHIN_S = 2.0
@@ -288,7 +291,7 @@ class URArm(Arm):
                 # arm is neither moving nor at the target, so that one move is never sent twice.
                 if not await self._took_it(what, target) and not await self._call(what, "moveL", vec, speed, accel):
                     await self._explain_refusal(what, final=True)
-            await self._wait_motion(what, budget)
+            await self._wait_motion(what, budget, target)
             await self._wait_arrival(what, target)
         except asyncio.CancelledError:
             # Runs in the ur_rtde process as soon as it is free.
@@ -314,15 +317,21 @@ class URArm(Arm):
         await self._call("stopL", "stopL", STOP_DECEL)
 
     # -- waiting ---------------------------------------------------------------------------------------------------
-    async def _wait_motion(self, what: str, budget_s: float) -> None:
+    async def _wait_motion(self, what: str, budget_s: float, target: np.ndarray) -> None:
         """Poll until the move ends. Its budget counts motion time: wall time at the controller's speed scaling
-        (the pendant's slider at 0.25 makes a move take four times as long)."""
+        (the pendant's slider at 0.25 makes a move take four times as long).
+
+        The control script answers an asynchronous moveL at once and reports the move running only when its move
+        thread first runs, a controller cycle later (ur_rtde's examples wait for that start): "not running" ends the
+        wait only once the move was seen running, or the arm is at the target, or START_GRACE_S has passed."""
         spent, last, slowest = 0.0, time.monotonic(), 1.0
+        started, start_by = False, time.monotonic() + START_GRACE_S
         while True:
             reading = await self._read(what, progress=True)
             await self._check_link(reading)
             await self._raise_if_stopped(reading, f"{what} aborted")
-            if not reading.moving:
+            started = started or reading.moving
+            if not reading.moving and (started or time.monotonic() > start_by or self._at(reading, target)):
                 return
             now = time.monotonic()
             scaling = min(1.0, max(MIN_SPEED_SCALING, reading.speed_scaling))
@@ -360,8 +369,12 @@ class URArm(Arm):
         """Whether a fresh reading shows the arm moving or already at the target."""
         await self._fresh(f"the motion state after {what} was refused")
         reading = await self._read(what, progress=True)
+        return reading.moving or self._at(reading, target)
+
+    def _at(self, reading: _Reading, target: np.ndarray) -> bool:
+        """Whether `reading`'s TCP pose is within the tolerances of `target`."""
         dist, angle = _pose_distance(reading.pose_vec, target)
-        return reading.moving or (dist <= self.position_tol_m and angle <= self.rotation_tol_rad)
+        return dist <= self.position_tol_m and angle <= self.rotation_tol_rad
 
     async def _fresh(self, what: str) -> _Reading:
         """A reading whose controller timestamp is newer than any seen so far; LinkLost after stale_after_s."""

@@ -13,6 +13,11 @@ from pathlib import Path
 
 from spadscan.protocol.errors import DeviceError
 
+BL_DOWNLOAD_INIT = 0x14
+DOWNLOAD_SEED = 0x29
+"""DOWNLOAD_INIT's one payload byte: the seed ams' C host driver (and the Linux and Arduino drivers built on it)
+sends before any SET_ADDR for its encrypted images. ams' Python driver leaves the command out; the bootloader takes
+it either way, so it is always sent."""
 BL_SET_ADDR = 0x43
 BL_W_RAM = 0x41
 BL_RAMREMAP = 0x11
@@ -101,8 +106,9 @@ def bootloader_frame(cmd: int, payload: bytes = b"") -> bytes:
 
 
 def download_frames(image: FirmwareImage) -> list[tuple[str, bytes]]:
-    """The bootloader frames that put `image` into RAM, each with a label for errors; RAMREMAP last."""
-    frames = []
+    """The bootloader frames that put `image` into RAM, each with a label for errors: DOWNLOAD_INIT first, RAMREMAP
+    last."""
+    frames = [("DOWNLOAD_INIT", bootloader_frame(BL_DOWNLOAD_INIT, bytes([DOWNLOAD_SEED])))]
     for addr, data in image.segments:
         frames.append((f"SET_ADDR {addr:#06x}", bootloader_frame(BL_SET_ADDR, bytes([addr & 0xFF, addr >> 8]))))
         for off in range(0, len(data), BL_CHUNK):

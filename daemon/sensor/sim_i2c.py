@@ -178,6 +178,8 @@ class SimTMF8820Bus:
         self.ram = bytearray(0x10000)
         self.written = np.zeros(0x10000, bool)
         self.ram_ptr = 0
+        self.download_seed: int | None = None
+        """The seed of the last DOWNLOAD_INIT (0x14), None before one."""
         self.bl_status, self.bl_cmd, self.bl_busy = 0x00, 0x00, 0
         self.cmd_stat, self.cmd_busy = 0x00, 0
         self.int_enab = 0x00
@@ -281,7 +283,9 @@ class SimTMF8820Bus:
             return
         cmd, payload = frame[0], frame[2:-1]
         self.bl_status = 0x00
-        if cmd == 0x43 and len(payload) == 2:
+        if cmd == 0x14 and len(payload) == 1:  # DOWNLOAD_INIT: the seed of an encrypted image's download
+            self.download_seed = payload[0]
+        elif cmd == 0x43 and len(payload) == 2:
             self.ram_ptr = payload[0] | payload[1] << 8
         elif cmd == 0x41 and len(payload) <= 128:
             end = self.ram_ptr + len(payload)

@@ -9,7 +9,8 @@ The control script uploaded by ur_rtde is not interpreted; its register protocol
 1.6.5's script, `rtde_control.script`):
 `input_int_register_0` carries a command, `output_int_register_0` is 1 (ready) while the command register is 0, a
 command is taken once, and `output_int_register_0` becomes 2 when it is done; `input_int_register_1` = 1 makes a move
-asynchronous (done at once, `output_int_register_2` then reports the move running: bit 15, and finished).
+asynchronous (done at once; `output_int_register_2` reports the move running, bit 15, once its thread has started,
+THREAD_START_S later, and then finished).
 Queries answer in `output_int_register_1` (1 = yes): 36 is_within_safety_limits(pose), 60/61
 get_inverse_kin_has_solution(pose[, qnear, errors]), from the model's reach (`kinematics.reachable`) and its safety
 planes. 35 set_watchdog: `rtde_set_watchdog("input_int_register_0", f, "stop")`, so an input package that writes the
@@ -43,6 +44,9 @@ MOVE_COMMANDS = {1: "moveJ", 2: "moveJ_IK", 3: "moveL", 4: "moveL_FK"}
 STOP_COMMANDS = {33: "stopL", 34: "stopJ"}
 SET_WATCHDOG, IS_POSE_WITHIN_SAFETY_LIMITS, IK_HAS_SOLUTION, IK_HAS_SOLUTION_ARGS = 35, 36, 60, 61
 STOP_SCRIPT = 255
+THREAD_START_S = 0.008
+"""Controller seconds from an asynchronous move's "done" to its thread's "started" in the progress register: one
+cycle of a CB-series controller (125 Hz; ur_rtde's examples wait for the start before they wait for the end)."""
 
 RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 ROBOT_MODE_RUNNING = 7
@@ -93,6 +97,10 @@ class URControllerModel:
         """(query, pose, answer) of every safety-limit and inverse-kinematics question answered."""
         self._motion: Motion | None = None
         self._motion_async = False
+        self.move_thread_start_s = THREAD_START_S
+        """Controller seconds from an asynchronous move's "done" to its "running" (THREAD_START_S)."""
+        self._async_start_at: float | None = None
+        """Controller time at which a move thread just started reports itself running (see THREAD_START_S)."""
         self._inputs: dict[str, object] = {}
         self._out_int = [0] * 48
         self._out_double = [0.0] * 48
@@ -129,6 +137,9 @@ class URControllerModel:
 
     def _advance(self, t: float) -> None:
         """Bring the motion to time t; finish it (and signal the script) when it has arrived."""
+        if self._async_start_at is not None and t >= self._async_start_at:
+            self._async_start_at = None
+            self._write_async(0)  # the move thread runs: "started"
         m = self._motion
         if m is None:
             return
@@ -140,6 +151,9 @@ class URControllerModel:
         self._pose = np.concatenate([goal[:3], matrix_to_rotvec(rotvec_to_matrix(goal[3:]))])
         self._motion = None
         if self._motion_async:
+            if self._async_start_at is not None:  # a move shorter than the thread's start: it started, then ended
+                self._async_start_at = None
+                self._write_async(0)
             self._write_async(-1)
         elif self._busy:
             self._busy = False
@@ -151,6 +165,7 @@ class URControllerModel:
             self._pose = self._motion.pose_at(self._tau(t))
             self._motion = None
             if self._motion_async:
+                self._async_start_at = None  # a thread killed before it ran never says it started
                 self._write_async(-1)
 
     def _write_async(self, value: int) -> None:
@@ -239,7 +254,9 @@ class URControllerModel:
             self._motion = Motion.plan(linear, self._pose, goal, regs[6], regs[7], self._tau(t), self.time_scale)
             self._motion_async = asynchronous
             if asynchronous:
-                self._write_async(0)
+                # The script answers "done" at once and starts a move thread, which reports itself running when it
+                # first runs, on a later cycle: a caller that reads the register at once may still see no move.
+                self._async_start_at = t + self.move_thread_start_s
             else:
                 self._busy = True
                 self._advance(t)

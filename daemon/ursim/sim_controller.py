@@ -29,7 +29,7 @@ from spadscan.protocol.errors import DeviceError
 LINK_MODES = ("close", "silent", "freeze")
 WATCHDOG_POLL_S = 0.005
 """How often the RTDE watchdog is checked (the real controller checks every control cycle, 2 ms)."""
-SETTINGS = ("speed_slider", "pose_noise_m", "stop_script_on_fault", "safety_floor_z", "reach_m")
+SETTINGS = ("speed_slider", "pose_noise_m", "stop_script_on_fault", "safety_floor_z", "reach_m", "move_thread_start_s")
 """What `configure` may change while the controller runs."""
 
 
@@ -152,7 +152,8 @@ class SimURController:
 
     def configure(self, **settings) -> None:
         """Change what makes the controller less than ideal (thread-safe): speed_slider (0 < f <= 1), pose_noise_m
-        (m), stop_script_on_fault (bool), safety_floor_z (m or None), reach_m (m)."""
+        (m), stop_script_on_fault (bool), safety_floor_z (m or None), reach_m (m), move_thread_start_s (s: how long
+        an asynchronous move takes to report itself running; one controller cycle by default)."""
         unknown = set(settings) - set(SETTINGS)
         if unknown:
             raise DeviceError(f"unknown controller settings {sorted(unknown)} (known: {', '.join(SETTINGS)})")
@@ -161,10 +162,10 @@ class SimURController:
                 self.model.set_speed_slider(float(settings.pop("speed_slider")))
             except ValueError as exc:
                 raise DeviceError(str(exc)) from None
-        for name in ("pose_noise_m", "reach_m"):
+        for name in ("pose_noise_m", "reach_m", "move_thread_start_s"):
             value = settings.get(name, 0.0)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise DeviceError(f"{name} must be a finite number >= 0 (m), got {value!r}")
+                raise DeviceError(f"{name} must be a finite number >= 0, got {value!r}")
         for name, value in settings.items():
             setattr(self.model, name, value)
 

@@ -20,7 +20,7 @@ import pytest
 
 from spadscan.daemon.arm.pose_convert import (matrix_to_rotvec, pose_to_vector, rotation_angle, rotvec_to_matrix,
                                               vector_to_pose)
-from spadscan.daemon.arm.rtde_child import answer
+from spadscan.daemon.arm.rtde_child import answer, ik_answered
 from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.ur import URArm, _Reading
 from spadscan.daemon.devices import ArmFault, LinkLost
@@ -488,6 +488,21 @@ def test_a_slowed_speed_slider_is_not_a_stuck_move(ur_real_time, arun):
     assert np.allclose(state.tcp_pose, pose(0.3, 0.1, 0.3, DOWN), atol=1e-6)
 
 
+def test_a_move_whose_thread_reports_running_late_is_waited_for_to_its_end(ur, arun):
+    """ur_rtde's control script answers an asynchronous moveL at once and reports the move running only when its
+    thread runs (here 0.3 s later): a long move (2 s, longer than timeout_s) is not taken for one already over."""
+    ur.configure(move_thread_start_s=0.3)
+
+    async def run():
+        async with connected_arm(ur.host, timeout_s=1.0) as arm:
+            await arm.move_to(pose(0.3, 0.0, 0.3, DOWN), 0.2, 2.0)
+            await arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.01, 2.0)  # 20 s of motion, 2 s at the sim's rate
+            return await arm.state()
+
+    state = arun(run())
+    assert np.allclose(state.tcp_pose, pose(0.3, 0.2, 0.3, DOWN), atol=1e-6)
+
+
 def test_moves_arrive_within_tolerance_of_a_noisy_actual_pose(ur, arun):
     """A real controller's actual pose scatters (here 0.2 mm per axis): moves arrive within the 1 mm tolerance, and
     the state reports the scattered actual pose, not the target."""
@@ -651,6 +666,15 @@ def test_rtde_child_answers_each_request_and_never_raises():
     assert answer(Fake(), json.dumps({"id": 4, "op": "read"})) == {
         "id": 4, "error": "RuntimeError", "message": "interfaces are not open"}
     assert answer(Fake(), json.dumps({"id": 5, "op": "stopL", "args": [1, 2, 3]}))["error"] == "TypeError"
+
+
+@pytest.mark.parametrize("polyscope, answers", [
+    ((5, 9), False), ((5, 10), True), ((5, 15), True),  # e-Series: ur_rtde's script lines marked $5.10
+    ((3, 14), False), ((3, 15), True), ((3, 16), True),  # CB-series: the same lines, marked |3.15
+    ((10, 1), True), ((4, 0), False), (None, False),  # 5 on read as the e-Series; an unknown one not asked
+])
+def test_the_inverse_kinematics_query_is_asked_where_the_control_script_answers_it(polyscope, answers):
+    assert ik_answered(polyscope) is answers
 
 
 def test_rtde_link_maps_errors_and_ends_the_process_on_a_timeout(arun):

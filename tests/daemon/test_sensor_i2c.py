@@ -236,6 +236,7 @@ def test_boot_download_configure_measure_bit_for_bit(arun, image):
     frames = arun(_run(sensor))
     assert fake.violations == []
     assert fake.app_running and bytes(fake.ram[:len(data)]) == data and fake.written.sum() == len(data)
+    assert fake.download_seed == 0x29  # DOWNLOAD_INIT went first, as ams' C host driver sends it
     assert fake.commands == EXPECTED_COMMANDS + [0xFF]  # ... and stop on release
     assert fake.config == {"period_ms": 250, "kilo_iterations": 4000, "spad_map": 1, "hist_dump": 1}
     assert fake.active_range == 0x6E and fake.int_enab == 0 and fake.closed  # stop disables its interrupts again
@@ -254,7 +255,9 @@ def test_download_frames_cover_the_image_in_chunks_of_128(image):
     path, data = image
     frames = download_frames(load_firmware(path))
     labels = [label for label, _ in frames]
-    assert labels[0] == "SET_ADDR 0x0000" and labels[-1] == "RAMREMAP" and len(labels) == 2 + 24  # ceil(3000/128)
+    assert labels[:2] == ["DOWNLOAD_INIT", "SET_ADDR 0x0000"] and labels[-1] == "RAMREMAP"
+    assert len(labels) == 3 + 24  # ceil(3000/128) W_RAM frames
+    assert frames[0][1][:3] == bytes([0x14, 1, 0x29])  # the seed ams' C host driver sends
     payload = b"".join(f[2:-1] for label, f in frames if label.startswith("W_RAM"))
     assert payload == data and max(f[1] for _, f in frames) == 128
     for _, f in frames:
