@@ -14,6 +14,8 @@ from spadscan import __version__
 from spadscan.cli import COMMANDS, _available, main, run_command
 from spadscan.protocol.errors import CaptureError, SpadscanError
 
+from process_helpers import reaped
+
 
 def test_help_lists_the_available_commands(capsys):
     assert main(["--help"]) == 0
@@ -178,11 +180,12 @@ def test_a_closed_output_pipe_ends_quietly():
             "    for i in range(200000):\n"
             "        print('line', i)\n"
             "sys.exit(run_command(lines, None))\n")
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    assert proc.stdout.readline() == b"line 0\n"
-    proc.stdout.close()
-    err = proc.stderr.read().decode()
-    assert proc.wait(timeout=120) == 141 and err == ""
+    with reaped(subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE)) as (proc,):
+        assert proc.stdout.readline() == b"line 0\n"
+        proc.stdout.close()
+        err = proc.stderr.read().decode()
+        assert proc.wait(timeout=120) == 141 and err == ""
 
 
 def test_version_into_a_closed_pipe_ends_quietly():
@@ -190,10 +193,10 @@ def test_version_into_a_closed_pipe_ends_quietly():
     code = "import sys; from spadscan.cli import main; sys.exit(main(['--version']))"
     read, write = os.pipe()
     os.close(read)  # the reader is gone before anything is written
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=write, stderr=subprocess.PIPE)
-    os.close(write)
-    err = proc.stderr.read().decode()
-    assert proc.wait(timeout=120) == 141 and err == "", err
+    with reaped(subprocess.Popen([sys.executable, "-c", code], stdout=write, stderr=subprocess.PIPE)) as (proc,):
+        os.close(write)
+        err = proc.stderr.read().decode()
+        assert proc.wait(timeout=120) == 141 and err == "", err
 
 
 def test_a_broken_pipe_elsewhere_is_still_an_error(capsys):

@@ -6,6 +6,8 @@ from __future__ import annotations
 import asyncio
 import errno
 import logging
+import re
+import threading
 import time
 from pathlib import Path
 
@@ -297,14 +299,17 @@ def test_a_fault_soon_after_the_daemon_stood_still_says_so(arun, tmp_path, spher
 
     status = arun(scenario())
     assert "protective stop" in status["reason"], status["reason"]
-    assert "; the daemon itself had not run for 1." in status["reason"] and status["daemon_stalls"]["count"] >= 1
+    stood = re.search(r"; the daemon itself had not run for ([\d.]+) s", status["reason"])
+    assert stood and float(stood[1]) >= 1.1, status["reason"]  # 1.2 s standing still, and what load adds to it
+    assert status["daemon_stalls"]["count"] >= 1
 
 
 @pytest.mark.parametrize("frame_time_s", [0.0, 0.05])
 def test_sensor_silence_pauses_and_resumes(arun, tmp_path, sphere, frame_time_s):
     """With frames that take time, the frame exposed while the arm moved is dropped at every pose: a silence after
     it is still a silence."""
-    cfg = make_cfg(tmp_path, views=8, frame_timeout_s=0.2)
+    # A timeout well beyond a frame's time, so that a busy machine's scheduling delay is no silence.
+    cfg = make_cfg(tmp_path, views=8, frame_timeout_s=1.0)
 
     async def scenario():
         arm, sensor = make_rig(cfg, sphere, motion_time_s=0.03, frame_time_s=frame_time_s)
@@ -313,17 +318,18 @@ def test_sensor_silence_pauses_and_resumes(arun, tmp_path, sphere, frame_time_s)
             try:
                 await runner.start("quiet")
                 await until(lambda: runner.job.next_pose >= 2, "two poses")
-                sensor.inject_silence(0.5)
+                quiet_until = time.monotonic() + 3.0
+                sensor.inject_silence(3.0)
                 await until(lambda: runner.state == "paused", "the pause")
                 paused = runner.status()
-                await asyncio.sleep(0.5)
+                await asyncio.sleep(max(0.0, quiet_until - time.monotonic()) + 0.1)  # the silence is over
                 await runner.resume()
                 return paused, await runner.wait("quiet")
             finally:
                 await runner.shutdown()
 
     paused, done = arun(scenario())
-    assert paused["reason"].startswith("sensor silent: sensor sim: no complete frame within 0.2 s (frame_timeout_s) "
+    assert paused["reason"].startswith("sensor silent: sensor sim: no complete frame within 1 s (frame_timeout_s) "
                                        "at pose "), paused["reason"]  # the configured timeout, not what was left of it
     # The reason and the counters agree: the sensor counted its silence, the daemon did not stall (the frames dropped
     # at each pose, begun while the arm moved, do not make a silence a backlog).
@@ -595,15 +601,16 @@ def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, 
     import spadscan.daemon.runner as runner_mod
     import spadscan.protocol.capture_writer as cw
 
-    monkeypatch.setattr(runner_mod, "PUBLISH_TIMEOUT_S", 1.0)  # a loaded machine's fsync stays well inside it
+    monkeypatch.setattr(runner_mod, "PUBLISH_TIMEOUT_S", 5.0)  # a loaded machine's fsync stays well inside it
     cfg = make_cfg(tmp_path, views=6)
     real = cw.save_npy_durable
     stall = {"once": False}
+    disk_back = threading.Event()
 
     def save(path, array):
         if stall["once"]:
             stall["once"] = False
-            time.sleep(3.0)  # a disk that stalls, then completes the write
+            disk_back.wait(120)  # a disk that stalls until the test has seen the pause, then completes the write
         real(path, array)
 
     monkeypatch.setattr(cw, "save_npy_durable", save)
@@ -618,13 +625,14 @@ def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, 
                 stall["once"] = True
                 await until(lambda: runner.state == "paused", "the pause")
                 reason = runner.status()["reason"]
+                disk_back.set()
                 await runner.resume()
                 return reason, await runner.wait("stall")
             finally:
                 await runner.shutdown()
 
     reason, done = arun(scenario())
-    assert "did not finish within 1 s" in reason and done["state"] == "complete"
+    assert "did not finish within 5 s" in reason and done["state"] == "complete"
     check_capture(tmp_path / "caps" / "stall", 6, 2)
 
 

@@ -21,9 +21,6 @@ from spadscan.daemon.scan_plan import tcp_from_sensor
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError, DeviceError
 
-pytest.importorskip("spadscan.daemon.arm.ur")
-pytest.importorskip("rtde_control")
-
 HAND_EYE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.045], [0, 0, 0, 1]]
 _hosts = itertools.count(1)
 

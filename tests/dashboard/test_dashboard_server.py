@@ -128,11 +128,8 @@ def test_five_hundred_scans_cost_one_read_each_once_and_nothing_after(tmp_path):
         assert len(status(server)["scans"]) == 500
         first_reads = dashboard.scans.reads
         assert first_reads <= 2 * 500  # each manifest and the last chunk's records, once
-        t0 = time.perf_counter()
         assert len(status(server)["scans"]) == 500
-        seconds = time.perf_counter() - t0
         assert dashboard.scans.reads == first_reads  # nothing changed, nothing read again
-    assert seconds < 1.0, f"a poll of 500 unchanged scans took {seconds:.2f} s"
 
 
 def test_a_live_mesh_gets_its_3d_view_made_on_demand(tmp_path):

@@ -55,7 +55,6 @@ _hosts = itertools.count(1)
 
 @pytest.fixture
 def ur_controller():
-    pytest.importorskip("rtde_control")
     from spadscan.daemon.ursim.remote import SimURProcess
     from spadscan.protocol.errors import DeviceError
 

@@ -290,8 +290,8 @@ def test_simulate_command(tmp_path, capsys):
 
 
 def test_simulate_builtin_scene(tmp_path):
-    scenes = pytest.importorskip("spadscan.protocol.scenes", reason="built-in scenes not available yet")
     from spadscan.cli import main
+    from spadscan.protocol import scenes
     from spadscan.protocol.capture_reader import CaptureReader
 
     name = sorted(scenes.BUILTIN_SCENES)[0]

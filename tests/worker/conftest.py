@@ -55,9 +55,10 @@ def table_capture(tmp_path_factory):
 @pytest.fixture
 def recon_stand_ins(monkeypatch):
     """Job child processes can import the stand-in reconstructions that live beside the tests (RECON strings like
-    'test_worker_process:options_recon'): this folder goes on their PYTHONPATH."""
+    'test_worker_process:options_recon'): this folder and the tests' own (the helpers those modules import) go on
+    their PYTHONPATH."""
     import os
     from pathlib import Path
 
     here = str(Path(__file__).resolve().parent)
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([here, os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([here, str(Path(here).parent), os.environ.get("PYTHONPATH", "")]))

@@ -22,6 +22,7 @@ from spadscan.worker.pool import Worker
 from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
+from process_helpers import reaped
 from test_watcher import make_scan
 from test_worker_process import RECON, markers_of, start_worker
 
@@ -48,8 +49,8 @@ def markers(tmp_path, monkeypatch):
 
 def killed_at(root: Path, markers: Path, step: str) -> None:
     """Run a worker process over `root` that kills itself at `step`; check that it did."""
-    worker = start_worker(root, markers, once=True, sleep_s=0, env={ENV: step})
-    out = worker.communicate(timeout=120)[0]
+    with reaped(start_worker(root, markers, once=True, sleep_s=0, env={ENV: step})) as (worker,):
+        out = worker.communicate(timeout=120)[0]
     assert worker.returncode == -signal.SIGKILL, f"the worker was not killed at {step}: {out}"
 
 
@@ -100,8 +101,8 @@ def test_a_worker_killed_at_any_step_of_publishing_loses_nothing(root, markers, 
 def test_a_worker_killed_while_publishing_what_a_dead_worker_left_loses_nothing(root, markers, arun, capsys, left,
                                                                                 step):
     killed_at(root, markers, left)
-    recovering = start_worker(root, markers, once=True, sleep_s=0, env={ENV: step})
-    out = recovering.communicate(timeout=120)[0]
+    with reaped(start_worker(root, markers, once=True, sleep_s=0, env={ENV: step})) as (recovering,):
+        out = recovering.communicate(timeout=120)[0]
     if left == "published" and step == "recovered-published":
         assert recovering.returncode == 0, out  # nothing to move: the result is already in place
     else:

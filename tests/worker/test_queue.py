@@ -17,6 +17,8 @@ from spadscan.worker.holder import Holder, holder_gone
 from spadscan.worker.jobs import Job, job_id_for
 from spadscan.worker.queue import Queue
 
+from process_helpers import reaped
+
 
 def _job(name: str, preset: str = "fast") -> Job:
     return Job(id=job_id_for(name, preset), scan=name, preset=preset)
@@ -68,9 +70,9 @@ def test_concurrent_claims_take_each_job_once(tmp_path):
     ids = [job_id_for(f"scan{i:03d}", "fast") for i in range(60)]
     for i in range(60):
         q.enqueue(_job(f"scan{i:03d}"))
-    procs = [subprocess.Popen([sys.executable, "-c", CLAIM_ALL, str(q.path)], stdout=subprocess.PIPE, text=True)
-             for _ in range(4)]
-    outs = [p.communicate(timeout=60)[0] for p in procs]
+    with reaped(*(subprocess.Popen([sys.executable, "-c", CLAIM_ALL, str(q.path)], stdout=subprocess.PIPE, text=True)
+                  for _ in range(4))) as procs:
+        outs = [p.communicate(timeout=60)[0] for p in procs]
     got = [j for out in outs for j in json.loads(out)]
     assert sorted(got) == sorted(ids), "every job claimed exactly once"
     assert q.counts()["done"] == 60

@@ -23,6 +23,7 @@ from spadscan.worker.pool import Worker
 from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
+from process_helpers import reaped
 from test_watcher import make_scan
 
 HERE = Path(__file__).resolve().parent
@@ -66,7 +67,7 @@ def start_worker(root: Path, markers: Path, *, once: bool, sleep_s: float, lease
                  host: str | None = None, env: dict[str, str] | None = None):
     """A worker process (2 job processes at once, stand-in reconstruction `marker_recon`); `env`: variables added
     to its environment."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]),
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), str(HERE.parent), os.environ.get("PYTHONPATH", "")]),
            "MARKERS": str(markers), "SLEEP_S": str(sleep_s), **(env or {})}
     args = [str(root), "once" if once else "serve", str(lease_s)] + ([host] if host else [])
     return subprocess.Popen([sys.executable, "-c", LAUNCH, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -106,8 +107,8 @@ def test_two_workers_run_each_job_exactly_once(tmp_path, markers):
     scans = [f"scan{i}" for i in range(6)]
     for s in scans:
         make_scan(root, s)
-    workers = [start_worker(root, markers, once=True, sleep_s=0.3) for _ in range(2)]
-    logs = [w.communicate(timeout=120)[0] for w in workers]
+    with reaped(*(start_worker(root, markers, once=True, sleep_s=0.3) for _ in range(2))) as workers:
+        logs = [w.communicate(timeout=120)[0] for w in workers]
     assert [w.returncode for w in workers] == [0, 0], logs
     for s in scans:
         assert len(markers_of(markers, s, "start")) == 1, f"{s} started more than once"
@@ -134,8 +135,8 @@ def test_a_killed_workers_job_is_retried_by_another(tmp_path, markers, where):
         wait_for(lambda: not pid_alive(orphan), 30)  # its job process notices and exits
         killed = time.monotonic()
         host = "elsewhere" if where == "another machine" else None
-        second = start_worker(root, markers, once=True, sleep_s=0.1, lease_s=2.0, host=host)
-        log = second.communicate(timeout=120)[0]
+        with reaped(start_worker(root, markers, once=True, sleep_s=0.1, lease_s=2.0, host=host)) as (second,):
+            log = second.communicate(timeout=120)[0]
         waited = time.monotonic() - killed
         assert second.returncode == 0, log
     finally:
@@ -488,7 +489,7 @@ def test_a_job_whose_worker_is_already_gone_exits_at_once(tmp_path, markers):
     root = tmp_path / "captures"
     root.mkdir()
     make_scan(root, "s")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]),
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), str(HERE.parent), os.environ.get("PYTHONPATH", "")]),
            "MARKERS": str(markers)}
     outcome = tmp_path / "outcome.json"
 

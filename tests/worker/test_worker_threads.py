@@ -34,7 +34,7 @@ def run_jobs(tmp_path, monkeypatch, arun, **config) -> tuple[list[dict], list[st
     root.mkdir()
     for name in ("a", "b"):
         make_scan(root, name)
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE), str(HERE.parent), os.environ.get("PYTHONPATH", "")]))
     lines: list[str] = []
     worker = Worker(WorkerConfig(root=root, once=True, poll_s=0.1, recon="test_worker_threads:threads_recon",
                                  **config), log=lines.append)
