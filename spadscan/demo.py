@@ -437,6 +437,11 @@ class ReconProgress:
     def __call__(self, progress) -> None:
         if progress is None:
             return
+        if progress.total > 0 and getattr(self.bar, "total", progress.total) != progress.total:
+            # The job's own total: its training budget, which the set-up and the end leave less than the demo's.
+            self.bar.total = progress.total
+            if hasattr(self.bar, "refresh"):
+                self.bar.refresh()
         done = min(progress.done, progress.total)
         self.bar.update(max(0.0, done - self.shown))
         self.shown = max(self.shown, done)
@@ -446,7 +451,7 @@ class ReconProgress:
         if "loss" in progress.fields:
             fields.append(f"loss {progress.fields['loss']}")
         if progress.chamfer_mm is not None:
-            fields.append(f"Chamfer {progress.chamfer_mm:.2f} mm")
+            fields.append(f"checkpoint Chamfer {progress.chamfer_mm:.2f} mm")  # a coarse mesh's: not the result's
         if fields and hasattr(self.bar, "set_postfix_str"):
             self.bar.set_postfix_str(", ".join(fields))
 

@@ -16,8 +16,8 @@ from spadscan.demo import ReconProgress, running_job_progress
 class Bar:
     """What the demo's tqdm bar is told."""
 
-    def __init__(self):
-        self.n, self.postfix, self.desc = 0.0, "", ""
+    def __init__(self, total=120.0):
+        self.n, self.postfix, self.desc, self.total = 0.0, "", "", total
 
     def update(self, n):
         self.n += n
@@ -34,11 +34,11 @@ def test_the_progress_line_shows_seconds_loss_and_chamfer_then_what_follows_trai
     show = ReconProgress(bar)
     show(None)  # no job running yet
     show(parse_progress("reconstruct (fast):  20%|##   | 12/60 s [00:12<00:48, loss=3.1]"))
-    assert (bar.n, bar.postfix) == (12, "loss 3.1")
+    assert (bar.n, bar.postfix, bar.total) == (12, "loss 3.1", 60), "the job's own training total, not the budget"
     show(parse_progress("reconstruct (fast):  50%|#####| 30/60 s [00:30<00:30, step=800, loss=2.2, chamfer=3.40mm]"))
-    assert (bar.n, bar.postfix, bar.desc) == (30, "step 800, loss 2.2, Chamfer 3.40 mm", "")
+    assert (bar.n, bar.postfix, bar.desc) == (30, "step 800, loss 2.2, checkpoint Chamfer 3.40 mm", "")
     show(parse_progress("reconstruct (fast): 100%|#####| 60/60 s [01:00<00:00, loss=1.9, chamfer=2.10mm]"))
-    assert bar.n == 60 and bar.desc == ReconProgress.AFTER
+    assert bar.n == bar.total == 60 and bar.desc == ReconProgress.AFTER
 
 
 def test_the_running_jobs_progress_is_found_through_the_queue(tmp_path):

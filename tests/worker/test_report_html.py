@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from spadscan.worker import end_of_run
 from spadscan.worker.report.report_html import (REPORT_HTML, format_value, render_html, says_unconverged,
                                                 write_report_html)
 
@@ -177,7 +178,11 @@ def test_a_run_that_did_not_converge_says_so_unless_it_polished_a_live_fit(folde
     assert "did not converge" in render_html(budgeted, folder), "a full run after a short scan is judged as any"
     # The demo's summary carries the same fields (its "live" None for an offline run) and says it by the same rule.
     assert says_unconverged({"converged": False, "warnings": [], "live": None})
-    assert not says_unconverged({"converged": False, "warnings": ["stopped early"], "live": None})
+    early = end_of_run.warnings(end_of_run.RunFacts(stopped_by="budget", steps=3, model_converged=False,
+                                                    data_terms=[]))
+    assert len(early) == 1 and not says_unconverged({"converged": False, "warnings": early, "live": None}), early
+    assert says_unconverged({"converged": False, "warnings": ["the mesh is in 2 pieces"], "live": None}), \
+        "a warning about something else does not say the run did not converge"
     assert not says_unconverged({"converged": False, "warnings": [], "live": {"final_steps": 42}})
     assert not says_unconverged({"converged": True, "warnings": [], "live": None})
 

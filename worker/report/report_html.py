@@ -97,13 +97,19 @@ def is_baseline(report: dict) -> bool:
     return "method" in report and "preset" not in report
 
 
+CONVERGENCE_WARNINGS = ("the run stopped on its ",)
+"""How the end-of-run checks' lines that say why a run did not converge begin (`end_of_run.warnings`: stopped on its
+budget or step count early, or with its data term still falling)."""
+
+
 def says_unconverged(report: dict) -> bool:
-    """Whether a run's result should say that it did not converge, nothing else having said why it may be doubtful:
-    "converged" is false, it has no warning of its own, and it is not a live job's final polish of a step count (a
-    few dozen steps, too few for the plateau test: whether its data term still fell is one of its own warnings).
-    `report`: report.json's fields, or the demo's summary of them ("converged", "warnings", "live")."""
+    """Whether a run's result should say that it did not converge, nothing else having said so: "converged" is false,
+    none of its warnings is about its convergence (a warning about its pieces or its metrics says nothing of it), and
+    it is not a live job's final polish of a step count (a few dozen steps, too few for the plateau test: whether its
+    data term still fell is one of its own warnings). `report`: report.json's fields, or the demo's summary of them
+    ("converged", "warnings", "live")."""
     own = report.get("warnings")
-    warned = isinstance(own, list) and any(str(w).strip() for w in own)
+    warned = isinstance(own, list) and any(str(w).startswith(CONVERGENCE_WARNINGS) for w in own)
     live = report.get("live")
     polish = isinstance(live, dict) and live.get("final_steps") is not None
     return report.get("converged") is False and not warned and not polish
