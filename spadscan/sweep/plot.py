@@ -92,8 +92,10 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
         ax.set_yscale("log")
         ax.yaxis.set_major_formatter(plain)
         low, high = ax.get_ylim()
-        # Under a decade the major ticks alone say too little: label the minor ones too.
-        ax.yaxis.set_minor_formatter(plain if high / low < 10 else NullFormatter())
+        # Where fewer than two powers of ten fall inside the limits (under a decade, or a little over one that
+        # straddles a power), the major ticks alone say too little: label the minor ones too.
+        powers = math.floor(math.log10(high)) - math.ceil(math.log10(low)) + 1
+        ax.yaxis.set_minor_formatter(plain if powers < 2 else NullFormatter())
     if PARAMS.get(axis) is not None and PARAMS[axis].log and values and min(values) > 0:
         ax.set_xscale("log")
     elif values and min(values) == 0 and max(values) > 0:

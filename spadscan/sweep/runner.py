@@ -101,9 +101,14 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
     try:
         todo = [t for t in plan.points.values() if (store.read_point(t.id) or {}).get("status") != "done"]
         summary = Summary(len(plan.points), len(plan.points) - len(todo))
-        if todo:
-            _run_on_dask(plan, todo, store, summary, _client(scheduler, workers, device, log),
-                         lambda task: (point, task, str(store.path.resolve()), device, keep), device, progress)
+        try:
+            if todo:
+                _run_on_dask(plan, todo, store, summary, _client(scheduler, workers, device, log),
+                             lambda task: (point, task, str(store.path.resolve()), device, keep), device, progress)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                store.write_results(plan)  # an interrupt or a failure: what finished is gathered all the same
+            raise
         summary.rows = store.write_results(plan)
         return summary
     finally:

@@ -4,6 +4,7 @@ re-run runs only the failed point. The embedded LocalCluster path runs the same 
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import time
@@ -141,6 +142,9 @@ def test_local_cluster_stops_cleanly_and_resumes_where_it_stopped(tiny_sweep, tm
                                                   if (out / "points" / f"{p}.json").exists() else "{}").get("status")
             == "done"}
     assert {e["point"] for e in events if e["event"] == "done"} <= done and done
+    with open(out / "results.csv", newline="") as f:  # gathered on the way out, not only at a sweep's end
+        gathered = {row["point"] for row in csv.DictReader(f)}
+    assert {e["point"] for e in events if e["event"] == "done"} <= gathered, gathered
 
     resumed = spadscan("sweep", str(tiny_sweep), "--out", str(out), "--workers", "2", "--no-progress")
     assert resumed.returncode == 0, resumed.stderr

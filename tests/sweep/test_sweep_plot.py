@@ -62,3 +62,28 @@ def test_the_page_shows_in_a_browser(finished_sweep):
         assert page.locator("td.failed").count() == 1
     assert not seen.errors, seen.errors
     assert all(url.startswith("file://") for url in seen.requests), seen.requests  # nothing from the network
+
+
+@pytest.mark.parametrize("low, high", [(5.2, 46.0), (12.0, 30.0), (0.8, 150.0)])
+def test_a_panels_chamfer_axis_carries_at_least_two_labelled_values(tmp_path, low, high):
+    """5.2-46 mm straddles one power of ten: its only major label is 10, so the minor ticks are labelled too."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from spadscan.sweep.plot import _panel
+    from spadscan.sweep.results import SweepResults
+
+    rows = [{"scene": "s", "axis": "views", "views": str(v), "fast_status": "done", "fast_chamfer_mm": str(c)}
+            for v, c in ((8, high), (16, (low * high) ** 0.5), (32, low))]
+    results = SweepResults(folder=tmp_path, mode="one-at-a-time", grid={"views": [8, 16, 32]}, base={"views": 16},
+                           scenes=["s"], methods=["fast"], presets=["fast"], rows=rows)
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    _panel(ax, results, rows, "views", 0)
+    fig.canvas.draw()
+    bottom, top = ax.get_ylim()
+    ticks = [*zip(ax.yaxis.get_majorticklocs(), ax.yaxis.get_majorticklabels()),
+             *zip(ax.yaxis.get_minorticklocs(), ax.yaxis.get_minorticklabels())]
+    labelled = {round(v, 6) for v, label in ticks if bottom <= v <= top and label.get_text()}
+    assert len(labelled) >= 2, (bottom, top, sorted(labelled))
