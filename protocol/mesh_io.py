@@ -43,11 +43,15 @@ def load_mesh(path, *, units: str = "auto"):
     verts = np.asarray(loaded.vertices, dtype=np.float64)
     if not np.all(np.isfinite(verts)):
         raise MeshError(f"{path}: has non-finite vertex coordinates")
+    faces = np.asarray(loaded.faces)
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise MeshError(f"{path}: a face names vertex {int(faces.max() if faces.max() >= len(verts) else faces.min())}"
+                        f" of {len(verts)} (damaged or truncated)")
     scale = 1.0
     if units == "mm" or (units == "auto" and path.suffix.lower() in UNITLESS_SUFFIXES
                          and np.ptp(verts, axis=0).max() > MM_EXTENT_THRESHOLD_M):
         scale = 1e-3
-    mesh = trimesh.Trimesh(verts * scale, np.asarray(loaded.faces), process=True)
+    mesh = trimesh.Trimesh(verts * scale, faces, process=True)
     if len(mesh.faces) == 0 or not mesh.area > 0:
         raise MeshError(f"{path}: all triangles are degenerate (zero area)")
     # Which unit the file was read in, so that a caller can say so: a silent x1000 is a surprise otherwise.

@@ -168,9 +168,23 @@ class Pulse:
             # Trapezoidal weights (half weight at zero delay): a left-point sum would put the pulse early by step/2.
             tail = np.exp(-np.arange(0, int(math.ceil(12 * tau / step)) + 1) * step / tau)
             tail[0] *= 0.5
-            g = np.convolve(g, tail)[: t.size]
+            g = _convolve(g, tail)[: t.size]
         k = g.reshape(-1, fine).mean(axis=1)
         return k / k.sum(), before
+
+
+DIRECT_CONVOLVE_MAX = 10_000_000
+"""Products of the two lengths up to which `_convolve` sums directly (exact); beyond it, by FFT."""
+
+
+def _convolve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The full discrete convolution of `a` and `b`: directly while that is cheap, else through the FFT (a long
+    exponential tail, tau of hundreds of bins, made the direct sum take minutes), its rounding noise clipped at 0."""
+    if a.size * b.size <= DIRECT_CONVOLVE_MAX:
+        return np.convolve(a, b)
+    n = a.size + b.size - 1
+    size = 1 << (n - 1).bit_length()
+    return np.maximum(np.fft.irfft(np.fft.rfft(a, size) * np.fft.rfft(b, size), size)[:n], 0.0)
 
 
 @dataclass(frozen=True)

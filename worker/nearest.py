@@ -20,6 +20,8 @@ LEAF = 64
 BLOCKS_PER_CHUNK = 16
 """Query blocks searched together by the far-query search: bounds its memory."""
 _TOL = 1e-9
+CROWDED_PATCHES = 256
+"""A query block whose candidate patches exceed this many goes to a KD-tree of the samples (`_far_nearest`)."""
 
 
 def nearest_samples(queries: np.ndarray, data: np.ndarray, *,
@@ -165,11 +167,21 @@ def _far_nearest(queries: np.ndarray, data: np.ndarray,
         best_d[blocks[s:s + 256]] = np.take_along_axis(dd, k[..., None], 2)[..., 0]
         best_i[blocks[s:s + 256]] = patches[first[s:s + 256, None], k]
     bound = best_d[blocks].max(1) * (1 + _TOL)
+    # A block that may be nearest to most patches (samples far smaller than their distance to the queries: a
+    # fragment of a mesh far from its ground truth) would pair with all of them, quadratic in the samples: those
+    # blocks ask a KD-tree of the samples instead, which prunes there.
+    r_block = np.sqrt(np.einsum("bki,bki->bk", bq - bc[:, None], bq - bc[:, None]).max(1))
+    reach = tree.query_ball_point(bc, bound + r_block + float(pb["radius"].max()), return_length=True, workers=-1)
+    crowded = reach > CROWDED_PATCHES
+    if crowded.any():
+        q = blocks[crowded].ravel()
+        best_d[q], best_i[q] = kd_tree(data).query(queries[q], workers=-1)
     # Blocks a chunk at a time: a far query keeps every patch within a patch's size of its nearest sample as a
     # candidate, tens of millions of pairs in all at 300,000 samples (GBs if made at once).
-    for s in range(0, len(blocks), BLOCKS_PER_CHUNK):
-        _search_blocks(np.arange(s, min(s + BLOCKS_PER_CHUNK, len(blocks))), queries, blocks, bound, first, tree,
-                       pp, patches, pb, best_d, best_i)
+    rest = np.flatnonzero(~crowded)
+    for s in range(0, len(rest), BLOCKS_PER_CHUNK):
+        _search_blocks(rest[s:s + BLOCKS_PER_CHUNK], queries, blocks, bound, first, tree, pp, patches, pb, best_d,
+                       best_i)
     return best_d, best_i
 
 

@@ -124,3 +124,14 @@ def test_a_mesh_file_that_cannot_be_opened_says_why_not_that_it_is_damaged(tmp_p
     with pytest.raises(MeshError) as err:
         load_mesh(path)
     assert str(err.value) == f"{path}: cannot be read (Permission denied)"
+
+
+@pytest.mark.parametrize("face, named", [("3 0 1 7", "vertex 7 of 3"), ("3 0 1 -1", "vertex -1 of 3")])
+def test_a_face_naming_a_vertex_the_file_does_not_hold_is_refused(tmp_path, face, named):
+    path = tmp_path / "bad.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    f"0 0 0\n0.1 0 0\n0 0.1 0\n{face}\n")
+    with pytest.raises(MeshError) as err:
+        load_mesh(path)
+    assert str(err.value) == f"{path}: a face names {named} (damaged or truncated)"

@@ -274,6 +274,26 @@ def test_a_sample_index_answers_queries_in_parts_as_at_once():
         np.testing.assert_array_equal(np.concatenate([p[k] for p in parts]), whole[k])
 
 
+def test_a_small_fragment_far_from_the_truth_gets_exact_distances_from_both_sides():
+    """Samples far smaller than their distance to the queries (a 1 mm fragment 25 cm from the ground truth): every
+    patch is a candidate for every query block, which the KD-tree of the samples answers instead; both directions
+    exact against a plain search."""
+    from scipy.spatial import cKDTree
+
+    from spadscan.worker.nearest import CROWDED_PATCHES, LEAF, nearest_samples
+
+    rng = np.random.default_rng(4)
+    fragment = trimesh.Trimesh([[0.3, 0, 0.1], [0.301, 0, 0.1], [0.3, 0.001, 0.1]], [[0, 1, 2]], process=False)
+    f, _ = sample_surface(fragment, 40_000, rng)
+    g, _ = sample_surface(ball(0.05), 40_000, rng)
+    assert len(f) // LEAF > CROWDED_PATCHES, "enough patches for a query block to be crowded by them"
+    for q, d in ((g, f), (f, g)):
+        dist, idx = nearest_samples(q, d)
+        want, _ = cKDTree(d).query(q)
+        np.testing.assert_allclose(dist, want, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(q - d[idx], axis=1), want, rtol=0, atol=1e-12)
+
+
 class StepClock:
     """A clock that only the measured samples move: `per_query` seconds for each query answered."""
 
