@@ -317,6 +317,25 @@ def test_a_bad_capture_leaves_no_folder_behind(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_a_capture_whose_histograms_hold_no_return_is_refused_not_fitted(tmp_path, capsys):
+    """Background alone in every histogram (here every return arrives before the first bin: a wrong range offset):
+    both presets refuse in one line, as the baselines do, rather than shape a mesh out of noise."""
+    from spadscan.protocol.scenes import builtin_scene
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import simulate_capture
+
+    sensor = sensor_preset("lcspc-sim").with_(zero_bin=-1000.0)
+    simulate_capture(builtin_scene("sphere"), sensor, fibonacci_hemisphere(8, 0.5, (0, 0, 0.1)), tmp_path / "dark",
+                     scene={"builtin": "sphere"}, progress=False)
+    for preset in ("fast", "paper"):
+        assert main(["reconstruct", str(tmp_path / "dark"), "--out", str(tmp_path / preset), "--preset", preset,
+                     "--steps", "5", "--no-gt", "--no-progress"]) == 1
+        (line,) = _error_lines(capsys)
+        assert "no histogram holds a return above the noise" in line and "nothing to reconstruct" in line
+        assert not (tmp_path / preset).exists()
+
+
 def test_an_unfinished_capture_is_reconstructed_with_a_warning(capture_and_gt, tmp_path, capsys):
     import shutil
 
