@@ -19,13 +19,14 @@ import torch
 
 import spadscan
 from spadscan.protocol.capture_reader import check_capture_counts
-from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.errors import CaptureError, SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
                      PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
                      metric_points_within, training_budget)
+from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
@@ -113,6 +114,7 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
     scene = load_scene(Path(capture), device, dtype)
+    check_returns(capture, scene)
     state_note = capture_state_note(capture, scene.state, scene.n_views)
     if state_note:
         log(f"warning: {state_note}")
@@ -123,6 +125,16 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
     model = (make or make_model)(scene, config, device, plan)
     return Run(config, scene, model, plan, device, state_note, time.perf_counter() - t0)
+
+
+def check_returns(capture, scene) -> None:
+    """Refuse (one CaptureError line) a capture in which no histogram holds a return above the noise, by the
+    baselines' own test: a fit would shape a surface out of background alone and exit as if it had worked."""
+    counts = scene.counts.detach().cpu().numpy().astype(np.float64)
+    if not detected_returns(counts, scene.sensor, DEFAULT_THRESHOLD).detected.any():
+        raise CaptureError(f"{capture}: no histogram holds a return above the noise ({DEFAULT_THRESHOLD:g} standard "
+                           f"deviations of its matched-filtered background): nothing to reconstruct (the object out "
+                           f"of range or out of every view, or the sensor's settings wrong)")
 
 
 def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budget_s: float | None = None,

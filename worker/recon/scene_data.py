@@ -28,7 +28,6 @@ from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..capture_kind import is_measured
-from ..carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from ..pulse import pulse_kernel
 from ..table_height import TablePlane, named_table
 
@@ -113,11 +112,6 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     saturated = np.zeros(counts.shape, bool)
     np.logical_or.at(saturated, views.group, data.hists >= sensor.max_count)
     poses = data.poses[views.first]
-    if not detected_returns(counts, sensor, DEFAULT_THRESHOLD).detected.any():
-        # The baselines refuse such a capture too: a fit would shape a surface out of background alone.
-        raise CaptureError(f"{capture}: no histogram holds a return above the noise ({DEFAULT_THRESHOLD:g} standard "
-                           f"deviations of its matched-filtered background): nothing to reconstruct (the object out "
-                           f"of range or out of every view, or the sensor's settings wrong)")
     valid = ~saturated
     if sensor.ignore_bins:
         valid[..., list(sensor.ignore_bins)] = False
