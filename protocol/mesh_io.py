@@ -44,9 +44,9 @@ def load_mesh(path, *, units: str = "auto"):
     if not np.all(np.isfinite(verts)):
         raise MeshError(f"{path}: has non-finite vertex coordinates")
     faces = np.asarray(loaded.faces)
-    if faces.min() < 0 or faces.max() >= len(verts):
-        raise MeshError(f"{path}: a face names vertex {int(faces.max() if faces.max() >= len(verts) else faces.min())}"
-                        f" of {len(verts)} (damaged or truncated)")
+    missing = faces[(faces < 0) | (faces >= len(verts))]
+    if missing.size:
+        raise MeshError(f"{path}: a face names vertex {int(missing[0])} of {len(verts)} (damaged or truncated)")
     scale = 1.0
     if units == "mm" or (units == "auto" and path.suffix.lower() in UNITLESS_SUFFIXES
                          and np.ptp(verts, axis=0).max() > MM_EXTENT_THRESHOLD_M):

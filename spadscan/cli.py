@@ -72,8 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     return run_command(module.run, args)
 
 
-_NUMBER = r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
-NEGATIVE_LIST = re.compile(rf"-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,{_NUMBER})+")
+_UNSIGNED = r"(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+NEGATIVE_LIST = re.compile(rf"-{_UNSIGNED}(,[-+]?{_UNSIGNED})+")
 """A comma-separated list of numbers whose first is negative (`--target -0.1,0,0.1`)."""
 
 

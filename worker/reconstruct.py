@@ -242,11 +242,6 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
         t_metrics = clock()
         scored = truth.scored(mesh)  # cut once for the metrics and the normals picture
         points = metric_points_within(costs, config.metrics_points, run_clock.left() - costs.fixed_s)
-        fewer = None
-        if points < config.metrics_points:
-            fewer = (f"the time budget was short: the metrics used {points:,} points per mesh, not "
-                     f"{config.metrics_points:,} (a coarser estimate)")
-            notes.append(fewer)
         log(f"metrics against the ground truth ({points:,} points per mesh)")
         if truth.note():
             log(f"scoring {truth.note()}")
@@ -258,12 +253,13 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
         # their time can fall short by seconds on a poor mesh, the deadline cannot.
         deadline = None if budget_s is None else clock() + run_clock.left() - NORMALS_PICTURE_S
         scores = mesh_metrics(scored, truth.mesh, n_points=points, seed=int(seed), deadline=deadline, clock=clock)
-        if scores.queries < points:  # one line for both cuts: the second says what the first did
-            if fewer is not None:
-                notes.remove(fewer)
+        if scores.queries < points:  # one line for both cuts: this one says what the first did
             asked = f", {config.metrics_points:,} asked" if points < config.metrics_points else ""
             notes.append(f"the time budget was short: the metrics measured {scores.queries:,} of the {points:,} "
                          f"points per mesh{asked} (a coarser estimate)")
+        elif points < config.metrics_points:
+            notes.append(f"the time budget was short: the metrics used {points:,} points per mesh, not "
+                         f"{config.metrics_points:,} (a coarser estimate)")
         report.update(scores.to_dict())
         report["chamfer_scoring"] = final_scoring(config, resolution, points)
         pictures.normals_png(scored, vertex_err, out / "normals.png")

@@ -11,8 +11,9 @@ the chip the same way):
    the last download) -> stop it (0xFF) in case a previous session left it measuring; anything else is an error.
 3. Download: bootloader frames written to 0x08 with `i2c_rdwr` (up to 131 bytes, beyond SMBus's 32): DOWNLOAD_INIT
    0x14 with seed 0x29 (ams' C host driver sends it for its encrypted images; its Python driver does not, and the
-   bootloader takes either), SET_ADDR, then W_RAM chunks of <= 128 bytes. After each, the bootloader status `[status, size, checksum]` at 0x08 is polled
-   while status >= 0x10 (busy: the register echoes the command it runs, 0x43, 0x41, ...) and must then read 0x00.
+   bootloader takes either), SET_ADDR, then W_RAM chunks of <= 128 bytes. After each, the bootloader status
+   `[status, size, checksum]` at 0x08 is polled while status >= 0x10 (busy: the register echoes the command it runs,
+   0x43, 0x41, ...) and must then read 0x00.
    RAMREMAP is not answered (the CPU restarts into the application): wait SETTLE_S, then poll APP_ID until 0x03.
 4. Accuracy mode: ACTIVE_RANGE 0x19 reads 0x6E (short-range high accuracy), 0x6F (long range, the default) or 0x00
    (this firmware has no accuracy modes). On 0x6F CMD_STAT 0x08 <- 0x6E. A firmware that cannot switch is not an

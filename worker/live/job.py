@@ -294,9 +294,9 @@ class LiveRun:
         quiet_s = now - self.last_news
         if self.quiet_note is None and quiet_s >= self.settings.quiet_note_s:
             self.quiet_note = (f"the scan has published nothing for {quiet_s / 60:.0f} min (its daemon paused or "
-                               f"stopped?); still following it: `spadscan ctl status` says whether it is paused; a scan "
-                               f"no daemon will resume ends this job when its folder is moved out of the captures "
-                               f"root")
+                               f"stopped?); still following it: `spadscan ctl status` says whether it is paused; a "
+                               f"scan no daemon will resume ends this job when its folder is moved out of the "
+                               f"captures root")
             self.log(f"live: {self.quiet_note}")
             self.publish(progress, force=True)
 
