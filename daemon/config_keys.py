@@ -96,6 +96,7 @@ def coerce(value, spec: Key, where: str, base: Path | None):
         raise ConfigError(f"{where} = {value!r} must be {what}{_unit(spec)}")
     if k == "mat4":
         _check_rigid(arr, where)
+        arr[:3, :3] = nearest_rotation(arr[:3, :3])
     return arr
 
 
@@ -121,6 +122,14 @@ def _check_range(v, spec: Key, where: str) -> None:
 def _bound(v: float, spec: Key) -> str:
     """A range bound as the user types it: an integer key's in full (9223372036854775807, not 9.22337e+18)."""
     return str(int(v)) if spec.kind in ("int", "ints") else f"{v:g}"
+
+
+def nearest_rotation(r: np.ndarray) -> np.ndarray:
+    """The rotation nearest to r (3, 3) (its polar factor). A transform typed with four decimals is rigid to 1e-4,
+    which the config accepts, but the arm's pose conversion refuses rotations off by more than 1e-6: every target
+    planned through it would be refused."""
+    u, _, vt = np.linalg.svd(r)
+    return u @ vt
 
 
 def _check_rigid(m: np.ndarray, where: str) -> None:

@@ -250,6 +250,7 @@ def _rms_mm(r: np.ndarray, model: SensorModel) -> float:
 
 
 def hand_eye_toml(x: np.ndarray) -> str:
-    """X as the [arm] hand_eye line of a rig config (metres)."""
-    rows = ",\n            ".join("[" + ", ".join(f"{v:.6f}" for v in row) + "]" for row in x)
+    """X as the [arm] hand_eye line of a rig config (metres), to 1e-9: the arm's pose conversion wants rotations
+    orthonormal to 1e-6 (the config's reader also projects what it is given onto the nearest rotation)."""
+    rows = ",\n            ".join("[" + ", ".join(f"{v:.9f}" for v in row) + "]" for row in x)
     return f"hand_eye = [{rows}]"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -9,7 +10,9 @@ import numpy as np
 import pytest
 
 from spadscan.cli import main
+from spadscan.daemon.arm.pose_convert import pose_to_vector
 from spadscan.daemon.config import ScanConfig, config_from_dict, load_config, scan_request, scan_with
+from spadscan.daemon.scan_plan import generate_sensor_poses, tcp_from_sensor
 from spadscan.protocol.errors import ConfigError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -252,3 +255,15 @@ def test_examples_copy_runs_check(tmp_path):
 def test_config_from_dict_rejects_non_table_section(tmp_path):
     with pytest.raises(ConfigError, match=r"\[arm\] must be a table"):
         config_from_dict({"arm": 3}, tmp_path / "rig.toml")
+
+
+def test_a_hand_eye_typed_to_four_decimals_plans_targets_the_arm_accepts(tmp_path):
+    """A 30-degree turn typed from a drawing (cos 30 = 0.8660) is rigid to 1e-4, which the config accepts; the arm's
+    pose conversion wants rotations orthonormal to 1e-6, so the reader projects it onto the nearest rotation."""
+    typed = "[[0.8660, -0.5, 0, 0], [0.5, 0.8660, 0, 0], [0, 0, 1, 0.045], [0, 0, 0, 1]]"
+    cfg = load_config(write(tmp_path, SIM.replace("[arm]\n", f"[arm]\nhand_eye = {typed}\n")))
+    x = cfg.arm.hand_eye
+    assert np.abs(x[:3, :3].T @ x[:3, :3] - np.eye(3)).max() < 1e-12
+    assert np.abs(x - np.array(json.loads(typed))).max() < 1e-4  # the nearest rotation: the typed one, to its digits
+    for pose in tcp_from_sensor(generate_sensor_poses(cfg.scan), x):
+        pose_to_vector(pose)  # raises DeviceError for a rotation off by more than 1e-6
