@@ -6,8 +6,11 @@ stored sensor pose times the inverse of the stored X). With the right X the sens
 puts it. The fit moves X until, for every view and zone, the *observed* return's position (a windowed centroid
 around the histogram's peak, in bins) matches the *predicted* one: the same estimator applied to the histogram the
 simulator expects for that zone (`protocol.simulator`: the zone's rays, the pulse, gains, crosstalk, pile-up), so
-the estimator's own biases cancel. Levenberg-Marquardt over six parameters (a rotation vector and a translation,
-applied to X on the flange side), optionally a seventh: a shift of the sensor model's zero bin.
+the estimator's own biases cancel. Levenberg-Marquardt over six parameters (a rotation vector applied on the sensor's
+side of X's rotation, a translation in the flange frame), optionally a seventh: a shift of the sensor model's zero
+bin; before it, the start is moved along the sensor's axis to the returns' median range (a start centimetres off along
+it leaves the fit no way back). After it, X's uncertainty (sigma^2 (J^T J)^-1); views that leave part of X
+undetermined are refused rather than fitted.
 
 A plane constrains X well when the views tilt the tool in different directions (rotations about several axes carry
 X's translation across the plane's normal); residuals of a few millimetres remain on real data (the peak's sub-bin
@@ -38,10 +41,26 @@ MIN_SNR = 6.0
 """A zone's return counts when its peak stands this many Poisson sigmas above the histogram's median."""
 MIN_SIGNAL_COUNTS = 1.0
 """A zone is expected to see the target when the target's signal adds at least this many counts to its histogram."""
+LOST_ZONE_BINS = 2 * WINDOW_BINS + 1
+"""The residual (bins) of a zone whose predicted return left the target or its window: more than any seen zone's
+(both positions lie within the same window of 2 * WINDOW_BINS + 1 bins)."""
 RAYS_PER_ZONE = 64
 """Rays per zone of the predicted histograms (a fixed, deterministic set: the fit sees a smooth function)."""
 PLANE_HALF_SIZE_M = 3.0
 """Half the side of the square that stands for an infinite plane."""
+SIGMA_FLOOR_BINS = 0.1
+"""The least scatter of a return's position (bins) the uncertainty assumes: a simulated capture's residuals are
+far below real ones (0.1-0.3 bins), and a fit to noise-free data is no more certain than the sensor."""
+UNDETERMINED_MM = 10.0
+UNDETERMINED_DEG = 5.0
+"""A fit is refused when, for returns scattered by SIGMA_FLOOR_BINS, one standard deviation of X's translation along
+a flange axis or of its rotation about one exceeds these: the views leave that part of X to the optimiser's drift
+(views all turned about one axis, rings without jitter, too few views: tens of millimetres to metres); views tilted
+5-30 degrees every way give about 1 mm and 0.6 degrees."""
+UNCERTAIN_MM = 5.0
+UNCERTAIN_DEG = 2.0
+"""Above these (one standard deviation, for the fit's own scatter) `calibrate` warns: the recipe in the docs gives
+about 2.5 mm and 0.7 degrees for returns scattered by SIGMA_FLOOR_BINS."""
 
 
 @dataclass(frozen=True)
@@ -111,6 +130,17 @@ class HandEyeFit:
     zero_bin_shift: float = 0.0
     """Bins added to the sensor model's zero bin (0 unless fitted)."""
     iterations: int = 0
+    lost: int = 0
+    """Zones whose return the fitted X no longer predicts (left out of rms_mm and returns)."""
+    std_mm: tuple = (0.0, 0.0, 0.0)
+    """One standard deviation of X's translation along the flange's x, y, z (mm)."""
+    std_deg: tuple = (0.0, 0.0, 0.0)
+    """One standard deviation of X's rotation about x, y, z (degrees)."""
+
+    @property
+    def uncertain(self) -> bool:
+        """Whether one standard deviation of X exceeds UNCERTAIN_MM or UNCERTAIN_DEG somewhere."""
+        return max(self.std_mm) > UNCERTAIN_MM or max(self.std_deg) > UNCERTAIN_DEG
 
     @property
     def change_mm(self) -> float:
@@ -211,6 +241,7 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
         return np.where(seen, peak_positions(counts, windows, min_snr=None), np.nan)
 
     params = np.zeros(n_params)
+    params[3:6] = _boresight_offset(predictor, tcp, x0, observed, first_bin, model.bin_width_m)
     first = predict(params)
     use = np.isfinite(observed) & np.isfinite(first)
     if use.sum() < 2 * n_params:
@@ -219,15 +250,17 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
 
     def residual(p: np.ndarray) -> np.ndarray:
         r = (observed - predict(p))[use]
-        return np.where(np.isfinite(r), r, 0.0)  # a zone that no longer sees the target pulls no further
+        # A zone that no longer shows its return costs more than any it could show: a fit that pushes the
+        # predictions off the target (a residual of 0 for lost zones) must not look better for it.
+        return np.where(np.isfinite(r), r, LOST_ZONE_BINS)
 
+    start_r = (observed - predict(np.zeros(n_params)))[use]
+    rms_start = _rms_mm(start_r[np.isfinite(start_r)], model)
     r = residual(params)
-    rms_start = _rms_mm(r, model)
     cost, damping, done = float(r @ r), 1e-3, 0
     steps = np.array([1e-4] * 3 + [1e-4] * 3 + [1e-2])[:n_params]
     for done in range(1, iterations + 1):
-        jac = np.stack([(residual(params + np.eye(n_params)[i] * steps[i]) - r) / steps[i]
-                        for i in range(n_params)], axis=1)
+        jac = _jacobian(residual, params, r, steps)
         jtj, jtr = jac.T @ jac, jac.T @ r
         improved = False
         while damping < 1e8:
@@ -240,8 +273,67 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
             damping *= 4.0
         if not improved or np.abs(step[:6]).max() < 1e-7:
             break
-    return HandEyeFit(_compose(x0, params), x0, rms_start, _rms_mm(r, model), int(use.sum()), len(tcp),
-                      float(params[6]) if fit_zero_bin else 0.0, done)
+    seen = np.isfinite(predict(params)[use])
+    fit = HandEyeFit(_compose(x0, params), x0, rms_start, _rms_mm(r[seen], model), int(seen.sum()), len(tcp),
+                     float(params[6]) if fit_zero_bin else 0.0, done, lost=int((~seen).sum()))
+    jac = _jacobian(residual, params, r, steps)
+    _check_determined(jac, reader.path)
+    scatter = float(np.sqrt(np.mean(r[seen] ** 2))) if seen.any() else 0.0
+    fit.std_mm, fit.std_deg = _uncertainty(jac, max(scatter, SIGMA_FLOOR_BINS))
+    return fit
+
+
+def _jacobian(residual, params: np.ndarray, r: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """Forward differences of the residuals (zones,) in each parameter: (zones, parameters)."""
+    eye = np.eye(len(params))
+    return np.stack([(residual(params + eye[i] * steps[i]) - r) / steps[i] for i in range(len(params))], axis=1)
+
+
+def _uncertainty(jac: np.ndarray, sigma_bins: float) -> tuple[tuple, tuple]:
+    """One standard deviation of X's translation (flange axes, mm) and rotation (rotation vector, degrees) for
+    returns scattered by sigma_bins: sigma^2 (J^T J)^-1 over every fitted parameter (a fitted zero bin takes its
+    share). A direction the views cannot tell apart (J^T J singular) comes out infinite."""
+    scale = np.linalg.norm(jac, axis=0)
+    scale[scale == 0] = 1.0
+    _, s, vt = np.linalg.svd(jac / scale, full_matrices=False)
+    weight = vt.T ** 2  # (parameter, direction)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        per = np.where(s > s[0] * 1e-9, 1.0 / (s * s), np.inf)
+        var = np.where(weight > 1e-12, weight * per, 0.0).sum(axis=1) / scale ** 2 * sigma_bins ** 2
+    std = np.sqrt(var)  # residuals in bins, parameters in radians and metres
+    return tuple(float(v) for v in std[3:6] * 1e3), tuple(float(v) for v in np.degrees(std[:3]))
+
+
+def _check_determined(jac: np.ndarray, path) -> None:
+    """One-line ConfigError when the views leave part of X undetermined: its uncertainty for returns as steady as a
+    sensor's best (SIGMA_FLOOR_BINS) over UNDETERMINED_MM or UNDETERMINED_DEG."""
+    std_mm, std_deg = _uncertainty(jac, SIGMA_FLOOR_BINS)
+    loose = [f"along {axis} +-{v:.3g} mm" for axis, v in zip("xyz", std_mm) if not v <= UNDETERMINED_MM]
+    loose += [f"about {axis} +-{v:.3g} deg" for axis, v in zip("xyz", std_deg) if not v <= UNDETERMINED_DEG]
+    if loose:
+        raise ConfigError(f"{path}: the views do not determine the hand-eye transform ({', '.join(loose)} in the "
+                          f"flange frame): take views that tilt the tool about several axes (rings at several "
+                          f"elevations with jitter)")
+
+
+def _boresight_offset(predictor: _Predictor, tcp: np.ndarray, x0: np.ndarray, observed: np.ndarray, first_bin: int,
+                      bin_width_m: float, rounds: int = 5) -> np.ndarray:
+    """A translation of X (flange frame, m) along the sensor's boresight that puts the predicted returns at the
+    observed ones' median range: a start whose sensor sits centimetres off along its axis (a bracket left out, the
+    default identity) puts the predictions outside the observed returns' windows, where the fit below finds no way
+    back. Zero when the start is already within half a bin."""
+    axis = x0[:3, 2]
+    shift = 0.0
+    for _ in range(rounds):
+        pose = x0.copy()
+        pose[:3, 3] = x0[:3, 3] + shift * axis
+        counts, seen = predictor.counts(tcp @ pose)
+        own = peak_positions(counts, peak_bins(counts, first_bin), min_snr=None)
+        off = (observed - own)[seen & np.isfinite(observed) & np.isfinite(own)]
+        if off.size == 0 or abs(np.median(off)) < 0.5:
+            break
+        shift -= float(np.median(off)) * bin_width_m  # a return seen farther than predicted: the sensor sits back
+    return shift * axis
 
 
 def _rms_mm(r: np.ndarray, model: SensorModel) -> float:

@@ -7,12 +7,17 @@
 in the arm's base frame you know (metres): the table (a point on it and its normal, e.g. `--plane 0,0,0.02,0,0,1`)
 or a sphere (centre and radius). It starts from the X the capture was taken with, moves it until every zone's
 return lies where the sensor model puts it, and prints the residuals before and after and the fitted X as the line
-to put in the config. Take the capture with views that tilt the tool in different directions (rings at several
-elevations with --jitter, see firmware_notes/hand_eye.md): a plane seen from one orientation fixes X only along its
-normal.
+to put in the config, with its uncertainty (one standard deviation, from the residuals' scatter). Take the capture
+with views that tilt the tool in different directions (rings at several elevations with --jitter, see
+firmware_notes/hand_eye.md): a plane seen from one orientation fixes X only along its normal, and views that differ
+only by a turn about one axis (one ring, rings without jitter) leave part of X undetermined: such a capture is
+refused, naming the part. A start centimetres off along the sensor's axis (the default identity, a bracket left out)
+is first moved along that axis to the returns' median range.
 """
 
 from __future__ import annotations
+
+import sys
 
 import numpy as np
 
@@ -31,16 +36,22 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from spadscan.daemon.hand_eye import fit_hand_eye, hand_eye_toml, parse_target
+    from spadscan.daemon.hand_eye import UNCERTAIN_DEG, UNCERTAIN_MM, fit_hand_eye, hand_eye_toml, parse_target
 
     target = parse_target(args.plane, args.sphere)
     fit = fit_hand_eye(args.capture, target, fit_zero_bin=args.fit_zero_bin)
     moved = (fit.hand_eye[:3, 3] - fit.start[:3, 3]) * 1e3
     on = f"the {target.kind}"
-    print(f"{args.capture}: {fit.views} views, {fit.returns} zone returns on {on}")
+    lost = f" ({fit.lost} more lost at the fitted hand_eye)" if fit.lost else ""
+    print(f"{args.capture}: {fit.views} views, {fit.returns} zone returns on {on}{lost}")
     print(f"residual RMS {fit.rms_start_mm:.2f} mm with the capture's hand_eye, {fit.rms_mm:.2f} mm fitted "
           f"({fit.iterations} iterations)")
     print(f"change: {fit.change_mm:.1f} mm ({', '.join(f'{v:+.1f}' for v in moved)} mm), {fit.change_deg:.2f} deg")
+    print(f"uncertainty (one standard deviation): {', '.join(f'{v:.2f}' for v in fit.std_mm)} mm along the flange's "
+          f"x, y, z; {', '.join(f'{v:.2f}' for v in fit.std_deg)} deg about them")
+    if fit.uncertain:
+        print(f"spadscan: warning: the hand_eye below is uncertain by more than {UNCERTAIN_MM:g} mm or "
+              f"{UNCERTAIN_DEG:g} deg: add views that tilt the tool further about several axes", file=sys.stderr)
     if args.fit_zero_bin:
         print(f"zero bin: {fit.zero_bin_shift:+.3f} bins from the capture's sensor model")
     print("for the rig config's [arm] table:")
