@@ -48,6 +48,15 @@ def test_the_report_page_shows_its_3d_view_with_every_layer(result_folder):
     assert "OfflineLocalView.load" in view and "base64Str" in view  # the scene travels inside the page
 
 
+def test_a_built_in_ground_truth_is_a_layer_too(result_folder):
+    """Every capture simulated from a built-in scene names `builtin:NAME` as its ground truth, which is no file: its
+    view had no ground-truth layer although the run was scored against it."""
+    out, report = result_folder
+    (out / "ground_truth.ply").unlink()
+    write_report_html({**report, "ground_truth": "builtin:sphere"}, out)
+    assert "> ground truth</label>" in (out / VIEW3D).read_text()
+
+
 def test_a_view_newer_than_its_mesh_is_kept_and_an_older_one_made_again(result_folder):
     out, report = result_folder
     write_report_html(report, out)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.mesh_io import BUILTIN_PREFIX
 
 from . import offscreen
 from .view3d import VIEW3D, write_view3d
@@ -22,16 +23,20 @@ GT_KEYS = ("ground_truth", "gt")
 """Report keys that name the ground-truth file it was scored against (baselines and older reports say 'gt')."""
 
 
-def ground_truth_file(report: dict, folder: Path) -> Path | None:
-    """The ground-truth file the report names: a file of that name in the folder first (a job's results name the
-    file in the folder they were written in, before it was renamed into place), else the path itself."""
+def ground_truth_spec(report: dict, folder: Path) -> str | None:
+    """The ground truth the report names, as `load_ground_truth` takes it: a built-in scene's `builtin:NAME` as it
+    stands (every capture simulated from a built-in scene names one), else a file of that name in the folder first
+    (a job's results name the file in the folder they were written in, before it was renamed into place), else the
+    path itself."""
     for key in GT_KEYS:
         named = report.get(key)
         if not isinstance(named, str) or not named:
             continue
+        if named.startswith(BUILTIN_PREFIX):
+            return named
         for candidate in (folder / Path(named).name, Path(named)):
             if candidate.is_file():
-                return candidate
+                return str(candidate)
     return None
 
 
@@ -64,8 +69,8 @@ def ensure_view3d(report: dict, folder) -> Path | None:
         return path
     try:
         mesh = load_mesh(mesh_path, units="m")
-        gt_file = ground_truth_file(report, folder)
-        gt = load_ground_truth(str(gt_file)).mesh if gt_file is not None else None
+        gt_spec = ground_truth_spec(report, folder)
+        gt = load_ground_truth(gt_spec).mesh if gt_spec is not None else None
         name = Path(str(report.get("capture", folder.name))).name
         kind = report.get("preset") or report.get("method") or "reconstruction"
         return write_view3d(folder, mesh, gt, capture_poses(report.get("capture")), title=f"{name} ({kind})")
