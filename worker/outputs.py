@@ -10,6 +10,8 @@ from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 
+from .report.view3d import VIEW3D
+
 RESULT_FILES = ("mesh.ply", "report.json")
 """Files whose presence means a folder holds a result."""
 
@@ -55,9 +57,10 @@ def export_mesh(mesh, path, **options) -> Path:
 
 def previous_result(out) -> set[str]:
     """The file names of the result `out` holds before a run replaces it (--overwrite): those its report.json lists
-    (`files`), the report itself, its page and its mesh. Files it does not list (the user's own) are no part of it."""
+    (`files`), the report itself, its page, its 3D view and its mesh. Files it does not list (the user's own) are no
+    part of it."""
     out = Path(out)
-    names = {*RESULT_FILES, "report.html"}
+    names = {*RESULT_FILES, "report.html", VIEW3D}
     try:
         listed = json.loads((out / "report.json").read_text()).get("files")
     except (OSError, ValueError, AttributeError):

@@ -40,6 +40,7 @@ from .recon.presets import make_model, preset_config
 from .recon.scene_data import SceneData, load_scene
 from .recon.trainer import train
 from .report import pictures
+from .report.folder_view import ensure_view3d
 from .report.report_html import write_report_html
 from .report.report_json import json_safe, write_report
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
@@ -284,6 +285,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                         "stages": stages}
     for line in report["warnings"]:
         log(f"warning: {line}")
+    ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
     written = files_written_since(out, since_s) | {"report.json", "report.html"}
     report["files"] = sorted(written)
     gone = drop_replaced(out, replaced, written)
@@ -410,8 +412,9 @@ def _coverage(out: Path | None, mesh, scene: SceneData, log) -> Coverage | None:
     try:
         samples = surface_views(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor)
         if out is not None:
+            # The legend's shares are the report's: of the surface less its undersides, which no view above sees.
             pictures.coverage_png(mesh, vertex_views(mesh, samples), out / "coverage.png", few_views=FEW_VIEWS,
-                                  area_views=samples.counts)
+                                  area_views=samples.counts[~samples.underside])
         return summarize(samples)
     except SpadscanError as exc:
         log(f"no coverage measured: {exc}")

@@ -130,6 +130,7 @@ def write_pictures_and_page(report: dict, out, gt, since_s: float, replaced: set
     """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json, which
     then lists the files this run wrote (`files`); the replaced result's others go (--overwrite)."""
     from spadscan.protocol.mesh_io import load_mesh  # trimesh and matplotlib: only when a baseline ran
+    from spadscan.worker.report.folder_view import ensure_view3d
     from spadscan.worker.report.pictures import preview_png
     from spadscan.worker.report.report_html import write_report_html
     from spadscan.worker.report.report_json import write_report
@@ -139,6 +140,7 @@ def write_pictures_and_page(report: dict, out, gt, since_s: float, replaced: set
     # a 2 m table slab beside the object would shrink the object to a speck.
     gt_mesh = load_ground_truth(gt).mesh if gt is not None else None
     preview_png(load_mesh(out / "mesh.ply"), out / "preview.png", gt=gt_mesh)
+    ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
     written = files_written_since(out, since_s) | {"report.json", "report.html"}
     report["files"] = sorted(written)
     write_report(out, report)

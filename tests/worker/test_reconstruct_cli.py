@@ -13,10 +13,13 @@ import torch
 import trimesh
 
 from spadscan.cli import main
+from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker.outputs import check_out, export_mesh
+from spadscan.worker.report import folder_view
+from spadscan.worker.report.view3d import VIEW3D
 
 SMALL = ["rays.rays_per_view=32", "rays.importance_rays_per_view=8", "rays.samples_per_ray=24",
          "rays.importance_samples=8", "field.width=48", "field.layers=3", "field.skip_layers=[2]",
@@ -299,6 +302,31 @@ def test_an_overwritten_result_leaves_none_of_its_own_files_and_lists_only_this_
     page = (out / "report.html").read_text()
     assert "notes.txt" not in page and 'href="normals.png"' not in page
     assert "removed the replaced result's normals.png" in capsys.readouterr().err
+
+
+def test_a_result_lists_its_3d_view_and_one_not_made_again_is_not_left_standing(capture_and_gt, tmp_path,
+                                                                                 monkeypatch):
+    """view3d.html is the run's file like its pictures: listed in report.json, and a run over it with --overwrite
+    that cannot make its own removes it (the replaced run's view stood under the new report)."""
+    cap, _ = capture_and_gt
+    out = tmp_path / "out"
+    assert _recon(cap, out, "--no-gt") == 0
+    report = json.loads((out / "report.json").read_text())
+    assert VIEW3D in report["files"]
+    report["files"].remove(VIEW3D)  # as earlier versions listed their files: the view is the result's all the same
+    (out / "report.json").write_text(json.dumps(report))
+    an_hour_ago = time.time() - 3600
+    for path in out.iterdir():
+        os.utime(path, (an_hour_ago, an_hour_ago))
+
+    def cannot(*args, **kwargs):
+        raise SpadscanError("no scene for the 3D view")
+
+    monkeypatch.setattr(folder_view, "write_view3d", cannot)
+    assert _recon(cap, out, "--overwrite", "--no-gt") == 0
+    assert not (out / VIEW3D).exists()
+    assert VIEW3D not in json.loads((out / "report.json").read_text())["files"]
+    assert f"no 3D view ({VIEW3D} was not written)" in (out / "report.html").read_text()
 
 
 def test_a_file_in_the_way_and_bad_threads_are_one_line_errors(capture_and_gt, tmp_path, capsys):

@@ -231,3 +231,28 @@ def test_the_written_page_is_complete_and_atomic(folder):
     text = (folder / REPORT_HTML).read_text()
     assert text.rstrip().endswith("</html>") and re.search(r">99<", text)
     assert not [p for p in Path(folder).iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("extra, why", [
+    ({"ground_truth": "builtin:sphere", "trace": [{"step": 0, "seconds": 0.0, "loss": 0.5,
+                                                   "note": "evaluation skipped: it would not fit in the time budget"}]},
+     "scoring them would not fit in the time budget"),
+    ({"trace": [{"step": 5, "seconds": 1.0, "loss": 0.5}]}, "no ground truth"),
+    ({"ground_truth": "builtin:sphere", "trace": [{"step": 5, "seconds": 1.0, "loss": 0.5, "chamfer_mm": None}]},
+     "no surface to score"),
+])
+def test_a_loss_only_plot_says_why_no_checkpoint_was_scored(folder, extra, why):
+    """A short run with a ground truth skips scoring its checkpoints: its caption said 'no ground truth' on a page
+    showing the ground truth and a Chamfer."""
+    text = render_html(a_report(**extra), folder)
+    pictures = text.split("<h2>Pictures", 1)[1].split("<h2>", 1)[0]
+    assert f"Loss against run time, on log axes (no checkpoint has a Chamfer: {why})" in pictures
+
+
+def test_a_baseline_names_its_ground_truth_once(tmp_path):
+    """A baseline's report holds the ground truth under both names (`ground_truth`, and `gt` as before)."""
+    report = {"method": "space-carving", "threshold": 5.0, "ground_truth": "/gt/pyramid.stl",
+              "gt": "/gt/pyramid.stl", "chamfer_mm": 9.2}
+    assert summary_of(render_html(report, tmp_path)).count("<th>ground truth</th>") == 1
+    del report["ground_truth"]
+    assert summary_of(render_html(report, tmp_path)).count("<th>ground truth</th>") == 1

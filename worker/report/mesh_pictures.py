@@ -128,7 +128,8 @@ def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: 
 def coverage_png(mesh, vertex_views: np.ndarray, path, few_views: int = 3, area_views: np.ndarray | None = None,
                  pixels: int = 260) -> Path | None:
     """coverage_panels with a legend giving each class's share of the surface (of `area_views`, the views of
-    area-uniform samples, when given, else of the vertices) and a title that says what it means. Returns the PNG's
+    area-uniform samples of the surface less its undersides, as the report's coverage counts it, when given, else of
+    the vertices) and a title that says what it means. Returns the PNG's
     path, or None when this machine cannot draw off screen (a warning says why)."""
     from matplotlib.patches import Patch
 
@@ -150,7 +151,8 @@ def coverage_png(mesh, vertex_views: np.ndarray, path, few_views: int = 3, area_
                        for label, colour, share in zip(labels, COVERAGE_COLOURS, shares)],
               loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False)
     fig.suptitle(f"Where the mesh is measured: views that see each part of it (share of the "
-                 f"{'vertices' if area_views is None else 'surface'}); where fewer than {few_views} do, its shape "
+                 f"{'vertices' if area_views is None else 'surface, undersides left out'}); where fewer than "
+                 f"{few_views} do, its shape "
                  "is the fit's smoothness prior, not the data", fontsize=9)
     fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)

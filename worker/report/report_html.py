@@ -15,7 +15,7 @@ from pathlib import Path
 
 from spadscan.protocol.atomic_files import write_atomic
 
-from .folder_view import MESH, ensure_view3d
+from .folder_view import GT_KEYS, MESH, ensure_view3d
 from .view3d import VIEW3D
 
 REPORT_HTML = "report.html"
@@ -32,9 +32,8 @@ PICTURES = (
 )
 """(file name, caption) of the pictures the page shows when they exist in the folder."""
 
-LOSS_CAPTION = ("Loss against run time, on log axes (no checkpoint has a Chamfer: no ground truth, or no surface to "
-                "score)")
-"""error_vs_time.png's caption when it plots the loss alone."""
+LOSS_CAPTION = "Loss against run time, on log axes (no checkpoint has a Chamfer: {why})"
+"""error_vs_time.png's caption when it plots the loss alone; {why} from `_no_chamfer_reason`."""
 
 RECONSTRUCTION_PICTURES = ("preview.png", "error_vs_time.png", "fit.png")
 """Pictures every reconstruction writes: the page names one that is missing. A baseline writes only preview.png."""
@@ -144,7 +143,8 @@ def _row(report: dict, key: str, label: str, unit) -> str:
 
 
 def _summary(report: dict) -> str:
-    rows = [_row(report, key, label, unit) for key, label, unit in NUMBERS if key in report]
+    hidden = {"gt"} if "ground_truth" in report else set()  # a baseline's report holds both names of one file
+    rows = [_row(report, key, label, unit) for key, label, unit in NUMBERS if key in report and key not in hidden]
     terms = report.get("terms")
     if isinstance(terms, dict):
         used = [k for k, v in terms.items() if v] or ["none"]
@@ -173,8 +173,20 @@ def expected_pictures(report: dict) -> set[str]:
 
 def _caption(name: str, caption: str, report: dict) -> str:
     if name == "error_vs_time.png" and "trace" in report and not chamfer_in_trace(report):
-        return LOSS_CAPTION
+        return LOSS_CAPTION.format(why=_no_chamfer_reason(report))
     return caption
+
+
+def _no_chamfer_reason(report: dict) -> str:
+    """Why no checkpoint was scored: the trace says when scoring would not fit in the budget (a short run with a
+    ground truth), else the report names no ground truth, else there was no surface to score."""
+    trace = report.get("trace")
+    if isinstance(trace, list) and any(isinstance(p, dict) and "evaluation skipped" in str(p.get("note", ""))
+                                       for p in trace):
+        return "scoring them would not fit in the time budget"
+    if not any(report.get(key) for key in GT_KEYS):
+        return "no ground truth"
+    return "no surface to score"
 
 
 def _pictures(folder: Path, report: dict) -> str:
