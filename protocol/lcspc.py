@@ -9,15 +9,17 @@ A file is a JSON list of measurements. Two kinds exist, told apart by the shape 
 
 Poses are sensor-to-world in metres with the sensor looking along +z, as in spadscan; a pose stored with the last row
 [0, 0, 0, 0] (some real captures do) is read as the rigid transform it is when its 3x3 block is a rotation, with a
-warning. Every key other than `hists`,
-`pose` and `reference_hist` is kept verbatim in the measurement's metadata, plus `source_index` (the position in the
-file) and `temperature_c` when the on-chip record gives one.
+warning; poses spread far wider than the sensor can range (millimetres, most likely) are refused. Every key other
+than `hists`, `pose` and `reference_hist` is kept verbatim in the measurement's metadata, plus `source_index` (the
+position in the file) and `temperature_c` when the on-chip record gives one.
 """
 
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -33,6 +35,12 @@ from .sensor_presets import sensor_preset
 KINDS = {"simulated": "lcspc-sim", "real": "tmf8820"}
 RESERVED = ("hists", "pose", "reference_hist")
 READ_BLOCK = 1 << 20
+SPREAD_RANGES = 4
+"""Sensor positions may lie at most this many of the sensor's ranges (max_range_m) from their centroid. Each view
+measures surfaces within one range R of itself, so views of an object of radius r lie within R + r of its centre and
+within 2 (R + r) of their centroid; r <= R (a lab scanner's objects; the dataset's are ~0.25 m) gives 4 R. The
+dataset's scenes reach 0.12-0.44 R (simulated: 0.56 m of 1.28 m; real, upstream's bust and tall_block included:
+0.20-0.36 m of 1.57 m), and the same poses in millimetres would be 120-440 R."""
 
 Progress = Callable[[str, int, int], None]
 """progress(stage, done, total): stage 'read' counts bytes of the file, stage 'write' counts measurements."""
@@ -85,6 +93,7 @@ def read_lcspc(path, progress: Progress | None = None) -> LcspcData:
         poses = check_poses(poses, str(path))
     except CaptureError as exc:
         raise DatasetError(str(exc)) from None
+    _check_spread(path, poses, sensor)
     reference = _references(path, records, sensor)
     meta = [_meta(path, i, r) for i, r in enumerate(records)]
     return LcspcData(path, kind, sensor, hists, poses, reference, meta, digest, _temperature_notes(records),
@@ -93,7 +102,7 @@ def read_lcspc(path, progress: Progress | None = None) -> LcspcData:
 
 def detect_kind(path, hists) -> tuple[str, SensorModel]:
     """('simulated' | 'real', sensor preset) from the shape of one measurement's `hists`."""
-    shape = _shape(path, 0, "hists", hists)
+    shape = _as_array(path, 0, "hists", hists).shape
     for kind, preset in KINDS.items():
         sensor = sensor_preset(preset)
         if shape == (sensor.n_zones, sensor.n_bins) or (sensor.n_zones == 1 and shape == (sensor.n_bins,)):
@@ -170,9 +179,21 @@ class ImportSummary:
 
 
 # ---- helpers ---------------------------------------------------------------------------------------------------------
+# what a path is when it is not a regular file, for the one-line refusal
+NOT_FILES = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a pipe"), (stat.S_ISCHR, "a device"),
+             (stat.S_ISBLK, "a device"), (stat.S_ISSOCK, "a socket"))
+
+
 def _read_bytes(path: Path, progress: Progress | None) -> tuple[bytes, str]:
-    if not path.is_file():
-        raise DatasetError(f"{path}: {'is a folder, not a' if path.is_dir() else 'no such'} LCSPCData JSON file")
+    try:
+        mode = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        raise DatasetError(f"{path}: no such LCSPCData JSON file") from None
+    if not stat.S_ISREG(mode):
+        # A pipe (`<(zcat ...)`) could be read, but the capture records the source's path and looks for the ground
+        # truth beside it, and a pipe's path names neither: ask for the file itself.
+        what = next((name for test, name in NOT_FILES if test(mode)), "not a regular file")
+        raise DatasetError(f"{path}: is {what}, not an LCSPCData JSON file; give the JSON file's own path")
     total = path.stat().st_size
     parts, done, digest = [], 0, hashlib.sha256()
     with open(path, "rb") as f:
@@ -185,26 +206,43 @@ def _read_bytes(path: Path, progress: Progress | None) -> tuple[bytes, str]:
     return b"".join(parts), digest.hexdigest()
 
 
-def _shape(path, i: int, key: str, value) -> tuple[int, ...]:
-    why = f"{path}: measurement {i} has a ragged or non-numeric {key!r}"
+def _as_array(path, i: int, key: str, value) -> np.ndarray:
+    """One measurement's nested JSON lists as an array; ragged lists, true/false and integers beyond 64 bits are
+    one-line DatasetErrors (other non-numbers give a string or object dtype, left to `_array`)."""
     try:
         a = np.asarray(value)
     except ValueError:  # nested lists of different lengths
-        raise DatasetError(why) from None
-    if a.dtype == object:  # mixed types, or integers too large for int64
-        raise DatasetError(why)
-    return a.shape
+        raise DatasetError(f"{path}: measurement {i} has a ragged or non-numeric {key!r}") from None
+    # numpy turns true/false among numbers into 1/0 without a trace, and keeps integers beyond 64 bits as Python
+    # objects: only the JSON values themselves tell (not ragged here, so they lie exactly a.ndim lists deep)
+    types = set(map(type, _leaves(value, a.ndim)))
+    if bool in types:
+        raise DatasetError(f"{path}: measurement {i} has non-numeric {key} (true or false among its numbers)")
+    if a.dtype == object and int in types:
+        big = next((v for v in _leaves(value, a.ndim) if type(v) is int and not -2**63 <= v < 2**64), None)
+        if big is not None:
+            raise DatasetError(f"{path}: measurement {i} has a number too large in {key} ({_clip(str(big))}, "
+                               f"beyond 64 bits)")
+    return a
+
+
+def _leaves(value, depth: int):
+    """The items of nested lists `depth` lists deep (value itself when depth is 0)."""
+    leaves = [value]
+    for _ in range(depth):
+        leaves = itertools.chain.from_iterable(leaves)
+    return leaves
 
 
 def _array(path, i: int, key: str, value, shape: tuple[int, ...]) -> np.ndarray:
     """One measurement's array, reshaped to `shape` (a flat single-zone histogram gains its zone axis)."""
-    got = _shape(path, i, key, value)
-    a = np.asarray(value)
+    a = _as_array(path, i, key, value)
+    got = a.shape
     if got != shape and not (got == shape[1:] and shape[0] == 1):
         want = shape[1:] if len(shape) == 2 and shape[0] == 1 else shape
         raise DatasetError(f"{path}: measurement {i} has {key} of shape {got}, expected {want}"
                            + (" (mixed kinds in one file?)" if key == "hists" else ""))
-    if a.dtype.kind not in "iuf":
+    if a.dtype.kind not in "iuf":  # strings, null, objects
         raise DatasetError(f"{path}: measurement {i} has non-numeric {key} ({a.dtype})")
     return a.reshape(shape)
 
@@ -261,7 +299,8 @@ def _complete_last_rows(path, poses: np.ndarray) -> tuple[np.ndarray, tuple[str,
     last row of any rigid transform, so nothing is guessed when the 3x3 block is a rotation. Such a pose whose block
     is not a rotation is a one-line DatasetError; every other pose is left for `check_poses`. Returns the poses and
     a warning line when any was completed."""
-    zero_last = np.all(np.abs(poses[:, 3]) <= POSE_TOL, axis=1)
+    # a pose that is not finite is left for check_poses to name; its det would print a numpy warning first
+    zero_last = np.isfinite(poses).all(axis=(1, 2)) & np.all(np.abs(poses[:, 3]) <= POSE_TOL, axis=1)
     if not zero_last.any():
         return poses, ()
     rot = poses[zero_last, :3, :3]
@@ -280,6 +319,19 @@ def _complete_last_rows(path, poses: np.ndarray) -> tuple[np.ndarray, tuple[str,
                    f"(their rotations and translations are valid)",)
 
 
+def _check_spread(path, poses: np.ndarray, sensor: SensorModel) -> None:
+    """Refuse sensor positions farther from their centroid than SPREAD_RANGES x the sensor's range: no scan of one
+    scene places its views so, but poses in millimetres do. The centroid, not the origin, so any world frame works."""
+    t = poses[:, :3, 3]
+    dist = np.linalg.norm(t - t.mean(axis=0), axis=1)
+    i = int(np.argmax(dist))
+    limit = SPREAD_RANGES * sensor.max_range_m
+    if dist[i] > limit:
+        raise DatasetError(f"{path}: pose {i} lies {dist[i]:.4g} m from the sensors' mean position, more than "
+                           f"{SPREAD_RANGES} x the {sensor.name} sensor's range of {sensor.max_range_m:.2f} m; are the "
+                           f"poses in millimetres? give them in metres")
+
+
 def _temperature(rec: dict) -> tuple[bool, float | None]:
     """The on-chip temperature, distances[0].temperature: (given, value); value is None unless a finite number.
     Readers of temperature_c expect a number (the daemon stores one), so anything else is not copied there."""
@@ -296,8 +348,12 @@ def _temperature_notes(records: list[dict]) -> tuple[str, ...]:
     bad = [i for i, rec in enumerate(records) if _temperature(rec) == (True, None)]
     if not bad:
         return ()
-    value = repr(records[bad[0]]["distances"][0]["temperature"])
-    value = value if len(value) <= 40 else value[:37] + "..."
+    value = _clip(repr(records[bad[0]]["distances"][0]["temperature"]))
     many = f"{len(bad)} measurements give" if len(bad) > 1 else "1 measurement gives"
     return (f"{many} a distances[0].temperature that is not a number (first: measurement {bad[0]}, {value}); "
             f"stored without temperature_c (the original stays in its 'distances')",)
+
+
+def _clip(text: str, width: int = 40) -> str:
+    """A value quoted in a one-line message, cut to `width` characters."""
+    return text if len(text) <= width else text[:width - 3] + "..."

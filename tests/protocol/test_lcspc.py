@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -176,6 +177,22 @@ def _ragged(recs):
     recs[1]["hists"][4] = recs[1]["hists"][4][:-1]
 
 
+def _nonfinite_rotation(value):
+    """A pose (2) with last row [0, 0, 0, 0], as the real captures store them, and `value` in its rotation."""
+    def edit(recs):
+        recs[2]["pose"][3] = [0, 0, 0, 0]
+        recs[2]["pose"][0][0] = value
+    return edit
+
+
+def _translations_times(factor, shift=0.0):
+    def edit(recs):
+        for rec in recs:
+            for row in range(3):
+                rec["pose"][row][3] = rec["pose"][row][3] * factor + shift
+    return edit
+
+
 def _pose_scale(recs):
     p = np.array(recs[1]["pose"])
     p[:3, :3] *= 1.05
@@ -199,12 +216,23 @@ BAD = {
     "fraction": (_sim(_set_count(0, 2.5)), "measurement 0 has fractional"),
     "string count": (_sim(_set_count(0, "7")), "non-numeric"),
     "bool counts": (_sim(_set(0, "hists", [True] * 1024)), "non-numeric"),
-    "huge int": (_sim(_set_count(0, 10**30)), "ragged or non-numeric"),
+    "one bool count": (_sim(_set_count(1, True)), "measurement 1 has non-numeric hists (true or false"),
+    "bool real count": (_real(_set_count(2, False)), "measurement 2 has non-numeric hists (true or false"),
+    "bool reference": (_real(_set_count(1, True, "reference_hist")), "measurement 1 has non-numeric reference_hist"),
+    "bool in pose": (_sim(lambda r: r[2]["pose"].__setitem__(3, [False, False, False, True])),
+                     "measurement 2 has non-numeric pose (true or false"),
+    "huge int": (_sim(_set_count(0, 10**30)),
+                 "measurement 0 has a number too large in hists (1000000000000000000000000000000, beyond 64 bits)"),
+    "huge negative int": (_real(_set_count(1, -2**63 - 1)), "measurement 1 has a number too large in hists"),
     "over 24 bits": (_real(_set_count(2, 2**24)), "measurement 2 has > 16777215"),
     "reference negative": (_real(_set_count(1, -1, "reference_hist")), "negative counts in reference_hist"),
     "pose 3x4": (_sim(_set(1, "pose", np.eye(4)[:3].tolist())), "measurement 1 has pose of shape (3, 4)"),
     "nan pose": (_sim(_set(2, "pose", [[float("nan")] * 4] * 4)), "pose 2 is not finite"),
     "scaled pose": (_sim(_pose_scale), "pose 1 is not rigid"),
+    "nan rotation, zero last row": (_sim(_nonfinite_rotation(float("nan"))), "pose 2 is not finite"),
+    "inf rotation, zero last row": (_real(_nonfinite_rotation(float("inf"))), "pose 2 is not finite"),
+    "poses in mm": (_sim(_translations_times(1000)), "are the poses in millimetres? give them in metres"),
+    "real poses in mm": (_real(_translations_times(1000)), "4 x the tmf8820 sensor's range of 1.57 m"),
     "string pose": (_sim(_set(0, "pose", "identity")), "pose"),
     "reference length": (_real(_set(1, "reference_hist", [1] * 127)), "reference_hist of shape (127,)"),
     "reference missing": (_real(lambda r: r[2].pop("reference_hist")), "measurement 2 lacks the reference_hist"),
@@ -214,6 +242,7 @@ BAD = {
 }
 
 
+@pytest.mark.filterwarnings("error")  # one line means no numpy warning printed before it either
 @pytest.mark.parametrize("name", list(BAD))
 def test_malformed_files_are_one_line_errors_and_write_nothing(tmp_path, name):
     content, why = BAD[name]
@@ -232,8 +261,28 @@ def test_malformed_files_are_one_line_errors_and_write_nothing(tmp_path, name):
 def test_missing_file_and_folder(tmp_path):
     with pytest.raises(DatasetError, match="no such"):
         read_lcspc(tmp_path / "none.json")
+    with pytest.raises(DatasetError, match="no such"):
+        read_lcspc(write_json(tmp_path / "s.json", sim_records(1)) / "x.json")  # a file as a folder in the path
     with pytest.raises(DatasetError, match="folder"):
         read_lcspc(tmp_path)
+
+
+def test_a_pipe_or_device_is_named_not_called_missing(tmp_path):
+    fifo = tmp_path / "piped.json"
+    os.mkfifo(fifo)  # what `<(zcat scene.json.gz)` hands over; it must not be opened (that would wait for a writer)
+    for path, what in ((fifo, "a pipe"), (os.devnull, "a device")):
+        with pytest.raises(DatasetError) as info:
+            import_lcspc(path, tmp_path / "cap")
+        assert str(info.value) == f"{path}: is {what}, not an LCSPCData JSON file; give the JSON file's own path"
+        assert not (tmp_path / "cap").exists()
+
+
+def test_poses_far_from_the_origin_are_fine_when_close_together(tmp_path):
+    """The spread check measures from the sensors' mean position, so a world frame 100 m away is no error."""
+    recs = sim_records(4)
+    _translations_times(1, shift=100.0)(recs)
+    np.testing.assert_allclose(read_lcspc(write_json(tmp_path / "far.json", recs)).poses[:, :3, 3],
+                               np.array([r["pose"] for r in recs])[:, :3, 3])
 
 
 # ---- the command -----------------------------------------------------------------------------------------------------
