@@ -251,11 +251,12 @@ def _print_status(queue, as_json: bool) -> int:
     from dataclasses import asdict
 
     from spadscan.worker.job_progress import progress_field, running_progress
+    from spadscan.worker.status_detail import result_health, status_detail
 
     rows = queue.statuses()
     running = running_progress(queue)
     if as_json:
-        print(json.dumps([{**asdict(r), **_result_health(r), **progress_field(r.state, r.id, running)}
+        print(json.dumps([{**asdict(r), **result_health(r), **progress_field(r.state, r.id, running)}
                           for r in rows], indent=1))
         return 0
     if not rows:
@@ -266,51 +267,10 @@ def _print_status(queue, as_json: bool) -> int:
         holder = r.holder or "-"
         if r.heartbeat_age_s is not None:
             holder += f" ({r.heartbeat_age_s:.0f} s ago)"
-        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, _status_detail(r, running)))
+        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, status_detail(r, running)))
     widths = [max(len(row[i]) for row in table) for i in range(4)]
     for row in table:
         print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4])
     counts = queue.counts()
     print(", ".join(f"{n} {state}" for state, n in counts.items()))
     return 0
-
-
-def _result_health(row) -> dict:
-    """{"converged": bool, "warnings": [...]} from a done job's report.json (what its reconstruction said about
-    itself); {} when there is none to read."""
-    import json
-    from pathlib import Path
-
-    if row.state != "done" or not row.result:
-        return {}
-    try:
-        report = json.loads((Path(row.result) / "report.json").read_text())
-    except (OSError, ValueError):
-        return {}
-    if not isinstance(report, dict):
-        return {}
-    warnings = report.get("warnings")
-    return {"converged": report.get("converged"),
-            "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else []}
-
-
-def _status_detail(row, running: dict | None = None) -> str:
-    """The last column of a --status row: a done job's result folder, a running job's progress (its log's progress
-    bar, `running`: job_progress.running_progress), else its last error; then damaged files. A stale running job's
-    row says why first."""
-    if row.state == "done":
-        detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
-        if row.result and row.kept:
-            detail += " (already there when the job was claimed: kept, not run)"
-        health = _result_health(row)
-        if health.get("converged") is False:
-            detail += " (not converged)"
-        notes = [f"warning: {w}" for w in health.get("warnings", [])] + ([] if not row.result else row.notes)
-    else:
-        progress = (running or {}).get(row.id) if row.state == "running" else None
-        detail, notes = (progress.line() if progress else row.error or "-"), row.notes
-        if progress and row.error:
-            notes = [f"last error: {row.error}", *notes]
-        if row.stale:
-            detail, notes = row.stale, [n for n in [row.error, *notes] if n]
-    return "; ".join([detail, *notes])

@@ -11,6 +11,8 @@ import json
 import os
 from pathlib import Path
 
+from .paths import safe_path, url_path
+
 RECON = "recon"
 LIVE = "live"
 SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "steps",
@@ -63,11 +65,16 @@ class ResultIndex:
         self.reads += 1
         data, error = _read_json(main)
         keys = LIVE_KEYS if live else SUMMARY_KEYS
+        summary = {k: data[k] for k in keys if data and k in data}
+        if not isinstance(summary.get("warnings", []), list):
+            # the page lists them one a line: anything else would stop its whole refresh, every scan with it
+            error = f"{main.name}: warnings {json.dumps(summary.pop('warnings'))[:40]} is not a list"
+        # a link only to what the server serves (safe_path): never one to a folder linked out of the root
+        files = {p: f"/files/{rel}?v={st.st_mtime_ns}"
+                 for p in PAGES if safe_path(self.root, rel := url_path(scan, RECON, folder.name, p))}
+        if live and "mesh.ply" in files:  # the server makes the live view from that very mesh
+            files["view3d.html"] = f"/live3d/{url_path(scan)}?v={st.st_mtime_ns}"
         entry = {"id": folder.name, "scan": scan, "kind": LIVE if live else "final", "mtime": st.st_mtime,
-                 "summary": {k: data[k] for k in keys if data and k in data}, "error": error,
-                 "files": {p: f"/files/{scan}/{RECON}/{folder.name}/{p}?v={st.st_mtime_ns}"
-                           for p in PAGES if (folder / p).is_file()}}
-        if live and (folder / "mesh.ply").is_file():
-            entry["files"]["view3d.html"] = f"/live3d/{scan}?v={st.st_mtime_ns}"
+                 "summary": summary, "error": error, "files": files}
         self._folders[str(folder)] = (key, entry)
         return entry

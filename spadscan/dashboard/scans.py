@@ -8,6 +8,7 @@ files parsed, so that the cost of a poll can be checked without a clock.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -17,6 +18,8 @@ import numpy as np
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, read_json
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import SpadscanError
+
+from .paths import safe_path, url_path
 
 RATE_FRAMES = 16
 """The frame rate is measured over (at most) this many of the last frames."""
@@ -37,6 +40,8 @@ class ScanRow:
     reason: str | None = None
     error: str | None = None
     """Why the capture cannot be read (a malformed capture is an error row, never a crash)."""
+    note: str | None = None
+    """Why the scan's files have no links (its folder is a link out of the root, which the server never serves)."""
     chunks: list[str] = field(default_factory=list, repr=False)
     mtime: float = 0.0
 
@@ -46,11 +51,23 @@ class ScanRow:
         return d
 
 
-def _planned(manifest: dict) -> int | None:
-    planned = manifest.get("planned_poses")
+JSON_KINDS = {int: "a whole number", str: "a string", dict: "an object"}
+
+
+def _typed(mapping: dict, key: str, kind: type, where: str):
+    """mapping[key], None when absent or null; a SpadscanError naming the field when it has another JSON type (the
+    capture reader checks only what it reads itself, and one bad scan.json must not take the other rows down)."""
+    value = mapping.get(key)
+    if value is None or (isinstance(value, kind) and not isinstance(value, bool)):
+        return value
+    raise SpadscanError(f"{where}: {key} {json.dumps(value)[:40]} is not {JSON_KINDS[kind]}")
+
+
+def _planned(manifest: dict, where: str) -> int | None:
+    planned = _typed(manifest, "planned_poses", int, where)
     if planned is None:
-        planned = (manifest.get("schedule") or {}).get("views")
-    return int(planned) if isinstance(planned, int) and not isinstance(planned, bool) and planned > 0 else None
+        planned = _typed(_typed(manifest, "schedule", dict, where) or {}, "views", int, f"{where} schedule")
+    return planned if planned is not None and planned > 0 else None
 
 
 class ScanIndex:
@@ -74,7 +91,9 @@ class ScanIndex:
                 except OSError:
                     continue  # not a capture folder
                 seen.add(entry.name)
-                rows.append(self._row(entry.name, st))
+                row = self._row(entry.name, st)
+                row.note = _linked_out(self.root, entry)
+                rows.append(row)
         for gone in set(self._rows) - seen:
             del self._rows[gone]
         rows.sort(key=lambda r: (r.state != "running", -r.mtime, r.name))
@@ -99,10 +118,12 @@ class ScanIndex:
         self.reads += 1
         try:
             manifest = CaptureReader(path).manifest
+            where = str(path / MANIFEST)
+            row = ScanRow(name, manifest["state"], planned=_planned(manifest, where),
+                          updated_utc=_typed(manifest, "updated_utc", str, where),
+                          reason=_typed(manifest, "reason", str, where), chunks=chunks)
         except SpadscanError as exc:
             return ScanRow(name, "error", error=str(exc))
-        row = ScanRow(name, manifest["state"], planned=_planned(manifest), updated_utc=manifest.get("updated_utc"),
-                      reason=manifest.get("reason"), chunks=chunks)
         if chunks:
             try:
                 self.reads += 1
@@ -113,6 +134,19 @@ class ScanIndex:
         if row.planned:
             row.progress = min(1.0, row.poses / row.planned)
         return row
+
+
+LINKED_OUT = ("its folder links outside the captures root: the dashboard serves nothing there, so its files have "
+              "no links")
+
+
+def _linked_out(root: Path, entry: os.DirEntry) -> str | None:
+    """A row note for a scan folder that is a link the server does not follow (safe_path: nothing outside the root).
+    The scan is still listed, with its progress and its reconstructions summed up: the links alone are left out
+    (results.py), and the note says why. Only links are resolved: a poll costs no more for the other scans."""
+    if not entry.is_symlink() or safe_path(root, url_path(entry.name, MANIFEST)):
+        return None
+    return LINKED_OUT
 
 
 def _chunk_names(path: Path) -> list[str]:
@@ -163,5 +197,7 @@ def plot_histograms(hist: np.ndarray, sensor) -> dict:
     bins = hist.shape[1] // pool * pool
     pooled = hist[:, :bins].reshape(hist.shape[0], -1, pool).max(axis=2) if pool > 1 else hist
     width = float(sensor.bin_width_m) * pool
-    return {"counts": pooled.round(1).tolist(), "first_m": (pool / 2 - 0.5 - float(sensor.zero_bin)) *
-            float(sensor.bin_width_m), "bin_m": width, "zones": int(hist.shape[0])}
+    # the axis labels bin centres: pooled bin k covers bin coordinates [k * pool, (k + 1) * pool) (bin i covers
+    # [i, i + 1) in the sensor model), so its centre is at coordinate k * pool + pool / 2
+    return {"counts": pooled.round(1).tolist(), "first_m": float(sensor.range_of_bin(pool / 2)), "bin_m": width,
+            "zones": int(hist.shape[0])}

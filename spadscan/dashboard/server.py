@@ -23,26 +23,11 @@ from urllib.parse import unquote, urlsplit
 
 from spadscan.protocol.errors import SpadscanError
 
+from .paths import safe_path
 from .results import LIVE, RECON
 from .status import Dashboard
 
 PAGE = "page.html"
-
-
-def safe_path(root: Path, url_path: str) -> Path | None:
-    """The file under `root` that `url_path` (percent-encoded, '/'-separated, relative to root) names, or None when
-    it names anything outside the root (after '..' and links are resolved), a hidden component or no regular file."""
-    parts = [p for p in unquote(url_path).split("/") if p not in ("", ".")]
-    if not parts or any(p.startswith(".") or "\\" in p or "\x00" in p for p in parts):
-        return None  # '..' starts with a dot too
-    root = root.resolve()
-    try:
-        path = root.joinpath(*parts).resolve()
-    except (OSError, RuntimeError, ValueError):
-        return None
-    if root not in path.parents or not path.is_file():
-        return None
-    return path
 
 
 class LiveViews:

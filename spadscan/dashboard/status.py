@@ -10,17 +10,22 @@ from dataclasses import asdict
 from pathlib import Path
 
 from spadscan.worker.job_progress import progress_field, running_progress
+from spadscan.worker.status_detail import status_detail
+
 from .results import ResultIndex
 from .scans import ScanIndex, scan_detail
 
 
 def queue_status(queue_dir: Path) -> dict:
-    """The queue's jobs as `spadscan worker --status --json` lists them, a running job with its progress."""
+    """The queue's jobs as `spadscan worker --status --json` lists them, a running job with its progress, and each
+    job's `detail`: the last column of `spadscan worker --status` (a kept result, warnings, damaged queue files),
+    made by the same function. Its running jobs' progress is left out there: the page has a column for it."""
     from spadscan.worker.queue import Queue
 
     queue = Queue(queue_dir, create=False)
     running = running_progress(queue)
-    jobs = [{**asdict(row), **progress_field(row.state, row.id, running)} for row in queue.statuses()]
+    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), "detail": status_detail(row)}
+            for row in queue.statuses()]
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
 
 

@@ -47,3 +47,39 @@ def complete_scan(path, poses: int = 3):
     for i in range(poses):
         add_pose(writer, planned, i)
     writer.finish()
+
+
+def add_final_recon(scan_path, job: str = "job #1?") -> dict[str, bytes]:
+    """A finished reconstruction of the scan at `scan_path`, with a report and a (real, 4x4) preview; returns what
+    each of those files holds."""
+    import io
+
+    import matplotlib.image
+    import numpy as np
+
+    recon = scan_path / "recon" / job
+    recon.mkdir(parents=True)
+    preview = io.BytesIO()
+    matplotlib.image.imsave(preview, np.full((4, 4, 3), 0.5), format="png")
+    files = {"report.html": f"<p>report of {scan_path.name}</p>".encode(errors="surrogateescape"),
+             "preview.png": preview.getvalue()}
+    (recon / "report.json").write_text(json.dumps({"preset": "fast", "chamfer_mm": 1.0}))
+    for name, data in files.items():
+        (recon / name).write_bytes(data)
+    return files
+
+
+def queue_with_a_kept_result_and_a_damaged_record(root) -> dict[str, str]:
+    """A queue of two done jobs under `root`: one whose result was already there when it was claimed (kept, not run),
+    one with a damaged attempt record. Returns what `spadscan worker --status` says of each in its last column."""
+    from spadscan.worker.jobs import Job
+    from spadscan.worker.queue import Queue
+
+    queue = Queue.for_root(root)
+    for job_id, kept in (("kept-fast", True), ("torn-fast", False)):
+        queue.enqueue(Job(id=job_id, scan=job_id.split("-")[0]))
+        queue.finish(queue.claim(), result=str(root / "results" / job_id), kept=kept)
+    (queue.path / "attempts" / "torn-fast" / "zz-torn.json").write_text('{"tok')  # a record torn by a power cut
+    return {"kept-fast": f"{root / 'results' / 'kept-fast'} (already there when the job was claimed: kept, not run)",
+            "torn-fast": f"{root / 'results' / 'torn-fast'}; unreadable attempt record "
+                         f"{queue.path / 'attempts' / 'torn-fast' / 'zz-torn.json'}"}

@@ -1,11 +1,13 @@
 """The dashboard page in a real headless browser: it follows a scan as its poses are published, shows a finished
-reconstruction's 3D view, and asks nothing of any server but its own."""
+reconstruction's 3D view, opens the links of any scan name, shows the queue as `spadscan worker --status` does, and
+asks nothing of any server but its own."""
 
 from __future__ import annotations
 
 import trimesh
 
-from dashboard_helpers import complete_scan, serving
+from dashboard_helpers import (add_final_recon, complete_scan, queue_with_a_kept_result_and_a_damaged_record,
+                               serving)
 from page_helpers import add_pose, browser_page, drawn_share, screenshot_pixels, start_scan
 from spadscan.dashboard.server import address
 
@@ -45,3 +47,42 @@ def test_the_page_follows_a_scan_as_it_runs(tmp_path):
     assert not seen.errors, seen.errors
     assert seen.requests and all(url.startswith(address(server)) for url in seen.requests), \
         [u for u in seen.requests if not u.startswith(address(server))]
+
+
+def test_the_links_of_a_scan_named_with_hash_and_percent_open_and_a_linked_out_scan_has_none(tmp_path):
+    from spadscan.dashboard.scans import LINKED_OUT
+
+    root, name = tmp_path / "captures", "cup #2 100%"  # '#' starts a fragment, '%' an escape
+    complete_scan(root / name, 2)
+    add_final_recon(root / name)
+    complete_scan(tmp_path / "otherdisk" / "elsewhere", 2)
+    add_final_recon(tmp_path / "otherdisk" / "elsewhere")
+    (root / "elsewhere").symlink_to(tmp_path / "otherdisk" / "elsewhere")
+    with serving(root) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        row = page.locator(f'#scans tr[data-scan="{name}"]')
+        report = row.locator("a[target=_blank]", has_text="report")
+        report.wait_for(timeout=WAIT_MS)
+        with page.context.expect_event("response", lambda r: "report.html" in r.url, timeout=WAIT_MS) as answer, \
+                page.expect_popup(timeout=WAIT_MS) as opened:
+            report.click()
+        assert answer.value.status == 200
+        assert opened.value.locator("p").text_content() == f"report of {name}"
+        row.locator("a.pick").click()  # the viewer shows its preview
+        page.wait_for_function("() => { const img = document.querySelector('#viewer-preview');"
+                               " return !img.hidden && img.complete && img.naturalWidth === 4; }", timeout=WAIT_MS)
+        linked = page.locator('#scans tr[data-scan="elsewhere"]')
+        assert linked.locator(".note").text_content() == LINKED_OUT
+        assert linked.locator("a[target=_blank]").count() == 0  # its files would answer 404
+    assert not seen.errors, seen.errors
+
+
+def test_the_queue_table_shows_kept_results_and_damaged_files_as_worker_status_does(tmp_path):
+    said = queue_with_a_kept_result_and_a_damaged_record(tmp_path)
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        for job_id, detail in said.items():
+            cell = page.locator(f'#queue tr[data-job="{job_id}"] td').last
+            cell.wait_for(timeout=WAIT_MS)
+            assert cell.text_content() == detail
+    assert not seen.errors, seen.errors

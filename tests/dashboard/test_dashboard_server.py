@@ -1,14 +1,18 @@
-"""The dashboard's server: what /api/status says of a root, that nothing outside the root is served, that a malformed
-capture is an error row, and that a root of 500 scans costs a stat per scan per poll once read."""
+"""The dashboard's server: what /api/status says of a root, that nothing outside the root is served and that every
+link it gives is served, that a malformed capture is an error row, and that a root of 500 scans costs a stat per scan
+per poll once read."""
 
 from __future__ import annotations
 
 import json
+import os
 import time
 
+import numpy as np
 import pytest
 
-from dashboard_helpers import complete_scan, get, serving, status
+from dashboard_helpers import (add_final_recon, complete_scan, get, queue_with_a_kept_result_and_a_damaged_record,
+                               serving, status)
 from page_helpers import add_pose, start_scan
 from spadscan.worker.job_progress import parse_progress
 
@@ -46,7 +50,8 @@ def test_nothing_outside_the_root_is_served(tmp_path):
         for path in ("/files/../secret.txt", "/files/scan/../../secret.txt", "/files/%2e%2e/secret.txt",
                      "/files/scan/%2e%2e/%2e%2e/secret.txt", "/files/scan%2f..%2f..%2fsecret.txt",
                      "/files//" + str(tmp_path / "secret.txt"), "/files/scan/link.txt", "/files/.queue/job.json",
-                     "/files/scan", "/files/", "/../secret.txt", "/live3d/..", "/live3d/scan", "/nowhere"):
+                     "/files/scan", "/files/", "/../secret.txt", "/live3d/..", "/live3d/scan", "/nowhere",
+                     "/files/scan/" + "a" * 300):  # a name the system refuses (over 255 bytes) is no file either
             code, body = get(server, path)
             assert code == 404 and b"outside" not in body, path
 
@@ -63,6 +68,44 @@ def test_a_malformed_capture_is_an_error_row(tmp_path):
     for name in ("broken", "stranger"):
         assert rows[name]["state"] == "error" and name in rows[name]["error"], rows[name]
         assert "\n" not in rows[name]["error"]
+
+
+def test_a_field_of_the_wrong_type_is_that_scans_error_row_and_the_others_are_listed(tmp_path):
+    complete_scan(tmp_path / "good", 2)
+    wrong = {"schedule": {"schedule": [1, 2, 3]}, "views": {"schedule": {"views": "12"}},
+             "planned_poses": {"planned_poses": "12"}, "updated_utc": {"updated_utc": 5},
+             "reason": {"reason": ["cable"]}}
+    for name, fields in wrong.items():
+        complete_scan(tmp_path / name, 2)
+        manifest = json.loads((tmp_path / name / "scan.json").read_text())
+        manifest.update({"planned_poses": None, **fields})  # none planned: the schedule's views are read
+        (tmp_path / name / "scan.json").write_text(json.dumps(manifest))
+    recon = tmp_path / "good" / "recon" / "good-fast"
+    recon.mkdir(parents=True)
+    (recon / "report.json").write_text(json.dumps({"preset": "fast", "warnings": 5}))  # the page iterates them
+    with serving(tmp_path) as server:
+        st = status(server)
+    rows = {s["name"]: s for s in st["scans"]}
+    assert rows["good"]["state"] == "complete" and rows["good"]["error"] is None and st["current"]["name"] == "good"
+    for name in wrong:
+        assert rows[name]["state"] == "error" and f"{name} " in rows[name]["error"], rows[name]
+        assert "scan.json" in rows[name]["error"] and "\n" not in rows[name]["error"]
+    (recon_row,) = rows["good"]["recons"]
+    assert recon_row["error"] == "report.json: warnings 5 is not a list" and "warnings" not in recon_row["summary"]
+
+
+def test_the_histogram_axis_labels_the_centre_of_the_bin_that_holds_a_return():
+    from spadscan.dashboard.scans import plot_histograms
+    from spadscan.protocol.sensor_presets import tmf8820
+
+    sensor = tmf8820()
+    for bins in (sensor.n_bins, 1024):  # plotted as they are, and max-pooled by 4
+        for range_m in 0.5 + sensor.bin_width_m * np.array([0.02, 0.5, 0.98, 2.7, 3.95]):
+            hist = np.zeros((1, bins))
+            hist[0, int(np.floor(sensor.bin_of_range(range_m)))] = 100  # the simulator counts t in bin floor(t)
+            h = plot_histograms(hist, sensor)
+            shown = h["first_m"] + int(np.argmax(h["counts"][0])) * h["bin_m"]
+            assert abs(shown - range_m) <= h["bin_m"] / 2 + 1e-9, (bins, range_m, shown)
 
 
 def test_the_queue_and_each_running_jobs_progress(tmp_path):
@@ -82,6 +125,18 @@ def test_the_queue_and_each_running_jobs_progress(tmp_path):
     assert job["id"] == "scan-fast" and job["state"] == "running"
     assert job["progress"]["fraction"] == pytest.approx(70 / 120) and job["progress"]["chamfer_mm"] == 1.86
     assert job["progress"]["line"].startswith("reconstruct (fast): 70/120 s, loss 2.25, Chamfer 1.86 mm")
+
+
+def test_the_queue_says_of_kept_results_and_damaged_files_what_worker_status_says(tmp_path, capsys):
+    from spadscan.cli import main
+
+    said = queue_with_a_kept_result_and_a_damaged_record(tmp_path)
+    assert main(["worker", "--root", str(tmp_path), "--status"]) == 0
+    printed = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()}
+    with serving(tmp_path) as server:
+        jobs = {j["id"]: j for j in status(server)["queue"]["jobs"]}
+    for job_id, detail in said.items():
+        assert jobs[job_id]["detail"] == detail and printed[job_id].endswith("  " + detail), (jobs[job_id], printed)
 
 
 def test_a_progress_bar_is_read_with_every_field_it_carries():
@@ -115,6 +170,52 @@ def test_finished_and_live_reconstructions_with_their_pages(tmp_path):
         assert get(server, first["files"]["preview.png"])[0] == 200
         assert get(server, second["files"]["coverage.png"]) == (200, b"\x89PNG coverage")
         assert "coverage.png" not in first["files"] and "preview.png" not in second["files"]
+
+
+def test_every_url_of_a_scan_or_job_with_an_odd_name_is_served(tmp_path):
+    import trimesh
+
+    names = ["cup #2 100%", "what?", "gain 100%41", "tasse-é", os.fsdecode(b"caf\xe9 #1")]  # the last: not UTF-8
+    held = {}
+    for name in names:
+        complete_scan(tmp_path / name, 2)
+        held[name] = add_final_recon(tmp_path / name)
+    live = tmp_path / names[0] / "recon" / "live"
+    live.mkdir()
+    (live / "status.json").write_text(json.dumps({"views_used": 2, "steps": 10}))
+    trimesh.creation.icosphere(subdivisions=1, radius=0.05).export(live / "mesh.ply")
+    with serving(tmp_path) as server:
+        scans = {s["name"]: s for s in status(server)["scans"]}
+        assert sorted(scans) == sorted(names)
+        for name in names:
+            final = next(r for r in scans[name]["recons"] if r["kind"] == "final")
+            assert final["id"] == "job #1?" and set(final["files"]) == set(held[name])
+            for file, data in held[name].items():
+                assert get(server, final["files"][file]) == (200, data), (name, final["files"][file])
+        (live_row,) = [r for r in scans[names[0]]["recons"] if r["kind"] == "live"]
+        assert get(server, live_row["files"]["mesh.ply"])[0] == 200
+        code, page = get(server, live_row["files"]["view3d.html"])
+        assert code == 200 and b"cup #2 100% (live)" in page
+
+
+def test_a_scan_folder_linked_out_of_the_root_is_listed_without_links_and_says_why(tmp_path):
+    from spadscan.dashboard.scans import LINKED_OUT
+
+    root, elsewhere = tmp_path / "captures", tmp_path / "otherdisk"
+    for folder in (root / "here", elsewhere / "cup"):
+        complete_scan(folder, 2)
+        add_final_recon(folder, "job1")
+    (root / "cup").symlink_to(elsewhere / "cup")  # captures moved to a bigger disk and linked back
+    (root / "alias").symlink_to(root / "here")  # a link inside the root is served like the folder itself
+    with serving(root) as server:
+        rows = {s["name"]: s for s in status(server)["scans"]}
+        assert rows["cup"]["state"] == "complete" and rows["cup"]["note"] == LINKED_OUT
+        (recon,) = rows["cup"]["recons"]
+        assert recon["summary"]["chamfer_mm"] == 1.0 and recon["files"] == {}
+        assert get(server, "/files/cup/recon/job1/report.html")[0] == 404  # what the missing links would answer
+        for name in ("here", "alias"):
+            (recon,) = rows[name]["recons"]
+            assert rows[name]["note"] is None and get(server, recon["files"]["report.html"])[0] == 200
 
 
 def test_five_hundred_scans_cost_one_read_each_once_and_nothing_after(tmp_path):

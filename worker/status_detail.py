@@ -1,0 +1,46 @@
+"""The last column of `spadscan worker --status` for one job (and the dashboard's queue table, which shows the same):
+a done job's result folder and what its report said of itself, a running job's progress, else its last error, then
+damaged queue files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def result_health(row) -> dict:
+    """{"converged": bool, "warnings": [...]} from a done job's report.json (what its reconstruction said about
+    itself); {} when there is none to read."""
+    if row.state != "done" or not row.result:
+        return {}
+    try:
+        report = json.loads((Path(row.result) / "report.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(report, dict):
+        return {}
+    warnings = report.get("warnings")
+    return {"converged": report.get("converged"),
+            "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else []}
+
+
+def status_detail(row, running: dict | None = None) -> str:
+    """The last column of a --status row: a done job's result folder, a running job's progress (its log's progress
+    bar, `running`: job_progress.running_progress), else its last error; then damaged files. A stale running job's
+    row says why first."""
+    if row.state == "done":
+        detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
+        if row.result and row.kept:
+            detail += " (already there when the job was claimed: kept, not run)"
+        health = result_health(row)
+        if health.get("converged") is False:
+            detail += " (not converged)"
+        notes = [f"warning: {w}" for w in health.get("warnings", [])] + ([] if not row.result else row.notes)
+    else:
+        progress = (running or {}).get(row.id) if row.state == "running" else None
+        detail, notes = (progress.line() if progress else row.error or "-"), row.notes
+        if progress and row.error:
+            notes = [f"last error: {row.error}", *notes]
+        if row.stale:
+            detail, notes = row.stale, [n for n in [row.error, *notes] if n]
+    return "; ".join([detail, *notes])
