@@ -15,6 +15,7 @@ import os
 import signal
 import time
 
+from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError, DeviceError
 
 from .config import DaemonConfig
@@ -110,8 +111,8 @@ class Dispatcher:
         if op == "resume":
             return await r.resume()
         if op == "abort":
-            reason = req.get("reason") or "aborted by user"
-            return await r.abort(str(reason)[:200])
+            # On one line before the cut: the capture records it as one line, and status and logs show it too.
+            return await r.abort(fold(req.get("reason") or "")[:200] or "aborted by user")
         if op == "wait":
             if not isinstance(req.get("name"), str):
                 raise ConfigError("wait needs a scan 'name'")

@@ -9,8 +9,10 @@ from __future__ import annotations
 import json
 import os
 import socket
+import stat
+import struct
 
-from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.errors import ConfigError, SpadscanError
 
 MAX_REPLY_BYTES = 16 * 1024 * 1024
 
@@ -23,15 +25,58 @@ class ControlTimeout(ControlError):
     """The daemon did not answer within the caller's timeout (for `wait`, the scan may simply still be running)."""
 
 
-def default_socket_path() -> str:
-    """$SPADSCAN_SOCKET, else $XDG_RUNTIME_DIR/spadscan.sock, else /tmp/spadscan-<uid>.sock."""
+SOCKET_ROOT = "/tmp"
+"""Where the default socket's private folder lives. Not $TMPDIR or $XDG_RUNTIME_DIR: a systemd service has neither
+(or other values than the user's login shell), and the daemon and `spadscan ctl` must agree on the path."""
+
+
+def default_socket_path(create: bool = True) -> str:
+    """$SPADSCAN_SOCKET, else /tmp/spadscan-<uid>/spadscan.sock, from the uid alone: the daemon under systemd and
+    `spadscan ctl` in the same user's shell find the same socket. (/run/user/<uid> exists only while the user is
+    logged in: a daemon started at boot would miss it, and logging out removes it.) create: make that folder, mode
+    0700, or check the one there; someone else's, or one others can write to, could hold their socket under the
+    daemon's name, and is a one-line ConfigError. `spadscan ctl` only computes the path: `request` refuses a
+    socket served by another user anyway."""
     env = os.environ.get("SPADSCAN_SOCKET")
     if env:
         return env
-    run = os.environ.get("XDG_RUNTIME_DIR")
-    if run and os.path.isdir(run):
-        return os.path.join(run, "spadscan.sock")
-    return f"/tmp/spadscan-{os.getuid()}.sock"
+    folder = os.path.join(SOCKET_ROOT, f"spadscan-{os.getuid()}")
+    if create:
+        _private_folder(folder)
+    return os.path.join(folder, "spadscan.sock")
+
+
+def _private_folder(folder: str) -> None:
+    fix = "remove it, or set SPADSCAN_SOCKET (or the config's `socket` and ctl --socket) to a path of your own"
+    try:
+        os.mkdir(folder, 0o700)
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise ConfigError(f"cannot make the control socket's folder {folder}: {exc.strerror or exc}") from None
+    try:
+        st = os.lstat(folder)  # lstat: a symlink another user planted is not a folder of ours
+    except OSError as exc:
+        raise ConfigError(f"control socket folder {folder}: {exc.strerror or exc}") from None
+    if not stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"control socket folder {folder} is not a folder; {fix}")
+    if st.st_uid != os.getuid():
+        raise ConfigError(f"control socket folder {folder} belongs to uid {st.st_uid}, not to you "
+                          f"(uid {os.getuid()}); {fix}")
+    if st.st_mode & 0o022:
+        raise ConfigError(f"control socket folder {folder} is writable by others (mode "
+                          f"{stat.S_IMODE(st.st_mode):o}); chmod 700 {folder}")
+
+
+def _peer_uid(sock: socket.socket, path: str) -> int:
+    """The uid of the process serving the socket: the kernel's SO_PEERCRED (struct ucred: pid, uid, gid), else the
+    socket file's owner."""
+    try:
+        _, uid, _ = struct.unpack("iII", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                                         struct.calcsize("iII")))
+        return uid
+    except (AttributeError, OSError):  # no SO_PEERCRED on this system
+        return os.stat(path).st_uid
 
 
 def request(socket_path, message: dict, timeout_s: float | None = 10.0) -> dict:
@@ -51,6 +96,12 @@ def request(socket_path, message: dict, timeout_s: float | None = 10.0) -> dict:
         except OSError as exc:
             raise ControlError(f"cannot connect to {path}: {exc.strerror or exc}") from None
         try:
+            # Scan names and options go only to a daemon of this user: anyone may bind a name in a shared folder.
+            uid = _peer_uid(sock, path)
+            if uid != os.getuid():
+                raise ControlError(f"{path} is served by uid {uid}, not by you (uid {os.getuid()}); refusing to "
+                                   f"talk to another user's process (run ctl as the daemon's user, or use another "
+                                   f"socket)")
             sock.sendall((json.dumps(message) + "\n").encode())
             return _read_reply(sock, path, op)
         except socket.timeout:

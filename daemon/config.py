@@ -129,7 +129,7 @@ class DaemonConfig:
     """Captures root: a scan named N is written to <captures>/N/."""
     socket: Path = key(None, "path")
     """Control socket path (mode 0600); default (the same as `spadscan ctl`'s): $SPADSCAN_SOCKET, else
-    $XDG_RUNTIME_DIR/spadscan.sock, else /tmp/spadscan-<uid>.sock."""
+    /tmp/spadscan-<uid>/spadscan.sock (a private 0700 folder, made when the config is read)."""
     auto_resume: bool = key(False, "bool")
     """Resume an interrupted scan by itself at start-up (otherwise it waits, paused, for `ctl resume`). A real arm
     needs its backend's confirmation too ([arm] allow_auto_resume for 'ur')."""

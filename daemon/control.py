@@ -27,6 +27,7 @@ import stat
 from pathlib import Path
 from typing import AsyncIterator, Awaitable, Callable
 
+from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError, SpadscanError
 
 log = logging.getLogger("spadscan.daemon")
@@ -64,6 +65,9 @@ def check_socket_path(path: Path) -> str:
         raise ConfigError(f"socket path {path}: cannot tell whether a daemon listens ({exc.strerror or exc})") from None
     finally:
         probe.close()
+    if st.st_uid != os.getuid():  # not a daemon `ctl shutdown` could stop: someone may have taken the name first
+        raise ConfigError(f"socket path {path} is served by another user's process (uid {st.st_uid}); choose "
+                          f"another socket path")
     raise ConfigError(f"another daemon is already listening on {path} (stop it with `spadscan ctl shutdown`)")
 
 
@@ -136,7 +140,7 @@ class ControlServer:
                         reply = {"ok": False, "error": problem}
                     else:
                         reply = await self._answer_while_connected(line, sock)
-                    writer.write((json.dumps(reply) + "\n").encode())
+                    writer.write(_encode(reply))
                     await writer.drain()
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
@@ -150,7 +154,11 @@ class ControlServer:
         """The reply to one line. The handler runs in this task, so its reply is written before anything it
         scheduled (shutdown's stop) runs. A read-only request is watched: when its client hangs up, this task is
         cancelled, which ends the request and the connection (see the module docstring)."""
-        request, reply = _parse(line)
+        try:
+            request, reply = _parse(line)
+        except Exception as exc:  # a parsing case _parse does not know must cost this line, not the connection
+            log.exception("control request line could not be parsed")
+            return _internal_error(exc)
         if request is None:
             return reply
         if request["op"] not in self.abandonable:
@@ -211,7 +219,21 @@ class ControlServer:
             raise
         except Exception as exc:  # a bug in a handler must not take the server down
             log.exception("control request %r failed", request.get("op"))
-            return {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
+            return _internal_error(exc)
+
+
+def _internal_error(exc: Exception) -> dict:
+    return {"ok": False, "error": f"internal error: {type(exc).__name__}: {fold(exc)}"}
+
+
+def _encode(reply: dict) -> bytes:
+    """One reply line. A reply JSON cannot hold (a handler's bug: an object, a nested loop) becomes an error reply,
+    so that the client still gets its line and the connection keeps serving."""
+    try:
+        return (json.dumps(reply) + "\n").encode()
+    except (TypeError, ValueError, RecursionError) as exc:
+        log.exception("control reply could not be encoded")
+        return (json.dumps(_internal_error(exc)) + "\n").encode()
 
 
 def _parse(line: bytes) -> tuple[dict | None, dict | None]:
@@ -228,6 +250,10 @@ def _parse(line: bytes) -> tuple[dict | None, dict | None]:
         request = json.loads(text)
     except json.JSONDecodeError as exc:
         return None, {"ok": False, "error": f"malformed JSON ({exc.msg} at column {exc.colno})"}
+    except RecursionError:  # arrays nested thousands deep, well inside max_line
+        return None, {"ok": False, "error": "malformed JSON (nested too deeply)"}
+    except ValueError:  # an integer of more digits than Python converts (sys.get_int_max_str_digits)
+        return None, {"ok": False, "error": "malformed JSON (a number too long to read)"}
     if not isinstance(request, dict) or not isinstance(request.get("op"), str):
         return None, {"ok": False, "error": "a request must be a JSON object with a string 'op'"}
     return request, None

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,12 +69,14 @@ def chunk_name(index: int) -> str:
     return f"{CHUNK_PREFIX}{index:06d}"
 
 
+CHUNK_NAME = re.compile(re.escape(CHUNK_PREFIX) + r"([0-9]{6})")
+"""A published chunk's folder name: ASCII digits only (str.isdigit takes '١' and '²', and int('²') raises)."""
+
+
 def chunk_index(name: str) -> int | None:
     """Index of a published chunk folder name, or None for anything else."""
-    if not name.startswith(CHUNK_PREFIX):
-        return None
-    digits = name[len(CHUNK_PREFIX):]
-    return int(digits) if digits.isdigit() and len(digits) == 6 else None
+    match = CHUNK_NAME.fullmatch(name)
+    return int(match[1]) if match else None
 
 
 def check_poses(poses: np.ndarray, where: str) -> np.ndarray:
@@ -126,9 +129,14 @@ def to_counts(values: np.ndarray, where: str) -> np.ndarray:
     return a.astype(np.uint32)
 
 
+def fold(text) -> str:
+    """Text on one line: each run of whitespace, line breaks included, becomes one space."""
+    return " ".join(str(text).split())
+
+
 def one_line(exc: BaseException) -> str:
     """An exception's message folded onto one line (library messages sometimes span several)."""
-    return " ".join(str(exc).split()) or type(exc).__name__
+    return fold(exc) or type(exc).__name__
 
 
 def check_json(data, where: str) -> None:
@@ -152,10 +160,24 @@ def read_json(path: Path) -> dict:
     return data
 
 
+NPY_MAGIC = b"\x93NUMPY"
+
+
 def read_npy(path: Path) -> np.ndarray:
-    """Load a .npy file without pickles; truncation or corruption is a one-line CaptureError naming the file."""
+    """Load a .npy file without pickles, in the machine's byte order; a file that is not a .npy, truncation or
+    corruption is a one-line CaptureError naming the file."""
     try:
-        array = np.load(path, allow_pickle=False)
+        with open(path, "rb") as f:
+            head = f.read(len(NPY_MAGIC))
+            # Without the magic np.load would try to unpickle the file and complain about allow_pickle, which reads
+            # as a pickling bug rather than a damaged file (zeroed after a power cut, text, an .npz archive).
+            if head != NPY_MAGIC:
+                raise CaptureError(f"{path}: " + ("corrupt or truncated .npy (it ends inside its header)"
+                                                  if NPY_MAGIC.startswith(head) else
+                                                  "not a .npy file (no .npy header: damaged, or another kind of "
+                                                  "file)"))
+            f.seek(0)
+            array = np.load(f, allow_pickle=False)
     except FileNotFoundError:
         raise CaptureError(f"{path}: missing") from None
     except (OSError, ValueError, EOFError) as exc:
@@ -163,9 +185,9 @@ def read_npy(path: Path) -> np.ndarray:
             raise CaptureError(f"{path}: holds Python objects, not a plain array; a capture never writes such a "
                                f"file") from None
         raise CaptureError(f"{path}: corrupt or truncated .npy ({one_line(exc)})") from None
-    if not isinstance(array, np.ndarray):  # an .npz archive under an .npy name
-        getattr(array, "close", lambda: None)()
-        raise CaptureError(f"{path}: not a single .npy array ({type(array).__name__})")
+    if not array.dtype.isnative:
+        # A big-endian file (another writer, another machine) holds the same numbers: compare and compute natively.
+        array = array.astype(array.dtype.newbyteorder("="))
     return array
 
 

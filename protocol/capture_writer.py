@@ -11,6 +11,7 @@ publish costs about two journal commits (the files, then the rename) instead of 
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import errno
 import json
@@ -22,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from .capture_format import (CHUNK_PREFIX, FORMAT, MANIFEST, SCHEDULE, STATES, TMP_PREFIX, VERSION, Measurement,
-                             check_json, check_poses, chunk_index, chunk_name, fsync_dir, read_json, save_npy_durable,
-                             to_counts, write_durable, write_json_atomic)
+                             check_json, check_poses, chunk_index, chunk_name, fold, fsync_dir, one_line, read_json,
+                             save_npy_durable, to_counts, write_durable, write_json_atomic)
 from .capture_reader import CaptureReader
 from .errors import CaptureError
 from .sensor_model import SensorModel
@@ -92,6 +93,17 @@ def _drop_temporary(path: Path) -> None:
                 p.unlink(missing_ok=True)
 
 
+def _undo_create(path: Path, made: bool) -> None:
+    """Best effort (the error that stopped `create` is the one to report): remove the files a failed `create` wrote,
+    and the folder when it made it."""
+    with contextlib.suppress(OSError):
+        for name in (SCHEDULE, MANIFEST):
+            (path / name).unlink(missing_ok=True)
+        _drop_temporary(path)  # the manifest's temporary file
+        if made:
+            path.rmdir()  # not rmtree: whatever someone else put there meanwhile stays
+
+
 def _occupied(path: Path) -> str:
     """Why `create` refuses a folder with a manifest, and what to do. Only simulations and imports get here (the
     daemon never reuses a scan name, and resumes its own scans with `resume`), and they cannot continue a capture:
@@ -105,7 +117,7 @@ def _occupied(path: Path) -> str:
         return f"{path}: already holds a capture (complete); choose another folder"
     why = "unreadable scan.json"
     if state is not None:
-        why = f"state {state!r}" + (f": {' '.join(str(reason).split())}" if reason else "")
+        why = f"state {state!r}" + (f": {fold(reason)}" if reason else "")  # another writer's reason may span lines
     return f"{path}: already holds a capture that was not finished ({why}); delete the folder or choose another"
 
 
@@ -151,10 +163,8 @@ class CaptureWriter:
         sensor.validate()
         check_json({"rig": rig, "schedule": schedule, "scene": scene}, f"{path / MANIFEST}")
         he = np.eye(4) if hand_eye is None else check_poses(np.asarray(hand_eye, float)[None], "hand-eye")[0]
-        path.mkdir(parents=True, exist_ok=True)
-        if planned_poses is not None:
-            planned = check_poses(np.asarray(planned_poses, dtype=np.float64), "planned poses")
-            _write(save_npy_durable, path / SCHEDULE, planned)
+        planned = None if planned_poses is None else check_poses(np.asarray(planned_poses, dtype=np.float64),
+                                                                 "planned poses")
         manifest = {
             "format": FORMAT,
             "version": VERSION,
@@ -173,8 +183,18 @@ class CaptureWriter:
             "scene": scene or {},
         }
         check_json(manifest, f"{path / MANIFEST}")  # fail before anything is written
-        _write(write_json_atomic, path / MANIFEST, manifest)
-        _write(fsync_dir, path.parent)
+        made = not path.exists()
+        path.mkdir(parents=True, exist_ok=True)
+        try:
+            if planned is not None:
+                _write(save_npy_durable, path / SCHEDULE, planned)
+            _write(write_json_atomic, path / MANIFEST, manifest)
+            _write(fsync_dir, path.parent)
+        except BaseException:
+            # A full disk or Ctrl-C here would leave files that make the rerun refuse the folder ("holds other
+            # files", "not finished"): the folder was empty or new (checked above), so all that is in it is ours.
+            _undo_create(path, made)
+            raise
         return cls(path, manifest, sensor, 0, 0, set())
 
     @classmethod
@@ -272,9 +292,12 @@ class CaptureWriter:
             _write(write_json_atomic, self.path / MANIFEST, self.manifest)
 
     def set_state(self, state: str, reason: str | None = None, **extra) -> None:
-        """Record the scan's state (and why) in the manifest, atomically."""
+        """Record the scan's state (and why) in the manifest, atomically. The reason is stored on one line, as the
+        format defines it, whoever passed it (`ctl abort --reason` may carry line breaks)."""
         if state not in STATES:
             raise CaptureError(f"state {state!r} is not one of {STATES}")
+        if isinstance(reason, str):
+            reason = fold(reason)
         check_json({"reason": reason, **extra}, f"{self.path / MANIFEST}")
         self.manifest.update(state=state, reason=reason, updated_utc=_now(), **extra)
         _write(write_json_atomic, self.path / MANIFEST, self.manifest)
@@ -290,7 +313,7 @@ class CaptureWriter:
         elif isinstance(exc, OSError) and exc.filename and exc.strerror:
             reason = f"{doing} failed: {exc.filename}: {exc.strerror}"
         else:
-            reason = f"{doing} failed: {' '.join(str(exc).split()) or type(exc).__name__}"
+            reason = f"{doing} failed: {one_line(exc)}"
         try:
             self.set_state("aborted", reason)
         except (OSError, CaptureError):

@@ -14,8 +14,9 @@
 The live reconstruction (`spadscan worker --live`) is read from the scan's recon/live/status.json, beside the daemon:
 views used of those published, steps, whether it converged, the Chamfer when the scene is known, the last update.
 
-Units: metres, seconds, degrees. The socket defaults to $SPADSCAN_SOCKET, else $XDG_RUNTIME_DIR/spadscan.sock, else
-/tmp/spadscan-<uid>.sock; pass --socket to match the daemon's `socket` config key.
+Units: metres, seconds, degrees. The socket defaults to $SPADSCAN_SOCKET, else /tmp/spadscan-<uid>/spadscan.sock,
+the daemon's default too (also as a systemd service); pass --socket to match the daemon's `socket` config key. ctl
+talks only to a daemon that runs as the same user.
 """
 
 from __future__ import annotations
@@ -78,7 +79,7 @@ def add_arguments(parser) -> None:
 
     def common(p, default):
         p.add_argument("--socket", type=_socket, default=default, metavar="PATH",
-                       help=f"the daemon's control socket (default: {default_socket_path()})")
+                       help=f"the daemon's control socket (default: {default_socket_path(create=False)})")
         p.add_argument("--timeout", type=_seconds, default=default, metavar="S",
                        help="seconds to wait for the reply, > 0 (default: 30; `wait` and `scan --wait`: forever)")
 
@@ -145,7 +146,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from spadscan.daemon.client import call, default_socket_path
 
-    path = default_socket_path() if args.socket is None else args.socket
+    path = default_socket_path(create=False) if args.socket is None else args.socket
     timeout = 30.0 if args.timeout is None else args.timeout
     if args.op == "wait":
         return _wait(path, args.name, args.timeout)

@@ -7,9 +7,10 @@ folders under the config's captures root.
 The config is checked completely (unknown keys, bad values, missing or unreadable mesh and firmware files, an
 unreachable default scan, a missing serial port or I2C bus, a socket path taken by another file or served by another
 daemon, a captures root another daemon holds) before any device is touched; `--check` runs the same checks without
-connecting, creating the captures root or claiming the socket. One daemon runs per captures root: it holds a lock on
-<captures>/.spadscan-daemon.lock for its life (released by the kernel if it dies). Control it with `spadscan ctl`;
-examples/README.md documents every config key.
+connecting, creating the captures root or claiming the socket (reading the config does make the default socket's
+private folder, /tmp/spadscan-<uid>, mode 0700, when `socket` is left out). One daemon runs per captures root: it
+holds a lock on <captures>/.spadscan-daemon.lock for its life (released by the kernel if it dies). Control it with
+`spadscan ctl`; examples/README.md documents every config key.
 """
 
 from __future__ import annotations

@@ -8,6 +8,8 @@ import time
 
 import pytest
 
+from spadscan.daemon import client
+
 
 @pytest.fixture
 def no_leaked_threads_or_fds():
@@ -19,3 +21,10 @@ def no_leaked_threads_or_fds():
         time.sleep(0.02)
     assert not set(threading.enumerate()) - threads, "test leaked threads"
     assert len(os.listdir("/proc/self/fd")) <= fds, "test leaked file descriptors"
+
+
+@pytest.fixture(autouse=True)
+def private_socket_root(tmp_path_factory, monkeypatch):
+    """Configs read without a `socket` key make the default socket's private folder: in a folder of the test's,
+    not in the machine's /tmp."""
+    monkeypatch.setattr(client, "SOCKET_ROOT", str(tmp_path_factory.mktemp("sockets")))

@@ -138,6 +138,25 @@ def test_dispatcher(arun, tmp_path):
     assert out[3] == {"name": "n", "state": "complete"} and out[4] == {"stopping": True} and stopped
 
 
+def test_an_abort_reason_is_one_line_before_it_is_cut(arun, tmp_path):
+    """`ctl abort --reason` may carry line breaks; the capture, the status and the log take one line, and the
+    200-character cut counts what is shown, not runs of whitespace."""
+    from spadscan.daemon.config import config_from_dict
+
+    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(tmp_path / "s.sock"),
+                            "sensor": {"backend": "sim", "mesh": "builtin:sphere"}}, tmp_path / "rig.toml")
+
+    async def scenario():
+        runner = FakeRunner()
+        d = Dispatcher(runner, asyncio.Event(), cfg)
+        for reason in ("sensor cable\n  unplugged\tby Bob\n", " " * 300 + "x" * 300, " \n "):
+            await d({"op": "abort", "reason": reason})
+        return runner.calls
+
+    assert arun(scenario()) == [("abort", "sensor cable unplugged by Bob"), ("abort", "x" * 200),
+                                ("abort", "aborted by user")]
+
+
 # ---- spadscan daemon --check -----------------------------------------------------------------------------------------
 def write_check_rig(tmp_path, sensor: str) -> Path:
     rig = tmp_path / "rig.toml"

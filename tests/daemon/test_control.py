@@ -270,3 +270,149 @@ def test_a_client_that_hangs_up_on_a_pending_request_is_let_go(arun, tmp_path):
     reply = arun(scenario())
     assert reply == {"ok": True, "done": "status"}
     assert sorted(seen) == [("scan", "finished"), ("status", "finished"), ("wait", "cancelled")]
+
+
+def test_json_the_parser_chokes_on_gets_an_error_and_the_connection_keeps_serving(arun, tmp_path, caplog):
+    """Nesting deeper than Python's recursion limit and integers longer than its int-conversion limit raise from
+    json.loads something other than JSONDecodeError; each line still gets its one-line error."""
+    path = tmp_path / "ctl.sock"
+    deep = b"[" * 60_000 + b"\n"
+    deep_in_request = b'{"op": "status", "x": ' + b"[" * 30_000 + b"]" * 30_000 + b"}\n"
+    huge_int = b'{"op": "status", "n": ' + b"7" * 5000 + b"}\n"
+
+    async def scenario():
+        async with ControlServer(path, echo):
+            return await exchange(path, [deep, deep_in_request, huge_int, b'{"op": "status"}\n'])
+
+    replies = arun(scenario())
+    assert replies[:3] == [{"ok": False, "error": "malformed JSON (nested too deeply)"}] * 2 + [
+        {"ok": False, "error": "malformed JSON (a number too long to read)"}]
+    assert replies[3] == {"ok": True, "echo": "status"}
+    assert not [r for r in caplog.records if r.levelname == "ERROR"], "no traceback in the daemon's log"
+
+
+def test_an_unforeseen_parse_or_reply_failure_costs_the_line_not_the_connection(arun, tmp_path, monkeypatch):
+    """The backstop: whatever parsing raises, or a reply JSON cannot hold (a handler's bug), is answered with an
+    internal error and the next line on the same connection is served."""
+    import spadscan.daemon.control as control
+
+    path = tmp_path / "ctl.sock"
+    real_parse = control._parse
+
+    def parse(line):
+        if b"explode" in line:
+            raise MemoryError("parser gave up")
+        return real_parse(line)
+
+    async def handler(req):
+        return {"value": object()} if req["op"] == "object" else await echo(req)
+
+    monkeypatch.setattr(control, "_parse", parse)
+
+    async def scenario():
+        async with ControlServer(path, handler):
+            return await exchange(path, [b'{"op": "explode"}\n', b'{"op": "object"}\n', b'{"op": "status"}\n'])
+
+    one, two, three = arun(scenario())
+    assert one == {"ok": False, "error": "internal error: MemoryError: parser gave up"}
+    assert two["ok"] is False and two["error"].startswith("internal error: TypeError: Object of type object")
+    assert three == {"ok": True, "echo": "status"}
+
+
+def test_the_client_refuses_a_socket_served_by_another_user(arun, tmp_path, monkeypatch):
+    """Another local user may bind the socket name first (a shared folder): ctl must not hand it scan names and
+    options. Here the daemon is another user because this process claims another uid."""
+    path = tmp_path / "ctl.sock"
+    seen = []
+
+    async def record(req):
+        seen.append(req["op"])
+        return {}
+
+    real = os.getuid()
+
+    async def scenario():
+        async with ControlServer(path, record):
+            with monkeypatch.context() as m, pytest.raises(ControlError) as info:
+                m.setattr(os, "getuid", lambda: real + 1)
+                await asyncio.to_thread(call, path, "scan", name="mug")
+            return str(info.value), await asyncio.to_thread(call, path, "status")
+
+    message, ok = arun(scenario())
+    assert message == (f"{path} is served by uid {real}, not by you (uid {real + 1}); refusing to talk to another "
+                       f"user's process (run ctl as the daemon's user, or use another socket)")
+    assert seen == ["status"] and ok == {"ok": True}
+
+
+def test_a_socket_another_user_serves_is_named_as_theirs(arun, tmp_path, monkeypatch):
+    """`spadscan ctl shutdown` cannot stop another user's process: the daemon says whose socket it is instead."""
+    path = tmp_path / "ctl.sock"
+    real = os.getuid()
+
+    async def scenario():
+        async with ControlServer(path, echo):
+            with monkeypatch.context() as m, pytest.raises(ConfigError) as info:
+                m.setattr(os, "getuid", lambda: real + 1)
+                claim_socket_path(path)
+            return str(info.value)
+
+    assert arun(scenario()) == (f"socket path {path} is served by another user's process (uid {real}); choose "
+                                f"another socket path")
+
+
+# ---- the default socket ------------------------------------------------------------------------------------------
+@pytest.fixture
+def socket_root(tmp_path, monkeypatch):
+    """The default socket's folder made under tmp_path instead of /tmp; no SPADSCAN_SOCKET."""
+    import spadscan.daemon.client as client
+
+    monkeypatch.setattr(client, "SOCKET_ROOT", str(tmp_path))
+    monkeypatch.delenv("SPADSCAN_SOCKET", raising=False)
+    return tmp_path
+
+
+def test_the_default_socket_depends_on_the_uid_alone(socket_root, monkeypatch):
+    """A systemd service has no XDG_RUNTIME_DIR (nor the user's TMPDIR); the user's login shell has both: the
+    daemon and ctl must still agree. The daemon makes the folder private; ctl only computes the path."""
+    from spadscan.daemon.client import default_socket_path
+
+    expected = str(socket_root / f"spadscan-{os.getuid()}" / "spadscan.sock")
+    monkeypatch.delenv("XDG_RUNTIME_DIR", raising=False)
+    monkeypatch.delenv("TMPDIR", raising=False)
+    assert default_socket_path(create=False) == expected and not os.path.exists(os.path.dirname(expected))
+    service = default_socket_path()
+    st = os.lstat(os.path.dirname(expected))
+    assert stat.S_ISDIR(st.st_mode) and stat.S_IMODE(st.st_mode) == 0o700 and st.st_uid == os.getuid()
+    (socket_root / "run-user").mkdir()
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(socket_root / "run-user"))
+    monkeypatch.setenv("TMPDIR", str(socket_root / "run-user"))
+    assert service == expected == default_socket_path() == default_socket_path(create=False)
+    monkeypatch.setenv("SPADSCAN_SOCKET", str(socket_root / "mine.sock"))
+    assert default_socket_path() == str(socket_root / "mine.sock")
+
+
+@pytest.mark.parametrize("spoil, word", [
+    ("other owner", "belongs to uid {real}, not to you (uid {fake})"),
+    ("symlink", "is not a folder"),
+    ("writable", "is writable by others (mode 777)")])
+def test_a_default_socket_folder_others_could_use_is_refused(socket_root, monkeypatch, spoil, word):
+    """Someone else's folder under /tmp, or one others can write to, could hold their socket under the daemon's
+    name: one line saying what to do, and no socket path."""
+    from spadscan.daemon.client import default_socket_path
+
+    real = os.getuid()
+    fake = real + 1 if spoil == "other owner" else real  # this process claims another uid: the folder is not its
+    folder = socket_root / f"spadscan-{fake}"
+    if spoil == "symlink":
+        (socket_root / "elsewhere").mkdir(mode=0o700)
+        folder.symlink_to(socket_root / "elsewhere")
+    else:
+        folder.mkdir(mode=0o700)
+        if spoil == "writable":
+            folder.chmod(0o777)
+    with monkeypatch.context() as m, pytest.raises(ConfigError) as info:
+        m.setattr(os, "getuid", lambda: fake)
+        default_socket_path()
+    message = str(info.value)
+    assert message.startswith(f"control socket folder {folder} ") and word.format(real=real, fake=fake) in message
+    assert "\n" not in message

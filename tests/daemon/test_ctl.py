@@ -240,3 +240,29 @@ def test_ctl_wait_on_a_terminal_imports_tqdm_but_not_numpy(fake_daemon):
     assert json.loads(out) == {"name": "mug", "state": "complete"}
     names = imported(shown)
     assert "tqdm" in names and not names & {"numpy", "torch"}, sorted(names)
+
+
+def test_ctl_in_a_login_shell_finds_the_default_socket_of_a_daemon_run_by_systemd(tmp_path, monkeypatch, capsys):
+    """The shipped unit runs the daemon without XDG_RUNTIME_DIR (systemd sets no session variables); the same user's
+    login shell has it. With `socket` left at its default, as in every example config, `spadscan ctl status` from
+    that shell reaches the daemon. (The default folder is made under tmp_path, not /tmp.)"""
+    import spadscan.daemon.client as client
+    from spadscan.daemon.config import config_from_dict
+
+    monkeypatch.setattr(client, "SOCKET_ROOT", str(tmp_path))
+    monkeypatch.delenv("SPADSCAN_SOCKET", raising=False)
+    monkeypatch.delenv("XDG_RUNTIME_DIR", raising=False)  # the service's environment
+    cfg = config_from_dict({"captures": str(tmp_path), "sensor": {"backend": "sim", "mesh": "builtin:sphere"}},
+                           tmp_path / "rig.toml")
+    server = FakeDaemon(str(cfg.socket))
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01})
+    thread.start()
+    try:
+        (tmp_path / "run-user").mkdir(mode=0o700)
+        monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "run-user"))  # the login shell's
+        assert main(["ctl", "status"]) == 0, capsys.readouterr().err
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join()
+    assert json.loads(capsys.readouterr().out)["scan"] == "mug" and server.requests == ["status"]

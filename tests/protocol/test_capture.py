@@ -558,3 +558,61 @@ def test_follow_reads_a_finished_scan_and_times_out_on_a_stalled_one(tmp_path):
     with pytest.raises(CaptureError, match="no new chunk"):
         next(chunks)
     w.finish()
+
+
+@pytest.mark.parametrize("name, content, expect", [
+    ("hists.npy", bytes(4096), "not a .npy file"),  # a zeroed block: lost data after a power cut
+    ("poses.npy", b"this is text, not an array\n", "not a .npy file"),
+    ("reference.npy", b"ab", "not a .npy file"),  # shorter than the magic, and not its beginning
+    ("hists.npy", b"\x93NUM", "corrupt or truncated .npy (it ends inside its header)"),
+    ("hists.npy", b"", "corrupt or truncated .npy (it ends inside its header)")])
+def test_a_chunk_file_that_is_not_npy_is_reported_as_damaged(tmp_path, name, content, expect):
+    """Without the .npy magic np.load would try to unpickle the file, and its allow_pickle error read as "holds
+    Python objects": that message is for a real .npy of dtype object only (case 'pickled hists' above)."""
+    path = tmp_path / "scan"
+    write(path, 3, 3)
+    (path / chunk_name(0) / name).write_bytes(content)
+    with pytest.raises(CaptureError) as info:
+        CaptureReader(path).load()
+    assert str(info.value).startswith(f"{path / chunk_name(0) / name}: {expect}"), str(info.value)
+    assert "Python objects" not in str(info.value)
+
+
+def test_big_endian_npy_files_are_read_in_the_machine_order(tmp_path):
+    """A `>u4` or `>f8` file holds uint32 counts or float64 poses as well (another writer, another machine)."""
+    path = tmp_path / "scan"
+    planned = np.stack([tmf(i).pose for i in range(3)])
+    write(path, 3, 3, planned_poses=planned)
+    before = CaptureReader(path).load()
+    chunk = path / chunk_name(0)
+    for name in ("hists.npy", "poses.npy", "reference.npy"):
+        a = np.load(chunk / name)
+        np.save(chunk / name, a.astype(a.dtype.newbyteorder(">")))
+    np.save(path / "schedule.npy", planned.astype(">f8"))
+    assert np.load(chunk / "hists.npy").dtype.str == ">u4"
+    reader = CaptureReader(path)
+    after = reader.load()
+    assert after.hists.dtype == np.uint32 and after.poses.dtype == np.float64 and after.reference.dtype == np.uint32
+    np.testing.assert_array_equal(after.hists, before.hists)
+    np.testing.assert_array_equal(after.poses, before.poses)
+    np.testing.assert_array_equal(after.reference, before.reference)
+    np.testing.assert_array_equal(reader.planned_poses(), planned)
+
+
+@pytest.mark.parametrize("digit", ["\u0661", "\u00b2"])  # ARABIC-INDIC DIGIT ONE, SUPERSCRIPT TWO
+def test_only_six_ascii_digits_name_a_chunk(tmp_path, digit):
+    """A copy named with another Unicode digit is not a chunk: ignored by the reader and by resume (a superscript
+    made int() raise a bare ValueError in every command)."""
+    from spadscan.protocol.capture_format import chunk_index
+
+    path = tmp_path / "scan"
+    write(path, 2, 1, finish=False)
+    (path / chunk_name(1)).rename(path / f"chunk-00000{digit}")
+    assert chunk_index(f"chunk-00000{digit}") is None and chunk_index("chunk-000042") == 42
+    assert chunk_index("chunk-42") is None and chunk_index("chunk-0000001") is None
+    assert CaptureReader(path).chunk_names() == [chunk_name(0)]
+    assert len(CaptureReader(path).load().meta) == 1
+    w = CaptureWriter.resume(path)
+    assert w.next_pose_index == 1
+    w.append(tmf(1))  # chunk size 1: published at once
+    assert CaptureReader(path).chunk_names() == [chunk_name(0), chunk_name(1)]

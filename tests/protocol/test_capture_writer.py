@@ -172,3 +172,49 @@ def test_create_on_an_existing_capture_says_what_to_do(tmp_path, state, reason, 
         CaptureWriter.create(tmp_path / "scan", sensor)
     assert expect in str(info.value) and "resume" not in str(info.value)
     assert "\n" not in str(info.value)
+
+
+def test_set_state_stores_the_reason_on_one_line(tmp_path):
+    """The format defines `reason` as one line; `ctl abort --reason` (and any other writer) may pass line breaks."""
+    w = CaptureWriter.create(tmp_path / "scan", sensor_preset("tmf8820"))
+    w.set_state("aborted", "sensor cable\n  unplugged\r\nby Bob\t")
+    assert CaptureReader(tmp_path / "scan").manifest["reason"] == "sensor cable unplugged by Bob"
+
+
+def _full_while_saving(path, array):
+    """A full disk while schedule.npy is written: a few bytes made it to disk."""
+    with open(path, "wb") as f:
+        f.write(b"\x93NUMPY")
+    raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+
+def _full_while_writing_the_manifest(path, data):
+    with open(path.with_name(".tmp-" + path.name), "wb") as f:
+        f.write(b'{"format"')
+    raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+
+def _interrupted_after_the_manifest(path):
+    raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize("fails", [("save_npy_durable", _full_while_saving),
+                                   ("write_json_atomic", _full_while_writing_the_manifest),
+                                   ("fsync_dir", _interrupted_after_the_manifest)])
+@pytest.mark.parametrize("existing", [False, True])
+def test_a_failed_create_leaves_nothing_that_blocks_the_rerun(tmp_path, monkeypatch, fails, existing):
+    """A full disk or Ctrl-C inside `create` (an import writes schedule.npy before scan.json) used to leave files
+    that made the rerun refuse the folder ("holds other files"). A new folder goes again; an empty one the user made
+    stays, empty."""
+    sensor = sensor_preset("tmf8820")
+    path = tmp_path / "scan"
+    if existing:
+        path.mkdir()
+    name, failure = fails
+    monkeypatch.setattr(cw, name, failure)
+    with pytest.raises((OSError, KeyboardInterrupt)):
+        CaptureWriter.create(path, sensor, planned_poses=np.stack([np.eye(4)] * 3))
+    assert (sorted(path.iterdir()) == []) if existing else not path.exists()
+    monkeypatch.undo()  # space freed
+    CaptureWriter.create(path, sensor, planned_poses=np.stack([np.eye(4)] * 3)).finish()
+    assert CaptureReader(path).planned_poses().shape == (3, 4, 4)
