@@ -78,9 +78,12 @@ def zone_rays(zones, rays_per_zone: int, seed: int) -> ZoneRays:
         d, w = (cone_rays if zone.kind == "cone" else rect_rays)(zone, int(rays_per_zone), rng)
         dirs.append(d)
         weights.append(w)
-    m = min(len(w) for w in weights)  # rect grids may round differently: keep one count, rescale the weights
-    dirs = [d[:m] for d in dirs]
-    weights = [w[:m] * (w.sum() / w[:m].sum()) for w in weights]
+    # Rect grids may round differently: keep one count, rescale the weights. The rays kept are spread over the
+    # whole grid: the first m alone (the grid runs x-major) left most of a zone's last column unsampled.
+    m = min(len(w) for w in weights)
+    keep = [np.round(np.linspace(0, len(w) - 1, m)).astype(int) for w in weights]
+    dirs = [d[k] for d, k in zip(dirs, keep)]
+    weights = [w[k] * (w.sum() / w[k].sum()) for w, k in zip(weights, keep)]
     return ZoneRays(np.stack(dirs), np.stack(weights))
 
 

@@ -16,6 +16,10 @@ import numpy as np
 
 from .errors import SensorModelError
 
+MAX_SIGNAL_SCALE = 1e9
+"""The largest signal_scale a sensor model may state (photons per cycle per unit albedo per sr/m^2: far beyond any
+sensor's saturation)."""
+
 
 @dataclass(frozen=True)
 class Zone:
@@ -263,8 +267,8 @@ class SensorModel:
         for i, z in enumerate(self.zones):
             z.validate(f"{where} zone {i}")
         self.pulse.validate(f"{where} pulse")
-        for key, lo, hi in (("signal_scale", 0.0, 1e9), ("background", 0.0, 1.0), ("crosstalk", 0.0, 1.0),
-                            ("jitter_bins", 0.0, 1000.0)):
+        for key, lo, hi in (("signal_scale", 0.0, MAX_SIGNAL_SCALE), ("background", 0.0, 1.0),
+                            ("crosstalk", 0.0, 1.0), ("jitter_bins", 0.0, 1000.0)):
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
                 raise SensorModelError(f"{where}: {key} = {v} is outside [{lo}, {hi}]")

@@ -28,7 +28,7 @@ import numpy as np
 from . import pileup
 from .errors import SimulationError
 from .raycast import first_hits, make_intersector, zone_rays
-from .sensor_model import SensorModel
+from .sensor_model import MAX_SIGNAL_SCALE, SensorModel
 from .sim_table import SimTable
 from .transient import FineAxis, convolve_pulse, pulse_pad_bins
 
@@ -143,6 +143,10 @@ class Simulator:
             raise SimulationError("mesh has no triangles")
         if not np.all(np.isfinite(mesh.vertices)):
             raise SimulationError("mesh has non-finite vertices")
+        if sensor.signal_scale * settings.power > MAX_SIGNAL_SCALE:
+            raise SimulationError(f"power = {settings.power:g} is too much for sensor {sensor.name!r}: at most "
+                                  f"{MAX_SIGNAL_SCALE / sensor.signal_scale:.4g} (its signal scale is "
+                                  f"{sensor.signal_scale:g})")
         self.settings = settings
         self.base_sensor = sensor
         self.sensor = sensor.with_(

@@ -569,3 +569,9 @@ def test_table_options_without_a_table_are_refused(tmp_path, capsys, option):
     err = capsys.readouterr().err
     assert err == f"spadscan: error: {option[0]} {option[1]} is for a table: add --table\n"
     assert not (tmp_path / "c").exists()
+
+
+def test_a_power_beyond_the_sensor_models_limit_names_power():
+    """--power 1e9 passed the settings' check, then failed naming signal_scale, which the user never set."""
+    with pytest.raises(SimulationError, match=r"power = 1e\+09 is too much for sensor 'lcspc-sim': at most 8\.9"):
+        Simulator(trimesh.creation.icosphere(), sensor_preset("lcspc-sim"), SimSettings(power=1e9))
