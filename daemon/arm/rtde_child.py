@@ -46,6 +46,17 @@ def ik_answered(polyscope: tuple[int, int] | None) -> bool:
     return polyscope[0] == 3 and polyscope >= IK_QUERY_SINCE["CB-series"]
 
 
+TCP_OFFSET_SINCE = (3, 6)
+"""PolyScope version from which ur_rtde's control script answers getTCPOffset (command 40: get_tcp_offset() into
+output_double_register_0..5; its lines are marked `$3.6` and left out before, when the registers keep stale values)."""
+
+
+def tcp_offset_answered(polyscope: tuple[int, int] | None) -> bool:
+    """Whether a controller of PolyScope version `polyscope` (major, minor) answers getTCPOffset: 3.6 on, so every
+    e-Series (5.x). A controller whose dashboard names no version is asked all the same."""
+    return polyscope is None or polyscope >= TCP_OFFSET_SINCE
+
+
 class CommandFailed(Exception):
     """The controller did not carry out a command (its control script is not running, or a safety stop is active).
     Not a RuntimeError: the parent ends the link on those, and this link is fine."""
@@ -140,6 +151,20 @@ class Client:
                     return {"index": i, "check": "ik", "ik_checked": ik}
         return {"index": -1, "check": "", "ik_checked": ik}
 
+    def tcp_offset(self) -> list[float] | None:
+        """The controller's active TCP offset (getTCPOffset: a pose vector [m, rad] in the flange frame), or None
+        where its PolyScope cannot tell (before 3.6). CommandFailed when the controller could not answer."""
+        if not tcp_offset_answered(self.polyscope):
+            return None
+        try:
+            offset = [float(x) for x in self.control.getTCPOffset()]
+        except RuntimeError as exc:  # ur_rtde's way of saying the command did not run (a safety stop, no script)
+            raise CommandFailed(f"getTCPOffset: {exc}") from None
+        if len(offset) != 6:  # the command was not taken
+            self._answering("getTCPOffset")
+            raise CommandFailed(f"getTCPOffset: no answer ({offset})")
+        return offset
+
     def _answering(self, what: str) -> None:
         """CommandFailed unless the controller could have answered (script running, no safety stop)."""
         c, r = self.control, self.receive
@@ -160,7 +185,8 @@ class Client:
 
 OPS = {"open": Client.open, "read": Client.read, "read_progress": Client.read_progress, "moveL": Client.move_l,
        "stopL": Client.stop_l, "program_running": Client.program_running, "set_watchdog": Client.set_watchdog,
-       "kick": Client.kick, "reupload": Client.reupload, "check_poses": Client.check_poses}
+       "kick": Client.kick, "reupload": Client.reupload, "check_poses": Client.check_poses,
+       "tcp_offset": Client.tcp_offset}
 
 
 def answer(client: Client, line: str) -> dict:

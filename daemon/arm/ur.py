@@ -18,7 +18,13 @@ What ur_rtde does not tell by raising, this class checks:
   stop it on a safety stop, the watchdog stops it, so may the pendant) raises ArmFault too, and `clear_fault()`
   (the runner calls it when the scan resumes) uploads it again (reuploadScript; a fresh connection if that fails);
 - the speed slider: a move's time budget counts time at the controller's combined speed scaling, so a slowed arm
-  is not taken for a stuck one.
+  is not taken for a stuck one;
+- the active TCP: spadscan's poses are the tool flange's (sensor pose = TCP pose x [arm] hand_eye), so the
+  controller's active TCP offset (getTCPOffset) must be zero, within TCP_OFFSET_TOL_M / TCP_OFFSET_TOL_RAD. It is
+  read at connect (unless a safety stop keeps the script from answering) and, for every program ur_rtde starts
+  (connect, reupload), at the latest before the first pose check or move; a non-zero one (a "pointer" TCP left
+  active after measuring a calibration target) raises ArmFault naming it. PolyScope before 3.6 cannot tell
+  (`rtde_child.TCP_OFFSET_SINCE`) and is not asked.
 The controller's watchdog (setWatchdog, after every connection or script upload) stops the program, and with it the
 arm, when no input arrives for 1/watchdog_hz s: the daemon's event loop kicks it (kickWatchdog) three times per
 period, so an arm whose daemon went silent (killed, stopped, hung) stops by itself. `check_poses` asks the controller
@@ -71,6 +77,10 @@ SAFEGUARD_MODES = frozenset({5, 12, 13})
 """Safety modes in which the arm is held by a safeguard (RTDE guide): treated like a protective stop."""
 BIT_SAFEGUARD_STOPPED = 1 << 4
 """safety_status_bits: 'is safeguard stopped' (bit 2 protective, bit 7 emergency: ur_rtde reads those itself)."""
+TCP_OFFSET_TOL_M = 1e-4
+"""m: largest translation of the controller's active TCP offset still taken for the bare flange."""
+TCP_OFFSET_TOL_RAD = 1e-3
+"""rad: largest rotation of the controller's active TCP offset still taken for the bare flange."""
 MIN_SPEED_SCALING = 0.01
 """A move's time budget runs at the speed scaling, but never slower than this (a slider at zero: the runner's own
 move_timeout_s still applies)."""
@@ -125,6 +135,10 @@ class URArm(Arm):
         self._link: RTDELink | None = None  # the ur_rtde client process, once connected
         self._kicker: asyncio.Task | None = None  # kicks the controller's watchdog while the link is open
         self._watchdog_set = False  # setWatchdog taken by the script now running
+        self._tcp_checked = False  # the script now running reported a zero TCP offset (or cannot tell)
+        self.tcp_offset: list[float] | None = None
+        """The active TCP offset (pose vector [m, rad], flange frame) last read from the controller; None before the
+        first read, or where the controller cannot tell."""
         # The last controller timestamp seen and when it last changed.
         self._last_ts: float | None = None
         self._last_change = 0.0
@@ -158,21 +172,25 @@ class URArm(Arm):
             raise
         self._open = True
         self._last_ts = None
-        self._watchdog_set = False
+        self._watchdog_set = self._tcp_checked = False
         self._kicker = asyncio.ensure_future(self._kick_watchdog())
-        await self._fresh("the first data after connecting")
+        reading = await self._fresh("the first data after connecting")
+        if reading.program_running and not (reading.protective or reading.emergency or reading.safeguard):
+            await self._check_tcp_offset()  # else before the first move: a stopped arm's script answers nothing
 
     async def prepare(self) -> None:
-        """Refuse to start while the arm is stopped for safety or its control script is not running; arm the
-        watchdog."""
+        """Refuse to start while the arm is stopped for safety, its control script is not running or its active TCP
+        is not the bare flange; arm the watchdog."""
         reading = await self._fresh("the safety state")
         await self._raise_if_stopped(reading, "cannot prepare")
+        await self._check_tcp_offset()
         await self._arm_watchdog()
 
     async def clear_fault(self) -> None:
         """The scan resumes after an arm fault (the operator has cleared any safety stop on the pendant). A control
         script that stopped meanwhile is uploaded again (reuploadScript; a fresh connection if it does not start)
-        and the watchdog armed again; a safety stop still active is left to the next move to report."""
+        and the watchdog armed again (and its TCP offset read again: a new program takes the installation's TCP); a
+        safety stop still active is left to the next move to report."""
         self._require_open()
         reading = await self._fresh("the control script's state")
         deadline = time.monotonic() + CLEARED_WITHIN_S
@@ -183,8 +201,9 @@ class URArm(Arm):
             await self._call("reuploadScript", "reupload")
             if not await self._script_started():
                 await self.reconnect()
-            self._watchdog_set = False
+            self._watchdog_set = self._tcp_checked = False
         if not (reading.protective or reading.emergency or reading.safeguard):
+            await self._check_tcp_offset()
             await self._arm_watchdog()
 
     async def _script_started(self) -> bool:
@@ -205,6 +224,31 @@ class URArm(Arm):
             await self._raise_if_stopped(reading, "setWatchdog refused")
             raise ArmFault(f"{self.name}: the controller refused setWatchdog({self.watchdog_hz:g} Hz)")
         self._watchdog_set = True
+
+    async def _check_tcp_offset(self) -> None:
+        """Read the active TCP offset of the script now running, once (getTCPOffset): ArmFault unless it is zero
+        within TCP_OFFSET_TOL_M / TCP_OFFSET_TOL_RAD, or when the controller cannot answer."""
+        if self._tcp_checked:
+            return
+        try:
+            offset = await self._call("getTCPOffset", "tcp_offset")
+        except LinkLost:
+            raise
+        except DeviceError as exc:
+            await self._no_stop_behind_refusal("cannot read the controller's TCP offset")
+            raise ArmFault(f"{self.name}: cannot read the controller's active TCP offset: {exc}") from None
+        self.tcp_offset = offset
+        if offset is not None:
+            vec = np.asarray(offset, dtype=np.float64)
+            shift, turn = float(np.linalg.norm(vec[:3])), float(np.linalg.norm(vec[3:]))
+            if not (math.isfinite(shift + turn) and shift <= TCP_OFFSET_TOL_M and turn <= TCP_OFFSET_TOL_RAD):
+                mm = ", ".join(f"{v * 1e3:.1f}" for v in vec[:3])
+                deg = ", ".join(f"{math.degrees(v):.2f}" for v in vec[3:])
+                raise ArmFault(f"{self.name}: the controller's active TCP offset is [{mm}] mm, [{deg}] deg (rotation "
+                               f"vector), not the bare flange that spadscan's poses and [arm] hand_eye refer to; "
+                               f"select the bare-flange TCP on the teach pendant (Installation -> General -> TCP) or "
+                               f"set its offset to zero, then start (or resume) again")
+        self._tcp_checked = True
 
     async def _kick_watchdog(self) -> None:
         """Kick three times per watchdog period while the link lives (replies are not awaited: a kick queued behind
@@ -230,6 +274,7 @@ class URArm(Arm):
         # A controller stopped for safety, or without its script, cannot answer: say which (as a move would).
         await self._raise_if_stopped(await self._fresh("the safety state before the pose checks"),
                                "the controller cannot check the planned poses")
+        await self._check_tcp_offset()  # the controller checks TCP poses: they must be the flange's
         try:
             result = await self._call(f"the controller's checks of {len(vecs)} poses", "check_poses", vecs,
                                       timeout_s=self.timeout_s + 0.25 * len(vecs))
@@ -278,6 +323,7 @@ class URArm(Arm):
         self._require_open()
         start = await self._fresh("live data before moveL")
         await self._raise_if_stopped(start, "moveL refused")
+        await self._check_tcp_offset()
         await self._arm_watchdog()
         what = f"moveL to [{target[0]:.4f}, {target[1]:.4f}, {target[2]:.4f}] m"
         vec = [float(x) for x in target]
@@ -428,7 +474,7 @@ class URArm(Arm):
         if reading.safeguard:
             raise ArmFault(f"safeguard stop on {self.name}: {doing} ({mode}; reset the safeguard, then resume)")
         if not reading.program_running:
-            self._watchdog_set = False
+            self._watchdog_set = self._tcp_checked = False  # the program uploaded next is asked afresh
             raise ArmFault(f"{self.name}: {doing}: the RTDE control script is not running on the controller (the "
                            f"watchdog stops it when the daemon falls silent for {1 / self.watchdog_hz:g} s; a safety "
                            f"stop or the pendant can stop it too); resuming the scan uploads it again")

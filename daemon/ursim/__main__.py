@@ -29,6 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stop-script-on-fault", action="store_true",
                         help="stop the control script on a safety stop, as a real controller may (upload it again "
                              "after clearing the stop)")
+    parser.add_argument("--tcp-offset", default="0,0,0,0,0,0", metavar="X,Y,Z,RX,RY,RZ",
+                        help="the pendant's active TCP offset in the flange frame [m, rad] that get_tcp_offset "
+                             "answers (default 0,0,0,0,0,0: the bare flange; the UR arm backend refuses any other)")
     parser.add_argument("--control-stdio", action="store_true",
                         help="take JSON-line requests on stdin, answer on stdout; stop when stdin closes")
     args = parser.parse_args(argv)
@@ -36,7 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         controller = SimURController(args.host, time_scale=args.time_scale)
         controller.configure(speed_slider=args.speed_slider, pose_noise_m=args.pose_noise_m,
-                             stop_script_on_fault=args.stop_script_on_fault)
+                             stop_script_on_fault=args.stop_script_on_fault,
+                             tcp_offset=args.tcp_offset.split(","))
     except SpadscanError as exc:
         print(f"ursim: error: {exc}", file=sys.stderr)
         return 1

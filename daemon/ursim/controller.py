@@ -13,7 +13,11 @@ asynchronous (done at once; `output_int_register_2` reports the move running, bi
 THREAD_START_S later, and then finished).
 Queries answer in `output_int_register_1` (1 = yes): 36 is_within_safety_limits(pose), 60/61
 get_inverse_kin_has_solution(pose[, qnear, errors]), from the model's reach (`kinematics.reachable`) and its safety
-planes. 35 set_watchdog: `rtde_set_watchdog("input_int_register_0", f, "stop")`, so an input package that writes the
+planes. 40 get_tcp_offset: the script writes the URScript get_tcp_offset() (the active TCP offset, a pose vector
+[m, rad] in the flange frame: `tcp_offset`, zero - the bare flange - by default) to `output_double_register_0..5`
+and signals done, and ur_rtde's getTCPOffset reads those six registers (the script has those lines from controller
+3.6 on). The reported TCP poses stay the model's own: it has no flange that an offset would move.
+35 set_watchdog: `rtde_set_watchdog("input_int_register_0", f, "stop")`, so an input package that writes the
 command register must arrive at least every 1/f s (ur_rtde's kickWatchdog writes 0 there), or the program stops
 (runtime STOPPED) and the arm halts where it is.
 
@@ -43,6 +47,7 @@ from spadscan.daemon.ursim.variables import OUTPUT_TYPES, ZERO
 MOVE_COMMANDS = {1: "moveJ", 2: "moveJ_IK", 3: "moveL", 4: "moveL_FK"}
 STOP_COMMANDS = {33: "stopL", 34: "stopJ"}
 SET_WATCHDOG, IS_POSE_WITHIN_SAFETY_LIMITS, IK_HAS_SOLUTION, IK_HAS_SOLUTION_ARGS = 35, 36, 60, 61
+GET_TCP_OFFSET = 40
 STOP_SCRIPT = 255
 THREAD_START_S = 0.008
 """Controller seconds from an asynchronous move's "done" to its thread's "started" in the progress register: one
@@ -89,6 +94,10 @@ class URControllerModel:
         self.safety_floor_z: float | None = None
         """A safety plane: TCP positions below this height (m) are outside the safety limits."""
         self.reach_m = 0.85
+        self.tcp_offset: tuple[float, ...] = (0.0,) * 6
+        """The active TCP offset the pendant sets (pose vector [m, rad], flange frame), as get_tcp_offset answers it."""
+        self.tcp_offset_reads = 0
+        """Times the script answered get_tcp_offset (command 40)."""
         self.watchdog_period_s: float | None = None  # set by set_watchdog (cmd 35) until the program stops
         self._last_kick = 0.0
         self.watchdog_stops = 0
@@ -228,6 +237,11 @@ class URControllerModel:
         if cmd == SET_WATCHDOG:
             self.watchdog_period_s = 1.0 / regs[0] if math.isfinite(regs[0]) and regs[0] > 0 else None
             self._last_kick = t
+            self._out_int[0] = 2
+            return
+        if cmd == GET_TCP_OFFSET:
+            self._out_double[0:6] = [float(x) for x in self.tcp_offset]
+            self.tcp_offset_reads += 1
             self._out_int[0] = 2
             return
         if cmd in (IS_POSE_WITHIN_SAFETY_LIMITS, IK_HAS_SOLUTION, IK_HAS_SOLUTION_ARGS):

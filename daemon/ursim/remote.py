@@ -39,6 +39,7 @@ def handle(controller: SimURController, request: dict) -> object:
         m = controller.model
         return {"runtime_state": m.runtime_state, "watchdog_period_s": m.watchdog_period_s,
                 "watchdog_stops": m.watchdog_stops, "errors": list(m.errors), "queries": [list(q) for q in m.queries],
+                "tcp_offset_reads": m.tcp_offset_reads,
                 "moving": m.read(["output_int_register_2"])[0] & 32768 != 0,
                 "script_state": m.read(["output_int_register_0"])[0]}
     if op == "dashboard_log":
@@ -111,7 +112,8 @@ class SimURProcess:
 
     def state(self) -> dict:
         """runtime_state (1 stopped, 2 playing), watchdog_period_s, watchdog_stops, errors, queries (name, pose,
-        answer), whether an asynchronous move is running, script_state (1 ready for a command, 2 done with one)."""
+        answer), tcp_offset_reads (get_tcp_offset commands answered), whether an asynchronous move is running,
+        script_state (1 ready for a command, 2 done with one)."""
         return self._request("state")
 
     def emergency_stop(self) -> None:

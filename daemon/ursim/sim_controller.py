@@ -4,7 +4,8 @@
         ... RTDEControlInterface("127.0.0.9") ...
         ur.protective_stop(); ur.clear_protective_stop()     # also safeguard_stop, emergency_stop
         ur.drop_link("silent"); ur.restore_link()
-        ur.configure(speed_slider=0.5, pose_noise_m=2e-4, stop_script_on_fault=True, safety_floor_z=0.05)
+        ur.configure(speed_slider=0.5, pose_noise_m=2e-4, stop_script_on_fault=True, safety_floor_z=0.05,
+                     tcp_offset=(0, 0, 0.1, 0, 0, 0))
         ur.moves  # every command the controller took
 
 The servers run on an asyncio loop in one background thread (`start`/`stop`, or a `with` block), or in the caller's
@@ -29,7 +30,8 @@ from spadscan.protocol.errors import DeviceError
 LINK_MODES = ("close", "silent", "freeze")
 WATCHDOG_POLL_S = 0.005
 """How often the RTDE watchdog is checked (the real controller checks every control cycle, 2 ms)."""
-SETTINGS = ("speed_slider", "pose_noise_m", "stop_script_on_fault", "safety_floor_z", "reach_m", "move_thread_start_s")
+SETTINGS = ("speed_slider", "pose_noise_m", "stop_script_on_fault", "safety_floor_z", "reach_m", "move_thread_start_s",
+            "tcp_offset")
 """What `configure` may change while the controller runs."""
 
 
@@ -153,7 +155,9 @@ class SimURController:
     def configure(self, **settings) -> None:
         """Change what makes the controller less than ideal (thread-safe): speed_slider (0 < f <= 1), pose_noise_m
         (m), stop_script_on_fault (bool), safety_floor_z (m or None), reach_m (m), move_thread_start_s (s: how long
-        an asynchronous move takes to report itself running; one controller cycle by default)."""
+        an asynchronous move takes to report itself running; one controller cycle by default), tcp_offset (the
+        pendant's active TCP offset, a pose vector [m, rad] in the flange frame, which get_tcp_offset answers; zero,
+        the bare flange, by default)."""
         unknown = set(settings) - set(SETTINGS)
         if unknown:
             raise DeviceError(f"unknown controller settings {sorted(unknown)} (known: {', '.join(SETTINGS)})")
@@ -162,6 +166,15 @@ class SimURController:
                 self.model.set_speed_slider(float(settings.pop("speed_slider")))
             except ValueError as exc:
                 raise DeviceError(str(exc)) from None
+        if "tcp_offset" in settings:
+            offset = settings["tcp_offset"]
+            try:
+                offset = tuple(float(x) for x in offset)
+            except (TypeError, ValueError):
+                offset = ()
+            if len(offset) != 6 or not all(map(math.isfinite, offset)):
+                raise DeviceError(f"tcp_offset must be six finite numbers [m, rad], got {settings['tcp_offset']!r}")
+            settings["tcp_offset"] = offset
         for name in ("pose_noise_m", "reach_m", "move_thread_start_s"):
             value = settings.get(name, 0.0)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):

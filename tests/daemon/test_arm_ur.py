@@ -20,7 +20,7 @@ import pytest
 
 from spadscan.daemon.arm.pose_convert import (matrix_to_rotvec, pose_to_vector, rotation_angle, rotvec_to_matrix,
                                               vector_to_pose)
-from spadscan.daemon.arm.rtde_child import answer, ik_answered
+from spadscan.daemon.arm.rtde_child import answer, ik_answered, tcp_offset_answered
 from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.ur import URArm, _Reading
 from spadscan.daemon.devices import ArmFault, LinkLost
@@ -220,6 +220,8 @@ class RefusingController(URArm):
     async def _call(self, what, method, *args, timeout_s=None):
         if method == "program_running":
             return self.stop_at is None
+        if method == "tcp_offset":  # the bare flange
+            return [0.0] * 6
         assert method == "check_poses"
         return {"index": 0, "check": "safety", "ik_checked": False}
 
@@ -469,6 +471,82 @@ def test_the_controller_is_asked_about_every_planned_pose(ur, arun):
     assert ur.moves == []
 
 
+POINTER = (0.0, 0.0, 0.1, 0.0, 0.0, 0.5)  # a 100 mm pointer on the tool axis, turned 28.65 deg about it
+
+
+def test_a_tcp_offset_left_active_on_the_pendant_refuses_the_arm_before_anything_moves(ur, arun):
+    """A "pointer" TCP left active after measuring a calibration target: ur_rtde's getTCPOffset (command 40, answered
+    in output_double_register_0..5) reads it at connect, and the arm refuses in one line naming it; no command that
+    moves is sent, and a move asked for all the same is refused again. Back on the bare flange, a new connection
+    (a new program takes the installation's TCP) moves."""
+    ur.configure(tcp_offset=POINTER)
+    start = ur.pose()
+
+    async def run():
+        arm = make_arm(ur.host)
+        try:
+            with pytest.raises(ArmFault) as refused:
+                await arm.connect()
+            with pytest.raises(ArmFault, match="active TCP offset"):
+                await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+            offset = arm.tcp_offset
+            moves_refused, pose_refused = ur.moves, ur.pose()
+            ur.configure(tcp_offset=(0.0,) * 6)
+            await arm.reconnect()
+            await arm.prepare()
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+            return str(refused.value), offset, moves_refused, pose_refused, arm.tcp_offset
+        finally:
+            await arm.close()
+
+    message, offset, moves_refused, pose_refused, offset_after = arun(run())
+    assert "\n" not in message
+    assert "active TCP offset is [0.0, 0.0, 100.0] mm, [0.00, 0.00, 28.65] deg" in message, message
+    assert "select the bare-flange TCP on the teach pendant" in message and "set its offset to zero" in message
+    assert offset == pytest.approx(POINTER) and offset_after == [0.0] * 6
+    assert moves_refused == [] and pose_refused == pytest.approx(start)  # nothing moved, nothing was even stopped
+    assert [m.name for m in ur.moves] == ["moveL"]
+    assert ur.state()["tcp_offset_reads"] == 3  # at connect, before the refused move, after reconnecting
+
+
+@pytest.mark.parametrize("offset", [(0.0,) * 6, (5e-5, 0.0, -5e-5, 0.0, 5e-4, 0.0)])
+def test_the_bare_flange_tcp_connects_as_before(ur, offset, arun):
+    """A zero TCP offset (or one within 0.1 mm / 1 mrad of it) is the bare flange: read once at connect, recorded,
+    and the arm prepares and moves as before."""
+    ur.configure(tcp_offset=offset)
+
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            read = arm.tcp_offset
+            await arm.prepare()
+            await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+        return read
+
+    assert arun(run()) == pytest.approx(offset)
+    assert [m.name for m in ur.moves] == ["moveL"] and ur.state()["tcp_offset_reads"] == 1
+
+
+def test_a_tcp_offset_the_stopped_controller_cannot_report_at_connect_is_read_before_the_first_move(ur, arun):
+    """A protective stop at connect: the script answers nothing, so connecting does not ask; the stop refuses the
+    preparation, and once it is cleared the offset is read before the first move, which it refuses."""
+    ur.configure(tcp_offset=POINTER)
+    ur.protective_stop()
+
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            with pytest.raises(ArmFault, match="protective stop"):
+                await arm.prepare()
+            reads = ur.state()["tcp_offset_reads"]
+            ur.clear_protective_stop()
+            await cleared(arm)
+            with pytest.raises(ArmFault, match=r"active TCP offset is \[0.0, 0.0, 100.0\] mm"):
+                await arm.move_to(pose(0.4, 0.0, 0.3, DOWN))
+        return reads
+
+    assert arun(run()) == 0
+    assert ur.moves == [] and ur.state()["tcp_offset_reads"] == 1
+
+
 def test_a_slowed_speed_slider_is_not_a_stuck_move(ur_real_time, arun):
     """The pendant's speed slider at 8 %: a 0.6 s move takes 7.5 s. Its time budget (twice the planned time plus
     timeout_s: 5.2 s) counts motion time at the controller's speed scaling, so the move ends normally."""
@@ -674,6 +752,14 @@ def test_rtde_child_answers_each_request_and_never_raises():
 ])
 def test_the_inverse_kinematics_query_is_asked_where_the_control_script_answers_it(polyscope, answers):
     assert ik_answered(polyscope) is answers
+
+
+@pytest.mark.parametrize("polyscope, answers", [
+    ((3, 5), False), ((3, 6), True), ((3, 15), True), ((5, 0), True), ((5, 15), True), ((1, 8), False),
+    (None, True),  # ur_rtde's script lines marked $3.6; a controller that names no version is asked
+])
+def test_the_tcp_offset_is_asked_where_the_control_script_answers_it(polyscope, answers):
+    assert tcp_offset_answered(polyscope) is answers
 
 
 def test_rtde_link_maps_errors_and_ends_the_process_on_a_timeout(arun):

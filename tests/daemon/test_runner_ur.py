@@ -149,6 +149,27 @@ def test_a_pose_the_controller_refuses_stops_the_scan_before_anything_moves(tmp_
     assert queries[-1][0] == "within_safety_limits" and not queries[-1][2] and queries[-1][1][2] < 0.25
 
 
+def test_a_tcp_offset_left_on_the_pendant_keeps_the_daemon_from_starting(tmp_path, controller, arun):
+    """The pendant's active TCP is a 120 mm pointer, not the bare flange the config's hand_eye is measured from: the
+    rig does not start, in one line naming the offset and what to do; nothing moves, no scan can begin."""
+    cfg = ur_config(tmp_path, controller.host)
+    controller.configure(tcp_offset=[0.0, 0.0, 0.12, 0.0, 0.0, 0.0])
+
+    async def scenario():
+        arm, sensor = build_devices(cfg)
+        with pytest.raises(DeviceError) as refused:
+            async with DeviceSession([arm, sensor]):
+                pass
+        return str(refused.value)
+
+    message = arun(scenario(), timeout_s=120)
+    assert "\n" not in message and message.startswith("rig did not start: UR arm"), message
+    assert "active TCP offset is [0.0, 0.0, 120.0] mm, [0.00, 0.00, 0.00] deg" in message, message
+    assert "bare-flange TCP" in message
+    assert [m.name for m in controller.moves] == ["stopL"]  # the release on the way out; no move
+    assert not (tmp_path / "caps" / "ur").exists()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["close", "silent"])
 def test_resume_after_a_dropped_link_reconnects_and_completes(tmp_path, controller, arun, mode):

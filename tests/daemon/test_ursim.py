@@ -424,3 +424,27 @@ def test_model_answers_safety_limit_and_inverse_kinematics_queries_from_its_reac
         assert c.read("output_int_register_1") == [answer], (cmd, pose)
     assert [q[0] for q in c.model.queries] == ["within_safety_limits"] * 2 + ["has_ik_solution"] * 2 + \
         ["within_safety_limits"]
+
+
+def test_model_answers_get_tcp_offset_in_the_output_double_registers_as_the_control_script_does():
+    """ur_rtde's getTCPOffset: command 40, the script writes get_tcp_offset() to output_double_register_0..5 and
+    signals done; nothing is recorded as a move. The offset is the bare flange's (zero) until configured."""
+    c = ClockedModel()
+    regs = [f"output_double_register_{i}" for i in range(6)]
+    c.model.write_inputs({"input_int_register_0": 40})
+    assert c.read("output_int_register_0", *regs) == [2] + [0.0] * 6
+    c.model.write_inputs({"input_int_register_0": 0})
+    assert c.read("output_int_register_0") == [1]
+    c.model.tcp_offset = (0.01, -0.02, 0.15, 0.1, 0.0, -0.3)
+    c.command(40)
+    assert c.read(*regs) == [0.01, -0.02, 0.15, 0.1, 0.0, -0.3]
+    assert c.model.moves == [] and c.model.tcp_offset_reads == 2
+
+
+def test_the_tcp_offset_setting_is_checked():
+    controller = SimURController("127.0.0.1")  # not started: configure only sets the model
+    controller.configure(tcp_offset=[0, 0, "0.1", 0, 0, 0])
+    assert controller.model.tcp_offset == (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
+    for bad in ((0, 0, 0.1), (0, 0, math.nan, 0, 0, 0), "pointer", None):
+        with pytest.raises(DeviceError, match="tcp_offset must be six finite numbers"):
+            controller.configure(tcp_offset=bad)
