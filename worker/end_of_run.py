@@ -195,6 +195,18 @@ def late_drop(data_terms) -> float | None:
     return (before - last) / before if before > 0 else None
 
 
+def late_drop_error(data_terms) -> float:
+    """The standard error of `late_drop` from the steps' scatter within the two fifths (0 where it is None)."""
+    d = np.asarray([x for x in data_terms if x is not None], np.float64)
+    if len(d) < MIN_TREND_STEPS or not np.all(np.isfinite(d)):
+        return 0.0
+    n = len(d) // 5
+    before, last = d[-2 * n:-n], d[-n:]
+    if before.mean() <= 0:
+        return 0.0
+    return float(np.sqrt((before.var(ddof=1) + last.var(ddof=1)) / n) / before.mean())
+
+
 @dataclass
 class RunFacts:
     """What the checks read, as the run recorded it."""
@@ -230,14 +242,16 @@ class RunFacts:
 
 
 def converged(facts: RunFacts) -> bool:
-    """The model's own test where it has one; else (the paper preset) whether the data term had stopped falling
-    (under STILL_FALLING over the last fifth of at least MIN_TREND_STEPS steps)."""
+    """The model's own test where it has one; else (the paper preset) whether the data term had stopped falling:
+    under STILL_FALLING over the last fifth of at least MIN_TREND_STEPS steps, by two standard errors. A step's data
+    term is that of a few random views, which differ several-fold: their scatter alone made a fit still falling
+    over the whole capture read as settled in three runs of five."""
     if facts.stopped_by == "converged":
         return True
     if facts.model_converged is not None:
         return bool(facts.model_converged)
     drop = late_drop(facts.data_terms)
-    return drop is not None and drop < STILL_FALLING
+    return drop is not None and drop + 2.0 * late_drop_error(facts.data_terms) < STILL_FALLING
 
 
 def cpu_share(facts: RunFacts) -> float | None:
@@ -343,7 +357,7 @@ def warnings(facts: RunFacts) -> list[str]:
     return out
 
 
-__all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "converged", "cpu_share",
+__all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error", "converged", "cpu_share",
            "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
            "MISFIT_Z", "MISFIT_RELATIVE", "MISFIT_MIN_HISTOGRAMS",

@@ -15,6 +15,7 @@ from spadscan.worker.coverage import Coverage
 from spadscan.worker.end_of_run import (COVERAGE_LIMIT, EXACT_BELOW, MISFIT_MIN_HISTOGRAMS, MISFIT_RELATIVE,
                                         MISFIT_SHARE_SIMULATED, OVERRUN_SHARE,
                                         RELATIVE_MISFIT_LIMIT, FitNoise, RunFacts, converged, fit_noise, late_drop,
+                                        late_drop_error,
                                         noise_deviance, noise_moments, warnings)
 from spadscan.worker.pieces import Pieces
 
@@ -201,6 +202,23 @@ def test_a_falling_data_term_is_not_converged_and_a_flat_one_is():
     assert not converged(RunFacts("budget", 100, None, falling)) and converged(RunFacts("budget", 100, None, flat))
     assert converged(RunFacts("converged", 100, True, falling))
     assert not converged(RunFacts("budget", 100, False, flat)), "the model's own test, where it has one, decides"
+
+
+def test_a_data_term_too_scattered_to_show_a_trend_is_not_converged():
+    """A step's data term is that of two random views (the paper preset), several-fold apart: a fit still falling
+    read as converged when the last fifth happened to average higher than the one before."""
+    rng = np.random.default_rng(0)
+    trend = np.linspace(1.0, 0.95, 100)
+    views = np.tile([0.2, 1.8], 50)  # two views a step, one dark, one bright
+    views[-20:] *= 1.1  # the last fifth drew brighter views
+    scattered = list(trend * views)
+    assert late_drop(scattered) < 0, "by the mean alone it had stopped falling"
+    assert late_drop_error(scattered) > 0.1
+    assert not converged(RunFacts("steps", 100, None, scattered))
+    steady = list(trend * rng.lognormal(0.0, 0.002, 100))
+    assert late_drop_error(steady) < 0.002
+    assert not converged(RunFacts("steps", 100, None, steady)), "a steady fall of 1 % a fifth is still falling"
+    assert converged(RunFacts("steps", 100, None, list(rng.lognormal(0.0, 0.002, 100))))
 
 
 def test_each_rule_warns_alone():
