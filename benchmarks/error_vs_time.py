@@ -73,7 +73,7 @@ def capture_problem(capture: Path) -> str | None:
     truth its manifest names must load (a capture that names none is run, without Chamfer figures)."""
     from spadscan.protocol.capture_reader import CaptureReader
     from spadscan.protocol.errors import SpadscanError
-    from spadscan.worker.ground_truth import named_ground_truth
+    from spadscan.worker.ground_truth import capture_ground_truth
 
     try:
         reader = CaptureReader(capture)
@@ -81,7 +81,7 @@ def capture_problem(capture: Path) -> str | None:
             return f"scene {capture}: the capture holds no views"
     except (OSError, SpadscanError) as exc:
         return f"scene {capture}: {exc}"
-    spec, why = named_ground_truth(reader.manifest)
+    spec, why = capture_ground_truth(capture)  # the worker's: a scene placed with an offset has none to score by
     if spec is None and why is not None:
         return f"scene {capture}: its ground truth cannot be used ({why})"
     return None
@@ -121,12 +121,11 @@ def imported_from(capture: Path) -> str | None:
 
 def ground_truth(capture: Path):
     """The capture's ground truth as a worker.ground_truth.GroundTruth (scored above a table slab it holds), or None
-    when its scene record names none that loads (worker.ground_truth.named_ground_truth: a dataset import's
-    `ground_truth`, a simulated capture's `mesh` or `builtin` scene)."""
-    from spadscan.protocol.capture_reader import CaptureReader
-    from spadscan.worker.ground_truth import load_ground_truth, named_ground_truth
+    when its scene record names none that loads (worker.ground_truth.capture_ground_truth: a dataset import's
+    `ground_truth`, a simulated capture's `mesh` or `builtin` scene, none where the scene stood offset from it)."""
+    from spadscan.worker.ground_truth import capture_ground_truth, load_ground_truth
 
-    spec, _ = named_ground_truth(CaptureReader(capture).manifest)
+    spec, _ = capture_ground_truth(capture)
     return load_ground_truth(spec) if spec else None
 
 

@@ -94,6 +94,18 @@ def missing_ground_truth(root: Path, capture: Path) -> Path:
     return root / "nogt"
 
 
+def offset_scene(root: Path, capture: Path) -> Path:
+    """The capture as if of the built-in sphere placed 10 cm off (mesh_offset_m, as the daemon's simulated sensor
+    records it)."""
+    (root / "offset").mkdir()
+    manifest = json.loads((capture / "scan.json").read_text())
+    manifest["scene"] = {"builtin": "sphere", "mesh_offset_m": [0.1, 0.0, 0.0]}
+    (root / "offset" / "scan.json").write_text(json.dumps(manifest))
+    for chunk in capture.glob("chunk-*"):
+        (root / "offset" / chunk.name).symlink_to(chunk)
+    return root / "offset"
+
+
 BAD = {
     "unknown preset": (["--presets", "foo"], "unknown preset 'foo' (known: paper, fast)"),
     "no preset, no baselines": (["--presets", ""], "nothing to run: --presets is empty and --baselines is not given"),
@@ -123,14 +135,17 @@ def test_every_bad_scene_is_named_in_its_own_line(bench, capture, tmp_path, monk
     (tmp_path / "a_file").write_text("")
     (tmp_path / "nothing").mkdir()
     scenes = [tmp_path / "gone", tmp_path / "a_file", tmp_path / "nothing", bad_capture(tmp_path),
-              empty_capture(tmp_path, capture), missing_ground_truth(tmp_path, capture), capture, capture]
+              empty_capture(tmp_path, capture), missing_ground_truth(tmp_path, capture),
+              offset_scene(tmp_path, capture), capture, capture]
     assert call(bench, ["--scenes", *scenes, "--budget-s", 5, "--presets", "foo", "--out", tmp_path / "out"]) == 2
     lines = capsys.readouterr().err.splitlines()
-    assert len(lines) == 8 and all(line.startswith("error_vs_time.py: error: ") for line in lines)
+    assert len(lines) == 9 and all(line.startswith("error_vs_time.py: error: ") for line in lines)
     text = "\n".join(lines)
+    # A scene placed with an offset was scored against its mesh where it did not stand (a perfect fit: 50 mm).
     for expected in ("gone: no such folder", "a_file: not a folder", "nothing: holds neither scan.json",
                      "not a spadscan capture", "empty: the capture holds no views", "gone.obj: no such ground-truth",
-                     f"scene {capture} is named twice", "unknown preset 'foo'"):
+                     "stood offset by mesh_offset_m [0.1, 0.0, 0.0]", f"scene {capture} is named twice",
+                     "unknown preset 'foo'"):
         assert expected in text
 
 

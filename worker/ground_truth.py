@@ -25,9 +25,6 @@ flat tops hold far less of it, or have nothing above them (a stool's flat seat).
 OBJECT_ABOVE_M = 0.005
 """A level is a table's top only where part of the mesh rises at least this far (metres) above it."""
 
-_SPLIT_M = 0.002
-"""The ground truth's faces are split to this size (metres) before the cut, which keeps whole triangles: so that it
-is cut at the same height as a finely tessellated reconstruction."""
 
 
 @dataclass(frozen=True)
@@ -78,7 +75,10 @@ class GroundTruth:
 def table_top_z(mesh) -> float | None:
     """Height (metres) of a table slab's top in `mesh`, or None when it has none (see TABLE_AREA_SHARE)."""
     normals, areas = mesh.face_normals, mesh.area_faces
-    up = normals[:, 2] > 0.99
+    # A closed mesh wound inside out (its volume negative) has its normals inward: its slab's bottom would read as
+    # an upward level with the object above it, and the whole slab be scored as the object.
+    inward = mesh.is_watertight and mesh.volume < 0
+    up = (-normals[:, 2] if inward else normals[:, 2]) > 0.99
     if not up.any():
         return None
     heights = np.round(mesh.triangles_center[up, 2], 4)  # one level to 0.1 mm
@@ -93,7 +93,8 @@ def table_top_z(mesh) -> float | None:
 
 
 def cut_above(mesh, z: float):
-    """The faces of `mesh` whose centroids lie above height `z` (metres)."""
+    """The surface of `mesh` above height `z` (metres), its faces across that height split (`metrics.crop_to_box`),
+    whatever its tessellation."""
     from spadscan.worker.metrics import crop_to_box
 
     big = 1e6
@@ -106,7 +107,7 @@ def object_on_table(mesh) -> GroundTruth:
     if top is None:
         return GroundTruth(mesh)
     z = top + CUT_ABOVE_TABLE_M
-    return GroundTruth(cut_above(cut_above(mesh, z).subdivide_to_size(_SPLIT_M, max_iter=12), z), z)
+    return GroundTruth(cut_above(mesh, z), z)
 
 
 def load_ground_truth(spec, *, units: str = "auto", keep_table: bool = False) -> GroundTruth:

@@ -184,8 +184,16 @@ def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(cos)).mean())
 
 
+CROP_SPLIT_M = 0.002
+"""Faces across a crop box's walls are split to this size (metres) before they are kept or dropped by their
+centroids: a cut by whole triangles would keep or drop up to a coarse face's size beyond it, so that a ground truth
+of large CAD faces and a fine reconstruction of the same surface were scored over different parts of it."""
+
+
 def crop_to_box(mesh, box_min, box_max):
-    """The faces of `mesh` whose centroids lie inside the axis-aligned box [box_min, box_max] (metres, (3,) each).
+    """The surface of `mesh` inside the axis-aligned box [box_min, box_max] (metres, (3,) each), to CROP_SPLIT_M:
+    the faces wholly inside, and the pieces (split to that size) whose centroids lie inside of those across its
+    walls.
 
     Used to evaluate an object apart from what surrounds it (a table top, a floor slab in the ground truth).
     """
@@ -197,11 +205,26 @@ def crop_to_box(mesh, box_min, box_max):
         raise MeshError(f"crop box corners must be finite 3-vectors, got {lo.tolist()} and {hi.tolist()}")
     if np.any(lo >= hi):
         raise MeshError(f"crop box min {lo.tolist()} must lie below max {hi.tolist()} on every axis (m)")
-    centroids = mesh.triangles_center
-    keep = np.all((centroids >= lo) & (centroids <= hi), axis=1)
-    if not keep.any():
+
+    def inside(points):
+        return np.all((points >= lo) & (points <= hi), axis=-1)
+
+    corners = inside(mesh.vertices)[mesh.faces]
+    whole = corners.all(axis=1)
+    across = ~whole & (corners.any(axis=1) | inside(mesh.triangles_center))
+    faces = [mesh.faces[whole]]
+    vertices = [mesh.vertices]
+    if across.any():
+        pieces = trimesh.Trimesh(mesh.vertices, mesh.faces[across], process=False)
+        pieces.remove_unreferenced_vertices()
+        pieces = pieces.subdivide_to_size(CROP_SPLIT_M, max_iter=12)
+        keep = inside(pieces.triangles_center)
+        faces.append(pieces.faces[keep] + len(mesh.vertices))
+        vertices.append(pieces.vertices)
+    kept = np.concatenate(faces)
+    if not len(kept):
         raise MeshError(f"no triangle lies inside the crop box {lo.tolist()} .. {hi.tolist()} m "
                         f"(mesh bounds {mesh.bounds.tolist()})")
-    out = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    out = trimesh.Trimesh(np.concatenate(vertices), kept, process=False)
     out.remove_unreferenced_vertices()
     return out

@@ -18,10 +18,12 @@ from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, Simulator, simulate_capture
+from spadscan.worker.baselines.common import calibrate
 from spadscan.worker.baselines.reprojection import reproject_points
 from spadscan.worker.carving import carve_hull, first_returns
 from spadscan.worker.carving.bounds import cube_around
 from spadscan.worker.carving.space_carving import carve_limits
+from spadscan.worker.ground_truth import object_on_table
 from spadscan.worker.metrics import mesh_metrics
 from spadscan.worker.recon.fast.config import fast_config
 from spadscan.worker.recon.fast.problem import carve_keep_returns_m, carve_weak_threshold
@@ -253,6 +255,19 @@ def test_a_threshold_that_finds_nothing_is_one_row_of_the_calibration_not_its_en
     first, second = report["calibration"]["table"]
     assert report["threshold"] == 4.0 and first["chamfer_mm"] is not None
     assert second["chamfer_mm"] is None and "no histogram holds a return" in second["note"]
+
+
+def test_a_threshold_whose_mesh_lies_under_the_table_cut_is_one_row_not_the_end():
+    """Only table-level returns at one threshold: its mesh has nothing above the cut the ground truth is scored
+    above, which ended the whole search (MeshError) though the other thresholds gave surfaces."""
+    slab = trimesh.creation.box([2.0, 2.0, 0.1]).apply_translation([0, 0, -0.05])
+    truth = object_on_table(trimesh.util.concatenate([slab, builtin_scene("sphere")]))
+    on_the_table = trimesh.creation.box([0.2, 0.2, 0.002]).apply_translation([0, 0, 0.001])
+    meshes = {1.0: builtin_scene("sphere"), 2.0: on_the_table}
+    result = calibrate(lambda t: meshes[t], truth, thresholds=(1.0, 2.0), n_points=5_000)
+    assert result.threshold == 1.0
+    below = result.table[1]
+    assert below["chamfer_mm"] is None and "nothing above z = 0.0050 m" in below["note"]
 
 
 def test_calibration_needs_ground_truth(sphere_capture, tmp_path, capsys):

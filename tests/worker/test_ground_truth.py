@@ -65,6 +65,27 @@ def test_the_object_above_the_table_is_what_is_scored():
     assert "table top + 5 mm" in truth.note() and GroundTruth(pyramid()).note() is None
 
 
+def test_the_surface_above_the_cut_is_scored_whole_whatever_its_triangles():
+    """A 12 mm block on the slab, stored as a CAD file does, two triangles a side: each side's lower triangle has its
+    centroid under the cut (5 mm above the table), and whole triangles were kept by their centroids before the
+    split: 4.9 of the 52.8 cm^2 above the cut were lost, and an exact reconstruction of the block scored half as
+    much again as two samplings of one surface do."""
+    block = trimesh.creation.box([0.06, 0.06, 0.012]).apply_translation([0, 0, TOP + 0.006])
+    truth = object_on_table(on_slab(block))
+    above = 0.06 * 0.06 + 4 * 0.06 * (0.012 - CUT_ABOVE_TABLE_M)
+    assert truth.mesh.area == pytest.approx(above, rel=0.01)
+    fine = block.subdivide_to_size(0.001, max_iter=12)
+    assert truth.scored(fine).area == pytest.approx(above, rel=0.01)
+    assert truth.scored(block).area == pytest.approx(above, rel=0.01), "the same surface, coarse, is cut alike"
+
+
+def test_a_ground_truth_wound_inside_out_finds_its_table_all_the_same():
+    """Its slab's bottom read as the table top: the cut went under the slab and the whole 2 m slab was scored."""
+    mesh = on_slab(pyramid())
+    inverted = trimesh.Trimesh(mesh.vertices, mesh.faces[:, ::-1], process=False)
+    assert table_top_z(inverted) == pytest.approx(TOP)
+
+
 def test_a_ground_truth_without_a_table_is_scored_whole(tmp_path):
     ball = trimesh.creation.icosphere(radius=0.05).apply_translation([0, 0, 0.05])
     ball.export(tmp_path / "ball.ply")

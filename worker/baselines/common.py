@@ -12,7 +12,7 @@ import trimesh
 from scipy.ndimage import binary_dilation, binary_fill_holes
 from scipy.spatial import cKDTree
 
-from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.errors import CaptureError, MeshError
 
 from ..carving.space_carving import occupancy_mesh
 
@@ -79,7 +79,10 @@ def calibrate(build: Callable[[float], object], truth, thresholds=None,
             mesh, note = None, str(exc)
         chamfer = None
         if mesh is not None and len(mesh.faces) and mesh.area > 0:
-            chamfer = truth.metrics(mesh, n_points=n_points).chamfer_mm
+            try:
+                chamfer = truth.metrics(mesh, n_points=n_points).chamfer_mm
+            except MeshError as exc:  # e.g. all of it under the table cut: nothing to score at this threshold
+                note = str(exc)
         row = {"threshold": float(t), "chamfer_mm": chamfer, "seconds": round(time.monotonic() - start, 3)}
         table.append(row if note is None else {**row, "note": note})
         if chamfer is not None and (best is None or chamfer < best[1]):
