@@ -96,6 +96,8 @@ class EndCosts:
     fit_check_s: float = 0.0
     """Seconds of the fit check (the views it renders against the photon noise), once a probe has timed a render;
     its 32 views rendered 4 times take a second or more on 2 cores, which FIXED_S does not hold."""
+    view_render_s: float = 0.0
+    """Seconds of one view's render, once a probe has timed one (0: not timed)."""
     probed: list[str] = field(default_factory=list)
 
     def pictures_s(self) -> float:
@@ -132,7 +134,8 @@ class EndCosts:
 
     def time_fit_check(self, seconds: float, views_rendered: int, renders_needed: int) -> None:
         """Rendering `views_rendered` views took `seconds`: the fit check renders `renders_needed` views."""
-        self.fit_check_s = max(seconds, 0.0) / max(views_rendered, 1) * renders_needed
+        self.view_render_s = max(seconds, 0.0) / max(views_rendered, 1)
+        self.fit_check_s = self.view_render_s * renders_needed
         self.probed.append(f"fit check {renders_needed} view renders: {self.fit_check_s:.2f} s")
 
     def end_s(self, resolution: int, points: int | None, checkpoint: tuple[int, int] | None = None) -> float:
@@ -177,6 +180,15 @@ def coverage_picture_within(costs: EndCosts, seconds: float, scored: bool) -> bo
     return seconds - still_needed >= COVERAGE_PICTURE_S
 
 
+def fit_views_within(costs: EndCosts, want: int, renders: int, seconds: float, least: int) -> int:
+    """The most fit-check views up to `want`, each rendered `renders` times, that fit in `seconds` (at least `least`,
+    the views the fit picture shows; `want` where no render was timed)."""
+    per_view = SAFETY * costs.view_render_s * max(renders, 1)
+    if per_view <= 0 or per_view * want <= seconds:
+        return int(want)
+    return int(min(want, max(least, int(max(seconds, 0.0) / per_view))))
+
+
 def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
     """The most metric points up to `want` that fit in `seconds` (at least MIN_METRIC_POINTS, rounded down to a
     thousand when cut)."""
@@ -188,5 +200,5 @@ def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
 
 
 __all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within",
-           "metric_points_within", "coverage_picture_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS",
+           "fit_views_within", "metric_points_within", "coverage_picture_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS",
            "PROBE_RESOLUTIONS", "PROBE_POINTS"]

@@ -24,8 +24,8 @@ from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
-                     PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
-                     metric_points_within, training_budget)
+                     PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, fit_views_within,
+                     mesh_resolution_within, metric_points_within, training_budget)
 from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
@@ -51,7 +51,7 @@ FIT_VIEWS = 4
 NOISE_VIEWS = 32
 """Views the fit is compared with the photon noise on (end_of_run.fit_noise)."""
 NOISE_RENDERS = 4
-"""Renders of each of them averaged for that comparison."""
+"""Renders of each of them averaged for that comparison (one for a model whose render is deterministic)."""
 
 
 def resolve_device(device: str) -> torch.device:
@@ -231,7 +231,15 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     # idle one most of it is left over; drawn first, that time goes to the metric points instead of being lost.
     log("pictures and report")
     t_pictures = clock()
-    fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config)
+    want = min(NOISE_VIEWS, scene.n_views)
+    # The fit check's views, as many as the budget leaves once the fixed pictures and the fewest metric points are
+    # kept back (a deterministic model renders each once; the paper preset's full-size render takes half a minute).
+    fit_views = want if budget_s is None else fit_views_within(
+        costs, want, fit_renders(model), run_clock.left() - costs.fixed_s
+        - (costs.metrics_s(MIN_METRIC_POINTS) if truth else 0.0), least=min(FIT_VIEWS, want))
+    if fit_views < want:
+        notes.append(f"the time budget was short: the fit was checked on {fit_views} views, not {want}")
+    fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config, fit_views)
     picture = coverage_picture_within(costs, run_clock.left(), scored=truth is not None)
     if not picture:
         notes.append("the time budget was short: no coverage picture (coverage.png)")
@@ -317,7 +325,7 @@ def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock) -> None
     probe_views = sorted({0, n_views // 2})
     t0 = clock()
     model.render_histograms(probe_views)
-    costs.time_fit_check(clock() - t0, len(probe_views), min(NOISE_VIEWS, n_views) * NOISE_RENDERS)
+    costs.time_fit_check(clock() - t0, len(probe_views), min(NOISE_VIEWS, n_views) * fit_renders(model))
     timings = {}
     try:
         for resolution in PROBE_RESOLUTIONS:
@@ -430,20 +438,28 @@ def _pieces(mesh, log) -> Pieces | None:
         return None
 
 
-def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig) -> FitNoise | None:
-    """preview.png, error_vs_time.png and fit.png; returns the fit against the photon noise on the views the fit
-    picture shows and as many more (end_of_run.fit_noise; each rendered NOISE_RENDERS times and averaged, the spread
-    of the renders giving the renderer's own sampling noise, which the check counts with the photon noise)."""
+def fit_renders(model) -> int:
+    """Renders of each fit-check view: NOISE_RENDERS, averaged, for a model that renders randomly sampled rays; one
+    for a model whose render is deterministic (`stochastic_render = False`: the same render again would add
+    nothing and cost as much)."""
+    return NOISE_RENDERS if getattr(model, "stochastic_render", True) else 1
+
+
+def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig,
+              n_views: int) -> FitNoise | None:
+    """preview.png, error_vs_time.png and fit.png; returns the fit against the photon noise on `n_views` views
+    spread over the capture, those the fit picture shows among them (end_of_run.fit_noise; each rendered
+    `fit_renders` times and averaged, the spread of the renders giving the renderer's own sampling noise, which the
+    check counts with the photon noise)."""
     pictures.preview_png(mesh, out / "preview.png", gt=gt_mesh)
     scoring = "" if gt_mesh is None else f" (checkpoint Chamfer: {checkpoint_scoring(config)})"
     pictures.error_vs_time_png(result.trace, out / "error_vs_time.png",
                                title=f"{config.preset}: error against run time{scoring}")
-    n = scene.n_views
-    views = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(NOISE_VIEWS, n))})
-    renders = np.stack([model.render_histograms(views) for _ in range(NOISE_RENDERS)])
+    views = sorted({int(round(i)) for i in np.linspace(0, scene.n_views - 1, n_views)})
+    renders = np.stack([model.render_histograms(views) for _ in range(fit_renders(model))])
     rendered = renders.mean(axis=0)
     measured = scene.counts[views].double().cpu().numpy()
     shown = sorted({int(round(i)) for i in np.linspace(0, len(views) - 1, min(FIT_VIEWS, len(views)))})
     pictures.fit_png(measured[shown], rendered[shown], [views[i] for i in shown], out / "fit.png")
     return fit_noise(measured, rendered, scene.valid[views].cpu().numpy(), views,
-                     expected_var=renders.var(axis=0, ddof=1) / NOISE_RENDERS)
+                     expected_var=renders.var(axis=0, ddof=1) / len(renders) if len(renders) > 1 else None)

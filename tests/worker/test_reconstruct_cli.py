@@ -18,6 +18,7 @@ from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker.outputs import check_out, export_mesh
+from spadscan.worker.recon.paper.model import PaperModel
 from spadscan.worker.report import folder_view
 from spadscan.worker.report.view3d import VIEW3D
 
@@ -327,6 +328,22 @@ def test_a_result_lists_its_3d_view_and_one_not_made_again_is_not_left_standing(
     assert not (out / VIEW3D).exists()
     assert VIEW3D not in json.loads((out / "report.json").read_text())["files"]
     assert f"no 3D view ({VIEW3D} was not written)" in (out / "report.html").read_text()
+
+
+def test_a_deterministic_render_is_rendered_once_for_the_fit_check(capture_and_gt, tmp_path, monkeypatch):
+    """The paper preset's render has no random part: its fit check rendered every view four times over (three of
+    them the first again: at the preset's sizes a quarter of an hour of a 16-view capture's end)."""
+    calls = []
+    render = PaperModel.render_histograms
+
+    def counted(model, view_ids):
+        calls.append(list(view_ids))
+        return render(model, view_ids)
+
+    monkeypatch.setattr(PaperModel, "render_histograms", counted)
+    cap, _ = capture_and_gt
+    assert _recon(cap, tmp_path / "out", "--no-gt") == 0
+    assert calls == [[0, 1, 2, 3, 4, 5]]  # the capture's six views, once
 
 
 def test_a_file_in_the_way_and_bad_threads_are_one_line_errors(capture_and_gt, tmp_path, capsys):

@@ -15,8 +15,8 @@ import pytest
 
 from spadscan.worker import reconstruct
 from spadscan.worker.budget import (COVERAGE_PICTURE_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S,
-                                    SAFETY, EndCosts, RunClock, coverage_picture_within, mesh_resolution_within,
-                                    metric_points_within, process_started, training_budget)
+                                    SAFETY, EndCosts, RunClock, coverage_picture_within, fit_views_within,
+                                    mesh_resolution_within, metric_points_within, process_started, training_budget)
 
 BUDGET_S = 30.0
 """Above what a run needs whatever its budget (starting Python and torch, loading, probing, drawing: 13-15 s on the
@@ -61,6 +61,18 @@ def test_the_fit_check_is_kept_back_once_a_render_is_timed():
     costs.time_fit_check(0.05, 2, 128)  # 25 ms a view, 128 view renders
     assert costs.fit_check_s == pytest.approx(3.2)
     assert costs.end_s(256, None) == pytest.approx(before + SAFETY * 3.2)
+
+
+def test_the_fit_check_gets_the_views_the_time_leaves_and_never_fewer_than_its_picture_shows():
+    """The paper preset's full-size render of one view takes about 30 s on two cores: its fit check of 32 views
+    alone overran a 5 s budget by minutes."""
+    costs = EndCosts()
+    assert fit_views_within(costs, 32, 4, seconds=0.0, least=4) == 32  # no render timed: nothing to cut by
+    costs.time_fit_check(2.0, views_rendered=2, renders_needed=32)  # a second a view
+    assert fit_views_within(costs, 32, 1, seconds=32 * SAFETY, least=4) == 32
+    assert fit_views_within(costs, 32, 1, seconds=10 * SAFETY, least=4) == 10
+    assert fit_views_within(costs, 32, 4, seconds=10 * SAFETY, least=4) == 4  # two views' renders fit: the least
+    assert fit_views_within(costs, 3, 4, seconds=0.0, least=3) == 3
 
 
 def test_a_short_time_gets_a_coarser_mesh_and_fewer_points():

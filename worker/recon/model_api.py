@@ -46,6 +46,10 @@ class ReconModel(Protocol):
     terms: "object"
     """The ModelTerms used (listed in the report)."""
 
+    stochastic_render: bool
+    """Whether `render_histograms` samples rays at random (renders differ; the fit check averages several) or is
+    deterministic (one render is all there is). A model that does not say is taken for random."""
+
     def step(self) -> dict:
         """One optimisation step. Returns at least {'loss': float} (the total), plus any named parts."""
 

@@ -44,6 +44,9 @@ class FastModel:
     """Implements model_api.ReconModel for the `fast` preset (see the module docstring), and `parts.Model` for its
     parts."""
 
+    stochastic_render = True
+    """Each render draws its rays and samples afresh (model_api.ReconModel)."""
+
     def __init__(self, problem: FastProblem, config: FastConfig, *, seed: int = 0, terms=None):
         self.problem, self.config, self.terms, self.seed = problem, config, terms, int(seed)
         self.sc = config.schedule

@@ -23,8 +23,10 @@ class RayBatch:
     """Rays of nv views x Z zones x M rays per zone, in world metres.
 
     origins, dirs: (nv, Z, M, 3); t: (nv, Z, M, S) sorted sample ranges; coarse_sdf: (nv, Z, M, S0) the field at the
-    first S0 (stratified) samples, no gradient; hit: (nv, Z, M) 1 where the ray crosses the scene; weight:
-    (nv, Z, M) solid angle carried by each ray (sr, 0 for rays that miss)."""
+    first S0 (stratified) samples, no gradient; hit: (nv, Z, M) 1 where the ray crosses the scene sphere; returns:
+    (nv, Z, M) 1 where it can return light: it crosses the scene sphere or meets the table (a ray that meets only
+    the table sees it through empty space); weight: (nv, Z, M) solid angle carried by each ray (sr, 0 for rays
+    that return nothing)."""
 
     views: torch.Tensor
     origins: torch.Tensor
@@ -32,6 +34,7 @@ class RayBatch:
     t: torch.Tensor
     coarse_sdf: torch.Tensor
     hit: torch.Tensor
+    returns: torch.Tensor
     weight: torch.Tensor | None = field(default=None)
 
     @property
@@ -51,6 +54,7 @@ class RayBatch:
         cat = lambda a, b: None if a is None else torch.cat([a, b], dim=2)  # noqa: E731
         return RayBatch(self.views, cat(self.origins, other.origins), cat(self.dirs, other.dirs),
                         cat(self.t, other.t), cat(self.coarse_sdf, other.coarse_sdf), cat(self.hit, other.hit),
+                        cat(self.returns, other.returns),
                         None if self.weight is None or other.weight is None else cat(self.weight, other.weight))
 
     def coarse_contribution(self, s: float) -> torch.Tensor:

@@ -4,7 +4,10 @@ settings of `ReconConfig`."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import ClassVar
+
+from spadscan.protocol.errors import ConfigError
 
 from ..config import ReconConfig
 
@@ -48,12 +51,13 @@ class RaysConfig:
     rays_per_view: int = 512
     """Rays stratified uniformly in solid angle per view, split evenly over the zones of a multi-zone sensor."""
     importance_rays_per_view: int = 64
-    """Extra rays per view drawn where the previous step saw most signal (balance-heuristic weights keep the
-    estimate unbiased)."""
+    """Extra rays per view drawn in the cells where the view's rays saw most signal the last time it was rendered
+    for training (uniformly the first time); balance-heuristic weights keep the estimate unbiased."""
     min_rays_per_zone: int = 16
     """Floor on stratified rays per zone when `rays_per_view` is split over many zones."""
     samples_per_ray: int = 256
-    """Stratified samples per ray between the ray's entry into and exit from the scene box."""
+    """Stratified samples per ray between the ray's entry into and exit from the scene sphere (at least 2: the
+    opacity lives on the intervals between samples)."""
     importance_samples: int = 32
     """Extra samples per ray drawn from the coarse opacity (inverse-CDF, no gradient)."""
     views_per_batch: int = 2
@@ -72,7 +76,8 @@ class PaperLossConfig:
     eikonal_weight: float = 0.1
     """Weight of mean (|grad f| - 1)^2."""
     eikonal_points: int = 512
-    """Random points in the scene box added to the ray samples for the Eikonal term."""
+    """Random points in the scene sphere added to the ray samples for the Eikonal term (and where the TV term is
+    taken); 0: the Eikonal term on the ray samples alone (measured data then needs tv_weight 0 too)."""
     tv_weight: float = 0.01
     """Weight of the normal-smoothness (total variation) term; used only where the terms say `tv` (real data)."""
 
@@ -128,6 +133,29 @@ class PaperConfig(ReconConfig):
 
     def tensor_dtype(self) -> str:
         return self.dtype
+
+    def check(self) -> None:
+        """The shared checks, then one-line errors for values the model cannot run with (they would otherwise
+        crash it with a traceback after the capture is loaded)."""
+        super().check()
+        # A ray needs two samples to hold one interval of opacity; the rest are counts of things a step needs.
+        positive_ints = {"rays.rays_per_view": 1, "rays.min_rays_per_zone": 1, "rays.views_per_batch": 1,
+                         "rays.samples_per_ray": 2, "field.layers": 1, "field.width": 1, "optim.nominal_steps": 1}
+        for key, least in positive_ints.items():
+            value = attrgetter(key)(self)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= least):
+                raise ConfigError(f"{key} {value!r} must be an integer >= {least}")
+        # The sharpness and the albedos are learned as logarithms (0 has none); softplus divides by its beta; a zero
+        # learning rate or initial sphere leaves nothing to fit.
+        for key in ("sharpness.init", "sharpness.min", "albedo_init", "optim.lr", "field.softplus_beta",
+                    "field.init_radius"):
+            value = attrgetter(key)(self)
+            if not value > 0:
+                raise ConfigError(f"{key} {value!r} must be > 0")
+        if self.sharpness.max < self.sharpness.min:
+            raise ConfigError(f"sharpness.max {self.sharpness.max!r} must be >= sharpness.min {self.sharpness.min!r}")
+        if not 0 <= self.optim.lr_floor <= 1:
+            raise ConfigError(f"optim.lr_floor {self.optim.lr_floor!r} must be in [0, 1] (a fraction of optim.lr)")
 
 
 def paper_config() -> PaperConfig:

@@ -7,7 +7,8 @@ solid angle as its weight: `sum(weight * f(dir))` estimates the integral of f ov
 
 Importance rays are drawn in cells chosen with probabilities pi_k and weighted by the balance heuristic over the two
 sampling strategies, `Omega_k / (1 + n_imp * pi_k)`, for stratified and importance rays alike, which keeps the sum
-unbiased for any pi.
+unbiased for any pi that does not depend on the rays it weights (pi taken from those same rays gives a cell whose ray
+hit a small weight: biased low at hard edges; the model takes pi from an earlier render of the view).
 """
 
 from __future__ import annotations

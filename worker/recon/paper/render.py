@@ -110,7 +110,11 @@ def render_rays(field: SDFField, origins: torch.Tensor, dirs: torch.Tensor, t_sa
     x = origins[:, None, :] + t_samples[..., None] * dirs[:, None, :]
     f, g = field.sdf_and_grad(x.reshape(-1, 3), create_graph=create_graph)
     f, g = f.reshape(r, n), g.reshape(r, n, 3)
+    # A zero-length interval holds no matter. A ray with no segment in the scene sphere has all its samples at one
+    # point; the field there differs between rows by rounding (~1e-7 in float32), which a sharp s would turn into
+    # opacity: mask it, so that such a ray sees the table through empty space with a transmittance of exactly 1.
     alpha = opacity(f, s)
+    alpha = torch.where(t_samples[:, 1:] > t_samples[:, :-1], alpha, torch.zeros_like(alpha))
     trans = round_trip_transmittance(alpha)
     normal = F.normalize(g[:, 1:] + g[:, :-1], dim=-1, eps=1e-12)
     facing = (-(normal * dirs[:, None, :]).sum(-1)).clamp_min(0.0)
