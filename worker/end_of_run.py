@@ -228,6 +228,8 @@ class RunFacts:
     """A real sensor's capture (else a simulated one: the fit is held to the photon noise more tightly)."""
     budget_notes: list[str] = field(default_factory=list)
     """What a short time budget cut (a coarser mesh, fewer metric points): said as warnings too."""
+    scene_notes: list[str] = field(default_factory=list)
+    """What the capture's set-up found that limits the result (a scene bound that cuts the object): warnings too."""
     coverage: object | None = None
     """The mesh's coverage by the views (a `coverage.Coverage`), or None where it was not measured."""
     pieces: object | None = None
@@ -353,7 +355,7 @@ def warnings(facts: RunFacts) -> list[str]:
     apart = pieces_warning(facts.pieces)
     if apart:
         out.append(apart)
-    out += facts.budget_notes
+    out += facts.scene_notes + facts.budget_notes
     return out
 
 

@@ -277,7 +277,8 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
-                     measured=bool(scene.real), budget_notes=notes, coverage=coverage, pieces=pieces,
+                     measured=bool(scene.real), budget_notes=notes,
+                     scene_notes=[scene.bound_note] if scene.bound_note else [], coverage=coverage, pieces=pieces,
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
                      continued=bool(getattr(model, "warm_started", False)))
     report["converged"] = end_of_run.converged(facts)

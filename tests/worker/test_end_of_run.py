@@ -221,6 +221,11 @@ def test_a_data_term_too_scattered_to_show_a_trend_is_not_converged():
     assert converged(RunFacts("steps", 100, None, list(rng.lognormal(0.0, 0.002, 100))))
 
 
+def test_what_the_scene_set_up_found_is_a_warning():
+    note = "views as near as 47 mm to the scene's centre keep its bound to 38 mm"
+    assert note in warnings(RunFacts("converged", 100, True, [1.0] * 100, scene_notes=[note]))
+
+
 def test_each_rule_warns_alone():
     falling = list(np.linspace(2.0, 1.0, 100))
     flat = [1.0] * 100

@@ -317,6 +317,20 @@ def test_scene_sphere_from_first_returns_holds_the_object_and_no_sensor(box_capt
     assert scene.table is None and not scene.real  # simulated: no table, no TV
 
 
+def test_a_view_near_the_centre_that_keeps_the_scene_sphere_off_the_object_is_said(tmp_path, box_capture):
+    """One view 2 mm above a 0.20 m ball caps the sphere (no sensor inside) to 38 mm: nothing beyond it can be
+    reconstructed, by either preset, and a 5.6 cm blob came out with no word of it."""
+    ball = builtin_scene("sphere")
+    far = fibonacci_hemisphere(4, 0.5, target=(0, 0, 0.1), min_elevation_deg=10)[:3]
+    poses = np.stack([look_at(np.array([0, 0, 0.202]), np.array([0, 0, 0.1]))] + list(far))
+    cap = tmp_path / "touch"
+    simulate_capture(ball, sensor_preset("lcspc-sim"), poses, cap, settings=SimSettings(rays_per_zone=256),
+                     progress=False)
+    note = load_scene(cap).bound_note
+    assert note is not None and "of the first returns lie beyond it" in note and "mm to the scene's centre" in note
+    assert load_scene(box_capture).bound_note is None
+
+
 def test_scene_sphere_holds_a_thin_tall_object_whose_top_only_the_views_above_see(tmp_path):
     # Views aimed at the middle of a coat rack return mostly from near it; its top returns in the few views above.
     rack = builtin_scene("coat-rack")

@@ -32,6 +32,8 @@ from ..pulse import pulse_kernel
 from ..table_height import TablePlane, named_table
 
 RADIUS_FRACTION = 0.6  # scene radius / nearest sensor's distance, when no return locates the object
+BEYOND_BOUND_SHARE = 0.01
+"""A scene sphere that leaves more than this share of the first returns outside is said to cut the object."""
 RADIUS_FRACTION_MAX = 0.8  # the scene sphere never reaches closer to a sensor than this fraction
 FAR_RETURN_MARGIN = 1.25
 """The scene sphere reaches at least this many times the farthest view's return from its centre. Most views of a
@@ -79,6 +81,8 @@ class SceneData:
     """The manifest's scene dict as read."""
     state: str = "complete"
     """The capture's state: 'complete', or 'running' / 'aborted' for a scan not (yet) finished."""
+    bound_note: str | None = None
+    """Why part of the object may lie outside the scene sphere (views too near its centre keep it small), or None."""
 
     def pulse(self, oversample: int = 1) -> tuple[np.ndarray, int]:
         """(kernel (K,) summing to 1, origin): kernel[origin + k] is the response k / oversample bins after the
@@ -118,7 +122,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     cycles = frames * float(sensor.cycles)
 
     scene = dict(data.manifest.get("scene") or {})
-    center, radius = _scene_sphere(scene, poses, counts, sensor, capture)
+    center, radius, bound_note = _scene_sphere(scene, poses, counts, sensor, capture)
     real = is_measured(scene, data.manifest, sensor)
     table = _table(scene, center, radius, real, first_returns(counts, poses, sensor), capture)
     reference = data.reference.mean(axis=0) if (real and data.reference is not None) else None
@@ -132,7 +136,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
         valid=torch.as_tensor(valid, device=device), poses=t(poses), pose_index=data.pose_indices[views.first],
         reference=reference, pulse_source=pulse_source,
         background=t(background), background_source=bg_source,
-        center=t(center), radius=float(radius), table=table, real=real, scene=scene,
+        center=t(center), radius=float(radius), table=table, real=real, scene=scene, bound_note=bound_note,
         state=str(data.manifest["state"]),
     )
 
@@ -154,7 +158,8 @@ def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) ->
 
 
 def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: SensorModel, where: Path):
-    """(centre (3,), radius) of a sphere that holds the object, from the manifest, else from the data.
+    """(centre (3,), radius, note) of a sphere that holds the object, from the manifest, else from the data; note
+    (else None) says when views near the centre kept the sphere smaller than the first returns reach.
 
     Centre: the median of the views' first-return points when at least 3 views show one (it lies inside the object
     for views from around it); else the point nearest to every boresight. Radius: 3 x the 90th percentile of the
@@ -180,6 +185,7 @@ def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: Se
         else:
             center = (origins + axes * min(0.3, 0.5 * sensor.max_range_m)).mean(0)
     dist = np.linalg.norm(origins - center, axis=1)
+    note = None
     if "radius" in scene:
         radius = float(scene["radius"])
         if not (np.isfinite(radius) and radius > 0):
@@ -188,12 +194,19 @@ def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: Se
         reach = np.linalg.norm(points - center, axis=1)
         spread, far = float(np.percentile(reach, 90)), float(reach.max())
         radius = min(RADIUS_FRACTION_MAX * float(dist.min()), max(3.0 * spread, FAR_RETURN_MARGIN * far, 0.05))
+        beyond = float(np.mean(reach > radius))
+        if beyond > BEYOND_BOUND_SHARE:
+            # Nothing outside the sphere can be reconstructed: a scan from 0.2 m of a 0.2 m ball kept 60 % of it.
+            note = (f"views as near as {dist.min() * 1e3:.0f} mm to the scene's centre keep its bound to "
+                    f"{radius * 1e3:.0f} mm, and {beyond:.0%} of the first returns lie beyond it: that part of the "
+                    f"object cannot be reconstructed (scan from farther, or give scene.center and scene.radius in the "
+                    f"capture's scan.json)")
     else:
         radius = RADIUS_FRACTION * float(dist.min())
     if radius < 1e-3:
         raise CaptureError(f"{where}: a sensor sits {dist.min() * 1e3:.1f} mm from the scene centre; cannot bound "
                            "the object (give scene.center and scene.radius in the manifest)")
-    return center, radius
+    return center, radius, note
 
 
 def _table(scene: dict, center: np.ndarray, radius: float, real: bool, points: np.ndarray,
