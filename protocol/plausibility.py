@@ -66,7 +66,7 @@ class CountSurvey:
         parts = []
         if self.n_implausible:
             parts.append(f"{self.n_implausible:,} of {self.histograms:,} histograms no sensor could have produced "
-                         f"({self._listed()})")
+                         f"({self._listed()}), left out")
         if self.clipped:
             parts.append(f"{self.clipped:,} of {self.histograms:,} histograms with bins clipped at the counter's "
                          f"limit {self.limit:,}")
@@ -91,31 +91,36 @@ class CountSurvey:
 def survey_counts(hists: np.ndarray, max_count: int = UINT32_MAX, ignore_bins=()) -> CountSurvey:
     """Classify histograms (..., bins) of whole counts: see the module's docstring. `max_count`: the sensor's
     largest count; `ignore_bins`: bins left out of the tests (kept when they are all the bins there are)."""
+    kind, limit, clipped = _classify(hists, max_count, ignore_bins)
+    found = {k: int((kind == i).sum()) for i, k in enumerate(KINDS) if (kind == i).any()}
+    return CountSurvey(kind.size, limit, found, int(clipped.sum()))
+
+
+def implausible(hists: np.ndarray, max_count: int = UINT32_MAX, ignore_bins=()) -> np.ndarray:
+    """Whether each histogram (..., bins) is one no sensor could have produced (any of KINDS): the mask (...) of
+    those a reconstruction must leave out. An all-zero histogram read as "no return" would prove its zone's whole
+    field of view empty and carve the object away."""
+    hists = np.asarray(hists)
+    return (_classify(hists, max_count, ignore_bins)[0] >= 0).reshape(hists.shape[:-1])
+
+
+def _classify(hists: np.ndarray, max_count: int, ignore_bins) -> tuple[np.ndarray, int, np.ndarray]:
+    """(the index in KINDS of each histogram's first kind, -1 for none; the count limit; which of the plausible
+    ones have a bin clipped at the limit), over the histograms (..., bins) flattened."""
     hists = np.asarray(hists)
     if hists.ndim < 1 or hists.dtype.kind not in "iu":
         raise ValueError(f"histograms must be an integer array (..., bins), got {hists.dtype} {hists.shape}")
     limit = int(min(max_count, UINT32_MAX))
     keep = [b for b in range(hists.shape[-1]) if b not in set(ignore_bins)] or list(range(hists.shape[-1]))
     h = hists.reshape(-1, hists.shape[-1])[:, keep]
+    kind = np.full(h.shape[0], -1)
     if h.shape[0] == 0 or h.shape[1] == 0:
-        return CountSurvey(h.shape[0], limit)
+        return kind, limit, np.zeros(h.shape[0], bool)
     hi, lo = h.max(axis=1), h.min(axis=1)
-    at_limit = h >= limit
-    kinds = {
-        "over the counter": hi > limit,
-        "saturated": lo >= limit,
-        "all zero": hi == 0,
-        "all equal": hi == lo,
-    }
-    left = np.ones(h.shape[0], bool)
-    found = {}
-    for kind in KINDS:
-        hit = kinds[kind] & left
-        left &= ~hit
-        if hit.any():
-            found[kind] = int(hit.sum())
-    clipped = int((at_limit.any(axis=1) & left).sum())
-    return CountSurvey(h.shape[0], limit, found, clipped)
+    tests = {"over the counter": hi > limit, "saturated": lo >= limit, "all zero": hi == 0, "all equal": hi == lo}
+    for i, name in reversed(list(enumerate(KINDS))):  # the first kind in KINDS wins
+        kind[tests[name]] = i
+    return kind, limit, (h >= limit).any(axis=1) & (kind < 0)
 
 
 def check_counts(hists: np.ndarray, max_count: int, ignore_bins, where: str) -> str | None:

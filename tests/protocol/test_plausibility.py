@@ -107,7 +107,7 @@ def test_the_checks_of_a_capture_folder_name_it(tmp_path):
     some = write(tmp_path / "some", sensor, hists)
     warned = []
     note = check_capture_counts(some, warned.append)
-    assert note == f"{some}: 9 of 27 histograms no sensor could have produced (9 all zero)"
+    assert note == f"{some}: 9 of 27 histograms no sensor could have produced (9 all zero), left out"
     assert warned == [f"warning: {note}"]
     assert CaptureReader(bad).load().hists.max() == UINT32_MAX, "reading a capture does not refuse it"
 

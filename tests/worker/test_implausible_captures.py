@@ -8,14 +8,20 @@ import json
 
 import numpy as np
 import pytest
+import torch
+import trimesh
 
 from spadscan.cli import main as cli_main
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker.pool import Worker
 from spadscan.worker.queue import Queue
+from spadscan.worker.recon.scene_data import load_scene
+from spadscan.worker.reconstruct import run_config, set_up_run
 from spadscan.worker.worker_config import WorkerConfig
 
 SATURATED = 2**32 - 1
@@ -84,8 +90,32 @@ def test_the_worker_fails_an_implausible_capture_once_and_warns_about_a_partly_i
     assert rows["flat-fast"].error == (f"{root / 'flat'}: no sensor could have produced these counts: all 8 "
                                        "histograms have every bin equal; refusing to fit them")
     note = (f"{root / 'some'}: 1 of 8 histograms no sensor could have produced (1 saturated (every bin at the 32-bit "
-            "counter's limit 4,294,967,295))")
+            "counter's limit 4,294,967,295)), left out")
     result = root / "some" / "recon" / "some-fast"
     assert json.loads((result / "report.json").read_text())["capture_counts_note"] == note
     assert f"warning: {note}" in (result / "job.log").read_text()
     assert any("some-fast done" in line and f"(warning: {note})" in line for line in lines), lines
+
+
+def test_a_dropped_frame_is_left_out_and_carves_nothing_away(tmp_path):
+    """One all-zero histogram among 16 (a dropped frame): read as "no return", it proved its zone's whole field of
+    view empty, and the hull kept a third of the ball (the fit cannot grow past the hull)."""
+    poses = fibonacci_hemisphere(16, 0.5, target=(0, 0, 0.1), min_elevation_deg=0)
+    cap = simulate_capture(builtin_scene("sphere"), sensor_preset("lcspc-sim"), poses, tmp_path / "cap",
+                           settings=SimSettings(rays_per_zone=1024), progress=False)
+    hists = cap / "chunk-000000" / "hists.npy"
+    counts = np.load(hists)
+    counts[3] = 0
+    np.save(hists, counts)
+    scene = load_scene(cap)
+    assert not scene.usable[3].any() and scene.usable[[2, 4]].all() and not scene.valid[3].any()
+    run = set_up_run(cap, run_config("fast", {}), torch.device("cpu"), steps=1, budget_s=None, seed=0,
+                     log=lambda line: None)
+    rng = np.random.default_rng(0)
+    ball = rng.uniform(-1, 1, (50_000, 3))
+    ball = torch.as_tensor(ball[np.linalg.norm(ball, axis=1) < 1] * 0.1 + [0, 0, 0.1], dtype=torch.float32)
+    assert float((run.model.problem.hull.sample(ball) < 0).float().mean()) > 0.97
+    # The space-carving baseline reads the same capture: its mesh is the ball, not what one dead zone left of it.
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(tmp_path / "carved")]) == 0
+    carved = trimesh.load(tmp_path / "carved" / "mesh.ply")
+    assert carved.contains(ball.numpy().astype(np.float64)).mean() > 0.97

@@ -13,6 +13,7 @@ import trimesh
 
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError, ConfigError
+from spadscan.protocol.plausibility import implausible
 
 from ..carving.returns import DEFAULT_THRESHOLD
 from ..carving.space_carving import DEFAULT_EDGE_DEG, carve_scene, main_components, occupancy_mesh
@@ -41,7 +42,8 @@ def _build(method: str, data, threshold: float, *, resolution: int, margin_m, fl
         return rep.mesh, {"points": rep.points, "surface": surface, "surface_method": SURFACES[surface],
                           "reprojected_points": int(len(rep.points))}
     res = carve_scene(data.hists, data.poses, data.sensor, resolution=resolution, threshold=threshold,
-                      margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg)
+                      margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg,
+                      usable=~implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins))
     occ = main_components(res.occupancy, 0.01)
     mesh = occupancy_mesh(occ, res.origin, res.voxel_m)
     return mesh, {"resolution": resolution, "voxel_mm": (res.voxel_m * 1e3).round(3).tolist(),

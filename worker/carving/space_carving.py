@@ -285,7 +285,7 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
                threshold: float = DEFAULT_THRESHOLD, margin_m: float | None = None,
                floor_z: float | None = None, min_views: int = 3, edge_deg: float = DEFAULT_EDGE_DEG,
                filter: str = "leading", keep_returns_m: float = 0.0,
-               weak_threshold: float | None = None) -> CarveResult:
+               weak_threshold: float | None = None, usable: np.ndarray | None = None) -> CarveResult:
     """Space-carve the box [bounds_min, bounds_max] (metres) on a resolution^3 grid.
 
     hists (n, zones, bins) counts; poses (n, 4, 4) sensor-to-world (metres, +z boresight). threshold: detection
@@ -297,7 +297,9 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
     beyond the range a zone proved empty is kept however few views see it (0: the min_views rule alone). The top of a
     tall object, far from the point the views aim at, lies in few views' fields of view, and the rule would cut it
     off while those views' returns land on it. weak_threshold: a run of bins above this level that ends before the
-    signal clears `threshold` stops carving there (see `carve_limits`; None: the default threshold).
+    signal clears `threshold` stops carving there (see `carve_limits`; None: the default threshold). usable (n, zones)
+    bool, or None for all: a histogram marked False (one no sensor could have produced: all zero, saturated) proves
+    nothing empty, where read as "no return" it would clear its zone's whole field of view.
     """
     h, p = check_inputs(hists, poses, sensor)
     lo, hi = np.asarray(bounds_min, float), np.asarray(bounds_max, float)
@@ -323,6 +325,8 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
     if weak_threshold is not None and not (np.isfinite(weak_threshold) and weak_threshold > 0):
         raise CaptureError(f"weak detection threshold {weak_threshold} must be > 0 (standard deviations of the noise)")
     limit = carve_limits(h, sensor, threshold, margin_m, filter, weak_threshold)
+    if usable is not None:
+        limit = np.where(np.asarray(usable, bool), limit, -np.inf)
     voxel = (hi - lo) / resolution
     # Levels: resolution / 2^k, ..., resolution, starting no coarser than 8 cells per side.
     levels = [int(resolution)]
@@ -353,9 +357,10 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
 def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, threshold: float = DEFAULT_THRESHOLD,
                 margin_m: float | None = None, floor_z: float | None = None, bounds=None,
                 edge_deg: float = DEFAULT_EDGE_DEG, coarse: int = 48, keep_returns_m: float = 0.0,
-                weak_threshold: float | None = None) -> CarveResult:
+                weak_threshold: float | None = None, usable: np.ndarray | None = None) -> CarveResult:
     """Space carving without knowing the scene's box: carve coarsely inside the first returns' footprints (or
-    `bounds`, a pair of (3,) corners in metres), then again at `resolution` in a cube around what is left."""
+    `bounds`, a pair of (3,) corners in metres), then again at `resolution` in a cube around what is left
+    (`usable`: see `carve_hull`)."""
     h, p = check_inputs(hists, poses, sensor)
     if bounds is None:
         lo, hi = scene_bounds(first_returns(h, sensor, threshold, "matched"), p, sensor, floor_z=floor_z)
@@ -363,7 +368,7 @@ def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, thr
         lo, hi = (np.asarray(b, float) for b in bounds)
     lo, hi = cube_around(lo, hi)
     kw = dict(threshold=threshold, margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg,
-              keep_returns_m=keep_returns_m, weak_threshold=weak_threshold)
+              keep_returns_m=keep_returns_m, weak_threshold=weak_threshold, usable=usable)
     first = carve_hull(h, p, sensor, bounds_min=lo, bounds_max=hi, resolution=min(coarse, resolution), **kw)
     if not first.occupancy.any():
         return first

@@ -25,6 +25,7 @@ import torch
 
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.plausibility import implausible
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..capture_kind import is_measured
@@ -81,6 +82,9 @@ class SceneData:
     """The manifest's scene dict as read."""
     state: str = "complete"
     """The capture's state: 'complete', or 'running' / 'aborted' for a scan not (yet) finished."""
+    usable: torch.Tensor | None = None
+    """(V, Z) bool: histograms the capture holds data in (False: one no sensor could have produced, in some frame;
+    all its bins are invalid too); None: all of them."""
     bound_note: str | None = None
     """Why part of the object may lie outside the scene sphere (views too near its centre keep it small), or None."""
 
@@ -115,8 +119,12 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     counts, frames = views.counts, views.frames
     saturated = np.zeros(counts.shape, bool)
     np.logical_or.at(saturated, views.group, data.hists >= sensor.max_count)
+    # A histogram no sensor could have produced in any of a pose's frames (all zero: a dropped frame) says nothing
+    # of its zone: left out of the fit and of carving, where it would prove the zone's whole field of view empty.
+    broken = np.zeros(counts.shape[:2], bool)
+    np.logical_or.at(broken, views.group, implausible(data.hists, sensor.max_count, sensor.ignore_bins))
     poses = data.poses[views.first]
-    valid = ~saturated
+    valid = ~saturated & ~broken[..., None]
     if sensor.ignore_bins:
         valid[..., list(sensor.ignore_bins)] = False
     cycles = frames * float(sensor.cycles)
@@ -137,6 +145,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
         reference=reference, pulse_source=pulse_source,
         background=t(background), background_source=bg_source,
         center=t(center), radius=float(radius), table=table, real=real, scene=scene, bound_note=bound_note,
+        usable=torch.as_tensor(~broken, device=device),
         state=str(data.manifest["state"]),
     )
 

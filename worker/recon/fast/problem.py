@@ -111,6 +111,8 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     occ = np.transpose(hull_res.occupancy, (2, 1, 0))  # (x, y, z) -> (z, y, x)
     counts_np, poses_np = scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy()
     onset = first_returns(counts_np, sensor, fc.carve_threshold, "leading").onset_range_m(sensor)
+    if scene.usable is not None:
+        onset = np.where(_usable(scene), onset, np.nan)  # no information, not "no return"
     occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=HULL_MIN_VOTES)
     if not occ.any():
         raise ReconstructionError("space carving removed everything: no histogram shows a return above the "
@@ -164,7 +166,12 @@ def _carve(scene, fc, floor_z, on_table: bool):
     return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
                        floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc),
-                       weak_threshold=carve_weak_threshold(fc, on_table))
+                       weak_threshold=carve_weak_threshold(fc, on_table), usable=_usable(scene))
+
+
+def _usable(scene) -> np.ndarray | None:
+    """(V, Z) histograms the capture holds data in (scene_data.SceneData.usable), as numpy; None: all."""
+    return None if scene.usable is None else scene.usable.cpu().numpy()
 
 
 __all__ = ["FastProblem", "build_problem", "candidate_rays"]
