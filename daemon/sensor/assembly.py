@@ -50,7 +50,12 @@ class FrameAssembler:
     'stalled' (its timestamps would lie). `t_start` of a frame is the arrival time of the last record before its
     first sub-packet (normally the previous frame's result): the sensor exposes the next frame while it sends the
     previous one, so the exposure began no later than that. The arrival of its first sub-packet is kept in
-    `extra['t_first_packet']`.
+    `extra['t_first_packet']`. After `reset` the first frame starts at the reset time when the sensor was told to
+    start measuring then; when it kept measuring on its own (a bridge after a reopen) that frame may have been
+    exposed partly before the reset and has no start time to give: it is dropped ('link_reset').
+
+    `silent_cause` is the last error the link reported (a bridge's `#Err` line) since the last complete frame, with
+    its arrival time, or None: why frames may have stopped.
     """
 
     def __init__(self, frame_timeout_s: float = 2.0, t0: float = 0.0):
@@ -60,18 +65,24 @@ class FrameAssembler:
         self.counts = {"frames": 0, "packets": 0, "packets_discarded": 0, "status_errors": 0}
         self.dropped = {reason: 0 for reason in DROP_REASONS}
         self.last_status_error = ""
+        self.silent_cause: tuple[str, float] | None = None
         self.firmware_version = ""
         self._payloads = np.zeros((N_SUBPACKETS, SUBPACKET_BYTES), np.uint8)
         self._expected: int | None = None  # next sub-packet index of the frame in progress; None: none in progress
         self._t_first = 0.0
         self._t_start = 0.0
         self._t_last = t0
+        self._unbounded_next = False  # the next frame to start may have been exposed before a reset
+        self._unbounded = False  # the frame in progress is that frame
 
-    def reset(self, t: float) -> None:
-        """Forget a frame in progress (the link was reset at monotonic time t); later frames start after t."""
+    def reset(self, t: float, restarted: bool = True) -> None:
+        """Forget a frame in progress (the link was reset at monotonic time t). restarted: the sensor was told to
+        start measuring at t, so later frames start after t; False: it kept measuring, and the first frame that
+        starts after t is dropped (its exposure may have begun before t)."""
         if self._expected is not None:
             self._drop("link_reset")
         self._t_last = t
+        self._unbounded_next = not restarted
 
     def feed(self, pkt: Packet) -> Frame | None:
         """Take one packet; returns a frame when this packet completed one."""
@@ -80,6 +91,7 @@ class FrameAssembler:
             if pkt.kind == "error":
                 self.counts["status_errors"] += 1
                 self.last_status_error = pkt.text
+                self.silent_cause = (pkt.text, pkt.t)
             elif pkt.kind == "version":
                 self.firmware_version = pkt.text
             return None
@@ -117,6 +129,7 @@ class FrameAssembler:
             self._expected = 0
             self._t_first = pkt.t
             self._t_start = self._t_last
+            self._unbounded, self._unbounded_next = self._unbounded_next, False
         elif self._expected != pkt.index:
             # Missing, duplicated or out of order (or we joined mid-frame): wait for the next sub-packet 0.
             if self._expected is not None:
@@ -134,6 +147,11 @@ class FrameAssembler:
                 self._drop("incomplete")
             return None
         self._expected = None
+        if self._unbounded:
+            self._unbounded = False
+            self.dropped["link_reset"] += 1
+            return None
+        self.silent_cause = None
         counts = decode_histograms(self._payloads)
         self.counts["frames"] += 1
         return Frame(

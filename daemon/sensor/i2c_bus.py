@@ -27,8 +27,10 @@ the chip the same way):
 
 Readout polls INT_STATUS: bit 0x08 = a histogram sub-packet waits at 0x20, bit 0x02 = a result (layouts in
 `i2c_records`). Each is read in one `i2c_rdwr` transfer and its bit cleared by writing it back. If no record arrives
-for `watchdog_s`, APP_ID is checked: a sensor that lost power is back in its bootloader, which the device treats as
-a dropped link (it boots and downloads again). `stop` sends 0xFF and clears its INT_ENAB bits again.
+for `watchdog_s`, APP_ID and CMD_STAT are checked: a sensor that lost power is back in its bootloader, and an
+application that stopped measuring (CMD_STAT not 0x01, e.g. 0x03 "severe error, stopped") sends nothing more; the
+device treats either as a dropped link (it boots, downloads if needed, configures and measures again). `stop` sends
+0xFF and clears its INT_ENAB bits again.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ from .transport import LinkDown, Packet, Transport
 
 log = logging.getLogger("spadscan.daemon")
 
-REG_APP_ID, REG_CMD_STAT, REG_ACTIVE_RANGE, REG_PAGE = 0x00, 0x08, 0x19, 0x20
+REG_APP_ID, REG_APP_STATUS, REG_CMD_STAT, REG_ACTIVE_RANGE, REG_PAGE = 0x00, 0x04, 0x08, 0x19, 0x20
 REG_ENABLE, REG_INT_STATUS, REG_INT_ENAB = 0xE0, 0xE1, 0xE2
 REG_PERIOD, REG_KILO_ITER, REG_SPAD_MAP, REG_HIST_DUMP = 0x24, 0x26, 0x34, 0x39
 ENABLE_PON, ENABLE_CPU_READY, ENABLE_CPU_RESET = 0x01, 0x40, 0x80
@@ -60,6 +62,8 @@ RANGE_NAMES = {RANGE_NONE: "no accuracy modes", RANGE_SHORT: "short range", RANG
 INT_RESULT, INT_HISTOGRAM = 0x02, 0x08
 BUSY = 0x10
 """CMD_STAT (bootloader and application) at or above this value: a command is still running."""
+STAT_ACCEPTED = 0x01
+"""CMD_STAT while the application measures (measure accepted, running until stopped)."""
 SETTLE_S = 0.010
 """Wait after setting PON and after RAMREMAP before the chip is addressed again (the references wait 10 ms)."""
 TIME_MULTIPLEXED_MAPS = frozenset({4, 5, 7, 10, 13, 15})
@@ -175,12 +179,28 @@ class I2CTransport(Transport):
             now = time.monotonic()
             if now - self._last_record > self.watchdog_s:
                 self._last_record = now
-                app = self._read(REG_APP_ID)
-                if app != APP_RUNNING:
-                    raise LinkDown(f"sensor reset (APP_ID {app:#04x}, no record for {self.watchdog_s:g} s)")
+                self._check_measuring()
             if now >= deadline:
                 return None
             time.sleep(min(self.poll_s, max(0.0, deadline - now)))
+
+    def _check_measuring(self) -> None:
+        """After watchdog_s without a record: raise LinkDown (so the device boots and starts the sensor again) unless
+        the application still runs and measures.
+
+        A power loss or reset puts the chip back in its bootloader (APP_ID). The application can also stop on its own
+        while APP_ID stays 0x03: ams' register map has CMD_STAT 0x03 "severe error, stopped" (details in
+        APPLICATION_STATUS 0x04) and 0x04 / 0x05 "power cycle the device"; while it measures CMD_STAT reads 0x01
+        (measure accepted, runs until stopped), so anything else means no record will ever come.
+        """
+        app = self._read(REG_APP_ID)
+        if app != APP_RUNNING:
+            raise LinkDown(f"sensor reset (APP_ID {app:#04x}, no record for {self.watchdog_s:g} s)")
+        status = self._read(REG_CMD_STAT)
+        if status != STAT_ACCEPTED:
+            detail = self._read(REG_APP_STATUS)
+            raise LinkDown(f"sensor stopped measuring (CMD_STAT {status:#04x}, APPLICATION_STATUS {detail:#04x}, "
+                           f"no record for {self.watchdog_s:g} s)")
 
     # ---- boot steps ----------------------------------------------------------------------------------------------
     def _power_on(self) -> None:

@@ -91,6 +91,10 @@ class SerialBridgeTransport(Transport):
     lines, corrupt_lines, unknown_lines, other_address_lines, separators, overlong_lines.
     """
 
+    restarts_measurement = False  # the bridge measures on its own; a reopen restarts only boards reset by DTR
+    error_hint = ("the UW bridge firmware stops measuring after a failed read and does not resume: reset or replug "
+                  "the bridge")
+
     def __init__(self, port: str, baud: int = 1_000_000, address: int | None = 0x41):
         self.port = str(port)
         self.baud = int(baud)

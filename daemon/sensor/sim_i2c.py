@@ -22,11 +22,23 @@ recorded in `violations`):
 - INT_STATUS 0xE1 shows the bit of the record waiting at 0x20 (0x08 histogram sub-packet, 0x02 result) whether or not
   it is enabled; INT_ENAB 0xE2 only decides whether the INT pin is pulled low (`int_pin_low`). Writing 1 clears a bit.
 
-While measuring it makes one frame per `frame_interval_s`: 30 histogram sub-packets (when HIST_DUMP bit 0 is set) then
-a result, laid out as `i2c_records` describes. What it sent is kept in `produced`. Faults: `unplug`/`replug` (every
-transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back to the bootloader, RAM lost), `crash` (the
-chip resets itself into the bootloader but keeps answering), `corrupt_next_record`, `app_id` (a wrong chip),
-`ready_after_polls=None` (cpu_ready never comes).
+Timing, as ams' drivers use the chip. The chip measures on its own clock: one measurement every `frame_interval_s`
+(0: back to back, as fast as the readout frees its buffer), whether or not the host keeps up. A measured frame waits
+in a one-frame buffer while the previous one is handed over; a newer measurement replaces it (`lost` counts those).
+The frame's records (30 histogram sub-packets when HIST_DUMP bit 0 is set, then a result, laid out as `i2c_records`
+describes) are handed over one at a time: the chip publishes the next record `handover_s` after the host clears the
+INT bit of the one at 0x20, and until then 0x20 still holds the cleared record. ams' Python and Arduino drivers clear
+the bit *before* they read the record, and ams' Linux driver clears it and then re-reads 0x20 until the TID changes,
+so both orders must work and the hand-over is neither instant nor long. `hold_s` (None: wait for the host) is how
+long the chip waits for a clear before it abandons the rest of that frame and goes on with the next measurement; the
+frames it tore are listed in `torn`. The one-frame buffer and `hold_s` are this fake's assumptions: ams' drivers do not
+say what a chip does with a host that falls behind, only that the chip does not wait for it to measure.
+
+What it measured is kept in `produced` (its result number counts lost measurements too). Faults: `unplug`/`replug`
+(every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back to the bootloader, RAM lost), `crash`
+(the chip resets itself into the bootloader but keeps answering), `stop_measuring` (the application reports a severe
+error and stops, APP_ID still 0x03), `corrupt_next_record`, `app_id` (a wrong chip), `ready_after_polls=None`
+(cpu_ready never comes).
 """
 
 from __future__ import annotations
@@ -38,7 +50,7 @@ import time
 
 import numpy as np
 
-ENABLE, INT_STATUS, INT_ENAB, CMD_STAT, ACTIVE_RANGE, APP_ID = 0xE0, 0xE1, 0xE2, 0x08, 0x19, 0x00
+ENABLE, INT_STATUS, INT_ENAB, CMD_STAT, ACTIVE_RANGE, APP_ID, APP_STATUS = 0xE0, 0xE1, 0xE2, 0x08, 0x19, 0x00, 0x04
 START_RAM_APP = 2
 """ENABLE power-up select (bits 4:5) value: start the application in RAM."""
 
@@ -64,9 +76,13 @@ class SimTMF8820Bus:
 
     def __init__(self, *, address: int = 0x41, image: bytes | None = None, seed: int = 0, frame_interval_s=0.0,
                  ready_after_polls: int | None = 2, busy_polls: int = 1, app_id: int | None = None,
-                 load_address: int = 0, accuracy_modes: bool = True, startup_s: float = 0.005):
+                 load_address: int = 0, accuracy_modes: bool = True, startup_s: float = 0.005,
+                 handover_s: float = 0.001, hold_s: float | None = None):
         self.address, self.image, self.load_address = address, image, load_address
         self.frame_interval_s, self.ready_after_polls, self.busy_polls = frame_interval_s, ready_after_polls, busy_polls
+        self.handover_s, self.hold_s = handover_s, hold_s
+        self.lost = 0  # measurements replaced in the buffer before the host got to them
+        self.torn: list[int] = []  # indices into `produced` of frames abandoned part-way (the host overran hold_s)
         self.app_id_override = app_id
         self.accuracy_modes, self.startup_s = accuracy_modes, startup_s
         self.rng = np.random.default_rng(seed)
@@ -101,6 +117,13 @@ class SimTMF8820Bus:
             self._power_on_reset()
             self.pon, self.ready_countdown = True, 0
 
+    def stop_measuring(self, cmd_stat: int = 0x03, app_status: int = 0x04) -> None:
+        """The application stops measuring on its own and says why: CMD_STAT 0x03 "severe error, stopped" (0x04 and
+        0x05: "power cycle the device"), APPLICATION_STATUS 0x04 the detail (4: unexpected reset). APP_ID stays 0x03."""
+        with self._lock:
+            self._stop_records()
+            self.cmd_stat, self.app_status = cmd_stat, app_status
+
     def corrupt_next_record(self, k: int = 7) -> None:
         """Spoil the header of the k-th histogram record of the next frame made."""
         self._corrupt.add(k)
@@ -108,8 +131,8 @@ class SimTMF8820Bus:
     def int_pin_low(self) -> bool:
         """The open-drain INT pin: pulled low while a waiting record's INT_STATUS bit is enabled in INT_ENAB."""
         with self._lock:
-            self._make_frame()
-            return bool(self.records and self.records[0][0] & self.int_enab)
+            self._advance()
+            return bool(self._int_status() & self.int_enab)
 
     # ---- the smbus2.SMBus surface --------------------------------------------------------------------------------
     def __call__(self, bus):
@@ -181,14 +204,25 @@ class SimTMF8820Bus:
         self.download_seed: int | None = None
         """The seed of the last DOWNLOAD_INIT (0x14), None before one."""
         self.bl_status, self.bl_cmd, self.bl_busy = 0x00, 0x00, 0
-        self.cmd_stat, self.cmd_busy = 0x00, 0
+        self.cmd_stat, self.cmd_busy, self.app_status = 0x00, 0, 0x00
         self.int_enab = 0x00
         self.page = bytearray(0x80)  # registers 0x20..0x9F
         self.config_loaded = self.measuring = False
         self.active_range = 0x00
         self.config = {"period_ms": 33, "kilo_iterations": 537, "spad_map": 6, "hist_dump": 0}
-        self.records: list[tuple[int, bytes]] = []  # (INT_STATUS bit, record bytes) waiting for the host
         self.tid = 0
+        self._stop_records()
+
+    def _stop_records(self) -> None:
+        """No measurement: nothing measured, nothing to hand over (0x20 shows the config page again)."""
+        self.measuring = False
+        self.buffered: tuple[int, list[tuple[int, bytes]]] | None = None  # (index in produced, records) measured
+        self.records: list[tuple[int, bytes]] = []  # (INT_STATUS bit, bytes): records[0] is at 0x20
+        self.frame_index = -1  # the index in `produced` of the frame being handed over
+        self.published_t = 0.0  # when records[0] was put at 0x20
+        self.cleared_t: float | None = None  # when the host cleared records[0]'s INT bit (None: not yet)
+        self.shown: bytes | None = None  # what 0x20 holds while measuring
+        self.measured = 0  # measurements made, lost ones included (the result number)
         self.next_frame_t = 0.0
 
     def _select(self, addr: int, register: int) -> None:
@@ -220,8 +254,8 @@ class SimTMF8820Bus:
             app = 0x03 if self.app_running else 0x80
             return bytes([self.app_id_override if self.app_id_override is not None else app]).ljust(n, b"\0")
         if reg == INT_STATUS:
-            self._make_frame()
-            return bytes([self.records[0][0] if self.records else 0])
+            self._advance()
+            return bytes([self._int_status()])
         if reg == INT_ENAB:
             return bytes([self.int_enab])
         if reg == CMD_STAT and not self.app_running:
@@ -232,10 +266,13 @@ class SimTMF8820Bus:
             status = self.commands[-1] if self.cmd_busy else self.cmd_stat
             self.cmd_busy = max(0, self.cmd_busy - 1)
             return bytes([status]).ljust(n, b"\0")
+        if reg == APP_STATUS:
+            return bytes([self.app_status if self.app_running else 0]).ljust(n, b"\0")
         if reg == ACTIVE_RANGE:
             return bytes([self.active_range if self.app_running else 0]).ljust(n, b"\0")
         if 0x20 <= reg < 0xA0 and self.app_running:
-            src = self.records[0][1] if self.measuring and self.records else bytes(self.page)
+            self._advance()
+            src = self.shown if self.measuring and self.shown is not None else bytes(self.page)
             off = reg - 0x20
             return src[off:off + n].ljust(n, b"\0")
         return bytes(n)
@@ -248,8 +285,9 @@ class SimTMF8820Bus:
         elif reg == CMD_STAT:
             self._command(data[0])
         elif reg == INT_STATUS:
-            if self.records and data[0] & self.records[0][0]:
-                self.records.pop(0)
+            self._advance()
+            if data[0] & self._int_status():
+                self.cleared_t = time.monotonic()
         elif reg == INT_ENAB:
             self.int_enab = data[0]
         elif 0x24 <= reg < 0xA0 and self.app_running:
@@ -268,7 +306,8 @@ class SimTMF8820Bus:
             self.bl_status, self.bl_busy = 0x00, 0
             self._start_cpu()
         elif self.pon and not on:  # standby: the CPU stops, RAM (and the application in it) stays
-            self.ready_countdown, self.measuring, self.records = None, False, []
+            self.ready_countdown = None
+            self._stop_records()
         self.pon = on
 
     def _bootloader(self, frame: bytes) -> None:
@@ -327,9 +366,10 @@ class SimTMF8820Bus:
                 ok = 0x02
             else:
                 self.measuring, ok = True, 0x01
+                self.app_status = 0x00  # ams' register map: a new measurement clears the status registers
                 self.next_frame_t = time.monotonic() + self.frame_interval_s
         elif cmd == 0xFF:
-            self.measuring, self.records = False, []
+            self._stop_records()
         elif cmd in (0x6E, 0x6F, 0x16) and self.measuring:
             self.violations.append(f"command {cmd:#04x} while measuring")
             ok = 0x02
@@ -357,17 +397,48 @@ class SimTMF8820Bus:
             ok = 0x06
         self.cmd_stat = ok
 
-    def _make_frame(self) -> None:
-        """Queue the next frame's records when measuring, nothing is pending and its time has come."""
-        now = time.monotonic()
-        if not self.measuring or self.records or now < self.next_frame_t:
+    def _int_status(self) -> int:
+        return self.records[0][0] if self.records and self.cleared_t is None else 0
+
+    def _advance(self) -> None:
+        """Bring the chip up to now: measurements on its own clock, then the hand-over of records."""
+        if not self.measuring:
             return
-        self.next_frame_t = max(now, self.next_frame_t + self.frame_interval_s)
+        now = time.monotonic()
+        if self.frame_interval_s > 0 and now >= self.next_frame_t:
+            missed = int((now - self.next_frame_t) // self.frame_interval_s)  # measured meanwhile, never sent
+            self.measured += missed
+            self.lost += missed + (self.buffered is not None)
+            self.next_frame_t += (missed + 1) * self.frame_interval_s
+            self.buffered = self._measure()
+        elif self.frame_interval_s <= 0 and self.buffered is None:
+            self.buffered = self._measure()
+        if self.records and self.cleared_t is not None and now >= self.cleared_t + self.handover_s:
+            self.records.pop(0)  # the host is done with it: the next record goes to 0x20
+            self._publish(self.cleared_t + self.handover_s)
+        elif (self.records and self.cleared_t is None and self.hold_s is not None
+              and now > self.published_t + self.hold_s):
+            self.torn.append(self.frame_index)  # the host overran: the chip gives up on this frame
+            self.records = []
+        if not self.records and self.buffered is not None:
+            (self.frame_index, self.records), self.buffered = self.buffered, None
+            self._publish(now)
+            if self.frame_interval_s <= 0:
+                self.buffered = self._measure()
+
+    def _publish(self, t: float) -> None:
+        self.published_t, self.cleared_t = t, None
+        if self.records:
+            self.shown = self.records[0][1]
+
+    def _measure(self) -> tuple[int, list[tuple[int, bytes]]]:
+        """One measurement: its counts and result are kept in `produced`; returns (its index there, its records)."""
         counts = self.rng.integers(0, 1 << 24, (10, 128), dtype=np.int64)
         n = len(self.produced)
-        result = {"result_no": n % 256, "temperature_c": int(self.rng.integers(-20, 60)), "n_valid": 9,
+        result = {"result_no": self.measured % 256, "temperature_c": int(self.rng.integers(-20, 60)), "n_valid": 9,
                   "systick": int(self.rng.integers(0, 2**32)), "distances_mm": self.rng.integers(0, 5000, 36).tolist(),
                   "confidences": self.rng.integers(0, 256, 36).tolist()}
+        self.measured += 1
         self.produced.append((counts, result))
         records = frame_records(counts, result, bool(self.config["hist_dump"] & 0x01), self._tid)
         for k in sorted(self._corrupt):
@@ -376,7 +447,7 @@ class SimTMF8820Bus:
                 records[k] = (bit, b"\x7f" + rec[1:])
                 self.spoiled.append(n)
         self._corrupt.clear()
-        self.records.extend(records)
+        return n, records
 
     def _tid(self) -> int:
         self.tid = (self.tid + 1) & 0xFF

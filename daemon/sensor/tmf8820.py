@@ -86,8 +86,9 @@ class TMF8820(Sensor):
             return
         if not self._connected:
             await self.connect()
+        t_start = time.monotonic()
         await self._call(self.transport.start, "the sensor to start measuring")
-        self._assembler.reset(time.monotonic())
+        self._assembler.reset(t_start)
         self._frames.clear()
         self._stop.clear()
         self._reader = self._loop.run_in_executor(self._executor, self._read_loop)
@@ -136,7 +137,11 @@ class TMF8820(Sensor):
                                f"{self._last_error or 'no detail'}); still trying to reconnect")
             if now >= deadline:
                 self._stats["silent_timeouts"] += 1
-                raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s")
+                detail = self._silent_detail(now)
+                exc = SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s"
+                                   + (f"; {detail}" if detail else ""))
+                exc.detail = detail  # the runner words the timeout itself and keeps this part
+                raise exc
             self._wake.clear()
             if self._frames or self._failure is not None:
                 continue
@@ -147,6 +152,15 @@ class TMF8820(Sensor):
                 await asyncio.wait_for(self._wake.wait(), max(wait, 0.0))
             except asyncio.TimeoutError:
                 pass
+
+    def _silent_detail(self, now: float) -> str:
+        """Why frames may have stopped: the error the link reported after the last frame, or ''."""
+        cause = self._assembler.silent_cause
+        if cause is None:
+            return ""
+        text, t = cause
+        hint = f"; {self.transport.error_hint}" if self.transport.error_hint else ""
+        return f"the bridge reported '{text}' {now - t:.1f} s ago and no frame since{hint}"
 
     def counters(self) -> dict:
         out = {**self._assembler.counters(), **self.transport.counters(), **self._stats}
@@ -196,6 +210,7 @@ class TMF8820(Sensor):
         delay = self.backoff_s[0]
         while not self._stop.is_set():
             self.transport.close()
+            t_start = time.monotonic()  # no exposure after a start that restarts the measurement began before this
             try:
                 self.transport.open()
                 self.transport.start()
@@ -206,7 +221,8 @@ class TMF8820(Sensor):
                 delay = min(delay * 2, self.backoff_s[1])
                 continue
             self._stats["reconnects"] += 1
-            self._assembler.reset(time.monotonic())
+            restarted = self.transport.restarts_measurement
+            self._assembler.reset(t_start if restarted else time.monotonic(), restarted)
             self._down_since = None
             self._notify()
             return

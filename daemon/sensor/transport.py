@@ -78,6 +78,11 @@ class Transport(abc.ABC):
 
     name: str = "transport"
     """Human-readable name of the link (port, bus and address), used in error messages."""
+    restarts_measurement: bool = True
+    """`start` tells the sensor to start measuring, so nothing read after it was exposed before it. False: the sensor
+    measures on its own (a bridge), and the first frame after a reopen may have been exposed before it."""
+    error_hint: str = ""
+    """What to do when frames stop after the link reported an error (its `#Err` line), for the SensorSilent message."""
 
     @abc.abstractmethod
     def open(self) -> None:

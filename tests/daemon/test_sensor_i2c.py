@@ -406,6 +406,125 @@ def test_a_chip_reset_is_caught_by_the_watchdog(arun, image):
     assert c["downloads"] == 2 and "sensor reset (APP_ID 0x80" in c["last_link_error"]
 
 
+def test_an_application_that_stops_measuring_is_started_again(arun, image):
+    """CMD_STAT 0x03 (ams: "severe error, stopped", APPLICATION_STATUS says why) leaves APP_ID at 0x03: the watchdog
+    must still restart the measurement instead of reporting a silent sensor forever."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data, frame_interval_s=0.02)
+    transport = I2CTransport(1, firmware=path, smbus_factory=fake, watchdog_s=0.2)
+    sensor = TMF8820(transport)
+
+    async def during(sensor):
+        fake.stop_measuring(cmd_stat=0x03, app_status=0x04)
+        deadline = time.monotonic() + 10
+        while sensor.counters()["reconnects"] < 1:
+            assert time.monotonic() < deadline, f"never restarted: {sensor.counters()}"
+            await asyncio.sleep(0.01)
+        return [await sensor.next_frame(10)]
+
+    arun(_run(sensor, n_frames=1, during=during))
+    c = sensor.counters()
+    assert c["downloads"] == 1 and c["boots"] == 2 and fake.violations == []  # the application in RAM is reused
+    assert "sensor stopped measuring (CMD_STAT 0x03, APPLICATION_STATUS 0x04, no record for 0.2 s)" in c[
+        "last_link_error"]
+    assert fake.commands.count(0x10) == 2
+
+
+def _started(image, **fake_kw):
+    path, data = image
+    fake = SimTMF8820Bus(image=data, **fake_kw)
+    transport = I2CTransport(1, firmware=path, smbus_factory=fake)
+    transport.open()
+    transport.start()
+    return fake, transport
+
+
+def test_clearing_the_interrupt_before_reading_the_record_loses_nothing(image):
+    """ams' Python and Arduino drivers clear INT_STATUS and then read 0x20; the chip hands the next record over only
+    a moment after the clear, so that order reads every record, each with a new TID."""
+    fake, transport = _started(image, handover_s=0.02)
+    try:
+        got = []
+        for _ in range(31):
+            while not (status := fake.read_byte_data(0x41, 0xE1)) & 0x0A:
+                pass
+            fake.write_byte_data(0x41, 0xE1, status & 0x0A)
+            read = i2c_msg.read(0x41, 135)
+            fake.i2c_rdwr(i2c_msg.write(0x41, [0x20]), read)
+            got.append(bytes(read))
+    finally:
+        transport.stop()
+        transport.close()
+    assert [r[4] for r in got[:30]] == list(range(30)) and [r[0] for r in got] == [0x81] * 30 + [0x10]
+    assert len({r[1] for r in got}) == 31  # a new TID with every record, as ams' Linux driver waits for
+    counts, _ = fake.produced[0]
+    assert got[13][7:] == ((counts[3] >> 8) & 0xFF).astype(np.uint8).tobytes()
+
+
+def test_the_chip_measures_on_its_own_period_while_the_host_is_away(image):
+    """The chip does not wait for the host to measure: frames measured while one is handed over replace each other
+    in its buffer (lost), and the host gets the newest."""
+    fake, transport = _started(image, frame_interval_s=0.01)
+    try:
+        deadline = time.monotonic() + 30
+        while fake.lost < 3:  # int_pin_low lets the chip's clock run without reading anything
+            fake.int_pin_low()
+            assert time.monotonic() < deadline, "the chip stopped measuring"
+        assembler = FrameAssembler()
+        frames = []
+        while len(frames) < 2:
+            frame = assembler.feed(transport.read_packet(5.0))
+            if frame is not None:
+                frames.append(frame)
+    finally:
+        transport.stop()
+        transport.close()
+    first, second = frames
+    assert first.extra["result_no"] == 0 and second.extra["result_no"] >= 4  # 1..3 and more were never sent
+    (counts, result), = [p for p in fake.produced if p[1]["result_no"] == second.extra["result_no"]][-1:]
+    assert np.array_equal(second.hists, counts[1:]) and assembler.counters()["frames_dropped"] == 0
+
+
+def test_a_host_slower_than_the_chip_loses_whole_frames_never_mixes_them(arun, image):
+    """A chip that holds a record only hold_s abandons the rest of a frame the host is too slow for: the host sees a
+    torn frame, drops it (counted) and stores only whole frames, bit for bit."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data, hold_s=0.05)
+    slow = {"reads": 0}
+
+    class SlowHost:
+        """The fake as the bus, but the host stalls past hold_s after every third read of sub-packet 12 (from the
+        second on). A stall tears that frame, and its late clear also clears the next frame's sub-packet 0, which
+        costs that frame too: the frame after those two comes whole."""
+
+        def __call__(self, bus):
+            fake(bus)
+            return self
+
+        def __getattr__(self, name):
+            return getattr(fake, name)
+
+        def i2c_rdwr(self, *msgs):
+            fake.i2c_rdwr(*msgs)
+            record = bytes(msgs[-1])
+            if len(msgs) == 2 and list(msgs[0]) == [0x20] and record[0] == 0x81 and record[4] == 12:
+                slow["reads"] += 1
+                if slow["reads"] % 3 == 2:
+                    time.sleep(3 * fake.hold_s)  # the stall itself: the host is busy between read and clear
+
+    def index_of(frame):
+        return next((k for k, (counts, _) in enumerate(fake.produced)
+                     if np.array_equal(frame.reference, counts[0]) and np.array_equal(frame.hists, counts[1:])), None)
+
+    sensor = I2CSensor(1, firmware=path, smbus_factory=SlowHost())
+    frames = arun(_run(sensor, n_frames=3))
+    delivered = [index_of(f) for f in frames]
+    assert None not in delivered and delivered == sorted(delivered)
+    assert fake.torn and not set(delivered) & set(fake.torn)
+    c = sensor.counters()
+    assert c["frames_dropped"] >= 1 and c["frames"] == 3 and c["bad_records"] == 0
+
+
 def test_bad_settings_are_refused():
     with pytest.raises(DeviceError, match="period_ms = 0 must be an integer in"):
         I2CSensor(1, period_ms=0)

@@ -8,13 +8,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import re
 import threading
 import time
 
 import numpy as np
 import pytest
 
-from spadscan.daemon.devices import LinkLost
+from spadscan.daemon.devices import LinkLost, SensorSilent
 from spadscan.daemon.sensor.serial_bridge import SerialSensor, parse_line
 from spadscan.daemon.sensor.sim_bridge import FAULTS, BridgeResult, SimBridge, frame_lines, obj_line, raw_lines
 from spadscan.daemon.sensor.transport import HistogramPacket, ResultPacket, StatusPacket
@@ -164,15 +165,42 @@ def test_unplug_and_replug(arun):
                 bridge.replug()
                 while sensor.counters()["link"] == "down":
                     await asyncio.sleep(0.01)
-                bridge.send_frame(counts(3))
+                bridge.send_frame(counts(3))  # the bridge kept measuring: this one may predate the reopen
+                bridge.send_frame(counts(5))
                 after = await sensor.next_frame(10)
                 counters = sensor.counters()
             return first, after, counters
 
     first, after, c = arun(main())
-    assert np.array_equal(first.hists, counts(1)[1:]) and np.array_equal(after.hists, counts(3)[1:])
+    assert np.array_equal(first.hists, counts(1)[1:]) and np.array_equal(after.hists, counts(5)[1:])
     assert c["link_drops"] == 1 and c["reconnects"] == 1 and c["reconnect_failures"] >= 1 and c["frames"] == 2
     assert after.t_start > first.t_end
+
+
+def test_the_first_frame_after_a_reopen_is_dropped_as_its_exposure_may_predate_it(arun):
+    """A bridge measures on its own: the frame whose first line arrives first after a reopen may have been exposed
+    partly before it (e.g. while the arm still moved), so it has no honest t_start and is dropped; later frames
+    start when the previous one's result arrived."""
+
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge, link_grace_s=30) as sensor:
+                bridge.send_frame(counts(1))
+                await sensor.next_frame(10)
+                bridge.unplug()
+                bridge.replug()
+                bridge.flush()
+                while sensor.counters()["reconnects"] < 1:
+                    await asyncio.sleep(0.01)
+                bridge.send_frame(counts(2))
+                bridge.send_frame(counts(3))
+                frame = await sensor.next_frame(10)
+                counters = sensor.counters()
+            return frame, counters
+
+    frame, c = arun(main())
+    assert np.array_equal(frame.hists, counts(3)[1:]) and c["dropped_link_reset"] == 1 and c["frames"] == 2
+    assert frame.t_start <= frame.extra["t_first_packet"]  # the dropped frame's result arrival, not the reopen
 
 
 def test_a_short_unplug_within_the_grace_loses_no_later_frame(arun):
@@ -184,11 +212,46 @@ def test_a_short_unplug_within_the_grace_loses_no_later_frame(arun):
                 bridge.flush()
                 while sensor.counters()["reconnects"] < 1:
                     await asyncio.sleep(0.01)
-                bridge.send_frame(counts(4))
-                frame = await sensor.next_frame(10)
-            return frame
+                for k in (4, 5, 6):  # the first may predate the reopen (dropped); none after it is lost
+                    bridge.send_frame(counts(k))
+                frames = [await sensor.next_frame(10) for _ in range(2)]
+            return frames
 
-    assert np.array_equal(arun(main()).hists, counts(4)[1:])
+    frames = arun(main())
+    assert [np.array_equal(f.hists, counts(k)[1:]) for f, k in zip(frames, (5, 6))] == [True, True]
+
+
+def test_a_bridge_that_reports_an_error_and_stops_is_named_in_the_silence(arun):
+    """The UW firmware prints '#Err,inter,<status>,but no data' after a failed read and stops measuring for good:
+    the SensorSilent message quotes that line until a frame arrives again."""
+
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                bridge.send(b"#Err,no target\n")  # an error before a frame is superseded by the frame
+                bridge.send_frame(counts(1))
+                await sensor.next_frame(10)
+                with pytest.raises(SensorSilent) as quiet:
+                    await sensor.next_frame(0.05)
+                bridge.send(b"#Err,inter,2,but no data\n")
+                bridge.flush()
+                while sensor.counters()["status_errors"] < 2:
+                    await asyncio.sleep(0.01)
+                with pytest.raises(SensorSilent) as stopped:
+                    await sensor.next_frame(0.05)
+                bridge.send_frame(counts(2))  # replugged: frames again, the error is history
+                await sensor.next_frame(10)
+                with pytest.raises(SensorSilent) as again:
+                    await sensor.next_frame(0.05)
+            return quiet.value, stopped.value, again.value
+
+    quiet, stopped, again = arun(main())
+    assert str(quiet).endswith("no complete frame within 0.05 s") and quiet.detail == ""
+    assert re.search(r"no complete frame within 0.05 s; the bridge reported 'inter,2,but no data' \d+\.\d s ago and "
+                     r"no frame since; the UW bridge firmware stops measuring .*: reset or replug the bridge$",
+                     str(stopped))
+    assert stopped.detail in str(stopped) and "\n" not in str(stopped)
+    assert again.detail == ""
 
 
 def test_a_missing_port_is_a_named_error_at_connect(arun, tmp_path):

@@ -119,6 +119,20 @@ def test_stalled_frames_and_link_resets_drop_the_frame_in_progress():
     assert frame.t_start == 6.0
 
 
+def test_after_a_reset_without_a_restart_the_first_frame_is_dropped():
+    """A sensor told to start measuring at the reset exposes nothing before it: its first frame starts there. One that
+    kept measuring (a bridge after a reopen) may have exposed that frame partly before: it has no start to give."""
+    asm = FrameAssembler()
+    asm.reset(6.0)
+    (frame,) = feed_all(asm, packets_for(random_counts(10), t0=7.0))
+    assert frame.t_start == 6.0 and asm.dropped["link_reset"] == 0
+    asm.reset(8.0, restarted=False)
+    frames = feed_all(asm, packets_for(random_counts(11), t0=9.0) + packets_for(random_counts(12), t0=10.0))
+    assert len(frames) == 1 and np.array_equal(frames[0].hists, random_counts(12)[1:])
+    assert frames[0].t_start == pytest.approx(9.03) and asm.dropped["link_reset"] == 1
+    assert asm.counters()["frames"] == 2  # a dropped frame is not a frame
+
+
 def test_status_packets_are_counted_not_framed():
     asm = FrameAssembler()
     feed_all(asm, [StatusPacket("error", "I2C NACK", 1.0), StatusPacket("version", "1.2.3", 1.1)])

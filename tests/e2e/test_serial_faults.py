@@ -6,6 +6,7 @@ the bridge sent for good frames), and a bridge that goes silent pauses the scan 
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 
@@ -129,9 +130,14 @@ def test_silent_serial_sensor_pauses_and_resume_completes(make_daemon, tmp_path,
     daemon.start()
     daemon.call("scan", name="quiet")
     daemon.wait_pose("quiet", 3)
-    feeder.hold()  # the bridge stops sending: the sensor is silent
+    feeder.hold()  # the bridge stops sending: the sensor is silent, after the error line the UW firmware prints
+    b.send(b"#Err,inter,2,but no data\n")
     status = daemon.wait_state("paused", 30)
     assert "sensor silent" in status["reason"], status
+    # The reason names the bridge's last word and what to do, not only the timeout.
+    assert re.search(r"no complete frame within 1 s \(frame_timeout_s\) at pose \d+; the bridge reported "
+                     r"'inter,2,but no data' [\d.]+ s ago and no frame since; .*reset or replug the bridge",
+                     status["reason"]), status
     assert status["last_error"] == status["reason"]
     folder = tmp_path / "caps" / "quiet"
     poses, digests = published_prefix(folder)
