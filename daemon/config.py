@@ -110,7 +110,8 @@ class ScanConfig:
     """'adaptive' only: the well-spread views taken before any ranking is used (at most `views`)."""
     min_view_spacing_deg: float = key(5.0, "float", lo=0.0, hi=90.0, unit="deg")
     """'adaptive' only: a ranked view closer than this to a pose already taken (the angle between the two as seen
-    from the target, degrees) is passed over; so is a fallback pose while another one is farther."""
+    from the target, degrees) is passed over; so is a fallback pose while another one is farther. At 0 only a view
+    already taken (within `protocol.next_views.SAME_VIEW_DEG`) is passed over: a scan never takes one view twice."""
     next_views_max_age_s: float = key(60.0, "float", lo=0.0, hi=86_400.0, lo_open=True, unit="s")
     """'adaptive' only: a next_views.json older than this (s, by its created_utc) is stale: the fallback plan is
     taken."""
@@ -118,7 +119,11 @@ class ScanConfig:
     """'adaptive' only: a next_views.json ranked this many poses or more before the pose being chosen is stale."""
     stop_when_converged: bool = key(False, "bool")
     """'adaptive' only: end the scan (complete, with fewer than `views` poses) as soon as the live reconstruction's
-    recon/live/status.json says "converged": true, after at least `initial_views` poses."""
+    recon/live/status.json says "converged": true, after at least `initial_views` poses. Limitation: that flag is
+    the plateau test of the live model's last level (600 steps without improvement), which every refit (a quarter
+    more views, or 16) starts again: about 100 s of live training between two refits, so the scan ends early only
+    when its poses come slowly (a pause, or a pose every 6.5 s or more past 64 views); at the default speed it takes
+    all `views` (examples/README.md)."""
 
 
 @dataclass(frozen=True)

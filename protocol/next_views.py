@@ -5,7 +5,7 @@ An adaptive scan (`schedule = "adaptive"`) considers a fixed set of candidate se
 over the scan's elevation band at its radius, every view looking at the target (`candidate_poses`, from the scan's
 settings as the manifest's `schedule` record holds them). The live reconstruction ranks them by how much each would
 tell it and writes the ranking; the daemon takes the best candidate that passes its own checks and is not within
-`min_view_spacing_deg` of a pose already taken (`too_close`).
+`min_view_spacing_deg` of a pose already taken, nor a view already taken whatever that spacing (`too_close`).
 
 The file (JSON, UTF-8, replaced atomically: written to a hidden file of the writer's own, fsynced, renamed):
 
@@ -159,13 +159,19 @@ def view_angles_deg(a: np.ndarray, b: np.ndarray, target) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(da @ db.T, -1.0, 1.0)))
 
 
+SAME_VIEW_DEG = 0.01
+"""Two views this close (degrees, seen from the target) are the same view: `too_close` holds them apart whatever the
+spacing asked for, so that a spacing of 0 never lets a scan take one ranked view over and over."""
+
+
 def too_close(candidates: np.ndarray, taken: np.ndarray, target, min_spacing_deg: float) -> np.ndarray:
-    """(n,) bool: candidate poses (n, 4, 4) within min_spacing_deg of any taken pose (m, 4, 4), seen from target."""
+    """(n,) bool: candidate poses (n, 4, 4) within min_spacing_deg (at least SAME_VIEW_DEG) of any taken pose
+    (m, 4, 4), seen from target."""
     candidates = np.asarray(candidates, dtype=np.float64).reshape(-1, 4, 4)
     taken = np.asarray(taken, dtype=np.float64).reshape(-1, 4, 4)
-    if len(taken) == 0 or min_spacing_deg <= 0:
+    if len(taken) == 0:
         return np.zeros(len(candidates), dtype=bool)
-    return view_angles_deg(candidates, taken, target).min(axis=1) < min_spacing_deg
+    return view_angles_deg(candidates, taken, target).min(axis=1) < max(min_spacing_deg, SAME_VIEW_DEG)
 
 
 # ---- checks ---------------------------------------------------------------------------------------------------------
@@ -212,4 +218,4 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["FILE", "NextViews", "ranked", "write_next_views", "read_next_views", "candidate_poses",
-           "view_angles_deg", "too_close", "now_utc", "CANDIDATES"]
+           "view_angles_deg", "too_close", "now_utc", "CANDIDATES", "SAME_VIEW_DEG"]

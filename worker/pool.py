@@ -22,7 +22,7 @@ from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
 from .jobs import CHANGEABLE, completion, existing_result, result_path, scratch_path
-from .live.done import mark_live_done
+from .live.done import mark_live_done, mark_live_failed
 from .publishing import own_result, publish_claim, reconcile
 from .queue import SEP, Claim, Queue
 from .watcher import ScanReport, scan_once, watch
@@ -259,19 +259,25 @@ class Worker:
                 self._settle_done(child, seconds, outcome.get("summary") or {})
             elif outcome.get("kind") == "input":
                 if self.queue.fail(claim, outcome.get("error", "bad input"), retry=False) is not None:
-                    self.settled[job.id] = "failed"
+                    self._settle_failed(job, outcome.get("error", "bad input"))
                     self.log(f"{job.id} failed after {seconds:.1f} s: {outcome.get('error')}")
             else:
                 reason = outcome.get("error") or exit_reason(rc)
                 state = self.queue.crash(claim, f"{reason} (log: {child.log})")
                 if state == "failed":
-                    self.settled[job.id] = "failed"
+                    self._settle_failed(job, f"{reason} (log: {child.log})")
                 if state is not None:
                     again = "queued again" if state == "queued" else "giving up"
                     self.log(f"{job.id} crashed after {seconds:.1f} s: {reason}; {again}")
         finally:
             if child.scratch.exists() and completion(child.scratch) is None:  # a complete result is never removed
                 shutil.rmtree(child.scratch, ignore_errors=True)
+
+    def _settle_failed(self, job, error: str) -> None:
+        """The queue gave up on `job`: a live job's status must not go on saying it is finishing."""
+        self.settled[job.id] = "failed"
+        if job.live:
+            mark_live_failed(job, self.root, error, self.log)
 
     def _settle_done(self, child: Child, seconds: float, summary: dict) -> None:
         claim, job = child.claim, child.claim.job

@@ -129,8 +129,9 @@ def add_arguments(parser) -> None:
     settings.add_argument("--initial-views", type=int, metavar="N",
                           help="adaptive: well-spread views taken before any ranking is used [initial_views]")
     settings.add_argument("--stop-when-converged", action="store_const", const=True, default=None,
-                          help="adaptive: end the scan once the live reconstruction reports convergence "
-                               "[stop_when_converged]")
+                          help="adaptive: end the scan once the live reconstruction reports convergence; its "
+                               "refits restart that test, so only a paused or slow scan (a pose every 6.5 s or "
+                               "more) ends early [stop_when_converged]")
     op("pause", "pause after the pose in flight is published")
     op("resume", "continue a paused or interrupted scan at its first unpublished pose")
     abort = op("abort", "stop the scan for good (published poses stay)")

@@ -223,6 +223,15 @@ def test_a_refused_view_is_never_offered_again(tmp_path):
     assert second.why == "adaptive" and second.record["rank"] > first.record["rank"]
 
 
+def test_a_ranked_view_already_taken_is_never_taken_again_even_with_no_spacing(tmp_path):
+    cfg, chooser, plan, folder = chooser_for(tmp_path, next_views_max_lag=100, min_view_spacing_deg=0.0)
+    write_next_views(folder, elevation_ranking(cfg))
+    first, rows = chooser.choose(plan, INITIAL)
+    second, _ = chooser.choose(rows, INITIAL + 1)  # the same ranking: its best view is now a pose taken
+    assert (first.why, second.why) == ("adaptive", "adaptive")
+    assert second.record["rank"] == first.record["rank"] + 1
+
+
 def test_the_fallback_passes_over_queued_poses_close_to_taken_ones(tmp_path):
     cfg, chooser, plan, _ = chooser_for(tmp_path, min_view_spacing_deg=1.0)
     rows = plan.copy()

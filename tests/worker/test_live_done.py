@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 from spadscan.protocol.live_status import LiveStatus, check_status
@@ -50,3 +51,41 @@ def test_an_unreadable_report_leaves_the_live_figures_and_still_says_done(tmp_pa
         folder.rmdir()
     missing = done_status(AT_SCAN_END, tmp_path / "nowhere")
     assert missing.state == "done" and missing.chamfer_mm == 155.96
+
+
+def settle_failed_live_job(tmp_path, status: LiveStatus, outcome: dict, returncode: int) -> LiveStatus:
+    """A worker settles its live job's process that ended with `outcome` and `returncode` (the queue's last attempt)
+    over a live status `status`; returns the live status then."""
+    from types import SimpleNamespace
+
+    from spadscan.protocol.live_status import read_status, status_path, write_status
+    from spadscan.worker.jobs import Job
+    from spadscan.worker.pool import Worker
+    from spadscan.worker.worker_config import WorkerConfig
+
+    root = tmp_path / "captures"
+    live = root / "demo" / "recon" / "live"
+    live.mkdir(parents=True)
+    write_status(live, status)
+    worker = Worker(WorkerConfig(root=root, max_attempts=1), log=lambda line: None)
+    worker.queue.enqueue(Job(id="demo-fast", scan="demo", live=True, device="cpu"))
+    claim = worker.queue.claim()
+    (outcome_file := tmp_path / "outcome.json").write_text(json.dumps(outcome))
+    worker._settle(SimpleNamespace(claim=claim, proc=SimpleNamespace(returncode=returncode),
+                                   scratch=tmp_path / "scratch", outcome=outcome_file, log=tmp_path / "job.log"))
+    assert worker.settled == {"demo-fast": "failed"}
+    return read_status(status_path(root / "demo"))
+
+
+def test_a_live_job_whose_final_run_fails_says_stopped_with_the_error_not_finishing(tmp_path):
+    error = "capture demo: no histogram holds a return above the noise: nothing to reconstruct"
+    status = settle_failed_live_job(tmp_path, AT_SCAN_END, {"ok": False, "kind": "input", "error": error}, 1)
+    assert (status.state, status.note, status.views_used) == ("stopped", error, AT_SCAN_END.views_used)
+
+
+def test_a_live_job_that_crashes_for_good_says_stopped_but_an_aborted_scan_stays_aborted(tmp_path):
+    status = settle_failed_live_job(tmp_path / "a", AT_SCAN_END, {}, -9)
+    assert status.state == "stopped" and status.note.startswith("job process killed by SIGKILL"), status.note
+    aborted = dataclasses.replace(AT_SCAN_END, state="aborted", note="scan aborted: operator")
+    status = settle_failed_live_job(tmp_path / "b", aborted, {"ok": False, "kind": "input", "error": "aborted"}, 1)
+    assert (status.state, status.note) == ("aborted", "scan aborted: operator")

@@ -175,3 +175,45 @@ def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_
     assert grown.warm_started and grown.level == 1 and grown.level_steps == fit.model.level_steps
     live = fit.live_field().sdf.detach()
     assert torch.allclose(grown.field.sdf, torch.maximum(live, grown.constraint.bound_for(grown.field)), atol=1e-6)
+
+
+def test_views_that_hold_no_return_are_not_fitted_and_the_live_status_says_why(tmp_path, one_thread):
+    # The final run refuses such a capture; the live fit used to publish a noise mesh of it as "following the scan".
+    from spadscan.protocol.live_status import read_status
+    from spadscan.protocol.scenes import builtin_scene
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import simulate_capture
+    from spadscan.worker.jobs import Job
+    from spadscan.worker.live.follower import ScanFollower
+    from spadscan.worker.live.job import LiveRun, LiveSettings
+
+    sensor = sensor_preset("lcspc-sim").with_(zero_bin=-1000.0)  # every return before the first bin
+    simulate_capture(builtin_scene("sphere"), sensor, fibonacci_hemisphere(8, 0.5, (0, 0, 0.1)), tmp_path / "dark",
+                     progress=False)
+    folder = tmp_path / "dark" / "recon" / "live"
+    folder.mkdir(parents=True)
+    run = LiveRun(Job(id="dark-fast", scan="dark", live=True, device="cpu"), tmp_path / "dark", folder,
+                  ScanFollower(tmp_path / "dark"), LiveSettings(preview=False), log=lambda line: None)
+    run.fit = LiveFit(tmp_path / "dark", with_overrides(preset_config("fast"), FAST_SMALL), torch.device("cpu"), 0,
+                      lambda line: None)
+    assert not run.fit.rebuild(8) and run.fit.model is None
+    run.publish(run.follower.poll(), force=True)
+    status = read_status(folder / "status.json")
+    assert status.state == "waiting" and "no histogram holds a return above the noise" in status.note
+    assert not (folder / "mesh.ply").exists()
+
+
+def test_a_failed_first_fit_is_tried_again_only_with_more_views():
+    from spadscan.worker.jobs import Job
+    from spadscan.worker.live.follower import ScanProgress
+    from spadscan.worker.live.job import LiveRun, LiveSettings
+
+    class Fit:
+        model, views_used = None, 0
+
+    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), None, None, None, LiveSettings(min_views=8),
+                  log=lambda line: None)
+    run.fit, run.tried_views, run.last_rebuild = Fit(), 10, 0.0
+    due = [run._refit_due(ScanProgress("running", None, views, 64, 1), 100.0) for views in (10, 11)]
+    assert due == [False, True], "the same views would fail again: a capture load per poll for nothing"

@@ -10,6 +10,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from spadscan.protocol.errors import CaptureError
@@ -287,7 +288,7 @@ def test_a_scan_that_publishes_nothing_for_long_is_said_to_be_quiet_until_it_pub
     from test_watcher import make_scan
 
     class Fit:
-        model, views_used, steps, converged = None, 0, 0, False
+        model, views_used, steps, converged, not_yet = None, 0, 0, False, None
 
     make_scan(tmp_path, "s", "running")
     lines: list[str] = []
@@ -315,3 +316,74 @@ def test_a_scan_that_publishes_nothing_for_long_is_said_to_be_quiet_until_it_pub
     shutil.move(tmp_path / "s", tmp_path / "moved")
     run.stopped("stopped", "scan.json: missing")  # the folder moved away: said in the log, no error on top
     assert lines[-1] == "live: scan.json: missing"
+
+
+def test_a_ranking_counts_every_published_view_as_taken_not_only_the_fitted_ones(tmp_path):
+    # The model refits only every few views; the daemon calls a ranking stale by the poses taken since its
+    # pose_count, so a count of the fitted views made every ranking between two refits stale.
+    from spadscan.daemon.config import ScanConfig, scan_to_dict, scan_with
+    from spadscan.protocol.next_views import read_next_views
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+
+    from test_view_ranking import grid, snapshot
+
+    published = fibonacci_hemisphere(64, 0.5, (0, 0, 0), 10, 80)
+    fitted = published[published[:, 0, 3] > 0.1]  # the model fits the +x views; the -x ones are published since
+
+    class Fit:
+        model = object()
+
+        def snapshot(self):
+            return snapshot([grid()], fitted)
+
+    scan = scan_with(ScanConfig(), {"schedule": "adaptive", "views": 128, "initial_views": 8})
+    manifest = {"schedule": {**scan_to_dict(scan), "candidates": 128}}
+    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path, tmp_path / "recon" / "live",
+                  follower=None, settings=small_settings(), log=lambda line: None)
+    run.fit = Fit()
+    run._rank(ScanProgress(state="running", reason=None, views_published=len(published), views_planned=128,
+                           new_chunks=1, manifest=manifest, poses=published))
+    nv = read_next_views(tmp_path)
+    assert len(fitted) < nv.pose_count == len(published)
+    x = nv.poses[:, 0, 3]  # the -x side, unseen by the fitted views, is seen by the published ones: no favourite
+    assert nv.scores[x < -0.1].mean() < 2 * nv.scores[x > 0.1].mean(), "the published -x views count as taken"
+
+
+def test_a_poll_hands_on_the_poses_of_the_views_published(cylinder_capture, tmp_path):
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.worker.live.follower import ScanFollower
+
+    scan = ReplayScan(cylinder_capture, tmp_path / "cyl")
+    follower = ScanFollower(tmp_path / "cyl")
+    assert follower.poll().poses.shape == (0, 4, 4)
+    scan.publish(3)
+    progress = follower.poll()
+    data = CaptureReader(cylinder_capture).load()
+    first = data.poses[data.by_pose().first]  # each view's pose, as the reconstruction takes it
+    assert progress.views_published == 3 and (progress.poses == first[:3]).all()
+
+
+def test_a_quick_scan_is_ranked_every_half_its_max_lag_of_poses_not_only_every_rank_every_s(tmp_path, monkeypatch):
+    import spadscan.worker.live.job as live_job
+
+    class Fit:
+        model = object()
+
+        def snapshot(self):
+            return "a snapshot"
+
+    ranked_at: list[int] = []
+    monkeypatch.setattr(live_job, "update_next_views", lambda capture, manifest, snap, poses: ranked_at.append(
+        len(poses)))
+    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path, tmp_path, follower=None,
+                  settings=small_settings(rank_every_s=1e6), log=lambda line: None)
+    run.fit = Fit()
+    manifest = {"schedule": {"schedule": "adaptive", "next_views_max_lag": 8}}
+    for views in range(10, 20):
+        run._rank(ScanProgress(state="running", reason=None, views_published=views, views_planned=64, new_chunks=1,
+                               manifest=manifest, poses=np.zeros((views, 4, 4))))
+    assert ranked_at == [10, 14, 18], "a ranking never gets a max lag behind the scan"
+    run.rank_free_at = time.monotonic() + 1e6  # the last ranking took that long: the fit trains as long
+    run._rank(ScanProgress(state="running", reason=None, views_published=30, views_planned=64, new_chunks=1,
+                           manifest=manifest, poses=np.zeros((30, 4, 4))))
+    assert ranked_at == [10, 14, 18]

@@ -27,6 +27,25 @@ def mark_live_done(job: Job, root: Path, result: Path, log: Callable[[str], None
         log(f"{job.id}: its result is published, but the live status was not updated: {exc}")
 
 
+def mark_live_failed(job: Job, root: Path, error: str, log: Callable[[str], None]) -> None:
+    """Set `<scan>/recon/live/status.json` to state 'stopped' with `error` as its note, for a live job the queue has
+    given up on: the job process can die, or its final run fail, after it wrote 'final' ("finishing"), which would
+    then stand for good. A status that already says how the job ended ('done', 'aborted', 'stopped': the job's own
+    word, more precise) or cannot be read is left alone."""
+    try:
+        path = status_path(scan_path(job, root))
+        status = read_status(path)
+        if status.state not in ENDED:
+            write_status(path.parent, dataclasses.replace(status, state="stopped", note=" ".join(error.split()),
+                                                          updated_utc=""))
+    except (SpadscanError, OSError) as exc:
+        log(f"{job.id}: the live status was not updated: {exc}")
+
+
+ENDED = ("done", "aborted", "stopped")
+"""Live states that say how the job ended."""
+
+
 def done_status(status: LiveStatus, result: Path) -> LiveStatus:
     """`status` as 'done' with `result`, the figures those of the result's report.json: the views the final run
     fitted (every published one), its steps on top of the live fit's, its convergence and its Chamfer (None when it
@@ -50,4 +69,4 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
         chamfer_mm=float(chamfer) if is_chamfer(chamfer) else None)
 
 
-__all__ = ["mark_live_done", "done_status"]
+__all__ = ["mark_live_done", "mark_live_failed", "done_status"]

@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from spadscan.protocol.capture_reader import CaptureReader
 
 
@@ -21,6 +23,8 @@ class ScanProgress:
     new_chunks: int
     """Chunks read by this poll."""
     manifest: dict = field(default_factory=dict)
+    poses: np.ndarray | None = field(default=None, compare=False, repr=False)
+    """(views_published, 4, 4) sensor poses of the published views, in pose-index order (None: not known)."""
 
     @property
     def ended(self) -> bool:
@@ -35,7 +39,8 @@ class ScanFollower:
         self.capture = Path(capture)
         self.reader = CaptureReader(self.capture)
         self._seen: set[str] = set()
-        self._poses: set[int] = set()
+        self._poses: dict[int, np.ndarray] = {}
+        """Each published pose index's sensor pose (its first measurement's, as the reconstruction takes it)."""
 
     def poll(self) -> ScanProgress:
         """Re-read the manifest, then read every chunk published since the last poll. The manifest is read first: a
@@ -45,13 +50,15 @@ class ScanFollower:
         new = [name for name in self.reader.chunk_names() if name not in self._seen]
         for name in new:
             chunk = self.reader.read_chunk(name)
-            self._poses.update(int(m["pose_index"]) for m in chunk.meta)
+            for meta, pose in zip(chunk.meta, chunk.poses):
+                self._poses.setdefault(int(meta["pose_index"]), pose)
             self._seen.add(name)
         manifest = self.reader.manifest
         planned = manifest.get("planned_poses")
+        poses = np.stack([self._poses[k] for k in sorted(self._poses)]) if self._poses else np.zeros((0, 4, 4))
         return ScanProgress(state=state, reason=manifest.get("reason"), views_published=len(self._poses),
                             views_planned=planned if isinstance(planned, int) and not isinstance(planned, bool)
-                            else None, new_chunks=len(new), manifest=manifest)
+                            else None, new_chunks=len(new), manifest=manifest, poses=poses)
 
 
 __all__ = ["ScanFollower", "ScanProgress"]

@@ -24,6 +24,7 @@ from ..recon.config import ReconConfig
 from ..recon.model_api import RunPlan
 from ..recon.presets import make_model
 from ..recon.scene_data import SceneData, load_scene
+from ..reconstruct import check_returns
 from .recoarse import RecoarsePolicy
 from .snapshot import FieldSnapshot, GridSnapshot, LiveSnapshot
 
@@ -62,6 +63,8 @@ class LiveFit:
         self.recent: deque[tuple[int, float]] = deque(maxlen=RATE_WINDOW)
         """(steps, wall seconds) of the last training calls: the rate at the model's current level."""
         self.history: deque[FieldSnapshot] = deque(maxlen=HISTORY)
+        self.not_yet: str | None = None
+        """Why the last rebuild could not fit the views so far (None once one did), for the live status."""
 
     @property
     def views_used(self) -> int:
@@ -74,12 +77,16 @@ class LiveFit:
         t0 = time.perf_counter()
         try:
             scene = load_scene(self.capture, self.device, self.dtype)
+            # The final run's own test: views that hold nothing above the noise would be fitted as a noise mesh,
+            # published as "following the scan" and ranked views from, for a capture the final run then refuses.
+            check_returns(self.capture, scene)
             model = make_model(scene, self.config, self.device, RunPlan(steps=None, budget_s=None, seed=self.seed))
             recoarse = self.model is None or self.recoarse.due(self.coarse_views, scene.n_views, views_planned)
             if self.model is not None:
                 level, level_steps = (0, 0) if recoarse else (self.model.level, self.model.level_steps)
                 model.warm_start(self.model.mesh_field(), level, level_steps)
         except SpadscanError as exc:
+            self.not_yet = f"no live fit yet: {exc}"
             self.log(f"live: cannot fit the views so far yet ({exc}); trying again with more")
             return False
         finally:
@@ -87,7 +94,7 @@ class LiveFit:
         if recoarse:
             self.coarse_views = scene.n_views
             self.recoarsened += self.model is not None
-        self.model, self.scene = model, scene
+        self.model, self.scene, self.not_yet = model, scene, None
         self.rebuilds += 1
         return True
 

@@ -33,6 +33,7 @@ a candidate that sees nothing scores 0.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -68,12 +69,18 @@ def is_adaptive(manifest: dict) -> bool:
 
 
 def update_next_views(capture: Path, manifest: dict, snapshot: LiveSnapshot | None,
-                      measure: str = DEFAULT_MEASURE) -> Path | None:
+                      published: np.ndarray | None = None, measure: str = DEFAULT_MEASURE) -> Path | None:
     """Rank the scan's candidate poses from `snapshot` and write them as the capture's next_views.json
-    (atomically); returns its path, or None when there is no snapshot yet. `pose_count` in the file is the number of
-    views the snapshot's model was fitting (the daemon judges freshness by it)."""
+    (atomically); returns its path, or None when there is no snapshot yet.
+
+    `published`: the sensor poses (V, 4, 4) of every view the scan has published (default: the snapshot's, those its
+    model fits). The ranking counts them all as taken, and `pose_count` in the file is their number: the daemon
+    calls a ranking stale once it is `next_views_max_lag` poses behind, and the model refits only every few views
+    (a quarter more, up to 16), so a count of the fitted views would make every ranking between two refits stale."""
     if snapshot is None:
         return None
+    if published is not None:
+        snapshot = dataclasses.replace(snapshot, poses=np.asarray(published, float).reshape(-1, 4, 4))
     candidates = candidate_poses(manifest["schedule"])
     scores = rank_candidates(snapshot, candidates, measure)
     return write_next_views(capture, ranked(candidates, scores, len(snapshot.poses), measure))

@@ -68,7 +68,8 @@ class LiveSnapshot:
     hull: GridSnapshot
     """Signed distance of the carved hull of the views used so far (negative where no view proved space empty)."""
     poses: np.ndarray
-    """(V, 4, 4) sensor-to-world poses of the views used, metres."""
+    """(V, 4, 4) sensor-to-world poses of the views taken, metres: those the model fits, or every view published
+    (`next_views.update_next_views`)."""
     sensor: SensorModel
     """The capture's sensor model (zones, bins, range)."""
     floor_z: float | None = None
