@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 
 import numpy as np
@@ -344,6 +345,20 @@ def test_a_deterministic_render_is_rendered_once_for_the_fit_check(capture_and_g
     cap, _ = capture_and_gt
     assert _recon(cap, tmp_path / "out", "--no-gt") == 0
     assert calls == [[0, 1, 2, 3, 4, 5]]  # the capture's six views, once
+
+
+def test_a_scene_box_that_loses_the_object_says_so_not_that_nothing_returned(capture_and_gt, tmp_path, capsys):
+    """A scene radius of 50 m makes a hull cell 2 m across: carving keeps nothing, and the run said no histogram
+    showed a return, which every one of them did."""
+    cap, _ = capture_and_gt
+    wide = tmp_path / "wide"
+    shutil.copytree(cap, wide)
+    manifest = json.loads((wide / "scan.json").read_text())
+    manifest["scene"] = {**manifest.get("scene", {}), "center": [0.0, 0.0, 0.05], "radius": 50.0}
+    (wide / "scan.json").write_text(json.dumps(manifest))
+    assert main(["reconstruct", str(wide), "--out", str(tmp_path / "o"), "--steps", "1", "--no-progress"]) == 1
+    err = _error_lines(capsys)
+    assert len(err) == 1 and "although 6 histograms show a return" in err[0] and "scene.radius" in err[0], err
 
 
 def test_a_file_in_the_way_and_bad_threads_are_one_line_errors(capture_and_gt, tmp_path, capsys):

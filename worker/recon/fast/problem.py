@@ -115,8 +115,7 @@ def build_problem(scene, config, device, terms) -> FastProblem:
         onset = np.where(_usable(scene), onset, np.nan)  # no information, not "no return"
     occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=HULL_MIN_VOTES)
     if not occ.any():
-        raise ReconstructionError("space carving removed everything: no histogram shows a return above the "
-                                  f"threshold ({fc.carve_threshold} noise deviations) inside the scene box")
+        raise ReconstructionError(_nothing_left(onset, hull_res, floor_z, fc.carve_threshold))
     hull = hull_field(occ, hull_res.origin, voxel, device)
     idx = np.argwhere(occ)[:, ::-1]  # (x, y, z)
     lo = hull_res.origin + idx.min(axis=0) * voxel
@@ -159,6 +158,21 @@ def carve_weak_threshold(fc, on_table: bool) -> float | None:
     hull grew by 1.1 % and its fit stood on a skirt round the can's base (1.22 -> 1.79 mm; its lowest 6 cm 33 % over
     5 mm off); the tall block 0.83 -> 0.85, the real pyramid's hull and fit unchanged."""
     return None if on_table else fc.carve_weak_threshold
+
+
+def _nothing_left(onset: np.ndarray, hull_res, floor_z: float | None, threshold: float) -> str:
+    """Why carving left nothing, in one line: no return at all, or returns that the box or the floor lost (a scene
+    radius of metres makes a hull cell larger than the object; a floor above the object carves it all)."""
+    found = int(np.isfinite(onset).sum())
+    if not found:
+        return (f"space carving removed everything: no histogram shows a return above the threshold ({threshold} "
+                f"noise deviations) inside the scene box")
+    cell_mm = float(np.max(hull_res.voxel_m)) * 1e3
+    floor = "none" if floor_z is None else f"z = {floor_z:.3f} m"
+    return (f"space carving removed everything although {found} histograms show a return: the scene box "
+            f"{np.round(hull_res.bounds_min, 3).tolist()} .. {np.round(hull_res.bounds_max, 3).tolist()} m "
+            f"({cell_mm:.0f} mm cells) or the floor ({floor}) does not hold the object (check the capture's "
+            f"scene.radius and scene.center, or field.floor_z)")
 
 
 def _carve(scene, fc, floor_z, on_table: bool):
