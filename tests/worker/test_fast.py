@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -384,14 +385,18 @@ def test_the_coarse_level_smooths_only_near_the_floor_of_a_scene_without_a_table
     assert seen == [layers] * 4 + [None] * 2  # the fine level (after 4 steps) smooths everywhere
 
     seen.clear()
+    # Without refinement the one level is the last from the start: the part could never act, so it is not listed
+    # as having run.
     for overrides, target, why in ((FAST_SMALL, table_capture, "a table"),
                                    ({**FAST_SMALL, "parts.coarse_smoothing.enabled": False}, cylinder_capture,
-                                    "switched off")):
+                                    "switched off"),
+                                   ({**FAST_SMALL, "parts.refinement.enabled": False}, cylinder_capture,
+                                    "no coarse level")):
         model = make_fast_model(load_scene(target), with_overrides(preset_config("fast"), overrides), "cpu",
                                 RunPlan(steps=1, budget_s=None, seed=0))
         model.step()
         assert model.part("coarse_smoothing") is None and why in model.summary()["parts_left_out"]["coarse_smoothing"]
-    assert seen == [None, None]  # on a table, or when switched off, the coarse level smooths everywhere
+    assert seen == [None] * 3  # on a table, switched off or with one level, the (last) level smooths everywhere
     for bad in (-0.01, float("nan"), 2.0, "low"):
         config = with_overrides(preset_config("fast"), FAST_SMALL)
         config.parts.coarse_smoothing.height_m = bad
@@ -655,6 +660,47 @@ def test_the_fit_converges_only_on_the_refined_grid_and_early_stop_ends_the_run_
     result = train(model, RunPlan(steps=200, budget_s=None, seed=0), progress=False, early_stop=config.early_stop)
     assert (result.stopped_by, result.steps) == ("converged", 4 + 10 + 30)
     assert model.summary()["converged"] is True
+
+
+@pytest.mark.parametrize("key, value, words", [
+    # Shared settings that crashed the run with a traceback after the capture had loaded (metrics_points: after the
+    # whole run, with no report), and a ray count that asked 13.8 GB in the first step.
+    ("trace_checkpoints", 0, "integer >= 1"), ("time_oversample", 0, "integer in [1, 64]"),
+    ("time_oversample", 65, "integer in [1, 64]"), ("metrics_points", 0, "integer >= 1"),
+    ("trace_points", 0, "integer >= 1"), ("schedule.rays_per_sr", 1e9, "memory"),
+    ("schedule.candidate_rays_per_sr", 1e9, "memory"),
+])
+def test_shared_and_ray_settings_a_run_cannot_use_are_refused_when_set(key, value, words):
+    with pytest.raises(ConfigError) as err:
+        with_overrides(preset_config("fast"), {key: value})
+    message = str(err.value)
+    assert message.startswith(f"{key} ") and words in message and "\n" not in message, message
+
+
+@pytest.mark.parametrize("overrides, words", [
+    # Each was accepted, and every ray then rendered zero opacity: the data term never moved and the mesh was the
+    # carved hull, with no error.
+    ({"field.sharpness_voxels": 0}, "field.sharpness_voxels 0.0 must be > 0"),
+    ({"field.sharpness_voxels": 1e-9}, "opacity of only"),
+    ({"schedule.window_voxels": 0}, "schedule.window_voxels 0.0 must be > 0"),
+    ({"field.sharpness_voxels": 0.1, "schedule.window_voxels": 3}, "must be >= ln 2"),
+    ({"schedule.fine_samples": 1}, "schedule.fine_samples 1 must be an integer >= 2"),
+    ({"schedule.coarse_samples": 1}, "schedule.coarse_samples 1 must be an integer >= 2"),
+    ({"schedule.segment_pad_voxels": 1e9}, "schedule.segment_pad_voxels"),
+    ({"schedule.lr_voxels": 0}, "never moves"),
+])
+def test_settings_with_which_the_fit_renders_nothing_are_refused_with_the_reason(overrides, words):
+    with pytest.raises(ConfigError, match=re.escape(words)) as err:
+        with_overrides(preset_config("fast"), overrides)
+    assert "\n" not in str(err.value)
+
+
+def test_the_softest_surfaces_the_benchmarks_tried_are_still_accepted():
+    # benchmarks/RESULTS.md ran sharpness_voxels 0.5 and 1 (opacity 0.78 and 0.95 across the default window).
+    for sharpness in (0.5, 1.0):
+        with_overrides(preset_config("fast"), {"field.sharpness_voxels": sharpness})
+    with_overrides(preset_config("fast"), {"schedule.segment_pad_voxels": 0, "schedule.fine_samples": 2,
+                                           "schedule.rays_per_sr": 1e5, "time_oversample": 64})
 
 
 @pytest.mark.parametrize("key", ["parts.plateau.patience_steps", "schedule.patience_steps"])

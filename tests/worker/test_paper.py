@@ -186,6 +186,8 @@ def test_no_random_eikonal_points_runs_on_the_ray_samples_alone(box_capture, tmp
     model = make_paper_model(real, small_paper(**{"loss.eikonal_points": 0, "loss.tv_weight": 0.0}), "cpu",
                              RunPlan(steps=2, budget_s=None))
     assert np.isfinite(model.step()["loss"])
+    assert not model.terms.tv, "TV without a weight is no term of the fit: the report lists it as left out"
+    assert make_paper_model(real, small_paper(), "cpu", RunPlan(steps=2, budget_s=None)).terms.tv
 
 
 def test_importance_rays_are_unbiased_at_silhouettes(box_capture):

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import pytest
 import torch
 
 from spadscan.worker.recon.config import with_overrides
-from spadscan.worker.recon.fast.model import make_fast_model
+from spadscan.worker.recon.fast import parts as parts_module
+from spadscan.worker.recon.fast.model import FastModel, make_fast_model
 from spadscan.worker.recon.fast.parts import PARTS, FastPartsConfig, PartConfig
 from spadscan.worker.recon.model_api import RunPlan
 from spadscan.worker.recon.presets import preset_config
@@ -23,6 +25,8 @@ NAMES = [cls.name for cls in PARTS]
 ON_A_TABLE = ("table", "thin_sheets")
 """Parts that apply only to a scene on a table (the others are tried on the cylinder on the floor)."""
 HOOKS = ("before_step", "before_loss", "after_gradient", "after_step")
+NEEDS = {"refinement": ("coarse_smoothing",)}
+"""Parts that cannot act without another (coarse_smoothing acts on the coarse level only, which refinement makes)."""
 
 
 def fast(**overrides):
@@ -59,7 +63,8 @@ def test_each_part_switches_off_alone_and_the_report_lists_what_ran(name, runnin
     off = model_on(table_capture if scene == "table" else cylinder_capture, fast(**{f"parts.{name}.enabled": False}), 6)
     ran = [part.name for part in on.parts]
     assert name in ran and on.part(name) is not None
-    assert [part.name for part in off.parts] == [n for n in ran if n != name]  # nothing else changes
+    gone = (name, *NEEDS.get(name, ()))
+    assert [part.name for part in off.parts] == [n for n in ran if n not in gone]  # nothing else changes
     for model in (on, off):
         summary = model.summary()
         assert list(summary["parts"]) == [part.name for part in model.parts]  # exactly the parts that ran
@@ -120,3 +125,41 @@ def test_the_unseen_relaxation_runs_only_without_a_table(running):
     assert running["floor"].part("unseen") is not None
     assert running["table"].part("unseen") is None
     assert "empty-space push" in running["table"].summary()["parts_left_out"]["unseen"]
+
+
+def test_the_report_lists_only_the_model_terms_the_fit_used(running):
+    # The capture's terms said TV on every measured capture (the fast preset has none: its smoothness acts on every
+    # capture) and the table on every table scene, even with parts.table.enabled=false (no plane rendered).
+    table = running["table"]
+    assert table.terms.table and not table.terms.tv
+    measured = dataclasses.replace(table.terms, tv=True)  # what choose_terms gives a measured capture
+    for on in (True, False):
+        model = FastModel(table.problem, fast(**{"parts.table.enabled": on}), seed=0, terms=measured)
+        assert model.terms.table is on and (model.table is not None) is on and model.terms.tv is False
+        assert model.terms.pileup == measured.pileup and model.terms.crosstalk == measured.crosstalk
+
+
+def _scene_words(text: str) -> str:
+    """'table' for a text that restricts a part to scenes on a table, 'floor' for one without, '' for none."""
+    text = text.strip().lower()
+    return "table" if text.startswith(("on a table", "scenes on a table")) else \
+        "floor" if text.startswith(("without a table", "scenes without a table")) else ""
+
+
+def test_the_parts_docs_say_on_which_scenes_each_part_runs(running):
+    # The module's list said the empty-space push acts on a table; it runs on every scene (docs/fast_method.md).
+    ran = {scene: {part.name for part in model.parts} for scene, model in running.items()}
+    docs = Path(__file__).resolve().parents[2] / "docs" / "fast_method.md"
+    table_rows = {row.split("|")[1].strip(" `"): row.split("|")[3] for row in docs.read_text().splitlines()
+                  if row.startswith("| `")}
+    listed = {}
+    for line in parts_module.__doc__.splitlines():
+        words = line.split(maxsplit=2)
+        if line.startswith("  ") and words and words[0] in NAMES:
+            listed[words[0]] = words[2] if len(words) > 2 else ""
+    assert list(listed) == NAMES and list(table_rows) == NAMES
+    for name in NAMES:
+        for text in (listed[name], table_rows[name]):
+            where = _scene_words(text)
+            expected = {"table": {"table"}, "floor": {"floor"}, "": {"table", "floor"}}[where]
+            assert {scene for scene in ran if name in ran[scene]} == expected, (name, text)

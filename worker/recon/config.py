@@ -76,6 +76,12 @@ class ReconConfig:
             value = getattr(self, key)
             if not 8 <= value <= 1024:
                 raise ConfigError(f"{key} {value} must be in [8, 1024] cells")
+        # Each of these crashed the run with a traceback once the capture was loaded (the forward model divides by
+        # the oversampling and refuses more than 64 cells a bin; the trainer divides the run by the checkpoints; the
+        # metrics sample points on the meshes: with none, after the whole run, with no report written).
+        check_int("time_oversample", self.time_oversample, 1, 64, hint="fine time cells per bin")
+        for key in ("trace_checkpoints", "metrics_points", "trace_points"):
+            check_int(key, getattr(self, key), 1)
 
 
 def parse_override(text: str) -> tuple[str, Any]:
@@ -183,6 +189,14 @@ def check_in_range(key: str, value, lo: float, hi: float, unit: str = "metres", 
         raise ConfigError(f"{key} {value!r} must be in [{lo:g}, {hi:g}] {unit}" + (f" ({hint})" if hint else ""))
 
 
+def check_int(key: str, value, lo: int, hi: int | None = None, hint: str = "") -> None:
+    """Raise ConfigError naming `key` unless `value` is an integer (not a bool) >= lo, and <= hi where given.
+    `hint`, when given, follows in brackets: what the bounds mean."""
+    if not (isinstance(value, int) and not isinstance(value, bool) and value >= lo and (hi is None or value <= hi)):
+        bounds = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise ConfigError(f"{key} {value!r} must be an integer {bounds}" + (f" ({hint})" if hint else ""))
+
+
 def _deep_copy(obj):
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return dataclasses.replace(obj, **{f.name: _deep_copy(getattr(obj, f.name)) for f in dataclasses.fields(obj)
@@ -190,4 +204,5 @@ def _deep_copy(obj):
     return obj
 
 
-__all__ = ["PRESET_NAMES", "ReconConfig", "parse_override", "with_overrides", "FIXED_FIELDS", "check_in_range"]
+__all__ = ["PRESET_NAMES", "ReconConfig", "parse_override", "with_overrides", "FIXED_FIELDS", "check_in_range",
+           "check_int"]

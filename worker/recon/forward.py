@@ -34,7 +34,9 @@ RATE_FLOOR = 1e-12
 
 @dataclass
 class ModelTerms:
-    """Which parts of the sensor model a reconstruction uses (decided from the capture, listed in the report)."""
+    """Which parts of the sensor model a reconstruction uses (decided from the capture by `choose_terms`, listed in
+    the report). A preset that leaves out what the capture would allow reports its own (the fast preset: no TV, and
+    no table where `parts.table` does not run)."""
 
     pileup: bool
     """First-photon (Coates) pile-up."""
@@ -43,7 +45,7 @@ class ModelTerms:
     table: bool
     """A table plane under the object."""
     tv: bool
-    """Total-variation (normal smoothness) regulariser (measured data)."""
+    """Total-variation (normal smoothness) regulariser (the paper preset, on measured data)."""
     reference_pulse: bool
     """Pulse taken from the capture's reference histograms."""
 

@@ -9,12 +9,13 @@ physical ones in metres.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 from spadscan.protocol.errors import ConfigError
 
-from ..config import ReconConfig, check_in_range
+from ..config import ReconConfig, check_in_range, check_int
 from .parts import FastPartsConfig
 
 
@@ -168,9 +169,7 @@ class FastConfig(ReconConfig):
     def check(self) -> None:
         super().check()
         for key in ("resolution", "hull_resolution"):
-            value = getattr(self.field, key)
-            if not (isinstance(value, int) and 4 <= value <= 1024):
-                raise ConfigError(f"field.{key} {value!r} must be an integer in [4, 1024]")
+            check_int(f"field.{key}", getattr(self.field, key), 4, 1024)
         for key in ("carve_margin_m", "carve_keep_returns_m"):
             check_in_range(f"field.{key}", getattr(self.field, key), 0.0, 1.0)
         check_in_range("field.carve_weak_threshold", self.field.carve_weak_threshold, 1.0,
@@ -178,16 +177,47 @@ class FastConfig(ReconConfig):
                        hint="at most field.carve_threshold")
         check_in_range("schedule.adam_floor", self.schedule.adam_floor, 0.0, 1e6, unit="times the mean",
                        hint="0: plain Adam")
-        after = self.schedule.adam_floor_after_steps
-        if not (isinstance(after, int) and not isinstance(after, bool) and after >= 0):
-            raise ConfigError(f"schedule.adam_floor_after_steps {after!r} must be an integer >= 0 (0: the floor "
-                              f"from the first step)")
-        for key in ("views_per_step", "band_refresh_steps", "min_rays", "coarse_samples", "fine_samples",
-                    "reg_points"):
-            value = getattr(self.schedule, key)
-            if not (isinstance(value, int) and value >= 1):
-                raise ConfigError(f"schedule.{key} {value!r} must be an integer >= 1")
+        check_int("schedule.adam_floor_after_steps", self.schedule.adam_floor_after_steps, 0,
+                  hint="0: the floor from the first step")
+        for key in ("views_per_step", "band_refresh_steps", "min_rays", "reg_points"):
+            check_int(f"schedule.{key}", getattr(self.schedule, key), 1)
+        self._check_rendering()
         self.parts.check()
+
+    def _check_rendering(self) -> None:
+        """Values with which the fit renders nothing, or a step cannot be held in memory: each used to be accepted,
+        and the run then either "succeeded" with its data term never moving (the mesh was the carved hull) or ended
+        in a traceback."""
+        sc, fd = self.schedule, self.field
+        # Two samples make one section of opacity; a zero crossing lies between two coarse samples.
+        for key in ("coarse_samples", "fine_samples"):
+            check_int(f"schedule.{key}", getattr(sc, key), 2,
+                      hint="sections and zero crossings lie between two samples")
+        # Counted per steradian, the rays a step renders scale with the zones' solid angle and views_per_step: 1e5
+        # (111 x the default) is some 1 GB of samples a step on LCSPCData's 0.21 sr zone at 16 views (3.3 kB a ray,
+        # measured at 1e4); 1e9 asked 13.8 GB and failed in the first step. The candidates of every view are kept
+        # for the whole run: 1e5 is 5 M of them for 256 views of that zone.
+        for key in ("rays_per_sr", "candidate_rays_per_sr"):
+            check_in_range(f"schedule.{key}", getattr(sc, key), 0.0, 1e5, unit="per steradian",
+                           hint="the memory grows with it")
+        # Past the grid's own side, padding puts the coarse samples in space no surface can reach (1e9: none met it).
+        check_in_range("schedule.segment_pad_voxels", sc.segment_pad_voxels, 0.0, float(fd.resolution),
+                       unit="voxels", hint="at most field.resolution")
+        positive = {"field.sharpness_voxels": (fd.sharpness_voxels, "0: no opacity anywhere"),
+                    "schedule.window_voxels": (sc.window_voxels, "0: the fine samples all on one point"),
+                    "schedule.lr_voxels": (sc.lr_voxels, "0: the grid never moves")}
+        for key, (value, why) in positive.items():
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0):
+                raise ConfigError(f"{key} {value!r} must be > 0 ({why})")
+        # Across the fine window (+-window_voxels around the crossing) the SDF changes by at most window_voxels
+        # voxels either side, so a surface met head-on reaches at most the opacity 1 - Phi(-k) / Phi(k) = 1 - e^-k,
+        # k = sharpness_voxels x window_voxels (render.section_weights' product telescopes). Below ln 2 no ray is
+        # ever an opaque return (opacity > 0.5, as the parts count them) and most of the light is never rendered.
+        k = fd.sharpness_voxels * sc.window_voxels
+        if k < math.log(2.0):
+            raise ConfigError(f"field.sharpness_voxels x schedule.window_voxels = {k:g} must be >= ln 2 = 0.693: a "
+                              f"surface met head-on would reach an opacity of only {1 - math.exp(-k):.2g} inside the "
+                              f"fine window (the defaults: 2 x 3, 0.998)")
 
 
 def fast_config() -> FastConfig:

@@ -11,7 +11,7 @@ its moving average, where that part runs).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import torch
@@ -75,6 +75,11 @@ class FastModel:
         self._band: torch.Tensor | None = None
         self.parts, self.left_out = build_parts(config.parts, self)
         self._by_name: dict[str, Part] = {part.name: part for part in self.parts}
+        if terms is not None:
+            # The report lists the terms the fit used: this preset has no TV term (its smoothness, loss.smooth_weight,
+            # acts on every capture), and renders the table only where its part runs (parts.table.enabled=false on a
+            # table scene: no plane). The forward model keeps the capture's terms (pile-up, crosstalk).
+            self.terms = replace(terms, tv=False, table=self.table is not None)
         self._make_optimizer()
 
     def part(self, name: str) -> Part | None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -56,8 +57,10 @@ class PaperModel:
         self.dtype = {"float32": torch.float32, "float64": torch.float64}.get(config.dtype)
         if self.dtype is None:
             raise ReconstructionError(f"dtype {config.dtype!r} must be 'float32' or 'float64'")
-        self.terms = choose_terms(scene)
-        if self.terms.tv and config.loss.tv_weight > 0 and config.loss.eikonal_points == 0:
+        terms = choose_terms(scene)
+        # The report lists the terms the fit used: TV only where it has a weight (loss.tv_weight=0 leaves it out).
+        self.terms = replace(terms, tv=terms.tv and config.loss.tv_weight > 0)
+        if self.terms.tv and config.loss.eikonal_points == 0:
             raise ReconstructionError(f"loss.eikonal_points 0 leaves the TV term of measured data (loss.tv_weight "
                                       f"{config.loss.tv_weight:g}) no points to act on: set loss.tv_weight=0 too, "
                                       f"or eikonal_points >= 1")

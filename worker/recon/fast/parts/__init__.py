@@ -5,18 +5,19 @@ holds in this order; see `part.Part` for the hooks):
 
   refinement        before_step   refine the grid 2x once, after the coarse level's steps
   hull_projection   after_step    clamp the field into the carved hull (and after refinement)
-  table             (renderer)    render the table plane under a real object, fit its albedo and height
+  table             (renderer)    on a table, render its plane under the object, fit its albedo and height
   cavities          before_step   every few steps, fill pockets no view sees into (on a table: also under the object)
   thin_sheets       before_step   on a table, every few steps of the last level, empty thin curtains near the table
-  coarse_smoothing  before_loss   without a table, the coarse level smooths only near the floor
+  coarse_smoothing  before_loss   without a table, the coarse level smooths only near the floor (with refinement)
   openings          before_loss   gather returns before a round, then every few steps open the solid behind phantom
                     after_step    surface where the likelihood over all views prefers it (before the erosion moves it)
   erosion           before_loss   gather the returns' photon ratios, and every few steps erode surface they do not
                     after_step    show (simulated captures)
   blur              after_gradient  blur the data term's gradient
-  unseen            after_gradient  keep the data gradient's moving average (after the blur); on the last level
-                    after_step    relax the air side of surface no ray reaches towards its neighbours
-  empty_space       after_gradient  on a table, push surface few views look at inward (after the blur)
+  unseen            after_gradient  without a table, keep the data gradient's moving average (after the blur); on
+                    after_step    the last level relax the air side of surface no ray reaches towards its neighbours
+  empty_space       after_gradient  every scene: push surface inward where the data cannot hold it (after the blur):
+                                  on a table where few views look, without one where no view hears a return
   average           after_step    keep the moving average of the grid that meshes come from
   plateau           after_step    test whether the data term has stopped improving on the last level
 

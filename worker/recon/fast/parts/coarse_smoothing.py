@@ -49,6 +49,10 @@ class CoarseSmoothing(Part):
             return "a scene on a table: the empty-space push keeps what the views do not decide empty"
         if model.problem.floor_z is None:
             return "no floor to measure the height from"
+        if model.last_level:
+            # It acts only before the last level (`before_loss`): with one level, listing it as run would claim a
+            # mechanism that never did anything (an ablation's "refinement off" row included).
+            return "one level only (parts.refinement.enabled=false): there is no coarse level"
         return None
 
     def before_loss(self, model: Model, step: StepRecord) -> None:

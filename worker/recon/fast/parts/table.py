@@ -2,8 +2,8 @@
 
 Every zone of a real capture sees the table (docs/sensor_models.md: it is in every histogram), so its return is part of
 the forward model, not noise to be explained by the object. Rays that enter the hull see it behind the object, dimmed
-by the round-trip transmittance through the hull segment; rays that miss the hull see it directly — all of those are
-rendered every step (cheap: one plane intersection each), so the table adds no sampling noise.
+by the one-way transmittance (1 - the ray's opacity) through the hull segment; rays that miss the hull see it
+directly — all of those are rendered every step (cheap: one plane intersection each), so the table adds no sampling noise.
 
 When the capture names no table height (a fitted table of a measured capture), `table_height.detect_height` finds a
 horizontal one, which starts the fit (problem.py).
@@ -55,7 +55,7 @@ class TableModel:
         return torch.where(hit, t, torch.ones_like(t)), (-nd).clamp(min=0.0), hit
 
     def returns(self, o: torch.Tensor, d: torch.Tensor, w: torch.Tensor, transmittance: torch.Tensor):
-        """Table returns of rays o, d (R, 3) with weights w (R,) sr and round-trip transmittance (R,) in front of it:
+        """Table returns of rays o, d (R, 3) with weights w (R,) sr and one-way transmittance (R,) in front of it:
         (ranges (R,) metres, values (R,))."""
         t, cos, hit = self.hit(o, d)
         value = transmittance * w * cos / (t * t) * (torch.exp(self.log_albedo) / math.pi)
