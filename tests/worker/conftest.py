@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import matplotlib.figure
 import pytest
 
 
@@ -62,3 +63,18 @@ def recon_stand_ins(monkeypatch):
 
     here = str(Path(__file__).resolve().parent)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([here, str(Path(here).parent), os.environ.get("PYTHONPATH", "")]))
+
+
+@pytest.fixture
+def saved_legends(monkeypatch):
+    """The legend texts of every matplotlib figure saved during the test, one list per figure (a picture's legend
+    states what it counts; the PNG alone does not let a test read it)."""
+    legends = []
+    save = matplotlib.figure.Figure.savefig
+
+    def keep_legend(fig, *args, **kwargs):
+        legends.append([t.get_text() for t in fig.axes[0].get_legend().get_texts()])
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep_legend)
+    return legends

@@ -7,7 +7,6 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
-import matplotlib.figure
 import numpy as np
 import pytest
 import torch
@@ -106,20 +105,12 @@ def test_each_vertex_takes_the_views_of_its_nearest_sample():
     assert (views[inner_x_face] == 5).all() and (views[x < -0.0499] == 0).all()
 
 
-def test_the_coverage_picture_counts_what_the_report_counts(tmp_path, monkeypatch):
+def test_the_coverage_picture_counts_what_the_report_counts(tmp_path, saved_legends):
     """coverage.png's legend and the report's coverage (its warning, report.json) give the same shares: both leave
     the undersides out. The legend counted them, and one page read 34 % seen by fewer than three views in the
     picture and 24 % in its warning."""
-    legends = []
-    save = matplotlib.figure.Figure.savefig
-
-    def keep_legend(fig, *args, **kwargs):
-        legends.append([t.get_text() for t in fig.axes[0].get_legend().get_texts()])
-        return save(fig, *args, **kwargs)
-
-    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep_legend)
     scene = SimpleNamespace(poses=torch.as_tensor(from_azimuth_zero([10, 25, 40, 55, 70])), sensor=SENSOR)
     cov = reconstruct._coverage(tmp_path, box(), scene, print)
-    unseen, few, _ = (float(text.split(": ")[1].rstrip("%")) / 100 for text in legends[0])
+    unseen, few, _ = (float(text.split(": ")[1].rstrip("%")) / 100 for text in saved_legends[0])
     assert unseen == pytest.approx(cov.share_unseen, abs=0.005)
     assert unseen + few == pytest.approx(cov.share_few, abs=0.01)

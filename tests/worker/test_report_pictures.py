@@ -160,21 +160,11 @@ def test_the_coverage_picture_shows_in_red_what_no_view_sees(tmp_path):
     assert path.read_bytes().startswith(b"\x89PNG")
 
 
-def test_the_coverage_picture_legend_gives_each_class_its_share(tmp_path, monkeypatch):
-    import matplotlib.figure
-
-    legends = []
-    save = matplotlib.figure.Figure.savefig
-
-    def keep_legend(fig, *args, **kwargs):
-        legends.append([t.get_text() for t in fig.axes[0].get_legend().get_texts()])
-        return save(fig, *args, **kwargs)
-
-    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep_legend)
+def test_the_coverage_picture_legend_gives_each_class_its_share(tmp_path, saved_legends):
     mesh = sphere((0, 0, 0))
     pictures.coverage_png(mesh, np.zeros(len(mesh.vertices), int), tmp_path / "c.png",
                           area_views=np.array([0, 1, 2, 3, 4, 5, 6, 7]), pixels=32)
-    assert legends == [["seen by no view: 12%", "seen by 1-2 views: 25%", "seen by 3 or more views: 62%"]]
+    assert saved_legends == [["seen by no view: 12%", "seen by 1-2 views: 25%", "seen by 3 or more views: 62%"]]
 
 
 def test_a_surface_is_shaded_by_its_own_normals_as_smooth_shading_would():
