@@ -200,5 +200,5 @@ def metric_points_within(costs: EndCosts, want: int, seconds: float) -> int:
 
 
 __all__ = ["process_started", "RunClock", "EndCosts", "training_budget", "mesh_resolution_within",
-           "fit_views_within", "metric_points_within", "coverage_picture_within", "MIN_MESH_RESOLUTION", "MIN_METRIC_POINTS",
-           "PROBE_RESOLUTIONS", "PROBE_POINTS"]
+           "fit_views_within", "metric_points_within", "coverage_picture_within", "MIN_MESH_RESOLUTION",
+           "MIN_METRIC_POINTS", "PROBE_RESOLUTIONS", "PROBE_POINTS"]

@@ -359,8 +359,8 @@ def warnings(facts: RunFacts) -> list[str]:
     return out
 
 
-__all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error", "converged", "cpu_share",
-           "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT",
+__all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error", "converged",
+           "cpu_share", "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
            "MISFIT_Z", "MISFIT_RELATIVE", "MISFIT_MIN_HISTOGRAMS",
            "noise_moments", "misfit_histograms"]

@@ -3,7 +3,8 @@
 Every zone of a real capture sees the table (docs/sensor_models.md: it is in every histogram), so its return is part of
 the forward model, not noise to be explained by the object. Rays that enter the hull see it behind the object, dimmed
 by the one-way transmittance (1 - the ray's opacity) through the hull segment; rays that miss the hull see it
-directly — all of those are rendered every step (cheap: one plane intersection each), so the table adds no sampling noise.
+directly — all of those are rendered every step (cheap: one plane intersection each), so the table adds no sampling
+noise.
 
 When the capture names no table height (a fitted table of a measured capture), `table_height.detect_height` finds a
 horizontal one, which starts the fit (problem.py).
