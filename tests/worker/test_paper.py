@@ -296,6 +296,7 @@ def test_scene_loading_sums_frames_masks_bad_bins_and_bounds_the_scene(tmp_path)
     poses = np.stack([look_at(target + d, target) for d in ([0.3, 0, 0.1], [0, -0.2, 0.25], [-0.1, 0.1, 0.3])])
     poses = np.repeat(poses, 2, axis=0)  # two frames per pose
     hists = np.full((6, 9, 128), 100, np.uint32)
+    hists[..., ::2] += 1  # no sensor gives every bin the same count: such a histogram is left out (plausibility)
     hists[1, 2, 40] = 2 ** 24 - 1  # a saturated 24-bit counter in the second frame of pose 0
     cap = write_capture(tmp_path / "c", sensor, hists, poses, frames_per_pose=2,
                         scene={"table": {"z": 0.0}, "real": False})
