@@ -302,8 +302,13 @@ class ScanRunner:
                         await self._io(_end_early, job)
                         break
                     if not self._pause_requested:
-                        await self._io(_finish_capture, job)
-                        break
+                        if job.next_pose >= job.n_poses:
+                            await self._io(_finish_capture, job)
+                            break
+                        # A pause withdrawn (resume) while the pose in flight was being published: the loop stopped
+                        # for the pause all the same, and finishing here marked a partial capture complete. Go on
+                        # from the first pose not taken.
+                        continue
                 except (DeviceError, OSError, CaptureError, _Fault) as exc:
                     # What the arm needs before it moves again, once the user resumes.
                     job.arm_fix = ("reconnect" if isinstance(exc, LinkLost) else

@@ -6,9 +6,11 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
+import threading
 
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.runner import ScanRunner
+from spadscan.protocol.capture_reader import CaptureReader
 
 from test_runner import make_cfg, make_rig, sphere, until  # noqa: F401  (sphere: a fixture)
 
@@ -50,3 +52,48 @@ def test_pause_says_where_it_stops(arun, tmp_path, sphere, caplog):  # noqa: F81
         gap = int(stopped.split("/")[0]) - int(at_request.split("/")[0])
         assert 0 <= gap <= 2, seen  # at most one pose waiting to be written and one being captured
     assert any(re.search(r"pose (\d+)/60; pausing at pose (?!\1/)", m) for m in requested), requested
+
+
+def test_a_pause_withdrawn_while_the_last_pose_is_published_takes_every_pose(arun, tmp_path, sphere,  # noqa: F811
+                                                                              monkeypatch):
+    """`ctl resume` after the runner has left its loop for a pause, while the pose in flight is still being written
+    (a slow disk): the pause is withdrawn, and the scan was finished as complete with its other poses never taken."""
+    cfg = make_cfg(tmp_path, views=12, frames_per_pose=1, settle_s=0.0)
+    first, second = threading.Event(), threading.Event()  # set when the two held writes begin
+    release_first, release_second = threading.Event(), threading.Event()
+    publish = ScanRunner._publish
+
+    def held_publish(writer, measurements):
+        if writer.next_pose_index >= 3 and not first.is_set():
+            first.set()
+            release_first.wait(10)
+        elif first.is_set() and not second.is_set():
+            second.set()
+            release_second.wait(10)
+        publish(writer, measurements)
+
+    monkeypatch.setattr(ScanRunner, "_publish", staticmethod(held_publish))
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.0, frame_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("race")
+                await until(first.is_set, "pose 3 being written")
+                await until(lambda: runner.job.in_flight == 4, "pose 4 under way")
+                await runner.pause()  # the loop stops after pose 4, once pose 3 has landed
+                release_first.set()
+                # Pose 4's write begins as the loop leaves for the pause (no await between): the runner now waits
+                # for it in its loop's clean-up.
+                await until(second.is_set, "pose 4 being written")
+                await runner.resume()
+                release_second.set()
+                return await asyncio.wait_for(runner.wait("race"), 30)
+            finally:
+                release_first.set()
+                release_second.set()
+                await runner.shutdown()
+
+    assert arun(scenario())["state"] == "complete"
+    assert len(set(CaptureReader(tmp_path / "caps" / "race").load().pose_indices.tolist())) == 12
