@@ -49,6 +49,10 @@ def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np
     moves = [(j - 1, j) for j in range(1, n)]
     poses = tcp
     if start is not None:
+        reason = _pose_problem(np.asarray(start, dtype=np.float64), arm)
+        if reason:  # not the move's fault: the arm already stands outside (jogged, or at rest above the box)
+            raise ConfigError(f"{where}: the arm stands where it may not: {reason} ([arm] limits); jog it into the "
+                              f"workspace")
         poses = np.concatenate([np.asarray(start, dtype=np.float64)[None], tcp])
         moves = [(j, j + 1) for j in range(n)]
     for a, b in moves:
@@ -132,9 +136,13 @@ def _box_problem(points: np.ndarray, arm: ArmConfig, margin: float) -> str | Non
         return None
     k, axis = (int(v[0]) for v in np.nonzero(bad))
     v = points[k, axis]
-    side, limit = ("below workspace_min", arm.workspace_min[axis]) if v < lo[axis] else \
+    low = v < lo[axis]
+    side, limit = ("below workspace_min", arm.workspace_min[axis]) if low else \
         ("above workspace_max", arm.workspace_max[axis])
-    extra = f" less bracket_radius_m {margin:g}" if margin > 0 else ""
+    # The bracket keeps bracket_radius_m inside the box: on the low side the limit rises by it, on the high side
+    # it falls; the operator jogging the arm needs the limit itself.
+    extra = (f" {'plus' if low else 'less'} bracket_radius_m {margin:g} = {(lo if low else hi)[axis]:.3f} m"
+             if margin > 0 else "")
     return f"{'xyz'[axis]} = {v:.3f} m is {side} {limit:.3f} m{extra}"
 
 

@@ -137,7 +137,7 @@ def test_the_sensor_and_its_bracket_must_stay_in_the_workspace_not_only_the_flan
         check_workspace(tcp, arm(hand_eye=he, **box), "plan")
     tcp = pose_at([0.4, 0.0, 0.15], DOWN)[None]  # sensor at 0.10 m: clear of the floor, its bracket is not
     check_workspace(tcp, arm(hand_eye=he, **box), "plan")
-    with pytest.raises(ConfigError, match="below workspace_min 0.080 m less bracket_radius_m 0.03"):
+    with pytest.raises(ConfigError, match="below workspace_min 0.080 m plus bracket_radius_m 0.03 = 0.110 m"):
         check_workspace(tcp, arm(hand_eye=he, bracket_radius_m=0.03, **box), "plan")
 
 
@@ -212,3 +212,12 @@ def test_the_sensor_samples_along_a_move_follow_the_turning_tool():
         expected = [f + a[:3, :3] @ rotvec_to_matrix(t * turn) @ HAND_EYE[:3, 3] for f, t in zip(flange, s)]
         np.testing.assert_allclose(sensor, expected, atol=1e-12)
         np.testing.assert_allclose(sensor[-1], (b @ HAND_EYE)[:3, 3], atol=1e-12)
+
+
+def test_a_start_already_outside_the_workspace_is_named_as_such_not_as_the_move():
+    """An arm at rest above the box was refused for "the straight move to pose 0": the move was not the problem."""
+    box = dict(workspace_min=np.array([-1, -1, 0.0]), workspace_max=np.array([1.0, 1, 0.6]))
+    start = pose_at([0.4, 0.0, 0.7], DOWN)
+    with pytest.raises(ConfigError, match=r"the arm stands where it may not: z = 0.700 m is above workspace_max "
+                                          r"0.600 m \(\[arm\] limits\); jog it into the workspace"):
+        check_workspace(pose_at([0.4, 0.0, 0.3], DOWN)[None], arm(hand_eye=np.eye(4), **box), "plan", start=start)
