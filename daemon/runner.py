@@ -161,7 +161,9 @@ class ScanRunner:
                 reopen_error = _describe(exc, "reopening the capture")
                 await asyncio.to_thread(job.count_published)
             if job.blocked is None:
-                _check_left(job, self.cfg.arm)
+                # In a thread: thousands of poses take seconds, and the event loop must keep kicking the arm's
+                # watchdog meanwhile (a 4,000-view plan blocked it 1.4 s, and the controller stopped the script).
+                await asyncio.to_thread(_check_left, job, self.cfg.arm)
             if job.scan.schedule == "adaptive":
                 job.chooser = await asyncio.to_thread(ViewChooser, job.scan, self.cfg.arm, job.hand_eye, path)
                 await asyncio.to_thread(job.count_choices)
@@ -309,8 +311,10 @@ class ScanRunner:
                         # for the pause all the same, and finishing here marked a partial capture complete. Go on
                         # from the first pose not taken.
                         continue
-                except (DeviceError, OSError, CaptureError, _Fault) as exc:
-                    # What the arm needs before it moves again, once the user resumes.
+                except (DeviceError, OSError, CaptureError, ConfigError, _Fault) as exc:
+                    # (ConfigError: a pose the workspace refuses now, its config tightened since the scan began: a
+                    # pause with the reason, not an "internal error".) What the arm needs before it moves again, once
+                    # the user resumes.
                     job.arm_fix = ("reconnect" if isinstance(exc, LinkLost) else
                                    "clear" if isinstance(exc, ArmFault) else job.arm_fix)
                     await self._fault(job, _describe(exc) + f" (pose {job.next_pose}/{job.n_poses})")

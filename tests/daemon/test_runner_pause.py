@@ -11,6 +11,7 @@ import threading
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.runner import ScanRunner
 from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.errors import ConfigError
 
 from test_runner import make_cfg, make_rig, sphere, until  # noqa: F401  (sphere: a fixture)
 
@@ -97,3 +98,33 @@ def test_a_pause_withdrawn_while_the_last_pose_is_published_takes_every_pose(aru
 
     assert arun(scenario())["state"] == "complete"
     assert len(set(CaptureReader(tmp_path / "caps" / "race").load().pose_indices.tolist())) == 12
+
+
+def test_a_pose_refused_mid_scan_pauses_with_the_reason_not_an_internal_error(arun, tmp_path, sphere,  # noqa: F811
+                                                                               monkeypatch, caplog):
+    """An adaptive scan taken over under a tightened box finds no pose it may move to: a ConfigError, which paused
+    the scan as "internal error: ConfigError: ..." with a traceback in the log, at every resume."""
+    cfg = make_cfg(tmp_path, views=6, frames_per_pose=1, settle_s=0.0)
+    move = ScanRunner._move
+
+    async def refusing_move(runner, job, i):
+        if i == 2:
+            raise ConfigError("no pose left in the plan can be reached by a straight move from pose 1 ([arm] limits)")
+        return await move(runner, job, i)
+
+    monkeypatch.setattr(ScanRunner, "_move", refusing_move)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.0, frame_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("refused")
+                await until(lambda: runner.state == "paused", "paused")
+                return runner.job.reason
+            finally:
+                await runner.shutdown()
+
+    reason = arun(scenario())
+    assert reason.startswith("no pose left in the plan can be reached") and "internal error" not in reason, reason
+    assert not any(r.exc_info for r in caplog.records), "no traceback: the operator's config, not a bug"
