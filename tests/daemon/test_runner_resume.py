@@ -4,11 +4,14 @@ capture never mixes two sensors."""
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.rig import build_devices, rig_record
 from spadscan.daemon.config import config_from_dict
+from spadscan.daemon import runner as runner_module
 from spadscan.daemon.runner import ScanRunner
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError
@@ -83,3 +86,19 @@ def test_hand_eye_and_sensor_changed_together_are_both_named(arun, tmp_path):
     arun(interrupt(make_cfg(tmp_path)))
     status, refused = arun(restart(make_cfg(tmp_path, hand_eye_z=0.04, power=2.0)))
     assert "[arm] hand_eye differs" in refused and "[sensor] differs" in refused and "(power)" in refused
+
+
+def test_taking_a_scan_over_checks_its_poses_off_the_event_loop(arun, tmp_path, monkeypatch):
+    """The workspace check of the poses left ran on the event loop: 4,000 of them blocked it 1.4 s, longer than the
+    UR watchdog's period, and the controller stopped its script while the daemon took the scan over."""
+    arun(interrupt(make_cfg(tmp_path)))
+    threads = []
+    check = runner_module._check_left
+
+    def recorded(job, arm):
+        threads.append(threading.current_thread() is threading.main_thread())
+        return check(job, arm)
+
+    monkeypatch.setattr(runner_module, "_check_left", recorded)
+    status, refused = arun(restart(make_cfg(tmp_path)))
+    assert refused is None and threads == [False], (threads, status)
