@@ -76,8 +76,11 @@ def run(args) -> int:
             summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers,
                                 device=args.device, keep=args.keep, progress=not args.no_progress, log=log)
     except KeyboardInterrupt:
+        # Dask cannot stop a task that runs: a scheduler's workers finish the points they hold, and a re-run waits.
+        running = ("; points already running on the scheduler's workers finish there first"
+                   if args.scheduler is not None else "")
         print(f"spadscan sweep: interrupted; the points finished are kept in {args.out}, and the same command runs "
-              f"the rest", file=sys.stderr)
+              f"the rest{running}", file=sys.stderr)
         return 130
     print(f"{summary.points} points: {summary.earlier} done earlier, {summary.ran} run now "
           f"({summary.done} done, {len(summary.failed)} failed)")

@@ -11,10 +11,12 @@ from .results import read_results
 
 
 def picture_name(scene: str, scenes: list) -> str:
-    """figure_a.png for a sweep of one scene; figure_a-<scene>.png (file-name-safe) for each of several."""
+    """figure_a.png for a sweep of one scene; figure_a-<n>-<scene>.png (n: its place in `scenes`, from 1; the name
+    file-name-safe) for each of several. The number keeps scenes apart whose safe names coincide (a/b.obj, a_b.obj)."""
     if len(scenes) <= 1:
         return "figure_a.png"
-    return f"figure_a-{re.sub(r'[^A-Za-z0-9_.-]+', '_', scene).strip('_') or 'scene'}.png"
+    safe = re.sub(r'[^A-Za-z0-9_.-]+', '_', scene).strip('_') or 'scene'
+    return f"figure_a-{scenes.index(scene) + 1}-{safe}.png"
 
 
 def plot_sweep(folder) -> tuple[list[Path], Path]:

@@ -16,8 +16,9 @@ Units at this edge are the user's: degrees, picoseconds, metres; inside, the sen
 
 from __future__ import annotations
 
+import inspect
 import math
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -31,6 +32,12 @@ C_M_PER_S = 299_792_458.0
 MIN_PULSE_SIGMA_BINS = 0.05
 """The sensor model's narrowest pulse (bins): bins much wider than the pulse see it as a spike."""
 SCHEDULES = ("fibonacci", "rings")
+RINGS_ELEVATIONS = {key: inspect.signature(schedules.elevation_rings).parameters[key].default
+                    for key in ("min_elevation_deg", "max_elevation_deg")}
+"""The rings schedule's own band: its end rings sit on the band's limits, so the spiral's 0-90 deg would put a whole
+ring at the zenith, every view of it from one position."""
+MAX_RECT_TAN = 10.0
+"""The sensor model's limit on a rectangular zone's edges, |tan| < 10 (protocol.sensor_model)."""
 
 
 @dataclass(frozen=True)
@@ -175,6 +182,13 @@ def with_fov_deg(sensor, fov_deg: float):
         zones = (replace(sensor.zones[0], half_angle_rad=math.radians(fov_deg / 2.0)),)
     else:
         k = math.tan(math.radians(fov_deg / 2.0)) / math.tan(math.radians(old / 2.0))
+        widest = max(abs(t) for z in sensor.zones for t in (*z.tan_x, *z.tan_y))
+        if not k * widest < MAX_RECT_TAN:
+            limit = 2.0 * math.degrees(math.atan(MAX_RECT_TAN / widest * math.tan(math.radians(old / 2.0))))
+            # Without a value: the caller's prefix names the entry ("[grid] fov_deg = 170").
+            raise ConfigError(f"fov_deg: sensor {sensor.name!r} has rectangular zones, whose field widens only to "
+                              f"under {math.floor(limit * 10) / 10:g} deg (zone edges within |tan| < "
+                              f"{MAX_RECT_TAN:g})")
         zones = tuple(replace(z, tan_x=(z.tan_x[0] * k, z.tan_x[1] * k), tan_y=(z.tan_y[0] * k, z.tan_y[1] * k))
                       for z in sensor.zones)
     solid_old = sum(z.solid_angle_sr() for z in sensor.zones)
@@ -218,7 +232,8 @@ def point_poses(params: dict) -> tuple[np.ndarray, dict]:
 
 def check_point(params: dict, base_bin_ps: float) -> dict:
     """Build everything a point's simulation needs once, so that a bad combination is a one-line error before the
-    sweep starts. Returns the point's sensor model as a dict (what its id is made from)."""
+    sweep starts. Returns the point's sensor model and photon settings as dicts (part of what its id is made from:
+    the settings hold what `params` alone does not say, such as the ambient rate at the point's bins)."""
     if params["schedule"] not in SCHEDULES:
         raise ConfigError(f"schedule = {params['schedule']!r} is not one of {', '.join(SCHEDULES)}")
     if params["schedule"] == "fibonacci" and params["rings"] is not None:
@@ -226,17 +241,22 @@ def check_point(params: dict, base_bin_ps: float) -> dict:
     if not params["min_elevation_deg"] < params["max_elevation_deg"]:
         raise ConfigError(f"min_elevation_deg = {params['min_elevation_deg']:g} must be below max_elevation_deg = "
                           f"{params['max_elevation_deg']:g}")
+    if (params["schedule"] == "rings" and params["max_elevation_deg"] >= 90.0 and params["rings"] > 1
+            and params["views"] // params["rings"] > 1):
+        raise ConfigError(f"max_elevation_deg = {params['max_elevation_deg']:g} puts the top ring of schedule "
+                          f"'rings' at the zenith, where its {params['views'] // params['rings']} views are one "
+                          f"viewpoint; keep it below 90 (default {RINGS_ELEVATIONS['max_elevation_deg']:g})")
     try:
         sensor = point_sensor(params)
-        point_settings(params, base_bin_ps)
+        settings = point_settings(params, base_bin_ps)
         point_poses(params)
     except ConfigError:
         raise
     except SpadscanError as exc:
         raise ConfigError(str(exc)) from None
-    return sensor.to_dict()
+    return {"sensor": sensor.to_dict(), "settings": asdict(settings)}
 
 
 __all__ = ["PARAMS", "Param", "check_value", "defaults_for", "bin_ps_of", "fov_deg_of", "with_bin_ps",
            "with_fov_deg", "point_sensor", "point_settings", "point_poses", "point_ambient", "check_point",
-           "C_M_PER_S", "SCHEDULES"]
+           "C_M_PER_S", "SCHEDULES", "RINGS_ELEVATIONS"]

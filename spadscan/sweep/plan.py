@@ -2,10 +2,10 @@
 
 A point is one simulate -> reconstruct -> baselines -> metrics run: a scene and every imaging parameter resolved.
 Its id is a hash of everything its results depend on (the scene's label and mesh digest, every parameter, the
-point's sensor model, the methods and how they are run and scored), so the same point has the same id in every run
-of every sweep file that asks for it, and grid entries that coincide (the base condition sits on every axis) share
-one point. The *fingerprint* hashes the base condition and the methods: a results folder holds the points of one
-fingerprint only, so that a changed base condition never mixes with results of the old one.
+point's sensor model and photon settings, the methods and how they are run and scored), so the same point has the
+same id in every run of every sweep file that asks for it, and grid entries that coincide (the base condition sits
+on every axis) share one point. The *fingerprint* hashes the base condition and the methods: a results folder holds
+the points of one fingerprint only, so that a changed base condition never mixes with results of the old one.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from .params import check_point
 from .scenes import Scene, load_scene
 from .spec import BaselineRun, PresetRun, SweepSpec
 
-FORMAT = 1
-"""Version of the point record; a new one changes every id."""
+FORMAT = 2
+"""Version of the point record; a new one changes every id. 2: the record holds the simulator's photon settings."""
 PRODUCT_AXIS = "product"
 """The `axis` of an entry of a product grid (every axis varies at once)."""
 
@@ -86,19 +86,19 @@ def make_plan(spec: SweepSpec, lcspc_root: Path | None = None) -> Plan:
     methods = spec.method_record()
     base_record = {"format": FORMAT, "base": spec.base, **methods}
     plan = Plan(spec, scenes, [], {}, base_record, canonical_hash(base_record)[:16])
-    sensors: dict[str, dict] = {}  # one check per distinct parameter set
+    checked: dict[str, dict] = {}  # one check per distinct parameter set
     for scene in scenes:
         for axis, value, params in _grid_points(spec):
             key = canonical_hash(params)
-            if key not in sensors:
+            if key not in checked:
                 try:
-                    sensors[key] = check_point(params, spec.base["bin_ps"])
+                    checked[key] = check_point(params, spec.base["bin_ps"])
                 except ConfigError as exc:
                     at = "the base condition" if axis == "base" else (
                         f"[grid] {axis} = {value:g}" if axis != PRODUCT_AXIS else
                         "[grid] " + ", ".join(f"{a} = {params[a]:g}" for a in spec.grid))
                     raise ConfigError(f"{spec.path}: {at}: {exc}") from None
-            record = {"format": FORMAT, "scene": scene.record(), "params": params, "sensor": sensors[key], **methods}
+            record = {"format": FORMAT, "scene": scene.record(), "params": params, **checked[key], **methods}
             pid = canonical_hash(record)[:16]
             if pid not in plan.points:
                 plan.points[pid] = PointTask(pid, scene, params, record, spec.presets, spec.baselines,

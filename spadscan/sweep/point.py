@@ -4,7 +4,9 @@
 CPU thread for torch (the cluster runs one point per worker process, one process per core), writes its result to
 DIR/points/<id>.json before it returns, and never raises for a failed stage: each method's failure is recorded with
 its one-line reason, the others still run, and the point is `failed` with the first reasons. A point whose result is
-already there as `done` (its worker died after writing it, and Dask ran it again) is not run twice.
+already there as `done` (its worker died after writing it, and Dask ran it again) is not run twice, and an attempt
+waits while another holds the point (an interrupted run's attempt, which goes on running on a scheduler's worker)
+and then takes that one's result.
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ from .scenes import scene_mesh
 from .store import SweepDir
 
 Emit = Callable[..., None]
-"""emit(event, **fields): 'start', 'stage' (stage=NAME), 'done', 'failed', 'skip'."""
+"""emit(event, **fields): 'wait' (another attempt holds the point), 'start', 'stage' (stage=NAME), 'done',
+'failed', 'skip'."""
 
 PRESET_KEYS = ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg", "steps",
                "stopped_by", "final_loss", "device")
@@ -47,6 +50,17 @@ def run_point(task: PointTask, out: str, *, device: str = "cpu", keep: bool = Fa
     if earlier is not None and earlier.get("status") == "done":
         emit("skip")
         return earlier
+    with store.hold_point(task.id, on_wait=lambda: emit("wait")):
+        latest = store.read_point(task.id)
+        # A result written since the first look is another attempt's, which held the point meanwhile: the point ran.
+        if latest is not None and (latest.get("status") == "done" or latest != earlier):
+            emit("skip")
+            return latest
+        return _run(task, store, device, keep, emit, worker)
+
+
+def _run(task: PointTask, store: SweepDir, device: str, keep: bool, emit: Emit, worker: str | None) -> dict:
+    """Run `task` (its lock held) and store its result."""
     host = socket.gethostname()
     emit("start")
     start = time.perf_counter()
@@ -84,9 +98,8 @@ def run_point(task: PointTask, out: str, *, device: str = "cpu", keep: bool = Fa
         "spadscan": spadscan.__version__,
         "record": task.record,
     }
-    result = json_safe(result)
-    store.write_point(result)
-    emit("failed" if failures else "done", reason=result["reason"], seconds=result["seconds"])
+    result = store.write_point(json_safe(result))
+    emit(result["status"], reason=result["reason"], seconds=result["seconds"])
     return result
 
 

@@ -5,7 +5,8 @@ writes the point's result into DIR/points/ itself, so a result survives whatever
 worker dies mid-point (killed, out of memory, its machine gone), the scheduler hands its task to another worker
 (Dask retries a task whose worker died up to `distributed.scheduler.allowed-failures` times, 3 by default); a
 point that kills that many workers is recorded as failed. Workers report each point's start and stages as Dask
-events, which this client writes to DIR/log.jsonl.
+events, which this client writes to DIR/log.jsonl. Every sweep on a scheduler shares the events' topic: each event
+names its sweep's folder, and a client logs only its own folder's.
 
 A point on a CUDA device asks for the worker resource GPU=1: start GPU workers with `--resources GPU=1`
 (one per GPU); an embedded cluster gives each of its workers one.
@@ -44,16 +45,23 @@ RESULTS_EVERY_S = 10.0
 end."""
 
 
+def emit_event(out: str, point_id: str, event: str, **fields) -> None:
+    """Report an event of a point of the sweep in folder `out` (the resolved path the client passed) from a task."""
+    worker = get_worker()
+    # Dask adds "worker" (the address) to every event; "name" is the worker's own (dask worker --name).
+    worker.log_event(EVENT_TOPIC, {"sweep": out, "event": event, "point": point_id, "name": str(worker.name),
+                                   "pid": os.getpid(), **fields})
+
+
+def sweep_name(store: SweepDir) -> str:
+    """The folder's one name (resolved), which its tasks are given and its events carry."""
+    return str(store.path.resolve())
+
+
 def dask_point(task: PointTask, out: str, device: str, keep: bool) -> dict:
     """The Dask task of one point: run it on this worker, reporting events to the client; returns a summary."""
-    worker = get_worker()
-
-    def emit(event: str, **fields) -> None:
-        # Dask adds "worker" (the address) to every event; "name" is the worker's own (dask worker --name).
-        worker.log_event(EVENT_TOPIC, {"event": event, "point": task.id, "name": str(worker.name),
-                                       "pid": os.getpid(), **fields})
-
-    result = run_point(task, out, device=device, keep=keep, emit=emit, worker=str(worker.name))
+    result = run_point(task, out, device=device, keep=keep, worker=str(get_worker().name),
+                       emit=lambda event, **fields: emit_event(out, task.id, event, **fields))
     return {"id": result["id"], "status": result["status"], "reason": result.get("reason"),
             "seconds": result.get("seconds"), "worker": result.get("worker")}
 
@@ -104,7 +112,7 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
         try:
             if todo:
                 _run_on_dask(plan, todo, store, summary, _client(scheduler, workers, device, log),
-                             lambda task: (point, task, str(store.path.resolve()), device, keep), device, progress)
+                             lambda task: (point, task, sweep_name(store), device, keep), device, progress)
         except BaseException:
             with contextlib.suppress(OSError):
                 store.write_results(plan)  # an interrupt or a failure: what finished is gathered all the same
@@ -118,10 +126,13 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
 def _run_on_dask(plan, todo, store, summary, connect, call, device, progress) -> None:
     """Submit a task per point of `todo` (`call(task)` gives the function and its arguments) to the client that
     `connect` opens, and record each as it finishes."""
+    name = sweep_name(store)
+
     def on_event(event) -> None:
         _, message = event
-        if isinstance(message, dict):
-            store.append_log(message)
+        # Other sweeps on the same scheduler publish on the same topic.
+        if isinstance(message, dict) and message.get("sweep") == name:
+            store.append_log({k: v for k, v in message.items() if k != "sweep"})
 
     start = time.monotonic()
     with connect as client:
@@ -272,4 +283,4 @@ class _client:
         return False
 
 
-__all__ = ["run_sweep", "dask_point", "Summary", "EVENT_TOPIC", "cores"]
+__all__ = ["run_sweep", "dask_point", "emit_event", "Summary", "EVENT_TOPIC", "cores"]

@@ -40,7 +40,7 @@ from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.presets import preset_config
 
-from .params import PARAMS, bin_ps_of, check_value, defaults_for
+from .params import PARAMS, RINGS_ELEVATIONS, bin_ps_of, check_value, defaults_for
 
 MODES = ("one-at-a-time", "product")
 PRESETS = ("fast", "paper")
@@ -193,8 +193,12 @@ def _base(table: dict, where: str) -> dict:
     for key, value in table.items():
         if key != "sensor":
             base[key] = check_value(key, value, f"{where}: [base]")
-    if base["schedule"] == "rings" and base["rings"] is None:
-        base["rings"] = DEFAULT_RINGS
+    if base["schedule"] == "rings":
+        if base["rings"] is None:
+            base["rings"] = DEFAULT_RINGS
+        for key, value in RINGS_ELEVATIONS.items():  # the spiral's band would stack a ring at the zenith
+            if key not in table:
+                base[key] = value
     if base["ambient"] is None:
         # The preset's background per bin, scaled to the base condition's bins (the flux in time is the scene's).
         base["ambient"] = sensor.background * base["bin_ps"] / bin_ps_of(sensor)

@@ -6,6 +6,7 @@
     DIR/results.csv         every grid entry that has a result, one row each, gathered from points/
     DIR/log.jsonl           what happened when: each point's start and stages, on which worker, and its end
     DIR/work/               points in progress (their capture and outputs; removed when they end unless kept)
+    DIR/locks/<id>          held (flock) by the attempt that runs the point, while it runs
     DIR/.lock               held by the one `spadscan sweep` that runs on DIR
 
 Machines that run points must share this folder (the same path on each).
@@ -13,6 +14,7 @@ Machines that run points must share this folder (the same path on each).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import fcntl
 import io
@@ -22,6 +24,7 @@ import secrets
 import shutil
 import time
 from pathlib import Path
+from typing import Callable
 
 import spadscan
 from spadscan.protocol.atomic_files import write_atomic
@@ -36,6 +39,7 @@ RESULTS_CSV = "results.csv"
 LOG = "log.jsonl"
 WORK = "work"
 LOCK = ".lock"
+LOCKS = "locks"
 RUNNING_MARK = ".running-"
 """In the name of a point's work folder while it runs: <id>.running-<host>-<pid>-<token>."""
 
@@ -64,13 +68,15 @@ class SweepDir:
         self.path = Path(path)
         self.points = self.path / POINTS
         self.work = self.path / WORK
+        self.locks = self.path / LOCKS
         self._lock_fd: int | None = None
 
     # --- the client's side: open, check, gather ---------------------------------------------------------------
 
     def open(self, plan) -> None:
         """Create or reopen the folder for `plan`: take the lock, refuse a folder of another base condition, record
-        the plan, clear the work folders of attempts that died. Call `close` when done."""
+        the plan, clear the work folders of attempts that died (not those of attempts still running: an
+        interrupted run's points go on running on a scheduler's workers). Call `close` when done."""
         if self.path.exists() and not self.path.is_dir():
             raise ConfigError(f"{self.path}: exists and is not a folder")
         self.path.mkdir(parents=True, exist_ok=True)
@@ -85,8 +91,11 @@ class SweepDir:
                 raise
             self.points.mkdir(exist_ok=True)
             self.work.mkdir(exist_ok=True)
-            for stale in self.work.glob(f"*{RUNNING_MARK}*"):
-                shutil.rmtree(stale, ignore_errors=True)
+            self.locks.mkdir(exist_ok=True)
+            for folder in self.work.glob(f"*{RUNNING_MARK}*"):
+                with self.hold_point(folder.name.split(RUNNING_MARK)[0], wait=False) as free:
+                    if free:  # no attempt holds its point: the one that made it is dead
+                        shutil.rmtree(folder, ignore_errors=True)
             write_json_atomic(self.path / SWEEP_JSON, sweep_record(plan))
             write_atomic(self.path / SWEEP_TOML, plan.spec.text)
         except BaseException:
@@ -135,6 +144,8 @@ class SweepDir:
                               f"another --out)") from None
         if old_fingerprint == plan.fingerprint:
             return
+        if not any(self.points.glob("*.json")):
+            return  # no point stored (a run that never reached its cluster, say): nothing to keep apart
         changed = differences(old_base, plan.base_record)
         shown = ", ".join(changed[:4]) + (f" and {len(changed) - 4} more" if len(changed) > 4 else "")
         raise ConfigError(f"{self.path} holds points of another base condition ({shown or 'a different format'}); "
@@ -175,10 +186,38 @@ class SweepDir:
             return None
         return data if isinstance(data, dict) and data.get("id") == point_id else None
 
-    def write_point(self, result: dict) -> Path:
-        path = self.points / f"{result['id']}.json"
-        write_json_atomic(path, result)
-        return path
+    def write_point(self, result: dict) -> dict:
+        """Store a point's result; returns what is stored. A `done` result already there stays: an attempt that
+        failed (its worker died, it was cut short) says nothing against another attempt that finished."""
+        if result.get("status") != "done":
+            stored = self.read_point(result["id"])
+            if stored is not None and stored.get("status") == "done":
+                return stored
+        write_json_atomic(self.points / f"{result['id']}.json", result)
+        return result
+
+    @contextlib.contextmanager
+    def hold_point(self, point_id: str, wait: bool = True, on_wait: Callable[[], None] | None = None):
+        """Hold the point's lock (DIR/locks/<id>) for the block: yields True once held; with wait=False, yields
+        False at once when another attempt holds it. `on_wait()` is called before waiting for one. The lock is an
+        flock, so it goes with its holder's process however that ends (on NFS, the client's locks are the
+        server's: a dead machine's go when its lease expires)."""
+        self.locks.mkdir(exist_ok=True)
+        # The file is never removed: one removed while another attempt waits on it would let a third lock a new one.
+        fd = os.open(self.locks / point_id, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if not wait:
+                    yield False
+                    return
+                if on_wait is not None:
+                    on_wait()
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            yield True
+        finally:
+            os.close(fd)  # releases the lock
 
     def append_log(self, event: dict) -> None:
         """One line of log.jsonl (only the client writes it: one writer, whole lines)."""
@@ -259,4 +298,4 @@ def differences(old, new, prefix: str = "") -> list[str]:
 
 
 __all__ = ["SweepDir", "write_json_atomic", "differences", "column_name", "sweep_record", "SWEEP_JSON", "POINTS",
-           "RESULTS_CSV", "LOG", "WORK"]
+           "RESULTS_CSV", "LOG", "WORK", "LOCKS"]

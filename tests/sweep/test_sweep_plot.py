@@ -87,3 +87,14 @@ def test_a_panels_chamfer_axis_carries_at_least_two_labelled_values(tmp_path, lo
              *zip(ax.yaxis.get_minorticklocs(), ax.yaxis.get_minorticklabels())]
     labelled = {round(v, 6) for v, label in ticks if bottom <= v <= top and label.get_text()}
     assert len(labelled) >= 2, (bottom, top, sorted(labelled))
+
+
+def test_scenes_whose_safe_names_coincide_get_pictures_of_their_own():
+    import re
+
+    from spadscan.sweep.figure_a import picture_name
+
+    scenes = ["a/b.obj", "a_b.obj", 'cup<b>&"v2".ply', "cup_b_v2_.ply"]
+    names = [picture_name(scene, scenes) for scene in scenes]
+    assert len(set(names)) == len(scenes), names
+    assert all(re.fullmatch(r"figure_a-\d+-[A-Za-z0-9_.-]+\.png", name) for name in names), names

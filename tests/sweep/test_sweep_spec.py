@@ -57,6 +57,10 @@ def test_defaults_are_the_datasets_base_condition(tmp_path):
     ('[sweep]\nscenes = ["builtin:sphere"]\n[base]\nambient = 2\n', "ambient = 2 photons/bin/cycle is out of range"),
     ('[sweep]\nscenes = ["builtin:sphere"]\n[grid]\nbin_ps = [1e4]\n', "[grid] bin_ps = 10000: sensor model"),
     ('[sweep\n', "not valid TOML"),
+    ('[sweep]\nscenes = ["builtin:sphere"]\n[base]\nsensor = "tmf8820"\n[grid]\nfov_deg = [170]\n',
+     "[grid] fov_deg = 170: fov_deg: sensor 'tmf8820' has rectangular zones, whose field widens only to under 168.5"),
+    ('[sweep]\nscenes = ["builtin:sphere"]\n[base]\nschedule = "rings"\nviews = 64\nmax_elevation_deg = 90\n',
+     "max_elevation_deg = 90 puts the top ring of schedule 'rings' at the zenith, where its 16 views are one"),
 ])
 def test_a_bad_sweep_file_is_one_line_naming_the_key(tmp_path, text, message):
     path = write(tmp_path, text)
@@ -111,6 +115,29 @@ def test_a_grown_grid_keeps_ids_and_a_changed_base_changes_them(tmp_path):
                                                                                                  (12, 1.0)}
     fewer_steps = make_plan(load_spec(write(tmp_path, tiny.replace("steps = 20", "steps = 10"), "d.toml")))
     assert fewer_steps.fingerprint != plan.fingerprint and not set(fewer_steps.points) & set(plan.points)
+
+
+def test_rings_keep_their_own_band_below_the_zenith(tmp_path):
+    import numpy as np
+
+    from spadscan.sweep.params import point_poses
+
+    spec = load_spec(write(tmp_path, '[sweep]\nscenes = ["builtin:sphere"]\n[base]\nschedule = "rings"\nviews = 64\n'))
+    assert (spec.base["min_elevation_deg"], spec.base["max_elevation_deg"]) == (10.0, 80.0)
+    poses, _ = point_poses(spec.base)
+    assert len(np.unique(poses[:, :3, 3].round(9), axis=0)) == 64  # every view from its own position
+    fibonacci = load_spec(write(tmp_path, '[sweep]\nscenes = ["builtin:sphere"]\n', "f.toml"))
+    assert fibonacci.base["max_elevation_deg"] == 90.0  # the dataset's spiral is left as it was
+
+
+def test_a_point_id_changes_with_the_ambient_rate_it_simulates(tmp_path):
+    """`ambient` is per bin at the base condition's bins: the same bins and ambient number on two bases are two
+    simulations, and two ids."""
+    grid = write(tmp_path, '[sweep]\nscenes = ["builtin:sphere"]\n[base]\nbin_ps = 8.35\nambient = 2.5e-4\n'
+                           '[grid]\nbin_ps = [16.7]\n', "a.toml")
+    base = write(tmp_path, '[sweep]\nscenes = ["builtin:sphere"]\n[base]\nbin_ps = 16.7\nambient = 2.5e-4\n', "b.toml")
+    (a,), (b,) = make_plan(load_spec(grid)).points.values(), make_plan(load_spec(base)).points.values()
+    assert a.params == b.params and a.id != b.id
 
 
 def test_product_mode_runs_every_combination(tmp_path):

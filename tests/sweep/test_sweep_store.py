@@ -37,6 +37,7 @@ def test_a_changed_base_condition_is_refused_and_a_grown_grid_is_not(tmp_path):
     out = SweepDir(tmp_path / "out")
     out.open(plan)
     out.close()
+    out.write_point(fake_result(next(iter(plan.points.values()))))
     changed = tmp_path / "changed.toml"
     changed.write_text(tiny.replace("views = 12\n", "views = 16\n").replace("steps = 20", "steps = 30"))
     with pytest.raises(ConfigError) as err:
@@ -53,6 +54,22 @@ def test_a_changed_base_condition_is_refused_and_a_grown_grid_is_not(tmp_path):
     again.open(make_plan(load_spec(grown)))
     again.close()
     assert len(json.loads((tmp_path / "out" / "sweep.json").read_text())["entries"]) == 5
+
+
+def test_a_folder_that_holds_no_point_takes_a_changed_base_condition(tmp_path):
+    """A run that never reached its cluster left sweep.json and no point: nothing in it to keep apart."""
+    tiny = write_tiny(tmp_path).read_text()
+    out = SweepDir(tmp_path / "out")
+    out.open(make_plan(load_spec(write_tiny(tmp_path))))
+    out.close()
+    changed = tmp_path / "changed.toml"
+    changed.write_text(tiny.replace("views = 12\n", "views = 16\n"))
+    plan = make_plan(load_spec(changed))
+    SweepDir(tmp_path / "out").check(plan)
+    again = SweepDir(tmp_path / "out")
+    again.open(plan)
+    again.close()
+    assert json.loads((tmp_path / "out" / "sweep.json").read_text())["fingerprint"] == plan.fingerprint
 
 
 def test_a_folder_of_other_files_is_not_swept_into(tmp_path):
@@ -136,9 +153,11 @@ def test_a_dry_run_refuses_what_the_run_would_refuse_and_writes_nothing(tmp_path
     tiny = write_tiny(tmp_path)
     assert main(["sweep", str(tiny), "--out", str(tmp_path / "fresh"), "--dry-run"]) == 0
     assert capsys.readouterr().out.strip().endswith("to run") and not (tmp_path / "fresh").exists()
+    plan = make_plan(load_spec(tiny))
     out = SweepDir(tmp_path / "out")
-    out.open(make_plan(load_spec(tiny)))
+    out.open(plan)
     out.close()
+    out.write_point(fake_result(next(iter(plan.points.values()))))
     before = sorted(p.name for p in (tmp_path / "out").iterdir())
     changed = tmp_path / "changed.toml"
     changed.write_text(tiny.read_text().replace("views = 12\n", "views = 16\n"))
@@ -146,3 +165,68 @@ def test_a_dry_run_refuses_what_the_run_would_refuse_and_writes_nothing(tmp_path
     errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("spadscan: error: ")]
     assert len(errors) == 1 and "another base condition" in errors[0]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == before
+
+
+def test_a_done_result_is_never_replaced_by_a_failed_one(tmp_path):
+    """An older attempt that ends last (cut short, its worker dying) must not undo one that finished."""
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    task = next(iter(plan.points.values()))
+    out.write_point(fake_result(task))
+    stored = out.write_point(fake_result(task, failed_methods=("fast",)))
+    assert out.read_point(task.id)["status"] == "done"
+    assert stored["status"] == "done"  # what the attempt reports is what is stored
+
+
+def test_a_rerun_leaves_a_running_attempt_alone_and_waits_for_its_result(tmp_path, monkeypatch):
+    """After an interrupt, a scheduler's worker goes on running the point: reopening the folder keeps that attempt's
+    work folder, and the re-run's attempt waits for it and takes its result instead of running the point again."""
+    import threading
+
+    from spadscan.sweep import point
+
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    task = next(t for t in plan.points.values() if t.params["power"] != FAILING_POWER)
+    in_simulation, release = threading.Event(), threading.Event()
+    simulated = []
+
+    def simulate(task, work):  # the first attempt stays in its simulation until released
+        simulated.append(work)
+        in_simulation.set()
+        assert release.wait(60)
+        return {"views": task.params["views"]}
+
+    monkeypatch.setattr(point, "_simulate", simulate)
+    monkeypatch.setattr(point, "_reconstruct", lambda *args: {"chamfer_mm": 1.0})
+    monkeypatch.setattr(point, "_baseline", lambda *args: {"chamfer_mm": 2.0})
+    results, second_events, second_acted = {}, [], threading.Event()
+
+    def second_emit(event, **fields):
+        second_events.append(event)
+        second_acted.set()
+
+    first = threading.Thread(target=lambda: results.setdefault("first", point.run_point(task, str(out.path))))
+    second = threading.Thread(target=lambda: results.setdefault(
+        "second", point.run_point(task, str(out.path), emit=second_emit)))
+    first.start()
+    try:
+        assert in_simulation.wait(60)
+        dead = out.new_work_dir("0123456789abcdef", "gone")  # an attempt that died: no one holds its point
+        again = SweepDir(tmp_path / "out")
+        again.open(plan)  # the re-run
+        again.close()
+        assert simulated[0].is_dir() and not dead.exists()
+        second.start()
+        assert second_acted.wait(60)
+    finally:
+        release.set()
+        first.join(60)
+        second.join(60)
+    assert len(simulated) == 1 and second_events == ["wait", "skip"]
+    assert results["first"]["status"] == "done" and results["second"] == results["first"]
+    assert out.read_point(task.id) == results["first"]
