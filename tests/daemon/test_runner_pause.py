@@ -4,6 +4,7 @@ first, and the reply and the log say at which pose the scan will stop."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import re
 import threading
@@ -55,6 +56,19 @@ def test_pause_says_where_it_stops(arun, tmp_path, sphere, caplog):  # noqa: F81
     assert any(re.search(r"pose (\d+)/60; pausing at pose (?!\1/)", m) for m in requested), requested
 
 
+@contextlib.asynccontextmanager
+async def scanning(cfg, sphere, name: str):  # noqa: F811
+    """A runner on a quick simulated rig, scanning `name`; shut down on leaving."""
+    arm, sensor = make_rig(cfg, sphere, motion_time_s=0.0, frame_time_s=0.01)
+    async with DeviceSession([arm, sensor]):
+        runner = ScanRunner(arm, sensor, cfg)
+        try:
+            await runner.start(name)
+            yield runner
+        finally:
+            await runner.shutdown()
+
+
 def test_a_pause_withdrawn_while_the_last_pose_is_published_takes_every_pose(arun, tmp_path, sphere,  # noqa: F811
                                                                               monkeypatch):
     """`ctl resume` after the runner has left its loop for a pause, while the pose in flight is still being written
@@ -76,11 +90,8 @@ def test_a_pause_withdrawn_while_the_last_pose_is_published_takes_every_pose(aru
     monkeypatch.setattr(ScanRunner, "_publish", staticmethod(held_publish))
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.0, frame_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
+        async with scanning(cfg, sphere, "race") as runner:
             try:
-                await runner.start("race")
                 await until(first.is_set, "pose 3 being written")
                 await until(lambda: runner.job.in_flight == 4, "pose 4 under way")
                 await runner.pause()  # the loop stops after pose 4, once pose 3 has landed
@@ -91,10 +102,9 @@ def test_a_pause_withdrawn_while_the_last_pose_is_published_takes_every_pose(aru
                 await runner.resume()
                 release_second.set()
                 return await asyncio.wait_for(runner.wait("race"), 30)
-            finally:
+            finally:  # a held write must not hold the shutdown
                 release_first.set()
                 release_second.set()
-                await runner.shutdown()
 
     assert arun(scenario())["state"] == "complete"
     assert len(set(CaptureReader(tmp_path / "caps" / "race").load().pose_indices.tolist())) == 12
@@ -115,15 +125,9 @@ def test_a_pose_refused_mid_scan_pauses_with_the_reason_not_an_internal_error(ar
     monkeypatch.setattr(ScanRunner, "_move", refusing_move)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.0, frame_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("refused")
-                await until(lambda: runner.state == "paused", "paused")
-                return runner.job.reason
-            finally:
-                await runner.shutdown()
+        async with scanning(cfg, sphere, "refused") as runner:
+            await until(lambda: runner.state == "paused", "paused")
+            return runner.job.reason
 
     reason = arun(scenario())
     assert reason.startswith("no pose left in the plan can be reached") and "internal error" not in reason, reason
