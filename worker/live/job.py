@@ -197,7 +197,8 @@ def final_job(job, fit, settings: LiveSettings) -> tuple:
 def _rank_after(manifest: dict) -> float:
     """Poses published since the last ranking that make the next one due at once: half the scan's
     `next_views_max_lag` (its manifest's schedule record), at least 1; never when the record does not say."""
-    lag = manifest.get("schedule", {}).get("next_views_max_lag")
+    schedule = manifest.get("schedule")
+    lag = schedule.get("next_views_max_lag") if isinstance(schedule, dict) else None
     return max(1, lag // 2) if isinstance(lag, int) and not isinstance(lag, bool) else math.inf
 
 
