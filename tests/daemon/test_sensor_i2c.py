@@ -489,7 +489,8 @@ def test_a_host_slower_than_the_chip_loses_whole_frames_never_mixes_them(arun, i
     """A chip that holds a record only hold_s abandons the rest of a frame the host is too slow for: the host sees a
     torn frame, drops it (counted) and stores only whole frames, bit for bit."""
     path, data = image
-    fake = SimTMF8820Bus(image=data, hold_s=0.05)
+    # hold_s well above a busy machine's pause between two reads: only the stalls below tear a frame
+    fake = SimTMF8820Bus(image=data, hold_s=0.25)
     slow = {"reads": 0}
 
     class SlowHost:
