@@ -25,7 +25,12 @@ class LinkLost(DeviceError):
 
 
 class SensorSilent(DeviceError):
-    """The sensor delivered no frame within its timeout."""
+    """The sensor delivered no frame within its timeout. `detail`: why, where the sensor knows (the error its bridge
+    reported), or ''; the runner words the timeout itself and keeps this part."""
+
+    def __init__(self, message: str, detail: str = ""):
+        super().__init__(message)
+        self.detail = detail
 
 
 class FramesTooEarly(DeviceError):

@@ -525,7 +525,7 @@ class ScanRunner:
                                        f"{left + FRAME_GRACE_S:.1f} s at pose {i}") from None
                 # The sensor names the rest of the timeout it was given (0.953291 s); the operator set the whole.
                 # Why the sensor went silent (e.g. the error its bridge reported), where it knows, stays in the reason.
-                detail = getattr(exc, "detail", "")
+                detail = exc.detail
                 raise SensorSilent(f"{self.sensor.name}: no complete frame within {timeout:g} s (frame_timeout_s) "
                                    f"at pose {i}" + (f"; {detail}" if detail else "")) from None
             last_arrival = time.monotonic()

@@ -138,10 +138,8 @@ class TMF8820(Sensor):
             if now >= deadline:
                 self._stats["silent_timeouts"] += 1
                 detail = self._silent_detail(now)
-                exc = SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s"
-                                   + (f"; {detail}" if detail else ""))
-                exc.detail = detail  # the runner words the timeout itself and keeps this part
-                raise exc
+                raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s"
+                                   + (f"; {detail}" if detail else ""), detail)
             self._wake.clear()
             if self._frames or self._failure is not None:
                 continue

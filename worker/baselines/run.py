@@ -34,16 +34,16 @@ THRESHOLD_UNITS = "standard deviations of the matched-filtered background noise 
 
 
 def _build(method: str, data, threshold: float, *, resolution: int, margin_m, floor_z, surface: str,
-           edge_deg: float) -> tuple[object, dict]:
-    """(mesh or None, extras for the report) for one threshold."""
+           edge_deg: float, usable) -> tuple[object, dict]:
+    """(mesh or None, extras for the report) for one threshold. usable: the histograms carving may read (see
+    `carve_hull`)."""
     if method == "reprojection":
         rep = reprojection(data.hists, data.poses, data.sensor, threshold=threshold, surface=surface,
                            floor_z=floor_z)
         return rep.mesh, {"points": rep.points, "surface": surface, "surface_method": SURFACES[surface],
                           "reprojected_points": int(len(rep.points))}
     res = carve_scene(data.hists, data.poses, data.sensor, resolution=resolution, threshold=threshold,
-                      margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg,
-                      usable=~implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins))
+                      margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg, usable=usable)
     occ = main_components(res.occupancy, 0.01)
     mesh = occupancy_mesh(occ, res.origin, res.voxel_m)
     return mesh, {"resolution": resolution, "voxel_mm": (res.voxel_m * 1e3).round(3).tolist(),
@@ -94,7 +94,10 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         except CaptureError as exc:
             raise CaptureError(f"{Path(capture) / 'scan.json'}: {exc}") from None
         log(f"floor: {floor_source}" if floor_z is None else f"floor at z = {floor_z:.4f} m: {floor_source}")
-    opts = dict(resolution=resolution, margin_m=margin_m, floor_z=floor_z, surface=surface, edge_deg=edge_deg)
+    # Once for every threshold tried: histograms no sensor could produce carve nothing.
+    usable = ~implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins)
+    opts = dict(resolution=resolution, margin_m=margin_m, floor_z=floor_z, surface=surface, edge_deg=edge_deg,
+                usable=usable)
     calibration = None
     if calibrate_:
         def progress(t, c):

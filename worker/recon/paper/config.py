@@ -9,7 +9,7 @@ from typing import ClassVar
 
 from spadscan.protocol.errors import ConfigError
 
-from ..config import ReconConfig
+from ..config import ReconConfig, check_int
 
 
 @dataclass
@@ -142,9 +142,7 @@ class PaperConfig(ReconConfig):
         positive_ints = {"rays.rays_per_view": 1, "rays.min_rays_per_zone": 1, "rays.views_per_batch": 1,
                          "rays.samples_per_ray": 2, "field.layers": 1, "field.width": 1, "optim.nominal_steps": 1}
         for key, least in positive_ints.items():
-            value = attrgetter(key)(self)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= least):
-                raise ConfigError(f"{key} {value!r} must be an integer >= {least}")
+            check_int(key, attrgetter(key)(self), least)
         # The sharpness and the albedos are learned as logarithms (0 has none); softplus divides by its beta; a zero
         # learning rate or initial sphere leaves nothing to fit.
         for key in ("sharpness.init", "sharpness.min", "albedo_init", "optim.lr", "field.softplus_beta",
