@@ -3,7 +3,7 @@
 In a one-at-a-time sweep each panel holds the entries of its axis (every other parameter at the base condition,
 whose value is a dotted vertical line). In a product sweep each panel has one line per method and per combination of
 the other axes (fainter lines for later combinations). A method that gave no surface at a point is drawn as a cross
-on the panel's top edge, in its colour.
+in a strip along the panel's top edge, above every value and apart from them, in its colour.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ COLOURS = {"fast": "#1f77b4", "paper": "#9467bd", "reprojection": "#d62728", "sp
 LABELS = {"fast": "fast (ours)", "paper": "paper (published method)", "reprojection": "reprojection",
           "space-carving": "space carving"}
 COLUMNS = 4
+FAILED_ROW = 0.06  # the height of a method's row of failure crosses, as a fraction of the panel's height
 
 
 def method_label(method: str) -> str:
@@ -71,6 +72,7 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
         groups = list(keyed.values())
     top = blended_transform_factory(ax.transData, ax.transAxes)
     any_value = False
+    any_failed = False
     for g, group in enumerate(groups):
         alpha = 1.0 if g == 0 else max(0.25, 1.0 - 0.15 * g)
         for m, method in enumerate(results.methods):
@@ -83,19 +85,20 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
                 ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=4, color=colour, alpha=alpha)
                 any_value = True
             if failed:
+                any_failed = True
                 # Stacked down from the top edge, one row per method, so that crosses at one x all show.
-                ax.plot(failed, [0.96 - 0.06 * m] * len(failed), marker="x", ms=7, mew=2, linestyle="none", color=colour,
+                ax.plot(failed, [1.0 - FAILED_ROW * (m + 0.5)] * len(failed), marker="x", ms=7, mew=2, linestyle="none", color=colour,
                         alpha=alpha, transform=top, clip_on=False)
     values = [v for v in results.grid.get(axis, []) if isinstance(v, (int, float))]
     plain = FuncFormatter(lambda v, _: f"{v:g}")
     if any_value:
         ax.set_yscale("log")
-        ax.yaxis.set_major_formatter(plain)
         low, high = ax.get_ylim()
-        # Where fewer than two powers of ten fall inside the limits (under a decade, or a little over one that
-        # straddles a power), the major ticks alone say too little: label the minor ones too.
-        powers = math.floor(math.log10(high)) - math.ceil(math.log10(low)) + 1
-        ax.yaxis.set_minor_formatter(plain if powers < 2 else NullFormatter())
+        # No value is labelled in the failures' strip above the data: a cross there is no Chamfer distance.
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}" if v <= high * 1.0001 else ""))
+        ax.yaxis.set_minor_formatter(_minor_formatter(low, high))
+        if any_failed:
+            _make_room_for_failures(ax, low, high, len(results.methods))
     if PARAMS.get(axis) is not None and PARAMS[axis].log and values and min(values) > 0:
         ax.set_xscale("log")
     elif values and min(values) == 0 and max(values) > 0:
@@ -114,6 +117,33 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
     ax.set_ylabel("Chamfer (mm)", fontsize=8)
     ax.tick_params(labelsize=8)
     ax.grid(True, which="both", alpha=0.25)
+
+
+def _minor_formatter(low: float, high: float):
+    """Labels for the minor ticks of a log axis from `low` to `high` (mm).
+
+    Where two powers of ten fall inside the limits, their labels say enough. Otherwise the minor ticks are labelled
+    too: all of them within a factor of 3 (they stand far enough apart), else only those at 2 and 5 times a power
+    of ten (all nine in a decade and more print on top of each other).
+    """
+    powers = math.floor(math.log10(high)) - math.ceil(math.log10(low)) + 1
+    if powers >= 2:
+        return NullFormatter()
+    every = high / low <= 3.0
+
+    def label(v: float, _) -> str:
+        leading = round(v / 10 ** math.floor(math.log10(v) + 1e-9))
+        return f"{v:g}" if v <= high * 1.0001 and (every or leading in (2, 5)) else ""
+
+    return FuncFormatter(label)
+
+
+def _make_room_for_failures(ax, low: float, high: float, methods: int) -> None:
+    """Raise the top of a log axis so that the failure crosses' rows sit above every value, behind a line."""
+    strip = FAILED_ROW * methods
+    span = math.log10(high) - math.log10(low)
+    ax.set_ylim(low, 10 ** (math.log10(low) + span / (1.0 - strip)))
+    ax.axhline(high, color="0.6", linewidth=0.8, linestyle="--")
 
 
 __all__ = ["figure_png", "method_label", "panel_title", "COLOURS"]

@@ -98,3 +98,54 @@ def test_scenes_whose_safe_names_coincide_get_pictures_of_their_own():
     names = [picture_name(scene, scenes) for scene in scenes]
     assert len(set(names)) == len(scenes), names
     assert all(re.fullmatch(r"figure_a-\d+-[A-Za-z0-9_.-]+\.png", name) for name in names), names
+
+
+def _power_panel(tmp_path):
+    """A panel whose Chamfer values span 13.5-280 mm, where two of three methods failed at the low power."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from spadscan.sweep.plot import _panel
+    from spadscan.sweep.results import SweepResults
+
+    rows = [{"scene": "s", "axis": "power", "power": "1e-07", "fast_status": "done", "fast_chamfer_mm": "280",
+             "reprojection_status": "failed", "space_carving_status": "failed"},
+            {"scene": "s", "axis": "power", "power": "1", "fast_status": "done", "fast_chamfer_mm": "13.5",
+             "reprojection_status": "done", "reprojection_chamfer_mm": "23.6",
+             "space_carving_status": "done", "space_carving_chamfer_mm": "34.8"}]
+    results = SweepResults(folder=tmp_path, mode="one-at-a-time", grid={"power": [1e-7, 1.0]}, base={"power": 1.0},
+                           scenes=["s"], methods=["fast", "reprojection", "space-carving"], presets=["fast"],
+                           rows=rows)
+    fig = Figure(figsize=(3.6, 3.6))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    _panel(ax, results, rows, "power", 0)
+    fig.tight_layout()
+    fig.canvas.draw()
+    return fig, ax
+
+
+def test_a_chamfer_axis_over_more_than_a_decade_has_labels_that_do_not_overlap(tmp_path):
+    fig, ax = _power_panel(tmp_path)
+    renderer = fig.canvas.get_renderer()
+    bottom, top = ax.get_ylim()
+    labels = sorted(((t.get_window_extent(renderer), t.get_text())
+                     for t in ax.yaxis.get_majorticklabels() + ax.yaxis.get_minorticklabels()
+                     if t.get_text() and bottom <= t.get_position()[1] <= top), key=lambda b: b[0].y0)
+    assert len(labels) >= 2
+    overlapping = [(a[1], b[1]) for a, b in zip(labels, labels[1:]) if a[0].overlaps(b[0])]
+    assert not overlapping
+
+
+def test_failure_crosses_sit_above_every_value_where_no_value_is_labelled(tmp_path):
+    _, ax = _power_panel(tmp_path)
+    crosses = [line for line in ax.get_lines() if line.get_marker() == "x"]
+    assert len(crosses) == 2
+    to_data = ax.transData.inverted()
+    for line in crosses:
+        (x,), (y,) = line.get_data()
+        _, y_data = to_data.transform(line.get_transform().transform((x, y)))
+        assert y_data > 280.0 * 1.05, y_data  # above the largest value drawn, not among the values
+        labels = [t.get_text() for t in ax.yaxis.get_majorticklabels() + ax.yaxis.get_minorticklabels()
+                  if t.get_text() and t.get_position()[1] >= y_data / 1.2]
+        assert not labels, labels
