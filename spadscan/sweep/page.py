@@ -67,8 +67,8 @@ def write_page(results: SweepResults, pictures: dict[str, str], folder) -> Path:
     parts = [f"<h1>Sensitivity sweep: {_esc(results.folder.name)}</h1>",
              f"<p>{len(results.rows)} grid entries with a result ({failed} failed), {_esc(results.mode)} sweep; "
              f"panels: {_esc(panels)}. Chamfer distance in millimetres (log axis); each baseline's threshold is "
-             f"calibrated per point against the ground truth (its best possible Chamfer). A cross on a panel's top "
-             f"edge is a method that gave no result there. Every number is in "
+             f"calibrated per point against the ground truth (its best possible Chamfer). A cross in the strip along a "
+             f"panel's top, above the dashed line, is a method that gave no result there. Every number is in "
              f'<a href="results.csv">results.csv</a>; each point\'s record in <code>points/</code>.</p>']
     for scene in results.scenes:
         parts.append(f"<h2>{_esc(scene)}</h2>")
