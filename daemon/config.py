@@ -91,7 +91,8 @@ class ScanConfig:
     min_elevation_deg: float = key(10.0, "float", lo=-90.0, hi=90.0, unit="deg")
     """Lowest elevation of a view above the target's horizontal plane (degrees)."""
     max_elevation_deg: float = key(80.0, "float", lo=-90.0, hi=90.0, unit="deg")
-    """Highest elevation of a view (degrees)."""
+    """Highest elevation of a view (degrees). Rings stand at both ends of the band, so 'rings' needs it below 90: a
+    ring at 90 would be one viewpoint taken views/rings times (refused)."""
     jitter_deg: float = key(0.0, "float", lo=0.0, hi=45.0, unit="deg")
     """Largest random tilt of a view away from the target (degrees; 0 = every view looks at the target)."""
     seed: int = key(0, "int", lo=0, hi=2**63 - 1)

@@ -84,6 +84,7 @@ def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0
     """Rings of equally spaced views at evenly spaced elevations (inclusive), alternate rings offset by half a step.
 
     Returns (n_rings * per_ring, 4, 4), ring by ring from the lowest elevation, azimuth increasing within a ring.
+    A ring of more than one view at +-90 deg (every view at one point) is refused.
     """
     for name, v in (("rings", n_rings), ("views per ring", per_ring)):
         if not (isinstance(v, (int, np.integer)) and 1 <= v <= 100_000):
@@ -91,6 +92,13 @@ def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0
     lo, hi = _check_elevations(min_elevation_deg, max_elevation_deg)
     radius_m = _check_radius(radius_m)
     elev = np.linspace(lo, hi, n_rings) if n_rings > 1 else np.array([(lo + hi) / 2])
+    pole = np.abs(elev) >= math.pi / 2 - 1e-9
+    if per_ring > 1 and pole.any():
+        # Every view of a ring at +-90 deg stands at one point: per_ring copies of one viewpoint, not a ring.
+        where = "max_elevation" if elev[pole][-1] > 0 else "min_elevation"
+        raise SimulationError(f"a ring at {math.degrees(elev[pole][-1]):+g} deg elevation puts its {per_ring} views "
+                              f"at one viewpoint (straight {'above' if where == 'max_elevation' else 'below'} the "
+                              f"target); keep {where} strictly between -90 and 90 deg")
     ring, k = np.meshgrid(np.arange(n_rings), np.arange(per_ring), indexing="ij")
     azim = 2 * math.pi * (k + 0.5 * (ring % 2)) / per_ring
     return _poses_on_sphere(elev[ring.ravel()], azim.ravel(), radius_m, target)

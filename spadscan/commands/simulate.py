@@ -24,6 +24,8 @@ from spadscan.protocol.sim_table import DEFAULT_ALBEDO as DEFAULT_TABLE_ALBEDO
 
 SCHEDULES = ("fibonacci", "rings")
 DEFAULT_RINGS = 4
+SPIRAL_BAND = (0.0, 90.0)  # degrees: the dataset's spiral, from 86.4 down to 0.1 deg at 256 views
+RINGS_BAND = (10.0, 80.0)  # degrees: schedules.elevation_rings' own band (rings stand at both ends)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,11 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fibonacci: equal-area spiral (default); rings: --rings elevation rings of views/rings")
     parser.add_argument("--rings", type=int, default=None,
                         help=f"number of elevation rings for --schedule rings (default: {DEFAULT_RINGS})")
-    parser.add_argument("--min-elevation", type=float, default=0.0, metavar="DEG",
-                        help="lowest elevation of the schedule band in degrees (default: 0)")
-    parser.add_argument("--max-elevation", type=float, default=90.0, metavar="DEG",
-                        help="highest elevation of the schedule band in degrees (default: 90, which puts the top "
-                             "spiral view at 86.4 deg for 256 views, as in LCSPCData)")
+    parser.add_argument("--min-elevation", type=float, default=None, metavar="DEG",
+                        help="lowest elevation of the schedule band in degrees (default: 0 for the spiral, "
+                             f"{RINGS_BAND[0]:g} for rings)")
+    parser.add_argument("--max-elevation", type=float, default=None, metavar="DEG",
+                        help="highest elevation of the schedule band in degrees (default: 90 for the spiral, which "
+                             "puts its top view at 86.4 deg for 256 views, as in LCSPCData; "
+                             f"{RINGS_BAND[1]:g} for rings, whose top ring stands at it: a ring at 90 would be one "
+                             "viewpoint)")
     parser.add_argument("--radius", type=float, default=0.5, metavar="M",
                         help="distance from the sensor to the target in metres (default: 0.5)")
     parser.add_argument("--target", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
@@ -115,6 +120,9 @@ def make_poses(args):
     from spadscan.protocol import schedules
     from spadscan.protocol.errors import SimulationError
 
+    band = SPIRAL_BAND if args.schedule == "fibonacci" else RINGS_BAND
+    args.min_elevation = band[0] if args.min_elevation is None else args.min_elevation
+    args.max_elevation = band[1] if args.max_elevation is None else args.max_elevation
     common = dict(radius_m=args.radius, target=tuple(args.target), min_elevation_deg=args.min_elevation,
                   max_elevation_deg=args.max_elevation)
     record = {"kind": args.schedule, "views": args.views, "radius_m": args.radius, "target_m": list(args.target),

@@ -221,3 +221,12 @@ def test_a_start_already_outside_the_workspace_is_named_as_such_not_as_the_move(
     with pytest.raises(ConfigError, match=r"the arm stands where it may not: z = 0.700 m is above workspace_max "
                                           r"0.600 m \(\[arm\] limits\); jog it into the workspace"):
         check_workspace(pose_at([0.4, 0.0, 0.3], DOWN)[None], arm(hand_eye=np.eye(4), **box), "plan", start=start)
+
+
+def test_a_ring_schedule_up_to_the_zenith_is_refused_before_the_arm_moves():
+    """Its top ring's views would all stand at one point: the arm would visit it `views / rings` times."""
+    with pytest.raises(ConfigError) as info:
+        build_plan(scan(schedule="rings", rings=4, views=32, min_elevation_deg=20, max_elevation_deg=90), arm())
+    assert "8 views at one viewpoint" in str(info.value) and "\n" not in str(info.value)
+    assert len(build_plan(scan(schedule="rings", rings=4, views=32, min_elevation_deg=20, max_elevation_deg=80),
+                          arm()).sensor_poses) == 32

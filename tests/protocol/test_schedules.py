@@ -70,6 +70,12 @@ def test_elevation_rings():
     np.testing.assert_allclose(np.linalg.norm(poses[:, :3, 3] - [0, 0, 0.05], axis=1), 0.4)
 
 
+def test_a_ring_of_one_view_may_stand_at_the_zenith():
+    poses = schedules.elevation_rings(3, 1, 0.4, (0, 0, 0), 30.0, 90.0)
+    assert_rigid(poses)
+    np.testing.assert_allclose(poses[-1, :3, 3], [0, 0, 0.4], atol=1e-12)
+
+
 def test_jitter_turns_about_the_sensor_within_the_limit():
     poses = schedules.fibonacci_hemisphere(100, 0.5)
     rng = np.random.default_rng(7)
@@ -89,6 +95,8 @@ def test_jitter_turns_about_the_sensor_within_the_limit():
     lambda: schedules.fibonacci_hemisphere(10, -1.0),
     lambda: schedules.fibonacci_hemisphere(10, 0.5, min_elevation_deg=50, max_elevation_deg=40),
     lambda: schedules.elevation_rings(0, 4, 0.5),
+    lambda: schedules.elevation_rings(4, 8, 0.5, min_elevation_deg=0, max_elevation_deg=90),  # 8 views at one point
+    lambda: schedules.elevation_rings(2, 8, 0.5, min_elevation_deg=-90, max_elevation_deg=30),
     lambda: schedules.fibonacci_hemisphere(10, 0.5, target=(0, 0)),
     lambda: schedules.jitter_orientations(np.eye(4)[None], 200.0, np.random.default_rng()),
 ])

@@ -1,12 +1,13 @@
 """The simulator against closed forms: planes and spheres, pile-up, photon bookkeeping, edge cases, determinism."""
 
+import inspect
 import math
 
 import numpy as np
 import pytest
 import trimesh
 
-from spadscan.protocol import pileup
+from spadscan.protocol import pileup, schedules
 from spadscan.protocol.errors import SimulationError
 from spadscan.protocol.schedules import look_at
 from spadscan.protocol.sensor_model import Pulse, SensorModel, Zone
@@ -287,6 +288,26 @@ def test_simulate_command(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "already holds a capture" in err and "no such mesh file" in err and "multiple of --rings" in err
     assert "Traceback" not in err
+
+
+def test_simulate_rings_by_default_keep_every_view_apart(tmp_path):
+    """The spiral's band reaches 90 deg; a ring there would be one viewpoint: the rings get a band of their own."""
+    from spadscan.cli import main
+    from spadscan.commands.simulate import RINGS_BAND
+    from spadscan.protocol.capture_reader import CaptureReader
+
+    band = inspect.signature(schedules.elevation_rings).parameters
+    assert RINGS_BAND == (band["min_elevation_deg"].default, band["max_elevation_deg"].default)
+    mesh_path = tmp_path / "ball.obj"
+    trimesh.creation.icosphere(subdivisions=1, radius=0.05).export(mesh_path)
+    args = [str(mesh_path), "--views", "16", "--schedule", "rings", "--radius", "0.3", "--no-progress"]
+    assert main(["simulate", *args, "--out", str(tmp_path / "a")]) == 0
+    reader = CaptureReader(tmp_path / "a")
+    positions = np.concatenate([reader.read_chunk(n).poses for n in reader.chunk_names()])[:, :3, 3]
+    assert len(np.unique(np.round(positions, 6), axis=0)) == 16
+    assert reader.manifest["schedule"]["max_elevation_deg"] == RINGS_BAND[1]
+    assert main(["simulate", *args, "--out", str(tmp_path / "b"), "--max-elevation", "90"]) == 1
+    assert not (tmp_path / "b").exists()
 
 
 def test_simulate_builtin_scene(tmp_path):
