@@ -3,7 +3,7 @@
 Each maker returns a SolidScene: the signed distance function and the box and voxel to mesh it in. Its `mesh()` is a
 new watertight trimesh.Trimesh in metres, standing on z = 0 and centred on the z axis. Faces point +y where an
 object has a front. The voxel sizes keep the meshing error well under a millimetre (marching cubes on a smooth
-surface of radius R errs by about voxel^2 / 8R: 0.04 mm on the teddy's 7 mm thick ear at 1.5 mm voxels) and the
+surface of radius R errs by about voxel^2 / 8R: 0.04 mm on the teddy's ear (7 mm radius) at 1.5 mm voxels) and the
 build at a second or two.
 """
 
@@ -36,7 +36,7 @@ class SolidScene:
 
 
 def teddy():
-    """A sitting teddy bear, 0.24 m: round body and head, muzzle and nose, two thin ears, arms with paws, legs
+    """A sitting teddy bear, 0.25 m: round body and head, muzzle and nose, two thin ears, arms with paws, legs
     stretched forward with big feet."""
     parts = [ellipsoid((0, 0, 0.075), (0.062, 0.054, 0.085)),        # body, its bottom cut flat to sit on
              sphere((0, 0.004, 0.183), 0.054),                          # head
@@ -112,7 +112,7 @@ def stool():
 
 
 def mug():
-    """A tall mug, 0.15 m: a 5 mm wall round a 10 cm bore, an 8 mm floor, a ring handle on one side (concave, a
+    """A tall mug, 0.15 m: a 5 mm wall round a 9 cm bore, an 8 mm floor, a ring handle on one side (concave, a
     hole through the handle)."""
     outer = cylinder((0, 0), 0.050, -0.01, 0.150, rounding=0.003)
     bore = cylinder((0, 0), 0.045, 0.008, 0.2, rounding=0.004)
@@ -164,13 +164,16 @@ def vase():
     concavity seen only through its mouth)."""
     outer = smooth_union(0.025, ellipsoid((0, 0, 0.085), (0.075, 0.075, 0.090)),  # sunk 5 mm: a flat foot
                          cylinder((0, 0), 0.025, 0.150, 0.250, rounding=0.003))
-    wall = shell(outer, 0.005)
+    # The shell's wall at the bottom lies below z = 0 (the foot is sunk 5 mm), where the ground cuts it away: the
+    # floor is the outer solid's slice from the ground up to 5 mm, as thick as the wall.
+    floor = intersect(outer, lambda x, y, z: z - 0.005)
+    wall = smooth_union(0.002, shell(outer, 0.005), floor)
     open_top = subtract(wall, cylinder((0, 0), 0.020, 0.150, 0.30))
     return SolidScene(intersect(open_top, lambda x, y, z: -z), 0.09, 0.26)
 
 
 def ring_stand():
-    """A ring on a stand, 0.24 m: a 16 cm upright ring of 12 mm thick section on a post and a round foot (a hole
+    """A ring on a stand, 0.24 m: a 16 cm upright ring of 24 mm thick section on a post and a round foot (a hole
     through, a thin round section)."""
     ring = rotated(torus((0, 0, 0), 0.070, 0.012), (1, 0, 0), math.pi / 2)
     parts = [lambda x, y, z: ring(x, y, z - 0.155),

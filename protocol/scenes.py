@@ -51,7 +51,7 @@ BUILTIN_SCENES: dict[str, str] = {
     "chair": "a 0.26 m chair: a 12 cm seat on four 10 mm legs, a back of two posts, a rail and a slat (thin parts)",
     "snowman": "a 0.28 m snowman: three stacked balls, a carrot nose, two stubby arms (smooth, round)",
     "vase": "a 0.25 m vase: a round belly, a narrow neck with a 4 cm mouth, a 5 mm wall (deep concavity)",
-    "ring-stand": "a 0.24 m upright ring of 12 mm section on a post and a foot (a hole through, thin)",
+    "ring-stand": "a 0.24 m upright ring of 24 mm section on a post and a foot (a hole through, thin)",
     "cat": "a 0.23 m sitting cat: pear-shaped body, round head, pointed ears, a tail curled on the ground (smooth)",
     "lighthouse": "a 0.34 m tapering tower with a gallery, a lantern and a dome (tall, its top far above the aim)",
     "candlestick": "a 0.27 m candlestick: a round foot, a 12 mm column, a drip pan and a candle (a thin column)",
