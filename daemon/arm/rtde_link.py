@@ -1,7 +1,9 @@
 """RTDELink: the parent's end of one ur_rtde client process (`rtde_child.py`, whose docstring says why it exists).
 
 `call` sends an operation and awaits its reply with a timeout; the child runs requests one at a time, in order, so
-a call also waits for the ones sent before it. The link ends when a call gets no answer in time, when ur_rtde
+a call also waits for the ones sent before it, and its timeout counts from its turn: from when the request before
+it was answered (a watchdog kick queued behind a long check of the plan's poses is not late). The link ends when a
+call gets no answer in time, when ur_rtde
 reports a failure (RuntimeError: a dropped link or a protocol error), or when the child dies (ur_rtde crashed): the
 process is killed, every waiting call raises LinkLost saying why, and so does every later call, until the owner
 starts a new link. A request whose caller gave up (cancelled) still counts: once it is past its timeout unanswered,
@@ -15,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -34,8 +37,8 @@ class RTDELink:
         self.name = name
         self._proc: asyncio.subprocess.Process | None = None
         self._readers: list[asyncio.Task] = []
-        # Unanswered requests: id -> (what, the caller's future or None, monotonic deadline).
-        self._pending: dict[int, tuple[str, asyncio.Future | None, float]] = {}
+        # Unanswered requests, oldest first (the child answers them in order).
+        self._pending: dict[int, _Request] = {}
         self._ids = 0
         self._ended: str | None = None  # why the link ended, once it has
         self._stderr: collections.deque[str] = collections.deque(maxlen=_LAST_WORDS)
@@ -66,16 +69,21 @@ class RTDELink:
         protocol failures); DeviceError for any other failure in the child."""
         future = asyncio.get_running_loop().create_future()
         rid = self._send(what, op, args, future, timeout_s)
+        request = self._pending[rid]
         try:
-            async with asyncio.timeout(timeout_s):
+            async with asyncio.timeout_at(request.deadline) as timer:
+                request.timer = timer  # moved earlier when the request's turn comes
                 reply = await future
         except TimeoutError:
-            self.end(f"no answer within {timeout_s:g} s waiting for {what}; the ur_rtde process was stopped")
+            late = next(iter(self._pending.values()), None)
+            if late is None or late is request:
+                self.end(f"no answer within {timeout_s:g} s waiting for {what}; the ur_rtde process was stopped")
+            else:  # its turn never came: the request ahead of it is the one stuck
+                self.end(f"{late.what} got no answer in time; the ur_rtde process was stopped")
             raise LinkLost(f"{self.name}: {self._ended}") from None
         except asyncio.CancelledError:
             # The request stays pending (its reply dropped): a later call or stop sees it if it is overdue.
-            if rid in self._pending:
-                self._pending[rid] = (what, None, self._pending[rid][2])
+            request.future = request.timer = None
             if future.done() and not future.cancelled():
                 future.exception()  # settled as the cancellation came: retrieved, so asyncio does not complain
             raise
@@ -151,7 +159,11 @@ class RTDELink:
         if self._ended is not None:
             raise LinkLost(f"{self.name}: {self._ended}; {what} not sent, reconnect first")
         self._ids += 1
-        self._pending[self._ids] = (what, future, time.monotonic() + timeout_s)
+        # Its turn comes when the requests ahead of it are answered, at the latest at their deadline: until then its
+        # deadline is that bound plus its own timeout, and it is moved to its turn's start plus its timeout.
+        ahead = next(reversed(self._pending.values()), None)
+        start = _now() if ahead is None else ahead.deadline
+        self._pending[self._ids] = _Request(what, future, timeout_s, start + timeout_s, started=ahead is None)
         try:
             self._proc.stdin.write((json.dumps({"id": self._ids, "op": op, "args": list(args)}) + "\n").encode())
         except (ConnectionError, RuntimeError) as exc:  # the child is gone; its reader reports why
@@ -160,12 +172,20 @@ class RTDELink:
         return self._ids
 
     def _end_if_overdue(self) -> None:
-        """End the link when a request sent earlier is still unanswered past its timeout (its caller gave up)."""
-        now = time.monotonic()
-        for what, _, deadline in self._pending.values():
-            if now > deadline:
-                self.end(f"{what} got no answer in time; the ur_rtde process was stopped")
-                return
+        """End the link when the request being run is still unanswered past its timeout (its caller gave up). Only
+        the oldest counts: the ones behind it wait for their turn."""
+        head = next(iter(self._pending.values()), None)
+        if head is not None and head.started and _now() > head.deadline:
+            self.end(f"{head.what} got no answer in time; the ur_rtde process was stopped")
+
+    def _next_turn(self) -> None:
+        """The oldest request left is now being run: its timeout counts from here."""
+        head = next(iter(self._pending.values()), None)
+        if head is not None and not head.started:
+            head.started = True
+            head.deadline = min(head.deadline, _now() + head.timeout_s)
+            if head.timer is not None:
+                head.timer.reschedule(head.deadline)
 
     async def _read_replies(self) -> None:
         proc = self._proc
@@ -174,9 +194,12 @@ class RTDELink:
                 reply = json.loads(line)
             except ValueError:
                 continue  # not a reply: nothing waits on it
-            _, future, _ = self._pending.pop(reply.get("id"), (None, None, 0.0))
-            if future is not None and not future.done():
-                future.set_result(reply)
+            request = self._pending.pop(reply.get("id"), None)
+            if request is None:
+                continue
+            self._next_turn()
+            if request.future is not None and not request.future.done():
+                request.future.set_result(reply)
         # stdout closed: the child has exited or is about to.
         returncode = await proc.wait()
         await asyncio.sleep(0)  # let the stderr reader take the last lines
@@ -195,9 +218,25 @@ class RTDELink:
 
     def _fail_pending(self) -> None:
         pending, self._pending = self._pending, {}
-        for what, future, _ in pending.values():
-            if future is not None and not future.done():
-                future.set_exception(LinkLost(f"{self.name}: {self._ended}; {what} got no answer"))
+        for request in pending.values():
+            if request.future is not None and not request.future.done():
+                request.future.set_exception(LinkLost(f"{self.name}: {self._ended}; {request.what} got no answer"))
+
+
+@dataclasses.dataclass
+class _Request:
+    """One unanswered request. deadline: on the event loop's clock (s); started: its turn has come."""
+
+    what: str
+    future: asyncio.Future | None  # None: nobody waits for the reply (posted, or its caller gave up)
+    timeout_s: float
+    deadline: float
+    started: bool
+    timer: asyncio.Timeout | None = None  # the waiting call's timeout, moved when its turn comes
+
+
+def _now() -> float:
+    return asyncio.get_running_loop().time()
 
 
 def _describe(returncode: int) -> str:

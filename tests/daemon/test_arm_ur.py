@@ -823,6 +823,52 @@ def test_rtde_link_ends_when_a_call_its_caller_gave_up_on_is_overdue(arun):
     assert arun(run()) < 15  # it did not wait out the 30 s it was given
 
 
+def test_requests_queued_behind_a_long_call_count_their_timeout_from_their_turn(arun):
+    """A long call within its own timeout (the controller's check of a big plan's poses) holds up the watchdog kicks
+    posted meanwhile and a call sent after it: neither is late, and the link lives on once the long call is answered.
+    The child is held still with SIGSTOP for longer than the queued requests' timeouts, shorter than the long one's."""
+    async def run():
+        link = RTDELink("test link")
+        await link.start()
+        os.kill(link.pid, signal.SIGSTOP)
+        long_call = asyncio.ensure_future(link.call("a long check", 5.0, "no_such_op"))
+        await asyncio.sleep(0.05)
+        behind = asyncio.ensure_future(link.call("a read behind it", 0.3, "no_such_op"))
+        for _ in range(4):  # the kicks keep coming while the check runs
+            link.post("kickWatchdog", 0.3, "no_such_op")
+            await asyncio.sleep(0.3)
+        assert link.alive, "a kick waiting for its turn is not late"
+        os.kill(link.pid, signal.SIGCONT)
+        results = await asyncio.gather(long_call, behind, return_exceptions=True)
+        alive = link.alive
+        await link.stop(5)
+        return results, alive
+
+    results, alive = arun(run())
+    assert alive
+    assert all(isinstance(r, DeviceError) and not isinstance(r, LinkLost) for r in results), results  # answered
+
+
+def test_a_call_queued_behind_a_stuck_one_names_the_stuck_one(arun):
+    async def run():
+        link = RTDELink("test link")
+        await link.start()
+        os.kill(link.pid, signal.SIGSTOP)
+        stuck = asyncio.ensure_future(link.call("a stuck move", 0.3, "no_such_op"))
+        await asyncio.sleep(0.05)
+        behind = asyncio.ensure_future(link.call("a read behind it", 30, "no_such_op"))
+        t0 = time.monotonic()
+        results = await asyncio.gather(stuck, behind, return_exceptions=True)
+        waited = time.monotonic() - t0
+        await link.stop(5)
+        return results, waited
+
+    (stuck, behind), waited = arun(run())
+    assert isinstance(stuck, LinkLost) and "no answer within 0.3 s waiting for a stuck move" in str(stuck)
+    assert isinstance(behind, LinkLost) and "a stuck move" in str(behind)
+    assert waited < 15  # not the 30 s of the call behind it
+
+
 def test_a_cancelled_stop_still_ends_the_process(arun):
     async def run():
         link = RTDELink("test link")
