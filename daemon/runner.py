@@ -14,7 +14,8 @@ writer is then dropped and reopened on resume, which continues at the first unpu
 (`CaptureWriter.next_pose_index`). Before the first move after such a resume the arm is readied: after LinkLost it
 reconnects (`Arm.reconnect`: fresh interfaces), after ArmFault `Arm.clear_fault` runs (the sim arm clears its
 protective stop; a real UR arm's stop is cleared by the operator on the pendant before `ctl resume`, and the arm
-uploads its control script again if the fault stopped it). The first move of every run starts wherever the arm
+uploads its control script again if the fault stopped it). A new scan whose arm link went down while no scan ran
+reconnects it the same way before it plans. The first move of every run starts wherever the arm
 stands: it is checked like the planned moves (`workspace.first_move_problem`), and after a pause the arm's controller
 is asked again about the poses still to come (`Arm.check_poses`).
 """
@@ -104,7 +105,14 @@ class ScanRunner:
         if path.exists():
             raise ConfigError(f"scan {name!r} already exists in {self.root} (choose another name)")
         scan = scan_request(self.cfg.scan, overrides or {})
-        start = (await self._arm_state()).tcp_pose
+        try:
+            start = (await self._arm_state()).tcp_pose
+        except LinkLost as exc:
+            # The link went down while no scan ran (a controller rebooted, a cable re-plugged): a new scan reconnects
+            # first, as a resumed one does, rather than being refused until the daemon restarts.
+            log.info("scan %s: %s: the link is down (%s); reconnecting", name, self.arm.name, exc)
+            await self._reconnect_arm("reconnect")
+            start = (await self._arm_state()).tcp_pose
         plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
         try:
             await self.arm.check_poses(plan.tcp_poses)  # the controller's own limits, before anything is created
@@ -336,6 +344,12 @@ class ScanRunner:
             return
         what = "reconnecting" if fix == "reconnect" else "clearing its fault"
         log.info("scan %s: %s: %s before pose %s", job.name, self.arm.name, what, self._progress())
+        await self._reconnect_arm(fix)
+        job.arm_fix = None
+
+    async def _reconnect_arm(self, fix: str) -> None:
+        """Reconnect the arm (fix "reconnect") and clear its fault, within READY_TIMEOUT_S."""
+        what = "reconnecting" if fix == "reconnect" else "clearing its fault"
         try:
             async with asyncio.timeout(READY_TIMEOUT_S):
                 if fix == "reconnect":
@@ -343,7 +357,6 @@ class ScanRunner:
                 await self.arm.clear_fault()
         except TimeoutError:
             raise LinkLost(f"{self.arm.name}: {what} did not finish within {READY_TIMEOUT_S:g} s") from None
-        job.arm_fix = None
 
     async def _poses(self, job: ScanJob) -> None:
         """Run poses from job.next_pose until the plan ends or a pause is requested; raises on a fault. An adaptive

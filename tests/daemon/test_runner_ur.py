@@ -16,6 +16,7 @@ from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.arm.ur import URArm
 from spadscan.daemon.rig import TrackedArm, build_devices, build_sensor
 from spadscan.daemon.config import config_from_dict
+from spadscan.daemon.devices import LinkLost
 from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.scan_plan import tcp_from_sensor
 from spadscan.protocol.capture_reader import CaptureReader
@@ -201,6 +202,40 @@ def test_resume_after_a_dropped_link_reconnects_and_completes(tmp_path, controll
     assert "link lost" in reason
     assert status["state"] == "idle" and status["last_scan"] == {"name": "ur", "state": "complete"}, status
     assert new_sessions == 2  # resuming built a new receive and a new control interface
+    check_every_pose_once(tmp_path / "caps" / "ur")
+
+
+@pytest.mark.slow
+def test_a_scan_started_after_the_link_dropped_while_idle_reconnects_and_completes(tmp_path, controller, arun):
+    """The controller closes every connection while no scan runs (a reboot, a re-plugged cable) and comes back: the
+    next `scan` reconnects (as `resume` does) instead of being refused until the daemon restarts."""
+    cfg = ur_config(tmp_path, controller.host)
+
+    async def scenario():
+        arm, sensor = quick_rig(cfg)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                sessions = (await asyncio.to_thread(controller.connections))["rtde"]
+                await asyncio.to_thread(controller.drop_link, "close")
+                async with asyncio.timeout(60):
+                    while True:  # until the arm has found its link down
+                        try:
+                            await arm.state()
+                        except LinkLost:
+                            break
+                        await asyncio.sleep(0.05)
+                await asyncio.to_thread(controller.restore_link)
+                await runner.start("ur")
+                await until(lambda: runner.state != "scanning", "the scan to end or pause")
+                status = runner.status()
+            finally:
+                await runner.shutdown()
+        return status, (await asyncio.to_thread(controller.connections))["rtde"] - sessions
+
+    status, new_sessions = arun(scenario(), timeout_s=180)
+    assert status["state"] == "idle" and status["last_scan"] == {"name": "ur", "state": "complete"}, status
+    assert new_sessions == 2  # a new receive and a new control interface
     check_every_pose_once(tmp_path / "caps" / "ur")
 
 
