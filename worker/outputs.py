@@ -87,9 +87,13 @@ def drop_replaced(out, previous: set[str], written: set[str]) -> list[str]:
     return gone
 
 
-def capture_state_note(capture, state: str, views: int) -> str | None:
-    """A warning for a capture that is not complete (a scan still running, paused or aborted), or None."""
+def capture_state_note(capture, state: str, views: int, planned: int | None = None) -> str | None:
+    """A warning for a capture that is not complete (a scan still running, paused or aborted), or that says complete
+    but holds fewer than its `planned` poses (a copy cut short, or still under way), or None."""
     if state == "complete":
+        if isinstance(planned, int) and not isinstance(planned, bool) and views < planned:
+            return (f"{capture}: the capture says complete but holds {views} of its {planned} planned views (a copy "
+                    f"cut short or still under way?): reconstructed from those")
         return None
     return (f"{capture}: the capture is {state}, not complete: reconstructing the {views} views it holds so far")
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 import spadscan
-from spadscan.protocol.capture_reader import check_capture_counts
+from spadscan.protocol.capture_reader import CaptureReader, check_capture_counts
 from spadscan.protocol.errors import CaptureError, SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
@@ -116,7 +116,8 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
     scene = load_scene(Path(capture), device, dtype)
     check_returns(capture, scene)
-    state_note = capture_state_note(capture, scene.state, scene.n_views)
+    state_note = capture_state_note(capture, scene.state, scene.n_views, CaptureReader(capture).manifest.get(
+        "planned_poses"))
     if state_note:
         log(f"warning: {state_note}")
     if steps is None and budget_s is None:
@@ -278,7 +279,8 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
-                     scene_notes=[scene.bound_note] if scene.bound_note else [], coverage=coverage, pieces=pieces,
+                     scene_notes=[n for n in (scene.bound_note, run.state_note if scene.state == "complete" else None)
+                                  if n], coverage=coverage, pieces=pieces,
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
                      continued=bool(getattr(model, "warm_started", False)))
     report["converged"] = end_of_run.converged(facts)

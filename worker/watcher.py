@@ -5,7 +5,8 @@ poll; `aborted` scans are skipped; a `complete` scan is queued as the job `<scan
 scan is queued as soon as its first chunk is published, as a live job of the same id (`Job.live`): it follows the
 scan and finishes it (worker/live/job.py), so the scan is still queued once. A scan whose manifest
 cannot be read is queued too, so that its job fails with the reason and `spadscan worker --status` shows it, instead
-of the scan being ignored in silence. Job ids are deterministic, so polling again (or another worker polling the same
+of the scan being ignored in silence; but a folder that may be a copy still under way (a manifest that cannot be
+read, or a complete one whose chunks lack measurements, changed within `SETTLE_S`) is looked at again first. Job ids are deterministic, so polling again (or another worker polling the same
 root) never queues a scan twice.
 """
 
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -100,7 +102,7 @@ class ScanReport:
     live: list[str] = field(default_factory=list)
     """Scans still being recorded, queued as live jobs."""
     pending: list[str] = field(default_factory=list)
-    """Scans still being recorded."""
+    """Scans still being recorded, or still being copied in (`SETTLE_S`)."""
     skipped: list[str] = field(default_factory=list)
     """Aborted scans."""
     unreadable: list[str] = field(default_factory=list)
@@ -133,11 +135,55 @@ def scan_folders(root: Path) -> list[Path]:
     return out
 
 
+SETTLE_S = 60.0
+"""A scan folder whose manifest cannot be read, or that says complete and lacks measurements, is taken for a copy
+still under way (cp, scp, a file manager) while anything in it changed within this many seconds: it is looked at
+again on the next passes rather than queued, so that its job neither fails on a half-written manifest nor
+reconstructs the chunks copied so far."""
+
+
 def scan_state(folder: Path) -> str:
     """The scan's state from its manifest; raises CaptureError when the manifest is malformed."""
     from spadscan.protocol.capture_reader import CaptureReader
 
     return CaptureReader(folder).state
+
+
+def holds_every_measurement(folder: Path) -> bool:
+    """Whether a complete capture's chunks hold every measurement its manifest plans (planned poses x frames per
+    pose, by the chunks' meta.json); True when the manifest plans no count. False when a chunk cannot be read."""
+    from spadscan.protocol.capture_format import read_json
+    from spadscan.protocol.capture_reader import CaptureReader
+
+    try:
+        reader = CaptureReader(folder)
+        planned, frames = reader.manifest.get("planned_poses"), reader.manifest.get("frames_per_pose", 1)
+        if not (_is_int(planned) and _is_int(frames)):
+            return True
+        held = 0
+        for name in reader.chunk_names():
+            records = read_json(Path(folder) / name / "meta.json").get("measurements")
+            held += len(records) if isinstance(records, list) else 0
+    except (OSError, ValueError, AttributeError, SpadscanError):
+        return False
+    return held >= planned * frames
+
+
+def last_change(folder: Path) -> float:
+    """The newest modification time (Unix seconds) of the folder, its entries and its chunks' files."""
+    newest = 0.0
+    try:
+        entries = [Path(folder), *Path(folder).iterdir()]
+    except OSError:
+        return newest
+    for entry in entries:
+        try:
+            newest = max(newest, entry.lstat().st_mtime)
+            if entry != Path(folder) and entry.is_dir():
+                newest = max([newest, *(f.lstat().st_mtime for f in entry.iterdir())])
+        except OSError:
+            continue
+    return newest
 
 
 def has_chunk(folder: Path) -> bool:
@@ -148,9 +194,11 @@ def has_chunk(folder: Path) -> bool:
         return False
 
 
-def scan_once(root: Path, queue: Queue, options: JobOptions) -> ScanReport:
+def scan_once(root: Path, queue: Queue, options: JobOptions, now: float | None = None) -> ScanReport:
     """One pass over the captures root: queue every complete scan that has no job yet (with `options.live`, every
-    running scan with a published chunk too, as a live job)."""
+    running scan with a published chunk too, as a live job). A folder that looks like a copy still under way waits
+    (`SETTLE_S`); `now`: the Unix time to judge that by (default: the clock)."""
+    now = time.time() if now is None else now
     report = ScanReport()
     for folder in scan_folders(root):
         job = options.job_for(folder.name)
@@ -168,6 +216,10 @@ def scan_once(root: Path, queue: Queue, options: JobOptions) -> ScanReport:
             continue
         if state == "aborted":
             report.skipped.append(folder.name)
+            continue
+        unfinished = state is None or not holds_every_measurement(folder)
+        if unfinished and now - last_change(folder) < SETTLE_S:
+            report.pending.append(folder.name)
             continue
         if queue.enqueue(job):
             (report.queued if state == "complete" else report.unreadable).append(folder.name)

@@ -398,3 +398,20 @@ def test_a_real_capture_whose_timing_jumped_mid_scan_says_its_fit_does_not_expla
     assert report["fit_to_noise"]["relative_misfit"] > RELATIVE_MISFIT_LIMIT
     assert has(report, "the fit does not explain the measurements"), report["warnings"]
     assert has(report, "per bin where the photons are")
+
+
+def test_a_complete_capture_short_of_its_planned_views_says_so(box_capture, tmp_path):
+    """A copy cut short (or still under way) whose manifest already says complete: the result says how many of its
+    planned views it was made from, on the terminal and in the report."""
+    cut = tmp_path / "cut"
+    shutil.copytree(box_capture, cut)
+    (chunk,) = cut.glob("chunk-*")
+    for name in ("hists.npy", "poses.npy"):
+        np.save(chunk / name, np.load(chunk / name)[:8])
+    meta = json.loads((chunk / "meta.json").read_text())
+    (chunk / "meta.json").write_text(json.dumps({**meta, "measurements": meta["measurements"][:8]}))
+    logged = []
+    report = reconstruct(cut, tmp_path / "out", steps=20, log=logged.append)
+    assert has(report, "holds 8 of its 16 planned views"), report["warnings"]
+    assert any("holds 8 of its 16 planned views" in line for line in logged)
+    assert not any("planned views" in w for w in reconstruct(box_capture, tmp_path / "whole", steps=20)["warnings"])

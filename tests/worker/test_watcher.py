@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
 import time
 
 import numpy as np
@@ -12,7 +13,7 @@ from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.worker.queue import Queue
-from spadscan.worker.watcher import JobOptions, scan_folders, scan_once, watch
+from spadscan.worker.watcher import SETTLE_S, JobOptions, scan_folders, scan_once, watch
 
 
 def make_scan(root, name, state="complete", n=2):
@@ -65,12 +66,54 @@ def test_two_watchers_on_one_root_queue_each_scan_once(tmp_path):
 
 
 def test_an_unreadable_manifest_is_queued_so_that_its_job_can_fail(tmp_path):
+    """Once it has stood unchanged for SETTLE_S: before, it may be a manifest still being copied in."""
     (tmp_path / "broken").mkdir()
     (tmp_path / "broken" / "scan.json").write_text("{truncated")
     q = Queue.for_root(tmp_path)
     report = scan_once(tmp_path, q, JobOptions())
+    assert report.pending == ["broken"] and report.unreadable == [] and not q.known("broken-fast")
+    report = scan_once(tmp_path, q, JobOptions(), now=time.time() + SETTLE_S + 1)
     assert report.unreadable == ["broken"] and report.queued == []
     assert q.known("broken-fast")
+
+
+def test_a_complete_scan_still_being_copied_in_waits_for_its_chunks(tmp_path):
+    """`cp -r` copies the manifest (already 'complete') before some chunks: the scan is not queued while it lacks
+    measurements it plans and the copy goes on; once the last chunk lands it is queued at once."""
+    source = tmp_path / "src"
+    sensor = sensor_preset("lcspc-sim")
+    w = CaptureWriter.create(source / "s", sensor, chunk_size=2, planned_poses=np.stack([np.eye(4)] * 6))
+    for i in range(6):
+        w.append(Measurement(np.full((1, sensor.n_bins), 2, np.uint32), np.eye(4), i))
+    w.finish("complete")
+    root = tmp_path / "root"
+    root.mkdir()
+    copy = root / "s"
+    copy.mkdir()
+    shutil.copy2(source / "s" / "scan.json", copy)
+    shutil.copy2(source / "s" / "schedule.npy", copy)
+    chunks = sorted((source / "s").glob("chunk-*"))
+    assert len(chunks) == 3
+    q = Queue.for_root(root)
+    for chunk in chunks[:2]:
+        shutil.copytree(chunk, copy / chunk.name)
+        assert scan_once(root, q, JobOptions()).pending == ["s"] and not q.known("s-fast")
+    shutil.copytree(chunks[2], copy / chunks[2].name)
+    assert scan_once(root, q, JobOptions()).queued == ["s"]
+
+
+def test_a_complete_scan_short_of_measurements_is_queued_once_it_stands_still(tmp_path):
+    """A copy that was cut short for good is reconstructed from what it holds (its report says so) once nothing in it
+    has changed for SETTLE_S."""
+    sensor = sensor_preset("lcspc-sim")
+    w = CaptureWriter.create(tmp_path / "s", sensor, chunk_size=2, planned_poses=np.stack([np.eye(4)] * 4))
+    for i in range(4):
+        w.append(Measurement(np.full((1, sensor.n_bins), 2, np.uint32), np.eye(4), i))
+    w.finish("complete")
+    shutil.rmtree(sorted((tmp_path / "s").glob("chunk-*"))[-1])
+    q = Queue.for_root(tmp_path)
+    assert scan_once(tmp_path, q, JobOptions()).pending == ["s"]
+    assert scan_once(tmp_path, q, JobOptions(), now=time.time() + SETTLE_S + 1).queued == ["s"]
 
 
 def test_watch_polls_until_stopped(tmp_path, arun):

@@ -21,6 +21,7 @@ import pytest
 from spadscan.cli import main as cli_main
 from spadscan.worker.pool import Worker
 from spadscan.worker.queue import Queue
+from spadscan.worker.watcher import SETTLE_S
 from spadscan.worker.worker_config import WorkerConfig
 
 from process_helpers import reaped
@@ -193,6 +194,9 @@ def test_bad_captures_fail_their_jobs_and_the_worker_goes_on(tmp_path, markers, 
     make_scan(root, "crashes")
     (root / "broken").mkdir()
     (root / "broken" / "scan.json").write_text("[]")
+    long_ago = time.time() - SETTLE_S - 1  # not a copy still under way: it has stood unchanged
+    for path in (root / "broken" / "scan.json", root / "broken"):
+        os.utime(path, (long_ago, long_ago))
     monkeypatch.setenv("MARKERS", str(markers))
     monkeypatch.setenv("RECON_FAIL", "crashes")
     lines = []
