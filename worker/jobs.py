@@ -90,7 +90,28 @@ class Job:
         names = {f.name for f in fields(cls)}
         if not isinstance(data, dict) or not {"id", "scan"} <= set(data):
             raise ConfigError(f"{where}: not a job record (needs 'id' and 'scan')")
+        for key, value in data.items():  # a file written by another tool: every field of the type it must have
+            if key in FIELD_TYPES and not _has_type(value, FIELD_TYPES[key]):
+                raise ConfigError(f"{where}: {key} = {json.dumps(value)[:60]} is not {FIELD_TYPES[key][1]}")
         return cls(**{k: v for k, v in data.items() if k in names})
+
+
+FIELD_TYPES = {"id": ("str", "a string"), "scan": ("str", "a string"), "preset": ("str", "a string"),
+               "device": ("str", "a string"), "created_utc": ("str", "a string"),
+               "budget_s": ("number?", "a number or null"), "steps": ("int?", "an integer or null"),
+               "seed": ("int", "an integer"), "live": ("bool", "true or false")}
+"""What each field of a job file must hold (kind, and how an error names it)."""
+
+
+def _has_type(value, kind: tuple[str, str]) -> bool:
+    name = kind[0].rstrip("?")
+    if value is None:
+        return kind[0].endswith("?")
+    if name == "bool":
+        return isinstance(value, bool)
+    if isinstance(value, bool):
+        return False
+    return isinstance(value, {"str": str, "int": int, "number": (int, float)}[name])
 
 
 def load_recon(spec: str | None = None) -> ReconFn:

@@ -317,6 +317,24 @@ def test_an_unreadable_job_file_fails_that_job_only(tmp_path):
     assert rows["junk"].state == "failed" and "unreadable job file" in rows["junk"].error
 
 
+@pytest.mark.parametrize("record, why", [
+    ({"id": "bad", "scan": None}, "scan = null is not a string"),
+    ({"id": "bad", "scan": ["s"]}, 'scan = ["s"] is not a string'),
+    ({"id": "bad", "scan": "s", "steps": "many"}, 'steps = "many" is not an integer or null'),
+    ({"id": "bad", "scan": "s", "live": 1}, "live = 1 is not true or false"),
+])
+def test_a_job_file_of_the_wrong_types_fails_that_job_only(tmp_path, record, why):
+    """A job file another tool wrote, valid JSON but with a field of the wrong type, fails with the reason: the
+    worker that claims it must not die on it (each restart would claim it again)."""
+    q = Queue(tmp_path / "q")
+    (q.path / "queued" / "bad.json").write_text(json.dumps(record))
+    q.enqueue(_job("s"))
+    claim = q.claim()
+    assert claim is not None and claim.job.id == "s-fast"
+    rows = {r.id: r for r in q.statuses()}
+    assert rows["bad"].state == "failed" and why in rows["bad"].error, rows["bad"].error
+
+
 def test_damaged_attempt_records_never_stop_the_queue(tmp_path):
     """A record that is not a JSON object is set aside, and a record's damaged numbers read as unknown: claims,
     expiry and retries go on."""
