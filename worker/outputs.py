@@ -3,10 +3,14 @@ accident, never a half-written mesh left where a good one was."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import shutil
+import time
 from pathlib import Path
+from typing import Callable, Iterator
 
 from spadscan.protocol.errors import ConfigError
 
@@ -14,6 +18,8 @@ from .report.view3d import VIEW3D
 
 RESULT_FILES = ("mesh.ply", "report.json")
 """Files whose presence means a folder holds a result."""
+ASIDE_DIR = ".replaced"
+"""Where a previous result waits while a run replaces it (`replacing_result`)."""
 
 
 def check_out(out, overwrite: bool, capture=None) -> Path:
@@ -27,7 +33,7 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
         if inside is not None and (not inside.parts or inside.parts[0] != "recon"):
             raise ConfigError(f"--out {out} lies inside the capture {capture}: results there would be mixed into "
                               f"its measurements; choose a folder outside it (or under its recon/ folder)")
-    held = [name for name in RESULT_FILES if (out / name).exists()]
+    held = [name for name in RESULT_FILES if (out / name).exists() or (out / ASIDE_DIR / name).exists()]
     if held and not overwrite:
         raise ConfigError(f"{out}: already holds a result ({', '.join(held)}); choose another --out, or pass "
                           "--overwrite to replace it")
@@ -78,13 +84,49 @@ def files_written_since(out, since_s: float) -> set[str]:
             if p.is_file() and not p.name.startswith(".") and p.stat().st_mtime >= since}
 
 
-def drop_replaced(out, previous: set[str], written: set[str]) -> list[str]:
-    """Remove the files of the replaced result (`previous_result`) that this run did not write again: a normals
-    picture of a run with a ground truth must not stand beside a run without one. Returns the names removed."""
-    gone = sorted(previous - written)
-    for name in gone:
-        (Path(out) / name).unlink(missing_ok=True)
-    return gone
+@contextlib.contextmanager
+def replacing_result(out, log: Callable[[str], None] | None = None) -> Iterator[set[str]]:
+    """While a run writes its result into `out` (--overwrite): the previous result's files (`previous_result`) wait
+    in `out/.replaced/`. A run that ends without finishing (an error, Ctrl-C) has them put back over what it wrote,
+    and the files it wrote besides removed, so that the folder holds the previous result whole; a run that finishes
+    drops them, and with them those it did not write again (a normals picture of a run with a ground truth must not
+    stand beside a run without one). A `.replaced/` left by a run that was killed is put back first. Yields the
+    names set aside."""
+    out = Path(out)
+    log = log or (lambda line: None)
+    aside = out / ASIDE_DIR
+    if aside.is_dir():
+        back = _put_back(out, aside, set())
+        log(f"put back the previous result that a run stopped mid-way had set aside ({', '.join(back)})")
+    since_s = time.time()
+    previous = previous_result(out) if out.is_dir() else set()
+    if previous:
+        aside.mkdir(exist_ok=True)
+        for name in sorted(previous):
+            os.replace(out / name, aside / name)
+    try:
+        yield previous
+    except BaseException:
+        if previous:
+            _put_back(out, aside, files_written_since(out, since_s) - previous)
+        raise
+    if previous:
+        gone = sorted(previous - {p.name for p in out.iterdir() if p.is_file()})
+        shutil.rmtree(aside, ignore_errors=True)
+        if gone:
+            log(f"removed the replaced result's {', '.join(gone)} (this run wrote none)")
+
+
+def _put_back(out: Path, aside: Path, also_remove: set[str]) -> list[str]:
+    """Move the files set aside in `aside` back into `out` (over what stands there) and remove the files named in
+    `also_remove`; returns the names put back."""
+    back = sorted(p.name for p in aside.iterdir() if p.is_file())
+    for name in sorted(also_remove - set(back)):
+        (out / name).unlink(missing_ok=True)
+    for name in back:
+        os.replace(aside / name, out / name)
+    shutil.rmtree(aside, ignore_errors=True)
+    return back
 
 
 def capture_state_note(capture, state: str, views: int, planned: int | None = None) -> str | None:
@@ -98,4 +140,4 @@ def capture_state_note(capture, state: str, views: int, planned: int | None = No
     return (f"{capture}: the capture is {state}, not complete: reconstructing the {views} views it holds so far")
 
 
-__all__ = ["RESULT_FILES", "check_out", "export_mesh", "capture_state_note"]
+__all__ = ["RESULT_FILES", "check_out", "export_mesh", "capture_state_note", "replacing_result"]

@@ -31,7 +31,7 @@ from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_view
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
-from .outputs import capture_state_note, drop_replaced, export_mesh, files_written_since, previous_result
+from .outputs import capture_state_note, export_mesh, files_written_since, replacing_result
 from .pieces import Pieces, mesh_pieces
 from .recon.config import ReconConfig, with_overrides
 from .recon.errors import ReconstructionError
@@ -157,10 +157,24 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     chooses between torch's threads and one as it goes (threads.ThreadGovernor). `log`: receives a line per stage
     after training (mesh, metrics, pictures) and warnings. The report says whether the run converged and why its
     result may be doubtful (`converged`, `warnings`: end_of_run.py). `clock` (wall seconds) and `cpu_clock` (this
-    process's CPU seconds) time the run; tests inject their own."""
+    process's CPU seconds) time the run; tests inject their own. A previous result in `out` (--overwrite) stays
+    whole until this run has finished, and comes back if it does not (`outputs.replacing_result`)."""
+    with replacing_result(out, log):
+        return _reconstruct_into(capture, out, preset=preset, budget_s=budget_s, steps=steps, gt=gt, device=device,
+                                 seed=seed, progress=progress, overrides=overrides, threads=threads, log=log,
+                                 started=started, clock=clock, cpu_clock=cpu_clock, make=make,
+                                 after_training=after_training)
+
+
+def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float | None, steps: int | None,
+                      gt: Path | None, device: str, seed: int, progress: bool, overrides: dict | None,
+                      threads: int | None, log: Callable[[str], None] | None, started: float | None,
+                      clock: Callable[[], float], cpu_clock: Callable[[], float], make: Callable | None,
+                      after_training: Callable | None) -> dict:
+    """`reconstruct_capture`'s run, writing into `out`."""
     log = log or (lambda line: None)
     run_clock = RunClock(None, clock() if started is None else started, clock)
-    since_s, replaced = time.time(), previous_result(out)
+    since_s = time.time()
     _check_run_args(budget_s, steps, seed)
     if threads is not None:
         torch.set_num_threads(check_threads(threads))
@@ -299,9 +313,6 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
     written = files_written_since(out, since_s) | {"report.json", "report.html"}
     report["files"] = sorted(written)
-    gone = drop_replaced(out, replaced, written)
-    if gone:
-        log(f"removed the replaced result's {', '.join(gone)} (this run wrote none)")
     report["wall_seconds"] = run_clock.elapsed()
     write_report(out, report)
     report = json_safe(report)

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run, load_ground_truth
-from spadscan.worker.outputs import check_out, drop_replaced, files_written_since, previous_result
+from spadscan.worker.outputs import check_out, files_written_since, replacing_result
 
 DEFAULTS = {"resolution": 128, "edge_deg": 1.0, "surface": "occupancy"}
 """Defaults of the options only one method reads (filled in after the check that the method reads them)."""
@@ -105,18 +105,19 @@ def run(args) -> int:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
 
     check_out(args.out, args.overwrite, capture=args.capture)
-    since_s, replaced = time.time(), previous_result(args.out)
 
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)
 
     gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
-    report = run_baseline(
-        args.capture, args.out, args.method, gt=gt, threshold=args.threshold, calibrate_=args.calibrate,
-        resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
-        floor_z=None if args.no_floor else ("auto" if args.floor_z is None else args.floor_z), surface=args.surface,
-        edge_deg=args.edge_deg, metrics_points=args.points, log=log)
-    write_pictures_and_page(report, args.out, gt, since_s, replaced)
+    with replacing_result(args.out, log):  # a previous result stays whole until this run has finished
+        since_s = time.time()
+        report = run_baseline(
+            args.capture, args.out, args.method, gt=gt, threshold=args.threshold, calibrate_=args.calibrate,
+            resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
+            floor_z=None if args.no_floor else ("auto" if args.floor_z is None else args.floor_z),
+            surface=args.surface, edge_deg=args.edge_deg, metrics_points=args.points, log=log)
+        write_pictures_and_page(report, args.out, gt, since_s)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
     line += f", {report['seconds']:.1f} s"
     if "chamfer_mm" in report:
@@ -126,9 +127,9 @@ def run(args) -> int:
     return 0
 
 
-def write_pictures_and_page(report: dict, out, gt, since_s: float, replaced: set[str]) -> None:
+def write_pictures_and_page(report: dict, out, gt, since_s: float) -> None:
     """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json, which
-    then lists the files this run wrote (`files`); the replaced result's others go (--overwrite)."""
+    then lists the files this run wrote (`files`)."""
     from spadscan.protocol.mesh_io import load_mesh  # trimesh and matplotlib: only when a baseline ran
     from spadscan.worker.report.folder_view import ensure_view3d
     from spadscan.worker.report.pictures import preview_png
@@ -144,5 +145,4 @@ def write_pictures_and_page(report: dict, out, gt, since_s: float, replaced: set
     written = files_written_since(out, since_s) | {"report.json", "report.html"}
     report["files"] = sorted(written)
     write_report(out, report)
-    drop_replaced(out, replaced, written)
     write_report_html(report, out)

@@ -226,6 +226,25 @@ def test_a_baseline_overwriting_another_leaves_none_of_its_files(sphere_capture,
     assert "points.ply" not in (out / "report.html").read_text()
 
 
+def test_a_baseline_overwrite_that_fails_at_its_metrics_leaves_the_previous_result_whole(sphere_capture, tmp_path,
+                                                                                           quick_metrics, capsys):
+    """The new mesh and points are written before the metrics; a ground truth whose table lies above the object
+    fails them: the folder holds the previous run's files as they were, none of the new ones."""
+    cap, gt = sphere_capture
+    out = tmp_path / "b"
+    assert cli_main(["baseline", "reprojection", str(cap), "--out", str(out), "--gt", str(gt)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    slab = trimesh.creation.box((2, 2, 0.02)).apply_translation((0, 0, 0.49))
+    ball = trimesh.creation.icosphere(3, radius=0.05).apply_translation((0, 0, 0.55))
+    high = tmp_path / "high_table.ply"
+    trimesh.util.concatenate([slab, ball]).export(high)
+    capsys.readouterr()
+    assert cli_main(["baseline", "reprojection", str(cap), "--out", str(out), "--gt", str(high), "--threshold", "8",
+                     "--overwrite"]) == 1
+    assert "spadscan: error:" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
 def calibrated(method: str, thresholds, sphere_capture, out, monkeypatch) -> dict:
     """`spadscan baseline METHOD --calibrate` over `thresholds` (20,000 points a mesh); its report.json."""
     import spadscan.worker.baselines.common as common

@@ -563,3 +563,63 @@ def test_a_default_run_of_days_on_a_cpu_is_a_warning(capture_and_gt, tmp_path, c
     assert "warning: preset 'paper' runs 1 steps by default: days on a CPU" in capsys.readouterr().err
     assert main([*base, "--out", str(tmp_path / "s"), "--steps", "1"]) == 0
     assert "by default" not in capsys.readouterr().err
+
+
+def _previous_result(out):
+    """A previous run's result in `out` (an hour old), and the user's own notes beside it."""
+    out.mkdir()
+    files = {"mesh.ply": "the previous mesh", "report.html": "the previous page",
+             "report.json": json.dumps({"files": ["mesh.ply", "report.html", "report.json"]})}
+    for name, text in files.items():
+        (out / name).write_text(text)
+    (out / "notes.txt").write_text("the user's own notes")
+    an_hour_ago = time.time() - 3600
+    for path in out.iterdir():
+        os.utime(path, (an_hour_ago, an_hour_ago))
+    return {**files, "notes.txt": "the user's own notes"}
+
+
+def _folder(out):
+    return ({p.name: p.read_bytes().decode(errors="replace") for p in out.iterdir() if p.is_file()},
+            sorted(p.name for p in out.iterdir() if p.is_dir()))
+
+
+def test_an_overwrite_interrupted_after_its_mesh_leaves_the_previous_result_whole(capture_and_gt, tmp_path):
+    """Ctrl-C once the new mesh is written (during the pictures and report): the folder holds the previous result
+    as it was, not the new mesh under the old report."""
+    from spadscan.worker.recon.config import parse_override
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    cap, gt = capture_and_gt
+    out = tmp_path / "out"
+    before = _previous_result(out)
+
+    def interrupt_at_the_pictures(line):
+        if line.startswith("pictures and report"):
+            assert (out / "mesh.ply").read_text(errors="replace") != "the previous mesh"  # the new one is written
+            raise KeyboardInterrupt
+
+    overrides = dict(parse_override(text) for text in SMALL)
+    with pytest.raises(KeyboardInterrupt):
+        reconstruct_capture(cap, out, preset="paper", steps=1, gt=gt, device="cpu", progress=False,
+                            overrides=overrides, log=interrupt_at_the_pictures)
+    assert _folder(out) == (before, [])
+
+
+def test_a_result_left_aside_by_a_killed_run_counts_as_a_result_and_comes_back(capture_and_gt, tmp_path, capsys):
+    """A run killed (SIGKILL) while replacing a result leaves it in out/.replaced/: the folder still holds a result
+    (no run replaces it without --overwrite), and the next run puts it back before it sets it aside again."""
+    cap, _ = capture_and_gt
+    out = tmp_path / "out"
+    before = _previous_result(out)
+    (out / ".replaced").mkdir()
+    for name in ("mesh.ply", "report.html", "report.json"):
+        (out / name).rename(out / ".replaced" / name)
+    (out / "mesh.ply").write_text("half of a new mesh")
+    assert _recon(cap, out) == 1
+    assert "already holds a result" in _error_lines(capsys)[0]
+    assert _recon(cap, out, "--overwrite", "--no-gt") == 0
+    assert "put back the previous result that a run stopped mid-way had set aside" in capsys.readouterr().err
+    files, folders = _folder(out)
+    assert folders == [] and files["notes.txt"] == before["notes.txt"]
+    assert files["mesh.ply"] not in (before["mesh.ply"], "half of a new mesh")

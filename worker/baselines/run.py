@@ -117,7 +117,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     export_mesh(mesh, out / "mesh.ply")
     points = extras.pop("points", None)
     if points is not None:
-        trimesh.PointCloud(points).export(out / "points.ply")
+        export_mesh(trimesh.PointCloud(points), out / "points.ply")
     report = {
         "method": method, "capture": str(Path(capture).resolve()), "sensor": data.sensor.name,
         "views": int(len(data.hists)), "zones": int(data.sensor.n_zones),
