@@ -27,10 +27,11 @@ import shutil
 from pathlib import Path
 from typing import Callable
 
+from spadscan.protocol.capture_format import MANIFEST
 from spadscan.protocol.errors import ConfigError
 
 from .holder import Holder
-from .jobs import (RESULT_FILES, Job, completion, existing_result, mark_complete, move_aside, result_path,
+from .jobs import (RESULT_FILES, Job, completion, existing_result, mark_complete, move_aside, result_path, scan_path,
                    scratch_folders)
 from .kill_points import kill_point
 from .queue import SEP, Claim, Queue
@@ -190,8 +191,8 @@ def _results_in_place(queue: Queue, root: Path, log: Log, busy) -> None:
 
 
 def _done_jobs(queue: Queue, root: Path, log: Log) -> None:
-    """Every done job has its result: a record that lacks it is completed; a job whose result is gone is queued
-    again."""
+    """Every done job has its result: a record that lacks it is completed; a job whose result is gone while its scan
+    is still there is queued again (a scan moved out of the root, archived, leaves its job done)."""
     for job_id, (state, path) in sorted(queue.job_paths().items()):
         if state != "done":
             continue
@@ -204,6 +205,8 @@ def _done_jobs(queue: Queue, root: Path, log: Log) -> None:
             continue
         try:
             where = result_path(job, root)
+            if not (scan_path(job, root) / MANIFEST).is_file():
+                continue  # the whole scan was moved away (archived) or deleted: nothing to make again
         except ConfigError as exc:
             where = f"its scan ({exc})"
         if queue.requeue("done", job_id):

@@ -32,6 +32,8 @@ def status_detail(row, running: dict | None = None) -> str:
         detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
         if row.result and row.kept:
             detail += " (already there when the job was claimed: kept, not run)"
+        if row.result and not Path(row.result).exists():
+            detail += " (no longer there: its scan was moved away)"
         health = result_health(row)
         if health.get("converged") is False:
             detail += " (not converged)"

@@ -159,6 +159,22 @@ def test_a_done_job_whose_result_is_gone_runs_again(root, markers, arun, capsys)
     exactly_one_result(root, markers, capsys, runs=2)
 
 
+def test_a_done_job_whose_scan_was_moved_away_stays_done(root, markers, arun, capsys):
+    """A lab archives a finished scan (moves its folder out of the root): its job is not run again, nor failed."""
+    import shutil
+
+    settled, _ = run_to_the_end(root, arun)
+    assert settled == {JOB: "done"}
+    shutil.move(root / "s", root.parent / "archive-s")
+    settled, lines = run_to_the_end(root, arun)
+    assert settled == {}, lines
+    capsys.readouterr()
+    assert cli_main(["worker", "--root", str(root), "--status"]) == 0
+    (row,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith(JOB)]
+    assert " done " in row and "no longer there: its scan was moved away" in row, row
+    assert len(markers_of(markers, "s", "start")) == 1
+
+
 def _gone_pid() -> int:
     import subprocess
     import sys
