@@ -177,6 +177,9 @@ class Worker:
             self.log(f"queued scan {name} as a live job (it is still being recorded)")
         for name in report.unreadable:
             self.log(f"queued scan {name} (its manifest is unreadable: the job will say why)")
+        if self.config.once:  # looked at once only: say what this run leaves (a watching worker looks again)
+            for name in report.pending:
+                self.log(f"not queued: scan {name} is still being recorded, or copied in")
         for name in report.skipped:
             if name not in self._seen_skipped:
                 self._seen_skipped.add(name)

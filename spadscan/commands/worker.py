@@ -86,7 +86,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where reconstructions run (default: auto)")
     parser.add_argument("--seed", type=int, default=None, help="random seed of the reconstructions (default: 0)")
     parser.add_argument("--once", action="store_true",
-                        help="queue the complete scans there are, run until nothing is queued or running, exit")
+                        help="queue the complete scans there are, run until nothing is queued or running, exit (status 1 when a "
+                             "job failed, 130 when stopped before the queue drained)")
     parser.add_argument("--live", action="store_true",
                         help="start each scan's reconstruction at its first published chunk and follow the scan, "
                              "publishing <scan>/recon/live/ every few seconds; --budget-s then bounds the final run "
@@ -155,12 +156,17 @@ def run(args) -> int:
     )
     settled = asyncio.run(run_worker(config))  # checks the config (options included) before queuing anything
     failed = sorted(j for j, s in settled.items() if s == "failed")
-    if args.once:
-        done = sum(1 for s in settled.values() if s == "done")
-        kept = sum(1 for s in settled.values() if s == "kept")
-        print(f"spadscan worker: {done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else "")
-              + (f", {kept} not run (their results were already there)" if kept else ""))
-    return 1 if args.once and failed else 0
+    if not args.once:
+        return 0
+    done = sum(1 for s in settled.values() if s == "done")
+    kept = sum(1 for s in settled.values() if s == "kept")
+    # Stopped (Ctrl-C, SIGTERM) before the queue drained: said, and not the exit status of a drained queue.
+    counts = Queue(queue_dir, create=False).counts()
+    left = counts.get("queued", 0) + counts.get("running", 0)
+    print(f"spadscan worker: {done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else "")
+          + (f", {kept} not run (their results were already there)" if kept else "")
+          + (f"; stopped with {left} job{'s' if left != 1 else ''} still queued or running" if left else ""))
+    return 130 if left else 1 if failed else 0
 
 
 def _refuse_combinations(args) -> None:

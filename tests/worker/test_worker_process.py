@@ -585,3 +585,24 @@ def test_every_path_a_published_result_records_is_valid_after_publishing(tmp_pat
     assert (result / "ground_truth.ply").stat().st_size > 0
     html = (result / "report.html").read_text()
     assert str(result / "ground_truth.ply") in html and ".tmp-" not in html
+
+
+def test_once_stopped_before_the_queue_drained_says_so_and_exits_130(tmp_path, monkeypatch, capsys):
+    """`worker --once` ended by Ctrl-C or SIGTERM (its run returns with a job still queued): a script must be able to
+    tell it from a drained queue."""
+    import spadscan.worker.pool as pool
+    from spadscan.worker.watcher import JobOptions, scan_once
+
+    make_scan(tmp_path, "s")
+    scan_once(tmp_path, Queue.for_root(tmp_path), JobOptions(), now=time.time() + SETTLE_S + 1)
+
+    async def stopped_at_once(config):
+        return {}
+
+    monkeypatch.setattr(pool, "run_worker", stopped_at_once)
+    assert cli_main(["worker", "--root", str(tmp_path), "--once"]) == 130
+    assert "stopped with 1 job still queued or running" in capsys.readouterr().out
+    q = Queue.for_root(tmp_path)
+    q.finish(q.claim(), None)  # the queue drained: the exit status is a drained run's again
+    assert cli_main(["worker", "--root", str(tmp_path), "--once"]) == 0
+    assert "stopped" not in capsys.readouterr().out
