@@ -33,7 +33,7 @@ def status_detail(row, running: dict | None = None) -> str:
         if row.result and row.kept:
             detail += " (already there when the job was claimed: kept, not run)"
         if row.result and not Path(row.result).exists():
-            detail += " (no longer there: its scan was moved away)"
+            detail += " (no longer there)"  # its scan moved out of the root (archived), or the folder removed
         health = result_health(row)
         if health.get("converged") is False:
             detail += " (not converged)"

@@ -78,6 +78,7 @@ def queue_with_a_kept_result_and_a_damaged_record(root) -> dict[str, str]:
     queue = Queue.for_root(root)
     for job_id, kept in (("kept-fast", True), ("torn-fast", False)):
         queue.enqueue(Job(id=job_id, scan=job_id.split("-")[0]))
+        (root / "results" / job_id).mkdir(parents=True)
         queue.finish(queue.claim(), result=str(root / "results" / job_id), kept=kept)
     (queue.path / "attempts" / "torn-fast" / "zz-torn.json").write_text('{"tok')  # a record torn by a power cut
     return {"kept-fast": f"{root / 'results' / 'kept-fast'} (already there when the job was claimed: kept, not run)",

@@ -296,7 +296,7 @@ def test_status_lists_jobs_whose_queue_files_are_damaged(tmp_path, capsys):
     assert "result: unknown (unreadable attempt record" in lines["list-fast"]
     assert lines["odd-fast"].split()[1:4] == ["failed", "1", "-"] and lines["odd-fast"].endswith("  5")
     assert "/results/nojob" in lines["nojob-fast"] and "unreadable job file" in lines["nojob-fast"]
-    assert lines["ok-fast"].endswith("/results/ok")
+    assert lines["ok-fast"].endswith("/results/ok (no longer there)")  # a made-up folder
     assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
     rows = {r["id"]: r for r in json.loads(capsys.readouterr().out)}
     assert rows["empty-fast"]["result"] is None and "unreadable attempt record" in rows["empty-fast"]["notes"][0]
