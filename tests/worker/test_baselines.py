@@ -4,6 +4,7 @@ reprojection, and the `spadscan baseline` command."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from types import SimpleNamespace
@@ -52,13 +53,16 @@ def _plate_at(distance, half_width=0.01):
 
 @pytest.mark.parametrize("preset, zone, tol_m", [("lcspc-sim", 0, 0.0008), ("tmf8820", 4, 0.003)])
 @pytest.mark.parametrize("filter", ["matched", "leading"])
-def test_first_return_arrival_is_the_surface_range(preset, zone, tol_m, filter):
+@pytest.mark.parametrize("photons", [0.2, 1.0, 2.5])
+def test_first_return_arrival_is_the_surface_range(preset, zone, tol_m, filter, photons):
+    """At 0.2 photons a cycle and at the 1-2.5 of an ordinary capture, where pile-up raises the noise behind a
+    return (a peak of the z-scores would lie up to a bin towards the sensor)."""
     distances = np.array([0.15, 0.2437, 0.31, 0.4])
     hists = []
     base = sensor_preset(preset)
     for d in distances:
-        # About 0.2 photons per cycle at every distance (signal ~ plate area / d^4): pile-up that Coates undoes.
-        power = 0.2 * d ** 4 / (base.signal_scale * 4e-4)
+        # About `photons` per cycle at every distance (signal ~ plate area / d^4): pile-up that Coates undoes.
+        power = photons * d ** 4 / (base.signal_scale * 4e-4)
         h, sensor = _render(_plate_at(d), base, np.eye(4)[None], power=power)
         hists.append(h[0])
     fr = first_returns(np.stack(hists), sensor, filter=filter)
@@ -184,6 +188,50 @@ def sphere_capture(tmp_path_factory):
     gt = root / "sphere.ply"
     mesh.export(gt)
     return cap, gt
+
+
+def _two_frames_a_pose(cap, out):
+    """The capture with each pose's measurement stored twice (frames 0 and 1), as a scan with frames_per_pose 2."""
+    shutil.copytree(cap, out)
+    for chunk in out.glob("chunk-*"):
+        for name in ("hists.npy", "poses.npy"):
+            np.save(chunk / name, np.repeat(np.load(chunk / name), 2, axis=0))
+        meta = json.loads((chunk / "meta.json").read_text())
+        meta["measurements"] = [dict(m, frame=f) for m in meta["measurements"] for f in (0, 1)]
+        (chunk / "meta.json").write_text(json.dumps(meta))
+    manifest = json.loads((out / "scan.json").read_text())
+    (out / "scan.json").write_text(json.dumps({**manifest, "frames_per_pose": 2}))
+    return out
+
+
+def _one_frame_of_twice_the_cycles(cap, out):
+    """The capture with each histogram doubled and the sensor's cycles doubled: two identical frames summed."""
+    shutil.copytree(cap, out)
+    for hists in out.glob("chunk-*/hists.npy"):
+        np.save(hists, np.load(hists) * 2)
+    manifest = json.loads((out / "scan.json").read_text())
+    manifest["sensor"]["cycles"] *= 2
+    (out / "scan.json").write_text(json.dumps(manifest))
+    return out
+
+
+@pytest.mark.parametrize("method", ["space-carving", "reprojection"])
+def test_a_baseline_reads_the_frames_of_a_pose_as_one_view(sphere_capture, tmp_path, method):
+    """Two frames a pose are one view of twice the cycles, as the reconstruction reads them: the same result as
+    their sum stored as one frame (read frame by frame, a pose alone passed as seen by two views and reprojection
+    stacked its points twice)."""
+    from spadscan.worker.baselines.run import run_baseline
+
+    cap, _ = sphere_capture
+    framed = run_baseline(_two_frames_a_pose(cap, tmp_path / "framed"), tmp_path / "a", method, resolution=48,
+                          floor_z=None)
+    summed = run_baseline(_one_frame_of_twice_the_cycles(cap, tmp_path / "summed"), tmp_path / "b", method,
+                          resolution=48, floor_z=None)
+    assert framed["views"] == summed["views"] == 96
+    key = "hull_fraction" if method == "space-carving" else "reprojected_points"
+    assert framed[key] == summed[key]
+    assert trimesh.load(tmp_path / "a" / "mesh.ply").vertices.shape == trimesh.load(tmp_path / "b" /
+                                                                                    "mesh.ply").vertices.shape
 
 
 def test_baseline_command_writes_a_mesh_and_a_report(sphere_capture, tmp_path, capsys, quick_metrics):
@@ -430,3 +478,38 @@ def test_faint_runs_stop_carving_only_without_a_table():
     field = fast_config().field
     assert carve_weak_threshold(field, on_table=False) == field.carve_weak_threshold < field.carve_threshold
     assert carve_weak_threshold(field, on_table=True) is None
+
+
+def test_the_fast_presets_hull_reads_the_frames_of_a_pose_as_one_view(sphere_capture, tmp_path):
+    """The fit sums a pose's frames; its carved hull must read them as that one view too."""
+    import torch
+
+    from spadscan.worker.recon.fast.config import fast_config
+    from spadscan.worker.recon.fast.problem import build_problem
+    from spadscan.worker.recon.forward import choose_terms
+    from spadscan.worker.recon.scene_data import load_scene
+
+    cap, _ = sphere_capture
+    hulls = []
+    for path in (_two_frames_a_pose(cap, tmp_path / "framed"), _one_frame_of_twice_the_cycles(cap, tmp_path / "s")):
+        scene = load_scene(path)
+        hulls.append(build_problem(scene, fast_config(), "cpu", choose_terms(scene)).hull.sdf.detach())
+    assert hulls[0].shape == hulls[1].shape and torch.equal(hulls[0], hulls[1])
+
+
+def test_space_carving_on_fewer_views_than_it_needs_says_so(sphere_capture, tmp_path, capsys):
+    """Two views: no space is seen by the three carving asks for, whatever the threshold (it said to lower it)."""
+    cap, _ = sphere_capture
+    two = tmp_path / "two"
+    shutil.copytree(cap, two)
+    for chunk in sorted(two.glob("chunk-*"))[1:]:
+        shutil.rmtree(chunk)
+    (chunk,) = two.glob("chunk-*")
+    for name in ("hists.npy", "poses.npy"):
+        np.save(chunk / name, np.load(chunk / name)[:2])
+    meta = json.loads((chunk / "meta.json").read_text())
+    (chunk / "meta.json").write_text(json.dumps({**meta, "measurements": meta["measurements"][:2]}))
+    assert cli_main(["baseline", "space-carving", str(two), "--out", str(tmp_path / "out"), "--no-gt"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "at least 3 views" in err and "holds 2" in err and "--threshold" not in err
+    assert not (tmp_path / "out").exists()

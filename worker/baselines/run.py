@@ -6,17 +6,21 @@ Writes into the output folder: `mesh.ply`, `report.json` and, for reprojection, 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import trimesh
 
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.plausibility import implausible
+from spadscan.protocol.sensor_model import SensorModel
 
 from ..carving.returns import DEFAULT_THRESHOLD
-from ..carving.space_carving import DEFAULT_EDGE_DEG, carve_scene, main_components, occupancy_mesh
+from ..carving.space_carving import DEFAULT_EDGE_DEG, MIN_VIEWS, carve_scene, main_components, occupancy_mesh
+from ..carving.views import summed_views
 from ..ground_truth import load_ground_truth
 from ..outputs import capture_state_note, export_mesh
 from ..report.report_json import json_safe, write_report
@@ -33,7 +37,17 @@ SURFACES = {
 THRESHOLD_UNITS = "standard deviations of the matched-filtered background noise (z-score)"
 
 
-def _build(method: str, data, threshold: float, *, resolution: int, margin_m, floor_z, surface: str,
+@dataclass(frozen=True)
+class PoseViews:
+    """A capture as the baselines read it: one view per pose, its frames summed (`carving.views`). hists (V, zones,
+    bins) counts; poses (V, 4, 4); sensor: its cycles those of a view."""
+
+    hists: np.ndarray
+    poses: np.ndarray
+    sensor: SensorModel
+
+
+def _build(method: str, data: PoseViews, threshold: float, *, resolution: int, margin_m, floor_z, surface: str,
            edge_deg: float, usable) -> tuple[object, dict]:
     """(mesh or None, extras for the report) for one threshold. usable: the histograms carving may read (see
     `carve_hull`)."""
@@ -81,7 +95,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     start = time.monotonic()
     data = CaptureReader(capture).load()
     data.check_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
-    state_note = capture_state_note(capture, data.manifest["state"], len(data.hists))
+    state_note = capture_state_note(capture, data.manifest["state"], len(np.unique(data.pose_indices)),
+                                    data.manifest.get("planned_poses"))
     if state_note:
         log(f"warning: {state_note}")
     truth = load_ground_truth(gt) if gt is not None else None
@@ -94,20 +109,27 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         except CaptureError as exc:
             raise CaptureError(f"{Path(capture) / 'scan.json'}: {exc}") from None
         log(f"floor: {floor_source}" if floor_z is None else f"floor at z = {floor_z:.4f} m: {floor_source}")
-    # Once for every threshold tried: histograms no sensor could produce carve nothing.
-    usable = ~implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins)
+    # Once for every threshold tried: histograms no sensor could produce (in any frame of a pose) carve nothing.
+    views = data.by_pose()
+    broken = np.zeros(views.counts.shape[:2], bool)
+    np.logical_or.at(broken, views.group, implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins))
+    counts, sensor = summed_views(views.counts, views.frames, data.sensor)
+    posed = PoseViews(counts, data.poses[views.first], sensor)
+    if method == "space-carving" and len(posed.hists) < MIN_VIEWS:
+        raise CaptureError(f"{capture}: space carving keeps only space that at least {MIN_VIEWS} views see, and the "
+                           f"capture holds {len(posed.hists)} (poses); scan more views, or use reprojection")
     opts = dict(resolution=resolution, margin_m=margin_m, floor_z=floor_z, surface=surface, edge_deg=edge_deg,
-                usable=usable)
+                usable=~broken)
     calibration = None
     if calibrate_:
         def progress(t, c):
             log(f"threshold {t:g}: " + ("no surface" if c is None else f"Chamfer {c:.2f} mm"))
 
-        calibration = calibrate(lambda t: _build(method, data, t, **opts)[0], truth, thresholds, progress=progress,
+        calibration = calibrate(lambda t: _build(method, posed, t, **opts)[0], truth, thresholds, progress=progress,
                                 n_points=calibration_points)
         threshold = calibration.threshold
     threshold = DEFAULT_THRESHOLD if threshold is None else float(threshold)
-    mesh, extras = _build(method, data, threshold, **opts)
+    mesh, extras = _build(method, posed, threshold, **opts)
     seconds = time.monotonic() - start
     if mesh is None:
         raise CaptureError(f"{capture}: {method} found no surface at threshold {threshold:g} "
@@ -120,7 +142,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         export_mesh(trimesh.PointCloud(points), out / "points.ply")
     report = {
         "method": method, "capture": str(Path(capture).resolve()), "sensor": data.sensor.name,
-        "views": int(len(data.hists)), "zones": int(data.sensor.n_zones),
+        "views": int(len(posed.hists)), "zones": int(data.sensor.n_zones),
         "threshold": threshold, "threshold_units": THRESHOLD_UNITS, "calibrated": bool(calibrate_),
         "calibration": None if calibration is None else {
             "note": "threshold chosen by the lowest Chamfer against the ground truth, as in the paper "

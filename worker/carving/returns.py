@@ -184,13 +184,19 @@ def matched_filter_z(hists, sensor: SensorModel, kind: str = "matched") -> np.nd
 
     With the 'leading' filter, index i holds the response whose peak marks an arrival `lag` bins before bin i.
     """
+    return _filtered_and_z(hists, sensor, kind)[1]
+
+
+def _filtered_and_z(hists, sensor: SensorModel, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """The filtered background-free signal (photons) and its z-scores, both (n, zones, bins), 0 at ignored bins."""
     signal, variance = photon_signal(np.asarray(hists, dtype=np.float64), sensor)
     kernel, origin, _ = detection_filter(sensor, kind)
     filtered = _correlate(signal, kernel, origin)
     noise = np.sqrt(np.maximum(_correlate(variance, kernel ** 2, origin), 1e-12))
     z = filtered / noise
     z[..., list(sensor.ignore_bins)] = 0.0
-    return z
+    filtered[..., list(sensor.ignore_bins)] = 0.0
+    return filtered, z
 
 
 def first_returns(hists, sensor: SensorModel, threshold: float = DEFAULT_THRESHOLD,
@@ -203,28 +209,31 @@ def first_returns(hists, sensor: SensorModel, threshold: float = DEFAULT_THRESHO
     if not (np.isfinite(threshold) and threshold > 0):
         raise CaptureError(f"detection threshold {threshold} must be > 0 (standard deviations of the noise)")
     lag = detection_filter(sensor, filter)[2]
-    z = matched_filter_z(hists, sensor, filter)
+    f, z = _filtered_and_z(hists, sensor, filter)
     above = z > threshold
     detected = above.any(axis=-1)
     onset = np.argmax(above, axis=-1)  # first bin above (0 where none: masked below)
     # The first return's peak: within the run of bins above the threshold that starts at the onset, the first local
-    # maximum that reaches half the run's highest value (noise wiggles on a rising edge are not peaks).
+    # maximum that reaches half the run's highest value (noise wiggles on a rising edge are not peaks). The z-scores
+    # decide what is detected; the peak is the filtered signal's own: the noise rises behind a strong return (fewer
+    # cycles left live), which would pull a peak of the z-scores towards the sensor by up to a bin.
     n_bins = z.shape[-1]
     bins = np.arange(n_bins)
     below = ~above & (bins >= onset[..., None])
     run_end = np.where(below.any(axis=-1), np.argmax(below, axis=-1), n_bins)
     in_run = (bins >= onset[..., None]) & (bins < run_end[..., None])
-    run_max = np.where(in_run, z, -np.inf).max(axis=-1, keepdims=True)
+    run_max = np.where(in_run, f, -np.inf).max(axis=-1, keepdims=True)
     local_max = np.ones_like(above)
-    local_max[..., :-1] = z[..., :-1] >= z[..., 1:]
-    local_max[..., 1:] &= z[..., 1:] >= z[..., :-1]
-    peak = np.argmax(in_run & local_max & (z >= 0.5 * run_max), axis=-1)
+    local_max[..., :-1] = f[..., :-1] >= f[..., 1:]
+    local_max[..., 1:] &= f[..., 1:] >= f[..., :-1]
+    peak = np.argmax(in_run & local_max & (f >= 0.5 * run_max), axis=-1)
     zp = np.take_along_axis(z, peak[..., None], -1)[..., 0]
-    zl = np.take_along_axis(z, np.maximum(peak - 1, 0)[..., None], -1)[..., 0]
-    zr = np.take_along_axis(z, np.minimum(peak + 1, n_bins - 1)[..., None], -1)[..., 0]
-    curv = zl - 2 * zp + zr
+    fp = np.take_along_axis(f, peak[..., None], -1)[..., 0]
+    fl = np.take_along_axis(f, np.maximum(peak - 1, 0)[..., None], -1)[..., 0]
+    fr = np.take_along_axis(f, np.minimum(peak + 1, n_bins - 1)[..., None], -1)[..., 0]
+    curv = fl - 2 * fp + fr
     with np.errstate(divide="ignore", invalid="ignore"):
-        shift = np.where(curv < 0, 0.5 * (zl - zr) / curv, 0.0)
+        shift = np.where(curv < 0, 0.5 * (fl - fr) / curv, 0.0)
     shift = np.clip(np.nan_to_num(shift), -0.5, 0.5)
     # Filter output index i corresponds to an arrival at the centre of bin i, coordinate i + 0.5.
     arrival = np.where(detected, peak + shift + 0.5 - lag, np.nan)

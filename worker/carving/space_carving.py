@@ -34,6 +34,8 @@ from .returns import DEFAULT_THRESHOLD, check_inputs, detection_filter, first_re
 DEFAULT_EDGE_DEG = 1.0
 """Carving trusts each zone's field of view only this far (degrees) inside its edges."""
 _PAIRS_PER_BATCH = 1 << 22  # cell-view pairs per array pass: ~16 MB float32 arrays
+MIN_VIEWS = 3
+"""Space that fewer views than this can see is never proven empty by carving, so it is dropped (no data)."""
 
 
 @dataclass
@@ -283,7 +285,7 @@ def carve_limits(hists, sensor: SensorModel, threshold: float, margin_m: float,
 
 def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, resolution: int,
                threshold: float = DEFAULT_THRESHOLD, margin_m: float | None = None,
-               floor_z: float | None = None, min_views: int = 3, edge_deg: float = DEFAULT_EDGE_DEG,
+               floor_z: float | None = None, min_views: int = MIN_VIEWS, edge_deg: float = DEFAULT_EDGE_DEG,
                filter: str = "leading", keep_returns_m: float = 0.0,
                weak_threshold: float | None = None, usable: np.ndarray | None = None) -> CarveResult:
     """Space-carve the box [bounds_min, bounds_max] (metres) on a resolution^3 grid.

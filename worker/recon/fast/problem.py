@@ -17,6 +17,7 @@ from spadscan.protocol.raycast import zone_rays
 
 from ...carving.returns import first_returns
 from ...carving.space_carving import carve_scene
+from ...carving.views import summed_views
 from ...table_height import RAYS_PER_ZONE, detect_height
 from ..errors import ReconstructionError
 from ..forward import TransientForward
@@ -109,8 +110,9 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     hull_res = _carve(scene, fc, floor_z, on_table=table is not None)
     voxel = float(np.min(hull_res.voxel_m))
     occ = np.transpose(hull_res.occupancy, (2, 1, 0))  # (x, y, z) -> (z, y, x)
-    counts_np, poses_np = scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy()
-    onset = first_returns(counts_np, sensor, fc.carve_threshold, "leading").onset_range_m(sensor)
+    counts_np, carve_sensor = _carving_views(scene)
+    poses_np = scene.poses.double().cpu().numpy()
+    onset = first_returns(counts_np, carve_sensor, fc.carve_threshold, "leading").onset_range_m(carve_sensor)
     if scene.usable is not None:
         onset = np.where(_usable(scene), onset, np.nan)  # no information, not "no return"
     occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=HULL_MIN_VOTES)
@@ -175,9 +177,16 @@ def _nothing_left(onset: np.ndarray, hull_res, floor_z: float | None, threshold:
             f"scene.radius and scene.center, or field.floor_z)")
 
 
+def _carving_views(scene):
+    """(counts (V, Z, B), sensor) as carving reads a view: its frames summed, the sensor's cycles a view's."""
+    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
+    return summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
+
+
 def _carve(scene, fc, floor_z, on_table: bool):
     box = carve_box(scene, floor_z)
-    return carve_scene(scene.counts.double().cpu().numpy(), scene.poses.double().cpu().numpy(), scene.sensor,
+    counts, sensor = _carving_views(scene)
+    return carve_scene(counts, scene.poses.double().cpu().numpy(), sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
                        floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc),
                        weak_threshold=carve_weak_threshold(fc, on_table), usable=_usable(scene))
