@@ -39,7 +39,8 @@ RECON_DIR = "recon"
 EXIT_DONE, EXIT_INPUT, EXIT_CRASH = 0, 3, 4
 
 ReconFn = Callable[..., dict]
-"""`reconstruct_capture(capture, out, *, preset, budget_s, steps, gt, device, seed) -> report dict`."""
+"""`reconstruct_capture(capture, out, *, preset, budget_s, steps, gt, device, seed, started) -> report dict`:
+`budget_s` counts from `started` (a time.perf_counter reading: the job process's start)."""
 
 
 def job_id_for(scan_name: str, preset: str) -> str:
@@ -47,10 +48,6 @@ def job_id_for(scan_name: str, preset: str) -> str:
     clean = ID_RE.sub("_", f"{scan_name}-{preset}").strip(".") or "job"
     return clean[:200]
 
-
-MIN_RECON_BUDGET_S = 0.1
-"""The least budget a job's reconstruction is given when checking the capture and loading torch took the job's whole
-budget: it then makes one step and the coarsest mesh, and ends as close to the budget as it can."""
 
 CHANGEABLE = ("budget_s", "steps", "device", "seed")
 """Options a failed job may be queued again with (Queue.retry_failed); its preset is part of its id, so it stays."""
@@ -195,8 +192,8 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *
     and `capture_counts_note` when some of its histograms are implausible (both also added to report.json).
 
     The job's time budget bounds the whole job from `started` (a time.perf_counter reading; default: now): the
-    reconstruction gets what is left of it once the capture is checked, torch is loaded and the ground truth is
-    placed (report.json: `job_budget_s`). A live job (`job.live`) follows its scan first (worker/live/job.py); its
+    reconstruction counts it from there, so what checking the capture, loading torch and placing the ground truth
+    took is part of it, and its report's times are the job's (report.json: `job_budget_s`). A live job (`job.live`) follows its scan first (worker/live/job.py); its
     final run is an ordinary job, its budget counted from the scan's end."""
     if job.live:
         from .live.job import execute_live_job
@@ -217,9 +214,8 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *
     if gt_note:
         print(f"ground truth: {gt_note}", file=sys.stderr, flush=True)
     recon = recon or load_recon()
-    budget_s = None if job.budget_s is None else max(MIN_RECON_BUDGET_S, job.budget_s - (time.perf_counter() - started))
-    report = dict(recon(scan, out, preset=job.preset, budget_s=budget_s, steps=job.steps, gt=gt,
-                        device=job.device, seed=job.seed) or {})
+    report = dict(recon(scan, out, preset=job.preset, budget_s=job.budget_s, steps=job.steps, gt=gt,
+                        device=job.device, seed=job.seed, started=started) or {})
     moved = {k: str(published_path(Path(v), out, final)) for k, v in report.items()
              if isinstance(v, str) and Path(v).is_relative_to(out)}
     extra = {**moved, **({"ground_truth_note": gt_note} if gt_note else {}),

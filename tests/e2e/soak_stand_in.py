@@ -13,7 +13,8 @@ from pathlib import Path
 from spadscan.protocol.capture_reader import CaptureReader
 
 
-def reconstruct(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0) -> dict:
+def reconstruct(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                started=None) -> dict:
     import trimesh
 
     reader = CaptureReader(capture)

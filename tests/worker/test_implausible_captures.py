@@ -66,7 +66,8 @@ def test_baselines_refuse_a_capture_no_sensor_could_produce(tmp_path, capsys, me
                                       f"histograms {words}; refusing to fit them")
 
 
-def counts_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+def counts_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                started=None):
     """A stand-in reconstruction that leaves a report (the counts were checked before it is called)."""
     report = {"preset": preset}
     (out / "report.json").write_text(json.dumps(report))

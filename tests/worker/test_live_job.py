@@ -197,7 +197,8 @@ def test_a_scan_that_completes_before_enough_views_is_reconstructed_from_scratch
     scan.publish(22)
     scan.finish()
     report = live.join()
-    assert 0 < report["asked"]["budget_s"] <= 7.0 and "live" not in report  # the job's budget, less its set-up
+    assert report["asked"]["budget_s"] == 7.0 and "live" not in report  # the job's budget, from the job's start
+    assert report["asked"]["started"] <= time.perf_counter()
     status = read_status(status_path(root / "cyl"))
     assert status.state == "final" and "from scratch" in status.note and status.views_published == 24
 
@@ -210,7 +211,8 @@ def test_a_live_job_of_a_complete_scan_is_an_ordinary_job_and_says_so(cylinder_c
     scan.publish(24)
     scan.finish()
     report = LiveJobThread(root, "cyl", small_settings(), budget_s=7.0, recon=stand_in).join()
-    assert 0 < report["asked"]["budget_s"] <= 7.0 and "live" not in report  # the job's budget, less its set-up
+    assert report["asked"]["budget_s"] == 7.0 and "live" not in report  # the job's budget, from the job's start
+    assert report["asked"]["started"] <= time.perf_counter()
     status = read_status(status_path(root / "cyl"))
     assert (status.state, status.views_used, status.steps, status.views_published) == ("final", 0, 0, 24)
     assert "already complete" in status.note and status.job == "cyl-fast"

@@ -31,7 +31,8 @@ HERE = Path(__file__).resolve().parent
 RECON = "test_worker_process:marker_recon"
 
 
-def marker_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+def marker_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                started=None):
     """A stand-in reconstruction: markers `<scan>.<pid>.start/.end` in $MARKERS, a report in `out`."""
     markers = Path(os.environ["MARKERS"])
     name = f"{Path(capture).name}.{os.getpid()}"
@@ -350,7 +351,8 @@ def test_the_command_refuses_a_missing_root_and_an_unknown_preset(tmp_path, caps
     assert not (tmp_path / ".queue").exists(), "nothing queued with a bad preset"
 
 
-def options_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+def options_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                started=None):
     """A stand-in reconstruction that fails on 'cuda' as the real one does without a GPU, and reports its options."""
     from spadscan.protocol.errors import SpadscanError
 
@@ -451,7 +453,8 @@ def test_a_ground_truth_that_cannot_be_used_is_a_note_not_a_failure(tmp_path):
     assert gt is None and note.startswith("built-in scene 'no-such-scene': ") and note.endswith("; no metrics")
 
 
-def gt_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+def gt_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                started=None):
     """A stand-in reconstruction that writes its report as the real one does (report.json, report.html)."""
     from spadscan.worker.report.report_html import write_report_html
     from spadscan.worker.report.report_json import write_report
@@ -554,7 +557,8 @@ def test_partial_results_of_dead_claims_are_removed_and_live_ones_kept(tmp_path,
     assert any("removed the partial result" in line for line in lines)
 
 
-def scored_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+def scored_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                started=None):
     """A stand-in reconstruction that reads the ground truth it is given and records its path, as the real one does
     (report.json and report.html)."""
     from spadscan.worker.report.report_html import write_report_html

@@ -19,7 +19,8 @@ from test_watcher import make_scan
 HERE = Path(__file__).resolve().parent
 
 
-def threads_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0):
+def threads_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                started=None):
     """A stand-in reconstruction that reports the threads its process was given and the ones torch uses."""
     import torch  # after the process started: torch reads OMP_NUM_THREADS when it is imported
 
