@@ -127,6 +127,12 @@ def _socket_path(out: Path) -> tuple[Path, Path | None]:
     return tmp / "daemon.sock", tmp
 
 
+DEMO_FRAME_TIME_S = 0.1
+"""Seconds a simulated frame takes (a real TMF8820's histograms take longer still to read out over I2C): the default
+scan then lasts about half a minute, long enough for the live job to start and show its fit while the scan goes on
+(with instant frames it ended before the worker's first look)."""
+
+
 def write_rig_config(opts: DemoOptions, captures: Path, sock: Path, ur_host: str | None) -> Path:
     """The demo's rig: simulated arm (or ur-sim), simulated sensor rendering a built-in scene."""
     # The ur backend needs a workspace box (metres, base frame): the scan's hemisphere of radius 0.5 m around the
@@ -145,7 +151,7 @@ socket = "{sock}"
 backend = "sim"
 preset = "{opts.sensor}"
 mesh = "builtin:{opts.scene}"
-frame_time_s = 0.0
+frame_time_s = {DEMO_FRAME_TIME_S}
 
 [scan]
 views = {opts.views}

@@ -14,7 +14,8 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
             echo "tests/run.sh: could not install ${missing[*]}; the tests that need them skip or say why" >&2
     fi
 fi
-# A CPU build of torch first: a range alone could pull the registry's multi-GB CUDA build.
+# torch only where none is installed, pinned, from pip's default index (on Linux its multi-GB CUDA build: install the
+# CPU build first, as the README says, where that matters).
 python -c "import torch" 2>/dev/null || python -m pip install -q "torch==2.13.0"
 python -m pip install -q -e ".[test]"
 bash tools/check_imports.sh
