@@ -60,9 +60,13 @@ class DeviceSession:
         return failures
 
     async def __aenter__(self) -> "DeviceSession":
-        failures = await self._all("connect")
-        if not failures:
-            failures = await self._all("prepare")
+        try:
+            failures = await self._all("connect")
+            if not failures:
+                failures = await self._all("prepare")
+        except asyncio.CancelledError:  # a stop during start-up: what connected so far is released and closed
+            await self._down()
+            raise
         if failures:
             await self._down()
             raise DeviceError("rig did not start: " + "; ".join(failures))
@@ -165,10 +169,15 @@ async def serve(cfg: DaemonConfig, arm, sensor) -> None:
     its lock."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+    me = asyncio.current_task()
+    starting, ended_startup = [True], [False]  # a stop signal ends the start-up itself (a connect takes up to a minute)
 
     def on_signal(sig: signal.Signals) -> None:
         log.info("%s received", sig.name)
         stop.set()
+        if starting[0]:
+            starting[0], ended_startup[0] = False, True
+            me.cancel()
 
     for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, on_signal, sig)
@@ -178,12 +187,20 @@ async def serve(cfg: DaemonConfig, arm, sensor) -> None:
             runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
             try:
                 await runner.recover()  # before listening: the first `status` already shows an interrupted scan
+                starting[0] = False
+                if stop.is_set():  # asked to stop while it started: no socket, no scan taken further
+                    return
                 async with ControlServer(cfg.socket, Dispatcher(runner, stop, cfg)):
                     log.info("listening on %s (captures in %s)", cfg.socket, cfg.captures)
                     await stop.wait()
                     log.info("shutting down")
             finally:
                 await runner.shutdown()
+    except asyncio.CancelledError:
+        if not (ended_startup[0] and me.cancelling()):
+            raise
+        me.uncancel()
+        log.info("stopped while starting: the devices were released and closed")
     finally:
         for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)

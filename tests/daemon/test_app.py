@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -214,3 +216,29 @@ def test_check_refuses_a_sensor_device_that_is_not_there(tmp_path, capsys, senso
     assert code == 1 and out == "" and err.count("\n") == 1, err
     assert f"{rig}: [sensor] " + word.format(tmp=tmp_path) in err
     assert not (tmp_path / "caps").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_signal_while_the_devices_connect_ends_the_start_up(tmp_path, arun, sig):
+    """An arm that never answers its connect (a wrong address, a controller that accepts and stays silent): a stop
+    signal ends the start-up at once, releases and closes what connected, and no socket is ever opened."""
+    from spadscan.daemon.app import serve
+    from spadscan.daemon.config import config_from_dict
+
+    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(tmp_path / "s.sock"),
+                            "sensor": {"mesh": "builtin:sphere"}}, tmp_path / "rig.toml")
+    log = []
+    arm, sensor = Recorder("arm", log, hang="connect"), Recorder("sensor", log)
+
+    async def scenario():
+        serving = asyncio.ensure_future(serve(cfg, arm, sensor))
+        while ("arm", "connect", "begin") not in log:
+            await asyncio.sleep(0.01)
+        os.kill(os.getpid(), sig)
+        await serving
+
+    arun(scenario(), timeout_s=60)  # the arm's connect alone would hang an hour
+    assert ("arm", "connect", "end") not in log
+    for dev in ("arm", "sensor"):
+        assert (dev, "release", "end") in log and (dev, "close", "end") in log
+    assert not (tmp_path / "s.sock").exists()
