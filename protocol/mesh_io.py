@@ -14,6 +14,9 @@ MM_EXTENT_THRESHOLD_M = 5.0
 # Formats that carry no unit. STL is the usual millimetre culprit (CAD exports); an OBJ, PLY or OFF exported from
 # CAD in millimetres is just as wrong read as metres, so 'auto' applies the same rule to them.
 UNITLESS_SUFFIXES = (".stl", ".obj", ".ply", ".off")
+# glTF (GLB) is y-up by its specification (and its exporters write it so); every other format here, and spadscan, is
+# z-up: a glTF mesh is turned +90 degrees about x as it is read, or it would lie on its side, half below the table.
+Y_UP_SUFFIXES = (".glb", ".gltf")
 
 
 def load_mesh(path, *, units: str = "auto"):
@@ -21,6 +24,7 @@ def load_mesh(path, *, units: str = "auto"):
 
     units: 'm', 'mm' or 'auto' (STL files, which carry no units, and the other UNITLESS_SUFFIXES are read as
     millimetres when their extent exceeds MM_EXTENT_THRESHOLD_M metres). Scenes with several bodies are concatenated.
+    glTF files (GLB), y-up by their specification, are turned z-up (Y_UP_SUFFIXES).
     """
     import trimesh
 
@@ -47,6 +51,8 @@ def load_mesh(path, *, units: str = "auto"):
     missing = faces[(faces < 0) | (faces >= len(verts))]
     if missing.size:
         raise MeshError(f"{path}: a face names vertex {int(missing[0])} of {len(verts)} (damaged or truncated)")
+    if path.suffix.lower() in Y_UP_SUFFIXES:
+        verts = verts[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])  # +90 deg about x: glTF's +y up becomes +z up
     scale = 1.0
     if units == "mm" or (units == "auto" and path.suffix.lower() in UNITLESS_SUFFIXES
                          and np.ptp(verts, axis=0).max() > MM_EXTENT_THRESHOLD_M):

@@ -135,3 +135,14 @@ def test_a_face_naming_a_vertex_the_file_does_not_hold_is_refused(tmp_path, face
     with pytest.raises(MeshError) as err:
         load_mesh(path)
     assert str(err.value) == f"{path}: a face names {named} (damaged or truncated)"
+
+
+def test_a_gltf_mesh_stands_up(tmp_path):
+    """glTF is y-up by its specification: a 0.30 m block written so (its base on y = 0, as Blender and MeshLab
+    write it) stands 0.30 m tall on z = 0 once read, not on its side half below the table."""
+    block = trimesh.creation.box([0.1, 0.3, 0.1]).apply_translation([0.0, 0.15, 0.0])
+    block.export(tmp_path / "block.glb")
+    mesh = load_mesh(tmp_path / "block.glb")
+    np.testing.assert_allclose(mesh.bounds[:, 2], [0.0, 0.3], atol=1e-9)
+    np.testing.assert_allclose(mesh.extents, [0.1, 0.1, 0.3], atol=1e-9)
+    assert mesh.volume > 0, "a rotation, not a mirror: the faces still point outwards"
