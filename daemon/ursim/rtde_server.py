@@ -70,7 +70,12 @@ class RTDESession:
             while data := await self.reader.read(65536):
                 buffer += data
                 for kind, payload in codec.split(buffer):
-                    self._handle(kind, payload)
+                    try:
+                        self._handle(kind, payload)
+                    except struct.error as exc:  # a package shorter than its type says: answered, not fatal
+                        name = chr(kind) if 32 < kind < 127 else f"type {kind}"
+                        self._note("!", f"{name}: {exc}")
+                        self.writer.write(codec.text_message(f"malformed {name} package: {exc}"))
                 await self.writer.drain()
         except (ConnectionError, ValueError):
             pass

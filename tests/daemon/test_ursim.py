@@ -448,3 +448,17 @@ def test_the_tcp_offset_setting_is_checked():
     for bad in ((0, 0, 0.1), (0, 0, math.nan, 0, 0, 0), "pointer", None):
         with pytest.raises(DeviceError, match="tcp_offset must be six finite numbers"):
             controller.configure(tcp_offset=bad)
+
+
+def test_a_malformed_package_is_answered_with_a_text_message_and_the_session_goes_on(sim):
+    """A package shorter than its type says (a bare version request, an input package short of its recipe): the
+    controller says so in a text message and keeps the connection, as a real one does."""
+    c = Client(sim.host)
+    c.send("V")
+    kind, text = c.receive("M")
+    assert b"malformed V package" in text
+    assert c.inputs(["input_int_register_0", "input_double_register_3"]) == (1, ["INT32", "DOUBLE"])
+    c.send("U", b"\x01\x00")  # recipe 1 wants 12 bytes
+    assert b"malformed U package" in c.receive("M")[1]
+    assert struct.unpack(">IIII", c.request("v")) == (5, 15, 0, 0)
+    c.close()
