@@ -43,7 +43,8 @@ def test_the_refits_of_a_live_jobs_log_are_read_with_the_final_runs_steps(bench,
 
 @pytest.mark.parametrize("refits, end, says", [
     ([(8, 0), (11, 26)], "live: scan complete (11 views fitted, 40 steps); the final reconstruction starts from the "
-                         "carved hull: the live fit is still on its coarse level, for the preset's budget",
+                         "carved hull: the live fit is too young (on its coarse level, or only just past it), for the "
+                         "preset's budget",
      "no live refits"),
     ([], "live: scan complete (11 views fitted, 40 steps); the final reconstruction continues from the live fit, "
          "for 10 steps", "no live refits"),

@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"pictures: {', '.join(s['pictures']) or '-'}")
     if s["live"] is not None:
         start = ("the final run continued from them" if s["live"].get("final_start", "live") == "live" else
-                 "the final run started from the carved hull (the live fit was still on its coarse level)")
+                 "the final run started from the carved hull (the live fit was too young to go on from)")
         print(f"live:     {s['live'].get('views_used')} views and {s['live'].get('steps')} steps fitted while the "
               f"scan ran; {start}")
     print(f"chamfer:  {'n/a' if chamfer is None else f'{chamfer:.2f} mm'} against the scene's ground truth "

@@ -153,9 +153,9 @@ def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_
 
 def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_level(cylinder_capture, tmp_path,
                                                                                       one_thread):
-    """A scan that ends before the live fit has left its coarse level (the demo's simulated scan takes 4 s): the
-    final run's model starts from the carved hull, not from those few steps; once the fit is on its last level the
-    final run continues from it."""
+    """A scan that ends before the live fit has left its coarse level (the demo's simulated scan takes 4 s), or just
+    after: the final run's model starts from the carved hull, not from those few steps; once the fit has made as
+    many steps on its last level as on its coarse one, the final run continues from it."""
     config = with_overrides(preset_config("fast"), FAST_SMALL)
     scan = ReplayScan(cylinder_capture, tmp_path / "scan")
     fit = LiveFit(tmp_path / "scan", config, torch.device("cpu"), 0, log=lambda line: None)
@@ -169,8 +169,10 @@ def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_
     assert not young.warm_started and young.level == 0 and young.level_steps == 0
     assert torch.equal(young.field.sdf, cold.field.sdf), "the hull, as an ordinary run starts"
 
-    fit.train_steps(6)  # past the refinement after 4 steps
-    assert fit.model.level == 1 and fit.continuable
+    fit.train_steps(4)  # the refinement after 4 steps, and 2 steps on the last level
+    assert fit.model.level == 1 and not fit.continuable, "a fit that has only just left its coarse level"
+    fit.train_steps(2)  # as many steps on the last level as the coarse level took
+    assert fit.model.level_steps == 4 and fit.continuable
     grown = fit.warm_factory()(every, config, "cpu", PLAN)
     assert grown.warm_started and grown.level == 1 and grown.level_steps == fit.model.level_steps
     live = fit.live_field().sdf.detach()

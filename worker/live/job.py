@@ -10,8 +10,8 @@ published) runs `execute_live_job`:
    `publish_every_s`, publish `<capture>/recon/live/` (mesh.ply, preview.png, status.json: `publish.py`). While an
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
-   warm-started from the live fit once that has left its coarse level (`LiveFit.continuable`; before, from the
-   carved hull), for the job's budget or steps, else `final_polish_s` of steps (the preset's budget when it starts
+   warm-started from the live fit once that has left its coarse level and gone on as long on its last one
+   (`LiveFit.continuable`; before, from the carved hull), for the job's budget or steps, else `final_polish_s` of steps (the preset's budget when it starts
    from the hull): the result is
    written into the job's scratch folder and published by the worker where every job's result goes. Of the final
    field and the live one, the one that explains every view better is meshed (`keep.py`: a short final run never
@@ -171,7 +171,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
               f"{final.steps} steps" if final.steps is not None else "the preset's budget")
     start = "live" if runner.fit.continuable else "hull"
     how = ("continues from the live fit" if start == "live" else
-           "starts from the carved hull: the live fit is still on its coarse level")
+           "starts from the carved hull: the live fit is too young (on its coarse level, or only just past it)")
     log(f"live: scan complete ({live_report['views_used']} views fitted, {live_report['steps']} steps); the final "
         f"reconstruction {how}, for {length}")
     report = execute_job(final, root, out, runner.final_recon(recon))
