@@ -823,17 +823,25 @@ def test_rtde_link_ends_when_a_call_its_caller_gave_up_on_is_overdue(arun):
     assert arun(run()) < 15  # it did not wait out the 30 s it was given
 
 
+async def _two_calls_on_a_stopped_child(first: tuple[str, float], second: tuple[str, float]):
+    """A link whose child is held still (SIGSTOP), and two calls (what, timeout_s) sent to it in that order; the
+    child answers each with an error (an unknown operation) once it goes on."""
+    link = RTDELink("test link")
+    await link.start()
+    os.kill(link.pid, signal.SIGSTOP)
+    calls = []
+    for what, timeout_s in (first, second):
+        calls.append(asyncio.ensure_future(link.call(what, timeout_s, "no_such_op")))
+        await asyncio.sleep(0.05)  # sent in this order
+    return link, *calls
+
+
 def test_requests_queued_behind_a_long_call_count_their_timeout_from_their_turn(arun):
     """A long call within its own timeout (the controller's check of a big plan's poses) holds up the watchdog kicks
     posted meanwhile and a call sent after it: neither is late, and the link lives on once the long call is answered.
     The child is held still with SIGSTOP for longer than the queued requests' timeouts, shorter than the long one's."""
     async def run():
-        link = RTDELink("test link")
-        await link.start()
-        os.kill(link.pid, signal.SIGSTOP)
-        long_call = asyncio.ensure_future(link.call("a long check", 5.0, "no_such_op"))
-        await asyncio.sleep(0.05)
-        behind = asyncio.ensure_future(link.call("a read behind it", 0.3, "no_such_op"))
+        link, long_call, behind = await _two_calls_on_a_stopped_child(("a long check", 5.0), ("a read behind it", 0.3))
         for _ in range(4):  # the kicks keep coming while the check runs
             link.post("kickWatchdog", 0.3, "no_such_op")
             await asyncio.sleep(0.3)
@@ -851,12 +859,7 @@ def test_requests_queued_behind_a_long_call_count_their_timeout_from_their_turn(
 
 def test_a_call_queued_behind_a_stuck_one_names_the_stuck_one(arun):
     async def run():
-        link = RTDELink("test link")
-        await link.start()
-        os.kill(link.pid, signal.SIGSTOP)
-        stuck = asyncio.ensure_future(link.call("a stuck move", 0.3, "no_such_op"))
-        await asyncio.sleep(0.05)
-        behind = asyncio.ensure_future(link.call("a read behind it", 30, "no_such_op"))
+        link, stuck, behind = await _two_calls_on_a_stopped_child(("a stuck move", 0.3), ("a read behind it", 30))
         t0 = time.monotonic()
         results = await asyncio.gather(stuck, behind, return_exceptions=True)
         waited = time.monotonic() - t0

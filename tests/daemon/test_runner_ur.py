@@ -5,6 +5,7 @@ pauses it and `resume` reconnects the arm and completes it, a dead link does not
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import os
 import time
@@ -65,6 +66,19 @@ def quick_rig(cfg):
     arm = TrackedArm(URArm(cfg.arm.device.host, speed=cfg.arm.speed, accel=cfg.arm.acceleration, timeout_s=5.0,
                            stale_after_s=1.0, watchdog_hz=cfg.arm.device.watchdog_hz))
     return arm, build_sensor(cfg, arm)
+
+
+@contextlib.asynccontextmanager
+async def ur_runner(cfg):
+    """(arm, runner) of the config's rig (`quick_rig`), its devices up; the runner shut down and the devices released
+    on the way out."""
+    arm, sensor = quick_rig(cfg)
+    async with DeviceSession([arm, sensor]):
+        runner = ScanRunner(arm, sensor, cfg)
+        try:
+            yield arm, runner
+        finally:
+            await runner.shutdown()
 
 
 def check_every_pose_once(path, hand_eye=HAND_EYE) -> None:
@@ -180,22 +194,17 @@ def test_resume_after_a_dropped_link_reconnects_and_completes(tmp_path, controll
     cfg = ur_config(tmp_path, controller.host)
 
     async def scenario():
-        arm, sensor = quick_rig(cfg)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("ur")
-                await until(lambda: runner.job.next_pose >= 2, "two poses")
-                await asyncio.to_thread(controller.drop_link, mode)
-                await until(lambda: runner.state == "paused", "the pause")
-                reason = runner.status()["reason"]
-                sessions = (await asyncio.to_thread(controller.connections))["rtde"]
-                await asyncio.to_thread(controller.restore_link)
-                await runner.resume()
-                await until(lambda: runner.state != "scanning", "the resumed scan to end or pause")
-                status = runner.status()
-            finally:
-                await runner.shutdown()
+        async with ur_runner(cfg) as (_, runner):
+            await runner.start("ur")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            await asyncio.to_thread(controller.drop_link, mode)
+            await until(lambda: runner.state == "paused", "the pause")
+            reason = runner.status()["reason"]
+            sessions = (await asyncio.to_thread(controller.connections))["rtde"]
+            await asyncio.to_thread(controller.restore_link)
+            await runner.resume()
+            await until(lambda: runner.state != "scanning", "the resumed scan to end or pause")
+            status = runner.status()
         return reason, status, (await asyncio.to_thread(controller.connections))["rtde"] - sessions
 
     reason, status, new_sessions = arun(scenario(), timeout_s=180)
@@ -212,25 +221,20 @@ def test_a_scan_started_after_the_link_dropped_while_idle_reconnects_and_complet
     cfg = ur_config(tmp_path, controller.host)
 
     async def scenario():
-        arm, sensor = quick_rig(cfg)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                sessions = (await asyncio.to_thread(controller.connections))["rtde"]
-                await asyncio.to_thread(controller.drop_link, "close")
-                async with asyncio.timeout(60):
-                    while True:  # until the arm has found its link down
-                        try:
-                            await arm.state()
-                        except LinkLost:
-                            break
-                        await asyncio.sleep(0.05)
-                await asyncio.to_thread(controller.restore_link)
-                await runner.start("ur")
-                await until(lambda: runner.state != "scanning", "the scan to end or pause")
-                status = runner.status()
-            finally:
-                await runner.shutdown()
+        async with ur_runner(cfg) as (arm, runner):
+            sessions = (await asyncio.to_thread(controller.connections))["rtde"]
+            await asyncio.to_thread(controller.drop_link, "close")
+            async with asyncio.timeout(60):
+                while True:  # until the arm has found its link down
+                    try:
+                        await arm.state()
+                    except LinkLost:
+                        break
+                    await asyncio.sleep(0.05)
+            await asyncio.to_thread(controller.restore_link)
+            await runner.start("ur")
+            await until(lambda: runner.state != "scanning", "the scan to end or pause")
+            status = runner.status()
         return status, (await asyncio.to_thread(controller.connections))["rtde"] - sessions
 
     status, new_sessions = arun(scenario(), timeout_s=180)
