@@ -266,3 +266,17 @@ def test_ctl_in_a_login_shell_finds_the_default_socket_of_a_daemon_run_by_system
         server.server_close()
         thread.join()
     assert json.loads(capsys.readouterr().out)["scan"] == "mug" and server.requests == ["status"]
+
+
+@pytest.mark.parametrize("argv, waits", [(["scan"], 600.0), (["resume"], 600.0), (["status"], 30.0),
+                                         (["--timeout", "5", "scan"], 5.0)])
+def test_scan_and_resume_wait_longer_for_their_reply(tmp_path, monkeypatch, capsys, argv, waits):
+    """Before the arm moves the daemon asks the arm's controller about every pose left (minutes for thousands):
+    `scan` and `resume` wait 600 s for their reply unless told, the rest 30 s."""
+    import spadscan.daemon.client as client
+
+    asked = []
+    monkeypatch.setattr(client, "call", lambda path, op, timeout, **request: asked.append(timeout) or
+                        {"ok": True, "scan": "s"})
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), *argv]) == 0
+    assert asked == [waits]
