@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -50,22 +51,30 @@ def _children() -> set[int]:
     return live
 
 
+def stop_leaked_children(before: set[int], grace_s: float = 30.0) -> set[int]:
+    """Child processes alive now that were not in `before`, once they have had `grace_s` to exit: on a loaded
+    machine a stopping process (an interpreter unwinding, a child reaping its own) can take seconds to be scheduled.
+    Those still alive are killed (SIGKILL): a leaked process must not outlive the test run. Returns them."""
+    leaked = _children() - before
+    deadline = time.monotonic() + grace_s
+    while leaked and time.monotonic() < deadline:
+        time.sleep(0.05)
+        leaked = _children() - before
+    for pid in leaked:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    return leaked
+
+
 @pytest.fixture(autouse=True)
 def no_leaked_processes():
-    """Fail a test that leaves a child process running."""
+    """Fail a test that leaves a child process running (and stop that process)."""
     before = _children()
     yield
-    leaked = _children() - before
-    if leaked:
-        # Give processes that were just signalled time to exit before calling it a leak: on a loaded machine a
-        # stopping process (an interpreter unwinding, a child reaping its own) can take seconds to be scheduled.
-        import time
-
-        deadline = time.monotonic() + 30
-        while leaked and time.monotonic() < deadline:
-            time.sleep(0.05)
-            leaked = _children() - before
-    assert not leaked, f"test leaked child processes {sorted(leaked)}"
+    leaked = stop_leaked_children(before)
+    assert not leaked, f"test leaked child processes {sorted(leaked)} (killed)"
 
 
 @pytest.fixture
