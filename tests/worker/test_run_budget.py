@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -114,10 +115,26 @@ def test_the_process_start_is_before_now():
 # ---- whole runs ------------------------------------------------------------------------------------------------
 
 def timed(cmd: list[str], env: dict | None = None) -> tuple[float, subprocess.CompletedProcess]:
-    """(wall seconds from before the process starts to its exit, the finished process)."""
-    t0 = time.perf_counter()
+    """(wall seconds from before the process starts to its exit, the finished process); `done.other_cpu_s`: the CPU
+    seconds the rest of the machine used meanwhile (`machine_cpu_s`, less the process's and its children's)."""
+    before, machine, t0 = os.times(), machine_cpu_s(), time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
-    return time.perf_counter() - t0, done
+    wall, after = time.perf_counter() - t0, os.times()
+    own = (after.children_user + after.children_system) - (before.children_user + before.children_system)
+    done.other_cpu_s = machine_cpu_s() - machine - own
+    return wall, done
+
+
+def machine_cpu_s() -> float:
+    """CPU seconds every process of the machine has used since it booted (/proc/stat's busy time)."""
+    user, nice, system, _idle, _iowait, irq, softirq, steal = map(int, Path("/proc/stat").read_text().split()[1:9])
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
+def busy_beside(other_cpu_s: float, wall_s: float) -> bool:
+    """Whether other work took at least a quarter of a core beside a run (on average over its wall time): only then
+    may it overrun its budget. A run that had the machine to itself and overran did so by its own doing."""
+    return other_cpu_s >= 0.25 * wall_s
 
 
 def check_budget_notes(report: dict, config_resolution: int, config_points: int | None) -> None:
@@ -146,6 +163,7 @@ def test_a_reconstruction_ends_within_its_budget(box, tmp_path, preset):
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     said = any(w.startswith("the run took") for w in report["warnings"])
     if wall > LIMIT_S:  # only a run slowed by other work may overrun, and it must say so
+        assert busy_beside(done.other_cpu_s, wall), f"{wall:.1f} s for a {BUDGET_S:g} s budget on a quiet machine"
         assert said, f"{wall:.1f} s for a {BUDGET_S:g} s budget, silently\n{done.stderr[-2000:]}"
     assert report["budget"]["budget_s"] == BUDGET_S
     assert report["budget"]["training_budget_s"] < BUDGET_S, "the set-up and the end share the budget"
@@ -171,13 +189,15 @@ def test_final_metrics_slower_than_their_forecast_still_end_within_the_budget(bo
     cap, gt = box
     monkeypatch.setattr(metrics, "SampleIndex", Slow)
     monkeypatch.setattr(reconstruct, "metric_points_within", lambda costs, want, seconds: want)
-    started = time.perf_counter()
+    started, cpu, machine = time.perf_counter(), time.process_time(), machine_cpu_s()
     report = reconstruct.reconstruct_capture(cap, tmp_path / "o", preset="fast", budget_s=BUDGET_S, gt=gt,
                                              device="cpu", progress=False, threads=1, started=started)
-    wall = time.perf_counter() - started
+    wall, cpu = time.perf_counter() - started, time.process_time() - cpu
+    other = machine_cpu_s() - machine - cpu
     assert report["n_points"] == 300_000 and report["queries"] < 300_000, report["budget"]
     assert any(f"measured {report['queries']:,} of the 300,000 points" in w for w in report["warnings"])
-    if wall > LIMIT_S:  # only a run slowed by other work may overrun, and it must say so
+    if wall > LIMIT_S:  # only a run slowed by other work may overrun
+        assert busy_beside(other, wall), f"{wall:.1f} s for a {BUDGET_S:g} s budget on a quiet machine"
         assert any(w.startswith("the run took") for w in report["warnings"]), \
             f"{wall:.1f} s for a {BUDGET_S:g} s budget, silently: {report['budget']}"
 
@@ -193,16 +213,16 @@ def test_a_worker_job_ends_within_its_budget(box, tmp_path):
     cmd = [sys.executable, "-m", "spadscan.cli", "worker", "--root", str(root), "--once", "--budget-s",
            f"{BUDGET_S:g}", "--poll-s", "0.2", "--device", "cpu"]
     env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
-    _, done = timed(cmd, env)
+    wall, done = timed(cmd, env)
     assert done.returncode == 0, done.stderr[-2000:]
     took = re.search(r"box-fast done in ([\d.]+) s", done.stderr)
     assert took, done.stderr[-2000:]
     report = json.loads((root / "box" / "recon" / "box-fast" / "report.json").read_text())
     # From the claim to the result in place: the job's process start, its whole run, and its publishing. Only a job
-    # slowed by other work may take longer: its run then says so, or it had under a core while training.
+    # slowed by other work may take longer, and its run then says so.
     if float(took[1]) > LIMIT_S + 2.0:
-        assert (any(w.startswith("the run took") for w in report["warnings"])
-                or report["cpu_cores_used"] < 0.9), done.stderr[-2000:]
+        assert busy_beside(done.other_cpu_s, wall), f"{took[1]} s for a {BUDGET_S:g} s budget on a quiet machine"
+        assert any(w.startswith("the run took") for w in report["warnings"]), done.stderr[-2000:]
     assert report["job_budget_s"] == report["budget"]["budget_s"] == BUDGET_S, \
         "the job's reconstruction counts the job's budget from the job process's start"
     assert report["wall_seconds"] > report["budget"]["stages"]["set_up_s"] > 0
