@@ -15,9 +15,12 @@ and is scored like `spadscan reconstruct`'s final mesh (300,000 points, the full
 at once (every scene's all-parts run first, then the ablations); `--device cuda` fits on the GPU (seeded, but CUDA's
 sums are not bit-for-bit repeatable: figures there vary a little from run to run).
 
-Writes runs/<scene>--<variant>.json as each run ends (a later call with the same --out reuses them, so an interrupted
-ablation resumes where it stopped; --overwrite starts afresh), then table.md: per part and scene, the Chamfer (mm)
-and the mean normal error (degrees) with the part off, against all parts on, and the steps each run took.
+Writes runs/<scene>--<variant>.json as each run ends, with the settings it ran with (--steps, --seed, --threads,
+--points, --device and its --set overrides). A later call with the same --out reuses the runs made with its own
+settings, so an interrupted ablation resumes where it stopped (Ctrl-C writes the table of the runs finished); an
+--out holding a run made with other settings is refused, in one line that says which (--overwrite starts afresh).
+Then table.md: per part and scene, the Chamfer (mm) and the mean normal error (degrees) with the part off, against
+all parts on, and the steps each run took.
 """
 
 from __future__ import annotations
@@ -42,6 +45,35 @@ DERIVED = ("average", "plateau")
 """Parts whose ablation the all-parts run gives without a run of its own: neither changes the fit. Without the
 average the mesh comes from the grid as it is (the same fit, meshed from its last step); without the plateau test
 the run goes on to --steps (the same fit up to the early stop, continued)."""
+
+
+SETTINGS = {"steps": "--steps", "seed": "--seed", "threads": "--threads", "points": "--points", "device": "--device",
+            "overrides": "--set"}
+"""What a run's figures depend on besides its scene and the code, and the option that sets each."""
+
+
+def settings_of(steps: int, seed: int, threads: int, points: int, device: str, overrides: list[str]) -> dict:
+    """A run's settings (SETTINGS) as its file records them."""
+    return {"steps": steps, "seed": seed, "threads": threads, "points": points, "device": device,
+            "overrides": list(overrides)}
+
+
+def variant_overrides(overrides: list[str], variant: str) -> list[str]:
+    """The --set overrides of a variant's run: the call's, and the part switched off."""
+    return list(overrides) + ([] if variant == ALL else [f"parts.{variant}.enabled=false"])
+
+
+def other_settings(recorded: dict | None, wanted: dict) -> str | None:
+    """How a run file's recorded settings differ from `wanted` ('--steps 5, not 40'), or None when they do not."""
+    if not isinstance(recorded, dict):
+        return "no settings recorded (made before they were)"
+
+    def shown(key, value):
+        return (" ".join(value) or "none") if key == "overrides" and isinstance(value, list) else value
+
+    diffs = [f"{flag} {shown(key, recorded.get(key))}, not {shown(key, wanted[key])}"
+             for key, flag in SETTINGS.items() if recorded.get(key) != wanted[key]]
+    return "; ".join(diffs) or None
 
 
 def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[str], points: int = 300_000,
@@ -73,7 +105,8 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
 
     out = scored({"steps": result.steps, "stopped_by": result.stopped_by, "train_s": result.seconds,
                   "setup_s": run.setup_s, "overrides": overrides, "summary": model.summary(),
-                  "commit": source_commit(), "config": config.to_dict(), "threads": threads, "device": device})
+                  "commit": source_commit(), "config": config.to_dict(), "threads": threads, "device": device,
+                  "settings": settings_of(steps, seed, threads, points, device, overrides)})
     ran = set(model.summary()["parts"])
     if not any(o.startswith("parts.") and o.endswith(".enabled=false") for o in overrides):
         derived = {}
@@ -189,41 +222,71 @@ def main(argv=None) -> int:
     if args.overwrite and runs.exists():
         for f in runs.glob("*.json"):
             f.unlink()
+
+    def target_of(name: str, variant: str) -> Path:
+        return runs / f"{name}--{variant.replace(' ', '-')}.json"
+
+    def wanted_settings(variant: str) -> dict:
+        return settings_of(args.steps, args.seed, args.threads, args.points, args.device,
+                           variant_overrides(args.overrides, variant))
+
+    # A run is reused only if it was made with this call's settings: any other would stand in the table under this
+    # command line. Checked for every run this call could reuse, before any runs.
+    for name in dict.fromkeys(scene.name for scene in args.scenes):
+        for variant in [ALL] + [v for v in wanted if v not in DERIVED]:
+            target = target_of(name, variant)
+            if target.exists():
+                try:
+                    recorded = json.loads(target.read_text()).get("settings")
+                except (OSError, ValueError, AttributeError):
+                    recorded = None
+                why = other_settings(recorded, wanted_settings(variant))
+                if why:
+                    parser.error(f"--out {args.out} holds a run made with other settings ({target.name}: {why}): "
+                                 f"pass --overwrite to discard the earlier runs, or choose another --out")
     runs.mkdir(parents=True, exist_ok=True)
     captures = {scene.name: prepare_scene(scene, args.out) for scene in args.scenes}
     results: dict[str, dict[str, dict]] = {name: {} for name in captures}
 
-    def run(name: str, variant: str) -> tuple[str, str, dict | None]:
-        target = runs / f"{name}--{variant.replace(' ', '-')}.json"
-        overrides = list(args.overrides) + ([] if variant == ALL else [f"parts.{variant}.enabled=false"])
+    def record(name: str, variant: str, res: dict) -> None:
+        results[name][variant] = res
+        if variant == ALL:  # its report says which parts ran there, so which to ablate; and it gives DERIVED's
+            results[name]["_ran"] = parts_that_ran(res)
+            results[name].update({part: {**res, **d} for part, d in res.get("derived", {}).items() if part in wanted})
+
+    def run(name: str, variant: str) -> None:
+        # Recorded as it ends, in its own thread: an interrupt keeps every run that finished in the table.
+        target = target_of(name, variant)
         if target.exists():
-            return name, variant, json.loads(target.read_text())
+            record(name, variant, json.loads(target.read_text()))
+            return
         t0 = time.perf_counter()
         print(f"{name}: {variant} ...", flush=True)
-        res = run_in_child(captures[name], target, args, overrides)
+        res = run_in_child(captures[name], target, args, variant_overrides(args.overrides, variant))
         if res is not None:
             print(f"  {name}, {variant}: {fmt(res.get('chamfer_mm'))} mm, {fmt(res.get('normal_error_deg'), 1)} deg, "
                   f"{res['steps']} steps ({time.perf_counter() - t0:.0f} s)", flush=True)
-        return name, variant, res
+            record(name, variant, res)
 
-    with ThreadPoolExecutor(args.jobs) as pool:
-        # Every scene's all-parts run first: its report says which parts ran there, so which to ablate.
-        for name, _, res in pool.map(lambda n: run(n, ALL), list(captures)):
-            if res is None:
-                continue
-            results[name][ALL] = res
-            results[name]["_ran"] = parts_that_ran(res)
-            results[name].update({part: {**res, **d} for part, d in res.get("derived", {}).items() if part in wanted})
-        # Part by part across the scenes: an interrupted ablation leaves whole rows of the table.
-        todo = [(name, v) for v in wanted for name in captures
-                if v in results[name].get("_ran", []) and v not in results[name]]
-        for name, variant, res in pool.map(lambda nv: run(*nv), todo):
-            if res is not None:
-                results[name][variant] = res
+    interrupted = False
+    try:
+        with ThreadPoolExecutor(args.jobs) as pool:
+            # Every scene's all-parts run first: its report says which parts ran there, so which to ablate.
+            list(pool.map(lambda n: run(n, ALL), list(captures)))
+            # Part by part across the scenes: an interrupted ablation leaves whole rows of the table.
+            todo = [(name, v) for v in wanted for name in captures
+                    if v in results[name].get("_ran", []) and v not in results[name]]
+            list(pool.map(lambda nv: run(*nv), todo))
+    except KeyboardInterrupt:  # Ctrl-C: the runs queued are not started (pool.map cancels them), those running end
+        interrupted = True
     text = tables(results, [ALL] + wanted)
     (args.out / "table.md").write_text(text + "\n")
     write_atomic(args.out / "results.json", results)
     print(text)
+    if interrupted:
+        print(f"interrupted: the table holds the runs finished; the same command resumes from {runs}",
+              file=sys.stderr)
+        return 130
     return 0
 
 

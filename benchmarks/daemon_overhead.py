@@ -18,12 +18,15 @@ from __future__ import annotations
 import argparse
 import asyncio
 import shutil
+import signal
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from spadscan import parent_watch
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.arm.sim import SimArm
 from spadscan.daemon.backends import pose_provider
@@ -32,6 +35,7 @@ from spadscan.daemon.devices import Frame, Sensor
 from spadscan.daemon.runner import ScanRunner
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, Simulator
@@ -135,9 +139,9 @@ def fs_type(path: Path) -> str:
 
 def measure(folder: Path, args, factory, pre) -> dict:
     """Every run and its peer in a temporary folder under `folder`; figures in ms per pose and histograms per s."""
-    tmp = Path(tempfile.mkdtemp(prefix="spadscan-bench-", dir=folder))
     n, k = args.poses, args.frames
     n_many = max(8, 3200 // k)
+    tmp = Path(tempfile.mkdtemp(prefix="spadscan-bench-", dir=folder))  # removed in the `finally`, made just before
     try:
         one = asyncio.run(run_scan(tmp, "k1", n, 1, factory))
         moving = asyncio.run(run_scan(tmp, "moving", n, 1, factory, motion_s=args.motion_ms / 1000))
@@ -171,6 +175,10 @@ def main(argv=None) -> None:
     ap.add_argument("--frame-ms", type=float, default=50.0, help="frame time of the overlapped-publish run")
     ap.add_argument("--sim-sensor", action="store_true", help="render frames live with the simulator")
     args = ap.parse_args(argv)
+    if args.poses < 1 or args.frames < 1:
+        ap.error(f"--poses ({args.poses}) and --frames ({args.frames}) must be >= 1")
+    if not (0 <= args.motion_ms < float("inf") and 0 <= args.frame_ms < float("inf")):
+        ap.error(f"--motion-ms ({args.motion_ms:g}) and --frame-ms ({args.frame_ms:g}) must be finite and >= 0")
     # Absolute, as in live.py: the rig config built under each reads its relative paths from its own folder.
     dirs = [Path(d).resolve() for d in args.dir] if args.dir else [Path(tempfile.gettempdir())] + \
         ([Path("/dev/shm")] if Path("/dev/shm").is_dir() else [])
@@ -196,7 +204,19 @@ def main(argv=None) -> None:
                          frame_time_s=frame_time_s)
 
     factory = live if args.sim_sensor else replay
-    results = [measure(d, args, factory, pre) for d in dirs]
+    # Started by benchmarks/live.py, it stops when live.py is gone; a SIGTERM (that watch's, or a time limit's) ends
+    # it like Ctrl-C, so that `measure` removes its temporary captures.
+    parent_watch.watch_parent_from_env()
+    before = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        results = [measure(d, args, factory, pre) for d in dirs]
+    except KeyboardInterrupt:
+        print("daemon_overhead.py: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
+    except SpadscanError as exc:
+        raise SystemExit(f"daemon_overhead.py: error: {exc}") from None
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
     k = args.frames
     rows = [("per-pose overhead, K=1, motion 0, frame time 0", f"< {GOAL_OVERHEAD_MS:g} ms",

@@ -679,7 +679,8 @@ def main(argv=None) -> int:
     ap.add_argument("--presets", default="fast", help="comma-separated presets (default: fast; '' with --baselines: "
                                                       "the baselines alone)")
     ap.add_argument("--baselines", action="store_true", help="also run space carving and reprojection")
-    ap.add_argument("--out", type=Path, default=Path("benchmark-out"), help="output folder (default: benchmark-out)")
+    ap.add_argument("--out", type=Path, default=Path("benchmark-out"),
+                    help="output folder (default: benchmark-out, in the current folder)")
     ap.add_argument("--overwrite", action="store_true",
                     help="replace the earlier run in --out: its runs/, results.json, table.md and error_vs_time.png\n"
                          "are deleted before the first run (without it, an --out holding any of them is refused;\n"

@@ -18,6 +18,9 @@ scene the daemon's own per-pose overhead (benchmarks/daemon_overhead.py: moves a
 the daemon's work counts) is measured too, alone and again while the live job trains. Every figure is printed side
 by side with its peer; the JSON of every run goes to --out. Goal: the final mesh within 30 s
 of the scan's end on 2 cores, at a Chamfer no worse than the offline job's.
+
+The daemon and the workers stop with the benchmark: on Ctrl-C or SIGTERM it stops them (and prints the scenes
+measured so far); killed outright, it leaves them to notice that it is gone (spadscan/parent_watch.py).
 """
 
 from __future__ import annotations
@@ -27,12 +30,14 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from spadscan import parent_watch
 from spadscan.daemon.client import ControlError, call
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError
@@ -70,19 +75,25 @@ class Rig:
         self.procs: list[subprocess.Popen] = []
         self.daemon = self.start("daemon", spadscan("daemon", "--config", rig))
         deadline = time.monotonic() + 120
-        while True:
-            try:
-                call(self.sock, "status", timeout_s=5)
-                break
-            except ControlError:
-                if self.daemon.poll() is not None or time.monotonic() > deadline:
-                    raise SystemExit(f"the daemon did not start (log: {folder / 'daemon.log'})") from None
-                time.sleep(0.1)
+        try:
+            while True:
+                try:
+                    call(self.sock, "status", timeout_s=5)
+                    break
+                except ControlError:
+                    if self.daemon.poll() is not None or time.monotonic() > deadline:
+                        raise SystemExit(f"the daemon did not start (log: {folder / 'daemon.log'})") from None
+                    time.sleep(0.1)
+        except BaseException:  # no caller holds this rig yet to close it
+            self.close()
+            raise
 
     def start(self, name: str, argv: list[str], env: dict | None = None) -> subprocess.Popen:
+        # Named as their parent (parent_watch): killed outright, the benchmark cannot stop them, and they stop
+        # themselves.
         with open(self.folder / f"{name}.log", "ab") as log:
             proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    env={**os.environ, **(env or {})})
+                                    env=parent_watch.child_env({**os.environ, **(env or {})}))
         self.procs.append(proc)
         return proc
 
@@ -99,6 +110,25 @@ class Rig:
         shutil.rmtree(self.sock_dir, ignore_errors=True)
 
 
+def run_to_end(argv: list[str], log: Path, env: dict) -> int:
+    """Run `argv` to its end (output to `log`); its exit status. Stopped (Ctrl-C, SIGTERM), it is stopped as `kill
+    PID` stops it, so that a worker hands its job back (subprocess.run would kill it outright), and killed outright,
+    it stops by itself (parent_watch)."""
+    with open(log, "wb") as f:
+        proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env=parent_watch.child_env({**os.environ, **env}))
+    try:
+        return proc.wait()
+    except BaseException:
+        proc.terminate()
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        raise
+
+
 OVERHEAD_ROW = re.compile(r"per-pose overhead, K=1, (?P<what>[^<]+?)\s{2,}<[^m]+ms\s+(?P<ms>[\d.]+) ms")
 
 
@@ -106,7 +136,8 @@ def daemon_overhead(folder: Path, poses: int) -> dict:
     """benchmarks/daemon_overhead.py's per-pose overhead figures (ms, by run), its captures under `folder`."""
     folder.mkdir(parents=True, exist_ok=True)
     r = subprocess.run([sys.executable, str(Path(__file__).with_name("daemon_overhead.py")), "--dir", str(folder),
-                        "--poses", str(poses), "--frames", "8"], capture_output=True, text=True)
+                        "--poses", str(poses), "--frames", "8"], capture_output=True, text=True,
+                       env=parent_watch.child_env())
     if r.returncode != 0:
         raise SystemExit(f"daemon_overhead.py failed: {r.stderr.strip().splitlines()[-1:]}")
     return {m["what"].strip(): float(m["ms"]) for m in OVERHEAD_ROW.finditer(r.stdout)}
@@ -189,11 +220,10 @@ def run_scene(scene: str, out: Path, args) -> dict:
     env = {"OMP_NUM_THREADS": str(args.threads)} if args.threads else {}
     t = time.monotonic()
     budget = ["--budget-s", args.offline_budget_s] if args.offline_budget_s else []
-    worker = subprocess.run(spadscan("worker", "--root", rig.captures, "--once", "--poll-s", 0.5, *budget),
-                            stdout=open(out / scene / "alone" / "worker.log", "wb"), stderr=subprocess.STDOUT,
-                            env={**os.environ, **env})
+    status = run_to_end(spadscan("worker", "--root", rig.captures, "--once", "--poll-s", 0.5, *budget),
+                        out / scene / "alone" / "worker.log", env)
     row["offline_s"] = time.monotonic() - t
-    if worker.returncode != 0:
+    if status != 0:
         raise SystemExit(f"{scene}: the offline worker failed (log: {out / scene / 'alone' / 'worker.log'})")
     offline = report_of(capture, f"{name}-fast")
     row["offline"] = {k: offline.get(k) for k in ("chamfer_mm", "steps", "seconds", "stopped_by", "wall_seconds")}
@@ -274,6 +304,10 @@ def main(argv=None) -> int:
     scenes = [s for s in args.scenes.split(",") if s]
     from spadscan.protocol.scenes import BUILTIN_SCENES
 
+    if not scenes:
+        ap.error(f"--scenes {args.scenes!r} names no scene")
+    if len(set(scenes)) < len(scenes):
+        ap.error(f"--scenes {args.scenes!r} names a scene twice")
     unknown = [s for s in scenes if s not in BUILTIN_SCENES]
     if unknown:
         ap.error(f"unknown scene(s) {', '.join(unknown)} (built-in: {', '.join(BUILTIN_SCENES)})")
@@ -281,15 +315,26 @@ def main(argv=None) -> int:
     # own folder, so a relative --out would name them twice over.
     out = (args.out or Path(tempfile.mkdtemp(prefix="spadscan-live-bench-"))).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    print(f"machine before: {machine_note()}; runs in {out}", flush=True)
-    rows = []
     for scene in scenes:
         if (out / scene).exists():
             ap.error(f"{out / scene} exists: give another --out")
-        rows.append(run_scene(scene, out, args))
-        print(f"{scene}: live {rows[-1]['live_s']:.1f} s after the scan's end, Chamfer "
-              f"{fmt(rows[-1]['live']['chamfer_mm'])} mm; offline {rows[-1]['offline_s']:.1f} s, "
-              f"{fmt(rows[-1]['offline']['chamfer_mm'])} mm", flush=True)
+    print(f"machine before: {machine_note()}; runs in {out}", flush=True)
+    # A time limit's SIGTERM ends the runs like Ctrl-C does: the rigs' `finally`s stop their daemon and worker (on
+    # SIGTERM's default, nothing would), and the scenes done still come out.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    rows = []
+    try:
+        for scene in scenes:
+            rows.append(run_scene(scene, out, args))
+            print(f"{scene}: live {rows[-1]['live_s']:.1f} s after the scan's end, Chamfer "
+                  f"{fmt(rows[-1]['live']['chamfer_mm'])} mm; offline {rows[-1]['offline_s']:.1f} s, "
+                  f"{fmt(rows[-1]['offline']['chamfer_mm'])} mm", flush=True)
+    except KeyboardInterrupt:
+        print(f"interrupted: {len(rows)} of {len(scenes)} scenes measured (runs in {out})", file=sys.stderr,
+              flush=True)
+        if rows:
+            print(table(rows))
+        return 130
     print(f"machine after: {machine_note()}")
     print(table(rows))
     met = all(r["live_s"] <= GOAL_S and (r["live"]["chamfer_mm"] or 1e9) <= (r["offline"]["chamfer_mm"] or 0) * 1.0001

@@ -70,10 +70,13 @@ def simulate(scene: str, captures: Path) -> Path:
     scan = ScanConfig()
     out = captures / f"{scene}-tmf8820-{scan.views}"
     if not (out / "scan.json").is_file():
-        subprocess.run([sys.executable, "-m", "spadscan.cli", "simulate", f"builtin:{scene}", "--out", str(out),
-                        "--sensor", "tmf8820", "--views", str(scan.views), "--min-elevation",
-                        str(scan.min_elevation_deg), "--max-elevation", str(scan.max_elevation_deg), "--radius",
-                        str(scan.radius_m), "--no-progress"], check=True)
+        done = subprocess.run([sys.executable, "-m", "spadscan.cli", "simulate", f"builtin:{scene}", "--out",
+                               str(out), "--sensor", "tmf8820", "--views", str(scan.views), "--min-elevation",
+                               str(scan.min_elevation_deg), "--max-elevation", str(scan.max_elevation_deg),
+                               "--radius", str(scan.radius_m), "--no-progress"], stderr=subprocess.PIPE, text=True)
+        if done.returncode != 0:
+            last = done.stderr.strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
+            raise SystemExit(f"live_recoarse.py: error: simulating builtin:{scene} failed: {last[0]}")
     return out
 
 
@@ -247,7 +250,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="mug,teddy,demo", help="built-in scenes, comma-separated")
     ap.add_argument("--captures", type=Path, default=Path("captures-live-recoarse"),
-                    help="where the simulated captures are made and kept")
+                    help="where the simulated captures are made and kept (default: captures-live-recoarse, in the "
+                         "current folder)")
     ap.add_argument("--steps-per-view", type=int, default=16)
     ap.add_argument("--final-steps", type=int, default=35)
     ap.add_argument("--seed", type=int, default=0)
@@ -264,8 +268,15 @@ def main(argv=None) -> int:
     if args.capture is not None:
         sources = [(args.capture.name, args.capture, recorded_truth(ap, args.capture, refits))]
     else:
+        from spadscan.protocol.scenes import BUILTIN_SCENES
+
+        scenes = [scene for scene in args.scenes.split(",") if scene]
+        unknown = [scene for scene in scenes if scene not in BUILTIN_SCENES]
+        if not scenes or unknown:
+            ap.error(f"--scenes {args.scenes!r}: " + (f"no built-in scene {', '.join(unknown)}" if unknown else
+                                                        "names no scene") + f" (built-in: {', '.join(BUILTIN_SCENES)})")
         args.captures.mkdir(parents=True, exist_ok=True)
-        sources = [(scene, None, None) for scene in args.scenes.split(",") if scene]
+        sources = [(scene, None, None) for scene in scenes]
     torch.set_num_threads(1)
     print(f"fast, one thread, seed {args.seed}; {args.steps_per_view} steps per pose published, "
           f"{args.final_steps} final steps; Chamfer mm ({SCORE_POINTS:,} points)")

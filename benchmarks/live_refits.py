@@ -7,16 +7,18 @@ A stand-in writer publishes a simulated capture of a built-in scene pose by pose
 (as the daemon does, without the arm), while a live job (one torch thread, the `fast` preset's defaults) follows it;
 the job's final run gets 1 s, since only the follow phase is measured. The former rule refitted once the views grew by
 a quarter or 20 s after the last refit with any new view (on a loaded machine, where a refit takes 20 s or more,
-that is at every poll); today's is `live.job.refit_due`. --busy N runs N CPU-bound processes beside it (stopped at
-the end) for a loaded machine. Wall-clock figures: say the machine's load with them.
+that is at every poll); today's is `live.job.refit_due`. --busy N runs N CPU-bound processes beside it for a loaded
+machine (benchmarks/contention.py's competitors: stopped at the end, and each stops by itself after a deadline or
+once the benchmark is gone, so none outlives it, even killed). Wall-clock figures: say the machine's load with them.
+Ctrl-C (or SIGTERM) prints the rows measured so far.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -26,11 +28,15 @@ from pathlib import Path
 
 import torch
 
-from spadscan.protocol.capture_format import Measurement
-from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import CaptureWriter
-from spadscan.worker.jobs import Job
-from spadscan.worker.live import job as live_job
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from contention import start_competitors, stop  # noqa: E402
+
+from spadscan import parent_watch  # noqa: E402
+from spadscan.protocol.capture_format import Measurement  # noqa: E402
+from spadscan.protocol.capture_reader import CaptureReader  # noqa: E402
+from spadscan.protocol.capture_writer import CaptureWriter  # noqa: E402
+from spadscan.worker.jobs import Job  # noqa: E402
+from spadscan.worker.live import job as live_job  # noqa: E402
 
 
 def former_rule(self, progress, now: float) -> bool:
@@ -63,11 +69,6 @@ def replay(source: Path, dest: Path, every_s: float) -> threading.Thread:
     return thread
 
 
-def spin() -> None:
-    while True:
-        pass
-
-
 def follow(source: Path, root: Path, name: str, every_s: float) -> dict:
     thread = replay(source, root / name, every_s)
     job = Job(id=f"{name}-fast", scan=name, live=True, budget_s=1.0, device="cpu")
@@ -80,36 +81,17 @@ def follow(source: Path, root: Path, name: str, every_s: float) -> dict:
             "views_used": live["views_used"], "chamfer_mm": report.get("chamfer_mm")}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", default="mug", help="built-in scene (default mug)")
-    ap.add_argument("--views", type=int, default=128, help="views of the scan (default 128)")
-    ap.add_argument("--every-s", type=float, default=0.5, help="seconds between chunks (default 0.5)")
-    ap.add_argument("--busy", type=int, default=0, help="CPU-bound processes beside the job (default 0)")
-    ap.add_argument("--out", type=Path, default=None, help="folder for the captures and refits.json (default: temp)")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(1)
-    out = args.out or Path(tempfile.mkdtemp(prefix="live-refits-"))
-    out.mkdir(parents=True, exist_ok=True)
-    source = out / "source"
-    if not source.exists():
-        subprocess.run([sys.executable, "-m", "spadscan.cli", "simulate", f"builtin:{args.scene}", "--out",
-                        str(source), "--sensor", "tmf8820", "--views", str(args.views), "--seed", "0",
-                        "--no-progress"], check=True)
-    busy = [multiprocessing.Process(target=spin, daemon=True) for _ in range(args.busy)]
-    for p in busy:
-        p.start()
-    rows = []
-    try:
-        today = live_job.LiveRun._refit_due
-        for name, rule in (("former", former_rule), ("today", today)):
-            live_job.LiveRun._refit_due = rule
-            rows.append(follow(source, out, name, args.every_s))
-        live_job.LiveRun._refit_due = today
-    finally:
-        for p in busy:
-            p.terminate()
-            p.join()
+def simulate(scene: str, views: int, source: Path) -> None:
+    """The scan of builtin:`scene` that both rules follow; SystemExit (one line) when it cannot be made."""
+    done = subprocess.run([sys.executable, "-m", "spadscan.cli", "simulate", f"builtin:{scene}", "--out",
+                           str(source), "--sensor", "tmf8820", "--views", str(views), "--seed", "0", "--no-progress"],
+                          stderr=subprocess.PIPE, text=True, env=parent_watch.child_env())
+    if done.returncode != 0:
+        last = done.stderr.strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
+        raise SystemExit(f"live_refits.py: error: simulating builtin:{scene} failed: {last[0]}")
+
+
+def print_rows(rows: list[dict], args) -> None:
     print(f"{args.scene}, {args.views} views, a chunk every {args.every_s:g} s, {args.busy} busy processes, "
           f"load average {os.getloadavg()[0]:.1f}")
     print(f"{'rule':8} {'wall s':>7} {'refits':>6} {'refit s':>8} {'train s':>8} {'refit share':>11} {'steps':>6} "
@@ -118,6 +100,49 @@ def main(argv=None) -> int:
         share = r["refit_s"] / max(1e-9, r["refit_s"] + r["train_s"])
         print(f"{r['rule']:8} {r['wall_s']:7.1f} {r['refits']:6d} {r['refit_s']:8.1f} {r['train_s']:8.1f} "
               f"{share:11.0%} {r['steps']:6d} {r['views_used']:10d}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="mug", help="built-in scene (default mug)")
+    ap.add_argument("--views", type=int, default=128, help="views of the scan (default 128)")
+    ap.add_argument("--every-s", type=float, default=0.5, help="seconds between chunks (default 0.5)")
+    ap.add_argument("--busy", type=int, default=0, help="CPU-bound processes beside the job (default 0)")
+    ap.add_argument("--out", type=Path, default=None, help="folder for the captures and refits.json (default: temp)")
+    args = ap.parse_args(argv)
+    from spadscan.protocol.scenes import BUILTIN_SCENES
+
+    if args.scene not in BUILTIN_SCENES:
+        ap.error(f"unknown scene {args.scene!r} (built-in: {', '.join(BUILTIN_SCENES)})")
+    if args.views < 1 or args.busy < 0 or not 0 <= args.every_s < float("inf"):
+        ap.error("--views must be >= 1, --busy >= 0 and --every-s a finite number >= 0")
+    torch.set_num_threads(1)
+    out = args.out or Path(tempfile.mkdtemp(prefix="live-refits-"))
+    out.mkdir(parents=True, exist_ok=True)
+    source = out / "source"
+    # A time limit's SIGTERM ends the run like Ctrl-C does: the `finally` below stops the busy processes (on SIGTERM's
+    # default, nothing would), and the rows so far still come out.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    rows = []
+    try:
+        if not source.exists():
+            simulate(args.scene, args.views, source)
+        # A deadline well past both follows (each publishes the views one chunk apart, then refits and trains).
+        busy = start_competitors(args.busy, deadline_s=4 * args.views * args.every_s + 600)
+        try:
+            today = live_job.LiveRun._refit_due
+            for name, rule in (("former", former_rule), ("today", today)):
+                live_job.LiveRun._refit_due = rule
+                rows.append(follow(source, out, name, args.every_s))
+            live_job.LiveRun._refit_due = today
+        finally:
+            stop(busy)
+    except KeyboardInterrupt:
+        print(f"interrupted: {len(rows)} of 2 rules measured", file=sys.stderr, flush=True)
+        if rows:
+            print_rows(rows, args)
+        return 130
+    print_rows(rows, args)
     (out / "refits.json").write_text(json.dumps(rows, indent=1))
     return 0
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
 from unittest import mock
 
@@ -25,6 +26,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.scenes import builtin_scene
 from spadscan.worker import metrics
 from spadscan.worker.metrics import mesh_metrics, sample_surface
@@ -60,12 +62,23 @@ def timed(fn, repeats: int):
     return best, out
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=300_000, help="samples per mesh (default 300000, the metric's)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--repeats", type=int, default=1, help="best of this many runs per method")
-    args = ap.parse_args()
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="best of this many runs per method, mesh_metrics included (default 1)")
+    args = ap.parse_args(argv)
+    if not 1 <= args.points <= metrics.MAX_POINTS or args.repeats < 1 or args.seed < 0:
+        ap.error(f"--points must be in [1, {metrics.MAX_POINTS}] (the metric's), --repeats >= 1 and --seed >= 0")
+    try:
+        compare(args)
+    except SpadscanError as exc:  # the metric refuses what it is given: one line, not a traceback
+        raise SystemExit(f"{ap.prog}: error: {exc}") from None
+
+
+def compare(args) -> None:
+    """Both methods on every case, printed."""
     print(f"{args.points} samples per mesh, seed {args.seed}, load average {os.getloadavg()[0]:.2f}")
     for name, (pred, gt) in cases(np.random.default_rng(1)).items():
         rs, rg = (np.random.default_rng(s) for s in np.random.SeedSequence(args.seed).spawn(2))
@@ -74,9 +87,11 @@ def main() -> None:
         t_ours, (d_ours, _) = timed(lambda: nearest_samples(p_pts, g_pts, spacing_m=math.sqrt(gt.area / args.points)),
                                     args.repeats)
         t_peer, (d_peer, _) = timed(lambda: PlainIndex(g_pts).query(p_pts), args.repeats)
-        t_m_ours, m_ours = timed(lambda: mesh_metrics(pred, gt, n_points=args.points, seed=args.seed), 1)
+        t_m_ours, m_ours = timed(lambda: mesh_metrics(pred, gt, n_points=args.points, seed=args.seed),
+                                 args.repeats)
         with mock.patch.object(metrics, "SampleIndex", PlainIndex):
-            t_m_peer, m_peer = timed(lambda: mesh_metrics(pred, gt, n_points=args.points, seed=args.seed), 1)
+            t_m_peer, m_peer = timed(lambda: mesh_metrics(pred, gt, n_points=args.points, seed=args.seed),
+                                     args.repeats)
         print(f"\n{name}")
         print(f"  reconstruction -> ground truth: nearest_samples {t_ours:6.2f} s   plain cKDTree {t_peer:6.2f} s   "
               f"largest difference {np.max(np.abs(d_ours - d_peer)) * 1e3:.3g} mm")
@@ -86,4 +101,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -70,7 +70,9 @@ def parse_args(argv=None):
                    help=f"steps of the first live fit, a cold start (default {LIVE_FIRST_STEPS})")
     p.add_argument("--seeds", default="0", help="comma-separated seeds, each a run of its own (default 0)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    p.add_argument("--out", type=Path, default=Path("benchmark-nbv"))
+    p.add_argument("--out", type=Path, default=Path("benchmark-nbv"),
+                   help="folder for results.json, table.md and nbv.png (default: benchmark-nbv, in the current "
+                        "folder)")
     p.add_argument("--no-fibonacci", action="store_true", help="score the adaptive runs only")
     p.add_argument("--no-spread", action="store_true",
                    help="rank by the measure alone, without the spread factor (schedule 'adaptive-MEASURE-nospread')")

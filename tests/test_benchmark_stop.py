@@ -1,0 +1,157 @@
+"""Nothing a benchmark starts outlives it: stopped by a time limit's SIGTERM it stops its competitors, runs, daemon
+and workers itself (and prints what it measured so far); killed outright, they notice it is gone and stop.
+
+Each benchmark runs in a process of its own, its slow part (a reconstruction, a live job, a scan) stood in for by a
+wait, so that the test can signal it while its processes run. Every wait is for an event, with a generous timeout."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from benchmark_helpers import children, kill_all, load_benchmark, start_main, wait_gone
+from spadscan import parent_watch
+
+STOPS = [pytest.param(signal.SIGTERM, id="SIGTERM"), pytest.param(signal.SIGKILL, id="SIGKILL")]
+
+
+def read_until(proc: subprocess.Popen, prefix: str) -> str:
+    """The first line of `proc`'s output that starts with `prefix` (AssertionError, with its errors, if it ends
+    before one)."""
+    for line in proc.stdout:
+        if line.startswith(prefix):
+            return line.strip()
+    raise AssertionError(f"the benchmark ended before it said {prefix!r}: {proc.stderr.read()[-2000:]}")
+
+
+CONTENTION = """
+import time
+def run_reconstruct(capture, out, budget_s):
+    if not out.name.endswith("-2"):  # the idle run: measured
+        return {"steps": 120, "seconds": 10.0, "torch_threads": 1}
+    print("running", flush=True)  # beside the two competitors: stopped there
+    time.sleep(3600)
+bench.run_reconstruct = run_reconstruct
+"""
+
+
+@pytest.mark.parametrize("how", STOPS)
+def test_contention_leaves_no_competitor_and_no_temporary_folder(tmp_path, how):
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    (capture / "scan.json").write_text("{}")
+    proc = start_main("contention", ["--capture", capture, "--budget-s", 30, "--busy", "0,2"], CONTENTION,
+                      env={**os.environ, "TMPDIR": str(tmp_path)})
+    spinners: set[int] = set()
+    try:
+        read_until(proc, "running")
+        spinners = children(proc.pid)
+        assert len(spinners) == 2
+        proc.send_signal(how)
+        out, err = proc.communicate(timeout=120)
+        assert not wait_gone(spinners), "a competitor outlived the benchmark"
+        if how == signal.SIGTERM:
+            assert proc.returncode == 130 and "Traceback" not in err, err
+            assert "interrupted: 1 of 2 runs measured" in err
+            idle = [line.split() for line in out.splitlines() if line.split()[:1] == ["0"]]
+            assert idle and idle[0][5] == "12.00"  # the idle run's 120 steps in 10 s, not lost
+            assert not list(tmp_path.glob("contention-*"))  # the temporary folder is removed
+    finally:
+        kill_all(proc, spinners)
+
+
+def test_contentions_reconstruct_stops_with_the_benchmark(tmp_path, monkeypatch):
+    bench = load_benchmark("contention")
+    seen = {}
+
+    def fake_run(cmd, env=None, **kwargs):
+        seen["env"] = env
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True)
+        (out / "report.json").write_text('{"steps": 1, "seconds": 1.0}')
+        return subprocess.CompletedProcess(cmd, 0, stderr="")
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    monkeypatch.setattr(bench.subprocess, "run", fake_run)
+    bench.run_reconstruct(tmp_path / "capture", tmp_path / "run", 5.0)
+    # Named as its parent: a benchmark killed outright leaves no reconstruction running for nobody.
+    assert seen["env"][parent_watch.ENV] == str(os.getpid())
+    assert "OMP_NUM_THREADS" not in seen["env"]  # still the default's own thread count
+
+
+LIVE_REFITS = """
+import time
+def follow(source, root, name, every_s):
+    print("following", flush=True)
+    time.sleep(3600)
+bench.follow = follow
+"""
+
+
+@pytest.mark.parametrize("how", STOPS)
+def test_live_refits_busy_processes_stop_with_it(tmp_path, how):
+    (tmp_path / "out" / "source").mkdir(parents=True)  # a capture there is not simulated again
+    proc = start_main("live_refits", ["--scene", "sphere", "--busy", 2, "--out", tmp_path / "out"], LIVE_REFITS)
+    busy: set[int] = set()
+    try:
+        read_until(proc, "following")
+        busy = children(proc.pid)
+        assert len(busy) == 2
+        proc.send_signal(how)
+        out, err = proc.communicate(timeout=120)
+        assert not wait_gone(busy), "a busy process outlived the benchmark"
+        if how == signal.SIGTERM:
+            assert proc.returncode == 130 and "Traceback" not in err, err
+            assert "interrupted: 0 of 2 rules measured" in err
+    finally:
+        kill_all(proc, busy)
+
+
+LIVE = """
+import time
+def scan_and_follow(rig, *args, **kwargs):
+    print("daemon", rig.daemon.pid, rig.sock_dir, flush=True)
+    time.sleep(3600)
+bench.scan_and_follow = scan_and_follow
+"""
+
+
+@pytest.mark.parametrize("how", STOPS)
+def test_lives_daemon_stops_with_it(tmp_path, how):
+    proc = start_main("live", ["--scenes", "sphere", "--overhead-poses", 0, "--out", tmp_path / "out"], LIVE)
+    daemon, sock_dir = None, None
+    try:
+        _, pid, folder = read_until(proc, "daemon ").split(maxsplit=2)
+        daemon, sock_dir = int(pid), Path(folder)
+        proc.send_signal(how)
+        out, err = proc.communicate(timeout=120)
+        assert not wait_gone({daemon}), "the daemon outlived the benchmark"
+        if how == signal.SIGTERM:
+            assert proc.returncode == 130 and "Traceback" not in err, err
+            assert "interrupted: 0 of 1 scenes measured" in err
+            assert not sock_dir.exists()  # the rig's socket folder is removed
+    finally:
+        kill_all(proc, {daemon} if daemon else set())
+        if sock_dir is not None:
+            shutil.rmtree(sock_dir, ignore_errors=True)
+
+
+def test_lives_workers_are_named_as_its_children(tmp_path, monkeypatch):
+    bench = load_benchmark("live")
+    seen = []
+
+    class FakePopen:
+        def __init__(self, argv, env=None, **kwargs):
+            seen.append(env)
+
+        def wait(self):
+            return 0
+
+    monkeypatch.setattr(bench.subprocess, "Popen", FakePopen)
+    assert bench.run_to_end(["spadscan", "worker"], tmp_path / "worker.log", {"OMP_NUM_THREADS": "1"}) == 0
+    assert seen[0][parent_watch.ENV] == str(os.getpid()) and seen[0]["OMP_NUM_THREADS"] == "1"
