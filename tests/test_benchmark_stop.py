@@ -40,6 +40,16 @@ bench.run_reconstruct = run_reconstruct
 """
 
 
+def stop_and_wait(proc, how, spinners: set[int], what: str) -> tuple[str, str]:
+    """Send the benchmark `how` once its two spinning processes run; (its stdout, its stderr) once it has ended and
+    they are gone."""
+    assert len(spinners) == 2
+    proc.send_signal(how)
+    out, err = proc.communicate(timeout=120)
+    assert not wait_gone(spinners), f"{what} outlived the benchmark"
+    return out, err
+
+
 @pytest.mark.parametrize("how", STOPS)
 def test_contention_leaves_no_competitor_and_no_temporary_folder(tmp_path, how):
     capture = tmp_path / "capture"
@@ -51,10 +61,7 @@ def test_contention_leaves_no_competitor_and_no_temporary_folder(tmp_path, how):
     try:
         read_until(proc, "running")
         spinners = children(proc.pid)
-        assert len(spinners) == 2
-        proc.send_signal(how)
-        out, err = proc.communicate(timeout=120)
-        assert not wait_gone(spinners), "a competitor outlived the benchmark"
+        out, err = stop_and_wait(proc, how, spinners, "a competitor")
         if how == signal.SIGTERM:
             assert proc.returncode == 130 and "Traceback" not in err, err
             assert "interrupted: 1 of 2 runs measured" in err
@@ -101,10 +108,7 @@ def test_live_refits_busy_processes_stop_with_it(tmp_path, how):
     try:
         read_until(proc, "following")
         busy = children(proc.pid)
-        assert len(busy) == 2
-        proc.send_signal(how)
-        out, err = proc.communicate(timeout=120)
-        assert not wait_gone(busy), "a busy process outlived the benchmark"
+        out, err = stop_and_wait(proc, how, busy, "a busy process")
         if how == signal.SIGTERM:
             assert proc.returncode == 130 and "Traceback" not in err, err
             assert "interrupted: 0 of 2 rules measured" in err
