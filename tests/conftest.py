@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import asyncio
-import os
 import signal
-import time
 from pathlib import Path
 
 import pytest
 
 from benchmark_helpers import load_benchmark
+from process_helpers import live_children, stop_leaked_children
 
 DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "lcspc"
 
@@ -32,46 +31,10 @@ def bench():
     return load_benchmark("error_vs_time")
 
 
-def _children() -> set[int]:
-    """Live child processes of this process (from /proc), zombies excluded."""
-    pids: set[int] = set()
-    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
-        try:
-            pids.update(int(p) for p in (task / "children").read_text().split())
-        except OSError:
-            continue
-    live = set()
-    for pid in pids:
-        try:
-            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-        except OSError:
-            continue
-        if state != "Z":
-            live.add(pid)
-    return live
-
-
-def stop_leaked_children(before: set[int], grace_s: float = 30.0) -> set[int]:
-    """Child processes alive now that were not in `before`, once they have had `grace_s` to exit: on a loaded
-    machine a stopping process (an interpreter unwinding, a child reaping its own) can take seconds to be scheduled.
-    Those still alive are killed (SIGKILL): a leaked process must not outlive the test run. Returns them."""
-    leaked = _children() - before
-    deadline = time.monotonic() + grace_s
-    while leaked and time.monotonic() < deadline:
-        time.sleep(0.05)
-        leaked = _children() - before
-    for pid in leaked:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-    return leaked
-
-
 @pytest.fixture(autouse=True)
 def no_leaked_processes():
     """Fail a test that leaves a child process running (and stop that process)."""
-    before = _children()
+    before = live_children()
     yield
     leaked = stop_leaked_children(before)
     assert not leaked, f"test leaked child processes {sorted(leaked)} (killed)"

@@ -45,9 +45,9 @@ def test_a_handler_the_run_installed_is_left_alone():
 def test_a_leaked_child_process_is_reported_and_stopped():
     import subprocess
 
-    from conftest import _children, stop_leaked_children
+    from process_helpers import live_children, stop_leaked_children
 
-    before = _children()
+    before = live_children()
     child = subprocess.Popen(["sleep", "300"])
     assert stop_leaked_children(before, grace_s=0.1) == {child.pid}
     assert child.wait(timeout=30) == -9, "killed, not left running after the tests"
