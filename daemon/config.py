@@ -137,8 +137,9 @@ class DaemonConfig:
     """Control socket path (mode 0600); default (the same as `spadscan ctl`'s): $SPADSCAN_SOCKET, else
     /tmp/spadscan-<uid>/spadscan.sock (a private 0700 folder, made when the config is read)."""
     auto_resume: bool = key(False, "bool")
-    """Resume an interrupted scan by itself at start-up (otherwise it waits, paused, for `ctl resume`). A real arm
-    needs its backend's confirmation too ([arm] allow_auto_resume for 'ur')."""
+    """Resume an interrupted scan by itself at start-up (otherwise it waits, paused, for `ctl resume`); a scan that
+    was paused when the daemon stopped (`ctl pause`, a fault) waits either way. A real arm needs its backend's
+    confirmation too ([arm] allow_auto_resume for 'ur')."""
     arm: ArmConfig = field(default_factory=ArmConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     scan: ScanConfig = field(default_factory=ScanConfig)

@@ -162,6 +162,7 @@ class ScanRunner:
         try:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
                                           rig_now=self.rig, scene_now=self.scene)
+            paused = await asyncio.to_thread(_paused_record, path)  # read before reopening the writer clears it
             try:
                 job.writer = await self._io(CaptureWriter.resume, path)
                 job.record_progress(job.writer)
@@ -180,17 +181,21 @@ class ScanRunner:
             self.last_error = f"cannot take over interrupted scan {path.name!r}: {exc}"
             return
         self.job = job
-        job.reason = job.blocked or (f"interrupted at pose {self._progress()} (daemon restarted); "
-                                     f"`spadscan ctl resume` continues")
+        job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
+                                               f"`spadscan ctl resume` continues")
         if reopen_error and not job.blocked:
             job.reason = self.last_error = (f"interrupted at pose {self._progress()} (daemon restarted), and "
                                             f"{reopen_error}; make room, then `spadscan ctl resume`")
+        # A scan that was paused when the daemon stopped (by the operator, or by a fault) stays paused: auto_resume
+        # continues a scan that was interrupted, not one someone or something had stopped.
+        auto = self.cfg.auto_resume and job.blocked is None and reopen_error is None and paused is None
         log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
                  "blocked: " + job.blocked if job.blocked else
+                 "paused, as it was when the daemon stopped: " + job.reason if paused else
                  "paused: " + job.reason if reopen_error else
-                 "resuming by itself: auto_resume" if self.cfg.auto_resume else "paused until `ctl resume`")
+                 "resuming by itself: auto_resume" if auto else "paused until `ctl resume`")
         self._launch("paused")
-        if self.cfg.auto_resume and job.blocked is None and reopen_error is None:
+        if auto:
             await self.resume()
 
     async def pause(self) -> dict:
@@ -604,6 +609,16 @@ class ScanRunner:
         job.reason = self.last_error = reason
         await self._wait_resume(job)
 
+    async def _record_pause(self, job: ScanJob, paused: bool = True) -> None:
+        """Say in scan.json that the scan is paused and why (or, `paused` False, that it goes on): a daemon
+        restarted meanwhile (a crash, `systemctl restart`) takes a paused scan over paused, even with auto_resume,
+        instead of moving the arm again by itself. A capture that cannot be written (a full disk) keeps the pause in
+        memory only."""
+        try:
+            await self._io(_record_pause, job, paused)
+        except (OSError, CaptureError) as exc:
+            log.warning("scan %s: the pause could not be recorded in its capture: %s", job.name, _describe(exc))
+
     def _stall_note(self) -> str:
         """What to add to a pause's reason when the daemon itself stood still just before (the UR watchdog stops the
         arm then, a device's timeout may fire): the fault may be the stall's, not the device's."""
@@ -618,9 +633,12 @@ class ScanRunner:
         self._pause_requested = False
         job.controller_checked = False
         self._set_state("paused")
+        await self._record_pause(job)
         await self._resume.wait()
         self._resume.clear()
         job.reason = None
+        if job.writer is not None:  # (a writer reopened on the way on clears the record itself)
+            await self._record_pause(job, paused=False)
         self._set_state("scanning")
 
     async def _cancel(self, end: tuple[str, str]) -> None:
@@ -641,6 +659,8 @@ class ScanRunner:
                 job.writer = await self._io(CaptureWriter.resume, job.path)
             if state == "aborted":
                 await self._io(job.writer.finish, "aborted", reason)
+            elif self.state == "paused" and job.reason:  # stopped while paused: the next daemon takes it over paused
+                await self._io(job.writer.set_paused, job.reason)
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
@@ -736,6 +756,22 @@ def _end_early(job: ScanJob) -> None:
 def _remove_partial(path: Path) -> None:
     """Remove a scan folder that CaptureWriter.create left half-made (removing needs no free space)."""
     shutil.rmtree(path, ignore_errors=True)
+
+
+def _record_pause(job: ScanJob, paused: bool) -> None:
+    """scan.json says the scan is paused, and why (job.reason), or that it goes on: through the open writer, else
+    one reopened for it (reopening clears a pause)."""
+    writer = job.writer if job.writer is not None else CaptureWriter.resume(job.path)
+    if paused:
+        writer.set_paused(job.reason or "paused")
+    else:
+        writer.set_state("running")
+
+
+def _paused_record(path: Path) -> str | None:
+    """Why the capture's scan was paused when its daemon stopped (scan.json's `paused`), or None."""
+    paused = read_json(path / MANIFEST).get("paused")
+    return str(paused.get("reason") or "paused") if isinstance(paused, dict) else None
 
 
 def _describe(exc: BaseException, doing: str = "publishing") -> str:

@@ -211,6 +211,7 @@ class CaptureWriter:
             poses.update(int(i) for i in chunk.pose_indices)
         next_chunk = (chunk_index(names[-1]) + 1) if names else 0
         manifest = dict(reader.manifest)
+        manifest.pop("paused", None)  # reopened to go on: no longer paused
         manifest.update(state="running", reason=None, updated_utc=_now())
         _write(write_json_atomic, path / MANIFEST, manifest)
         return cls(path, manifest, reader.sensor, next_chunk, published, poses)
@@ -299,8 +300,16 @@ class CaptureWriter:
         if isinstance(reason, str):
             reason = fold(reason)
         check_json({"reason": reason, **extra}, f"{self.path / MANIFEST}")
+        self.manifest.pop("paused", None)  # a pause holds only until the next state is recorded
         self.manifest.update(state=state, reason=reason, updated_utc=_now(), **extra)
         _write(write_json_atomic, self.path / MANIFEST, self.manifest)
+
+    def set_paused(self, reason: str) -> None:
+        """Record that the scan is paused and why (`paused`: {"reason", "since_utc"}; state stays 'running'): a
+        daemon restarted meanwhile takes it over paused, and a reader can say so. `resume` and the next state
+        recorded clear it."""
+        reason = fold(reason)
+        self.set_state("running", reason, paused={"reason": reason, "since_utc": _now()})
 
     def abandon(self, doing: str, exc: BaseException) -> None:
         """After `exc` stopped a writer that cannot be resumed (a simulation, an import): drop the buffer and mark the

@@ -21,10 +21,10 @@ from test_runner import until
 SENSOR = {"backend": "sim", "mesh": "builtin:sphere", "rays_per_zone": 4}
 
 
-def make_cfg(tmp_path, hand_eye_z: float = 0.05, **sensor):
+def make_cfg(tmp_path, hand_eye_z: float = 0.05, auto_resume: bool = False, **sensor):
     hand_eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, hand_eye_z], [0, 0, 0, 1]]
     return config_from_dict({
-        "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"),
+        "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"), "auto_resume": auto_resume,
         "arm": {"backend": "sim", "motion_time_s": 0.0, "hand_eye": hand_eye},
         "sensor": {**SENSOR, **sensor},
         "scan": {"views": 40, "settle_s": 0.0, "radius_m": 0.4, "target": [0, 0, 0.1]}}, tmp_path / "rig.toml")
@@ -102,3 +102,38 @@ def test_taking_a_scan_over_checks_its_poses_off_the_event_loop(arun, tmp_path, 
     monkeypatch.setattr(runner_module, "_check_left", recorded)
     status, refused = arun(restart(make_cfg(tmp_path)))
     assert refused is None and threads == [False], (threads, status)
+
+
+async def pause_and_stop(cfg) -> dict:
+    """A daemon on cfg starts scan 'mix', is paused (`ctl pause`) with a few poses published, and stops; returns
+    scan.json as it left it."""
+    arm, sensor = build_devices(cfg)
+    async with DeviceSession([arm, sensor]):
+        rig, scene = rig_record(cfg)
+        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+        await runner.start("mix")
+        await until(lambda: runner.job.next_pose >= 3, "three poses")
+        await runner.pause()
+        await until(lambda: runner.state == "paused", "the pause")
+        await runner.shutdown()
+    return CaptureReader(cfg.captures / "mix").manifest
+
+
+def test_a_scan_paused_when_the_daemon_stopped_is_taken_over_paused_even_with_auto_resume(arun, tmp_path):
+    """An operator's pause (or a fault's) is no interruption: a restarted daemon (`systemctl restart`, a crash)
+    does not move the arm again by itself; it waits for `ctl resume`, with the pause's reason."""
+    cfg = make_cfg(tmp_path, auto_resume=True)
+    manifest = arun(pause_and_stop(cfg))
+    assert manifest["paused"]["reason"] == "paused by user" and manifest["state"] == "running"
+    status, refused = arun(restart(cfg))
+    assert status["state"] == "paused" and status["reason"] == "paused by user", status
+    assert refused is None  # `ctl resume` goes on
+    assert "paused" not in CaptureReader(tmp_path / "caps" / "mix").manifest  # going on cleared it
+
+
+def test_a_scan_interrupted_while_it_scanned_still_resumes_by_itself(arun, tmp_path):
+    cfg = make_cfg(tmp_path, auto_resume=True)
+    arun(interrupt(cfg))
+    assert "paused" not in CaptureReader(tmp_path / "caps" / "mix").manifest
+    status, _ = arun(restart(cfg))
+    assert status["state"] == "scanning", status
