@@ -8,6 +8,7 @@ files parsed, so that the cost of a poll can be checked without a clock.
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -50,6 +51,9 @@ class ScanRow:
         del d["chunks"], d["mtime"]
         return d
 
+
+IN_HAND = ("running", "paused")
+"""A row's states of a scan still in hand (listed first; the page's "current" scan is the first of them)."""
 
 JSON_KINDS = {int: "a whole number", str: "a string", dict: "an object"}
 
@@ -96,14 +100,14 @@ class ScanIndex:
                 rows.append(row)
         for gone in set(self._rows) - seen:
             del self._rows[gone]
-        rows.sort(key=lambda r: (r.state != "running", -r.mtime, r.name))
+        rows.sort(key=lambda r: (r.state not in IN_HAND, -r.mtime, r.name))
         return rows
 
     def _row(self, name: str, st: os.stat_result) -> ScanRow:
         path = self.root / name
         key: tuple = (st.st_mtime_ns, st.st_size)
         cached = self._rows.get(name)
-        if cached and cached[0][:2] == key and cached[1].state != "running":
+        if cached and cached[0][:2] == key and cached[1].state not in IN_HAND:
             return cached[1]
         chunks = _chunk_names(path)
         key += (len(chunks), chunks[-1] if chunks else None)
@@ -122,8 +126,13 @@ class ScanIndex:
             row = ScanRow(name, manifest["state"], planned=_planned(manifest, where),
                           updated_utc=_typed(manifest, "updated_utc", str, where),
                           reason=_typed(manifest, "reason", str, where), chunks=chunks)
+            paused = _typed(manifest, "paused", dict, where)
         except SpadscanError as exc:
             return ScanRow(name, "error", error=str(exc))
+        if paused is not None and row.state == "running":  # the daemon recorded a pause: say so, and why
+            row.state, row.reason = "paused", str(paused.get("reason") or "paused")
+        if chunks:  # the last pose published is the scan's latest news, later than its manifest's last write
+            row.updated_utc = max(filter(None, (row.updated_utc, _published_utc(path / chunks[-1]))))
         if chunks:
             try:
                 self.reads += 1
@@ -147,6 +156,16 @@ def _linked_out(root: Path, entry: os.DirEntry) -> str | None:
     if not entry.is_symlink() or safe_path(root, url_path(entry.name, MANIFEST)):
         return None
     return LINKED_OUT
+
+
+def _published_utc(chunk: Path) -> str | None:
+    """When a chunk was published (its folder's modification time: the rename that published it), as the manifest
+    writes times (ISO 8601 UTC with milliseconds); None when it cannot be read."""
+    try:
+        mtime = chunk.stat().st_mtime
+    except OSError:
+        return None
+    return _dt.datetime.fromtimestamp(mtime, _dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
 def _chunk_names(path: Path) -> list[str]:
@@ -175,7 +194,8 @@ def scan_detail(root: Path, row: ScanRow) -> dict:
     except SpadscanError as exc:
         detail["error"] = str(exc)
         return detail
-    detail.update(frame_rates(frames[-RATE_FRAMES:]))
+    if row.state != "paused":  # a paused scan takes no frames: its last rate is no rate
+        detail.update(frame_rates(frames[-RATE_FRAMES:]))
     return detail
 
 

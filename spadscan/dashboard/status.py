@@ -13,7 +13,7 @@ from spadscan.worker.job_progress import progress_field, running_progress
 from spadscan.worker.status_detail import status_detail
 
 from .results import ResultIndex
-from .scans import ScanIndex, scan_detail
+from .scans import IN_HAND, ScanIndex, scan_detail
 
 
 def queue_status(queue_dir: Path) -> dict:
@@ -55,7 +55,7 @@ class Dashboard:
                 entry = row.to_dict()
                 entry["recons"] = self.results.for_scan(row.name)
                 scans.append(entry)
-            current = next((r for r in rows if r.state == "running"), None) or next(
+            current = next((r for r in rows if r.state in IN_HAND), None) or next(
                 (r for r in rows if r.state != "error"), None)
             detail = self._scan_detail(current) if current is not None else None
         try:

@@ -4,6 +4,8 @@ per poll once read."""
 
 from __future__ import annotations
 
+import datetime as _dt
+
 import json
 import os
 import time
@@ -261,3 +263,24 @@ def test_the_command_refuses_an_empty_host_and_a_queue_that_is_not_there_in_one_
         assert err.startswith("spadscan: error: ") and message in err and err.count("\n") == 1, err
     assert main(["dashboard", "--root", str(tmp_path / "afile")]) == 1
     assert "no such captures root (a file, not a folder)" in capsys.readouterr().err
+
+
+def test_a_paused_scan_says_so_and_why_and_shows_no_frame_rate(tmp_path):
+    """The daemon records a pause in scan.json (the operator's, or a fault's): the page shows the scan in hand as
+    paused with the reason, not as running at its last frame rate; its last update is its last pose's."""
+    writer, poses = start_scan(tmp_path / "held", 8)
+    for i in range(3):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    writer.set_paused("sensor silent: no frame within 5 s")
+    with serving(tmp_path) as server:
+        current = status(server)["current"]
+        assert (current["name"], current["state"]) == ("held", "paused")
+        assert current["reason"] == "sensor silent: no frame within 5 s"
+        assert "frames_per_s" not in current
+        writer.set_state("running")  # resumed
+        add_pose(writer, poses, 3, t_s=11.5)
+        current = status(server)["current"]
+        assert current["state"] == "running" and current["reason"] is None and current["frames_per_s"] > 0
+        last = max((tmp_path / "held").glob("chunk-*")).stat().st_mtime
+        assert current["updated_utc"] >= _dt.datetime.fromtimestamp(last, _dt.timezone.utc).isoformat(
+            timespec="milliseconds")
