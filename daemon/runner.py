@@ -659,8 +659,8 @@ class ScanRunner:
                 job.writer = await self._io(CaptureWriter.resume, job.path)
             if state == "aborted":
                 await self._io(job.writer.finish, "aborted", reason)
-            elif self.state == "paused" and job.reason:  # stopped while paused: the next daemon takes it over paused
-                await self._io(job.writer.set_paused, job.reason)
+            elif self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
+                await self._io(job.writer.set_paused, job.reason or "paused by user")
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:

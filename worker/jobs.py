@@ -193,8 +193,9 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *
 
     The job's time budget bounds the whole job from `started` (a time.perf_counter reading; default: now): the
     reconstruction counts it from there, so what checking the capture, loading torch and placing the ground truth
-    took is part of it, and its report's times are the job's (report.json: `job_budget_s`). A live job (`job.live`) follows its scan first (worker/live/job.py); its
-    final run is an ordinary job, its budget counted from the scan's end."""
+    took is part of it, and its report's times are the job's (report.json: `job_budget_s`). A live job (`job.live`)
+    follows its scan first (worker/live/job.py); its final run is an ordinary job, its budget counted from the scan's
+    end."""
     if job.live:
         from .live.job import execute_live_job
 

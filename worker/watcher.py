@@ -6,8 +6,8 @@ scan is queued as soon as its first chunk is published, as a live job of the sam
 scan and finishes it (worker/live/job.py), so the scan is still queued once. A scan whose manifest
 cannot be read is queued too, so that its job fails with the reason and `spadscan worker --status` shows it, instead
 of the scan being ignored in silence; but a folder that may be a copy still under way (a manifest that cannot be
-read, or a complete one whose chunks lack measurements, changed within `SETTLE_S`) is looked at again first. Job ids are deterministic, so polling again (or another worker polling the same
-root) never queues a scan twice.
+read, or a complete one whose chunks lack measurements, changed within `SETTLE_S`) is looked at again first. Job ids
+are deterministic, so polling again (or another worker polling the same root) never queues a scan twice.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from spadscan.protocol.capture_format import MANIFEST, chunk_index
+from spadscan.protocol.capture_format import MANIFEST, chunk_index, read_json
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
 from .jobs import Job, job_id_for
@@ -152,7 +152,6 @@ def scan_state(folder: Path) -> str:
 def holds_every_measurement(folder: Path) -> bool:
     """Whether a complete capture's chunks hold every measurement its manifest plans (planned poses x frames per
     pose, by the chunks' meta.json); True when the manifest plans no count. False when a chunk cannot be read."""
-    from spadscan.protocol.capture_format import read_json
     from spadscan.protocol.capture_reader import CaptureReader
 
     try:

@@ -37,9 +37,10 @@ publishes <scan>/recon/live/ (mesh.ply, preview.png, status.json with views_used
 updated_utc, converged and, with a ground truth, chamfer_mm; `spadscan ctl status` shows it). When the scan is
 complete the job finishes from the live state (--budget-s bounds that final run; by default it polishes the live fit
 for about 4 s of steps, or, when the live fit is still on its coarse level or only just past it, fits from the carved
-hull for the preset's budget), and publishes its result where every job does. An aborted scan's live job ends (failed, with the scan's
-reason; the live folder keeps its last state). A live job holds its job process from the scan's first chunk to its
-end: give the worker a process for each scan that may run at once (--processes). Live jobs run the fast preset.
+hull for the preset's budget), and publishes its result where every job does. An aborted scan's live job ends
+(failed, with the scan's reason; the live folder keeps its last state). A live job holds its job process from the
+scan's first chunk to its end: give the worker a process for each scan that may run at once (--processes). Live
+jobs run the fast preset.
 
 A job is recorded as done only once its result is in place, so a worker killed at any moment loses nothing: the
 next worker to start reconciles the queue with the result folders. It publishes the finished result a dead worker
@@ -86,8 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where reconstructions run (default: auto)")
     parser.add_argument("--seed", type=int, default=None, help="random seed of the reconstructions (default: 0)")
     parser.add_argument("--once", action="store_true",
-                        help="queue the complete scans there are, run until nothing is queued or running, exit (status 1 when a "
-                             "job failed, 130 when stopped before the queue drained)")
+                        help="queue the complete scans there are, run until nothing is queued or running, exit "
+                             "(status 1 when a job failed, 130 when stopped before the queue drained)")
     parser.add_argument("--live", action="store_true",
                         help="start each scan's reconstruction at its first published chunk and follow the scan, "
                              "publishing <scan>/recon/live/ every few seconds; --budget-s then bounds the final run "

@@ -87,8 +87,8 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
             if failed:
                 any_failed = True
                 # Stacked down from the top edge, one row per method, so that crosses at one x all show.
-                ax.plot(failed, [1.0 - FAILED_ROW * (m + 0.5)] * len(failed), marker="x", ms=7, mew=2, linestyle="none", color=colour,
-                        alpha=alpha, transform=top, clip_on=False)
+                ax.plot(failed, [1.0 - FAILED_ROW * (m + 0.5)] * len(failed), marker="x", ms=7, mew=2,
+                        linestyle="none", color=colour, alpha=alpha, transform=top, clip_on=False)
     values = [v for v in results.grid.get(axis, []) if isinstance(v, (int, float))]
     plain = FuncFormatter(lambda v, _: f"{v:g}")
     if any_value:

@@ -11,12 +11,12 @@ published) runs `execute_live_job`:
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
    warm-started from the live fit once that has left its coarse level and gone on as long on its last one
-   (`LiveFit.continuable`; before, from the carved hull), for the job's budget or steps, else `final_polish_s` of steps (the preset's budget when it starts
-   from the hull): the result is
-   written into the job's scratch folder and published by the worker where every job's result goes. Of the final
-   field and the live one, the one that explains every view better is meshed (`keep.py`: a short final run never
-   publishes a worse or coarser mesh than the live one); report.json's `published` says which. A live job that
-   never fitted anything (its scan was complete before it started, or held too few views) runs the ordinary job.
+   (`LiveFit.continuable`; before, from the carved hull), for the job's budget or steps, else `final_polish_s` of
+   steps (the preset's budget when it starts from the hull): the result is written into the job's scratch folder
+   and published by the worker where every job's result goes. Of the final field and the live one, the one that
+   explains every view better is meshed (`keep.py`: a short final run never publishes a worse or coarser mesh than
+   the live one); report.json's `published` says which. A live job that never fitted anything (its scan was
+   complete before it started, or held too few views) runs the ordinary job.
 3. **Abort.** When the scan is aborted the job ends at once: the live folder keeps its last state, the status says
    `aborted`, and the job fails with the scan's reason (not retried).
 
