@@ -137,3 +137,25 @@ def test_a_scan_interrupted_while_it_scanned_still_resumes_by_itself(arun, tmp_p
     assert "paused" not in CaptureReader(tmp_path / "caps" / "mix").manifest
     status, _ = arun(restart(cfg))
     assert status["state"] == "scanning", status
+
+
+def test_a_scan_stopped_while_its_pause_is_pending_is_taken_over_paused(arun, tmp_path):
+    """`ctl pause` waits for the pose in flight; a daemon stopped before that (state 'pausing') leaves the scan
+    paused all the same."""
+    cfg = make_cfg(tmp_path, auto_resume=True)
+
+    async def pause_then_stop():
+        arm, sensor = build_devices(cfg)
+        async with DeviceSession([arm, sensor]):
+            rig, scene = rig_record(cfg)
+            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+            await runner.start("mix")
+            await until(lambda: runner.job.next_pose >= 3, "three poses")
+            await runner.pause()
+            assert runner.state == "pausing"
+            await runner.shutdown()
+
+    arun(pause_then_stop())
+    assert CaptureReader(tmp_path / "caps" / "mix").manifest["paused"]["reason"] == "paused by user"
+    status, _ = arun(restart(cfg))
+    assert status["state"] == "paused", status
