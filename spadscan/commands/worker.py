@@ -279,5 +279,7 @@ def _print_status(queue, as_json: bool) -> int:
     for row in table:
         print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4])
     counts = queue.counts()
-    print(", ".join(f"{n} {state}" for state, n in counts.items()))
+    stale = sum(1 for r in rows if r.state == "running" and r.shown_state == "stale")
+    print(", ".join(f"{n} {state}" + (f" ({stale} stale: their worker is gone)" if state == "running" and stale else "")
+                    for state, n in counts.items()))
     return 0
