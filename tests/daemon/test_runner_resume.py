@@ -30,14 +30,18 @@ def make_cfg(tmp_path, hand_eye_z: float = 0.05, auto_resume: bool = False, **se
         "scan": {"views": 40, "settle_s": 0.0, "radius_m": 0.4, "target": [0, 0, 0.1]}}, tmp_path / "rig.toml")
 
 
-async def interrupt(cfg) -> None:
-    """A daemon on cfg starts scan 'mix' and stops (as on SIGTERM) with a few poses published."""
+async def interrupt(cfg, pause: str | None = None) -> None:
+    """A daemon on cfg starts scan 'mix' and stops (as on SIGTERM) with a few poses published; `pause`: 'paused'
+    once `ctl pause` has paused it, 'pausing' right after `ctl pause` (before the pose in flight is published)."""
     arm, sensor = build_devices(cfg)
     async with DeviceSession([arm, sensor]):
         rig, scene = rig_record(cfg)
         runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
         await runner.start("mix")
         await until(lambda: runner.job.next_pose >= 3, "three poses")
+        if pause is not None:
+            await runner.pause()
+            await until(lambda: runner.state == pause, pause)
         await runner.shutdown()
 
 
@@ -104,26 +108,12 @@ def test_taking_a_scan_over_checks_its_poses_off_the_event_loop(arun, tmp_path, 
     assert refused is None and threads == [False], (threads, status)
 
 
-async def pause_and_stop(cfg) -> dict:
-    """A daemon on cfg starts scan 'mix', is paused (`ctl pause`) with a few poses published, and stops; returns
-    scan.json as it left it."""
-    arm, sensor = build_devices(cfg)
-    async with DeviceSession([arm, sensor]):
-        rig, scene = rig_record(cfg)
-        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
-        await runner.start("mix")
-        await until(lambda: runner.job.next_pose >= 3, "three poses")
-        await runner.pause()
-        await until(lambda: runner.state == "paused", "the pause")
-        await runner.shutdown()
-    return CaptureReader(cfg.captures / "mix").manifest
-
-
 def test_a_scan_paused_when_the_daemon_stopped_is_taken_over_paused_even_with_auto_resume(arun, tmp_path):
     """An operator's pause (or a fault's) is no interruption: a restarted daemon (`systemctl restart`, a crash)
     does not move the arm again by itself; it waits for `ctl resume`, with the pause's reason."""
     cfg = make_cfg(tmp_path, auto_resume=True)
-    manifest = arun(pause_and_stop(cfg))
+    arun(interrupt(cfg, pause="paused"))
+    manifest = CaptureReader(tmp_path / "caps" / "mix").manifest
     assert manifest["paused"]["reason"] == "paused by user" and manifest["state"] == "running"
     status, refused = arun(restart(cfg))
     assert status["state"] == "paused" and status["reason"] == "paused by user", status
@@ -143,19 +133,7 @@ def test_a_scan_stopped_while_its_pause_is_pending_is_taken_over_paused(arun, tm
     """`ctl pause` waits for the pose in flight; a daemon stopped before that (state 'pausing') leaves the scan
     paused all the same."""
     cfg = make_cfg(tmp_path, auto_resume=True)
-
-    async def pause_then_stop():
-        arm, sensor = build_devices(cfg)
-        async with DeviceSession([arm, sensor]):
-            rig, scene = rig_record(cfg)
-            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
-            await runner.start("mix")
-            await until(lambda: runner.job.next_pose >= 3, "three poses")
-            await runner.pause()
-            assert runner.state == "pausing"
-            await runner.shutdown()
-
-    arun(pause_then_stop())
+    arun(interrupt(cfg, pause="pausing"))
     assert CaptureReader(tmp_path / "caps" / "mix").manifest["paused"]["reason"] == "paused by user"
     status, _ = arun(restart(cfg))
     assert status["state"] == "paused", status
