@@ -7,6 +7,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.live_status import read_status, status_path
+
+ENDED = ("done", "aborted", "stopped")
+"""Live states after which the job's line is no longer the live status's (its final run has a bar, or it ended)."""
+
 
 def result_health(row) -> dict:
     """{"converged": bool, "warnings": [...]} from a done job's report.json (what its reconstruction said about
@@ -24,10 +30,22 @@ def result_health(row) -> dict:
             "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else []}
 
 
-def status_detail(row, running: dict | None = None) -> str:
+def live_detail(root, row) -> str | None:
+    """A running live job's line from its scan's live status (`<scan>/recon/live/status.json`, which it rewrites as
+    it follows the scan: its log shows no progress bar until its final run), or None; `root`: the captures root."""
+    if root is None or row.state != "running":
+        return None
+    try:
+        status = read_status(status_path(Path(root) / row.scan))
+    except (SpadscanError, OSError):
+        return None
+    return status.summary() if status.job == row.id and status.state not in ENDED else None
+
+
+def status_detail(row, running: dict | None = None, root=None) -> str:
     """The last column of a --status row: a done job's result folder, a running job's progress (its log's progress
-    bar, `running`: job_progress.running_progress), else its last error; then damaged files. A stale running job's
-    row says why first."""
+    bar, `running`: job_progress.running_progress; a live job's live status while it follows its scan, `root`: the
+    captures root), else its last error; then damaged files. A stale running job's row says why first."""
     if row.state == "done":
         detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
         if row.result and row.kept:
@@ -40,7 +58,7 @@ def status_detail(row, running: dict | None = None) -> str:
         notes = [f"warning: {w}" for w in health.get("warnings", [])] + ([] if not row.result else row.notes)
     else:
         progress = (running or {}).get(row.id) if row.state == "running" else None
-        detail, notes = (progress.line() if progress else row.error or "-"), row.notes
+        detail, notes = (progress.line() if progress else live_detail(root, row) or row.error or "-"), row.notes
         if progress and row.error:
             notes = [f"last error: {row.error}", *notes]
         if row.stale:

@@ -142,7 +142,7 @@ def run(args) -> int:
     queue_dir = Path(args.queue) if args.queue else root / ".queue"
     lease_s = DEFAULTS["lease_s"] if args.lease_s is None else args.lease_s
     if args.status:  # a query: a root without a queue yet is listed as empty, not given one
-        return _print_status(Queue(queue_dir, lease_s=lease_s, create=False), args.json)
+        return _print_status(Queue(queue_dir, lease_s=lease_s, create=False), args.json, root)
     given = _given_options(args)
     if args.retry_failed:
         return _retry_failed(Queue(queue_dir, create=False), given, args.preset)
@@ -251,7 +251,7 @@ def _done_job(queue, job_id: str):
         raise ConfigError(f"{path}: cannot read the job file: {exc}") from None
 
 
-def _print_status(queue, as_json: bool) -> int:
+def _print_status(queue, as_json: bool, root: Path) -> int:
     """List the jobs. Damaged queue files never stop the listing: each row says what its readable records say and
     names the files it could not read."""
     import json
@@ -274,7 +274,7 @@ def _print_status(queue, as_json: bool) -> int:
         holder = r.holder or "-"
         if r.heartbeat_age_s is not None:
             holder += f" ({r.heartbeat_age_s:.0f} s ago)"
-        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, status_detail(r, running)))
+        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, status_detail(r, running, root)))
     widths = [max(len(row[i]) for row in table) for i in range(4)]
     for row in table:
         print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4])

@@ -16,15 +16,16 @@ from .results import ResultIndex
 from .scans import IN_HAND, ScanIndex, scan_detail
 
 
-def queue_status(queue_dir: Path) -> dict:
+def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
     """The queue's jobs as `spadscan worker --status --json` lists them, a running job with its progress, and each
     job's `detail`: the last column of `spadscan worker --status` (a kept result, warnings, damaged queue files),
-    made by the same function. Its running jobs' progress is left out there: the page has a column for it."""
+    made by the same function. Its running jobs' progress is left out there: the page has a column for it (a live
+    job's line from its scan's live status, under `root`, while it follows the scan)."""
     from spadscan.worker.queue import Queue
 
     queue = Queue(queue_dir, create=False)
     running = running_progress(queue)
-    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), "detail": status_detail(row)}
+    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), "detail": status_detail(row, root=root)}
             for row in queue.statuses()]
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
 
@@ -59,7 +60,7 @@ class Dashboard:
                 (r for r in rows if r.state != "error"), None)
             detail = self._scan_detail(current) if current is not None else None
         try:
-            queue = queue_status(self.queue_dir)
+            queue = queue_status(self.queue_dir, self.root)
         except OSError as exc:
             queue = {"path": str(self.queue_dir), "jobs": [], "counts": {}, "error": str(exc)}
         return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

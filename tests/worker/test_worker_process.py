@@ -612,3 +612,26 @@ def test_once_stopped_before_the_queue_drained_says_so_and_exits_130(tmp_path, m
     q.finish(q.claim(), None)  # the queue drained: the exit status is a drained run's again
     assert cli_main(["worker", "--root", str(tmp_path), "--once"]) == 0
     assert "stopped" not in capsys.readouterr().out
+
+
+def test_status_shows_a_live_job_following_its_scan_by_its_live_status(tmp_path, capsys):
+    """A live job's log has no progress bar until its final run: while it follows the scan, --status (and the
+    dashboard's queue table, which says the same) shows its live status."""
+    from spadscan.dashboard.status import queue_status
+    from spadscan.protocol.live_status import LiveStatus, status_path, write_status
+    from spadscan.worker.jobs import Job
+
+    root = tmp_path / "captures"
+    root.mkdir()
+    make_scan(root, "l", "running")
+    queue = Queue.for_root(root)
+    queue.enqueue(Job(id="l-fast", scan="l", live=True))
+    queue.claim()
+    status_path(root / "l").parent.mkdir(parents=True)
+    write_status(status_path(root / "l").parent, LiveStatus(views_used=24, views_published=29, steps=240,
+                                                              job="l-fast"))
+    assert cli_main(["worker", "--root", str(root), "--status"]) == 0
+    (row,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("l-fast")]
+    assert "live reconstruction" in row and "24/29 views, 240 steps" in row, row
+    (job,) = queue_status(queue.path, root)["jobs"]
+    assert "24/29 views, 240 steps" in job["detail"]
