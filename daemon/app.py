@@ -170,13 +170,16 @@ async def serve(cfg: DaemonConfig, arm, sensor) -> None:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     me = asyncio.current_task()
-    starting, ended_startup = [True], [False]  # a stop signal ends the start-up itself (a connect takes up to a minute)
+    # "starting" until the daemon listens: a stop signal then ends the start-up itself (a connect takes up to a
+    # minute) by cancelling it, once ("cancelled").
+    phase = "starting"
 
     def on_signal(sig: signal.Signals) -> None:
+        nonlocal phase
         log.info("%s received", sig.name)
         stop.set()
-        if starting[0]:
-            starting[0], ended_startup[0] = False, True
+        if phase == "starting":
+            phase = "cancelled"
             me.cancel()
 
     for sig in STOP_SIGNALS:
@@ -187,7 +190,7 @@ async def serve(cfg: DaemonConfig, arm, sensor) -> None:
             runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
             try:
                 await runner.recover()  # before listening: the first `status` already shows an interrupted scan
-                starting[0] = False
+                phase = "serving"
                 if stop.is_set():  # asked to stop while it started: no socket, no scan taken further
                     return
                 async with ControlServer(cfg.socket, Dispatcher(runner, stop, cfg)):
@@ -197,7 +200,7 @@ async def serve(cfg: DaemonConfig, arm, sensor) -> None:
             finally:
                 await runner.shutdown()
     except asyncio.CancelledError:
-        if not (ended_startup[0] and me.cancelling()):
+        if not (phase == "cancelled" and me.cancelling()):
             raise
         me.uncancel()
         log.info("stopped while starting: the devices were released and closed")

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, Measurement, read_json
-from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
 from .config import DaemonConfig, scan_request
@@ -50,6 +50,7 @@ STOP_TIMEOUT_S = 5.0  # how long arm.stop() may take
 FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before the runner gives up on it
 PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may take
 READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting) may take
+ARM_FIXES = {"reconnect": "reconnecting", "clear": "clearing its fault"}  # what readying the arm does, said
 CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controller for one pose before its fallback
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
 
@@ -347,21 +348,19 @@ class ScanRunner:
         fix = job.arm_fix
         if fix is None:
             return
-        what = "reconnecting" if fix == "reconnect" else "clearing its fault"
-        log.info("scan %s: %s: %s before pose %s", job.name, self.arm.name, what, self._progress())
+        log.info("scan %s: %s: %s before pose %s", job.name, self.arm.name, ARM_FIXES[fix], self._progress())
         await self._reconnect_arm(fix)
         job.arm_fix = None
 
     async def _reconnect_arm(self, fix: str) -> None:
         """Reconnect the arm (fix "reconnect") and clear its fault, within READY_TIMEOUT_S."""
-        what = "reconnecting" if fix == "reconnect" else "clearing its fault"
         try:
             async with asyncio.timeout(READY_TIMEOUT_S):
                 if fix == "reconnect":
                     await self.arm.reconnect()
                 await self.arm.clear_fault()
         except TimeoutError:
-            raise LinkLost(f"{self.arm.name}: {what} did not finish within {READY_TIMEOUT_S:g} s") from None
+            raise LinkLost(f"{self.arm.name}: {ARM_FIXES[fix]} did not finish within {READY_TIMEOUT_S:g} s") from None
 
     async def _poses(self, job: ScanJob) -> None:
         """Run poses from job.next_pose until the plan ends or a pause is requested; raises on a fault. An adaptive
@@ -610,12 +609,15 @@ class ScanRunner:
         await self._wait_resume(job)
 
     async def _record_pause(self, job: ScanJob, paused: bool = True) -> None:
-        """Say in scan.json that the scan is paused and why (or, `paused` False, that it goes on): a daemon
-        restarted meanwhile (a crash, `systemctl restart`) takes a paused scan over paused, even with auto_resume,
-        instead of moving the arm again by itself. A capture that cannot be written (a full disk) keeps the pause in
-        memory only."""
+        """Say in scan.json that the scan is paused and why (or, `paused` False, that it goes on: through the open
+        writer's next state): a daemon restarted meanwhile (a crash, `systemctl restart`) takes a paused scan over
+        paused, even with auto_resume, instead of moving the arm again by itself. A capture that cannot be written (a
+        full disk) keeps the pause in memory only."""
         try:
-            await self._io(_record_pause, job, paused)
+            if paused:
+                await self._io(mark_paused, job.path, job.reason or "paused")
+            else:
+                await self._io(job.writer.set_state, "running")
         except (OSError, CaptureError) as exc:
             log.warning("scan %s: the pause could not be recorded in its capture: %s", job.name, _describe(exc))
 
@@ -660,7 +662,7 @@ class ScanRunner:
             if state == "aborted":
                 await self._io(job.writer.finish, "aborted", reason)
             elif self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
-                await self._io(job.writer.set_paused, job.reason or "paused by user")
+                await self._io(mark_paused, job.path, job.reason or "paused by user")
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
@@ -756,16 +758,6 @@ def _end_early(job: ScanJob) -> None:
 def _remove_partial(path: Path) -> None:
     """Remove a scan folder that CaptureWriter.create left half-made (removing needs no free space)."""
     shutil.rmtree(path, ignore_errors=True)
-
-
-def _record_pause(job: ScanJob, paused: bool) -> None:
-    """scan.json says the scan is paused, and why (job.reason), or that it goes on: through the open writer, else
-    one reopened for it (reopening clears a pause)."""
-    writer = job.writer if job.writer is not None else CaptureWriter.resume(job.path)
-    if paused:
-        writer.set_paused(job.reason or "paused")
-    else:
-        writer.set_state("running")
 
 
 def _paused_record(path: Path) -> str | None:

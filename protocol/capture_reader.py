@@ -63,6 +63,12 @@ class PoseSums:
     counts: np.ndarray
     frames: np.ndarray
 
+    def in_any_frame(self, flags: np.ndarray) -> np.ndarray:
+        """Per view, whether any of its frames holds `flags` (N, ...) bool, one per measurement: (V, ...) bool."""
+        out = np.zeros((len(self.first),) + flags.shape[1:], bool)
+        np.logical_or.at(out, self.group, flags)
+        return out
+
 
 def _check_version(version, where) -> None:
     """Refuse a manifest of a format version this reader does not know: a newer writer may have changed what the

@@ -121,6 +121,20 @@ def _occupied(path: Path) -> str:
     return f"{path}: already holds a capture that was not finished ({why}); delete the folder or choose another"
 
 
+def mark_paused(path, reason: str) -> None:
+    """Record in the manifest of the capture at `path` that its scan is paused and why (`paused`: {"reason",
+    "since_utc"}; the state stays 'running'): a daemon restarted meanwhile takes it over paused, and a reader can say
+    so. Only the manifest is read and written (no chunk: a writer reopened for this would read them all), so the
+    scan's writer, if one is open, must not be writing meanwhile; its next recorded state, or reopening
+    (`CaptureWriter.resume`), clears the record."""
+    manifest_path = Path(path) / MANIFEST
+    manifest = read_json(manifest_path)
+    reason = fold(reason)
+    manifest.update(state="running", reason=reason, paused={"reason": reason, "since_utc": _now()},
+                    updated_utc=_now())
+    _write(write_json_atomic, manifest_path, manifest)
+
+
 class CaptureWriter:
     """Appends measurements to one capture folder. Not thread-safe: one writer per scan.
 
@@ -303,13 +317,6 @@ class CaptureWriter:
         self.manifest.pop("paused", None)  # a pause holds only until the next state is recorded
         self.manifest.update(state=state, reason=reason, updated_utc=_now(), **extra)
         _write(write_json_atomic, self.path / MANIFEST, self.manifest)
-
-    def set_paused(self, reason: str) -> None:
-        """Record that the scan is paused and why (`paused`: {"reason", "since_utc"}; state stays 'running'): a
-        daemon restarted meanwhile takes it over paused, and a reader can say so. `resume` and the next state
-        recorded clear it."""
-        reason = fold(reason)
-        self.set_state("running", reason, paused={"reason": reason, "since_utc": _now()})
 
     def abandon(self, doing: str, exc: BaseException) -> None:
         """After `exc` stopped a writer that cannot be resumed (a simulation, an import): drop the buffer and mark the

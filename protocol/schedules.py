@@ -79,8 +79,14 @@ def fibonacci_hemisphere(n: int, radius_m: float, target=(0.0, 0.0, 0.0), min_el
     return _poses_on_sphere(np.arcsin(np.clip(s, -1, 1)), i * GOLDEN_ANGLE_RAD, radius_m, target)
 
 
+RINGS_BAND_DEG = (10.0, 80.0)
+"""The rings' own band of elevations (degrees, lowest and highest ring): rings stand at both ends of a band, so the
+spiral's 0-90 deg would put a whole ring at the zenith, every view of it from one position."""
+
+
 def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0.0, 0.0),
-                    min_elevation_deg: float = 10.0, max_elevation_deg: float = 80.0) -> np.ndarray:
+                    min_elevation_deg: float = RINGS_BAND_DEG[0],
+                    max_elevation_deg: float = RINGS_BAND_DEG[1]) -> np.ndarray:
     """Rings of equally spaced views at evenly spaced elevations (inclusive), alternate rings offset by half a step.
 
     Returns (n_rings * per_ring, 4, 4), ring by ring from the lowest elevation, azimuth increasing within a ring.

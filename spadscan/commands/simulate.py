@@ -20,12 +20,13 @@ from __future__ import annotations
 import argparse
 
 from spadscan.protocol.scenes import scene_listing
+from spadscan.protocol.schedules import RINGS_BAND_DEG
 from spadscan.protocol.sim_table import DEFAULT_ALBEDO as DEFAULT_TABLE_ALBEDO
 
 SCHEDULES = ("fibonacci", "rings")
 DEFAULT_RINGS = 4
 SPIRAL_BAND = (0.0, 90.0)  # degrees: the dataset's spiral, from 86.4 down to 0.1 deg at 256 views
-RINGS_BAND = (10.0, 80.0)  # degrees: schedules.elevation_rings' own band (rings stand at both ends)
+RINGS_BAND = RINGS_BAND_DEG  # degrees: the rings' own band (rings stand at both ends)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -16,7 +16,6 @@ Units at this edge are the user's: degrees, picoseconds, metres; inside, the sen
 
 from __future__ import annotations
 
-import inspect
 import math
 from dataclasses import asdict, dataclass, replace
 
@@ -32,10 +31,8 @@ C_M_PER_S = 299_792_458.0
 MIN_PULSE_SIGMA_BINS = 0.05
 """The sensor model's narrowest pulse (bins): bins much wider than the pulse see it as a spike."""
 SCHEDULES = ("fibonacci", "rings")
-RINGS_ELEVATIONS = {key: inspect.signature(schedules.elevation_rings).parameters[key].default
-                    for key in ("min_elevation_deg", "max_elevation_deg")}
-"""The rings schedule's own band: its end rings sit on the band's limits, so the spiral's 0-90 deg would put a whole
-ring at the zenith, every view of it from one position."""
+RINGS_ELEVATIONS = dict(zip(("min_elevation_deg", "max_elevation_deg"), schedules.RINGS_BAND_DEG))
+"""The rings schedule's own band (schedules.RINGS_BAND_DEG), as the keys of a point."""
 MAX_RECT_TAN = 10.0
 """The sensor model's limit on a rectangular zone's edges, |tan| < 10 (protocol.sensor_model)."""
 

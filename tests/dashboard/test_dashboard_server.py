@@ -16,6 +16,7 @@ import pytest
 from dashboard_helpers import (add_final_recon, complete_scan, get, queue_with_a_kept_result_and_a_damaged_record,
                                serving, status)
 from page_helpers import add_pose, start_scan
+from spadscan.protocol.capture_writer import mark_paused
 from spadscan.worker.job_progress import parse_progress
 
 
@@ -271,7 +272,7 @@ def test_a_paused_scan_says_so_and_why_and_shows_no_frame_rate(tmp_path):
     writer, poses = start_scan(tmp_path / "held", 8)
     for i in range(3):
         add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
-    writer.set_paused("sensor silent: no frame within 5 s")
+    mark_paused(tmp_path / "held", "sensor silent: no frame within 5 s")
     with serving(tmp_path) as server:
         current = status(server)["current"]
         assert (current["name"], current["state"]) == ("held", "paused")

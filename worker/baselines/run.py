@@ -95,7 +95,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     start = time.monotonic()
     data = CaptureReader(capture).load()
     data.check_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
-    state_note = capture_state_note(capture, data.manifest["state"], len(np.unique(data.pose_indices)),
+    views = data.by_pose()  # the baselines read one view per pose, its frames summed, as the reconstruction does
+    state_note = capture_state_note(capture, data.manifest["state"], len(views.first),
                                     data.manifest.get("planned_poses"))
     if state_note:
         log(f"warning: {state_note}")
@@ -110,9 +111,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
             raise CaptureError(f"{Path(capture) / 'scan.json'}: {exc}") from None
         log(f"floor: {floor_source}" if floor_z is None else f"floor at z = {floor_z:.4f} m: {floor_source}")
     # Once for every threshold tried: histograms no sensor could produce (in any frame of a pose) carve nothing.
-    views = data.by_pose()
-    broken = np.zeros(views.counts.shape[:2], bool)
-    np.logical_or.at(broken, views.group, implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins))
+    broken = views.in_any_frame(implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins))
     counts, sensor = summed_views(views.counts, views.frames, data.sensor)
     posed = PoseViews(counts, data.poses[views.first], sensor)
     if method == "space-carving" and len(posed.hists) < MIN_VIEWS:

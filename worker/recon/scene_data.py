@@ -117,12 +117,10 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
         raise CaptureError(f"{capture}: holds no measurements")
     views = data.by_pose()
     counts, frames = views.counts, views.frames
-    saturated = np.zeros(counts.shape, bool)
-    np.logical_or.at(saturated, views.group, data.hists >= sensor.max_count)
+    saturated = views.in_any_frame(data.hists >= sensor.max_count)
     # A histogram no sensor could have produced in any of a pose's frames (all zero: a dropped frame) says nothing
     # of its zone: left out of the fit and of carving, where it would prove the zone's whole field of view empty.
-    broken = np.zeros(counts.shape[:2], bool)
-    np.logical_or.at(broken, views.group, implausible(data.hists, sensor.max_count, sensor.ignore_bins))
+    broken = views.in_any_frame(implausible(data.hists, sensor.max_count, sensor.ignore_bins))
     poses = data.poses[views.first]
     valid = ~saturated & ~broken[..., None]
     if sensor.ignore_bins:

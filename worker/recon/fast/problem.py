@@ -107,11 +107,11 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     if table is not None and abs(table[0][2]) > 0.99:
         floor_z, floor_source = table[1] / table[0][2], "table"
     notes = {"table": None if table is None else table[3], "floor": floor_source}
-    hull_res = _carve(scene, fc, floor_z, on_table=table is not None)
-    voxel = float(np.min(hull_res.voxel_m))
-    occ = np.transpose(hull_res.occupancy, (2, 1, 0))  # (x, y, z) -> (z, y, x)
     counts_np, carve_sensor = _carving_views(scene)
     poses_np = scene.poses.double().cpu().numpy()
+    hull_res = _carve(scene, counts_np, poses_np, carve_sensor, fc, floor_z, on_table=table is not None)
+    voxel = float(np.min(hull_res.voxel_m))
+    occ = np.transpose(hull_res.occupancy, (2, 1, 0))  # (x, y, z) -> (z, y, x)
     onset = first_returns(counts_np, carve_sensor, fc.carve_threshold, "leading").onset_range_m(carve_sensor)
     if scene.usable is not None:
         onset = np.where(_usable(scene), onset, np.nan)  # no information, not "no return"
@@ -183,10 +183,11 @@ def _carving_views(scene):
     return summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
 
 
-def _carve(scene, fc, floor_z, on_table: bool):
+def _carve(scene, counts, poses, sensor, fc, floor_z, on_table: bool):
+    """The carved hull of the scene's views: `counts` (V, Z, B) and `sensor` as `_carving_views` gives them, `poses`
+    (V, 4, 4)."""
     box = carve_box(scene, floor_z)
-    counts, sensor = _carving_views(scene)
-    return carve_scene(counts, scene.poses.double().cpu().numpy(), sensor,
+    return carve_scene(counts, poses, sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
                        floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc),
                        weak_threshold=carve_weak_threshold(fc, on_table), usable=_usable(scene))
