@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import shutil
-import time
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -76,12 +74,21 @@ def previous_result(out) -> set[str]:
     return {n for n in names if (out / n).is_file()}
 
 
-def files_written_since(out, since_s: float) -> set[str]:
-    """Names of the plain files in `out` (hidden ones left out) last written at or after `since_s` (time.time(),
-    taken down to the second: file systems keep mtimes as coarse as that)."""
-    since = math.floor(since_s)
-    return {p.name for p in Path(out).iterdir()
-            if p.is_file() and not p.name.startswith(".") and p.stat().st_mtime >= since}
+def folder_files(out) -> dict[str, int]:
+    """The plain files in `out` (hidden ones left out) by name, each with its inode; empty when `out` is missing."""
+    try:
+        entries = list(Path(out).iterdir())
+    except OSError:
+        return {}
+    return {p.name: p.stat().st_ino for p in entries if p.is_file() and not p.name.startswith(".")}
+
+
+def files_written_after(out, before: dict[str, int]) -> set[str]:
+    """Names of the plain files in `out` that a run wrote since `before` (`folder_files` then): new names, or names
+    that now stand for another file. A run writes every file of its result anew (the previous result is set aside
+    first), while a file of the user's that was there before keeps its inode even when edited meanwhile, and its
+    modification time says nothing (copied with -p, from a machine whose clock runs ahead)."""
+    return {name for name, ino in folder_files(out).items() if before.get(name) != ino}
 
 
 @contextlib.contextmanager
@@ -98,17 +105,17 @@ def replacing_result(out, log: Callable[[str], None] | None = None) -> Iterator[
     if aside.is_dir():
         back = _put_back(out, aside, set())
         log(f"put back the previous result that a run stopped mid-way had set aside ({', '.join(back)})")
-    since_s = time.time()
     previous = previous_result(out) if out.is_dir() else set()
     if previous:
         aside.mkdir(exist_ok=True)
         for name in sorted(previous):
             os.replace(out / name, aside / name)
+    before = folder_files(out)
     try:
         yield previous
     except BaseException:
         if previous:
-            _put_back(out, aside, files_written_since(out, since_s) - previous)
+            _put_back(out, aside, files_written_after(out, before) - previous)
         raise
     if previous:
         gone = sorted(previous - {p.name for p in out.iterdir() if p.is_file()})

@@ -31,7 +31,7 @@ from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_view
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .metrics import mesh_metrics
-from .outputs import capture_state_note, export_mesh, files_written_since, replacing_result
+from .outputs import capture_state_note, export_mesh, files_written_after, folder_files, replacing_result
 from .pieces import Pieces, mesh_pieces
 from .recon.config import ReconConfig, with_overrides
 from .recon.errors import ReconstructionError
@@ -174,7 +174,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     """`reconstruct_capture`'s run, writing into `out`."""
     log = log or (lambda line: None)
     run_clock = RunClock(None, clock() if started is None else started, clock)
-    since_s = time.time()
+    before = folder_files(out)  # the user's own files there are no part of the result
     _check_run_args(budget_s, steps, seed)
     if threads is not None:
         torch.set_num_threads(check_threads(threads))
@@ -311,7 +311,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     for line in report["warnings"]:
         log(f"warning: {line}")
     ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
-    written = files_written_since(out, since_s) | {"report.json", "report.html"}
+    written = files_written_after(out, before) | {"report.json", "report.html"}
     report["files"] = sorted(written)
     report["wall_seconds"] = run_clock.elapsed()
     write_report(out, report)

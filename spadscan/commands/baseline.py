@@ -24,12 +24,11 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
 from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run, load_ground_truth
-from spadscan.worker.outputs import check_out, files_written_since, replacing_result
+from spadscan.worker.outputs import check_out, files_written_after, folder_files, replacing_result
 
 DEFAULTS = {"resolution": 128, "edge_deg": 1.0, "surface": "occupancy"}
 """Defaults of the options only one method reads (filled in after the check that the method reads them)."""
@@ -111,13 +110,13 @@ def run(args) -> int:
 
     gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     with replacing_result(args.out, log):  # a previous result stays whole until this run has finished
-        since_s = time.time()
+        before = folder_files(args.out)  # the user's own files there are no part of the result
         report = run_baseline(
             args.capture, args.out, args.method, gt=gt, threshold=args.threshold, calibrate_=args.calibrate,
             resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
             floor_z=None if args.no_floor else ("auto" if args.floor_z is None else args.floor_z),
             surface=args.surface, edge_deg=args.edge_deg, metrics_points=args.points, log=log)
-        write_pictures_and_page(report, args.out, gt, since_s)
+        write_pictures_and_page(report, args.out, gt, before)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
     line += f", {report['seconds']:.1f} s"
     if "chamfer_mm" in report:
@@ -127,7 +126,7 @@ def run(args) -> int:
     return 0
 
 
-def write_pictures_and_page(report: dict, out, gt, since_s: float) -> None:
+def write_pictures_and_page(report: dict, out, gt, before: dict[str, int]) -> None:
     """preview.png (mesh, and ground truth when given) and report.html beside the baseline's report.json, which
     then lists the files this run wrote (`files`)."""
     from spadscan.protocol.mesh_io import load_mesh  # trimesh and matplotlib: only when a baseline ran
@@ -142,7 +141,7 @@ def write_pictures_and_page(report: dict, out, gt, since_s: float) -> None:
     gt_mesh = load_ground_truth(gt).mesh if gt is not None else None
     preview_png(load_mesh(out / "mesh.ply"), out / "preview.png", gt=gt_mesh)
     ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
-    written = files_written_since(out, since_s) | {"report.json", "report.html"}
+    written = files_written_after(out, before) | {"report.json", "report.html"}
     report["files"] = sorted(written)
     write_report(out, report)
     write_report_html(report, out)

@@ -293,6 +293,32 @@ def test_a_baseline_overwrite_that_fails_at_its_metrics_leaves_the_previous_resu
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+def test_the_users_own_files_beside_a_result_are_never_part_of_it(sphere_capture, tmp_path, quick_metrics):
+    """A file of the user's in --out is not the run's however new its time stamp (copied with -p from a machine whose
+    clock runs ahead, edited meanwhile): it is not listed in report.json, and neither a finished nor a failed
+    --overwrite removes it."""
+    import os
+    import time
+
+    cap, gt = sphere_capture
+    out = tmp_path / "b"
+    out.mkdir()
+    notes = out / "notes.txt"
+    notes.write_text("threshold looks too low\n")
+    ahead = time.time() + 3600
+    os.utime(notes, (ahead, ahead))
+    assert cli_main(["baseline", "reprojection", str(cap), "--out", str(out), "--gt", str(gt)]) == 0
+    assert "notes.txt" not in json.loads((out / "report.json").read_text())["files"]
+    with notes.open("a") as f:  # edited in place between the runs, a newer time stamp again
+        f.write("v2\n")
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(out), "--gt", str(gt), "--overwrite",
+                     "--resolution", "48"]) == 0
+    assert "notes.txt" not in json.loads((out / "report.json").read_text())["files"]
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(out), "--overwrite",
+                     "--threshold", "inf"]) != 0
+    assert notes.read_text() == "threshold looks too low\nv2\n"
+
+
 def calibrated(method: str, thresholds, sphere_capture, out, monkeypatch) -> dict:
     """`spadscan baseline METHOD --calibrate` over `thresholds` (20,000 points a mesh); its report.json."""
     import spadscan.worker.baselines.common as common
