@@ -163,7 +163,7 @@ class ScanRunner:
         try:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
                                           rig_now=self.rig, scene_now=self.scene)
-            paused = await asyncio.to_thread(_paused_record, path)  # read before reopening the writer clears it
+            paused = await asyncio.to_thread(_paused_record, path)
             try:
                 job.writer = await self._io(CaptureWriter.resume, path)
                 job.record_progress(job.writer)
@@ -303,6 +303,8 @@ class ScanRunner:
                     try:
                         job.writer = await self._io(CaptureWriter.resume, job.path)
                         job.record_progress(job.writer)
+                        if "paused" in job.writer.manifest:  # reopened to go on after a fault's pause
+                            await self._io(job.writer.set_state, "running")
                     except (OSError, CaptureError) as exc:
                         await self._fault(job, f"cannot reopen the capture: {_describe(exc, 'reopening it')}")
                         continue
@@ -639,13 +641,16 @@ class ScanRunner:
         await self._resume.wait()
         self._resume.clear()
         job.reason = None
-        if job.writer is not None:  # (a writer reopened on the way on clears the record itself)
+        if job.writer is not None:  # (without one, the writer reopened on the way on clears the record)
             await self._record_pause(job, paused=False)
         self._set_state("scanning")
 
     async def _cancel(self, end: tuple[str, str]) -> None:
         self._end = end
         task = self._task
+        # A task cancelled before its first step never runs its body, which records the scan's end in its capture
+        # (an abort right after a takeover's resume left it 'running'): one turn of the loop runs that step first.
+        await asyncio.sleep(0)
         task.cancel()
         try:
             await task
@@ -731,7 +736,7 @@ def _check_left(job: ScanJob, arm) -> None:
     ranked view that the rest of the plan was never meant to follow)."""
     left, where = job.tcp_poses[job.next_pose:], f"scan {job.name!r}"
     if job.scan.schedule != "adaptive":
-        check_workspace(left, arm, where)
+        check_workspace(left, arm, where, first=job.next_pose)
         return
     for k, tcp in enumerate(left):
         check_workspace(tcp[None], arm, f"{where} pose {job.next_pose + k}")

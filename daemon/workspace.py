@@ -30,9 +30,11 @@ MOVE_STEP_RAD = 0.02
 """Largest rotation between two samples of a straight move (rad): 2 mm at a sensor 10 cm from the flange."""
 
 
-def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np.ndarray | None = None) -> None:
+def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np.ndarray | None = None,
+                    first: int = 0) -> None:
     """Raise ConfigError naming the first TCP pose (P, 4, 4) or straight move that leaves the workspace; `start`
-    (4, 4), when given, is where the arm is before the first move."""
+    (4, 4), when given, is where the arm is before the first move. `first`: the plan's number of the first pose given
+    (the poses a scan has left are the rest of a plan of first + P), so that the message names the plan's pose."""
     tcp = np.asarray(tcp_poses, dtype=np.float64)
     n = len(tcp)
     if n == 0:
@@ -40,12 +42,13 @@ def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np
     pos = tcp[:, :3, 3]
     if not np.all(np.isfinite(tcp)):
         i = int(np.flatnonzero(~np.isfinite(tcp).all(axis=(1, 2)))[0])
-        raise ConfigError(f"{where}: pose {i} of {n}: TCP position is not finite")
+        raise ConfigError(f"{where}: pose {first + i} of {first + n}: TCP position is not finite")
     for i in range(n):
         reason = _pose_problem(tcp[i], arm)
         if reason:
             p = ", ".join(f"{v:.3f}" for v in pos[i])
-            raise ConfigError(f"{where}: pose {i} of {n}: TCP at [{p}] m is unreachable: {reason} ([arm] limits)")
+            raise ConfigError(f"{where}: pose {first + i} of {first + n}: TCP at [{p}] m is unreachable: {reason} "
+                              f"([arm] limits)")
     moves = [(j - 1, j) for j in range(1, n)]
     poses = tcp
     if start is not None:
@@ -59,7 +62,7 @@ def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np
         reason = move_problem(poses[a], poses[b], arm)
         if reason:
             j = b - 1 if start is not None else b
-            raise ConfigError(f"{where}: the straight move to pose {j} of {n} {reason} ([arm] limits)")
+            raise ConfigError(f"{where}: the straight move to pose {first + j} of {first + n} {reason} ([arm] limits)")
 
 
 def first_move_problem(current: np.ndarray, target: np.ndarray, arm: ArmConfig) -> str | None:

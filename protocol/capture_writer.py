@@ -125,12 +125,17 @@ def mark_paused(path, reason: str) -> None:
     """Record in the manifest of the capture at `path` that its scan is paused and why (`paused`: {"reason",
     "since_utc"}; the state stays 'running'): a daemon restarted meanwhile takes it over paused, and a reader can say
     so. Only the manifest is read and written (no chunk: a writer reopened for this would read them all), so the
-    scan's writer, if one is open, must not be writing meanwhile; its next recorded state, or reopening
-    (`CaptureWriter.resume`), clears the record."""
+    scan's writer, if one is open, must not be writing meanwhile; its next recorded state (`set_state`: the scan
+    goes on, or ends) clears the record, and nothing else does."""
     manifest_path = Path(path) / MANIFEST
     manifest = read_json(manifest_path)
     reason = fold(reason)
-    manifest.update(state="running", reason=reason, paused={"reason": reason, "since_utc": _now()},
+    # The same pause recorded again (the daemon stopped or restarted while it held) keeps the time it began: going
+    # on removes the record, so one that is there is this pause's.
+    held = manifest.get("paused")
+    since = held.get("since_utc") if isinstance(held, dict) else None
+    manifest.update(state="running", reason=reason,
+                    paused={"reason": reason, "since_utc": since if isinstance(since, str) else _now()},
                     updated_utc=_now())
     _write(write_json_atomic, manifest_path, manifest)
 
@@ -213,7 +218,10 @@ class CaptureWriter:
 
     @classmethod
     def resume(cls, path) -> "CaptureWriter":
-        """Reopen a scan to continue it: drop half-written chunks, count what was published, state -> running."""
+        """Reopen a scan to continue it: drop half-written chunks, count what was published, state -> running. A
+        pause stays recorded (`paused`, and its reason) until the scan goes on (`set_state`): a daemon reopens a
+        capture to take it over before it has checked that it can, and a takeover refused or cut short must leave
+        the operator's pause in place."""
         path = Path(path)
         reader = CaptureReader(path)
         _drop_temporary(path)  # half-written chunks and manifests of a writer that died
@@ -225,8 +233,8 @@ class CaptureWriter:
             poses.update(int(i) for i in chunk.pose_indices)
         next_chunk = (chunk_index(names[-1]) + 1) if names else 0
         manifest = dict(reader.manifest)
-        manifest.pop("paused", None)  # reopened to go on: no longer paused
-        manifest.update(state="running", reason=None, updated_utc=_now())
+        manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
+                        updated_utc=_now())
         _write(write_json_atomic, path / MANIFEST, manifest)
         return cls(path, manifest, reader.sensor, next_chunk, published, poses)
 

@@ -21,11 +21,11 @@ from test_runner import until
 SENSOR = {"backend": "sim", "mesh": "builtin:sphere", "rays_per_zone": 4}
 
 
-def make_cfg(tmp_path, hand_eye_z: float = 0.05, auto_resume: bool = False, **sensor):
+def make_cfg(tmp_path, hand_eye_z: float = 0.05, auto_resume: bool = False, arm: dict | None = None, **sensor):
     hand_eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, hand_eye_z], [0, 0, 0, 1]]
     return config_from_dict({
         "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"), "auto_resume": auto_resume,
-        "arm": {"backend": "sim", "motion_time_s": 0.0, "hand_eye": hand_eye},
+        "arm": {"backend": "sim", "motion_time_s": 0.0, "hand_eye": hand_eye, **(arm or {})},
         "sensor": {**SENSOR, **sensor},
         "scan": {"views": 40, "settle_s": 0.0, "radius_m": 0.4, "target": [0, 0, 0.1]}}, tmp_path / "rig.toml")
 
@@ -137,3 +137,42 @@ def test_a_scan_stopped_while_its_pause_is_pending_is_taken_over_paused(arun, tm
     assert CaptureReader(tmp_path / "caps" / "mix").manifest["paused"]["reason"] == "paused by user"
     status, _ = arun(restart(cfg))
     assert status["state"] == "paused", status
+
+
+def test_a_takeover_refused_keeps_the_operators_pause(arun, tmp_path):
+    """A daemon that reopens a paused scan and then cannot take it over (here a workspace that refuses the poses
+    left) leaves the pause recorded, with the time it began: the next daemon, with auto_resume, takes the scan over
+    paused instead of moving the arm by itself. The refusal names the plan's pose, not its place among those left."""
+    cfg = make_cfg(tmp_path, auto_resume=True)
+    arun(interrupt(cfg, pause="paused"))
+    capture = tmp_path / "caps" / "mix"
+    record = CaptureReader(capture).manifest["paused"]
+    tight = make_cfg(tmp_path, auto_resume=True, arm={"workspace_min": [-1, -1, -1], "workspace_max": [1, 1, 0.3]})
+    status, refused = arun(restart(tight))
+    assert status["state"] == "idle" and "cannot take over" in status["last_error"], status
+    first = int(status["last_error"].split(": pose ")[1].split(" of ")[0])
+    total = int(status["last_error"].split(": pose ")[1].split(" of ")[1].split(":")[0])
+    assert total == 40 and first >= 3, status["last_error"]  # the plan's numbering: 3+ poses were published
+    assert CaptureReader(capture).manifest["paused"] == record
+    status, refused = arun(restart(cfg))
+    assert status["state"] == "paused" and status["reason"] == "paused by user", status
+    assert refused is None and "paused" not in CaptureReader(capture).manifest  # `ctl resume` went on
+
+
+def test_a_pause_keeps_the_time_it_began_across_restarts(arun, tmp_path):
+    cfg = make_cfg(tmp_path)
+    arun(interrupt(cfg, pause="paused"))
+    capture = tmp_path / "caps" / "mix"
+    since = CaptureReader(capture).manifest["paused"]["since_utc"]
+
+    async def restart_and_stop():
+        arm, sensor = build_devices(cfg)
+        async with DeviceSession([arm, sensor]):
+            rig, scene = rig_record(cfg)
+            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+            await runner.recover()
+            await until(lambda: runner.state == "paused", "paused")
+            await runner.shutdown()
+
+    arun(restart_and_stop())
+    assert CaptureReader(capture).manifest["paused"]["since_utc"] == since
