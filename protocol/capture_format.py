@@ -14,12 +14,14 @@ CAPTURE/chunk-000000/          published chunks of at most `chunk_size` measurem
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import numpy.lib.format as npy_format
 
 from .atomic_files import fsync_dir, write_durable
 from .errors import CaptureError
@@ -177,6 +179,10 @@ def read_npy(path: Path) -> np.ndarray:
                                                   "not a .npy file (no .npy header: damaged, or another kind of "
                                                   "file)"))
             f.seek(0)
+            problem = _npy_size_problem(f)
+            if problem:
+                raise CaptureError(f"{path}: corrupt or truncated .npy ({problem})")
+            f.seek(0)
             array = np.load(f, allow_pickle=False)
     except FileNotFoundError:
         raise CaptureError(f"{path}: missing") from None
@@ -189,6 +195,41 @@ def read_npy(path: Path) -> np.ndarray:
         # A big-endian file (another writer, another machine) holds the same numbers: compare and compute natively.
         array = array.astype(array.dtype.newbyteorder("="))
     return array
+
+
+def _npy_size_problem(f) -> str | None:
+    """Why an open .npy file (at its start) cannot hold the array its header describes, or None (also for a
+    header this cannot read: np.load says what is wrong with it then). A damaged header can claim any shape: numpy
+    would try to allocate it before reading a byte of the data."""
+    try:
+        version = npy_format.read_magic(f)
+        read_header = {(1, 0): npy_format.read_array_header_1_0,
+                       (2, 0): npy_format.read_array_header_2_0}.get(version)
+        if read_header is None:
+            return None
+        shape, _, dtype = read_header(f)
+    except (ValueError, OSError, EOFError):
+        return None
+    if dtype.hasobject:
+        return None
+    expected = math.prod(shape) * dtype.itemsize
+    held = os.fstat(f.fileno()).st_size - f.tell()
+    if held != expected:
+        return f"its header describes {shape} {dtype} ({expected:,} bytes of data), the file holds {held:,}"
+    return None
+
+
+def npy_is_whole(path: Path) -> bool:
+    """Whether the .npy file at `path` holds as many bytes as its header describes (False when it cannot be read):
+    a file still being copied in is short of them."""
+    try:
+        with open(path, "rb") as f:
+            if f.read(len(NPY_MAGIC)) != NPY_MAGIC:
+                return False
+            f.seek(0)
+            return _npy_size_problem(f) is None
+    except OSError:
+        return False
 
 
 def save_npy_durable(path: Path, array: np.ndarray) -> None:

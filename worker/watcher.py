@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from spadscan.protocol.capture_format import MANIFEST, chunk_index, read_json
+from spadscan.protocol.capture_format import MANIFEST, chunk_index, npy_is_whole, read_json
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
 from .jobs import Job, job_id_for
@@ -151,7 +151,8 @@ def scan_state(folder: Path) -> str:
 
 def holds_every_measurement(folder: Path) -> bool:
     """Whether a complete capture's chunks hold every measurement its manifest plans (planned poses x frames per
-    pose, by the chunks' meta.json); True when the manifest plans no count. False when a chunk cannot be read."""
+    pose, by the chunks' meta.json) and every chunk's arrays whole (a copy may have brought a chunk's meta.json and
+    not yet all of its hists.npy); True when the manifest plans no count. False when a chunk cannot be read."""
     from spadscan.protocol.capture_reader import CaptureReader
 
     try:
@@ -161,7 +162,11 @@ def holds_every_measurement(folder: Path) -> bool:
             return True
         held = 0
         for name in reader.chunk_names():
-            records = read_json(Path(folder) / name / "meta.json").get("measurements")
+            chunk = Path(folder) / name
+            arrays = {chunk / "hists.npy", chunk / "poses.npy", *chunk.glob("*.npy")}
+            if not all(npy_is_whole(path) for path in arrays):
+                return False
+            records = read_json(chunk / "meta.json").get("measurements")
             held += len(records) if isinstance(records, list) else 0
     except (OSError, ValueError, AttributeError, SpadscanError):
         return False

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import numpy.lib.format as npy_format
 import pytest
 
 from spadscan.protocol.capture_format import MANIFEST, Measurement, chunk_name
@@ -576,6 +577,22 @@ def test_a_chunk_file_that_is_not_npy_is_reported_as_damaged(tmp_path, name, con
         CaptureReader(path).load()
     assert str(info.value).startswith(f"{path / chunk_name(0) / name}: {expect}"), str(info.value)
     assert "Python objects" not in str(info.value)
+
+
+@pytest.mark.parametrize("shape, data_bytes", [((99_999_999_999, 9, 128), 100), ((3, 9, 128), 3 * 9 * 128 * 4 - 10)])
+def test_an_npy_whose_header_and_data_disagree_is_reported_as_damaged(tmp_path, shape, data_bytes):
+    """A damaged header that claims a huge shape made numpy allocate it (a MemoryError traceback); a short file is
+    named as such before numpy reads it."""
+    path = tmp_path / "scan"
+    write(path, 3, 3)
+    hists = path / chunk_name(0) / "hists.npy"
+    with hists.open("wb") as f:
+        npy_format.write_array_header_1_0(f, {"descr": "<u4", "fortran_order": False, "shape": shape})
+        f.write(bytes(data_bytes))
+    with pytest.raises(CaptureError) as info:
+        CaptureReader(path).load()
+    assert str(info.value).startswith(f"{hists}: corrupt or truncated .npy (its header describes {shape}"), \
+        str(info.value)
 
 
 def test_big_endian_npy_files_are_read_in_the_machine_order(tmp_path):

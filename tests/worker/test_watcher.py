@@ -102,6 +102,29 @@ def test_a_complete_scan_still_being_copied_in_waits_for_its_chunks(tmp_path):
     assert scan_once(root, q, JobOptions()).queued == ["s"]
 
 
+def test_a_complete_scan_whose_last_chunk_is_still_being_copied_waits_for_its_arrays(tmp_path):
+    """The last chunk's meta.json has arrived (every measurement counted) but its arrays have not, or only in part:
+    the job would fail for good on a missing or truncated poses.npy. It waits until they are whole."""
+    source = tmp_path / "src"
+    sensor = sensor_preset("lcspc-sim")
+    w = CaptureWriter.create(source / "s", sensor, chunk_size=2, planned_poses=np.stack([np.eye(4)] * 4))
+    for i in range(4):
+        w.append(Measurement(np.full((1, sensor.n_bins), 2, np.uint32), np.eye(4), i))
+    w.finish("complete")
+    root = tmp_path / "root"
+    shutil.copytree(source / "s", root / "s")
+    last = sorted((root / "s").glob("chunk-*"))[-1]
+    (last / "poses.npy").unlink()
+    hists = (last / "hists.npy").read_bytes()
+    (last / "hists.npy").write_bytes(hists[:-100])
+    q = Queue.for_root(root)
+    assert scan_once(root, q, JobOptions()).pending == ["s"]
+    (last / "hists.npy").write_bytes(hists)
+    assert scan_once(root, q, JobOptions()).pending == ["s"]
+    shutil.copy2(source / "s" / last.name / "poses.npy", last)
+    assert scan_once(root, q, JobOptions()).queued == ["s"]
+
+
 def test_a_complete_scan_short_of_measurements_is_queued_once_it_stands_still(tmp_path):
     """A copy that was cut short for good is reconstructed from what it holds (its report says so) once nothing in it
     has changed for SETTLE_S."""
