@@ -208,7 +208,7 @@ class I2CTransport(Transport):
         if enable & (ENABLE_PON | ENABLE_CPU_READY) != ENABLE_PON | ENABLE_CPU_READY:
             self._write(REG_ENABLE, (enable | ENABLE_PON) & ~(ENABLE_CPU_RESET | ENABLE_CPU_READY))
             time.sleep(SETTLE_S)
-        self._wait(lambda: self._read(REG_ENABLE) & ENABLE_CPU_READY, "cpu_ready (ENABLE bit 6) after power-on")
+        self._wait_waking(lambda: self._read(REG_ENABLE) & ENABLE_CPU_READY, "cpu_ready (ENABLE bit 6) after power-on")
 
     def _download(self) -> None:
         if self._image is None:
@@ -220,8 +220,8 @@ class I2CTransport(Transport):
             if label != "RAMREMAP":
                 self._bootloader_ok(label)
         time.sleep(SETTLE_S)
-        self._wait(lambda: self._read(REG_APP_ID) == APP_RUNNING,
-                   f"the application to start after the download of {self._image.path} (APP_ID 0x03)")
+        self._wait_waking(lambda: self._read(REG_APP_ID) == APP_RUNNING,
+                          f"the application to start after the download of {self._image.path} (APP_ID 0x03)")
 
     def _bootloader_ok(self, label: str) -> None:
         def ready():
@@ -270,6 +270,29 @@ class I2CTransport(Transport):
 
         self._wait(done, f"command {cmd:#04x} ({COMMAND_NAMES[cmd]})")
         return status
+
+    def _wait_waking(self, ready: Callable[[], bool], what: str) -> None:
+        """`_wait` while the chip's CPU starts (after PON, after RAMREMAP): it may acknowledge nothing for a while, and
+        the 10 ms the references sleep first is no bound on that (ams' Linux driver wakes it again and retries the
+        read, its Python driver polls on): a missing acknowledge means "not yet" until the timeout."""
+        silent: LinkDown | None = None
+
+        def answered() -> bool:
+            nonlocal silent
+            try:
+                done = ready()
+            except LinkDown as exc:
+                silent = exc
+                return False
+            silent = None
+            return done
+
+        try:
+            self._wait(answered, what)
+        except DeviceError as exc:
+            if silent is None:
+                raise
+            raise LinkDown(f"{exc}: {silent}") from None
 
     def _wait(self, ready: Callable[[], bool], what: str) -> None:
         deadline = time.monotonic() + self.timeout_s
