@@ -49,11 +49,21 @@ def load_firmware(path: str | Path, load_address: int = 0) -> FirmwareImage:
         raise DeviceError(f"TMF8820 firmware image {path} cannot be read: {exc.strerror}") from None
     if not raw:
         raise DeviceError(f"TMF8820 firmware image {path} is empty")
-    if path.suffix.lower() == ".hex":
+    # By content, not by name alone: ams' HEX image saved as .ihex or .hex.txt was written byte for byte, its text
+    # (20 kB of ASCII) into the chip's RAM, and the only error was the application not starting.
+    if path.suffix.lower() == ".hex" or raw.lstrip().startswith(b":"):
         segments = parse_intel_hex(raw, path)
+    elif _is_text(raw):
+        raise DeviceError(f"TMF8820 firmware image {path} is text, neither Intel HEX (lines starting with ':') nor a "
+                          f"raw binary image")
     else:
         segments = ((load_address & 0xFFFF, raw),)
     return FirmwareImage(path, segments)
+
+
+def _is_text(raw: bytes) -> bool:
+    """Whether `raw` is all printable ASCII and line breaks (a binary image never is: its code bytes span 0-255)."""
+    return all(32 <= b < 127 or b in b"\r\n\t" for b in raw)
 
 
 def parse_intel_hex(raw: bytes, where: Path) -> tuple[tuple[int, bytes], ...]:
@@ -83,8 +93,10 @@ def parse_intel_hex(raw: bytes, where: Path) -> tuple[tuple[int, bytes], ...]:
             break
         elif kind == 0x04 and count == 2:
             base = ((data[0] << 8) | data[1]) << 16
-        elif kind in (0x02, 0x03, 0x05):
-            continue  # segment / start addresses: the bootloader does not need them
+        elif kind == 0x02 and count == 2:
+            base = ((data[0] << 8) | data[1]) << 4  # extended segment address: the data that follows goes there
+        elif kind in (0x03, 0x05):
+            continue  # start addresses: where a CPU would jump, not where data goes; RAMREMAP starts the image
         else:
             raise DeviceError(f"TMF8820 firmware image {where}: line {no} has unsupported record type {kind:#04x}")
     if not segments:

@@ -356,6 +356,25 @@ def test_intel_hex_images(tmp_path):
     path.write_text(lines[1][:-2] + "00")
     with pytest.raises(DeviceError, match=r"app.hex: line 1 is not an Intel HEX record"):
         load_firmware(path)
+    # An extended segment address (type 02) moves the data that follows (base = segment x 16), as type 04 does.
+    path.write_text("\n".join([record(2, 0, b"\x01\x00"), record(0, 0x0000, b"\xaa\xbb"), record(1, 0, b"")]))
+    assert load_firmware(path).segments == ((0x1000, b"\xaa\xbb"),)
+
+
+@pytest.mark.parametrize("name", ["app.ihex", "app.hex.txt", "app.bin"])
+def test_a_hex_image_is_known_by_its_content_whatever_its_name(tmp_path, name):
+    """ams' HEX image saved under another name (.ihex, a browser's .hex.txt) was downloaded as a raw binary: its text
+    went into the chip's RAM. HEX is known by its records; other text is refused."""
+    body = bytes([3, 0x00, 0x10, 0x00]) + b"\x01\x02\x03"
+    text = ":" + (body + bytes([-sum(body) & 0xFF])).hex().upper() + "\n:00000001FF\n"
+    path = tmp_path / name
+    path.write_text(text)
+    assert load_firmware(path).segments == ((0x0010, b"\x01\x02\x03"),)
+    path.write_text("this is a README, not an image\n")
+    with pytest.raises(DeviceError, match=r"is text, neither Intel HEX .* nor a raw binary image"):
+        load_firmware(path)
+    path.write_bytes(bytes(range(256)))  # a raw binary image loads as it is
+    assert load_firmware(path).segments == ((0, bytes(range(256))),)
 
 
 def test_a_corrupt_record_drops_its_frame(arun, image):
