@@ -47,7 +47,7 @@ from spadscan.protocol.sensor_model import SensorModel
 from .firmware import FirmwareImage, download_frames, load_firmware
 from .i2c_records import HIST_RECORD, RESULT_RECORD, parse_histogram_record, parse_result_record
 from .tmf8820 import TMF8820
-from .transport import LinkDown, Packet, Transport
+from .transport import RANGE_LONG, RANGE_NAMES, RANGE_SHORT, LinkDown, Packet, Transport
 
 log = logging.getLogger("spadscan.daemon")
 
@@ -57,8 +57,6 @@ REG_PERIOD, REG_KILO_ITER, REG_SPAD_MAP, REG_HIST_DUMP = 0x24, 0x26, 0x34, 0x39
 ENABLE_PON, ENABLE_CPU_READY, ENABLE_CPU_RESET = 0x01, 0x40, 0x80
 APP_BOOTLOADER, APP_RUNNING = 0x80, 0x03
 CMD_MEASURE, CMD_STOP, CMD_LOAD_CONFIG, CMD_WRITE_CONFIG, CMD_SHORT_RANGE = 0x10, 0xFF, 0x16, 0x15, 0x6E
-RANGE_NONE, RANGE_SHORT, RANGE_LONG = 0x00, 0x6E, 0x6F
-RANGE_NAMES = {RANGE_NONE: "no accuracy modes", RANGE_SHORT: "short range", RANGE_LONG: "long range"}
 INT_RESULT, INT_HISTOGRAM = 0x02, 0x08
 BUSY = 0x10
 """CMD_STAT (bootloader and application) at or above this value: a command is still running."""

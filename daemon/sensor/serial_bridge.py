@@ -17,6 +17,8 @@ skipped and counted, and the frame it belonged to is dropped by the frame assemb
 from __future__ import annotations
 
 import collections
+import logging
+import re
 import time
 
 import serial
@@ -25,8 +27,10 @@ from spadscan.protocol.sensor_model import SensorModel
 
 from .i2c_records import signed_byte
 from .tmf8820 import TMF8820
-from .transport import (N_RESULTS, N_SUBPACKETS, SUBPACKET_BYTES, HistogramPacket, LinkDown, Packet, ResultPacket,
-                        StatusPacket, Transport)
+from .transport import (N_RESULTS, N_SUBPACKETS, RANGE_NAMES, RANGE_SHORT, SUBPACKET_BYTES, HistogramPacket, LinkDown,
+                        Packet, ResultPacket, StatusPacket, Transport)
+
+log = logging.getLogger("spadscan.daemon")
 
 RAW_FIELDS = 3 + SUBPACKET_BYTES
 OBJ_FIELDS = 6 + 2 * N_RESULTS
@@ -48,6 +52,9 @@ def parse_line(line: bytes, t: float, address: int | None) -> Packet | str:
     """Decode one line (without its newline). Returns a packet, or a string naming why the line was skipped:
     'corrupt', 'separator', 'other_address', 'unknown'."""
     line = line.rstrip(b"\r")
+    note = _bridge_note(line, t)
+    if note is not None:
+        return note
     fields = line.split(b",")
     if len(fields) > 1 and fields[-1] == b"":
         fields.pop()  # the bridge ends some lines with a comma
@@ -84,11 +91,30 @@ def parse_line(line: bytes, t: float, address: int | None) -> Packet | str:
     return "corrupt" if not tag.startswith(b"#") or len(tag) > 8 else "unknown"
 
 
+FIRMWARE_DOWNLOADED = b"FW downloaded"
+ACTIVE_RANGE_LINE = re.compile(rb"Active range: ([0-9A-Fa-f]{1,2})")
+BRIDGE_NOTES = ("firmware_downloaded", "active_range")
+"""StatusPacket kinds of the lines the UW bridge prints without a '#' tag: after each download, and on every start
+the sensor's ACTIVE_RANGE (hex, as Arduino's print(x, HEX) writes it)."""
+
+
+def _bridge_note(line: bytes, t: float) -> StatusPacket | None:
+    """The bridge's own untagged status lines as packets (they are no line noise), else None."""
+    text = line.strip()
+    if text == FIRMWARE_DOWNLOADED:
+        return StatusPacket(kind="firmware_downloaded", text=text.decode(), t=t)
+    match = ACTIVE_RANGE_LINE.fullmatch(text)
+    if match:
+        return StatusPacket(kind="active_range", text=match.group(1).decode().upper(), t=t)
+    return None
+
+
 class SerialBridgeTransport(Transport):
     """pyserial link to the bridge: splits the byte stream into lines, timestamps and parses them.
 
     The port is reopened by path after an unplug (use a stable path such as /dev/serial/by-id/...). Counters:
-    lines, corrupt_lines, unknown_lines, other_address_lines, separators, overlong_lines.
+    lines, corrupt_lines, unknown_lines, other_address_lines, separators, overlong_lines; once the bridge has said so,
+    downloads (its "FW downloaded" lines) and active_range (the accuracy mode its "Active range" line reports).
     """
 
     restarts_measurement = False  # the bridge measures on its own; a reopen restarts only boards reset by DTR
@@ -125,6 +151,9 @@ class SerialBridgeTransport(Transport):
                 line, t = self._pending.popleft()
                 self._counts["lines"] += 1
                 out = parse_line(line, t, self.address)
+                if isinstance(out, StatusPacket) and out.kind in BRIDGE_NOTES:
+                    self._note(out)
+                    continue
                 if not isinstance(out, str):
                     return out
                 key = "separators" if out == "separator" else f"{out}_lines"
@@ -132,6 +161,20 @@ class SerialBridgeTransport(Transport):
             if time.monotonic() >= deadline:
                 return None
             self._fill()
+
+    def _note(self, note: StatusPacket) -> None:
+        """Count a download; keep the accuracy mode the bridge reports, and warn unless it is short range (the
+        `tmf8820` model's time axis), as the I2C backend does."""
+        if note.kind == "firmware_downloaded":
+            self._counts["downloads"] = self._counts.get("downloads", 0) + 1
+            return
+        mode = int(note.text, 16)
+        name = RANGE_NAMES.get(mode, f"unknown ({mode:#04x})")
+        self._counts["active_range"] = name
+        if mode != RANGE_SHORT:
+            log.warning("%s: the bridge reports the sensor in %s mode (Active range: %s), not short-range high "
+                        "accuracy: its time axis is not the one the tmf8820 sensor model describes", self.name, name,
+                        note.text)
 
     def _fill(self) -> None:
         """Read what the port has (waiting at most 0.05 s) and split complete lines into _pending."""

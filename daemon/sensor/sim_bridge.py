@@ -124,6 +124,11 @@ class SimBridge:
         """Queue raw bytes (e.g. the tail of a line, for a mid-line start)."""
         self._queue.put(("data", bytes(data)))
 
+    def boot(self, active_range: int = 0x6E) -> None:
+        """Queue what the UW bridge prints as it starts, before any record: "FW downloaded" after it downloaded the
+        sensor's firmware, then the sensor's ACTIVE_RANGE in hex (Arduino's print(x, HEX): no leading zero)."""
+        self._queue.put(("data", f"FW downloaded\r\nActive range: {active_range:X}\r\n".encode()))
+
     def send_frame(self, counts: np.ndarray, result: BridgeResult | None = None, fault: str | None = None,
                    at: int = 7) -> None:
         """Queue one frame: counts (10, 128) (channel 0 = reference), its result, and an optional fault."""

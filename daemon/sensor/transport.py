@@ -24,6 +24,11 @@ N_RESULTS = 36
 """Result slots (distance, confidence) in one result record."""
 
 
+# ACTIVE_RANGE (register 0x19) as ams' application reports it; the UW bridge prints it as "Active range: <hex>".
+RANGE_NONE, RANGE_SHORT, RANGE_LONG = 0x00, 0x6E, 0x6F
+RANGE_NAMES = {RANGE_NONE: "no accuracy modes", RANGE_SHORT: "short range", RANGE_LONG: "long range"}
+
+
 class LinkDown(DeviceError):
     """The link failed under a transport (port vanished, bus error). The device reopens it with backoff."""
 

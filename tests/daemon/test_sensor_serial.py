@@ -91,6 +91,31 @@ def test_status_lines():
     assert isinstance(vers, StatusPacket) and (vers.kind, vers.text) == ("version", "1,2,3")
 
 
+def test_the_bridges_own_untagged_lines_are_status_not_noise():
+    """The UW firmware prints "FW downloaded" after a download and "Active range: 6E" on every start, without a '#'."""
+    downloaded = parse_line(b"FW downloaded\r", 0.0, 0x41)
+    mode = parse_line(b"Active range: 6f", 0.0, 0x41)
+    assert isinstance(downloaded, StatusPacket) and downloaded.kind == "firmware_downloaded"
+    assert isinstance(mode, StatusPacket) and (mode.kind, mode.text) == ("active_range", "6F")
+    assert parse_line(b"Active range: XYZ", 0.0, 0x41) == "corrupt"
+
+
+@pytest.mark.parametrize("active_range, name, warns", [(0x6E, "short range", False), (0x6F, "long range", True)])
+def test_a_bridge_start_is_counted_and_its_accuracy_mode_kept(arun, caplog, active_range, name, warns):
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                bridge.boot(active_range)
+                bridge.send_frame(counts(1), result(1))
+                await sensor.next_frame(10)
+                return sensor.counters()
+
+    with caplog.at_level("WARNING", logger="spadscan.daemon"):
+        c = arun(main())
+    assert c["corrupt_lines"] == 0 and c["downloads"] == 1 and c["active_range"] == name
+    assert ("not short-range high accuracy" in caplog.text) == warns
+
+
 @pytest.mark.parametrize("fault", FAULTS)
 def test_every_bridge_fault_spoils_the_frame(fault):
     good = frame_lines(counts(3), result(3))
