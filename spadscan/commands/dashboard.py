@@ -5,6 +5,11 @@ frame rate, its last histograms), the reconstruction queue (as `spadscan worker 
 running job's progress), and each live or finished reconstruction's preview, 3D view and report. It updates itself
 about once a second. The dashboard only reads the root: it never talks to the arm or changes a file.
 
+A scan left running by a daemon that is gone (crashed, killed or stopped: no process holds
+CAPTURES/.spadscan-daemon.lock) is shown as "interrupted (no daemon running)", without a frame rate; a daemon
+started on the root takes it over. The lock is seen where the daemon's flock is: on the daemon's machine, or over a
+file system that shares flock locks between machines.
+
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
 
 examples:
@@ -16,6 +21,9 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from spadscan.daemon.root_lock import check_root_free
+from spadscan.protocol.errors import ConfigError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,15 +37,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the worker's queue folder (default: CAPTURES/.queue)")
 
 
+def daemon_running(root: Path) -> bool:
+    """Whether a daemon may hold the captures root: the daemon's own read-only probe (`spadscan daemon --check`),
+    handed to the dashboard, which does not import the daemon's package. A lock that cannot be read counts as held:
+    in doubt, scans are shown as their scan.json says."""
+    try:
+        check_root_free(root)
+    except ConfigError:
+        return True
+    return False
+
+
 def run(args: argparse.Namespace) -> int:
     import sys
 
     from spadscan.dashboard.server import address, make_server
-    from spadscan.protocol.errors import ConfigError
 
     if not 0 <= args.port <= 65535:
         raise ConfigError(f"--port {args.port} must be in [0, 65535]")
-    server = make_server(args.root, args.host, args.port, args.queue)
+    server = make_server(args.root, args.host, args.port, args.queue, daemon_running=daemon_running)
     print(f"spadscan dashboard: serving {args.root.resolve()} at {address(server)} (Ctrl-C stops it)",
           file=sys.stderr, flush=True)
     try:

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,10 @@ class ScanRow:
 
 IN_HAND = ("running", "paused")
 """A row's states of a scan still in hand (listed first; the page's "current" scan is the first of them)."""
+INTERRUPTED = "interrupted"
+"""A scan in hand whose daemon is gone (crashed, killed or stopped): scan.json still says running, but nothing
+writes it. It takes no frames, so it has no frame rate; a daemon started on the root takes it over."""
+NO_DAEMON = "no daemon running"
 
 JSON_KINDS = {int: "a whole number", str: "a string", dict: "an object"}
 
@@ -138,11 +143,19 @@ class ScanIndex:
                 self.reads += 1
                 meta = read_json(path / chunks[-1] / "meta.json").get("measurements") or []
                 row.poses = int(meta[-1]["pose_index"]) + 1  # poses are published in order
-            except (SpadscanError, LookupError, TypeError, ValueError) as exc:
+            # ArithmeticError: int() of an infinite pose_index overflows (a damaged record, not a dead page)
+            except (SpadscanError, LookupError, TypeError, ValueError, ArithmeticError) as exc:
                 row.error = f"{path / chunks[-1]}: unreadable measurement records ({exc})"
         if row.planned:
             row.progress = min(1.0, row.poses / row.planned)
         return row
+
+
+def interrupted(row: ScanRow) -> ScanRow:
+    """A scan in hand as it is shown when no daemon holds the root: a copy, since the row is remembered between polls
+    and the daemon may come back without the scan's files changing."""
+    reason = NO_DAEMON if row.state == "running" else f"{NO_DAEMON}; it was paused: {row.reason}"
+    return replace(row, state=INTERRUPTED, reason=reason)
 
 
 LINKED_OUT = ("its folder links outside the captures root: the dashboard serves nothing there, so its files have "
@@ -194,20 +207,25 @@ def scan_detail(root: Path, row: ScanRow) -> dict:
     except SpadscanError as exc:
         detail["error"] = str(exc)
         return detail
-    if row.state != "paused":  # a paused scan takes no frames: its last rate is no rate
+    if row.state not in ("paused", INTERRUPTED):  # a scan that takes no frames: its last rate is no rate
         detail.update(frame_rates(frames[-RATE_FRAMES:]))
     return detail
 
 
 def frame_rates(meta: list[dict]) -> dict:
-    """Frames per second and poses per minute over measurement records in order (their t_end, seconds)."""
-    times = [m.get("t_end") for m in meta]
-    times = [float(t) for t in times if isinstance(t, (int, float)) and not isinstance(t, bool)]
+    """Frames per second and poses per minute over measurement records in order (their t_end, seconds). A record
+    without a finite t_end (damaged: a NaN would make both rates NaN) counts for neither."""
+    meta = [m for m in meta if _finite(m.get("t_end"))]
+    times = [float(m["t_end"]) for m in meta]
     if len(times) < 2 or times[-1] <= times[0]:
         return {"frames_per_s": None, "poses_per_min": None}
     span = times[-1] - times[0]
     poses = len({m.get("pose_index") for m in meta})
     return {"frames_per_s": (len(times) - 1) / span, "poses_per_min": 60.0 * max(0, poses - 1) / span}
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def plot_histograms(hist: np.ndarray, sensor) -> dict:

@@ -2,7 +2,8 @@
 
 Routes (GET and HEAD only):
   /               the page (page.html), which polls /api/status
-  /api/status     the state of the root as JSON (status.py)
+  /api/status     the state of the root as JSON (status.py); strict JSON, a browser's parser takes it: a NaN or an
+                  infinity read from a damaged file is null there
   /files/PATH     a file under the root; anything that resolves outside it, hidden folders (the queue, a job being
                   written) and folders are 404
   /live3d/SCAN    the 3D view of SCAN's live reconstruction (recon/live/mesh.ply), made on demand and remembered
@@ -22,6 +23,7 @@ from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
 from spadscan.protocol.errors import SpadscanError
+from spadscan.worker.report.report_json import json_safe
 
 from .paths import safe_path
 from .results import LIVE, RECON
@@ -74,7 +76,9 @@ class Handler(BaseHTTPRequestHandler):
                 body = resources.files("spadscan.dashboard").joinpath(PAGE).read_bytes()
                 return self._send(HTTPStatus.OK, body, "text/html; charset=utf-8", head)
             if path == "/api/status":
-                body = json.dumps(self.dashboard.status(), default=str).encode("utf-8")
+                # json_safe: numbers come unchecked from files (json.loads takes NaN, which JSON.parse refuses:
+                # one damaged meta.json or report.json would stop the page for every scan)
+                body = json.dumps(json_safe(self.dashboard.status()), default=str).encode("utf-8")
                 return self._send(HTTPStatus.OK, body, "application/json", head)
             if path.startswith("/files/"):
                 return self._file(path[len("/files/"):], head)
@@ -115,8 +119,10 @@ class Handler(BaseHTTPRequestHandler):
             self.wfile.write(body)
 
 
-def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None) -> ThreadingHTTPServer:
-    """A server for the captures root `root` bound to (host, port) (port 0: any free one); call serve_forever."""
+def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None,
+                daemon_running=None) -> ThreadingHTTPServer:
+    """A server for the captures root `root` bound to (host, port) (port 0: any free one); call serve_forever.
+    `daemon_running(root)`: whether a daemon holds the root (Dashboard); None shows scans as scan.json says."""
     root = Path(root)
     if not root.is_dir():
         raise SpadscanError(f"{root}: no such captures root" + (" (a file, not a folder)" if root.exists() else ""))
@@ -127,7 +133,7 @@ def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None)
         raise SpadscanError(f"--queue {queue_dir}: no such queue folder" +
                             (" (a file, not a folder)" if Path(queue_dir).exists() else "") +
                             " (the worker makes CAPTURES/.queue, the default)")
-    handler = partial(Handler, dashboard=Dashboard(root, queue_dir), live=LiveViews())
+    handler = partial(Handler, dashboard=Dashboard(root, queue_dir, daemon_running), live=LiveViews())
     try:
         server = ThreadingHTTPServer((host, port), handler)
     except OSError as exc:

@@ -1,11 +1,16 @@
 """What `/api/status` answers: the scans under the root, the scan in hand in detail, each scan's reconstructions and
 the reconstruction queue (the worker's read-only status view, with each running job's progress from its log).
+
+Whether a daemon is running is asked of the caller's `daemon_running(root)`: the daemon's lock probe lives in the
+daemon's package, which the dashboard does not import (the CLI command hands it over). Without it, scans are shown
+as their scan.json says.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -13,7 +18,7 @@ from spadscan.worker.job_progress import progress_field, running_progress
 from spadscan.worker.status_detail import status_detail
 
 from .results import ResultIndex
-from .scans import IN_HAND, ScanIndex, scan_detail
+from .scans import IN_HAND, INTERRUPTED, ScanIndex, interrupted, scan_detail
 
 
 def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
@@ -31,11 +36,15 @@ def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
 
 
 class Dashboard:
-    """The state of one captures root (and its queue), read again at each poll; safe to call from several threads."""
+    """The state of one captures root (and its queue), read again at each poll; safe to call from several threads.
 
-    def __init__(self, root, queue_dir=None):
+    `daemon_running(root)` says whether a daemon holds the root (asked once a poll): when none does, a scan still in
+    hand is shown as interrupted, without a frame rate. None: scans are shown as their scan.json says."""
+
+    def __init__(self, root, queue_dir=None, daemon_running: Callable[[Path], bool] | None = None):
         self.root = Path(root)
         self.queue_dir = Path(queue_dir) if queue_dir else self.root / ".queue"
+        self.daemon_running = daemon_running
         self.scans = ScanIndex(self.root)
         self.results = ResultIndex(self.root)
         self._lock = threading.Lock()
@@ -49,14 +58,18 @@ class Dashboard:
         return self._detail[1]
 
     def status(self) -> dict:
+        # a daemon that starts or dies while the scans are read is seen at the next poll
+        orphaned = self.daemon_running is not None and not self.daemon_running(self.root)
         with self._lock:
             rows = self.scans.rows()
+            if orphaned:  # in place: the order (scans in hand first) stays, and the scan is still the one in hand
+                rows = [interrupted(r) if r.state in IN_HAND else r for r in rows]
             scans = []
             for row in rows:
                 entry = row.to_dict()
                 entry["recons"] = self.results.for_scan(row.name)
                 scans.append(entry)
-            current = next((r for r in rows if r.state in IN_HAND), None) or next(
+            current = next((r for r in rows if r.state in IN_HAND + (INTERRUPTED,)), None) or next(
                 (r for r in rows if r.state != "error"), None)
             detail = self._scan_detail(current) if current is not None else None
         try:

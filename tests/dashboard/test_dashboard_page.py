@@ -1,6 +1,6 @@
 """The dashboard page in a real headless browser: it follows a scan as its poses are published, shows a finished
-reconstruction's 3D view, opens the links of any scan name, shows the queue as `spadscan worker --status` does, and
-asks nothing of any server but its own."""
+reconstruction's 3D view, opens the links of any scan name, shows the queue as `spadscan worker --status` does, shows
+a scan whose daemon is gone as interrupted, outlives damaged numbers, and asks nothing of any server but its own."""
 
 from __future__ import annotations
 
@@ -9,6 +9,8 @@ import trimesh
 from dashboard_helpers import (add_final_recon, complete_scan, queue_with_a_kept_result_and_a_damaged_record,
                                serving)
 from page_helpers import add_pose, browser_page, drawn_share, screenshot_pixels, start_scan
+from spadscan.commands.dashboard import daemon_running
+from spadscan.daemon.root_lock import RootLock
 from spadscan.dashboard.server import address
 
 WAIT_MS = 60_000  # generous: a poll a second, on a busy machine
@@ -85,4 +87,55 @@ def test_the_queue_table_shows_kept_results_and_damaged_files_as_worker_status_d
             cell = page.locator(f'#queue tr[data-job="{job_id}"] td').last
             cell.wait_for(timeout=WAIT_MS)
             assert cell.text_content() == detail
+    assert not seen.errors, seen.errors
+
+
+def test_a_scan_whose_daemon_went_shows_as_interrupted_and_comes_back_when_a_daemon_holds_the_root(tmp_path):
+    writer, poses = start_scan(tmp_path / "s1", 8)
+    for i in range(3):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    lock = RootLock(tmp_path)
+    lock.acquire()  # the daemon writing s1
+    try:
+        with serving(tmp_path, daemon_running=daemon_running) as server, browser_page() as (page, seen):
+            page.goto(address(server))
+            page.wait_for_function("() => document.querySelector('#current-rate').textContent === '2.00 frames/s'",
+                                   timeout=WAIT_MS)
+            assert page.locator("#current-state").text_content() == "running"
+            lock.release()  # the daemon died: the kernel dropped its lock
+            page.wait_for_function(
+                "() => document.querySelector('#current-state').textContent === 'interrupted (no daemon running)'",
+                timeout=WAIT_MS)
+            assert page.locator("#current-name").text_content() == "s1"
+            assert page.locator("#current-rate").text_content() == page.locator("#current-ppm").text_content() == "-"
+            assert page.locator("#current-state").get_attribute("class") == "state-interrupted"
+            state_cell = page.locator('#scans tr[data-scan="s1"] td').nth(1)
+            assert state_cell.text_content() == "interrupted"
+            assert state_cell.get_attribute("class") == "state-interrupted"
+            assert state_cell.evaluate("td => getComputedStyle(td).color") == "rgb(187, 0, 0)"  # as errors are
+            lock.acquire()  # a daemon started on the root takes the scan over
+            page.wait_for_function("() => document.querySelector('#current-state').textContent === 'running'",
+                                   timeout=WAIT_MS)
+    finally:
+        lock.release()
+    assert not seen.errors, seen.errors
+
+
+def test_the_page_keeps_updating_with_non_finite_numbers_in_a_report_and_a_live_status(tmp_path):
+    complete_scan(tmp_path / "done", 2)
+    final = tmp_path / "done" / "recon" / "done-fast"
+    final.mkdir(parents=True)
+    (final / "report.json").write_text('{"preset": "fast", "chamfer_mm": Infinity}')
+    live = tmp_path / "done" / "recon" / "live"
+    live.mkdir()
+    (live / "status.json").write_text('{"views_used": 3, "steps": 40, "chamfer_mm": NaN}')
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        page.wait_for_function("() => document.querySelector('#link').textContent.startsWith('updated')",
+                               timeout=WAIT_MS)
+        assert page.locator("#link").get_attribute("class") != "down"
+        picks = page.locator('#scans tr[data-scan="done"] a.pick')
+        assert picks.all_text_contents() == ["live (3 views, 40 steps)", "fast"]  # no Chamfer to show
+        complete_scan(tmp_path / "next", 1)  # and it goes on following the root
+        page.locator('#scans tr[data-scan="next"]').wait_for(timeout=WAIT_MS)
     assert not seen.errors, seen.errors

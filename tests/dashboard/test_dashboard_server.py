@@ -8,7 +8,12 @@ import datetime as _dt
 
 import json
 import os
+import re
+import subprocess
+import sys
 import time
+import urllib.request
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -16,8 +21,52 @@ import pytest
 from dashboard_helpers import (add_final_recon, complete_scan, get, queue_with_a_kept_result_and_a_damaged_record,
                                serving, status)
 from page_helpers import add_pose, start_scan
+from spadscan.commands.dashboard import daemon_running
+from spadscan.daemon.root_lock import RootLock
 from spadscan.protocol.capture_writer import mark_paused
 from spadscan.worker.job_progress import parse_progress
+
+
+@contextmanager
+def lock_holder(root):
+    """A process that holds the captures root's lock as a daemon does (the daemon's own RootLock), until killed."""
+    code = ("import sys; from spadscan.daemon.root_lock import RootLock; RootLock(sys.argv[1]).acquire(); "
+            "print('held', flush=True); sys.stdin.read()")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(root)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout.readline() == "held\n"
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait(30)
+
+
+@contextmanager
+def dashboard_command(root):
+    """`spadscan dashboard --root ROOT --port 0` in its own process; yields the address it says it serves."""
+    proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "dashboard", "--root", str(root), "--port", "0"],
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        said = proc.stderr.readline()
+        found = re.search(r" at (http://\S+/) ", said)
+        assert found, said
+        yield found.group(1)
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def strict_json(body: bytes):
+    """JSON as a browser's JSON.parse reads it: NaN and Infinity are no JSON."""
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON: a browser refuses the whole answer")
+    return json.loads(body, parse_constant=refuse)
+
+
+def fetch_status(url: str) -> dict:
+    with urllib.request.urlopen(url + "api/status", timeout=30) as answer:
+        return strict_json(answer.read())
 
 
 def test_status_lists_scans_with_progress_and_the_scan_in_hand(tmp_path):
@@ -285,3 +334,82 @@ def test_a_paused_scan_says_so_and_why_and_shows_no_frame_rate(tmp_path):
         last = max((tmp_path / "held").glob("chunk-*")).stat().st_mtime
         assert current["updated_utc"] >= _dt.datetime.fromtimestamp(last, _dt.timezone.utc).isoformat(
             timespec="milliseconds")
+
+
+def test_a_running_scan_whose_daemon_was_killed_shows_as_interrupted_without_a_frame_rate(tmp_path):
+    """The daemon holds the root's lock for its life and the kernel drops it when the daemon dies (kill -9 too):
+    `spadscan dashboard` then shows its scan as interrupted, not as running at its last frame rate."""
+    writer, poses = start_scan(tmp_path / "s1", 8)
+    for i in range(3):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    with lock_holder(tmp_path) as daemon, dashboard_command(tmp_path) as url:
+        current = fetch_status(url)["current"]
+        assert (current["name"], current["state"]) == ("s1", "running") and current["frames_per_s"] > 0
+        daemon.kill()  # SIGKILL: the daemon has no say
+        daemon.wait(30)
+        st = fetch_status(url)
+        current = st["current"]
+        assert (current["name"], current["state"], current["reason"]) == ("s1", "interrupted", "no daemon running")
+        assert "frames_per_s" not in current and "poses_per_min" not in current
+        assert (current["poses"], current["planned"]) == (3, 8)  # what is on disk is still shown
+        (row,) = st["scans"]
+        assert (row["state"], row["reason"]) == ("interrupted", "no daemon running")
+
+
+def test_a_scan_in_hand_is_interrupted_only_while_no_daemon_holds_the_root(tmp_path):
+    complete_scan(tmp_path / "done", 2)
+    writer, poses = start_scan(tmp_path / "going", 8)
+    for i in range(3):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    with serving(tmp_path, daemon_running=daemon_running) as server:
+        st = status(server)
+        rows = {s["name"]: s for s in st["scans"]}
+        assert rows["going"]["state"] == "interrupted" and rows["done"]["state"] == "complete"
+        assert st["scans"][0]["name"] == st["current"]["name"] == "going"  # still listed first, still in hand
+        assert "frames_per_s" not in st["current"]
+        with RootLock(tmp_path):  # a daemon started on the root: the scan is its again
+            current = status(server)["current"]
+            assert (current["state"], current["reason"]) == ("running", None)
+            assert current["frames_per_s"] == pytest.approx(2.0)
+        mark_paused(tmp_path / "going", "operator: cable check")  # paused, then the daemon went
+        current = status(server)["current"]
+        assert current["state"] == "interrupted" and "frames_per_s" not in current
+        assert current["reason"] == "no daemon running; it was paused: operator: cable check"
+    with serving(tmp_path) as server:  # no way to ask: shown as scan.json says
+        assert status(server)["current"]["state"] == "paused"
+
+
+def test_non_finite_numbers_in_damaged_files_are_null_and_every_scan_is_still_listed(tmp_path):
+    """json.loads reads NaN and Infinity, which a browser's JSON.parse refuses: /api/status stays strict JSON."""
+    complete_scan(tmp_path / "done", 2)
+    final = tmp_path / "done" / "recon" / "done-fast"
+    final.mkdir(parents=True)
+    (final / "report.json").write_text('{"preset": "fast", "chamfer_mm": Infinity, "seconds": NaN}')
+    live = tmp_path / "done" / "recon" / "live"
+    live.mkdir()
+    (live / "status.json").write_text('{"views_used": 3, "chamfer_mm": NaN}')
+    complete_scan(tmp_path / "torn", 2)
+    last = max((tmp_path / "torn").glob("chunk-*")) / "meta.json"
+    meta = json.loads(last.read_text())
+    meta["measurements"][-1]["pose_index"] = float("inf")  # int() of it overflows
+    last.write_text(json.dumps(meta))
+    writer, poses = start_scan(tmp_path / "going", 8)
+    for i in range(4):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    last = max((tmp_path / "going").glob("chunk-*")) / "meta.json"
+    meta = json.loads(last.read_text())
+    meta["measurements"][-1]["t_end"] = float("nan")
+    last.write_text(json.dumps(meta))
+    with serving(tmp_path) as server:
+        code, body = get(server, "/api/status")
+    assert code == 200
+    st = strict_json(body)
+    rows = {s["name"]: s for s in st["scans"]}
+    assert set(rows) == {"done", "torn", "going"}
+    live_row, final_row = rows["done"]["recons"]
+    assert live_row["summary"] == {"views_used": 3, "chamfer_mm": None}
+    assert final_row["summary"] == {"preset": "fast", "chamfer_mm": None, "seconds": None}
+    assert "torn" in rows["torn"]["error"] and "unreadable measurement records" in rows["torn"]["error"]
+    assert st["current"]["name"] == "going"
+    current = st["current"]  # rates over the three good records (t_end 10.25 .. 11.25)
+    assert (current["frames_per_s"], current["poses_per_min"]) == (pytest.approx(2.0), pytest.approx(120.0))
