@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "cuda, one)")
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
                         help="where the presets reconstruct (default: cpu); cuda points go only to workers "
-                             "started with --resources GPU=1")
+                             "started with --resources GPU=1 (without --scheduler, cuda is refused where torch "
+                             "sees no CUDA device)")
     parser.add_argument("--lcspc", default=None, metavar="DIR",
                         help="the LCSPCData folder (the one holding simulated/) for lcspc:NAME scenes")
     parser.add_argument("--keep", action="store_true",
@@ -55,10 +56,13 @@ def run(args) -> int:
     def log(line: str) -> None:
         print(f"spadscan sweep: {line}", file=sys.stderr, flush=True)
 
-    if args.scheduler is not None:
-        from spadscan.sweep.runner import check_scheduler_address
+    from spadscan.sweep.runner import check_local_device, check_scheduler_address
 
+    # Refused before anything runs (the dry run too: what the run would refuse, it refuses).
+    if args.scheduler is not None:
         check_scheduler_address(args.scheduler)
+    else:
+        check_local_device(args.device)
     spec = load_spec(args.sweep)
     plan = make_plan(spec, None if args.lcspc is None else Path(args.lcspc))
     entries = len(plan.entries)

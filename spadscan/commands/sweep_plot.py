@@ -1,8 +1,9 @@
 """Draw a sweep's Figure A: one panel per parameter, Chamfer distance (log axis) against it, every method.
 
 Reads DIR/sweep.json and DIR/results.csv (written by `spadscan sweep`, also while it runs) and writes into DIR
-figure_a.png (figure_a-<scene>.png for each scene of a sweep of several) and figure_a.html: the pictures and a table
-of every point. Points where a method gave no result are crosses on the panel's top edge.
+figure_a.png (for a sweep of several scenes, figure_a-<n>-<scene>.png for each: n is the scene's place in the sweep
+file, from 1, and <scene> its name made file-name-safe, e.g. figure_a-2-builtin_cup.png) and figure_a.html: the
+pictures and a table of every point. Points where a method gave no result are crosses on the panel's top edge.
 
 Example:
   spadscan sweep-plot sweep-small

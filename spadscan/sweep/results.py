@@ -43,30 +43,74 @@ def number(text) -> float | None:
     return v if math.isfinite(v) else None
 
 
+ROW_COLUMNS = ("scene", "axis", "value", "point", "status", "reason")
+"""The columns of results.csv that the plot and the page cannot do without."""
+
+
 def read_results(folder) -> SweepResults:
-    """The sweep in `folder`; a one-line ConfigError when it is not a sweep folder or has no results yet."""
+    """The sweep in `folder`; a one-line ConfigError when it is not a sweep folder, has no results yet, or its files
+    are not the shape `spadscan sweep` writes."""
     folder = Path(folder)
-    meta_path = folder / SWEEP_JSON
     if not folder.is_dir():
         raise ConfigError(f"{folder}: no such sweep folder")
+    meta = _read_meta(folder)
+    rows = _read_rows(folder / RESULTS_CSV)
+    return SweepResults(folder, meta["mode"], meta["grid"], meta.get("base", {}), meta.get("scenes", []),
+                        meta.get("methods", []), meta.get("presets", []), rows)
+
+
+def _read_meta(folder: Path) -> dict:
+    """sweep.json, checked for the shapes the plot relies on."""
+    path = folder / SWEEP_JSON
     try:
-        meta = json.loads(meta_path.read_text())
-        grid, mode = meta["grid"], meta["mode"]
+        meta = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"{folder}: holds no {SWEEP_JSON}; is it the --out of a `spadscan sweep`?") from None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(f"{meta_path}: unreadable ({' '.join(str(exc).split())})") from None
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{path}: unreadable ({' '.join(str(exc).split())})") from None
+    problem = _meta_problem(meta)
+    if problem:
+        raise ConfigError(f"{path}: unreadable ({problem}); is it the --out of a `spadscan sweep`?")
+    return meta
+
+
+def _meta_problem(meta) -> str | None:
+    """What is wrong with a sweep.json's shape, or None."""
+    if not isinstance(meta, dict):
+        return "not a JSON object"
+    if not isinstance(meta.get("mode"), str):
+        return "'mode' is not a string"
+    grid = meta.get("grid")
+    if not isinstance(grid, dict) or not all(isinstance(v, list) for v in grid.values()):
+        return "'grid' is not an object of parameter -> list of values"
+    for key, kind, name in (("base", dict, "an object"), ("scenes", list, "a list"), ("methods", list, "a list"),
+                            ("presets", list, "a list")):
+        if not isinstance(meta.get(key, kind()), kind):
+            return f"{key!r} is not {name}"
+    if not all(isinstance(v, str) for key in ("scenes", "methods", "presets") for v in meta.get(key, [])):
+        return "'scenes', 'methods' and 'presets' must hold names"
+    return None
+
+
+def _read_rows(path: Path) -> list[dict]:
+    """results.csv as dicts of strings. utf-8-sig: a spreadsheet that re-saves the file may put a byte-order mark
+    before the first column's name."""
     try:
-        with open(folder / RESULTS_CSV, newline="") as f:
-            rows = list(csv.DictReader(f))
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f, restval="")  # a short row's missing cells read as empty, not None
+            rows = list(reader)
+            header = reader.fieldnames or []
     except FileNotFoundError:
-        raise ConfigError(f"{folder}: holds no {RESULTS_CSV} yet (no point has finished)") from None
+        raise ConfigError(f"{path.parent}: holds no {RESULTS_CSV} yet (no point has finished)") from None
     except (OSError, csv.Error, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{folder / RESULTS_CSV}: unreadable ({' '.join(str(exc).split())})") from None
+        raise ConfigError(f"{path}: unreadable ({' '.join(str(exc).split())})") from None
     if not rows:
-        raise ConfigError(f"{folder / RESULTS_CSV}: no point has finished yet")
-    return SweepResults(folder, mode, grid, meta.get("base", {}), meta.get("scenes", []), meta.get("methods", []),
-                        meta.get("presets", []), rows)
+        raise ConfigError(f"{path}: no point has finished yet")
+    missing = [c for c in ROW_COLUMNS if c not in header]
+    if missing:
+        raise ConfigError(f"{path}: not a sweep's results table: it lacks the column{'s' if len(missing) > 1 else ''} "
+                          f"{', '.join(missing)} (is it the file `spadscan sweep` writes?)")
+    return rows
 
 
 __all__ = ["SweepResults", "read_results", "number"]

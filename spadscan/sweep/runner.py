@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from multiprocessing import resource_tracker
 from typing import Callable
 
+import torch
 from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
 from distributed.comm.addressing import get_address_host_port
 from distributed.utils import silence_logging_cmgr
@@ -41,8 +42,11 @@ EVENT_TOPIC = "spadscan-sweep"
 DEVICES = ("cpu", "cuda", "auto")
 CONNECT_TIMEOUT_S = 30
 RESULTS_EVERY_S = 10.0
-"""results.csv is gathered again at most this often while points finish (it reads every point's file), and at the
-end."""
+"""results.csv is gathered at once when the first point finishes, then at most this often while points finish (it
+reads every point's file): a point that finishes sooner is gathered when the time is up, not only when another point
+finishes (which can take hours). And at the end."""
+POLL_S = 0.1
+"""How often the client looks for finished points while it waits (as often as Dask's own `as_completed` does)."""
 
 
 def emit_event(out: str, point_id: str, event: str, **fields) -> None:
@@ -104,6 +108,8 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
                           "(dask worker ADDRESS)")
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers {workers} must be at least 1")
+    if scheduler is None:
+        check_local_device(device)
     store = SweepDir(out)
     store.open(plan)
     try:
@@ -156,27 +162,49 @@ def _submit_and_gather(plan, todo, store, summary, client, call, device, progres
         future = client.submit(*call(task), key=f"spadscan-point-{task.id}-{token}", resources=resources,
                                pure=False)
         futures[future] = task
-    gathered = time.monotonic()
     with tqdm(total=len(todo), desc="sweep", unit="point", disable=not progress) as bar:
         # Results come with the futures (fetched in the background), not one round trip per point.
-        for future, outcome in as_completed(futures, with_results=True, raise_errors=False):
-            task = futures.pop(future)
-            # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
-            result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device)
-            future.release()
-            summary.ran += 1
-            if result["status"] == "done":
-                summary.done += 1
-            else:
-                summary.failed.append((task, result.get("reason") or "failed"))
-                # Above the bar, on stderr with it: stdout holds the summary alone.
-                bar.write(f"spadscan sweep: failed: {task.describe(plan.spec.base)}: {result.get('reason')}",
-                          file=sys.stderr)
-            bar.set_postfix(failed=len(summary.failed), refresh=False)
-            bar.update(1)
-            if time.monotonic() - gathered > RESULTS_EVERY_S:  # a look at results.csv mid-sweep is current
+        finished = as_completed(futures, with_results=True, raise_errors=False)
+        gathered, due = -float("inf"), False  # when results.csv was last gathered; whether it misses a point
+        while not finished.is_empty():
+            wait_s = max(0.0, gathered + RESULTS_EVERY_S - time.monotonic()) if due else None
+            batch = _next_batch(finished, wait_s)
+            for future, outcome in batch:
+                _record(plan, futures.pop(future), future, outcome, store, summary, device, bar)
+            due = due or bool(batch)
+            # A look at results.csv mid-sweep is current within RESULTS_EVERY_S of a point's end (run_sweep
+            # gathers it after the last point).
+            if due and time.monotonic() - gathered >= RESULTS_EVERY_S and not finished.is_empty():
                 store.write_results(plan)
-                gathered = time.monotonic()
+                gathered, due = time.monotonic(), False
+
+
+def _next_batch(finished, wait_s: float | None) -> list:
+    """The finished (future, outcome) pairs of `finished`: those ready now, else the first to come within `wait_s`
+    seconds (None: however long it takes); an empty list when none came in that time or none is left."""
+    deadline = None if wait_s is None else time.monotonic() + wait_s
+    while not finished.has_ready() and not finished.is_empty():
+        if deadline is not None and time.monotonic() >= deadline:
+            return []
+        time.sleep(POLL_S)
+    return finished.next_batch(block=False)
+
+
+def _record(plan, task, future, outcome, store, summary, device, bar) -> None:
+    """Count a finished point in `summary` and on the bar, recording it first when its task raised."""
+    # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
+    result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device)
+    future.release()
+    summary.ran += 1
+    if result["status"] == "done":
+        summary.done += 1
+    else:
+        summary.failed.append((task, result.get("reason") or "failed"))
+        # Above the bar, on stderr with it: stdout holds the summary alone.
+        bar.write(f"spadscan sweep: failed: {task.describe(plan.spec.base)}: {result.get('reason')}",
+                  file=sys.stderr)
+    bar.set_postfix(failed=len(summary.failed), refresh=False)
+    bar.update(1)
 
 
 def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
@@ -220,6 +248,14 @@ def _quiet_children():
             os.environ.pop("PYTHONWARNINGS", None)
         else:
             os.environ["PYTHONWARNINGS"] = env
+
+
+def check_local_device(device: str) -> None:
+    """Refuse, in one line, --device cuda for the embedded cluster (this machine is its worker) where torch sees no
+    CUDA device, before anything runs: every point would be simulated and run through the baselines, then fail."""
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device 'cuda' asked for, but torch sees no CUDA device on this machine, whose local cluster "
+                          "would run the points (use --device cpu or auto, or --scheduler with GPU workers)")
 
 
 def check_scheduler_address(address: str) -> None:
@@ -283,4 +319,5 @@ class _client:
         return False
 
 
-__all__ = ["run_sweep", "dask_point", "emit_event", "Summary", "EVENT_TOPIC", "cores"]
+__all__ = ["run_sweep", "check_local_device", "check_scheduler_address", "dask_point", "emit_event", "Summary",
+           "EVENT_TOPIC", "cores"]

@@ -1,7 +1,8 @@
 """A sweep's results folder: what survives a crash, a killed worker and a re-run.
 
     DIR/sweep.json          the fingerprint of the base condition and methods, the grid, the entries (see plan.py)
-    DIR/sweep.toml          a copy of the sweep file last run here
+    DIR/sweep.toml          a copy of the sweep file last run here (its relative mesh paths are relative to the
+                            original's folder: sweep.json's sweep_file)
     DIR/points/<id>.json    one finished point (done or failed), written at once and atomically by the worker
     DIR/results.csv         every grid entry that has a result, one row each, gathered from points/
     DIR/log.jsonl           what happened when: each point's start and stages, on which worker, and its end
@@ -150,7 +151,16 @@ class SweepDir:
         shown = ", ".join(changed[:4]) + (f" and {len(changed) - 4} more" if len(changed) > 4 else "")
         raise ConfigError(f"{self.path} holds points of another base condition ({shown or 'a different format'}); "
                           f"its results would not be comparable with this sweep's: choose another --out, or "
-                          f"restore the sweep file it was run with ({self.path / SWEEP_TOML})")
+                          f"{self._restore_advice(old.get('sweep_file'))}")
+
+    def _restore_advice(self, sweep_file) -> str:
+        """How to run this folder's own sweep again. The copy in DIR is not run where it is: a scene that is a
+        relative mesh path is relative to the original file's folder, so the copy goes back there."""
+        copy = self.path / SWEEP_TOML
+        if not isinstance(sweep_file, str) or not sweep_file:
+            return f"restore the sweep file it was run with (its text is in {copy}) and run that"
+        return (f"run the sweep file it was run with, {sweep_file} (if it has changed since, copy {copy} over it "
+                f"first: its scenes' relative paths are relative to that file's folder)")
 
     def write_results(self, plan) -> int:
         """Gather every grid entry of `plan` that has a result into results.csv (atomically); returns the rows."""

@@ -48,6 +48,57 @@ def test_sweep_plot_of_a_folder_that_is_not_a_sweep_is_one_line(tmp_path, capsys
     assert "holds no sweep.json" in err and err.count("\n") == 1
 
 
+
+def test_a_results_csv_re_saved_with_a_byte_order_mark_still_plots(finished_sweep, capsys):
+    """A spreadsheet that saves the table as "CSV UTF-8" puts a byte-order mark before the first column's name."""
+    csv_path = finished_sweep / "results.csv"
+    csv_path.write_text(csv_path.read_text(encoding="utf-8"), encoding="utf-8-sig")
+    assert csv_path.read_bytes().startswith(b"\xef\xbb\xbf")
+    assert main(["sweep-plot", str(finished_sweep)]) == 0
+    assert "figure_a.png" in capsys.readouterr().out
+    assert (finished_sweep / "figure_a.html").read_text().count("<tr>") == 1 + 4
+
+
+def _without_column(text: str, name: str) -> str:
+    lines = [line.split(",") for line in text.splitlines()]
+    i = lines[0].index(name)
+    return "\n".join(",".join(cells[:i] + cells[i + 1:]) for cells in lines) + "\n"
+
+
+@pytest.mark.parametrize("damage, expected", [
+    (lambda folder: (folder / "results.csv").write_text(
+        _without_column((folder / "results.csv").read_text(), "scene")), "lacks the column scene"),
+    (lambda folder: (folder / "results.csv").write_text("a,b\n1,2\n"),
+     "lacks the columns scene, axis, value, point, status, reason"),
+    (lambda folder: _edit_meta(folder, grid=None), "'grid' is not an object"),
+    (lambda folder: _edit_meta(folder, grid={"views": 8}), "'grid' is not an object"),
+    (lambda folder: _edit_meta(folder, mode=3), "'mode' is not a string"),
+    (lambda folder: _edit_meta(folder, scenes="builtin:sphere"), "'scenes' is not a list"),
+    (lambda folder: _edit_meta(folder, methods=[1]), "must hold names"),
+], ids=["no-scene-column", "other-table", "grid-null", "grid-scalar-values", "mode", "scenes", "methods"])
+def test_a_damaged_results_table_or_sweep_json_is_one_line(finished_sweep, capsys, damage, expected):
+    damage(finished_sweep)
+    assert main(["sweep-plot", str(finished_sweep)]) == 1
+    err = capsys.readouterr().err
+    assert expected in err and err.count("\n") == 1 and "Traceback" not in err, err
+
+
+def _edit_meta(folder, **changes) -> None:
+    import json
+
+    path = folder / "sweep.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
+
+
+def test_the_help_names_the_pictures_as_they_are_written():
+    from spadscan.commands import sweep_plot
+    from spadscan.sweep.figure_a import picture_name
+
+    scenes = ["builtin:sphere", "builtin:cup"]
+    assert picture_name("builtin:cup", scenes) in sweep_plot.__doc__
+    assert "figure_a-<n>-<scene>.png" in sweep_plot.__doc__ and picture_name("builtin:cup", ["builtin:cup"]) in \
+        sweep_plot.__doc__
+
 def test_the_page_shows_in_a_browser(finished_sweep):
     assert main(["sweep-plot", str(finished_sweep)]) == 0
     with browser_page() as (page, seen):

@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import json
+import time
+from pathlib import Path
 
+import pytest
+import torch
+
+from spadscan.cli import main
+from spadscan.protocol.errors import ConfigError
+from spadscan.sweep import runner
 from spadscan.sweep.plan import make_plan
 from spadscan.sweep.runner import emit_event, run_sweep
 from spadscan.sweep.spec import load_spec
+from spadscan.sweep.store import SweepDir
 
 from sweep_helpers import write_tiny
+from test_sweep_store import fake_result
 
 
 def point_beside_another_sweep(task, out, device, keep):
@@ -32,3 +42,67 @@ def test_a_sweep_logs_only_its_own_events_on_a_shared_scheduler(tmp_path):
     events = [json.loads(line) for line in (tmp_path / "out" / "log.jsonl").read_text().splitlines()]
     # The events of a task reach the client before its result (one stream, in order): all of this sweep's are here.
     assert sorted(e["point"] for e in events) == sorted(plan.points) and all(e["event"] == "start" for e in events)
+
+
+
+def _has_row(out: Path, point_id: str) -> bool:
+    """Whether DIR/results.csv holds a row of the point (an absent file holds none; it is replaced atomically)."""
+    try:
+        return point_id in (out / "results.csv").read_text()
+    except FileNotFoundError:
+        return False
+
+
+def point_in_turn(task, out, device, keep):
+    """Each point waits until results.csv shows the point before it (order.json beside DIR: id -> the id before, or
+    null), then stores its result; one that waits in vain fails, saying so."""
+    out = Path(out)
+    before = json.loads((out.parent / "order.json").read_text())[task.id]
+    deadline = time.monotonic() + 60  # far beyond RESULTS_EVERY_S, however busy the machine
+    while before is not None and not _has_row(out, before):
+        if time.monotonic() > deadline:
+            return {"id": task.id, "status": "failed", "reason": f"results.csv never showed {before}",
+                    "seconds": 0.0, "worker": None}
+        time.sleep(0.05)
+    SweepDir(out).write_point(fake_result(task))
+    return {"id": task.id, "status": "done", "reason": None, "seconds": 0.0, "worker": None}
+
+
+def test_results_csv_catches_up_with_a_finished_point_while_the_next_one_runs(tmp_path, monkeypatch):
+    """A point that finishes soon after results.csv was gathered is in it once the throttle's time is up, not only
+    when another point finishes: here each point finishes only after the one before is in results.csv."""
+    from distributed import LocalCluster
+
+    monkeypatch.setattr(runner, "RESULTS_EVERY_S", 2.0)
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    ids = sorted(plan.points, key=lambda i: (plan.points[i].params["views"], -plan.points[i].params["power"]))
+    (tmp_path / "order.json").write_text(json.dumps(dict(zip(ids, [None, *ids[:-1]]))))
+    # Threads: every point runs at once, so that only results.csv decides when each ends.
+    cluster = LocalCluster(n_workers=1, threads_per_worker=len(ids), processes=False, dashboard_address=None)
+    try:
+        summary = run_sweep(plan, tmp_path / "out", scheduler=cluster.scheduler_address, progress=False,
+                            point=point_in_turn)
+    finally:
+        cluster.close()
+    assert [reason for _, reason in summary.failed] == [] and summary.done == len(ids)
+    assert summary.rows == len(plan.entries)
+
+
+def test_cuda_without_a_scheduler_is_refused_where_torch_sees_no_cuda(tmp_path, monkeypatch):
+    """The embedded cluster's worker is this machine: no point is run (to fail at the end) and nothing is written."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    with pytest.raises(ConfigError, match="torch sees no CUDA device") as err:
+        run_sweep(plan, tmp_path / "out", device="cuda", progress=False, point=point_beside_another_sweep)
+    assert "\n" not in str(err.value) and "--device cpu" in str(err.value)
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_command_refuses_cuda_without_a_scheduler_in_one_line_dry_run_too(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    tiny = str(write_tiny(tmp_path))
+    for extra in (["--dry-run"], ["--no-progress"]):
+        assert main(["sweep", tiny, "--out", str(tmp_path / "out"), "--device", "cuda", *extra]) != 0
+        err = capsys.readouterr().err
+        assert "torch sees no CUDA device" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out").exists()

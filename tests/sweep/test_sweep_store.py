@@ -72,6 +72,38 @@ def test_a_folder_that_holds_no_point_takes_a_changed_base_condition(tmp_path):
     assert json.loads((tmp_path / "out" / "sweep.json").read_text())["fingerprint"] == plan.fingerprint
 
 
+
+def test_the_refusal_names_the_original_sweep_file_which_runs_where_the_copy_would_not(tmp_path):
+    """A scene that is a relative mesh path is relative to the sweep file's folder: the copy in DIR cannot be run
+    where it is, and the advice leads back to the original file, restored from the copy."""
+    import shutil
+
+    import trimesh
+
+    sweeps = tmp_path / "sweeps"
+    (sweeps / "meshes").mkdir(parents=True)
+    trimesh.creation.icosphere(subdivisions=2, radius=0.1).export(sweeps / "meshes" / "ball.obj")
+    original = sweeps / "one.toml"
+    text = write_tiny(tmp_path).read_text().replace('"builtin:sphere"', '"meshes/ball.obj"')
+    original.write_text(text)
+    plan = make_plan(load_spec(original))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    out.write_point(fake_result(next(iter(plan.points.values()))))
+    original.write_text(text.replace("views = 12\n", "views = 16\n"))  # edited in place since
+    with pytest.raises(ConfigError, match="another base condition") as err:
+        SweepDir(tmp_path / "out").open(make_plan(load_spec(original)))
+    message = str(err.value)
+    assert str(original.resolve()) in message and str(tmp_path / "out" / "sweep.toml") in message
+    assert "\n" not in message
+    with pytest.raises(ConfigError, match="no such mesh file"):
+        make_plan(load_spec(tmp_path / "out" / "sweep.toml"))  # why the message does not send one to the copy
+    shutil.copyfile(tmp_path / "out" / "sweep.toml", original)  # the advice, followed
+    again = SweepDir(tmp_path / "out")
+    again.open(make_plan(load_spec(original)))
+    again.close()
+
 def test_a_folder_of_other_files_is_not_swept_into(tmp_path):
     plan = make_plan(load_spec(write_tiny(tmp_path)))
     (tmp_path / "out").mkdir()
