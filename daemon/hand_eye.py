@@ -10,7 +10,7 @@ the estimator's own biases cancel. Levenberg-Marquardt over six parameters (a ro
 side of X's rotation, a translation in the flange frame), optionally a seventh: a shift of the sensor model's zero
 bin; before it, the start is moved along the sensor's axis to the returns' median range (a start centimetres off along
 it leaves the fit no way back). After it, X's uncertainty (sigma^2 (J^T J)^-1); views that leave part of X
-undetermined are refused rather than fitted.
+undetermined are refused rather than fitted. Both uncertainties are given along and about the flange's axes.
 
 A plane constrains X well when the views tilt the tool in different directions (rotations about several axes carry
 X's translation across the plane's normal); residuals of a few millimetres remain on real data (the peak's sub-bin
@@ -61,6 +61,19 @@ UNCERTAIN_MM = 5.0
 UNCERTAIN_DEG = 2.0
 """Above these (one standard deviation, for the fit's own scatter) `calibrate` warns: the recipe in the docs gives
 about 2.5 mm and 0.7 degrees for returns scattered by SIGMA_FLOOR_BINS."""
+
+PLAUSIBLE_TILT_DEG = 10.0
+PLAUSIBLE_ACROSS_MM = 20.0
+PLAUSIBLE_ALONG_MM = 100.0
+PLAUSIBLE_RMS_MM = 10.0
+"""Beyond these `calibrate` warns that the fit is more likely wrong than the bracket: a bracket's drawing or a
+caliper measurement puts the sensor's axis within a few degrees and its aperture within a few millimetres sideways,
+and a start whose axis is tilted more than about 20 degrees can settle in a wrong minimum (firmware_notes/hand_eye.md),
+so a fitted tilt of the axis over 10 degrees or a sideways shift over 20 mm is twice a careless start. Along the
+axis the start may be centimetres off (the default identity, a bracket left out: the fit moves it back first), but
+not more than a bracket is long (10 cm). A turn about the axis is not limited (the connector's orientation may be
+unknown; the fit recovers any). A residual RMS over 10 mm is more than real data leaves with the right target (a
+few millimetres): tens of millimetres mean a wrong target."""
 
 
 @dataclass(frozen=True)
@@ -135,7 +148,7 @@ class HandEyeFit:
     std_mm: tuple = (0.0, 0.0, 0.0)
     """One standard deviation of X's translation along the flange's x, y, z (mm)."""
     std_deg: tuple = (0.0, 0.0, 0.0)
-    """One standard deviation of X's rotation about x, y, z (degrees)."""
+    """One standard deviation of X's rotation about the flange's x, y, z (degrees)."""
 
     @property
     def uncertain(self) -> bool:
@@ -149,6 +162,25 @@ class HandEyeFit:
     @property
     def change_deg(self) -> float:
         return math.degrees(float(np.linalg.norm(matrix_to_rotvec(self.start[:3, :3].T @ self.hand_eye[:3, :3]))))
+
+    def implausible(self) -> list[str]:
+        """How the fitted X left the start or explains the returns beyond what a right fit from a bracket's drawing
+        does (see PLAUSIBLE_TILT_DEG), each as a phrase with its unit; empty when nothing does."""
+        axis = self.start[:3, 2]
+        moved = (self.hand_eye[:3, 3] - self.start[:3, 3]) * 1e3
+        along = float(moved @ axis)
+        across = float(np.linalg.norm(moved - along * axis))
+        tilt = math.degrees(math.acos(float(np.clip(axis @ self.hand_eye[:3, 2], -1.0, 1.0))))
+        out = []
+        if tilt > PLAUSIBLE_TILT_DEG:
+            out.append(f"tilted the sensor's axis {tilt:.0f} deg")
+        if across > PLAUSIBLE_ACROSS_MM:
+            out.append(f"moved it {across:.0f} mm across its axis")
+        if abs(along) > PLAUSIBLE_ALONG_MM:
+            out.append(f"moved it {along:+.0f} mm along its axis")
+        if self.rms_mm > PLAUSIBLE_RMS_MM:
+            out.append(f"left a residual RMS of {self.rms_mm:.1f} mm")
+        return out
 
 
 def peak_bins(hists: np.ndarray, first_bin: int) -> np.ndarray:
@@ -276,7 +308,7 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
     seen = np.isfinite(predict(params)[use])
     fit = HandEyeFit(_compose(x0, params), x0, rms_start, _rms_mm(r[seen], model), int(seen.sum()), len(tcp),
                      float(params[6]) if fit_zero_bin else 0.0, done, lost=int((~seen).sum()))
-    jac = _jacobian(residual, params, r, steps)
+    jac = _flange_rotation(_jacobian(residual, params, r, steps), x0, params)
     _check_determined(jac, reader.path)
     scatter = float(np.sqrt(np.mean(r[seen] ** 2))) if seen.any() else 0.0
     fit.std_mm, fit.std_deg = _uncertainty(jac, max(scatter, SIGMA_FLOOR_BINS))
@@ -289,10 +321,34 @@ def _jacobian(residual, params: np.ndarray, r: np.ndarray, steps: np.ndarray) ->
     return np.stack([(residual(params + eye[i] * steps[i]) - r) / steps[i] for i in range(len(params))], axis=1)
 
 
+def _flange_rotation(jac: np.ndarray, start: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """The Jacobian (zones, parameters) with its rotation columns taken to a turn of the fitted X about the flange's
+    axes, so that the uncertainty is reported in the frame its label names. The fit's rotation vector r turns X on
+    the sensor's side of the start (X = R0 R(r)); a step dr of it turns the fitted X by R0 J(r) dr about the
+    flange's axes (J: the rotation's left Jacobian, the identity for a small r). On a bracket that turns the sensor
+    (90 degrees about z, say) the sensor's axes are not the flange's: reported unrotated, the uncertainty about the
+    flange's x was the one about the sensor's y."""
+    to_flange = start[:3, :3] @ _left_jacobian(params[:3])
+    out = jac.copy()
+    out[:, :3] = jac[:, :3] @ np.linalg.inv(to_flange)
+    return out
+
+
+def _left_jacobian(rotvec: np.ndarray) -> np.ndarray:
+    """J with R(r + dr) = R(J dr) R(r) to first order in dr (3, 3)."""
+    theta = float(np.linalg.norm(rotvec))
+    k = np.array([[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * k
+    return (np.eye(3) + (1.0 - math.cos(theta)) / theta ** 2 * k
+            + (theta - math.sin(theta)) / theta ** 3 * (k @ k))
+
+
 def _uncertainty(jac: np.ndarray, sigma_bins: float) -> tuple[tuple, tuple]:
-    """One standard deviation of X's translation (flange axes, mm) and rotation (rotation vector, degrees) for
-    returns scattered by sigma_bins: sigma^2 (J^T J)^-1 over every fitted parameter (a fitted zero bin takes its
-    share). A direction the views cannot tell apart (J^T J singular) comes out infinite."""
+    """One standard deviation of X's translation (flange axes, mm) and rotation (about the flange's axes for a
+    Jacobian from `_flange_rotation`, degrees) for returns scattered by sigma_bins: sigma^2 (J^T J)^-1 over every
+    fitted parameter (a fitted zero bin takes its share). A direction the views cannot tell apart (J^T J singular)
+    comes out infinite."""
     scale = np.linalg.norm(jac, axis=0)
     scale[scale == 0] = 1.0
     _, s, vt = np.linalg.svd(jac / scale, full_matrices=False)

@@ -22,6 +22,13 @@ sensor's signal scale; in the outer zones, where the table shows beside the pyra
 the object at albedo 1 on a table of 1.35."""
 DEFAULT_HALF_SIZE_M = 1.0
 """Half the side of the table's square (metres): a 2 m table, wider than any view of a scan reaches."""
+CUT_TOLERANCE_M = 0.003
+"""How far (metres) the table top may lie above the object's lowest point: a mesh's feet may dip a hair below the
+plane it was modelled on. More, and the table cuts the object (or, above all of it, hangs over it)."""
+FLOAT_WARN_M = 0.01
+"""A gap (metres) between the table top and the object's lowest point beyond which the object floats: wider than a
+mesh's rounding, and close to a tmf8820 bin (13.6 mm), where the table shows as a return of its own under the
+object."""
 
 
 @dataclass(frozen=True)
@@ -39,6 +46,11 @@ class SimTable:
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and lo <= v <= hi):
                 raise SimulationError(f"table {key} = {v!r} is outside [{lo:g}, {hi:g}]")
         return self
+
+    def gap_below(self, lowest_z: float) -> float:
+        """Metres from the table top up to an object's lowest point (z, metres): negative when the table lies above
+        it (see CUT_TOLERANCE_M, FLOAT_WARN_M)."""
+        return float(lowest_z) - self.height_m
 
     def hits(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(range (N,) metres along each ray to the table, inf where the ray never meets it; |cos| of incidence
@@ -58,4 +70,4 @@ class SimTable:
         return {"z": float(self.height_m), "albedo": float(self.albedo), "half_size_m": float(self.half_size_m)}
 
 
-__all__ = ["SimTable", "DEFAULT_ALBEDO", "DEFAULT_HALF_SIZE_M"]
+__all__ = ["SimTable", "DEFAULT_ALBEDO", "DEFAULT_HALF_SIZE_M", "CUT_TOLERANCE_M", "FLOAT_WARN_M"]

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol import pileup
+from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import load_mesh
 from spadscan.protocol.raycast import first_hits, make_intersector, zone_rays
 from spadscan.protocol.sensor_model import Pulse, Zone
@@ -233,6 +234,34 @@ def fit_tmf(root: Path, pulse_values, pulse_origin: int) -> dict:
             "background_counts_per_bin": [float(np.percentile(floor, 5)), float(np.percentile(floor, 95))]}
 
 
+def input_problem(args) -> str | None:
+    """What the options lack, as one line, or None: checked before any fit runs (a full fit takes a long time, and a
+    folder one level off gave an IndexError about the mean of no histograms)."""
+    root = args.dataset
+    if not root.is_dir():
+        return f"dataset not found at {root}"
+    hint = "(--dataset is LCSPCData's folder, the one that holds simulated/ and real/)"
+    if args.tmf:
+        for name in ("pyramid.json", "pyramid2.stl"):
+            if not (root / "real" / "pyramid" / name).is_file():
+                return f"{root / 'real' / 'pyramid' / name} not found {hint}"
+    else:
+        if args.rays < 1:
+            return f"--rays {args.rays} must be at least 1 (rays per view over the fitting cone)"
+        for scene in args.scenes:
+            for suffix in (".json", ".obj"):
+                path = root / "simulated" / scene / f"{scene}{suffix}"
+                if not path.is_file():
+                    there = sorted(p.name for p in (root / "simulated").glob("*") if p.is_dir())
+                    known = f"(scenes there: {', '.join(there)})" if there else hint
+                    return f"scene {scene!r}: {path} not found {known}"
+    if args.json is not None and not args.json.parent.is_dir():
+        return f"--json {args.json}: the folder {args.json.parent} does not exist"
+    if args.json is not None and args.json.is_dir():
+        return f"--json {args.json} is a folder: give the file to write"
+    return None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset", type=Path, required=True,
@@ -245,9 +274,20 @@ def main(argv=None) -> int:
                                                        "signal scale from the real pyramid; skips the lcspc fit")
     ap.add_argument("--json", type=Path, help="write the results here")
     args = ap.parse_args(argv)
-    if not args.dataset.is_dir():
-        print(f"fit_sensor: dataset not found at {args.dataset}", file=sys.stderr)
+    problem = input_problem(args)
+    if problem:
+        print(f"fit_sensor: {problem}", file=sys.stderr)
         return 1
+    try:
+        run(args)
+    except (SpadscanError, OSError, ValueError) as exc:  # a damaged file of the dataset, a full disk: one line
+        print(f"fit_sensor: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run(args) -> None:
+    """The fits the options ask for, printed, and written to --json when given."""
     result = {}
     if args.tmf:
         values, origin = tmf_pulse_table(args.dataset)
@@ -262,7 +302,6 @@ def main(argv=None) -> int:
             print(json.dumps({key: result[key]}, indent=1))
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
-    return 0
 
 
 if __name__ == "__main__":

@@ -63,7 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     floor.add_argument("--floor-z", type=float, default=None, metavar="M",
                        help="height of the floor the object stands on, metres; below it is empty (default: a "
                             "measured capture's table, found in its histograms as the fast reconstruction finds it; "
-                            "z = 0 for a simulated one)")
+                            "z = 0 for a simulated one). Refused above every sensor position, or farther below them "
+                            "than the histograms reach")
     floor.add_argument("--no-floor", action="store_true", help="do not assume a floor")
     parser.add_argument("--points", type=int, default=300_000, metavar="N",
                         help="sample points per mesh for the metrics against the ground truth (default: 300,000, "

@@ -12,7 +12,9 @@ with views that tilt the tool in different directions (rings at several elevatio
 firmware_notes/hand_eye.md): a plane seen from one orientation fixes X only along its normal, and views that differ
 only by a turn about one axis (one ring, rings without jitter) leave part of X undetermined: such a capture is
 refused, naming the part. A start centimetres off along the sensor's axis (the default identity, a bracket left out)
-is first moved along that axis to the returns' median range.
+is first moved along that axis to the returns' median range. A fit that tilts the sensor's axis more than 10 deg,
+moves it more than 20 mm across it or 100 mm along it, or leaves more than 10 mm RMS is printed with a warning: a
+wrong target or something standing on the plane is likelier than such a bracket.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from spadscan.daemon.hand_eye import UNCERTAIN_DEG, UNCERTAIN_MM, fit_hand_eye, hand_eye_toml, parse_target
+    from spadscan.daemon.hand_eye import (PLAUSIBLE_ACROSS_MM, PLAUSIBLE_TILT_DEG, UNCERTAIN_DEG, UNCERTAIN_MM,
+                                          fit_hand_eye, hand_eye_toml, parse_target)
 
     target = parse_target(args.plane, args.sphere)
     fit = fit_hand_eye(args.capture, target, fit_zero_bin=args.fit_zero_bin)
@@ -48,10 +51,19 @@ def run(args) -> int:
           f"({fit.iterations} iterations)")
     print(f"change: {fit.change_mm:.1f} mm ({', '.join(f'{v:+.1f}' for v in moved)} mm), {fit.change_deg:.2f} deg")
     print(f"uncertainty (one standard deviation): {', '.join(f'{v:.2f}' for v in fit.std_mm)} mm along the flange's "
-          f"x, y, z; {', '.join(f'{v:.2f}' for v in fit.std_deg)} deg about them")
+          f"x, y, z; {', '.join(f'{v:.2f}' for v in fit.std_deg)} deg about the flange's x, y, z")
     if fit.uncertain:
         print(f"spadscan: warning: the hand_eye below is uncertain by more than {UNCERTAIN_MM:g} mm or "
               f"{UNCERTAIN_DEG:g} deg: add views that tilt the tool further about several axes", file=sys.stderr)
+    odd = fit.implausible()
+    if odd:
+        # A tight uncertainty says only that the returns fix this X, not that it is the bracket: a wrong target
+        # fits as tightly.
+        print(f"spadscan: warning: implausible fit: it {', '.join(odd)} (a bracket's drawing is rarely off by more "
+              f"than {PLAUSIBLE_TILT_DEG:g} deg or {PLAUSIBLE_ACROSS_MM:g} mm sideways, and the right target leaves "
+              f"a few mm RMS): likely a wrong target (a sign or axis of --plane / --sphere, a point measured with the "
+              f"wrong TCP), something standing on the plane, or a start too far off; check before using the "
+              f"hand_eye below", file=sys.stderr)
     if args.fit_zero_bin:
         print(f"zero bin: {fit.zero_bin_shift:+.3f} bins from the capture's sensor model")
     print("for the rig config's [arm] table:")

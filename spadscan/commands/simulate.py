@@ -71,7 +71,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help=f"Lambertian albedo of the table, relative to the sensor preset like --albedo (default: "
                             f"{DEFAULT_TABLE_ALBEDO:g}, a black table)")
     table.add_argument("--table-height", type=float, default=None, metavar="M",
-                       help="height of the table top in metres (default: 0, where built-in scenes stand)")
+                       help="height of the table top in metres (default: 0, where built-in scenes stand); refused "
+                            "more than 3 mm above the mesh's lowest point, warned about more than 10 mm below it")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
     parser.add_argument("--chunk-size", type=int, default=64, metavar="K", help="measurements per chunk (default: 64)")
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
@@ -84,6 +85,8 @@ def check_options(args) -> None:
 
     from spadscan.protocol.errors import SimulationError
 
+    if str(args.out) == "":  # an unset shell variable (--out "$OUT"): not the current folder
+        raise SimulationError("--out is empty: give the capture folder to create")
     if args.views < 1:
         raise SimulationError(f"--views {args.views} must be at least 1")
     if not (args.radius > 0 and math.isfinite(args.radius)):
@@ -112,6 +115,33 @@ def make_table(args):
         return None
     return SimTable(height_m=0.0 if args.table_height is None else args.table_height,
                     albedo=DEFAULT_TABLE_ALBEDO if args.table_albedo is None else args.table_albedo).check()
+
+
+def check_table_under(table, mesh, given: bool):
+    """None, or a warning, for a table (SimTable or None) under the mesh (metres); a one-line SimulationError when
+    the table top lies above the mesh's lowest point (it would cut the object, or hang above it: a height typed in
+    millimetres, say). given: whether --table-height set the height (else it is the default, z = 0)."""
+    from spadscan.protocol.errors import SimulationError
+    from spadscan.protocol.sim_table import CUT_TOLERANCE_M, FLOAT_WARN_M
+
+    if table is None:
+        return None
+    lowest = float(mesh.bounds[0][2])
+    gap = table.gap_below(lowest)
+    where = f"--table-height {table.height_m:g}" if given else "the default --table-height 0"
+    if gap < -CUT_TOLERANCE_M:
+        raise SimulationError(f"{where} puts the table top {_length(-gap)} above the object's lowest point (z = "
+                              f"{lowest:.4g} m): it would cut the object or hang above it; stand the object on it "
+                              f"with --table-height {lowest:.4g} (metres)")
+    if gap > FLOAT_WARN_M:
+        return (f"the object's lowest point (z = {lowest:.4g} m) floats {_length(gap)} above the table ({where}): "
+                f"it does not stand on it (--table-height {lowest:.4g} puts it there, metres)")
+    return None
+
+
+def _length(m: float) -> str:
+    """A length for a message: millimetres under a metre, metres from there (a height typed in millimetres)."""
+    return f"{m * 1e3:.0f} mm" if m < 1.0 else f"{m:.4g} m"
 
 
 def make_poses(args):
@@ -162,6 +192,9 @@ def run(args) -> int:
     mesh, scene = load_mesh_spec(args.mesh)
     if scene.get("mesh_units") == "mm":
         print(f"{args.mesh}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres)", file=sys.stderr)
+    floating = check_table_under(table, mesh, given=args.table_height is not None)
+    if floating:
+        print(f"spadscan: warning: {floating}", file=sys.stderr)
     poses, schedule = make_poses(args)
     sensor = sensor_preset(args.sensor)
     settings = SimSettings(power=args.power, ambient=args.ambient, cycles=args.cycles, albedo=args.albedo,

@@ -8,6 +8,7 @@ import tomllib
 
 import numpy as np
 import pytest
+import trimesh
 
 from spadscan.cli import main
 from spadscan.daemon.arm.pose_convert import check_pose, matrix_to_rotvec, rotvec_to_matrix
@@ -49,15 +50,16 @@ def sensor_poses(n: int, seed: int = 0) -> np.ndarray:
 
 
 def make_capture(path, x_recorded: np.ndarray, n: int = 24, target: Target = Target("plane", (0, 0, 0)),
-                 zero_bin_error: float = 0.0, true_sensor: np.ndarray | None = None) -> None:
-    """Render the target at TCP x X_TRUE, record the capture as if X were x_recorded (the daemon's way: sensor pose
+                 zero_bin_error: float = 0.0, true_sensor: np.ndarray | None = None,
+                 x_true: np.ndarray = X_TRUE) -> None:
+    """Render the target at TCP x x_true, record the capture as if X were x_recorded (the daemon's way: sensor pose
     = actual TCP x the config's hand-eye, the TCP pose in each measurement's metadata). zero_bin_error: the unit's
     zero bin lies this many bins after the one the capture's sensor model states. true_sensor: the sensor's poses
     (default: `sensor_poses(n)`)."""
     model = sensor_preset("tmf8820")
     true_sensor = sensor_poses(n) if true_sensor is None else true_sensor
     n = len(true_sensor)
-    tcp = true_sensor @ invert_rigid(X_TRUE)
+    tcp = true_sensor @ invert_rigid(x_true)
     unit = model.with_(zero_bin=model.zero_bin + zero_bin_error)
     sim = Simulator(target.mesh(), unit, SimSettings(rays_per_zone=256), seed=1)
     frames = sim.frames(true_sensor)
@@ -105,6 +107,25 @@ def test_the_printed_fit_says_how_certain_it_is(capture):
     assert fit.lost == 0 and fit.returns == 216
 
 
+def test_the_uncertainty_is_about_the_flanges_axes_on_a_bracket_that_turns_the_sensor(capture, tmp_path, capsys):
+    """The same sensor poses on a bracket turned 90 degrees about the flange's x (an angled bracket): the flange's z
+    is the sensor's y now, so both the translation's and the rotation's uncertainties along / about y and z swap.
+    The rotation's did not (they were about the sensor's axes, labelled the flange's)."""
+    turn = np.eye(4)
+    turn[:3, :3] = rotvec_to_matrix([math.pi / 2, 0.0, 0.0])
+    make_capture(tmp_path / "turned", turn @ wrong_x(), x_true=turn @ X_TRUE)
+    plain = fit_hand_eye(capture, Target("plane", (0, 0, 0)))
+    turned = fit_hand_eye(tmp_path / "turned", Target("plane", (0, 0, 0)))
+    assert abs(plain.std_deg[1] - plain.std_deg[2]) > 0.2 * max(plain.std_deg[1:]), plain.std_deg
+    swap = [0, 2, 1]
+    assert np.allclose(turned.std_mm, np.array(plain.std_mm)[swap], rtol=0.05), (plain.std_mm, turned.std_mm)
+    assert np.allclose(turned.std_deg, np.array(plain.std_deg)[swap], rtol=0.05), (plain.std_deg, turned.std_deg)
+    assert main(["calibrate", "hand-eye", str(tmp_path / "turned"), "--plane", "0,0,0,0,0,1"]) == 0
+    printed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("uncertainty")][0]
+    assert f"{turned.std_deg[1]:.2f}, {turned.std_deg[2]:.2f} deg" in printed
+    assert "deg about the flange's x, y, z" in printed
+
+
 def test_a_start_centimetres_off_along_the_boresight_comes_back(tmp_path):
     """The config's default identity while the sensor sits 47 mm out on its bracket (and 14 mm, 3.5 degrees off
     beside that): every predicted return lies outside the observed one's window. The fit landed 411 mm and 86 degrees
@@ -115,6 +136,7 @@ def test_a_start_centimetres_off_along_the_boresight_comes_back(tmp_path):
     mm, deg = errors(fit.hand_eye)
     assert mm < 1.0 and deg < 0.3, (mm, deg)
     assert fit.rms_start_mm > 15 and fit.rms_mm < 0.5
+    assert fit.implausible() == []  # a bracket left out is a start the fit is meant to come back from
 
 
 def test_the_fit_gains_nothing_by_losing_zones(capture):
@@ -218,7 +240,8 @@ def test_a_bad_target_is_one_line(plane, sphere, message):
 
 def test_spadscan_calibrate_hand_eye_prints_the_config_line(capture, capsys):
     assert main(["calibrate", "hand-eye", str(capture), "--plane", "0,0,0,0,0,1"]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "warning" not in err, err
     assert "24 views" in out and "mm fitted" in out and "hand_eye = [[" in out
     line = out[out.index("hand_eye = "):]
     x = np.array(tomllib.loads(line)["hand_eye"])
@@ -227,6 +250,33 @@ def test_spadscan_calibrate_hand_eye_prints_the_config_line(capture, capsys):
     assert "give the target" in capsys.readouterr().err
     assert main(["calibrate", "hand-eye", str(capture.parent / "nope"), "--plane", "0,0,0,0,0,1"]) == 1
     assert "no such capture folder" in capsys.readouterr().err
+
+
+class _BoxOnTable:
+    """The table with a 12 cm box standing under the views: not the bare plane the fit is told of."""
+
+    def mesh(self):
+        box = trimesh.creation.box([0.25, 0.25, 0.12])
+        box.apply_translation([0.4, 0.0, 0.06])
+        return trimesh.util.concatenate([Target("plane", (0, 0, 0)).mesh(), box])
+
+
+def test_a_fit_far_beyond_a_bracket_correction_is_warned_about(tmp_path, capsys):
+    """Something standing on the plane: the fit pulled X 12 cm along the sensor's axis and printed it for the config
+    with no more than the advice to add views (on a real capture, a fit 21 cm and 52 deg off came with a tight
+    uncertainty and no warning at all). A start 40 degrees off ends 37 deg and 20 cm from it."""
+    make_capture(tmp_path / "box", wrong_x(), target=_BoxOnTable())
+    assert main(["calibrate", "hand-eye", str(tmp_path / "box"), "--plane", "0,0,0,0,0,1"]) == 0
+    captured = capsys.readouterr()
+    assert "hand_eye = [[" in captured.out
+    warning = [line for line in captured.err.splitlines() if "warning: implausible fit" in line]
+    assert len(warning) == 1 and "mm along its axis" in warning[0], captured.err
+    assert all(cause in warning[0] for cause in ("wrong target", "standing on the plane", "a sign")), warning[0]
+    start = X_TRUE.copy()
+    start[:3, :3] = X_TRUE[:3, :3] @ rotvec_to_matrix([0.5, 0.5, 0.0])
+    make_capture(tmp_path / "far", start)
+    assert any("tilted the sensor's axis" in odd for odd in fit_hand_eye(tmp_path / "far", Target("plane", (0, 0, 0)))
+               .implausible())
 
 
 def test_a_target_that_is_not_there_is_one_line(capture, capsys):

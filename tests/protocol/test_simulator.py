@@ -582,6 +582,48 @@ def test_simulate_with_a_table_records_it_as_a_table_to_find_and_the_floor_finds
     assert source == "the table, found in the histograms" and height == pytest.approx(-0.02, abs=0.015)
 
 
+@pytest.mark.parametrize("height, mesh", [("0.3", "builtin:demo"), ("20", "builtin:demo"), (None, "sunk")])
+def test_a_table_above_the_objects_lowest_point_is_refused(tmp_path, capsys, height, mesh):
+    """The demo stands 0..0.2 m: a table at 0.3 m (or 20 m, millimetres typed as metres) hung over it, and a mesh
+    reaching 5 cm below the default table at 0 was cut by it; both wrote a 'table' capture."""
+    from spadscan.cli import main
+
+    if mesh == "sunk":
+        mesh = str(tmp_path / "sunk.ply")
+        trimesh.creation.box([0.1, 0.1, 0.1]).export(mesh)  # centred on the origin: 5 cm under z = 0
+    given = [] if height is None else ["--table-height", height]
+    assert main(["simulate", mesh, "--out", str(tmp_path / "c"), "--views", "4", "--table", *given,
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("spadscan: error: ") and err.count("\n") == 1, err
+    assert "above the object's lowest point" in err and "--table-height" in err
+    assert ("--table-height -0.05" in err) if height is None else ("--table-height 0 (metres)" in err), err
+    assert not (tmp_path / "c").exists()
+
+
+def test_an_object_floating_above_its_table_is_warned_about(tmp_path, capsys):
+    from spadscan.cli import main
+
+    assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "c"), "--views", "2", "--table",
+                 "--table-height", "-0.05", "--rays-per-zone", "16", "--no-progress"]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert warnings == ["spadscan: warning: the object's lowest point (z = 0 m) floats 50 mm above the table "
+                        "(--table-height -0.05): it does not stand on it (--table-height 0 puts it there, metres)"]
+    assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "d"), "--views", "2", "--table",
+                 "--table-height", "0.002", "--rays-per-zone", "16", "--no-progress"]) == 0
+    assert "warning" not in capsys.readouterr().err  # a hair above the feet: the mesh's rounding, not a mistake
+
+
+def test_an_empty_out_is_refused(tmp_path, capsys, monkeypatch):
+    """An unset shell variable (--out "$OUT") wrote the capture into the current folder when that was empty."""
+    from spadscan.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "builtin:sphere", "--out", "", "--views", "2", "--no-progress"]) == 1
+    assert capsys.readouterr().err == "spadscan: error: --out is empty: give the capture folder to create\n"
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("option", [["--table-albedo", "0.2"], ["--table-height", "0.1"]])
 def test_table_options_without_a_table_are_refused(tmp_path, capsys, option):
     from spadscan.cli import main

@@ -379,6 +379,32 @@ def test_non_finite_options_are_one_line_errors(sphere_capture, tmp_path, capsys
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("method", ["reprojection", "space-carving"])
+@pytest.mark.parametrize("floor, message", [
+    ("-156", "--floor-z -156 m lies 156 m below the lowest sensor position"),  # -156 mm typed: the hull 4x larger
+    ("20", "--floor-z 20 m lies above every sensor position"),  # 20 mm typed
+])
+def test_a_floor_no_view_could_see_is_refused_in_one_line(sphere_capture, tmp_path, capsys, method, floor, message):
+    cap, _ = sphere_capture
+    assert cli_main(["baseline", method, str(cap), "--out", str(tmp_path / "x"), "--no-gt", "--floor-z", floor]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("spadscan: error: ") and err.count("\n") == 1 and message in err, err
+    assert "(metres, not millimetres?)" in err and "--threshold" not in err
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_floor_that_removes_every_return_is_named_not_the_threshold(sphere_capture, tmp_path, capsys):
+    """The sphere stands 0..0.2 m tall, the sensors up to 0.5 m high: a floor at 0.3 m leaves no return. The error
+    said to try a lower --threshold, which brings none back."""
+    cap, _ = sphere_capture
+    assert cli_main(["baseline", "reprojection", str(cap), "--out", str(tmp_path / "x"), "--no-gt",
+                     "--floor-z", "0.3"]) == 1
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.startswith("spadscan: error: ") and "found no surface" in err, err
+    assert "the floor at z = 0.3 m removed" in err and "--floor-z" in err and "lower --threshold" not in err, err
+    assert not (tmp_path / "x").exists()
+
+
 def test_baselines_do_not_import_torch():
     code = ("import sys, spadscan.worker.baselines.run, spadscan.worker.baselines.reprojection, "
             "spadscan.worker.baselines.floor, spadscan.worker.table_height, spadscan.worker.pulse, "

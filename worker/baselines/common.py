@@ -20,6 +20,8 @@ CALIBRATION_THRESHOLDS = (3.0, 4.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0, 80.0
 """Thresholds (noise standard deviations) tried by `calibrate`."""
 CALIBRATION_POINTS = 100_000
 """Samples per mesh for the metrics during the search (the final metrics use the project's 300,000)."""
+MIN_SURFACE_POINTS = 4
+"""The fewest points `points_mesh` builds a surface through (a tetrahedron's corners)."""
 
 
 def points_mesh(points: np.ndarray, method: str = "occupancy", spacing_m: float | None = None):
@@ -30,7 +32,7 @@ def points_mesh(points: np.ndarray, method: str = "occupancy", spacing_m: float 
     'convex-hull': the points' convex hull. Returns a trimesh.Trimesh, or None when there are too few points.
     """
     pts = np.asarray(points, float)
-    if len(pts) < 4:
+    if len(pts) < MIN_SURFACE_POINTS:
         return None
     if method == "convex-hull":
         try:

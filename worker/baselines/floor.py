@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.raycast import zone_rays
 
 from ..capture_kind import is_measured
@@ -48,6 +49,23 @@ def scene_floor(data) -> tuple[float | None, str]:
     return SIMULATED_FLOOR_Z, "no table found in the histograms; z = 0 assumed (--floor-z to set it)"
 
 
+def check_given_floor(floor_z: float, poses: np.ndarray, sensor) -> None:
+    """One-line ConfigError for a floor height (metres, --floor-z) that no view of the capture could have seen: above
+    every sensor position (the scene would lie wholly under it), or farther below every sensor than the histograms
+    reach (sensor.max_range_m). Both are what a height typed in millimetres gives (-156 for -0.156 m): the floor
+    then either empties the scene or, far below it, quietly stops bounding the carving (a hull four times larger)."""
+    heights = np.asarray(poses, np.float64)[:, 2, 3]
+    top, bottom = float(heights.max()), float(heights.min())
+    reach = float(sensor.max_range_m)
+    if floor_z > top:
+        raise ConfigError(f"--floor-z {floor_z:g} m lies above every sensor position (the highest at z = {top:.3f} m): "
+                          f"the whole scene would be under the floor (metres, not millimetres?)")
+    if floor_z < bottom - reach:
+        raise ConfigError(f"--floor-z {floor_z:g} m lies {bottom - floor_z:.4g} m below the lowest sensor position "
+                          f"(z = {bottom:.3f} m), beyond the histograms' range of {reach:.2f} m: no view could see "
+                          f"such a floor (metres, not millimetres?)")
+
+
 def measured_table_height(data) -> float | None:
     """Height (metres) of the horizontal table under a measured capture, or None when the histograms show none.
 
@@ -67,4 +85,4 @@ def measured_table_height(data) -> float | None:
                          rays.weights, sensor, np.asarray(kernel, float), origin, ignore_bins=sensor.ignore_bins)
 
 
-__all__ = ["SIMULATED_FLOOR_Z", "scene_floor", "measured_table_height"]
+__all__ = ["SIMULATED_FLOOR_Z", "scene_floor", "measured_table_height", "check_given_floor"]

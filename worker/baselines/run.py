@@ -24,8 +24,8 @@ from ..carving.views import summed_views
 from ..ground_truth import load_ground_truth
 from ..outputs import capture_state_note, export_mesh
 from ..report.report_json import json_safe, write_report
-from .common import CALIBRATION_POINTS, calibrate
-from .floor import scene_floor
+from .common import CALIBRATION_POINTS, MIN_SURFACE_POINTS, calibrate
+from .floor import check_given_floor, scene_floor
 from .reprojection import reprojection
 
 METHODS = ("reprojection", "space-carving")
@@ -55,7 +55,7 @@ def _build(method: str, data: PoseViews, threshold: float, *, resolution: int, m
         rep = reprojection(data.hists, data.poses, data.sensor, threshold=threshold, surface=surface,
                            floor_z=floor_z)
         return rep.mesh, {"points": rep.points, "surface": surface, "surface_method": SURFACES[surface],
-                          "reprojected_points": int(len(rep.points))}
+                          "reprojected_points": int(len(rep.points)), "returns_below_floor": rep.below_floor}
     res = carve_scene(data.hists, data.poses, data.sensor, resolution=resolution, threshold=threshold,
                       margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg, usable=usable)
     occ = main_components(res.occupancy, 0.01)
@@ -66,6 +66,18 @@ def _build(method: str, data: PoseViews, threshold: float, *, resolution: int, m
                   "hull_fraction": float(occ.mean()),
                   "surface_method": "marching cubes of the carved occupancy (Gaussian blur 0.7 voxel, level 0.5); "
                                     "pieces under 1% of the largest dropped"}
+
+
+def _no_surface(capture, method: str, threshold: float, floor_z, extras: dict) -> str:
+    """Why a baseline found no surface, with the remedy: the floor when it removed the returns (a lower threshold
+    would not bring them back), else the threshold."""
+    dropped, kept = extras.get("returns_below_floor", 0), extras.get("reprojected_points", 0)
+    line = f"{capture}: {method} found no surface at threshold {threshold:g} ({THRESHOLD_UNITS})"
+    if dropped and kept < MIN_SURFACE_POINTS <= dropped + kept:
+        return (f"{line}: the floor at z = {floor_z:g} m removed {dropped} of its "
+                f"{dropped + kept} first returns, which lie below it; check --floor-z "
+                f"(metres), or pass --no-floor")
+    return f"{line}; try a lower --threshold"
 
 
 def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None = None, calibrate_: bool = False,
@@ -110,6 +122,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         except CaptureError as exc:
             raise CaptureError(f"{Path(capture) / 'scan.json'}: {exc}") from None
         log(f"floor: {floor_source}" if floor_z is None else f"floor at z = {floor_z:.4f} m: {floor_source}")
+    elif floor_z is not None:
+        check_given_floor(float(floor_z), data.poses, data.sensor)
     # Once for every threshold tried: histograms no sensor could produce (in any frame of a pose) carve nothing.
     broken = views.in_any_frame(implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins))
     counts, sensor = summed_views(views.counts, views.frames, data.sensor)
@@ -131,8 +145,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     mesh, extras = _build(method, posed, threshold, **opts)
     seconds = time.monotonic() - start
     if mesh is None:
-        raise CaptureError(f"{capture}: {method} found no surface at threshold {threshold:g} "
-                           f"({THRESHOLD_UNITS}); try a lower --threshold")
+        raise CaptureError(_no_surface(capture, method, threshold, floor_z, extras))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     export_mesh(mesh, out / "mesh.ply")
