@@ -69,7 +69,25 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     module.add_arguments(parser)
     args = parser.parse_args(_negative_lists_attached(rest))
+    empty = _empty_folder_option(rest)
+    if empty:
+        print(f"spadscan: error: {empty} is empty (an unset shell variable?): give the folder", file=sys.stderr)
+        return 1
     return run_command(module.run, args)
+
+
+FOLDER_OPTIONS = ("--out", "--root", "--queue", "--lcspc")
+"""Options that name a folder: given empty (`--out "$OUT"` with OUT unset) they would mean the current folder, where
+a command writes its result among the user's files."""
+
+
+def _empty_folder_option(argv: list[str]) -> str | None:
+    """The first of FOLDER_OPTIONS given an empty value in `argv` (`--out ""` or `--out=`), or None."""
+    for i, token in enumerate(argv):
+        name, eq, value = token.partition("=")
+        if name in FOLDER_OPTIONS and ((eq and not value) or (not eq and i + 1 < len(argv) and argv[i + 1] == "")):
+            return name
+    return None
 
 
 _UNSIGNED = r"(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"

@@ -22,10 +22,8 @@ ASIDE_DIR = ".replaced"
 
 def check_out(out, overwrite: bool, capture=None) -> Path:
     """`out` as a Path, refused when it is a file, or holds a result and `overwrite` is not set, or lies inside the
-    folder of `capture` (when given) anywhere but under its recon/ folder, where the worker puts results, or empty:
-    an empty --out comes from an unset shell variable (--out "$OUT"), and as a Path it is the current folder."""
-    if str(out) == "":
-        raise ConfigError("--out is empty: give the folder for the result")
+    folder of `capture` (when given) anywhere but under its recon/ folder, where the worker puts results. (An empty
+    --out the command line refuses: cli.FOLDER_OPTIONS.)"""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")

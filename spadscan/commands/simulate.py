@@ -85,8 +85,6 @@ def check_options(args) -> None:
 
     from spadscan.protocol.errors import SimulationError
 
-    if str(args.out) == "":  # an unset shell variable (--out "$OUT"): not the current folder
-        raise SimulationError("--out is empty: give the capture folder to create")
     if args.views < 1:
         raise SimulationError(f"--views {args.views} must be at least 1")
     if not (args.radius > 0 and math.isfinite(args.radius)):

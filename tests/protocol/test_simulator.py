@@ -614,16 +614,6 @@ def test_an_object_floating_above_its_table_is_warned_about(tmp_path, capsys):
     assert "warning" not in capsys.readouterr().err  # a hair above the feet: the mesh's rounding, not a mistake
 
 
-def test_an_empty_out_is_refused(tmp_path, capsys, monkeypatch):
-    """An unset shell variable (--out "$OUT") wrote the capture into the current folder when that was empty."""
-    from spadscan.cli import main
-
-    monkeypatch.chdir(tmp_path)
-    assert main(["simulate", "builtin:sphere", "--out", "", "--views", "2", "--no-progress"]) == 1
-    assert capsys.readouterr().err == "spadscan: error: --out is empty: give the capture folder to create\n"
-    assert list(tmp_path.iterdir()) == []
-
-
 @pytest.mark.parametrize("option", [["--table-albedo", "0.2"], ["--table-height", "0.1"]])
 def test_table_options_without_a_table_are_refused(tmp_path, capsys, option):
     from spadscan.cli import main
