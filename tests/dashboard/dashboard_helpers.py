@@ -49,6 +49,19 @@ def complete_scan(path, poses: int = 3):
     writer.finish()
 
 
+def scan_with_non_finite_results(scan_path, steps: int | None = None) -> None:
+    """A complete scan whose final report and live status hold an infinity and a NaN (damaged files: spadscan's own
+    writers never write them, json.loads reads them); `steps`: the live status's step count, when given."""
+    complete_scan(scan_path, 2)
+    final = scan_path / "recon" / f"{scan_path.name}-fast"
+    final.mkdir(parents=True)
+    (final / "report.json").write_text('{"preset": "fast", "chamfer_mm": Infinity, "seconds": NaN}')
+    live = scan_path / "recon" / "live"
+    live.mkdir()
+    steps_field = "" if steps is None else f'"steps": {steps}, '
+    (live / "status.json").write_text('{"views_used": 3, ' + steps_field + '"chamfer_mm": NaN}')
+
+
 def add_final_recon(scan_path, job: str = "job #1?") -> dict[str, bytes]:
     """A finished reconstruction of the scan at `scan_path`, with a report and a (real, 4x4) preview; returns what
     each of those files holds."""

@@ -7,7 +7,7 @@ from __future__ import annotations
 import trimesh
 
 from dashboard_helpers import (add_final_recon, complete_scan, queue_with_a_kept_result_and_a_damaged_record,
-                               serving)
+                               scan_with_non_finite_results, serving)
 from page_helpers import add_pose, browser_page, drawn_share, screenshot_pixels, start_scan
 from spadscan.commands.dashboard import daemon_running
 from spadscan.daemon.root_lock import RootLock
@@ -122,13 +122,7 @@ def test_a_scan_whose_daemon_went_shows_as_interrupted_and_comes_back_when_a_dae
 
 
 def test_the_page_keeps_updating_with_non_finite_numbers_in_a_report_and_a_live_status(tmp_path):
-    complete_scan(tmp_path / "done", 2)
-    final = tmp_path / "done" / "recon" / "done-fast"
-    final.mkdir(parents=True)
-    (final / "report.json").write_text('{"preset": "fast", "chamfer_mm": Infinity}')
-    live = tmp_path / "done" / "recon" / "live"
-    live.mkdir()
-    (live / "status.json").write_text('{"views_used": 3, "steps": 40, "chamfer_mm": NaN}')
+    scan_with_non_finite_results(tmp_path / "done", steps=40)
     with serving(tmp_path) as server, browser_page() as (page, seen):
         page.goto(address(server))
         page.wait_for_function("() => document.querySelector('#link').textContent.startsWith('updated')",

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from dashboard_helpers import (add_final_recon, complete_scan, get, queue_with_a_kept_result_and_a_damaged_record,
-                               serving, status)
+                               scan_with_non_finite_results, serving, status)
 from page_helpers import add_pose, start_scan
 from spadscan.commands.dashboard import daemon_running
 from spadscan.daemon.root_lock import RootLock
@@ -381,13 +381,7 @@ def test_a_scan_in_hand_is_interrupted_only_while_no_daemon_holds_the_root(tmp_p
 
 def test_non_finite_numbers_in_damaged_files_are_null_and_every_scan_is_still_listed(tmp_path):
     """json.loads reads NaN and Infinity, which a browser's JSON.parse refuses: /api/status stays strict JSON."""
-    complete_scan(tmp_path / "done", 2)
-    final = tmp_path / "done" / "recon" / "done-fast"
-    final.mkdir(parents=True)
-    (final / "report.json").write_text('{"preset": "fast", "chamfer_mm": Infinity, "seconds": NaN}')
-    live = tmp_path / "done" / "recon" / "live"
-    live.mkdir()
-    (live / "status.json").write_text('{"views_used": 3, "chamfer_mm": NaN}')
+    scan_with_non_finite_results(tmp_path / "done")
     complete_scan(tmp_path / "torn", 2)
     last = max((tmp_path / "torn").glob("chunk-*")) / "meta.json"
     meta = json.loads(last.read_text())

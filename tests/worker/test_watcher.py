@@ -77,15 +77,20 @@ def test_an_unreadable_manifest_is_queued_so_that_its_job_can_fail(tmp_path):
     assert q.known("broken-fast")
 
 
+def complete_source(folder, poses: int):
+    """A complete capture at `folder` of `poses` poses in chunks of 2 (one measurement each)."""
+    sensor = sensor_preset("lcspc-sim")
+    w = CaptureWriter.create(folder, sensor, chunk_size=2, planned_poses=np.stack([np.eye(4)] * poses))
+    for i in range(poses):
+        w.append(Measurement(np.full((1, sensor.n_bins), 2, np.uint32), np.eye(4), i))
+    w.finish("complete")
+
+
 def test_a_complete_scan_still_being_copied_in_waits_for_its_chunks(tmp_path):
     """`cp -r` copies the manifest (already 'complete') before some chunks: the scan is not queued while it lacks
     measurements it plans and the copy goes on; once the last chunk lands it is queued at once."""
     source = tmp_path / "src"
-    sensor = sensor_preset("lcspc-sim")
-    w = CaptureWriter.create(source / "s", sensor, chunk_size=2, planned_poses=np.stack([np.eye(4)] * 6))
-    for i in range(6):
-        w.append(Measurement(np.full((1, sensor.n_bins), 2, np.uint32), np.eye(4), i))
-    w.finish("complete")
+    complete_source(source / "s", 6)
     root = tmp_path / "root"
     root.mkdir()
     copy = root / "s"
@@ -106,11 +111,7 @@ def test_a_complete_scan_whose_last_chunk_is_still_being_copied_waits_for_its_ar
     """The last chunk's meta.json has arrived (every measurement counted) but its arrays have not, or only in part:
     the job would fail for good on a missing or truncated poses.npy. It waits until they are whole."""
     source = tmp_path / "src"
-    sensor = sensor_preset("lcspc-sim")
-    w = CaptureWriter.create(source / "s", sensor, chunk_size=2, planned_poses=np.stack([np.eye(4)] * 4))
-    for i in range(4):
-        w.append(Measurement(np.full((1, sensor.n_bins), 2, np.uint32), np.eye(4), i))
-    w.finish("complete")
+    complete_source(source / "s", 4)
     root = tmp_path / "root"
     shutil.copytree(source / "s", root / "s")
     last = sorted((root / "s").glob("chunk-*"))[-1]
@@ -128,11 +129,7 @@ def test_a_complete_scan_whose_last_chunk_is_still_being_copied_waits_for_its_ar
 def test_a_complete_scan_short_of_measurements_is_queued_once_it_stands_still(tmp_path):
     """A copy that was cut short for good is reconstructed from what it holds (its report says so) once nothing in it
     has changed for SETTLE_S."""
-    sensor = sensor_preset("lcspc-sim")
-    w = CaptureWriter.create(tmp_path / "s", sensor, chunk_size=2, planned_poses=np.stack([np.eye(4)] * 4))
-    for i in range(4):
-        w.append(Measurement(np.full((1, sensor.n_bins), 2, np.uint32), np.eye(4), i))
-    w.finish("complete")
+    complete_source(tmp_path / "s", 4)
     shutil.rmtree(sorted((tmp_path / "s").glob("chunk-*"))[-1])
     q = Queue.for_root(tmp_path)
     assert scan_once(tmp_path, q, JobOptions()).pending == ["s"]
