@@ -160,7 +160,7 @@ def test_carve_hull_refuses_bad_input(lamp):
 
 def test_reprojected_points_lie_on_the_surface(lamp):
     mesh, hists, poses, sensor = lamp
-    pts, view, zone = reproject_points(hists, poses, sensor)
+    pts, view, zone, _ = reproject_points(hists, poses, sensor)
     assert len(pts) > 0.9 * len(poses) and np.all(zone == 0)
     _, dist, _ = trimesh.proximity.closest_point(mesh, pts)
     # Points come from the nearest surface in a 30-degree cone, placed on the axis: near, not on, the surface.

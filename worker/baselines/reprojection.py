@@ -36,15 +36,9 @@ class Reprojection:
 
 
 def reproject_points(hists, poses, sensor: SensorModel, threshold: float = DEFAULT_THRESHOLD,
-                     floor_z: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points (m, 3), view (m,), zone (m,)) for every zone with a first return; points below `floor_z` are left
-    out (a floor the histograms do not show cannot hold a return, so they are noise)."""
-    pts, view, zone, above = _reprojected(hists, poses, sensor, threshold, floor_z)
-    return pts[above], view[above], zone[above]
-
-
-def _reprojected(hists, poses, sensor: SensorModel, threshold: float, floor_z: float | None):
-    """(points, view, zone) of every finite first return, and whether each lies above the floor (all: no floor)."""
+                     floor_z: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """(points (m, 3), view (m,), zone (m,), below) for every zone with a first return; points below `floor_z` are
+    left out (a floor the histograms do not show cannot hold a return, so they are noise), `below` counts them."""
     h, p = check_inputs(hists, poses, sensor)
     fr = first_returns(h, sensor, threshold, "matched")
     rng = fr.arrival_range_m(sensor)
@@ -52,16 +46,15 @@ def _reprojected(hists, poses, sensor: SensorModel, threshold: float, floor_z: f
     view, zone = np.nonzero(fr.detected)
     dirs = np.einsum("mij,mj->mi", p[view, :3, :3], axes[zone])
     pts = p[view, :3, 3] + dirs * rng[view, zone, None]
-    finite = np.all(np.isfinite(pts), axis=1)
-    pts, view, zone = pts[finite], view[finite], zone[finite]
-    above = np.ones(len(pts), bool) if floor_z is None else pts[:, 2] >= floor_z - 0.005
-    return pts, view, zone, above
+    keep = np.all(np.isfinite(pts), axis=1)
+    finite = int(keep.sum())
+    if floor_z is not None:
+        keep &= pts[:, 2] >= floor_z - 0.005
+    return pts[keep], view[keep], zone[keep], finite - int(keep.sum())
 
 
 def reprojection(hists, poses, sensor: SensorModel, *, threshold: float = DEFAULT_THRESHOLD,
                  surface: str = "occupancy", floor_z: float | None = None) -> Reprojection:
     """The reprojection baseline: back-projected first returns and a surface through them."""
-    pts, view, zone, above = _reprojected(hists, poses, sensor, threshold, floor_z)
-    pts, view, zone = pts[above], view[above], zone[above]
-    return Reprojection(pts, view, zone, float(threshold), surface, points_mesh(pts, surface),
-                        below_floor=int((~above).sum()))
+    pts, view, zone, below = reproject_points(hists, poses, sensor, threshold, floor_z)
+    return Reprojection(pts, view, zone, float(threshold), surface, points_mesh(pts, surface), below_floor=below)
