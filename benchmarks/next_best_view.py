@@ -156,7 +156,9 @@ class Scene:
 def scan_config(schedule: str, views: int, initial: int, batch: int):
     from spadscan.daemon.config import ScanConfig, scan_with
 
-    extra = {"initial_views": initial, "next_views_max_lag": batch, "next_views_max_age_s": 86_400.0}
+    # The lag allows a ranking --batch poses old; a scan refuses a lag below 2 (the freshest ranking is one pose
+    # behind when a daemon chooses), and this loop ranks before each batch, so 2 admits every ranking of --batch 1.
+    extra = {"initial_views": initial, "next_views_max_lag": max(2, batch), "next_views_max_age_s": 86_400.0}
     return scan_with(ScanConfig(), {"schedule": schedule, "views": views, **(extra if schedule == "adaptive" else {})})
 
 

@@ -3,12 +3,13 @@
 An adaptive scan's plan (`scan_plan.build_plan`) is a Fibonacci plan of `views` poses whose first `initial_views`
 are a well-spread subset; its rows from the pose being chosen onwards are the *fallback queue*. Before each later
 pose, `ViewChooser.choose` reads `<capture>/next_views.json` (`protocol.next_views`) and takes the best candidate
-that is fresh (ranked fewer than `next_views_max_lag` poses ago and within `next_views_max_age_s`), lies at least
-`min_view_spacing_deg` from every pose taken, and passes the workspace checks (`workspace.py`: the pose and the
-straight move from the pose before). That candidate replaces the queued pose nearest to it, so the scan still ends
-at `views` poses. Otherwise (no file, a stale or malformed one, nothing that passes) the next queued pose is taken
-(the first not within the spacing of a taken pose, where one is). The daemon never waits for a worker: reading the
-file is all the choice costs.
+that scores above 0 (a view that sees nothing scores 0: a ranking of zeros tells nothing), is fresh (ranked fewer
+than `next_views_max_lag` poses ago and within `next_views_max_age_s`), lies at least `min_view_spacing_deg` from
+every pose taken, and passes the workspace checks (`workspace.py`: the pose and the straight move from the pose
+before). That candidate replaces the queued pose nearest to it, so the scan still ends at `views` poses. Otherwise
+(no file, a stale or malformed one, nothing that passes) the next queued pose is taken (the first not within the
+spacing of a taken pose, where one is). The daemon never waits for a worker: reading the file is all the choice
+costs.
 
 The plan's rows before the pose being chosen are the poses taken, so `schedule.npy`, rewritten before each chosen
 pose is published, keeps meaning "row i is pose i" and a resumed scan reads its fallback queue back from it. Each
@@ -112,7 +113,7 @@ class ViewChooser:
         lag = i - nv.pose_count
         if lag < 0:
             return None, f"{FILE} ranked at {nv.pose_count} poses, more than the {i} taken"
-        if lag >= max(1, self.scan.next_views_max_lag):
+        if lag >= self.scan.next_views_max_lag:  # at least 2 (config.check_scan): pose i is chosen during i - 1
             return None, (f"{FILE} stale: ranked at {nv.pose_count} poses, {lag} before this one "
                           f"(next_views_max_lag {self.scan.next_views_max_lag})")
         age = nv.age_s(now)
@@ -123,10 +124,18 @@ class ViewChooser:
 
     def _best(self, nv: NextViews, taken: np.ndarray, prev_sensor: np.ndarray | None) -> tuple[int | None, str]:
         """The best-ranked candidate that passes every check, or (None, why none does)."""
+        if not np.any(nv.scores > 0):
+            return None, f"no ranked view scores above 0 (all {len(nv.poses)} score 0 or less: nothing to gain)"
         close = too_close(nv.poses, taken, self.target, self.scan.min_view_spacing_deg)
         prev = None if prev_sensor is None else tcp_from_sensor(prev_sensor, self.hand_eye)
-        counts = {"too close to a pose taken": 0, "outside the workspace": 0, "refused by the controller": 0}
+        counts = {"scoring 0 or less": 0, "too close to a pose taken": 0, "outside the workspace": 0,
+                  "refused by the controller": 0}
         for k in range(len(nv.poses)):
+            # A view that sees nothing scores 0: the order among such views is the candidates' spiral order, not a
+            # ranking, and following it would pile poses into the spiral's first band instead of the planned ones.
+            if not nv.scores[k] > 0:
+                counts["scoring 0 or less"] += 1
+                continue
             if close[k]:
                 counts["too close to a pose taken"] += 1
                 continue

@@ -7,6 +7,7 @@ paths are taken relative to the config file's folder. `examples/README.md` docum
 
 from __future__ import annotations
 
+import math
 import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
@@ -116,8 +117,10 @@ class ScanConfig:
     next_views_max_age_s: float = key(60.0, "float", lo=0.0, hi=86_400.0, lo_open=True, unit="s")
     """'adaptive' only: a next_views.json older than this (s, by its created_utc) is stale: the fallback plan is
     taken."""
-    next_views_max_lag: int = key(8, "int", lo=0, hi=10_000)
-    """'adaptive' only: a next_views.json ranked this many poses or more before the pose being chosen is stale."""
+    next_views_max_lag: int = key(8, "int", lo=0, hi=10_000)  # below 2 is refused by check_scan, saying why
+    """'adaptive' only: a next_views.json ranked this many poses or more before the pose being chosen is stale. At
+    least 2: the daemon chooses each pose while the one before it is still being captured, so the freshest ranking
+    is already 1 pose behind, and at 1 (or 0) no ranking would ever be taken."""
     stop_when_converged: bool = key(False, "bool")
     """'adaptive' only: end the scan (complete, with fewer than `views` poses) as soon as the live reconstruction's
     recon/live/status.json says "converged": true, after at least `initial_views` poses. Limitation: that flag is
@@ -253,6 +256,10 @@ def scan_to_dict(scan: ScanConfig) -> dict:
 
 
 # ---- cross-key checks --------------------------------------------------------------------------------------------
+MIN_LAG = 2
+"""The smallest next_views_max_lag that lets a ranking be used: pose i is chosen while pose i - 1 is captured."""
+
+
 def _check_arm(arm: ArmConfig, where: str) -> None:
     if (arm.workspace_min is None) != (arm.workspace_max is None):
         raise ConfigError(f"{where} workspace_min and workspace_max must be given together")
@@ -264,12 +271,14 @@ def _check_arm(arm: ArmConfig, where: str) -> None:
 
 
 def check_scan(scan: ScanConfig, where: str) -> None:
-    """Cross-key checks of a scan config (elevation order, rings, chunk size)."""
+    """Cross-key checks of a scan config (elevation order, rings at the poles, chunk size, ranking lag)."""
     single_ring = scan.schedule == "rings" and scan.rings == 1  # its elevation is midway: min = max places it
     if scan.min_elevation_deg > scan.max_elevation_deg or (scan.min_elevation_deg == scan.max_elevation_deg
                                                            and not single_ring):
         raise ConfigError(f"{where} min_elevation_deg {scan.min_elevation_deg:g} must be below max_elevation_deg "
                           f"{scan.max_elevation_deg:g} (degrees; equal only for one ring: schedule 'rings', rings 1)")
+    if scan.schedule == "rings":
+        _check_ring_poles(scan, where)
     if scan.schedule == "adaptive" and scan.initial_views > scan.views:
         raise ConfigError(f"{where} initial_views {scan.initial_views} exceeds views {scan.views}: an adaptive scan "
                           f"begins with initial_views of its views")
@@ -278,6 +287,34 @@ def check_scan(scan: ScanConfig, where: str) -> None:
     if scan.chunk_size < scan.frames_per_pose:
         raise ConfigError(f"{where} chunk_size {scan.chunk_size} is smaller than frames_per_pose "
                           f"{scan.frames_per_pose}: a pose must fit in one chunk so that it is published whole")
+    if scan.next_views_max_lag < MIN_LAG:
+        raise ConfigError(f"{where} next_views_max_lag {scan.next_views_max_lag} must be at least {MIN_LAG} (poses): "
+                          f"the daemon chooses each pose while the one before it is still being captured, so the "
+                          f"freshest ranking is already 1 pose behind and a smaller value makes every ranking stale")
+
+
+def _check_ring_poles(scan: ScanConfig, where: str) -> None:
+    """Refuse a ring of several views at +-90 degrees, where every view of it would stand at one point. Rings stand
+    at both ends of the elevation band, one ring midway (`protocol.schedules.elevation_rings`, which refuses the same
+    ring with the same tolerance, but without the config's file and key names)."""
+    per_ring = scan.views // scan.rings
+    if per_ring < 2:
+        return
+    lo, hi = scan.min_elevation_deg, scan.max_elevation_deg
+    if scan.rings == 1:  # min = max = +-90 is the only way to put the midway ring at a pole
+        names, ring = "min_elevation_deg and max_elevation_deg", (lo + hi) / 2
+    elif _at_pole(hi):
+        names, ring = "max_elevation_deg", hi
+    else:
+        names, ring = "min_elevation_deg", lo
+    if _at_pole(ring):
+        raise ConfigError(f"{where} {names} {ring:g}: a ring of {per_ring} views there stands at one viewpoint "
+                          f"(straight {'above' if ring > 0 else 'below'} the target); schedule 'rings' needs its "
+                          f"rings strictly between -90 and 90 (degrees)")
+
+
+def _at_pole(elevation_deg: float) -> bool:
+    return abs(math.radians(elevation_deg)) >= math.pi / 2 - 1e-9
 
 
 def _check_paths(cfg: DaemonConfig, where: str) -> None:

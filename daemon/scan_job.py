@@ -177,6 +177,10 @@ def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | 
         raise CaptureError(f"{path}: has no schedule.npy; cannot resume")
     known = {f.name for f in fields(ScanConfig)}
     stored = {k: v for k, v in reader.manifest.get("schedule", {}).items() if k in known}
+    # A lag below 2 is refused now (every ranking is at least one pose old when the next pose is chosen), but a scan
+    # planned before that must still resume: it ran as a planned scan, and 2 lets its rest use a fresh ranking.
+    if isinstance(stored.get("next_views_max_lag"), int) and stored["next_views_max_lag"] < 2:
+        stored["next_views_max_lag"] = 2
     try:
         scan = scan_with(ScanConfig(), stored, f"{path / MANIFEST} schedule")
     except ConfigError as exc:

@@ -52,8 +52,9 @@ def sensor_from_tcp(tcp_poses: np.ndarray, hand_eye: np.ndarray) -> np.ndarray:
     return np.asarray(tcp_poses, dtype=np.float64) @ np.asarray(hand_eye, dtype=np.float64)
 
 
-def generate_sensor_poses(scan: ScanConfig) -> np.ndarray:
-    """The schedule's sensor poses (views, 4, 4) in generated order, jittered when scan.jitter_deg > 0."""
+def generate_sensor_poses(scan: ScanConfig, where: str = "scan") -> np.ndarray:
+    """The schedule's sensor poses (views, 4, 4) in generated order, jittered when scan.jitter_deg > 0. `where`
+    begins a refusal's line (`config.check_scan` refuses, naming the keys, every scan config it knows to fail here)."""
     from spadscan.protocol import schedules
 
     try:
@@ -66,7 +67,7 @@ def generate_sensor_poses(scan: ScanConfig) -> np.ndarray:
         if scan.jitter_deg > 0:
             poses = schedules.jitter_orientations(poses, scan.jitter_deg, np.random.default_rng(scan.seed))
     except SimulationError as exc:
-        raise ConfigError(f"scan schedule: {exc}") from None
+        raise ConfigError(f"{where}: schedule {scan.schedule!r}: {exc}") from None
     return poses
 
 
@@ -120,7 +121,7 @@ def path_length(positions: np.ndarray) -> float:
 def build_plan(scan: ScanConfig, arm: ArmConfig, *, start_tcp: np.ndarray | None = None,
                where: str = "scan") -> ScanPlan:
     """Generate, order and check a scan plan; start_tcp (4, 4) is where the arm is now, when known."""
-    sensor = generate_sensor_poses(scan)
+    sensor = generate_sensor_poses(scan, where)
     tcp = tcp_from_sensor(sensor, arm.hand_eye)
     start = None if start_tcp is None else np.asarray(start_tcp, float)[:3, 3]
     pos = tcp[:, :3, 3]

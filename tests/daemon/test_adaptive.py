@@ -138,6 +138,11 @@ def _unreachable(cfg, folder):
     write_next_views(folder, ranked(far, score, 0, "elevation"))
 
 
+def _zeros(cfg, folder):
+    cand, _ = by_elevation(cfg, np.asarray(cfg.scan.target))
+    write_next_views(folder, ranked(cand, np.zeros(len(cand)), 0, "coverage"))  # a field with no surface yet
+
+
 @pytest.mark.parametrize("make, detail", [
     (_stale_count, "next_views.json stale: ranked at 0 poses, 3 before this one (next_views_max_lag 3)"),
     # 600 s old when written: some more by the time the scan reaches the pose, on a slow or busy machine.
@@ -145,7 +150,8 @@ def _unreachable(cfg, folder):
     (_truncated, "next_views.json unreadable ("),
     (_not_rigid, "candidate 0: pose is not a rigid transform"),
     (_unreachable, "none of the 512 ranked views passes (512 outside the workspace)"),
-], ids=["stale-pose-count", "stale-time", "truncated", "not-rigid", "unreachable"])
+    (_zeros, "no ranked view scores above 0 (all 512 score 0 or less: nothing to gain)"),
+], ids=["stale-pose-count", "stale-time", "truncated", "not-rigid", "unreachable", "all-zero"])
 def test_the_fallback_plan_when_the_ranking_cannot_be_used(arun, tmp_path, sphere, make, detail):
     cfg = make_cfg(tmp_path, **ADAPTIVE, next_views_max_lag=3 if make is _stale_count else 100, arm=BOX)
     done, _ = run_scan(arun, cfg, sphere, before=lambda folder: make(cfg, folder))
@@ -212,6 +218,41 @@ def test_the_best_reachable_view_replaces_the_queued_pose_nearest_it(tmp_path):
     dropped = view_angles_deg(rows[INITIAL][None], queue, cfg.scan.target).argmin()
     np.testing.assert_array_equal(rows[INITIAL + 1:], np.delete(queue, dropped, axis=0))
     assert len(rows) == VIEWS
+
+
+def test_views_scoring_zero_or_less_are_passed_over_for_the_planned_pose(tmp_path):
+    """A view that sees nothing scores 0: the order among such views is the candidates' spiral (top down), not a
+    ranking. With the positive views out of reach, the planned pose is taken, not the first zero of the spiral."""
+    cfg, chooser, plan, folder = chooser_for(tmp_path, next_views_max_lag=100)
+    cand = candidate_poses(scan_to_dict(cfg.scan))
+    score = np.zeros(len(cand))
+    score[:5], score[5:9] = [5.0, 4.0, 3.0, 2.0, 1.0], -1.0
+    poses = cand.copy()
+    poses[:5, 0, 3] += 3.0  # the five views scoring above 0 are out of reach
+    write_next_views(folder, ranked(poses, score, 0, "coverage"))
+    choice, rows = chooser.choose(plan, INITIAL)
+    assert choice.why == "fallback", choice.record
+    assert choice.record["detail"] == ("none of the 512 ranked views passes (507 scoring 0 or less, 5 outside the "
+                                       "workspace)")
+    np.testing.assert_array_equal(choice.pose, plan[INITIAL])
+    np.testing.assert_array_equal(rows, plan)
+    score[5] = 0.5  # one reachable view scoring above 0: it is taken
+    write_next_views(folder, ranked(poses, score, 0, "coverage"))
+    choice, _ = chooser.choose(plan, INITIAL)
+    assert choice.why == "adaptive" and choice.record["rank"] == 5 and choice.record["score"] == 0.5
+    np.testing.assert_allclose(choice.pose, cand[5], atol=1e-9)
+
+
+def test_the_smallest_lag_takes_a_ranking_one_pose_behind(tmp_path):
+    """next_views_max_lag 2: a ranking made while the pose before was captured is fresh, one 2 poses behind not."""
+    cfg, chooser, plan, folder = chooser_for(tmp_path, next_views_max_lag=2)
+    write_next_views(folder, elevation_ranking(cfg, pose_count=INITIAL - 1))
+    assert chooser.choose(plan, INITIAL)[0].why == "adaptive"
+    write_next_views(folder, elevation_ranking(cfg, pose_count=INITIAL - 2))
+    choice, _ = chooser.choose(plan, INITIAL)
+    assert choice.why == "fallback"
+    assert choice.record["detail"] == ("next_views.json stale: ranked at 1 poses, 2 before this one "
+                                       "(next_views_max_lag 2)")
 
 
 def test_a_refused_view_is_never_offered_again(tmp_path):

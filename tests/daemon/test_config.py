@@ -179,6 +179,52 @@ def test_one_ring_may_sit_at_one_elevation():
         scan_with(scan, {"rings": 2})
 
 
+RINGS = SIM.replace("views = 8", "views = 8\nschedule = 'rings'")  # 4 rings of 2 views
+
+
+@pytest.mark.parametrize("keys, line", [
+    ("max_elevation_deg = 90", "max_elevation_deg 90: a ring of 2 views there stands at one viewpoint (straight "
+                               "above the target); schedule 'rings' needs its rings strictly between -90 and 90 "
+                               "(degrees)"),
+    ("min_elevation_deg = -90", "min_elevation_deg -90: a ring of 2 views there stands at one viewpoint (straight "
+                                "below the target)"),
+    ("rings = 1\nmin_elevation_deg = 90\nmax_elevation_deg = 90",
+     "min_elevation_deg and max_elevation_deg 90: a ring of 8 views there stands at one viewpoint"),
+], ids=["top", "bottom", "one-ring"])
+def test_a_ring_at_a_pole_is_refused_naming_the_file_and_key(tmp_path, capsys, keys, line):
+    """`daemon --check` refuses it in the form of every other config error, with the key's own name."""
+    path = write(tmp_path, RINGS.replace("[scan]", "[scan]\n" + keys))
+    assert main(["daemon", "--config", str(path), "--check"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"spadscan: error: {path}: [scan] {line}") and err.count("\n") == 1, err
+    with pytest.raises(ConfigError, match=r"^scan request max_elevation_deg 90: a ring of 4 views"):
+        scan_request(ScanConfig(), {"schedule": "rings", "views": 16, "max_elevation_deg": 90.0})
+
+
+def test_a_ring_of_one_view_may_stand_at_the_zenith(tmp_path):
+    """One view per ring: the top ring is a single viewpoint, not several views at one point."""
+    from spadscan.daemon.scan_plan import build_plan
+
+    cfg = load_config(write(tmp_path, RINGS.replace("[scan]", "[scan]\nrings = 8\nmax_elevation_deg = 90")))
+    pos = build_plan(cfg.scan, cfg.arm).sensor_poses[:, :3, 3]
+    assert len(pos) == 8 and np.isclose(pos[:, 2].max(), cfg.scan.radius_m)
+
+
+@pytest.mark.parametrize("lag", [0, 1])
+@pytest.mark.parametrize("schedule", ["adaptive", "fibonacci"])
+def test_a_ranking_lag_below_2_is_refused_saying_why(tmp_path, lag, schedule):
+    """The daemon chooses each pose while the one before it is captured: a ranking is at least 1 pose behind, so
+    a lag below 2 would make every ranking stale and the adaptive scan its fallback plan without a word."""
+    text = SIM.replace("views = 8", f"views = 8\nschedule = '{schedule}'\ninitial_views = 4\n"
+                                    f"next_views_max_lag = {lag}")
+    assert error_of(tmp_path, text) == (
+        f"{tmp_path / 'rig.toml'}: [scan] next_views_max_lag {lag} must be at least 2 (poses): the daemon chooses "
+        f"each pose while the one before it is still being captured, so the freshest ranking is already 1 pose "
+        f"behind and a smaller value makes every ranking stale")
+    assert load_config(write(tmp_path, text.replace(f"next_views_max_lag = {lag}", "next_views_max_lag = 2"))
+                       ).scan.next_views_max_lag == 2
+
+
 def test_a_scan_request_that_sets_rings_needs_the_rings_schedule():
     """`ctl scan --rings 3` with the Fibonacci schedule is refused rather than ignored; a [scan] table may keep
     rings for the scans that choose schedule 'rings'."""

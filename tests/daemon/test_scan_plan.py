@@ -228,5 +228,9 @@ def test_a_ring_schedule_up_to_the_zenith_is_refused_before_the_arm_moves():
     with pytest.raises(ConfigError) as info:
         build_plan(scan(schedule="rings", rings=4, views=32, min_elevation_deg=20, max_elevation_deg=90), arm())
     assert "8 views at one viewpoint" in str(info.value) and "\n" not in str(info.value)
+    # A scan config that skipped config.check_scan (which refuses it naming the key) is still refused saying where.
+    with pytest.raises(ConfigError, match=r"^rig\.toml: \[scan\] defaults: schedule 'rings': a ring at \+90 deg"):
+        build_plan(scan(schedule="rings", rings=4, views=32, max_elevation_deg=90), arm(),
+                   where="rig.toml: [scan] defaults")
     assert len(build_plan(scan(schedule="rings", rings=4, views=32, min_elevation_deg=20, max_elevation_deg=80),
                           arm()).sensor_poses) == 32
