@@ -84,10 +84,8 @@ def check_mesh(mesh, what: str) -> None:
         raise MeshError(f"{what}: has zero surface area")
 
 
-def sample_surface(mesh, n_points: int, rng: np.random.Generator,
-                   smooth: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Sample points uniformly by area. Returns points (n, 3) metres and unit normals (n, 3): their faces' normals,
-    or with `smooth` the mesh's vertex normals interpolated across the face (the SDF gradient, for our meshes)."""
+def sample_surface(mesh, n_points: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points uniformly by area. Returns points (n, 3) metres and their faces' unit normals (n, 3)."""
     tri = np.asarray(mesh.triangles, dtype=np.float64)  # (F, 3, 3)
     edge1, edge2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     cross = np.cross(edge1, edge2)
@@ -99,20 +97,20 @@ def sample_surface(mesh, n_points: int, rng: np.random.Generator,
     flip = u + v > 1  # reflect the unit square's upper half back into the triangle
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     points = tri[face, 0] + u[:, None] * edge1[face] + v[:, None] * edge2[face]
-    if not smooth:
-        return points, cross[face] / double_area[face, None]  # sampled faces have area > 0 by construction
-    corner = np.asarray(mesh.vertex_normals, dtype=np.float64)[np.asarray(mesh.faces)[face]]  # (n, 3, 3)
-    normals = (1 - u - v)[:, None] * corner[:, 0] + u[:, None] * corner[:, 1] + v[:, None] * corner[:, 2]
-    return points, normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    return points, cross[face] / double_area[face, None]  # sampled faces have area > 0 by construction
 
 
 def vertex_normal_error_deg(mesh, gt, n_gt: int = 300_000, seed: int = 0) -> np.ndarray:
-    """Per-vertex angle (degrees) between the mesh's vertex normal and the ground truth's normal at the nearest of
-    n_gt area-uniform ground-truth samples (vertex normals interpolated), using |<n, n~>| (orientation-free, as in
-    the paper). (n_vertices,)."""
+    """Per-vertex angle (degrees) between the mesh's vertex normal and the face normal of the ground truth at the
+    nearest of n_gt area-uniform ground-truth samples, using |<n, n~>| (orientation-free, as in the paper).
+    (n_vertices,).
+
+    The ground truth's face normals, not its vertex normals interpolated across faces: a CAD or built-in ground
+    truth shares its vertices between faces that meet at a sharp edge, so its vertex normals average those faces
+    and would tilt the "true" normal across every flat face (a perfect mesh of a pyramid scored ~40 deg)."""
     check_mesh(mesh, "reconstruction")
     check_mesh(gt, "ground truth")
-    g_pts, g_nrm = sample_surface(gt, int(n_gt), np.random.default_rng(seed), smooth=True)
+    g_pts, g_nrm = sample_surface(gt, int(n_gt), np.random.default_rng(seed))
     _, idx = nearest_samples(np.asarray(mesh.vertices, dtype=np.float64), g_pts,
                              spacing_m=math.sqrt(gt.area / n_gt))
     vn = np.asarray(mesh.vertex_normals, dtype=np.float64)
@@ -184,47 +182,91 @@ def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(cos)).mean())
 
 
-CROP_SPLIT_M = 0.002
-"""Faces across a crop box's walls are split to this size (metres) before they are kept or dropped by their
-centroids: a cut by whole triangles would keep or drop up to a coarse face's size beyond it, so that a ground truth
-of large CAD faces and a fine reconstruction of the same surface were scored over different parts of it."""
+ON_WALL_M = 1e-12
+"""A corner this close to a crop box's wall (metres) lies on it: a corner a rounding error inside would leave a long
+sliver of no area along the wall, one a rounding error outside a cut of no length."""
 
 
-def crop_to_box(mesh, box_min, box_max):
-    """The surface of `mesh` inside the axis-aligned box [box_min, box_max] (metres, (3,) each), to CROP_SPLIT_M:
-    the faces wholly inside, and the pieces (split to that size) whose centroids lie inside of those across its
-    walls.
+def crop_to_box(mesh, box_min, box_max, what: str = "mesh"):
+    """The surface of `mesh` inside the axis-aligned box [box_min, box_max] (metres, (3,) each; its walls count as
+    inside): the faces wholly inside, and of every other face that overlaps the box, its part inside, clipped exactly
+    at the walls. `what` names the mesh in errors ("ground truth", "reconstruction").
+
+    Clipped, not kept or dropped whole (nor by corners or centroids): a ground truth of large CAD faces and a fine
+    reconstruction of the same surface are then scored over the same part of it, and a large face that passes
+    through the box with every corner and its centroid outside (a wall across a band) is cut, not lost.
 
     Used to evaluate an object apart from what surrounds it (a table top, a floor slab in the ground truth).
     """
     import trimesh
 
-    check_mesh(mesh, "mesh to crop")
+    check_mesh(mesh, what)
     lo, hi = np.asarray(box_min, dtype=np.float64), np.asarray(box_max, dtype=np.float64)
     if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise MeshError(f"crop box corners must be finite 3-vectors, got {lo.tolist()} and {hi.tolist()}")
     if np.any(lo >= hi):
         raise MeshError(f"crop box min {lo.tolist()} must lie below max {hi.tolist()} on every axis (m)")
 
-    def inside(points):
-        return np.all((points >= lo) & (points <= hi), axis=-1)
-
-    corners = inside(mesh.vertices)[mesh.faces]
-    whole = corners.all(axis=1)
-    across = ~whole & (corners.any(axis=1) | inside(mesh.triangles_center))
-    faces = [mesh.faces[whole]]
-    vertices = [mesh.vertices]
-    if across.any():
-        pieces = trimesh.Trimesh(mesh.vertices, mesh.faces[across], process=False)
-        pieces.remove_unreferenced_vertices()
-        pieces = pieces.subdivide_to_size(CROP_SPLIT_M, max_iter=12)
-        keep = inside(pieces.triangles_center)
-        faces.append(pieces.faces[keep] + len(mesh.vertices))
-        vertices.append(pieces.vertices)
-    kept = np.concatenate(faces)
-    if not len(kept):
-        raise MeshError(f"no triangle lies inside the crop box {lo.tolist()} .. {hi.tolist()} m "
-                        f"(mesh bounds {mesh.bounds.tolist()})")
-    out = trimesh.Trimesh(np.concatenate(vertices), kept, process=False)
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    tri = vertices[faces]  # (F, 3, 3)
+    whole = np.all((tri >= lo) & (tri <= hi), axis=(1, 2))
+    overlaps = ~whole & np.all((tri.min(axis=1) <= hi) & (tri.max(axis=1) >= lo), axis=1)
+    pieces, src = tri[overlaps], faces[overlaps]
+    for axis in range(3):
+        pieces, src = _clip_half_space(pieces, src, axis, lo[axis], 1.0)
+        pieces, src = _clip_half_space(pieces, src, axis, hi[axis], -1.0)
+    # A face touching a wall from outside leaves a piece of no area (its corners on the wall, one point or an edge).
+    solid = np.linalg.norm(np.cross(pieces[:, 1] - pieces[:, 0], pieces[:, 2] - pieces[:, 0]), axis=1) > 0
+    pieces, src = pieces[solid], src[solid]
+    if not (whole.any() or len(pieces)):
+        raise MeshError(f"{what}: no triangle lies inside the crop box {lo.tolist()} .. {hi.tolist()} m "
+                        f"(its bounds {np.round(mesh.bounds, 4).tolist()} m)")
+    # The clip's new corners, one vertex per position: faces that shared an edge share its cut point (computed alike
+    # on both, see _cut_points), so the cropped surface stays connected along the walls.
+    new = src < 0
+    new_points, index = np.unique(pieces[new], axis=0, return_inverse=True)
+    src[new] = len(vertices) + index.reshape(-1)
+    out = trimesh.Trimesh(np.concatenate([vertices, new_points]), np.concatenate([faces[whole], src]), process=False)
     out.remove_unreferenced_vertices()
     return out
+
+
+def _clip_half_space(tri: np.ndarray, src: np.ndarray, axis: int, bound: float,
+                     sign: float) -> tuple[np.ndarray, np.ndarray]:
+    """The parts of triangles `tri` (T, 3, 3) where sign * (x[axis] - bound) >= 0, as triangles in the same winding.
+    `src` (T, 3) holds each corner's vertex index in the source mesh, -1 for a corner made by a cut."""
+    d = sign * (tri[:, :, axis] - bound)
+    d[np.abs(d) <= ON_WALL_M] = 0.0
+    inside = d >= 0
+    count = inside.sum(axis=1)
+    out_tri, out_src = [tri[count == 3]], [src[count == 3]]
+    for n_in in (1, 2):
+        pick = count == n_in
+        t, s, dd = tri[pick], src[pick], d[pick]
+        r = np.arange(len(t))
+        # One inside: that corner a keeps a triangle. Two inside: the outside corner a is cut off, leaving a quad.
+        a = np.argmax(inside[pick], axis=1) if n_in == 1 else np.argmin(inside[pick], axis=1)
+        b, c = (a + 1) % 3, (a + 2) % 3
+        if n_in == 1:
+            (xb, sb), (xc, sc) = (_cut_points(t[r, a], t[r, e], dd[r, a], dd[r, e], s[r, a], axis, bound)
+                                  for e in (b, c))
+            out_tri.append(np.stack([t[r, a], xb, xc], axis=1))
+            out_src.append(np.stack([s[r, a], sb, sc], axis=1))
+        else:
+            (xb, sb), (xc, sc) = (_cut_points(t[r, e], t[r, a], dd[r, e], dd[r, a], s[r, e], axis, bound)
+                                  for e in (b, c))
+            out_tri += [np.stack([xb, t[r, b], t[r, c]], axis=1), np.stack([xb, t[r, c], xc], axis=1)]
+            out_src += [np.stack([sb, s[r, b], s[r, c]], axis=1), np.stack([sb, s[r, c], sc], axis=1)]
+    return np.concatenate(out_tri), np.concatenate(out_src)
+
+
+def _cut_points(p_in: np.ndarray, q_out: np.ndarray, d_in: np.ndarray, d_out: np.ndarray, s_in: np.ndarray,
+                axis: int, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where the edges from p_in (inside, distance d_in >= 0) to q_out (outside, d_out < 0) cross the plane
+    x[axis] = bound, and their source indices: p_in's own (`s_in`) where it lies on the wall, else -1. Always
+    computed from the inside end, so two faces sharing an edge get the very same point."""
+    on_wall = d_in == 0
+    t = d_in / (d_in - d_out)
+    x = p_in + t[:, None] * (q_out - p_in)
+    x[:, axis] = np.where(on_wall, p_in[:, axis], bound)  # on the wall exactly, not a rounding off it
+    return x, np.where(on_wall, s_in, -1)

@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"{getattr(args, what)}: read as millimetres (over {MM_EXTENT_THRESHOLD_M:g} m across as metres; "
                   f"--units m to read it as metres)", file=sys.stderr)
     if args.box is not None:
-        pred = crop_to_box(pred, args.box[:3], args.box[3:])
-        truth = GroundTruth(crop_to_box(truth.mesh, args.box[:3], args.box[3:]))
+        pred = crop_to_box(pred, args.box[:3], args.box[3:], what=f"the mesh {args.mesh}")
+        truth = GroundTruth(crop_to_box(truth.mesh, args.box[:3], args.box[3:], what=f"the ground truth {args.gt}"))
     metrics = truth.metrics(pred, n_points=args.points, seed=args.seed, fscore_threshold_m=args.threshold_mm * 1e-3)
     if args.json:
         # ground_truth and ground_truth_cut_above_z_m: the keys reconstruct's and baseline's reports use.

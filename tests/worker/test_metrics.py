@@ -11,7 +11,8 @@ import trimesh
 
 from spadscan.cli import main
 from spadscan.protocol.errors import MeshError
-from spadscan.worker.metrics import MeshMetrics, crop_to_box, mesh_metrics, sample_surface
+from spadscan.protocol.mesh_io import load_mesh_spec
+from spadscan.worker.metrics import MeshMetrics, crop_to_box, mesh_metrics, sample_surface, vertex_normal_error_deg
 
 N = 40_000
 
@@ -91,6 +92,29 @@ def test_normal_error_of_a_tilted_plate_and_flipped_orientation():
     flipped = plate.copy()
     flipped.invert()
     assert mesh_metrics(plate, flipped, n_points=N).normal_error_deg == pytest.approx(base, abs=0.5)  # orientation ignored
+
+
+def fine_copy(mesh, edge_m=0.004):
+    """The same surface in small triangles: a perfect reconstruction of `mesh`."""
+    fine = mesh.subdivide_to_size(edge_m, max_iter=20)
+    return trimesh.Trimesh(fine.vertices, fine.faces)
+
+
+@pytest.mark.parametrize("scene,mean_below", [("pyramid", 3.0), ("tall-block", 3.0), ("sphere", 2.0)])
+def test_per_vertex_normal_error_of_a_perfect_mesh_is_near_zero(scene, mean_below):
+    # A flat-faced ground truth shares its corners between faces meeting at 45-90 deg: its own vertex normals,
+    # interpolated, would tilt the "true" normal across every face (a perfect pyramid scored ~40 deg).
+    gt = load_mesh_spec(f"builtin:{scene}")[0]
+    err = vertex_normal_error_deg(fine_copy(gt), gt, n_gt=50_000)
+    assert err.mean() < mean_below and np.median(err) < 2.0
+
+
+def test_per_vertex_normal_error_sees_a_turned_mesh():
+    gt = load_mesh_spec("builtin:tall-block")[0]
+    turned = fine_copy(gt).apply_transform(trimesh.transformations.rotation_matrix(math.radians(20), [0, 0, 1]))
+    side = np.abs(turned.vertex_normals[:, 2]) < 0.1  # the four walls, now 20 deg off the ground truth's
+    err = vertex_normal_error_deg(turned, gt, n_gt=50_000)
+    assert np.median(err[side]) == pytest.approx(20.0, abs=1.0)
 
 
 def test_same_seed_same_numbers_other_seed_close():
