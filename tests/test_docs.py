@@ -4,7 +4,12 @@ repository, and every link between the documents resolves."""
 from __future__ import annotations
 
 import re
+import tomllib
 from pathlib import Path
+
+from spadscan.commands import baseline, reconstruct
+from spadscan.dashboard.results import PAGES
+from spadscan.worker.report.view3d import VIEW3D
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("spadscan", "daemon", "protocol", "worker", "tools", "benchmarks", "examples", "firmware_notes", "docs",
@@ -64,3 +69,45 @@ def _anchors(page: Path) -> set[str]:
             title = line.lstrip("#").strip().lower()
             out.add(re.sub(r"\s", "-", re.sub(r"[^\w\s-]", "", title)))
     return out
+
+
+def _results_table() -> str:
+    """docs/job_queue.md's table of the files a job publishes (its "## Results" section)."""
+    text = (ROOT / "docs" / "job_queue.md").read_text()
+    return text[text.index("\n## Results"):]
+
+
+def _readme_step(number: int) -> str:
+    """Step `number` of the README's lab workflow ("Using it in the lab"), up to the next step."""
+    return re.search(rf"\n{number}\. \*\*.*?(?=\n\d+\. \*\*|\n## )", (ROOT / "README.md").read_text(), re.S)[0]
+
+
+def test_every_result_file_the_dashboard_links_is_listed_where_results_are():
+    """Someone who copies or archives the files the docs list keeps every one the dashboard and report.html open
+    (view3d.html, the report's 3D view, among them)."""
+    from spadscan.commands import baseline, reconstruct
+    from spadscan.dashboard.results import PAGES
+    from spadscan.worker.report.view3d import VIEW3D
+
+    for where, text in [("docs/job_queue.md results", _results_table()), ("README step 6", _readme_step(6)),
+                        ("spadscan reconstruct --help", reconstruct.__doc__)]:
+        missing = [name for name in PAGES if name not in text]
+        assert not missing, f"{where} does not list {missing}"
+    assert VIEW3D in baseline.__doc__, "spadscan baseline --help does not list the 3D view it writes"
+
+
+def _captures_of_the_example_configs() -> set[str]:
+    return {tomllib.loads(p.read_text())["captures"] for p in sorted((ROOT / "examples").glob("rig-*.toml"))}
+
+
+def test_the_worker_watches_the_folder_the_example_configs_write_to():
+    """The worker unit and the README's lab workflow point the worker at the example rig configs' captures folder
+    (with ~ as the unit user's home: systemd expands no ~), so that the scans the daemon writes are reconstructed."""
+    unit = (ROOT / "examples" / "systemd" / "spadscan-worker.service").read_text()
+    (captures,) = _captures_of_the_example_configs()
+    (user,) = re.findall(r"^User=(\S+)$", unit, re.M)
+    (exec_start,) = re.findall(r"^ExecStart=(.*)$", unit, re.M)
+    (root,) = re.findall(r"--root (\S+)", exec_start)
+    assert root == captures.replace("~", f"/home/{user}", 1) and root.startswith("/"), (root, captures)
+    roots = re.findall(r"spadscan worker --root ([~/]\S*?)`", _readme_step(6))
+    assert roots and all(r.replace("~", f"/home/{user}", 1) == root for r in roots), roots

@@ -14,6 +14,7 @@ would fail the same way, 4 the job crashed).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib
 import json
 import os
@@ -43,10 +44,33 @@ ReconFn = Callable[..., dict]
 `budget_s` counts from `started` (a time.perf_counter reading: the job process's start)."""
 
 
-def job_id_for(scan_name: str, preset: str) -> str:
-    """Deterministic job id of one scan and preset, `<scan>-<preset>`, reduced to the characters [A-Za-z0-9._-]."""
-    clean = ID_RE.sub("_", f"{scan_name}-{preset}").strip(".") or "job"
-    return clean[:200]
+MAX_ID = 200
+"""Longest job id: it names files and folders with up to 31 more characters (`<id>.replaced-<time>-<hex>`)."""
+
+
+def job_id_for(scan_name: str, preset: str, *, hashed: bool = False) -> str:
+    """Deterministic job id of one scan and preset, made of the characters [A-Za-z0-9._-], and no other scan's.
+
+    `<scan>-<preset>` when that is such a name (of at most MAX_ID characters, not starting with a dot); otherwise,
+    or with `hashed`, `<scan with every run of other characters replaced by _>-<8 hex digits>-<preset>`, the digits
+    from a hash of `<scan>-<preset>`: replacing characters alone would give `x+y` and `x_y` (or `mug 1` and `mug_1`)
+    one id, and the queue queues an id once, so one of the two scans would never be reconstructed. `hashed` gives a
+    scan whose plain id another scan's job already holds (in a queue of an older spadscan: `old_job_id_for`) an id
+    of its own."""
+    plain = f"{scan_name}-{preset}"
+    if not hashed and not ID_RE.search(plain) and not plain.startswith(".") and len(plain) <= MAX_ID:
+        return plain  # the ids every queue has always held for such names: existing queues keep their jobs
+    # surrogateescape: a folder name need not be UTF-8 (os.listdir gives its bytes as surrogates)
+    digest = hashlib.sha256(plain.encode("utf-8", "surrogateescape")).hexdigest()[:8]
+    tail = f"-{digest}-{ID_RE.sub('_', preset)}"
+    return ID_RE.sub("_", scan_name).lstrip(".")[:MAX_ID - len(tail)] + tail
+
+
+def old_job_id_for(scan_name: str, preset: str) -> str:
+    """The id spadscan gave a scan's job before ids were made one scan's each (every run of characters outside
+    [A-Za-z0-9._-] replaced by `_`, cut to MAX_ID characters): the watcher looks a scan up under it too, so that a
+    queue written then does not run its jobs again under their new ids."""
+    return (ID_RE.sub("_", f"{scan_name}-{preset}").strip(".") or "job")[:MAX_ID]
 
 
 CHANGEABLE = ("budget_s", "steps", "device", "seed")

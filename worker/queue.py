@@ -104,6 +104,7 @@ class Queue:
         self.path = Path(path)
         self.lease_s = float(lease_s)
         self.max_attempts = max_attempts
+        self._scans: dict[str, str] = {}  # registered_scan's answers: a job's scan never changes
         for sub in ("ids", "tmp", "attempts", *STATES) if create else ():
             (self.path / sub).mkdir(parents=True, exist_ok=True)
 
@@ -136,6 +137,20 @@ class Queue:
 
     def known(self, job_id: str) -> bool:
         return self._id_path(job_id).exists()
+
+    def registered_scan(self, job_id: str) -> str | None:
+        """The scan of the job registered as `job_id`: None when no job was ever queued under that id, "" when its
+        registered file names none (damaged). A job's scan never changes (a retry changes only its options), so the
+        answer is remembered: a watcher asks it of every scan on every pass, at the cost of a stat."""
+        if not self.known(job_id):
+            return None
+        if job_id in self._scans:
+            return self._scans[job_id]
+        scan = _stored(self._id_path(job_id)).get("scan")
+        scan = scan if isinstance(scan, str) else ""
+        if scan:
+            self._scans[job_id] = scan
+        return scan
 
     def _id_path(self, job_id: str) -> Path:
         return self.path / "ids" / f"{job_id}.json"

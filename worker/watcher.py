@@ -1,7 +1,8 @@
 """Watching a captures root: every complete scan is queued once (asyncio polling, no extra dependency).
 
 A scan folder is a child of the root that holds `scan.json`. Scans still `running` are looked at again on the next
-poll; `aborted` scans are skipped; a `complete` scan is queued as the job `<scan>-<preset>`. With `live` a `running`
+poll; `aborted` scans are skipped; a `complete` scan is queued as the job `<scan>-<preset>` (`job_id_for`: a name
+with other characters than [A-Za-z0-9._-] gets a hash of its own in its id). With `live` a `running`
 scan is queued as soon as its first chunk is published, as a live job of the same id (`Job.live`): it follows the
 scan and finishes it (worker/live/job.py), so the scan is still queued once. A scan whose manifest
 cannot be read is queued too, so that its job fails with the reason and `spadscan worker --status` shows it, instead
@@ -15,14 +16,14 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, npy_is_whole, read_json
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
-from .jobs import Job, job_id_for
+from .jobs import Job, job_id_for, old_job_id_for
 from .queue import QUEUE_DIRNAME, Queue
 
 
@@ -198,6 +199,24 @@ def has_chunk(folder: Path) -> bool:
         return False
 
 
+def id_to_queue(queue: Queue, scan_name: str, preset: str) -> str | None:
+    """The id to queue scan `scan_name`'s job under, or None when the queue holds its job already.
+
+    That id is `job_id_for`'s, save in a queue written before ids were made one scan's each (`old_job_id_for`): there
+    the scan's job may be registered under its old id (found, so it is not run again), and its own id may be held by
+    another scan's job (`x+y`'s, queued as `x_y-fast`, for the scan `x_y`): it then gets its hashed id, as every
+    watcher does, so that it is reconstructed too, once."""
+    job_id = job_id_for(scan_name, preset)
+    owner = queue.registered_scan(job_id)
+    if owner is None:
+        old = old_job_id_for(scan_name, preset)
+        return None if old != job_id and queue.registered_scan(old) == scan_name else job_id
+    if owner in (scan_name, ""):  # "": a damaged registry file, taken to be the scan's (it was before)
+        return None
+    hashed = job_id_for(scan_name, preset, hashed=True)
+    return None if queue.known(hashed) else hashed
+
+
 def scan_once(root: Path, queue: Queue, options: JobOptions, now: float | None = None) -> ScanReport:
     """One pass over the captures root: queue every complete scan that has no job yet (with `options.live`, every
     running scan with a published chunk too, as a live job). A folder that looks like a copy still under way waits
@@ -205,15 +224,16 @@ def scan_once(root: Path, queue: Queue, options: JobOptions, now: float | None =
     now = time.time() if now is None else now
     report = ScanReport()
     for folder in scan_folders(root):
-        job = options.job_for(folder.name)
-        if queue.known(job.id):
+        job_id = id_to_queue(queue, folder.name, options.preset)
+        if job_id is None:
             continue
+        job = replace(options.job_for(folder.name), id=job_id)
         try:
             state = scan_state(folder)
         except CaptureError:
             state = None
         if state == "running":
-            if options.live and has_chunk(folder) and queue.enqueue(options.job_for(folder.name, live=True)):
+            if options.live and has_chunk(folder) and queue.enqueue(replace(job, live=True)):
                 report.live.append(folder.name)
             else:
                 report.pending.append(folder.name)

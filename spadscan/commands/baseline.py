@@ -10,9 +10,9 @@ exceeds T standard deviations of the background noise (pile-up undone first). --
 300 and keeps the one with the lowest Chamfer distance to the ground truth, as the paper did (and says so in the
 report). Without --gt, the ground truth that the capture names is used (import-lcspc and simulate record theirs);
 --no-gt skips it. Writes into DIR (a new folder, or one without a result unless --overwrite): report.html (the page to
-open first), mesh.ply, report.json (method, threshold, calibrated, seconds, and with a ground truth the metrics:
-chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg) and preview.png (the mesh, and the ground
-truth beside it).
+open first), view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply, report.json (method,
+threshold, calibrated, seconds, and with a ground truth the metrics: chamfer_mm, accuracy_mm, completeness_mm,
+fscore_5mm, normal_error_deg) and preview.png (the mesh, and the ground truth beside it).
 
 Examples:
   spadscan baseline space-carving captures/bunny --out out/bunny-carve --gt bunny.obj

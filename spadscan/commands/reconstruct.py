@@ -1,11 +1,12 @@
 """Reconstruct one capture into a mesh and a report, by differentiable rendering of its histograms.
 
 Writes into --out (a new folder, or one without a result unless --overwrite): report.html (the page to open first),
-mesh.ply (per-vertex normals from the SDF gradient), report.json (preset, device, steps, training seconds, the model
-terms used, final loss, the resolved config, and with a ground truth: chamfer_mm, accuracy_mm, completeness_mm,
-fscore_5mm, normal_error_deg plus a trace of error against training time), preview.png, error_vs_time.png, fit.png
-(measured against rendered histograms), coverage.png (the mesh coloured by how many views saw each part: red where
-none did, its shape a guess) and, with a ground truth, normals.png (per-vertex normal error). Without --gt,
+view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply (per-vertex normals from the SDF
+gradient), report.json (preset, device, steps, training seconds, the model terms used, final loss, the resolved
+config, and with a ground truth: chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg plus a trace
+of error against training time), preview.png, error_vs_time.png, fit.png (measured against rendered histograms),
+coverage.png (the mesh coloured by how many views saw each part: red where none did, its shape a guess) and, with a
+ground truth, normals.png (per-vertex normal error). Without --gt,
 the ground truth that the capture names is used (import-lcspc and simulate record theirs); --no-gt skips the metrics.
 --budget-s bounds the whole run, from the command's start to its report (within 10 % or 10 s, whichever is
 larger): loading the capture, training, the mesh, the metrics and the pictures share it, and when time is short the

@@ -1,7 +1,8 @@
 """Watch a captures root and reconstruct every complete scan, once, in child processes.
 
 Every child folder of ROOT that holds scan.json in state 'complete' becomes the job `<scan>-<preset>` in a durable
-queue (ROOT/.queue by default). Several workers, on this machine or on others sharing the folder, can serve one root:
+queue (ROOT/.queue by default; a scan name with characters other than A-Za-z0-9._- gets a short hash in its id, so
+that no two scans share one). Several workers, on this machine or on others sharing the folder, can serve one root:
 each job runs exactly once; a job whose worker died is taken over when its lease expires (at once on the same
 machine) and retried up to --max-attempts times. A malformed capture fails its job with the reason, never the worker.
 Results go to <scan>/recon/<job>/ (mesh.ply, report.json, pictures, job.log). Ctrl-C or SIGTERM stops the job

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -14,7 +15,7 @@ import pytest
 
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.holder import Holder, holder_gone
-from spadscan.worker.jobs import Job, job_id_for
+from spadscan.worker.jobs import Job, job_id_for, old_job_id_for
 from spadscan.worker.queue import Queue
 
 from process_helpers import reaped
@@ -31,8 +32,40 @@ def _elsewhere() -> Holder:
 
 def test_job_ids_are_deterministic_and_safe():
     assert job_id_for("bunny", "fast") == "bunny-fast" == job_id_for("bunny", "fast")
-    assert job_id_for("a b/../c", "paper") == "a_b_.._c-paper"
+    assert re.fullmatch(r"a_b_\.\._c-[0-9a-f]{8}-paper", job_id_for("a b/../c", "paper"))
     assert job_id_for("bunny", "fast") != job_id_for("bunny", "paper")
+
+
+SAFE_NAMES = ["bunny", "mug_1", "x_y", "scan.2024-05-01", "-", "a" * 195]
+ODD_NAMES = ["x+y", "mug 1", "tasse-\u00fc", "tasse-\u00f6", "caf\udce9 #1", ".hidden", "\u00fc", "a" * 196, "a" * 300]
+
+
+def test_job_ids_of_safe_names_are_as_they_always_were():
+    """Existing queues and result folders (`<scan>/recon/<scan>-<preset>/`) keep their jobs."""
+    for name in SAFE_NAMES:
+        assert job_id_for(name, "fast") == f"{name}-fast" == old_job_id_for(name, "fast")
+
+
+def test_scans_whose_names_differ_only_in_odd_characters_get_ids_of_their_own(tmp_path):
+    names = SAFE_NAMES + ODD_NAMES + ["x y", "x++y", "mug_1" + "b" * 300, "mug_1" + "c" * 300]
+    ids = [job_id_for(name, preset) for name in names for preset in ("fast", "paper")]
+    assert len(set(ids)) == len(ids), "one id per scan and preset"
+    hashed = [job_id_for(name, "fast", hashed=True) for name in SAFE_NAMES]
+    assert len(set(hashed + ids)) == len(hashed + ids), "a hashed id is no other scan's id either"
+    for job_id in ids + hashed:
+        assert re.fullmatch(r"[A-Za-z0-9._-]{1,200}", job_id) and not job_id.startswith("."), job_id
+        assert job_id.endswith(("-fast", "-paper")), job_id
+    q = Queue(tmp_path / "q")
+    assert all(q.enqueue(Job(id=job_id_for(name, "fast"), scan=name)) for name in names), "each one is queued"
+
+
+def test_the_queue_says_which_scan_an_id_is_registered_to(tmp_path):
+    q = Queue(tmp_path / "q")
+    assert q.registered_scan("x_y-fast") is None
+    q.enqueue(Job(id="x_y-fast", scan="x+y"))
+    assert q.registered_scan("x_y-fast") == "x+y"
+    (q.path / "ids" / "torn-fast.json").write_text("{")
+    assert q.registered_scan("torn-fast") == "", "a damaged registry file names no scan"
 
 
 def test_a_scan_is_queued_once(tmp_path):

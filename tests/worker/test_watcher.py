@@ -8,12 +8,16 @@ import shutil
 import time
 
 import numpy as np
+import pytest
 
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.worker.jobs import Job, job_id_for, old_job_id_for
+from spadscan.worker.pool import Worker
 from spadscan.worker.queue import Queue
 from spadscan.worker.watcher import SETTLE_S, JobOptions, scan_folders, scan_once, watch
+from spadscan.worker.worker_config import WorkerConfig
 
 
 def make_scan(root, name, state="complete", n=2):
@@ -134,6 +138,66 @@ def test_a_complete_scan_short_of_measurements_is_queued_once_it_stands_still(tm
     q = Queue.for_root(tmp_path)
     assert scan_once(tmp_path, q, JobOptions()).pending == ["s"]
     assert scan_once(tmp_path, q, JobOptions(), now=time.time() + SETTLE_S + 1).queued == ["s"]
+
+
+ALIKE = ["x+y", "x_y", "mug 1", "mug_1", "tasse-\u00fc", "tasse-\u00f6"]
+"""Scan names that differ only in characters outside [A-Za-z0-9._-], pair by pair."""
+
+
+def test_scans_whose_names_differ_only_in_odd_characters_are_each_queued_once(tmp_path):
+    for name in ALIKE:
+        make_scan(tmp_path, name)
+    q = Queue.for_root(tmp_path)
+    assert sorted(scan_once(tmp_path, q, JobOptions()).queued) == sorted(ALIKE)
+    jobs = [json.loads(p.read_text()) for p in (q.path / "queued").glob("*.json")]
+    assert sorted(j["scan"] for j in jobs) == sorted(ALIKE) and len({j["id"] for j in jobs}) == len(ALIKE)
+    assert {"x_y-fast", "mug_1-fast"} <= {j["id"] for j in jobs}, "safe names keep the ids they always had"
+    assert scan_once(tmp_path, q, JobOptions()).queued == [], "a second pass queues nothing new"
+
+
+def test_a_running_scan_with_an_odd_name_is_queued_live_under_its_own_id(tmp_path):
+    make_scan(tmp_path, "x_y")
+    make_scan(tmp_path, "x+y", "running")
+    q = Queue.for_root(tmp_path)
+    report = scan_once(tmp_path, q, JobOptions(live=True))
+    assert (report.queued, report.live) == (["x_y"], ["x+y"])
+    live = [j for j in q.queued_jobs() if j.live]
+    assert [(j.scan, j.id) for j in live] == [("x+y", job_id_for("x+y", "fast"))]
+
+
+def test_a_queue_of_old_ids_keeps_its_jobs_and_the_scan_it_hid_is_queued(tmp_path):
+    """Before ids were one scan's each, `x+y` was queued as `x_y-fast`, which hid the scan `x_y`: the scans whose
+    jobs that queue holds are not run again, and `x_y` gets an id of its own."""
+    for name in ("x+y", "x_y", "mug 1"):
+        make_scan(tmp_path, name)
+    q = Queue.for_root(tmp_path)
+    for name in ("x+y", "mug 1"):
+        assert q.enqueue(Job(id=old_job_id_for(name, "fast"), scan=name))
+    assert old_job_id_for("x+y", "fast") == "x_y-fast" and old_job_id_for("mug 1", "fast") == "mug_1-fast"
+    assert scan_once(tmp_path, q, JobOptions()).queued == ["x_y"]
+    queued = {j.scan: j.id for j in q.queued_jobs()}
+    assert queued["x_y"] == job_id_for("x_y", "fast", hashed=True) != "x_y-fast"
+    assert scan_once(tmp_path, q, JobOptions()).queued == [], "and once only"
+    assert scan_once(tmp_path, Queue.for_root(tmp_path), JobOptions()).queued == [], "by any watcher"
+
+
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_a_worker_reconstructs_both_scans_of_names_alike(tmp_path, arun, monkeypatch):
+    root, markers = tmp_path / "captures", tmp_path / "markers"
+    root.mkdir()
+    markers.mkdir()
+    for name in ("x+y", "x_y"):
+        make_scan(root, name)
+    monkeypatch.setenv("MARKERS", str(markers))
+    config = WorkerConfig(root=root, processes=1, once=True, poll_s=0.1, recon="test_worker_process:marker_recon")
+    settled = arun(Worker(config, log=lambda line: None).run(), timeout_s=120)
+    ids = {name: job_id_for(name, "fast") for name in ("x+y", "x_y")}
+    assert settled == {ids["x+y"]: "done", ids["x_y"]: "done"}
+    for name, job_id in ids.items():
+        report = json.loads((root / name / "recon" / job_id / "report.json").read_text())
+        assert report["capture"] == str(root / name)
+    rows = {r.id: r.result for r in Queue.for_root(root).statuses()}
+    assert rows == {job_id: str(root / name / "recon" / job_id) for name, job_id in ids.items()}
 
 
 def test_watch_polls_until_stopped(tmp_path, arun):
