@@ -39,12 +39,19 @@ class FramesTooEarly(DeviceError):
 
 @dataclass
 class ArmState:
-    """What the arm reports: actual TCP pose (4x4, base frame, metres), joint angles (rad), controller time (s)."""
+    """What the arm reports: actual TCP pose (4x4, base frame, metres), joint angles (rad), controller time (s), and
+    whether a safety stop holds it: `safety_stop` names which (`arm/stops.py`: emergency, protective, safeguard stop),
+    for an arm that can tell; `protective_stop` says only that one does (it follows `safety_stop`)."""
 
     tcp_pose: np.ndarray
     joints: np.ndarray
     timestamp_s: float
     protective_stop: bool = False
+    safety_stop: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.safety_stop is not None:
+            self.protective_stop = True
 
 
 @dataclass

@@ -11,11 +11,13 @@ Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent
 running meanwhile, `stall.py`: that wait begins again), frames that all began too early (FramesTooEarly), a safety
 stop or lost link (ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The
 writer is then dropped and reopened on resume, which continues at the first unpublished pose
-(`CaptureWriter.next_pose_index`). Before the first move after such a resume the arm is readied: after LinkLost it
-reconnects (`Arm.reconnect`: fresh interfaces), after ArmFault `Arm.clear_fault` runs (the sim arm clears its
-protective stop; a real UR arm's stop is cleared by the operator on the pendant before `ctl resume`, and the arm
-uploads its control script again if the fault stopped it). A new scan whose arm link went down while no scan ran
-reconnects it the same way before it plans. The first move of every run starts wherever the arm
+(`CaptureWriter.next_pose_index`). A safety stop that comes while the arm stands at a pose is named in the reason
+(emergency, protective or safeguard stop, `arm/stops.py`), with what clears it. Before the first move after a
+resume the arm is readied: after LinkLost, or whenever its link is found down then, whatever paused the scan, it
+reconnects (`Arm.reconnect`: fresh interfaces); after ArmFault `Arm.clear_fault` runs (the sim arm clears its
+safety stop; a real UR arm's stop is cleared by the operator before `ctl resume`, and the arm uploads its control
+script again if the fault stopped it). A new scan whose arm link went down while no scan ran reconnects it the same
+way before it plans. The first move of every run starts wherever the arm
 stands: it is checked like the planned moves (`workspace.first_move_problem`), and after a pause the arm's controller
 is asked again about the poses still to come (`Arm.check_poses`).
 """
@@ -37,6 +39,7 @@ from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
 from .config import DaemonConfig, scan_request
+from .arm.stops import clear_advice, stop_name
 from .devices import Arm, ArmFault, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
 from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
 from .adaptive import ViewChooser, live_converged
@@ -345,14 +348,27 @@ class ScanRunner:
             raise
 
     async def _ready_arm(self, job: ScanJob) -> None:
-        """Before the first move after a fault: reconnect after a lost link, clear a fault (see the module
-        docstring). A failure raises like any fault (and the fix is tried again at the next resume)."""
+        """Before the first move of a run: reconnect after a lost link, clear a fault (see the module docstring). The
+        link is checked whatever paused the scan: it may have dropped and come back meanwhile (a controller rebooted,
+        a cable re-plugged), and the first resume must reconnect it, not pause again for it. A failure raises like
+        any fault (and the fix is tried again at the next resume)."""
         fix = job.arm_fix
+        if fix != "reconnect" and not await self._link_up(job):
+            fix = "reconnect"
         if fix is None:
             return
         log.info("scan %s: %s: %s before pose %s", job.name, self.arm.name, ARM_FIXES[fix], self._progress())
         await self._reconnect_arm(fix)
         job.arm_fix = None
+
+    async def _link_up(self, job: ScanJob) -> bool:
+        """Whether the arm's link answers (a state read); False, logged, on LinkLost."""
+        try:
+            await self._arm_state()
+        except LinkLost as exc:
+            log.info("scan %s: %s: the link is down (%s)", job.name, self.arm.name, exc)
+            return False
+        return True
 
     async def _reconnect_arm(self, fix: str) -> None:
         """Reconnect the arm (fix "reconnect") and clear its fault, within READY_TIMEOUT_S."""
@@ -390,8 +406,9 @@ class ScanRunner:
                 frames = await self._frames(job, i, t_stop + job.scan.settle_s)
                 arm = await self._arm_state()
                 self._check_end()
-                if arm.protective_stop:
-                    raise ArmFault(f"{self.arm.name}: protective stop while capturing pose {i}")
+                stop = stop_name(arm)
+                if stop is not None:  # named: each stop is cleared in its own way at the rig
+                    raise ArmFault(f"{stop} on {self.arm.name} while capturing pose {i}; {clear_advice(stop)}")
                 if pending is not None:  # pose i-1 lands before pose i is handed over: one finished pose unpublished
                     p, pending = pending, None
                     await self._landed(p, i - 1)

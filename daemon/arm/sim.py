@@ -2,15 +2,17 @@
 
 Motion time follows a trapezoidal speed profile from the move's distance, speed and acceleration (or a fixed time;
 0 = instant), scaled by `time_scale`. While a move runs the actual pose slides along the straight line, so a sensor
-that renders at the arm's pose sees motion. Faults rehearse what a real UR does: a protective stop half way through a
-chosen move (the move raises ArmFault and every later move is refused until the stop is cleared), or a link drop
-(state and moves raise LinkLost until `restore_link`). An injected fault freezes the arm at exactly
-`interpolate_pose(start, goal, 0.5)`, whatever the clock says. Joint angles are a fake but deterministic function of
-the pose.
+that renders at the arm's pose sees motion. Faults rehearse what a real UR does: a safety stop (protective, safeguard
+or emergency: `stops`) half way through a chosen move, or at any moment (`trigger_stop`: also while the arm stands at
+a pose); the move raises ArmFault, the state names the stop, and every later move is refused until the stop is
+cleared. Or a link drop: state and moves raise LinkLost, and go on raising it after `restore_link` until the arm
+reconnects (`reconnect`, as the runner does on resume), as a real arm's dropped connection does. An injected fault
+freezes the arm at exactly `interpolate_pose(start, goal, 0.5)`, whatever the clock says. Joint angles are a fake but
+deterministic function of the pose.
 
-Clearing a protective stop: on a real UR the operator clears it on the teach pendant, then resumes the scan. The sim
-has no pendant, so `clear_fault()` (which the scan runner calls when the user resumes a scan an arm fault paused,
-`spadscan ctl resume`) clears it, as does `clear_protective_stop()`.
+Clearing a safety stop: on a real UR the operator clears it (the pendant, the emergency stop button, the safeguard),
+then resumes the scan. The sim has no pendant, so `clear_fault()` (which the scan runner calls when the user resumes
+a scan an arm fault paused, `spadscan ctl resume`) clears it, as does `clear_safety_stop()`.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from spadscan.daemon.arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
+from spadscan.daemon.arm.stops import EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, clear_advice
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError
 
@@ -36,6 +39,10 @@ class SimArmFaults:
 
     protective_stop_on_moves: tuple[int, ...] = ()
     """Moves that stop protectively half way."""
+    safeguard_stop_on_moves: tuple[int, ...] = ()
+    """Moves that a safeguard stop (a light curtain, a door) halts half way."""
+    emergency_stop_on_moves: tuple[int, ...] = ()
+    """Moves that an emergency stop halts half way."""
     link_drop_on_moves: tuple[int, ...] = ()
     """Moves during which the link drops (the move raises LinkLost half way)."""
 
@@ -90,13 +97,20 @@ class SimArm(Arm):
         self._ended: asyncio.Event | None = None  # set when the move in progress is stopped
         self.moves = 0
         self.commanded: list[np.ndarray] = []
-        self.protective_stop = False
+        self.safety_stop: str | None = None
+        """The safety stop that holds the arm (`stops`), None when none does."""
         self.link_up = True
+        self._link_dropped = False  # the link dropped since the last (re)connect: LinkLost until the next
         self.connected = False
 
     # ---- lifecycle ---------------------------------------------------------------------------------------------
     async def connect(self) -> None:
-        self.connected = True
+        await self.reconnect()
+
+    @property
+    def protective_stop(self) -> bool:
+        """Stopped for safety, whichever stop (ArmState.protective_stop)."""
+        return self.safety_stop is not None
 
     async def close(self) -> None:
         self.connected = False
@@ -105,29 +119,43 @@ class SimArm(Arm):
         await self.stop()
 
     # ---- faults ------------------------------------------------------------------------------------------------
+    def trigger_stop(self, kind: str = PROTECTIVE_STOP) -> None:
+        """Stop for safety now: PROTECTIVE_STOP (as a collision would), SAFEGUARD_STOP (a light curtain, a door) or
+        EMERGENCY_STOP (the red button). The move in progress raises ArmFault; at rest, the state names the stop."""
+        if kind not in (EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP):
+            raise ValueError(f"unknown safety stop {kind!r}")
+        self._freeze()
+        self.safety_stop = kind
+
     def trigger_protective_stop(self) -> None:
         """Stop protectively now (as a collision would); the move in progress raises ArmFault."""
-        self._freeze()
-        self.protective_stop = True
+        self.trigger_stop(PROTECTIVE_STOP)
+
+    def clear_safety_stop(self) -> None:
+        """What the operator does on the teach pendant (or at the button, the safeguard) after a safety stop."""
+        self.safety_stop = None
 
     def clear_protective_stop(self) -> None:
-        """What the operator does on the teach pendant after a protective stop."""
-        self.protective_stop = False
+        self.clear_safety_stop()
 
     async def clear_fault(self) -> None:
-        """The user resumed after an arm fault: clear the protective stop (the sim's stand-in for the pendant)."""
-        self.clear_protective_stop()
+        """The user resumed after an arm fault: clear the safety stop (the sim's stand-in for the pendant)."""
+        self.clear_safety_stop()
 
     async def reconnect(self) -> None:
         """LinkLost while the link is still down (see `restore_link`); otherwise connected again."""
-        self._check_link()
+        if not self.link_up:
+            raise LinkLost(f"{self.name}: link lost (no fresh state data)")
+        self._link_dropped = False
         self.connected = True
 
     def drop_link(self) -> None:
         self._freeze()
-        self.link_up = False
+        self.link_up = self.connected = False
+        self._link_dropped = True
 
     def restore_link(self) -> None:
+        """The link is back (a cable plugged in again, a controller rebooted); the arm reconnects before using it."""
         self.link_up = True
 
     def jog(self, tcp_pose: np.ndarray) -> None:
@@ -159,17 +187,13 @@ class SimArm(Arm):
         if not (speed > 0 and accel > 0):
             raise ArmFault(f"{self.name}: speed {speed} m/s and acceleration {accel} m/s^2 must be positive")
         self._check_link()
-        if self.protective_stop:
-            raise ArmFault(f"{self.name}: protective stop; clear it on the teach pendant, then resume")
+        if self.safety_stop is not None:
+            raise ArmFault(f"{self.name}: {self.safety_stop}; {clear_advice(self.safety_stop)}")
         self.moves += 1
         self.commanded.append(goal.copy())
         start = self.actual_pose()
         duration = self.motion_time(start, goal, speed, accel)
-        fault = None
-        if self.moves in self.faults.protective_stop_on_moves:
-            fault = "stop"
-        elif self.moves in self.faults.link_drop_on_moves:
-            fault = "link"
+        fault = self._fault_on(self.moves)
         motion = (start, goal, time.monotonic(), duration)
         self._motion = motion
         # A stop, a protective stop or a dropped link ends the move at once, as on a real controller (its moveL
@@ -182,13 +206,14 @@ class SimArm(Arm):
                 pass
             if fault and self._motion is motion:  # half way, exactly: not wherever the clock has got to
                 self._pose, self._motion = interpolate_pose(start, goal, 0.5), None
-            if fault == "stop":
-                self.protective_stop = True
-            elif fault == "link":
-                self.link_up = False
+            if fault == "link":
+                self.drop_link()
+            elif fault is not None:
+                self.safety_stop = fault
             self._check_link()
-            if self.protective_stop:
-                raise ArmFault(f"{self.name}: protective stop during move {self.moves}")
+            if self.safety_stop is not None:
+                raise ArmFault(f"{self.name}: {self.safety_stop} during move {self.moves}; "
+                               f"{clear_advice(self.safety_stop)}")
             if self._motion is not motion:
                 raise ArmFault(f"{self.name}: move {self.moves} was stopped before it arrived")
             self._motion = None
@@ -196,6 +221,15 @@ class SimArm(Arm):
         finally:
             if self._motion is motion:
                 self._freeze()
+
+    def _fault_on(self, move: int) -> str | None:
+        """The fault injected into move number `move`: a safety stop's name, "link", or None."""
+        f = self.faults
+        for kind, moves in ((PROTECTIVE_STOP, f.protective_stop_on_moves), (SAFEGUARD_STOP, f.safeguard_stop_on_moves),
+                            (EMERGENCY_STOP, f.emergency_stop_on_moves), ("link", f.link_drop_on_moves)):
+            if move in moves:
+                return kind
+        return None
 
     def _noisy(self, goal: np.ndarray) -> np.ndarray:
         if self.pose_noise_m <= 0:
@@ -215,12 +249,14 @@ class SimArm(Arm):
     def _check_link(self) -> None:
         if not self.link_up:
             raise LinkLost(f"{self.name}: link lost (no fresh state data)")
+        if self._link_dropped:
+            raise LinkLost(f"{self.name}: the link dropped and the connection is closed; reconnect first")
 
     async def state(self) -> ArmState:
         self._check_link()
         pose = self.actual_pose()
         return ArmState(tcp_pose=pose, joints=fake_joints(pose), timestamp_s=time.monotonic(),
-                        protective_stop=self.protective_stop)
+                         safety_stop=self.safety_stop)
 
     async def stop(self) -> None:
         self._freeze()

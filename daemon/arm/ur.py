@@ -51,6 +51,7 @@ import numpy as np
 
 from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rotvec_to_matrix, vector_to_pose
+from spadscan.daemon.arm.stops import EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, clear_advice
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError
 
@@ -106,6 +107,16 @@ class _Reading:
     @property
     def safeguard(self) -> bool:
         return bool(self.safety_bits & BIT_SAFEGUARD_STOPPED) or self.safety_mode in SAFEGUARD_MODES
+
+    @property
+    def stop(self) -> str | None:
+        """The safety stop that holds the arm (`stops`), None when none does; an emergency stop first, as it
+        outranks the others when several show."""
+        if self.emergency:
+            return EMERGENCY_STOP
+        if self.protective:
+            return PROTECTIVE_STOP
+        return SAFEGUARD_STOP if self.safeguard else None
 
 
 class URArm(Arm):
@@ -175,7 +186,7 @@ class URArm(Arm):
         self._watchdog_set = self._tcp_checked = False
         self._kicker = asyncio.ensure_future(self._kick_watchdog())
         reading = await self._fresh("the first data after connecting")
-        if reading.program_running and not (reading.protective or reading.emergency or reading.safeguard):
+        if reading.program_running and reading.stop is None:
             await self._check_tcp_offset()  # else before the first move: a stopped arm's script answers nothing
 
     async def prepare(self) -> None:
@@ -194,7 +205,7 @@ class URArm(Arm):
         self._require_open()
         reading = await self._fresh("the control script's state")
         deadline = time.monotonic() + CLEARED_WITHIN_S
-        while (reading.protective or reading.emergency or reading.safeguard) and time.monotonic() < deadline:
+        while reading.stop is not None and time.monotonic() < deadline:
             await asyncio.sleep(self.poll_s)  # a stop cleared just now may still show in the data already sent
             reading = await self._fresh("the control script's state")
         if not reading.program_running:
@@ -202,7 +213,7 @@ class URArm(Arm):
             if not await self._script_started():
                 await self.reconnect()
             self._watchdog_set = self._tcp_checked = False
-        if not (reading.protective or reading.emergency or reading.safeguard):
+        if reading.stop is None:
             await self._check_tcp_offset()
             await self._arm_watchdog()
 
@@ -346,14 +357,14 @@ class URArm(Arm):
             raise
 
     async def state(self) -> ArmState:
-        """Actual TCP pose (4x4), joints (6,), controller timestamp, and whether the arm is stopped for safety
-        (protective or emergency stop). Raises LinkLost when the link is closed or the data stopped advancing."""
+        """Actual TCP pose (4x4), joints (6,), controller timestamp, and which safety stop holds the arm, if one does
+        (emergency, protective or safeguard stop). Raises LinkLost when the link is closed or the data stopped
+        advancing."""
         self._require_open()
         reading = await self._read("the arm state")
         await self._check_link(reading)
         return ArmState(tcp_pose=vector_to_pose(reading.pose_vec), joints=reading.joints.copy(),
-                        timestamp_s=reading.timestamp,
-                        protective_stop=reading.protective or reading.emergency or reading.safeguard)
+                         timestamp_s=reading.timestamp, safety_stop=reading.stop)
 
     async def stop(self) -> None:
         """stopL now (decelerating at STOP_DECEL). LinkLost without trying when the link is dead: stopL would block
@@ -463,16 +474,12 @@ class URArm(Arm):
         script seen stopped with no safety flag is therefore read again for up to SAFETY_CATCH_UP_S, so that the
         fault is named by its cause."""
         deadline = time.monotonic() + SAFETY_CATCH_UP_S
-        while (not reading.program_running and not (reading.emergency or reading.protective or reading.safeguard)
-               and time.monotonic() < deadline):
+        while not reading.program_running and reading.stop is None and time.monotonic() < deadline:
             reading = await self._fresh(f"the safety state after {doing}")
-        mode = f"safety mode {reading.safety_mode} ({SAFETY_MODES.get(reading.safety_mode, 'unknown')})"
-        if reading.emergency:
-            raise ArmFault(f"emergency stop on {self.name}: {doing} ({mode})")
-        if reading.protective:
-            raise ArmFault(f"protective stop on {self.name}: {doing} ({mode})")
-        if reading.safeguard:
-            raise ArmFault(f"safeguard stop on {self.name}: {doing} ({mode}; reset the safeguard, then resume)")
+        stop = reading.stop
+        if stop is not None:
+            mode = f"safety mode {reading.safety_mode} ({SAFETY_MODES.get(reading.safety_mode, 'unknown')})"
+            raise ArmFault(f"{stop} on {self.name}: {doing} ({mode}; {clear_advice(stop)})")
         if not reading.program_running:
             self._watchdog_set = self._tcp_checked = False  # the program uploaded next is asked afresh
             raise ArmFault(f"{self.name}: {doing}: the RTDE control script is not running on the controller (the "

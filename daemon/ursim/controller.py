@@ -10,7 +10,10 @@ The control script uploaded by ur_rtde is not interpreted; its register protocol
 `input_int_register_0` carries a command, `output_int_register_0` is 1 (ready) while the command register is 0, a
 command is taken once, and `output_int_register_0` becomes 2 when it is done; `input_int_register_1` = 1 makes a move
 asynchronous (done at once; `output_int_register_2` reports the move running, bit 15, once its thread has started,
-THREAD_START_S later, and then finished).
+THREAD_START_S later, and then finished). As in ur_rtde's script, only two things write "finished": the move
+thread when its move ends, and a command that kills the thread (stopL/stopJ, the next move) or a new program. A
+safety stop halts the arm and leaves the thread, and so the running bit, as they were; a program stopped (the
+watchdog, a script error) writes nothing either: no script code runs then (`_halt`).
 Queries answer in `output_int_register_1` (1 = yes): 36 is_within_safety_limits(pose), 60/61
 get_inverse_kin_has_solution(pose[, qnear, errors]), from the model's reach (`kinematics.reachable`) and its safety
 planes. 40 get_tcp_offset: the script writes the URScript get_tcp_offset() (the active TCP offset, a pose vector
@@ -22,7 +25,8 @@ command register must arrive at least every 1/f s (ur_rtde's kickWatchdog writes
 (runtime STOPPED) and the arm halts where it is.
 
 Safety stops follow the RTDE guide: safety_mode 3 protective (status bit 2), 5 safeguard (bit 4), 7 robot
-emergency (bits 6, 7), each with bit 10 "stopped due to safety". The script takes no command while one is active; with
+emergency (bits 6, 7), each with bit 10 "stopped due to safety" (`safety_mode()`, which the dashboard's safetymode
+and safetystatus name too). The script takes no command while one is active; with
 `stop_script_on_fault` the program also stops, as a real controller may do, and stays stopped after the stop is
 cleared until the script is uploaded again.
 
@@ -56,6 +60,9 @@ cycle of a CB-series controller (125 Hz; ur_rtde's examples wait for the start b
 RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 ROBOT_MODE_RUNNING = 7
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_SAFEGUARD_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 5, 7
+SAFETY_MODE_NAMES = {SAFETY_NORMAL: "NORMAL", SAFETY_PROTECTIVE_STOP: "PROTECTIVE_STOP",
+                     SAFETY_SAFEGUARD_STOP: "SAFEGUARD_STOP", SAFETY_ROBOT_EMERGENCY_STOP: "ROBOT_EMERGENCY_STOP"}
+"""The safety modes the model takes, by the names the dashboard gives them (the RTDE guide's SafetyMode names)."""
 BIT_NORMAL, BIT_PROTECTIVE_STOPPED, BIT_SAFEGUARD_STOPPED = 1 << 0, 1 << 2, 1 << 4
 BIT_ROBOT_ESTOP, BIT_EMERGENCY_STOPPED, BIT_STOPPED_DUE_TO_SAFETY = 1 << 6, 1 << 7, 1 << 10
 STATUS_POWER_ON, STATUS_PROGRAM_RUNNING = 1 << 0, 1 << 1
@@ -106,6 +113,9 @@ class URControllerModel:
         """(query, pose, answer) of every safety-limit and inverse-kinematics question answered."""
         self._motion: Motion | None = None
         self._motion_async = False
+        self._move_thread = False
+        """An asynchronous move's thread is alive: its "finished" is not written yet (it may be halted by a safety
+        stop, the arm at rest, and still be alive)."""
         self.move_thread_start_s = THREAD_START_S
         """Controller seconds from an asynchronous move's "done" to its "running" (THREAD_START_S)."""
         self._async_start_at: float | None = None
@@ -163,19 +173,27 @@ class URControllerModel:
             if self._async_start_at is not None:  # a move shorter than the thread's start: it started, then ended
                 self._async_start_at = None
                 self._write_async(0)
+            self._move_thread = False
             self._write_async(-1)
         elif self._busy:
             self._busy = False
             self._out_int[0] = 2
 
-    def _halt(self, t: float) -> None:
-        """Stop where the arm is now (stopL/stopJ, protective stop)."""
+    def _halt(self, t: float, thread: str = "killed") -> None:
+        """Stop where the arm is now. What becomes of an asynchronous move's thread: "killed" by a command
+        (stopL/stopJ, the next move, a new program), and "finished" is written for it, as ur_rtde's script does where
+        it kills the thread; "ended" with the program (the watchdog, a script error, stopScript): no script code runs
+        any more, and the register keeps what it said; "held" by a safety stop: the thread lives on, halted, and
+        nothing is written. Only "killed" clears the running bit."""
         if self._motion is not None:
             self._pose = self._motion.pose_at(self._tau(t))
             self._motion = None
-            if self._motion_async:
-                self._async_start_at = None  # a thread killed before it ran never says it started
-                self._write_async(-1)
+        if thread == "held" or not self._move_thread:
+            return
+        self._move_thread = False
+        self._async_start_at = None  # a thread that dies before it ran never says it started
+        if thread == "killed":
+            self._write_async(-1)
 
     def _write_async(self, value: int) -> None:
         """ur_rtde's async progress register: change count in bits 16-23, operation id 24-30, running bit 15."""
@@ -230,7 +248,7 @@ class URControllerModel:
         regs = [float(self._inputs.get(f"input_double_register_{i}", 0.0)) for i in range(8)]
         asynchronous = int(self._inputs.get("input_int_register_1", 0)) == 1
         if cmd == STOP_SCRIPT:
-            self._halt(t)
+            self._halt(t, "ended")
             self.runtime_state = RUNTIME_STOPPED
             self.watchdog_period_s = None
             return
@@ -252,7 +270,7 @@ class URControllerModel:
         if cmd in MOVE_COMMANDS and not (all(map(math.isfinite, regs)) and regs[6] > 0 and regs[7] > 0):
             # A real controller raises a script error here and the program halts.
             self.errors.append(f"{name}: target {regs[:6]} speed {regs[6]} acceleration {regs[7]} rejected")
-            self._halt(t)
+            self._halt(t, "ended")
             self.runtime_state = RUNTIME_STOPPED
             self.watchdog_period_s = None
             return
@@ -266,7 +284,7 @@ class URControllerModel:
                 goal = forward_kinematics(goal)
             self._halt(t)
             self._motion = Motion.plan(linear, self._pose, goal, regs[6], regs[7], self._tau(t), self.time_scale)
-            self._motion_async = asynchronous
+            self._motion_async = self._move_thread = asynchronous
             if asynchronous:
                 # The script answers "done" at once and starts a move thread, which reports itself running when it
                 # first runs, on a later cycle: a caller that reads the register at once may still see no move.
@@ -294,7 +312,7 @@ class URControllerModel:
         period = self.watchdog_period_s
         if period is None or self.runtime_state != RUNTIME_PLAYING or t - self._last_kick <= period:
             return
-        self._halt(t)
+        self._halt(t, "ended")
         self._busy = self._executing = False
         self.runtime_state = RUNTIME_STOPPED
         self.watchdog_period_s = None
@@ -341,9 +359,10 @@ class URControllerModel:
                 if value is not None:
                     setattr(self, name, value)
             if self._safety_stopped():
-                self._halt(t)
+                self._halt(t, "held")
                 self._busy = False
                 if self.stop_script_on_fault and self.runtime_state == RUNTIME_PLAYING:
+                    self._halt(t, "ended")
                     self.runtime_state = RUNTIME_STOPPED
                     self.watchdog_period_s = None
             self._step(t)
@@ -363,16 +382,21 @@ class URControllerModel:
             snapshot.update(self._velocities(t))
             return [self._value(n, snapshot) for n in names]
 
+    def safety_mode(self) -> int:
+        """The safety mode now (RTDE safety_mode): the emergency stop outranks the protective stop, which outranks
+        the safeguard stop."""
+        if self.emergency_stop:
+            return SAFETY_ROBOT_EMERGENCY_STOP
+        if self.protective_stop:
+            return SAFETY_PROTECTIVE_STOP
+        return SAFETY_SAFEGUARD_STOP if self.safeguard_stop else SAFETY_NORMAL
+
     def _snapshot(self, t: float, pose: tuple) -> dict:
         q = tuple(float(x) for x in inverse_kinematics(np.asarray(pose)))
-        if self.emergency_stop:
-            mode, bits = SAFETY_ROBOT_EMERGENCY_STOP, BIT_ROBOT_ESTOP | BIT_EMERGENCY_STOPPED
-        elif self.protective_stop:
-            mode, bits = SAFETY_PROTECTIVE_STOP, BIT_PROTECTIVE_STOPPED
-        elif self.safeguard_stop:
-            mode, bits = SAFETY_SAFEGUARD_STOP, BIT_SAFEGUARD_STOPPED
-        else:
-            mode, bits = SAFETY_NORMAL, BIT_NORMAL
+        mode = self.safety_mode()
+        bits = {SAFETY_ROBOT_EMERGENCY_STOP: BIT_ROBOT_ESTOP | BIT_EMERGENCY_STOPPED,
+                SAFETY_PROTECTIVE_STOP: BIT_PROTECTIVE_STOPPED, SAFETY_SAFEGUARD_STOP: BIT_SAFEGUARD_STOPPED,
+                SAFETY_NORMAL: BIT_NORMAL}[mode]
         if mode != SAFETY_NORMAL:
             bits |= BIT_STOPPED_DUE_TO_SAFETY
         running = self.runtime_state == RUNTIME_PLAYING

@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from spadscan.daemon.ursim.controller import RUNTIME_PLAYING, URControllerModel
+from spadscan.daemon.ursim.controller import RUNTIME_PLAYING, SAFETY_MODE_NAMES, URControllerModel
 
 GREETING = "Connected: Universal Robots Dashboard Server"
 
@@ -32,10 +32,8 @@ def reply(model: URControllerModel, line: str, version: str, serial: str) -> str
         return "true"
     if low == "robotmode":
         return "Robotmode: RUNNING"
-    if low in ("safetymode", "safetystatus"):
-        label = "ROBOT_EMERGENCY_STOP" if model.emergency_stop else (
-            "PROTECTIVE_STOP" if model.protective_stop else "NORMAL")
-        return f"{cmd[0].upper()}{cmd[1:].lower()}: {label}"
+    if low in ("safetymode", "safetystatus"):  # the safety mode's name: what RTDE's safety_mode reports
+        return f"{cmd[0].upper()}{cmd[1:].lower()}: {SAFETY_MODE_NAMES[model.safety_mode()]}"
     if low == "running":
         return f"Program running: {'true' if playing else 'false'}"
     if low == "programstate":

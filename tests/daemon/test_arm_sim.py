@@ -12,6 +12,7 @@ import pytest
 from spadscan.daemon.arm import sim as sim_module
 from spadscan.daemon.arm.pose_convert import matrix_to_rotvec, rotvec_to_matrix
 from spadscan.daemon.arm.sim import HOME, SimArm, SimArmFaults, fake_joints, interpolate_pose, trapezoid_time
+from spadscan.daemon.arm.stops import EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, stop_name
 from spadscan.daemon.devices import ArmFault, LinkLost
 from spadscan.protocol.errors import ConfigError
 
@@ -173,6 +174,8 @@ def test_protective_stop_on_demand_and_stop(arun):
 
 
 def test_link_drop_and_restore(arun):
+    """A dropped link stays lost after it is restored until the arm reconnects, as a real arm's closed connection
+    does (the runner reconnects on resume)."""
     async def scenario():
         arm = SimArm(motion_time_s=0.02, faults=SimArmFaults(link_drop_on_moves=(1,)))
         with pytest.raises(LinkLost):
@@ -180,6 +183,9 @@ def test_link_drop_and_restore(arun):
         with pytest.raises(LinkLost):
             await arm.state()
         arm.restore_link()
+        with pytest.raises(LinkLost, match="reconnect first"):
+            await arm.state()
+        await arm.reconnect()
         await arm.move_to(pose_at(0.4, 0, 0.3), 0.1, 0.5)
         arm.drop_link()
         with pytest.raises(LinkLost):
@@ -217,3 +223,36 @@ def test_interpolate_pose_ends_and_rigidity():
     np.testing.assert_allclose(interpolate_pose(a, b, 1.0), b, atol=1e-9)
     m = interpolate_pose(a, b, 0.37)
     np.testing.assert_allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+STOPS = {PROTECTIVE_STOP: "protective_stop_on_moves", SAFEGUARD_STOP: "safeguard_stop_on_moves",
+         EMERGENCY_STOP: "emergency_stop_on_moves"}
+
+
+@pytest.mark.parametrize("kind", list(STOPS))
+def test_each_safety_stop_is_named_in_the_move_the_refusal_and_the_state(arun, kind):
+    """A stop half way through a chosen move, and one at rest: the move, the moves refused after it and the state
+    name the stop (the operator clears each in its own way); clear_fault (the runner's step on resume) clears it."""
+    async def scenario():
+        arm = SimArm(motion_time_s=0.02, faults=SimArmFaults(**{STOPS[kind]: (1,)}))
+        with pytest.raises(ArmFault, match=f"^arm \\(sim\\): {kind} during move 1; .*, then resume$"):
+            await arm.move_to(pose_at(0.4, 0, 0.3), 0.1, 0.5)
+        held = await arm.state()
+        with pytest.raises(ArmFault, match=f"{kind}; .*, then resume"):
+            await arm.move_to(pose_at(0.4, 0, 0.3), 0.1, 0.5)
+        await arm.clear_fault()
+        await arm.move_to(pose_at(0.4, 0, 0.3), 0.1, 0.5)
+        free = await arm.state()
+        arm.trigger_stop(kind)  # at rest, as while the sensor captures a pose
+        at_rest = await arm.state()
+        return held, free, at_rest
+
+    held, free, at_rest = arun(scenario())
+    assert (held.safety_stop, held.protective_stop, stop_name(held)) == (kind, True, kind)
+    assert (free.safety_stop, free.protective_stop, stop_name(free)) == (None, False, None)
+    assert (at_rest.safety_stop, stop_name(at_rest)) == (kind, kind)
+
+
+def test_an_unknown_stop_is_refused():
+    with pytest.raises(ValueError, match="unknown safety stop"):
+        SimArm().trigger_stop("coffee break")

@@ -260,20 +260,48 @@ def test_a_move_refused_for_good_by_a_controller_that_just_stopped_for_safety_is
     assert refused.reads > 5, "the safety state was read again before the move was blamed"
 
 
-def test_protective_stop_during_a_move_aborts_it(ur, arun):
+@pytest.mark.parametrize("kind", ["protective", "emergency"])
+def test_a_safety_stop_during_a_move_aborts_it_at_once(ur, arun, kind):
+    """The controller halts the arm and leaves the move "running" (ur_rtde's script writes "finished" only when the
+    move ends or is killed): the arm sees the stop in the safety state while it polls the move, and says so at once
+    instead of waiting out the move's time budget."""
     async def run():
         async with connected_arm(ur.host) as arm:
             move = asyncio.ensure_future(arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.005, 1.0))  # 40 s scaled to 4 s
             await wait_for_moves(ur, 1)
-            ur.protective_stop()
-            with pytest.raises(ArmFault, match="protective stop.*aborted"):
+            await until(lambda: ur.state()["moving"], "the move to run")
+            t0 = time.monotonic()
+            getattr(ur, f"{kind}_stop")()
+            with pytest.raises(ArmFault, match=f"{kind} stop.*aborted"):
                 await asyncio.wait_for(move, 30)
+            took = time.monotonic() - t0
             state = await arm.state()
-        return state
+        return took, state, ur.state()["moving"]
 
-    state = arun(run())
-    assert state.protective_stop
+    took, state, still_running = arun(run())
+    assert took < 5.0, f"the stop was reported {took:.1f} s after it came"
+    assert still_running  # the controller's view: the halted move was never reported finished
+    assert state.protective_stop and state.safety_stop == f"{kind} stop"
     assert state.tcp_pose[1, 3] < 0.19  # halted on the way
+
+
+@pytest.mark.parametrize("kind", ["protective", "safeguard", "emergency"])
+def test_the_state_names_the_safety_stop_that_holds_the_arm(ur, arun, kind):
+    """At rest (the arm standing at a pose while the sensor captures): the state says which stop it is, so that the
+    pause names it (each is cleared differently); once cleared, none."""
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            free = await arm.state()
+            getattr(ur, f"{kind}_stop")()
+            async with asyncio.timeout(30):
+                while not (held := await arm.state()).protective_stop:  # until the receive stream shows it
+                    await asyncio.sleep(0.01)
+            getattr(ur, f"clear_{kind}_stop")()
+            await cleared(arm)
+            return free, held, await arm.state()
+
+    free, held, after = arun(run())
+    assert (free.safety_stop, held.safety_stop, after.safety_stop) == (None, f"{kind} stop", None)
 
 
 def test_emergency_stop_is_an_arm_fault(ur, arun):
@@ -425,6 +453,9 @@ def test_a_safeguard_stop_is_an_arm_fault_like_a_protective_stop(ur, arun):
             return took, stopped, (await arm.state()).protective_stop
 
     took, stopped, after = arun(run())  # the match above: the stop aborted the move, not its time budget
+    # At once, from the safety state: the controller leaves the halted move "running" (as ur_rtde's script does), so
+    # only the check while the move is polled sees the stop, not a wait for the move's end (its budget is ~100 s).
+    assert took < 5.0, f"the stop was reported {took:.1f} s after it came"
     assert stopped and not after
     assert [m.name for m in ur.moves] == ["moveL", "moveL"]
 

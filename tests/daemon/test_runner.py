@@ -16,6 +16,7 @@ import pytest
 
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.arm.sim import SimArm, SimArmFaults, fake_joints
+from spadscan.daemon.arm.stops import EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, TO_CLEAR
 from spadscan.daemon.backends import pose_provider
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon.runner import ScanRunner
@@ -274,6 +275,75 @@ def test_protective_stop_pauses_with_reason_and_resume_clears_it(arun, tmp_path,
     assert stopped and done["state"] == "complete"
     assert moves == 9  # the stopped move, once more after resume
     check_capture(tmp_path / "caps" / "stop", 8, 2)
+
+
+@pytest.mark.parametrize("kind", [PROTECTIVE_STOP, SAFEGUARD_STOP, EMERGENCY_STOP])
+def test_a_safety_stop_while_the_arm_stands_at_a_pose_is_named_with_what_clears_it(arun, tmp_path, sphere, kind):
+    """The stop comes while the sensor captures pose 2 (the arm at rest, where a scan spends most of its time): the
+    pause names that stop, not another (the operator clears each in its own way), says what clears it, and resume
+    completes the scan."""
+    cfg = make_cfg(tmp_path, views=6)
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere)
+        take_frame, pending = sensor.next_frame, [kind]
+
+        async def next_frame(timeout_s):
+            if arm.moves == 3 and pending:  # pose 2's frames: the arm stands at the pose
+                arm.trigger_stop(pending.pop())
+            return await take_frame(timeout_s)
+
+        sensor.next_frame = next_frame
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("held")
+                await until(lambda: runner.state == "paused", "the pause")
+                reason = runner.status()["reason"]
+                await runner.resume()
+                return reason, await runner.wait("held")
+            finally:
+                await runner.shutdown()
+
+    reason, done = arun(scenario())
+    assert reason == f"arm fault: {kind} on arm (sim) while capturing pose 2; {TO_CLEAR[kind]}, then resume (pose 2/6)"
+    assert done["state"] == "complete"
+    check_capture(tmp_path / "caps" / "held", 6, 2)
+
+
+@pytest.mark.parametrize("paused_by", ["user", "arm fault"])
+def test_a_link_that_dropped_and_came_back_while_paused_is_reconnected_by_the_first_resume(arun, tmp_path, sphere,
+                                                                                           paused_by):
+    """The link drops while the scan is paused for something else (a controller rebooted, a cable re-plugged) and
+    comes back before the operator resumes: the first resume reconnects it and the scan completes, instead of
+    pausing again for a lost link that is no longer lost."""
+    cfg = make_cfg(tmp_path, views=6)
+    faults = SimArmFaults(protective_stop_on_moves=(3,) if paused_by == "arm fault" else ())
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.02, faults=faults)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                await runner.start("relink")
+                if paused_by == "user":
+                    await until(lambda: runner.job.next_pose >= 2, "two poses")
+                    await runner.pause()
+                await until(lambda: runner.state == "paused", "the pause")
+                reason = runner.status()["reason"]
+                arm.drop_link()
+                arm.restore_link()
+                await runner.resume()
+                await until(lambda: runner.state in ("idle", "paused"), "the resumed scan to end or pause")
+                return reason, runner.status(), arm.connected
+            finally:
+                await runner.shutdown()
+
+    reason, status, connected = arun(scenario())
+    assert reason.startswith("paused by user" if paused_by == "user" else "arm fault: arm (sim): protective stop")
+    assert status["state"] == "idle" and status["last_scan"] == {"name": "relink", "state": "complete"}, status
+    assert connected
+    check_capture(tmp_path / "caps" / "relink", 6, 2)
 
 
 def test_a_fault_soon_after_the_daemon_stood_still_says_so(arun, tmp_path, sphere):

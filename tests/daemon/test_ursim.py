@@ -415,6 +415,84 @@ def test_model_safety_stops_and_a_script_stopped_by_them():
     assert c.read("runtime_state") == [2]
 
 
+SAFETY_STOPS = {"protective": (3, "PROTECTIVE_STOP"), "safeguard": (5, "SAFEGUARD_STOP"),
+                "emergency": (7, "ROBOT_EMERGENCY_STOP")}
+RUNNING = 1 << 15  # output_int_register_2: an asynchronous operation is running
+
+
+def set_stop(model, kind: str, on: bool) -> None:
+    getattr(model, f"set_{kind}_stop")(on)
+
+
+@pytest.mark.parametrize("kind", list(SAFETY_STOPS))
+def test_model_a_safety_stop_halts_an_asynchronous_move_and_leaves_it_running_as_the_script_does(kind):
+    """ur_rtde's control script writes "finished" into output_int_register_2 only when the move thread's movel ends
+    or a command kills the thread (stopL/stopJ, the next move): a safety stop halts the arm and no script code runs,
+    so the running bit stays set. A client therefore learns of the stop from the safety state, never from a move
+    that looks finished."""
+    c = ClockedModel()
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)  # a 2 s move
+    c.t = 0.5
+    assert c.read("output_int_register_2")[0] & RUNNING
+    set_stop(c.model, kind, True)
+    halted, mode, progress = c.read("actual_TCP_pose", "safety_mode", "output_int_register_2")
+    c.t = 1.5
+    assert c.read("actual_TCP_pose", "output_int_register_2") == [halted, progress]  # halted, still "running"
+    assert 0.3 < halted[0] < 0.5 and mode == SAFETY_STOPS[kind][0] and progress & RUNNING
+    set_stop(c.model, kind, False)
+    c.t = 2.5
+    assert c.read("actual_TCP_pose", "output_int_register_2") == [halted, progress]  # cleared: nothing resumes
+    c.command(33, (10.0,) + (0.0,) * 7)  # stopL kills the thread: now "finished"
+    assert not c.read("output_int_register_2")[0] & RUNNING
+
+
+def test_model_a_program_stopped_under_a_running_move_writes_nothing_and_a_new_one_resets_the_register():
+    """The watchdog stops the program mid-move: no script code runs any more, so the register still says "running"
+    (the client reads that the program stopped); the next program's start resets it to "finished"."""
+    c = ClockedModel()
+    c.command(35, (2.0,) + (0.0,) * 7)  # watchdog 2 Hz
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)
+    c.t = 1.0  # no kick for a second
+    c.model.check_watchdog()
+    assert c.read("runtime_state")[0] == 1 and c.read("output_int_register_2")[0] & RUNNING
+    c.model.start_script("def rtde_control():\nend")
+    assert not c.read("output_int_register_2")[0] & RUNNING
+
+
+def test_model_the_next_move_after_a_safety_stop_kills_the_halted_thread_and_starts_its_own():
+    c = ClockedModel()
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)
+    c.t = 0.5
+    c.model.set_protective_stop(True)
+    c.model.set_protective_stop(False)
+    before = c.read("output_int_register_2")[0]
+    c.command(3, (0.3, 0.1, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)
+    killed = c.read("output_int_register_2")[0]
+    assert before & RUNNING and not killed & RUNNING  # killed first, as stop_async_move does
+    c.t = 0.6
+    started = c.read("output_int_register_2")[0]
+    assert started & RUNNING and (started >> 24) != (before >> 24)  # a new operation id
+    c.t = 10.0
+    assert not c.read("output_int_register_2")[0] & RUNNING
+    assert c.read("actual_TCP_pose")[0][:2] == pytest.approx([0.3, 0.1])
+
+
+@pytest.mark.parametrize("kind", [None, *SAFETY_STOPS])
+def test_model_the_dashboard_names_the_safety_mode_rtde_reports(kind):
+    """safetymode and safetystatus answer with the safety mode's name, as a real dashboard does: the same mode RTDE's
+    safety_mode gives (a safeguard stop is SAFEGUARD_STOP, not NORMAL)."""
+    from spadscan.daemon.ursim.controller import URControllerModel
+    from spadscan.daemon.ursim.dashboard import reply
+
+    model = URControllerModel()
+    if kind is not None:
+        set_stop(model, kind, True)
+    mode, name = SAFETY_STOPS[kind] if kind else (1, "NORMAL")
+    assert model.read(["safety_mode", "safety_status"]) == [mode, mode]
+    assert reply(model, "safetystatus", "URSoftware 5.15", "1") == f"Safetystatus: {name}"
+    assert reply(model, "safetymode", "URSoftware 5.15", "1") == f"Safetymode: {name}"
+
+
 def test_model_answers_safety_limit_and_inverse_kinematics_queries_from_its_reach():
     c = ClockedModel()
     c.model.safety_floor_z = 0.1

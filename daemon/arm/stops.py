@@ -1,0 +1,34 @@
+"""The safety stops an arm reports, named as the pause reasons name them, and what the operator does to clear each
+(firmware_notes/safety.md, "Stops"): the three call for different things at the rig, so a reason must not mistake
+one for another.
+
+An arm that can tell which stop holds it (the UR arm, the sim arm) names it in `ArmState.safety_stop`; the runner
+reads the name with `stop_name`, which also serves an arm that only sets `protective_stop`.
+"""
+
+from __future__ import annotations
+
+from spadscan.daemon.devices import ArmState
+
+EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP = "emergency stop", "protective stop", "safeguard stop"
+SAFETY_STOP = "safety stop"
+"""The name for an arm that says it is stopped for safety but not which stop it is."""
+TO_CLEAR = {
+    EMERGENCY_STOP: "release the emergency stop button and reset the arm on the teach pendant",
+    PROTECTIVE_STOP: "fix the cause and unlock the protective stop on the teach pendant",
+    SAFEGUARD_STOP: "reset the safeguard",
+    SAFETY_STOP: "clear the stop on the teach pendant",
+}
+"""What the operator does before `spadscan ctl resume`, by stop."""
+
+
+def stop_name(state: ArmState) -> str | None:
+    """Which safety stop holds the arm in `state` (None: none); SAFETY_STOP for an arm that cannot tell which."""
+    if state.safety_stop is not None:
+        return state.safety_stop
+    return SAFETY_STOP if state.protective_stop else None
+
+
+def clear_advice(stop: str) -> str:
+    """What to do about `stop` before resuming, as a clause: '<what to do>, then resume'."""
+    return f"{TO_CLEAR.get(stop, TO_CLEAR[SAFETY_STOP])}, then resume"
