@@ -5,20 +5,38 @@ A job's process prints a tqdm bar to its log (the worker's `<queue>/logs/<job>~<
 job.log at the end), redrawn in place with carriage returns:
 `reconstruct (fast):  58%|#####     | 70/120 s [01:10<00:50, loss=2.25, chamfer=1.86mm]`. The last complete bar in
 the log's tail is the job's progress; its `key=value` fields (loss, chamfer, and any other the bar carries) are kept.
+
+That bar counts the training only: what a job's `budget_s` leaves it once set up, less what its mesh, metrics and
+pictures will take. A running job with a budget is therefore shown against that budget (`JobProgress.budget_s`,
+`spent_s`: from its claim, or for a live job from its scan's end, when its final run starts), so that the bar is not
+full, "00:00 left", while a third of the job is still to run; once training is over the line says what the job does
+then. A job without a budget shows its training bar as it is.
 """
 
 from __future__ import annotations
 
+import datetime as _dt
+import json
+import math
 import os
 import re
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.live_status import read_status, status_path
+
+from .jobs import Job
+from .queue import QUEUE_DIRNAME, SEP
 
 TAIL_BYTES = 16 * 1024
 BAR_RE = re.compile(r"(?P<desc>[^\r\n|:]+?):\s*(?P<percent>\d+)%\|[^|\r\n]*\|\s*(?P<done>[\d.]+)/(?P<total>[\d.]+)"
                     r"\s*(?P<unit>[a-z]*)\s*\[(?P<elapsed>[^<\]\r\n]*)<(?P<remaining>[^,\]\r\n]*)"
                     r"(?:,\s*(?P<fields>[^\]\r\n]*))?\]")
 CHAMFER_RE = re.compile(r"^(?P<mm>[\d.]+)\s*mm$")
+AFTER_TRAINING = "training done: mesh, metrics, pictures"
+"""What a job does once its training bar is full (its result is not there yet)."""
 
 
 @dataclass(frozen=True)
@@ -32,9 +50,21 @@ class JobProgress:
     elapsed: str
     remaining: str
     fields: dict = field(default_factory=dict)
+    budget_s: float | None = None
+    """The job's own budget (set-up, training, mesh, metrics, pictures), when it has one and its start is known."""
+    spent_s: float | None = None
+    """Seconds of that budget gone when the bar was read."""
+
+    @property
+    def training_done(self) -> bool:
+        return self.total > 0 and self.done >= self.total
 
     @property
     def fraction(self) -> float:
+        """How far the job has got, 0 to 1: of its budget where known (the training bar ends before the job
+        does), else of its training bar."""
+        if self.budget_s is not None and self.spent_s is not None:
+            return min(1.0, max(0.0, self.spent_s / self.budget_s))
         return min(1.0, self.done / self.total) if self.total > 0 else 0.0
 
     @property
@@ -52,11 +82,30 @@ class JobProgress:
         if self.chamfer_mm is not None:
             parts.append(f"Chamfer {self.chamfer_mm:.2f} mm")
         parts += [f"{k} {v}" for k, v in self.fields.items() if k not in ("step", "loss", "chamfer")]
-        return ", ".join(parts) + f" [{self.elapsed} elapsed, {self.remaining} left]"
+        return ", ".join(parts) + f" [{self.when()}]"
+
+    def when(self) -> str:
+        """How far in time: of the job's budget where known, else the training bar's elapsed and left."""
+        stage = [AFTER_TRAINING] if self.training_done else []
+        if self.budget_s is not None and self.spent_s is not None:
+            left = self.budget_s - self.spent_s
+            tail = f"{clock(left)} left" if left >= 0 else f"{clock(-left)} over"
+            return "; ".join(stage + [f"{clock(self.spent_s)} of the job's {clock(self.budget_s)} budget, {tail}"])
+        if stage:  # its own "00:00 left" would say the job is over: it is not, until its result is published
+            return f"{AFTER_TRAINING} (training took {self.elapsed})"
+        return f"{self.elapsed} elapsed, {self.remaining} left"
 
     def to_dict(self) -> dict:
         return {"line": self.line(), "fraction": self.fraction, "done": self.done, "total": self.total,
-                "unit": self.unit, "fields": dict(self.fields), "chamfer_mm": self.chamfer_mm}
+                "unit": self.unit, "fields": dict(self.fields), "chamfer_mm": self.chamfer_mm,
+                "training_done": self.training_done, "budget_s": self.budget_s, "spent_s": self.spent_s}
+
+
+def clock(seconds: float) -> str:
+    """Seconds as a bar shows them: mm:ss, or h:mm:ss from an hour on."""
+    whole = max(0, round(seconds))
+    hours, rest = divmod(whole, 3600)
+    return f"{hours}:{rest // 60:02d}:{rest % 60:02d}" if hours else f"{rest // 60:02d}:{rest % 60:02d}"
 
 
 def parse_progress(text: str) -> JobProgress | None:
@@ -91,11 +140,66 @@ def read_progress(log: Path, tail_bytes: int = TAIL_BYTES) -> JobProgress | None
         return None
 
 
-def running_progress(queue) -> dict[str, JobProgress | None]:
+def running_progress(queue, root=None, now: float | None = None) -> dict[str, JobProgress | None]:
     """Each running job of a queue (worker.queue.Queue) by id: its progress, or None where its log shows no bar
-    yet."""
-    return {job_id: read_progress(claim_log(queue.path, path))
-            for job_id, (state, path) in queue.job_paths().items() if state == "running"}
+    yet; a job with a budget is measured against it (`job_budget`). `root`: the captures root (default: the folder
+    of a queue named .queue), where a live job's status says when its final run started; `now`: time.time()."""
+    if root is None and queue.path.name == QUEUE_DIRNAME:
+        root = queue.path.parent
+    now = time.time() if now is None else now
+    found = {}
+    for job_id, (state, path) in queue.job_paths().items():
+        if state != "running":
+            continue
+        progress = read_progress(claim_log(queue.path, path))
+        budget = job_budget(queue, job_id, path, root) if progress is not None else None
+        if budget is not None:
+            budget_s, start = budget
+            progress = replace(progress, budget_s=budget_s, spent_s=max(0.0, now - start))
+        found[job_id] = progress
+    return found
+
+
+def job_budget(queue, job_id: str, running_file: Path, root) -> tuple[float, float] | None:
+    """(budget_s, when it started counting, unix seconds) of a running job, or None when it has no budget or that
+    start is not known. An ordinary job's budget counts from its process's start (its claim's record, written just
+    before); a live job's bounds its final run, from the scan's end: when its live status turned 'final'."""
+    try:
+        job = Job.from_dict(json.loads(Path(running_file).read_text()), str(running_file))
+    except (OSError, ValueError, SpadscanError):
+        return None
+    if not _positive(job.budget_s):
+        return None
+    if job.live:
+        start = final_run_start(root, job)
+    else:
+        token = Path(running_file).stem.rpartition(SEP)[2]
+        record = next((r for r in queue.read_records(job_id)[0] if r.get("token") == token), {})
+        start = record.get("started_unix")
+    return (float(job.budget_s), float(start)) if _finite(start) else None
+
+
+def final_run_start(root, job: Job) -> float | None:
+    """When a live job's final run started (unix seconds): its live status is written 'final' just before; None
+    while it follows its scan, or when that status is not its own or cannot be read."""
+    if root is None:
+        return None
+    try:
+        status = read_status(status_path(Path(root) / job.scan))
+        then = _dt.datetime.fromisoformat(status.updated_utc)
+    except (SpadscanError, OSError, ValueError):
+        return None
+    if status.job != job.id or status.state != "final":
+        return None
+    return (then if then.tzinfo else then.replace(tzinfo=_dt.timezone.utc)).timestamp()
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _positive(value) -> bool:
+    return _finite(value) and value > 0
 
 
 def progress_field(state: str, job_id: str, running: dict) -> dict:

@@ -30,8 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", type=Path, required=True, metavar="CAPTURES",
                         help="captures root: the folder whose sub-folders are scans (as the daemon and worker use)")
     parser.add_argument("--host", default="127.0.0.1",
-                        help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0 opens it to "
-                             "the network)")
+                        help="address to listen on, IPv4 or IPv6 (default: 127.0.0.1, this machine only; ::1 the "
+                             "same over IPv6; 0.0.0.0 opens it to the network)")
     parser.add_argument("--port", type=int, default=8765, help="port to listen on (default: 8765; 0: any free one)")
     parser.add_argument("--queue", type=Path, default=None, metavar="DIR",
                         help="the worker's queue folder (default: CAPTURES/.queue)")

@@ -262,7 +262,7 @@ def _print_status(queue, as_json: bool, root: Path) -> int:
     from spadscan.worker.status_detail import result_health, status_detail
 
     rows = queue.statuses()
-    running = running_progress(queue)
+    running = running_progress(queue, root)  # root: where a live job's status says when its final run began
     if as_json:
         print(json.dumps([{**asdict(r), **result_health(r), **progress_field(r.state, r.id, running)}
                           for r in rows], indent=1))

@@ -3,10 +3,16 @@
 one while a scan is reconstructed as it runs (`<scan>/recon/live/`: status.json, preview.png, mesh.ply).
 
 Folders are remembered by their modification times, like the scans (scans.py).
+
+Once a live job is done, its status carries its final result's figures, while its mesh and preview stay the live
+fit's last (worker/live/done.py): the live entry then gives way to that result (listed first, `from_live`), so that no
+figures are shown over the picture of another fit. Each live entry says its state, note and age (`age_s`, seconds
+since its status was written): one whose worker stopped must not look like one that runs.
 """
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 import os
 from pathlib import Path
@@ -17,7 +23,10 @@ RECON = "recon"
 LIVE = "live"
 SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "steps",
                 "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
-LIVE_KEYS = ("views_used", "views_published", "steps", "updated_utc", "converged", "chamfer_mm")
+LIVE_KEYS = ("views_used", "views_published", "views_planned", "steps", "updated_utc", "converged", "chamfer_mm",
+             "state", "note", "result")
+LIVE_PICTURES = ("preview.png", "mesh.ply", "view3d.html")
+"""The live entry's files that show the live fit's shape (not the final result's)."""
 PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "coverage.png", "mesh.ply")
 
 
@@ -37,9 +46,11 @@ class ResultIndex:
         self.reads = 0
         self._folders: dict[str, tuple[tuple, dict]] = {}
 
-    def for_scan(self, scan: str) -> list[dict]:
-        """The scan's reconstructions: the live one first, then finished ones, newest first. Each: id, kind
-        ('live' or 'final'), files (URL paths under /files/ of those present), summary or status, error."""
+    def for_scan(self, scan: str, now: _dt.datetime | None = None) -> list[dict]:
+        """The scan's reconstructions: the live one first, then finished ones, newest first; a live one that is done
+        gives way to its result, then listed first with `from_live` (`fold_done_live`). Each: id, kind ('live' or
+        'final'), files (URL paths under /files/ of those present), summary or status, error; a live one also
+        `age_s`, the seconds since its status was written (None when that time cannot be read)."""
         recon = self.root / scan / RECON
         try:
             names = [e.name for e in os.scandir(recon) if e.is_dir() and not e.name.startswith(".")
@@ -49,7 +60,10 @@ class ResultIndex:
         found = [self._folder(scan, recon / name) for name in names]
         found = [f for f in found if f is not None]
         found.sort(key=lambda f: (f["kind"] != LIVE, -f["mtime"]))
-        return found
+        now = now or _dt.datetime.now(_dt.timezone.utc)
+        found = [{**f, "age_s": age_s(f["summary"].get("updated_utc"), now)} if f["kind"] == LIVE else f
+                 for f in found]
+        return fold_done_live(found)
 
     def _folder(self, scan: str, folder: Path) -> dict | None:
         live = folder.name == LIVE
@@ -74,7 +88,36 @@ class ResultIndex:
                  for p in PAGES if safe_path(self.root, rel := url_path(scan, RECON, folder.name, p))}
         if live and "mesh.ply" in files:  # the server makes the live view from that very mesh
             files["view3d.html"] = f"/live3d/{url_path(scan)}?v={st.st_mtime_ns}"
+        if live and summary.get("state") == "done":
+            # its figures are the final result's, its mesh and preview the live fit's last: never one over the other
+            files = {p: url for p, url in files.items() if p not in LIVE_PICTURES}
         entry = {"id": folder.name, "scan": scan, "kind": LIVE if live else "final", "mtime": st.st_mtime,
                  "summary": summary, "error": error, "files": files}
         self._folders[str(folder)] = (key, entry)
         return entry
+
+
+def fold_done_live(found: list[dict]) -> list[dict]:
+    """`found` (the live entry first) with a live entry whose status is 'done' replaced by the result it names, when
+    that result is listed: that result first, marked `from_live`. A done live entry whose result is not there (moved
+    away) stays, without pictures (its figures are that result's)."""
+    live = found[0] if found and found[0]["kind"] == LIVE else None
+    result = (live or {}).get("summary", {}).get("result")
+    if live is None or live["summary"].get("state") != "done" or not isinstance(result, str):
+        return found
+    name = Path(result).name
+    own = next((f for f in found[1:] if f["id"] == name), None)
+    if own is None:
+        return found
+    return [{**own, "from_live": True}] + [f for f in found[1:] if f is not own]
+
+
+def age_s(updated_utc, now: _dt.datetime) -> float | None:
+    """Seconds from `updated_utc` (ISO 8601, UTC when it names no zone) to `now`, one decimal; None when unreadable."""
+    try:
+        then = _dt.datetime.fromisoformat(str(updated_utc))
+    except ValueError:
+        return None
+    if then.tzinfo is None:
+        then = then.replace(tzinfo=_dt.timezone.utc)
+    return round(max(0.0, (now - then).total_seconds()), 1)

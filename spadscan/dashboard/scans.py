@@ -189,8 +189,9 @@ def _chunk_names(path: Path) -> list[str]:
 
 
 def scan_detail(root: Path, row: ScanRow) -> dict:
-    """What the dashboard shows of the scan in hand: its row, frame rate over its last frames and its last
-    histograms (zones, at most MAX_PLOT_BINS bins, with the distance of the first bin and the bin width in metres)."""
+    """What the dashboard shows of the scan in hand (or the last one): its row, frame rate over its last frames while
+    it runs, and its last histograms (zones, at most MAX_PLOT_BINS bins, with the distance of the first bin and the
+    bin width in metres)."""
     detail = row.to_dict()
     if row.error or not row.chunks:
         return detail
@@ -207,7 +208,7 @@ def scan_detail(root: Path, row: ScanRow) -> dict:
     except SpadscanError as exc:
         detail["error"] = str(exc)
         return detail
-    if row.state not in ("paused", INTERRUPTED):  # a scan that takes no frames: its last rate is no rate
+    if row.state == "running":  # a paused, interrupted, complete or aborted scan takes no frames: no rate
         detail.update(frame_rates(frames[-RATE_FRAMES:]))
     return detail
 

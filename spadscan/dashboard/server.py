@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import mimetypes
+import socket
 import threading
 from functools import partial
 from http import HTTPStatus
@@ -135,11 +136,29 @@ def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None,
                             " (the worker makes CAPTURES/.queue, the default)")
     handler = partial(Handler, dashboard=Dashboard(root, queue_dir, daemon_running), live=LiveViews())
     try:
-        server = ThreadingHTTPServer((host, port), handler)
+        server = server_class(host, port)((host, port), handler)
     except OSError as exc:
         raise SpadscanError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
     server.daemon_threads = True
     return server
+
+
+class IPv6Server(ThreadingHTTPServer):
+    """The server on an IPv6 address (ThreadingHTTPServer binds IPv4 only)."""
+
+    address_family = socket.AF_INET6
+
+
+def server_class(host: str, port: int) -> type[ThreadingHTTPServer]:
+    """The server class that can bind `host`: IPv6 for a host that names IPv6 addresses only (::1, ::); IPv4
+    otherwise, a name with both kinds (localhost) included. A host that does not resolve is left to the bind, whose
+    error says so."""
+    try:
+        found = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError, OverflowError):
+        return ThreadingHTTPServer
+    families = {info[0] for info in found}
+    return IPv6Server if families == {socket.AF_INET6} else ThreadingHTTPServer
 
 
 def address(server: ThreadingHTTPServer) -> str:

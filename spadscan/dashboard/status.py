@@ -29,7 +29,7 @@ def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
     from spadscan.worker.queue import Queue
 
     queue = Queue(queue_dir, create=False)
-    running = running_progress(queue)
+    running = running_progress(queue, root)  # a job with a budget is shown against it
     jobs = [{**asdict(row), **progress_field(row.state, row.id, running), "detail": status_detail(row, root=root)}
             for row in queue.statuses()]
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}

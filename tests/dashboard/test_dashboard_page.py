@@ -1,8 +1,13 @@
 """The dashboard page in a real headless browser: it follows a scan as its poses are published, shows a finished
 reconstruction's 3D view, opens the links of any scan name, shows the queue as `spadscan worker --status` does, shows
-a scan whose daemon is gone as interrupted, outlives damaged numbers, and asks nothing of any server but its own."""
+a scan whose daemon is gone as interrupted, outlives damaged numbers, and asks nothing of any server but its own;
+once a live reconstruction is done it shows its result, a live one its state, note and age, and a finished scan as the
+last one, without a frame rate."""
 
 from __future__ import annotations
+
+import datetime as _dt
+import json
 
 import trimesh
 
@@ -132,4 +137,82 @@ def test_the_page_keeps_updating_with_non_finite_numbers_in_a_report_and_a_live_
         assert picks.all_text_contents() == ["live (3 views, 40 steps)", "fast"]  # no Chamfer to show
         complete_scan(tmp_path / "next", 1)  # and it goes on following the root
         page.locator('#scans tr[data-scan="next"]').wait_for(timeout=WAIT_MS)
+    assert not seen.errors, seen.errors
+
+
+def test_once_a_live_reconstruction_is_done_the_page_shows_its_result_picture_and_figures_together(tmp_path):
+    scan = tmp_path / "demo"
+    complete_scan(scan, 2)
+    add_final_recon(scan, "demo-fast")  # its report.json: Chamfer 1.00 mm
+    live = scan / "recon" / "live"
+    live.mkdir()
+    trimesh.creation.icosphere(subdivisions=1, radius=0.05).export(live / "mesh.ply")
+    (live / "preview.png").write_bytes((scan / "recon" / "demo-fast" / "preview.png").read_bytes())
+    status = {"views_used": 18, "views_published": 18, "steps": 0, "chamfer_mm": 119.13, "state": "live",
+              "job": "demo-fast"}
+    (live / "status.json").write_text(json.dumps(status))
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        name = page.locator("#viewer-name")
+        page.wait_for_function("() => document.querySelector('#viewer-name').textContent.includes('live')",
+                               timeout=WAIT_MS)
+        assert name.text_content().endswith("(18 views, 0 steps) 119.13 mm")
+        assert "/recon/live/preview.png" in page.locator("#viewer-preview").get_attribute("src")
+        (live / "status.json").write_text(json.dumps({**status, "views_used": 64, "views_published": 64,
+                                                      "steps": 242, "chamfer_mm": 1.0, "state": "done",
+                                                      "result": str(scan / "recon" / "demo-fast")}))
+        page.wait_for_function("() => document.querySelector('#viewer-name').textContent.includes('1.00 mm')",
+                               timeout=WAIT_MS)
+        assert "/recon/demo-fast/preview.png" in page.locator("#viewer-preview").get_attribute("src"), \
+            "the result's figures over the live fit's picture"
+        assert name.text_content() == "demo / fast 1.00 mm (the live reconstruction's result)"
+        assert page.locator('#viewer-links a', has_text="report.html").count() == 1
+        assert page.locator('#scans tr[data-scan="demo"] a.pick').all_text_contents() == [
+            "fast 1.00 mm (the live reconstruction's result)"]
+    assert not seen.errors, seen.errors
+
+
+def test_a_live_reconstruction_shows_its_state_its_note_and_its_age_once_it_no_longer_updates(tmp_path):
+    def live(name, **fields):
+        complete_scan(tmp_path / name, 1)
+        (tmp_path / name / "recon" / "live").mkdir(parents=True)
+        (tmp_path / name / "recon" / "live" / "status.json").write_text(json.dumps(
+            {"views_used": 33, "views_published": 62, "steps": 136, "chamfer_mm": 39.1556, **fields}))
+
+    now = _dt.datetime.now(_dt.timezone.utc)
+    live("aborted", state="aborted", note="scan aborted: aborted by user",
+         updated_utc=(now - _dt.timedelta(minutes=3)).isoformat())
+    live("quiet", state="live", updated_utc=(now - _dt.timedelta(seconds=45)).isoformat())
+    live("running", state="live", updated_utc=(now + _dt.timedelta(minutes=10)).isoformat())  # fresh all along
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        picks = {name: page.locator(f'#scans tr[data-scan="{name}"] a.pick')
+                 for name in ("aborted", "quiet", "running")}
+        picks["running"].wait_for(timeout=WAIT_MS)
+        assert picks["aborted"].text_content() == ("live, ended (the scan was aborted) (33 views, 136 steps) 39.16 mm, "
+                                                   "updated 3 min ago")
+        assert page.locator('#scans tr[data-scan="aborted"] .note').text_content() == "scan aborted: aborted by user"
+        quiet = picks["quiet"].text_content()  # 45 s ago, or a little more on a busy machine
+        assert quiet.startswith("live, following the scan (33 views, 136 steps) 39.16 mm, updated ") and \
+            quiet.endswith(" ago"), quiet
+        assert picks["running"].text_content() == "live, following the scan (33 views, 136 steps) 39.16 mm"
+        picks["aborted"].click()
+        page.wait_for_function("() => document.querySelector('#viewer-notes').textContent"
+                               ".includes('scan aborted: aborted by user')", timeout=WAIT_MS)
+    assert not seen.errors, seen.errors
+
+
+def test_a_finished_scan_is_the_last_scan_and_shows_no_frame_rate(tmp_path):
+    writer, poses = start_scan(tmp_path / "s", 3)
+    for i in range(3):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        page.wait_for_function("() => document.querySelector('#current-rate').textContent === '2.00 frames/s'",
+                               timeout=WAIT_MS)
+        writer.finish()
+        page.wait_for_function("() => document.querySelector('#current-state').textContent === 'complete'",
+                               timeout=WAIT_MS)
+        assert page.locator("#current-rate").text_content() == page.locator("#current-ppm").text_content() == "-"
+        assert page.locator("#current-title").text_content() == "Last scan"
     assert not seen.errors, seen.errors

@@ -396,3 +396,55 @@ def test_a_quick_scan_is_ranked_every_half_its_max_lag_of_poses_not_only_every_r
     run._rank(ScanProgress(state="running", reason=None, views_published=30, views_planned=64, new_chunks=1,
                            manifest=manifest, poses=np.zeros((30, 4, 4))))
     assert ranked_at == [10, 14, 18]
+
+
+def test_a_live_status_waiting_on_the_first_fit_of_enough_views_says_it_is_being_made(tmp_path):
+    # After a worker restart a scan of 124 views is loaded and carved before the first fit: "waiting for views:
+    # 0/124" alone read as if no view had come.
+    class Fit:
+        model, views_used, steps, converged, not_yet = None, 0, 0, False, None
+
+    (folder := tmp_path / "recon" / "live").mkdir(parents=True)
+    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path, folder, follower=None,
+                  settings=small_settings(), log=lambda line: None)
+    run.fit = Fit()
+    polled = ScanProgress(state="running", reason=None, views_published=124, views_planned=124, new_chunks=0)
+    run.publish(polled, force=True)
+    status = read_status(status_path(tmp_path))
+    assert (status.state, status.views_used, status.views_published) == ("waiting", 0, 124)
+    assert status.note == "making the first fit of 124 views (loading them, carving their hull)"
+    run.publish(dataclasses.replace(polled, views_published=3), force=True)
+    assert read_status(status_path(tmp_path)).note is None, "too few views: waiting is all there is to say"
+    run.fit.not_yet = "no live fit yet: no hull"
+    run.publish(polled, force=True)
+    assert read_status(status_path(tmp_path)).note == "no live fit yet: no hull", "a failed first fit says why"
+
+
+def test_the_log_never_says_more_views_fitted_than_published(tmp_path):
+    # A refit reads the capture on its own and can hold views that the follower's last poll had not seen yet.
+    class Fit:
+        model, views_used, steps, converged, not_yet, rebuilds = None, 0, 0, False, None, 0
+
+        def rebuild(self, views_planned):
+            self.model, self.views_used, self.rebuilds = SimpleNamespace(level=0), 22, self.rebuilds + 1
+            return True
+
+        def mesh(self, resolution):
+            raise CaptureError("no surface yet")
+
+        def remember(self):
+            pass
+
+        def train(self, until):
+            return 0
+
+    polled = ScanProgress(state="running", reason=None, views_published=21, views_planned=24, new_chunks=1)
+    ended = dataclasses.replace(polled, state="complete", views_published=24)
+    (folder := tmp_path / "recon" / "live").mkdir(parents=True)
+    lines: list[str] = []
+    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path, folder,
+                  follower=SimpleNamespace(poll=lambda: ended), settings=small_settings(), log=lines.append)
+    run.fit = Fit()
+    assert run.follow(polled) is ended
+    assert [line for line in lines if "fitting" in line] == [
+        "live: fitting 22 of 22 published views (refit 1, 0 steps so far, coarse level)"], lines

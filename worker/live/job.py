@@ -284,7 +284,9 @@ class LiveRun:
                     self.fit_views = self.fit.views_used
                     level = getattr(self.fit.model, "level", None)
                     level = "coarse level" if level == 0 else f"level {level}"
-                    self.log(f"live: fitting {self.fit.views_used} of {progress.views_published} published views "
+                    # the refit read the capture itself, and may have seen views the last poll had not
+                    published = max(progress.views_published, self.fit.views_used)
+                    self.log(f"live: fitting {self.fit.views_used} of {published} published views "
                              f"(refit {self.fit.rebuilds}, {self.fit.steps} steps so far, {level})")
                     self.publish(progress, force=self.fit.rebuilds == 1)
                 else:
@@ -371,12 +373,23 @@ class LiveRun:
         fitting = fit is not None and fit.model is not None
         try:
             self.write_status(progress, state or ("live" if fitting else "waiting"),
-                              note=self.quiet_note or (None if fitting or fit is None else fit.not_yet))
+                              note=self.quiet_note or (None if fitting else self._waiting_note(progress)))
         except OSError as exc:
             self.log(f"live: the live status not published this time: {' '.join(str(exc).split())}")
         self.publish_cost_s = time.perf_counter() - t0
         # Publishing takes at most about a fifth of the time: a slow machine publishes less often.
         self.next_publish = time.monotonic() + max(self.settings.publish_every_s, 4.0 * self.publish_cost_s)
+
+    def _waiting_note(self, progress: ScanProgress) -> str | None:
+        """Why there is no live fit yet: the last try's failure; else, with enough views published, that the first
+        fit is being made (loading the views and carving their hull take a while: without a note, "waiting for
+        views: 0/124" reads as if none had come)."""
+        fit = self.fit
+        if fit is not None and fit.not_yet:
+            return fit.not_yet
+        if progress.views_published >= self.settings.min_views:
+            return f"making the first fit of {progress.views_published} views (loading them, carving their hull)"
+        return None
 
     def write_status(self, progress: ScanProgress, state: str, note: str | None = None) -> None:
         fit = self.fit

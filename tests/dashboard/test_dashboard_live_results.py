@@ -1,0 +1,103 @@
+"""What /api/status says of a live reconstruction once it ended or stopped, of a scan no longer taking frames, and
+that the server listens on an IPv6 address: a done live fit gives way to its result (never its final figures over
+the live fit's last picture), a live fit says its state, note and age, rates are a running scan's only."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import http.client
+import json
+import os
+import threading
+
+import trimesh
+
+from dashboard_helpers import add_final_recon, complete_scan, get, serving, status
+from page_helpers import add_pose, start_scan
+from spadscan.dashboard.results import ResultIndex
+from spadscan.dashboard.server import address, make_server
+
+
+def live_status(scan_path, **fields) -> None:
+    """A live folder with a mesh, a preview and a status.json of `fields`."""
+    live = scan_path / "recon" / "live"
+    live.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.icosphere(subdivisions=1, radius=0.05).export(live / "mesh.ply")
+    (live / "preview.png").write_bytes(b"\x89PNG the live fit's last")
+    (live / "status.json").write_text(json.dumps({"views_used": 18, "views_published": 18, "steps": 0, **fields}))
+
+
+def test_a_done_live_reconstruction_gives_way_to_the_result_it_names(tmp_path):
+    scan = tmp_path / "scan"
+    complete_scan(scan, 2)
+    add_final_recon(scan, "scan-fast")
+    add_final_recon(scan, "scan-baseline")  # newer: listed first while the live fit runs
+    later = (scan / "recon" / "scan-fast" / "report.json").stat().st_mtime + 5
+    os.utime(scan / "recon" / "scan-baseline" / "report.json", (later, later))
+    live_status(scan, state="final", chamfer_mm=119.1)
+    with serving(tmp_path) as server:
+        recons = status(server)["scans"][0]["recons"]
+        assert [r["id"] for r in recons] == ["live", "scan-baseline", "scan-fast"], "while it runs: as it is"
+        assert recons[0]["files"]["preview.png"].startswith("/files/scan/recon/live/preview.png")
+        live_status(scan, views_used=64, views_published=64, steps=242, chamfer_mm=3.22, state="done",
+                    result=str(scan / "recon" / "scan-fast"))
+        recons = status(server)["scans"][0]["recons"]
+        assert [(r["id"], r["kind"], r.get("from_live")) for r in recons] == [
+            ("scan-fast", "final", True), ("scan-baseline", "final", None)], "its result first, in its place"
+        assert recons[0]["files"]["preview.png"].startswith("/files/scan/recon/scan-fast/preview.png")
+        live_status(scan, views_used=64, views_published=64, steps=242, chamfer_mm=3.22, state="done",
+                    result=str(scan / "recon" / "scan-moved-away"))
+        (live,) = [r for r in status(server)["scans"][0]["recons"] if r["kind"] == "live"]
+        assert live["summary"]["chamfer_mm"] == 3.22 and live["summary"]["state"] == "done"
+        assert not {"preview.png", "mesh.ply", "view3d.html"} & set(live["files"]), \
+            "the result's figures over the live fit's picture: no picture"
+
+
+def test_a_live_reconstruction_says_its_state_note_and_age(tmp_path):
+    now = _dt.datetime(2026, 12, 3, 17, 30, tzinfo=_dt.timezone.utc)
+    complete_scan(tmp_path / "v", 2)
+    live_status(tmp_path / "v", state="aborted", note="scan aborted: aborted by user",
+                updated_utc="2026-12-03T17:27:00.000+00:00")
+    (live,) = ResultIndex(tmp_path).for_scan("v", now=now)
+    assert (live["summary"]["state"], live["summary"]["note"], live["age_s"]) == (
+        "aborted", "scan aborted: aborted by user", 180.0)
+    live_status(tmp_path / "v", state="live", updated_utc="not a time")
+    assert ResultIndex(tmp_path).for_scan("v", now=now)[0]["age_s"] is None
+
+
+def test_frame_rates_are_a_running_scans_only(tmp_path):
+    writer, poses = start_scan(tmp_path / "s", 4)
+    for i in range(3):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    with serving(tmp_path) as server:
+        assert status(server)["current"]["frames_per_s"] == 2.0
+        writer.finish("aborted", "aborted by user")
+        current = status(server)["current"]
+        assert current["state"] == "aborted" and "frames_per_s" not in current and "poses_per_min" not in current
+    writer, poses = start_scan(tmp_path / "t", 2)
+    for i in range(2):
+        add_pose(writer, poses, i, t_s=10.0 + 0.5 * i)
+    writer.finish()
+    with serving(tmp_path) as server:
+        current = status(server)["current"]
+        assert current["state"] == "complete" and "frames_per_s" not in current
+
+
+def test_the_server_listens_on_an_ipv6_address(tmp_path):
+    complete_scan(tmp_path / "scan", 1)
+    server = make_server(tmp_path, "::1", 0)
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    thread.start()
+    try:
+        assert address(server) == f"http://[::1]:{server.server_address[1]}/"
+        conn = http.client.HTTPConnection("::1", server.server_address[1], timeout=30)
+        conn.request("GET", "/api/status")
+        answer = conn.getresponse()
+        assert answer.status == 200 and json.loads(answer.read())["scans"][0]["name"] == "scan"
+        conn.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(10)
+    with serving(tmp_path) as server:  # and IPv4 as before
+        assert get(server, "/api/status")[0] == 200

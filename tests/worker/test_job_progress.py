@@ -1,0 +1,77 @@
+"""A running job's progress as `spadscan worker --status` and the dashboard show it: its log's training bar, measured
+against the job's own budget where it has one (set-up, training, mesh, metrics and pictures share it), so that the
+bar is never full, "00:00 left", while the job still has its mesh, metrics and pictures to make."""
+
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+
+import pytest
+
+from spadscan.protocol.live_status import LiveStatus, write_status
+from spadscan.worker.job_progress import running_progress
+from spadscan.worker.jobs import Job
+from spadscan.worker.queue import Queue
+
+MID = "reconstruct (fast):  57%|#####     | 4/7 s [00:04<00:03, step=38, loss=851]\r"
+FULL = "reconstruct (fast): 100%|##########| 7/7 s [00:07<00:00, step=67, loss=518]\r"
+
+
+def running_job(root, bar: str, **job) -> tuple[Queue, float, Path]:
+    """A queue under `root` with one claimed job whose log shows `bar`; returns (queue, its claim's start, the
+    log)."""
+    queue = Queue.for_root(root)
+    queue.enqueue(Job(id="scan-fast", scan="scan", **job))
+    claim = queue.claim()
+    (queue.path / "logs").mkdir(exist_ok=True)
+    log = queue.path / "logs" / f"{claim.path.stem}.log"
+    log.write_text(bar)
+    (record,) = queue.read_records("scan-fast")[0]
+    return queue, record["started_unix"], log
+
+
+def test_a_job_with_a_budget_whose_training_is_over_is_not_shown_as_done(tmp_path):
+    queue, _, _ = running_job(tmp_path, MID + FULL, budget_s=600.0)  # claimed just now
+    p = running_progress(queue)["scan-fast"]
+    assert p.fraction < 0.5 and "00:00 left" not in p.line(), p.line()
+
+
+def test_a_job_with_a_budget_is_shown_against_it_and_says_what_follows_its_training(tmp_path):
+    queue, start, log = running_job(tmp_path, MID, budget_s=20.0)
+    p = running_progress(queue, now=start + 9.0)["scan-fast"]
+    assert p.fraction == pytest.approx(9 / 20)
+    assert p.line() == "reconstruct (fast): 4/7 s, step 38, loss 851 [00:09 of the job's 00:20 budget, 00:11 left]"
+    log.write_text(MID + FULL)
+    p = running_progress(queue, now=start + 15.0)["scan-fast"]
+    assert p.fraction == pytest.approx(0.75), "the training is over, the job is not"
+    assert p.line().endswith("[training done: mesh, metrics, pictures; 00:15 of the job's 00:20 budget, 00:05 left]")
+    assert (p.done, p.total) == (7, 7), "the training bar's own reading stays (the demo draws it)"
+    late = running_progress(queue, now=start + 23.0)["scan-fast"]
+    assert late.fraction == 1.0 and late.line().endswith("00:23 of the job's 00:20 budget, 00:03 over]")
+    data = late.to_dict()
+    assert (data["budget_s"], data["spent_s"], data["training_done"]) == (20.0, pytest.approx(23.0), True)
+
+
+def test_a_live_jobs_budget_counts_from_its_scans_end_when_its_final_run_starts(tmp_path):
+    queue, start, _ = running_job(tmp_path, FULL, budget_s=20.0, live=True)
+    folder = tmp_path / "scan" / "recon" / "live"
+    folder.mkdir(parents=True)
+    ended = start + 100.0  # the scan ran for 100 s, the live job following it
+    final = LiveStatus(views_used=24, views_published=24, steps=300, state="final", job="scan-fast",
+                       updated_utc=_dt.datetime.fromtimestamp(ended, _dt.timezone.utc).isoformat())
+    write_status(folder, final)
+    p = running_progress(queue, now=ended + 12.0)["scan-fast"]
+    assert p.fraction == pytest.approx(12 / 20)
+    assert p.line().endswith("[training done: mesh, metrics, pictures; 00:12 of the job's 00:20 budget, 00:08 left]")
+    write_status(folder, LiveStatus(views_used=24, views_published=24, steps=300, state="final", job="other-job",
+                                    updated_utc=final.updated_utc))
+    assert running_progress(queue, now=ended + 12.0)["scan-fast"].budget_s is None, "not its own status"
+
+
+def test_a_full_training_bar_without_a_budget_says_what_the_job_does_next_not_00_00_left(tmp_path):
+    queue, _, _ = running_job(tmp_path, MID + FULL)
+    p = running_progress(queue)["scan-fast"]
+    assert p.fraction == 1.0 and p.budget_s is None
+    assert p.line() == ("reconstruct (fast): 7/7 s, step 67, loss 518 "
+                        "[training done: mesh, metrics, pictures (training took 00:07)]")
