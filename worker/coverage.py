@@ -3,7 +3,8 @@
 A point of the surface is seen by a view when it lies in one of the sensor's zones, faces the sensor, and nothing of
 the surface stands between them. A point seen by fewer than `FEW_VIEWS` views has no position the data fixes (one
 view gives a range along a whole cone; ranges from three directions pin a point down), so its shape comes from the
-fit's smoothness prior. Undersides (normals within 45 degrees of straight down) are left out: a scan from above the
+fit's smoothness prior. A zone whose histogram holds no data (a dropped frame: scene_data's `usable`) saw nothing, and
+counts as no view there. Undersides (normals within 45 degrees of straight down) are left out: a scan from above the
 object's base never sees them, by design, and every object has them.
 """
 
@@ -17,7 +18,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.sensor_model import SensorModel, in_any_zone
+from spadscan.protocol.sensor_model import SensorModel, in_any_zone, zone_masks
 
 FEW_VIEWS = 3
 """Views that see a point fewer than this many times leave its position to the prior (three ranges fix a point)."""
@@ -56,14 +57,18 @@ class Coverage:
 
 
 def views_per_point(mesh, points: np.ndarray, normals: np.ndarray, poses: np.ndarray,
-                    sensor: SensorModel) -> np.ndarray:
+                    sensor: SensorModel, usable: np.ndarray | None = None) -> np.ndarray:
     """(n,) int: how many of the views (poses (V, 4, 4), sensor to world, metres) see each point (n, 3) with outward
-    normal (n, 3) of `mesh` (a trimesh.Trimesh, world metres): in a zone, facing the sensor, not occluded."""
+    normal (n, 3) of `mesh` (a trimesh.Trimesh, world metres): in a zone, facing the sensor, not occluded. usable
+    (V, Z) bool, or None for all: a zone marked False holds no data (a dropped frame) and sees nothing."""
     counts = np.zeros(len(points), np.int64)
-    for pose in poses:
+    usable = None if usable is None else np.asarray(usable, bool)
+    for v, pose in enumerate(poses):
+        if usable is not None and not usable[v].any():
+            continue  # a view without data: as if it had not been taken
         rot, eye = pose[:3, :3], pose[:3, 3]
         rel = (points - eye) @ rot  # sensor frame
-        inside = in_any_zone(sensor.zones, rel)
+        inside = _in_zones(sensor, rel, None if usable is None else usable[v])
         facing = np.einsum("ij,ij->i", eye - points, normals) > 0
         cand = np.flatnonzero(inside & facing)
         if len(cand) == 0:
@@ -76,6 +81,18 @@ def views_per_point(mesh, points: np.ndarray, normals: np.ndarray, poses: np.nda
         first[ray] = np.linalg.norm(hits - eye, axis=1)
         counts[cand[first >= dist - OCCLUSION_TOL_M]] += 1
     return counts
+
+
+def _in_zones(sensor: SensorModel, rel: np.ndarray, usable: np.ndarray | None) -> np.ndarray:
+    """(n,) bool: sensor-frame points `rel` (n, 3) in one of the sensor's zones, of those `usable` (Z,) marks (None:
+    all of them)."""
+    if usable is None or usable.all():
+        return in_any_zone(sensor.zones, rel)
+    inside = np.zeros(len(rel), bool)
+    for held, ok in zip(zone_masks(sensor.zones, rel), usable):
+        if ok:
+            inside |= held
+    return inside
 
 
 @dataclass
@@ -96,10 +113,10 @@ class SurfaceViews:
 
 
 def surface_views(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = SAMPLE_POINTS,
-                  seed: int = 0) -> SurfaceViews:
+                  seed: int = 0, usable: np.ndarray | None = None) -> SurfaceViews:
     """How many of the views `poses` (V, 4, 4, sensor to world) see each of n_points samples of `mesh` (trimesh,
-    world metres), undersides included. SpadscanError for a mesh with no faces or poses that are not finite
-    (V, 4, 4)."""
+    world metres), undersides included; `usable` (V, Z): the zones that hold data (views_per_point). SpadscanError
+    for a mesh with no faces or poses that are not finite (V, 4, 4)."""
     poses = np.asarray(poses, np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.all(np.isfinite(poses)):
         raise SpadscanError(f"coverage: poses must be finite (V, 4, 4), got shape {poses.shape}")
@@ -108,7 +125,7 @@ def surface_views(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = 
     points, face = trimesh.sample.sample_surface(mesh, int(n_points), seed=seed)
     normals = np.asarray(mesh.face_normals[face], np.float64)
     points = np.asarray(points, np.float64) + OFFSET_M * normals
-    return SurfaceViews(points, normals, views_per_point(mesh, points, normals, poses, sensor))
+    return SurfaceViews(points, normals, views_per_point(mesh, points, normals, poses, sensor, usable))
 
 
 def vertex_views(mesh, samples: SurfaceViews) -> np.ndarray:

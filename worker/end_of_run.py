@@ -241,6 +241,10 @@ class RunFacts:
     continued: bool = False
     """The run went on from another fit's field (a live job's final run): too few steps to judge a trend is then a
     short polish, not a rough early state."""
+    training_s: float | None = None
+    """Wall seconds of training, checkpoint evaluations included (what its share of the budget counts)."""
+    training_budget_s: float | None = None
+    """The seconds the budget left training, or None without a budget."""
 
 
 def converged(facts: RunFacts) -> bool:
@@ -270,9 +274,20 @@ def overrun_warning(facts: RunFacts) -> str | None:
     a machine that other work slowed down later, they take longer."""
     if facts.budget_s is None or facts.elapsed_s is None or facts.elapsed_s <= (1 + OVERRUN_SHARE) * facts.budget_s:
         return None
+    took = f"the run took {facts.elapsed_s:.0f} s of a {facts.budget_s:g} s time budget"
+    over_training = (0.0 if facts.training_s is None or facts.training_budget_s is None
+                     else facts.training_s - facts.training_budget_s)
+    if over_training > 0.5 * (facts.elapsed_s - facts.budget_s):
+        # Training overran its share, not the start or the end: the trainer takes at least one step, however long
+        # (the paper preset's on a CPU: over a minute).
+        per_step = facts.training_s / max(facts.steps, 1)
+        return (f"{took}: training took {facts.training_s:.0f} s of the {facts.training_budget_s:.0f} s the budget "
+                f"left it, {per_step:.0f} s a step over {facts.steps} step(s) on {facts.device}, and a run takes at "
+                f"least one; give it a time budget of many steps, or a faster device (--device cuda) or preset "
+                f"(fast)")
     share = cpu_share(facts)
     had = f" (it had {share:.2f} of a CPU core while training)" if share is not None and facts.device == "cpu" else ""
-    return (f"the run took {facts.elapsed_s:.0f} s of a {facts.budget_s:g} s time budget: its start and its end (the "
+    return (f"{took}: its start and its end (the "
             f"mesh, the pictures, the metrics) took longer than the budget left them{had}; give it a larger time "
             f"budget or stop other work")
 

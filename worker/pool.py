@@ -295,8 +295,9 @@ class Worker:
         extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
         if summary.get("ground_truth_note"):
             extra += f" (ground truth: {summary['ground_truth_note']})"
-        if summary.get("capture_counts_note"):
-            extra += f" (warning: {summary['capture_counts_note']})"
+        counts_note = summary.get("capture_counts_note")
+        if counts_note and counts_note not in (summary.get("warnings") or []):  # a report's warnings carry it now
+            extra += f" (warning: {counts_note})"
         if summary.get("converged") is False:
             extra += ", not converged"
         for warning in summary.get("warnings") or []:

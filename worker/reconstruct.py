@@ -26,7 +26,9 @@ from . import end_of_run
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
                      PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, fit_views_within,
                      mesh_resolution_within, metric_points_within, training_budget)
+from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
 from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
+from .carving.views import summed_views
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
@@ -101,6 +103,9 @@ class Run:
     """Why the capture may be doubtful (not complete), or None."""
     setup_s: float
     """Wall seconds that loading the capture and building the model took."""
+    counts_note: str | None = None
+    """Histograms no sensor could have produced (left out) or with clipped bins, in one line, or None: a warning of
+    the run's too (a worker job has no terminal to print it on)."""
 
 
 def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, steps: int | None,
@@ -112,7 +117,7 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     `make`: a model factory (scene, config, device, plan) -> model in place of the preset's (a live job's final run
     starts its model from the live fit)."""
     t0 = time.perf_counter()
-    check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
+    counts_note = check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
     scene = load_scene(Path(capture), device, dtype)
     check_returns(capture, scene)
@@ -126,7 +131,7 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
         _warn_long_default(config, device, steps, budget_s, log)
     plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
     model = (make or make_model)(scene, config, device, plan)
-    return Run(config, scene, model, plan, device, state_note, time.perf_counter() - t0)
+    return Run(config, scene, model, plan, device, state_note, time.perf_counter() - t0, counts_note)
 
 
 def check_returns(capture, scene) -> None:
@@ -242,6 +247,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report["mesh_resolution"] = resolution
     if run.state_note:
         report["capture_note"] = run.state_note
+    floor_note = _floor_note(scene, report["model"], truth)
     # The pictures before the metrics: what they take is kept back as a loaded machine's figure (FIXED_S), and on an
     # idle one most of it is left over; drawn first, that time goes to the metric points instead of being lost.
     log("pictures and report")
@@ -285,7 +291,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
             notes.append(f"the time budget was short: the metrics used {points:,} points per mesh, not "
                          f"{config.metrics_points:,} (a coarser estimate)")
         report.update(scores.to_dict())
-        report["chamfer_scoring"] = final_scoring(config, resolution, points)
+        report["chamfer_scoring"] = final_scoring(config, resolution, points, measured=scores.queries)
         pictures.normals_png(scored, vertex_err, out / "normals.png")
         report["ground_truth"] = str(gt)
         stages["metrics_s"] = clock() - t_metrics
@@ -293,10 +299,12 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
-                     scene_notes=[n for n in (scene.bound_note, run.state_note if scene.state == "complete" else None)
-                                  if n], coverage=coverage, pieces=pieces,
+                     scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note,
+                                              run.state_note if scene.state == "complete" else None) if n],
+                     coverage=coverage, pieces=pieces,
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
-                     continued=bool(getattr(model, "warm_started", False)))
+                     continued=bool(getattr(model, "warm_started", False)),
+                     training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s)
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts)
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
@@ -318,6 +326,30 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report = json_safe(report)
     write_report_html(report, out)
     return report
+
+
+FLOOR_WHY = {"config": "field.floor_z, by default z = 0, where simulated scenes stand",
+             "capture": "the capture's scene.floor_z"}
+"""Why a fit has a floor that is no table, by the fast preset's `floor` note (a table the fit found or was given
+is seen in the histograms: no warning)."""
+FLOOR_REMEDY = {"config": "--set field.floor_z=null takes the floor away, --set field.floor_z=HEIGHT (metres) moves it",
+                "capture": "change or remove scene.floor_z in the capture's scan.json"}
+
+
+def _floor_note(scene: SceneData, summary: dict, truth) -> str | None:
+    """The warning that the floor the fit assumes (not a table) cuts the object, or None: first returns that only
+    surface below it can have given, or with a ground truth, a share of its surface below it (docs/end_of_run.md).
+    `summary`: the model's summary (the fast preset names its floor and where it comes from; the paper preset has
+    none)."""
+    floor_z, source = summary.get("floor_z_m"), summary.get("floor")
+    if not isinstance(floor_z, (int, float)) or source not in FLOOR_WHY:
+        return None
+    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
+    counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
+    usable = None if scene.usable is None else scene.usable.cpu().numpy()
+    below = returns_below_floor(counts, scene.poses.double().cpu().numpy(), sensor, float(floor_z), usable)
+    share = None if truth is None else mesh_share_below(truth.mesh, float(floor_z))
+    return floor_cut_note(float(floor_z), FLOOR_WHY[source], below, share, FLOOR_REMEDY[source])
 
 
 def _warn_long_default(config: ReconConfig, dev: torch.device, steps, budget_s, log) -> None:
@@ -365,9 +397,14 @@ def checkpoint_scoring(config: ReconConfig, short: bool = False) -> str:
     return f"{config.trace_mesh_resolution}-cell mesh{';' if short else ','} {points} points"
 
 
-def final_scoring(config: ReconConfig, resolution: int | None = None, points: int | None = None) -> str:
-    """How the final mesh is scored (the summary's Chamfer): its resolution and points (default: the config's)."""
-    return f"final {resolution or config.mesh_resolution}-cell mesh, {points or config.metrics_points:,} points"
+def final_scoring(config: ReconConfig, resolution: int | None = None, points: int | None = None,
+                  measured: int | None = None) -> str:
+    """How the final mesh is scored (the summary's Chamfer): its resolution and points (default: the config's), and
+    `measured`, the points the metrics' deadline left measured, where fewer ('15,000 of 286,000 points'): the figure
+    rests on those alone."""
+    points = points or config.metrics_points
+    some = f"{measured:,} of " if measured is not None and measured < points else ""
+    return f"final {resolution or config.mesh_resolution}-cell mesh, {some}{points:,} points"
 
 
 def _checkpoint_metrics(model, truth, config: ReconConfig) -> dict:
@@ -432,7 +469,9 @@ def _coverage(out: Path | None, mesh, scene: SceneData, log) -> Coverage | None:
     """How many views saw each part of the mesh (coverage.py), and with `out` coverage.png there, the mesh coloured
     by it; None (said in the log) where it cannot be measured."""
     try:
-        samples = surface_views(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor)
+        usable = getattr(scene, "usable", None)  # (V, Z): dropped frames saw nothing
+        usable = None if usable is None else usable.cpu().numpy()
+        samples = surface_views(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor, usable=usable)
         if out is not None:
             # The legend's shares are the report's: of the surface less its undersides, which no view above sees.
             pictures.coverage_png(mesh, vertex_views(mesh, samples), out / "coverage.png", few_views=FEW_VIEWS,

@@ -43,15 +43,24 @@ def named_table(spec) -> TablePlane:
     fitted = bool(spec.get("fit", False))
     try:
         if "z" in spec:
-            return TablePlane(np.array([0.0, 0.0, 1.0]), float(spec["z"]), fitted)
+            return TablePlane(np.array([0.0, 0.0, 1.0]), _finite(spec["z"], "z"), fitted)
         normal = np.asarray(spec.get("normal", (0, 0, 1)), float)
         norm = float(np.linalg.norm(normal))
         if normal.shape != (3,) or not np.isfinite(norm) or norm < 1e-9 or "offset" not in spec:
             raise ValueError("not a plane")
-        return TablePlane(normal / norm, float(spec["offset"]) / norm, fitted)
+        return TablePlane(normal / norm, _finite(spec["offset"], "offset") / norm, fitted)
     except (TypeError, ValueError):
         raise CaptureError("scene table needs a number 'z', or a non-zero 3-vector 'normal' and an 'offset' in "
                            "metres") from None
+
+
+def _finite(value, key: str) -> float:
+    """`value` as a float; a CaptureError naming scene.table.`key` when it is not finite (scan.json may hold NaN or
+    Infinity, which Python's json reads: a table at z = nan left a fit that trained to the end and then failed)."""
+    number = float(value)
+    if not math.isfinite(number):
+        raise CaptureError(f"scene.table.{key} {value!r} must be a finite number of metres")
+    return number
 
 
 def last_peaks(counts: np.ndarray, cycles: np.ndarray, background: np.ndarray, ignore_bins=(),

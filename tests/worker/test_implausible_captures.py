@@ -13,6 +13,7 @@ import trimesh
 
 from spadscan.cli import main as cli_main
 from spadscan.protocol.capture_format import Measurement
+from spadscan.protocol.capture_reader import check_capture_counts
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import fibonacci_hemisphere
@@ -74,6 +75,28 @@ def counts_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=N
     return report
 
 
+def warning_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                  started=None):
+    """A stand-in reconstruction whose report carries the counts note among its warnings, as reconstruct's does."""
+    report = {"preset": preset, "warnings": [check_capture_counts(capture)]}
+    (out / "report.json").write_text(json.dumps(report))
+    return report
+
+
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_the_done_line_says_a_counts_warning_once(tmp_path, arun):
+    root = tmp_path / "captures"
+    root.mkdir()
+    some = np.random.default_rng(0).poisson(2.0, (8, 1, 1024)).astype(np.uint32)
+    some[3] = SATURATED
+    capture(root / "some", some)
+    lines: list[str] = []
+    config = WorkerConfig(root=root, once=True, poll_s=0.1, recon="test_implausible_captures:warning_recon")
+    assert arun(Worker(config, log=lines.append).run(), timeout_s=120) == {"some-fast": "done"}
+    done = [line for line in lines if "some-fast done" in line]
+    assert len(done) == 1 and done[0].count("1 of 8 histograms no sensor could have produced") == 1, done
+
+
 @pytest.mark.usefixtures("recon_stand_ins")
 def test_the_worker_fails_an_implausible_capture_once_and_warns_about_a_partly_implausible_one(tmp_path, arun):
     root = tmp_path / "captures"
@@ -100,7 +123,8 @@ def test_the_worker_fails_an_implausible_capture_once_and_warns_about_a_partly_i
 
 def test_a_dropped_frame_is_left_out_and_carves_nothing_away(tmp_path):
     """One all-zero histogram among 16 (a dropped frame): read as "no return", it proved its zone's whole field of
-    view empty, and the hull kept a third of the ball (the fit cannot grow past the hull)."""
+    view empty, and the hull kept a third of the ball (the fit cannot grow past the hull); the likelihood read it so
+    too."""
     poses = fibonacci_hemisphere(16, 0.5, target=(0, 0, 0.1), min_elevation_deg=0)
     cap = simulate_capture(builtin_scene("sphere"), sensor_preset("lcspc-sim"), poses, tmp_path / "cap",
                            settings=SimSettings(rays_per_zone=1024), progress=False)
@@ -116,6 +140,21 @@ def test_a_dropped_frame_is_left_out_and_carves_nothing_away(tmp_path):
     ball = rng.uniform(-1, 1, (50_000, 3))
     ball = torch.as_tensor(ball[np.linalg.norm(ball, axis=1) < 1] * 0.1 + [0, 0, 0.1], dtype=torch.float32)
     assert float((run.model.problem.hull.sample(ball) < 0).float().mean()) > 0.97
+    # Nor does it pull the fit: the data term and its gradient over views 2-4 are those of views 2 and 4 alone. With
+    # pile-up its "no photon in any of N cycles" term told the fit that the zone saw nothing.
+    problem = run.model.problem
+    assert problem.forward.terms.pileup
+    views, kept = torch.tensor([2, 3, 4]), torch.tensor([0, 2])
+    lam = run.model._rates(views)[0].detach().requires_grad_(True)
+    loss = problem.forward.nll(lam, problem.counts[views], problem.cycles[views], problem.valid[views])
+    (grad,) = torch.autograd.grad(loss, lam)
+    alone = lam.detach()[kept].requires_grad_(True)
+    loss_kept = problem.forward.nll(alone, problem.counts[views[kept]], problem.cycles[views[kept]],
+                                    problem.valid[views[kept]])
+    (grad_kept,) = torch.autograd.grad(loss_kept, alone)
+    assert float(loss.detach()) == pytest.approx(float(loss_kept.detach()), rel=1e-6)
+    assert float(grad[1].abs().max()) == 0.0
+    torch.testing.assert_close(grad[kept], grad_kept, rtol=1e-6, atol=0.0)
     # The space-carving baseline reads the same capture: its mesh is the ball, not what one dead zone left of it.
     assert cli_main(["baseline", "space-carving", str(cap), "--out", str(tmp_path / "carved")]) == 0
     carved = trimesh.load(tmp_path / "carved" / "mesh.ply")

@@ -20,6 +20,11 @@ from ..table_height import RAYS_PER_ZONE, detect_height, named_table
 
 SIMULATED_FLOOR_Z = 0.0
 """Metres: the floor of a simulated scene, and of a measured one whose table cannot be found."""
+NO_TABLE = "a scene without a table: z = 0"
+NOT_FOUND = "no table found in the histograms; z = 0 assumed (--floor-z to set it)"
+ASSUMED_FLOORS = (NO_TABLE, NOT_FOUND)
+"""The sources of a floor that nothing in the capture showed: one that may cut an object reaching below z = 0
+(run.floor_warning)."""
 
 
 def scene_floor(data) -> tuple[float | None, str]:
@@ -33,7 +38,7 @@ def scene_floor(data) -> tuple[float | None, str]:
         scene = {}
     spec = scene.get("table", True if is_measured(scene, data.manifest, data.sensor) else None)
     if not spec:
-        return SIMULATED_FLOOR_Z, "a scene without a table: z = 0"
+        return SIMULATED_FLOOR_Z, NO_TABLE
     named = None
     if spec is not True:
         named = named_table(spec).height()
@@ -46,7 +51,7 @@ def scene_floor(data) -> tuple[float | None, str]:
         return height, "the table, found in the histograms"
     if named is not None:
         return named, "the table the capture names (not found in the histograms)"
-    return SIMULATED_FLOOR_Z, "no table found in the histograms; z = 0 assumed (--floor-z to set it)"
+    return SIMULATED_FLOOR_Z, NOT_FOUND
 
 
 def check_given_floor(floor_z: float, poses: np.ndarray, sensor) -> None:
@@ -85,4 +90,5 @@ def measured_table_height(data) -> float | None:
                          rays.weights, sensor, np.asarray(kernel, float), origin, ignore_bins=sensor.ignore_bins)
 
 
-__all__ = ["SIMULATED_FLOOR_Z", "scene_floor", "measured_table_height", "check_given_floor"]
+__all__ = ["SIMULATED_FLOOR_Z", "ASSUMED_FLOORS", "NO_TABLE", "NOT_FOUND", "scene_floor", "measured_table_height",
+           "check_given_floor"]

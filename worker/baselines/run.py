@@ -18,14 +18,15 @@ from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.plausibility import implausible
 from spadscan.protocol.sensor_model import SensorModel
 
-from ..carving.returns import DEFAULT_THRESHOLD
+from ..carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
+from ..carving.returns import DEFAULT_THRESHOLD, first_returns
 from ..carving.space_carving import DEFAULT_EDGE_DEG, MIN_VIEWS, carve_scene, main_components, occupancy_mesh
 from ..carving.views import summed_views
 from ..ground_truth import load_ground_truth
 from ..outputs import capture_state_note, export_mesh
 from ..report.report_json import json_safe, write_report
-from .common import CALIBRATION_POINTS, MIN_SURFACE_POINTS, calibrate
-from .floor import check_given_floor, scene_floor
+from .common import CALIBRATION_POINTS, CALIBRATION_THRESHOLDS, MIN_SURFACE_POINTS, calibrate
+from .floor import ASSUMED_FLOORS, check_given_floor, scene_floor
 from .reprojection import reprojection
 
 METHODS = ("reprojection", "space-carving")
@@ -68,16 +69,48 @@ def _build(method: str, data: PoseViews, threshold: float, *, resolution: int, m
                                     "pieces under 1% of the largest dropped"}
 
 
-def _no_surface(capture, method: str, threshold: float, floor_z, extras: dict) -> str:
+def _no_surface(capture, method: str, threshold: float, floor_z, extras: dict, data: PoseViews) -> str:
     """Why a baseline found no surface, with the remedy: the floor when it removed the returns (a lower threshold
-    would not bring them back), else the threshold."""
+    would not bring them back); too few histograms for the points a surface needs, or too few with a return at the
+    lowest threshold that `--calibrate` tries (a lower threshold brings no more: more views do); else the threshold."""
     dropped, kept = extras.get("returns_below_floor", 0), extras.get("reprojected_points", 0)
     line = f"{capture}: {method} found no surface at threshold {threshold:g} ({THRESHOLD_UNITS})"
     if dropped and kept < MIN_SURFACE_POINTS <= dropped + kept:
         return (f"{line}: the floor at z = {floor_z:g} m removed {dropped} of its "
                 f"{dropped + kept} first returns, which lie below it; check --floor-z "
                 f"(metres), or pass --no-floor")
+    if method == "reprojection":
+        views, zones = data.hists.shape[:2]
+        if views * zones < MIN_SURFACE_POINTS:
+            return (f"{line}: its {views} view(s) of {zones} zone(s) give at most {views * zones} point(s), and a "
+                    f"surface needs {MIN_SURFACE_POINTS}; scan more views")
+        lowest = min(CALIBRATION_THRESHOLDS)
+        found = int(first_returns(data.hists, data.sensor, min(lowest, threshold), "matched").detected.sum())
+        if found < MIN_SURFACE_POINTS:
+            return (f"{line}: only {found} histogram(s) hold a return even at threshold {min(lowest, threshold):g}, "
+                    f"and a surface needs {MIN_SURFACE_POINTS} points; scan more views of the object")
     return f"{line}; try a lower --threshold"
+
+
+def check_returns(capture, data: PoseViews, usable: np.ndarray) -> None:
+    """Refuse (one CaptureError line) a capture in which no histogram holds a return above the noise at the default
+    threshold, as the reconstruction does: a lower threshold then finds noise alone, and reprojection built a 4 m
+    'surface' of it."""
+    if not (first_returns(data.hists, data.sensor, DEFAULT_THRESHOLD, "matched").detected & usable).any():
+        raise CaptureError(f"{capture}: no histogram holds a return above the noise ({DEFAULT_THRESHOLD:g} standard "
+                           f"deviations of its matched-filtered background): nothing to reconstruct (the object out "
+                           f"of range or out of every view, or the sensor's settings wrong)")
+
+
+def floor_warning(floor_z, floor_source: str, data: PoseViews, usable: np.ndarray, truth) -> str | None:
+    """The warning that a floor the baseline assumed (z = 0: no table named or found) cuts the object, or None
+    (`bounds.floor_cut_note`). A floor given with --floor-z, or a table, is the user's or the histograms' word."""
+    if floor_z is None or floor_source not in ASSUMED_FLOORS:
+        return None
+    below = returns_below_floor(data.hists, data.poses, data.sensor, float(floor_z), usable)
+    share = None if truth is None else mesh_share_below(truth.mesh, float(floor_z))
+    return floor_cut_note(float(floor_z), floor_source, below, share,
+                          "--no-floor takes the floor away, --floor-z M (metres) moves it")
 
 
 def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None = None, calibrate_: bool = False,
@@ -128,6 +161,10 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     broken = views.in_any_frame(implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins))
     counts, sensor = summed_views(views.counts, views.frames, data.sensor)
     posed = PoseViews(counts, data.poses[views.first], sensor)
+    check_returns(capture, posed, ~broken)
+    warnings = [w for w in (floor_warning(floor_z, floor_source, posed, ~broken, truth),) if w]
+    for line in warnings:
+        log(f"warning: {line}")
     if method == "space-carving" and len(posed.hists) < MIN_VIEWS:
         raise CaptureError(f"{capture}: space carving keeps only space that at least {MIN_VIEWS} views see, and the "
                            f"capture holds {len(posed.hists)} (poses); scan more views, or use reprojection")
@@ -145,7 +182,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     mesh, extras = _build(method, posed, threshold, **opts)
     seconds = time.monotonic() - start
     if mesh is None:
-        raise CaptureError(_no_surface(capture, method, threshold, floor_z, extras))
+        raise CaptureError(_no_surface(capture, method, threshold, floor_z, extras, posed))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     export_mesh(mesh, out / "mesh.ply")
@@ -164,6 +201,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         "capture_state": data.manifest["state"],
         **({"capture_note": state_note} if state_note else {}),
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))},
+        "warnings": warnings,
         **extras,
     }
     if truth is not None:

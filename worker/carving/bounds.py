@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_model import SensorModel, Zone
 
-from .returns import FirstReturns
+from .returns import DEFAULT_THRESHOLD, FirstReturns, first_returns
+
+BELOW_FLOOR_M = 0.005
+"""A first return comes from clearly below a floor when the whole of its zone's field of view lies more than this
+(or two bins, where that is more) under the floor at its range."""
+BELOW_FLOOR_SHARE = 0.01
+"""More than this share of the first returns from below a floor (and at least BELOW_FLOOR_MIN of them): the floor
+cuts the object (a share, not one return: one view's noise can clear the threshold far away)."""
+BELOW_FLOOR_MIN = 2
 
 
 def zone_axis(zone: Zone) -> np.ndarray:
@@ -66,10 +75,91 @@ def scene_bounds(returns: FirstReturns, poses: np.ndarray, sensor: SensorModel, 
     return lo, hi
 
 
+@dataclass(frozen=True)
+class BelowFloor:
+    """First returns that can only have come from below a floor: `below` of the `returns` detected, the lowest
+    `depth_m` metres under it (its zone's highest point at its range; 0 when there is none)."""
+
+    below: int
+    returns: int
+    depth_m: float = 0.0
+
+    @property
+    def cuts(self) -> bool:
+        """Whether enough of them lie below for the floor to cut the object (BELOW_FLOOR_SHARE, BELOW_FLOOR_MIN)."""
+        return self.below >= BELOW_FLOOR_MIN and self.below > BELOW_FLOOR_SHARE * self.returns
+
+    def text(self) -> str:
+        """'5 of 48 first returns come from wholly below it (up to 55 mm under it)'."""
+        return (f"{self.below} of {self.returns} first returns come from wholly below it (up to "
+                f"{self.depth_m * 1e3:.0f} mm under it)")
+
+
+def zone_top_z(zone: Zone, rotations: np.ndarray) -> np.ndarray:
+    """(n,) the largest world z component of a direction in `zone`'s field of view, for sensor-to-world rotations
+    (n, 3, 3): exact for a cone (its axis's elevation plus its half angle), the edges' for a rect zone."""
+    if zone.kind == "cone":
+        axis_z = np.clip(rotations[:, 2, :] @ zone_axis(zone), -1.0, 1.0)
+        return np.sin(np.minimum(np.arcsin(axis_z) + zone.half_angle_rad, 0.5 * np.pi))
+    t = np.linspace(0.0, 1.0, 9)
+    (x0, x1), (y0, y1) = zone.tan_x, zone.tan_y
+    xs, ys = x0 + t * (x1 - x0), y0 + t * (y1 - y0)
+    edge = np.concatenate([np.stack([xs, np.full_like(xs, y), np.ones_like(xs)], 1) for y in (y0, y1)]
+                          + [np.stack([np.full_like(ys, x), ys, np.ones_like(ys)], 1) for x in (x0, x1)])
+    edge /= np.linalg.norm(edge, axis=1, keepdims=True)
+    return (rotations[:, 2, :] @ edge.T).max(axis=1)
+
+
+def returns_below_floor(hists, poses: np.ndarray, sensor: SensorModel, floor_z: float,
+                        usable: np.ndarray | None = None) -> BelowFloor:
+    """How many histograms' first returns (at the default threshold; hists (n, zones, bins) as carving reads them,
+    poses (n, 4, 4)) can only have come from below a floor at `floor_z` metres: their zone's whole field of view at
+    their range lies clearly under it (BELOW_FLOOR_M). No surface there, and a fit or a carving bounded by the floor
+    cannot hold the part of the object they saw. usable (n, zones) bool, or None: histograms that hold data."""
+    returns = first_returns(hists, sensor, DEFAULT_THRESHOLD, "matched")
+    found = returns.detected if usable is None else returns.detected & np.asarray(usable, bool)
+    rng = returns.arrival_range_m(sensor)
+    poses = np.asarray(poses, np.float64)
+    margin = max(BELOW_FLOOR_M, 2.0 * sensor.bin_width_m)
+    depth = np.full(found.shape, -np.inf)
+    for z, zone in enumerate(sensor.zones):
+        top = poses[:, 2, 3] + np.where(found[:, z], rng[:, z], 0.0) * zone_top_z(zone, poses[:, :3, :3])
+        depth[:, z] = np.where(found[:, z], floor_z - top, -np.inf)
+    below = depth > margin
+    return BelowFloor(int(below.sum()), int(found.sum()), float(depth[below].max()) if below.any() else 0.0)
+
+
+def mesh_share_below(mesh, floor_z: float) -> float:
+    """Share of a mesh's surface area (trimesh, metres) clearly below `floor_z` (its faces' centres BELOW_FLOOR_M
+    under it): of a ground truth, the part a floor there cuts off."""
+    area = np.asarray(mesh.area_faces, np.float64)
+    if not len(area) or area.sum() <= 0:
+        return 0.0
+    under = np.asarray(mesh.triangles_center, np.float64)[:, 2] < floor_z - BELOW_FLOOR_M
+    return float(area[under].sum() / area.sum())
+
+
+def floor_cut_note(floor_z: float, why: str, returns: BelowFloor | None, truth_share: float | None,
+                   remedy: str) -> str | None:
+    """One line saying that an assumed floor at `floor_z` metres (`why` it is there) cuts the object, with the
+    evidence (first returns from below it; the ground truth's share of surface below it) and the `remedy`; None when
+    there is no evidence. Everything under the floor is left out of the result, which would not say so."""
+    evidence = []
+    if returns is not None and returns.cuts:
+        evidence.append(returns.text())
+    if truth_share is not None and truth_share > BELOW_FLOOR_SHARE:
+        evidence.append(f"{100 * truth_share:.0f} % of the ground truth's surface lies below it")
+    if not evidence:
+        return None
+    return (f"the floor at z = {floor_z:.3f} m ({why}) cuts the object: {' and '.join(evidence)}, and nothing below "
+            f"the floor is reconstructed; if the object does not stand on it, {remedy}")
+
+
 def cube_around(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The smallest cube with the same centre that holds the box (cubic voxels on an R^3 grid)."""
     c, half = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo))
     return c - half, c + half
 
 
-__all__ = ["zone_axis", "zone_edges", "scene_bounds", "cube_around"]
+__all__ = ["zone_axis", "zone_edges", "scene_bounds", "cube_around", "BelowFloor", "returns_below_floor",
+           "zone_top_z", "mesh_share_below", "floor_cut_note", "BELOW_FLOOR_M", "BELOW_FLOOR_SHARE", "BELOW_FLOOR_MIN"]

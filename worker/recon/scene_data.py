@@ -229,7 +229,7 @@ def _table(scene: dict, center: np.ndarray, radius: float, real: bool, points: n
     try:
         return named_table(spec)
     except CaptureError as exc:
-        raise CaptureError(f"{where}: {exc}") from None
+        raise CaptureError(f"{where / 'scan.json'}: {exc}") from None
 
 
 def _background(counts, cycles, poses, center, radius, sensor: SensorModel, pulse_origin: int, real: bool):
