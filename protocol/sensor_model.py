@@ -10,6 +10,7 @@ laser pulse (kernel sampled per bin, normalised to sum 1) is placed there, then 
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
@@ -43,6 +44,8 @@ class Zone:
     """Relative sensitivity of this zone (emitter pattern, SPAD count); 1 for the reference zone."""
 
     def validate(self, where: str) -> None:
+        _check_types(self, {"kind": "string", "half_angle_rad": "number", "axis": "numbers", "tan_x": "numbers",
+                            "tan_y": "numbers", "gain": "number"}, where)
         if self.kind == "cone":
             if not 0.0 < self.half_angle_rad < math.pi / 2:
                 raise SensorModelError(f"{where}: cone half-angle {self.half_angle_rad} rad is outside (0, pi/2)")
@@ -135,6 +138,8 @@ class Pulse:
     origin: int = 0
 
     def validate(self, where: str) -> None:
+        _check_types(self, {"kind": "string", "sigma_bins": "number", "tau_bins": "number", "values": "numbers",
+                            "origin": "integer"}, where)
         if self.kind == "exgauss":
             if not (math.isfinite(self.sigma_bins) and 0.05 <= self.sigma_bins <= 1000):
                 raise SensorModelError(f"{where}: pulse sigma {self.sigma_bins} bins is outside [0.05, 1000]")
@@ -261,7 +266,10 @@ class SensorModel:
 
     def _validate(self) -> "SensorModel":
         where = f"sensor model {self.name!r}"
-        if not (isinstance(self.n_bins, int) and 4 <= self.n_bins <= 65536):
+        _check_types(self, _MODEL_TYPES, where)
+        if not all(isinstance(z, Zone) for z in self.zones) or not isinstance(self.pulse, Pulse):
+            raise SensorModelError(f"{where}: zones must be Zone records and pulse a Pulse record")
+        if not 4 <= self.n_bins <= 65536:
             raise SensorModelError(f"{where}: n_bins {self.n_bins} must be an integer in [4, 65536]")
         if not (math.isfinite(self.bin_width_m) and 1e-6 <= self.bin_width_m <= 1.0):
             raise SensorModelError(f"{where}: bin width {self.bin_width_m} m is outside [1e-6, 1] m")
@@ -275,11 +283,11 @@ class SensorModel:
         for key, lo, hi in (("signal_scale", 0.0, MAX_SIGNAL_SCALE), ("background", 0.0, 1.0),
                             ("crosstalk", 0.0, 1.0), ("jitter_bins", 0.0, 1000.0)):
             v = getattr(self, key)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            if not (math.isfinite(v) and lo <= v <= hi):
                 raise SensorModelError(f"{where}: {key} = {v} is outside [{lo}, {hi}]")
-        if not (isinstance(self.cycles, int) and 1 <= self.cycles <= 10**10):
+        if not 1 <= self.cycles <= 10**10:
             raise SensorModelError(f"{where}: cycles {self.cycles} must be an integer in [1, 1e10]")
-        if not (isinstance(self.max_count, int) and 1 <= self.max_count <= 2**32 - 1):
+        if not 1 <= self.max_count <= 2**32 - 1:
             raise SensorModelError(f"{where}: max_count {self.max_count} must fit in uint32")
         if any(not 0 <= b < self.n_bins for b in self.ignore_bins):
             raise SensorModelError(f"{where}: ignore_bins {self.ignore_bins} must lie in 0..{self.n_bins - 1}")
@@ -299,12 +307,59 @@ class SensorModel:
             raise SensorModelError(f"sensor model must be a JSON object, got {type(data).__name__}")
         data = dict(data)
         try:
-            zones = tuple(_dataclass_from(Zone, z, "zone") for z in data.pop("zones"))
-            pulse = _dataclass_from(Pulse, data.pop("pulse"), "pulse")
+            zones, pulse = data.pop("zones"), data.pop("pulse")
         except KeyError as exc:
             raise SensorModelError(f"sensor model lacks {exc.args[0]!r}") from None
+        if not isinstance(zones, (list, tuple)):
+            raise SensorModelError(f"sensor model: zones must be a list of zone objects, got {type(zones).__name__}")
+        zones = tuple(_dataclass_from(Zone, z, "zone") for z in zones)
+        pulse = _dataclass_from(Pulse, pulse, "pulse")
         model = _dataclass_from(cls, {**data, "zones": zones, "pulse": pulse}, "sensor model")
         return model.validate()
+
+
+_MODEL_TYPES = {"name": "string", "n_bins": "integer", "bin_width_m": "number", "zero_bin": "number",
+                "zones": "list", "signal_scale": "number", "background": "number", "cycles": "integer",
+                "pileup": "true or false", "crosstalk": "number", "jitter_bins": "number", "max_count": "integer",
+                "ignore_bins": "integers", "has_reference": "true or false", "notes": "string"}
+"""The JSON type of each of SensorModel's plain fields (docs/capture_format.md)."""
+
+
+def _is_integer(v) -> bool:
+    """A Python int (what JSON gives, and what JSON can write back) but not a bool: JSON's true is no count, though
+    Python counts it as 1."""
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    """A real number, numpy's too, but not a bool."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+_TYPE_TESTS = {
+    "string": (lambda v: isinstance(v, str), "a string"),
+    "integer": (_is_integer, "an integer"),
+    "number": (_is_number, "a number"),
+    # Only a JSON boolean: the string "false" is truthy, and it turned pile-up on.
+    "true or false": (lambda v: isinstance(v, bool), "true or false"),
+    "list": (lambda v: isinstance(v, (tuple, list)), "a list"),
+    # Indices (bins, a table's origin) must be whole: 0.5 passed the range checks and crashed the fit later.
+    "integers": (lambda v: isinstance(v, (tuple, list)) and all(_is_integer(x) for x in v), "a list of integers"),
+    "numbers": (lambda v: isinstance(v, (tuple, list)) and all(_is_number(x) for x in v), "a list of numbers"),
+}
+"""Kind -> (test, what the error says a value must be)."""
+
+
+def _check_types(record, kinds: dict, where: str) -> None:
+    """One-line SensorModelError naming the first field of `record` whose value is not of its kind in `kinds`
+    (field name -> a key of _TYPE_TESTS)."""
+    for key, kind in kinds.items():
+        value = getattr(record, key)
+        test, what = _TYPE_TESTS[kind]
+        if not test(value):
+            shown = repr(list(value) if isinstance(value, tuple) else value)
+            shown = shown if len(shown) <= 40 else shown[:37] + "..."
+            raise SensorModelError(f"{where}: {key} = {shown} must be {what}")
 
 
 def _dataclass_from(cls, data, what: str):

@@ -161,6 +161,26 @@ def _dict(**changes):
     (_dict(pulse={"kind": "laser"}), "pulse kind"),
     (_dict(speed_of_light=3e8), "unknown keys"),
     ([1, 2, 3], "JSON object"),
+    # Wrong JSON types (docs/capture_format.md), each named: "false" is truthy and turned pile-up on; 0.5 passed as a
+    # bin index and crashed the fit; true counted as 1 cycle.
+    (_dict(pileup="false"), "pileup = 'false' must be true or false"),
+    (_dict(has_reference=1), "has_reference = 1 must be true or false"),
+    (_dict(ignore_bins=[0.5]), r"ignore_bins = \[0.5\] must be a list of integers"),
+    (_dict(ignore_bins=[True]), "ignore_bins"),
+    (_dict(cycles=True), "cycles = True must be an integer"),
+    (_dict(max_count=False), "max_count"),
+    (_dict(n_bins=1024.0), "n_bins"),
+    (_dict(signal_scale=True), "signal_scale = True must be a number"),
+    (_dict(background="1e-4"), "background"),
+    (_dict(name=5), "name"),
+    (_dict(notes=None), "notes"),
+    (_dict(zones=5), "zones must be a list"),
+    (_dict(zones=[{"kind": "cone", "half_angle_rad": 0.2, "gain": True}]), "gain = True must be a number"),
+    (_dict(zones=[{"kind": "cone", "half_angle_rad": 0.2, "axis": "up"}]), "axis"),
+    (_dict(pulse={"kind": "table", "values": [1, 2], "origin": 0.5}), "origin = 0.5 must be an integer"),
+    (_dict(pulse={"kind": "table", "values": [1, 2], "origin": True}), "origin = True must be an integer"),
+    (_dict(pulse={"kind": "table", "values": [1, "2"], "origin": 0}), "values"),
+    (_dict(pulse={"kind": "exgauss", "sigma_bins": True}), "sigma_bins"),
 ])
 def test_validation_errors_are_one_line(data, message):
     with pytest.raises(SensorModelError, match=message) as info:

@@ -186,3 +186,95 @@ def test_gradients_of_binning_rates_and_likelihood_by_finite_differences():
     ranges = torch.tensor([0.05, 0.111, 0.173], dtype=F64, requires_grad=True)
     radiance = torch.tensor([0.3, 0.2, 0.5], dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(loss, (ranges, radiance), eps=1e-7, atol=1e-5, rtol=1e-4)
+
+
+def _drawn_histograms(fw, sensor, lam, cycles, seed=0):
+    """Counts (V, Z, B) drawn from the rates' own detection probabilities over `cycles` (V,) cycles."""
+    rng = np.random.default_rng(seed)
+    p = fw.detections(lam).numpy()
+    return torch.tensor(rng.poisson(p * cycles.numpy()[:, None, None]), dtype=lam.dtype)
+
+
+@pytest.mark.parametrize("pile", [True, False])
+@pytest.mark.parametrize("jitter", [0.0, 1.0])
+def test_a_histogram_without_valid_bins_leaves_the_nll_and_its_gradient_alone(pile, jitter):
+    """A dropped frame (every bin invalid) adds nothing: the loss and its gradient are those of the views without
+    it. With pile-up its 'no photon in N cycles' term said the zone saw nothing, and pulled the fit."""
+    sensor = sensor_preset("lcspc-sim").with_(jitter_bins=jitter)
+    fw = sensor_forward(sensor, pileup=pile, oversample=1)
+    lam = torch.full((3, 1, sensor.n_bins), 2e-4, dtype=F64)
+    lam[:, 0, 400:410] = 0.05
+    cycles = torch.full((3,), 5000.0, dtype=F64)
+    counts = _drawn_histograms(fw, sensor, lam, cycles)
+    counts[1] = 0.0
+    valid = torch.ones_like(counts, dtype=torch.bool)
+    valid[1] = False
+    kept = torch.tensor([0, 2])
+    full = lam.clone().requires_grad_(True)
+    loss = fw.nll(full, counts, cycles, valid)
+    loss.backward()
+    alone = lam[kept].clone().requires_grad_(True)
+    loss_kept = fw.nll(alone, counts[kept], cycles[kept], valid[kept])
+    loss_kept.backward()
+    assert float(loss.detach()) == pytest.approx(float(loss_kept.detach()), rel=1e-12)
+    assert float(full.grad[1].abs().max()) == 0.0
+    torch.testing.assert_close(full.grad[kept], alone.grad, rtol=1e-12, atol=0.0)
+
+
+def test_jittered_nll_stays_finite_with_denormals_flushed():
+    """Behind a saturating return the jittered detection probabilities underflow; under flush_denormals (the fast
+    preset on the CPU) a denormal floor read 0, and log(0) made the loss nan."""
+    from spadscan.worker.recon.numerics import flush_denormals
+
+    sensor = sensor_preset("lcspc-sim").with_(jitter_bins=1.0)
+    fw = sensor_forward(sensor, dtype=torch.float32, oversample=1)
+    lam = torch.full((1, 1, sensor.n_bins), 2.5e-4)
+    lam[..., 10] = 100.0
+    counts = torch.zeros(1, 1, sensor.n_bins)
+    counts[..., 10] = 5000.0
+    cycles = torch.tensor([5000.0])
+    plain = float(fw.nll(lam, counts, cycles))
+    x = lam.clone().requires_grad_(True)
+    with flush_denormals(torch.device("cpu")):
+        assert float(torch.tensor([1e-39]).clamp_min(0.0)) == 0.0  # the mode is on: denormals read 0
+        loss = fw.nll(x, counts, cycles)
+        loss.backward()
+    assert math.isfinite(float(loss.detach())) and float(loss.detach()) == pytest.approx(plain, rel=1e-6)
+    assert torch.isfinite(x.grad).all()
+
+
+@pytest.mark.parametrize("cycles", [4e6, 4e8, 4e9, 1e10])
+def test_float32_nll_reports_the_float64_deviance_for_views_of_many_cycles(cycles):
+    """A view sums its frames' cycles (up to 1e10 and more): the float32 deviance, a difference of terms of size
+    c log(c/N), read 0.40 instead of 0.42 per bin at 4e8 cycles and -0.72 instead of 0.51 at 4e9. The value is the
+    float64 one; the gradient stays close to it."""
+    sensor = sensor_preset("tmf8820")
+    fw32, fw64 = sensor_forward(sensor, dtype=torch.float32), sensor_forward(sensor)
+    lam = torch.full((1, 9, sensor.n_bins), 3e-5, dtype=torch.float32)
+    lam[..., 40:46] += torch.tensor([0.001, 0.01, 0.03, 0.02, 0.01, 0.003])
+    n = torch.tensor([cycles], dtype=F64)
+    counts = _drawn_histograms(fw64, sensor, lam.double(), n).float()  # values float32 holds exactly, for both
+    x32, x64 = lam.clone().requires_grad_(True), lam.double().requires_grad_(True)
+    v32, v64 = fw32.nll(x32, counts, n.float()), fw64.nll(x64, counts.double(), n)
+    (v32 + v64).backward()
+    assert 0.3 < float(v64.detach()) / sensor.n_bins < 0.7  # about 0.5 per bin: drawn from the rates themselves
+    assert float(v32.detach()) == pytest.approx(float(v64.detach()), rel=1e-5)
+    assert float((x32.grad.double() - x64.grad).abs().max()) < 1e-2 * float(x64.grad.abs().max())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("flux", [1e14, 1e16])
+def test_expected_counts_never_exceed_the_cycles_at_the_largest_flux(dtype, flux):
+    """signal_scale up to 1e9 on a surface at the 1 mm range floor gives up to ~2e14 photons per bin per cycle. The
+    rates before such a bin must not cancel against it: `cumsum - lam` lost them, and the expected counts came to
+    1.003 x the cycles at 1e14."""
+    sensor = sensor_preset("tmf8820")
+    fw = sensor_forward(sensor, dtype=dtype)
+    lam = torch.full((1, 9, sensor.n_bins), 1e-4, dtype=dtype)
+    lam[..., 30:34] = flux
+    cycles = torch.tensor([float(sensor.cycles)], dtype=dtype)
+    expected = fw.expected_counts(lam, cycles)
+    tol = 1e-12 if dtype == F64 else 1e-6
+    assert float(expected.sum(-1).max()) <= sensor.cycles * (1 + tol)
+    np.testing.assert_allclose(fw.detections(lam).double().numpy(), pileup.detection_probabilities(lam.double().numpy()),
+                               rtol=10 * tol, atol=1e-300)

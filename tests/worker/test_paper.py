@@ -23,12 +23,13 @@ from spadscan.worker.recon.errors import ReconstructionError
 from spadscan.worker.recon.model_api import ReconModel, RunPlan
 from spadscan.worker.recon.paper.config import MLPFieldConfig
 from spadscan.worker.recon.paper.field import MLPField
+from spadscan.worker.recon.paper.loss import hist_nll
 from spadscan.worker.recon.paper.model import make_paper_model
 from spadscan.worker.recon.paper.render import SphereField
 from spadscan.worker.recon.presets import PRESETS, preset_config
 from spadscan.worker.pulse import KERNEL_BEFORE
 from spadscan.worker.recon.scene_data import load_scene
-from worker_helpers import PAPER_SMALL
+from worker_helpers import PAPER_SMALL, sensor_forward
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -280,14 +281,14 @@ def write_capture(path, sensor, hists, poses, *, frames_per_pose=1, reference=No
 
 
 @pytest.mark.parametrize("table", [{"z": "low"}, {"normal": [0, 0, 0], "offset": 0.0}, "yes"])
-def test_a_malformed_scene_table_is_a_one_line_error_naming_the_capture(tmp_path, table):
+def test_a_malformed_scene_table_is_a_one_line_error_naming_the_manifest(tmp_path, table):
     sensor = sensor_preset("tmf8820")
     poses = np.stack([look_at(np.array([0.3, 0.0, 0.2]), np.zeros(3))])
     cap = write_capture(tmp_path / "c", sensor, np.full((1, 9, 128), 100, np.uint32), poses,
                         scene={"table": table, "real": False})
     with pytest.raises(CaptureError) as info:
         load_scene(cap)
-    assert str(info.value).startswith(f"{cap}: scene table ") and "\n" not in str(info.value)
+    assert str(info.value).startswith(f"{cap / 'scan.json'}: scene table ") and "\n" not in str(info.value)
 
 
 def test_scene_loading_sums_frames_masks_bad_bins_and_bounds_the_scene(tmp_path):
@@ -402,3 +403,21 @@ def test_table_scene_renders_and_meshes_only_the_object(tmp_path):
     assert "table_offset_m" in model.summary()
     mesh = model.extract_mesh(32)
     assert mesh.bounds[0, 2] >= model.summary()["table_offset_m"] - 0.01
+
+
+def test_the_likelihood_term_is_per_bin_of_a_view_whichever_view_comes_first():
+    """`loss.kind` nll divided the deviance by the first view's valid bins: a dropped frame (no valid bin) first in
+    a batch divided it by 1, and that step's loss was a thousand times the next one's."""
+    sensor = sensor_preset("lcspc-sim")
+    fw = sensor_forward(sensor, oversample=1)
+    lam = torch.full((2, 1, sensor.n_bins), 2e-4, dtype=torch.float64)
+    lam[:, 0, 400:410] = 0.05
+    cycles = torch.full((2,), 5000.0, dtype=torch.float64)
+    counts = (fw.detections(lam) * 5000.0).round()
+    counts[0] = 0.0
+    valid = torch.ones_like(counts, dtype=torch.bool)
+    valid[0] = False
+    alone = float(fw.nll(lam[1:], counts[1:], cycles[1:], valid[1:])) / sensor.n_bins
+    for order in ([0, 1], [1, 0]):
+        got = float(hist_nll(fw, lam[order], counts[order], cycles[order], valid[order]))
+        assert got == pytest.approx(alone, rel=1e-12)

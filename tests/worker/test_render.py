@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.simulator import MIN_RANGE_M as SIMULATOR_MIN_RANGE_M
 from spadscan.worker.recon.paper.rays import ZoneGrid, mixture_weights, zone_rays
-from spadscan.worker.recon.paper.render import (SDFField, SphereField, Table, opacity, render_rays,
+from spadscan.worker.recon.paper.render import (MIN_RANGE_M, SDFField, SphereField, Table, opacity, render_rays,
                                                round_trip_transmittance)
 from spadscan.worker.recon.paper.sampler import importance, sphere_interval, stratified
 
@@ -196,3 +197,27 @@ def test_samplers_stay_in_the_sphere_and_concentrate_at_the_surface():
     extra = importance(t, f, 2000.0, 16, jitter=False)
     t_hit = 0.4 - 0.1  # the axial ray meets the sphere 0.3 m out
     assert float((extra[0] - t_hit).abs().max()) < 2 * float(t[0, 1] - t[0, 0])
+
+
+class _Plane(SDFField):
+    """The plane z = height, the solid beyond it."""
+
+    def __init__(self, height: float):
+        super().__init__()
+        self.height = height
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        return self.height - x[..., 2]
+
+
+def test_a_surface_nearer_than_a_millimetre_counts_as_at_a_millimetre_as_in_the_simulator():
+    """docs/forward_model.md: one floor for the simulator and both presets. The paper renderer's was 0.1 mm, so a
+    surface 0.4 mm away returned 3x what the same one 0.7 mm away did; at the 1 mm floor both return alike."""
+    o = torch.zeros(1, 3, dtype=F64)
+    d = torch.tensor([[0.0, 0.0, 1.0]], dtype=F64)
+    t = torch.linspace(0.0, 0.002, 201, dtype=F64)[None]
+    near = render_rays(_Plane(0.0004), o, d, t, 1e6, 1.0, create_graph=False)
+    far = render_rays(_Plane(0.0007), o, d, t + 0.0003, 1e6, 1.0, create_graph=False)  # the same samples relatively
+    near, far = float(near.radiance.detach().sum()), float(far.radiance.detach().sum())
+    assert near > 0 and near == pytest.approx(far, rel=1e-9)
+    assert MIN_RANGE_M == SIMULATOR_MIN_RANGE_M == 1e-3

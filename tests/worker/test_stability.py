@@ -82,7 +82,7 @@ def test_samples_a_millimetre_from_the_sensor_and_on_it():
     assert torch.isfinite(lam).all() and torch.isfinite(fw.detections(lam)).all()
 
 
-@pytest.mark.parametrize("flux", [1e-12, 1.0, 1e3, 1e8])
+@pytest.mark.parametrize("flux", [1e-12, 1.0, 1e3, 1e8, 1e14, 1e16])
 def test_flux_up_to_and_past_saturation(flux):
     sensor = sensor_preset("tmf8820")
     fw = sensor_forward(sensor)

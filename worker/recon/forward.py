@@ -30,6 +30,9 @@ PILEUP_THRESHOLD = 0.01
 of that histogram then read at least this much low."""
 RATE_FLOOR = 1e-12
 """Smallest rate (photons per bin per cycle) the likelihoods ever see."""
+SHIFTED_SUM_ABOVE = 1e6
+"""Running sum of rates (photons per cycle) past which `_before` sums the earlier bins' rates directly instead of
+subtracting a bin's own rate from the running sum (float64 rounds that subtraction by 1e-16 of the sum)."""
 
 
 @dataclass
@@ -156,29 +159,46 @@ class TransientForward(torch.nn.Module):
     def nll(self, lam: torch.Tensor, counts: torch.Tensor, cycles: torch.Tensor,
             valid: torch.Tensor | None = None) -> torch.Tensor:
         """Negative log-likelihood of counts (V, Z, B) over cycles (V,), as a deviance (0 for a perfect fit),
-        summed over valid bins and averaged over histograms.
+        summed over valid bins and averaged over the histograms that hold a valid bin.
 
         Multinomial over bins plus a 'no photon' outcome when pile-up is on (log p_b = log(1 - e^-lam_b) -
         sum_{j<b} lam_j, computed with log1p/expm1 and a float64 cumulative sum), Poisson otherwise. Finite for any
-        rates >= 0, however small or large."""
+        rates >= 0, however small or large. A histogram without a valid bin (a dropped frame, which scene_data
+        leaves out) adds nothing, not even its 'no photon' term: read as N cycles without a photon, it would tell
+        the fit that its zone's field of view is empty.
+
+        The value is evaluated in float64 whatever the dtype of `lam`: a float32 deviance is a difference of terms
+        of c log(c/N), which rounding swamps once a view sums ~1e8 cycles (it even turned negative at 4e9). The
+        gradient stays that of the computation in `lam`'s own dtype, so a fit steps as it did."""
         lam = lam.clamp_min(RATE_FLOOR)
         valid = torch.ones_like(counts, dtype=torch.bool) if valid is None else valid
-        n = cycles[:, None, None].to(lam.dtype)
-        c = counts.to(lam.dtype)
+        held = valid.any(-1)
+        total = self._deviance(lam, counts.to(lam.dtype), cycles.to(lam.dtype), valid, held)
+        if total.dtype != torch.float64:
+            with torch.no_grad():
+                exact = self._deviance(lam.detach().double(), counts.double(), cycles.double(), valid, held)
+            total = total + (exact - total.detach()).to(total.dtype)  # adds nothing to the gradient
+        # The mean over the histograms held (exactly the plain mean when every histogram is held).
+        return total.mean() * (held.numel() / held.sum().clamp_min(1))
+
+    def _deviance(self, lam: torch.Tensor, c: torch.Tensor, cycles: torch.Tensor, valid: torch.Tensor,
+                  held: torch.Tensor) -> torch.Tensor:
+        """Deviance (V, Z) of each histogram (`nll`'s terms), 0 where `held` is False; lam >= RATE_FLOOR."""
+        n = cycles[:, None, None]
         if self.terms.pileup:
             if self.sensor.jitter_bins > 0:
-                logp = torch.log(self.detections(lam).clamp_min(1e-300 if lam.dtype == torch.float64 else 1e-38))
+                # The smallest normal number, not a denormal one: under flush_denormals (the fast preset on the
+                # CPU) a denormal floor is 0, and log(0) made the loss nan behind a saturating return.
+                logp = torch.log(self.detections(lam).clamp_min(torch.finfo(lam.dtype).tiny))
             else:
                 logp = _log_hit(lam) - _before(lam)
             terms = torch.where(valid, torch.xlogy(c, c / n) - c * logp, torch.zeros_like(c))
             miss_c = (n[..., 0] - c.sum(-1)).clamp_min(0.0)
             log_miss = -lam.sum(-1, dtype=torch.float64).to(lam.dtype)
             miss = torch.xlogy(miss_c, miss_c / n[..., 0]) - miss_c * log_miss
-            total = terms.sum(-1) + miss
-        else:
-            mu = self._jitter(lam) * n
-            total = torch.where(valid, mu - c + torch.xlogy(c, c) - c * torch.log(mu), torch.zeros_like(c)).sum(-1)
-        return total.mean()
+            return terms.sum(-1) + torch.where(held, miss, torch.zeros_like(miss))
+        mu = self._jitter(lam) * n
+        return torch.where(valid, mu - c + torch.xlogy(c, c) - c * torch.log(mu), torch.zeros_like(c)).sum(-1)
 
     def _jitter(self, p: torch.Tensor) -> torch.Tensor:
         sigma = self.sensor.jitter_bins
@@ -193,9 +213,16 @@ class TransientForward(torch.nn.Module):
 
 
 def _before(lam: torch.Tensor) -> torch.Tensor:
-    """sum_{j<b} lam_j along the last axis, accumulated in float64 (long histograms), >= 0."""
+    """sum_{j<b} lam_j along the last axis, accumulated in float64 (long histograms), >= 0.
+
+    `cumsum - lam` subtracts each rate from a sum that holds it: next to a huge rate (1e14) that cancels the smaller
+    ones before it, and the expected counts exceeded the cycles. Where the running sum passes SHIFTED_SUM_ABOVE the
+    shifted sum (as protocol.pileup._rate_before) is taken instead; below it the two agree to 1e-10, and
+    `cumsum - lam` (rounded alike in value and gradient) keeps fits stepping exactly as they always have."""
     csum = torch.cumsum(lam.double(), dim=-1)
-    return (csum - lam.double()).clamp_min(0.0).to(lam.dtype)
+    plain = (csum - lam.double()).clamp_min(0.0).to(lam.dtype)
+    shifted = F.pad(torch.cumsum(lam.double()[..., :-1], dim=-1), (1, 0)).to(lam.dtype)
+    return torch.where(csum.detach() > SHIFTED_SUM_ABOVE, shifted, plain)
 
 
 def _log_hit(lam: torch.Tensor) -> torch.Tensor:

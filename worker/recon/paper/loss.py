@@ -19,6 +19,15 @@ def hist_l2(forward: TransientForward, lam: torch.Tensor, counts: torch.Tensor, 
     return (err * valid).sum() / valid.sum().clamp_min(1)
 
 
+def hist_nll(forward: TransientForward, lam: torch.Tensor, counts: torch.Tensor, cycles: torch.Tensor,
+             valid: torch.Tensor) -> torch.Tensor:
+    """The likelihood data term (`loss.kind` nll): the forward model's deviance (a mean over the histograms that hold
+    a valid bin) per valid bin of a view, counted in the batch's view that holds the most. Counted in its first view
+    alone, a dropped frame there (no valid bin) made the divisor 1 and that step's loss a thousand times too large."""
+    bins = int(valid.flatten(1).sum(-1).max()) if valid.numel() else 0
+    return forward.nll(lam, counts, cycles, valid) / max(1, bins)
+
+
 def eikonal(grad: torch.Tensor) -> torch.Tensor:
     """mean (|grad f| - 1)^2 over gradients (..., 3)."""
     return ((grad.norm(dim=-1) - 1.0) ** 2).mean()

@@ -25,7 +25,7 @@ from ..scene_data import SceneData
 from .batch import RayBatch, backprop_batch, batch_transient
 from .config import PaperConfig
 from .field import MLPField
-from .loss import eikonal, hist_l2, hist_scale, normal_tv
+from .loss import eikonal, hist_l2, hist_nll, hist_scale, normal_tv
 from .mesh import marching_cubes_mesh
 from .rays import ZoneGrid, mixture_weights
 from .render import Table, table_hit
@@ -206,7 +206,7 @@ class PaperModel:
             lam = self.forward.rates(transient.reshape(nv, self.scene.sensor.n_zones, -1), bg)
             if lc.kind == "l2":
                 return hist_l2(self.forward, lam, counts, cycles, valid, self.scale)
-            return self.forward.nll(lam, counts, cycles, valid) / max(1, int(valid[0].sum()))
+            return hist_nll(self.forward, lam, counts, cycles, valid)
 
         data, eik = backprop_batch(self.field, self.forward, batch, s_m, albedo, self._table(), data_loss,
                                    lc.eikonal_weight, self.chunk_points)

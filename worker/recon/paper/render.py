@@ -18,8 +18,10 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-MIN_RANGE_M = 1e-4
-"""Ranges are floored here before 1/r^2 (a sample on the sensor itself stays finite)."""
+from spadscan.protocol.simulator import MIN_RANGE_M
+
+# MIN_RANGE_M: ranges are floored there before 1/r^2 (a sample on the sensor itself stays finite); the simulator's
+# own floor (1 mm, docs/forward_model.md), so that both see a surface that close alike.
 
 
 class SDFField(torch.nn.Module):
