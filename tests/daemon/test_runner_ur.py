@@ -214,6 +214,20 @@ def test_resume_after_a_dropped_link_reconnects_and_completes(tmp_path, controll
     check_every_pose_once(tmp_path / "caps" / "ur")
 
 
+async def bounce_link(controller, arm) -> None:
+    """The controller closes every connection (a reboot, a re-plugged cable) and, once the arm has found its link
+    down, comes back."""
+    await asyncio.to_thread(controller.drop_link, "close")
+    async with asyncio.timeout(60):
+        while True:
+            try:
+                await arm.state()
+            except LinkLost:
+                break
+            await asyncio.sleep(0.05)
+    await asyncio.to_thread(controller.restore_link)
+
+
 @pytest.mark.slow
 def test_a_scan_started_after_the_link_dropped_while_idle_reconnects_and_completes(tmp_path, controller, arun):
     """The controller closes every connection while no scan runs (a reboot, a re-plugged cable) and comes back: the
@@ -223,15 +237,7 @@ def test_a_scan_started_after_the_link_dropped_while_idle_reconnects_and_complet
     async def scenario():
         async with ur_runner(cfg) as (arm, runner):
             sessions = (await asyncio.to_thread(controller.connections))["rtde"]
-            await asyncio.to_thread(controller.drop_link, "close")
-            async with asyncio.timeout(60):
-                while True:  # until the arm has found its link down
-                    try:
-                        await arm.state()
-                    except LinkLost:
-                        break
-                    await asyncio.sleep(0.05)
-            await asyncio.to_thread(controller.restore_link)
+            await bounce_link(controller, arm)
             await runner.start("ur")
             await until(lambda: runner.state != "scanning", "the scan to end or pause")
             status = runner.status()
@@ -258,15 +264,7 @@ def test_a_link_that_dropped_and_came_back_while_paused_is_reconnected_by_the_fi
             await runner.pause()
             await until(lambda: runner.state == "paused", "the pause")
             sessions = (await asyncio.to_thread(controller.connections))["rtde"]
-            await asyncio.to_thread(controller.drop_link, "close")
-            async with asyncio.timeout(60):
-                while True:  # until the arm has found its link down
-                    try:
-                        await arm.state()
-                    except LinkLost:
-                        break
-                    await asyncio.sleep(0.05)
-            await asyncio.to_thread(controller.restore_link)
+            await bounce_link(controller, arm)
             await runner.resume()
             await until(lambda: runner.state != "scanning", "the resumed scan to end or pause")
             status = runner.status()
