@@ -243,11 +243,12 @@ def test_jittered_nll_stays_finite_with_denormals_flushed():
     assert torch.isfinite(x.grad).all()
 
 
-@pytest.mark.parametrize("cycles", [4e6, 4e8, 4e9, 1e10])
-def test_float32_nll_reports_the_float64_deviance_for_views_of_many_cycles(cycles):
+@pytest.mark.parametrize("cycles, rel", [(4e6, 1e-3), (4e8, 1e-5), (4e9, 1e-5), (1e10, 1e-5)])
+def test_float32_nll_reports_the_float64_deviance_for_views_of_many_cycles(cycles, rel):
     """A view sums its frames' cycles (up to 1e10 and more): the float32 deviance, a difference of terms of size
-    c log(c/N), read 0.40 instead of 0.42 per bin at 4e8 cycles and -0.72 instead of 0.51 at 4e9. The value is the
-    float64 one; the gradient stays close to it."""
+    c log(c/N), read 0.40 instead of 0.42 per bin at 4e8 cycles and -0.72 instead of 0.51 at 4e9. Past
+    EXACT_ABOVE_CYCLES the value is the float64 one; below (a TMF8820 frame's 4e6), float32's own, within 1e-3; the
+    gradient stays close to it."""
     sensor = sensor_preset("tmf8820")
     fw32, fw64 = sensor_forward(sensor, dtype=torch.float32), sensor_forward(sensor)
     lam = torch.full((1, 9, sensor.n_bins), 3e-5, dtype=torch.float32)
@@ -258,7 +259,7 @@ def test_float32_nll_reports_the_float64_deviance_for_views_of_many_cycles(cycle
     v32, v64 = fw32.nll(x32, counts, n.float()), fw64.nll(x64, counts.double(), n)
     (v32 + v64).backward()
     assert 0.3 < float(v64.detach()) / sensor.n_bins < 0.7  # about 0.5 per bin: drawn from the rates themselves
-    assert float(v32.detach()) == pytest.approx(float(v64.detach()), rel=1e-5)
+    assert float(v32.detach()) == pytest.approx(float(v64.detach()), rel=rel)
     assert float((x32.grad.double() - x64.grad).abs().max()) < 1e-2 * float(x64.grad.abs().max())
 
 
