@@ -226,7 +226,7 @@ def _before(lam: torch.Tensor) -> torch.Tensor:
     `cumsum - lam` (rounded alike in value and gradient) keeps fits stepping exactly as they always have."""
     csum = torch.cumsum(lam.double(), dim=-1)
     plain = (csum - lam.double()).clamp_min(0.0).to(lam.dtype)
-    shifted = F.pad(torch.cumsum(lam.double()[..., :-1], dim=-1), (1, 0)).to(lam.dtype)
+    shifted = F.pad(csum[..., :-1], (1, 0)).to(lam.dtype)  # the running sum one bin back: no cancellation
     return torch.where(csum.detach() > SHIFTED_SUM_ABOVE, shifted, plain)
 
 
