@@ -75,6 +75,15 @@ async def until(pred, what: str, timeout_s: float = 20.0) -> None:
         await asyncio.sleep(0.005)
 
 
+async def resumed_after_pause(runner: ScanRunner, name: str, meanwhile=lambda: None) -> tuple[str, dict]:
+    """Once scan `name` has paused: its reason; then `meanwhile()` (the fault fixed), resume, and the scan's end."""
+    await until(lambda: runner.state == "paused", "the pause")
+    reason = runner.status()["reason"]
+    meanwhile()
+    await runner.resume()
+    return reason, await runner.wait(name)
+
+
 def check_capture(path: Path, n: int, k: int, state: str = "complete"):
     """Every pose 0..n-1 exactly once with frames 0..k-1; sensor pose = recorded actual TCP @ hand-eye."""
     r = CaptureReader(path)
@@ -298,10 +307,7 @@ def test_a_safety_stop_while_the_arm_stands_at_a_pose_is_named_with_what_clears_
             runner = ScanRunner(arm, sensor, cfg)
             try:
                 await runner.start("held")
-                await until(lambda: runner.state == "paused", "the pause")
-                reason = runner.status()["reason"]
-                await runner.resume()
-                return reason, await runner.wait("held")
+                return await resumed_after_pause(runner, "held")
             finally:
                 await runner.shutdown()
 
@@ -530,11 +536,7 @@ def test_link_loss_pauses_and_resumes(arun, tmp_path, sphere):
             runner = ScanRunner(arm, sensor, cfg)
             try:
                 await runner.start("link")
-                await until(lambda: runner.state == "paused", "the pause")
-                reason = runner.status()["reason"]
-                arm.restore_link()
-                await runner.resume()
-                return reason, await runner.wait("link")
+                return await resumed_after_pause(runner, "link", arm.restore_link)
             finally:
                 await runner.shutdown()
 
@@ -693,11 +695,7 @@ def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, 
                 await runner.start("stall")
                 await until(lambda: runner.job.next_pose >= 2, "two poses")
                 stall["once"] = True
-                await until(lambda: runner.state == "paused", "the pause")
-                reason = runner.status()["reason"]
-                disk_back.set()
-                await runner.resume()
-                return reason, await runner.wait("stall")
+                return await resumed_after_pause(runner, "stall", disk_back.set)
             finally:
                 await runner.shutdown()
 
