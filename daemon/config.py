@@ -7,7 +7,6 @@ paths are taken relative to the config file's folder. `examples/README.md` docum
 
 from __future__ import annotations
 
-import math
 import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.schedules import ring_at_pole_deg
 
 from .backends import ARM_BACKENDS, SENSOR_BACKENDS, ArmBackend, SensorBackend
 from .client import default_socket_path
@@ -294,27 +294,19 @@ def check_scan(scan: ScanConfig, where: str) -> None:
 
 
 def _check_ring_poles(scan: ScanConfig, where: str) -> None:
-    """Refuse a ring of several views at +-90 degrees, where every view of it would stand at one point. Rings stand
-    at both ends of the elevation band, one ring midway (`protocol.schedules.elevation_rings`, which refuses the same
-    ring with the same tolerance, but without the config's file and key names)."""
+    """Refuse a ring of several views at +-90 degrees, as `protocol.schedules.elevation_rings` does, naming the
+    config's keys."""
     per_ring = scan.views // scan.rings
-    if per_ring < 2:
+    ring = ring_at_pole_deg(scan.rings, per_ring, scan.min_elevation_deg, scan.max_elevation_deg)
+    if ring is None:
         return
-    lo, hi = scan.min_elevation_deg, scan.max_elevation_deg
     if scan.rings == 1:  # min = max = +-90 is the only way to put the midway ring at a pole
-        names, ring = "min_elevation_deg and max_elevation_deg", (lo + hi) / 2
-    elif _at_pole(hi):
-        names, ring = "max_elevation_deg", hi
+        names = "min_elevation_deg and max_elevation_deg"
     else:
-        names, ring = "min_elevation_deg", lo
-    if _at_pole(ring):
-        raise ConfigError(f"{where} {names} {ring:g}: a ring of {per_ring} views there stands at one viewpoint "
-                          f"(straight {'above' if ring > 0 else 'below'} the target); schedule 'rings' needs its "
-                          f"rings strictly between -90 and 90 (degrees)")
-
-
-def _at_pole(elevation_deg: float) -> bool:
-    return abs(math.radians(elevation_deg)) >= math.pi / 2 - 1e-9
+        names = "max_elevation_deg" if ring > 0 else "min_elevation_deg"
+    raise ConfigError(f"{where} {names} {ring:g}: a ring of {per_ring} views there stands at one viewpoint "
+                      f"(straight {'above' if ring > 0 else 'below'} the target); schedule 'rings' needs its "
+                      f"rings strictly between -90 and 90 (degrees)")
 
 
 def _check_paths(cfg: DaemonConfig, where: str) -> None:

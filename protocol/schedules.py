@@ -84,6 +84,21 @@ RINGS_BAND_DEG = (10.0, 80.0)
 spiral's 0-90 deg would put a whole ring at the zenith, every view of it from one position."""
 
 
+def ring_elevations_rad(n_rings: int, lo_rad: float, hi_rad: float) -> np.ndarray:
+    """The rings' elevations (radians): at both ends of the band and evenly between; one ring stands midway."""
+    return np.linspace(lo_rad, hi_rad, n_rings) if n_rings > 1 else np.array([(lo_rad + hi_rad) / 2])
+
+
+def ring_at_pole_deg(n_rings: int, per_ring: int, min_elevation_deg: float, max_elevation_deg: float) -> float | None:
+    """The elevation (degrees) of a ring of several views at +-90 deg, or None. Every view of such a ring stands at
+    one point: per_ring copies of one viewpoint, not a ring. The schedule and the daemon's config refuse it alike."""
+    if per_ring < 2:
+        return None
+    elev = ring_elevations_rad(n_rings, math.radians(min_elevation_deg), math.radians(max_elevation_deg))
+    pole = elev[np.abs(elev) >= math.pi / 2 - 1e-9]
+    return float(math.degrees(pole[-1])) if len(pole) else None
+
+
 def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0.0, 0.0),
                     min_elevation_deg: float = RINGS_BAND_DEG[0],
                     max_elevation_deg: float = RINGS_BAND_DEG[1]) -> np.ndarray:
@@ -97,13 +112,12 @@ def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0
             raise SimulationError(f"{name} {v} must be an integer in [1, 100000]")
     lo, hi = _check_elevations(min_elevation_deg, max_elevation_deg)
     radius_m = _check_radius(radius_m)
-    elev = np.linspace(lo, hi, n_rings) if n_rings > 1 else np.array([(lo + hi) / 2])
-    pole = np.abs(elev) >= math.pi / 2 - 1e-9
-    if per_ring > 1 and pole.any():
-        # Every view of a ring at +-90 deg stands at one point: per_ring copies of one viewpoint, not a ring.
-        where = "max_elevation" if elev[pole][-1] > 0 else "min_elevation"
-        raise SimulationError(f"a ring at {math.degrees(elev[pole][-1]):+g} deg elevation puts its {per_ring} views "
-                              f"at one viewpoint (straight {'above' if where == 'max_elevation' else 'below'} the "
+    elev = ring_elevations_rad(n_rings, lo, hi)
+    pole = ring_at_pole_deg(n_rings, per_ring, min_elevation_deg, max_elevation_deg)
+    if pole is not None:
+        where = "max_elevation" if pole > 0 else "min_elevation"
+        raise SimulationError(f"a ring at {pole:+g} deg elevation puts its {per_ring} views "
+                              f"at one viewpoint (straight {'above' if pole > 0 else 'below'} the "
                               f"target); keep {where} strictly between -90 and 90 deg")
     ring, k = np.meshgrid(np.arange(n_rings), np.arange(per_ring), indexing="ij")
     azim = 2 * math.pi * (k + 0.5 * (ring % 2)) / per_ring

@@ -201,6 +201,28 @@ def test_a_ring_at_a_pole_is_refused_naming_the_file_and_key(tmp_path, capsys, k
         scan_request(ScanConfig(), {"schedule": "rings", "views": 16, "max_elevation_deg": 90.0})
 
 
+@pytest.mark.parametrize("rings, views, lo, hi", [
+    (4, 8, 10.0, 90.0), (4, 8, -90.0, 30.0), (4, 8, -90.0, 90.0), (1, 8, 90.0, 90.0), (1, 8, -90.0, 90.0),
+    (4, 8, 10.0, 89.9), (8, 8, 10.0, 90.0), (2, 8, 90.0 - 1e-12, 90.0), (3, 9, 0.0, 60.0),
+])
+def test_the_config_refuses_a_ring_at_a_pole_exactly_when_the_schedule_does(rings, views, lo, hi):
+    """One rule: a request `daemon --check` passes never fails later when the plan is built, and the reverse."""
+    from spadscan.protocol import schedules
+    from spadscan.protocol.errors import SimulationError
+
+    def refused(call) -> bool:
+        try:
+            call()
+        except (ConfigError, SimulationError):
+            return True
+        return False
+
+    by_config = refused(lambda: scan_request(ScanConfig(), {"schedule": "rings", "rings": rings, "views": views,
+                                                            "min_elevation_deg": lo, "max_elevation_deg": hi}))
+    by_schedule = refused(lambda: schedules.elevation_rings(rings, views // rings, 0.5, (0, 0, 0), lo, hi))
+    assert by_config == by_schedule
+
+
 def test_a_ring_of_one_view_may_stand_at_the_zenith(tmp_path):
     """One view per ring: the top ring is a single viewpoint, not several views at one point."""
     from spadscan.daemon.scan_plan import build_plan
