@@ -103,9 +103,12 @@ class Client:
                 "speed_scaling": float(r.getSpeedScalingCombined())}
 
     def read_progress(self) -> dict:
-        """`read`, plus whether an asynchronous move is still running."""
+        """`read`, plus whether an asynchronous move is still running and the id of the last one that started (it
+        tells a new move from one a safety stop halted, whose running bit stays set)."""
         reading = self.read()
-        reading["moving"] = bool(self.control.getAsyncOperationProgressEx().isAsyncOperationRunning())
+        status = self.control.getAsyncOperationProgressEx()
+        reading["moving"] = bool(status.isAsyncOperationRunning())
+        reading["op_id"] = int(status.operationId())
         return reading
 
     def move_l(self, pose: list, speed: float, accel: float) -> bool:

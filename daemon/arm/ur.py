@@ -103,6 +103,7 @@ class _Reading:
     safety_bits: int = 0  # safety_status_bits
     program_running: bool = True  # the control script runs (commands can be taken)
     speed_scaling: float = 1.0  # combined: speed slider x trajectory scaling
+    op_id: int = -1  # the last asynchronous move that started (progress readings only; -1 otherwise)
 
     @property
     def safeguard(self) -> bool:
@@ -339,6 +340,7 @@ class URArm(Arm):
         what = f"moveL to [{target[0]:.4f}, {target[1]:.4f}, {target[2]:.4f}] m"
         vec = [float(x) for x in target]
         budget = 2.0 * _move_time(start.pose_vec, target, speed, accel) + self.timeout_s
+        op_before = (await self._read(what, progress=True)).op_id
         try:
             if not await self._call(what, "moveL", vec, speed, accel):
                 # ur_rtde refuses from the control stream's view, which may lag the receive stream's (a stop
@@ -346,7 +348,8 @@ class URArm(Arm):
                 await self._explain_refusal(what, final=False)
                 # The refusal can also be a late answer to a command the controller did take: resend only when the
                 # arm is neither moving nor at the target, so that one move is never sent twice.
-                if not await self._took_it(what, target) and not await self._call(what, "moveL", vec, speed, accel):
+                if (not await self._took_it(what, target, op_before)
+                        and not await self._call(what, "moveL", vec, speed, accel)):
                     await self._explain_refusal(what, final=True)
             await self._wait_motion(what, budget, target)
             await self._wait_arrival(what, target)
@@ -422,11 +425,19 @@ class URArm(Arm):
                                f"{self.rest_speed * 1e3:g} mm/s / {math.degrees(self.rest_angular_speed):g} deg/s)")
             await asyncio.sleep(self.poll_s)
 
-    async def _took_it(self, what: str, target: np.ndarray) -> bool:
-        """Whether a fresh reading shows the arm moving or already at the target."""
-        await self._fresh(f"the motion state after {what} was refused")
-        reading = await self._read(what, progress=True)
-        return reading.moving or self._at(reading, target)
+    async def _took_it(self, what: str, target: np.ndarray, op_before: int) -> bool:
+        """Whether fresh readings show the arm at the target or a move started since `op_before` (the operation id
+        before the refused moveL). A running bit under the same id is a move a safety stop halted (its thread lives
+        on, so the bit stays set): a new move would show a new id within START_GRACE_S, else it was not taken."""
+        deadline = time.monotonic() + START_GRACE_S
+        while True:
+            await self._fresh(f"the motion state after {what} was refused")
+            reading = await self._read(what, progress=True)
+            if self._at(reading, target) or (reading.moving and reading.op_id != op_before):
+                return True
+            if not reading.moving or time.monotonic() > deadline:
+                return False
+            await asyncio.sleep(self.poll_s)
 
     def _at(self, reading: _Reading, target: np.ndarray) -> bool:
         """Whether `reading`'s TCP pose is within the tolerances of `target`."""
@@ -524,7 +535,8 @@ class URArm(Arm):
         return _Reading(np.array(d["pose"], dtype=np.float64), np.array(d["joints"], dtype=np.float64),
                         float(d["timestamp"]), d["protective"], d["emergency"], d["safety_mode"], d["connected"],
                         np.array(d["tcp_speed"], dtype=np.float64), bool(d.get("moving", False)),
-                        int(d["safety_bits"]), bool(d["program_running"]), float(d["speed_scaling"]))
+                        int(d["safety_bits"]), bool(d["program_running"]), float(d["speed_scaling"]),
+                        int(d.get("op_id", -1)))
 
     async def _lost(self, reason: str) -> LinkLost:
         """Send a last stopL (it may still get through: a link found stale can carry commands), end the ur_rtde

@@ -970,3 +970,48 @@ def test_rtde_child_exits_when_its_parent_is_gone_even_with_stdin_held_open(tmp_
         os.kill(holder, signal.SIGKILL)
         with contextlib.suppress(ProcessLookupError):
             os.kill(child, signal.SIGKILL)
+
+
+class FirstMoveLost(URArm):
+    """ur_rtde answers the first moveL False without sending it, as when its control stream still holds a stop
+    that the receive stream has shown cleared."""
+
+    dropped = False
+
+    async def _call(self, what, op, *args, timeout_s=None):
+        if op == "moveL" and not self.dropped:
+            self.dropped = True
+            return False
+        return await super()._call(what, op, *args, timeout_s=timeout_s)
+
+
+def test_a_move_refused_after_a_stop_that_held_a_move_is_sent_again(ur, arun):
+    """A protective stop halts an asynchronous move and leaves its running bit set. Once the stop is cleared, a
+    refused moveL must not be taken for a move the controller took because that stale bit still says 'running': the
+    move is sent again and arrives (instead of waiting out its motion budget for a move that never started)."""
+    async def run():
+        arm = FirstMoveLost(ur.host, frequency=100.0, stale_after_s=1.0, timeout_s=5.0, watchdog_hz=1.0)
+        try:
+            await arm.connect()
+            arm.dropped = True  # the first move goes through
+            long_move = asyncio.create_task(arm.move_to(pose(0.4, 0.0, 0.3, DOWN), speed=0.05, accel=ACCEL))
+            await wait_for_moves(ur, 1)
+            while not (await arm._read("test", progress=True)).moving:
+                await asyncio.sleep(0.01)
+            ur.protective_stop()
+            with pytest.raises(ArmFault, match="protective stop"):
+                await asyncio.wait_for(long_move, 30)
+            ur.clear_protective_stop()
+            await cleared(arm)
+            await arm.clear_fault()
+            held = (await arm._read("test", progress=True)).moving
+            arm.dropped = False  # the next moveL is answered False and not sent
+            await asyncio.wait_for(arm.move_to(pose(0.35, 0.05, 0.3, DOWN)), 60)
+            return held, (await arm.state()).tcp_pose
+        finally:
+            await arm.close()
+
+    held, reached = arun(run())
+    assert held, "the halted move's running bit was expected to stay set (the scenario needs it)"
+    assert np.allclose(reached[:3, 3], [0.35, 0.05, 0.3], atol=2e-3)
+    assert [tuple(np.round(m.target[:2], 3)) for m in ur.moves][-1] == (0.35, 0.05)
