@@ -42,6 +42,24 @@ def test_coverage_counts_the_views_whose_zones_hold_a_point():
     np.testing.assert_allclose(cov, [1 / 3, 1 / 3, 0.0, 1 / 3])
 
 
+def test_coverage_leaves_out_what_a_dropped_frame_did_not_see():
+    """A view whose histograms hold no data looked at nothing: the coverage is the one without it; a zone of a view
+    that holds none takes only that zone's field away."""
+    zones = sensor_preset("tmf8820").zones
+    down = np.diag([1.0, -1.0, -1.0])
+    poses = torch.tensor(np.stack([pose_at([0, 0, 1.0], down), pose_at([0.05, 0, 1.0], down),
+                                   pose_at([5.0, 0, 1.0], down)]))
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.25, 0.0, 0.0], [5.0, 0.1, 0.0]], dtype=torch.float64)
+    looked = torch.ones((3, len(zones)), dtype=torch.bool)
+    looked[1] = False  # the second view dropped whole
+    np.testing.assert_allclose(view_coverage(pts, poses, zones, looked=looked).numpy(),
+                               view_coverage(pts, poses[[0, 2]], zones).numpy())
+    centre = [z for z, zone in enumerate(zones) if zone.holds(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))]
+    looked = torch.ones((3, len(zones)), dtype=torch.bool)
+    looked[0, centre] = False  # the first view's centre zone dropped: the point under it is seen by the second alone
+    np.testing.assert_allclose(view_coverage(pts, poses, zones, looked=looked).numpy(), [1 / 3, 2 / 3, 1 / 3])
+
+
 def test_coverage_of_a_cone_zone_and_shape_of_the_result():
     zones = (Zone(kind="cone", half_angle_rad=math.radians(15.0)),)
     poses = torch.tensor(np.stack([pose_at([0, 0, -1.0]), pose_at([0, 0, -1.0])]))  # looking up +z

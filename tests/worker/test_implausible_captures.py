@@ -159,3 +159,23 @@ def test_a_dropped_frame_is_left_out_and_carves_nothing_away(tmp_path):
     assert cli_main(["baseline", "space-carving", str(cap), "--out", str(tmp_path / "carved")]) == 0
     carved = trimesh.load(tmp_path / "carved" / "mesh.ply")
     assert carved.contains(ball.numpy().astype(np.float64)).mean() > 0.97
+
+
+def test_a_dropped_frame_carves_as_if_it_were_not_there(tmp_path):
+    """Space seen by too few views is dropped (min_views): a view whose histograms hold no data saw nothing and must
+    not count as one that looked, so the hull with the dropped view is the hull without it."""
+    from spadscan.worker.carving.space_carving import carve_hull
+
+    poses = fibonacci_hemisphere(8, 0.4, target=(0, 0, 0.1), min_elevation_deg=20)
+    sensor = sensor_preset("lcspc-sim")
+    cap = simulate_capture(builtin_scene("sphere"), sensor, poses, tmp_path / "cap",
+                           settings=SimSettings(rays_per_zone=256), progress=False)
+    counts = np.load(cap / "chunk-000000" / "hists.npy").astype(np.float64)
+    usable = np.ones(counts.shape[:2], bool)
+    usable[5] = False
+    box = {"bounds_min": [-0.2, -0.2, -0.05], "bounds_max": [0.2, 0.2, 0.35], "resolution": 32, "min_views": 3}
+    with_dropped = carve_hull(counts, poses, sensor, usable=usable, **box).occupancy
+    keep = np.arange(len(poses)) != 5
+    without = carve_hull(counts[keep], poses[keep], sensor, **box).occupancy
+    assert with_dropped.sum() > 0
+    np.testing.assert_array_equal(with_dropped, without)

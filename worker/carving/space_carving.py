@@ -206,15 +206,18 @@ def _classify_cells(centres: np.ndarray, radius: float, poses: np.ndarray, senso
                     if pair not in pairs:
                         pairs[pair] = np.minimum(along(forms[pair[0]]), along(forms[pair[1]]))
                 depth = np.minimum(pairs[test[1]], pairs[test[2]])
+            # A zone whose histogram holds no data (limit -inf: a dropped frame) looked at nothing: it neither
+            # carves nor counts towards min_views.
+            looked = lim > np.float32(-np.inf)
             inside = depth >= r
             cut |= inside & (far <= lim)
-            seen = depth >= seen_depth
+            seen = (depth >= seen_depth) & looked
             sees += seen
             if keep_returns_m > 0:
                 held |= seen & (far > lim) & (near <= lim + np.float32(keep_returns_m))
             if not final:
                 part |= (depth > -r) & (near < lim)
-                sees_all += inside
+                sees_all += inside & looked
         touched[alive] += sees.sum(axis=0, dtype=np.int32)
         gone = cut.any(axis=0)
         carved[alive[gone]] = True

@@ -104,7 +104,8 @@ class EmptySpacePush(Part):
                     reach = bound.to(points.device) <= 2 * voxel
                 w = torch.zeros(points.shape[:-1], dtype=points.dtype, device=points.device)
                 if model.on_table:
-                    cov = view_coverage(points[reach], p.poses, p.forward.sensor.zones)
+                    cov = view_coverage(points[reach], p.poses, p.forward.sensor.zones,
+                                        looked=p.valid.any(dim=-1))
                     w[reach] = pressure_weight(cov, self.config.coverage).to(w.dtype)
                 else:
                     loud = heard_bins(p.counts, p.forward.sensor, self.config.heard_threshold)
@@ -117,18 +118,34 @@ class EmptySpacePush(Part):
         return self._weight
 
 
-def view_coverage(points: torch.Tensor, poses: torch.Tensor, zones, chunk: int = 1 << 16) -> torch.Tensor:
+def view_coverage(points: torch.Tensor, poses: torch.Tensor, zones, chunk: int = 1 << 16,
+                  looked: torch.Tensor | None = None) -> torch.Tensor:
     """Fraction of the views whose field of view (the union of its zones, occlusion ignored) holds each point.
 
     points (..., 3) and poses (V, 4, 4) sensor-to-world, metres; zones: the sensor model's Zone records (+z is the
-    boresight). Returns (...) in [0, 1].
+    boresight). looked (V, Z) bool, or None for all: the zones whose histograms hold data. A zone that holds none (a
+    dropped frame) looked at nothing, and a view none of whose zones did counts as no view: the coverage is the one
+    without it. Returns (...) in [0, 1].
     """
     flat = points.reshape(-1, 3)
     rot, org = poses[:, :3, :3].to(flat.dtype), poses[:, :3, 3].to(flat.dtype)
-    out = torch.empty(flat.shape[0], dtype=flat.dtype, device=flat.device)
+    out = torch.zeros(flat.shape[0], dtype=flat.dtype, device=flat.device)
+    if looked is not None:
+        looked = looked.to(device=flat.device, dtype=torch.bool)
+        if bool(looked.all()):
+            looked = None
+    views = poses.shape[0] if looked is None else int(looked.any(dim=1).sum())
+    if views == 0:
+        return out.reshape(points.shape[:-1])
     for i in range(0, flat.shape[0], chunk):
         rel = torch.einsum("vji,pvj->pvi", rot, flat[i: i + chunk, None, :] - org[None])  # sensor frame (P, V, 3)
-        out[i: i + chunk] = in_any_zone(zones, rel).to(flat.dtype).mean(dim=1)
+        if looked is None:
+            seen = in_any_zone(zones, rel)
+        else:
+            seen = torch.zeros(rel.shape[:2], dtype=torch.bool, device=flat.device)
+            for z, held in enumerate(zone_masks(zones, rel)):
+                seen |= held & looked[None, :, z]
+        out[i: i + chunk] = seen.to(flat.dtype).sum(dim=1) / views
     return out.reshape(points.shape[:-1])
 
 
