@@ -58,7 +58,8 @@ class ArmState:
 class Frame:
     """One sensor frame. hists (zones, bins) uint32 counts; reference (bins,) uint32 or None.
 
-    t_start / t_end: monotonic seconds when the frame's exposure began / when it was received.
+    t_start / t_end: monotonic seconds when the frame's exposure began (at the earliest: never later than the true
+    start, so that the runner can drop frames exposed while the arm moved) / when it was received.
     """
 
     hists: np.ndarray
@@ -133,6 +134,13 @@ class Sensor(Device):
     @abc.abstractmethod
     async def next_frame(self, timeout_s: float) -> Frame:
         """The next complete frame. Raises SensorSilent after timeout_s seconds without one."""
+
+    async def begin_exposure(self) -> float | None:
+        """Called once the arm has settled at a pose: a sensor that can start a fresh exposure (stop and restart its
+        measurement) does so and returns the monotonic time from which every later frame's exposure lies; None when
+        it cannot (it keeps measuring on its own clock). Either way each frame's `t_start` must be a lower bound on
+        when its exposure began: the runner drops frames whose `t_start` is before the arm settled."""
+        return None
 
     def counters(self) -> dict:
         """Health counters (frames, corrupt lines skipped, reconnects, ...), for `ctl status`."""

@@ -403,6 +403,7 @@ class ScanRunner:
                     ahead = asyncio.ensure_future(asyncio.to_thread(job.chooser.choose, job.sensor_poses, i + 1))
                 if job.scan.settle_s > 0:
                     await asyncio.sleep(job.scan.settle_s)
+                await self.sensor.begin_exposure()  # a sensor that can starts a fresh exposure now
                 frames = await self._frames(job, i, t_stop + job.scan.settle_s)
                 arm = await self._arm_state()
                 self._check_end()
