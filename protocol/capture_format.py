@@ -157,6 +157,8 @@ def read_json(path: Path) -> dict:
         raise CaptureError(f"{path}: missing") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CaptureError(f"{path}: unreadable JSON ({one_line(exc)})") from None
+    except RecursionError:  # the parser recurses once per level of nesting
+        raise CaptureError(f"{path}: unreadable JSON (nested too deeply)") from None
     if not isinstance(data, dict):
         raise CaptureError(f"{path}: expected a JSON object, got {type(data).__name__}")
     return data
