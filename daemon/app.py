@@ -86,7 +86,7 @@ class DeviceSession:
 class Dispatcher:
     """Turns control requests into runner calls."""
 
-    OPS = {"status": (), "scan": ("name", "options"), "pause": (), "resume": (), "abort": ("reason",),
+    OPS = {"status": (), "scan": ("name", "options"), "pause": (), "resume": ("name",), "abort": ("reason", "name"),
            "wait": ("name",), "shutdown": ()}
 
     def __init__(self, runner: ScanRunner, stop: asyncio.Event, cfg: DaemonConfig):
@@ -101,6 +101,10 @@ class Dispatcher:
         if extra:
             raise ConfigError(f"op {op!r} takes no {', '.join(sorted(extra))}")
         r = self.runner
+        await r.retry_aborts()  # each request writes again an abort the disk could not take yet
+        if op in ("resume", "abort") and not isinstance(req.get("name", ""), str):
+            raise ConfigError(f"{op}'s 'name' must be a scan name (a string)")
+        named = {"name": req["name"]} if req.get("name") else {}  # a scan the daemon does not hold (see ScanRunner)
         if op == "status":
             return {**r.status(), "daemon": {"pid": os.getpid(), "socket": str(self.cfg.socket),
                                              "captures": str(self.cfg.captures),
@@ -113,10 +117,10 @@ class Dispatcher:
         if op == "pause":
             return await r.pause()
         if op == "resume":
-            return await r.resume()
+            return await r.resume(**named)
         if op == "abort":
             # On one line before the cut: the capture records it as one line, and status and logs show it too.
-            return await r.abort(fold(req.get("reason") or "")[:200] or "aborted by user")
+            return await r.abort(fold(req.get("reason") or "")[:200] or "aborted by user", **named)
         if op == "wait":
             if not isinstance(req.get("name"), str):
                 raise ConfigError("wait needs a scan 'name'")

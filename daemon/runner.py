@@ -20,11 +20,19 @@ script again if the fault stopped it). A new scan whose arm link went down while
 way before it plans. The first move of every run starts wherever the arm
 stands: it is checked like the planned moves (`workspace.first_move_problem`), and after a pause the arm's controller
 is asked again about the poses still to come (`Arm.check_poses`).
+
+An abort is recorded in the capture's manifest alone (no chunk is read). One the disk cannot take (full, read-only)
+is never undone by a restart: the reply says it is not recorded yet, `abort-pending.json` in the scan folder keeps it
+where an empty file still fits (no daemon takes such a scan over), and the daemon writes it again every
+ABORT_RETRY_S, at each control request and at shutdown. A scan found interrupted that cannot be taken over (a chunk
+torn by a power cut) is named in `status` with what to do: `ctl resume NAME` tries the takeover again (after its
+damaged chunk is moved out of the folder), `ctl abort NAME` ends it as aborted, every chunk kept.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import logging
 import shutil
@@ -35,13 +43,15 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, Measurement, read_json
-from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
+from spadscan.protocol.capture_writer import CaptureWriter, drop_temporary, mark_aborted, mark_paused
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
 from .config import DaemonConfig, scan_request
 from .arm.stops import clear_advice, stop_name
 from .devices import Arm, ArmFault, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
-from .scan_job import WRITER, ScanJob, check_scan_name, default_scan_name, find_interrupted, load_job
+from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abort_pending, check_scan_name,
+                       clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
+                       load_job, note_abort_pending, way_out)
 from .adaptive import ViewChooser, live_converged
 from .scan_plan import build_plan, sensor_from_tcp, tcp_from_sensor
 from .stall import StallWatch
@@ -56,6 +66,7 @@ READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting)
 ARM_FIXES = {"reconnect": "reconnecting", "clear": "clearing its fault"}  # what readying the arm does, said
 CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controller for one pose before its fallback
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
+ABORT_RETRY_S = 5.0  # how often an abort the disk could not take is written again (room may come back at any time)
 
 
 class _Fault(SpadscanError):
@@ -78,12 +89,20 @@ class ScanRunner:
         self._resume = asyncio.Event()
         self._pause_requested = False
         self._starting = False
+        self._taking_over = False  # `ctl resume NAME` is taking a scan over (no scan may start meanwhile)
         self._end: tuple[str, str] | None = None  # (state, reason) the scan ends in when its task is cancelled
         self._changed = asyncio.Event()
         self._io_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
         self.stalls = StallWatch()
         self.frame_waits_retried = 0
         """Frame waits begun again because the daemon itself had not run (see `stall.py`), not the sensor."""
+        self.unrecorded: dict[str, dict] = {}
+        """Scan name -> an abort its capture could not record yet: {"path", "reason", "error", "marker" (whether
+        abort-pending.json keeps it), "said" (the last_error that told)}; written again until it lands."""
+        self._retrying: asyncio.Task | None = None
+        self.stuck: dict | None = None
+        """The interrupted scan found at start-up that could not be taken over: {"scan", "cause", "error" (the
+        last_error, with what the operator can do)}; None when there is none."""
 
     # ---- requests --------------------------------------------------------------------------------------------------
     async def start(self, name: str | None = None, overrides: dict | None = None) -> dict:
@@ -93,6 +112,8 @@ class ScanRunner:
                               f"{'resume or abort it' if self.state == 'paused' else 'wait for it or abort it'} first")
         if self._starting:
             raise ConfigError("another scan is being planned; try again in a moment")
+        if self._taking_over:
+            raise ConfigError("an interrupted scan is being taken over; try again in a moment")
         self._starting = True
         try:
             return await self._start(name, overrides)
@@ -158,10 +179,17 @@ class ScanRunner:
         return self.status()
 
     async def recover(self) -> None:
-        """At start-up: take over a scan a crash or stop left 'running', paused (or resumed when auto_resume)."""
+        """At start-up: record the aborts a disk could not take before (`abort-pending.json`), then take over a scan a
+        crash or stop left 'running', paused (or resumed when auto_resume)."""
+        await self._settle_pending_aborts()
         path = await asyncio.to_thread(find_interrupted, self.root)
         if path is None:
             return
+        await self._take_over(path, self.cfg.auto_resume)
+
+    async def _take_over(self, path: Path, auto_resume: bool) -> bool:
+        """Take the interrupted scan at `path` over, paused (resumed when auto_resume allows); False when it cannot
+        be (`stuck`, and last_error with the reason and what the operator can do)."""
         reopen_error = None
         try:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
@@ -181,9 +209,11 @@ class ScanRunner:
                 job.chooser = await asyncio.to_thread(ViewChooser, job.scan, self.cfg.arm, job.hand_eye, path)
                 await asyncio.to_thread(job.count_choices)
         except (CaptureError, ConfigError, OSError) as exc:
-            log.error("cannot take over interrupted scan %s: %s", path, exc)
-            self.last_error = f"cannot take over interrupted scan {path.name!r}: {exc}"
-            return
+            await self._cannot_take_over(path, exc)
+            return False
+        if self.stuck is not None and self.last_error == self.stuck["error"]:
+            self.last_error = None
+        self.stuck = None
         self.job = job
         job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
                                                f"`spadscan ctl resume` continues")
@@ -192,7 +222,7 @@ class ScanRunner:
                                             f"{reopen_error}; make room, then `spadscan ctl resume`")
         # A scan that was paused when the daemon stopped (by the operator, or by a fault) stays paused: auto_resume
         # continues a scan that was interrupted, not one someone or something had stopped.
-        auto = self.cfg.auto_resume and job.blocked is None and reopen_error is None and paused is None
+        auto = auto_resume and job.blocked is None and reopen_error is None and paused is None
         log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
                  "blocked: " + job.blocked if job.blocked else
                  "paused, as it was when the daemon stopped: " + job.reason if paused else
@@ -201,6 +231,33 @@ class ScanRunner:
         self._launch("paused")
         if auto:
             await self.resume()
+        return True
+
+    async def _cannot_take_over(self, path: Path, exc: BaseException) -> None:
+        """Say why scan `path` cannot be taken over and what the operator can do (a damaged chunk named): the scan
+        stays 'running' on disk, untouched, until `ctl resume NAME` or `ctl abort NAME`."""
+        way = await asyncio.to_thread(way_out, path)
+        said = f"cannot take over interrupted scan {path.name!r}: {exc}; {way}"
+        log.error("%s", said)
+        self.stuck = {"scan": path.name, "cause": str(exc), "error": said}
+        self.last_error = said
+
+    async def _settle_pending_aborts(self) -> None:
+        """Record in scan.json each abort an earlier daemon could keep only in `abort-pending.json` (a full disk);
+        one that still does not fit stays pending (and its scan is never taken over)."""
+        for path in await asyncio.to_thread(find_abort_pending, self.root):
+            reason = await asyncio.to_thread(abort_pending, path)
+            try:
+                state = (await asyncio.to_thread(read_json, path / MANIFEST)).get("state")
+            except CaptureError as exc:
+                log.warning("scan %s: %s holds an abort, but: %s", path.name, ABORT_PENDING, exc)
+                continue
+            if state != "running":  # recorded already; only removing the file had failed
+                await asyncio.to_thread(clear_abort_pending, path)
+                continue
+            await self._record_abort(path.name, path, reason, None)
+            if path.name not in self.unrecorded:
+                log.info("scan %s: recorded its abort (%s), which %s had kept", path.name, reason, ABORT_PENDING)
 
     async def pause(self) -> dict:
         """Pause after the pose in flight is published."""
@@ -213,9 +270,15 @@ class ScanRunner:
             raise ConfigError(f"nothing to pause (daemon is {self.state})")
         return self.status()
 
-    async def resume(self) -> dict:
-        """Continue a paused scan at its first unpublished pose."""
+    async def resume(self, name: str | None = None) -> dict:
+        """Continue a paused scan at its first unpublished pose. `name`: a scan the daemon does not hold (found
+        interrupted but not taken over, its damaged chunk moved out since): taken over first, then continued. With
+        no scan held, the one that could not be taken over is tried again."""
         job = self.job
+        if name is not None and (job is None or job.name != name):
+            return await self._resume_interrupted(name)
+        if job is None and self.stuck is not None and not self._starting:
+            return await self._resume_interrupted(self.stuck["scan"])
         if self.state == "pausing":
             self._pause_requested = False
             self._set_state("scanning")
@@ -232,13 +295,108 @@ class ScanRunner:
             raise ConfigError(f"nothing to resume (daemon is {self.state})")
         return self.status()
 
-    async def abort(self, reason: str = "aborted by user") -> dict:
-        """Stop the arm, mark the scan aborted (what was published stays)."""
+    async def _resume_interrupted(self, name: str) -> dict:
+        """Take over the daemon's interrupted scan `name` (one it could not take over at start-up, or another), then
+        continue it; a ConfigError says why not."""
+        if self.job is not None:
+            raise ConfigError(f"scan {self.job.name!r} is {self.state}: wait for it or abort it before taking over "
+                              f"scan {name!r}")
+        if self._starting or self._taking_over:
+            raise ConfigError("another scan is being planned or taken over; try again in a moment")
+        self._taking_over = True
+        try:
+            path = await asyncio.to_thread(interrupted_scan, self.root, name)
+            if name in self.unrecorded or await asyncio.to_thread(abort_pending, path) is not None:
+                raise ConfigError(f"scan {name!r} was aborted (its {MANIFEST} does not say so yet: the disk could not "
+                                  f"take it); it cannot be resumed")
+            log.info("scan %s: taking it over (`ctl resume`)", name)
+            if not await self._take_over(path, auto_resume=False):
+                raise ConfigError(self.last_error)
+        finally:
+            self._taking_over = False
+        return await self.resume()
+
+    async def abort(self, reason: str = DEFAULT_ABORT_REASON, name: str | None = None) -> dict:
+        """Stop the arm, mark the scan aborted (what was published stays). `name`: a scan the daemon does not hold
+        (found interrupted but not taken over, or another of its interrupted scans): marked aborted on disk, every
+        chunk kept. The reply's abort_recorded says whether the capture records the abort (False: the disk could
+        not take it yet; last_error says what keeps it)."""
+        if name is not None and (self.job is None or self.job.name != name):
+            return await self._abort_interrupted(name, reason)
         if self.job is None or self._task is None:
-            raise ConfigError(f"nothing to abort (daemon is {self.state})")
+            stuck = self.stuck["scan"] if self.stuck is not None else None
+            raise ConfigError(f"nothing to abort (daemon is {self.state})" + (
+                f"; scan {stuck!r} could not be taken over: `spadscan ctl abort {stuck}` ends it" if stuck else ""))
         name = self.job.name
         await self._cancel(("aborted", reason))
-        return {**self.status(), "aborted": name}
+        return self._aborted_reply(name)
+
+    async def _abort_interrupted(self, name: str, reason: str) -> dict:
+        """End the daemon's interrupted scan `name`, which it does not hold, as aborted: the manifest alone is
+        written (a damaged chunk does not stand in the way), nothing is removed."""
+        if self._taking_over:
+            raise ConfigError("an interrupted scan is being taken over; try again in a moment")
+        path = await asyncio.to_thread(interrupted_scan, self.root, name)
+        stuck = self.stuck if self.stuck is not None and self.stuck["scan"] == name else None
+        if stuck is not None:
+            reason = f"{reason}; it could not be taken over: {stuck['cause']}"
+        await self._record_abort(name, path, reason, None)
+        if stuck is not None:
+            if self.last_error == stuck["error"]:
+                self.last_error = None
+            self.stuck = None
+        self.finished[name] = "aborted"
+        log.info("scan %s aborted, as it stood on disk: %s", name, reason)
+        self._notify()
+        return self._aborted_reply(name)
+
+    def _aborted_reply(self, name: str) -> dict:
+        return {**self.status(), "aborted": name, "abort_recorded": name not in self.unrecorded}
+
+    # ---- aborts the disk could not take --------------------------------------------------------------------------
+    async def _record_abort(self, name: str, path: Path, reason: str, writer: CaptureWriter | None) -> None:
+        """Record scan `name`'s abort in its capture; one the disk cannot take is kept pending (`_keep_abort`)."""
+        error = await self._io(_write_abort, path, reason, writer)
+        if error is None:
+            self._abort_landed(name)
+        else:
+            await self._keep_abort(name, path, reason, error)
+
+    async def _keep_abort(self, name: str, path: Path, reason: str, error: str) -> None:
+        """An abort scan.json could not take: kept in abort-pending.json where an empty file still fits, in memory
+        in any case, written again until it lands; last_error tells the operator, truthfully, where it stands."""
+        held = self.unrecorded.setdefault(name, {"path": path, "reason": reason, "marker": False})
+        held["error"] = error
+        if not held["marker"]:
+            held["marker"] = await self._io(note_abort_pending, path, reason)
+        held["said"] = self.last_error = f"scan {name!r} is aborted, but {_unrecorded_note(held, self.cfg.auto_resume)}"
+        log.warning("%s", self.last_error)
+        if self._retrying is None or self._retrying.done():
+            self._retrying = asyncio.create_task(self._retry_aborts_loop(), name="abort retries")
+
+    def _abort_landed(self, name: str) -> None:
+        held = self.unrecorded.pop(name, None)
+        if held is not None:
+            log.info("scan %s: its abort is recorded in its capture now", name)
+            if self.last_error == held.get("said"):
+                self.last_error = None
+
+    async def retry_aborts(self) -> None:
+        """Write again each abort its capture could not record yet (every ABORT_RETRY_S, at each control request and
+        at shutdown); one still without abort-pending.json tries that file again too."""
+        for name, held in list(self.unrecorded.items()):
+            error = await self._io(_write_abort, held["path"], held["reason"], None)
+            if error is None:
+                self._abort_landed(name)
+                continue
+            held["error"] = error
+            if not held["marker"]:
+                held["marker"] = await self._io(note_abort_pending, held["path"], held["reason"])
+
+    async def _retry_aborts_loop(self) -> None:
+        while self.unrecorded:
+            await asyncio.sleep(ABORT_RETRY_S)
+            await self.retry_aborts()
 
     async def wait(self, name: str) -> dict:
         """Block until scan `name` is complete or aborted; returns {'name', 'state'}."""
@@ -259,6 +417,14 @@ class ScanRunner:
         """Stop the scan in flight (leaving its capture 'running', resumable) and the writer thread."""
         if self._task is not None:
             await self._cancel(("running", "daemon stopped; a restarted daemon resumes at the first unpublished pose"))
+        if self._retrying is not None:
+            self._retrying.cancel()
+            await asyncio.gather(self._retrying, return_exceptions=True)
+            self._retrying = None
+        await self.retry_aborts()  # a last try: room may have come back
+        for name, held in self.unrecorded.items():
+            log.error("scan %s: the daemon stops with the scan's abort not recorded: %s", name,
+                      _unrecorded_note(held, self.cfg.auto_resume, stopping=True))
         self._io_pool.shutdown(wait=True)
 
     def status(self) -> dict:
@@ -277,6 +443,12 @@ class ScanRunner:
         if self.finished:
             name = next(reversed(self.finished))
             out["last_scan"] = {"name": name, "state": self.finished[name]}
+        if self.unrecorded:
+            out["unrecorded_aborts"] = {name: {"reason": held["reason"], "error": held["error"],
+                                               "kept_on_disk": held["marker"]}
+                                        for name, held in self.unrecorded.items()}
+        if self.stuck is not None:
+            out["cannot_take_over"] = {"scan": self.stuck["scan"], "error": self.stuck["error"]}
         out["daemon_stalls"] = {**self.stalls.counters(), "frame_waits_retried": self.frame_waits_retried}
         return out
 
@@ -679,19 +851,19 @@ class ScanRunner:
         """The scan task was cancelled (abort or shutdown): stop the arm, record the end state in the manifest."""
         state, reason = self._end or ("running", "scan task cancelled")
         await self._stop_arm()
+        if state == "aborted":
+            await self._record_abort(job.name, job.path, reason, job.writer)
+            self._finish(job, "aborted")
+            return
         try:
             if job.writer is None:
                 job.writer = await self._io(CaptureWriter.resume, job.path)
-            if state == "aborted":
-                await self._io(job.writer.finish, "aborted", reason)
-            elif self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
+            if self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
                 await self._io(mark_paused, job.path, job.reason or "paused by user")
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
             self.last_error = f"scan {job.name!r}: could not record '{state}': {_describe(exc, 'recording it')}"
-        if state == "aborted":
-            self._finish(job, "aborted")
 
     def _finish(self, job: ScanJob, state: str) -> None:
         self.finished[job.name] = state
@@ -776,6 +948,45 @@ def _end_early(job: ScanJob) -> None:
     job.writer.replace_schedule(job.sensor_poses[:n])
     job.writer.flush()
     job.writer.set_state("complete", job.ended_early, view_choices=dict(sorted(job.view_counts.items())))
+
+
+def _write_abort(path: Path, reason: str, writer: CaptureWriter | None) -> str | None:
+    """Record an abort in the capture at `path` (on the writer thread): through its open writer (its last pose
+    published first), else, or when that fails, in the manifest alone, after the temporary files no writer will
+    finish are dropped (their room may be what the manifest needs). Returns None, or why it could not be recorded.
+    A recorded abort's abort-pending.json goes."""
+    if writer is not None:
+        try:
+            writer.finish("aborted", reason)
+            clear_abort_pending(path)
+            return None
+        except (OSError, CaptureError):
+            pass  # the manifest alone, below
+    with contextlib.suppress(OSError):
+        drop_temporary(path)
+    try:
+        mark_aborted(path, reason)
+    except OSError as exc:
+        return _describe(exc, "recording it")
+    except CaptureError as exc:
+        return str(exc)
+    clear_abort_pending(path)
+    return None
+
+
+def _unrecorded_note(held: dict, auto_resume: bool, stopping: bool = False) -> str:
+    """What an abort not yet in scan.json means, for the operator: why, what keeps it, what happens next."""
+    if held["marker"]:
+        kept = (f"{ABORT_PENDING} in the scan folder keeps it: no daemon takes the scan over, and the next one "
+                f"records it")
+    else:
+        scans_on = " and scans on by itself (auto_resume)" if auto_resume else ""
+        kept = (f"nothing on disk keeps it (not even {ABORT_PENDING}): a daemon started on this captures root takes "
+                f"the scan over as interrupted{scans_on}")
+        if not stopping:
+            kept += "; make room or make the disk writable before stopping this daemon"
+    again = "" if stopping else f"; written again every {ABORT_RETRY_S:g} s, at each request and at shutdown"
+    return f"its scan.json does not say so yet ({held['error']}); {kept}{again}"
 
 
 def _remove_partial(path: Path) -> None:

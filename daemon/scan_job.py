@@ -4,13 +4,19 @@ A scan named N lives in `<captures>/N/` (docs/capture_format.md). Its `schedule.
 visiting order and `scan.json` the scan settings, so a restarted daemon can continue it at the first pose not yet
 published. The daemon marks the scans it writes (`rig.writer` = WRITER in the manifest) and takes over only those:
 another tool's interrupted capture under the captures root (say `spadscan simulate --out <captures>/x`) is never driven.
+
+An abort the manifest could not take (a full disk) is kept in the scan folder's `abort-pending.json` (ABORT_PENDING)
+where it can be: an empty file needs no data block on a full disk. A scan holding one is never taken over; the next
+daemon records the abort in `scan.json` and removes the file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import logging
+import os
 import re
 import time
 from collections import Counter, deque
@@ -19,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spadscan.protocol.capture_format import MANIFEST, read_json
+from spadscan.protocol.capture_format import MANIFEST, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError, ConfigError
@@ -31,6 +37,10 @@ from .scan_plan import tcp_from_sensor
 log = logging.getLogger("spadscan.daemon")
 WRITER = "spadscan-daemon"
 """The manifest's rig.writer of every scan the daemon writes."""
+ABORT_PENDING = "abort-pending.json"
+"""In a scan folder: the scan was aborted, but its scan.json could not record it yet ({"reason", "since_utc"}, or
+empty when the disk had no room for even that)."""
+DEFAULT_ABORT_REASON = "aborted by user"
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,99}")
 
 
@@ -152,6 +162,8 @@ def find_interrupted(root: Path) -> Path | None:
             continue
         if manifest.get("state") != "running":
             continue
+        if (d / ABORT_PENDING).exists():  # aborted: the manifest could not say so yet (recover records it)
+            continue
         rig = manifest.get("rig")
         if not (isinstance(rig, dict) and rig.get("writer") == WRITER):
             log.warning("not taking over %s: its capture says 'running' but was not written by the daemon "
@@ -160,6 +172,121 @@ def find_interrupted(root: Path) -> Path | None:
         if str(manifest.get("updated_utc", "")) >= best_t:
             best, best_t = d, str(manifest.get("updated_utc", ""))
     return best
+
+
+def note_abort_pending(path: Path, reason: str) -> bool:
+    """Keep an abort that scan.json could not take in the scan folder's ABORT_PENDING file: created empty first (on
+    a full disk an empty file still fits: it needs no data block), then its record written where there is room. A
+    record that did not fit whole is cut back to empty, which still says 'aborted'. Returns whether the file is
+    there (False on a read-only disk). The scan's writer must not be writing meanwhile."""
+    marker = Path(path) / ABORT_PENDING
+    if marker.is_file():  # kept already (an earlier daemon's): rewriting it on a full disk could only lose its reason
+        return True
+    record = json.dumps({"reason": reason, "since_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(
+        timespec="milliseconds")}).encode()
+    try:
+        fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    except OSError:
+        return False
+    try:
+        try:
+            whole = os.write(fd, record) == len(record)
+        except OSError:
+            whole = False
+        with contextlib.suppress(OSError):
+            if not whole:
+                os.ftruncate(fd, 0)
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+    with contextlib.suppress(OSError):
+        fsync_dir(Path(path))
+    return True
+
+
+def abort_pending(path: Path) -> str | None:
+    """The reason of the abort kept in the scan folder's ABORT_PENDING file; None when there is no such file."""
+    marker = Path(path) / ABORT_PENDING
+    try:
+        text = marker.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError):
+        return DEFAULT_ABORT_REASON
+    try:
+        reason = json.loads(text).get("reason")
+    except (ValueError, AttributeError):  # empty: the disk had no room for the record
+        reason = None
+    return reason if isinstance(reason, str) and reason else DEFAULT_ABORT_REASON
+
+
+def clear_abort_pending(path: Path) -> None:
+    """Remove the ABORT_PENDING file once scan.json says the scan ended (best effort: a file left over is removed by
+    the next daemon, which finds the scan already ended)."""
+    with contextlib.suppress(OSError):
+        (Path(path) / ABORT_PENDING).unlink(missing_ok=True)
+        fsync_dir(Path(path))
+
+
+def find_abort_pending(root: Path) -> list[Path]:
+    """The scan folders under root that hold an ABORT_PENDING file."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    return sorted(d for d in root.iterdir() if not d.name.startswith(".") and (d / ABORT_PENDING).is_file())
+
+
+def interrupted_scan(root: Path, name: str) -> Path:
+    """The folder of scan `name` under root if it is one of the daemon's scans left 'running' (interrupted, or one
+    that could not be taken over); a ConfigError says why not otherwise."""
+    path = Path(root) / check_scan_name(name, root)
+    if not (path / MANIFEST).is_file():
+        raise ConfigError(f"no scan named {name!r} in {root}")
+    try:
+        manifest = read_json(path / MANIFEST)
+    except CaptureError as exc:
+        raise ConfigError(f"scan {name!r}: {exc}") from None
+    state = manifest.get("state")
+    if state != "running":
+        raise ConfigError(f"scan {name!r} has already ended ({state})")
+    rig = manifest.get("rig")
+    if not (isinstance(rig, dict) and rig.get("writer") == WRITER):
+        raise ConfigError(f"scan {name!r} was not written by the daemon (no rig.writer = {WRITER!r} in "
+                          f"{MANIFEST}); it is not the daemon's to end")
+    return path
+
+
+def damaged_chunks(path: Path) -> tuple[list[str], list[str]]:
+    """(every chunk, those that cannot be read: torn or zeroed files after a power cut) of the capture at `path`."""
+    try:
+        reader = CaptureReader(path)
+        names = reader.chunk_names()
+    except (CaptureError, OSError):
+        return [], []
+    damaged = []
+    for name in names:
+        try:
+            reader.read_chunk(name)
+        except (CaptureError, OSError):
+            damaged.append(name)
+    return names, damaged
+
+
+def way_out(path: Path) -> str:
+    """What the operator can do about a scan that could not be taken over (reads its chunks: run it off the event
+    loop): set its damaged chunks aside and resume it, or end it (every chunk stays)."""
+    name = path.name
+    end = f"or `spadscan ctl abort {name}` ends the scan as aborted, keeping every chunk"
+    names, damaged = damaged_chunks(path)
+    if not damaged:
+        return f"once that is fixed, `spadscan ctl resume {name}` takes it over; {end}"
+    last = names[-1] == damaged[-1]
+    again = ("its poses are taken again" if len(damaged) == 1 and last else
+             "a last chunk's poses are taken again, the others' stay missing" if last else
+             "their poses stay missing from the capture" if len(damaged) > 1 else
+             "its poses stay missing from the capture")
+    return (f"{', '.join(damaged)} cannot be read: move {'it' if len(damaged) == 1 else 'them'} out of {path} "
+            f"({again}), then `spadscan ctl resume {name}`; {end}")
 
 
 def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | None = None,

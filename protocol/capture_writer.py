@@ -140,6 +140,25 @@ def mark_paused(path, reason: str) -> None:
     _write(write_json_atomic, manifest_path, manifest)
 
 
+def mark_aborted(path, reason: str) -> None:
+    """Record in the manifest of the capture at `path` that its scan is aborted, and why; a pause's record goes. Only
+    the manifest is read and written: no chunk is read (a capture with a damaged chunk can be ended too) and nothing
+    is published, so the write needs room for the manifest alone. The scan's writer, if one is open, must not be
+    writing meanwhile."""
+    manifest_path = Path(path) / MANIFEST
+    manifest = read_json(manifest_path)
+    manifest.pop("paused", None)
+    manifest.update(state="aborted", reason=fold(reason), updated_utc=_now())
+    _write(write_json_atomic, manifest_path, manifest)
+
+
+def drop_temporary(path) -> None:
+    """Remove the hidden temporary chunk folders and manifest files no writer finished in the capture at `path` (a
+    full disk's half-written chunk: freeing its room may let the manifest be written). No writer may be writing the
+    capture meanwhile."""
+    _drop_temporary(Path(path))
+
+
 class CaptureWriter:
     """Appends measurements to one capture folder. Not thread-safe: one writer per scan.
 

@@ -4,6 +4,8 @@
                                                 and the scan's live reconstruction (`live`) when a worker runs one
     spadscan ctl scan --name bunny --views 128  start a scan; it is written to <captures>/bunny/
     spadscan ctl pause | resume | abort         pause after the pose in flight, continue, or stop for good
+    spadscan ctl resume NAME | abort NAME       take over and continue, or end as aborted (every chunk kept), an
+                                                interrupted scan the daemon could not take over (`status` says why)
     spadscan ctl wait bunny                     block until the scan is complete (exit 0) or aborted (exit 1);
                                                 on a terminal a progress bar (pose i/n) runs on stderr, otherwise
                                                 a line on stderr says why whenever the scan pauses (and how its
@@ -141,8 +143,17 @@ def add_arguments(parser) -> None:
                                "refits restart that test, so only a paused or slow scan (a pose every 6.5 s or "
                                "more) ends early [stop_when_converged]")
     op("pause", "pause after the pose in flight is published")
-    op("resume", "continue a paused or interrupted scan at its first unpublished pose")
-    abort = op("abort", "stop the scan for good (published poses stay)")
+    resume = op("resume", "continue a paused or interrupted scan at its first unpublished pose",
+                "Continue the paused scan at its first unpublished pose. With NAME, or when the daemon holds no "
+                "scan: take over an interrupted scan it could not take over when it started (`status` says why, "
+                "e.g. a damaged chunk to move out of the folder first), then continue it.")
+    resume.add_argument("name", nargs="?", metavar="NAME", help="an interrupted scan the daemon does not hold")
+    abort = op("abort", "stop the scan for good (published poses stay)",
+               "Stop the scan for good; its published poses stay. With NAME: end an interrupted scan the daemon does "
+               "not hold (one it could not take over, `status` says why) as aborted, every chunk kept. Exits 1 when "
+               "the disk could not record the abort yet (full or read-only): the reply says what keeps it, and the "
+               "daemon writes it again until it lands.")
+    abort.add_argument("name", nargs="?", metavar="NAME", help="an interrupted scan the daemon does not hold")
     abort.add_argument("--reason", help="why (recorded in the capture)")
     wait = op("wait", "block until scan NAME is complete (exit 0) or aborted (exit 1)",
               "Block until scan NAME is complete (exit 0) or aborted (exit 1). On a terminal a progress bar runs on "
@@ -163,8 +174,9 @@ def run(args) -> int:
     if args.op == "scan":
         options = {key: getattr(args, opt) for opt, (key, _) in SCAN_OPTIONS.items() if getattr(args, opt) is not None}
         request = {"options": options, **({"name": args.name} if args.name is not None else {})}
-    elif args.op == "abort" and args.reason:
-        request = {"reason": args.reason}
+    elif args.op in ("resume", "abort"):
+        request = {key: value for key, value in (("name", args.name), ("reason", getattr(args, "reason", None)))
+                   if value}
     reply = call(path, args.op, timeout, **request)
     reply.pop("ok", None)
     if args.op == "status":
@@ -172,6 +184,11 @@ def run(args) -> int:
         if live is not None:
             reply["live"] = live
     print(json.dumps(reply, indent=1 if args.op == "status" else None))
+    if args.op == "abort" and reply.get("abort_recorded") is False:
+        # The scan is over in the daemon, but not on disk yet: a script must not take that for a done abort.
+        said = reply.get("last_error") or f"the abort of scan {reply.get('aborted')!r} is not recorded on disk yet"
+        print(f"spadscan: error: {said}", file=sys.stderr)
+        return 1
     if args.op == "scan" and args.wait:
         return _wait(path, reply["scan"], args.timeout)
     return 0

@@ -106,6 +106,9 @@ class FakeRunner:
         self.calls.append(("start", name, options))
         return {"state": "scanning", "scan": name}
 
+    async def retry_aborts(self):
+        pass
+
     async def abort(self, reason):
         self.calls.append(("abort", reason))
         return {"state": "idle"}

@@ -1,0 +1,132 @@
+"""An interrupted scan with a damaged chunk (a file torn or zeroed by a power cut) is never stuck for good: the
+takeover's one-line error names the chunk and the ways out. `ctl abort NAME` ends the scan as aborted with every
+chunk kept; moving the chunk out of the folder and `ctl resume` takes the scan over and finishes it."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from spadscan.daemon.app import DeviceSession
+from spadscan.daemon.runner import ScanRunner
+from spadscan.daemon.scan_job import way_out
+from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.errors import ConfigError
+
+from test_runner import check_capture, make_cfg, make_rig, until, sphere  # noqa: F401  (sphere: the fixture)
+
+VIEWS = 10
+
+
+async def interrupted(cfg, sphere) -> None:  # noqa: F811
+    """Scan 'vase' is cut short (as on SIGTERM) with a few poses published."""
+    arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+    async with DeviceSession([arm, sensor]):
+        runner = ScanRunner(arm, sensor, cfg)
+        await runner.start("vase")
+        await until(lambda: runner.job.next_pose >= 4, "four poses")
+        await runner.shutdown()
+
+
+def tear(folder, which: int = -1) -> str:
+    """Zero one chunk's hists.npy (a power cut); returns the chunk's name."""
+    chunk = sorted(folder.glob("chunk-*"))[which]
+    (chunk / "hists.npy").write_bytes(b"")
+    return chunk.name
+
+
+async def restarted(cfg, sphere, then) -> object:  # noqa: F811
+    """A daemon on cfg recovers; `then(runner, status)` runs before it stops and its result is returned."""
+    arm, sensor = make_rig(cfg, sphere)
+    async with DeviceSession([arm, sensor]):
+        runner = ScanRunner(arm, sensor, cfg)
+        try:
+            await runner.recover()
+            return await then(runner, runner.status())
+        finally:
+            await runner.shutdown()
+
+
+def test_a_scan_with_a_damaged_chunk_says_the_way_out_and_can_be_aborted_keeping_every_chunk(arun, tmp_path,
+                                                                                              sphere):  # noqa: F811
+    cfg = make_cfg(tmp_path, views=VIEWS, auto_resume=True)
+    folder = tmp_path / "caps" / "vase"
+    arun(interrupted(cfg, sphere))
+    damaged = tear(folder)
+    kept = {p.relative_to(folder): p.read_bytes() for p in folder.glob("chunk-*/*")}
+
+    async def then(runner, status):
+        with pytest.raises(ConfigError) as unnamed:
+            await runner.abort()
+        return status, str(unnamed.value), await runner.abort(name="vase"), runner.status()
+
+    status, unnamed, reply, after = arun(restarted(cfg, sphere, then))
+    said = status["last_error"]
+    assert status["state"] == "idle" and status["cannot_take_over"]["scan"] == "vase", status
+    assert said.startswith("cannot take over interrupted scan 'vase': ") and "\n" not in said, said
+    assert f"{damaged} cannot be read: move it out of {folder} (its poses are taken again), then " \
+           f"`spadscan ctl resume vase`; or `spadscan ctl abort vase` ends the scan as aborted, keeping every " \
+           f"chunk" in said, said
+    assert unnamed == ("nothing to abort (daemon is idle); scan 'vase' could not be taken over: "
+                       "`spadscan ctl abort vase` ends it"), unnamed
+    assert reply["aborted"] == "vase" and reply["abort_recorded"] is True, reply
+    assert after["last_error"] is None and "cannot_take_over" not in after
+    assert after["last_scan"] == {"name": "vase", "state": "aborted"}
+    manifest = CaptureReader(folder).manifest
+    assert manifest["state"] == "aborted" and manifest["reason"].startswith(
+        "aborted by user; it could not be taken over: ") and damaged in manifest["reason"], manifest["reason"]
+    assert {p.relative_to(folder): p.read_bytes() for p in folder.glob("chunk-*/*")} == kept  # nothing removed
+
+
+def test_a_damaged_last_chunk_moved_out_lets_ctl_resume_finish_the_scan(arun, tmp_path, sphere):  # noqa: F811
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    folder = tmp_path / "caps" / "vase"
+    arun(interrupted(cfg, sphere))
+    damaged = tear(folder)
+
+    async def then(runner, status):
+        with pytest.raises(ConfigError) as still:
+            await runner.resume("vase")  # not moved out yet: refused again, with the way out
+        shutil.move(folder / damaged, tmp_path / damaged)
+        resumed = await runner.resume()  # the daemon holds no scan: the one it could not take over is tried again
+        return str(still.value), resumed, await runner.wait("vase")
+
+    still, resumed, done = arun(restarted(cfg, sphere, then))
+    assert f"{damaged} cannot be read: move it out" in still, still
+    assert resumed["state"] == "scanning" and resumed["scan"] == "vase" and "cannot_take_over" not in resumed
+    assert done == {"name": "vase", "state": "complete"}
+    check_capture(folder, VIEWS, 2)  # every pose once: the damaged chunk's poses were taken again
+    assert (tmp_path / damaged / "meta.json").is_file()  # the operator's copy is untouched
+
+
+def test_a_damaged_chunk_before_the_last_is_said_to_leave_its_poses_missing(arun, tmp_path, sphere):  # noqa: F811
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    folder = tmp_path / "caps" / "vase"
+    arun(interrupted(cfg, sphere))
+    first = tear(folder, 0)
+    assert way_out(folder).startswith(f"{first} cannot be read: move it out of {folder} (its poses stay missing "
+                                      f"from the capture)")
+    (folder / sorted(folder.glob("chunk-*"))[-1] / "poses.npy").write_bytes(np.zeros(3).tobytes())
+    assert "a last chunk's poses are taken again, the others' stay missing" in way_out(folder)
+
+
+def test_abort_name_refuses_a_scan_that_is_not_the_daemons_to_end(arun, tmp_path, sphere):  # noqa: F811
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    arun(interrupted(cfg, sphere))
+
+    async def then(runner, status):
+        errors = []
+        for name in ("nope", "../x"):
+            with pytest.raises(ConfigError) as refused:
+                await runner.abort(name=name)
+            errors.append(str(refused.value))
+        await runner.abort(name="vase")  # the interrupted scan it took over, paused: aborted as usual
+        with pytest.raises(ConfigError) as again:
+            await runner.abort(name="vase")
+        return errors, str(again.value)
+
+    errors, again = arun(restarted(cfg, sphere, then))
+    assert errors[0].startswith("no scan named 'nope'") and "must be" in errors[1], errors
+    assert again == "scan 'vase' has already ended (aborted)", again
