@@ -23,6 +23,9 @@ class SerialSensorSettings(SensorBackend):
     """Serial device of the bridge, e.g. /dev/ttyACM0 (required for 'serial')."""
     baud: int = key(1_000_000, "int", lo=1200, hi=12_000_000)
     """Baud rate of the bridge (the firmware prints at 1000000; some sketches at 115200)."""
+    bridge_period_ms: int = key(230, "int", lo=1, hi=65535, unit="ms")
+    """Measurement period the bridge's firmware sets, ms (the UW firmware's PERIOD: 230); frames count back two
+    periods from the previous record to bound when their exposure began."""
 
     def checked(self, section, where, base):
         if self.port is None:
@@ -39,7 +42,7 @@ class SerialSensorSettings(SensorBackend):
     def build(self, sensor, model, arm, hand_eye, where):
         from spadscan.daemon.sensor import SerialSensor
 
-        return SerialSensor(self.port, self.baud, model=model)
+        return SerialSensor(self.port, self.baud, model=model, period_ms=self.bridge_period_ms)
 
     def rig_record(self) -> dict:
         return {"port": self.port, "baud": self.baud}

@@ -12,6 +12,9 @@ capture. These are plain functions and a state machine without threads or I/O.
 
 from __future__ import annotations
 
+import collections
+import math
+
 import numpy as np
 
 from spadscan.daemon.devices import Frame
@@ -20,6 +23,8 @@ from .transport import (N_CHANNELS, N_SUBPACKETS, SUBPACKET_BYTES, HistogramPack
                         StatusPacket)
 
 DROP_REASONS = ("out_of_order", "incomplete", "no_result", "stalled", "link_reset")
+INTERVAL_WINDOW = 8
+"""Complete frames whose intervals bound the sensor's actual period (the longest of them counts)."""
 
 
 def decode_histograms(payloads: np.ndarray) -> np.ndarray:
@@ -47,21 +52,33 @@ class FrameAssembler:
     """Turns a stream of packets into complete frames; counts every frame it drops and why.
 
     `frame_timeout_s`: a frame whose result has not arrived this long after its first sub-packet is dropped as
-    'stalled' (its timestamps would lie). `t_start` of a frame is the arrival time of the last record before its
-    first sub-packet (normally the previous frame's result): the sensor exposes the next frame while it sends the
-    previous one, so the exposure began no later than that. The arrival of its first sub-packet is kept in
-    `extra['t_first_packet']`. After `reset` the first frame starts at the reset time when the sensor was told to
-    start measuring then; when it kept measuring on its own (a bridge after a reopen) that frame may have been
-    exposed partly before the reset and has no start time to give: it is dropped ('link_reset').
+    'stalled' (its timestamps would lie).
+
+    `t_start` of a frame is a lower bound on when its exposure began (`Frame`), from this timing model of the chip:
+    it measures cyclically, one measurement after another, each within one period P; a finished measurement waits in
+    a one-frame buffer, a newer one replacing it, until the previous frame has been handed over (the host cleared
+    its last record). So the frame handed over next finished measuring no earlier than one period before that
+    hand-over, and began no earlier than two periods before it. The hand-over came after the arrival of the last
+    record before the frame's first sub-packet (normally the previous frame's result), less `lag_s` (a bridge
+    prints a record after it read it): t_start = that arrival - 2 P - lag_s. P is the longest of the configured
+    `period_s` and the intervals between the last INTERVAL_WINDOW complete frames (a measurement that takes longer
+    than the configured period stretches it). After `restart(t)` or `reset(t)` with restarted=True (the sensor was
+    told to start measuring at t) no exposure began before t, and t_start is never earlier than that. The arrival
+    of its first sub-packet is kept in `extra['t_first_packet']`. After `reset` with restarted=False (the sensor
+    kept measuring on its own: a bridge after a reopen) the first frame has no earlier arrival to count back from
+    and is dropped ('link_reset').
 
     `silent_cause` is the last error the link reported (a bridge's `#Err` line) since the last complete frame, with
     its arrival time, or None: why frames may have stopped.
     """
 
-    def __init__(self, frame_timeout_s: float = 2.0, t0: float = 0.0):
+    def __init__(self, frame_timeout_s: float = 2.0, t0: float = 0.0, period_s: float = 0.0, lag_s: float = 0.0):
         if not frame_timeout_s > 0:
             raise ValueError(f"frame timeout {frame_timeout_s} s must be positive")
+        if not (period_s >= 0 and lag_s >= 0):
+            raise ValueError(f"period {period_s} s and arrival lag {lag_s} s must be >= 0")
         self.frame_timeout_s = frame_timeout_s
+        self.period_s, self.lag_s = period_s, lag_s
         self.counts = {"frames": 0, "packets": 0, "packets_discarded": 0, "status_errors": 0}
         self.dropped = {reason: 0 for reason in DROP_REASONS}
         self.last_status_error = ""
@@ -74,15 +91,37 @@ class FrameAssembler:
         self._t_last = t0
         self._unbounded_next = False  # the next frame to start may have been exposed before a reset
         self._unbounded = False  # the frame in progress is that frame
+        self._floor = -math.inf  # when the sensor was last told to start measuring: no exposure began before it
+        self._t_prev_end: float | None = None  # the last complete frame's result arrival (or the restart), or None
+        self._intervals: collections.deque[float] = collections.deque(maxlen=INTERVAL_WINDOW)
 
-    def reset(self, t: float, restarted: bool = True) -> None:
+    def reset(self, t: float, restarted: bool = True, drop_first: bool | None = None) -> None:
         """Forget a frame in progress (the link was reset at monotonic time t). restarted: the sensor was told to
         start measuring at t, so later frames start after t; False: it kept measuring, and the first frame that
-        starts after t is dropped (its exposure may have begun before t)."""
+        starts after t is dropped (its exposure may have begun before t) unless drop_first=False says that t bounds
+        it as a record's arrival would (the link was emptied at t and reads live from then on)."""
         if self._expected is not None:
             self._drop("link_reset")
+        self._mark(t, restarted, (not restarted) if drop_first is None else drop_first)
+
+    def restart(self, t: float) -> bool:
+        """The sensor was told at t to stop and start a fresh measurement: forget the frame in progress (returns
+        whether there was one; it is discarded on purpose, not counted as dropped); later frames start after t."""
+        discarded = self._expected is not None
+        self._expected = None
+        self._mark(t, True, False)
+        return discarded
+
+    def lookback_s(self) -> float:
+        """How long before the last record's arrival the next frame's exposure may have begun, s."""
+        return 2 * max([self.period_s, *self._intervals]) + self.lag_s
+
+    def _mark(self, t: float, restarted: bool, drop_first: bool) -> None:
         self._t_last = t
-        self._unbounded_next = not restarted
+        if restarted:
+            self._floor = t
+        self._t_prev_end = t if restarted else None  # a restart starts the first measurement's interval
+        self._unbounded_next = drop_first
 
     def feed(self, pkt: Packet) -> Frame | None:
         """Take one packet; returns a frame when this packet completed one."""
@@ -128,7 +167,7 @@ class FrameAssembler:
                 self._drop("no_result" if self._expected == N_SUBPACKETS else "incomplete")
             self._expected = 0
             self._t_first = pkt.t
-            self._t_start = self._t_last
+            self._t_start = max(self._floor, self._t_last - self.lookback_s())
             self._unbounded, self._unbounded_next = self._unbounded_next, False
         elif self._expected != pkt.index:
             # Missing, duplicated or out of order (or we joined mid-frame): wait for the next sub-packet 0.
@@ -147,6 +186,9 @@ class FrameAssembler:
                 self._drop("incomplete")
             return None
         self._expected = None
+        if self._t_prev_end is not None:
+            self._intervals.append(pkt.t - self._t_prev_end)
+        self._t_prev_end = pkt.t
         if self._unbounded:
             self._unbounded = False
             self.dropped["link_reset"] += 1

@@ -31,6 +31,11 @@ for `watchdog_s`, APP_ID and CMD_STAT are checked: a sensor that lost power is b
 application that stopped measuring (CMD_STAT not 0x01, e.g. 0x03 "severe error, stopped") sends nothing more; the
 device treats either as a dropped link (it boots, downloads if needed, configures and measures again). `stop` sends
 0xFF and clears its INT_ENAB bits again.
+
+`restart` (once the arm has settled) stops the measurement and starts a fresh one, as ams' Python driver's
+stopMeasure/startMeasure and its Linux driver's stop/start do: 0xFF (status 0x00), INT_STATUS <- 0xFF (so that no
+record of the stopped measurement is read), 0x10 (accepted: 0x01). The chip measures cyclically from the 0x10 on, so
+no record read after it was exposed before it.
 """
 
 from __future__ import annotations
@@ -93,6 +98,7 @@ class I2CTransport(Transport):
         self.firmware_path = None if firmware is None else Path(firmware)
         self.period_ms, self.kilo_iterations, self.spad_map = period_ms, kilo_iterations, spad_map
         self.poll_s, self.timeout_s, self.watchdog_s = poll_s, timeout_s, watchdog_s
+        self.period_s = period_ms / 1000  # the host reads each record itself: arrival_lag_s stays 0
         self.name = f"i2c bus {bus} addr {address:#04x}"
         self._factory = smbus_factory
         self._bus = None
@@ -138,6 +144,12 @@ class I2CTransport(Transport):
         self._command(CMD_WRITE_CONFIG)
         self._write(REG_INT_STATUS, 0xFF)
         self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) | INT_RESULT | INT_HISTOGRAM)
+        self._command(CMD_MEASURE)
+        self._last_record = time.monotonic()
+
+    def restart(self) -> None:
+        self._command(CMD_STOP)
+        self._write(REG_INT_STATUS, 0xFF)  # a record of the stopped measurement still flagged is not read
         self._command(CMD_MEASURE)
         self._last_record = time.monotonic()
 

@@ -12,6 +12,11 @@ The temperature is the result record's byte printed unsigned (0..255): it carrie
 values above 127 are below 0 C (250 is -6 C). The bridge has no checksum: a line is accepted when its tag, field count and every value are well-formed and in
 range; anything else (a partial line after a mid-line start or an unplug, two lines run together, line noise) is
 skipped and counted, and the frame it belonged to is dropped by the frame assembler.
+
+Timing: the bridge keeps the sensor measuring on the period its firmware sets (the UW firmware: 230 ms) and cannot be
+told to start a fresh measurement. In its loop it clears a record's interrupt, reads the record over I2C and prints
+it; the chip hands over the next record after the clear. A frame's `t_start` counts back from the arrival of the line
+before its first `#Raw` line by two periods and `arrival_lag_s` (`assembly.FrameAssembler` has the model).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import time
 
 import serial
 
+from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
 
 from .i2c_records import signed_byte
@@ -36,6 +42,14 @@ RAW_FIELDS = 3 + SUBPACKET_BYTES
 OBJ_FIELDS = 6 + 2 * N_RESULTS
 MAX_LINE_BYTES = 4096
 """A line longer than this without a newline is garbage (a #Raw line is at most ~520 bytes)."""
+BRIDGE_PERIOD_MS = 230
+"""The measurement period the UW bridge firmware configures (its PERIOD), ms."""
+BRIDGE_READ_AND_USB_S = 0.03
+"""Bound on the time from the bridge's clear of a record's interrupt to the arrival of its line, printing aside, s:
+reading the 132-byte result over I2C (~12 ms at 100 kHz, ~3 ms at the firmware's 400 kHz) and the USB link's
+delivery (a USB-serial chip holds data up to its latency timer: 16 ms by default on FTDI chips)."""
+PRINTED_BYTES = 1200
+"""Bytes the bridge may print between a hand-over and the arrival the next frame counts back from: two lines."""
 
 
 def _uint(field: bytes, limit: int) -> int:
@@ -121,10 +135,15 @@ class SerialBridgeTransport(Transport):
     error_hint = ("the UW bridge firmware stops measuring after a failed read and does not resume: reset or replug "
                   "the bridge")
 
-    def __init__(self, port: str, baud: int = 1_000_000, address: int | None = 0x41):
+    def __init__(self, port: str, baud: int = 1_000_000, address: int | None = 0x41,
+                 period_ms: float = BRIDGE_PERIOD_MS):
+        if not (isinstance(period_ms, (int, float)) and 0 < period_ms <= 65535):
+            raise DeviceError(f"serial sensor: bridge period {period_ms} ms must be in (0, 65535] ms")
         self.port = str(port)
         self.baud = int(baud)
         self.address = address
+        self.period_s = period_ms / 1000
+        self.arrival_lag_s = BRIDGE_READ_AND_USB_S + PRINTED_BYTES * 10 / self.baud  # 10 bits a byte on the UART
         self.name = f"serial {self.port}"
         self._ser: serial.Serial | None = None
         self._buf = bytearray()
@@ -141,6 +160,18 @@ class SerialBridgeTransport(Transport):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkDown(f"cannot open port at {self.baud} baud: {exc}") from None
         self._ser = ser
+        self._buf.clear()
+        self._pending.clear()
+
+    def start(self) -> None:
+        """Empty the link: lines that waited in the OS buffer since `open` would get late arrival times, and a
+        frame's t_start counts back from an arrival."""
+        if self._ser is None:
+            raise LinkDown("port is not open")
+        try:
+            self._ser.reset_input_buffer()
+        except (serial.SerialException, OSError) as exc:
+            raise LinkDown(f"cannot empty the port's input: {exc}") from None
         self._buf.clear()
         self._pending.clear()
 
@@ -213,11 +244,12 @@ class SerialSensor(TMF8820):
 
     frame_timeout_s: a frame not complete this long after its first line is dropped. link_grace_s: how long the port
     may be gone (unplugged) before next_frame raises LinkLost; it is reopened with backoff meanwhile. address: the
-    sensor's I2C address printed on each line (None accepts any).
+    sensor's I2C address printed on each line (None accepts any). period_ms: the measurement period the bridge's
+    firmware sets (a longer interval between frames, when observed, counts instead).
     """
 
     def __init__(self, port: str, baud: int = 1_000_000, *, model: SensorModel | None = None,
                  frame_timeout_s: float = 2.0, link_grace_s: float = 5.0, address: int | None = 0x41,
-                 queue_frames: int = 256):
-        super().__init__(SerialBridgeTransport(port, baud, address), model=model, frame_timeout_s=frame_timeout_s,
-                         link_grace_s=link_grace_s, queue_frames=queue_frames)
+                 queue_frames: int = 256, period_ms: float = BRIDGE_PERIOD_MS):
+        super().__init__(SerialBridgeTransport(port, baud, address, period_ms), model=model,
+                         frame_timeout_s=frame_timeout_s, link_grace_s=link_grace_s, queue_frames=queue_frames)

@@ -6,6 +6,10 @@ frames with a sub-packet missing, duplicated or out of order, a mid-line start, 
 and the link removed; a replug opens a new pty behind the same link). All writes happen in one writer thread in the
 order they were queued; `close` is prompt: what is still queued or half-written is dropped (counted in
 `bytes_dropped`, as an unplug loses it), waiters in `flush` are let go, the thread stops and every descriptor closes.
+
+`start_measuring` models the bridge's timing on a chip that measures cyclically (the UW firmware's loop: clear a
+record's interrupt, read the record, print its line; the chip hands the next record over after the clear, and keeps
+the latest finished measurement in a one-frame buffer) and records when each frame's measurement was exposed.
 """
 
 from __future__ import annotations
@@ -109,6 +113,8 @@ class SimBridge:
         self.address = address
         self.write_timeout_s = write_timeout_s
         self.counts = {"frames": 0, "bytes": 0, "bytes_dropped": 0, "unplugs": 0, "replugs": 0}
+        self.exposures: dict[int, tuple[float, float]] = {}
+        """start_measuring: measurement number (its frame's systick) -> (begin, end) of its exposure, monotonic s."""
         self._master: int | None = None
         self._slave: int | None = None
         self._queue: queue.Queue = queue.Queue()
@@ -171,6 +177,47 @@ class SimBridge:
                 next_t += period_s
 
         self._stream = threading.Thread(target=run, name="spadscan-sim-bridge-stream", daemon=True)
+        self._stream.start()
+
+    def start_measuring(self, source: Callable[[], np.ndarray], period_s: float, *, line_s: float = 0.005,
+                        exposure_s: float | None = None) -> None:
+        """Stream like the UW bridge on a chip measuring cyclically from now (t0), until stop_stream.
+
+        Measurement j is exposed over [t0 + (j + 1) period_s - exposure_s, t0 + (j + 1) period_s] (exposure_s:
+        default the whole period, the longest it can take). When the bridge clears the interrupt of a frame's result
+        (before it reads and prints that line) the chip hands over the latest measurement finished by then and not
+        sent yet, or the next one when it finishes; each of the frame's 31 lines then takes line_s (reading the
+        record over I2C and printing it). Frame j carries systick j and result number j % 256; `exposures[j]` is its
+        exposure. counts (10, 128) come from `source()`.
+        """
+        exposure = period_s if exposure_s is None else exposure_s
+        if not (period_s > 0 and 0 <= exposure <= period_s and line_s >= 0):
+            raise ValueError(f"period {period_s} s, exposure {exposure} s and line time {line_s} s: need "
+                             f"0 <= exposure <= period, period > 0, line time >= 0")
+        self.stop_stream()
+        self._stream_stop.clear()
+        t0 = time.monotonic()
+        stop = self._stream_stop
+
+        def run():
+            handover, last = t0, -1  # the chip hands over the next frame at `handover`
+            while True:
+                j = max(int((handover - t0) // period_s) - 1, last + 1)  # the latest finished, else the next
+                end = t0 + (j + 1) * period_s
+                if stop.wait(max(0.0, end - time.monotonic())):
+                    return
+                self.exposures[j] = (end - exposure, end)
+                lines = frame_lines(source(), BridgeResult(result_no=j % 256, systick=j), address=self.address)
+                self.counts["frames"] += 1
+                for k, line in enumerate(lines):
+                    if k == len(lines) - 1:
+                        handover = time.monotonic()  # the result's interrupt is cleared: the next frame is up
+                    if stop.wait(line_s):
+                        return
+                    self._queue.put(("data", line))
+                last = j
+
+        self._stream = threading.Thread(target=run, name="spadscan-sim-bridge-chip", daemon=True)
         self._stream.start()
 
     def stop_stream(self) -> None:

@@ -36,7 +36,12 @@ long the chip waits for a clear before it abandons the rest of that frame and go
 frames it tore are listed in `torn`. The one-frame buffer and `hold_s` are this fake's assumptions: ams' drivers do not
 say what a chip does with a host that falls behind, only that the chip does not wait for it to measure.
 
-What it measured is kept in `produced` (its result number counts lost measurements too). Faults: `unplug`/`replug`
+What it measured is kept in `produced` (its result number counts lost measurements too), and when each measurement
+was exposed in `exposures` (monotonic (begin, end) s, same order): measuring cyclically, as ams' register map says of
+the measure command 0x10, measurement j after a 0x10 at T is exposed over [T + j I, T + (j + 1) I] with
+I = `frame_interval_s` (each takes its whole period, the longest it can take); back to back (I = 0) a measurement is
+an instant, when the buffer frees. A stop (0xFF) ends the measurement: nothing measured before it is handed over
+after it. Faults: `unplug`/`replug`
 (every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back to the bootloader, RAM lost), `crash`
 (the chip resets itself into the bootloader but keeps answering), `stop_measuring` (the application reports a severe
 error and stops, APP_ID still 0x03), `corrupt_next_record`, `app_id` (a wrong chip), `ready_after_polls=None`
@@ -89,6 +94,7 @@ class SimTMF8820Bus:
         self.accuracy_modes, self.startup_s = accuracy_modes, startup_s
         self.rng = np.random.default_rng(seed)
         self.produced: list[tuple[np.ndarray, dict]] = []
+        self.exposures: list[tuple[float, float]] = []  # (begin, end) of each measurement in `produced`, monotonic s
         self.violations: list[str] = []
         self.nacked_while_starting = 0
         """Reads and writes not acknowledged because the CPU was still starting (PON or RAMREMAP < startup_s ago)."""
@@ -412,10 +418,11 @@ class SimTMF8820Bus:
             missed = int((now - self.next_frame_t) // self.frame_interval_s)  # measured meanwhile, never sent
             self.measured += missed
             self.lost += missed + (self.buffered is not None)
+            end = self.next_frame_t + missed * self.frame_interval_s  # the latest measurement finished by now
             self.next_frame_t += (missed + 1) * self.frame_interval_s
-            self.buffered = self._measure()
+            self.buffered = self._measure(end - self.frame_interval_s, end)
         elif self.frame_interval_s <= 0 and self.buffered is None:
-            self.buffered = self._measure()
+            self.buffered = self._measure(now, now)
         if self.records and self.cleared_t is not None and now >= self.cleared_t + self.handover_s:
             self.records.pop(0)  # the host is done with it: the next record goes to 0x20
             self._publish(self.cleared_t + self.handover_s)
@@ -427,15 +434,16 @@ class SimTMF8820Bus:
             (self.frame_index, self.records), self.buffered = self.buffered, None
             self._publish(now)
             if self.frame_interval_s <= 0:
-                self.buffered = self._measure()
+                self.buffered = self._measure(now, now)
 
     def _publish(self, t: float) -> None:
         self.published_t, self.cleared_t = t, None
         if self.records:
             self.shown = self.records[0][1]
 
-    def _measure(self) -> tuple[int, list[tuple[int, bytes]]]:
-        """One measurement: its counts and result are kept in `produced`; returns (its index there, its records)."""
+    def _measure(self, begin: float, end: float) -> tuple[int, list[tuple[int, bytes]]]:
+        """One measurement exposed over [begin, end]: its counts and result are kept in `produced`, its exposure in
+        `exposures`; returns (its index there, its records)."""
         counts = self.rng.integers(0, 1 << 24, (10, 128), dtype=np.int64)
         n = len(self.produced)
         result = {"result_no": self.measured % 256, "temperature_c": int(self.rng.integers(-20, 60)), "n_valid": 9,
@@ -443,6 +451,7 @@ class SimTMF8820Bus:
                   "confidences": self.rng.integers(0, 256, 36).tolist()}
         self.measured += 1
         self.produced.append((counts, result))
+        self.exposures.append((begin, end))
         records = frame_records(counts, result, bool(self.config["hist_dump"] & 0x01), self._tid)
         for k in sorted(self._corrupt):
             if k < len(records) - 1:

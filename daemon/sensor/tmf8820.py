@@ -4,7 +4,12 @@ The reader thread runs from `prepare` to `release`: it reads packets as they arr
 true even while nobody asks for frames, e.g. while the arm moves), assembles frames and queues them for
 `next_frame`. When the link fails it closes the transport and reopens it with exponential backoff; `next_frame`
 raises `LinkLost` only once the link has been down longer than `link_grace_s`, and frames flow again after a
-replug. All transport calls (open, start, reads, stop, close) run in that same thread, one at a time.
+replug. All transport calls (open, start, reads, restart, stop, close) run in that same thread, one at a time.
+
+`begin_exposure` (the arm has settled) restarts the measurement on a transport that can (I2C): the reader thread
+stops it and starts a fresh one between two reads, and the frame in progress and the frames queued, all measured
+before, are discarded. A bridge measures on its own and cannot be restarted; its frames' `t_start` counts back from
+the previous record's arrival by the assembler's timing model (`assembly.FrameAssembler`).
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ import asyncio
 import collections
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, InvalidStateError, ThreadPoolExecutor
 
 from spadscan.daemon.devices import Frame, LinkLost, Sensor, SensorSilent
 from spadscan.protocol.errors import DeviceError, SpadscanError
@@ -51,7 +56,8 @@ class TMF8820(Sensor):
         self.link_grace_s = link_grace_s
         self.start_timeout_s = start_timeout_s
         self.backoff_s = backoff_s
-        self._assembler = FrameAssembler(frame_timeout_s, t0=time.monotonic())
+        self._assembler = FrameAssembler(frame_timeout_s, t0=time.monotonic(), period_s=transport.period_s,
+                                         lag_s=transport.arrival_lag_s)
         self._frames: collections.deque[Frame] = collections.deque()
         self._queue_frames = queue_frames
         self._executor: ThreadPoolExecutor | None = None
@@ -59,11 +65,12 @@ class TMF8820(Sensor):
         self._wake: asyncio.Event | None = None
         self._stop = threading.Event()
         self._reader: asyncio.Future | None = None
+        self._restart_request: Future | None = None  # begin_exposure's request, served by the reader thread
         self._connected = False
         self._down_since: float | None = None
         self._failure: BaseException | None = None
         self._stats = {"frames_delivered": 0, "frames_overflowed": 0, "silent_timeouts": 0, "link_drops": 0,
-                       "reconnects": 0, "reconnect_failures": 0}
+                       "reconnects": 0, "reconnect_failures": 0, "restarts": 0, "frames_discarded_at_restart": 0}
         self._last_error = ""
 
     # ---- lifecycle -----------------------------------------------------------------------------------------------
@@ -88,7 +95,9 @@ class TMF8820(Sensor):
             await self.connect()
         t_start = time.monotonic()
         await self._call(self.transport.start, "the sensor to start measuring")
-        self._assembler.reset(t_start)
+        # A sensor that measures on its own (a bridge) was not restarted, but its link was emptied in `start`: what
+        # is read from now on arrives live, and the first frame counts back from t_start like any other.
+        self._assembler.reset(t_start, self.transport.restarts_measurement, drop_first=False)
         self._frames.clear()
         self._stop.clear()
         self._reader = self._loop.run_in_executor(self._executor, self._read_loop)
@@ -120,6 +129,25 @@ class TMF8820(Sensor):
         self._connected = False
 
     # ---- frames --------------------------------------------------------------------------------------------------
+    async def begin_exposure(self) -> float | None:
+        """Stop and restart the measurement where the transport can (I2C), discarding every frame measured before;
+        returns the monotonic time before the restart (no later frame's exposure began before it), or None: the
+        transport measures on its own (a bridge), the sensor is not streaming, or the restart failed (the link is
+        then reopened, which restarts the measurement too)."""
+        if not self.transport.restarts_measurement or self._reader is None or self._reader.done():
+            return None  # not streaming, or the reader stopped (next_frame says why)
+        if self._down_since is not None:
+            return None  # a link that is down restarts the measurement when it is back
+        request: Future = Future()
+        self._restart_request = request
+        try:
+            return await asyncio.wait_for(asyncio.wrap_future(request), self.start_timeout_s)
+        except asyncio.TimeoutError:
+            raise DeviceError(f"{self.name}: timed out after {self.start_timeout_s:g} s waiting for the sensor to "
+                              f"restart its measurement") from None
+        finally:
+            self._restart_request = None
+
     async def next_frame(self, timeout_s: float) -> Frame:
         if self._reader is None or self._wake is None:
             raise DeviceError(f"{self.name}: next_frame before prepare (the sensor is not streaming)")
@@ -172,6 +200,10 @@ class TMF8820(Sensor):
     def _read_loop(self) -> None:
         try:
             while not self._stop.is_set():
+                request = self._restart_request
+                if request is not None and not request.done():
+                    self._restart(request)
+                    continue
                 try:
                     pkt = self.transport.read_packet(READ_SLICE_S)
                 except LinkDown as exc:
@@ -184,6 +216,26 @@ class TMF8820(Sensor):
         except BaseException as exc:  # a bug or an unexpected library error: report it through next_frame
             self._failure = exc
             self._notify()
+        finally:
+            request = self._restart_request
+            if request is not None:
+                _answer(request, None)  # released: there is no measurement to restart
+
+    def _restart(self, request: Future) -> None:
+        """Stop and restart the measurement (in the reader thread, between two reads); the frames measured before
+        are discarded. A failed restart is a dropped link: reopening it starts the measurement afresh."""
+        t = time.monotonic()  # the new measurement starts after this: no later exposure began before it
+        try:
+            self.transport.restart()
+        except SpadscanError as exc:
+            _answer(request, None)
+            self._link_down(exc if isinstance(exc, LinkDown) else LinkDown(f"restart failed: {exc}"))
+            return
+        discarded = self._assembler.restart(t) + len(self._frames)
+        self._frames.clear()  # the runner awaits this restart: nobody takes frames meanwhile
+        self._stats["restarts"] += 1
+        self._stats["frames_discarded_at_restart"] += discarded
+        _answer(request, t)
 
     def _push(self, frame: Frame) -> None:
         if len(self._frames) >= self._queue_frames:
@@ -203,7 +255,10 @@ class TMF8820(Sensor):
         self._stats["link_drops"] += 1
         self._last_error = str(exc)
         self._down_since = time.monotonic()
-        self._assembler.reset(self._down_since)
+        self._assembler.reset(self._down_since, restarted=False)  # what the next start says decides
+        request = self._restart_request
+        if request is not None:
+            _answer(request, None)  # the reopened link restarts the measurement itself
         self._notify()
         delay = self.backoff_s[0]
         while not self._stop.is_set():
@@ -238,3 +293,11 @@ class TMF8820(Sensor):
                 return
             # Transports word their errors without naming themselves; the device adds its name.
             raise (DeviceError if isinstance(exc, LinkDown) else type(exc))(f"{self.name}: {exc}") from None
+
+
+def _answer(request: Future, value) -> None:
+    """Answer begin_exposure's request unless it stopped waiting (timed out, cancelled)."""
+    try:
+        request.set_result(value)
+    except InvalidStateError:
+        pass

@@ -88,6 +88,12 @@ class Transport(abc.ABC):
     measures on its own (a bridge), and the first frame after a reopen may have been exposed before it."""
     error_hint: str = ""
     """What to do when frames stop after the link reported an error (its `#Err` line), for the SensorSilent message."""
+    period_s: float = 0.0
+    """The measurement period the sensor is configured with, s: the shortest time from one measurement's start to
+    the next (a measurement that takes longer stretches it; the device also uses the interval it observes)."""
+    arrival_lag_s: float = 0.0
+    """How much later than the sensor's hand-over of a record its arrival time can be, s: 0 when the host reads the
+    chip itself; a bridge reads, then prints, then the USB link delivers."""
 
     @abc.abstractmethod
     def open(self) -> None:
@@ -99,6 +105,13 @@ class Transport(abc.ABC):
     @abc.abstractmethod
     def read_packet(self, timeout_s: float) -> Packet | None:
         """The next well-formed record, or None when none arrived within timeout_s. Raises LinkDown."""
+
+    def restart(self) -> None:
+        """Stop the measurement and start a fresh one, so that nothing read after it was exposed before it; records
+        of the old measurement are not handed over any more. Only for `restarts_measurement` transports. Default:
+        `stop`, then `start`."""
+        self.stop()
+        self.start()
 
     def stop(self) -> None:
         """Stop measuring (best effort). Default: nothing to do."""

@@ -71,10 +71,32 @@ def test_a_frame_is_assembled_bit_for_bit_with_reference_and_result():
     assert asm.counters()["frames"] == 1 and asm.counters()["frames_dropped"] == 0
 
 
-def test_next_frame_starts_when_the_previous_result_arrived():
-    asm = FrameAssembler()
+def test_next_frame_counts_back_two_periods_and_the_lag_from_the_previous_result():
+    """The chip hands a frame over after the previous one's last record was cleared; it finished measuring no more
+    than a period before that, and began a period earlier still: t_start is a lower bound on its exposure."""
+    asm = FrameAssembler(period_s=0.1, lag_s=0.02)
     frames = feed_all(asm, packets_for(random_counts(3), t0=1.0) + packets_for(random_counts(4), t0=2.0))
-    assert frames[1].t_start == frames[0].t_end
+    assert frames[1].t_start == pytest.approx(frames[0].t_end - 2 * 0.1 - 0.02)
+
+
+def test_a_period_longer_than_configured_counts_once_observed():
+    """A measurement that takes longer than the configured period stretches it: the longest interval between the
+    last complete frames counts instead."""
+    asm = FrameAssembler(period_s=0.1)
+    asm.reset(0.0)  # told to start measuring at 0: the first interval runs from there
+    frames = feed_all(asm, [p for k in range(4) for p in packets_for(random_counts(30 + k), t0=0.5 + 0.5 * k)])
+    assert frames[0].t_start == 0.0  # the restart bounds the first frame
+    assert asm.lookback_s() == pytest.approx(2 * 0.53)  # 0 -> 0.53, then 0.5 s between results
+    assert frames[3].t_start == pytest.approx(frames[2].t_end - 2 * 0.53)
+
+
+def test_a_restart_discards_the_frame_in_progress_and_bounds_later_frames_by_it():
+    asm = FrameAssembler(period_s=0.1)
+    feed_all(asm, packets_for(random_counts(40), t0=1.0)[:12])
+    assert asm.restart(2.0) is True and asm.restart(2.0) is False
+    frames = feed_all(asm, packets_for(random_counts(41), t0=2.2) + packets_for(random_counts(42), t0=2.3))
+    assert [f.t_start for f in frames] == [2.0, 2.0]  # never before the restart, though 2.23 - 2 x 0.23 is
+    assert np.array_equal(frames[0].hists, random_counts(41)[1:]) and asm.counters()["frames_dropped"] == 0
 
 
 @pytest.mark.parametrize("fault, reason", [
@@ -116,20 +138,20 @@ def test_stalled_frames_and_link_resets_drop_the_frame_in_progress():
     asm.reset(6.0)
     assert asm.dropped["link_reset"] == 1
     (frame,) = feed_all(asm, packets_for(random_counts(10), t0=7.0))
-    assert frame.t_start == 6.0
+    assert frame.t_start == 6.0  # 6.0 - 2 x the longest interval seen, but no later frame began before the restart
 
 
 def test_after_a_reset_without_a_restart_the_first_frame_is_dropped():
     """A sensor told to start measuring at the reset exposes nothing before it: its first frame starts there. One that
     kept measuring (a bridge after a reopen) may have exposed that frame partly before: it has no start to give."""
-    asm = FrameAssembler()
-    asm.reset(6.0)
+    asm = FrameAssembler(period_s=0.25)
+    asm.reset(6.0, restarted=False, drop_first=False)  # a bridge's link emptied at 6.0: counted back from there
     (frame,) = feed_all(asm, packets_for(random_counts(10), t0=7.0))
-    assert frame.t_start == 6.0 and asm.dropped["link_reset"] == 0
+    assert frame.t_start == 5.5 and asm.dropped["link_reset"] == 0
     asm.reset(8.0, restarted=False)
     frames = feed_all(asm, packets_for(random_counts(11), t0=9.0) + packets_for(random_counts(12), t0=10.0))
     assert len(frames) == 1 and np.array_equal(frames[0].hists, random_counts(12)[1:])
-    assert frames[0].t_start == pytest.approx(9.03) and asm.dropped["link_reset"] == 1
+    assert frames[0].t_start == pytest.approx(9.03 - 0.5) and asm.dropped["link_reset"] == 1
     assert asm.counters()["frames"] == 2  # a dropped frame is not a frame
 
 
@@ -202,7 +224,8 @@ def test_device_streams_frames_and_stops_cleanly(arun):
 
     f1, f2 = arun(main())
     assert np.array_equal(f1.hists, random_counts(11)[1:]) and np.array_equal(f2.hists, random_counts(12)[1:])
-    assert f1.t_start <= f1.extra["t_first_packet"] <= f1.t_end <= f2.t_start
+    assert f1.t_start <= f1.extra["t_first_packet"] <= f1.t_end <= f2.extra["t_first_packet"]
+    assert f2.t_start == f1.t_start  # two observed intervals back is before the start of measuring at prepare
     assert (tr.opens, tr.starts, tr.stops, tr.closes) == (1, 1, 1, 1)
     c = dev.counters()
     assert c["frames_delivered"] == 2 and c["silent_timeouts"] == 1 and c["link"] == "up"
