@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.mesh_io import BUILTIN_PREFIX
 
 from .report.view3d import VIEW3D
 
@@ -18,6 +19,11 @@ RESULT_FILES = ("mesh.ply", "report.json")
 """Files whose presence means a folder holds a result."""
 ASIDE_DIR = ".replaced"
 """Where a previous result waits while a run replaces it (`replacing_result`)."""
+JOB_FILES = ("job.json", "job.log", "ground_truth.ply", ".complete")
+"""Files a worker's job adds to its result beside what the reconstruction lists (jobs.py, publishing.py: the job's
+options, its log, the ground truth it was scored against, the queue's completion marker). A run that replaces such a
+result must not leave them: they would describe how another mesh was made, and the marker would go on naming the
+queue's claim."""
 
 
 def check_out(out, overwrite: bool, capture=None) -> Path:
@@ -37,6 +43,18 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
         raise ConfigError(f"{out}: already holds a result ({', '.join(held)}); choose another --out, or pass "
                           "--overwrite to replace it")
     return out
+
+
+def check_ground_truth_kept(gt, out) -> None:
+    """Refuse a ground-truth file (`--gt`) that is one of the previous result's files in `out`, which a run with
+    --overwrite sets aside before it reads its ground truth (`previous_result`: a worker job's ground_truth.ply, say).
+    A built-in scene (builtin:NAME) or a file elsewhere passes."""
+    if gt is None or str(gt).startswith(BUILTIN_PREFIX):
+        return
+    gt, out = Path(gt), Path(out)
+    if out.is_dir() and _relative_to(gt.parent, out) == Path(".") and gt.name in previous_result(out):
+        raise ConfigError(f"--gt {gt} is a file of the result in --out {out}, which --overwrite sets aside while the "
+                          f"new result is written; copy it out of that folder and pass the copy")
 
 
 def _relative_to(path: Path, folder: Path) -> Path | None:
@@ -62,10 +80,14 @@ def export_mesh(mesh, path, **options) -> Path:
 
 def previous_result(out) -> set[str]:
     """The file names of the result `out` holds before a run replaces it (--overwrite): those its report.json lists
-    (`files`), the report itself, its page, its 3D view and its mesh. Files it does not list (the user's own) are no
-    part of it."""
+    (`files`), the report itself, its page, its 3D view and its mesh, and with a mesh or report there the files a
+    worker's job adds (JOB_FILES). Files it does not list (the user's own) are no part of it; nor are a job's files in
+    a folder that holds no result yet (the job's own scratch folder, where they are written before the reconstruction
+    that adds the result)."""
     out = Path(out)
     names = {*RESULT_FILES, "report.html", VIEW3D}
+    if any((out / name).is_file() for name in RESULT_FILES):
+        names |= set(JOB_FILES)
     try:
         listed = json.loads((out / "report.json").read_text()).get("files")
     except (OSError, ValueError, AttributeError):
@@ -148,4 +170,5 @@ def capture_state_note(capture, state: str, views: int, planned: int | None = No
     return (f"{capture}: the capture is {state}, not complete: reconstructing the {views} views it holds so far")
 
 
-__all__ = ["RESULT_FILES", "check_out", "export_mesh", "capture_state_note", "replacing_result"]
+__all__ = ["RESULT_FILES", "JOB_FILES", "check_out", "check_ground_truth_kept", "export_mesh", "capture_state_note",
+           "replacing_result"]

@@ -5,6 +5,10 @@ jobs while it has free slots, renews the leases of the jobs it holds, takes over
 each job when its child exits. A job runs in `python -m spadscan.worker.jobs` (its own process: torch, memory and
 crashes stay there) with its output in a log file under the queue. Stopping (Ctrl-C, SIGTERM, `stop` set) ends the
 children and gives their jobs back to the queue without counting the attempt.
+
+A finished job whose result cannot be published (a full disk while its log is copied in or its marker written) keeps
+its claim and its scratch folder: the worker says so once and tries again at every poll, as it does with every other
+write that meets a full disk; its other jobs run on.
 """
 
 from __future__ import annotations
@@ -15,18 +19,31 @@ import shutil
 import signal
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
-from .jobs import CHANGEABLE, completion, existing_result, result_path, scratch_path
+from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
 from .live.done import mark_live_done, mark_live_failed
 from .publishing import own_result, publish_claim, reconcile
 from .queue import SEP, Claim, Queue
 from .watcher import ScanReport, scan_once, watch
 from .worker_config import WorkerConfig
+
+
+@dataclass
+class Unpublished:
+    """A job whose process finished with a result that could not be published yet: its claim is still held (and
+    renewed) and its scratch folder kept until `Worker._publish` succeeds."""
+
+    child: Child
+    seconds: float
+    """How long the job had run when its process ended (the done line's time)."""
+    summary: dict
+    """The job's outcome summary (the done line's Chamfer and warnings)."""
 
 
 class Worker:
@@ -40,6 +57,8 @@ class Worker:
         (self.queue.path / "logs").mkdir(exist_ok=True)
         self.log = log or (lambda line: print(f"spadscan worker: {line}", file=sys.stderr, flush=True))
         self.children: dict[str, Child] = {}
+        self.unpublished: dict[str, Unpublished] = {}
+        """Finished jobs whose results wait to be published (a full disk): tried again at every poll."""
         self.settled: dict[str, str] = {}
         """Job id -> 'done' or 'failed' for jobs this worker finished, 'kept' for jobs it did not run because their
         results folder already held a result."""
@@ -78,6 +97,8 @@ class Worker:
                 if watcher is not None and watcher.done():
                     break  # it ended on an error it could not survive: raised below, after the jobs are stopped
                 if time.monotonic() >= next_poll:
+                    if self.unpublished:
+                        await asyncio.to_thread(self._publish_waiting)
                     try:
                         await self._poll_queue()
                         self._trouble("poll the queue", None)
@@ -85,7 +106,7 @@ class Worker:
                         self._trouble("poll the queue", exc)
                     next_poll = time.monotonic() + self.config.poll_s
                 self._heartbeat()
-                if self.config.once and not self.children and self._drained():
+                if self.config.once and not self.children and not self.unpublished and self._drained():
                     break
                 await self._wait(stop, min(self.config.poll_s, self.config.lease_s / 4))
                 await self._reap()
@@ -135,7 +156,7 @@ class Worker:
         if reclaimed:
             await asyncio.to_thread(self._reconcile)
         await asyncio.to_thread(self.queue.repair)
-        while len(self.children) < self.config.processes:
+        while len(self.children) + len(self.unpublished) < self.config.processes:  # a result to publish holds its slot
             claim = await asyncio.to_thread(self.queue.claim)
             if claim is None:
                 break
@@ -241,6 +262,13 @@ class Worker:
             if not self.queue.heartbeat(child.claim):
                 self.log(f"{job_id}: lease lost to another worker; stopping its process and dropping the result")
                 kill_group(child.proc, signal.SIGKILL)
+        for job_id, waiting in list(self.unpublished.items()):
+            child = waiting.child
+            if now - child.last_beat < self.config.lease_s / 4:
+                continue
+            child.last_beat = now
+            if not self.queue.heartbeat(child.claim):
+                self._drop_unpublished(job_id, "its lease was taken over by another worker")
 
     async def _reap(self) -> None:
         for job_id, child in list(self.children.items()):
@@ -273,7 +301,8 @@ class Worker:
                     again = "queued again" if state == "queued" else "giving up"
                     self.log(f"{job.id} crashed after {seconds:.1f} s: {reason}; {again}")
         finally:
-            if child.scratch.exists() and completion(child.scratch) is None:  # a complete result is never removed
+            # A complete result is never removed, nor one still to be published (`unpublished`).
+            if job.id not in self.unpublished and child.scratch.exists() and completion(child.scratch) is None:
                 shutil.rmtree(child.scratch, ignore_errors=True)
 
     def _settle_failed(self, job, error: str) -> None:
@@ -283,12 +312,56 @@ class Worker:
             mark_live_failed(job, self.root, error, self.log)
 
     def _settle_done(self, child: Child, seconds: float, summary: dict) -> None:
-        claim, job = child.claim, child.claim.job
-        published = publish_claim(self.queue, claim, child.scratch, result_path(job, self.root), child.log)
+        self._publish(Unpublished(child, seconds, summary))
+
+    def _publish(self, waiting: Unpublished) -> bool:
+        """Publish a finished job's result and say so; True once that is settled (published, or dropped because the
+        lease was lost). A write that fails (a full disk) keeps the job in `unpublished`, its scratch folder whole:
+        said once, tried again at the next poll."""
+        child = waiting.child
+        job = child.claim.job
+        what = f"publish the finished result of {job.id} ({child.scratch})"
+        try:
+            published = self._publish_once(child)
+        except OSError as exc:
+            self.unpublished[job.id] = waiting
+            self._trouble(what, exc)
+            return False
+        self.unpublished.pop(job.id, None)
+        self._trouble(what, None)
         if published is None:
             self.log(f"{job.id}: finished, but its lease had been taken over; result dropped")
-            return
-        final, aside = published
+            shutil.rmtree(child.scratch, ignore_errors=True)  # the job is another worker's now
+            return True
+        self._said_done(waiting, *published)
+        return True
+
+    def _publish_once(self, child: Child) -> tuple[Path, Path | None] | None:
+        """publishing.publish_claim, or, when an earlier try got as far as renaming the result into place (a full disk
+        met while the queue's record was written), the rest of it: the job recorded as done with that result."""
+        claim = child.claim
+        final = result_path(claim.job, self.root)
+        if not child.scratch.exists() and (completion(final) or {}).get("token") == claim.token:
+            if claim.path.exists():
+                self.queue.finish(claim, str(final))
+            else:  # moved to done/ already: only its attempt record was left to complete
+                self.queue.record_done(claim.job.id, str(final))
+            return final, None
+        return publish_claim(self.queue, claim, child.scratch, final, child.log)
+
+    def _publish_waiting(self) -> None:
+        for waiting in list(self.unpublished.values()):
+            self._publish(waiting)
+
+    def _drop_unpublished(self, job_id: str, why: str) -> None:
+        waiting = self.unpublished.pop(job_id)
+        self._troubles.pop(f"publish the finished result of {job_id} ({waiting.child.scratch})", None)
+        shutil.rmtree(waiting.child.scratch, ignore_errors=True)
+        self.log(f"{job_id}: finished, but {why} before its result could be published; result dropped")
+
+    def _said_done(self, waiting: Unpublished, final: Path, aside: Path | None) -> None:
+        """Record a published job as done and log its done line."""
+        job, seconds, summary = waiting.child.claim.job, waiting.seconds, waiting.summary
         if job.live:
             mark_live_done(job, self.root, final, self.log)
         self.settled[job.id] = "done"
@@ -308,7 +381,15 @@ class Worker:
 
     # ---- stopping --------------------------------------------------------------------------------------------
     async def _shutdown(self) -> None:
-        """Stop every child (SIGTERM, then SIGKILL after the grace period) and give its job back to the queue."""
+        """Stop every child (SIGTERM, then SIGKILL after the grace period) and give its job back to the queue; try
+        once more to publish the finished results still waiting (`_leave_unpublished`)."""
+        try:
+            await self._stop_children()
+        finally:
+            if self.unpublished:
+                await asyncio.to_thread(self._leave_unpublished)
+
+    async def _stop_children(self) -> None:
         if not self.children:
             return
         for child in self.children.values():
@@ -325,6 +406,29 @@ class Worker:
             child.outcome.unlink(missing_ok=True)
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()
+
+    def _leave_unpublished(self) -> None:
+        """A worker that stops while finished results wait to be published tries each once more. One that still
+        cannot be published is marked complete without its log (the queue's logs/ keeps it), so that the next worker
+        to start publishes it (publishing.reconcile), and its job is given back to the queue; only when not even the
+        marker can be written is the result lost, and the line says that the job will run again."""
+        self._publish_waiting()
+        for job_id, waiting in list(self.unpublished.items()):
+            child = waiting.child
+            try:
+                mark_complete(child.scratch, job_id, child.claim.token, self.queue.path)
+                kept = f"its finished result stays in {child.scratch}, for the next worker to publish"
+            except OSError as exc:
+                shutil.rmtree(child.scratch, ignore_errors=True)
+                kept = (f"its finished result could not be kept ({' '.join(str(exc).split())}): it will be "
+                        f"reconstructed again")
+            del self.unpublished[job_id]
+            try:
+                released = self.queue.release(child.claim, "worker stopped before it could publish the result")
+            except OSError:  # its job file went back to queued/ (a rename), its record could not say why
+                released = True
+            if released:
+                self.log(f"{job_id} stopped before its result could be published; back in the queue, {kept}")
 
 
 def _shown(value) -> str:

@@ -50,7 +50,7 @@ import sys
 from pathlib import Path
 
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run
-from spadscan.worker.outputs import check_out
+from spadscan.worker.outputs import check_ground_truth_kept, check_out
 from spadscan.worker.recon.config import PRESET_NAMES, parse_override
 
 
@@ -77,8 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "that outnumber the cores make every step many times slower")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out: the files its report.json lists that this run "
-                             "does not write again are removed, other files left (without it, a folder that holds "
-                             "mesh.ply or report.json is refused)")
+                             "does not write again are removed, and so are a worker job's job.json, job.log, "
+                             "ground_truth.ply and .complete marker; other files are left (without it, a folder that "
+                             "holds mesh.ply or report.json is refused)")
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
@@ -99,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"spadscan reconstruct: {line}", file=sys.stderr, flush=True)
 
     gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
+    if args.overwrite:
+        check_ground_truth_kept(gt, out)
     report = reconstruct_capture(Path(args.capture), out, preset=args.preset, budget_s=args.budget_s,
                                  steps=args.steps, gt=gt, device=args.device, seed=args.seed,
                                  progress=not args.no_progress, overrides=overrides or None, threads=args.threads,

@@ -16,7 +16,7 @@ reconstruct finished scans again, `--redo JOB...` moves each one's results folde
 --budget-s bounds each job's whole run, from its process's start to its report (within 10 % or 10 s, whichever is
 larger): the mesh is coarser and the metrics use fewer points when time is short. --status shows, for each done
 job, whether its reconstruction converged and the warnings its report gives (a run cut short, starved of CPU, or
-whose fit does not explain the measurements).
+whose fit does not explain the measurements, a 3D view that could not be written).
 
 Options are frozen into each job when it is queued: --budget-s, --steps, --device and --seed apply to the scans a
 worker queues, and a job already queued (by this worker or an earlier one) runs with its own (the worker names, when
@@ -47,6 +47,9 @@ A job is recorded as done only once its result is in place, so a worker killed a
 next worker to start reconciles the queue with the result folders. It publishes the finished result a dead worker
 left in a scratch folder (<scan>/recon/.tmp-<job>-<claim>/, complete once its marker .complete is written), records
 as done a job whose result is in place, removes partial results, and queues again a done job whose result is gone.
+A full disk while a finished result is published (its log copied in, its marker written) loses nothing either: the
+worker keeps the result and the job's claim, says so once, and publishes it when there is room again, while its
+other jobs run on.
 
 --status lists the jobs and changes nothing. A running job shows how far it has got (its progress bar: seconds of
 its budget or steps, the step, the loss and, where the scene is known, the last checkpoint's Chamfer; --json:

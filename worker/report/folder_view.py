@@ -2,8 +2,9 @@
 the sensor poses of the capture it came from, written as view3d.html beside report.html.
 
 Every reconstruction and baseline writes its report page through report_html, which asks for this view: so every
-report has one, whoever wrote it. A view newer than its mesh is kept; one that cannot be made is a warning, never
-a failed run.
+report has one, whoever wrote it. A view newer than its mesh is kept; one that cannot be made (a full disk) is a
+warning, never a failed run: a line on stderr, and one in the report's own "warnings", so that report.json, the
+worker's done line and `spadscan worker --status` say that the result has no 3D view.
 """
 
 from __future__ import annotations
@@ -56,7 +57,8 @@ def capture_poses(capture) -> np.ndarray | None:
 
 def ensure_view3d(report: dict, folder) -> Path | None:
     """`folder`/view3d.html for the folder's mesh.ply, made unless one newer than the mesh is there; None when the
-    folder holds no mesh or the view cannot be made (a warning line says why)."""
+    folder holds no mesh or the view cannot be made: a warning line says why, and `report` (the report to be
+    written) gets the warning in its "warnings" (`no_view_warning`)."""
     from spadscan.protocol.mesh_io import load_mesh
 
     from ..ground_truth import load_ground_truth
@@ -76,4 +78,20 @@ def ensure_view3d(report: dict, folder) -> Path | None:
         return write_view3d(folder, mesh, gt, capture_poses(report.get("capture")), title=f"{name} ({kind})")
     except (SpadscanError, OSError) as exc:
         offscreen.warn(f"no {VIEW3D} in {folder}: {exc}")
+        _add_warning(report, no_view_warning(exc))
         return None
+
+
+def no_view_warning(exc: Exception) -> str:
+    """The report's warning for a view that could not be made. An OSError's own path is left out: it names the
+    folder the result was written in, which a job's result no longer is once published."""
+    why = (exc.strerror or str(exc)) if isinstance(exc, OSError) else str(exc)
+    return f"no 3D view: {VIEW3D} could not be written ({' '.join(why.split())})"
+
+
+def _add_warning(report: dict, warning: str) -> None:
+    """Add `warning` to the report's "warnings" once (a report page written again tries the view again)."""
+    own = report.get("warnings")
+    own = list(own) if isinstance(own, list) else []
+    if warning not in own:
+        report["warnings"] = [*own, warning]
