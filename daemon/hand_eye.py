@@ -6,11 +6,13 @@ stored sensor pose times the inverse of the stored X). With the right X the sens
 puts it. The fit moves X until, for every view and zone, the *observed* return's position (a windowed centroid
 around the histogram's peak, in bins) matches the *predicted* one: the same estimator applied to the histogram the
 simulator expects for that zone (`protocol.simulator`: the zone's rays, the pulse, gains, crosstalk, pile-up), so
-the estimator's own biases cancel. Levenberg-Marquardt over six parameters (a rotation vector applied on the sensor's
-side of X's rotation, a translation in the flange frame), optionally a seventh: a shift of the sensor model's zero
-bin; before it, the start is moved along the sensor's axis to the returns' median range (a start centimetres off along
-it leaves the fit no way back). After it, X's uncertainty (sigma^2 (J^T J)^-1); views that leave part of X
-undetermined are refused rather than fitted. Both uncertainties are given along and about the flange's axes.
+the estimator's own biases cancel; a zone whose predicted return peaks outside the observed return's window is lost,
+not a match. Levenberg-Marquardt over six parameters (a rotation vector applied on the sensor's side of X's rotation,
+a translation in the flange frame), optionally a seventh: a shift of the sensor model's zero bin; before it, the start
+is moved along the sensor's axis to the returns' median range (a start centimetres off along it leaves the fit no way
+back), and it is tried turned four ways about that axis (TURNS_DEG). After it, X's uncertainty (sigma^2 (J^T J)^-1);
+views that leave part of X undetermined are refused rather than fitted. Both uncertainties are given along and about
+the flange's axes.
 
 A plane constrains X well when the views tilt the tool in different directions (rotations about several axes carry
 X's translation across the plane's normal); residuals of a few millimetres remain on real data (the peak's sub-bin
@@ -57,6 +59,14 @@ UNDETERMINED_DEG = 5.0
 a flange axis or of its rotation about one exceeds these: the views leave that part of X to the optimiser's drift
 (views all turned about one axis, rings without jitter, too few views: tens of millimetres to metres); views tilted
 5-30 degrees every way give about 1 mm and 0.6 degrees."""
+RIGID_TOL = 1e-4
+"""A recorded tcp_pose's rotation must be orthonormal to this (the simulator's tolerance for the poses it renders)."""
+TURNS_DEG = (0.0, 90.0, 180.0, 270.0)
+SCOUT_ITERATIONS = 2
+"""The fit starts from the given X turned each of TURNS_DEG about the sensor's boresight (a connector's orientation
+may be unknown, and a local fit from 135-180 degrees off settles in a wrong minimum), takes SCOUT_ITERATIONS steps
+from each and carries on from the one with the least cost: after two, the start nearest the right turn (within 45
+degrees) led for every turn tried round the circle, and the four scouts cost about two fits from one start."""
 UNCERTAIN_MM = 5.0
 UNCERTAIN_DEG = 2.0
 """Above these (one standard deviation, for the fit's own scatter) `calibrate` warns: the recipe in the docs gives
@@ -64,16 +74,27 @@ about 2.5 mm and 0.7 degrees for returns scattered by SIGMA_FLOOR_BINS."""
 
 PLAUSIBLE_TILT_DEG = 10.0
 PLAUSIBLE_ACROSS_MM = 20.0
-PLAUSIBLE_ALONG_MM = 100.0
+PLAUSIBLE_ALONG_MM = 20.0
+PLAUSIBLE_ALONG_UNMOUNTED_MM = 100.0
 PLAUSIBLE_RMS_MM = 10.0
+PLAUSIBLE_LOST = 0.2
 """Beyond these `calibrate` warns that the fit is more likely wrong than the bracket: a bracket's drawing or a
-caliper measurement puts the sensor's axis within a few degrees and its aperture within a few millimetres sideways,
-and a start whose axis is tilted more than about 20 degrees can settle in a wrong minimum (firmware_notes/hand_eye.md),
-so a fitted tilt of the axis over 10 degrees or a sideways shift over 20 mm is twice a careless start. Along the
-axis the start may be centimetres off (the default identity, a bracket left out: the fit moves it back first), but
-not more than a bracket is long (10 cm). A turn about the axis is not limited (the connector's orientation may be
-unknown; the fit recovers any). A residual RMS over 10 mm is more than real data leaves with the right target (a
-few millimetres): tens of millimetres mean a wrong target."""
+caliper measurement puts the sensor's axis within a few degrees and its aperture within a few millimetres, and a
+start whose axis is tilted more than about 20 degrees can settle in a wrong minimum (firmware_notes/hand_eye.md), so a
+fitted tilt of the axis over 10 degrees or a shift over 20 mm across or along the axis is twice a careless start.
+Along the axis a start without a translation (the default identity, a bracket left out: the fit moves it back first)
+may be off by as much as a bracket is long (10 cm). A height error in the target (a plane's point measured with the
+pointer's TCP not active, off by the pointer's length) or a zero bin off goes into X's offset along the axis and
+leaves small residuals (80 mm: 2 mm RMS, a z uncertainty of 0.3 mm): only this limit sees it. A turn about the axis
+is not limited (the connector's orientation may be unknown; the fit tries four turns). A residual RMS over 10 mm is
+more than real data leaves with the right target (a few millimetres), and on a plane more than a fifth of the zone
+returns left off it means something else in view (an object standing on it, a wrong plane)."""
+HEIGHT_ACROSS = 0.3
+"""A plane given too high or too low moves the fitted X along the sensor's axis and across it by up to about a
+quarter of that (tilted views: 120 mm along came with 22 mm across); a fit that moved no more across than this share
+is put down to the target's height first."""
+UNMOUNTED_MM = 1.0
+"""A start whose translation is shorter than this is taken for one without the bracket (the default identity)."""
 
 
 @dataclass(frozen=True)
@@ -144,11 +165,21 @@ class HandEyeFit:
     """Bins added to the sensor model's zero bin (0 unless fitted)."""
     iterations: int = 0
     lost: int = 0
-    """Zones whose return the fitted X no longer predicts (left out of rms_mm and returns)."""
+    """Zones that show a return which the fitted X does not put on the target within its window (left out of
+    rms_mm and returns)."""
+    lost_start: int = 0
+    """Of the `returns` zones, those whose return the start puts off the target or outside its window (left out of
+    rms_start_mm, which covers the other returns - lost_start zones only)."""
     std_mm: tuple = (0.0, 0.0, 0.0)
     """One standard deviation of X's translation along the flange's x, y, z (mm)."""
     std_deg: tuple = (0.0, 0.0, 0.0)
     """One standard deviation of X's rotation about the flange's x, y, z (degrees)."""
+    bin_width_mm: float = 0.0
+    """The capture's histogram bin, one-way range (mm): a return more than WINDOW_BINS of them off is lost."""
+    kind: str = "plane"
+    """The target's kind ('plane' or 'sphere'): beside a sphere, zones that see something else are expected."""
+    turn_deg: float = 0.0
+    """Which of TURNS_DEG about the sensor's boresight the fit went on from (0: the start as given)."""
 
     @property
     def uncertain(self) -> bool:
@@ -166,21 +197,56 @@ class HandEyeFit:
     def implausible(self) -> list[str]:
         """How the fitted X left the start or explains the returns beyond what a right fit from a bracket's drawing
         does (see PLAUSIBLE_TILT_DEG), each as a phrase with its unit; empty when nothing does."""
-        axis = self.start[:3, 2]
-        moved = (self.hand_eye[:3, 3] - self.start[:3, 3]) * 1e3
-        along = float(moved @ axis)
-        across = float(np.linalg.norm(moved - along * axis))
-        tilt = math.degrees(math.acos(float(np.clip(axis @ self.hand_eye[:3, 2], -1.0, 1.0))))
+        tilt, across, along = self._moved()
         out = []
         if tilt > PLAUSIBLE_TILT_DEG:
             out.append(f"tilted the sensor's axis {tilt:.0f} deg")
         if across > PLAUSIBLE_ACROSS_MM:
             out.append(f"moved it {across:.0f} mm across its axis")
-        if abs(along) > PLAUSIBLE_ALONG_MM:
+        if abs(along) > self.along_limit_mm:
             out.append(f"moved it {along:+.0f} mm along its axis")
         if self.rms_mm > PLAUSIBLE_RMS_MM:
             out.append(f"left a residual RMS of {self.rms_mm:.1f} mm")
+        shown = self.returns + self.lost
+        if self.kind == "plane" and shown and self.lost > PLAUSIBLE_LOST * shown:
+            out.append(f"left {self.lost} of the {shown} zone returns off the plane")
         return out
+
+    @property
+    def along_limit_mm(self) -> float:
+        """How far along the sensor's axis the fit may move X without a warning (see PLAUSIBLE_ALONG_MM)."""
+        unmounted = np.linalg.norm(self.start[:3, 3]) * 1e3 < UNMOUNTED_MM
+        return PLAUSIBLE_ALONG_UNMOUNTED_MM if unmounted else PLAUSIBLE_ALONG_MM
+
+    def likely_causes(self) -> str:
+        """The likely causes of an implausible fit, likeliest first. A fit that moved X mostly along the sensor's axis
+        and explains the returns points at the target's height (or the zero bin): a height error leaves no other
+        trace. Many returns left off a plane point at something else in view."""
+        tilt, across, along = self._moved()
+        shown = self.returns + self.lost
+        off_plane = self.kind == "plane" and shown and self.lost > PLAUSIBLE_LOST * shown
+        if off_plane:
+            return ("likely something standing on the plane, or a wrong target (its height, a sign or axis of "
+                    "--plane), or a start whose axis is tilted more than about 20 deg")
+        height = (abs(along) > self.along_limit_mm and tilt <= PLAUSIBLE_TILT_DEG and self.rms_mm <= PLAUSIBLE_RMS_MM
+                  and across <= max(PLAUSIBLE_ACROSS_MM, HEIGHT_ACROSS * abs(along)))
+        if height:
+            return ("likely the target's height: a point of --plane / --sphere measured with the wrong TCP active "
+                    "(off by the pointer's length) or a wrong Z, or the sensor model's zero bin (calibration.md); a "
+                    "height error goes into X along the sensor's axis and leaves small residuals; else a wrong "
+                    "target (a sign or axis of --plane / --sphere) or something standing on the plane")
+        return ("likely a wrong target (a sign or axis of --plane / --sphere, a point measured with the wrong TCP), "
+                "something standing on the plane, or a start whose axis is tilted more than about 20 deg")
+
+    def _moved(self) -> tuple[float, float, float]:
+        """How the fit moved X from the start: the tilt of the sensor's axis (degrees), the aperture's shift across
+        the axis and along it (mm)."""
+        axis = self.start[:3, 2]
+        moved = (self.hand_eye[:3, 3] - self.start[:3, 3]) * 1e3
+        along = float(moved @ axis)
+        across = float(np.linalg.norm(moved - along * axis))
+        tilt = math.degrees(math.acos(float(np.clip(axis @ self.hand_eye[:3, 2], -1.0, 1.0))))
+        return tilt, across, along
 
 
 def peak_bins(hists: np.ndarray, first_bin: int) -> np.ndarray:
@@ -239,58 +305,56 @@ def _compose(start: np.ndarray, params: np.ndarray) -> np.ndarray:
 
 
 def capture_tcp_poses(reader: CaptureReader, data) -> np.ndarray:
-    """The actual TCP poses (n, 4, 4) of a capture: metadata `tcp_pose` where recorded, else pose x inv(X)."""
+    """The actual TCP poses (n, 4, 4) of a capture: metadata `tcp_pose` where recorded, else pose x inv(X). One-line
+    CaptureError naming the measurement when a recorded tcp_pose is not a rigid 4x4 transform (hand-edited or damaged
+    metadata)."""
     tcp = []
     inv = invert_rigid(reader.hand_eye)
-    for pose, meta in zip(data.poses, data.meta):
+    for i, (pose, meta) in enumerate(zip(data.poses, data.meta)):
         t = meta.get("tcp_pose") if isinstance(meta, dict) else None
-        tcp.append(np.asarray(t, dtype=np.float64) if t is not None else pose @ inv)
-    tcp = np.asarray(tcp)
-    if tcp.shape[1:] != (4, 4) or not np.all(np.isfinite(tcp)):
-        raise CaptureError(f"{reader.path}: tcp_pose metadata must hold finite 4x4 poses")
-    return tcp
+        tcp.append(pose @ inv if t is None else _tcp_pose(t, f"{reader.path}: measurement {i}: tcp_pose"))
+    return np.asarray(tcp, dtype=np.float64).reshape(-1, 4, 4)
 
 
-def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: np.ndarray | None = None,
-                 iterations: int = 30) -> HandEyeFit:
-    """Fit X from a capture folder (see the module docstring). `start`: where the fit begins (default: the X the
-    capture was taken with). Raises CaptureError for an unreadable capture, ConfigError when too few zones see the
-    target."""
-    reader = CaptureReader(Path(capture))
-    data = reader.load()
-    model = data.sensor
-    tcp = capture_tcp_poses(reader, data)
-    x0 = np.asarray(reader.hand_eye if start is None else start, dtype=np.float64)
-    first_bin = int(math.ceil(model.bin_of_range(MIN_RANGE_M)))
-    windows = peak_bins(data.hists, first_bin)
-    observed = peak_positions(data.hists, windows)
-    predictor = _Predictor(model, target)
-    n_params = 7 if fit_zero_bin else 6
+def _tcp_pose(value, where: str) -> np.ndarray:
+    """One recorded tcp_pose as a rigid (4, 4) transform, orthonormal to the simulator's tolerance; CaptureError
+    naming `where` otherwise."""
+    try:
+        t = np.asarray(value, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise CaptureError(f"{where} must be a 4x4 list of numbers (metres), got {str(value)[:60]!r}") from None
+    if t.shape != (4, 4):
+        raise CaptureError(f"{where} must be a 4x4 list of numbers (metres), got shape {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise CaptureError(f"{where} holds non-finite values")
+    if np.abs(t[3] - [0.0, 0.0, 0.0, 1.0]).max() > RIGID_TOL:
+        raise CaptureError(f"{where} is not a rigid transform (last row {t[3].tolist()}, not [0, 0, 0, 1])")
+    err = float(np.abs(t[:3, :3].T @ t[:3, :3] - np.eye(3)).max())
+    if err > RIGID_TOL or np.linalg.det(t[:3, :3]) < 0:
+        raise CaptureError(f"{where} is not a rigid transform (rotation off orthonormal by {err:.2g} or mirrored)")
+    return t
 
-    def predict(params: np.ndarray) -> np.ndarray:
-        shift = params[6] if fit_zero_bin else 0.0
-        counts, seen = predictor.counts(tcp @ _compose(x0, params), shift)
-        return np.where(seen, peak_positions(counts, windows, min_snr=None), np.nan)
 
-    params = np.zeros(n_params)
-    params[3:6] = _boresight_offset(predictor, tcp, x0, observed, first_bin, model.bin_width_m)
-    first = predict(params)
-    use = np.isfinite(observed) & np.isfinite(first)
-    if use.sum() < 2 * n_params:
-        raise ConfigError(f"{reader.path}: only {int(use.sum())} zone returns see the target where it was said to be "
-                          f"(need {2 * n_params}); check --plane / --sphere and the capture")
+def _turned(x: np.ndarray, deg: float) -> np.ndarray:
+    """X turned `deg` degrees about the sensor's boresight (its own z): the aperture and the axis stay put."""
+    out = x.copy()
+    out[:3, :3] = x[:3, :3] @ rotvec_to_matrix([0.0, 0.0, math.radians(deg)])
+    return out
 
-    def residual(p: np.ndarray) -> np.ndarray:
-        r = (observed - predict(p))[use]
-        # A zone that no longer shows its return costs more than any it could show: a fit that pushes the
-        # predictions off the target (a residual of 0 for lost zones) must not look better for it.
-        return np.where(np.isfinite(r), r, LOST_ZONE_BINS)
 
-    start_r = (observed - predict(np.zeros(n_params)))[use]
-    rms_start = _rms_mm(start_r[np.isfinite(start_r)], model)
+def _on_target(counts: np.ndarray, seen: np.ndarray, windows: np.ndarray, first_bin: int) -> np.ndarray:
+    """The predicted return's position in each observed window (bins), NaN where the zone does not see the target
+    or its predicted return peaks outside the observed window: there the window holds only the predicted
+    background or a pulse's tail, whose centroid lies near the window's centre and would score a miss as a match."""
+    pos = peak_positions(counts, windows, min_snr=None)
+    inside = np.abs(peak_bins(counts, first_bin) - windows) <= WINDOW_BINS
+    return np.where(seen & inside, pos, np.nan)
+
+
+def _levenberg_marquardt(residual, params: np.ndarray, steps: np.ndarray, iterations: int):
+    """Up to `iterations` damped Gauss-Newton steps from params; (params, residuals, iterations, converged)."""
     r = residual(params)
-    cost, damping, done = float(r @ r), 1e-3, 0
-    steps = np.array([1e-4] * 3 + [1e-4] * 3 + [1e-2])[:n_params]
+    cost, damping, done, converged = float(r @ r), 1e-3, 0, False
     for done in range(1, iterations + 1):
         jac = _jacobian(residual, params, r, steps)
         jtj, jtr = jac.T @ jac, jac.T @ r
@@ -304,13 +368,81 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
                 break
             damping *= 4.0
         if not improved or np.abs(step[:6]).max() < 1e-7:
+            converged = True
             break
-    seen = np.isfinite(predict(params)[use])
-    fit = HandEyeFit(_compose(x0, params), x0, rms_start, _rms_mm(r[seen], model), int(seen.sum()), len(tcp),
-                     float(params[6]) if fit_zero_bin else 0.0, done, lost=int((~seen).sum()))
-    jac = _flange_rotation(_jacobian(residual, params, r, steps), x0, params)
+    return params, r, done, converged
+
+
+def _fit_best_turn(residual_from, starts: list, steps: np.ndarray, iterations: int):
+    """A few steps from each start (turn, X, params), then on from the one whose returns are explained best: a local
+    fit does not come back from every turn about the axis (from 180 degrees it settled 64 mm and 173 degrees off at
+    8 mm RMS). (turn, X, params, residuals, iterations)."""
+    scouted = []
+    for turn, x, params in starts:
+        params, r, done, converged = _levenberg_marquardt(residual_from(x), params, steps,
+                                                          min(SCOUT_ITERATIONS, iterations))
+        scouted.append((float(r @ r), turn, x, params, r, done, converged))
+    _, turn, x, params, r, done, converged = min(scouted, key=lambda c: c[0])
+    if not converged and iterations > done:
+        params, r, more, _ = _levenberg_marquardt(residual_from(x), params, steps, iterations - done)
+        done += more
+    return turn, x, params, r, done
+
+
+def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: np.ndarray | None = None,
+                 iterations: int = 30) -> HandEyeFit:
+    """Fit X from a capture folder (see the module docstring). `start`: where the fit begins (default: the X the
+    capture was taken with); the fit also tries it turned about the sensor's boresight (TURNS_DEG) and keeps the
+    turn that explains the returns best after SCOUT_ITERATIONS. Raises CaptureError for an unreadable capture,
+    ConfigError when too few zones see the target."""
+    reader = CaptureReader(Path(capture))
+    data = reader.load()
+    model = data.sensor
+    tcp = capture_tcp_poses(reader, data)
+    x0 = np.asarray(reader.hand_eye if start is None else start, dtype=np.float64)
+    first_bin = int(math.ceil(model.bin_of_range(MIN_RANGE_M)))
+    windows = peak_bins(data.hists, first_bin)
+    observed = peak_positions(data.hists, windows)
+    shown = np.isfinite(observed)
+    predictor = _Predictor(model, target)
+    n_params = 7 if fit_zero_bin else 6
+    steps = np.array([1e-4] * 3 + [1e-4] * 3 + [1e-2])[:n_params]
+
+    def predict(x: np.ndarray, params: np.ndarray) -> np.ndarray:
+        counts, seen = predictor.counts(tcp @ _compose(x, params), params[6] if fit_zero_bin else 0.0)
+        return _on_target(counts, seen, windows, first_bin)
+
+    def residual_from(x: np.ndarray):
+        def residual(p: np.ndarray) -> np.ndarray:
+            # Every zone that shows a return counts, the same set from every start so that their costs compare. A
+            # zone whose predicted return is off the target or its window costs more than any it could show: a fit
+            # that pushes the predictions away (a residual of 0 for lost zones) must not look better for it.
+            r = observed[shown] - predict(x, p)[shown]
+            return np.where(np.isfinite(r), r, LOST_ZONE_BINS)
+        return residual
+
+    starts = []
+    for turn in TURNS_DEG:
+        x = _turned(x0, turn)
+        params = np.zeros(n_params)
+        params[3:6] = _boresight_offset(predictor, tcp, x, observed, first_bin, model.bin_width_m)
+        starts.append((turn, x, params, int(np.isfinite(predict(x, params)[shown]).sum())))
+    matched = max(m for *_, m in starts)
+    if matched < 2 * n_params:
+        raise ConfigError(f"{reader.path}: only {matched} zone returns see the target where it was said to be "
+                          f"(need {2 * n_params}); check --plane / --sphere and the capture")
+    turn, x, params, r, done = _fit_best_turn(residual_from, [s[:3] for s in starts], steps, iterations)
+    residual = residual_from(x)
+    fitted = np.isfinite(predict(x, params)[shown])
+    r_start = observed[shown] - predict(x0, np.zeros(n_params))[shown]
+    both = fitted & np.isfinite(r_start)
+    fit = HandEyeFit(_compose(x, params), x0, _rms_mm(r_start[both], model), _rms_mm(r[fitted], model),
+                     int(fitted.sum()), len(tcp), float(params[6]) if fit_zero_bin else 0.0, done,
+                     lost=int((~fitted).sum()), lost_start=int((fitted & ~both).sum()),
+                     bin_width_mm=model.bin_width_m * 1e3, kind=target.kind, turn_deg=turn)
+    jac = _flange_rotation(_jacobian(residual, params, r, steps), x, params)
     _check_determined(jac, reader.path)
-    scatter = float(np.sqrt(np.mean(r[seen] ** 2))) if seen.any() else 0.0
+    scatter = float(np.sqrt(np.mean(r[fitted] ** 2))) if fitted.any() else 0.0
     fit.std_mm, fit.std_deg = _uncertainty(jac, max(scatter, SIGMA_FLOOR_BINS))
     return fit
 
