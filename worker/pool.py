@@ -288,22 +288,34 @@ class Worker:
         try:
             if rc == 0 and outcome.get("ok"):
                 self._settle_done(child, seconds, outcome.get("summary") or {})
-            elif outcome.get("kind") == "input":
-                if self.queue.fail(claim, outcome.get("error", "bad input"), retry=False) is not None:
-                    self._settle_failed(job, outcome.get("error", "bad input"))
-                    self.log(f"{job.id} failed after {seconds:.1f} s: {outcome.get('error')}")
             else:
-                reason = outcome.get("error") or exit_reason(rc)
-                state = self.queue.crash(claim, f"{reason} (log: {child.log})")
-                if state == "failed":
-                    self._settle_failed(job, f"{reason} (log: {child.log})")
-                if state is not None:
-                    again = "queued again" if state == "queued" else "giving up"
-                    self.log(f"{job.id} crashed after {seconds:.1f} s: {reason}; {again}")
+                self._settle_error(child, rc, outcome, seconds)
         finally:
             # A complete result is never removed, nor one still to be published (`unpublished`).
             if job.id not in self.unpublished and child.scratch.exists() and completion(child.scratch) is None:
                 shutil.rmtree(child.scratch, ignore_errors=True)
+
+    def _settle_error(self, child: Child, rc: int | None, outcome: dict, seconds: float) -> None:
+        """Record a job that failed (bad input) or crashed. A record the queue cannot write (a full disk) does not end
+        the worker and its other jobs: the job's lease, no longer renewed, runs out and the job is taken again."""
+        claim, job = child.claim, child.claim.job
+        try:
+            if outcome.get("kind") == "input":
+                if self.queue.fail(claim, outcome.get("error", "bad input"), retry=False) is not None:
+                    self._settle_failed(job, outcome.get("error", "bad input"))
+                    self.log(f"{job.id} failed after {seconds:.1f} s: {outcome.get('error')}")
+                return
+            reason = outcome.get("error") or exit_reason(rc)
+            state = self.queue.crash(claim, f"{reason} (log: {child.log})")
+            if state == "failed":
+                self._settle_failed(job, f"{reason} (log: {child.log})")
+            if state is not None:
+                again = "queued again" if state == "queued" else "giving up"
+                self.log(f"{job.id} crashed after {seconds:.1f} s: {reason}; {again}")
+        except OSError as exc:
+            self.log(f"{job.id} ended without a result after {seconds:.1f} s, and the queue could not record it: "
+                     f"{' '.join(str(exc).split())}; its lease runs out in {self.config.lease_s:g} s and the job is "
+                     f"taken again")
 
     def _settle_failed(self, job, error: str) -> None:
         """The queue gave up on `job`: a live job's status must not go on saying it is finishing."""
