@@ -1,12 +1,17 @@
 """Run one of the paper's baselines on a capture: reprojection or space carving (numpy, no torch).
 
-reprojection   each zone's first return, back-projected along the zone's axis, gives one point; the points are
-               saved as DIR/points.ply and a surface is built from them (--surface).
+reprojection   each zone's first return, back-projected along the zone's axis, gives one point (none for a return
+               at zero or negative range); the points are saved as DIR/points.ply and a surface is built from them
+               (--surface).
 space-carving  voxels that a zone saw as empty (in its field of view, in front of its first return) are carved;
                what is left is the hull, meshed by marching cubes.
 
 The detection threshold T is a z-score: a bin holds a return when the pulse-filtered, background-free signal
-exceeds T standard deviations of the background noise (pile-up undone first). --calibrate tries thresholds from 3 to
+exceeds T standard deviations of the background noise (pile-up undone first). Both methods filter with the pulse's
+leading edge, whose response does not reach far ahead of a return: filtered with the whole pulse, a long-tailed pulse
+(the TMF8820's) lifts background-only bins up to 35 cm in front of a strong return over the threshold. Histograms
+that no sensor could have produced (the "left out" warning) give no return, and stay out of the crosstalk
+unmixing, where they would move the other zones of their view. --calibrate tries thresholds from 3 to
 300 and keeps the one with the lowest Chamfer distance to the ground truth, as the paper did (and says so in the
 report). Without --gt, the ground truth that the capture names is used (import-lcspc and simulate record theirs);
 --no-gt skips it. Writes into DIR (a new folder, or one without a result unless --overwrite): report.html (the page to

@@ -27,7 +27,7 @@ from ..outputs import capture_state_note, export_mesh
 from ..report.report_json import json_safe, write_report
 from .common import CALIBRATION_POINTS, CALIBRATION_THRESHOLDS, MIN_SURFACE_POINTS, calibrate
 from .floor import ASSUMED_FLOORS, check_given_floor, scene_floor
-from .reprojection import reprojection
+from .reprojection import reprojection, reprojection_returns
 
 METHODS = ("reprojection", "space-carving")
 SURFACES = {
@@ -35,7 +35,7 @@ SURFACES = {
                  "spacing, dilated by half of it, holes filled)",
     "convex-hull": "convex hull of the points",
 }
-THRESHOLD_UNITS = "standard deviations of the matched-filtered background noise (z-score)"
+THRESHOLD_UNITS = "standard deviations of the pulse-filtered background noise (z-score)"
 
 
 @dataclass(frozen=True)
@@ -51,12 +51,14 @@ class PoseViews:
 def _build(method: str, data: PoseViews, threshold: float, *, resolution: int, margin_m, floor_z, surface: str,
            edge_deg: float, usable) -> tuple[object, dict]:
     """(mesh or None, extras for the report) for one threshold. usable: the histograms carving may read (see
-    `carve_hull`)."""
+    `carve_hull`), and those reprojection reads: the others ("left out" in the warning) give no point and stay out
+    of the crosstalk unmixing."""
     if method == "reprojection":
         rep = reprojection(data.hists, data.poses, data.sensor, threshold=threshold, surface=surface,
-                           floor_z=floor_z)
+                           floor_z=floor_z, usable=usable)
         return rep.mesh, {"points": rep.points, "surface": surface, "surface_method": SURFACES[surface],
-                          "reprojected_points": int(len(rep.points)), "returns_below_floor": rep.below_floor}
+                          "reprojected_points": int(len(rep.points)), "returns_below_floor": rep.below_floor,
+                          "returns_behind_sensor": rep.behind_sensor}
     res = carve_scene(data.hists, data.poses, data.sensor, resolution=resolution, threshold=threshold,
                       margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg, usable=usable)
     occ = main_components(res.occupancy, 0.01)
@@ -69,7 +71,8 @@ def _build(method: str, data: PoseViews, threshold: float, *, resolution: int, m
                                     "pieces under 1% of the largest dropped"}
 
 
-def _no_surface(capture, method: str, threshold: float, floor_z, extras: dict, data: PoseViews) -> str:
+def _no_surface(capture, method: str, threshold: float, floor_z, extras: dict, data: PoseViews,
+                usable: np.ndarray) -> str:
     """Why a baseline found no surface, with the remedy: the floor when it removed the returns (a lower threshold
     would not bring them back); too few histograms for the points a surface needs, or too few with a return at the
     lowest threshold that `--calibrate` tries (a lower threshold brings no more: more views do); else the threshold."""
@@ -85,7 +88,7 @@ def _no_surface(capture, method: str, threshold: float, floor_z, extras: dict, d
             return (f"{line}: its {views} view(s) of {zones} zone(s) give at most {views * zones} point(s), and a "
                     f"surface needs {MIN_SURFACE_POINTS}; scan more views")
         lowest = min(CALIBRATION_THRESHOLDS)
-        found = int(first_returns(data.hists, data.sensor, min(lowest, threshold), "matched").detected.sum())
+        found = int(reprojection_returns(data.hists, data.sensor, min(lowest, threshold), usable).detected.sum())
         if found < MIN_SURFACE_POINTS:
             return (f"{line}: only {found} histogram(s) hold a return even at threshold {min(lowest, threshold):g}, "
                     f"and a surface needs {MIN_SURFACE_POINTS} points; scan more views of the object")
@@ -96,7 +99,7 @@ def check_returns(capture, data: PoseViews, usable: np.ndarray) -> None:
     """Refuse (one CaptureError line) a capture in which no histogram holds a return above the noise at the default
     threshold, as the reconstruction does: a lower threshold then finds noise alone, and reprojection built a 4 m
     'surface' of it."""
-    if not (first_returns(data.hists, data.sensor, DEFAULT_THRESHOLD, "matched").detected & usable).any():
+    if not first_returns(data.hists, data.sensor, DEFAULT_THRESHOLD, "matched", usable=usable).detected.any():
         raise CaptureError(f"{capture}: no histogram holds a return above the noise ({DEFAULT_THRESHOLD:g} standard "
                            f"deviations of its matched-filtered background): nothing to reconstruct (the object out "
                            f"of range or out of every view, or the sensor's settings wrong)")
@@ -182,7 +185,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     mesh, extras = _build(method, posed, threshold, **opts)
     seconds = time.monotonic() - start
     if mesh is None:
-        raise CaptureError(_no_surface(capture, method, threshold, floor_z, extras, posed))
+        raise CaptureError(_no_surface(capture, method, threshold, floor_z, extras, posed, ~broken))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     export_mesh(mesh, out / "mesh.ply")

@@ -6,7 +6,9 @@ standard deviations of the filtered background noise. Steps, per histogram:
 1. Coates' estimate turns first-photon counts into photons per bin (`N * lambda_b`), undoing pile-up, so that the
    background is flat again behind a strong return (sensors without pile-up skip this).
 2. The background is estimated from runs of bins (see `background_rate`) and subtracted; on multi-zone sensors the
-   crosstalk (a fixed share of all zones' signal in every zone) is unmixed.
+   crosstalk (a fixed share of all zones' signal in every zone) is unmixed. Histograms no sensor could have produced
+   (`impossible_counts`, or those a caller marks unusable) are left out of that sum: unmixed with their counts, one
+   corrupt zone would move every other zone of its view.
 3. The signal is correlated with the pulse kernel (a matched filter). The correlation of the pulse with itself is
    symmetric about zero lag, so the filtered peak of one return sits at its arrival time: no offset for where the
    pulse's own peak lies after the arrival is needed.
@@ -17,7 +19,7 @@ The *first* bin above the threshold is the return's onset: a surface whose retur
 filtered signal clear it at or before the surface's arrival, so nothing lies in front of the onset (what space carving
 relies on; its 'leading' filter keeps the onset close in front of the surface). The first clear peak in the run of
 bins above the threshold that starts at the onset, refined to sub-bin by a parabola, is the arrival (what
-reprojection relies on).
+reprojection relies on, with the 'leading' filter: see `detection_filter`).
 """
 
 from __future__ import annotations
@@ -82,11 +84,31 @@ def _live_cycles(counts: np.ndarray, cycles: float) -> np.ndarray:
     return np.maximum(cycles - before, 1.0)
 
 
-def photon_signal(hists: np.ndarray, sensor: SensorModel) -> tuple[np.ndarray, np.ndarray]:
+def impossible_counts(hists: np.ndarray, sensor: SensorModel) -> np.ndarray:
+    """(n, zones) bool: histograms (n, zones, bins) that no histogram of `sensor.cycles` cycles could hold (the
+    sensor's unreliable bins left out): on a first-photon (pile-up) sensor more counts than cycles, one detection a
+    cycle at most; on any sensor every bin at the counter's limit. Such a histogram (a corrupt frame, a counter that
+    overflowed) says nothing of its zone's signal. The test holds for views of summed frames too (`views`), whose
+    cycles are the frames' sum, where a per-frame limit such as `plausibility`'s "over the counter" would not."""
+    keep = np.ones(hists.shape[-1], bool)
+    keep[list(sensor.ignore_bins)] = False
+    if not keep.any():
+        return np.zeros(hists.shape[:-1], bool)
+    kept = hists[..., keep]
+    bad = kept.min(axis=-1) >= sensor.max_count
+    if sensor.pileup:
+        # A view of fewer frames is scaled up to the others' cycles (`views`): a rounding error is no count.
+        bad |= kept.sum(axis=-1) > sensor.cycles * (1 + 1e-9)
+    return bad
+
+
+def photon_signal(hists: np.ndarray, sensor: SensorModel,
+                  usable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Background-free photons per bin and the background's noise variance per bin.
 
     hists (n, zones, bins) counts. Returns (signal, variance), both (n, zones, bins) float64 in photons per bin over
-    the histogram's cycles; bins the sensor marks unreliable carry zero signal.
+    the histogram's cycles; bins the sensor marks unreliable carry zero signal. usable (n, zones) bool, or None for
+    all: histograms marked False, and those `impossible_counts` finds, are left out of the crosstalk unmixing.
     """
     n_cyc = float(sensor.cycles)
     if sensor.pileup:
@@ -103,14 +125,34 @@ def photon_signal(hists: np.ndarray, sensor: SensorModel) -> tuple[np.ndarray, n
     signal = np.where(keep, photons - bg, 0.0)
     zones = signal.shape[-2]
     if sensor.crosstalk > 0 and zones > 1:
-        # Each zone also holds `crosstalk` x the sum of all zones' signal: observed = (I + c 1 1^T) own, so
-        # own = observed - c / (1 + c Z) x (sum over zones of observed) (Sherman-Morrison). Otherwise every zone
-        # would report the nearest return of any zone.
-        c = sensor.crosstalk
-        signal = signal - c / (1 + c * zones) * signal.sum(axis=-2, keepdims=True)
+        signal = _unmix_crosstalk(signal, sensor.crosstalk, _crosstalk_sources(hists, sensor, usable))
     # Var of Coates' estimate of N * lambda for a background rate: N^2 * lambda / live = N * bg * (N / live).
     variance = np.maximum(bg, 1e-3) * (n_cyc / live)
     return signal, variance
+
+
+def _crosstalk_sources(hists: np.ndarray, sensor: SensorModel, usable: np.ndarray | None) -> np.ndarray | None:
+    """(n, zones) bool: the histograms whose signal enters the crosstalk sum, or None when all do."""
+    good = ~impossible_counts(hists, sensor)
+    if usable is not None:
+        good &= np.broadcast_to(np.asarray(usable, bool), good.shape)
+    return None if good.all() else good
+
+
+def _unmix_crosstalk(signal: np.ndarray, c: float, sources: np.ndarray | None) -> np.ndarray:
+    """Each zone's own signal from signals (n, zones, bins) that also hold `c` x the sum of all zones' signal.
+
+    observed = (I + c 1 1^T) own, so own = observed - c / (1 + c Z) x (sum over zones of observed)
+    (Sherman-Morrison); otherwise every zone would report the nearest return of any zone. `sources` (n, zones):
+    the zones summed (None: all). A zone left out is taken to add no crosstalk (its own signal is unknown), so the
+    sum runs over the Z' zones kept, with c / (1 + c Z').
+    """
+    if sources is None:
+        return signal - c / (1 + c * signal.shape[-2]) * signal.sum(axis=-2, keepdims=True)
+    kept = sources[..., None]
+    total = np.where(kept, signal, 0.0).sum(axis=-2, keepdims=True)
+    n_kept = kept.sum(axis=-2, keepdims=True)
+    return signal - c / (1 + c * n_kept) * total
 
 
 def background_rate(counts: np.ndarray, live: np.ndarray, blocks: int = 16) -> np.ndarray:
@@ -157,7 +199,10 @@ def detection_filter(sensor: SensorModel, kind: str = "matched") -> tuple[np.nda
     arrival (lag 0), but the response is symmetric, so the pulse's slow tail shows up *before* the arrival too.
     'leading' is the pulse's rising half mirrored about its peak: a response with the pulse's sharp leading edge,
     peaking `lag` bins after the arrival (where the pulse peaks), a little less sensitive. Its first threshold
-    crossing lies closer in front of a surface, which is what space carving wants.
+    crossing lies closer in front of a surface, which is what space carving wants, and reprojection too: where the
+    pulse has a long tail (the TMF8820's, ~40 bins), the matched filter spreads a strong return's tail over the bins
+    in front of it, bins of background alone then clear the threshold, and the first return's "peak" lands up to
+    35 cm in front of the surface, behind the sensor even.
     """
     kernel, origin = sensor.pulse.kernel(1)
     kernel = kernel / kernel.max()
@@ -179,17 +224,20 @@ def detection_filter(sensor: SensorModel, kind: str = "matched") -> tuple[np.nda
     return filt, mode, float(peak - (filt.size + origin))
 
 
-def matched_filter_z(hists, sensor: SensorModel, kind: str = "matched") -> np.ndarray:
-    """(n, zones, bins) z-scores of the filtered, background-free signal (see `detection_filter`).
+def matched_filter_z(hists, sensor: SensorModel, kind: str = "matched",
+                     usable: np.ndarray | None = None) -> np.ndarray:
+    """(n, zones, bins) z-scores of the filtered, background-free signal (see `detection_filter`; `usable`: see
+    `photon_signal`).
 
     With the 'leading' filter, index i holds the response whose peak marks an arrival `lag` bins before bin i.
     """
-    return _filtered_and_z(hists, sensor, kind)[1]
+    return _filtered_and_z(hists, sensor, kind, usable)[1]
 
 
-def _filtered_and_z(hists, sensor: SensorModel, kind: str) -> tuple[np.ndarray, np.ndarray]:
+def _filtered_and_z(hists, sensor: SensorModel, kind: str,
+                    usable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The filtered background-free signal (photons) and its z-scores, both (n, zones, bins), 0 at ignored bins."""
-    signal, variance = photon_signal(np.asarray(hists, dtype=np.float64), sensor)
+    signal, variance = photon_signal(np.asarray(hists, dtype=np.float64), sensor, usable)
     kernel, origin, _ = detection_filter(sensor, kind)
     filtered = _correlate(signal, kernel, origin)
     noise = np.sqrt(np.maximum(_correlate(variance, kernel ** 2, origin), 1e-12))
@@ -200,17 +248,20 @@ def _filtered_and_z(hists, sensor: SensorModel, kind: str) -> tuple[np.ndarray, 
 
 
 def first_returns(hists, sensor: SensorModel, threshold: float = DEFAULT_THRESHOLD,
-                  filter: str = "matched") -> FirstReturns:
+                  filter: str = "matched", usable: np.ndarray | None = None) -> FirstReturns:
     """Onset and arrival of the first return in every histogram (n, zones, bins); see the module docstring.
 
     With the 'leading' filter the onset and arrival are moved back by the filter's lag (where the pulse peaks after
-    the arrival), so both keep their meaning.
+    the arrival), so both keep their meaning. usable (n, zones) bool, or None for all: histograms marked False
+    detect nothing and are left out of the crosstalk unmixing (`photon_signal`).
     """
     if not (np.isfinite(threshold) and threshold > 0):
         raise CaptureError(f"detection threshold {threshold} must be > 0 (standard deviations of the noise)")
     lag = detection_filter(sensor, filter)[2]
-    f, z = _filtered_and_z(hists, sensor, filter)
+    f, z = _filtered_and_z(hists, sensor, filter, usable)
     above = z > threshold
+    if usable is not None:
+        above &= np.asarray(usable, bool)[..., None]
     detected = above.any(axis=-1)
     onset = np.argmax(above, axis=-1)  # first bin above (0 where none: masked below)
     # The first return's peak: within the run of bins above the threshold that starts at the onset, the first local
