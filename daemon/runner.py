@@ -26,7 +26,10 @@ is never undone by a restart: the reply says it is not recorded yet, `abort-pend
 where an empty file still fits (no daemon takes such a scan over), and the daemon writes it again every
 ABORT_RETRY_S, at each control request and at shutdown. A scan found interrupted that cannot be taken over (a chunk
 torn by a power cut) is named in `status` with what to do: `ctl resume NAME` tries the takeover again (after its
-damaged chunk is moved out of the folder), `ctl abort NAME` ends it as aborted, every chunk kept.
+damaged chunk is moved out of the folder), `ctl abort NAME` ends it as aborted, every chunk kept; it stays named
+until that scan itself is taken over or aborted. The two are done one at a time (the later one is refused, to be
+tried again), so an acknowledged abort is never undone by a takeover, nor by a shutdown (SIGTERM) while `ctl abort`
+waits for the arm to stop: the scan's wind-down runs to its end whoever is cancelled.
 """
 
 from __future__ import annotations
@@ -89,8 +92,13 @@ class ScanRunner:
         self._resume = asyncio.Event()
         self._pause_requested = False
         self._starting = False
-        self._taking_over = False  # `ctl resume NAME` is taking a scan over (no scan may start meanwhile)
+        self._interrupted_op: str | None = None
+        """What is being done to an interrupted scan the daemon does not hold ("taken over": `ctl resume NAME`;
+        "aborted": `ctl abort NAME`), or None. One at a time: a takeover that read the scan while an abort was being
+        written would rewrite scan.json to 'running' after it, undoing an abort already acknowledged. No scan may
+        start meanwhile either."""
         self._end: tuple[str, str] | None = None  # (state, reason) the scan ends in when its task is cancelled
+        self._ending: asyncio.Future | None = None  # the scan task's cancellation and wind-down, once begun
         self._changed = asyncio.Event()
         self._io_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
         self.stalls = StallWatch()
@@ -112,8 +120,8 @@ class ScanRunner:
                               f"{'resume or abort it' if self.state == 'paused' else 'wait for it or abort it'} first")
         if self._starting:
             raise ConfigError("another scan is being planned; try again in a moment")
-        if self._taking_over:
-            raise ConfigError("an interrupted scan is being taken over; try again in a moment")
+        if self._interrupted_op is not None:
+            raise ConfigError(f"an interrupted scan is being {self._interrupted_op}; try again in a moment")
         self._starting = True
         try:
             return await self._start(name, overrides)
@@ -211,9 +219,7 @@ class ScanRunner:
         except (CaptureError, ConfigError, OSError) as exc:
             await self._cannot_take_over(path, exc)
             return False
-        if self.stuck is not None and self.last_error == self.stuck["error"]:
-            self.last_error = None
-        self.stuck = None
+        self._forget_stuck(path.name)
         self.job = job
         job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
                                                f"`spadscan ctl resume` continues")
@@ -241,6 +247,16 @@ class ScanRunner:
         log.error("%s", said)
         self.stuck = {"scan": path.name, "cause": str(exc), "error": said}
         self.last_error = said
+
+    def _forget_stuck(self, name: str) -> None:
+        """Scan `name` is taken over or aborted: if it is the one that could not be taken over, status stops naming
+        it. Another scan's takeover leaves it named: it is still 'running' on disk, and plain `ctl resume` and `ctl
+        abort` still point at it."""
+        if self.stuck is None or self.stuck["scan"] != name:
+            return
+        if self.last_error == self.stuck["error"]:
+            self.last_error = None
+        self.stuck = None
 
     async def _settle_pending_aborts(self) -> None:
         """Record in scan.json each abort an earlier daemon could keep only in `abort-pending.json` (a full disk);
@@ -301,19 +317,22 @@ class ScanRunner:
         if self.job is not None:
             raise ConfigError(f"scan {self.job.name!r} is {self.state}: wait for it or abort it before taking over "
                               f"scan {name!r}")
-        if self._starting or self._taking_over:
-            raise ConfigError("another scan is being planned or taken over; try again in a moment")
-        self._taking_over = True
+        if self._starting or self._interrupted_op is not None:
+            doing = "another scan is being planned" if self._starting else \
+                f"an interrupted scan is being {self._interrupted_op}"
+            raise ConfigError(f"{doing}; try again in a moment")
+        self._interrupted_op = "taken over"
         try:
             path = await asyncio.to_thread(interrupted_scan, self.root, name)
-            if name in self.unrecorded or await asyncio.to_thread(abort_pending, path) is not None:
+            if (self.finished.get(name) == "aborted" or name in self.unrecorded
+                    or await asyncio.to_thread(abort_pending, path) is not None):
                 raise ConfigError(f"scan {name!r} was aborted (its {MANIFEST} does not say so yet: the disk could not "
                                   f"take it); it cannot be resumed")
             log.info("scan %s: taking it over (`ctl resume`)", name)
             if not await self._take_over(path, auto_resume=False):
                 raise ConfigError(self.last_error)
         finally:
-            self._taking_over = False
+            self._interrupted_op = None
         return await self.resume()
 
     async def abort(self, reason: str = DEFAULT_ABORT_REASON, name: str | None = None) -> dict:
@@ -333,19 +352,21 @@ class ScanRunner:
 
     async def _abort_interrupted(self, name: str, reason: str) -> dict:
         """End the daemon's interrupted scan `name`, which it does not hold, as aborted: the manifest alone is
-        written (a damaged chunk does not stand in the way), nothing is removed."""
-        if self._taking_over:
-            raise ConfigError("an interrupted scan is being taken over; try again in a moment")
-        path = await asyncio.to_thread(interrupted_scan, self.root, name)
-        stuck = self.stuck if self.stuck is not None and self.stuck["scan"] == name else None
-        if stuck is not None:
-            reason = f"{reason}; it could not be taken over: {stuck['cause']}"
-        await self._record_abort(name, path, reason, None)
-        if stuck is not None:
-            if self.last_error == stuck["error"]:
-                self.last_error = None
-            self.stuck = None
-        self.finished[name] = "aborted"
+        written (a damaged chunk does not stand in the way), nothing is removed. Set before its first await and
+        held to its end, `_interrupted_op` keeps a `ctl resume NAME` from taking the scan over meanwhile."""
+        if self._interrupted_op is not None:
+            raise ConfigError(f"an interrupted scan is being {self._interrupted_op}; try again in a moment")
+        self._interrupted_op = "aborted"
+        try:
+            path = await asyncio.to_thread(interrupted_scan, self.root, name)
+            stuck = self.stuck if self.stuck is not None and self.stuck["scan"] == name else None
+            if stuck is not None:
+                reason = f"{reason}; it could not be taken over: {stuck['cause']}"
+            await self._record_abort(name, path, reason, None)
+            self._forget_stuck(name)
+            self.finished[name] = "aborted"
+        finally:
+            self._interrupted_op = None
         log.info("scan %s aborted, as it stood on disk: %s", name, reason)
         self._notify()
         return self._aborted_reply(name)
@@ -369,10 +390,13 @@ class ScanRunner:
         held["error"] = error
         if not held["marker"]:
             held["marker"] = await self._io(note_abort_pending, path, reason)
-        held["said"] = self.last_error = f"scan {name!r} is aborted, but {_unrecorded_note(held, self.cfg.auto_resume)}"
+        held["said"] = self.last_error = self._unrecorded_said(name, held)
         log.warning("%s", self.last_error)
         if self._retrying is None or self._retrying.done():
             self._retrying = asyncio.create_task(self._retry_aborts_loop(), name="abort retries")
+
+    def _unrecorded_said(self, name: str, held: dict) -> str:
+        return f"scan {name!r} is aborted, but {_unrecorded_note(held, self.cfg.auto_resume)}"
 
     def _abort_landed(self, name: str) -> None:
         held = self.unrecorded.pop(name, None)
@@ -389,9 +413,20 @@ class ScanRunner:
             if error is None:
                 self._abort_landed(name)
                 continue
+            was = (held["error"], held["marker"])
             held["error"] = error
             if not held["marker"]:
                 held["marker"] = await self._io(note_abort_pending, held["path"], held["reason"])
+            if (held["error"], held["marker"]) != was:
+                self._said_again(name, held)
+
+    def _said_again(self, name: str, held: dict) -> None:
+        """An unrecorded abort's standing changed (abort-pending.json made at last, another error): last_error, if it
+        still tells of that abort, says where it stands now (a restart no longer scans on, say), not what it was."""
+        said = self._unrecorded_said(name, held)
+        if self.last_error == held["said"] and said != held["said"]:
+            held["said"] = self.last_error = said
+            log.warning("%s", said)
 
     async def _retry_aborts_loop(self) -> None:
         while self.unrecorded:
@@ -456,7 +491,7 @@ class ScanRunner:
     def _launch(self, state: str) -> None:
         self._pause_requested = False
         self._resume.clear()
-        self._end = None
+        self._end, self._ending = None, None
         self._set_state(state)
         self._task = asyncio.create_task(self._run(self.job, paused=(state == "paused")), name=f"scan {self.job.name}")
 
@@ -836,8 +871,19 @@ class ScanRunner:
         self._set_state("scanning")
 
     async def _cancel(self, end: tuple[str, str]) -> None:
-        self._end = end
-        task = self._task
+        """End the scan task in `end` (its wind-down records it). An abort already under way stays an abort: a
+        shutdown that follows (SIGTERM) waits for it instead of turning it back into 'running'. The wind-down is
+        shielded: a cancelled caller (ControlServer.close cancels the `ctl abort` handler on SIGTERM) leaves it
+        running to its end; cancelled with the caller, it would cut the arm's stop short and leave the abort
+        unrecorded."""
+        if self._end is None or self._end[0] != "aborted":
+            self._end = end
+        if self._ending is None:
+            self._ending = asyncio.ensure_future(self._end_task(self._task))
+        await asyncio.shield(self._ending)
+
+    @staticmethod
+    async def _end_task(task: asyncio.Task) -> None:
         # A task cancelled before its first step never runs its body, which records the scan's end in its capture
         # (an abort right after a takeover's resume left it 'running'): one turn of the loop runs that step first.
         await asyncio.sleep(0)
