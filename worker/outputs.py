@@ -80,13 +80,14 @@ def export_mesh(mesh, path, **options) -> Path:
 
 def previous_result(out) -> set[str]:
     """The file names of the result `out` holds before a run replaces it (--overwrite): those its report.json lists
-    (`files`), the report itself, its page, its 3D view and its mesh, and with a mesh or report there the files a
-    worker's job adds (JOB_FILES). Files it does not list (the user's own) are no part of it; nor are a job's files in
-    a folder that holds no result yet (the job's own scratch folder, where they are written before the reconstruction
-    that adds the result)."""
+    (`files`), the report itself, its page, its 3D view and its mesh, and, when it is a worker job's result
+    (`is_job_result`), the files the job added (JOB_FILES). Files it does not list (the user's own: a ground_truth.ply
+    or job.log kept beside a plain `spadscan reconstruct` result, which writes neither) are no part of it; nor are a
+    job's files in a folder that holds no result yet (the job's own scratch folder, where they are written before the
+    reconstruction that adds the result)."""
     out = Path(out)
     names = {*RESULT_FILES, "report.html", VIEW3D}
-    if any((out / name).is_file() for name in RESULT_FILES):
+    if any((out / name).is_file() for name in RESULT_FILES) and is_job_result(out):
         names |= set(JOB_FILES)
     try:
         listed = json.loads((out / "report.json").read_text()).get("files")
@@ -95,6 +96,19 @@ def previous_result(out) -> set[str]:
     if isinstance(listed, list):
         names |= {Path(str(n)).name for n in listed}
     return {n for n in names if (out / n).is_file()}
+
+
+def is_job_result(folder) -> bool:
+    """Whether `folder` holds a worker job's result: the queue's completion marker (.complete) naming a job, or the
+    job's own job.json (a job's id and scan), which results published before markers existed carry."""
+    for name, keys in ((".complete", ("job",)), ("job.json", ("id", "scan"))):
+        try:
+            data = json.loads((Path(folder) / name).read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(data, dict) and all(isinstance(data.get(k), str) and data.get(k) for k in keys):
+            return True
+    return False
 
 
 def folder_files(out) -> dict[str, int]:

@@ -8,7 +8,10 @@ children and gives their jobs back to the queue without counting the attempt.
 
 A finished job whose result cannot be published (a full disk while its log is copied in or its marker written) keeps
 its claim and its scratch folder: the worker says so once and tries again at every poll, as it does with every other
-write that meets a full disk; its other jobs run on.
+write that meets a full disk; its other jobs run on. A result already renamed into place whose job's record cannot be written yet is published,
+not lost: the worker writes the record once it fits. A finished result a stopped worker left unpublished is
+published by the worker that claims its job next (publishing.left_result), not reconstructed again. A job that
+ended in error whose record a full disk keeps out is said where it went and why, its record written at a later poll.
 """
 
 from __future__ import annotations
@@ -28,8 +31,8 @@ from spadscan.protocol.errors import ConfigError
 from .children import Child, exit_reason, kill_group, spawn_job
 from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
 from .live.done import mark_live_done, mark_live_failed
-from .publishing import own_result, publish_claim, reconcile
-from .queue import SEP, Claim, Queue
+from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
+from .queue import SEP, Claim, Queue, Unrecorded
 from .watcher import ScanReport, scan_once, watch
 from .worker_config import WorkerConfig
 
@@ -59,6 +62,9 @@ class Worker:
         self.children: dict[str, Child] = {}
         self.unpublished: dict[str, Unpublished] = {}
         """Finished jobs whose results wait to be published (a full disk): tried again at every poll."""
+        self.unrecorded: dict[str, tuple[Claim, dict]] = {}
+        """Jobs that ended in error, settled in the queue, whose attempt records (with the error) a full disk kept
+        out: job id -> (claim, what the record must say). Written at a later poll."""
         self.settled: dict[str, str] = {}
         """Job id -> 'done' or 'failed' for jobs this worker finished, 'kept' for jobs it did not run because their
         results folder already held a result."""
@@ -99,6 +105,8 @@ class Worker:
                 if time.monotonic() >= next_poll:
                     if self.unpublished:
                         await asyncio.to_thread(self._publish_waiting)
+                    if self.unrecorded:
+                        await asyncio.to_thread(self._record_waiting)
                     try:
                         await self._poll_queue()
                         self._trouble("poll the queue", None)
@@ -213,6 +221,10 @@ class Worker:
         if existing is not None:
             await asyncio.to_thread(self._keep, claim, existing)
             return
+        left = await asyncio.to_thread(left_result, self.queue, claim, self.root)
+        if left is not None:
+            await asyncio.to_thread(self._publish_left, claim, left)
+            return
         stem = f"{job.id}{SEP}{claim.token}"
         log_path = self.queue.path / "logs" / f"{stem}.log"
         outcome = self.queue.path / "tmp" / f"outcome-{stem}.json"
@@ -248,6 +260,28 @@ class Worker:
                  f"(`spadscan worker --root {self.root}{self._queue_flag()} --redo {claim.job.id}` reconstructs it "
                  f"again, keeping this one aside)")
 
+    def _publish_left(self, claim: Claim, left: Path) -> None:
+        """Publish the finished result an earlier claim of this job left in `left` (its worker stopped, or died,
+        before it could publish it) instead of reconstructing the job again. A write that fails (the disk still
+        full) gives the job back, the folder whole: the next claim of it tries again."""
+        job = claim.job
+        what = f"publish the finished result of {job.id} left in {left}"
+        try:
+            final, aside = publish_left(self.queue, claim, left, self.root)
+        except OSError as exc:
+            self._trouble(what, exc)
+            try:
+                self.queue.release(claim, f"could not publish the result left in {left}: {exc}")
+            except OSError:  # its job file went back to queued/ (a rename), its record could not say why
+                pass
+            return
+        self._trouble(what, None)
+        if job.live:
+            mark_live_done(job, self.root, final, self.log)
+        self.settled[job.id] = "done"
+        self.log(f"{job.id}: published the finished result an earlier attempt left in {left.name} (not reconstructed "
+                 f"again) -> {final}" + (f" (moved {aside} aside)" if aside else ""))
+
     def _queue_flag(self) -> str:
         """' --queue DIR' when this worker's queue is not the root's default one, for commands it suggests."""
         default = self.root / ".queue"
@@ -267,7 +301,7 @@ class Worker:
             if now - child.last_beat < self.config.lease_s / 4:
                 continue
             child.last_beat = now
-            if not self.queue.heartbeat(child.claim):
+            if not self.queue.heartbeat(child.claim) and not self._done_in_place(child):
                 self._drop_unpublished(job_id, "its lease was taken over by another worker")
 
     async def _reap(self) -> None:
@@ -297,25 +331,47 @@ class Worker:
 
     def _settle_error(self, child: Child, rc: int | None, outcome: dict, seconds: float) -> None:
         """Record a job that failed (bad input) or crashed. A record the queue cannot write (a full disk) does not end
-        the worker and its other jobs: the job's lease, no longer renewed, runs out and the job is taken again."""
+        the worker and its other jobs: the line says where the job is and why it ended, and the record is written at
+        a later poll (`unrecorded`); a job file that could not even be moved stays held until its lease runs out."""
         claim, job = child.claim, child.claim.job
-        try:
-            if outcome.get("kind") == "input":
-                if self.queue.fail(claim, outcome.get("error", "bad input"), retry=False) is not None:
-                    self._settle_failed(job, outcome.get("error", "bad input"))
-                    self.log(f"{job.id} failed after {seconds:.1f} s: {outcome.get('error')}")
-                return
+        bad_input = outcome.get("kind") == "input"
+        if bad_input:
+            error = outcome.get("error", "bad input")
+            said = f"{job.id} failed after {seconds:.1f} s: {error}"
+        else:
             reason = outcome.get("error") or exit_reason(rc)
-            state = self.queue.crash(claim, f"{reason} (log: {child.log})")
-            if state == "failed":
-                self._settle_failed(job, f"{reason} (log: {child.log})")
-            if state is not None:
-                again = "queued again" if state == "queued" else "giving up"
-                self.log(f"{job.id} crashed after {seconds:.1f} s: {reason}; {again}")
-        except OSError as exc:
-            self.log(f"{job.id} ended without a result after {seconds:.1f} s, and the queue could not record it: "
-                     f"{' '.join(str(exc).split())}; its lease runs out in {self.config.lease_s:g} s and the job is "
-                     f"taken again")
+            error = f"{reason} (log: {child.log})"
+            said = f"{job.id} crashed after {seconds:.1f} s: {reason}"
+        try:
+            state = self.queue.fail(claim, error, retry=False) if bad_input else self.queue.crash(claim, error)
+        except Unrecorded as exc:
+            state = exc.state
+            self.unrecorded[job.id] = (claim, exc.values)
+            self._troubles[_recording(job.id)] = " ".join(str(exc).split())  # said here: not again at the next poll
+            note = (f"; {_moved_to(state, bad_input)}, but its attempt record could not be written "
+                    f"({' '.join(str(exc).split())}): trying again every {self.config.poll_s:g} s")
+        except OSError as exc:  # the job file was not moved: the job stays held by this worker's claim
+            self.log(f"{said}; the queue could not record it ({' '.join(str(exc).split())}): the job stays in "
+                     f"running/ until its lease runs out in {self.config.lease_s:g} s, then it is taken again")
+            return
+        else:
+            if state is None:
+                return  # the lease had been lost: the job is another worker's now
+            note = "" if bad_input else f"; {_moved_to(state, bad_input)}"
+        if state == "failed":
+            self._settle_failed(job, error)
+        self.log(said + note)
+
+    def _record_waiting(self) -> None:
+        """Write the attempt records of ended jobs that a full disk kept out (`_settle_error`)."""
+        for job_id, (claim, values) in list(self.unrecorded.items()):
+            try:
+                self.queue.write_outcome(claim, values)
+            except OSError as exc:
+                self._trouble(_recording(job_id), exc)
+                continue
+            del self.unrecorded[job_id]
+            self._trouble(_recording(job_id), None)
 
     def _settle_failed(self, job, error: str) -> None:
         """The queue gave up on `job`: a live job's status must not go on saying it is finishing."""
@@ -342,8 +398,7 @@ class Worker:
         self.unpublished.pop(job.id, None)
         self._trouble(what, None)
         if published is None:
-            self.log(f"{job.id}: finished, but its lease had been taken over; result dropped")
-            shutil.rmtree(child.scratch, ignore_errors=True)  # the job is another worker's now
+            self._lease_lost(job.id, child, "its lease had been taken over")
             return True
         self._said_done(waiting, *published)
         return True
@@ -353,13 +408,28 @@ class Worker:
         met while the queue's record was written), the rest of it: the job recorded as done with that result."""
         claim = child.claim
         final = result_path(claim.job, self.root)
-        if not child.scratch.exists() and (completion(final) or {}).get("token") == claim.token:
+        if self._in_place(child):
             if claim.path.exists():
-                self.queue.finish(claim, str(final))
-            else:  # moved to done/ already: only its attempt record was left to complete
+                if not self.queue.finish(claim, str(final)):
+                    return None
+            elif self._done_in_place(child):  # moved to done/ already: only its attempt record was left to complete
                 self.queue.record_done(claim.job.id, str(final))
+            else:
+                return None  # taken over: the job's next claim records it as done with this result
             return final, None
         return publish_claim(self.queue, claim, child.scratch, final, child.log)
+
+    def _in_place(self, child: Child) -> bool:
+        """Whether this claim's result has been renamed into place (its marker names this claim): its job file is
+        in done/ or on its way there, not lost to another worker; only the queue's record is left to write, which
+        `_publish_once` does once it fits."""
+        final = result_path(child.claim.job, self.root)
+        return not child.scratch.exists() and (completion(final) or {}).get("token") == child.claim.token
+
+    def _done_in_place(self, child: Child) -> bool:
+        """Whether this claim's result is in place and its job file in done/: published, only the queue's record
+        left to write (the lease is not lost: the file left running/ for done/)."""
+        return self._in_place(child) and (self.queue.path / "done" / f"{child.claim.job.id}.json").exists()
 
     def _publish_waiting(self) -> None:
         for waiting in list(self.unpublished.values()):
@@ -368,8 +438,19 @@ class Worker:
     def _drop_unpublished(self, job_id: str, why: str) -> None:
         waiting = self.unpublished.pop(job_id)
         self._troubles.pop(f"publish the finished result of {job_id} ({waiting.child.scratch})", None)
-        shutil.rmtree(waiting.child.scratch, ignore_errors=True)
-        self.log(f"{job_id}: finished, but {why} before its result could be published; result dropped")
+        self._lease_lost(job_id, waiting.child, f"{why} before its result could be published")
+
+    def _lease_lost(self, job_id: str, child: Child, why: str) -> None:
+        """Say what became of a finished result whose lease was taken over: dropped while still in its scratch
+        folder (the job is another worker's now), kept when it had been renamed into place already (the job's next
+        claim finds its own result there and records the job as done)."""
+        if self._in_place(child):
+            final = result_path(child.claim.job, self.root)
+            self.log(f"{job_id}: finished and its result is in place at {final}, but {why}; the worker that claims "
+                     f"the job next records it as done")
+            return
+        shutil.rmtree(child.scratch, ignore_errors=True)
+        self.log(f"{job_id}: finished, but {why}; result dropped")
 
     def _said_done(self, waiting: Unpublished, final: Path, aside: Path | None) -> None:
         """Record a published job as done and log its done line."""
@@ -400,6 +481,8 @@ class Worker:
         finally:
             if self.unpublished:
                 await asyncio.to_thread(self._leave_unpublished)
+            if self.unrecorded:
+                await asyncio.to_thread(self._leave_unrecorded)
 
     async def _stop_children(self) -> None:
         if not self.children:
@@ -419,6 +502,33 @@ class Worker:
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()
 
+    def _leave_in_place(self, job_id: str, child: Child) -> None:
+        """A stopping worker's result that was renamed into place, its job not yet recorded as done (a full disk):
+        nothing is reconstructed again; the job's next claim (or, for a job already in done/, the next worker to
+        start) records it as done with that result."""
+        final = result_path(child.claim.job, self.root)
+        if self._done_in_place(child):
+            self.log(f"{job_id} stopped before its attempt record could say done; the job is done, its result in "
+                     f"place at {final} (the next worker to start completes the record)")
+            return
+        try:
+            released = self.queue.release(child.claim, "worker stopped before it could record the job as done")
+        except OSError:  # its job file went back to queued/ (a rename), its record could not say why
+            released = True
+        if released:
+            self.log(f"{job_id} stopped before the queue recorded it as done; back in the queue, its result is in "
+                     f"place at {final}: the next worker to claim it records the job as done, not reconstructing "
+                     f"it again")
+
+    def _leave_unrecorded(self) -> None:
+        """A worker that stops while attempt records wait to be written tries each once more; the job's state is
+        right either way (its file moved), only the record's error is missing, and this worker's line named it."""
+        self._record_waiting()
+        for job_id, (claim, values) in self.unrecorded.items():
+            self.log(f"{job_id}: stopped before its attempt record could be written; the record goes on saying "
+                     f"running, the job ended: {values.get('error')}")
+        self.unrecorded.clear()
+
     def _leave_unpublished(self) -> None:
         """A worker that stops while finished results wait to be published tries each once more. One that still
         cannot be published is marked complete without its log (the queue's logs/ keeps it), so that the next worker
@@ -427,6 +537,10 @@ class Worker:
         self._publish_waiting()
         for job_id, waiting in list(self.unpublished.items()):
             child = waiting.child
+            if self._in_place(child):
+                del self.unpublished[job_id]
+                self._leave_in_place(job_id, child)
+                continue
             try:
                 mark_complete(child.scratch, job_id, child.claim.token, self.queue.path)
                 kept = f"its finished result stays in {child.scratch}, for the next worker to publish"
@@ -441,6 +555,18 @@ class Worker:
                 released = True
             if released:
                 self.log(f"{job_id} stopped before its result could be published; back in the queue, {kept}")
+
+
+def _recording(job_id: str) -> str:
+    """What `_trouble` says the worker could not do while an ended job's attempt record does not fit."""
+    return f"write the attempt record of {job_id}"
+
+
+def _moved_to(state: str, bad_input: bool) -> str:
+    """Where a job that ended in error went, as its line says."""
+    if state == "queued":
+        return "queued again"
+    return "moved to failed/" if bad_input else "giving up (moved to failed/)"
 
 
 def _shown(value) -> str:

@@ -31,8 +31,8 @@ from spadscan.protocol.capture_format import MANIFEST
 from spadscan.protocol.errors import ConfigError
 
 from .holder import Holder
-from .jobs import (RESULT_FILES, Job, completion, existing_result, mark_complete, move_aside, result_path, scan_path,
-                   scratch_folders)
+from .jobs import (RESULT_FILES, SCRATCH_RE, Job, completion, existing_result, mark_complete, move_aside, result_path,
+                   scan_path, scratch_folders)
 from .kill_points import kill_point
 from .queue import SEP, Claim, Queue
 
@@ -70,6 +70,41 @@ def _put_in_place(queue: Queue, claim: Claim, scratch: Path, final: Path,
     return final, aside
 
 
+def left_result(queue: Queue, claim: Claim, root: Path) -> Path | None:
+    """The complete scratch folder an earlier claim of `claim`'s job left unpublished, or None: its marker names the
+    job, that claim and this queue, and that claim can never publish it itself (its worker gave the job back when it
+    stopped with the disk full, `Worker._leave_unpublished`, or died). The worker that claims the job next publishes
+    it (`publish_left`) instead of reconstructing the job again."""
+    try:
+        recon = result_path(claim.job, root).parent
+    except ConfigError:
+        return None
+    for folder in sorted(recon.glob(f".tmp-{claim.job.id}-*")):
+        m = SCRATCH_RE.match(folder.name)
+        if not m or m["job"] != claim.job.id or m["token"] == claim.token or not folder.is_dir():
+            continue
+        token = m["token"]
+        if not _marked_by(folder, claim.job.id, token, queue):
+            continue
+        rec = queue.record(claim.job.id, token) or {}
+        if rec.get("outcome") == "interrupted" or queue.claim_is_dead(claim.job.id, token):
+            return folder
+    return None
+
+
+def publish_left(queue: Queue, claim: Claim, folder: Path, root: Path) -> tuple[Path, Path | None]:
+    """Publish the result `left_result` found, under `claim` (which is then no attempt of its own: it ran nothing)."""
+    token = SCRATCH_RE.match(folder.name)["token"]
+    queue.note_adopted(claim, token)
+    return _put_in_place(queue, claim, folder, result_path(claim.job, root), "recovered-published")
+
+
+def _marked_by(folder: Path, job_id: str, token: str, queue: Queue) -> bool:
+    """Whether `folder`'s completion marker says it is the whole result of claim `token` of `job_id` in `queue`."""
+    mark = completion(folder) or {}
+    return (mark.get("job"), mark.get("token"), mark.get("queue")) == (job_id, token, str(queue.path))
+
+
 def own_result(queue: Queue, job_id: str, folder: Path) -> dict | None:
     """The completion marker of `folder` when it holds a result this queue's claim of `job_id` produced, else None
     (a result from another queue, from a deleted queue, or from before markers existed)."""
@@ -105,6 +140,8 @@ def _scratch_folders(queue: Queue, root: Path, log: Log, busy) -> bool:
             continue  # being published by the worker that adopted it
         if _publishable(queue, folder, job_id, token, state, path):
             _publish_left(queue, root, folder, job_id, token, state, path, log)
+        elif _complete(folder, job_id, token):
+            _finished_elsewhere(queue, root, folder, job_id, state, path, log)
         elif not queue.job_process_gone(job_id, token):
             pending = True  # its orphaned job process is still exiting: it could write into the folder again
         else:
@@ -126,6 +163,27 @@ def _publishable(queue: Queue, folder: Path, job_id: str, token: str, state: str
         return False
     return state in ("queued", "failed") or (state == "running"
                                              and queue.claim_is_dead(job_id, path.stem.rpartition(SEP)[2]))
+
+
+def _complete(folder: Path, job_id: str, token: str) -> bool:
+    mark = completion(folder) or {}
+    return (mark.get("job"), mark.get("token")) == (job_id, token)
+
+
+def _finished_elsewhere(queue: Queue, root: Path, folder: Path, job_id: str, state: str | None, path: Path | None,
+                        log: Log) -> None:
+    """A whole result of a dead claim that is not to be published now. While its job is held by a live claim, the
+    folder stays: that claim's worker publishes it (`left_result`, when it claimed the job). Once the job is done with
+    a result in place, this one is a second result of it, removed as such (never called partial)."""
+    if state != "done":
+        return
+    job = _job(path)
+    final = existing_result(job, root) if job is not None else None
+    if final is None:
+        return  # _done_jobs queues the job again; this folder may yet be its result
+    shutil.rmtree(folder, ignore_errors=True)
+    log(f"{job_id}: removed {folder}, a finished result a stopped worker could not publish: the job was done since "
+        f"with the result in {final}")
 
 
 def _adopted_by_live_claim(queue: Queue, job_id: str, path: Path, token: str) -> bool:

@@ -51,6 +51,17 @@ SEP = "~"
 OUTCOMES = ("running", "done", "failed", "crashed", "lost", "interrupted")
 
 
+class Unrecorded(OSError):
+    """A claim was settled, its job file moved to `state`/, but its attempt record could not be written (a full
+    disk): `values` is what the record must still say (Queue.write_outcome). Until then the record says the claim
+    is running and names no error."""
+
+    def __init__(self, exc: OSError, state: str, values: dict):
+        super().__init__(exc.errno, exc.strerror)
+        self.state = state
+        self.values = values
+
+
 @dataclass
 class Claim:
     """A job this process holds. `path` is its `running/` file; `attempt` counts this claim (1-based)."""
@@ -243,6 +254,11 @@ class Queue:
             job = Job(id=job_id, scan="?")
         return Claim(job, new, dst, self.attempts(job_id))
 
+    def note_adopted(self, claim: Claim, token: str) -> None:
+        """Mark held claim `claim` as one that publishes the finished result claim `token` left (`adopted`: no
+        attempt of its own, see `attempts`)."""
+        self._patch_record(claim.job.id, claim.token, adopted=token)
+
     def record_done(self, job_id: str, result: str) -> bool:
         """A done job whose last attempt record does not say so with its result (its worker died between moving the
         job file to done/ and updating the record, or before it recorded where it published the result): complete
@@ -258,26 +274,34 @@ class Queue:
         """The attempt record of claim `token`, or None when it is missing or unreadable."""
         return self._read_record(job_id, token)
 
-    def fail(self, claim: Claim, reason: str, *, retry: bool) -> str | None:
+    def fail(self, claim: Claim, reason: str, *, retry: bool, outcome: str = "failed") -> str | None:
         """A claim ended in error. With `retry` and attempts left the job goes back to queued/, else to failed/.
 
-        Returns the new state, or None when the lease had been lost (nothing changes).
+        Returns the new state, or None when the lease had been lost (nothing changes). Raises Unrecorded when the job
+        file moved but its attempt record could not be written (a full disk: a rename needs no free space, a record
+        does); `write_outcome` writes it later.
         """
         retry = retry and claim.attempt < self.max_attempts
         state = "queued" if retry else "failed"
         if not retry and claim.attempt > 1 and claim.attempt >= self.max_attempts:
             reason = f"{reason} (attempt {claim.attempt} of {self.max_attempts}; giving up)"
+        values = {"outcome": outcome, "error": _one_line(reason), "retried": retry, "ended_utc": _utc(),
+                  "seconds": round(time.time() - claim.started, 3)}
         if not self._settle(claim.path, claim.job.id, state):
             return None
-        self._update(claim, outcome="failed", error=_one_line(reason), retried=retry)
+        try:
+            self.write_outcome(claim, values)
+        except OSError as exc:
+            raise Unrecorded(exc, state, values) from exc
         return state
 
     def crash(self, claim: Claim, reason: str) -> str | None:
         """The job's process died or raised unexpectedly: retried while attempts are left."""
-        state = self.fail(claim, reason, retry=True)
-        if state is not None:
-            self._update(claim, outcome="crashed")
-        return state
+        return self.fail(claim, reason, retry=True, outcome="crashed")
+
+    def write_outcome(self, claim: Claim, values: dict) -> None:
+        """Write how a settled claim ended into its attempt record (what Unrecorded.values says, once it fits)."""
+        self._patch_record(claim.job.id, claim.token, **values)
 
     def release(self, claim: Claim, reason: str = "worker stopped") -> bool:
         """Give a held job back to queued/ without counting the attempt (the worker was asked to stop)."""
@@ -443,6 +467,9 @@ class Queue:
                 notes.append(f"unreadable job file {path}")
         recs, bad = self.read_records(job_id)
         notes += [f"unreadable attempt record {p}" for p in bad]
+        if state in ("queued", "failed") and recs and recs[-1].get("outcome") == "running":
+            # Moved on, its record not: a full disk kept out how the claim ended (the worker's log line says it).
+            notes.append("its last attempt record was not written (a full disk?): the worker's log says how it ended")
         counted = [r for r in recs if _counted(r)]
         errors = [str(r["error"]) for r in counted if r.get("error")]
         # A done job's result: its done record's; else the one its last claim recorded before settling (its worker

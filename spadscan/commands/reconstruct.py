@@ -77,8 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "that outnumber the cores make every step many times slower")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out: the files its report.json lists that this run "
-                             "does not write again are removed, and so are a worker job's job.json, job.log, "
-                             "ground_truth.ply and .complete marker; other files are left (without it, a folder that "
+                             "does not write again are removed, and, in a worker job's result (one that holds "
+                             "its .complete marker or job.json), the job's job.json, job.log, ground_truth.ply and "
+                             ".complete marker; other files are left (without it, a folder that "
                              "holds mesh.ply or report.json is refused)")
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 

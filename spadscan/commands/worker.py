@@ -49,7 +49,8 @@ left in a scratch folder (<scan>/recon/.tmp-<job>-<claim>/, complete once its ma
 as done a job whose result is in place, removes partial results, and queues again a done job whose result is gone.
 A full disk while a finished result is published (its log copied in, its marker written) loses nothing either: the
 worker keeps the result and the job's claim, says so once, and publishes it when there is room again, while its
-other jobs run on.
+other jobs run on; a worker stopped meanwhile leaves it marked complete, and the next worker to claim the job
+publishes it instead of reconstructing it again.
 
 --status lists the jobs and changes nothing. A running job shows how far it has got (its progress bar: seconds of
 its budget or steps, the step, the loss and, where the scene is known, the last checkpoint's Chamfer; --json:
