@@ -22,7 +22,7 @@ from spadscan.protocol.errors import ConfigError
 
 from test_abort_durable import disk, manifest  # noqa: F401  (disk: the fixture)
 from test_runner import check_capture, make_cfg, make_rig, until, sphere  # noqa: F401  (sphere: the fixture)
-from test_takeover_damaged import tear
+from test_takeover_damaged import restarted as recovered, tear
 
 VIEWS = 10
 
@@ -39,14 +39,7 @@ async def interrupted(cfg, sphere, name: str) -> None:  # noqa: F811
 
 async def restarted(cfg, sphere, then) -> object:  # noqa: F811
     """A daemon on cfg recovers; `then(runner)` runs before it stops and its result is returned."""
-    arm, sensor = make_rig(cfg, sphere)
-    async with DeviceSession([arm, sensor]):
-        runner = ScanRunner(arm, sensor, cfg)
-        try:
-            await runner.recover()
-            return await then(runner)
-        finally:
-            await runner.shutdown()
+    return await recovered(cfg, sphere, lambda runner, status: then(runner))
 
 
 def held_in_thread(monkeypatch, name: str) -> tuple[threading.Event, threading.Event]:

@@ -15,17 +15,9 @@ from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
-from test_worker_publish_full import RECON, _starts, _until
+from test_worker_publish_full import RECON, _starts, _until, markers  # noqa: F401  (markers: a fixture)
 
 pytestmark = pytest.mark.usefixtures("recon_stand_ins")
-
-
-@pytest.fixture
-def markers(tmp_path, monkeypatch):
-    d = tmp_path / "markers"
-    d.mkdir()
-    monkeypatch.setenv("MARKERS", str(d))
-    return d
 
 
 def test_a_done_record_the_disk_cannot_hold_is_written_later_and_the_job_said_done(tmp_path, arun, markers,

@@ -22,17 +22,9 @@ from spadscan.worker.worker_config import WorkerConfig
 from process_helpers import reaped
 from test_publishing import _gone_pid
 from test_watcher import make_scan
-from test_worker_publish_full import LAUNCH, RECON, _scratch, _starts, _until
+from test_worker_publish_full import LAUNCH, RECON, _scratch, _starts, _until, markers  # noqa: F401  (markers: a fixture)
 
 HERE = Path(__file__).resolve().parent
-
-
-@pytest.fixture
-def markers(tmp_path, monkeypatch):
-    d = tmp_path / "markers"
-    d.mkdir()
-    monkeypatch.setenv("MARKERS", str(d))
-    return d
 
 
 @pytest.mark.usefixtures("recon_stand_ins")

@@ -23,6 +23,7 @@ from spadscan.worker.worker_config import WorkerConfig
 
 from process_helpers import reaped
 from test_watcher import make_scan
+from test_worker_trouble import _until
 
 HERE = Path(__file__).resolve().parent
 RECON = "test_worker_publish_full:held_recon"
@@ -65,14 +66,6 @@ def markers(tmp_path, monkeypatch):
     d.mkdir()
     monkeypatch.setenv("MARKERS", str(d))
     return d
-
-
-async def _until(predicate, timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("timed out waiting")
-        await asyncio.sleep(0.02)
 
 
 def _starts(markers: Path, scan: str) -> list[Path]:

@@ -18,7 +18,7 @@ from spadscan.worker.queue import Queue, Unrecorded
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
-from test_worker_publish_full import _starts, _until, held_recon  # noqa: F401  (held_recon: the RECON below)
+from test_worker_publish_full import _starts, _until, held_recon, markers  # noqa: F401  (held_recon: the RECON below; markers: a fixture)
 
 RECON = "test_worker_record_full:bad_or_held_recon"
 
@@ -28,14 +28,6 @@ def bad_or_held_recon(capture, out, **kw):
     if Path(capture).name == "bad":
         raise CaptureError(f"{capture}: refused for the test")
     return held_recon(capture, out, **kw)
-
-
-@pytest.fixture
-def markers(tmp_path, monkeypatch):
-    d = tmp_path / "markers"
-    d.mkdir()
-    monkeypatch.setenv("MARKERS", str(d))
-    return d
 
 
 @pytest.mark.usefixtures("recon_stand_ins")
