@@ -17,6 +17,8 @@ from spadscan.daemon.sensor.sim_bridge import SimBridge
 from spadscan.daemon.sensor.sim_i2c import SimTMF8820Bus
 from spadscan.protocol.sensor_presets import sensor_preset
 
+from test_sensor_i2c import image  # noqa: F401  (a fixture: the stand-in application image)
+
 pytestmark = pytest.mark.usefixtures("no_leaked_threads_or_fds")
 
 CMD_MEASURE, CMD_STOP = 0x10, 0xFF
@@ -33,14 +35,6 @@ class TimedBus(SimTMF8820Bus):
     def i2c_rdwr(self, *msgs):
         time.sleep(sum(m.len + 1 for m in msgs) * self.byte_s)
         return super().i2c_rdwr(*msgs)
-
-
-@pytest.fixture
-def image(tmp_path):
-    data = np.random.default_rng(7).integers(0, 256, 3000, dtype=np.uint8).tobytes()
-    path = tmp_path / "tmf8820_app.bin"
-    path.write_bytes(data)
-    return path, data
 
 
 def exposure_of_i2c(fake: SimTMF8820Bus, frame) -> tuple[float, float]:
