@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
@@ -130,7 +131,7 @@ class Worker:
     def _trouble(self, what: str, exc: Exception | None) -> None:
         """Log a failed attempt to `what` once, not at every poll while it keeps failing the same way, and log when it
         works again (exc None: it worked)."""
-        line = None if exc is None else " ".join(str(exc).split())
+        line = None if exc is None else fold(exc)
         if line == self._troubles.get(what):
             return
         if line is None:
@@ -270,10 +271,7 @@ class Worker:
             final, aside = publish_left(self.queue, claim, left, self.root)
         except OSError as exc:
             self._trouble(what, exc)
-            try:
-                self.queue.release(claim, f"could not publish the result left in {left}: {exc}")
-            except OSError:  # its job file went back to queued/ (a rename), its record could not say why
-                pass
+            self._give_back(claim, f"could not publish the result left in {left}: {exc}")
             return
         self._trouble(what, None)
         if job.live:
@@ -347,11 +345,11 @@ class Worker:
         except Unrecorded as exc:
             state = exc.state
             self.unrecorded[job.id] = (claim, exc.values)
-            self._troubles[_recording(job.id)] = " ".join(str(exc).split())  # said here: not again at the next poll
+            self._troubles[_recording(job.id)] = fold(exc)  # said here: not again at the next poll
             note = (f"; {_moved_to(state, bad_input)}, but its attempt record could not be written "
-                    f"({' '.join(str(exc).split())}): trying again every {self.config.poll_s:g} s")
+                    f"({fold(exc)}): trying again every {self.config.poll_s:g} s")
         except OSError as exc:  # the job file was not moved: the job stays held by this worker's claim
-            self.log(f"{said}; the queue could not record it ({' '.join(str(exc).split())}): the job stays in "
+            self.log(f"{said}; the queue could not record it ({fold(exc)}): the job stays in "
                      f"running/ until its lease runs out in {self.config.lease_s:g} s, then it is taken again")
             return
         else:
@@ -502,6 +500,14 @@ class Worker:
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()
 
+    def _give_back(self, claim: Claim, reason: str) -> bool:
+        """queue.release; True also when only its record failed on a full disk: the job file went back to queued/
+        (a rename needs no room), its record could not say why."""
+        try:
+            return self.queue.release(claim, reason)
+        except OSError:
+            return True
+
     def _leave_in_place(self, job_id: str, child: Child) -> None:
         """A stopping worker's result that was renamed into place, its job not yet recorded as done (a full disk):
         nothing is reconstructed again; the job's next claim (or, for a job already in done/, the next worker to
@@ -511,11 +517,7 @@ class Worker:
             self.log(f"{job_id} stopped before its attempt record could say done; the job is done, its result in "
                      f"place at {final} (the next worker to start completes the record)")
             return
-        try:
-            released = self.queue.release(child.claim, "worker stopped before it could record the job as done")
-        except OSError:  # its job file went back to queued/ (a rename), its record could not say why
-            released = True
-        if released:
+        if self._give_back(child.claim, "worker stopped before it could record the job as done"):
             self.log(f"{job_id} stopped before the queue recorded it as done; back in the queue, its result is in "
                      f"place at {final}: the next worker to claim it records the job as done, not reconstructing "
                      f"it again")
@@ -546,14 +548,10 @@ class Worker:
                 kept = f"its finished result stays in {child.scratch}, for the next worker to publish"
             except OSError as exc:
                 shutil.rmtree(child.scratch, ignore_errors=True)
-                kept = (f"its finished result could not be kept ({' '.join(str(exc).split())}): it will be "
+                kept = (f"its finished result could not be kept ({fold(exc)}): it will be "
                         f"reconstructed again")
             del self.unpublished[job_id]
-            try:
-                released = self.queue.release(child.claim, "worker stopped before it could publish the result")
-            except OSError:  # its job file went back to queued/ (a rename), its record could not say why
-                released = True
-            if released:
+            if self._give_back(child.claim, "worker stopped before it could publish the result"):
                 self.log(f"{job_id} stopped before its result could be published; back in the queue, {kept}")
 
 

@@ -99,10 +99,12 @@ def publish_left(queue: Queue, claim: Claim, folder: Path, root: Path) -> tuple[
     return _put_in_place(queue, claim, folder, result_path(claim.job, root), "recovered-published")
 
 
-def _marked_by(folder: Path, job_id: str, token: str, queue: Queue) -> bool:
-    """Whether `folder`'s completion marker says it is the whole result of claim `token` of `job_id` in `queue`."""
+def _marked_by(folder: Path, job_id: str, token: str, queue: Queue | None = None) -> bool:
+    """Whether `folder`'s completion marker says it is the whole result of claim `token` of `job_id` (in `queue`,
+    when given)."""
     mark = completion(folder) or {}
-    return (mark.get("job"), mark.get("token"), mark.get("queue")) == (job_id, token, str(queue.path))
+    return ((mark.get("job"), mark.get("token")) == (job_id, token)
+            and (queue is None or mark.get("queue") == str(queue.path)))
 
 
 def own_result(queue: Queue, job_id: str, folder: Path) -> dict | None:
@@ -140,7 +142,7 @@ def _scratch_folders(queue: Queue, root: Path, log: Log, busy) -> bool:
             continue  # being published by the worker that adopted it
         if _publishable(queue, folder, job_id, token, state, path):
             _publish_left(queue, root, folder, job_id, token, state, path, log)
-        elif _complete(folder, job_id, token):
+        elif _marked_by(folder, job_id, token):
             _finished_elsewhere(queue, root, folder, job_id, state, path, log)
         elif not queue.job_process_gone(job_id, token):
             pending = True  # its orphaned job process is still exiting: it could write into the folder again
@@ -163,11 +165,6 @@ def _publishable(queue: Queue, folder: Path, job_id: str, token: str, state: str
         return False
     return state in ("queued", "failed") or (state == "running"
                                              and queue.claim_is_dead(job_id, path.stem.rpartition(SEP)[2]))
-
-
-def _complete(folder: Path, job_id: str, token: str) -> bool:
-    mark = completion(folder) or {}
-    return (mark.get("job"), mark.get("token")) == (job_id, token)
 
 
 def _finished_elsewhere(queue: Queue, root: Path, folder: Path, job_id: str, state: str | None, path: Path | None,
