@@ -145,6 +145,13 @@ class ScanJob:
         return (f1 - f0) / (t1 - t0) if t1 > t0 else 0.0
 
 
+def written_by_daemon(manifest: dict) -> bool:
+    """Whether a capture's manifest says the daemon wrote it (rig.writer = WRITER): only those does it take over or
+    end."""
+    rig = manifest.get("rig")
+    return isinstance(rig, dict) and rig.get("writer") == WRITER
+
+
 def find_interrupted(root: Path) -> Path | None:
     """The daemon's scan folder under root whose manifest says 'running' and was updated last (a crash or stop left
     it). 'running' captures the daemon did not write (no rig.writer = WRITER) are logged and skipped."""
@@ -164,8 +171,7 @@ def find_interrupted(root: Path) -> Path | None:
             continue
         if (d / ABORT_PENDING).exists():  # aborted: the manifest could not say so yet (recover records it)
             continue
-        rig = manifest.get("rig")
-        if not (isinstance(rig, dict) and rig.get("writer") == WRITER):
+        if not written_by_daemon(manifest):
             log.warning("not taking over %s: its capture says 'running' but was not written by the daemon "
                         "(no rig.writer = %r in %s)", d, WRITER, MANIFEST)
             continue
@@ -249,8 +255,7 @@ def interrupted_scan(root: Path, name: str) -> Path:
     state = manifest.get("state")
     if state != "running":
         raise ConfigError(f"scan {name!r} has already ended ({state})")
-    rig = manifest.get("rig")
-    if not (isinstance(rig, dict) and rig.get("writer") == WRITER):
+    if not written_by_daemon(manifest):
         raise ConfigError(f"scan {name!r} was not written by the daemon (no rig.writer = {WRITER!r} in "
                           f"{MANIFEST}); it is not the daemon's to end")
     return path
