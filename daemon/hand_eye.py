@@ -207,10 +207,15 @@ class HandEyeFit:
             out.append(f"moved it {along:+.0f} mm along its axis")
         if self.rms_mm > PLAUSIBLE_RMS_MM:
             out.append(f"left a residual RMS of {self.rms_mm:.1f} mm")
-        shown = self.returns + self.lost
-        if self.kind == "plane" and shown and self.lost > PLAUSIBLE_LOST * shown:
-            out.append(f"left {self.lost} of the {shown} zone returns off the plane")
+        if self._off_plane:
+            out.append(f"left {self.lost} of the {self.returns + self.lost} zone returns off the plane")
         return out
+
+    @property
+    def _off_plane(self) -> bool:
+        """Whether more than PLAUSIBLE_LOST of the zone returns lie off a plane target (something else in view)."""
+        shown = self.returns + self.lost
+        return self.kind == "plane" and shown > 0 and self.lost > PLAUSIBLE_LOST * shown
 
     @property
     def along_limit_mm(self) -> float:
@@ -223,9 +228,7 @@ class HandEyeFit:
         and explains the returns points at the target's height (or the zero bin): a height error leaves no other
         trace. Many returns left off a plane point at something else in view."""
         tilt, across, along = self._moved()
-        shown = self.returns + self.lost
-        off_plane = self.kind == "plane" and shown and self.lost > PLAUSIBLE_LOST * shown
-        if off_plane:
+        if self._off_plane:
             return ("likely something standing on the plane, or a wrong target (its height, a sign or axis of "
                     "--plane), or a start whose axis is tilted more than about 20 deg")
         height = (abs(along) > self.along_limit_mm and tilt <= PLAUSIBLE_TILT_DEG and self.rms_mm <= PLAUSIBLE_RMS_MM
