@@ -11,12 +11,10 @@ import json
 import pytest
 
 from spadscan.daemon import runner as runner_module
-from spadscan.daemon.app import DeviceSession
-from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.scan_job import ABORT_PENDING
 from spadscan.protocol.capture_format import read_json
 
-from test_runner import make_cfg, make_rig, until, sphere  # noqa: F401  (sphere: the fixture)
+from test_runner import daemon_runner, make_cfg, until, sphere  # noqa: F401  (sphere: the fixture)
 
 
 @pytest.fixture
@@ -49,35 +47,25 @@ def manifest(folder) -> dict:
 async def abort_on_a_full_disk(cfg, sphere, disk, name: str) -> dict:  # noqa: F811
     """A daemon starts scan `name`; the disk fills up (the scan pauses), the operator aborts it, and the daemon is
     stopped with the disk still full. Returns the abort's reply."""
-    arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-    async with DeviceSession([arm, sensor]):
-        runner = ScanRunner(arm, sensor, cfg)
-        try:
-            await runner.start(name)
-            await until(lambda: runner.job.next_pose >= 3, "three poses")
-            disk["error"] = errno.ENOSPC
-            await until(lambda: runner.state == "paused", "the pause for the full disk")
-            return await runner.abort()
-        finally:
-            await runner.shutdown()
+    async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+        await runner.start(name)
+        await until(lambda: runner.job.next_pose >= 3, "three poses")
+        disk["error"] = errno.ENOSPC
+        await until(lambda: runner.state == "paused", "the pause for the full disk")
+        return await runner.abort()
 
 
 async def restarted(cfg, sphere, meanwhile=None) -> dict:  # noqa: F811
     """A daemon started on cfg's captures root: its status once it has recovered; `meanwhile()` then runs (room is
     made) and a `status` request follows, whose reply is returned too (as {"first", "then"})."""
-    arm, sensor = make_rig(cfg, sphere)
-    async with DeviceSession([arm, sensor]):
-        runner = ScanRunner(arm, sensor, cfg)
-        try:
-            await runner.recover()
-            first = runner.status()
-            if meanwhile is None:
-                return {"first": first}
-            meanwhile()
-            await runner.retry_aborts()  # what the Dispatcher runs before each request
-            return {"first": first, "then": runner.status()}
-        finally:
-            await runner.shutdown()
+    async with daemon_runner(cfg, sphere) as runner:
+        await runner.recover()
+        first = runner.status()
+        if meanwhile is None:
+            return {"first": first}
+        meanwhile()
+        await runner.retry_aborts()  # what the Dispatcher runs before each request
+        return {"first": first, "then": runner.status()}
 
 
 def test_an_abort_the_full_disk_cannot_take_is_not_undone_by_a_restart(arun, tmp_path, sphere, disk):  # noqa: F811
@@ -116,21 +104,16 @@ def test_the_daemon_writes_the_abort_again_by_itself_once_room_comes_back(arun, 
     folder = tmp_path / "caps" / "s2"
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("s2")
-                await until(lambda: runner.job.next_pose >= 2, "two poses")
-                disk["error"] = errno.ENOSPC
-                await until(lambda: runner.state == "paused", "the pause")
-                reply = await runner.abort(reason="wrong object")
-                disk["error"] = None
-                await until(lambda: manifest(folder)["state"] == "aborted", "the abort on disk")
-                await until(lambda: not runner.unrecorded, "the abort counted as recorded")
-                return reply, runner.status()
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            await runner.start("s2")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            disk["error"] = errno.ENOSPC
+            await until(lambda: runner.state == "paused", "the pause")
+            reply = await runner.abort(reason="wrong object")
+            disk["error"] = None
+            await until(lambda: manifest(folder)["state"] == "aborted", "the abort on disk")
+            await until(lambda: not runner.unrecorded, "the abort counted as recorded")
+            return reply, runner.status()
 
     reply, status = arun(scenario())
     assert reply["abort_recorded"] is False and "written again every 0.01 s" in reply["last_error"], reply
@@ -148,19 +131,14 @@ def test_an_abort_a_read_only_disk_cannot_keep_says_so_and_lands_at_shutdown(aru
     folder = tmp_path / "caps" / "ro"
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("ro")
-                await until(lambda: runner.job.next_pose >= 2, "two poses")
-                disk["error"] = errno.EROFS
-                await until(lambda: runner.state == "paused", "the pause")
-                reply = await runner.abort()
-                disk["error"] = None
-                return reply, manifest(folder)["state"]
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            await runner.start("ro")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            disk["error"] = errno.EROFS
+            await until(lambda: runner.state == "paused", "the pause")
+            reply = await runner.abort()
+            disk["error"] = None
+            return reply, manifest(folder)["state"]
 
     reply, before_shutdown = arun(scenario())
     said = reply["last_error"]

@@ -22,19 +22,9 @@ from spadscan.protocol.errors import ConfigError
 
 from test_abort_durable import disk, manifest  # noqa: F401  (disk: the fixture)
 from test_runner import check_capture, make_cfg, make_rig, until, sphere  # noqa: F401  (sphere: the fixture)
-from test_takeover_damaged import restarted as recovered, tear
+from test_takeover_damaged import interrupted, restarted as recovered, tear
 
 VIEWS = 10
-
-
-async def interrupted(cfg, sphere, name: str) -> None:  # noqa: F811
-    """Scan `name` is cut short (as on SIGTERM) with a few poses published."""
-    arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-    async with DeviceSession([arm, sensor]):
-        runner = ScanRunner(arm, sensor, cfg)
-        await runner.start(name)
-        await until(lambda: runner.job.next_pose >= 4, "four poses")
-        await runner.shutdown()
 
 
 async def restarted(cfg, sphere, then) -> object:  # noqa: F811

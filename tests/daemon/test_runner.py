@@ -4,6 +4,7 @@ that pause with their reason, resume at the first unpublished pose, nothing publ
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import logging
 import re
@@ -65,6 +66,18 @@ def make_rig(cfg, mesh, *, frame_time_s=0.0, **arm_kw):
     sensor = SimSensor(sensor_preset("tmf8820"), mesh, pose_provider(arm, cfg.arm.hand_eye),
                        settings=SimSettings(rays_per_zone=16), seed=1, frame_time_s=frame_time_s)
     return arm, sensor
+
+
+@contextlib.asynccontextmanager
+async def daemon_runner(cfg, mesh, **rig_kw):
+    """A ScanRunner on make_rig's sim devices, its devices connected; shut down however the test ends."""
+    arm, sensor = make_rig(cfg, mesh, **rig_kw)
+    async with DeviceSession([arm, sensor]):
+        runner = ScanRunner(arm, sensor, cfg)
+        try:
+            yield runner
+        finally:
+            await runner.shutdown()
 
 
 async def until(pred, what: str, timeout_s: float = 20.0) -> None:

@@ -9,25 +9,20 @@ import shutil
 import numpy as np
 import pytest
 
-from spadscan.daemon.app import DeviceSession
-from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.scan_job import way_out
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError
 
-from test_runner import check_capture, make_cfg, make_rig, until, sphere  # noqa: F401  (sphere: the fixture)
+from test_runner import check_capture, daemon_runner, make_cfg, until, sphere  # noqa: F401  (sphere: the fixture)
 
 VIEWS = 10
 
 
-async def interrupted(cfg, sphere) -> None:  # noqa: F811
-    """Scan 'vase' is cut short (as on SIGTERM) with a few poses published."""
-    arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-    async with DeviceSession([arm, sensor]):
-        runner = ScanRunner(arm, sensor, cfg)
-        await runner.start("vase")
+async def interrupted(cfg, sphere, name: str = "vase") -> None:  # noqa: F811
+    """Scan `name` is cut short (as on SIGTERM) with a few poses published."""
+    async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+        await runner.start(name)
         await until(lambda: runner.job.next_pose >= 4, "four poses")
-        await runner.shutdown()
 
 
 def tear(folder, which: int = -1) -> str:
@@ -39,14 +34,9 @@ def tear(folder, which: int = -1) -> str:
 
 async def restarted(cfg, sphere, then) -> object:  # noqa: F811
     """A daemon on cfg recovers; `then(runner, status)` runs before it stops and its result is returned."""
-    arm, sensor = make_rig(cfg, sphere)
-    async with DeviceSession([arm, sensor]):
-        runner = ScanRunner(arm, sensor, cfg)
-        try:
-            await runner.recover()
-            return await then(runner, runner.status())
-        finally:
-            await runner.shutdown()
+    async with daemon_runner(cfg, sphere) as runner:
+        await runner.recover()
+        return await then(runner, runner.status())
 
 
 def test_a_scan_with_a_damaged_chunk_says_the_way_out_and_can_be_aborted_keeping_every_chunk(arun, tmp_path,
