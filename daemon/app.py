@@ -101,7 +101,7 @@ class Dispatcher:
         if extra:
             raise ConfigError(f"op {op!r} takes no {', '.join(sorted(extra))}")
         r = self.runner
-        await r.retry_aborts()  # each request writes again an abort the disk could not take yet
+        await r.aborts.retry()  # each request writes again an abort the disk could not take yet
         if op in ("resume", "abort") and not isinstance(req.get("name", ""), str):
             raise ConfigError(f"{op}'s 'name' must be a scan name (a string)")
         named = {"name": req["name"]} if req.get("name") else {}  # a scan the daemon does not hold (see ScanRunner)

@@ -24,7 +24,7 @@ is asked again about the poses still to come (`Arm.check_poses`).
 An abort is recorded in the capture's manifest alone (no chunk is read). One the disk cannot take (full, read-only)
 is never undone by a restart: the reply says it is not recorded yet, `abort-pending.json` in the scan folder keeps it
 where an empty file still fits (no daemon takes such a scan over), and the daemon writes it again every
-ABORT_RETRY_S, at each control request and at shutdown. A scan found interrupted that cannot be taken over (a chunk
+ABORT_RETRY_S, at each control request and at shutdown (`abort_book.py`). A scan found interrupted that cannot be taken over (a chunk
 torn by a power cut) is named in `status` with what to do: `ctl resume NAME` tries the takeover again (after its
 damaged chunk is moved out of the folder), `ctl abort NAME` ends it as aborted, every chunk kept; it stays named
 until that scan itself is taken over or aborted. The two are done one at a time (the later one is refused, to be
@@ -35,8 +35,6 @@ waits for the arm to stop: the scan's wind-down runs to its end whoever is cance
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import errno
 import logging
 import shutil
 import time
@@ -46,15 +44,17 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, Measurement, read_json
-from spadscan.protocol.capture_writer import CaptureWriter, drop_temporary, mark_aborted, mark_paused
+from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
+from .abort_book import AbortBook
 from .config import DaemonConfig, scan_request
 from .arm.stops import clear_advice, stop_name
+from .describe import describe
 from .devices import Arm, ArmFault, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abort_pending, check_scan_name,
                        clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
-                       load_job, note_abort_pending, way_out)
+                       load_job, way_out)
 from .adaptive import ViewChooser, live_converged
 from .scan_plan import build_plan, sensor_from_tcp, tcp_from_sensor
 from .stall import StallWatch
@@ -69,7 +69,6 @@ READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting)
 ARM_FIXES = {"reconnect": "reconnecting", "clear": "clearing its fault"}  # what readying the arm does, said
 CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controller for one pose before its fallback
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
-ABORT_RETRY_S = 5.0  # how often an abort the disk could not take is written again (room may come back at any time)
 
 
 class _Fault(SpadscanError):
@@ -104,10 +103,8 @@ class ScanRunner:
         self.stalls = StallWatch()
         self.frame_waits_retried = 0
         """Frame waits begun again because the daemon itself had not run (see `stall.py`), not the sensor."""
-        self.unrecorded: dict[str, dict] = {}
-        """Scan name -> an abort its capture could not record yet: {"path", "reason", "error", "marker" (whether
-        abort-pending.json keeps it), "said" (the last_error that told)}; written again until it lands."""
-        self._retrying: asyncio.Task | None = None
+        self.aborts = AbortBook(self._io, self._replace_error, cfg.auto_resume)
+        """The aborts their capture could not record yet, written again until they land."""
         self.stuck: dict | None = None
         """The interrupted scan found at start-up that could not be taken over: {"scan", "cause", "error" (the
         last_error, with what the operator can do)}; None when there is none."""
@@ -132,7 +129,7 @@ class ScanRunner:
         try:
             self.root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise CaptureError(f"cannot start a scan: {_describe(exc, 'creating the captures root')}") from None
+            raise CaptureError(f"cannot start a scan: {describe(exc, 'creating the captures root')}") from None
         name = check_scan_name(name, self.root) if name is not None else default_scan_name(self.root)
         path = self.root / name
         if path.exists():
@@ -162,7 +159,7 @@ class ScanRunner:
         except FileExistsError:
             raise ConfigError(f"scan {name!r} already exists in {self.root} (choose another name)") from None
         except OSError as exc:
-            self.last_error = f"cannot start scan {name!r}: {_describe(exc, 'creating the scan folder')}"
+            self.last_error = f"cannot start scan {name!r}: {describe(exc, 'creating the scan folder')}"
             log.warning("%s", self.last_error)
             raise CaptureError(self.last_error) from None
         try:
@@ -175,7 +172,7 @@ class ScanRunner:
             # The folder was made above, by this call: whatever create left of it is ours to remove, so that the
             # name is free again once the disk has room.
             await self._io(_remove_partial, path)
-            what = _describe(exc, "creating the scan folder") if isinstance(exc, OSError) else str(exc)
+            what = describe(exc, "creating the scan folder") if isinstance(exc, OSError) else str(exc)
             self.last_error = f"cannot start scan {name!r}: {what}"
             log.warning("%s", self.last_error)
             raise CaptureError(self.last_error) from None
@@ -207,7 +204,7 @@ class ScanRunner:
                 job.writer = await self._io(CaptureWriter.resume, path)
                 job.record_progress(job.writer)
             except OSError as exc:  # a full disk: take the scan over all the same, paused until room is made
-                reopen_error = _describe(exc, "reopening the capture")
+                reopen_error = describe(exc, "reopening the capture")
                 await asyncio.to_thread(job.count_published)
             if job.blocked is None:
                 # In a thread: thousands of poses take seconds, and the event loop must keep kicking the arm's
@@ -271,8 +268,8 @@ class ScanRunner:
             if state != "running":  # recorded already; only removing the file had failed
                 await asyncio.to_thread(clear_abort_pending, path)
                 continue
-            await self._record_abort(path.name, path, reason, None)
-            if path.name not in self.unrecorded:
+            await self.aborts.record(path.name, path, reason, None)
+            if path.name not in self.aborts.unrecorded:
                 log.info("scan %s: recorded its abort (%s), which %s had kept", path.name, reason, ABORT_PENDING)
 
     async def pause(self) -> dict:
@@ -324,7 +321,7 @@ class ScanRunner:
         self._interrupted_op = "taken over"
         try:
             path = await asyncio.to_thread(interrupted_scan, self.root, name)
-            if (self.finished.get(name) == "aborted" or name in self.unrecorded
+            if (self.finished.get(name) == "aborted" or name in self.aborts.unrecorded
                     or await asyncio.to_thread(abort_pending, path) is not None):
                 raise ConfigError(f"scan {name!r} was aborted (its {MANIFEST} does not say so yet: the disk could not "
                                   f"take it); it cannot be resumed")
@@ -362,7 +359,7 @@ class ScanRunner:
             stuck = self.stuck if self.stuck is not None and self.stuck["scan"] == name else None
             if stuck is not None:
                 reason = f"{reason}; it could not be taken over: {stuck['cause']}"
-            await self._record_abort(name, path, reason, None)
+            await self.aborts.record(name, path, reason, None)
             self._forget_stuck(name)
             self.finished[name] = "aborted"
         finally:
@@ -372,66 +369,14 @@ class ScanRunner:
         return self._aborted_reply(name)
 
     def _aborted_reply(self, name: str) -> dict:
-        return {**self.status(), "aborted": name, "abort_recorded": name not in self.unrecorded}
+        return {**self.status(), "aborted": name, "abort_recorded": name not in self.aborts.unrecorded}
 
-    # ---- aborts the disk could not take --------------------------------------------------------------------------
-    async def _record_abort(self, name: str, path: Path, reason: str, writer: CaptureWriter | None) -> None:
-        """Record scan `name`'s abort in its capture; one the disk cannot take is kept pending (`_keep_abort`)."""
-        error = await self._io(_write_abort, path, reason, writer)
-        if error is None:
-            self._abort_landed(name)
-        else:
-            await self._keep_abort(name, path, reason, error)
-
-    async def _keep_abort(self, name: str, path: Path, reason: str, error: str) -> None:
-        """An abort scan.json could not take: kept in abort-pending.json where an empty file still fits, in memory
-        in any case, written again until it lands; last_error tells the operator, truthfully, where it stands."""
-        held = self.unrecorded.setdefault(name, {"path": path, "reason": reason, "marker": False})
-        held["error"] = error
-        if not held["marker"]:
-            held["marker"] = await self._io(note_abort_pending, path, reason)
-        held["said"] = self.last_error = self._unrecorded_said(name, held)
-        log.warning("%s", self.last_error)
-        if self._retrying is None or self._retrying.done():
-            self._retrying = asyncio.create_task(self._retry_aborts_loop(), name="abort retries")
-
-    def _unrecorded_said(self, name: str, held: dict) -> str:
-        return f"scan {name!r} is aborted, but {_unrecorded_note(held, self.cfg.auto_resume)}"
-
-    def _abort_landed(self, name: str) -> None:
-        held = self.unrecorded.pop(name, None)
-        if held is not None:
-            log.info("scan %s: its abort is recorded in its capture now", name)
-            if self.last_error == held.get("said"):
-                self.last_error = None
-
-    async def retry_aborts(self) -> None:
-        """Write again each abort its capture could not record yet (every ABORT_RETRY_S, at each control request and
-        at shutdown); one still without abort-pending.json tries that file again too."""
-        for name, held in list(self.unrecorded.items()):
-            error = await self._io(_write_abort, held["path"], held["reason"], None)
-            if error is None:
-                self._abort_landed(name)
-                continue
-            was = (held["error"], held["marker"])
-            held["error"] = error
-            if not held["marker"]:
-                held["marker"] = await self._io(note_abort_pending, held["path"], held["reason"])
-            if (held["error"], held["marker"]) != was:
-                self._said_again(name, held)
-
-    def _said_again(self, name: str, held: dict) -> None:
-        """An unrecorded abort's standing changed (abort-pending.json made at last, another error): last_error, if it
-        still tells of that abort, says where it stands now (a restart no longer scans on, say), not what it was."""
-        said = self._unrecorded_said(name, held)
-        if self.last_error == held["said"] and said != held["said"]:
-            held["said"] = self.last_error = said
-            log.warning("%s", said)
-
-    async def _retry_aborts_loop(self) -> None:
-        while self.unrecorded:
-            await asyncio.sleep(ABORT_RETRY_S)
-            await self.retry_aborts()
+    def _replace_error(self, old: str | None, new: str | None) -> bool:
+        """last_error becomes `new` if `old` is None or last_error still says `old` (it tells of nothing newer)."""
+        if old is not None and self.last_error != old:
+            return False
+        self.last_error = new
+        return True
 
     async def wait(self, name: str) -> dict:
         """Block until scan `name` is complete or aborted; returns {'name', 'state'}."""
@@ -452,14 +397,7 @@ class ScanRunner:
         """Stop the scan in flight (leaving its capture 'running', resumable) and the writer thread."""
         if self._task is not None:
             await self._cancel(("running", "daemon stopped; a restarted daemon resumes at the first unpublished pose"))
-        if self._retrying is not None:
-            self._retrying.cancel()
-            await asyncio.gather(self._retrying, return_exceptions=True)
-            self._retrying = None
-        await self.retry_aborts()  # a last try: room may have come back
-        for name, held in self.unrecorded.items():
-            log.error("scan %s: the daemon stops with the scan's abort not recorded: %s", name,
-                      _unrecorded_note(held, self.cfg.auto_resume, stopping=True))
+        await self.aborts.close()
         self._io_pool.shutdown(wait=True)
 
     def status(self) -> dict:
@@ -478,10 +416,8 @@ class ScanRunner:
         if self.finished:
             name = next(reversed(self.finished))
             out["last_scan"] = {"name": name, "state": self.finished[name]}
-        if self.unrecorded:
-            out["unrecorded_aborts"] = {name: {"reason": held["reason"], "error": held["error"],
-                                               "kept_on_disk": held["marker"]}
-                                        for name, held in self.unrecorded.items()}
+        if self.aborts.unrecorded:
+            out["unrecorded_aborts"] = self.aborts.status()
         if self.stuck is not None:
             out["cannot_take_over"] = {"scan": self.stuck["scan"], "error": self.stuck["error"]}
         out["daemon_stalls"] = {**self.stalls.counters(), "frame_waits_retried": self.frame_waits_retried}
@@ -516,7 +452,7 @@ class ScanRunner:
                         if "paused" in job.writer.manifest:  # reopened to go on after a fault's pause
                             await self._io(job.writer.set_state, "running")
                     except (OSError, CaptureError) as exc:
-                        await self._fault(job, f"cannot reopen the capture: {_describe(exc, 'reopening it')}")
+                        await self._fault(job, f"cannot reopen the capture: {describe(exc, 'reopening it')}")
                         continue
                 if self._pause_requested:
                     job.reason = "paused by user"
@@ -543,7 +479,7 @@ class ScanRunner:
                     # the user resumes.
                     job.arm_fix = ("reconnect" if isinstance(exc, LinkLost) else
                                    "clear" if isinstance(exc, ArmFault) else job.arm_fix)
-                    await self._fault(job, _describe(exc) + f" (pose {job.next_pose}/{job.n_poses})")
+                    await self._fault(job, describe(exc) + f" (pose {job.next_pose}/{job.n_poses})")
                 except asyncio.CancelledError:
                     raise
                 except Exception as exc:  # a bug must pause the scan, never kill the daemon
@@ -846,7 +782,7 @@ class ScanRunner:
             else:
                 await self._io(job.writer.set_state, "running")
         except (OSError, CaptureError) as exc:
-            log.warning("scan %s: the pause could not be recorded in its capture: %s", job.name, _describe(exc))
+            log.warning("scan %s: the pause could not be recorded in its capture: %s", job.name, describe(exc))
 
     def _stall_note(self) -> str:
         """What to add to a pause's reason when the daemon itself stood still just before (the UR watchdog stops the
@@ -898,7 +834,7 @@ class ScanRunner:
         state, reason = self._end or ("running", "scan task cancelled")
         await self._stop_arm()
         if state == "aborted":
-            await self._record_abort(job.name, job.path, reason, job.writer)
+            await self.aborts.record(job.name, job.path, reason, job.writer)
             self._finish(job, "aborted")
             return
         try:
@@ -909,7 +845,7 @@ class ScanRunner:
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
-            self.last_error = f"scan {job.name!r}: could not record '{state}': {_describe(exc, 'recording it')}"
+            self.last_error = f"scan {job.name!r}: could not record '{state}': {describe(exc, 'recording it')}"
 
     def _finish(self, job: ScanJob, state: str) -> None:
         self.finished[job.name] = state
@@ -996,45 +932,6 @@ def _end_early(job: ScanJob) -> None:
     job.writer.set_state("complete", job.ended_early, view_choices=dict(sorted(job.view_counts.items())))
 
 
-def _write_abort(path: Path, reason: str, writer: CaptureWriter | None) -> str | None:
-    """Record an abort in the capture at `path` (on the writer thread): through its open writer (its last pose
-    published first), else, or when that fails, in the manifest alone, after the temporary files no writer will
-    finish are dropped (their room may be what the manifest needs). Returns None, or why it could not be recorded.
-    A recorded abort's abort-pending.json goes."""
-    if writer is not None:
-        try:
-            writer.finish("aborted", reason)
-            clear_abort_pending(path)
-            return None
-        except (OSError, CaptureError):
-            pass  # the manifest alone, below
-    with contextlib.suppress(OSError):
-        drop_temporary(path)
-    try:
-        mark_aborted(path, reason)
-    except OSError as exc:
-        return _describe(exc, "recording it")
-    except CaptureError as exc:
-        return str(exc)
-    clear_abort_pending(path)
-    return None
-
-
-def _unrecorded_note(held: dict, auto_resume: bool, stopping: bool = False) -> str:
-    """What an abort not yet in scan.json means, for the operator: why, what keeps it, what happens next."""
-    if held["marker"]:
-        kept = (f"{ABORT_PENDING} in the scan folder keeps it: no daemon takes the scan over, and the next one "
-                f"records it")
-    else:
-        scans_on = " and scans on by itself (auto_resume)" if auto_resume else ""
-        kept = (f"nothing on disk keeps it (not even {ABORT_PENDING}): a daemon started on this captures root takes "
-                f"the scan over as interrupted{scans_on}")
-        if not stopping:
-            kept += "; make room or make the disk writable before stopping this daemon"
-    again = "" if stopping else f"; written again every {ABORT_RETRY_S:g} s, at each request and at shutdown"
-    return f"its scan.json does not say so yet ({held['error']}); {kept}{again}"
-
-
 def _remove_partial(path: Path) -> None:
     """Remove a scan folder that CaptureWriter.create left half-made (removing needs no free space)."""
     shutil.rmtree(path, ignore_errors=True)
@@ -1044,17 +941,3 @@ def _paused_record(path: Path) -> str | None:
     """Why the capture's scan was paused when its daemon stopped (scan.json's `paused`), or None."""
     paused = read_json(path / MANIFEST).get("paused")
     return str(paused.get("reason") or "paused") if isinstance(paused, dict) else None
-
-
-def _describe(exc: BaseException, doing: str = "publishing") -> str:
-    if isinstance(exc, OSError):
-        what = "disk full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else "write error"
-        where = f" ({exc.filename})" if exc.filename else ""
-        return f"{what} while {doing}: {exc.strerror or exc}{where}"
-    if isinstance(exc, SensorSilent):
-        return f"sensor silent: {exc}"
-    if isinstance(exc, ArmFault):
-        return f"arm fault: {exc}"
-    if isinstance(exc, LinkLost):
-        return f"link lost: {exc}"
-    return str(exc) if isinstance(exc, SpadscanError) else f"{type(exc).__name__}: {exc}"

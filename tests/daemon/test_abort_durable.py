@@ -10,7 +10,7 @@ import json
 
 import pytest
 
-from spadscan.daemon import runner as runner_module
+from spadscan.daemon import abort_book
 from spadscan.daemon.scan_job import ABORT_PENDING
 from spadscan.protocol.capture_format import read_json
 
@@ -64,7 +64,7 @@ async def restarted(cfg, sphere, meanwhile=None) -> dict:  # noqa: F811
         if meanwhile is None:
             return {"first": first}
         meanwhile()
-        await runner.retry_aborts()  # what the Dispatcher runs before each request
+        await runner.aborts.retry()  # what the Dispatcher runs before each request
         return {"first": first, "then": runner.status()}
 
 
@@ -99,7 +99,7 @@ def test_an_abort_the_full_disk_cannot_take_is_not_undone_by_a_restart(arun, tmp
 
 def test_the_daemon_writes_the_abort_again_by_itself_once_room_comes_back(arun, tmp_path, sphere, disk,  # noqa: F811
                                                                           monkeypatch):
-    monkeypatch.setattr(runner_module, "ABORT_RETRY_S", 0.01)
+    monkeypatch.setattr(abort_book, "ABORT_RETRY_S", 0.01)
     cfg = make_cfg(tmp_path, views=10)
     folder = tmp_path / "caps" / "s2"
 
@@ -112,7 +112,7 @@ def test_the_daemon_writes_the_abort_again_by_itself_once_room_comes_back(arun, 
             reply = await runner.abort(reason="wrong object")
             disk["error"] = None
             await until(lambda: manifest(folder)["state"] == "aborted", "the abort on disk")
-            await until(lambda: not runner.unrecorded, "the abort counted as recorded")
+            await until(lambda: not runner.aborts.unrecorded, "the abort counted as recorded")
             return reply, runner.status()
 
     reply, status = arun(scenario())
@@ -125,8 +125,8 @@ def test_an_abort_a_read_only_disk_cannot_keep_says_so_and_lands_at_shutdown(aru
                                                                              monkeypatch):
     """Read-only: not even abort-pending.json can be made. The reply says that nothing on disk keeps the abort and
     what a restart would do; the daemon tries once more as it stops (here the disk is writable again by then)."""
-    monkeypatch.setattr(runner_module, "ABORT_RETRY_S", 3600.0)  # only the shutdown's try may land it
-    monkeypatch.setattr(runner_module, "note_abort_pending", lambda path, reason: False)
+    monkeypatch.setattr(abort_book, "ABORT_RETRY_S", 3600.0)  # only the shutdown's try may land it
+    monkeypatch.setattr(abort_book, "note_abort_pending", lambda path, reason: False)
     cfg = make_cfg(tmp_path, views=10, auto_resume=True)
     folder = tmp_path / "caps" / "ro"
 

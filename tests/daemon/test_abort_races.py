@@ -13,6 +13,7 @@ import threading
 
 import pytest
 
+from spadscan.daemon import abort_book
 from spadscan.daemon import runner as runner_module
 from spadscan.daemon import scan_job
 from spadscan.daemon.app import DeviceSession
@@ -32,17 +33,17 @@ async def restarted(cfg, sphere, then) -> object:  # noqa: F811
     return await recovered(cfg, sphere, lambda runner, status: then(runner))
 
 
-def held_in_thread(monkeypatch, name: str) -> tuple[threading.Event, threading.Event]:
-    """Make runner_module.`name` (a function run on a thread) wait at its start: returns (entered, release)."""
+def held_in_thread(monkeypatch, name: str, module=runner_module) -> tuple[threading.Event, threading.Event]:
+    """Make module.`name` (a function run on a thread) wait at its start: returns (entered, release)."""
     entered, release = threading.Event(), threading.Event()
-    real = getattr(runner_module, name)
+    real = getattr(module, name)
 
     def held(*args, **kwargs):
         entered.set()
         release.wait(timeout=30.0)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(runner_module, name, held)
+    monkeypatch.setattr(module, name, held)
     return entered, release
 
 
@@ -55,7 +56,7 @@ def test_a_resume_that_arrives_while_an_abort_is_written_cannot_undo_it(arun, tm
     reading = threading.Event()  # a takeover has got as far as reading the scan (the start-up's read is before)
 
     async def then(runner):
-        writing, release = held_in_thread(monkeypatch, "_write_abort")
+        writing, release = held_in_thread(monkeypatch, "_write_abort", abort_book)
         real_load = runner_module.load_job
         monkeypatch.setattr(runner_module, "load_job", lambda *a, **k: reading.set() or real_load(*a, **k))
         shutil.move(folder / damaged, tmp_path / damaged)  # the operator moved the damaged chunk out
@@ -188,10 +189,10 @@ def test_the_last_error_of_an_unrecorded_abort_says_where_it_stands_after_a_retr
         arun, tmp_path, sphere, disk, monkeypatch):
     """Not even abort-pending.json fits at the abort; the disk then goes read-only (another error), then an empty
     file fits again and a retry makes abort-pending.json: last_error follows each change."""
-    monkeypatch.setattr(runner_module, "ABORT_RETRY_S", 3600.0)  # the retries are the ones run below, per request
+    monkeypatch.setattr(abort_book, "ABORT_RETRY_S", 3600.0)  # the retries are the ones run below, per request
     fits = {"marker": False}
     real_note = scan_job.note_abort_pending
-    monkeypatch.setattr(runner_module, "note_abort_pending", lambda path, reason: fits["marker"] and
+    monkeypatch.setattr(abort_book, "note_abort_pending", lambda path, reason: fits["marker"] and
                         real_note(path, reason))
     cfg = make_cfg(tmp_path, views=VIEWS, auto_resume=True)
     folder = tmp_path / "caps" / "s"
@@ -207,10 +208,10 @@ def test_the_last_error_of_an_unrecorded_abort_says_where_it_stands_after_a_retr
                 await until(lambda: runner.state == "paused", "the pause for the full disk")
                 reply = await runner.abort()
                 disk["error"] = errno.EROFS
-                await runner.retry_aborts()  # what the Dispatcher runs before each request
+                await runner.aborts.retry()  # what the Dispatcher runs before each request
                 read_only = runner.status()
                 fits["marker"] = True
-                await runner.retry_aborts()
+                await runner.aborts.retry()
                 return reply, read_only, runner.status(), (folder / ABORT_PENDING).is_file()
             finally:
                 disk["error"] = None
