@@ -24,7 +24,7 @@ from spadscan.protocol.schedules import look_at
 from spadscan.protocol.next_views import (FILE, candidate_poses, ranked, read_next_views, view_angles_deg,
                                           write_next_views)
 
-from test_runner import check_capture, make_cfg, make_rig, until
+from test_runner import check_capture, daemon_runner, make_cfg, make_rig, until
 
 VIEWS, INITIAL = 7, 3
 ADAPTIVE = {"schedule": "adaptive", "views": VIEWS, "initial_views": INITIAL, "frames_per_pose": 1,
@@ -52,17 +52,12 @@ def elevation_ranking(cfg, pose_count=0, created=None):
 
 def run_scan(arun, cfg, sphere, name="a", before=None):
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start(name)
-                if before is not None:  # no await since the start: the scan has not moved yet
-                    before(cfg.captures / name)
-                done = await runner.wait(name)
-                return done, runner.status()
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere) as runner:
+            await runner.start(name)
+            if before is not None:  # no await since the start: the scan has not moved yet
+                before(cfg.captures / name)
+            done = await runner.wait(name)
+            return done, runner.status()
 
     return arun(scenario())
 

@@ -113,15 +113,11 @@ def test_scan_stores_each_frame_at_the_actual_pose(arun, tmp_path, sphere):
     cfg = make_cfg(tmp_path, views=8, frames_per_pose=3)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, pose_noise_m=0.002)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                started = await runner.start("ball")
-                done = await runner.wait("ball")
-                return started, done, runner.status(), [c.copy() for c in arm.commanded]
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, pose_noise_m=0.002) as runner:
+            arm = runner.arm
+            started = await runner.start("ball")
+            done = await runner.wait("ball")
+            return started, done, runner.status(), [c.copy() for c in arm.commanded]
 
     started, done, status, commanded = arun(scenario())
     assert started["state"] == "scanning" and started["poses"] == 8
@@ -149,16 +145,12 @@ def test_frames_that_began_before_the_arm_settled_are_dropped(arun, tmp_path, sp
     cfg = make_cfg(tmp_path, views=5, frames_per_pose=2, settle_s=0.03)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, frame_time_s=0.02, motion_time_s=0.05)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("settle")
-                await until(lambda: runner.job is not None and runner.job.dropped > 0, "a dropped frame")
-                await runner.wait("settle")
-                return list(arm.stops)
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, frame_time_s=0.02, motion_time_s=0.05) as runner:
+            arm = runner.arm
+            await runner.start("settle")
+            await until(lambda: runner.job is not None and runner.job.dropped > 0, "a dropped frame")
+            await runner.wait("settle")
+            return list(arm.stops)
 
     stops = arun(scenario())
     data = check_capture(tmp_path / "caps" / "settle", 5, 2)
@@ -171,27 +163,22 @@ def test_pause_resume_abort(arun, tmp_path, sphere, caplog):
     cfg = make_cfg(tmp_path, views=30, frames_per_pose=1)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("p")
-                await until(lambda: runner.job.next_pose >= 2, "two poses")
-                assert (await runner.pause())["state"] in ("pausing", "paused")
-                await until(lambda: runner.state == "paused", "paused")
-                held = runner.job.next_pose
-                await asyncio.sleep(0.1)
-                assert runner.job.next_pose == held and runner.status()["reason"] == "paused by user"
-                await runner.resume()
-                await until(lambda: runner.job.next_pose >= held + 3, "progress after resume")
-                reply = await runner.abort("enough")
-                assert reply["aborted"] == "p" and reply["state"] == "idle"
-                waited = await runner.wait("p")
-                # A new scan can start after an abort.
-                await runner.start("q", {"views": 3})
-                return held, waited, await runner.wait("q")
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            await runner.start("p")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            assert (await runner.pause())["state"] in ("pausing", "paused")
+            await until(lambda: runner.state == "paused", "paused")
+            held = runner.job.next_pose
+            await asyncio.sleep(0.1)
+            assert runner.job.next_pose == held and runner.status()["reason"] == "paused by user"
+            await runner.resume()
+            await until(lambda: runner.job.next_pose >= held + 3, "progress after resume")
+            reply = await runner.abort("enough")
+            assert reply["aborted"] == "p" and reply["state"] == "idle"
+            waited = await runner.wait("p")
+            # A new scan can start after an abort.
+            await runner.start("q", {"views": 3})
+            return held, waited, await runner.wait("q")
 
     held, waited, second = arun(scenario())
     assert waited == {"name": "p", "state": "aborted"} and second["state"] == "complete"
@@ -214,24 +201,20 @@ def test_the_first_move_after_a_resume_is_checked_like_every_planned_one(arun, t
     cfg = make_cfg(tmp_path, views=12, frames_per_pose=1, target=[0.4, 0.0, 0.1], radius_m=0.25, arm=limits)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("jog")
-                await until(lambda: runner.job.next_pose >= 2, "two poses")
-                await runner.pause()
-                await until(lambda: runner.state == "paused", "paused")
-                moves = arm.moves
-                arm.jog(np.array([[1.0, 0, 0, -0.35], [0, -1, 0, 0], [0, 0, -1, 0.04], [0, 0, 0, 1]]))
-                await runner.resume()
-                await until(lambda: runner.state == "paused" and runner.job.reason, "the refusal")
-                refused, moved = runner.status(), arm.moves - moves
-                arm.jog(runner.job.tcp_poses[runner.job.next_pose])  # the operator brings it back
-                await runner.resume()
-                return refused, moved, await runner.wait("jog")
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            arm = runner.arm
+            await runner.start("jog")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            await runner.pause()
+            await until(lambda: runner.state == "paused", "paused")
+            moves = arm.moves
+            arm.jog(np.array([[1.0, 0, 0, -0.35], [0, -1, 0, 0], [0, 0, -1, 0.04], [0, 0, 0, 1]]))
+            await runner.resume()
+            await until(lambda: runner.state == "paused" and runner.job.reason, "the refusal")
+            refused, moved = runner.status(), arm.moves - moves
+            arm.jog(runner.job.tcp_poses[runner.job.next_pose])  # the operator brings it back
+            await runner.resume()
+            return refused, moved, await runner.wait("jog")
 
     refused, moved, done = arun(scenario())
     reason = refused["reason"]
@@ -248,25 +231,21 @@ def test_a_first_move_through_the_base_is_refused_even_from_inside_the_workspace
     cfg = make_cfg(tmp_path, views=6, frames_per_pose=1, target=[0.4, 0.0, 0.05], radius_m=0.2, arm=limits)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("across")
-                await until(lambda: runner.job.next_pose >= 1, "a pose")
-                await runner.pause()
-                await until(lambda: runner.state == "paused", "paused")
-                target = runner.job.tcp_poses[runner.job.next_pose]
-                across = target.copy()
-                across[:3, 3] = [-target[0, 3], -target[1, 3], 0.05]  # mirrored through the base's axis, low
-                arm.jog(across)
-                await runner.resume()
-                await until(lambda: runner.state == "paused" and runner.job.reason, "the refusal")
-                reason = runner.status()["reason"]
-                await runner.abort("done")
-                return reason
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            arm = runner.arm
+            await runner.start("across")
+            await until(lambda: runner.job.next_pose >= 1, "a pose")
+            await runner.pause()
+            await until(lambda: runner.state == "paused", "paused")
+            target = runner.job.tcp_poses[runner.job.next_pose]
+            across = target.copy()
+            across[:3, 3] = [-target[0, 3], -target[1, 3], 0.05]  # mirrored through the base's axis, low
+            arm.jog(across)
+            await runner.resume()
+            await until(lambda: runner.state == "paused" and runner.job.reason, "the refusal")
+            reason = runner.status()["reason"]
+            await runner.abort("done")
+            return reason
 
     reason = arun(scenario())
     assert "the straight move there passes" in reason and "from the base, inside min_reach_m 0.2" in reason
@@ -278,18 +257,14 @@ def test_protective_stop_pauses_with_reason_and_resume_clears_it(arun, tmp_path,
     cfg = make_cfg(tmp_path, views=8)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, faults=SimArmFaults(protective_stop_on_moves=(4,)))
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("stop")
-                await until(lambda: runner.state == "paused", "the pause")
-                first = runner.status()
-                stopped = arm.protective_stop
-                await runner.resume()
-                return first, stopped, await runner.wait("stop"), arm.moves
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, faults=SimArmFaults(protective_stop_on_moves=(4,))) as runner:
+            arm = runner.arm
+            await runner.start("stop")
+            await until(lambda: runner.state == "paused", "the pause")
+            first = runner.status()
+            stopped = arm.protective_stop
+            await runner.resume()
+            return first, stopped, await runner.wait("stop"), arm.moves
 
     first, stopped, done, moves = arun(scenario())
     assert "protective stop" in first["reason"] and first["reason"] == first["last_error"]
@@ -340,23 +315,19 @@ def test_a_link_that_dropped_and_came_back_while_paused_is_reconnected_by_the_fi
     faults = SimArmFaults(protective_stop_on_moves=(3,) if paused_by == "arm fault" else ())
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.02, faults=faults)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("relink")
-                if paused_by == "user":
-                    await until(lambda: runner.job.next_pose >= 2, "two poses")
-                    await runner.pause()
-                await until(lambda: runner.state == "paused", "the pause")
-                reason = runner.status()["reason"]
-                arm.drop_link()
-                arm.restore_link()
-                await runner.resume()
-                await until(lambda: runner.state in ("idle", "paused"), "the resumed scan to end or pause")
-                return reason, runner.status(), arm.connected
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.02, faults=faults) as runner:
+            arm = runner.arm
+            await runner.start("relink")
+            if paused_by == "user":
+                await until(lambda: runner.job.next_pose >= 2, "two poses")
+                await runner.pause()
+            await until(lambda: runner.state == "paused", "the pause")
+            reason = runner.status()["reason"]
+            arm.drop_link()
+            arm.restore_link()
+            await runner.resume()
+            await until(lambda: runner.state in ("idle", "paused"), "the resumed scan to end or pause")
+            return reason, runner.status(), arm.connected
 
     reason, status, connected = arun(scenario())
     assert reason.startswith("paused by user" if paused_by == "user" else "arm fault: arm (sim): protective stop")
@@ -371,20 +342,16 @@ def test_a_fault_soon_after_the_daemon_stood_still_says_so(arun, tmp_path, spher
     cfg = make_cfg(tmp_path, views=8)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("still")
-                await until(lambda: runner.job.next_pose >= 1, "a pose")
-                time.sleep(1.2)  # the whole loop stands still
-                arm.trigger_protective_stop()
-                await until(lambda: runner.state == "paused", "the pause")
-                status = runner.status()
-                await runner.abort()
-                return status
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            arm = runner.arm
+            await runner.start("still")
+            await until(lambda: runner.job.next_pose >= 1, "a pose")
+            time.sleep(1.2)  # the whole loop stands still
+            arm.trigger_protective_stop()
+            await until(lambda: runner.state == "paused", "the pause")
+            status = runner.status()
+            await runner.abort()
+            return status
 
     status = arun(scenario())
     assert "protective stop" in status["reason"], status["reason"]
@@ -401,21 +368,17 @@ def test_sensor_silence_pauses_and_resumes(arun, tmp_path, sphere, frame_time_s)
     cfg = make_cfg(tmp_path, views=8, frame_timeout_s=1.0)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.03, frame_time_s=frame_time_s)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("quiet")
-                await until(lambda: runner.job.next_pose >= 2, "two poses")
-                quiet_until = time.monotonic() + 3.0
-                sensor.inject_silence(3.0)
-                await until(lambda: runner.state == "paused", "the pause")
-                paused = runner.status()
-                await asyncio.sleep(max(0.0, quiet_until - time.monotonic()) + 0.1)  # the silence is over
-                await runner.resume()
-                return paused, await runner.wait("quiet")
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.03, frame_time_s=frame_time_s) as runner:
+            sensor = runner.sensor
+            await runner.start("quiet")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            quiet_until = time.monotonic() + 3.0
+            sensor.inject_silence(3.0)
+            await until(lambda: runner.state == "paused", "the pause")
+            paused = runner.status()
+            await asyncio.sleep(max(0.0, quiet_until - time.monotonic()) + 0.1)  # the silence is over
+            await runner.resume()
+            return paused, await runner.wait("quiet")
 
     paused, done = arun(scenario())
     assert paused["reason"].startswith("sensor silent: sensor sim: no complete frame within 1 s (frame_timeout_s) "
@@ -476,23 +439,18 @@ def test_disk_full_pauses_and_loses_nothing_published(arun, tmp_path, sphere, mo
     folder = tmp_path / "caps" / "full"
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("full")
-                await until(lambda: runner.job.next_pose >= 3, "three poses")
-                full["on"] = True
-                await until(lambda: runner.state == "paused", "the pause")
-                paused = runner.status()
-                snapshot = {p.relative_to(folder): p.read_bytes() for p in folder.glob("chunk-*/*")}
-                await runner.resume()  # still full: pauses again, nothing lost
-                await until(lambda: runner.state == "paused", "the second pause")
-                full["on"] = False
-                await runner.resume()
-                return paused, snapshot, await runner.wait("full")
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            await runner.start("full")
+            await until(lambda: runner.job.next_pose >= 3, "three poses")
+            full["on"] = True
+            await until(lambda: runner.state == "paused", "the pause")
+            paused = runner.status()
+            snapshot = {p.relative_to(folder): p.read_bytes() for p in folder.glob("chunk-*/*")}
+            await runner.resume()  # still full: pauses again, nothing lost
+            await until(lambda: runner.state == "paused", "the second pause")
+            full["on"] = False
+            await runner.resume()
+            return paused, snapshot, await runner.wait("full")
 
     paused, snapshot, done = arun(scenario())
     assert paused["reason"].startswith("disk full while publishing") and "No space left" in paused["reason"]
@@ -518,19 +476,14 @@ def test_disk_full_at_scan_start_is_refused_and_the_name_stays_free(arun, tmp_pa
     monkeypatch.setattr(cw, "save_npy_durable", save)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                with pytest.raises(CaptureError) as refused:
-                    await runner.start("late")
-                after = runner.status()
-                left = (tmp_path / "caps" / "late").exists()
-                full["on"] = False
+        async with daemon_runner(cfg, sphere) as runner:
+            with pytest.raises(CaptureError) as refused:
                 await runner.start("late")
-                return str(refused.value), after, left, await runner.wait("late")
-            finally:
-                await runner.shutdown()
+            after = runner.status()
+            left = (tmp_path / "caps" / "late").exists()
+            full["on"] = False
+            await runner.start("late")
+            return str(refused.value), after, left, await runner.wait("late")
 
     refused, after, left, done = arun(scenario())
     assert refused.startswith("cannot start scan 'late': disk full") and "No space left" in refused, refused
@@ -544,14 +497,10 @@ def test_link_loss_pauses_and_resumes(arun, tmp_path, sphere):
     cfg = make_cfg(tmp_path, views=6)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, faults=SimArmFaults(link_drop_on_moves=(2,)))
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("link")
-                return await resumed_after_pause(runner, "link", arm.restore_link)
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, faults=SimArmFaults(link_drop_on_moves=(2,))) as runner:
+            arm = runner.arm
+            await runner.start("link")
+            return await resumed_after_pause(runner, "link", arm.restore_link)
 
     reason, done = arun(scenario())
     assert reason.startswith("link lost: arm (sim)")
@@ -701,16 +650,11 @@ def test_stalled_disk_pauses_and_the_late_write_is_kept(arun, tmp_path, sphere, 
     monkeypatch.setattr(cw, "save_npy_durable", save)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                await runner.start("stall")
-                await until(lambda: runner.job.next_pose >= 2, "two poses")
-                stall["once"] = True
-                return await resumed_after_pause(runner, "stall", disk_back.set)
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            await runner.start("stall")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            stall["once"] = True
+            return await resumed_after_pause(runner, "stall", disk_back.set)
 
     reason, done = arun(scenario())
     assert "did not finish within 5 s" in reason and done["state"] == "complete"
@@ -725,21 +669,17 @@ def test_only_scans_the_daemon_wrote_are_taken_over(arun, tmp_path, sphere, capl
     cfg = make_cfg(tmp_path, views=6, auto_resume=True)
 
     async def daemon(start: str | None):
-        arm, sensor = make_rig(cfg, sphere)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                if start:
-                    await runner.start(start)
-                    await until(lambda: runner.job.next_pose >= 2, "two poses")
-                    return runner.status()
-                await runner.recover()
-                status = runner.status()
-                if status["scan"] is not None:
-                    await runner.wait(status["scan"])
-                return status, arm.moves
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere) as runner:
+            arm = runner.arm
+            if start:
+                await runner.start(start)
+                await until(lambda: runner.job.next_pose >= 2, "two poses")
+                return runner.status()
+            await runner.recover()
+            status = runner.status()
+            if status["scan"] is not None:
+                await runner.wait(status["scan"])
+            return status, arm.moves
 
     def foreign(name: str) -> Path:
         planned = CaptureReader(tmp_path / "caps" / "mine").planned_poses() if name == "sim-later" else None
@@ -781,14 +721,9 @@ def test_a_folder_that_appears_while_a_scan_is_planned_is_left_alone(arun, tmp_p
     monkeypatch.setattr(runner_module, "build_plan", plan_while_another_program_writes)
 
     async def scenario():
-        arm, sensor = make_rig(cfg, sphere)
-        async with DeviceSession([arm, sensor]):
-            runner = ScanRunner(arm, sensor, cfg)
-            try:
-                with pytest.raises(ConfigError, match="already exists"):
-                    await runner.start("raced")
-            finally:
-                await runner.shutdown()
+        async with daemon_runner(cfg, sphere) as runner:
+            with pytest.raises(ConfigError, match="already exists"):
+                await runner.start("raced")
 
     arun(scenario())
     assert sorted(p.name for p in theirs.iterdir()) == ["theirs.txt"]

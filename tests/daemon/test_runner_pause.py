@@ -14,7 +14,7 @@ from spadscan.daemon.runner import ScanRunner
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError
 
-from test_runner import make_cfg, make_rig, sphere, until  # noqa: F401  (sphere: a fixture)
+from test_runner import daemon_runner, make_cfg, make_rig, sphere, until  # noqa: F401  (sphere: a fixture)
 
 
 def test_pause_says_where_it_stops(arun, tmp_path, sphere, caplog):  # noqa: F811
@@ -59,14 +59,9 @@ def test_pause_says_where_it_stops(arun, tmp_path, sphere, caplog):  # noqa: F81
 @contextlib.asynccontextmanager
 async def scanning(cfg, sphere, name: str):  # noqa: F811
     """A runner on a quick simulated rig, scanning `name`; shut down on leaving."""
-    arm, sensor = make_rig(cfg, sphere, motion_time_s=0.0, frame_time_s=0.01)
-    async with DeviceSession([arm, sensor]):
-        runner = ScanRunner(arm, sensor, cfg)
-        try:
-            await runner.start(name)
-            yield runner
-        finally:
-            await runner.shutdown()
+    async with daemon_runner(cfg, sphere, motion_time_s=0.0, frame_time_s=0.01) as runner:
+        await runner.start(name)
+        yield runner
 
 
 def test_a_pause_withdrawn_while_the_last_pose_is_published_takes_every_pose(arun, tmp_path, sphere,  # noqa: F811
