@@ -33,7 +33,8 @@ from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run, load_ground_truth
-from spadscan.worker.outputs import check_out, files_written_after, folder_files, replacing_result
+from spadscan.worker.outputs import (check_ground_truth_kept, check_out, files_written_after, folder_files,
+                                     replacing_result)
 
 DEFAULTS = {"resolution": 128, "edge_deg": 1.0, "surface": "occupancy"}
 """Defaults of the options only one method reads (filled in after the check that the method reads them)."""
@@ -109,12 +110,14 @@ def run(args) -> int:
     if args.threshold is not None and not args.threshold > 0:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
 
-    check_out(args.out, args.overwrite, capture=args.capture)
+    out = check_out(args.out, args.overwrite, capture=args.capture)
 
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)
 
     gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
+    if args.overwrite:
+        check_ground_truth_kept(gt, out)
     with replacing_result(args.out, log):  # a previous result stays whole until this run has finished
         before = folder_files(args.out)  # the user's own files there are no part of the result
         report = run_baseline(

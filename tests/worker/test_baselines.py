@@ -274,6 +274,23 @@ def test_a_baseline_overwriting_another_leaves_none_of_its_files(sphere_capture,
     assert "points.ply" not in (out / "report.html").read_text()
 
 
+def test_a_baseline_overwrite_refuses_a_ground_truth_from_the_result_it_replaces(sphere_capture, tmp_path,
+                                                                                 quick_metrics, capsys):
+    """--overwrite sets the previous result aside before the ground truth is read: its mesh passed as --gt is
+    refused in one line naming it, the folder left as it was."""
+    cap, gt = sphere_capture
+    out = tmp_path / "b"
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(out), "--gt", str(gt),
+                     "--resolution", "48"]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(out), "--gt", str(out / "mesh.ply"),
+                     "--overwrite", "--resolution", "48"]) == 1
+    (line,) = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert f"--gt {out / 'mesh.ply'} is a file of the result in --out {out}" in line, line
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
 def test_a_baseline_overwrite_that_fails_at_its_metrics_leaves_the_previous_result_whole(sphere_capture, tmp_path,
                                                                                            quick_metrics, capsys):
     """The new mesh and points are written before the metrics; a ground truth whose table lies above the object
