@@ -15,12 +15,17 @@ and is scored like `spadscan reconstruct`'s final mesh (300,000 points, the full
 at once (every scene's all-parts run first, then the ablations); `--device cuda` fits on the GPU (seeded, but CUDA's
 sums are not bit-for-bit repeatable: figures there vary a little from run to run).
 
-Writes runs/<scene>--<variant>.json as each run ends, with the settings it ran with (--steps, --seed, --threads,
---points, --device and its --set overrides). A later call with the same --out reuses the runs made with its own
+Writes runs/<scene>--<variant>.json as each run ends, with the settings it ran with (the scene folder it was made
+from, --steps, --seed, --threads, --points, --device and its --set overrides). A scene is named by its folder's name:
+two scenes of the same name are refused. A later call with the same --out reuses the runs made with its own
 settings, so an interrupted ablation resumes where it stopped (Ctrl-C writes the table of the runs finished); an
---out holding a run made with other settings is refused, in one line that says which (--overwrite starts afresh).
-Then table.md: per part and scene, the Chamfer (mm) and the mean normal error (degrees) with the part off, against
-all parts on, and the steps each run took.
+--out holding a run made with other settings (another scene folder of the same name included) is refused, in one line
+that says which (--overwrite starts afresh). Then table.md: per part and scene, the Chamfer (mm) and the mean normal
+error (degrees) with the part off, against all parts on, and the steps each run took.
+
+A run that fails is "failed" in the table (results.json: {"failed": its last line of error}), is not kept in runs/
+(the same command runs it again), and the exit status is then 1; where a scene's all-parts run failed, its parts are
+not run ("-"). --device cuda without a CUDA device is refused before any run.
 """
 
 from __future__ import annotations
@@ -47,15 +52,22 @@ average the mesh comes from the grid as it is (the same fit, meshed from its las
 the run goes on to --steps (the same fit up to the early stop, continued)."""
 
 
-SETTINGS = {"steps": "--steps", "seed": "--seed", "threads": "--threads", "points": "--points", "device": "--device",
-            "overrides": "--set"}
-"""What a run's figures depend on besides its scene and the code, and the option that sets each."""
+SETTINGS = {"scene": "--scenes", "steps": "--steps", "seed": "--seed", "threads": "--threads", "points": "--points",
+            "device": "--device", "overrides": "--set"}
+"""What a run's figures depend on besides the code, and the option that sets each. The scene is its folder's resolved
+path: runs/ names a run by the folder's name alone, which another folder (a second batch of captures) can share."""
 
 
-def settings_of(steps: int, seed: int, threads: int, points: int, device: str, overrides: list[str]) -> dict:
+def settings_of(scene: str, steps: int, seed: int, threads: int, points: int, device: str,
+                overrides: list[str]) -> dict:
     """A run's settings (SETTINGS) as its file records them."""
-    return {"steps": steps, "seed": seed, "threads": threads, "points": points, "device": device,
+    return {"scene": scene, "steps": steps, "seed": seed, "threads": threads, "points": points, "device": device,
             "overrides": list(overrides)}
+
+
+def scene_key(scene: Path) -> str:
+    """How a run's settings name the scene folder it was made from."""
+    return str(scene.resolve())
 
 
 def variant_overrides(overrides: list[str], variant: str) -> list[str]:
@@ -69,6 +81,8 @@ def other_settings(recorded: dict | None, wanted: dict) -> str | None:
         return "no settings recorded (made before they were)"
 
     def shown(key, value):
+        if value is None:
+            return "none recorded"
         return (" ".join(value) or "none") if key == "overrides" and isinstance(value, list) else value
 
     diffs = [f"{flag} {shown(key, recorded.get(key))}, not {shown(key, wanted[key])}"
@@ -77,9 +91,10 @@ def other_settings(recorded: dict | None, wanted: dict) -> str | None:
 
 
 def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[str], points: int = 300_000,
-            device: str = "cpu") -> dict:
+            device: str = "cpu", scene: str | None = None) -> dict:
     """One step-based run of the fast preset on `capture`, scored against its ground truth. A run with every part
-    that runs also scores the `DERIVED` ablations (`derived`: part -> the same fields)."""
+    that runs also scores the `DERIVED` ablations (`derived`: part -> the same fields). `scene`: the scene folder
+    its settings name (the capture's own path by default; a dataset scene's capture is an import of it)."""
     import torch
 
     from spadscan.worker.recon.config import parse_override
@@ -106,7 +121,8 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
     out = scored({"steps": result.steps, "stopped_by": result.stopped_by, "train_s": result.seconds,
                   "setup_s": run.setup_s, "overrides": overrides, "summary": model.summary(),
                   "commit": source_commit(), "config": config.to_dict(), "threads": threads, "device": device,
-                  "settings": settings_of(steps, seed, threads, points, device, overrides)})
+                  "settings": settings_of(scene or scene_key(capture), steps, seed, threads, points, device,
+                                          overrides)})
     ran = set(model.summary()["parts"])
     if not any(o.startswith("parts.") and o.endswith(".enabled=false") for o in overrides):
         derived = {}
@@ -121,19 +137,23 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
     return out
 
 
-def run_in_child(capture: Path, target: Path, args, overrides: list[str]) -> dict | None:
-    """Run `run_one` in a fresh process (clean memory, nothing shared); its result, or None when it failed."""
+def run_in_child(capture: Path, target: Path, args, overrides: list[str], scene: str) -> dict:
+    """Run `run_one` in a fresh process (clean memory, nothing shared); its result, or {"failed": why} (the child's
+    last line of error) when it failed."""
     cmd = [sys.executable, __file__, "--one", str(capture), "--result", str(target), "--steps", str(args.steps),
            "--seed", str(args.seed), "--threads", str(args.threads), "--points", str(args.points),
-           "--device", args.device]
+           "--device", args.device, "--recorded-scene", scene]
     cmd += [f"--set={o}" for o in overrides]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    if proc.returncode != 0:
+    if proc.returncode != 0 or not target.is_file():
         tail = (proc.stderr or proc.stdout).strip().splitlines()
-        print(f"  failed: {tail[-1] if tail else 'exit status ' + str(proc.returncode)}", flush=True)
-        return None
+        return {"failed": tail[-1] if tail else f"exit status {proc.returncode}"}
     return json.loads(target.read_text())
+
+
+def failed(res: dict | None) -> bool:
+    return res is not None and "failed" in res
 
 
 def parts_that_ran(result: dict) -> list[str]:
@@ -145,12 +165,24 @@ def fmt(v, digits=2) -> str:
 
 
 def cell(res: dict | None, base: dict | None, key: str, digits: int) -> str:
-    """'value (+delta)' of a run against the all-parts run; '-' where it did not run."""
+    """'value (+delta)' of a run against the all-parts run; '-' where it did not run, 'failed' where it failed."""
+    if failed(res):
+        return "failed"
     if res is None or res.get(key) is None:
         return "-"
-    if base is None or base is res or base.get(key) is None:
+    if base is None or failed(base) or base is res or base.get(key) is None:
         return fmt(res[key], digits)
     return f"{fmt(res[key], digits)} ({res[key] - base[key]:+.{digits}f})"
+
+
+def scene_cell(runs: dict, variant: str, key: str, digits: int) -> str:
+    """A scene's cell of `variant`. 'n/a' only where the all-parts run says the part does not run there: where that
+    run failed or never ran, nothing is known of the parts ('-')."""
+    base = runs.get(ALL)
+    if runs.get(variant) is None and variant != ALL and base is not None and not failed(base) \
+            and variant not in runs.get("_ran", []):
+        return "n/a"
+    return cell(runs.get(variant), base, key, digits)
 
 
 def tables(results: dict[str, dict[str, dict]], variants: list[str]) -> str:
@@ -162,15 +194,43 @@ def tables(results: dict[str, dict[str, dict]], variants: list[str]) -> str:
         lines += [f"### {title}", "", "| part off | " + " | ".join(scenes) + " |",
                   "|---|" + "---|" * len(scenes)]
         for v in variants:
-            row = []
-            for s in scenes:
-                res = results[s].get(v)
-                row.append("n/a" if res is None and v != ALL and v not in results[s].get("_ran", []) else
-                           cell(res, results[s].get(ALL), key, digits))
-            lines.append(f"| {v} | " + " | ".join(row) + " |")
+            lines.append(f"| {v} | " + " | ".join(scene_cell(results[s], v, key, digits) for s in scenes) + " |")
         lines.append("")
     lines.append("n/a: the part does not run on that scene (see the all-parts run's report, `model.parts_left_out`).")
+    if any(failed(r) for runs in results.values() for r in runs.values() if isinstance(r, dict)):
+        lines.append("failed: the run failed (results.json says why); -: not run (a scene whose all-parts run failed "
+                     "ablates nothing).")
     return "\n".join(lines)
+
+
+def failures(results: dict[str, dict[str, dict]]) -> list[str]:
+    """'scene variant (why)' of every run that failed."""
+    return [f"{name} {variant} ({res['failed']})" for name, runs in results.items()
+            for variant, res in runs.items() if isinstance(res, dict) and failed(res)]
+
+
+def out_problem(out: Path) -> str | None:
+    """Why --out cannot hold runs/, table.md and results.json (one line), or None."""
+    if out.exists() and not out.is_dir():
+        return f"--out {out}: exists and is not a folder"
+    if (out / "runs").exists() and not (out / "runs").is_dir():
+        return f"--out {out}: its runs exists and is not a folder"
+    return None
+
+
+def scenes_problem(scenes: list[Path]) -> str | None:
+    """Why the scenes cannot be ablated together (one line), or None: runs/ names a scene's runs by its folder's
+    name, so two folders of one name would share (or silently replace) each other's runs."""
+    names: dict[str, Path] = {}
+    for scene in scenes:
+        name = scene.resolve().name
+        if name in names:
+            if names[name].resolve() == scene.resolve():
+                return f"scene {scene} is named twice"
+            return (f"scenes {names[name]} and {scene} share the name {name!r} (their runs would share "
+                    f"runs/{name}--VARIANT.json): ablate them with different --out folders")
+        names[name] = scene
+    return None
 
 
 def main(argv=None) -> int:
@@ -191,10 +251,11 @@ def main(argv=None) -> int:
     parser.add_argument("--overwrite", action="store_true", help="discard earlier runs in --out")
     parser.add_argument("--one", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--result", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--recorded-scene", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.one is not None:
         write_atomic(args.result, run_one(args.one, args.steps, args.seed, args.threads, args.overrides, args.points,
-                                          args.device))
+                                          args.device, args.recorded_scene))
         return 0
     if not args.scenes or args.out is None:
         parser.error("--scenes and --out are required")
@@ -202,7 +263,7 @@ def main(argv=None) -> int:
         parser.error("--steps, --threads and --jobs must be >= 1, --seed >= 0 and --points in [1000, 1000000]")
     from spadscan.worker.recon.config import parse_override
     from spadscan.worker.recon.fast.parts import PARTS
-    from spadscan.worker.reconstruct import run_config
+    from spadscan.worker.reconstruct import resolve_device, run_config
     from spadscan.protocol.errors import SpadscanError
 
     names = [cls.name for cls in PARTS]
@@ -212,12 +273,16 @@ def main(argv=None) -> int:
         parser.error(f"--parts: no part {', '.join(unknown)} (parts: {', '.join(names)})")
     try:
         run_config("fast", dict(parse_override(text) for text in args.overrides))
+        resolve_device(args.device)  # cuda without a CUDA device: every run would start, and fail
     except SpadscanError as exc:
         parser.error(str(exc))
     for scene in args.scenes:
         why = scene_problem(scene)
         if why:
             parser.error(why)
+    why = scenes_problem(args.scenes) or out_problem(args.out)
+    if why:
+        parser.error(why)
     runs = args.out / "runs"
     if args.overwrite and runs.exists():
         for f in runs.glob("*.json"):
@@ -226,13 +291,15 @@ def main(argv=None) -> int:
     def target_of(name: str, variant: str) -> Path:
         return runs / f"{name}--{variant.replace(' ', '-')}.json"
 
-    def wanted_settings(variant: str) -> dict:
-        return settings_of(args.steps, args.seed, args.threads, args.points, args.device,
+    scenes = {scene.resolve().name: scene for scene in args.scenes}
+
+    def wanted_settings(name: str, variant: str) -> dict:
+        return settings_of(scene_key(scenes[name]), args.steps, args.seed, args.threads, args.points, args.device,
                            variant_overrides(args.overrides, variant))
 
     # A run is reused only if it was made with this call's settings: any other would stand in the table under this
     # command line. Checked for every run this call could reuse, before any runs.
-    for name in dict.fromkeys(scene.name for scene in args.scenes):
+    for name in scenes:
         for variant in [ALL] + [v for v in wanted if v not in DERIVED]:
             target = target_of(name, variant)
             if target.exists():
@@ -240,17 +307,24 @@ def main(argv=None) -> int:
                     recorded = json.loads(target.read_text()).get("settings")
                 except (OSError, ValueError, AttributeError):
                     recorded = None
-                why = other_settings(recorded, wanted_settings(variant))
+                why = other_settings(recorded, wanted_settings(name, variant))
                 if why:
                     parser.error(f"--out {args.out} holds a run made with other settings ({target.name}: {why}): "
                                  f"pass --overwrite to discard the earlier runs, or choose another --out")
     runs.mkdir(parents=True, exist_ok=True)
-    captures = {scene.name: prepare_scene(scene, args.out) for scene in args.scenes}
+    captures = {}
+    for name, scene in scenes.items():
+        try:
+            captures[name] = prepare_scene(scene.resolve(), args.out.resolve())
+        except (OSError, SpadscanError) as exc:
+            print(f"{parser.prog}: error: scene {scene}: cannot import it ({exc})", file=sys.stderr)
+            return 1
     results: dict[str, dict[str, dict]] = {name: {} for name in captures}
 
     def record(name: str, variant: str, res: dict) -> None:
         results[name][variant] = res
-        if variant == ALL:  # its report says which parts ran there, so which to ablate; and it gives DERIVED's
+        # A successful all-parts run's report says which parts ran there, so which to ablate; it gives DERIVED's.
+        if variant == ALL and not failed(res):
             results[name]["_ran"] = parts_that_ran(res)
             results[name].update({part: {**res, **d} for part, d in res.get("derived", {}).items() if part in wanted})
 
@@ -262,11 +336,14 @@ def main(argv=None) -> int:
             return
         t0 = time.perf_counter()
         print(f"{name}: {variant} ...", flush=True)
-        res = run_in_child(captures[name], target, args, variant_overrides(args.overrides, variant))
-        if res is not None:
+        res = run_in_child(captures[name], target, args, variant_overrides(args.overrides, variant),
+                           scene_key(scenes[name]))
+        if failed(res):
+            print(f"  {name}, {variant}: failed: {res['failed']}", flush=True)
+        else:
             print(f"  {name}, {variant}: {fmt(res.get('chamfer_mm'))} mm, {fmt(res.get('normal_error_deg'), 1)} deg, "
                   f"{res['steps']} steps ({time.perf_counter() - t0:.0f} s)", flush=True)
-            record(name, variant, res)
+        record(name, variant, res)
 
     interrupted = False
     try:
@@ -287,6 +364,10 @@ def main(argv=None) -> int:
         print(f"interrupted: the table holds the runs finished; the same command resumes from {runs}",
               file=sys.stderr)
         return 130
+    gone = failures(results)
+    if gone:
+        print(f"{len(gone)} runs failed: {'; '.join(gone)}", file=sys.stderr)
+        return 1
     return 0
 
 

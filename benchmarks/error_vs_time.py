@@ -20,13 +20,16 @@ reach 2 mm, peak memory of the method, its checkpoints' scoring left out), the s
 (with a note when the working tree held uncommitted changes) and its preset's resolved config.
 
 A run writes its checkpoints so far to runs/<scene>-<method>.partial.json as it goes. If it is killed (Ctrl-C, or a
-time limit's SIGTERM to this script), the table still comes out, with that run's checkpoints marked "cut off".
+time limit's SIGTERM to this script), the table still comes out, with that run's checkpoints marked "cut off". A run
+whose own process fails (an error, or killed by another hand: the OOM killer's SIGKILL) is a failed run, not a cut-off
+one: results.json records it with "failed" ("exit -9"), and its row reads "failed (exit -9)" with no final figure
+(the checkpoints it left, if any, stay in the mark columns and the plot).
 
 Every option is checked before the first run starts (presets, --set overrides against each preset, scene folders,
 the device, --out); each problem is a one-line error and the exit status is 2. An --out that holds an earlier run
 (runs/, results.json, table.md, error_vs_time.png) is refused unless --overwrite is given, which deletes that run's
 files first (captures imported from the dataset, in captures/, are kept). A run that fails is named in one line and
-the others go on; the exit status is then 1, after the table of the runs that did finish.
+the others go on; the exit status is then 1, after the table (the failed runs in it as failed).
 """
 
 from __future__ import annotations
@@ -318,6 +321,14 @@ def partial_path(result: Path) -> Path:
     return result.with_name(result.stem + ".partial.json")
 
 
+def failed_result(partial: Path, method: str, why: str) -> dict:
+    """The result of a run whose process failed (`why`: 'exit -9'): the checkpoints it left, if any, with no final
+    figure and `failed` saying how it ended; a failed run is never read as one that ran to its end or was cut off."""
+    res = cut_off_result(partial) or {"method": method, "kind": "baseline" if method in BASELINES else "preset",
+                                      "trace": []}
+    return {**res, "failed": why, "stopped_by": "failed", "final_chamfer_mm": None, "peak_rss_mb": None}
+
+
 def cut_off_result(partial: Path) -> dict | None:
     """The checkpoints a killed run left behind, as a result the table can show ('cut off'), or None if it left
     none with a Chamfer. Its final Chamfer is its last checkpoint's; its peak memory was not measured."""
@@ -351,7 +362,9 @@ def time_to(trace: list[dict], goal: float) -> float | None:
 
 def ended(result: dict) -> str:
     """How a run ended: 'budget', where an early stop ended it ('converged 142 s') or where it was killed ('cut off
-    142 s': its partial trace); baselines run to the end."""
+    142 s': its partial trace); 'failed (exit 1)' where its process failed; baselines run to the end."""
+    if result.get("failed"):
+        return f"failed ({result['failed']})"
     if result.get("stopped_by") in ("converged", "cut off"):
         return f"{result['stopped_by']} {result['trace'][-1]['wall_seconds']:.0f} s"
     return "budget" if result.get("kind") == "preset" else "done"
@@ -367,9 +380,10 @@ def fmt_mb(v) -> str:
 
 def mark_value(result: dict, mark_s: float, budget_s: float) -> float | None:
     """The Chamfer a table shows at wall time mark_s. A run's last checkpoint is its budget's end, however far the
-    last step overran it; a run that was cut off has no figure after its last checkpoint."""
-    if result.get("stopped_by") == "cut off":
-        return chamfer_at(result["trace"], mark_s) if mark_s <= result["trace"][-1]["wall_seconds"] else None
+    last step overran it; a run that was cut off or failed has no figure after its last checkpoint."""
+    if result.get("failed") or result.get("stopped_by") == "cut off":
+        trace = result.get("trace") or []
+        return chamfer_at(trace, mark_s) if trace and mark_s <= trace[-1]["wall_seconds"] else None
     if mark_s >= budget_s - 1e-9:
         return result.get("final_chamfer_mm")
     return chamfer_at(result["trace"], mark_s)
@@ -401,7 +415,8 @@ def shown_marks(marks_s, budget_s: float) -> list[float]:
 def speedups(results: list[dict]) -> list[str]:
     out = []
     for scene in sorted({r["scene"] for r in results}):
-        by = {r["method"]: r for r in results if r["scene"] == scene}
+        # A failed run's last checkpoint is not where its budget ended: no speed-up rests on it.
+        by = {r["method"]: r for r in results if r["scene"] == scene and not r.get("failed")}
         if "fast" in by and "paper" in by:
             paper = [e for e in by["paper"]["trace"] if e.get("chamfer_mm") is not None]
             if not paper:
@@ -451,10 +466,11 @@ def figure(results: list[dict]):
     for ax, (scene, runs) in zip(axes[0], by_scene.items()):
         for r, pts in runs:
             t, c = zip(*pts)
+            label = r["method"] + (f" (failed: {r['failed']})" if r.get("failed") else "")
             if r["kind"] == "baseline":
-                ax.plot(t, c, "s", label=r["method"])
+                ax.plot(t, c, "s", label=label)
             else:
-                ax.plot(t, c, "-o", ms=2, label=r["method"])
+                ax.plot(t, c, "-o", ms=2, label=label)
         ax.axhline(GOAL_MM, color="gray", ls=":", lw=1)
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -615,8 +631,9 @@ def clear_earlier_run(out: Path) -> list[str]:
 
 def run_all(args, captures: list[Path], methods: list[str], results: list[dict], failed: list[str]) -> None:
     """Each method on each capture, each in its own process; appends to `results` as runs end, and the runs that
-    failed to `failed` ('sphere fast (exit 1)'). A run that fails or is killed contributes the checkpoints it left
-    behind (its partial file), if any."""
+    failed to `failed` ('sphere fast (exit 1)'). A run that fails is a result marked failed (`failed_result`); a run
+    cut off by Ctrl-C or SIGTERM to this script contributes the checkpoints it left behind (its partial file), if
+    any."""
     for capture in captures:
         for method in methods:
             result = args.out / "runs" / f"{capture.name}-{method}.json"
@@ -628,17 +645,22 @@ def run_all(args, captures: list[Path], methods: list[str], results: list[dict],
             cmd += [x for kv in args.overrides for x in ("--set", kv)]
             cmd += ["--one", str(capture), method, str(result)]
             result.unlink(missing_ok=True)
-            finished = False
             try:
                 proc = subprocess.run(cmd)
-                finished = proc.returncode == 0 and result.is_file()
-                if not finished:
-                    print(f"{capture.name}: {method} failed (exit {proc.returncode})", file=sys.stderr)
-                    failed.append(f"{capture.name} {method} (exit {proc.returncode})")
-            finally:  # also on Ctrl-C: the run in progress counts as far as it got
-                res = json.loads(result.read_text()) if finished else cut_off_result(partial_path(result))
+            except KeyboardInterrupt:  # Ctrl-C or SIGTERM to this script: the run in progress counts as far as it got
+                res = cut_off_result(partial_path(result))
                 if res is not None:
                     results.append({**res, "scene": capture.name})
+                raise
+            # Ended by itself: finished, or failed (an error, or killed by another hand, as the OOM killer does).
+            if proc.returncode == 0 and result.is_file():
+                res = json.loads(result.read_text())
+            else:
+                why = f"exit {proc.returncode}" if proc.returncode else "exit 0 without a result"
+                print(f"{capture.name}: {method} failed ({why})", file=sys.stderr)
+                failed.append(f"{capture.name} {method} ({why})")
+                res = failed_result(partial_path(result), method, why)
+            results.append({**res, "scene": capture.name})
 
 
 class Parser(argparse.ArgumentParser):
@@ -751,9 +773,10 @@ def main(argv=None) -> int:
     (args.out / "table.md").write_text("\n".join(text) + "\n")
     if plot(results, args.out / "error_vs_time.png"):
         print(f"plot: {args.out / 'error_vs_time.png'}", file=sys.stderr)
+    elif failed and len(failed) == len(captures) * len(methods):
+        print("no plot: every run failed", file=sys.stderr)
     elif not results:
-        print("no plot: every run failed" if failed and len(failed) == len(captures) * len(methods)
-              else "no plot: no run finished", file=sys.stderr)
+        print("no plot: no run finished", file=sys.stderr)
     else:
         print("no plot: no run has a Chamfer (its capture names no ground truth)", file=sys.stderr)
     if failed:

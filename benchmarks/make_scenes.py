@@ -80,6 +80,8 @@ def main(argv=None) -> int:
         parser.error(f"--groups {args.groups!r}: choose from {', '.join(GROUPS)}")
     if args.seed < 0:
         parser.error(f"--seed {args.seed} must be >= 0")
+    if args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out}: exists and is not a folder")
     todo = plans(groups, args.seed)
     existing = [name for name, _ in todo if (args.out / name).exists()]
     if existing and not args.overwrite:

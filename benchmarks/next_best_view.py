@@ -3,7 +3,7 @@ Fibonacci schedule, with the same photon budget per view and the same reconstruc
 
     python benchmarks/next_best_view.py --scenes builtin:cup builtin:lamp builtin:teddy PATH/bunny.obj
         [--measures coverage] [--counts 16,24,32,48,64,96,128] [--steps 1000] [--batch 8] [--live-steps 150]
-        [--score 128,64] [--seeds 0,1,2] [--out benchmark-nbv] [--threads 1]
+        [--score 128,64] [--seeds 0,1,2] [--out benchmark-nbv] [--overwrite] [--threads 1]
 
 A scene is `builtin:NAME` or a mesh file (the dataset's bunny.obj), simulated with the dataset's sensor (`lcspc-sim`:
 one 15-degree cone, 1024 bins, 5,000 cycles per view) on the daemon's default band: 10-80 degrees of elevation,
@@ -30,7 +30,9 @@ Prints one table (scene x schedule: Chamfer in mm at each count, the median over
 fewest views of each adaptive run whose median reaches fibonacci's at the largest count) and writes table.md,
 results.json and nbv.png into --out. Fits are cached
 in results.json (a rerun with the same settings skips them; an adaptive sequence is kept in sequences/), so a killed
-run continues where it stopped. Step counts, not seconds: the figures do not depend on the machine's load.
+run continues where it stopped. An --out whose results.json holds fits made with other settings (--views, --steps,
+--batch, --live-steps, --live-first-steps) is refused before anything runs, in one line that says which; --overwrite
+discards those fits. Step counts, not seconds: the figures do not depend on the machine's load.
 """
 
 from __future__ import annotations
@@ -73,6 +75,9 @@ def parse_args(argv=None):
     p.add_argument("--out", type=Path, default=Path("benchmark-nbv"),
                    help="folder for results.json, table.md and nbv.png (default: benchmark-nbv, in the current "
                         "folder)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="discard the fits cached in --out's results.json (without it, a results.json made with other "
+                        "settings is refused)")
     p.add_argument("--no-fibonacci", action="store_true", help="score the adaptive runs only")
     p.add_argument("--no-spread", action="store_true",
                    help="rank by the measure alone, without the spread factor (schedule 'adaptive-MEASURE-nospread')")
@@ -108,7 +113,38 @@ def parse_args(argv=None):
         p.error(f"--counts go up to {args.counts[-1]}, beyond the plan's --views {args.views}")
     if args.counts[0] < 4 or args.steps < 1 or args.batch < 1 or min(args.live_steps, args.live_first_steps) < 3:
         p.error("--counts must be >= 4, --steps and --batch >= 1, --live-steps and --live-first-steps >= 3")
+    why = out_problem(args)
+    if why:
+        p.error(why)
     return args
+
+
+SETTING_FLAGS = {"views": "--views", "steps": "--steps", "batch": "--batch", "live_steps": "--live-steps",
+                 "live_first_steps": "--live-first-steps", "sensor": "sensor"}
+"""The option behind each of `settings_of`'s fields, as a refusal names them."""
+
+
+def out_problem(args) -> str | None:
+    """Why --out cannot take this run (one line), or None. Reads, never writes: the fits an earlier run cached there
+    cost minutes each, so fits made with other settings are never silently dropped (--overwrite drops them)."""
+    if args.out.exists() and not args.out.is_dir():
+        return f"--out {args.out}: exists and is not a folder"
+    path = args.out / "results.json"
+    if args.combine or args.overwrite or not path.exists():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        recorded, held = data.get("settings"), len(data["fits"])
+    except (OSError, ValueError, AttributeError, KeyError, TypeError) as exc:
+        return (f"--out {args.out}: its results.json does not read as this script's ({exc}): choose another --out, "
+                "or pass --overwrite to replace it")
+    wanted = settings_of(args)
+    if recorded in (None, wanted):
+        return None
+    diffs = [f"{SETTING_FLAGS.get(k, k)} {recorded.get(k) if isinstance(recorded, dict) else None}, not {wanted[k]}"
+             for k in wanted if not isinstance(recorded, dict) or recorded.get(k) != wanted[k]]
+    return (f"--out {args.out} holds {held} fits made with other settings ({'; '.join(diffs) or recorded}): choose "
+            "another --out, or pass --overwrite to discard them")
 
 
 # ---- scenes and captures ------------------------------------------------------------------------------------------
@@ -276,11 +312,13 @@ class Results:
     """results.json: every fit, keyed by scene, schedule, count and seed (`fit_key`), with the settings that made
     it."""
 
-    def __init__(self, path: Path, settings: dict):
+    def __init__(self, path: Path, settings: dict, overwrite: bool = False):
+        """`overwrite`: start afresh, whatever `path` holds. Otherwise its fits must have been made with `settings`
+        (`out_problem` refuses any other before the run starts): ValueError if not, never a silent reset."""
         self.path, self.settings = path, settings
-        self.data = json.loads(path.read_text()) if path.is_file() else {"fits": {}}
+        self.data = json.loads(path.read_text()) if path.is_file() and not overwrite else {"fits": {}}
         if self.data.get("settings") not in (None, settings):
-            self.data = {"fits": {}}  # other settings: nothing cached applies
+            raise ValueError(f"{path}: its fits were made with other settings ({self.data.get('settings')})")
         self.data["settings"] = settings
 
     def get(self, key: str, poses_digest: str) -> dict | None:
@@ -319,7 +357,7 @@ def run(args) -> dict:
 
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    results = Results(args.out / "results.json", settings_of(args))
+    results = Results(args.out / "results.json", settings_of(args), overwrite=args.overwrite)
     for seed in args.seeds:
         for spec in args.scenes:
             run_scene(Scene(spec, seed), args, results)

@@ -24,6 +24,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from error_vs_time import chamfer_mm, ground_truth  # noqa: E402
 
+from spadscan.protocol.errors import SpadscanError  # noqa: E402
 from spadscan.worker.recon.model_api import RunPlan  # noqa: E402
 from spadscan.worker.recon.trainer import train  # noqa: E402
 from spadscan.worker.reconstruct import resolve_device, run_config, set_up_run  # noqa: E402
@@ -46,13 +47,27 @@ def resampled(field, rng: np.random.Generator, scale: float):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("capture", type=Path, help="a capture folder that names its ground truth")
-    ap.add_argument("--steps", type=int, default=1500)
-    ap.add_argument("--rebuilds", type=int, default=13)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--steps", type=int, default=1500, help="steps of the fit, >= 1 (default 1500)")
+    ap.add_argument("--rebuilds", type=int, default=13, help="resamplings the field is carried through, >= 1 "
+                                                              "(default 13)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the fit and the grid shifts, >= 0 (default 0)")
     args = ap.parse_args(argv)
+    # Every column is a count of resamplings from 1 to --rebuilds: with none, the table would announce columns it
+    # has no figures for.
+    if args.steps < 1 or args.rebuilds < 1 or args.seed < 0:
+        ap.error("--steps and --rebuilds must be >= 1 and --seed >= 0")
     if not (args.capture / "scan.json").is_file():
         print(f"warm_start_resampling: {args.capture} is not a capture folder (no scan.json)", file=sys.stderr)
         return 2
+    try:
+        return measure(args)
+    except SpadscanError as exc:  # a capture that does not load or fit: one line, not a traceback
+        print(f"warm_start_resampling: error: {exc}", file=sys.stderr)
+        return 1
+
+
+def measure(args) -> int:
+    """Fit the capture, carry its field through the resamplings and print the table."""
     torch.set_num_threads(1)
     config = run_config("fast", {})
     truth = ground_truth(args.capture)

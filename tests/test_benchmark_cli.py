@@ -173,12 +173,67 @@ def test_when_every_run_fails_the_table_still_comes_out_without_a_plot(bench, ca
     assert call(bench, ["--scenes", capture, "--budget-s", 5, "--presets", "fast,paper", "--out", out]) == 1
     assert runs.runs == ["fast", "paper"]
     captured = capsys.readouterr()
-    assert "| scene | method | final mm | ended | to 2 mm | peak MB |" in captured.out
+    assert "| scene | method | final mm | ended           | to 2 mm | peak MB |" in captured.out
+    # Each failed run is a row that says so, with no figure (it left no checkpoint).
+    assert "| box   | fast   | -        | failed (exit 1) | -       | -       |" in captured.out
+    assert "| box   | paper  | -        | failed (exit 1) | -       | -       |" in captured.out
     assert "no plot: every run failed" in captured.err
     assert "2 of 2 runs failed: box fast (exit 1), box paper (exit 1)" in captured.err
     assert "Traceback" not in captured.err
-    assert json.loads((out / "results.json").read_text())["results"] == []
+    assert [(r["method"], r["failed"], r["final_chamfer_mm"], r["trace"])
+            for r in json.loads((out / "results.json").read_text())["results"]] == [
+        ("fast", "exit 1", None, []), ("paper", "exit 1", None, [])]
     assert (out / "table.md").is_file() and not (out / "error_vs_time.png").exists()
+
+
+class DiesAfterTwoCheckpoints:
+    """Stands in for subprocess.run of a child that wrote two checkpoints (56.18 mm at 2 s, 7.63 mm at 3 s of wall
+    time, 1 s of it set-up) to its partial file, then ended as `how` says: 'SIGKILL' (by another hand, as the OOM
+    killer does: exit -9) or 'interrupt' (Ctrl-C or SIGTERM to the benchmark: subprocess.run raises
+    KeyboardInterrupt)."""
+
+    def __init__(self, bench, how: str):
+        self.bench, self.how = bench, how
+
+    def __call__(self, cmd, *args, **kwargs):
+        if cmd[0] == "git":
+            return REAL_RUN(cmd, *args, **kwargs)
+        keep = self.bench.partial_writer(self.bench.partial_path(Path(cmd[-1])), cmd[-2], "cpu", setup_s=1.0)
+        keep([{"seconds": 1.0, "step": 4, "chamfer_mm": 56.18}, {"seconds": 2.0, "step": 9, "chamfer_mm": 7.63}])
+        if self.how == "interrupt":
+            raise KeyboardInterrupt
+        return subprocess.CompletedProcess(cmd, -9)
+
+
+def row_of(out: str, method: str) -> list[str]:
+    return next([c.strip() for c in line.strip("|").split("|")] for line in out.splitlines()
+                if line.startswith("| box ") and f" {method} " in line)
+
+
+def test_a_run_killed_by_another_hand_is_failed_not_a_final_figure(bench, capture, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(bench.subprocess, "run", DiesAfterTwoCheckpoints(bench, "SIGKILL"))
+    out = tmp_path / "out"
+    assert call(bench, ["--scenes", capture, "--budget-s", 10, "--every-s", 1, "--marks", "2,4,8", "--out", out]) == 1
+    captured = capsys.readouterr()
+    assert "box: fast failed (exit -9)" in captured.err and "1 of 1 runs failed: box fast (exit -9)" in captured.err
+    # Its checkpoints stay at the marks they reached; no final figure, and "failed", not "cut off".
+    assert row_of(captured.out, "fast") == ["box", "fast", "56.18", "-", "-", "-", "failed (exit -9)", "-", "-"]
+    (res,) = json.loads((out / "results.json").read_text())["results"]
+    assert res["failed"] == "exit -9" and res["stopped_by"] == "failed"  # not "cut off", as its partial file said
+    assert res["final_chamfer_mm"] is None and res["peak_rss_mb"] is None
+    assert [e["chamfer_mm"] for e in res["trace"]] == [56.18, 7.63]
+    assert (out / "table.md").read_text().count("failed (exit -9)") == 1
+
+
+def test_a_run_cut_off_by_ctrl_c_is_cut_off_not_failed(bench, capture, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(bench.subprocess, "run", DiesAfterTwoCheckpoints(bench, "interrupt"))
+    out = tmp_path / "out"
+    call(bench, ["--scenes", capture, "--budget-s", 10, "--every-s", 1, "--marks", "2,4,8", "--out", out])
+    captured = capsys.readouterr()
+    assert "interrupted" in captured.err and "failed" not in captured.err
+    assert row_of(captured.out, "fast") == ["box", "fast", "56.18", "-", "-", "7.63", "cut off 3 s", "-", "-"]
+    (res,) = json.loads((out / "results.json").read_text())["results"]
+    assert "failed" not in res and res["stopped_by"] == "cut off"
 
 
 def test_an_earlier_run_in_out_is_refused_unless_overwrite(bench, capture, tmp_path, monkeypatch, capsys):

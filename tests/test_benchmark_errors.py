@@ -69,6 +69,12 @@ BAD = {
     "live_recoarse: simulation fails": ("live_recoarse", ["--scenes", "mug", "--captures", "{tmp}/c"],
                                         "spadscan: error: out of disk", "simulating builtin:mug failed: spadscan"),
     "live: no scene": ("live", ["--scenes", ",", "--out", "{tmp}/l"], None, "--scenes ',' names no scene"),
+    "make_scenes: a file as --out": ("make_scenes", ["--out", "{capture}/scan.json", "--groups", "table"], None,
+                                     "scan.json: exists and is not a folder"),
+    "warm_start_resampling: no steps": ("warm_start_resampling", ["{capture}", "--steps", 0, "--rebuilds", 1], None,
+                                        "--steps and --rebuilds must be >= 1"),
+    "warm_start_resampling: no rebuilds": ("warm_start_resampling", ["{capture}", "--steps", 20, "--rebuilds", 0],
+                                           None, "--steps and --rebuilds must be >= 1"),
 }
 
 
@@ -174,3 +180,19 @@ def test_contentions_budget_is_described_as_the_whole_run(capsys):
         load_benchmark("contention").main(["--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "whole-run budget of each `spadscan reconstruct`" in text and "training seconds per run" not in text
+
+
+def test_warm_start_resampling_says_in_one_line_why_a_fit_cannot_run(tmp_path, monkeypatch):
+    bench = load_benchmark("warm_start_resampling")
+    from spadscan.worker.recon.errors import ReconstructionError
+
+    def set_up_run(*args, **kwargs):
+        raise ReconstructionError("the capture's views hold no photons")
+
+    (tmp_path / "capture").mkdir()
+    (tmp_path / "capture" / "scan.json").write_text("{}")
+    monkeypatch.setattr(bench, "ground_truth", lambda capture: object())
+    monkeypatch.setattr(bench, "set_up_run", set_up_run)
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: None)
+    code, err = call(bench, [tmp_path / "capture", "--steps", 5, "--rebuilds", 1])
+    assert code == 1 and one_line(err) == "warm_start_resampling: error: the capture's views hold no photons"

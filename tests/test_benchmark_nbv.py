@@ -114,3 +114,50 @@ def test_score_picks_counts_to_fit_largest_first_and_only_among_the_counts(nbv):
     assert nbv.parse_args(["--scenes", "builtin:cup", "--counts", "16,32"]).score == [32, 16]
     with pytest.raises(SystemExit):
         nbv.parse_args(["--scenes", "builtin:cup", "--counts", "16,32", "--score", "24"])
+
+
+def cached(nbv, out, **changes) -> dict:
+    """A results.json in `out` holding two fits made with the default settings (`changes` applied to them)."""
+    out.mkdir(exist_ok=True)
+    settings = {**nbv.settings_of(nbv.parse_args(["--scenes", "builtin:cup", "--out", str(out)])), **changes}
+    data = {"settings": settings, "fits": {"cup|fibonacci|64|0": {"chamfer_mm": 3.59},
+                                           "cup|fibonacci|128|0": {"chamfer_mm": 2.75}}}
+    (out / "results.json").write_text(json.dumps(data))
+    return data
+
+
+def test_an_out_holding_fits_made_with_other_settings_is_refused_not_reset(nbv, tmp_path, capsys):
+    out = tmp_path / "nbv"
+    data = cached(nbv, out)
+    with pytest.raises(SystemExit) as stop:
+        nbv.main(["--scenes", "builtin:sphere", "--counts", "8", "--views", "8", "--steps", "2", "--measures", "",
+                  "--out", str(out)])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "holds 2 fits made with other settings" in err and "--views 128, not 8; --steps 1000, not 2" in err, err
+    assert "--overwrite" in err and "Traceback" not in err
+    assert json.loads((out / "results.json").read_text()) == data  # nothing lost
+    # A Results of other settings is an error, never a silent reset to no fits.
+    with pytest.raises(ValueError, match="other settings"):
+        nbv.Results(out / "results.json", {**data["settings"], "steps": 2})
+    assert json.loads((out / "results.json").read_text()) == data
+
+
+def test_the_same_settings_reuse_the_fits_and_overwrite_discards_them(nbv, tmp_path):
+    out = tmp_path / "nbv"
+    data = cached(nbv, out)
+    args = nbv.parse_args(["--scenes", "builtin:cup", "--out", str(out)])
+    assert set(nbv.Results(out / "results.json", nbv.settings_of(args)).data["fits"]) == set(data["fits"])
+    args = nbv.parse_args(["--scenes", "builtin:cup", "--steps", "2", "--out", str(out), "--overwrite"])
+    assert nbv.Results(out / "results.json", nbv.settings_of(args), overwrite=True).data["fits"] == {}
+
+
+def test_an_unreadable_results_json_or_a_file_as_out_is_a_one_line_error(nbv, tmp_path, capsys):
+    (tmp_path / "nbv").mkdir()
+    (tmp_path / "nbv" / "results.json").write_text("{half")
+    (tmp_path / "afile").write_text("")
+    for out, says in ((tmp_path / "nbv", "does not read as this script's"), (tmp_path / "afile", "not a folder")):
+        with pytest.raises(SystemExit):
+            nbv.parse_args(["--scenes", "builtin:cup", "--out", str(out)])
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and says in err.strip().splitlines()[-1], err

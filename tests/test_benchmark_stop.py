@@ -102,8 +102,10 @@ bench.follow = follow
 
 @pytest.mark.parametrize("how", STOPS)
 def test_live_refits_busy_processes_stop_with_it(tmp_path, how):
-    (tmp_path / "out" / "source").mkdir(parents=True)  # a capture there is not simulated again
-    proc = start_main("live_refits", ["--scene", "sphere", "--busy", 2, "--out", tmp_path / "out"], LIVE_REFITS)
+    # A scan of the scene and views asked for, in --out: not simulated again.
+    load_benchmark("live_refits").simulate("sphere", 2, tmp_path / "out" / "source")
+    proc = start_main("live_refits", ["--scene", "sphere", "--views", 2, "--busy", 2, "--out", tmp_path / "out"],
+                      LIVE_REFITS)
     busy: set[int] = set()
     try:
         read_until(proc, "following")
