@@ -33,7 +33,7 @@ from spadscan.protocol.atomic_files import write_atomic
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
 from .budget import process_started
-from .outputs import RESULT_FILES
+from .outputs import RESULT_FILES, move_aside
 
 ID_RE = re.compile(r"[^A-Za-z0-9._-]+")
 RECON_DIR = "recon"
@@ -305,8 +305,10 @@ def scratch_folders(root: Path) -> list[tuple[Path, str, str]]:
 
 COMPLETE = ".complete"
 """Marker written last into a job's scratch folder, once everything else is in it (report, mesh, pictures, job.log):
-{"job": id, "token": claim token, "queue": queue folder}. A scratch folder without it may be partial; a result folder
-with it names the claim that produced it."""
+{"job": id, "token": claim token, "queue": the queue folder's resolved path}. A scratch folder without it may be
+partial; a result folder with it names the claim that produced it. The path is resolved so that workers that spell
+the captures root differently (relative to their working directories, or absolute) agree on whose result it is
+(publishing.same_queue)."""
 
 
 def mark_complete(folder: Path, job_id: str, token: str, queue: Path) -> None:
@@ -317,7 +319,7 @@ def mark_complete(folder: Path, job_id: str, token: str, queue: Path) -> None:
     _sync_tree(folder)
     tmp = folder / f"{COMPLETE}.tmp"
     with open(tmp, "w") as f:
-        json.dump({"job": job_id, "token": token, "queue": str(queue)}, f)
+        json.dump({"job": job_id, "token": token, "queue": str(Path(queue).resolve())}, f)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, folder / COMPLETE)
@@ -365,17 +367,6 @@ def publish(scratch: Path, final: Path) -> tuple[Path, Path | None]:
     aside = move_aside(final)
     os.rename(scratch, final)
     return final, aside
-
-
-def move_aside(final: Path) -> Path | None:
-    """Rename a results folder to `<name>.replaced-<UTC time>-<random>` beside it; returns the new path, or None
-    when there is no such folder."""
-    if not final.exists():
-        return None
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    aside = final.with_name(f"{final.name}.replaced-{stamp}-{secrets.token_hex(2)}")
-    os.rename(final, aside)
-    return aside
 
 
 def run_job(job: Job, root: Path, *, recon: ReconFn | None = None) -> Path:

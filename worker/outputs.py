@@ -6,7 +6,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import secrets
 import shutil
+import time
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -26,6 +28,12 @@ result must not leave them: they would describe how another mesh was made, and t
 queue's claim."""
 
 
+def held_result(out) -> list[str]:
+    """The result files `out` holds (RESULT_FILES, in it or set aside in its `.replaced/` by a run that was killed)."""
+    out = Path(out)
+    return [name for name in RESULT_FILES if (out / name).exists() or (out / ASIDE_DIR / name).exists()]
+
+
 def check_out(out, overwrite: bool, capture=None) -> Path:
     """`out` as a Path, refused when it is a file, or holds a result and `overwrite` is not set, or lies inside the
     folder of `capture` (when given) anywhere but under its recon/ folder, where the worker puts results. (An empty
@@ -38,7 +46,7 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
         if inside is not None and (not inside.parts or inside.parts[0] != "recon"):
             raise ConfigError(f"--out {out} lies inside the capture {capture}: results there would be mixed into "
                               f"its measurements; choose a folder outside it (or under its recon/ folder)")
-    held = [name for name in RESULT_FILES if (out / name).exists() or (out / ASIDE_DIR / name).exists()]
+    held = held_result(out)
     if held and not overwrite:
         raise ConfigError(f"{out}: already holds a result ({', '.join(held)}); choose another --out, or pass "
                           "--overwrite to replace it")
@@ -47,14 +55,14 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
 
 def check_ground_truth_kept(gt, out) -> None:
     """Refuse a ground-truth file (`--gt`) that is one of the previous result's files in `out`, which a run with
-    --overwrite sets aside before it reads its ground truth (`previous_result`: a worker job's ground_truth.ply, say).
-    A built-in scene (builtin:NAME) or a file elsewhere passes."""
+    --overwrite removes when it publishes its own (`previous_result`: a worker job's ground_truth.ply, say): the new
+    report would name a file that is gone. A built-in scene (builtin:NAME) or a file elsewhere passes."""
     if gt is None or str(gt).startswith(BUILTIN_PREFIX):
         return
     gt, out = Path(gt), Path(out)
     if out.is_dir() and _relative_to(gt.parent, out) == Path(".") and gt.name in previous_result(out):
-        raise ConfigError(f"--gt {gt} is a file of the result in --out {out}, which --overwrite sets aside while the "
-                          f"new result is written; copy it out of that folder and pass the copy")
+        raise ConfigError(f"--gt {gt} is a file of the result in --out {out}, which --overwrite replaces with the "
+                          f"new result; copy it out of that folder and pass the copy")
 
 
 def _relative_to(path: Path, folder: Path) -> Path | None:
@@ -161,6 +169,88 @@ def replacing_result(out, log: Callable[[str], None] | None = None) -> Iterator[
             log(f"removed the replaced result's {', '.join(gone)} (this run wrote none)")
 
 
+def move_aside(final: Path) -> Path | None:
+    """Rename a results folder to `<name>.replaced-<UTC time>-<random>` beside it; returns the new path, or None
+    when there is no such folder."""
+    if not final.exists():
+        return None
+    aside = _beside(final, "replaced")
+    os.rename(final, aside)
+    return aside
+
+
+def _beside(folder: Path, kind: str) -> Path:
+    """A new name beside `folder`: `<name>.<kind>-<UTC time>-<4 hex digits>`."""
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    return folder.with_name(f"{folder.name}.{kind}-{stamp}-{secrets.token_hex(2)}")
+
+
+@contextlib.contextmanager
+def result_beside(out, overwrite: bool, log: Callable[[str], None] | None = None) -> Iterator[Path]:
+    """A run (`spadscan reconstruct`) that writes its result into the hidden scratch folder this yields,
+    `.tmp-<name>-<8 hex digits>` beside `out`, and has it published into `out` once it has finished
+    (`publish_beside`); a run that ends without finishing (an error, Ctrl-C) leaves `out` as it was and its scratch
+    folder removed. `out` is what the worker publishes to when it is a job's `<scan>/recon/<job>/`: written into
+    straight, a run of minutes would mix its files into a result the worker renamed into place meanwhile."""
+    out = Path(os.path.abspath(out))
+    if not out.name:
+        raise ConfigError(f"--out {out}: a result needs a folder of its own, not the filesystem's root")
+    was = _identity(out)
+    scratch = out.with_name(f".tmp-{out.name}-{secrets.token_hex(4)}")  # no claim token: no worker sweeps it
+    try:
+        yield scratch
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    publish_beside(scratch, out, overwrite, was, log)
+
+
+def publish_beside(scratch: Path, out: Path, overwrite: bool, was: tuple[int, int] | None,
+                   log: Callable[[str], None] | None = None) -> None:
+    """Publish the finished result in `scratch` to `out`, which was the folder `was` (`_identity`) when the run
+    started. A new `out` appears whole, by one rename. A result found in `out` now (one that appeared while the run
+    went: a worker published its job's result there, say) is never replaced in silence: without `overwrite` it is
+    kept, this run's result renamed to `<out>.new-<UTC time>-<4 hex>` and the run refused, saying where; with it,
+    a folder that is not the one the run started from is moved aside whole (as the worker's publishing does). Into
+    the folder the run started from, the result's files are moved beside the user's own, a previous result
+    (`overwrite`) replaced as `replacing_result` does."""
+    log = log or (lambda line: None)
+    if not out.exists():
+        try:
+            os.rename(scratch, out)
+            return
+        except OSError:
+            if not out.exists():
+                raise
+            # it appeared between the look and the rename: one more folder to reckon with, below
+    held = held_result(out)
+    if held and not overwrite:
+        kept = _beside(out, "new")
+        os.rename(scratch, kept)
+        raise ConfigError(f"{out}: a result ({', '.join(held)}) appeared there while this run went (a worker "
+                          f"publishing its job's result?): kept it; this run's result is in {kept} (--overwrite "
+                          f"would have moved the one found aside)")
+    if held and _identity(out) != was:
+        aside = move_aside(out)
+        os.rename(scratch, out)
+        log(f"{out} was replaced while this run went (a worker publishing its job's result?): moved that result "
+            f"aside to {aside}")
+        return
+    with replacing_result(out, log):
+        for entry in sorted(scratch.iterdir()):
+            os.replace(entry, out / entry.name)
+    scratch.rmdir()
+
+
+def _identity(folder: Path) -> tuple[int, int] | None:
+    """(device, inode) of `folder`, or None when there is none: a folder renamed into its place is another one."""
+    try:
+        st = folder.stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
 def _put_back(out: Path, aside: Path, also_remove: set[str]) -> list[str]:
     """Move the files set aside in `aside` back into `out` (over what stands there) and remove the files named in
     `also_remove`; returns the names put back."""
@@ -185,4 +275,4 @@ def capture_state_note(capture, state: str, views: int, planned: int | None = No
 
 
 __all__ = ["RESULT_FILES", "JOB_FILES", "check_out", "check_ground_truth_kept", "export_mesh", "capture_state_note",
-           "replacing_result"]
+           "replacing_result", "held_result", "move_aside", "result_beside", "publish_beside"]

@@ -164,6 +164,9 @@ class Worker:
             self.log(f"{job_id}: its worker stopped; {'queued again' if state == 'queued' else 'failed'}")
         if reclaimed:
             await asyncio.to_thread(self._reconcile)
+        for job_id, state in reclaimed:
+            if state == "failed":  # this worker gave up on it: counted as failed here (--once's exit status)
+                await asyncio.to_thread(self._gave_up, job_id)
         await asyncio.to_thread(self.queue.repair)
         while len(self.children) + len(self.unpublished) < self.config.processes:  # a result to publish holds its slot
             claim = await asyncio.to_thread(self.queue.claim)
@@ -253,6 +256,8 @@ class Worker:
                 self.settled[claim.job.id] = "done"
                 self.log(f"{claim.job.id}: its result {existing} was published by an earlier attempt whose worker "
                          "died before recording it; recorded the job as done")
+                if claim.job.live:  # that worker died before its live status could say so
+                    mark_live_done(claim.job, self.root, existing, self.log)
             return
         if not self.queue.finish(claim, str(existing), kept=True):
             return
@@ -370,6 +375,19 @@ class Worker:
                 continue
             del self.unrecorded[job_id]
             self._trouble(_recording(job_id), None)
+
+    def _gave_up(self, job_id: str) -> None:
+        """Settle a job that this worker's `reclaim_expired` moved to failed/ (its worker died on its last attempt)
+        as `_settle_error` settles one whose process died under this worker: counted as failed, and a live job's
+        status says stopped. A job no longer in failed/ was settled otherwise meanwhile (the finished result its dead
+        worker left was published by `_reconcile`, or it was retried by hand)."""
+        path = self.queue.path / "failed" / f"{job_id}.json"
+        if not path.exists():
+            return
+        self.settled[job_id] = "failed"
+        job = self.queue.job_in("failed", job_id)
+        if job is not None:
+            self._settle_failed(job, self.queue.last_error(job_id) or "its worker died on the job's last attempt")
 
     def _settle_failed(self, job, error: str) -> None:
         """The queue gave up on `job`: a live job's status must not go on saying it is finishing."""

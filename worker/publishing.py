@@ -17,6 +17,10 @@ again:
   job whose result folder holds this queue's own result);
 - a done job whose record lacks the result: the record is completed from the folder;
 - a done job with no result at all (removed by hand, say): queued again, saying so.
+
+Every path that settles a live job as done with its result sets the scan's live status to 'done' naming it
+(live/done.py), as the worker that publishes its own job's result does: a worker that died while publishing must not
+leave the status saying that the reconstruction is still finishing.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from .holder import Holder
 from .jobs import (RESULT_FILES, SCRATCH_RE, Job, completion, existing_result, mark_complete, move_aside, result_path,
                    scan_path, scratch_folders)
 from .kill_points import kill_point
+from .live.done import mark_live_done, mark_live_done_unsaid
 from .queue import SEP, Claim, Queue
 
 Log = Callable[[str], None]
@@ -104,16 +109,38 @@ def _marked_by(folder: Path, job_id: str, token: str, queue: Queue | None = None
     when given)."""
     mark = completion(folder) or {}
     return ((mark.get("job"), mark.get("token")) == (job_id, token)
-            and (queue is None or mark.get("queue") == str(queue.path)))
+            and (queue is None or same_queue(mark.get("queue"), queue.path)))
 
 
 def own_result(queue: Queue, job_id: str, folder: Path) -> dict | None:
     """The completion marker of `folder` when it holds a result this queue's claim of `job_id` produced, else None
     (a result from another queue, from a deleted queue, or from before markers existed)."""
     mark = completion(folder) if existing_result_files(folder) else None
-    if not mark or mark.get("job") != job_id or mark.get("queue") != str(queue.path):
+    if not mark or mark.get("job") != job_id or not same_queue(mark.get("queue"), queue.path):
         return None
     return mark if queue.record(job_id, str(mark.get("token"))) is not None else None
+
+
+def same_queue(marked, queue_path: Path) -> bool:
+    """Whether a completion marker's `queue` can name the queue folder `queue_path`. Markers hold the resolved path
+    (jobs.mark_complete), so workers that spell the captures root differently agree. One written by an earlier
+    version may hold a path relative to its worker's working directory, unknown here: it names this queue when it
+    ends with the same folders. A path that does not exist on this machine (the shared filesystem mounted elsewhere
+    on the machine whose worker wrote it) is not held against the marker: its claim token, which callers look up in
+    this queue's attempt records (64 random bits), says whether the result is this queue's."""
+    if not isinstance(marked, str) or not marked:
+        return False
+    here = Path(os.path.abspath(queue_path))
+    there = Path(os.path.normpath(marked))
+    if not there.is_absolute():
+        parts = tuple(p for p in there.parts if p not in (os.pardir, os.curdir))
+        return bool(parts) and here.parts[-len(parts):] == parts
+    if there == here or there.resolve() == here.resolve():
+        return True
+    try:
+        return os.path.samefile(there, here)
+    except OSError:
+        return not there.exists()
 
 
 def existing_result_files(folder: Path) -> bool:
@@ -208,6 +235,7 @@ def _publish_left(queue: Queue, root: Path, folder: Path, job_id: str, token: st
         queue.record_done(job_id, str(final))
         log(f"{job_id}: published the finished result {dead} left in {folder.name} -> {final}"
             + (f" (moved {aside} aside)" if aside else ""))
+        _live_done(job, root, final, log)
         return
     claim = queue.adopt(job_id, path, token, why=f"{dead} died after finishing the job; its result was published "
                                                  f"by worker {_me()}")
@@ -216,6 +244,13 @@ def _publish_left(queue: Queue, root: Path, folder: Path, job_id: str, token: st
     final = result_path(claim.job, root)
     _put_in_place(queue, claim, folder, final, "recovered-published")
     log(f"{job_id}: published the finished result {dead} left in {folder.name} -> {final}")
+    _live_done(claim.job, root, final, log)
+
+
+def _live_done(job: Job, root: Path, final: Path, log: Log) -> None:
+    """A live job settled as done with its result `final`: its live status says so (live.done.mark_live_done)."""
+    if job.live:
+        mark_live_done(job, root, final, log)
 
 
 def _results_in_place(queue: Queue, root: Path, log: Log, busy) -> None:
@@ -243,6 +278,7 @@ def _results_in_place(queue: Queue, root: Path, log: Log, busy) -> None:
                                                     f"result; worker {_me()} recorded the job as done")
         if claim is not None and queue.finish(claim, str(final)):
             log(f"{job_id}: its result {final} was in place, the job {state}: recorded it as done")
+            _live_done(job, root, final, log)
 
 
 def _done_jobs(queue: Queue, root: Path, log: Log) -> None:
@@ -257,6 +293,10 @@ def _done_jobs(queue: Queue, root: Path, log: Log) -> None:
         final = existing_result(job, root)
         if final is not None:
             queue.record_done(job_id, str(final))
+            if job.live and own_result(queue, job_id, final) is not None:
+                # Its worker died between moving the job to done/ and saying so in the live status (a kept result,
+                # which the job did not make, is not its live run's).
+                mark_live_done_unsaid(job, root, final, log)
             continue
         try:
             where = result_path(job, root)

@@ -270,6 +270,19 @@ class Queue:
                            ended_utc=recs[-1].get("ended_utc") or _utc())
         return True
 
+    def last_error(self, job_id: str) -> str | None:
+        """The error of the job's last counted attempt (as --status shows it), or None."""
+        errors = [str(r["error"]) for r in self.records(job_id) if _counted(r) and r.get("error")]
+        return errors[-1] if errors else None
+
+    def job_in(self, state: str, job_id: str) -> Job | None:
+        """The job file `job_id` in `state`/ (queued, done or failed), or None when it is not there or unreadable."""
+        path = self.path / state / f"{job_id}.json"
+        try:
+            return Job.from_dict(json.loads(path.read_text()), str(path))
+        except (OSError, ValueError, ConfigError):
+            return None
+
     def record(self, job_id: str, token: str) -> dict | None:
         """The attempt record of claim `token`, or None when it is missing or unreadable."""
         return self._read_record(job_id, token)

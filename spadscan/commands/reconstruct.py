@@ -1,7 +1,9 @@
 """Reconstruct one capture into a mesh and a report, by differentiable rendering of its histograms.
 
-Writes into --out (a new folder, or one without a result unless --overwrite): report.html (the page to open first),
-view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply (per-vertex normals from the SDF
+Writes into --out (a new folder, or one without a result unless --overwrite; the run writes beside it, in a hidden
+.tmp- folder, and moves its result in once finished: a result that appeared in --out meanwhile, a worker's, is kept
+unless --overwrite): report.html (the page to open first), view3d.html (the 3D view report.html embeds: keep it
+beside report.html), mesh.ply (per-vertex normals from the SDF
 gradient), report.json (preset, device, steps, training seconds, the model terms used, final loss, the resolved
 config, and with a ground truth: chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg plus a trace
 of error against training time), preview.png, error_vs_time.png, fit.png (measured against rendered histograms),
@@ -50,7 +52,7 @@ import sys
 from pathlib import Path
 
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run
-from spadscan.worker.outputs import check_ground_truth_kept, check_out
+from spadscan.worker.outputs import check_ground_truth_kept, check_out, result_beside
 from spadscan.worker.recon.config import PRESET_NAMES, parse_override
 
 
@@ -103,10 +105,11 @@ def run(args: argparse.Namespace) -> int:
     gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     if args.overwrite:
         check_ground_truth_kept(gt, out)
-    report = reconstruct_capture(Path(args.capture), out, preset=args.preset, budget_s=args.budget_s,
-                                 steps=args.steps, gt=gt, device=args.device, seed=args.seed,
-                                 progress=not args.no_progress, overrides=overrides or None, threads=args.threads,
-                                 log=log, started=started)
+    with result_beside(out, args.overwrite, log) as scratch:  # published whole at the end, never mixed
+        report = reconstruct_capture(Path(args.capture), scratch, preset=args.preset, budget_s=args.budget_s,
+                                     steps=args.steps, gt=gt, device=args.device, seed=args.seed,
+                                     progress=not args.no_progress, overrides=overrides or None,
+                                     threads=args.threads, log=log, started=started)
     steps = f"{report['steps']} step{'' if report['steps'] == 1 else 's'}"
     converged = "converged" if report.get("converged") else "not converged"
     line = (f"{report['preset']}: {steps} in {report['seconds']:.1f} s of training ({report['wall_seconds']:.1f} s "

@@ -27,6 +27,18 @@ def mark_live_done(job: Job, root: Path, result: Path, log: Callable[[str], None
         log(f"{job.id}: its result is published, but the live status was not updated: {exc}")
 
 
+def mark_live_done_unsaid(job: Job, root: Path, result: Path, log: Callable[[str], None]) -> None:
+    """`mark_live_done` for a job found done when a worker starts, unless its live status says 'done' already: its
+    worker died after moving the job to done/ and before it said so there. A status that is missing or cannot be
+    read is left alone without a word (the job was settled long ago, or its scan's live folder removed)."""
+    try:
+        status = read_status(status_path(scan_path(job, root)))
+    except (SpadscanError, OSError):
+        return
+    if status.state != "done":
+        mark_live_done(job, root, result, log)
+
+
 def mark_live_failed(job: Job, root: Path, error: str, log: Callable[[str], None]) -> None:
     """Set `<scan>/recon/live/status.json` to state 'stopped' with `error` as its note, for a live job the queue has
     given up on: the job process can die, or its final run fail, after it wrote 'final' ("finishing"), which would
@@ -69,4 +81,4 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
         chamfer_mm=float(chamfer) if is_chamfer(chamfer) else None)
 
 
-__all__ = ["mark_live_done", "mark_live_failed", "done_status"]
+__all__ = ["mark_live_done", "mark_live_done_unsaid", "mark_live_failed", "done_status"]
