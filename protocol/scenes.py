@@ -27,7 +27,8 @@ BUILTIN_SCENES: dict[str, str] = {
     "sphere": "a 0.20 m ball resting on the ground (convex, smooth)",
     "cup": "a 0.16 m tapered cup with 5 mm walls, open to the top (concavity)",
     "lamp": "a 0.20 m table lamp: a round foot, a 16 mm thin stem, a solid shade (thin part, overhang)",
-    "pyramid": "a 0.15 m square pyramid like the dataset's real scene (flat faces, sharp edges)",
+    "pyramid": ("a 0.15 m square, 0.15 m tall pyramid (flat faces, sharp edges; smaller and lower than the "
+                "dataset's real one)"),
     "demo": "a 0.20 m goblet: foot, 14 mm stem and a bowl open to the top (concavity and thin part together)",
     "teddy": "a 0.25 m sitting teddy bear: round body and head, thin ears, arms with paws (smooth, small parts)",
     "head": "a 0.35 m sculpted head on a 14 cm square plinth: nose, ears, eye sockets (smooth, large)",

@@ -74,9 +74,23 @@ def fibonacci_hemisphere(n: int, radius_m: float, target=(0.0, 0.0, 0.0), min_el
         raise SimulationError(f"number of views {n} must be an integer in [1, 1000000]")
     lo, hi = _check_elevations(min_elevation_deg, max_elevation_deg)
     radius_m = _check_radius(radius_m)
+    pole = spiral_at_pole_deg(n, min_elevation_deg, max_elevation_deg)
+    if pole is not None:
+        raise SimulationError(f"a spiral band of zero width at {pole:+g} deg elevation puts its {n} views at one "
+                              f"viewpoint (straight {'above' if pole > 0 else 'below'} the target); widen the band "
+                              f"(min_elevation below max_elevation, degrees)")
     i = np.arange(n) + 0.5
     s = math.sin(hi) - i / n * (math.sin(hi) - math.sin(lo))
     return _poses_on_sphere(np.arcsin(np.clip(s, -1, 1)), i * GOLDEN_ANGLE_RAD, radius_m, target)
+
+
+def spiral_at_pole_deg(n: int, min_elevation_deg: float, max_elevation_deg: float) -> float | None:
+    """The elevation (degrees) of a spiral band of zero width at +-90 deg holding several views, or None. Every view
+    of it stands at one point: n copies of one viewpoint. (A band of zero width elsewhere is a circle the golden
+    angle never repeats on, and any wider band gives each view its own elevation.)"""
+    if n < 2 or min_elevation_deg != max_elevation_deg or abs(min_elevation_deg) < 90.0:
+        return None
+    return float(min_elevation_deg)
 
 
 RINGS_BAND_DEG = (10.0, 80.0)
@@ -105,13 +119,19 @@ def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0
     """Rings of equally spaced views at evenly spaced elevations (inclusive), alternate rings offset by half a step.
 
     Returns (n_rings * per_ring, 4, 4), ring by ring from the lowest elevation, azimuth increasing within a ring.
-    A ring of more than one view at +-90 deg (every view at one point) is refused.
+    A ring of more than one view at +-90 deg (every view at one point) is refused, and so are several rings in a band
+    of zero width (they would all stand at one elevation, every other ring on the same poses).
     """
     for name, v in (("rings", n_rings), ("views per ring", per_ring)):
         if not (isinstance(v, (int, np.integer)) and 1 <= v <= 100_000):
             raise SimulationError(f"{name} {v} must be an integer in [1, 100000]")
     lo, hi = _check_elevations(min_elevation_deg, max_elevation_deg)
     radius_m = _check_radius(radius_m)
+    if n_rings > 1 and min_elevation_deg == max_elevation_deg:
+        same = ", every other ring on the same poses" if n_rings > 2 else ""
+        raise SimulationError(f"{n_rings} rings in a band of zero width ({min_elevation_deg:g} deg) all stand at one "
+                              f"elevation{same}; widen the band (min_elevation below max_elevation, degrees) or use "
+                              f"one ring")
     elev = ring_elevations_rad(n_rings, lo, hi)
     pole = ring_at_pole_deg(n_rings, per_ring, min_elevation_deg, max_elevation_deg)
     if pole is not None:

@@ -30,6 +30,10 @@ FLOAT_WARN_M = 0.01
 mesh's rounding, and close to a tmf8820 bin (13.6 mm), where the table shows as a return of its own under the
 object."""
 
+TOP_TOLERANCE_M = 1e-6
+"""A sensor closer than this (metres) above the table top counts as standing on it: where a schedule puts a ring at
+the table's height, rounding leaves it a hair above or below."""
+
 
 @dataclass(frozen=True)
 class SimTable:
@@ -54,20 +58,29 @@ class SimTable:
 
     def hits(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(range (N,) metres along each ray to the table, inf where the ray never meets it; |cos| of incidence
-        (N,)) for rays origins, directions (N, 3) (directions unit)."""
+        (N,)) for rays origins, directions (N, 3) (directions unit). A ray that starts on the top and heads down into
+        the slab meets it at range 0 (one heading up leaves it): no sensor can stand there, and the table must not
+        vanish from its histograms as if it were not there."""
         dz = directions[:, 2]
         moving = np.abs(dz) > 1e-12
         t = np.where(moving, (self.height_m - origins[:, 2]) / np.where(moving, dz, 1.0), np.inf)
-        t = np.where(t > 0, t, np.inf)
+        t = np.where((t > 0) | ((t == 0) & (dz < 0)), t, np.inf)
         finite = np.isfinite(t)
         x = origins[:, 0] + np.where(finite, t, 0.0) * directions[:, 0]
         y = origins[:, 1] + np.where(finite, t, 0.0) * directions[:, 1]
         inside = (np.abs(x) <= self.half_size_m) & (np.abs(y) <= self.half_size_m)
         return np.where(finite & inside, t, np.inf), np.abs(dz)
 
+    def below_top(self, points: np.ndarray) -> np.ndarray:
+        """Which points (N, 3) (metres) lie on the table top or under it (within its square, TOP_TOLERANCE_M): no
+        sensor can stand there."""
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        over = (np.abs(p[:, 0]) <= self.half_size_m) & (np.abs(p[:, 1]) <= self.half_size_m)
+        return over & (p[:, 2] <= self.height_m + TOP_TOLERANCE_M)
+
     def record(self) -> dict:
         """What a capture's scene record keeps of the table (metres)."""
         return {"z": float(self.height_m), "albedo": float(self.albedo), "half_size_m": float(self.half_size_m)}
 
 
-__all__ = ["SimTable", "DEFAULT_ALBEDO", "DEFAULT_HALF_SIZE_M", "CUT_TOLERANCE_M", "FLOAT_WARN_M"]
+__all__ = ["SimTable", "DEFAULT_ALBEDO", "DEFAULT_HALF_SIZE_M", "CUT_TOLERANCE_M", "FLOAT_WARN_M", "TOP_TOLERANCE_M"]

@@ -40,6 +40,12 @@ RAYS_PER_VIEW = 4096
 """Default ray budget per pose, shared by the zones."""
 MIN_RAYS_PER_ZONE = 512
 """Fewest rays per zone the default gives."""
+REFERENCE_STRETCH = 1.10
+REFERENCE_POWER = 1.5
+"""The measured mapping from a reference histogram to the zones' pulse (docs/sensor_models.md):
+p(t) = [ref_n(ref_peak + (t - pulse_peak) / REFERENCE_STRETCH)] ** REFERENCE_POWER. The simulator draws its reference
+from the inverse, so that whoever derives the pulse from a simulated reference (as from a measured one) gets the
+sensor model's pulse back."""
 _RAYS_PER_BLOCK = 1 << 20  # rays cast per intersector call: bounds memory, amortises call overhead
 
 
@@ -62,13 +68,14 @@ class SimSettings:
     oversample: int = 8
     """Fine time cells per bin used to place returns with sub-bin accuracy before integrating to bins."""
     reference_signal: float = 0.06
-    """Photons per cycle in the reference channel (sensors with one): ~0.06 on the real TMF8820 (~2.3e5 counts
-    over ~4e6 cycles)."""
+    """Detections per cycle of the reference channel's pulse (sensors with one), its counts over the cycles: ~0.06 on
+    the real TMF8820 (~2.3e5 counts over ~4e6 cycles)."""
     reference_background: float = 1.0e-6
-    """Flat background of the reference channel, photons per bin per cycle (~4 counts over ~4e6 cycles)."""
-    reference_delay_bins: float = 2.3
-    """The reference pulse arrives this many bins after the zones' zero-range point (internal optical path): the real
-    TMF8820's reference peaks at bin coordinate ~14.7, its zones' zero-range peak at ~12.4."""
+    """Flat background of the reference channel, detections per bin per cycle (~4 counts over ~4e6 cycles)."""
+    reference_delay_bins: float = 2.37
+    """The reference's peak lies this many bins after the zones' zero-range point (internal optical path): the real
+    TMF8820's reference peaks at bin index 14.27 (bin coordinate 14.77, bin i centred at i + 0.5), its zones'
+    zero-range point at bin coordinate 12.40."""
 
     def check(self) -> "SimSettings":
         for key, lo, hi in (("power", 0.0, 1e9), ("albedo", 0.0, 1e3), ("reference_signal", 0.0, 1e6),
@@ -93,13 +100,15 @@ class SimFrames:
     """Simulated measurements. hists: (n, zones, bins) uint32 counts; reference: (n, bins) uint32 or None;
     poses: (n, 4, 4) float64 sensor-to-world (metres); misses: (n, zones) int64 cycles that detected nothing in
     the histogram window (before clipping to max_count, hists.sum(-1) + misses == cycles); signal_photons: (n,)
-    float64 expected signal photons of each view, all zones and cycles (before pile-up; 0: it sees nothing)."""
+    float64 expected signal photons of each view, all zones and cycles (before pile-up; 0: it sees nothing; the
+    table's included); mesh_photons: (n,) float64 the part of signal_photons that returns from the mesh."""
 
     hists: np.ndarray
     reference: np.ndarray | None
     poses: np.ndarray
     misses: np.ndarray | None = None
     signal_photons: np.ndarray | None = None
+    mesh_photons: np.ndarray | None = None
 
 
 def check_seed(seed) -> int:
@@ -129,7 +138,8 @@ class Simulator:
 
     `sensor` is the model the histograms obey: the given model with the settings' power, ambient and cycles folded in
     (store it with the capture). `expected_rates` and `transient` are pure functions of the poses; `frames` draws
-    photons from a generator seeded by `seed`, so the same calls in the same order give the same counts.
+    photons from a generator seeded by `seed`, so the same calls in the same order give the same counts. The
+    reference histograms draw from a generator of their own, so that the zones' counts do not depend on them.
     """
 
     def __init__(self, mesh, sensor: SensorModel, settings: SimSettings = SimSettings(), seed: int = 0,
@@ -156,10 +166,12 @@ class Simulator:
         )
         self.mesh = mesh
         self._intersector = make_intersector(mesh)
-        ray_seed, photon_seed = np.random.SeedSequence(int(seed)).spawn(2)
+        # The third child leaves the first two (and so the rays and the zones' counts) as they were with two.
+        ray_seed, photon_seed, reference_seed = np.random.SeedSequence(int(seed)).spawn(3)
         self.rays_per_zone = int(settings.rays_per_zone or max(MIN_RAYS_PER_ZONE, RAYS_PER_VIEW // sensor.n_zones))
         self.rays = zone_rays(sensor.zones, self.rays_per_zone, int(ray_seed.generate_state(1)[0]))
         self.rng = np.random.default_rng(photon_seed)
+        self.reference_rng = np.random.default_rng(reference_seed)
         self._kernel, self._origin = sensor.pulse.kernel(settings.oversample)
         self.axis = FineAxis(sensor.n_bins, settings.oversample,
                              pulse_pad_bins(self._kernel, self._origin, settings.oversample))
@@ -168,8 +180,9 @@ class Simulator:
     def _returns(self, poses: np.ndarray):
         """Ray-cast every zone's rays from every pose.
 
-        Returns (channel (H,), t_bins (H,), value (H,)): histogram index view * zones + zone, arrival bin coordinate,
-        albedo * weight * cos_i / r^2 (sr / m^2).
+        Returns (channel (H,), t_bins (H,), value (H,), from_mesh (H,) bool): histogram index view * zones + zone,
+        arrival bin coordinate, albedo * weight * cos_i / r^2 (sr / m^2), and whether the return is the mesh's (not
+        the table's).
         """
         z, r = self.rays.directions.shape[:2]
         per_view = z * r
@@ -181,19 +194,20 @@ class Simulator:
             origins = np.repeat(p[:, :3, 3], per_view, axis=0)
             ray, rng_m, cos_i = first_hits(self._intersector, self.mesh, origins, dirs)
             albedo = np.full(len(ray), self.settings.albedo)
+            from_mesh = np.ones(len(ray), bool)
             if self.table is not None:
-                ray, rng_m, cos_i, albedo = self._with_table(origins, dirs, ray, rng_m, cos_i, albedo)
+                ray, rng_m, cos_i, albedo, from_mesh = self._with_table(origins, dirs, ray, rng_m, cos_i, albedo)
             rng_m = np.maximum(rng_m, MIN_RANGE_M)
             w = self.rays.weights.reshape(-1)[ray % per_view]
             channel = start * z + ray // r
-            out.append((channel, self.sensor.bin_of_range(rng_m), albedo * w * cos_i / (rng_m * rng_m)))
+            out.append((channel, self.sensor.bin_of_range(rng_m), albedo * w * cos_i / (rng_m * rng_m), from_mesh))
         if not out:
-            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, bool)
         return tuple(np.concatenate(parts) for parts in zip(*out))
 
     def _with_table(self, origins, dirs, ray, rng_m, cos_i, albedo):
         """The mesh's first hits (ray, range, cos, albedo) merged with the table's: each ray returns from whichever
-        it meets first."""
+        it meets first. Returns them with from_mesh, False for the table's."""
         t_table, cos_table = self.table.hits(origins, dirs)
         mesh_first = rng_m <= t_table[ray]
         ray, rng_m, cos_i, albedo = ray[mesh_first], rng_m[mesh_first], cos_i[mesh_first], albedo[mesh_first]
@@ -201,7 +215,8 @@ class Simulator:
         on_table[ray] = False
         hit = np.flatnonzero(on_table)
         return (np.concatenate([ray, hit]), np.concatenate([rng_m, t_table[hit]]),
-                np.concatenate([cos_i, cos_table[hit]]), np.concatenate([albedo, np.full(len(hit), self.table.albedo)]))
+                np.concatenate([cos_i, cos_table[hit]]), np.concatenate([albedo, np.full(len(hit), self.table.albedo)]),
+                np.concatenate([np.ones(len(ray), bool), np.zeros(len(hit), bool)]))
 
     def transient(self, poses) -> np.ndarray:
         """Ideal transient h: albedo x integral of cos_i / r^2 dOmega per bin (sr/m^2), no pulse, gains or noise.
@@ -211,15 +226,19 @@ class Simulator:
         """
         poses = check_pose_array(poses)
         n, z = len(poses), self.sensor.n_zones
-        channel, t, value = self._returns(poses)
+        channel, t, value, _ = self._returns(poses)
         fine = self.axis.splat(channel, t, value, n * z)
         return self.axis.to_bins(fine).reshape(n, z, self.sensor.n_bins)
 
     def signal_rates(self, poses) -> np.ndarray:
         """Signal photons per bin per cycle (pulse, gains, crosstalk; no background). (n, 4, 4) -> (n, zones, bins)."""
         poses = check_pose_array(poses)
-        n, z = len(poses), self.sensor.n_zones
-        channel, t, value = self._returns(poses)
+        channel, t, value, _ = self._returns(poses)
+        return self._signal(len(poses), channel, t, value)
+
+    def _signal(self, n: int, channel, t, value) -> np.ndarray:
+        """Signal rates (n, zones, bins) of n views from their returns (see `_returns`)."""
+        z = self.sensor.n_zones
         fine = self.axis.splat(channel, t, value * self.sensor.signal_scale, n * z)
         sig = self.axis.to_bins(convolve_pulse(fine, self._kernel, self._origin)).reshape(n, z, self.sensor.n_bins)
         sig *= np.array([zone.gain for zone in self.sensor.zones])[:, None]
@@ -232,14 +251,25 @@ class Simulator:
         return self.signal_rates(poses) + max(self.sensor.background, BACKGROUND_FLOOR)
 
     def reference_rates(self, n: int) -> np.ndarray | None:
-        """Rates of the reference channel (n, bins), or None when the sensor has none: the pulse at zero range
-        plus the internal path's delay, over its own flat background."""
+        """Rates of the reference channel (n, bins), or None when the sensor has none.
+
+        The real TMF8820's reference is not the zones' pulse: it is wider in its tail, and the zones' pulse is the
+        reference mapped by REFERENCE_STRETCH and REFERENCE_POWER. So the reference's expected counts are the
+        sensor's pulse mapped back (`reference_shape`), peaking reference_delay_bins after the zero-range point,
+        over a flat background; the rates are those counts with the pile-up undone, so that the counts drawn from
+        them (pile-up applied) have that shape, as the measured reference (counts) does."""
         if not self.sensor.has_reference:
             return None
-        t = np.full(1, self.sensor.zero_bin + self.settings.reference_delay_bins)
-        fine = self.axis.splat(np.zeros(1, np.int64), t, np.full(1, self.settings.reference_signal), 1)
-        ref = self.axis.to_bins(convolve_pulse(fine, self._kernel, self._origin))[0]
-        ref = ref + max(self.settings.reference_background, BACKGROUND_FLOOR)
+        kernel, origin = self.sensor.pulse.kernel(1)
+        peak_index = self.sensor.zero_bin + self.settings.reference_delay_bins - 0.5  # bin i is centred at i + 0.5
+        per_cycle = self.settings.reference_signal * reference_shape(kernel, int(origin), self.sensor.n_bins,
+                                                                     peak_index)
+        per_cycle = per_cycle + max(self.settings.reference_background, BACKGROUND_FLOOR)
+        if self.sensor.pileup:
+            cycles = float(self.sensor.cycles)
+            ref = pileup.coates_correct(per_cycle * cycles, cycles)
+        else:
+            ref = per_cycle
         return np.broadcast_to(ref, (n, ref.size)).copy()
 
     # ---- photons -------------------------------------------------------------------------------------------------
@@ -251,33 +281,55 @@ class Simulator:
             p = pileup.detection_probabilities_no_pileup(rates)
         return pileup.jitter_blur(p, self.sensor.jitter_bins)
 
-    def draw_counts(self, rates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Photon counts over the sensor's cycles for rates (..., bins).
+    def draw_counts(self, rates: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Photon counts over the sensor's cycles for rates (..., bins), drawn from `rng` (default: the zones').
 
         Returns (counts (..., bins) uint32 clipped to max_count, misses (...) int64 cycles without a detection).
         Without pile-up every photon counts (Poisson per bin) and misses are cycles minus counts, floored at 0.
         """
+        rng = self.rng if rng is None else rng
         n_cycles = self.sensor.cycles
         p = self.detection_probabilities(rates)
         if self.sensor.pileup:
             total = p.sum(axis=-1, keepdims=True)
             p = p / np.maximum(total, 1.0) * (1.0 - 1e-12)  # the "no photon" outcome takes the rest, never < 0
             pvals = np.concatenate([p, 1.0 - p.sum(axis=-1, keepdims=True)], axis=-1)
-            drawn = self.rng.multinomial(n_cycles, pvals)
+            drawn = rng.multinomial(n_cycles, pvals)
             counts, misses = drawn[..., :-1], drawn[..., -1]
         else:
-            counts = self.rng.poisson(np.minimum(p * n_cycles, 1e15))
+            counts = rng.poisson(np.minimum(p * n_cycles, 1e15))
             misses = np.maximum(n_cycles - counts.sum(axis=-1), 0)
         return np.minimum(counts, self.sensor.max_count).astype(np.uint32), misses.astype(np.int64)
 
     def frames(self, poses) -> SimFrames:
         """Photon-count histograms for poses (n, 4, 4); advances the generator (deterministic for the seed)."""
         poses = check_pose_array(poses)
-        signal = self.signal_rates(poses)
+        channel, t, value, from_mesh = self._returns(poses)
+        signal = self._signal(len(poses), channel, t, value)
         hists, misses = self.draw_counts(signal + max(self.sensor.background, BACKGROUND_FLOOR))
         ref = self.reference_rates(len(poses))
         photons = signal.sum(axis=(1, 2)) * self.sensor.cycles
-        return SimFrames(hists, None if ref is None else self.draw_counts(ref)[0], poses.copy(), misses, photons)
+        mesh_photons = photons
+        if self.table is not None:  # the table's returns say nothing of whether a view sees the object
+            mesh_signal = self._signal(len(poses), channel[from_mesh], t[from_mesh], value[from_mesh])
+            mesh_photons = mesh_signal.sum(axis=(1, 2)) * self.sensor.cycles
+        reference = None if ref is None else self.draw_counts(ref, self.reference_rng)[0]
+        return SimFrames(hists, reference, poses.copy(), misses, photons, mesh_photons)
+
+
+def reference_shape(kernel: np.ndarray, origin: int, n_bins: int, peak_index: float) -> np.ndarray:
+    """The reference histogram's shape (n_bins,), summing to 1, of a sensor whose zones' pulse is `kernel` (per bin,
+    kernel[origin] at the arrival): the documented mapping from reference to pulse (docs/sensor_models.md) run
+    backwards, ref_n(u) = p(REFERENCE_STRETCH * (u - peak_index)) ** (1 / REFERENCE_POWER), with p the kernel
+    interpolated linearly between bins and u a bin index (peak_index too: bin i's value stands at u = i)."""
+    k = np.asarray(kernel, np.float64)
+    p = np.interp(REFERENCE_STRETCH * (np.arange(n_bins) - float(peak_index)), np.arange(k.size) - int(origin),
+                  k / k.max(), left=0.0, right=0.0)
+    shape = p ** (1.0 / REFERENCE_POWER)
+    total = shape.sum()
+    if total <= 0:
+        raise SimulationError(f"the reference's peak at bin {peak_index:.3g} leaves the {n_bins}-bin histogram")
+    return shape / total
 
 
 def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSettings = SimSettings(), seed: int = 0,
@@ -289,8 +341,10 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
     The manifest records the effective sensor model (settings folded in), `scene` (plus the albedo) and `schedule`.
     A table is recorded as a measured capture's is to the reconstruction, `"table": true` (there is one, its height is
     to be found), and in full as `"simulated_table"` (its height `z`, `albedo` and `half_size_m`) for scoring.
-    Shows a progress bar on stderr unless `progress` is False. `log` (a function of one line) hears of views that see
-    nothing of the mesh (see `blind_views_note`). Returns the capture's path.
+    Shows a progress bar on stderr unless `progress` is False. `log` (a function of one line) hears of views that
+    put the sensor inside the mesh or under the table (`misplaced_views_note`; `spadscan simulate` refuses them, a
+    library caller may render them on purpose) and of views that see nothing of the mesh (`blind_views_note`).
+    Returns the capture's path.
     """
     from pathlib import Path
 
@@ -301,6 +355,9 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
 
     poses = check_pose_array(poses)
     sim = Simulator(mesh, sensor, settings, seed, table)
+    misplaced = misplaced_views_note(poses, mesh, sim.table)
+    if misplaced and log is not None:
+        log(f"warning: {misplaced}")
     scene = {**(scene or {}), "albedo": settings.albedo, "seed": int(seed), "rays_per_zone": sim.rays.n_rays,
              "faces": int(len(mesh.faces))}
     if table is not None:
@@ -312,7 +369,7 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
         with tqdm(total=len(poses), desc="simulate", unit="view", disable=not progress, leave=False) as bar:
             for start in range(0, len(poses), chunk_size):
                 fr = sim.frames(poses[start: start + chunk_size])
-                photons.append(fr.signal_photons)
+                photons.append(fr.mesh_photons)
                 for i in range(len(fr.poses)):
                     ref = None if fr.reference is None else fr.reference[i]
                     writer.append(Measurement(fr.hists[i], fr.poses[i], start + i, 0, ref, {"simulated": True}))
@@ -329,22 +386,62 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
     return writer.path
 
 
+def misplaced_views(poses, mesh, table: SimTable | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(inside (n,), under (n,)) bool: which views of poses (n, 4, 4) put the sensor inside `mesh` (a watertight one:
+    an open mesh has no inside), and which on or under the `table`'s top (see SimTable.below_top). No sensor can
+    stand at either place, and what it renders there is no capture a rig could take: the inner wall of the object,
+    the table's underside, or a table top met at range 0 (a hair above it, at a grazing angle that floods the
+    histograms)."""
+    origins = check_pose_array(poses)[:, :3, 3]
+    inside = np.zeros(len(origins), bool)
+    if len(origins) and getattr(mesh, "is_watertight", False):
+        inside = np.asarray(mesh.contains(origins), bool)
+    under = np.zeros(len(origins), bool) if table is None else table.below_top(origins)
+    return inside, under
+
+
+def misplaced_views_note(poses, mesh, table: SimTable | None = None) -> str | None:
+    """A line naming how many views, and which, put the sensor inside the mesh or on or under the table top (see
+    `misplaced_views`); None when none does."""
+    inside, under = misplaced_views(poses, mesh, table)
+    n = len(inside)
+    parts = []
+    if inside.any():
+        parts.append(f"{_views(inside, n)} inside the mesh")
+    if under.any():
+        parts.append(f"{_views(under, n)} on or under the table top (z = {table.height_m:g} m)")
+    if not parts:
+        return None
+    return (f"{' and '.join(parts)}: no sensor can stand there; move the target or the radius (metres), or the "
+            f"elevations")
+
+
+def _views(which: np.ndarray, n: int, shown: int = 8) -> str:
+    """'3 of 32 views (0, 1, 2) put the sensor' for a mask of views; the first `shown` indices, then '...'."""
+    idx = np.flatnonzero(which)
+    listed = ", ".join(str(i) for i in idx[:shown]) + (", ..." if len(idx) > shown else "")
+    return f"{len(idx)} of {n} views ({listed}) put the sensor"
+
+
 MIN_SIGNAL_PHOTONS = 1.0
 """A view whose histograms expect fewer signal photons than this (all zones and cycles) holds background alone."""
 
 
 def blind_views_note(signal_photons: np.ndarray, mesh) -> str | None:
-    """A line saying how many views see nothing of `mesh` (fewer than MIN_SIGNAL_PHOTONS signal photons expected),
-    with the mesh's bounds to compare with the schedule's target and radius; None when every view sees it. Such
-    views are background alone: a mesh placed away from the target, or a schedule that looks past it."""
+    """A line saying how many views see nothing of `mesh` (fewer than MIN_SIGNAL_PHOTONS signal photons expected
+    from the mesh itself: a table's returns do not count), with the mesh's bounds to compare with the schedule's
+    target and radius; None when every view sees it. Such views hold background (and table) alone: a mesh placed
+    away from the target, or a schedule that looks past it."""
     blind = int(np.count_nonzero(np.asarray(signal_photons) < MIN_SIGNAL_PHOTONS))
     if blind == 0:
         return None
     lo, hi = (np.round(b, 3).tolist() for b in mesh.bounds)
-    which = "none of the" if blind == len(signal_photons) else f"{blind} of"
-    return (f"warning: {which} {len(signal_photons)} views see the mesh (under {MIN_SIGNAL_PHOTONS:g} signal photon "
-            f"expected); the mesh lies within {lo} .. {hi} m: check the target and radius (or the albedo and power)")
+    n = len(signal_photons)
+    which = f"none of the {n} views see the mesh" if blind == n else f"{blind} of {n} views see nothing of the mesh"
+    return (f"warning: {which} (under {MIN_SIGNAL_PHOTONS:g} signal photon expected); the mesh lies within {lo} .. "
+            f"{hi} m: check the target and radius (or the albedo and power)")
 
 
 __all__ = ["SimSettings", "SimFrames", "SimTable", "Simulator", "simulate_capture", "blind_views_note",
-           "check_pose_array", "check_seed", "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS"]
+           "reference_shape", "misplaced_views", "misplaced_views_note", "check_pose_array", "check_seed",
+           "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS", "REFERENCE_STRETCH", "REFERENCE_POWER"]

@@ -3,8 +3,9 @@
 For the real TMF8820 the reference channel records the emitted pulse through an internal path. Fitted against the
 zones (docs/sensor_models.md), the zones' pulse is the floor-subtracted reference, normalised to peak 1, shifted,
 stretched by 1.10 in time and raised to the power 1.5: p(i) = ref_n(peak_ref + (i - (zero_bin - 0.59)) / 1.10) ** 1.5
-for a return at zero range (i a bin index, peak_ref the reference's peak index, found per capture). That fit holds for
-measured data only: a simulator that draws its reference from the sensor model's own pulse needs no such mapping.
+for a return at zero range (i a bin index, peak_ref the reference's peak index, found per capture). The simulator
+draws its reference from the inverse of this mapping, so that a simulated capture read as measured gives the sensor
+model's pulse back.
 
 That mapping still rises too slowly: a pulse fitted freely to the real pyramid's histograms (the geometry held) puts
 0.8% of its area two bins before the peak, the mapped one 3.5%. So the kernel's bins before its peak are raised to

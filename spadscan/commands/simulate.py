@@ -7,7 +7,8 @@ The sensor circles TARGET at RADIUS metres on a Fibonacci spiral (like LCSPCData
 down to the horizon) or on elevation rings, always looking at TARGET; --jitter-deg turns each view by a random
 rotation about the sensor, like the dataset's `_random` captures. --table puts the object on a horizontal table
 (black by default), which real captures see in every histogram; the reconstruction then finds its height, as it does
-for a real capture.
+for a real capture. Views that would put the sensor inside the mesh or on or under the table top are refused (no
+sensor can stand there); views that see nothing of the mesh are warned about.
 
 Examples:
   spadscan simulate bunny.obj --out captures/bunny-sim --sensor lcspc-sim --views 256
@@ -182,7 +183,7 @@ def run(args) -> int:
     from spadscan.protocol.errors import SimulationError
     from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.protocol.sensor_presets import sensor_preset
-    from spadscan.protocol.simulator import SimSettings, simulate_capture
+    from spadscan.protocol.simulator import SimSettings, misplaced_views_note, simulate_capture
     from spadscan.signals import terminate_as_interrupt
 
     check_options(args)
@@ -194,6 +195,9 @@ def run(args) -> int:
     if floating:
         print(f"spadscan: warning: {floating}", file=sys.stderr)
     poses, schedule = make_poses(args)
+    misplaced = misplaced_views_note(poses, mesh, table)
+    if misplaced:
+        raise SimulationError(misplaced)
     sensor = sensor_preset(args.sensor)
     settings = SimSettings(power=args.power, ambient=args.ambient, cycles=args.cycles, albedo=args.albedo,
                            **({} if args.rays_per_zone is None else {"rays_per_zone": args.rays_per_zone}))

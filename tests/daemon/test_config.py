@@ -204,6 +204,7 @@ def test_a_ring_at_a_pole_is_refused_naming_the_file_and_key(tmp_path, capsys, k
 @pytest.mark.parametrize("rings, views, lo, hi", [
     (4, 8, 10.0, 90.0), (4, 8, -90.0, 30.0), (4, 8, -90.0, 90.0), (1, 8, 90.0, 90.0), (1, 8, -90.0, 90.0),
     (4, 8, 10.0, 89.9), (8, 8, 10.0, 90.0), (2, 8, 90.0 - 1e-12, 90.0), (3, 9, 0.0, 60.0),
+    (3, 9, 30.0, 30.0), (2, 8, 45.0, 45.0), (1, 8, 45.0, 45.0),
 ])
 def test_the_config_refuses_a_ring_at_a_pole_exactly_when_the_schedule_does(rings, views, lo, hi):
     """One rule: a request `daemon --check` passes never fails later when the plan is built, and the reverse."""
@@ -221,6 +222,21 @@ def test_the_config_refuses_a_ring_at_a_pole_exactly_when_the_schedule_does(ring
                                                             "min_elevation_deg": lo, "max_elevation_deg": hi}))
     by_schedule = refused(lambda: schedules.elevation_rings(rings, views // rings, 0.5, (0, 0, 0), lo, hi))
     assert by_config == by_schedule
+
+
+@pytest.mark.parametrize("keys, line", [
+    ("min_elevation_deg = 90\nmax_elevation_deg = 90", "min_elevation_deg 90 must be below max_elevation_deg 90"),
+    ("schedule = 'rings'\nrings = 2\nmin_elevation_deg = 30\nmax_elevation_deg = 30",
+     "min_elevation_deg 30 must be below max_elevation_deg 30 (degrees; equal only for one ring"),
+], ids=["spiral-at-the-top", "rings-in-no-band"])
+def test_a_schedule_that_repeats_one_pose_is_refused_by_the_check(tmp_path, capsys, keys, line):
+    """A spiral band of zero width at the zenith (one pose, views times) and several rings at one elevation: the
+    schedule functions refuse them, and `daemon --check` refuses them first, in one line naming the keys."""
+    path = write(tmp_path, SIM.replace("[scan]", "[scan]\n" + keys))
+    assert main(["daemon", "--config", str(path), "--check"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"spadscan: error: {path}: [scan] {line}") and err.count("\n") == 1, err
+    assert "Traceback" not in err
 
 
 def test_a_ring_of_one_view_may_stand_at_the_zenith(tmp_path):

@@ -297,3 +297,12 @@ def test_no_scene_is_scored_as_an_object_on_a_table_slab(name, meshes):
     from spadscan.worker.ground_truth import table_top_z
 
     assert table_top_z(meshes(name)) is None
+
+
+def test_the_pyramid_says_its_own_size_and_not_the_real_ones(meshes):
+    """It was described as "like the dataset's real scene", which is 0.16 m square and 0.22 m tall: a stand-in of
+    another shape. Its description gives its own base and height, and says it is smaller and lower."""
+    text = BUILTIN_SCENES["pyramid"]
+    assert text.startswith("a 0.15 m square, 0.15 m tall pyramid") and "smaller and lower" in text
+    assert "like the dataset's real scene" not in text
+    np.testing.assert_allclose(meshes("pyramid").extents, [0.15, 0.15, 0.15], atol=1e-9)

@@ -103,3 +103,33 @@ def test_jitter_turns_about_the_sensor_within_the_limit():
 def test_bad_schedules_raise(call):
     with pytest.raises(SimulationError):
         call()
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: schedules.fibonacci_hemisphere(16, 0.5, min_elevation_deg=90, max_elevation_deg=90),
+     "a spiral band of zero width at +90 deg elevation puts its 16 views at one viewpoint (straight above the "
+     "target)"),
+    (lambda: schedules.fibonacci_hemisphere(16, 0.5, min_elevation_deg=-90, max_elevation_deg=-90),
+     "a spiral band of zero width at -90 deg elevation puts its 16 views at one viewpoint (straight below"),
+    (lambda: schedules.elevation_rings(3, 8, 0.5, min_elevation_deg=30, max_elevation_deg=30),
+     "3 rings in a band of zero width (30 deg) all stand at one elevation, every other ring on the same poses"),
+    (lambda: schedules.elevation_rings(2, 8, 0.5, min_elevation_deg=45, max_elevation_deg=45),
+     "2 rings in a band of zero width (45 deg) all stand at one elevation; widen the band"),
+], ids=["spiral-top", "spiral-bottom", "three-rings", "two-rings"])
+def test_schedules_that_would_repeat_poses_are_one_line_errors(call, message):
+    """These gave 16 copies of one pose, or rings 0 and 2 on the same poses, without a word."""
+    with pytest.raises(SimulationError) as info:
+        call()
+    assert str(info.value).startswith(message) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("poses", [
+    schedules.fibonacci_hemisphere(1, 0.5, min_elevation_deg=90, max_elevation_deg=90),  # one view at the top
+    schedules.fibonacci_hemisphere(16, 0.5, min_elevation_deg=30, max_elevation_deg=30),  # a circle: golden angles
+    schedules.fibonacci_hemisphere(16, 0.5, min_elevation_deg=89.9, max_elevation_deg=90),
+    schedules.elevation_rings(1, 8, 0.5, min_elevation_deg=30, max_elevation_deg=30),  # one ring: min = max places it
+    schedules.elevation_rings(4, 8, 0.5, min_elevation_deg=10, max_elevation_deg=80),
+], ids=["one-at-the-top", "spiral-circle", "spiral-near-the-top", "one-ring", "rings"])
+def test_the_schedules_still_allowed_give_every_view_a_pose_of_its_own(poses):
+    distinct = np.unique(np.round(poses.reshape(len(poses), -1), 9), axis=0)
+    assert len(distinct) == len(poses)

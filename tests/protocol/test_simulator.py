@@ -416,7 +416,7 @@ def test_views_that_see_nothing_of_the_mesh_are_said(tmp_path, capsys):
                  "--target", "0", "0", "0.3", "--radius", "0.3"]) == 0
     line = next(x for x in capsys.readouterr().err.splitlines() if x.startswith("warning:"))
     blind = int(line.split()[1])
-    assert 0 < blind < 16 and line.startswith(f"warning: {blind} of 16 views see the mesh")
+    assert 0 < blind < 16 and line.startswith(f"warning: {blind} of 16 views see nothing of the mesh (")
     assert main(["simulate", "builtin:sphere", "--out", str(tmp_path / "c"), "--views", "6", "--no-progress"]) == 0
     assert "warning" not in capsys.readouterr().err
 

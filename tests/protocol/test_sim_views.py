@@ -1,0 +1,113 @@
+"""Which views a simulation can render: views that see nothing of the mesh (with and without a table), and sensors
+placed where no sensor can stand (inside the object, on or under the table top)."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from spadscan.cli import main
+from spadscan.protocol.scenes import builtin_scene
+from spadscan.protocol.schedules import look_at
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.sim_table import SimTable
+from spadscan.protocol.simulator import Simulator, blind_views_note, simulate_capture
+
+# 16 views around a point 0.8 m beside the built-in sphere: 14 of them look past it (and, with a table, at the table).
+ASIDE = ["builtin:sphere", "--sensor", "tmf8820", "--views", "16", "--target", "0.8", "0", "0", "--radius", "0.3",
+         "--no-progress"]
+
+
+def warnings_of(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith("warning:")]
+
+
+def test_the_blind_views_note_counts_the_views_that_see_nothing():
+    ball = trimesh.creation.icosphere(radius=0.05)
+    some = blind_views_note(np.array([0.0, 0.5, 5.0, 10.0]), ball)
+    assert some.startswith("warning: 2 of 4 views see nothing of the mesh (under 1 signal photon expected)")
+    assert blind_views_note(np.zeros(4), ball).startswith("warning: none of the 4 views see the mesh (")
+    assert blind_views_note(np.full(4, 3.0), ball) is None
+
+
+def test_a_table_does_not_hide_the_views_that_miss_the_mesh(tmp_path, capsys):
+    """The table's returns used to count as seeing the mesh: with --table the warning never came."""
+    assert main(["simulate", *ASIDE, "--out", str(tmp_path / "bare")]) == 0
+    bare = warnings_of(capsys.readouterr().err)
+    assert main(["simulate", *ASIDE, "--table", "--out", str(tmp_path / "table")]) == 0
+    on_table = warnings_of(capsys.readouterr().err)
+    assert len(bare) == 1 and bare[0].startswith("warning: 14 of 16 views see nothing of the mesh (")
+    assert on_table == bare
+
+
+def test_frames_keep_the_meshs_photons_apart_from_the_tables():
+    ball = builtin_scene("sphere")
+    sim = Simulator(ball, sensor_preset("tmf8820"), table=SimTable(0.0, 0.5))
+    at_ball = look_at([0.4, 0.0, 0.3], [0.0, 0.0, 0.1])
+    at_table = look_at([1.0, 0.0, 0.3], [1.0, 0.3, 0.0])  # looks down at the table, away from the ball
+    fr = sim.frames(np.stack([at_ball, at_table]))
+    assert fr.mesh_photons[0] > 1e3 and fr.signal_photons[0] > fr.mesh_photons[0]  # the table beside the ball
+    assert fr.mesh_photons[1] == 0 and fr.signal_photons[1] > 1e3
+    bare = Simulator(ball, sensor_preset("tmf8820")).frames(np.stack([at_ball, at_table]))
+    np.testing.assert_array_equal(bare.mesh_photons, bare.signal_photons)
+
+
+def test_a_sensor_inside_the_mesh_is_refused_naming_the_views(tmp_path, capsys):
+    """At 0.08 m from a point inside the 0.2 m sphere every view stood inside it, and rendered its inner wall."""
+    out = tmp_path / "inside"
+    assert main(["simulate", "builtin:sphere", "--out", str(out), "--views", "32", "--radius", "0.08",
+                 "--target", "0", "0", "0.1", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert err == ("spadscan: error: 32 of 32 views (0, 1, 2, 3, 4, 5, 6, 7, ...) put the sensor inside the mesh: no "
+                   "sensor can stand there; move the target or the radius (metres), or the elevations\n")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("band, line", [
+    (["--min-elevation", "0"], "8 of 32 views (0, 1, 2, 3, 4, 5, 6, 7) put the sensor on or under the table top "
+                               "(z = 0 m)"),
+    (["--min-elevation", "-40", "--max-elevation", "-10"], "32 of 32 views (0, 1, 2, 3, 4, 5, 6, 7, ...) put the "
+                                                           "sensor on or under the table top (z = 0 m)"),
+], ids=["ring-on-the-table", "all-under-it"])
+def test_a_sensor_on_or_under_the_table_top_is_refused(tmp_path, capsys, band, line):
+    """The lowest ring at 0 deg stood on the table top, where the table vanished from its histograms; 0.05 deg
+    higher the same table flooded them. Under the table, the views saw its underside alone."""
+    args = ["builtin:sphere", "--sensor", "tmf8820", "--schedule", "rings", "--rings", "4", "--views", "32", *band,
+            "--no-progress"]
+    assert main(["simulate", *args, "--table", "--out", str(tmp_path / "t")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"spadscan: error: {line}: no sensor can stand there") and err.count("\n") == 1, err
+    assert not (tmp_path / "t").exists()
+    if band == ["--min-elevation", "0"]:  # without a table the same ring stands beside the object: fine
+        assert main(["simulate", *args, "--out", str(tmp_path / "bare")]) == 0
+
+
+def test_the_library_renders_a_misplaced_view_but_says_so(tmp_path):
+    """A library caller may render such a view on purpose (a table seen from below): it is logged, not refused."""
+    from spadscan.protocol.simulator import misplaced_views_note
+
+    ball = builtin_scene("sphere")
+    poses = np.stack([look_at([0, 0, 0.1], [0.3, 0, 0.1]), look_at([0.5, 0, 0.1], [0, 0, 0.1]),
+                      look_at([0.5, 0, -0.2], [0, 0, 0.1])])
+    lines = []
+    simulate_capture(ball, sensor_preset("tmf8820"), poses, tmp_path / "c", progress=False, log=lines.append,
+                     table=SimTable(0.0))
+    assert lines[0] == ("warning: 1 of 3 views (0) put the sensor inside the mesh and 1 of 3 views (2) put the "
+                        "sensor on or under the table top (z = 0 m): no sensor can stand there; move the target or "
+                        "the radius (metres), or the elevations")
+    assert misplaced_views_note(poses[1:2], ball, SimTable(0.0)) is None
+    # an open mesh has no inside: nothing is said of it
+    closed = trimesh.creation.icosphere(radius=0.3)
+    assert misplaced_views_note(poses[:1], closed) is not None
+    assert misplaced_views_note(poses[:1], trimesh.Trimesh(closed.vertices, closed.faces[:-4])) is None
+
+
+def test_a_ray_from_the_table_top_into_it_meets_it_at_range_0():
+    table = SimTable(0.05, half_size_m=1.0)
+    origins = np.array([[0.1, 0.0, 0.05], [0.1, 0.0, 0.05], [0.1, 0.0, 0.25], [0.1, 0.0, -0.15]])
+    dirs = np.array([[0.0, 0.6, -0.8], [0.0, 0.6, 0.8], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    t, cos = table.hits(origins, dirs)
+    assert t[0] == 0.0 and cos[0] == pytest.approx(0.8)  # on the top, heading down into the slab
+    assert t[1] == np.inf  # on the top, heading up and away
+    assert t[2] == pytest.approx(0.2) and t[3] == pytest.approx(0.2)  # from above, and the underside from below
+    assert table.below_top(origins).tolist() == [True, True, False, True]
+    assert not table.below_top(np.array([[1.5, 0.0, -0.3]])).any()  # beside the table, lower than its top: fine
