@@ -12,7 +12,7 @@ import numpy as np
 from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, VERSION, Chunk, check_hists, check_poses,
                              chunk_index, one_line, read_json, read_npy)
 from .errors import CaptureError, SensorModelError
-from .plausibility import check_counts
+from .plausibility import check_counts, first_photon_cycles
 from .sensor_model import SensorModel
 
 
@@ -37,7 +37,8 @@ class CaptureData:
         above the sensor's counter, all zero, all equal: see plausibility.py); when only some are, or some bins are
         clipped, return a one-line warning (also passed to `warn` as 'warning: ...'), else None. For the readers
         that fit the counts (reconstruction, baselines); reading a capture does not check them."""
-        note = check_counts(self.hists, self.sensor.max_count, self.sensor.ignore_bins, str(where))
+        note = check_counts(self.hists, self.sensor.max_count, self.sensor.ignore_bins, str(where),
+                            first_photon_cycles(self.sensor))
         if note and warn is not None:
             warn(f"warning: {note}")
         return note

@@ -32,7 +32,10 @@ from scipy.special import gammaln, xlogy
 STILL_FALLING = 0.01
 """Relative drop of the windowed data term over the last fifth of a run above which it was still improving."""
 OVERRUN_SHARE = 0.1
-"""Share of its time budget beyond which a run that overran says so."""
+OVERRUN_FLOOR_S = 10.0
+"""A run that overran its time budget says so beyond the tolerance `--budget-s` promises: OVERRUN_SHARE of the
+budget or OVERRUN_FLOOR_S seconds, whichever is larger (the start and the end of a run take seconds however short
+its budget)."""
 STARVED_SHARE = 0.5
 """CPU cores' worth a CPU run's process must have had on average (CPU seconds / wall seconds): below it, warn."""
 REAL_SENSOR_MISFIT = 0.3
@@ -267,14 +270,20 @@ def cpu_share(facts: RunFacts) -> float | None:
     return facts.cpu_seconds / facts.wall_seconds
 
 
+def overrun_tolerance_s(budget_s: float) -> float:
+    """Seconds a run may take beyond its time budget before it says so (`--budget-s`: within 10 % or 10 s)."""
+    return max(OVERRUN_SHARE * budget_s, OVERRUN_FLOOR_S)
+
+
 def overrun_warning(facts: RunFacts) -> str | None:
-    """The line saying that the run took over OVERRUN_SHARE more than its time budget, or None. Training stops
-    within its share of the budget, so what overran is the start (the interpreter, the imports, the set-up) or the
-    end (the mesh, the pictures, the metrics), which the budget estimates from the machine as it was at the start: on
-    a machine that other work slowed down later, they take longer."""
-    if facts.budget_s is None or facts.elapsed_s is None or facts.elapsed_s <= (1 + OVERRUN_SHARE) * facts.budget_s:
+    """The line saying that the run took longer than its time budget and its tolerance (overrun_tolerance_s), or
+    None. Training stops within its share of the budget, so what overran is the start (the interpreter, the imports,
+    the set-up) or the end (the mesh, the pictures, the metrics), which the budget estimates from the machine as it
+    was at the start: on a machine that other work slowed down later, they take longer."""
+    if (facts.budget_s is None or facts.elapsed_s is None
+            or facts.elapsed_s <= facts.budget_s + overrun_tolerance_s(facts.budget_s)):
         return None
-    took = f"the run took {facts.elapsed_s:.0f} s of a {facts.budget_s:g} s time budget"
+    took = f"the run took {facts.elapsed_s:.1f} s of a {facts.budget_s:g} s time budget"
     over_training = (0.0 if facts.training_s is None or facts.training_budget_s is None
                      else facts.training_s - facts.training_budget_s)
     if over_training > 0.5 * (facts.elapsed_s - facts.budget_s):
@@ -376,6 +385,7 @@ def warnings(facts: RunFacts) -> list[str]:
 
 __all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error", "converged",
            "cpu_share", "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT",
-           "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
+           "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
+           "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
            "MISFIT_Z", "MISFIT_RELATIVE", "MISFIT_MIN_HISTOGRAMS",
            "noise_moments", "misfit_histograms"]

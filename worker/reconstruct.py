@@ -317,7 +317,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                         "end_estimate_s": end_s, "timed": costs.probed, "notes": notes,
                         "stages": stages}
     for line in report["warnings"]:
-        log(f"warning: {line}")
+        if line != run.counts_note:  # said already, when the capture was loaded
+            log(f"warning: {line}")
     ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
     written = files_written_after(out, before) | {"report.json", "report.html"}
     report["files"] = sorted(written)

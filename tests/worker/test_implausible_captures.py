@@ -15,6 +15,7 @@ from spadscan.cli import main as cli_main
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_reader import check_capture_counts
 from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
@@ -179,3 +180,65 @@ def test_a_dropped_frame_carves_as_if_it_were_not_there(tmp_path):
     without = carve_hull(counts[keep], poses[keep], sensor, **box).occupancy
     assert with_dropped.sum() > 0
     np.testing.assert_array_equal(with_dropped, without)
+
+
+def test_a_histogram_with_more_counts_than_its_cycles_is_left_out_of_the_fit(tmp_path):
+    """One bin of one histogram raised to 50,000 in a 5,000-cycle capture: a first-photon sensor counts at most one a
+    cycle, so no sensor produced it. Fitted, it pulled the albedo down and 11 of the 24 histograms misfit; it is left
+    out as an all-zero one is (no valid bin, not a usable histogram), and the others are kept as they were."""
+    poses = fibonacci_hemisphere(8, 0.5, target=(0, 0, 0.1), min_elevation_deg=0)
+    cap = simulate_capture(builtin_scene("sphere"), sensor_preset("lcspc-sim"), poses, tmp_path / "cap",
+                           settings=SimSettings(rays_per_zone=64), progress=False)
+    before = load_scene(cap)
+    assert before.usable.all()
+    hists = cap / "chunk-000000" / "hists.npy"
+    counts = np.load(hists)
+    assert counts.sum(axis=-1).max() < 5000
+    counts[5, 0, 500] = 50_000
+    np.save(hists, counts)
+    scene = load_scene(cap)
+    assert scene.usable[:, 0].tolist() == [True] * 5 + [False] + [True] * 2
+    assert not scene.valid[5].any()
+    torch.testing.assert_close(scene.valid[[0, 1, 2, 3, 4, 6, 7]], before.valid[[0, 1, 2, 3, 4, 6, 7]])
+
+
+def test_reconstruct_refuses_a_capture_whose_every_histogram_holds_more_counts_than_its_cycles(tmp_path, capsys):
+    """Every histogram over what a first-photon sensor's cycles allow: nothing is left to fit, and the run says why
+    in one line (not that carving found no return)."""
+    counts = np.random.default_rng(0).poisson(2.0, (8, 1, 1024)).astype(np.uint32)
+    counts[:, 0, 300] = 50_000
+    cap = capture(tmp_path / "cap", counts)
+    with pytest.raises(CaptureError, match="all 8 histograms hold more counts than 1.5 x their 5,000 laser cycles"):
+        load_scene(cap)
+    assert cli_main(["reconstruct", str(cap), "--out", str(tmp_path / "out"), "--steps", "1", "--no-progress"]) != 0
+    err = one_line_error(capsys)
+    assert "no sensor could have produced these counts" in err and "5,000 laser cycles" in err, err
+    assert not (tmp_path / "out" / "mesh.ply").exists()
+
+
+def test_the_counts_warning_names_the_histograms_over_their_cycles(tmp_path):
+    """The warning a run prints and the worker's job keeps names the histograms the fit leaves out for holding more
+    counts than their cycles allow (the fit and the baselines leave them out alike)."""
+    counts = np.random.default_rng(0).poisson(2.0, (8, 1, 1024)).astype(np.uint32)
+    counts[5, 0, 300] = 50_000
+    cap = capture(tmp_path / "cap", counts)
+    assert check_capture_counts(cap) == (f"{cap}: 1 of 8 histograms no sensor could have produced (1 with more "
+                                         "counts than 1.5 x their 5,000 laser cycles), left out")
+
+
+def test_reconstruct_prints_a_counts_warning_once(tmp_path, capsys):
+    """The warning is printed when the capture is loaded; the end of run's warnings, which report.json keeps, do not
+    print it again."""
+    poses = fibonacci_hemisphere(8, 0.5, target=(0, 0, 0.1), min_elevation_deg=0)
+    cap = simulate_capture(builtin_scene("sphere"), sensor_preset("lcspc-sim"), poses, tmp_path / "cap",
+                           settings=SimSettings(rays_per_zone=64), progress=False)
+    hists = cap / "chunk-000000" / "hists.npy"
+    counts = np.load(hists)
+    counts[[1, 6]] = 0
+    np.save(hists, counts)
+    out = tmp_path / "out"
+    assert cli_main(["reconstruct", str(cap), "--out", str(out), "--steps", "5", "--threads", "1", "--no-gt",
+                     "--no-progress"]) == 0
+    said = "2 of 8 histograms no sensor could have produced (2 all zero), left out"
+    assert capsys.readouterr().err.count(said) == 1
+    assert sum(said in line for line in json.loads((out / "report.json").read_text())["warnings"]) == 1

@@ -198,6 +198,9 @@ class TransientForward(torch.nn.Module):
             else:
                 logp = _log_hit(lam) - _before(lam)
             terms = torch.where(valid, torch.xlogy(c, c / n) - c * logp, torch.zeros_like(c))
+            # More counts than cycles: scene_data leaves out the histograms over CYCLES_MARGIN x their cycles
+            # (protocol.plausibility); one below that (where a model's cycles are an estimate, as the TMF8820's)
+            # reads as "no cycle without a photon".
             miss_c = (n[..., 0] - c.sum(-1)).clamp_min(0.0)
             log_miss = -lam.sum(-1, dtype=torch.float64).to(lam.dtype)
             miss = torch.xlogy(miss_c, miss_c / n[..., 0]) - miss_c * log_miss

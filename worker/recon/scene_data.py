@@ -2,7 +2,9 @@
 
 Frames recorded at one pose (same `pose_index`) are summed into one histogram per zone (their cycles add up), since
 the sensor did not move between them. Bins listed in the sensor model's `ignore_bins`, and bins where any frame hit
-the counter's ceiling (`max_count`), are masked out of every loss.
+the counter's ceiling (`max_count`), are masked out of every loss, as is every bin of a histogram no sensor could
+have produced in any of its frames (`protocol.plausibility`: all zero, saturated, more counts than a first-photon
+sensor's cycles allow, ...).
 
 The manifest's `scene` dict may say (all optional, metres):
 - `"center": [x, y, z]`, `"radius": r` — a sphere that holds the object (else found from the views' first returns,
@@ -25,7 +27,7 @@ import torch
 
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError
-from spadscan.protocol.plausibility import implausible
+from spadscan.protocol.plausibility import first_photon_cycles, implausible, survey_counts
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..capture_kind import is_measured
@@ -120,7 +122,9 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     saturated = views.in_any_frame(data.hists >= sensor.max_count)
     # A histogram no sensor could have produced in any of a pose's frames (all zero: a dropped frame) says nothing
     # of its zone: left out of the fit and of carving, where it would prove the zone's whole field of view empty.
-    broken = views.in_any_frame(implausible(data.hists, sensor.max_count, sensor.ignore_bins))
+    # One with more counts than a first-photon sensor's cycles allow (a corrupt bin) would pull the fitted albedo
+    # and spoil the fit of every other histogram.
+    broken = views.in_any_frame(_implausible(data.hists, sensor, capture))
     poses = data.poses[views.first]
     valid = ~saturated & ~broken[..., None]
     if sensor.ignore_bins:
@@ -146,6 +150,16 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
         usable=torch.as_tensor(~broken, device=device),
         state=str(data.manifest["state"]),
     )
+
+
+def _implausible(hists: np.ndarray, sensor: SensorModel, capture: Path) -> np.ndarray:
+    """The mask (N, Z) of the histograms no sensor could have produced (protocol.plausibility, the first-photon
+    cycles bound included); a CaptureError, in one line, when that is all of them: nothing would be left to fit."""
+    bounds = (sensor.max_count, sensor.ignore_bins, first_photon_cycles(sensor))
+    reason = survey_counts(hists, *bounds).refusal(str(capture))
+    if reason is not None:
+        raise CaptureError(reason)
+    return implausible(hists, *bounds)
 
 
 def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) -> np.ndarray:

@@ -26,7 +26,8 @@ class PlateauConfig(PartConfig):
     """How long and by how much the data term must stop improving."""
 
     patience_steps: int = 600
-    """Steps without a window mean (windows of patience / 6 steps) that beat the best by `min_rel_improvement`."""
+    """Steps without a window mean (windows of max(10, patience / 6) steps) that beat the best by
+    `min_rel_improvement`."""
     min_rel_improvement: float = 0.001
     """Relative improvement of the windowed data term that counts as progress."""
 
@@ -46,6 +47,8 @@ class Plateau:
             raise ConfigError(f"plateau test needs parts.plateau.patience_steps >= 1 and a finite "
                               f"parts.plateau.min_rel_improvement >= 0, got {patience} and {min_rel_improvement}")
         self.patience, self.min_rel = int(patience), float(min_rel_improvement)
+        # At least 10 steps, so that a window averages out the per-step scatter (each step renders a few random
+        # views) even for the small patience a short run is given.
         self.window = int(window) if window else max(10, self.patience // 6)
         self.best = math.inf
         self.since_best = 0
