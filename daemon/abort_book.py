@@ -50,8 +50,8 @@ class AbortBook:
             await self._keep(name, path, reason, error)
 
     async def retry(self) -> None:
-        """Write again each abort its capture could not record yet; one still without abort-pending.json tries that
-        file again too."""
+        """Write again each abort its capture could not record yet; abort-pending.json is tried again too (made, or
+        given the record it lacks)."""
         for name, held in list(self.unrecorded.items()):
             error = await self._io(_write_abort, held["path"], held["reason"], None)
             if error is None:
@@ -59,8 +59,9 @@ class AbortBook:
                 continue
             was = (held["error"], held["marker"])
             held["error"] = error
-            if not held["marker"]:
-                held["marker"] = await self._io(note_abort_pending, held["path"], held["reason"])
+            # Again even when the file is there: one made empty on a full disk gets its record once there is room
+            # for it (the reason then survives a restart in the file itself).
+            held["marker"] = await self._io(note_abort_pending, held["path"], held["reason"])
             if (held["error"], held["marker"]) != was:
                 self._said_again(name, held)
 
@@ -76,6 +77,10 @@ class AbortBook:
             log.error("scan %s: the daemon stops with the scan's abort not recorded: %s", name,
                       _unrecorded_note(held, self._auto_resume, stopping=True))
 
+    def said(self, name: str) -> str:
+        """Where the unrecorded abort of scan `name` stands, in one line (as last_error tells it)."""
+        return self._said(name, self.unrecorded[name])
+
     def status(self) -> dict:
         """What `status` shows of each abort not recorded yet."""
         return {name: {"reason": held["reason"], "error": held["error"], "kept_on_disk": held["marker"]}
@@ -84,8 +89,7 @@ class AbortBook:
     async def _keep(self, name: str, path: Path, reason: str, error: str) -> None:
         held = self.unrecorded.setdefault(name, {"path": path, "reason": reason, "marker": False})
         held["error"] = error
-        if not held["marker"]:
-            held["marker"] = await self._io(note_abort_pending, path, reason)
+        held["marker"] = await self._io(note_abort_pending, path, reason)
         held["said"] = self._said(name, held)
         self._replace(None, held["said"])
         log.warning("%s", held["said"])

@@ -159,8 +159,9 @@ class HandEyeFit:
     rms_start_mm: float
     rms_mm: float
     returns: int
-    """Zone returns the fit used."""
+    """Zone returns the fit used: one per frame and zone (each frame of a view is fitted on its own)."""
     views: int
+    """Poses the capture was taken at (distinct pose indices)."""
     zero_bin_shift: float = 0.0
     """Bins added to the sensor model's zero bin (0 unless fitted)."""
     iterations: int = 0
@@ -180,6 +181,8 @@ class HandEyeFit:
     """The target's kind ('plane' or 'sphere'): beside a sphere, zones that see something else are expected."""
     turn_deg: float = 0.0
     """Which of TURNS_DEG about the sensor's boresight the fit went on from (0: the start as given)."""
+    frames: int = 0
+    """Measurements fitted: frames_per_pose of them at each view (0: one a view)."""
 
     @property
     def uncertain(self) -> bool:
@@ -440,9 +443,9 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
     r_start = observed[shown] - predict(x0, np.zeros(n_params))[shown]
     both = fitted & np.isfinite(r_start)
     fit = HandEyeFit(_compose(x, params), x0, _rms_mm(r_start[both], model), _rms_mm(r[fitted], model),
-                     int(fitted.sum()), len(tcp), float(params[6]) if fit_zero_bin else 0.0, done,
-                     lost=int((~fitted).sum()), lost_start=int((fitted & ~both).sum()),
-                     bin_width_mm=model.bin_width_m * 1e3, kind=target.kind, turn_deg=turn)
+                     int(fitted.sum()), len(np.unique(data.pose_indices)), float(params[6]) if fit_zero_bin else 0.0,
+                     done, lost=int((~fitted).sum()), lost_start=int((fitted & ~both).sum()),
+                     bin_width_mm=model.bin_width_m * 1e3, kind=target.kind, turn_deg=turn, frames=len(tcp))
     jac = _flange_rotation(_jacobian(residual, params, r, steps), x, params)
     _check_determined(jac, reader.path)
     scatter = float(np.sqrt(np.mean(r[fitted] ** 2))) if fitted.any() else 0.0

@@ -26,7 +26,8 @@ is never undone by a restart: the reply says it is not recorded yet, `abort-pend
 where an empty file still fits (no daemon takes such a scan over), and the daemon writes it again every
 ABORT_RETRY_S, at each control request and at shutdown (`abort_book.py`). A scan found interrupted that cannot be taken over (a chunk
 torn by a power cut) is named in `status` with what to do: `ctl resume NAME` tries the takeover again (after its
-damaged chunk is moved out of the folder), `ctl abort NAME` ends it as aborted, every chunk kept; it stays named
+damaged chunk is moved out of the folder: the poses it held are taken again first, `_retake`), `ctl abort NAME` ends
+it as aborted, every chunk kept; `ctl wait NAME` says which of these it waits for; it stays named
 until that scan itself is taken over or aborted. The two are done one at a time (the later one is refused, to be
 tried again), so an acknowledged abort is never undone by a takeover, nor by a shutdown (SIGTERM) while `ctl abort`
 waits for the arm to stop: the scan's wind-down runs to its end whoever is cancelled.
@@ -218,8 +219,11 @@ class ScanRunner:
             return False
         self._forget_stuck(path.name)
         self.job = job
+        owed = _owed(job)
         job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
-                                               f"`spadscan ctl resume` continues")
+                                               f"`spadscan ctl resume` continues" +
+                                               (f", taking pose(s) {owed} again first (missing from the capture)"
+                                                if owed else ""))
         if reopen_error and not job.blocked:
             job.reason = self.last_error = (f"interrupted at pose {self._progress()} (daemon restarted), and "
                                             f"{reopen_error}; make room, then `spadscan ctl resume`")
@@ -389,9 +393,30 @@ class ScanRunner:
                 state = (await asyncio.to_thread(read_json, m)).get("state") if m.is_file() else None
                 if state in ("complete", "aborted"):
                     return {"name": name, "state": state}
-                raise ConfigError(f"no scan named {name!r} is running or finished in {self.root}")
+                raise ConfigError(await self._not_held(name, state))
             changed = self._changed
             await changed.wait()
+
+    async def _not_held(self, name: str, state: str | None) -> str:
+        """Why `wait NAME` cannot wait for scan `name`, which this daemon does not hold and whose capture has not
+        ended: it does not exist, its abort is not recorded yet, or it is interrupted (not taken over, or could not
+        be), with the ways out."""
+        if state is None:
+            return f"no scan named {name!r} is running or finished in {self.root}"
+        if name in self.aborts.unrecorded:
+            return self.aborts.said(name)
+        if await asyncio.to_thread(abort_pending, self.root / name) is not None:
+            return (f"scan {name!r} is aborted, but its {MANIFEST} does not say so yet ({ABORT_PENDING} keeps it: no "
+                    f"daemon takes it over, and the next one records it)")
+        held = f"scan {name!r} is interrupted and not held by this daemon, so it neither ends nor goes on by itself"
+        if self.stuck is not None and self.stuck["scan"] == name:
+            return f"{held}: {self.stuck['error']}"
+        try:
+            await asyncio.to_thread(interrupted_scan, self.root, name)
+        except ConfigError as exc:  # not the daemon's (another tool's capture left 'running')
+            return f"not waiting for scan {name!r}: {exc}"
+        return (f"{held}: `spadscan ctl resume {name}` takes it over and continues it; or `spadscan ctl abort "
+                f"{name}` ends it as aborted, keeping every chunk")
 
     async def shutdown(self) -> None:
         """Stop the scan in flight (leaving its capture 'running', resumable) and the writer thread."""
@@ -411,6 +436,8 @@ class ScanRunner:
                        elapsed_s=round(time.monotonic() - job.started, 3), schedule=job.scan.schedule)
             if job.chooser is not None:
                 out["views_chosen"] = dict(sorted(job.view_counts.items()))
+            if job.writer is not None and job.writer.retakes:
+                out["poses_to_take_again"] = [r.pose for r in job.writer.retakes]
             if self.state == "pausing":
                 out["pausing_at"] = self._pause_at()
         if self.finished:
@@ -461,6 +488,7 @@ class ScanRunner:
                     continue
                 try:
                     await self._ready_arm(job)
+                    await self._retake(job)
                     await self._poses(job)
                     if job.ended_early is not None:
                         await self._io(_end_early, job)
@@ -580,6 +608,68 @@ class ScanRunner:
             finally:
                 job.in_flight = None
 
+    async def _retake(self, job: ScanJob) -> None:
+        """Take again what the capture lacks before its first unpublished pose (`CaptureWriter.retakes`: a damaged
+        chunk the operator moved out) before the scan goes on. Moves are straight lines (moveL), and one from the
+        scan's end back to an early pose would cross the object: so the arm goes to the published pose nearest to it,
+        back along the scan's own path to the first pose owed, and forward along it again to the last published
+        pose, capturing each owed pose's missing frames as it first passes it (published under the chunk numbers
+        that keep the capture in pose order). Nothing overlaps: it is rare, and a pause or a fault finds nothing in
+        flight; the next run starts the way again from where the arm then is."""
+        owed = {r.pose: r for r in job.writer.retakes}
+        if not owed or self._pause_requested:
+            return
+        last = job.next_pose - 1
+        now = np.asarray((await self._arm_state()).tcp_pose, dtype=np.float64)
+        start = int(np.argmin(np.linalg.norm(job.tcp_poses[:last + 1, :3, 3] - now[:3, 3], axis=1)))
+        low = min(owed)
+        way = list(range(start, low, -1)) + list(range(low, last + 1)) if start > low else \
+            list(range(start, last + 1))
+        log.info("scan %s: taking pose(s) %s again (missing from the capture), by way of poses %s", job.name,
+                 ", ".join(map(str, sorted(owed))), f"{start}..{low}..{last}" if start > low else f"{start}..{last}")
+        if not job.controller_checked:  # the way back passes poses before `start`: the controller is asked from there
+            first = min(start, low)
+            await self.arm.check_poses(job.tcp_poses[first:], first_index=first)
+            job.controller_checked = True
+        await self._check_first_move(job, start)
+        for i in way:
+            self._check_end()
+            if self._pause_requested:
+                return
+            retake = owed.pop(i, None)
+            if retake is None:
+                await self._move(job, i)
+                continue
+            job.in_flight = i
+            try:
+                await self._retake_pose(job, retake)
+            finally:
+                job.in_flight = None
+
+    async def _retake_pose(self, job: ScanJob, retake) -> None:
+        """Move to pose `retake.pose`, capture its missing frames and publish them (see `_retake`)."""
+        i = retake.pose
+        t_stop = await self._move(job, i)
+        if job.scan.settle_s > 0:
+            await asyncio.sleep(job.scan.settle_s)
+        await self.sensor.begin_exposure()
+        frames = await self._frames(job, i, t_stop + job.scan.settle_s, len(retake.frames))
+        arm = await self._arm_state()
+        self._check_end()
+        stop = stop_name(arm)
+        if stop is not None:
+            raise ArmFault(f"{stop} on {self.arm.name} while capturing pose {i}; {clear_advice(stop)}")
+        whole = len(retake.frames) == job.scan.frames_per_pose
+        choice = None if job.chooser is None else {
+            "why": "retaken", "detail": "taken again after its chunk was moved out of the capture (damaged)"}
+        measurements = _measurements(job, i, frames, arm, choice, numbers=retake.frames)
+        await self._landed(asyncio.ensure_future(self._io(job.writer.publish_retake, retake, measurements)), i)
+        job.record_progress(job.writer)
+        if choice is not None and whole:  # a pose some of whose frames stayed is counted by why it was first taken
+            job.view_counts["retaken"] += 1
+        log.info("scan %s: pose %d taken again (%d frame(s))", job.name, i, len(frames))
+        self._notify()
+
     async def _choose(self, job: ScanJob, i: int, ahead: asyncio.Future | None = None) -> asyncio.Future | None:
         """Choose pose i of an adaptive scan (`adaptive.ViewChooser`; `ahead`: that choice, begun while the pose
         before was captured, so that reading next_views.json costs the scan no time); returns the rewrite of
@@ -669,8 +759,9 @@ class ScanRunner:
             raise ArmFault(f"{self.arm.name}: move to pose {i} did not finish within {timeout:g} s") from None
         return time.monotonic()
 
-    async def _frames(self, job: ScanJob, i: int, ready_t: float) -> list[Frame]:
-        """K frames that began at or after ready_t; earlier ones (exposed while moving or settling) are dropped.
+    async def _frames(self, job: ScanJob, i: int, ready_t: float, count: int | None = None) -> list[Frame]:
+        """K frames (`count`, else frames_per_pose) that began at or after ready_t; earlier ones (exposed while moving
+        or settling) are dropped.
         A wait the daemon itself slept through (stopped, suspended: `stall.py`) is begun again, not blamed on the
         sensor."""
         timeout = self.cfg.sensor.frame_timeout_s
@@ -679,7 +770,7 @@ class ScanRunner:
         since = time.monotonic()
         deadline, dropped = since + timeout, job.dropped
         last_arrival = since  # when the sensor last delivered a frame, dropped or kept
-        while len(frames) < job.scan.frames_per_pose:
+        while len(frames) < (job.scan.frames_per_pose if count is None else count):
             left = deadline - time.monotonic()
             if left <= 0:
                 if self._slept_through(job, i, since):
@@ -883,9 +974,11 @@ class ScanRunner:
         return await asyncio.to_thread(fn, *args)
 
 
-def _measurements(job: ScanJob, i: int, frames: list[Frame], arm, choice: dict | None = None) -> list[Measurement]:
+def _measurements(job: ScanJob, i: int, frames: list[Frame], arm, choice: dict | None = None,
+                  numbers: tuple[int, ...] | None = None) -> list[Measurement]:
     """One measurement per frame at the arm's actual pose (raw counts, never summed); `choice`: why an adaptive scan
-    took the pose (its `view_choice`)."""
+    took the pose (its `view_choice`); `numbers`: the frames' numbers at the pose (default 0, 1, ...: a retake's are
+    the ones missing)."""
     tcp = np.asarray(arm.tcp_pose, dtype=np.float64)
     sensor_pose = sensor_from_tcp(tcp, job.hand_eye)
     common = {"tcp_pose": tcp.tolist(), "joints": np.asarray(arm.joints, float).tolist(),
@@ -898,7 +991,7 @@ def _measurements(job: ScanJob, i: int, frames: list[Frame], arm, choice: dict |
             meta["extra"] = f.extra
         if choice is not None:
             meta["view_choice"] = choice
-        out.append(Measurement(f.hists, sensor_pose, i, k, f.reference, meta))
+        out.append(Measurement(f.hists, sensor_pose, i, k if numbers is None else numbers[k], f.reference, meta))
     return out
 
 
@@ -906,12 +999,20 @@ def _check_left(job: ScanJob, arm) -> None:
     """Check the poses a scan has left against the workspace: as a path for a planned scan; pose by pose for an
     adaptive one, whose moves are checked as each pose is chosen (the row being taken when it stopped may be a
     ranked view that the rest of the plan was never meant to follow)."""
-    left, where = job.tcp_poses[job.next_pose:], f"scan {job.name!r}"
+    retakes = job.writer.retakes if job.writer is not None else []
+    first = min([job.next_pose, *(r.pose for r in retakes)])  # poses owed again are reached back along the path
+    left, where = job.tcp_poses[first:], f"scan {job.name!r}"
     if job.scan.schedule != "adaptive":
-        check_workspace(left, arm, where, first=job.next_pose)
+        check_workspace(left, arm, where, first=first)
         return
     for k, tcp in enumerate(left):
-        check_workspace(tcp[None], arm, f"{where} pose {job.next_pose + k}")
+        check_workspace(tcp[None], arm, f"{where} pose {first + k}")
+
+
+def _owed(job: ScanJob) -> str:
+    """The poses the capture lacks before its first unpublished one (to be taken again), said; '' when none."""
+    retakes = job.writer.retakes if job.writer is not None else []
+    return ", ".join(str(r.pose) for r in retakes)
 
 
 def _finish_capture(job: ScanJob) -> None:

@@ -6,8 +6,10 @@ published. The daemon marks the scans it writes (`rig.writer` = WRITER in the ma
 another tool's interrupted capture under the captures root (say `spadscan simulate --out <captures>/x`) is never driven.
 
 An abort the manifest could not take (a full disk) is kept in the scan folder's `abort-pending.json` (ABORT_PENDING)
-where it can be: an empty file needs no data block on a full disk. A scan holding one is never taken over; the next
-daemon records the abort in `scan.json` and removes the file.
+where it can be: an empty file needs no data block on a full disk. Its reason goes into the file where there is room
+for it (at once, or on a later try), and meanwhile into the name of an empty file beside it (ABORT_REASON_PREFIX: a
+name needs no data block either), so that a daemon restarted before room comes back still records the operator's
+reason. A scan holding one is never taken over; the next daemon records the abort in `scan.json` and removes both.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import time
 from collections import Counter, deque
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from urllib.parse import quote, unquote
 
 import numpy as np
 
@@ -40,6 +43,11 @@ WRITER = "spadscan-daemon"
 ABORT_PENDING = "abort-pending.json"
 """In a scan folder: the scan was aborted, but its scan.json could not record it yet ({"reason", "since_utc"}, or
 empty when the disk had no room for even that)."""
+ABORT_REASON_PREFIX = "abort-pending.reason="
+"""In a scan folder beside an ABORT_PENDING file whose record did not fit: an empty file named this plus the abort's
+reason, percent-encoded (cut to REASON_NAME_MAX characters, ending in '...')."""
+REASON_NAME_MAX = 200  # characters of encoded reason in that name: with the prefix, well under a name's 255 bytes
+_REASON_SAFE = " ,;:()'!@+="  # kept as they are in that name (letters, digits and _.-~ always are)
 DEFAULT_ABORT_REASON = "aborted by user"
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,99}")
 
@@ -127,8 +135,8 @@ class ScanJob:
         """view_counts read from the published measurements' meta (after a restart)."""
         self.view_counts = Counter()
         reader = CaptureReader(self.path)
+        seen = set()  # each pose once, whichever chunks hold its frames (a pose taken again in part is in two)
         for name in reader.chunk_names():
-            seen = set()
             for m in read_json(self.path / name / "meta.json").get("measurements", []):
                 choice = m.get("view_choice") if isinstance(m, dict) else None
                 if isinstance(choice, dict) and m.get("pose_index") not in seen:
@@ -183,53 +191,93 @@ def find_interrupted(root: Path) -> Path | None:
 def note_abort_pending(path: Path, reason: str) -> bool:
     """Keep an abort that scan.json could not take in the scan folder's ABORT_PENDING file: created empty first (on
     a full disk an empty file still fits: it needs no data block), then its record written where there is room. A
-    record that did not fit whole is cut back to empty, which still says 'aborted'. Returns whether the file is
-    there (False on a read-only disk). The scan's writer must not be writing meanwhile."""
+    record that did not fit whole is cut back to empty, which still says 'aborted', and the reason goes into the name
+    of an empty file beside it (ABORT_REASON_PREFIX). Called again (each retry), it writes the record into a file
+    that lacks one; a file holding its record is never rewritten. Returns whether the file is there (False on a
+    read-only disk). The scan's writer must not be writing meanwhile."""
     marker = Path(path) / ABORT_PENDING
-    if marker.is_file():  # kept already (an earlier daemon's): rewriting it on a full disk could only lose its reason
+    if _recorded_reason(marker) is not None:  # kept whole already (maybe an earlier daemon's): nothing to add
         return True
     record = json.dumps({"reason": reason, "since_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(
         timespec="milliseconds")}).encode()
     try:
-        fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    except OSError:
-        return False
+        fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)  # it held no record: nothing is lost
+    except OSError:  # a read-only disk: an empty file made before it turned read-only still keeps the abort
+        return marker.is_file()
     try:
-        try:
-            whole = os.write(fd, record) == len(record)
-        except OSError:
-            whole = False
+        whole = _write_whole(fd, record)
         with contextlib.suppress(OSError):
             if not whole:
                 os.ftruncate(fd, 0)
             os.fsync(fd)
     finally:
         os.close(fd)
+    if not whole:
+        _name_reason(Path(path), reason)
     with contextlib.suppress(OSError):
         fsync_dir(Path(path))
     return True
 
 
-def abort_pending(path: Path) -> str | None:
-    """The reason of the abort kept in the scan folder's ABORT_PENDING file; None when there is no such file."""
-    marker = Path(path) / ABORT_PENDING
+def _write_whole(fd: int, data: bytes) -> bool:
+    """Write `data` at the start of the open file `fd`; whether all of it was written (a full disk writes part)."""
     try:
-        text = marker.read_text(encoding="utf-8")
-    except FileNotFoundError:
+        return os.write(fd, data) == len(data)
+    except OSError:
+        return False
+
+
+def _recorded_reason(marker: Path) -> str | None:
+    """The reason an ABORT_PENDING file's record holds; None when it holds none (empty, cut, unreadable, absent)."""
+    try:
+        reason = json.loads(marker.read_text(encoding="utf-8")).get("reason")
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
         return None
-    except (OSError, UnicodeDecodeError):
-        return DEFAULT_ABORT_REASON
-    try:
-        reason = json.loads(text).get("reason")
-    except (ValueError, AttributeError):  # empty: the disk had no room for the record
-        reason = None
-    return reason if isinstance(reason, str) and reason else DEFAULT_ABORT_REASON
+    return reason if isinstance(reason, str) and reason else None
+
+
+def _name_reason(path: Path, reason: str) -> None:
+    """Keep `reason` in the name of an empty file in the scan folder (best effort: a name needs no data block, but
+    a directory with no room left for one more name refuses it)."""
+    encoded = quote(reason, safe=_REASON_SAFE)
+    if len(encoded) > REASON_NAME_MAX:
+        cut, room = [], REASON_NAME_MAX - 3
+        for ch in reason:
+            q = quote(ch, safe=_REASON_SAFE)
+            if len(q) > room:
+                break
+            cut.append(q)
+            room -= len(q)
+        encoded = "".join(cut) + "..."
+    with contextlib.suppress(OSError):
+        os.close(os.open(path / (ABORT_REASON_PREFIX + encoded), os.O_WRONLY | os.O_CREAT, 0o644))
+
+
+def _named_reason(path: Path) -> str | None:
+    """The reason kept in the name of an empty file beside ABORT_PENDING (see `_name_reason`), or None."""
+    with contextlib.suppress(OSError):
+        for p in sorted(Path(path).iterdir()):
+            if p.name.startswith(ABORT_REASON_PREFIX) and len(p.name) > len(ABORT_REASON_PREFIX):
+                return unquote(p.name[len(ABORT_REASON_PREFIX):])
+    return None
+
+
+def abort_pending(path: Path) -> str | None:
+    """The reason of the abort kept in the scan folder's ABORT_PENDING file (its record, else the name beside it,
+    else DEFAULT_ABORT_REASON); None when there is no such file."""
+    marker = Path(path) / ABORT_PENDING
+    if not marker.is_file():
+        return None
+    return _recorded_reason(marker) or _named_reason(Path(path)) or DEFAULT_ABORT_REASON
 
 
 def clear_abort_pending(path: Path) -> None:
-    """Remove the ABORT_PENDING file once scan.json says the scan ended (best effort: a file left over is removed by
-    the next daemon, which finds the scan already ended)."""
+    """Remove the ABORT_PENDING file (and a name that kept its reason) once scan.json says the scan ended (best
+    effort: a file left over is removed by the next daemon, which finds the scan already ended)."""
     with contextlib.suppress(OSError):
+        for p in Path(path).iterdir():
+            if p.name.startswith(ABORT_REASON_PREFIX):
+                p.unlink(missing_ok=True)
         (Path(path) / ABORT_PENDING).unlink(missing_ok=True)
         fsync_dir(Path(path))
 
@@ -285,11 +333,9 @@ def way_out(path: Path) -> str:
     names, damaged = damaged_chunks(path)
     if not damaged:
         return f"once that is fixed, `spadscan ctl resume {name}` takes it over; {end}"
-    last = names[-1] == damaged[-1]
-    again = ("its poses are taken again" if len(damaged) == 1 and last else
-             "a last chunk's poses are taken again, the others' stay missing" if last else
-             "their poses stay missing from the capture" if len(damaged) > 1 else
-             "its poses stay missing from the capture")
+    # Whichever chunk it is: the resumed scan takes the poses the capture lacks again, going back along its path,
+    # and publishes them in pose order (CaptureWriter.retakes), so that it ends complete with every pose.
+    again = "its poses are taken again" if len(damaged) == 1 else "their poses are taken again"
     return (f"{', '.join(damaged)} cannot be read: move {'it' if len(damaged) == 1 else 'them'} out of {path} "
             f"({again}), then `spadscan ctl resume {name}`; {end}")
 

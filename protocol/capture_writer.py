@@ -2,7 +2,10 @@
 
 A chunk is written into a hidden temporary folder, every file fsynced, then renamed to `chunk-NNNNNN` and the parent
 folder fsynced: a reader sees a whole chunk or none, and a crash loses only what was not yet flushed. `resume` reopens
-a scan, removes half-written temporary folders and continues after the last published chunk.
+a scan, removes half-written temporary folders and continues after the last published chunk. The measurements it
+lacks before its first unpublished pose (a damaged chunk the operator moved out) are listed in `retakes`, each with
+the free chunk numbers that put it back in pose order; until they are published again the capture cannot be marked
+complete.
 
 A chunk's files are written and fsynced side by side, one thread each, and the publish waits for all of them: the
 same fsyncs as one after the other, but a journaling filesystem (ext4's jbd2) commits them together, so a durable
@@ -18,6 +21,8 @@ import json
 import os
 import shutil
 import threading
+from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +88,12 @@ def _together(calls: list) -> None:
             raise exc
 
 
+def _frame(record: dict) -> int | None:
+    """A measurement record's frame number; None when it has none (another writer's capture)."""
+    frame = record.get("frame")
+    return frame if isinstance(frame, int) and not isinstance(frame, bool) else None
+
+
 def _drop_temporary(path: Path) -> None:
     """Remove the hidden temporary folders and files of chunks and manifests that were never published."""
     for p in path.iterdir():
@@ -119,6 +130,57 @@ def _occupied(path: Path) -> str:
     if state is not None:
         why = f"state {state!r}" + (f": {fold(reason)}" if reason else "")  # another writer's reason may span lines
     return f"{path}: already holds a capture that was not finished ({why}); delete the folder or choose another"
+
+
+@dataclass(frozen=True)
+class Retake:
+    """Measurements a resumed capture lacks before its first unpublished pose (a damaged chunk moved out of it): pose
+    `pose`'s frames `frames`, taken again and published under the chunk numbers `chunks`: free numbers between the
+    chunks of the poses before and after it, so that the chunks in name order still hold the poses in order (None:
+    the next numbers after the last chunk, for the last pose's frames)."""
+
+    pose: int
+    frames: tuple[int, ...]
+    chunks: tuple[int, ...] | None
+
+
+def plan_retakes(chunks: list[tuple[int, list[tuple[int, int | None]]]], frames_per_pose: int, chunk_size: int,
+                 where) -> list[Retake]:
+    """The Retakes of a capture whose chunks are `chunks` [(number, [(pose_index, frame), ...])]: every frame
+    0 .. frames_per_pose - 1 of every pose up to the last published one that is not there. A pose with a record
+    lacking a frame number is taken as whole (another writer's capture). CaptureError when a pose's frames cannot be
+    put back in order (no chunk number free between its neighbours': the chunks were renumbered)."""
+    held: dict[int, set] = {}
+    spans = []  # (number, lowest pose, highest pose) of each chunk
+    for number, pairs in chunks:
+        for pose, frame in pairs:
+            held.setdefault(pose, set()).add(frame)
+        if pairs:
+            poses = [pose for pose, _ in pairs]
+            spans.append((number, min(poses), max(poses)))
+    used = {number for number, _ in chunks}
+    out, given = [], -1  # given: the highest chunk number handed to a retake so far (retakes stay in pose order)
+    for pose in range(max(held) + 1 if held else 0):
+        have = held.get(pose, set())
+        missing = () if None in have else tuple(f for f in range(frames_per_pose) if f not in have)
+        if not missing:
+            continue
+        after = min((n for n, _, high in spans if high > pose), default=None)
+        if after is None:  # the last pose: its frames go after every chunk
+            out.append(Retake(pose, missing, None))
+            continue
+        before = max((n for n, low, _ in spans if low < pose), default=-1)
+        need = -(-len(missing) // chunk_size)
+        free = tuple(islice((n for n in range(max(before, given) + 1, after) if n not in used), need))
+        if len(free) < need:
+            low = max(before, given)
+            raise CaptureError(f"{where}: pose {pose} lacks frame(s) {', '.join(map(str, missing))} and cannot take "
+                               f"them again in order: no chunk number is free "
+                               f"{f'between {chunk_name(low)} and' if low >= 0 else 'before'} {chunk_name(after)} "
+                               f"(a capture lists its poses in chunk order; were its chunks renamed?)")
+        given = free[-1]
+        out.append(Retake(pose, missing, free))
+    return out
 
 
 def mark_paused(path, reason: str) -> None:
@@ -168,7 +230,7 @@ class CaptureWriter:
     """
 
     def __init__(self, path: Path, manifest: dict, sensor: SensorModel, next_chunk: int, published: int,
-                 pose_indices: set[int]):
+                 pose_indices: set[int], retakes: list[Retake] | None = None):
         self.path = Path(path)
         self.manifest = manifest
         self.sensor = sensor
@@ -176,6 +238,8 @@ class CaptureWriter:
         self._buffer: list[Measurement] = []
         self.n_published = published
         self.published_pose_indices = pose_indices
+        self.retakes: list[Retake] = list(retakes or [])
+        """What a resumed capture lacks before its first unpublished pose, in pose order (`publish_retake`)."""
 
     # ---- opening -------------------------------------------------------------------------------------------------
     @classmethod
@@ -237,25 +301,30 @@ class CaptureWriter:
 
     @classmethod
     def resume(cls, path) -> "CaptureWriter":
-        """Reopen a scan to continue it: drop half-written chunks, count what was published, state -> running. A
-        pause stays recorded (`paused`, and its reason) until the scan goes on (`set_state`): a daemon reopens a
-        capture to take it over before it has checked that it can, and a takeover refused or cut short must leave
-        the operator's pause in place."""
+        """Reopen a scan to continue it: drop half-written chunks, count what was published, list what is missing
+        before the first unpublished pose (`retakes`: a damaged chunk moved out), state -> running. A pause stays
+        recorded (`paused`, and its reason) until the scan goes on (`set_state`): a daemon reopens a capture to take
+        it over before it has checked that it can, and a takeover refused or cut short must leave the operator's
+        pause in place. CaptureError when the missing measurements cannot be put back in pose order."""
         path = Path(path)
         reader = CaptureReader(path)
         _drop_temporary(path)  # half-written chunks and manifests of a writer that died
         names = reader.chunk_names()
-        published, poses = 0, set()
+        published, poses, held = 0, set(), []
         for name in names:
             chunk = reader.read_chunk(name)
             published += len(chunk.meta)
             poses.update(int(i) for i in chunk.pose_indices)
+            held.append((chunk_index(name), [(int(m["pose_index"]), _frame(m)) for m in chunk.meta]))
+        frames = reader.manifest.get("frames_per_pose", 1)
+        frames = frames if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1 else 1
+        retakes = plan_retakes(held, frames, int(reader.manifest["chunk_size"]), path)
         next_chunk = (chunk_index(names[-1]) + 1) if names else 0
         manifest = dict(reader.manifest)
         manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
                         updated_utc=_now())
         _write(write_json_atomic, path / MANIFEST, manifest)
-        return cls(path, manifest, reader.sensor, next_chunk, published, poses)
+        return cls(path, manifest, reader.sensor, next_chunk, published, poses, retakes)
 
     # ---- writing -------------------------------------------------------------------------------------------------
     @property
@@ -269,6 +338,16 @@ class CaptureWriter:
 
     def append(self, m: Measurement) -> None:
         """Buffer one measurement; publishes a chunk when the buffer reaches the chunk size."""
+        checked = self._checked(m)
+        if self._buffer and (self._buffer[0].reference is None) != (checked.reference is None):
+            self.flush()  # a chunk either has reference histograms for all its measurements or for none
+        self._buffer.append(checked)
+        if len(self._buffer) >= self.chunk_size:
+            self.flush()
+
+    def _checked(self, m: Measurement) -> Measurement:
+        """A measurement as it is stored (counts as uint32, pose as float64), after checking it against the sensor
+        model; CaptureError naming the pose and frame otherwise."""
         where = f"{self.path.name} pose {m.pose_index} frame {m.frame}"
         for key in ("pose_index", "frame"):
             v = getattr(m, key)
@@ -287,22 +366,49 @@ class CaptureWriter:
         if not isinstance(m.meta, dict):
             raise CaptureError(f"{where}: meta is a {type(m.meta).__name__}, expected a dict")
         check_json(m.meta, where + " meta")
-        if self._buffer and (self._buffer[0].reference is None) != (ref is None):
-            self.flush()  # a chunk either has reference histograms for all its measurements or for none
-        self._buffer.append(Measurement(hist, pose, int(m.pose_index), int(m.frame), ref, dict(m.meta)))
-        if len(self._buffer) >= self.chunk_size:
-            self.flush()
+        return Measurement(hist, pose, int(m.pose_index), int(m.frame), ref, dict(m.meta))
 
     def flush(self) -> str | None:
         """Publish the buffered measurements as one chunk; returns its name (None when the buffer was empty)."""
         if not self._buffer:
             return None
-        name = chunk_name(self._next_chunk)
+        name = self._publish_chunk(self._next_chunk, self._buffer)
+        self._next_chunk += 1
+        self._buffer = []
+        return name
+
+    def publish_retake(self, retake: Retake, measurements: list[Measurement]) -> None:
+        """Publish the measurements taken again for `retake` (its pose's missing frames, in its order) under its
+        chunk numbers (the next ones when it has none); then it is no longer owed."""
+        got = [(int(m.pose_index), int(m.frame)) for m in measurements]
+        if retake not in self.retakes or got != [(retake.pose, f) for f in retake.frames]:
+            raise CaptureError(f"{self.path.name}: measurements {got} do not retake pose {retake.pose} frames "
+                               f"{list(retake.frames)}")
+        if retake.chunks is None:
+            for m in measurements:
+                self.append(m)
+            self.flush()
+        else:
+            checked = [self._checked(m) for m in measurements]
+            size = -(-len(checked) // len(retake.chunks))
+            for k, number in enumerate(retake.chunks):
+                batch = checked[k * size:(k + 1) * size]
+                if len({m.reference is None for m in batch}) > 1:
+                    raise CaptureError(f"{self.path.name} pose {retake.pose}: reference histograms for some of its "
+                                       f"frames only")
+                self._publish_chunk(number, batch)
+        self.retakes.remove(retake)
+
+    def _publish_chunk(self, number: int, buf: list[Measurement]) -> str:
+        """Publish `buf` as chunk `number` (see the module docstring); returns its name. A published chunk never
+        changes: a number already taken is refused."""
+        name = chunk_name(number)
+        if (self.path / name).exists():
+            raise CaptureError(f"{self.path / name}: already published; a chunk is never replaced")
         tmp = self.path / f"{TMP_PREFIX}{name}"
         if tmp.exists():
             shutil.rmtree(tmp)
         tmp.mkdir()
-        buf = self._buffer
         meta = {"measurements": [{**m.meta, "pose_index": m.pose_index, "frame": m.frame} for m in buf]}
         writes = [(save_npy_durable, tmp / "hists.npy", np.stack([m.hist for m in buf])),
                   (save_npy_durable, tmp / "poses.npy", np.stack([m.pose for m in buf])),
@@ -313,10 +419,8 @@ class CaptureWriter:
         _write(fsync_dir, tmp)
         os.rename(tmp, self.path / name)
         _write(fsync_dir, self.path)
-        self._next_chunk += 1
         self.n_published += len(buf)
         self.published_pose_indices.update(m.pose_index for m in buf)
-        self._buffer = []
         return name
 
     def replace_schedule(self, planned_poses: np.ndarray) -> None:
@@ -338,6 +442,9 @@ class CaptureWriter:
         format defines it, whoever passed it (`ctl abort --reason` may carry line breaks)."""
         if state not in STATES:
             raise CaptureError(f"state {state!r} is not one of {STATES}")
+        if state == "complete" and self.retakes:  # "complete" promises every pose 0 .. P - 1 (capture_format.md)
+            raise CaptureError(f"{self.path}: not complete: pose(s) {', '.join(str(r.pose) for r in self.retakes)} "
+                               f"lack frames that were never taken again")
         if isinstance(reason, str):
             reason = fold(reason)
         check_json({"reason": reason, **extra}, f"{self.path / MANIFEST}")

@@ -51,7 +51,12 @@ def run(args) -> int:
     moved = (fit.hand_eye[:3, 3] - fit.start[:3, 3]) * 1e3
     odd = fit.implausible()
     off = f" ({fit.lost} more off it at the fitted hand_eye, left out)" if fit.lost else ""
-    print(f"{args.capture}: {fit.views} views, {fit.returns} zone returns on the {target.kind}{off}")
+    # A view is a pose (as a reconstruction sums its frames into one); every frame is fitted on its own, so the
+    # returns (and those left off) count a zone once per frame: said so when a view has several.
+    several = fit.frames > fit.views
+    frames = f" ({fit.frames} frames)" if several else ""
+    counted = f" in those {fit.frames} frames" if several else ""
+    print(f"{args.capture}: {fit.views} views{frames}, {fit.returns} zone returns on the {target.kind}{counted}{off}")
     print(f"residual RMS {_start_rms(fit, WINDOW_BINS)}, {fit.rms_mm:.2f} mm fitted ({fit.iterations} iterations)")
     if fit.turn_deg:
         print(f"the fit went on from the capture's hand_eye turned {fit.turn_deg:g} deg about the sensor's axis (that "

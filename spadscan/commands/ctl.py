@@ -140,13 +140,15 @@ def add_arguments(parser) -> None:
                           help="adaptive: well-spread views taken before any ranking is used [initial_views]")
     settings.add_argument("--stop-when-converged", action="store_const", const=True, default=None,
                           help="adaptive: end the scan once the live reconstruction reports convergence; its "
-                               "refits restart that test, so only a paused or slow scan (a pose every 6.5 s or "
-                               "more) ends early [stop_when_converged]")
+                               "refits restart that test, so only a paused or slow scan (a pose every 13 s or "
+                               "more with 32 views in, 6.5 s or more past 64) ends early [stop_when_converged]")
     op("pause", "pause after the pose in flight is published")
     resume = op("resume", "continue a paused or interrupted scan at its first unpublished pose",
                 "Continue the paused scan at its first unpublished pose. With NAME, or when the daemon holds no "
                 "scan: take over an interrupted scan it could not take over when it started (`status` says why, "
-                "e.g. a damaged chunk to move out of the folder first), then continue it.")
+                "e.g. a damaged chunk to move out of the folder first), then continue it: the poses of a chunk "
+                "moved out are taken again first (the arm goes back along the scan's path), so the scan still ends "
+                "complete with every pose.")
     resume.add_argument("name", nargs="?", metavar="NAME", help="an interrupted scan the daemon does not hold")
     abort = op("abort", "stop the scan for good (published poses stay)",
                "Stop the scan for good; its published poses stay. With NAME: end an interrupted scan the daemon does "

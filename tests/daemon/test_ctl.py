@@ -7,8 +7,10 @@ from __future__ import annotations
 import fcntl
 import io
 import json
+import math
 import os
 import pty
+import re
 import select
 import signal
 import socketserver
@@ -18,6 +20,7 @@ import sys
 import termios
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -116,6 +119,30 @@ def test_help_of_scan_and_wait(capsys):
     assert "Every scan setting left out takes the daemon's default: the [scan] value of its rig config" in text
     assert "--views VIEWS number of sensor poses [views]" in text
     assert "NAME the scan's name (its folder under the captures root)" in text
+
+
+def test_the_help_of_stop_when_converged_gives_the_figures_of_the_rig_docs_and_the_live_refit_rule(capsys):
+    """`ctl scan --help` and examples/README.md say how slowly poses must come for a scan to end early, and both
+    follow the live job's rule: each refit (every min(rebuild_views, a rebuild_growth share of the views) views)
+    starts the ~100 s plateau test again, so the pose interval needed scales as 1 / that spacing."""
+    with pytest.raises(SystemExit):
+        main(["ctl", "scan", "--help"])
+    helped = " ".join(capsys.readouterr().out.split())
+    documented = " ".join((Path(__file__).parents[2] / "examples" / "README.md").read_text().split())
+    figures = re.compile(r"a pose every ([\d.]+) s or more with (\d+) views in, ([\d.]+) s or more past (\d+)")
+    said, doc = figures.search(helped), figures.search(documented)
+    assert said is not None, helped
+    assert doc is not None and said.groups() == doc.groups()
+    slow_s, few, fast_s, many = float(said[1]), int(said[2]), float(said[3]), int(said[4])
+    from spadscan.worker.live.job import LiveSettings  # here: it brings torch, which the other tests here do without
+
+    live = LiveSettings()
+
+    def spacing(views: int) -> int:  # views between two refits (worker/live/job.py refit_due)
+        return max(1, min(live.rebuild_views, math.ceil(live.rebuild_growth * views)))
+
+    assert spacing(many) == live.rebuild_views  # past `many` views the spacing no longer grows
+    assert slow_s * spacing(few) == pytest.approx(fast_s * spacing(many), rel=0.05)
 
 
 def test_wait_on_a_terminal_shows_pose_progress(fake_daemon, monkeypatch, capsys):

@@ -51,21 +51,23 @@ def sensor_poses(n: int, seed: int = 0) -> np.ndarray:
 
 def make_capture(path, x_recorded: np.ndarray, n: int = 24, target: Target = Target("plane", (0, 0, 0)),
                  zero_bin_error: float = 0.0, true_sensor: np.ndarray | None = None,
-                 x_true: np.ndarray = X_TRUE) -> None:
+                 x_true: np.ndarray = X_TRUE, frames_per_pose: int = 1) -> None:
     """Render the target at TCP x x_true, record the capture as if X were x_recorded (the daemon's way: sensor pose
     = actual TCP x the config's hand-eye, the TCP pose in each measurement's metadata). zero_bin_error: the unit's
     zero bin lies this many bins after the one the capture's sensor model states. true_sensor: the sensor's poses
-    (default: `sensor_poses(n)`)."""
+    (default: `sensor_poses(n)`). frames_per_pose: frames taken at each pose (each its own noise)."""
     model = sensor_preset("tmf8820")
     true_sensor = sensor_poses(n) if true_sensor is None else true_sensor
     n = len(true_sensor)
     tcp = true_sensor @ invert_rigid(x_true)
     unit = model.with_(zero_bin=model.zero_bin + zero_bin_error)
     sim = Simulator(target.mesh(), unit, SimSettings(rays_per_zone=256), seed=1)
-    frames = sim.frames(true_sensor)
-    with CaptureWriter.create(path, model, hand_eye=x_recorded, chunk_size=64) as w:
-        for i in range(n):
-            w.append(Measurement(frames.hists[i], tcp[i] @ x_recorded, i, 0, frames.reference[i],
+    k = frames_per_pose
+    frames = sim.frames(np.repeat(true_sensor, k, axis=0))
+    with CaptureWriter.create(path, model, hand_eye=x_recorded, chunk_size=64, frames_per_pose=k) as w:
+        for j in range(n * k):
+            i = j // k
+            w.append(Measurement(frames.hists[j], tcp[i] @ x_recorded, i, j % k, frames.reference[j],
                                  {"tcp_pose": tcp[i].tolist()}))
         w.finish()
 
@@ -251,6 +253,19 @@ def test_spadscan_calibrate_hand_eye_prints_the_config_line(capture, capsys):
     assert "give the target" in capsys.readouterr().err
     assert main(["calibrate", "hand-eye", str(capture.parent / "nope"), "--plane", "0,0,0,0,0,1"]) == 1
     assert "no such capture folder" in capsys.readouterr().err
+
+
+def test_calibrate_counts_views_as_poses_and_says_its_returns_count_frames(tmp_path, capsys):
+    """A capture of 24 poses x 3 frames has 24 views (a reconstruction sums each pose's frames into one), not 72;
+    the zone returns are counted per frame, and the line says so."""
+    path = tmp_path / "three"
+    make_capture(path, X_TRUE, frames_per_pose=3)
+    assert main(["calibrate", "hand-eye", str(path), "--plane", "0,0,0,0,0,1"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    fit = fit_hand_eye(path, Target("plane", (0, 0, 0)))
+    assert fit.views == 24 and fit.frames == 72 and fit.returns + fit.lost > 72, fit
+    off = f" ({fit.lost} more off it at the fitted hand_eye, left out)" if fit.lost else ""
+    assert first == f"{path}: 24 views (72 frames), {fit.returns} zone returns on the plane in those 72 frames{off}"
 
 
 class _BoxOnTable:

@@ -91,15 +91,42 @@ def test_a_damaged_last_chunk_moved_out_lets_ctl_resume_finish_the_scan(arun, tm
     assert (tmp_path / damaged / "meta.json").is_file()  # the operator's copy is untouched
 
 
-def test_a_damaged_chunk_before_the_last_is_said_to_leave_its_poses_missing(arun, tmp_path, sphere):  # noqa: F811
+@pytest.mark.parametrize("which", [[1], [0, 2]])
+def test_damaged_chunks_before_the_last_moved_out_have_their_poses_taken_again_in_order(arun, tmp_path, sphere,
+                                                                                       which):  # noqa: F811
+    """The capture ends complete with every pose 0 .. P - 1 once, in pose order in its chunks' name order (the
+    format's promise), the poses taken again published under the numbers moved out; the arm gets there back along
+    the scan's own path (moves are straight lines: one across the scan would cross the object)."""
     cfg = make_cfg(tmp_path, views=VIEWS)
     folder = tmp_path / "caps" / "vase"
     arun(interrupted(cfg, sphere))
-    first = tear(folder, 0)
-    assert way_out(folder).startswith(f"{first} cannot be read: move it out of {folder} (its poses stay missing "
-                                      f"from the capture)")
-    (folder / sorted(folder.glob("chunk-*"))[-1] / "poses.npy").write_bytes(np.zeros(3).tobytes())
-    assert "a last chunk's poses are taken again, the others' stay missing" in way_out(folder)
+    damaged = [tear(folder, k) for k in which]
+    said = way_out(folder)
+    assert said.startswith(f"{', '.join(damaged)} cannot be read: move {'it' if len(damaged) == 1 else 'them'} out "
+                           f"of {folder} ({'its' if len(damaged) == 1 else 'their'} poses are taken again), then "
+                           f"`spadscan ctl resume vase`"), said
+    for name in damaged:
+        shutil.move(folder / name, tmp_path / name)
+
+    async def then(runner, status):
+        plan, last = runner.job.tcp_poses.copy(), runner.job.next_pose - 1
+        await runner.arm.move_to(plan[last], 0.1, 0.5)  # where the scan left the arm (the sim arm starts at home)
+        commanded = len(runner.arm.commanded)
+        await runner.resume()
+        done = await runner.wait("vase")
+        return status, done, plan, last, runner.arm.commanded[commanded:]
+
+    status, done, plan, last, moves = arun(restarted(cfg, sphere, then))
+    assert status["poses_to_take_again"] == which and "taking pose(s) " in status["reason"], status
+    assert done == {"name": "vase", "state": "complete"}
+    data = check_capture(folder, VIEWS, 2)
+    assert data.pose_indices.tolist() == sorted(data.pose_indices.tolist())  # in name order: pose order
+    assert {f"chunk-{k:06d}" for k in which} <= {p.name for p in folder.glob("chunk-*")}
+    visited = [int(np.argmin(np.abs(plan - m).sum(axis=(1, 2)))) for m in moves]
+    assert all(np.allclose(plan[v], m) for v, m in zip(visited, moves)), "a move to a pose off the plan"
+    low = min(which)
+    back = list(range(last, low, -1)) + list(range(low, VIEWS))  # back along the path, then on to the end
+    assert visited == back, visited
 
 
 def test_abort_name_refuses_a_scan_that_is_not_the_daemons_to_end(arun, tmp_path, sphere):  # noqa: F811
@@ -120,3 +147,29 @@ def test_abort_name_refuses_a_scan_that_is_not_the_daemons_to_end(arun, tmp_path
     errors, again = arun(restarted(cfg, sphere, then))
     assert errors[0].startswith("no scan named 'nope'") and "must be" in errors[1], errors
     assert again == "scan 'vase' has already ended (aborted)", again
+
+
+def test_wait_on_an_interrupted_scan_the_daemon_does_not_hold_says_so_with_the_ways_out(arun, tmp_path,
+                                                                                         sphere):  # noqa: F811
+    """Not "no scan named": the scan is there, and `ctl wait` would otherwise be the operator's only word on it."""
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    arun(interrupted(cfg, sphere, "older"))
+    arun(interrupted(cfg, sphere, "vase"))
+    damaged = tear(tmp_path / "caps" / "vase")  # the latest: the one a restart tries to take over
+
+    async def then(runner, status):
+        said = []
+        for name in ("vase", "older", "nope"):
+            with pytest.raises(ConfigError) as refused:
+                await runner.wait(name)
+            said.append(str(refused.value))
+        return status, said
+
+    status, (stuck, older, nope) = arun(restarted(cfg, sphere, then))
+    assert stuck == ("scan 'vase' is interrupted and not held by this daemon, so it neither ends nor goes on by "
+                     "itself: " + status["cannot_take_over"]["error"]), stuck
+    assert f"{damaged} cannot be read" in stuck and "`spadscan ctl abort vase`" in stuck
+    assert older == ("scan 'older' is interrupted and not held by this daemon, so it neither ends nor goes on by "
+                     "itself: `spadscan ctl resume older` takes it over and continues it; or `spadscan ctl abort "
+                     "older` ends it as aborted, keeping every chunk"), older
+    assert nope.startswith("no scan named 'nope' is running or finished in "), nope
