@@ -1,10 +1,11 @@
 """Reconstruct one capture into a mesh and a report, by differentiable rendering of its histograms.
 
-Writes into --out (a new folder, or one without a result unless --overwrite; the run writes beside it, in a hidden
-.tmp- folder, and moves its result in once finished: a result that appeared in --out meanwhile, a worker's, is kept
-unless --overwrite): report.html (the page to open first), view3d.html (the 3D view report.html embeds: keep it
-beside report.html), mesh.ply (per-vertex normals from the SDF
-gradient), report.json (preset, device, steps, training seconds, the model terms used, final loss, the resolved
+Writes into --out (a new folder, or one without a result unless --overwrite; the run writes into a hidden .tmp-
+folder beside it, or inside it where its result could not be moved in from beside it (--out a mount point, a link to
+another disk, in a folder you cannot write), and moves its result in once finished: a result that appeared in --out
+meanwhile, a worker's, is kept unless --overwrite; SIGTERM stops a run as Ctrl-C does): report.html (the page to open
+first), view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply (per-vertex normals from the
+SDF gradient), report.json (preset, device, steps, training seconds, the model terms used, final loss, the resolved
 config, and with a ground truth: chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg plus a trace
 of error against training time), preview.png, error_vs_time.png, fit.png (measured against rendered histograms),
 coverage.png (the mesh coloured by how many views saw each part: red where none did, its shape a guess) and, with a
@@ -89,6 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import os
 
+    from spadscan.signals import terminate_as_interrupt
     from spadscan.worker.budget import process_started
     from spadscan.worker.threads import passive_wait_env
 
@@ -105,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
     gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     if args.overwrite:
         check_ground_truth_kept(gt, out)
-    with result_beside(out, args.overwrite, log) as scratch:  # published whole at the end, never mixed
+    # SIGTERM (a time limit, a service stop) as Ctrl-C: the scratch folder is removed, --out left as it was.
+    with terminate_as_interrupt(), result_beside(out, args.overwrite, log) as scratch:  # published whole at the end
         report = reconstruct_capture(Path(args.capture), scratch, preset=args.preset, budget_s=args.budget_s,
                                      steps=args.steps, gt=gt, device=args.device, seed=args.seed,
                                      progress=not args.no_progress, overrides=overrides or None,
