@@ -33,7 +33,8 @@ from spadscan.protocol.atomic_files import write_atomic
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
 from .budget import process_started
-from .outputs import RESULT_FILES, move_aside
+from .outputs import RESULT_FILES
+from .publish_out import move_aside
 
 ID_RE = re.compile(r"[^A-Za-z0-9._-]+")
 RECON_DIR = "recon"

@@ -53,7 +53,8 @@ import sys
 from pathlib import Path
 
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run
-from spadscan.worker.outputs import check_ground_truth_kept, check_out, result_beside
+from spadscan.worker.outputs import check_ground_truth_kept, check_out
+from spadscan.worker.publish_out import result_beside
 from spadscan.worker.recon.config import PRESET_NAMES, parse_override
 
 
