@@ -284,8 +284,9 @@ def write_capture(path, sensor, hists, poses, *, frames_per_pose=1, reference=No
 def test_a_malformed_scene_table_is_a_one_line_error_naming_the_manifest(tmp_path, table):
     sensor = sensor_preset("tmf8820")
     poses = np.stack([look_at(np.array([0.3, 0.0, 0.2]), np.zeros(3))])
-    cap = write_capture(tmp_path / "c", sensor, np.full((1, 9, 128), 100, np.uint32), poses,
-                        scene={"table": table, "real": False})
+    hists = np.full((1, 9, 128), 100, np.uint32)
+    hists[..., ::2] += 1  # no sensor gives every bin the same count: such a capture is refused before its table
+    cap = write_capture(tmp_path / "c", sensor, hists, poses, scene={"table": table, "real": False})
     with pytest.raises(CaptureError) as info:
         load_scene(cap)
     assert str(info.value).startswith(f"{cap / 'scan.json'}: scene table ") and "\n" not in str(info.value)
