@@ -18,7 +18,8 @@ sums are not bit-for-bit repeatable: figures there vary a little from run to run
 Writes runs/<scene>--<variant>.json as each run ends, with the settings it ran with (the scene folder it was made
 from, --steps, --seed, --threads, --points, --device and its --set overrides). A scene is named by its folder's name:
 two scenes of the same name are refused. A later call with the same --out reuses the runs made with its own
-settings, so an interrupted ablation resumes where it stopped (Ctrl-C writes the table of the runs finished); an
+settings, so an interrupted ablation resumes where it stopped (Ctrl-C, or SIGTERM, writes the table of the runs
+finished: a run it stopped did not fail, it is not run, "-", and the exit status is 130); an
 --out holding a run made with other settings (another scene folder of the same name included) is refused, in one line
 that says which (--overwrite starts afresh). Then table.md: per part and scene, the Chamfer (mm) and the mean normal
 error (degrees) with the part off, against all parts on, and the steps each run took.
@@ -33,8 +34,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -42,6 +45,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from error_vs_time import ground_truth, prepare_scene, scene_problem, source_commit, write_atomic  # noqa: E402
+
+from spadscan import parent_watch  # noqa: E402
 
 ALL = "all parts"
 
@@ -137,19 +142,65 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
     return out
 
 
-def run_in_child(capture: Path, target: Path, args, overrides: list[str], scene: str) -> dict:
-    """Run `run_one` in a fresh process (clean memory, nothing shared); its result, or {"failed": why} (the child's
-    last line of error) when it failed."""
+class Children:
+    """The runs' processes. Each runs in a session of its own, so that Ctrl-C reaches only this script, which then
+    stops them itself (`stop`): a run that ends after that was stopped, not failed. A child's own exit status cannot
+    say so (a KeyboardInterrupt in the middle of an import ends it as an error of that import, exit status 1), and a
+    worker thread never sees the KeyboardInterrupt, which reaches only the main thread. Killed outright, this script
+    cannot stop them: each then stops by itself (spadscan/parent_watch.py)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.running: set[subprocess.Popen] = set()
+        self.stopped = False
+
+    def start(self, cmd: list[str], env: dict) -> subprocess.Popen | None:
+        """`cmd` started, or None once `stop` was called (no run starts after it)."""
+        with self.lock:
+            if self.stopped:
+                return None
+            proc = subprocess.Popen(cmd, env=parent_watch.child_env(env), stdin=subprocess.DEVNULL,
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                    start_new_session=True)
+            self.running.add(proc)
+            return proc
+
+    def done(self, proc: subprocess.Popen) -> None:
+        with self.lock:
+            self.running.discard(proc)
+
+    def stop(self) -> None:
+        """Stop every run (SIGTERM) and start none after."""
+        with self.lock:
+            self.stopped = True
+            for proc in self.running:
+                proc.terminate()
+
+
+def run_in_child(capture: Path, target: Path, args, overrides: list[str], scene: str,
+                 children: Children | None = None) -> dict | None:
+    """Run `run_one` in a fresh process (clean memory, nothing shared) started by `children`; its result,
+    {"failed": why} (the child's last line of error) when it failed, or None when `children` was stopped before it
+    ended: not run."""
+    children = Children() if children is None else children
     cmd = [sys.executable, __file__, "--one", str(capture), "--result", str(target), "--steps", str(args.steps),
            "--seed", str(args.seed), "--threads", str(args.threads), "--points", str(args.points),
            "--device", args.device, "--recorded-scene", scene]
     cmd += [f"--set={o}" for o in overrides]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    if proc.returncode != 0 or not target.is_file():
-        tail = (proc.stderr or proc.stdout).strip().splitlines()
-        return {"failed": tail[-1] if tail else f"exit status {proc.returncode}"}
-    return json.loads(target.read_text())
+    proc = children.start(cmd, env)
+    if proc is None:
+        return None
+    try:
+        stdout, stderr = proc.communicate()
+    finally:
+        children.done(proc)
+    if proc.returncode == 0 and target.is_file():
+        return json.loads(target.read_text())
+    if children.stopped:
+        return None
+    tail = (stderr or stdout).strip().splitlines()
+    return {"failed": tail[-1] if tail else f"exit status {proc.returncode}"}
 
 
 def failed(res: dict | None) -> bool:
@@ -254,6 +305,7 @@ def main(argv=None) -> int:
     parser.add_argument("--recorded-scene", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.one is not None:
+        parent_watch.watch_parent_from_env()  # killed outright, the ablation cannot stop this run: it stops itself
         write_atomic(args.result, run_one(args.one, args.steps, args.seed, args.threads, args.overrides, args.points,
                                           args.device, args.recorded_scene))
         return 0
@@ -320,6 +372,7 @@ def main(argv=None) -> int:
             print(f"{parser.prog}: error: scene {scene}: cannot import it ({exc})", file=sys.stderr)
             return 1
     results: dict[str, dict[str, dict]] = {name: {} for name in captures}
+    children = Children()
 
     def record(name: str, variant: str, res: dict) -> None:
         results[name][variant] = res
@@ -337,7 +390,9 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         print(f"{name}: {variant} ...", flush=True)
         res = run_in_child(captures[name], target, args, variant_overrides(args.overrides, variant),
-                           scene_key(scenes[name]))
+                           scene_key(scenes[name]), children=children)
+        if res is None:  # stopped (Ctrl-C): not run, "-"; the same command runs it again
+            return
         if failed(res):
             print(f"  {name}, {variant}: failed: {res['failed']}", flush=True)
         else:
@@ -346,16 +401,22 @@ def main(argv=None) -> int:
         record(name, variant, res)
 
     interrupted = False
+    pool = ThreadPoolExecutor(args.jobs)
+    # A time limit's SIGTERM ends the runs like Ctrl-C does: the table of the runs finished still comes out.
+    before = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
-        with ThreadPoolExecutor(args.jobs) as pool:
-            # Every scene's all-parts run first: its report says which parts ran there, so which to ablate.
-            list(pool.map(lambda n: run(n, ALL), list(captures)))
-            # Part by part across the scenes: an interrupted ablation leaves whole rows of the table.
-            todo = [(name, v) for v in wanted for name in captures
-                    if v in results[name].get("_ran", []) and v not in results[name]]
-            list(pool.map(lambda nv: run(*nv), todo))
-    except KeyboardInterrupt:  # Ctrl-C: the runs queued are not started (pool.map cancels them), those running end
+        # Every scene's all-parts run first: its report says which parts ran there, so which to ablate.
+        list(pool.map(lambda n: run(n, ALL), list(captures)))
+        # Part by part across the scenes: an interrupted ablation leaves whole rows of the table.
+        todo = [(name, v) for v in wanted for name in captures
+                if v in results[name].get("_ran", []) and v not in results[name]]
+        list(pool.map(lambda nv: run(*nv), todo))
+    except KeyboardInterrupt:  # Ctrl-C: the runs queued are not started, those running are stopped (not failed)
         interrupted = True
+        children.stop()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        signal.signal(signal.SIGTERM, before)
     text = tables(results, [ALL] + wanted)
     (args.out / "table.md").write_text(text + "\n")
     write_atomic(args.out / "results.json", results)

@@ -113,6 +113,23 @@ def ring_at_pole_deg(n_rings: int, per_ring: int, min_elevation_deg: float, max_
     return float(math.degrees(pole[-1])) if len(pole) else None
 
 
+def rings_repeat_note(n_rings: int, min_elevation_deg: float, max_elevation_deg: float) -> str | None:
+    """Why rings in a band of zero width put two views on one pose (a clause for a refusal), or None when no pose
+    repeats. Such rings all stand at the band's one elevation, and alternate rings are offset by half a step, no
+    more: ring 3 stands on ring 1's poses, while 2 rings are one ring of twice the views. At +-90 deg, where the
+    azimuth moves no view, 2 rings already stand at one point. (A ring of several views at a pole is
+    `ring_at_pole_deg`'s.)"""
+    if n_rings < 2 or min_elevation_deg != max_elevation_deg:
+        return None
+    if abs(min_elevation_deg) >= 90.0:
+        return (f"{n_rings} rings in a band of zero width at {min_elevation_deg:+g} deg elevation all stand at one "
+                f"viewpoint (straight {'above' if min_elevation_deg > 0 else 'below'} the target)")
+    if n_rings > 2:
+        return (f"{n_rings} rings in a band of zero width ({min_elevation_deg:g} deg) all stand at one elevation, "
+                f"every other ring on the same poses")
+    return None
+
+
 def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0.0, 0.0),
                     min_elevation_deg: float = RINGS_BAND_DEG[0],
                     max_elevation_deg: float = RINGS_BAND_DEG[1]) -> np.ndarray:
@@ -120,7 +137,10 @@ def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0
 
     Returns (n_rings * per_ring, 4, 4), ring by ring from the lowest elevation, azimuth increasing within a ring.
     A ring of more than one view at +-90 deg (every view at one point) is refused, and so are several rings in a band
-    of zero width (they would all stand at one elevation, every other ring on the same poses).
+    of zero width: they all stand at one elevation, and from 3 rings on every other ring stands on the same poses
+    (`rings_repeat_note`). 2 such rings repeat no pose (one ring of twice the views, `spadscan simulate` renders
+    them), but are refused here all the same: the daemon's config allows a band of zero width for one ring only,
+    and the plans it checks are built here by the same rule.
     """
     for name, v in (("rings", n_rings), ("views per ring", per_ring)):
         if not (isinstance(v, (int, np.integer)) and 1 <= v <= 100_000):

@@ -38,7 +38,7 @@ class FakeRuns:
     def __init__(self, ablation, ran=("erosion",), interrupt=(), fail=()):
         self.ablation, self.ran, self.interrupt, self.fail, self.runs = ablation, ran, interrupt, fail, []
 
-    def __call__(self, capture, target, args, overrides, scene):
+    def __call__(self, capture, target, args, overrides, scene, children=None):
         variant = target.stem.split("--", 1)[1]
         if variant in self.interrupt:
             raise KeyboardInterrupt

@@ -2,19 +2,22 @@
 and workers itself (and prints what it measured so far); killed outright, they notice it is gone and stop.
 
 Each benchmark runs in a process of its own, its slow part (a reconstruction, a live job, a scan) stood in for by a
-wait, so that the test can signal it while its processes run. Every wait is for an event, with a generous timeout."""
+wait, so that the test can signal it while its processes run; the ablation's run is a real one (a fit that would go on
+for 10^6 steps), stopped as a user's Ctrl-C stops it. Every wait is for an event, with a generous timeout."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
-from benchmark_helpers import children, kill_all, load_benchmark, start_main, wait_gone
+from benchmark_helpers import children, kill_all, load_benchmark, start_main, tiny_capture, wait_gone
 from spadscan import parent_watch
 
 STOPS = [pytest.param(signal.SIGTERM, id="SIGTERM"), pytest.param(signal.SIGKILL, id="SIGKILL")]
@@ -161,3 +164,60 @@ def test_lives_workers_are_named_as_its_children(tmp_path, monkeypatch):
     monkeypatch.setattr(bench.subprocess, "Popen", FakePopen)
     assert bench.run_to_end(["spadscan", "worker"], tmp_path / "worker.log", {"OMP_NUM_THREADS": "1"}) == 0
     assert seen[0][parent_watch.ENV] == str(os.getpid()) and seen[0]["OMP_NUM_THREADS"] == "1"
+
+
+def catches_sigint(pid: int) -> bool:
+    """Whether `pid` has its own SIGINT handler installed (Python's, once it has started): a Ctrl-C then raises
+    KeyboardInterrupt in it, as in a run under way."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    caught = next((line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), "0")
+    return bool(int(caught, 16) & (1 << (signal.SIGINT - 1)))
+
+
+def wait_for_run(pid: int, timeout_s: float = 300.0) -> set[int]:
+    """The child processes of `pid` once one of them runs with Python's SIGINT handler (at most `timeout_s`:
+    generous, for a loaded machine that imports torch twice); AssertionError if none does in time."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        runs = children(pid)
+        if any(catches_sigint(p) for p in runs):
+            return runs
+        time.sleep(0.05)
+    raise AssertionError("no run started")
+
+
+def ctrl_c(proc: subprocess.Popen) -> None:
+    """A terminal's Ctrl-C: SIGINT to every process of the foreground job's group (`proc` leads its own)."""
+    os.killpg(proc.pid, signal.SIGINT)
+
+
+@pytest.mark.parametrize("how", [pytest.param(ctrl_c, id="ctrl-c"), *STOPS])
+def test_ablations_run_stopped_is_not_run_not_failed(tmp_path, how):
+    # A real run, in a child process of the script's worker thread, stopped as a user or a time limit stops it. The
+    # run never ends by itself (10^6 steps).
+    capture = tiny_capture(tmp_path)
+    out = tmp_path / "out"
+    proc = start_main("ablation", ["--scenes", capture, "--out", out, "--steps", 1_000_000, "--points", 1000,
+                                   "--parts", "erosion"], "import os\nos.setpgrp()")
+    runs: set[int] = set()
+    try:
+        runs = wait_for_run(proc.pid)
+        if how is ctrl_c:
+            ctrl_c(proc)
+        else:
+            proc.send_signal(how)
+        stdout, err = proc.communicate(timeout=120)
+        assert not wait_gone(runs), "the run outlived the benchmark"
+        if how == signal.SIGKILL:
+            return  # killed outright, it writes nothing: its run stopped by itself
+        assert proc.returncode == 130 and "Traceback" not in err, err
+        assert "interrupted" in err and "failed" not in stdout + err, stdout + err
+        table = (out / "table.md").read_text()
+        assert "| all parts | - |" in table and "| erosion | - |" in table and "failed" not in table, table
+        assert json.loads((out / "results.json").read_text()) == {"box": {}}
+        assert not list((out / "runs").glob("*.json"))  # the same command runs it again
+    finally:
+        kill_all(proc, runs)

@@ -4,11 +4,14 @@ photon counts, written as a complete capture folder.
 MESH is a mesh file (OBJ, PLY, STL, OFF, ...; metres: one of those four formats over 5 m across is read as
 millimetres, and said so) or `builtin:NAME` for a built-in scene (listed below, with the split each belongs to).
 The sensor circles TARGET at RADIUS metres on a Fibonacci spiral (like LCSPCData: 256 views, 0.5 m, from 86 degrees
-down to the horizon) or on elevation rings, always looking at TARGET; --jitter-deg turns each view by a random
-rotation about the sensor, like the dataset's `_random` captures. --table puts the object on a horizontal table
-(black by default), which real captures see in every histogram; the reconstruction then finds its height, as it does
-for a real capture. Views that would put the sensor inside the mesh or on or under the table top are refused (no
-sensor can stand there); views that see nothing of the mesh are warned about.
+down to the horizon) or on elevation rings (in a band of zero width, --min-elevation = --max-elevation, at most 2
+rings: the second is offset by half a step, a third would repeat the first's poses), always looking at TARGET;
+--jitter-deg turns each view by a random rotation about the sensor, like the dataset's `_random` captures. --table
+puts the object on a horizontal table (black by default), which real captures see in every histogram; the
+reconstruction then finds its height, as it does for a real capture. Views that would put the sensor inside the
+mesh or on or under the table top are refused (no sensor can stand there); views less than 1 cm above the table top
+(the default spiral's lowest, 1 mm above it at 256 views, whose histograms the table floods) and views that see
+nothing of the mesh are warned about.
 
 Examples:
   spadscan simulate bunny.obj --out captures/bunny-sim --sensor lcspc-sim --views 256
@@ -28,6 +31,9 @@ SCHEDULES = ("fibonacci", "rings")
 DEFAULT_RINGS = 4
 SPIRAL_BAND = (0.0, 90.0)  # degrees: the dataset's spiral, from 86.4 down to 0.1 deg at 256 views
 RINGS_BAND = RINGS_BAND_DEG  # degrees: the rings' own band (rings stand at both ends)
+NEAR_TABLE_M = 0.01
+"""A sensor less than this (metres) above the table top sees the top at a grazing angle from next to no distance:
+its histograms may be flooded by the table (pile-up). Warned about, not refused: a real sensor may sit that low."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -138,9 +144,50 @@ def check_table_under(table, mesh, given: bool):
     return None
 
 
+def near_table_note(poses, table) -> str | None:
+    """A warning naming the views whose sensor lies less than NEAR_TABLE_M above the table top (over it), or None.
+    Views on or under the top are `misplaced_views_note`'s (refused)."""
+    import numpy as np
+
+    if table is None:
+        return None
+    eyes = np.asarray(poses, np.float64)[:, :3, 3]
+    near = table.below_top(eyes - [0.0, 0.0, NEAR_TABLE_M]) & ~table.below_top(eyes)
+    if not near.any():
+        return None
+    idx = np.flatnonzero(near)
+    listed = ", ".join(str(i) for i in idx[:8]) + (", ..." if len(idx) > 8 else "")
+    lowest = float(eyes[near, 2].min()) - table.height_m
+    return (f"warning: {len(idx)} of {len(eyes)} views ({listed}) put the sensor within {NEAR_TABLE_M * 100:g} cm "
+            f"above the table top (the lowest {lowest * 1e3:.2f} mm above it): their histograms may be flooded by "
+            f"the table; a higher --min-elevation (degrees) lifts them")
+
+
 def _length(m: float) -> str:
     """A length for a message: millimetres under a metre, metres from there (a height typed in millimetres)."""
     return f"{m * 1e3:.0f} mm" if m < 1.0 else f"{m:.4g} m"
+
+
+def repeated_poses(args) -> str | None:
+    """Why the schedule would put two views on one pose (one line naming this command's flags), or None. The same
+    rules as `protocol.schedules`, whose own refusals name no flags (the daemon's config names its keys)."""
+    from spadscan.protocol import schedules
+
+    lo, hi = args.min_elevation, args.max_elevation
+    band = "widen the band (--min-elevation below --max-elevation, degrees)"
+    if args.schedule == "fibonacci":
+        pole = schedules.spiral_at_pole_deg(args.views, lo, hi)
+        return None if pole is None else (
+            f"--views {args.views} in a spiral band of zero width at {pole:+g} deg elevation stand at one viewpoint "
+            f"(straight {'above' if pole > 0 else 'below'} the target); {band}")
+    per_ring = args.views // args.rings
+    pole = schedules.ring_at_pole_deg(args.rings, per_ring, lo, hi)
+    if pole is not None:
+        flag = "--max-elevation" if pole > 0 else "--min-elevation"
+        return (f"a ring at {pole:+g} deg elevation puts its {per_ring} views at one viewpoint (straight "
+                f"{'above' if pole > 0 else 'below'} the target); keep {flag} strictly between -90 and 90 (degrees)")
+    repeat = schedules.rings_repeat_note(args.rings, lo, hi)
+    return None if repeat is None else f"--rings {args.rings}: {repeat}; {band}, or use --rings 1"
 
 
 def make_poses(args):
@@ -161,14 +208,28 @@ def make_poses(args):
     if args.schedule == "fibonacci":
         if args.rings is not None:
             raise SimulationError(f"--rings {args.rings} is for --schedule rings (the fibonacci spiral has none)")
-        poses = schedules.fibonacci_hemisphere(args.views, **common)
     else:
         args.rings = DEFAULT_RINGS if args.rings is None else args.rings
         if not (1 <= args.rings <= args.views):
             raise SimulationError(f"--rings {args.rings} must lie in [1, views = {args.views}]")
         if args.views % args.rings:
             raise SimulationError(f"--views {args.views} is not a multiple of --rings {args.rings}")
+    # A band outside [-90, 90] degrees, or upside down, is the schedules' own refusal; poses repeated in a band that
+    # is fine otherwise are refused here, naming this command's flags.
+    repeated = repeated_poses(args) if -90.0 <= args.min_elevation <= args.max_elevation <= 90.0 else None
+    if repeated:
+        raise SimulationError(repeated)
+    if args.schedule == "fibonacci":
+        poses = schedules.fibonacci_hemisphere(args.views, **common)
+    elif args.rings > 1 and args.min_elevation == args.max_elevation:
+        # Rings in a band of zero width that repeat no pose (2 rings, repeated_poses said): one ring of twice the
+        # views, the second ring on its odd steps (offset by half a step). elevation_rings refuses any rings in such
+        # a band, by the rule of the daemon's config, which allows it for one ring only.
+        ring = schedules.elevation_rings(1, args.views, **common)
+        poses = np.concatenate([ring[0::2], ring[1::2]])
+    else:
         poses = schedules.elevation_rings(args.rings, args.views // args.rings, **common)
+    if args.schedule == "rings":
         record.update(rings=args.rings, per_ring=args.views // args.rings)
     if args.jitter_deg > 0:
         rng = np.random.default_rng(np.random.SeedSequence([args.seed, 1]))
@@ -198,6 +259,9 @@ def run(args) -> int:
     misplaced = misplaced_views_note(poses, mesh, table)
     if misplaced:
         raise SimulationError(misplaced)
+    near = near_table_note(poses, table)  # said only: the views are rendered as they are
+    if near:
+        print(near, file=sys.stderr)
     sensor = sensor_preset(args.sensor)
     settings = SimSettings(power=args.power, ambient=args.ambient, cycles=args.cycles, albedo=args.albedo,
                            **({} if args.rays_per_zone is None else {"rays_per_zone": args.rays_per_zone}))

@@ -133,3 +133,26 @@ def test_schedules_that_would_repeat_poses_are_one_line_errors(call, message):
 def test_the_schedules_still_allowed_give_every_view_a_pose_of_its_own(poses):
     distinct = np.unique(np.round(poses.reshape(len(poses), -1), 9), axis=0)
     assert len(distinct) == len(poses)
+
+
+@pytest.mark.parametrize("n_rings, per_ring, elevation", [
+    (n, k, e) for n in (1, 2, 3, 4) for k in (1, 2, 7) for e in (-90, -30, 0, 45, 90)])
+def test_rings_repeat_note_speaks_exactly_when_a_pose_repeats(n_rings, per_ring, elevation):
+    """It follows the poses themselves: two views on one position (and so one pose: each looks at the target) are
+    named, and nothing else is (2 rings off the poles are one ring of twice the views). A ring of several views at a
+    pole is ring_at_pole_deg's, and refused with it."""
+    eyes = raw_ring_eyes(n_rings, per_ring, elevation)
+    repeats = len(np.unique(np.round(eyes, 9), axis=0)) < len(eyes)
+    note = schedules.rings_repeat_note(n_rings, elevation, elevation)
+    at_pole = schedules.ring_at_pole_deg(n_rings, per_ring, elevation, elevation) is not None
+    assert (note is not None or at_pole) == repeats
+
+
+def raw_ring_eyes(n_rings: int, per_ring: int, elevation_deg: float) -> np.ndarray:
+    """The sensor positions of `elevation_rings` at one elevation, worked out here (0.5 m from the origin; alternate
+    rings offset by half a step), unchecked."""
+    e = np.radians(elevation_deg)
+    ring, k = np.meshgrid(np.arange(n_rings), np.arange(per_ring), indexing="ij")
+    a = 2 * np.pi * (k + 0.5 * (ring % 2)).ravel() / per_ring
+    eyes = 0.5 * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.full_like(a, np.sin(e))], axis=-1)
+    return eyes + 0.0  # -0.0 and 0.0 are one position

@@ -1,6 +1,8 @@
 """Which views a simulation can render: views that see nothing of the mesh (with and without a table), and sensors
 placed where no sensor can stand (inside the object, on or under the table top)."""
 
+import json
+
 import numpy as np
 import pytest
 import trimesh
@@ -111,3 +113,78 @@ def test_a_ray_from_the_table_top_into_it_meets_it_at_range_0():
     assert t[2] == pytest.approx(0.2) and t[3] == pytest.approx(0.2)  # from above, and the underside from below
     assert table.below_top(origins).tolist() == [True, True, False, True]
     assert not table.below_top(np.array([[1.5, 0.0, -0.3]])).any()  # beside the table, lower than its top: fine
+
+
+ONE_BAND = ["builtin:sphere", "--schedule", "rings", "--min-elevation", "45", "--max-elevation", "45",
+            "--rays-per-zone", "64", "--no-progress"]
+
+
+def test_two_rings_in_a_band_of_zero_width_are_one_ring_of_twice_the_views(tmp_path):
+    """The second ring is offset by half a step: 16 poses of their own, refused before as if they repeated."""
+    from spadscan.protocol.capture_reader import CaptureReader
+
+    assert main(["simulate", *ONE_BAND, "--rings", "2", "--views", "16", "--out", str(tmp_path / "c")]) == 0
+    poses = np.asarray(CaptureReader(tmp_path / "c").load().poses)
+    assert len(np.unique(np.round(poses.reshape(16, -1), 9), axis=0)) == 16
+    # Ring by ring, as elevation_rings lays rings out: 0.5 m away at 45 deg, the second ring offset by half a step.
+    e, a = np.radians(45.0), 2 * np.pi * (np.arange(16) % 8 + 0.5 * (np.arange(16) >= 8)) / 8
+    want = 0.5 * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.full(16, np.sin(e))], axis=-1)
+    np.testing.assert_allclose(poses[:, :3, 3], want, atol=1e-12)
+    np.testing.assert_allclose(poses[:, :3, 2], -want / 0.5, atol=1e-12)  # each looks at the target
+    record = json.loads((tmp_path / "c" / "scan.json").read_text())["schedule"]
+    assert (record["rings"], record["per_ring"]) == (2, 8)
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["--rings", "3", "--views", "24"],
+     "--rings 3: 3 rings in a band of zero width (45 deg) all stand at one elevation, every other ring on the same "
+     "poses; widen the band (--min-elevation below --max-elevation, degrees), or use --rings 1"),
+    (["--rings", "2", "--views", "2", "--min-elevation", "90", "--max-elevation", "90"],
+     "--rings 2: 2 rings in a band of zero width at +90 deg elevation all stand at one viewpoint (straight above the "
+     "target); widen the band (--min-elevation below --max-elevation, degrees), or use --rings 1"),
+    (["--rings", "2", "--views", "16", "--min-elevation", "10", "--max-elevation", "90"],
+     "a ring at +90 deg elevation puts its 8 views at one viewpoint (straight above the target); keep "
+     "--max-elevation strictly between -90 and 90 (degrees)"),
+    (["--schedule", "fibonacci", "--views", "4", "--min-elevation", "-90", "--max-elevation", "-90"],
+     "--views 4 in a spiral band of zero width at -90 deg elevation stand at one viewpoint (straight below the "
+     "target); widen the band (--min-elevation below --max-elevation, degrees)"),
+], ids=["three-rings", "two-rings-at-the-top", "ring-at-the-top", "spiral-at-the-bottom"])
+def test_a_schedule_that_repeats_a_pose_is_refused_naming_the_flags(tmp_path, capsys, argv, line):
+    """The schedules' own refusals named min_elevation and max_elevation, which are no options of this command."""
+    assert main(["simulate", *ONE_BAND, *argv, "--out", str(tmp_path / "c")]) == 1
+    assert capsys.readouterr().err == f"spadscan: error: {line}\n"
+    assert not (tmp_path / "c").exists()
+
+
+def test_views_just_above_the_table_top_are_warned_about_and_rendered_as_they_were(tmp_path, capsys):
+    """The default spiral's lowest views stand 1-9 mm above a table at z = 0 (the lowest at 0.11 deg elevation):
+    the table floods their histograms, and nothing said so. Said now, in one line; the capture is the one the
+    library renders for those poses, count for count."""
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.simulator import SimSettings
+
+    assert main(["simulate", "builtin:sphere", "--sensor", "tmf8820", "--table", "--no-progress",
+                 "--out", str(tmp_path / "cli")]) == 0
+    err = capsys.readouterr().err
+    near = [line for line in err.splitlines() if "within 1 cm above the table top" in line]
+    assert near == ["warning: 5 of 256 views (251, 252, 253, 254, 255) put the sensor within 1 cm above the table top "
+                    "(the lowest 0.98 mm above it): their histograms may be flooded by the table; a higher "
+                    "--min-elevation (degrees) lifts them"], err
+    poses = fibonacci_hemisphere(256, 0.5, min_elevation_deg=0, max_elevation_deg=90)
+    simulate_capture(builtin_scene("sphere"), sensor_preset("tmf8820"), poses, tmp_path / "lib",
+                     settings=SimSettings(), seed=0, progress=False, table=SimTable(0.0))
+    cli, lib = CaptureReader(tmp_path / "cli").load(), CaptureReader(tmp_path / "lib").load()
+    np.testing.assert_array_equal(cli.hists, lib.hists)
+    np.testing.assert_array_equal(cli.poses, lib.poses)
+
+
+@pytest.mark.parametrize("argv", [
+    ["--table", "--schedule", "rings"],  # the rings' lowest at 10 deg: 87 mm above the table
+    ["--views", "16"],  # the same spiral without a table
+    ["--table", "--min-elevation", "1.2"],  # the lowest view 11.4 mm above the table
+], ids=["rings", "no-table", "spiral-lifted"])
+def test_views_a_centimetre_or_more_above_the_table_are_not_warned_about(tmp_path, capsys, argv):
+    assert main(["simulate", "builtin:sphere", "--sensor", "tmf8820", "--rays-per-zone", "64", "--no-progress",
+                 *argv, "--out", str(tmp_path / "c")]) == 0
+    assert "table top" not in capsys.readouterr().err
