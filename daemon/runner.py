@@ -69,6 +69,7 @@ PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may ta
 READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting) may take
 ARM_FIXES = {"reconnect": "reconnecting", "clear": "clearing its fault"}  # what readying the arm does, said
 CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controller for one pose before its fallback
+ON_PATH_M = 0.01  # an arm this close to a straight move between two poses of a scan's path stands on that path
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
 
 
@@ -218,6 +219,7 @@ class ScanRunner:
             await self._cannot_take_over(path, exc)
             return False
         self._forget_stuck(path.name)
+        job.taken_over = True
         self.job = job
         owed = _owed(job)
         job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
@@ -436,8 +438,8 @@ class ScanRunner:
                        elapsed_s=round(time.monotonic() - job.started, 3), schedule=job.scan.schedule)
             if job.chooser is not None:
                 out["views_chosen"] = dict(sorted(job.view_counts.items()))
-            if job.writer is not None and job.writer.retakes:
-                out["poses_to_take_again"] = [r.pose for r in job.writer.retakes]
+            if job.owed:  # (kept on the job: a fault's pause drops the writer)
+                out["poses_to_take_again"] = list(job.owed)
             if self.state == "pausing":
                 out["pausing_at"] = self._pause_at()
         if self.finished:
@@ -507,7 +509,8 @@ class ScanRunner:
                     # the user resumes.
                     job.arm_fix = ("reconnect" if isinstance(exc, LinkLost) else
                                    "clear" if isinstance(exc, ArmFault) else job.arm_fix)
-                    await self._fault(job, describe(exc) + f" (pose {job.next_pose}/{job.n_poses})")
+                    at, job.way_at = self._fault_at(job), None
+                    await self._fault(job, describe(exc) + at)
                 except asyncio.CancelledError:
                     raise
                 except Exception as exc:  # a bug must pause the scan, never kill the daemon
@@ -515,7 +518,7 @@ class ScanRunner:
                     await self._fault(job, f"internal error: {type(exc).__name__}: {exc}")
             self._finish(job, "complete")
         except asyncio.CancelledError:
-            await self._wind_down(job)
+            await self._wind_down_whole(job)
             raise
 
     async def _ready_arm(self, job: ScanJob) -> None:
@@ -615,27 +618,50 @@ class ScanRunner:
         back along the scan's own path to the first pose owed, and forward along it again to the last published
         pose, capturing each owed pose's missing frames as it first passes it (published under the chunk numbers
         that keep the capture in pose order). Nothing overlaps: it is rare, and a pause or a fault finds nothing in
-        flight; the next run starts the way again from where the arm then is."""
-        owed = {r.pose: r for r in job.writer.retakes}
-        if not owed or self._pause_requested:
+        flight; the next run starts the way again from where the arm then is. That holds once every owed pose is
+        taken, too: the way forward still unfinished (`job.way_on`), the next run walks it on, instead of moving
+        straight from an early pose to the scan's next one. A daemon restarted meanwhile knows nothing of the way:
+        it walks it on when the arm stands on the scan's path before its last published pose (`_back_on_path`)."""
+        if self._pause_requested:
             return
+        owed = {r.pose: r for r in job.writer.retakes}
         last = job.next_pose - 1
+        if not (owed or job.way_on or job.taken_over) or last < 0:
+            return
         now = np.asarray((await self._arm_state()).tcp_pose, dtype=np.float64)
         start = int(np.argmin(np.linalg.norm(job.tcp_poses[:last + 1, :3, 3] - now[:3, 3], axis=1)))
-        low = min(owed)
+        if job.taken_over and not owed and start < last and _back_on_path(job, now[:3, 3]):
+            job.way_on = True
+            log.info("scan %s: %s stands on the scan's path near pose %d, before its last published pose %d "
+                     "(taken over during the retake's way forward?)", job.name, self.arm.name, start, last)
+        job.taken_over = False
+        if not owed and (not job.way_on or start >= last or job.next_pose >= job.n_poses):  # (no move follows)
+            job.way_on = False
+            return
+        low = min(owed) if owed else start
         way = list(range(start, low, -1)) + list(range(low, last + 1)) if start > low else \
             list(range(start, last + 1))
-        log.info("scan %s: taking pose(s) %s again (missing from the capture), by way of poses %s", job.name,
-                 ", ".join(map(str, sorted(owed))), f"{start}..{low}..{last}" if start > low else f"{start}..{last}")
+        turn = start - low + 1 if start > low else 0  # way[:turn] goes back along the path (to `low`), the rest on
+        if owed:
+            log.info("scan %s: taking pose(s) %s again (missing from the capture), by way of poses %s", job.name,
+                     ", ".join(map(str, sorted(owed))), f"{start}..{low}..{last}" if start > low else
+                     f"{start}..{last}")
+        else:
+            log.info("scan %s: walking on along the scan's path from pose %d to pose %d before pose %d", job.name,
+                     start, last, job.next_pose)
         if not job.controller_checked:  # the way back passes poses before `start`: the controller is asked from there
             first = min(start, low)
             await self.arm.check_poses(job.tcp_poses[first:], first_index=first)
             job.controller_checked = True
         await self._check_first_move(job, start)
-        for i in way:
+        job.way_on = True
+        for k, i in enumerate(way):
             self._check_end()
             if self._pause_requested:
+                job.way_at = None
                 return
+            direction = "back" if k < turn else "forward"
+            job.way_at = (i, "moving to", direction)
             retake = owed.pop(i, None)
             if retake is None:
                 await self._move(job, i)
@@ -645,11 +671,14 @@ class ScanRunner:
                 await self._retake_pose(job, retake)
             finally:
                 job.in_flight = None
+        job.way_on, job.way_at = False, None
 
     async def _retake_pose(self, job: ScanJob, retake) -> None:
         """Move to pose `retake.pose`, capture its missing frames and publish them (see `_retake`)."""
         i = retake.pose
         t_stop = await self._move(job, i)
+        if job.way_at is not None:
+            job.way_at = (i, "at", job.way_at[2])
         if job.scan.settle_s > 0:
             await asyncio.sleep(job.scan.settle_s)
         await self.sensor.begin_exposure()
@@ -906,19 +935,34 @@ class ScanRunner:
         if self._end is None or self._end[0] != "aborted":
             self._end = end
         if self._ending is None:
-            self._ending = asyncio.ensure_future(self._end_task(self._task))
+            self._ending = asyncio.ensure_future(self._end_task(self._task, self.job))
         await asyncio.shield(self._ending)
 
     @staticmethod
-    async def _end_task(task: asyncio.Task) -> None:
+    async def _end_task(task: asyncio.Task, job: ScanJob) -> None:
         # A task cancelled before its first step never runs its body, which records the scan's end in its capture
         # (an abort right after a takeover's resume left it 'running'): one turn of the loop runs that step first.
         await asyncio.sleep(0)
-        task.cancel()
+        # A task that woke in the same turn as the request (a publish landed, an arm reply came) has met `_check_end`
+        # and begun its wind-down by itself: cancelled now, the wind-down would be cut short (the abort acknowledged
+        # but never recorded, the daemon left 'scanning' with no task).
+        if job.winding_down is None:
+            task.cancel()
         try:
             await task
         except asyncio.CancelledError:
             pass
+
+    async def _wind_down_whole(self, job: ScanJob) -> None:
+        """Run the scan's wind-down to its end whoever cancels the scan task meanwhile: it runs as a future of its own,
+        waited for again after each cancellation (the task ends cancelled all the same once it is done)."""
+        job.winding_down = winding = asyncio.ensure_future(self._wind_down(job))
+        while not winding.done():
+            try:
+                await asyncio.shield(winding)
+            except asyncio.CancelledError:
+                continue
+        winding.result()
 
     async def _wind_down(self, job: ScanJob) -> None:
         """The scan task was cancelled (abort or shutdown): stop the arm, record the end state in the manifest."""
@@ -954,6 +998,21 @@ class ScanRunner:
 
     def _progress(self) -> str:
         return f"{self.job.next_pose}/{self.job.n_poses}" if self.job else "-"
+
+    @staticmethod
+    def _fault_at(job: ScanJob) -> str:
+        """Where a fault stopped the scan, for its reason: on the retake's way, the pose of the scan's path the arm
+        was moving to or at (an operator at the pendant looks for it there), else the scan's next pose."""
+        going = f"pose {job.next_pose}/{job.n_poses}"
+        if job.way_at is None:
+            return f" ({going})"
+        i, phase, direction = job.way_at
+        if job.owed:
+            why = f"to take pose(s) {', '.join(map(str, job.owed))} again"
+        else:
+            why = f"to pose {job.next_pose - 1}, the last published"
+        return (f" (the arm was {phase} pose {i}, on its way {direction} along the scan's path {why}; the scan "
+                f"goes on at {going})")
 
     def _pause_at(self) -> str:
         """The progress a requested pause stops at: a pose already in flight is finished and published first, so
@@ -1011,8 +1070,29 @@ def _check_left(job: ScanJob, arm) -> None:
 
 def _owed(job: ScanJob) -> str:
     """The poses the capture lacks before its first unpublished one (to be taken again), said; '' when none."""
-    retakes = job.writer.retakes if job.writer is not None else []
-    return ", ".join(str(r.pose) for r in retakes)
+    return ", ".join(map(str, job.owed))
+
+
+def _back_on_path(job: ScanJob, here: np.ndarray) -> bool:
+    """Whether TCP position `here` (m) lies on the scan's path before its last published pose (within ON_PATH_M of
+    a straight move between two published poses), and not on the move from that pose to the next one (where any
+    stop of a scan going on leaves the arm): only a stop on the retake's way forward leaves it there."""
+    last = job.next_pose - 1
+    path = job.tcp_poses[:last + 1, :3, 3]
+    if len(path) < 2 or _segment_distance(path[:-1], path[1:], here).min() > ON_PATH_M:
+        return False
+    on = job.tcp_poses[last:last + 2, :3, 3]
+    if len(on) < 2:  # no pose follows the last published one
+        return True
+    return float(_segment_distance(on[:1], on[1:], here)[0]) > ON_PATH_M
+
+
+def _segment_distance(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Distances (m) from point p (3,) to the segments a[k] -> b[k] ((n, 3) each)."""
+    ab = b - a
+    length2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18)
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / length2, 0.0, 1.0)
+    return np.linalg.norm(a + t[:, None] * ab - p, axis=1)
 
 
 def _finish_capture(job: ScanJob) -> None:

@@ -109,6 +109,19 @@ class ScanJob:
     """Poses published by why they were taken (adaptive scans): initial, adaptive, fallback."""
     ended_early: str | None = None
     """Why an adaptive scan ends before its last planned pose (the live reconstruction converged), or None."""
+    owed: list[int] = field(default_factory=list)
+    """The poses the capture lacks before its first unpublished one (its writer's `retakes`, to be taken again), as
+    last read: kept while a fault has dropped the writer, so that status still lists them."""
+    way_on: bool = False
+    """The retake's way along the scan's path (back to the poses owed, forward to the last published pose) is
+    unfinished: the next run walks it on before the scan's next pose (`ScanRunner._retake`)."""
+    way_at: tuple[int, str, str] | None = None
+    """Where the retake's way has the arm: (pose, "moving to" or "at", "back" or "forward"); None off the way."""
+    taken_over: bool = False
+    """Taken over from an earlier daemon, and no run has looked yet where the arm stands (a stop on the retake's
+    way forward leaves it on the scan's path before its last published pose, which no record says)."""
+    winding_down: object | None = None
+    """The scan task's wind-down (an asyncio future: abort or shutdown), once begun; None before."""
 
     @property
     def n_poses(self) -> int:
@@ -117,6 +130,7 @@ class ScanJob:
     def record_progress(self, writer: CaptureWriter) -> None:
         self.next_pose = writer.next_pose_index
         self.frames = writer.n_published
+        self.owed = [r.pose for r in writer.retakes]
         self.history.append((time.monotonic(), self.frames))
 
     def count_published(self) -> None:

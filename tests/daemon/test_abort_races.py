@@ -22,7 +22,8 @@ from spadscan.daemon.scan_job import ABORT_PENDING
 from spadscan.protocol.errors import ConfigError
 
 from test_abort_durable import disk, manifest  # noqa: F401  (disk: the fixture)
-from test_runner import check_capture, make_cfg, make_rig, until, sphere  # noqa: F401  (sphere: the fixture)
+from test_runner import (check_capture, daemon_runner, make_cfg, make_rig, until,  # noqa: F401
+                         sphere)  # (sphere: the fixture)
 from test_takeover_damaged import interrupted, restarted as recovered, tear
 
 VIEWS = 10
@@ -227,3 +228,107 @@ def test_the_last_error_of_an_unrecorded_abort_says_where_it_stands_after_a_retr
     assert said.startswith("scan 's' is aborted, but its scan.json does not say so yet (write error while "), said
     assert f"{ABORT_PENDING} in the scan folder keeps it" in said and "scans on by itself" not in said, said
     assert manifest(folder)["state"] == "aborted"  # landed at shutdown, the disk writable again
+
+
+def same_turn_as_state_reply(runner: ScanRunner, when, request) -> dict:
+    """Deliver the arm's state reply and `request()` (a control request: abort, shutdown) in one turn of the loop,
+    as two socket reads from one select() are, the first time the scan task reads the arm's state with when(runner)
+    true. The scan task then wakes into its own end-check (`_check_end`) as the request's cancellation is under way.
+    Returns {"request": the request's future, once sent}."""
+    real, out = runner.arm.state, {}
+
+    async def state():
+        got = await real()
+        if "request" in out or not when(runner):
+            return got
+        loop = asyncio.get_running_loop()
+        reply = loop.create_future()
+
+        def both():
+            out["request"] = asyncio.ensure_future(request())  # its first step runs first: it asks the task to end
+            reply.set_result(got)
+
+        loop.call_soon(both)
+        return await reply
+
+    runner.arm.state = state
+    return out
+
+
+def capturing(pose_of):
+    """when(runner): the arm's state read after the frames of a pose (`pose_of(runner)` says whether the pose in
+    flight is the one): the read that `_check_end` follows."""
+    return lambda runner: (runner.job is not None and runner.job.in_flight is not None
+                           and pose_of(runner, runner.job.in_flight))
+
+
+@pytest.mark.parametrize("where", ["planned pose", "pose taken again"])
+def test_an_abort_that_lands_as_the_scan_wakes_into_its_end_check_is_recorded(arun, tmp_path, sphere,  # noqa: F811
+                                                                              where):
+    """The task begins its wind-down by itself (`_check_end`); the abort's cancellation must not cut it short: the
+    reply said the abort is recorded, so scan.json says 'aborted' and the daemon is idle."""
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    name = "plain" if where == "planned pose" else "vase"
+    folder = tmp_path / "caps" / name
+    if where == "pose taken again":
+        arun(interrupted(cfg, sphere, name))
+        moved = tear(folder, 1)
+        shutil.move(folder / moved, tmp_path / moved)
+
+    async def scenario():
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            if where == "planned pose":
+                sent = same_turn_as_state_reply(runner, capturing(lambda r, i: i == 3), runner.abort)
+                await runner.start(name)
+            else:
+                await runner.recover()
+                sent = same_turn_as_state_reply(runner, capturing(lambda r, i: i < r.job.next_pose), runner.abort)
+                await runner.resume()
+            await until(lambda: "request" in sent, "the abort sent")
+            reply = await sent["request"]
+            return reply, runner.status()
+
+    reply, status = arun(scenario())
+    assert reply["aborted"] == name and reply["abort_recorded"] is True, reply
+    assert reply["state"] == status["state"] == "idle" and status["scan"] is None, status
+    assert status["last_scan"] == {"name": name, "state": "aborted"}, status
+    assert manifest(folder)["state"] == "aborted" and manifest(folder)["reason"] == "aborted by user"
+
+
+def test_a_shutdown_that_lands_as_a_pausing_scan_wakes_into_its_end_check_leaves_it_paused(arun, tmp_path,
+                                                                                          sphere):  # noqa: F811
+    """SIGTERM while `ctl pause` waits for the pose in flight: the wind-down records the pause in scan.json, so a
+    daemon restarted with auto_resume keeps the scan paused instead of moving the arm by itself. Cut short by the
+    shutdown's cancellation, it recorded nothing."""
+    cfg = make_cfg(tmp_path, views=VIEWS, auto_resume=True)
+    folder = tmp_path / "caps" / "s"
+
+    async def scenario():
+        arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            sent = {}
+            try:
+                sent = same_turn_as_state_reply(runner, capturing(lambda r, i: i == 3 and r.state == "pausing"),
+                                                runner.shutdown)
+                real_move = arm.move_to
+
+                async def move_to(tcp, speed, accel):
+                    if runner.job is not None and runner.job.in_flight == 3 and runner.state == "scanning":
+                        await runner.pause()
+                    await real_move(tcp, speed, accel)
+
+                arm.move_to = move_to  # the pause is asked for as pose 3's move begins: pose 3 is finished first
+                await runner.start("s")
+                await until(lambda: "request" in sent, "the shutdown sent")
+                await sent["request"]
+                return runner.state
+            finally:
+                if "request" not in sent:
+                    await runner.shutdown()
+
+    assert arun(scenario()) == "pausing"
+    m = manifest(folder)
+    assert m["state"] == "running" and m["paused"]["reason"] == "paused by user", m
+    status = arun(restarted(cfg, sphere, status_of))
+    assert status["state"] == "paused" and status["scan"] == "s" and status["reason"] == "paused by user", status
