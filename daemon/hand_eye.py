@@ -502,12 +502,21 @@ def _check_determined(jac: np.ndarray, path) -> None:
     """One-line ConfigError when the views leave part of X undetermined: its uncertainty for returns as steady as a
     sensor's best (SIGMA_FLOOR_BINS) over UNDETERMINED_MM or UNDETERMINED_DEG."""
     std_mm, std_deg = _uncertainty(jac, SIGMA_FLOOR_BINS)
-    loose = [f"along {axis} +-{v:.3g} mm" for axis, v in zip("xyz", std_mm) if not v <= UNDETERMINED_MM]
-    loose += [f"about {axis} +-{v:.3g} deg" for axis, v in zip("xyz", std_deg) if not v <= UNDETERMINED_DEG]
+    loose = [f"along {axis} {_spread(v, 'mm', math.inf)}" for axis, v in zip("xyz", std_mm)
+             if not v <= UNDETERMINED_MM]
+    loose += [f"about {axis} {_spread(v, 'deg', 180.0)}" for axis, v in zip("xyz", std_deg)
+              if not v <= UNDETERMINED_DEG]
     if loose:
         raise ConfigError(f"{path}: the views do not determine the hand-eye transform ({', '.join(loose)} in the "
                           f"flange frame): take views that tilt the tool about several axes (rings at several "
                           f"elevations with jitter)")
+
+
+def _spread(value: float, unit: str, whole: float) -> str:
+    """One loose part of X's uncertainty in words: "+-12.3 mm", or "wholly undetermined" where the views say
+    nothing of it (an infinite spread, or a turn of more than half a revolution: `whole`), which "+-inf mm" or
+    "+-1.4e+04 deg" would only say in a way that reads like a fault of the program."""
+    return f"+-{value:.3g} {unit}" if math.isfinite(value) and value <= whole else "wholly undetermined"
 
 
 def _boresight_offset(predictor: _Predictor, tcp: np.ndarray, x0: np.ndarray, observed: np.ndarray, first_bin: int,

@@ -149,12 +149,26 @@ def check_json(data, where: str) -> None:
         raise CaptureError(f"{where}: not JSON-serialisable ({one_line(exc)})") from None
 
 
+class NoPermission(CaptureError):
+    """A capture file that this user may not read: its owner or mode stops it, not its content (a capture made or
+    copied by another user). Never to be taken for a damaged file, whose advice (move it out) would lose good data."""
+
+
+def no_permission(path) -> NoPermission:
+    """The one line for a capture file this user may not read."""
+    return NoPermission(f"{path}: cannot be read (permission denied: check the file's owner and mode; its content "
+                        f"may be intact)")
+
+
 def read_json(path: Path) -> dict:
-    """Read a JSON object; a missing, truncated or non-object file is a one-line CaptureError naming it."""
+    """Read a JSON object; a missing, truncated or non-object file is a one-line CaptureError naming it (NoPermission
+    for one this user may not read)."""
     try:
         data = json.loads(Path(path).read_text())
     except FileNotFoundError:
         raise CaptureError(f"{path}: missing") from None
+    except PermissionError:
+        raise no_permission(path) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CaptureError(f"{path}: unreadable JSON ({one_line(exc)})") from None
     except RecursionError:  # the parser recurses once per level of nesting
@@ -169,7 +183,7 @@ NPY_MAGIC = b"\x93NUMPY"
 
 def read_npy(path: Path) -> np.ndarray:
     """Load a .npy file without pickles, in the machine's byte order; a file that is not a .npy, truncation or
-    corruption is a one-line CaptureError naming the file."""
+    corruption is a one-line CaptureError naming the file (NoPermission for one this user may not read)."""
     try:
         with open(path, "rb") as f:
             head = f.read(len(NPY_MAGIC))
@@ -188,6 +202,10 @@ def read_npy(path: Path) -> np.ndarray:
             array = np.load(f, allow_pickle=False)
     except FileNotFoundError:
         raise CaptureError(f"{path}: missing") from None
+    except PermissionError:  # an OSError, but the file is not damaged: "corrupt" would point at the wrong fix
+        raise no_permission(path) from None
+    except IsADirectoryError:
+        raise CaptureError(f"{path}: a folder, not a .npy file") from None
     except (OSError, ValueError, EOFError) as exc:
         if "allow_pickle" in str(exc):  # numpy's own advice there (load it unsafely) is no advice for a capture
             raise CaptureError(f"{path}: holds Python objects, not a plain array; a capture never writes such a "

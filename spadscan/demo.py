@@ -471,6 +471,15 @@ def _find_report(scan_dir: Path) -> Path:
     return reports[-1]
 
 
+def make_out(opts: DemoOptions) -> tuple[Path, Path]:
+    """Make the demo's folders (OUT, its logs and captures) and return (logs, captures): the command makes them
+    before it names the logs folder, so that an OUT it may not write is refused before any line promises it."""
+    logs, captures = opts.out / "logs", opts.out / "captures"
+    for folder in (opts.out, logs, captures):
+        folder.mkdir(parents=True, exist_ok=True)
+    return logs, captures
+
+
 def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
     """Run the loop and return the summary (also written to OUT/summary.json).
 
@@ -481,9 +490,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
     say = say or (lambda line: None)
     check_options(opts)
     out = opts.out
-    out.mkdir(parents=True, exist_ok=True)
-    logs, captures = out / "logs", out / "captures"
-    captures.mkdir(exist_ok=True)
+    logs, captures = make_out(opts)
     name = f"{opts.scene}-{time.strftime('%Y%m%d-%H%M%S')}"
     sock, sock_tmp = _socket_path(out)
     procs = Processes()

@@ -3,6 +3,7 @@ fails anyway its error repeats the line of the child's log that says why. (The w
 
 from __future__ import annotations
 
+import errno
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -74,6 +75,23 @@ def test_through_the_command_line(tmp_path, capsys, nothing_starts, argv, messag
     captured = capsys.readouterr()
     assert captured.err == f"spadscan: error: {message}\n", "one line, and no banner before it"
     assert not (tmp_path / "d").exists()
+
+
+def test_an_out_it_may_not_write_is_refused_before_the_banner_names_its_logs(tmp_path, capsys, monkeypatch,
+                                                                            nothing_starts):
+    """The banner said "logs in OUT/logs" and then the demo refused OUT: a place that never came to be. The refusal
+    is simulated at mkdir (EACCES), as root may write anywhere."""
+    out = tmp_path / "ro" / "dm"
+    mkdir = Path.mkdir
+
+    def guarded_mkdir(self, *args, **kwargs):
+        if self == out:
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        return mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", guarded_mkdir)
+    assert main(["demo", "--out", str(out)]) == 1
+    assert capsys.readouterr().err == f"spadscan: error: {out}: permission denied\n", "one line, and no banner"
 
 
 # ---- a child that fails anyway -------------------------------------------------------------------------------------

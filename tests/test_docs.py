@@ -111,3 +111,33 @@ def test_the_worker_watches_the_folder_the_example_configs_write_to():
     assert root == captures.replace("~", f"/home/{user}", 1) and root.startswith("/"), (root, captures)
     roots = re.findall(r"spadscan worker --root ([~/]\S*?)`", _readme_step(6))
     assert roots and all(r.replace("~", f"/home/{user}", 1) == root for r in roots), roots
+
+
+def _two_commands() -> str:
+    """The README's install and test section ("Two commands"), up to the next paragraph that is not about it."""
+    return re.search(r"\n## Two commands\n(.*?)\*\*On a GPU:\*\*", (ROOT / "README.md").read_text(), re.S)[1]
+
+
+def test_the_readme_says_what_the_test_command_installs_outside_python():
+    """tests/run.sh apt-installs system packages when run as root: a user running it in a container or as root on a
+    lab PC is told so where the command is given, package by package."""
+    run_sh = (ROOT / "tests" / "run.sh").read_text()
+    assert "apt-get install" in run_sh
+    packages = set(re.findall(r"missing\+=\(([^)]*)\)", run_sh))
+    packages = {name for group in packages for name in group.split()}
+    assert packages, "tests/run.sh installs no system package: drop this test and the README's note"
+    section = _two_commands()
+    assert "root" in section and "apt-get" in section, section
+    assert all(f"`{name}`" in section for name in packages), (packages, section)
+
+
+def test_pyproject_says_what_the_test_command_does_about_torch():
+    """run.sh installs torch from pip's default index (the CUDA build on Linux), never the CPU build: the comment
+    by the torch dependency must not promise that it does, as the README does not."""
+    run_sh = (ROOT / "tests" / "run.sh").read_text()
+    (install,) = re.findall(r"pip install -q \"torch[^\n]*", run_sh)
+    assert "--index-url" not in install and "+cpu" not in install, install
+    text = (ROOT / "pyproject.toml").read_text()
+    comment = " ".join(line.strip().lstrip("# ") for line in re.findall(r"^\s*#.*$", text, re.M))
+    assert "tests/run.sh installs that build" not in comment, comment
+    assert "tests/run.sh installs torch only where there is none" in comment, comment

@@ -11,6 +11,8 @@ started on the root takes it over. The lock is seen where the daemon's flock is:
 file system that shares flock locks between machines.
 
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
+The root is the folder of scans, never one scan's own folder (that is refused, naming its parent); a root with no
+scans yet is served all the same, saying so, and the page lists scans as they appear.
 
 examples:
   spadscan dashboard --root captures                  # then open http://127.0.0.1:8765/
@@ -51,13 +53,16 @@ def daemon_running(root: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from spadscan.dashboard.server import address, make_server
+    from spadscan.dashboard.server import address, holds_no_scans, make_server
 
     if not 0 <= args.port <= 65535:
         raise ConfigError(f"--port {args.port} must be in [0, 65535]")
     server = make_server(args.root, args.host, args.port, args.queue, daemon_running=daemon_running)
     print(f"spadscan dashboard: serving {args.root.resolve()} at {address(server)} (Ctrl-C stops it)",
           file=sys.stderr, flush=True)
+    if holds_no_scans(args.root):  # served all the same: the daemon may start one any time
+        print(f"spadscan dashboard: no scans in {args.root} yet (a scan is a sub-folder holding scan.json); the page "
+              f"lists them as they appear", file=sys.stderr, flush=True)
     try:
         server.serve_forever(poll_interval=0.25)
     except KeyboardInterrupt:

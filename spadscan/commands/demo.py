@@ -52,13 +52,14 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from spadscan.demo import DemoOptions, check_options, run_demo
+    from spadscan.demo import DemoOptions, check_options, make_out, run_demo
     from spadscan.worker.report.report_html import says_unconverged
 
     opts = DemoOptions(out=args.out, scene=args.scene, views=args.views, budget_s=args.budget_s, arm=args.arm,
                        sensor=args.sensor, dashboard=args.dashboard, dashboard_port=args.dashboard_port,
                        live=not args.offline)
     check_options(opts)  # before the banner: a refused option starts nothing and announces nothing
+    make_out(opts)  # so is an --out that cannot be written: the banner names its logs folder
 
     def bar(total: float, desc: str, unit: str):
         return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=True,

@@ -23,6 +23,7 @@ from importlib import resources
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
+from spadscan.protocol.capture_format import MANIFEST
 from spadscan.protocol.errors import SpadscanError
 from spadscan.worker.report.report_json import json_safe
 
@@ -124,9 +125,7 @@ def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None,
                 daemon_running=None) -> ThreadingHTTPServer:
     """A server for the captures root `root` bound to (host, port) (port 0: any free one); call serve_forever.
     `daemon_running(root)`: whether a daemon holds the root (Dashboard); None shows scans as scan.json says."""
-    root = Path(root)
-    if not root.is_dir():
-        raise SpadscanError(f"{root}: no such captures root" + (" (a file, not a folder)" if root.exists() else ""))
+    root = check_captures_root(root)
     if not str(host).strip():
         raise SpadscanError("--host '' would listen on every interface: give 0.0.0.0 to open the page to the "
                             "network, or leave --host out for this machine only")
@@ -141,6 +140,28 @@ def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None,
         raise SpadscanError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
     server.daemon_threads = True
     return server
+
+
+def check_captures_root(root) -> Path:
+    """`root` as a Path when it can be a captures root: a folder that is not itself a capture. The page of one
+    capture given as the root would list no scans and a queue that does not exist, with no word of the mistake (the
+    worker refuses it the same way)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise SpadscanError(f"{root}: no such captures root" + (" (a file, not a folder)" if root.exists() else ""))
+    if (root / MANIFEST).is_file():
+        parent = root.parent if root.name else root.resolve().parent
+        raise SpadscanError(f"{root} holds {MANIFEST}: it is a capture, not a captures root (use --root {parent})")
+    return root
+
+
+def holds_no_scans(root) -> bool:
+    """Whether the captures root lists and no sub-folder of it holds a scan manifest (hidden ones, the queue, are no
+    scans); False when it cannot be listed (the page says why)."""
+    try:
+        return not any(not p.name.startswith(".") and (p / MANIFEST).is_file() for p in Path(root).iterdir())
+    except OSError:
+        return False
 
 
 class IPv6Server(ThreadingHTTPServer):

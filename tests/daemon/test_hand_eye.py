@@ -12,8 +12,8 @@ import trimesh
 
 from spadscan.cli import main
 from spadscan.daemon.arm.pose_convert import check_pose, matrix_to_rotvec, rotvec_to_matrix
-from spadscan.daemon.hand_eye import (UNCERTAIN_DEG, UNCERTAIN_MM, Target, fit_hand_eye, hand_eye_toml,
-                                      parse_target, peak_bins, peak_positions)
+from spadscan.daemon.hand_eye import (SIGMA_FLOOR_BINS, UNCERTAIN_DEG, UNCERTAIN_MM, Target, _check_determined,
+                                      fit_hand_eye, hand_eye_toml, parse_target, peak_bins, peak_positions)
 from spadscan.daemon.scan_plan import invert_rigid
 from spadscan.protocol import schedules
 from spadscan.protocol.capture_format import Measurement
@@ -172,6 +172,21 @@ def test_views_that_leave_the_hand_eye_undetermined_are_refused(tmp_path, what, 
     assert "hand_eye = " not in captured.out
     err = captured.err.strip()
     assert "\n" not in err and "the views do not determine the hand-eye transform" in err and "mm" in err, err
+
+
+def test_a_part_the_views_say_nothing_of_is_called_wholly_undetermined():
+    """An infinite spread read "+-inf mm", and a turn's spread of many revolutions "+-1.4e+04 deg", as if the
+    program had failed; a finite spread keeps its number and unit. The Jacobian is diagonal: one standard deviation
+    of each parameter is SIGMA_FLOOR_BINS over its column's value (rotations in rad, translations in m)."""
+    sigma = SIGMA_FLOOR_BINS
+    columns = [1e4, sigma / math.radians(400.0), sigma / math.radians(20.0),  # about x, y, z
+               0.0, sigma / 0.040, 1e4]  # along x (the views say nothing of it), y, z
+    with pytest.raises(ConfigError) as info:
+        _check_determined(np.diag(columns), "cap")
+    assert str(info.value).startswith(
+        "cap: the views do not determine the hand-eye transform (along x wholly undetermined, along y +-40 mm, "
+        "about y wholly undetermined, about z +-20 deg in the flange frame): "), str(info.value)
+    assert "inf" not in str(info.value) and "nan" not in str(info.value)
 
 
 def test_the_zero_bin_can_be_fitted_with_the_hand_eye(tmp_path):

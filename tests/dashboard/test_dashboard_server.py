@@ -24,6 +24,7 @@ from page_helpers import add_pose, start_scan
 from spadscan.commands.dashboard import daemon_running
 from spadscan.daemon.root_lock import RootLock
 from spadscan.protocol.capture_writer import mark_paused
+from spadscan.protocol.errors import SpadscanError
 from spadscan.worker.job_progress import parse_progress
 
 
@@ -407,3 +408,52 @@ def test_non_finite_numbers_in_damaged_files_are_null_and_every_scan_is_still_li
     assert st["current"]["name"] == "going"
     current = st["current"]  # rates over the three good records (t_end 10.25 .. 11.25)
     assert (current["frames_per_s"], current["poses_per_min"]) == (pytest.approx(2.0), pytest.approx(120.0))
+
+
+def test_one_captures_folder_given_as_the_root_is_refused_naming_its_parent(tmp_path, capsys):
+    """The page of one capture would list no scans and a queue that does not exist; the worker refuses it too."""
+    from spadscan.cli import main
+    from spadscan.dashboard.server import make_server
+
+    complete_scan(tmp_path / "m1", 2)
+    with pytest.raises(SpadscanError) as info:
+        make_server(tmp_path / "m1", "127.0.0.1", 0)
+    assert str(info.value) == (f"{tmp_path / 'm1'} holds scan.json: it is a capture, not a captures root "
+                               f"(use --root {tmp_path})")
+    assert main(["dashboard", "--root", str(tmp_path / "m1"), "--port", "0"]) == 1
+    err = capsys.readouterr().err
+    assert err == f"spadscan: error: {info.value}\n", err
+
+
+def serve_once(monkeypatch):
+    """Make `spadscan dashboard` stop as Ctrl-C stops it as soon as it would serve (its start-up lines written)."""
+    import spadscan.dashboard.server as server_module
+
+    real = server_module.make_server
+
+    def stopping(*args, **kwargs):
+        server = real(*args, **kwargs)
+
+        def interrupted(**_):
+            raise KeyboardInterrupt
+        server.serve_forever = interrupted
+        return server
+
+    monkeypatch.setattr(server_module, "make_server", stopping)
+
+
+def test_a_root_without_scans_is_served_saying_there_are_none_yet(tmp_path, capsys, monkeypatch):
+    from spadscan.cli import main
+
+    serve_once(monkeypatch)
+    (tmp_path / ".queue").mkdir()  # the worker's queue is no scan
+    (tmp_path / "notes").mkdir()
+    assert main(["dashboard", "--root", str(tmp_path), "--port", "0"]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 2 and " at http://127.0.0.1:" in lines[0], lines
+    assert lines[1] == (f"spadscan dashboard: no scans in {tmp_path} yet (a scan is a sub-folder holding scan.json); "
+                        f"the page lists them as they appear"), lines
+    complete_scan(tmp_path / "m1", 2)
+    assert main(["dashboard", "--root", str(tmp_path), "--port", "0"]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and " at http://127.0.0.1:" in lines[0], lines
