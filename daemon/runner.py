@@ -228,7 +228,9 @@ class ScanRunner:
                                                 if owed else ""))
         if reopen_error and not job.blocked:
             job.reason = self.last_error = (f"interrupted at pose {self._progress()} (daemon restarted), and "
-                                            f"{reopen_error}; make room, then `spadscan ctl resume`")
+                                            f"{reopen_error}; make room, then `spadscan ctl resume`" +
+                                            (f", which takes pose(s) {owed} again first (missing from the capture)"
+                                             if owed else ""))
         # A scan that was paused when the daemon stopped (by the operator, or by a fault) stays paused: auto_resume
         # continues a scan that was interrupted, not one someone or something had stopped.
         auto = auto_resume and job.blocked is None and reopen_error is None and paused is None
@@ -621,7 +623,9 @@ class ScanRunner:
         flight; the next run starts the way again from where the arm then is. That holds once every owed pose is
         taken, too: the way forward still unfinished (`job.way_on`), the next run walks it on, instead of moving
         straight from an early pose to the scan's next one. A daemon restarted meanwhile knows nothing of the way:
-        it walks it on when the arm stands on the scan's path before its last published pose (`_back_on_path`)."""
+        it walks it on when the arm stands on the scan's path before its last published pose (`_back_on_path`).
+        Before the arm goes, every pose and move of the way is checked against the current [arm] limits
+        (`_check_way`): a refusal pauses the scan with the reason, the arm not moved."""
         if self._pause_requested:
             return
         owed = {r.pose: r for r in job.writer.retakes}
@@ -649,8 +653,12 @@ class ScanRunner:
         else:
             log.info("scan %s: walking on along the scan's path from pose %d to pose %d before pose %d", job.name,
                      start, last, job.next_pose)
+        first = min(start, low)
+        # The takeover checked the poses from the first owed or unpublished one against the current [arm] limits;
+        # the way may begin before it (the arm nearer an earlier pose, or walking on after a restart). A config
+        # tightened since the scan began must stop the scan here, before the arm goes, not once it stands there.
+        await asyncio.to_thread(_check_way, job, first, last, self.cfg.arm)
         if not job.controller_checked:  # the way back passes poses before `start`: the controller is asked from there
-            first = min(start, low)
             await self.arm.check_poses(job.tcp_poses[first:], first_index=first)
             job.controller_checked = True
         await self._check_first_move(job, start)
@@ -917,9 +925,12 @@ class ScanRunner:
         # between 'paused' being announced and this wait starting is not lost.
         self._pause_requested = False
         job.controller_checked = False
-        self._set_state("paused")
-        await self._record_pause(job)
-        await self._resume.wait()
+        # A scan launched paused and resumed before its task first ran (a takeover's auto_resume, `ctl resume
+        # NAME`): the reply said 'scanning', and announcing (and recording) a pause now would be untrue.
+        if not self._resume.is_set():
+            self._set_state("paused")
+            await self._record_pause(job)
+            await self._resume.wait()
         self._resume.clear()
         job.reason = None
         if job.writer is not None:  # (without one, the writer reopened on the way on clears the record)
@@ -1066,6 +1077,18 @@ def _check_left(job: ScanJob, arm) -> None:
         return
     for k, tcp in enumerate(left):
         check_workspace(tcp[None], arm, f"{where} pose {first + k}")
+
+
+def _check_way(job: ScanJob, first: int, last: int, arm) -> None:
+    """Check the retake's way, the scan's path from pose `first` to pose `last` (walked back and forth along it),
+    against the workspace: a ConfigError names the pose or move the current [arm] limits refuse (the arm not moved)."""
+    try:
+        check_workspace(job.tcp_poses[first:last + 1], arm, f"scan {job.name!r}", first=first, of=job.n_poses)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc}; the arm is not moved (before pose {last + 1} it walks the scan's path from pose "
+                          f"{first} to pose {last}: a straight move across the scan would cross the object): restore "
+                          f"the [arm] limits the scan was planned with and restart the daemon, or `spadscan ctl "
+                          f"abort`") from None
 
 
 def _owed(job: ScanJob) -> str:

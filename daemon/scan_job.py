@@ -28,9 +28,9 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
-from spadscan.protocol.capture_format import MANIFEST, fsync_dir, read_json
+from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.capture_writer import CaptureWriter, plan_retakes
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.sensor_model import SensorModel
 
@@ -135,15 +135,20 @@ class ScanJob:
 
     def count_published(self) -> None:
         """Progress read from the capture folder alone (no writer, nothing written): for a scan whose writer could
-        not be reopened."""
+        not be reopened. The poses owed are worked out as the writer's reopening does (`plan_retakes`), so that
+        status lists them while the operator makes room (CaptureError, as there, when they cannot be put back in
+        pose order)."""
         reader = CaptureReader(self.path)
-        poses, frames = set(), 0
+        poses, frames, held = set(), 0, []
         for name in reader.chunk_names():
             chunk = reader.read_chunk(name)
             frames += len(chunk.meta)
             poses.update(int(i) for i in chunk.pose_indices)
+            held.append((chunk_index(name), [(int(m["pose_index"]), _frame_number(m)) for m in chunk.meta]))
         self.next_pose = max(poses) + 1 if poses else 0
         self.frames = frames
+        retakes = plan_retakes(held, self.scan.frames_per_pose, self.scan.chunk_size, self.path)
+        self.owed = [r.pose for r in retakes]
 
     def count_choices(self) -> None:
         """view_counts read from the published measurements' meta (after a restart)."""
@@ -165,6 +170,12 @@ class ScanJob:
         old = [(t, f) for t, f in self.history if t1 - t <= window_s]
         t0, f0 = old[0] if len(old) > 1 else self.history[-2]
         return (f1 - f0) / (t1 - t0) if t1 > t0 else 0.0
+
+
+def _frame_number(record: dict) -> int | None:
+    """A measurement record's frame number; None when it has none (a pose taken whole, as `plan_retakes` reads it)."""
+    frame = record.get("frame")
+    return frame if isinstance(frame, int) and not isinstance(frame, bool) else None
 
 
 def written_by_daemon(manifest: dict) -> bool:

@@ -31,23 +31,25 @@ MOVE_STEP_RAD = 0.02
 
 
 def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np.ndarray | None = None,
-                    first: int = 0) -> None:
+                    first: int = 0, of: int | None = None) -> None:
     """Raise ConfigError naming the first TCP pose (P, 4, 4) or straight move that leaves the workspace; `start`
     (4, 4), when given, is where the arm is before the first move. `first`: the plan's number of the first pose given
-    (the poses a scan has left are the rest of a plan of first + P), so that the message names the plan's pose."""
+    (the poses a scan has left are the rest of a plan of first + P), so that the message names the plan's pose; `of`:
+    the plan's length, when the poses given end before it (default first + P)."""
     tcp = np.asarray(tcp_poses, dtype=np.float64)
     n = len(tcp)
     if n == 0:
         return
+    total = first + n if of is None else of
     pos = tcp[:, :3, 3]
     if not np.all(np.isfinite(tcp)):
         i = int(np.flatnonzero(~np.isfinite(tcp).all(axis=(1, 2)))[0])
-        raise ConfigError(f"{where}: pose {first + i} of {first + n}: TCP position is not finite")
+        raise ConfigError(f"{where}: pose {first + i} of {total}: TCP position is not finite")
     for i in range(n):
         reason = _pose_problem(tcp[i], arm)
         if reason:
             p = ", ".join(f"{v:.3f}" for v in pos[i])
-            raise ConfigError(f"{where}: pose {first + i} of {first + n}: TCP at [{p}] m is unreachable: {reason} "
+            raise ConfigError(f"{where}: pose {first + i} of {total}: TCP at [{p}] m is unreachable: {reason} "
                               f"([arm] limits)")
     moves = [(j - 1, j) for j in range(1, n)]
     poses = tcp
@@ -62,7 +64,7 @@ def check_workspace(tcp_poses: np.ndarray, arm: ArmConfig, where: str, start: np
         reason = move_problem(poses[a], poses[b], arm)
         if reason:
             j = b - 1 if start is not None else b
-            raise ConfigError(f"{where}: the straight move to pose {first + j} of {first + n} {reason} ([arm] limits)")
+            raise ConfigError(f"{where}: the straight move to pose {first + j} of {total} {reason} ([arm] limits)")
 
 
 def first_move_problem(current: np.ndarray, target: np.ndarray, arm: ArmConfig) -> str | None:
