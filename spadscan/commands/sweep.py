@@ -11,8 +11,9 @@ or the workers of a running scheduler (--scheduler tcp://HOST:8786; the machines
 files). Results survive: each finished point is written at once to DIR/points/<id>.json and gathered into
 DIR/results.csv; a re-run of the same sweep runs only the points not done (failed ones again); a point whose worker
 dies runs again on another; a sweep file whose base condition or methods differ from those DIR was run with is
-refused. Failed points are results too: they are listed at the end and marked in `spadscan sweep-plot DIR`; the exit
-status is 0 once every point has run.
+refused, and so is one whose grid lacks entries DIR holds results of (a grown grid is welcome; --overwrite runs it,
+and results.csv then holds its entries alone). Failed points are results too: they are listed at the end and
+marked in `spadscan sweep-plot DIR`; the exit status is 0 once every point has run.
 
 Examples:
   spadscan sweep examples/sweeps/small.toml --out sweep-small && spadscan sweep-plot sweep-small
@@ -41,6 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the LCSPCData folder (the one holding simulated/) for lcspc:NAME scenes")
     parser.add_argument("--keep", action="store_true",
                         help="keep each point's capture and outputs in DIR/work/<id>/ (default: removed)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="run a sweep file whose grid lacks entries DIR holds results of: results.csv, "
+                             "sweep.json and sweep.toml become this file's (the other points' results stay in "
+                             "DIR/points/, and a run of their own file gathers them again)")
     parser.add_argument("--dry-run", action="store_true",
                         help="check the file and list the points and how many are done; run nothing")
     parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
@@ -56,9 +61,10 @@ def run(args) -> int:
     def log(line: str) -> None:
         print(f"spadscan sweep: {line}", file=sys.stderr, flush=True)
 
-    from spadscan.sweep.runner import check_local_device, check_scheduler_address
+    from spadscan.sweep.runner import check_local_device, check_scheduler_address, check_workers
 
     # Refused before anything runs (the dry run too: what the run would refuse, it refuses).
+    check_workers(args.scheduler, args.workers)
     if args.scheduler is not None:
         check_scheduler_address(args.scheduler)
     else:
@@ -70,7 +76,7 @@ def run(args) -> int:
         f"{'' if len(plan.scenes) == 1 else 's'}: {len(plan.points)} distinct points; methods "
         f"{', '.join(spec.methods)}")
     if args.dry_run:
-        return _dry_run(plan, Path(args.out))
+        return _dry_run(plan, Path(args.out), args.overwrite)
     from spadscan.signals import terminate_as_interrupt
     from spadscan.sweep.runner import run_sweep
 
@@ -78,7 +84,8 @@ def run(args) -> int:
     try:
         with terminate_as_interrupt():
             summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers,
-                                device=args.device, keep=args.keep, progress=not args.no_progress, log=log)
+                                device=args.device, keep=args.keep, progress=not args.no_progress, log=log,
+                                overwrite=args.overwrite)
     except KeyboardInterrupt:
         # Dask cannot stop a task that runs: a scheduler's workers finish the points they hold, and a re-run waits.
         running = ("; points already running on the scheduler's workers finish there first"
@@ -94,11 +101,11 @@ def run(args) -> int:
     return 0
 
 
-def _dry_run(plan, out) -> int:
+def _dry_run(plan, out, overwrite: bool = False) -> int:
     from spadscan.sweep.store import SweepDir
 
     store = SweepDir(out)
-    store.check(plan)  # what the run would refuse, the dry run refuses too
+    store.check(plan, overwrite)  # what the run would refuse, the dry run refuses too
     done = 0
     for task in plan.points.values():
         result = store.read_point(task.id) if out.is_dir() else None

@@ -52,7 +52,7 @@ def read_results(folder) -> SweepResults:
     are not the shape `spadscan sweep` writes."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise ConfigError(f"{folder}: no such sweep folder")
+        raise ConfigError(f"{folder}: no such sweep folder" + (" (a file, not a folder)" if folder.exists() else ""))
     meta = _read_meta(folder)
     rows = _read_rows(folder / RESULTS_CSV)
     return SweepResults(folder, meta["mode"], meta["grid"], meta.get("base", {}), meta.get("scenes", []),

@@ -14,6 +14,7 @@ A point on a CUDA device asks for the worker resource GPU=1: start GPU workers w
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import os
@@ -28,7 +29,8 @@ from typing import Callable
 
 import torch
 from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
-from distributed.comm.addressing import get_address_host_port
+from distributed.comm import connect
+from distributed.comm.addressing import get_address_host_port, parse_address
 from distributed.utils import silence_logging_cmgr
 from tqdm import tqdm
 
@@ -40,7 +42,11 @@ from .store import SweepDir
 
 EVENT_TOPIC = "spadscan-sweep"
 DEVICES = ("cpu", "cuda", "auto")
-CONNECT_TIMEOUT_S = 30
+CONNECT_TIMEOUT_S = 15
+"""How long --scheduler's address has to answer as a Dask scheduler (connection and Dask's handshake together): a
+port that accepts and then says nothing (an HTTP server such as the dashboard's, 8787) would otherwise be waited on
+for ever. The connection itself gets CONNECT_SHARE of it, so that a port where nothing listens is told apart."""
+CONNECT_SHARE = 2 / 3
 RESULTS_EVERY_S = 10.0
 """results.csv is gathered at once when the first point finishes, then at most this often while points finish (it
 reads every point's file): a point that finishes sooner is gathered when the time is up, not only when another point
@@ -95,29 +101,29 @@ def cores() -> int:
 
 def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | None = None, device: str = "cpu",
               keep: bool = False, progress: bool = True, log: Callable[[str], None] | None = None,
-              point: Callable[..., dict] = dask_point) -> Summary:
+              point: Callable[..., dict] = dask_point, overwrite: bool = False,
+              connect_timeout_s: float | None = None) -> Summary:
     """Run every point of `plan` that DIR `out` does not hold as done; returns the summary. `scheduler`: the
     address of a running Dask scheduler (tcp://host:8786); None starts a LocalCluster of `workers` processes (default:
     one per core; one for CUDA). `point`: the task each point runs, point(task, out, device, keep) -> a summary
-    dict with id and status (dask_point; benchmarks/sweep_overhead.py times Dask with one that does nothing)."""
+    dict with id and status (dask_point; benchmarks/sweep_overhead.py times Dask with one that does nothing).
+    `overwrite`: run a plan that drops grid entries DIR holds results of (see SweepDir.open).
+    `connect_timeout_s`: how long the scheduler has to answer (default CONNECT_TIMEOUT_S)."""
     log = log or (lambda line: None)
     if device not in DEVICES:
         raise ConfigError(f"device {device!r} is not one of {', '.join(DEVICES)}")
-    if scheduler is not None and workers is not None:
-        raise ConfigError("--workers sizes the embedded cluster; a scheduler's workers are the ones started for it "
-                          "(dask worker ADDRESS)")
-    if workers is not None and workers < 1:
-        raise ConfigError(f"--workers {workers} must be at least 1")
+    check_workers(scheduler, workers)
     if scheduler is None:
         check_local_device(device)
+    timeout_s = CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
     store = SweepDir(out)
-    store.open(plan)
+    store.open(plan, overwrite=overwrite)
     try:
         todo = [t for t in plan.points.values() if (store.read_point(t.id) or {}).get("status") != "done"]
         summary = Summary(len(plan.points), len(plan.points) - len(todo))
         try:
             if todo:
-                _run_on_dask(plan, todo, store, summary, _client(scheduler, workers, device, log),
+                _run_on_dask(plan, todo, store, summary, _client(scheduler, workers, device, log, timeout_s),
                              lambda task: (point, task, sweep_name(store), device, keep), device, progress)
         except BaseException:
             with contextlib.suppress(OSError):
@@ -258,30 +264,101 @@ def check_local_device(device: str) -> None:
                           "would run the points (use --device cpu or auto, or --scheduler with GPU workers)")
 
 
+def check_workers(scheduler: str | None, workers: int | None) -> None:
+    """Refuse, in one line, a --workers that the run could not use (the dry run refuses it too)."""
+    if scheduler is not None and workers is not None:
+        raise ConfigError("--workers sizes the embedded cluster; a scheduler's workers are the ones started for it "
+                          "(dask worker ADDRESS)")
+    if workers is not None and workers < 1:
+        raise ConfigError(f"--workers {workers} must be at least 1")
+
+
 def check_scheduler_address(address: str) -> None:
-    """Refuse, in one line, a --scheduler that is no Dask address (a missing port, an unknown scheme), before
-    anything is written."""
+    """Refuse, in one line, a --scheduler that is no Dask address (a missing port, an unknown scheme) or one this
+    command cannot connect to (tls://, wss://), before anything is written."""
     try:
         get_address_host_port(address)
+        scheme = parse_address(address)[0]
     except ValueError as exc:
         raise ConfigError(f"--scheduler {address!r} is not a Dask scheduler's address, e.g. tcp://HOST:8786 "
                           f"({' '.join(str(exc).split())[:200]})") from None
+    if scheme in ("tls", "wss"):
+        # Certificates and keys (Dask's security configuration), which this command does not take.
+        raise ConfigError(f"--scheduler {address}: a {scheme}:// scheduler needs a Dask security configuration "
+                          f"(certificates and keys), which `spadscan sweep` does not take; use the scheduler's "
+                          f"tcp:// address (e.g. through an SSH tunnel)")
+
+
+def probe_scheduler(address: str, timeout_s: float) -> None:
+    """Refuse, in one line and within about `timeout_s` seconds, an address where no Dask scheduler answers: nothing
+    listening, a server that accepts and says nothing (an HTTP server such as the dashboard), one that talks another
+    protocol (SSH), a Dask worker. Dask's own connect bounds the connection but not its handshake, and reads
+    whatever comes back as Dask's frames (an SSH banner asks it for exabytes): so this asks the address who it is,
+    with one deadline for all of it, before the client connects."""
+    try:
+        reply = asyncio.run(asyncio.wait_for(_identity(address, timeout_s * CONNECT_SHARE), timeout_s))
+    except TimeoutError:  # before OSError: TimeoutError is one
+        raise ConfigError(f"{address} is not a reachable Dask scheduler: nothing there answered as one within "
+                          f"{timeout_s:g} s (a Dask dashboard or another HTTP server? a scheduler listens on "
+                          f"port 8786 by default)") from None
+    except OSError as exc:
+        raise ConfigError(f"{address} is not a reachable Dask scheduler: cannot connect "
+                          f"({' '.join(str(exc).split())[:200]})") from None
+    except Exception as exc:  # noqa: BLE001 - whatever a foreign protocol makes Dask's reader raise
+        raise ConfigError(f"{address} is not a reachable Dask scheduler: what answered there does not speak Dask's "
+                          f"protocol ({type(exc).__name__})") from None
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if not isinstance(kind, str) or "Scheduler" not in kind:
+        what = f"a Dask {kind}" if isinstance(kind, str) else "something else"
+        raise ConfigError(f"{address} is not a reachable Dask scheduler: it answers as {what} (give the address "
+                          f"the workers were started with: dask worker ADDRESS)")
+
+
+async def _identity(address: str, connect_s: float):
+    """What the Dask server at `address` says it is (its 'identity' reply); the connection is given `connect_s`."""
+    comm = await connect(address, timeout=connect_s)
+    try:
+        await comm.write({"op": "identity", "reply": True})
+        return await comm.read()
+    finally:
+        comm.abort()
+
+
+@contextlib.contextmanager
+def _interrupts_held(hold: bool = True):
+    """Within the block, Ctrl-C and SIGTERM wait: the block yields the list of the signals that came meanwhile. The
+    cluster's close must end, its worker processes with it, before the points they finished are gathered; a second
+    Ctrl-C that broke into the close left those processes to finish their points after results.csv was written.
+    With `hold` False, the block runs as is."""
+    caught: list[int] = []
+    if not hold or threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+    previous = {sig: signal.signal(sig, lambda signum, frame: caught.append(signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield caught
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 class _client:
     """A Dask client on `scheduler`, or on a LocalCluster it starts and stops."""
 
-    def __init__(self, scheduler, workers, device, log):
+    def __init__(self, scheduler, workers, device, log, timeout_s: float = CONNECT_TIMEOUT_S):
         self.scheduler, self.workers, self.device, self.log = scheduler, workers, device, log
+        self.timeout_s = timeout_s
         self.cluster = self.client = None
 
     def __enter__(self):
         if self.scheduler is not None:
+            probe_scheduler(self.scheduler, self.timeout_s)
             try:
-                self.client = Client(self.scheduler, timeout=CONNECT_TIMEOUT_S)
-            except (OSError, TimeoutError) as exc:
-                raise ConfigError(f"cannot reach the Dask scheduler at {self.scheduler} "
-                                  f"({' '.join(str(exc).split())[:200]})") from None
+                self.client = Client(self.scheduler, timeout=self.timeout_s)
+            except Exception as exc:  # noqa: BLE001 - a scheduler that went away since the probe, say
+                raise ConfigError(f"{self.scheduler} is not a reachable Dask scheduler: "
+                                  f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}") from None
             workers = self.client.scheduler_info().get("workers", {})
             n = len(workers)
             self.log(f"scheduler {self.scheduler}: {n} worker{'' if n == 1 else 's'} connected" +
@@ -301,7 +378,7 @@ class _client:
         try:
             self.client = Client(self.cluster)
         except BaseException:
-            self.__exit__()  # the cluster's processes are not left running without a client
+            self.__exit__(*sys.exc_info())  # the cluster's processes are not left running without a client
             raise
         self.log(f"local cluster: {n} worker process{'' if n == 1 else 'es'}, one thread each")
         return self.client
@@ -311,13 +388,17 @@ class _client:
         # closed connection, and the scheduler logs that as critical, with a traceback. Nothing is lost by it (every
         # point's outcome is in the sweep's own files), so its close is silent.
         quiet = contextlib.nullcontext() if self.cluster is None else silence_logging_cmgr(logging.CRITICAL + 1)
-        with quiet:
+        # Only the embedded cluster's close is waited for: a scheduler's workers go on with their points regardless.
+        with quiet, _interrupts_held(self.cluster is not None) as caught:
             if self.client is not None:
                 self.client.close()
             if self.cluster is not None:
                 self.cluster.close()
+        if caught and exc[0] is None:
+            raise KeyboardInterrupt  # a Ctrl-C during the close of a sweep that had ended: the sweep ends as one
         return False
 
 
-__all__ = ["run_sweep", "check_local_device", "check_scheduler_address", "dask_point", "emit_event", "Summary",
+__all__ = ["run_sweep", "check_local_device", "check_scheduler_address", "check_workers", "probe_scheduler",
+           "dask_point", "emit_event", "Summary",
            "EVENT_TOPIC", "cores"]

@@ -74,10 +74,11 @@ class SweepDir:
 
     # --- the client's side: open, check, gather ---------------------------------------------------------------
 
-    def open(self, plan) -> None:
-        """Create or reopen the folder for `plan`: take the lock, refuse a folder of another base condition, record
-        the plan, clear the work folders of attempts that died (not those of attempts still running: an
-        interrupted run's points go on running on a scheduler's workers). Call `close` when done."""
+    def open(self, plan, overwrite: bool = False) -> None:
+        """Create or reopen the folder for `plan`: take the lock, refuse a folder of another base condition, or
+        (unless `overwrite`) one holding results of grid entries that `plan` lacks, record the plan, clear the work
+        folders of attempts that died (not those of attempts still running: an interrupted run's points go on
+        running on a scheduler's workers). Call `close` when done."""
         if self.path.exists() and not self.path.is_dir():
             raise ConfigError(f"{self.path}: exists and is not a folder")
         self.path.mkdir(parents=True, exist_ok=True)
@@ -85,7 +86,7 @@ class SweepDir:
         self._lock()
         try:
             try:
-                self._check_fingerprint(plan)
+                self._check_fingerprint(plan, overwrite)
             except ConfigError:
                 if new_lock:  # a refused folder is left as it was found
                     (self.path / LOCK).unlink(missing_ok=True)
@@ -103,13 +104,13 @@ class SweepDir:
             self.close()
             raise
 
-    def check(self, plan) -> None:
+    def check(self, plan, overwrite: bool = False) -> None:
         """What `open` refuses, checked without taking the lock or writing anything (`spadscan sweep --dry-run`): a
-        file in the way, a folder of other files, a folder of another base condition."""
+        file in the way, a folder of other files, a folder of another base condition or of other grid entries."""
         if self.path.exists() and not self.path.is_dir():
             raise ConfigError(f"{self.path}: exists and is not a folder")
         if self.path.is_dir():
-            self._check_fingerprint(plan)
+            self._check_fingerprint(plan, overwrite)
 
     def close(self) -> None:
         if self._lock_fd is not None:
@@ -130,7 +131,7 @@ class SweepDir:
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         self._lock_fd = fd
 
-    def _check_fingerprint(self, plan) -> None:
+    def _check_fingerprint(self, plan, overwrite: bool = False) -> None:
         path = self.path / SWEEP_JSON
         if not path.exists():
             if any(p.name != LOCK for p in self.path.iterdir()):
@@ -144,6 +145,8 @@ class SweepDir:
             raise ConfigError(f"{path}: unreadable; this folder cannot be checked against the sweep (choose "
                               f"another --out)") from None
         if old_fingerprint == plan.fingerprint:
+            if not overwrite:
+                self._check_entries(old, plan, path)
             return
         if not any(self.points.glob("*.json")):
             return  # no point stored (a run that never reached its cluster, say): nothing to keep apart
@@ -152,6 +155,26 @@ class SweepDir:
         raise ConfigError(f"{self.path} holds points of another base condition ({shown or 'a different format'}); "
                           f"its results would not be comparable with this sweep's: choose another --out, or "
                           f"{self._restore_advice(old.get('sweep_file'))}")
+
+    def _check_entries(self, old: dict, plan, path: Path) -> None:
+        """Refuse a plan that lacks grid entries the folder holds results of: results.csv and sweep.json (so the
+        figure) are the plan's entries alone, and would lose those rows. The same sweep, or a grown grid, passes."""
+        entries = old.get("entries", [])
+        if not isinstance(entries, list) or not all(isinstance(e, dict) and isinstance(e.get("point"), str)
+                                                    for e in entries):
+            raise ConfigError(f"{path}: unreadable (its entries); this folder cannot be checked against the sweep "
+                              f"(choose another --out)")
+        planned = {entry_key(e.scene, e.axis, e.value, e.point_id) for e in plan.entries}
+        dropped = [e for e in entries if entry_key(e.get("scene"), e.get("axis"), e.get("value"), e["point"])
+                   not in planned and self.read_point(e["point"]) is not None]
+        if not dropped:
+            return
+        shown = ", ".join(_describe_entry(e) for e in dropped[:3]) + (
+            f" and {len(dropped) - 3} more" if len(dropped) > 3 else "")
+        raise ConfigError(f"{self.path} holds results of {len(dropped)} grid entr{'y' if len(dropped) == 1 else 'ies'} "
+                          f"this sweep file lacks ({shown}), which results.csv and sweep-plot would lose: choose "
+                          f"another --out, grow this file's grid to hold them (the file last run here is "
+                          f"{self.path / SWEEP_TOML}), or add --overwrite (their points stay in {self.points})")
 
     def _restore_advice(self, sweep_file) -> str:
         """How to run this folder's own sweep again. The copy in DIR is not run where it is: a scene that is a
@@ -271,6 +294,20 @@ def sweep_record(plan) -> dict:
         "points": len(plan.points),
         "spadscan": spadscan.__version__,
     }
+
+
+def entry_key(scene, axis, value, point_id) -> str:
+    """A grid entry as text that compares equal for the same entry, in a plan or read back from sweep.json."""
+    return json.dumps([scene, axis, value, point_id])
+
+
+def _describe_entry(entry: dict) -> str:
+    """'builtin:sphere views=8' for a sweep.json entry."""
+    axis, value = entry.get("axis"), entry.get("value")
+    if value is None:  # the base alone, or a product entry: the point names it
+        return f"{entry.get('scene')} {axis} (point {entry.get('point')})"
+    shown = f"{value:g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+    return f"{entry.get('scene')} {axis}={shown}"
 
 
 def results_row(entry, result: dict, methods, spec) -> list:

@@ -230,3 +230,72 @@ def test_a_point_that_kills_every_worker_it_runs_on_is_recorded_as_failed(tmp_pa
         assert stored["status"] == "failed"
         assert stored["reason"] == ("the worker running it died each time it was tried (2 workers: killed, or out "
                                     "of memory?); their logs say why")
+
+
+SECOND_CTRL_C = """
+import signal
+import sys
+from pathlib import Path
+
+from spadscan.sweep.plan import make_plan
+from spadscan.sweep.runner import run_sweep
+from spadscan.sweep.spec import load_spec
+
+
+def ends_during_the_close(task, out, device, keep):
+    import os
+    import time
+
+    from distributed import get_worker
+    from distributed.core import Status
+
+    from spadscan.sweep.store import SweepDir
+
+    out = Path(out)
+    client = int((out.parent / "client.pid").read_text())
+    os.kill(client, signal.SIGINT)  # Ctrl-C: the client closes the cluster, which asks this worker to stop
+    worker = get_worker()
+    deadline = time.monotonic() + 120
+    while worker.status == Status.running and time.monotonic() < deadline:
+        time.sleep(0.01)
+    os.kill(client, signal.SIGINT)  # a second Ctrl-C, while the cluster closes
+    # The point ends once results.csv is gathered (if it is gathered while the point runs), else after a while
+    # well within the time a closing worker gives its task (4 s).
+    deadline = time.monotonic() + 1.5
+    while not (out / "results.csv").exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    SweepDir(out).write_point({"id": task.id, "status": "done", "reason": None, "params": task.params,
+                               "methods": {}})
+    return {"id": task.id, "status": "done", "reason": None, "seconds": 0.0, "worker": None}
+
+
+if __name__ == "__main__":
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    out = Path(sys.argv[2])
+    (out.parent / "client.pid").write_text(str(__import__("os").getpid()))
+    try:
+        run_sweep(make_plan(load_spec(sys.argv[1])), out, workers=1, progress=False, point=ends_during_the_close)
+    except KeyboardInterrupt:
+        print("interrupted")
+"""
+
+
+def test_a_point_that_ends_while_the_cluster_closes_after_ctrl_c_is_in_results_csv(tmp_path):
+    """A second Ctrl-C (a terminal's, or `timeout`'s signal to its process group) that came while the cluster closed
+    broke off the close: results.csv was gathered while the workers still ran, and missed the points they finished
+    after it."""
+    import subprocess
+    import sys
+
+    one_point = tmp_path / "one.toml"
+    one_point.write_text('[sweep]\nscenes = ["builtin:sphere"]\n[base]\nviews = 4\n')
+    script = tmp_path / "second_ctrl_c.py"
+    script.write_text(SECOND_CTRL_C)
+    out = tmp_path / "out"
+    run = subprocess.run([sys.executable, str(script), str(one_point), str(out)], capture_output=True, text=True,
+                         timeout=300)
+    assert run.stdout.split() == ["interrupted"], (run.stdout, run.stderr[-3000:])
+    (point,) = make_plan(load_spec(one_point)).points
+    assert json.loads((out / "points" / f"{point}.json").read_text())["status"] == "done"
+    with open(out / "results.csv", newline="") as f:
+        assert [row["point"] for row in csv.DictReader(f)] == [point]

@@ -48,6 +48,16 @@ def test_sweep_plot_of_a_folder_that_is_not_a_sweep_is_one_line(tmp_path, capsys
     assert "holds no sweep.json" in err and err.count("\n") == 1
 
 
+def test_sweep_plot_of_a_file_says_it_is_a_file(tmp_path, capsys):
+    (tmp_path / "results.csv").write_text("scene\n")
+    assert main(["sweep-plot", str(tmp_path / "results.csv")]) == 1
+    err = capsys.readouterr().err
+    assert "no such sweep folder (a file, not a folder)" in err and err.count("\n") == 1, err
+    assert main(["sweep-plot", str(tmp_path / "absent")]) == 1
+    err = capsys.readouterr().err
+    assert err.strip().endswith("absent: no such sweep folder"), err
+
+
 
 def test_a_results_csv_re_saved_with_a_byte_order_mark_still_plots(finished_sweep, capsys):
     """A spreadsheet that saves the table as "CSV UTF-8" puts a byte-order mark before the first column's name."""

@@ -106,3 +106,16 @@ def test_the_command_refuses_cuda_without_a_scheduler_in_one_line_dry_run_too(tm
         err = capsys.readouterr().err
         assert "torch sees no CUDA device" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("extra, expected", [
+    (["--workers", "0"], "--workers 0 must be at least 1"),
+    (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"], "--workers sizes the embedded cluster"),
+])
+def test_the_dry_run_refuses_the_workers_the_run_refuses(tmp_path, capsys, extra, expected):
+    tiny = str(write_tiny(tmp_path))
+    for mode in (["--dry-run"], ["--no-progress"]):
+        assert main(["sweep", tiny, "--out", str(tmp_path / "out"), *extra, *mode]) == 1
+        errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("spadscan: error: ")]
+        assert len(errors) == 1 and expected in errors[0], errors
+    assert not (tmp_path / "out").exists()

@@ -262,3 +262,81 @@ def test_a_rerun_leaves_a_running_attempt_alone_and_waits_for_its_result(tmp_pat
     assert len(simulated) == 1 and second_events == ["wait", "skip"]
     assert results["first"]["status"] == "done" and results["second"] == results["first"]
     assert out.read_point(task.id) == results["first"]
+
+
+def _finished(tmp_path, sweep_file):
+    """A folder where every point of `sweep_file` is done (made-up results); returns (its store, the plan)."""
+    plan = make_plan(load_spec(sweep_file))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    for task in plan.points.values():
+        out.write_point(fake_result(task))
+    out.write_results(plan)
+    return out, plan
+
+
+def test_a_sweep_file_that_drops_entries_with_results_is_refused_and_the_folder_kept(tmp_path, capsys):
+    """Another grid with the same base condition (or a smaller one) would have made results.csv, sweep.json and
+    sweep.toml its own, the first sweep's rows gone from the table and the figure."""
+    from spadscan.cli import main
+
+    tiny = write_tiny(tmp_path)
+    out, plan = _finished(tmp_path, tiny)
+    before = {name: (tmp_path / "out" / name).read_bytes() for name in ("results.csv", "sweep.json", "sweep.toml")}
+    other = tmp_path / "other.toml"
+    other.write_text(tiny.read_text().replace("power = [1.0, 1e-7]", "ambient = [0.0, 1e-3]"))
+    smaller = tmp_path / "smaller.toml"
+    smaller.write_text(tiny.read_text().replace("views = [8, 12]", "views = [12]"))
+    for sweep_file, lost in ((other, "builtin:sphere power=1e-07"), (smaller, "builtin:sphere views=8")):
+        with pytest.raises(ConfigError) as err:
+            SweepDir(tmp_path / "out").open(make_plan(load_spec(sweep_file)))
+        message = str(err.value)
+        assert message.startswith(f"{tmp_path / 'out'} holds results of") and lost in message, message
+        assert "--out" in message and "--overwrite" in message and "\n" not in message
+        for extra in (["--dry-run"], ["--no-progress"]):  # the dry run says so too
+            assert main(["sweep", str(sweep_file), "--out", str(tmp_path / "out"), *extra]) == 1
+            errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("spadscan: error: ")]
+            assert len(errors) == 1 and "holds results of" in errors[0], errors
+    after = {name: (tmp_path / "out" / name).read_bytes() for name in before}
+    assert after == before
+    # The same sweep resumes, and a grown grid is welcome.
+    SweepDir(tmp_path / "out").check(plan)
+    grown = tmp_path / "grown.toml"
+    grown.write_text(tiny.read_text().replace("views = [8, 12]", "views = [8, 12, 16]"))
+    SweepDir(tmp_path / "out").check(make_plan(load_spec(grown)))
+
+
+def test_overwrite_runs_a_smaller_grid_and_keeps_the_dropped_points(tmp_path):
+    tiny = write_tiny(tmp_path)
+    out, plan = _finished(tmp_path, tiny)
+    smaller = tmp_path / "smaller.toml"
+    smaller.write_text(tiny.read_text().replace("views = [8, 12]", "views = [12]"))
+    small = make_plan(load_spec(smaller))
+    SweepDir(tmp_path / "out").check(small, overwrite=True)
+    again = SweepDir(tmp_path / "out")
+    again.open(small, overwrite=True)
+    again.close()
+    assert again.write_results(small) == len(small.entries)
+    assert sorted(p.stem for p in (tmp_path / "out" / "points").glob("*.json")) == sorted(plan.points)
+    # Its own file gathers the dropped rows again.
+    again.open(plan)
+    again.close()
+    assert again.write_results(plan) == len(plan.entries)
+
+
+def test_entries_without_a_result_may_be_dropped(tmp_path):
+    """A point that never ran loses nothing when a file leaves it out (a run stopped early, its grid trimmed)."""
+    tiny = write_tiny(tmp_path)
+    plan = make_plan(load_spec(tiny))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.close()
+    kept = next(t for t in plan.points.values() if t.params["views"] == 12 and t.params["power"] == 1.0)
+    out.write_point(fake_result(kept))
+    smaller = tmp_path / "smaller.toml"
+    smaller.write_text(tiny.read_text().replace("views = [8, 12]", "views = [12]").replace("power = [1.0, 1e-7]",
+                                                                                           "power = [1.0]"))
+    again = SweepDir(tmp_path / "out")
+    again.open(make_plan(load_spec(smaller)))
+    again.close()
