@@ -28,7 +28,7 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
-from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
+from spadscan.protocol.capture_format import MANIFEST, NoPermission, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter, plan_retakes
 from spadscan.protocol.errors import CaptureError, ConfigError
@@ -334,35 +334,47 @@ def interrupted_scan(root: Path, name: str) -> Path:
     return path
 
 
-def damaged_chunks(path: Path) -> tuple[list[str], list[str]]:
-    """(every chunk, those that cannot be read: torn or zeroed files after a power cut) of the capture at `path`."""
+def damaged_chunks(path: Path) -> tuple[list[str], list[str], list[str]]:
+    """(every chunk, those that cannot be read: torn or zeroed files after a power cut, those this user may not read:
+    another owner, a mode) of the capture at `path`. The last are kept apart: their content may be intact, and the
+    advice for a damaged chunk (move it out) would throw good data away."""
     try:
         reader = CaptureReader(path)
         names = reader.chunk_names()
     except (CaptureError, OSError):
-        return [], []
-    damaged = []
+        return [], [], []
+    damaged, forbidden = [], []
     for name in names:
         try:
             reader.read_chunk(name)
+        except NoPermission:
+            forbidden.append(name)
         except (CaptureError, OSError):
             damaged.append(name)
-    return names, damaged
+    return names, damaged, forbidden
 
 
 def way_out(path: Path) -> str:
     """What the operator can do about a scan that could not be taken over (reads its chunks: run it off the event
-    loop): set its damaged chunks aside and resume it, or end it (every chunk stays)."""
+    loop): let the daemon read the chunks it may not, set its damaged chunks aside and resume it, or end it (every
+    chunk stays)."""
     name = path.name
     end = f"or `spadscan ctl abort {name}` ends the scan as aborted, keeping every chunk"
-    names, damaged = damaged_chunks(path)
-    if not damaged:
+    _, damaged, forbidden = damaged_chunks(path)
+    steps = []
+    if forbidden:
+        steps.append(f"{', '.join(forbidden)} cannot be read by this user (permission denied): give the daemon's user "
+                     f"read access (owner or mode; {'its' if len(forbidden) == 1 else 'their'} content may be intact, "
+                     f"keep {'it' if len(forbidden) == 1 else 'them'} in place)")
+    if damaged:
+        # Whichever chunk it is: the resumed scan takes the poses the capture lacks again, going back along its path,
+        # and publishes them in pose order (CaptureWriter.retakes), so that it ends complete with every pose.
+        again = "its poses are taken again" if len(damaged) == 1 else "their poses are taken again"
+        steps.append(f"{', '.join(damaged)} cannot be read: move {'it' if len(damaged) == 1 else 'them'} out of "
+                     f"{path} ({again})")
+    if not steps:
         return f"once that is fixed, `spadscan ctl resume {name}` takes it over; {end}"
-    # Whichever chunk it is: the resumed scan takes the poses the capture lacks again, going back along its path,
-    # and publishes them in pose order (CaptureWriter.retakes), so that it ends complete with every pose.
-    again = "its poses are taken again" if len(damaged) == 1 else "their poses are taken again"
-    return (f"{', '.join(damaged)} cannot be read: move {'it' if len(damaged) == 1 else 'them'} out of {path} "
-            f"({again}), then `spadscan ctl resume {name}`; {end}")
+    return f"{'; '.join(steps)}, then `spadscan ctl resume {name}`; {end}"
 
 
 def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | None = None,

@@ -4,12 +4,16 @@ chunk kept; moving the chunk out of the folder and `ctl resume` takes the scan o
 
 from __future__ import annotations
 
+import builtins
+import errno
+import os
 import shutil
 
 import numpy as np
 import pytest
 
 from spadscan.daemon.scan_job import way_out
+from spadscan.protocol import capture_format
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError
 
@@ -173,3 +177,41 @@ def test_wait_on_an_interrupted_scan_the_daemon_does_not_hold_says_so_with_the_w
                      "itself: `spadscan ctl resume older` takes it over and continues it; or `spadscan ctl abort "
                      "older` ends it as aborted, keeping every chunk"), older
     assert nope.startswith("no scan named 'nope' is running or finished in "), nope
+
+
+def test_a_chunk_this_user_may_not_read_is_never_called_damaged_and_is_kept_in_place(arun, tmp_path, sphere,
+                                                                                    monkeypatch):  # noqa: F811
+    """A chunk made or copied by another user (its owner or mode, not its content): the way out says permission
+    denied and to give read access, never to move it out (which would throw good data away); once readable, `ctl
+    resume NAME` finishes the scan with every chunk where it was."""
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    folder = tmp_path / "caps" / "vase"
+    arun(interrupted(cfg, sphere))
+    chunk = sorted(folder.glob("chunk-*"))[1]
+    kept = {p.relative_to(folder): p.read_bytes() for p in chunk.glob("*")}
+    denied = chunk / "hists.npy"
+
+    def guarded_open(file, *args, **kwargs):  # as root, chmod 000 would not stop a read: refuse it at the open
+        if os.fspath(file) == os.fspath(denied):
+            raise PermissionError(errno.EACCES, "Permission denied", os.fspath(file))
+        return builtins.open(file, *args, **kwargs)
+
+    monkeypatch.setattr(capture_format, "open", guarded_open, raising=False)
+    said = way_out(folder)
+    assert said.startswith(f"{chunk.name} cannot be read by this user (permission denied): give the daemon's user "
+                           f"read access"), said
+    assert "move" not in said and said.endswith("`spadscan ctl abort vase` ends the scan as aborted, keeping every "
+                                                "chunk"), said
+
+    async def then(runner, status):
+        with pytest.raises(ConfigError) as still:
+            await runner.resume("vase")
+        monkeypatch.undo()  # the operator gives read access
+        resumed = await runner.resume("vase")
+        return str(still.value), resumed, await runner.wait("vase")
+
+    still, resumed, done = arun(restarted(cfg, sphere, then))
+    assert "permission denied" in still and "move it out" not in still and "\n" not in still, still
+    assert resumed["scan"] == "vase" and done == {"name": "vase", "state": "complete"}
+    check_capture(folder, VIEWS, 2)
+    assert {p.relative_to(folder): p.read_bytes() for p in chunk.glob("*")} == kept  # the chunk stayed, untouched
