@@ -17,7 +17,8 @@ from spadscan.daemon.workspace import check_workspace
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
 
-from test_retake_way import interrupted, owing, stop_on_the_way, visited, VIEWS
+from test_retake_way import (interrupted, owing, restarted_with_the_arm_at, stop_on_the_way, stopped_on_the_next_move,
+                             visited, VIEWS)
 from test_runner import HAND_EYE, check_capture, daemon_runner, make_cfg, until, sphere  # noqa: F401  (the fixture)
 
 
@@ -195,17 +196,7 @@ def test_a_stop_on_the_scans_next_move_that_crosses_an_earlier_move_goes_straigh
     cfg = make_cfg(tmp_path, views=VIEWS, schedule="rings", rings=1, min_elevation_deg=30.0, max_elevation_deg=30.0,
                    order="planned")
     arun(interrupted(cfg, sphere))
-
-    async def first():
-        async with daemon_runner(cfg, sphere) as runner:
-            await runner.recover()
-            runner.arm.jog(runner.job.tcp_poses[runner.job.next_pose - 1])
-            stopped = stop_on_the_way(runner, 8, "fault")
-            await runner.resume()
-            await until(lambda: stopped and runner.state == "paused", "the fault's pause")
-            return runner.arm.actual_pose()
-
-    here = arun(first())
+    here, _ = stopped_on_the_next_move(arun, cfg, sphere)
     plan = plan_of(tmp_path / "caps" / "vase")
     path = plan[:, :3, 3]
     # The stop lies on the move 0 -> 1 as on 7 -> 8, and pose 0 is the published pose nearest it.
@@ -213,14 +204,7 @@ def test_a_stop_on_the_scans_next_move_that_crosses_an_earlier_move_goes_straigh
     assert _segment_distance(path[:1], path[1:2], here[:3, 3])[0] < ON_PATH_M / 10
     assert int(np.argmin(np.linalg.norm(path[:8] - here[:3, 3], axis=1))) == 0
 
-    async def restarted():
-        async with daemon_runner(cfg, sphere) as runner:
-            await runner.recover()
-            runner.arm.jog(here)
-            await runner.resume()
-            return await runner.wait("vase"), runner.arm.commanded
-
-    done, moves = arun(restarted())
+    _, done, moves = restarted_with_the_arm_at(arun, cfg, sphere, here)
     assert visited(plan, moves) == [8, 9]
     assert done == {"name": "vase", "state": "complete"}
     check_capture(tmp_path / "caps" / "vase", VIEWS, 2)

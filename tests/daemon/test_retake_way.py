@@ -210,13 +210,9 @@ def test_a_fault_on_the_way_back_keeps_the_poses_owed_in_status_and_names_where_
     check_capture(folder, VIEWS, 2)
 
 
-def test_a_daemon_restarted_with_the_arm_stopped_on_the_scans_next_move_goes_straight_on(arun, tmp_path,
-                                                                                         sphere):  # noqa: F811
-    """No retake: a stop between the last published pose and the next leaves the arm on the plan's own move, and a
-    restarted daemon goes on to the next pose from there (no walk back along the path)."""
-    cfg = make_cfg(tmp_path, views=VIEWS)
-    arun(interrupted(cfg, sphere))
-
+def stopped_on_the_next_move(arun, cfg, sphere) -> tuple[np.ndarray, str]:  # noqa: F811
+    """A daemon takes the interrupted scan over with the arm at its last published pose, and a fault stops the arm
+    half way to the next (pose 8): (where the arm stopped, the pause's reason)."""
     async def first():
         async with daemon_runner(cfg, sphere) as runner:
             await runner.recover()
@@ -226,15 +222,30 @@ def test_a_daemon_restarted_with_the_arm_stopped_on_the_scans_next_move_goes_str
             await until(lambda: stopped and runner.state == "paused", "the fault's pause")
             return runner.arm.actual_pose(), runner.status()["reason"]
 
-    async def restarted(here):
+    return arun(first())
+
+
+def restarted_with_the_arm_at(arun, cfg, sphere, here: np.ndarray) -> tuple[np.ndarray, dict, list]:  # noqa: F811
+    """A restarted daemon finds the arm at `here` and resumes the scan to its end: (the plan, the scan's end, the
+    moves it commanded)."""
+    async def restarted():
         async with daemon_runner(cfg, sphere) as runner:
             await runner.recover()
             runner.arm.jog(here)
             await runner.resume()
             return runner.job.tcp_poses.copy(), await runner.wait("vase"), runner.arm.commanded
 
-    here, reason = arun(first())
-    plan, done, moves = arun(restarted(here))
+    return arun(restarted())
+
+
+def test_a_daemon_restarted_with_the_arm_stopped_on_the_scans_next_move_goes_straight_on(arun, tmp_path,
+                                                                                         sphere):  # noqa: F811
+    """No retake: a stop between the last published pose and the next leaves the arm on the plan's own move, and a
+    restarted daemon goes on to the next pose from there (no walk back along the path)."""
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    arun(interrupted(cfg, sphere))
+    here, reason = stopped_on_the_next_move(arun, cfg, sphere)
+    plan, done, moves = restarted_with_the_arm_at(arun, cfg, sphere, here)
     assert reason.endswith("(pose 8/10)"), reason
     assert visited(plan, moves) == [8, 9]
     assert done == {"name": "vase", "state": "complete"}
