@@ -39,6 +39,10 @@ SCAN_OPTIONS = {
 }
 
 
+MAX_TIMEOUT_S = 1e9
+"""The longest --timeout, in seconds: more than any wait needs, well within what a socket's timeout takes."""
+
+
 def _seconds(text: str) -> float:
     """argparse type of --timeout: a positive, finite number of seconds."""
     import argparse
@@ -50,6 +54,10 @@ def _seconds(text: str) -> float:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    if value > MAX_TIMEOUT_S:  # the socket's timeout overflows the C time types above about 9.2e9 s
+        raise argparse.ArgumentTypeError(f"{text!r} seconds is more than can be waited (at most {MAX_TIMEOUT_S:g} "
+                                         f"s, about 31 years; `wait` and `scan --wait` wait for ever without "
+                                         f"--timeout)")
     return value
 
 
@@ -89,7 +97,7 @@ def add_arguments(parser) -> None:
         p.add_argument("--socket", type=_socket, default=default, metavar="PATH",
                        help=f"the daemon's control socket (default: {default_socket_path(create=False)})")
         p.add_argument("--timeout", type=_seconds, default=default, metavar="S",
-                       help="seconds to wait for the reply, > 0 (default: 30; `scan` and `resume`: 600, since "
+                       help="seconds to wait for the reply, > 0 and at most 1e9 (default: 30; `scan` and `resume`: 600, since "
                             "the arm's controller is first asked about every pose left, a minute or more for "
                             "thousands; `wait` and `scan --wait`: forever)")
 

@@ -102,6 +102,16 @@ def test_timeout_must_be_positive_and_finite(value, capsys, tmp_path):
     assert f"{value!r} is not a positive number of seconds" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("op", ["status", "wait"])
+def test_a_timeout_too_long_to_wait_is_one_line_not_a_traceback(op, capsys, tmp_path):
+    """A huge --timeout (meant as 'for ever') overflowed the socket's timeout with a traceback."""
+    with pytest.raises(SystemExit) as exited:
+        main(["ctl", op, "--socket", str(tmp_path / "none.sock"), "--timeout=1e12"])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2
+    assert "'1e12' seconds is more than can be waited (at most 1e+09 s" in err and "Traceback" not in err, err
+
+
 @pytest.mark.parametrize("where", ["before", "after"])
 def test_an_empty_socket_path_is_refused(where, capsys):
     """`--socket ''` is an error, not the default socket."""
