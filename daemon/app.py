@@ -139,7 +139,7 @@ def check_config(cfg: DaemonConfig):
     arm, sensor = build_devices(cfg)
     preflight(cfg)
     _in_config(cfg, check_socket_path, cfg.socket)
-    check_root_free(cfg.captures)
+    _in_config(cfg, check_root_free, cfg.captures)
     return plan, arm, sensor
 
 
@@ -159,7 +159,7 @@ def check_startup(cfg: DaemonConfig) -> tuple[Device, Device, RootLock]:
     cfg.captures.mkdir(parents=True, exist_ok=True)
     _in_config(cfg, claim_socket_path, cfg.socket)
     lock = RootLock(cfg.captures)
-    lock.acquire()
+    _in_config(cfg, lock.acquire)
     return arm, sensor, lock
 
 

@@ -47,7 +47,8 @@ def test_a_second_daemon_on_the_same_captures_root_is_refused(tmp_path, daemons)
 
     for args in (("daemon", "--config", rig_b, "--check"), ("daemon", "--config", rig_b)):
         line = one_line_error(spadscan(*args))
-        assert f"captures root {tmp_path / 'caps'} is in use by another daemon (pid {a.pid})" in line, line
+        assert line.startswith(f"spadscan: error: {rig_b}: captures root {tmp_path / 'caps'} is in use by another "
+                               f"daemon (pid {a.pid})"), line  # named with its config file, as every start-up error
     assert not sock_b.exists()
     assert call(sock_a, "status")["state"] == "scanning"  # A's scan goes on, untouched
 
