@@ -94,6 +94,7 @@ def spiral_at_pole_deg(n: int, min_elevation_deg: float, max_elevation_deg: floa
 
 
 RINGS_BAND_DEG = (10.0, 80.0)
+MAX_VIEWS_PER_RING = 100_000
 """The rings' own band of elevations (degrees, lowest and highest ring): rings stand at both ends of a band, so the
 spiral's 0-90 deg would put a whole ring at the zenith, every view of it from one position."""
 
@@ -143,8 +144,8 @@ def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0
     and the plans it checks are built here by the same rule.
     """
     for name, v in (("rings", n_rings), ("views per ring", per_ring)):
-        if not (isinstance(v, (int, np.integer)) and 1 <= v <= 100_000):
-            raise SimulationError(f"{name} {v} must be an integer in [1, 100000]")
+        if not (isinstance(v, (int, np.integer)) and 1 <= v <= MAX_VIEWS_PER_RING):
+            raise SimulationError(f"{name} {v} must be an integer in [1, {MAX_VIEWS_PER_RING}]")
     lo, hi = _check_elevations(min_elevation_deg, max_elevation_deg)
     radius_m = _check_radius(radius_m)
     if n_rings > 1 and min_elevation_deg == max_elevation_deg:
@@ -162,6 +163,19 @@ def elevation_rings(n_rings: int, per_ring: int, radius_m: float, target=(0.0, 0
     ring, k = np.meshgrid(np.arange(n_rings), np.arange(per_ring), indexing="ij")
     azim = 2 * math.pi * (k + 0.5 * (ring % 2)) / per_ring
     return _poses_on_sphere(elev[ring.ravel()], azim.ravel(), radius_m, target)
+
+
+def turned_about_vertical(poses: np.ndarray, angle_rad: float, target=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Poses (n, 4, 4) turned by `angle_rad` about the vertical (world z) through `target`.
+
+    A ring from `elevation_rings` turned so is the same ring at azimuths shifted by the angle: its views look at the
+    target still, with world z as their `up`, which the turn leaves in place.
+    """
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    turn = np.eye(4)
+    turn[:2, :2] = [[c, -s], [s, c]]
+    turn[:3, 3] = _vec3(target, "target") - turn[:3, :3] @ _vec3(target, "target")
+    return turn @ poses
 
 
 def random_rotations(n: int, max_deg: float, rng: np.random.Generator) -> np.ndarray:

@@ -22,9 +22,10 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import math
 
 from spadscan.protocol.scenes import scene_listing
-from spadscan.protocol.schedules import RINGS_BAND_DEG
+from spadscan.protocol.schedules import MAX_VIEWS_PER_RING, RINGS_BAND_DEG
 from spadscan.protocol.sim_table import DEFAULT_ALBEDO as DEFAULT_TABLE_ALBEDO
 
 SCHEDULES = ("fibonacci", "rings")
@@ -214,6 +215,9 @@ def make_poses(args):
             raise SimulationError(f"--rings {args.rings} must lie in [1, views = {args.views}]")
         if args.views % args.rings:
             raise SimulationError(f"--views {args.views} is not a multiple of --rings {args.rings}")
+        if args.views // args.rings > MAX_VIEWS_PER_RING:
+            raise SimulationError(f"--views {args.views} in --rings {args.rings} is {args.views // args.rings} views "
+                                  f"per ring; a ring holds at most {MAX_VIEWS_PER_RING}")
     # A band outside [-90, 90] degrees, or upside down, is the schedules' own refusal; poses repeated in a band that
     # is fine otherwise are refused here, naming this command's flags.
     repeated = repeated_poses(args) if -90.0 <= args.min_elevation <= args.max_elevation <= 90.0 else None
@@ -223,10 +227,11 @@ def make_poses(args):
         poses = schedules.fibonacci_hemisphere(args.views, **common)
     elif args.rings > 1 and args.min_elevation == args.max_elevation:
         # Rings in a band of zero width that repeat no pose (2 rings, repeated_poses said): one ring of twice the
-        # views, the second ring on its odd steps (offset by half a step). elevation_rings refuses any rings in such
-        # a band, by the rule of the daemon's config, which allows it for one ring only.
-        ring = schedules.elevation_rings(1, args.views, **common)
-        poses = np.concatenate([ring[0::2], ring[1::2]])
+        # views, the second ring the first turned by half a step. elevation_rings refuses any rings in such a band,
+        # by the rule of the daemon's config, which allows it for one ring only; the limit on views per ring holds.
+        per_ring = args.views // args.rings
+        ring = schedules.elevation_rings(1, per_ring, **common)
+        poses = np.concatenate([ring, schedules.turned_about_vertical(ring, math.pi / per_ring, args.target)])
     else:
         poses = schedules.elevation_rings(args.rings, args.views // args.rings, **common)
     if args.schedule == "rings":

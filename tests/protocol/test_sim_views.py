@@ -1,6 +1,7 @@
 """Which views a simulation can render: views that see nothing of the mesh (with and without a table), and sensors
 placed where no sensor can stand (inside the object, on or under the table top)."""
 
+import argparse
 import json
 
 import numpy as np
@@ -8,6 +9,7 @@ import pytest
 import trimesh
 
 from spadscan.cli import main
+from spadscan.commands import simulate
 from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import look_at
 from spadscan.protocol.sensor_presets import sensor_preset
@@ -133,6 +135,30 @@ def test_two_rings_in_a_band_of_zero_width_are_one_ring_of_twice_the_views(tmp_p
     np.testing.assert_allclose(poses[:, :3, 2], -want / 0.5, atol=1e-12)  # each looks at the target
     record = json.loads((tmp_path / "c" / "scan.json").read_text())["schedule"]
     assert (record["rings"], record["per_ring"]) == (2, 8)
+
+
+def test_two_rings_in_a_band_of_zero_width_hold_the_limit_per_ring_not_per_pair():
+    """2 rings of 75,000 views each are within a ring's limit; they were refused as one ring of 150,000."""
+    parser = argparse.ArgumentParser()
+    simulate.add_arguments(parser)
+    args = parser.parse_args([*ONE_BAND, "--rings", "2", "--views", "150000", "--out", "unused"])
+    poses, record = simulate.make_poses(args)
+    assert poses.shape == (150000, 4, 4) and (record["rings"], record["per_ring"]) == (2, 75000)
+    # the second ring stands half a step further round than the first, ring by ring
+    azim = np.arctan2(poses[:, 1, 3], poses[:, 0, 3]) % (2 * np.pi)
+    step = 2 * np.pi / 75000
+    np.testing.assert_allclose(azim[[0, 1, 75000, 75001]], [0.0, step, 0.5 * step, 1.5 * step], atol=1e-9)
+
+
+@pytest.mark.parametrize("argv", [["--rings", "1", "--views", "150000"],
+                                  ["--rings", "2", "--views", "250000"]],
+                         ids=["one-ring", "two-rings-in-a-band-of-zero-width"])
+def test_more_views_per_ring_than_a_ring_holds_is_refused_naming_the_flags(tmp_path, capsys, argv):
+    per_ring = int(argv[3]) // int(argv[1])
+    assert main(["simulate", *ONE_BAND, *argv, "--out", str(tmp_path / "c")]) == 1
+    assert capsys.readouterr().err == (f"spadscan: error: --views {argv[3]} in --rings {argv[1]} is {per_ring} views "
+                                       f"per ring; a ring holds at most 100000\n")
+    assert not (tmp_path / "c").exists()
 
 
 @pytest.mark.parametrize("argv, line", [
