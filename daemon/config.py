@@ -7,6 +7,7 @@ paths are taken relative to the config file's folder. `examples/README.md` docum
 
 from __future__ import annotations
 
+import difflib
 import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
@@ -150,6 +151,10 @@ class DaemonConfig:
     """The file this config was read from."""
 
 
+TABLES = {"arm": ArmConfig, "sensor": SensorConfig, "scan": ScanConfig}
+"""The tables of a rig config, by name; everything else at the top level is a key of DaemonConfig."""
+
+
 # ---- reading ---------------------------------------------------------------------------------------------------------
 def load_config(path) -> DaemonConfig:
     """Read and validate a rig config file. Raises one-line ConfigError naming the file and key."""
@@ -167,15 +172,15 @@ def load_config(path) -> DaemonConfig:
 
 def config_from_dict(data: dict, path: Path) -> DaemonConfig:
     base = path.resolve().parent
-    tables = {"arm": ArmConfig, "sensor": SensorConfig, "scan": ScanConfig}
-    top = {k: v for k, v in data.items() if k not in tables}
+    top = {k: v for k, v in data.items() if k not in TABLES}
+    _check_top_names(top, f"{path}:")
     sections = {}
-    for name, cls in tables.items():
+    for name, cls in TABLES.items():
         table = data.get(name, {})
         if not isinstance(table, dict):
             raise ConfigError(f"{path}: [{name}] must be a table")
         sections[name] = read_section(cls, table, f"{path}: [{name}]", base)
-    values = read_values(DaemonConfig, top, f"{path}:", base, skip=("arm", "sensor", "scan", "source"))
+    values = read_values(DaemonConfig, top, f"{path}:", base, skip=(*TABLES, "source"))
     values.setdefault("captures", base / "captures")
     if values.get("socket") is None:
         values["socket"] = Path(default_socket_path())
@@ -188,6 +193,31 @@ def config_from_dict(data: dict, path: Path) -> DaemonConfig:
     check_scan(cfg.scan, f"{path}: [scan]")
     _check_paths(cfg, str(path))
     return cfg
+
+
+def _check_top_names(top: dict, where: str) -> None:
+    """Refuse an unknown top-level name in one line. A mistyped table (`[scna]`) holds a table: it is called one and
+    the real tables are listed (a list of keys would point away from the fix); an unknown key lists keys and tables."""
+    keys = key_names(DaemonConfig, skip=(*TABLES, "source"))
+    tables = ", ".join(f"[{t}]" for t in TABLES)
+    for name, value in top.items():
+        if name in keys:
+            continue
+        if isinstance(value, dict):
+            raise ConfigError(f"{where} unknown table [{name}]{_close(name, TABLES, '[{}]')} (known tables: "
+                              f"{tables})")
+        if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            raise ConfigError(f"{where} unknown table [[{name}]]{_close(name, TABLES, '[{}]')} (known tables: "
+                              f"{tables}, each written once as [name])")
+        raise ConfigError(f"{where} unknown key {name!r}{_close(name, keys, '{!r}')} (known keys: {', '.join(keys)}; "
+                          f"known tables: {tables})")
+
+
+def _close(name: str, names, shape: str) -> str:
+    """The hint ', did you mean [scan]?' for a name that differs from a known one only in case or by a letter or
+    two; empty when none is close."""
+    close = difflib.get_close_matches(name.lower(), list(names), n=1, cutoff=0.7)
+    return f", did you mean {shape.format(close[0])}?" if close else ""
 
 
 BACKENDS = {ArmConfig: ARM_BACKENDS, SensorConfig: SENSOR_BACKENDS}

@@ -33,7 +33,7 @@ class SimSensorSettings(SensorBackend):
     mesh_offset_m: np.ndarray = key([0.0, 0.0, 0.0], "vec3", unit="m")
     """Sim: where the mesh's origin sits in the arm's base frame [x, y, z] (m)."""
     frame_time_s: float = key(0.0, "float", lo=0.0, hi=60.0, unit="s")
-    """Sim: exposure time of one frame (s; the real sensor takes ~0.3)."""
+    """Sim: exposure time of one frame (s; the real sensor takes ~0.3); shorter than frame_timeout_s."""
     seed: int = key(0, "int", lo=0, hi=2**63 - 1)
     """Sim: random seed of the photon noise."""
     power: float = key(1.0, "float", lo=0.0, hi=1e9)
@@ -57,6 +57,13 @@ class SimSensorSettings(SensorBackend):
             raise ConfigError(f"{where} mesh is required for backend 'sim'")
         if self.silence_on_frames and self.silence_s <= 0:
             raise ConfigError(f"{where} silence_on_frames {list(self.silence_on_frames)} needs silence_s > 0 (s)")
+        if self.frame_time_s >= section.frame_timeout_s:
+            # The runner waits frame_timeout_s, from when the arm has settled, for a frame that began after it
+            # settled: such a frame ends frame_time_s after it began, never inside the wait. Every scan would pause
+            # at its first pose, and again at every resume.
+            raise ConfigError(f"{where} frame_time_s {self.frame_time_s:g} s is not shorter than frame_timeout_s "
+                              f"{section.frame_timeout_s:g} s: no frame would ever arrive in time (every scan would "
+                              f"pause at its first pose); shorten frame_time_s or lengthen frame_timeout_s")
         if self.mesh.startswith(BUILTIN):
             return self
         p = Path(os.path.expanduser(self.mesh))

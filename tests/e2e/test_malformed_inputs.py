@@ -65,7 +65,7 @@ def test_malformed_rig_configs_are_one_line_errors_before_anything_starts(tmp_pa
     variants = {  # name -> (rig_dict sections, words the error must hold)
         "unknown-top-key": ({"top": {"captuers": "x"}}, "unknown key 'captuers'"),
         "unknown-key": ({"scan": {"veiws": 3}}, "[scan] unknown key 'veiws'"),
-        "unknown-table": ({"sensr": {"backend": "sim"}}, "unknown key 'sensr'"),
+        "unknown-table": ({"sensr": {"backend": "sim"}}, "unknown table [sensr], did you mean [sensor]?"),
         "bad-value": ({"scan": {"views": 0}}, "views = 0 is outside"),
         "wrong-type": ({"arm": {"speed": "fast"}}, "speed = 'fast' must be a finite number"),
         "hand-eye-mm": ({"arm": {"hand_eye": hand_eye_mm}}, "give it in metres"),
