@@ -19,7 +19,8 @@ Writes runs/<scene>--<variant>.json as each run ends, with the settings it ran w
 from, --steps, --seed, --threads, --points, --device and its --set overrides). A scene is named by its folder's name:
 two scenes of the same name are refused. A later call with the same --out reuses the runs made with its own
 settings, so an interrupted ablation resumes where it stopped (Ctrl-C, or SIGTERM, writes the table of the runs
-finished: a run it stopped did not fail, it is not run, "-", and the exit status is 130); an
+finished: a run it stopped did not fail, it is not run, "-", and the exit status is 130; Ctrl-Z pauses the runs with
+the script, fg or bg goes on with them); an
 --out holding a run made with other settings (another scene folder of the same name included) is refused, in one line
 that says which (--overwrite starts afresh). Then table.md: per part and scene, the Chamfer (mm) and the mean normal
 error (degrees) with the part off, against all parts on, and the steps each run took.
@@ -32,6 +33,7 @@ not run ("-"). --device cuda without a CUDA device is refused before any run.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -143,14 +145,18 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
 
 
 class Children:
-    """The runs' processes. Each runs in a session of its own, so that Ctrl-C reaches only this script, which then
-    stops them itself (`stop`): a run that ends after that was stopped, not failed. A child's own exit status cannot
-    say so (a KeyboardInterrupt in the middle of an import ends it as an error of that import, exit status 1), and a
-    worker thread never sees the KeyboardInterrupt, which reaches only the main thread. Killed outright, this script
-    cannot stop them: each then stops by itself (spadscan/parent_watch.py)."""
+    """The runs' processes. Each runs in a process group of its own, so that Ctrl-C, which the terminal sends to the
+    foreground job's group, reaches only this script, which then stops them itself (`stop`): a run that ends after
+    that was stopped, not failed. A child's own exit status cannot say so (a KeyboardInterrupt in the middle of an
+    import ends it as an error of that import, exit status 1), and a worker thread never sees the KeyboardInterrupt,
+    which reaches only the main thread. Ctrl-Z, which the terminal sends to the same group, this script passes on
+    (`pause`). Killed outright, this script cannot stop them: each then stops by itself
+    (spadscan/parent_watch.py), and one stopped by Ctrl-Z is hung up by the kernel (a stopped group that loses its
+    last parent in the session)."""
 
     def __init__(self):
-        self.lock = threading.Lock()
+        # Re-entrant: `pause` runs as a signal handler in the main thread, which may hold it already (in `stop`).
+        self.lock = threading.RLock()
         self.running: set[subprocess.Popen] = set()
         self.stopped = False
 
@@ -159,9 +165,10 @@ class Children:
         with self.lock:
             if self.stopped:
                 return None
+            # A group of its own, in this script's session: the kernel hangs up the runs of an ablation killed
+            # while paused, which a session of their own would leave stopped for good.
             proc = subprocess.Popen(cmd, env=parent_watch.child_env(env), stdin=subprocess.DEVNULL,
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                    start_new_session=True)
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, process_group=0)
             self.running.add(proc)
             return proc
 
@@ -175,6 +182,33 @@ class Children:
             self.stopped = True
             for proc in self.running:
                 proc.terminate()
+
+    def pause(self, signum: int) -> None:
+        """Ctrl-Z (`signum`, SIGTSTP): stop every run, then this script, as the terminal stops a job; continued (fg,
+        bg), continue the runs. Until then no run starts or ends unseen (the lock is held)."""
+        with self.lock:
+            self.signal_runs(signal.SIGSTOP)  # cannot be caught or ignored: a run stops whatever it is doing
+            try:
+                stop_self(signum)
+            finally:
+                self.signal_runs(signal.SIGCONT)
+
+    def signal_runs(self, signum: int) -> None:
+        """`signum` to every run's process group (the run and what it started); a run that has ended is skipped."""
+        for proc in self.running:
+            if proc.returncode is None:
+                with contextlib.suppress(ProcessLookupError):  # ended, not yet reaped
+                    os.killpg(proc.pid, signum)
+
+
+def stop_self(signum: int) -> None:
+    """Stop this process as `signum` stops one that does not catch it (the shell then says "Stopped"); returns once
+    it is continued."""
+    handler = signal.signal(signum, signal.SIG_DFL)
+    try:
+        signal.raise_signal(signum)  # to this thread: taken (the process stopped) before raise_signal returns
+    finally:
+        signal.signal(signum, handler)
 
 
 def run_in_child(capture: Path, target: Path, args, overrides: list[str], scene: str,
@@ -404,6 +438,8 @@ def main(argv=None) -> int:
     pool = ThreadPoolExecutor(args.jobs)
     # A time limit's SIGTERM ends the runs like Ctrl-C does: the table of the runs finished still comes out.
     before = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    # Ctrl-Z stops this script's process group, not the runs' own: passed on, it pauses them too.
+    before_tstp = signal.signal(signal.SIGTSTP, lambda signum, frame: children.pause(signum))
     try:
         # Every scene's all-parts run first: its report says which parts ran there, so which to ablate.
         list(pool.map(lambda n: run(n, ALL), list(captures)))
@@ -417,6 +453,7 @@ def main(argv=None) -> int:
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
         signal.signal(signal.SIGTERM, before)
+        signal.signal(signal.SIGTSTP, before_tstp)
     text = tables(results, [ALL] + wanted)
     (args.out / "table.md").write_text(text + "\n")
     write_atomic(args.out / "results.json", results)

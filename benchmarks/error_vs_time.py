@@ -20,7 +20,8 @@ reach 2 mm, peak memory of the method, its checkpoints' scoring left out), the s
 (with a note when the working tree held uncommitted changes) and its preset's resolved config.
 
 A run writes its checkpoints so far to runs/<scene>-<method>.partial.json as it goes. If it is killed (Ctrl-C, or a
-time limit's SIGTERM to this script), the table still comes out, with that run's checkpoints marked "cut off". A run
+time limit's SIGTERM to this script), the table still comes out, with that run's checkpoints marked "cut off", and
+the exit status is 130 (also where a run failed before). A run
 whose own process fails (an error, or killed by another hand: the OOM killer's SIGKILL) is a failed run, not a cut-off
 one: results.json records it with "failed" ("exit -9"), and its row reads "failed (exit -9)" with no final figure
 (the checkpoints it left, if any, stay in the mark columns and the plot).
@@ -758,11 +759,13 @@ def main(argv=None) -> int:
     header, commit = machine(), source_commit()
     print(f"machine: {header}; commit {commit}", file=sys.stderr)
     results, failed = [], []
+    interrupted = False
     # A time limit's SIGTERM ends the runs like Ctrl-C does: the table still comes out.
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         run_all(args, captures, methods, results, failed)
     except KeyboardInterrupt:  # Ctrl-C: the table of the runs so far, the one in progress as far as it got
+        interrupted = True
         print("interrupted: the table holds the runs so far", file=sys.stderr)
     text = [f"Machine: {header}", f"Commit: {commit}", f"Budget: {args.budget_s:g} s wall per run (set-up included)"]
     text += [f"Overrides: {' '.join(args.overrides)}"] if args.overrides else []
@@ -781,8 +784,9 @@ def main(argv=None) -> int:
         print("no plot: no run has a Chamfer (its capture names no ground truth)", file=sys.stderr)
     if failed:
         print(f"{len(failed)} of {len(captures) * len(methods)} runs failed: {', '.join(failed)}", file=sys.stderr)
-        return 1
-    return 0
+    if interrupted:  # a script or a time limit that waits on it tells a cut-off table from a whole one
+        return 130
+    return 1 if failed else 0
 
 
 def run_one(args) -> int:

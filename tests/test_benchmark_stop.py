@@ -221,3 +221,110 @@ def test_ablations_run_stopped_is_not_run_not_failed(tmp_path, how):
         assert not list((out / "runs").glob("*.json"))  # the same command runs it again
     finally:
         kill_all(proc, runs)
+
+
+def state(pid: int) -> str | None:
+    """`pid`'s state letter in /proc ('R' running, 'S' sleeping, 'T' stopped, ...), None once it is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return None
+
+
+def cpu_ticks(pid: int) -> int:
+    """The CPU time `pid` has used, in clock ticks (user and system; 0 once it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return 0
+    return int(fields[11]) + int(fields[12])
+
+
+def wait_until(check, what: str, timeout_s: float = 120.0) -> None:
+    """Wait until `check()` holds (at most `timeout_s`: generous, for a loaded machine); AssertionError naming `what`
+    if it does not in time."""
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not in {timeout_s:g} s: {what}")
+        time.sleep(0.05)
+
+
+def ctrl_z(proc: subprocess.Popen) -> None:
+    """A terminal's Ctrl-Z: SIGTSTP to every process of the foreground job's group (`proc` leads its own)."""
+    os.killpg(proc.pid, signal.SIGTSTP)
+
+
+def fg_and_ctrl_c(proc: subprocess.Popen, runs: set[int]) -> None:
+    """`fg` (SIGCONT to the job's group), then, once the runs use the CPU again, Ctrl-C."""
+    ticks = {pid: cpu_ticks(pid) for pid in runs}
+    os.killpg(proc.pid, signal.SIGCONT)
+    wait_until(lambda: all(state(pid) not in ("T", None) and cpu_ticks(pid) > ticks[pid] for pid in runs),
+               "the runs going on after fg")
+    ctrl_c(proc)
+
+
+def kill_job(proc: subprocess.Popen, runs: set[int]) -> None:
+    """`kill %1` on a stopped job: SIGTERM, then SIGCONT, to the job's group."""
+    os.killpg(proc.pid, signal.SIGTERM)
+    os.killpg(proc.pid, signal.SIGCONT)
+
+
+def kill_9_job(proc: subprocess.Popen, runs: set[int]) -> None:
+    """`kill -9 %1` on a stopped job: SIGKILL to the job's group."""
+    os.killpg(proc.pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("then", [pytest.param(fg_and_ctrl_c, id="fg-then-ctrl-c"),
+                                  pytest.param(kill_job, id="kill"), pytest.param(kill_9_job, id="kill-9")])
+def test_ablation_paused_by_ctrl_z_pauses_its_runs(tmp_path, then):
+    # Ctrl-Z pauses the whole job, the runs (in process groups of their own) included; fg goes on with them, and the
+    # job then ends as one that was never paused. A real run that never ends by itself (10^6 steps).
+    capture = tiny_capture(tmp_path)
+    out = tmp_path / "out"
+    proc = start_main("ablation", ["--scenes", capture, "--out", out, "--steps", 1_000_000, "--points", 1000,
+                                   "--parts", "erosion"], "import os\nos.setpgrp()")
+    runs: set[int] = set()
+    try:
+        runs = wait_for_run(proc.pid)
+        ctrl_z(proc)
+        wait_until(lambda: all(state(pid) == "T" for pid in {proc.pid, *runs}), "the ablation and its run stopped")
+        then(proc, runs)
+        stdout, err = proc.communicate(timeout=120)
+        assert not wait_gone(runs), "the run outlived the benchmark"
+        if then is kill_9_job:
+            return  # killed outright while paused, it writes nothing: the kernel hung its paused run up
+        assert proc.returncode == 130 and "Traceback" not in err, err
+        assert "interrupted" in err and "failed" not in stdout + err, stdout + err
+        assert "| all parts | - |" in (out / "table.md").read_text()
+    finally:
+        kill_all(proc, runs)  # SIGKILL ends a paused process too
+
+
+ERROR_VS_TIME = """
+import subprocess, time
+real_run = subprocess.run
+def run(cmd, *args, **kwargs):
+    if cmd[0] == "git":  # the benchmark asks which commit it measures
+        return real_run(cmd, *args, **kwargs)
+    print("running", flush=True)  # a run that is cut off
+    time.sleep(3600)
+bench.subprocess.run = run
+"""
+
+
+@pytest.mark.parametrize("how", [pytest.param(signal.SIGINT, id="ctrl-c"), pytest.param(signal.SIGTERM, id="SIGTERM")])
+def test_error_vs_time_cut_off_exits_130(tmp_path, how):
+    # A table cut off by Ctrl-C or a time limit is told from a whole one by its exit status, as the other benchmarks'.
+    capture = tiny_capture(tmp_path)
+    out = tmp_path / "out"
+    proc = start_main("error_vs_time", ["--scenes", capture, "--budget-s", 60, "--out", out], ERROR_VS_TIME)
+    try:
+        read_until(proc, "running")
+        proc.send_signal(how)
+        stdout, err = proc.communicate(timeout=120)
+        assert proc.returncode == 130 and "Traceback" not in err, err
+        assert "interrupted: the table holds the runs so far" in err
+        assert json.loads((out / "results.json").read_text())["results"] == []
+    finally:
+        kill_all(proc, set())
