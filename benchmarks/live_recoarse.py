@@ -203,8 +203,8 @@ def finish(scan: DaemonOrderScan, fit: LiveFit, work: Path, final_steps: int, ar
     from the live fit, for `final_steps`)."""
     scan.writer.finish("complete")
     live = chamfer_mm(fit.mesh(MESH_CELLS), truth, SCORE_POINTS)
-    final = fit.warm_factory()(load_scene(work), run_config("fast", {}), torch.device("cpu"),
-                               RunPlan(steps=None, budget_s=None, seed=args.seed))
+    final = fit.warm_factory(fit.continuable)(load_scene(work), run_config("fast", {}), torch.device("cpu"),
+                                              RunPlan(steps=None, budget_s=None, seed=args.seed))
     taken = step(final, final_steps)
     return {"live": live, "final": chamfer_mm(final.extract_mesh(MESH_CELLS), truth, SCORE_POINTS),
             "steps": fit.steps + taken, "coarse_restarts": fit.recoarsened, "rebuilds": fit.rebuilds}

@@ -164,7 +164,7 @@ def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_
     every = load_scene(tmp_path / "scan")
     assert fit.rebuild(None) and fit.train_steps(2) == 2 and fit.model.level == 0
     assert not fit.continuable
-    young = fit.warm_factory()(every, config, "cpu", PLAN)
+    young = fit.warm_factory(True)(every, config, "cpu", PLAN)
     cold = make_fast_model(every, config, "cpu", PLAN)
     assert not young.warm_started and young.level == 0 and young.level_steps == 0
     assert torch.equal(young.field.sdf, cold.field.sdf), "the hull, as an ordinary run starts"
@@ -173,8 +173,10 @@ def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_
     assert fit.model.level == 1 and not fit.continuable, "a fit that has only just left its coarse level"
     fit.train_steps(2)  # as many steps on the last level as the coarse level took
     assert fit.model.level_steps == 4 and fit.continuable
-    grown = fit.warm_factory()(every, config, "cpu", PLAN)
+    grown = fit.warm_factory(True)(every, config, "cpu", PLAN)
     assert grown.warm_started and grown.level == 1 and grown.level_steps == fit.model.level_steps
+    hull = fit.warm_factory(False)(every, config, "cpu", PLAN)
+    assert not hull.warm_started and torch.equal(hull.field.sdf, cold.field.sdf), "told to start from the hull"
     live = fit.live_field().sdf.detach()
     assert torch.allclose(grown.field.sdf, torch.maximum(live, grown.constraint.bound_for(grown.field)), atol=1e-6)
 

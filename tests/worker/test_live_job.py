@@ -20,7 +20,7 @@ from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.live_status import LiveStatus, read_status, status_path
 from spadscan.worker.jobs import Job
 from spadscan.worker.live.follower import ScanProgress
-from spadscan.worker.live.job import LiveRun, LiveSettings, ScanAborted, execute_live_job, final_job
+from spadscan.worker.live.job import LiveRun, LiveSettings, ScanAborted, execute_live_job, final_job, final_start
 
 from live_helpers import ReplayScan
 from worker_helpers import FAST_SMALL
@@ -42,6 +42,8 @@ class LiveJobThread:
         self.out = root / scan / "recon" / ".tmp-test"
         self.result: dict = {}
         self.seen: list[LiveStatus] = []
+        self.lines: list[str] = []
+        """What the job logged."""
         self.recon = recon
         self.thread = threading.Thread(target=self._run, args=(settings,), daemon=True)
         self.thread.start()
@@ -49,7 +51,7 @@ class LiveJobThread:
     def _run(self, settings) -> None:
         try:
             self.result["report"] = execute_live_job(self.job, self.root, self.out, self.recon, settings=settings,
-                                                     log=lambda line: None)
+                                                     log=self.lines.append)
         except BaseException as exc:  # re-raised on the test's thread
             self.result["error"] = exc
 
@@ -132,6 +134,7 @@ def test_with_no_budget_the_final_run_polishes_for_steps_and_says_nothing_of_a_s
     live = LiveJobThread(root, "cyl", small_settings(final_polish_s=0.5, final_min_steps=7), budget_s=None)
     live.wait_status(lambda s: s.state == "live" and s.steps > 20, "a fit")
     scan.publish(14)
+    live.wait_status(lambda s: s.views_used == 24, "a fit of all 24 views")  # else the final run starts from the hull
     scan.finish()
     report = live.join()
     assert report["live"]["final_budget_s"] is None and report["live"]["final_steps"] >= 7
@@ -142,27 +145,65 @@ def test_with_no_budget_the_final_run_polishes_for_steps_and_says_nothing_of_a_s
 
 
 def test_the_final_run_is_bounded_by_the_jobs_own_budget_or_steps_else_by_the_live_rate():
-    class Rates:  # a live fit's step rates, and whether it has left its coarse level
-        def __init__(self, recent, overall, continuable=True):
-            self.recent_steps_per_s, self.steps_per_s = (lambda: recent), (lambda: overall)
-            self.continuable = continuable
-
+    rates = SimpleNamespace(recent_steps_per_s=lambda: 20.0, steps_per_s=lambda: 50.0)
     job = Job(id="s-fast", scan="s", live=True)
-    final, bounds = final_job(job, Rates(20.0, 50.0), LiveSettings(final_polish_s=6.0))
+    final, bounds = final_job(job, rates, LiveSettings(final_polish_s=6.0), "live")
     assert (final.steps, final.budget_s, final.live) == (120, None, False)
     assert bounds == {"final_budget_s": None, "final_steps": 120}
-    assert final_job(job, Rates(None, 5.0), LiveSettings(final_polish_s=6.0))[0].steps == 30, "no recent rate yet"
-    assert final_job(job, Rates(0.5, 0.5), LiveSettings(final_min_steps=10))[0].steps == 10
-    timed, bounds = final_job(dataclasses.replace(job, budget_s=30.0), Rates(20.0, 50.0), LiveSettings())
+    no_recent = SimpleNamespace(recent_steps_per_s=lambda: None, steps_per_s=lambda: 5.0)
+    assert final_job(job, no_recent, LiveSettings(final_polish_s=6.0), "live")[0].steps == 30, "no recent rate yet"
+    slow = SimpleNamespace(recent_steps_per_s=lambda: 0.5, steps_per_s=lambda: 0.5)
+    assert final_job(job, slow, LiveSettings(final_min_steps=10), "live")[0].steps == 10
+    timed, bounds = final_job(dataclasses.replace(job, budget_s=30.0), rates, LiveSettings(), "live")
     assert (timed.budget_s, timed.steps) == (30.0, None) and bounds == {"final_budget_s": 30.0, "final_steps": None}
-    counted, _ = final_job(dataclasses.replace(job, steps=500), Rates(20.0, 50.0), LiveSettings())
+    counted, _ = final_job(dataclasses.replace(job, steps=500), rates, LiveSettings(), "live")
     assert (counted.budget_s, counted.steps) == (None, 500)
-    # A fit still on its coarse level: the final run starts from the hull, with the preset's own budget, not a polish.
-    young, bounds = final_job(job, Rates(20.0, 50.0, continuable=False), LiveSettings(final_polish_s=6.0))
+    # From the hull: the preset's own budget, not a polish.
+    young, bounds = final_job(job, rates, LiveSettings(final_polish_s=6.0), "hull")
     assert (young.steps, young.budget_s, young.live) == (None, None, False)
     assert bounds == {"final_budget_s": None, "final_steps": None}
-    assert final_job(dataclasses.replace(job, budget_s=30.0), Rates(20.0, 50.0, continuable=False),
-                     LiveSettings())[0].budget_s == 30.0, "the job's own budget still bounds it"
+    assert final_job(dataclasses.replace(job, budget_s=30.0), rates, LiveSettings(), "hull")[0].budget_s == 30.0, \
+        "the job's own budget still bounds it"
+
+
+@pytest.mark.parametrize("continuable, used, views, start", [
+    (True, 48, 48, "live"),
+    (True, 46, 48, "live"),  # 2 left out: a refit of 46 views wants 12 more (a quarter)
+    (True, 117, 128, "live"),  # 11 left out, under the 16 views that make a refit due
+    (True, 112, 128, "hull"),  # 16 left out: a refit was due
+    (True, 26, 48, "hull"),  # a pause and a fast resume: 22 views left out
+    (False, 48, 48, "hull"),  # too young on its level
+])
+def test_the_final_run_continues_only_from_a_live_fit_of_all_but_a_few_of_the_scans_views(continuable, used, views,
+                                                                                          start):
+    fit = SimpleNamespace(continuable=continuable, views_used=used)
+    where, why = final_start(fit, views, LiveSettings())
+    assert where == start
+    if start == "live":
+        assert why is None
+    elif continuable:
+        assert why == f"the live fit holds {used} of the scan's {views} views (the scan ended before its next refit)"
+    else:
+        assert "too young" in why
+
+
+def test_a_scan_that_ends_before_the_live_fit_takes_its_last_views_is_finished_from_the_hull(cylinder_capture,
+                                                                                            tmp_path, one_thread):
+    """The live fit of 10 views never refits (its refits may take a millionth of the time): the scan's other 14
+    views land, the scan ends, and the final run starts from the carved hull, not from the fit of 10 views."""
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.publish(10)
+    live = LiveJobThread(root, "cyl", small_settings(rebuild_share=1e-6))
+    live.wait_status(lambda s: s.state == "live" and s.views_used == 10 and s.steps > 20, "a fit of 10 views")
+    scan.publish(14)
+    scan.finish()
+    report = live.join()
+    assert report["live"]["views_used"] == 10 and report["live"]["final_start"] == "hull"
+    assert report["scene"]["views"] == 24
+    said = [line for line in live.lines if "the final reconstruction" in line]
+    assert said and said[0].endswith("starts from the carved hull: the live fit holds 10 of the scan's 24 views "
+                                     "(the scan ended before its next refit), for 1 s"), said
 
 
 def test_an_aborted_scan_ends_its_live_job_with_the_reason(cylinder_capture, tmp_path, one_thread):

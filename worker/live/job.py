@@ -11,7 +11,8 @@ published) runs `execute_live_job`:
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
    warm-started from the live fit once that has left its coarse level and gone on as long on its last one
-   (`LiveFit.continuable`; before, from the carved hull), for the job's budget or steps, else `final_polish_s` of
+   (`LiveFit.continuable`) and holds all but a few of the scan's views (`final_start`; else from the carved hull),
+   for the job's budget or steps, else `final_polish_s` of
    steps (the preset's budget when it starts from the hull): the result is written into the job's scratch folder
    and published by the worker where every job's result goes. Of the final field and the live one, the one that
    explains every view better is meshed (`keep.py`: a short final run never publishes a worse or coarser mesh than
@@ -96,11 +97,32 @@ def refit_due(have: int, published: int, trained_s: float, last_refit_s: float, 
     """Whether a fit of `have` views is refitted on the `published` ones now, `trained_s` wall seconds after the
     last refit, which took `last_refit_s`: the views must grow by `rebuild_growth` or `rebuild_views` (a refit per
     chunk costs more than it brings), and refits keep to `rebuild_share` of the time."""
-    s = settings
-    wanted = max(1, min(s.rebuild_views, math.ceil(s.rebuild_growth * have)))
-    if published - have < wanted:
+    if published - have < views_wanted(have, settings):
         return False
-    return trained_s >= last_refit_s * (1.0 / s.rebuild_share - 1.0)
+    return trained_s >= last_refit_s * (1.0 / settings.rebuild_share - 1.0)
+
+
+def views_wanted(have: int, settings: LiveSettings) -> int:
+    """New views that make a refit of a fit of `have` views worth its cost: `rebuild_growth` of them or
+    `rebuild_views`, whichever is fewer, at least 1."""
+    return max(1, min(settings.rebuild_views, math.ceil(settings.rebuild_growth * have)))
+
+
+def final_start(fit, views: int, settings: LiveSettings) -> tuple[str, str | None]:
+    """Where the final run of a scan of `views` views starts: ('live', None) from the live fit, else ('hull', why).
+
+    Not from a fit still young on its level (`LiveFit.continuable`), nor from one that has left out as many of the
+    scan's views as would make a refit due (`views_wanted`): the scan ended before that refit (a pause and a fast
+    resume, a loaded machine whose refits wait their share of the time). A field fitted to part of the views is a
+    start the complete capture cannot recover from: a goblet scan of 48 views that ended with 26 fitted came out at
+    54-87 mm from the live fit (polished, or trained for the preset's whole budget), and 1.36 mm from the hull."""
+    if not fit.continuable:
+        return "hull", "the live fit is too young (on its coarse level, or only just past it)"
+    left_out = views - fit.views_used
+    if left_out >= views_wanted(fit.views_used, settings):
+        return "hull", (f"the live fit holds {fit.views_used} of the scan's {views} views (the scan ended before "
+                        f"its next refit)")
+    return "live", None
 
 
 def status_finishing(scan: Path, job, progress: ScanProgress, note: str) -> None:
@@ -165,29 +187,28 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         runner.stopped("final", f"the scan completed with {progress.views_published} views before the live fit "
                                 "started: reconstructing it from scratch")
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
-    final, bounds = final_job(job, runner.fit, settings)
+    start, why = final_start(runner.fit, progress.views_published, settings)
+    final, bounds = final_job(job, runner.fit, settings, start)
     live_report = runner.fit.report()
     length = (f"{final.budget_s:g} s" if final.budget_s is not None else
               f"{final.steps} steps" if final.steps is not None else "the preset's budget")
-    start = "live" if runner.fit.continuable else "hull"
-    how = ("continues from the live fit" if start == "live" else
-           "starts from the carved hull: the live fit is too young (on its coarse level, or only just past it)")
+    how = "continues from the live fit" if start == "live" else f"starts from the carved hull: {why}"
     log(f"live: scan complete ({live_report['views_used']} views fitted, {live_report['steps']} steps); the final "
         f"reconstruction {how}, for {length}")
-    report = execute_job(final, root, out, runner.final_recon(recon))
+    report = execute_job(final, root, out, runner.final_recon(recon, start == "live"))
     extra = {"live": {**live_report, **bounds, "final_start": start}}
     add_to_report(out, extra)
     report.update(extra)
     return report
 
 
-def final_job(job, fit, settings: LiveSettings) -> tuple:
+def final_job(job, fit, settings: LiveSettings, start: str) -> tuple:
     """The final run's job and report.json's record of its bounds: the job's own budget or steps where it names
-    them; else, once the live fit is on its last level, `settings.final_polish_s` of training as a step count at the
-    live fit's recent rate, and before that the preset's own budget (both None)."""
+    them; else, continuing from the live fit (`start` 'live', `final_start`), `settings.final_polish_s` of training
+    as a step count at the live fit's recent rate, and from the hull the preset's own budget (both None)."""
     if job.budget_s is not None or job.steps is not None:
         return dataclasses.replace(job, live=False), {"final_budget_s": job.budget_s, "final_steps": job.steps}
-    if not fit.continuable:  # the final run starts from the carved hull: a polish cannot fit the object
+    if start != "live":  # the final run starts from the carved hull: a polish cannot fit the object
         return dataclasses.replace(job, live=False), {"final_budget_s": None, "final_steps": None}
     rate = fit.recent_steps_per_s() or fit.steps_per_s() or 0.0
     steps = max(settings.final_min_steps, round(rate * settings.final_polish_s))
@@ -411,9 +432,10 @@ class LiveRun:
             pass
 
     # ---- the final run -------------------------------------------------------------------------------------------
-    def final_recon(self, recon: Callable | None) -> Callable:
+    def final_recon(self, recon: Callable | None, from_live: bool) -> Callable:
         """The reconstruction function of the final run: the ordinary one, its model warm-started from the live fit
-        (the field, the level and where its learning-rate decay stands), and once trained holding the better of its
+        where `from_live` (the field, the level and where its learning-rate decay stands; `final_start` decides),
+        else started from the carved hull, and once trained holding the better of its
         own field and the live fit's (keep.py) for its mesh, pictures and metrics. A replacement reconstruction
         (`--recon`, tests) is used as it is."""
         from ..reconstruct import reconstruct_capture
@@ -422,8 +444,8 @@ class LiveRun:
             return recon
         overrides = {"trace_checkpoints": self.settings.final_checkpoints, **dict(self.settings.overrides)}
         keep = functools.partial(keep_the_better, live_field=self.fit.live_field(), log=self.log)
-        return functools.partial(reconstruct_capture, make=self.fit.warm_factory(), overrides=overrides,
+        return functools.partial(reconstruct_capture, make=self.fit.warm_factory(from_live), overrides=overrides,
                                  after_training=keep)
 
 
-__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun", "refit_due"]
+__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun", "final_start", "refit_due"]

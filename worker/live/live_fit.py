@@ -174,10 +174,10 @@ class LiveFit:
         refinement = model.part("refinement")
         return refinement is None or model.level_steps >= refinement.config.after_steps
 
-    def warm_factory(self) -> Callable:
+    def warm_factory(self, from_live: bool) -> Callable:
         """A model factory (scene, config, device, plan) -> model for the final reconstruction: the preset's model
-        of the complete capture, warm-started from this fit where it is `continuable` (the final run continues from
-        the live state), else that model as it starts, from the carved hull.
+        of the complete capture, warm-started from this fit where `from_live` (the final run continues from the live
+        state; only a `continuable` fit can), else that model as it starts, from the carved hull.
 
         A fit still on its coarse level is a worse start than the hull: the demo's simulated scan takes 4 s, in
         which the live fit took 6-8 coarse steps, and the final runs that continued from them ended shredded (the
@@ -189,7 +189,7 @@ class LiveFit:
         the last coarse ones on 113 of its 128 views), and the final run that continued from it came out in 13
         pieces at 6.65 mm, where the hull's gives 1.2."""
         field, level, level_steps = self.live_field(), self.model.level, self.model.level_steps
-        continued = self.continuable
+        continued = from_live and self.continuable
 
         def make(scene, config, device, plan):
             model = make_model(scene, config, device, plan)
