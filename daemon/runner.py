@@ -71,6 +71,7 @@ ARM_FIXES = {"reconnect": "reconnecting", "clear": "clearing its fault"}  # what
 CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controller for one pose before its fallback
 ON_PATH_M = 0.01  # an arm this close to a straight move between two poses of a scan's path stands on that path
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
+TAKING_FRAMES = ("scanning", "pausing")  # the states in which a scan takes frames ("pausing": the pose in flight)
 
 
 class _Fault(SpadscanError):
@@ -181,6 +182,7 @@ class ScanRunner:
         self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,
                            tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer, controller_checked=True,
                            chooser=chooser)
+        self._forget_earlier_error()
         self._launch("scanning")
         log.info("scan %s: %d poses x %d frames -> %s", name, len(plan), scan.frames_per_pose, path)
         return self.status()
@@ -252,6 +254,17 @@ class ScanRunner:
         log.error("%s", said)
         self.stuck = {"scan": path.name, "cause": str(exc), "error": said}
         self.last_error = said
+
+    def _forget_earlier_error(self) -> None:
+        """A new scan starts: last_error no longer shows an earlier scan's fault (that scan's outcome stays in
+        `last_scan`), which beside the new scan's name and progress would read as its own. What still stands is
+        kept: an abort not recorded yet, a scan that could not be taken over (each names its scan, and is still
+        current)."""
+        standing = {held.get("said") for held in self.aborts.unrecorded.values()}
+        if self.stuck is not None:
+            standing.add(self.stuck["error"])
+        if self.last_error not in standing:
+            self.last_error = None
 
     def _forget_stuck(self, name: str) -> None:
         """Scan `name` is taken over or aborted: if it is the one that could not be taken over, status stops naming
@@ -436,7 +449,7 @@ class ScanRunner:
         if job is not None:
             out.update(scan=job.name, path=str(job.path), pose=job.next_pose, poses=job.n_poses,
                        progress=self._progress(), frames=job.frames, frames_per_pose=job.scan.frames_per_pose,
-                       dropped_frames=job.dropped, rate_hz=round(job.rate_hz(), 2), reason=job.reason,
+                       dropped_frames=job.dropped, rate_hz=self._rate_hz(job), reason=job.reason,
                        elapsed_s=round(time.monotonic() - job.started, 3), schedule=job.scan.schedule)
             if job.chooser is not None:
                 out["views_chosen"] = dict(sorted(job.view_counts.items()))
@@ -453,6 +466,12 @@ class ScanRunner:
             out["cannot_take_over"] = {"scan": self.stuck["scan"], "error": self.stuck["error"]}
         out["daemon_stalls"] = {**self.stalls.counters(), "frame_waits_retried": self.frame_waits_retried}
         return out
+
+    def _rate_hz(self, job: ScanJob) -> float | None:
+        """Frames published per second over the last 10 s; None while the scan takes no frames (paused): a rate
+        then would say a paused scan, or one stopped by a silent sensor, is measuring (the dashboard shows none
+        either)."""
+        return round(job.rate_hz(), 2) if self.state in TAKING_FRAMES else None
 
     # ---- the scan task ---------------------------------------------------------------------------------------------
     def _launch(self, state: str) -> None:
@@ -1000,6 +1019,8 @@ class ScanRunner:
         self._set_state("idle")
 
     def _set_state(self, state: str) -> None:
+        if state == "scanning" and self.state not in TAKING_FRAMES and self.job is not None:
+            self.job.mark_scanning()  # started or resumed: the frame rate is counted from here
         self.state = state
         self._notify()
 

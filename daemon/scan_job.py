@@ -100,7 +100,11 @@ class ScanJob:
     """The arm's controller has been asked about the poses still to come since the scan last started or resumed."""
     started: float = field(default_factory=time.monotonic)
     history: deque = field(default_factory=lambda: deque(maxlen=256))
-    """(monotonic s, frames published) after each pose, for the rate."""
+    """(monotonic s, frames published) after each pose and at each (re)start of scanning (`mark_scanning`), for the
+    rate."""
+    scanning_since: float | None = None
+    """When the scan last began taking frames (started or resumed; monotonic s), or None before: the rate counts
+    back no further, so a pause does not drag it down after the resume."""
     chooser: object | None = None
     """An adaptive scan's `adaptive.ViewChooser`; None for a planned scan."""
     choices: dict = field(default_factory=dict)
@@ -162,14 +166,25 @@ class ScanJob:
                     seen.add(m.get("pose_index"))
                     self.view_counts[str(choice.get("why"))] += 1
 
+    def mark_scanning(self) -> None:
+        """The scan begins taking frames (it starts, or resumes after a pause): the rate is counted from here."""
+        self.scanning_since = time.monotonic()
+        self.history.append((self.scanning_since, self.frames))
+
     def rate_hz(self, window_s: float = 10.0) -> float:
-        """Histograms published per second over the last window_s seconds."""
-        if len(self.history) < 2:
+        """Frames published per second over the last window_s seconds, counted back from now, not from the last
+        publication: a scan whose frames stop coming (a silent sensor) shows its rate falling, not the rate it had.
+        The window reaches no further back than the scan's last start or resume (a pause's time is no time spent
+        scanning); 0.0 before it has begun. The rate of a scan that is not taking frames at all (paused) is for the
+        caller to leave out."""
+        now = time.monotonic()
+        if self.scanning_since is None:
             return 0.0
-        t1, f1 = self.history[-1]
-        old = [(t, f) for t, f in self.history if t1 - t <= window_s]
-        t0, f0 = old[0] if len(old) > 1 else self.history[-2]
-        return (f1 - f0) / (t1 - t0) if t1 > t0 else 0.0
+        begin = max(now - window_s, self.scanning_since)
+        before = [(t, f) for t, f in self.history if t <= begin]
+        t0, f0 = before[-1] if before else (self.history[0] if self.history else (begin, self.frames))
+        t0 = max(t0, begin)  # the frames counted at t0 were all published by `begin`: the window starts there
+        return (self.frames - f0) / (now - t0) if now > t0 else 0.0
 
 
 def _frame_number(record: dict) -> int | None:

@@ -110,8 +110,11 @@ def add_arguments(parser) -> None:
         return sub.add_parser(name, help=help_, description=description or help_, parents=[shared])
 
     op("status", "print the daemon's state as JSON",
-       "Print the daemon's state as JSON; `live` holds the scan's live reconstruction (recon/live/status.json) "
-       "when a worker runs one (`spadscan worker --live`), with `age_s`, the seconds since its last update.")
+       "Print the daemon's state as JSON. `rate_hz`: frames published per second over the last 10 s, null while "
+       "the scan is paused; `last_error`: the last fault since the scan in hand (or the last one) started, or "
+       "what still stands (an abort not recorded yet, a scan that could not be taken over); `live`: the scan's "
+       "live reconstruction (recon/live/status.json) when a worker runs one (`spadscan worker --live`), with "
+       "`age_s`, the seconds since its last update.")
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
               "config (examples/README.md documents each key).")
@@ -167,8 +170,8 @@ def add_arguments(parser) -> None:
     abort.add_argument("--reason", help="why (recorded in the capture)")
     wait = op("wait", "block until scan NAME is complete (exit 0) or aborted (exit 1)",
               "Block until scan NAME is complete (exit 0) or aborted (exit 1). On a terminal a progress bar runs on "
-              "stderr; otherwise a line on stderr says why whenever the scan pauses. Ctrl-C stops only the "
-              "waiting: the scan goes on in the daemon.")
+              "stderr (with a rate and a time left only while the scan scans); otherwise a line on stderr says why "
+              "whenever the scan pauses. Ctrl-C stops only the waiting: the scan goes on in the daemon.")
     wait.add_argument("name", metavar="NAME", help="the scan's name (its folder under the captures root)")
     op("shutdown", "stop the daemon; a scan in flight stays resumable")
 
@@ -351,30 +354,55 @@ class PauseNotes:
 
 class ProgressBar:
     """On a terminal: a progress bar of scan `name` (tqdm, imported only here: `ctl status` and friends stay
-    light)."""
+    light). It starts at the pose the scan is at and advances by the poses published since, so that its rate counts
+    only poses it saw taken (a `wait` begun mid-scan would count the earlier ones as taken in its first second).
+    While the scan is not scanning (paused, pausing) it shows no rate and no time left: a pause has no end time.
+    On resume its timer restarts, so that the pause's time does not drag the rate down afterwards (nor count as time
+    taken)."""
+
+    SCANNING = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_fmt}, %s]"
+    STILL = "{l_bar}{bar}| {n_fmt}/{total_fmt} [%s]"
 
     def __init__(self, name: str, stream):
         self.name, self.stream = name, stream
         self.bar = None
+        self.state = None  # the scan's state at the last update
 
     def update(self, status: dict) -> None:
         if status.get("scan") != self.name:
             return
+        scanning = status.get("state") == "scanning"
+        reason = status.get("reason")
+        live = live_line(live_status(status))
+        shown = self._format(scanning, status["state"] + (f": {reason}" if reason else "") +
+                             (f"; {live}" if live else ""))
         if self.bar is None:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=status["poses"], desc=self.name, unit="pose", file=self.stream, dynamic_ncols=True)
-        self.bar.n = status["pose"]
-        reason = status.get("reason")
-        live = live_line(live_status(status))
-        self.bar.set_postfix_str(status["state"] + (f": {reason}" if reason else "") + (f"; {live}" if live else ""),
-                                 refresh=False)
+            self.bar = tqdm(total=status["poses"], initial=status["pose"], desc=self.name, unit="pose",
+                            file=self.stream, dynamic_ncols=True, bar_format=shown)
+        else:
+            if scanning and self.state == "paused":
+                self.bar.unpause()  # the time paused is no time spent scanning
+            self.bar.bar_format = shown
+        self.state = status["state"]
+        taken = status["pose"] - self.bar.n
+        if taken > 0:
+            self.bar.update(taken)
+        elif taken < 0:  # (never expected: a pose count that goes back is shown as it is)
+            self.bar.n = status["pose"]
         self.bar.refresh()
+
+    def _format(self, scanning: bool, text: str) -> str:
+        """The bar's format: the counts, then (only while scanning) the time taken, the time left and the rate,
+        then `text`."""
+        text = text.replace("{", "{{").replace("}", "}}")  # the text goes into a format string as it is
+        return (self.SCANNING if scanning else self.STILL) % text
 
     def finish(self, state: str | None) -> None:
         if self.bar is not None and state == "complete":
             self.bar.n = self.bar.total
-            self.bar.set_postfix_str("complete", refresh=False)
+            self.bar.bar_format = self._format(False, "complete")
 
     def close(self) -> None:
         if self.bar is not None:

@@ -1,0 +1,129 @@
+"""The `ctl wait` progress bar tells the truth about rate and time left: none while the scan is paused (a pause has
+no end time), a rate of the poses it saw taken (not of those published before the wait began), and no pause counted
+into the rate after a resume. tqdm's clock is a fake one the tests move on, so nothing depends on wall-clock luck."""
+
+from __future__ import annotations
+
+import io
+import re
+
+import pytest
+import tqdm.std
+
+from spadscan.commands.ctl import ProgressBar
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+class Clock:
+    """tqdm's time, moved on by the test."""
+
+    def __init__(self):
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    fake = Clock()
+    monkeypatch.setattr(tqdm.std, "time", fake)  # tqdm reads its clock through this name when a bar is made
+    monkeypatch.setattr(tqdm.std.tqdm, "monitor_interval", 0)  # no monitor thread left behind
+    return fake
+
+
+def shown(stream: Terminal) -> str:
+    """The bar as the terminal shows it now (its last redraw)."""
+    return stream.getvalue().split("\r")[-1].strip()
+
+
+def status(state: str, pose: int, reason: str | None = None) -> dict:
+    return {"scan": "goblet", "state": state, "pose": pose, "poses": 48, "reason": reason}
+
+
+def rate_of(line: str) -> float:
+    """The poses per second the bar shows (tqdm writes a slow rate as seconds per pose)."""
+    found = re.search(r"([\d.]+)(pose/s|s/pose)", line)
+    assert found, line
+    return float(found.group(1)) if found.group(2) == "pose/s" else 1.0 / float(found.group(1))
+
+
+@pytest.mark.parametrize("state,reason", [("paused", "sensor silent: no complete frame within 5 s at pose 20"),
+                                          ("pausing", None)])
+def test_a_scan_that_is_not_scanning_shows_no_rate_and_no_time_left(clock, state, reason):
+    stream = Terminal()
+    bar = ProgressBar("goblet", stream)
+    try:
+        for _ in range(4):  # `wait` polls the status; the scan stays where it is
+            bar.update(status(state, 20, reason))
+            clock.t += 1.0
+        line = shown(stream)
+    finally:
+        bar.close()
+    assert "20/48" in line and f"[{state}" in line, line
+    assert "pose/s" not in line and "<" not in line, line  # no rate, no time left
+
+
+def test_a_wait_begun_mid_scan_counts_only_the_poses_it_saw_taken(clock):
+    stream = Terminal()
+    bar = ProgressBar("goblet", stream)
+    try:
+        for pose in (20, 22, 24, 26):  # 20 poses published before the wait; then 2 a second
+            bar.update(status("scanning", pose))
+            clock.t += 1.0
+        line = shown(stream)
+    finally:
+        bar.close()
+    assert "26/48" in line, line
+    assert rate_of(line) == pytest.approx(2.0, abs=0.01), line
+    assert "<00:11," in line, line  # 22 poses left at 2 a second
+
+
+def test_a_pause_is_not_counted_into_the_rate_after_the_resume(clock):
+    stream = Terminal()
+    bar = ProgressBar("goblet", stream)
+    try:
+        for pose in (10, 12, 14, 16):
+            bar.update(status("scanning", pose))
+            clock.t += 1.0
+        for _ in range(30):  # paused 30 s by the operator
+            bar.update(status("paused", 16, "paused by user"))
+            clock.t += 1.0
+        for pose in (16, 18, 20, 22):  # resumed: 2 poses a second again
+            bar.update(status("scanning", pose))
+            clock.t += 1.0
+        line = shown(stream)
+    finally:
+        bar.close()
+    assert "22/48" in line, line
+    assert rate_of(line) == pytest.approx(2.0, abs=0.01), line
+    assert "<00:13," in line, line  # 26 poses left at 2 a second
+    assert "[00:06<" in line, line  # the time spent scanning while watched: 3 s, then 3 s after the resume
+
+
+def test_the_reason_is_shown_as_it_is_even_with_braces(clock):
+    stream = Terminal()
+    bar = ProgressBar("goblet", stream)
+    try:
+        bar.update(status("paused", 5, "cannot reopen the capture: {odd} 100%"))
+        line = shown(stream)
+    finally:
+        bar.close()
+    assert "[paused: cannot reopen the capture: {odd} 100%]" in line, line
+
+
+def test_a_complete_scan_fills_the_bar(clock):
+    stream = Terminal()
+    bar = ProgressBar("goblet", stream)
+    try:
+        bar.update(status("scanning", 46))
+        clock.t += 1.0
+        bar.finish("complete")
+    finally:
+        bar.close()
+    line = shown(stream)
+    assert "48/48" in line and "[complete]" in line, line
