@@ -256,3 +256,12 @@ def test_a_baseline_names_its_ground_truth_once(tmp_path):
     assert summary_of(render_html(report, tmp_path)).count("<th>ground truth</th>") == 1
     del report["ground_truth"]
     assert summary_of(render_html(report, tmp_path)).count("<th>ground truth</th>") == 1
+
+
+def test_metric_samples_say_how_many_the_deadline_left_measured(folder):
+    cut = summary_of(render_html(a_report(n_points=300000, queries=5000), folder))
+    assert "<th>metric samples per mesh</th><td class=num>5,000 of 300,000</td>" in cut
+    whole = summary_of(render_html(a_report(n_points=300000, queries=300000), folder))
+    assert "<th>metric samples per mesh</th><td class=num>300000</td>" in whole
+    assert "<th>metric samples per mesh</th><td class=num>300000</td>" in summary_of(
+        render_html(a_report(n_points=300000), folder))

@@ -59,6 +59,20 @@ BASELINE_LABELS = {"seconds": "run time"}
 UNIT_KEYS = {"threshold": "threshold_units"}
 """Rows whose unit the report gives in another key."""
 
+
+def metric_samples(report: dict) -> str:
+    """The "metric samples per mesh" row: `n_points`, or "5,000 of 300,000" where the metrics' deadline left fewer of
+    them measured (`queries`), as the terminal's summary line says: the metrics rest on those alone."""
+    points, queries = report.get("n_points"), report.get("queries")
+    counts = all(isinstance(n, int) and not isinstance(n, bool) for n in (points, queries))
+    if counts and queries < points:
+        return f"{queries:,} of {points:,}"
+    return format_value(points)
+
+
+VALUE_TEXTS = {"n_points": metric_samples}
+"""Rows whose text draws on more than their own key: f(report) -> text."""
+
 TRACE_COLUMNS = ("step", "seconds", "loss", "chamfer_mm", "note")
 
 STYLE = """
@@ -138,7 +152,8 @@ def _row(report: dict, key: str, label: str, unit) -> str:
     if is_baseline(report):
         label = BASELINE_LABELS.get(key, label)
     unit = (report.get(UNIT_KEYS[key]) or unit) if key in UNIT_KEYS else unit
-    text = format_value(report[key]) + (f" {unit}" if unit and report[key] is not None else "")
+    value = VALUE_TEXTS[key](report) if key in VALUE_TEXTS else format_value(report[key])
+    text = value + (f" {unit}" if unit and report[key] is not None else "")
     return f"<tr><th>{_esc(label)}</th><td class=num>{_esc(text)}</td></tr>"
 
 

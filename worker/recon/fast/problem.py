@@ -29,6 +29,12 @@ HULL_MIN_VOTES = 0.2
 """Pieces of the carved hull that fewer first returns land in than this fraction of the best piece's are not the
 object (see hull.object_hull)."""
 
+HELD_SHARE = 0.5
+"""Share of the first-return points that must lie in the scene box and above the floor for carving's failure to be
+put down to a thin or faint object rather than to the box or the floor. A 6 mm rod 20 cm tall, 83 % of whose 193
+returns lay in a box that held its lowest 6 cm, was carved away by the views that missed it in that box and in one
+that held it all (99 %); lowering the carving thresholds kept it."""
+
 
 @dataclass
 class FastProblem:
@@ -117,7 +123,9 @@ def build_problem(scene, config, device, terms) -> FastProblem:
         onset = np.where(_usable(scene), onset, np.nan)  # no information, not "no return"
     occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=HULL_MIN_VOTES)
     if not occ.any():
-        raise ReconstructionError(_nothing_left(onset, hull_res, floor_z, fc.carve_threshold))
+        points = _return_points(onset, poses_np, dirs, weights)
+        raise ReconstructionError(_nothing_left(points, hull_res, floor_z, fc.carve_threshold,
+                                                carve_weak_threshold(fc, table is not None)))
     hull = hull_field(occ, hull_res.origin, voxel, device)
     idx = np.argwhere(occ)[:, ::-1]  # (x, y, z)
     lo = hull_res.origin + idx.min(axis=0) * voxel
@@ -162,19 +170,63 @@ def carve_weak_threshold(fc, on_table: bool) -> float | None:
     return None if on_table else fc.carve_weak_threshold
 
 
-def _nothing_left(onset: np.ndarray, hull_res, floor_z: float | None, threshold: float) -> str:
-    """Why carving left nothing, in one line: no return at all, or returns that the box or the floor lost (a scene
-    radius of metres makes a hull cell larger than the object; a floor above the object carves it all)."""
-    found = int(np.isfinite(onset).sum())
+def _return_points(onset: np.ndarray, poses: np.ndarray, zone_dirs: np.ndarray, zone_weights: np.ndarray):
+    """(n, 3) world points (metres) of the first returns: each detected histogram's onset range (onset (V, Z), NaN
+    where none) along its zone's mean direction (zone_dirs (Z, D, 3) sensor frame, zone_weights (Z, D) steradians)
+    from its view's pose (V, 4, 4)."""
+    centre = np.einsum("zd,zdi->zi", zone_weights, zone_dirs)
+    centre /= np.linalg.norm(centre, axis=1, keepdims=True)
+    v, z = np.nonzero(np.isfinite(onset))
+    along = np.einsum("nij,nj->ni", poses[v, :3, :3], centre[z])
+    return poses[v, :3, 3] + along * onset[v, z][:, None]
+
+
+def _lower_thresholds(threshold: float, weak: float | None) -> tuple[float, float | None] | None:
+    """Carving thresholds (noise deviations) two lower than `threshold` and `weak` (None: not in effect), never under
+    2 and 1 (nearer the noise, carving stops at noise; the config takes a weak one of 1 up to the other) nor raised;
+    None when they are that low already."""
+    lower = min(threshold, max(2.0, threshold - 2.0))
+    lower_weak = None if weak is None else max(1.0, min(weak - 2.0, lower))
+    return None if (lower, lower_weak) == (threshold, weak) else (lower, lower_weak)
+
+
+def _thin_advice(threshold: float, weak: float | None) -> str:
+    """What to lower when views that missed a faint return carved the object away: the --set keys, their values
+    now and lower ones. `weak` None: its key is not in effect (on a table) and is not named."""
+    keys = [("field.carve_threshold", threshold)] + ([] if weak is None else [("field.carve_weak_threshold", weak)])
+    now = " and ".join(f"{k} = {v:g}" for k, v in keys) + " noise deviations"
+    lower = _lower_thresholds(threshold, weak)
+    if lower is None:
+        return f"the detection thresholds {now} are as low as they go: capture more frames per pose"
+    sets = " ".join(f"--set {k}={v:g}" for (k, _), v in zip(keys, lower))
+    return f"lower the detection threshold{'s' if len(keys) > 1 else ''} {now}, e.g. {sets}"
+
+
+def _nothing_left(points: np.ndarray, hull_res, floor_z: float | None, threshold: float,
+                  weak: float | None) -> str:
+    """Why carving left nothing, in one line, from the first-return points (n, 3) metres (`_return_points`): no return
+    at all; returns that the scene box or the floor lost (most lie outside the box or under the floor: a box off the
+    object, a floor above it); else a thin or faint object, carved away by the views that missed its return
+    (`HELD_SHARE`): lower carving thresholds (`threshold`, `weak` as carving used them, None: not in effect)."""
+    found = len(points)
     if not found:
-        return (f"space carving removed everything: no histogram shows a return above the threshold ({threshold} "
+        return (f"space carving removed everything: no histogram shows a return above the threshold ({threshold:g} "
                 f"noise deviations) inside the scene box")
     cell_mm = float(np.max(hull_res.voxel_m)) * 1e3
+    lo, hi = np.asarray(hull_res.bounds_min, float), np.asarray(hull_res.bounds_max, float)
+    # Onsets lie in front of the surface, so a return on the floor sits on it or above: a cell's slack is enough.
+    above = np.ones(found, bool) if floor_z is None else points[:, 2] >= floor_z - cell_mm * 1e-3
+    held = int(np.sum(np.all((points >= lo) & (points <= hi), axis=1) & above))
     floor = "none" if floor_z is None else f"z = {floor_z:.3f} m"
-    return (f"space carving removed everything although {found} histograms show a return: the scene box "
-            f"{np.round(hull_res.bounds_min, 3).tolist()} .. {np.round(hull_res.bounds_max, 3).tolist()} m "
-            f"({cell_mm:.0f} mm cells) or the floor ({floor}) does not hold the object (check the capture's "
-            f"scene.radius and scene.center, or field.floor_z)")
+    where = (f"the scene box {np.round(lo, 3).tolist()} .. {np.round(hi, 3).tolist()} m ({cell_mm:.0f} mm cells) "
+             f"and above the floor ({floor})")
+    if held >= HELD_SHARE * found:
+        return (f"space carving removed everything although {found} histograms show a return, {held} of them in "
+                f"{where}: the object is thin or faint, and the views that missed its return carved it away "
+                f"({_thin_advice(threshold, weak)})")
+    return (f"space carving removed everything although {found} histograms show a return, only {held} of them in "
+            f"{where}: the box or the floor does not hold the object (check the capture's scene.radius and "
+            f"scene.center, or field.floor_z)")
 
 
 def _carving_views(scene):

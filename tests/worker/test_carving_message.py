@@ -1,0 +1,111 @@
+"""The fast preset's error when space carving leaves nothing: it names the cause the first returns point to.
+
+Returns that lie in the scene box and above the floor mean a thin or faint object that the views which missed its
+return carved away (the carving thresholds are what to lower); returns outside the box or under the floor mean the
+box or the floor is wrong.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from spadscan.worker.recon.config import with_overrides
+from spadscan.worker.recon.errors import ReconstructionError
+from spadscan.worker.recon.fast import problem
+from spadscan.worker.recon.fast.model import make_fast_model
+from spadscan.worker.recon.model_api import RunPlan
+from spadscan.worker.recon.presets import preset_config
+from spadscan.worker.recon.scene_data import load_scene
+from worker_helpers import FAST_SMALL
+
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+BOX = SimpleNamespace(voxel_m=np.full(3, 0.002), bounds_min=np.array([-0.05, -0.05, -0.05]),
+                      bounds_max=np.array([0.05, 0.05, 0.05]))
+"""A carving result's box as `_nothing_left` reads it: 10 cm across, 2 mm cells."""
+
+ROD = np.stack([np.zeros(40), np.zeros(40), np.linspace(0.0, 0.04, 40)], axis=1)
+"""First-return points along a thin upright rod standing on the floor z = 0, all inside BOX."""
+
+
+def test_returns_inside_the_box_name_a_thin_object_and_the_thresholds_to_lower():
+    msg = problem._nothing_left(ROD, BOX, 0.0, 5.0, 4.0)
+    assert "\n" not in msg
+    assert "40 histograms show a return, 40 of them in the scene box" in msg
+    assert "thin or faint" in msg
+    assert "field.carve_threshold = 5 and field.carve_weak_threshold = 4 noise deviations" in msg
+    assert "--set field.carve_threshold=3 --set field.carve_weak_threshold=2" in msg
+    assert "scene.radius" not in msg
+
+
+def test_returns_outside_the_box_keep_the_box_advice():
+    msg = problem._nothing_left(ROD + [0.2, 0.0, 0.0], BOX, 0.0, 5.0, 4.0)
+    assert "\n" not in msg
+    assert "only 0 of them in the scene box" in msg
+    assert "check the capture's scene.radius and scene.center, or field.floor_z" in msg
+    assert "thin or faint" not in msg
+
+
+def test_returns_under_the_floor_keep_the_floor_advice():
+    msg = problem._nothing_left(ROD, BOX, 0.045, 5.0, 4.0)
+    assert "the floor (z = 0.045 m)" in msg and "field.floor_z" in msg
+    assert "thin or faint" not in msg
+
+
+def test_a_few_returns_beyond_the_box_still_point_to_a_thin_object():
+    # A rod taller than the box: most of its returns in the box, its top's beyond (the box is not what failed).
+    points = np.concatenate([ROD, ROD[:10] + [0.0, 0.0, 0.1]])
+    msg = problem._nothing_left(points, BOX, 0.0, 5.0, 4.0)
+    assert "50 histograms show a return, 40 of them" in msg and "thin or faint" in msg
+
+
+def test_on_a_table_only_the_threshold_in_effect_is_named():
+    msg = problem._nothing_left(ROD, BOX, 0.0, 5.0, None)
+    assert "field.carve_threshold = 5 noise deviations, e.g. --set field.carve_threshold=3)" in msg
+    assert "carve_weak_threshold" not in msg
+
+
+def test_thresholds_already_low_are_not_lowered_further():
+    assert problem._lower_thresholds(3.0, 3.0) == (2.0, 1.0)
+    assert problem._lower_thresholds(1.5, 1.0) is None
+    msg = problem._nothing_left(ROD, BOX, 0.0, 2.0, 1.0)
+    assert "as low as they go" in msg and "--set" not in msg
+
+
+def test_no_return_at_all_says_so():
+    msg = problem._nothing_left(np.zeros((0, 3)), BOX, 0.0, 5.0, 4.0)
+    assert msg.startswith("space carving removed everything: no histogram shows a return above the threshold (5 ")
+
+
+def test_return_points_lie_at_the_onset_along_the_zone_from_the_view():
+    pose = np.eye(4)
+    pose[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # looking down -z
+    pose[:3, 3] = [0.1, 0.0, 0.5]
+    dirs = np.array([[[0.1, 0.0, 1.0], [-0.1, 0.0, 1.0]], [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]])
+    dirs /= np.linalg.norm(dirs, axis=2, keepdims=True)
+    onset = np.array([[0.3, np.nan]])
+    points = problem._return_points(onset, pose[None], dirs, np.ones((2, 2)))
+    np.testing.assert_allclose(points, [[0.1, 0.0, 0.2]], atol=1e-12)
+
+
+def _build(capture, overrides):
+    config = with_overrides(preset_config("fast"), {**FAST_SMALL, **overrides})
+    return make_fast_model(load_scene(capture), config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+
+
+def test_a_floor_above_the_object_is_named_when_the_fit_starts(cylinder_capture):
+    with pytest.raises(ReconstructionError, match=r"only 0 of them in the scene box .* field\.floor_z\)$"):
+        _build(cylinder_capture, {"field.floor_z": 0.3})
+
+
+def test_an_object_carved_away_inside_its_box_names_the_thresholds_when_the_fit_starts(cylinder_capture,
+                                                                                        monkeypatch):
+    # The cylinder's returns lie in its box; its carved hull is taken away, as views that missed a thin part do.
+    monkeypatch.setattr(problem, "object_hull", lambda occ, *a, **k: np.zeros_like(occ, bool))
+    with pytest.raises(ReconstructionError, match="thin or faint") as err:
+        _build(cylinder_capture, {"field.carve_threshold": 6.0, "field.carve_weak_threshold": 4.5})
+    assert "--set field.carve_threshold=4 --set field.carve_weak_threshold=2.5" in str(err.value)
