@@ -19,7 +19,9 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
   one;
 - `state` (string): `waiting` (too few views yet), `live` (following the scan), `final` (the scan is complete: the
   final reconstruction runs from the live state), `done` (the final result is published: `result`), `aborted` (the
-  scan was aborted; the job ended) or `stopped` (the job ended otherwise: `note`);
+  scan was aborted; the job ended), `stopped` (the job ended otherwise: `note`) or `queued` (the job is back in the
+  queue before it ended: its worker was stopped, or its process crashed and it is retried; `note` says which; the
+  figures, mesh and preview are the stopped attempt's until the next attempt starts, which begins them afresh);
 - `views_planned` (int or null): poses the scan plans, when the capture says;
 - `job` (string): the queue's job id;
 - `result` (string or null): the final result folder, once `done`;
@@ -43,9 +45,9 @@ from .errors import CaptureError
 LIVE_DIR = "live"
 """The live results' folder under a capture's `recon/`."""
 STATUS = "status.json"
-STATES = ("waiting", "live", "final", "done", "aborted", "stopped")
+STATES = ("waiting", "live", "final", "done", "aborted", "stopped", "queued")
 SAID = {"waiting": "waiting for views", "live": "following the scan", "final": "finishing", "done": "done",
-        "aborted": "ended (the scan was aborted)", "stopped": "stopped"}
+        "aborted": "ended (the scan was aborted)", "stopped": "stopped", "queued": "queued again"}
 """Each state as people read it."""
 
 

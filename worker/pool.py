@@ -4,7 +4,8 @@ One asyncio loop does everything the worker process itself does: the watcher que
 jobs while it has free slots, renews the leases of the jobs it holds, takes over jobs whose holders died, and settles
 each job when its child exits. A job runs in `python -m spadscan.worker.jobs` (its own process: torch, memory and
 crashes stay there) with its output in a log file under the queue. Stopping (Ctrl-C, SIGTERM, `stop` set) ends the
-children and gives their jobs back to the queue without counting the attempt.
+children and gives their jobs back to the queue without counting the attempt; a live job's status then says it is
+queued again (`mark_live_queued`), as it does when a crashed live job is retried.
 
 A finished job whose result cannot be published (a full disk while its log is copied in or its marker written) keeps
 its claim and its scratch folder: the worker says so once and tries again at every poll, as it does with every other
@@ -31,7 +32,7 @@ from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
 from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
-from .live.done import mark_live_done, mark_live_failed
+from .live.done import mark_live_done, mark_live_failed, mark_live_queued
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
 from .queue import SEP, Claim, Queue, Unrecorded
 from .watcher import ScanReport, scan_once, watch
@@ -363,6 +364,8 @@ class Worker:
             note = "" if bad_input else f"; {_moved_to(state, bad_input)}"
         if state == "failed":
             self._settle_failed(job, error)
+        elif state == "queued":
+            mark_live_queued(job, self.root, f"its process crashed ({fold(error)}); {AGAIN}", self.log)
         self.log(said + note)
 
     def _record_waiting(self) -> None:
@@ -514,6 +517,8 @@ class Worker:
         for job_id, child in self.children.items():
             if self.queue.release(child.claim, "worker stopped"):
                 self.log(f"{job_id} stopped; back in the queue")
+                # its process is gone (waited for above): nothing of this attempt writes the status after this
+                mark_live_queued(child.claim.job, self.root, f"its worker was stopped; {AGAIN}", self.log)
             child.outcome.unlink(missing_ok=True)
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()
@@ -571,6 +576,11 @@ class Worker:
             del self.unpublished[job_id]
             if self._give_back(child.claim, "worker stopped before it could publish the result"):
                 self.log(f"{job_id} stopped before its result could be published; back in the queue, {kept}")
+
+
+AGAIN = ("the job is back in the queue and runs again from the start when a worker claims it; the figures and "
+         "picture here are the stopped attempt's")
+"""What the live status of a job given back to the queue says after why."""
 
 
 def _recording(job_id: str) -> str:

@@ -39,7 +39,8 @@ def live_detail(root, row) -> str | None:
         status = read_status(status_path(Path(root) / row.scan))
     except (SpadscanError, OSError):
         return None
-    return status.summary() if status.job == row.id and status.state not in ENDED else None
+    # 'queued': the given-back attempt's last word, until the attempt that took the job over writes its own
+    return status.summary() if status.job == row.id and status.state not in (*ENDED, "queued") else None
 
 
 def status_detail(row, running: dict | None = None, root=None) -> str:

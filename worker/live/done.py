@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 from typing import Callable
 
+from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.live_status import (LiveStatus, is_chamfer, is_count, read_status, status_path,
                                            write_status)
@@ -54,6 +55,25 @@ def mark_live_failed(job: Job, root: Path, error: str, log: Callable[[str], None
         log(f"{job.id}: the live status was not updated: {exc}")
 
 
+def mark_live_queued(job, root: Path, why: str, log: Callable[[str], None]) -> None:
+    """Set a live job's `<scan>/recon/live/status.json` to 'queued' with `why` as its note: the job went back to the
+    queue before it ended, and its status would otherwise go on saying it is finishing (or following the scan) with
+    no process running it. Its figures stay, as the mesh and preview beside them: the stopped attempt's, which the
+    next attempt begins afresh. A status that is missing (the job was stopped before it wrote one), another job's or
+    says how the job ended is left alone; one that cannot be read or written is too, saying so in the log."""
+    if not job.live:
+        return
+    try:
+        path = status_path(scan_path(job, root))
+        if not path.is_file():
+            return
+        status = read_status(path)
+        if status.job == job.id and status.state not in ENDED:
+            write_status(path.parent, dataclasses.replace(status, state="queued", note=fold(why), updated_utc=""))
+    except (SpadscanError, OSError) as exc:
+        log(f"{job.id}: the live status was not updated: {fold(exc)}")
+
+
 ENDED = ("done", "aborted", "stopped")
 """Live states that say how the job ended."""
 
@@ -81,4 +101,4 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
         chamfer_mm=float(chamfer) if is_chamfer(chamfer) else None)
 
 
-__all__ = ["mark_live_done", "mark_live_done_unsaid", "mark_live_failed", "done_status"]
+__all__ = ["mark_live_done", "mark_live_done_unsaid", "mark_live_failed", "mark_live_queued", "done_status"]

@@ -36,12 +36,12 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import LiveStatus, read_status, status_path
+from spadscan.protocol.live_status import LiveStatus
 
 from .follower import ScanFollower, ScanProgress
 from .keep import keep_the_better
 from .next_views import is_adaptive, update_next_views
-from .publish import clear_leftovers, live_folder, publish_mesh, publish_status
+from .publish import clear_earlier, live_folder, publish_mesh, publish_status
 from .recoarse import RecoarsePolicy
 
 
@@ -127,17 +127,12 @@ def final_start(fit, views: int, settings: LiveSettings) -> tuple[str, str | Non
 
 def status_finishing(scan: Path, job, progress: ScanProgress, note: str) -> None:
     """The live status of a job that found its scan complete (a fast scan, or a job taken over after the scan's end):
-    'final', so that whoever follows it sees the final run and, once published, its result. What an earlier
-    attempt fitted stays in it."""
+    'final', so that whoever follows it sees the final run and, once published, its result. It reconstructs from
+    scratch: nothing an earlier attempt fitted stays (figures, mesh, preview), which would read as this run's."""
     folder = live_folder(scan)
-    clear_leftovers(folder)
-    try:
-        before = read_status(status_path(scan))
-    except SpadscanError:
-        before = LiveStatus(views_used=0, views_published=progress.views_published, steps=0, job=job.id)
-    publish_status(folder, dataclasses.replace(before, state="final", views_published=progress.views_published,
-                                               views_planned=progress.views_planned, job=job.id, note=note,
-                                               updated_utc=""))
+    clear_earlier(folder)
+    publish_status(folder, LiveStatus(views_used=0, views_published=progress.views_published, steps=0, state="final",
+                                      views_planned=progress.views_planned, job=job.id, note=note))
 
 
 class ScanAborted(SpadscanError):
@@ -164,7 +159,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         status_finishing(scan, job, progress, note)
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
     folder = live_folder(scan)
-    clear_leftovers(folder)
+    clear_earlier(folder)  # an earlier attempt's mesh beside this attempt's first status would read as this one's
     runner = LiveRun(job, scan, folder, follower, settings, log)
     gt, _ = ground_truth(progress.manifest, out)
     runner.start(progress, gt)

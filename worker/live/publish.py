@@ -34,6 +34,15 @@ def clear_leftovers(folder: Path) -> None:
             path.unlink(missing_ok=True)
 
 
+def clear_earlier(folder: Path) -> None:
+    """Remove what an earlier attempt of the job left in its folder (its worker was stopped, or its process crashed,
+    and the job is run again from the start): the temporary files (`clear_leftovers`), and the mesh and preview of
+    the fit it abandoned, which beside this attempt's status would read as this attempt's."""
+    clear_leftovers(folder)
+    for name in (MESH, PREVIEW):
+        (Path(folder) / name).unlink(missing_ok=True)
+
+
 def publish_mesh(folder: Path, mesh, gt_mesh=None, preview: bool = True) -> None:
     """Write the live mesh (and, with `preview`, its preview picture beside the ground truth when known)."""
     folder = Path(folder)
@@ -52,4 +61,4 @@ def publish_status(folder: Path, status: LiveStatus) -> Path:
     return write_status(folder, status)
 
 
-__all__ = ["MESH", "PREVIEW", "live_folder", "clear_leftovers", "publish_mesh", "publish_status"]
+__all__ = ["MESH", "PREVIEW", "live_folder", "clear_leftovers", "clear_earlier", "publish_mesh", "publish_status"]
