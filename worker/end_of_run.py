@@ -1,7 +1,7 @@
 """How a reconstruction ended, honestly: did it converge, and what makes its result doubtful (report.json's
 "converged" and "warnings", one line each).
 
-Five checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
+Seven checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
 
 - **Stopped early.** A run that ended on its time budget or step count while its data term was still falling:
   the windowed data term of the last fifth of the run against the fifth before it.
@@ -18,7 +18,13 @@ Five checks, each on plain numbers the run recorded (docs/end_of_run.md derives 
 - **Seen by too few views.** The share of the mesh's surface (undersides left out) that fewer than three views saw
   (`coverage.py`): there the shape is the prior's guess, however well the fit explains the measurements.
 - **In pieces.** The mesh falls apart into more than one piece of note (`pieces.py`): a thin part broke where the
-  fit could not hold it, or surface stands apart where there is none. Neither need show in the fit's misfit.
+  fit could not hold it, or surface stands apart where there is none. Neither need show in the fit's misfit. With a
+  ground truth of as many pieces (two objects), there is nothing to say.
+- **Specks.** Pieces too small to count hold together a share of the surface no good fit leaves (`pieces.py`): the
+  fit shaped noise.
+- **Too little signal.** Many histograms hold no return at the carving threshold (`signal_check.py`): each carved
+  its view empty, and the fit explains what was left. The other checks pass such a result: in so faint a capture any
+  surface is within the noise, and coverage and pieces are measured on the wrong mesh itself.
 """
 
 from __future__ import annotations
@@ -28,6 +34,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import gammaln, xlogy
+
+from .pieces import SPECKS_LIMIT
+from .signal_check import signal_warning
 
 STILL_FALLING = 0.01
 """Relative drop of the windowed data term over the last fifth of a run above which it was still improving."""
@@ -248,6 +257,11 @@ class RunFacts:
     """Wall seconds of training, checkpoint evaluations included (what its share of the budget counts)."""
     training_budget_s: float | None = None
     """The seconds the budget left training, or None without a budget."""
+    signal: object | None = None
+    """How many histograms hold a return at the carving threshold (a `signal_check.Signal`), or None where not
+    judged."""
+    truth_pieces: int | None = None
+    """Pieces of note of the ground truth (`pieces.mesh_pieces` of it), or None without one."""
 
 
 def converged(facts: RunFacts) -> bool:
@@ -336,9 +350,22 @@ def coverage_warning(coverage, measured: bool = False) -> str | None:
             + ("; if the views did aim at it, the object may have moved during the scan" if measured else ""))
 
 
-def pieces_warning(pieces) -> str | None:
-    """The line saying that the mesh is in more than one piece of note (a `pieces.Pieces`), or None."""
-    if pieces is None or pieces.count < 2:
+def specks_warning(pieces) -> str | None:
+    """The line saying that the mesh's specks (a `pieces.Pieces`) hold more than SPECKS_LIMIT of its surface together,
+    or None."""
+    if pieces is None or not pieces.specks_share > SPECKS_LIMIT:
+        return None
+    return (f"{pieces.specks} specks stand apart from the mesh, {100 * pieces.specks_share:.1f} % of its surface (a "
+            f"good fit: under {100 * SPECKS_LIMIT:.1f} %): the fit shaped noise, and the surface is likely spiky too; "
+            f"an object small against the sensor's footprint, or a faint capture (a longer run hardly changes it: scan "
+            f"closer, or with more signal); look at preview.png")
+
+
+def pieces_warning(pieces, truth_pieces: int | None = None) -> str | None:
+    """The line saying that the mesh is in more than one piece of note (a `pieces.Pieces`), or None. With the ground
+    truth's own count of pieces (`truth_pieces`), only more pieces than it has are worth a line: two objects scanned
+    together are two pieces when their fit is perfect."""
+    if pieces is None or pieces.count < 2 or (truth_pieces is not None and pieces.count <= truth_pieces):
         return None
     return (f"the mesh is in {pieces.count} pieces, {100 * pieces.share_apart:.0f} % of its surface apart from the "
             f"largest: if the object is one piece, a thin part of it broke off or a lump stands where there is "
@@ -370,15 +397,21 @@ def warnings(facts: RunFacts) -> list[str]:
     over = overrun_warning(facts)
     if over:
         out.append(over)
+    faint = signal_warning(facts.signal)  # first of the result's doubts: it explains those that follow
+    if faint:
+        out.append(faint)
     misfit = misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None
     if misfit:
         out.append(misfit)
     seen = coverage_warning(facts.coverage, facts.measured)
     if seen:
         out.append(seen)
-    apart = pieces_warning(facts.pieces)
+    apart = pieces_warning(facts.pieces, facts.truth_pieces)
     if apart:
         out.append(apart)
+    noisy = specks_warning(facts.pieces)
+    if noisy:
+        out.append(noisy)
     out += facts.scene_notes + facts.budget_notes
     return out
 

@@ -23,6 +23,11 @@ docs/end_of_run.md); a mug's handle that came off holds 3-4 %, a piece of a stoo
 without a table keep their small pieces, a good fit's specks hold up to 1 % together (the demo goblet, the snowman),
 each far under the limit."""
 
+SPECKS_LIMIT = 0.015
+"""Share of the surface the specks may hold together before the result says so (end_of_run.specks_warning): twice
+the largest share among 24 good fits (0.72 %, a mug at 1.90 mm) and half a 3 cm cube's spiky fit's (3.0-3.4 %;
+docs/end_of_run.md, "Specks")."""
+
 
 @dataclass
 class Pieces:
@@ -34,10 +39,12 @@ class Pieces:
     """Share of the surface area outside the largest piece (specks included): 0 for a mesh in one piece."""
     specks: int
     """Pieces smaller than PIECE_MIN_SHARE."""
+    specks_share: float = 0.0
+    """Share of the surface area the specks hold together."""
 
     def to_dict(self) -> dict:
         return {"count": self.count, "share_apart": self.share_apart, "specks": self.specks,
-                "min_share": PIECE_MIN_SHARE}
+                "specks_share": self.specks_share, "min_share": PIECE_MIN_SHARE, "specks_limit": SPECKS_LIMIT}
 
 
 def mesh_pieces(mesh: trimesh.Trimesh) -> Pieces:
@@ -48,8 +55,9 @@ def mesh_pieces(mesh: trimesh.Trimesh) -> Pieces:
     labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
     areas = np.bincount(labels, weights=mesh.area_faces)
     shares = areas / areas.sum()
-    counted = int((shares >= PIECE_MIN_SHARE).sum())
-    return Pieces(count=max(counted, 1), share_apart=float(1.0 - shares.max()), specks=int(len(shares) - counted))
+    small = shares < PIECE_MIN_SHARE
+    return Pieces(count=max(int((~small).sum()), 1), share_apart=float(1.0 - shares.max()), specks=int(small.sum()),
+                  specks_share=float(shares[small].sum()))
 
 
-__all__ = ["Pieces", "mesh_pieces", "PIECE_MIN_SHARE"]
+__all__ = ["Pieces", "mesh_pieces", "PIECE_MIN_SHARE", "SPECKS_LIMIT"]

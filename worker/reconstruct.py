@@ -45,6 +45,7 @@ from .report import pictures
 from .report.folder_view import ensure_view3d
 from .report.report_html import write_report_html
 from .report.report_json import json_safe, write_report
+from .signal_check import Signal, capture_signal
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 
 DEVICES = ("auto", "cpu", "cuda")
@@ -266,6 +267,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         notes.append("the time budget was short: no coverage picture (coverage.png)")
     coverage = _coverage(out if picture else None, mesh, scene, log)
     pieces = _pieces(mesh, log)
+    signal = _signal(scene, config)
     stages["pictures_s"] = clock() - t_pictures
     if truth is not None:
         costs.fixed_s, costs.fit_check_s = NORMALS_PICTURE_S, 0.0  # all that is left to draw after the metrics
@@ -301,7 +303,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      measured=bool(scene.real), budget_notes=notes,
                      scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note,
                                               run.state_note if scene.state == "complete" else None) if n],
-                     coverage=coverage, pieces=pieces,
+                     coverage=coverage, pieces=pieces, signal=signal,
+                     truth_pieces=None if truth is None else _truth_pieces(truth.mesh),
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
                      continued=bool(getattr(model, "warm_started", False)),
                      training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s)
@@ -310,6 +313,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
     report["coverage"] = None if coverage is None else coverage.to_dict()
     report["pieces"] = None if pieces is None else pieces.to_dict()
+    report["signal"] = None if signal is None else signal.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["threads"] = (governor.summary() if governor is not None else
                          {"fixed": torch.get_num_threads()} if dev.type == "cpu" else None)
@@ -490,6 +494,26 @@ def _pieces(mesh, log) -> Pieces | None:
     except SpadscanError as exc:
         log(f"no pieces counted: {exc}")
         return None
+
+
+def _truth_pieces(mesh) -> int | None:
+    """The ground truth's pieces of note, counted as the result's are, or None for one without surface."""
+    try:
+        return mesh_pieces(mesh).count
+    except SpadscanError:
+        return None
+
+
+def _signal(scene: SceneData, config: ReconConfig) -> Signal | None:
+    """The capture's histograms with no return at the carving threshold, read as carving reads them (frames summed,
+    histograms without data left out); None for a preset that does not carve (the paper preset)."""
+    threshold = getattr(config.field, "carve_threshold", None)
+    if threshold is None:
+        return None
+    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
+    counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
+    usable = None if scene.usable is None else scene.usable.cpu().numpy()
+    return capture_signal(counts, sensor, float(threshold), usable)
 
 
 def fit_renders(model) -> int:

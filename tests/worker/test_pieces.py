@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.worker.pieces import PIECE_MIN_SHARE, mesh_pieces
+from spadscan.worker.pieces import PIECE_MIN_SHARE, SPECKS_LIMIT, mesh_pieces
 
 
 def box(size, x=0.0):
@@ -38,8 +38,10 @@ def test_a_speck_under_the_minimum_share_is_no_piece_but_counts_in_the_share():
     pieces = mesh_pieces(trimesh.util.concatenate([box(0.1), box(0.001, x=0.2)]))
     assert pieces.count == 1 and pieces.specks == 1
     assert pieces.share_apart == pytest.approx(6 / 60_006) and pieces.share_apart < PIECE_MIN_SHARE
+    assert pieces.specks_share == pytest.approx(pieces.share_apart)
     assert pieces.to_dict() == {"count": 1, "share_apart": pieces.share_apart, "specks": 1,
-                                "min_share": PIECE_MIN_SHARE}
+                                "specks_share": pieces.specks_share, "min_share": PIECE_MIN_SHARE,
+                                "specks_limit": SPECKS_LIMIT}
 
 
 def test_a_piece_just_over_the_minimum_share_counts():
