@@ -50,6 +50,16 @@ def test_returns_outside_the_box_keep_the_box_advice():
     assert "thin or faint" not in msg
 
 
+def test_cells_larger_than_the_returns_spread_name_the_scene_radius():
+    """A scene radius of 50 m: 2 m cells, in which the returns of a 4 cm rod all lie, thresholds or not."""
+    huge = SimpleNamespace(voxel_m=np.full(3, 2.0), bounds_min=np.full(3, -50.0), bounds_max=np.full(3, 50.0))
+    msg = problem._nothing_left(ROD, huge, 0.0, 5.0, 4.0)
+    assert "\n" not in msg
+    assert "has 2000 mm cells, larger than the 40 mm the returns spread over" in msg
+    assert "check the capture's scene.radius and scene.center" in msg
+    assert "thin or faint" not in msg
+
+
 def test_returns_under_the_floor_keep_the_floor_advice():
     msg = problem._nothing_left(ROD, BOX, 0.045, 5.0, 4.0)
     assert "the floor (z = 0.045 m)" in msg and "field.floor_z" in msg
