@@ -256,15 +256,15 @@ class ScanRunner:
         self.last_error = said
 
     def _forget_earlier_error(self) -> None:
-        """A new scan starts: last_error no longer shows an earlier scan's fault (that scan's outcome stays in
-        `last_scan`), which beside the new scan's name and progress would read as its own. What still stands is
-        kept: an abort not recorded yet, a scan that could not be taken over (each names its scan, and is still
-        current)."""
-        standing = {held.get("said") for held in self.aborts.unrecorded.values()}
+        """A scan starts, or `ctl resume NAME` takes another one over: last_error no longer shows an earlier scan's
+        fault (that scan's outcome stays in `last_scan`), which beside this scan's name and progress would read as
+        its own. What still stands stays, or comes back where a later fault had replaced it: an abort not recorded
+        yet, a scan that could not be taken over (each names its scan, and is still current)."""
+        standing = [self.aborts.said(name) for name in self.aborts.unrecorded]
         if self.stuck is not None:
-            standing.add(self.stuck["error"])
+            standing.append(self.stuck["error"])
         if self.last_error not in standing:
-            self.last_error = None
+            self.last_error = standing[-1] if standing else None
 
     def _forget_stuck(self, name: str) -> None:
         """Scan `name` is taken over or aborted: if it is the one that could not be taken over, status stops naming
@@ -349,6 +349,7 @@ class ScanRunner:
             log.info("scan %s: taking it over (`ctl resume`)", name)
             if not await self._take_over(path, auto_resume=False):
                 raise ConfigError(self.last_error)
+            self._forget_earlier_error()
         finally:
             self._interrupted_op = None
         return await self.resume()

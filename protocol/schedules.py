@@ -94,9 +94,10 @@ def spiral_at_pole_deg(n: int, min_elevation_deg: float, max_elevation_deg: floa
 
 
 RINGS_BAND_DEG = (10.0, 80.0)
-MAX_VIEWS_PER_RING = 100_000
 """The rings' own band of elevations (degrees, lowest and highest ring): rings stand at both ends of a band, so the
 spiral's 0-90 deg would put a whole ring at the zenith, every view of it from one position."""
+MAX_VIEWS_PER_RING = 100_000
+"""Most views one ring may hold (`elevation_rings`)."""
 
 
 def ring_elevations_rad(n_rings: int, lo_rad: float, hi_rad: float) -> np.ndarray:

@@ -57,13 +57,15 @@ class SimSensorSettings(SensorBackend):
             raise ConfigError(f"{where} mesh is required for backend 'sim'")
         if self.silence_on_frames and self.silence_s <= 0:
             raise ConfigError(f"{where} silence_on_frames {list(self.silence_on_frames)} needs silence_s > 0 (s)")
-        if self.frame_time_s >= section.frame_timeout_s:
+        if 2 * self.frame_time_s >= section.frame_timeout_s:
             # The runner waits frame_timeout_s, from when the arm has settled, for a frame that began after it
-            # settled: such a frame ends frame_time_s after it began, never inside the wait. Every scan would pause
-            # at its first pose, and again at every resume.
-            raise ConfigError(f"{where} frame_time_s {self.frame_time_s:g} s is not shorter than frame_timeout_s "
-                              f"{section.frame_timeout_s:g} s: no frame would ever arrive in time (every scan would "
-                              f"pause at its first pose); shorten frame_time_s or lengthen frame_timeout_s")
+            # settled. The sim sensor measures back to back: the frame under way when the arm settles is dropped, so
+            # the first one kept begins up to frame_time_s later and ends up to two frame times after the settle.
+            # A wait shorter than that pauses the scan at pose after pose (with a fixed move time, at every pose).
+            raise ConfigError(f"{where} frame_time_s {self.frame_time_s:g} s is not under half of frame_timeout_s "
+                              f"{section.frame_timeout_s:g} s: the first frame begun after the arm settles can end "
+                              f"two frame times ({2 * self.frame_time_s:g} s) after it, past the wait (scans would "
+                              f"pause at pose after pose); shorten frame_time_s or lengthen frame_timeout_s")
         if self.mesh.startswith(BUILTIN):
             return self
         p = Path(os.path.expanduser(self.mesh))

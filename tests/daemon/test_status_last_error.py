@@ -72,3 +72,50 @@ def test_a_new_scan_keeps_showing_an_abort_not_recorded_yet(arun, tmp_path, sphe
     aborted, started = arun(scenario())
     assert aborted["abort_recorded"] is False and aborted["last_error"].startswith("scan 'old' is aborted"), aborted
     assert started["last_error"] == aborted["last_error"] and "old" in started["unrecorded_aborts"], started
+
+
+def test_a_scan_that_could_not_be_taken_over_comes_back_after_a_later_fault(arun, tmp_path, sphere):  # noqa: F811
+    """A later scan's fault replaced the stuck scan's line; the next scan shows the stuck scan's line again, which
+    still stands (`cannot_take_over` names it), not nothing."""
+    cfg = make_cfg(tmp_path, views=10)
+    arun(interrupted(cfg, sphere, "vase"))
+    tear(tmp_path / "caps" / "vase")
+
+    async def then(runner, status):
+        await runner.start("first")
+        await until(lambda: runner.job.next_pose >= 2, "two poses")
+        runner.arm.trigger_protective_stop()
+        await until(lambda: runner.state == "paused", "the protective stop's pause")
+        faulted = runner.status()
+        await runner.resume()
+        await runner.wait("first")
+        started = await runner.start("second")
+        await runner.wait("second")
+        return status, faulted, started
+
+    stuck, faulted, started = arun(restarted(cfg, sphere, then))
+    assert "protective stop" in faulted["last_error"]
+    assert started["cannot_take_over"]["scan"] == "vase"
+    assert started["last_error"] == stuck["cannot_take_over"]["error"], started["last_error"]
+
+
+def test_taking_another_scan_over_by_name_does_not_show_an_earlier_scans_fault(arun, tmp_path, sphere):  # noqa: F811
+    """`ctl resume other` after scan 'first' faulted and was aborted: the status of 'other' does not show the
+    protective stop of 'first' as its last error."""
+    cfg = make_cfg(tmp_path, views=10)
+    arun(interrupted(cfg, sphere, "other"))  # left 'running' on disk, not held by the next daemon
+
+    async def scenario():
+        async with daemon_runner(cfg, sphere) as runner:
+            await runner.start("first")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            runner.arm.trigger_protective_stop()
+            await until(lambda: runner.state == "paused", "the protective stop's pause")
+            fault = runner.status()["last_error"]
+            await runner.abort(reason="operator gave up")
+            return fault, await runner.resume("other")
+
+    fault, taken = arun(scenario())
+    assert "protective stop" in fault
+    assert taken["scan"] == "other" and taken["last_scan"]["name"] == "first"
+    assert taken["last_error"] is None, taken["last_error"]
