@@ -22,8 +22,8 @@ Seven checks, each on plain numbers the run recorded (docs/end_of_run.md derives
   ground truth of as many pieces (two objects), there is nothing to say.
 - **Specks.** Pieces too small to count hold together a share of the surface no good fit leaves (`pieces.py`): the
   fit shaped noise.
-- **Too little signal.** Many histograms hold no return at the carving threshold (`signal_check.py`): each carved
-  its view empty, and the fit explains what was left. The other checks pass such a result: in so faint a capture any
+- **Too little signal.** Many histograms of the zone aimed at the object hold no return at carving's level
+  (`signal_check.py`): each carved its view empty, and the fit explains what was left. The other checks pass such a result: in so faint a capture any
   surface is within the noise, and coverage and pieces are measured on the wrong mesh itself.
 """
 
@@ -258,8 +258,8 @@ class RunFacts:
     training_budget_s: float | None = None
     """The seconds the budget left training, or None without a budget."""
     signal: object | None = None
-    """How many histograms hold a return at the carving threshold (a `signal_check.Signal`), or None where not
-    judged."""
+    """How many histograms of the zone aimed at the object hold a return at carving's level (a
+    `signal_check.Signal`), or None where not judged."""
     truth_pieces: int | None = None
     """Pieces of note of the ground truth (`pieces.mesh_pieces` of it), or None without one."""
 

@@ -37,6 +37,7 @@ from .outputs import capture_state_note, export_mesh, files_written_after, folde
 from .pieces import Pieces, mesh_pieces
 from .recon.config import ReconConfig, with_overrides
 from .recon.errors import ReconstructionError
+from .recon.fast.problem import carve_weak_threshold
 from .recon.model_api import ReconModel, RunPlan
 from .recon.presets import make_model, preset_config
 from .recon.scene_data import SceneData, load_scene
@@ -505,15 +506,17 @@ def _truth_pieces(mesh) -> int | None:
 
 
 def _signal(scene: SceneData, config: ReconConfig) -> Signal | None:
-    """The capture's histograms with no return at the carving threshold, read as carving reads them (frames summed,
-    histograms without data left out); None for a preset that does not carve (the paper preset)."""
+    """The aimed zone's histograms with no return at carving's level, read as carving reads them (frames summed,
+    histograms without data left out, the weak threshold off a table); None for a preset that does not carve (the
+    paper preset)."""
     threshold = getattr(config.field, "carve_threshold", None)
     if threshold is None:
         return None
     frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
     counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
     usable = None if scene.usable is None else scene.usable.cpu().numpy()
-    return capture_signal(counts, sensor, float(threshold), usable)
+    return capture_signal(counts, sensor, float(threshold), usable,
+                          weak_threshold=carve_weak_threshold(config.field, on_table=scene.table is not None))
 
 
 def fit_renders(model) -> int:
