@@ -168,9 +168,10 @@ def test_the_final_run_is_bounded_by_the_jobs_own_budget_or_steps_else_by_the_li
 
 @pytest.mark.parametrize("continuable, used, views, start", [
     (True, 48, 48, "live"),
-    (True, 46, 48, "live"),  # 2 left out: a refit of 46 views wants 12 more (a quarter)
-    (True, 117, 128, "live"),  # 11 left out, under the 16 views that make a refit due
-    (True, 112, 128, "hull"),  # 16 left out: a refit was due
+    (True, 46, 48, "live"),
+    (True, 107, 128, "live"),  # a steady scan's end: 21 left out, under a quarter of 107 (27)
+    (True, 103, 128, "live"),  # 25 left out, one under a quarter of 103 (26)
+    (True, 102, 128, "hull"),  # 26 left out: a quarter of 102, rounded up
     (True, 26, 48, "hull"),  # a pause and a fast resume: 22 views left out
     (False, 48, 48, "hull"),  # too young on its level
 ])

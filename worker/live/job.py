@@ -11,7 +11,8 @@ published) runs `execute_live_job`:
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
    warm-started from the live fit once that has left its coarse level and gone on as long on its last one
-   (`LiveFit.continuable`) and holds all but a few of the scan's views (`final_start`; else from the carved hull),
+   (`LiveFit.continuable`) and holds all but under a quarter of the scan's views (`final_start`; else from the
+   carved hull),
    for the job's budget or steps, else `final_polish_s` of
    steps (the preset's budget when it starts from the hull): the result is written into the job's scratch folder
    and published by the worker where every job's result goes. Of the final field and the live one, the one that
@@ -111,15 +112,17 @@ def views_wanted(have: int, settings: LiveSettings) -> int:
 def final_start(fit, views: int, settings: LiveSettings) -> tuple[str, str | None]:
     """Where the final run of a scan of `views` views starts: ('live', None) from the live fit, else ('hull', why).
 
-    Not from a fit still young on its level (`LiveFit.continuable`), nor from one that has left out as many of the
-    scan's views as would make a refit due (`views_wanted`): the scan ended before that refit (a pause and a fast
-    resume, a loaded machine whose refits wait their share of the time). A field fitted to part of the views is a
-    start the complete capture cannot recover from: a goblet scan of 48 views that ended with 26 fitted came out at
-    54-87 mm from the live fit (polished, or trained for the preset's whole budget), and 1.36 mm from the hull."""
+    Not from a fit still young on its level (`LiveFit.continuable`), nor from one that has left out `rebuild_growth`
+    (a quarter) of its own views or more: the scan ended long before the next refit (a pause and a fast resume, a
+    loaded machine whose refits wait their share of the time). A field fitted to part of the views is a start the
+    complete capture cannot recover from: a goblet scan of 48 views that ended with 26 fitted came out at 54-87 mm from
+    the live fit (polished, or trained for the preset's whole budget), and 1.36 mm from the hull. A scan at a steady
+    pace ends with its fit some views behind (a refit is due at `rebuild_views`, 16, and waits its share of the time:
+    107 of 128 in a steady replay), which a warm refit is meant to take in: the cut-off is the growth that makes a
+    refit go on warm, not the count that makes it due."""
     if not fit.continuable:
         return "hull", "the live fit is too young (on its coarse level, or only just past it)"
-    left_out = views - fit.views_used
-    if left_out >= views_wanted(fit.views_used, settings):
+    if views - fit.views_used >= math.ceil(settings.rebuild_growth * fit.views_used):
         return "hull", (f"the live fit holds {fit.views_used} of the scan's {views} views (the scan ended before "
                         f"its next refit)")
     return "live", None
