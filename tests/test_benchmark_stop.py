@@ -177,6 +177,13 @@ def catches_sigint(pid: int) -> bool:
     return bool(int(caught, 16) & (1 << (signal.SIGINT - 1)))
 
 
+def start_endless_ablation(tmp_path: Path, out: Path) -> subprocess.Popen:
+    """The ablation of a tiny scene into `out`, as a terminal's job (a process group of its own), with a real run of
+    10^6 steps: it never ends by itself."""
+    return start_main("ablation", ["--scenes", tiny_capture(tmp_path), "--out", out, "--steps", 1_000_000,
+                                   "--points", 1000, "--parts", "erosion"], "import os\nos.setpgrp()")
+
+
 def wait_for_run(pid: int, timeout_s: float = 300.0) -> set[int]:
     """The child processes of `pid` once one of them runs with Python's SIGINT handler (at most `timeout_s`:
     generous, for a loaded machine that imports torch twice); AssertionError if none does in time."""
@@ -198,10 +205,8 @@ def ctrl_c(proc: subprocess.Popen) -> None:
 def test_ablations_run_stopped_is_not_run_not_failed(tmp_path, how):
     # A real run, in a child process of the script's worker thread, stopped as a user or a time limit stops it. The
     # run never ends by itself (10^6 steps).
-    capture = tiny_capture(tmp_path)
     out = tmp_path / "out"
-    proc = start_main("ablation", ["--scenes", capture, "--out", out, "--steps", 1_000_000, "--points", 1000,
-                                   "--parts", "erosion"], "import os\nos.setpgrp()")
+    proc = start_endless_ablation(tmp_path, out)
     runs: set[int] = set()
     try:
         runs = wait_for_run(proc.pid)
@@ -280,10 +285,8 @@ def kill_9_job(proc: subprocess.Popen, runs: set[int]) -> None:
 def test_ablation_paused_by_ctrl_z_pauses_its_runs(tmp_path, then):
     # Ctrl-Z pauses the whole job, the runs (in process groups of their own) included; fg goes on with them, and the
     # job then ends as one that was never paused. A real run that never ends by itself (10^6 steps).
-    capture = tiny_capture(tmp_path)
     out = tmp_path / "out"
-    proc = start_main("ablation", ["--scenes", capture, "--out", out, "--steps", 1_000_000, "--points", 1000,
-                                   "--parts", "erosion"], "import os\nos.setpgrp()")
+    proc = start_endless_ablation(tmp_path, out)
     runs: set[int] = set()
     try:
         runs = wait_for_run(proc.pid)

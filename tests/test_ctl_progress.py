@@ -45,6 +45,19 @@ def status(state: str, pose: int, reason: str | None = None) -> dict:
     return {"scan": "goblet", "state": state, "pose": pose, "poses": 48, "reason": reason}
 
 
+def watched(clock: Clock, statuses) -> str:
+    """The bar as shown after `wait` polled each status in turn, a second apart."""
+    stream = Terminal()
+    bar = ProgressBar("goblet", stream)
+    try:
+        for polled in statuses:
+            bar.update(polled)
+            clock.t += 1.0
+        return shown(stream)
+    finally:
+        bar.close()
+
+
 def rate_of(line: str) -> float:
     """The poses per second the bar shows (tqdm writes a slow rate as seconds per pose)."""
     found = re.search(r"([\d.]+)(pose/s|s/pose)", line)
@@ -55,50 +68,23 @@ def rate_of(line: str) -> float:
 @pytest.mark.parametrize("state,reason", [("paused", "sensor silent: no complete frame within 5 s at pose 20"),
                                           ("pausing", None)])
 def test_a_scan_that_is_not_scanning_shows_no_rate_and_no_time_left(clock, state, reason):
-    stream = Terminal()
-    bar = ProgressBar("goblet", stream)
-    try:
-        for _ in range(4):  # `wait` polls the status; the scan stays where it is
-            bar.update(status(state, 20, reason))
-            clock.t += 1.0
-        line = shown(stream)
-    finally:
-        bar.close()
+    line = watched(clock, [status(state, 20, reason)] * 4)  # `wait` polls the status; the scan stays where it is
     assert "20/48" in line and f"[{state}" in line, line
     assert "pose/s" not in line and "<" not in line, line  # no rate, no time left
 
 
 def test_a_wait_begun_mid_scan_counts_only_the_poses_it_saw_taken(clock):
-    stream = Terminal()
-    bar = ProgressBar("goblet", stream)
-    try:
-        for pose in (20, 22, 24, 26):  # 20 poses published before the wait; then 2 a second
-            bar.update(status("scanning", pose))
-            clock.t += 1.0
-        line = shown(stream)
-    finally:
-        bar.close()
+    # 20 poses published before the wait; then 2 a second
+    line = watched(clock, [status("scanning", pose) for pose in (20, 22, 24, 26)])
     assert "26/48" in line, line
     assert rate_of(line) == pytest.approx(2.0, abs=0.01), line
     assert "<00:11," in line, line  # 22 poses left at 2 a second
 
 
 def test_a_pause_is_not_counted_into_the_rate_after_the_resume(clock):
-    stream = Terminal()
-    bar = ProgressBar("goblet", stream)
-    try:
-        for pose in (10, 12, 14, 16):
-            bar.update(status("scanning", pose))
-            clock.t += 1.0
-        for _ in range(30):  # paused 30 s by the operator
-            bar.update(status("paused", 16, "paused by user"))
-            clock.t += 1.0
-        for pose in (16, 18, 20, 22):  # resumed: 2 poses a second again
-            bar.update(status("scanning", pose))
-            clock.t += 1.0
-        line = shown(stream)
-    finally:
-        bar.close()
+    line = watched(clock, [status("scanning", pose) for pose in (10, 12, 14, 16)]
+                   + [status("paused", 16, "paused by user")] * 30  # paused 30 s by the operator
+                   + [status("scanning", pose) for pose in (16, 18, 20, 22)])  # resumed: 2 poses a second again
     assert "22/48" in line, line
     assert rate_of(line) == pytest.approx(2.0, abs=0.01), line
     assert "<00:13," in line, line  # 26 poses left at 2 a second
