@@ -105,8 +105,8 @@ def signal_warning(signal: Signal | None) -> str | None:
             f"{signal.histograms}){where} hold no return above carving's level ({signal.threshold:g} noise standard "
             f"deviations; a good capture: none), and each of them carved its whole field of view empty, so much of "
             f"the object may be missing; too little laser power, too much ambient light, a dark or small object, or "
-            f"views aimed past it: scan again with more power, longer exposure or less ambient light (lower --set "
-            f"field.carve_threshold and field.carve_weak_threshold, the second at most the first, keep more but fit "
-            f"noise)")
+            f"views aimed past it: scan again with more power, longer exposure or less ambient light (`spadscan "
+            f"reconstruct` with field.carve_threshold and field.carve_weak_threshold set lower by --set, the second at "
+            f"most the first, keeps more but fits noise)")
 
 __all__ = ["Signal", "aimed_zones", "capture_signal", "carving_level", "signal_warning", "NO_RETURN_LIMIT"]

@@ -118,7 +118,7 @@ def test_a_dim_capture_warns_with_its_share_and_what_to_do():
     assert "too little signal: 41 % of the histograms (106 of 256)" in line
     assert "4 noise standard deviations" in line and "laser power" in line and "ambient" in line
     assert "carved its whole field of view empty" in line
-    assert "--set field.carve_threshold and field.carve_weak_threshold" in line  # the first alone: a config error
+    assert "field.carve_threshold and field.carve_weak_threshold set lower by --set" in line  # the first alone: refused
     assert any(line == w for w in warnings(facts(signal=Signal(256, 106, 4.0))))
     assert warnings(facts(signal=Signal(256, 106, 4.0)))[0] == line  # first: it explains the doubts after it
 

@@ -11,8 +11,8 @@ published) runs `execute_live_job`:
    adaptive scan runs, hand the live state to the view ranking, which writes the capture's next_views.json.
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
    warm-started from the live fit once that has left its coarse level and gone on as long on its last one
-   (`LiveFit.continuable`) and holds all but under a quarter of the scan's views (`final_start`; else from the
-   carved hull),
+   (`LiveFit.continuable`) and has left out fewer views than a quarter of those it holds (`final_start`; else from
+   the carved hull),
    for the job's budget or steps, else `final_polish_s` of
    steps (the preset's budget when it starts from the hull): the result is written into the job's scratch folder
    and published by the worker where every job's result goes. Of the final field and the live one, the one that

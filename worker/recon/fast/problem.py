@@ -199,7 +199,12 @@ def _thin_advice(threshold: float, weak: float | None) -> str:
     if lower is None:
         return f"the detection thresholds {now} are as low as they go: capture more frames per pose"
     sets = " ".join(f"--set {k}={v:g}" for (k, _), v in zip(keys, lower))
-    return f"lower the detection threshold{'s' if len(keys) > 1 else ''} {now}, e.g. {sets}"
+    if weak is None:
+        # Unused on a table, the weak threshold is still checked not to exceed the other: set it along, or the
+        # suggested run is refused.
+        sets += f" --set field.carve_weak_threshold={lower[0]:g}"
+    return (f"lower the detection threshold{'s' if len(keys) > 1 else ''} {now}: run `spadscan reconstruct` on "
+            f"the capture with {sets}")
 
 
 def _nothing_left(points: np.ndarray, hull_res, floor_z: float | None, threshold: float,
