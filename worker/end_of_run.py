@@ -23,8 +23,9 @@ Seven checks, each on plain numbers the run recorded (docs/end_of_run.md derives
 - **Specks.** Pieces too small to count hold together a share of the surface no good fit leaves (`pieces.py`): the
   fit shaped noise.
 - **Too little signal.** Many histograms of the zone aimed at the object hold no return at carving's level
-  (`signal_check.py`): each carved its view empty, and the fit explains what was left. The other checks pass such a result: in so faint a capture any
-  surface is within the noise, and coverage and pieces are measured on the wrong mesh itself.
+  (`signal_check.py`): each carved its view empty, and the fit explains what was left. The other checks pass such a
+  result: in so faint a capture any surface is within the noise, and coverage and pieces are measured on the wrong
+  mesh itself.
 """
 
 from __future__ import annotations
@@ -417,7 +418,8 @@ def warnings(facts: RunFacts) -> list[str]:
 
 
 __all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error", "converged",
-           "cpu_share", "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning", "COVERAGE_LIMIT",
+           "cpu_share", "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning",
+           "specks_warning", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
            "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
            "MISFIT_Z", "MISFIT_RELATIVE", "MISFIT_MIN_HISTOGRAMS",

@@ -365,7 +365,7 @@ class Worker:
         if state == "failed":
             self._settle_failed(job, error)
         elif state == "queued":
-            mark_live_queued(job, self.root, f"its process crashed ({fold(error)}); {AGAIN}", self.log)
+            mark_live_queued(job, self.root, f"its process crashed ({fold(error)})", self.log)
         self.log(said + note)
 
     def _record_waiting(self) -> None:
@@ -518,7 +518,7 @@ class Worker:
             if self.queue.release(child.claim, "worker stopped"):
                 self.log(f"{job_id} stopped; back in the queue")
                 # its process is gone (waited for above): nothing of this attempt writes the status after this
-                mark_live_queued(child.claim.job, self.root, f"its worker was stopped; {AGAIN}", self.log)
+                mark_live_queued(child.claim.job, self.root, "its worker was stopped", self.log)
             child.outcome.unlink(missing_ok=True)
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()
@@ -576,11 +576,6 @@ class Worker:
             del self.unpublished[job_id]
             if self._give_back(child.claim, "worker stopped before it could publish the result"):
                 self.log(f"{job_id} stopped before its result could be published; back in the queue, {kept}")
-
-
-AGAIN = ("the job is back in the queue and runs again from the start when a worker claims it; the figures and "
-         "picture here are the stopped attempt's")
-"""What the live status of a job given back to the queue says after why."""
 
 
 def _recording(job_id: str) -> str:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .carving.returns import DEFAULT_THRESHOLD, first_returns
+from .carving.returns import first_returns, weak_level
 
 NO_RETURN_LIMIT = 0.05
 """Share of the aimed zone's usable histograms with no return at carving's level above which the result says so.
@@ -53,12 +53,6 @@ class Signal:
                 "limit": NO_RETURN_LIMIT}
 
 
-def carving_level(threshold: float, weak_threshold: float | None) -> float:
-    """The level a histogram's filtered signal must clear somewhere for carving not to empty its zone's whole field of
-    view: the weak threshold (None: carving's default level) capped at `threshold` (space_carving.carve_limits)."""
-    return min(threshold, DEFAULT_THRESHOLD if weak_threshold is None else weak_threshold)
-
-
 def aimed_zones(sensor) -> tuple[int, ...]:
     """The zones whose field of view holds the boresight (+z), where the scan aims each view at its target (several
     where zones meet on it); when none does, the one whose centre lies nearest it."""
@@ -81,9 +75,10 @@ def _centre(zone) -> np.ndarray:
 def capture_signal(counts: np.ndarray, sensor, threshold: float, usable: np.ndarray | None = None,
                    weak_threshold: float | None = None) -> Signal:
     """The returns of `counts` (V, zones, bins), one histogram per view and zone as carving reads them (frames summed),
-    in the aimed zone(s), at carving's level (`carving_level` of `threshold` and `weak_threshold`, as carving is given
-    them) with its 'leading' filter; `usable` (V, zones) bool, None for all: histograms without data are not judged."""
-    level = carving_level(threshold, weak_threshold)
+    in the aimed zone(s), at carving's level (`returns.weak_level` of `threshold` and `weak_threshold`, as carving is
+    given them) with its 'leading' filter; `usable` (V, zones) bool, None for all: histograms without data are not
+    judged."""
+    level = weak_level(threshold, weak_threshold)
     zones = aimed_zones(sensor)
     found = first_returns(counts, sensor, level, "leading", usable=usable).detected[:, zones]
     judged = np.ones(found.shape, bool) if usable is None else np.asarray(usable, bool)[:, zones]
@@ -109,4 +104,5 @@ def signal_warning(signal: Signal | None) -> str | None:
             f"reconstruct` with field.carve_threshold and field.carve_weak_threshold set lower by --set, the second at "
             f"most the first, keeps more but fits noise)")
 
-__all__ = ["Signal", "aimed_zones", "capture_signal", "carving_level", "signal_warning", "NO_RETURN_LIMIT"]
+
+__all__ = ["Signal", "aimed_zones", "capture_signal", "signal_warning", "NO_RETURN_LIMIT"]

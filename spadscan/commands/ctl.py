@@ -97,9 +97,9 @@ def add_arguments(parser) -> None:
         p.add_argument("--socket", type=_socket, default=default, metavar="PATH",
                        help=f"the daemon's control socket (default: {default_socket_path(create=False)})")
         p.add_argument("--timeout", type=_seconds, default=default, metavar="S",
-                       help="seconds to wait for the reply, > 0 and at most 1e9 (default: 30; `scan` and `resume`: 600, since "
-                            "the arm's controller is first asked about every pose left, a minute or more for "
-                            "thousands; `wait` and `scan --wait`: forever)")
+                       help="seconds to wait for the reply, > 0 and at most 1e9 (default: 30; `scan` and `resume`: "
+                            "600, since the arm's controller is first asked about every pose left, a minute or more "
+                            "for thousands; `wait` and `scan --wait`: forever)")
 
     common(parser, None)
     shared = argparse.ArgumentParser(add_help=False)

@@ -38,8 +38,9 @@ publishes <scan>/recon/live/ (mesh.ply, preview.png, status.json with views_used
 updated_utc, converged and, with a ground truth, chamfer_mm; `spadscan ctl status` shows it). When the scan is
 complete the job finishes from the live state (--budget-s bounds that final run; by default it polishes the live fit
 for about 4 s of steps, or, when the live fit is still on its coarse level or only just past it, or the scan ended
-with the fit a quarter behind the views it holds or more, fits from the carved hull for the preset's budget), and publishes its result where every job does. An aborted scan's live job ends
-(failed, with the scan's reason; the live folder keeps its last state). A live job holds its job process from the
+with the fit a quarter behind the views it holds or more, fits from the carved hull for the preset's budget), and
+publishes its result where every job does. An aborted scan's live job ends (failed, with the scan's reason; the live
+folder keeps its last state). A live job holds its job process from the
 scan's first chunk to its end: give the worker a process for each scan that may run at once (--processes). Live
 jobs run the fast preset.
 

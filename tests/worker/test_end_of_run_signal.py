@@ -12,10 +12,9 @@ import trimesh
 
 from spadscan.worker.end_of_run import RunFacts, pieces_warning, specks_warning, warnings
 from spadscan.worker.pieces import SPECKS_LIMIT, Pieces, mesh_pieces
-from spadscan.worker.carving.returns import first_returns
+from spadscan.worker.carving.returns import first_returns, weak_level
 from spadscan.worker.carving.space_carving import carve_limits
-from spadscan.worker.signal_check import (NO_RETURN_LIMIT, Signal, aimed_zones, capture_signal, carving_level,
-                                          signal_warning)
+from spadscan.worker.signal_check import NO_RETURN_LIMIT, Signal, aimed_zones, capture_signal, signal_warning
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -72,10 +71,10 @@ def test_no_return_is_what_carving_empties_to_the_end_of_its_range(tmp_path):
         signal = capture_signal(counts, sensor, 5.0, weak_threshold=weak)
         emptied = carve_limits(counts, sensor, 5.0, 0.0, "leading", weak)[:, 0] >= sensor.max_range_m
         assert signal.no_return == int(emptied.sum()), (weak, signal)
-        assert signal.threshold == carving_level(5.0, weak)
+        assert signal.threshold == weak_level(5.0, weak)
     assert (capture_signal(counts, sensor, 5.0, weak_threshold=4.0).no_return
             < capture_signal(counts, sensor, 5.0).no_return)
-    assert (carving_level(5.0, 4.0), carving_level(5.0, None), carving_level(3.0, 4.0)) == (4.0, 5.0, 3.0)
+    assert (weak_level(5.0, 4.0), weak_level(5.0, None), weak_level(3.0, 4.0)) == (4.0, 5.0, 3.0)
 
 
 def test_the_zone_aimed_at_the_object_is_judged():

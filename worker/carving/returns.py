@@ -35,6 +35,12 @@ DEFAULT_THRESHOLD = 5.0
 """Default detection threshold (standard deviations of the matched-filtered background noise)."""
 
 
+def weak_level(threshold: float, weak_threshold: float | None) -> float:
+    """The level carving keeps a weak return at (noise standard deviations): `weak_threshold` (None: the default
+    threshold) capped at `threshold`. A histogram that clears it nowhere has its zone's whole field of view carved."""
+    return min(threshold, DEFAULT_THRESHOLD if weak_threshold is None else weak_threshold)
+
+
 @dataclass
 class FirstReturns:
     """First return of every histogram. Arrays (n, zones); bin coordinates as in the sensor model (bin i covers

@@ -29,7 +29,7 @@ from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_model import SensorModel
 
 from .bounds import cube_around, scene_bounds
-from .returns import DEFAULT_THRESHOLD, check_inputs, detection_filter, first_returns, matched_filter_z
+from .returns import DEFAULT_THRESHOLD, check_inputs, detection_filter, first_returns, matched_filter_z, weak_level
 
 DEFAULT_EDGE_DEG = 1.0
 """Carving trusts each zone's field of view only this far (degrees) inside its edges."""
@@ -271,8 +271,7 @@ def carve_limits(hists, sensor: SensorModel, threshold: float, margin_m: float,
     """
     lag = detection_filter(sensor, filter)[2]
     z = matched_filter_z(np.asarray(hists, dtype=np.float64), sensor, filter)
-    weak_level = min(threshold, DEFAULT_THRESHOLD if weak_threshold is None else weak_threshold)
-    weak = z > weak_level
+    weak = z > weak_level(threshold, weak_threshold)
     strong = z > threshold
     has_weak, has_strong = weak.any(axis=-1), strong.any(axis=-1)
     w = np.argmax(weak, axis=-1)

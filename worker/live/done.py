@@ -55,12 +55,18 @@ def mark_live_failed(job: Job, root: Path, error: str, log: Callable[[str], None
         log(f"{job.id}: the live status was not updated: {exc}")
 
 
+AGAIN = ("the job is back in the queue and runs again from the start when a worker claims it; the figures and "
+         "picture here are the stopped attempt's")
+"""What the live status of a job given back to the queue says after why."""
+
+
 def mark_live_queued(job, root: Path, why: str, log: Callable[[str], None]) -> None:
-    """Set a live job's `<scan>/recon/live/status.json` to 'queued' with `why` as its note: the job went back to the
-    queue before it ended, and its status would otherwise go on saying it is finishing (or following the scan) with
-    no process running it. Its figures stay, as the mesh and preview beside them: the stopped attempt's, which the
-    next attempt begins afresh. A status that is missing (the job was stopped before it wrote one), another job's or
-    says how the job ended is left alone; one that cannot be read or written is too, saying so in the log."""
+    """Set a live job's `<scan>/recon/live/status.json` to 'queued', its note `why` and then AGAIN: the job went back
+    to the queue before it ended, and its status would otherwise go on saying it is finishing (or following the
+    scan) with no process running it. Its figures stay, as the mesh and preview beside them: the stopped attempt's,
+    which the next attempt begins afresh. A status that is missing (the job was stopped before it wrote one), another
+    job's or one that says how the job ended is left alone; one that cannot be read or written is too, saying so in
+    the log."""
     if not job.live:
         return
     try:
@@ -69,7 +75,8 @@ def mark_live_queued(job, root: Path, why: str, log: Callable[[str], None]) -> N
             return
         status = read_status(path)
         if status.job == job.id and status.state not in ENDED:
-            write_status(path.parent, dataclasses.replace(status, state="queued", note=fold(why), updated_utc=""))
+            write_status(path.parent, dataclasses.replace(status, state="queued", note=f"{fold(why)}; {AGAIN}",
+                                                          updated_utc=""))
     except (SpadscanError, OSError) as exc:
         log(f"{job.id}: the live status was not updated: {fold(exc)}")
 

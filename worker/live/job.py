@@ -12,9 +12,8 @@ published) runs `execute_live_job`:
 2. **Finish.** When the scan is complete, run the ordinary reconstruction of the whole capture, its model
    warm-started from the live fit once that has left its coarse level and gone on as long on its last one
    (`LiveFit.continuable`) and has left out fewer views than a quarter of those it holds (`final_start`; else from
-   the carved hull),
-   for the job's budget or steps, else `final_polish_s` of
-   steps (the preset's budget when it starts from the hull): the result is written into the job's scratch folder
+   the carved hull), for the job's budget or steps, else `final_polish_s` of steps (the preset's budget when it
+   starts from the hull): the result is written into the job's scratch folder
    and published by the worker where every job's result goes. Of the final field and the live one, the one that
    explains every view better is meshed (`keep.py`: a short final run never publishes a worse or coarser mesh than
    the live one); report.json's `published` says which. A live job that never fitted anything (its scan was
@@ -98,15 +97,11 @@ def refit_due(have: int, published: int, trained_s: float, last_refit_s: float, 
     """Whether a fit of `have` views is refitted on the `published` ones now, `trained_s` wall seconds after the
     last refit, which took `last_refit_s`: the views must grow by `rebuild_growth` or `rebuild_views` (a refit per
     chunk costs more than it brings), and refits keep to `rebuild_share` of the time."""
-    if published - have < views_wanted(have, settings):
+    s = settings
+    wanted = max(1, min(s.rebuild_views, math.ceil(s.rebuild_growth * have)))
+    if published - have < wanted:
         return False
-    return trained_s >= last_refit_s * (1.0 / settings.rebuild_share - 1.0)
-
-
-def views_wanted(have: int, settings: LiveSettings) -> int:
-    """New views that make a refit of a fit of `have` views worth its cost: `rebuild_growth` of them or
-    `rebuild_views`, whichever is fewer, at least 1."""
-    return max(1, min(settings.rebuild_views, math.ceil(settings.rebuild_growth * have)))
+    return trained_s >= last_refit_s * (1.0 / s.rebuild_share - 1.0)
 
 
 def final_start(fit, views: int, settings: LiveSettings) -> tuple[str, str | None]:

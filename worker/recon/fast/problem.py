@@ -191,18 +191,17 @@ def _lower_thresholds(threshold: float, weak: float | None) -> tuple[float, floa
 
 
 def _thin_advice(threshold: float, weak: float | None) -> str:
-    """What to lower when views that missed a faint return carved the object away: the --set keys, their values
-    now and lower ones. `weak` None: its key is not in effect (on a table) and is not named."""
+    """What to lower when views that missed a faint return carved the object away: the thresholds in effect, their
+    values now, and a `spadscan reconstruct --set` of lower ones. `weak` None: not in effect (on a table), so not
+    named, but set along at the other's value, since the config refuses a weak threshold above the other."""
     keys = [("field.carve_threshold", threshold)] + ([] if weak is None else [("field.carve_weak_threshold", weak)])
     now = " and ".join(f"{k} = {v:g}" for k, v in keys) + " noise deviations"
     lower = _lower_thresholds(threshold, weak)
     if lower is None:
         return f"the detection thresholds {now} are as low as they go: capture more frames per pose"
-    sets = " ".join(f"--set {k}={v:g}" for (k, _), v in zip(keys, lower))
-    if weak is None:
-        # Unused on a table, the weak threshold is still checked not to exceed the other: set it along, or the
-        # suggested run is refused.
-        sets += f" --set field.carve_weak_threshold={lower[0]:g}"
+    lower_threshold, lower_weak = lower
+    sets = (f"--set field.carve_threshold={lower_threshold:g} --set field.carve_weak_threshold="
+            f"{lower_threshold if lower_weak is None else lower_weak:g}")
     return (f"lower the detection threshold{'s' if len(keys) > 1 else ''} {now}: run `spadscan reconstruct` on "
             f"the capture with {sets}")
 
