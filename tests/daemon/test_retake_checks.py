@@ -17,8 +17,8 @@ from spadscan.daemon.workspace import check_workspace
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
 
-from test_retake_way import (interrupted, owing, restarted_with_the_arm_at, stop_on_the_way, stopped_on_the_next_move,
-                             visited, VIEWS)
+from test_retake_way import (interrupted, owing, restarted_with_the_arm_at, stopped_on_the_next_move, visited,
+                             VIEWS)
 from test_runner import HAND_EYE, check_capture, daemon_runner, make_cfg, until, sphere  # noqa: F401  (the fixture)
 
 
@@ -63,17 +63,7 @@ def test_a_restarted_daemon_whose_limits_refuse_a_pose_of_the_way_forward_moves_
     plan = plan_of(folder)
     check_workspace(plan[8:], tight.arm, "the rest of the plan")  # what the takeover checks passes
     assert plan[7][2, 3] < 0.2  # pose 7 does not
-
-    async def first():
-        async with daemon_runner(cfg, sphere) as runner:
-            await runner.recover()
-            runner.arm.jog(runner.job.tcp_poses[runner.job.next_pose - 1])
-            stopped = stop_on_the_way(runner, 3, "fault")
-            await runner.resume()
-            await until(lambda: stopped and runner.state == "paused", "the fault on the way forward")
-            return runner.arm.actual_pose()
-
-    here = arun(first())
+    here, _ = stopped_on_the_next_move(arun, cfg, sphere, 3)
     chunks = published(folder)
     taken_over, paused, moves = arun(refused_at_resume(tight, sphere, here))
     assert taken_over["state"] == "paused" and "cannot_take_over" not in taken_over, taken_over

@@ -210,14 +210,15 @@ def test_a_fault_on_the_way_back_keeps_the_poses_owed_in_status_and_names_where_
     check_capture(folder, VIEWS, 2)
 
 
-def stopped_on_the_next_move(arun, cfg, sphere) -> tuple[np.ndarray, str]:  # noqa: F811
+def stopped_on_the_next_move(arun, cfg, sphere, pose: int = 8) -> tuple[np.ndarray, str]:  # noqa: F811
     """A daemon takes the interrupted scan over with the arm at its last published pose, and a fault stops the arm
-    half way to the next (pose 8): (where the arm stopped, the pause's reason)."""
+    half way to `pose` (by default the next, pose 8; an earlier one: on the way back to the poses owed): (where the
+    arm stopped, the pause's reason)."""
     async def first():
         async with daemon_runner(cfg, sphere) as runner:
             await runner.recover()
             runner.arm.jog(runner.job.tcp_poses[runner.job.next_pose - 1])
-            stopped = stop_on_the_way(runner, 8, "fault")
+            stopped = stop_on_the_way(runner, pose, "fault")
             await runner.resume()
             await until(lambda: stopped and runner.state == "paused", "the fault's pause")
             return runner.arm.actual_pose(), runner.status()["reason"]
