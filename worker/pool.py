@@ -346,6 +346,8 @@ class Worker:
             reason = outcome.get("error") or exit_reason(rc)
             error = f"{reason} (log: {child.log})"
             said = f"{job.id} crashed after {seconds:.1f} s: {reason}"
+        if not bad_input and claim.attempt < self.queue.max_attempts:  # queue.crash retries it: queued again
+            self._say_queued(claim, f"its process crashed ({fold(error)})")
         try:
             state = self.queue.fail(claim, error, retry=False) if bad_input else self.queue.crash(claim, error)
         except Unrecorded as exc:
@@ -364,9 +366,16 @@ class Worker:
             note = "" if bad_input else f"; {_moved_to(state, bad_input)}"
         if state == "failed":
             self._settle_failed(job, error)
-        elif state == "queued":
-            mark_live_queued(job, self.root, f"its process crashed ({fold(error)})", self.log)
         self.log(said + note)
+
+    def _say_queued(self, claim: Claim, why: str) -> None:
+        """A live job about to go back to the queue says so in its live status (`mark_live_queued`) while this worker
+        still holds it: once in queued/, another worker may claim it and its attempt write its first status at once,
+        over which a note written after would stand (for a rerun of a complete scan, its whole final run). The lease
+        is renewed first, so that no other worker can take the job over before the note is written; a lease already
+        lost (the job is another worker's) leaves the status to that worker's attempt."""
+        if claim.job.live and self.queue.heartbeat(claim):
+            mark_live_queued(claim.job, self.root, why, self.log)
 
     def _record_waiting(self) -> None:
         """Write the attempt records of ended jobs that a full disk kept out (`_settle_error`)."""
@@ -515,10 +524,10 @@ class Worker:
                 kill_group(child.proc, signal.SIGKILL)
         await asyncio.gather(*waits, return_exceptions=True)
         for job_id, child in self.children.items():
+            # its process is gone (waited for above): nothing of this attempt writes the status after this
+            self._say_queued(child.claim, "its worker was stopped")
             if self.queue.release(child.claim, "worker stopped"):
                 self.log(f"{job_id} stopped; back in the queue")
-                # its process is gone (waited for above): nothing of this attempt writes the status after this
-                mark_live_queued(child.claim.job, self.root, "its worker was stopped", self.log)
             child.outcome.unlink(missing_ok=True)
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()

@@ -157,8 +157,8 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         status_finishing(scan, job, progress, note)
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
     folder = live_folder(scan)
-    clear_earlier(folder)  # an earlier attempt's mesh beside this attempt's first status would read as this one's
     runner = LiveRun(job, scan, folder, follower, settings, log)
+    runner.begin(progress)  # before the set-up (the ground truth, torch, the device), which takes seconds
     gt, _ = ground_truth(progress.manifest, out)
     runner.start(progress, gt)
     try:
@@ -252,6 +252,14 @@ class LiveRun:
         """What the live status says while the scan is quiet (`quiet_note_s`), else None."""
 
     # ---- set-up --------------------------------------------------------------------------------------------------
+    def begin(self, progress: ScanProgress) -> None:
+        """This attempt's first word: remove what an earlier attempt left (`clear_earlier`: its mesh and preview,
+        which beside this attempt's status would read as this one's), then at once say 'waiting'. Until then a
+        reader sees the earlier attempt's last status (its 'queued' note, or the figures of an attempt whose worker
+        died): said before the set-up, that status never stands over a job that runs again."""
+        clear_earlier(self.folder)
+        self.publish(progress, state="waiting", force=True)
+
     def start(self, progress: ScanProgress, gt: Path | None) -> None:
         """Load the reconstruction's settings, the device and the ground truth (torch is imported here)."""
         import torch
@@ -271,7 +279,6 @@ class LiveRun:
                 self.truth = load_ground_truth(gt)
             except SpadscanError as exc:
                 self.log(f"live: no Chamfer while scanning: {exc}")
-        self.publish(progress, state="waiting", force=True)
 
     def restore_threads(self) -> None:
         """Give the final run the job's own CPU threads back."""
