@@ -55,13 +55,12 @@ def run(args) -> int:
     import sys
     from pathlib import Path
 
+    from spadscan.sweep.checks import check_local_device, check_scheduler_address, check_workers
     from spadscan.sweep.plan import make_plan
     from spadscan.sweep.spec import load_spec
 
     def log(line: str) -> None:
         print(f"spadscan sweep: {line}", file=sys.stderr, flush=True)
-
-    from spadscan.sweep.runner import check_local_device, check_scheduler_address, check_workers
 
     # Refused before anything runs (the dry run too: what the run would refuse, it refuses).
     check_workers(args.scheduler, args.workers)

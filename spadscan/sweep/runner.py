@@ -27,15 +27,14 @@ from dataclasses import dataclass, field
 from multiprocessing import resource_tracker
 from typing import Callable
 
-import torch
 from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
 from distributed.comm import connect
-from distributed.comm.addressing import get_address_host_port, parse_address
 from distributed.utils import silence_logging_cmgr
 from tqdm import tqdm
 
 from spadscan.protocol.errors import ConfigError
 
+from .checks import check_local_device, check_workers
 from .plan import Plan, PointTask
 from .point import run_point
 from .store import SweepDir
@@ -256,39 +255,6 @@ def _quiet_children():
             os.environ["PYTHONWARNINGS"] = env
 
 
-def check_local_device(device: str) -> None:
-    """Refuse, in one line, --device cuda for the embedded cluster (this machine is its worker) where torch sees no
-    CUDA device, before anything runs: every point would be simulated and run through the baselines, then fail."""
-    if device == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' asked for, but torch sees no CUDA device on this machine, whose local cluster "
-                          "would run the points (use --device cpu or auto, or --scheduler with GPU workers)")
-
-
-def check_workers(scheduler: str | None, workers: int | None) -> None:
-    """Refuse, in one line, a --workers that the run could not use (the dry run refuses it too)."""
-    if scheduler is not None and workers is not None:
-        raise ConfigError("--workers sizes the embedded cluster; a scheduler's workers are the ones started for it "
-                          "(dask worker ADDRESS)")
-    if workers is not None and workers < 1:
-        raise ConfigError(f"--workers {workers} must be at least 1")
-
-
-def check_scheduler_address(address: str) -> None:
-    """Refuse, in one line, a --scheduler that is no Dask address (a missing port, an unknown scheme) or one this
-    command cannot connect to (tls://, wss://), before anything is written."""
-    try:
-        get_address_host_port(address)
-        scheme = parse_address(address)[0]
-    except ValueError as exc:
-        raise ConfigError(f"--scheduler {address!r} is not a Dask scheduler's address, e.g. tcp://HOST:8786 "
-                          f"({' '.join(str(exc).split())[:200]})") from None
-    if scheme in ("tls", "wss"):
-        # Certificates and keys (Dask's security configuration), which this command does not take.
-        raise ConfigError(f"--scheduler {address}: a {scheme}:// scheduler needs a Dask security configuration "
-                          f"(certificates and keys), which `spadscan sweep` does not take; use the scheduler's "
-                          f"tcp:// address (e.g. through an SSH tunnel)")
-
-
 def probe_scheduler(address: str, timeout_s: float) -> None:
     """Refuse, in one line and within about `timeout_s` seconds, an address where no Dask scheduler answers: nothing
     listening, a server that accepts and says nothing (an HTTP server such as the dashboard), one that talks another
@@ -399,6 +365,6 @@ class _client:
         return False
 
 
-__all__ = ["run_sweep", "check_local_device", "check_scheduler_address", "check_workers", "probe_scheduler",
+__all__ = ["run_sweep", "probe_scheduler",
            "dask_point", "emit_event", "Summary",
            "EVENT_TOPIC", "cores"]

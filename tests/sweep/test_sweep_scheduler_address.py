@@ -15,6 +15,7 @@ import pytest
 from spadscan.cli import main
 from spadscan.protocol.errors import ConfigError
 from spadscan.sweep import runner
+from spadscan.sweep.checks import check_scheduler_address
 from spadscan.sweep.plan import make_plan
 from spadscan.sweep.spec import load_spec
 
@@ -140,7 +141,7 @@ def test_the_command_says_one_line_within_its_timeout(server, request, tmp_path,
 
 def test_tls_is_refused_in_one_line_before_anything_runs(tmp_path, capsys):
     with pytest.raises(ConfigError, match="needs a Dask security configuration") as err:
-        runner.check_scheduler_address("tls://127.0.0.1:8786")
+        check_scheduler_address("tls://127.0.0.1:8786")
     assert "\n" not in str(err.value) and "tcp://" in str(err.value)
     tiny = str(write_tiny(tmp_path))
     for extra in (["--dry-run"], ["--no-progress"]):
