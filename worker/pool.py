@@ -374,7 +374,13 @@ class Worker:
         over which a note written after would stand (for a rerun of a complete scan, its whole final run). The lease
         is renewed first, so that no other worker can take the job over before the note is written; a lease already
         lost (the job is another worker's) leaves the status to that worker's attempt."""
-        if claim.job.live and self.queue.heartbeat(claim):
+        if not claim.job.live:
+            return
+        try:
+            held = self.queue.heartbeat(claim)
+        except OSError:  # the queue unreachable for a moment: what release/crash meet next says where the job is
+            return
+        if held:
             mark_live_queued(claim.job, self.root, why, self.log)
 
     def _record_waiting(self) -> None:

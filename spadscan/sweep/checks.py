@@ -1,7 +1,9 @@
 """What `spadscan sweep` refuses in its command line before anything runs, the dry run too.
 
 The dry run only reads the sweep file and the results folder: these checks load torch and Dask only for the options
-that need them (--device cuda without --scheduler, and --scheduler), so that a plan-only run stays light.
+that need them (--device cuda without --scheduler, and --scheduler): a plan-only run loads neither the runner nor
+Dask. (It still imports torch, through the presets' configs that the sweep file is checked against: a fast part's
+config lives beside its torch code.)
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ def check_local_device(device: str) -> None:
     CUDA device, before anything runs: every point would be simulated and run through the baselines, then fail."""
     if device != "cuda":
         return
-    import torch  # only for 'cuda': importing torch takes about a second, which a CPU sweep's dry run never pays
+    import torch  # only for 'cuda': the checks themselves load nothing heavy
 
     if not torch.cuda.is_available():
         raise ConfigError("device 'cuda' asked for, but torch sees no CUDA device on this machine, whose local cluster "

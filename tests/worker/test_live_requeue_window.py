@@ -13,12 +13,15 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import errno
+import json
 import os
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
+import spadscan.worker.jobs as jobs
 import spadscan.worker.live.job as live_job
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.live_status import LiveStatus, read_status, status_path, write_status
@@ -98,7 +101,12 @@ def test_a_new_attempt_says_its_first_status_as_it_clears_the_earlier_attempt_be
         during_set_up.append(seen(folder))
         raise SetUpReached
 
+    def ground_truth(manifest, out):  # the set-up's first step (a built-in scene's mesh: about a second)
+        during_set_up.append(seen(folder))
+        return None, None
+
     monkeypatch.setattr(live_job, "ScanFollower", lambda scan: SimpleNamespace(poll=lambda: RUNNING))
+    monkeypatch.setattr(jobs, "ground_truth", ground_truth)
     monkeypatch.setattr(live_job.LiveRun, "start", set_up)
     views = watch_every_change(monkeypatch, folder)
     with pytest.raises(SetUpReached):
@@ -108,7 +116,7 @@ def test_a_new_attempt_says_its_first_status_as_it_clears_the_earlier_attempt_be
     # The set-up takes half a second on a CPU, more where a GPU starts: all that while the job runs, and its status
     # must be its own, not the earlier attempt's 'queued' note (nor the figures of an attempt whose worker died)
     # beside a mesh and preview no longer there.
-    assert during_set_up == [first], during_set_up
+    assert during_set_up == [first, first], during_set_up
     # Never the new attempt's status beside the earlier attempt's mesh or preview: cleared first, then said.
     new = [i for i, view in enumerate(views) if view[0] == "waiting"]
     assert new and all(view[-2:] == (False, False) for view in views[new[0]:]), views
@@ -198,3 +206,27 @@ def test_a_worker_whose_lease_was_taken_over_leaves_the_new_holders_status_alone
 
     arun(stop_worker(held))
     assert rerun_status(held.root) == ("final", 0, 0, "reconstructing it from scratch")
+
+
+def test_a_live_job_that_failed_on_its_input_never_says_queued_only_stopped(held, monkeypatch):
+    held.child.outcome.write_text(json.dumps({"ok": False, "kind": "input", "error": "no returns above the noise"}))
+    held.child.proc.returncode = 1  # attempts are left (1 of 3): an input failure is still not retried
+    seen_on_the_way = watch_every_change(monkeypatch, held.root / "s" / "recon" / "live")
+    held.worker._settle(held.child)
+    assert [view[0] for view in seen_on_the_way] == ["stopped"], seen_on_the_way
+
+
+def test_a_queue_unreachable_as_a_live_job_crashes_leaves_the_worker_running(held, monkeypatch):
+    def broken(call):
+        def fails_on_running(path, *args, **kwargs):
+            if "/running/" in str(path):
+                raise OSError(errno.EIO, "Input/output error", str(path))
+            return call(path, *args, **kwargs)
+        return fails_on_running
+
+    monkeypatch.setattr(os, "utime", broken(os.utime))
+    monkeypatch.setattr(os, "rename", broken(os.rename))
+    lines: list[str] = []
+    held.worker.log = lines.append
+    held.worker._settle(held.child)  # the worker's other jobs go on: nothing escapes
+    assert any("could not record it" in line for line in lines), lines
