@@ -25,7 +25,8 @@ Seven checks, each on plain numbers the run recorded (docs/end_of_run.md derives
 - **Too little signal.** Many histograms of the zone aimed at the object hold no return at carving's level
   (`signal_check.py`): each carved its view empty, and the fit explains what was left. The other checks pass such a
   result: in so faint a capture any surface is within the noise, and coverage and pieces are measured on the wrong
-  mesh itself.
+  mesh itself. A run whose carving thresholds were set lower is judged at their default level too: lowered, noise
+  clears them in every view, and the capture is as faint as before.
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PI
                      PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, fit_views_within,
                      mesh_resolution_within, metric_points_within, training_budget)
 from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
-from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
+from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns, weak_level
 from .carving.views import summed_views
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
@@ -515,8 +515,12 @@ def _signal(scene: SceneData, config: ReconConfig) -> Signal | None:
     frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
     counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
     usable = None if scene.usable is None else scene.usable.cpu().numpy()
+    on_table = scene.table is not None
+    defaults = type(config.field)()  # carving's level as shipped: a capture too faint by it stays faint when lowered
     return capture_signal(counts, sensor, float(threshold), usable,
-                          weak_threshold=carve_weak_threshold(config.field, on_table=scene.table is not None))
+                          weak_threshold=carve_weak_threshold(config.field, on_table=on_table),
+                          default_level=weak_level(defaults.carve_threshold,
+                                                   carve_weak_threshold(defaults, on_table=on_table)))
 
 
 def fit_renders(model) -> int:

@@ -41,16 +41,30 @@ class Signal:
     """The zones judged (0-based): those whose field of view holds the sensor's boresight."""
     n_zones: int = 1
     """How many zones the sensor has."""
+    default_threshold: float | None = None
+    """Carving's default level, where the run's thresholds were set below it (`--set`), else None."""
+    default_no_return: int | None = None
+    """Of the judged histograms, those with no return at `default_threshold` (None where it is None): a capture too
+    faint by the default level stays faint when the level is lowered, and what then clears it is partly noise."""
 
     @property
     def share(self) -> float:
         """Share of the judged histograms with no return (0 when none was judged)."""
         return self.no_return / self.histograms if self.histograms else 0.0
 
+    @property
+    def default_share(self) -> float | None:
+        """Share of the judged histograms with no return at carving's default level, or None where the run carved at
+        that level or above."""
+        if self.default_no_return is None:
+            return None
+        return self.default_no_return / self.histograms if self.histograms else 0.0
+
     def to_dict(self) -> dict:
         return {"histograms": self.histograms, "no_return": self.no_return, "share": self.share,
                 "threshold": self.threshold, "zones": list(self.zones), "n_zones": self.n_zones,
-                "limit": NO_RETURN_LIMIT}
+                "limit": NO_RETURN_LIMIT, "default_threshold": self.default_threshold,
+                "default_no_return": self.default_no_return, "default_share": self.default_share}
 
 
 def aimed_zones(sensor) -> tuple[int, ...]:
@@ -73,36 +87,68 @@ def _centre(zone) -> np.ndarray:
 
 
 def capture_signal(counts: np.ndarray, sensor, threshold: float, usable: np.ndarray | None = None,
-                   weak_threshold: float | None = None) -> Signal:
+                   weak_threshold: float | None = None, default_level: float | None = None) -> Signal:
     """The returns of `counts` (V, zones, bins), one histogram per view and zone as carving reads them (frames summed),
     in the aimed zone(s), at carving's level (`returns.weak_level` of `threshold` and `weak_threshold`, as carving is
     given them) with its 'leading' filter; `usable` (V, zones) bool, None for all: histograms without data are not
-    judged."""
+    judged. Where `default_level` (carving's level with the default thresholds, noise standard deviations) lies
+    above the run's, they are judged at it too."""
     level = weak_level(threshold, weak_threshold)
     zones = aimed_zones(sensor)
-    found = first_returns(counts, sensor, level, "leading", usable=usable).detected[:, zones]
-    judged = np.ones(found.shape, bool) if usable is None else np.asarray(usable, bool)[:, zones]
-    return Signal(histograms=int(judged.sum()), no_return=int((judged & ~found).sum()), threshold=float(level),
-                  zones=zones, n_zones=len(sensor.zones))
+    judged = None if usable is None else np.asarray(usable, bool)[:, zones]
+
+    def no_return(at: float) -> tuple[int, int]:
+        found = first_returns(counts, sensor, at, "leading", usable=usable).detected[:, zones]
+        held = np.ones(found.shape, bool) if judged is None else judged
+        return int(held.sum()), int((held & ~found).sum())
+
+    histograms, missed = no_return(level)
+    lowered = default_level is not None and default_level > level
+    return Signal(histograms=histograms, no_return=missed, threshold=float(level), zones=zones,
+                  n_zones=len(sensor.zones), default_threshold=float(default_level) if lowered else None,
+                  default_no_return=no_return(default_level)[1] if lowered else None)
 
 
 def signal_warning(signal: Signal | None) -> str | None:
-    """The line saying that too many of the aimed zone's histograms hold no return at carving's level, or None."""
-    if signal is None or not signal.share > NO_RETURN_LIMIT:
+    """The line saying that too many of the aimed zone's histograms hold no return at carving's level, or at its
+    default level where the run's thresholds were set lower (`lowered_warning`), or None."""
+    if signal is None:
         return None
-    where = ""
-    if signal.n_zones > 1:  # zones counted from 1, as the sensor's channels are
-        names = [str(z + 1) for z in signal.zones]
-        listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
-        where = (f" of zone {listed} of {signal.n_zones}, the one aimed at the object," if len(names) == 1 else
-                 f" of zones {listed} of {signal.n_zones}, those aimed at the object,")
+    if not signal.share > NO_RETURN_LIMIT:
+        return lowered_warning(signal)
     return (f"too little signal: {100 * signal.share:.0f} % of the histograms ({signal.no_return} of "
-            f"{signal.histograms}){where} hold no return above carving's level ({signal.threshold:g} noise standard "
-            f"deviations; a good capture: none), and each of them carved its whole field of view empty, so much of "
-            f"the object may be missing; too little laser power, too much ambient light, a dark or small object, or "
-            f"views aimed past it: scan again with more power, longer exposure or less ambient light (`spadscan "
-            f"reconstruct` with field.carve_threshold and field.carve_weak_threshold set lower by --set, the second at "
-            f"most the first, keeps more but fits noise)")
+            f"{signal.histograms}){_where(signal)} hold no return above carving's level ({signal.threshold:g} noise "
+            f"standard deviations; a good capture: none), and each of them carved its whole field of view empty, so "
+            f"much of the object may be missing; too little laser power, too much ambient light, a dark or small "
+            f"object, or views aimed past it: scan again with more power, longer exposure or less ambient light "
+            f"(`spadscan reconstruct` with field.carve_threshold and field.carve_weak_threshold set lower by --set, "
+            f"the second at most the first, keeps more but fits noise)")
 
 
-__all__ = ["Signal", "aimed_zones", "capture_signal", "signal_warning", "NO_RETURN_LIMIT"]
+def lowered_warning(signal: Signal) -> str | None:
+    """The line saying that the capture is too faint by carving's default level although the run, its thresholds set
+    lower, found returns in enough histograms: at the lowered level photon noise clears the threshold too, so the
+    hull and the fit hold noise (a dim torus refitted at 3 and 2 noise standard deviations: no view empty, 9.0 mm);
+    None where the run carved at the default level or the capture clears it."""
+    share = signal.default_share
+    if share is None or not share > NO_RETURN_LIMIT:
+        return None
+    return (f"faint capture: {100 * share:.0f} % of the histograms ({signal.default_no_return} of "
+            f"{signal.histograms}){_where(signal)} hold no return above carving's default level "
+            f"({signal.default_threshold:g} noise standard deviations; a good capture: none); this run carved at "
+            f"{signal.threshold:g}, its thresholds set lower, where photon noise clears the level too, so the shape "
+            f"may be partly noise: compare it with the pictures, or scan again with more laser power, longer "
+            f"exposure or less ambient light")
+
+
+def _where(signal: Signal) -> str:
+    """Which zone(s) were judged, for a sensor of several: '' for one zone."""
+    if signal.n_zones <= 1:
+        return ""
+    names = [str(z + 1) for z in signal.zones]  # counted from 1, as the sensor's channels are
+    listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+    return (f" of zone {listed} of {signal.n_zones}, the one aimed at the object," if len(names) == 1 else
+            f" of zones {listed} of {signal.n_zones}, those aimed at the object,")
+
+
+__all__ = ["Signal", "aimed_zones", "capture_signal", "lowered_warning", "signal_warning", "NO_RETURN_LIMIT"]

@@ -188,3 +188,45 @@ def test_reconstruct_records_signal_specks_and_truth_pieces(tmp_path, monkeypatc
     assert report["pieces"]["specks_share"] >= 0.0
     assert report["pieces"]["count"] == 2, report["pieces"]
     assert not any("pieces" in w for w in report["warnings"]), report["warnings"]
+
+
+def test_a_faint_capture_carved_at_lowered_thresholds_still_warns(tmp_path):
+    """At 0.01 of the power carving at its default level (4 off a table) empties several of the box's views and the
+    run says so; with the thresholds lowered to 3 and 2 (what the first warning offers) noise clears the level in
+    every view, the first line falls silent, and the second says the capture is faint by the default level. A
+    bright capture refitted at the same lowered level says nothing."""
+    counts, sensor = simulated(tmp_path / "faint", 0.01)
+    as_shipped = capture_signal(counts, sensor, 5.0, weak_threshold=4.0, default_level=4.0)
+    assert as_shipped.default_share is None and as_shipped.share > NO_RETURN_LIMIT  # judged at the default already
+    lowered = capture_signal(counts, sensor, 3.0, weak_threshold=2.0, default_level=4.0)
+    assert lowered.share <= NO_RETURN_LIMIT < lowered.default_share, lowered
+    assert lowered.default_no_return == as_shipped.no_return and lowered.default_threshold == 4.0
+    line = signal_warning(lowered)
+    assert line.startswith(f"faint capture: {100 * lowered.default_share:.0f} % of the histograms "
+                           f"({lowered.default_no_return} of 16) hold no return above carving's default level "
+                           f"(4 "), line
+    assert "this run carved at 2, its thresholds set lower" in line and "laser power" in line
+    assert warnings(facts(signal=lowered))[0] == line
+    assert lowered.to_dict()["default_share"] == lowered.default_share
+    counts, sensor = simulated(tmp_path / "full", 1.0)
+    bright = capture_signal(counts, sensor, 3.0, weak_threshold=2.0, default_level=4.0)
+    assert bright.default_no_return == 0 and signal_warning(bright) is None
+
+
+def test_reconstruct_at_lowered_thresholds_judges_a_faint_capture_at_the_default_level(tmp_path):
+    """The run's wiring: a faint box refitted with the thresholds lowered records the default level's share in
+    report.json and warns; the same run at the shipped thresholds records none (it was judged at that level)."""
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    simulated(tmp_path / "faint", 0.01)
+    small = {"mesh_resolution": 48, "early_stop": False}
+    lowered = reconstruct_capture(tmp_path / "faint", tmp_path / "low", steps=20, progress=False, device="cpu",
+                                  threads=1, overrides={**small, "field.carve_threshold": 3.0,
+                                                        "field.carve_weak_threshold": 2.0})
+    assert lowered["signal"]["threshold"] == 2.0 and lowered["signal"]["default_threshold"] == 4.0
+    assert lowered["signal"]["default_share"] > NO_RETURN_LIMIT >= lowered["signal"]["share"], lowered["signal"]
+    assert any(w.startswith("faint capture: ") for w in lowered["warnings"]), lowered["warnings"]
+    shipped = reconstruct_capture(tmp_path / "faint", tmp_path / "shipped", steps=20, progress=False, device="cpu",
+                                  threads=1, overrides=small)
+    assert shipped["signal"]["default_threshold"] is None and shipped["signal"]["default_share"] is None
+    assert not any(w.startswith("faint capture: ") for w in shipped["warnings"]), shipped["warnings"]
