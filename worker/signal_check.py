@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .carving.returns import first_returns, weak_level
+from .carving.returns import RESCAN, first_returns, weak_level
 
 NO_RETURN_LIMIT = 0.05
 """Share of the aimed zone's usable histograms with no return at carving's level above which the result says so.
@@ -120,25 +120,34 @@ def signal_warning(signal: Signal | None) -> str | None:
             f"{signal.histograms}){_where(signal)} hold no return above carving's level ({signal.threshold:g} noise "
             f"standard deviations; a good capture: none), and each of them carved its whole field of view empty, so "
             f"much of the object may be missing; too little laser power, too much ambient light, a dark or small "
-            f"object, or views aimed past it: scan again with more power, longer exposure or less ambient light "
-            f"(`spadscan reconstruct` with field.carve_threshold and field.carve_weak_threshold set lower by --set, "
-            f"the second at most the first, keeps more but fits noise)")
+            f"object, or views aimed past it: {RESCAN} ({_lower_or_lowered(signal)})")
+
+
+def _lower_or_lowered(signal: Signal) -> str:
+    """The aside of the too-little-signal line: lower thresholds to try, or, where the run's are set below their
+    defaults already, what the default level finds (lower still, noise passes for returns)."""
+    if signal.default_share is None:
+        return ("`spadscan reconstruct` with field.carve_threshold and field.carve_weak_threshold set lower by --set, "
+                "the second at most the first, keeps more but fits noise")
+    return (f"its thresholds are set below their defaults already: at the default level "
+            f"({signal.default_threshold:g}) {100 * signal.default_share:.0f} % hold none; lower still, noise passes "
+            f"for returns")
 
 
 def lowered_warning(signal: Signal) -> str | None:
     """The line saying that the capture is too faint by carving's default level although the run, its thresholds set
     lower, found returns in enough histograms: at the lowered level photon noise clears the threshold too, so the
-    hull and the fit hold noise (a dim torus refitted at 3 and 2 noise standard deviations: no view empty, 9.0 mm);
-    None where the run carved at the default level or the capture clears it."""
+    hull and the fit hold noise (a dim torus refitted at 3 and 2 noise standard deviations: no view empty, 41-100
+    mm; a 6 mm wand: 24.7 mm); None where the run carved at the default level or the capture clears it."""
     share = signal.default_share
     if share is None or not share > NO_RETURN_LIMIT:
         return None
-    return (f"faint capture: {100 * share:.0f} % of the histograms ({signal.default_no_return} of "
+    return (f"faint returns: {100 * share:.0f} % of the histograms ({signal.default_no_return} of "
             f"{signal.histograms}){_where(signal)} hold no return above carving's default level "
             f"({signal.default_threshold:g} noise standard deviations; a good capture: none); this run carved at "
-            f"{signal.threshold:g}, its thresholds set lower, where photon noise clears the level too, so the shape "
-            f"may be partly noise: compare it with the pictures, or scan again with more laser power, longer "
-            f"exposure or less ambient light")
+            f"{signal.threshold:g}, its thresholds set lower with --set, where photon noise passes for returns too, "
+            f"so the mesh may be partly noise (stray blobs in preview.png), and lower thresholds will not help: "
+            f"{RESCAN} (a thin, small or dark object: more frames per pose)")
 
 
 def _where(signal: Signal) -> str:

@@ -25,7 +25,7 @@ its fit was still improving, a run starved of CPU by other processes, a fit that
 one: the model off by more than 60 % per bin, twice what a real sensor's own departures from its model leave), a
 surface seen by too few views, a mesh in pieces (more than its ground truth has), specks holding more of the
 surface than a good fit leaves, too little signal (the zone aimed at the object empty in many views, each carving its
-view away; with the carving thresholds set lower, judged at their default level too: a faint capture), a scene
+view away; with the carving thresholds set lower, judged at their default level too: faint returns), a scene
 bound that cuts the object, a mesh or metrics made coarser to fit the budget (docs/end_of_run.md).
 
 CPU threads: without --threads (and without OMP_NUM_THREADS), a CPU run times its steps with all the cores' threads

@@ -76,7 +76,18 @@ def test_a_few_returns_beyond_the_box_still_point_to_a_thin_object():
 def test_on_a_table_only_the_threshold_in_effect_is_named():
     msg = problem._nothing_left(ROD, BOX, 0.0, 5.0, None)
     assert ("field.carve_threshold = 5 noise deviations: run `spadscan reconstruct` on the capture with --set "
-            "field.carve_threshold=3 --set field.carve_weak_threshold=3)") in msg, msg
+            "field.carve_threshold=3 --set field.carve_weak_threshold=3;") in msg, msg
+    # Lower thresholds may fit noise: the run says so at its end, and then only a better capture helps.
+    assert "says 'faint returns' at its end" in msg and msg.endswith(f"{problem.RESCAN})"), msg
+
+
+def test_thresholds_below_their_defaults_already_are_not_offered_lower_but_a_new_scan():
+    # A 6 mm wand refitted at 3 and 2 was carved away again; offered 2 and 1, it fitted noise (37.6 mm).
+    msg = problem._nothing_left(ROD, BOX, 0.0, 3.0, 2.0, lowered=True)
+    assert "thin or faint" in msg and "--set" not in msg, msg
+    assert ("field.carve_threshold = 3 and field.carve_weak_threshold = 2 noise deviations are below their "
+            "defaults") in msg
+    assert msg.endswith(f"{problem.RESCAN})"), msg
 
 
 def test_thresholds_already_low_are_not_lowered_further():
@@ -119,3 +130,6 @@ def test_an_object_carved_away_inside_its_box_names_the_thresholds_when_the_fit_
     with pytest.raises(ReconstructionError, match="thin or faint") as err:
         _build(cylinder_capture, {"field.carve_threshold": 6.0, "field.carve_weak_threshold": 4.5})
     assert "--set field.carve_threshold=4 --set field.carve_weak_threshold=2.5" in str(err.value)
+    with pytest.raises(ReconstructionError, match="thin or faint") as err:  # as that advice was followed
+        _build(cylinder_capture, {"field.carve_threshold": 4.0, "field.carve_weak_threshold": 2.5})
+    assert "below their defaults already" in str(err.value) and "--set" not in str(err.value)

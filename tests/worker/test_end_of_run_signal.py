@@ -202,10 +202,11 @@ def test_a_faint_capture_carved_at_lowered_thresholds_still_warns(tmp_path):
     assert lowered.share <= NO_RETURN_LIMIT < lowered.default_share, lowered
     assert lowered.default_no_return == as_shipped.no_return and lowered.default_threshold == 4.0
     line = signal_warning(lowered)
-    assert line.startswith(f"faint capture: {100 * lowered.default_share:.0f} % of the histograms "
+    assert line.startswith(f"faint returns: {100 * lowered.default_share:.0f} % of the histograms "
                            f"({lowered.default_no_return} of 16) hold no return above carving's default level "
                            f"(4 "), line
     assert "this run carved at 2, its thresholds set lower" in line and "laser power" in line
+    assert "lower thresholds will not help" in line and "preview.png" in line
     assert warnings(facts(signal=lowered))[0] == line
     assert lowered.to_dict()["default_share"] == lowered.default_share
     counts, sensor = simulated(tmp_path / "full", 1.0)
@@ -225,8 +226,19 @@ def test_reconstruct_at_lowered_thresholds_judges_a_faint_capture_at_the_default
                                                         "field.carve_weak_threshold": 2.0})
     assert lowered["signal"]["threshold"] == 2.0 and lowered["signal"]["default_threshold"] == 4.0
     assert lowered["signal"]["default_share"] > NO_RETURN_LIMIT >= lowered["signal"]["share"], lowered["signal"]
-    assert any(w.startswith("faint capture: ") for w in lowered["warnings"]), lowered["warnings"]
+    assert any(w.startswith("faint returns: ") for w in lowered["warnings"]), lowered["warnings"]
     shipped = reconstruct_capture(tmp_path / "faint", tmp_path / "shipped", steps=20, progress=False, device="cpu",
                                   threads=1, overrides=small)
     assert shipped["signal"]["default_threshold"] is None and shipped["signal"]["default_share"] is None
-    assert not any(w.startswith("faint capture: ") for w in shipped["warnings"]), shipped["warnings"]
+    assert not any(w.startswith("faint returns: ") for w in shipped["warnings"]), shipped["warnings"]
+
+
+def test_a_lowered_run_that_still_misses_the_object_is_not_told_to_lower_again():
+    """At thresholds already below their defaults, the too-little-signal line gives the default level's share
+    instead of offering lower ones (there noise passes for returns)."""
+    lowered = Signal(histograms=256, no_return=40, threshold=2.0, default_threshold=4.0, default_no_return=119)
+    line = signal_warning(lowered)
+    assert line.startswith("too little signal: 16 % of the histograms (40 of 256)"), line
+    assert "set lower by --set" not in line and "below their defaults already" in line
+    assert "at the default level (4) 46 % hold none" in line
+    assert "set lower by --set" in signal_warning(Signal(histograms=256, no_return=40, threshold=4.0))

@@ -33,6 +33,9 @@ from spadscan.protocol.sensor_model import SensorModel
 
 DEFAULT_THRESHOLD = 5.0
 """Default detection threshold (standard deviations of the matched-filtered background noise)."""
+RESCAN = "scan again with more laser power, longer exposure or less ambient light, or from nearer"
+"""What a capture too faint for carving's default level needs (said where a run finds one): thresholds set lower
+only let photon noise pass for returns."""
 
 
 def weak_level(threshold: float, weak_threshold: float | None) -> float:

@@ -15,7 +15,7 @@ import torch
 
 from spadscan.protocol.raycast import zone_rays
 
-from ...carving.returns import first_returns
+from ...carving.returns import RESCAN, first_returns
 from ...carving.space_carving import carve_scene
 from ...carving.views import summed_views
 from ...table_height import RAYS_PER_ZONE, detect_height
@@ -124,8 +124,11 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=HULL_MIN_VOTES)
     if not occ.any():
         points = _return_points(onset, poses_np, dirs, weights)
-        raise ReconstructionError(_nothing_left(points, hull_res, floor_z, fc.carve_threshold,
-                                                carve_weak_threshold(fc, table is not None)))
+        weak = carve_weak_threshold(fc, table is not None)
+        shipped = type(fc)()
+        lowered = (fc.carve_threshold < shipped.carve_threshold
+                   or (weak is not None and weak < shipped.carve_weak_threshold))
+        raise ReconstructionError(_nothing_left(points, hull_res, floor_z, fc.carve_threshold, weak, lowered))
     hull = hull_field(occ, hull_res.origin, voxel, device)
     idx = np.argwhere(occ)[:, ::-1]  # (x, y, z)
     lo = hull_res.origin + idx.min(axis=0) * voxel
@@ -190,12 +193,17 @@ def _lower_thresholds(threshold: float, weak: float | None) -> tuple[float, floa
     return None if (lower, lower_weak) == (threshold, weak) else (lower, lower_weak)
 
 
-def _thin_advice(threshold: float, weak: float | None) -> str:
+def _thin_advice(threshold: float, weak: float | None, lowered: bool = False) -> str:
     """What to lower when views that missed a faint return carved the object away: the thresholds in effect, their
     values now, and a `spadscan reconstruct --set` of lower ones. `weak` None: not in effect (on a table), so not
-    named, but set along at the other's value, since the config refuses a weak threshold above the other."""
+    named, but set along at the other's value, since the config refuses a weak threshold above the other.
+    `lowered`: one in effect is below its default already; nothing lower is offered then, since there noise clears
+    them (a 6 mm wand 10 cm tall refitted at 3 and 2 was carved away again, at 2 and 1 fitted to noise: 37.6 mm)."""
     keys = [("field.carve_threshold", threshold)] + ([] if weak is None else [("field.carve_weak_threshold", weak)])
     now = " and ".join(f"{k} = {v:g}" for k, v in keys) + " noise deviations"
+    if lowered:
+        return (f"the detection thresholds {now} are below their defaults already, where noise passes for returns: "
+                f"{RESCAN}")
     lower = _lower_thresholds(threshold, weak)
     if lower is None:
         return f"the detection thresholds {now} are as low as they go: capture more frames per pose"
@@ -203,15 +211,17 @@ def _thin_advice(threshold: float, weak: float | None) -> str:
     sets = (f"--set field.carve_threshold={lower_threshold:g} --set field.carve_weak_threshold="
             f"{lower_threshold if lower_weak is None else lower_weak:g}")
     return (f"lower the detection threshold{'s' if len(keys) > 1 else ''} {now}: run `spadscan reconstruct` on "
-            f"the capture with {sets}")
+            f"the capture with {sets}; a fit that is then mostly noise says 'faint returns' at its end, and the "
+            f"capture needs you to {RESCAN}")
 
 
 def _nothing_left(points: np.ndarray, hull_res, floor_z: float | None, threshold: float,
-                  weak: float | None) -> str:
+                  weak: float | None, lowered: bool = False) -> str:
     """Why carving left nothing, in one line, from the first-return points (n, 3) metres (`_return_points`): no return
     at all; returns that the scene box or the floor lost (most lie outside the box or under the floor: a box off the
     object, a floor above it); else a thin or faint object, carved away by the views that missed its return
-    (`HELD_SHARE`): lower carving thresholds (`threshold`, `weak` as carving used them, None: not in effect)."""
+    (`HELD_SHARE`): lower carving thresholds (`threshold`, `weak` as carving used them, None: not in effect), unless
+    they are `lowered` below their defaults already (`_thin_advice`)."""
     found = len(points)
     if not found:
         return (f"space carving removed everything: no histogram shows a return above the threshold ({threshold:g} "
@@ -235,7 +245,7 @@ def _nothing_left(points: np.ndarray, hull_res, floor_z: float | None, threshold
     if held >= HELD_SHARE * found:
         return (f"space carving removed everything although {found} histograms show a return, {held} of them in "
                 f"{where}: the object is thin or faint, and the views that missed its return carved it away "
-                f"({_thin_advice(threshold, weak)})")
+                f"({_thin_advice(threshold, weak, lowered)})")
     return (f"space carving removed everything although {found} histograms show a return, only {held} of them in "
             f"{where}: the box or the floor does not hold the object (check the capture's scene.radius and "
             f"scene.center, or field.floor_z)")
