@@ -46,7 +46,7 @@ from .report import pictures
 from .report.folder_view import ensure_view3d
 from .report.report_html import write_report_html
 from .report.report_json import json_safe, write_report
-from .signal_check import Signal, capture_signal
+from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 
 DEVICES = ("auto", "cpu", "cuda")
@@ -240,7 +240,10 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         notes.append(f"the time budget was short: the mesh was extracted at {resolution} cells a side, not "
                      f"{config.mesh_resolution}")
     log(f"extracting the mesh ({resolution} cells a side)")
-    mesh = model.extract_mesh(resolution)
+    try:
+        mesh = model.extract_mesh(resolution)
+    except ReconstructionError as exc:
+        raise ReconstructionError(_with_signal(str(exc), scene, config)) from None
     export_mesh(mesh, out / "mesh.ply", vertex_normal=True)
     stages["mesh_s"] = clock() - t_end
     report = _report(capture, preset, dev, config, scene, model, result, plan, scored=truth is not None)
@@ -503,6 +506,14 @@ def _truth_pieces(mesh) -> int | None:
         return mesh_pieces(mesh).count
     except SpadscanError:
         return None
+
+
+def _with_signal(error: str, scene: SceneData, config: ReconConfig) -> str:
+    """A run's error, with the capture's signal check after it where that check finds too little signal: a capture
+    that faint can leave the fit no surface at all (a dim torus at four times the ambient light), and the check,
+    which needs only the capture, names the cause and what to do."""
+    line = signal_warning(_signal(scene, config))
+    return error if line is None else f"{error}; {line}"
 
 
 def _signal(scene: SceneData, config: ReconConfig) -> Signal | None:

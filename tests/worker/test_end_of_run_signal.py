@@ -242,3 +242,26 @@ def test_a_lowered_run_that_still_misses_the_object_is_not_told_to_lower_again()
     assert "set lower by --set" not in line and "below their defaults already" in line
     assert "at the default level (4) 46 % hold none" in line
     assert "set lower by --set" in signal_warning(Signal(histograms=256, no_return=40, threshold=4.0))
+
+
+def test_a_capture_too_faint_to_leave_a_surface_names_its_signal_in_the_error(tmp_path, monkeypatch):
+    """The dimmest captures leave the fit no surface at all ("no surface: the SDF is outside everywhere", a torus at
+    four times the ambient light): the error then carries the signal check's line, which needs only the capture.
+    A capture with signal keeps the error as it was."""
+    from spadscan.worker.recon.errors import ReconstructionError
+    from spadscan.worker.recon.fast.model import FastModel
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    def no_surface(self, resolution=None, averaged=True):
+        raise ReconstructionError("no surface: the SDF is outside everywhere on the grid")
+
+    monkeypatch.setattr(FastModel, "extract_mesh", no_surface)
+    run = dict(steps=5, progress=False, device="cpu", threads=1, overrides={"mesh_resolution": 48})
+    simulated(tmp_path / "dim", 0.01)  # 5 of its 16 views empty at carving's level
+    with pytest.raises(ReconstructionError) as err:
+        reconstruct_capture(tmp_path / "dim", tmp_path / "out-dim", **run)
+    assert str(err.value).startswith("no surface: the SDF is outside everywhere on the grid; too little signal: ")
+    simulated(tmp_path / "full", 1.0)
+    with pytest.raises(ReconstructionError) as err:
+        reconstruct_capture(tmp_path / "full", tmp_path / "out-full", **run)
+    assert str(err.value) == "no surface: the SDF is outside everywhere on the grid"
