@@ -5,7 +5,8 @@ jobs while it has free slots, renews the leases of the jobs it holds, takes over
 each job when its child exits. A job runs in `python -m spadscan.worker.jobs` (its own process: torch, memory and
 crashes stay there) with its output in a log file under the queue. Stopping (Ctrl-C, SIGTERM, `stop` set) ends the
 children and gives their jobs back to the queue without counting the attempt; a live job's status then says it is
-queued again (`mark_live_queued`), as it does when a crashed live job is retried.
+queued again (`mark_live_queued`), as it does when a crashed live job is retried and whenever a job is given back with
+a finished result that could not be published.
 
 A finished job whose result cannot be published (a full disk while its log is copied in or its marker written) keeps
 its claim and its scratch folder: the worker says so once and tries again at every poll, as it does with every other
@@ -540,7 +541,9 @@ class Worker:
 
     def _give_back(self, claim: Claim, reason: str) -> bool:
         """queue.release; True also when only its record failed on a full disk: the job file went back to queued/
-        (a rename needs no room), its record could not say why."""
+        (a rename needs no room), its record could not say why. A live job says it is queued again first
+        (`_say_queued`), while this worker still holds it."""
+        self._say_queued(claim, reason)
         try:
             return self.queue.release(claim, reason)
         except OSError:

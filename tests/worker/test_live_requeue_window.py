@@ -23,12 +23,13 @@ import pytest
 
 import spadscan.worker.jobs as jobs
 import spadscan.worker.live.job as live_job
+import spadscan.worker.pool as pool
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.live_status import LiveStatus, read_status, status_path, write_status
 from spadscan.worker.jobs import Job
 from spadscan.worker.live.follower import ScanProgress
 from spadscan.worker.live.publish import MESH, PREVIEW
-from spadscan.worker.pool import Worker
+from spadscan.worker.pool import Unpublished, Worker
 from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
@@ -230,3 +231,32 @@ def test_a_queue_unreachable_as_a_live_job_crashes_leaves_the_worker_running(hel
     held.worker.log = lines.append
     held.worker._settle(held.child)  # the worker's other jobs go on: nothing escapes
     assert any("could not record it" in line for line in lines), lines
+
+
+def disk_full(*args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_stopping_worker_whose_result_could_not_be_published_says_queued_before_it_gives_the_job_back(
+        held, monkeypatch):
+    # The job's process finished, but its result never fitted on the disk; the worker now stops and gives it back.
+    held.child.scratch.mkdir()
+    held.worker.unpublished[JOB] = Unpublished(held.child, 12.0, {})
+    monkeypatch.setattr(pool, "publish_claim", disk_full)
+    at_release = next_attempt_begins_after(monkeypatch, held, "release")
+
+    held.worker._leave_unpublished()
+    assert rerun_status(held.root) == ("final", 0, 0, "reconstructing it from scratch")
+    assert [view[0] for view in at_release] == ["queued"], at_release  # said while the job was still held
+    assert "could publish the result" in at_release[0][4], at_release
+
+
+def test_a_left_result_that_could_not_be_published_says_queued_before_the_job_goes_back(held, monkeypatch, tmp_path):
+    # A claim finds the finished result an earlier attempt left, and cannot publish it either (the disk still full).
+    monkeypatch.setattr(pool, "publish_left", disk_full)
+    at_release = next_attempt_begins_after(monkeypatch, held, "release")
+
+    held.worker._publish_left(held.child.claim, tmp_path / "left")
+    assert rerun_status(held.root) == ("final", 0, 0, "reconstructing it from scratch")
+    assert [view[0] for view in at_release] == ["queued"], at_release
+    assert "could not publish the result left in" in at_release[0][4], at_release
