@@ -68,8 +68,9 @@ class SimSettings:
     oversample: int = 8
     """Fine time cells per bin used to place returns with sub-bin accuracy before integrating to bins."""
     reference_signal: float = 0.06
-    """Detections per cycle of the reference channel's pulse (sensors with one), its counts over the cycles: ~0.06 on
-    the real TMF8820 (~2.3e5 counts over ~4e6 cycles)."""
+    """Detections per cycle of the reference channel's pulse (sensors with one) at power 1, which scales it as it
+    scales the zones' returns; its counts over the cycles: ~0.06 on the real TMF8820 (~2.3e5 counts over ~4e6
+    cycles)."""
     reference_background: float = 1.0e-6
     """Flat background of the reference channel, detections per bin per cycle (~4 counts over ~4e6 cycles)."""
     reference_delay_bins: float = 2.37
@@ -262,8 +263,10 @@ class Simulator:
             return None
         kernel, origin = self.sensor.pulse.kernel(1)
         peak_index = self.sensor.zero_bin + self.settings.reference_delay_bins - 0.5  # bin i is centred at i + 0.5
-        per_cycle = self.settings.reference_signal * reference_shape(kernel, int(origin), self.sensor.n_bins,
-                                                                     peak_index)
+        # The reference sees the same laser through its internal path: a stronger or weaker emitter (power) scales it
+        # as it scales the zones' returns.
+        signal = self.settings.reference_signal * self.settings.power
+        per_cycle = signal * reference_shape(kernel, int(origin), self.sensor.n_bins, peak_index)
         per_cycle = per_cycle + max(self.settings.reference_background, BACKGROUND_FLOOR)
         if self.sensor.pileup:
             cycles = float(self.sensor.cycles)

@@ -220,6 +220,17 @@ def test_reference_channel():
     assert Simulator(plane(0.3), cone_sensor()).frames(IDENTITY).reference is None
 
 
+@pytest.mark.parametrize("power", [0.3, 2.0])
+def test_reference_channel_follows_the_laser_power(power):
+    # The reference is the same laser through an internal path: its pulse scales with the power as the zones' do.
+    sensor = sensor_preset("tmf8820")
+    ref = {p: Simulator(plane(0.3), sensor, SimSettings(power=p), seed=3).frames(IDENTITY).reference[0].astype(float)
+           for p in (1.0, power)}
+    floor = {p: np.median(r) for p, r in ref.items()}
+    pulse = {p: (r - floor[p]).clip(0).sum() for p, r in ref.items()}
+    assert pulse[power] / pulse[1.0] == pytest.approx(power, rel=0.05)
+
+
 def test_bad_inputs_raise():
     sim = Simulator(plane(0.3), cone_sensor())
     with pytest.raises(SimulationError, match=r"\(n, 4, 4\)"):
