@@ -27,7 +27,7 @@ from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PI
                      PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, fit_views_within,
                      mesh_resolution_within, metric_points_within, training_budget)
 from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
-from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns, weak_level
+from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from .carving.views import summed_views
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
@@ -37,7 +37,7 @@ from .outputs import capture_state_note, export_mesh, files_written_after, folde
 from .pieces import Pieces, mesh_pieces
 from .recon.config import ReconConfig, with_overrides
 from .recon.errors import ReconstructionError
-from .recon.fast.problem import carve_weak_threshold
+from .recon.fast.problem import carve_weak_threshold, default_thresholds
 from .recon.model_api import ReconModel, RunPlan
 from .recon.presets import make_model, preset_config
 from .recon.scene_data import SceneData, load_scene
@@ -527,11 +527,10 @@ def _signal(scene: SceneData, config: ReconConfig) -> Signal | None:
     counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
     usable = None if scene.usable is None else scene.usable.cpu().numpy()
     on_table = scene.table is not None
-    defaults = type(config.field)()  # carving's level as shipped: a capture too faint by it stays faint when lowered
+    # Carving's thresholds as shipped: a capture too faint at their level stays faint when the level is lowered.
     return capture_signal(counts, sensor, float(threshold), usable,
                           weak_threshold=carve_weak_threshold(config.field, on_table=on_table),
-                          default_level=weak_level(defaults.carve_threshold,
-                                                   carve_weak_threshold(defaults, on_table=on_table)))
+                          defaults=default_thresholds(config.field, on_table=on_table))
 
 
 def fit_renders(model) -> int:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .carving.returns import RESCAN, first_returns, weak_level
+from .carving.returns import RESCAN, below_default_level, first_returns, weak_level
 
 NO_RETURN_LIMIT = 0.05
 """Share of the aimed zone's usable histograms with no return at carving's level above which the result says so.
@@ -87,12 +87,14 @@ def _centre(zone) -> np.ndarray:
 
 
 def capture_signal(counts: np.ndarray, sensor, threshold: float, usable: np.ndarray | None = None,
-                   weak_threshold: float | None = None, default_level: float | None = None) -> Signal:
+                   weak_threshold: float | None = None,
+                   defaults: tuple[float, float | None] | None = None) -> Signal:
     """The returns of `counts` (V, zones, bins), one histogram per view and zone as carving reads them (frames summed),
     in the aimed zone(s), at carving's level (`returns.weak_level` of `threshold` and `weak_threshold`, as carving is
     given them) with its 'leading' filter; `usable` (V, zones) bool, None for all: histograms without data are not
-    judged. Where `default_level` (carving's level with the default thresholds, noise standard deviations) lies
-    above the run's, they are judged at it too."""
+    judged. `defaults`: the default (threshold, weak threshold) as carving would be given them, or None; where the
+    run's put carving's level below theirs (`returns.below_default_level`, the rule the carving error advises by
+    too), the histograms are judged at the default level as well."""
     level = weak_level(threshold, weak_threshold)
     zones = aimed_zones(sensor)
     judged = None if usable is None else np.asarray(usable, bool)[:, zones]
@@ -103,7 +105,8 @@ def capture_signal(counts: np.ndarray, sensor, threshold: float, usable: np.ndar
         return int(held.sum()), int((held & ~found).sum())
 
     histograms, missed = no_return(level)
-    lowered = default_level is not None and default_level > level
+    lowered = defaults is not None and below_default_level(threshold, weak_threshold, *defaults)
+    default_level = weak_level(*defaults) if lowered else None
     return Signal(histograms=histograms, no_return=missed, threshold=float(level), zones=zones,
                   n_zones=len(sensor.zones), default_threshold=float(default_level) if lowered else None,
                   default_no_return=no_return(default_level)[1] if lowered else None)
@@ -124,8 +127,8 @@ def signal_warning(signal: Signal | None) -> str | None:
 
 
 def _lower_or_lowered(signal: Signal) -> str:
-    """The aside of the too-little-signal line: lower thresholds to try, or, where the run's are set below their
-    defaults already, what the default level finds (lower still, noise passes for returns)."""
+    """The aside of the too-little-signal line: lower thresholds to try, or, where the run's put carving's level below
+    the default one already (`capture_signal`), what the default level finds (lower still, noise passes for returns)."""
     if signal.default_share is None:
         return ("`spadscan reconstruct` with field.carve_threshold and field.carve_weak_threshold set lower by --set, "
                 "the second at most the first, keeps more but fits noise")

@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from spadscan.worker.carving.returns import below_default_level
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.errors import ReconstructionError
 from spadscan.worker.recon.fast import problem
@@ -85,8 +86,8 @@ def test_thresholds_below_their_defaults_already_are_not_offered_lower_but_a_new
     # A 6 mm wand refitted at 3 and 2 was carved away again; offered 2 and 1, it fitted noise (37.6 mm).
     msg = problem._nothing_left(ROD, BOX, 0.0, 3.0, 2.0, lowered=True)
     assert "thin or faint" in msg and "--set" not in msg, msg
-    assert ("field.carve_threshold = 3 and field.carve_weak_threshold = 2 noise deviations are below their "
-            "defaults") in msg
+    assert ("field.carve_threshold = 3 and field.carve_weak_threshold = 2 noise deviations put carving's level "
+            "below its default already") in msg
     assert msg.endswith(f"{problem.RESCAN})"), msg
 
 
@@ -132,4 +133,35 @@ def test_an_object_carved_away_inside_its_box_names_the_thresholds_when_the_fit_
     assert "--set field.carve_threshold=4 --set field.carve_weak_threshold=2.5" in str(err.value)
     with pytest.raises(ReconstructionError, match="thin or faint") as err:  # as that advice was followed
         _build(cylinder_capture, {"field.carve_threshold": 4.0, "field.carve_weak_threshold": 2.5})
-    assert "below their defaults already" in str(err.value) and "--set" not in str(err.value)
+    assert "below its default already" in str(err.value) and "--set" not in str(err.value)
+
+
+def test_the_carving_error_and_the_end_of_run_check_agree_on_what_is_lowered(cylinder_capture, monkeypatch):
+    """One rule (`returns.below_default_level`): thresholds are lowered where carving's level (the lower one in
+    effect) lies below the defaults' (4 off a table). The carving threshold lowered alone to 4.5 leaves the level at
+    4: the carving error offers lower ones, and the end of the run judges nothing at the default level; the weak
+    one lowered to 3.5 lowers the level: no lower ones offered, and the end of the run judges at 4 too."""
+    from spadscan.worker.reconstruct import _signal
+
+    monkeypatch.setattr(problem, "object_hull", lambda occ, *a, **k: np.zeros_like(occ, bool))
+    scene = load_scene(cylinder_capture)
+    cases = [({"field.carve_threshold": 4.5}, True, None), ({"field.carve_weak_threshold": 3.5}, False, 4.0)]
+    for overrides, offers_lower, default_level in cases:
+        with pytest.raises(ReconstructionError, match="thin or faint") as err:
+            _build(cylinder_capture, overrides)
+        msg = str(err.value)
+        judged = _signal(scene, with_overrides(preset_config("fast"), {**FAST_SMALL, **overrides}))
+        assert ("--set field.carve_threshold=" in msg, judged.default_threshold) == (offers_lower, default_level), msg
+        if offers_lower:
+            assert "--set field.carve_threshold=2.5 --set field.carve_weak_threshold=2" in msg, msg
+        else:
+            assert "put carving's level below its default already" in msg, msg
+
+
+def test_lowered_means_carving_s_level_below_the_defaults_level():
+    """Off a table (weak threshold in effect, default 5 and 4) and on one (weak threshold None: the level is the
+    carving threshold's, capped at 5)."""
+    assert not below_default_level(4.5, 4.0, 5.0, 4.0)  # the carving threshold alone, above the level
+    assert below_default_level(5.0, 3.5, 5.0, 4.0) and below_default_level(3.5, 3.5, 5.0, 4.0)
+    assert not below_default_level(6.0, 4.5, 5.0, 4.0)  # raised
+    assert below_default_level(4.5, None, 5.0, None) and not below_default_level(6.0, None, 5.0, None)

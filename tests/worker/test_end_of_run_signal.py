@@ -196,9 +196,9 @@ def test_a_faint_capture_carved_at_lowered_thresholds_still_warns(tmp_path):
     every view, the first line falls silent, and the second says the capture is faint by the default level. A
     bright capture refitted at the same lowered level says nothing."""
     counts, sensor = simulated(tmp_path / "faint", 0.01)
-    as_shipped = capture_signal(counts, sensor, 5.0, weak_threshold=4.0, default_level=4.0)
+    as_shipped = capture_signal(counts, sensor, 5.0, weak_threshold=4.0, defaults=(5.0, 4.0))
     assert as_shipped.default_share is None and as_shipped.share > NO_RETURN_LIMIT  # judged at the default already
-    lowered = capture_signal(counts, sensor, 3.0, weak_threshold=2.0, default_level=4.0)
+    lowered = capture_signal(counts, sensor, 3.0, weak_threshold=2.0, defaults=(5.0, 4.0))
     assert lowered.share <= NO_RETURN_LIMIT < lowered.default_share, lowered
     assert lowered.default_no_return == as_shipped.no_return and lowered.default_threshold == 4.0
     line = signal_warning(lowered)
@@ -210,7 +210,7 @@ def test_a_faint_capture_carved_at_lowered_thresholds_still_warns(tmp_path):
     assert warnings(facts(signal=lowered))[0] == line
     assert lowered.to_dict()["default_share"] == lowered.default_share
     counts, sensor = simulated(tmp_path / "full", 1.0)
-    bright = capture_signal(counts, sensor, 3.0, weak_threshold=2.0, default_level=4.0)
+    bright = capture_signal(counts, sensor, 3.0, weak_threshold=2.0, defaults=(5.0, 4.0))
     assert bright.default_no_return == 0 and signal_warning(bright) is None
 
 

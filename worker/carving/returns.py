@@ -44,6 +44,15 @@ def weak_level(threshold: float, weak_threshold: float | None) -> float:
     return min(threshold, DEFAULT_THRESHOLD if weak_threshold is None else weak_threshold)
 
 
+def below_default_level(threshold: float, weak_threshold: float | None, default_threshold: float,
+                        default_weak_threshold: float | None) -> bool:
+    """Whether the thresholds in effect (noise standard deviations, as carving is given them) put carving's level
+    (`weak_level`) below the level of the default ones. The level decides which histograms hold a return and which
+    carve their zone's whole field of view, so only there does photon noise pass for returns the defaults refuse;
+    the carving threshold lowered alone but above the level (4.5 over a weak threshold of 4) is not below it."""
+    return weak_level(threshold, weak_threshold) < weak_level(default_threshold, default_weak_threshold)
+
+
 @dataclass
 class FirstReturns:
     """First return of every histogram. Arrays (n, zones); bin coordinates as in the sensor model (bin i covers

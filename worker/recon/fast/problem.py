@@ -15,7 +15,7 @@ import torch
 
 from spadscan.protocol.raycast import zone_rays
 
-from ...carving.returns import RESCAN, first_returns
+from ...carving.returns import RESCAN, below_default_level, first_returns
 from ...carving.space_carving import carve_scene
 from ...carving.views import summed_views
 from ...table_height import RAYS_PER_ZONE, detect_height
@@ -125,9 +125,7 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     if not occ.any():
         points = _return_points(onset, poses_np, dirs, weights)
         weak = carve_weak_threshold(fc, table is not None)
-        shipped = type(fc)()
-        lowered = (fc.carve_threshold < shipped.carve_threshold
-                   or (weak is not None and weak < shipped.carve_weak_threshold))
+        lowered = below_default_level(fc.carve_threshold, weak, *default_thresholds(fc, table is not None))
         raise ReconstructionError(_nothing_left(points, hull_res, floor_z, fc.carve_threshold, weak, lowered))
     hull = hull_field(occ, hull_res.origin, voxel, device)
     idx = np.argwhere(occ)[:, ::-1]  # (x, y, z)
@@ -173,6 +171,13 @@ def carve_weak_threshold(fc, on_table: bool) -> float | None:
     return None if on_table else fc.carve_weak_threshold
 
 
+def default_thresholds(fc, on_table: bool) -> tuple[float, float | None]:
+    """(carving threshold, weak threshold or None) as carving is given them (`carve_weak_threshold`) with the
+    defaults of `fc`'s config: what `returns.below_default_level` compares the thresholds in effect with."""
+    shipped = type(fc)()
+    return shipped.carve_threshold, carve_weak_threshold(shipped, on_table)
+
+
 def _return_points(onset: np.ndarray, poses: np.ndarray, zone_dirs: np.ndarray, zone_weights: np.ndarray):
     """(n, 3) world points (metres) of the first returns: each detected histogram's onset range (onset (V, Z), NaN
     where none) along its zone's mean direction (zone_dirs (Z, D, 3) sensor frame, zone_weights (Z, D) steradians)
@@ -197,13 +202,14 @@ def _thin_advice(threshold: float, weak: float | None, lowered: bool = False) ->
     """What to lower when views that missed a faint return carved the object away: the thresholds in effect, their
     values now, and a `spadscan reconstruct --set` of lower ones. `weak` None: not in effect (on a table), so not
     named, but set along at the other's value, since the config refuses a weak threshold above the other.
-    `lowered`: one in effect is below its default already; nothing lower is offered then, since there noise clears
-    them (a 6 mm wand 10 cm tall refitted at 3 and 2 was carved away again, at 2 and 1 fitted to noise: 37.6 mm)."""
+    `lowered`: they put carving's level below its default already (`returns.below_default_level`, the rule the end
+    of the run judges by too); nothing lower is offered then, since there noise clears them (a 6 mm wand 10 cm
+    tall refitted at 3 and 2 was carved away again, at 2 and 1 fitted to noise: 37.6 mm)."""
     keys = [("field.carve_threshold", threshold)] + ([] if weak is None else [("field.carve_weak_threshold", weak)])
     now = " and ".join(f"{k} = {v:g}" for k, v in keys) + " noise deviations"
     if lowered:
-        return (f"the detection thresholds {now} are below their defaults already, where noise passes for returns: "
-                f"{RESCAN}")
+        return (f"the detection thresholds {now} put carving's level below its default already, where noise passes "
+                f"for returns: {RESCAN}")
     lower = _lower_thresholds(threshold, weak)
     if lower is None:
         return f"the detection thresholds {now} are as low as they go: capture more frames per pose"
@@ -221,7 +227,7 @@ def _nothing_left(points: np.ndarray, hull_res, floor_z: float | None, threshold
     at all; returns that the scene box or the floor lost (most lie outside the box or under the floor: a box off the
     object, a floor above it); else a thin or faint object, carved away by the views that missed its return
     (`HELD_SHARE`): lower carving thresholds (`threshold`, `weak` as carving used them, None: not in effect), unless
-    they are `lowered` below their defaults already (`_thin_advice`)."""
+    `lowered` carving's level below its default already (`_thin_advice`)."""
     found = len(points)
     if not found:
         return (f"space carving removed everything: no histogram shows a return above the threshold ({threshold:g} "
