@@ -224,8 +224,11 @@ class ScanRunner:
         job.taken_over = True
         self.job = job
         owed = _owed(job)
-        job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
-                                               f"`spadscan ctl resume` continues" +
+        # A scan that was paused when the daemon stopped (by the operator, or by a fault) stays paused: auto_resume
+        # continues a scan that was interrupted, not one someone or something had stopped.
+        auto = auto_resume and job.blocked is None and reopen_error is None and paused is None
+        going_on = "auto_resume continues it" if auto else "`spadscan ctl resume` continues"
+        job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); {going_on}" +
                                                (f", taking pose(s) {owed} again first (missing from the capture)"
                                                 if owed else ""))
         if reopen_error and not job.blocked:
@@ -233,9 +236,6 @@ class ScanRunner:
                                             f"{reopen_error}; make room, then `spadscan ctl resume`" +
                                             (f", which takes pose(s) {owed} again first (missing from the capture)"
                                              if owed else ""))
-        # A scan that was paused when the daemon stopped (by the operator, or by a fault) stays paused: auto_resume
-        # continues a scan that was interrupted, not one someone or something had stopped.
-        auto = auto_resume and job.blocked is None and reopen_error is None and paused is None
         log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
                  "blocked: " + job.blocked if job.blocked else
                  "paused, as it was when the daemon stopped: " + job.reason if paused else

@@ -129,6 +129,16 @@ def test_a_scan_interrupted_while_it_scanned_still_resumes_by_itself(arun, tmp_p
     assert status["state"] == "scanning", status
 
 
+def test_a_scan_resumed_by_itself_does_not_tell_the_operator_to_resume_it(arun, tmp_path, caplog):
+    cfg = make_cfg(tmp_path, auto_resume=True)
+    arun(interrupt(cfg))
+    with caplog.at_level("INFO", logger=runner_module.log.name):
+        arun(restart(cfg))
+    resumed = [r.getMessage() for r in caplog.records if "resumed at pose" in r.getMessage()]
+    assert len(resumed) == 1 and "auto_resume continues it" in resumed[0], resumed
+    assert "ctl resume" not in resumed[0], resumed
+
+
 def test_a_scan_stopped_while_its_pause_is_pending_is_taken_over_paused(arun, tmp_path):
     """`ctl pause` waits for the pose in flight; a daemon stopped before that (state 'pausing') leaves the scan
     paused all the same."""
