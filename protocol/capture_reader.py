@@ -9,8 +9,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, VERSION, Chunk, check_hists, check_poses,
-                             chunk_index, one_line, read_json, read_npy)
+from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, VERSION, Chunk, NoPermission, check_hists,
+                             check_poses, chunk_index, one_line, read_json, read_npy)
 from .errors import CaptureError, SensorModelError
 from .plausibility import check_counts, first_photon_cycles
 from .sensor_model import SensorModel
@@ -175,6 +175,29 @@ class CaptureReader:
         for name in self.chunk_names()[start:]:
             yield self.read_chunk(name)
 
+    def _readable_chunks(self) -> list[Chunk]:
+        """Every published chunk, read. One that cannot be read (torn or zeroed files after a power cut) raises its
+        own error, to which the way out is added: the other chunks are read first so that it can say how many are
+        whole, since setting the damaged ones aside leaves their views to use. A chunk this user may not read is not
+        damaged (its content may be intact) and gets no such advice."""
+        chunks, damaged, first = [], [], None
+        for name in self.chunk_names():
+            try:
+                chunks.append(self.read_chunk(name))
+            except NoPermission:
+                raise
+            except CaptureError as exc:
+                damaged.append(name)
+                first = first or exc
+        if first is None:
+            return chunks
+        if not chunks:
+            raise CaptureError(f"{first}; none of its {len(damaged)} chunks can be read") from None
+        them = "it" if len(damaged) == 1 else "them"
+        raise CaptureError(f"{first}; {len(damaged)} of {len(damaged) + len(chunks)} chunks cannot be read "
+                           f"({', '.join(damaged)}): moving {them} out of {self.path} leaves the views of the other "
+                           f"{len(chunks)} to use") from None
+
     def follow(self, poll_s: float = 0.5, timeout_s: float | None = None) -> Iterator[Chunk]:
         """Yield chunks as they are published until the scan is no longer running (and all chunks are read).
 
@@ -198,8 +221,9 @@ class CaptureReader:
                 time.sleep(poll_s)
 
     def load(self) -> CaptureData:
-        """Every published measurement, concatenated in order. An empty capture is an error."""
-        chunks = list(self.iter_chunks())
+        """Every published measurement, concatenated in order. An empty capture is an error, and so is one with a
+        chunk that cannot be read (`_readable_chunks`)."""
+        chunks = self._readable_chunks()
         if not chunks:
             raise CaptureError(f"{self.path}: holds no published measurements")
         refs = [c.reference for c in chunks]

@@ -579,6 +579,36 @@ def test_a_chunk_file_that_is_not_npy_is_reported_as_damaged(tmp_path, name, con
     assert "Python objects" not in str(info.value)
 
 
+def test_a_damaged_chunk_names_the_way_out_and_the_way_out_works(tmp_path):
+    """A torn chunk among whole ones: the error names every damaged chunk and how many are whole, and moving the
+    damaged ones out (as it says) leaves a capture that loads with the other chunks' views."""
+    path = tmp_path / "scan"
+    write(path, 8, 2)  # four chunks of two measurements
+    for k in (1, 3):
+        (path / chunk_name(k) / "hists.npy").write_bytes(bytes(4096))  # zeroed blocks after a power cut
+    with pytest.raises(CaptureError) as info:
+        CaptureReader(path).load()
+    said = str(info.value)
+    assert said.startswith(f"{path / chunk_name(1) / 'hists.npy'}: not a .npy file"), said
+    assert said.endswith(f"; 2 of 4 chunks cannot be read ({chunk_name(1)}, {chunk_name(3)}): moving them out of "
+                         f"{path} leaves the views of the other 2 to use"), said
+    aside = tmp_path / "aside"
+    aside.mkdir()
+    for k in (1, 3):
+        (path / chunk_name(k)).rename(aside / chunk_name(k))
+    data = CaptureReader(path).load()
+    assert [m["pose_index"] for m in data.meta] == [0, 1, 4, 5]
+
+
+def test_a_capture_with_no_readable_chunk_offers_no_move(tmp_path):
+    path = tmp_path / "scan"
+    write(path, 2, 1)
+    for k in (0, 1):
+        (path / chunk_name(k) / "hists.npy").write_bytes(b"")
+    with pytest.raises(CaptureError, match=r"; none of its 2 chunks can be read$"):
+        CaptureReader(path).load()
+
+
 @pytest.mark.parametrize("shape, data_bytes", [((99_999_999_999, 9, 128), 100), ((3, 9, 128), 3 * 9 * 128 * 4 - 10)])
 def test_an_npy_whose_header_and_data_disagree_is_reported_as_damaged(tmp_path, shape, data_bytes):
     """A damaged header that claims a huge shape made numpy allocate it (a MemoryError traceback); a short file is
