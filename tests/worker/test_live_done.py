@@ -29,6 +29,15 @@ def test_done_carries_the_final_results_figures_not_the_live_fits(tmp_path):
     assert "Chamfer 1.24 mm" in done.summary() and "155.96" not in done.summary()
 
 
+def test_a_final_run_from_the_hull_counts_its_own_steps_only(tmp_path):
+    # The live fit's steps shaped nothing of a result whose final run started from the carved hull.
+    report = {"steps": 560, "converged": False, "chamfer_mm": 1.48, "scene": {"views": 128},
+              "live": {"steps": 9, "final_start": "hull"}}
+    assert done_status(AT_SCAN_END, result_with(tmp_path, report)).steps == 560
+    (tmp_path / "demo-fast" / "report.json").write_text(json.dumps({**report, "live": {"final_start": "live"}}))
+    assert done_status(AT_SCAN_END, tmp_path / "demo-fast").steps == 9 + 560
+
+
 def test_a_result_without_a_chamfer_shows_none_rather_than_the_live_fits(tmp_path):
     done = done_status(AT_SCAN_END, result_with(tmp_path, {"steps": 40, "converged": False, "scene": {"views": 128}}))
     assert done.chamfer_mm is None and done.steps == 49 and done.converged is False

@@ -87,9 +87,10 @@ ENDED = ("done", "aborted", "stopped")
 
 def done_status(status: LiveStatus, result: Path) -> LiveStatus:
     """`status` as 'done' with `result`, the figures those of the result's report.json: the views the final run
-    fitted (every published one), its steps on top of the live fit's, its convergence and its Chamfer (None when it
-    has none: the live fit's would read as the result's). Where that report cannot be read, the live fit's figures
-    stay."""
+    fitted (every published one), its steps (on top of the live fit's where it continued from the live fit; alone
+    where it started from the carved hull, which the live steps did not shape), its convergence and its Chamfer (None
+    when it has none: the live fit's would read as the result's). Where that report cannot be read, the live fit's
+    figures stay."""
     done = dataclasses.replace(status, state="done", result=str(result), updated_utc="")
     try:
         report = json.loads((result / "report.json").read_text())
@@ -101,9 +102,11 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
     chamfer = report.get("chamfer_mm")
     scene = report.get("scene")
     views = scene.get("views") if isinstance(scene, dict) else None
+    live = report.get("live")
+    before = 0 if isinstance(live, dict) and live.get("final_start") == "hull" else status.steps
     return dataclasses.replace(
         done, views_used=views if is_count(views) else status.views_published,
-        steps=status.steps + steps if is_count(steps) else status.steps,
+        steps=before + steps if is_count(steps) else status.steps,
         converged=report.get("converged") is True,
         chamfer_mm=float(chamfer) if is_chamfer(chamfer) else None)
 
