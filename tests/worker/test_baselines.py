@@ -4,6 +4,7 @@ reprojection, and the `spadscan baseline` command."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -247,7 +248,12 @@ def test_baseline_command_writes_a_mesh_and_a_report(sphere_capture, tmp_path, c
         assert np.isfinite(report[key])
     assert report["chamfer_mm"] < 30
     assert trimesh.load(out / "mesh.ply").is_watertight
-    assert "Chamfer" in capsys.readouterr().out
+    said = capsys.readouterr()
+    assert "Chamfer" in said.out
+    # The method's time apart from the run's (metrics and pictures), and a line before each of those long stages.
+    build, total = map(float, re.search(r", ([0-9.]+) s to build, ([0-9.]+) s in all", said.out).groups())
+    assert build == round(report["seconds"], 1) and total >= build
+    assert "scoring against the ground truth on" in said.err and "drawing the pictures" in said.err
     assert (out / "preview.png").read_bytes()[:4] == b"\x89PNG"
     page = (out / "report.html").read_text()
     assert "space-carving" in page and f"{report['chamfer_mm']:.4g} mm" in page and 'src="preview.png"' in page

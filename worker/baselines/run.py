@@ -213,6 +213,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         report["ground_truth"] = str(gt)  # the key reconstruct and eval use too
         if truth.note():
             log(f"scoring {truth.note()}")
+        log(f"scoring against the ground truth on {metrics_points:,} points per mesh")
         report.update(truth.report_fields())
         report.update(truth.metrics(mesh, n_points=metrics_points).to_dict())
     write_report(out, report)
