@@ -5,7 +5,9 @@ By default the worker reconstructs live (`spadscan worker --live`): it starts on
 continues from the live fit. `live=False` runs today's offline job once the scan is complete.
 
 The demo drives the same commands a lab operator uses (`spadscan daemon`, the control socket, `spadscan worker`), so
-it proves the system end to end. Every process it starts it stops again, also on Ctrl-C or an error.
+it proves the system end to end. Every process it starts it stops again, also on Ctrl-C or an error. A scan an
+earlier run into the same folder left unfinished (stopped during its scan) is aborted through the daemon, its poses
+kept, before the new scan starts.
 """
 
 from __future__ import annotations
@@ -241,16 +243,58 @@ def _failed(what: str, log: Path) -> DemoError:
 
 
 def _wait_for_daemon(sock: Path, proc: subprocess.Popen, log: Path, timeout_s: float) -> None:
+    """Wait until the daemon `proc` answers on `sock`. Only its own answer counts: another daemon may still serve the
+    socket (one of a demo run killed a moment ago, not stopped yet, or of a demo still running into the same folder),
+    and the demo would otherwise drive that daemon's scans (abort them, as an earlier run's)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise _failed(f"the daemon exited with code {proc.returncode} at start-up", log)
         try:
-            call(sock, "status", timeout_s=2.0)
-            return
+            status = call(sock, "status", timeout_s=2.0)
         except ControlError:
-            time.sleep(0.2)
+            status = {}
+        if (status.get("daemon") or {}).get("pid") == proc.pid:
+            return
+        time.sleep(0.2)
     raise _failed(f"the daemon did not open its control socket within {timeout_s:.0f} s", log)
+
+
+EARLIER_RUN_ABORTED = "an earlier demo run was interrupted"
+"""The reason recorded in the capture of a scan the demo aborts because an earlier run of it was interrupted."""
+
+
+def _abort_earlier_scans(sock: Path) -> list[str]:
+    """Abort, through the daemon, the scans an earlier demo run into the same folder left unfinished (Ctrl-C or
+    kill -9 during its scan), and return one line for each. The demo's daemon takes such a scan over, paused, at
+    start-up, and would refuse the new scan until it is resumed or aborted; but no daemon is left to do either once
+    the demo stops its own. One it cannot take over (a chunk a power cut tore) would stay unfinished for good. The
+    abort keeps every pose the scan published: its capture stays, marked aborted, and the worker skips it."""
+    status = call(sock, "status", timeout_s=10.0)
+    said = []
+    if status.get("scan") is not None:  # a daemon just started holds no scan but one it took over
+        name = status["scan"]
+        _abort(sock, name)
+        said.append(f"{EARLIER_RUN_ABORTED}: its scan {name} ({status.get('pose')} of {status.get('poses')} poses) "
+                    f"is kept aborted; starting a new one")
+    stuck = (status.get("cannot_take_over") or {}).get("scan")
+    if stuck is not None:
+        _abort(sock, stuck)
+        said.append(f"{EARLIER_RUN_ABORTED}: its scan {stuck}, which the daemon could not take over (daemon.log "
+                    f"says why), is kept aborted; starting a new one")
+    return said
+
+
+def _abort(sock: Path, name: str) -> None:
+    """Abort scan `name` through the daemon (`spadscan ctl abort NAME`); a DemoError when the daemon refuses or its
+    disk could not record the abort (the new scan would not be written either)."""
+    try:
+        reply = call(sock, "abort", name=name, reason=EARLIER_RUN_ABORTED)
+    except ControlError as exc:
+        raise DemoError(f"could not abort scan {name}, which an earlier demo run left unfinished: {exc}") from None
+    if reply.get("abort_recorded") is False:
+        raise DemoError(f"could not record the abort of scan {name}, which an earlier demo run left unfinished: "
+                        f"{reply.get('last_error')}")
 
 
 def _scan(sock: Path, name: str, opts: DemoOptions, progress, watch=None) -> dict:
@@ -298,9 +342,10 @@ def finished_job_progress(scan_dir: Path):
     return read_progress(report.parent / "job.log")
 
 
-def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path, progress=None) -> None:
+def _reconstruct(opts: DemoOptions, captures: Path, scan: str, procs: Processes, logs: Path, progress=None) -> None:
     """Run a worker over the captures until it has reconstructed them; `progress` receives the running job's
-    progress (or None) about twice a second."""
+    progress (or None) about twice a second. Scan `scan`'s job must be done; another job may fail (the worker then
+    exits 1): an earlier live run's job of a scan the demo aborted ends failed, with the scan's reason."""
     log = logs / "worker.log"
     worker = procs.start("worker", _spadscan("worker", "--root", str(captures), "--once", "--processes", "1",
                                              "--budget-s", f"{opts.budget_s:g}", "--poll-s", "0.5"), log)
@@ -315,7 +360,7 @@ def _reconstruct(opts: DemoOptions, captures: Path, procs: Processes, logs: Path
                 raise _failed(f"the worker did not finish within {limit:.0f} s", log) from None
             if progress is not None:
                 progress(running_job_progress(captures))
-    if code != 0:
+    if code != 0 and scan_job_state(captures, scan) != "done":
         raise _failed(f"the worker exited with code {code}", log)
 
 
@@ -506,6 +551,8 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
                         logs / "ursim.log")
         daemon = procs.start("daemon", _spadscan("daemon", "--config", str(config)), logs / "daemon.log")
         _wait_for_daemon(sock, daemon, logs / "daemon.log", timeout_s=60.0)
+        for line in _abort_earlier_scans(sock):  # before the worker starts: it then skips that scan
+            say(line)
         if opts.dashboard:
             dashboard = _start_dashboard(opts, captures, procs, logs)
             say(f"dashboard: {dashboard} (open it in a browser; it stops with the demo)")
@@ -533,7 +580,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
                 watch.bar = None  # the final run's own progress goes on this bar
                 _finish_live(opts, captures, name, worker, logs, watch, show)
             else:
-                _reconstruct(opts, captures, procs, logs, show)
+                _reconstruct(opts, captures, name, procs, logs, show)
             # The job's last progress, from its published log: a short job may end between two looks at its live one.
             show(finished_job_progress(captures / name))
         finally:

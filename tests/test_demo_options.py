@@ -124,13 +124,72 @@ def test_a_daemon_that_dies_at_start_up_says_why(tmp_path):
                                f"outside [1, 10000] (log: {log})")
 
 
+def test_only_its_own_daemon_answers_the_demo(tmp_path):
+    """Another daemon serves the demo's socket (a demo still running into the same folder, or one killed a moment
+    ago): the demo waits for its own daemon, which exits since the socket is taken, and says why; it never drives the
+    other daemon's scans (it would abort them as an earlier run's)."""
+    import json
+    import os
+    import socketserver
+    import tempfile
+    import threading
+
+    folder = Path(tempfile.mkdtemp(prefix="spadscan-t-"))  # a Unix socket path must stay short
+    sock, answered = folder / "d.sock", tmp_path / "answered"
+
+    class Other(socketserver.StreamRequestHandler):
+        def handle(self):
+            self.rfile.readline()
+            reply = {"ok": True, "state": "scanning", "scan": "other", "daemon": {"pid": os.getpid()}}
+            self.wfile.write((json.dumps(reply) + "\n").encode())
+            answered.touch()
+
+    server = socketserver.UnixStreamServer(str(sock), Other)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    # The demo's own daemon: it exits, as a daemon does when another one listens on its socket, once the other one
+    # has answered the demo (so the demo had the chance to take that answer for its own daemon's).
+    own = [sys.executable, "-c", f"import os, sys, time\n"
+                                 f"while not os.path.exists({str(answered)!r}): time.sleep(0.02)\n"
+                                 f"sys.exit('spadscan: error: another daemon is already listening')"]
+    procs = Processes()
+    log = tmp_path / "daemon.log"
+    try:
+        proc = procs.start("daemon", own, log)
+        with pytest.raises(DemoError) as info:
+            demo._wait_for_daemon(sock, proc, log, timeout_s=60)
+        assert str(info.value) == (f"the daemon exited with code 1 at start-up: another daemon is already listening "
+                                   f"(log: {log})")
+    finally:
+        procs.stop_all()
+        server.shutdown()
+        server.server_close()
+        sock.unlink(missing_ok=True)
+        folder.rmdir()
+
+
 def test_a_worker_that_fails_says_why(tmp_path, monkeypatch):
     monkeypatch.setattr(demo, "_spadscan", lambda *args: _child("spadscan: error: capture x: no measurements"))
     procs = Processes()
     with pytest.raises(DemoError) as info:
-        demo._reconstruct(DemoOptions(out=tmp_path, budget_s=5), tmp_path / "captures", procs, tmp_path / "logs")
+        demo._reconstruct(DemoOptions(out=tmp_path, budget_s=5), tmp_path / "captures", "scan", procs,
+                          tmp_path / "logs")
     log = tmp_path / "logs" / "worker.log"
     assert str(info.value) == f"the worker exited with code 1: capture x: no measurements (log: {log})"
+    procs.stop_all()
+
+
+def test_a_worker_that_fails_another_job_than_the_demos_is_no_failure_of_the_demo(tmp_path, monkeypatch):
+    """A rerun after an interrupted live demo: the earlier run's live job of the scan the rerun aborted ends failed,
+    and `spadscan worker --once` exits 1, though the demo's own scan was reconstructed."""
+    from spadscan.worker.jobs import Job
+    from spadscan.worker.queue import Queue
+
+    queue = Queue.for_root(tmp_path / "captures")
+    queue.enqueue(Job(id="scan-fast", scan="scan"))
+    queue.finish(queue.claim())
+    monkeypatch.setattr(demo, "_spadscan", lambda *args: _child("spadscan worker: 1 done, 1 failed (old-fast)"))
+    procs = Processes()
+    demo._reconstruct(DemoOptions(out=tmp_path, budget_s=5), tmp_path / "captures", "scan", procs, tmp_path / "logs")
     procs.stop_all()
 
 

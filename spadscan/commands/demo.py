@@ -10,7 +10,9 @@ printed each time its state changes; once the scan is complete the final reconst
 fit for --budget-s seconds. --offline reconstructs only once the scan is complete, as `spadscan worker --once`.
 While the final reconstruction runs, a progress line shows its training time, loss and Chamfer.
 With --dashboard it also serves the lab dashboard on its captures and prints the address to open.
-Every process it starts is stopped again, also on Ctrl-C.
+Every process it starts is stopped again, also on Ctrl-C. Run again into the same --out after a run was stopped
+during its scan, it aborts the scan that run left unfinished (its poses stay on disk, the capture marked aborted),
+says so, and starts a new one.
 """
 
 from __future__ import annotations

@@ -49,10 +49,10 @@ def test_demo_finishes_with_a_summary_and_no_process_left(tmp_path, arm, sensor)
     assert not (out / "daemon.sock").exists()
 
 
-@pytest.mark.slow
-def test_ctrl_c_during_the_scan_stops_every_process(tmp_path, procs):
-    out = tmp_path / "demo"
-    demo = procs.start(spadscan_argv("demo", "--out", out, "--views", 400, "--budget-s", 10), "demo")
+def _ctrl_c_during_the_scan(procs, out: Path, views: int = 400) -> Path:
+    """Run the demo into `out` and stop it with Ctrl-C once its scan has published a few poses; returns the scan's
+    capture folder, left 'running' (resumable)."""
+    demo = procs.start(spadscan_argv("demo", "--out", out, "--views", views, "--budget-s", 10), "demo")
     wait_for(lambda: list(out.glob("captures/*/chunk-000002")) or demo.poll() is not None,
              "the scan to publish a few poses", 120, poll_s=0.05)
     assert demo.poll() is None, procs.log(demo)
@@ -63,10 +63,46 @@ def test_ctrl_c_during_the_scan_stops_every_process(tmp_path, procs):
     wait_for(lambda: not processes_mentioning(str(out)), "every process of the demo to stop", 30, poll_s=0.1)
     assert "Traceback" not in procs.log(demo)
     (capture,) = out.glob("captures/*/scan.json")
-    reader = CaptureReader(capture.parent)
+    return capture.parent
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_the_scan_stops_every_process(tmp_path, procs):
+    out = tmp_path / "demo"
+    reader = CaptureReader(_ctrl_c_during_the_scan(procs, out))
     assert reader.state == "running", "stopped during the scan: the capture stays resumable"
     assert len(reader.load().hists) < 400
     assert not (out / "daemon.sock").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("torn", [False, True], ids=["taken-over", "torn-chunk"])
+def test_a_rerun_after_ctrl_c_keeps_the_earlier_scan_aborted_and_scans_anew(tmp_path, procs, torn):
+    """A demo stopped during its scan leaves it 'running'. Its rerun's daemon takes it over, paused, and would refuse
+    the new scan, with no daemon left afterwards to resume or abort it: the rerun aborts it through its daemon,
+    every pose kept, says so, and scans anew. A torn chunk (a power cut) keeps the daemon from taking the scan over:
+    the rerun aborts it all the same, as it stands on disk. That rerun is offline: its `worker --once` also runs the
+    earlier live job, which ends failed with the aborted scan, and the demo's own job counts."""
+    out = tmp_path / "demo"
+    earlier = _ctrl_c_during_the_scan(procs, out)
+    chunks = sorted(p.name for p in earlier.glob("chunk-*"))
+    published = len(CaptureReader(earlier).load().hists)
+    if torn:
+        (earlier / chunks[0] / "hists.npy").write_bytes(b"")
+    r = spadscan("demo", "--out", out, "--views", 4, "--budget-s", 5, *(["--offline"] if torn else []), timeout=480)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr
+    said = (f"its scan {earlier.name}, which the daemon could not take over (daemon.log says why), is kept aborted"
+            if torn else f"its scan {earlier.name} ({published} of 400 poses) is kept aborted")
+    assert f"an earlier demo run was interrupted: {said}; starting a new one\n" in r.stderr, r.stderr[-3000:]
+    reader = CaptureReader(earlier)
+    assert reader.state == "aborted" and "an earlier demo run was interrupted" in reader.manifest["reason"]
+    assert sorted(p.name for p in earlier.glob("chunk-*")) == chunks, "every chunk of the earlier scan stays"
+    if not torn:
+        assert len(reader.load().hists) == published
+    summary = json.loads((out / "summary.json").read_text())
+    assert Path(summary["capture"]) != earlier and CaptureReader(summary["capture"]).state == "complete"
+    assert not processes_mentioning(str(out)), "the demo left a process running"
 
 
 def test_the_rig_config_finds_the_captures_from_a_relative_output_folder(tmp_path, monkeypatch):
