@@ -28,7 +28,8 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.live_status import read_status, status_path
 
 from .jobs import Job
-from .queue import QUEUE_DIRNAME, SEP
+from .queue import QUEUE_DIRNAME, SEP, Claim
+from .status_detail import own_live_status
 
 TAIL_BYTES = 16 * 1024
 BAR_RE = re.compile(r"(?P<desc>[^\r\n|:]+?):\s*(?P<percent>\d+)%\|[^|\r\n]*\|\s*(?P<done>[\d.]+)/(?P<total>[\d.]+)"
@@ -37,6 +38,10 @@ BAR_RE = re.compile(r"(?P<desc>[^\r\n|:]+?):\s*(?P<percent>\d+)%\|[^|\r\n]*\|\s*
 CHAMFER_RE = re.compile(r"^(?P<mm>[\d.]+)\s*mm$")
 AFTER_TRAINING = "training done: mesh, metrics, pictures"
 """What a job does once its training bar is full (its result is not there yet)."""
+PROGRESS_S = 30.0
+"""How often `spadscan worker` says each running job's progress in its own terminal (`ProgressNotes`)."""
+SETTING_UP = "setting up"
+"""A job's stage before its log shows a bar (or, for a live job, before its live status is written)."""
 
 
 @dataclass(frozen=True)
@@ -88,9 +93,7 @@ class JobProgress:
         """How far in time: of the job's budget where known, else the training bar's elapsed and left."""
         stage = [AFTER_TRAINING] if self.training_done else []
         if self.budget_s is not None and self.spent_s is not None:
-            left = self.budget_s - self.spent_s
-            tail = f"{clock(left)} left" if left >= 0 else f"{clock(-left)} over"
-            return "; ".join(stage + [f"{clock(self.spent_s)} of the job's {clock(self.budget_s)} budget, {tail}"])
+            return "; ".join(stage + [of_budget(self.spent_s, self.budget_s)])
         if stage:  # its own "00:00 left" would say the job is over: it is not, until its result is published
             return f"{AFTER_TRAINING} (training took {self.elapsed})"
         return f"{self.elapsed} elapsed, {self.remaining} left"
@@ -99,6 +102,13 @@ class JobProgress:
         return {"line": self.line(), "fraction": self.fraction, "done": self.done, "total": self.total,
                 "unit": self.unit, "fields": dict(self.fields), "chamfer_mm": self.chamfer_mm,
                 "training_done": self.training_done, "budget_s": self.budget_s, "spent_s": self.spent_s}
+
+
+def of_budget(spent_s: float, budget_s: float) -> str:
+    """'01:10 of the job's 02:00 budget, 00:50 left' (or '00:03 over')."""
+    left = budget_s - spent_s
+    tail = f"{clock(left)} left" if left >= 0 else f"{clock(-left)} over"
+    return f"{clock(spent_s)} of the job's {clock(budget_s)} budget, {tail}"
 
 
 def clock(seconds: float) -> str:
@@ -152,30 +162,42 @@ def running_progress(queue, root=None, now: float | None = None) -> dict[str, Jo
         if state != "running":
             continue
         progress = read_progress(claim_log(queue.path, path))
-        budget = job_budget(queue, job_id, path, root) if progress is not None else None
-        if budget is not None:
-            budget_s, start = budget
-            progress = replace(progress, budget_s=budget_s, spent_s=max(0.0, now - start))
-        found[job_id] = progress
+        found[job_id] = measured(progress, job_budget(queue, job_id, path, root) if progress else None, now)
     return found
+
+
+def measured(progress: JobProgress | None, budget: tuple[float, float] | None, now: float) -> JobProgress | None:
+    """`progress` measured against `budget` ((budget_s, when it started counting, unix seconds), or None: as it is)
+    at `now` (unix seconds)."""
+    if progress is None or budget is None:
+        return progress
+    budget_s, start = budget
+    return replace(progress, budget_s=budget_s, spent_s=max(0.0, now - start))
 
 
 def job_budget(queue, job_id: str, running_file: Path, root) -> tuple[float, float] | None:
     """(budget_s, when it started counting, unix seconds) of a running job, or None when it has no budget or that
-    start is not known. An ordinary job's budget counts from its process's start (its claim's record, written just
-    before); a live job's bounds its final run, from the scan's end: when its live status turned 'final'."""
+    start is not known (`claim_budget`); an ordinary job's process started when its claim's record was written."""
     try:
         job = Job.from_dict(json.loads(Path(running_file).read_text()), str(running_file))
     except (OSError, ValueError, SpadscanError):
         return None
-    if not _positive(job.budget_s):
-        return None
-    if job.live:
-        start = final_run_start(root, job)
-    else:
+    started = None
+    if not job.live:
         token = Path(running_file).stem.rpartition(SEP)[2]
         record = next((r for r in queue.read_records(job_id)[0] if r.get("token") == token), {})
-        start = record.get("started_unix")
+        started = record.get("started_unix")
+    return claim_budget(job, started, root)
+
+
+def claim_budget(job: Job, started: float | None, root) -> tuple[float, float] | None:
+    """(budget_s, when it started counting, unix seconds) of a running job, or None when it has no budget or that
+    start is not known. An ordinary job's budget counts from its process's start (`started`, unix seconds); a live
+    job's bounds its final run, from the scan's end: when its live status turned 'final' (`root`: the captures
+    root)."""
+    if not _positive(job.budget_s):
+        return None
+    start = final_run_start(root, job) if job.live else started
     return (float(job.budget_s), float(start)) if _finite(start) else None
 
 
@@ -210,3 +232,59 @@ def progress_field(state: str, job_id: str, running: dict) -> dict:
         return {}
     progress = running[job_id]
     return {"progress": progress.to_dict() if progress else None}
+
+
+@dataclass(frozen=True)
+class ProgressNote:
+    """What a running job is doing, for the worker's own terminal: `stage` (set-up, training, what follows it, a live
+    job's state) and `text`, one line."""
+
+    stage: str
+    text: str
+
+
+def progress_note(claim: Claim, log: Path, root, now: float | None = None) -> ProgressNote:
+    """The progress line of the job `claim` holds, from its `log` (its bar, measured against its budget as --status
+    measures it), else, for a live job following its scan, its live status; else that it is setting up. `root`: the
+    captures root; `now`: time.time()."""
+    job = claim.job
+    now = time.time() if now is None else now
+    budget = claim_budget(job, claim.started, root)
+    progress = measured(read_progress(log), budget, now)
+    if progress is not None:
+        stage = f"{progress.desc}: {AFTER_TRAINING if progress.training_done else 'training'}"
+        return ProgressNote(stage, f"{job.id} at {100 * progress.fraction:.0f} %: {progress.line()}")
+    live = own_live_status(root, job.id, job.scan) if job.live else None
+    if live is not None:
+        return ProgressNote(f"live: {live.state}", f"{job.id}: {live.summary()}")
+    when = of_budget(now - budget[1], budget[0]) if budget else f"{clock(now - claim.started)} since it started"
+    return ProgressNote(SETTING_UP, f"{job.id}: setting up, no progress bar in its log yet [{when}]")
+
+
+class ProgressNotes:
+    """Which progress lines the worker says in its own terminal: each running job's line every `interval_s`
+    seconds, and at once when its stage changes (its training starts or ends, a live job's state changes), never
+    more than one line per job at a look. A job's set-up goes unsaid until the interval has passed: its 'started'
+    line has just said it."""
+
+    def __init__(self, interval_s: float = PROGRESS_S):
+        self.interval_s = interval_s
+        self.said: dict[str, tuple[float, str]] = {}
+        """Claim token -> (time.monotonic() of its job's last line, or of its first look; the stage it said)."""
+
+    def due(self, token: str, note: ProgressNote, now: float | None = None) -> bool:
+        """Whether `note` (of the job claim `token` holds) is to be said now (`now`: time.monotonic())."""
+        now = time.monotonic() if now is None else now
+        last = self.said.get(token)
+        if last is None and note.stage == SETTING_UP:
+            self.said[token] = (now, note.stage)
+            return False
+        if last is not None and note.stage == last[1] and now - last[0] < self.interval_s:
+            return False
+        self.said[token] = (now, note.stage)
+        return True
+
+    def keep_only(self, tokens) -> None:
+        """Forget the claims that are no longer running."""
+        for token in set(self.said) - set(tokens):
+            del self.said[token]

@@ -32,6 +32,7 @@ from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
+from .job_progress import PROGRESS_S, ProgressNotes, progress_note
 from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
 from .live.done import mark_live_done, mark_live_failed, mark_live_queued
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
@@ -53,9 +54,12 @@ class Unpublished:
 
 
 class Worker:
-    """Runs jobs from the queue in child processes. `log` receives one-line progress messages."""
+    """Runs jobs from the queue in child processes. `log` receives one message per event, each one line but a done
+    line, which carries its report's warnings on indented lines of its own. `progress_s`: say each running job's
+    progress every so many seconds and when its stage changes (`ProgressNotes`; None: never, `run_worker`: 30 s)."""
 
-    def __init__(self, config: WorkerConfig, log: Callable[[str], None] | None = None):
+    def __init__(self, config: WorkerConfig, log: Callable[[str], None] | None = None,
+                 progress_s: float | None = None):
         self.config = config.check()
         self.root = Path(config.root)
         self.queue = Queue(config.queue_dir or self.root / ".queue", lease_s=config.lease_s,
@@ -81,6 +85,7 @@ class Worker:
         """Environment the job processes get on top of the worker's own (threads per job, child_env)."""
         self.threads_note = config.threads_note()
         self.threads_warnings = config.threads_warnings()
+        self.progress = ProgressNotes(progress_s) if progress_s else None
 
     # ---- main loop -------------------------------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None) -> dict[str, str]:
@@ -117,6 +122,7 @@ class Worker:
                         self._trouble("poll the queue", exc)
                     next_poll = time.monotonic() + self.config.poll_s
                 self._heartbeat()
+                await self._say_progress()
                 if self.config.once and not self.children and not self.unpublished and self._drained():
                     break
                 await self._wait(stop, min(self.config.poll_s, self.config.lease_s / 4))
@@ -309,6 +315,24 @@ class Worker:
             if not self.queue.heartbeat(child.claim) and not self._done_in_place(child):
                 self._drop_unpublished(job_id, "its lease was taken over by another worker")
 
+    async def _say_progress(self) -> None:
+        """Log the progress lines that are due (`ProgressNotes`): without them the worker's own terminal says nothing
+        between a job's start and its end, minutes or hours later."""
+        if self.progress is None:
+            return
+        running = list(self.children.values())
+        for line in await asyncio.to_thread(self._progress_lines, running):
+            self.log(line)
+
+    def _progress_lines(self, running: list[Child]) -> list[str]:
+        self.progress.keep_only(child.claim.token for child in running)
+        lines = []
+        for child in running:
+            note = progress_note(child.claim, child.log, self.root)
+            if self.progress.due(child.claim.token, note):
+                lines.append(note.text)
+        return lines
+
     async def _reap(self) -> None:
         for job_id, child in list(self.children.items()):
             if child.wait.done():
@@ -496,14 +520,10 @@ class Worker:
         extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
         if summary.get("ground_truth_note"):
             extra += f" (ground truth: {summary['ground_truth_note']})"
-        counts_note = summary.get("capture_counts_note")
-        if counts_note and counts_note not in (summary.get("warnings") or []):  # a report's warnings carry it now
-            extra += f" (warning: {counts_note})"
         if summary.get("converged") is False:
             extra += ", not converged"
-        for warning in summary.get("warnings") or []:
-            extra += f" (warning: {warning})"
-        self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}")
+        # One message, so that no other line lands between the done line and its warnings.
+        self.log(f"{job.id} done in {seconds:.1f} s{extra} -> {final}" + _warning_lines(summary))
         if aside is not None:  # written there while the job ran (another worker on another queue, say)
             self.log(f"{job.id}: {final} held a result that appeared while the job ran; moved it to {aside}")
 
@@ -596,6 +616,17 @@ class Worker:
                 self.log(f"{job_id} stopped before its result could be published; back in the queue, {kept}")
 
 
+def _warning_lines(summary: dict) -> str:
+    """A done line's warnings, each on a line of its own, indented under it ("\\n  warning: ..."); '' when there are
+    none. A report's warnings run to about ten, a sentence or two each: on the done line they made it thousands of
+    characters long."""
+    warnings = list(summary.get("warnings") or [])
+    counts_note = summary.get("capture_counts_note")
+    if counts_note and counts_note not in warnings:  # a report's warnings carry it now
+        warnings.insert(0, counts_note)
+    return "".join(f"\n  warning: {warning}" for warning in warnings)
+
+
 def _recording(job_id: str) -> str:
     """What `_trouble` says the worker could not do while an ended job's attempt record does not fit."""
     return f"write the attempt record of {job_id}"
@@ -614,9 +645,10 @@ def _shown(value) -> str:
 
 
 async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = None,
-                     handle_signals: bool = True) -> dict[str, str]:
-    """Run a worker until SIGINT/SIGTERM (or drained, with `once`). Returns {job id: 'done' | 'failed'}."""
-    worker = Worker(config, log)
+                     handle_signals: bool = True, progress_s: float | None = PROGRESS_S) -> dict[str, str]:
+    """Run a worker until SIGINT/SIGTERM (or drained, with `once`), saying each running job's progress every
+    `progress_s` seconds (None: never). Returns {job id: 'done' | 'failed'}."""
+    worker = Worker(config, log, progress_s)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     sigs = (signal.SIGINT, signal.SIGTERM) if handle_signals else ()

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import read_status, status_path
+from spadscan.protocol.live_status import LiveStatus, read_status, status_path
 
 ENDED = ("done", "aborted", "stopped")
 """Live states after which the job's line is no longer the live status's (its final run has a bar, or it ended)."""
@@ -33,20 +33,48 @@ def result_health(row) -> dict:
 def live_detail(root, row) -> str | None:
     """A running live job's line from its scan's live status (`<scan>/recon/live/status.json`, which it rewrites as
     it follows the scan: its log shows no progress bar until its final run), or None; `root`: the captures root."""
-    if root is None or row.state != "running":
+    if row.state != "running":
+        return None
+    status = own_live_status(root, row.id, row.scan)
+    return status.summary() if status is not None else None
+
+
+def own_live_status(root, job_id: str, scan: str) -> LiveStatus | None:
+    """The live status (`<scan>/recon/live/status.json`) of running live job `job_id` while it follows its scan or
+    runs its final run; None when there is none, it cannot be read, it is another job's, or it is past (ENDED) or a
+    given-back attempt's last word ('queued', until the attempt that took the job over writes its own); `root`: the
+    captures root."""
+    if root is None:
         return None
     try:
-        status = read_status(status_path(Path(root) / row.scan))
+        status = read_status(status_path(Path(root) / scan))
     except (SpadscanError, OSError):
         return None
-    # 'queued': the given-back attempt's last word, until the attempt that took the job over writes its own
-    return status.summary() if status.job == row.id and status.state not in (*ENDED, "queued") else None
+    return status if status.job == job_id and status.state not in (*ENDED, "queued") else None
 
 
 def status_detail(row, running: dict | None = None, root=None) -> str:
-    """The last column of a --status row: a done job's result folder, a running job's progress (its log's progress
-    bar, `running`: job_progress.running_progress; a live job's live status while it follows its scan, `root`: the
-    captures root), else its last error; then damaged files. A stale running job's row says why first."""
+    """The last column of a --status row on one line: `status_lines`, joined with '; ' (the dashboard's cell)."""
+    detail, warnings, notes = status_parts(row, running, root)
+    return "; ".join([detail, *(f"warning: {w}" for w in warnings), *notes])
+
+
+def status_lines(row, running: dict | None = None, root=None) -> list[str]:
+    """The last column of a --status row for a terminal: the row's own line (`status_detail` without a done job's
+    warnings, which it counts), then each warning on a line of its own, "warning: ..." (a report gives up to
+    about ten, each a sentence or two: on the row's line they made one line of thousands of characters)."""
+    detail, warnings, notes = status_parts(row, running, root)
+    if warnings:
+        detail += f" ({len(warnings)} warning{'s' if len(warnings) != 1 else ''} below)"
+    return ["; ".join([detail, *notes]), *(f"warning: {w}" for w in warnings)]
+
+
+def status_parts(row, running: dict | None = None, root=None) -> tuple[str, list[str], list[str]]:
+    """(detail, warnings, notes) of a --status row: a done job's result folder, a running job's progress (its log's
+    progress bar, `running`: job_progress.running_progress; a live job's live status while it follows its scan,
+    `root`: the captures root), else its last error; a done job's report's warnings; then damaged files. A stale
+    running job's row says why first."""
+    warnings: list[str] = []
     if row.state == "done":
         detail = row.result or f"result: unknown ({'; '.join(row.notes) or 'no attempt record'})"
         if row.result and row.kept:
@@ -56,7 +84,8 @@ def status_detail(row, running: dict | None = None, root=None) -> str:
         health = result_health(row)
         if health.get("converged") is False:
             detail += " (not converged)"
-        notes = [f"warning: {w}" for w in health.get("warnings", [])] + ([] if not row.result else row.notes)
+        warnings = health.get("warnings", [])
+        notes = [] if not row.result else row.notes
     else:
         progress = (running or {}).get(row.id) if row.state == "running" else None
         detail, notes = (progress.line() if progress else live_detail(root, row) or row.error or "-"), row.notes
@@ -64,4 +93,4 @@ def status_detail(row, running: dict | None = None, root=None) -> str:
             notes = [f"last error: {row.error}", *notes]
         if row.stale:
             detail, notes = row.stale, [n for n in [row.error, *notes] if n]
-    return "; ".join([detail, *notes])
+    return detail, warnings, notes

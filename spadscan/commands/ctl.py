@@ -13,6 +13,10 @@
                                                 scan goes on
     spadscan ctl shutdown                       stop the daemon (a scan in flight stays resumable)
 
+`scan`, `pause`, `resume`, `abort` and `shutdown` answer in one line for people: the scan in hand, its state and its
+pose i/n (`scan 'bunny' paused at pose 38/128: paused by user`); with --json they print the daemon's whole
+reply as one line of JSON instead. `status` and `wait` always print JSON.
+
 The live reconstruction (`spadscan worker --live`) is read from the scan's recon/live/status.json, beside the daemon:
 views used of those published, steps, whether it converged, the Chamfer when the scene is known, the last update.
 
@@ -153,7 +157,7 @@ def add_arguments(parser) -> None:
                           help="adaptive: end the scan once the live reconstruction reports convergence; its "
                                "refits restart that test, so only a paused or slow scan (a pose every 13 s or "
                                "more with 32 views in, 6.5 s or more past 64) ends early [stop_when_converged]")
-    op("pause", "pause after the pose in flight is published")
+    pause = op("pause", "pause after the pose in flight is published")
     resume = op("resume", "continue a paused or interrupted scan at its first unpublished pose",
                 "Continue the paused scan at its first unpublished pose. With NAME, or when the daemon holds no "
                 "scan: take over an interrupted scan it could not take over when it started (`status` says why, "
@@ -173,7 +177,11 @@ def add_arguments(parser) -> None:
               "stderr (with a rate and a time left only while the scan scans); otherwise a line on stderr says why "
               "whenever the scan pauses. Ctrl-C stops only the waiting: the scan goes on in the daemon.")
     wait.add_argument("name", metavar="NAME", help="the scan's name (its folder under the captures root)")
-    op("shutdown", "stop the daemon; a scan in flight stays resumable")
+    shutdown = op("shutdown", "stop the daemon; a scan in flight stays resumable")
+    for answering in (scan, pause, resume, abort, shutdown):  # what they did, in one line for people
+        answering.add_argument("--json", action="store_true",
+                               help="print the daemon's whole reply as one line of JSON (for scripts), not the "
+                                    "one-line summary")
 
 
 def run(args) -> int:
@@ -196,7 +204,10 @@ def run(args) -> int:
         live = live_status(reply)
         if live is not None:
             reply["live"] = live
-    print(json.dumps(reply, indent=1 if args.op == "status" else None))
+    if args.op == "status":
+        print(json.dumps(reply, indent=1))
+    else:
+        print(json.dumps(reply) if args.json else reply_line(args.op, reply))
     if args.op == "abort" and reply.get("abort_recorded") is False:
         # The scan is over in the daemon, but not on disk yet: a script must not take that for a done abort.
         said = reply.get("last_error") or f"the abort of scan {reply.get('aborted')!r} is not recorded on disk yet"
@@ -205,6 +216,32 @@ def run(args) -> int:
     if args.op == "scan" and args.wait:
         return _wait(path, reply["scan"], args.timeout)
     return 0
+
+
+def reply_line(op: str, reply: dict) -> str:
+    """One line for people about the daemon's reply to `op` (scan, pause, resume, abort: the daemon's status after
+    it; shutdown): the scan in hand, its state and its pose i/n (and, for a pause, the pose it stops at; for a paused
+    scan, why), the scan an abort ended, where a scan started is written."""
+    if op == "shutdown":
+        return "the daemon is stopping (a scan in flight stays resumable)"
+    said = []
+    aborted = reply.get("aborted")
+    if aborted:
+        said.append(f"scan {aborted!r} aborted" + ("" if reply.get("abort_recorded", True) is not False
+                                                   else " (not recorded on disk yet)"))
+    name = reply.get("scan")
+    if name:
+        line = f"scan {name!r} {reply.get('state')} at pose {reply.get('progress')}"
+        if reply.get("pausing_at"):
+            line += f" (it stops at pose {reply['pausing_at']}, once the pose in flight is published)"
+        if reply.get("reason"):
+            line += f": {reply['reason']}"
+        said.append(line)
+        if op == "scan" and reply.get("path"):
+            said.append(f"written to {reply['path']}")
+    elif not aborted:
+        said.append(f"the daemon is {reply.get('state')}, with no scan in hand")
+    return "; ".join(said)
 
 
 def _wait(path: str, name: str, timeout: float | None) -> int:

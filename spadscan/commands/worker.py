@@ -53,9 +53,14 @@ worker keeps the result and the job's claim, says so once, and publishes it when
 other jobs run on; a worker stopped meanwhile leaves it marked complete, and the next worker to claim the job
 publishes it instead of reconstructing it again.
 
+While it runs, the worker says each running job's progress in its own terminal, one line per job, when the job's
+stage changes (its training starts or ends) and every 30 s in between; a job's done line is followed by its report's
+warnings, one indented line each.
+
 --status lists the jobs and changes nothing. A running job shows how far it has got (its progress bar: seconds of
 its budget or steps, the step, the loss and, where the scene is known, the last checkpoint's Chamfer; --json:
-`progress`). A running job whose worker died or stopped renewing its lease shows as
+`progress`); a done job, its result and its report's warnings, each on a line of its own. A running job whose worker
+died or stopped renewing its lease shows as
 `stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
 still holds shows as `running?`.
 
@@ -264,7 +269,7 @@ def _print_status(queue, as_json: bool, root: Path) -> int:
     from dataclasses import asdict
 
     from spadscan.worker.job_progress import progress_field, running_progress
-    from spadscan.worker.status_detail import result_health, status_detail
+    from spadscan.worker.status_detail import result_health, status_lines
 
     rows = queue.statuses()
     running = running_progress(queue, root)  # root: where a live job's status says when its final run began
@@ -275,15 +280,19 @@ def _print_status(queue, as_json: bool, root: Path) -> int:
     if not rows:
         print(f"no jobs in {queue.path}")
         return 0
-    table = [("JOB", "STATE", "TRIES", "HOLDER", "RESULT / LAST ERROR")]
+    table = [("JOB", "STATE", "TRIES", "HOLDER", ["RESULT / LAST ERROR"])]
     for r in rows:
         holder = r.holder or "-"
         if r.heartbeat_age_s is not None:
             holder += f" ({r.heartbeat_age_s:.0f} s ago)"
-        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, status_detail(r, running, root)))
+        table.append((r.id, r.shown_state or r.state, str(r.attempts), holder, status_lines(r, running, root)))
     widths = [max(len(row[i]) for row in table) for i in range(4)]
+    column = sum(widths) + 2 * len(widths)  # where the last column starts
     for row in table:
-        print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4])
+        first, *more = row[4]
+        print("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + first)
+        for line in more:  # a done job's warnings, each on a line of its own under its row's result
+            print(" " * column + line)
     counts = queue.counts()
     stale = sum(1 for r in rows if r.state == "running" and r.shown_state == "stale")
     print(", ".join(f"{n} {state}" + (f" ({stale} stale: their worker is gone)" if state == "running" and stale else "")

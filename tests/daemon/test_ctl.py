@@ -317,3 +317,33 @@ def test_scan_and_resume_wait_longer_for_their_reply(tmp_path, monkeypatch, caps
                         {"ok": True, "scan": "s"})
     assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), *argv]) == 0
     assert asked == [waits]
+
+
+SCANNING = {"ok": True, "state": "scanning", "scan": "mug", "last_error": None, "arm": "arm (sim)",
+            "sensor": {"name": "sensor sim", "frames": 0, "silent": False, "link": "up"},
+            "path": "/caps/mug", "pose": 0, "poses": 128, "progress": "0/128", "frames": 0, "reason": None,
+            "daemon_stalls": {"stalls": 0}}
+"""The start of the daemon's reply to `scan` (its whole status, a dozen keys more in a real one)."""
+
+
+@pytest.mark.parametrize("argv, reply, said", [
+    (["scan", "--name", "mug"], SCANNING, "scan 'mug' scanning at pose 0/128; written to /caps/mug"),
+    (["pause"], {**SCANNING, "state": "pausing", "pose": 3, "progress": "3/128", "pausing_at": "4/128"},
+     "scan 'mug' pausing at pose 3/128 (it stops at pose 4/128, once the pose in flight is published)"),
+    (["resume"], {**SCANNING, "state": "paused", "progress": "4/128", "reason": "sensor silent"},
+     "scan 'mug' paused at pose 4/128: sensor silent"),
+    (["abort"], {**SCANNING, "state": "idle", "scan": None, "aborted": "mug", "abort_recorded": True},
+     "scan 'mug' aborted"),
+    (["shutdown"], {"ok": True, "stopping": True}, "the daemon is stopping (a scan in flight stays resumable)"),
+])
+def test_ops_that_change_the_daemon_answer_in_one_line_for_people_and_in_json_with_json(
+        tmp_path, monkeypatch, capsys, argv, reply, said):
+    """`ctl scan` and `ctl pause` printed the daemon's whole status as one line of raw JSON (about 600 characters):
+    they, `resume`, `abort` and `shutdown` now say the scan, its state and its pose i/n; --json keeps the reply."""
+    import spadscan.daemon.client as client
+
+    monkeypatch.setattr(client, "call", lambda path, op, timeout, **request: dict(reply))
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), *argv]) == 0
+    assert capsys.readouterr().out == said + "\n"
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), *argv, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {k: v for k, v in reply.items() if k != "ok"}

@@ -119,7 +119,7 @@ def test_the_worker_fails_an_implausible_capture_once_and_warns_about_a_partly_i
     result = root / "some" / "recon" / "some-fast"
     assert json.loads((result / "report.json").read_text())["capture_counts_note"] == note
     assert f"warning: {note}" in (result / "job.log").read_text()
-    assert any("some-fast done" in line and f"(warning: {note})" in line for line in lines), lines
+    assert any(line.startswith("some-fast done") and f"\n  warning: {note}" in line for line in lines), lines
 
 
 def test_a_dropped_frame_is_left_out_and_carves_nothing_away(tmp_path):

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from spadscan.protocol.live_status import LiveStatus, write_status
-from spadscan.worker.job_progress import running_progress
+from spadscan.worker.job_progress import AFTER_TRAINING, ProgressNote, ProgressNotes, progress_note, running_progress
 from spadscan.worker.jobs import Job
 from spadscan.worker.queue import Queue
 
@@ -75,3 +75,46 @@ def test_a_full_training_bar_without_a_budget_says_what_the_job_does_next_not_00
     assert p.fraction == 1.0 and p.budget_s is None
     assert p.line() == ("reconstruct (fast): 7/7 s, step 67, loss 518 "
                         "[training done: mesh, metrics, pictures (training took 00:07)]")
+
+
+def test_the_worker_says_a_job_at_each_change_of_stage_and_every_interval_between(tmp_path):
+    """The worker's own terminal: a job's line when its stage changes and every `interval_s` seconds in between,
+    never twice for one stage within the interval; set-up goes unsaid until the interval has passed (the 'started'
+    line has just said it)."""
+    notes = ProgressNotes(interval_s=30.0)
+    setting_up, training, after = (ProgressNote(stage, stage) for stage in ("setting up", "training", AFTER_TRAINING))
+    looks = [(0.0, setting_up), (29.0, setting_up), (31.0, setting_up), (32.0, training), (33.0, after),
+             (34.0, training), (60.0, training), (64.0, training), (93.9, training), (94.0, training)]
+    said = [now for now, note in looks if notes.due("claim", note, now=now)]
+    assert said == [31.0, 32.0, 33.0, 34.0, 64.0, 94.0]
+    notes.keep_only([])
+    assert not notes.due("claim", setting_up, now=95.0), "a claim that ran again starts afresh"
+    assert notes.due("claim", training, now=95.5)
+
+
+def test_a_progress_note_says_the_bar_against_the_budget_else_the_live_status_else_that_it_sets_up(tmp_path):
+    queue = Queue.for_root(tmp_path)
+    queue.enqueue(Job(id="scan-fast", scan="scan", budget_s=120.0))
+    queue.enqueue(Job(id="live-fast", scan="live", live=True))
+    claims = {c.job.id: c for c in (queue.claim(), queue.claim())}
+    logs = {job_id: tmp_path / f"{job_id}.log" for job_id in claims}
+    ordinary, live = claims["scan-fast"], claims["live-fast"]
+    note = progress_note(ordinary, logs["scan-fast"], tmp_path, now=ordinary.started + 12.0)
+    assert note == ProgressNote("setting up", "scan-fast: setting up, no progress bar in its log yet "
+                                              "[00:12 of the job's 02:00 budget, 01:48 left]")
+    logs["scan-fast"].write_text(MID)
+    note = progress_note(ordinary, logs["scan-fast"], tmp_path, now=ordinary.started + 48.0)
+    assert note.stage == "reconstruct (fast): training"
+    assert note.text == ("scan-fast at 40 %: reconstruct (fast): 4/7 s, step 38, loss 851 "
+                         "[00:48 of the job's 02:00 budget, 01:12 left]")
+    logs["scan-fast"].write_text(MID + FULL)
+    note = progress_note(ordinary, logs["scan-fast"], tmp_path, now=ordinary.started + 60.0)
+    assert note.stage == f"reconstruct (fast): {AFTER_TRAINING}" and note.text.startswith("scan-fast at 50 %: ")
+    note = progress_note(live, logs["live-fast"], tmp_path, now=live.started + 5.0)
+    assert note.text == "live-fast: setting up, no progress bar in its log yet [00:05 since it started]"
+    (tmp_path / "live" / "recon" / "live").mkdir(parents=True)
+    write_status(tmp_path / "live" / "recon" / "live", LiveStatus(views_used=24, views_published=29, steps=240,
+                                                                  job="live-fast"))
+    note = progress_note(live, logs["live-fast"], tmp_path)
+    assert note.stage == "live: live" and note.text.startswith("live-fast: live reconstruction following the scan: "
+                                                               "24/29 views, 240 steps"), note

@@ -70,10 +70,13 @@ def test_a_done_job_without_its_view_says_so_in_its_done_line_and_status(tmp_pat
     assert not (result / VIEW3D).exists()
     assert json.loads((result / "report.json").read_text())["warnings"] == [SAID]
     done = [line for line in lines if line.startswith("mug-fast done in ")]
-    assert done and f"(warning: {SAID})" in done[0], lines
+    assert done and done[0].splitlines() == [done[0].splitlines()[0], f"  warning: {SAID}"], lines
+    assert done[0].splitlines()[0].endswith(f" -> {result}"), "the done line itself stays short"
     assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)
     assert row["state"] == "done" and row["warnings"] == [SAID], row
     assert cli_main(["worker", "--root", str(root), "--status"]) == 0
-    assert f"warning: {SAID}" in capsys.readouterr().out
+    header, row, warning, counts = capsys.readouterr().out.splitlines()
+    assert row.startswith("mug-fast") and row.endswith(f"{result} (1 warning below)"), row
+    assert warning == " " * header.index("RESULT") + f"warning: {SAID}", "on its own line, under the result"
     assert os.path.isfile(result / "job.log")

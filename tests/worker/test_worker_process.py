@@ -635,3 +635,90 @@ def test_status_shows_a_live_job_following_its_scan_by_its_live_status(tmp_path,
     assert "live reconstruction" in row and "24/29 views, 240 steps" in row, row
     (job,) = queue_status(queue.path, root)["jobs"]
     assert "24/29 views, 240 steps" in job["detail"]
+
+
+def fed_recon(capture, out, **options):
+    """A stand-in reconstruction that draws the progress bars a test feeds it, `$FEED/<n>.bar` for n = 0, 1, ...
+    in turn, until the test writes `$FEED/end`."""
+    feed, n = Path(os.environ["FEED"]), 0
+    while not (feed / "end").exists():
+        bar = feed / f"{n}.bar"
+        if bar.exists():
+            print(bar.read_text(), end="\r", file=sys.stderr, flush=True)
+            n += 1
+        else:
+            time.sleep(0.02)
+    report = {"chamfer_mm": 1.5, "capture": str(capture)}
+    (Path(out) / "report.json").write_text(json.dumps(report))
+    return report
+
+
+class Said:
+    """A worker's log: each line with the time.monotonic() it was said; `wait_for` returns once a line matches."""
+
+    def __init__(self):
+        self.lines: list[tuple[float, str]] = []
+        self.loop = asyncio.get_running_loop()
+        self.changed = asyncio.Event()
+
+    def __call__(self, line: str) -> None:  # also called from the worker's threads
+        self.lines.append((time.monotonic(), line))
+        self.loop.call_soon_threadsafe(self.changed.set)
+
+    async def wait_for(self, predicate, times: int = 1) -> str:
+        """The last line that matches, once `times` lines have."""
+        while True:
+            self.changed.clear()
+            found = [line for _, line in self.lines if predicate(line)]
+            if len(found) >= times:
+                return found[-1]
+            await self.changed.wait()
+
+
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_the_worker_says_a_running_jobs_progress_in_its_own_terminal(tmp_path, arun, monkeypatch):
+    """Between a job's 'started' and 'done' lines the worker says how far the job has got: its progress bar against
+    its budget, at once when the job's stage changes (its training starts, its training ends) and every
+    `progress_s` seconds in between, one line per job and never two within `progress_s` for the same stage."""
+    from spadscan.worker.job_progress import AFTER_TRAINING
+    from spadscan.worker.watcher import JobOptions
+
+    root, feed = tmp_path / "captures", tmp_path / "feed"
+    root.mkdir()
+    feed.mkdir()
+    make_scan(root, "a")
+    monkeypatch.setenv("FEED", str(feed))
+    every_s = 1.0
+
+    def feed_bar(n: int, bar: str) -> None:
+        (feed / "bar.tmp").write_text(bar)
+        (feed / "bar.tmp").rename(feed / f"{n}.bar")  # whole, never half written
+
+    async def scenario():
+        said = Said()
+        config = WorkerConfig(root=root, once=True, poll_s=0.05, recon="test_worker_process:fed_recon",
+                              options=JobOptions(budget_s=20.0))
+        worker = asyncio.create_task(Worker(config, log=said, progress_s=every_s).run())
+        await said.wait_for(lambda line: line.startswith("a-fast started"))
+        feed_bar(0, "reconstruct (fast):  57%|#####     | 4/7 s [00:04<00:03, step=38, loss=851]")
+        first = await said.wait_for(lambda line: "step 38" in line)
+        again = await said.wait_for(lambda line: "step 38" in line, times=2)  # the same stage, `every_s` later
+        feed_bar(1, "reconstruct (fast): 100%|##########| 7/7 s [00:07<00:00, step=67, loss=518]")
+        done = await said.wait_for(lambda line: AFTER_TRAINING in line)
+        (feed / "end").write_text("")
+        return await worker, said.lines, (first, again, done)
+
+    settled, lines, (first, again, done) = arun(scenario(), timeout_s=60)
+    assert settled == {"a-fast": "done"}
+    assert first.startswith("a-fast at ") and " %: reconstruct (fast): 4/7 s, step 38, loss 851 [" in first, first
+    assert "of the job's 00:20 budget" in first and "of the job's 00:20 budget" in again
+    assert done.startswith("a-fast at ") and "7/7 s, step 67" in done, done
+    progress = [(t, line) for t, line in lines if line.startswith("a-fast") and "started" not in line
+                and " done in " not in line]
+    assert all(line.startswith(("a-fast at ", "a-fast: setting up")) for _, line in progress), progress
+    stages = [("setting up" if "setting up" in line else AFTER_TRAINING if AFTER_TRAINING in line else "training", t)
+              for t, line in progress]
+    for (stage, t), (next_stage, next_t) in zip(stages, stages[1:]):
+        # (timed as said: a line may reach the log a little later than the look that chose it, never 0.5 s)
+        assert next_stage != stage or next_t - t >= every_s / 2, f"two lines within {every_s} s: {progress}"
+    assert [s for s, _ in stages].count(AFTER_TRAINING) >= 1 and stages[-1][0] == AFTER_TRAINING
