@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import shutil
 import signal
 import sys
@@ -37,7 +38,7 @@ from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result
 from .live.done import mark_live_done, mark_live_failed, mark_live_queued
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
 from .queue import SEP, Claim, Queue, Unrecorded
-from .watcher import ScanReport, scan_once, watch
+from .watcher import SETTLE_S, ScanReport, scan_once, watch
 from .worker_config import WorkerConfig
 
 
@@ -220,7 +221,7 @@ class Worker:
             self.log(f"queued scan {name} (its manifest is unreadable: the job will say why)")
         if self.config.once:  # looked at once only: say what this run leaves (a watching worker looks again)
             for name in report.pending:
-                self.log(f"not queued: scan {name} is still being recorded, or copied in")
+                self.log(_not_queued(name, report.settling.get(name)))
         for name in report.skipped:
             if name not in self._seen_skipped:
                 self._seen_skipped.add(name)
@@ -625,6 +626,17 @@ def _warning_lines(summary: dict) -> str:
     if counts_note and counts_note not in warnings:  # a report's warnings carry it now
         warnings.insert(0, counts_note)
     return "".join(f"\n  warning: {warning}" for warning in warnings)
+
+
+def _not_queued(name: str, settling_s: float | None) -> str:
+    """What a worker run with --once says of a scan it leaves: one still recorded, or one that looks like a copy
+    still under way, queued only once nothing in it has changed for `watcher.SETTLE_S` (`settling_s` from now)."""
+    if settling_s is None:
+        return (f"not queued: scan {name} is still being recorded (a worker without --once takes it when it ends; "
+                f"with --live, as it is recorded)")
+    return (f"not queued: scan {name} looks like a copy still under way (something in it changed "
+            f"{SETTLE_S - settling_s:.0f} s ago): it is taken once nothing in it has changed for {SETTLE_S:.0f} s, "
+            f"in {math.ceil(settling_s)} s if it stays as it is; run the worker again then, or without --once")
 
 
 def _recording(job_id: str) -> str:

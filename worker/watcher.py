@@ -104,6 +104,9 @@ class ScanReport:
     """Scans still being recorded, queued as live jobs."""
     pending: list[str] = field(default_factory=list)
     """Scans still being recorded, or still being copied in (`SETTLE_S`)."""
+    settling: dict[str, float] = field(default_factory=dict)
+    """Those of `pending` taken for a copy still under way -> seconds until they are queued if nothing in them
+    changes meanwhile."""
     skipped: list[str] = field(default_factory=list)
     """Aborted scans."""
     unreadable: list[str] = field(default_factory=list)
@@ -242,8 +245,10 @@ def scan_once(root: Path, queue: Queue, options: JobOptions, now: float | None =
             report.skipped.append(folder.name)
             continue
         unfinished = state is None or not holds_every_measurement(folder)
-        if unfinished and now - last_change(folder) < SETTLE_S:
+        quiet = now - last_change(folder)
+        if unfinished and quiet < SETTLE_S:
             report.pending.append(folder.name)
+            report.settling[folder.name] = SETTLE_S - quiet
             continue
         if queue.enqueue(job):
             (report.queued if state == "complete" else report.unreadable).append(folder.name)

@@ -140,6 +140,25 @@ def test_a_complete_scan_short_of_measurements_is_queued_once_it_stands_still(tm
     assert scan_once(tmp_path, q, JobOptions(), now=time.time() + SETTLE_S + 1).queued == ["s"]
 
 
+def test_a_worker_run_once_says_when_a_copy_under_way_will_be_taken_and_that_a_recording_is_not(tmp_path, arun):
+    """`worker --once` right after a copy: the scan is left, and the line says why, when it would be taken, and what
+    to run; a scan still recorded is told apart from a copy."""
+    complete_source(tmp_path / "s", 4)
+    shutil.rmtree(sorted((tmp_path / "s").glob("chunk-*"))[-1])  # copied in so far
+    make_scan(tmp_path, "rec", "running")
+    q = Queue.for_root(tmp_path)
+    report = scan_once(tmp_path, q, JobOptions(), now=time.time() + 20)
+    assert report.pending == ["rec", "s"] and list(report.settling) == ["s"]
+    assert SETTLE_S - 25 < report.settling["s"] <= SETTLE_S - 20
+    lines: list[str] = []
+    arun(Worker(WorkerConfig(root=tmp_path, once=True), log=lines.append).run())
+    copy = [line for line in lines if "not queued: scan s " in line]
+    assert len(copy) == 1 and "a copy still under way" in copy[0] and f"for {SETTLE_S:.0f} s" in copy[0], lines
+    assert "run the worker again then, or without --once" in copy[0]
+    recording = [line for line in lines if "not queued: scan rec " in line]
+    assert len(recording) == 1 and "still being recorded" in recording[0] and "copy" not in recording[0], lines
+
+
 ALIKE = ["x+y", "x_y", "mug 1", "mug_1", "tasse-\u00fc", "tasse-\u00f6"]
 """Scan names that differ only in characters outside [A-Za-z0-9._-], pair by pair."""
 
