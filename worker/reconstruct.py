@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -25,7 +26,7 @@ from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 from . import end_of_run
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
                      PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, fit_views_within,
-                     mesh_resolution_within, metric_points_within, training_budget)
+                     mesh_resolution_within, metric_points_within, probe_seconds, training_budget)
 from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
 from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from .carving.views import summed_views
@@ -376,27 +377,23 @@ def _model_converged(last: dict) -> bool | None:
 def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock) -> None:
     """Time a small mesh extraction, the render of two views (the fit check renders up to NOISE_VIEWS views
     NOISE_RENDERS times) and with a ground truth small metrics, on this model and machine, so that the budget keeps
-    back what the end of the run will take here."""
+    back what the end of the run will take here. A short probe is timed twice, the faster kept (probe_seconds)."""
     probe_views = sorted({0, n_views // 2})
-    t0 = clock()
-    model.render_histograms(probe_views)
-    costs.time_fit_check(clock() - t0, len(probe_views), min(NOISE_VIEWS, n_views) * fit_renders(model))
+    seconds, _ = probe_seconds(partial(model.render_histograms, probe_views), clock)
+    costs.time_fit_check(seconds, len(probe_views), min(NOISE_VIEWS, n_views) * fit_renders(model))
     timings = {}
     try:
         for resolution in PROBE_RESOLUTIONS:
-            t0 = clock()
-            mesh = model.extract_mesh(resolution)
-            timings[resolution] = clock() - t0
+            timings[resolution], mesh = probe_seconds(partial(model.extract_mesh, resolution), clock)
     except SpadscanError:  # no surface yet: the default rates stand
         return
     costs.time_mesh(timings)
     if truth is not None:
-        t0 = clock()
         try:
-            truth.metrics(mesh, n_points=PROBE_POINTS)
+            seconds, _ = probe_seconds(partial(truth.metrics, mesh, n_points=PROBE_POINTS), clock)
         except SpadscanError:
             return
-        costs.time_metrics(PROBE_POINTS, clock() - t0)
+        costs.time_metrics(PROBE_POINTS, seconds)
 
 
 def checkpoint_scoring(config: ReconConfig, short: bool = False) -> str:

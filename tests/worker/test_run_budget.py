@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -106,6 +107,52 @@ def test_training_gets_what_the_end_does_not_keep_back_and_at_least_half():
     t[0] = 200.0
     assert training_budget(clock, 20.0) == pytest.approx(0.01), "overspent: one step"
     assert training_budget(RunClock(None, 0.0), 20.0) is None
+
+
+def probed_costs(burst: float, render_s: float = 0.005) -> tuple[EndCosts, Counter]:
+    """The end costs the probes time on a model and ground truth whose stages take given seconds on a fake clock (a
+    5 ms render a view; a mesh 10 ms + 0.1 us a cell; metrics 10 us a point and mesh), the first call of each probe
+    `burst` seconds longer: another process's burst of work at that moment, or a first call's one-time work. And the
+    calls each probe made."""
+    t, calls = [0.0], Counter()
+
+    def spend(probe, seconds: float) -> None:
+        calls[probe] += 1
+        t[0] += seconds + (burst if calls[probe] == 1 else 0.0)
+
+    class Model:
+        def render_histograms(self, views):
+            spend("render", render_s * len(views))
+
+        def extract_mesh(self, resolution):
+            spend(("mesh", resolution), 0.01 + 1e-7 * resolution ** 3)
+            return "mesh"
+
+    class Truth:
+        def metrics(self, mesh, n_points):
+            spend("metrics", 1e-5 * 2 * n_points)
+
+    costs = EndCosts()
+    reconstruct._probe_end_costs(Model(), 128, Truth(), costs, lambda: t[0])
+    return costs, calls
+
+
+def test_a_burst_of_load_during_a_probe_does_not_take_training_time():
+    """A probe takes milliseconds and is extrapolated up to 512 times: one 0.2 s burst during the 64-cell probe had
+    a run keep 21 s back for a mesh that took 1 s, and with the metrics' probe, half its budget."""
+    end = dict(resolution=256, points=300_000, checkpoint=(128, 30_000))
+    steady, _ = probed_costs(burst=0.0)
+    loaded, _ = probed_costs(burst=0.2)
+    assert loaded.end_s(**end) == pytest.approx(steady.end_s(**end))
+    clock = RunClock(120.0, 0.0, lambda: 10.0)  # 10 s of set-up spent
+    assert training_budget(clock, loaded.end_s(**end)) == pytest.approx(training_budget(clock, steady.end_s(**end)))
+    assert training_budget(clock, steady.end_s(**end)) > 80.0  # the end keeps back about 23 s of the 110
+
+
+def test_a_probe_of_a_second_or_more_is_timed_once():
+    """The paper preset's render of two views takes a minute on two cores: not twice."""
+    _, calls = probed_costs(burst=0.0, render_s=15.0)
+    assert calls["render"] == 1 and calls[("mesh", 64)] == 2 and calls["metrics"] == 2
 
 
 def test_the_process_start_is_before_now():
