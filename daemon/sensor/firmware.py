@@ -15,9 +15,9 @@ from spadscan.protocol.errors import DeviceError
 
 BL_DOWNLOAD_INIT = 0x14
 DOWNLOAD_SEED = 0x29
-"""DOWNLOAD_INIT's one payload byte: the seed ams' C host driver (and the Linux and Arduino drivers built on it)
-sends before any SET_ADDR for its encrypted images. ams' Python driver leaves the command out; the bootloader takes
-it either way, so it is always sent."""
+"""DOWNLOAD_INIT's one payload byte: the seed ams' C host driver (its Linux driver, and SparkFun's Arduino library,
+which is built on it) sends before any SET_ADDR for its encrypted images. ams' own Arduino and Python drivers leave
+the command out and start with SET_ADDR; the bootloader takes the same image either way, so it is always sent."""
 BL_SET_ADDR = 0x43
 BL_W_RAM = 0x41
 BL_RAMREMAP = 0x11

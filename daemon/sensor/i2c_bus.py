@@ -10,10 +10,10 @@ the chip the same way):
 2. APP_ID 0x00: 0x80 = bootloader -> download the image; 0x03 = the application already runs (no power loss since
    the last download) -> stop it (0xFF) in case a previous session left it measuring; anything else is an error.
 3. Download: bootloader frames written to 0x08 with `i2c_rdwr` (up to 131 bytes, beyond SMBus's 32): DOWNLOAD_INIT
-   0x14 with seed 0x29 (ams' C host driver sends it for its encrypted images; its Python driver does not, and the
-   bootloader takes either), SET_ADDR, then W_RAM chunks of <= 128 bytes. After each, the bootloader status
-   `[status, size, checksum]` at 0x08 is polled while status >= 0x10 (busy: the register echoes the command it runs,
-   0x43, 0x41, ...) and must then read 0x00.
+   0x14 with seed 0x29 (ams' C host driver sends it for its encrypted images; ams' own Python and Arduino drivers
+   do not, and the bootloader takes either), SET_ADDR, then W_RAM chunks of <= 128 bytes. After each, the bootloader
+   status `[status, size, checksum]` at 0x08 is polled while status >= 0x10 (busy: the register echoes the command
+   it runs, 0x43, 0x41, ...) and must then read 0x00.
    RAMREMAP is not answered (the CPU restarts into the application): wait SETTLE_S, then poll APP_ID until 0x03.
 4. Accuracy mode: ACTIVE_RANGE 0x19 reads 0x6E (short-range high accuracy), 0x6F (long range, the default) or 0x00
    (this firmware has no accuracy modes). On 0x6F CMD_STAT 0x08 <- 0x6E. A firmware that cannot switch is not an
@@ -26,7 +26,10 @@ the chip the same way):
 7. Measure: CMD_STAT <- 0x10 (accepted: 0x01).
 
 Readout polls INT_STATUS: bit 0x08 = a histogram sub-packet waits at 0x20, bit 0x02 = a result (layouts in
-`i2c_records`). Each is read in one `i2c_rdwr` transfer and its bit cleared by writing it back. If no record arrives
+`i2c_records`). Each is read in one `i2c_rdwr` transfer and its bit cleared by writing it back. A record that is not
+what its bit announces is refused (counted in bad_records, the last one's reason in last_bad_record); a histogram
+sub-packet whose size field is not the documented one is taken (ams' drivers do not check it) and counted in
+size_field_mismatches, with one warning in the log. If no record arrives
 for `watchdog_s`, APP_ID and CMD_STAT are checked: a sensor that lost power is back in its bootloader, and an
 application that stopped measuring (CMD_STAT not 0x01, e.g. 0x03 "severe error, stopped") sends nothing more; the
 device treats either as a dropped link (it boots, downloads if needed, configures and measures again). `stop` sends
@@ -50,7 +53,8 @@ from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
 
 from .firmware import FirmwareImage, download_frames, load_firmware
-from .i2c_records import HIST_RECORD, RESULT_RECORD, parse_histogram_record, parse_result_record
+from .i2c_records import (HIST_RECORD, RESULT_RECORD, histogram_refusal, parse_histogram_record, parse_result_record,
+                          result_refusal, size_field_disagreement)
 from .tmf8820 import TMF8820
 from .transport import RANGE_LONG, RANGE_NAMES, RANGE_SHORT, LinkDown, Packet, Transport
 
@@ -81,7 +85,9 @@ class I2CTransport(Transport):
     """smbus2 link to a TMF8820 at `address` on `bus` (a number or a /dev/i2c-N path).
 
     smbus_factory(bus) returns an SMBus-like object (default `smbus2.SMBus`; tests pass the fake). Counters:
-    records, bad_records, boots, downloads, and active_range (the accuracy mode the sensor measures in).
+    records, bad_records (refused; last_bad_record says why the last one was), size_field_mismatches (histogram
+    sub-packets taken although their size field is not the documented one), boots, downloads, and active_range (the
+    accuracy mode the sensor measures in).
     """
 
     def __init__(self, bus: int | str, address: int = 0x41, firmware: Path | None = None, *, period_ms: int = 100,
@@ -104,7 +110,8 @@ class I2CTransport(Transport):
         self._bus = None
         self._image: FirmwareImage | None = None
         self._last_record = 0.0
-        self._counts: dict[str, int | str] = {"records": 0, "bad_records": 0, "boots": 0, "downloads": 0}
+        self._counts: dict[str, int | str] = {"records": 0, "bad_records": 0, "size_field_mismatches": 0, "boots": 0,
+                                              "downloads": 0}
 
     # ---- lifecycle -----------------------------------------------------------------------------------------------
     def open(self) -> None:
@@ -175,16 +182,9 @@ class I2CTransport(Transport):
         while True:
             status = self._read(REG_INT_STATUS)
             if status & (INT_HISTOGRAM | INT_RESULT):
-                bit = INT_HISTOGRAM if status & INT_HISTOGRAM else INT_RESULT
-                buf = self._block_read(REG_PAGE, HIST_RECORD if bit == INT_HISTOGRAM else RESULT_RECORD)
-                t = time.monotonic()
-                self._write(REG_INT_STATUS, bit)
-                pkt = (parse_histogram_record if bit == INT_HISTOGRAM else parse_result_record)(buf, t)
-                self._last_record = t
+                pkt = self._take_record(status & INT_HISTOGRAM != 0)
                 if pkt is not None:
-                    self._counts["records"] += 1
                     return pkt
-                self._counts["bad_records"] += 1
                 continue
             now = time.monotonic()
             if now - self._last_record > self.watchdog_s:
@@ -193,6 +193,36 @@ class I2CTransport(Transport):
             if now >= deadline:
                 return None
             time.sleep(min(self.poll_s, max(0.0, deadline - now)))
+
+    def _take_record(self, histogram: bool) -> Packet | None:
+        """Read the record waiting at 0x20 (a histogram sub-packet or a result) and clear its INT bit; the packet, or
+        None when the record is refused (counted, with the reason)."""
+        bit = INT_HISTOGRAM if histogram else INT_RESULT
+        buf = self._block_read(REG_PAGE, HIST_RECORD if histogram else RESULT_RECORD)
+        t = time.monotonic()
+        self._write(REG_INT_STATUS, bit)
+        self._last_record = t
+        pkt = (parse_histogram_record if histogram else parse_result_record)(buf, t)
+        if pkt is None:
+            self._counts["bad_records"] += 1
+            kind, refusal = ("histogram sub-packet", histogram_refusal) if histogram else ("result", result_refusal)
+            self._counts["last_bad_record"] = f"{kind}: {refusal(buf)}"
+            return None
+        self._counts["records"] += 1
+        if histogram:
+            self._note_size_field(buf)
+        return pkt
+
+    def _note_size_field(self, buf: bytes) -> None:
+        """Count a histogram sub-packet whose size field is not the documented one; warn about the first."""
+        disagreement = size_field_disagreement(buf)
+        if not disagreement:
+            return
+        self._counts["size_field_mismatches"] += 1
+        if self._counts["size_field_mismatches"] == 1:
+            log.warning("%s: histogram %s; the sub-packets are placed by their number all the same (the size field "
+                        "is not needed for that), and such sub-packets are counted in size_field_mismatches",
+                        self.name, disagreement)
 
     def _check_measuring(self) -> None:
         """After watchdog_s without a record: raise LinkDown (so the device boots and starts the sensor again) unless

@@ -8,6 +8,11 @@ Every record starts with a 4-byte header: RID (what the record is), TID (changes
   the sub-packet headers (ams' host-interface protocol: the size written excludes the sub-packet headers): 3840
   (30 x 128) in sub-packet 0, 128 less in each sub-packet after it. Sub-packet n holds byte plane n // 10 of
   channel n % 10 (assembled in `assembly`).
+  A sub-packet is taken on what ams' drivers rely on: RID, sub-packet number (where it goes) and the sub-header's
+  payload length (ams' Linux driver copies that many bytes; every driver reads 4 + 3 + 128 bytes). None of them
+  checks the size field of a later sub-packet (the Linux driver takes the message size from sub-packet 0 only), so a
+  firmware may write it otherwise (the total in every sub-packet, say): such a sub-packet is still taken, and the
+  disagreement is only reported (`size_field_disagreement`).
 - A measurement result (RID 0x10) is 132 bytes: header (size 128), result number, temperature (deg C, a signed byte;
   the references read it as unsigned), number of valid results, reserved, ambient light u32, photon count u32,
   reference photon count u32, system ticks u32, then 36 x {confidence u8, distance mm u16 LE}.
@@ -34,20 +39,53 @@ def signed_byte(value: int) -> int:
     return value - 256 if value > 127 else value
 
 
-def parse_histogram_record(buf: bytes, t: float) -> HistogramPacket | None:
-    """A 135-byte histogram sub-packet, or None when its header or sub-header is not one (`t`: arrival, s)."""
-    if len(buf) != HIST_RECORD or buf[0] != RID_RAW_HISTOGRAM:
-        return None
+def histogram_refusal(buf: bytes) -> str:
+    """Why `buf` is not a raw histogram sub-packet that can be placed in a frame, or '' when it is one.
+
+    The size field is not looked at (see the module docstring): `size_field_disagreement` reports it.
+    """
+    if len(buf) != HIST_RECORD:
+        return f"{len(buf)} bytes, not {HIST_RECORD}"
+    if buf[0] != RID_RAW_HISTOGRAM:
+        return f"RID {buf[0]:#04x}, not {RID_RAW_HISTOGRAM:#04x} (raw 24-bit histogram)"
+    if buf[4] >= N_SUBPACKETS:
+        return f"sub-packet number {buf[4]}, not 0..{N_SUBPACKETS - 1}"
+    if buf[5] != SUBPACKET_BYTES:
+        return f"sub-packet payload length {buf[5]}, not {SUBPACKET_BYTES} (one byte plane of 128 bins)"
+    return ""
+
+
+def size_field_disagreement(buf: bytes) -> str:
+    """How the size field of histogram sub-packet `buf` differs from the documented one, or '' when it agrees."""
     index, size = buf[4], buf[2] | buf[3] << 8
-    if index >= N_SUBPACKETS or size != remaining_size(index) or buf[5] != SUBPACKET_BYTES:
+    if size == remaining_size(index):
+        return ""
+    return f"sub-packet {index} has size field {size}, the protocol documents {remaining_size(index)}"
+
+
+def result_refusal(buf: bytes) -> str:
+    """Why `buf` is not a measurement result, or '' when it is one."""
+    if len(buf) != RESULT_RECORD:
+        return f"{len(buf)} bytes, not {RESULT_RECORD}"
+    if buf[0] != RID_RESULT:
+        return f"RID {buf[0]:#04x}, not {RID_RESULT:#04x} (measurement result)"
+    if buf[2] | buf[3] << 8 != RESULT_RECORD - HEADER_BYTES:
+        return f"size field {buf[2] | buf[3] << 8}, not {RESULT_RECORD - HEADER_BYTES}"
+    if buf[6] > N_RESULTS:
+        return f"{buf[6]} valid results, more than {N_RESULTS}"
+    return ""
+
+
+def parse_histogram_record(buf: bytes, t: float) -> HistogramPacket | None:
+    """A 135-byte histogram sub-packet, or None when `histogram_refusal` refuses it (`t`: arrival, s)."""
+    if histogram_refusal(buf):
         return None
-    return HistogramPacket(index=index, payload=bytes(buf[HEADER_BYTES + SUBHEADER_BYTES:]), t=t)
+    return HistogramPacket(index=buf[4], payload=bytes(buf[HEADER_BYTES + SUBHEADER_BYTES:]), t=t)
 
 
 def parse_result_record(buf: bytes, t: float) -> ResultPacket | None:
-    """A 132-byte measurement result, or None when its header is not one (`t`: arrival, s)."""
-    if (len(buf) != RESULT_RECORD or buf[0] != RID_RESULT or buf[2] | buf[3] << 8 != RESULT_RECORD - HEADER_BYTES
-            or buf[6] > N_RESULTS):
+    """A 132-byte measurement result, or None when `result_refusal` refuses it (`t`: arrival, s)."""
+    if result_refusal(buf):
         return None
     u32 = [int.from_bytes(buf[k:k + 4], "little") for k in (8, 12, 16, 20)]
     body = buf[24:]

@@ -44,8 +44,13 @@ an instant, when the buffer frees. A stop (0xFF) ends the measurement: nothing m
 after it. Faults: `unplug`/`replug`
 (every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back to the bootloader, RAM lost), `crash`
 (the chip resets itself into the bootloader but keeps answering), `stop_measuring` (the application reports a severe
-error and stops, APP_ID still 0x03), `corrupt_next_record`, `app_id` (a wrong chip), `ready_after_polls=None`
-(cpu_ready never comes).
+error and stops, APP_ID still 0x03), `corrupt_next_record` (of one frame or of every frame), `app_id` (a wrong chip),
+`ready_after_polls=None` (cpu_ready never comes).
+
+The histogram size field: ams' protocol documents the message still to come (`size_field="remaining"`, 3840 in
+sub-packet 0, 128 less in each after it), but no ams driver checks it after sub-packet 0, so a firmware that writes
+it otherwise would go unnoticed by them: `size_field="total"` writes the whole message size, 3840, in every
+sub-packet, so that the driver is tested against both.
 """
 
 from __future__ import annotations
@@ -60,15 +65,20 @@ import numpy as np
 ENABLE, INT_STATUS, INT_ENAB, CMD_STAT, ACTIVE_RANGE, APP_ID, APP_STATUS = 0xE0, 0xE1, 0xE2, 0x08, 0x19, 0x00, 0x04
 START_RAM_APP = 2
 """ENABLE power-up select (bits 4:5) value: start the application in RAM."""
+SIZE_FIELDS = ("remaining", "total")
+"""What a histogram sub-packet's size field holds: the message still to come (documented), or the whole message."""
 
 
-def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid) -> list[tuple[int, bytes]]:
-    """The (INT_STATUS bit, bytes) records of one frame: 30 raw histogram sub-packets (when `hist_dump`), a result."""
+def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid,
+                  size_field: str = "remaining") -> list[tuple[int, bytes]]:
+    """The (INT_STATUS bit, bytes) records of one frame: 30 raw histogram sub-packets (when `hist_dump`), a result.
+    `size_field`: one of SIZE_FIELDS."""
     records = []
     if hist_dump:
         for k in range(30):
             plane = ((counts[k % 10] >> (8 * (k // 10))) & 0xFF).astype(np.uint8).tobytes()
-            size = (30 - k) * 128  # the message still to come, sub-packet headers excluded
+            # sub-packet headers excluded either way
+            size = (30 - k) * 128 if size_field == "remaining" else 30 * 128
             records.append((0x08, bytes([0x81, next_tid(), size & 0xFF, size >> 8, k, 128, 0]) + plane))
     head = bytearray([0x10, next_tid(), 128, 0, result["result_no"], result["temperature_c"] & 0xFF, 9, 0])
     head += b"".join(int(v).to_bytes(4, "little") for v in (1000, 200_000, 50_000, result["systick"]))
@@ -84,7 +94,10 @@ class SimTMF8820Bus:
     def __init__(self, *, address: int = 0x41, image: bytes | None = None, seed: int = 0, frame_interval_s=0.0,
                  ready_after_polls: int | None = 2, busy_polls: int = 1, app_id: int | None = None,
                  load_address: int = 0, accuracy_modes: bool = True, startup_s: float = 0.005,
-                 handover_s: float = 0.001, hold_s: float | None = None):
+                 handover_s: float = 0.001, hold_s: float | None = None, size_field: str = "remaining"):
+        if size_field not in SIZE_FIELDS:
+            raise ValueError(f"size_field = {size_field!r} must be one of {SIZE_FIELDS}")
+        self.size_field = size_field
         self.address, self.image, self.load_address = address, image, load_address
         self.frame_interval_s, self.ready_after_polls, self.busy_polls = frame_interval_s, ready_after_polls, busy_polls
         self.handover_s, self.hold_s = handover_s, hold_s
@@ -104,7 +117,7 @@ class SimTMF8820Bus:
         self.closed = False
         self.plugged = True
         self._lock = threading.Lock()
-        self._corrupt: set[int] = set()
+        self._corrupt: dict[int, int | None] = {}  # record index -> frames still to spoil (None: every frame)
         self._power_on_reset()
 
     # ---- test hooks ----------------------------------------------------------------------------------------------
@@ -134,9 +147,11 @@ class SimTMF8820Bus:
             self._stop_records()
             self.cmd_stat, self.app_status = cmd_stat, app_status
 
-    def corrupt_next_record(self, k: int = 7) -> None:
-        """Spoil the header of the k-th histogram record of the next frame made."""
-        self._corrupt.add(k)
+    def corrupt_next_record(self, k: int = 7, frames: int | None = 1) -> None:
+        """Spoil the header (RID) of the k-th histogram record of each of the next `frames` frames made (None: of
+        every frame from now on)."""
+        with self._lock:
+            self._corrupt[k] = frames
 
     def int_pin_low(self) -> bool:
         """The open-drain INT pin: pulled low while a waiting record's INT_STATUS bit is enabled in INT_ENAB."""
@@ -452,13 +467,14 @@ class SimTMF8820Bus:
         self.measured += 1
         self.produced.append((counts, result))
         self.exposures.append((begin, end))
-        records = frame_records(counts, result, bool(self.config["hist_dump"] & 0x01), self._tid)
+        records = frame_records(counts, result, bool(self.config["hist_dump"] & 0x01), self._tid, self.size_field)
         for k in sorted(self._corrupt):
             if k < len(records) - 1:
                 bit, rec = records[k]
                 records[k] = (bit, b"\x7f" + rec[1:])
                 self.spoiled.append(n)
-        self._corrupt.clear()
+        self._corrupt = {k: None if left is None else left - 1 for k, left in self._corrupt.items()
+                         if left is None or left > 1}
         return n, records
 
     def _tid(self) -> int:

@@ -72,6 +72,7 @@ class TMF8820(Sensor):
         self._stats = {"frames_delivered": 0, "frames_overflowed": 0, "silent_timeouts": 0, "link_drops": 0,
                        "reconnects": 0, "reconnect_failures": 0, "restarts": 0, "frames_discarded_at_restart": 0}
         self._last_error = ""
+        self._refused_at_frame = 0  # the transport's bad_records when the last frame was made (or streaming began)
 
     # ---- lifecycle -----------------------------------------------------------------------------------------------
     async def connect(self) -> None:
@@ -100,6 +101,7 @@ class TMF8820(Sensor):
         self._assembler.reset(t_start, self.transport.restarts_measurement, drop_first=False)
         self._frames.clear()
         self._stop.clear()
+        self._refused_at_frame = self._refused()
         self._reader = self._loop.run_in_executor(self._executor, self._read_loop)
 
     async def release(self) -> None:
@@ -180,13 +182,26 @@ class TMF8820(Sensor):
                 pass
 
     def _silent_detail(self, now: float) -> str:
-        """Why frames may have stopped: the error the link reported after the last frame, or ''."""
+        """Why frames may have stopped: the error the link reported after the last frame, and the records the
+        transport refused since then; '' when neither."""
+        parts = []
         cause = self._assembler.silent_cause
-        if cause is None:
-            return ""
-        text, t = cause
-        hint = f"; {self.transport.error_hint}" if self.transport.error_hint else ""
-        return f"the bridge reported '{text}' {now - t:.1f} s ago and no frame since{hint}"
+        if cause is not None:
+            text, t = cause
+            hint = f"; {self.transport.error_hint}" if self.transport.error_hint else ""
+            parts.append(f"the bridge reported '{text}' {now - t:.1f} s ago and no frame since{hint}")
+        refused = self._refused() - self._refused_at_frame
+        if refused > 0:
+            last = self.transport.counters().get("last_bad_record")
+            were = ("record arrived since the last frame but was" if refused == 1
+                    else "records arrived since the last frame but were")
+            parts.append(f"{refused} {were} refused (bad_records)"
+                         + (f"; the last one: {last}" if last else ""))
+        return "; ".join(parts)
+
+    def _refused(self) -> int:
+        """Records the transport read and refused so far (its `bad_records` counter; 0 where it keeps none)."""
+        return int(self.transport.counters().get("bad_records", 0))
 
     def counters(self) -> dict:
         out = {**self._assembler.counters(), **self.transport.counters(), **self._stats}
@@ -212,6 +227,7 @@ class TMF8820(Sensor):
                 if pkt is not None:
                     frame = self._assembler.feed(pkt)
                     if frame is not None:
+                        self._refused_at_frame = self._refused()
                         self._push(frame)
         except BaseException as exc:  # a bug or an unexpected library error: report it through next_frame
             self._failure = exc

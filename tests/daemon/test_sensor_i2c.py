@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from smbus2 import i2c_msg
 
-from spadscan.daemon.devices import LinkLost
+from spadscan.daemon.devices import LinkLost, SensorSilent
 from spadscan.daemon.sensor.assembly import FrameAssembler
 from spadscan.daemon.sensor.firmware import bootloader_frame, download_frames, load_firmware
 from spadscan.daemon.sensor.i2c_bus import I2CSensor, I2CTransport
@@ -133,16 +133,51 @@ def test_a_frame_laid_out_as_the_protocol_says_decodes_bit_for_bit():
     assert frame.temperature_c == -12.0 and frame.extra["systick"] == 123457 and frame.extra["result_no"] == 7
     assert frame.depths_mm == [float(d) for d in distances] and frame.confidences == confidences
 
-    # A size field that is not the rest of the message (131, the record's own length; 3840 in every sub-packet) is
-    # not a sub-packet of this protocol.
-    for size in (131, 3840):
-        spoiled = [(bit, rec[:2] + size.to_bytes(2, "little") + rec[4:]) if k == 5 else (bit, rec)
-                   for k, (bit, rec) in enumerate(records)]
-        transport = I2CTransport(1, smbus_factory=lambda bus: ReplayBus(spoiled))
-        transport.open()
-        packets = [transport.read_packet(0.0) for _ in range(30)]
-        assert transport.counters()["bad_records"] == 1 and [p.index for p in packets[:29]] == [
-            k for k in range(30) if k != 5]
+
+
+def _replay(records, n_reads):
+    """Read `n_reads` records of `records` through an I2CTransport; (packets, counters)."""
+    transport = I2CTransport(1, smbus_factory=lambda bus: ReplayBus(records))
+    transport.open()
+    packets = [transport.read_packet(0.0) for _ in range(n_reads)]
+    return packets, transport.counters()
+
+
+def _spoil(records, ks, at, data: bytes):
+    """`records` with the bytes from `at` of the records numbered in `ks` replaced by `data`."""
+    return [(bit, rec[:at] + data + rec[at + len(data):]) if n in ks else (bit, rec)
+            for n, (bit, rec) in enumerate(records)]
+
+
+@pytest.mark.parametrize("size", [131, 3840, 0])
+def test_a_size_field_other_than_the_documented_one_is_counted_not_refused(size, caplog):
+    """ams' drivers place a sub-packet by its number and never check the size field after sub-packet 0: a firmware
+    that writes another size (the record's own length, the total in every sub-packet) still delivers frames."""
+    rng = np.random.default_rng(12)
+    counts = rng.integers(0, 1 << 24, (10, 128))
+    records = reference_records(counts, 7, 20, 1, list(range(36)), [9] * 36)
+    with caplog.at_level(logging.WARNING, logger="spadscan.daemon"):
+        packets, c = _replay(_spoil(records, (5, 6), 2, size.to_bytes(2, "little")), 31)
+    assert c["bad_records"] == 0 and c["size_field_mismatches"] == 2
+    assert [p.index for p in packets[:30]] == list(range(30))
+    (frame,) = [f for f in map(FrameAssembler().feed, packets) if f is not None]
+    assert np.array_equal(frame.reference, counts[0]) and np.array_equal(frame.hists, counts[1:])
+    warned = [r.getMessage() for r in caplog.records if "size field" in r.getMessage()]
+    assert warned == [f"i2c bus 1 addr 0x41: histogram sub-packet 5 has size field {size}, the protocol documents "
+                      f"{128 * 25}; the sub-packets are placed by their number all the same (the size field is not "
+                      f"needed for that), and such sub-packets are counted in size_field_mismatches"]
+
+
+@pytest.mark.parametrize("at, value, reason", [
+    (0, 0x82, "histogram sub-packet: RID 0x82, not 0x81 (raw 24-bit histogram)"),
+    (4, 30, "histogram sub-packet: sub-packet number 30, not 0..29"),
+    (5, 64, "histogram sub-packet: sub-packet payload length 64, not 128 (one byte plane of 128 bins)"),
+])
+def test_a_sub_packet_that_cannot_be_placed_is_refused_with_its_reason(at, value, reason):
+    records = reference_records(np.zeros((10, 128), int), 0, 20, 1, list(range(36)), [9] * 36)
+    packets, c = _replay(_spoil(records, (5,), at, bytes([value])), 30)
+    assert c["bad_records"] == 1 and c["last_bad_record"] == reason
+    assert [p.index for p in packets[:29]] == [k for k in range(30) if k != 5]
 
 
 def test_the_bootloader_echoes_the_command_it_runs_and_the_driver_waits(arun, image):
@@ -375,6 +410,60 @@ def test_a_hex_image_is_known_by_its_content_whatever_its_name(tmp_path, name):
         load_firmware(path)
     path.write_bytes(bytes(range(256)))  # a raw binary image loads as it is
     assert load_firmware(path).segments == ((0, bytes(range(256))),)
+
+
+@pytest.mark.parametrize("size_field", ["remaining", "total"])
+def test_frames_arrive_whichever_size_field_the_firmware_writes(arun, image, size_field):
+    """The fake writes the documented size (the message still to come) or the total in every sub-packet; the
+    driver delivers the same frames from both, and counts the sub-packets whose size is not the documented one."""
+    path, data = image
+    tids = iter(range(1, 100))
+    result = {"result_no": 0, "temperature_c": 20, "systick": 1, "distances_mm": [0] * 36, "confidences": [0] * 36}
+    laid_out = frame_records(np.zeros((10, 128), int), result, True, lambda: next(tids), size_field)
+    sizes = [rec[2] | rec[3] << 8 for _, rec in laid_out[:30]]
+    assert sizes == ([128 * (30 - k) for k in range(30)] if size_field == "remaining" else [3840] * 30)
+
+    fake = SimTMF8820Bus(image=data, size_field=size_field)
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake)
+    frames = arun(_run(sensor, n_frames=2))
+    assert fake.violations == [] and len(frames) == 2
+    for frame, (counts, _) in zip(frames, fake.produced):
+        assert np.array_equal(frame.hists, counts[1:]) and np.array_equal(frame.reference, counts[0])
+    c = sensor.counters()
+    assert c["bad_records"] == 0 and c["frames_dropped"] == 0
+    if size_field == "remaining":
+        assert c["size_field_mismatches"] == 0
+    else:
+        assert c["size_field_mismatches"] >= 2 * 29  # every sub-packet but the first of each frame
+
+
+def test_no_frame_because_records_are_refused_says_so(arun, image):
+    """A firmware whose records the driver refuses: the sensor answers and records arrive, but no frame is ever
+    made; the timeout names the refused records and why the last one was refused."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+    fake.corrupt_next_record(0, frames=None)  # sub-packet 0 of every frame has another RID
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake)
+
+    async def main():
+        await sensor.connect()
+        try:
+            await sensor.prepare()
+            while sensor.counters()["bad_records"] == 0:
+                await asyncio.sleep(0.01)
+            with pytest.raises(SensorSilent) as info:
+                await sensor.next_frame(0.1)
+            return info.value
+        finally:
+            await sensor.release()
+            await sensor.close()
+
+    exc = arun(main())
+    detail = re.fullmatch(r"(\d+) records? arrived since the last frame but (was|were) refused \(bad_records\); the "
+                          r"last one: histogram sub-packet: RID 0x7f, not 0x81 \(raw 24-bit histogram\)", exc.detail)
+    assert detail and int(detail[1]) >= 1
+    assert str(exc) == f"sensor i2c bus 1 addr 0x41: no complete frame within 0.1 s; {exc.detail}"
+    assert sensor.counters()["frames"] == 0
 
 
 def test_a_corrupt_record_drops_its_frame(arun, image):

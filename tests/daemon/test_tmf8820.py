@@ -231,6 +231,62 @@ def test_device_streams_frames_and_stops_cleanly(arun):
     assert c["frames_delivered"] == 2 and c["silent_timeouts"] == 1 and c["link"] == "up"
 
 
+class RefusingTransport(ScriptedTransport):
+    """A scripted transport whose 'refused' entries are records it read and refused, counted as the I2C one does."""
+
+    def __init__(self):
+        super().__init__()
+        self.refused = 0
+
+    def read_packet(self, timeout_s):
+        with self.lock:
+            refused = bool(self.script) and self.script[0] == "refused"
+            if refused:
+                self.script.pop(0)
+                self.refused += 1
+        return None if refused else super().read_packet(timeout_s)
+
+    def counters(self):
+        return {"bad_records": self.refused, "last_bad_record": "result: RID 0x11, not 0x10 (measurement result)"}
+
+
+def test_silence_names_the_records_refused_since_the_last_frame(arun):
+    tr = RefusingTransport()
+    dev = TMF8820(tr)
+
+    async def until_read(n_refused):
+        while tr.refused < n_refused or tr.script:
+            await asyncio.sleep(0.01)
+
+    async def main():
+        await dev.connect()
+        await dev.prepare()
+        errors = []
+        try:
+            tr.push("refused", "refused", *packets_for(random_counts(15)))
+            await dev.next_frame(5)  # the refusals before this frame are not the reason for a later silence
+            with pytest.raises(SensorSilent) as info:
+                await dev.next_frame(0.1)
+            errors.append(info.value)
+            for n_refused in (3, 5):  # in all: 2 before the frame, then 1 and 2 more
+                tr.push(*["refused"] * (n_refused - tr.refused))
+                await until_read(n_refused)
+                with pytest.raises(SensorSilent) as info:
+                    await dev.next_frame(0.1)
+                errors.append(info.value)
+        finally:
+            await dev.release()
+            await dev.close()
+        return errors
+
+    quiet, one, three = arun(main())
+    assert str(quiet) == "sensor scripted: no complete frame within 0.1 s" and quiet.detail == ""
+    last = "the last one: result: RID 0x11, not 0x10 (measurement result)"
+    assert one.detail == f"1 record arrived since the last frame but was refused (bad_records); {last}"
+    assert three.detail == f"3 records arrived since the last frame but were refused (bad_records); {last}"
+    assert str(three) == f"sensor scripted: no complete frame within 0.1 s; {three.detail}"
+
+
 def test_device_reconnects_and_raises_link_lost_only_after_the_grace(arun):
     tr = ScriptedTransport()
     dev = TMF8820(tr, link_grace_s=0.3, backoff_s=(0.01, 0.05))
