@@ -14,9 +14,13 @@ What ur_rtde does not tell by raising, this class checks:
   actual TCP speed fall below `rest_speed` / `rest_angular_speed`: the receive stream may lag the control stream,
   so "move finished" alone does not mean the reading shows the arm at rest.
 - safety stops: protective (safety_status_bits bit 2), emergency (bit 7) and safeguard (bit 4, safety mode 5 or 12:
-  a light curtain or a door) all raise ArmFault; a control script that is no longer running (a real controller may
-  stop it on a safety stop, the watchdog stops it, so may the pendant) raises ArmFault too, and `clear_fault()`
-  (the runner calls it when the scan resumes) uploads it again (reuploadScript; a fresh connection if that fails);
+  a light curtain or a door) all raise ArmFault; so do a safety violation and a safety fault (safety mode 8 or 9,
+  bit 8 or 9: the safety system itself stopped the arm, and the controller the program), whose advice differs: UR
+  requires the arm's safety system to be restarted from the pendant, not a stop unlocked. A control script that is
+  no longer running (a real controller may stop it on a safety stop, the watchdog stops it, so may the pendant)
+  raises ArmFault too, naming the safety mode, and `clear_fault()` (the runner calls it when the scan resumes)
+  uploads it again (reuploadScript; a fresh connection if that fails) unless a violation or fault still holds the
+  arm (no program runs until the arm is restarted: the next move names it again);
 - the speed slider: a move's time budget counts time at the controller's combined speed scaling, so a slowed arm
   is not taken for a stuck one;
 - the active TCP: spadscan's poses are the tool flange's (sensor pose = TCP pose x [arm] hand_eye), so the
@@ -51,7 +55,8 @@ import numpy as np
 
 from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rotvec_to_matrix, vector_to_pose
-from spadscan.daemon.arm.stops import EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, clear_advice
+from spadscan.daemon.arm.stops import (EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, SAFETY_FAULT, SAFETY_VIOLATION,
+                                       clear_advice)
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError
 
@@ -76,8 +81,12 @@ SAFETY_MODES = {1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery", 
                 12: "automatic mode safeguard stop", 13: "system three position enabling stop"}
 SAFEGUARD_MODES = frozenset({5, 12, 13})
 """Safety modes in which the arm is held by a safeguard (RTDE guide): treated like a protective stop."""
+MODE_VIOLATION, MODE_FAULT = 8, 9
+"""Safety modes in which the safety system itself stopped the arm (RTDE guide): it must be restarted."""
 BIT_SAFEGUARD_STOPPED = 1 << 4
 """safety_status_bits: 'is safeguard stopped' (bit 2 protective, bit 7 emergency: ur_rtde reads those itself)."""
+BIT_VIOLATION, BIT_FAULT = 1 << 8, 1 << 9
+"""safety_status_bits: 'is violation', 'is fault' (RTDE guide)."""
 TCP_OFFSET_TOL_M = 1e-4
 """m: largest translation of the controller's active TCP offset still taken for the bare flange."""
 TCP_OFFSET_TOL_RAD = 1e-3
@@ -110,9 +119,20 @@ class _Reading:
         return bool(self.safety_bits & BIT_SAFEGUARD_STOPPED) or self.safety_mode in SAFEGUARD_MODES
 
     @property
+    def safety_fault(self) -> str | None:
+        """SAFETY_FAULT or SAFETY_VIOLATION when the safety system itself stopped the arm, else None."""
+        if self.safety_mode == MODE_FAULT or self.safety_bits & BIT_FAULT:
+            return SAFETY_FAULT
+        if self.safety_mode == MODE_VIOLATION or self.safety_bits & BIT_VIOLATION:
+            return SAFETY_VIOLATION
+        return None
+
+    @property
     def stop(self) -> str | None:
-        """The safety stop that holds the arm (`stops`), None when none does; an emergency stop first, as it
-        outranks the others when several show."""
+        """The safety stop that holds the arm (`stops`), None when none does; a safety fault or violation first (only
+        a restart of the arm clears it), then an emergency stop, as it outranks the others when several show."""
+        if self.safety_fault is not None:
+            return self.safety_fault
         if self.emergency:
             return EMERGENCY_STOP
         if self.protective:
@@ -209,7 +229,7 @@ class URArm(Arm):
         while reading.stop is not None and time.monotonic() < deadline:
             await asyncio.sleep(self.poll_s)  # a stop cleared just now may still show in the data already sent
             reading = await self._fresh("the control script's state")
-        if not reading.program_running:
+        if not reading.program_running and reading.safety_fault is None:  # no program runs until a restart
             await self._call("reuploadScript", "reupload")
             if not await self._script_started():
                 await self.reconnect()
@@ -489,13 +509,14 @@ class URArm(Arm):
             reading = await self._fresh(f"the safety state after {doing}")
         stop = reading.stop
         if stop is not None:
-            mode = f"safety mode {reading.safety_mode} ({SAFETY_MODES.get(reading.safety_mode, 'unknown')})"
-            raise ArmFault(f"{stop} on {self.name}: {doing} ({mode}; {clear_advice(stop)})")
+            raise ArmFault(f"{stop} on {self.name}: {doing} ({_mode_text(reading.safety_mode)}; "
+                           f"{clear_advice(stop)})")
         if not reading.program_running:
             self._watchdog_set = self._tcp_checked = False  # the program uploaded next is asked afresh
-            raise ArmFault(f"{self.name}: {doing}: the RTDE control script is not running on the controller (the "
-                           f"watchdog stops it when the daemon falls silent for {1 / self.watchdog_hz:g} s; a safety "
-                           f"stop or the pendant can stop it too); resuming the scan uploads it again")
+            raise ArmFault(f"{self.name}: {doing}: the RTDE control script is not running on the controller "
+                           f"({_mode_text(reading.safety_mode)}; the watchdog stops it when the daemon falls silent "
+                           f"for {1 / self.watchdog_hz:g} s, a safety stop or the pendant can stop it too); resuming "
+                           f"the scan uploads it again")
 
     async def _no_stop_behind_refusal(self, doing: str) -> _Reading:
         """ArmFault naming a safety stop that shows within SAFETY_CATCH_UP_S of a query refused or failed: a
@@ -520,7 +541,7 @@ class URArm(Arm):
             return
         reading = await self._no_stop_behind_refusal(f"{what} refused")
         running = await self._call("the program state", "program_running")
-        raise ArmFault(f"{self.name}: controller refused {what} (safety mode {reading.safety_mode}, control "
+        raise ArmFault(f"{self.name}: controller refused {what} ({_mode_text(reading.safety_mode)}, control "
                        f"script {'running' if running else 'not running'})")
 
     # -- the ur_rtde process --------------------------------------------------------------------------------------
@@ -559,6 +580,11 @@ class URArm(Arm):
         link, self._link = self._link, None
         if link is not None:
             await link.stop(grace_s=self.timeout_s)
+
+
+def _mode_text(mode: int) -> str:
+    """A safety mode by number and by name (RTDE guide), for messages."""
+    return f"safety mode {mode} ({SAFETY_MODES.get(mode, 'unknown')})"
 
 
 def _pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:

@@ -29,6 +29,12 @@ emergency (bits 6, 7), each with bit 10 "stopped due to safety" (`safety_mode()`
 and safetystatus name too). The script takes no command while one is active; with
 `stop_script_on_fault` the program also stops, as a real controller may do, and stays stopped after the stop is
 cleared until the script is uploaded again.
+A safety violation (safety_mode 8, status bit 8) or fault (9, bit 9) is the safety system itself stopping the arm
+(UR's manuals: a category 0 stop, power removed): the arm halts where it is, the program always stops, and no
+program starts (a script that arrives is recorded, not run) until `restart_safety` - what restarting the arm from
+the pendant, or the dashboard's `restart safety`, does; unlocking a protective stop does not clear it. A real arm
+comes back from that restart powered off; the model folds the power-on and brake release into the restart (its
+robot mode stays RUNNING). The program stays stopped until the script is uploaded again.
 
 What a real arm adds to the ideal: `pose_noise_m` (the reported actual TCP position scatters by that standard
 deviation, per axis, per package) and `speed_slider` (the pendant's speed slider, target_speed_fraction: motion runs at
@@ -60,11 +66,14 @@ cycle of a CB-series controller (125 Hz; ur_rtde's examples wait for the start b
 RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 ROBOT_MODE_RUNNING = 7
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_SAFEGUARD_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 5, 7
+SAFETY_VIOLATION, SAFETY_FAULT = 8, 9
 SAFETY_MODE_NAMES = {SAFETY_NORMAL: "NORMAL", SAFETY_PROTECTIVE_STOP: "PROTECTIVE_STOP",
-                     SAFETY_SAFEGUARD_STOP: "SAFEGUARD_STOP", SAFETY_ROBOT_EMERGENCY_STOP: "ROBOT_EMERGENCY_STOP"}
+                     SAFETY_SAFEGUARD_STOP: "SAFEGUARD_STOP", SAFETY_ROBOT_EMERGENCY_STOP: "ROBOT_EMERGENCY_STOP",
+                     SAFETY_VIOLATION: "VIOLATION", SAFETY_FAULT: "FAULT"}
 """The safety modes the model takes, by the names the dashboard gives them (the RTDE guide's SafetyMode names)."""
 BIT_NORMAL, BIT_PROTECTIVE_STOPPED, BIT_SAFEGUARD_STOPPED = 1 << 0, 1 << 2, 1 << 4
 BIT_ROBOT_ESTOP, BIT_EMERGENCY_STOPPED, BIT_STOPPED_DUE_TO_SAFETY = 1 << 6, 1 << 7, 1 << 10
+BIT_VIOLATION, BIT_FAULT = 1 << 8, 1 << 9
 STATUS_POWER_ON, STATUS_PROGRAM_RUNNING = 1 << 0, 1 << 1
 JOINT_RUNNING_MODE = 253
 
@@ -127,6 +136,8 @@ class URControllerModel:
         self.protective_stop = False
         self.safeguard_stop = False
         self.emergency_stop = False
+        self.safety_fault: int | None = None
+        """SAFETY_VIOLATION or SAFETY_FAULT while the safety system holds the arm (until `restart_safety`)."""
         self._busy = False  # a synchronous command is executing (the script is blocked in it)
         self._executing = False  # the script took the current command and waits for the register to clear
         self._async_writes = 0
@@ -212,6 +223,8 @@ class URControllerModel:
             t = self.now()
             self._halt(t)
             self.scripts.append(text)
+            if self.safety_fault is not None:
+                return  # no program starts until the arm is restarted
             self.runtime_state = RUNTIME_PLAYING
             self.watchdog_period_s = None  # a new program has set no watchdog yet
             self._busy = self._executing = False
@@ -230,7 +243,7 @@ class URControllerModel:
             self._step(t)
 
     def _safety_stopped(self) -> bool:
-        return self.protective_stop or self.safeguard_stop or self.emergency_stop
+        return self.protective_stop or self.safeguard_stop or self.emergency_stop or self.safety_fault is not None
 
     def _step(self, t: float) -> None:
         """One pass of the script's main loop (it is paused while the robot is stopped for safety)."""
@@ -349,6 +362,26 @@ class URControllerModel:
         """Robot emergency stop: like a protective stop, reported as safety mode 7."""
         self._set_safety(emergency=on)
 
+    def set_safety_fault(self, mode: int) -> None:
+        """The safety system stops the arm: SAFETY_VIOLATION (a safety limit was not kept) or SAFETY_FAULT (an error
+        in the safety system). The arm halts, the program stops, and both stay so until `restart_safety`."""
+        if mode not in (SAFETY_VIOLATION, SAFETY_FAULT):
+            raise ValueError(f"a safety fault is safety mode {SAFETY_VIOLATION} or {SAFETY_FAULT}, got {mode}")
+        with self._lock:
+            t = self.now()
+            self._advance(t)
+            self.safety_fault = mode
+            self._halt(t, "ended")
+            self._busy = self._executing = False
+            self.runtime_state = RUNTIME_STOPPED
+            self.watchdog_period_s = None
+
+    def restart_safety(self) -> None:
+        """The arm restarted from the pendant (or the dashboard's `restart safety`): a violation or fault is cleared,
+        and the program stays stopped until the script is uploaded again. Without a violation or fault: nothing."""
+        with self._lock:
+            self.safety_fault = None
+
     def _set_safety(self, protective: bool | None = None, safeguard: bool | None = None,
                     emergency: bool | None = None) -> None:
         with self._lock:
@@ -383,8 +416,10 @@ class URControllerModel:
             return [self._value(n, snapshot) for n in names]
 
     def safety_mode(self) -> int:
-        """The safety mode now (RTDE safety_mode): the emergency stop outranks the protective stop, which outranks
-        the safeguard stop."""
+        """The safety mode now (RTDE safety_mode): a violation or fault outranks the emergency stop, which outranks
+        the protective stop, which outranks the safeguard stop."""
+        if self.safety_fault is not None:
+            return self.safety_fault
         if self.emergency_stop:
             return SAFETY_ROBOT_EMERGENCY_STOP
         if self.protective_stop:
@@ -396,7 +431,7 @@ class URControllerModel:
         mode = self.safety_mode()
         bits = {SAFETY_ROBOT_EMERGENCY_STOP: BIT_ROBOT_ESTOP | BIT_EMERGENCY_STOPPED,
                 SAFETY_PROTECTIVE_STOP: BIT_PROTECTIVE_STOPPED, SAFETY_SAFEGUARD_STOP: BIT_SAFEGUARD_STOPPED,
-                SAFETY_NORMAL: BIT_NORMAL}[mode]
+                SAFETY_VIOLATION: BIT_VIOLATION, SAFETY_FAULT: BIT_FAULT, SAFETY_NORMAL: BIT_NORMAL}[mode]
         if mode != SAFETY_NORMAL:
             bits |= BIT_STOPPED_DUE_TO_SAFETY
         running = self.runtime_state == RUNTIME_PLAYING

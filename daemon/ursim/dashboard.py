@@ -43,6 +43,9 @@ def reply(model: URControllerModel, line: str, version: str, serial: str) -> str
     if low == "unlock protective stop":
         model.set_protective_stop(False)
         return "Protective stop releasing"
+    if low == "restart safety":  # after a safety violation or fault
+        model.restart_safety()
+        return "Restarting safety"
     if low == "close safety popup":
         return "closing safety popup"
     if low == "close popup":

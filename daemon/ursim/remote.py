@@ -19,7 +19,7 @@ from spadscan.daemon.ursim.sim_controller import SimURController
 from spadscan.protocol.errors import DeviceError, SpadscanError
 
 _CALLS = ("protective_stop", "clear_protective_stop", "safeguard_stop", "clear_safeguard_stop", "emergency_stop",
-          "clear_emergency_stop", "drop_link", "restore_link", "configure")
+          "clear_emergency_stop", "safety_fault", "restart_safety", "drop_link", "restore_link", "configure")
 
 
 def handle(controller: SimURController, request: dict) -> object:
@@ -39,7 +39,7 @@ def handle(controller: SimURController, request: dict) -> object:
         m = controller.model
         return {"runtime_state": m.runtime_state, "watchdog_period_s": m.watchdog_period_s,
                 "watchdog_stops": m.watchdog_stops, "errors": list(m.errors), "queries": [list(q) for q in m.queries],
-                "tcp_offset_reads": m.tcp_offset_reads,
+                "tcp_offset_reads": m.tcp_offset_reads, "safety_mode": m.read(["safety_mode"])[0],
                 "moving": m.read(["output_int_register_2"])[0] & 32768 != 0,
                 "script_state": m.read(["output_int_register_0"])[0]}
     if op == "dashboard_log":
@@ -112,8 +112,8 @@ class SimURProcess:
 
     def state(self) -> dict:
         """runtime_state (1 stopped, 2 playing), watchdog_period_s, watchdog_stops, errors, queries (name, pose,
-        answer), tcp_offset_reads (get_tcp_offset commands answered), whether an asynchronous move is running,
-        script_state (1 ready for a command, 2 done with one)."""
+        answer), tcp_offset_reads (get_tcp_offset commands answered), safety_mode (RTDE's), whether an asynchronous
+        move is running, script_state (1 ready for a command, 2 done with one)."""
         return self._request("state")
 
     def emergency_stop(self) -> None:
@@ -121,6 +121,13 @@ class SimURProcess:
 
     def clear_emergency_stop(self) -> None:
         self._request("clear_emergency_stop")
+
+    def safety_fault(self, kind: str = "fault") -> None:
+        """See SimURController.safety_fault: "violation" or "fault"."""
+        self._request("safety_fault", kind=kind)
+
+    def restart_safety(self) -> None:
+        self._request("restart_safety")
 
     def drop_link(self, mode: str = "silent") -> None:
         """See SimURController.drop_link: "close", "silent" or "freeze"."""

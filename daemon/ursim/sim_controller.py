@@ -3,6 +3,7 @@
     with SimURController("127.0.0.9", time_scale=0.01) as ur:
         ... RTDEControlInterface("127.0.0.9") ...
         ur.protective_stop(); ur.clear_protective_stop()     # also safeguard_stop, emergency_stop
+        ur.safety_fault("fault"); ur.restart_safety()         # or "violation": cleared only by a restart
         ur.drop_link("silent"); ur.restore_link()
         ur.configure(speed_slider=0.5, pose_noise_m=2e-4, stop_script_on_fault=True, safety_floor_z=0.05,
                      tcp_offset=(0, 0, 0.1, 0, 0, 0))
@@ -21,7 +22,7 @@ import math
 import threading
 from collections.abc import Callable
 
-from spadscan.daemon.ursim.controller import MoveRecord, URControllerModel
+from spadscan.daemon.ursim.controller import SAFETY_FAULT, SAFETY_VIOLATION, MoveRecord, URControllerModel
 from spadscan.daemon.ursim.dashboard import serve_dashboard
 from spadscan.daemon.ursim.rtde_server import RTDEHub, RTDESession
 from spadscan.daemon.ursim.script_port import serve_script_port
@@ -151,6 +152,18 @@ class SimURController:
 
     def clear_emergency_stop(self) -> None:
         self.model.set_emergency_stop(False)
+
+    def safety_fault(self, kind: str = "fault") -> None:
+        """The safety system stops the arm and the program: "violation" (safety mode 8, safety_status_bits bit 8) or
+        "fault" (safety mode 9, bit 9); only `restart_safety` clears it."""
+        modes = {"violation": SAFETY_VIOLATION, "fault": SAFETY_FAULT}
+        if kind not in modes:
+            raise DeviceError(f"safety fault kind must be one of {sorted(modes)}, got {kind!r}")
+        self.model.set_safety_fault(modes[kind])
+
+    def restart_safety(self) -> None:
+        """Restart the arm as from the pendant after a violation or fault; the script must be uploaded again."""
+        self.model.restart_safety()
 
     def configure(self, **settings) -> None:
         """Change what makes the controller less than ideal (thread-safe): speed_slider (0 < f <= 1), pose_noise_m

@@ -9,6 +9,7 @@ import itertools
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -313,6 +314,65 @@ def test_emergency_stop_is_an_arm_fault(ur, arun):
 
     arun(run())
     assert ur.moves == []
+
+
+@pytest.mark.parametrize("kind, mode", [("violation", 8), ("fault", 9)])
+def test_a_safety_violation_or_fault_names_its_mode_and_says_to_restart_the_arm(ur, arun, kind, mode):
+    """Safety mode 8 or 9 (RTDE guide): the safety system stopped the arm, and the controller the program. The move
+    in progress is reported at once by that mode, with UR's remedy (restart the arm from the pendant), not as a
+    control script the watchdog stopped that resuming uploads again. A resume before the restart uploads nothing
+    (no program runs until then) and the next move says the same; once the arm is restarted, moves work again."""
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            move = asyncio.ensure_future(arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.005, 1.0))  # 4 s scaled
+            await wait_for_moves(ur, 1)
+            await until(lambda: ur.state()["moving"], "the move to run")
+            ur.safety_fault(kind)
+            with pytest.raises(ArmFault) as aborted:
+                await asyncio.wait_for(move, 30)
+            held, scripts = await arm.state(), ur.scripts()
+            await arm.clear_fault()  # the operator resumed without restarting the arm
+            with pytest.raises(ArmFault) as again:
+                await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
+            uploaded_while_held = ur.scripts() - scripts
+            ur.restart_safety()
+            await cleared(arm)
+            await arm.clear_fault()
+            await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
+            return aborted.value, again.value, held, uploaded_while_held, ur.scripts() - scripts, ur.state()
+
+    aborted, again, held, uploaded_while_held, uploaded, after = arun(run())
+    restart = (r"restart the arm from the pendant \(its safety system must be restarted after a " + kind
+               + r"; the arm comes back powered off: power it on and release the brakes\), then resume\)$")
+    assert re.match(rf"safety {kind} on UR arm .*: moveL to .* aborted \(safety mode {mode} \({kind}\); .*{restart}",
+                    str(aborted)), str(aborted)
+    assert re.match(rf"safety {kind} on UR arm .*: moveL refused \(safety mode {mode} \({kind}\); .*{restart}",
+                    str(again)), str(again)
+    assert "control script is not running" not in str(aborted) + str(again)
+    assert held.safety_stop == f"safety {kind}" and held.protective_stop
+    assert uploaded_while_held == 0 and uploaded == 1
+    assert after["safety_mode"] == 1 and after["runtime_state"] == 2 and after["watchdog_period_s"] == 1.0
+    assert [m.name for m in ur.moves] == ["moveL", "moveL"]
+
+
+class StoppedScript(URArm):
+    """Its control script is not running, in safety mode `mode`, and no safety stop shows."""
+
+    def __init__(self, mode: int):
+        super().__init__("127.0.0.1")
+        self.mode = mode
+
+    async def _fresh(self, what):
+        return reading(program_running=False, safety_mode=self.mode)
+
+
+def test_a_control_script_that_is_not_running_is_reported_with_the_safety_mode_by_name(arun):
+    recovering = StoppedScript(4)
+    with pytest.raises(ArmFault, match=r"control script is not running on the controller \(safety mode 4 "
+                                       r"\(recovery\); the watchdog stops it"):
+        arun(recovering._raise_if_stopped(reading(program_running=False, safety_mode=4), "moveL aborted"))
+    for bits, name in ((1 << 8, "safety violation"), (1 << 9, "safety fault")):  # the bit alone names it too
+        assert reading(safety_bits=bits).stop == name
 
 
 def test_cancelled_move_stops_the_arm(ur, arun):

@@ -493,6 +493,35 @@ def test_model_the_dashboard_names_the_safety_mode_rtde_reports(kind):
     assert reply(model, "safetymode", "URSoftware 5.15", "1") == f"Safetymode: {name}"
 
 
+@pytest.mark.parametrize("mode, name", [(8, "VIOLATION"), (9, "FAULT")])
+def test_model_a_safety_violation_or_fault_holds_the_arm_and_the_program_until_the_arm_is_restarted(mode, name):
+    """RTDE guide: safety mode 8 violation (safety_status_bits bit 8), 9 fault (bit 9), with bit 10. The arm halts
+    and the program stops whatever stop_script_on_fault says; unlocking a protective stop does not clear it and no
+    program starts, only a restart of the arm (the dashboard's `restart safety`) does; the program then stays stopped
+    until the script is uploaded again."""
+    from spadscan.daemon.ursim.dashboard import reply
+
+    c = ClockedModel()
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)  # a 2 s move
+    c.t = 0.5
+    c.model.set_safety_fault(mode)
+    halted = c.read("actual_TCP_pose")[0]
+    c.t = 1.5
+    assert c.read("actual_TCP_pose", "safety_mode", "safety_status", "safety_status_bits", "runtime_state") == [
+        halted, mode, mode, (1 << mode) | (1 << 10), 1]
+    assert 0.3 < halted[0] < 0.5
+    assert reply(c.model, "safetymode", "URSoftware 5.15", "1") == f"Safetymode: {name}"
+    assert reply(c.model, "unlock protective stop", "URSoftware 5.15", "1") == "Protective stop releasing"
+    c.model.start_script("def rtde_control():\nend")  # ur_rtde's reupload: recorded, not run
+    assert c.read("safety_mode", "runtime_state") == [mode, 1] and len(c.model.scripts) == 2
+    assert reply(c.model, "restart safety", "URSoftware 5.15", "1") == "Restarting safety"
+    assert c.read("safety_mode", "safety_status_bits", "runtime_state") == [1, 1, 1]
+    c.model.start_script("def rtde_control():\nend")
+    assert c.read("runtime_state") == [2]
+    with pytest.raises(ValueError, match="safety mode 8 or 9"):
+        c.model.set_safety_fault(3)
+
+
 def test_model_answers_safety_limit_and_inverse_kinematics_queries_from_its_reach():
     c = ClockedModel()
     c.model.safety_floor_z = 0.1
