@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -36,6 +38,33 @@ def nearest_samples(queries: np.ndarray, data: np.ndarray, *,
     return SampleIndex(data, spacing_m=spacing_m).query(queries)
 
 
+@dataclass(frozen=True)
+class Patches:
+    """Samples grouped into patches of about LEAF (`_median_split`), with the bounds and the KD-tree of centroids
+    that every far query searches them by. Built once per set of samples: rebuilt per query chunk they made metrics
+    measured in chunks until a deadline half again as slow as in one shot."""
+
+    index: np.ndarray
+    """(L, K) indices into the samples."""
+    points: np.ndarray
+    """(L, K, 3) the samples (metres)."""
+    bounds: dict
+    """`_patch_bounds` of `points`."""
+    centroids: cKDTree
+    """KD-tree of bounds["centroid"]."""
+    radius_m: float
+    """The largest distance from a patch's centroid to one of its samples."""
+
+
+def split_patches(data: np.ndarray) -> Patches:
+    """`Patches` of samples `data` (n, 3) metres."""
+    index = _median_split(data, LEAF)
+    points = data[index]
+    bounds = _patch_bounds(points)
+    radius_m = float(np.linalg.norm(points - bounds["centroid"][:, None], axis=2).max())
+    return Patches(index, points, bounds, cKDTree(bounds["centroid"]), radius_m)
+
+
 class SampleIndex:
     """`nearest_samples` over one set of samples, its KD-tree and patches built once for queries that come in
     parts (metrics answered a chunk at a time until a deadline): at 300,000 samples the patches take 0.6 s."""
@@ -61,14 +90,14 @@ class SampleIndex:
         dist, idx = np.full(len(queries), np.inf), np.zeros(len(queries), np.int64)
         # Patches pay off only for enough queries (a mesh's few vertices go to the tree alone).
         patches = self._split() if len(queries) >= 4 * LEAF and len(data) >= 4 * LEAF else None
-        maybe_near = _maybe_near(queries, data, self.near, patches)
+        maybe_near = _maybe_near(queries, self.near, patches)
         if maybe_near.any():
             d, i = self._kd_tree().query(queries[maybe_near], distance_upper_bound=self.near if self.near > 0 else np.inf,
                                     workers=-1)
             dist[maybe_near], idx[maybe_near] = d, np.minimum(i, len(data) - 1)
         far = ~np.isfinite(dist)
         if far.any():
-            dist[far], idx[far] = _far_nearest(queries[far], data, patches)
+            dist[far], idx[far] = _far_nearest(queries[far], self._split(), self._kd_tree)
         return dist, idx
 
     def _kd_tree(self) -> cKDTree:
@@ -76,9 +105,9 @@ class SampleIndex:
             self._tree = kd_tree(self.data)
         return self._tree
 
-    def _split(self) -> np.ndarray:
+    def _split(self) -> Patches:
         if self._patches is None:
-            self._patches = _median_split(self.data, LEAF)
+            self._patches = split_patches(self.data)
         return self._patches
 
 
@@ -92,20 +121,19 @@ def kd_tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points, balanced_tree=False, compact_nodes=False)
 
 
-def _maybe_near(queries: np.ndarray, data: np.ndarray, near: float, patches: np.ndarray | None) -> np.ndarray:
+def _maybe_near(queries: np.ndarray, near: float, patches: Patches | None) -> np.ndarray:
     """(m,) bool: False for queries certainly farther than `near` from every sample. Even a bounded KD-tree search
     is slow for those (its upper boxes span the hollow the query sits in), so they skip it. Judged per block of
-    queries against patch centroids: |q - p| >= |c_block - c_patch| - r_block - r_patch. `patches`: the data's
-    (`_median_split`), None for sets too small to split."""
+    queries against patch centroids: |q - p| >= |c_block - c_patch| - r_block - r_patch. `patches`: the data's,
+    None for sets too small to split."""
     out = np.ones(len(queries), bool)
     if patches is None:
         return out
     blocks = _median_split(queries, LEAF)
-    pc, bc = data[patches].mean(1), queries[blocks].mean(1)
-    r_patch = float(np.linalg.norm(data[patches] - pc[:, None], axis=2).max())
+    bc = queries[blocks].mean(1)
     r_block = np.linalg.norm(queries[blocks] - bc[:, None], axis=2).max(1)
-    reach = near + r_patch + r_block
-    d, _ = cKDTree(pc).query(bc, distance_upper_bound=float(reach.max()) * (1 + _TOL), workers=-1)
+    reach = near + patches.radius_m + r_block
+    d, _ = patches.centroids.query(bc, distance_upper_bound=float(reach.max()) * (1 + _TOL), workers=-1)
     out[blocks[d > reach * (1 + _TOL)].reshape(-1)] = False
     return out
 
@@ -142,30 +170,28 @@ def _patch_bounds(pts: np.ndarray) -> dict:
             "omin": off.min(1), "omax": off.max(1), "radius": radius}
 
 
-def _far_nearest(queries: np.ndarray, data: np.ndarray,
-                 patches: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Exact nearest samples for queries far from `data`.
+def _far_nearest(queries: np.ndarray, patches: Patches,
+                 data_tree: Callable[[], cKDTree]) -> tuple[np.ndarray, np.ndarray]:
+    """Exact nearest samples for queries far from the samples split into `patches`; `data_tree()` gives the
+    samples' KD-tree (`kd_tree`), asked for only where patches are crowded.
 
     Queries are grouped into small blocks and samples into patches. Per block, the patch whose centroid is nearest
     the block's centre gives every query an upper bound (its nearest sample there); the patches whose centroid lies
     within that bound plus both radii are then checked against lower bounds (boxes, and the slab along the patch's
     normal), and only those within a query's own bound are searched."""
-    patches = _median_split(data, LEAF) if patches is None else patches
-    pp = data[patches]
-    pb = _patch_bounds(pp)
+    pp, pb, tree = patches.points, patches.bounds, patches.centroids
     m = len(queries)
     best_d, best_i = np.full(m, np.inf), np.zeros(m, np.int64)
     blocks = _median_split(queries, LEAF)
     bq = queries[blocks]  # (B, Kq, 3)
     bc = bq.mean(1)
-    tree = cKDTree(pb["centroid"])
     _, first = tree.query(bc, eps=0.5, workers=-1)  # any patch gives a valid bound; a near one a tight bound
     for s in range(0, len(blocks), 256):
         diff = bq[s:s + 256, :, None] - pp[first[s:s + 256]][:, None]  # (b, Kq, K, 3)
         dd = np.sqrt(np.einsum("bqki,bqki->bqk", diff, diff))
         k = dd.argmin(2)
         best_d[blocks[s:s + 256]] = np.take_along_axis(dd, k[..., None], 2)[..., 0]
-        best_i[blocks[s:s + 256]] = patches[first[s:s + 256, None], k]
+        best_i[blocks[s:s + 256]] = patches.index[first[s:s + 256, None], k]
     bound = best_d[blocks].max(1) * (1 + _TOL)
     # A block that may be nearest to most patches (samples far smaller than their distance to the queries: a
     # fragment of a mesh far from its ground truth) would pair with all of them, quadratic in the samples: those
@@ -175,18 +201,18 @@ def _far_nearest(queries: np.ndarray, data: np.ndarray,
     crowded = reach > CROWDED_PATCHES
     if crowded.any():
         q = blocks[crowded].ravel()
-        best_d[q], best_i[q] = kd_tree(data).query(queries[q], workers=-1)
+        best_d[q], best_i[q] = data_tree().query(queries[q], workers=-1)
     # Blocks a chunk at a time: a far query keeps every patch within a patch's size of its nearest sample as a
     # candidate, tens of millions of pairs in all at 300,000 samples (GBs if made at once).
     rest = np.flatnonzero(~crowded)
     for s in range(0, len(rest), BLOCKS_PER_CHUNK):
-        _search_blocks(rest[s:s + BLOCKS_PER_CHUNK], queries, blocks, bound, first, tree, pp, patches, pb, best_d,
-                       best_i)
+        _search_blocks(rest[s:s + BLOCKS_PER_CHUNK], queries, blocks, bound, first, patches, best_d, best_i)
     return best_d, best_i
 
 
-def _search_blocks(sel, queries, blocks, bound, first, tree, pp, patches, pb, best_d, best_i) -> None:
+def _search_blocks(sel, queries, blocks, bound, first, patches: Patches, best_d, best_i) -> None:
     """Search the patches that may hold a nearer sample for the queries of blocks `sel` (see `_far_nearest`)."""
+    tree, pp, pb = patches.centroids, patches.points, patches.bounds
     bq = queries[blocks[sel]]  # (b, Kq, 3)
     blo, bhi, bc = bq.min(1), bq.max(1), bq.mean(1)
     r_block = np.sqrt(np.einsum("bki,bki->bk", bq - bc[:, None], bq - bc[:, None]).max(1))
@@ -213,9 +239,9 @@ def _search_blocks(sel, queries, blocks, bound, first, tree, pp, patches, pb, be
     order = np.lexsort((lb, q))
     q, p, lb = q[order], p[order], lb[order]
     head = np.r_[True, q[1:] != q[:-1]] if len(q) else np.zeros(0, bool)
-    _search_pairs(queries, pp, patches, q[head], p[head], best_d, best_i)
+    _search_pairs(queries, pp, patches.index, q[head], p[head], best_d, best_i)
     rest = ~head & (lb <= best_d[q] * (1 + _TOL))
-    _search_pairs(queries, pp, patches, q[rest], p[rest], best_d, best_i)
+    _search_pairs(queries, pp, patches.index, q[rest], p[rest], best_d, best_i)
 
 
 def _box_gap(alo, ahi, blo, bhi) -> np.ndarray:
@@ -272,4 +298,4 @@ def _search_pairs(queries, pp, patches, qidx, pidx, best_d, best_i) -> None:
     best_d[uq[better]], best_i[uq[better]] = d[better], i[better]
 
 
-__all__ = ["LEAF", "NEAR_SPACINGS", "SampleIndex", "nearest_samples"]
+__all__ = ["LEAF", "NEAR_SPACINGS", "Patches", "SampleIndex", "nearest_samples", "split_patches"]

@@ -269,14 +269,14 @@ def test_nearest_samples_are_exactly_the_kd_trees(case):
 
 
 def test_far_queries_skip_the_kd_tree():
-    from spadscan.worker.nearest import LEAF, _maybe_near, _median_split
+    from spadscan.worker.nearest import _maybe_near, split_patches
 
     rng = np.random.default_rng(2)
     big, _ = sample_surface(ball(0.05), 20_000, rng)
     small, _ = sample_surface(ball(0.02), 20_000, rng)
-    patches = _median_split(big, LEAF)
-    assert not _maybe_near(small, big, 0.005, patches).any(), "3 cm from every sample: none is near"
-    assert _maybe_near(big, big, 0.005, patches).all()
+    patches = split_patches(big)
+    assert not _maybe_near(small, 0.005, patches).any(), "3 cm from every sample: none is near"
+    assert _maybe_near(big, 0.005, patches).all()
 
 
 def test_a_small_sphere_inside_a_large_one_is_its_gap_away():
@@ -285,17 +285,53 @@ def test_a_small_sphere_inside_a_large_one_is_its_gap_away():
     assert m.fscore_5mm == 0.0
 
 
-def test_a_sample_index_answers_queries_in_parts_as_at_once():
+def fragment():
+    """A 1 mm triangle 25 cm from `ball()`s: its samples are far smaller than their distance to a ball's, so every
+    patch of them crowds every query block."""
+    return trimesh.Trimesh([[0.3, 0, 0.1], [0.301, 0, 0.1], [0.3, 0.001, 0.1]], [[0, 1, 2]], process=False)
+
+
+@pytest.mark.parametrize("case", ["small sphere inside a large one", "sphere against a far fragment"])
+def test_a_sample_index_answers_queries_in_parts_as_at_once(case):
+    """The same distances and samples whether queries come at once or in parts (metrics measured in chunks until a
+    deadline): the tree's, the patch search's and, for the fragment, the crowded blocks' answers."""
     from spadscan.worker.nearest import SampleIndex, nearest_samples
 
     rng = np.random.default_rng(3)
-    q, _ = sample_surface(ball(0.02), 12_000, rng)  # far from the data: the patch search as well as the tree
-    d, _ = sample_surface(ball(0.05), 9_000, rng)
+    query_mesh, data_mesh, n_data = {"small sphere inside a large one": (ball(0.02), ball(0.05), 9_000),
+                                     "sphere against a far fragment": (ball(0.05), fragment(), 20_000)}[case]
+    q, _ = sample_surface(query_mesh, 12_000, rng)  # far from the data: the patch search as well as the tree
+    d, _ = sample_surface(data_mesh, n_data, rng)
     whole = nearest_samples(q, d, spacing_m=0.001)
     index = SampleIndex(d, spacing_m=0.001)
     parts = [index.query(q[a:a + 5_000]) for a in range(0, len(q), 5_000)]
     for k in range(2):
         np.testing.assert_array_equal(np.concatenate([p[k] for p in parts]), whole[k])
+
+
+def test_a_sample_index_queried_in_parts_builds_its_trees_and_patches_once(monkeypatch):
+    """Queries in parts (metrics measured in chunks) search the same KD-trees and patch bounds: built once, not once
+    a part (that made chunked metrics half again as slow as in one shot). Far queries into a fragment use them all:
+    the patch search, the centroids' tree and, for the crowded blocks, the samples' tree."""
+    import spadscan.worker.nearest as nearest
+
+    built = {"trees": 0, "bounds": 0}
+
+    def counted(name, make):
+        def counting(*args, **kwargs):
+            built[name] += 1
+            return make(*args, **kwargs)
+        return counting
+
+    monkeypatch.setattr(nearest, "cKDTree", counted("trees", nearest.cKDTree))
+    monkeypatch.setattr(nearest, "_patch_bounds", counted("bounds", nearest._patch_bounds))
+    rng = np.random.default_rng(5)
+    q, _ = sample_surface(ball(0.05), 20_000, rng)
+    d, _ = sample_surface(fragment(), 20_000, rng)
+    index = nearest.SampleIndex(d)
+    for a in range(0, len(q), 5_000):
+        index.query(q[a:a + 5_000])
+    assert built == {"trees": 2, "bounds": 1}, "the samples' tree and the centroids' tree, the bounds once"
 
 
 def test_a_small_fragment_far_from_the_truth_gets_exact_distances_from_both_sides():
@@ -307,8 +343,7 @@ def test_a_small_fragment_far_from_the_truth_gets_exact_distances_from_both_side
     from spadscan.worker.nearest import CROWDED_PATCHES, LEAF, nearest_samples
 
     rng = np.random.default_rng(4)
-    fragment = trimesh.Trimesh([[0.3, 0, 0.1], [0.301, 0, 0.1], [0.3, 0.001, 0.1]], [[0, 1, 2]], process=False)
-    f, _ = sample_surface(fragment, 40_000, rng)
+    f, _ = sample_surface(fragment(), 40_000, rng)
     g, _ = sample_surface(ball(0.05), 40_000, rng)
     assert len(f) // LEAF > CROWDED_PATCHES, "enough patches for a query block to be crowded by them"
     for q, d in ((g, f), (f, g)):
@@ -340,12 +375,16 @@ def timed_index(clock: StepClock):
     return Timed
 
 
-def test_metrics_with_a_far_deadline_are_the_metrics_without_one(monkeypatch):
+@pytest.mark.parametrize("case", ["overlapping spheres", "a fragment far from a sphere"])
+def test_metrics_with_a_far_deadline_are_the_metrics_without_one(monkeypatch, case):
+    """Every figure identical, measured in chunks or at once; the fragment's queries take the patch search and the
+    crowded blocks' KD-tree."""
     import spadscan.worker.metrics as metrics
 
     clock = StepClock(1e-6)
     monkeypatch.setattr(metrics, "SampleIndex", timed_index(clock))
-    a, b = ball(0.05), ball(0.05, (0.02, 0, 0.1))
+    a, b = {"overlapping spheres": (ball(0.05), ball(0.05, (0.02, 0, 0.1))),
+            "a fragment far from a sphere": (fragment(), ball(0.05))}[case]
     whole = mesh_metrics(a, b, n_points=N)
     chunked = mesh_metrics(a, b, n_points=N, deadline=1e9, clock=clock)
     assert clock.t > 0, "the chunks were timed"
