@@ -321,6 +321,22 @@ def test_two_step_smoke_run_follows_the_model_protocol(cylinder_capture):
     assert model.terms.pileup and not model.terms.table
 
 
+def test_renders_outside_training_leave_a_seeded_runs_steps_as_they_are(cylinder_capture):
+    """The budget's probe renders once or twice, as the machine's speed has it: a seeded run must train the same."""
+    scene = load_scene(cylinder_capture)
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+
+    def trained(renders: int) -> torch.Tensor:
+        model = make_fast_model(scene, config, "cpu", RunPlan(steps=3, budget_s=None, seed=0))
+        for _ in range(renders):
+            model.render_histograms([0, 5])
+        for _ in range(3):
+            model.step()
+        return model.field.sdf.detach().clone()
+
+    assert torch.equal(trained(0), trained(2))
+
+
 def test_meshes_come_from_the_moving_average_of_the_grid_restarted_at_refinement(cylinder_capture):
     scene = load_scene(cylinder_capture)
     decay = 0.8

@@ -30,6 +30,9 @@ from .regularizers import band_nodes, grid_regularizers
 from .render import render_returns
 from .sampler import HullRays, around_crossing, hull_rays, pick_rays, stratified
 
+RENDER_SEED_OFFSET = 0x5EED
+"""The renders outside training draw from the run's seed plus this (any fixed offset: a stream apart from training's)."""
+
 
 def make_fast_model(scene, config: FastConfig, device, plan) -> "FastModel":
     """The `fast` preset's model factory: f(SceneData, FastConfig, device, RunPlan) -> FastModel."""
@@ -54,6 +57,10 @@ class FastModel:
         self.device = dev
         self.gen = torch.Generator(device=dev)
         self.gen.manual_seed(self.seed)
+        # Renders outside training (the budget's probe, the fit check, the pictures) draw from their own stream: how
+        # often the probe renders depends on the machine's speed, and training's draws must not.
+        self.render_gen = torch.Generator(device=dev)
+        self.render_gen.manual_seed(self.seed + RENDER_SEED_OFFSET)
         self.constraint = HullConstraint(problem.hull, config.field.hull_margin_m, problem.floor_z)
         counts, voxel = grid_shape(problem.box[0], problem.box[1], config.field.resolution)
         self.field = self.constraint.start_field(problem.box[0], voxel, counts, dev, torch.float32)
@@ -304,7 +311,7 @@ class FastModel:
         out = []
         with torch.no_grad(), flush_denormals(self.device):
             for v in views.split(max(1, self.views_per_step)):
-                lam, _ = self._rates(v)
+                lam, _ = self._rates(v, gen=self.render_gen)
                 out.append(self.problem.forward.expected_counts(lam, self.problem.cycles[v]).double().cpu().numpy())
         return np.concatenate(out) if out else np.zeros((0, self.n_zones, self.n_bins))
 
