@@ -264,20 +264,48 @@ EARLIER_RUN_ABORTED = "an earlier demo run was interrupted"
 """The reason recorded in the capture of a scan the demo aborts because an earlier run of it was interrupted."""
 
 
-def _abort_earlier_scans(sock: Path) -> list[str]:
+STARTED = "demo-scans.txt"
+"""OUT's record of the scans demo runs started there, one name a line, written before each scan begins: only those
+does a later run abort (`_abort_earlier_scans`)."""
+
+
+def started_scans(out: Path) -> set[str]:
+    """The names of the scans demo runs into `out` started (`STARTED`; none when it is missing)."""
+    try:
+        return set((Path(out) / STARTED).read_text().split())
+    except FileNotFoundError:
+        return set()
+
+
+def record_started(out: Path, name: str) -> None:
+    """Add scan `name` to `out`'s record of the demo's scans, before the scan starts (a run killed during it leaves
+    the name behind for the next run)."""
+    with open(Path(out) / STARTED, "a") as f:
+        f.write(name + "\n")
+
+
+def _abort_earlier_scans(sock: Path, out: Path, captures: Path) -> list[str]:
     """Abort, through the daemon, the scans an earlier demo run into the same folder left unfinished (Ctrl-C or
     kill -9 during its scan), and return one line for each. The demo's daemon takes such a scan over, paused, at
     start-up, and would refuse the new scan until it is resumed or aborted; but no daemon is left to do either once
     the demo stops its own. One it cannot take over (a chunk a power cut tore) would stay unfinished for good. The
-    abort keeps every pose the scan published: its capture stays, marked aborted, and the worker skips it."""
+    abort keeps every pose the scan published: its capture stays, marked aborted, and the worker skips it. Only the
+    demo's own scans (`started_scans`) are aborted: an interrupted scan of anyone else's in its captures folder is a
+    DemoError that names it, the scan left as it was."""
     status = call(sock, "status", timeout_s=10.0)
-    said = []
-    if status.get("scan") is not None:  # a daemon just started holds no scan but one it took over
-        name = status["scan"]
-        _abort(sock, name)
-        said.append(f"{EARLIER_RUN_ABORTED}: its scan {name} ({status.get('pose')} of {status.get('poses')} poses) "
-                    f"is kept aborted; starting a new one")
+    held = status.get("scan")  # a daemon just started holds no scan but one it took over
     stuck = (status.get("cannot_take_over") or {}).get("scan")
+    own = started_scans(out)
+    for name in (held, stuck):
+        if name is not None and name not in own:
+            raise DemoError(f"{captures} holds scan {name!r}, left unfinished, which no demo run started: resume or "
+                            f"abort it with the rig that recorded it (`spadscan ctl resume {name}` or `spadscan ctl "
+                            f"abort {name}`), or give the demo another --out")
+    said = []
+    if held is not None:
+        _abort(sock, held)
+        said.append(f"{EARLIER_RUN_ABORTED}: its scan {held} ({status.get('pose')} of {status.get('poses')} poses) "
+                    f"is kept aborted; starting a new one")
     if stuck is not None:
         _abort(sock, stuck)
         said.append(f"{EARLIER_RUN_ABORTED}: its scan {stuck}, which the daemon could not take over (daemon.log "
@@ -551,7 +579,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
                         logs / "ursim.log")
         daemon = procs.start("daemon", _spadscan("daemon", "--config", str(config)), logs / "daemon.log")
         _wait_for_daemon(sock, daemon, logs / "daemon.log", timeout_s=60.0)
-        for line in _abort_earlier_scans(sock):  # before the worker starts: it then skips that scan
+        for line in _abort_earlier_scans(sock, out, captures):  # before the worker starts: it then skips that scan
             say(line)
         if opts.dashboard:
             dashboard = _start_dashboard(opts, captures, procs, logs)
@@ -565,6 +593,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         try:
             if watch is not None:
                 watch.bar = bar
+            record_started(out, name)
             _scan(sock, name, opts, bar, watch)
         finally:
             bar.close()

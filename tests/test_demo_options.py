@@ -124,6 +124,41 @@ def test_a_daemon_that_dies_at_start_up_says_why(tmp_path):
                                f"outside [1, 10000] (log: {log})")
 
 
+@pytest.mark.parametrize("held, stuck", [("mug-for-paper", None), (None, "mug-for-paper")],
+                         ids=["taken over", "could not be taken over"])
+def test_a_scan_no_demo_run_started_is_never_aborted(tmp_path, monkeypatch, held, stuck):
+    """A user's rig writing into the demo's captures folder left a scan unfinished: the demo's daemon finds it at
+    start-up, and the demo refuses to go on, naming it, rather than abort it as an earlier demo run's."""
+    asked = []
+
+    def daemon(sock, op, **kwargs):
+        asked.append(op)
+        return {"ok": True, "scan": held, "pose": 7, "poses": 64,
+                "cannot_take_over": None if stuck is None else {"scan": stuck}}
+
+    monkeypatch.setattr(demo, "call", daemon)
+    demo.record_started(tmp_path, "demo-20261204-190100")  # an earlier demo run's scan, finished
+    with pytest.raises(DemoError, match=r"holds scan 'mug-for-paper', left unfinished, which no demo run started: "
+                                        r"resume or abort it with the rig that recorded it"):
+        demo._abort_earlier_scans(Path("d.sock"), tmp_path, tmp_path / "captures")
+    assert asked == ["status"], "nothing aborted"
+
+
+def test_a_scan_an_earlier_demo_run_started_is_aborted_and_said(tmp_path, monkeypatch):
+    asked = []
+
+    def daemon(sock, op, **kwargs):
+        asked.append((op, kwargs.get("name")))
+        return {"ok": True, "scan": "demo-20261204-190100", "pose": 72, "poses": 128} if op == "status" else {}
+
+    monkeypatch.setattr(demo, "call", daemon)
+    demo.record_started(tmp_path, "demo-20261204-190100")
+    said = demo._abort_earlier_scans(Path("d.sock"), tmp_path, tmp_path / "captures")
+    assert asked == [("status", None), ("abort", "demo-20261204-190100")]
+    assert said == ["an earlier demo run was interrupted: its scan demo-20261204-190100 (72 of 128 poses) is kept "
+                    "aborted; starting a new one"]
+
+
 def test_only_its_own_daemon_answers_the_demo(tmp_path):
     """Another daemon serves the demo's socket (a demo still running into the same folder, or one killed a moment
     ago): the demo waits for its own daemon, which exits since the socket is taken, and says why; it never drives the

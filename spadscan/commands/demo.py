@@ -12,7 +12,8 @@ While the final reconstruction runs, a progress line shows its training time, lo
 With --dashboard it also serves the lab dashboard on its captures and prints the address to open.
 Every process it starts is stopped again, also on Ctrl-C. Run again into the same --out after a run was stopped
 during its scan, it aborts the scan that run left unfinished (its poses stay on disk, the capture marked aborted),
-says so, and starts a new one.
+says so, and starts a new one; an unfinished scan there that no demo run started (OUT/demo-scans.txt lists those
+that did) is left alone, and the demo stops naming it.
 """
 
 from __future__ import annotations
