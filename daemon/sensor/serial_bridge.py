@@ -9,9 +9,10 @@ Line format (one record per line, fields separated by commas, an optional traili
     #Err,<text...>   #Vers,<text...>                                      status lines
 
 The temperature is the result record's byte printed unsigned (0..255): it carries degrees C in two's complement, so
-values above 127 are below 0 C (250 is -6 C). The bridge has no checksum: a line is accepted when its tag, field count and every value are well-formed and in
-range; anything else (a partial line after a mid-line start or an unplug, two lines run together, line noise) is
-skipped and counted, and the frame it belonged to is dropped by the frame assembler.
+values above 127 are below 0 C (250 is -6 C). The bridge has no checksum: a line is accepted when its tag, field
+count and every value are well-formed and in range; anything else (a partial line after a mid-line start or an
+unplug, two lines run together, line noise, another sensor's line) is refused and counted (in bad_records, as the I2C
+transport counts its refused records, and by kind), and the frame it belonged to is dropped by the frame assembler.
 
 Timing: the bridge keeps the sensor measuring on the period its firmware sets (the UW firmware: 230 ms) and cannot be
 told to start a fresh measurement. In its loop it clears a record's interrupt, reads the record over I2C and prints
@@ -42,6 +43,8 @@ RAW_FIELDS = 3 + SUBPACKET_BYTES
 OBJ_FIELDS = 6 + 2 * N_RESULTS
 MAX_LINE_BYTES = 4096
 """A line longer than this without a newline is garbage (a #Raw line is at most ~520 bytes)."""
+LINE_EXCERPT_BYTES = 24
+"""How much of a refused line its reason quotes: enough to tell a tag, a partial line or noise."""
 BRIDGE_PERIOD_MS = 230
 """The measurement period the UW bridge firmware configures (its PERIOD), ms."""
 BRIDGE_READ_AND_USB_S = 0.03
@@ -53,18 +56,21 @@ PRINTED_BYTES = 1200
 
 
 def _uint(field: bytes, limit: int) -> int:
-    """A decimal integer in [0, limit]; ValueError otherwise (no signs, spaces or other bytes)."""
-    if not field.isdigit() or len(field) > 10:
-        raise ValueError(field)
-    v = int(field)
-    if v > limit:
-        raise ValueError(field)
-    return v
+    """A decimal integer in [0, limit] (no signs, spaces or other bytes); otherwise a ValueError naming the field."""
+    if not field.isdigit() or len(field) > 10 or int(field) > limit:
+        raise ValueError(f"'{_printable(field, 12)}', not a decimal number in 0..{limit}")
+    return int(field)
 
 
-def parse_line(line: bytes, t: float, address: int | None) -> Packet | str:
-    """Decode one line (without its newline). Returns a packet, or a string naming why the line was skipped:
-    'corrupt', 'separator', 'other_address', 'unknown'."""
+def _printable(data: bytes, limit: int) -> str:
+    """The first `limit` bytes of `data` as one line of text: printable ASCII kept, other bytes as \\xNN."""
+    text = "".join(chr(b) if 32 <= b < 127 else f"\\x{b:02x}" for b in data[:limit])
+    return text + ("..." if len(data) > limit else "")
+
+
+def classify_line(line: bytes, t: float, address: int | None) -> Packet | tuple[str, str]:
+    """Decode one line (without its newline): a packet, or (kind, why) for a line that is skipped, kind one of
+    'corrupt', 'separator', 'other_address', 'unknown' and why in words for the operator ('' for a separator)."""
     line = line.rstrip(b"\r")
     note = _bridge_note(line, t)
     if note is not None:
@@ -75,34 +81,46 @@ def parse_line(line: bytes, t: float, address: int | None) -> Packet | str:
     tag = fields[0]
     try:
         if tag == b"#Raw":
-            if len(fields) != RAW_FIELDS:
-                return "corrupt"
-            addr, index = _uint(fields[1], 127), _uint(fields[2], N_SUBPACKETS - 1)
-            payload = bytes(_uint(f, 255) for f in fields[3:])
-            if address is not None and addr != address:
-                return "other_address"
-            return HistogramPacket(index=index, payload=payload, t=t)
+            return _raw_record(fields, t, address)
         if tag == b"#Obj":
-            if len(fields) == 1:
-                return "separator"
-            if len(fields) != OBJ_FIELDS:
-                return "corrupt"
-            addr = _uint(fields[1], 127)
-            temp = signed_byte(_uint(fields[3], 255))
-            pairs = [_uint(f, 65535) for f in fields[6:]]
-            if any(c > 255 for c in pairs[1::2]):
-                return "corrupt"
-            if address is not None and addr != address:
-                return "other_address"
-            return ResultPacket(result_no=_uint(fields[2], 255), temperature_c=float(temp),
-                                n_valid=_uint(fields[4], N_RESULTS), systick=_uint(fields[5], 2**32 - 1),
-                                distances_mm=pairs[0::2], confidences=pairs[1::2], t=t)
+            return ("separator", "") if len(fields) == 1 else _obj_record(fields, t, address)
         if tag in (b"#Err", b"#Vers"):
             text = b",".join(fields[1:]).decode("ascii", "replace")
             return StatusPacket(kind="error" if tag == b"#Err" else "version", text=text, t=t)
-    except ValueError:
-        return "corrupt"
-    return "corrupt" if not tag.startswith(b"#") or len(tag) > 8 else "unknown"
+    except ValueError as exc:
+        return "corrupt", f"a {_printable(tag, 8)} line with {exc}"
+    if not tag.startswith(b"#") or len(tag) > 8:
+        return "corrupt", "a line without a '#' tag: part of a line, or noise (a baud rate other than the bridge's?)"
+    return "unknown", f"a {_printable(tag, 8)} line, a tag the bridge does not print"
+
+
+def _raw_record(fields: list[bytes], t: float, address: int | None) -> HistogramPacket | tuple[str, str]:
+    """A #Raw line's fields as a histogram sub-packet, or (kind, why); ValueError for a malformed value."""
+    if len(fields) != RAW_FIELDS:
+        return "corrupt", f"a #Raw line of {len(fields)} fields, not {RAW_FIELDS}"
+    addr, index = _uint(fields[1], 127), _uint(fields[2], N_SUBPACKETS - 1)
+    payload = bytes(_uint(f, 255) for f in fields[3:])
+    if address is not None and addr != address:
+        return "other_address", f"a #Raw line for I2C address {addr}, not {address}"
+    return HistogramPacket(index=index, payload=payload, t=t)
+
+
+def _obj_record(fields: list[bytes], t: float, address: int | None) -> ResultPacket | tuple[str, str]:
+    """An #Obj line's fields (not a separator) as a result record, or (kind, why); ValueError for a malformed
+    value."""
+    if len(fields) != OBJ_FIELDS:
+        return "corrupt", f"a #Obj line of {len(fields)} fields, not {OBJ_FIELDS}"
+    addr = _uint(fields[1], 127)
+    temp = signed_byte(_uint(fields[3], 255))
+    pairs = [_uint(f, 65535) for f in fields[6:]]
+    confidence = max(pairs[1::2])
+    if confidence > 255:
+        return "corrupt", f"a #Obj line with a confidence of {confidence}, more than a byte"
+    if address is not None and addr != address:
+        return "other_address", f"a #Obj line for I2C address {addr}, not {address}"
+    return ResultPacket(result_no=_uint(fields[2], 255), temperature_c=float(temp),
+                        n_valid=_uint(fields[4], N_RESULTS), systick=_uint(fields[5], 2**32 - 1),
+                        distances_mm=pairs[0::2], confidences=pairs[1::2], t=t)
 
 
 FIRMWARE_DOWNLOADED = b"FW downloaded"
@@ -127,8 +145,10 @@ class SerialBridgeTransport(Transport):
     """pyserial link to the bridge: splits the byte stream into lines, timestamps and parses them.
 
     The port is reopened by path after an unplug (use a stable path such as /dev/serial/by-id/...). Counters:
-    lines, corrupt_lines, unknown_lines, other_address_lines, separators, overlong_lines; once the bridge has said so,
-    downloads (its "FW downloaded" lines) and active_range (the accuracy mode its "Active range" line reports).
+    lines, corrupt_lines, unknown_lines, other_address_lines, separators, overlong_lines; bad_records, the lines
+    refused (all of those but separators), with last_bad_record saying why the last one was and how it began; once
+    the bridge has said so, downloads (its "FW downloaded" lines) and active_range (the accuracy mode its "Active
+    range" line reports).
     """
 
     restarts_measurement = False  # the bridge measures on its own; a reopen restarts only boards reset by DTR
@@ -149,7 +169,7 @@ class SerialBridgeTransport(Transport):
         self._buf = bytearray()
         self._pending: collections.deque[tuple[bytes, float]] = collections.deque()
         self._counts = {"lines": 0, "corrupt_lines": 0, "unknown_lines": 0, "other_address_lines": 0,
-                        "separators": 0, "overlong_lines": 0}
+                        "separators": 0, "overlong_lines": 0, "bad_records": 0}
 
     def open(self) -> None:
         if self._ser is not None:
@@ -181,17 +201,30 @@ class SerialBridgeTransport(Transport):
             while self._pending:
                 line, t = self._pending.popleft()
                 self._counts["lines"] += 1
-                out = parse_line(line, t, self.address)
+                out = classify_line(line, t, self.address)
                 if isinstance(out, StatusPacket) and out.kind in BRIDGE_NOTES:
                     self._note(out)
                     continue
-                if not isinstance(out, str):
+                if not isinstance(out, tuple):
                     return out
-                key = "separators" if out == "separator" else f"{out}_lines"
-                self._counts[key] += 1
+                self._skip(*out, line)
             if time.monotonic() >= deadline:
                 return None
             self._fill()
+
+    def _skip(self, kind: str, why: str, line: bytes) -> None:
+        """Count a line that is not handed over. A separator is part of the protocol; every other one is a refused
+        record, counted in bad_records too, which the device names when frames stop."""
+        if kind == "separator":
+            self._counts["separators"] += 1
+            return
+        self._counts[f"{kind}_lines"] += 1
+        self._refuse(why, line)
+
+    def _refuse(self, why: str, line: bytes) -> None:
+        """Count a refused line; keep why, with how it began (the operator can tell noise from another sketch)."""
+        self._counts["bad_records"] += 1
+        self._counts["last_bad_record"] = f"{why} ('{_printable(line, LINE_EXCERPT_BYTES)}')"
 
     def _note(self, note: StatusPacket) -> None:
         """Count a download; keep the accuracy mode the bridge reports, and warn unless it is short range (the
@@ -225,6 +258,7 @@ class SerialBridgeTransport(Transport):
         self._buf = bytearray(rest)
         if len(self._buf) > MAX_LINE_BYTES:
             self._counts["overlong_lines"] += 1
+            self._refuse(f"a line of over {MAX_LINE_BYTES} bytes without a newline", bytes(self._buf))
             self._buf.clear()
 
     def close(self) -> None:

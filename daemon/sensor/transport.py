@@ -75,7 +75,10 @@ Packet = HistogramPacket | ResultPacket | StatusPacket
 
 
 class Transport(abc.ABC):
-    """A link to one TMF8820. Implementations count what they skip in `counters()`.
+    """A link to one TMF8820. Implementations count what they skip in `counters()`: each its own detailed counters,
+    and all of them the records they read and refused (malformed, or not this sensor's) as `bad_records`, with the
+    reason for the last one in `last_bad_record`, so that a device whose frames stop can say why in the same words
+    whatever the link.
 
     Lifecycle: open -> start -> read_packet ... -> stop -> close. After a `LinkDown` the device calls close, then
     open and start again (with backoff) until the link is back.
@@ -121,5 +124,7 @@ class Transport(abc.ABC):
         """Close the link; idempotent, never raises."""
 
     def counters(self) -> dict:
-        """What the link skipped or saw (corrupt lines, bad records, ...): name -> int or str."""
+        """What the link skipped or saw: name -> int or str. `bad_records` (int: records read and refused) and, once
+        one was, `last_bad_record` (str: why the last one was, in words for the operator) mean the same for every
+        transport; the rest are its own (corrupt lines, boots, ...)."""
         return {}

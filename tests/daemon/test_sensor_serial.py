@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from spadscan.daemon.devices import LinkLost, SensorSilent
-from spadscan.daemon.sensor.serial_bridge import SerialSensor, parse_line
+from spadscan.daemon.sensor.serial_bridge import SerialSensor, classify_line
 from spadscan.daemon.sensor.sim_bridge import FAULTS, BridgeResult, SimBridge, frame_lines, obj_line, raw_lines
 from spadscan.daemon.sensor.transport import HistogramPacket, ResultPacket, StatusPacket
 from spadscan.protocol.errors import DeviceError
@@ -41,13 +41,13 @@ def test_parse_raw_and_obj_lines():
     c = counts(1)
     lines = raw_lines(c)
     assert len(lines) == 30 and lines[13].startswith(b"#Raw,65,13,")
-    pkt = parse_line(lines[13].rstrip(b"\n"), 1.5, 0x41)
+    pkt = classify_line(lines[13].rstrip(b"\n"), 1.5, 0x41)
     assert isinstance(pkt, HistogramPacket) and pkt.index == 13 and pkt.t == 1.5
     assert list(pkt.payload) == [(int(v) >> 8) & 0xFF for v in c[3]]  # channel 13 % 10, byte plane 13 // 10
     res = result(2)
     line = obj_line(res)
     assert len(line.rstrip(b",\r\n").split(b",")) == 78
-    obj = parse_line(line.rstrip(b"\n"), 2.0, 0x41)
+    obj = classify_line(line.rstrip(b"\n"), 2.0, 0x41)
     assert isinstance(obj, ResultPacket)
     assert (obj.result_no, obj.temperature_c, obj.n_valid, obj.systick) == (2, res.temperature_c, 9, res.systick)
     assert obj.distances_mm == res.distances_mm and obj.confidences == res.confidences
@@ -58,7 +58,7 @@ def test_parse_raw_and_obj_lines():
 def test_the_temperature_byte_is_printed_unsigned_and_decoded_signed(printed, celsius):
     """The firmware prints the result's temperature byte as an unsigned number: above 127 is below 0 C."""
     line = b"#Obj,65,1," + printed + b",9,100," + b",".join([b"1", b"3"] * 36) + b","
-    obj = parse_line(line, 0.0, 0x41)
+    obj = classify_line(line, 0.0, 0x41)
     assert isinstance(obj, ResultPacket) and obj.temperature_c == celsius
     if celsius < 0:
         assert obj_line(BridgeResult(temperature_c=int(celsius))).split(b",")[3] == printed
@@ -81,23 +81,23 @@ def test_the_temperature_byte_is_printed_unsigned_and_decoded_signed(printed, ce
     (b"#Foo,1,2", "unknown"),
 ])
 def test_malformed_lines_are_named(line, why):
-    assert parse_line(line, 0.0, 0x41) == why
+    assert classify_line(line, 0.0, 0x41)[0] == why
 
 
 def test_status_lines():
-    err = parse_line(b"#Err,I2C,NACK\r", 0.0, 0x41)
-    vers = parse_line(b"#Vers,1,2,3", 0.0, 0x41)
+    err = classify_line(b"#Err,I2C,NACK\r", 0.0, 0x41)
+    vers = classify_line(b"#Vers,1,2,3", 0.0, 0x41)
     assert isinstance(err, StatusPacket) and (err.kind, err.text) == ("error", "I2C,NACK")
     assert isinstance(vers, StatusPacket) and (vers.kind, vers.text) == ("version", "1,2,3")
 
 
 def test_the_bridges_own_untagged_lines_are_status_not_noise():
     """The UW firmware prints "FW downloaded" after a download and "Active range: 6E" on every start, without a '#'."""
-    downloaded = parse_line(b"FW downloaded\r", 0.0, 0x41)
-    mode = parse_line(b"Active range: 6f", 0.0, 0x41)
+    downloaded = classify_line(b"FW downloaded\r", 0.0, 0x41)
+    mode = classify_line(b"Active range: 6f", 0.0, 0x41)
     assert isinstance(downloaded, StatusPacket) and downloaded.kind == "firmware_downloaded"
     assert isinstance(mode, StatusPacket) and (mode.kind, mode.text) == ("active_range", "6F")
-    assert parse_line(b"Active range: XYZ", 0.0, 0x41) == "corrupt"
+    assert classify_line(b"Active range: XYZ", 0.0, 0x41)[0] == "corrupt"
 
 
 @pytest.mark.parametrize("active_range, name, warns", [(0x6E, "short range", False), (0x6F, "long range", True)])
@@ -173,6 +173,7 @@ def test_frames_arrive_bit_for_bit_and_corrupt_frames_never_do(arun):
     assert c["dropped_no_result"] == 2 and c["dropped_out_of_order"] == len(FAULTS) - 2
     # mid-line start, truncate, garble, out_of_range, merge (two lines run into one), bad_result
     assert c["corrupt_lines"] == 6 and c["separators"] == 2 and c["other_address_lines"] == 1
+    assert c["bad_records"] == 7  # every skipped line but the separators was refused
     assert c["firmware_version"] == "1.0.4" and c["last_status_error"] == "no target" and c["status_errors"] == 1
 
 
@@ -277,6 +278,72 @@ def test_a_bridge_that_reports_an_error_and_stops_is_named_in_the_silence(arun):
                      str(stopped))
     assert stopped.detail in str(stopped) and "\n" not in str(stopped)
     assert again.detail == ""
+
+
+def test_a_bridge_whose_lines_are_all_refused_names_them_in_the_silence(arun):
+    """A sensor on the bridge that receives only lines it refuses (partial lines, noise, another sensor's address)
+    says so when frames stop: how many arrived since the last frame, and why the last one was refused."""
+
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                bridge.send(b"12,13,14\n")  # refused before the frame: not the reason for a later silence
+                bridge.send_frame(counts(1), result(1))
+                await sensor.next_frame(10)
+                bridge.send(b"#Raw,65,3,1,2,3\n" + raw_lines(counts(2), address=0x42)[0] + b"#Obj\n\x93\xf1k\x02@\n")
+                bridge.flush()
+                while sensor.counters()["bad_records"] < 4:
+                    await asyncio.sleep(0.01)
+                with pytest.raises(SensorSilent) as refused:
+                    await sensor.next_frame(0.05)
+                counters = sensor.counters()
+            return refused.value, counters
+
+    refused, c = arun(main())
+    last = ("a line without a '#' tag: part of a line, or noise (a baud rate other than the bridge's?) "
+            "('\\x93\\xf1k\\x02@')")
+    assert refused.detail == ("3 records arrived since the last frame but were refused (bad_records); "
+                              f"the last one: {last}")
+    assert str(refused).endswith(f"no complete frame within 0.05 s; {refused.detail}") and "\n" not in str(refused)
+    assert (c["corrupt_lines"], c["other_address_lines"], c["separators"]) == (3, 1, 1)
+    assert c["bad_records"] == 4 and c["last_bad_record"] == last
+
+
+def test_a_line_too_long_is_a_refused_record(arun):
+    """Bytes without a newline (a wrong baud rate, not a bridge) are dropped past 4096 and named in the silence."""
+
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                bridge.send(b"z" * 5000)  # past the limit once, however the port splits it; no line ends
+                bridge.flush()
+                while sensor.counters()["overlong_lines"] < 1:
+                    await asyncio.sleep(0.01)
+                with pytest.raises(SensorSilent) as refused:
+                    await sensor.next_frame(0.05)
+                counters = sensor.counters()
+            return refused.value, counters
+
+    refused, c = arun(main())
+    last = "the last one: a line of over 4096 bytes without a newline ('zzzzzzzzzzzzzzzzzzzzzzzz...')"
+    assert refused.detail == f"1 record arrived since the last frame but was refused (bad_records); {last}"
+    assert (c["overlong_lines"], c["bad_records"], c["corrupt_lines"]) == (1, 1, 0)
+
+
+@pytest.mark.parametrize("line, why", [
+    (b"#Obj", ("separator", "")),
+    (b"#Raw,65,3,1,2,3", ("corrupt", "a #Raw line of 6 fields, not 131")),
+    (b"#Raw,65,3," + b",".join([b"1"] * 127) + b",1x",
+     ("corrupt", "a #Raw line with '1x', not a decimal number in 0..255")),
+    (b"#Obj,65,1,25,9,100," + b",".join([b"1", b"300"] * 36),
+     ("corrupt", "a #Obj line with a confidence of 300, more than a byte")),
+    (b"#Obj,66,1,25,9,100," + b",".join([b"1", b"3"] * 36),
+     ("other_address", "a #Obj line for I2C address 66, not 65")),
+    (b"#Foo,1,2", ("unknown", "a #Foo line, a tag the bridge does not print")),
+])
+def test_a_skipped_line_says_why(line, why):
+    """The reason a line is refused, as the silence quotes it (bad_records' last_bad_record)."""
+    assert classify_line(line, 0.0, 0x41) == why
 
 
 def test_a_missing_port_is_a_named_error_at_connect(arun, tmp_path):
