@@ -83,6 +83,10 @@ def _check_version(version, where) -> None:
                            f"(version {VERSION}); upgrade spadscan to read it")
 
 
+NAMED_CHUNKS = 8
+"""Damaged chunks a capture's error names (the rest counted): the line stays one line with hundreds of them."""
+
+
 class CaptureReader:
     """Reads one capture folder (the folder that holds `scan.json`). Every problem is a one-line CaptureError."""
 
@@ -194,8 +198,10 @@ class CaptureReader:
         if not chunks:
             raise CaptureError(f"{first}; none of its {len(damaged)} chunks can be read") from None
         them = "it" if len(damaged) == 1 else "them"
+        named = ", ".join(damaged[:NAMED_CHUNKS]) + (f" and {len(damaged) - NAMED_CHUNKS} more"
+                                                      if len(damaged) > NAMED_CHUNKS else "")
         raise CaptureError(f"{first}; {len(damaged)} of {len(damaged) + len(chunks)} chunks cannot be read "
-                           f"({', '.join(damaged)}): moving {them} out of {self.path} leaves the views of the other "
+                           f"({named}): moving {them} out of {self.path} leaves the views of the other "
                            f"{len(chunks)} to use") from None
 
     def follow(self, poll_s: float = 0.5, timeout_s: float | None = None) -> Iterator[Chunk]:

@@ -237,6 +237,9 @@ def reply_line(op: str, reply: dict) -> str:
         if reply.get("reason"):
             line += f": {reply['reason']}"
         said.append(line)
+        again = reply.get("poses_to_take_again")
+        if again:  # poses missing from the capture (a damaged chunk moved out): taken again before it goes on
+            said.append(f"taking pose(s) {', '.join(str(p) for p in again)} again first")
         if op == "scan" and reply.get("path"):
             said.append(f"written to {reply['path']}")
     elif not aborted:

@@ -600,6 +600,17 @@ def test_a_damaged_chunk_names_the_way_out_and_the_way_out_works(tmp_path):
     assert [m["pose_index"] for m in data.meta] == [0, 1, 4, 5]
 
 
+def test_many_damaged_chunks_are_counted_past_the_first_few_named(tmp_path):
+    path = tmp_path / "scan"
+    write(path, 24, 2)  # twelve chunks
+    for k in range(11):
+        (path / chunk_name(k) / "hists.npy").write_bytes(b"")
+    with pytest.raises(CaptureError) as info:
+        CaptureReader(path).load()
+    named = ", ".join(chunk_name(k) for k in range(8))
+    assert f"; 11 of 12 chunks cannot be read ({named} and 3 more): moving them out" in str(info.value)
+
+
 def test_a_capture_with_no_readable_chunk_offers_no_move(tmp_path):
     path = tmp_path / "scan"
     write(path, 2, 1)
