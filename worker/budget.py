@@ -40,6 +40,10 @@ MAX_END_SHARE = 0.5
 beyond it they are made cheaper (a coarser mesh, fewer points), so that training keeps the other half."""
 MIN_MESH_RESOLUTION = 32
 """Coarsest final mesh, cells along the longest side."""
+MESH_STEPS = 8
+"""A mesh too fine for the time left steps down by 1/MESH_STEPS of its resolution at a time (256: 224, 192, ...).
+Halving lost half the resolution for a moment's shortfall: training keeps back what the end is estimated to take,
+and ending a fraction of a second late put a 120 s run's mesh at 128 cells, 14.7 s then left unused."""
 MIN_METRIC_POINTS = 5_000
 """Fewest metric sample points per mesh."""
 PROBE_RESOLUTIONS = (32, 64)
@@ -184,12 +188,14 @@ def training_budget(clock: RunClock, end_s: float) -> float | None:
 
 
 def mesh_resolution_within(costs: EndCosts, want: int, seconds: float) -> int:
-    """The finest resolution up to `want` whose extraction fits in `seconds` (halving from `want`, at least
-    MIN_MESH_RESOLUTION; `want` itself when it fits)."""
-    r = int(want)
+    """The finest resolution up to `want` whose extraction fits in `seconds` (stepping down from `want` by an
+    eighth of it, `MESH_STEPS`; at least MIN_MESH_RESOLUTION; `want` itself when it fits)."""
+    want = int(want)
+    step = max(1, want // MESH_STEPS)
+    r = want
     while r > MIN_MESH_RESOLUTION and costs.mesh_s(r) > seconds:
-        r = max(MIN_MESH_RESOLUTION, r // 2)
-    return min(r, int(want))
+        r = max(MIN_MESH_RESOLUTION, r - step)
+    return min(r, want)
 
 
 def coverage_picture_within(costs: EndCosts, seconds: float, scored: bool) -> bool:

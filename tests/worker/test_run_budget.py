@@ -80,7 +80,9 @@ def test_the_fit_check_gets_the_views_the_time_leaves_and_never_fewer_than_its_p
 def test_a_short_time_gets_a_coarser_mesh_and_fewer_points():
     costs = EndCosts(mesh_s_per_cell=1e-7, metrics_s_per_point=1e-5)
     assert mesh_resolution_within(costs, 256, 60.0) == 256
-    assert mesh_resolution_within(costs, 256, 1.0) == 128  # 1.5 x 1e-7 x 128^3 = 0.31 s
+    assert mesh_resolution_within(costs, 256, 1.0) == 160  # 1.5 x 1e-7 x 160^3 = 0.61 s; 192^3: 1.06 s
+    # A moment short of the full grid costs one step, not half the resolution.
+    assert mesh_resolution_within(costs, 256, 0.99 * costs.mesh_s(256)) == 224
     assert mesh_resolution_within(costs, 256, 0.0) == MIN_MESH_RESOLUTION
     assert metric_points_within(costs, 300_000, 100.0) == 300_000
     assert metric_points_within(costs, 300_000, 3.0) == 100_000  # 1.5 x 2 x 1e-5 s a point
