@@ -280,6 +280,18 @@ def test_a_bridge_that_reports_an_error_and_stops_is_named_in_the_silence(arun):
     assert again.detail == ""
 
 
+async def silence_after(bridge, sensor, lines: bytes, counter: str, least: int):
+    """Send `lines`, wait until the sensor's `counter` reaches `least`, then the SensorSilent of a frame that does
+    not come, and the counters then."""
+    bridge.send(lines)
+    bridge.flush()
+    while sensor.counters()[counter] < least:
+        await asyncio.sleep(0.01)
+    with pytest.raises(SensorSilent) as refused:
+        await sensor.next_frame(0.05)
+    return refused.value, sensor.counters()
+
+
 def test_a_bridge_whose_lines_are_all_refused_names_them_in_the_silence(arun):
     """A sensor on the bridge that receives only lines it refuses (partial lines, noise, another sensor's address)
     says so when frames stop: how many arrived since the last frame, and why the last one was refused."""
@@ -290,14 +302,8 @@ def test_a_bridge_whose_lines_are_all_refused_names_them_in_the_silence(arun):
                 bridge.send(b"12,13,14\n")  # refused before the frame: not the reason for a later silence
                 bridge.send_frame(counts(1), result(1))
                 await sensor.next_frame(10)
-                bridge.send(b"#Raw,65,3,1,2,3\n" + raw_lines(counts(2), address=0x42)[0] + b"#Obj\n\x93\xf1k\x02@\n")
-                bridge.flush()
-                while sensor.counters()["bad_records"] < 4:
-                    await asyncio.sleep(0.01)
-                with pytest.raises(SensorSilent) as refused:
-                    await sensor.next_frame(0.05)
-                counters = sensor.counters()
-            return refused.value, counters
+                lines = b"#Raw,65,3,1,2,3\n" + raw_lines(counts(2), address=0x42)[0] + b"#Obj\n\x93\xf1k\x02@\n"
+                return await silence_after(bridge, sensor, lines, "bad_records", 4)
 
     refused, c = arun(main())
     last = ("a line without a '#' tag: part of a line, or noise (a baud rate other than the bridge's?) "
@@ -315,14 +321,8 @@ def test_a_line_too_long_is_a_refused_record(arun):
     async def main():
         with SimBridge() as bridge:
             async with streaming(bridge) as sensor:
-                bridge.send(b"z" * 5000)  # past the limit once, however the port splits it; no line ends
-                bridge.flush()
-                while sensor.counters()["overlong_lines"] < 1:
-                    await asyncio.sleep(0.01)
-                with pytest.raises(SensorSilent) as refused:
-                    await sensor.next_frame(0.05)
-                counters = sensor.counters()
-            return refused.value, counters
+                # past the limit once, however the port splits it; no line ends
+                return await silence_after(bridge, sensor, b"z" * 5000, "overlong_lines", 1)
 
     refused, c = arun(main())
     last = "the last one: a line of over 4096 bytes without a newline ('zzzzzzzzzzzzzzzzzzzzzzzz...')"
