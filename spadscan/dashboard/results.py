@@ -24,7 +24,9 @@ LIVE = "live"
 SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "steps",
                 "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
 LIVE_KEYS = ("views_used", "views_published", "views_planned", "steps", "updated_utc", "converged", "chamfer_mm",
-             "state", "note", "result")
+             "state", "note", "result", "job")
+FINAL_STARTS = ("live", "hull")
+"""Where a live job's final run started (report.json's `live.final_start`): from the live fit or the carved hull."""
 LIVE_PICTURES = ("preview.png", "mesh.ply", "view3d.html")
 """The live entry's files that show the live fit's shape (not the final result's)."""
 PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "coverage.png", "mesh.ply")
@@ -80,6 +82,8 @@ class ResultIndex:
         data, error = _read_json(main)
         keys = LIVE_KEYS if live else SUMMARY_KEYS
         summary = {k: data[k] for k in keys if data and k in data}
+        if not live and final_start(data) is not None:
+            summary["final_start"] = final_start(data)
         if not isinstance(summary.get("warnings", []), list):
             # the page lists them one a line: anything else would stop its whole refresh, every scan with it
             error = f"{main.name}: warnings {json.dumps(summary.pop('warnings'))[:40]} is not a list"
@@ -95,6 +99,14 @@ class ResultIndex:
                  "summary": summary, "error": error, "files": files}
         self._folders[str(folder)] = (key, entry)
         return entry
+
+
+def final_start(report: dict | None) -> str | None:
+    """Where the final run of a live job's result started, 'live' or 'hull' (its report's `live.final_start`); None
+    for a result of no live job, or a report that does not say."""
+    live = (report or {}).get("live")
+    start = live.get("final_start") if isinstance(live, dict) else None
+    return start if start in FINAL_STARTS else None
 
 
 def fold_done_live(found: list[dict]) -> list[dict]:

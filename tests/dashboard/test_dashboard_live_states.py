@@ -1,6 +1,6 @@
 """The dashboard names every live state as the protocol does: a live job given back to the queue reads "queued
 again", with the age of its last status at once (no process rewrites it); a run from scratch, which has no live fit,
-reads "finishing" without a "(0 views, 0 steps)" that looks like a fit gone wrong."""
+reads "finishing: the final run" without a "(0 views, 0 steps)" that looks like a fit gone wrong."""
 
 from __future__ import annotations
 
@@ -46,9 +46,10 @@ def test_a_given_back_live_job_reads_queued_again_and_a_run_from_scratch_shows_n
         picks["back"].wait_for(timeout=WAIT_MS)
         picks["scratch"].wait_for(timeout=WAIT_MS)
         back = picks["back"].text_content()  # 5 s ago, or a little more on a busy machine
-        assert back.startswith("live, queued again (38 views, 563 steps) 68.65 mm, updated ") and \
+        assert back.startswith("live, queued again (38 views, 563 steps), the live fit's Chamfer against the ground "
+                               "truth on its 38 views: 68.65 mm, updated ") and \
             back.endswith(" s ago"), back
         assert page.locator('#scans tr[data-scan="back"] .note').text_content().endswith("back in the queue")
-        assert picks["scratch"].text_content() == "live, finishing"
+        assert picks["scratch"].text_content() == "live, finishing: the final run on 60 views"
         assert page.locator('#scans tr[data-scan="scratch"] .note').text_content().endswith("from scratch")
     assert not seen.errors, seen.errors

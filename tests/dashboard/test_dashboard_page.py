@@ -44,6 +44,7 @@ def test_the_page_follows_a_scan_as_it_runs(tmp_path):
         assert poses_text.text_content().startswith("6 / 6")
         assert page.locator("#hist polyline").count() == 9  # the last frame's nine zones
         assert page.locator("#scans tbody tr").count() == 2
+        page.locator('#scans tr[data-scan="earlier"] a.pick').click()  # the scan in hand has no result: pick one
         frame = page.frame_locator("#viewer-3d")
         frame.locator("body[data-scene-loaded='yes']").wait_for(state="attached", timeout=WAIT_MS)
         page.wait_for_timeout(300)
@@ -156,7 +157,8 @@ def test_once_a_live_reconstruction_is_done_the_page_shows_its_result_picture_an
         name = page.locator("#viewer-name")
         page.wait_for_function("() => document.querySelector('#viewer-name').textContent.includes('live')",
                                timeout=WAIT_MS)
-        assert name.text_content().endswith("(18 views, 0 steps) 119.13 mm")
+        assert name.text_content().endswith("(18 views, 0 steps), the live fit's Chamfer against the ground truth "
+                                            "on its 18 views: 119.13 mm")
         assert "/recon/live/preview.png" in page.locator("#viewer-preview").get_attribute("src")
         (live / "status.json").write_text(json.dumps({**status, "views_used": 64, "views_published": 64,
                                                       "steps": 242, "chamfer_mm": 1.0, "state": "done",
@@ -189,13 +191,13 @@ def test_a_live_reconstruction_shows_its_state_its_note_and_its_age_once_it_no_l
         picks = {name: page.locator(f'#scans tr[data-scan="{name}"] a.pick')
                  for name in ("aborted", "quiet", "running")}
         picks["running"].wait_for(timeout=WAIT_MS)
-        assert picks["aborted"].text_content() == ("live, ended (the scan was aborted) (33 views, 136 steps) 39.16 mm, "
-                                                   "updated 3 min ago")
+        fit = "(33 views, 136 steps), the live fit's Chamfer against the ground truth on its 33 views: 39.16 mm"
+        assert picks["aborted"].text_content() == f"live, ended (the scan was aborted) {fit}, updated 3 min ago"
         assert page.locator('#scans tr[data-scan="aborted"] .note').text_content() == "scan aborted: aborted by user"
         quiet = picks["quiet"].text_content()  # 45 s ago, or a little more on a busy machine
-        assert quiet.startswith("live, following the scan (33 views, 136 steps) 39.16 mm, updated ") and \
+        assert quiet.startswith(f"live, following the scan {fit}, updated ") and \
             quiet.endswith(" ago"), quiet
-        assert picks["running"].text_content() == "live, following the scan (33 views, 136 steps) 39.16 mm"
+        assert picks["running"].text_content() == f"live, following the scan {fit}"
         picks["aborted"].click()
         page.wait_for_function("() => document.querySelector('#viewer-notes').textContent"
                                ".includes('scan aborted: aborted by user')", timeout=WAIT_MS)

@@ -1,0 +1,190 @@
+"""The dashboard's Reconstruction panel and scans table in a real headless browser, for what an operator misread:
+the "did not converge" warning is a finished result's only (a live fit is not converged until it ends); the live
+Chamfer says it is the live fit's, against the ground truth, on the views it had; while the final run runs, the
+heading says so, with its progress and whether it started from the live fit or the carved hull, and a finished
+result says which; the scan in hand with no result yet shows its own state, never another scan's result; a job
+whose worker is gone says so in the heading and the queue's counts, as `spadscan worker --status` does."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from dashboard_helpers import add_final_recon, complete_scan, serving
+from page_helpers import add_pose, browser_page, start_scan
+from spadscan.dashboard.server import address
+from spadscan.dashboard.status import FinalStarts
+from spadscan.worker.holder import Holder
+from spadscan.worker.job_progress import claim_log
+from spadscan.worker.jobs import Job
+from spadscan.worker.queue import Queue
+
+WAIT_MS = 60_000  # generous: a poll a second, on a busy machine
+JOB_PY = Path(__file__).resolve().parents[2] / "worker" / "live" / "job.py"
+HULL_LINE = ("live: scan complete (57 views fitted, 89 steps); the final reconstruction starts from the carved hull: "
+             "the live fit is too young (on its coarse level, or only just past it), for 25 s\n")
+LIVE_LINE = "live: scan complete (57 views fitted, 89 steps); the final reconstruction continues from the live fit\n"
+BAR = "reconstruct (fast):  60%|######    | 6/10 s [00:06<00:04, loss=27.3, step=72]\r"
+
+
+def live_status(scan_path: Path, **fields) -> None:
+    live = scan_path / "recon" / "live"
+    live.mkdir(parents=True, exist_ok=True)
+    (live / "status.json").write_text(json.dumps(fields))
+
+
+def running_job(root: Path, job_id: str, log_text: str, holder: Holder | None = None, live: bool = True) -> None:
+    """`job_id` (a job of scan `job_id`'s first part) claimed by `holder` (this process), its log holding
+    `log_text`."""
+    queue = Queue.for_root(root)
+    queue.enqueue(Job(id=job_id, scan=job_id.split("-")[0], live=live))
+    claim = queue.claim(holder or Holder.current())
+    assert claim is not None and claim.job.id == job_id
+    log = claim_log(queue.path, queue.job_paths()[job_id][1])
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text(log_text)
+
+
+def gone_holder() -> Holder:
+    """A holder whose process has exited (and been reaped)."""
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    return Holder(**{**Holder.current().to_dict(), "pid": gone.pid, "pid_start": ""})
+
+
+def wait_text(page, selector: str, text: str) -> str:
+    """The text of `selector` once it holds `text`."""
+    page.wait_for_function("([s, t]) => (document.querySelector(s) || {}).textContent?.includes(t)",
+                           arg=[selector, text], timeout=WAIT_MS)
+    return page.locator(selector).text_content()
+
+
+def pick(page, scan: str) -> None:
+    page.locator(f'#scans tr[data-scan="{scan}"] a.pick').first.click()
+    wait_text(page, "#viewer-name", scan + " / ")
+
+
+def test_the_job_still_says_where_its_final_run_starts_as_the_dashboard_reads_it():
+    """The dashboard reads the start from the live job's log line (worker/live/job.py): the wording it looks for."""
+    source = JOB_PY.read_text()
+    assert '"continues from the live fit"' in source and 'f"starts from the carved hull: {why}"' in source
+    assert 'log(f"live: scan complete (' in source
+
+
+def test_a_final_runs_start_is_read_from_its_log_as_it_grows_and_a_line_half_written_is_read_again(tmp_path):
+    log, starts = tmp_path / "job.log", FinalStarts()
+    assert starts.of(log) is None, "no log yet"
+    log.write_text("live: refit on 57 views\n" + HULL_LINE[:60])
+    assert starts.of(log) is None
+    log.write_text("live: refit on 57 views\n" + HULL_LINE + BAR)
+    assert starts.of(log) == "hull"
+    log.write_text("")  # said once: not read again
+    assert starts.of(log) == "hull"
+    starts.keep_only([])
+    assert starts.of(log) is None
+
+
+def test_only_a_finished_result_warns_that_its_run_did_not_converge(tmp_path):
+    for name, state in (("waiting", "waiting"), ("following", "live"), ("aborted", "aborted")):
+        complete_scan(tmp_path / name, 1)
+        live_status(tmp_path / name, views_used=0 if state == "waiting" else 16, views_published=18,
+                    steps=0 if state == "waiting" else 1, converged=False, state=state)
+    complete_scan(tmp_path / "done", 1)
+    add_final_recon(tmp_path / "done", "done-fast")
+    (tmp_path / "done" / "recon" / "done-fast" / "report.json").write_text(
+        json.dumps({"preset": "fast", "chamfer_mm": 1.0, "converged": False}))
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        pick(page, "done")
+        assert wait_text(page, "#viewer-notes", "the run did not converge")
+        assert page.locator('#scans tr[data-scan="done"] .warning').all_text_contents() == [" not converged"]
+        for name in ("waiting", "following", "aborted"):
+            pick(page, name)
+            assert "converge" not in page.locator("#viewer-notes").text_content(), name
+            assert page.locator(f'#scans tr[data-scan="{name}"] .warning').count() == 0, name
+    assert not seen.errors, seen.errors
+
+
+def test_the_live_chamfer_says_it_is_the_live_fits_against_the_ground_truth_on_its_views(tmp_path):
+    complete_scan(tmp_path / "bowl", 1)
+    live_status(tmp_path / "bowl", views_used=57, views_published=60, steps=89, chamfer_mm=48.8, state="live")
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        heading = wait_text(page, "#viewer-name", "bowl")
+        assert heading == ("bowl / live, following the scan (57 views, 89 steps), the live fit's Chamfer against "
+                           "the ground truth on its 57 views: 48.80 mm"), heading
+    assert not seen.errors, seen.errors
+
+
+def test_while_the_final_run_runs_the_heading_says_so_and_where_it_started(tmp_path):
+    for name, line in (("bowl", HULL_LINE), ("mug", LIVE_LINE)):
+        complete_scan(tmp_path / name, 1)
+        live_status(tmp_path / name, views_used=57, views_published=64, steps=89, chamfer_mm=48.8, state="final",
+                    job=f"{name}-fast")
+        running_job(tmp_path, f"{name}-fast", "live: refit on 57 views\n" + line + BAR)
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        pick(page, "bowl")
+        heading = wait_text(page, "#viewer-name", "step 72")
+        assert heading.startswith("bowl / live, finishing: the final run on 64 views, from the carved hull (not the "
+                                  "live fit), is running: reconstruct (fast): 6/10 s, step 72, loss 27.3 ["), heading
+        assert "48.80" not in heading, "the live fit's figures read as the final run's"
+        assert "the live fit's Chamfer against the ground truth on its 57 views: 48.80 mm" in \
+            page.locator("#viewer-notes").text_content()
+        pick(page, "mug")
+        assert wait_text(page, "#viewer-name", "step 72").startswith(
+            "mug / live, finishing: the final run on 64 views, continuing the live fit, is running: ")
+        # done: the live entry gives way to its result, which says where its final run started
+        for name, start in (("bowl", "hull"), ("mug", "live")):
+            add_final_recon(tmp_path / name, f"{name}-fast")
+            (tmp_path / name / "recon" / f"{name}-fast" / "report.json").write_text(json.dumps(
+                {"preset": "fast", "chamfer_mm": 83.85, "live": {"views_used": 57, "final_start": start}}))
+            live_status(tmp_path / name, views_used=64, views_published=64, steps=145, chamfer_mm=83.85,
+                        state="done", job=f"{name}-fast", result=str(tmp_path / name / "recon" / f"{name}-fast"))
+        assert wait_text(page, "#viewer-name", "result") == (
+            "mug / fast 83.85 mm (the live reconstruction's result: its final run continued from the live fit)")
+        assert page.locator('#scans tr[data-scan="bowl"] a.pick').text_content() == (
+            "fast 83.85 mm (the live reconstruction's result: its final run started from the carved hull, not "
+            "from the live fit)")
+    assert not seen.errors, seen.errors
+
+
+def test_the_scan_in_hand_without_a_result_shows_its_own_state_not_another_scans_result(tmp_path):
+    complete_scan(tmp_path / "vase", 1)
+    add_final_recon(tmp_path / "vase", "vase-fast")
+    writer, poses = start_scan(tmp_path / "jug", 3)
+    add_pose(writer, poses, 0)
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        wait_text(page, "#current-name", "jug")
+        assert wait_text(page, "#viewer-name", "jug") == "jug / no result yet: the scan is being recorded"
+        assert page.locator("#viewer-preview").is_hidden() and page.locator("#viewer-links a").count() == 0
+        for i in (1, 2):
+            add_pose(writer, poses, i)
+        writer.finish()
+        assert wait_text(page, "#viewer-name", "reconstruction job") == (
+            "jug / no result yet: no reconstruction job for it (a running `spadscan worker` queues it)")
+        running_job(tmp_path, "jug-fast", BAR, live=False)
+        assert wait_text(page, "#viewer-name", "step 72").startswith(
+            "jug / no result yet: reconstructing: reconstruct (fast): 6/10 s, step 72")
+        assert "vase" not in page.locator("#viewer").text_content()
+        pick(page, "vase")  # another scan's result only when asked for
+        assert page.locator("#viewer-name").text_content() == "vase / fast 1.00 mm"
+    assert not seen.errors, seen.errors
+
+
+def test_a_job_whose_worker_is_gone_says_so_in_the_heading_and_the_queue_counts(tmp_path):
+    writer, poses = start_scan(tmp_path / "vase", 40)
+    add_pose(writer, poses, 0)
+    live_status(tmp_path / "vase", views_used=0, views_published=17, steps=0, state="waiting", job="vase-fast",
+                note="making the first fit of 17 views (loading them, carving their hull)")
+    running_job(tmp_path, "vase-fast", "", holder=gone_holder())
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        heading = wait_text(page, "#viewer-name", "worker")
+        assert heading == "vase / live, waiting for views: its worker is gone: start `spadscan worker`", heading
+        assert wait_text(page, "#queue-counts", "stale") == (
+            "(0 queued, 1 running (1 stale: their worker is gone), 0 done, 0 failed)")
+    assert not seen.errors, seen.errors
