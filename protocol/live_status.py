@@ -25,10 +25,13 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
 - `views_planned` (int or null): poses the scan plans, when the capture says;
 - `job` (string): the queue's job id;
 - `result` (string or null): the final result folder, once `done`;
-- `note` (string or null): one line worth knowing (why the job ended, a warning).
+- `note` (string or null): one line worth knowing (why the job ended, a warning);
+- `final_start` (`live`, `hull` or absent): from state `final` on, where the final run starts: from the live fit, or
+  from the carved hull (a live fit still too young, or lagging the scan).
 
 Once `done`, the figures are the final result's (its report.json): `views_used` the views it fitted, `steps` the
-live fit's and the final run's together, `converged` and `chamfer_mm` its own (no `chamfer_mm` when it has none).
+final run's on top of the live fit's where it continued from it (its own alone from the hull), `converged` and
+`chamfer_mm` its own (no `chamfer_mm` when it has none).
 """
 
 from __future__ import annotations
@@ -46,6 +49,8 @@ LIVE_DIR = "live"
 """The live results' folder under a capture's `recon/`."""
 STATUS = "status.json"
 STATES = ("waiting", "live", "final", "done", "aborted", "stopped", "queued")
+FINAL_STARTS = ("live", "hull")
+"""Where a live job's final run starts (`final_start`): from the live fit, or from the carved hull."""
 SAID = {"waiting": "waiting for views", "live": "following the scan", "final": "finishing", "done": "done",
         "aborted": "ended (the scan was aborted)", "stopped": "stopped", "queued": "queued again"}
 """Each state as people read it."""
@@ -70,12 +75,14 @@ class LiveStatus:
     job: str = ""
     result: str | None = None
     note: str | None = None
+    final_start: str | None = None
 
     def to_dict(self) -> dict:
-        """The JSON object written; `chamfer_mm` only when there is one."""
+        """The JSON object written; `chamfer_mm` and `final_start` only when there is one."""
         data = asdict(self)
-        if data["chamfer_mm"] is None:
-            del data["chamfer_mm"]
+        for key in ("chamfer_mm", "final_start"):
+            if data[key] is None:
+                del data[key]
         return data
 
     def age_s(self, now: _dt.datetime | None = None) -> float | None:
@@ -162,6 +169,8 @@ def check_status(status: LiveStatus, where: str) -> None:
         value = getattr(status, key)
         if value is not None and not isinstance(value, str):
             raise CaptureError(f"{where}: {key} {value!r} must be a string or null")
+    if status.final_start is not None and status.final_start not in FINAL_STARTS:
+        raise CaptureError(f"{where}: final_start {status.final_start!r} must be one of {', '.join(FINAL_STARTS)}")
 
 
 def is_count(value) -> bool:

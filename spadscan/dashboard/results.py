@@ -17,6 +17,8 @@ import json
 import os
 from pathlib import Path
 
+from spadscan.protocol.live_status import FINAL_STARTS
+
 from .paths import safe_path, url_path
 
 RECON = "recon"
@@ -24,9 +26,7 @@ LIVE = "live"
 SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "steps",
                 "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
 LIVE_KEYS = ("views_used", "views_published", "views_planned", "steps", "updated_utc", "converged", "chamfer_mm",
-             "state", "note", "result", "job")
-FINAL_STARTS = ("live", "hull")
-"""Where a live job's final run started (report.json's `live.final_start`): from the live fit or the carved hull."""
+             "state", "note", "result", "job", "final_start")
 LIVE_PICTURES = ("preview.png", "mesh.ply", "view3d.html")
 """The live entry's files that show the live fit's shape (not the final result's)."""
 PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "coverage.png", "mesh.ply")

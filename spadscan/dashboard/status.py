@@ -14,67 +14,24 @@ from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
-from spadscan.worker.job_progress import claim_log, progress_field, running_progress
+from spadscan.worker.job_progress import progress_field, running_progress
 from spadscan.worker.status_detail import status_detail
 
 from .results import ResultIndex
 from .scans import IN_HAND, INTERRUPTED, ScanIndex, interrupted, scan_detail
 
 
-FINAL_START_SAID = {"the final reconstruction continues from the live fit": "live",
-                    "the final reconstruction starts from the carved hull": "hull"}
-"""What a live job's log says as its final run begins (worker/live/job.py), and the start each phrase names."""
-
-
-class FinalStarts:
-    """Where each running live job's final run started ('live' or 'hull'): its log says it once, as that run begins
-    (the live status does not). A log is read on from where the last poll stopped, and no more once it has said."""
-
-    def __init__(self):
-        self._logs: dict[str, tuple[int, str | None]] = {}
-        """Log path -> (bytes read, up to a line's end; the start it names, None while it has not said)."""
-
-    def of(self, log: Path) -> str | None:
-        offset, found = self._logs.get(str(log), (0, None))
-        if found is None:
-            try:
-                with open(log, "rb") as f:
-                    f.seek(offset)
-                    chunk = f.read()
-            except OSError:
-                return None
-            end = max(chunk.rfind(b"\n"), chunk.rfind(b"\r")) + 1  # a line still being written is read again
-            text = chunk[:end].decode("utf-8", "replace")
-            found = next((start for said, start in FINAL_START_SAID.items() if said in text), None)
-            self._logs[str(log)] = (offset + end, found)
-        return found
-
-    def keep_only(self, logs) -> None:
-        """Forget the logs of the jobs no longer running."""
-        for name in set(self._logs) - {str(log) for log in logs}:
-            del self._logs[name]
-
-
-def queue_status(queue_dir: Path, root: Path | None = None, final_starts: FinalStarts | None = None) -> dict:
+def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
     """The queue's jobs as `spadscan worker --status --json` lists them, a running job with its progress, and each
     job's `detail`: the last column of `spadscan worker --status` (a kept result, warnings, damaged queue files),
     made by the same function. Its running jobs' progress is left out there: the page has a column for it (a live
-    job's line from its scan's live status, under `root`, while it follows the scan). A running job whose log says
-    where its final run started has `final_start` ('live' or 'hull'; `final_starts` remembers the logs read)."""
+    job's line from its scan's live status, under `root`, while it follows the scan)."""
     from spadscan.worker.queue import Queue
 
     queue = Queue(queue_dir, create=False)
     running = running_progress(queue, root)  # a job with a budget is shown against it
-    logs = {job_id: claim_log(queue.path, path) for job_id, (state, path) in queue.job_paths().items()
-            if state == "running"}
-    final_starts = final_starts or FinalStarts()
-    final_starts.keep_only(logs.values())
     jobs = [{**asdict(row), **progress_field(row.state, row.id, running), "detail": status_detail(row, root=root)}
             for row in queue.statuses()]
-    for job in jobs:
-        start = final_starts.of(logs[job["id"]]) if job["state"] == "running" and job["id"] in logs else None
-        if start is not None:
-            job["final_start"] = start
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
 
 
@@ -92,7 +49,6 @@ class Dashboard:
         self.results = ResultIndex(self.root)
         self._lock = threading.Lock()
         self._detail: tuple[tuple, dict] | None = None
-        self._final_starts = FinalStarts()
 
     def _scan_detail(self, row) -> dict:
         """The detail of the scan in hand, read again only when it has published a chunk or changed state."""
@@ -117,8 +73,7 @@ class Dashboard:
                 (r for r in rows if r.state != "error"), None)
             detail = self._scan_detail(current) if current is not None else None
         try:
-            with self._lock:  # the logs read so far are shared between the server's threads
-                queue = queue_status(self.queue_dir, self.root, self._final_starts)
+            queue = queue_status(self.queue_dir, self.root)
         except OSError as exc:
             queue = {"path": str(self.queue_dir), "jobs": [], "counts": {}, "error": str(exc)}
         return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

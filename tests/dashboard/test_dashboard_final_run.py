@@ -15,17 +15,12 @@ from pathlib import Path
 from dashboard_helpers import add_final_recon, complete_scan, serving
 from page_helpers import add_pose, browser_page, start_scan
 from spadscan.dashboard.server import address
-from spadscan.dashboard.status import FinalStarts
 from spadscan.worker.holder import Holder
 from spadscan.worker.job_progress import claim_log
 from spadscan.worker.jobs import Job
 from spadscan.worker.queue import Queue
 
 WAIT_MS = 60_000  # generous: a poll a second, on a busy machine
-JOB_PY = Path(__file__).resolve().parents[2] / "worker" / "live" / "job.py"
-HULL_LINE = ("live: scan complete (57 views fitted, 89 steps); the final reconstruction starts from the carved hull: "
-             "the live fit is too young (on its coarse level, or only just past it), for 25 s\n")
-LIVE_LINE = "live: scan complete (57 views fitted, 89 steps); the final reconstruction continues from the live fit\n"
 BAR = "reconstruct (fast):  60%|######    | 6/10 s [00:06<00:04, loss=27.3, step=72]\r"
 
 
@@ -66,26 +61,6 @@ def pick(page, scan: str) -> None:
     wait_text(page, "#viewer-name", scan + " / ")
 
 
-def test_the_job_still_says_where_its_final_run_starts_as_the_dashboard_reads_it():
-    """The dashboard reads the start from the live job's log line (worker/live/job.py): the wording it looks for."""
-    source = JOB_PY.read_text()
-    assert '"continues from the live fit"' in source and 'f"starts from the carved hull: {why}"' in source
-    assert 'log(f"live: scan complete (' in source
-
-
-def test_a_final_runs_start_is_read_from_its_log_as_it_grows_and_a_line_half_written_is_read_again(tmp_path):
-    log, starts = tmp_path / "job.log", FinalStarts()
-    assert starts.of(log) is None, "no log yet"
-    log.write_text("live: refit on 57 views\n" + HULL_LINE[:60])
-    assert starts.of(log) is None
-    log.write_text("live: refit on 57 views\n" + HULL_LINE + BAR)
-    assert starts.of(log) == "hull"
-    log.write_text("")  # said once: not read again
-    assert starts.of(log) == "hull"
-    starts.keep_only([])
-    assert starts.of(log) is None
-
-
 def test_only_a_finished_result_warns_that_its_run_did_not_converge(tmp_path):
     for name, state in (("waiting", "waiting"), ("following", "live"), ("aborted", "aborted")):
         complete_scan(tmp_path / name, 1)
@@ -119,11 +94,11 @@ def test_the_live_chamfer_says_it_is_the_live_fits_against_the_ground_truth_on_i
 
 
 def test_while_the_final_run_runs_the_heading_says_so_and_where_it_started(tmp_path):
-    for name, line in (("bowl", HULL_LINE), ("mug", LIVE_LINE)):
+    for name, start in (("bowl", "hull"), ("mug", "live")):
         complete_scan(tmp_path / name, 1)
         live_status(tmp_path / name, views_used=57, views_published=64, steps=89, chamfer_mm=48.8, state="final",
-                    job=f"{name}-fast")
-        running_job(tmp_path, f"{name}-fast", "live: refit on 57 views\n" + line + BAR)
+                    job=f"{name}-fast", final_start=start)
+        running_job(tmp_path, f"{name}-fast", "live: refit on 57 views\n" + BAR)
     with serving(tmp_path) as server, browser_page() as (page, seen):
         page.goto(address(server))
         pick(page, "bowl")

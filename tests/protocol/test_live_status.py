@@ -26,9 +26,11 @@ def test_a_status_round_trips_with_the_issue_fields(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["status.json"]  # no temporary file left behind
 
 
-def test_chamfer_is_written_only_when_known(tmp_path):
+def test_chamfer_and_the_final_start_are_written_only_when_known(tmp_path):
     data = json.loads(write_status(tmp_path, LiveStatus(views_used=1, views_published=1, steps=0)).read_text())
-    assert "chamfer_mm" not in data
+    assert "chamfer_mm" not in data and "final_start" not in data
+    write_status(tmp_path, LiveStatus(views_used=1, views_published=1, steps=0, state="final", final_start="hull"))
+    assert read_status(tmp_path / "status.json").final_start == "hull"
 
 
 def test_a_capture_folder_reads_its_live_status(tmp_path):
@@ -46,6 +48,7 @@ def test_unknown_keys_are_accepted(tmp_path):
 @pytest.mark.parametrize("change, says", [
     ({"views_used": -1}, "views_used"), ({"steps": 2.5}, "steps"), ({"converged": "yes"}, "converged"),
     ({"state": "dancing"}, "state"), ({"chamfer_mm": float("nan")}, "chamfer_mm"), ({"note": 3}, "note"),
+    ({"final_start": "scratch"}, "final_start"),
 ])
 def test_a_malformed_status_is_one_line_naming_the_field(tmp_path, change, says):
     path = tmp_path / "status.json"

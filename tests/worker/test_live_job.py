@@ -118,6 +118,7 @@ def test_a_live_job_follows_a_scan_pose_by_pose_and_finishes_from_the_live_fit(c
     assert (live.out / "mesh.ply").stat().st_size > 0
     final = read_status(status_path(root / "cyl"))
     assert final.state == "final" and final.views_used == 24 and final.views_published == 24
+    assert final.final_start == report["live"]["final_start"], "the status says where the final run starts"
     leftovers = [p.name for p in (root / "cyl" / "recon" / "live").iterdir() if p.name.startswith(".")]
     assert leftovers == []
 

@@ -161,12 +161,14 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     runner.begin(progress)  # before the set-up (the ground truth, torch, the device), which takes seconds
     gt, _ = ground_truth(progress.manifest, out)
     runner.start(progress, gt)
+    start = why = None
     try:
         progress = runner.follow(progress)
         if progress.state == "complete" and runner.fit.model is not None:
+            start, why = final_start(runner.fit, progress.views_published, settings)
             # The status only: the live mesh is at most publish_every_s old, and meshing and drawing it again
             # would delay the final result that replaces it.
-            runner.write_status(progress, "final")
+            runner.write_status(progress, "final", final_start=start)
     except SpadscanError as exc:  # a chunk or manifest that cannot be read: the job fails saying why
         runner.stopped("stopped", str(exc))
         raise
@@ -180,7 +182,8 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         runner.stopped("final", f"the scan completed with {progress.views_published} views before the live fit "
                                 "started: reconstructing it from scratch")
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
-    start, why = final_start(runner.fit, progress.views_published, settings)
+    if start is None:  # the scan ended otherwise than complete, with a fit: its final run all the same
+        start, why = final_start(runner.fit, progress.views_published, settings)
     final, bounds = final_job(job, runner.fit, settings, start)
     live_report = runner.fit.report()
     length = (f"{final.budget_s:g} s" if final.budget_s is not None else
@@ -412,7 +415,8 @@ class LiveRun:
             return f"making the first fit of {progress.views_published} views (loading them, carving their hull)"
         return None
 
-    def write_status(self, progress: ScanProgress, state: str, note: str | None = None) -> None:
+    def write_status(self, progress: ScanProgress, state: str, note: str | None = None,
+                     final_start: str | None = None) -> None:
         fit = self.fit
         used = 0 if fit is None else fit.views_used
         # A refit reads the capture itself and can see views that the last poll had not: every view it uses was
@@ -421,7 +425,7 @@ class LiveRun:
             views_used=used, views_published=max(progress.views_published, used),
             steps=0 if fit is None else fit.steps, converged=bool(fit is not None and fit.converged), state=state,
             chamfer_mm=None if self.chamfer_mm is None else round(float(self.chamfer_mm), 4),
-            views_planned=progress.views_planned, job=self.job.id, note=note))
+            views_planned=progress.views_planned, job=self.job.id, note=note, final_start=final_start))
 
     def stopped(self, state: str, note: str) -> None:
         """The follow phase ended otherwise than by a finished scan with a fit: say so in the status."""
