@@ -392,6 +392,8 @@ class Worker:
             note = "" if bad_input else f"; {_moved_to(state, bad_input)}"
         if state == "failed":
             self._settle_failed(job, error)
+            note += (f" (once the cause is fixed, `spadscan worker --root {self.root}{self._queue_flag()} "
+                     f"--retry-failed` queues it again)")
         self.log(said + note)
 
     def _say_queued(self, claim: Claim, why: str) -> None:

@@ -213,8 +213,14 @@ def test_a_live_job_that_failed_on_its_input_never_says_queued_only_stopped(held
     held.child.outcome.write_text(json.dumps({"ok": False, "kind": "input", "error": "no returns above the noise"}))
     held.child.proc.returncode = 1  # attempts are left (1 of 3): an input failure is still not retried
     seen_on_the_way = watch_every_change(monkeypatch, held.root / "s" / "recon" / "live")
+    lines: list[str] = []
+    held.worker.log = lines.append
     held.worker._settle(held.child)
     assert [view[0] for view in seen_on_the_way] == ["stopped"], seen_on_the_way
+    # The failed line says how to run the job again once its input is mended (a torn chunk moved out, say).
+    assert lines[-1].startswith(f"{JOB} failed after ") and "no returns above the noise" in lines[-1], lines
+    assert lines[-1].endswith(f"(once the cause is fixed, `spadscan worker --root {held.root} --retry-failed` "
+                              f"queues it again)"), lines
 
 
 def test_a_queue_unreachable_as_a_live_job_crashes_leaves_the_worker_running(held, monkeypatch):
