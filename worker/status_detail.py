@@ -1,6 +1,6 @@
-"""The last column of `spadscan worker --status` for one job (and the dashboard's queue table, which shows the same):
-a done job's result folder and what its report said of itself, a running job's progress, else its last error, then
-damaged queue files."""
+"""The last column of `spadscan worker --status` for one job (the dashboard's queue table shows the same, its
+warnings counted rather than listed): a done job's result folder and what its report said of itself, a running job's
+progress, else its last error, then damaged queue files."""
 
 from __future__ import annotations
 
@@ -53,15 +53,9 @@ def own_live_status(root, job_id: str, scan: str) -> LiveStatus | None:
     return status if status.job == job_id and status.state not in (*ENDED, "queued") else None
 
 
-def status_detail(row, running: dict | None = None, root=None) -> str:
-    """The last column of a --status row on one line: `status_lines`, joined with '; ' (the dashboard's cell)."""
-    detail, warnings, notes = status_parts(row, running, root)
-    return "; ".join([detail, *(f"warning: {w}" for w in warnings), *notes])
-
-
 def status_lines(row, running: dict | None = None, root=None) -> list[str]:
-    """The last column of a --status row for a terminal: the row's own line (`status_detail` without a done job's
-    warnings, which it counts), then each warning on a line of its own, "warning: ..." (a report gives up to
+    """The last column of a --status row for a terminal: the row's own line (`status_parts`' detail and notes, a
+    done job's warnings counted), then each warning on a line of its own, "warning: ..." (a report gives up to
     about ten, each a sentence or two: on the row's line they made one line of thousands of characters)."""
     detail, warnings, notes = status_parts(row, running, root)
     if warnings:

@@ -15,7 +15,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from spadscan.worker.job_progress import progress_field, running_progress
-from spadscan.worker.status_detail import status_detail
+from spadscan.worker.status_detail import status_parts
 
 from .results import ResultIndex
 from .scans import IN_HAND, INTERRUPTED, ScanIndex, interrupted, scan_detail
@@ -23,23 +23,32 @@ from .scans import IN_HAND, INTERRUPTED, ScanIndex, interrupted, scan_detail
 
 def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
     """The queue's jobs as `spadscan worker --status --json` lists them, a running job with its progress, and each
-    job's `detail`: the last column of `spadscan worker --status` (a kept result, warnings, damaged queue files),
-    made by the same function. Its running jobs' progress is left out there: the page has a column for it (a live
-    job's line from its scan's live status, under `root`, while it follows the scan)."""
+    job's `detail`: the last column of `spadscan worker --status` (a kept result, damaged queue files), made by the
+    same function, and `warnings`, how many warnings a done job's report gives (the page prints them once, in the
+    panel of the result in view: here a count leads there, as the terminal's "(3 warnings below)"). Its running
+    jobs' progress is left out there: the page has a column for it (a live job's line from its scan's live status,
+    under `root`, while it follows the scan)."""
     from spadscan.worker.queue import Queue
 
     queue = Queue(queue_dir, create=False)
     running = running_progress(queue, root)  # a job with a budget is shown against it
-    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), "detail": status_detail(row, root=root)}
+    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), **job_detail(row, root)}
             for row in queue.statuses()]
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
+
+
+def job_detail(row, root: Path | None) -> dict:
+    """{"detail": the row's last --status column without its warnings, "warnings": how many there are}."""
+    detail, warnings, notes = status_parts(row, root=root)
+    return {"detail": "; ".join([detail, *notes]), "warnings": len(warnings)}
 
 
 class Dashboard:
     """The state of one captures root (and its queue), read again at each poll; safe to call from several threads.
 
     `daemon_running(root)` says whether a daemon holds the root (asked once a poll): when none does, a scan still in
-    hand is shown as interrupted, without a frame rate. None: scans are shown as their scan.json says."""
+    hand is shown as interrupted, without a frame rate, and the answer's `daemon` is False (the page says so even
+    while the rig is idle, when no scan shows it). None: scans are shown as their scan.json says, `daemon` None."""
 
     def __init__(self, root, queue_dir=None, daemon_running: Callable[[Path], bool] | None = None):
         self.root = Path(root)
@@ -59,7 +68,8 @@ class Dashboard:
 
     def status(self) -> dict:
         # a daemon that starts or dies while the scans are read is seen at the next poll
-        orphaned = self.daemon_running is not None and not self.daemon_running(self.root)
+        daemon = None if self.daemon_running is None else bool(self.daemon_running(self.root))
+        orphaned = daemon is False
         with self._lock:
             rows = self.scans.rows()
             if orphaned:  # in place: the order (scans in hand first) stays, and the scan is still the one in hand
@@ -77,4 +87,4 @@ class Dashboard:
         except OSError as exc:
             queue = {"path": str(self.queue_dir), "jobs": [], "counts": {}, "error": str(exc)}
         return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                "scans": scans, "current": detail, "queue": queue}
+                "daemon": daemon, "scans": scans, "current": detail, "queue": queue}

@@ -4,7 +4,7 @@ The scene (the reconstruction, the ground truth when there is one, the sensor po
 pyvista and serialised by trame-vtk's vtk.js serialisers, without a server; trame-vtk's standalone vtk.js viewer
 (its OfflineLocalView page) shows it: drag to turn, shift-drag to pan, the wheel to zoom. The scene is embedded in
 the page, so the report folder can be zipped and mailed and the page opens from disk with no network. Our part is a
-small panel that shows or hides each layer.
+small panel that shows or hides each layer, and the camera handed on when a page replaces the view (below).
 """
 
 from __future__ import annotations
@@ -113,6 +113,40 @@ PANEL = """<div id="spadscan-scene" style="position:fixed;top:0;left:0;right:0;b
     var rw = (window.global || {{}}).renderWindow, renderers = rw ? rw.getRenderers() : [];
     return renderers.length ? [rw, renderers[renderers.length - 1].getActors()] : [null, []];
   }}
+  function camera() {{
+    var rw = (window.global || {{}}).renderWindow, renderers = rw ? rw.getRenderers() : [];
+    return renderers.length ? renderers[renderers.length - 1].getActiveCamera() : null;
+  }}
+  function cameraState(cam) {{
+    return {{position: cam.getPosition(), focalPoint: cam.getFocalPoint(), viewUp: cam.getViewUp(),
+             viewAngle: cam.getViewAngle()}};
+  }}
+  // A page that shows this view in a frame and replaces it (the dashboard, when the live mesh changes) keeps the
+  // operator's camera: it asks spadscanCamera() (null while the camera is the scene's own) and hands the answer to
+  // the new page as its address's #camera=JSON, applied once the scene has loaded.
+  var sceneCamera = null;
+  window.spadscanCamera = function () {{
+    var cam = camera(), now = cam && sceneCamera ? cameraState(cam) : null;
+    return now && JSON.stringify(now) !== sceneCamera ? now : null;
+  }};
+  function handedCamera() {{
+    var found = /[#&]camera=([^&]*)/.exec(location.hash);
+    if (!found) return null;
+    var state;
+    try {{ state = JSON.parse(decodeURIComponent(found[1])); }} catch (err) {{ return null; }}
+    var triple = function (v) {{ return Array.isArray(v) && v.length === 3 && v.every(isFinite); }};
+    return state && triple(state.position) && triple(state.focalPoint) && triple(state.viewUp) &&
+      isFinite(state.viewAngle) ? state : null;
+  }}
+  function applyCamera(state) {{
+    var cam = camera(), rw = window.global.renderWindow;
+    cam.setPosition.apply(cam, state.position);
+    cam.setFocalPoint.apply(cam, state.focalPoint);
+    cam.setViewUp.apply(cam, state.viewUp);
+    cam.setViewAngle(state.viewAngle);
+    rw.getRenderers()[rw.getRenderers().length - 1].resetCameraClippingRange();
+    rw.render();
+  }}
   function show(box) {{
     var found = actors(), actor = found[1][Number(box.dataset.layer)];
     if (actor) {{ actor.setVisibility(box.checked); found[0].render(); }}
@@ -126,6 +160,11 @@ PANEL = """<div id="spadscan-scene" style="position:fixed;top:0;left:0;right:0;b
     if (list.length || ++tries > 600) {{
       clearInterval(wait);
       document.querySelectorAll("#spadscan-layers input").forEach(function (box) {{ if (!box.checked) show(box); }});
+      if (list.length) {{
+        sceneCamera = JSON.stringify(cameraState(camera()));
+        var handed = handedCamera();
+        if (handed) applyCamera(handed);
+      }}
       document.body.dataset.sceneLoaded = list.length ? "yes" : "no";
     }}
   }}, 50);
