@@ -228,7 +228,8 @@ class ScanRunner:
         # continues a scan that was interrupted, not one someone or something had stopped.
         auto = auto_resume and job.blocked is None and reopen_error is None and paused is None
         going_on = "auto_resume continues it" if auto else "`spadscan ctl resume` continues"
-        job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); {going_on}" +
+        job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
+                                               f"{going_on}" +
                                                (f", taking pose(s) {owed} again first (missing from the capture)"
                                                 if owed else ""))
         if reopen_error and not job.blocked:

@@ -636,9 +636,10 @@ def _not_queued(name: str, settling_s: float | None) -> str:
     if settling_s is None:
         return (f"not queued: scan {name} is still being recorded (a worker without --once takes it when it ends; "
                 f"with --live, as it is recorded)")
-    return (f"not queued: scan {name} looks like a copy still under way (something in it changed "
-            f"{max(0.0, SETTLE_S - settling_s):.0f} s ago): it is taken once nothing in it has changed for {SETTLE_S:.0f} s, "
-            f"in {math.ceil(settling_s)} s if it stays as it is; run the worker again then, or without --once")
+    changed = max(0.0, SETTLE_S - settling_s)
+    return (f"not queued: scan {name} looks like a copy still under way (something in it changed {changed:.0f} s "
+            f"ago): it is taken once nothing in it has changed for {SETTLE_S:.0f} s, in {math.ceil(settling_s)} s if "
+            f"it stays as it is; run the worker again then, or without --once")
 
 
 def _recording(job_id: str) -> str:

@@ -31,7 +31,8 @@ from .render import render_returns
 from .sampler import HullRays, around_crossing, hull_rays, pick_rays, stratified
 
 RENDER_SEED_OFFSET = 0x5EED
-"""The renders outside training draw from the run's seed plus this (any fixed offset: a stream apart from training's)."""
+"""The renders outside training draw from the run's seed plus this (any fixed offset: a stream apart from
+training's)."""
 
 
 def make_fast_model(scene, config: FastConfig, device, plan) -> "FastModel":
