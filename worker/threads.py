@@ -9,11 +9,24 @@ one thread each (39-46 ms).
 
 So a CPU reconstruction chooses its threads as it runs (`ThreadGovernor`): it times its steps with all the threads
 it may use and with one, keeps the faster, and tries the other again from time to time (sooner when its steps
-suddenly slow down), since other processes come and go. And its OpenMP threads wait for each other passively
-(`OMP_WAIT_POLICY=PASSIVE`, set for the job processes and by `spadscan reconstruct` before torch starts): a thread
-that spins while its partner has lost its core takes that core from the partner. Measured on the same busy 2-core
-machine (the cup, 40 steps each): two threads spinning 580 ms a step, two threads waiting passively 118 ms, one
-thread 64-91 ms.
+suddenly slow down), since other processes come and go.
+
+How its OpenMP threads wait for each other is set before torch starts (`wait_env`), for the job processes and by
+`spadscan reconstruct`. A thread that spins while its partner has lost its core takes that core from the partner;
+one that sleeps at once pays a wake-up at each of the step's operations. Measured on the 2-core machine (the demo's
+goblet, fine level, ms per step), two threads:
+
+| wait                              | idle | one core busy |
+|-----------------------------------|------|---------------|
+| passive (`OMP_WAIT_POLICY=PASSIVE`) | 68   | 75            |
+| spin 3,000 / 10,000 / 30,000 / 100,000 (`GOMP_SPINCOUNT`) | 62 / 55 / 50 / 51 | 345 (30,000) |
+| spin without end (`ACTIVE`)       | 52   |               |
+| one thread                        | 66   | 65            |
+
+So a run whose threads the governor chooses spins briefly (30,000, about a third of a millisecond): idle, two threads
+then beat one by a quarter; busy, the governor has gone to one thread, which never waits. A run whose threads are
+fixed (`--threads`, the user's OMP_NUM_THREADS) has no governor to leave a stalled pair, so its threads wait
+passively.
 """
 
 from __future__ import annotations
@@ -28,9 +41,13 @@ from spadscan.protocol.errors import ConfigError
 ENV = "OMP_NUM_THREADS"
 """Read by torch and by numpy's BLAS when they start: how a parent process sets its children's threads."""
 WAIT_ENV = "OMP_WAIT_POLICY"
-"""How idle OpenMP threads wait: PASSIVE (sleep) rather than spin. Read once, when torch's OpenMP runtime starts."""
+"""How idle OpenMP threads wait: PASSIVE (sleep) or ACTIVE (spin). Read once, when torch's OpenMP runtime starts."""
 SPIN_ENV = "GOMP_SPINCOUNT"
-"""GNU OpenMP's own spin setting: a user who sets it has chosen, and the wait policy is left alone."""
+"""GNU OpenMP's spins before a waiting thread sleeps (torch's CPU builds use GNU OpenMP): a user who sets it, or
+OMP_WAIT_POLICY, has chosen, and neither is touched."""
+SHORT_SPIN = "30000"
+"""Spins of a run whose threads the governor chooses: about a third of a millisecond, where two threads reach the
+speed of spinning without end on idle cores (the module's table)."""
 ADAPT_ENV = "SPADSCAN_ADAPT_THREADS"
 """Set to 1 by the worker for jobs whose OMP_NUM_THREADS is its default share of the cores (not a user's choice): the
 job may then use fewer threads when that is faster (`ThreadGovernor`)."""
@@ -85,12 +102,13 @@ def oversubscribed(processes: int, threads: int, cores: int | None = None) -> st
             f"{cores} cores: {advice}")
 
 
-def passive_wait_env(environ: Mapping[str, str]) -> dict[str, str]:
-    """{OMP_WAIT_POLICY: PASSIVE} unless `environ` already says how OpenMP threads wait (OMP_WAIT_POLICY or
-    GOMP_SPINCOUNT): what a process that starts torch, or its parent, adds to the environment before torch loads."""
+def wait_env(environ: Mapping[str, str], adapting: bool) -> dict[str, str]:
+    """How OpenMP threads wait, as variables to add to the environment before torch loads: a short spin
+    ({GOMP_SPINCOUNT: SHORT_SPIN}) when the run's threads are `adapting` (`ThreadGovernor`), else passive
+    ({OMP_WAIT_POLICY: PASSIVE}); nothing when `environ` already says (OMP_WAIT_POLICY or GOMP_SPINCOUNT)."""
     if environ.get(WAIT_ENV) or environ.get(SPIN_ENV):
         return {}
-    return {WAIT_ENV: "PASSIVE"}
+    return {SPIN_ENV: SHORT_SPIN} if adapting else {WAIT_ENV: "PASSIVE"}
 
 
 def threads_fixed(threads: int | None, environ: Mapping[str, str]) -> bool:
@@ -200,5 +218,5 @@ class ThreadGovernor:
                 "median_step_s": {str(k): v for k, v in sorted(self.medians.items())}}
 
 
-__all__ = ["ENV", "WAIT_ENV", "ADAPT_ENV", "passive_wait_env", "threads_fixed", "ThreadGovernor", "machine_cores",
+__all__ = ["ENV", "WAIT_ENV", "SPIN_ENV", "SHORT_SPIN", "ADAPT_ENV", "wait_env", "threads_fixed", "ThreadGovernor", "machine_cores",
            "threads_per_job", "check_threads", "inherited_threads", "oversubscribed"]

@@ -10,7 +10,7 @@ from typing import Mapping
 from spadscan.protocol.errors import ConfigError
 
 from .threads import (ADAPT_ENV, ENV as THREADS_ENV, check_threads, inherited_threads, machine_cores,
-                      oversubscribed, passive_wait_env, threads_per_job)
+                      oversubscribed, threads_per_job, wait_env)
 from .watcher import JobOptions, check_root
 
 
@@ -51,16 +51,17 @@ class WorkerConfig:
 
     def job_env(self, environ: Mapping[str, str] | None = None) -> dict[str, str]:
         """Environment variables the job processes get on top of the worker's own (`environ`, default os.environ):
-        the threads per job, passive OpenMP waiting (threads.py), then `child_env`. Threads the worker shared out
-        itself are a ceiling the job may go under when fewer are faster (ADAPT_ENV); --threads and the worker's own
-        OMP_NUM_THREADS are kept as given."""
+        the threads per job, how their OpenMP threads wait (threads.py), then `child_env`. Threads the worker
+        shared out itself are a ceiling the job may go under when fewer are faster (ADAPT_ENV), and wait with a
+        short spin; --threads and the worker's own OMP_NUM_THREADS are kept as given, and wait passively."""
         environ = os.environ if environ is None else environ
-        env = passive_wait_env(environ)
+        env: dict[str, str] = {}
         if self.threads is not None:
             env[THREADS_ENV] = str(self.threads)
         elif inherited_threads(environ)[0] is None:  # unset, or a value torch cannot use: replaced
             env[THREADS_ENV] = str(threads_per_job(self.processes))
             env[ADAPT_ENV] = "1"
+        env.update(wait_env(environ, adapting=ADAPT_ENV in env))
         return {**env, **(self.child_env or {})}
 
     def job_threads(self, environ: Mapping[str, str] | None = None) -> int | None:

@@ -30,8 +30,10 @@ bound that cuts the object, a mesh or metrics made coarser to fit the budget (do
 
 CPU threads: without --threads (and without OMP_NUM_THREADS), a CPU run times its steps with all the cores' threads
 and with one, keeps the faster and checks again from time to time, so that a busy machine does not make every step
-many times slower; its OpenMP threads wait passively (OMP_WAIT_POLICY=PASSIVE unless set). report.json's "threads"
-says what it chose.
+many times slower; its OpenMP threads spin briefly before they sleep (GOMP_SPINCOUNT=30000: two threads then beat
+one on idle cores). With --threads (or OMP_NUM_THREADS) the count is kept and the threads wait passively
+(OMP_WAIT_POLICY=PASSIVE), so that a busy core does not stall them; a wait policy or spin count you set is kept.
+report.json's "threads" says what it chose.
 
 Presets: `fast` (default) is an SDF grid that reaches good meshes in minutes on a CPU; `paper` is the published
 method (an MLP SDF, 300K steps nominal: hours on a GPU). The `fast` preset's mechanisms are parts (refinement,
@@ -96,10 +98,11 @@ def run(args: argparse.Namespace) -> int:
 
     from spadscan.signals import terminate_as_interrupt
     from spadscan.worker.budget import process_started
-    from spadscan.worker.threads import passive_wait_env
+    from spadscan.worker.threads import threads_fixed, wait_env
 
     started = process_started()  # the budget counts from here: torch's import and the set-up are part of the run
-    os.environ.update(passive_wait_env(os.environ))  # read once, when torch's OpenMP runtime starts: before it
+    # Read once, when torch's OpenMP runtime starts: before it.
+    os.environ.update(wait_env(os.environ, adapting=not threads_fixed(args.threads, os.environ)))
     from spadscan.worker.reconstruct import reconstruct_capture  # torch: only when a reconstruction runs
 
     out = check_out(args.out, args.overwrite, capture=args.capture)

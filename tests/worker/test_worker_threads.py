@@ -11,7 +11,8 @@ import pytest
 
 from spadscan.cli import main as cli_main
 from spadscan.worker.pool import Worker
-from spadscan.worker.threads import ADAPT_ENV, ENV, WAIT_ENV, ThreadGovernor, machine_cores, threads_fixed
+from spadscan.worker.threads import (ADAPT_ENV, ENV, SHORT_SPIN, SPIN_ENV, WAIT_ENV, ThreadGovernor, machine_cores,
+                                     threads_fixed)
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
@@ -76,20 +77,37 @@ def test_the_workers_own_omp_num_threads_is_kept(tmp_path, monkeypatch, arun):
 
 def test_child_env_wins_over_threads():
     config = WorkerConfig(root=Path("."), processes=2, threads=3, child_env={ENV: "4", "OTHER": "x"})
-    assert config.job_env({}) == {ENV: "4", "OTHER": "x", WAIT_ENV: "PASSIVE"}
+    assert config.job_env({}) == {ENV: "4", "OTHER": "x", WAIT_ENV: "PASSIVE"}, "fixed threads wait passively"
     assert WorkerConfig(root=Path("."), processes=2).job_env({ENV: "7"}) == {WAIT_ENV: "PASSIVE"}, \
         "the user's choice is inherited"
 
 
-def test_jobs_wait_passively_and_adapt_only_the_threads_the_worker_chose(monkeypatch):
+def test_jobs_adapt_only_the_threads_the_worker_chose_and_spin_briefly_only_then(monkeypatch):
     two_cores(monkeypatch)
     config = WorkerConfig(root=Path("."), processes=1)
-    assert config.job_env({}) == {ENV: "2", ADAPT_ENV: "1", WAIT_ENV: "PASSIVE"}
+    assert config.job_env({}) == {ENV: "2", ADAPT_ENV: "1", SPIN_ENV: SHORT_SPIN}
+    assert WorkerConfig(root=Path("."), processes=1, threads=2).job_env({})[WAIT_ENV] == "PASSIVE"
     assert ADAPT_ENV not in WorkerConfig(root=Path("."), processes=1, threads=2).job_env({}), "--threads is kept"
     assert config.job_env({WAIT_ENV: "ACTIVE"}) == {ENV: "2", ADAPT_ENV: "1"}, "the user's wait policy is kept"
-    assert WAIT_ENV not in config.job_env({"GOMP_SPINCOUNT": "1000"})
+    assert config.job_env({SPIN_ENV: "1000"}) == {ENV: "2", ADAPT_ENV: "1"}, "the user's spin count is kept"
     assert threads_fixed(3, {}) and threads_fixed(None, {ENV: "2"}) and not threads_fixed(None, {})
     assert not threads_fixed(None, {ENV: "2", ADAPT_ENV: "1"})
+
+
+@pytest.mark.parametrize("argv, env, want", [
+    ([], {}, (SHORT_SPIN, "")),  # the governor chooses: a short spin
+    (["--threads", "2"], {}, ("", "PASSIVE")),  # fixed: no governor to leave a stalled pair
+    ([], {ENV: "2"}, ("", "PASSIVE")),  # the user's OMP_NUM_THREADS is fixed too
+    ([], {ENV: "2", ADAPT_ENV: "1"}, (SHORT_SPIN, "")),  # a worker's share of the cores adapts
+    ([], {WAIT_ENV: "ACTIVE"}, ("", "ACTIVE")),  # the user's wait policy is kept
+    (["--threads", "2"], {SPIN_ENV: "500"}, ("500", "")),  # and the user's spin count
+])
+def test_reconstruct_sets_how_threads_wait_before_torch_starts(tmp_path, monkeypatch, capsys, argv, env, want):
+    for name in (ENV, ADAPT_ENV, WAIT_ENV, SPIN_ENV):
+        monkeypatch.setenv(name, env.get(name, ""))  # restored after the test: the command writes os.environ
+    missing = tmp_path / "no-capture"
+    assert cli_main(["reconstruct", str(missing), "--out", str(tmp_path / "out"), *argv]) != 0
+    assert (os.environ[SPIN_ENV], os.environ[WAIT_ENV]) == want
 
 
 @pytest.mark.parametrize("bad", ["0", "-2", "2000"])
@@ -137,7 +155,7 @@ def test_threads_that_fit_the_cores_are_no_warning(monkeypatch):
 def test_an_unusable_omp_num_threads_is_ignored_with_a_warning(monkeypatch, bad):
     two_cores(monkeypatch)
     config = WorkerConfig(root=Path("."), processes=2)
-    assert config.job_env({ENV: bad}) == {ENV: "1", ADAPT_ENV: "1", WAIT_ENV: "PASSIVE"}, \
+    assert config.job_env({ENV: bad}) == {ENV: "1", ADAPT_ENV: "1", SPIN_ENV: SHORT_SPIN}, \
         "the jobs get the cores shared out instead"
     assert config.threads_warnings({ENV: bad}) == [
         f"{ENV}={bad!r} in the worker's environment is not a whole number in [1, 1024]: ignored"]
