@@ -82,8 +82,9 @@ class ResultIndex:
         data, error = _read_json(main)
         keys = LIVE_KEYS if live else SUMMARY_KEYS
         summary = {k: data[k] for k in keys if data and k in data}
-        if not live and final_start(data) is not None:
-            summary["final_start"] = final_start(data)
+        start = None if live else final_start(data)
+        if start is not None:
+            summary["final_start"] = start
         if not isinstance(summary.get("warnings", []), list):
             # the page lists them one a line: anything else would stop its whole refresh, every scan with it
             error = f"{main.name}: warnings {json.dumps(summary.pop('warnings'))[:40]} is not a list"

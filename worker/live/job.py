@@ -161,14 +161,8 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     runner.begin(progress)  # before the set-up (the ground truth, torch, the device), which takes seconds
     gt, _ = ground_truth(progress.manifest, out)
     runner.start(progress, gt)
-    start = why = None
     try:
         progress = runner.follow(progress)
-        if progress.state == "complete" and runner.fit.model is not None:
-            start, why = final_start(runner.fit, progress.views_published, settings)
-            # The status only: the live mesh is at most publish_every_s old, and meshing and drawing it again
-            # would delay the final result that replaces it.
-            runner.write_status(progress, "final", final_start=start)
     except SpadscanError as exc:  # a chunk or manifest that cannot be read: the job fails saying why
         runner.stopped("stopped", str(exc))
         raise
@@ -182,8 +176,11 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         runner.stopped("final", f"the scan completed with {progress.views_published} views before the live fit "
                                 "started: reconstructing it from scratch")
         return execute_job(dataclasses.replace(job, live=False), root, out, recon)
-    if start is None:  # the scan ended otherwise than complete, with a fit: its final run all the same
-        start, why = final_start(runner.fit, progress.views_published, settings)
+    start, why = final_start(runner.fit, progress.views_published, settings)
+    if progress.state == "complete":
+        # The status only: the live mesh is at most publish_every_s old, and meshing and drawing it again would
+        # delay the final result that replaces it.
+        runner.write_status(progress, "final", final_start=start)
     final, bounds = final_job(job, runner.fit, settings, start)
     live_report = runner.fit.report()
     length = (f"{final.budget_s:g} s" if final.budget_s is not None else
