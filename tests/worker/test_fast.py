@@ -552,7 +552,8 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
     measured = FastModel(dataclasses.replace(blank.problem, measured=True), config, seed=0, terms=blank.terms)
     assert measured.part("erosion") is None and "measured" in measured.summary()["parts_left_out"]["erosion"]
     for key, bad in (("parts.erosion.ratio", 1.0), ("parts.erosion.ratio", 0.0), ("parts.erosion.ratio", -0.1),
-                     ("parts.erosion.every_steps", 0), ("parts.erosion.window_bins", -1)):
+                     ("parts.erosion.every_steps", 0), ("parts.erosion.window_bins", -1),
+                     ("parts.erosion.min_depth_voxels", -1.0), ("parts.erosion.min_depth_voxels", float("nan"))):
         with pytest.raises(ConfigError, match=key):
             make_fast_model(scene, _unchecked(config, {key: bad}), "cpu", RunPlan(steps=1, budget_s=None, seed=0))
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from spadscan.worker.recon.fast.evidence import ReturnEvidence, return_ratios
-from spadscan.worker.recon.fast.parts.erosion import erode_at
+from spadscan.worker.recon.fast.parts.erosion import deep_enough, erode_at
 
 
 def peak(n_bins: int, at: int, photons: float) -> torch.Tensor:
@@ -77,3 +77,20 @@ def test_erosion_moves_the_surface_one_voxel_inward_near_the_flagged_nodes_only(
     assert float(sdf[4, 4, 4]) == pytest.approx(-0.5 * voxel) and float(sdf[5, 4, 4]) == pytest.approx(0.5 * voxel)
     assert float(sdf[5, 4, 6]) == pytest.approx(-0.5 * voxel)  # two nodes away: where it was
     assert erode_at(sdf, torch.zeros_like(nodes), voxel) == 0
+
+
+def slab(thickness_voxels: float, voxel: float = 0.01, n: int = 16) -> torch.Tensor:
+    """SDF grid (z, y, x) of a horizontal slab `thickness_voxels` thick, centred between nodes 7 and 8 in z."""
+    z = torch.arange(n, dtype=torch.float64)[:, None, None] * voxel
+    return ((z - 7.5 * voxel).abs() - 0.5 * thickness_voxels * voxel).expand(n, n, n).clone()
+
+
+def test_the_depth_guard_keeps_a_thin_wall_and_passes_a_thick_solid():
+    voxel = 0.01
+    thin, thick = slab(2.0), slab(8.0)
+    top = (8, 8, 8)  # a node next to the slab's upper face in both grids
+    assert not bool(deep_enough(thin, 2 * voxel, voxel)[top])  # a 2-voxel wall is 1 voxel deep at most
+    assert bool(deep_enough(thick, 2 * voxel, voxel)[top])
+    assert bool(deep_enough(thin, 0.5 * voxel, voxel)[top])  # a shallower depth lets the thin wall through
+    # Far from any solid (16 voxels of air above a thin slab) nothing is deep enough.
+    assert not deep_enough(slab(2.0, n=40)[30:], 0.5 * voxel, voxel).any()

@@ -23,6 +23,7 @@ without it; on the built-in goblet 1.47 mm against 3.48 mm.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -47,11 +48,17 @@ class ErosionConfig(PartConfig):
     """Returns a node needs in that time before it can be eroded."""
     window_bins: int = 3
     """Photons are compared within this many bins either side of a return's bin."""
+    min_depth_voxels: float = 2.0
+    """A flagged node is eroded only where the solid under it reaches this deep (voxels): the field's lowest value
+    within ceil(min_depth_voxels) + 1 nodes of it is at most -min_depth_voxels voxels (0: no such guard). A carved
+    lid over an opening is deep; a thin wall is not, and raising the field by a voxel around it breaks it."""
 
     def check(self, key: str) -> None:
         super().check(key)
         if not 0.0 < self.ratio < 1.0:  # also refuses NaN
             raise ConfigError(f"{key}.ratio {self.ratio} must be in (0, 1) ({key}.enabled=false: off)")
+        if not 0.0 <= self.min_depth_voxels <= 8.0:
+            raise ConfigError(f"{key}.min_depth_voxels {self.min_depth_voxels} must be in [0, 8]")
         if self.every_steps < 1 or self.min_hits < 1 or self.window_bins < 0:
             raise ConfigError(f"{key}.every_steps and {key}.min_hits must be >= 1 and {key}.window_bins >= 0")
 
@@ -84,7 +91,10 @@ class Erosion(Part):
     def after_step(self, model: Model, step: StepRecord) -> None:
         if model.level_steps % self.config.every_steps == 0:
             nodes = self.evidence.take(self.config.min_hits, self.config.ratio)
-            self.eroded_nodes += erode_at(model.field.sdf.detach()[0, 0], nodes, model.field.voxel)
+            sdf = model.field.sdf.detach()[0, 0]
+            if self.config.min_depth_voxels > 0:
+                nodes &= deep_enough(sdf, self.config.min_depth_voxels * model.field.voxel, model.field.voxel)
+            self.eroded_nodes += erode_at(sdf, nodes, model.field.voxel)
 
     def on_jump(self, model: Model) -> None:
         # The returns so far lay on the surface the jump removed.
@@ -92,6 +102,14 @@ class Erosion(Part):
 
     def summary(self) -> dict:
         return {"eroded_nodes": self.eroded_nodes}
+
+
+def deep_enough(sdf: torch.Tensor, depth: float, voxel: float) -> torch.Tensor:
+    """Nodes (nz, ny, nx) bool near which the solid reaches `depth` (metres) deep: the SDF grid's lowest value
+    within ceil(depth / voxel) + 1 nodes is at most -depth."""
+    radius = math.ceil(depth / voxel - 1e-6) + 1
+    lowest = -F.max_pool3d(-sdf[None, None], 2 * radius + 1, 1, radius)[0, 0]
+    return lowest <= -depth
 
 
 def erode_at(sdf: torch.Tensor, nodes: torch.Tensor, voxel: float, radius: int = 1) -> int:
