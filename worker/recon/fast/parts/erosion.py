@@ -14,6 +14,10 @@ with the model's (both less the background), and adds the log of the ratio to th
 voxel within one node of them, which moves the surface one voxel inward there and keeps it a distance field. On the
 cup, the lid's nodes read a median ratio of 0.57 and the walls' 0.94 (the bottom's 0.92).
 
+Only where the solid under a flagged node is deep (`min_depth_voxels`): a lid that carving left over an opening is,
+a thin wall is not, and one voxel off both sides of a wall two voxels thick breaks it. Without that guard the demo's
+goblet (a 4 mm bowl on a 2 mm grid) came out shredded, 1.25-1.44 mm against 0.94-1.21 with it (1,900 steps).
+
 The test trusts the sensor model to predict a surface's photons within tens of percent. On measured data it does not:
 on LCSPCData's real pyramid the measured counts are 0.44x the model's three bins before a peak and 1.19x at it, and
 the erosion made the fit worse (5.71 mm against 5.14 mm at 1,500 steps). So it runs on simulated captures only
