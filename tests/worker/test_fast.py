@@ -518,8 +518,8 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
                                                     "parts.erosion.every_steps": 3,
                                                     "parts.erosion.min_hits": 1})
 
-    def run(blank: bool, erosion: bool):
-        cfg = with_overrides(config, {"parts.erosion.enabled": erosion})
+    def run(blank: bool, erosion: bool, depth: float = 0.0):
+        cfg = with_overrides(config, {"parts.erosion.enabled": erosion, "parts.erosion.min_depth_voxels": depth})
         model = make_fast_model(scene, cfg, "cpu", RunPlan(steps=3, budget_s=None, seed=0))
         if blank:  # the histograms hold only the background: every rendered return is one they do not show
             blank_histograms(model)
@@ -531,6 +531,11 @@ def test_surface_the_histograms_do_not_show_is_eroded_on_simulated_data_only(cyl
     blank, blank_lost = run(True, True)
     eroded = blank.part("erosion").eroded_nodes
     assert eroded > 0 and blank.summary()["parts"]["erosion"]["eroded_nodes"] == eroded
+    assert blank.summary()["parts"]["erosion"]["held_nodes"] == 0  # no depth guard
+    # A deep guard holds the flagged nodes near the hull's surface whose solid is shallower than it.
+    guarded, _ = run(True, True, depth=6.0)
+    held = guarded.summary()["parts"]["erosion"]
+    assert held["held_nodes"] > 0 and held["eroded_nodes"] < eroded
     _, kept_lost = run(True, False)  # the same fit without the erosion
     assert blank_lost > kept_lost + eroded // 2
     true, _ = run(False, True)  # the carved hull around the cylinder is eroded, never the cylinder itself

@@ -77,6 +77,7 @@ class Erosion(Part):
         super().__init__(config, model)
         self.evidence: ReturnEvidence | None = None
         self.eroded_nodes = 0
+        self.held_nodes = 0  # flagged, but too thin to erode (min_depth_voxels)
 
     @classmethod
     def left_out(cls, config: ErosionConfig, model: Model) -> str | None:
@@ -97,7 +98,9 @@ class Erosion(Part):
             nodes = self.evidence.take(self.config.min_hits, self.config.ratio)
             sdf = model.field.sdf.detach()[0, 0]
             if self.config.min_depth_voxels > 0:
-                nodes &= deep_enough(sdf, self.config.min_depth_voxels * model.field.voxel, model.field.voxel)
+                deep = deep_enough(sdf, self.config.min_depth_voxels * model.field.voxel, model.field.voxel)
+                self.held_nodes += int((nodes & ~deep).sum())
+                nodes &= deep
             self.eroded_nodes += erode_at(sdf, nodes, model.field.voxel)
 
     def on_jump(self, model: Model) -> None:
@@ -105,7 +108,7 @@ class Erosion(Part):
         self.evidence = ReturnEvidence(tuple(model.field.sdf.shape[2:]), model.device)
 
     def summary(self) -> dict:
-        return {"eroded_nodes": self.eroded_nodes}
+        return {"eroded_nodes": self.eroded_nodes, "held_nodes": self.held_nodes}
 
 
 def deep_enough(sdf: torch.Tensor, depth: float, voxel: float) -> torch.Tensor:
