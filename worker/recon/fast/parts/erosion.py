@@ -62,7 +62,8 @@ class ErosionConfig(PartConfig):
         if not 0.0 < self.ratio < 1.0:  # also refuses NaN
             raise ConfigError(f"{key}.ratio {self.ratio} must be in (0, 1) ({key}.enabled=false: off)")
         if not 0.0 <= self.min_depth_voxels <= 8.0:
-            raise ConfigError(f"{key}.min_depth_voxels {self.min_depth_voxels} must be in [0, 8] voxels (0: no depth guard)")
+            raise ConfigError(f"{key}.min_depth_voxels {self.min_depth_voxels} must be in [0, 8] voxels "
+                              "(0: no depth guard)")
         if self.every_steps < 1 or self.min_hits < 1 or self.window_bins < 0:
             raise ConfigError(f"{key}.every_steps and {key}.min_hits must be >= 1 and {key}.window_bins >= 0")
 
