@@ -8,11 +8,11 @@ fade. Summed over all views, the data gradient on the built-in cup's lid nodes i
 sank from 16 cm to 10-14 cm in 2,400 steps, and it was most of the Chamfer.
 
 What the data does say directly is how many photons came back near each ray's return. Each step, every rendered ray
-with an opaque return compares the measured photons of its histogram within +-`window` bins of the return's bin
-with the model's (both less the background), and adds the log of the ratio to the grid node nearest the return
-(`evidence.py`). Every few steps, nodes with enough hits whose mean ratio is below a threshold are eroded: the field is raised by one
-voxel within one node of them, which moves the surface one voxel inward there and keeps it a distance field. On the
-cup, the lid's nodes read a median ratio of 0.57 and the walls' 0.94 (the bottom's 0.92).
+with an opaque return compares the measured photons of its histogram within +-`window` bins of the return's bin with
+the model's (both less the background), and adds the log of the ratio to the grid node nearest the return
+(`evidence.py`). Every few steps, nodes with enough hits whose mean ratio is below a threshold are eroded: the field
+is raised by one voxel within one node of them, which moves the surface one voxel inward there and keeps it a
+distance field. On the cup, the lid's nodes read a median ratio of 0.57 and the walls' 0.94 (the bottom's 0.92).
 
 Only where the solid under a flagged node is deep (`min_depth_voxels`): a lid that carving left over an opening is,
 a thin wall is not, and one voxel off both sides of a wall two voxels thick breaks it. Without that guard the demo's
