@@ -89,8 +89,24 @@ def test_the_depth_guard_keeps_a_thin_wall_and_passes_a_thick_solid():
     voxel = 0.01
     thin, thick = slab(2.0), slab(8.0)
     top = (8, 8, 8)  # a node next to the slab's upper face in both grids
-    assert not bool(deep_enough(thin, 2 * voxel, voxel)[top])  # a 2-voxel wall is 1 voxel deep at most
-    assert bool(deep_enough(thick, 2 * voxel, voxel)[top])
-    assert bool(deep_enough(thin, 0.5 * voxel, voxel)[top])  # a shallower depth lets the thin wall through
+    every = torch.ones(16, 16, 16, dtype=torch.bool)
+    assert not bool(deep_enough(thin, every, 2 * voxel, voxel)[top])  # a 2-voxel wall is 1 voxel deep at most
+    assert bool(deep_enough(thick, every, 2 * voxel, voxel)[top])
+    assert bool(deep_enough(thin, every, 0.5 * voxel, voxel)[top])  # a shallower depth lets the thin wall through
     # Far from any solid (16 voxels of air above a thin slab) nothing is deep enough.
-    assert not deep_enough(slab(2.0, n=40)[30:], 0.5 * voxel, voxel).any()
+    assert not deep_enough(slab(2.0, n=40)[30:], torch.ones(10, 40, 40, dtype=torch.bool), 0.5 * voxel, voxel).any()
+
+
+def test_the_depth_guard_answers_for_the_given_nodes_as_a_min_pool_over_the_grid_would():
+    gen = torch.Generator().manual_seed(0)
+    x = torch.arange(13, dtype=torch.float64)
+    sdf = (x - 6.0) * 0.004 + torch.randn(9, 11, 13, generator=gen, dtype=torch.float64) * 0.002  # deep at low x
+    nodes = torch.rand(9, 11, 13, generator=gen) < 0.3
+    nodes[0, 0, 0] = nodes[-1, -1, -1] = True  # corners: their windows reach off the grid
+    voxel, depth = 0.01, 0.015  # a window of 3 nodes either side
+    lowest = -torch.nn.functional.max_pool3d(-sdf[None, None], 7, 1, 3)[0, 0]
+    expected = nodes & (lowest <= -depth)
+    assert 0 < int(expected.sum()) < int(nodes.sum())
+    for chunk in (4096, 5):  # whole, and in chunks
+        assert torch.equal(deep_enough(sdf, nodes, depth, voxel, chunk=chunk), expected)
+    assert not deep_enough(sdf, torch.zeros_like(nodes), depth, voxel).any()

@@ -99,9 +99,9 @@ class Erosion(Part):
             nodes = self.evidence.take(self.config.min_hits, self.config.ratio)
             sdf = model.field.sdf.detach()[0, 0]
             if self.config.min_depth_voxels > 0:
-                deep = deep_enough(sdf, self.config.min_depth_voxels * model.field.voxel, model.field.voxel)
-                self.held_nodes += int((nodes & ~deep).sum())
-                nodes &= deep
+                deep = deep_enough(sdf, nodes, self.config.min_depth_voxels * model.field.voxel, model.field.voxel)
+                self.held_nodes += int(nodes.sum()) - int(deep.sum())
+                nodes = deep
             self.eroded_nodes += erode_at(sdf, nodes, model.field.voxel)
 
     def on_jump(self, model: Model) -> None:
@@ -112,12 +112,23 @@ class Erosion(Part):
         return {"eroded_nodes": self.eroded_nodes, "held_nodes": self.held_nodes}
 
 
-def deep_enough(sdf: torch.Tensor, depth: float, voxel: float) -> torch.Tensor:
-    """Nodes (nz, ny, nx) bool near which the solid reaches `depth` (metres) deep: the SDF grid's lowest value
-    within ceil(depth / voxel) + 1 nodes is at most -depth."""
+def deep_enough(sdf: torch.Tensor, nodes: torch.Tensor, depth: float, voxel: float, chunk: int = 4096) -> torch.Tensor:
+    """Those of `nodes` (nz, ny, nx) bool near which the solid reaches `depth` (metres) deep: the SDF grid's lowest
+    value within ceil(depth / voxel) + 1 nodes is at most -depth. Looked up at the given nodes alone (a few hundred
+    per erosion): a min-pool over the whole grid cost 0.4 s a call on the demo's fine level, a fifth of its steps."""
     radius = math.ceil(depth / voxel - 1e-6) + 1
-    lowest = -F.max_pool3d(-sdf[None, None], 2 * radius + 1, 1, radius)[0, 0]
-    return lowest <= -depth
+    span = torch.arange(-radius, radius + 1, device=sdf.device)
+    offsets = torch.stack(torch.meshgrid(span, span, span, indexing="ij"), dim=-1).reshape(-1, 3)
+    last = torch.tensor(sdf.shape, device=sdf.device) - 1
+    strides = torch.tensor([sdf.shape[1] * sdf.shape[2], sdf.shape[2], 1], device=sdf.device)
+    flat = sdf.reshape(-1)
+    out = torch.zeros_like(nodes)
+    # A neighbour off the grid is clamped onto its edge, a node that is itself within the window: the minimum holds.
+    for at in torch.nonzero(nodes).split(chunk):  # bounded memory: chunk x (2 radius + 1)^3 lookups at a time
+        around = torch.minimum((at[:, None, :] + offsets).clamp(min=0), last)
+        deep = at[flat[(around * strides).sum(dim=-1)].amin(dim=1) <= -depth]
+        out[deep[:, 0], deep[:, 1], deep[:, 2]] = True
+    return out
 
 
 def erode_at(sdf: torch.Tensor, nodes: torch.Tensor, voxel: float, radius: int = 1) -> int:
