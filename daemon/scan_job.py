@@ -28,7 +28,7 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
-from spadscan.protocol.capture_format import MANIFEST, NoPermission, chunk_index, fsync_dir, read_json
+from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter, plan_retakes
 from spadscan.protocol.errors import CaptureError, ConfigError
@@ -360,11 +360,10 @@ def damaged_chunks(path: Path) -> tuple[list[str], list[str], list[str]]:
         return [], [], []
     damaged, forbidden = [], []
     for name in names:
-        try:
-            reader.read_chunk(name)
-        except NoPermission:
+        read = reader.try_read_chunk(name)  # the reader's own verdict, so that this advice and its load agree
+        if read.forbidden:
             forbidden.append(name)
-        except (CaptureError, OSError):
+        elif read.damaged:
             damaged.append(name)
     return names, damaged, forbidden
 

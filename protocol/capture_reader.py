@@ -10,7 +10,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, VERSION, Chunk, NoPermission, check_hists,
-                             check_poses, chunk_index, one_line, read_json, read_npy)
+                             check_poses, chunk_index, no_permission, one_line, read_json, read_npy)
 from .errors import CaptureError, SensorModelError
 from .plausibility import check_counts, first_photon_cycles
 from .sensor_model import SensorModel
@@ -81,6 +81,37 @@ def _check_version(version, where) -> None:
     if version > VERSION:
         raise CaptureError(f"{where}: capture format version {version} is newer than this spadscan reads "
                            f"(version {VERSION}); upgrade spadscan to read it")
+
+
+def _is_there(path: Path) -> bool:
+    """Whether the file at `path` exists. A lookup that fails (a disk error, a folder this user may not search) is a
+    one-line CaptureError (NoPermission for the latter), as for a chunk file that cannot be read, never a bare
+    OSError: Path.exists raises every error but those that say the file is not there."""
+    try:
+        return path.exists()
+    except PermissionError:
+        raise no_permission(path) from None
+    except OSError as exc:
+        raise CaptureError(f"{path}: cannot be read ({one_line(exc)})") from None
+
+
+@dataclass
+class ChunkRead:
+    """One published chunk as read: the chunk when whole, else why it cannot be read. error is a NoPermission for a
+    chunk this user may not read (forbidden: its owner or mode, its content may be intact), any other CaptureError
+    for a damaged one (torn or zeroed files after a power cut, a disk error)."""
+
+    name: str
+    chunk: Chunk | None = None
+    error: CaptureError | None = None
+
+    @property
+    def forbidden(self) -> bool:
+        return isinstance(self.error, NoPermission)
+
+    @property
+    def damaged(self) -> bool:
+        return self.error is not None and not self.forbidden
 
 
 NAMED_CHUNKS = 8
@@ -160,7 +191,7 @@ class CaptureReader:
         if poses.shape[0] != n:
             raise CaptureError(f"{d / 'poses.npy'}: {poses.shape[0]} poses for {n} histograms")
         ref = None
-        if (d / "reference.npy").exists():
+        if _is_there(d / "reference.npy"):
             ref = read_npy(d / "reference.npy")
             if ref.shape != (n, s.n_bins) or ref.dtype != np.uint32:
                 raise CaptureError(f"{d / 'reference.npy'}: shape {ref.shape} {ref.dtype}, expected "
@@ -174,10 +205,13 @@ class CaptureReader:
                 raise CaptureError(f"{d / 'meta.json'}: measurement {i} lacks a pose_index >= 0")
         return Chunk(name, hists, poses, ref, meta)
 
-    def iter_chunks(self, start: int = 0) -> Iterator[Chunk]:
-        """Published chunks from position `start` in the listing."""
-        for name in self.chunk_names()[start:]:
-            yield self.read_chunk(name)
+    def try_read_chunk(self, name: str) -> ChunkRead:
+        """Chunk `name` read, or why it cannot be: whole, damaged or forbidden (ChunkRead). The one place that tells
+        them apart, for loading a capture and for the daemon's advice on one it could not take over."""
+        try:
+            return ChunkRead(name, chunk=self.read_chunk(name))
+        except CaptureError as exc:
+            return ChunkRead(name, error=exc)
 
     def _readable_chunks(self) -> list[Chunk]:
         """Every published chunk, read. One that cannot be read (torn or zeroed files after a power cut) raises its
@@ -186,13 +220,14 @@ class CaptureReader:
         damaged (its content may be intact) and gets no such advice."""
         chunks, damaged, first = [], [], None
         for name in self.chunk_names():
-            try:
-                chunks.append(self.read_chunk(name))
-            except NoPermission:
-                raise
-            except CaptureError as exc:
+            read = self.try_read_chunk(name)
+            if read.forbidden:
+                raise read.error
+            if read.damaged:
                 damaged.append(name)
-                first = first or exc
+                first = first or read.error
+            else:
+                chunks.append(read.chunk)
         if first is None:
             return chunks
         if not chunks:

@@ -33,7 +33,8 @@ class StandInRanking(threading.Thread):
         while not self.stop.wait(0.02):
             try:
                 reader = CaptureReader(self.folder)
-                published = len({int(i) for c in reader.iter_chunks() for i in c.pose_indices})
+                published = len({int(i) for name in reader.chunk_names()
+                                 for i in reader.read_chunk(name).pose_indices})
                 cand = candidate_poses(reader.manifest["schedule"])
                 score = np.random.default_rng(7).random(len(cand))
                 write_next_views(self.folder, ranked(cand, score, published, "stand-in"))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import inspect
 import json
 import os
@@ -61,6 +62,11 @@ def write(path, n, chunk_size, sensor=TMF, finish=True, **kwargs):
     return w
 
 
+def published_chunks(reader):
+    """Every published chunk, read, in the listing's order."""
+    return [reader.read_chunk(name) for name in reader.chunk_names()]
+
+
 # ---- round trip --------------------------------------------------------------------------------------------------
 def test_round_trip_keeps_arrays_meta_reference_and_manifest(tmp_path):
     path = tmp_path / "scan"
@@ -113,7 +119,7 @@ def test_meta_cannot_overwrite_pose_index_or_frame(tmp_path):
 def test_chunks_hold_at_most_chunk_size(tmp_path, n, size):
     write(tmp_path / "s", n, size, sensor=SIM)
     r = CaptureReader(tmp_path / "s")
-    chunks = list(r.iter_chunks())
+    chunks = published_chunks(r)
     assert [len(c.meta) for c in chunks] == [size] * (n // size) + ([n % size] if n % size else [])
     assert [c.name for c in chunks] == [chunk_name(k) for k in range(len(chunks))]
     np.testing.assert_array_equal(r.load().pose_indices, np.arange(n))
@@ -137,7 +143,7 @@ def test_explicit_flush_publishes_partial_chunk_and_numbering_continues(tmp_path
         w.append(tmf(i))
     w.finish()
     r = CaptureReader(tmp_path / "s")
-    assert [len(c.meta) for c in r.iter_chunks()] == [1, 4, 1]
+    assert [len(c.meta) for c in published_chunks(r)] == [1, 4, 1]
     assert w.n_published == 6 and w.next_pose_index == 6
 
 
@@ -148,7 +154,7 @@ def test_measurements_with_and_without_reference_never_share_a_chunk(tmp_path):
     m.reference = None
     w.append(m)
     w.finish()
-    chunks = list(CaptureReader(tmp_path / "s").iter_chunks())
+    chunks = published_chunks(CaptureReader(tmp_path / "s"))
     assert [c.reference is None for c in chunks] == [False, True]
     assert CaptureReader(tmp_path / "s").load().reference is None
 
@@ -338,7 +344,7 @@ def test_kill_at_an_arbitrary_moment_leaves_only_whole_chunks(tmp_path):
     r = CaptureReader(path)
     names = r.chunk_names()
     assert names == [chunk_name(k) for k in range(len(names))] and len(names) >= 5
-    chunks = list(r.iter_chunks())
+    chunks = published_chunks(r)
     assert all(len(c.meta) == 3 for c in chunks)
     n = 3 * len(chunks)
     np.testing.assert_array_equal(r.load().pose_indices, np.arange(n))
@@ -598,6 +604,28 @@ def test_a_damaged_chunk_names_the_way_out_and_the_way_out_works(tmp_path):
         (path / chunk_name(k)).rename(aside / chunk_name(k))
     data = CaptureReader(path).load()
     assert [m["pose_index"] for m in data.meta] == [0, 1, 4, 5]
+
+
+def test_a_chunk_file_that_cannot_be_looked_up_is_a_damaged_chunk_in_one_line(tmp_path, monkeypatch):
+    """An I/O error looking reference.npy up (a failing disk) is the chunk's one-line error with the way out, as for
+    any file of it that cannot be read, not a bare OSError."""
+    path = tmp_path / "scan"
+    write(path, 6, 2)
+    failing = path / chunk_name(1) / "reference.npy"
+    exists = Path.exists
+
+    def guarded_exists(self, *args, **kwargs):
+        if os.fspath(self) == os.fspath(failing):
+            raise OSError(errno.EIO, "Input/output error", os.fspath(self))
+        return exists(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "exists", guarded_exists)
+    with pytest.raises(CaptureError) as info:
+        CaptureReader(path).load()
+    said = str(info.value)
+    assert said.startswith(f"{failing}: cannot be read (") and "Input/output error" in said, said
+    assert said.endswith(f"; 1 of 3 chunks cannot be read ({chunk_name(1)}): moving it out of {path} leaves the "
+                         f"views of the other 2 to use"), said
 
 
 def test_many_damaged_chunks_are_counted_past_the_first_few_named(tmp_path):
