@@ -20,8 +20,9 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
 - `state` (string): `waiting` (too few views yet), `live` (following the scan), `final` (the scan is complete: the
   final reconstruction runs from the live state), `done` (the final result is published: `result`), `aborted` (the
   scan was aborted; the job ended), `stopped` (the job ended otherwise: `note`) or `queued` (the job is back in the
-  queue before it ended: its worker was stopped, or its process crashed and it is retried; `note` says which; the
-  figures, mesh and preview are the stopped attempt's until the next attempt starts, which begins them afresh);
+  queue before it ended: its worker was stopped or died, or its process crashed and it is retried; `note` says
+  which; the figures, mesh and preview are the stopped attempt's until the next attempt starts, which begins them
+  afresh);
 - `views_planned` (int or null): poses the scan plans, when the capture says;
 - `job` (string): the queue's job id;
 - `result` (string or null): the final result folder, once `done`;

@@ -150,6 +150,36 @@ def read_progress(log: Path, tail_bytes: int = TAIL_BYTES) -> JobProgress | None
         return None
 
 
+class LogTails:
+    """`read_progress` for a worker that looks at its running jobs' logs at every turn of its loop (every poll, and
+    whenever a job ends): a log is read again only when it has changed (its file, size or modification time), else
+    its last reading stands. A job's bar is redrawn by appending, so its log grows with every new reading."""
+
+    def __init__(self):
+        self._seen: dict[Path, tuple[tuple[int, int, int], JobProgress | None]] = {}
+        """Log -> (its file, size and mtime when read, what it showed)."""
+
+    def read(self, log: Path) -> JobProgress | None:
+        """What `read_progress(log)` would say now."""
+        try:
+            st = os.stat(log)
+        except OSError:
+            self._seen.pop(log, None)
+            return None
+        key = (st.st_ino, st.st_size, st.st_mtime_ns)
+        seen = self._seen.get(log)
+        if seen is not None and seen[0] == key:
+            return seen[1]
+        progress = read_progress(log)
+        self._seen[log] = (key, progress)
+        return progress
+
+    def keep_only(self, logs) -> None:
+        """Forget the logs of jobs no longer running."""
+        for log in set(self._seen) - set(logs):
+            del self._seen[log]
+
+
 def running_progress(queue, root=None, now: float | None = None) -> dict[str, JobProgress | None]:
     """Each running job of a queue (worker.queue.Queue) by id: its progress, or None where its log shows no bar
     yet; a job with a budget is measured against it (`job_budget`). `root`: the captures root (default: the folder
@@ -243,14 +273,15 @@ class ProgressNote:
     text: str
 
 
-def progress_note(claim: Claim, log: Path, root, now: float | None = None) -> ProgressNote:
+def progress_note(claim: Claim, log: Path, root, now: float | None = None,
+                  tails: LogTails | None = None) -> ProgressNote:
     """The progress line of the job `claim` holds, from its `log` (its bar, measured against its budget as --status
     measures it), else, for a live job following its scan, its live status; else that it is setting up. `root`: the
-    captures root; `now`: time.time()."""
+    captures root; `now`: time.time(); `tails`: where the log's last reading is kept (None: the log is read)."""
     job = claim.job
     now = time.time() if now is None else now
     budget = claim_budget(job, claim.started, root)
-    progress = measured(read_progress(log), budget, now)
+    progress = measured(tails.read(log) if tails is not None else read_progress(log), budget, now)
     if progress is not None:
         stage = f"{progress.desc}: {AFTER_TRAINING if progress.training_done else 'training'}"
         return ProgressNote(stage, f"{job.id} at {100 * progress.fraction:.0f} %: {progress.line()}")

@@ -5,15 +5,16 @@ jobs while it has free slots, renews the leases of the jobs it holds, takes over
 each job when its child exits. A job runs in `python -m spadscan.worker.jobs` (its own process: torch, memory and
 crashes stay there) with its output in a log file under the queue. Stopping (Ctrl-C, SIGTERM, `stop` set) ends the
 children and gives their jobs back to the queue without counting the attempt; a live job's status then says it is
-queued again (`mark_live_queued`), as it does when a crashed live job is retried and whenever a job is given back with
-a finished result that could not be published.
+queued again (`mark_live_queued`), as it does when a crashed live job is retried, when a dead worker's job is taken
+over and queued again, and whenever a job is given back with a finished result that could not be published.
 
 A finished job whose result cannot be published (a full disk while its log is copied in or its marker written) keeps
 its claim and its scratch folder: the worker says so once and tries again at every poll, as it does with every other
-write that meets a full disk; its other jobs run on. A result already renamed into place whose job's record cannot be written yet is published,
-not lost: the worker writes the record once it fits. A finished result a stopped worker left unpublished is
-published by the worker that claims its job next (publishing.left_result), not reconstructed again. A job that
-ended in error whose record a full disk keeps out is said where it went and why, its record written at a later poll.
+write that meets a full disk; its other jobs run on. A result already renamed into place whose job's record cannot
+be written yet is published, not lost: the worker writes the record once it fits. A finished result a stopped worker
+left unpublished is published by the worker that claims its job next (publishing.left_result), not reconstructed
+again. A job that ended in error whose record a full disk keeps out is said where it went and why, its record written
+at a later poll.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
-from .job_progress import PROGRESS_S, ProgressNotes, progress_note
+from .job_progress import PROGRESS_S, LogTails, ProgressNotes, progress_note
 from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
 from .live.done import mark_live_done, mark_live_failed, mark_live_queued
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
@@ -76,6 +77,9 @@ class Worker:
         self.settled: dict[str, str] = {}
         """Job id -> 'done' or 'failed' for jobs this worker finished, 'kept' for jobs it did not run because their
         results folder already held a result."""
+        self.left: dict[str, str] = {}
+        """With `once`: scans the run looked at and left unqueued (still recorded, or a copy still under way) -> why,
+        in a few words (`_left_why`)."""
         self._seen_skipped: set[str] = set()
         self._troubles: dict[str, str] = {}
         """What this worker failed to do, with the error last logged for it (`_trouble`)."""
@@ -87,6 +91,8 @@ class Worker:
         self.threads_note = config.threads_note()
         self.threads_warnings = config.threads_warnings()
         self.progress = ProgressNotes(progress_s) if progress_s else None
+        self.tails = LogTails()
+        """The running jobs' logs as last read for their progress lines: read again only once changed."""
 
     # ---- main loop -------------------------------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None) -> dict[str, str]:
@@ -168,7 +174,18 @@ class Worker:
         take over jobs of dead workers, finish cut-short enqueues, claim jobs for the free slots."""
         if self._reconcile_due:
             await asyncio.to_thread(self._reconcile)
-        reclaimed = await asyncio.to_thread(self.queue.reclaim_expired)
+        await self._take_over()
+        await asyncio.to_thread(self.queue.repair)
+        while len(self.children) + len(self.unpublished) < self.config.processes:  # a result to publish holds its slot
+            claim = await asyncio.to_thread(self.queue.claim)
+            if claim is None:
+                break
+            await self._start(claim)
+
+    async def _take_over(self) -> None:
+        """Take over the jobs of dead workers (`Queue.reclaim_expired`): each is queued again, a live job's status
+        saying so while this worker holds it (`_say_reclaimed`), or failed on its last attempt (`_gave_up`)."""
+        reclaimed = await asyncio.to_thread(self.queue.reclaim_expired, before_requeue=self._say_reclaimed)
         for job_id, state in reclaimed:
             self.log(f"{job_id}: its worker stopped; {'queued again' if state == 'queued' else 'failed'}")
         if reclaimed:
@@ -176,12 +193,12 @@ class Worker:
         for job_id, state in reclaimed:
             if state == "failed":  # this worker gave up on it: counted as failed here (--once's exit status)
                 await asyncio.to_thread(self._gave_up, job_id)
-        await asyncio.to_thread(self.queue.repair)
-        while len(self.children) + len(self.unpublished) < self.config.processes:  # a result to publish holds its slot
-            claim = await asyncio.to_thread(self.queue.claim)
-            if claim is None:
-                break
-            await self._start(claim)
+
+    def _say_reclaimed(self, job, why: str) -> None:
+        """A live job whose worker died goes back to the queue: its status says so (`mark_live_queued`), as on every
+        other path that gives a job back, instead of going on saying that it follows its scan or finishes with no
+        process running it. Called while this worker holds the job (`Queue.reclaim_expired`)."""
+        mark_live_queued(job, self.root, why, self.log)
 
     def _reconcile(self) -> None:
         """publishing.reconcile: publish the finished results dead workers left, remove their partial ones, settle
@@ -222,6 +239,7 @@ class Worker:
         if self.config.once:  # looked at once only: say what this run leaves (a watching worker looks again)
             for name in report.pending:
                 self.log(_not_queued(name, report.settling.get(name)))
+                self.left[name] = _left_why(report.settling.get(name))
         for name in report.skipped:
             if name not in self._seen_skipped:
                 self._seen_skipped.add(name)
@@ -327,9 +345,10 @@ class Worker:
 
     def _progress_lines(self, running: list[Child]) -> list[str]:
         self.progress.keep_only(child.claim.token for child in running)
+        self.tails.keep_only(child.log for child in running)
         lines = []
         for child in running:
-            note = progress_note(child.claim, child.log, self.root)
+            note = progress_note(child.claim, child.log, self.root, tails=self.tails)
             if self.progress.due(child.claim.token, note):
                 lines.append(note.text)
         return lines
@@ -555,18 +574,18 @@ class Worker:
         await asyncio.gather(*waits, return_exceptions=True)
         for job_id, child in self.children.items():
             # its process is gone (waited for above): nothing of this attempt writes the status after this
-            self._say_queued(child.claim, "its worker was stopped")
-            if self.queue.release(child.claim, "worker stopped"):
+            if self._give_back(child.claim, "worker stopped", said="its worker was stopped"):
                 self.log(f"{job_id} stopped; back in the queue")
             child.outcome.unlink(missing_ok=True)
             shutil.rmtree(child.scratch, ignore_errors=True)
         self.children.clear()
 
-    def _give_back(self, claim: Claim, reason: str) -> bool:
-        """queue.release; True also when only its record failed on a full disk: the job file went back to queued/
-        (a rename needs no room), its record could not say why. A live job says it is queued again first
-        (`_say_queued`), while this worker still holds it."""
-        self._say_queued(claim, reason)
+    def _give_back(self, claim: Claim, reason: str, said: str | None = None) -> bool:
+        """queue.release, the one way this worker gives a job it holds back to the queue; True also when only its
+        record failed on a full disk: the job file went back to queued/ (a rename needs no room), its record could
+        not say why. A live job says it is queued again first (`_say_queued`, `said`: why, default `reason`), while
+        this worker still holds it."""
+        self._say_queued(claim, said or reason)
         try:
             return self.queue.release(claim, reason)
         except OSError:
@@ -642,6 +661,15 @@ def _not_queued(name: str, settling_s: float | None) -> str:
             f"it stays as it is; run the worker again then, or without --once")
 
 
+def _left_why(settling_s: float | None) -> str:
+    """Why a worker run with --once left a scan, in a few words (its summary line names each one left): `_not_queued`
+    says it in full."""
+    if settling_s is None:
+        return "still being recorded"
+    return (f"a copy still under way: taken once nothing in it has changed for {SETTLE_S:.0f} s, in "
+            f"{math.ceil(settling_s)} s")
+
+
 def _recording(job_id: str) -> str:
     """What `_trouble` says the worker could not do while an ended job's attempt record does not fit."""
     return f"write the attempt record of {job_id}"
@@ -659,10 +687,20 @@ def _shown(value) -> str:
     return "default" if value is None else str(value)
 
 
+@dataclass(frozen=True)
+class WorkerRun:
+    """What a worker run did, for its command's summary line and exit status."""
+
+    settled: dict[str, str]
+    """Job id -> 'done', 'failed' or 'kept' (`Worker.settled`)."""
+    left: dict[str, str]
+    """With `once`: scan -> why it was left unqueued (`Worker.left`)."""
+
+
 async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = None,
-                     handle_signals: bool = True, progress_s: float | None = PROGRESS_S) -> dict[str, str]:
+                     handle_signals: bool = True, progress_s: float | None = PROGRESS_S) -> WorkerRun:
     """Run a worker until SIGINT/SIGTERM (or drained, with `once`), saying each running job's progress every
-    `progress_s` seconds (None: never). Returns {job id: 'done' | 'failed'}."""
+    `progress_s` seconds (None: never)."""
     worker = Worker(config, log, progress_s)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -670,10 +708,11 @@ async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = N
     for sig in sigs:
         loop.add_signal_handler(sig, stop.set)
     try:
-        return await worker.run(stop)
+        settled = await worker.run(stop)
     finally:
         for sig in sigs:
             loop.remove_signal_handler(sig)
+    return WorkerRun(dict(settled), dict(worker.left))
 
 
-__all__ = ["Worker", "run_worker"]
+__all__ = ["Worker", "WorkerRun", "run_worker"]

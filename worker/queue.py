@@ -36,6 +36,7 @@ import secrets
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from spadscan.protocol.errors import ConfigError
 
@@ -331,8 +332,14 @@ class Queue:
             return False
 
     # ---- expired leases --------------------------------------------------------------------------------------
-    def reclaim_expired(self, holder: Holder | None = None, now: float | None = None) -> list[tuple[str, str]]:
-        """Take over every running job whose holder stopped; retry it or fail it. Returns [(job id, new state)]."""
+    def reclaim_expired(self, holder: Holder | None = None, now: float | None = None,
+                        before_requeue: Callable[[Job, str], None] | None = None) -> list[tuple[str, str]]:
+        """Take over every running job whose holder stopped; retry it or fail it. Returns [(job id, new state)].
+
+        `before_requeue(job, why)` is called for each job about to be retried while this process still holds it:
+        once back in queued/, another worker may claim it at once, and its attempt's first word must not be covered
+        by a note written after (a live job's status saying it is queued again, as on every path that gives a job
+        back)."""
         holder = holder or Holder.current()
         out = []
         for path in sorted((self.path / "running").glob(f"*{SEP}*.json")):
@@ -354,6 +361,9 @@ class Queue:
             if not retry:
                 reason = f"{reason} (attempt {attempts} of {self.max_attempts}; giving up)"
             self._patch_record(job_id, old_token, outcome="lost", error=reason, ended_utc=_utc(), retried=retry)
+            held = _job_file(mine) if retry and before_requeue is not None else None
+            if held is not None:
+                before_requeue(held, reason)
             state = "queued" if retry else "failed"
             if self._settle(mine, job_id, state):
                 out.append((job_id, state))
@@ -612,6 +622,14 @@ def _rename(src: Path, dst: Path) -> bool:
         return True
     except FileNotFoundError:
         return False
+
+
+def _job_file(path: Path) -> Job | None:
+    """The job in job file `path`, or None when it cannot be read (its next claim fails it, saying why)."""
+    try:
+        return Job.from_dict(json.loads(path.read_text()), str(path))
+    except (OSError, ValueError, ConfigError):
+        return None
 
 
 def _stored(path: Path) -> dict:

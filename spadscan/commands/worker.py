@@ -64,6 +64,11 @@ died or stopped renewing its lease shows as
 `stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
 still holds shows as `running?`.
 
+--once queues the complete scans there are, runs until nothing is queued or running, and exits. Its last line
+counts the jobs done and failed and names each scan it left unqueued, and why (still recorded, or a copy still under
+way: taken once nothing in it has changed for 60 s). Its exit status: 0, 1 when a job failed, 130 when it was
+stopped before the queue drained, 75 when it ran no job while it left scans waiting (run it again later).
+
 Examples:
   spadscan worker --root captures --processes 2
   spadscan worker --root captures --once          # reconstruct what is there, then exit
@@ -99,7 +104,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="random seed of the reconstructions (default: 0)")
     parser.add_argument("--once", action="store_true",
                         help="queue the complete scans there are, run until nothing is queued or running, exit "
-                             "(status 1 when a job failed, 130 when stopped before the queue drained)")
+                             "(status 1 when a job failed, 130 when stopped before the queue drained, "
+                             f"{LEFT_WAITING} when it ran no job while it left scans it could not queue yet: still "
+                             "recorded, or a copy still under way; the last line names them and why)")
     parser.add_argument("--live", action="store_true",
                         help="start each scan's reconstruction at its first published chunk and follow the scan, "
                              "publishing <scan>/recon/live/ every few seconds; --budget-s then bounds the final run "
@@ -135,6 +142,10 @@ RUN_FLAGS = {"once": "--once", "processes": "--processes", "threads": "--threads
              "max_attempts": "--max-attempts", "live": "--live"}
 """Flags that only say how the worker runs jobs: meaningless with --status and --retry-failed, which run none."""
 
+LEFT_WAITING = 75
+"""Exit status of --once when it ran no job while it left scans it could not queue yet (sysexits' EX_TEMPFAIL: try
+again later)."""
+
 DEFAULTS = {"processes": 1, "poll_s": 2.0, "lease_s": 60.0, "max_attempts": 3}
 """Values of the flags left out (their default is None in `args`, so that a flag given can be told from one not)."""
 
@@ -166,7 +177,8 @@ def run(args) -> int:
         max_attempts=value["max_attempts"], once=args.once, threads=args.threads, options=options,
         options_given=tuple(given),
     )
-    settled = asyncio.run(run_worker(config))  # checks the config (options included) before queuing anything
+    ran = asyncio.run(run_worker(config))  # checks the config (options included) before queuing anything
+    settled = ran.settled
     failed = sorted(j for j, s in settled.items() if s == "failed")
     if not args.once:
         return 0
@@ -174,11 +186,27 @@ def run(args) -> int:
     kept = sum(1 for s in settled.values() if s == "kept")
     # Stopped (Ctrl-C, SIGTERM) before the queue drained: said, and not the exit status of a drained queue.
     counts = Queue(queue_dir, create=False).counts()
-    left = counts.get("queued", 0) + counts.get("running", 0)
+    unfinished = counts.get("queued", 0) + counts.get("running", 0)
     print(f"spadscan worker: {done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else "")
           + (f", {kept} not run (their results were already there)" if kept else "")
-          + (f"; stopped with {left} job{'s' if left != 1 else ''} still queued or running" if left else ""))
-    return 130 if left else 1 if failed else 0
+          + (f"; stopped with {unfinished} job{'s' if unfinished != 1 else ''} still queued or running"
+             if unfinished else "")
+          + _left_note(ran.left))
+    if unfinished:
+        return 130
+    if failed:
+        return 1
+    # No job settled while scans wait (a copy still under way, a scan still recorded): a script runs it again later.
+    return LEFT_WAITING if ran.left and not settled else 0
+
+
+def _left_note(left: dict[str, str], most: int = 5) -> str:
+    """What the summary line of --once says of the scans the run left unqueued, each with why; '' when none."""
+    if not left:
+        return ""
+    named = [f"{name} ({why})" for name, why in list(left.items())[:most]]
+    more = f" and {len(left) - most} more" if len(left) > most else ""
+    return f"; left {len(left)} scan{'s' if len(left) != 1 else ''} not queued yet: {', '.join(named)}{more}"
 
 
 def _refuse_combinations(args) -> None:

@@ -6,13 +6,18 @@ from __future__ import annotations
 
 import datetime as _dt
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from spadscan.protocol.live_status import LiveStatus, write_status
-from spadscan.worker.job_progress import AFTER_TRAINING, ProgressNote, ProgressNotes, progress_note, running_progress
+from spadscan.worker import job_progress
+from spadscan.worker.job_progress import (AFTER_TRAINING, LogTails, ProgressNote, ProgressNotes, progress_note,
+                                          running_progress)
 from spadscan.worker.jobs import Job
+from spadscan.worker.pool import Worker
 from spadscan.worker.queue import Queue
+from spadscan.worker.worker_config import WorkerConfig
 
 MID = "reconstruct (fast):  57%|#####     | 4/7 s [00:04<00:03, step=38, loss=851]\r"
 FULL = "reconstruct (fast): 100%|##########| 7/7 s [00:07<00:00, step=67, loss=518]\r"
@@ -118,3 +123,53 @@ def test_a_progress_note_says_the_bar_against_the_budget_else_the_live_status_el
     note = progress_note(live, logs["live-fast"], tmp_path)
     assert note.stage == "live: live" and note.text.startswith("live-fast: live reconstruction following the scan: "
                                                                "24/29 views, 240 steps"), note
+
+
+def count_reads(monkeypatch) -> list[Path]:
+    """The logs `read_progress` reads from now on, one entry a read."""
+    reads: list[Path] = []
+    read = job_progress.read_progress
+
+    def counted(log, *args, **kwargs):
+        reads.append(Path(log))
+        return read(log, *args, **kwargs)
+
+    monkeypatch.setattr(job_progress, "read_progress", counted)
+    return reads
+
+
+def test_the_worker_reads_a_jobs_log_again_only_once_it_has_changed(tmp_path, monkeypatch):
+    """The worker looks at its running jobs at every turn of its loop; a log's tail (16 KB) is read again only when
+    the log has changed, and the lines said are those a fresh reading gives."""
+    worker = Worker(WorkerConfig(root=tmp_path), log=lambda line: None, progress_s=30.0)
+    worker.queue.enqueue(Job(id="scan-fast", scan="scan", budget_s=120.0))
+    child = SimpleNamespace(claim=worker.queue.claim(), log=tmp_path / "job.log")
+    child.log.write_text(MID)
+    reads = count_reads(monkeypatch)
+
+    first = worker._progress_lines([child])
+    assert len(first) == 1 and "4/7 s, step 38" in first[0], first
+    assert worker._progress_lines([child]) == [] and worker._progress_lines([child]) == []
+    assert reads == [child.log], "an unchanged log is not read again"
+    with open(child.log, "a") as log:
+        log.write(FULL)
+    after = worker._progress_lines([child])
+    assert len(after) == 1 and AFTER_TRAINING in after[0], after
+    assert reads == [child.log] * 2
+    worker._progress_lines([])
+    assert worker._progress_lines([child]) and len(reads) == 3, "a job gone and back is read afresh"
+
+
+def test_a_kept_reading_gives_the_note_a_fresh_reading_gives(tmp_path):
+    queue = Queue.for_root(tmp_path)
+    queue.enqueue(Job(id="scan-fast", scan="scan", budget_s=120.0))
+    claim = queue.claim()
+    log = tmp_path / "job.log"
+    tails = LogTails()
+    for text in ("", MID, MID + FULL):
+        if text:
+            log.write_text(text)
+        for now in (claim.started + 10.0, claim.started + 50.0):  # the budget's share moves on: measured afresh
+            assert (progress_note(claim, log, tmp_path, now=now, tails=tails)
+                    == progress_note(claim, log, tmp_path, now=now)), (text, now)
+

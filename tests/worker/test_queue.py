@@ -161,6 +161,23 @@ def test_expired_lease_is_taken_over_and_retried_then_failed(tmp_path):
     assert "stopped renewing its lease" in row.error and "giving up" in row.error
 
 
+def test_a_job_taken_over_is_handed_to_before_requeue_while_still_held_and_only_when_retried(tmp_path):
+    q = Queue(tmp_path / "q", lease_s=10, max_attempts=2)
+    q.enqueue(_job("s"))
+    q.claim(_elsewhere())
+    seen = []
+
+    def note(job, why):
+        seen.append((job.id, why, q.job_paths()[job.id][0]))
+
+    assert q.reclaim_expired(now=time.time() + 11, before_requeue=note) == [("s-fast", "queued")]
+    assert len(seen) == 1 and seen[0][0] == "s-fast" and seen[0][2] == "running", seen
+    assert seen[0][1].startswith("worker another-host pid 12345 stopped renewing its lease"), seen
+    q.claim(_elsewhere())
+    assert q.reclaim_expired(now=time.time() + 11, before_requeue=note) == [("s-fast", "failed")]
+    assert len(seen) == 1, "a job given up on is not queued again"
+
+
 def test_concurrent_reclaims_take_an_expired_job_once(tmp_path):
     q = Queue(tmp_path / "q", lease_s=1, max_attempts=5)
     q.enqueue(_job("s"))

@@ -107,7 +107,7 @@ def test_the_command_passes_the_options_given(tmp_path, monkeypatch):
 
     async def fake_run_worker(config):
         seen["config"] = config
-        return {}
+        return pool.WorkerRun(settled={}, left={})
 
     monkeypatch.setattr(pool, "run_worker", fake_run_worker)
     assert cli_main(["worker", "--root", str(tmp_path), "--once", "--steps", "10"]) == 0

@@ -603,7 +603,7 @@ def test_once_stopped_before_the_queue_drained_says_so_and_exits_130(tmp_path, m
     scan_once(tmp_path, Queue.for_root(tmp_path), JobOptions(), now=time.time() + SETTLE_S + 1)
 
     async def stopped_at_once(config):
-        return {}
+        return pool.WorkerRun(settled={}, left={})
 
     monkeypatch.setattr(pool, "run_worker", stopped_at_once)
     assert cli_main(["worker", "--root", str(tmp_path), "--once"]) == 130
