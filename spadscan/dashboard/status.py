@@ -1,5 +1,7 @@
 """What `/api/status` answers: the scans under the root, the scan in hand in detail, each scan's reconstructions and
-the reconstruction queue (the worker's read-only status view, with each running job's progress from its log).
+the reconstruction queue (the worker's read-only status view, with each running job's progress from its log), what
+the reconstruction side is doing (worker_state.py) and what each panel of a preview shows. A live reconstruction whose
+status an earlier attempt of its job wrote is shown without its figures and pictures (attempts.py).
 
 Whether a daemon is running is asked of the caller's `daemon_running(root)`: the daemon's lock probe lives in the
 daemon's package, which the dashboard does not import (the CLI command hands it over). Without it, scans are shown
@@ -8,6 +10,7 @@ as their scan.json says.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -15,10 +18,18 @@ from dataclasses import asdict
 from pathlib import Path
 
 from spadscan.worker.job_progress import progress_field, running_progress
+from spadscan.worker.queue import SEP
+from spadscan.worker.report.mesh_pictures import VIEWS
 from spadscan.worker.status_detail import status_parts
 
+from .attempts import claim_starts, earlier_attempt
 from .results import ResultIndex
 from .scans import IN_HAND, INTERRUPTED, ScanIndex, interrupted, scan_detail
+from .worker_state import start_command, worker_state
+
+PREVIEW = {"columns": [f"az {az:.0f} el {el:.0f}" for az, el in VIEWS], "rows": ["reconstruction", "ground truth"]}
+"""What each panel of a preview.png shows (worker/report/mesh_pictures.py `preview_png`: a column per angle, the
+reconstruction's row above the ground truth's when there is one): the page labels them in its own, readable, type."""
 
 
 def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
@@ -32,9 +43,31 @@ def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
 
     queue = Queue(queue_dir, create=False)
     running = running_progress(queue, root)  # a job with a budget is shown against it
-    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), **job_detail(row, root)}
-            for row in queue.statuses()]
+    paths, now = queue.job_paths(), time.time()
+    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), **job_detail(row, root),
+             **job_times(queue, row, paths.get(row.id), now)} for row in queue.statuses()]
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
+
+
+def job_times(queue, row, found: tuple[str, Path] | None, now: float) -> dict:
+    """{"claimed_unix": when its running claim began} for a running job (its attempt record's start), {"waiting_s":
+    how long it has been queued} for a queued one (its file's mtime: a job gets it when it is queued or given back),
+    {} for the others or when its file moved on meanwhile."""
+    if found is None or found[0] != row.state:
+        return {}
+    state, path = found
+    if state == "queued":
+        try:
+            return {"waiting_s": max(0.0, now - path.stat().st_mtime)}
+        except OSError:
+            return {}
+    if state != "running":
+        return {}
+    token = path.stem.rpartition(SEP)[2]
+    record = next((r for r in queue.read_records(row.id)[0] if r.get("token") == token), {})
+    started = record.get("started_unix")
+    finite = isinstance(started, (int, float)) and not isinstance(started, bool) and math.isfinite(started)
+    return {"claimed_unix": started} if finite else {}  # a damaged record's start says nothing
 
 
 def job_detail(row, root: Path | None) -> dict:
@@ -74,17 +107,23 @@ class Dashboard:
             rows = self.scans.rows()
             if orphaned:  # in place: the order (scans in hand first) stays, and the scan is still the one in hand
                 rows = [interrupted(r) if r.state in IN_HAND else r for r in rows]
-            scans = []
-            for row in rows:
-                entry = row.to_dict()
-                entry["recons"] = self.results.for_scan(row.name)
-                scans.append(entry)
             current = next((r for r in rows if r.state in IN_HAND + (INTERRUPTED,)), None) or next(
                 (r for r in rows if r.state != "error"), None)
             detail = self._scan_detail(current) if current is not None else None
+            recons = {row.name: self.results.for_scan(row.name) for row in rows}
         try:
             queue = queue_status(self.queue_dir, self.root)
         except OSError as exc:
             queue = {"path": str(self.queue_dir), "jobs": [], "counts": {}, "error": str(exc)}
+        # the folders read before the queue: each live status is judged against claims at least as new as itself
+        starts = claim_starts(queue["jobs"])
+        scans = [{**row.to_dict(), "recons": [earlier_attempt(r, starts) for r in recons[row.name]]} for row in rows]
         return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                "daemon": daemon, "scans": scans, "current": detail, "queue": queue}
+                "daemon": daemon, "scans": scans, "current": detail, "queue": queue,
+                "worker": self._worker(rows, queue), "preview": PREVIEW}
+
+    def _worker(self, rows, queue: dict) -> dict:
+        """What the reconstruction side is doing (worker_state; "unknown" when the queue cannot be read), with the
+        command that starts a worker."""
+        state = {"state": "unknown"} if queue.get("error") else worker_state(rows, queue["jobs"], time.time())
+        return {**state, "start": start_command(self.root, self.queue_dir)}

@@ -97,3 +97,16 @@ def queue_with_a_kept_result_and_a_damaged_record(root) -> dict[str, str]:
     return {"kept-fast": f"{root / 'results' / 'kept-fast'} (already there when the job was claimed: kept, not run)",
             "torn-fast": f"{root / 'results' / 'torn-fast'}; unreadable attempt record "
                          f"{queue.path / 'attempts' / 'torn-fast' / 'zz-torn.json'}"}
+
+
+def preview_png(rows: int = 2) -> bytes:
+    """A preview picture as the worker draws one (four angles side by side, 280 pixels each; a row for the
+    reconstruction and one for the ground truth), in grey."""
+    import io
+
+    import matplotlib.image
+    import numpy as np
+
+    picture = io.BytesIO()
+    matplotlib.image.imsave(picture, np.full((280 * rows, 4 * 280, 3), 0.8), format="png")
+    return picture.getvalue()

@@ -66,6 +66,36 @@ def test_the_live_3d_view_keeps_the_operators_camera_when_the_live_mesh_changes(
     assert not seen.errors, seen.errors
 
 
+def test_a_live_update_during_a_drag_waits_for_its_end(tmp_path):
+    scan = tmp_path / "bowl"
+    complete_scan(scan, 2)
+    _live_fit(scan, 1, 1)
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        first = _wait_for_scene(page)
+        box = page.locator("#viewer-3d").bounding_box()
+        x, y = box["x"] + box["width"] * 0.6, box["y"] + box["height"] * 0.6
+        page.mouse.move(x, y)
+        page.mouse.down()
+        page.mouse.move(x + 60, y + 20, steps=6)  # the operator is turning the shape
+        _live_fit(scan, 2, 20)  # and the live fit moves on meanwhile
+        link = "() => [...document.querySelectorAll('#viewer-links a')].find(a => a.textContent === 'view3d.html')"
+        page.wait_for_function(f"([first]) => {{ const a = ({link})(); return a && "
+                               "a.getAttribute('href') !== new URL(first).pathname + new URL(first).search; }",
+                               arg=[first.split("#")[0]], timeout=WAIT_MS)  # the page has seen the new view
+        assert page.evaluate(f"() => {FRAME}.src") == first, "the view was reloaded under the operator's drag"
+        page.mouse.move(x + 90, y + 40, steps=4)  # the drag goes on, uninterrupted
+        turned = page.evaluate(f"() => {FRAME}.contentWindow.spadscanCamera()")
+        assert turned is not None, "the drag did not turn the view"
+        page.mouse.up()
+        _wait_for_scene(page, not_src=first)  # once the drag ends, the new view comes, with the operator's camera
+        kept = page.evaluate(f"() => {FRAME}.contentWindow.spadscanCamera()")
+        assert kept is not None
+        for key in ("position", "focalPoint", "viewUp"):
+            assert max(abs(a - b) for a, b in zip(kept[key], turned[key])) < 1e-9, key
+    assert not seen.errors, seen.errors
+
+
 def _done_job_with_warnings(root, scan: str, warnings: list[str]) -> None:
     """A done job of `scan` whose result, `<scan>/recon/<scan>-fast`, gives `warnings`."""
     from spadscan.worker.jobs import Job
@@ -119,7 +149,7 @@ def test_an_idle_rig_whose_daemon_is_down_says_so_at_the_top(tmp_path):
         assert page.locator("#daemon").get_attribute("class") == "down"
         assert page.locator("#daemon").evaluate("e => getComputedStyle(e).color") == "rgb(187, 0, 0)"
         with lock:  # a daemon starts on the root
-            page.wait_for_function(f"{said} === ' · daemon running'", timeout=WAIT_MS)
+            page.wait_for_function(f"{said} === ' · daemon: idle'", timeout=WAIT_MS)  # its own word, no scan held
             assert page.locator("#daemon").get_attribute("class") == ""
         page.wait_for_function(f"{said}.includes('no daemon running')", timeout=WAIT_MS)  # and stops
     assert not seen.errors, seen.errors

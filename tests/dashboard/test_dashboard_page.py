@@ -107,7 +107,7 @@ def test_a_scan_whose_daemon_went_shows_as_interrupted_and_comes_back_when_a_dae
             page.goto(address(server))
             page.wait_for_function("() => document.querySelector('#current-rate').textContent === '2.00 frames/s'",
                                    timeout=WAIT_MS)
-            assert page.locator("#current-state").text_content() == "running"
+            assert page.locator("#current-state").text_content() == "scanning"  # as the daemon says it
             lock.release()  # the daemon died: the kernel dropped its lock
             page.wait_for_function(
                 "() => document.querySelector('#current-state').textContent === 'interrupted (no daemon running)'",
@@ -120,7 +120,7 @@ def test_a_scan_whose_daemon_went_shows_as_interrupted_and_comes_back_when_a_dae
             assert state_cell.get_attribute("class") == "state-interrupted"
             assert state_cell.evaluate("td => getComputedStyle(td).color") == "rgb(187, 0, 0)"  # as errors are
             lock.acquire()  # a daemon started on the root takes the scan over
-            page.wait_for_function("() => document.querySelector('#current-state').textContent === 'running'",
+            page.wait_for_function("() => document.querySelector('#current-state').textContent === 'scanning'",
                                    timeout=WAIT_MS)
     finally:
         lock.release()
