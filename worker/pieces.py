@@ -41,10 +41,14 @@ class Pieces:
     """Pieces smaller than PIECE_MIN_SHARE."""
     specks_share: float = 0.0
     """Share of the surface area the specks hold together."""
+    tunnels: int | None = None
+    """Tunnels through the pieces of note (their genus summed: a mug's handle is one, a hole through a wall one), or
+    None where a piece of note is not closed and has no genus."""
 
     def to_dict(self) -> dict:
         return {"count": self.count, "share_apart": self.share_apart, "specks": self.specks,
-                "specks_share": self.specks_share, "min_share": PIECE_MIN_SHARE, "specks_limit": SPECKS_LIMIT}
+                "specks_share": self.specks_share, "tunnels": self.tunnels, "min_share": PIECE_MIN_SHARE,
+                "specks_limit": SPECKS_LIMIT}
 
 
 def mesh_pieces(mesh: trimesh.Trimesh) -> Pieces:
@@ -57,7 +61,23 @@ def mesh_pieces(mesh: trimesh.Trimesh) -> Pieces:
     shares = areas / areas.sum()
     small = shares < PIECE_MIN_SHARE
     return Pieces(count=max(int((~small).sum()), 1), share_apart=float(1.0 - shares.max()), specks=int(small.sum()),
-                  specks_share=float(shares[small].sum()))
+                  specks_share=float(shares[small].sum()), tunnels=_tunnels(mesh, labels, np.flatnonzero(~small)))
+
+
+def _tunnels(mesh: trimesh.Trimesh, labels: np.ndarray, pieces: np.ndarray) -> int | None:
+    """The genus g = (2 - V + E - F) / 2 summed over `pieces` (labels of connected face sets), or None when one of
+    them is not closed (an edge not on exactly two of its faces: an open surface has no genus). A fit's surface is
+    closed unless it meets the grid's box."""
+    edges = mesh.faces_unique_edges
+    total = 0
+    for piece in pieces:
+        faces = np.flatnonzero(labels == piece)
+        piece_edges, uses = np.unique(edges[faces], return_counts=True)
+        if not np.all(uses == 2):
+            return None
+        euler = len(np.unique(mesh.faces[faces])) - len(piece_edges) + len(faces)
+        total += max((2 - euler) // 2, 0)
+    return total
 
 
 __all__ = ["Pieces", "mesh_pieces", "PIECE_MIN_SHARE", "SPECKS_LIMIT"]

@@ -302,6 +302,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         pictures.normals_png(scored, vertex_err, out / "normals.png")
         report["ground_truth"] = str(gt)
         stages["metrics_s"] = clock() - t_metrics
+    truth_pieces = None if truth is None else _truth_pieces(truth.mesh)
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
@@ -309,7 +310,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note,
                                               run.state_note if scene.state == "complete" else None) if n],
                      coverage=coverage, pieces=pieces, signal=signal,
-                     truth_pieces=None if truth is None else _truth_pieces(truth.mesh),
+                     truth_pieces=None if truth_pieces is None else truth_pieces.count,
+                     truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
                      continued=bool(getattr(model, "warm_started", False)),
                      training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s)
@@ -318,6 +320,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
     report["coverage"] = None if coverage is None else coverage.to_dict()
     report["pieces"] = None if pieces is None else pieces.to_dict()
+    if report["pieces"] is not None and truth_pieces is not None:
+        report["pieces"]["truth_tunnels"] = truth_pieces.tunnels
     report["signal"] = None if signal is None else signal.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["threads"] = (governor.summary() if governor is not None else
@@ -497,10 +501,11 @@ def _pieces(mesh, log) -> Pieces | None:
         return None
 
 
-def _truth_pieces(mesh) -> int | None:
-    """The ground truth's pieces of note, counted as the result's are, or None for one without surface."""
+def _truth_pieces(mesh) -> Pieces | None:
+    """The ground truth's pieces (of note, and the tunnels through them), counted as the result's are, or None for
+    one without surface."""
     try:
-        return mesh_pieces(mesh).count
+        return mesh_pieces(mesh)
     except SpadscanError:
         return None
 

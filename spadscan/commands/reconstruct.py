@@ -24,9 +24,10 @@ its fit was still improving, a run starved of CPU by other processes, a fit that
 (a simulated capture: over 10 % of its histograms off the model beyond their photon noise and by over 15 %; a real
 one: the model off by more than 60 % per bin, twice what a real sensor's own departures from its model leave), a
 surface seen by too few views, a mesh in pieces (more than its ground truth has), specks holding more of the
-surface than a good fit leaves, too little signal (the zone aimed at the object empty in many views, each carving its
-view away; with the carving thresholds set lower, judged at their default level too: faint returns), a scene
-bound that cuts the object, a mesh or metrics made coarser to fit the budget (docs/end_of_run.md).
+surface than a good fit leaves, holes through thin walls (more tunnels than its ground truth has), too little
+signal (the zone aimed at the object empty in many views, each carving its view away; with the carving thresholds
+set lower, judged at their default level too: faint returns), a scene bound that cuts the object, a mesh or metrics
+made coarser to fit the budget (docs/end_of_run.md).
 
 CPU threads: without --threads (and without OMP_NUM_THREADS), a CPU run times its steps with all the cores' threads
 and with one, keeps the faster and checks again from time to time, so that a busy machine does not make every step

@@ -1,6 +1,7 @@
-"""The end-of-run checks on the capture's signal, on the mesh's specks, and on pieces against a ground truth of
-several: a dim capture that carving cut down to a lump says so; a spiky fit whose specks hold a share of the surface
-no good fit leaves says so; two objects fitted as two pieces say nothing."""
+"""The end-of-run checks on the capture's signal, on the mesh's specks, on pieces against a ground truth of several and
+on tunnels against the ground truth's: a dim capture that carving cut down to a lump says so; a spiky fit whose specks
+hold a share of the surface no good fit leaves says so; two objects fitted as two pieces say nothing; holes that the
+ground truth lacks say so."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from spadscan.worker.end_of_run import RunFacts, pieces_warning, specks_warning, warnings
+from spadscan.worker.end_of_run import (EXTRA_TUNNELS, RunFacts, pieces_warning, specks_warning, tunnels_warning,
+                                        warnings)
 from spadscan.worker.pieces import SPECKS_LIMIT, Pieces, mesh_pieces
 from spadscan.worker.carving.returns import first_returns, weak_level
 from spadscan.worker.carving.space_carving import carve_limits
@@ -265,3 +267,63 @@ def test_a_capture_too_faint_to_leave_a_surface_names_its_signal_in_the_error(tm
     with pytest.raises(ReconstructionError) as err:
         reconstruct_capture(tmp_path / "full", tmp_path / "out-full", **run)
     assert str(err.value) == "no surface: the SDF is outside everywhere on the grid"
+
+
+def tori(n: int, spacing_m: float = 0.12) -> trimesh.Trimesh:
+    """`n` tori side by side, flat on the floor (8 cm across, holes 5 cm across): n pieces with a tunnel each."""
+    return trimesh.util.concatenate([
+        trimesh.creation.torus(0.04, 0.015).apply_translation([spacing_m * (i - (n - 1) / 2), 0.0, 0.015])
+        for i in range(n)])
+
+
+def test_tunnels_counted_on_the_pieces_of_note():
+    """A sphere has none, a torus one, three tori three; specks do not count, and an open surface has no genus."""
+    assert mesh_pieces(trimesh.creation.icosphere()).tunnels == 0
+    assert mesh_pieces(tori(1)).tunnels == 1 and mesh_pieces(tori(3)).tunnels == 3
+    assert mesh_pieces(trimesh.util.concatenate([trimesh.creation.box(extents=(0.1, 0.1, 0.1)),
+                                                 tori(1).apply_scale(0.05)])).tunnels == 0  # a speck's tunnel
+    sphere = trimesh.creation.icosphere()
+    assert mesh_pieces(trimesh.Trimesh(sphere.vertices, sphere.faces[1:])).tunnels is None  # one face cut out
+    assert mesh_pieces(tori(2)).to_dict()["tunnels"] == 2
+
+
+def test_tunnels_beyond_the_ground_truths_warn():
+    """More than EXTRA_TUNNELS tunnels beyond the ground truth's warn; as many as it has, or a few more (the pinholes of
+    a good fit), or no ground truth or no genus say nothing."""
+    three = mesh_pieces(tori(3))
+    line = tunnels_warning(three, truth_tunnels=0)
+    assert line.startswith("the mesh has 3 tunnels through it where its ground truth has 0: thin walls")
+    assert "preview.png" in line and line in warnings(facts(pieces=three, truth_pieces=3, truth_tunnels=0))
+    assert tunnels_warning(three, truth_tunnels=3) is None  # three handles, as the object has
+    assert tunnels_warning(three, truth_tunnels=3 - EXTRA_TUNNELS) is None
+    assert tunnels_warning(three, truth_tunnels=None) is None  # a capture alone does not tell
+    assert tunnels_warning(Pieces(count=1, share_apart=0.0, specks=0, tunnels=None), truth_tunnels=0) is None
+    assert warnings(facts(pieces=three, truth_pieces=3)) == []
+
+
+@pytest.mark.slow
+def test_reconstruct_warns_of_tunnels_its_ground_truth_lacks(tmp_path):
+    """The run's wiring: three tori fitted and scored against three spheres (as many pieces, no tunnels) keep their
+    holes, report.json counts them and the truth's, and the run warns; scored against the tori themselves it does
+    not."""
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    rings = tori(3)
+    rings.export(tmp_path / "tori.ply")
+    trimesh.util.concatenate([trimesh.creation.icosphere(2, 0.04).apply_translation([0.12 * (i - 1), 0.0, 0.04])
+                              for i in range(3)]).export(tmp_path / "balls.ply")
+    poses = fibonacci_hemisphere(32, 0.4, target=(0, 0, 0.0), min_elevation_deg=20)
+    simulate_capture(rings, sensor_preset("lcspc-sim"), poses, tmp_path / "cap",
+                     settings=SimSettings(rays_per_zone=256), progress=False)
+    run = {"steps": 300, "progress": False, "device": "cpu", "threads": 1,
+           "overrides": {"mesh_resolution": 96, "early_stop": False}}
+    wrong = reconstruct_capture(tmp_path / "cap", tmp_path / "balls", gt=tmp_path / "balls.ply", **run)
+    assert wrong["pieces"]["tunnels"] == 3 and wrong["pieces"]["truth_tunnels"] == 0, wrong["pieces"]
+    assert any(w.startswith("the mesh has 3 tunnels through it where its ground truth has 0")
+               for w in wrong["warnings"]), wrong["warnings"]
+    right = reconstruct_capture(tmp_path / "cap", tmp_path / "tori", gt=tmp_path / "tori.ply", **run)
+    assert right["pieces"]["truth_tunnels"] == 3
+    assert not any("tunnels" in w for w in right["warnings"]), right["warnings"]

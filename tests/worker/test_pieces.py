@@ -40,7 +40,7 @@ def test_a_speck_under_the_minimum_share_is_no_piece_but_counts_in_the_share():
     assert pieces.share_apart == pytest.approx(6 / 60_006) and pieces.share_apart < PIECE_MIN_SHARE
     assert pieces.specks_share == pytest.approx(pieces.share_apart)
     assert pieces.to_dict() == {"count": 1, "share_apart": pieces.share_apart, "specks": 1,
-                                "specks_share": pieces.specks_share, "min_share": PIECE_MIN_SHARE,
+                                "specks_share": pieces.specks_share, "tunnels": 0, "min_share": PIECE_MIN_SHARE,
                                 "specks_limit": SPECKS_LIMIT}
 
 
