@@ -4,21 +4,19 @@ chunk out must name exactly the chunks the reader refuses, and never one whose c
 
 from __future__ import annotations
 
-import builtins
-import errno
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from spadscan.daemon.scan_job import damaged_chunks
-from spadscan.protocol import capture_format
 from spadscan.protocol.capture_format import Measurement, NoPermission, chunk_name
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_presets import sensor_preset
+
+from disk_faults import deny_open, fail_lookup
 
 TMF = sensor_preset("tmf8820")
 
@@ -33,29 +31,6 @@ def write(path: Path, n: int, chunk_size: int) -> None:
             w.append(Measurement(hist=hist, pose=pose, pose_index=i, frame=0,
                                  reference=np.ones(TMF.n_bins, np.uint32)))
         w.finish()
-
-
-def fail_lookup(monkeypatch, failing: Path) -> None:
-    """Make looking `failing` up fail with EIO, as a failing disk's stat does (the folder's listing and its other
-    files still read)."""
-    exists = Path.exists
-
-    def guarded_exists(self, *args, **kwargs):
-        if os.fspath(self) == os.fspath(failing):
-            raise OSError(errno.EIO, "Input/output error", os.fspath(self))
-        return exists(self, *args, **kwargs)
-
-    monkeypatch.setattr(Path, "exists", guarded_exists)
-
-
-def deny_open(monkeypatch, denied: Path) -> None:
-    """Make opening `denied` fail as a file of another user's with mode 600 would (as root chmod would not)."""
-    def guarded_open(file, *args, **kwargs):
-        if os.fspath(file) == os.fspath(denied):
-            raise PermissionError(errno.EACCES, "Permission denied", os.fspath(file))
-        return builtins.open(file, *args, **kwargs)
-
-    monkeypatch.setattr(capture_format, "open", guarded_open, raising=False)
 
 
 def test_the_chunks_the_daemon_says_to_move_out_are_those_the_reader_refuses(tmp_path, monkeypatch):

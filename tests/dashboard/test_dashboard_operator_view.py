@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from contextlib import contextmanager
 
 import trimesh
 
@@ -40,18 +41,31 @@ def _wait_for_scene(page, not_src: str = "") -> str:
     return page.evaluate(f"() => {FRAME}.src")
 
 
-def test_the_live_3d_view_keeps_the_operators_camera_when_the_live_mesh_changes(tmp_path):
-    scan = tmp_path / "bowl"
+@contextmanager
+def _live_bowl_in_view(root):
+    """A live job's first fit of a scan `bowl` under `root`, its 3D view loaded in the dashboard: yields (the scan's
+    folder, the page, what the browser saw, the view's address)."""
+    scan = root / "bowl"
     complete_scan(scan, 2)
     _live_fit(scan, 1, 1)
-    with serving(tmp_path) as server, browser_page() as (page, seen):
+    with serving(root) as server, browser_page() as (page, seen):
         page.goto(address(server))
-        first = _wait_for_scene(page)
+        yield scan, page, seen, _wait_for_scene(page)
+
+
+def _press_in_view(page) -> tuple[float, float]:
+    """Press the mouse button down inside the 3D view, as an operator starting to turn it; returns where."""
+    box = page.locator("#viewer-3d").bounding_box()
+    x, y = box["x"] + box["width"] * 0.6, box["y"] + box["height"] * 0.6
+    page.mouse.move(x, y)
+    page.mouse.down()
+    return x, y
+
+
+def test_the_live_3d_view_keeps_the_operators_camera_when_the_live_mesh_changes(tmp_path):
+    with _live_bowl_in_view(tmp_path) as (scan, page, seen, first):
         assert page.evaluate(f"() => {FRAME}.contentWindow.spadscanCamera()") is None  # the scene's own camera
-        box = page.locator("#viewer-3d").bounding_box()
-        x, y = box["x"] + box["width"] * 0.6, box["y"] + box["height"] * 0.6
-        page.mouse.move(x, y)
-        page.mouse.down()
+        x, y = _press_in_view(page)
         page.mouse.move(x + 90, y + 40, steps=8)  # the operator turns the shape
         page.mouse.up()
         turned = page.evaluate(f"() => {FRAME}.contentWindow.spadscanCamera()")
@@ -67,16 +81,8 @@ def test_the_live_3d_view_keeps_the_operators_camera_when_the_live_mesh_changes(
 
 
 def test_a_live_update_during_a_drag_waits_for_its_end(tmp_path):
-    scan = tmp_path / "bowl"
-    complete_scan(scan, 2)
-    _live_fit(scan, 1, 1)
-    with serving(tmp_path) as server, browser_page() as (page, seen):
-        page.goto(address(server))
-        first = _wait_for_scene(page)
-        box = page.locator("#viewer-3d").bounding_box()
-        x, y = box["x"] + box["width"] * 0.6, box["y"] + box["height"] * 0.6
-        page.mouse.move(x, y)
-        page.mouse.down()
+    with _live_bowl_in_view(tmp_path) as (scan, page, seen, first):
+        x, y = _press_in_view(page)
         page.mouse.move(x + 60, y + 20, steps=6)  # the operator is turning the shape
         _live_fit(scan, 2, 20)  # and the live fit moves on meanwhile
         link = "() => [...document.querySelectorAll('#viewer-links a')].find(a => a.textContent === 'view3d.html')"

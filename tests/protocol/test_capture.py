@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import errno
 import inspect
 import json
 import os
@@ -23,6 +22,8 @@ from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_presets import sensor_preset
+
+from disk_faults import fail_lookup
 
 
 def make_measurement(i, zones, bins, with_reference):
@@ -612,14 +613,7 @@ def test_a_chunk_file_that_cannot_be_looked_up_is_a_damaged_chunk_in_one_line(tm
     path = tmp_path / "scan"
     write(path, 6, 2)
     failing = path / chunk_name(1) / "reference.npy"
-    exists = Path.exists
-
-    def guarded_exists(self, *args, **kwargs):
-        if os.fspath(self) == os.fspath(failing):
-            raise OSError(errno.EIO, "Input/output error", os.fspath(self))
-        return exists(self, *args, **kwargs)
-
-    monkeypatch.setattr(Path, "exists", guarded_exists)
+    fail_lookup(monkeypatch, failing)
     with pytest.raises(CaptureError) as info:
         CaptureReader(path).load()
     said = str(info.value)

@@ -6,7 +6,6 @@ tests must hold whoever runs them."""
 
 from __future__ import annotations
 
-import builtins
 import errno
 import os
 from pathlib import Path
@@ -15,22 +14,12 @@ import numpy as np
 import pytest
 
 from spadscan.cli import main
-from spadscan.protocol import capture_format
 from spadscan.protocol.capture_format import MANIFEST, NoPermission, chunk_name, read_json, read_npy
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError
 
+from disk_faults import deny_open
 from test_capture import write
-
-
-def deny_open(monkeypatch, denied: Path) -> None:
-    """Make read_npy's open of `denied` fail as a file of another user's with mode 600 would (EACCES)."""
-    def guarded_open(file, *args, **kwargs):
-        if os.fspath(file) == os.fspath(denied):
-            raise PermissionError(errno.EACCES, "Permission denied", os.fspath(file))
-        return builtins.open(file, *args, **kwargs)
-
-    monkeypatch.setattr(capture_format, "open", guarded_open, raising=False)
 
 
 def deny_read_text(monkeypatch, denied: Path) -> None:
