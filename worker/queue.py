@@ -97,6 +97,12 @@ class JobStatus:
     worker takes it over), 'running?' for one whose holder has missed heartbeats while its lease still holds."""
     kept: bool = False
     """A done job that was not run: its results folder already held a result, which was kept."""
+    claimed_unix: float | None = None
+    """For a running job: when its running claim began (unix seconds, its attempt record's start), or None where the
+    record does not say."""
+    waiting_s: float | None = None
+    """For a queued job: how long it has waited (its file's age: a job file is renamed into queued/ when it is queued
+    or given back)."""
 
 
 def _utc() -> str:
@@ -499,21 +505,21 @@ class Queue:
         # died between moving the job to done/ and updating the record).
         results = ([str(r["result"]) for r in recs if r.get("outcome") == "done" and r.get("result")]
                    or ([str(r["result"]) for r in recs if r.get("result")] if state == "done" else []))
-        holder = age = stale = None
+        holder = age = stale = claimed = waiting = None
         shown = state
         if state == "running":
             token = path.stem.rpartition(SEP)[2]
             rec = next((r for r in recs if r.get("token") == token), {})
             holder = f"{rec.get('host', '?')}:{rec.get('pid', '?')}"
-            try:
-                age = max(0.0, now - path.stat().st_mtime)
-            except FileNotFoundError:
-                age = None
+            claimed = _finite(rec.get("started_unix"))  # a damaged record's start says nothing
+            age = _age(path, now)
             shown, stale = self._stale(path, job_id, token, age, now) or (state, None)
+        elif state == "queued":
+            waiting = _age(path, now)
         done = [r for r in recs if r.get("outcome") == "done"]
         return JobStatus(job_id, str(job.scan), str(job.preset), state, len(counted),
                          errors[-1] if errors and state != "done" else None, results[-1] if results else None,
-                         holder, age, notes, stale, shown, bool(done and done[-1].get("kept")))
+                         holder, age, notes, stale, shown, bool(done and done[-1].get("kept")), claimed, waiting)
 
     def _stale(self, path: Path, job_id: str, token: str, age: float | None,
                now: float) -> tuple[str, str] | None:
@@ -639,6 +645,20 @@ def _stored(path: Path) -> dict:
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
+
+
+def _finite(value) -> float | None:
+    """A record's finite number, or None where a damaged record holds something else."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return float(value) if ok else None
+
+
+def _age(path: Path, now: float) -> float | None:
+    """Seconds since `path` was last modified (0 at least), or None when it has moved on meanwhile."""
+    try:
+        return max(0.0, now - path.stat().st_mtime)
+    except FileNotFoundError:
+        return None
 
 
 def _number(value) -> float:

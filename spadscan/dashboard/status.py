@@ -10,7 +10,6 @@ as their scan.json says.
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -18,7 +17,6 @@ from dataclasses import asdict
 from pathlib import Path
 
 from spadscan.worker.job_progress import progress_field, running_progress
-from spadscan.worker.queue import SEP
 from spadscan.worker.report.mesh_pictures import VIEWS
 from spadscan.worker.status_detail import status_parts
 
@@ -43,31 +41,9 @@ def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
 
     queue = Queue(queue_dir, create=False)
     running = running_progress(queue, root)  # a job with a budget is shown against it
-    paths, now = queue.job_paths(), time.time()
-    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), **job_detail(row, root),
-             **job_times(queue, row, paths.get(row.id), now)} for row in queue.statuses()]
+    jobs = [{**asdict(row), **progress_field(row.state, row.id, running), **job_detail(row, root)}
+            for row in queue.statuses()]
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
-
-
-def job_times(queue, row, found: tuple[str, Path] | None, now: float) -> dict:
-    """{"claimed_unix": when its running claim began} for a running job (its attempt record's start), {"waiting_s":
-    how long it has been queued} for a queued one (its file's mtime: a job gets it when it is queued or given back),
-    {} for the others or when its file moved on meanwhile."""
-    if found is None or found[0] != row.state:
-        return {}
-    state, path = found
-    if state == "queued":
-        try:
-            return {"waiting_s": max(0.0, now - path.stat().st_mtime)}
-        except OSError:
-            return {}
-    if state != "running":
-        return {}
-    token = path.stem.rpartition(SEP)[2]
-    record = next((r for r in queue.read_records(row.id)[0] if r.get("token") == token), {})
-    started = record.get("started_unix")
-    finite = isinstance(started, (int, float)) and not isinstance(started, bool) and math.isfinite(started)
-    return {"claimed_unix": started} if finite else {}  # a damaged record's start says nothing
 
 
 def job_detail(row, root: Path | None) -> dict:

@@ -145,6 +145,27 @@ def test_heartbeat_keeps_the_lease_and_finish_records_the_result(tmp_path):
     assert (row.state, row.attempts, row.result, row.error) == ("done", 1, "/x/recon/s-fast", None)
 
 
+def test_status_rows_say_when_a_running_claim_began_and_how_long_a_queued_job_waited(tmp_path):
+    q = Queue(tmp_path / "q", lease_s=60)
+    q.enqueue(_job("a"))
+    q.enqueue(_job("b"))
+    before = time.time()
+    claim = q.claim()
+    rows = {r.id: r for r in q.statuses()}
+    running, queued = rows[claim.job.id], rows["b-fast" if claim.job.id == "a-fast" else "a-fast"]
+    assert running.state == "running" and before <= running.claimed_unix <= time.time()
+    assert running.waiting_s is None
+    assert queued.state == "queued" and queued.claimed_unix is None and 0.0 <= queued.waiting_s < 60.0
+    damaged = 0
+    for path in (tmp_path / "q").rglob("*.json"):  # a damaged start in the claim's attempt record says nothing
+        data = json.loads(path.read_text())
+        if isinstance(data, dict) and data.get("token") == claim.token and "started_unix" in data:
+            path.write_text(json.dumps({**data, "started_unix": "soon"}))
+            damaged += 1
+    assert damaged == 1
+    assert {r.id: r for r in q.statuses()}[claim.job.id].claimed_unix is None
+
+
 def test_expired_lease_is_taken_over_and_retried_then_failed(tmp_path):
     q = Queue(tmp_path / "q", lease_s=10, max_attempts=2)
     q.enqueue(_job("s"))
