@@ -36,7 +36,9 @@ from spadscan.protocol.errors import ConfigError
 from .children import Child, exit_reason, kill_group, spawn_job
 from .job_progress import PROGRESS_S, LogTails, ProgressNotes, progress_note
 from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
+from .holder import Holder
 from .live.done import mark_live_done, mark_live_failed, mark_live_queued
+from .presence import RENEW_S, Presence, present_workers, remove_presence, write_presence
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
 from .queue import SEP, Claim, Queue, Unrecorded
 from .watcher import SETTLE_S, ScanReport, scan_once, watch
@@ -93,6 +95,10 @@ class Worker:
         self.progress = ProgressNotes(progress_s) if progress_s else None
         self.tails = LogTails()
         """The running jobs' logs as last read for their progress lines: read again only once changed."""
+        self.presence = Presence(Holder.current().to_dict(), str(self.root.resolve()), time.time(), config.processes,
+                                 config.once)
+        """What this worker says of itself in its file under the queue (presence.py), renewed while it runs."""
+        self._presence_at = -math.inf
 
     # ---- main loop -------------------------------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None) -> dict[str, str]:
@@ -102,6 +108,7 @@ class Worker:
                  f"{self.threads_note}")
         for warning in self.threads_warnings:
             self.log(f"warning: {warning}")
+        await asyncio.to_thread(present_workers, self.queue.path, tidy=True)  # killed workers' files on this machine
         frozen = await asyncio.to_thread(self._frozen_options_note)  # before this worker queues jobs of its own
         if frozen:
             self.log(frozen)
@@ -129,6 +136,7 @@ class Worker:
                         self._trouble("poll the queue", exc)
                     next_poll = time.monotonic() + self.config.poll_s
                 self._heartbeat()
+                self._say_present()
                 await self._say_progress()
                 if self.config.once and not self.children and not self.unpublished and self._drained():
                     break
@@ -141,6 +149,7 @@ class Worker:
                     await watcher
             finally:
                 await self._shutdown()
+                self._say_gone()
         return self.settled
 
     def _trouble(self, what: str, exc: Exception | None) -> None:
@@ -155,6 +164,27 @@ class Worker:
         else:
             self.log(f"could not {what}: {line}; trying again every {self.config.poll_s:g} s")
             self._troubles[what] = line
+
+    def _say_present(self) -> None:
+        """Renew this worker's presence file every RENEW_S, and at once when the jobs it runs change: the dashboard
+        and `--status` tell an idle worker from none by it. A write that fails (a full disk) is said once; the worker
+        works on without it."""
+        running = sorted(self.children)
+        if running == self.presence.running and time.monotonic() - self._presence_at < RENEW_S:
+            return
+        self.presence.running = running
+        self._presence_at = time.monotonic()
+        try:
+            write_presence(self.queue.path, self.presence)
+            self._trouble("renew this worker's presence file", None)
+        except OSError as exc:
+            self._trouble("renew this worker's presence file", exc)
+
+    def _say_gone(self) -> None:
+        try:
+            remove_presence(self.queue.path, Holder(**self.presence.holder))
+        except OSError as exc:  # a lost mount: the file counts no more once it is a few renewals old
+            self.log(f"could not remove this worker's presence file: {fold(exc)}")
 
     def _drained(self) -> bool:
         counts = self.queue.counts()

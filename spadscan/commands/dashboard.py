@@ -7,10 +7,10 @@ about once a second. The dashboard only reads the root: it never talks to the ar
 
 At the top it says the daemon's state in the daemon's own words (`spadscan ctl status`: scanning, paused, idle; a
 scan's scan.json says "running" while it is scanned) and, in one line, what the reconstruction side does: a worker at
-its jobs, a job whose worker is gone, jobs or complete scans that no worker has taken for 20 s, or that no job runs
-or waits, with the command that starts a worker where one is wanted. A worker with nothing to do leaves no trace under
-the root, so that last line cannot say whether one waits. The scan in hand, the reconstruction in view and its 3D
-view fit a 1280x800 window; a newer live view waits while the operator turns the shown one.
+its jobs, a job whose worker is gone, jobs or complete scans that no worker has taken for 20 s, a worker waiting for
+scans, or no worker at all, with the command that starts a worker where one is wanted (a running worker, idle or not,
+renews its file under QUEUE/workers/). The scan in hand, the reconstruction in view and its 3D view fit a 1280x800
+window; a newer live view waits while the operator turns the shown one.
 
 A scan left running by a daemon that is gone (crashed, killed or stopped: no process holds
 CAPTURES/.spadscan-daemon.lock) is shown as "interrupted (no daemon running)", without a frame rate; a daemon

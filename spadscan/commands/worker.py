@@ -62,7 +62,8 @@ its budget or steps, the step, the loss and, where the scene is known, the last 
 `progress`); a done job, its result and its report's warnings, each on a line of its own. A running job whose worker
 died or stopped renewing its lease shows as
 `stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
-still holds shows as `running?`.
+still holds shows as `running?`. Its last line names the workers running on the queue, idle ones included (each
+renews a file under QUEUE/workers/ while it runs), or says that none is and how to start one.
 
 --once queues the complete scans there are, runs until nothing is queued or running, and exits. Its last line
 counts the jobs done and failed and names each scan it left unqueued, and why (still recorded, or a copy still under
@@ -122,7 +123,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--status", action="store_true",
                         help="list the jobs and exit (changes nothing; only --queue, --json and --lease-s go with "
                              "it): a running job with its progress; one whose worker seems gone shows as 'stale' or "
-                             "'running?'")
+                             "'running?'; its last line names the workers running, idle ones included")
     parser.add_argument("--json", action="store_true", help="with --status: print JSON instead of a table")
     parser.add_argument("--retry-failed", action="store_true",
                         help="put every failed job back in the queue with a fresh attempt count, and exit; "
@@ -297,6 +298,7 @@ def _print_status(queue, as_json: bool, root: Path) -> int:
     from dataclasses import asdict
 
     from spadscan.worker.job_progress import progress_field, running_progress
+    from spadscan.worker.presence import present_workers, start_command, workers_line
     from spadscan.worker.status_detail import result_health, status_lines
 
     rows = queue.statuses()
@@ -305,8 +307,10 @@ def _print_status(queue, as_json: bool, root: Path) -> int:
         print(json.dumps([{**asdict(r), **result_health(r), **progress_field(r.state, r.id, running)}
                           for r in rows], indent=1))
         return 0
+    workers = workers_line(present_workers(queue.path), start_command(root, queue.path))
     if not rows:
         print(f"no jobs in {queue.path}")
+        print(workers)
         return 0
     table = [("JOB", "STATE", "TRIES", "HOLDER", ["RESULT / LAST ERROR"])]
     for r in rows:
@@ -325,4 +329,5 @@ def _print_status(queue, as_json: bool, root: Path) -> int:
     stale = sum(1 for r in rows if r.state == "running" and r.shown_state == "stale")
     print(", ".join(f"{n} {state}" + (f" ({stale} stale: their worker is gone)" if state == "running" and stale else "")
                     for state, n in counts.items()))
+    print(workers)
     return 0

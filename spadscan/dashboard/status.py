@@ -17,13 +17,14 @@ from dataclasses import asdict
 from pathlib import Path
 
 from spadscan.worker.job_progress import progress_field, running_progress
+from spadscan.worker.presence import present_workers, start_command
 from spadscan.worker.report.mesh_pictures import VIEWS
 from spadscan.worker.status_detail import status_parts
 
 from .attempts import claim_starts, earlier_attempt
 from .results import ResultIndex
 from .scans import IN_HAND, INTERRUPTED, ScanIndex, interrupted, scan_detail
-from .worker_state import start_command, worker_state
+from .worker_state import worker_state
 
 PREVIEW = {"columns": [f"az {az:.0f} el {el:.0f}" for az, el in VIEWS], "rows": ["reconstruction", "ground truth"]}
 """What each panel of a preview.png shows (worker/report/mesh_pictures.py `preview_png`: a column per angle, the
@@ -101,5 +102,7 @@ class Dashboard:
     def _worker(self, rows, queue: dict) -> dict:
         """What the reconstruction side is doing (worker_state; "unknown" when the queue cannot be read), with the
         command that starts a worker."""
-        state = {"state": "unknown"} if queue.get("error") else worker_state(rows, queue["jobs"], time.time())
+        now = time.time()
+        state = {"state": "unknown"} if queue.get("error") else worker_state(
+            rows, queue["jobs"], now, present_workers(self.queue_dir, now))
         return {**state, "start": start_command(self.root, self.queue_dir)}

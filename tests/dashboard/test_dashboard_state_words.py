@@ -1,6 +1,7 @@
 """The page says the daemon's state in the daemon's own words (`spadscan ctl status`: scanning, paused, idle), and
 says in one line at the top what the reconstruction side is doing: a worker at a job, jobs that no worker takes, a
-scan that no worker has queued, or nothing at all, with the command that starts a worker."""
+scan that no worker has queued, a worker waiting for scans, or no worker at all, with the command that starts a worker
+where none runs and the worker's terminal where one runs and does not do its work."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from spadscan.dashboard.server import address
 from spadscan.dashboard.worker_state import LOOK_S
 from spadscan.worker.holder import Holder
 from spadscan.worker.jobs import Job
+from spadscan.worker.presence import Presence, remove_presence, write_presence
 from spadscan.worker.queue import Queue
 
 WAIT_MS = 60_000  # generous: a poll a second, on a busy machine
@@ -49,23 +51,30 @@ def test_a_scan_being_recorded_reads_scanning_as_the_daemon_says_it(tmp_path):
     assert not seen.errors, seen.errors
 
 
-def test_with_no_job_running_or_queued_the_page_says_so_and_how_to_start_a_worker(tmp_path):
+def test_the_page_tells_an_idle_worker_from_none_and_says_how_to_start_one(tmp_path):
     start = f"spadscan worker --root {shlex.quote(str(tmp_path.resolve()))}"
+    me = Holder.current()
+    worker = f"worker on {me.host} pid {me.pid}"
+    queue = Queue.for_root(tmp_path)
     with serving(tmp_path) as server, browser_page() as (page, seen):
         page.goto(address(server))
-        said = text_of(page, "#worker", "no reconstruction job")
-        assert said.startswith("no reconstruction job is running or queued") and start in said, said
-        complete_scan(tmp_path / "mug", 2)  # a scan no worker queues
+        said = text_of(page, "#worker", "no worker is running")
+        assert said.startswith("no worker is running: complete scans wait") and start in said, said
+        write_presence(queue.path, Presence(me.to_dict(), str(tmp_path), time.time(), 1))  # a worker starts
+        assert text_of(page, "#worker", "waiting") == f"{worker}: waiting for scans (it queues each once complete)"
+        complete_scan(tmp_path / "mug", 2)  # a scan the worker does not queue
         aged(tmp_path / "mug" / "scan.json", 3 * LOOK_S)
         said = text_of(page, "#worker", "mug")
-        assert said.startswith("no worker has queued scan mug") and start in said, said
+        assert said.startswith(f"the {worker} has not queued scan mug") and said.endswith("see its terminal"), said
         assert page.locator("#worker").get_attribute("class") == "down"
-        queue = Queue.for_root(tmp_path)
+        remove_presence(queue.path, me)  # the worker stops
+        said = text_of(page, "#worker", "no worker has")
+        assert said.startswith("no worker has queued scan mug") and start in said, said
         queue.enqueue(Job(id="mug-fast", scan="mug"))  # queued by a worker that went, say
         aged(queue.path / "queued" / "mug-fast.json", 2 * LOOK_S)
         said = text_of(page, "#worker", "waited")
         assert said.startswith("1 job has waited") and "no worker has taken it" in said and start in said, said
-        queue.claim(Holder.current())  # a worker takes it
+        queue.claim(me)  # a worker takes it
         assert text_of(page, "#worker", "reconstructing") == "worker: reconstructing mug-fast"
         assert page.locator("#worker").get_attribute("class") == ""
     assert not seen.errors, seen.errors
@@ -73,22 +82,24 @@ def test_with_no_job_running_or_queued_the_page_says_so_and_how_to_start_a_worke
 
 def test_what_the_worker_line_is_made_of():
     from spadscan.dashboard.scans import ScanRow
-    from spadscan.dashboard.worker_state import start_command, worker_state
+    from spadscan.dashboard.worker_state import worker_state
 
     now = 1_000_000.0
     running = {"id": "a-fast", "scan": "a", "state": "running", "stale": None}
     queued = {"id": "b-fast", "scan": "b", "state": "queued", "waiting_s": 3.0}
-    assert worker_state([], [running, queued], now) == {"state": "working", "jobs": ["a-fast"], "queued": 1}
+    assert worker_state([], [running, queued], now) == {"state": "working", "jobs": ["a-fast"], "queued": 1,
+                                                        "workers": []}
     assert worker_state([], [{**running, "stale": "worker x pid 1 died mid-job"}], now) == {
-        "state": "gone", "jobs": ["a-fast"]}
+        "state": "gone", "jobs": ["a-fast"], "workers": []}
     assert worker_state([], [queued], now)["state"] == "queued"  # a worker takes it at its next look
     assert worker_state([], [{**queued, "waiting_s": LOOK_S}], now)["state"] == "untaken"
     done = ScanRow("done", "complete", mtime=now - 10 * LOOK_S)
     fresh = ScanRow("fresh", "complete", mtime=now - 1.0)  # just finished: no worker has had its look yet
     recording = ScanRow("rec", "running", mtime=now - 10 * LOOK_S)  # a worker without --live leaves it
     assert worker_state([done, fresh, recording], [], now) == {"state": "unqueued", "scans": ["done"],
-                                                               "waited_s": 10 * LOOK_S}
+                                                               "waited_s": 10 * LOOK_S, "workers": []}
     finished = {"id": "done-fast", "scan": "done", "state": "done"}
-    assert worker_state([done, fresh, recording], [finished], now) == {"state": "idle"}
-    assert start_command("/data/my scans", "/data/my scans/.queue") == "spadscan worker --root '/data/my scans'"
-    assert start_command("/data/s", "/shared/q") == "spadscan worker --root /data/s --queue /shared/q"
+    assert worker_state([done, fresh, recording], [finished], now) == {"state": "none", "workers": []}
+    present = [{"host": "lab", "pid": 7}, {"host": "gpu", "pid": 9}]
+    assert worker_state([done, fresh, recording], [finished], now, present) == {
+        "state": "waiting", "workers": ["lab pid 7", "gpu pid 9"]}

@@ -328,7 +328,7 @@ def test_status_marks_running_jobs_whose_worker_seems_gone(tmp_path, capsys):
     os.utime(claims["silent"].path, (now - 40, now - 40))
     assert cli_main(["worker", "--root", str(root), "--status"]) == 0
     out = capsys.readouterr().out
-    assert "4 running (2 stale: their worker is gone)" in out.splitlines()[-1]  # not all four at work
+    assert "4 running (2 stale: their worker is gone)" in out.splitlines()[-2]  # not all four at work
     rows = {line.split()[0]: line for line in out.splitlines()}
     assert rows["dead-fast"].split()[1] == "stale" and f"pid {gone.pid} died mid-job" in rows["dead-fast"]
     assert rows["expired-fast"].split()[1] == "stale" and "stopped renewing its lease (90 s > 60 s)" in rows[

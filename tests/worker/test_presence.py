@@ -1,0 +1,120 @@
+"""A running worker keeps a presence file under its queue (presence.py), idle or not, and removes it when it stops; a
+file counts only while it is renewed and its process exists, so a killed worker is not taken for a running one."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+from spadscan.cli import main as cli_main
+from spadscan.worker.holder import Holder, holder_gone
+from spadscan.worker.jobs import Job
+from spadscan.worker.pool import Worker
+from spadscan.worker.presence import (MISSED_RENEWALS, RENEW_S, Presence, present_workers, presence_path,
+                                      start_command, write_presence)
+from spadscan.worker.queue import Queue
+from spadscan.worker.worker_config import WorkerConfig
+
+
+def dead_holder() -> Holder:
+    """A process of this machine that has exited."""
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    dead = replace(Holder.current(), pid=proc.pid, pid_start="")
+    assert holder_gone(dead.to_dict())
+    return dead
+
+
+def presence(holder: Holder, **changes) -> Presence:
+    return replace(Presence(holder.to_dict(), "/captures", 1000.0, 1), **changes)
+
+
+def aged(path, seconds: float) -> None:
+    then = time.time() - seconds
+    os.utime(path, (then, then))
+
+
+def test_a_renewed_file_of_a_live_process_is_listed(tmp_path):
+    write_presence(tmp_path, presence(Holder.current(), running=["s-fast"], processes=2))
+    [row] = present_workers(tmp_path)
+    assert (row["pid"], row["root"], row["processes"], row["running"]) == (os.getpid(), "/captures", 2, ["s-fast"])
+    assert row["seen_s"] < RENEW_S
+
+
+def test_a_file_no_longer_renewed_does_not_count(tmp_path):
+    path = write_presence(tmp_path, presence(Holder.current()))
+    aged(path, MISSED_RENEWALS * RENEW_S - 5)
+    assert len(present_workers(tmp_path)) == 1
+    aged(path, MISSED_RENEWALS * RENEW_S + 5)
+    assert present_workers(tmp_path) == []
+    assert path.exists()  # its worker may be on another machine, with the queue's mount lost for a while
+
+
+def test_a_dead_workers_file_does_not_count_and_is_tidied_away(tmp_path):
+    path = write_presence(tmp_path, presence(dead_holder()))
+    assert present_workers(tmp_path) == [] and path.exists()
+    assert present_workers(tmp_path, tidy=True) == []
+    assert not path.exists()
+
+
+def test_damaged_files_and_no_folder_list_no_worker(tmp_path):
+    assert present_workers(tmp_path) == []
+    path = presence_path(tmp_path, Holder.current())
+    path.parent.mkdir()
+    path.write_text("{not json")
+    (path.parent / "other.json").write_text(json.dumps({"holder": {"pid": 1}}))
+    assert present_workers(tmp_path) == []
+
+
+def test_a_worker_is_present_while_it_runs_idle_and_gone_once_stopped(tmp_path, arun):
+    root = tmp_path / "captures"
+    root.mkdir()
+    worker = Worker(WorkerConfig(root=root, poll_s=0.05, processes=2), log=lambda line: None)
+    path = presence_path(worker.queue.path, Holder.current())
+    stale = write_presence(worker.queue.path, presence(dead_holder()))  # a killed worker's, left behind
+
+    async def run_until_present() -> list[dict]:
+        stop = asyncio.Event()
+        task = asyncio.create_task(worker.run(stop))
+        deadline = time.monotonic() + 60
+        while not path.exists() and not task.done() and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        rows = present_workers(worker.queue.path)
+        stop.set()
+        await task
+        return rows
+
+    [row] = arun(run_until_present())
+    assert (row["pid"], row["root"], row["processes"], row["running"]) == (os.getpid(), str(root.resolve()), 2, [])
+    assert not path.exists(), "a stopped worker leaves its file behind"
+    assert not stale.exists(), "a starting worker leaves a dead one's file"
+
+
+def test_status_says_which_workers_run_and_how_to_start_one_when_none_does(tmp_path, capsys):
+    queue = Queue.for_root(tmp_path)
+    assert cli_main(["worker", "--root", str(tmp_path), "--status"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[-1] == ("no worker is running on this queue: complete scans wait for one "
+                       f"(start one: {start_command(tmp_path, queue.path)})")
+    me = Holder.current()
+    write_presence(queue.path, presence(me, started_unix=0.0, running=["mug-fast"], once=True))
+    queue.enqueue(Job(id="mug-fast", scan="mug"))
+    assert cli_main(["worker", "--root", str(tmp_path), "--status"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[-1] == f"worker: {me.host} pid {me.pid} (running mug-fast; since 1970-01-01 00:00 UTC, until drained)"
+    other = Holder.of_pid(os.getppid())  # a second worker, idle, that started a minute later
+    write_presence(queue.path, presence(other, started_unix=60.0))
+    assert cli_main(["worker", "--root", str(tmp_path), "--status"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        f"2 workers: {me.host} pid {me.pid} (running mug-fast; since 1970-01-01 00:00 UTC, until drained); "
+        f"{other.host} pid {other.pid} (waiting for scans; since 1970-01-01 00:01 UTC)")
+
+
+def test_the_command_that_starts_a_worker_names_a_queue_only_when_not_the_roots():
+    assert start_command("/data/my scans", "/data/my scans/.queue") == "spadscan worker --root '/data/my scans'"
+    assert start_command("/data/s", "/shared/q") == "spadscan worker --root /data/s --queue /shared/q"

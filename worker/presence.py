@@ -1,0 +1,132 @@
+"""Which workers serve a queue, idle ones included: each running worker keeps a small file of its own under the
+queue (`<queue>/workers/<host>-<pid>.json`), renewed every RENEW_S seconds and removed when it stops.
+
+Without it a worker with nothing to do leaves no trace, and the dashboard and `worker --status` cannot tell an idle
+worker from none at all: an operator who finished a scan could not see whether a reconstruction will follow. A file
+whose worker was killed stays behind; it counts no more once it is older than three renewals, or at once when its
+process is gone from this machine (`holder.holder_gone`), and the next worker to start removes it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shlex
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from spadscan.protocol.atomic_files import write_atomic
+
+from .holder import Holder, holder_gone
+from .queue import QUEUE_DIRNAME
+
+WORKERS_DIRNAME = "workers"
+"""The folder under the queue that holds the workers' presence files."""
+RENEW_S = 10.0
+"""Seconds between a worker's renewals of its file: often enough for a page that polls every few seconds, rarely
+enough that a queue on a network share is not kept busy by idle workers."""
+MISSED_RENEWALS = 3
+"""A file not renewed for this many renewals (a killed worker, a lost mount) no longer counts."""
+
+
+@dataclass
+class Presence:
+    """What a running worker says of itself. Times are seconds since the epoch (its own clock)."""
+
+    holder: dict
+    """Who it is (`Holder.to_dict`): host and pid, and what tells a dead process on this machine."""
+    root: str
+    """The captures root it watches."""
+    started_unix: float
+    processes: int
+    """Job processes it runs at once."""
+    once: bool = False
+    """It stops once the queue is drained (`--once`)."""
+    running: list[str] = field(default_factory=list)
+    """The jobs its processes run now."""
+    renew_s: float = RENEW_S
+
+
+def presence_path(queue_dir: Path, holder: Holder) -> Path:
+    return Path(queue_dir) / WORKERS_DIRNAME / f"{holder.host}-{holder.pid}.json"
+
+
+def write_presence(queue_dir: Path, presence: Presence) -> Path:
+    """Write (or renew) the worker's file; OSError on a full disk or a read-only queue, for the caller to report."""
+    path = presence_path(queue_dir, Holder(**presence.holder))
+    path.parent.mkdir(exist_ok=True)
+    return write_atomic(path, json.dumps(asdict(presence), indent=1) + "\n")
+
+
+def remove_presence(queue_dir: Path, holder: Holder) -> None:
+    presence_path(queue_dir, holder).unlink(missing_ok=True)
+
+
+def present_workers(queue_dir: Path, now: float | None = None, *, tidy: bool = False) -> list[dict]:
+    """The workers that serve the queue now: one dict each ({"host", "pid", "root", "started_unix", "processes",
+    "once", "running", "seen_s": seconds since its last renewal}), the longest running first. A file that cannot be
+    read, or whose worker stopped renewing it or is gone from this machine, is left out (`tidy`: and removed, when
+    its process is known gone)."""
+    now = time.time() if now is None else now
+    folder = Path(queue_dir) / WORKERS_DIRNAME
+    try:
+        paths = sorted(folder.glob("*.json"))
+    except OSError:
+        return []
+    found = []
+    for path in paths:
+        row = _present(path, now, tidy)
+        if row is not None:
+            found.append(row)
+    return sorted(found, key=lambda r: (r["started_unix"], r["host"], r["pid"]))
+
+
+def _present(path: Path, now: float, tidy: bool) -> dict | None:
+    """One file's worker as `present_workers` lists it, or None."""
+    try:
+        seen_s = max(0.0, now - path.stat().st_mtime)  # the reader's clock against the file system's, as claims are
+        data = json.loads(path.read_text())
+        holder = data["holder"]
+        renew_s = _positive(data.get("renew_s"), RENEW_S)
+        row = {"host": str(holder["host"]), "pid": int(holder["pid"]), "root": str(data.get("root", "")),
+               "started_unix": _positive(data.get("started_unix"), 0.0), "processes": int(data.get("processes", 1)),
+               "once": bool(data.get("once", False)), "running": [str(j) for j in data.get("running", [])],
+               "seen_s": round(seen_s, 1)}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # moved on meanwhile, or damaged: a damaged file says nothing about a worker
+    if holder_gone(holder):
+        if tidy:
+            path.unlink(missing_ok=True)
+        return None
+    return row if seen_s <= MISSED_RENEWALS * renew_s else None
+
+
+def workers_line(rows: list[dict], start: str) -> str:
+    """One line on the workers present (`present_workers`), for `worker --status`: each one's host, pid, whether it
+    runs jobs, since when; with none, that no worker runs and `start`, the command that starts one."""
+    if not rows:
+        return f"no worker is running on this queue: complete scans wait for one (start one: {start})"
+    said = []
+    for r in rows:
+        doing = f"running {', '.join(r['running'])}" if r["running"] else "waiting for scans"
+        since = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(r["started_unix"]))
+        said.append(f"{r['host']} pid {r['pid']} ({doing}; since {since}{', until drained' if r['once'] else ''})")
+    return ("worker: " if len(rows) == 1 else f"{len(rows)} workers: ") + "; ".join(said)
+
+
+def start_command(root: Path, queue_dir: Path) -> str:
+    """The command that starts a worker on `root` (and its queue, when it is not the default one)."""
+    words = ["spadscan", "worker", "--root", str(Path(root).resolve())]
+    if Path(queue_dir).resolve() != Path(root).resolve() / QUEUE_DIRNAME:
+        words += ["--queue", str(queue_dir)]
+    return shlex.join(words)
+
+
+def _positive(value, default: float) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+    return float(value) if ok else default
+
+
+__all__ = ["WORKERS_DIRNAME", "RENEW_S", "MISSED_RENEWALS", "Presence", "presence_path", "write_presence",
+           "remove_presence", "present_workers", "workers_line", "start_command"]
