@@ -106,7 +106,7 @@ def workers_line(rows: list[dict], start: str) -> str:
     """One line on the workers present (`present_workers`), for `worker --status`: each one's host, pid, whether it
     runs jobs, since when; with none, that no worker runs and `start`, the command that starts one."""
     if not rows:
-        return f"no worker is running on this queue: complete scans wait for one (start one: {start})"
+        return f"no worker is running on this queue (a worker queues and reconstructs each complete scan): {start}"
     said = []
     for r in rows:
         doing = f"running {', '.join(r['running'])}" if r["running"] else "waiting for scans"

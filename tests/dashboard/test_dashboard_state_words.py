@@ -59,7 +59,8 @@ def test_the_page_tells_an_idle_worker_from_none_and_says_how_to_start_one(tmp_p
     with serving(tmp_path) as server, browser_page() as (page, seen):
         page.goto(address(server))
         said = text_of(page, "#worker", "no worker is running")
-        assert said.startswith("no worker is running: complete scans wait") and start in said, said
+        assert said == ("no worker is running (a worker queues and reconstructs each scan once it is complete): "
+                        f"start one with `{start}`"), said
         write_presence(queue.path, Presence(me.to_dict(), str(tmp_path), time.time(), 1))  # a worker starts
         assert text_of(page, "#worker", "waiting") == f"{worker}: waiting for scans (it queues each once complete)"
         complete_scan(tmp_path / "mug", 2)  # a scan the worker does not queue

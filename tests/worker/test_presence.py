@@ -99,8 +99,8 @@ def test_status_says_which_workers_run_and_how_to_start_one_when_none_does(tmp_p
     queue = Queue.for_root(tmp_path)
     assert cli_main(["worker", "--root", str(tmp_path), "--status"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[-1] == ("no worker is running on this queue: complete scans wait for one "
-                       f"(start one: {start_command(tmp_path, queue.path)})")
+    assert out[-1] == ("no worker is running on this queue (a worker queues and reconstructs each complete scan): "
+                       f"{start_command(tmp_path, queue.path)}")
     me = Holder.current()
     write_presence(queue.path, presence(me, started_unix=0.0, running=["mug-fast"], once=True))
     queue.enqueue(Job(id="mug-fast", scan="mug"))
