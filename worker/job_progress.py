@@ -36,6 +36,8 @@ BAR_RE = re.compile(r"(?P<desc>[^\r\n|:]+?):\s*(?P<percent>\d+)%\|[^|\r\n]*\|\s*
                     r"\s*(?P<unit>[a-z]*)\s*\[(?P<elapsed>[^<\]\r\n]*)<(?P<remaining>[^,\]\r\n]*)"
                     r"(?:,\s*(?P<fields>[^\]\r\n]*))?\]")
 CHAMFER_RE = re.compile(r"^(?P<mm>[\d.]+)\s*mm$")
+SCORED_RE = re.compile(r"^at step (?P<step>\d+)")
+"""The bar's `scored=` field: the step its `chamfer=` was scored at (then how checkpoints are scored)."""
 AFTER_TRAINING = "training done: mesh, metrics, pictures"
 """What a job does once its training bar is full (its result is not there yet)."""
 PROGRESS_S = 30.0
@@ -77,6 +79,12 @@ class JobProgress:
         m = CHAMFER_RE.match(self.fields.get("chamfer", ""))
         return float(m["mm"]) if m else None
 
+    @property
+    def chamfer_step(self) -> int | None:
+        """The step the bar's Chamfer was scored at (a bar of an earlier version does not say)."""
+        m = SCORED_RE.match(self.fields.get("scored", ""))
+        return int(m["step"]) if m else None
+
     def line(self) -> str:
         """One line for a terminal or a table: what, how far, and the fields the bar shows."""
         parts = [f"{self.desc}: {self.done:.0f}/{self.total:.0f} {self.unit}".rstrip()]
@@ -101,6 +109,7 @@ class JobProgress:
     def to_dict(self) -> dict:
         return {"line": self.line(), "fraction": self.fraction, "done": self.done, "total": self.total,
                 "unit": self.unit, "fields": dict(self.fields), "chamfer_mm": self.chamfer_mm,
+                "chamfer_step": self.chamfer_step,
                 "training_done": self.training_done, "budget_s": self.budget_s, "spent_s": self.spent_s}
 
 

@@ -190,10 +190,27 @@ def test_the_progress_bar_labels_its_chamfer_as_the_checkpoints(capsys):
     train(ConvergesAt(100), RunPlan(steps=4, budget_s=None, seed=0), checkpoints=2,
           evaluate=lambda: {"chamfer_mm": 1.4321}, progress=True, score_note=note)
     err = capsys.readouterr().err
-    assert "chamfer=1.43mm, scored=checkpoint 128-cell mesh; 30k points" in err
+    assert "chamfer=1.43mm, scored=at step 4; checkpoint 128-cell mesh; 30k points" in err
     # The lab dashboard and the demo read the bar from a job's log: they still find the Chamfer, and show the label.
     progress = parse_progress(err)
-    assert progress.chamfer_mm == 1.43 and "scored checkpoint 128-cell mesh; 30k points" in progress.line()
+    assert progress.chamfer_mm == 1.43 and progress.chamfer_step == 4
+    assert "scored at step 4; checkpoint 128-cell mesh; 30k points" in progress.line()
+
+
+def test_a_chamfer_whose_later_checkpoints_went_unscored_says_how_old_it_is(capsys):
+    """Under a short budget the checkpoints' scoring share is spent early: the bar then keeps the last scored
+    Chamfer for the rest of the run, and says the step it belongs to rather than look like the fit is stuck."""
+    from spadscan.worker.job_progress import parse_progress
+    from spadscan.worker.recon.model_api import RunPlan
+    from spadscan.worker.recon.trainer import train
+
+    scores = iter([{}, {"chamfer_mm": 25.67}])  # the start's checkpoint, the first in the run; the rest unscored
+    train(ConvergesAt(100), RunPlan(steps=8, budget_s=None, seed=0), checkpoints=4,
+          evaluate=lambda: next(scores, {}), progress=True)
+    progress = parse_progress(capsys.readouterr().err)
+    assert progress.fields["step"] == "8"
+    assert (progress.chamfer_mm, progress.chamfer_step) == (25.67, 2), progress.fields
+    assert "Chamfer 25.67 mm, scored at step 2" in progress.line()
 
 
 def one_line_error(capsys) -> str:

@@ -60,8 +60,9 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     there is one, else of the steps; 0: after every step) and at the end; each records the step, training seconds,
     the mean loss since the previous checkpoint and whatever `evaluate()` returns. `on_checkpoint(trace)` sees the
     trace after each one (a benchmark keeps it on disk as it goes). A tqdm bar on stderr shows progress unless
-    `progress` is False: `step=` and `loss=`, and with an evaluation `chamfer=` (the last checkpoint's) and
-    `scored=` with `score_note`, how checkpoints are scored (coarser than the final mesh). The lab dashboard and the
+    `progress` is False: `step=` and `loss=`, and with an evaluation `chamfer=` (the last scored checkpoint's) and
+    `scored=`, the step it was scored at and `score_note`, how checkpoints are scored (coarser than the final mesh):
+    under a short budget the scoring's share can be spent early, and a Chamfer many steps old must say so. The lab dashboard and the
     demo read these fields from a job's log: keep them `key=value` without commas.
 
     `on_step(seconds)` sees each step's wall time (the thread governor). `clock` (wall seconds) and `cpu_clock`
@@ -146,8 +147,8 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
                 next_mark += every
                 if entry.get("chamfer_mm") is not None:
                     post["chamfer"] = f"{entry['chamfer_mm']:.2f}mm"
-                    if score_note:
-                        post["scored"] = score_note
+                    # the step it was scored at: a checkpoint whose scoring did not fit the budget leaves it as it was
+                    post["scored"] = f"at step {entry['step']}" + (f"; {score_note}" if score_note else "")
                 bar.set_postfix(post)
             if result.stopped_by:
                 break
