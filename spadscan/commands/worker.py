@@ -68,7 +68,9 @@ renews a file under QUEUE/workers/ while it runs), or says that none is and how 
 --once queues the complete scans there are, runs until nothing is queued or running, and exits. Its last line
 counts the jobs done and failed and names each scan it left unqueued, and why (still recorded, or a copy still under
 way: taken once nothing in it has changed for 60 s). Its exit status: 0, 1 when a job failed, 130 when it was
-stopped before the queue drained, 75 when it ran no job while it left scans waiting (run it again later).
+stopped before the queue drained, 75 when it ran no job while it left scans waiting (run it again later). Without
+--once the worker runs until Ctrl-C or SIGTERM (`systemctl stop`), says what it settled meanwhile, and exits 0: a
+service stopped as asked.
 
 Examples:
   spadscan worker --root captures --processes 2
@@ -180,15 +182,15 @@ def run(args) -> int:
     )
     ran = asyncio.run(run_worker(config))  # checks the config (options included) before queuing anything
     settled = ran.settled
-    failed = sorted(j for j, s in settled.items() if s == "failed")
-    if not args.once:
+    if not args.once:  # a service stopped as asked (Ctrl-C, SIGTERM: `systemctl stop`) ends well: 0
+        print(f"spadscan worker: stopped; {_settled_note(settled)} while it ran")
         return 0
-    done = sum(1 for s in settled.values() if s == "done")
+    failed = any(s == "failed" for s in settled.values())
     kept = sum(1 for s in settled.values() if s == "kept")
     # Stopped (Ctrl-C, SIGTERM) before the queue drained: said, and not the exit status of a drained queue.
     counts = Queue(queue_dir, create=False).counts()
     unfinished = counts.get("queued", 0) + counts.get("running", 0)
-    print(f"spadscan worker: {done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else "")
+    print(f"spadscan worker: {_settled_note(settled)}"
           + (f", {kept} not run (their results were already there)" if kept else "")
           + (f"; stopped with {unfinished} job{'s' if unfinished != 1 else ''} still queued or running"
              if unfinished else "")
@@ -199,6 +201,13 @@ def run(args) -> int:
         return 1
     # No job settled while scans wait (a copy still under way, a scan still recorded): a script runs it again later.
     return LEFT_WAITING if ran.left and not settled else 0
+
+
+def _settled_note(settled: dict[str, str]) -> str:
+    """'2 done, 1 failed (x-fast)': what a run settled, for its last line."""
+    done = sum(1 for s in settled.values() if s == "done")
+    failed = sorted(j for j, s in settled.items() if s == "failed")
+    return f"{done} done, {len(failed)} failed" + (f" ({', '.join(failed)})" if failed else "")
 
 
 def _left_note(left: dict[str, str], most: int = 5) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -118,3 +119,26 @@ def test_status_says_which_workers_run_and_how_to_start_one_when_none_does(tmp_p
 def test_the_command_that_starts_a_worker_names_a_queue_only_when_not_the_roots():
     assert start_command("/data/my scans", "/data/my scans/.queue") == "spadscan worker --root '/data/my scans'"
     assert start_command("/data/s", "/shared/q") == "spadscan worker --root /data/s --queue /shared/q"
+
+
+def test_the_command_is_present_until_ctrl_c_which_ends_it_with_what_it_settled_and_status_0(tmp_path):
+    """`spadscan worker` as a service: present while it waits; Ctrl-C (as `systemctl stop`'s SIGTERM) is a stop as
+    asked, said in a last line, exit status 0, and its presence file is gone."""
+    proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "worker", "--root", str(tmp_path), "--poll-s",
+                             "0.05"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        folder = tmp_path / ".queue" / "workers"
+        deadline = time.monotonic() + 60
+        while not list(folder.glob("*.json")) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        [row] = present_workers(tmp_path / ".queue")
+        assert (row["pid"], row["running"]) == (proc.pid, [])
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert out.splitlines()[-1] == "spadscan worker: stopped; 0 done, 0 failed while it ran", out
+    assert not list(folder.glob("*.json"))
