@@ -299,7 +299,7 @@ class ScanRunner:
         if self.state == "scanning":
             self._pause_requested = True
             self._set_state("pausing")
-            log.info("scan %s: pause requested at pose %s; pausing at pose %s, once the pose in flight is published",
+            log.info("scan %s: pause requested at pose %s; pausing at pose %s, once the poses under way are published",
                      self.job.name, self._progress(), self._pause_at())
         elif self.state not in ("pausing", "paused"):
             raise ConfigError(f"nothing to pause (daemon is {self.state})")

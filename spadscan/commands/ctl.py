@@ -3,7 +3,7 @@
     spadscan ctl status                         state, scan, pose i/n, frames, rate, last error, sensor counters,
                                                 and the scan's live reconstruction (`live`) when a worker runs one
     spadscan ctl scan --name bunny --views 128  start a scan; it is written to <captures>/bunny/
-    spadscan ctl pause | resume | abort         pause after the pose in flight, continue, or stop for good
+    spadscan ctl pause | resume | abort         pause after the poses under way, continue, or stop for good
     spadscan ctl resume NAME | abort NAME       take over and continue, or end as aborted (every chunk kept), an
                                                 interrupted scan the daemon could not take over (`status` says why)
     spadscan ctl wait bunny                     block until the scan is complete (exit 0) or aborted (exit 1);
@@ -157,7 +157,7 @@ def add_arguments(parser) -> None:
                           help="adaptive: end the scan once the live reconstruction reports convergence; its "
                                "refits restart that test, so only a paused or slow scan (a pose every 13 s or "
                                "more with 32 views in, 6.5 s or more past 64) ends early [stop_when_converged]")
-    pause = op("pause", "pause after the pose in flight is published")
+    pause = op("pause", "pause once the poses under way (one captured, one being written) are published")
     resume = op("resume", "continue a paused or interrupted scan at its first unpublished pose",
                 "Continue the paused scan at its first unpublished pose. With NAME, or when the daemon holds no "
                 "scan: take over an interrupted scan it could not take over when it started (`status` says why, "
@@ -233,7 +233,7 @@ def reply_line(op: str, reply: dict) -> str:
     if name:
         line = f"scan {name!r} {reply.get('state')} at pose {reply.get('progress')}"
         if reply.get("pausing_at"):
-            line += f" (it stops at pose {reply['pausing_at']}, once the pose in flight is published)"
+            line += f" (it stops at pose {reply['pausing_at']}, once the poses under way are published)"
         if reply.get("reason"):
             line += f": {reply['reason']}"
         said.append(line)

@@ -329,7 +329,7 @@ SCANNING = {"ok": True, "state": "scanning", "scan": "mug", "last_error": None, 
 @pytest.mark.parametrize("argv, reply, said", [
     (["scan", "--name", "mug"], SCANNING, "scan 'mug' scanning at pose 0/128; written to /caps/mug"),
     (["pause"], {**SCANNING, "state": "pausing", "pose": 3, "progress": "3/128", "pausing_at": "4/128"},
-     "scan 'mug' pausing at pose 3/128 (it stops at pose 4/128, once the pose in flight is published)"),
+     "scan 'mug' pausing at pose 3/128 (it stops at pose 4/128, once the poses under way are published)"),
     (["resume"], {**SCANNING, "state": "paused", "progress": "4/128", "reason": "sensor silent"},
      "scan 'mug' paused at pose 4/128: sensor silent"),
     (["resume"], {**SCANNING, "progress": "40/128", "poses_to_take_again": [12, 13]},
