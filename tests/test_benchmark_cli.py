@@ -113,7 +113,7 @@ BAD = {
     "a baseline as a preset": (["--presets", "reprojection"], "'reprojection' is a baseline"),
     "an override without =": (["--set", "nokey"], "'nokey' must look like KEY=VALUE"),
     "an override of no field": (["--set", "schedule.no_such_field=1"], "preset 'fast'"),
-    "an override of the wrong type": (["--set", "mesh_resolution=fine"], "does not fit"),
+    "an override of the wrong type": (["--set", "mesh_resolution=fine"], "mesh_resolution 'fine' must be an integer"),
     "an override and no preset": (["--presets", "", "--baselines", "--set", "mesh_resolution=64"],
                                   "no preset is run"),
 }

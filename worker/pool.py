@@ -87,6 +87,8 @@ class Worker:
         """What this worker failed to do, with the error last logged for it (`_trouble`)."""
         self._reconciled = False
         """Whether the queue and the result folders were reconciled at start-up (publishing.reconcile)."""
+        self._frozen_named: set[str] = set()
+        """Jobs already named as keeping options other than this worker's (`_say_frozen_options`): named once."""
         self._reconcile_due = True
         self.job_env = config.job_env()
         """Environment the job processes get on top of the worker's own (threads per job, child_env)."""
@@ -109,9 +111,7 @@ class Worker:
         for warning in self.threads_warnings:
             self.log(f"warning: {warning}")
         await asyncio.to_thread(present_workers, self.queue.path, tidy=True)  # killed workers' files on this machine
-        frozen = await asyncio.to_thread(self._frozen_options_note)  # before this worker queues jobs of its own
-        if frozen:
-            self.log(frozen)
+        await asyncio.to_thread(self._say_frozen_options)  # before this worker queues jobs of its own
         watcher = None
         if self.config.once:
             self._on_scan(await asyncio.to_thread(scan_once, self.root, self.queue, self.config.options))
@@ -239,24 +239,43 @@ class Worker:
         busy = {c.claim.token for c in self.children.values()}
         self._reconcile_due = reconcile(self.queue, self.root, self.log, busy=busy, startup=not self._reconciled)
         self._reconciled = True
+        # A done job whose result is gone, a dead worker's job taken over: queued again with their own options.
+        self._say_frozen_options()
 
-    def _frozen_options_note(self, most: int = 10) -> str | None:
-        """A line naming the queued jobs that will run with options other than the ones this worker was given
-        (a job keeps the options it was queued with), or None."""
-        given = self.config.options_given
-        keys = [k for k in CHANGEABLE if given is None or k in given]
-        mine = self.config.options
-        differ = []
-        for job in self.queue.queued_jobs():
-            own = [f"{k} {_shown(getattr(job, k))}" for k in keys if getattr(job, k) != getattr(mine, k)]
+    def _say_frozen_options(self) -> None:
+        """Log `_frozen_options_note` for the queued jobs it has not named yet: at start-up, and after each reconcile,
+        which may have queued jobs again (a done job whose result is gone, a dead worker's job taken over)."""
+        differ = self._frozen_options([job for job in self.queue.queued_jobs() if job.id not in self._frozen_named])
+        self._frozen_named.update(differ)
+        note = self._frozen_options_note(differ)
+        if note:
+            self.log(note)
+
+    def _frozen_options(self, jobs) -> dict[str, str]:
+        """Job id -> its own values of the options this worker was given, for those of `jobs` whose values differ."""
+        differ = {}
+        for job in jobs:
+            own = [f"{k} {_shown(getattr(job, k))}" for k, value in self._options_given().items()
+                   if getattr(job, k) != value]
             if own:
-                differ.append(f"{job.id} ({', '.join(own)})")
+                differ[job.id] = ", ".join(own)
+        return differ
+
+    def _options_given(self) -> dict[str, object]:
+        """The job options this worker was given (all of jobs.CHANGEABLE where the config does not say) -> values."""
+        given = self.config.options_given
+        return {k: getattr(self.config.options, k) for k in CHANGEABLE if given is None or k in given}
+
+    def _frozen_options_note(self, differ: dict[str, str], most: int = 10) -> str | None:
+        """A line naming the queued jobs `differ` (id -> their own values) that will run with options other than the
+        ones this worker was given (a job keeps the options it was queued with), or None."""
         if not differ:
             return None
-        more = f" and {len(differ) - most} more" if len(differ) > most else ""
-        asked = ", ".join(f"{k} {_shown(getattr(mine, k))}" for k in keys)
-        return (f"{len(differ)} job(s) queued earlier keep the options they were queued with, not {asked}: "
-                f"{', '.join(differ[:most])}{more}")
+        named = [f"{job_id} ({own})" for job_id, own in differ.items()]
+        more = f" and {len(named) - most} more" if len(named) > most else ""
+        asked = ", ".join(f"{k} {_shown(v)}" for k, v in self._options_given().items())
+        return (f"{len(named)} job(s) queued earlier keep the options they were queued with, not {asked}: "
+                f"{', '.join(named[:most])}{more}")
 
     def _on_scan(self, report: ScanReport) -> None:
         self._trouble("look for scans", None)

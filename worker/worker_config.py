@@ -26,7 +26,7 @@ class WorkerConfig:
     """Preset, budget, device, seed of the jobs this worker queues."""
     options_given: tuple[str, ...] | None = None
     """The job options (jobs.CHANGEABLE) that were asked for (given on the command line); queued jobs whose own
-    values of these differ are named at start-up, since they keep their own. None: all of them."""
+    values of these differ are named at start-up and when queued again, since they keep their own. None: all of them."""
     queue_dir: Path | None = None
     """Queue folder; default `<root>/.queue`."""
     poll_s: float = 2.0

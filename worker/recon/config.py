@@ -12,7 +12,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from dataclasses import dataclass
+from operator import attrgetter
 from typing import Any, ClassVar
 
 from spadscan.protocol.errors import ConfigError
@@ -107,15 +109,18 @@ def with_overrides(config: ReconConfig, overrides: dict[str, Any]) -> ReconConfi
     A value must have the type of the field it replaces (ints may stand for floats, lists for tuples) and one of the
     preset's `choices` where it names them; numbers must be finite, and a field whose preset value is positive
     (counts, sizes, weights, rates) takes no negative value. FIXED_FIELDS, keys the preset does not have (or no
-    longer has: `moved`) and its `inert` fields are refused; so is a result that the preset's `check` refuses."""
-    config = _deep_copy(config)
+    longer has: `moved`) and its `inert` fields are refused; so is a result that the preset's `check` refuses. A value
+    that those generic rules refuse is refused in the words of the preset's `check` where it checks the field itself
+    (its message states the field's whole range, which the generic rules do not know)."""
+    preset_config, config = config, _deep_copy(config)
     for key, value in overrides.items():
-        _set(config, key, value)
+        _set(config, key, value, preset_config)
     config.check()
     return config
 
 
-def _set(config: ReconConfig, key: str, value) -> None:
+def _set(config: ReconConfig, key: str, value, preset_config: ReconConfig) -> None:
+    """Set `key` of `config` (the preset's, `preset_config`, with the overrides before this one) to `value`."""
     *path, name = key.split(".")
     preset = config.preset
     if key in FIXED_FIELDS:
@@ -144,7 +149,69 @@ def _set(config: ReconConfig, key: str, value) -> None:
     if value is None and "None" not in str(field_.type):
         raise ReconstructionError(f"config override {key!r}: the field takes no null (it holds "
                                   f"{getattr(obj, name)!r})")
-    setattr(obj, name, _coerce(getattr(obj, name), value, key))
+    old = getattr(obj, name)
+    try:
+        new = _coerce(old, value, key)
+    except ConfigError as generic:
+        raise (_in_own_words((config, preset_config), key, value, old) or generic) from None
+    setattr(obj, name, new)
+
+
+def _in_own_words(configs: tuple[ReconConfig, ...], key: str, value, old) -> ConfigError | None:
+    """A value the generic rules refuse, refused in the words of the preset's own check of `key`, which states the
+    field's whole range (the generic rules know only the type and the sign of the preset's value): so every value
+    out of a field's range gets one message. None where the preset does not check `key` itself. `configs`: the
+    config with the overrides so far, then the preset's own (where an earlier override is refused first)."""
+    if isinstance(old, tuple):
+        return None  # a list's check reads its items: a value that is no list is the generic rule's to refuse
+    own = _own_refusal(configs, key, value)
+    if own is not None or not _is_number(old):
+        return own
+    # The check lets the value through (inf where it asks for > 0, 3.5 where it asks for >= 1) or cannot compare it
+    # ('abc'): the generic rule it breaks, then the field's range, as the check states it for a value in no range.
+    rule = _own_refusal(configs, key, -math.inf)
+    if rule is None:
+        return None
+    kind = _kind(old)
+    subject = f"{key} {-math.inf!r} "
+    text = str(rule)
+    if text.startswith(f"{subject}must be {kind}"):
+        return ConfigError(f"{key} {value!r} {text[len(subject):]}")
+    return ConfigError(f"{key} {value!r} must be {kind}, and {text.removeprefix(subject)}")
+
+
+def _own_refusal(configs: tuple[ReconConfig, ...], key: str, value) -> ConfigError | None:
+    """The error the preset's `check` raises about `key` once it holds `value`, in the first of `configs` where the
+    check reaches `key`; None where it accepts the value or has no check of `key` of its own."""
+    *path, name = key.split(".")
+    for config in configs:
+        trial = _deep_copy(config)
+        setattr(attrgetter(".".join(path))(trial) if path else trial, name, value)
+        try:
+            trial.check()
+        except ConfigError as exc:
+            if _names(str(exc), key):
+                return exc
+            continue  # it refused another field first: an earlier override, or (in the preset's config) none
+        except (TypeError, ValueError, ArithmeticError):
+            return None  # a value of another type trips a check written for the field's own type
+        return None
+    return None
+
+
+def _names(message: str, key: str) -> bool:
+    """Whether a check's message is about `key`: it starts with it, or names the field among others of its section
+    before it says what they must be ('parts.openings.passes, patience, min_flagged and min_hits must be >= 1')."""
+    if message.startswith(f"{key} "):
+        return True
+    section, _, name = key.rpartition(".")
+    subject = message.partition(" must ")[0]
+    named = re.search(rf"\b{re.escape(name)}\b", subject) is not None
+    return bool(section) and subject.startswith(f"{section}.") and named
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _sections(obj) -> list[str]:
@@ -156,30 +223,53 @@ def _coerce(old, value, key: str):
     if value is None:
         return value
     if old is None:
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
+        if _is_number(value) and _finite(value) and value > 0:
             return value
         # The fields that start as None are optional limits (default_steps, default_budget_s, ...).
-        raise ReconstructionError(f"config override {key!r}: {value!r} must be null or a finite number > 0")
+        raise ConfigError(f"config override {key!r}: {value!r} must be null or a finite number > 0")
+    fits, new = _converted(old, value)
+    if not fits:
+        raise ConfigError(f"config override {key!r}: {value!r} must be {_generic_rule(old)} (the preset's value is "
+                          f"{old!r})")
+    return new
+
+
+def _converted(old, value) -> tuple[bool, Any]:
+    """(whether `value` fits a field holding `old` by the generic rules, `value` in the field's type)."""
     if isinstance(old, bool):
-        ok = isinstance(value, bool)
-    elif isinstance(old, int):
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    elif isinstance(old, float):
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        value = float(value) if ok else value
-    elif isinstance(old, tuple):
+        return isinstance(value, bool), value
+    if isinstance(old, (int, float)):
+        if not (_is_number(value) and (isinstance(value, int) or isinstance(old, float))):
+            return False, value
+        try:
+            new = type(old)(value)
+        except OverflowError:  # an integer too large for a float
+            return False, value
+        return _finite(new) and not (old > 0 and new < 0), new
+    if isinstance(old, tuple):
         ok = isinstance(value, (list, tuple))
-        value = tuple(value) if ok else value
-    else:
-        ok = isinstance(old, str) and isinstance(value, str)
-    if not ok:
-        raise ReconstructionError(f"config override {key!r}: {value!r} does not fit a field holding {old!r}")
-    if isinstance(old, (int, float)) and not isinstance(old, bool):
-        if not math.isfinite(value):
-            raise ConfigError(f"config override {key!r}: {value!r} must be a finite number")
-        if old > 0 and value < 0:
-            raise ConfigError(f"config override {key!r}: {value!r} must be >= 0 (the preset's value is {old!r})")
-    return value
+        return ok, (tuple(value) if ok else value)
+    return isinstance(old, str) and isinstance(value, str), value
+
+
+def _finite(number) -> bool:
+    """Whether `number` is finite: every int is (math.isfinite converts it to a float, which an int over 1e308 does
+    not fit)."""
+    return isinstance(number, int) or math.isfinite(number)
+
+
+def _generic_rule(old) -> str:
+    """What the generic rules let a field holding `old` take, as a message says it."""
+    if isinstance(old, bool):
+        return "true or false"
+    if isinstance(old, (int, float)):
+        return f"{_kind(old)} >= 0" if old > 0 else _kind(old)
+    return "a list" if isinstance(old, tuple) else "text"
+
+
+def _kind(old: int | float) -> str:
+    """The numbers a field holding the number `old` takes (an int field takes no 3.5, nor 1e9: JSON reads a float)."""
+    return "an integer" if isinstance(old, int) else "a finite number"
 
 
 def check_in_range(key: str, value, lo: float, hi: float, unit: str = "metres", hint: str = "") -> None:
