@@ -7,7 +7,9 @@ continues from the live fit. `live=False` runs today's offline job once the scan
 The demo drives the same commands a lab operator uses (`spadscan daemon`, the control socket, `spadscan worker`), so
 it proves the system end to end. Every process it starts it stops again, also on Ctrl-C or an error. A scan an
 earlier run into the same folder left unfinished (stopped during its scan) is aborted through the daemon, its poses
-kept, before the new scan starts.
+kept, before the new scan starts. A scan an earlier run left complete but not reconstructed (stopped during its
+reconstruction) is reconstructed first, said in one line and shown on a bar of its own, so that this run's
+reconstruction, its times and its summary are its own scan's alone.
 """
 
 from __future__ import annotations
@@ -374,22 +376,132 @@ def _reconstruct(opts: DemoOptions, captures: Path, scan: str, procs: Processes,
     """Run a worker over the captures until it has reconstructed them; `progress` receives the running job's
     progress (or None) about twice a second. Scan `scan`'s job must be done; another job may fail (the worker then
     exits 1): an earlier live run's job of a scan the demo aborted ends failed, with the scan's reason."""
+    tick = None if progress is None else (lambda: progress(running_job_progress(captures)))
+    code = _run_worker_once(opts, captures, procs, logs, tick, limit_s=opts.stage_timeout_s + opts.budget_s)
+    if code != 0 and scan_job_state(captures, scan) != "done":
+        raise _failed(f"the worker exited with code {code}", logs / "worker.log")
+
+
+def _run_worker_once(opts: DemoOptions, captures: Path, procs: Processes, logs: Path, tick, limit_s: float) -> int:
+    """Run `spadscan worker --once` over the captures and return its exit status; `tick()` (when given) runs about
+    twice a second while it works."""
     log = logs / "worker.log"
     worker = procs.start("worker", _spadscan("worker", "--root", str(captures), "--once", "--processes", "1",
                                              "--budget-s", f"{opts.budget_s:g}", "--poll-s", "0.5"), log)
-    limit = opts.stage_timeout_s + opts.budget_s
-    deadline = time.monotonic() + limit
+    deadline = time.monotonic() + limit_s
     while True:
         try:
-            code = worker.wait(timeout=0.5)
-            break
+            return worker.wait(timeout=0.5)
         except subprocess.TimeoutExpired:
             if time.monotonic() > deadline:
-                raise _failed(f"the worker did not finish within {limit:.0f} s", log) from None
-            if progress is not None:
-                progress(running_job_progress(captures))
-    if code != 0 and scan_job_state(captures, scan) != "done":
-        raise _failed(f"the worker exited with code {code}", log)
+                raise _failed(f"the worker did not finish within {limit_s:.0f} s", log) from None
+            if tick is not None:
+                tick()
+
+
+def unreconstructed_scans(captures: Path) -> list[str]:
+    """The scans in `captures` an earlier run left complete but not reconstructed, oldest name first: their job is
+    queued or running (the run was stopped during its reconstruction), or none is queued yet (stopped between its
+    scan's end and the worker's first look) and no result is in place. A `spadscan worker --once` on the captures
+    runs their jobs before a new scan's (the queue runs the oldest first)."""
+    from spadscan.worker.watcher import scan_folders, scan_state
+
+    found = []
+    for folder in scan_folders(captures):
+        try:
+            complete = scan_state(folder) == "complete"
+        except SpadscanError:
+            complete = False
+        if complete and scan_job_state(captures, folder.name) in (None, "queued", "running") \
+                and not _has_report(folder):
+            found.append(folder.name)
+    return found
+
+
+def _has_report(scan_dir: Path) -> bool:
+    try:
+        _find_report(scan_dir)
+    except DemoError:
+        return False
+    return True
+
+
+EARLIER_RUN_UNRECONSTRUCTED = "left complete but not reconstructed by an earlier run"
+"""What the demo says of the scans it reconstructs first (`unreconstructed_scans`)."""
+
+
+class EarlierBars:
+    """A bar of its own for each earlier scan's job the worker runs, apart from this run's reconstruction bar."""
+
+    def __init__(self, captures: Path, progress_factory, total_s: float):
+        self.captures, self.factory, self.total_s = captures, progress_factory, total_s
+        self.job, self.bar, self.show = None, None, None
+
+    def __call__(self) -> None:
+        from spadscan.worker.job_progress import running_progress
+        from spadscan.worker.queue import Queue
+
+        running = running_progress(Queue.for_root(self.captures, create=False))
+        for job_id, progress in sorted(running.items())[:1]:  # the demo's worker runs one job at a time
+            if job_id != self.job:
+                self.close()
+                self.job = job_id
+                scan = job_id.rpartition("-")[0]
+                self.bar = self.factory(self.total_s, f"earlier scan {scan} (training s)", "s")
+                self.show = ReconProgress(self.bar, f"earlier scan {scan}: mesh, metrics, pictures, report")
+            self.show(progress)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+        self.job, self.bar, self.show = None, None, None
+
+
+def _reconstruct_earlier(opts: DemoOptions, captures: Path, scans: list[str], procs: Processes, logs: Path,
+                         progress_factory, say) -> list[dict]:
+    """Reconstruct the scans an earlier run left unreconstructed (`unreconstructed_scans`) before this run's scan
+    starts, with a line before and one for each after, and return what became of each (scan, state, report). Left
+    in the queue, `spadscan worker --once` would run them first inside this run's reconstruction, its bar and its
+    time. A Ctrl-C meanwhile leaves them queued (the worker gives them back), for the next run or a worker."""
+    many = len(scans) > 1
+    them = "them" if many else "it"
+    say(f"scan{'s' if many else ''} {', '.join(scans)} {EARLIER_RUN_UNRECONSTRUCTED}: reconstructing {them} first, "
+        f"on {'bars' if many else 'a bar'} of {'their' if many else 'its'} own and outside this run's times (Ctrl-C "
+        f"keeps {them} queued for `spadscan worker --root {captures} --once`)")
+    bars = EarlierBars(captures, progress_factory, opts.budget_s)
+    try:
+        _run_worker_once(opts, captures, procs, logs, bars,
+                         limit_s=len(scans) * (opts.stage_timeout_s + opts.budget_s))
+    finally:
+        bars.close()
+    outcomes = [_earlier_outcome(captures, scan) for scan in scans]
+    for outcome in outcomes:
+        say(_earlier_line(outcome, captures))
+    return outcomes
+
+
+def _earlier_outcome(captures: Path, scan: str) -> dict:
+    """What became of earlier scan `scan`'s reconstruction: its job's state, the report or the reason."""
+    from spadscan.worker.queue import Queue
+
+    state = scan_job_state(captures, scan)
+    outcome = {"scan": scan, "state": state, "report": None, "error": None}
+    if state == "done" and _has_report(captures / scan):
+        outcome["report"] = str(_find_report(captures / scan).parent / "report.html")
+    elif state is not None:
+        queue = Queue.for_root(captures, create=False)
+        ids = [job_id for job_id in queue.job_paths() if job_id.rpartition("-")[0] == scan]
+        outcome["error"] = queue.last_error(ids[0]) if ids else None
+    return outcome
+
+
+def _earlier_line(outcome: dict, captures: Path) -> str:
+    scan = outcome["scan"]
+    if outcome["report"] is not None:
+        return f"earlier scan {scan} reconstructed: {outcome['report']}"
+    why = f": {outcome['error']}" if outcome["error"] else ""
+    return (f"earlier scan {scan} not reconstructed ({outcome['state'] or 'not queued'}{why}); "
+            f"`spadscan worker --root {captures} --status` says more")
 
 
 def _start_live_worker(opts: DemoOptions, captures: Path, procs: Processes, logs: Path) -> subprocess.Popen:
@@ -506,9 +618,10 @@ class ReconProgress:
     """Shows a job's progress on a bar made by a progress_factory: seconds of the budget done, and the loss, step
     and Chamfer the job's own bar carries."""
 
-    def __init__(self, bar):
+    def __init__(self, bar, after: str | None = None):
         self.bar = bar
         self.shown = 0.0
+        self.after = after or self.AFTER
 
     AFTER = "reconstruction: mesh, metrics, pictures, report"
     """The bar's description once training is over: the job then extracts the mesh and writes its report."""
@@ -525,12 +638,13 @@ class ReconProgress:
         self.bar.update(max(0.0, done - self.shown))
         self.shown = max(self.shown, done)
         if progress.done >= progress.total and hasattr(self.bar, "set_description_str"):
-            self.bar.set_description_str(self.AFTER)
+            self.bar.set_description_str(self.after)
         fields = [f"step {progress.fields['step']}"] if "step" in progress.fields else []
         if "loss" in progress.fields:
             fields.append(f"loss {progress.fields['loss']}")
         if progress.chamfer_mm is not None:
-            fields.append(f"checkpoint Chamfer {progress.chamfer_mm:.2f} mm")  # a coarse mesh's: not the result's
+            at = "" if progress.chamfer_step is None else f" (step {progress.chamfer_step})"  # a short run's is old
+            fields.append(f"checkpoint Chamfer {progress.chamfer_mm:.2f} mm{at}")  # a coarse mesh's: not the result's
         if fields and hasattr(self.bar, "set_postfix_str"):
             self.bar.set_postfix_str(", ".join(fields))
 
@@ -557,8 +671,11 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
     """Run the loop and return the summary (also written to OUT/summary.json).
 
     progress_factory(total, desc, unit) -> an object with update(n) and close() (and set_postfix_str(text), where it
-    has one), e.g. a tqdm bar: one for the scan's poses, one for the reconstruction's seconds. `say(line)` receives
-    what the user should know while the demo runs (the dashboard's address).
+    has one), e.g. a tqdm bar: one for the scan's poses, one for the reconstruction's seconds (and, before the scan,
+    one for each earlier run's scan left unreconstructed). `say(line)` receives what the user should know while the
+    demo runs (the dashboard's address, the earlier scans reconstructed first). The summary's `seconds` are this
+    run's own; `earlier_s` is the time its start took to reconstruct earlier scans, each in `earlier` (scan, state,
+    report, error).
     """
     say = say or (lambda line: None)
     check_options(opts)
@@ -584,9 +701,14 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         if opts.dashboard:
             dashboard = _start_dashboard(opts, captures, procs, logs)
             say(f"dashboard: {dashboard} (open it in a browser; it stops with the demo)")
+        t = time.monotonic()
+        # Before this run's worker starts: it would run them first, inside this run's reconstruction and its time.
+        scans = unreconstructed_scans(captures)
+        earlier = _reconstruct_earlier(opts, captures, scans, procs, logs, progress_factory, say) if scans else []
+        stages["earlier_s"] = time.monotonic() - t
         watch = LiveWatch(captures / name, say) if opts.live else None
         worker = _start_live_worker(opts, captures, procs, logs) if opts.live else None
-        stages["start_s"] = time.monotonic() - t0
+        stages["start_s"] = time.monotonic() - t0 - stages["earlier_s"]
 
         t = time.monotonic()
         bar = progress_factory(opts.views, "scan (poses)", "pose")
@@ -619,7 +741,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         procs.stop_all()
         if sock_tmp is not None:
             shutil.rmtree(sock_tmp, ignore_errors=True)
-    stages["total_s"] = time.monotonic() - t0
+    stages["total_s"] = time.monotonic() - t0 - stages["earlier_s"]  # this run's own: the earlier scans' apart
     report_path = _find_report(captures / name)
     report = json.loads(report_path.read_text())
     summary = {
@@ -638,6 +760,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         "seconds": {k: round(v, 2) for k, v in stages.items()},
         "live": report.get("live") if opts.live else None,
         "dashboard": dashboard,
+        "earlier": earlier,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

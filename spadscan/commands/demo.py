@@ -13,7 +13,10 @@ With --dashboard it also serves the lab dashboard on its captures and prints the
 Every process it starts is stopped again, also on Ctrl-C. Run again into the same --out after a run was stopped
 during its scan, it aborts the scan that run left unfinished (its poses stay on disk, the capture marked aborted),
 says so, and starts a new one; an unfinished scan there that no demo run started (OUT/demo-scans.txt lists those
-that did) is left alone, and the demo stops naming it.
+that did) is left alone, and the demo stops naming it. After a run was stopped during its reconstruction, its scan
+(complete, not reconstructed) is reconstructed first, before the new scan: one line names it, it has a bar of its
+own, a line gives its report, and its time stays out of the new scan's reconstruction time and summary (Ctrl-C
+meanwhile keeps it queued, for the next run or `spadscan worker --root OUT/captures --once`).
 """
 
 from __future__ import annotations
@@ -94,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
     after = "reconstruction after the scan" if s["live"] is not None else "reconstruction"
     print(f"time:     start {secs['start_s']:.1f} s, scan {secs['scan_s']:.1f} s, {after} "
           f"{secs['reconstruct_s']:.1f} s, total {secs['total_s']:.1f} s")
+    if s.get("earlier"):
+        print(f"earlier:  {', '.join(e['scan'] for e in s['earlier'])}, left unreconstructed by an earlier run, "
+              f"took {secs['earlier_s']:.1f} s before this run's scan (not in the times above)")
     print(f"summary:  {opts.out / 'summary.json'}")
     if s["dashboard"]:
         print(f"dashboard: stopped; to look again: spadscan dashboard --root {opts.out / 'captures'}")

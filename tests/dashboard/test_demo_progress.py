@@ -37,6 +37,10 @@ def test_the_progress_line_shows_seconds_loss_and_chamfer_then_what_follows_trai
     assert (bar.n, bar.postfix, bar.total) == (12, "loss 3.1", 60), "the job's own training total, not the budget"
     show(parse_progress("reconstruct (fast):  50%|#####| 30/60 s [00:30<00:30, step=800, loss=2.2, chamfer=3.40mm]"))
     assert (bar.n, bar.postfix, bar.desc) == (30, "step 800, loss 2.2, checkpoint Chamfer 3.40 mm", "")
+    # later in a short run: the last scored checkpoint's figure, with the step it belongs to
+    show(parse_progress("reconstruct (fast):  80%|#### | 48/60 s [00:48<00:12, step=1500, loss=2.0, chamfer=3.40mm, "
+                        "scored=at step 800; checkpoint 128-cell mesh; 30k points]"))
+    assert bar.postfix == "step 1500, loss 2.0, checkpoint Chamfer 3.40 mm (step 800)"
     show(parse_progress("reconstruct (fast): 100%|#####| 60/60 s [01:00<00:00, loss=1.9, chamfer=2.10mm]"))
     assert bar.n == bar.total == 60 and bar.desc == ReconProgress.AFTER
 

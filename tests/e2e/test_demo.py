@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import signal
 from pathlib import Path
 
@@ -102,6 +103,41 @@ def test_a_rerun_after_ctrl_c_keeps_the_earlier_scan_aborted_and_scans_anew(tmp_
         assert len(reader.load().hists) == published
     summary = json.loads((out / "summary.json").read_text())
     assert Path(summary["capture"]) != earlier and CaptureReader(summary["capture"]).state == "complete"
+    assert not processes_mentioning(str(out)), "the demo left a process running"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("offline", [True, False], ids=["offline", "live"])
+def test_a_rerun_reconstructs_a_scan_left_unreconstructed_first_and_apart(tmp_path, offline):
+    """A demo stopped during its reconstruction leaves its scan complete and its job queued. The rerun's worker took
+    that job first, silently, inside the new scan's reconstruction: one bar ran through both jobs, and the summary's
+    time covered both and named only the new scan. The rerun reconstructs it first, on its own line and bar, and its
+    own worker runs only its own scan's job."""
+    from spadscan.demo import record_started
+    from spadscan.worker.jobs import Job
+    from spadscan.worker.queue import Queue
+
+    out = tmp_path / "demo"
+    earlier = out / "captures" / "demo-20261205-060000"
+    assert spadscan("simulate", "builtin:demo", "--out", earlier, "--views", 4, "--no-progress").returncode == 0
+    record_started(out, earlier.name)
+    Queue.for_root(out / "captures").enqueue(Job(id=f"{earlier.name}-fast", scan=earlier.name, budget_s=5.0))
+    r = spadscan("demo", "--out", out, "--views", 4, "--budget-s", 5, *(["--offline"] if offline else []),
+                 timeout=480)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (f"scan {earlier.name} left complete but not reconstructed by an earlier run: reconstructing it first, on "
+            f"a bar of its own and outside this run's times (Ctrl-C keeps it queued for `spadscan worker --root "
+            f"{out / 'captures'} --once`)\n") in r.stderr, r.stderr[-3000:]
+    assert f"earlier scan {earlier.name} reconstructed: " in r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert Path(summary["capture"]) != earlier and earlier.name not in summary["report"]
+    assert [e["scan"] for e in summary["earlier"]] == [earlier.name] and summary["earlier"][0]["state"] == "done"
+    assert Path(summary["earlier"][0]["report"]).is_file()
+    assert summary["seconds"]["earlier_s"] > 0 and f"earlier:  {earlier.name}" in r.stdout
+    # Two workers, one job each: the earlier scan's, then this run's (one worker ran both: "2 done, 0 failed").
+    log = (out / "logs" / "worker.log").read_text()
+    ends = re.findall(r"^spadscan worker: (?:stopped; )?(\d+) done, (\d+) failed", log, re.M)
+    assert ends == [("1", "0"), ("1", "0")], log[-3000:]
     assert not processes_mentioning(str(out)), "the demo left a process running"
 
 
