@@ -18,7 +18,7 @@ import time
 from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError, DeviceError
 
-from .config import DaemonConfig
+from .config import DaemonConfig, check_captures_creatable, make_captures
 from .control import ControlServer, check_socket_path, claim_socket_path
 from .devices import Device
 from .rig import build_devices, preflight, rig_record
@@ -134,12 +134,14 @@ def check_config(cfg: DaemonConfig):
     `spadscan daemon --check` runs): the default scan plan, the devices built (a sim sensor's mesh loaded, the
     sensor model), an I2C sensor's firmware image read and parsed, its bus or a serial sensor's port present, the
     socket path neither taken by another file nor served by another daemon, the captures root not held by another
-    daemon. Returns (plan, arm, sensor), neither device connected."""
+    daemon and, when it does not exist yet, one that can be created (tried: a scratch folder made and removed).
+    Returns (plan, arm, sensor), neither device connected."""
     plan = build_plan(cfg.scan, cfg.arm, where=f"{cfg.source}: [scan] defaults")
     arm, sensor = build_devices(cfg)
     preflight(cfg)
     _in_config(cfg, check_socket_path, cfg.socket)
     _in_config(cfg, check_root_free, cfg.captures)
+    _in_config(cfg, check_captures_creatable, cfg.captures)
     return plan, arm, sensor
 
 
@@ -156,7 +158,7 @@ def check_startup(cfg: DaemonConfig) -> tuple[Device, Device, RootLock]:
     the socket path claimed; returns (arm, sensor, lock): the devices not yet connected, the lock held (release
     it when the daemon ends)."""
     _, arm, sensor = check_config(cfg)
-    cfg.captures.mkdir(parents=True, exist_ok=True)
+    _in_config(cfg, make_captures, cfg.captures)
     _in_config(cfg, claim_socket_path, cfg.socket)
     lock = RootLock(cfg.captures)
     _in_config(cfg, lock.acquire)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.folders import check_folder_option
 from spadscan.protocol.schedules import ring_at_pole_deg
 
 from .backends import ARM_BACKENDS, SENSOR_BACKENDS, ArmBackend, SensorBackend
@@ -350,3 +351,18 @@ def _check_paths(cfg: DaemonConfig, where: str) -> None:
         raise ConfigError(f"{where}: captures {root} exists and is not a folder")
     if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
         raise ConfigError(f"{where}: captures {root}: folder {probe} is missing or not writable")
+
+
+def check_captures_creatable(root: Path) -> None:
+    """Refuse a captures root that start-up could not create (`make_captures`), creating nothing: os.access
+    (`_check_paths`) says yes to root in /proc, on a read-only mount or in an immutable folder; the real mkdir says
+    no (protocol/folders.py)."""
+    check_folder_option(root, "captures")
+
+
+def make_captures(root: Path) -> None:
+    """Create the captures root (and the folders above it); a failure names the key, as every config error does."""
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"captures {root}: cannot create the folder ({exc.strerror or exc})") from None

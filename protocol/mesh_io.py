@@ -70,7 +70,8 @@ def _unreadable(path: Path, exc: Exception, formats) -> str:
     range") come last: they help someone who debugs a file, and say nothing to someone who named the wrong one."""
     suffix = path.suffix.lower().lstrip(".")
     if suffix not in formats:
-        return (f"{path}: not a mesh file spadscan can read (format '.{suffix}'; use PLY, STL, OBJ, OFF or GLB)")
+        said = f"format '.{suffix}'" if suffix else "no file suffix"
+        return f"{path}: not a mesh file spadscan can read ({said}; use PLY, STL, OBJ, OFF or GLB)"
     detail = " ".join(str(exc).split()) or type(exc).__name__
     return (f"{path}: not a valid {suffix.upper()} mesh: damaged, truncated or not a mesh at all (the reader "
             f"stopped with: {detail})")

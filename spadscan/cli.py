@@ -13,6 +13,7 @@ import re
 import sys
 
 from spadscan.parent_watch import watch_parent_from_env
+from spadscan.protocol.folders import file_in_the_way
 
 # name -> (module under spadscan.commands, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -173,7 +174,7 @@ def describe_os_error(exc: OSError) -> str:
     if isinstance(exc, FileExistsError) and path and not os.path.isdir(path):
         return f"{path}: exists and is not a folder"
     if isinstance(exc, NotADirectoryError) and path:
-        blocker = _file_in_the_way(path)
+        blocker = file_in_the_way(path)
         if blocker is not None:
             return f"{blocker}: is a file, not a folder (needed for {path})"
         return f"{path}: is not a folder"
@@ -191,17 +192,6 @@ def is_disk_full(exc: OSError) -> bool:
         return True
     text = str(exc)
     return exc.errno is None and "requested and" in text and "written" in text
-
-
-def _file_in_the_way(path) -> str | None:
-    """The first existing component of `path` that is not a folder (the reason for ENOTDIR), or None."""
-    from pathlib import Path
-
-    for parent in reversed(Path(path).parents):
-        if str(parent) not in ("", ".") and parent.exists() and not parent.is_dir():
-            return str(parent)
-    p = Path(path)
-    return str(p) if p.exists() and not p.is_dir() else None
 
 
 if __name__ == "__main__":  # pragma: no cover

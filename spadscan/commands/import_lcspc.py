@@ -40,15 +40,19 @@ def check_scan_id(scan_id: str, out) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import os
     import sys
 
     from tqdm import tqdm
 
+    from spadscan.protocol.folders import check_folder_option
     from spadscan.protocol.lcspc import import_lcspc
     from spadscan.signals import terminate_as_interrupt
 
     if args.scan_id is not None:
         check_scan_id(args.scan_id, args.out)
+    if not os.path.lexists(args.out):  # one that exists is refused by the import, which says why
+        check_folder_option(args.out, "--out")
 
     bars: dict[str, tqdm] = {}
 

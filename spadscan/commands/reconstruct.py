@@ -97,6 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import os
 
+    from spadscan.protocol.folders import check_folder_option
     from spadscan.signals import terminate_as_interrupt
     from spadscan.worker.budget import process_started
     from spadscan.worker.threads import threads_fixed, wait_env
@@ -107,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
     from spadscan.worker.reconstruct import reconstruct_capture  # torch: only when a reconstruction runs
 
     out = check_out(args.out, args.overwrite, capture=args.capture)
+    check_folder_option(out, "--out")  # here, not in the scratch folder beside it that the run makes first
     overrides = dict(parse_override(text) for text in args.overrides)
 
     def log(line: str) -> None:

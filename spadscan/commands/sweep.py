@@ -52,9 +52,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    import os
     import sys
     from pathlib import Path
 
+    from spadscan.protocol.folders import check_folder_option
     from spadscan.sweep.checks import check_local_device, check_scheduler_address, check_workers
     from spadscan.sweep.plan import make_plan
     from spadscan.sweep.spec import load_spec
@@ -74,6 +76,8 @@ def run(args) -> int:
     log(f"{entries} grid entr{'y' if entries == 1 else 'ies'} on {len(plan.scenes)} scene"
         f"{'' if len(plan.scenes) == 1 else 's'}: {len(plan.points)} distinct points; methods "
         f"{', '.join(spec.methods)}")
+    if not os.path.lexists(args.out):  # the dry run too: the run would refuse it when it makes the folder
+        check_folder_option(args.out, "--out")
     if args.dry_run:
         return _dry_run(plan, Path(args.out), args.overwrite)
     from spadscan.signals import terminate_as_interrupt

@@ -20,11 +20,11 @@ whose fit does not explain the measurements, a 3D view that could not be written
 
 Options are frozen into each job when it is queued: --budget-s, --steps, --device and --seed apply to the scans a
 worker queues, and a job already queued (by this worker or an earlier one) runs with its own (the worker names, when
-it starts, the queued jobs whose own values differ from the ones given). To run failed jobs again with other options,
-give them with --retry-failed: `--retry-failed --device cpu` queues every failed job again with device cpu, and the
-options not given keep each job's own values. The preset is part of a job's id, so with --retry-failed, --preset
-picks the failed jobs of that preset. Bad options (--device cuda where torch sees no GPU,
-a negative --seed) are refused before anything is queued.
+it starts and whenever it queues a job again, the queued jobs whose own values differ from the ones given). To run
+failed jobs again with other options, give them with --retry-failed: `--retry-failed --device cpu` queues every
+failed job again with device cpu, and the options not given keep each job's own values. The preset is part of a
+job's id, so with --retry-failed, --preset picks the failed jobs of that preset. Bad options (--device cuda where
+torch sees no GPU, a negative --seed) are refused before anything is queued.
 
 Each job process gets --threads CPU threads (OMP_NUM_THREADS): by default the worker's own OMP_NUM_THREADS when it
 is set, else the machine's cores shared out among --processes. Jobs that together ask for more threads than there
@@ -165,6 +165,7 @@ def run(args) -> int:
     _refuse_combinations(args)
     root = check_root(args.root)
     queue_dir = Path(args.queue) if args.queue else root / ".queue"
+    _check_queue(queue_dir, given=args.queue is not None, creates=not (args.status or args.retry_failed or args.redo))
     lease_s = DEFAULTS["lease_s"] if args.lease_s is None else args.lease_s
     if args.status:  # a query: a root without a queue yet is listed as empty, not given one
         return _print_status(Queue(queue_dir, lease_s=lease_s, create=False), args.json, root)
@@ -240,6 +241,23 @@ def _refuse_combinations(args) -> None:
     given = [flag for key, flag in extra.items() if getattr(args, key) not in (None, False)]
     if given:
         raise ConfigError(f"{action}: {', '.join(given)} {'does' if len(given) == 1 else 'do'} not go with it")
+
+
+def _check_queue(queue_dir, given: bool, creates: bool) -> None:
+    """Refuse, in one line that names --queue, a queue folder that cannot be one: a file there or above it, or a
+    missing folder that cannot be created, where it must be: for a run (`creates`), which makes it, and for a --queue
+    given (--status would end by suggesting a worker on it). A root's default queue that is missing is only read:
+    --status lists it as empty, since the root's own worker makes it, even where this user cannot."""
+    from spadscan.protocol.folders import folder_problem, not_a_folder
+    from spadscan.protocol.errors import ConfigError
+
+    reason = folder_problem(queue_dir) if creates or given else not_a_folder(queue_dir)
+    if reason is None:
+        return
+    name = f"--queue {queue_dir}" if given else f"queue {queue_dir}"
+    if queue_dir.exists() or queue_dir.is_symlink():  # in the dashboard's words for the same option
+        raise ConfigError(f"{name}: no such queue folder ({reason})")
+    raise ConfigError(f"{name}: {reason}")
 
 
 def _given_options(args) -> dict:
