@@ -13,7 +13,7 @@ import time
 from dataclasses import replace
 
 from spadscan.cli import main as cli_main
-from spadscan.worker.holder import Holder, holder_gone
+from spadscan.worker.holder import Holder
 from spadscan.worker.jobs import Job
 from spadscan.worker.pool import Worker
 from spadscan.worker.presence import (MISSED_RENEWALS, RENEW_S, Presence, present_workers, presence_path,
@@ -21,14 +21,7 @@ from spadscan.worker.presence import (MISSED_RENEWALS, RENEW_S, Presence, presen
 from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
-
-def dead_holder() -> Holder:
-    """A process of this machine that has exited."""
-    proc = subprocess.Popen([sys.executable, "-c", "pass"])
-    proc.wait()
-    dead = replace(Holder.current(), pid=proc.pid, pid_start="")
-    assert holder_gone(dead.to_dict())
-    return dead
+from test_reclaim_note import dead_holder
 
 
 def presence(holder: Holder, **changes) -> Presence:
