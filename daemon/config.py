@@ -354,9 +354,9 @@ def _check_paths(cfg: DaemonConfig, where: str) -> None:
 
 
 def check_captures_creatable(root: Path) -> None:
-    """Refuse a captures root that start-up could not create (`make_captures`), creating nothing: os.access
-    (`_check_paths`) says yes to root in /proc, on a read-only mount or in an immutable folder; the real mkdir says
-    no (protocol/folders.py)."""
+    """Refuse a captures root that start-up could not create (`make_captures`), leaving nothing made: a scratch
+    folder is made and removed where it would go (protocol/folders.py), for os.access (`_check_paths`) says yes to
+    root in /proc, on a read-only mount or in an immutable folder, where the real mkdir says no."""
     check_folder_option(root, "captures")
 
 

@@ -25,25 +25,28 @@ def file_in_the_way(path) -> str | None:
 
 
 def not_a_folder(path) -> str | None:
-    """Why `path` can never be a folder, or None: it is a file (or another non-folder), or a file stands where one
-    of the folders above it would go. Reads only."""
+    """Why `path` can never be a folder, or None: it is a file (or another non-folder, or a link to nothing), or such
+    a thing stands where one of the folders above it would go. Reads only."""
     path = Path(path)
-    if os.path.lexists(path) and not path.is_dir():
-        return "a file, not a folder" if path.is_file() else "not a folder"
-    blocker = file_in_the_way(path)
-    return None if blocker is None else f"{blocker} is a file, not a folder"
+    for part in [*reversed(path.parents), path]:
+        if str(part) in ("", ".") or not os.path.lexists(part) or part.is_dir():
+            continue
+        what = "a link to a missing folder" if part.is_symlink() and not part.exists() else (
+            "a file, not a folder" if part.is_file() else "not a folder")
+        return what if part == path else f"{part} is {what}"
+    return None
 
 
 def folder_problem(path) -> str | None:
     """Why the folder `path` is not there and cannot be made, or None; one that can be made is left unmade."""
     path = Path(path)
-    reason = not_a_folder(path)
-    if reason is not None or path.is_dir():
-        return reason
-    above = next(parent for parent in path.absolute().parents if parent.is_dir())
     try:
+        reason = not_a_folder(path)
+        if reason is not None or path.is_dir():
+            return reason
+        above = next(parent for parent in path.absolute().parents if parent.is_dir())
         scratch = tempfile.mkdtemp(prefix=".spadscan-check-", dir=above)
-    except OSError as exc:
+    except OSError as exc:  # /proc, a read-only mount, or a folder above it that this user may not search
         return f"cannot create it ({exc.strerror or exc})"
     os.rmdir(scratch)  # outside the try: a scratch folder that stays is an error of its own, not "cannot create"
     return None

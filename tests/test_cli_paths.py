@@ -221,7 +221,8 @@ def test_folder_problem_reads_a_folder_that_is_there_and_tries_one_that_is_not(h
     assert folder_problem("dir") is None and folder_problem(here / "dir") is None
     assert folder_problem("new/a/b") is None
     assert folder_problem("afile") == "a file, not a folder"
-    assert folder_problem("dangling") == "not a folder"
+    assert folder_problem("dangling") == "a link to a missing folder"
+    assert folder_problem("dangling/q") == "dangling is a link to a missing folder"  # the run would fail at its mkdir
     assert folder_problem("afile/a/b") == "afile is a file, not a folder"
     assert folder_problem(f"{UNMAKEABLE}/a").startswith("cannot create it (")
     assert listing(here) == before

@@ -110,7 +110,8 @@ class Worker:
                  f"{self.threads_note}")
         for warning in self.threads_warnings:
             self.log(f"warning: {warning}")
-        await asyncio.to_thread(present_workers, self.queue.path, tidy=True)  # killed workers' files on this machine
+        await asyncio.to_thread(present_workers, self.queue.path, tidy=True)  # killed workers' files
+        self._say_present()  # before the start-up work, which may take a while on a large root
         await asyncio.to_thread(self._say_frozen_options)  # before this worker queues jobs of its own
         watcher = None
         if self.config.once:
@@ -140,7 +141,8 @@ class Worker:
                 await self._say_progress()
                 if self.config.once and not self.children and not self.unpublished and self._drained():
                     break
-                await self._wait(stop, min(self.config.poll_s, self.config.lease_s / 4))
+                # renewals due too: a poll longer than the presence's window would hide an idle worker
+                await self._wait(stop, min(self.config.poll_s, self.config.lease_s / 4, RENEW_S))
                 await self._reap()
         finally:
             stop.set()
@@ -182,7 +184,7 @@ class Worker:
 
     def _say_gone(self) -> None:
         try:
-            remove_presence(self.queue.path, Holder(**self.presence.holder))
+            remove_presence(self.queue.path, self.presence)
         except OSError as exc:  # a lost mount: the file counts no more once it is a few renewals old
             self.log(f"could not remove this worker's presence file: {fold(exc)}")
 

@@ -1,16 +1,19 @@
 """Which workers serve a queue, idle ones included: each running worker keeps a small file of its own under the
-queue (`<queue>/workers/<host>-<pid>.json`), renewed every RENEW_S seconds and removed when it stops.
+queue (`<queue>/workers/<host>-<pid>-<token>.json`), renewed every RENEW_S seconds and removed when it stops.
 
 Without it a worker with nothing to do leaves no trace, and the dashboard and `worker --status` cannot tell an idle
 worker from none at all: an operator who finished a scan could not see whether a reconstruction will follow. A file
 whose worker was killed stays behind; it counts no more once it is older than three renewals, or at once when its
-process is gone from this machine (`holder.holder_gone`), and the next worker to start removes it.
+process is gone from this machine (`holder.holder_gone`), and the next worker to start removes it then, or once it is
+a day old wherever its worker ran (a power cut, a machine gone). Its age is the reader's clock against the file
+system's, as a claim's is: machines sharing a queue keep their clocks within a few seconds (NTP).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import secrets
 import shlex
 import time
 from dataclasses import asdict, dataclass, field
@@ -18,7 +21,7 @@ from pathlib import Path
 
 from spadscan.protocol.atomic_files import write_atomic
 
-from .holder import Holder, holder_gone
+from .holder import holder_gone
 from .queue import QUEUE_DIRNAME
 
 WORKERS_DIRNAME = "workers"
@@ -28,6 +31,9 @@ RENEW_S = 10.0
 enough that a queue on a network share is not kept busy by idle workers."""
 MISSED_RENEWALS = 3
 """A file not renewed for this many renewals (a killed worker, a lost mount) no longer counts."""
+FORGET_S = 86400.0
+"""A file (or a temporary one a killed write left) not renewed for this long is removed by the next worker to start,
+wherever its worker ran: a machine that rebooted or is gone leaves nobody who could be sure its worker is dead."""
 
 
 @dataclass
@@ -46,46 +52,55 @@ class Presence:
     running: list[str] = field(default_factory=list)
     """The jobs its processes run now."""
     renew_s: float = RENEW_S
+    token: str = field(default_factory=lambda: secrets.token_hex(4))
+    """This run's own, in its file's name: two workers with one host name and pid (containers, cloned machines)
+    never share a file."""
 
 
-def presence_path(queue_dir: Path, holder: Holder) -> Path:
-    return Path(queue_dir) / WORKERS_DIRNAME / f"{holder.host}-{holder.pid}.json"
+def presence_path(queue_dir: Path, presence: Presence) -> Path:
+    holder = presence.holder
+    return Path(queue_dir) / WORKERS_DIRNAME / f"{holder['host']}-{holder['pid']}-{presence.token}.json"
 
 
 def write_presence(queue_dir: Path, presence: Presence) -> Path:
     """Write (or renew) the worker's file; OSError on a full disk or a read-only queue, for the caller to report."""
-    path = presence_path(queue_dir, Holder(**presence.holder))
+    path = presence_path(queue_dir, presence)
     path.parent.mkdir(exist_ok=True)
     return write_atomic(path, json.dumps(asdict(presence), indent=1) + "\n")
 
 
-def remove_presence(queue_dir: Path, holder: Holder) -> None:
-    presence_path(queue_dir, holder).unlink(missing_ok=True)
+def remove_presence(queue_dir: Path, presence: Presence) -> None:
+    presence_path(queue_dir, presence).unlink(missing_ok=True)
 
 
 def present_workers(queue_dir: Path, now: float | None = None, *, tidy: bool = False) -> list[dict]:
     """The workers that serve the queue now: one dict each ({"host", "pid", "root", "started_unix", "processes",
     "once", "running", "seen_s": seconds since its last renewal}), the longest running first. A file that cannot be
-    read, or whose worker stopped renewing it or is gone from this machine, is left out (`tidy`: and removed, when
-    its process is known gone)."""
+    read, or whose worker stopped renewing it or is gone from this machine, is left out (`tidy`: and removed when its
+    process is known gone or it is FORGET_S old, as are temporary files that old)."""
     now = time.time() if now is None else now
     folder = Path(queue_dir) / WORKERS_DIRNAME
     try:
         paths = sorted(folder.glob("*.json"))
+        if tidy:
+            _forget([p for p in folder.glob(".*.tmp") if _age(p, now) > FORGET_S])
     except OSError:
         return []
     found = []
     for path in paths:
-        row = _present(path, now, tidy)
+        row, gone = _present(path, now)
         if row is not None:
             found.append(row)
+        elif tidy and gone:
+            _forget([path])
     return sorted(found, key=lambda r: (r["started_unix"], r["host"], r["pid"]))
 
 
-def _present(path: Path, now: float, tidy: bool) -> dict | None:
-    """One file's worker as `present_workers` lists it, or None."""
+def _present(path: Path, now: float) -> tuple[dict | None, bool]:
+    """(one file's worker as `present_workers` lists it, or None; whether its worker is certainly gone: its process
+    gone from this machine, or its file FORGET_S old)."""
     try:
-        seen_s = max(0.0, now - path.stat().st_mtime)  # the reader's clock against the file system's, as claims are
+        seen_s = _age(path, now)
         data = json.loads(path.read_text())
         holder = data["holder"]
         renew_s = _positive(data.get("renew_s"), RENEW_S)
@@ -93,13 +108,23 @@ def _present(path: Path, now: float, tidy: bool) -> dict | None:
                "started_unix": _positive(data.get("started_unix"), 0.0), "processes": int(data.get("processes", 1)),
                "once": bool(data.get("once", False)), "running": [str(j) for j in data.get("running", [])],
                "seen_s": round(seen_s, 1)}
-    except (OSError, ValueError, KeyError, TypeError):
-        return None  # moved on meanwhile, or damaged: a damaged file says nothing about a worker
-    if holder_gone(holder):
-        if tidy:
+        gone = holder_gone({**holder, "pid": row["pid"]}) or seen_s > FORGET_S
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None, False  # moved on meanwhile, or damaged: a damaged file says nothing about a worker
+    return (None if gone or seen_s > MISSED_RENEWALS * renew_s else row), gone
+
+
+def _age(path: Path, now: float) -> float:
+    """Seconds since `path` was last written: the reader's clock against the file system's, as a claim's age is."""
+    return max(0.0, now - path.stat().st_mtime)
+
+
+def _forget(paths) -> None:
+    for path in paths:
+        try:
             path.unlink(missing_ok=True)
-        return None
-    return row if seen_s <= MISSED_RENEWALS * renew_s else None
+        except OSError:
+            pass  # another worker's tidy, or a read-only queue: it counts no more all the same
 
 
 def workers_line(rows: list[dict], start: str) -> str:

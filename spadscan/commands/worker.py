@@ -62,8 +62,9 @@ its budget or steps, the step, the loss and, where the scene is known, the last 
 `progress`); a done job, its result and its report's warnings, each on a line of its own. A running job whose worker
 died or stopped renewing its lease shows as
 `stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
-still holds shows as `running?`. Its last line names the workers running on the queue, idle ones included (each
-renews a file under QUEUE/workers/ while it runs), or says that none is and how to start one.
+still holds shows as `running?`. Its last line (not with --json, which lists the jobs alone) names the workers
+running on the queue, idle ones included (each renews a file under QUEUE/workers/ while it runs), or says that none
+is and how to start one.
 
 --once queues the complete scans there are, runs until nothing is queued or running, and exits. Its last line
 counts the jobs done and failed and names each scan it left unqueued, and why (still recorded, or a copy still under
@@ -125,7 +126,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--status", action="store_true",
                         help="list the jobs and exit (changes nothing; only --queue, --json and --lease-s go with "
                              "it): a running job with its progress; one whose worker seems gone shows as 'stale' or "
-                             "'running?'; its last line names the workers running, idle ones included")
+                             "'running?'; its last line (not with --json) names the workers running, idle ones "
+                             "included")
     parser.add_argument("--json", action="store_true", help="with --status: print JSON instead of a table")
     parser.add_argument("--retry-failed", action="store_true",
                         help="put every failed job back in the queue with a fresh attempt count, and exit; "

@@ -61,14 +61,15 @@ def test_the_page_tells_an_idle_worker_from_none_and_says_how_to_start_one(tmp_p
         said = text_of(page, "#worker", "no worker is running")
         assert said == ("no worker is running (a worker queues and reconstructs each scan once it is complete): "
                         f"start one with `{start}`"), said
-        write_presence(queue.path, Presence(me.to_dict(), str(tmp_path), time.time(), 1))  # a worker starts
+        started = Presence(me.to_dict(), str(tmp_path), time.time(), 1)
+        write_presence(queue.path, started)  # a worker starts
         assert text_of(page, "#worker", "waiting") == f"{worker}: waiting for scans (it queues each once complete)"
         complete_scan(tmp_path / "mug", 2)  # a scan the worker does not queue
         aged(tmp_path / "mug" / "scan.json", 3 * LOOK_S)
         said = text_of(page, "#worker", "mug")
         assert said.startswith(f"the {worker} has not queued scan mug") and said.endswith("see its terminal"), said
         assert page.locator("#worker").get_attribute("class") == "down"
-        remove_presence(queue.path, me)  # the worker stops
+        remove_presence(queue.path, started)  # the worker stops
         said = text_of(page, "#worker", "no worker has")
         assert said.startswith("no worker has queued scan mug") and start in said, said
         queue.enqueue(Job(id="mug-fast", scan="mug"))  # queued by a worker that went, say

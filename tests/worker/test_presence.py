@@ -16,8 +16,8 @@ from spadscan.cli import main as cli_main
 from spadscan.worker.holder import Holder
 from spadscan.worker.jobs import Job
 from spadscan.worker.pool import Worker
-from spadscan.worker.presence import (MISSED_RENEWALS, RENEW_S, Presence, present_workers, presence_path,
-                                      start_command, write_presence)
+from spadscan.worker.presence import (FORGET_S, MISSED_RENEWALS, RENEW_S, Presence, present_workers,
+                                      presence_path, remove_presence, start_command, write_presence)
 from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
@@ -28,9 +28,11 @@ def presence(holder: Holder, **changes) -> Presence:
     return replace(Presence(holder.to_dict(), "/captures", 1000.0, 1), **changes)
 
 
-def aged(path, seconds: float) -> None:
-    then = time.time() - seconds
-    os.utime(path, (then, then))
+def aged(path, seconds: float) -> float:
+    """`path` last written `seconds` before now; returns now (the reading's clock)."""
+    now = time.time()
+    os.utime(path, (now - seconds, now - seconds))
+    return now
 
 
 def test_a_renewed_file_of_a_live_process_is_listed(tmp_path):
@@ -42,34 +44,55 @@ def test_a_renewed_file_of_a_live_process_is_listed(tmp_path):
 
 def test_a_file_no_longer_renewed_does_not_count(tmp_path):
     path = write_presence(tmp_path, presence(Holder.current()))
-    aged(path, MISSED_RENEWALS * RENEW_S - 5)
-    assert len(present_workers(tmp_path)) == 1
-    aged(path, MISSED_RENEWALS * RENEW_S + 5)
-    assert present_workers(tmp_path) == []
+    now = aged(path, MISSED_RENEWALS * RENEW_S - 5)
+    assert len(present_workers(tmp_path, now)) == 1
+    now = aged(path, MISSED_RENEWALS * RENEW_S + 5)
+    assert present_workers(tmp_path, now, tidy=True) == []
     assert path.exists()  # its worker may be on another machine, with the queue's mount lost for a while
+    now = aged(path, FORGET_S + 5)  # a day: whatever became of it, it is forgotten
+    assert present_workers(tmp_path, now, tidy=True) == [] and not path.exists()
 
 
 def test_a_dead_workers_file_does_not_count_and_is_tidied_away(tmp_path):
     path = write_presence(tmp_path, presence(dead_holder()))
+    leftover = path.with_name(f".{path.name}.1-00000000.tmp")  # a write killed half way
+    leftover.write_text("{")
     assert present_workers(tmp_path) == [] and path.exists()
     assert present_workers(tmp_path, tidy=True) == []
-    assert not path.exists()
+    assert not path.exists() and leftover.exists()
+    now = aged(leftover, FORGET_S + 5)
+    present_workers(tmp_path, now, tidy=True)
+    assert not leftover.exists()
+
+
+def test_two_workers_with_one_host_name_and_pid_keep_a_file_each(tmp_path):
+    """Two containers with one host name, both running the worker as pid 1: one's stop leaves the other listed."""
+    me = Holder.current()
+    first, second = presence(me), presence(replace(me, pid_ns="pid:[1]"))
+    write_presence(tmp_path, first)
+    write_presence(tmp_path, second)
+    assert len(present_workers(tmp_path)) == 2
+    remove_presence(tmp_path, first)
+    assert len(present_workers(tmp_path)) == 1
 
 
 def test_damaged_files_and_no_folder_list_no_worker(tmp_path):
     assert present_workers(tmp_path) == []
-    path = presence_path(tmp_path, Holder.current())
+    path = presence_path(tmp_path, presence(Holder.current()))
     path.parent.mkdir()
     path.write_text("{not json")
     (path.parent / "other.json").write_text(json.dumps({"holder": {"pid": 1}}))
-    assert present_workers(tmp_path) == []
+    me = Holder.current().to_dict()
+    (path.parent / "a-string-pid.json").write_text(json.dumps({"holder": {**me, "pid": "x"}}))
+    (path.parent / "a-list.json").write_text(json.dumps({"holder": ["vm", 1]}))
+    assert present_workers(tmp_path, tidy=True) == []
 
 
 def test_a_worker_is_present_while_it_runs_idle_and_gone_once_stopped(tmp_path, arun):
     root = tmp_path / "captures"
     root.mkdir()
     worker = Worker(WorkerConfig(root=root, poll_s=0.05, processes=2), log=lambda line: None)
-    path = presence_path(worker.queue.path, Holder.current())
+    path = presence_path(worker.queue.path, worker.presence)
     stale = write_presence(worker.queue.path, presence(dead_holder()))  # a killed worker's, left behind
 
     async def run_until_present() -> list[dict]:
@@ -135,3 +158,28 @@ def test_the_command_is_present_until_ctrl_c_which_ends_it_with_what_it_settled_
     assert proc.returncode == 0, err
     assert out.splitlines()[-1] == "spadscan worker: stopped; 0 done, 0 failed while it ran", out
     assert not list(folder.glob("*.json"))
+
+
+def test_an_idle_worker_with_a_long_poll_still_renews_its_file_in_time(tmp_path, arun, monkeypatch):
+    """A poll of a minute (`--poll-s 60 --lease-s 600`) must not leave the file older than its window between
+    renewals: the loop wakes for each renewal (the renewal period made short here, as the poll is long)."""
+    import spadscan.worker.pool as pool
+
+    writes: list[float] = []
+    monkeypatch.setattr(pool, "RENEW_S", 0.05)
+    monkeypatch.setattr(pool, "write_presence", lambda queue, p: writes.append(time.monotonic()))
+    root = tmp_path / "captures"
+    root.mkdir()
+    worker = Worker(WorkerConfig(root=root, poll_s=60, lease_s=600), log=lambda line: None)
+
+    async def run_until_renewed() -> None:
+        stop = asyncio.Event()
+        task = asyncio.create_task(worker.run(stop))
+        deadline = time.monotonic() + 30
+        while len(writes) < 3 and not task.done() and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        stop.set()
+        await task
+
+    arun(run_until_renewed())
+    assert len(writes) >= 3, f"renewed {len(writes)} times in 30 s with a 60 s poll"

@@ -61,9 +61,9 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     the mean loss since the previous checkpoint and whatever `evaluate()` returns. `on_checkpoint(trace)` sees the
     trace after each one (a benchmark keeps it on disk as it goes). A tqdm bar on stderr shows progress unless
     `progress` is False: `step=` and `loss=`, and with an evaluation `chamfer=` (the last scored checkpoint's) and
-    `scored=`, the step it was scored at and `score_note`, how checkpoints are scored (coarser than the final mesh):
-    under a short budget the scoring's share can be spent early, and a Chamfer many steps old must say so. The lab dashboard and the
-    demo read these fields from a job's log: keep them `key=value` without commas.
+    `scored=`, the step it was scored at and `score_note`, how checkpoints are scored (coarser than the final
+    mesh): under a short budget the scoring's share can be spent early, and a Chamfer many steps old must say so.
+    The lab dashboard and the demo read these fields from a job's log: keep them `key=value` without commas.
 
     `on_step(seconds)` sees each step's wall time (the thread governor). `clock` (wall seconds) and `cpu_clock`
     (this process's CPU seconds) time the steps; tests inject their own."""
