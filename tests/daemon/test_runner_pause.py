@@ -48,8 +48,8 @@ def test_pause_says_where_it_stops(arun, tmp_path, sphere, caplog):  # noqa: F81
     assert len(requested) == len(paused) == len(seen) == 5, said
     for (at_request, pausing_at, stopped), req, stop in zip(seen, requested, paused):
         assert pausing_at == stopped, seen  # the reply said where the scan would stop
-        assert req == f"scan pz: pause requested at pose {at_request}; pausing at pose {stopped}, once the pose in " \
-                      f"flight is published", said
+        assert req == f"scan pz: pause requested at pose {at_request}; pausing at pose {stopped}, once the poses " \
+                      f"under way are published", said
         assert stop == f"scan pz paused by user at pose {stopped}"
         gap = int(stopped.split("/")[0]) - int(at_request.split("/")[0])
         assert 0 <= gap <= 2, seen  # at most one pose waiting to be written and one being captured

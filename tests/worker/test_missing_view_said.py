@@ -76,7 +76,7 @@ def test_a_done_job_without_its_view_says_so_in_its_done_line_and_status(tmp_pat
     (row,) = json.loads(capsys.readouterr().out)
     assert row["state"] == "done" and row["warnings"] == [SAID], row
     assert cli_main(["worker", "--root", str(root), "--status"]) == 0
-    header, row, warning, counts = capsys.readouterr().out.splitlines()
+    header, row, warning, counts, workers = capsys.readouterr().out.splitlines()
     assert row.startswith("mug-fast") and row.endswith(f"{result} (1 warning below)"), row
     assert warning == " " * header.index("RESULT") + f"warning: {SAID}", "on its own line, under the result"
     assert os.path.isfile(result / "job.log")
