@@ -426,8 +426,9 @@ def _has_report(scan_dir: Path) -> bool:
     return True
 
 
-EARLIER_RUN_UNRECONSTRUCTED = "left complete but not reconstructed by an earlier run"
-"""What the demo says of the scans it reconstructs first (`unreconstructed_scans`)."""
+EARLIER_RUN_UNRECONSTRUCTED = "left complete but not reconstructed"
+"""What the demo says of the scans it reconstructs first (`unreconstructed_scans`): not "by an earlier run", since
+a complete scan copied into the captures is one of them too."""
 
 
 class EarlierBars:
@@ -441,12 +442,12 @@ class EarlierBars:
         from spadscan.worker.job_progress import running_progress
         from spadscan.worker.queue import Queue
 
-        running = running_progress(Queue.for_root(self.captures, create=False))
-        for job_id, progress in sorted(running.items())[:1]:  # the demo's worker runs one job at a time
+        queue = Queue.for_root(self.captures, create=False)
+        for job_id, progress in sorted(running_progress(queue).items())[:1]:  # the demo's worker runs one at a time
             if job_id != self.job:
                 self.close()
                 self.job = job_id
-                scan = job_id.rpartition("-")[0]
+                scan = queue.registered_scan(job_id) or job_id
                 self.bar = self.factory(self.total_s, f"earlier scan {scan} (training s)", "s")
                 self.show = ReconProgress(self.bar, f"earlier scan {scan}: mesh, metrics, pictures, report")
             self.show(progress)
@@ -462,16 +463,17 @@ def _reconstruct_earlier(opts: DemoOptions, captures: Path, scans: list[str], pr
     """Reconstruct the scans an earlier run left unreconstructed (`unreconstructed_scans`) before this run's scan
     starts, with a line before and one for each after, and return what became of each (scan, state, report). Left
     in the queue, `spadscan worker --once` would run them first inside this run's reconstruction, its bar and its
-    time. A Ctrl-C meanwhile leaves them queued (the worker gives them back), for the next run or a worker."""
+    time. A Ctrl-C meanwhile leaves them for the next run or a worker (the worker gives a running job back; a scan
+    not queued yet stays so)."""
     many = len(scans) > 1
     them = "them" if many else "it"
     say(f"scan{'s' if many else ''} {', '.join(scans)} {EARLIER_RUN_UNRECONSTRUCTED}: reconstructing {them} first, "
         f"on {'bars' if many else 'a bar'} of {'their' if many else 'its'} own and outside this run's times (Ctrl-C "
-        f"keeps {them} queued for `spadscan worker --root {captures} --once`)")
+        f"leaves {them} for `spadscan worker --root {captures} --once`)")
     bars = EarlierBars(captures, progress_factory, opts.budget_s)
+    limit_s = sum(opts.stage_timeout_s + _queued_budget_s(captures, scan, opts.budget_s) for scan in scans)
     try:
-        _run_worker_once(opts, captures, procs, logs, bars,
-                         limit_s=len(scans) * (opts.stage_timeout_s + opts.budget_s))
+        _run_worker_once(opts, captures, procs, logs, bars, limit_s=limit_s)
     finally:
         bars.close()
     outcomes = [_earlier_outcome(captures, scan) for scan in scans]
@@ -484,15 +486,29 @@ def _earlier_outcome(captures: Path, scan: str) -> dict:
     """What became of earlier scan `scan`'s reconstruction: its job's state, the report or the reason."""
     from spadscan.worker.queue import Queue
 
-    state = scan_job_state(captures, scan)
+    job = _scan_job(captures, scan)
+    state = job[1] if job else None
     outcome = {"scan": scan, "state": state, "report": None, "error": None}
     if state == "done" and _has_report(captures / scan):
         outcome["report"] = str(_find_report(captures / scan).parent / "report.html")
-    elif state is not None:
-        queue = Queue.for_root(captures, create=False)
-        ids = [job_id for job_id in queue.job_paths() if job_id.rpartition("-")[0] == scan]
-        outcome["error"] = queue.last_error(ids[0]) if ids else None
+    elif job is not None:
+        outcome["error"] = Queue.for_root(captures, create=False).last_error(job[0])
     return outcome
+
+
+def _queued_budget_s(captures: Path, scan: str, budget_s: float) -> float:
+    """The budget scan `scan`'s job runs under: the one it was queued with (an earlier run's --budget-s need not be
+    this one's); `budget_s` (this run's) for a scan not queued yet (this run's worker queues it so) and for a job
+    queued without one (it runs under its preset's default: looking that up would import torch into the demo, and
+    the stage's own time limit covers the fast preset's 120 s)."""
+    from spadscan.worker.jobs import Job
+
+    job = _scan_job(captures, scan)
+    try:
+        queued = Job.from_dict(json.loads(job[2].read_text())).budget_s if job else None
+    except (OSError, ValueError, SpadscanError):
+        queued = None  # moved on meanwhile, or damaged (its claim fails it)
+    return float(queued) if queued is not None and queued > 0 else budget_s
 
 
 def _earlier_line(outcome: dict, captures: Path) -> str:
@@ -543,13 +559,22 @@ class LiveWatch:
 def scan_job_state(captures: Path, scan: str) -> str | None:
     """The queue's state of scan `scan`'s job (a scan has one job; 'queued', 'running', 'done' or 'failed'), or
     None while none is queued."""
+    job = _scan_job(captures, scan)
+    return job[1] if job else None
+
+
+def _scan_job(captures: Path, scan: str) -> tuple[str, str, Path] | None:
+    """(id, state, job file) of scan `scan`'s job, or None while none is queued. The job's own record says whose it
+    is: its id need not start with the scan's name (`jobs.job_id_for` hashes long or odd names)."""
     from spadscan.worker.queue import Queue
 
     if not (captures / ".queue").is_dir():
         return None
-    jobs = Queue.for_root(captures, create=False).job_paths()
-    states = [state for job_id, (state, _) in jobs.items() if job_id.rpartition("-")[0] == scan]
-    return states[0] if states else None
+    queue = Queue.for_root(captures, create=False)
+    for job_id, (state, path) in sorted(queue.job_paths().items()):
+        if queue.registered_scan(job_id) == scan:
+            return job_id, state, path
+    return None
 
 
 def _finish_live(opts: DemoOptions, captures: Path, scan: str, worker: subprocess.Popen, logs: Path,

@@ -15,8 +15,14 @@ import pytest
 
 import spadscan.demo as demo
 from spadscan.demo import DemoOptions, Processes, unreconstructed_scans
-from spadscan.worker.jobs import Job
+from spadscan.worker.job_progress import claim_log
+from spadscan.worker.jobs import Job, job_id_for
 from spadscan.worker.queue import Queue
+
+ODD = "demo 1+x"
+"""A scan name its job's id cannot hold: the id is hashed (`<scan>-<hash>-<preset>`), not `<scan>-<preset>`."""
+PROGRESS = "training: 40%|####      | 2.0/5.0 s [00:02<00:03, step=10, loss=0.5]\n"
+"""A line of a job's own training bar, as its log holds it."""
 
 
 @pytest.fixture(scope="module")
@@ -62,13 +68,21 @@ def test_the_scans_left_unreconstructed_are_the_complete_ones_with_no_result(tmp
     assert unreconstructed_scans(captures) == ["demo-1", "demo-2", "demo-7"]
 
 
-def _fake_worker(captures: Path) -> list[str]:
-    """A `spadscan worker --once` stand-in: it runs each queued job, publishing an empty report."""
-    code = (f"import json, pathlib\n"
+def _fake_worker(captures: Path, bar_opened: Path) -> list[str]:
+    """A `spadscan worker --once` stand-in: it runs each queued job, its bar in its log until the demo has opened a
+    bar for it (`bar_opened` is there; a minute at most), publishing an empty report."""
+    code = (f"import json, pathlib, time\n"
+            f"from spadscan.worker.job_progress import claim_log\n"
             f"from spadscan.worker.queue import Queue\n"
-            f"root = pathlib.Path({str(captures)!r})\n"
+            f"root, opened = pathlib.Path({str(captures)!r}), pathlib.Path({str(bar_opened)!r})\n"
             f"queue = Queue.for_root(root)\n"
             f"while (claim := queue.claim()) is not None:\n"
+            f"    log = claim_log(queue.path, claim.path)\n"
+            f"    log.parent.mkdir(parents=True, exist_ok=True)\n"
+            f"    log.write_text({PROGRESS!r})\n"
+            f"    deadline = time.monotonic() + 60\n"
+            f"    while not opened.exists() and time.monotonic() < deadline:\n"
+            f"        time.sleep(0.05)\n"
             f"    result = root / claim.job.scan / 'recon' / claim.job.id\n"
             f"    result.mkdir(parents=True)\n"
             f"    (result / 'report.json').write_text('{{}}')\n"
@@ -78,13 +92,16 @@ def _fake_worker(captures: Path) -> list[str]:
 
 
 class Bars:
-    """The bars the demo opens: (total, description) each, and whether each was closed."""
+    """The bars the demo opens: (total, description) each, and whether each was closed; `opened` (a file) is made
+    when the first one opens."""
 
-    def __init__(self):
-        self.made, self.closed = [], 0
+    def __init__(self, opened: Path | None = None):
+        self.made, self.closed, self.opened = [], 0, opened
 
     def __call__(self, total, desc, unit):
         self.made.append((total, desc))
+        if self.opened is not None:
+            self.opened.touch()
         bars = self
 
         class Bar:
@@ -97,26 +114,62 @@ class Bars:
         return Bar()
 
 
-def test_an_earlier_scan_is_reconstructed_first_and_said(tmp_path, a_capture, monkeypatch):
+@pytest.mark.parametrize("scan", ["demo-1", ODD])
+def test_an_earlier_scan_is_reconstructed_first_and_said(tmp_path, a_capture, monkeypatch, scan):
+    """Also for a scan whose job id does not start with its name (hashed): the job's own record names its scan."""
     captures, logs = tmp_path / "captures", tmp_path / "logs"
-    _scan(captures, a_capture, "demo-1")
-    Queue.for_root(captures).enqueue(Job(id="demo-1-fast", scan="demo-1", budget_s=5.0))
-    monkeypatch.setattr(demo, "_spadscan", lambda *args: _fake_worker(captures))
-    said, bars, procs = [], Bars(), Processes()
+    _scan(captures, a_capture, scan)
+    job_id = job_id_for(scan, "fast")
+    Queue.for_root(captures).enqueue(Job(id=job_id, scan=scan, budget_s=5.0))
+    monkeypatch.setattr(demo, "_spadscan", lambda *args: _fake_worker(captures, tmp_path / "bar-opened"))
+    said, bars, procs = [], Bars(tmp_path / "bar-opened"), Processes()
     try:
         earlier = demo._reconstruct_earlier(DemoOptions(out=tmp_path, budget_s=5), captures,
                                             unreconstructed_scans(captures), procs, logs, bars, said.append)
     finally:
         procs.stop_all()
-    report = captures / "demo-1" / "recon" / "demo-1-fast" / "report.html"
-    assert said == [f"scan demo-1 {demo.EARLIER_RUN_UNRECONSTRUCTED}: reconstructing it first, on a bar of its own "
-                    f"and outside this run's times (Ctrl-C keeps it queued for `spadscan worker --root {captures} "
+    report = captures / scan / "recon" / job_id / "report.html"
+    assert said == [f"scan {scan} left complete but not reconstructed: reconstructing it first, on a bar of its own "
+                    f"and outside this run's times (Ctrl-C leaves it for `spadscan worker --root {captures} "
                     f"--once`)",
-                    f"earlier scan demo-1 reconstructed: {report}"]
-    assert earlier == [{"scan": "demo-1", "state": "done", "report": str(report), "error": None}]
-    assert bars.closed == len(bars.made), "every bar it opened is closed"
-    assert all(desc.startswith("earlier scan demo-1") for _, desc in bars.made)
+                    f"earlier scan {scan} reconstructed: {report}"]
+    assert earlier == [{"scan": scan, "state": "done", "report": str(report), "error": None}]
+    assert bars.made == [(5.0, f"earlier scan {scan} (training s)")], "a bar of its own, named after its scan"
+    assert bars.closed == 1, "the bar it opened is closed"
     assert unreconstructed_scans(captures) == [], "nothing is left for this run's worker"
+
+
+def test_an_earlier_job_is_shown_on_a_bar_named_after_its_own_scan(tmp_path, a_capture):
+    captures = tmp_path / "captures"
+    _scan(captures, a_capture, ODD)
+    queue = Queue.for_root(captures)
+    queue.enqueue(Job(id=job_id_for(ODD, "fast"), scan=ODD, budget_s=5.0))
+    claim = queue.claim()
+    claim_log(queue.path, claim.path).parent.mkdir(parents=True, exist_ok=True)
+    claim_log(queue.path, claim.path).write_text(PROGRESS)
+    bars = Bars()
+    show = demo.EarlierBars(captures, bars, 5.0)
+    show()
+    assert bars.made == [(5.0, f"earlier scan {ODD} (training s)")]
+    show.close()
+    assert bars.closed == 1
+
+
+def test_the_earlier_scans_time_limit_allows_for_each_jobs_own_budget(tmp_path, a_capture, monkeypatch):
+    """An earlier run queued its job with its own budget (`demo --budget-s 1800`, then Ctrl-C): this run's smaller
+    one would cut that job off and fail the demo. A scan not queued yet is queued with this run's budget."""
+    captures = tmp_path / "captures"
+    _scan(captures, a_capture, "demo-1")
+    Queue.for_root(captures).enqueue(Job(id=job_id_for("demo-1", "fast"), scan="demo-1", budget_s=1800.0))
+    _scan(captures, a_capture, ODD)
+    Queue.for_root(captures).enqueue(Job(id=job_id_for(ODD, "fast"), scan=ODD, budget_s=900.0))
+    _scan(captures, a_capture, "demo-2")  # no job yet
+    limits = []
+    monkeypatch.setattr(demo, "_run_worker_once", lambda *args, limit_s: limits.append(limit_s) or 0)
+    opts = DemoOptions(out=tmp_path, budget_s=5, stage_timeout_s=10)
+    demo._reconstruct_earlier(opts, captures, ["demo-1", ODD, "demo-2"], Processes(), tmp_path / "logs", Bars(),
+                              lambda line: None)
+    assert limits == [(10 + 1800) + (10 + 900) + (10 + 5)]
 
 
 def test_an_earlier_scan_that_fails_is_said_and_the_demo_goes_on(tmp_path, a_capture, monkeypatch):

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"time:     start {secs['start_s']:.1f} s, scan {secs['scan_s']:.1f} s, {after} "
           f"{secs['reconstruct_s']:.1f} s, total {secs['total_s']:.1f} s")
     if s.get("earlier"):
-        print(f"earlier:  {', '.join(e['scan'] for e in s['earlier'])}, left unreconstructed by an earlier run, "
+        print(f"earlier:  {', '.join(e['scan'] for e in s['earlier'])}, left complete but not reconstructed, "
               f"took {secs['earlier_s']:.1f} s before this run's scan (not in the times above)")
     print(f"summary:  {opts.out / 'summary.json'}")
     if s["dashboard"]:

@@ -125,9 +125,9 @@ def test_a_rerun_reconstructs_a_scan_left_unreconstructed_first_and_apart(tmp_pa
     r = spadscan("demo", "--out", out, "--views", 4, "--budget-s", 5, *(["--offline"] if offline else []),
                  timeout=480)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert (f"scan {earlier.name} left complete but not reconstructed by an earlier run: reconstructing it first, on "
-            f"a bar of its own and outside this run's times (Ctrl-C keeps it queued for `spadscan worker --root "
-            f"{out / 'captures'} --once`)\n") in r.stderr, r.stderr[-3000:]
+    assert (f"scan {earlier.name} left complete but not reconstructed: reconstructing it first, on a bar of its own "
+            f"and outside this run's times (Ctrl-C leaves it for `spadscan worker --root {out / 'captures'} "
+            f"--once`)\n") in r.stderr, r.stderr[-3000:]
     assert f"earlier scan {earlier.name} reconstructed: " in r.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert Path(summary["capture"]) != earlier and earlier.name not in summary["report"]
