@@ -135,7 +135,7 @@ def workers_line(rows: list[dict], start: str) -> str:
     said = []
     for r in rows:
         doing = f"running {', '.join(r['running'])}" if r["running"] else "waiting for scans"
-        since = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(r["started_unix"]))
+        since = _utc(r["started_unix"])
         said.append(f"{r['host']} pid {r['pid']} ({doing}; since {since}{', until drained' if r['once'] else ''})")
     return ("worker: " if len(rows) == 1 else f"{len(rows)} workers: ") + "; ".join(said)
 
@@ -148,10 +148,17 @@ def start_command(root: Path, queue_dir: Path) -> str:
     return shlex.join(words)
 
 
+def _utc(unix: float) -> str:
+    try:
+        return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(unix))
+    except (OverflowError, OSError, ValueError):  # a damaged file's start, past what the clock can name
+        return "an unknown time"
+
+
 def _positive(value, default: float) -> float:
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
     return float(value) if ok else default
 
 
-__all__ = ["WORKERS_DIRNAME", "RENEW_S", "MISSED_RENEWALS", "Presence", "presence_path", "write_presence",
+__all__ = ["WORKERS_DIRNAME", "RENEW_S", "MISSED_RENEWALS", "FORGET_S", "Presence", "presence_path", "write_presence",
            "remove_presence", "present_workers", "workers_line", "start_command"]

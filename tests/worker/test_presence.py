@@ -124,6 +124,11 @@ def test_status_says_which_workers_run_and_how_to_start_one_when_none_does(tmp_p
     assert cli_main(["worker", "--root", str(tmp_path), "--status"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[-1] == f"worker: {me.host} pid {me.pid} (running mug-fast; since 1970-01-01 00:00 UTC, until drained)"
+    damaged = presence(me, started_unix=1e300)  # a start no clock can name
+    write_presence(queue.path, damaged)
+    assert cli_main(["worker", "--root", str(tmp_path), "--status"]) == 0
+    assert "(waiting for scans; since an unknown time)" in capsys.readouterr().out.splitlines()[-1]
+    remove_presence(queue.path, damaged)
     other = Holder.of_pid(os.getppid())  # a second worker, idle, that started a minute later
     write_presence(queue.path, presence(other, started_unix=60.0))
     assert cli_main(["worker", "--root", str(tmp_path), "--status"]) == 0
