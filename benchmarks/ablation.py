@@ -166,9 +166,16 @@ class Children:
             if self.stopped:
                 return None
             # A group of its own, in this script's session: the kernel hangs up the runs of an ablation killed
-            # while paused, which a session of their own would leave stopped for good.
-            proc = subprocess.Popen(cmd, env=parent_watch.child_env(env), stdin=subprocess.DEVNULL,
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, process_group=0)
+            # while paused, which a session of their own would leave stopped for good. SIGTSTP blocked in this
+            # thread while it starts one (the child inherits the mask): a Ctrl-Z between the child's fork and its
+            # exec, while the child is still in this script's group, would stop it there and, a vfork child, this
+            # thread with it, which holds the lock `pause` waits for. A run is paused by SIGSTOP, never SIGTSTP.
+            blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTSTP})
+            try:
+                proc = subprocess.Popen(cmd, env=parent_watch.child_env(env), stdin=subprocess.DEVNULL,
+                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, process_group=0)
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
             self.running.add(proc)
             return proc
 
