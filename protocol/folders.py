@@ -16,25 +16,25 @@ from .errors import ConfigError
 
 
 def file_in_the_way(path) -> str | None:
-    """The first existing component of `path` that is not a folder (the reason for ENOTDIR), or None."""
-    for parent in reversed(Path(path).parents):
-        if str(parent) not in ("", ".") and parent.exists() and not parent.is_dir():
-            return str(parent)
-    p = Path(path)
-    return str(p) if p.exists() and not p.is_dir() else None
+    """The first component of `path`, from the top, that is there and is not a folder (a file, or a link to
+    nothing), or None: the reason for ENOTDIR, and what keeps a folder from being made there."""
+    path = Path(path)
+    for part in [*reversed(path.parents), path]:
+        if str(part) not in ("", ".") and os.path.lexists(part) and not part.is_dir():
+            return str(part)
+    return None
 
 
 def not_a_folder(path) -> str | None:
     """Why `path` can never be a folder, or None: it is a file (or another non-folder, or a link to nothing), or such
     a thing stands where one of the folders above it would go. Reads only."""
-    path = Path(path)
-    for part in [*reversed(path.parents), path]:
-        if str(part) in ("", ".") or not os.path.lexists(part) or part.is_dir():
-            continue
-        what = "a link to a missing folder" if part.is_symlink() and not part.exists() else (
-            "a file, not a folder" if part.is_file() else "not a folder")
-        return what if part == path else f"{part} is {what}"
-    return None
+    found = file_in_the_way(path)
+    if found is None:
+        return None
+    part = Path(found)
+    what = "a link to a missing folder" if part.is_symlink() and not part.exists() else (
+        "a file, not a folder" if part.is_file() else "not a folder")
+    return what if part == Path(path) else f"{part} is {what}"
 
 
 def folder_problem(path) -> str | None:
