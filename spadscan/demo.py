@@ -413,17 +413,17 @@ def unreconstructed_scans(captures: Path) -> list[str]:
         except SpadscanError:
             complete = False
         if complete and scan_job_state(captures, folder.name) in (None, "queued", "running") \
-                and not _has_report(folder):
+                and _report_of(folder) is None:
             found.append(folder.name)
     return found
 
 
-def _has_report(scan_dir: Path) -> bool:
+def _report_of(scan_dir: Path) -> Path | None:
+    """The scan's newest report.json (`_find_report`), or None where it has none."""
     try:
-        _find_report(scan_dir)
+        return _find_report(scan_dir)
     except DemoError:
-        return False
-    return True
+        return None
 
 
 EARLIER_RUN_UNRECONSTRUCTED = "left complete but not reconstructed"
@@ -488,10 +488,10 @@ def _earlier_outcome(captures: Path, scan: str) -> dict:
 
     job = _scan_job(captures, scan)
     state = job[1] if job else None
-    outcome = {"scan": scan, "state": state, "report": None, "error": None}
-    if state == "done" and _has_report(captures / scan):
-        outcome["report"] = str(_find_report(captures / scan).parent / "report.html")
-    elif job is not None:
+    report = _report_of(captures / scan) if state == "done" else None
+    outcome = {"scan": scan, "state": state, "report": None if report is None else str(report.parent / "report.html"),
+               "error": None}
+    if report is None and job is not None:
         outcome["error"] = Queue.for_root(captures, create=False).last_error(job[0])
     return outcome
 
