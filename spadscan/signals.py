@@ -1,4 +1,4 @@
-"""Signals for the commands that write one folder from start to end (simulate, import-lcspc)."""
+"""Signals for the commands that write one folder from start to end (simulate, import-lcspc) and the dashboard."""
 
 from __future__ import annotations
 

@@ -19,7 +19,8 @@ file system that shares flock locks between machines.
 
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
 The root is the folder of scans, never one scan's own folder (that is refused, naming its parent); a root with no
-scans yet is served all the same, saying so, and the page lists scans as they appear.
+scans yet is served all the same, saying so, and the page lists scans as they appear. Ctrl-C or SIGTERM (`kill`,
+`systemctl stop`) stops it, saying so, with exit status 0.
 
 examples:
   spadscan dashboard --root captures                  # then open http://127.0.0.1:8765/
@@ -33,6 +34,7 @@ from pathlib import Path
 
 from spadscan.daemon.root_lock import check_root_free
 from spadscan.protocol.errors import ConfigError
+from spadscan.signals import terminate_as_interrupt
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,9 +73,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"spadscan dashboard: no scans in {args.root} yet (a scan is a sub-folder holding scan.json); the page "
               f"lists them as they appear", file=sys.stderr, flush=True)
     try:
-        server.serve_forever(poll_interval=0.25)
+        with terminate_as_interrupt():  # `systemctl stop` or `kill` stops it as Ctrl-C does, saying so
+            server.serve_forever(poll_interval=0.25)
     except KeyboardInterrupt:
-        pass
+        # A service stopped as asked ends well (0), as the worker's does; the line tells the terminal it was heard.
+        print("spadscan dashboard: stopped", file=sys.stderr, flush=True)
     finally:
         server.server_close()
     return 0

@@ -9,6 +9,7 @@ import datetime as _dt
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -457,3 +458,22 @@ def test_a_root_without_scans_is_served_saying_there_are_none_yet(tmp_path, caps
     assert main(["dashboard", "--root", str(tmp_path), "--port", "0"]) == 0
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and " at http://127.0.0.1:" in lines[0], lines
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_dashboard_stopped_by_ctrl_c_or_sigterm_says_so_and_exits_0(tmp_path, stop):
+    complete_scan(tmp_path / "m1", 2)
+    # SIGINT at its default, as a terminal's Ctrl-C finds it (a child of a background job would inherit it ignored).
+    proc = subprocess.Popen([sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, "
+                             "signal.default_int_handler); from spadscan.cli import main; sys.exit(main(sys.argv[1:]))",
+                             "dashboard", "--root", str(tmp_path), "--port", "0"], stderr=subprocess.PIPE, text=True)
+    try:
+        url = re.search(r" at (http://\S+/) ", proc.stderr.readline()).group(1)
+        assert fetch_status(url)["scans"]  # serving: the signal comes while it waits for requests
+        proc.send_signal(stop)
+        rest = proc.stderr.read()
+        assert proc.wait(30) == 0, rest
+    finally:
+        proc.kill()
+        proc.wait(30)
+    assert rest.splitlines() == ["spadscan dashboard: stopped"], rest
