@@ -451,13 +451,13 @@ def test_a_root_without_scans_is_served_saying_there_are_none_yet(tmp_path, caps
     (tmp_path / "notes").mkdir()
     assert main(["dashboard", "--root", str(tmp_path), "--port", "0"]) == 0
     lines = capsys.readouterr().err.splitlines()
-    assert len(lines) == 2 and " at http://127.0.0.1:" in lines[0], lines
+    assert len(lines) == 3 and " at http://127.0.0.1:" in lines[0] and lines[2] == "spadscan dashboard: stopped", lines
     assert lines[1] == (f"spadscan dashboard: no scans in {tmp_path} yet (a scan is a sub-folder holding scan.json); "
                         f"the page lists them as they appear"), lines
     complete_scan(tmp_path / "m1", 2)
     assert main(["dashboard", "--root", str(tmp_path), "--port", "0"]) == 0
     lines = capsys.readouterr().err.splitlines()
-    assert len(lines) == 1 and " at http://127.0.0.1:" in lines[0], lines
+    assert len(lines) == 2 and " at http://127.0.0.1:" in lines[0], lines
 
 
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
