@@ -22,7 +22,7 @@ from pathlib import Path
 from spadscan.protocol.atomic_files import write_atomic
 
 from .holder import holder_gone
-from .queue import QUEUE_DIRNAME
+from .queue import QUEUE_DIRNAME, file_age
 
 WORKERS_DIRNAME = "workers"
 """The folder under the queue that holds the workers' presence files."""
@@ -83,7 +83,7 @@ def present_workers(queue_dir: Path, now: float | None = None, *, tidy: bool = F
     try:
         paths = sorted(folder.glob("*.json"))
         if tidy:
-            _forget([p for p in folder.glob(".*.tmp") if _age(p, now) > FORGET_S])
+            _forget([p for p in folder.glob(".*.tmp") if (file_age(p, now) or 0.0) > FORGET_S])
     except OSError:
         return []
     found = []
@@ -100,7 +100,9 @@ def _present(path: Path, now: float) -> tuple[dict | None, bool]:
     """(one file's worker as `present_workers` lists it, or None; whether its worker is certainly gone: its process
     gone from this machine, or its file FORGET_S old)."""
     try:
-        seen_s = _age(path, now)
+        seen_s = file_age(path, now)
+        if seen_s is None:
+            return None, False  # moved on meanwhile (a worker's own tidy)
         data = json.loads(path.read_text())
         holder = data["holder"]
         renew_s = _positive(data.get("renew_s"), RENEW_S)
@@ -112,11 +114,6 @@ def _present(path: Path, now: float) -> tuple[dict | None, bool]:
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None, False  # moved on meanwhile, or damaged: a damaged file says nothing about a worker
     return (None if gone or seen_s > MISSED_RENEWALS * renew_s else row), gone
-
-
-def _age(path: Path, now: float) -> float:
-    """Seconds since `path` was last written: the reader's clock against the file system's, as a claim's age is."""
-    return max(0.0, now - path.stat().st_mtime)
 
 
 def _forget(paths) -> None:

@@ -512,10 +512,10 @@ class Queue:
             rec = next((r for r in recs if r.get("token") == token), {})
             holder = f"{rec.get('host', '?')}:{rec.get('pid', '?')}"
             claimed = _finite(rec.get("started_unix"))  # a damaged record's start says nothing
-            age = _age(path, now)
+            age = file_age(path, now)
             shown, stale = self._stale(path, job_id, token, age, now) or (state, None)
         elif state == "queued":
-            waiting = _age(path, now)
+            waiting = file_age(path, now)
         done = [r for r in recs if r.get("outcome") == "done"]
         return JobStatus(job_id, str(job.scan), str(job.preset), state, len(counted),
                          errors[-1] if errors and state != "done" else None, results[-1] if results else None,
@@ -653,7 +653,7 @@ def _finite(value) -> float | None:
     return float(value) if ok else None
 
 
-def _age(path: Path, now: float) -> float | None:
+def file_age(path: Path, now: float) -> float | None:
     """Seconds since `path` was last modified (0 at least), or None when it has moved on meanwhile."""
     try:
         return max(0.0, now - path.stat().st_mtime)

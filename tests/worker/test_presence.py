@@ -65,6 +65,16 @@ def test_a_dead_workers_file_does_not_count_and_is_tidied_away(tmp_path):
     assert not leftover.exists()
 
 
+def test_files_that_go_while_they_are_listed_leave_the_others_listed(tmp_path):
+    """Another worker's tidy or rename removes a file between the listing and its reading (a dangling link stands
+    for it): the workers whose files stay are listed all the same."""
+    path = write_presence(tmp_path, presence(Holder.current()))
+    (path.parent / ".gone.json.1-00000000.tmp").symlink_to(tmp_path / "removed")
+    (path.parent / "gone.json").symlink_to(tmp_path / "removed")
+    [row] = present_workers(tmp_path, tidy=True)
+    assert row["pid"] == os.getpid()
+
+
 def test_two_workers_with_one_host_name_and_pid_keep_a_file_each(tmp_path):
     """Two containers with one host name, both running the worker as pid 1: one's stop leaves the other listed."""
     me = Holder.current()
