@@ -115,6 +115,10 @@ CONVERGENCE_WARNINGS = ("the run stopped on its ",)
 budget or step count early, or with its data term still falling)."""
 
 
+UNCONVERGED = "the run did not converge: its mesh may still be changing"
+"""The line of a run that `says_unconverged`, on its page and in the demo's summary."""
+
+
 def says_unconverged(report: dict) -> bool:
     """Whether a run's result should say that it did not converge, nothing else having said so: "converged" is false,
     none of its warnings is about its convergence (a warning about its pieces or its metrics says nothing of it), and
@@ -135,7 +139,7 @@ def warnings(report: dict) -> list[str]:
     own = report.get("warnings")
     found = [str(w) for w in own if str(w).strip()] if isinstance(own, list) else []
     if says_unconverged(report):
-        found.append("the run did not converge: its mesh may still be changing")
+        found.append(UNCONVERGED)
     state = report.get("capture_state")
     if state not in (None, "complete"):
         found.append(str(report.get("capture_note") or f"the capture is {state}, not complete"))
