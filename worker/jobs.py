@@ -96,6 +96,7 @@ class Job:
     device: str = "auto"
     """'auto', 'cpu' or 'cuda'."""
     seed: int = 0
+    """Random seed of the reconstruction, 0 to MAX_SEED."""
     created_utc: str = ""
     live: bool = False
     """Reconstruct while the scan is recorded (`spadscan worker --live`): the job starts at the scan's first chunk,
@@ -116,6 +117,10 @@ class Job:
             if key in FIELD_TYPES and not _has_type(value, FIELD_TYPES[key]):
                 raise ConfigError(f"{where}: {key} = {json.dumps(value)[:60]} is not {FIELD_TYPES[key][1]}")
         return cls(**{k: v for k, v in data.items() if k in names})
+
+
+MAX_SEED = 2**63 - 1
+"""The largest seed a reconstruction takes: torch's generators take a signed 64-bit integer."""
 
 
 FIELD_TYPES = {"id": ("str", "a string"), "scan": ("str", "a string"), "preset": ("str", "a string"),

@@ -33,6 +33,7 @@ from .carving.views import summed_views
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
+from .jobs import MAX_SEED
 from .metrics import mesh_metrics
 from .outputs import capture_state_note, export_mesh, files_written_after, folder_files, replacing_result
 from .pieces import Pieces, mesh_pieces
@@ -75,8 +76,8 @@ def _check_run_args(budget_s, steps, seed) -> None:
         raise ReconstructionError(f"time budget {budget_s} s must be a positive number of seconds")
     if steps is not None and not (isinstance(steps, (int, np.integer)) and steps >= 1):
         raise ReconstructionError(f"steps {steps} must be an integer >= 1")
-    if not (isinstance(seed, (int, np.integer)) and seed >= 0):
-        raise ReconstructionError(f"seed {seed} must be an integer >= 0")
+    if not (isinstance(seed, (int, np.integer)) and 0 <= seed <= MAX_SEED):
+        raise ReconstructionError(f"seed {seed} must be an integer in [0, {MAX_SEED}]")
 
 
 def run_config(preset: str, overrides: dict | None = None) -> ReconConfig:

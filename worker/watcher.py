@@ -23,7 +23,7 @@ from typing import Callable
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, npy_is_whole, read_json
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
-from .jobs import Job, job_id_for, old_job_id_for
+from .jobs import MAX_SEED, Job, job_id_for, old_job_id_for
 from .queue import QUEUE_DIRNAME, Queue
 
 
@@ -55,8 +55,8 @@ class JobOptions:
             raise ConfigError(f"budget {self.budget_s} s must be > 0 seconds")
         if self.steps is not None and not (_is_int(self.steps) and self.steps >= 1):
             raise ConfigError(f"steps {self.steps} must be an integer >= 1")
-        if not (_is_int(self.seed) and self.seed >= 0):
-            raise ConfigError(f"seed {self.seed} must be an integer >= 0")
+        if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
+            raise ConfigError(f"seed {self.seed} must be an integer in [0, {MAX_SEED}]")
         check_device(self.device)
         if self.live and self.preset != LIVE_PRESET:
             raise ConfigError(f"live reconstruction runs the {LIVE_PRESET!r} preset, not {self.preset!r} (leave out "

@@ -235,6 +235,9 @@ def test_bad_arguments_are_one_line_errors(capture_and_gt, tmp_path, capsys):
     assert "missing.obj" in one_line_error(capsys)
     assert main(base + ["--steps", "0"]) == 1
     assert "steps" in one_line_error(capsys)
+    for preset in (base, ["reconstruct", str(cap), "--out", str(tmp_path / "o"), "--no-progress"]):
+        assert main(preset + ["--seed", "99999999999999999999", "--steps", "1"]) == 1  # past torch's generators
+        assert f"seed 99999999999999999999 must be an integer in [0, {2**63 - 1}]" in one_line_error(capsys)
     assert main(base + ["--set", "rays.no_such_field=1"]) == 1
     assert "no_such_field" in one_line_error(capsys)
     assert main(base + ["--set", "rays.samples_per_ray=-1"]) == 1

@@ -371,7 +371,11 @@ def test_bad_seed_and_device_are_refused_before_anything_is_queued(tmp_path, cap
     make_scan(tmp_path, "s")
     assert cli_main(["worker", "--root", str(tmp_path), "--once", "--seed", "-1"]) == 1
     err = capsys.readouterr().err
-    assert "seed -1 must be an integer >= 0" in err and len(err.strip().splitlines()) == 1
+    assert "seed -1 must be an integer in [0, 9223372036854775807]" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / ".queue").exists()
+    assert cli_main(["worker", "--root", str(tmp_path), "--once", "--seed", str(2**64)]) == 1  # torch's limit
+    err = capsys.readouterr().err
+    assert f"seed {2**64} must be an integer in [0, {2**63 - 1}]" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / ".queue").exists()
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert cli_main(["worker", "--root", str(tmp_path), "--once", "--device", "cuda"]) == 1
