@@ -299,6 +299,12 @@ def overrun_tolerance_s(budget_s: float) -> float:
     return max(OVERRUN_SHARE * budget_s, OVERRUN_FLOOR_S)
 
 
+def _seconds(value: float) -> str:
+    """Seconds to two figures under ten, whole above: a training share of 0.01 s (a set-up that used the budget)
+    reads as that, not as 0."""
+    return f"{value:.0f}" if value >= 9.5 else f"{value:.2g}"
+
+
 def overrun_warning(facts: RunFacts) -> str | None:
     """The line saying that the run took longer than its time budget and its tolerance (overrun_tolerance_s), or
     None. Training stops within its share of the budget, so what overran is the start (the interpreter, the imports,
@@ -314,7 +320,7 @@ def overrun_warning(facts: RunFacts) -> str | None:
         # Training overran its share, not the start or the end: the trainer takes at least one step, however long
         # (the paper preset's on a CPU: over a minute).
         per_step = facts.training_s / max(facts.steps, 1)
-        return (f"{took}: training took {facts.training_s:.0f} s of the {facts.training_budget_s:.0f} s the budget "
+        return (f"{took}: training took {facts.training_s:.0f} s of the {_seconds(facts.training_budget_s)} s the budget "
                 f"left it, {per_step:.0f} s a step over {facts.steps} step(s) on {facts.device}, and a run takes at "
                 f"least one; give it a time budget of many steps, or a faster device (--device cuda) or preset "
                 f"(fast)")

@@ -643,3 +643,16 @@ def test_a_result_left_aside_by_a_killed_run_counts_as_a_result_and_comes_back(c
     files, folders = _folder(out)
     assert folders == [] and files["notes.txt"] == before["notes.txt"]
     assert files["mesh.ply"] not in (before["mesh.ply"], "half of a new mesh")
+
+
+def test_a_set_up_that_used_the_whole_budget_says_so_as_training_starts(capture_and_gt, tmp_path, capsys):
+    cap, _ = capture_and_gt
+    assert main(["reconstruct", str(cap), "--out", str(tmp_path / "o"), "--budget-s", "0.001", "--no-gt",
+                 "--no-progress"]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    said = [i for i, line in enumerate(lines) if "warning: the set-up took" in line]
+    assert len(said) == 1, lines
+    assert "s of the 0.001 s time budget: training makes one step (the fast preset's may take minutes on the cpu)" \
+        in lines[said[0]]
+    meshing = next(i for i, line in enumerate(lines) if "extracting the mesh" in line)
+    assert said[0] < meshing, "said as training starts, not only at the end"
