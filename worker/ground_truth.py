@@ -191,17 +191,19 @@ def add_ground_truth_options(parser, what: str) -> None:
                        help="no metrics, even when the capture names a ground truth")
 
 
-def ground_truth_for_run(capture, gt, no_gt: bool, log) -> str | None:
-    """The ground truth a command scores the capture's reconstruction against: `gt` when given, none with `no_gt`,
-    else the one the capture names (`capture_ground_truth`), said through `log` (a line each) with how to skip it."""
+def ground_truth_for_run(capture, gt, no_gt: bool, log) -> tuple[str | None, str | None]:
+    """(the ground truth a command scores the capture's reconstruction against, why the one the capture names is not
+    used or None): `gt` when given, none with `no_gt`, else the one the capture names (`capture_ground_truth`), said
+    through `log` (a line each) with how to skip it. The reason goes into the report too (`ground_truth_note`), as a
+    worker's job records it: a line on the terminal scrolls away, and a page without metrics should say why."""
     if gt is not None or no_gt:
-        return gt
+        return gt, None
     spec, why = capture_ground_truth(capture)
     if spec is not None:
         log(f"ground truth: {spec}, named by the capture (--gt MESH for another, --no-gt for none)")
     elif why is not None:
         log(f"ground truth: {why}")
-    return spec
+    return spec, why
 
 
 __all__ = ["CUT_ABOVE_TABLE_M", "GroundTruth", "table_top_z", "cut_above", "object_on_table", "load_ground_truth",

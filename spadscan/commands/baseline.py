@@ -116,7 +116,7 @@ def run(args) -> int:
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)
 
-    gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
+    gt, gt_note = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     if args.overwrite:
         check_ground_truth_kept(gt, out)
     started = time.monotonic()
@@ -127,6 +127,8 @@ def run(args) -> int:
             resolution=args.resolution, margin_m=None if args.margin_mm is None else args.margin_mm * 1e-3,
             floor_z=None if args.no_floor else ("auto" if args.floor_z is None else args.floor_z),
             surface=args.surface, edge_deg=args.edge_deg, metrics_points=args.points, log=log)
+        if gt_note:
+            report["ground_truth_note"] = gt_note  # the page says why it has no metrics
         log("drawing the pictures and writing report.html")
         write_pictures_and_page(report, args.out, gt, before)
     line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")

@@ -59,6 +59,7 @@ import sys
 from pathlib import Path
 
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run
+from spadscan.worker.jobs import add_to_report
 from spadscan.worker.outputs import check_ground_truth_kept, check_out
 from spadscan.worker.publish_out import result_beside
 from spadscan.worker.recon.config import PRESET_NAMES, parse_override
@@ -114,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     def log(line: str) -> None:
         print(f"spadscan reconstruct: {line}", file=sys.stderr, flush=True)
 
-    gt = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
+    gt, gt_note = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     if args.overwrite:
         check_ground_truth_kept(gt, out)
     # SIGTERM (a time limit, a service stop) as Ctrl-C: the scratch folder is removed, --out left as it was.
@@ -123,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
                                      steps=args.steps, gt=gt, device=args.device, seed=args.seed,
                                      progress=not args.no_progress, overrides=overrides or None,
                                      threads=args.threads, log=log, started=started)
+        if gt_note:  # the page says why it has no metrics, as a worker's job's does
+            add_to_report(scratch, {"ground_truth_note": gt_note})
     steps = f"{report['steps']} step{'' if report['steps'] == 1 else 's'}"
     converged = "converged" if report.get("converged") else "not converged"
     line = (f"{report['preset']}: {steps} in {report['seconds']:.1f} s of training ({report['wall_seconds']:.1f} s "

@@ -531,7 +531,14 @@ def test_a_named_ground_truth_that_cannot_be_used_is_said_and_the_run_goes_on(ca
     named = _naming(cap, tmp_path / "named", {"ground_truth": str(gone)})
     assert _recon(named, tmp_path / "r") == 0
     assert f"ground truth: {gone}: no such ground-truth mesh; no metrics" in capsys.readouterr().err
-    assert "chamfer_mm" not in json.loads((tmp_path / "r" / "report.json").read_text())
+    report = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert "chamfer_mm" not in report
+    # The report says why it has no metrics, as a worker's job's does: the terminal's line scrolls away.
+    assert report["ground_truth_note"] == f"{gone}: no such ground-truth mesh; no metrics"
+    assert "the named ground truth was not used" in (tmp_path / "r" / "report.html").read_text()
+    assert main(["baseline", "space-carving", str(named), "--out", str(tmp_path / "s"), "--resolution", "16"]) == 0
+    assert json.loads((tmp_path / "s" / "report.json").read_text())["ground_truth_note"].endswith("no metrics")
+    assert "the named ground truth was not used" in (tmp_path / "s" / "report.html").read_text()
     # --calibrate needs a ground truth; the one the capture names serves, and a missing one is the same error.
     assert main(["baseline", "reprojection", str(named), "--out", str(tmp_path / "b"), "--calibrate"]) == 1
     assert "--calibrate needs a ground truth" in _error_lines(capsys)[0]
