@@ -319,8 +319,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
-                     scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note,
-                                              run.state_note if scene.state == "complete" else None) if n],
+                     scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note, run.state_note) if n],
                      coverage=coverage, pieces=pieces, signal=signal,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
@@ -342,7 +341,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                         "end_estimate_s": end_s, "timed": costs.probed, "notes": notes,
                         "stages": stages}
     for line in report["warnings"]:
-        if line != run.counts_note:  # said already, when the capture was loaded
+        if line not in (run.counts_note, run.state_note):  # said already, when the capture was loaded
             log(f"warning: {line}")
     ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
     written = files_written_after(out, before) | {"report.json", "report.html"}

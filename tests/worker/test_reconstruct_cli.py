@@ -21,6 +21,7 @@ from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker.outputs import check_out, export_mesh
 from spadscan.worker.recon.paper.model import PaperModel
 from spadscan.worker.report import folder_view
+from spadscan.worker.report.report_html import warnings as page_warnings
 from spadscan.worker.report.view3d import VIEW3D
 
 SMALL = ["rays.rays_per_view=32", "rays.importance_rays_per_view=8", "rays.samples_per_ray=24",
@@ -427,7 +428,7 @@ def test_an_unfinished_capture_is_reconstructed_with_a_warning(capture_and_gt, t
     (running / "scan.json").write_text(json.dumps(manifest))
     assert _recon(running, tmp_path / "o", "--gt", str(gt)) == 0
     err = capsys.readouterr().err
-    assert "the capture is running, not complete" in err
+    assert err.count("the capture is running, not complete") == 1, "said once, when the capture was loaded"
     # The stages after training say what they do (they can take minutes on a large mesh).
     for stage in ("extracting the mesh", "metrics against the ground truth", "pictures and report"):
         assert stage in err
@@ -436,6 +437,8 @@ def test_an_unfinished_capture_is_reconstructed_with_a_warning(capture_and_gt, t
     assert err.index("extracting the mesh") < err.index("pictures and report") < err.index("metrics against")
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["capture_state"] == "running" and "not complete" in report["capture_note"]
+    assert report["capture_note"] in report["warnings"]  # scripts read the warnings, not every field
+    assert page_warnings(report).count(report["capture_note"]) == 1  # once at the top of the page
     out = tmp_path / "b"
     assert main(["baseline", "space-carving", str(running), "--out", str(out), "--resolution", "16",
                  "--gt", "builtin:sphere", "--points", "5000"]) == 0

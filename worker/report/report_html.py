@@ -141,8 +141,9 @@ def warnings(report: dict) -> list[str]:
     if says_unconverged(report):
         found.append(UNCONVERGED)
     state = report.get("capture_state")
-    if state not in (None, "complete"):
-        found.append(str(report.get("capture_note") or f"the capture is {state}, not complete"))
+    note = str(report.get("capture_note") or f"the capture is {state}, not complete")
+    if state not in (None, "complete") and note not in found:  # reports of earlier versions left it out of "warnings"
+        found.append(note)
     if report.get("ground_truth_note"):
         found.append(f"the named ground truth was not used: {report['ground_truth_note']}")
     return found
