@@ -74,6 +74,10 @@ def main(argv: list[str] | None = None) -> int:
     if empty:
         print(f"spadscan: error: {empty} is empty (an unset shell variable?): give the folder", file=sys.stderr)
         return 1
+    empty = _empty_positional(parser, args)
+    if empty:
+        print(f"spadscan: error: {empty} is empty (an unset shell variable?)", file=sys.stderr)
+        return 1
     return run_command(module.run, args)
 
 
@@ -88,6 +92,22 @@ def _empty_folder_option(argv: list[str]) -> str | None:
         name, eq, value = token.partition("=")
         if name in FOLDER_OPTIONS and ((eq and not value) or (not eq and i + 1 < len(argv) and argv[i + 1] == "")):
             return name
+    return None
+
+
+def _empty_positional(parser: argparse.ArgumentParser, args: argparse.Namespace) -> str | None:
+    """The name of the first positional argument given empty (`"$CAPTURE"` with CAPTURE unset), or None: to the file
+    system an empty path is the current folder, and the error then named '.' instead of the argument."""
+    for action in parser._actions:  # argparse keeps no public list of a parser's arguments
+        if action.option_strings:
+            continue
+        value = getattr(args, action.dest, None)
+        if value == "":
+            return action.metavar or action.dest
+        if isinstance(action.choices, dict) and isinstance(action.choices.get(value), argparse.ArgumentParser):
+            found = _empty_positional(action.choices[value], args)  # a sub-command's own (calibrate hand-eye)
+            if found:
+                return found
     return None
 
 
