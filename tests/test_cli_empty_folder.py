@@ -1,6 +1,6 @@
 """A folder option or a positional argument given empty (`--out "$OUT"`, `"$CAPTURE"` with it unset) is refused in one
-line by every command, before it
-runs: as a path it would be the current folder, where baseline wrote its result among the user's files."""
+line by every command, before it runs: as a path it would be the current folder, where baseline wrote its result among
+the user's files."""
 
 from __future__ import annotations
 
