@@ -294,6 +294,10 @@ def cpu_share(facts: RunFacts) -> float | None:
     return facts.cpu_seconds / facts.wall_seconds
 
 
+INTERRUPTED = "the run's training was stopped by Ctrl-C"
+"""How the line of a run whose training the user ended early begins."""
+
+
 def overrun_tolerance_s(budget_s: float) -> float:
     """Seconds a run may take beyond its time budget before it says so (`--budget-s`: within 10 % or 10 s)."""
     return max(OVERRUN_SHARE * budget_s, OVERRUN_FLOOR_S)
@@ -416,6 +420,9 @@ def warnings(facts: RunFacts) -> list[str]:
             out.append(f"the run stopped on its {limit} well before convergence: its data term was still falling "
                        f"({100 * drop:.1f} % over the last fifth of its {facts.steps} steps; a larger {flag} gives "
                        f"a better mesh)")
+    if facts.stopped_by == "interrupted" and not converged(facts):
+        out.append(f"{INTERRUPTED} after {facts.steps} step(s), before it converged: the mesh is the fit as it "
+                   f"stood (a run left to its budget gives a better one)")
     share = cpu_share(facts)
     # Only a run that a time budget stopped lost steps to a busy machine: one that converged, or made the steps it
     # was asked for, has the result it would have had alone (later).
@@ -448,7 +455,7 @@ def warnings(facts: RunFacts) -> list[str]:
     return out
 
 
-__all__ = ["FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error", "converged",
+__all__ = ["INTERRUPTED", "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error", "converged",
            "cpu_share", "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning",
            "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",

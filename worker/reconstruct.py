@@ -163,7 +163,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                         log: Callable[[str], None] | None = None, started: float | None = None,
                         clock: Callable[[], float] = time.perf_counter,
                         cpu_clock: Callable[[], float] = time.process_time, make: Callable | None = None,
-                        after_training: Callable | None = None) -> dict:
+                        after_training: Callable | None = None, stop: Callable[[], bool] | None = None) -> dict:
     """Reconstruct `capture` into folder `out` with preset `preset`; returns the report dict (also report.json).
 
     `budget_s` bounds the whole run, from `started` (a `clock()` reading; default: now) to the report: set-up,
@@ -175,20 +175,22 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     chooses between torch's threads and one as it goes (threads.ThreadGovernor). `log`: receives a line per stage
     after training (mesh, metrics, pictures) and warnings. The report says whether the run converged and why its
     result may be doubtful (`converged`, `warnings`: end_of_run.py). `clock` (wall seconds) and `cpu_clock` (this
-    process's CPU seconds) time the run; tests inject their own. A previous result in `out` (--overwrite) stays
-    whole until this run has finished, and comes back if it does not (`outputs.replacing_result`)."""
+    process's CPU seconds) time the run; tests inject their own. `stop()` true ends training at its next step, the
+    mesh and report made as after a budget (the user's first Ctrl-C: `trainer.train`). A previous result in `out`
+    (--overwrite) stays whole until this run has finished, and comes back if it does not
+    (`outputs.replacing_result`)."""
     with replacing_result(out, log):
         return _reconstruct_into(capture, out, preset=preset, budget_s=budget_s, steps=steps, gt=gt, device=device,
                                  seed=seed, progress=progress, overrides=overrides, threads=threads, log=log,
                                  started=started, clock=clock, cpu_clock=cpu_clock, make=make,
-                                 after_training=after_training)
+                                 after_training=after_training, stop=stop)
 
 
 def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float | None, steps: int | None,
                       gt: Path | None, device: str, seed: int, progress: bool, overrides: dict | None,
                       threads: int | None, log: Callable[[str], None] | None, started: float | None,
                       clock: Callable[[], float], cpu_clock: Callable[[], float], make: Callable | None,
-                      after_training: Callable | None) -> dict:
+                      after_training: Callable | None, stop: Callable[[], bool] | None) -> dict:
     """`reconstruct_capture`'s run, writing into `out`."""
     log = log or (lambda line: None)
     run_clock = RunClock(None, clock() if started is None else started, clock)
@@ -236,7 +238,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                    early_stop=config.early_stop, on_step=None if governor is None else governor.step_done,
                    clock=clock, cpu_clock=cpu_clock,
                    eval_estimate_s=0.0 if checkpoint_cost is None else costs.checkpoint_s(*checkpoint_cost),
-                   end_evaluation=None if budget_s is None else lambda seconds: seconds <= run_clock.left() - min_end)
+                   end_evaluation=None if budget_s is None else lambda seconds: seconds <= run_clock.left() - min_end,
+                   stop=stop)
     stages = {"set_up_s": run_clock.elapsed() - result.seconds - result.eval_seconds}
     chosen = {}
     if after_training is not None:

@@ -3,8 +3,7 @@
 Writes into --out (a new folder, or one without a result unless --overwrite; the run writes into a hidden .tmp-
 folder beside it, or inside it where its result could not be moved in from beside it (--out a mount point, a link to
 another disk, in a folder you cannot write), and moves its result in once finished: a result that appeared in --out
-meanwhile, a worker's, is kept unless --overwrite; SIGTERM stops a run as Ctrl-C does): report.html (the page to open
-first), view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply (per-vertex normals from the
+meanwhile, a worker's, is kept unless --overwrite): report.html (the page to open first), view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply (per-vertex normals from the
 SDF gradient), report.json (preset, device, steps, training seconds, the model terms used, final loss, the resolved
 config, and with a ground truth: chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg plus a trace
 of error against training time), preview.png, error_vs_time.png, fit.png (measured against rendered histograms),
@@ -17,6 +16,11 @@ mesh is coarser and the metrics use fewer points (report.json's "budget" and "wa
 training steps; with neither, the preset's default (fast: a 120 s budget; paper: 300,000 steps, hours on a GPU and
 days on a CPU). The `fast` preset also stops early once its data term has stopped improving (report.json:
 stopped_by 'converged'); turn that off with --set early_stop=false.
+
+Stopping a run: a first Ctrl-C while it trains ends the training at its next step and keeps the run: the mesh, the
+metrics and the report follow as after a budget (stopped_by 'interrupted'; its warnings say the fit was stopped
+before it converged). A second Ctrl-C, one before training began, or SIGTERM (a time limit, a service stop) aborts
+the run, keeping nothing: the hidden folder is removed and --out is left as it was.
 
 An honest end: report.json's "converged" says whether the fit had settled, and "warnings" (also printed, and shown
 at the top of report.html) says why a result may be doubtful: a run that stopped on its budget or step count while
@@ -99,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     import os
 
     from spadscan.protocol.folders import check_folder_option
-    from spadscan.signals import terminate_as_interrupt
+    from spadscan.signals import first_interrupt_stops_training, terminate_as_interrupt
     from spadscan.worker.budget import process_started
     from spadscan.worker.threads import threads_fixed, wait_env
 
@@ -118,12 +122,14 @@ def run(args: argparse.Namespace) -> int:
     gt, gt_note = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     if args.overwrite:
         check_ground_truth_kept(gt, out)
-    # SIGTERM (a time limit, a service stop) as Ctrl-C: the scratch folder is removed, --out left as it was.
-    with terminate_as_interrupt(), result_beside(out, args.overwrite, log) as scratch:  # published whole at the end
+    # SIGTERM (a time limit, a service stop) aborts: the scratch folder is removed, --out left as it was. A first
+    # Ctrl-C while training ends the training and keeps the run; a second aborts as SIGTERM does.
+    with (terminate_as_interrupt(), first_interrupt_stops_training(log) as stop,
+          result_beside(out, args.overwrite, log) as scratch):  # published whole at the end
         report = reconstruct_capture(Path(args.capture), scratch, preset=args.preset, budget_s=args.budget_s,
                                      steps=args.steps, gt=gt, device=args.device, seed=args.seed,
                                      progress=not args.no_progress, overrides=overrides or None,
-                                     threads=args.threads, log=log, started=started)
+                                     threads=args.threads, log=log, started=started, stop=stop)
         if gt_note:  # the page says why it has no metrics, as a worker's job's does
             add_to_report(scratch, {"ground_truth_note": gt_note})
     steps = f"{report['steps']} step{'' if report['steps'] == 1 else 's'}"

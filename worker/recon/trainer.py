@@ -47,7 +47,8 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
           desc: str = "reconstruct", score_note: str = "", early_stop: bool = False,
           on_step: Callable[[float], None] | None = None, clock: Callable[[], float] = time.perf_counter,
           cpu_clock: Callable[[], float] = time.process_time, max_eval_share: float = 0.25,
-          eval_estimate_s: float = 0.0, end_evaluation: Callable[[float], bool] | None = None) -> TrainResult:
+          eval_estimate_s: float = 0.0, end_evaluation: Callable[[float], bool] | None = None,
+          stop: Callable[[], bool] | None = None) -> TrainResult:
     """Run model.step() until plan.steps steps or plan.budget_s seconds, whichever comes first; with `early_stop`,
     also as soon as a step reports `converged: True` (stopped_by 'converged'). The budget counts training and
     checkpoint evaluation together, or training alone when `scoring_in_budget` is False (then no evaluation is
@@ -65,8 +66,10 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     mesh): under a short budget the scoring's share can be spent early, and a Chamfer many steps old must say so.
     The lab dashboard and the demo read these fields from a job's log: keep them `key=value` without commas.
 
-    `on_step(seconds)` sees each step's wall time (the thread governor). `clock` (wall seconds) and `cpu_clock`
-    (this process's CPU seconds) time the steps; tests inject their own."""
+    `on_step(seconds)` sees each step's wall time (the thread governor). `stop()`, asked before each step, true: the
+    user asked training to end now (a first Ctrl-C of `spadscan reconstruct`); the run ends as a budget ends it, its
+    mesh and report made (stopped_by 'interrupted'). `clock` (wall seconds) and `cpu_clock` (this process's CPU
+    seconds) time the steps; tests inject their own."""
     if not plan.steps and not plan.budget_s:
         raise ReconstructionError("a run needs a step count or a time budget (give --steps or --budget-s)")
     if every_s is not None and not (math.isfinite(every_s) and every_s >= 0):
@@ -122,6 +125,9 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
                 break
             if by_time and result.steps and spent() >= plan.budget_s:  # every run makes at least one step
                 result.stopped_by = "budget"
+                break
+            if stop is not None and stop() and result.steps:
+                result.stopped_by = "interrupted"
                 break
             t0, c0 = clock(), cpu_clock()
             last = model.step()

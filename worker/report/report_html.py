@@ -110,9 +110,9 @@ def is_baseline(report: dict) -> bool:
     return "method" in report and "preset" not in report
 
 
-CONVERGENCE_WARNINGS = ("the run stopped on its ",)
+CONVERGENCE_WARNINGS = ("the run stopped on its ", "the run's training was stopped by Ctrl-C")
 """How the end-of-run checks' lines that say why a run did not converge begin (`end_of_run.warnings`: stopped on its
-budget or step count early, or with its data term still falling)."""
+budget or step count early, or with its data term still falling; stopped by the user, `end_of_run.INTERRUPTED`)."""
 
 
 UNCONVERGED = "the run did not converge: its mesh may still be changing"

@@ -1,0 +1,162 @@
+"""A first Ctrl-C while `spadscan reconstruct` trains ends the training and keeps the run (its mesh and report made,
+its warnings saying it was stopped); a second one, or one before training began, aborts it keeping nothing."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+
+import pytest
+import trimesh
+
+from spadscan.protocol.schedules import fibonacci_hemisphere
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.simulator import SimSettings, simulate_capture
+from spadscan.worker.end_of_run import INTERRUPTED, RunFacts, warnings
+from spadscan.worker.recon.model_api import RunPlan
+from spadscan.worker.recon.trainer import train
+from spadscan.worker.report.report_html import says_unconverged
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+class Falling:
+    """A stand-in model whose loss keeps falling: it never converges."""
+
+    def __init__(self):
+        self.steps = 0
+
+    def step(self) -> dict:
+        self.steps += 1
+        return {"loss": 1.0 / self.steps}
+
+
+def asked_after(calls: int):
+    """A stop that says yes from its `calls`-th question on."""
+    count = [0]
+
+    def stop() -> bool:
+        count[0] += 1
+        return count[0] >= calls
+    return stop
+
+
+def test_a_stop_asked_while_training_ends_it_at_the_next_step():
+    result = train(Falling(), RunPlan(steps=1000, budget_s=None, seed=0), progress=False, stop=asked_after(4))
+    assert (result.stopped_by, result.steps) == ("interrupted", 3)
+    first = train(Falling(), RunPlan(steps=1000, budget_s=None, seed=0), progress=False, stop=lambda: True)
+    assert (first.stopped_by, first.steps) == ("interrupted", 1), "every run makes at least one step"
+
+
+def test_a_run_stopped_before_it_converged_says_so_in_its_own_words():
+    facts = RunFacts("interrupted", 40, False, [1.0 / (i + 1) for i in range(40)])
+    (line,) = warnings(facts)
+    assert line.startswith(f"{INTERRUPTED} after 40 step(s), before it converged")
+    report = {"converged": False, "warnings": [line]}
+    assert not says_unconverged(report), "the page does not add the generic line beside it"
+    assert warnings(RunFacts("interrupted", 40, True, [1.0] * 40)) == [], "a fit that had settled is no doubt"
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ctrl_c")
+    mesh = trimesh.creation.box(extents=(0.07, 0.05, 0.09))
+    mesh.apply_translation([0.0, 0.0, 0.045])
+    poses = fibonacci_hemisphere(6, 0.3, target=(0, 0, 0.05), min_elevation_deg=15)
+    return simulate_capture(mesh, sensor_preset("lcspc-sim"), poses, root / "cap",
+                            settings=SimSettings(rays_per_zone=512), progress=False)
+
+
+def test_a_run_whose_training_is_stopped_keeps_its_mesh_and_report(capture, tmp_path):
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    report = reconstruct_capture(capture, tmp_path / "o", steps=100_000, progress=False, stop=asked_after(30))
+    assert (report["stopped_by"], report["steps"]) == ("interrupted", 29)
+    assert any(w.startswith(INTERRUPTED) for w in report["warnings"])
+    assert json.loads((tmp_path / "o" / "report.json").read_text())["stopped_by"] == "interrupted"
+    assert (tmp_path / "o" / "mesh.ply").stat().st_size > 0 and (tmp_path / "o" / "report.html").exists()
+
+
+STAND_IN = """
+import signal, sys, time
+from spadscan.cli import main
+from spadscan.worker import reconstruct
+
+THEN_WAIT = "--then-wait" in sys.argv
+LOADING = "--loading" in sys.argv
+
+def stand_in(capture, out_dir, stop=None, **kwargs):
+    out_dir.mkdir(parents=True, exist_ok=True)
+    deadline = time.monotonic() + 120  # a bound, not a wait: the test stops it long before
+    if LOADING:
+        print("loading", flush=True)
+        while time.monotonic() < deadline:  # the capture loads: no training has asked the stop yet
+            time.sleep(0.01)
+    stop()
+    print("training", flush=True)
+    while not stop() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    print("ended training", flush=True)
+    (out_dir / "mesh.ply").write_text("the stopped run's mesh")
+    (out_dir / "report.json").write_text("{}")
+    while THEN_WAIT and time.monotonic() < deadline:  # the mesh and report take their time: a second Ctrl-C comes
+        time.sleep(0.01)
+    return {"preset": "fast", "steps": 7, "seconds": 1.0, "wall_seconds": 1.5, "device": "cpu", "converged": False,
+            "final_loss": 1.0, "files": ["mesh.ply", "report.json"]}
+
+reconstruct.reconstruct_capture = stand_in
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal's Ctrl-C finds it
+sys.exit(main([arg for arg in sys.argv[1:] if arg not in ("--then-wait", "--loading")]))
+"""
+
+
+def _started(tmp_path, *extra):
+    (tmp_path / "s").mkdir()
+    return subprocess.Popen([sys.executable, "-c", STAND_IN, "reconstruct", str(tmp_path / "s"), "--out",
+                             str(tmp_path / "out"), "--no-gt", "--no-progress", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_a_first_ctrl_c_while_training_publishes_the_run(tmp_path):
+    proc = _started(tmp_path)
+    try:
+        assert proc.stdout.readline() == "training\n"
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 0, err
+    assert "stopping: training ends at its next step" in err and "Ctrl-C again aborts, keeping nothing" in err
+    assert (tmp_path / "out" / "mesh.ply").read_text() == "the stopped run's mesh"
+
+
+def test_a_second_ctrl_c_aborts_keeping_nothing(tmp_path):
+    proc = _started(tmp_path, "--then-wait")
+    try:
+        assert proc.stdout.readline() == "training\n"
+        proc.send_signal(signal.SIGINT)
+        assert proc.stdout.readline() == "ended training\n"
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "spadscan: interrupted", err
+    assert not (tmp_path / "out").exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["s"], "no hidden folder left"
+
+
+def test_a_ctrl_c_before_training_began_aborts_at_once(tmp_path):
+    proc = _started(tmp_path, "--loading")
+    try:
+        assert proc.stdout.readline() == "loading\n"
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 130 and "stopping:" not in err, err
+    assert [p.name for p in tmp_path.iterdir()] == ["s"], "nothing kept, no hidden folder left"
