@@ -46,6 +46,8 @@ class DeviceSession:
                 await getattr(device, step)()
         except TimeoutError:
             raise DeviceError(f"{device.name}: {step} did not finish within {timeout:g} s") from None
+        if step == "connect":  # a controller or bridge that answers late held the start-up: say when each came up
+            log.info("%s connected", device.name)
 
     async def _all(self, step: str) -> list[str]:
         results = await asyncio.gather(*(self._step(d, step) for d in self.devices), return_exceptions=True)

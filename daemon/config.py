@@ -187,6 +187,7 @@ def config_from_dict(data: dict, path: Path) -> DaemonConfig:
         values["socket"] = Path(default_socket_path())
     cfg = DaemonConfig(**values, **sections, source=path)
     _check_arm(cfg.arm, f"{path}: [arm]")
+    _check_arm_chosen(cfg, data.get("arm"), f"{path}:")
     if cfg.auto_resume and not cfg.arm.device.confirms_unattended_resume():
         raise ConfigError(f"{path}: auto_resume = true would let the daemon move the real {cfg.arm.backend!r} arm "
                           f"by itself after a restart, with nobody at the rig: confirm it with [arm] allow_auto_resume "
@@ -194,6 +195,20 @@ def config_from_dict(data: dict, path: Path) -> DaemonConfig:
     check_scan(cfg.scan, f"{path}: [scan]")
     _check_paths(cfg, str(path))
     return cfg
+
+
+def _check_arm_chosen(cfg: DaemonConfig, arm_table: dict | None, where: str) -> None:
+    """Refuse a real sensor on an arm nobody chose: without `backend` in [arm] the arm is the simulated default, and
+    the captures would pair real histograms with made-up poses. A bench test without an arm says so, writing
+    backend = "sim" out."""
+    default_sensor = SensorConfig.__dataclass_fields__["backend"].default
+    if cfg.sensor.backend == default_sensor or "backend" in (arm_table or {}):
+        return
+    missing = "no [arm] table" if arm_table is None else "[arm] names no backend"
+    raise ConfigError(f"{where} {missing}, so the simulated arm ({cfg.arm.backend!r}, the default) would carry the "
+                      f"real {cfg.sensor.backend!r} sensor and its captures would pair real histograms with made-up "
+                      f"poses: set [arm] backend = \"ur\" (with its keys), or write [arm] backend = \"sim\" for a "
+                      f"bench test without an arm")
 
 
 def _check_top_names(top: dict, where: str) -> None:
@@ -239,8 +254,20 @@ def read_section(cls, table: dict, where: str, base: Path | None = None):
     for name in own:
         if name not in key_names(backend):
             raise ConfigError(_not_for_backend(name, obj.backend, registry, key_names(cls)[1:], where))
-    device = backend(**read_values(backend, own, where, base)).checked(obj, where, base)
+    settings = backend(**read_values(backend, own, where, base))
+    try:
+        device = settings.checked(obj, where, base)
+    except ConfigError as exc:
+        if "backend" in table:
+            raise
+        raise ConfigError(f"{exc} ({_default_taken(obj.backend, registry)})") from None
     return replace(obj, device=device)
+
+
+def _default_taken(default: str, registry: dict) -> str:
+    """Why a backend the user never named is in an error: the table names none, so the default was taken."""
+    others = " or ".join(f'"{name}"' for name in registry if name != default)
+    return f"no backend is named, so the default {default!r} was taken; set backend = {others} for another"
 
 
 def _not_for_backend(name: str, chosen: str, registry: dict, common: list[str], where: str) -> str:
@@ -349,8 +376,22 @@ def _check_paths(cfg: DaemonConfig, where: str) -> None:
     probe = root if root.exists() else root.parent
     if root.exists() and not root.is_dir():
         raise ConfigError(f"{where}: captures {root} exists and is not a folder")
-    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
-        raise ConfigError(f"{where}: captures {root}: folder {probe} is missing or not writable")
+    problem = _folder_problem(probe)
+    if problem is not None:
+        raise ConfigError(f"{where}: captures {root}: folder {probe} {problem}")
+
+
+def _folder_problem(folder: Path) -> str | None:
+    """Why nothing can be written in `folder`, in words that follow its name; None when this user may write there."""
+    if not folder.is_dir():
+        return "is missing"
+    if os.access(folder, os.W_OK | os.X_OK):
+        return None
+    try:
+        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    return "is on a read-only file system" if read_only else "is not writable by this user"
 
 
 def check_captures_creatable(root: Path) -> None:

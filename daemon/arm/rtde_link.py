@@ -91,8 +91,9 @@ class RTDELink:
         if "error" not in reply:
             return reply.get("result")
         if reply["error"] == "RuntimeError":
-            self.end(f"{what} failed: {reply['message']}")
-            raise LinkLost(f"{self.name}: {what} failed: {reply['message']}")
+            message = plain_rtde_error(reply["message"])
+            self.end(f"{what} failed: {message}")
+            raise LinkLost(f"{self.name}: {what} failed: {message}")
         raise DeviceError(f"{self.name}: {what} failed in the ur_rtde process: {reply['error']}: {reply['message']}")
 
     def post(self, what: str, timeout_s: float, op: str, *args) -> None:
@@ -221,6 +222,20 @@ class RTDELink:
         for request in pending.values():
             if request.future is not None and not request.future.done():
                 request.future.set_exception(LinkLost(f"{self.name}: {self._ended}; {request.what} got no answer"))
+
+
+REGISTERS_IN_USE = "One of the RTDE input registers are already in use!"
+"""How ur_rtde (1.5, 1.6) starts its refusal when the controller says IN_USE for the registers of its input recipe."""
+
+
+def plain_rtde_error(message: str) -> str:
+    """ur_rtde's error text, with the likely cause first where its wording sends the operator astray: input
+    registers in use are far more often another RTDE client on the same arm (ur_rtde names only fieldbus adapters)."""
+    if REGISTERS_IN_USE.lower() in message.lower():
+        return ("the arm's RTDE input registers are already in use, most likely by another RTDE client: another "
+                "spadscan daemon on this arm, or a program on another computer (stop it, then start again); else by "
+                "a fieldbus adapter configured on the robot (EtherNet/IP, PROFINET or MODBUS: disable it)")
+    return message
 
 
 @dataclasses.dataclass

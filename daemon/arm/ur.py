@@ -47,6 +47,7 @@ constructors hold the GIL while they connect, its destructors for ~0.5 s each).
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -59,6 +60,8 @@ from spadscan.daemon.arm.stops import (EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUAR
                                        clear_advice)
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError
+
+log = logging.getLogger("spadscan.daemon")
 
 MAX_TOOL_SPEED = 3.0
 """m/s: ur_rtde rejects faster moveL speeds."""
@@ -192,10 +195,12 @@ class URArm(Arm):
         """Drop the interfaces and build new ones, in a fresh ur_rtde process."""
         await self._close_link()
         self._link = RTDELink(self.name)
+        wait_s = self.timeout_s + 15.0
+        # A controller that does not answer holds the start-up for wait_s: say so before it starts.
+        log.info("connecting to %s (up to %g s)", self.name, wait_s)
         try:
             await self._link.start()
-            await self._call(f"connection to {self.host}", "open", self.host, self.frequency,
-                             timeout_s=self.timeout_s + 15.0)
+            await self._call(f"connection to {self.host}", "open", self.host, self.frequency, timeout_s=wait_s)
         except BaseException as exc:
             self._link.end(f"connecting failed: {exc}")  # no client process is left behind a failed connect
             await self._close_link()

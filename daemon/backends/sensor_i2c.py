@@ -10,6 +10,8 @@ from typing import ClassVar
 from spadscan.daemon.config_keys import key
 from spadscan.protocol.errors import ConfigError, DeviceError
 
+from spadscan.daemon.sensor.device_node import I2C_GROUP, node_problem
+
 from .base import SensorBackend
 from .tmf8820_preset import check_tmf8820_preset
 
@@ -32,6 +34,9 @@ class I2CSensorSettings(SensorBackend):
             if getattr(self, name) is None:
                 raise ConfigError(f"{where} {name} is required for backend 'i2c'")
         check_tmf8820_preset(section, where)
+        if self.firmware.is_dir():
+            raise ConfigError(f"{where} firmware {self.firmware} is a folder, not a file (point it at the ams "
+                              f"application image inside it, e.g. its .hex file)")
         if not self.firmware.is_file():
             raise ConfigError(f"{where} firmware {self.firmware}: no such file (point it at your copy of the ams "
                               f"application image)")
@@ -44,8 +49,16 @@ class I2CSensorSettings(SensorBackend):
             load_firmware(self.firmware)
         except DeviceError as exc:
             raise ConfigError(f"{where} firmware: {exc}") from None
-        if not os.path.exists(f"/dev/i2c-{self.bus}"):
-            raise ConfigError(f"{where} bus {self.bus}: /dev/i2c-{self.bus}: no such device (is I2C enabled?)")
+        if not os.path.exists(self.node):
+            raise ConfigError(f"{where} bus {self.bus}: {self.node}: no such device (is I2C enabled?)")
+        problem = node_problem(self.node, I2C_GROUP, "i2c-dev")
+        if problem is not None:
+            raise ConfigError(f"{where} bus {self.bus}: {self.node}: {problem}")
+
+    @property
+    def node(self) -> str:
+        """The bus's device node."""
+        return f"/dev/i2c-{self.bus}"
 
     def build(self, sensor, model, arm, hand_eye, where):
         from spadscan.daemon.sensor import I2CSensor

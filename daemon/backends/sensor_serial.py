@@ -9,6 +9,8 @@ from typing import ClassVar
 from spadscan.daemon.config_keys import key
 from spadscan.protocol.errors import ConfigError
 
+from spadscan.daemon.sensor.device_node import SERIAL_GROUP, node_problem
+
 from .base import SensorBackend
 from .tmf8820_preset import check_tmf8820_preset
 
@@ -38,6 +40,9 @@ class SerialSensorSettings(SensorBackend):
         if not os.path.exists(self.port):
             raise ConfigError(f"{where} port {self.port}: no such device (is the bridge plugged in? "
                               f"/dev/serial/by-id/ lists the connected ones)")
+        problem = node_problem(self.port, SERIAL_GROUP, "tty")
+        if problem is not None:
+            raise ConfigError(f"{where} port {self.port}: {problem}")
 
     def build(self, sensor, model, arm, hand_eye, where):
         from spadscan.daemon.sensor import SerialSensor

@@ -45,6 +45,9 @@ def load_firmware(path: str | Path, load_address: int = 0) -> FirmwareImage:
     except FileNotFoundError:
         raise DeviceError(f"TMF8820 firmware image {path} does not exist (point `firmware` at your copy of the "
                           "ams application image)") from None
+    except IsADirectoryError:
+        raise DeviceError(f"TMF8820 firmware image {path} is a folder, not a file (point `firmware` at the image "
+                          "inside it)") from None
     except OSError as exc:
         raise DeviceError(f"TMF8820 firmware image {path} cannot be read: {exc.strerror}") from None
     if not raw:

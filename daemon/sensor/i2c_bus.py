@@ -52,6 +52,7 @@ from typing import Callable
 from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
 
+from .device_node import I2C_GROUP, with_access_fix
 from .firmware import FirmwareImage, download_frames, load_firmware
 from .i2c_records import (HIST_RECORD, RESULT_RECORD, histogram_refusal, parse_histogram_record, parse_result_record,
                           result_refusal, size_field_disagreement)
@@ -126,7 +127,8 @@ class I2CTransport(Transport):
         try:
             self._bus = self._factory(self.bus_id)
         except (OSError, ValueError) as exc:
-            raise LinkDown(f"cannot open i2c bus {self.bus_id}: {exc}") from None
+            node = self.bus_id if isinstance(self.bus_id, str) else f"/dev/i2c-{self.bus_id}"  # smbus2 takes both
+            raise LinkDown(with_access_fix(f"cannot open i2c bus {self.bus_id}: {exc}", exc, node, I2C_GROUP)) from None
 
     def start(self) -> None:
         self._counts["boots"] += 1

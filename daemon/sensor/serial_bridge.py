@@ -32,6 +32,7 @@ import serial
 from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
 
+from .device_node import SERIAL_GROUP, with_access_fix
 from .i2c_records import signed_byte
 from .tmf8820 import TMF8820
 from .transport import (N_RESULTS, N_SUBPACKETS, RANGE_NAMES, RANGE_SHORT, SUBPACKET_BYTES, HistogramPacket, LinkDown,
@@ -178,7 +179,8 @@ class SerialBridgeTransport(Transport):
             ser = serial.Serial(self.port, self.baud, timeout=0.05)
             ser.reset_input_buffer()  # bytes that waited in the OS buffer would get false arrival times
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise LinkDown(f"cannot open port at {self.baud} baud: {exc}") from None
+            raise LinkDown(with_access_fix(f"cannot open port at {self.baud} baud: {exc}", exc, self.port,
+                                           SERIAL_GROUP)) from None
         self._ser = ser
         self._buf.clear()
         self._pending.clear()

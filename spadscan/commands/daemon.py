@@ -27,6 +27,18 @@ def add_arguments(parser) -> None:
                         help="how much the daemon logs to stderr (default: info)")
 
 
+def utc_formatter():
+    """The log's line format: ISO 8601 UTC times ending in Z (2026-12-05T09:02:29.212Z), the clock of scan.json, the
+    dashboard and `worker --status`, so that a log line and a status time compare without a zone offset."""
+    import logging
+    import time
+
+    formatter = logging.Formatter("%(asctime)s.%(msecs)03dZ spadscan daemon: %(levelname)s %(message)s",
+                                  datefmt="%Y-%m-%dT%H:%M:%S")
+    formatter.converter = time.gmtime
+    return formatter
+
+
 def run(args) -> int:
     import asyncio
     import logging
@@ -34,8 +46,9 @@ def run(args) -> int:
     from spadscan.daemon.app import check_config, check_startup, serve
     from spadscan.daemon.config import load_config
 
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
-                        format="%(asctime)s spadscan daemon: %(levelname)s %(message)s")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(utc_formatter())
+    logging.basicConfig(level=args.log_level.upper(), handlers=[handler])
     cfg = load_config(args.config)
     if args.check:
         plan, _, _ = check_config(cfg)
