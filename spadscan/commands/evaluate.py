@@ -9,7 +9,12 @@ Either mesh may be `builtin:NAME`, a built-in scene.
 A ground truth that includes the table the object stands on (a slab: one upward-facing level holding over a quarter
 of its area, like LCSPCData's pyramid2.stl) is scored on the object: both meshes are cut 5 mm above the table top,
 as the worker's reports and the benchmark do (--keep-table scores everything). --box crops both meshes to an
-axis-aligned box instead.
+axis-aligned box instead (what of the table lies inside the box is scored with the object); the table and the JSON
+(`box_m`) name the box.
+
+A note (the table's `note` line, `mismatch_note` in the JSON) says when the two meshes plainly are not the same object
+in the same units and frame: their bounding boxes do not overlap, or differ over 5x in size (a mesh in cm read as
+metres is 100x too large). The score is printed all the same.
 
 Examples:
   spadscan eval recon.obj --gt bunny.obj
@@ -35,19 +40,74 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--units", default="auto", choices=("auto", "m", "mm"),
                         help="units of both mesh files (default: auto, millimetres detected by size)")
     parser.add_argument("--box", type=float, nargs=6, default=None, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
-                        help="crop both meshes to this box (metres) before comparing (instead of the cut above a "
-                             "table)")
+                        help="crop both meshes to this box (metres) before comparing, instead of the cut above a "
+                             "table: what of a table lies inside the box is scored (so not with --keep-table)")
     parser.add_argument("--keep-table", action="store_true",
-                        help="score a ground truth's table too (default: the object above it)")
+                        help="score a ground truth's table too (default: the object above it; not with --box)")
 
 
-def format_table(metrics, mesh: str, gt: str, scored: str | None = None) -> str:
-    """The metrics as a small aligned table (mm and degrees); `scored`: what part of the meshes was compared."""
+SIZE_RATIO = 5.0
+"""Meshes whose bounding-box diagonals differ by more than this factor get a note. A unit mistake differs 10x (cm
+taken for mm) or more (100x: cm read as metres); 188 reconstructions scored against their own scene's ground truth,
+failed ones with stray blobs included, stayed within 3.5x."""
+WHO = {"mesh": "the reconstruction", "gt": "the ground truth"}
+
+
+def units_line(units: dict, option: str) -> str | None:
+    """What the table says of the units when a mesh was read as millimetres (None: both in metres, the default);
+    `units`: {"mesh": "m"|"mm", "gt": ...}, `option`: --units."""
+    from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
+
+    read_mm = [what for what, unit in units.items() if unit == "mm"]
+    if not read_mm:
+        return None
+    which = "both" if len(read_mm) == 2 else WHO[read_mm[0]]
+    why = "--units mm" if option == "mm" else f"over {MM_EXTENT_THRESHOLD_M:g} m across as metres"
+    return f"{which} read as millimetres ({why})"
+
+
+def box_line(box) -> str:
+    """The table's `scored` line for --box (six numbers, metres)."""
+    corners = [", ".join(f"{v:g}" for v in corner) for corner in (box[:3], box[3:])]
+    return f"both meshes inside the box [{corners[0]}] .. [{corners[1]}] m (--box)"
+
+
+def mismatch_note(mesh, gt) -> str | None:
+    """One line when the scored meshes plainly are not one object in one frame and unit (their bounding boxes do
+    not overlap, or their diagonals differ over SIZE_RATIO times), else None. A Chamfer of hundreds of mm says that
+    something is wrong, not what."""
+    import numpy as np
+
+    a, b = np.asarray(mesh.bounds, float), np.asarray(gt.bounds, float)
+    said = []
+    if np.any(a[0] > b[1]) or np.any(b[0] > a[1]):
+        said.append(f"the bounding boxes of the reconstruction and the ground truth do not overlap "
+                    f"({_bounds(a)} and {_bounds(b)} m)")
+    sizes = {"mesh": float(np.linalg.norm(a[1] - a[0])), "gt": float(np.linalg.norm(b[1] - b[0]))}
+    large, small = sorted(sizes, key=sizes.get, reverse=True)
+    if sizes[small] > 0 and sizes[large] / sizes[small] > SIZE_RATIO:
+        said.append(f"{WHO[large]} is {sizes[large] / sizes[small]:.3g}x the size of {WHO[small]} (bounding-box "
+                    f"diagonals {sizes[large]:.3g} and {sizes[small]:.3g} m)")
+    if not said:
+        return None
+    return "; ".join(said) + ": check that both are in the same units (--units m|mm) and frame"
+
+
+def _bounds(bounds) -> str:
+    # Millimetres are enough to see two boxes apart; + 0.0 turns a rounded -0.0 into 0.
+    return " .. ".join("[" + ", ".join(f"{round(v, 3) + 0.0:g}" for v in corner) + "]" for corner in bounds)
+
+
+def format_table(metrics, mesh: str, gt: str, scored: str | None = None, units: str | None = None,
+                 note: str | None = None) -> str:
+    """The metrics as a small aligned table (mm and degrees); `scored`: what part of the meshes was compared,
+    `units`: how they were read (`units_line`), `note`: `mismatch_note` (each left out when None)."""
     m = metrics
+    said = (("units", units), ("scored", scored), ("note", note))
     rows = [
         ("reconstruction", mesh),
         ("ground truth", gt),
-        *([("scored", scored)] if scored else []),
+        *[(name, value) for name, value in said if value],
         ("Chamfer", f"{m.chamfer_mm:8.3f} mm"),
         ("accuracy", f"{m.accuracy_mm:8.3f} mm   (reconstruction -> ground truth)"),
         ("completeness", f"{m.completeness_mm:8.3f} mm   (ground truth -> reconstruction)"),
@@ -69,10 +129,14 @@ def run(args: argparse.Namespace) -> int:
 
     from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.worker.ground_truth import GroundTruth, load_ground_truth
-    from spadscan.worker.metrics import crop_to_box
+    from spadscan.worker.metrics import crop_to_box, mesh_metrics
 
     if not (math.isfinite(args.threshold_mm) and 0 < args.threshold_mm < 10_000):
         raise ConfigError(f"--threshold-mm {args.threshold_mm:g} must be a distance in (0, 10000) mm")
+    if args.box is not None and args.keep_table:
+        # The box replaces the cut: a table inside it is scored anyway, so --keep-table would change nothing.
+        raise ConfigError("--keep-table and --box: the box replaces the cut above a table (what of the table lies "
+                          "inside the box is scored); give --box alone")
     pred = load_mesh_spec(args.mesh, units=args.units)[0]
     truth = load_ground_truth(args.gt, units=args.units, keep_table=args.keep_table or args.box is not None)
     units = {"mesh": pred.metadata.get("units_read", "m"), "gt": truth.units_read}
@@ -83,13 +147,18 @@ def run(args: argparse.Namespace) -> int:
     if args.box is not None:
         pred = crop_to_box(pred, args.box[:3], args.box[3:], what=f"the mesh {args.mesh}")
         truth = GroundTruth(crop_to_box(truth.mesh, args.box[:3], args.box[3:], what=f"the ground truth {args.gt}"))
-    metrics = truth.metrics(pred, n_points=args.points, seed=args.seed, fscore_threshold_m=args.threshold_mm * 1e-3)
+    scored = truth.scored(pred)  # what GroundTruth.metrics compares, kept to check the two meshes against each other
+    note = mismatch_note(scored, truth.mesh)
+    metrics = mesh_metrics(scored, truth.mesh, n_points=args.points, seed=args.seed,
+                           fscore_threshold_m=args.threshold_mm * 1e-3)
+    box = None if args.box is None else [list(args.box[:3]), list(args.box[3:])]
     if args.json:
         # ground_truth and ground_truth_cut_above_z_m: the keys reconstruct's and baseline's reports use.
         print(json.dumps({"mesh": args.mesh, "gt": args.gt, "ground_truth": args.gt, "mesh_units": units["mesh"],
                           "gt_units": units["gt"], "cut_above_z_m": truth.cut_above_z_m,
-                          "ground_truth_cut_above_z_m": truth.cut_above_z_m,
-                          **metrics.to_dict()}))
+                          "ground_truth_cut_above_z_m": truth.cut_above_z_m, "box_m": box,
+                          "mismatch_note": note, **metrics.to_dict()}))
     else:
-        print(format_table(metrics, args.mesh, args.gt, truth.note()))
+        scored_line = box_line(args.box) if args.box is not None else truth.note()
+        print(format_table(metrics, args.mesh, args.gt, scored_line, units_line(units, args.units), note))
     return 0

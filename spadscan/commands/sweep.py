@@ -72,10 +72,8 @@ def run(args) -> int:
         check_local_device(args.device)
     spec = load_spec(args.sweep)
     plan = make_plan(spec, None if args.lcspc is None else Path(args.lcspc))
-    entries = len(plan.entries)
-    log(f"{entries} grid entr{'y' if entries == 1 else 'ies'} on {len(plan.scenes)} scene"
-        f"{'' if len(plan.scenes) == 1 else 's'}: {len(plan.points)} distinct points; methods "
-        f"{', '.join(spec.methods)}")
+    log(f"{counted(len(plan.entries), 'grid entry', 'grid entries')} on {counted(len(plan.scenes), 'scene')}: "
+        f"{counted(len(plan.points), 'distinct point')}; methods {', '.join(spec.methods)}")
     if not os.path.lexists(args.out):  # the dry run too: the run would refuse it when it makes the folder
         check_folder_option(args.out, "--out")
     if args.dry_run:
@@ -96,12 +94,21 @@ def run(args) -> int:
         print(f"spadscan sweep: interrupted; the points finished are kept in {args.out}, and the same command runs "
               f"the rest{running}", file=sys.stderr)
         return 130
-    print(f"{summary.points} points: {summary.earlier} done earlier, {summary.ran} run now "
-          f"({summary.done} done, {len(summary.failed)} failed)")
-    for task, reason in summary.failed:
-        print(f"  failed: {task.describe(spec.base)} [{task.id}]: {reason}")
-    print(f"results: {Path(args.out) / 'results.csv'} ({summary.rows} rows); plot: spadscan sweep-plot {args.out}")
+    print("\n".join(finished_lines(summary, spec.base, Path(args.out))))
     return 0
+
+
+def counted(n: int, noun: str, plural: str | None = None) -> str:
+    """`n` and `noun`, plural unless `n` is 1 (`plural`, or `noun` + s)."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"
+
+
+def finished_lines(summary, base: dict, out) -> list[str]:
+    """What a finished run prints: the points run and done, each failed point, and where the results are."""
+    return [f"{counted(summary.points, 'point')}: {summary.earlier} done earlier, {summary.ran} run now "
+            f"({summary.done} done, {len(summary.failed)} failed)",
+            *(f"  failed: {task.describe(base)} [{task.id}]: {reason}" for task, reason in summary.failed),
+            f"results: {out / 'results.csv'} ({counted(summary.rows, 'row')}); plot: spadscan sweep-plot {out}"]
 
 
 def _dry_run(plan, out, overwrite: bool = False) -> int:
@@ -115,5 +122,5 @@ def _dry_run(plan, out, overwrite: bool = False) -> int:
         status = (result or {}).get("status", "to run")
         done += status == "done"
         print(f"{task.id}  {status:<7} {task.describe(plan.spec.base)}")
-    print(f"{len(plan.points)} points, {done} done, {len(plan.points) - done} to run")
+    print(f"{counted(len(plan.points), 'point')}, {done} done, {len(plan.points) - done} to run")
     return 0

@@ -113,10 +113,20 @@ def check_value(name: str, value, where: str):
         value = float(value)
     too_low = p.lo is not None and (value <= p.lo if p.lo_open else value < p.lo)
     if too_low or (p.hi is not None and value > p.hi):
-        low = f"> {p.lo:g}" if p.lo_open else f">= {p.lo:g}"
+        bound = shown if p.kind == "int" else (lambda v: f"{v:g}")
+        low = f"> {bound(p.lo)}" if p.lo_open else f">= {bound(p.lo)}"
         unit = f" {p.unit}" if p.unit else ""
-        raise ConfigError(f"{where}: {name} = {value:g}{unit} is out of range (must be {low} and <= {p.hi:g})")
+        raise ConfigError(f"{where}: {name} = {shown(value)}{unit} is out of range (must be {low} and <= "
+                          f"{bound(p.hi)})")
     return value
+
+
+def shown(value) -> str:
+    """A parameter's value for messages: whole numbers with every digit (a seed of 2^63 - 1 read as 9.22337e+18
+    names another number), other numbers short (:g), anything else as itself."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return str(value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def _is_number(v) -> bool:
@@ -254,6 +264,6 @@ def check_point(params: dict, base_bin_ps: float) -> dict:
     return {"sensor": sensor.to_dict(), "settings": asdict(settings)}
 
 
-__all__ = ["PARAMS", "Param", "check_value", "defaults_for", "bin_ps_of", "fov_deg_of", "with_bin_ps",
+__all__ = ["PARAMS", "Param", "check_value", "shown", "defaults_for", "bin_ps_of", "fov_deg_of", "with_bin_ps",
            "with_fov_deg", "point_sensor", "point_settings", "point_poses", "point_ambient", "check_point",
            "C_M_PER_S", "SCHEDULES", "RINGS_ELEVATIONS"]

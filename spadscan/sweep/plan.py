@@ -18,7 +18,7 @@ from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 
-from .params import check_point
+from .params import check_point, shown
 from .scenes import Scene, load_scene
 from .spec import BaselineRun, PresetRun, SweepSpec
 
@@ -58,8 +58,7 @@ class PointTask:
         """A short name for messages: the scene and the parameters that differ from `base` (all varied axes of a
         one-at-a-time sweep are one of them)."""
         changed = [k for k, v in self.params.items() if base is not None and base.get(k) != v]
-        parts = [f"{k}={self.params[k]:g}" if isinstance(self.params[k], (int, float)) else f"{k}={self.params[k]}"
-                 for k in changed]
+        parts = [f"{k}={shown(self.params[k])}" for k in changed]
         return " ".join([self.scene.label, *(parts or ["(base condition)"])])
 
 
@@ -95,8 +94,8 @@ def make_plan(spec: SweepSpec, lcspc_root: Path | None = None) -> Plan:
                     checked[key] = check_point(params, spec.base["bin_ps"])
                 except ConfigError as exc:
                     at = "the base condition" if axis == "base" else (
-                        f"[grid] {axis} = {value:g}" if axis != PRODUCT_AXIS else
-                        "[grid] " + ", ".join(f"{a} = {params[a]:g}" for a in spec.grid))
+                        f"[grid] {axis} = {shown(value)}" if axis != PRODUCT_AXIS else
+                        "[grid] " + ", ".join(f"{a} = {shown(params[a])}" for a in spec.grid))
                     raise ConfigError(f"{spec.path}: {at}: {exc}") from None
             record = {"format": FORMAT, "scene": scene.record(), "params": params, **checked[key], **methods}
             pid = canonical_hash(record)[:16]

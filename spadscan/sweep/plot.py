@@ -11,9 +11,10 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.ticker import FuncFormatter, NullFormatter, NullLocator
+from matplotlib.ticker import FuncFormatter, NullLocator
 from matplotlib.transforms import blended_transform_factory
 
 from .params import PARAMS
@@ -24,7 +25,19 @@ COLOURS = {"fast": "#1f77b4", "paper": "#9467bd", "reprojection": "#d62728", "sp
 LABELS = {"fast": "fast (ours)", "paper": "paper (published method)", "reprojection": "reprojection",
           "space-carving": "space carving"}
 COLUMNS = 4
+PANEL_IN = (3.6, 3.0)
+"""A panel's width and height (inches)."""
+DPI = 110
+EDGE_IN = 0.1
+"""The room kept between the title or the legend and the picture's edges (inches)."""
 FAILED_ROW = 0.06  # the height of a method's row of failure crosses, as a fraction of the panel's height
+FAILED_GAP = 0.04
+"""The room between the largest value's line and the failure crosses' rows, as a fraction of the panel's height:
+the label at that line stays apart from the crosses."""
+NICE = (1.0, 2.0, 3.0, 5.0)
+"""The leading digits a Chamfer axis may end at: an end is labelled, so that labels reach past every value."""
+END_MARGIN = 1.05
+"""A Chamfer axis ends at least this factor beyond its values, so that a marker at the end is drawn whole."""
 
 
 def method_label(method: str) -> str:
@@ -38,13 +51,19 @@ def panel_title(index: int, axis: str) -> str:
 
 def figure_png(results: SweepResults, scene: str, path: Path) -> Path:
     """Draw Figure A of `scene` into the PNG `path`."""
+    figure(results, scene).savefig(path, dpi=DPI)
+    return path
+
+
+def figure(results: SweepResults, scene: str) -> Figure:
+    """Figure A of `scene`, laid out."""
     axes_names = list(results.grid)
     rows_of_scene = [r for r in results.rows if r["scene"] == scene]
     n = max(1, len(axes_names))
     cols = min(COLUMNS, n)
     lines = math.ceil(n / cols)
     # A bare Figure (no pyplot): no global backend or figure registry is touched.
-    fig = Figure(figsize=(3.6 * cols, 3.0 * lines + 0.6))
+    fig = Figure(figsize=(PANEL_IN[0] * cols, PANEL_IN[1] * lines + 0.6))
     grid = fig.subplots(lines, cols, squeeze=False)
     for i, axis in enumerate(axes_names):
         _panel(grid[i // cols][i % cols], results, rows_of_scene, axis, i)
@@ -53,11 +72,26 @@ def figure_png(results: SweepResults, scene: str, path: Path) -> Path:
     handles = [Line2D([], [], color=COLOURS.get(m, "k"), marker="o", label=method_label(m))
                for m in results.methods]
     handles.append(Line2D([], [], color="0.3", marker="x", linestyle="none", label="failed (no result)"))
-    fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=9)
-    fig.suptitle(f"{scene}: Chamfer distance against each imaging parameter", fontsize=11)
-    fig.tight_layout(rect=(0, 0.06, 1, 0.97))
-    fig.savefig(path, dpi=110)
-    return path
+    legend = fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=9)
+    title = fig.suptitle(f"{scene}: Chamfer distance against each imaging parameter", fontsize=11)
+    _lay_out(fig, legend, title)
+    return fig
+
+
+def _lay_out(fig: Figure, legend, title) -> None:
+    """Make the figure wide enough for its title and legend (a row of one or two panels is narrower than either),
+    the panels keeping their width in the middle, and fit the panels above the legend (tight_layout leaves room
+    for the title itself, not for a figure's legend)."""
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    boxes = [artist.get_window_extent(renderer) for artist in (legend, title)]
+    width = fig.get_figwidth()
+    needed = max(box.width for box in boxes) / fig.dpi + 2 * EDGE_IN
+    side = 0.0
+    if needed > width:
+        side = (needed - width) / 2 / needed
+        fig.set_figwidth(needed)
+    height_px = fig.get_figheight() * fig.dpi
+    fig.tight_layout(rect=(side, (boxes[0].y1 + EDGE_IN * fig.dpi) / height_px, 1 - side, 1))
 
 
 def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -> None:
@@ -71,7 +105,7 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
                 keyed.setdefault(tuple(r.get(a) for a in others), []).append(r)
         groups = list(keyed.values())
     top = blended_transform_factory(ax.transData, ax.transAxes)
-    any_value = False
+    drawn: list[float] = []
     any_failed = False
     for g, group in enumerate(groups):
         alpha = 1.0 if g == 0 else max(0.25, 1.0 - 0.15 * g)
@@ -83,7 +117,7 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
             colour = COLOURS.get(method, "k")
             if pts:
                 ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=4, color=colour, alpha=alpha)
-                any_value = True
+                drawn.extend(p[1] for p in pts)
             if failed:
                 any_failed = True
                 # Stacked down from the top edge, one row per method, so that crosses at one x all show.
@@ -91,9 +125,11 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
                         linestyle="none", color=colour, alpha=alpha, transform=top, clip_on=False)
     values = [v for v in results.grid.get(axis, []) if isinstance(v, (int, float))]
     plain = FuncFormatter(lambda v, _: f"{v:g}")
-    if any_value:
+    drawn = [v for v in drawn if v is not None and v > 0]  # a log axis shows no 0
+    if drawn:
         ax.set_yscale("log")
-        low, high = ax.get_ylim()
+        low, high = _nice_below(min(drawn) / END_MARGIN), _nice_above(max(drawn) * END_MARGIN)
+        ax.set_ylim(low, high)
         # No value is labelled in the failures' strip above the data: a cross there is no Chamfer distance.
         ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}" if v <= high * 1.0001 else ""))
         ax.yaxis.set_minor_formatter(_minor_formatter(low, high))
@@ -115,35 +151,49 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
     ax.set_title(panel_title(index, axis), fontsize=10)
     ax.set_xlabel(PARAMS[axis].label if axis in PARAMS else axis, fontsize=8)
     ax.set_ylabel("Chamfer (mm)", fontsize=8)
-    ax.tick_params(labelsize=8)
+    ax.tick_params(which="both", labelsize=8)  # the minor ticks' labels too (the y axis labels some)
     ax.grid(True, which="both", alpha=0.25)
 
 
-def _minor_formatter(low: float, high: float):
-    """Labels for the minor ticks of a log axis from `low` to `high` (mm).
+def _nice_below(v: float) -> float:
+    """The largest NICE leading digit times a power of ten that is at most `v` (> 0)."""
+    power = 10.0 ** math.floor(math.log10(v))
+    return max(d * power for d in NICE if d * power <= v * (1 + 1e-9))
 
-    Where two powers of ten fall inside the limits, their labels say enough. Otherwise the minor ticks are labelled
-    too: all of them within a factor of 3 (they stand far enough apart), else only those at 2 and 5 times a power
-    of ten (all nine in a decade and more print on top of each other).
+
+def _nice_above(v: float) -> float:
+    """The smallest NICE leading digit times a power of ten that is at least `v` (> 0)."""
+    power = 10.0 ** math.floor(math.log10(v))
+    return min((d * power for d in (*NICE, 10.0) if d * power >= v * (1 - 1e-9)))
+
+
+def _minor_formatter(low: float, high: float):
+    """Labels for the minor ticks of a log axis from `low` to `high` (mm), two NICE values.
+
+    The ends are labelled, so that labels reach past every value. Where two powers of ten fall inside the limits,
+    their labels say the rest. Otherwise the minor ticks are labelled too: all of them within a factor of 3 (they
+    stand far enough apart), else only those at 2 and 5 times a power of ten (all nine in a decade and more print on
+    top of each other).
     """
     powers = math.floor(math.log10(high)) - math.ceil(math.log10(low)) + 1
-    if powers >= 2:
-        return NullFormatter()
     every = high / low <= 3.0
 
     def label(v: float, _) -> str:
+        if math.isclose(v, low, rel_tol=1e-6) or math.isclose(v, high, rel_tol=1e-6):
+            return f"{v:g}"
         leading = round(v / 10 ** math.floor(math.log10(v) + 1e-9))
-        return f"{v:g}" if v <= high * 1.0001 and (every or leading in (2, 5)) else ""
+        inside = low * 0.9999 <= v <= high * 1.0001
+        return f"{v:g}" if inside and powers < 2 and (every or leading in (2, 5)) else ""
 
     return FuncFormatter(label)
 
 
 def _make_room_for_failures(ax, low: float, high: float, methods: int) -> None:
     """Raise the top of a log axis so that the failure crosses' rows sit above every value, behind a line."""
-    strip = FAILED_ROW * methods
+    strip = FAILED_ROW * methods + FAILED_GAP
     span = math.log10(high) - math.log10(low)
     ax.set_ylim(low, 10 ** (math.log10(low) + span / (1.0 - strip)))
     ax.axhline(high, color="0.6", linewidth=0.8, linestyle="--")
 
 
-__all__ = ["figure_png", "method_label", "panel_title", "COLOURS"]
+__all__ = ["figure_png", "figure", "method_label", "panel_title", "COLOURS"]
