@@ -17,6 +17,12 @@ CAPTURES/.spadscan-daemon.lock) is shown as "interrupted (no daemon running)", w
 started on the root takes it over. The lock is seen where the daemon's flock is: on the daemon's machine, or over a
 file system that shares flock locks between machines.
 
+A scan whose scan.json says running but whose newest pose (or last scan.json write, a resume) is older than five
+times its recent pose interval (the median gap between its last 8 poses), and never less than 30 s (60 s before its
+second pose), is shown as "stalled (no new pose for N s ...)", without a frame rate, and the top line says "daemon:
+no new pose of SCAN for N s": the daemon may have paused without being able to record it (a full disk) or be
+stuck; `spadscan ctl status` says which. The page only reads files: the daemon's own state is asked of its socket.
+
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
 The root is the folder of scans, never one scan's own folder (that is refused, naming its parent); a root with no
 scans yet is served all the same, saying so, and the page lists scans as they appear. Ctrl-C or SIGTERM (`kill`,

@@ -4,6 +4,9 @@ reader, and remembered between polls so that a root of hundreds of finished scan
 A finished scan never changes until its manifest does (published chunks are never rewritten), so its row is kept
 until `scan.json` changes; a running scan's row is kept until its chunk listing changes too. `reads` counts the
 files parsed, so that the cost of a poll can be checked without a clock.
+
+A scan whose scan.json says running but that publishes no new pose is shown as stalled (`stalled`): its daemon may
+have paused without being able to record the pause (a full disk), or hang. The rule is in `quiet_limit_s`.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import datetime as _dt
 import json
 import math
 import os
+import statistics
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -44,12 +48,16 @@ class ScanRow:
     """Why the capture cannot be read (a malformed capture is an error row, never a crash)."""
     note: str | None = None
     """Why the scan's files have no links (its folder is a link out of the root, which the server never serves)."""
+    quiet_s: float | None = None
+    """A stalled scan's seconds without news (no new pose, no write of its scan.json); None on any other row."""
     chunks: list[str] = field(default_factory=list, repr=False)
     mtime: float = 0.0
+    published: list[float] = field(default_factory=list, repr=False)
+    """When its last (at most PACE_POSES) chunks were published (unix seconds, oldest first): its recent pace."""
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        del d["chunks"], d["mtime"]
+        del d["chunks"], d["mtime"], d["published"]
         return d
 
 
@@ -59,6 +67,17 @@ INTERRUPTED = "interrupted"
 """A scan in hand whose daemon is gone (crashed, killed or stopped): scan.json still says running, but nothing
 writes it. It takes no frames, so it has no frame rate; a daemon started on the root takes it over."""
 NO_DAEMON = "no daemon running"
+STALLED = "stalled"
+"""A scan whose scan.json says running but whose latest news is older than `quiet_limit_s` allows: its daemon may
+be paused without having recorded it (it cannot write scan.json on a full disk) or stuck. It has no frame rate (its
+last one is no longer true); `spadscan ctl status` says what the daemon is doing."""
+
+PACE_POSES = 8
+"""The pace of a scan is read from the publications of its last (at most) this many poses."""
+QUIET_FACTOR = 5.0
+QUIET_FLOOR_S = 30.0
+FIRST_POSES_S = 60.0
+"""See `quiet_limit_s`."""
 
 JSON_KINDS = {int: "a whole number", str: "a string", dict: "an object"}
 
@@ -120,6 +139,7 @@ class ScanIndex:
             return cached[1]
         row = self._read(name, path, chunks)
         row.mtime = st.st_mtime
+        row.published = _published_times(path, chunks[-PACE_POSES:])
         self._rows[name] = (key, row)
         return row
 
@@ -158,6 +178,40 @@ def interrupted(row: ScanRow) -> ScanRow:
     return replace(row, state=INTERRUPTED, reason=reason)
 
 
+def quiet_limit_s(published: list[float]) -> float:
+    """How long a running scan may go without news before it is shown as stalled: QUIET_FACTOR times its recent pose
+    interval (the median gap between its last PACE_POSES publications: a pause and resume between two poses does not
+    stretch it), at least QUIET_FLOOR_S (a few of the daemon's frame timeouts, 5 s by default: a silent sensor
+    pauses the scan, recorded, well before). Before two poses are published the pace is unknown: FIRST_POSES_S (the
+    first move starts from wherever the arm stands; the daemon's default move timeout is 60 s)."""
+    gaps = [b - a for a, b in zip(published, published[1:])]
+    if not gaps:
+        return FIRST_POSES_S
+    return max(QUIET_FLOOR_S, QUIET_FACTOR * statistics.median(gaps))
+
+
+def stalled(row: ScanRow, now: float) -> ScanRow:
+    """A running scan as it is shown at `now` (unix seconds): stalled, a copy, when its latest news (its newest
+    published pose or its scan.json's last write, whichever is later: a resume rewrites scan.json) is older than
+    `quiet_limit_s`; any other row as it is. A copy, since the row is remembered between polls."""
+    if row.state != "running":
+        return row
+    quiet = now - max([row.mtime, *row.published[-1:]])
+    if quiet <= quiet_limit_s(row.published):
+        return row
+    reason = f"no new pose for {ago(quiet)}: the daemon may be paused or stuck; `spadscan ctl status` says why"
+    return replace(row, state=STALLED, reason=reason, quiet_s=round(quiet, 1))
+
+
+def ago(seconds: float) -> str:
+    """A time span as the page writes one (its `ago`)."""
+    if seconds < 90:
+        return f"{round(seconds)} s"
+    if seconds < 90 * 60:
+        return f"{round(seconds / 60)} min"
+    return f"{seconds / 3600:.1f} h"
+
+
 LINKED_OUT = ("its folder links outside the captures root: the dashboard serves nothing there, so its files have "
               "no links")
 
@@ -179,6 +233,18 @@ def _published_utc(chunk: Path) -> str | None:
     except OSError:
         return None
     return _dt.datetime.fromtimestamp(mtime, _dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _published_times(path: Path, chunks: list[str]) -> list[float]:
+    """When each of `chunks` was published (its folder's modification time), oldest first; one that cannot be read
+    (removed meanwhile) is left out."""
+    times = []
+    for name in chunks:
+        try:
+            times.append((path / name).stat().st_mtime)
+        except OSError:
+            continue
+    return sorted(times)
 
 
 def _chunk_names(path: Path) -> list[str]:
@@ -208,7 +274,7 @@ def scan_detail(root: Path, row: ScanRow) -> dict:
     except SpadscanError as exc:
         detail["error"] = str(exc)
         return detail
-    if row.state == "running":  # a paused, interrupted, complete or aborted scan takes no frames: no rate
+    if row.state == "running":  # a paused, interrupted, stalled, complete or aborted scan takes no frames: no rate
         detail.update(frame_rates(frames[-RATE_FRAMES:]))
     return detail
 

@@ -6,6 +6,10 @@ status an earlier attempt of its job wrote is shown without its figures and pict
 Whether a daemon is running is asked of the caller's `daemon_running(root)`: the daemon's lock probe lives in the
 daemon's package, which the dashboard does not import (the CLI command hands it over). Without it, scans are shown
 as their scan.json says.
+
+The daemon writes nothing else under the root that says what it does (its lock file holds only its pid; it is asked
+over its socket, which the dashboard never uses): a daemon that paused but could not record it in scan.json (a full
+disk) or that hangs is told from its scan's files alone, by the age of its last pose (scans.py `stalled`).
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from spadscan.worker.status_detail import status_parts
 
 from .attempts import claim_starts, earlier_attempt
 from .results import ResultIndex
-from .scans import IN_HAND, INTERRUPTED, ScanIndex, interrupted, scan_detail
+from .scans import IN_HAND, INTERRUPTED, STALLED, ScanIndex, interrupted, scan_detail, stalled
 from .worker_state import worker_state
 
 PREVIEW = {"columns": [f"az {az:.0f} el {el:.0f}" for az, el in VIEWS], "rows": ["reconstruction", "ground truth"]}
@@ -58,33 +62,41 @@ class Dashboard:
 
     `daemon_running(root)` says whether a daemon holds the root (asked once a poll): when none does, a scan still in
     hand is shown as interrupted, without a frame rate, and the answer's `daemon` is False (the page says so even
-    while the rig is idle, when no scan shows it). None: scans are shown as their scan.json says, `daemon` None."""
+    while the rig is idle, when no scan shows it). None: scans are shown as their scan.json says, `daemon` None.
+    Either way a running scan without news for too long is shown as stalled (scans.py `stalled`), by `clock`'s time
+    (unix seconds: the file times' clock)."""
 
-    def __init__(self, root, queue_dir=None, daemon_running: Callable[[Path], bool] | None = None):
+    def __init__(self, root, queue_dir=None, daemon_running: Callable[[Path], bool] | None = None,
+                 clock: Callable[[], float] = time.time):
         self.root = Path(root)
         self.queue_dir = Path(queue_dir) if queue_dir else self.root / ".queue"
         self.daemon_running = daemon_running
+        self.clock = clock
         self.scans = ScanIndex(self.root)
         self.results = ResultIndex(self.root)
         self._lock = threading.Lock()
         self._detail: tuple[tuple, dict] | None = None
 
     def _scan_detail(self, row) -> dict:
-        """The detail of the scan in hand, read again only when it has published a chunk or changed state."""
+        """The detail of the scan in hand, read again only when it has published a chunk or changed state (a stalled
+        scan's reason says how long it has been quiet: it is the row's, new at each poll)."""
         key = (row.name, row.state, row.updated_utc, tuple(row.chunks[-1:]), row.error)
         if self._detail is None or self._detail[0] != key:
             self._detail = (key, scan_detail(self.root, row))
-        return self._detail[1]
+        return {**self._detail[1], "reason": row.reason, "quiet_s": row.quiet_s}
 
     def status(self) -> dict:
         # a daemon that starts or dies while the scans are read is seen at the next poll
         daemon = None if self.daemon_running is None else bool(self.daemon_running(self.root))
         orphaned = daemon is False
+        now = self.clock()
         with self._lock:
             rows = self.scans.rows()
-            if orphaned:  # in place: the order (scans in hand first) stays, and the scan is still the one in hand
+            # in place: the order (scans in hand first) stays, and the scan is still the one in hand
+            if orphaned:
                 rows = [interrupted(r) if r.state in IN_HAND else r for r in rows]
-            current = next((r for r in rows if r.state in IN_HAND + (INTERRUPTED,)), None) or next(
+            rows = [stalled(r, now) for r in rows]
+            current = next((r for r in rows if r.state in IN_HAND + (INTERRUPTED, STALLED)), None) or next(
                 (r for r in rows if r.state != "error"), None)
             detail = self._scan_detail(current) if current is not None else None
             recons = {row.name: self.results.for_scan(row.name) for row in rows}
@@ -95,14 +107,13 @@ class Dashboard:
         # the folders read before the queue: each live status is judged against claims at least as new as itself
         starts = claim_starts(queue["jobs"])
         scans = [{**row.to_dict(), "recons": [earlier_attempt(r, starts) for r in recons[row.name]]} for row in rows]
-        return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now)),
                 "daemon": daemon, "scans": scans, "current": detail, "queue": queue,
-                "worker": self._worker(rows, queue), "preview": PREVIEW}
+                "worker": self._worker(rows, queue, now), "preview": PREVIEW}
 
-    def _worker(self, rows, queue: dict) -> dict:
+    def _worker(self, rows, queue: dict, now: float) -> dict:
         """What the reconstruction side is doing (worker_state; "unknown" when the queue cannot be read), with the
         command that starts a worker."""
-        now = time.time()
         state = {"state": "unknown"} if queue.get("error") else worker_state(
             rows, queue["jobs"], now, present_workers(self.queue_dir, now))
         return {**state, "start": start_command(self.root, self.queue_dir)}
