@@ -175,10 +175,12 @@ class Queue:
 
     # ---- claiming --------------------------------------------------------------------------------------------
     def claim(self, holder: Holder | None = None) -> Claim | None:
-        """Take the oldest queued job (first queued, first run: by its file's mtime, which a job gets when it is
-        queued or given back), or None when there is none. Race-free: the one rename that succeeds wins."""
+        """Take the oldest queued live job, else the oldest queued job (first queued, first run: by its file's mtime,
+        which a job gets when it is queued or given back), or None when there is none. A live job follows a scan
+        that is being recorded: behind a backlog of finished scans its fit would start after the scan's end, which
+        is what a live job is for. Race-free: the one rename that succeeds wins."""
         holder = holder or Holder.current()
-        for src in _oldest_first((self.path / "queued").glob("*.json")):
+        for src in _claim_order((self.path / "queued").glob("*.json")):
             job_id = src.stem
             token = _new_token()
             dst = self.path / "running" / f"{job_id}{SEP}{token}.json"
@@ -666,14 +668,25 @@ def _number(value) -> float:
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else 0.0
 
 
-def _oldest_first(paths) -> list[Path]:
-    """`paths` by their files' mtime, then name (a file gone meanwhile goes last: its claim will fail)."""
-    def key(path: Path) -> tuple[float, str]:
+def _claim_order(paths) -> list[Path]:
+    """Queued job files `paths`, live jobs first, each kind by its files' mtime, then name (a file gone meanwhile
+    goes last: its claim will fail; one that cannot be read counts as not live: its claim fails it)."""
+    def key(path: Path) -> tuple[bool, float, str]:
         try:
-            return path.stat().st_mtime, path.name
+            return not _is_live(path), path.stat().st_mtime, path.name
         except FileNotFoundError:
-            return math.inf, path.name
+            return True, math.inf, path.name
     return sorted(paths, key=key)
+
+
+def _is_live(path: Path) -> bool:
+    """Whether the queued job file `path` holds a live job (FileNotFoundError when it has gone)."""
+    try:
+        return json.loads(path.read_text()).get("live") is True
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def _new_token() -> str:

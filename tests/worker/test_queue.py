@@ -244,6 +244,19 @@ def test_the_oldest_queued_job_is_claimed_first(tmp_path):
     assert [q.claim().job.scan for _ in range(3)] == ["apple", "mango", "zebra"]
 
 
+def test_a_live_job_is_claimed_before_a_backlog_of_finished_scans(tmp_path):
+    """A live job follows a scan being recorded: behind the backlog, its fit would start after the scan's end."""
+    q = Queue(tmp_path / "q")
+    for k, (name, live) in enumerate([("old1", False), ("old2", False), ("now", True), ("later", False)]):
+        q.enqueue(replace(_job(name), live=live))
+        path = q.path / "queued" / f"{name}-fast.json"
+        os.utime(path, (1_000_000 + k, 1_000_000 + k))  # queued in this order
+    (q.path / "queued" / "damaged-fast.json").write_text("{not json")  # counts as not live; its claim fails it
+    os.utime(q.path / "queued" / "damaged-fast.json", (999_999, 999_999))
+    claimed = [q.claim() for _ in range(4)]
+    assert [c.job.scan for c in claimed] == ["now", "old1", "old2", "later"]
+
+
 def test_a_dead_holder_on_this_machine_frees_its_job_at_once(tmp_path):
     q = Queue(tmp_path / "q", lease_s=3600)
     q.enqueue(_job("s"))
