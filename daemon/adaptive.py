@@ -107,6 +107,9 @@ class ViewChooser:
             nv = read_next_views(self.capture)
         except CaptureError as exc:
             if not (self.capture / FILE).exists():
+                # Said once: a scan asked to be adaptive that no live worker ranks is its fallback plan throughout.
+                self._note(f"scan {self.capture.name}: no live reconstruction has ranked its views yet (no {FILE}): "
+                           f"taking the fallback plan until one does (is a worker running with --live?)")
                 return None, f"no {FILE} yet"
             self._note(f"scan {self.capture.name}: {exc}; taking the fallback plan")
             return None, f"{FILE} unreadable ({exc})"

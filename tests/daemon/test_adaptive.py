@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import logging
 import re
 from pathlib import Path
 
@@ -275,6 +276,17 @@ def test_the_fallback_passes_over_queued_poses_close_to_taken_ones(tmp_path):
     choice, out = chooser.choose(rows, INITIAL)
     assert choice.why == "fallback" and np.array_equal(choice.pose, plan[INITIAL + 1])
     np.testing.assert_array_equal(out[INITIAL + 1], plan[INITIAL])  # kept in the queue, for the end
+
+
+def test_a_scan_no_live_worker_ranks_says_so_once(tmp_path, caplog):
+    _, chooser, plan, folder = chooser_for(tmp_path)
+    with caplog.at_level(logging.WARNING, logger="spadscan.daemon"):
+        for i in range(INITIAL, INITIAL + 3):
+            choice, plan = chooser.choose(plan, i)
+            assert choice.why == "fallback"
+    said = [r.getMessage() for r in caplog.records]
+    assert said == [f"scan {folder.name}: no live reconstruction has ranked its views yet (no next_views.json): "
+                    f"taking the fallback plan until one does (is a worker running with --live?)"]
 
 
 def test_no_reachable_pose_left_is_one_line(tmp_path):
