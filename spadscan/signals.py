@@ -52,9 +52,12 @@ class TrainingStop:
 @contextlib.contextmanager
 def first_interrupt_stops_training(say: Callable[[str], None]):
     """Within the block, Ctrl-C is `TrainingStop.interrupt` of the `TrainingStop` it yields (pass it to the trainer
-    as `stop`). Outside the main thread no handler can be set: the stop is never asked there."""
+    as `stop`). Outside the main thread no handler can be set, and where SIGINT is ignored none is wanted: the stop
+    is never asked there."""
     stop = TrainingStop(say)
-    if threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        # An ignored SIGINT stays ignored: a shell script's background jobs inherit it so, and a Ctrl-C meant for
+        # the script must not end their training.
         yield stop
         return
     previous = signal.signal(signal.SIGINT, stop.interrupt)

@@ -324,9 +324,9 @@ def overrun_warning(facts: RunFacts) -> str | None:
         # Training overran its share, not the start or the end: the trainer takes at least one step, however long
         # (the paper preset's on a CPU: over a minute).
         per_step = facts.training_s / max(facts.steps, 1)
-        return (f"{took}: training took {facts.training_s:.0f} s of the {_seconds(facts.training_budget_s)} s the budget "
-                f"left it, {per_step:.0f} s a step over {facts.steps} step(s) on {facts.device}, and a run takes at "
-                f"least one; give it a time budget of many steps, or a faster device (--device cuda) or preset "
+        return (f"{took}: training took {facts.training_s:.0f} s of the {_seconds(facts.training_budget_s)} s the "
+                f"budget left it, {per_step:.0f} s a step over {facts.steps} step(s) on {facts.device}, and a run takes "
+                f"at least one; give it a time budget of many steps, or a faster device (--device cuda) or preset "
                 f"(fast)")
     share = cpu_share(facts)
     had = f" (it had {share:.2f} of a CPU core while training)" if share is not None and facts.device == "cpu" else ""
@@ -455,9 +455,9 @@ def warnings(facts: RunFacts) -> list[str]:
     return out
 
 
-__all__ = ["INTERRUPTED", "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error", "converged",
-           "cpu_share", "warnings", "overrun_warning", "misfit_warning", "coverage_warning", "pieces_warning",
-           "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
+__all__ = ["INTERRUPTED", "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
+           "converged", "cpu_share", "warnings", "overrun_warning", "misfit_warning", "coverage_warning",
+           "pieces_warning", "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
            "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
            "MISFIT_Z", "MISFIT_RELATIVE", "MISFIT_MIN_HISTOGRAMS",

@@ -3,24 +3,26 @@
 Writes into --out (a new folder, or one without a result unless --overwrite; the run writes into a hidden .tmp-
 folder beside it, or inside it where its result could not be moved in from beside it (--out a mount point, a link to
 another disk, in a folder you cannot write), and moves its result in once finished: a result that appeared in --out
-meanwhile, a worker's, is kept unless --overwrite): report.html (the page to open first), view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply (per-vertex normals from the
-SDF gradient), report.json (preset, device, steps, training seconds, the model terms used, final loss, the resolved
-config, and with a ground truth: chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg plus a trace
-of error against training time), preview.png, error_vs_time.png, fit.png (measured against rendered histograms),
-coverage.png (the mesh coloured by how many views saw each part: red where none did, its shape a guess) and, with a
-ground truth, normals.png (per-vertex normal error). Without --gt,
-the ground truth that the capture names is used (import-lcspc and simulate record theirs); --no-gt skips the metrics.
---budget-s bounds the whole run, from the command's start to its report (within 10 % or 10 s, whichever is
-larger): loading the capture, training, the mesh, the metrics and the pictures share it, and when time is short the
-mesh is coarser and the metrics use fewer points (report.json's "budget" and "warnings" say so). --steps bounds the
-training steps; with neither, the preset's default (fast: a 120 s budget; paper: 300,000 steps, hours on a GPU and
-days on a CPU). The `fast` preset also stops early once its data term has stopped improving (report.json:
-stopped_by 'converged'); turn that off with --set early_stop=false.
+meanwhile, a worker's, is kept unless --overwrite): report.html (the page to open first), view3d.html (the 3D view
+report.html embeds: keep it beside report.html), mesh.ply (per-vertex normals from the SDF gradient), report.json
+(preset, device, steps, training seconds, the model terms used, final loss, the resolved config, and with a ground
+truth: chamfer_mm, accuracy_mm, completeness_mm, fscore_5mm, normal_error_deg plus a trace of error against training
+time), preview.png, error_vs_time.png, fit.png (measured against rendered histograms), coverage.png (the mesh
+coloured by how many views saw each part: red where none did, its shape a guess) and, with a ground truth,
+normals.png (per-vertex normal error). Without --gt, the ground truth that the capture names is used (import-lcspc
+and simulate record theirs); --no-gt skips the metrics. --budget-s bounds the whole run, from the command's start to
+its report (within 10 % or 10 s, whichever is larger): loading the capture, training, the mesh, the metrics and the
+pictures share it, and when time is short the mesh is coarser and the metrics use fewer points (report.json's
+"budget" and "warnings" say so). --steps bounds the training steps; with neither, the preset's default (fast: a 120
+s budget; paper: 300,000 steps, hours on a GPU and days on a CPU). The `fast` preset also stops early once its data
+term has stopped improving (report.json: stopped_by 'converged'); turn that off with --set early_stop=false.
 
 Stopping a run: a first Ctrl-C while it trains ends the training at its next step and keeps the run: the mesh, the
 metrics and the report follow as after a budget (stopped_by 'interrupted'; its warnings say the fit was stopped
-before it converged). A second Ctrl-C, one before training began, or SIGTERM (a time limit, a service stop) aborts
-the run, keeping nothing: the hidden folder is removed and --out is left as it was.
+before it converged); a first one after training changes nothing, the mesh and report are made. A second Ctrl-C,
+one before training began, or SIGTERM (a time limit, a service stop) aborts the run, keeping nothing: the hidden
+folder is removed and --out is left as it was. A run started with Ctrl-C ignored (a shell script's background job)
+keeps ignoring it.
 
 An honest end: report.json's "converged" says whether the fit had settled, and "warnings" (also printed, and shown
 at the top of report.html) says why a result may be doubtful: a run that stopped on its budget or step count while

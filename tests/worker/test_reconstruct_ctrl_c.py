@@ -86,6 +86,7 @@ from spadscan.worker import reconstruct
 
 THEN_WAIT = "--then-wait" in sys.argv
 LOADING = "--loading" in sys.argv
+IGNORED = "--ignored" in sys.argv
 
 def stand_in(capture, out_dir, stop=None, **kwargs):
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -96,7 +97,10 @@ def stand_in(capture, out_dir, stop=None, **kwargs):
             time.sleep(0.01)
     stop()
     print("training", flush=True)
-    while not stop() and time.monotonic() < deadline:
+    if IGNORED:  # the test's Ctrl-C has come (a handler would have run during the read): was it heard?
+        sys.stdin.readline()
+        print("asked" if stop() else "not asked", flush=True)
+    while not IGNORED and not stop() and time.monotonic() < deadline:
         time.sleep(0.01)
     print("ended training", flush=True)
     (out_dir / "mesh.ply").write_text("the stopped run's mesh")
@@ -107,8 +111,9 @@ def stand_in(capture, out_dir, stop=None, **kwargs):
             "final_loss": 1.0, "files": ["mesh.ply", "report.json"]}
 
 reconstruct.reconstruct_capture = stand_in
-signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal's Ctrl-C finds it
-sys.exit(main([arg for arg in sys.argv[1:] if arg not in ("--then-wait", "--loading")]))
+# As a terminal's Ctrl-C finds it, or as a shell script's background job inherits it (ignored).
+signal.signal(signal.SIGINT, signal.SIG_IGN if IGNORED else signal.default_int_handler)
+sys.exit(main([arg for arg in sys.argv[1:] if arg not in ("--then-wait", "--loading", "--ignored")]))
 """
 
 
@@ -116,7 +121,7 @@ def _started(tmp_path, *extra):
     (tmp_path / "s").mkdir()
     return subprocess.Popen([sys.executable, "-c", STAND_IN, "reconstruct", str(tmp_path / "s"), "--out",
                              str(tmp_path / "out"), "--no-gt", "--no-progress", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def test_a_first_ctrl_c_while_training_publishes_the_run(tmp_path):
@@ -160,3 +165,18 @@ def test_a_ctrl_c_before_training_began_aborts_at_once(tmp_path):
         proc.wait()
     assert proc.returncode == 130 and "stopping:" not in err, err
     assert [p.name for p in tmp_path.iterdir()] == ["s"], "nothing kept, no hidden folder left"
+
+
+def test_a_run_started_with_ctrl_c_ignored_keeps_ignoring_it(tmp_path):
+    """A shell script's background job (`spadscan reconstruct ... &`) inherits SIGINT ignored: a Ctrl-C meant for
+    the script must not end its training."""
+    proc = _started(tmp_path, "--ignored")
+    try:
+        assert proc.stdout.readline() == "training\n"
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate("go\n", timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 0 and out.splitlines()[0] == "not asked", (out, err)
+    assert "stopping:" not in err
