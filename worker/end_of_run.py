@@ -326,8 +326,8 @@ def overrun_warning(facts: RunFacts) -> str | None:
         per_step = facts.training_s / max(facts.steps, 1)
         return (f"{took}: training took {facts.training_s:.0f} s of the {_seconds(facts.training_budget_s)} s the "
                 f"budget left it, {per_step:.0f} s a step over {facts.steps} step(s) on {facts.device}, and a run "
-                f"takes at least one; give it a time budget of many steps, or a faster device (--device cuda) or preset "
-                f"(fast)")
+                f"takes at least one; give it a time budget of many steps, or a faster device (--device cuda) or "
+                f"preset (fast)")
     share = cpu_share(facts)
     had = f" (it had {share:.2f} of a CPU core while training)" if share is not None and facts.device == "cpu" else ""
     return (f"{took}: its start and its end (the "
