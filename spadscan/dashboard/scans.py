@@ -75,8 +75,7 @@ last one is no longer true); `spadscan ctl status` says what the daemon is doing
 PACE_POSES = 8
 """The pace of a scan is read from the publications of its last (at most) this many poses."""
 QUIET_FACTOR = 5.0
-QUIET_FLOOR_S = 30.0
-FIRST_POSES_S = 60.0
+QUIET_FLOOR_S = 120.0
 """See `quiet_limit_s`."""
 
 JSON_KINDS = {int: "a whole number", str: "a string", dict: "an object"}
@@ -181,13 +180,11 @@ def interrupted(row: ScanRow) -> ScanRow:
 def quiet_limit_s(published: list[float]) -> float:
     """How long a running scan may go without news before it is shown as stalled: QUIET_FACTOR times its recent pose
     interval (the median gap between its last PACE_POSES publications: a pause and resume between two poses does not
-    stretch it), at least QUIET_FLOOR_S (a few of the daemon's frame timeouts, 5 s by default: a silent sensor
-    pauses the scan, recorded, well before). Before two poses are published the pace is unknown: FIRST_POSES_S (the
-    first move starts from wherever the arm stands; the daemon's default move timeout is 60 s)."""
+    stretch it), at least QUIET_FLOOR_S: a healthy pose may take the daemon's whole move timeout (60 s by default: a
+    slow arm's long move, the first move of a scan or of a resume, from wherever the arm stood) and then its frames,
+    and a silent sensor pauses the scan, recorded, within a few frame timeouts."""
     gaps = [b - a for a, b in zip(published, published[1:])]
-    if not gaps:
-        return FIRST_POSES_S
-    return max(QUIET_FLOOR_S, QUIET_FACTOR * statistics.median(gaps))
+    return max(QUIET_FLOOR_S, QUIET_FACTOR * statistics.median(gaps)) if gaps else QUIET_FLOOR_S
 
 
 def stalled(row: ScanRow, now: float) -> ScanRow:
