@@ -14,7 +14,8 @@ axis-aligned box instead (what of the table lies inside the box is scored with t
 
 A note (the table's `note` line, `mismatch_note` in the JSON) says when the two meshes plainly are not the same object
 in the same units and frame: their bounding boxes do not overlap, or differ over 5x in size (a mesh in cm read as
-metres is 100x too large). The score is printed all the same.
+metres is 100x too large; not judged with --keep-table or --box, where a table may be scored). The score is printed
+all the same.
 
 Examples:
   spadscan eval recon.obj --gt bunny.obj
@@ -72,10 +73,11 @@ def box_line(box) -> str:
     return f"both meshes inside the box [{corners[0]}] .. [{corners[1]}] m (--box)"
 
 
-def mismatch_note(mesh, gt) -> str | None:
+def mismatch_note(mesh, gt, compare_sizes: bool = True) -> str | None:
     """One line when the scored meshes plainly are not one object in one frame and unit (their bounding boxes do
-    not overlap, or their diagonals differ over SIZE_RATIO times), else None. A Chamfer of hundreds of mm says that
-    something is wrong, not what."""
+    not overlap, or, with `compare_sizes`, their diagonals differ over SIZE_RATIO times), else None. A Chamfer of
+    hundreds of mm says that something is wrong, not what. Sizes are not compared where a table was kept (--keep-table,
+    --box): a ground truth's table slab is many times its object, which no reconstruction holds."""
     import numpy as np
 
     a, b = np.asarray(mesh.bounds, float), np.asarray(gt.bounds, float)
@@ -85,7 +87,7 @@ def mismatch_note(mesh, gt) -> str | None:
                     f"({_bounds(a)} and {_bounds(b)} m)")
     sizes = {"mesh": float(np.linalg.norm(a[1] - a[0])), "gt": float(np.linalg.norm(b[1] - b[0]))}
     large, small = sorted(sizes, key=sizes.get, reverse=True)
-    if sizes[small] > 0 and sizes[large] / sizes[small] > SIZE_RATIO:
+    if compare_sizes and sizes[small] > 0 and sizes[large] / sizes[small] > SIZE_RATIO:
         said.append(f"{WHO[large]} is {sizes[large] / sizes[small]:.3g}x the size of {WHO[small]} (bounding-box "
                     f"diagonals {sizes[large]:.3g} and {sizes[small]:.3g} m)")
     if not said:
@@ -148,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         pred = crop_to_box(pred, args.box[:3], args.box[3:], what=f"the mesh {args.mesh}")
         truth = GroundTruth(crop_to_box(truth.mesh, args.box[:3], args.box[3:], what=f"the ground truth {args.gt}"))
     scored = truth.scored(pred)  # what GroundTruth.metrics compares, kept to check the two meshes against each other
-    note = mismatch_note(scored, truth.mesh)
+    note = mismatch_note(scored, truth.mesh, compare_sizes=not args.keep_table and args.box is None)
     metrics = mesh_metrics(scored, truth.mesh, n_points=args.points, seed=args.seed,
                            fscore_threshold_m=args.threshold_mm * 1e-3)
     box = None if args.box is None else [list(args.box[:3]), list(args.box[3:])]

@@ -98,7 +98,7 @@ def test_meshes_that_plainly_differ_get_a_note_and_keep_their_score(tmp_path, ca
 
 
 @pytest.mark.parametrize("case", ["itself", "a partial reconstruction", "above a table", "inside a box",
-                                  "a built-in scene"])
+                                  "table kept", "inside a box holding the table", "a built-in scene"])
 def test_ordinary_evaluations_get_no_note(tmp_path, capsys, case):
     ball().export(tmp_path / "ball.ply")
     on_table().export(tmp_path / "table.ply")
@@ -108,6 +108,10 @@ def test_ordinary_evaluations_get_no_note(tmp_path, capsys, case):
                          "a partial reconstruction": ("cap.ply", "ball.ply", []),
                          "above a table": ("ball.ply", "table.ply", []),
                          "inside a box": ("ball.ply", "table.ply", ["--box", *BOX]),
+                         # a table slab many times the ball's size: no unit or frame mistake
+                         "table kept": ("ball.ply", "table.ply", ["--keep-table"]),
+                         "inside a box holding the table": ("ball.ply", "table.ply",
+                                                            ["--box", "-0.8", "-0.8", "-0.05", "0.8", "0.8", "0.3"]),
                          "a built-in scene": ("builtin:cup", "builtin:cup", [])}[case]
     paths = [m if m.startswith("builtin:") else tmp_path / m for m in (mesh, gt)]
     rc, out, err = evaluate(capsys, *paths, *options)
