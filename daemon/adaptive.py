@@ -26,6 +26,7 @@ import numpy as np
 
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.live_status import read_status, status_path
+from spadscan.protocol.live_status import status_path
 from spadscan.protocol.next_views import (FILE, NextViews, candidate_poses, read_next_views, too_close,
                                           view_angles_deg)
 
@@ -107,9 +108,12 @@ class ViewChooser:
             nv = read_next_views(self.capture)
         except CaptureError as exc:
             if not (self.capture / FILE).exists():
-                # Said once: a scan asked to be adaptive that no live worker ranks is its fallback plan throughout.
-                self._note(f"scan {self.capture.name}: no live reconstruction has ranked its views yet (no {FILE}): "
-                           f"taking the fallback plan until one does (is a worker running with --live?)")
+                if not status_path(self.capture).exists():
+                    # Said once: a scan no live worker follows is its fallback plan throughout. One that a live job
+                    # follows but has not ranked yet (its first fit takes a while) is the usual start: not said.
+                    self._note(f"scan {self.capture.name}: no live reconstruction follows it (no {FILE}, no live "
+                               f"status): taking the fallback plan until one ranks its views (is a worker running "
+                               f"with --live?)")
                 return None, f"no {FILE} yet"
             self._note(f"scan {self.capture.name}: {exc}; taking the fallback plan")
             return None, f"{FILE} unreadable ({exc})"

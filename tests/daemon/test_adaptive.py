@@ -278,15 +278,24 @@ def test_the_fallback_passes_over_queued_poses_close_to_taken_ones(tmp_path):
     np.testing.assert_array_equal(out[INITIAL + 1], plan[INITIAL])  # kept in the queue, for the end
 
 
-def test_a_scan_no_live_worker_ranks_says_so_once(tmp_path, caplog):
+def test_a_scan_no_live_worker_follows_says_so_once(tmp_path, caplog):
     _, chooser, plan, folder = chooser_for(tmp_path)
     with caplog.at_level(logging.WARNING, logger="spadscan.daemon"):
         for i in range(INITIAL, INITIAL + 3):
             choice, plan = chooser.choose(plan, i)
             assert choice.why == "fallback"
     said = [r.getMessage() for r in caplog.records]
-    assert said == [f"scan {folder.name}: no live reconstruction has ranked its views yet (no next_views.json): "
-                    f"taking the fallback plan until one does (is a worker running with --live?)"]
+    assert said == [f"scan {folder.name}: no live reconstruction follows it (no next_views.json, no live status): "
+                    f"taking the fallback plan until one ranks its views (is a worker running with --live?)"]
+
+
+def test_a_scan_whose_live_job_has_not_ranked_yet_is_the_usual_start_and_not_said(tmp_path, caplog):
+    _, chooser, plan, folder = chooser_for(tmp_path)
+    (folder / "recon" / "live").mkdir(parents=True)
+    write_status(folder / "recon" / "live", LiveStatus(views_used=8, views_published=16, steps=40))
+    with caplog.at_level(logging.WARNING, logger="spadscan.daemon"):
+        choice, _ = chooser.choose(plan, INITIAL)
+    assert choice.why == "fallback" and caplog.records == []
 
 
 def test_no_reachable_pose_left_is_one_line(tmp_path):
