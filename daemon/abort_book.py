@@ -4,7 +4,8 @@ An acknowledged abort must never be undone by a restart: one that scan.json cann
 `abort-pending.json` in the scan folder where an empty file still fits (no daemon takes such a scan over, and the next
 one records it), in memory in any case, and written again every ABORT_RETRY_S, at each control request and at
 shutdown. The daemon's last_error tells the operator where each one stands, truthfully: it is replaced when the
-abort's standing changes and cleared when the abort lands, but only while it still tells of that abort.
+abort's standing changes and cleared when the abort lands, but only while it still tells of that abort. A scan whose
+folder is gone (the operator deleted it by hand) has nothing to record: its abort is done, never kept.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from .scan_job import ABORT_PENDING, clear_abort_pending, note_abort_pending
 
 log = logging.getLogger("spadscan.daemon")
 ABORT_RETRY_S = 5.0  # how often an abort the disk could not take is written again (room may come back at any time)
+FOLDER_GONE = "its folder is gone: nothing to record"
+"""What an abort of a scan whose folder was removed (by hand, mid-scan) says: done, as there is no capture to mark."""
 
 IO = Callable[..., Awaitable]
 """Runs a function on the capture writer's thread (writes never interleave with a scan's publishing)."""
@@ -38,13 +41,18 @@ class AbortBook:
     def __init__(self, io: IO, replace_error: Replace, auto_resume: bool):
         self._io, self._replace, self._auto_resume = io, replace_error, auto_resume
         self.unrecorded: dict[str, dict] = {}
+        self.folder_gone: set[str] = set()
+        """The scans whose abort found their folder gone (nothing recorded, nothing kept)."""
         self._retrying: asyncio.Task | None = None
 
     async def record(self, name: str, path: Path, reason: str, writer: CaptureWriter | None) -> None:
         """Record scan `name`'s abort in its capture (through `writer` when one is open); one the disk cannot take is
         kept and written again until it lands."""
+        self.folder_gone.discard(name)  # (a name freed by a folder removed by hand may be taken again)
         error = await self._io(_write_abort, path, reason, writer)
-        if error is None:
+        if error is FOLDER_GONE:
+            self._gone(name)
+        elif error is None:
             self._landed(name)
         else:
             await self._keep(name, path, reason, error)
@@ -54,6 +62,9 @@ class AbortBook:
         given the record it lacks)."""
         for name, held in list(self.unrecorded.items()):
             error = await self._io(_write_abort, held["path"], held["reason"], None)
+            if error is FOLDER_GONE:  # deleted by hand since: no capture is left to undo the abort
+                self._gone(name)
+                continue
             if error is None:
                 self._landed(name)
                 continue
@@ -106,6 +117,15 @@ class AbortBook:
             if held.get("said") is not None:
                 self._replace(held["said"], None)
 
+    def _gone(self, name: str) -> None:
+        """Scan `name`'s folder is gone: its abort is done (no capture is left to record it in, nor to take over), and
+        a last_error that told of it goes."""
+        self.folder_gone.add(name)
+        log.info("scan %s aborted: %s", name, FOLDER_GONE)
+        held = self.unrecorded.pop(name, None)
+        if held is not None and held.get("said") is not None:
+            self._replace(held["said"], None)
+
     def _said_again(self, name: str, held: dict) -> None:
         """An unrecorded abort's standing changed (abort-pending.json made at last, another error): last_error, if it
         still tells of that abort, says where it stands now (a restart no longer scans on, say), not what it was."""
@@ -123,8 +143,10 @@ class AbortBook:
 def _write_abort(path: Path, reason: str, writer: CaptureWriter | None) -> str | None:
     """Record an abort in the capture at `path` (on the writer thread): through its open writer (its last pose
     published first), else, or when that fails, in the manifest alone, after the temporary files no writer will
-    finish are dropped (their room may be what the manifest needs). Returns None, or why it could not be recorded.
-    A recorded abort's abort-pending.json goes."""
+    finish are dropped (their room may be what the manifest needs). Returns None, FOLDER_GONE when the capture's
+    folder no longer exists, or why it could not be recorded. A recorded abort's abort-pending.json goes."""
+    if not path.is_dir():  # removed by hand: a write would only fail (and be kept, retried, blamed on the disk)
+        return FOLDER_GONE
     if writer is not None:
         try:
             writer.finish("aborted", reason)

@@ -48,10 +48,10 @@ from spadscan.protocol.capture_format import MANIFEST, Measurement, read_json
 from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
-from .abort_book import AbortBook
+from .abort_book import FOLDER_GONE, AbortBook
 from .config import DaemonConfig, scan_request
 from .arm.stops import clear_advice, stop_name
-from .describe import describe
+from .describe import SLIDER_FULL, describe, slider_note
 from .devices import Arm, ArmFault, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abort_pending, check_scan_name,
                        clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
@@ -244,7 +244,10 @@ class ScanRunner:
                  "resuming by itself: auto_resume" if auto else "paused until `ctl resume`")
         self._launch("paused")
         if auto:
-            await self.resume()
+            try:
+                await self.resume()
+            except ConfigError as exc:  # a cause known to persist (the sensor's link down): it stays paused
+                log.warning("scan %s: auto_resume did not continue it: %s", job.name, exc)
         return True
 
     async def _cannot_take_over(self, path: Path, exc: BaseException) -> None:
@@ -321,6 +324,9 @@ class ScanRunner:
         elif self.state == "paused" and job is not None:
             if job.blocked:
                 raise ConfigError(f"cannot resume scan {job.name!r}: {job.blocked}")
+            await self._check_resumable(job)
+            if self.job is not job or self.state != "paused":  # an abort, another resume came meanwhile
+                return await self.resume(name)
             log.info("scan %s: resumed at pose %s%s", job.name, self._progress(),
                      f" (was paused: {job.reason})" if job.reason else "")
             self._resume.set()
@@ -329,6 +335,33 @@ class ScanRunner:
         else:
             raise ConfigError(f"nothing to resume (daemon is {self.state})")
         return self.status()
+
+    async def _check_resumable(self, job: ScanJob) -> None:
+        """Before a paused scan goes on: a cause the daemon knows cheaply to persist refuses the resume at once, the
+        scan left paused with that cause as its reason (a reply of 'scanning' that a pause follows a moment later
+        would be untrue): the sensor's link down (it reconnects by itself), a capture that cannot be reopened (a
+        full disk, its folder removed). A capture reopened here is the one the scan goes on with. What the resumed
+        run fixes by itself (the arm's link: it reconnects) is left to it."""
+        link = self.sensor.counters().get("link")
+        if link == "down":
+            self._refuse_resume(job, f"the link to {self.sensor.name} is down (it reconnects by itself); resume once "
+                                     f"`spadscan ctl status` shows its link up")
+        if job.writer is not None:
+            return
+        try:
+            writer = await self._io(CaptureWriter.resume, job.path)
+        except (OSError, CaptureError) as exc:
+            self._refuse_resume(job, _reopen_problem(job, exc))
+        if self.job is job and self.state == "paused" and job.writer is None:
+            job.writer = writer
+            job.record_progress(writer)
+
+    def _refuse_resume(self, job: ScanJob, cause: str) -> None:
+        """Refuse to resume `job` for `cause`, which becomes its pause's reason (status tells it as it stands now)."""
+        job.reason = self.last_error = f"{cause} (pose {self._progress()})"
+        log.warning("scan %s: not resumed: %s", job.name, cause)
+        self._notify()
+        raise ConfigError(f"cannot resume scan {job.name!r}: {cause}")
 
     async def _resume_interrupted(self, name: str) -> dict:
         """Take over the daemon's interrupted scan `name` (one it could not take over at start-up, or another), then
@@ -392,7 +425,10 @@ class ScanRunner:
         return self._aborted_reply(name)
 
     def _aborted_reply(self, name: str) -> dict:
-        return {**self.status(), "aborted": name, "abort_recorded": name not in self.aborts.unrecorded}
+        reply = {**self.status(), "aborted": name, "abort_recorded": name not in self.aborts.unrecorded}
+        if name in self.aborts.folder_gone:  # removed by hand: the abort is done, with nothing to record
+            reply["abort_note"] = FOLDER_GONE
+        return reply
 
     def _replace_error(self, old: str | None, new: str | None) -> bool:
         """last_error becomes `new` if `old` is None or last_error still says `old` (it tells of nothing newer)."""
@@ -440,14 +476,34 @@ class ScanRunner:
     async def shutdown(self) -> None:
         """Stop the scan in flight (leaving its capture 'running', resumable) and the writer thread."""
         if self._task is not None:
+            job, paused, error = self.job, self.state in ("paused", "pausing"), self.last_error
             await self._cancel(("running", "daemon stopped; a restarted daemon resumes at the first unpublished pose"))
+            if job is not None and self.job is job:  # (an abort under way ended it: not left)
+                log.info("%s", self._left_note(job, paused, self.last_error if self.last_error != error else None))
         await self.aborts.close()
         self._io_pool.shutdown(wait=True)
+
+    def _left_note(self, job: ScanJob, paused: bool, unrecorded: str | None) -> str:
+        """Where a scan the daemon stops with stands, and how it goes on: the last line an operator who stopped the
+        daemon (Ctrl-C, SIGTERM) reads. `unrecorded`: why its state could not be recorded on stopping."""
+        at = f"scan {job.name} left {'paused ' if paused else ''}at pose {self._progress()}"
+        if paused and job.reason:
+            at += f" ({job.reason})"
+        if job.blocked:
+            return f"{at}; not resumable as the rig stands: {job.blocked}"
+        if unrecorded is not None:
+            return f"{at}; {unrecorded}"
+        on = "it goes on by itself (auto_resume)" if self.cfg.auto_resume and not paused else \
+            "then `spadscan ctl resume`"
+        return f"{at}, resumable: start the daemon again, {on}"
 
     def status(self) -> dict:
         job = self.job
         out = {"state": self.state, "scan": None, "last_error": self.last_error, "arm": self.arm.name,
                "sensor": {"name": self.sensor.name, **self.sensor.counters()}}
+        slider = _speed_slider(self.arm)
+        if slider is not None and slider < SLIDER_FULL:
+            out.update(speed_scaling=round(slider, 3), speed_note=slider_note(slider))
         if job is not None:
             out.update(scan=job.name, path=str(job.path), pose=job.next_pose, poses=job.n_poses,
                        progress=self._progress(), frames=job.frames, frames_per_pose=job.scan.frames_per_pose,
@@ -1157,6 +1213,28 @@ def _end_early(job: ScanJob) -> None:
     job.writer.replace_schedule(job.sensor_poses[:n])
     job.writer.flush()
     job.writer.set_state("complete", job.ended_early, view_choices=dict(sorted(job.view_counts.items())))
+
+
+def _speed_slider(arm) -> float | None:
+    """The speed slider of an arm whose controller has one (UR), as last read, else None; through the wrapper that
+    tracks a sim sensor's arm pose (`rig.TrackedArm`: its `inner` arm)."""
+    while arm is not None:
+        slider = getattr(arm, "speed_slider", None)
+        if slider is not None:
+            return float(slider)
+        arm = getattr(arm, "inner", None)
+    return None
+
+
+def _reopen_problem(job: ScanJob, exc: BaseException) -> str:
+    """Why the capture of `job` cannot be reopened, with what the operator can do."""
+    if not job.path.is_dir():
+        return f"its folder {job.path} is gone; `spadscan ctl abort` ends the scan"
+    if not isinstance(exc, OSError):  # the capture itself is in the way (a damaged chunk)
+        return f"cannot reopen the capture: {exc}; `spadscan ctl abort` ends the scan"
+    what = describe(exc, "reopening it")
+    fix = "make room" if what.startswith("disk full") else "make the capture writable"
+    return f"cannot reopen the capture: {what}; {fix}, then `spadscan ctl resume`"
 
 
 def _remove_partial(path: Path) -> None:

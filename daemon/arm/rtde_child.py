@@ -91,7 +91,7 @@ class Client:
     def read(self) -> dict:
         """One consistent reading: TCP pose vector [m, rad], joints [rad], controller timestamp [s], safety flags and
         status bits, whether both links are up and the control script runs, TCP speed [m/s, rad/s], the combined
-        speed scaling (slider x trajectory scaling, 0..1)."""
+        speed scaling (slider x trajectory scaling, 0..1) and the pendant's speed slider alone (0..1)."""
         r, c = self.receive, self.control
         if r is None or c is None:
             raise RuntimeError("interfaces are not open")
@@ -100,7 +100,8 @@ class Client:
                 "safety_mode": int(r.getSafetyMode()), "safety_bits": int(r.getSafetyStatusBits()),
                 "connected": bool(r.isConnected() and c.isConnected()),
                 "program_running": bool(c.isProgramRunning()), "tcp_speed": list(r.getActualTCPSpeed()),
-                "speed_scaling": float(r.getSpeedScalingCombined())}
+                "speed_scaling": float(r.getSpeedScalingCombined()),
+                "speed_slider": float(r.getTargetSpeedFraction())}
 
     def read_progress(self) -> dict:
         """`read`, plus whether an asynchronous move is still running and the id of the last one that started (it

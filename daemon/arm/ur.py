@@ -58,6 +58,7 @@ from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rotvec_to_matrix, vector_to_pose
 from spadscan.daemon.arm.stops import (EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, SAFETY_FAULT, SAFETY_VIOLATION,
                                        clear_advice)
+from spadscan.daemon.describe import SLIDER_FULL, slider_note
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError
 
@@ -174,6 +175,9 @@ class URArm(Arm):
         self.tcp_offset: list[float] | None = None
         """The active TCP offset (pose vector [m, rad], flange frame) last read from the controller; None before the
         first read, or where the controller cannot tell."""
+        self.speed_slider: float | None = None
+        """The pendant's speed slider (target speed fraction, 0..1) last read from the controller; None before the
+        first read. `ctl status` shows it when below 1: a slowed arm otherwise looks like a slow or stuck scan."""
         # The last controller timestamp seen and when it last changed.
         self._last_ts: float | None = None
         self._last_change = 0.0
@@ -558,11 +562,24 @@ class URArm(Arm):
 
     async def _read(self, what: str, progress: bool = False) -> _Reading:
         d = await self._call(what, "read_progress" if progress else "read")
+        self._note_slider(d.get("speed_slider"))
         return _Reading(np.array(d["pose"], dtype=np.float64), np.array(d["joints"], dtype=np.float64),
                         float(d["timestamp"]), d["protective"], d["emergency"], d["safety_mode"], d["connected"],
                         np.array(d["tcp_speed"], dtype=np.float64), bool(d.get("moving", False)),
                         int(d["safety_bits"]), bool(d["program_running"]), float(d["speed_scaling"]),
                         int(d.get("op_id", -1)))
+
+    def _note_slider(self, slider: float | None) -> None:
+        """Keep the speed slider's reading; the log says once when it drops below 100 % and when it is back."""
+        if slider is None:
+            return
+        was, self.speed_slider = self.speed_slider, float(slider)
+        slowed, was_slowed = self.speed_slider < SLIDER_FULL, was is not None and was < SLIDER_FULL
+        if slowed and not was_slowed:
+            log.warning("%s: %s", self.name, slider_note(self.speed_slider))
+        elif was_slowed and not slowed:
+            log.info("%s: the controller runs moves at full speed again (the pendant's speed slider at 100 %%)",
+                     self.name)
 
     async def _lost(self, reason: str) -> LinkLost:
         """Send a last stopL (it may still get through: a link found stale can carry commands), end the ur_rtde

@@ -118,7 +118,8 @@ def add_arguments(parser) -> None:
        "the scan is paused; `last_error`: the last fault since the scan in hand (or the last one) started, or "
        "what still stands (an abort not recorded yet, a scan that could not be taken over); `live`: the scan's "
        "live reconstruction (recon/live/status.json) when a worker runs one (`spadscan worker --live`), with "
-       "`age_s`, the seconds since its last update.")
+       "`age_s`, the seconds since its last update; `speed_scaling` and `speed_note`: a UR arm's speed slider, "
+       "when below 100 % (the scan runs that much slower).")
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
               "config (examples/README.md documents each key).")
@@ -227,8 +228,9 @@ def reply_line(op: str, reply: dict) -> str:
     said = []
     aborted = reply.get("aborted")
     if aborted:
-        said.append(f"scan {aborted!r} aborted" + ("" if reply.get("abort_recorded", True) is not False
-                                                   else " (not recorded on disk yet)"))
+        note = reply.get("abort_note") or ("not recorded on disk yet" if reply.get("abort_recorded") is False
+                                          else None)
+        said.append(f"scan {aborted!r} aborted" + (f" ({note})" if note else ""))
     name = reply.get("scan")
     if name:
         line = f"scan {name!r} {reply.get('state')} at pose {reply.get('progress')}"
@@ -242,6 +244,8 @@ def reply_line(op: str, reply: dict) -> str:
             said.append(f"taking pose(s) {', '.join(str(p) for p in again)} again first")
         if op == "scan" and reply.get("path"):
             said.append(f"written to {reply['path']}")
+        if op in ("scan", "resume") and reply.get("speed_note"):  # why the scan will crawl
+            said.append(reply["speed_note"])
     elif not aborted:
         said.append(f"the daemon is {reply.get('state')}, with no scan in hand")
     return "; ".join(said)
