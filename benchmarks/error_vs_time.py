@@ -708,10 +708,13 @@ def main(argv=None) -> int:
                     help="replace the earlier run in --out: its runs/, results.json, table.md and error_vs_time.png\n"
                          "are deleted before the first run (without it, an --out holding any of them is refused;\n"
                          "captures/ imported from the dataset are kept and reused)")
-    ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                    help="where every run trains: auto (CUDA when torch sees a GPU, else the CPU), cpu or cuda\n"
+                         "(default: auto)")
     ap.add_argument("--every-s", type=positive_seconds, default=5.0,
                     help="seconds between checkpoints (default: 5)")
-    ap.add_argument("--seed", type=int_at_least(0), default=0)
+    ap.add_argument("--seed", type=int_at_least(0), default=0,
+                    help="seed of every run, the same for each preset and scene (default: 0)")
     ap.add_argument("--marks", type=parse_marks, default=MARKS_S, metavar="S,S,...",
                     help="wall times (s) of the table's Chamfer columns (default: 30,60,180; on a GPU, where the goal "
                          "is 2 mm in 10 s, e.g. 5,10,30;\nmarks after --budget-s get no column)")

@@ -252,9 +252,13 @@ def main(argv=None) -> int:
     ap.add_argument("--captures", type=Path, default=Path("captures-live-recoarse"),
                     help="where the simulated captures are made and kept (default: captures-live-recoarse, in the "
                          "current folder)")
-    ap.add_argument("--steps-per-view", type=int, default=16)
-    ap.add_argument("--final-steps", type=int, default=35)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--steps-per-view", type=int, default=16,
+                    help="training steps of the live fit per pose published (default 16: what the one-thread live "
+                         "fit made per 2.1 s pose)")
+    ap.add_argument("--final-steps", type=int, default=35,
+                    help="training steps of the final model once the scan is complete (default 35: what the 20 s "
+                         "final run made)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of every fit, the peer's included (default 0)")
     ap.add_argument("--capture", type=Path, help="a capture the daemon recorded (published in its own order), "
                                                  "in place of --scenes")
     ap.add_argument("--refits", type=Path, help="with --capture: its live job's log (recon/<job>/job.log), whose "

@@ -10,13 +10,21 @@ order they were queued; `close` is prompt: what is still queued or half-written 
 `start_measuring` models the bridge's timing on a chip that measures cyclically (the UW firmware's loop: clear a
 record's interrupt, read the record, print its line; the chip hands the next record over after the clear, and keeps
 the latest finished measurement in a one-frame buffer) and records when each frame's measurement was exposed.
+
+Run as a command (`python -m spadscan.daemon.sensor.sim_bridge --help`), the twin stands in for the bridge of a rig
+config (`examples/rig-serial.toml`): it prints its port in one line and streams a fixed scene seen from a fixed pose
+(it knows no arm) until Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
 
+import argparse
+import math
 import os
 import queue
 import select
+import signal
+import sys
 import tempfile
 import threading
 import time
@@ -26,6 +34,8 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from spadscan.protocol.errors import SpadscanError
 
 FAULTS = ("drop", "duplicate", "swap", "truncate", "garble", "out_of_range", "merge", "no_result", "bad_result")
 """Frame faults `send_frame` can inject; every one of them must make the receiver drop the frame."""
@@ -322,3 +332,145 @@ class SimBridge:
             if fd is not None:
                 os.close(fd)
         self._master = self._slave = None
+
+
+# ---- the twin as a command ---------------------------------------------------------------------------------------
+PROG = "python -m spadscan.daemon.sensor.sim_bridge"
+UNREAD_WRITE_TIMEOUT_S = 0.02
+"""The command's write timeout: a frame nobody reads (no daemon has the port open) is dropped at once, as a USB
+bridge's output is lost, instead of piling up behind the pty's full buffer and arriving stale later."""
+
+
+class FixedView:
+    """counts (10, 128) for the bridge: the scene's expected photon rates from one fixed sensor pose, computed once,
+    with fresh photon noise drawn for every frame (`simulator`: a protocol `Simulator`)."""
+
+    def __init__(self, simulator, pose: np.ndarray):
+        self._sim = simulator
+        self._rates = simulator.expected_rates(pose[None])
+        self._reference = simulator.reference_rates(1)
+
+    def __call__(self) -> np.ndarray:
+        hists = self._sim.draw_counts(self._rates)[0][0]
+        reference = None if self._reference is None else \
+            self._sim.draw_counts(self._reference, self._sim.reference_rng)[0][0]
+        return bridge_counts(hists, reference)
+
+
+def fixed_view(mesh_spec: str, distance_m: float, elevation_deg: float, seed: int) -> FixedView:
+    """The TMF8820 preset looking at the centre of the mesh's bounding box from distance_m away, elevation_deg above
+    its horizontal plane (from +x). Imports the simulator here: importing the twin for tests costs none of it."""
+    from spadscan.protocol.mesh_io import load_mesh_spec
+    from spadscan.protocol.schedules import look_at
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import Simulator
+
+    mesh, _ = load_mesh_spec(mesh_spec)
+    centre = np.asarray(mesh.bounds, dtype=np.float64).mean(axis=0)
+    el = math.radians(elevation_deg)
+    eye = centre + distance_m * np.array([math.cos(el), 0.0, math.sin(el)])
+    return FixedView(Simulator(mesh, sensor_preset("tmf8820"), seed=seed), look_at(eye, centre))
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """Usage errors in one line (the usage itself is in --help)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _number(kind, lo: float, hi: float, unit: str):
+    """An argparse type: a finite `kind` (int or float) in [lo, hi], refused in words naming the range."""
+    what, span = ("a number", f"[{lo:g}, {hi:g}]{unit}") if kind is float else ("a whole number", f"[{lo}, {hi}]{unit}")
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not (math.isfinite(value) and lo <= value <= hi):
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what} in {span}")
+        return value
+    return parse
+
+
+def _folder(text: str) -> str:
+    """An existing folder, made absolute: the printed port goes into a config, which reads paths from its own
+    folder."""
+    if not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not an existing folder")
+    return os.path.abspath(text)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(
+        prog=PROG,
+        description="The simulated Arduino bridge of a serial TMF8820, on a pseudo-terminal: rehearse a rig config "
+                    "with [sensor] backend = \"serial\" without the hardware.",
+        epilog="It prints its port in one line; set the config's [sensor] port to it (and bridge_period_ms to "
+               "--period-ms). It knows no arm: every frame renders the same scene from the same fixed pose "
+               "(--distance-m from the centre of the scene's bounding box, --elevation-deg above it), with fresh "
+               "photon noise, in the bridge's #Raw/#Obj lines (the #Obj lines carry no on-chip distances). So a "
+               "scan records real bridge traffic that does not follow the arm: it rehearses the link and the "
+               "rig, not a reconstruction. "
+               "Frames nobody reads are dropped, as a USB bridge's are. Ctrl-C or SIGTERM stops it.")
+    parser.add_argument("--dir", type=_folder, default=None,
+                        help="folder for the port, DIR/ttyBRIDGE, a link to the pty (like /dev/serial/by-id/...), "
+                             "so that a config keeps one path across runs (default: a new temporary folder)")
+    parser.add_argument("--mesh", default="builtin:demo", metavar="SPEC",
+                        help="the scene: a mesh file (metres; STL in millimetres is detected) or builtin:NAME "
+                             "(sphere, cup, lamp, pyramid, demo; default builtin:demo)")
+    parser.add_argument("--distance-m", type=_number(float, 0.01, 10.0, " m"), default=0.25,
+                        help="distance of the fixed sensor pose from the scene's centre, m (default 0.25, the "
+                             "radius_m of examples/rig-serial.toml)")
+    parser.add_argument("--elevation-deg", type=_number(float, -90.0, 90.0, " deg"), default=45.0,
+                        help="elevation of the fixed sensor pose above the scene centre's horizontal plane, "
+                             "degrees (default 45)")
+    # At 50 ms a frame nobody reads is dropped before the next one is due; a real bridge needs ~140 ms to print one.
+    parser.add_argument("--period-ms", type=_number(int, 50, 65535, " ms"), default=230,
+                        help="frame period, ms, as the bridge firmware's PERIOD (50-65535; default 230, the UW "
+                             "firmware's and the daemon's default bridge_period_ms)")
+    parser.add_argument("--seed", type=_number(int, 0, 2**32 - 1, ""), default=0,
+                        help="seed of the photon noise (default 0)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except KeyboardInterrupt:  # Ctrl-C while the scene was being built: nothing was opened yet
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
+    try:
+        source = fixed_view(args.mesh, args.distance_m, args.elevation_deg, args.seed)
+    except (SpadscanError, OSError, ValueError) as exc:
+        said = str(exc) if args.mesh in str(exc) else f"--mesh {args.mesh}: {exc}"
+        print(f"{PROG}: error: {said}", file=sys.stderr)
+        return 1
+    with SimBridge(args.dir, write_timeout_s=UNREAD_WRITE_TIMEOUT_S) as bridge:
+        bridge.start_stream(source, args.period_ms / 1000)
+        print(f"bridge twin on {bridge.port} ({os.path.realpath(bridge.port)}): "
+              f"set [sensor] port = \"{bridge.port}\" (Ctrl-C stops it)", flush=True)
+        _serve_until_stopped()
+        frames = bridge.counts["frames"]
+    print(f"bridge twin stopped after {frames} frames", flush=True)
+    return 0
+
+
+def _serve_until_stopped() -> None:
+    """Wait for Ctrl-C or SIGTERM; the stream runs in its own threads. Both handlers are set here: a shell that starts
+    the twin in the background (`... &`) hands it SIGINT ignored, and the twin still stops on `kill -INT`."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        stop.wait()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

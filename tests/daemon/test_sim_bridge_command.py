@@ -1,0 +1,76 @@
+"""The bridge twin as a command (`python -m spadscan.daemon.sensor.sim_bridge`): it says where its port is in one
+line, serves the bridge's line protocol there to the real pyserial, stops on Ctrl-C with exit 0, and refuses a bad
+option in one line."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+
+import pytest
+import serial
+
+from process_helpers import reaped
+from spadscan.daemon.sensor.serial_bridge import classify_line
+from spadscan.daemon.sensor.transport import HistogramPacket, ResultPacket
+
+COMMAND = [sys.executable, "-m", "spadscan.daemon.sensor.sim_bridge"]
+PORT_LINE = re.compile(r'set \[sensor\] port = "([^"]+)"')
+
+
+def first_record(port: str, max_lines: int = 200) -> HistogramPacket | ResultPacket:
+    """The first `#Raw` or `#Obj` record read from `port` that the serial backend accepts (the first line may be cut:
+    the port opens mid-stream)."""
+    with serial.Serial(port, 1_000_000, timeout=10) as ser:
+        for _ in range(max_lines):
+            line = ser.readline()
+            assert line.endswith(b"\n"), f"no complete line within 10 s: {line[:40]!r}"
+            packet = classify_line(line.rstrip(b"\n"), 0.0, 0x41)
+            if isinstance(packet, (HistogramPacket, ResultPacket)):
+                return packet
+    raise AssertionError(f"no well-formed record in {max_lines} lines")
+
+
+def ignore_sigint() -> None:
+    """What a shell does to a command it starts in the background (`... &`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.parametrize("stop, started", [(signal.SIGINT, None), (signal.SIGTERM, None),
+                                           (signal.SIGINT, ignore_sigint)], ids=["ctrl-c", "sigterm", "background"])
+def test_the_twin_serves_its_port_and_stops_on_a_signal(tmp_path, stop, started):
+    proc = subprocess.Popen([*COMMAND, "--dir", str(tmp_path), "--mesh", "builtin:sphere", "--period-ms", "50"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=started)
+    with reaped(proc):
+        said = proc.stdout.readline()
+        match = PORT_LINE.search(said)
+        assert match, f"no port in {said!r}; stderr: {proc.stderr.read() if proc.poll() is not None else ''}"
+        port = match.group(1)
+        assert port == str(tmp_path / "ttyBRIDGE")
+        record = first_record(port)
+        # the backend accepted it for address 0x41; a whole record's fields came through
+        assert len(record.payload) == 128 if isinstance(record, HistogramPacket) else len(record.distances_mm) == 36
+        proc.send_signal(stop)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err
+        assert "Traceback" not in err
+        assert not (tmp_path / "ttyBRIDGE").exists(), "the port's link outlived the twin"
+        assert out.startswith("bridge twin stopped after "), out
+
+
+def test_a_bad_option_is_one_line():
+    proc = subprocess.run([*COMMAND, "--period-ms", "-5"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--period-ms" in lines[0], proc.stderr
+    assert proc.stdout == ""
+
+
+def test_help_says_what_the_twin_renders():
+    proc = subprocess.run([*COMMAND, "--help"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    for option in ("--dir", "--mesh", "--distance-m", "--elevation-deg", "--period-ms", "--seed"):
+        assert option in proc.stdout
+    assert "fixed" in proc.stdout
