@@ -19,9 +19,10 @@ file system that shares flock locks between machines.
 
 A scan whose scan.json says running but whose newest pose (or last scan.json write, a resume) is older than five
 times its recent pose interval (the median gap between its last 8 poses), and never less than 120 s (the daemon's
-default move timeout and a pose's frames), is shown as "stalled (no new pose for N s ...)", without a frame rate, and the top line says "daemon:
-no new pose of SCAN for N s": the daemon may have paused without being able to record it (a full disk) or be
-stuck; `spadscan ctl status` says which. The page only reads files: the daemon's own state is asked of its socket.
+default move timeout and a pose's frames), is shown as "stalled (no new pose for N s ...)", without a frame rate,
+and the top line says "daemon: no new pose of SCAN for N s": the daemon may have paused without being able to record
+it (a full disk) or be stuck; `spadscan ctl status` says which. The page only reads files: the daemon's own state is
+asked of its socket.
 
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
 The root is the folder of scans, never one scan's own folder (that is refused, naming its parent); a root with no

@@ -233,7 +233,8 @@ def test_a_run_whose_training_overran_names_training_not_its_start_and_end():
     facts = RunFacts("budget", 1, None, [1.0], cpu_seconds=80.0, wall_seconds=81.8, budget_s=40.0, elapsed_s=159.0,
                      training_s=81.8, training_budget_s=2.8)
     (line,) = [w for w in warnings(facts) if w.startswith("the run took")]
-    assert line.startswith("the run took 159.0 s of a 40 s time budget: training took 82 s of the 2.8 s the budget left")
+    assert line.startswith("the run took 159.0 s of a 40 s time budget: training took 82 s of the 2.8 s the "
+                           "budget left")
     assert "its start and its end" not in line and "--device cuda" in line
     spent = RunFacts("budget", 1, None, [1.0], cpu_seconds=80.0, wall_seconds=105.0, budget_s=40.0, elapsed_s=200.9,
                      training_s=105.0, training_budget_s=0.01)  # the set-up used the whole budget
