@@ -125,10 +125,8 @@ def refuse_open(port, baud, timeout=None):
     raise serial.SerialException(errno.EACCES, f"could not open port {port}: [Errno 13] Permission denied: '{port}'")
 
 
-def test_a_port_whose_open_is_refused_names_the_group_at_start(tmp_path, pty_port, monkeypatch, arun):
-    monkeypatch.setattr(serial_bridge.serial, "Serial", refuse_open)
-    _, sensor = build_devices(serial_cfg(tmp_path, pty_port))
-
+def connect_error(arun, sensor) -> str:
+    """The one line of the DeviceError that connecting `sensor` raises (the sensor closed after)."""
     async def main():
         try:
             await sensor.connect()
@@ -137,23 +135,20 @@ def test_a_port_whose_open_is_refused_names_the_group_at_start(tmp_path, pty_por
 
     with pytest.raises(DeviceError) as err:
         arun(main())
-    text = str(err.value)
+    return str(err.value)
+
+
+def test_a_port_whose_open_is_refused_names_the_group_at_start(tmp_path, pty_port, monkeypatch, arun):
+    monkeypatch.setattr(serial_bridge.serial, "Serial", refuse_open)
+    _, sensor = build_devices(serial_cfg(tmp_path, pty_port))
+    text = connect_error(arun, sensor)
     assert text.startswith(f"sensor serial {pty_port}: cannot open port at 1000000 baud: [Errno 13]")
     assert "Permission denied" in text and "group (sudo usermod -aG" in text and text.endswith("log out and in again")
 
 
 def test_an_open_that_fails_for_another_reason_gets_no_group_advice(tmp_path, arun):
     _, sensor = build_devices(serial_cfg(tmp_path, str(tmp_path / "ttyGONE")))
-
-    async def main():
-        try:
-            await sensor.connect()
-        finally:
-            await sensor.close()
-
-    with pytest.raises(DeviceError) as err:
-        arun(main())
-    assert "usermod" not in str(err.value)
+    assert "usermod" not in connect_error(arun, sensor)
 
 
 def test_a_refused_permission_is_found_behind_the_errors_that_reword_it():

@@ -124,59 +124,44 @@ def _started(tmp_path, *extra):
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def test_a_first_ctrl_c_while_training_publishes_the_run(tmp_path):
-    proc = _started(tmp_path)
+def ctrl_c_after(tmp_path, lines: list[str], *extra, then: str | None = None) -> tuple[int, str, str]:
+    """Run the stand-in with `extra` flags, press Ctrl-C once after each of its output `lines` in turn, give it
+    `then` on its stdin, and return (its exit status, the rest of its stdout, its stderr)."""
+    proc = _started(tmp_path, *extra)
     try:
-        assert proc.stdout.readline() == "training\n"
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
+        for line in lines:
+            assert proc.stdout.readline() == line + "\n"
+            proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(then, timeout=60)
     finally:
         proc.kill()
         proc.wait()
-    assert proc.returncode == 0, err
+    return proc.returncode, out, err
+
+
+def test_a_first_ctrl_c_while_training_publishes_the_run(tmp_path):
+    code, _, err = ctrl_c_after(tmp_path, ["training"])
+    assert code == 0, err
     assert "stopping: training ends at its next step" in err and "Ctrl-C again aborts, keeping nothing" in err
     assert (tmp_path / "out" / "mesh.ply").read_text() == "the stopped run's mesh"
 
 
 def test_a_second_ctrl_c_aborts_keeping_nothing(tmp_path):
-    proc = _started(tmp_path, "--then-wait")
-    try:
-        assert proc.stdout.readline() == "training\n"
-        proc.send_signal(signal.SIGINT)
-        assert proc.stdout.readline() == "ended training\n"
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-        proc.wait()
-    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "spadscan: interrupted", err
+    code, _, err = ctrl_c_after(tmp_path, ["training", "ended training"], "--then-wait")
+    assert code == 130 and err.strip().splitlines()[-1] == "spadscan: interrupted", err
     assert not (tmp_path / "out").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["s"], "no hidden folder left"
 
 
 def test_a_ctrl_c_before_training_began_aborts_at_once(tmp_path):
-    proc = _started(tmp_path, "--loading")
-    try:
-        assert proc.stdout.readline() == "loading\n"
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-        proc.wait()
-    assert proc.returncode == 130 and "stopping:" not in err, err
+    code, _, err = ctrl_c_after(tmp_path, ["loading"], "--loading")
+    assert code == 130 and "stopping:" not in err, err
     assert [p.name for p in tmp_path.iterdir()] == ["s"], "nothing kept, no hidden folder left"
 
 
 def test_a_run_started_with_ctrl_c_ignored_keeps_ignoring_it(tmp_path):
     """A shell script's background job (`spadscan reconstruct ... &`) inherits SIGINT ignored: a Ctrl-C meant for
     the script must not end its training."""
-    proc = _started(tmp_path, "--ignored")
-    try:
-        assert proc.stdout.readline() == "training\n"
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate("go\n", timeout=60)
-    finally:
-        proc.kill()
-        proc.wait()
-    assert proc.returncode == 0 and out.splitlines()[0] == "not asked", (out, err)
+    code, out, err = ctrl_c_after(tmp_path, ["training"], "--ignored", then="go\n")
+    assert code == 0 and out.splitlines()[0] == "not asked", (out, err)
     assert "stopping:" not in err
