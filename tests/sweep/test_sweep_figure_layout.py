@@ -11,6 +11,8 @@ from spadscan.cli import main
 from spadscan.sweep.plot import figure, figure_png
 from spadscan.sweep.results import SweepResults
 
+from test_sweep_store import _finished
+
 AXES = {"views": [8, 16, 32], "power": [0.1, 1.0, 10.0], "bin_ps": [8.0, 16.0, 33.0], "fov_deg": [10.0, 30.0],
         "cycles": [1000, 5000, 20000]}
 BASE = {"views": 16, "power": 1.0, "bin_ps": 16.0, "fov_deg": 30.0, "cycles": 5000}
@@ -115,22 +117,10 @@ def test_each_chamfer_axis_is_labelled_at_or_beyond_both_ends_of_its_values(tmp_
 
 def test_sweep_plot_of_a_one_axis_sweep_writes_the_picture(tmp_path, capsys):
     """The command end to end on a folder such as a one-axis `spadscan sweep` leaves (made-up results)."""
-    from spadscan.sweep.plan import make_plan
-    from spadscan.sweep.spec import load_spec
-    from spadscan.sweep.store import SweepDir
-
-    from test_sweep_store import fake_result
-
     sweep = tmp_path / "one.toml"
     sweep.write_text('[sweep]\nscenes = ["builtin:sphere"]\npresets = ["fast"]\nbaselines = ["space-carving"]\n'
                      '[base]\nviews = 16\n[grid]\nviews = [16, 24]\n')
-    plan = make_plan(load_spec(sweep))
-    out = SweepDir(tmp_path / "out")
-    out.open(plan)
-    out.close()
-    for task in plan.points.values():
-        out.write_point(fake_result(task))
-    out.write_results(plan)
+    _finished(tmp_path, sweep)
     assert main(["sweep-plot", str(tmp_path / "out")]) == 0
     assert "figure_a.png" in capsys.readouterr().out
     assert (tmp_path / "out" / "figure_a.png").stat().st_size > 10_000
