@@ -452,20 +452,21 @@ def _run(args: argparse.Namespace) -> int:
         return 1
     with SimBridge(args.dir, write_timeout_s=UNREAD_WRITE_TIMEOUT_S) as bridge:
         bridge.start_stream(source, args.period_ms / 1000)
-        print(f"bridge twin on {bridge.port} ({os.path.realpath(bridge.port)}): "
-              f"set [sensor] port = \"{bridge.port}\" (Ctrl-C stops it)", flush=True)
-        _serve_until_stopped()
+        _serve_until_stopped(f"bridge twin on {bridge.port} ({os.path.realpath(bridge.port)}): "
+                             f"set [sensor] port = \"{bridge.port}\" (Ctrl-C stops it)")
         frames = bridge.counts["frames"]
     print(f"bridge twin stopped after {frames} frames", flush=True)
     return 0
 
 
-def _serve_until_stopped() -> None:
-    """Wait for Ctrl-C or SIGTERM; the stream runs in its own threads. Both handlers are set here: a shell that starts
-    the twin in the background (`... &`) hands it SIGINT ignored, and the twin still stops on `kill -INT`."""
+def _serve_until_stopped(ready: str) -> None:
+    """Say `ready` and wait for Ctrl-C or SIGTERM; the stream runs in its own threads. Both handlers are set here,
+    before `ready` is said (a signal sent as soon as it is read finds them): a shell that starts the twin in the
+    background (`... &`) hands it SIGINT ignored, and the twin still stops on `kill -INT`."""
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
+        print(ready, flush=True)
         stop.wait()
     finally:
         for sig, handler in previous.items():
