@@ -326,7 +326,7 @@ class SimBridge:
         self._master, self._slave = master, slave
 
     def _unplug(self) -> None:
-        if os.path.lexists(self.port):
+        if self._slave is not None and _link_target(self.port) == os.ttyname(self._slave):  # not another twin's
             os.unlink(self.port)
         for fd in (self._master, self._slave):
             if fd is not None:
@@ -394,12 +394,35 @@ def _number(kind, lo: float, hi: float, unit: str):
     return parse
 
 
+def _link_target(path: str) -> str | None:
+    """Where the link `path` points, or None when it is no link (or gone)."""
+    try:
+        return os.readlink(path)
+    except OSError:
+        return None
+
+
 def _folder(text: str) -> str:
-    """An existing folder, made absolute: the printed port goes into a config, which reads paths from its own
-    folder."""
-    if not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is not an existing folder")
+    """A folder, made where it is missing, as an absolute path: the printed port goes into a config, which reads
+    paths from its own folder."""
+    try:
+        os.makedirs(text, exist_ok=True)
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} is no folder that can be made ({exc.strerror or exc})") from None
     return os.path.abspath(text)
+
+
+def _port_taken(directory: str | None) -> str | None:
+    """Why the twin may not serve in `directory`: its port there leads to a pty that is open (another twin's, still
+    running); None otherwise (a link a killed twin left leads nowhere, and is replaced)."""
+    if directory is None:
+        return None
+    port = os.path.join(directory, "ttyBRIDGE")
+    target = _link_target(port)
+    if target is None or not os.path.exists(target):
+        return None
+    return (f"{port} is the port of a twin still running (its pty {target} is open): stop it, or give another "
+            f"--dir")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -415,7 +438,8 @@ def build_parser() -> argparse.ArgumentParser:
                "rig, not a reconstruction. "
                "Frames nobody reads are dropped, as a USB bridge's are. Ctrl-C or SIGTERM stops it.")
     parser.add_argument("--dir", type=_folder, default=None,
-                        help="folder for the port, DIR/ttyBRIDGE, a link to the pty (like /dev/serial/by-id/...), "
+                        help="folder for the port (made if missing), DIR/ttyBRIDGE, a link to the pty (like "
+                             "/dev/serial/by-id/...), "
                              "so that a config keeps one path across runs (default: a new temporary folder)")
     parser.add_argument("--mesh", default="builtin:demo", metavar="SPEC",
                         help="the scene: a mesh file (metres; STL in millimetres is detected) or builtin:NAME "
@@ -444,6 +468,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    taken = _port_taken(args.dir)
+    if taken is not None:
+        print(f"{PROG}: error: {taken}", file=sys.stderr)
+        return 1
     try:
         source = fixed_view(args.mesh, args.distance_m, args.elevation_deg, args.seed)
     except (SpadscanError, OSError, ValueError) as exc:

@@ -74,3 +74,20 @@ def test_help_says_what_the_twin_renders():
     for option in ("--dir", "--mesh", "--distance-m", "--elevation-deg", "--period-ms", "--seed"):
         assert option in proc.stdout
     assert "fixed" in proc.stdout
+
+
+def test_a_second_twin_on_one_folder_is_refused_and_the_first_keeps_its_port(tmp_path):
+    """`--dir` made where missing; a second twin there while the first runs would take its port away."""
+    rig = tmp_path / "rig"
+    first = subprocess.Popen([*COMMAND, "--dir", str(rig), "--mesh", "builtin:sphere", "--period-ms", "50"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with reaped(first):
+        port = PORT_LINE.search(first.stdout.readline()).group(1)
+        second = subprocess.run([*COMMAND, "--dir", str(rig), "--mesh", "builtin:sphere"], capture_output=True,
+                                text=True, timeout=60)
+        assert second.returncode == 1 and len(second.stderr.strip().splitlines()) == 1, second.stderr
+        assert "is the port of a twin still running" in second.stderr and "another --dir" in second.stderr
+        assert first_record(port) is not None, "the first twin's port still leads to it"
+        first.send_signal(signal.SIGINT)
+        first.communicate(timeout=30)
+    assert first.returncode == 0 and not (rig / "ttyBRIDGE").exists()
