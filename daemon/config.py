@@ -251,15 +251,15 @@ def read_section(cls, table: dict, where: str, base: Path | None = None):
     obj = cls(**read_values(cls, {k: v for k, v in table.items() if k in common}, where, base))
     backend = registry[obj.backend]
     own = {k: v for k, v in table.items() if k not in common}
-    for name in own:
-        if name not in key_names(backend):
-            raise ConfigError(_not_for_backend(name, obj.backend, registry, key_names(cls)[1:], where))
-    settings = backend(**read_values(backend, own, where, base))
     try:
-        device = settings.checked(obj, where, base)
+        for name in own:
+            if name not in key_names(backend):
+                raise ConfigError(_not_for_backend(name, obj.backend, registry, key_names(cls)[1:], where))
+        device = backend(**read_values(backend, own, where, base)).checked(obj, where, base)
     except ConfigError as exc:
         if "backend" in table:
             raise
+        # The user never named the backend this error speaks of (`host` beside a forgotten backend = "ur").
         raise ConfigError(f"{exc} ({_default_taken(obj.backend, registry)})") from None
     return replace(obj, device=device)
 

@@ -61,6 +61,15 @@ def test_a_sim_sensor_taken_by_default_says_it_was_the_default(tmp_path, tables)
                               f"another)")
 
 
+def test_a_key_of_a_backend_nobody_named_says_the_default_was_taken(tmp_path, port):
+    """`host` beside a forgotten backend = "ur": the error speaks of 'sim', which the user never wrote."""
+    with pytest.raises(ConfigError) as err:
+        load(tmp_path, arm={"host": "192.168.1.10"}, sensor={"backend": "serial", "port": port})
+    assert str(err.value).endswith("(no backend is named, so the default 'sim' was taken; set backend = \"ur\" for "
+                                   "another)"), str(err.value)
+    assert "host" in str(err.value)
+
+
 def test_a_sim_sensor_named_by_the_user_gets_the_plain_error(tmp_path):
     with pytest.raises(ConfigError, match=r"\[sensor\] mesh is required for backend 'sim'$"):
         load(tmp_path, sensor={"backend": "sim"})
