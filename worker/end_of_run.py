@@ -422,7 +422,7 @@ def warnings(facts: RunFacts) -> list[str]:
                        f"a better mesh)")
     if facts.stopped_by == "interrupted" and not converged(facts):
         out.append(f"{INTERRUPTED} after {facts.steps} step(s), before it converged: the mesh is the fit as it "
-                   f"stood (a run left to its budget gives a better one)")
+                   f"stood (a run left to its end gives a better one)")
     share = cpu_share(facts)
     # Only a run that a time budget stopped lost steps to a busy machine: one that converged, or made the steps it
     # was asked for, has the result it would have had alone (later).

@@ -22,7 +22,8 @@ metrics and the report follow as after a budget (stopped_by 'interrupted'; its w
 before it converged); a first one after training changes nothing, the mesh and report are made. A second Ctrl-C,
 one before training began, or SIGTERM (a time limit, a service stop) aborts the run, keeping nothing: the hidden
 folder is removed and --out is left as it was. A run started with Ctrl-C ignored (a shell script's background job)
-keeps ignoring it.
+keeps ignoring it. Exit status: 0 when a result was written (report.json's stopped_by says how its training
+ended: converged, budget, steps, interrupted), 1 on an error (one line), 130 when aborted.
 
 An honest end: report.json's "converged" says whether the fit had settled, and "warnings" (also printed, and shown
 at the top of report.html) says why a result may be doubtful: a run that stopped on its budget or step count while
@@ -126,7 +127,12 @@ def run(args: argparse.Namespace) -> int:
         check_ground_truth_kept(gt, out)
     # SIGTERM (a time limit, a service stop) aborts: the scratch folder is removed, --out left as it was. A first
     # Ctrl-C while training ends the training and keeps the run; a second aborts as SIGTERM does.
-    with (terminate_as_interrupt(), first_interrupt_stops_training(log) as stop,
+    def said_over_the_bar(line: str) -> None:
+        # A Ctrl-C comes while the bar is drawn: its line starts a line of its own, not glued to the bar's end.
+        print(f"\nspadscan reconstruct: {line}", file=sys.stderr, flush=True)
+
+    with (terminate_as_interrupt(),
+          first_interrupt_stops_training(log if args.no_progress else said_over_the_bar) as stop,
           result_beside(out, args.overwrite, log) as scratch):  # published whole at the end
         report = reconstruct_capture(Path(args.capture), scratch, preset=args.preset, budget_s=args.budget_s,
                                      steps=args.steps, gt=gt, device=args.device, seed=args.seed,

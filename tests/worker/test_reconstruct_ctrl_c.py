@@ -119,8 +119,9 @@ sys.exit(main([arg for arg in sys.argv[1:] if arg not in ("--then-wait", "--load
 
 def _started(tmp_path, *extra):
     (tmp_path / "s").mkdir()
+    quiet = [] if "--progress" in extra else ["--no-progress"]
     return subprocess.Popen([sys.executable, "-c", STAND_IN, "reconstruct", str(tmp_path / "s"), "--out",
-                             str(tmp_path / "out"), "--no-gt", "--no-progress", *extra],
+                             str(tmp_path / "out"), "--no-gt", *quiet, *(e for e in extra if e != "--progress")],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -144,6 +145,11 @@ def test_a_first_ctrl_c_while_training_publishes_the_run(tmp_path):
     assert code == 0, err
     assert "stopping: training ends at its next step" in err and "Ctrl-C again aborts, keeping nothing" in err
     assert (tmp_path / "out" / "mesh.ply").read_text() == "the stopped run's mesh"
+
+
+def test_with_a_progress_bar_the_stop_is_said_on_a_line_of_its_own(tmp_path):
+    code, _, err = ctrl_c_after(tmp_path, ["training"], "--progress")
+    assert code == 0 and "\nspadscan reconstruct: stopping: training ends" in err, err
 
 
 def test_a_second_ctrl_c_aborts_keeping_nothing(tmp_path):
