@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import logging
 import threading
 import time
 from concurrent.futures import Future, InvalidStateError, ThreadPoolExecutor
@@ -27,6 +28,8 @@ from spadscan.protocol.sensor_presets import sensor_preset
 
 from .assembly import FrameAssembler
 from .transport import N_CHANNELS, SUBPACKET_BYTES, LinkDown, Transport
+
+log = logging.getLogger("spadscan.daemon")
 
 READ_SLICE_S = 0.05
 """Longest single blocking read, so that the reader notices `release` promptly."""
@@ -185,6 +188,10 @@ class TMF8820(Sensor):
         """Why frames may have stopped: the error the link reported after the last frame, and the records the
         transport refused since then; '' when neither."""
         parts = []
+        down = self._down_since
+        if down is not None:  # a pulled cable, a bridge that reset: the silence is the link's, not the chip's
+            parts.append(f"the link has been down for {now - down:.1f} s ({self._last_error or 'no detail'}); it "
+                         f"reconnects by itself")
         cause = self._assembler.silent_cause
         if cause is not None:
             text, t = cause
@@ -271,6 +278,7 @@ class TMF8820(Sensor):
         self._stats["link_drops"] += 1
         self._last_error = str(exc)
         self._down_since = time.monotonic()
+        log.warning("%s: link lost (%s); reconnecting by itself", self.name, exc)
         self._assembler.reset(self._down_since, restarted=False)  # what the next start says decides
         request = self._restart_request
         if request is not None:
@@ -292,6 +300,7 @@ class TMF8820(Sensor):
             self._stats["reconnects"] += 1
             restarted = self.transport.restarts_measurement
             self._assembler.reset(t_start if restarted else time.monotonic(), restarted)
+            log.info("%s: link back after %.1f s", self.name, time.monotonic() - self._down_since)
             self._down_since = None
             self._notify()
             return

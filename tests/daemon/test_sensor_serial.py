@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import re
 import threading
@@ -413,3 +414,27 @@ def _flushed(bridge) -> bool:
     except TimeoutError:
         return False
     return True
+
+
+def test_a_silence_while_the_link_is_down_says_so_and_the_log_tells_the_drop_and_the_return(arun, caplog):
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge, link_grace_s=30) as sensor:
+                bridge.send_frame(counts(1))
+                await sensor.next_frame(10)
+                bridge.unplug()
+                while sensor.counters()["link"] == "up":
+                    await asyncio.sleep(0.01)
+                with pytest.raises(SensorSilent) as silent:  # the frame timeout comes before the link's grace
+                    await sensor.next_frame(0.2)
+                bridge.replug()
+                while sensor.counters()["link"] == "down":
+                    await asyncio.sleep(0.01)
+            return str(silent.value)
+
+    with caplog.at_level(logging.INFO, logger="spadscan.daemon"):
+        said = arun(main())
+    assert "the link has been down for" in said and "it reconnects by itself" in said, said
+    logged = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("sensor serial ") and ": link lost (" in m for m in logged), logged
+    assert any(": link back after " in m for m in logged), logged
