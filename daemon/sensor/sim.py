@@ -80,6 +80,10 @@ class SimSensor(Sensor):
         self._down_until = max(self._down_until, time.monotonic() + duration_s)
         self._counts["faults_injected"] += 1
 
+    def end_link_loss(self) -> None:
+        """An injected link loss ends now: the link is back (a cable plugged in again)."""
+        self._down_until = -math.inf
+
     # ---- frames --------------------------------------------------------------------------------------------------
     async def next_frame(self, timeout_s: float) -> Frame:
         if self._prev_end is None:

@@ -60,15 +60,21 @@ def test_aborting_a_scan_whose_folder_was_deleted_is_simply_done(arun, tmp_path,
     assert status["last_error"] is None and "unrecorded_aborts" not in status, status
 
 
+async def paused_on_a_full_disk(runner, name: str, disk) -> None:
+    """Scan `name` until two poses are in, then fill the disk (`disk`: the full-disk fixture) and wait for the
+    pause it makes."""
+    await runner.start(name)
+    await until(lambda: runner.job.next_pose >= 2, "two poses")
+    disk["error"] = errno.ENOSPC
+    await until(lambda: runner.state == "paused", "the pause for the full disk")
+
+
 def test_an_abort_kept_for_a_full_disk_is_done_once_its_folder_is_deleted(arun, tmp_path, sphere, disk):  # noqa: F811
     cfg = make_cfg(tmp_path, views=10)
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("s1")
-            await until(lambda: runner.job.next_pose >= 2, "two poses")
-            disk["error"] = errno.ENOSPC
-            await until(lambda: runner.state == "paused", "the pause for the full disk")
+            await paused_on_a_full_disk(runner, "s1", disk)
             kept = await runner.abort()
             delete_by_hand(tmp_path / "caps" / "s1")  # the operator frees the disk by deleting the scan
             await runner.aborts.retry()
@@ -84,10 +90,7 @@ def test_resume_on_a_disk_still_full_is_refused_with_the_cause(arun, tmp_path, s
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("full1")
-            await until(lambda: runner.job.next_pose >= 2, "two poses")
-            disk["error"] = errno.ENOSPC
-            await until(lambda: runner.state == "paused", "the pause for the full disk")
+            await paused_on_a_full_disk(runner, "full1", disk)
             with pytest.raises(ConfigError) as refused:
                 await runner.resume()
             still = runner.status()
@@ -115,7 +118,7 @@ def test_resume_while_the_sensor_link_is_down_is_refused_with_the_cause(arun, tm
             with pytest.raises(ConfigError) as refused:
                 await runner.resume()
             state = runner.state
-            runner.sensor._down_until = float("-inf")  # the link comes back (the sim sensor's fault window ends)
+            runner.sensor.end_link_loss()  # the link comes back
             await runner.resume()
             return str(refused.value), state, await runner.wait("ln1")
 
