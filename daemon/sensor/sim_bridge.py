@@ -219,16 +219,30 @@ class SimBridge:
                 self.exposures[j] = (end - exposure, end)
                 lines = frame_lines(source(), BridgeResult(result_no=j % 256, systick=j), address=self.address)
                 self.counts["frames"] += 1
-                for k, line in enumerate(lines):
-                    if k == len(lines) - 1:
-                        handover = time.monotonic()  # the result's interrupt is cleared: the next frame is up
+                for line in lines:
                     if stop.wait(line_s):
                         return
                     self._queue.put(("data", line))
+                written = self._written_at(stop)
+                if written is None:
+                    return
+                # The result's interrupt was cleared before its line was read and printed: the next frame is up.
+                # Counted from the line's real write, so that this thread's own lateness on a busy machine moves
+                # the chip's timeline instead of breaking the bridge's promptness that the sensor's bound assumes.
+                handover = written - line_s
                 last = j
 
         self._stream = threading.Thread(target=run, name="spadscan-sim-bridge-chip", daemon=True)
         self._stream.start()
+
+    def _written_at(self, stop: threading.Event) -> float | None:
+        """When the writer has written everything queued so far (time.monotonic()), or None once `stop` is set."""
+        done = threading.Event()
+        self._queue.put(("mark", done))
+        while not done.wait(0.05):
+            if stop.is_set():
+                return None
+        return time.monotonic()
 
     def stop_stream(self) -> None:
         if self._stream is not None:
