@@ -176,10 +176,9 @@ def check_options(opts: DemoOptions) -> None:
     """Refuse, in one line each, the options the daemon or the worker would refuse, before anything starts (they
     would otherwise fail only after the daemon started or the whole scan ran). The limits are theirs, read from
     the daemon's config keys where they are declared."""
-    import math
-
     from spadscan.daemon.config import ScanConfig, SensorConfig
     from spadscan.protocol.scenes import BUILTIN_SCENES
+    from spadscan.worker.jobs import run_limits_problem
 
     if opts.scene not in BUILTIN_SCENES:
         raise DemoError(f"unknown scene {opts.scene!r} (built-in: {', '.join(BUILTIN_SCENES)})")
@@ -191,9 +190,9 @@ def check_options(opts: DemoOptions) -> None:
     most = int(_key(ScanConfig, "views").hi)
     if isinstance(opts.views, bool) or not isinstance(opts.views, int) or not MIN_VIEWS <= opts.views <= most:
         raise DemoError(f"--views {opts.views} must be an integer in [{MIN_VIEWS}, {most}]")
-    # The worker's rule (spadscan worker --budget-s, and the reconstruction's own check): a finite time > 0.
-    if not (isinstance(opts.budget_s, (int, float)) and math.isfinite(opts.budget_s) and opts.budget_s > 0):
-        raise DemoError(f"--budget-s {opts.budget_s} must be a finite number of seconds > 0")
+    problem = run_limits_problem(opts.budget_s, None, 0)  # the worker's rule (`spadscan worker --budget-s`)
+    if problem:
+        raise DemoError(f"--budget-s: {problem}")
     if opts.out.exists() and not opts.out.is_dir():
         raise DemoError(f"{opts.out}: exists and is not a folder")
     port = opts.dashboard_port

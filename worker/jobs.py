@@ -17,6 +17,8 @@ import argparse
 import hashlib
 import importlib
 import json
+import math
+import numbers
 import os
 import re
 import secrets
@@ -121,6 +123,31 @@ class Job:
 
 MAX_SEED = 2**63 - 1
 """The largest seed a reconstruction takes: torch's generators take a signed 64-bit integer."""
+MAX_BUDGET_S = 7 * 24 * 3600.0
+"""The longest time budget a reconstruction takes, s (a week): a larger one is a slip of the keyboard, not a plan."""
+MAX_STEPS = 10_000_000
+"""The most optimisation steps a reconstruction takes: about a week of the fast preset on a CPU."""
+
+
+def run_limits_problem(budget_s, steps, seed) -> str | None:
+    """Why a reconstruction cannot run with this time budget (s, or None: the preset's), steps (or None) and seed,
+    in one line; None when it can. One rule for `spadscan reconstruct`, the worker's options and its jobs."""
+    if budget_s is not None and not (_is_number(budget_s) and math.isfinite(budget_s)
+                                     and 0 < budget_s <= MAX_BUDGET_S):
+        return f"time budget {budget_s} s must be a number of seconds > 0 and at most {MAX_BUDGET_S:.0f} (a week)"
+    if steps is not None and not (_is_int(steps) and 1 <= steps <= MAX_STEPS):
+        return f"steps {steps} must be an integer in [1, {MAX_STEPS:,}]"
+    if not (_is_int(seed) and 0 <= seed <= MAX_SEED):
+        return f"seed {seed} must be an integer in [0, {MAX_SEED}]"
+    return None
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
 FIELD_TYPES = {"id": ("str", "a string"), "scan": ("str", "a string"), "preset": ("str", "a string"),

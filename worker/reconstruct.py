@@ -33,7 +33,7 @@ from .carving.views import summed_views
 from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
-from .jobs import MAX_SEED
+from .jobs import run_limits_problem
 from .metrics import mesh_metrics
 from .outputs import capture_state_note, export_mesh, files_written_after, folder_files, replacing_result
 from .pieces import Pieces, mesh_pieces
@@ -72,12 +72,9 @@ def resolve_device(device: str) -> torch.device:
 
 
 def _check_run_args(budget_s, steps, seed) -> None:
-    if budget_s is not None and not (isinstance(budget_s, (int, float)) and np.isfinite(budget_s) and budget_s > 0):
-        raise ReconstructionError(f"time budget {budget_s} s must be a positive number of seconds")
-    if steps is not None and not (isinstance(steps, (int, np.integer)) and steps >= 1):
-        raise ReconstructionError(f"steps {steps} must be an integer >= 1")
-    if not (isinstance(seed, (int, np.integer)) and 0 <= seed <= MAX_SEED):
-        raise ReconstructionError(f"seed {seed} must be an integer in [0, {MAX_SEED}]")
+    problem = run_limits_problem(budget_s, steps, seed)
+    if problem:
+        raise ReconstructionError(problem)
 
 
 def _spent_at_set_up(elapsed_s: float, budget_s: float, preset: str, device: str) -> str:

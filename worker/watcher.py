@@ -14,7 +14,6 @@ are deterministic, so polling again (or another worker polling the same root) ne
 from __future__ import annotations
 
 import asyncio
-import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -23,7 +22,7 @@ from typing import Callable
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, npy_is_whole, read_json
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
-from .jobs import MAX_SEED, Job, job_id_for, old_job_id_for
+from .jobs import Job, job_id_for, old_job_id_for, run_limits_problem
 from .queue import QUEUE_DIRNAME, Queue
 
 
@@ -50,13 +49,9 @@ class JobOptions:
 
         if self.preset not in PRESET_NAMES:
             raise ConfigError(f"unknown preset {self.preset!r} (known: {', '.join(PRESET_NAMES)})")
-        if self.budget_s is not None and not (_is_number(self.budget_s) and math.isfinite(self.budget_s)
-                                              and self.budget_s > 0):
-            raise ConfigError(f"budget {self.budget_s} s must be > 0 seconds")
-        if self.steps is not None and not (_is_int(self.steps) and self.steps >= 1):
-            raise ConfigError(f"steps {self.steps} must be an integer >= 1")
-        if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
-            raise ConfigError(f"seed {self.seed} must be an integer in [0, {MAX_SEED}]")
+        problem = run_limits_problem(self.budget_s, self.steps, self.seed)
+        if problem:
+            raise ConfigError(problem)
         check_device(self.device)
         if self.live and self.preset != LIVE_PRESET:
             raise ConfigError(f"live reconstruction runs the {LIVE_PRESET!r} preset, not {self.preset!r} (leave out "
@@ -75,10 +70,6 @@ LIVE_PRESET = "fast"
 
 def _is_int(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
 def check_device(device: str) -> str:

@@ -236,6 +236,11 @@ def test_bad_arguments_are_one_line_errors(capture_and_gt, tmp_path, capsys):
     assert "missing.obj" in one_line_error(capsys)
     assert main(base + ["--steps", "0"]) == 1
     assert "steps" in one_line_error(capsys)
+    assert main(base + ["--steps", str(10**20)]) == 1  # a slip of the keyboard, not weeks of training
+    assert "steps 100000000000000000000 must be an integer in [1, 10,000,000]" in one_line_error(capsys)
+    assert main(base + ["--budget-s", "1e9"]) == 1
+    assert "time budget 1000000000.0 s must be a number of seconds > 0 and at most 604800 (a week)" in \
+        one_line_error(capsys)
     for preset in (base, ["reconstruct", str(cap), "--out", str(tmp_path / "o"), "--no-progress"]):
         assert main(preset + ["--seed", "99999999999999999999", "--steps", "1"]) == 1  # past torch's generators
         assert f"seed 99999999999999999999 must be an integer in [0, {2**63 - 1}]" in one_line_error(capsys)

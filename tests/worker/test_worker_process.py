@@ -377,6 +377,10 @@ def test_bad_seed_and_device_are_refused_before_anything_is_queued(tmp_path, cap
     err = capsys.readouterr().err
     assert f"seed {2**64} must be an integer in [0, {2**63 - 1}]" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / ".queue").exists()
+    assert cli_main(["worker", "--root", str(tmp_path), "--once", "--budget-s", "1e9"]) == 1  # over a week
+    err = capsys.readouterr().err
+    assert "time budget 1000000000.0 s must be" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / ".queue").exists()
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert cli_main(["worker", "--root", str(tmp_path), "--once", "--device", "cuda"]) == 1
     err = capsys.readouterr().err
