@@ -98,3 +98,30 @@ def test_a_table_a_wide_zone_sees_at_a_slant_is_found_whatever_rays_the_fit_uses
     scene = load_scene(table_capture)
     problem = build_problem(scene, config, "cpu", choose_terms(scene))
     assert problem.floor_z == pytest.approx(0.0, abs=0.01)
+
+
+def test_histograms_left_out_for_a_corrupt_bin_do_not_move_the_table(tall_on_dark_table, tmp_path):
+    # A converter that wrote -1 as unsigned: three bins of a third of the histograms at 2^32 - 1, over the 24-bit
+    # counter's limit. Those histograms are left out of the fit, and must be left out of the table's search too:
+    # their spurious peak read as the farthest surface put the table 18 cm under the real one.
+    import shutil
+
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.worker.baselines.floor import measured_table_height
+    from spadscan.worker.recon.fast.problem import _table_plane
+    from spadscan.worker.recon.scene_data import load_scene
+
+    corrupt = tmp_path / "corrupt"
+    shutil.copytree(tall_on_dark_table, corrupt)
+    hists_file = sorted(corrupt.glob("chunk-*"))[0] / "hists.npy"
+    hists = np.load(hists_file)
+    n = len(hists) // 3
+    hists[:n, :, 60:63] = 2**32 - 1
+    np.save(hists_file, hists)
+
+    scene = load_scene(corrupt)
+    assert int((~scene.usable).sum()) == n * hists.shape[1]  # every one of them left out
+    _, offset, _, source = _table_plane(scene, scene.pulse(1))
+    assert source == "detected, then fitted" and offset == pytest.approx(0.05, abs=0.01)
+    assert scene.table.offset > 0.0  # the scene data's own start: at the returns, not under the spurious peak
+    assert measured_table_height(CaptureReader(corrupt).load()) == pytest.approx(0.05, abs=0.01)  # the baselines'

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.plausibility import first_photon_cycles, implausible
 from spadscan.protocol.raycast import zone_rays
 
 from ..capture_kind import is_measured
@@ -80,7 +81,11 @@ def measured_table_height(data) -> float | None:
         return None
     # The frames of one pose summed, as the reconstruction sums them: the peak test sees all their counts.
     views = data.by_pose()
-    counts, cycles = views.counts, views.frames * float(sensor.cycles)
+    # The histograms no sensor could have produced are left out, as the reconstruction leaves them out
+    # (recon/scene_data.py): a corrupt bin would read as the farthest surface, the table, under it.
+    broken = views.in_any_frame(implausible(data.hists, sensor.max_count, sensor.ignore_bins,
+                                            first_photon_cycles(sensor)))
+    counts, cycles = np.where(broken[..., None], 0.0, views.counts), views.frames * float(sensor.cycles)
     poses = np.asarray(data.poses, np.float64)[views.first]
     background = np.median(counts, axis=-1) / cycles[:, None]
     reference = None if data.reference is None else np.asarray(data.reference, np.float64).mean(axis=0)

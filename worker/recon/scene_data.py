@@ -125,6 +125,9 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     # One with more counts than a first-photon sensor's cycles allow (a corrupt bin) would pull the fitted albedo
     # and spoil the fit of every other histogram.
     broken = views.in_any_frame(_implausible(data.hists, sensor, capture))
+    # Left out means left out of everything: the scene's bound, the table's search and the background read counts
+    # too, and a corrupt bin of a left-out histogram would otherwise put the table under a spurious peak.
+    counts = np.where(broken[..., None], 0.0, counts)
     poses = data.poses[views.first]
     valid = ~saturated & ~broken[..., None]
     if sensor.ignore_bins:
