@@ -72,6 +72,7 @@ CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controlle
 ON_PATH_M = 0.01  # an arm this close to a straight move between two poses of a scan's path stands on that path
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
 TAKING_FRAMES = ("scanning", "pausing")  # the states in which a scan takes frames ("pausing": the pose in flight)
+RATE_UNIT = "frames/s"  # what status's rate_hz counts (each pose takes frames_per_pose of them), said beside it
 
 
 class _Fault(SpadscanError):
@@ -507,7 +508,8 @@ class ScanRunner:
         if job is not None:
             out.update(scan=job.name, path=str(job.path), pose=job.next_pose, poses=job.n_poses,
                        progress=self._progress(), frames=job.frames, frames_per_pose=job.scan.frames_per_pose,
-                       dropped_frames=job.dropped, rate_hz=self._rate_hz(job), reason=job.reason,
+                       dropped_frames=job.dropped, rate_hz=self._rate_hz(job), rate_unit=RATE_UNIT,
+                       eta_s=scan_eta_s(job) if self.state == "scanning" else None, reason=job.reason,
                        elapsed_s=round(time.monotonic() - job.started, 3), schedule=job.scan.schedule)
             if job.chooser is not None:
                 out["views_chosen"] = dict(sorted(job.view_counts.items()))
@@ -1121,6 +1123,18 @@ class ScanRunner:
         """Capture I/O that may run beside the writer thread's (it touches no file the writer does: an adaptive
         scan's schedule.npy), so that it never waits behind a publish."""
         return await asyncio.to_thread(fn, *args)
+
+
+def scan_eta_s(job: ScanJob) -> float | None:
+    """Seconds left of a scan taking frames, at its measured pace: the poses still to take (those planned past the
+    last published one, and any owed again) at the pose rate of the last 10 s (`ScanJob.rate_hz` frames per second,
+    `frames_per_pose` a pose). None before a rate is measured (the scan has just started or resumed). The caller
+    leaves it out (null) while the scan is paused or pausing: it is not going to end at any pace then."""
+    rate = job.rate_hz()
+    if rate <= 0:
+        return None
+    left = max(0, job.n_poses - job.next_pose) + len(job.owed)
+    return round(left * job.scan.frames_per_pose / rate, 1)
 
 
 def _measurements(job: ScanJob, i: int, frames: list[Frame], arm, choice: dict | None = None,

@@ -25,11 +25,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import read_status, status_path
+from spadscan.protocol.live_status import LiveStatus, read_status, status_path
 
 from .jobs import Job
 from .queue import QUEUE_DIRNAME, SEP, Claim
-from .status_detail import own_live_status
+from .status_detail import ENDED, own_live_status
 
 TAIL_BYTES = 16 * 1024
 BAR_RE = re.compile(r"(?P<desc>[^\r\n|:]+?):\s*(?P<percent>\d+)%\|[^|\r\n]*\|\s*(?P<done>[\d.]+)/(?P<total>[\d.]+)"
@@ -243,14 +243,40 @@ def claim_budget(job: Job, started: float | None, root) -> tuple[float, float] |
 def final_run_start(root, job: Job) -> float | None:
     """When a live job's final run started (unix seconds): its live status is written 'final' just before; None
     while it follows its scan, or when that status is not its own or cannot be read."""
+    status = _live_status(root, job)
+    if status is None or status.job != job.id or status.state != "final":
+        return None
+    return written_unix(status)
+
+
+def ended_live_status(root, job: Job, since: float) -> LiveStatus | None:
+    """The live status of running live job `job` when it says how the job ended (ENDED: its scan was aborted, it
+    stopped), written since its claim began (`since`, unix seconds): an earlier attempt's last word is none of this
+    one's. The job's process ends right after writing it; until the worker has reaped it, that is what the job is
+    doing (not setting up). None otherwise; `root`: the captures root."""
+    status = _live_status(root, job)
+    if status is None or status.job != job.id or status.state not in ENDED:
+        return None
+    written = written_unix(status)
+    return status if written is not None and written >= since else None
+
+
+def _live_status(root, job: Job) -> LiveStatus | None:
+    """The live status of `job`'s scan under the captures root `root`; None when there is none or it cannot be
+    read."""
     if root is None:
         return None
     try:
-        status = read_status(status_path(Path(root) / job.scan))
-        then = _dt.datetime.fromisoformat(status.updated_utc)
-    except (SpadscanError, OSError, ValueError):
+        return read_status(status_path(Path(root) / job.scan))
+    except (SpadscanError, OSError):
         return None
-    if status.job != job.id or status.state != "final":
+
+
+def written_unix(status: LiveStatus) -> float | None:
+    """When `status` was written (unix seconds, from its `updated_utc`); None when that cannot be read."""
+    try:
+        then = _dt.datetime.fromisoformat(status.updated_utc)
+    except (TypeError, ValueError):
         return None
     return (then if then.tzinfo else then.replace(tzinfo=_dt.timezone.utc)).timestamp()
 
@@ -285,8 +311,9 @@ class ProgressNote:
 def progress_note(claim: Claim, log: Path, root, now: float | None = None,
                   tails: LogTails | None = None) -> ProgressNote:
     """The progress line of the job `claim` holds, from its `log` (its bar, measured against its budget as --status
-    measures it), else, for a live job following its scan, its live status; else that it is setting up. `root`: the
-    captures root; `now`: time.time(); `tails`: where the log's last reading is kept (None: the log is read)."""
+    measures it), else, for a live job following its scan or ending (its scan aborted: `ended_live_status`), its live
+    status; else that it is setting up. `root`: the captures root; `now`: time.time(); `tails`: where the log's last
+    reading is kept (None: the log is read)."""
     job = claim.job
     now = time.time() if now is None else now
     budget = claim_budget(job, claim.started, root)
@@ -294,7 +321,9 @@ def progress_note(claim: Claim, log: Path, root, now: float | None = None,
     if progress is not None:
         stage = f"{progress.desc}: {AFTER_TRAINING if progress.training_done else 'training'}"
         return ProgressNote(stage, f"{job.id} at {100 * progress.fraction:.0f} %: {progress.line()}")
-    live = own_live_status(root, job.id, job.scan) if job.live else None
+    live = None
+    if job.live:
+        live = own_live_status(root, job.id, job.scan) or ended_live_status(root, job, claim.started)
     if live is not None:
         return ProgressNote(f"live: {live.state}", f"{job.id}: {live.summary()}")
     when = of_budget(now - budget[1], budget[0]) if budget else f"{clock(now - claim.started)} since it started"

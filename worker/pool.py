@@ -37,7 +37,7 @@ from .children import Child, exit_reason, kill_group, spawn_job
 from .job_progress import PROGRESS_S, LogTails, ProgressNotes, progress_note
 from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
 from .holder import Holder
-from .live.done import mark_live_done, mark_live_failed, mark_live_queued
+from .live.done import SCAN_ABORTED, ended_by_abort, mark_live_done, mark_live_failed, mark_live_queued
 from .presence import RENEW_S, Presence, present_workers, remove_presence, write_presence
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
 from .queue import SEP, Claim, Queue, Unrecorded
@@ -430,12 +430,17 @@ class Worker:
                 shutil.rmtree(child.scratch, ignore_errors=True)
 
     def _settle_error(self, child: Child, rc: int | None, outcome: dict, seconds: float) -> None:
-        """Record a job that failed (bad input) or crashed. A record the queue cannot write (a full disk) does not end
+        """Record a job that failed (bad input), crashed, or ended as its aborted scan did (a live job: failed in the
+        queue, with nothing to retry, `SCAN_ABORTED`). A record the queue cannot write (a full disk) does not end
         the worker and its other jobs: the line says where the job is and why it ended, and the record is written at
         a later poll (`unrecorded`); a job file that could not even be moved stays held until its lease runs out."""
         claim, job = child.claim, child.claim.job
         bad_input = outcome.get("kind") == "input"
-        if bad_input:
+        aborted = bad_input and ended_by_abort(job, self.root)
+        if aborted:  # no fault: the job ended as its scan did, and a retry would follow a scan that has ended
+            error = f"{SCAN_ABORTED} ({outcome.get('error', 'its scan was aborted')})"
+            said = f"{job.id} ended after {seconds:.1f} s: {error}"
+        elif bad_input:
             error = outcome.get("error", "bad input")
             said = f"{job.id} failed after {seconds:.1f} s: {error}"
         else:
@@ -462,8 +467,9 @@ class Worker:
             note = "" if bad_input else f"; {_moved_to(state, bad_input)}"
         if state == "failed":
             self._settle_failed(job, error)
-            note += (f" (once the cause is fixed, `spadscan worker --root {self.root}{self._queue_flag()} "
-                     f"--retry-failed` queues it again)")
+            if not aborted:
+                note += (f" (once the cause is fixed, `spadscan worker --root {self.root}{self._queue_flag()} "
+                         f"--retry-failed` queues it again)")
         self.log(said + note)
 
     def _say_queued(self, claim: Claim, why: str) -> None:

@@ -1,7 +1,8 @@
 """Talk to a running daemon over its control socket (JSON lines).
 
-    spadscan ctl status                         state, scan, pose i/n, frames, rate, last error, sensor counters,
-                                                and the scan's live reconstruction (`live`) when a worker runs one
+    spadscan ctl status                         state, scan, pose i/n, frames, rate, time left, last error, sensor
+                                                counters, and the scan's live reconstruction (`live`) when a worker
+                                                runs one
     spadscan ctl scan --name bunny --views 128  start a scan; it is written to <captures>/bunny/
     spadscan ctl pause | resume | abort         pause after the poses under way, continue, or stop for good
     spadscan ctl resume NAME | abort NAME       take over and continue, or end as aborted (every chunk kept), an
@@ -114,10 +115,13 @@ def add_arguments(parser) -> None:
         return sub.add_parser(name, help=help_, description=description or help_, parents=[shared])
 
     op("status", "print the daemon's state as JSON",
-       "Print the daemon's state as JSON. `rate_hz`: frames published per second over the last 10 s, null while "
-       "the scan is paused; `last_error`: the last fault since the scan in hand (or the last one) started, or "
-       "what still stands (an abort not recorded yet, a scan that could not be taken over); `live`: the scan's "
-       "live reconstruction (recon/live/status.json) when a worker runs one (`spadscan worker --live`), with "
+       "Print the daemon's state as JSON. `rate_hz`: frames published per second over the last 10 s (`rate_unit`: "
+       "frames/s; a pose takes `frames_per_pose` of them), null while the scan is paused; `eta_s`: the seconds the "
+       "scan has left at that pace (the poses still to take), null while paused or before a pace is measured; "
+       "`elapsed_s`: seconds since this daemon started the scan or took it over, pauses included; `last_error`: "
+       "the last fault since the scan in hand (or the last one) started, or what still stands (an abort not "
+       "recorded yet, a scan that could not be taken over); `live`: the scan's live reconstruction "
+       "(recon/live/status.json) when a worker runs one (`spadscan worker --live`), with "
        "`age_s`, the seconds since its last update; `speed_scaling` and `speed_note`: a UR arm's speed slider, "
        "when below 100 % (the scan runs that much slower).")
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",

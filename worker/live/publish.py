@@ -1,8 +1,10 @@
 """Publishing a live reconstruction's state into `<capture>/recon/live/`: mesh.ply, preview.png, status.json.
 
 Each file is written under a hidden temporary name and renamed into place (a reader sees a whole file, the old one or
-the new one), the status last, so that a status is never newer than the mesh beside it. The folder is the live job's
-own: it is not a job result (those are `<capture>/recon/<job>/`, published whole by the worker).
+the new one), the status last, so that a status is never older than the mesh beside it. Between two publications of
+the mesh the live job rewrites the status alone (the fit's views and steps move on); its `chamfer_mm` stays that of
+the mesh beside it. The folder is the live job's own: it is not a job result (those are `<capture>/recon/<job>/`,
+published whole by the worker).
 """
 
 from __future__ import annotations
