@@ -369,6 +369,27 @@ def test_a_starved_run_and_a_fit_far_from_the_noise_say_so(ambient_capture, box_
     assert report["pieces"]["count"] == 1 and not has(report, "pieces"), report["pieces"]
 
 
+def test_a_simulated_capture_with_a_wrong_time_axis_says_so_however_few_histograms_are_checked(box_capture, tmp_path,
+                                                                                              monkeypatch):
+    """The bin width recorded at half its value (the one-way against the round-trip slip): no surface explains the
+    histograms of 16 views. A check of 2 of them (a budget cut short, a capture of two views) holds too few
+    histograms to make a pattern of misfit ones; the model's gross relative misfit says it all the same."""
+    import shutil
+
+    import spadscan.worker.reconstruct as run
+
+    capture = tmp_path / "half-bins"
+    shutil.copytree(box_capture, capture)
+    manifest = json.loads((capture / "scan.json").read_text())
+    manifest["sensor"]["bin_width_m"] *= 0.5
+    (capture / "scan.json").write_text(json.dumps(manifest))
+    monkeypatch.setattr(run, "fit_views_within", lambda *args, least: 2)
+    report = reconstruct(capture, tmp_path / "out", steps=60, budget_s=600.0)
+    fit = report["fit_to_noise"]
+    assert fit["relative_misfit"] > RELATIVE_MISFIT_LIMIT and fit["histograms"] == 2 < MISFIT_MIN_HISTOGRAMS, fit
+    assert has(report, "the fit does not explain the measurements") and has(report, "bin_width_m"), report["warnings"]
+
+
 def test_a_surface_that_few_views_saw_says_so(one_sided_capture, tmp_path):
     report = reconstruct(one_sided_capture, tmp_path / "one-sided", steps=200)
     assert report["coverage"]["share_seen_by_few_views"] > COVERAGE_LIMIT, report["coverage"]
