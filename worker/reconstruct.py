@@ -52,6 +52,9 @@ from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 
 DEVICES = ("auto", "cpu", "cuda")
+NEAR_RANGE_M = 0.01
+"""Range (metres) under which piled-up photons say a surface touches the sensor: no return this near is told from
+the pulse's own start (the scene's first returns count from here on: recon/scene_data.py)."""
 FIT_VIEWS = 4
 """Views the fit picture shows."""
 NOISE_VIEWS = 32
@@ -150,8 +153,22 @@ def check_returns(capture, scene) -> None:
     counts = scene.counts.detach().cpu().numpy().astype(np.float64)
     if not detected_returns(counts, scene.sensor, DEFAULT_THRESHOLD).detected.any():
         raise CaptureError(f"{capture}: no histogram holds a return above the noise ({DEFAULT_THRESHOLD:g} standard "
-                           f"deviations of its matched-filtered background): nothing to reconstruct (the object out "
-                           f"of range or out of every view, or the sensor's settings wrong)")
+                           f"deviations of its matched-filtered background): nothing to reconstruct "
+                           f"({_why_no_return(counts, scene.sensor)})")
+
+
+def _why_no_return(counts: np.ndarray, sensor) -> str:
+    """The likely cause of histograms without a return: photons piled at the start of the range (a surface touching
+    the sensor: its return ends in the first bins, where no peak can stand out), else the general causes."""
+    total = counts.sum(axis=(0, 1))
+    if sensor.ignore_bins:
+        total[list(sensor.ignore_bins)] = 0.0
+    peak = int(np.argmax(total))
+    at = float(sensor.range_of_bin(peak + 0.5))
+    if total[peak] > 0 and at < NEAR_RANGE_M:
+        return (f"the photons pile up {max(at, 0.0) * 1e3:.0f} mm from the sensor, at the start of its range: a "
+                f"surface touching the sensor (move it back), or the sensor record's zero_bin wrong")
+    return "the object out of range or out of every view, or the sensor's settings wrong"
 
 
 def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budget_s: float | None = None,

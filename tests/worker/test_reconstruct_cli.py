@@ -422,6 +422,24 @@ def test_a_capture_whose_histograms_hold_no_return_is_refused_not_fitted(tmp_pat
         assert not (tmp_path / preset).exists()
 
 
+def test_a_surface_touching_the_sensor_is_said_to_be_the_reason_there_is_no_return(tmp_path, capsys):
+    """Every view 1 mm from a ball's surface: all the photons land in the first bin, where no peak can stand out of
+    its own background. The refusal says what that means rather than "the object out of range"."""
+    from spadscan.protocol.schedules import look_at
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import simulate_capture
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    directions = [(1, 0, 0.3), (-1, 0, 0.3), (0, 1, 0.3), (0, -1, 0.3), (0.6, 0.6, 0.6), (-0.6, -0.6, 0.6)]
+    poses = np.stack([look_at(0.101 * np.asarray(d) / np.linalg.norm(d), (0, 0, 0)) for d in directions])
+    simulate_capture(ball, sensor_preset("lcspc-sim"), poses, tmp_path / "touching", progress=False)
+    assert main(["reconstruct", str(tmp_path / "touching"), "--out", str(tmp_path / "o"), "--steps", "5", "--no-gt",
+                 "--no-progress"]) == 1
+    (line,) = _error_lines(capsys)
+    assert "no histogram holds a return above the noise" in line and "a surface touching the sensor" in line, line
+    assert "out of range" not in line and not (tmp_path / "o").exists()
+
+
 def test_an_unfinished_capture_is_reconstructed_with_a_warning(capture_and_gt, tmp_path, capsys):
     import shutil
 
