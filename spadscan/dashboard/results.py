@@ -15,6 +15,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
+import re
 from pathlib import Path
 
 from spadscan.protocol.live_status import FINAL_STARTS
@@ -30,6 +31,19 @@ LIVE_KEYS = ("views_used", "views_published", "views_planned", "steps", "updated
 LIVE_PICTURES = ("preview.png", "mesh.ply", "view3d.html")
 """The live entry's files that show the live fit's shape (not the final result's)."""
 PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "coverage.png", "mesh.ply")
+SERIOUS = tuple(re.compile(p) for p in (
+    r"^the fit does not explain the measurements",
+    r"^\d+ % of the surface .* was seen by fewer than",
+    r"^the mesh is in \d+ pieces",
+    r"^\d+ specks stand apart from the mesh",
+    r"^the mesh has \d+ tunnels",
+    r"^too little signal",
+    r"^faint returns",
+))
+"""The starts of the end-of-run warnings (worker/end_of_run.py, worker/signal_check.py) that doubt the shape itself:
+the fit does not explain the measurements, too few views saw the surface, the mesh is in pieces, specks or tunnels,
+the capture holds too little signal. The others say how the run went (stopped on its budget, a busy machine): a
+longer run mends them."""
 
 
 def _read_json(path: Path) -> tuple[dict | None, str | None]:
@@ -88,11 +102,15 @@ class ResultIndex:
         if not isinstance(summary.get("warnings", []), list):
             # the page lists them one a line: anything else would stop its whole refresh, every scan with it
             error = f"{main.name}: warnings {json.dumps(summary.pop('warnings'))[:40]} is not a list"
+        if summary.get("warnings"):
+            summary["warning_levels"] = [warning_level(w) for w in summary["warnings"]]
         # a link only to what the server serves (safe_path): never one to a folder linked out of the root
-        files = {p: f"/files/{rel}?v={st.st_mtime_ns}"
+        # Each file versioned by its own time: a live status is rewritten every few seconds between two meshes,
+        # and a version of its time would have the page reload the same preview and 3D view as often.
+        files = {p: f"/files/{rel}?v={_mtime_ns(folder / p)}"
                  for p in PAGES if safe_path(self.root, rel := url_path(scan, RECON, folder.name, p))}
         if live and "mesh.ply" in files:  # the server makes the live view from that very mesh
-            files["view3d.html"] = f"/live3d/{url_path(scan)}?v={st.st_mtime_ns}"
+            files["view3d.html"] = f"/live3d/{url_path(scan)}?v={_mtime_ns(folder / 'mesh.ply')}"
         if live and summary.get("state") == "done":
             # its figures are the final result's, its mesh and preview the live fit's last: never one over the other
             files = {p: url for p, url in files.items() if p not in LIVE_PICTURES}
@@ -100,6 +118,23 @@ class ResultIndex:
                  "summary": summary, "error": error, "files": files}
         self._folders[str(folder)] = (key, entry)
         return entry
+
+
+def _mtime_ns(path: Path) -> int:
+    """When `path` last changed (ns), 0 when it cannot be read: the version in its address."""
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return 0
+
+
+def warning_level(warning) -> str:
+    """'serious' for a warning that doubts the result's shape (SERIOUS), else 'mild'."""
+    return "serious" if any(p.match(str(warning)) for p in SERIOUS) else "mild"
+
+
+def serious_count(warnings) -> int:
+    return sum(warning_level(w) == "serious" for w in warnings)
 
 
 def final_start(report: dict | None) -> str | None:

@@ -50,6 +50,11 @@ class ScanRow:
     """Why the scan's files have no links (its folder is a link out of the root, which the server never serves)."""
     quiet_s: float | None = None
     """A stalled scan's seconds without news (no new pose, no write of its scan.json); None on any other row."""
+    started_utc: str | None = None
+    """When the scan began (its scan.json's created_utc): the page says how long it has been running."""
+    config: str | None = None
+    """The rig configuration of the daemon that recorded it (scan.json's rig.config), when it says: the page's hint
+    that starts a daemon names it."""
     chunks: list[str] = field(default_factory=list, repr=False)
     mtime: float = 0.0
     published: list[float] = field(default_factory=list, repr=False)
@@ -90,6 +95,11 @@ def _typed(mapping: dict, key: str, kind: type, where: str):
     raise SpadscanError(f"{where}: {key} {json.dumps(value)[:40]} is not {JSON_KINDS[kind]}")
 
 
+def _rig_config(manifest: dict, where: str) -> str | None:
+    """The daemon's configuration file named in scan.json's rig (daemon/rig.py writes it), or None."""
+    return _typed(_typed(manifest, "rig", dict, where) or {}, "config", str, f"{where} rig")
+
+
 def _planned(manifest: dict, where: str) -> int | None:
     planned = _typed(manifest, "planned_poses", int, where)
     if planned is None:
@@ -108,6 +118,9 @@ class ScanIndex:
     def rows(self) -> list[ScanRow]:
         """Every scan under the root: running ones first, then the most recently changed."""
         rows, seen = [], set()
+        if not self.root.is_dir():  # not made yet (the daemon makes it at its first scan), or gone: no scans
+            self._rows.clear()
+            return rows
         with os.scandir(self.root) as entries:
             for entry in entries:
                 if entry.name.startswith(".") or not entry.is_dir():
@@ -149,7 +162,9 @@ class ScanIndex:
             where = str(path / MANIFEST)
             row = ScanRow(name, manifest["state"], planned=_planned(manifest, where),
                           updated_utc=_typed(manifest, "updated_utc", str, where),
-                          reason=_typed(manifest, "reason", str, where), chunks=chunks)
+                          reason=_typed(manifest, "reason", str, where), chunks=chunks,
+                          started_utc=_typed(manifest, "created_utc", str, where),
+                          config=_rig_config(manifest, where))
             paused = _typed(manifest, "paused", dict, where)
         except SpadscanError as exc:
             return ScanRow(name, "error", error=str(exc))
@@ -273,7 +288,16 @@ def scan_detail(root: Path, row: ScanRow) -> dict:
         return detail
     if row.state == "running":  # a paused, interrupted, stalled, complete or aborted scan takes no frames: no rate
         detail.update(frame_rates(frames[-RATE_FRAMES:]))
+        detail["eta_s"] = time_left_s(row.poses, row.planned, detail["poses_per_min"])
     return detail
+
+
+def time_left_s(poses: int, planned: int | None, poses_per_min: float | None) -> float | None:
+    """Seconds until a running scan's last planned pose at its recent pace (poses per minute over its last frames),
+    from its last published pose; None when either is unknown."""
+    if not planned or not poses_per_min or not math.isfinite(poses_per_min) or poses_per_min <= 0:
+        return None
+    return round(60.0 * max(0, planned - poses) / poses_per_min, 1)
 
 
 def frame_rates(meta: list[dict]) -> dict:
@@ -293,13 +317,22 @@ def _finite(value) -> bool:
 
 
 def plot_histograms(hist: np.ndarray, sensor) -> dict:
-    """A (zones, bins) histogram max-pooled to at most MAX_PLOT_BINS bins, for the page's small plot."""
+    """A (zones, bins) histogram max-pooled to at most MAX_PLOT_BINS bins, for the page's small plot. The bins before
+    zero distance (a sensor's zero bin lies inside its histogram) are left out: the plot's axis starts at 0 m."""
     hist = np.asarray(hist, dtype=np.float64)
+    first = _first_bin_at_zero(sensor, hist.shape[1])
+    hist = hist[:, first:]
     pool = int(np.ceil(hist.shape[1] / MAX_PLOT_BINS))
     bins = hist.shape[1] // pool * pool
     pooled = hist[:, :bins].reshape(hist.shape[0], -1, pool).max(axis=2) if pool > 1 else hist
     width = float(sensor.bin_width_m) * pool
-    # the axis labels bin centres: pooled bin k covers bin coordinates [k * pool, (k + 1) * pool) (bin i covers
-    # [i, i + 1) in the sensor model), so its centre is at coordinate k * pool + pool / 2
-    return {"counts": pooled.round(1).tolist(), "first_m": float(sensor.range_of_bin(pool / 2)), "bin_m": width,
-            "zones": int(hist.shape[0])}
+    # the axis labels bin centres: pooled bin k covers bin coordinates first + [k * pool, (k + 1) * pool) (bin i
+    # covers [i, i + 1) in the sensor model), so its centre is at coordinate first + k * pool + pool / 2
+    return {"counts": pooled.round(1).tolist(), "first_m": float(sensor.range_of_bin(first + pool / 2)),
+            "bin_m": width, "zones": int(hist.shape[0])}
+
+
+def _first_bin_at_zero(sensor, n_bins: int) -> int:
+    """The first bin whose start is at zero distance or beyond (0 when every bin is; none past the last bin)."""
+    ahead = np.asarray(sensor.range_of_bin(np.arange(n_bins))) >= 0.0
+    return int(np.argmax(ahead)) if ahead.any() else 0

@@ -143,12 +143,13 @@ def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None,
 
 
 def check_captures_root(root) -> Path:
-    """`root` as a Path when it can be a captures root: a folder that is not itself a capture. The page of one
-    capture given as the root would list no scans and a queue that does not exist, with no word of the mistake (the
-    worker refuses it the same way)."""
+    """`root` as a Path when it can be a captures root: a folder that is not itself a capture, or no folder yet (the
+    daemon creates it at its first scan: a dashboard started before it waits, saying so). The page of one capture
+    given as the root would list no scans and a queue that does not exist, with no word of the mistake (the worker
+    refuses it the same way)."""
     root = Path(root)
-    if not root.is_dir():
-        raise SpadscanError(f"{root}: no such captures root" + (" (a file, not a folder)" if root.exists() else ""))
+    if root.exists() and not root.is_dir():
+        raise SpadscanError(f"{root}: no such captures root (a file, not a folder)")
     if (root / MANIFEST).is_file():
         parent = root.parent if root.name else root.resolve().parent
         raise SpadscanError(f"{root} holds {MANIFEST}: it is a capture, not a captures root (use --root {parent})")
@@ -157,9 +158,11 @@ def check_captures_root(root) -> Path:
 
 def holds_no_scans(root) -> bool:
     """Whether the captures root lists and no sub-folder of it holds a scan manifest (hidden ones, the queue, are no
-    scans); False when it cannot be listed (the page says why)."""
+    scans), or is not there yet; False when it cannot be listed (the page says why)."""
     try:
         return not any(not p.name.startswith(".") and (p / MANIFEST).is_file() for p in Path(root).iterdir())
+    except FileNotFoundError:
+        return True  # the page says it waits for the root to appear
     except OSError:
         return False
 

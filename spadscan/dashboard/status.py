@@ -26,11 +26,12 @@ from spadscan.worker.report.mesh_pictures import VIEWS
 from spadscan.worker.status_detail import status_parts
 
 from .attempts import claim_starts, earlier_attempt
-from .results import ResultIndex
+from .results import ResultIndex, serious_count
 from .scans import IN_HAND, INTERRUPTED, STALLED, ScanIndex, interrupted, scan_detail, stalled
-from .worker_state import worker_state
+from .worker_state import unfollowed, worker_state
 
-PREVIEW = {"columns": [f"az {az:.0f} el {el:.0f}" for az, el in VIEWS], "rows": ["reconstruction", "ground truth"]}
+PREVIEW = {"columns": [f"az {az:.0f}\u00b0 el {el:.0f}\u00b0" for az, el in VIEWS],
+           "rows": ["reconstruction", "ground truth"]}
 """What each panel of a preview.png shows (worker/report/mesh_pictures.py `preview_png`: a column per angle, the
 reconstruction's row above the ground truth's when there is one): the page labels them in its own, readable, type."""
 
@@ -52,9 +53,11 @@ def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
 
 
 def job_detail(row, root: Path | None) -> dict:
-    """{"detail": the row's last --status column without its warnings, "warnings": how many there are}."""
+    """{"detail": the row's last --status column without its warnings, "warnings": how many there are,
+    "serious_warnings": how many of them doubt the shape itself (results.py `warning_level`)}."""
     detail, warnings, notes = status_parts(row, root=root)
-    return {"detail": "; ".join([detail, *notes]), "warnings": len(warnings)}
+    return {"detail": "; ".join([detail, *notes]), "warnings": len(warnings),
+            "serious_warnings": serious_count(warnings)}
 
 
 class Dashboard:
@@ -107,13 +110,20 @@ class Dashboard:
         # the folders read before the queue: each live status is judged against claims at least as new as itself
         starts = claim_starts(queue["jobs"])
         scans = [{**row.to_dict(), "recons": [earlier_attempt(r, starts) for r in recons[row.name]]} for row in rows]
+        # time_unix: the server's clock, against which the page says how old each time it shows is (the browser's
+        # clock may be another machine's)
         return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now)),
-                "daemon": daemon, "scans": scans, "current": detail, "queue": queue,
+                "time_unix": now, "root_missing": not self.root.is_dir(),
+                "daemon": daemon, "daemon_config": next((r.config for r in rows if r.config), None),
+                "scans": scans, "current": detail, "queue": queue,
                 "worker": self._worker(rows, queue, now), "preview": PREVIEW}
 
     def _worker(self, rows, queue: dict, now: float) -> dict:
         """What the reconstruction side is doing (worker_state; "unknown" when the queue cannot be read), with the
-        command that starts a worker."""
-        state = {"state": "unknown"} if queue.get("error") else worker_state(
-            rows, queue["jobs"], now, present_workers(self.queue_dir, now))
-        return {**state, "start": start_command(self.root, self.queue_dir)}
+        command that starts a worker, how many job processes the workers present run at once (`processes`), and the
+        scans being recorded that no worker follows (`unfollowed`: a worker without --live leaves them)."""
+        workers = [] if queue.get("error") else present_workers(self.queue_dir, now)
+        state = {"state": "unknown"} if queue.get("error") else worker_state(rows, queue["jobs"], now, workers)
+        return {**state, "start": start_command(self.root, self.queue_dir),
+                "processes": sum(w["processes"] for w in workers),
+                "unfollowed": unfollowed(rows, {j["scan"] for j in queue["jobs"]}, now) if workers else []}

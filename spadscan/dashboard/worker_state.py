@@ -9,6 +9,8 @@ that no worker has picked up within LOOK_S means that no worker serves the root,
 
 from __future__ import annotations
 
+import datetime as _dt
+
 LOOK_S = 20.0
 """A worker looks at the root every 2 s by default (`spadscan worker --poll-s`): a complete scan left without a job, or
 a queued job left untaken with no job running, this long means that no worker serves the root."""
@@ -48,3 +50,21 @@ def unqueued(rows, scans_with_jobs: set, now: float) -> dict | None:
         return None
     waited = now - max(r.mtime for r in left)  # of the one finished last
     return {"state": "unqueued", "scans": [r.name for r in left], "waited_s": round(waited, 1)}
+
+
+def unfollowed(rows, scans_with_jobs: set, now: float) -> list[str]:
+    """The scans being recorded (or paused) that have had no job for LOOK_S since they began: a worker started with
+    --live queues a scan at its first pose, so a worker present that leaves one does not reconstruct live."""
+    return [r.name for r in rows if r.state in ("running", "paused") and r.poses and r.name not in scans_with_jobs
+            and (_age_s(r.started_utc, now) or 0.0) >= LOOK_S]
+
+
+def _age_s(utc: str | None, now: float) -> float | None:
+    """Seconds from an ISO 8601 time (UTC when it names no zone) to `now` (unix seconds); None when unreadable."""
+    try:
+        then = _dt.datetime.fromisoformat(str(utc))
+    except ValueError:
+        return None
+    if then.tzinfo is None:
+        then = then.replace(tzinfo=_dt.timezone.utc)
+    return now - then.timestamp()

@@ -88,8 +88,9 @@ def test_the_live_chamfer_says_it_is_the_live_fits_against_the_ground_truth_on_i
     with serving(tmp_path) as server, browser_page() as (page, seen):
         page.goto(address(server))
         heading = wait_text(page, "#viewer-name", "bowl")
-        assert heading == ("bowl / live, following the scan (57 views, 89 steps), the live fit's Chamfer against "
-                           "the ground truth on its 57 views: 48.80 mm"), heading
+        # 57 of the 60 views the scan has published: the fit is behind the scan, and says so
+        assert heading == ("bowl / live, following the scan (fit of 57 of 60 views, 89 steps), the live fit's Chamfer "
+                           "against the ground truth on its 57 views: 48.80 mm"), heading
     assert not seen.errors, seen.errors
 
 
@@ -119,10 +120,11 @@ def test_while_the_final_run_runs_the_heading_says_so_and_where_it_started(tmp_p
             live_status(tmp_path / name, views_used=64, views_published=64, steps=145, chamfer_mm=83.85,
                         state="done", job=f"{name}-fast", result=str(tmp_path / name / "recon" / f"{name}-fast"))
         assert wait_text(page, "#viewer-name", "result") == (
-            "mug / fast 83.85 mm (the live reconstruction's result: its final run continued from the live fit)")
+            "mug / fast, Chamfer to the ground truth 83.85 mm (the live reconstruction's result: its final run "
+            "continued from the live fit)")
         assert page.locator('#scans tr[data-scan="bowl"] a.pick').text_content() == (
-            "fast 83.85 mm (the live reconstruction's result: its final run started from the carved hull, not "
-            "from the live fit)")
+            "fast, Chamfer to the ground truth 83.85 mm (the live reconstruction's result: its final run started "
+            "from the carved hull, not from the live fit)")
     assert not seen.errors, seen.errors
 
 
@@ -146,7 +148,7 @@ def test_the_scan_in_hand_without_a_result_shows_its_own_state_not_another_scans
             "jug / no result yet: reconstructing: reconstruct (fast): 6/10 s, step 72")
         assert "vase" not in page.locator("#viewer").text_content()
         pick(page, "vase")  # another scan's result only when asked for
-        assert page.locator("#viewer-name").text_content() == "vase / fast 1.00 mm"
+        assert page.locator("#viewer-name").text_content() == "vase / fast, Chamfer to the ground truth 1.00 mm"
     assert not seen.errors, seen.errors
 
 
@@ -159,7 +161,9 @@ def test_a_job_whose_worker_is_gone_says_so_in_the_heading_and_the_queue_counts(
     with serving(tmp_path) as server, browser_page() as (page, seen):
         page.goto(address(server))
         heading = wait_text(page, "#viewer-name", "worker")
-        assert heading == "vase / live, waiting for views: its worker is gone: start `spadscan worker`", heading
+        # it follows the scan no more, and the command that brings a worker back is this root's own
+        assert heading == ("vase / live reconstruction stopped before its first fit (its worker is gone: start one "
+                           f"with `spadscan worker --root {tmp_path.resolve()}`)"), heading
         assert wait_text(page, "#queue-counts", "stale") == (
             "(0 queued, 1 running (1 stale: their worker is gone), 0 done, 0 failed)")
     assert not seen.errors, seen.errors

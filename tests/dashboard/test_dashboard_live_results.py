@@ -101,3 +101,27 @@ def test_the_server_listens_on_an_ipv6_address(tmp_path):
         thread.join(10)
     with serving(tmp_path) as server:  # and IPv4 as before
         assert get(server, "/api/status")[0] == 200
+
+
+def test_a_live_status_rewritten_alone_leaves_the_pictures_addresses_as_they_were(tmp_path):
+    # The live job rewrites status.json every couple of seconds between two meshes: the page reloads a picture or
+    # the 3D view when its address changes, so each address is versioned by its own file, not by the status.
+    complete_scan(tmp_path / "v", 2)
+    live_status(tmp_path / "v", state="live")
+    index = ResultIndex(tmp_path)
+    (before,) = index.for_scan("v")
+    status_file = tmp_path / "v" / "recon" / "live" / "status.json"
+    later = status_file.stat().st_mtime + 3
+    status_file.write_text(json.dumps({"views_used": 20, "views_published": 21, "steps": 90, "state": "live"}))
+    os.utime(status_file, (later, later))
+    (after,) = index.for_scan("v")
+    assert after["summary"]["views_used"] == 20, "the status itself is read again"
+    assert {p: after["files"][p] for p in ("preview.png", "mesh.ply", "view3d.html")} == \
+        {p: before["files"][p] for p in ("preview.png", "mesh.ply", "view3d.html")}
+    mesh = tmp_path / "v" / "recon" / "live" / "mesh.ply"
+    os.utime(mesh, (later + 1, later + 1))  # a new mesh: its addresses change, the preview's not
+    os.utime(status_file, (later + 2, later + 2))
+    (newer,) = index.for_scan("v")
+    assert newer["files"]["mesh.ply"] != before["files"]["mesh.ply"]
+    assert newer["files"]["view3d.html"] != before["files"]["view3d.html"]
+    assert newer["files"]["preview.png"] == before["files"]["preview.png"]

@@ -167,10 +167,11 @@ def test_once_a_live_reconstruction_is_done_the_page_shows_its_result_picture_an
                                timeout=WAIT_MS)
         assert "/recon/demo-fast/preview.png" in page.locator("#viewer-preview").get_attribute("src"), \
             "the result's figures over the live fit's picture"
-        assert name.text_content() == "demo / fast 1.00 mm (the live reconstruction's result)"
+        assert name.text_content() == ("demo / fast, Chamfer to the ground truth 1.00 mm (the live reconstruction's "
+                                       "result)")
         assert page.locator('#viewer-links a', has_text="report.html").count() == 1
         assert page.locator('#scans tr[data-scan="demo"] a.pick').all_text_contents() == [
-            "fast 1.00 mm (the live reconstruction's result)"]
+            "fast, Chamfer to the ground truth 1.00 mm (the live reconstruction's result)"]
     assert not seen.errors, seen.errors
 
 
@@ -195,9 +196,10 @@ def test_a_live_reconstruction_shows_its_state_its_note_and_its_age_once_it_no_l
         assert picks["aborted"].text_content() == f"live, ended (the scan was aborted) {fit}, updated 3 min ago"
         assert page.locator('#scans tr[data-scan="aborted"] .note').text_content() == "scan aborted: aborted by user"
         quiet = picks["quiet"].text_content()  # 45 s ago, or a little more on a busy machine
-        assert quiet.startswith(f"live, following the scan {fit}, updated ") and \
+        behind = fit.replace("(33 views", "(fit of 33 of 62 views")  # the status counts 62 views published
+        assert quiet.startswith(f"live, following the scan {behind}, updated ") and \
             quiet.endswith(" ago"), quiet
-        assert picks["running"].text_content() == f"live, following the scan {fit}"
+        assert picks["running"].text_content() == f"live, following the scan {behind}"
         picks["aborted"].click()
         page.wait_for_function("() => document.querySelector('#viewer-notes').textContent"
                                ".includes('scan aborted: aborted by user')", timeout=WAIT_MS)
