@@ -26,7 +26,7 @@ asked of its socket.
 
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
 The root is the folder of scans, never one scan's own folder (that is refused, naming its parent); a root with no
-scans yet is served all the same, saying so, and the page lists scans as they appear. Ctrl-C or SIGTERM (`kill`,
+scans yet, or none yet at all, is served all the same, saying so, and the page lists scans as they appear. Ctrl-C or SIGTERM (`kill`,
 `systemctl stop`) stops it, saying so, with exit status 0.
 
 examples:
@@ -76,7 +76,10 @@ def run(args: argparse.Namespace) -> int:
     server = make_server(args.root, args.host, args.port, args.queue, daemon_running=daemon_running)
     print(f"spadscan dashboard: serving {args.root.resolve()} at {address(server)} (Ctrl-C stops it)",
           file=sys.stderr, flush=True)
-    if holds_no_scans(args.root):  # served all the same: the daemon may start one any time
+    if not args.root.exists():  # served all the same: the daemon creates it at its first scan
+        print(f"spadscan dashboard: the captures root {args.root} does not exist yet; the page waits for it (the "
+              f"daemon creates it at its first scan)", file=sys.stderr, flush=True)
+    elif holds_no_scans(args.root):  # served all the same: the daemon may start one any time
         print(f"spadscan dashboard: no scans in {args.root} yet (a scan is a sub-folder holding scan.json); the page "
               f"lists them as they appear", file=sys.stderr, flush=True)
     try:

@@ -458,6 +458,12 @@ def test_a_root_without_scans_is_served_saying_there_are_none_yet(tmp_path, caps
     assert main(["dashboard", "--root", str(tmp_path), "--port", "0"]) == 0
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 2 and " at http://127.0.0.1:" in lines[0], lines
+    missing = tmp_path / "not-yet"  # a dashboard service started before the daemon's first scan
+    assert main(["dashboard", "--root", str(missing), "--port", "0"]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[1] == (f"spadscan dashboard: the captures root {missing} does not exist yet; the page waits for it "
+                        f"(the daemon creates it at its first scan)"), lines
+    assert not missing.exists(), "the dashboard only reads"
 
 
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
