@@ -457,7 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "so that a config keeps one path across runs (default: a new temporary folder)")
     parser.add_argument("--mesh", default="builtin:demo", metavar="SPEC",
                         help="the scene: a mesh file (metres; STL in millimetres is detected) or builtin:NAME "
-                             "(sphere, cup, lamp, pyramid, demo; default builtin:demo)")
+                             "(any built-in scene `spadscan simulate --help` lists; default builtin:demo)")
     parser.add_argument("--distance-m", type=_number(float, 0.01, 10.0, " m"), default=0.25,
                         help="distance of the fixed sensor pose from the scene's centre, m (default 0.25, the "
                              "radius_m of examples/rig-serial.toml)")

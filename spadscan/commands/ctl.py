@@ -127,7 +127,8 @@ def add_arguments(parser) -> None:
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
               "config (examples/README.md documents each key).")
-    scan.add_argument("--name", help="scan name: the capture goes to <captures>/NAME/ (default: scan-<time>)")
+    scan.add_argument("--name", help="scan name: the capture goes to <captures>/NAME/; 1-100 letters, digits or . _ + -, not "
+                           "starting with . _ + - (default: scan-<time>)")
     scan.add_argument("--wait", action="store_true",
                       help="block until the scan is complete or aborted (a progress bar on stderr when a terminal)")
     settings = scan.add_argument_group("scan settings", "each defaults to the rig config's [scan] key named in "
@@ -186,11 +187,12 @@ def add_arguments(parser) -> None:
     for answering in (scan, pause, resume, abort, shutdown):  # what they did, in one line for people
         answering.add_argument("--json", action="store_true",
                                help="print the daemon's whole reply as one line of JSON (for scripts), not the "
-                                    "one-line summary")
+                                    "one-line summary; a refusal too, as {\"ok\": false, \"error\": ...}, beside "
+                                    "its error line and exit status 1")
 
 
 def run(args) -> int:
-    from spadscan.daemon.client import call, default_socket_path
+    from spadscan.daemon.client import ControlError, call, default_socket_path
 
     path = default_socket_path(create=False) if args.socket is None else args.socket
     timeout = REPLY_TIMEOUT_S.get(args.op, 30.0) if args.timeout is None else args.timeout
@@ -203,7 +205,12 @@ def run(args) -> int:
     elif args.op in ("resume", "abort"):
         request = {key: value for key, value in (("name", args.name), ("reason", getattr(args, "reason", None)))
                    if value}
-    reply = call(path, args.op, timeout, **request)
+    try:
+        reply = call(path, args.op, timeout, **request)
+    except ControlError as exc:
+        if getattr(args, "json", False):  # a script that reads standard output reads the refusal there too
+            print(json.dumps({"ok": False, "error": str(exc)}))
+        raise
     reply.pop("ok", None)
     if args.op == "status":
         live = live_status(reply)

@@ -81,7 +81,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="bound the whole run to S seconds, from start to report: set-up, training, mesh, "
                              "metrics and pictures share it; at most a week (default: the preset's; fast: 120)")
     parser.add_argument("--steps", type=int, default=None, metavar="N",
-                        help="stop after N optimisation steps, 1 to 10,000,000")
+                        help="stop after N optimisation steps, 1 to 10,000,000 (default: the preset's; fast: until it "
+                             "converges or its time budget ends)")
     add_ground_truth_options(parser, ", for the metrics")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                         help="where to compute (default: auto = CUDA when available)")

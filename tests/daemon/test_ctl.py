@@ -349,3 +349,20 @@ def test_ops_that_change_the_daemon_answer_in_one_line_for_people_and_in_json_wi
     assert capsys.readouterr().out == said + "\n"
     assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), *argv, "--json"]) == 0
     assert json.loads(capsys.readouterr().out) == {k: v for k, v in reply.items() if k != "ok"}
+
+
+def test_a_refused_op_with_json_prints_the_refusal_as_json_too(tmp_path, monkeypatch, capsys):
+    """A script that parses standard output got nothing when the daemon refused: it gets the refusal as JSON, and
+    the error line and exit status 1 as before."""
+    import spadscan.daemon.client as client
+
+    def refuse(path, op, timeout, **request):
+        raise client.ControlError("nothing to pause (daemon is idle)")
+
+    monkeypatch.setattr(client, "call", refuse)
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "pause", "--json"]) == 1
+    captured = capsys.readouterr()
+    assert json.loads(captured.out) == {"ok": False, "error": "nothing to pause (daemon is idle)"}
+    assert captured.err == "spadscan: error: nothing to pause (daemon is idle)\n"
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "pause"]) == 1
+    assert capsys.readouterr().out == "", "without --json: the error line alone"
