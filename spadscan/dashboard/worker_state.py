@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import datetime as _dt
 
+from .results import age_s
+
 LOOK_S = 20.0
 """A worker looks at the root every 2 s by default (`spadscan worker --poll-s`): a complete scan left without a job, or
 a queued job left untaken with no job running, this long means that no worker serves the root."""
@@ -56,15 +58,5 @@ def unfollowed(rows, scans_with_jobs: set, now: float) -> list[str]:
     """The scans being recorded (or paused) that have had no job for LOOK_S since they began: a worker started with
     --live queues a scan at its first pose, so a worker present that leaves one does not reconstruct live."""
     return [r.name for r in rows if r.state in ("running", "paused") and r.poses and r.name not in scans_with_jobs
-            and (_age_s(r.started_utc, now) or 0.0) >= LOOK_S]
+            and (age_s(r.started_utc, _dt.datetime.fromtimestamp(now, _dt.timezone.utc)) or 0.0) >= LOOK_S]
 
-
-def _age_s(utc: str | None, now: float) -> float | None:
-    """Seconds from an ISO 8601 time (UTC when it names no zone) to `now` (unix seconds); None when unreadable."""
-    try:
-        then = _dt.datetime.fromisoformat(str(utc))
-    except ValueError:
-        return None
-    if then.tzinfo is None:
-        then = then.replace(tzinfo=_dt.timezone.utc)
-    return now - then.timestamp()
