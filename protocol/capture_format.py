@@ -67,6 +67,14 @@ class Chunk:
         return np.array([m["pose_index"] for m in self.meta], dtype=np.int64)
 
 
+def drawn_by_simulator(manifest: dict) -> bool:
+    """Whether a manifest's histograms were drawn by this project's simulator: `rig.kind` "simulated" (`spadscan
+    simulate`) or `rig.sensor.backend` "sim" (the daemon's simulated sensor). Where they came from, whatever the scene
+    says of how to fit them (`scene.real`). For a manifest the reader has checked (rig and rig.sensor objects)."""
+    rig = manifest.get("rig") or {}
+    return rig.get("kind") == "simulated" or (rig.get("sensor") or {}).get("backend") == "sim"
+
+
 def chunk_name(index: int) -> str:
     return f"{CHUNK_PREFIX}{index:06d}"
 

@@ -10,16 +10,28 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, VERSION, Chunk, NoPermission, check_hists,
-                             check_poses, chunk_index, no_permission, one_line, read_json, read_npy)
+                             check_poses, chunk_index, drawn_by_simulator, no_permission, one_line, read_json,
+                             read_npy)
 from .errors import CaptureError, SensorModelError
-from .plausibility import check_counts, first_photon_cycles
+from .plausibility import check_counts, cycles_margin, first_photon_cycles
 from .sensor_model import SensorModel
+
+POSE_SPREAD_M = 1e-3
+POSE_SPREAD_DEG = 0.5
+"""How far the poses of the frames that share a pose_index may lie from their first frame's (metres, degrees of
+rotation). Those frames are summed into one view at the first frame's pose (`CaptureData.by_pose`). A rig's readings
+of one settled pose differ by microns (a daemon stores one arm reading for all of a pose's frames; a retaken pose
+differs by the arm's repeatability, hundredths of a millimetre); another view lies centimetres and degrees away."""
+
+NAMED_CHUNKS = 8
+"""Chunks a capture's error or note names (the rest counted): the line stays one line with hundreds of them."""
 
 
 @dataclass
 class CaptureData:
     """A whole capture in memory. hists (N, zones, bins) uint32; poses (N, 4, 4) float64 metres;
-    reference (N, bins) uint32 or None; meta: one dict per measurement (pose_index, frame, ...)."""
+    reference (N, bins) uint32 or None; meta: one dict per measurement (pose_index, frame, ...); notes: one-line
+    warnings about what reading left out (reference histograms some chunks lack), carried by `check_counts`."""
 
     sensor: SensorModel
     hists: np.ndarray
@@ -27,18 +39,30 @@ class CaptureData:
     reference: np.ndarray | None
     meta: list[dict]
     manifest: dict
+    notes: tuple[str, ...] = ()
 
     @property
     def pose_indices(self) -> np.ndarray:
         return np.array([m["pose_index"] for m in self.meta], dtype=np.int64)
 
+    def count_bounds(self) -> tuple:
+        """(max_count, ignore_bins, cycles, margin): the bounds plausibility.survey_counts and .implausible test this
+        capture's histograms against; the margin over the cycles is 1 for histograms this project's simulator drew
+        (plausibility.cycles_margin)."""
+        s = self.sensor
+        return s.max_count, s.ignore_bins, first_photon_cycles(s), cycles_margin(drawn_by_simulator(self.manifest))
+
     def check_counts(self, where, warn: Callable[[str], None] | None = None) -> str | None:
         """Refuse (CaptureError naming `where`) a capture whose histograms no sensor could have produced (saturated,
         above the sensor's counter, all zero, all equal: see plausibility.py); when only some are, or some bins are
-        clipped, return a one-line warning (also passed to `warn` as 'warning: ...'), else None. For the readers
-        that fit the counts (reconstruction, baselines); reading a capture does not check them."""
-        note = check_counts(self.hists, self.sensor.max_count, self.sensor.ignore_bins, str(where),
-                            first_photon_cycles(self.sensor))
+        clipped, return a one-line warning (also passed to `warn` as 'warning: ...'), else None. The line also
+        carries the reading's `notes` (reference histograms left out): it is the capture's warning that a run
+        prints and reports. For the readers that fit the counts (reconstruction, baselines); reading a capture does
+        not check them."""
+        max_count, ignore_bins, cycles, margin = self.count_bounds()
+        note = check_counts(self.hists, max_count, ignore_bins, str(where), cycles, margin)
+        for extra in self.notes:
+            note = f"{note}; {extra}" if note else f"{where}: {extra}"
         if note and warn is not None:
             warn(f"warning: {note}")
         return note
@@ -83,6 +107,95 @@ def _check_version(version, where) -> None:
                            f"(version {VERSION}); upgrade spadscan to read it")
 
 
+MAX_INDEX = 2**53
+"""The largest pose_index a reader takes (a plan of that many poses would never end; numpy's int64 holds it)."""
+
+
+def _is_count(value) -> bool:
+    """An integer >= 0 as JSON gives it (not true or false)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _check_objects(m: dict, where) -> None:
+    """`scene`, `rig` and `rig.sensor` are JSON objects where given (null reads as absent, as the worker reads it):
+    the worker looks keys up in them, and a list or a string there ended a run in a traceback. `scene.real`, where
+    given, is true or false: the string "false" is truthy, and a simulated capture was fitted as measured."""
+    for key, value in (("scene", m.get("scene")), ("rig", m.get("rig"))):
+        if value is not None and not isinstance(value, dict):
+            raise CaptureError(f"{where}: {key} must be a JSON object, got {type(value).__name__}")
+    sensor = (m.get("rig") or {}).get("sensor")
+    if sensor is not None and not isinstance(sensor, dict):
+        raise CaptureError(f"{where}: rig.sensor must be a JSON object, got {type(sensor).__name__}")
+    scene = m.get("scene") or {}
+    if "real" in scene and not isinstance(scene["real"], bool):
+        raise CaptureError(f"{where}: scene.real = {scene['real']!r} must be true or false")
+
+
+def _check_pose_counts(m: dict, where) -> None:
+    """`frames_per_pose` (an integer >= 1) and `planned_poses` (an integer >= 0), where given (null: not known): the
+    frame numbers and pose indices are checked against them."""
+    for key, least in (("frames_per_pose", 1), ("planned_poses", 0)):
+        value = m.get(key)
+        if value is not None and not (_is_count(value) and value >= least):
+            raise CaptureError(f"{where}: {key} {value!r} must be an integer >= {least}")
+
+
+def _check_frame(record: dict, per_pose: int | None, where: str) -> None:
+    """A measurement record's frame number, where it has one (another writer's record may not): an integer >= 0
+    and, where the manifest gives frames_per_pose, below it (capture_format.md)."""
+    frame = record.get("frame")
+    if frame is None:
+        return
+    if not _is_count(frame):
+        raise CaptureError(f"{where} has frame {frame!r}, not an integer >= 0")
+    if per_pose is not None and frame >= per_pose:
+        raise CaptureError(f"{where} has frame {frame} of pose {record['pose_index']}, beyond the manifest's "
+                           f"frames_per_pose {per_pose} (frames 0..{per_pose - 1})")
+
+
+def _pose_spread(poses: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(shift in metres, turn in degrees) of each measurement's pose (N, 4, 4) from the first pose of its pose_index
+    (indices (N,)): the pose its view is placed at when its frames are summed (CaptureData.by_pose)."""
+    _, first, group = np.unique(indices, return_index=True, return_inverse=True)
+    ref = poses[first[group.reshape(-1)]]
+    shift = np.linalg.norm(poses[:, :3, 3] - ref[:, :3, 3], axis=1)
+    cos = (np.einsum("nij,nij->n", poses[:, :3, :3], ref[:, :3, :3]) - 1) / 2  # trace(R_ref^T R) = 1 + 2 cos
+    return shift, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _check_pose_spread(poses: np.ndarray, indices: np.ndarray, where) -> None:
+    """Refuse frames of one pose_index whose poses lie more than POSE_SPREAD_M or POSE_SPREAD_DEG from the first:
+    summed into one view at the first frame's pose, views taken elsewhere would be silently misplaced."""
+    shift, turn = _pose_spread(poses, indices)
+    apart = (shift > POSE_SPREAD_M) | (turn > POSE_SPREAD_DEG)
+    if not apart.any():
+        return
+    pose = int(indices[apart][0])
+    mine = indices == pose
+    others = len(np.unique(indices[apart])) - 1
+    more = f" (and {others} other pose(s))" if others else ""
+    raise CaptureError(f"{where}: the frames of pose {pose}{more} were taken up to {1000 * shift[mine].max():.1f} mm "
+                       f"and {turn[mine].max():.1f} degrees apart; the frames of one pose are summed into one view, "
+                       f"so they must share it (within {1000 * POSE_SPREAD_M:g} mm and {POSE_SPREAD_DEG:g} degrees)")
+
+
+def _named(names: list[str]) -> str:
+    """`names` joined, the first NAMED_CHUNKS of them named and the rest counted."""
+    rest = len(names) - NAMED_CHUNKS
+    return ", ".join(names[:NAMED_CHUNKS]) + (f" and {rest} more" if rest > 0 else "")
+
+
+def _reference_note(chunks: list[Chunk]) -> str | None:
+    """Why no reference histogram is used, when some chunks hold reference.npy and others lack it (the capture's
+    references are kept for every measurement or for none), else None."""
+    lacking = [c.name for c in chunks if c.reference is None]
+    if not lacking or len(lacking) == len(chunks):
+        return None
+    return (f"reference.npy is missing from {len(lacking)} of {len(chunks)} chunks ({_named(lacking)}): no "
+            f"reference histogram is used, not even the other chunks' (a measured capture's pulse is then the "
+            f"sensor model's)")
+
+
 def _is_there(path: Path) -> bool:
     """Whether the file at `path` exists. A lookup that fails (a disk error, a folder this user may not search) is a
     one-line CaptureError (NoPermission for the latter), as for a chunk file that cannot be read, never a bare
@@ -112,10 +225,6 @@ class ChunkRead:
     @property
     def damaged(self) -> bool:
         return self.error is not None and not self.forbidden
-
-
-NAMED_CHUNKS = 8
-"""Damaged chunks a capture's error names (the rest counted): the line stays one line with hundreds of them."""
 
 
 class CaptureReader:
@@ -154,6 +263,8 @@ class CaptureReader:
             raise CaptureError(f"{where}: chunk_size {size!r} must be a positive integer")
         if m["state"] not in STATES:
             raise CaptureError(f"{where}: state {m['state']!r} is not one of {STATES}")
+        _check_objects(m, where)
+        _check_pose_counts(m, where)
         return m
 
     def refresh(self) -> str:
@@ -201,8 +312,10 @@ class CaptureReader:
             raise CaptureError(f"{d / 'meta.json'}: expected {n} measurement records")
         for i, m in enumerate(meta):
             index = m.get("pose_index") if isinstance(m, dict) else None
-            if not isinstance(index, int) or isinstance(index, bool) or index < 0:
+            if not _is_count(index):
                 raise CaptureError(f"{d / 'meta.json'}: measurement {i} lacks a pose_index >= 0")
+            if index > MAX_INDEX:
+                raise CaptureError(f"{d / 'meta.json'}: measurement {i} has pose_index {index}, over {MAX_INDEX:,}")
         return Chunk(name, hists, poses, ref, meta)
 
     def try_read_chunk(self, name: str) -> ChunkRead:
@@ -233,10 +346,8 @@ class CaptureReader:
         if not chunks:
             raise CaptureError(f"{first}; none of its {len(damaged)} chunks can be read") from None
         them = "it" if len(damaged) == 1 else "them"
-        named = ", ".join(damaged[:NAMED_CHUNKS]) + (f" and {len(damaged) - NAMED_CHUNKS} more"
-                                                      if len(damaged) > NAMED_CHUNKS else "")
         raise CaptureError(f"{first}; {len(damaged)} of {len(damaged) + len(chunks)} chunks cannot be read "
-                           f"({named}): moving {them} out of {self.path} leaves the views of the other "
+                           f"({_named(damaged)}): moving {them} out of {self.path} leaves the views of the other "
                            f"{len(chunks)} to use") from None
 
     def follow(self, poll_s: float = 0.5, timeout_s: float | None = None) -> Iterator[Chunk]:
@@ -263,20 +374,54 @@ class CaptureReader:
 
     def load(self) -> CaptureData:
         """Every published measurement, concatenated in order. An empty capture is an error, and so is one with a
-        chunk that cannot be read (`_readable_chunks`)."""
+        chunk that cannot be read (`_readable_chunks`), a bad schedule.npy or a pose_index beyond it
+        (`_check_planned`), a frame number beyond frames_per_pose (`_check_frames`), and frames of one pose_index
+        taken at different poses (`_check_pose_spread`).
+        Reference histograms are kept only when every chunk holds them (else a note says so)."""
         chunks = self._readable_chunks()
         if not chunks:
             raise CaptureError(f"{self.path}: holds no published measurements")
+        self._check_planned(chunks)
+        self._check_frames(chunks)
+        poses = np.concatenate([c.poses for c in chunks])
+        _check_pose_spread(poses, np.concatenate([c.pose_indices for c in chunks]), self.path)
         refs = [c.reference for c in chunks]
         reference = np.concatenate(refs) if all(r is not None for r in refs) else None
+        note = _reference_note(chunks)
         return CaptureData(
             sensor=self.sensor,
             hists=np.concatenate([c.hists for c in chunks]),
-            poses=np.concatenate([c.poses for c in chunks]),
+            poses=poses,
             reference=reference,
             meta=[m for c in chunks for m in c.meta],
             manifest=self.manifest,
+            notes=(note,) if note else (),
         )
+
+    def _check_frames(self, chunks: list[Chunk]) -> None:
+        """Every record's frame number, where it has one, is an integer >= 0 below the manifest's frames_per_pose
+        (where given). Checked on the whole capture, not as a chunk is read: a chunk with such a record is not
+        damaged, and moving it out is no remedy."""
+        per_pose = self.manifest.get("frames_per_pose")
+        for c in chunks:
+            for i, record in enumerate(c.meta):
+                _check_frame(record, per_pose, f"{self.path / c.name / 'meta.json'}: measurement {i}")
+
+    def _check_planned(self, chunks: list[Chunk]) -> None:
+        """schedule.npy, where there is one, holds rigid finite poses (`planned_poses`), and every measurement's
+        pose_index names one of the planned poses where their number is known: the schedule's rows, else the
+        manifest's planned_poses. One line naming the file otherwise."""
+        schedule = self.planned_poses()
+        planned = len(schedule) if schedule is not None else self.manifest.get("planned_poses")
+        if planned is None:
+            return
+        of = str(self.path / SCHEDULE) if schedule is not None else f"{self.path / MANIFEST} (planned_poses)"
+        for c in chunks:
+            beyond = np.flatnonzero(c.pose_indices >= planned)
+            if beyond.size:
+                i = int(beyond[0])
+                raise CaptureError(f"{self.path / c.name / 'meta.json'}: measurement {i} has pose_index "
+                                   f"{c.meta[i]['pose_index']}, beyond the {planned} planned poses of {of}")
 
 
 def check_capture_counts(capture, warn: Callable[[str], None] | None = None) -> str | None:

@@ -13,7 +13,9 @@ measurement) are implausible:
 - over its cycles: for a sensor that stops at its first photon in each laser cycle (the sensor model's `pileup`),
   more counts in all than CYCLES_MARGIN x its laser cycles (`cycles`), where at most one count a cycle is possible
   (one bin raised to 50,000 in a 5,000-cycle histogram pulled a fit's albedo down and spoiled its fit of the other
-  histograms). The bins clipped at the counter's limit are left out of the sum (they are warned about as clipped).
+  histograms); more than the cycles themselves (SIMULATED_CYCLES_MARGIN) for histograms this project's simulator
+  drew (`cycles_margin`). The bins clipped at the counter's limit are left out of the sum (they are warned about as
+  clipped).
 
 The bins a sensor model ignores (the TMF8820's bin 0) are left out of these tests. A capture whose histograms are
 all implausible is refused (CaptureError); one where only some are gets a one-line warning, as does one with bins
@@ -40,6 +42,17 @@ CYCLES_MARGIN = 1.5
 model's cycles can be an estimate (the TMF8820's 4 million are known to +-0.7 million per frame, so a bright real
 frame could hold more counts than 4 million); a simulated one never exceeds 1, and a corrupt count far exceeds 1.5."""
 
+SIMULATED_CYCLES_MARGIN = 1.0
+"""The bound for histograms drawn by this project's simulator (`spadscan simulate`, the daemon's simulated sensor):
+it draws a first-photon histogram as one multinomial outcome per cycle, so its counts never exceed its cycles, which
+it knows exactly. A simulated capture scaled to 1.45 x its cycles passed the 1.5 margin unremarked."""
+
+
+def cycles_margin(simulated: bool) -> float:
+    """The margin of the "over its cycles" kind for a capture's histograms: SIMULATED_CYCLES_MARGIN for those this
+    project's simulator drew (`capture_format.drawn_by_simulator`), else CYCLES_MARGIN (estimated cycles)."""
+    return SIMULATED_CYCLES_MARGIN if simulated else CYCLES_MARGIN
+
 
 @dataclass(frozen=True)
 class CountSurvey:
@@ -55,6 +68,8 @@ class CountSurvey:
     """Otherwise plausible histograms with some bins at the counter's limit."""
     cycles: int | None = None
     """The laser cycles of a first-photon sensor's histogram (the kind "over its cycles"), or None: no such test."""
+    margin: float = CYCLES_MARGIN
+    """Counts per cycle above which a histogram is "over its cycles" (`cycles_margin`)."""
 
     @property
     def n_implausible(self) -> int:
@@ -87,7 +102,8 @@ class CountSurvey:
     def _phrases(self) -> dict[str, tuple[str, str]]:
         """Each kind as (what 'all N histograms' do, how a count of them is labelled)."""
         limit = f"the {_bits(self.limit)} counter's limit {self.limit:,}"
-        cycles = f"{CYCLES_MARGIN:g} x their {self.cycles or 0:,} laser cycles"
+        cycles = f"their {self.cycles or 0:,} laser cycles"
+        cycles = cycles if self.margin == 1 else f"{self.margin:g} x {cycles}"
         return {
             "over the counter": (f"hold counts above {limit}", f"with counts above {limit}"),
             "saturated": (f"are saturated (every bin at {limit})", f"saturated (every bin at {limit})"),
@@ -110,27 +126,29 @@ def first_photon_cycles(sensor) -> int | None:
     return int(sensor.cycles) if sensor.pileup else None
 
 
-def survey_counts(hists: np.ndarray, max_count: int = UINT32_MAX, ignore_bins=(), cycles: int | None = None
-                  ) -> CountSurvey:
+def survey_counts(hists: np.ndarray, max_count: int = UINT32_MAX, ignore_bins=(), cycles: int | None = None,
+                  margin: float = CYCLES_MARGIN) -> CountSurvey:
     """Classify histograms (..., bins) of whole counts: see the module's docstring. `max_count`: the sensor's
     largest count; `ignore_bins`: bins left out of the tests (kept when they are all the bins there are);
-    `cycles`: the laser cycles of one histogram of a first-photon sensor (`first_photon_cycles`), None for none."""
-    kind, limit, clipped = _classify(hists, max_count, ignore_bins, cycles)
+    `cycles`: the laser cycles of one histogram of a first-photon sensor (`first_photon_cycles`), None for none;
+    `margin`: counts per cycle allowed (`cycles_margin`)."""
+    kind, limit, clipped = _classify(hists, max_count, ignore_bins, cycles, margin)
     found = {k: int((kind == i).sum()) for i, k in enumerate(KINDS) if (kind == i).any()}
-    return CountSurvey(kind.size, limit, found, int(clipped.sum()), None if cycles is None else int(cycles))
+    return CountSurvey(kind.size, limit, found, int(clipped.sum()), None if cycles is None else int(cycles),
+                       float(margin))
 
 
-def implausible(hists: np.ndarray, max_count: int = UINT32_MAX, ignore_bins=(), cycles: int | None = None
-                ) -> np.ndarray:
+def implausible(hists: np.ndarray, max_count: int = UINT32_MAX, ignore_bins=(), cycles: int | None = None,
+                margin: float = CYCLES_MARGIN) -> np.ndarray:
     """Whether each histogram (..., bins) is one no sensor could have produced (any of KINDS): the mask (...) of
     those a reconstruction must leave out. An all-zero histogram read as "no return" would prove its zone's whole
-    field of view empty and carve the object away. `cycles` as in `survey_counts`."""
+    field of view empty and carve the object away. `cycles` and `margin` as in `survey_counts`."""
     hists = np.asarray(hists)
-    return (_classify(hists, max_count, ignore_bins, cycles)[0] >= 0).reshape(hists.shape[:-1])
+    return (_classify(hists, max_count, ignore_bins, cycles, margin)[0] >= 0).reshape(hists.shape[:-1])
 
 
-def _classify(hists: np.ndarray, max_count: int, ignore_bins, cycles: int | None = None
-              ) -> tuple[np.ndarray, int, np.ndarray]:
+def _classify(hists: np.ndarray, max_count: int, ignore_bins, cycles: int | None = None,
+              margin: float = CYCLES_MARGIN) -> tuple[np.ndarray, int, np.ndarray]:
     """(the index in KINDS of each histogram's first kind, -1 for none; the count limit; which of the plausible
     ones have a bin clipped at the limit), over the histograms (..., bins) flattened."""
     hists = np.asarray(hists)
@@ -144,27 +162,27 @@ def _classify(hists: np.ndarray, max_count: int, ignore_bins, cycles: int | None
         return kind, limit, np.zeros(h.shape[0], bool)
     hi, lo = h.max(axis=1), h.min(axis=1)
     tests = {"over the counter": hi > limit, "saturated": lo >= limit, "all zero": hi == 0, "all equal": hi == lo,
-             "over its cycles": _over_cycles(h, limit, cycles)}
+             "over its cycles": _over_cycles(h, limit, cycles, margin)}
     for i, name in reversed(list(enumerate(KINDS))):  # the first kind in KINDS wins
         kind[tests[name]] = i
     return kind, limit, (h >= limit).any(axis=1) & (kind < 0)
 
 
-def _over_cycles(h: np.ndarray, limit: int, cycles: int | None) -> np.ndarray:
-    """Which histograms (n, bins) hold more counts than CYCLES_MARGIN x `cycles` (none when `cycles` is None). Bins
+def _over_cycles(h: np.ndarray, limit: int, cycles: int | None, margin: float = CYCLES_MARGIN) -> np.ndarray:
+    """Which histograms (n, bins) hold more counts than `margin` x `cycles` (none when `cycles` is None). Bins
     at the counter's limit are left out of the sum: a histogram with some is told as clipped (its other bins are
     fitted), or, with all, as saturated."""
     if cycles is None:
         return np.zeros(h.shape[0], bool)
     total = np.where(h < limit, h, 0).sum(axis=1, dtype=np.float64)
-    return total > CYCLES_MARGIN * float(cycles)
+    return total > margin * float(cycles)
 
 
-def check_counts(hists: np.ndarray, max_count: int, ignore_bins, where: str, cycles: int | None = None
-                 ) -> str | None:
+def check_counts(hists: np.ndarray, max_count: int, ignore_bins, where: str, cycles: int | None = None,
+                 margin: float = CYCLES_MARGIN) -> str | None:
     """Refuse (CaptureError, one line naming `where`) histograms no sensor could have produced; return a one-line
-    warning when only some are (or some bins are clipped), else None. `cycles` as in `survey_counts`."""
-    survey = survey_counts(hists, max_count, ignore_bins, cycles)
+    warning when only some are (or some bins are clipped), else None. `cycles` and `margin` as in `survey_counts`."""
+    survey = survey_counts(hists, max_count, ignore_bins, cycles, margin)
     reason = survey.refusal(where)
     if reason is not None:
         raise CaptureError(reason)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 
 import numpy as np
 
@@ -369,6 +369,11 @@ def _dataclass_from(cls, data, what: str):
     unknown = set(data) - set(names)
     if unknown:
         raise SensorModelError(f"{what} has unknown keys {sorted(unknown)}")
+    # Said as the manifest's key, not as the constructor's signature ("missing 1 required positional argument").
+    missing = [name for name, f in names.items()
+               if name not in data and f.default is MISSING and f.default_factory is MISSING]
+    if missing:
+        raise SensorModelError(f"{what} lacks {', '.join(map(repr, missing))}")
     kwargs = {}
     for key, value in data.items():
         if isinstance(value, list):

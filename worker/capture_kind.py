@@ -3,6 +3,8 @@ a measured scene has a table in view and a background to estimate)."""
 
 from __future__ import annotations
 
+from spadscan.protocol.capture_format import drawn_by_simulator
+from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_model import SensorModel
 
 
@@ -10,11 +12,11 @@ def is_measured(scene: dict, manifest: dict, sensor: SensorModel) -> bool:
     """Measured data? The scene's `real` flag when given; else not when the rig or its sensor is simulated; else
     whether the sensor model is a hardware one (it carries reference histograms)."""
     if "real" in scene:
-        return bool(scene["real"])
-    rig = manifest.get("rig") or {}
-    if rig.get("kind") == "simulated":  # written by `spadscan simulate`
-        return False
-    if (rig.get("sensor") or {}).get("backend") == "sim":  # the daemon's simulated sensor
+        real = scene["real"]
+        if not isinstance(real, bool):  # the string "false" is truthy: a simulated capture fitted as measured
+            raise CaptureError(f"scene.real = {real!r} must be true or false")
+        return real
+    if drawn_by_simulator(manifest):  # written by `spadscan simulate`, or by the daemon's simulated sensor
         return False
     return bool(sensor.has_reference)
 

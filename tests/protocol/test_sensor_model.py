@@ -189,13 +189,18 @@ def test_validation_errors_are_one_line(data, message):
 
 
 def test_missing_keys_are_named():
+    """Each in the manifest's words, as for zones and pulse (not the constructor's "missing 1 required positional
+    argument")."""
     d = _dict()
     del d["pulse"]
-    with pytest.raises(SensorModelError, match="pulse"):
+    with pytest.raises(SensorModelError, match="^sensor model lacks 'pulse'$"):
         SensorModel.from_dict(d)
     d = _dict()
     del d["n_bins"]
-    with pytest.raises(SensorModelError, match="n_bins"):
+    with pytest.raises(SensorModelError, match="^sensor model lacks 'n_bins'$"):
+        SensorModel.from_dict(d)
+    del d["cycles"]
+    with pytest.raises(SensorModelError, match="^sensor model lacks 'n_bins', 'cycles'$"):
         SensorModel.from_dict(d)
 
 

@@ -202,6 +202,20 @@ def test_a_histogram_with_more_counts_than_its_cycles_is_left_out_of_the_fit(tmp
     torch.testing.assert_close(scene.valid[[0, 1, 2, 3, 4, 6, 7]], before.valid[[0, 1, 2, 3, 4, 6, 7]])
 
 
+def test_a_simulated_histogram_over_its_exact_cycles_is_left_out_of_the_fit(tmp_path):
+    """This project's simulator knows its cycles exactly: one histogram at 1.2 x them (within the 1.5 x margin that
+    covers a real sensor's estimated cycles) is corrupt, and the fit leaves it out as the reader's warning says."""
+    poses = fibonacci_hemisphere(8, 0.5, target=(0, 0, 0.1), min_elevation_deg=0)
+    cap = simulate_capture(builtin_scene("sphere"), sensor_preset("lcspc-sim"), poses, tmp_path / "cap",
+                           settings=SimSettings(rays_per_zone=64), progress=False)
+    hists = cap / "chunk-000000" / "hists.npy"
+    counts = np.load(hists)
+    counts[3, 0, 700] += 6000 - counts[3, 0].sum()  # 6,000 counts over 5,000 cycles
+    np.save(hists, counts)
+    assert "1 of 8 histograms" in (check_capture_counts(cap) or "")
+    assert load_scene(cap).usable[:, 0].tolist() == [True] * 3 + [False] + [True] * 4
+
+
 def test_reconstruct_refuses_a_capture_whose_every_histogram_holds_more_counts_than_its_cycles(tmp_path, capsys):
     """Every histogram over what a first-photon sensor's cycles allow: nothing is left to fit, and the run says why
     in one line (not that carving found no return)."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from spadscan.protocol.errors import ConfigError
-from spadscan.protocol.plausibility import first_photon_cycles, implausible
+from spadscan.protocol.plausibility import implausible
 from spadscan.protocol.raycast import zone_rays
 
 from ..capture_kind import is_measured
@@ -83,8 +83,7 @@ def measured_table_height(data) -> float | None:
     views = data.by_pose()
     # The histograms no sensor could have produced are left out, as the reconstruction leaves them out
     # (recon/scene_data.py): a corrupt bin would read as the farthest surface, the table, under it.
-    broken = views.in_any_frame(implausible(data.hists, sensor.max_count, sensor.ignore_bins,
-                                            first_photon_cycles(sensor)))
+    broken = views.in_any_frame(implausible(data.hists, *data.count_bounds()))
     counts, cycles = np.where(broken[..., None], 0.0, views.counts), views.frames * float(sensor.cycles)
     poses = np.asarray(data.poses, np.float64)[views.first]
     background = np.median(counts, axis=-1) / cycles[:, None]

@@ -15,7 +15,7 @@ import trimesh
 
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError, ConfigError
-from spadscan.protocol.plausibility import first_photon_cycles, implausible
+from spadscan.protocol.plausibility import implausible
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
@@ -161,8 +161,7 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     elif floor_z is not None:
         check_given_floor(float(floor_z), data.poses, data.sensor)
     # Once for every threshold tried: histograms no sensor could produce (in any frame of a pose) carve nothing.
-    broken = views.in_any_frame(implausible(data.hists, data.sensor.max_count, data.sensor.ignore_bins,
-                                             first_photon_cycles(data.sensor)))
+    broken = views.in_any_frame(implausible(data.hists, *data.count_bounds()))
     counts, sensor = summed_views(views.counts, views.frames, data.sensor)
     posed = PoseViews(counts, data.poses[views.first], sensor)
     check_returns(capture, posed, ~broken)

@@ -27,7 +27,7 @@ import torch
 
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import CaptureError
-from spadscan.protocol.plausibility import first_photon_cycles, implausible, survey_counts
+from spadscan.protocol.plausibility import implausible, survey_counts
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..capture_kind import is_measured
@@ -124,7 +124,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     # of its zone: left out of the fit and of carving, where it would prove the zone's whole field of view empty.
     # One with more counts than a first-photon sensor's cycles allow (a corrupt bin) would pull the fitted albedo
     # and spoil the fit of every other histogram.
-    broken = views.in_any_frame(_implausible(data.hists, sensor, capture))
+    broken = views.in_any_frame(_implausible(data, capture))
     # Left out means left out of everything: the scene's bound, the table's search and the background read counts
     # too, and a corrupt bin of a left-out histogram would otherwise put the table under a spurious peak.
     counts = np.where(broken[..., None], 0.0, counts)
@@ -155,14 +155,15 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     )
 
 
-def _implausible(hists: np.ndarray, sensor: SensorModel, capture: Path) -> np.ndarray:
-    """The mask (N, Z) of the histograms no sensor could have produced (protocol.plausibility, the first-photon
-    cycles bound included); a CaptureError, in one line, when that is all of them: nothing would be left to fit."""
-    bounds = (sensor.max_count, sensor.ignore_bins, first_photon_cycles(sensor))
-    reason = survey_counts(hists, *bounds).refusal(str(capture))
+def _implausible(data, capture: Path) -> np.ndarray:
+    """The mask (N, Z) of the histograms of `data` (a CaptureData) no sensor could have produced
+    (protocol.plausibility, the first-photon cycles bound included, as the capture's reader sets it); a CaptureError,
+    in one line, when that is all of them: nothing would be left to fit."""
+    bounds = data.count_bounds()
+    reason = survey_counts(data.hists, *bounds).refusal(str(capture))
     if reason is not None:
         raise CaptureError(reason)
-    return implausible(hists, *bounds)
+    return implausible(data.hists, *bounds)
 
 
 def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) -> np.ndarray:
