@@ -138,7 +138,8 @@ class DaemonOrderScan:
         self.data = data
         m = reader.manifest
         self.writer = CaptureWriter.create(dest, reader.sensor, rig=m.get("rig"), schedule=m.get("schedule"),
-                                           planned_poses=planned, chunk_size=1, scene=m.get("scene"))
+                                           planned_poses=planned, chunk_size=1, scene=m.get("scene"),
+                                           frames_per_pose=m.get("frames_per_pose") or 1)
         self.published = 0
 
     def publish(self) -> None:

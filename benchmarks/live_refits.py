@@ -62,11 +62,13 @@ def replay(source: Path, dest: Path, every_s: float) -> threading.Thread:
     data = reader.load()
     writer = CaptureWriter.create(dest, reader.sensor, schedule=reader.manifest.get("schedule"),
                                   planned_poses=reader.planned_poses(), chunk_size=1,
-                                  scene=reader.manifest.get("scene"))
+                                  scene=reader.manifest.get("scene"),
+                                  frames_per_pose=reader.manifest.get("frames_per_pose") or 1)
 
     def run():
         for i, meta in enumerate(data.meta):
-            writer.append(Measurement(data.hists[i], data.poses[i], int(meta["pose_index"]), 0, None, {}))
+            writer.append(Measurement(data.hists[i], data.poses[i], int(meta["pose_index"]), int(meta.get("frame", 0)),
+                                      None, {}))
             writer.flush()
             time.sleep(every_s)
         writer.finish("complete")

@@ -68,9 +68,9 @@ def recorded_capture(folder: Path) -> tuple[Path, np.ndarray]:
     sensor = sensor_preset("tmf8820")
     poses = np.stack([np.eye(4) for _ in range(3)])
     poses[:, 0, 3] = [0.1, 0.2, 0.3]
-    writer = CaptureWriter.create(folder, sensor, planned_poses=poses, chunk_size=64)
+    writer = CaptureWriter.create(folder, sensor, planned_poses=poses, chunk_size=64, frames_per_pose=2)
     hist = np.zeros((len(sensor.zones), sensor.n_bins))
-    for index, frames in enumerate((1, 2, 1)):
+    for index, frames in enumerate((1, 2, 1)):  # two frames planned a pose, one of the first and last dropped
         for frame in range(frames):
             writer.append(Measurement(hist + index, poses[index], index, frame))
     writer.finish("complete")
