@@ -133,6 +133,7 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     counts_note = check_capture_counts(capture, log)  # histograms no sensor could produce: refused, or warned about
     dtype = torch.float64 if config.tensor_dtype() == "float64" else torch.float32
     scene = load_scene(Path(capture), device, dtype)
+    check_signal_model(capture, scene.sensor)
     check_returns(capture, scene)
     state_note = capture_state_note(capture, scene.state, scene.n_views, CaptureReader(capture).manifest.get(
         "planned_poses"))
@@ -145,6 +146,17 @@ def set_up_run(capture: Path, config: ReconConfig, device: torch.device, *, step
     plan = RunPlan(steps=steps, budget_s=budget_s, seed=int(seed))
     model = (make or make_model)(scene, config, device, plan)
     return Run(config, scene, model, plan, device, state_note, time.perf_counter() - t0, counts_note)
+
+
+def check_signal_model(capture, sensor) -> None:
+    """Refuse (one CaptureError line) a capture whose sensor model predicts no signal in the fit's precision: its
+    signal_scale 0, or it and every zone's gain so small that their product is no float32 number above 0. Every
+    render would be background, and the mesh would be the carved hull while the run looked like a fit."""
+    scale = sensor.signal_scale * max(z.gain for z in sensor.zones)
+    if not np.float32(scale) >= np.finfo(np.float32).tiny:
+        raise CaptureError(f"{capture}: the capture's sensor model predicts no signal (signal_scale "
+                           f"{sensor.signal_scale:g}, the largest zone gain {max(z.gain for z in sensor.zones):g}): "
+                           f"nothing could be fitted; check the sensor record in its scan.json")
 
 
 def check_returns(capture, scene) -> None:

@@ -422,6 +422,25 @@ def test_a_capture_whose_histograms_hold_no_return_is_refused_not_fitted(tmp_pat
         assert not (tmp_path / preset).exists()
 
 
+@pytest.mark.parametrize("sensor_change", [{"signal_scale": 0.0}, {"gain": 1e-300}], ids=["no-scale", "no-gain"])
+def test_a_sensor_model_that_predicts_no_signal_is_refused(capture_and_gt, tmp_path, capsys, sensor_change):
+    """A sensor record whose signal_scale is 0 (or whose zones' gains vanish in float32): every render is
+    background, and the run used to end with the carved hull, exit status 0 and only a generic misfit warning."""
+    cap, _ = capture_and_gt
+    broken = tmp_path / "silent-model"
+    shutil.copytree(cap, broken)
+    manifest = json.loads((broken / "scan.json").read_text())
+    if "gain" in sensor_change:
+        for zone in manifest["sensor"]["zones"]:
+            zone["gain"] = sensor_change["gain"]
+    else:
+        manifest["sensor"].update(sensor_change)
+    (broken / "scan.json").write_text(json.dumps(manifest))
+    assert _recon(broken, tmp_path / "o", "--steps", "5") == 1
+    (line,) = _error_lines(capsys)
+    assert "the capture's sensor model predicts no signal" in line and not (tmp_path / "o").exists(), line
+
+
 def test_a_surface_touching_the_sensor_is_said_to_be_the_reason_there_is_no_return(tmp_path, capsys):
     """Every view 1 mm from a ball's surface: all the photons land in the first bin, where no peak can stand out of
     its own background. The refusal says what that means rather than "the object out of range"."""
