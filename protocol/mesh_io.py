@@ -57,11 +57,27 @@ def load_mesh(path, *, units: str = "auto"):
     if units == "mm" or (units == "auto" and path.suffix.lower() in UNITLESS_SUFFIXES
                          and np.ptp(verts, axis=0).max() > MM_EXTENT_THRESHOLD_M):
         scale = 1e-3
-    mesh = trimesh.Trimesh(verts * scale, faces, process=True)
+    written = trimesh.Trimesh(verts * scale, faces, process=False)
+    # A surface closed as written keeps its own connectivity: merging the vertices of a marching-cubes mesh (which
+    # repeats a vertex where the surface passes through a grid node) pinches it there into edges of three or more
+    # faces, and a one-piece ground truth was counted as five pieces with no genus (end_of_run's pieces and tunnels
+    # checks then said nothing). A triangle soup (STL) has no connectivity but what merging gives it, and the
+    # triangles that merging collapses to nothing go: they joined pieces only through pinched edges.
+    mesh = written if written.is_watertight else _merged(verts * scale, faces)
     if len(mesh.faces) == 0 or not mesh.area > 0:
         raise MeshError(f"{path}: all triangles are degenerate (zero area)")
     # Which unit the file was read in, so that a caller can say so: a silent x1000 is a surprise otherwise.
     mesh.metadata["units_read"] = "mm" if scale != 1.0 else "m"
+    return mesh
+
+
+def _merged(verts: np.ndarray, faces: np.ndarray):
+    """The mesh with its coincident vertices merged and the triangles that collapsed (zero area) left out."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(verts, faces, process=True)
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.remove_unreferenced_vertices()
     return mesh
 
 

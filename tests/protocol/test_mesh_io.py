@@ -146,3 +146,28 @@ def test_a_gltf_mesh_stands_up(tmp_path):
     np.testing.assert_allclose(mesh.bounds[:, 2], [0.0, 0.3], atol=1e-9)
     np.testing.assert_allclose(mesh.extents, [0.1, 0.1, 0.3], atol=1e-9)
     assert mesh.volume > 0, "a rotation, not a mirror: the faces still point outwards"
+
+
+def test_a_closed_surface_keeps_its_own_connectivity_and_a_triangle_soup_is_joined(tmp_path):
+    """A marching-cubes mesh repeats a vertex wherever its surface passes through a grid node. Merged, a thin-walled
+    tube with a handle pinched there into edges of three or more faces: a one-piece ground truth was counted as six
+    pieces and no genus, and the run's pieces and tunnels checks said nothing. Closed as written, it is kept as
+    written; an STL, a soup of separate triangles, is still joined into one surface."""
+    from skimage import measure
+
+    from spadscan.worker.pieces import mesh_pieces
+
+    # millimetres on whole numbers: the surface passes exactly through grid nodes
+    x, y, z = np.meshgrid(np.arange(-40, 56.0), np.arange(-40, 41.0), np.arange(-5, 60.0), indexing="ij")
+    tube = np.maximum(np.abs(np.hypot(x, y) - 30.0) - 2.0, np.abs(z - 27.0) - 25.0)  # open at both ends
+    handle = np.maximum(np.hypot(np.hypot(x - 33.0, z - 27.0) - 14.0, y) - 3.0, 30.0 - np.hypot(x, y))
+    verts, faces, _, _ = measure.marching_cubes(np.minimum(tube, handle), 0.0)
+    written = trimesh.Trimesh(verts * 1e-3, faces[:, ::-1], process=False)
+    assert written.is_watertight
+    written.export(tmp_path / "mug.ply")
+    pieces = mesh_pieces(load_mesh(tmp_path / "mug.ply"))
+    assert (pieces.count, pieces.tunnels) == (1, 2), pieces  # the tube's bore and the handle
+    corners = written.vertices[written.faces].reshape(-1, 3)
+    soup = trimesh.Trimesh(corners, np.arange(len(corners)).reshape(-1, 3), process=False)
+    soup.export(tmp_path / "mug.stl")
+    assert mesh_pieces(load_mesh(tmp_path / "mug.stl", units="m")).count == 1, "an STL's triangles joined into one"
