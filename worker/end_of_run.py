@@ -110,6 +110,10 @@ class FitNoise:
     misfit_histograms: int = 0
     """Of them, those whose deviance exceeds their noise by over MISFIT_Z standard deviations and whose own relative
     misfit is over MISFIT_RELATIVE."""
+    excess_z: float = 0.0
+    """The deviance beyond the photon noise and the renders' share, summed over every bin checked, in standard
+    deviations of the two: a relative misfit that chance alone gives (a dim capture's few photons) stays under
+    MISFIT_Z here."""
 
     @property
     def ratio(self) -> float:
@@ -127,7 +131,8 @@ class FitNoise:
         return {"deviance_per_bin": self.deviance_per_bin, "noise_per_bin": self.noise_per_bin,
                 "render_per_bin": self.render_per_bin, "ratio": self.ratio, "relative_misfit": self.relative_misfit,
                 "histograms": self.histograms, "misfit_histograms": self.misfit_histograms,
-                "misfit_share": self.misfit_share, "bins": self.bins, "views": list(self.views)}
+                "misfit_share": self.misfit_share, "excess_z": self.excess_z, "bins": self.bins,
+                "views": list(self.views)}
 
 
 def noise_deviance(mu: np.ndarray) -> np.ndarray:
@@ -186,9 +191,10 @@ def fit_noise(measured: np.ndarray, expected: np.ndarray, valid: np.ndarray | No
     excess, expected = float(dev.sum() - noise.sum() - render.sum()), float(mu.sum())
     relative = math.sqrt(2.0 * max(excess, 0.0) / expected) if expected > 0 else 0.0
     checked, misfit = misfit_histograms(dev, noise, noise_var, render, mu)
+    sd = math.sqrt(float(noise_var.sum() + (2.0 * render * render).sum()))
     n = int(ok.sum())
     return FitNoise(float(dev.sum() / n), float(noise.sum() / n), n, [int(v) for v in views], relative,
-                    float(render.sum() / n), checked, misfit)
+                    float(render.sum() / n), checked, misfit, excess / sd if sd > 0 else 0.0)
 
 
 def misfit_histograms(dev, noise, noise_var, render, mu) -> tuple[int, int]:
@@ -347,9 +353,10 @@ def misfit_warning(fit: FitNoise, measured: bool) -> str | None:
                 f"per bin where the photons are (a good fit of a real capture: about "
                 f"{100 * REAL_SENSOR_MISFIT:.0f} %); a wrong sensor model or calibration, an object that "
                 f"moved during the scan, or a fit gone wrong")
-    if not measured and fit.relative_misfit > RELATIVE_MISFIT_LIMIT:
+    if not measured and fit.relative_misfit > RELATIVE_MISFIT_LIMIT and fit.excess_z > MISFIT_Z:
         # Gross, whatever the count: a capture of one or two views, or a short run's check of 4 histograms, has too
-        # few histograms for MISFIT_MIN_HISTOGRAMS, and a good fit of a simulated capture is under 0.1 here.
+        # few histograms for MISFIT_MIN_HISTOGRAMS, and a good fit of a simulated capture is under 0.1 here; and
+        # beyond chance: a dim capture's few photons alone can make the relative misfit that large.
         return (f"the fit does not explain the measurements: the model is off by {100 * fit.relative_misfit:.0f} % "
                 f"per bin where the photons are (a good fit of a simulated capture: under "
                 f"{100 * SIMULATED_GOOD_MISFIT:.0f} %); the capture is simulated, so its model is exact: its time axis "

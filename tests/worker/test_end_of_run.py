@@ -15,7 +15,7 @@ from spadscan.worker.coverage import Coverage
 from spadscan.worker.end_of_run import (COVERAGE_LIMIT, EXACT_BELOW, MISFIT_MIN_HISTOGRAMS, MISFIT_RELATIVE,
                                         MISFIT_SHARE_SIMULATED, OVERRUN_FLOOR_S, OVERRUN_SHARE,
                                         RELATIVE_MISFIT_LIMIT, FitNoise, RunFacts, converged, fit_noise, late_drop,
-                                        late_drop_error,
+                                        late_drop_error, misfit_warning,
                                         noise_deviance, noise_moments, overrun_tolerance_s, warnings)
 from spadscan.worker.pieces import Pieces
 
@@ -367,6 +367,18 @@ def test_a_starved_run_and_a_fit_far_from_the_noise_say_so(ambient_capture, box_
     assert not has(report, "busy") and not has(report, "does not explain"), report["warnings"]
     assert report["coverage"]["share_seen_by_few_views"] <= COVERAGE_LIMIT and not has(report, "fewer than 3 views")
     assert report["pieces"]["count"] == 1 and not has(report, "pieces"), report["pieces"]
+
+
+def test_a_perfect_fit_of_a_dim_simulated_capture_is_not_called_grossly_off():
+    """The relative misfit of a check of 4 dim histograms (13-130 photons in all) passes 0.6 by chance alone in a
+    third of perfect fits (counts drawn from the model itself); the summed excess over the noise does not."""
+    rng = np.random.default_rng(0)
+    for per_bin in (0.02, 0.05, 0.2):
+        mu = np.full((4, 1, 128), per_bin)
+        mu[..., 60:64] += 10 * per_bin  # a faint return
+        fits = [fit_noise(rng.poisson(mu).astype(float), mu) for _ in range(200)]
+        assert max(f.relative_misfit for f in fits) > RELATIVE_MISFIT_LIMIT, "the case the guard is for"
+        assert not [f for f in fits if misfit_warning(f, measured=False)], per_bin
 
 
 def test_a_simulated_capture_with_a_wrong_time_axis_says_so_however_few_histograms_are_checked(box_capture, tmp_path,
