@@ -17,6 +17,8 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
 - `converged` (bool): the live model's fit has plateaued on the views it has;
 - `chamfer_mm` (number): Chamfer distance of the published mesh to the ground truth; only when the capture names
   one;
+- `chamfer_views` (int >= 0): the views of the fit that mesh was made from, when the status has been rewritten
+  since (after a refit, or every few seconds) and the fit holds more now; absent otherwise;
 - `state` (string): `waiting` (too few views yet), `live` (following the scan), `final` (the scan is complete: the
   final reconstruction runs from the live state), `done` (the final result is published: `result`), `aborted` (the
   scan was aborted; the job ended), `stopped` (the job ended otherwise: `note`) or `queued` (the job is back in the
@@ -77,11 +79,14 @@ class LiveStatus:
     result: str | None = None
     note: str | None = None
     final_start: str | None = None
+    chamfer_views: int | None = None
+    """The views of the fit whose mesh `chamfer_mm` was measured on: the status is rewritten between two meshes, and
+    the fit has grown since (None: `views_used`'s)."""
 
     def to_dict(self) -> dict:
-        """The JSON object written; `chamfer_mm` and `final_start` only when there is one."""
+        """The JSON object written; `chamfer_mm`, `final_start` and `chamfer_views` only when there is one."""
         data = asdict(self)
-        for key in ("chamfer_mm", "final_start"):
+        for key in ("chamfer_mm", "final_start", "chamfer_views"):
             if data[key] is None:
                 del data[key]
         return data
@@ -103,7 +108,9 @@ class LiveStatus:
         if self.converged:
             parts.append("converged")
         if self.chamfer_mm is not None:
-            parts.append(f"Chamfer {self.chamfer_mm:.2f} mm")
+            on = (f" (its mesh of {self.chamfer_views} views)" if self.chamfer_views not in (None, self.views_used)
+                  else "")
+            parts.append(f"Chamfer {self.chamfer_mm:.2f} mm{on}")
         age = self.age_s(now)
         if age is not None:
             parts.append(f"updated {age:.0f} s ago")
@@ -155,8 +162,10 @@ def check_status(status: LiveStatus, where: str) -> None:
         value = getattr(status, key)
         if not is_count(value):
             raise CaptureError(f"{where}: {key} {value!r} must be an integer >= 0")
-    if status.views_planned is not None and not is_count(status.views_planned):
-        raise CaptureError(f"{where}: views_planned {status.views_planned!r} must be an integer >= 0 or null")
+    for key in ("views_planned", "chamfer_views"):
+        value = getattr(status, key)
+        if value is not None and not is_count(value):
+            raise CaptureError(f"{where}: {key} {value!r} must be an integer >= 0 or null")
     if not isinstance(status.converged, bool):
         raise CaptureError(f"{where}: converged {status.converged!r} must be true or false")
     if status.state not in STATES:

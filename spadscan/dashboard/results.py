@@ -27,7 +27,7 @@ LIVE = "live"
 SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "steps",
                 "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
 LIVE_KEYS = ("views_used", "views_published", "views_planned", "steps", "updated_utc", "converged", "chamfer_mm",
-             "state", "note", "result", "job", "final_start")
+             "state", "note", "result", "job", "final_start", "chamfer_views")
 LIVE_PICTURES = ("preview.png", "mesh.ply", "view3d.html")
 """The live entry's files that show the live fit's shape (not the final result's)."""
 PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "coverage.png", "mesh.ply")

@@ -93,3 +93,31 @@ def test_the_status_follows_every_refit_and_the_views_published_while_the_mesh_k
     assert all(s.state == "live" and s.views_planned == 40 for s in follower.seen)
     assert meshes == ["the live mesh"], "the mesh and preview keep their own cadence: only the first fit's, forced"
     assert any("refit 2" in line for line in lines), lines
+
+
+def test_a_chamfer_measured_on_an_older_mesh_says_the_views_of_that_mesh(tmp_path, monkeypatch):
+    # The status is rewritten between two meshes: after the refit to 13 views the Chamfer is still the 8-view
+    # mesh's, and the status (and the lines made from it) must not pair it with the 13 views.
+    import spadscan.worker.live.job as live_job
+
+    monkeypatch.setattr(live_job, "publish_mesh", lambda folder, mesh, gt, preview: None)
+    ticks = itertools.count()
+    monkeypatch.setattr(live_job, "time", SimpleNamespace(monotonic=lambda: float(next(ticks)),
+                                                          perf_counter=lambda: 0.0, sleep=lambda s: None))
+    (folder := tmp_path / "recon" / "live").mkdir(parents=True)
+    scan = SimpleNamespace(published=8)
+    follower = Follower(scan, tmp_path, [10, 13])
+    settings = LiveSettings(min_views=8, publish_every_s=NEVER_S, rebuild_growth=0.5, rebuild_views=4,
+                            rebuild_share=1.0, preview=False)
+    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path, folder, follower, settings,
+                  lambda line: None)
+    run.fit = Fit(scan)
+    run.config = SimpleNamespace(trace_points=1000)
+    run.truth = SimpleNamespace(mesh=None, metrics=lambda mesh, n_points: SimpleNamespace(chamfer_mm=5.0))
+    run.follow(polled(8))
+
+    first, _, refitted = follower.seen
+    assert (first.views_used, first.chamfer_mm, first.chamfer_views) == (8, 5.0, 8)
+    assert (refitted.views_used, refitted.chamfer_mm, refitted.chamfer_views) == (13, 5.0, 8)
+    assert "Chamfer 5.00 mm (its mesh of 8 views)" in refitted.summary()
+    assert "Chamfer 5.00 mm," in first.summary(), "the mesh of the fit as it stands: nothing more to say"

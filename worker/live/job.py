@@ -241,6 +241,8 @@ class LiveRun:
         self.tried_views = 0
         """Views published when a first fit last failed: the same views would fail again (no returns, no hull)."""
         self.chamfer_mm: float | None = None
+        self.chamfer_views: int | None = None
+        """The views of the fit whose mesh `chamfer_mm` was measured on."""
         self.next_publish = -math.inf
         self.publish_cost_s = 0.0
         self.status_at = -math.inf
@@ -400,6 +402,7 @@ class LiveRun:
                              preview=self.settings.preview)
                 if self.truth is not None:
                     self.chamfer_mm = self.truth.metrics(mesh, n_points=self.config.trace_points).chamfer_mm
+                    self.chamfer_views = fit.views_used
             except SpadscanError as exc:  # no surface yet: the status says so
                 self.log(f"live: no mesh yet: {exc}")
             except OSError as exc:  # a full disk: the fit goes on, and publishes again when there is room
@@ -453,7 +456,8 @@ class LiveRun:
             views_used=used, views_published=max(progress.views_published, used),
             steps=0 if fit is None else fit.steps, converged=bool(fit is not None and fit.converged), state=state,
             chamfer_mm=None if self.chamfer_mm is None else round(float(self.chamfer_mm), 4),
-            views_planned=progress.views_planned, job=self.job.id, note=note, final_start=final_start))
+            views_planned=progress.views_planned, job=self.job.id, note=note, final_start=final_start,
+            chamfer_views=self.chamfer_views))
 
     def stopped(self, state: str, note: str) -> None:
         """The follow phase ended otherwise than by a finished scan with a fit: say so in the status."""
