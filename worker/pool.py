@@ -34,10 +34,10 @@ from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
-from .job_progress import PROGRESS_S, LogTails, ProgressNotes, progress_note
+from .job_progress import PROGRESS_S, LogTails, ProgressNotes, ended_live_status, progress_note
 from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
 from .holder import Holder
-from .live.done import SCAN_ABORTED, ended_by_abort, mark_live_done, mark_live_failed, mark_live_queued
+from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
 from .presence import RENEW_S, Presence, present_workers, remove_presence, write_presence
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
 from .queue import SEP, Claim, Queue, Unrecorded
@@ -436,7 +436,9 @@ class Worker:
         a later poll (`unrecorded`); a job file that could not even be moved stays held until its lease runs out."""
         claim, job = child.claim, child.claim.job
         bad_input = outcome.get("kind") == "input"
-        aborted = bad_input and ended_by_abort(job, self.root)
+        # its own word, written by this attempt: an earlier attempt's 'aborted' says nothing of this one's failure
+        ended = ended_live_status(self.root, job, claim.started) if bad_input and job.live else None
+        aborted = ended is not None and ended.state == "aborted"
         if aborted:  # no fault: the job ended as its scan did, and a retry would follow a scan that has ended
             error = f"{SCAN_ABORTED} ({outcome.get('error', 'its scan was aborted')})"
             said = f"{job.id} ended after {seconds:.1f} s: {error}"

@@ -4,6 +4,7 @@ scan was aborted by the operator, with nothing to retry (no `--retry-failed` adv
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 from types import SimpleNamespace
 
@@ -62,15 +63,17 @@ def test_a_live_job_whose_scan_is_aborted_ends_saying_so_with_nothing_to_retry(c
     assert read_status(status_path(root / "cyl")).state == "aborted", "the live status keeps the job's own word"
 
 
-def test_an_earlier_attempts_last_word_is_not_taken_for_this_ones_nor_another_failure_for_an_abort(tmp_path):
+@pytest.mark.parametrize("last_word", ["stopped", "aborted"])
+def test_an_earlier_attempts_last_word_is_not_taken_for_this_ones_nor_another_failure_for_an_abort(tmp_path,
+                                                                                                   last_word):
     root = tmp_path / "captures"
     (folder := root / "cyl" / "recon" / "live").mkdir(parents=True)
-    write_status(folder, LiveStatus(views_used=8, views_published=9, steps=40, state="stopped", job="cyl-fast",
-                                    note="capture cyl: chunk-000007 unreadable",
-                                    updated_utc="2026-12-05T11:00:00.000+00:00"))
     queue = Queue.for_root(root)
     queue.enqueue(Job(id="cyl-fast", scan="cyl", live=True, device="cpu"))
-    claim = queue.claim()  # the job run again: its new process has not written its first status yet
+    claim = queue.claim()  # the job run again (--retry-failed): its new process has not written its first status yet
+    earlier = _dt.datetime.fromtimestamp(claim.started - 60.0, _dt.timezone.utc).isoformat(timespec="milliseconds")
+    write_status(folder, LiveStatus(views_used=8, views_published=9, steps=40, state=last_word, job="cyl-fast",
+                                    note="the earlier attempt's end", updated_utc=earlier))
     note = progress_note(claim, tmp_path / "job.log", root, now=claim.started + 5.0)
     assert note.stage == SETTING_UP, note
 

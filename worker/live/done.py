@@ -89,19 +89,6 @@ SCAN_ABORTED = "scan aborted by the operator: nothing to retry"
 short of done), but no fault to fix, and a retry would follow a scan that publishes nothing more."""
 
 
-def ended_by_abort(job, root: Path) -> bool:
-    """Whether live job `job` ended because its scan was aborted: its live status, its own, says 'aborted' (the job
-    writes it as it ends; the daemon aborts a scan only when the operator asks, `spadscan ctl abort`). False for an
-    ordinary job, or a status that is missing, another job's or cannot be read."""
-    if not job.live:
-        return False
-    try:
-        status = read_status(status_path(scan_path(job, root)))
-    except (SpadscanError, OSError):
-        return False
-    return status.job == job.id and status.state == "aborted"
-
-
 def done_status(status: LiveStatus, result: Path) -> LiveStatus:
     """`status` as 'done' with `result`, the figures those of the result's report.json: the views the final run
     fitted (every published one), its steps (on top of the live fit's where it continued from the live fit; alone
@@ -129,4 +116,4 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
 
 
 __all__ = ["mark_live_done", "mark_live_done_unsaid", "mark_live_failed", "mark_live_queued", "done_status",
-           "ended_by_abort", "SCAN_ABORTED"]
+           "SCAN_ABORTED"]
