@@ -190,7 +190,8 @@ def check_options(opts: DemoOptions) -> None:
     most = int(_key(ScanConfig, "views").hi)
     if isinstance(opts.views, bool) or not isinstance(opts.views, int) or not MIN_VIEWS <= opts.views <= most:
         raise DemoError(f"--views {opts.views} must be an integer in [{MIN_VIEWS}, {most}]")
-    problem = run_limits_problem(opts.budget_s, None, 0)  # the worker's rule (`spadscan worker --budget-s`)
+    # the worker's rule (`spadscan worker --budget-s`); the demo always names a budget
+    problem = "a time budget is needed" if opts.budget_s is None else run_limits_problem(opts.budget_s, None, 0)
     if problem:
         raise DemoError(f"--budget-s: {problem}")
     if opts.out.exists() and not opts.out.is_dir():
