@@ -47,8 +47,9 @@ ONLY_FOR = {"space-carving": ("resolution", "margin_mm", "edge_deg"), "reproject
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("method", choices=("reprojection", "space-carving"), help="which baseline")
     parser.add_argument("capture", metavar="CAPTURE", help="capture folder (holds scan.json)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="folder for the results: mesh.ply, report.json, report.html, view3d.html, preview.png (and points.ply "
-                             "for reprojection)")
+    parser.add_argument("--out", required=True, metavar="DIR",
+                        help="folder for the results: mesh.ply, report.json, report.html, view3d.html, preview.png "
+                             "(and points.ply for reprojection)")
     add_ground_truth_options(parser, ": adds metrics to the report")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out: the files its report.json lists that this run "

@@ -127,8 +127,8 @@ def add_arguments(parser) -> None:
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
               "config (examples/README.md documents each key).")
-    scan.add_argument("--name", help="scan name: the capture goes to <captures>/NAME/; 1-100 letters, digits or . _ + -, not "
-                           "starting with . _ + - (default: scan-<time>)")
+    scan.add_argument("--name", help="scan name: the capture goes to <captures>/NAME/; 1-100 letters, digits or "
+                           ". _ + -, not starting with . _ + - (default: scan-<time>)")
     scan.add_argument("--wait", action="store_true",
                       help="block until the scan is complete or aborted (a progress bar on stderr when a terminal)")
     settings = scan.add_argument_group("scan settings", "each defaults to the rig config's [scan] key named in "

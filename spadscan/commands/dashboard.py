@@ -26,8 +26,8 @@ asked of its socket.
 
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
 The root is the folder of scans, never one scan's own folder (that is refused, naming its parent); a root with no
-scans yet, or none yet at all, is served all the same, saying so, and the page lists scans as they appear. Ctrl-C or SIGTERM (`kill`,
-`systemctl stop`) stops it, saying so, with exit status 0.
+scans yet, or none yet at all, is served all the same, saying so, and the page lists scans as they appear.
+Ctrl-C or SIGTERM (`kill`, `systemctl stop`) stops it, saying so, with exit status 0.
 
 examples:
   spadscan dashboard --root captures                  # then open http://127.0.0.1:8765/

@@ -29,8 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("spadscan-demo"), metavar="DIR",
                         help="folder for config, captures, logs and summary.json (default: ./spadscan-demo)")
     parser.add_argument("--scene", default="demo",
-                        help="built-in scene: demo (goblet: a bowl and a thin stem), cup, lamp, sphere, pyramid, or any "
-                             "other `spadscan simulate --help` lists (default: demo)")
+                        help="built-in scene: demo (goblet: a bowl and a thin stem), cup, lamp, sphere, pyramid, or "
+                             "any other `spadscan simulate --help` lists (default: demo)")
     parser.add_argument("--views", type=int, default=128,
                         help="sensor poses in the scan (default: 128; with 64 the goblet's fit is coarser and "
                              "varies more from seed to seed)")
