@@ -139,7 +139,9 @@ def test_a_results_warnings_are_counted_opened_in_full_from_their_count_and_the_
         assert recon["summary"]["warning_levels"] == ["serious" if w in serious else "mild" for w in warnings]
         page.goto(address(server))
         head = wait_text(page, "#viewer-notes .warnings-head", "warnings")
-        assert head.startswith("7 warnings, 5 of them serious"), head
+        assert head.startswith("8 warnings, 5 of them serious"), head  # the lines listed, "did not converge" too
+        closed = page.locator("#viewer-notes .warning").first  # the serious first: the closed box shows them
+        assert "serious" in closed.get_attribute("class") and page.evaluate(SEEN, "#viewer-notes .warning.serious")
         assert page.evaluate(SEEN, "#viewer-notes .warnings-head"), "the count is out of sight"
         count = page.locator('#scans tr[data-scan="nowk"] a[data-warnings]')
         assert "serious" in count.get_attribute("class")  # the scans table's count stands out too
@@ -147,7 +149,8 @@ def test_a_results_warnings_are_counted_opened_in_full_from_their_count_and_the_
         page.wait_for_function("() => document.querySelector('#viewer-notes').classList.contains('open')",
                                timeout=WAIT_MS)
         lines = page.locator("#viewer-notes .warning")
-        assert lines.all_text_contents() == ["the run did not converge", *warnings]
+        mild = [w for w in warnings if w not in serious]
+        assert lines.all_text_contents() == [*serious, "the run did not converge", *mild]
         for i in range(lines.count()):  # each in full: not cut by its box, nor by the notes' box
             assert lines.nth(i).evaluate("e => e.scrollWidth <= e.clientWidth && e.scrollHeight <= e.clientHeight + 1")
         notes = page.locator("#viewer-notes")
@@ -296,6 +299,10 @@ def test_an_empty_root_a_silent_dashboard_the_daemons_config_and_a_scan_with_no_
         (tmp_path / "s1" / "scan.json").write_text(json.dumps(manifest))
         assert wait_text(page, "#daemon", "lab rig") == \
             " · no daemon running: start one with `spadscan daemon --config '/etc/spadscan/lab rig.toml'`"
+        Queue.for_root(tmp_path).enqueue(Job(id="s1-fast", scan="s1"))  # queued, and no worker to take it
+        said = wait_text(page, "#worker", "queued")
+        assert said.startswith("1 job queued and no worker is running: start one with") and \
+            page.locator("#worker").get_attribute("class") == "down", said
         server.shutdown()  # the dashboard stops answering: what the page shows is greyed
         server.server_close()
         page.wait_for_function("() => document.body.classList.contains('offline')", timeout=WAIT_MS)
