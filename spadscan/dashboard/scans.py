@@ -29,6 +29,9 @@ from .paths import safe_path, url_path
 
 RATE_FRAMES = 16
 """The frame rate is measured over (at most) this many of the last frames."""
+STOP_FACTOR = 5.0
+"""A move between two poses this many times the median one is a stop (a pause, a restart): the pace counts from after
+it."""
 MAX_PLOT_BINS = 256
 """Histograms are max-pooled to at most this many bins for the page's plot (a return stays visible)."""
 
@@ -301,15 +304,34 @@ def time_left_s(poses: int, planned: int | None, poses_per_min: float | None) ->
 
 
 def frame_rates(meta: list[dict]) -> dict:
-    """Frames per second and poses per minute over measurement records in order (their t_end, seconds). A record
-    without a finite t_end (damaged: a NaN would make both rates NaN) counts for neither."""
-    meta = [m for m in meta if _finite(m.get("t_end"))]
+    """Frames per second and poses per minute over measurement records in order (their t_end, seconds), since the
+    last stop among them (`_since_last_stop`). A record without a finite t_end (damaged: a NaN would make both rates
+    NaN) counts for neither."""
+    meta = _since_last_stop([m for m in meta if _finite(m.get("t_end"))])
     times = [float(m["t_end"]) for m in meta]
     if len(times) < 2 or times[-1] <= times[0]:
         return {"frames_per_s": None, "poses_per_min": None}
     span = times[-1] - times[0]
     poses = len({m.get("pose_index") for m in meta})
     return {"frames_per_s": (len(times) - 1) / span, "poses_per_min": 60.0 * max(0, poses - 1) / span}
+
+
+def _since_last_stop(meta: list[dict]) -> list[dict]:
+    """The records from the first pose after the last stop among them: a move between two poses over STOP_FACTOR times
+    the median one (a pause, a daemon restarted). Measured across it, the pace of a resumed scan read 0.41 frames/s
+    and 4 minutes left where it ran at 4.8 and had 20 s to go."""
+    starts: dict = {}
+    for m in meta:
+        starts.setdefault(m.get("pose_index"), float(m["t_end"]))
+    times = sorted(starts.values())
+    moves = np.diff(times)
+    if len(moves) < 3:
+        return meta
+    stops = np.flatnonzero(moves > STOP_FACTOR * float(np.median(moves)))
+    if not stops.size:
+        return meta
+    resumed = times[int(stops[-1]) + 1]
+    return [m for m in meta if float(m["t_end"]) >= resumed]
 
 
 def _finite(value) -> bool:

@@ -125,3 +125,19 @@ def test_a_live_status_rewritten_alone_leaves_the_pictures_addresses_as_they_wer
     assert newer["files"]["mesh.ply"] != before["files"]["mesh.ply"]
     assert newer["files"]["view3d.html"] != before["files"]["view3d.html"]
     assert newer["files"]["preview.png"] == before["files"]["preview.png"]
+
+
+def test_the_pace_of_a_resumed_scan_counts_from_its_resumption():
+    # two frames a pose, a pose every 2 s; then a stop of a minute (a pause, a daemon restarted); then three poses at
+    # the old pace: across the stop the rate read a tenth of the true one, and the time left ten times too long
+    from spadscan.dashboard.scans import frame_rates
+
+    def frames(poses, start_s, first_pose):
+        return [{"pose_index": first_pose + p, "t_end": start_s + 2.0 * p + 0.5 * f} for p in range(poses)
+                for f in range(2)]
+
+    steady = frames(5, 0.0, 0)
+    resumed = steady + frames(3, 8.0 + 60.0, 5)
+    assert frame_rates(resumed[-16:]) == frame_rates(frames(3, 68.0, 5))
+    assert frame_rates(resumed[-16:])["poses_per_min"] == 60.0 * 2 / 4.5  # its three poses over 4.5 s
+    assert frame_rates(steady)["poses_per_min"] == 60.0 * 4 / 8.5, "no stop: the whole window counts"
