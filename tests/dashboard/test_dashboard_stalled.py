@@ -74,7 +74,9 @@ def test_a_running_scan_without_a_new_pose_is_stalled_without_a_frame_rate_until
         add_pose(writer, plan, 29, t_s=20.0)  # the daemon resumed: a new pose
         current = status(server)["current"]
         assert (current["state"], current["reason"], current["quiet_s"]) == ("running", None, None)
-        assert current["frames_per_s"] > 0
+        assert current["frames_per_s"] is None, "one pose since the stop: no pace yet (across the stop it was false)"
+        add_pose(writer, plan, 30, t_s=20.5)
+        assert status(server)["current"]["frames_per_s"] > 0
 
 
 def test_a_slow_scan_is_given_several_of_its_pose_intervals_and_a_resume_counts_as_news(tmp_path):
