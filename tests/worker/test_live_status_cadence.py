@@ -61,11 +61,11 @@ def polled(views: int, state: str = "running") -> ScanProgress:
                         manifest={"updated_utc": f"poll {views}"})
 
 
-def test_the_status_follows_every_refit_and_the_views_published_while_the_mesh_keeps_its_cadence(tmp_path,
-                                                                                                  monkeypatch):
+def following_run(tmp_path, monkeypatch, meshes: list, lines: list) -> tuple[LiveRun, Follower]:
+    """A live run of a scan of 8 views published, then 10, then 13 (8: the first fit; 10: too few more for a refit,
+    a quarter more, at most 4; 13: a refit), whose meshes go to `meshes` and whose log lines to `lines`."""
     import spadscan.worker.live.job as live_job
 
-    meshes: list[str] = []
     monkeypatch.setattr(live_job, "publish_mesh", lambda folder, mesh, gt, preview: meshes.append(mesh))
     # A clock that moves a second a reading: every status cadence of a second or two is due at each poll, and no
     # publication cadence of NEVER_S ever is.
@@ -74,14 +74,20 @@ def test_the_status_follows_every_refit_and_the_views_published_while_the_mesh_k
                                                           perf_counter=lambda: 0.0, sleep=lambda s: None))
     (folder := tmp_path / "recon" / "live").mkdir(parents=True)
     scan = SimpleNamespace(published=8)
-    # 8 views: the first fit; 10: too few more for a refit (a quarter more, at most 4); 13: a refit
     follower = Follower(scan, tmp_path, [10, 13])
     settings = LiveSettings(min_views=8, publish_every_s=NEVER_S, rebuild_growth=0.5, rebuild_views=4,
                             rebuild_share=1.0, preview=False)
-    lines: list[str] = []
     run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path, folder, follower, settings,
                   lines.append)
     run.fit = Fit(scan)
+    return run, follower
+
+
+def test_the_status_follows_every_refit_and_the_views_published_while_the_mesh_keeps_its_cadence(tmp_path,
+                                                                                                  monkeypatch):
+    meshes: list[str] = []
+    lines: list[str] = []
+    run, follower = following_run(tmp_path, monkeypatch, meshes, lines)
     assert run.follow(polled(8)).state == "complete"
 
     first, between, refitted = [(s.views_used, s.views_published, s.steps) for s in follower.seen]
@@ -98,20 +104,7 @@ def test_the_status_follows_every_refit_and_the_views_published_while_the_mesh_k
 def test_a_chamfer_measured_on_an_older_mesh_says_the_views_of_that_mesh(tmp_path, monkeypatch):
     # The status is rewritten between two meshes: after the refit to 13 views the Chamfer is still the 8-view
     # mesh's, and the status (and the lines made from it) must not pair it with the 13 views.
-    import spadscan.worker.live.job as live_job
-
-    monkeypatch.setattr(live_job, "publish_mesh", lambda folder, mesh, gt, preview: None)
-    ticks = itertools.count()
-    monkeypatch.setattr(live_job, "time", SimpleNamespace(monotonic=lambda: float(next(ticks)),
-                                                          perf_counter=lambda: 0.0, sleep=lambda s: None))
-    (folder := tmp_path / "recon" / "live").mkdir(parents=True)
-    scan = SimpleNamespace(published=8)
-    follower = Follower(scan, tmp_path, [10, 13])
-    settings = LiveSettings(min_views=8, publish_every_s=NEVER_S, rebuild_growth=0.5, rebuild_views=4,
-                            rebuild_share=1.0, preview=False)
-    run = LiveRun(Job(id="s-fast", scan="s", live=True, device="cpu"), tmp_path, folder, follower, settings,
-                  lambda line: None)
-    run.fit = Fit(scan)
+    run, follower = following_run(tmp_path, monkeypatch, [], [])
     run.config = SimpleNamespace(trace_points=1000)
     run.truth = SimpleNamespace(mesh=None, metrics=lambda mesh, n_points: SimpleNamespace(chamfer_mm=5.0))
     run.follow(polled(8))
