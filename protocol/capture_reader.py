@@ -13,6 +13,7 @@ from .capture_format import (FORMAT, MANIFEST, SCHEDULE, STATES, VERSION, Chunk,
                              check_poses, chunk_index, drawn_by_simulator, no_permission, one_line, read_json,
                              read_npy)
 from .errors import CaptureError, SensorModelError
+from .live_status import is_count
 from .plausibility import check_counts, cycles_margin, first_photon_cycles
 from .sensor_model import SensorModel
 
@@ -111,11 +112,6 @@ MAX_INDEX = 2**53
 """The largest pose_index a reader takes (a plan of that many poses would never end; numpy's int64 holds it)."""
 
 
-def _is_count(value) -> bool:
-    """An integer >= 0 as JSON gives it (not true or false)."""
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
-
-
 def _check_objects(m: dict, where) -> None:
     """`scene`, `rig` and `rig.sensor` are JSON objects where given (null reads as absent, as the worker reads it):
     the worker looks keys up in them, and a list or a string there ended a run in a traceback. `scene.real`, where
@@ -136,7 +132,7 @@ def _check_pose_counts(m: dict, where) -> None:
     frame numbers and pose indices are checked against them."""
     for key, least in (("frames_per_pose", 1), ("planned_poses", 0)):
         value = m.get(key)
-        if value is not None and not (_is_count(value) and value >= least):
+        if value is not None and not (is_count(value) and value >= least):
             raise CaptureError(f"{where}: {key} {value!r} must be an integer >= {least}")
 
 
@@ -146,7 +142,7 @@ def _check_frame(record: dict, per_pose: int | None, where: str) -> None:
     frame = record.get("frame")
     if frame is None:
         return
-    if not _is_count(frame):
+    if not is_count(frame):
         raise CaptureError(f"{where} has frame {frame!r}, not an integer >= 0")
     if per_pose is not None and frame >= per_pose:
         raise CaptureError(f"{where} has frame {frame} of pose {record['pose_index']}, beyond the manifest's "
@@ -312,7 +308,7 @@ class CaptureReader:
             raise CaptureError(f"{d / 'meta.json'}: expected {n} measurement records")
         for i, m in enumerate(meta):
             index = m.get("pose_index") if isinstance(m, dict) else None
-            if not _is_count(index):
+            if not is_count(index):
                 raise CaptureError(f"{d / 'meta.json'}: measurement {i} lacks a pose_index >= 0")
             if index > MAX_INDEX:
                 raise CaptureError(f"{d / 'meta.json'}: measurement {i} has pose_index {index}, over {MAX_INDEX:,}")

@@ -91,14 +91,19 @@ class LiveStatus:
                 del data[key]
         return data
 
-    def age_s(self, now: _dt.datetime | None = None) -> float | None:
-        """Seconds since `updated_utc` (None when it cannot be read)."""
+    def updated(self) -> _dt.datetime | None:
+        """`updated_utc` as an aware time (UTC when it names no zone); None when it cannot be read."""
         try:
             then = _dt.datetime.fromisoformat(self.updated_utc)
         except (TypeError, ValueError):
             return None
-        if then.tzinfo is None:
-            then = then.replace(tzinfo=_dt.timezone.utc)
+        return then if then.tzinfo else then.replace(tzinfo=_dt.timezone.utc)
+
+    def age_s(self, now: _dt.datetime | None = None) -> float | None:
+        """Seconds since `updated_utc` (None when it cannot be read)."""
+        then = self.updated()
+        if then is None:
+            return None
         return max(0.0, ((now or _dt.datetime.now(_dt.timezone.utc)) - then).total_seconds())
 
     def summary(self, now: _dt.datetime | None = None) -> str:

@@ -15,7 +15,6 @@ then. A job without a budget shows its training bar as it is.
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import math
 import os
@@ -274,11 +273,8 @@ def _live_status(root, job: Job) -> LiveStatus | None:
 
 def written_unix(status: LiveStatus) -> float | None:
     """When `status` was written (unix seconds, from its `updated_utc`); None when that cannot be read."""
-    try:
-        then = _dt.datetime.fromisoformat(status.updated_utc)
-    except (TypeError, ValueError):
-        return None
-    return (then if then.tzinfo else then.replace(tzinfo=_dt.timezone.utc)).timestamp()
+    then = status.updated()
+    return None if then is None else then.timestamp()
 
 
 def _finite(value) -> bool:

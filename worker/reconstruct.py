@@ -152,11 +152,11 @@ def check_signal_model(capture, sensor) -> None:
     """Refuse (one CaptureError line) a capture whose sensor model predicts no signal in the fit's precision: its
     signal_scale 0, or it and every zone's gain so small that their product is no float32 number above 0. Every
     render would be background, and the mesh would be the carved hull while the run looked like a fit."""
-    scale = sensor.signal_scale * max(z.gain for z in sensor.zones)
-    if not np.float32(scale) >= np.finfo(np.float32).tiny:
+    gain = max(z.gain for z in sensor.zones)
+    if not np.float32(sensor.signal_scale * gain) >= np.finfo(np.float32).tiny:
         raise CaptureError(f"{capture}: the capture's sensor model predicts no signal (signal_scale "
-                           f"{sensor.signal_scale:g}, the largest zone gain {max(z.gain for z in sensor.zones):g}): "
-                           f"nothing could be fitted; check the sensor record in its scan.json")
+                           f"{sensor.signal_scale:g}, the largest zone gain {gain:g}): nothing could be fitted; check "
+                           f"the sensor record in its scan.json")
 
 
 def check_returns(capture, scene) -> None:

@@ -164,9 +164,7 @@ class SimBridge:
         """Wait until everything queued so far is written (not necessarily read)."""
         if self._closing.is_set():
             raise RuntimeError("sim bridge: flush after close")
-        done = threading.Event()
-        self._queue.put(("mark", done))
-        if not done.wait(timeout_s):
+        if not self._mark().wait(timeout_s):
             raise TimeoutError(f"sim bridge: queued writes not done within {timeout_s} s")
 
     def start_stream(self, source: Callable[[], np.ndarray], period_s: float, *, fault_every: int = 0) -> None:
@@ -235,10 +233,15 @@ class SimBridge:
         self._stream = threading.Thread(target=run, name="spadscan-sim-bridge-chip", daemon=True)
         self._stream.start()
 
-    def _written_at(self, stop: threading.Event) -> float | None:
-        """When the writer has written everything queued so far (time.monotonic()), or None once `stop` is set."""
+    def _mark(self) -> threading.Event:
+        """An event the writer sets once it has written everything queued before it."""
         done = threading.Event()
         self._queue.put(("mark", done))
+        return done
+
+    def _written_at(self, stop: threading.Event) -> float | None:
+        """When the writer has written everything queued so far (time.monotonic()), or None once `stop` is set."""
+        done = self._mark()
         while not done.wait(0.05):
             if stop.is_set():
                 return None
