@@ -122,9 +122,18 @@ def _check_objects(m: dict, where) -> None:
     sensor = (m.get("rig") or {}).get("sensor")
     if sensor is not None and not isinstance(sensor, dict):
         raise CaptureError(f"{where}: rig.sensor must be a JSON object, got {type(sensor).__name__}")
-    scene = m.get("scene") or {}
-    if "real" in scene and not isinstance(scene["real"], bool):
-        raise CaptureError(f"{where}: scene.real = {scene['real']!r} must be true or false")
+    scene_real(m.get("scene") or {}, where)
+
+
+def scene_real(scene: dict, where) -> bool | None:
+    """A manifest's `scene.real` (`scene`: its scene object): true or false where given, None where not; CaptureError
+    naming `where` for anything else (the string "false" is truthy: a simulated capture was fitted as measured)."""
+    if "real" not in scene:
+        return None
+    real = scene["real"]
+    if not isinstance(real, bool):
+        raise CaptureError(f"{where}: scene.real = {real!r} must be true or false")
+    return real
 
 
 def _check_pose_counts(m: dict, where) -> None:

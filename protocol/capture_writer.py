@@ -88,8 +88,9 @@ def _together(calls: list) -> None:
             raise exc
 
 
-def _frame(record: dict) -> int | None:
-    """A measurement record's frame number; None when it has none (another writer's capture)."""
+def frame_number(record: dict) -> int | None:
+    """A measurement record's frame number; None when it has none (another writer's capture: `plan_retakes` takes
+    its pose as whole)."""
     frame = record.get("frame")
     return frame if isinstance(frame, int) and not isinstance(frame, bool) else None
 
@@ -315,7 +316,7 @@ class CaptureWriter:
             chunk = reader.read_chunk(name)
             published += len(chunk.meta)
             poses.update(int(i) for i in chunk.pose_indices)
-            held.append((chunk_index(name), [(int(m["pose_index"]), _frame(m)) for m in chunk.meta]))
+            held.append((chunk_index(name), [(int(m["pose_index"]), frame_number(m)) for m in chunk.meta]))
         frames = reader.manifest.get("frames_per_pose", 1)
         frames = frames if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1 else 1
         retakes = plan_retakes(held, frames, int(reader.manifest["chunk_size"]), path)

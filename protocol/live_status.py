@@ -47,6 +47,7 @@ from pathlib import Path
 
 from .atomic_files import write_atomic
 from .errors import CaptureError
+from .iso_time import parse_utc
 
 LIVE_DIR = "live"
 """The live results' folder under a capture's `recon/`."""
@@ -92,12 +93,8 @@ class LiveStatus:
         return data
 
     def updated(self) -> _dt.datetime | None:
-        """`updated_utc` as an aware time (UTC when it names no zone); None when it cannot be read."""
-        try:
-            then = _dt.datetime.fromisoformat(self.updated_utc)
-        except (TypeError, ValueError):
-            return None
-        return then if then.tzinfo else then.replace(tzinfo=_dt.timezone.utc)
+        """`updated_utc` as an aware time (UTC when it names no zone); None when it cannot be read (`parse_utc`)."""
+        return parse_utc(self.updated_utc)
 
     def age_s(self, now: _dt.datetime | None = None) -> float | None:
         """Seconds since `updated_utc` (None when it cannot be read)."""

@@ -4,17 +4,15 @@ a measured scene has a table in view and a background to estimate)."""
 from __future__ import annotations
 
 from spadscan.protocol.capture_format import drawn_by_simulator
-from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.capture_reader import scene_real
 from spadscan.protocol.sensor_model import SensorModel
 
 
 def is_measured(scene: dict, manifest: dict, sensor: SensorModel) -> bool:
     """Measured data? The scene's `real` flag when given; else not when the rig or its sensor is simulated; else
     whether the sensor model is a hardware one (it carries reference histograms)."""
-    if "real" in scene:
-        real = scene["real"]
-        if not isinstance(real, bool):  # the string "false" is truthy: a simulated capture fitted as measured
-            raise CaptureError(f"scene.real = {real!r} must be true or false")
+    real = scene_real(scene, "manifest")  # the reader's own check: one read elsewhere is held to it too
+    if real is not None:
         return real
     if drawn_by_simulator(manifest):  # written by `spadscan simulate`, or by the daemon's simulated sensor
         return False

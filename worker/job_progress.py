@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import LiveStatus, read_status, status_path
+from spadscan.protocol.live_status import LiveStatus
 
 from .jobs import Job
 from .queue import QUEUE_DIRNAME, SEP, Claim
@@ -242,10 +242,8 @@ def claim_budget(job: Job, started: float | None, root) -> tuple[float, float] |
 def final_run_start(root, job: Job) -> float | None:
     """When a live job's final run started (unix seconds): its live status is written 'final' just before; None
     while it follows its scan, or when that status is not its own or cannot be read."""
-    status = _live_status(root, job)
-    if status is None or status.job != job.id or status.state != "final":
-        return None
-    return written_unix(status)
+    status = own_live_status(root, job.id, job.scan, ("final",))
+    return None if status is None else written_unix(status)
 
 
 def ended_live_status(root, job: Job, since: float) -> LiveStatus | None:
@@ -253,22 +251,11 @@ def ended_live_status(root, job: Job, since: float) -> LiveStatus | None:
     stopped), written since its claim began (`since`, unix seconds): an earlier attempt's last word is none of this
     one's. The job's process ends right after writing it; until the worker has reaped it, that is what the job is
     doing (not setting up). None otherwise; `root`: the captures root."""
-    status = _live_status(root, job)
-    if status is None or status.job != job.id or status.state not in ENDED:
+    status = own_live_status(root, job.id, job.scan, ENDED)
+    if status is None:
         return None
     written = written_unix(status)
     return status if written is not None and written >= since else None
-
-
-def _live_status(root, job: Job) -> LiveStatus | None:
-    """The live status of `job`'s scan under the captures root `root`; None when there is none or it cannot be
-    read."""
-    if root is None:
-        return None
-    try:
-        return read_status(status_path(Path(root) / job.scan))
-    except (SpadscanError, OSError):
-        return None
 
 
 def written_unix(status: LiveStatus) -> float | None:

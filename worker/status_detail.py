@@ -8,10 +8,12 @@ import json
 from pathlib import Path
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import LiveStatus, read_status, status_path
+from spadscan.protocol.live_status import STATES, LiveStatus, read_status, status_path
 
 ENDED = ("done", "aborted", "stopped")
 """Live states after which the job's line is no longer the live status's (its final run has a bar, or it ended)."""
+FOLLOWING = tuple(s for s in STATES if s not in (*ENDED, "queued"))
+"""Live states of a job that follows its scan or runs its final run (not one that ended or was given back)."""
 
 
 def result_health(row) -> dict:
@@ -39,18 +41,18 @@ def live_detail(root, row) -> str | None:
     return status.summary() if status is not None else None
 
 
-def own_live_status(root, job_id: str, scan: str) -> LiveStatus | None:
-    """The live status (`<scan>/recon/live/status.json`) of running live job `job_id` while it follows its scan or
-    runs its final run; None when there is none, it cannot be read, it is another job's, or it is past (ENDED) or a
-    given-back attempt's last word ('queued', until the attempt that took the job over writes its own); `root`: the
-    captures root."""
+def own_live_status(root, job_id: str, scan: str, states: tuple[str, ...] = FOLLOWING) -> LiveStatus | None:
+    """The live status (`<scan>/recon/live/status.json`) of live job `job_id` when it is in one of `states` (by
+    default FOLLOWING: while it follows its scan or runs its final run); None when there is none, it cannot be read,
+    it is another job's, or it is in another state (by default: past, ENDED, or a given-back attempt's last word,
+    'queued', until the attempt that took the job over writes its own); `root`: the captures root."""
     if root is None:
         return None
     try:
         status = read_status(status_path(Path(root) / scan))
     except (SpadscanError, OSError):
         return None
-    return status if status.job == job_id and status.state not in (*ENDED, "queued") else None
+    return status if status.job == job_id and status.state in states else None
 
 
 def status_lines(row, running: dict | None = None, root=None) -> list[str]:

@@ -139,6 +139,18 @@ async def streaming(bridge, **kw):
         await sensor.close()
 
 
+@contextlib.asynccontextmanager
+async def unplugged_after_a_frame():
+    """(bridge, sensor): a sensor streaming from a bridge with a long link grace, its first frame delivered and its
+    bridge then unplugged."""
+    with SimBridge() as bridge:
+        async with streaming(bridge, link_grace_s=30) as sensor:
+            bridge.send_frame(counts(1))
+            await sensor.next_frame(10)
+            bridge.unplug()
+            yield bridge, sensor
+
+
 def test_frames_arrive_bit_for_bit_and_corrupt_frames_never_do(arun):
     sent_good = []
 
@@ -210,20 +222,16 @@ def test_the_first_frame_after_a_reopen_is_dropped_as_its_exposure_may_predate_i
     count back from the previous one's result arrival."""
 
     async def main():
-        with SimBridge() as bridge:
-            async with streaming(bridge, link_grace_s=30) as sensor:
-                bridge.send_frame(counts(1))
-                await sensor.next_frame(10)
-                bridge.unplug()
-                bridge.replug()
-                bridge.flush()
-                while sensor.counters()["reconnects"] < 1:
-                    await asyncio.sleep(0.01)
-                bridge.send_frame(counts(2))
-                bridge.send_frame(counts(3))
-                frame = await sensor.next_frame(10)
-                counters = sensor.counters()
-            return frame, counters
+        async with unplugged_after_a_frame() as (bridge, sensor):
+            bridge.replug()
+            bridge.flush()
+            while sensor.counters()["reconnects"] < 1:
+                await asyncio.sleep(0.01)
+            bridge.send_frame(counts(2))
+            bridge.send_frame(counts(3))
+            frame = await sensor.next_frame(10)
+            counters = sensor.counters()
+        return frame, counters
 
     frame, c = arun(main())
     assert np.array_equal(frame.hists, counts(3)[1:]) and c["dropped_link_reset"] == 1 and c["frames"] == 2
@@ -418,19 +426,15 @@ def _flushed(bridge) -> bool:
 
 def test_a_silence_while_the_link_is_down_says_so_and_the_log_tells_the_drop_and_the_return(arun, caplog):
     async def main():
-        with SimBridge() as bridge:
-            async with streaming(bridge, link_grace_s=30) as sensor:
-                bridge.send_frame(counts(1))
-                await sensor.next_frame(10)
-                bridge.unplug()
-                while sensor.counters()["link"] == "up":
-                    await asyncio.sleep(0.01)
-                with pytest.raises(SensorSilent) as silent:  # the frame timeout comes before the link's grace
-                    await sensor.next_frame(0.2)
-                bridge.replug()
-                while sensor.counters()["link"] == "down":
-                    await asyncio.sleep(0.01)
-            return str(silent.value)
+        async with unplugged_after_a_frame() as (bridge, sensor):
+            while sensor.counters()["link"] == "up":
+                await asyncio.sleep(0.01)
+            with pytest.raises(SensorSilent) as silent:  # the frame timeout comes before the link's grace
+                await sensor.next_frame(0.2)
+            bridge.replug()
+            while sensor.counters()["link"] == "down":
+                await asyncio.sleep(0.01)
+        return str(silent.value)
 
     with caplog.at_level(logging.INFO, logger="spadscan.daemon"):
         said = arun(main())
