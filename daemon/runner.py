@@ -183,6 +183,7 @@ class ScanRunner:
         self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,
                            tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer, controller_checked=True,
                            chooser=chooser)
+        self.job.count_from(writer.manifest.get("created_utc"))
         self._forget_earlier_error()
         self._launch("scanning")
         log.info("scan %s: %d poses x %d frames -> %s", name, len(plan), scan.frames_per_pose, path)
@@ -510,7 +511,8 @@ class ScanRunner:
                        progress=self._progress(), frames=job.frames, frames_per_pose=job.scan.frames_per_pose,
                        dropped_frames=job.dropped, rate_hz=self._rate_hz(job), rate_unit=RATE_UNIT,
                        eta_s=scan_eta_s(job) if self.state == "scanning" else None, reason=job.reason,
-                       elapsed_s=round(time.monotonic() - job.started, 3), schedule=job.scan.schedule)
+                       elapsed_s=round(time.monotonic() - job.started, 3), started_utc=job.started_utc,
+                       scan_elapsed_s=_rounded(job.scan_elapsed_s(), 3), schedule=job.scan.schedule)
             if job.chooser is not None:
                 out["views_chosen"] = dict(sorted(job.view_counts.items()))
             if job.owed:  # (kept on the job: a fault's pause drops the writer)
@@ -1254,6 +1256,10 @@ def _reopen_problem(job: ScanJob, exc: BaseException) -> str:
 def _remove_partial(path: Path) -> None:
     """Remove a scan folder that CaptureWriter.create left half-made (removing needs no free space)."""
     shutil.rmtree(path, ignore_errors=True)
+
+
+def _rounded(value: float | None, digits: int) -> float | None:
+    return None if value is None else round(value, digits)
 
 
 def _paused_record(path: Path) -> str | None:

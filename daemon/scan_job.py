@@ -30,8 +30,9 @@ import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import CaptureWriter, plan_retakes
+from spadscan.protocol.capture_writer import CaptureWriter, frame_number, plan_retakes
 from spadscan.protocol.errors import CaptureError, ConfigError
+from spadscan.protocol.iso_time import parse_utc
 from spadscan.protocol.sensor_model import SensorModel
 
 from .config import ScanConfig, scan_with
@@ -99,6 +100,13 @@ class ScanJob:
     controller_checked: bool = False
     """The arm's controller has been asked about the poses still to come since the scan last started or resumed."""
     started: float = field(default_factory=time.monotonic)
+    """When this daemon started the scan or took it over (monotonic s): status's `elapsed_s` counts from here."""
+    started_utc: str | None = None
+    """When the scan began, as its scan.json records it (`created_utc`); None when scan.json holds no readable
+    one."""
+    earlier_s: float | None = None
+    """Seconds from `started_utc` to `started` (for a scan taken over: the earlier daemons' time and the time none
+    ran); None when `started_utc` is. Set by `count_from`."""
     history: deque = field(default_factory=lambda: deque(maxlen=256))
     """(monotonic s, frames published) after each pose and at each (re)start of scanning (`mark_scanning`), for the
     rate."""
@@ -131,6 +139,25 @@ class ScanJob:
     def n_poses(self) -> int:
         return len(self.sensor_poses)
 
+    def count_from(self, created_utc) -> None:
+        """Date the scan's start by its scan.json's `created_utc` (ISO 8601; UTC when it names no zone). The wall
+        clock is read once, here: from then on the time since the start is counted on the monotonic clock, so that a
+        wall clock set later (NTP) does not move it. A start in the future (a clock set back since) counts as now."""
+        begun = parse_utc(created_utc)
+        if begun is None:
+            self.started_utc, self.earlier_s = None, None
+            return
+        wall, mono = _dt.datetime.now(_dt.timezone.utc), time.monotonic()
+        self.started_utc = created_utc
+        self.earlier_s = max(0.0, (wall - begun).total_seconds() - (mono - self.started))
+
+    def scan_elapsed_s(self) -> float | None:
+        """Seconds since the scan began (`started_utc`), across daemon restarts and takeovers, pauses and the time
+        no daemon ran included; None when scan.json does not say when it began."""
+        if self.earlier_s is None:
+            return None
+        return self.earlier_s + (time.monotonic() - self.started)
+
     def record_progress(self, writer: CaptureWriter) -> None:
         self.next_pose = writer.next_pose_index
         self.frames = writer.n_published
@@ -148,7 +175,7 @@ class ScanJob:
             chunk = reader.read_chunk(name)
             frames += len(chunk.meta)
             poses.update(int(i) for i in chunk.pose_indices)
-            held.append((chunk_index(name), [(int(m["pose_index"]), _frame_number(m)) for m in chunk.meta]))
+            held.append((chunk_index(name), [(int(m["pose_index"]), frame_number(m)) for m in chunk.meta]))
         self.next_pose = max(poses) + 1 if poses else 0
         self.frames = frames
         retakes = plan_retakes(held, self.scan.frames_per_pose, self.scan.chunk_size, self.path)
@@ -185,12 +212,6 @@ class ScanJob:
         t0, f0 = before[-1] if before else (self.history[0] if self.history else (begin, self.frames))
         t0 = max(t0, begin)  # the frames counted at t0 were all published by `begin`: the window starts there
         return (self.frames - f0) / (now - t0) if now > t0 else 0.0
-
-
-def _frame_number(record: dict) -> int | None:
-    """A measurement record's frame number; None when it has none (a pose taken whole, as `plan_retakes` reads it)."""
-    frame = record.get("frame")
-    return frame if isinstance(frame, int) and not isinstance(frame, bool) else None
 
 
 def written_by_daemon(manifest: dict) -> bool:
@@ -416,6 +437,7 @@ def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | 
         raise CaptureError(str(exc)) from None
     job = ScanJob(name=path.name, path=Path(path), scan=scan, sensor_poses=planned,
                   tcp_poses=tcp_from_sensor(planned, reader.hand_eye), hand_eye=reader.hand_eye)
+    job.count_from(reader.manifest.get("created_utc"))
     changed = []
     if not np.allclose(reader.hand_eye, hand_eye_now, atol=1e-6):
         changed.append(f"the rig's [arm] hand_eye differs from the one scan {path.name!r} was planned with")

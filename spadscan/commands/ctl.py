@@ -16,7 +16,9 @@
 
 `scan`, `pause`, `resume`, `abort` and `shutdown` answer in one line for people: the scan in hand, its state and its
 pose i/n (`scan 'bunny' paused at pose 38/128: paused by user`); with --json they print the daemon's whole
-reply as one line of JSON instead. `status` and `wait` always print JSON.
+reply as one line of JSON instead. `status` and `wait` always print JSON; `status` takes --json too, so that a
+script may pass it to every operation. With --json a refusal, or no daemon answering, is printed on standard output
+as {"ok": false, "error": ...} too, beside its error line on stderr and exit status 1.
 
 The live reconstruction (`spadscan worker --live`) is read from the scan's recon/live/status.json, beside the daemon:
 views used of those published, steps, whether it converged, the Chamfer when the scene is known, the last update.
@@ -114,16 +116,19 @@ def add_arguments(parser) -> None:
     def op(name: str, help_: str, description: str | None = None):
         return sub.add_parser(name, help=help_, description=description or help_, parents=[shared])
 
-    op("status", "print the daemon's state as JSON",
-       "Print the daemon's state as JSON. `rate_hz`: frames published per second over the last 10 s (`rate_unit`: "
-       "frames/s; a pose takes `frames_per_pose` of them), null while the scan is paused; `eta_s`: the seconds the "
-       "scan has left at that pace (the poses still to take), null while paused or before a pace is measured; "
-       "`elapsed_s`: seconds since this daemon started the scan or took it over, pauses included; `last_error`: "
-       "the last fault since the scan in hand (or the last one) started, or what still stands (an abort not "
-       "recorded yet, a scan that could not be taken over); `live`: the scan's live reconstruction "
-       "(recon/live/status.json) when a worker runs one (`spadscan worker --live`), with "
-       "`age_s`, the seconds since its last update; `speed_scaling` and `speed_note`: a UR arm's speed slider, "
-       "when below 100 % (the scan runs that much slower).")
+    status = op(
+        "status", "print the daemon's state as JSON",
+        "Print the daemon's state as JSON. `rate_hz`: frames published per second over the last 10 s (`rate_unit`: "
+        "frames/s; a pose takes `frames_per_pose` of them), null while the scan is paused; `eta_s`: the seconds the "
+        "scan has left at that pace (the poses still to take), null while paused or before a pace is measured; "
+        "`elapsed_s`: seconds since this daemon started the scan or took it over, pauses included; "
+        "`scan_elapsed_s`: seconds since the scan began (`started_utc`, its scan.json's created_utc), across daemon "
+        "restarts, pauses and the time no daemon ran included (null when scan.json does not say); `last_error`: "
+        "the last fault since the scan in hand (or the last one) started, or what still stands (an abort not "
+        "recorded yet, a scan that could not be taken over); `live`: the scan's live reconstruction "
+        "(recon/live/status.json) when a worker runs one (`spadscan worker --live`), with "
+        "`age_s`, the seconds since its last update; `speed_scaling` and `speed_note`: a UR arm's speed slider, "
+        "when below 100 % (the scan runs that much slower).")
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
               "config (examples/README.md documents each key).")
@@ -184,6 +189,10 @@ def add_arguments(parser) -> None:
               "whenever the scan pauses. Ctrl-C stops only the waiting: the scan goes on in the daemon.")
     wait.add_argument("name", metavar="NAME", help="the scan's name (its folder under the captures root)")
     shutdown = op("shutdown", "stop the daemon; a scan in flight stays resumable")
+    status.add_argument("--json", action="store_true",
+                        help="the same JSON as without it (accepted so that scripts may pass --json to every "
+                             "operation); a refusal, or no daemon answering, is printed as {\"ok\": false, "
+                             "\"error\": ...} too, beside its error line and exit status 1")
     for answering in (scan, pause, resume, abort, shutdown):  # what they did, in one line for people
         answering.add_argument("--json", action="store_true",
                                help="print the daemon's whole reply as one line of JSON (for scripts), not the "
