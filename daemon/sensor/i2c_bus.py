@@ -70,8 +70,9 @@ CMD_MEASURE, CMD_STOP, CMD_LOAD_CONFIG, CMD_WRITE_CONFIG, CMD_SHORT_RANGE = 0x10
 INT_RESULT, INT_HISTOGRAM = 0x02, 0x08
 BUSY = 0x10
 """CMD_STAT (bootloader and application) at or above this value: a command is still running."""
-STAT_ACCEPTED = 0x01
-"""CMD_STAT while the application measures (measure accepted, running until stopped)."""
+STAT_OK, STAT_ACCEPTED = 0x00, 0x01
+"""CMD_STAT while the application measures: 0x01 (measure accepted, running until stopped), or 0x00 (ok), which
+ams' Linux driver accepts too before it reads a record."""
 SETTLE_S = 0.010
 """Wait after setting PON and after RAMREMAP before the chip is addressed again (the references wait 10 ms)."""
 TIME_MULTIPLEXED_MAPS = frozenset({4, 5, 7, 10, 13, 15})
@@ -233,13 +234,14 @@ class I2CTransport(Transport):
         A power loss or reset puts the chip back in its bootloader (APP_ID). The application can also stop on its own
         while APP_ID stays 0x03: ams' register map has CMD_STAT 0x03 "severe error, stopped" (details in
         APPLICATION_STATUS 0x04) and 0x04 / 0x05 "power cycle the device"; while it measures CMD_STAT reads 0x01
-        (measure accepted, runs until stopped), so anything else means no record will ever come.
+        (measure accepted, runs until stopped), and ams' Linux driver takes 0x00 (ok) as well while it reads records;
+        anything else means no record will ever come.
         """
         app = self._read(REG_APP_ID)
         if app != APP_RUNNING:
             raise LinkDown(f"sensor reset (APP_ID {app:#04x}, no record for {self.watchdog_s:g} s)")
         status = self._read(REG_CMD_STAT)
-        if status != STAT_ACCEPTED:
+        if status not in (STAT_OK, STAT_ACCEPTED):
             detail = self._read(REG_APP_STATUS)
             raise LinkDown(f"sensor stopped measuring (CMD_STAT {status:#04x}, APPLICATION_STATUS {detail:#04x}, "
                            f"no record for {self.watchdog_s:g} s)")

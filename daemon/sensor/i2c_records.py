@@ -69,8 +69,10 @@ def result_refusal(buf: bytes) -> str:
         return f"{len(buf)} bytes, not {RESULT_RECORD}"
     if buf[0] != RID_RESULT:
         return f"RID {buf[0]:#04x}, not {RID_RESULT:#04x} (measurement result)"
-    if buf[2] | buf[3] << 8 != RESULT_RECORD - HEADER_BYTES:
-        return f"size field {buf[2] | buf[3] << 8}, not {RESULT_RECORD - HEADER_BYTES}"
+    # ams' Linux driver reads a larger size as extra data after the 36 results (the diagnostics the register map
+    # places at 0xA4-0xC7): the results themselves stand where they do, so only a shorter record is refused.
+    if buf[2] | buf[3] << 8 < RESULT_RECORD - HEADER_BYTES:
+        return f"size field {buf[2] | buf[3] << 8}, under {RESULT_RECORD - HEADER_BYTES}"
     if buf[6] > N_RESULTS:
         return f"{buf[6]} valid results, more than {N_RESULTS}"
     return ""

@@ -70,9 +70,10 @@ SIZE_FIELDS = ("remaining", "total")
 
 
 def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid,
-                  size_field: str = "remaining") -> list[tuple[int, bytes]]:
+                  size_field: str = "remaining", diagnostics: bool = False) -> list[tuple[int, bytes]]:
     """The (INT_STATUS bit, bytes) records of one frame: 30 raw histogram sub-packets (when `hist_dump`), a result.
-    `size_field`: one of SIZE_FIELDS."""
+    `size_field`: one of SIZE_FIELDS. `diagnostics`: the result's size field counts the 36 diagnostics bytes that
+    follow its 36 results (the register map's 0xA4-0xC7)."""
     records = []
     if hist_dump:
         for k in range(30):
@@ -80,11 +81,11 @@ def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid,
             # sub-packet headers excluded either way
             size = (30 - k) * 128 if size_field == "remaining" else 30 * 128
             records.append((0x08, bytes([0x81, next_tid(), size & 0xFF, size >> 8, k, 128, 0]) + plane))
-    head = bytearray([0x10, next_tid(), 128, 0, result["result_no"], result["temperature_c"] & 0xFF, 9, 0])
+    head = bytearray([0x10, next_tid(), 128 + 36 * diagnostics, 0, result["result_no"], result["temperature_c"] & 0xFF, 9, 0])
     head += b"".join(int(v).to_bytes(4, "little") for v in (1000, 200_000, 50_000, result["systick"]))
     body = b"".join(bytes([c]) + int(d).to_bytes(2, "little")
                     for c, d in zip(result["confidences"], result["distances_mm"]))
-    records.append((0x02, bytes(head + body)))
+    records.append((0x02, bytes(head + body) + bytes(36 * diagnostics)))
     return records
 
 
@@ -94,10 +95,14 @@ class SimTMF8820Bus:
     def __init__(self, *, address: int = 0x41, image: bytes | None = None, seed: int = 0, frame_interval_s=0.0,
                  ready_after_polls: int | None = 2, busy_polls: int = 1, app_id: int | None = None,
                  load_address: int = 0, accuracy_modes: bool = True, startup_s: float = 0.005,
-                 handover_s: float = 0.001, hold_s: float | None = None, size_field: str = "remaining"):
+                 handover_s: float = 0.001, hold_s: float | None = None, size_field: str = "remaining",
+                 measure_stat: int = 0x01, result_diagnostics: bool = False):
         if size_field not in SIZE_FIELDS:
             raise ValueError(f"size_field = {size_field!r} must be one of {SIZE_FIELDS}")
         self.size_field = size_field
+        # Both of what ams' Linux driver accepts: CMD_STAT 0x01 (accepted) or 0x00 (ok) while measuring; a result
+        # record followed by the 36 diagnostics bytes (its size field 164 instead of 128).
+        self.measure_stat, self.result_diagnostics = measure_stat, result_diagnostics
         self.address, self.image, self.load_address = address, image, load_address
         self.frame_interval_s, self.ready_after_polls, self.busy_polls = frame_interval_s, ready_after_polls, busy_polls
         self.handover_s, self.hold_s = handover_s, hold_s
@@ -389,7 +394,7 @@ class SimTMF8820Bus:
                 self.violations.append("measure while measuring")
                 ok = 0x02
             else:
-                self.measuring, ok = True, 0x01
+                self.measuring, ok = True, self.measure_stat
                 self.app_status = 0x00  # ams' register map: a new measurement clears the status registers
                 self.next_frame_t = time.monotonic() + self.frame_interval_s
         elif cmd == 0xFF:
@@ -467,7 +472,8 @@ class SimTMF8820Bus:
         self.measured += 1
         self.produced.append((counts, result))
         self.exposures.append((begin, end))
-        records = frame_records(counts, result, bool(self.config["hist_dump"] & 0x01), self._tid, self.size_field)
+        records = frame_records(counts, result, bool(self.config["hist_dump"] & 0x01), self._tid, self.size_field,
+                                self.result_diagnostics)
         for k in sorted(self._corrupt):
             if k < len(records) - 1:
                 bit, rec = records[k]

@@ -168,6 +168,32 @@ def test_a_size_field_other_than_the_documented_one_is_counted_not_refused(size,
                       f"needed for that), and such sub-packets are counted in size_field_mismatches"]
 
 
+@pytest.mark.parametrize("size, refused", [(128, ""), (164, ""), (127, "result: size field 127, under 128")])
+def test_a_result_whose_size_counts_diagnostics_after_its_results_is_read(size, refused):
+    """ams' Linux driver reads a result's size past its 36 results as extra data (the diagnostics the register map
+    puts at 0xA4-0xC7): the results stand where they do. A size too small for them is refused."""
+    rng = np.random.default_rng(13)
+    counts = rng.integers(0, 1 << 24, (10, 128))
+    distances = rng.integers(0, 5000, 36).tolist()
+    records = reference_records(counts, 7, 20, 1, distances, [9] * 36)
+    bit, result = records[-1]
+    records[-1] = (bit, result[:2] + size.to_bytes(2, "little") + result[4:] + bytes(max(0, size - 128)))
+    packets, c = _replay(records, 31)
+    frames = [f for f in map(FrameAssembler().feed, filter(None, packets)) if f is not None]
+    if refused:
+        assert frames == [] and c["bad_records"] == 1 and c["last_bad_record"] == refused
+    else:
+        assert c["bad_records"] == 0 and len(frames) == 1 and frames[0].depths_mm == [float(d) for d in distances]
+
+
+def test_a_chip_that_sends_its_diagnostics_with_each_result_delivers_frames(arun, image):
+    path, data = image
+    fake = SimTMF8820Bus(image=data, result_diagnostics=True)
+    sensor = TMF8820(I2CTransport(1, firmware=path, smbus_factory=fake))
+    frames = arun(_run(sensor, n_frames=2))
+    assert len(frames) == 2 and sensor.counters()["bad_records"] == 0 and fake.violations == []
+
+
 @pytest.mark.parametrize("at, value, reason", [
     (0, 0x82, "histogram sub-packet: RID 0x82, not 0x81 (raw 24-bit histogram)"),
     (4, 30, "histogram sub-packet: sub-packet number 30, not 0..29"),
@@ -532,6 +558,17 @@ def test_a_chip_reset_is_caught_by_the_watchdog(arun, image):
     arun(_run(sensor, n_frames=1, during=during))
     c = sensor.counters()
     assert c["downloads"] == 2 and "sensor reset (APP_ID 0x80" in c["last_link_error"]
+
+
+def test_a_chip_that_reads_ok_while_it_measures_is_waited_for_not_restarted(arun, image):
+    """CMD_STAT 0x00 (ok) while measuring is as good as 0x01 (accepted) to ams' Linux driver: a record later than the
+    watchdog's wait is waited for, the chip not booted again."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data, frame_interval_s=0.4, measure_stat=0x00)
+    sensor = TMF8820(I2CTransport(1, firmware=path, smbus_factory=fake, watchdog_s=0.1))
+    frames = arun(_run(sensor, n_frames=2))
+    c = sensor.counters()
+    assert len(frames) == 2 and c["reconnects"] == 0 and c["boots"] == 1, c
 
 
 def test_an_application_that_stops_measuring_is_started_again(arun, image):
