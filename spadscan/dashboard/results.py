@@ -18,6 +18,7 @@ import os
 import re
 from pathlib import Path
 
+from spadscan.protocol.iso_time import parse_utc
 from spadscan.protocol.live_status import FINAL_STARTS
 
 from .paths import safe_path, url_path
@@ -162,10 +163,5 @@ def fold_done_live(found: list[dict]) -> list[dict]:
 
 def age_s(updated_utc, now: _dt.datetime) -> float | None:
     """Seconds from `updated_utc` (ISO 8601, UTC when it names no zone) to `now`, one decimal; None when unreadable."""
-    try:
-        then = _dt.datetime.fromisoformat(str(updated_utc))
-    except ValueError:
-        return None
-    if then.tzinfo is None:
-        then = then.replace(tzinfo=_dt.timezone.utc)
-    return round(max(0.0, (now - then).total_seconds()), 1)
+    then = parse_utc(updated_utc)
+    return None if then is None else round(max(0.0, (now - then).total_seconds()), 1)

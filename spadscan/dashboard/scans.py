@@ -7,6 +7,11 @@ files parsed, so that the cost of a poll can be checked without a clock.
 
 A scan whose scan.json says running but that publishes no new pose is shown as stalled (`stalled`): its daemon may
 have paused without being able to record the pause (a full disk), or hang. The rule is in `quiet_limit_s`.
+
+A scan in hand may owe poses again: a resumed scan whose damaged chunk was moved out takes its poses again before its
+next one (capture_format.md). They are counted from the frames its chunks hold, as the daemon's writer counts them
+(protocol's `plan_retakes`), and its time left counts them as the daemon's `ctl status` does. Each chunk's records
+are read once: published chunks never change.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, read_json
 from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.capture_writer import frame_number, plan_retakes
 from spadscan.protocol.errors import SpadscanError
 
 from .paths import safe_path, url_path
@@ -62,6 +68,9 @@ class ScanRow:
     mtime: float = 0.0
     published: list[float] = field(default_factory=list, repr=False)
     """When its last (at most PACE_POSES) chunks were published (unix seconds, oldest first): its recent pace."""
+    owed: int | None = None
+    """A scan in hand's poses before its last published one that lack frames (the daemon takes them again before its
+    next pose); 0 on a scan not in hand (none is complete while it owes any), None where a chunk cannot be read."""
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -117,6 +126,9 @@ class ScanIndex:
         self.root = Path(root)
         self.reads = 0
         self._rows: dict[str, tuple[tuple, ScanRow]] = {}
+        self._frames: dict[str, dict[str, list[tuple[int, int | None]]]] = {}
+        """Scan in hand -> chunk name -> its records' (pose_index, frame): read once, a published chunk never
+        changes."""
 
     def rows(self) -> list[ScanRow]:
         """Every scan under the root: running ones first, then the most recently changed."""
@@ -139,6 +151,8 @@ class ScanIndex:
                 rows.append(row)
         for gone in set(self._rows) - seen:
             del self._rows[gone]
+        for gone in set(self._frames) - {r.name for r in rows if r.state in IN_HAND}:
+            del self._frames[gone]
         rows.sort(key=lambda r: (r.state not in IN_HAND, -r.mtime, r.name))
         return rows
 
@@ -169,6 +183,8 @@ class ScanIndex:
                           started_utc=_typed(manifest, "created_utc", str, where),
                           config=_rig_config(manifest, where))
             paused = _typed(manifest, "paused", dict, where)
+            frames_per_pose = _typed(manifest, "frames_per_pose", int, where) or 1
+            chunk_size = _typed(manifest, "chunk_size", int, where) or 1
         except SpadscanError as exc:
             return ScanRow(name, "error", error=str(exc))
         if paused is not None and row.state == "running":  # the daemon recorded a pause: say so, and why
@@ -183,9 +199,31 @@ class ScanIndex:
             # ArithmeticError: int() of an infinite pose_index overflows (a damaged record, not a dead page)
             except (SpadscanError, LookupError, TypeError, ValueError, ArithmeticError) as exc:
                 row.error = f"{path / chunks[-1]}: unreadable measurement records ({exc})"
+        row.owed = self._owed(name, path, chunks, frames_per_pose, chunk_size) if row.state in IN_HAND else 0
         if row.planned:
             row.progress = min(1.0, row.poses / row.planned)
         return row
+
+    def _owed(self, name: str, path: Path, chunks: list[str], frames_per_pose: int, chunk_size: int) -> int | None:
+        """How many poses a scan in hand owes again: those its writer takes again on resuming (protocol's
+        `plan_retakes`, as the daemon counts them), its chunks' records read once each. None when a chunk cannot be
+        read, or the poses owed cannot be put back in order (the daemon does not resume such a scan)."""
+        known = self._frames.setdefault(name, {})
+        for gone in set(known) - set(chunks):
+            del known[gone]
+        for chunk in chunks:
+            if chunk in known:
+                continue
+            try:
+                self.reads += 1
+                meta = read_json(path / chunk / "meta.json").get("measurements") or []
+                known[chunk] = [(int(m["pose_index"]), frame_number(m)) for m in meta]
+            except (SpadscanError, LookupError, TypeError, ValueError, ArithmeticError):
+                return None
+        try:
+            return len(plan_retakes([(chunk_index(c), known[c]) for c in chunks], frames_per_pose, chunk_size, path))
+        except SpadscanError:
+            return None
 
 
 def interrupted(row: ScanRow) -> ScanRow:
@@ -291,16 +329,17 @@ def scan_detail(root: Path, row: ScanRow) -> dict:
         return detail
     if row.state == "running":  # a paused, interrupted, stalled, complete or aborted scan takes no frames: no rate
         detail.update(frame_rates(frames[-RATE_FRAMES:]))
-        detail["eta_s"] = time_left_s(row.poses, row.planned, detail["poses_per_min"])
+        detail["eta_s"] = time_left_s(row.poses, row.planned, detail["poses_per_min"], row.owed or 0)
     return detail
 
 
-def time_left_s(poses: int, planned: int | None, poses_per_min: float | None) -> float | None:
-    """Seconds until a running scan's last planned pose at its recent pace (poses per minute over its last frames),
-    from its last published pose; None when either is unknown."""
+def time_left_s(poses: int, planned: int | None, poses_per_min: float | None, owed: int = 0) -> float | None:
+    """Seconds until a running scan has taken every pose left at its recent pace (poses per minute over its last
+    frames), from its last published pose: the poses planned past it and the `owed` ones it takes again, as the
+    daemon counts them (`ctl status`'s eta_s); None when the plan or the pace is unknown."""
     if not planned or not poses_per_min or not math.isfinite(poses_per_min) or poses_per_min <= 0:
         return None
-    return round(60.0 * max(0, planned - poses) / poses_per_min, 1)
+    return round(60.0 * (max(0, planned - poses) + max(0, owed)) / poses_per_min, 1)
 
 
 def frame_rates(meta: list[dict]) -> dict:

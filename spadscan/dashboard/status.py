@@ -25,10 +25,10 @@ from spadscan.worker.presence import present_workers, start_command
 from spadscan.worker.report.mesh_pictures import VIEWS
 from spadscan.worker.status_detail import status_parts
 
-from .attempts import claim_starts, earlier_attempt
+from .attempts import claim_starts, earlier_attempt, last_claim_change
 from .results import ResultIndex, serious_count
 from .scans import IN_HAND, INTERRUPTED, STALLED, ScanIndex, interrupted, scan_detail, stalled
-from .worker_state import unfollowed, worker_state
+from .worker_state import needs_freed, unfollowed, worker_state
 
 PREVIEW = {"columns": [f"az {az:.0f}\u00b0 el {el:.0f}\u00b0" for az, el in VIEWS],
            "rows": ["reconstruction", "ground truth"]}
@@ -120,10 +120,23 @@ class Dashboard:
 
     def _worker(self, rows, queue: dict, now: float) -> dict:
         """What the reconstruction side is doing (worker_state; "unknown" when the queue cannot be read), with the
-        command that starts a worker, how many job processes the workers present run at once (`processes`), and the
-        scans being recorded that no worker follows (`unfollowed`: a worker without --live leaves them)."""
+        command that starts a worker, how many job processes the workers present run at once (`processes`), each
+        worker's (`each`: its `name` as `workers` gives it and its `processes`), and the scans being recorded that no
+        worker follows (`unfollowed`: a worker without --live leaves them)."""
         workers = [] if queue.get("error") else present_workers(self.queue_dir, now)
-        state = {"state": "unknown"} if queue.get("error") else worker_state(rows, queue["jobs"], now, workers)
+        state = {"state": "unknown"} if queue.get("error") else worker_state(
+            rows, queue["jobs"], now, workers, self._freed(queue["jobs"]))
+        each = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"]} for w in workers]
         return {**state, "start": start_command(self.root, self.queue_dir),
-                "processes": sum(w["processes"] for w in workers),
+                "processes": sum(w["processes"] for w in workers), "each": each,
                 "unfollowed": unfollowed(rows, {j["scan"] for j in queue["jobs"]}, now) if workers else []}
+
+    def _freed(self, jobs: list[dict]) -> float | None:
+        """When a claim last began or ended, where the worker's state depends on it (its attempt records are read
+        then only: a queued job waiting long with no job running); None otherwise, or when the queue cannot say."""
+        if not needs_freed(jobs):
+            return None
+        try:
+            return last_claim_change(self.queue_dir, [j["id"] for j in jobs])
+        except OSError:
+            return None

@@ -4,12 +4,16 @@ worker at all.
 
 A worker leaves its traces under the queue: its presence file, renewed while it runs, idle or not
 (`<queue>/workers/`, worker/presence.py), the claim files of the jobs it runs and the jobs it queues. A scan or a job
-that no worker has picked up within LOOK_S means that no worker serves the root, or that the one there is stuck.
+that no worker has picked up within LOOK_S means that no worker serves the root, or that the one there is stuck. A job
+queued behind others waits for a worker to be free: its wait counts from the later of its queueing and the moment a
+claim last began or ended (its attempt records say when), so that a busy worker that takes it at its next look after
+finishing the job before never reads as leaving it.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import math
 
 from .results import age_s
 
@@ -18,19 +22,28 @@ LOOK_S = 20.0
 a queued job left untaken with no job running, this long means that no worker serves the root."""
 
 
-def worker_state(rows, jobs: list[dict], now: float, workers: list[dict] = ()) -> dict:
+def worker_state(rows, jobs: list[dict], now: float, workers: list[dict] = (),
+                 freed_unix: float | None = None) -> dict:
     """{"state": ..., and what the page names}: 'working' (jobs whose worker renews its claim: `jobs`, and `queued`,
     how many wait), 'gone' (running jobs whose worker is gone: `jobs`), 'queued' or 'untaken' (no job running, jobs
-    queued: `jobs`, `waited_s` of the one queued longest; 'untaken' from LOOK_S on), 'unqueued' (nothing queued or
-    running, complete scans without a job for LOOK_S: `scans`, `waited_s`), 'waiting' (nothing to do, a worker
-    present), else 'none' (nothing to do, no worker). Every state also names the workers present (`workers`: "HOST
-    pid N" each). `rows`: the scans (ScanRow), `jobs`: the queue's rows (`queue_status`), `now`: time.time(),
-    `workers`: the queue's present workers (presence.present_workers)."""
+    queued: `jobs`, `waited_s` of the one left longest since a worker could take it; 'untaken' from LOOK_S on),
+    'unqueued' (nothing queued or running, complete scans without a job for LOOK_S: `scans`, `waited_s`), 'waiting'
+    (nothing to do, a worker present), else 'none' (nothing to do, no worker). Every state also names the workers
+    present (`workers`: "HOST pid N" each). `rows`: the scans (ScanRow), `jobs`: the queue's rows (`queue_status`),
+    `now`: time.time(), `workers`: the queue's present workers (presence.present_workers), `freed_unix`: when a claim
+    last began or ended (attempts.last_claim_change; None: none ever did, or not known)."""
     names = [f"{w['host']} pid {w['pid']}" for w in workers]
-    return {**_jobs_state(rows, jobs, now, bool(names)), "workers": names}
+    return {**_jobs_state(rows, jobs, now, bool(names), freed_unix), "workers": names}
 
 
-def _jobs_state(rows, jobs: list[dict], now: float, present: bool) -> dict:
+def needs_freed(jobs: list[dict]) -> bool:
+    """Whether `worker_state` of the queue's rows `jobs` depends on when a claim last changed (`freed_unix`): no job
+    running, and a job queued LOOK_S or longer (a younger one reads 'queued' whenever a worker was free)."""
+    return not any(j["state"] == "running" for j in jobs) and any(
+        j["state"] == "queued" and (j.get("waiting_s") or 0.0) >= LOOK_S for j in jobs)
+
+
+def _jobs_state(rows, jobs: list[dict], now: float, present: bool, freed_unix: float | None) -> dict:
     running = [j for j in jobs if j["state"] == "running"]
     queued = [j for j in jobs if j["state"] == "queued"]
     working = [j["id"] for j in running if not j.get("stale")]
@@ -39,7 +52,9 @@ def _jobs_state(rows, jobs: list[dict], now: float, present: bool) -> dict:
     if running:
         return {"state": "gone", "jobs": [j["id"] for j in running]}
     if queued:
-        waited = max(j.get("waiting_s") or 0.0 for j in queued)
+        # a job queued behind another could be taken no earlier than that one's end
+        free_s = math.inf if freed_unix is None else max(0.0, now - freed_unix)
+        waited = max(min(j.get("waiting_s") or 0.0, free_s) for j in queued)
         return {"state": "untaken" if waited >= LOOK_S else "queued", "jobs": [j["id"] for j in queued],
                 "waited_s": round(waited, 1)}
     return unqueued(rows, {j["scan"] for j in jobs}, now) or {"state": "waiting" if present else "none"}

@@ -105,7 +105,8 @@ def test_while_the_final_run_runs_the_heading_says_so_and_where_it_started(tmp_p
         pick(page, "bowl")
         heading = wait_text(page, "#viewer-name", "step 72")
         assert heading.startswith("bowl / live, finishing: the final run on 64 views, from the carved hull (not the "
-                                  "live fit), is running: reconstruct (fast): 6/10 s, step 72, loss 27.3 ["), heading
+                                  "live fit), is running: reconstruct (fast): 6/10 s, step 72, loss 27.3 (lower is "
+                                  "better) ["), heading
         assert "48.80" not in heading, "the live fit's figures read as the final run's"
         assert "the live fit's Chamfer against the ground truth on its 57 views: 48.80 mm" in \
             page.locator("#viewer-notes").text_content()
