@@ -7,8 +7,8 @@ with another process busy on one core, two threads make a step 2.7 times slower 
 reconstructions of two threads each on the two cores run 20 to 40 times slower (780-1,690 ms per step) than two of
 one thread each (39-46 ms).
 
-So a CPU reconstruction chooses its threads as it runs (`ThreadGovernor`): it times its steps with all the threads
-it may use and with one, keeps the faster, and tries the other again from time to time (sooner when its steps
+So a CPU reconstruction chooses its threads as it runs (`ThreadGovernor`): it starts with one thread, times its
+steps with it and with all the threads it may use, keeps the faster, and tries the other again from time to time (sooner when its steps
 suddenly slow down), since other processes come and go.
 
 How its OpenMP threads wait for each other is set before torch starts (`wait_env`), for the job processes and by
@@ -122,8 +122,10 @@ def threads_fixed(threads: int | None, environ: Mapping[str, str]) -> bool:
 class ThreadGovernor:
     """Chooses between `most` CPU threads and one, step by step, by the measured step time.
 
-    Feed it every step's wall seconds (`step_done`); it calls `set_threads(n)` when it switches. It starts with
-    `most`; after `warmup` steps it times `block` steps of the current choice, then up to `block` of the other (a
+    Feed it every step's wall seconds (`step_done`); it calls `set_threads(n)` when it switches. It starts with one
+    thread (`set_threads(1)` at once): one thread never stalls, while `most` of them beside a busy process would stall
+    every step until the first probe (measured: 14 steps of 1.1 s each against 0.07 s, half a 60 s budget's
+    training); after `warmup` steps it times `block` steps of the current choice, then up to `block` of the other (a
     probe, cut short at the first step over `abort` times the current median: a stalled probe costs one step), and
     keeps the faster by medians (many threads only when they are `margin` faster: one thread never stalls). It holds
     its choice for `hold` steps, twice as long after each probe that confirms it (at most `max_hold`), and long
@@ -140,13 +142,14 @@ class ThreadGovernor:
         self.warmup, self.block, self.abort, self.stall, self.margin = warmup, block, abort, stall, margin
         self.probe_share = probe_share
         self.hold0, self.max_hold, self.hold = hold, max_hold, hold
-        self.current = most
+        self.current = 1
+        set_threads(1)
         self.phase, self.left = "warmup", warmup
         self.times: list[float] = []
         self.medians: dict[int, float] = {}
         self.steps_by_threads: dict[int, int] = {}
         self.probes = self.switches = 0
-        self._chosen = most
+        self._chosen = 1
 
     @property
     def threads(self) -> int:
