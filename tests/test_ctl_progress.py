@@ -113,3 +113,24 @@ def test_a_complete_scan_fills_the_bar(clock):
         bar.close()
     line = shown(stream)
     assert "48/48" in line and "[complete]" in line, line
+
+
+def _live(tmp_path, state: str, used: int, published: int) -> str:
+    """A capture folder whose live status says `state`, `used` views fitted of `published` (as its job last read)."""
+    from spadscan.protocol.live_status import LiveStatus, status_path, write_status
+
+    folder = status_path(tmp_path / "goblet").parent
+    folder.mkdir(parents=True)
+    write_status(folder, LiveStatus(views_used=used, views_published=published, steps=300, converged=False,
+                                    state=state, views_planned=48, job="q1-live"))
+    return str(tmp_path / "goblet")
+
+
+@pytest.mark.parametrize("state, behind", [("live", True), ("final", False)])
+def test_a_live_fit_behind_the_scan_says_how_many_views_the_scan_has_published(clock, tmp_path, state, behind):
+    """The live status counts the views its job last read (26/26): the bar also names the scan's own count (40), as
+    the dashboard's "fit of 26 of 40 views" does; a final run fits every view, and says nothing of the kind."""
+    path = _live(tmp_path, state, 26, 26)
+    said = watched(clock, [{**status("scanning", 40), "path": path}])
+    assert "26/26 views" in said
+    assert ("the scan has published 40 views" in said) == behind

@@ -351,8 +351,10 @@ def live_status(status: dict) -> dict | None:
     return {**live.to_dict(), "age_s": None if age is None else round(age, 1)}
 
 
-def live_line(live: dict | None) -> str | None:
-    """One line for people about a live reconstruction dict (`live_status`), or None."""
+def live_line(live: dict | None, scan_views: int | None = None) -> str | None:
+    """One line for people about a live reconstruction dict (`live_status`), or None. `scan_views`: the views the
+    scan has published by the daemon's count (its status's `pose`): a live fit that follows it says how far behind it
+    is, which its own count of views published (those it last read) does not."""
     if not live:
         return None
     if "error" in live:
@@ -361,9 +363,14 @@ def live_line(live: dict | None) -> str | None:
 
     known = {k: v for k, v in live.items() if k in LiveStatus.__dataclass_fields__}
     try:
-        return LiveStatus(**known).summary()
+        said = LiveStatus(**known).summary()
     except TypeError:
         return None
+    seen = live.get("views_published")
+    if (live.get("state") in ("waiting", "live") and isinstance(scan_views, int) and isinstance(seen, int)
+            and scan_views > seen):
+        said += f"; the scan has published {scan_views} views"
+    return said
 
 
 def _status(path: str) -> dict:
@@ -437,7 +444,7 @@ class ProgressBar:
             return
         scanning = status.get("state") == "scanning"
         reason = status.get("reason")
-        live = live_line(live_status(status))
+        live = live_line(live_status(status), status.get("pose"))
         shown = self._format(scanning, status["state"] + (f": {reason}" if reason else "") +
                              (f"; {live}" if live else ""))
         if self.bar is None:
