@@ -129,16 +129,34 @@ MAX_STEPS = 10_000_000
 """The most optimisation steps a reconstruction takes: about a week of the fast preset on a CPU."""
 
 
-def run_limits_problem(budget_s, steps, seed) -> str | None:
+LIMIT_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "seed": "--seed"}
+"""The command-line flag of each run limit, as `spadscan reconstruct`, `worker` and `demo` name them."""
+
+
+def run_limits_problem(budget_s, steps, seed, flags: bool = False) -> str | None:
     """Why a reconstruction cannot run with this time budget (s, or None: the preset's), steps (or None) and seed,
-    in one line; None when it can. One rule for `spadscan reconstruct`, the worker's options and its jobs."""
-    if budget_s is not None and not (_is_number(budget_s) and math.isfinite(budget_s)
-                                     and 0 < budget_s <= MAX_BUDGET_S):
-        return f"time budget {budget_s} s must be a number of seconds > 0 and at most {MAX_BUDGET_S:.0f} (a week)"
+    in one line; None when it can. One rule for `spadscan reconstruct`, the worker's options and its jobs, and the
+    demo. `flags`: the line starts with the flag of the value at fault ("--budget-s: ..."), for a command's
+    options; a job's own values have no flag. A budget of 1e309 is infinite once read as a float, so it is not
+    shown as "inf", which the user never typed."""
+    problem = _limits_problem(budget_s, steps, seed)
+    if problem is None:
+        return None
+    key, line = problem
+    return f"{LIMIT_FLAGS[key]}: {line}" if flags else line
+
+
+def _limits_problem(budget_s, steps, seed) -> tuple[str, str] | None:
+    """(the run limit at fault, a key of LIMIT_FLAGS; why, in one line), or None."""
+    budget_rule = f"> 0 and at most {MAX_BUDGET_S:.0f} (a week)"
+    if budget_s is not None and _is_number(budget_s) and not math.isfinite(budget_s):
+        return "budget_s", f"time budget is not a finite number of seconds: it must be {budget_rule}"
+    if budget_s is not None and not (_is_number(budget_s) and 0 < budget_s <= MAX_BUDGET_S):
+        return "budget_s", f"time budget {budget_s} s must be a number of seconds {budget_rule}"
     if steps is not None and not (_is_int(steps) and 1 <= steps <= MAX_STEPS):
-        return f"steps {steps} must be an integer in [1, {MAX_STEPS:,}]"
+        return "steps", f"steps {steps} must be an integer in [1, {MAX_STEPS:,}]"
     if not (_is_int(seed) and 0 <= seed <= MAX_SEED):
-        return f"seed {seed} must be an integer in [0, {MAX_SEED}]"
+        return "seed", f"seed {seed} must be an integer in [0, {MAX_SEED}]"
     return None
 
 

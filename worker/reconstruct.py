@@ -50,6 +50,7 @@ from .report.report_html import write_report_html
 from .report.report_json import json_safe, write_report
 from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
+from .time_axis import check_time_axis, scene_views
 
 DEVICES = ("auto", "cpu", "cuda")
 NEAR_RANGE_M = 0.01
@@ -161,12 +162,14 @@ def check_signal_model(capture, sensor) -> None:
 
 def check_returns(capture, scene) -> None:
     """Refuse (one CaptureError line) a capture in which no histogram holds a return above the noise, by the
-    baselines' own test: a fit would shape a surface out of background alone and exit as if it had worked."""
+    baselines' own test: a fit would shape a surface out of background alone and exit as if it had worked; then one
+    whose strong returns lie where no surface of the scene can be (`check_time_axis`)."""
     counts = scene.counts.detach().cpu().numpy().astype(np.float64)
     if not detected_returns(counts, scene.sensor, DEFAULT_THRESHOLD).detected.any():
         raise CaptureError(f"{capture}: no histogram holds a return above the noise ({DEFAULT_THRESHOLD:g} standard "
                            f"deviations of its matched-filtered background): nothing to reconstruct "
                            f"({_why_no_return(counts, scene.sensor)})")
+    check_time_axis(capture, *scene_views(scene))
 
 
 def _why_no_return(counts: np.ndarray, sensor) -> str:

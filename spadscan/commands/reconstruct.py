@@ -65,8 +65,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from spadscan.protocol.errors import ConfigError
 from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_for_run
-from spadscan.worker.jobs import add_to_report
+from spadscan.worker.jobs import add_to_report, run_limits_problem
 from spadscan.worker.outputs import check_ground_truth_kept, check_out
 from spadscan.worker.publish_out import result_beside
 from spadscan.worker.recon.config import PRESET_NAMES, parse_override
@@ -113,6 +114,10 @@ def run(args: argparse.Namespace) -> int:
     from spadscan.worker.threads import threads_fixed, wait_env
 
     started = process_started()  # the budget counts from here: torch's import and the set-up are part of the run
+    # The run's limits, named by their flags, before anything is said or imported (the library's check names none).
+    problem = run_limits_problem(args.budget_s, args.steps, args.seed, flags=True)
+    if problem:
+        raise ConfigError(problem)
     # Read once, when torch's OpenMP runtime starts: before it.
     os.environ.update(wait_env(os.environ, adapting=not threads_fixed(args.threads, os.environ)))
     from spadscan.worker.reconstruct import reconstruct_capture  # torch: only when a reconstruction runs

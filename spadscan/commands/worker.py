@@ -172,6 +172,7 @@ def run(args) -> int:
     if args.status:  # a query: a root without a queue yet is listed as empty, not given one
         return _print_status(Queue(queue_dir, lease_s=lease_s, create=False), args.json, root)
     given = _given_options(args)
+    _check_limits(given)
     if args.retry_failed:
         return _retry_failed(Queue(queue_dir, create=False), given, args.preset)
     if args.redo:
@@ -266,6 +267,17 @@ def _given_options(args) -> dict:
     """The job options given on the command line (the ones left out stay at their defaults, or at a failed job's
     own values with --retry-failed)."""
     return {key: getattr(args, key) for key in OPTION_FLAGS if getattr(args, key) is not None}
+
+
+def _check_limits(given: dict) -> None:
+    """Refuse run limits out of bounds among the options `given` (`_given_options`), in one line that names the
+    flag (the jobs' own check, which names none, would say the same later)."""
+    from spadscan.protocol.errors import ConfigError
+    from spadscan.worker.jobs import run_limits_problem
+
+    problem = run_limits_problem(given.get("budget_s"), given.get("steps"), given.get("seed", 0), flags=True)
+    if problem:
+        raise ConfigError(problem)
 
 
 def _retry_failed(queue, given: dict, preset: str | None) -> int:

@@ -25,6 +25,7 @@ from ..carving.views import summed_views
 from ..ground_truth import load_ground_truth
 from ..outputs import capture_state_note, export_mesh
 from ..report.report_json import json_safe, write_report
+from ..time_axis import check_time_axis
 from .common import CALIBRATION_POINTS, CALIBRATION_THRESHOLDS, MIN_SURFACE_POINTS, calibrate
 from .floor import ASSUMED_FLOORS, check_given_floor, scene_floor
 from .reprojection import reprojection, reprojection_returns
@@ -165,6 +166,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     counts, sensor = summed_views(views.counts, views.frames, data.sensor)
     posed = PoseViews(counts, data.poses[views.first], sensor)
     check_returns(capture, posed, ~broken)
+    # as the reconstruction does: a wrong time axis is said as such, not as a bound or a floor that cut everything
+    check_time_axis(capture, data.manifest.get("scene") or {}, posed.poses, posed.hists, posed.sensor, ~broken)
     warnings = [w for w in (floor_warning(floor_z, floor_source, posed, ~broken, truth),) if w]
     for line in warnings:
         log(f"warning: {line}")

@@ -12,6 +12,8 @@ from spadscan.protocol.sensor_model import SensorModel, Zone
 
 from .returns import DEFAULT_THRESHOLD, FirstReturns, first_returns
 
+RADIUS_FRACTION_MAX = 0.8
+"""A scene's sphere never reaches closer to a sensor than this fraction of its distance to the sphere's centre."""
 BELOW_FLOOR_M = 0.005
 """A first return comes from clearly below a floor when the whole of its zone's field of view lies more than this
 (or two bins, where that is more) under the floor at its range."""

@@ -31,13 +31,13 @@ from spadscan.protocol.plausibility import implausible, survey_counts
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..capture_kind import is_measured
+from ..carving.bounds import RADIUS_FRACTION_MAX
 from ..pulse import pulse_kernel
 from ..table_height import TablePlane, named_table
 
 RADIUS_FRACTION = 0.6  # scene radius / nearest sensor's distance, when no return locates the object
 BEYOND_BOUND_SHARE = 0.01
 """A scene sphere that leaves more than this share of the first returns outside is said to cut the object."""
-RADIUS_FRACTION_MAX = 0.8  # the scene sphere never reaches closer to a sensor than this fraction
 FAR_RETURN_MARGIN = 1.25
 """The scene sphere reaches at least this many times the farthest view's return from its centre. Most views of a
 thin object return from near the point they aim at (a 32 cm coat rack's 12 mm pole: the 90th percentile 3.6 cm from
