@@ -13,7 +13,11 @@ DIR/results.csv; a re-run of the same sweep runs only the points not done (faile
 dies runs again on another; a sweep file whose base condition or methods differ from those DIR was run with is
 refused, and so is one whose grid lacks entries DIR holds results of (a grown grid is welcome; --overwrite runs it,
 and results.csv then holds its entries alone). Failed points are results too: they are listed at the end and
-marked in `spadscan sweep-plot DIR`; the exit status is 0 once every point has run.
+marked in `spadscan sweep-plot DIR`; the exit status is 0 once every point has run. A result whose run warned (a
+preset that did not converge; any method's report.json warnings) is counted at the end, carried into results.csv
+(<method>_converged, <method>_warning_count, <method>_warnings: the lines joined by " | ") and marked in the plot;
+so is a baseline whose calibrated threshold is at an end of those tried (<method>_threshold_edge). Without [grid],
+the sweep runs the base condition alone.
 
 Examples:
   spadscan sweep examples/sweeps/small.toml --out sweep-small && spadscan sweep-plot sweep-small
@@ -48,7 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "DIR/points/, and a run of their own file gathers them again)")
     parser.add_argument("--dry-run", action="store_true",
                         help="check the file and list the points and how many are done; run nothing")
-    parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar: a line on standard error per finished point instead (its id, "
+                             "status, Chamfer per method and warnings), for a log")
 
 
 def run(args) -> int:
@@ -73,7 +79,8 @@ def run(args) -> int:
     spec = load_spec(args.sweep)
     plan = make_plan(spec, None if args.lcspc is None else Path(args.lcspc))
     log(f"{counted(len(plan.entries), 'grid entry', 'grid entries')} on {counted(len(plan.scenes), 'scene')}: "
-        f"{counted(len(plan.points), 'distinct point')}; methods {', '.join(spec.methods)}")
+        f"{counted(len(plan.points), 'distinct point')}; methods {', '.join(spec.methods)}"
+        + ("" if spec.grid else " (no [grid]: the base condition alone)"))
     if not os.path.lexists(args.out):  # the dry run too: the run would refuse it when it makes the folder
         check_folder_option(args.out, "--out")
     if args.dry_run:
@@ -94,7 +101,7 @@ def run(args) -> int:
         print(f"spadscan sweep: interrupted; the points finished are kept in {args.out}, and the same command runs "
               f"the rest{running}", file=sys.stderr)
         return 130
-    print("\n".join(finished_lines(summary, spec.base, Path(args.out))))
+    print("\n".join(finished_lines(summary, spec.base, Path(args.out), [p.name for p in spec.presets])))
     return 0
 
 
@@ -103,12 +110,47 @@ def counted(n: int, noun: str, plural: str | None = None) -> str:
     return f"{n} {noun if n == 1 else plural or noun + 's'}"
 
 
-def finished_lines(summary, base: dict, out) -> list[str]:
-    """What a finished run prints: the points run and done, each failed point, and where the results are."""
+def finished_lines(summary, base: dict, out, presets=()) -> list[str]:
+    """What a finished run prints: the points run and done, each failed point, the points whose results warn or
+    whose baselines' thresholds are at an end of those tried (`presets`: the methods that are presets), and where the
+    results are."""
     return [f"{counted(summary.points, 'point')}: {summary.earlier} done earlier, {summary.ran} run now "
             f"({summary.done} done, {len(summary.failed)} failed)",
             *(f"  failed: {task.describe(base)} [{task.id}]: {reason}" for task, reason in summary.failed),
+            *_ending_lines(summary, presets),
             f"results: {out / 'results.csv'} ({counted(summary.rows, 'row')}); plot: spadscan sweep-plot {out}"]
+
+
+def _ending_lines(summary, presets) -> list[str]:
+    """'3 of 12 points warn (fast 3): see results.csv's fast_converged, fast_warnings', and the like for the
+    baselines' thresholds at an end of those tried; nothing where no point has either."""
+    from spadscan.sweep.store import column_name
+
+    lines = []
+    warned = _per_method(getattr(summary, "warned", {}))
+    if warned:
+        columns = [c for m in warned for c in ((f"{column_name(m)}_converged",) if m in presets else ())
+                   + (f"{column_name(m)}_warnings",)]
+        n = len(summary.warned)
+        lines.append(f"{n} of {counted(summary.points, 'point')} warn{'s' if n == 1 else ''} "
+                     f"({', '.join(f'{m} {k}' for m, k in warned.items())}): see results.csv's {', '.join(columns)}")
+    edge = _per_method(getattr(summary, "edge", {}))
+    if edge:
+        n = len(summary.edge)
+        lines.append(f"{n} of {counted(summary.points, 'point')} ha{'s' if n == 1 else 've'} a baseline's threshold at "
+                     f"the edge of the tried thresholds ({', '.join(f'{m} {k}' for m, k in edge.items())}): see "
+                     f"results.csv's {', '.join(f'{column_name(m)}_threshold_edge' for m in edge)}; one beyond them "
+                     f"may do better ([baselines] thresholds)")
+    return lines
+
+
+def _per_method(points: dict) -> dict:
+    """{point: [methods]} -> {method: how many points}, in the order first met."""
+    counts: dict[str, int] = {}
+    for methods in points.values():
+        for m in methods:
+            counts[m] = counts.get(m, 0) + 1
+    return counts
 
 
 def _dry_run(plan, out, overwrite: bool = False) -> int:

@@ -2,8 +2,10 @@
 
 In a one-at-a-time sweep each panel holds the entries of its axis (every other parameter at the base condition,
 whose value is a dotted vertical line). In a product sweep each panel has one line per method and per combination of
-the other axes (fainter lines for later combinations). A method that gave no surface at a point is drawn as a cross
-in a strip along the panel's top edge, above every value and apart from them, in its colour.
+the other axes, each combination with its own marker and dashes, named in the panel's legend ("power=1"). A sweep
+without a grid (the base condition alone) is one panel: each method's Chamfer distance there. A method that gave no
+surface at a point is drawn as a cross in a strip along the panel's top edge, above every value and apart from them,
+in its colour; a result whose run warned (it did not converge, or says why it is doubtful) is a hollow marker.
 """
 
 from __future__ import annotations
@@ -38,6 +40,12 @@ NICE = (1.0, 2.0, 3.0, 5.0)
 """The leading digits a Chamfer axis may end at: an end is labelled, so that labels reach past every value."""
 END_MARGIN = 1.05
 """A Chamfer axis ends at least this factor beyond its values, so that a marker at the end is drawn whole."""
+MARKERS = ("o", "s", "^", "D", "v", "P", "*")
+DASHES = ("-", "--", ":", "-.")
+"""A product sweep's combinations of the other axes, told apart by marker and dashes (7 x 4 combinations before one
+repeats; a cross is a failure's)."""
+MARKER_SIZE = 4.5
+WARNED_LABEL = "hollow: the run warned (see the table)"
 
 
 def method_label(method: str) -> str:
@@ -65,15 +73,22 @@ def figure(results: SweepResults, scene: str) -> Figure:
     # A bare Figure (no pyplot): no global backend or figure registry is touched.
     fig = Figure(figsize=(PANEL_IN[0] * cols, PANEL_IN[1] * lines + 0.6))
     grid = fig.subplots(lines, cols, squeeze=False)
-    for i, axis in enumerate(axes_names):
-        _panel(grid[i // cols][i % cols], results, rows_of_scene, axis, i)
-    for j in range(len(axes_names), lines * cols):
+    if axes_names:
+        for i, axis in enumerate(axes_names):
+            _panel(grid[i // cols][i % cols], results, rows_of_scene, axis, i)
+    else:
+        _base_panel(grid[0][0], results, rows_of_scene)
+    for j in range(n, lines * cols):
         grid[j // cols][j % cols].set_visible(False)
     handles = [Line2D([], [], color=COLOURS.get(m, "k"), marker="o", label=method_label(m))
                for m in results.methods]
     handles.append(Line2D([], [], color="0.3", marker="x", linestyle="none", label="failed (no result)"))
+    if any(results.method_warnings(r, m) for r in rows_of_scene for m in results.methods):
+        handles.append(Line2D([], [], color="0.3", marker="o", markerfacecolor="white", linestyle="none",
+                              label=WARNED_LABEL))
     legend = fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=9)
-    title = fig.suptitle(f"{scene}: Chamfer distance against each imaging parameter", fontsize=11)
+    what = "against each imaging parameter" if axes_names else "at the base condition (no grid)"
+    title = fig.suptitle(f"{scene}: Chamfer distance {what}", fontsize=11)
     _lay_out(fig, legend, title)
     return fig
 
@@ -94,47 +109,69 @@ def _lay_out(fig: Figure, legend, title) -> None:
     fig.tight_layout(rect=(side, (boxes[0].y1 + EDGE_IN * fig.dpi) / height_px, 1 - side, 1))
 
 
-def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -> None:
+def _groups(results: SweepResults, rows: list[dict], axis: str) -> list[tuple[str, list[dict]]]:
+    """The lines of a panel: (label, rows) per combination of the other axes' values (a product sweep, its label
+    such as "power=1 seed=0", in the order of those values), or the axis's own entries, unlabelled."""
     if results.mode == "one-at-a-time":
-        groups = [[r for r in rows if r["axis"] == axis]]
-    else:
-        others = [a for a in results.grid if a != axis]
-        keyed: dict[tuple, list] = {}
-        for r in rows:
-            if r["axis"] == PRODUCT_AXIS:
-                keyed.setdefault(tuple(r.get(a) for a in others), []).append(r)
-        groups = list(keyed.values())
+        return [("", [r for r in rows if r["axis"] == axis])]
+    others = [a for a in results.grid if a != axis]
+    keyed: dict[tuple, list] = {}
+    for r in rows:
+        if r["axis"] == PRODUCT_AXIS:
+            keyed.setdefault(tuple(r.get(a) for a in others), []).append(r)
+
+    def order(key: tuple) -> tuple:
+        return tuple((0, v, "") if (v := number(t)) is not None else (1, 0.0, str(t)) for t in key)
+
+    return [(" ".join(f"{a}={_shown(t)}" for a, t in zip(others, key)), keyed[key]) for key in sorted(keyed, key=order)]
+
+
+def _shown(text) -> str:
+    v = number(text)
+    return f"{v:g}" if v is not None else str(text)
+
+
+def _draw(ax, method: str, pts: list, marker: str, dashes: str) -> None:
+    """A method's line through `pts` ((x, Chamfer, warned)), a filled marker at each result and a hollow one at
+    each result whose run warned."""
+    colour = COLOURS.get(method, "k")
+    ax.plot([p[0] for p in pts], [p[1] for p in pts], linestyle=dashes, color=colour)
+    for warned in (False, True):
+        at = [p for p in pts if p[2] == warned]
+        if at:
+            ax.plot([p[0] for p in at], [p[1] for p in at], marker=marker, ms=MARKER_SIZE, linestyle="none",
+                    color=colour, **({"markerfacecolor": "white", "markeredgewidth": 1.3} if warned else {}))
+
+
+def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -> None:
+    groups = _groups(results, rows, axis)
     top = blended_transform_factory(ax.transData, ax.transAxes)
     drawn: list[float] = []
     any_failed = False
-    for g, group in enumerate(groups):
-        alpha = 1.0 if g == 0 else max(0.25, 1.0 - 0.15 * g)
+    keys = []
+    for g, (label, group) in enumerate(groups):
+        marker, dashes = MARKERS[g % len(MARKERS)], DASHES[g % len(DASHES)]
+        if label:
+            keys.append(Line2D([], [], color="0.35", marker=marker, linestyle=dashes, ms=MARKER_SIZE, label=label))
         for m, method in enumerate(results.methods):
-            pts = sorted((x, results.method_value(r, method)) for r in group
+            pts = sorted((x, results.method_value(r, method), bool(results.method_warnings(r, method)))
+                         for r in group
                          if (x := number(r.get(axis))) is not None and not results.method_failed(r, method))
             failed = sorted(x for r in group if (x := number(r.get(axis))) is not None
                             and results.method_failed(r, method))
-            colour = COLOURS.get(method, "k")
             if pts:
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=4, color=colour, alpha=alpha)
+                _draw(ax, method, pts, marker, dashes)
                 drawn.extend(p[1] for p in pts)
             if failed:
                 any_failed = True
                 # Stacked down from the top edge, one row per method, so that crosses at one x all show.
                 ax.plot(failed, [1.0 - FAILED_ROW * (m + 0.5)] * len(failed), marker="x", ms=7, mew=2,
-                        linestyle="none", color=colour, alpha=alpha, transform=top, clip_on=False)
+                        linestyle="none", color=COLOURS.get(method, "k"), transform=top, clip_on=False)
+    _chamfer_axis(ax, drawn, any_failed, len(results.methods))
+    if len(keys) > 1:
+        ax.legend(handles=keys, fontsize=7, loc="best", framealpha=0.8, handlelength=2.5)
     values = [v for v in results.grid.get(axis, []) if isinstance(v, (int, float))]
     plain = FuncFormatter(lambda v, _: f"{v:g}")
-    drawn = [v for v in drawn if v is not None and v > 0]  # a log axis shows no 0
-    if drawn:
-        ax.set_yscale("log")
-        low, high = _nice_below(min(drawn) / END_MARGIN), _nice_above(max(drawn) * END_MARGIN)
-        ax.set_ylim(low, high)
-        # No value is labelled in the failures' strip above the data: a cross there is no Chamfer distance.
-        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}" if v <= high * 1.0001 else ""))
-        ax.yaxis.set_minor_formatter(_minor_formatter(low, high))
-        if any_failed:
-            _make_room_for_failures(ax, low, high, len(results.methods))
     if PARAMS.get(axis) is not None and PARAMS[axis].log and values and min(values) > 0:
         ax.set_xscale("log")
     elif values and min(values) == 0 and max(values) > 0:
@@ -153,6 +190,51 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
     ax.set_ylabel("Chamfer (mm)", fontsize=8)
     ax.tick_params(which="both", labelsize=8)  # the minor ticks' labels too (the y axis labels some)
     ax.grid(True, which="both", alpha=0.25)
+
+
+def _base_panel(ax, results: SweepResults, rows: list[dict]) -> None:
+    """The one panel of a sweep without a grid: each method's Chamfer distance at the base condition, a method to a
+    column (several seeds' worth of rows would stand in one column)."""
+    top = blended_transform_factory(ax.transData, ax.transAxes)
+    drawn: list[float] = []
+    any_failed = False
+    for m, method in enumerate(results.methods):
+        pts = [(m, results.method_value(r, method), bool(results.method_warnings(r, method)))
+               for r in rows if not results.method_failed(r, method)]
+        if pts:
+            _draw(ax, method, pts, "o", "none")
+            drawn.extend(p[1] for p in pts)
+            for x, v, _ in pts:
+                ax.annotate(f"{v:.3g} mm", (x, v), xytext=(6, 0), textcoords="offset points", va="center",
+                            fontsize=8, color=COLOURS.get(method, "k"))
+        if any(results.method_failed(r, method) for r in rows):
+            any_failed = True
+            ax.plot([m], [1.0 - FAILED_ROW * (m + 0.5)], marker="x", ms=7, mew=2, linestyle="none",
+                    color=COLOURS.get(method, "k"), transform=top, clip_on=False)
+    _chamfer_axis(ax, drawn, any_failed, len(results.methods))
+    ax.set_xlim(-0.5, len(results.methods) - 0.5)
+    ax.set_xticks(range(len(results.methods)))
+    ax.set_xticklabels([method_label(m) for m in results.methods], rotation=20)
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.set_title("(a) the base condition", fontsize=10)
+    ax.set_ylabel("Chamfer (mm)", fontsize=8)
+    ax.tick_params(which="both", labelsize=8)
+    ax.grid(True, which="both", axis="y", alpha=0.25)
+
+
+def _chamfer_axis(ax, drawn: list, any_failed: bool, methods: int) -> None:
+    """A log Chamfer axis (mm) over the values drawn, with room for the failures' strip above them."""
+    drawn = [v for v in drawn if v is not None and v > 0]  # a log axis shows no 0
+    if not drawn:
+        return
+    ax.set_yscale("log")
+    low, high = _nice_below(min(drawn) / END_MARGIN), _nice_above(max(drawn) * END_MARGIN)
+    ax.set_ylim(low, high)
+    # No value is labelled in the failures' strip above the data: a cross there is no Chamfer distance.
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}" if v <= high * 1.0001 else ""))
+    ax.yaxis.set_minor_formatter(_minor_formatter(low, high))
+    if any_failed:
+        _make_room_for_failures(ax, low, high, methods)
 
 
 def _nice_below(v: float) -> float:

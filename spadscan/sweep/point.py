@@ -3,7 +3,9 @@
 `run_point` is what a Dask worker runs (runner.py wraps it) and what a plain loop in one process runs. It uses one
 CPU thread for torch (the cluster runs one point per worker process, one process per core), writes its result to
 DIR/points/<id>.json before it returns, and never raises for a failed stage: each method's failure is recorded with
-its one-line reason, the others still run, and the point is `failed` with the first reasons. A point whose result is
+its one-line reason, the others still run, and the point is `failed` with their reasons (the methods that failed for
+one cause named together: "every method: ..." when all did). Reasons and warnings name the point's capture, not
+its temporary work folder, which is gone when the point ends. A point whose result is
 already there as `done` (its worker died after writing it, and Dask ran it again) is not run twice, and an attempt
 waits while another holds the point (an interrupted run's attempt, which goes on running on a scheduler's worker)
 and then takes that one's result.
@@ -29,16 +31,22 @@ from spadscan.worker.report.report_json import json_safe
 from .params import point_poses, point_sensor, point_settings
 from .plan import PointTask
 from .scenes import scene_mesh
-from .store import SweepDir
+from .store import SweepDir, warning_counts
 
 Emit = Callable[..., None]
 """emit(event, **fields): 'wait' (another attempt holds the point), 'start', 'stage' (stage=NAME), 'done',
 'failed', 'skip'."""
 
 PRESET_KEYS = ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg", "steps",
-               "stopped_by", "final_loss", "device")
+               "stopped_by", "final_loss", "device", "converged", "warnings")
+"""What a point keeps of a preset's report.json: `converged` and `warnings` (one-line reasons to doubt the result,
+docs/end_of_run.md) say whether a result that has numbers ended well."""
 BASELINE_KEYS = ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg", "threshold",
-                 "floor_z_m")
+                 "floor_z_m", "warnings")
+CAPTURE_NAME = "the point's capture"
+WORK_NAME = "the point's work folder"
+"""What a reason or a warning says in place of the point's temporary work folder (removed, or moved by --keep, when
+the point ends): its path would lead nowhere."""
 
 
 def run_point(task: PointTask, out: str, *, device: str = "cpu", keep: bool = False,
@@ -80,12 +88,13 @@ def _run(task: PointTask, store: SweepDir, device: str, keep: bool, emit: Emit, 
                 methods[method] = _attempt(lambda: _baseline(task, method, capture, work))
     finally:
         kept = store.finish_work_dir(work, task.id, keep)
-    failures = ([f"simulate: {simulation['reason']}"] if simulation.get("status") == "failed" else []) + [
-        f"{name}: {r['reason']}" for name, r in methods.items() if r["status"] == "failed"]
+    simulation = without_work_path(simulation, work)
+    methods = {name: without_work_path(r, work) for name, r in methods.items()}
+    reason = point_reason(simulation, methods)
     result = {
         "id": task.id,
-        "status": "failed" if failures else "done",
-        "reason": "; ".join(failures) if failures else None,
+        "status": "failed" if reason else "done",
+        "reason": reason,
         "scene": task.scene.label,
         "params": task.params,
         "methods": methods,
@@ -99,8 +108,46 @@ def _run(task: PointTask, store: SweepDir, device: str, keep: bool, emit: Emit, 
         "record": task.record,
     }
     result = store.write_point(json_safe(result))
-    emit(result["status"], reason=result["reason"], seconds=result["seconds"])
+    warned = warning_counts(result)  # log.jsonl's end of the point: which methods warned, how often
+    emit(result["status"], reason=result["reason"], seconds=result["seconds"],
+         **({"warnings": warned} if warned else {}))
     return result
+
+
+def without_work_path(record: dict, work: Path) -> dict:
+    """A stage's record with the point's temporary work folder named for what it is (CAPTURE_NAME, WORK_NAME) in its
+    reason and warnings, whichever way the path was written (as given, or resolved)."""
+    paths = sorted({str(work), str(work.resolve())}, key=len, reverse=True)
+
+    def clean(text):
+        if not isinstance(text, str):
+            return text
+        for path in paths:
+            text = text.replace(f"{path}/capture", CAPTURE_NAME).replace(path, WORK_NAME)
+        return text
+
+    out = dict(record)
+    if "reason" in out:
+        out["reason"] = clean(out["reason"])
+    if isinstance(out.get("warnings"), list):
+        out["warnings"] = [clean(w) for w in out["warnings"]]
+    return out
+
+
+def point_reason(simulation: dict, methods: dict) -> str | None:
+    """Why a point failed, in one line, or None when nothing failed: the simulation's reason, else each distinct
+    reason once with the methods that failed for it ("every method: ..." when all did)."""
+    if simulation.get("status") == "failed":
+        return f"simulate: {simulation['reason']}"
+    by_reason: dict[str, list[str]] = {}
+    for name, r in methods.items():
+        if r.get("status") == "failed":
+            by_reason.setdefault(r.get("reason") or "failed", []).append(name)
+    if not by_reason:
+        return None
+    if len(by_reason) == 1 and len(methods) > 1 and len(next(iter(by_reason.values()))) == len(methods):
+        return f"every method: {next(iter(by_reason))}"
+    return "; ".join(f"{', '.join(names)}: {reason}" for reason, names in by_reason.items())
 
 
 def _attempt(run: Callable[[], dict]) -> dict:
@@ -147,7 +194,25 @@ def _baseline(task: PointTask, method: str, capture: Path, work: Path) -> dict:
     out = {k: report.get(k) for k in BASELINE_KEYS}
     out["calibration"] = [{"threshold": row["threshold"], "chamfer_mm": row["chamfer_mm"]}
                           for row in (report.get("calibration") or {}).get("table", [])]
+    out["threshold_edge"] = threshold_edge(out["threshold"], [row["threshold"] for row in out["calibration"]])
     return out
 
 
-__all__ = ["run_point"]
+def threshold_edge(threshold, tried) -> str | None:
+    """Where a calibrated threshold lies among those tried: 'lowest' or 'highest' when it is one of the ends (a
+    threshold beyond that end, never tried, may have done better), 'only' when a single one was tried, None when it
+    lies between two it beat or no threshold was tried."""
+    tried = sorted({float(t) for t in tried if isinstance(t, (int, float))})
+    if threshold is None or not tried:
+        return None
+    if len(tried) == 1:
+        return "only"
+    if float(threshold) <= tried[0]:
+        return "lowest"
+    if float(threshold) >= tried[-1]:
+        return "highest"
+    return None
+
+
+__all__ = ["run_point", "point_reason", "without_work_path", "threshold_edge", "PRESET_KEYS",
+           "BASELINE_KEYS"]

@@ -10,7 +10,9 @@ from pathlib import Path
 
 from spadscan.protocol.errors import ConfigError
 
-from .store import RESULTS_CSV, SWEEP_JSON, column_name
+from .store import RESULTS_CSV, SWEEP_JSON, WARNINGS_JOIN, column_name
+
+NOT_CONVERGED = "the run did not converge"
 
 
 @dataclass(frozen=True)
@@ -33,6 +35,21 @@ class SweepResults:
     def method_failed(self, row: dict, method: str) -> bool:
         """True where the method did not give a result at that point (it failed, or the point failed first)."""
         return row.get(f"{column_name(method)}_status") != "done"
+
+    def method_warnings(self, row: dict, method: str) -> list[str]:
+        """The warnings of a method that gave a result at that point (results.csv's <method>_warnings), with "the run
+        did not converge" for a preset that did not and says nothing else; [] for none, or a failed method."""
+        if self.method_failed(row, method):
+            return []
+        text = row.get(f"{column_name(method)}_warnings") or ""
+        lines = [w.strip() for w in text.split(WARNINGS_JOIN) if w.strip()]
+        if not lines and row.get(f"{column_name(method)}_converged") == "False":
+            lines = [NOT_CONVERGED]
+        return lines
+
+    def threshold_edge(self, row: dict, method: str) -> str:
+        """'lowest', 'highest' or 'only' where a baseline's calibrated threshold is at an end of those tried; ''."""
+        return "" if self.method_failed(row, method) else row.get(f"{column_name(method)}_threshold_edge") or ""
 
 
 def number(text) -> float | None:

@@ -37,7 +37,7 @@ from spadscan.protocol.errors import ConfigError
 from .checks import check_local_device, check_workers
 from .plan import Plan, PointTask
 from .point import run_point
-from .store import SweepDir
+from .store import SweepDir, warning_count
 
 EVENT_TOPIC = "spadscan-sweep"
 DEVICES = ("cpu", "cuda", "auto")
@@ -71,8 +71,16 @@ def dask_point(task: PointTask, out: str, device: str, keep: bool) -> dict:
     """The Dask task of one point: run it on this worker, reporting events to the client; returns a summary."""
     result = run_point(task, out, device=device, keep=keep, worker=str(get_worker().name),
                        emit=lambda event, **fields: emit_event(out, task.id, event, **fields))
+    return point_summary(result)
+
+
+def point_summary(result: dict) -> dict:
+    """What the client is told of a finished point: its status and reason, and per method its status, Chamfer
+    distance and warnings (how many; a preset that did not converge counts as one where it says nothing of it)."""
+    methods = {name: {"status": r.get("status"), "chamfer_mm": r.get("chamfer_mm"), "warnings": warning_count(r)}
+               for name, r in (result.get("methods") or {}).items()}
     return {"id": result["id"], "status": result["status"], "reason": result.get("reason"),
-            "seconds": result.get("seconds"), "worker": result.get("worker")}
+            "seconds": result.get("seconds"), "worker": result.get("worker"), "methods": methods}
 
 
 @dataclass
@@ -87,6 +95,10 @@ class Summary:
     failed: list[tuple[PointTask, str]] = field(default_factory=list)
     rows: int = 0
     """Rows of results.csv."""
+    warned: dict[str, list[str]] = field(default_factory=dict)
+    """Points of the sweep (run now or earlier) where a method that gave a result warned: id -> those methods."""
+    edge: dict[str, list[str]] = field(default_factory=dict)
+    """Points where a baseline's calibrated threshold is at an end of the thresholds tried: id -> those baselines."""
     startup_s: float = 0.0
     """Seconds to start (or reach) the cluster."""
 
@@ -116,27 +128,37 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
         check_local_device(device)
     timeout_s = CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
     store = SweepDir(out)
+    if scheduler is not None and _points_to_run(plan, store):
+        # Before the folder is made or opened: a refused run writes nothing.
+        probe_scheduler(scheduler, timeout_s)
     store.open(plan, overwrite=overwrite)
     try:
-        todo = [t for t in plan.points.values() if (store.read_point(t.id) or {}).get("status") != "done"]
+        todo = _points_to_run(plan, store)
         summary = Summary(len(plan.points), len(plan.points) - len(todo))
+        say = None if progress else log
         try:
             if todo:
                 _run_on_dask(plan, todo, store, summary, _client(scheduler, workers, device, log, timeout_s),
-                             lambda task: (point, task, sweep_name(store), device, keep), device, progress)
+                             lambda task: (point, task, sweep_name(store), device, keep), device, progress, say)
         except BaseException:
             with contextlib.suppress(OSError):
                 store.write_results(plan)  # an interrupt or a failure: what finished is gathered all the same
             raise
         summary.rows = store.write_results(plan)
+        summary.warned, summary.edge = store.endings(plan)
         return summary
     finally:
         store.close()
 
 
-def _run_on_dask(plan, todo, store, summary, connect, call, device, progress) -> None:
+def _points_to_run(plan: Plan, store: SweepDir) -> list[PointTask]:
+    """The points of `plan` that the folder does not hold as done (all of them where there is no folder yet)."""
+    return [t for t in plan.points.values() if (store.read_point(t.id) or {}).get("status") != "done"]
+
+
+def _run_on_dask(plan, todo, store, summary, connect, call, device, progress, say=None) -> None:
     """Submit a task per point of `todo` (`call(task)` gives the function and its arguments) to the client that
-    `connect` opens, and record each as it finishes."""
+    `connect` opens, and record each as it finishes (`say`: where a line per finished point goes, if anywhere)."""
     name = sweep_name(store)
 
     def on_event(event) -> None:
@@ -150,7 +172,7 @@ def _run_on_dask(plan, todo, store, summary, connect, call, device, progress) ->
         summary.startup_s = time.monotonic() - start
         client.subscribe_topic(EVENT_TOPIC, on_event)
         try:
-            _submit_and_gather(plan, todo, store, summary, client, call, device, progress)
+            _submit_and_gather(plan, todo, store, summary, client, call, device, progress, say)
         finally:
             # Also when interrupted: a scheduler that still counts this client among the topic's subscribers
             # writes the next event to its closed connection, and says so with a traceback.
@@ -158,7 +180,7 @@ def _run_on_dask(plan, todo, store, summary, connect, call, device, progress) ->
                 client.unsubscribe_topic(EVENT_TOPIC)
 
 
-def _submit_and_gather(plan, todo, store, summary, client, call, device, progress) -> None:
+def _submit_and_gather(plan, todo, store, summary, client, call, device, progress, say=None) -> None:
     """Submit a task per point of `todo` and record each as it finishes."""
     token = secrets.token_hex(4)  # keys of this run only: another client's tasks never stand in for these
     resources = {"GPU": 1} if device == "cuda" else None
@@ -175,7 +197,7 @@ def _submit_and_gather(plan, todo, store, summary, client, call, device, progres
             wait_s = max(0.0, gathered + RESULTS_EVERY_S - time.monotonic()) if due else None
             batch = _next_batch(finished, wait_s)
             for future, outcome in batch:
-                _record(plan, futures.pop(future), future, outcome, store, summary, device, bar)
+                _record(plan, futures.pop(future), future, outcome, store, summary, device, bar, say)
             due = due or bool(batch)
             # A look at results.csv mid-sweep is current within RESULTS_EVERY_S of a point's end (run_sweep
             # gathers it after the last point).
@@ -195,8 +217,9 @@ def _next_batch(finished, wait_s: float | None) -> list:
     return finished.next_batch(block=False)
 
 
-def _record(plan, task, future, outcome, store, summary, device, bar) -> None:
-    """Count a finished point in `summary` and on the bar, recording it first when its task raised."""
+def _record(plan, task, future, outcome, store, summary, device, bar, say=None) -> None:
+    """Count a finished point in `summary` and on the bar, recording it first when its task raised; with `say`
+    (no bar), say a line of it."""
     # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
     result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device)
     future.release()
@@ -205,11 +228,38 @@ def _record(plan, task, future, outcome, store, summary, device, bar) -> None:
         summary.done += 1
     else:
         summary.failed.append((task, result.get("reason") or "failed"))
+    if say is not None:  # a log without a bar (nohup, a batch job) still shows each point as it ends
+        say(finished_point_line(plan, task, result, summary.ran, bar.total))
+    elif result["status"] != "done":
         # Above the bar, on stderr with it: stdout holds the summary alone.
         bar.write(f"spadscan sweep: failed: {task.describe(plan.spec.base)}: {result.get('reason')}",
                   file=sys.stderr)
     bar.set_postfix(failed=len(summary.failed), refresh=False)
     bar.update(1)
+
+
+def finished_point_line(plan, task: PointTask, result: dict, n: int, of: int) -> str:
+    """'point 3/12 [id] builtin:sphere views=8: done; fast 5.22 mm, reprojection failed; 2 warnings (fast)' and for a
+    failed point its reason at the end. `result`: a point_summary (a task that raised has no methods)."""
+    methods = result.get("methods") or {}
+    shown = []
+    for name in plan.spec.methods:
+        r = methods.get(name)
+        if r is None:
+            continue
+        chamfer = r.get("chamfer_mm")
+        shown.append(f"{name} {chamfer:.3g} mm" if r.get("status") == "done" and isinstance(chamfer, (int, float))
+                     else f"{name} {r.get('status') or 'not run'}")
+    warned = {name: r["warnings"] for name, r in methods.items() if r.get("warnings")}
+    parts = [f"point {n}/{of} [{task.id}] {task.describe(plan.spec.base)}: {result['status']}"]
+    if any(r.get("status") == "done" for r in methods.values()):  # else the reason says it all
+        parts.append(", ".join(shown))
+    if warned:
+        total = sum(warned.values())
+        parts.append(f"{total} warning{'' if total == 1 else 's'} ({', '.join(warned)})")
+    if result["status"] != "done":
+        parts.append(str(result.get("reason") or "failed"))
+    return "; ".join(parts)
 
 
 def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
@@ -219,7 +269,8 @@ def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
         return outcome
     if isinstance(outcome, KilledWorker):
         tries = outcome.allowed_failures + 1
-        reason = (f"the worker running it died each time it was tried ({tries} workers: killed, or out of memory?); "
+        reason = ("the worker running it died (killed, or out of memory?); its log says why" if tries == 1 else
+                  f"the worker running it died each time it was tried ({tries} workers: killed, or out of memory?); "
                   f"their logs say why")
     else:
         reason = f"{type(outcome).__name__}: {' '.join(str(outcome).split())[:300]}"
@@ -319,7 +370,7 @@ class _client:
 
     def __enter__(self):
         if self.scheduler is not None:
-            probe_scheduler(self.scheduler, self.timeout_s)
+            # run_sweep probed the address before it opened the folder; a scheduler gone since is refused here.
             try:
                 self.client = Client(self.scheduler, timeout=self.timeout_s)
             except Exception as exc:  # noqa: BLE001 - a scheduler that went away since the probe, say
@@ -366,5 +417,5 @@ class _client:
 
 
 __all__ = ["run_sweep", "probe_scheduler",
-           "dask_point", "emit_event", "Summary",
+           "dask_point", "point_summary", "finished_point_line", "emit_event", "Summary",
            "EVENT_TOPIC", "cores"]

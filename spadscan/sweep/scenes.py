@@ -1,7 +1,7 @@
 """The scenes a sweep names: a mesh file, a built-in scene, or a scene of the public LCSPCData dataset.
 
 - `path/to/mesh.obj`: a mesh file in metres (millimetres detected), relative to the sweep file's folder;
-- `builtin:NAME`: a built-in scene (sphere, cup, lamp, pyramid, demo);
+- `builtin:NAME`: a built-in scene (sphere, cup, teddy, mug, ...: `spadscan simulate --help` lists them all);
 - `lcspc:NAME`: the ground-truth mesh of LCSPCData's simulated scene NAME (bunny, soap, sphere), found as
   `DIR/simulated/NAME/NAME.obj` under the dataset folder given with `--lcspc DIR`.
 

@@ -10,8 +10,8 @@
     sensor = "lcspc-sim"
     views = 256
 
-    [grid]                        # the values each axis takes
-    views = [16, 64, 256]
+    [grid]                        # the values each axis takes; no [grid] (or an empty one): the base condition
+    views = [16, 64, 256]         # alone, one point per scene (sweep-plot: each method's Chamfer there)
 
     [fast]                        # per preset: steps and/or budget_s, and config overrides
     steps = 3000

@@ -49,6 +49,13 @@ PARAM_COLUMNS = ("sensor", "schedule", "views", "rings", "min_elevation_deg", "m
 METRIC_COLUMNS = ("chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg", "seconds")
 PRESET_COLUMNS = ("steps", "stopped_by")
 BASELINE_COLUMNS = ("threshold",)
+PRESET_END_COLUMNS = ("converged", "warning_count", "warnings")
+BASELINE_END_COLUMNS = ("threshold_edge", "warning_count", "warnings")
+"""How each method's run ended, after its other columns: `converged` (True or False, a preset's), `warning_count`
+(0 for a clean run) and `warnings` (its one-line warnings joined by WARNINGS_JOIN), empty where the method gave no
+result or its record predates them; `threshold_edge` ('lowest', 'highest' or 'only': the calibrated threshold is at
+the end of the thresholds tried, so one beyond them might have done better)."""
+WARNINGS_JOIN = " | "
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
@@ -190,7 +197,7 @@ class SweepDir:
         methods = plan.spec.methods
         header = ["scene", "axis", "value", "point", "status", "reason", *PARAM_COLUMNS, "bin_mm"]
         for m in methods:
-            extra = PRESET_COLUMNS if m in {p.name for p in plan.spec.presets} else BASELINE_COLUMNS
+            extra = method_columns(m in {p.name for p in plan.spec.presets})
             header += [f"{column_name(m)}_{c}" for c in ("status", *METRIC_COLUMNS, *extra)]
         buf = io.StringIO()
         writer = csv.writer(buf, lineterminator="\n")
@@ -207,6 +214,20 @@ class SweepDir:
             rows += 1
         write_atomic(self.path / RESULTS_CSV, buf.getvalue())
         return rows
+
+    def endings(self, plan) -> tuple[dict[str, list[str]], dict[str, list[str]]]:
+        """Of the points of `plan` that have a result: those where a method warned ({id: methods}, warned_methods)
+        and those where a baseline's calibrated threshold is at an end of the thresholds tried (edge_methods)."""
+        warned, edge = {}, {}
+        for point_id in plan.points:
+            result = self.read_point(point_id)
+            if result is None:
+                continue
+            if methods := warned_methods(result):
+                warned[point_id] = methods
+            if methods := edge_methods(result):
+                edge[point_id] = methods
+        return warned, edge
 
     # --- both sides ---------------------------------------------------------------------------------------------
 
@@ -319,9 +340,54 @@ def results_row(entry, result: dict, methods, spec) -> list:
            _cell(bin_mm)]
     for m in methods:
         r = result.get("methods", {}).get(m, {})
-        extra = PRESET_COLUMNS if m in presets else BASELINE_COLUMNS
-        row += [r.get("status", "not run"), *(_cell(r.get(c)) for c in (*METRIC_COLUMNS, *extra))]
+        ended = ending_cells(r)
+        row += [r.get("status", "not run"), *(_cell(ended[c] if c in ended else r.get(c))
+                                              for c in (*METRIC_COLUMNS, *method_columns(m in presets)))]
     return row
+
+
+def method_columns(preset: bool) -> tuple[str, ...]:
+    """A method's columns after its status and metrics."""
+    return (*PRESET_COLUMNS, *PRESET_END_COLUMNS) if preset else (*BASELINE_COLUMNS, *BASELINE_END_COLUMNS)
+
+
+def method_warnings(record: dict) -> list[str] | None:
+    """A method's warnings in its point record (a list of one-line strings), or None where it has none to give: it
+    failed, or its record predates them."""
+    warnings = record.get("warnings")
+    if record.get("status") != "done" or not isinstance(warnings, list):
+        return None
+    return [" ".join(str(w).split()) for w in warnings]
+
+
+def ending_cells(record: dict) -> dict:
+    """The cells of PRESET_END_COLUMNS and BASELINE_END_COLUMNS that are not the record's values as they are."""
+    warnings = method_warnings(record)
+    return {"warning_count": None if warnings is None else len(warnings),
+            "warnings": None if warnings is None else WARNINGS_JOIN.join(warnings)}
+
+
+def warning_count(record: dict) -> int:
+    """How many reasons to doubt a method's result its point record gives: its warnings, or 1 for a preset that did
+    not converge and says nothing of it (0 for a method that failed: it has no result to doubt)."""
+    warnings = method_warnings(record) or []
+    return len(warnings) or int(record.get("status") == "done" and record.get("converged") is False)
+
+
+def warning_counts(result: dict) -> dict[str, int]:
+    """{method: warning_count} of the methods of a point's result that warned."""
+    return {m: n for m, r in (result.get("methods") or {}).items() if isinstance(r, dict) and (n := warning_count(r))}
+
+
+def warned_methods(result: dict) -> list[str]:
+    """The methods of a point's result that gave a result and warned: a warning, or a preset that did not converge."""
+    return list(warning_counts(result))
+
+
+def edge_methods(result: dict) -> list[str]:
+    """The baselines of a point's result whose calibrated threshold is at an end of the thresholds tried."""
+    return [m for m, r in (result.get("methods") or {}).items()
+            if isinstance(r, dict) and r.get("status") == "done" and r.get("threshold_edge")]
 
 
 def _cell(value):
@@ -344,5 +410,6 @@ def differences(old, new, prefix: str = "") -> list[str]:
     return []
 
 
-__all__ = ["SweepDir", "write_json_atomic", "differences", "column_name", "sweep_record", "SWEEP_JSON", "POINTS",
-           "RESULTS_CSV", "LOG", "WORK", "LOCKS"]
+__all__ = ["SweepDir", "write_json_atomic", "differences", "column_name", "sweep_record", "method_warnings",
+           "warned_methods", "warning_count", "warning_counts", "edge_methods", "SWEEP_JSON", "POINTS", "RESULTS_CSV",
+           "LOG", "WORK", "LOCKS", "WARNINGS_JOIN"]

@@ -50,3 +50,17 @@ def test_overhead_benchmark_prints_the_table(tmp_path):
     row = next(line for line in run.stdout.splitlines() if line.startswith("| 8 no-op points"))
     serial, dask = (float(cell) for cell in row.strip("| ").split(" | ")[1:])
     assert serial > 0 and dask > 0
+
+
+def test_figure_a_points_to_the_list_of_every_built_in_scene():
+    """The comment on `scenes` names where every built-in scene is listed, and that list holds them all."""
+    from protocol.scenes import BUILTIN_SCENES
+
+    text = (SWEEPS / "figure_a.toml").read_text()
+    comment = text[text.index("[sweep]"):text.index("scenes = ")]
+    assert "`spadscan simulate --help` lists them all" in comment, comment
+    run = subprocess.run([sys.executable, "-m", "spadscan.cli", "simulate", "--help"], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    listed = {line.split()[0] for line in run.stdout.splitlines() if line.startswith("    ") and line.split()}
+    assert set(BUILTIN_SCENES) <= listed, set(BUILTIN_SCENES) - listed

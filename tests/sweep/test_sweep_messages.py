@@ -63,3 +63,11 @@ def test_a_point_with_a_large_integer_is_named_with_every_digit(tmp_path, capsys
     assert main(["sweep", str(path), "--out", str(tmp_path / "out"), "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert "builtin:sphere seed=123456789" in out, out
+
+
+def test_a_sweep_without_a_grid_says_it_runs_the_base_condition_alone(tmp_path, capsys):
+    for text in ('[sweep]\nscenes = ["builtin:sphere"]\n', '[sweep]\nscenes = ["builtin:sphere"]\n[grid]\n'):
+        assert main(["sweep", str(write(tmp_path, text)), "--out", str(tmp_path / "out"), "--dry-run"]) == 0
+        err = capsys.readouterr().err
+        assert "1 grid entry on 1 scene: 1 distinct point; methods fast, reprojection, space-carving (no [grid]: the " \
+               "base condition alone)" in err, err

@@ -119,3 +119,52 @@ def test_the_dry_run_refuses_the_workers_the_run_refuses(tmp_path, capsys, extra
         errors = [line for line in capsys.readouterr().err.splitlines() if line.startswith("spadscan: error: ")]
         assert len(errors) == 1 and expected in errors[0], errors
     assert not (tmp_path / "out").exists()
+
+
+def test_a_point_that_killed_its_only_worker_says_so_in_the_singular(tmp_path):
+    from distributed import KilledWorker
+
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    store = SweepDir(tmp_path / "out")
+    store.open(plan)
+    store.close()
+    task = next(iter(plan.points.values()))
+    result = runner._outcome(KilledWorker(task.id, None, 0), task, store, "cpu")
+    assert result["reason"] == "the worker running it died (killed, or out of memory?); its log says why"
+    result = runner._outcome(KilledWorker(task.id, None, 2), task, store, "cpu")
+    assert "(3 workers: killed, or out of memory?); their logs say why" in result["reason"]
+
+
+def point_with_results(task, out, device, keep):
+    """A point whose fast preset warned twice and whose baselines gave results (none at the lowest power)."""
+    if task.params["power"] < 1e-3:
+        return {"id": task.id, "status": "failed", "reason": "every method: no return", "seconds": 0.0,
+                "worker": None, "methods": {m: {"status": "failed", "chamfer_mm": None, "warnings": 0}
+                                            for m in ("fast", "reprojection", "space-carving")}}
+    return {"id": task.id, "status": "done", "reason": None, "seconds": 0.0, "worker": None,
+            "methods": {"fast": {"status": "done", "chamfer_mm": 5.2194, "warnings": 2},
+                        "reprojection": {"status": "done", "chamfer_mm": 22.03, "warnings": 0},
+                        "space-carving": {"status": "failed", "chamfer_mm": None, "warnings": 0}}}
+
+
+def test_without_a_progress_bar_each_finished_point_is_a_line(tmp_path):
+    """A sweep left running under nohup shows each point as it ends: its id, status, Chamfer per method, warnings."""
+    from distributed import LocalCluster
+
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    lines: list[str] = []
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None)
+    try:
+        run_sweep(plan, tmp_path / "out", scheduler=cluster.scheduler_address, progress=False, log=lines.append,
+                  point=point_with_results)
+    finally:
+        cluster.close()
+    finished = [line for line in lines if line.startswith("point ")]
+    assert len(finished) == len(plan.points) == 3, lines
+    assert {line.split("[")[1].split("]")[0] for line in finished} == set(plan.points)
+    assert sorted(line.split()[1] for line in finished) == ["1/3", "2/3", "3/3"]
+    done = [line for line in finished if ": done; " in line]
+    assert len(done) == 2 and all(line.endswith("fast 5.22 mm, reprojection 22 mm, space-carving failed; "
+                                                 "2 warnings (fast)") for line in done), done
+    (failed,) = [line for line in finished if ": failed" in line]
+    assert failed.endswith("power=1e-07: failed; every method: no return"), failed

@@ -150,3 +150,25 @@ def test_tls_is_refused_in_one_line_before_anything_runs(tmp_path, capsys):
         err = capsys.readouterr().err
         assert "Traceback" not in err and "security configuration" in err, err
     assert not (tmp_path / "out").exists()
+
+
+def _tree(folder) -> dict:
+    """Every path under `folder` with its size and modification time."""
+    return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(folder.rglob("*"))}
+
+
+def test_a_refused_scheduler_leaves_no_folder_and_an_existing_one_as_it_was(closed_port, tmp_path):
+    """The scheduler is asked before the results folder is made or opened: a run it refuses writes nothing."""
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    with pytest.raises(ConfigError, match="is not a reachable Dask scheduler"):
+        runner.run_sweep(plan, tmp_path / "out", scheduler=closed_port, progress=False, connect_timeout_s=TIMEOUT_S)
+    assert not (tmp_path / "out").exists()
+    from spadscan.sweep.store import SweepDir
+
+    out = SweepDir(tmp_path / "earlier")
+    out.open(plan)
+    out.close()
+    before = _tree(out.path)
+    with pytest.raises(ConfigError, match="is not a reachable Dask scheduler"):
+        runner.run_sweep(plan, out.path, scheduler=closed_port, progress=False, connect_timeout_s=TIMEOUT_S)
+    assert _tree(out.path) == before
