@@ -453,23 +453,24 @@ def warnings(facts: RunFacts) -> list[str]:
     faint = signal_warning(facts.signal)  # first of the result's doubts: it explains those that follow
     if faint:
         out.append(faint)
-    misfit = misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None
-    if misfit:
-        out.append(misfit)
-    seen = coverage_warning(facts.coverage, facts.measured)
-    if seen:
-        out.append(seen)
-    apart = pieces_warning(facts.pieces, facts.truth_pieces)
-    if apart:
-        out.append(apart)
-    noisy = specks_warning(facts.pieces)
-    if noisy:
-        out.append(noisy)
-    holed = tunnels_warning(facts.pieces, facts.truth_tunnels)
-    if holed:
-        out.append(holed)
+    # The doubts about the shape: of a rough early state, the fit's shortness says them first (a 1-step mesh of a
+    # good capture read as "the time axis or the poses are wrong" and "scan it with views aimed at it").
+    early = early_note(facts)
+    shape = [misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None,
+             coverage_warning(facts.coverage, facts.measured), pieces_warning(facts.pieces, facts.truth_pieces),
+             specks_warning(facts.pieces), tunnels_warning(facts.pieces, facts.truth_tunnels)]
+    out += [line + early for line in shape if line]
     out += facts.scene_notes + facts.budget_notes
     return out
+
+
+def early_note(facts: RunFacts) -> str:
+    """What the shape's doubts of a run stopped before its fit could settle (too few steps to tell a trend: its
+    budget, its step count or Ctrl-C) add: that the shortness alone may explain them. '' for any other run."""
+    if (facts.stopped_by not in ("budget", "steps", "interrupted") or facts.continued or converged(facts)
+            or late_drop(facts.data_terms) is not None):
+        return ""
+    return f" (the fit stopped after only {facts.steps} step(s): that alone may explain this; run it longer first)"
 
 
 __all__ = ["INTERRUPTED", "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",

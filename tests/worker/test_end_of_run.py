@@ -294,6 +294,21 @@ def test_a_short_run_is_a_rough_early_state_unless_it_went_on_from_another_fit()
     assert "still falling" in line
 
 
+def test_the_doubts_about_a_rough_early_states_shape_say_that_its_shortness_may_explain_them():
+    """A run stopped after a step or two on a busy machine: its mesh misfits and its coverage is thin because the fit
+    had no time, not because the capture is wrong; those lines say so. A settled fit's say nothing of the kind."""
+    wrong = FitNoise(deviance_per_bin=3.0, noise_per_bin=0.5, bins=1000, relative_misfit=RELATIVE_MISFIT_LIMIT + 0.1)
+    broken = Pieces(count=3, share_apart=0.16, specks=5)
+    early, *doubts = warnings(RunFacts("budget", 1, False, [1.0], fit=wrong, pieces=broken))
+    assert "rough early state" in early and len(doubts) == 2
+    assert all(d.endswith("(the fit stopped after only 1 step(s): that alone may explain this; run it longer first)")
+               for d in doubts), doubts
+    settled = warnings(RunFacts("converged", 100, True, [1.0] * 100, fit=wrong, pieces=broken))
+    assert len(settled) == 2 and not any("stopped after only" in d for d in settled)
+    continued = warnings(RunFacts("steps", 1, False, [1.0], fit=wrong, pieces=broken, continued=True))
+    assert not any("stopped after only" in d for d in continued), "a polish of a live fit is no early state"
+
+
 def test_the_overrun_warning_keeps_the_documented_tolerance_of_10_percent_or_10_s():
     """`--budget-s` bounds a run within 10 % or 10 s, whichever is larger: a 5 s budget that took 5.67 s met it
     (it used to be told it took "6 s" too long); beyond the tolerance it is told, to a tenth of a second."""
