@@ -32,7 +32,7 @@ from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, r
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter, frame_number, plan_retakes
 from spadscan.protocol.errors import CaptureError, ConfigError
-from spadscan.protocol.iso_time import parse_utc
+from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
 
 from .config import ScanConfig, scan_with
@@ -259,8 +259,7 @@ def note_abort_pending(path: Path, reason: str) -> bool:
     marker = Path(path) / ABORT_PENDING
     if _recorded_reason(marker) is not None:  # kept whole already (maybe an earlier daemon's): nothing to add
         return True
-    record = json.dumps({"reason": reason, "since_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(
-        timespec="milliseconds")}).encode()
+    record = json.dumps({"reason": reason, "since_utc": utc_now()}).encode()
     try:
         fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)  # it held no record: nothing is lost
     except OSError:  # a read-only disk: an empty file made before it turned read-only still keeps the abort

@@ -15,7 +15,6 @@ publish costs about two journal commits (the files, then the rename) instead of 
 from __future__ import annotations
 
 import contextlib
-import datetime as _dt
 import errno
 import json
 import os
@@ -32,11 +31,8 @@ from .capture_format import (CHUNK_PREFIX, FORMAT, MANIFEST, SCHEDULE, STATES, T
                              save_npy_durable, to_counts, write_durable, write_json_atomic)
 from .capture_reader import CaptureReader
 from .errors import CaptureError
+from .iso_time import utc_now
 from .sensor_model import SensorModel
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
 def _named(exc: OSError, path) -> OSError:
@@ -198,8 +194,8 @@ def mark_paused(path, reason: str) -> None:
     held = manifest.get("paused")
     since = held.get("since_utc") if isinstance(held, dict) else None
     manifest.update(state="running", reason=reason,
-                    paused={"reason": reason, "since_utc": since if isinstance(since, str) else _now()},
-                    updated_utc=_now())
+                    paused={"reason": reason, "since_utc": since if isinstance(since, str) else utc_now()},
+                    updated_utc=utc_now())
     _write(write_json_atomic, manifest_path, manifest)
 
 
@@ -211,7 +207,7 @@ def mark_aborted(path, reason: str) -> None:
     manifest_path = Path(path) / MANIFEST
     manifest = read_json(manifest_path)
     manifest.pop("paused", None)
-    manifest.update(state="aborted", reason=fold(reason), updated_utc=_now())
+    manifest.update(state="aborted", reason=fold(reason), updated_utc=utc_now())
     _write(write_json_atomic, manifest_path, manifest)
 
 
@@ -274,8 +270,8 @@ class CaptureWriter:
             "scan_id": scan_id or path.name,
             "state": "running",
             "reason": None,
-            "created_utc": _now(),
-            "updated_utc": _now(),
+            "created_utc": utc_now(),
+            "updated_utc": utc_now(),
             "sensor": sensor.to_dict(),
             "rig": rig or {},
             "hand_eye": he.tolist(),
@@ -323,7 +319,7 @@ class CaptureWriter:
         next_chunk = (chunk_index(names[-1]) + 1) if names else 0
         manifest = dict(reader.manifest)
         manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
-                        updated_utc=_now())
+                        updated_utc=utc_now())
         _write(write_json_atomic, path / MANIFEST, manifest)
         return cls(path, manifest, reader.sensor, next_chunk, published, poses, retakes)
 
@@ -435,7 +431,7 @@ class CaptureWriter:
         os.replace(tmp, self.path / SCHEDULE)
         _write(fsync_dir, self.path)
         if self.manifest.get("planned_poses") != len(planned):
-            self.manifest.update(planned_poses=int(len(planned)), updated_utc=_now())
+            self.manifest.update(planned_poses=int(len(planned)), updated_utc=utc_now())
             _write(write_json_atomic, self.path / MANIFEST, self.manifest)
 
     def set_state(self, state: str, reason: str | None = None, **extra) -> None:
@@ -450,7 +446,7 @@ class CaptureWriter:
             reason = fold(reason)
         check_json({"reason": reason, **extra}, f"{self.path / MANIFEST}")
         self.manifest.pop("paused", None)  # a pause holds only until the next state is recorded
-        self.manifest.update(state=state, reason=reason, updated_utc=_now(), **extra)
+        self.manifest.update(state=state, reason=reason, updated_utc=utc_now(), **extra)
         _write(write_json_atomic, self.path / MANIFEST, self.manifest)
 
     def abandon(self, doing: str, exc: BaseException) -> None:

@@ -1,4 +1,4 @@
-"""Reading the times the project writes: ISO 8601 stamps in UTC (`2026-11-26T14:15:52.975+00:00`, as
+"""Reading and writing the times the project writes: ISO 8601 stamps in UTC (`2026-11-26T14:15:52.975+00:00`, as
 `datetime.isoformat` writes them) in its files and records. Standard library only: the daemon-side client reads them
 without loading numpy."""
 
@@ -20,4 +20,9 @@ def parse_utc(text) -> _dt.datetime | None:
     return then if then.tzinfo else then.replace(tzinfo=_dt.timezone.utc)
 
 
-__all__ = ["parse_utc"]
+def utc_now() -> str:
+    """Now, as the project writes a time: ISO 8601 in UTC, to the millisecond (`2026-11-26T14:15:52.975+00:00`)."""
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+__all__ = ["parse_utc", "utc_now"]

@@ -47,7 +47,7 @@ from pathlib import Path
 
 from .atomic_files import write_atomic
 from .errors import CaptureError
-from .iso_time import parse_utc
+from .iso_time import parse_utc, utc_now
 
 LIVE_DIR = "live"
 """The live results' folder under a capture's `recon/`."""
@@ -58,10 +58,6 @@ FINAL_STARTS = ("live", "hull")
 SAID = {"waiting": "waiting for views", "live": "following the scan", "final": "finishing", "done": "done",
         "aborted": "ended (the scan was aborted)", "stopped": "stopped", "queued": "queued again"}
 """Each state as people read it."""
-
-
-def utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
 @dataclass(frozen=True)
@@ -197,4 +193,4 @@ def is_chamfer(value) -> bool:
 
 
 __all__ = ["LiveStatus", "LIVE_DIR", "STATUS", "STATES", "status_path", "write_status", "read_status",
-           "utc_now", "check_status", "is_count", "is_chamfer"]
+           "check_status", "is_count", "is_chamfer"]

@@ -32,6 +32,7 @@ import numpy as np
 from .atomic_files import write_atomic
 from .capture_format import POSE_TOL, one_line
 from .errors import CaptureError
+from .iso_time import utc_now
 from .schedules import fibonacci_hemisphere
 
 FILE = "next_views.json"
@@ -60,11 +61,6 @@ class NextViews:
         return (now - _parse_time(self.created_utc, "created_utc")).total_seconds()
 
 
-def now_utc() -> str:
-    """The current time as the file writes it (ISO 8601 UTC, milliseconds)."""
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
-
-
 def ranked(poses: np.ndarray, scores: np.ndarray, pose_count: int, measure: str = "",
            created_utc: str | None = None) -> NextViews:
     """A NextViews of candidate poses (N, 4, 4) and their scores (N,), sorted best first (stable for ties)."""
@@ -73,7 +69,7 @@ def ranked(poses: np.ndarray, scores: np.ndarray, pose_count: int, measure: str 
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(scores):
         raise CaptureError(f"next views: poses {poses.shape} and scores {scores.shape} must be (N, 4, 4) and (N,)")
     order = np.argsort(-scores, kind="stable")
-    nv = NextViews(poses[order], scores[order], int(pose_count), created_utc or now_utc(), str(measure))
+    nv = NextViews(poses[order], scores[order], int(pose_count), created_utc or utc_now(), str(measure))
     _check(nv, "next views")
     return nv
 
@@ -218,4 +214,4 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["FILE", "NextViews", "ranked", "write_next_views", "read_next_views", "candidate_poses",
-           "view_angles_deg", "too_close", "now_utc", "CANDIDATES", "SAME_VIEW_DEG"]
+           "view_angles_deg", "too_close", "CANDIDATES", "SAME_VIEW_DEG"]
