@@ -333,7 +333,9 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         # The points' distances measured until what the normals picture needs is all that is left: a forecast of
         # their time can fall short by seconds on a poor mesh, the deadline cannot.
         deadline = None if budget_s is None else clock() + run_clock.left() - NORMALS_PICTURE_S
-        scores = mesh_metrics(scored, truth.mesh, n_points=points, seed=int(seed), deadline=deadline, clock=clock)
+        # The points are drawn from the metrics' own fixed seed, not the run's: `spadscan eval` of the mesh, a
+        # baseline's figure and a run of another seed are scored on the same samples (docs/metrics.md).
+        scores = mesh_metrics(scored, truth.mesh, n_points=points, deadline=deadline, clock=clock)
         if scores.queries < points:  # one line for both cuts: this one says what the first did
             asked = f", {config.metrics_points:,} asked" if points < config.metrics_points else ""
             notes.append(f"the time budget was short: the metrics measured {scores.queries:,} of the {points:,} "
@@ -341,7 +343,9 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         elif points < config.metrics_points:
             notes.append(f"the time budget was short: the metrics used {points:,} points per mesh, not "
                          f"{config.metrics_points:,} (a coarser estimate)")
-        report.update(scores.to_dict())
+        figures = scores.to_dict()
+        figures["metrics_seed"] = figures.pop("seed")  # "seed" stays the run's
+        report.update(figures)
         report["chamfer_scoring"] = final_scoring(config, resolution, points, measured=scores.queries)
         pictures.normals_png(scored, vertex_err, out / "normals.png")
         report["ground_truth"] = str(gt)

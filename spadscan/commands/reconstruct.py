@@ -87,7 +87,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_ground_truth_options(parser, ", for the metrics")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                         help="where to compute (default: auto = CUDA when available)")
-    parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
+    parser.add_argument("--seed", type=int, default=0, metavar="S",
+                        help="the fit's random seed (default: 0). A run repeats to the last digit with the same seed, "
+                             "steps and --threads; without --threads the threads chosen as it goes (which a busy "
+                             "machine changes) move it by a few hundredths of a millimetre. The metrics draw their "
+                             "points from their own fixed seed, as `spadscan eval` does")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
                         help="override a field of the preset's config, e.g. --set field.resolution=48, or switch "
                              "one of the fast preset's parts off: --set parts.openings.enabled=false (repeatable; "
@@ -95,7 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="CPU threads, kept for the whole run (default: OMP_NUM_THREADS if set; else the "
                              "cores' threads or one, whichever makes faster steps, chosen as the run goes); threads "
-                             "that outnumber the cores make every step many times slower")
+                             "that outnumber the cores make every step many times slower; give it to repeat a run exactly")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out: the files its report.json lists that this run "
                              "does not write again are removed, and, in a worker job's result (one that holds "

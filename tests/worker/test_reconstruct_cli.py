@@ -67,6 +67,11 @@ def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
     assert report["preset"] == "paper" and report["device"] == "cpu" and report["steps"] == 2
     assert report["seed"] == 3 and report["stopped_by"] == "steps" and report["seconds"] > 0
     assert report["capture"] == str(cap.resolve())
+    summary = capsys.readouterr().out
+    # The metrics' points come from their own fixed seed, not the run's: `spadscan eval` of the mesh says the same.
+    assert report["metrics_seed"] == 0
+    assert main(["eval", str(out / "mesh.ply"), "--gt", str(gt), "--points", str(report["n_points"]), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["chamfer_mm"] == pytest.approx(report["chamfer_mm"], abs=1e-5)
     assert set(report["terms"]) == {"pileup", "crosstalk", "table", "tv", "reference_pulse"}
     assert report["terms"]["pileup"] and not report["terms"]["crosstalk"] and not report["terms"]["table"]
     assert np.isfinite(report["final_loss"])
@@ -84,7 +89,6 @@ def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
         assert f'src="{name}"' in page
     header = (out / "mesh.ply").read_bytes()[:1000]
     assert b"property float nx" in header or b"property double nx" in header  # per-vertex normals are stored
-    summary = capsys.readouterr().out
     assert "paper: 2 steps" in summary and "Chamfer" in summary
     assert "(open this first), " + ", ".join(sorted(set(report["files"]) - {"report.html"})) in summary
     # The final figure says how it was scored: the checkpoints' (the trace, the bar) are coarser.
