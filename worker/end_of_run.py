@@ -455,11 +455,13 @@ def warnings(facts: RunFacts) -> list[str]:
         out.append(faint)
     # The doubts about the shape: of a rough early state, the fit's shortness says them first (a 1-step mesh of a
     # good capture read as "the time axis or the poses are wrong" and "scan it with views aimed at it").
+    # (The specks are the mesh's, whatever the run's length: their line says so, and gets no such note.)
     early = early_note(facts)
-    shape = [misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None,
-             coverage_warning(facts.coverage, facts.measured), pieces_warning(facts.pieces, facts.truth_pieces),
-             specks_warning(facts.pieces), tunnels_warning(facts.pieces, facts.truth_tunnels)]
-    out += [line + early for line in shape if line]
+    shape = [(misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None, early),
+             (coverage_warning(facts.coverage, facts.measured), early),
+             (pieces_warning(facts.pieces, facts.truth_pieces), early), (specks_warning(facts.pieces), ""),
+             (tunnels_warning(facts.pieces, facts.truth_tunnels), early)]
+    out += [line + note for line, note in shape if line]
     out += facts.scene_notes + facts.budget_notes
     return out
 

@@ -303,6 +303,9 @@ def test_the_doubts_about_a_rough_early_states_shape_say_that_its_shortness_may_
     assert "rough early state" in early and len(doubts) == 2
     assert all(d.endswith("(the fit stopped after only 1 step(s): that alone may explain this; run it longer first)")
                for d in doubts), doubts
+    speckled = Pieces(count=1, share_apart=0.0, specks=400, specks_share=0.2)
+    (_, specks) = warnings(RunFacts("budget", 1, False, [1.0], pieces=speckled))
+    assert "specks" in specks and "stopped after only" not in specks, "its own line says a longer run hardly helps"
     settled = warnings(RunFacts("converged", 100, True, [1.0] * 100, fit=wrong, pieces=broken))
     assert len(settled) == 2 and not any("stopped after only" in d for d in settled)
     continued = warnings(RunFacts("steps", 1, False, [1.0], fit=wrong, pieces=broken, continued=True))
