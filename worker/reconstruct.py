@@ -596,7 +596,10 @@ def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfi
     `fit_renders` times and averaged, the spread of the renders giving the renderer's own sampling noise, which the
     check counts with the photon noise)."""
     pictures.preview_png(mesh, out / "preview.png", gt=gt_mesh)
-    scoring = "" if gt_mesh is None else f" (checkpoint Chamfer: {checkpoint_scoring(config)})"
+    # how the checkpoints' Chamfer was scored, where the picture shows one (a run whose budget left them unscored
+    # plots the loss alone, and its title says so)
+    scored = gt_mesh is not None and pictures.chamfer_points(result.trace)
+    scoring = f" (checkpoint Chamfer: {checkpoint_scoring(config)})" if scored else ""
     pictures.error_vs_time_png(result.trace, out / "error_vs_time.png",
                                title=f"{config.preset}: error against run time{scoring}")
     views = sorted({int(round(i)) for i in np.linspace(0, scene.n_views - 1, n_views)})

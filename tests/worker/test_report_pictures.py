@@ -37,6 +37,22 @@ def test_a_plot_with_chamfer_keeps_its_title():
     assert fig.axes[0].get_title() == "fast: error against run time"
 
 
+@pytest.mark.parametrize("trace", [LOSS_TRACE, CHAMFER_TRACE])
+def test_the_title_and_the_axis_labels_stay_inside_the_picture(trace):
+    """A paper run whose checkpoints went unscored had its long title and its x label (the axes widest without a
+    second y axis) cut at the picture's edges."""
+    title = "paper: error against run time (checkpoint Chamfer: 96-cell mesh, 30,000 points; coarser than the final)"
+    fig = pictures.error_vs_time_figure(trace, title)
+    fig.canvas.draw()
+    box = fig.bbox
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        for text in (ax.title, ax.xaxis.label, ax.yaxis.label):
+            if text.get_text():
+                extent = text.get_window_extent(renderer)
+                assert box.x0 <= extent.x0 and extent.x1 <= box.x1, text.get_text()
+
+
 def test_checkpoints_whose_chamfer_failed_count_as_no_chamfer():
     trace = [dict(p, chamfer_mm=None) for p in CHAMFER_TRACE]
     assert "loss against run time" in pictures.error_vs_time_figure(trace).axes[0].get_title()

@@ -7,6 +7,7 @@ and returns its path.
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,10 @@ ERROR_TITLE = "error against run time"
 LOSS_TITLE = "loss against run time (no checkpoint Chamfer)"
 """What error_vs_time.png shows: the Chamfer with the loss, or the loss alone when no checkpoint has a Chamfer (no
 ground truth, or none of its evaluations gave a surface)."""
+
+
+TITLE_WIDTH = 70
+"""Characters a line of error_vs_time.png's title holds at its size (6 x 4 in, 10 pt): a longer one wraps."""
 
 
 def error_vs_time_png(trace: list[dict], path, title: str = "") -> Path:
@@ -71,10 +76,13 @@ def error_vs_time_figure(trace: list[dict], title: str = ""):
         ax.set_xscale("log")
         plain_log_ticks(ax.xaxis)
     at_zero = any(isinstance(p, dict) and p.get("seconds") == 0 for p in trace or [])
-    ax.set_xlabel("training time (s, checkpoint evaluation excluded" + ("; the start at 0 s is off this log axis)"
+    # Two lines where it is long: without a second y axis the axes are wider, but a label longer than the figure
+    # runs off both its edges.
+    ax.set_xlabel("training time (s, checkpoint evaluation excluded" + (";\nthe start at 0 s is off this log axis)"
                                                                       if at_zero else ")"))
     title = title or ERROR_TITLE
-    ax.set_title(title if chamfer_points(trace) else title.replace(ERROR_TITLE, LOSS_TITLE), fontsize=10)
+    title = title if chamfer_points(trace) else title.replace(ERROR_TITLE, LOSS_TITLE)
+    ax.set_title(textwrap.fill(title, TITLE_WIDTH), fontsize=10)
     ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
     return fig
