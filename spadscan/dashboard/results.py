@@ -25,8 +25,8 @@ from .paths import safe_path, url_path
 
 RECON = "recon"
 LIVE = "live"
-SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "steps",
-                "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
+SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg",
+                "steps", "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
 LIVE_KEYS = ("views_used", "views_published", "views_planned", "steps", "updated_utc", "converged", "chamfer_mm",
              "state", "note", "result", "job", "final_start", "chamfer_views")
 LIVE_PICTURES = ("preview.png", "mesh.ply", "view3d.html")

@@ -141,3 +141,15 @@ def test_the_pace_of_a_resumed_scan_counts_from_its_resumption():
     assert frame_rates(resumed[-16:]) == frame_rates(frames(3, 68.0, 5))
     assert frame_rates(resumed[-16:])["poses_per_min"] == 60.0 * 2 / 4.5  # its three poses over 4.5 s
     assert frame_rates(steady)["poses_per_min"] == 60.0 * 4 / 8.5, "no stop: the whole window counts"
+
+
+def test_a_results_summary_carries_every_figure_of_its_report(tmp_path):
+    """The API's summary of a result holds the figures a researcher compares, the normal error among them."""
+    scan = tmp_path / "scan"
+    complete_scan(scan, 2)
+    add_final_recon(scan, "scan-fast")
+    figures = {"chamfer_mm": 1.2, "accuracy_mm": 1.1, "completeness_mm": 1.3, "fscore_5mm": 0.97,
+               "normal_error_deg": 11.5}
+    (scan / "recon" / "scan-fast" / "report.json").write_text(json.dumps({"preset": "fast", **figures}))
+    (result,) = ResultIndex(tmp_path).for_scan("scan")
+    assert {k: result["summary"].get(k) for k in figures} == figures
