@@ -17,8 +17,9 @@ FOLLOWING = tuple(s for s in STATES if s not in (*ENDED, "queued"))
 
 
 def result_health(row) -> dict:
-    """{"converged": bool, "warnings": [...]} from a done job's report.json (what its reconstruction said about
-    itself); {} when there is none to read."""
+    """{"converged": bool, "warnings": [...], "chamfer_mm": mm or None} from a done job's report.json (what its
+    reconstruction said about itself, and its figure where the scan has a ground truth); {} when there is none to
+    read."""
     if row.state != "done" or not row.result:
         return {}
     try:
@@ -28,8 +29,10 @@ def result_health(row) -> dict:
     if not isinstance(report, dict):
         return {}
     warnings = report.get("warnings")
+    chamfer = report.get("chamfer_mm")
     return {"converged": report.get("converged"),
-            "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else []}
+            "warnings": [str(w) for w in warnings] if isinstance(warnings, list) else [],
+            "chamfer_mm": chamfer if isinstance(chamfer, (int, float)) and not isinstance(chamfer, bool) else None}
 
 
 def live_detail(root, row) -> str | None:
@@ -78,6 +81,8 @@ def status_parts(row, running: dict | None = None, root=None) -> tuple[str, list
         if row.result and not Path(row.result).exists():
             detail += " (no longer there)"  # its scan moved out of the root (archived), or the folder removed
         health = result_health(row)
+        if health.get("chamfer_mm") is not None:
+            detail += f" (Chamfer to the ground truth {health['chamfer_mm']:.2f} mm)"
         if health.get("converged") is False:
             detail += " (not converged)"
         warnings = health.get("warnings", [])
