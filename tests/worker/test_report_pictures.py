@@ -176,11 +176,34 @@ def test_the_coverage_picture_shows_in_red_what_no_view_sees(tmp_path):
     assert path.read_bytes().startswith(b"\x89PNG")
 
 
+def test_an_underside_that_the_share_leaves_out_is_grey_not_red():
+    """The legend's shares leave the undersides out (no view from above a table sees them, and none is owed): drawn
+    red, a sphere's unseen bottom read as a gap the legend's 0 % denied."""
+    from spadscan.worker.report import mesh_pictures
+
+    mesh = sphere((0, 0, 0))
+    views = np.where(mesh.vertices[:, 2] < 0, 0, 7)
+    px = 96
+    bottom = mesh.vertex_normals[:, 2] < -0.7
+    c = mesh_pictures.COVERAGE_VIEWS.index((30.0, -50.0))
+
+    def from_below(image):
+        return image[:, c * px:(c + 1) * px]
+
+    below = from_below(mesh_pictures.coverage_panels(mesh, views, pixels=px, underside=bottom))
+    r, g, b = (below[..., k].astype(int) for k in range(3))
+    grey = (abs(r - g) < 12) & (abs(g - b) < 12) & (r > 20) & (r < 140)
+    assert grey.mean() > 0.05, "the bottom grey"
+    all_red = red(from_below(mesh_pictures.coverage_panels(mesh, views, pixels=px))).mean()
+    assert red(below).mean() < 0.75 * all_red, "the unseen side that is no underside stays red, the bottom does not"
+
+
 def test_the_coverage_picture_legend_gives_each_class_its_share(tmp_path, saved_legends):
     mesh = sphere((0, 0, 0))
     pictures.coverage_png(mesh, np.zeros(len(mesh.vertices), int), tmp_path / "c.png",
                           area_views=np.array([0, 1, 2, 3, 4, 5, 6, 7]), pixels=32)
-    assert saved_legends == [["seen by no view: 12%", "seen by 1-2 views: 25%", "seen by 3 or more views: 62%"]]
+    assert saved_legends == [["seen by no view: 12%", "seen by 1-2 views: 25%", "seen by 3 or more views: 62%",
+                              "underside: not counted"]]
 
 
 def test_a_surface_is_shaded_by_its_own_normals_as_smooth_shading_would():

@@ -12,14 +12,17 @@ from pathlib import Path
 
 import numpy as np
 
+from ..coverage import UNDERSIDE_NZ
 from . import offscreen
 
 VIEWS = ((30.0, 25.0), (150.0, 25.0), (270.0, 25.0), (0.0, 89.0))
 """(azimuth, elevation) degrees of the panels: three around the object and one from above."""
 COVERAGE_VIEWS = VIEWS + ((30.0, -50.0),)
 """The coverage picture's panels: those, and one from below, where a scan from above sees least."""
-COVERAGE_COLOURS = ("#d62728", "#ff9f1c", "#b8c4d0")
-"""Colours of the coverage picture's three classes of surface: seen by no view, by too few, by enough."""
+COVERAGE_COLOURS = ("#d62728", "#ff9f1c", "#b8c4d0", "#5f5f5f")
+"""Colours of the coverage picture's classes of surface: seen by no view, by too few, by enough; and an underside,
+which the report's coverage leaves out (no view from above the table can see it, and none is owed)."""
+UNDERSIDE_CLASS = 3
 
 
 def _add(pl, mesh, data, **style) -> None:
@@ -99,10 +102,12 @@ def coverage_classes(vertex_views: np.ndarray, few_views: int = 3) -> np.ndarray
     return np.where(v <= 0, 0, np.where(v < few_views, 1, 2)).astype(np.float64)
 
 
-def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: int = 260) -> np.ndarray:
+def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: int = 260,
+                    underside: np.ndarray | None = None) -> np.ndarray:
     """The mesh coloured by coverage class (COVERAGE_COLOURS: `coverage_classes` of `vertex_views`, (n_vertices,)
-    int) from each of COVERAGE_VIEWS, side by side: an RGB image (pixels, pixels x panels, 3).
-    offscreen.OffscreenUnavailable where this machine cannot draw off screen."""
+    int; UNDERSIDE_CLASS where `underside`, (n_vertices,) bool, says so) from each of COVERAGE_VIEWS, side by side:
+    an RGB image (pixels, pixels x panels, 3). offscreen.OffscreenUnavailable where this machine cannot draw off
+    screen."""
     from matplotlib.colors import ListedColormap
 
     views = np.asarray(vertex_views)
@@ -111,12 +116,15 @@ def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: 
     pl = offscreen.plotter((1, len(COVERAGE_VIEWS)), (pixels, pixels))
     center, half = offscreen.frame([mesh])
     data = offscreen.polydata(mesh)
-    data.point_data["class"] = coverage_classes(views, few_views)
+    classes = coverage_classes(views, few_views)
+    if underside is not None:
+        classes = np.where(np.asarray(underside, bool), UNDERSIDE_CLASS, classes)
+    data.point_data["class"] = classes
     cmap = ListedColormap(COVERAGE_COLOURS)
     try:
         for c, (az, el) in enumerate(COVERAGE_VIEWS):
             pl.subplot(0, c)
-            offscreen.add_shaded(pl, data, scalars="class", cmap=cmap, clim=(-0.5, 2.5), interpolate_before_map=False,
+            offscreen.add_shaded(pl, data, scalars="class", cmap=cmap, clim=(-0.5, len(COVERAGE_COLOURS) - 0.5), interpolate_before_map=False,
                                  show_scalar_bar=False)
             pl.add_text(f"az {az:.0f} el {el:.0f}", position="upper_left", font_size=7, color="black")
             offscreen.set_view(pl, center, half, az, el)
@@ -135,8 +143,10 @@ def coverage_png(mesh, vertex_views: np.ndarray, path, few_views: int = 3, area_
 
     from .pictures import _plt
 
+    # Where the share leaves the undersides out, so does the picture: grey, not the red of a part no view saw.
+    underside = None if area_views is None else mesh.vertex_normals[:, 2] < UNDERSIDE_NZ
     try:
-        image = coverage_panels(mesh, vertex_views, few_views, pixels)
+        image = coverage_panels(mesh, vertex_views, few_views, pixels, underside)
     except offscreen.OffscreenUnavailable as exc:
         offscreen.warn(f"no {Path(path).name}: {exc}")
         return None
@@ -147,9 +157,12 @@ def coverage_png(mesh, vertex_views: np.ndarray, path, few_views: int = 3, area_
     ax.imshow(image)
     ax.set_axis_off()
     labels = ("seen by no view", f"seen by 1-{few_views - 1} views", f"seen by {few_views} or more views")
-    ax.legend(handles=[Patch(color=colour, label=f"{label}: {share:.0%}")
-                       for label, colour, share in zip(labels, COVERAGE_COLOURS, shares)],
-              loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False)
+    handles = [Patch(color=colour, label=f"{label}: {share:.0%}")
+               for label, colour, share in zip(labels, COVERAGE_COLOURS, shares)]
+    if underside is not None:
+        handles.append(Patch(color=COVERAGE_COLOURS[UNDERSIDE_CLASS], label="underside: not counted"))
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=len(handles), fontsize=8,
+              frameon=False)
     fig.suptitle(f"Where the mesh is measured: views that see each part of it (share of the "
                  f"{'vertices' if area_views is None else 'surface, undersides left out'}); where fewer than "
                  f"{few_views} do, its shape "
