@@ -9,12 +9,13 @@ point the views look at), and the capture is refused when most lie where no surf
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from spadscan.protocol.errors import CaptureError
 
-from .carving.bounds import RADIUS_FRACTION_MAX
+from .carving.bounds import RADIUS_FRACTION_MAX, given_sphere
 from .carving.returns import matched_filter_z
 from .carving.views import summed_views
 
@@ -41,6 +42,11 @@ the point they look at is taken as known: two views 37 degrees apart, one ring o
 elevation. Whole captures have 0.27-0.67; two or three neighbouring views of a capture whose views are turned at
 random (LCSPCData's `_random`) have under 0.03, and their boresights cross wherever the turns put them (a few cm
 from the sensors)."""
+
+MISS_RATIO = 0.25
+"""The point the views look at is known when most views' boresights pass it within this share of their distance
+to it (14 degrees): views turned at random by 10 degrees (LCSPCData's `_random`) do; views aimed at two objects
+half a metre apart miss the point between them by more than half their distance."""
 
 
 @dataclass
@@ -71,6 +77,7 @@ def check_time_axis(capture, record: dict, poses: np.ndarray, counts: np.ndarray
     `record`: the capture's scene record; `poses` (V, 4, 4), `counts` (V, zones, bins) one view per pose, its frames
     summed, `sensor` the model of such a view (`carving.views.summed_views`); `usable` (V, zones): the histograms
     that hold data."""
+    given_sphere(record, Path(capture) / "scan.json")  # a malformed centre or radius said as such, by the file
     places = return_places(record, poses, counts, sensor, usable)
     if places is None or places.share >= IN_SCENE_SHARE:
         return
@@ -134,15 +141,14 @@ def _scene_ranges(record: dict, poses: np.ndarray) -> tuple[np.ndarray | None, n
     none. (None, None) where there is no sphere."""
     origins, axes = poses[:, :3, 3], poses[:, :3, 2]
     spheres = []
-    given = record.get("radius")
-    if "center" in record:
-        centre = np.asarray(record["center"], float)
-        reach = float(given) if given is not None else RADIUS_FRACTION_MAX * _nearest(origins, centre)
+    centre, given = given_sphere(record, "scan.json")
+    if centre is not None:
+        reach = given if given is not None else RADIUS_FRACTION_MAX * _nearest(origins, centre)
         spheres.append((centre, reach))
     looked_at = _looked_at_point(origins, axes)
     if looked_at is not None:  # at least as large as a radius the record gives: the object's size
         reach = RADIUS_FRACTION_MAX * _nearest(origins, looked_at)
-        spheres.append((looked_at, max(reach, float(given)) if given is not None else reach))
+        spheres.append((looked_at, max(reach, given) if given is not None else reach))
     if not spheres:
         return None, None
     near = np.full(len(poses), np.inf)
@@ -163,12 +169,18 @@ def _nearest(origins: np.ndarray, point: np.ndarray) -> float:
 
 def _looked_at_point(origins: np.ndarray, axes: np.ndarray) -> np.ndarray | None:
     """The point nearest to every view's boresight (least squares), or None where the boresights spread too little
-    to meet anywhere known (`BORESIGHT_SPREAD`: a single view, views looking the same way)."""
+    to meet anywhere known (`BORESIGHT_SPREAD`: a single view, views looking the same way), or where they do not
+    meet there (`MISS_RATIO`: views aimed at two objects have a least-squares point between them, nearer than
+    either, and their returns would lie beyond its sphere)."""
     proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
     a, b = proj.mean(0), np.einsum("nij,nj->i", proj, origins) / len(origins)
     if not np.linalg.eigvalsh(a)[0] >= BORESIGHT_SPREAD:
         return None
-    return np.linalg.solve(a, b)
+    point = np.linalg.solve(a, b)
+    to = point - origins
+    miss = np.linalg.norm(np.einsum("nij,nj->ni", proj, to), axis=1)
+    along = np.maximum(np.einsum("ij,ij->i", to, axes), 1e-9)
+    return point if np.median(miss / along) <= MISS_RATIO else None
 
 
 __all__ = ["STRONG_Z", "IN_SCENE_SHARE", "ReturnPlaces", "check_time_axis", "return_places", "scene_views"]

@@ -93,6 +93,41 @@ def test_the_baselines_refuse_it_as_the_time_axis_too(cylinder_capture, tmp_path
     assert "space carving" not in err and not (tmp_path / "out").exists(), err
 
 
+def with_scene(capture, out, **changes):
+    """A copy of `capture` at `out` whose scan.json's scene record has `changes`."""
+    shutil.copytree(capture, out)
+    manifest = json.loads((out / "scan.json").read_text())
+    manifest.setdefault("scene", {}).update(changes)
+    (out / "scan.json").write_text(json.dumps(manifest))
+    return out
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "baseline"])
+@pytest.mark.parametrize("changes, said", [({"center": [0, 0.1]}, "scene center [0, 0.1] is not a finite 3-vector"),
+                                           ({"radius": "big"}, "scene radius big must be a positive number")])
+def test_a_malformed_scene_sphere_is_one_line_in_both_commands(cylinder_capture, tmp_path, capsys, command, changes,
+                                                               said):
+    cap = with_scene(cylinder_capture, tmp_path / "cap", **changes)
+    argv = ([command, str(cap)] if command == "reconstruct" else [command, "space-carving", str(cap)])
+    code = cli_main([*argv, "--out", str(tmp_path / "out"), "--no-gt",
+                     *(["--steps", "2", "--no-progress"] if command == "reconstruct" else [])])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and "Traceback" not in err and said in err.splitlines()[-1], err
+
+
+def test_views_aimed_at_two_objects_are_not_refused(cylinder_capture):
+    """Two rings of views half a metre and a metre apart, each aimed at its own object: the point nearest every
+    boresight lies between the objects, nearer than either, and their returns were refused as beyond its sphere.
+    Their boresights miss that point by more than MISS_RATIO: no point looked at is known, nothing is refused."""
+    record, poses, counts, sensor, usable = scene_views(load_scene(cylinder_capture))
+    for apart in (0.5, 1.0):
+        moved = poses.copy()
+        moved[:, 0, 3] += apart
+        both = np.concatenate([poses, moved])
+        assert return_places({}, both, np.concatenate([counts, counts]), sensor) is None
+        check_time_axis(cylinder_capture, {}, both, np.concatenate([counts, counts]), sensor)
+
+
 def test_the_live_fit_refuses_it_too(cylinder_capture, tmp_path):
     """A live fit tests the views so far with `check_returns`, as the final run does."""
     cap = with_sensor(cylinder_capture, tmp_path / "cap", bin_width_m=1.0)

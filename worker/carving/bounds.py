@@ -14,6 +14,26 @@ from .returns import DEFAULT_THRESHOLD, FirstReturns, first_returns
 
 RADIUS_FRACTION_MAX = 0.8
 """A scene's sphere never reaches closer to a sensor than this fraction of its distance to the sphere's centre."""
+def given_sphere(scene: dict, where) -> tuple[np.ndarray | None, float | None]:
+    """(centre (3,), radius m) of the sphere a capture's scene record gives, each None where it gives none;
+    CaptureError naming `where` for a centre that is no finite 3-vector or a radius that is no positive number."""
+    center = radius = None
+    if "center" in scene:
+        try:
+            center = np.asarray(scene["center"], dtype=float)
+        except (TypeError, ValueError):
+            center = None
+        if center is None or center.shape != (3,) or not np.all(np.isfinite(center)):
+            raise CaptureError(f"{where}: scene center {scene['center']} is not a finite 3-vector")
+    if "radius" in scene:
+        value = scene["radius"]
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+        if not ok:
+            raise CaptureError(f"{where}: scene radius {value} must be a positive number of metres")
+        radius = float(value)
+    return center, radius
+
+
 BELOW_FLOOR_M = 0.005
 """A first return comes from clearly below a floor when the whole of its zone's field of view lies more than this
 (or two bins, where that is more) under the floor at its range."""

@@ -31,7 +31,7 @@ from spadscan.protocol.plausibility import implausible, survey_counts
 from spadscan.protocol.sensor_model import SensorModel
 
 from ..capture_kind import is_measured
-from ..carving.bounds import RADIUS_FRACTION_MAX
+from ..carving.bounds import RADIUS_FRACTION_MAX, given_sphere
 from ..pulse import pulse_kernel
 from ..table_height import TablePlane, named_table
 
@@ -193,13 +193,10 @@ def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: Se
     distance."""
     origins, axes = poses[:, :3, 3], poses[:, :3, 2]
     points = first_returns(counts, poses, sensor)
-    if "center" in scene:
-        center = np.asarray(scene["center"], float)
-        if center.shape != (3,) or not np.all(np.isfinite(center)):
-            raise CaptureError(f"{where}: scene center {scene['center']} is not a finite 3-vector")
-    elif len(points) >= 3:
+    center, given_radius = given_sphere(scene, where)
+    if center is None and len(points) >= 3:
         center = np.median(points, axis=0)
-    else:
+    elif center is None:
         # The point nearest to every boresight line: sum (I - d d^T) (x - o) = 0.
         proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
         a, b = proj.sum(0), np.einsum("nij,nj->i", proj, origins)
@@ -211,10 +208,8 @@ def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: Se
             center = (origins + axes * min(0.3, 0.5 * sensor.max_range_m)).mean(0)
     dist = np.linalg.norm(origins - center, axis=1)
     note = None
-    if "radius" in scene:
-        radius = float(scene["radius"])
-        if not (np.isfinite(radius) and radius > 0):
-            raise CaptureError(f"{where}: scene radius {scene['radius']} must be a positive number of metres")
+    if given_radius is not None:
+        radius = given_radius
     elif len(points) >= 3:
         reach = np.linalg.norm(points - center, axis=1)
         spread, far = float(np.percentile(reach, 90)), float(reach.max())
