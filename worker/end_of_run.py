@@ -224,6 +224,12 @@ def late_drop(data_terms) -> float | None:
     return (before - last) / before if before > 0 else None
 
 
+def too_short(data_terms) -> bool:
+    """Whether a run's data terms are too few to tell a trend (MIN_TREND_STEPS): not whether `late_drop` could
+    read them (a run of thousands of steps with a term that is not finite is no short one)."""
+    return sum(x is not None for x in data_terms) < MIN_TREND_STEPS
+
+
 def late_drop_error(data_terms) -> float:
     """The standard error of `late_drop` from the steps' scatter within the two fifths (0 where it is None)."""
     d = np.asarray([x for x in data_terms if x is not None], np.float64)
@@ -430,7 +436,7 @@ def warnings(facts: RunFacts) -> list[str]:
         limit = "time budget" if facts.stopped_by == "budget" else "step count"
         flag = "--budget-s" if facts.stopped_by == "budget" else "--steps"
         if drop is None:
-            if not facts.continued:
+            if not facts.continued and too_short(facts.data_terms):
                 out.append(f"the run stopped on its {limit} after only {facts.steps} step(s), before its fit could "
                            f"settle: the mesh is a rough early state (a larger {flag} gives a better one)")
         elif drop >= STILL_FALLING:
@@ -470,7 +476,7 @@ def early_note(facts: RunFacts) -> str:
     """What the shape's doubts of a run stopped before its fit could settle (too few steps to tell a trend: its
     budget, its step count or Ctrl-C) add: that the shortness alone may explain them. '' for any other run."""
     if (facts.stopped_by not in ("budget", "steps", "interrupted") or facts.continued or converged(facts)
-            or late_drop(facts.data_terms) is not None):
+            or not too_short(facts.data_terms)):
         return ""
     return f" (the fit stopped after only {facts.steps} step(s): that alone may explain this; run it longer first)"
 

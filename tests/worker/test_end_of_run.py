@@ -303,6 +303,10 @@ def test_the_doubts_about_a_rough_early_states_shape_say_that_its_shortness_may_
     assert "rough early state" in early and len(doubts) == 2
     assert all(d.endswith("(the fit stopped after only 1 step(s): that alone may explain this; run it longer first)")
                for d in doubts), doubts
+    unreadable = [float(x) for x in np.linspace(2.0, 1.0, 5000)]
+    unreadable[100] = float("nan")  # a long run whose trend cannot be read is no short one
+    said = warnings(RunFacts("budget", 5000, None, unreadable, fit=wrong, pieces=broken))
+    assert not any("only 5000" in line for line in said), said
     speckled = Pieces(count=1, share_apart=0.0, specks=400, specks_share=0.2)
     (_, specks) = warnings(RunFacts("budget", 1, False, [1.0], pieces=speckled))
     assert "specks" in specks and "stopped after only" not in specks, "its own line says a longer run hardly helps"
