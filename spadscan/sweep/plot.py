@@ -201,6 +201,7 @@ def _base_panel(ax, results: SweepResults, rows: list[dict]) -> None:
     for m, method in enumerate(results.methods):
         pts = [(m, results.method_value(r, method), bool(results.method_warnings(r, method)))
                for r in rows if not results.method_failed(r, method)]
+        pts = [p for p in pts if p[1] is not None]  # done without a figure (no ground truth to score it on)
         if pts:
             _draw(ax, method, pts, "o", "none")
             drawn.extend(p[1] for p in pts)

@@ -126,6 +126,16 @@ def test_a_sweep_without_a_grid_draws_each_methods_chamfer_at_the_base(tmp_path)
     assert "the base condition alone" in page
 
 
+def test_a_base_result_done_without_a_figure_is_left_out_of_the_base_panel(tmp_path):
+    """A method done without a Chamfer (no ground truth scored it) has no point to draw: it was formatted as one."""
+    rows = [row("base", "p0", {"fast": 3.8, "reprojection": 20.0})]
+    rows[0]["reprojection_chamfer_mm"] = ""
+    results = SweepResults(folder=tmp_path, mode="one-at-a-time", grid={}, base={"views": 16}, scenes=["s"],
+                           methods=METHODS, presets=["fast"], rows=rows)
+    (ax,) = [a for a in figure(results, "s").axes if a.get_visible()]
+    assert [line.get_marker() for line in markers_at(ax, 0)] == ["o"] and not markers_at(ax, 1)
+
+
 def test_the_page_marks_warnings_and_a_threshold_at_the_edge_in_a_browser(tmp_path):
     page_path = write_page(one_axis(tmp_path), {}, tmp_path)
     with browser_page() as (page, seen):
