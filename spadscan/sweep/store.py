@@ -51,8 +51,8 @@ PRESET_COLUMNS = ("steps", "stopped_by")
 BASELINE_COLUMNS = ("threshold",)
 PRESET_END_COLUMNS = ("converged", "warning_count", "warnings")
 BASELINE_END_COLUMNS = ("threshold_edge", "warning_count", "warnings")
-"""How each method's run ended, after its other columns: `converged` (True or False, a preset's), `warning_count`
-(0 for a clean run) and `warnings` (its one-line warnings joined by WARNINGS_JOIN), empty where the method gave no
+"""How each method's run ended, after every method's other columns: `converged` (True or False, a preset's),
+`warning_count` (0 for a clean run) and `warnings` (its one-line warnings joined by WARNINGS_JOIN), empty where the method gave no
 result or its record predates them; `threshold_edge` ('lowest', 'highest' or 'only': the calibrated threshold is at
 the end of the thresholds tried, so one beyond them might have done better)."""
 WARNINGS_JOIN = " | "
@@ -196,9 +196,12 @@ class SweepDir:
         """Gather every grid entry of `plan` that has a result into results.csv (atomically); returns the rows."""
         methods = plan.spec.methods
         header = ["scene", "axis", "value", "point", "status", "reason", *PARAM_COLUMNS, "bin_mm"]
+        presets = {p.name for p in plan.spec.presets}
         for m in methods:
-            extra = method_columns(m in {p.name for p in plan.spec.presets})
+            extra = PRESET_COLUMNS if m in presets else BASELINE_COLUMNS
             header += [f"{column_name(m)}_{c}" for c in ("status", *METRIC_COLUMNS, *extra)]
+        for m in methods:  # after every earlier column: a script that reads them by position reads them as before
+            header += [f"{column_name(m)}_{c}" for c in end_columns(m in presets)]
         buf = io.StringIO()
         writer = csv.writer(buf, lineterminator="\n")
         writer.writerow(header)
@@ -340,15 +343,19 @@ def results_row(entry, result: dict, methods, spec) -> list:
            _cell(bin_mm)]
     for m in methods:
         r = result.get("methods", {}).get(m, {})
+        extra = PRESET_COLUMNS if m in presets else BASELINE_COLUMNS
+        row += [r.get("status", "not run"), *(_cell(r.get(c)) for c in (*METRIC_COLUMNS, *extra))]
+    for m in methods:
+        r = result.get("methods", {}).get(m, {})
         ended = ending_cells(r)
-        row += [r.get("status", "not run"), *(_cell(ended[c] if c in ended else r.get(c))
-                                              for c in (*METRIC_COLUMNS, *method_columns(m in presets)))]
+        row += [_cell(ended[c] if c in ended else r.get(c)) for c in end_columns(m in presets)]
     return row
 
 
-def method_columns(preset: bool) -> tuple[str, ...]:
-    """A method's columns after its status and metrics."""
-    return (*PRESET_COLUMNS, *PRESET_END_COLUMNS) if preset else (*BASELINE_COLUMNS, *BASELINE_END_COLUMNS)
+def end_columns(preset: bool) -> tuple[str, ...]:
+    """How a method's run ended: its columns, which follow every method's others (the columns of earlier versions
+    keep their places)."""
+    return PRESET_END_COLUMNS if preset else BASELINE_END_COLUMNS
 
 
 def method_warnings(record: dict) -> list[str] | None:
