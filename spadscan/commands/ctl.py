@@ -16,8 +16,8 @@
 
 `scan`, `pause`, `resume`, `abort` and `shutdown` answer in one line for people: the scan in hand, its state and its
 pose i/n (`scan 'bunny' paused at pose 38/128: paused by user`); with --json they print the daemon's whole
-reply as one line of JSON instead. `status` and `wait` always print JSON; `status` takes --json too, so that a
-script may pass it to every operation. With --json a refusal, or no daemon answering, is printed on standard output
+reply as one line of JSON instead. `status` and `wait` always print JSON; `status` takes --json too (then on one
+line), so that a script may pass it to every operation. With --json a refusal, or no daemon answering, is printed on standard output
 as {"ok": false, "error": ...} too, beside its error line on stderr and exit status 1.
 
 The live reconstruction (`spadscan worker --live`) is read from the scan's recon/live/status.json, beside the daemon:
@@ -190,8 +190,8 @@ def add_arguments(parser) -> None:
     wait.add_argument("name", metavar="NAME", help="the scan's name (its folder under the captures root)")
     shutdown = op("shutdown", "stop the daemon; a scan in flight stays resumable")
     status.add_argument("--json", action="store_true",
-                        help="the same JSON as without it (accepted so that scripts may pass --json to every "
-                             "operation); a refusal, or no daemon answering, is printed as {\"ok\": false, "
+                        help="the same JSON as without it, on one line (as every operation's --json prints its "
+                             "reply); a refusal, or no daemon answering, is printed as {\"ok\": false, "
                              "\"error\": ...} too, beside its error line and exit status 1")
     for answering in (scan, pause, resume, abort, shutdown):  # what they did, in one line for people
         answering.add_argument("--json", action="store_true",
@@ -225,8 +225,8 @@ def run(args) -> int:
         live = live_status(reply)
         if live is not None:
             reply["live"] = live
-    if args.op == "status":
-        print(json.dumps(reply, indent=1))
+    if args.op == "status":  # for people, indented; with --json one line, as every operation's --json
+        print(json.dumps(reply) if args.json else json.dumps(reply, indent=1))
     else:
         print(json.dumps(reply) if args.json else reply_line(args.op, reply))
     if args.op == "abort" and reply.get("abort_recorded") is False:

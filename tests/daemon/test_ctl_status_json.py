@@ -22,7 +22,7 @@ STATUS = {"ok": True, "state": "scanning", "scan": "mug", "pose": 3, "poses": 12
           "started_utc": "2026-01-02T03:04:05.678+00:00"}
 
 
-def test_status_takes_json_and_prints_the_same_json(tmp_path, monkeypatch, capsys):
+def test_status_takes_json_and_prints_the_same_json_on_one_line(tmp_path, monkeypatch, capsys):
     """Scripts pass --json to every operation: `status` refused it (argparse, exit 2)."""
     import spadscan.daemon.client as client
 
@@ -31,8 +31,8 @@ def test_status_takes_json_and_prints_the_same_json(tmp_path, monkeypatch, capsy
     plain = capsys.readouterr()
     assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "status", "--json"]) == 0
     with_json = capsys.readouterr()
-    assert with_json.out == plain.out and with_json.err == plain.err == ""
-    assert json.loads(with_json.out) == {k: v for k, v in STATUS.items() if k != "ok"}
+    assert with_json.err == plain.err == "" and with_json.out.count("\n") == 1, "one line, as every --json"
+    assert json.loads(with_json.out) == json.loads(plain.out) == {k: v for k, v in STATUS.items() if k != "ok"}
 
 
 def stale_socket(folder: Path) -> str:
