@@ -29,14 +29,15 @@ def nothing_starts(monkeypatch):
 
 
 BUDGET_RULE = "must be a number of seconds > 0 and at most 604800 (a week)"
+NOT_FINITE = "--budget-s: time budget is not a finite number of seconds: it must be > 0 and at most 604800 (a week)"
 """The worker's rule for a time budget, as the demo says it."""
 
 
 @pytest.mark.parametrize("changes, message", [
     ({"budget_s": 0.0}, f"--budget-s: time budget 0.0 s {BUDGET_RULE}"),
     ({"budget_s": -3.0}, f"--budget-s: time budget -3.0 s {BUDGET_RULE}"),
-    ({"budget_s": float("inf")}, "--budget-s: time budget is not a finite number of seconds: it must be > 0 and at most 604800 (a week)"),
-    ({"budget_s": float("nan")}, "--budget-s: time budget is not a finite number of seconds: it must be > 0 and at most 604800 (a week)"),
+    ({"budget_s": float("inf")}, NOT_FINITE),
+    ({"budget_s": float("nan")}, NOT_FINITE),
     ({"budget_s": 1e9}, f"--budget-s: time budget 1000000000.0 s {BUDGET_RULE}"),
     ({"budget_s": None}, "--budget-s: a time budget is needed"),
     ({"views": MOST_VIEWS + 1}, f"--views {MOST_VIEWS + 1} must be an integer in [4, {MOST_VIEWS}]"),

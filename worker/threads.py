@@ -8,8 +8,8 @@ reconstructions of two threads each on the two cores run 20 to 40 times slower (
 one thread each (39-46 ms).
 
 So a CPU reconstruction chooses its threads as it runs (`ThreadGovernor`): it starts with one thread, times its
-steps with it and with all the threads it may use, keeps the faster, and tries the other again from time to time (sooner when its steps
-suddenly slow down), since other processes come and go.
+steps with it and with all the threads it may use, keeps the faster, and tries the other again from time to time
+(sooner when its steps suddenly slow down), since other processes come and go.
 
 How its OpenMP threads wait for each other is set before torch starts (`wait_env`), for the job processes and by
 `spadscan reconstruct`. A thread that spins while its partner has lost its core takes that core from the partner;

@@ -81,7 +81,8 @@ def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid,
             # sub-packet headers excluded either way
             size = (30 - k) * 128 if size_field == "remaining" else 30 * 128
             records.append((0x08, bytes([0x81, next_tid(), size & 0xFF, size >> 8, k, 128, 0]) + plane))
-    head = bytearray([0x10, next_tid(), 128 + 36 * diagnostics, 0, result["result_no"], result["temperature_c"] & 0xFF, 9, 0])
+    head = bytearray([0x10, next_tid(), 128 + 36 * diagnostics, 0, result["result_no"],
+                      result["temperature_c"] & 0xFF, 9, 0])
     head += b"".join(int(v).to_bytes(4, "little") for v in (1000, 200_000, 50_000, result["systick"]))
     body = b"".join(bytes([c]) + int(d).to_bytes(2, "little")
                     for c, d in zip(result["confidences"], result["distances_mm"]))

@@ -99,7 +99,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="CPU threads, kept for the whole run (default: OMP_NUM_THREADS if set; else the "
                              "cores' threads or one, whichever makes faster steps, chosen as the run goes); threads "
-                             "that outnumber the cores make every step many times slower; give it to repeat a run exactly")
+                             "that outnumber the cores make every step many times slower; give it to repeat a run "
+                             "exactly")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the result already in --out: the files its report.json lists that this run "
                              "does not write again are removed, and, in a worker job's result (one that holds "

@@ -124,7 +124,8 @@ def coverage_panels(mesh, vertex_views: np.ndarray, few_views: int = 3, pixels: 
     try:
         for c, (az, el) in enumerate(COVERAGE_VIEWS):
             pl.subplot(0, c)
-            offscreen.add_shaded(pl, data, scalars="class", cmap=cmap, clim=(-0.5, len(COVERAGE_COLOURS) - 0.5), interpolate_before_map=False,
+            offscreen.add_shaded(pl, data, scalars="class", cmap=cmap, clim=(-0.5, len(COVERAGE_COLOURS) - 0.5),
+                                 interpolate_before_map=False,
                                  show_scalar_bar=False)
             pl.add_text(f"az {az:.0f} el {el:.0f}", position="upper_left", font_size=7, color="black")
             offscreen.set_view(pl, center, half, az, el)
