@@ -1,20 +1,32 @@
-"""One line for the operator about what went wrong in the daemon: a write error (a full disk named as such), a device
-fault, or our own error's message; and what slows it (an arm's speed slider)."""
+"""One line for the operator about what went wrong in the daemon: a write error (a full disk named as such, a file
+larger than the daemon's file-size limit told apart from it), a device fault, or our own error's message; what to
+do about a write error (`write_advice`); and what slows a move (an arm's speed slider)."""
 
 from __future__ import annotations
 
 import errno
+import os
+import resource
 
 from spadscan.protocol.errors import SpadscanError
 
 from .devices import ArmFault, LinkLost, SensorSilent
 
+FULL = (errno.ENOSPC, errno.EDQUOT)
+"""The errnos of a disk (or a quota) that has no room left."""
+NOT_WRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
+"""The errnos of a captures' folder the daemon may not write (a disk remounted read-only, permissions)."""
+
 
 def describe(exc: BaseException, doing: str = "publishing") -> str:
     """`exc` said in one line; `doing`: what the daemon was doing when an OSError struck ("while <doing>")."""
     if isinstance(exc, OSError):
-        what = "disk full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else "write error"
         where = f" ({exc.filename})" if exc.filename else ""
+        if exc.errno == errno.EFBIG:  # not a full disk: the process may not write a file that large (ulimit -f)
+            limit = file_size_limit()
+            said = f"; the daemon may write files of at most {limit} bytes (ulimit -f)" if limit is not None else ""
+            return f"file too large while {doing}: {exc.strerror or exc}{where}{said}"
+        what = "disk full" if exc.errno in FULL else "write error"
         return f"{what} while {doing}: {exc.strerror or exc}{where}"
     if isinstance(exc, SensorSilent):
         return f"sensor silent: {exc}"
@@ -25,8 +37,41 @@ def describe(exc: BaseException, doing: str = "publishing") -> str:
     return str(exc) if isinstance(exc, SpadscanError) else f"{type(exc).__name__}: {exc}"
 
 
+def write_advice(exc: OSError) -> str:
+    """What the operator does about write error `exc` before `spadscan ctl resume`, as a clause ending in it."""
+    if exc.errno in FULL:
+        fix = "make room on the captures' disk"
+    elif exc.errno == errno.EFBIG:
+        fix = _raise_file_size_limit()
+    elif exc.errno in NOT_WRITABLE:
+        fix = "make the captures' folder writable"
+    else:
+        fix = "check the captures' disk (the kernel log names a failing one)"
+    return f"{fix}, then `spadscan ctl resume`"
+
+
+def _raise_file_size_limit() -> str:
+    """How the operator raises this process's file-size limit: `prlimit` on the running daemon while its hard limit
+    allows more (no restart: the paused scan goes on), else only a daemon started with a higher one can (`ulimit -f`
+    sets both limits; raising a hard limit takes privileges)."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    if soft != resource.RLIM_INFINITY and (hard == resource.RLIM_INFINITY or hard > soft):
+        to = "unlimited" if hard == resource.RLIM_INFINITY else str(hard)
+        return f"raise the daemon's file-size limit (`prlimit --pid {os.getpid()} --fsize={to}`)"
+    return ("start the daemon again with a higher file-size limit (`ulimit -f` where it is started, systemd's "
+            "LimitFSIZE=)")
+
+
+def file_size_limit() -> int | None:
+    """The largest file (bytes) this process may write (RLIMIT_FSIZE, `ulimit -f`); None when unlimited."""
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
 SLIDER_FULL = 0.995
 """An arm's speed slider at or above this reads as 100 % (a controller reports a float)."""
+SLIDER_FLOOR = 0.01
+"""The slowest pace a move's time limit is counted at (a slider at 0 % would stretch it without end)."""
 
 
 def slider_note(fraction: float) -> str:

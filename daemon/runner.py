@@ -9,10 +9,14 @@ being captured, nothing else), and a pose counts only once its chunk is publishe
 
 Faults pause the scan with the reason in `status`: a silent sensor (SensorSilent; not when the daemon itself was not
 running meanwhile, `stall.py`: that wait begins again), frames that all began too early (FramesTooEarly), a safety
-stop or lost link (ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError). The
-writer is then dropped and reopened on resume, which continues at the first unpublished pose
-(`CaptureWriter.next_pose_index`). A safety stop that comes while the arm stands at a pose is named in the reason
-(emergency, protective or safeguard stop, `arm/stops.py`), with what clears it. Before the first move after a
+stop or lost link (ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError); the
+reason says, on one line, what the operator does before `ctl resume` (`_advice`). The writer is then dropped; every
+resume reopens the capture (counting what it holds on disk: a chunk moved out meanwhile is taken again) and writes
+a pose's worth of files to check for room (`_no_room`) before it replies, and continues at the first unpublished
+pose (`CaptureWriter.next_pose_index`). A safety stop that comes while the arm stands at a pose is named in the
+reason (emergency, protective or safeguard stop, `arm/stops.py`), with what clears it, and when it was found: as
+the move ended or the arm settled, or while the pose was captured. A move's limit, move_timeout_s, counts motion
+time at the pace of the arm's speed slider (`_MoveClock`). Before the first move after a
 resume the arm is readied: after LinkLost, or whenever its link is found down then, whatever paused the scan, it
 reconnects (`Arm.reconnect`: fresh interfaces); after ArmFault `Arm.clear_fault` runs (the sim arm clears its
 safety stop; a real UR arm's stop is cleared by the operator before `ctl resume`, and the arm uploads its control
@@ -37,6 +41,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -44,15 +49,16 @@ from pathlib import Path
 
 import numpy as np
 
-from spadscan.protocol.capture_format import MANIFEST, Measurement, read_json
+from spadscan.protocol.atomic_files import write_durable
+from spadscan.protocol.capture_format import MANIFEST, TMP_PREFIX, Measurement, one_line, read_json
 from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
 from .abort_book import FOLDER_GONE, AbortBook
 from .config import DaemonConfig, scan_request
 from .arm.stops import clear_advice, stop_name
-from .describe import SLIDER_FULL, describe, slider_note
-from .devices import Arm, ArmFault, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
+from .describe import FULL, SLIDER_FLOOR, SLIDER_FULL, describe, slider_note, write_advice
+from .devices import Arm, ArmFault, ArmState, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abort_pending, check_scan_name,
                        clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
                        load_job, way_out)
@@ -68,15 +74,72 @@ FRAME_GRACE_S = 2.0  # extra time a sensor gets beyond its own timeout before th
 PUBLISH_TIMEOUT_S = 60.0  # how long publishing one pose (fsyncs, rename) may take
 READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting) may take
 ARM_FIXES = {"reconnect": "reconnecting", "clear": "clearing its fault"}  # what readying the arm does, said
+ARM_LINK_CHECK = "check the network to the arm's controller and that the controller is on"  # for a lost arm link
 CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controller for one pose before its fallback
 ON_PATH_M = 0.01  # an arm this close to a straight move between two poses of a scan's path stands on that path
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
 TAKING_FRAMES = ("scanning", "pausing")  # the states in which a scan takes frames ("pausing": the pose in flight)
 RATE_UNIT = "frames/s"  # what status's rate_hz counts (each pose takes frames_per_pose of them), said beside it
+MOVE_TICK_S = 0.05  # how often a move's time limit is set again from the arm's speed slider (`_MoveClock`)
+ROOM_PROBE = f"{TMP_PREFIX}room-check"  # the hidden folder a resume writes a pose's worth of files into (`_no_room`)
+META_BYTES = 4096  # what a frame's record in a chunk's meta.json may take, at most (depths, confidences, extra)
+SENSOR_LINK_WAIT = "`spadscan ctl resume` once the sensor's link is back (the scan does not go on by itself)"
+SENSOR_LINK_BACK = "the sensor's link is back now: `spadscan ctl resume`"
+"""What a pause for the sensor's lost link tells the operator to do while it is down, and once it is back."""
 
 
 class _Fault(SpadscanError):
     """A fault that pauses the scan; its message is the pause reason."""
+
+
+class _SensorLinkLost(LinkLost):
+    """The sensor's link is down (LinkLost from the sensor): told apart from the arm's, which calls for other
+    advice."""
+
+
+class _MoveClock:
+    """A move's time limit (`limit_s`, move_timeout_s) counted in motion time: wall time at the pace of the arm's
+    speed slider as the arm last read it (`slider`: a fraction, None for an arm without one: full pace), so that
+    at 5 % a second counts 0.05 s; never slower than SLIDER_FLOOR. A UR arm reads its slider at every poll of a
+    move, so the pace follows the pendant within a poll; the limit is set again every MOVE_TICK_S (`follow`)."""
+
+    def __init__(self, limit_s: float, slider):
+        self.limit_s, self._slider = float(limit_s), slider
+        self._loop = asyncio.get_running_loop()
+        self.begun = self._last = self._loop.time()
+        self.spent = 0.0  # motion time (s) counted up to self._last
+        self.pace = self.slowest = self._read()
+
+    def _read(self) -> float:
+        slider = self._slider()
+        return 1.0 if slider is None else min(1.0, max(SLIDER_FLOOR, float(slider)))
+
+    def deadline(self) -> float:
+        """When the limit runs out at the pace read now (the event loop's clock). The time since the last call
+        counts at the slower of the paces read then and now: a move slowed meanwhile is never cut short."""
+        now, pace = self._loop.time(), self._read()
+        self.spent += (now - self._last) * min(pace, self.pace)
+        self._last, self.pace, self.slowest = now, pace, min(self.slowest, pace)
+        return now + max(0.0, self.limit_s - self.spent) / pace
+
+    async def follow(self, limit: asyncio.Timeout) -> None:
+        """Set `limit` (the move's asyncio timeout) again every MOVE_TICK_S, until it expires."""
+        while True:
+            await asyncio.sleep(MOVE_TICK_S)
+            if limit.expired():
+                return
+            limit.reschedule(self.deadline())
+
+    def timed_out(self, arm: str, i: int) -> str:
+        """Why the move to pose i was stopped, with what to do: one that the speed slider slowed names it."""
+        said = f"{arm}: move to pose {i} did not finish within {self.limit_s:g} s (move_timeout_s)"
+        if self.slowest < SLIDER_FULL:
+            now = self._read()
+            slider = (f"at {now * 100:.3g} %" if now < SLIDER_FULL else
+                      f"down to {self.slowest * 100:.3g} % during the move")
+            said += (f" of motion, counted at the pace of the pendant's speed slider ({slider}; "
+                     f"{self._loop.time() - self.begun:.1f} s in all)")
+        return f"{said}; see on the teach pendant what holds the arm up, then `spadscan ctl resume`"
 
 
 class ScanRunner:
@@ -95,6 +158,7 @@ class ScanRunner:
         self._resume = asyncio.Event()
         self._pause_requested = False
         self._starting = False
+        self._resume_checks = 0  # resumes whose checks (`_check_resumable`) are under way
         self._interrupted_op: str | None = None
         """What is being done to an interrupted scan the daemon does not hold ("taken over": `ctl resume NAME`;
         "aborted": `ctl abort NAME`), or None. One at a time: a takeover that read the scan while an abort was being
@@ -145,8 +209,12 @@ class ScanRunner:
             # The link went down while no scan ran (a controller rebooted, a cable re-plugged): a new scan reconnects
             # first, as a resumed one does, rather than being refused until the daemon restarts.
             log.info("scan %s: %s: the link is down (%s); reconnecting", name, self.arm.name, exc)
-            await self._reconnect_arm("reconnect")
-            start = (await self._arm_state()).tcp_pose
+            try:
+                await self._reconnect_arm("reconnect")
+                start = (await self._arm_state()).tcp_pose
+            except LinkLost as still:
+                raise LinkLost(f"cannot start scan {name!r}: {one_line(still)}; {ARM_LINK_CHECK}, then start the "
+                               f"scan again") from None
         plan = await asyncio.to_thread(build_plan, scan, self.cfg.arm, start_tcp=start, where=f"scan {name!r}")
         try:
             await self.arm.check_poses(plan.tcp_poses)  # the controller's own limits, before anything is created
@@ -201,7 +269,7 @@ class ScanRunner:
     async def _take_over(self, path: Path, auto_resume: bool) -> bool:
         """Take the interrupted scan at `path` over, paused (resumed when auto_resume allows); False when it cannot
         be (`stuck`, and last_error with the reason and what the operator can do)."""
-        reopen_error = None
+        reopen_error = reopen_fix = None
         try:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
                                           rig_now=self.rig, scene_now=self.scene)
@@ -211,6 +279,7 @@ class ScanRunner:
                 job.record_progress(job.writer)
             except OSError as exc:  # a full disk: take the scan over all the same, paused until room is made
                 reopen_error = describe(exc, "reopening the capture")
+                reopen_fix = "make room, then `spadscan ctl resume`" if exc.errno in FULL else write_advice(exc)
                 await asyncio.to_thread(job.count_published)
             if job.blocked is None:
                 # In a thread: thousands of poses take seconds, and the event loop must keep kicking the arm's
@@ -236,7 +305,7 @@ class ScanRunner:
                                                 if owed else ""))
         if reopen_error and not job.blocked:
             job.reason = self.last_error = (f"interrupted at pose {self._progress()} (daemon restarted), and "
-                                            f"{reopen_error}; make room, then `spadscan ctl resume`" +
+                                            f"{reopen_error}; {reopen_fix}" +
                                             (f", which takes pose(s) {owed} again first (missing from the capture)"
                                              if owed else ""))
         log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
@@ -326,9 +395,18 @@ class ScanRunner:
         elif self.state == "paused" and job is not None:
             if job.blocked:
                 raise ConfigError(f"cannot resume scan {job.name!r}: {job.blocked}")
-            await self._check_resumable(job)
+            self._resume_checks += 1
+            try:
+                await self._check_resumable(job)
+                await self._read_arm()
+            finally:
+                # A scan task waiting for the outcome (`_wait_resume`) runs after this call's next await at the
+                # earliest: by then a resume that goes on has set `_resume`, and one refused has not.
+                self._resume_checks -= 1
+                self._notify()
             if self.job is not job or self.state != "paused":  # an abort, another resume came meanwhile
                 return await self.resume(name)
+            self._sensor_link_back(job)
             log.info("scan %s: resumed at pose %s%s", job.name, self._progress(),
                      f" (was paused: {job.reason})" if job.reason else "")
             self._resume.set()
@@ -341,22 +419,37 @@ class ScanRunner:
     async def _check_resumable(self, job: ScanJob) -> None:
         """Before a paused scan goes on: a cause the daemon knows cheaply to persist refuses the resume at once, the
         scan left paused with that cause as its reason (a reply of 'scanning' that a pause follows a moment later
-        would be untrue): the sensor's link down (it reconnects by itself), a capture that cannot be reopened (a
-        full disk, its folder removed). A capture reopened here is the one the scan goes on with. What the resumed
-        run fixes by itself (the arm's link: it reconnects) is left to it."""
+        would be untrue), and the arm is not moved: the sensor's link down (it reconnects by itself), a capture that
+        cannot be reopened (a full disk, its folder removed), a disk with no room for the next pose's chunk
+        (`_no_room`: reopening alone may fit, as the half-written chunk it drops frees a little). The capture is
+        reopened whether or not the daemon still holds it: what it holds on disk is counted again, so that a chunk
+        moved out of it while the scan was paused (damaged) is taken again first (`CaptureWriter.retakes`). The
+        writer reopened here is the one the scan goes on with. What the resumed run fixes by itself (the arm's link:
+        it reconnects) is left to it."""
         link = self.sensor.counters().get("link")
         if link == "down":
             self._refuse_resume(job, f"the link to {self.sensor.name} is down (it reconnects by itself); resume once "
                                      f"`spadscan ctl status` shows its link up")
-        if job.writer is not None:
-            return
         try:
             writer = await self._io(CaptureWriter.resume, job.path)
         except (OSError, CaptureError) as exc:
             self._refuse_resume(job, _reopen_problem(job, exc))
-        if self.job is job and self.state == "paused" and job.writer is None:
-            job.writer = writer
-            job.record_progress(writer)
+        if self.job is not job or self.state != "paused":  # an abort, another resume came meanwhile
+            return
+        job.writer = writer
+        job.record_progress(writer)
+        full = await self._io(_no_room, job, self.sensor.model)
+        if full is not None:
+            self._refuse_resume(job, full)
+
+    async def _read_arm(self) -> None:
+        """Read the arm once before a resume's reply: a paused arm is not read, and the reply's speed slider
+        (`status`) would be the one read before the pause. A link found down is left to the resumed run, which
+        reconnects it."""
+        try:
+            await self._arm_state()
+        except DeviceError:
+            pass
 
     def _refuse_resume(self, job: ScanJob, cause: str) -> None:
         """Refuse to resume `job` for `cause`, which becomes its pause's reason (status tells it as it stands now)."""
@@ -488,6 +581,7 @@ class ScanRunner:
     def _left_note(self, job: ScanJob, paused: bool, unrecorded: str | None) -> str:
         """Where a scan the daemon stops with stands, and how it goes on: the last line an operator who stopped the
         daemon (Ctrl-C, SIGTERM) reads. `unrecorded`: why its state could not be recorded on stopping."""
+        self._sensor_link_back(job)
         at = f"scan {job.name} left {'paused ' if paused else ''}at pose {self._progress()}"
         if paused and job.reason:
             at += f" ({job.reason})"
@@ -501,18 +595,21 @@ class ScanRunner:
 
     def status(self) -> dict:
         job = self.job
+        if self.state == "paused":
+            self._sensor_link_back(job)
         out = {"state": self.state, "scan": None, "last_error": self.last_error, "arm": self.arm.name,
                "sensor": {"name": self.sensor.name, **self.sensor.counters()}}
         slider = _speed_slider(self.arm)
         if slider is not None and slider < SLIDER_FULL:
             out.update(speed_scaling=round(slider, 3), speed_note=slider_note(slider))
         if job is not None:
+            now = time.monotonic()  # read once: elapsed_s and scan_elapsed_s differ by the time before the takeover
             out.update(scan=job.name, path=str(job.path), pose=job.next_pose, poses=job.n_poses,
                        progress=self._progress(), frames=job.frames, frames_per_pose=job.scan.frames_per_pose,
                        dropped_frames=job.dropped, rate_hz=self._rate_hz(job), rate_unit=RATE_UNIT,
                        eta_s=scan_eta_s(job) if self.state == "scanning" else None, reason=job.reason,
-                       elapsed_s=round(time.monotonic() - job.started, 3), started_utc=job.started_utc,
-                       scan_elapsed_s=_rounded(job.scan_elapsed_s(), 3), schedule=job.scan.schedule)
+                       elapsed_s=round(now - job.started, 3), started_utc=job.started_utc,
+                       scan_elapsed_s=_rounded(job.scan_elapsed_s(now), 3), schedule=job.scan.schedule)
             if job.chooser is not None:
                 out["views_chosen"] = dict(sorted(job.view_counts.items()))
             if job.owed:  # (kept on the job: a fault's pause drops the writer)
@@ -564,7 +661,7 @@ class ScanRunner:
                         if "paused" in job.writer.manifest:  # reopened to go on after a fault's pause
                             await self._io(job.writer.set_state, "running")
                     except (OSError, CaptureError) as exc:
-                        await self._fault(job, f"cannot reopen the capture: {describe(exc, 'reopening it')}")
+                        await self._fault(job, _reopen_problem(job, exc))
                         continue
                 if self._pause_requested:
                     job.reason = "paused by user"
@@ -593,7 +690,7 @@ class ScanRunner:
                     job.arm_fix = ("reconnect" if isinstance(exc, LinkLost) else
                                    "clear" if isinstance(exc, ArmFault) else job.arm_fix)
                     at, job.way_at = self._fault_at(job), None
-                    await self._fault(job, describe(exc) + at)
+                    await self._fault(job, self._fault_reason(exc, at))
                 except asyncio.CancelledError:
                     raise
                 except Exception as exc:  # a bug must pause the scan, never kill the daemon
@@ -658,15 +755,10 @@ class ScanRunner:
                 t_stop = await self._move(job, i)
                 if job.chooser is not None and i + 1 < job.n_poses:
                     ahead = asyncio.ensure_future(asyncio.to_thread(job.chooser.choose, job.sensor_poses, i + 1))
-                if job.scan.settle_s > 0:
-                    await asyncio.sleep(job.scan.settle_s)
+                await self._settle(job, i)
                 await self.sensor.begin_exposure()  # a sensor that can starts a fresh exposure now
                 frames = await self._frames(job, i, t_stop + job.scan.settle_s)
-                arm = await self._arm_state()
-                self._check_end()
-                stop = stop_name(arm)
-                if stop is not None:  # named: each stop is cleared in its own way at the rig
-                    raise ArmFault(f"{stop} on {self.arm.name} while capturing pose {i}; {clear_advice(stop)}")
+                arm = await self._check_stop(i, f"while capturing pose {i}")
                 if pending is not None:  # pose i-1 lands before pose i is handed over: one finished pose unpublished
                     p, pending = pending, None
                     await self._landed(p, i - 1)
@@ -768,15 +860,10 @@ class ScanRunner:
         t_stop = await self._move(job, i)
         if job.way_at is not None:
             job.way_at = (i, "at", job.way_at[2])
-        if job.scan.settle_s > 0:
-            await asyncio.sleep(job.scan.settle_s)
+        await self._settle(job, i)
         await self.sensor.begin_exposure()
         frames = await self._frames(job, i, t_stop + job.scan.settle_s, len(retake.frames))
-        arm = await self._arm_state()
-        self._check_end()
-        stop = stop_name(arm)
-        if stop is not None:
-            raise ArmFault(f"{stop} on {self.arm.name} while capturing pose {i}; {clear_advice(stop)}")
+        arm = await self._check_stop(i, f"while capturing pose {i}")
         whole = len(retake.frames) == job.scan.frames_per_pose
         choice = None if job.chooser is None else {
             "why": "retaken", "detail": "taken again after its chunk was moved out of the capture (damaged)"}
@@ -868,14 +955,38 @@ class ScanRunner:
                          f"(disk stalled?)") from None
 
     async def _move(self, job: ScanJob, i: int) -> float:
-        """Move to pose i; returns the monotonic time the arm stopped."""
-        timeout = self.cfg.arm.move_timeout_s
+        """Move to pose i; returns the monotonic time the arm stopped. Its limit, move_timeout_s, counts motion time
+        (`_MoveClock`): a move the pendant's speed slider slows is not taken for a stuck one."""
+        clock = _MoveClock(self.cfg.arm.move_timeout_s, lambda: _speed_slider(self.arm))
         try:
-            async with asyncio.timeout(timeout):
-                await self.arm.move_to(job.tcp_poses[i], self.cfg.arm.speed, self.cfg.arm.acceleration)
+            async with asyncio.timeout_at(clock.deadline()) as limit:
+                follow = asyncio.ensure_future(clock.follow(limit))
+                try:
+                    await self.arm.move_to(job.tcp_poses[i], self.cfg.arm.speed, self.cfg.arm.acceleration)
+                finally:
+                    follow.cancel()
+                    await asyncio.gather(follow, return_exceptions=True)
         except TimeoutError:
-            raise ArmFault(f"{self.arm.name}: move to pose {i} did not finish within {timeout:g} s") from None
+            raise ArmFault(clock.timed_out(self.arm.name, i)) from None
         return time.monotonic()
+
+    async def _check_stop(self, i: int, when: str) -> ArmState:
+        """The arm's state at pose i; ArmFault naming the safety stop that holds it, if one does, and `when` it was
+        found (the operator clears each stop in its own way at the rig)."""
+        arm = await self._arm_state()
+        self._check_end()
+        stop = stop_name(arm)
+        if stop is not None:
+            raise ArmFault(f"{stop} on {self.arm.name} {when}; {clear_advice(stop)}")
+        return arm
+
+    async def _settle(self, job: ScanJob, i: int) -> None:
+        """Let the arm settle at pose i (settle_s), then check that no safety stop holds it: one that came as the
+        move ended, or while the arm settled, is named so, not as one while the pose was captured (the operator
+        looks for its cause where the arm was then)."""
+        if job.scan.settle_s > 0:
+            await asyncio.sleep(job.scan.settle_s)
+        await self._check_stop(i, f"at pose {i}, as the move there ended or the arm settled (before its frames)")
 
     async def _frames(self, job: ScanJob, i: int, ready_t: float, count: int | None = None) -> list[Frame]:
         """K frames (`count`, else frames_per_pose) that began at or after ready_t; earlier ones (exposed while moving
@@ -900,6 +1011,8 @@ class ScanRunner:
             try:
                 async with asyncio.timeout(left + FRAME_GRACE_S):
                     f = await self.sensor.next_frame(left)
+            except LinkLost as exc:
+                raise _SensorLinkLost(str(exc)) from None
             except (TimeoutError, SensorSilent) as exc:
                 if self._slept_through(job, i, since):
                     since = time.monotonic()
@@ -1007,7 +1120,10 @@ class ScanRunner:
         self._pause_requested = False
         job.controller_checked = False
         # A scan launched paused and resumed before its task first ran (a takeover's auto_resume, `ctl resume
-        # NAME`): the reply said 'scanning', and announcing (and recording) a pause now would be untrue.
+        # NAME`): the reply said 'scanning', and announcing (and recording) a pause now would be untrue. So would
+        # one announced while that resume is still being checked (`_check_resumable`): its outcome decides.
+        while self._resume_checks and not self._resume.is_set():
+            await self._changed.wait()
         if not self._resume.is_set():
             self._set_state("paused")
             await self._record_pause(job)
@@ -1107,6 +1223,28 @@ class ScanRunner:
             why = f"to pose {job.next_pose - 1}, the last published"
         return (f" (the arm was {phase} pose {i}, on its way {direction} along the scan's path {why}; the scan "
                 f"goes on at {going})")
+
+    def _fault_reason(self, exc: BaseException, at: str) -> str:
+        """The pause reason for fault `exc` (`at`: where it stopped the scan): what happened and, where its own
+        message does not say (`_advice`), what the operator does before `spadscan ctl resume`. A pause for the
+        sensor's lost link says to resume once the link is back: it reconnects by itself, the scan does not go on by
+        itself (and once the link is back, the reason says so: `_sensor_link_back`)."""
+        if isinstance(exc, _SensorLinkLost) or (isinstance(exc, SensorSilent)
+                                                and self.sensor.counters().get("link") == "down"):
+            return f"{describe(exc)}; {SENSOR_LINK_WAIT}{at}"
+        advice = _advice(exc)
+        return f"{describe(exc)}{'; ' + advice if advice else ''}{at}"
+
+    def _sensor_link_back(self, job: ScanJob | None) -> None:
+        """A paused scan whose reason waits for the sensor's link (SENSOR_LINK_WAIT): once the sensor reports its
+        link up, the reason (and last_error, where it says the same) says that it is back, instead of going on
+        telling the operator to wait for it."""
+        if job is None or SENSOR_LINK_WAIT not in (job.reason or "") or self.sensor.counters().get("link") != "up":
+            return
+        was = job.reason
+        job.reason = was.replace(SENSOR_LINK_WAIT, SENSOR_LINK_BACK)
+        if self.last_error == was:
+            self.last_error = job.reason
 
     def _pause_at(self) -> str:
         """The progress a requested pause stops at: a pose already in flight is finished and published first, so
@@ -1242,6 +1380,52 @@ def _speed_slider(arm) -> float | None:
     return None
 
 
+def _advice(exc: BaseException) -> str:
+    """What the operator does about fault `exc` before `spadscan ctl resume`, where its message does not say it
+    already (an arm's safety stop names what clears it; a move's timeout, the runner's own faults word theirs); ''
+    when there is nothing to add."""
+    if isinstance(exc, OSError):
+        return write_advice(exc)
+    if isinstance(exc, SensorSilent):  # with its link up: the sensor itself, or its bridge, stopped measuring
+        return ("check the sensor, its cable, its power and its bridge (or raise [sensor] frame_timeout_s), then "
+                "`spadscan ctl resume`")
+    if isinstance(exc, LinkLost):  # the arm's (the sensor's is `_SensorLinkLost`, told in `_fault_reason`)
+        return f"{ARM_LINK_CHECK}, then `spadscan ctl resume` (it reconnects)"
+    return ""
+
+
+def _no_room(job: ScanJob, model) -> str | None:
+    """Why the captures' disk cannot take the next pose's chunk, with what to do; None when it can. Its files are
+    written for real, at the sizes they will have (`_chunk_sizes`), in a hidden folder of the scan's (ROOM_PROBE,
+    removed after; a writer reopening the capture drops it too): a free-space figure would miss quotas and the
+    filesystem's own overheads. Random bytes: a compressing filesystem stores them whole, as it does counts."""
+    probe = path = job.path / ROOM_PROBE
+    try:
+        probe.mkdir(exist_ok=True)
+        for name, size in _chunk_sizes(job.scan.frames_per_pose, model):
+            path = probe / name
+            write_durable(path, os.urandom(size))
+    except OSError as exc:
+        if exc.errno in FULL:
+            return (f"the captures' disk is still full ({exc.strerror}: no room for the next pose's chunk in "
+                    f"{job.path}); make room on it, then `spadscan ctl resume`")
+        named = exc if exc.filename else OSError(exc.errno, exc.strerror or str(exc), str(path))  # (a write's has none)
+        return f"{describe(named, 'checking for room for the next pose')}; {write_advice(named)}"
+    finally:
+        shutil.rmtree(probe, ignore_errors=True)
+    return None
+
+
+def _chunk_sizes(frames: int, model) -> list[tuple[str, int]]:
+    """The files of a chunk of `frames` frames of sensor `model` and the bytes each takes at most: counts and
+    reference counts as uint32, poses as 4x4 float64, each behind a 128-byte .npy header; META_BYTES a frame's
+    record in meta.json."""
+    return [("hists.npy", 128 + frames * model.n_zones * model.n_bins * 4),
+            ("poses.npy", 128 + frames * 16 * 8),
+            ("reference.npy", 128 + frames * model.n_bins * 4),
+            ("meta.json", frames * META_BYTES)]
+
+
 def _reopen_problem(job: ScanJob, exc: BaseException) -> str:
     """Why the capture of `job` cannot be reopened, with what the operator can do."""
     if not job.path.is_dir():
@@ -1249,8 +1433,8 @@ def _reopen_problem(job: ScanJob, exc: BaseException) -> str:
     if not isinstance(exc, OSError):  # the capture itself is in the way (a damaged chunk)
         return f"cannot reopen the capture: {exc}; `spadscan ctl abort` ends the scan"
     what = describe(exc, "reopening it")
-    fix = "make room" if what.startswith("disk full") else "make the capture writable"
-    return f"cannot reopen the capture: {what}; {fix}, then `spadscan ctl resume`"
+    fix = "make room, then `spadscan ctl resume`" if exc.errno in FULL else write_advice(exc)
+    return f"cannot reopen the capture: {what}; {fix}"
 
 
 def _remove_partial(path: Path) -> None:

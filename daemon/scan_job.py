@@ -151,12 +151,13 @@ class ScanJob:
         self.started_utc = created_utc
         self.earlier_s = max(0.0, (wall - begun).total_seconds() - (mono - self.started))
 
-    def scan_elapsed_s(self) -> float | None:
+    def scan_elapsed_s(self, now: float | None = None) -> float | None:
         """Seconds since the scan began (`started_utc`), across daemon restarts and takeovers, pauses and the time
-        no daemon ran included; None when scan.json does not say when it began."""
+        no daemon ran included, at `now` (time.monotonic(); default: read here); None when scan.json does not say
+        when it began."""
         if self.earlier_s is None:
             return None
-        return self.earlier_s + (time.monotonic() - self.started)
+        return self.earlier_s + ((time.monotonic() if now is None else now) - self.started)
 
     def record_progress(self, writer: CaptureWriter) -> None:
         self.next_pose = writer.next_pose_index

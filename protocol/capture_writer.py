@@ -26,6 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
+try:
+    import resource
+except ImportError:  # not on Windows, which has no per-process file-size limit
+    resource = None
+
 from .capture_format import (CHUNK_PREFIX, FORMAT, MANIFEST, SCHEDULE, STATES, TMP_PREFIX, VERSION, Measurement,
                              check_json, check_poses, chunk_index, chunk_name, fold, fsync_dir, one_line, read_json,
                              save_npy_durable, to_counts, write_durable, write_json_atomic)
@@ -37,16 +42,30 @@ from .sensor_model import SensorModel
 
 def _named(exc: OSError, path) -> OSError:
     """The same error, naming the file it happened to. A write into an open file raises without a filename, and
-    numpy's short write ("8192 requested and 3040 written", the disk filled up under it) without an errno either;
-    a user needs the path, and the CLI needs ENOSPC to say the disk is full."""
+    numpy's short write ("8192 requested and 3040 written") without an errno either; a user needs the path, and the
+    CLI needs the errno to say what stopped the write (`_short_write`)."""
     if exc.filename is not None:
         return exc
     text = str(exc)
     if exc.errno is None and "requested and" in text and "written" in text:
-        named = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        named = _short_write(path)
     else:
         named = OSError(exc.errno, exc.strerror or text, str(path)) if exc.errno is not None else exc
     return named
+
+
+def _short_write(path) -> OSError:
+    """What numpy's short write of `path` stands for: EFBIG when the file reached this process's file-size limit
+    (`ulimit -f`, RLIMIT_FSIZE: the kernel writes up to it, then refuses; a full disk's advice, make room, would not
+    help), else ENOSPC (the disk filled up under it)."""
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0] if resource is not None else None
+    try:
+        size = os.stat(path).st_size
+    except OSError:
+        size = None
+    limited = soft is not None and soft != resource.RLIM_INFINITY and size is not None and size >= soft
+    code = errno.EFBIG if limited else errno.ENOSPC
+    return OSError(code, os.strerror(code), str(path))
 
 
 def _write(fn, path, *args) -> None:

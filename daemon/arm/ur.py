@@ -22,7 +22,8 @@ What ur_rtde does not tell by raising, this class checks:
   uploads it again (reuploadScript; a fresh connection if that fails) unless a violation or fault still holds the
   arm (no program runs until the arm is restarted: the next move names it again);
 - the speed slider: a move's time budget counts time at the controller's combined speed scaling, so a slowed arm
-  is not taken for a stuck one;
+  is not taken for a stuck one (the runner's move_timeout_s counts at the slider's pace too, `speed_slider`: read
+  at every poll of a move);
 - the active TCP: spadscan's poses are the tool flange's (sensor pose = TCP pose x [arm] hand_eye), so the
   controller's active TCP offset (getTCPOffset) must be zero, within TCP_OFFSET_TOL_M / TCP_OFFSET_TOL_RAD. It is
   read at connect (unless a safety stop keeps the script from answering) and, for every program ur_rtde starts
@@ -58,7 +59,7 @@ from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rotvec_to_matrix, vector_to_pose
 from spadscan.daemon.arm.stops import (EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, SAFETY_FAULT, SAFETY_VIOLATION,
                                        clear_advice)
-from spadscan.daemon.describe import SLIDER_FULL, slider_note
+from spadscan.daemon.describe import SLIDER_FLOOR, SLIDER_FULL, slider_note
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError
 
@@ -95,9 +96,9 @@ TCP_OFFSET_TOL_M = 1e-4
 """m: largest translation of the controller's active TCP offset still taken for the bare flange."""
 TCP_OFFSET_TOL_RAD = 1e-3
 """rad: largest rotation of the controller's active TCP offset still taken for the bare flange."""
-MIN_SPEED_SCALING = 0.01
-"""A move's time budget runs at the speed scaling, but never slower than this (a slider at zero: the runner's own
-move_timeout_s still applies)."""
+MIN_SPEED_SCALING = SLIDER_FLOOR
+"""A move's time budget runs at the speed scaling, but never slower than this (a slider at zero would stretch it
+without end), as the runner's move_timeout_s does."""
 
 
 @dataclass(frozen=True)

@@ -137,7 +137,8 @@ def test_disk_full_pauses_and_resume_completes(make_daemon, small_disk):
     daemon.call("pause")  # the disk fills mid-scan however late this test gets to it
     daemon.wait_state("paused")
     assert fill(small_disk) > 0
-    daemon.call("resume")
+    r = daemon.ctl("resume")  # refused at once, before the arm moves: one pose's files do not fit
+    assert "disk full" in one_line_error(r) and "make room" in one_line_error(r)
     status, digests = paused_with(daemon, "disk full", small_disk / "full")
     assert status["last_error"] == status["reason"]
     assert daemon.status()["state"] == "paused"
