@@ -8,6 +8,7 @@ import errno
 import os
 import resource
 
+from spadscan.protocol.capture_writer import file_size_limit
 from spadscan.protocol.errors import SpadscanError
 
 from .devices import ArmFault, LinkLost, SensorSilent
@@ -60,12 +61,6 @@ def _raise_file_size_limit() -> str:
         return f"raise the daemon's file-size limit (`prlimit --pid {os.getpid()} --fsize={to}`)"
     return ("start the daemon again with a higher file-size limit (`ulimit -f` where it is started, systemd's "
             "LimitFSIZE=)")
-
-
-def file_size_limit() -> int | None:
-    """The largest file (bytes) this process may write (RLIMIT_FSIZE, `ulimit -f`); None when unlimited."""
-    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-    return None if soft == resource.RLIM_INFINITY else int(soft)
 
 
 SLIDER_FULL = 0.995

@@ -279,7 +279,7 @@ class ScanRunner:
                 job.record_progress(job.writer)
             except OSError as exc:  # a full disk: take the scan over all the same, paused until room is made
                 reopen_error = describe(exc, "reopening the capture")
-                reopen_fix = "make room, then `spadscan ctl resume`" if exc.errno in FULL else write_advice(exc)
+                reopen_fix = _reopen_fix(exc)
                 await asyncio.to_thread(job.count_published)
             if job.blocked is None:
                 # In a thread: thousands of poses take seconds, and the event loop must keep kicking the arm's
@@ -1433,8 +1433,12 @@ def _reopen_problem(job: ScanJob, exc: BaseException) -> str:
     if not isinstance(exc, OSError):  # the capture itself is in the way (a damaged chunk)
         return f"cannot reopen the capture: {exc}; `spadscan ctl abort` ends the scan"
     what = describe(exc, "reopening it")
-    fix = "make room, then `spadscan ctl resume`" if exc.errno in FULL else write_advice(exc)
-    return f"cannot reopen the capture: {what}; {fix}"
+    return f"cannot reopen the capture: {what}; {_reopen_fix(exc)}"
+
+
+def _reopen_fix(exc: OSError) -> str:
+    """What the operator does about a capture that write error `exc` keeps from being reopened."""
+    return "make room, then `spadscan ctl resume`" if exc.errno in FULL else write_advice(exc)
 
 
 def _remove_partial(path: Path) -> None:

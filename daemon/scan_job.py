@@ -30,7 +30,7 @@ import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import CaptureWriter, frame_number, plan_retakes
+from spadscan.protocol.capture_writer import CaptureWriter, held_frames, plan_retakes
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
@@ -176,7 +176,7 @@ class ScanJob:
             chunk = reader.read_chunk(name)
             frames += len(chunk.meta)
             poses.update(int(i) for i in chunk.pose_indices)
-            held.append((chunk_index(name), [(int(m["pose_index"]), frame_number(m)) for m in chunk.meta]))
+            held.append((chunk_index(name), held_frames(chunk.meta)))
         self.next_pose = max(poses) + 1 if poses else 0
         self.frames = frames
         retakes = plan_retakes(held, self.scan.frames_per_pose, self.scan.chunk_size, self.path)

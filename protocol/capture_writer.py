@@ -54,16 +54,30 @@ def _named(exc: OSError, path) -> OSError:
     return named
 
 
+def file_size_limit() -> int | None:
+    """The largest file (bytes) this process may write (RLIMIT_FSIZE, `ulimit -f`); None when unlimited (or where
+    there is no such limit)."""
+    if resource is None:
+        return None
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
+def held_frames(records) -> list[tuple[int, int | None]]:
+    """(pose_index, frame number or None) of each measurement record of a chunk, as `plan_retakes` reads them."""
+    return [(int(m["pose_index"]), frame_number(m)) for m in records]
+
+
 def _short_write(path) -> OSError:
     """What numpy's short write of `path` stands for: EFBIG when the file reached this process's file-size limit
     (`ulimit -f`, RLIMIT_FSIZE: the kernel writes up to it, then refuses; a full disk's advice, make room, would not
     help), else ENOSPC (the disk filled up under it)."""
-    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0] if resource is not None else None
+    limit = file_size_limit()
     try:
         size = os.stat(path).st_size
     except OSError:
         size = None
-    limited = soft is not None and soft != resource.RLIM_INFINITY and size is not None and size >= soft
+    limited = limit is not None and size is not None and size >= limit
     code = errno.EFBIG if limited else errno.ENOSPC
     return OSError(code, os.strerror(code), str(path))
 
@@ -331,7 +345,7 @@ class CaptureWriter:
             chunk = reader.read_chunk(name)
             published += len(chunk.meta)
             poses.update(int(i) for i in chunk.pose_indices)
-            held.append((chunk_index(name), [(int(m["pose_index"]), frame_number(m)) for m in chunk.meta]))
+            held.append((chunk_index(name), held_frames(chunk.meta)))
         frames = reader.manifest.get("frames_per_pose", 1)
         frames = frames if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1 else 1
         retakes = plan_retakes(held, frames, int(reader.manifest["chunk_size"]), path)

@@ -28,7 +28,7 @@ import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, read_json
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import frame_number, plan_retakes
+from spadscan.protocol.capture_writer import held_frames, plan_retakes
 from spadscan.protocol.errors import SpadscanError
 
 from .paths import safe_path, url_path
@@ -217,7 +217,7 @@ class ScanIndex:
             try:
                 self.reads += 1
                 meta = read_json(path / chunk / "meta.json").get("measurements") or []
-                known[chunk] = [(int(m["pose_index"]), frame_number(m)) for m in meta]
+                known[chunk] = held_frames(meta)
             except (SpadscanError, LookupError, TypeError, ValueError, ArithmeticError):
                 return None
         try:

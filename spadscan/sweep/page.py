@@ -9,7 +9,7 @@ from spadscan.protocol.atomic_files import write_atomic
 from spadscan.worker.report.report_html import STYLE
 
 from .plot import method_label, panel_title
-from .results import SweepResults, number
+from .results import SweepResults, number, value_key
 
 PAGE = "figure_a.html"
 
@@ -91,14 +91,10 @@ def _order(results: SweepResults):
     every axis's value in that order (a product: the first axis varies slowest)."""
     order = {axis: i for i, axis in enumerate(results.grid)}
 
-    def by_value(text) -> tuple:
-        v = number(text)
-        return (0, v, "") if v is not None else (1, 0.0, str(text))
-
     def key(r: dict) -> tuple:
         if r["value"] == "" and r["axis"] not in order:  # a product entry, or the base condition alone
-            return (len(order), *(by_value(r.get(a)) for a in results.grid), r["point"])
-        return (order.get(r["axis"], len(order)), by_value(r["value"]), r["point"])
+            return (len(order), *(value_key(r.get(a)) for a in results.grid), r["point"])
+        return (order.get(r["axis"], len(order)), value_key(r["value"]), r["point"])
 
     return key
 

@@ -21,7 +21,7 @@ from matplotlib.transforms import blended_transform_factory
 
 from .params import PARAMS
 from .plan import PRODUCT_AXIS
-from .results import SweepResults, number
+from .results import SweepResults, number, value_key
 
 COLOURS = {"fast": "#1f77b4", "paper": "#9467bd", "reprojection": "#d62728", "space-carving": "#2ca02c"}
 LABELS = {"fast": "fast (ours)", "paper": "paper (published method)", "reprojection": "reprojection",
@@ -119,11 +119,8 @@ def _groups(results: SweepResults, rows: list[dict], axis: str) -> list[tuple[st
     for r in rows:
         if r["axis"] == PRODUCT_AXIS:
             keyed.setdefault(tuple(r.get(a) for a in others), []).append(r)
-
-    def order(key: tuple) -> tuple:
-        return tuple((0, v, "") if (v := number(t)) is not None else (1, 0.0, str(t)) for t in key)
-
-    return [(" ".join(f"{a}={_shown(t)}" for a, t in zip(others, key)), keyed[key]) for key in sorted(keyed, key=order)]
+    return [(" ".join(f"{a}={_shown(t)}" for a, t in zip(others, key)), keyed[key])
+            for key in sorted(keyed, key=lambda key: tuple(map(value_key, key)))]
 
 
 def _shown(text) -> str:

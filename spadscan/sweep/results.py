@@ -52,6 +52,12 @@ class SweepResults:
         return "" if self.method_failed(row, method) else row.get(f"{column_name(method)}_threshold_edge") or ""
 
 
+def value_key(text) -> tuple:
+    """A sort key of a results cell's value: numbers by value, before any text, which sorts as text."""
+    v = number(text)
+    return (0, v, "") if v is not None else (1, 0.0, str(text))
+
+
 def number(text) -> float | None:
     try:
         v = float(text)
@@ -130,4 +136,4 @@ def _read_rows(path: Path) -> list[dict]:
     return rows
 
 
-__all__ = ["SweepResults", "read_results", "number"]
+__all__ = ["SweepResults", "read_results", "number", "value_key"]
