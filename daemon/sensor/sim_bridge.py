@@ -504,15 +504,26 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+STOP_POLL_S = 0.1
+"""How often the twin's main thread looks whether a signal asked it to stop."""
+
+
 def _serve_until_stopped(ready: str) -> None:
     """Say `ready` and wait for Ctrl-C or SIGTERM; the stream runs in its own threads. Both handlers are set here,
     before `ready` is said (a signal sent as soon as it is read finds them): a shell that starts the twin in the
-    background (`... &`) hands it SIGINT ignored, and the twin still stops on `kill -INT`."""
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    background (`... &`) hands it SIGINT ignored, and the twin still stops on `kill -INT`.
+
+    The main thread sleeps in short naps rather than waiting on an event: the kernel may hand the signal to one of
+    the stream's threads, which leaves a main thread blocked on a lock asleep for good (Python runs the handler only
+    when the main thread next runs), and a handler that set an event could deadlock on the event's own lock. The
+    handler only notes the signal."""
+    caught: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, _: caught.append(signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         print(ready, flush=True)
-        stop.wait()
+        while not caught:
+            time.sleep(STOP_POLL_S)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -8,6 +8,8 @@ import re
 import signal
 import subprocess
 import sys
+import threading
+import time
 
 import pytest
 import serial
@@ -91,3 +93,31 @@ def test_a_second_twin_on_one_folder_is_refused_and_the_first_keeps_its_port(tmp
         first.send_signal(signal.SIGINT)
         first.communicate(timeout=30)
     assert first.returncode == 0 and not (rig / "ttyBRIDGE").exists()
+
+
+def test_a_signal_the_kernel_hands_to_another_thread_still_stops_the_twin():
+    """The kernel may deliver Ctrl-C to any thread of the twin: handed to one of its stream's threads, it left a main
+    thread that waited on an event asleep for good (the CI's full run saw it hang 30 s under load). Here a thread of
+    this process takes the signal; a second one, to the main thread, after 20 s, would end the old wait only then."""
+    from spadscan.daemon.sensor.sim_bridge import _serve_until_stopped
+
+    main = threading.get_ident()
+    before = signal.getsignal(signal.SIGINT)
+
+    def send():
+        while signal.getsignal(signal.SIGINT) is before:  # the twin's handler set (an event, not a guess of time)
+            time.sleep(0.01)
+        signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # this thread's, not the main one's
+        if not stopped.wait(20):
+            signal.pthread_kill(main, signal.SIGINT)
+
+    stopped = threading.Event()
+    other = threading.Thread(target=send)
+    t0 = time.monotonic()
+    other.start()
+    try:
+        _serve_until_stopped("ready")
+    finally:
+        stopped.set()
+        other.join()
+    assert time.monotonic() - t0 < 10, "the main thread slept through the signal"
