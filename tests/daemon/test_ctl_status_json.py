@@ -68,15 +68,20 @@ def test_status_with_json_prints_a_daemon_that_does_not_answer_as_json(tmp_path,
     assert capsys.readouterr() == ("", captured.err), "without --json: the error line alone, as before"
 
 
-def as_another_user() -> list[str]:
-    """The command prefix that runs a process as a user who may not open this user's socket: none needed for a user
-    other than root (a socket of mode 0 refuses them); root opens any file, so it runs as nobody."""
+def refused_by_permissions() -> list[str]:
+    """The command prefix under which a socket of mode 0 refuses this process. A user other than root needs none.
+    Root opens any file only by its capability to override permissions: it keeps its identity and drops that
+    capability (becoming another user instead would also lose what root alone may read: the interpreter's own
+    library under a root-only home, a .pth file a root pip wrote under umask 077)."""
     if os.geteuid() != 0:
         return []
     setpriv = shutil.which("setpriv")
     if setpriv is None:
         pytest.skip("running as root without setpriv: cannot be refused a socket")
-    return [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups"]
+    prefix = [setpriv, "--bounding-set=-dac_override,-dac_read_search"]
+    if subprocess.run(prefix + ["true"], capture_output=True).returncode != 0:
+        pytest.skip("running as root without the right to drop a capability: cannot be refused a socket")
+    return prefix
 
 
 def test_a_socket_this_user_may_not_open_is_one_line_and_json_not_a_traceback(tmp_path):
@@ -87,8 +92,8 @@ def test_a_socket_this_user_may_not_open_is_one_line_and_json_not_a_traceback(tm
     listening.listen(1)
     os.chmod(path, 0)
     try:
-        r = subprocess.run(as_another_user() + [sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path,
-                                                "status", "--json"], capture_output=True, text=True, timeout=60)
+        r = subprocess.run(refused_by_permissions() + [sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path,
+                                                       "status", "--json"], capture_output=True, text=True, timeout=60)
     finally:
         listening.close()
     assert r.returncode == 1 and "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
