@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import subprocess
 import time
 from pathlib import Path
+
+import pytest
 
 
 @contextlib.contextmanager
@@ -58,3 +61,19 @@ def stop_leaked_children(before: set[int], grace_s: float = 30.0) -> set[int]:
         except ProcessLookupError:
             pass
     return leaked
+
+
+def permissions_apply() -> list[str]:
+    """The command prefix under which a process started by root is refused what a file's mode refuses (an ordinary
+    user needs none): root keeps its identity and drops its capability to override permissions. Becoming another user
+    instead would also lose what root alone may read (the interpreter's library in a root-only home, a .pth file that
+    pip, run by root under umask 077, wrote 0600). Skips the test where root cannot drop it."""
+    if os.geteuid() != 0:
+        return []
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        pytest.skip("running as root without setpriv: permissions cannot apply")
+    prefix = [setpriv, "--bounding-set=-dac_override,-dac_read_search"]
+    if subprocess.run(prefix + ["true"], capture_output=True).returncode != 0:
+        pytest.skip("running as root without the right to drop a capability: permissions cannot apply")
+    return prefix

@@ -7,6 +7,8 @@ from __future__ import annotations
 import logging
 import os
 import re
+import subprocess
+import sys
 import time
 
 import pytest
@@ -16,7 +18,8 @@ from spadscan.daemon import config as config_module
 from spadscan.daemon.config import config_from_dict
 from spadscan.protocol.errors import ConfigError
 
-IS_ROOT = os.geteuid() == 0
+from process_helpers import permissions_apply
+
 
 
 def load(tmp_path, **tables):
@@ -100,11 +103,17 @@ def test_a_captures_folder_on_a_read_only_mount_says_so(tmp_path, monkeypatch):
         load(tmp_path, **SIM)
 
 
-@pytest.mark.skipif(IS_ROOT, reason="root may write in any folder: os.access says yes")
 def test_a_captures_folder_this_user_may_not_write_says_so(tmp_path):
+    """The real file mode, checked by `spadscan daemon --check` in a process it binds (root too)."""
     (tmp_path / "caps").mkdir(mode=0o500)
-    with pytest.raises(ConfigError, match=r"folder .*caps is not writable by this user$"):
-        load(tmp_path, **SIM)
+    config = tmp_path / "rig.toml"
+    config.write_text(f'captures = "{tmp_path / "caps"}"\nsocket = "{tmp_path / "s.sock"}"\n'
+                      '[sensor]\nbackend = "sim"\nmesh = "builtin:sphere"\n')
+    r = subprocess.run(permissions_apply() + [sys.executable, "-m", "spadscan.cli", "daemon", "--config", str(config),
+                                              "--check"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and r.stdout == "" and r.stderr.count("\n") == 1, r.stderr
+    assert re.fullmatch(r"spadscan: error: .*rig\.toml: captures .*caps: folder .*caps is not writable by this user\n",
+                        r.stderr), r.stderr
 
 
 def test_a_captures_folder_without_write_permission_is_not_called_read_only(tmp_path, monkeypatch):

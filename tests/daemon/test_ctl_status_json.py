@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import socket
 import subprocess
 import sys
@@ -16,6 +15,8 @@ from pathlib import Path
 import pytest
 
 from spadscan.cli import main
+
+from process_helpers import permissions_apply
 
 STATUS = {"ok": True, "state": "scanning", "scan": "mug", "pose": 3, "poses": 128, "progress": "3/128",
           "last_error": None, "elapsed_s": 12.5, "scan_elapsed_s": 40.25,
@@ -68,22 +69,6 @@ def test_status_with_json_prints_a_daemon_that_does_not_answer_as_json(tmp_path,
     assert capsys.readouterr() == ("", captured.err), "without --json: the error line alone, as before"
 
 
-def refused_by_permissions() -> list[str]:
-    """The command prefix under which a socket of mode 0 refuses this process. A user other than root needs none.
-    Root opens any file only by its capability to override permissions: it keeps its identity and drops that
-    capability (becoming another user instead would also lose what root alone may read: the interpreter's own
-    library under a root-only home, a .pth file a root pip wrote under umask 077)."""
-    if os.geteuid() != 0:
-        return []
-    setpriv = shutil.which("setpriv")
-    if setpriv is None:
-        pytest.skip("running as root without setpriv: cannot be refused a socket")
-    prefix = [setpriv, "--bounding-set=-dac_override,-dac_read_search"]
-    if subprocess.run(prefix + ["true"], capture_output=True).returncode != 0:
-        pytest.skip("running as root without the right to drop a capability: cannot be refused a socket")
-    return prefix
-
-
 def test_a_socket_this_user_may_not_open_is_one_line_and_json_not_a_traceback(tmp_path):
     path = stale_socket(tmp_path)
     listening = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -92,7 +77,7 @@ def test_a_socket_this_user_may_not_open_is_one_line_and_json_not_a_traceback(tm
     listening.listen(1)
     os.chmod(path, 0)
     try:
-        r = subprocess.run(refused_by_permissions() + [sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path,
+        r = subprocess.run(permissions_apply() + [sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path,
                                                        "status", "--json"], capture_output=True, text=True, timeout=60)
     finally:
         listening.close()

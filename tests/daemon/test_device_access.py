@@ -7,7 +7,11 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import re
 import stat
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import serial
@@ -22,6 +26,7 @@ from spadscan.daemon.sensor.device_node import access_fix, is_access_refused, no
 from spadscan.daemon.sensor.firmware import load_firmware
 from spadscan.protocol.errors import ConfigError, DeviceError
 
+from process_helpers import permissions_apply
 from test_arm_ur import connected_arm, make_arm, start_controller
 
 IS_ROOT = os.geteuid() == 0
@@ -82,15 +87,27 @@ def test_a_node_this_user_may_not_read_and_write_names_the_group_to_join(pty_por
     assert node_problem(pty_port, "dialout", "tty", access=lambda path, mode: True) is None
 
 
-@pytest.mark.skipif(IS_ROOT, reason="root may read and write any node: os.access says yes")
+def check_as_user(config: Path) -> subprocess.CompletedProcess:
+    """`spadscan daemon --check` in a process that file modes bind, as they bind an operator (root too)."""
+    return subprocess.run(permissions_apply() + [sys.executable, "-m", "spadscan.cli", "daemon", "--config",
+                                                 str(config), "--check"], capture_output=True, text=True, timeout=120)
+
+
 def test_a_pty_whose_mode_shuts_this_user_out_is_refused_by_the_check(tmp_path, pty_port):
+    config = tmp_path / "rig.toml"
+    config.write_text(f'captures = "{tmp_path / "caps"}"\nsocket = "{tmp_path / "s.sock"}"\n[arm]\nbackend = "sim"\n'
+                      f'[sensor]\nbackend = "serial"\nport = "{pty_port}"\n')
+    (tmp_path / "caps").mkdir()
+    assert check_as_user(config).returncode == 0, "the port as it is passes"
     mode = os.stat(pty_port).st_mode
     os.chmod(pty_port, 0o000)
     try:
-        with pytest.raises(ConfigError, match=r"port .*: this user may not read and write it .* then log out and in"):
-            preflight(serial_cfg(tmp_path, pty_port))
+        refused = check_as_user(config)
     finally:
         os.chmod(pty_port, stat.S_IMODE(mode))
+    assert refused.returncode == 1 and refused.stdout == "" and refused.stderr.count("\n") == 1, refused.stderr
+    assert re.fullmatch(r"spadscan: error: .*rig\.toml: \[sensor\] port .*: this user may not read and write it \(.*"
+                        r"then log out and in again\n", refused.stderr), refused.stderr
 
 
 def test_a_node_of_the_wrong_class_is_named_by_the_class_the_kernel_gives(tmp_path, pty_port):
