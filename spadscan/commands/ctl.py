@@ -17,11 +17,16 @@
 `scan`, `pause`, `resume`, `abort` and `shutdown` answer in one line for people: the scan in hand, its state and its
 pose i/n (`scan 'bunny' paused at pose 38/128: paused by user`); with --json they print the daemon's whole
 reply as one line of JSON instead. `status` and `wait` always print JSON; `status` takes --json too (then on one
-line), so that a script may pass it to every operation. With --json a refusal, or no daemon answering, is printed on standard output
-as {"ok": false, "error": ...} too, beside its error line on stderr and exit status 1.
+line), so that a script may pass it to every operation, and so does `wait` (then its line is what `status --json`
+prints once the scan has ended, with `wait`: the scan's name, how the wait ended and how long it took; its progress
+stays on stderr). With --json a refusal, or no daemon answering, is printed on standard output as {"ok": false,
+"error": ...} too, beside its error line on stderr and exit status 1.
 
 The live reconstruction (`spadscan worker --live`) is read from the scan's recon/live/status.json, beside the daemon:
 views used of those published, steps, whether it converged, the Chamfer when the scene is known, the last update.
+While its job waits in the worker's queue (<captures>/.queue), behind the jobs that take every job process the
+workers run, `status` (`live`: `queued`) and `wait` say what it waits for, in the dashboard's words: `live
+reconstruction queued: waiting for q1-fast to finish (the worker runs 1 job at a time; `--processes 2` runs 2)`.
 
 Units: metres, seconds, degrees. The socket defaults to $SPADSCAN_SOCKET, else /tmp/spadscan-<uid>/spadscan.sock,
 the daemon's default too (also as a systemd service); pass --socket to match the daemon's `socket` config key. ctl
@@ -31,7 +36,12 @@ talks only to a daemon that runs as the same user.
 from __future__ import annotations
 
 import json
+import math
+import os
+import shlex
 import sys
+import time
+from pathlib import Path
 
 PROGRESS_POLL_S = 0.5  # how often `wait` asks for the status while its progress bar runs
 
@@ -53,7 +63,6 @@ MAX_TIMEOUT_S = 1e9
 def _seconds(text: str) -> float:
     """argparse type of --timeout: a positive, finite number of seconds."""
     import argparse
-    import math
 
     try:
         value = float(text)
@@ -127,8 +136,13 @@ def add_arguments(parser) -> None:
         "the last fault since the scan in hand (or the last one) started, or what still stands (an abort not "
         "recorded yet, a scan that could not be taken over); `live`: the scan's live reconstruction "
         "(recon/live/status.json) when a worker runs one (`spadscan worker --live`), with "
-        "`age_s`, the seconds since its last update; `speed_scaling` and `speed_note`: a UR arm's speed slider, "
-        "when below 100 % (the scan runs that much slower).")
+        "`age_s`, the seconds since its last update, and `queued` while its job waits in the worker's queue "
+        "(<captures>/.queue; alone before the job's first status): `job`, `waiting_s`, `behind` (the jobs of other "
+        "scans running now, one of which must end first when every job process is busy), `workers` (those present), "
+        "`processes` (the jobs they run at once) and `said`, what it waits for as the dashboard says it ('waiting "
+        "for q1-fast to finish (the worker runs 1 job at a time; `--processes 2` runs 2)', 'a worker takes it at its "
+        "next look' or 'no worker is running: start one with ...'); `speed_scaling` and `speed_note`: a UR arm's "
+        "speed slider, when below 100 % (the scan runs that much slower).")
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
               "config (examples/README.md documents each key).")
@@ -184,15 +198,28 @@ def add_arguments(parser) -> None:
     abort.add_argument("name", nargs="?", metavar="NAME", help="an interrupted scan the daemon does not hold")
     abort.add_argument("--reason", help="why (recorded in the capture)")
     wait = op("wait", "block until scan NAME is complete (exit 0) or aborted (exit 1)",
-              "Block until scan NAME is complete (exit 0) or aborted (exit 1). On a terminal a progress bar runs on "
-              "stderr (with a rate and a time left only while the scan scans); otherwise a line on stderr says why "
-              "whenever the scan pauses. Ctrl-C stops only the waiting: the scan goes on in the daemon.")
+              "Block until scan NAME is complete (exit 0) or aborted (exit 1), then print the daemon's answer as JSON "
+              "({\"name\", \"state\"}). On a terminal a progress bar runs on stderr (with a rate and a time left only "
+              "while the scan scans, and how its live reconstruction stands: e.g. queued behind another job); "
+              "otherwise a line on stderr says why whenever the scan pauses, and how the live reconstruction goes "
+              "(queued, waiting for views, following the scan, finishing ...). Ctrl-C stops only the waiting (exit "
+              "130): the scan goes on in the daemon.")
     wait.add_argument("name", metavar="NAME", help="the scan's name (its folder under the captures root)")
     shutdown = op("shutdown", "stop the daemon; a scan in flight stays resumable")
     status.add_argument("--json", action="store_true",
                         help="the same JSON as without it, on one line (as every operation's --json prints its "
                              "reply); a refusal, or no daemon answering, is printed as {\"ok\": false, "
                              "\"error\": ...} too, beside its error line and exit status 1")
+    wait.add_argument("--json", action="store_true",
+                      help="for scripts: standard output gets one line of JSON once the wait ends, and nothing "
+                           "else: what `status --json` prints then (the daemon's status, the scan's `live`; left out "
+                           "when the daemon no longer answers), plus `wait`: {\"name\", \"ended\": complete or "
+                           "aborted, \"waited_s\"}; an error (a refusal, no daemon answering, --timeout run out) or "
+                           "Ctrl-C is printed as {\"ok\": false, \"error\": ..., \"wait\": {\"name\", \"ended\": "
+                           "error, timeout or interrupted, \"waited_s\"}} beside its line on stderr. The exit status "
+                           "is as without --json (0 complete; 1 aborted or an error; 130 Ctrl-C). The progress bar "
+                           "(on a terminal) or the pause and live notes stay on stderr, for the person or the log "
+                           "watching")
     for answering in (scan, pause, resume, abort, shutdown):  # what they did, in one line for people
         answering.add_argument("--json", action="store_true",
                                help="print the daemon's whole reply as one line of JSON (for scripts), not the "
@@ -206,7 +233,7 @@ def run(args) -> int:
     path = default_socket_path(create=False) if args.socket is None else args.socket
     timeout = REPLY_TIMEOUT_S.get(args.op, 30.0) if args.timeout is None else args.timeout
     if args.op == "wait":
-        return _wait(path, args.name, args.timeout)
+        return _wait(path, args.name, args.timeout, args.json)
     request = {}
     if args.op == "scan":
         options = {key: getattr(args, opt) for opt, (key, _) in SCAN_OPTIONS.items() if getattr(args, opt) is not None}
@@ -220,11 +247,9 @@ def run(args) -> int:
         if getattr(args, "json", False):  # a script that reads standard output reads the refusal there too
             print(json.dumps({"ok": False, "error": str(exc)}))
         raise
-    reply.pop("ok", None)
     if args.op == "status":
-        live = live_status(reply)
-        if live is not None:
-            reply["live"] = live
+        reply = status_dict(reply)
+    reply.pop("ok", None)
     if args.op == "status":  # for people, indented; with --json one line, as every operation's --json
         print(json.dumps(reply) if args.json else json.dumps(reply, indent=1))
     else:
@@ -271,20 +296,56 @@ def reply_line(op: str, reply: dict) -> str:
     return "; ".join(said)
 
 
-def _wait(path: str, name: str, timeout: float | None) -> int:
+def status_dict(reply: dict) -> dict:
+    """What `status` prints of the daemon's status reply: the reply without its `ok`, with `live` (`live_status`)
+    when the scan has a live reconstruction."""
+    shown = {k: v for k, v in reply.items() if k != "ok"}
+    live = live_status(shown)
+    if live is not None:
+        shown["live"] = live
+    return shown
+
+
+def _wait(path: str, name: str, timeout: float | None, as_json: bool = False) -> int:
+    """`wait`: the daemon's reply on standard output (with `as_json`, the `wait_json` line instead); exit 0 for a
+    complete scan, 1 for an aborted one or an error, 130 for Ctrl-C. With `as_json` an error (and Ctrl-C) is a
+    {"ok": false, "error", "wait"} line on standard output too, beside its line on stderr."""
+    from spadscan.daemon.client import ControlTimeout
+    from spadscan.protocol.errors import SpadscanError
+
+    began = time.monotonic()
+
+    def waited(ended: str) -> dict:
+        return {"name": name, "ended": ended, "waited_s": round(time.monotonic() - began, 1)}
+
     try:
         reply = wait_for_scan(path, name, timeout, sys.stderr)
     except KeyboardInterrupt:
         # Only this client stops waiting: the daemon drops the abandoned request and the scan goes on.
-        print(f"spadscan: interrupted; scan {name!r} goes on in the daemon (`spadscan ctl wait {name}` waits again, "
-              f"`spadscan ctl abort` stops it)", file=sys.stderr)
+        said = (f"interrupted; scan {name!r} goes on in the daemon (`spadscan ctl wait {name}` waits again, "
+                f"`spadscan ctl abort` stops it)")
+        if as_json:
+            print(json.dumps({"ok": False, "error": said, "wait": waited("interrupted")}), flush=True)
+        print(f"spadscan: {said}", file=sys.stderr)
         return 130
+    except SpadscanError as exc:
+        if as_json:  # a script that reads standard output reads the error there too
+            ended = "timeout" if isinstance(exc, ControlTimeout) else "error"
+            print(json.dumps({"ok": False, "error": str(exc), "wait": waited(ended)}))
+        raise
     reply.pop("ok", None)
-    print(json.dumps(reply))
+    print(json.dumps(wait_json(path, reply, waited(str(reply.get("state")))) if as_json else reply))
     if reply.get("state") != "complete":
         print(f"spadscan: scan {name!r} ended {reply.get('state')}", file=sys.stderr)
         return 1
     return 0
+
+
+def wait_json(path: str, reply: dict, waited: dict) -> dict:
+    """`wait --json`'s line: what `status --json` prints once the scan has ended (nothing of it when the daemon no
+    longer answers) and `wait`: {"name", "ended": the scan's end (complete, aborted), "waited_s"}."""
+    status = _status(path)
+    return {**(status_dict(status) if status else {}), "wait": waited}
 
 
 def wait_for_scan(path: str, name: str, timeout: float | None, stream) -> dict:
@@ -325,8 +386,6 @@ def wait_for_scan(path: str, name: str, timeout: float | None, stream) -> dict:
 
 def live_capture(status: dict) -> str | None:
     """The capture folder of the scan a daemon status is about: the scan in flight, else the last one."""
-    import os
-
     if status.get("path"):
         return str(status["path"])
     last = (status.get("last_scan") or {}).get("name")
@@ -336,12 +395,25 @@ def live_capture(status: dict) -> str | None:
 
 def live_status(status: dict) -> dict | None:
     """The live reconstruction of the scan a daemon status is about, as a dict (recon/live/status.json with
-    `age_s`, or {'error': why} when that file cannot be read), or None when there is none."""
+    `age_s`, or {'error': why} when that file cannot be read), with `queued` (`live_queued`) while its live job waits
+    in the worker's queue (then the whole dict before its first status); None when there is none of either."""
+    capture = live_capture(status)
+    if capture is None:
+        return None
+    live = _live_file(capture)
+    captures = (status.get("daemon") or {}).get("captures")
+    queued = live_queued(captures, os.path.basename(capture)) if captures else None
+    if queued is None:
+        return live
+    return {**(live or {}), "queued": queued}
+
+
+def _live_file(capture: str) -> dict | None:
+    """`capture`'s recon/live/status.json as a dict with `age_s` ({'error': why} when unreadable), or None."""
     from spadscan.protocol.errors import CaptureError
     from spadscan.protocol.live_status import read_status, status_path
 
-    capture = live_capture(status)
-    if capture is None or not status_path(capture).exists():
+    if not status_path(capture).exists():
         return None
     try:
         live = read_status(status_path(capture))
@@ -351,12 +423,98 @@ def live_status(status: dict) -> dict | None:
     return {**live.to_dict(), "age_s": None if age is None else round(age, 1)}
 
 
+def live_queued(captures: str, scan: str) -> dict | None:
+    """Scan `scan`'s live job while it waits in the worker's queue under captures root `captures` (its default
+    queue: a worker started with `--queue DIR` is not seen), as {"job": its id, "waiting_s": seconds since it was
+    queued (or given back), "behind": the jobs of other scans running now (their workers renew their claims),
+    "workers": the workers present ("HOST pid N"), "processes": how many jobs they run at once, "said": what it waits
+    for, in the dashboard's words}; None when it is not queued, or the queue cannot be read. The worker's own queue
+    and presence code read it, as for the dashboard and `spadscan worker --status`."""
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.worker.presence import present_workers
+    from spadscan.worker.queue import Queue
+
+    try:
+        queue = Queue.for_root(captures, create=False)
+        rows = queue.statuses()
+        paths = queue.job_paths()
+        job = next((row for row in rows if row.state == "queued" and row.scan == scan
+                    and _is_live(paths.get(row.id))), None)
+        if job is None:
+            return None
+        workers = present_workers(queue.path)
+    except (OSError, SpadscanError):  # no queue, or one this user may not read: nothing to say of it
+        return None
+    behind = [row.id for row in rows if row.state == "running" and row.stale is None and row.scan != scan]
+    named = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"]} for w in workers]
+    return {"job": job.id, "waiting_s": None if job.waiting_s is None else round(job.waiting_s, 1), "behind": behind,
+            "workers": [w["name"] for w in named], "processes": sum(w["processes"] for w in named),
+            "said": queued_said(behind, named, captures)}
+
+
+def _is_live(found) -> bool:
+    """Whether the job file `found` ((state, path) of `Queue.job_paths`, or None) is a live job's."""
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.worker.jobs import Job
+
+    if found is None:
+        return False
+    try:
+        return Job.from_dict(json.loads(found[1].read_text()), str(found[1])).live
+    except (OSError, ValueError, SpadscanError):  # moved on meanwhile, or damaged: not one to report on
+        return False
+
+
+def queued_said(behind: list[str], workers: list[dict], captures: str) -> str:
+    """What a queued live job waits for, as the dashboard says it: no worker (and the command that starts one), a
+    worker's next look (a job process is free), or the jobs `behind` (and how to run one job more at once)."""
+    if not workers:
+        start = shlex.join(["spadscan", "worker", "--root", str(Path(captures).resolve()), "--live"])
+        return f"no worker is running: start one with `{start}`"
+    n = sum(w["processes"] for w in workers) or 1
+    if len(behind) < n:
+        return "a worker takes it at its next look"
+    return (f"waiting for {'' if len(behind) == 1 else 'one of '}{_names(behind)} to finish "
+            f"({_processes_advice(workers, n)})")
+
+
+def _processes_advice(workers: list[dict], n: int) -> str:
+    """What runs one job more at once: --processes is each worker's own, so with several workers it names the one
+    that runs the fewest (or one more worker)."""
+    if len(workers) == 1:
+        return f"the worker runs {_plural(n, 'job')} at a time; `--processes {n + 1}` runs {n + 1}"
+    least = min(workers, key=lambda w: w["processes"])  # the first of those that run the fewest
+    return (f"the {len(workers)} workers run {_plural(n, 'job')} at a time; one more worker, or `--processes "
+            f"{least['processes'] + 1}` for the worker on {least['name']}, runs {n + 1}")
+
+
+def _names(ids: list[str]) -> str:
+    return ", ".join(ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}{'' if n == 1 else 's'}"
+
+
 def live_line(live: dict | None, scan_views: int | None = None) -> str | None:
     """One line for people about a live reconstruction dict (`live_status`), or None. `scan_views`: the views the
     scan has published by the daemon's count (its status's `pose`): a live fit that follows it says how far behind it
-    is, which its own count of views published (those it last read) does not."""
+    is, which its own count of views published (those it last read) does not. A live job waiting in the queue says
+    what for."""
     if not live:
         return None
+    said = _fit_line(live, scan_views)
+    queued = live.get("queued")
+    if not isinstance(queued, dict):
+        return said
+    if said is None:  # no status written yet: the job has not started
+        return f"live reconstruction queued: {queued['said']}"
+    # a status that says 'queued again' says why; one that says otherwise is an earlier attempt's
+    return f"{said}; {'' if live.get('state') == 'queued' else 'its job is queued: '}{queued['said']}"
+
+
+def _fit_line(live: dict, scan_views: int | None) -> str | None:
+    """`live_line` of the live status file alone."""
     if "error" in live:
         return f"live: {live['error']}"
     from spadscan.protocol.live_status import LiveStatus
@@ -384,15 +542,16 @@ def _status(path: str) -> dict:
 
 
 def _still_running(path: str, name: str, timeout: float):
-    """The error for a `wait` that timed out on a scan that is still going (None when the daemon says otherwise)."""
-    from spadscan.daemon.client import ControlError
+    """The error for a `wait` that timed out on a scan that is still going (a ControlTimeout; None when the daemon
+    says otherwise)."""
+    from spadscan.daemon.client import ControlTimeout
 
     status = _status(path)
     if status.get("scan") != name:
         return None
     reason = status.get("reason")
-    return ControlError(f"scan {name!r} still {status.get('state')} at pose {status.get('progress')} after "
-                        f"{timeout:g} s" + (f" ({reason})" if reason else ""))
+    return ControlTimeout(f"scan {name!r} still {status.get('state')} at pose {status.get('progress')} after "
+                          f"{timeout:g} s" + (f" ({reason})" if reason else ""))
 
 
 class PauseNotes:
@@ -401,7 +560,7 @@ class PauseNotes:
     def __init__(self, name: str, stream):
         self.name, self.stream = name, stream
         self.noted = False
-        self.live_state = None
+        self.live_said = None  # the live reconstruction's state, and what its queued job waits for, last said
 
     def update(self, status: dict) -> None:
         paused = status.get("scan") == self.name and status.get("state") == "paused"
@@ -411,10 +570,11 @@ class PauseNotes:
                   file=self.stream, flush=True)
         self.noted = paused
         live = live_status(status) if status.get("scan") == self.name else None
-        state = (live or {}).get("state")
-        if live and state != self.live_state:  # a line when the live reconstruction starts, finishes or ends
+        # a line when the live reconstruction is queued, starts, finishes or ends, or waits for something else
+        said = (live.get("state"), (live.get("queued") or {}).get("said")) if live else None
+        if said not in (None, (None, None)) and said != self.live_said:
             print(f"spadscan: scan {self.name!r} {live_line(live)}", file=self.stream, flush=True)
-        self.live_state = state or self.live_state
+        self.live_said = said if said not in (None, (None, None)) else self.live_said
 
     def finish(self, state: str | None) -> None:
         pass

@@ -1,0 +1,146 @@
+"""`spadscan ctl wait --json`: like every other operation, `wait` takes --json. Its standard output is then one line
+of JSON once the wait ends: what `status --json` prints at that moment plus `wait` (the scan, how the wait ended,
+how long it took); an error or Ctrl-C is {"ok": false, "error": ..., "wait": ...} there, beside its one line on
+stderr. The progress bar and the pause notes stay on stderr."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from spadscan.cli import main
+from spadscan.protocol.live_status import LiveStatus, write_status
+
+from test_ctl import POSES, Terminal, fake_daemon  # noqa: F401  (fake_daemon: the fixture)
+
+
+def one_json_line(out: str) -> dict:
+    assert out.endswith("\n") and out.count("\n") == 1, out
+    return json.loads(out)
+
+
+def test_wait_with_json_prints_the_status_at_the_end_and_how_the_wait_ended(fake_daemon, capsys):
+    """Before: argparse refused --json (exit 2)."""
+    server, path = fake_daemon
+    server.pose = POSES
+    assert main(["ctl", "--socket", path, "wait", "mug", "--json"]) == 0
+    out, err = capsys.readouterr()
+    shown = one_json_line(out)
+    assert err == ""
+    waited = shown.pop("wait")
+    assert waited["name"] == "mug" and waited["ended"] == "complete" and waited["waited_s"] >= 0
+    assert set(waited) == {"name", "ended", "waited_s"}
+    assert main(["ctl", "--socket", path, "status", "--json"]) == 0
+    assert shown == one_json_line(capsys.readouterr().out), "the rest is what `status --json` prints then"
+
+
+def test_wait_with_json_gives_the_scans_live_reconstruction_as_status_does(tmp_path, monkeypatch, capsys):
+    import spadscan.daemon.client as client
+
+    capture = tmp_path / "caps" / "mug"
+    (capture / "recon" / "live").mkdir(parents=True)
+    write_status(capture / "recon" / "live", LiveStatus(views_used=6, views_published=6, steps=90, state="final",
+                                                        job="mug-fast"))
+    status = {"state": "idle", "scan": None, "last_scan": {"name": "mug", "state": "aborted"},
+              "daemon": {"captures": str(tmp_path / "caps")}}
+    replies = {"wait": {"ok": True, "name": "mug", "state": "aborted"}, "status": {"ok": True, **status}}
+    monkeypatch.setattr(client, "call", lambda path, op, timeout, **request: dict(replies[op]))
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "wait", "mug", "--json"]) == 1
+    out, err = capsys.readouterr()
+    shown = one_json_line(out)
+    assert err == "spadscan: scan 'mug' ended aborted\n", err
+    assert shown["wait"]["ended"] == "aborted" and shown["last_scan"] == {"name": "mug", "state": "aborted"}
+    assert shown["live"]["state"] == "final" and shown["live"]["steps"] == 90
+
+
+@pytest.mark.parametrize("case", ["timeout", "no daemon", "refused"])
+def test_a_wait_that_fails_with_json_is_json_on_stdout_beside_one_error_line(case, fake_daemon, tmp_path, monkeypatch,
+                                                                              capsys):
+    server, path = fake_daemon
+    server.pose, server.step = 3, 0  # a healthy scan that is not done in time
+    monkeypatch.setattr("spadscan.commands.ctl.PROGRESS_POLL_S", 0.01)
+    argv = {"timeout": ["--socket", path, "--timeout", "0.2", "wait", "mug"],
+            "no daemon": ["--socket", str(tmp_path / "none.sock"), "wait", "mug"],
+            "refused": ["--socket", path, "wait", "mug"]}[case]
+    if case == "refused":
+        from spadscan.daemon.client import ControlError
+        import spadscan.daemon.client as client
+
+        def refuse(path, op, timeout, **request):
+            raise ControlError("no scan named 'mug' is running or finished in /caps")
+
+        monkeypatch.setattr(client, "call", refuse)
+    assert main(["ctl", *argv, "--json"]) == 1
+    out, err = capsys.readouterr()
+    shown = one_json_line(out)
+    assert err.startswith("spadscan: error: ") and err.count("\n") == 1, err
+    assert shown["ok"] is False and shown["error"] == err[len("spadscan: error: "):-1]
+    assert shown["wait"]["name"] == "mug" and shown["wait"]["ended"] == ("timeout" if case == "timeout" else "error")
+    if case == "timeout":
+        assert shown["error"] == "scan 'mug' still scanning at pose 3/6 after 0.2 s"
+    assert main(["ctl", *argv]) == 1
+    assert capsys.readouterr() == ("", err), "without --json: the error line alone, as before"
+
+
+def test_the_progress_bar_stays_off_standard_output_with_json(fake_daemon, monkeypatch, capsys):
+    """Both outputs terminals: the bar still goes to stderr only, and stdout holds the one JSON line."""
+    server, path = fake_daemon
+    stdout, stderr = Terminal(), Terminal()
+    monkeypatch.setattr(sys, "stdout", stdout)
+    monkeypatch.setattr(sys, "stderr", stderr)
+    monkeypatch.setattr("spadscan.commands.ctl.PROGRESS_POLL_S", 0.01)
+    assert main(["ctl", "--socket", path, "wait", "mug", "--json"]) == 0
+    assert one_json_line(stdout.getvalue())["wait"]["ended"] == "complete"
+    assert f"{POSES}/{POSES}" in stderr.getvalue() and "complete" in stderr.getvalue()
+    assert "status" in server.requests  # the bar polled: it ran
+
+
+def test_the_pause_notes_stay_on_stderr_with_json(fake_daemon, monkeypatch, capsys):
+    server, path = fake_daemon
+    server.pose, server.paused_polls = 2, 5
+    monkeypatch.setattr("spadscan.commands.ctl.PROGRESS_POLL_S", 0.01)
+    assert main(["ctl", "--socket", path, "wait", "mug", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert one_json_line(out)["wait"]["ended"] == "complete"
+    assert err == "spadscan: scan 'mug' paused at pose 2/6: sensor silent: no frame (`spadscan ctl resume` " \
+                  "continues it)\n", err
+
+
+def test_ctrl_c_during_wait_with_json_says_so_on_stdout_too(fake_daemon):
+    server, path = fake_daemon
+    server.step = 0
+    proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path, "wait", "mug", "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while "wait" not in server.requests:
+            assert proc.poll() is None and time.monotonic() < deadline, "the client never sent its wait request"
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    said = ("interrupted; scan 'mug' goes on in the daemon (`spadscan ctl wait mug` waits again, `spadscan ctl abort` "
+            "stops it)")
+    assert proc.returncode == 130 and err == f"spadscan: {said}\n", err
+    shown = one_json_line(out)
+    assert shown["ok"] is False and shown["error"] == said and shown["wait"]["ended"] == "interrupted"
+
+
+def test_the_help_says_wait_takes_json_and_where_the_progress_goes(capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["ctl", "wait", "--help"])
+    assert done.value.code == 0
+    shown = " ".join(capsys.readouterr().out.split())
+    assert "--json for scripts: standard output gets one line of JSON once the wait ends" in shown
+    assert "The progress bar (on a terminal) or the pause and live notes stay on stderr" in shown
+    with pytest.raises(SystemExit):
+        main(["ctl", "--help"])
+    assert "and so does `wait`" in " ".join(capsys.readouterr().out.split())
