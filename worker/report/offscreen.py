@@ -9,6 +9,8 @@ install instead of letting VTK crash.
 from __future__ import annotations
 
 import ctypes.util
+import importlib
+import importlib.util
 import os
 import sys
 
@@ -47,9 +49,24 @@ def check_offscreen() -> None:
                                    f"{INSTALL_HINT}")
 
 
+def load_triton_first() -> None:
+    """Import triton, where it is installed, before VTK opens its first OpenGL context.
+
+    Mesa's OpenGL (EGL, OSMesa or GLX) loads the system's libLLVM when the first context opens; triton (which
+    torch's CUDA build ships and imports lazily: torch.optim, torch.compile) carries an LLVM of its own, and loaded
+    after Mesa's its start-up code runs on Mesa's LLVM and the process dies (SIGSEGV). Loaded first, both work."""
+    if "triton" in sys.modules or importlib.util.find_spec("triton") is None:
+        return
+    try:
+        importlib.import_module("triton")
+    except Exception:  # a broken triton: torch says so itself when it needs it; the pictures need none
+        pass
+
+
 def plotter(shape: tuple[int, int] = (1, 1), panel_px: tuple[int, int] = (320, 320)):
     """An off-screen pyvista Plotter of `shape` (rows, columns) panels of `panel_px` (width, height) pixels each."""
     check_offscreen()
+    load_triton_first()
     import pyvista as pv
 
     rows, cols = shape
