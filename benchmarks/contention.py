@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 from spadscan import parent_watch
+from spadscan.protocol.child_command import module_command
 
 GOALS = {1: 0.7, 2: 0.4}
 """Competitors -> the least fraction of the idle step rate that the default must keep."""
@@ -92,8 +93,8 @@ def default_env() -> dict:
 
 def run_reconstruct(capture: Path, out: Path, budget_s: float) -> dict:
     """One `spadscan reconstruct` run as a user starts it; its report.json."""
-    cmd = [sys.executable, "-m", "spadscan.cli", "reconstruct", str(capture), "--out", str(out),
-           "--budget-s", f"{budget_s:g}", "--no-gt", "--no-progress", "--set", "early_stop=false"]
+    cmd = module_command("spadscan.cli", "reconstruct", capture, "--out", out, "--budget-s", f"{budget_s:g}",
+                         "--no-gt", "--no-progress", "--set", "early_stop=false")
     done = subprocess.run(cmd, env=default_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     if done.returncode != 0:
         last = done.stderr.strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
@@ -103,8 +104,8 @@ def run_reconstruct(capture: Path, out: Path, budget_s: float) -> dict:
 
 def make_capture(folder: Path) -> Path:
     capture = folder / "cup"
-    cmd = [sys.executable, "-m", "spadscan.cli", "simulate", "builtin:cup", "--out", str(capture),
-           "--sensor", "lcspc-sim", "--views", "256", "--seed", "0", "--no-progress"]
+    cmd = module_command("spadscan.cli", "simulate", "builtin:cup", "--out", capture,
+                         "--sensor", "lcspc-sim", "--views", "256", "--seed", "0", "--no-progress")
     done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                           env=parent_watch.child_env())
     if done.returncode != 0:

@@ -40,6 +40,7 @@ from pathlib import Path
 from spadscan import parent_watch
 from spadscan.daemon.client import ControlError, call
 from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.child_command import module_command
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.live_status import read_status, status_path
 
@@ -48,7 +49,7 @@ SCENES = ("demo", "teddy", "mug")
 
 
 def spadscan(*args) -> list[str]:
-    return [sys.executable, "-m", "spadscan.cli", *map(str, args)]
+    return module_command("spadscan.cli", *args)
 
 
 def rig_text(captures: Path, sock: Path, scene: str, views: int | None, frame_time_s: float,

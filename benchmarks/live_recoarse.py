@@ -52,6 +52,7 @@ from spadscan.daemon.scan_plan import build_plan  # noqa: E402
 from spadscan.protocol.capture_format import Measurement  # noqa: E402
 from spadscan.protocol.capture_reader import CaptureReader  # noqa: E402
 from spadscan.protocol.capture_writer import CaptureWriter  # noqa: E402
+from spadscan.protocol.child_command import module_command  # noqa: E402
 from spadscan.protocol.errors import SpadscanError  # noqa: E402
 from spadscan.worker.live.job import LiveSettings, refit_due  # noqa: E402
 from spadscan.worker.live.live_fit import LiveFit  # noqa: E402
@@ -70,10 +71,12 @@ def simulate(scene: str, captures: Path) -> Path:
     scan = ScanConfig()
     out = captures / f"{scene}-tmf8820-{scan.views}"
     if not (out / "scan.json").is_file():
-        done = subprocess.run([sys.executable, "-m", "spadscan.cli", "simulate", f"builtin:{scene}", "--out",
-                               str(out), "--sensor", "tmf8820", "--views", str(scan.views), "--min-elevation",
-                               str(scan.min_elevation_deg), "--max-elevation", str(scan.max_elevation_deg),
-                               "--radius", str(scan.radius_m), "--no-progress"], stderr=subprocess.PIPE, text=True)
+        done = subprocess.run(module_command("spadscan.cli", "simulate", f"builtin:{scene}", "--out", out,
+                                             "--sensor", "tmf8820", "--views", scan.views,
+                                             "--min-elevation", scan.min_elevation_deg,
+                                             "--max-elevation", scan.max_elevation_deg,
+                                             "--radius", scan.radius_m, "--no-progress"),
+                              stderr=subprocess.PIPE, text=True)
         if done.returncode != 0:
             last = done.stderr.strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
             raise SystemExit(f"live_recoarse.py: error: simulating builtin:{scene} failed: {last[0]}")

@@ -41,6 +41,7 @@ from spadscan import parent_watch  # noqa: E402
 from spadscan.protocol.capture_format import Measurement  # noqa: E402
 from spadscan.protocol.capture_reader import CaptureReader  # noqa: E402
 from spadscan.protocol.capture_writer import CaptureWriter  # noqa: E402
+from spadscan.protocol.child_command import module_command  # noqa: E402
 from spadscan.protocol.errors import SpadscanError  # noqa: E402
 from spadscan.worker.jobs import Job  # noqa: E402
 from spadscan.worker.live import job as live_job  # noqa: E402
@@ -144,8 +145,8 @@ def clear_earlier_run(out: Path) -> None:
 
 def simulate(scene: str, views: int, source: Path) -> None:
     """The scan of builtin:`scene` that both rules follow; SystemExit (one line) when it cannot be made."""
-    done = subprocess.run([sys.executable, "-m", "spadscan.cli", "simulate", f"builtin:{scene}", "--out",
-                           str(source), "--sensor", SENSOR, "--views", str(views), "--seed", "0", "--no-progress"],
+    done = subprocess.run(module_command("spadscan.cli", "simulate", f"builtin:{scene}", "--out", source,
+                                         "--sensor", SENSOR, "--views", views, "--seed", "0", "--no-progress"),
                           stderr=subprocess.PIPE, text=True, env=parent_watch.child_env())
     if done.returncode != 0:
         last = done.stderr.strip().splitlines()[-1:] or [f"exit status {done.returncode}"]

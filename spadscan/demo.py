@@ -20,7 +20,6 @@ import shutil
 import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ from pathlib import Path
 
 from spadscan.daemon.client import ControlError, call
 from spadscan.parent_watch import child_env
+from spadscan.protocol.child_command import module_command
 from spadscan.protocol.errors import SpadscanError
 
 # Unix socket paths longer than this fail to bind (sun_path is 108 bytes on Linux).
@@ -105,7 +105,7 @@ class Processes:
 
 
 def _spadscan(*args: str) -> list[str]:
-    return [sys.executable, "-m", "spadscan.cli", *args]
+    return module_command("spadscan.cli", *args)
 
 
 def _free_loopback_host() -> str:
@@ -654,9 +654,12 @@ class ReconProgress:
     def __call__(self, progress) -> None:
         if progress is None:
             return
-        if progress.total > 0 and getattr(self.bar, "total", progress.total) != progress.total:
+        total = max(progress.total, self.shown)
+        if progress.total > 0 and getattr(self.bar, "total", total) != total:
             # The job's own total: its training budget, which the set-up and the end leave less than the demo's.
-            self.bar.total = progress.total
+            # Never below what the bar has counted: a crashed job's next attempt may have a shorter one, and tqdm
+            # takes a count past its total for "no total", which the demo's `{total:.0f}` cannot format.
+            self.bar.total = total
             if hasattr(self.bar, "refresh"):
                 self.bar.refresh()
         done = min(progress.done, progress.total)
@@ -717,7 +720,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         config = write_rig_config(opts, captures, sock, ur_host)
         check_rig_config(config)
         if ur_host is not None:
-            procs.start("ur-sim", [sys.executable, "-m", "spadscan.daemon.ursim", "--host", ur_host],
+            procs.start("ur-sim", module_command("spadscan.daemon.ursim", "--host", ur_host),
                         logs / "ursim.log")
         daemon = procs.start("daemon", _spadscan("daemon", "--config", str(config)), logs / "daemon.log")
         _wait_for_daemon(sock, daemon, logs / "daemon.log", timeout_s=60.0)

@@ -10,10 +10,11 @@ import asyncio
 import json
 import os
 import signal
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from spadscan.protocol.child_command import module_command
 
 from .jobs import EXIT_CRASH, Job
 from .queue import Claim
@@ -35,8 +36,8 @@ class Child:
 async def spawn_job(job: Job, root: Path, scratch: Path, outcome: Path, log: Path, *, recon: str | None,
                     extra_env: dict[str, str] | None) -> asyncio.subprocess.Process:
     """Start the process that runs `job` into `scratch`, its output going to `log`."""
-    cmd = [sys.executable, "-m", "spadscan.worker.jobs", "--job", json.dumps(job.to_dict()),
-           "--root", str(root), "--out", str(scratch), "--outcome", str(outcome), "--parent-pid", str(os.getpid())]
+    cmd = module_command("spadscan.worker.jobs", "--job", json.dumps(job.to_dict()), "--root", root, "--out", scratch,
+                         "--outcome", outcome, "--parent-pid", os.getpid())
     if recon:
         cmd += ["--recon", recon]
     env = {**os.environ, **(extra_env or {})}

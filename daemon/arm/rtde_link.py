@@ -21,10 +21,10 @@ import dataclasses
 import json
 import os
 import signal
-import sys
 import time
 
 from spadscan.daemon.devices import LinkLost
+from spadscan.protocol.child_command import module_command
 from spadscan.protocol.errors import DeviceError
 
 _LAST_WORDS = 20  # stderr lines of the child kept for the error that reports its death
@@ -58,7 +58,7 @@ class RTDELink:
         # A session of its own: a Ctrl-C on the daemon's terminal must not end the client the daemon needs to stop
         # the arm on its way out.
         self._proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "spadscan.daemon.arm.rtde_child", "--parent", str(os.getpid()),
+            *module_command("spadscan.daemon.arm.rtde_child", "--parent", os.getpid()),
             stdin=asyncio.subprocess.PIPE,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True)
         self._readers = [asyncio.ensure_future(self._read_replies()), asyncio.ensure_future(self._read_stderr())]

@@ -16,6 +16,7 @@ from dataclasses import asdict
 
 from spadscan.daemon.ursim.controller import MoveRecord
 from spadscan.daemon.ursim.sim_controller import SimURController
+from spadscan.protocol.child_command import module_command
 from spadscan.protocol.errors import DeviceError, SpadscanError
 
 _CALLS = ("protective_stop", "clear_protective_stop", "safeguard_stop", "clear_safeguard_stop", "emergency_stop",
@@ -75,8 +76,7 @@ class SimURProcess:
     def __init__(self, host: str, *, time_scale: float = 1.0, start_timeout_s: float = 30.0):
         self.host = host
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "spadscan.daemon.ursim", "--host", host, "--time-scale", str(time_scale),
-             "--control-stdio"],
+            module_command("spadscan.daemon.ursim", "--host", host, "--time-scale", time_scale, "--control-stdio"),
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1,
         )
         line = self._proc.stdout.readline()
