@@ -24,6 +24,7 @@ from .devices import Device
 from .rig import build_devices, preflight, rig_record
 from .root_lock import RootLock, check_root_free
 from .runner import ScanRunner
+from .scan_job import end_reason
 from .scan_plan import build_plan
 
 log = logging.getLogger("spadscan.daemon")
@@ -126,7 +127,10 @@ class Dispatcher:
         if op == "wait":
             if not isinstance(req.get("name"), str):
                 raise ConfigError("wait needs a scan 'name'")
-            return await r.wait(req["name"])
+            reply = await r.wait(req["name"])
+            # (`ctl wait` says why a scan ended aborted: the reason its capture records, once the wait is over)
+            reason = await asyncio.to_thread(end_reason, self.cfg.captures / reply["name"])
+            return {**reply, "reason": reason} if reason else reply
         asyncio.get_running_loop().call_soon(self.stop.set)  # after the reply is written
         return {"stopping": True}
 

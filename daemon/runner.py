@@ -13,7 +13,8 @@ stop or lost link (ArmFault, LinkLost, any DeviceError), a full disk or other wr
 reason says, on one line, what the operator does before `ctl resume` (`_advice`). The writer is then dropped; every
 resume reopens the capture (counting what it holds on disk: a chunk moved out meanwhile is taken again) and writes
 a pose's worth of files to check for room (`_no_room`) before it replies, and continues at the first unpublished
-pose (`CaptureWriter.next_pose_index`). A safety stop that comes while the arm stands at a pose is named in the
+pose (`CaptureWriter.next_pose_index`); a takeover checks for room the same way (a full disk's pause could not be
+recorded on it). A safety stop that comes while the arm stands at a pose is named in the
 reason (emergency, protective or safeguard stop, `arm/stops.py`), with what clears it, and when it was found: as
 the move ended or the arm settled, or while the pose was captured. A move's limit, move_timeout_s, counts motion
 time at the pace of the arm's speed slider (`_MoveClock`). Before the first move after a
@@ -154,6 +155,9 @@ class ScanRunner:
         self.state = "idle"
         self.last_error: str | None = None
         self.finished: dict[str, str] = {}
+        self.end_reasons: dict[str, str] = {}
+        """Why each scan in `finished` ended as it did, where a reason was given: an abort's (`ctl abort --reason`,
+        or the daemon's own), an adaptive scan's early end."""
         self._task: asyncio.Task | None = None
         self._resume = asyncio.Event()
         self._pause_requested = False
@@ -268,8 +272,10 @@ class ScanRunner:
 
     async def _take_over(self, path: Path, auto_resume: bool) -> bool:
         """Take the interrupted scan at `path` over, paused (resumed when auto_resume allows); False when it cannot
-        be (`stuck`, and last_error with the reason and what the operator can do)."""
-        reopen_error = reopen_fix = None
+        be (`stuck`, and last_error with the reason and what the operator can do). A capture that cannot be reopened,
+        or whose disk has no room for the next pose's chunk (`_no_room`, as a resume checks it: the pause that a full
+        disk made could not be recorded on it), is taken over paused with that cause as its reason."""
+        in_the_way = None  # why the capture cannot take the scan on (its disk), with what to do; None when it can
         try:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
                                           rig_now=self.rig, scene_now=self.scene)
@@ -278,9 +284,11 @@ class ScanRunner:
                 job.writer = await self._io(CaptureWriter.resume, path)
                 job.record_progress(job.writer)
             except OSError as exc:  # a full disk: take the scan over all the same, paused until room is made
-                reopen_error = describe(exc, "reopening the capture")
-                reopen_fix = _reopen_fix(exc)
+                in_the_way = f"{describe(exc, 'reopening the capture')}; {_reopen_fix(exc)}"
                 await asyncio.to_thread(job.count_published)
+            else:
+                if job.blocked is None:
+                    in_the_way = await self._io(_no_room, job, self.sensor.model)
             if job.blocked is None:
                 # In a thread: thousands of poses take seconds, and the event loop must keep kicking the arm's
                 # watchdog meanwhile (a 4,000-view plan blocked it 1.4 s, and the controller stopped the script).
@@ -297,21 +305,21 @@ class ScanRunner:
         owed = _owed(job)
         # A scan that was paused when the daemon stopped (by the operator, or by a fault) stays paused: auto_resume
         # continues a scan that was interrupted, not one someone or something had stopped.
-        auto = auto_resume and job.blocked is None and reopen_error is None and paused is None
+        auto = auto_resume and job.blocked is None and in_the_way is None and paused is None
         going_on = "auto_resume continues it" if auto else "`spadscan ctl resume` continues"
         job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
                                                f"{going_on}" +
                                                (f", taking pose(s) {owed} again first (missing from the capture)"
                                                 if owed else ""))
-        if reopen_error and not job.blocked:
+        if in_the_way and not job.blocked:
             job.reason = self.last_error = (f"interrupted at pose {self._progress()} (daemon restarted), and "
-                                            f"{reopen_error}; {reopen_fix}" +
+                                            f"{in_the_way}" +
                                             (f", which takes pose(s) {owed} again first (missing from the capture)"
                                              if owed else ""))
         log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
                  "blocked: " + job.blocked if job.blocked else
                  "paused, as it was when the daemon stopped: " + job.reason if paused else
-                 "paused: " + job.reason if reopen_error else
+                 "paused: " + job.reason if in_the_way else
                  "resuming by itself: auto_resume" if auto else "paused until `ctl resume`")
         self._launch("paused")
         if auto:
@@ -388,6 +396,8 @@ class ScanRunner:
             return await self._resume_interrupted(name)
         if job is None and self.stuck is not None and not self._starting:
             return await self._resume_interrupted(self.stuck["scan"])
+        if self._aborting():  # (nothing to check or withdraw: the scan ends)
+            raise ConfigError(self._nothing_to_resume())
         if self.state == "pausing":
             self._pause_requested = False
             self._set_state("scanning")
@@ -404,7 +414,7 @@ class ScanRunner:
                 # earliest: by then a resume that goes on has set `_resume`, and one refused has not.
                 self._resume_checks -= 1
                 self._notify()
-            if self.job is not job or self.state != "paused":  # an abort, another resume came meanwhile
+            if self.job is not job or self.state != "paused" or self._aborting():  # an abort or a resume meanwhile
                 return await self.resume(name)
             self._sensor_link_back(job)
             log.info("scan %s: resumed at pose %s%s", job.name, self._progress(),
@@ -413,8 +423,27 @@ class ScanRunner:
             job.reason = None
             self._set_state("scanning")
         else:
-            raise ConfigError(f"nothing to resume (daemon is {self.state})")
+            raise ConfigError(self._nothing_to_resume())
         return self.status()
+
+    def _nothing_to_resume(self) -> str:
+        """Why a resume finds no scan to continue. An abort is named, with its reason, when it is under way or ended
+        the daemon's last scan (none held since): a resume raced by an abort says that the abort came first, not that
+        the daemon had nothing."""
+        job, said = self.job, f"nothing to resume (daemon is {self.state})"
+        if job is not None:
+            return said if not self._aborting() else \
+                f"nothing to resume: scan {job.name!r} is being aborted ({self._end[1]})"
+        last = next(reversed(self.finished), None)
+        if last is None or self.finished[last] != "aborted":
+            return said
+        reason = self.end_reasons.get(last)
+        return f"nothing to resume: scan {last!r} was aborted{f' ({reason})' if reason else ''}; the daemon is " \
+               f"{self.state}"
+
+    def _aborting(self) -> bool:
+        """Whether an abort of the scan held is under way (its task cancelled, its wind-down not ended)."""
+        return self.job is not None and self._end is not None and self._end[0] == "aborted"
 
     async def _check_resumable(self, job: ScanJob) -> None:
         """Before a paused scan goes on: a cause the daemon knows cheaply to persist refuses the resume at once, the
@@ -434,7 +463,7 @@ class ScanRunner:
             writer = await self._io(CaptureWriter.resume, job.path)
         except (OSError, CaptureError) as exc:
             self._refuse_resume(job, _reopen_problem(job, exc))
-        if self.job is not job or self.state != "paused":  # an abort, another resume came meanwhile
+        if self.job is not job or self.state != "paused" or self._aborting():  # an abort or a resume meanwhile
             return
         job.writer = writer
         job.record_progress(writer)
@@ -513,6 +542,7 @@ class ScanRunner:
             await self.aborts.record(name, path, reason, None)
             self._forget_stuck(name)
             self.finished[name] = "aborted"
+            self.end_reasons[name] = reason
         finally:
             self._interrupted_op = None
         log.info("scan %s aborted, as it stood on disk: %s", name, reason)
@@ -569,18 +599,27 @@ class ScanRunner:
                 f"{name}` ends it as aborted, keeping every chunk")
 
     async def shutdown(self) -> None:
-        """Stop the scan in flight (leaving its capture 'running', resumable) and the writer thread."""
+        """Stop the scan in flight (leaving its capture 'running', resumable) and the writer thread; then say where
+        the scan was left (`_left_note`), once the writer thread has ended: a publish still landing as the scan was
+        stopped is counted (the scan task, cancelled while it waited for it, never counted it)."""
+        left = None
         if self._task is not None:
             job, paused, error = self.job, self.state in ("paused", "pausing"), self.last_error
             await self._cancel(("running", "daemon stopped; a restarted daemon resumes at the first unpublished pose"))
             if job is not None and self.job is job:  # (an abort under way ended it: not left)
-                log.info("%s", self._left_note(job, paused, self.last_error if self.last_error != error else None))
+                left = (job, paused, self.last_error if self.last_error != error else None)
         await self.aborts.close()
         self._io_pool.shutdown(wait=True)
+        if left is not None:
+            log.info("%s", self._left_note(*left))
 
     def _left_note(self, job: ScanJob, paused: bool, unrecorded: str | None) -> str:
         """Where a scan the daemon stops with stands, and how it goes on: the last line an operator who stopped the
-        daemon (Ctrl-C, SIGTERM) reads. `unrecorded`: why its state could not be recorded on stopping."""
+        daemon (Ctrl-C, SIGTERM) reads. `unrecorded`: why its state could not be recorded on stopping. Called once
+        the writer thread has ended: the writer's own count is what the capture holds, and what the next daemon
+        takes the scan over at."""
+        if job.writer is not None:
+            job.record_progress(job.writer)
         self._sensor_link_back(job)
         at = f"scan {job.name} left {'paused ' if paused else ''}at pose {self._progress()}"
         if paused and job.reason:
@@ -696,7 +735,7 @@ class ScanRunner:
                 except Exception as exc:  # a bug must pause the scan, never kill the daemon
                     log.exception("scan %s: unexpected error", job.name)
                     await self._fault(job, f"internal error: {type(exc).__name__}: {exc}")
-            self._finish(job, "complete")
+            self._finish(job, "complete", job.ended_early)
         except asyncio.CancelledError:
             await self._wind_down_whole(job)
             raise
@@ -1178,7 +1217,7 @@ class ScanRunner:
         await self._stop_arm()
         if state == "aborted":
             await self.aborts.record(job.name, job.path, reason, job.writer)
-            self._finish(job, "aborted")
+            self._finish(job, "aborted", reason)
             return
         try:
             if job.writer is None:
@@ -1190,8 +1229,10 @@ class ScanRunner:
         except (OSError, CaptureError) as exc:
             self.last_error = f"scan {job.name!r}: could not record '{state}': {describe(exc, 'recording it')}"
 
-    def _finish(self, job: ScanJob, state: str) -> None:
+    def _finish(self, job: ScanJob, state: str, reason: str | None = None) -> None:
         self.finished[job.name] = state
+        if reason:
+            self.end_reasons[job.name] = reason
         self.job, self._task = None, None
         log.info("scan %s %s: %d frames", job.name, state, job.frames)
         self._set_state("idle")

@@ -332,6 +332,20 @@ def abort_pending(path: Path) -> str | None:
     return _recorded_reason(marker) or _named_reason(Path(path)) or DEFAULT_ABORT_REASON
 
 
+def end_reason(path: Path) -> str | None:
+    """Why the scan at `path` ended as it did, as its folder records it: the reason in its manifest once that says
+    complete or aborted (an abort's: `ctl abort --reason` or the daemon's own; an adaptive scan's early end), else
+    the abort ABORT_PENDING keeps (its manifest could not take it); None when none is recorded, or the folder is not
+    a scan's."""
+    try:
+        manifest = read_json(Path(path) / MANIFEST)
+    except CaptureError:
+        return None
+    if manifest.get("state") in ("complete", "aborted"):
+        return str(manifest["reason"]) if manifest.get("reason") else None
+    return abort_pending(path)
+
+
 def clear_abort_pending(path: Path) -> None:
     """Remove the ABORT_PENDING file (and a name that kept its reason) once scan.json says the scan ended (best
     effort: a file left over is removed by the next daemon, which finds the scan already ended)."""

@@ -199,11 +199,12 @@ def add_arguments(parser) -> None:
     abort.add_argument("--reason", help="why (recorded in the capture)")
     wait = op("wait", "block until scan NAME is complete (exit 0) or aborted (exit 1)",
               "Block until scan NAME is complete (exit 0) or aborted (exit 1), then print the daemon's answer as JSON "
-              "({\"name\", \"state\"}). On a terminal a progress bar runs on stderr (with a rate and a time left only "
-              "while the scan scans, and how its live reconstruction stands: e.g. queued behind another job); "
-              "otherwise a line on stderr says why whenever the scan pauses, and how the live reconstruction goes "
-              "(queued, waiting for views, following the scan, finishing ...). Ctrl-C stops only the waiting (exit "
-              "130): the scan goes on in the daemon.")
+              "({\"name\", \"state\"}, and \"reason\" where the scan's folder records why it ended; an aborted "
+              "scan's last line on stderr gives it). On a terminal a progress bar runs on stderr (with a rate and a "
+              "time left only while the scan scans, and how its live reconstruction stands: e.g. queued behind "
+              "another job); otherwise a line on stderr says why whenever the scan pauses, and how the live "
+              "reconstruction goes (queued, waiting for views, following the scan, finishing ...). Ctrl-C stops "
+              "only the waiting (exit 130): the scan goes on in the daemon.")
     wait.add_argument("name", metavar="NAME", help="the scan's name (its folder under the captures root)")
     shutdown = op("shutdown", "stop the daemon; a scan in flight stays resumable")
     status.add_argument("--json", action="store_true",
@@ -336,7 +337,9 @@ def _wait(path: str, name: str, timeout: float | None, as_json: bool = False) ->
     reply.pop("ok", None)
     print(json.dumps(wait_json(path, reply, waited(str(reply.get("state")))) if as_json else reply))
     if reply.get("state") != "complete":
-        print(f"spadscan: scan {name!r} ended {reply.get('state')}", file=sys.stderr)
+        reason = reply.get("reason")  # (an abort's: `ctl abort --reason`, or the daemon's own)
+        print(f"spadscan: scan {name!r} ended {reply.get('state')}" + (f": {reason}" if reason else ""),
+              file=sys.stderr)
         return 1
     return 0
 
@@ -555,7 +558,11 @@ def _still_running(path: str, name: str, timeout: float):
 
 
 class PauseNotes:
-    """Without a terminal: one line on the stream each time scan `name` pauses, with the reason."""
+    """Without a terminal: one line on the stream each time scan `name` pauses, with the reason and, where the reason
+    does not say it already (RESUME_SAID), that `spadscan ctl resume` continues the scan."""
+
+    RESUME_SAID = ("`spadscan ctl resume", "`spadscan ctl abort")
+    """A reason that names either already says how the scan goes on (or that only an abort ends it)."""
 
     def __init__(self, name: str, stream):
         self.name, self.stream = name, stream
@@ -565,8 +572,9 @@ class PauseNotes:
     def update(self, status: dict) -> None:
         paused = status.get("scan") == self.name and status.get("state") == "paused"
         if paused and not self.noted:
-            print(f"spadscan: scan {self.name!r} paused at pose {status.get('progress')}: "
-                  f"{status.get('reason') or 'no reason given'} (`spadscan ctl resume` continues it)",
+            reason = status.get("reason") or "no reason given"
+            advice = "" if any(said in reason for said in self.RESUME_SAID) else " (`spadscan ctl resume` continues it)"
+            print(f"spadscan: scan {self.name!r} paused at pose {status.get('progress')}: {reason}{advice}",
                   file=self.stream, flush=True)
         self.noted = paused
         live = live_status(status) if status.get("scan") == self.name else None

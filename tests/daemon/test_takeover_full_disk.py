@@ -1,0 +1,64 @@
+"""A scan paused for a full disk cannot record that pause on it: a daemon restarted meanwhile (kill -9) checks for
+room as a resume does (`_no_room`: a pose's worth of files written) and says in `status` that the disk is full,
+instead of telling the operator that `spadscan ctl resume` continues the scan."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+
+import spadscan.daemon.runner as runner_module
+from spadscan.protocol.errors import ConfigError
+
+from test_runner import check_capture, daemon_runner, make_cfg, sphere, until  # noqa: F401  (sphere: a fixture)
+
+VIEWS = 6
+
+
+def test_a_takeover_on_a_disk_with_no_room_for_a_chunk_says_so(arun, tmp_path, sphere, monkeypatch):  # noqa: F811
+    """The disk takes a manifest but not a chunk (the resume's check of room fails with ENOSPC): the restarted
+    daemon takes the scan over paused with the full disk as its reason; a resume is refused for it, the arm not
+    moved; once room is made the scan completes, every pose once."""
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    folder = tmp_path / "caps" / "full"
+    full = {"on": False}
+    real_write = runner_module.write_durable
+
+    def write(path, data):
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real_write(path, data)
+
+    monkeypatch.setattr(runner_module, "write_durable", write)
+
+    async def first_daemon():
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            await runner.start("full")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+
+    async def second_daemon():
+        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
+            await runner.recover()
+            taken, moves = runner.status(), runner.arm.moves
+            with pytest.raises(ConfigError) as refused:
+                await runner.resume()
+            still = runner.arm.moves
+            full["on"] = False  # the operator makes room
+            await runner.resume()
+            return taken, moves, str(refused.value), still, await runner.wait("full")
+
+    arun(first_daemon())
+    full["on"] = True
+    taken, moves, refused, still, done = arun(second_daemon())
+    assert taken["state"] == "paused" and taken["scan"] == "full", taken
+    at = taken["progress"]
+    assert taken["reason"] == (f"interrupted at pose {at} (daemon restarted), and the captures' disk is still full "
+                               f"(No space left on device: no room for the next pose's chunk in {folder}); make room "
+                               f"on it, then `spadscan ctl resume`"), taken["reason"]
+    assert taken["last_error"] == taken["reason"], taken
+    assert refused.startswith("cannot resume scan 'full': the captures' disk is still full"), refused
+    assert still == moves  # the arm stayed where it was
+    assert done == {"name": "full", "state": "complete"}
+    check_capture(folder, VIEWS, 2)
+    assert not list(folder.glob(".tmp-*"))
