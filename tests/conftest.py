@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import shutil
 import signal
 from pathlib import Path
 
 import pytest
 
 from benchmark_helpers import load_benchmark
-from process_helpers import live_children, stop_leaked_children
+from process_helpers import live_children, short_socket_dir, stop_leaked_children
+from spadscan import parent_watch
+from spadscan.worker import kill_points, threads
 
 DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "lcspc"
 
@@ -38,6 +41,31 @@ def no_leaked_processes():
     yield
     leaked = stop_leaked_children(before)
     assert not leaked, f"test leaked child processes {sorted(leaked)} (killed)"
+
+
+PRODUCT_ENV = ("SPADSCAN_SOCKET", parent_watch.ENV, kill_points.ENV, threads.ADAPT_ENV)
+"""The product's own variables, none of them the tests' to inherit: the user's SPADSCAN_SOCKET (exported for a
+daemon of theirs) sends a test's daemon or ctl to that socket; a SPADSCAN_EXIT_WITH_PARENT of a demo's child makes a
+command watch a parent that is not the test's; SPADSCAN_KILL_AT kills a worker at a step; SPADSCAN_ADAPT_THREADS
+changes how a job's threads are chosen. A test that needs one sets it itself."""
+
+
+@pytest.fixture(autouse=True)
+def no_product_env(monkeypatch):
+    """Every test, and every command it starts, runs without the user's PRODUCT_ENV (put back after the test)."""
+    for name in PRODUCT_ENV:
+        monkeypatch.delenv(name, raising=False)
+
+
+@pytest.fixture
+def sock_dir():
+    """A fresh short folder for the test's Unix sockets (see process_helpers.short_socket_dir), removed after it.
+    For a test whose point is not the socket's path: one under tmp_path fails where TMPDIR is long."""
+    folder = short_socket_dir()
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture

@@ -7,6 +7,8 @@ import os
 import shutil
 import signal
 import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -63,17 +65,48 @@ def stop_leaked_children(before: set[int], grace_s: float = 30.0) -> set[int]:
     return leaked
 
 
+def short_socket_dir() -> Path:
+    """A fresh folder (mode 0700) with a short path, for Unix sockets: a socket's path has at most 107 bytes, and
+    tmp_path, under a long TMPDIR, can be longer. In /tmp, not $TMPDIR, for that reason; its user removes it."""
+    return Path(tempfile.mkdtemp(prefix="ss-", dir="/tmp"))
+
+
 def permissions_apply() -> list[str]:
     """The command prefix under which a process started by root is refused what a file's mode refuses (an ordinary
     user needs none): root keeps its identity and drops its capability to override permissions. Becoming another user
     instead would also lose what root alone may read (the interpreter's library in a root-only home, a .pth file that
-    pip, run by root under umask 077, wrote 0600). Skips the test where root cannot drop it."""
+    pip, run by root under umask 077, wrote 0600). Skips the test, saying why, where root cannot drop it."""
     if os.geteuid() != 0:
         return []
     setpriv = shutil.which("setpriv")
     if setpriv is None:
         pytest.skip("running as root without setpriv: permissions cannot apply")
-    prefix = [setpriv, "--bounding-set=-dac_override,-dac_read_search"]
-    if subprocess.run(prefix + ["true"], capture_output=True).returncode != 0:
-        pytest.skip("running as root without the right to drop a capability: permissions cannot apply")
+    # From the bounding set, and from the inheritable and ambient sets too: a root process that holds the
+    # capabilities there (older Docker gives them so) would get them back across exec.
+    caps = "-dac_override,-dac_read_search"
+    prefix = [setpriv, f"--bounding-set={caps}", f"--inh-caps={caps}", f"--ambient-caps={caps}"]
+    problem = _modes_problem(prefix)
+    if problem is not None:
+        pytest.skip(f"running as root where permissions cannot apply: {problem}")
     return prefix
+
+
+# Exits 13 (EACCES) when the file given is refused to it, 0 when it opened it.
+_OPEN_PROBE = "import sys\ntry:\n    open(sys.argv[1]).close()\nexcept PermissionError:\n    sys.exit(13)"
+
+
+def _modes_problem(prefix: list[str]) -> str | None:
+    """None when a process started under `prefix` is refused a file of mode 000, as file modes refuse it to an
+    ordinary user; else why not, in words. Tried for real: that setpriv ran is no proof of what its process may do."""
+    with tempfile.TemporaryDirectory(prefix="modes-") as folder:
+        shut = Path(folder) / "shut"
+        shut.write_text("")
+        shut.chmod(0o000)
+        probe = subprocess.run(prefix + [sys.executable, "-c", _OPEN_PROBE, str(shut)], capture_output=True,
+                               text=True, timeout=120)
+    if probe.returncode == 13:
+        return None
+    if probe.returncode == 0:
+        return "a process under setpriv still opened a file of mode 000 (it keeps a capability to override modes)"
+    said = probe.stderr.strip().splitlines() or [f"exit {probe.returncode}"]
+    return f"setpriv could not drop the capability to override modes ({said[-1]})"

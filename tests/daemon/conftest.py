@@ -24,7 +24,8 @@ def no_leaked_threads_or_fds():
 
 
 @pytest.fixture(autouse=True)
-def private_socket_root(tmp_path_factory, monkeypatch):
-    """Configs read without a `socket` key make the default socket's private folder: in a folder of the test's,
-    not in the machine's /tmp."""
-    monkeypatch.setattr(client, "SOCKET_ROOT", str(tmp_path_factory.mktemp("sockets")))
+def private_socket_root(sock_dir, monkeypatch):
+    """Configs read without a `socket` key make the default socket's private folder: in a short folder of the
+    test's (sock_dir: under tmp_path, a long TMPDIR makes the socket's path too long), not in the machine's
+    /tmp/spadscan-<uid>."""
+    monkeypatch.setattr(client, "SOCKET_ROOT", str(sock_dir))

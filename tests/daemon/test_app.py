@@ -119,10 +119,10 @@ class FakeRunner:
         return {"name": name, "state": "complete"}
 
 
-def test_dispatcher(arun, tmp_path):
+def test_dispatcher(arun, tmp_path, sock_dir):
     from spadscan.daemon.config import config_from_dict
 
-    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(tmp_path / "s.sock"),
+    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(sock_dir / "s.sock"),
                             "sensor": {"backend": "sim", "mesh": "builtin:sphere"}}, tmp_path / "rig.toml")
 
     async def scenario():
@@ -140,17 +140,17 @@ def test_dispatcher(arun, tmp_path):
         return out, runner.calls, stop.is_set()
 
     out, calls, stopped = arun(scenario())
-    assert out[0]["state"] == "idle" and out[0]["daemon"]["socket"] == str(tmp_path / "s.sock")
+    assert out[0]["state"] == "idle" and out[0]["daemon"]["socket"] == str(sock_dir / "s.sock")
     assert calls == [("start", "n", {"views": 3}), ("abort", "aborted by user")]
     assert out[3] == {"name": "n", "state": "complete"} and out[4] == {"stopping": True} and stopped
 
 
-def test_an_abort_reason_is_one_line_before_it_is_cut(arun, tmp_path):
+def test_an_abort_reason_is_one_line_before_it_is_cut(arun, tmp_path, sock_dir):
     """`ctl abort --reason` may carry line breaks; the capture, the status and the log take one line, and the
     200-character cut counts what is shown, not runs of whitespace."""
     from spadscan.daemon.config import config_from_dict
 
-    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(tmp_path / "s.sock"),
+    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(sock_dir / "s.sock"),
                             "sensor": {"backend": "sim", "mesh": "builtin:sphere"}}, tmp_path / "rig.toml")
 
     async def scenario():
@@ -165,9 +165,9 @@ def test_an_abort_reason_is_one_line_before_it_is_cut(arun, tmp_path):
 
 
 # ---- spadscan daemon --check -----------------------------------------------------------------------------------------
-def write_check_rig(tmp_path, sensor: str) -> Path:
+def write_check_rig(tmp_path, sock_dir, sensor: str) -> Path:
     rig = tmp_path / "rig.toml"
-    rig.write_text(f'captures = "caps"\nsocket = "{tmp_path / "d.sock"}"\n[arm]\nbackend = "sim"\n'
+    rig.write_text(f'captures = "caps"\nsocket = "{sock_dir / "d.sock"}"\n[arm]\nbackend = "sim"\n'
                    f'[sensor]\n{sensor}\n[scan]\nviews = 8\nradius_m = 0.3\ntarget = [0, 0, 0.1]\n')
     return rig
 
@@ -181,7 +181,7 @@ def check(rig, capsys) -> tuple[int, str, str]:
 
 
 @pytest.mark.parametrize("what", ["builtin", "mesh-file", "firmware", "socket"])
-def test_check_refuses_what_start_up_refuses(tmp_path, capsys, what):
+def test_check_refuses_what_start_up_refuses(tmp_path, sock_dir, capsys, what):
     """`--check` runs start-up's checks: an unknown built-in scene, a mesh file with no triangles, a firmware image
     that is not Intel HEX, a socket path taken by a regular file; one line, exit 1, nothing created."""
     (tmp_path / "garbage.stl").write_text("solid x\nthis is not a mesh\n")
@@ -191,8 +191,8 @@ def test_check_refuses_what_start_up_refuses(tmp_path, capsys, what):
               "firmware": 'backend = "i2c"\nbus = 1\nfirmware = "app.hex"',
               "socket": 'backend = "sim"\nmesh = "builtin:sphere"'}[what]
     if what == "socket":
-        (tmp_path / "d.sock").write_text("a regular file")
-    code, out, err = check(write_check_rig(tmp_path, sensor), capsys)
+        (sock_dir / "d.sock").write_text("a regular file")
+    code, out, err = check(write_check_rig(tmp_path, sock_dir, sensor), capsys)
     assert code == 1 and out == "" and err.count("\n") == 1 and err.startswith("spadscan: error:"), err
     assert {"builtin": "nope", "mesh-file": "garbage.stl", "firmware": "firmware", "socket": "not a socket"}[what] \
         in err
@@ -202,21 +202,21 @@ def test_check_refuses_what_start_up_refuses(tmp_path, capsys, what):
     assert not (tmp_path / "caps").exists()
 
 
-def test_check_passes_a_good_config_and_touches_nothing(tmp_path, capsys):
-    code, out, err = check(write_check_rig(tmp_path, 'backend = "sim"\nmesh = "builtin:sphere"'), capsys)
+def test_check_passes_a_good_config_and_touches_nothing(tmp_path, sock_dir, capsys):
+    code, out, err = check(write_check_rig(tmp_path, sock_dir, 'backend = "sim"\nmesh = "builtin:sphere"'), capsys)
     assert code == 0 and "ok (sim arm, sim sensor, default scan of 8 poses" in out, err
-    assert not (tmp_path / "caps").exists() and not (tmp_path / "d.sock").exists()
+    assert not (tmp_path / "caps").exists() and not (sock_dir / "d.sock").exists()
 
 
 
 @pytest.mark.parametrize("sensor, word", [
     ('backend = "serial"\nport = "{tmp}/ttyACM9"', "port {tmp}/ttyACM9: no such device"),
     ('backend = "i2c"\nbus = 250\nfirmware = "app.hex"', "bus 250: /dev/i2c-250: no such device")])
-def test_check_refuses_a_sensor_device_that_is_not_there(tmp_path, capsys, sensor, word):
+def test_check_refuses_a_sensor_device_that_is_not_there(tmp_path, sock_dir, capsys, sensor, word):
     """A serial port or I2C bus that does not exist is refused by `--check` (looking at the path opens nothing), as
     by start-up, in one line naming the file and the key."""
     (tmp_path / "app.hex").write_text(":0400000001020304F2\n:00000001FF\n")  # a valid image: one record, then EOF
-    rig = write_check_rig(tmp_path, sensor.format(tmp=tmp_path))
+    rig = write_check_rig(tmp_path, sock_dir, sensor.format(tmp=tmp_path))
     code, out, err = check(rig, capsys)
     assert code == 1 and out == "" and err.count("\n") == 1, err
     assert f"{rig}: [sensor] " + word.format(tmp=tmp_path) in err
@@ -224,13 +224,13 @@ def test_check_refuses_a_sensor_device_that_is_not_there(tmp_path, capsys, senso
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_a_stop_signal_while_the_devices_connect_ends_the_start_up(tmp_path, arun, sig):
+def test_a_stop_signal_while_the_devices_connect_ends_the_start_up(tmp_path, sock_dir, arun, sig):
     """An arm that never answers its connect (a wrong address, a controller that accepts and stays silent): a stop
     signal ends the start-up at once, releases and closes what connected, and no socket is ever opened."""
     from spadscan.daemon.app import serve
     from spadscan.daemon.config import config_from_dict
 
-    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(tmp_path / "s.sock"),
+    cfg = config_from_dict({"captures": str(tmp_path), "socket": str(sock_dir / "s.sock"),
                             "sensor": {"mesh": "builtin:sphere"}}, tmp_path / "rig.toml")
     log = []
     arm, sensor = Recorder("arm", log, hang="connect"), Recorder("sensor", log)
@@ -246,4 +246,4 @@ def test_a_stop_signal_while_the_devices_connect_ends_the_start_up(tmp_path, aru
     assert ("arm", "connect", "end") not in log
     for dev in ("arm", "sensor"):
         assert (dev, "release", "end") in log and (dev, "close", "end") in log
-    assert not (tmp_path / "s.sock").exists()
+    assert not (sock_dir / "s.sock").exists()

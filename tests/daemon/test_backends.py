@@ -18,8 +18,9 @@ UR = {"backend": "ur", "host": "127.0.0.1", "workspace_min": [-1, -1, 0], "works
 
 
 def cfg_of(tmp_path, arm: dict, sensor: dict):
-    return config_from_dict({"captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"), "arm": arm,
-                             "sensor": sensor}, tmp_path / "rig.toml")
+    # No `socket`: the default, in the test's short private folder (conftest); one under tmp_path is too long where
+    # TMPDIR is.
+    return config_from_dict({"captures": str(tmp_path / "caps"), "arm": arm, "sensor": sensor}, tmp_path / "rig.toml")
 
 
 def test_sim_rig_renders_at_the_arms_actual_pose(tmp_path, arun):
@@ -152,13 +153,13 @@ def test_a_key_the_chosen_backend_lacks_is_one_line_naming_it(tmp_path, arm, sen
     assert "\n" not in str(err.value)
 
 
-def test_choosing_a_backend_loads_no_other_backends_library(tmp_path):
+def test_choosing_a_backend_loads_no_other_backends_library(tmp_path, sock_dir):
     """A sim rig never imports ur_rtde, pyserial or smbus2; reading any config imports none of them."""
     code = ("import sys, json\n"
             "from spadscan.daemon.config import config_from_dict\n"
             "from spadscan.daemon.rig import build_devices\n"
             "from pathlib import Path\n"
-            f"cfg = config_from_dict({{'captures': {str(tmp_path / 'c')!r}, 'socket': {str(tmp_path / 's')!r}, "
+            f"cfg = config_from_dict({{'captures': {str(tmp_path / 'c')!r}, 'socket': {str(sock_dir / 's')!r}, "
             "'sensor': {'backend': 'sim', 'mesh': 'builtin:cup', 'rays_per_zone': 8}}, Path('rig.toml'))\n"
             "build_devices(cfg)\n"
             "print(json.dumps(sorted(m for m in ('rtde_control', 'rtde_receive', 'serial', 'smbus2') "

@@ -17,6 +17,8 @@ from spadscan.protocol.errors import ConfigError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
+# SIM's socket lies beside the config: a test whose config gets as far as the socket's checks writes it into its
+# short sock_dir, as tmp_path, under a long TMPDIR, makes the socket's path longer than the 107 bytes it may have.
 SIM = """
 captures = "caps"
 socket = "ctl.sock"
@@ -53,7 +55,7 @@ def test_examples_load(name):
 
 
 @pytest.mark.parametrize("name", ["rig-sim.toml", "rig-ur.toml", "rig-serial.toml", "rig-i2c.toml"])
-def test_examples_listen_where_ctl_looks(name, tmp_path, monkeypatch):
+def test_examples_listen_where_ctl_looks(name, tmp_path, sock_dir, monkeypatch):
     """`spadscan ctl scan` with no --socket must reach a daemon started from any example."""
     from spadscan.daemon.client import default_socket_path
 
@@ -62,8 +64,8 @@ def test_examples_listen_where_ctl_looks(name, tmp_path, monkeypatch):
     image.write_text(":00000001FF\n")
     text = (EXAMPLES / name).read_text().replace("/home/lab/tmf8820/tmf8820_app.hex", str(image))
     assert load_config(write(tmp_path, text)).socket == Path(default_socket_path())
-    monkeypatch.setenv("SPADSCAN_SOCKET", str(tmp_path / "env.sock"))
-    assert load_config(write(tmp_path, text)).socket == tmp_path / "env.sock" == Path(default_socket_path())
+    monkeypatch.setenv("SPADSCAN_SOCKET", str(sock_dir / "env.sock"))
+    assert load_config(write(tmp_path, text)).socket == sock_dir / "env.sock" == Path(default_socket_path())
 
 
 def test_i2c_example_needs_the_users_firmware(tmp_path):
@@ -76,10 +78,10 @@ def test_i2c_example_needs_the_users_firmware(tmp_path):
     assert cfg.sensor.device.firmware == image and cfg.sensor.device.address == 0x41 and cfg.sensor.device.bus == 1
 
 
-def test_defaults_and_relative_paths(tmp_path):
-    cfg = load_config(write(tmp_path, SIM))
-    assert cfg.captures == tmp_path / "caps"
-    assert cfg.socket == tmp_path / "ctl.sock"
+def test_defaults_and_relative_paths(sock_dir):
+    cfg = load_config(write(sock_dir, SIM))
+    assert cfg.captures == sock_dir / "caps"
+    assert cfg.socket == sock_dir / "ctl.sock"
     assert cfg.auto_resume is False
     assert cfg.scan.frames_per_pose == 1 and cfg.scan.schedule == "fibonacci"
     np.testing.assert_array_equal(cfg.arm.hand_eye, np.eye(4))
@@ -141,29 +143,29 @@ UR = SIM.replace('backend = "sim"\nmotion_time_s = 0.0', 'backend = "ur"\nhost =
                  'workspace_min = [-1, -1, 0]\nworkspace_max = [1, 1, 1]')
 
 
-def test_auto_resume_of_a_real_arm_needs_a_second_confirming_key(tmp_path):
+def test_auto_resume_of_a_real_arm_needs_a_second_confirming_key(sock_dir):
     """auto_resume = true moves the arm after a restart with nobody watching: a simulated arm may, a real 'ur' arm
     only with [arm] allow_auto_resume = true as well."""
-    assert load_config(write(tmp_path, "auto_resume = true\n" + SIM)).auto_resume
-    assert not load_config(write(tmp_path, UR)).auto_resume
-    msg = error_of(tmp_path, "auto_resume = true\n" + UR)
+    assert load_config(write(sock_dir, "auto_resume = true\n" + SIM)).auto_resume
+    assert not load_config(write(sock_dir, UR)).auto_resume
+    msg = error_of(sock_dir, "auto_resume = true\n" + UR)
     assert "auto_resume = true would let the daemon move the real 'ur' arm by itself" in msg
     assert "[arm] allow_auto_resume = true" in msg and "rig.toml" in msg
-    cfg = load_config(write(tmp_path, "auto_resume = true\n" + UR.replace("[sensor]", "allow_auto_resume = true\n"
+    cfg = load_config(write(sock_dir, "auto_resume = true\n" + UR.replace("[sensor]", "allow_auto_resume = true\n"
                                                                            "[sensor]")))
     assert cfg.auto_resume and cfg.arm.device.allow_auto_resume
     assert "allow_auto_resume applies only to backend 'ur'" in error_of(
-        tmp_path, SIM.replace("motion_time_s = 0.0", "allow_auto_resume = true"))
+        sock_dir, SIM.replace("motion_time_s = 0.0", "allow_auto_resume = true"))
 
 
-def test_the_ur_watchdog_frequency_reaches_the_arm(tmp_path):
+def test_the_ur_watchdog_frequency_reaches_the_arm(sock_dir):
     from spadscan.daemon.rig import build_arm
 
-    cfg = load_config(write(tmp_path, UR.replace("[sensor]", "watchdog_hz = 10\n[sensor]")))
+    cfg = load_config(write(sock_dir, UR.replace("[sensor]", "watchdog_hz = 10\n[sensor]")))
     assert build_arm(cfg).watchdog_hz == 10.0
-    assert build_arm(load_config(write(tmp_path, UR))).watchdog_hz == 2.0
+    assert build_arm(load_config(write(sock_dir, UR))).watchdog_hz == 2.0
     assert "watchdog_hz = 0.1 (Hz) is outside [0.5, 100]" in error_of(
-        tmp_path, UR.replace("[sensor]", "watchdog_hz = 0.1\n[sensor]"))
+        sock_dir, UR.replace("[sensor]", "watchdog_hz = 0.1\n[sensor]"))
 
 
 def test_one_ring_may_sit_at_one_elevation():
@@ -239,27 +241,27 @@ def test_a_schedule_that_repeats_one_pose_is_refused_by_the_check(tmp_path, caps
     assert "Traceback" not in err
 
 
-def test_a_ring_of_one_view_may_stand_at_the_zenith(tmp_path):
+def test_a_ring_of_one_view_may_stand_at_the_zenith(sock_dir):
     """One view per ring: the top ring is a single viewpoint, not several views at one point."""
     from spadscan.daemon.scan_plan import build_plan
 
-    cfg = load_config(write(tmp_path, RINGS.replace("[scan]", "[scan]\nrings = 8\nmax_elevation_deg = 90")))
+    cfg = load_config(write(sock_dir, RINGS.replace("[scan]", "[scan]\nrings = 8\nmax_elevation_deg = 90")))
     pos = build_plan(cfg.scan, cfg.arm).sensor_poses[:, :3, 3]
     assert len(pos) == 8 and np.isclose(pos[:, 2].max(), cfg.scan.radius_m)
 
 
 @pytest.mark.parametrize("lag", [0, 1])
 @pytest.mark.parametrize("schedule", ["adaptive", "fibonacci"])
-def test_a_ranking_lag_below_2_is_refused_saying_why(tmp_path, lag, schedule):
+def test_a_ranking_lag_below_2_is_refused_saying_why(sock_dir, lag, schedule):
     """The daemon chooses each pose while the one before it is captured: a ranking is at least 1 pose behind, so
     a lag below 2 would make every ranking stale and the adaptive scan its fallback plan without a word."""
     text = SIM.replace("views = 8", f"views = 8\nschedule = '{schedule}'\ninitial_views = 4\n"
                                     f"next_views_max_lag = {lag}")
-    assert error_of(tmp_path, text) == (
-        f"{tmp_path / 'rig.toml'}: [scan] next_views_max_lag {lag} must be at least 2 (poses): the daemon chooses "
+    assert error_of(sock_dir, text) == (
+        f"{sock_dir / 'rig.toml'}: [scan] next_views_max_lag {lag} must be at least 2 (poses): the daemon chooses "
         f"each pose while the one before it is still being captured, so the freshest ranking is already 1 pose "
         f"behind and a smaller value makes every ranking stale")
-    assert load_config(write(tmp_path, text.replace(f"next_views_max_lag = {lag}", "next_views_max_lag = 2"))
+    assert load_config(write(sock_dir, text.replace(f"next_views_max_lag = {lag}", "next_views_max_lag = 2"))
                        ).scan.next_views_max_lag == 2
 
 
@@ -308,12 +310,12 @@ def test_cli_error_is_one_line_exit_1_and_nothing_moves(tmp_path, monkeypatch, c
     assert built == [] and not (tmp_path / "ctl.sock").exists()
 
 
-def test_check_flag_validates_without_devices(tmp_path, capsys):
-    path = write(tmp_path, SIM)
+def test_check_flag_validates_without_devices(sock_dir, capsys):
+    path = write(sock_dir, SIM)
     assert main(["daemon", "--config", str(path), "--check"]) == 0
     out = capsys.readouterr().out
     assert "ok" in out and "8 poses" in out
-    assert not (tmp_path / "caps").exists()
+    assert not (sock_dir / "caps").exists()
 
 
 def test_example_readme_documents_every_key():
@@ -341,11 +343,11 @@ def test_config_from_dict_rejects_non_table_section(tmp_path):
         config_from_dict({"arm": 3}, tmp_path / "rig.toml")
 
 
-def test_a_hand_eye_typed_to_four_decimals_plans_targets_the_arm_accepts(tmp_path):
+def test_a_hand_eye_typed_to_four_decimals_plans_targets_the_arm_accepts(sock_dir):
     """A 30-degree turn typed from a drawing (cos 30 = 0.8660) is rigid to 1e-4, which the config accepts; the arm's
     pose conversion wants rotations orthonormal to 1e-6, so the reader projects it onto the nearest rotation."""
     typed = "[[0.8660, -0.5, 0, 0], [0.5, 0.8660, 0, 0], [0, 0, 1, 0.045], [0, 0, 0, 1]]"
-    cfg = load_config(write(tmp_path, SIM.replace("[arm]\n", f"[arm]\nhand_eye = {typed}\n")))
+    cfg = load_config(write(sock_dir, SIM.replace("[arm]\n", f"[arm]\nhand_eye = {typed}\n")))
     x = cfg.arm.hand_eye
     assert np.abs(x[:3, :3].T @ x[:3, :3] - np.eye(3)).max() < 1e-12
     assert np.abs(x - np.array(json.loads(typed))).max() < 1e-4  # the nearest rotation: the typed one, to its digits

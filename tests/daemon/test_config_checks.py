@@ -10,6 +10,8 @@ import pytest
 from spadscan.cli import main
 from spadscan.daemon.config import load_config
 
+# RIG's socket lies beside the config: a test whose config gets as far as the socket's checks writes it into its
+# short sock_dir, as tmp_path, under a long TMPDIR, makes the socket's path longer than the 107 bytes it may have.
 RIG = """
 captures = "caps"
 socket = "ctl.sock"
@@ -80,14 +82,14 @@ def test_a_fixed_sim_move_longer_than_its_timeout_is_refused(tmp_path, capsys, a
     ("time_scale = 1000\nmove_timeout_s = 0.5", ""),
     ("motion_time_s = 0\nmove_timeout_s = 0.001", "frame_time_s = 0"),
 ])
-def test_sim_timings_that_can_finish_are_kept(tmp_path, arm, sensor):
-    cfg = load_config(rig(tmp_path, arm=arm, sensor=sensor))
+def test_sim_timings_that_can_finish_are_kept(sock_dir, arm, sensor):
+    cfg = load_config(rig(sock_dir, arm=arm, sensor=sensor))
     assert 2 * cfg.sensor.device.frame_time_s < cfg.sensor.frame_timeout_s
 
 
-def test_a_real_arms_move_timeout_is_not_compared_with_sim_timing(tmp_path):
+def test_a_real_arms_move_timeout_is_not_compared_with_sim_timing(sock_dir):
     """The rule is about the simulated arm's fixed timing: a real arm's move_timeout_s stands alone."""
-    path = rig(tmp_path, arm="move_timeout_s = 0.001")
+    path = rig(sock_dir, arm="move_timeout_s = 0.001")
     text = path.read_text().replace('backend = "sim"\nmove', 'backend = "ur"\nhost = "10.0.0.9"\n'
                                     'workspace_min = [-1, -1, 0]\nworkspace_max = [1, 1, 1]\nmove')
     path.write_text(text)

@@ -23,8 +23,9 @@ from process_helpers import permissions_apply
 
 
 def load(tmp_path, **tables):
-    return config_from_dict({"captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"), **tables},
-                            tmp_path / "rig.toml")
+    # No `socket`: the default, in the test's short private folder (conftest); one under tmp_path is too long where
+    # TMPDIR is.
+    return config_from_dict({"captures": str(tmp_path / "caps"), **tables}, tmp_path / "rig.toml")
 
 
 @pytest.fixture
@@ -84,8 +85,7 @@ SIM = {"sensor": {"backend": "sim", "mesh": "builtin:sphere"}}
 
 def test_a_missing_captures_parent_is_called_missing(tmp_path):
     with pytest.raises(ConfigError, match=r"folder .*nope/deeper is missing$"):
-        config_from_dict({"captures": str(tmp_path / "nope" / "deeper" / "caps"), "socket": str(tmp_path / "s.sock"),
-                          **SIM}, tmp_path / "rig.toml")
+        config_from_dict({"captures": str(tmp_path / "nope" / "deeper" / "caps"), **SIM}, tmp_path / "rig.toml")
 
 
 def test_a_captures_folder_on_a_read_only_mount_says_so(tmp_path, monkeypatch):
@@ -103,11 +103,11 @@ def test_a_captures_folder_on_a_read_only_mount_says_so(tmp_path, monkeypatch):
         load(tmp_path, **SIM)
 
 
-def test_a_captures_folder_this_user_may_not_write_says_so(tmp_path):
+def test_a_captures_folder_this_user_may_not_write_says_so(tmp_path, sock_dir):
     """The real file mode, checked by `spadscan daemon --check` in a process it binds (root too)."""
     (tmp_path / "caps").mkdir(mode=0o500)
     config = tmp_path / "rig.toml"
-    config.write_text(f'captures = "{tmp_path / "caps"}"\nsocket = "{tmp_path / "s.sock"}"\n'
+    config.write_text(f'captures = "{tmp_path / "caps"}"\nsocket = "{sock_dir / "s.sock"}"\n'
                       '[sensor]\nbackend = "sim"\nmesh = "builtin:sphere"\n')
     r = subprocess.run(permissions_apply() + [sys.executable, "-m", "spadscan.cli", "daemon", "--config", str(config),
                                               "--check"], capture_output=True, text=True, timeout=120)

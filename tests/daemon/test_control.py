@@ -39,8 +39,8 @@ async def exchange(path, payloads: list[bytes]) -> list[dict]:
     return replies
 
 
-def test_socket_is_private_and_removed(arun, tmp_path):
-    path = tmp_path / "ctl.sock"
+def test_socket_is_private_and_removed(arun, sock_dir):
+    path = sock_dir / "ctl.sock"
 
     async def scenario():
         async with ControlServer(path, echo):
@@ -54,10 +54,10 @@ def test_socket_is_private_and_removed(arun, tmp_path):
     assert not path.exists()
 
 
-def test_a_request_without_its_newline_is_answered_when_the_sender_closes_its_side(arun, tmp_path):
+def test_a_request_without_its_newline_is_answered_when_the_sender_closes_its_side(arun, sock_dir):
     """`printf '{"op": "status"}' | nc -U -q 5 SOCKET`: a complete request, no newline, then the sending side shut;
     the client still reads its reply."""
-    path = tmp_path / "ctl.sock"
+    path = sock_dir / "ctl.sock"
 
     async def scenario():
         async with ControlServer(path, echo):
@@ -78,8 +78,8 @@ def test_a_request_without_its_newline_is_answered_when_the_sender_closes_its_si
     assert json.loads(last) == {"ok": True, "echo": "last"} and tail == b""
 
 
-def test_bad_lines_get_errors_and_the_server_keeps_serving(arun, tmp_path):
-    path = tmp_path / "ctl.sock"
+def test_bad_lines_get_errors_and_the_server_keeps_serving(arun, sock_dir):
+    path = sock_dir / "ctl.sock"
     big = b'{"op": "' + b"x" * 200_000 + b'"}\n'
 
     async def scenario():
@@ -113,9 +113,9 @@ def test_bad_lines_get_errors_and_the_server_keeps_serving(arun, tmp_path):
     assert one[9] == {"ok": True, "echo": "status"} and two == [{"ok": True, "echo": "again"}]
 
 
-def test_oversized_line_split_across_reads(arun, tmp_path):
+def test_oversized_line_split_across_reads(arun, sock_dir):
     """An oversized line that arrives in pieces is answered once and its tail is not taken for a request."""
-    path = tmp_path / "ctl.sock"
+    path = sock_dir / "ctl.sock"
 
     async def scenario():
         async with ControlServer(path, echo, max_line=1000):
@@ -139,8 +139,8 @@ def test_oversized_line_split_across_reads(arun, tmp_path):
     assert second == {"ok": True, "echo": "after"}
 
 
-def test_client_round_trip_and_refusal(arun, tmp_path):
-    path = tmp_path / "ctl.sock"
+def test_client_round_trip_and_refusal(arun, sock_dir):
+    path = sock_dir / "ctl.sock"
 
     async def scenario():
         async with ControlServer(path, echo):
@@ -155,20 +155,20 @@ def test_client_round_trip_and_refusal(arun, tmp_path):
     assert raw == {"ok": False, "error": "refused for a reason"}
 
 
-def test_client_says_when_no_daemon_listens(tmp_path):
+def test_client_says_when_no_daemon_listens(sock_dir):
     with pytest.raises(ControlError, match="no daemon is listening on .*ctl.sock") as info:
-        call(tmp_path / "ctl.sock", "status")
+        call(sock_dir / "ctl.sock", "status")
     assert "\n" not in str(info.value)
     # A stale socket file (nobody listening) reads the same.
     s = socket.socket(socket.AF_UNIX)
-    s.bind(str(tmp_path / "ctl.sock"))
+    s.bind(str(sock_dir / "ctl.sock"))
     s.close()
     with pytest.raises(ControlError, match="no daemon is listening"):
-        call(tmp_path / "ctl.sock", "status")
+        call(sock_dir / "ctl.sock", "status")
 
 
-def test_stale_socket_is_replaced_live_one_refused(arun, tmp_path):
-    path = tmp_path / "ctl.sock"
+def test_stale_socket_is_replaced_live_one_refused(arun, sock_dir):
+    path = sock_dir / "ctl.sock"
     stale = socket.socket(socket.AF_UNIX)
     stale.bind(str(path))
     stale.close()  # a crashed daemon's socket file: nobody listens
@@ -186,17 +186,17 @@ def test_stale_socket_is_replaced_live_one_refused(arun, tmp_path):
     assert not path.exists()
 
 
-def test_refuses_to_replace_a_regular_file(tmp_path):
-    path = tmp_path / "ctl.sock"
+def test_refuses_to_replace_a_regular_file(sock_dir):
+    path = sock_dir / "ctl.sock"
     path.write_text("precious")
     with pytest.raises(ConfigError, match="not a socket"):
         claim_socket_path(path)
     assert path.read_text() == "precious"
 
 
-def test_close_ends_blocked_requests(arun, tmp_path):
+def test_close_ends_blocked_requests(arun, sock_dir):
     """A client blocked in a long request (like `wait`) is let go when the server closes."""
-    path = tmp_path / "ctl.sock"
+    path = sock_dir / "ctl.sock"
     never = None
 
     async def slow(req):
@@ -222,10 +222,10 @@ def test_close_ends_blocked_requests(arun, tmp_path):
     assert not path.exists()
 
 
-def test_a_client_that_hangs_up_on_a_pending_request_is_let_go(arun, tmp_path):
+def test_a_client_that_hangs_up_on_a_pending_request_is_let_go(arun, sock_dir):
     """`wait` (reads only) is cancelled when its client hangs up; `scan` (changes things) runs to its end; a client
     that only shuts down its sending side still gets its reply. No task, no connection stays behind."""
-    path = tmp_path / "ctl.sock"
+    path = sock_dir / "ctl.sock"
     release = None
     seen: list[tuple[str, str]] = []
 
@@ -272,10 +272,10 @@ def test_a_client_that_hangs_up_on_a_pending_request_is_let_go(arun, tmp_path):
     assert sorted(seen) == [("scan", "finished"), ("status", "finished"), ("wait", "cancelled")]
 
 
-def test_json_the_parser_chokes_on_gets_an_error_and_the_connection_keeps_serving(arun, tmp_path, caplog):
+def test_json_the_parser_chokes_on_gets_an_error_and_the_connection_keeps_serving(arun, sock_dir, caplog):
     """Nesting deeper than Python's recursion limit and integers longer than its int-conversion limit raise from
     json.loads something other than JSONDecodeError; each line still gets its one-line error."""
-    path = tmp_path / "ctl.sock"
+    path = sock_dir / "ctl.sock"
     deep = b"[" * 60_000 + b"\n"
     deep_in_request = b'{"op": "status", "x": ' + b"[" * 30_000 + b"]" * 30_000 + b"}\n"
     huge_int = b'{"op": "status", "n": ' + b"7" * 5000 + b"}\n"
@@ -291,12 +291,12 @@ def test_json_the_parser_chokes_on_gets_an_error_and_the_connection_keeps_servin
     assert not [r for r in caplog.records if r.levelname == "ERROR"], "no traceback in the daemon's log"
 
 
-def test_an_unforeseen_parse_or_reply_failure_costs_the_line_not_the_connection(arun, tmp_path, monkeypatch):
+def test_an_unforeseen_parse_or_reply_failure_costs_the_line_not_the_connection(arun, sock_dir, monkeypatch):
     """The backstop: whatever parsing raises, or a reply JSON cannot hold (a handler's bug), is answered with an
     internal error and the next line on the same connection is served."""
     import spadscan.daemon.control as control
 
-    path = tmp_path / "ctl.sock"
+    path = sock_dir / "ctl.sock"
     real_parse = control._parse
 
     def parse(line):
@@ -319,10 +319,10 @@ def test_an_unforeseen_parse_or_reply_failure_costs_the_line_not_the_connection(
     assert three == {"ok": True, "echo": "status"}
 
 
-def test_the_client_refuses_a_socket_served_by_another_user(arun, tmp_path, monkeypatch):
+def test_the_client_refuses_a_socket_served_by_another_user(arun, sock_dir, monkeypatch):
     """Another local user may bind the socket name first (a shared folder): ctl must not hand it scan names and
     options. Here the daemon is another user because this process claims another uid."""
-    path = tmp_path / "ctl.sock"
+    path = sock_dir / "ctl.sock"
     seen = []
 
     async def record(req):
@@ -344,9 +344,9 @@ def test_the_client_refuses_a_socket_served_by_another_user(arun, tmp_path, monk
     assert seen == ["status"] and ok == {"ok": True}
 
 
-def test_a_socket_another_user_serves_is_named_as_theirs(arun, tmp_path, monkeypatch):
+def test_a_socket_another_user_serves_is_named_as_theirs(arun, sock_dir, monkeypatch):
     """`spadscan ctl shutdown` cannot stop another user's process: the daemon says whose socket it is instead."""
-    path = tmp_path / "ctl.sock"
+    path = sock_dir / "ctl.sock"
     real = os.getuid()
 
     async def scenario():

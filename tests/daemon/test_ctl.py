@@ -77,11 +77,11 @@ class Handler(socketserver.StreamRequestHandler):
 
 
 @pytest.fixture
-def fake_daemon(tmp_path):
-    server = FakeDaemon(str(tmp_path / "ctl.sock"))
+def fake_daemon(sock_dir):
+    server = FakeDaemon(str(sock_dir / "ctl.sock"))
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01})
     thread.start()
-    yield server, str(tmp_path / "ctl.sock")
+    yield server, str(sock_dir / "ctl.sock")
     server.closing = True  # ends a `wait` still pending
     server.shutdown()
     server.server_close()
@@ -279,14 +279,15 @@ def test_ctl_wait_on_a_terminal_imports_tqdm_but_not_numpy(fake_daemon):
     assert "tqdm" in names and not names & {"numpy", "torch"}, sorted(names)
 
 
-def test_ctl_in_a_login_shell_finds_the_default_socket_of_a_daemon_run_by_systemd(tmp_path, monkeypatch, capsys):
+def test_ctl_in_a_login_shell_finds_the_default_socket_of_a_daemon_run_by_systemd(tmp_path, sock_dir, monkeypatch,
+                                                                                 capsys):
     """The shipped unit runs the daemon without XDG_RUNTIME_DIR (systemd sets no session variables); the same user's
     login shell has it. With `socket` left at its default, as in every example config, `spadscan ctl status` from
-    that shell reaches the daemon. (The default folder is made under tmp_path, not /tmp.)"""
+    that shell reaches the daemon. (The default folder is made in the test's short sock_dir, not /tmp.)"""
     import spadscan.daemon.client as client
     from spadscan.daemon.config import config_from_dict
 
-    monkeypatch.setattr(client, "SOCKET_ROOT", str(tmp_path))
+    monkeypatch.setattr(client, "SOCKET_ROOT", str(sock_dir))
     monkeypatch.delenv("SPADSCAN_SOCKET", raising=False)
     monkeypatch.delenv("XDG_RUNTIME_DIR", raising=False)  # the service's environment
     cfg = config_from_dict({"captures": str(tmp_path), "sensor": {"backend": "sim", "mesh": "builtin:sphere"}},

@@ -23,9 +23,9 @@ def daemons(tmp_path):
     d.stop_all()
 
 
-def rig_on(tmp_path: Path, name: str, views: int = 24) -> tuple[Path, Path]:
-    """A rig config `name`.toml on the shared captures root tmp_path/caps, with a socket of its own."""
-    sock = tmp_path / f"{name}.sock"
+def rig_on(tmp_path: Path, sock_dir: Path, name: str, views: int = 24) -> tuple[Path, Path]:
+    """A rig config `name`.toml on the shared captures root tmp_path/caps, with a socket of its own in sock_dir."""
+    sock = sock_dir / f"{name}.sock"
     rig = tmp_path / f"{name}.toml"
     rig.write_text(RIG.format(socket=sock, auto="true").replace("views = 24", f"views = {views}"))
     return rig, sock
@@ -38,9 +38,9 @@ def one_line_error(r) -> str:
     return lines[0]
 
 
-def test_a_second_daemon_on_the_same_captures_root_is_refused(tmp_path, daemons):
-    rig_a, sock_a = rig_on(tmp_path, "a", views=400)
-    rig_b, sock_b = rig_on(tmp_path, "b")
+def test_a_second_daemon_on_the_same_captures_root_is_refused(tmp_path, sock_dir, daemons):
+    rig_a, sock_a = rig_on(tmp_path, sock_dir, "a", views=400)
+    rig_b, sock_b = rig_on(tmp_path, sock_dir, "b")
     a = daemons.start(rig_a, sock_a)
     call(sock_a, "scan", name="shared")
     wait_for(lambda: call(sock_a, "status")["pose"] >= 2, "a few poses")
@@ -61,8 +61,8 @@ def test_a_second_daemon_on_the_same_captures_root_is_refused(tmp_path, daemons)
     assert spadscan("ctl", "--socket", sock_b, "abort").returncode == 0
 
 
-def test_sighup_shuts_the_daemon_down_cleanly(tmp_path, daemons):
-    rig, sock = rig_on(tmp_path, "hup", views=400)
+def test_sighup_shuts_the_daemon_down_cleanly(tmp_path, sock_dir, daemons):
+    rig, sock = rig_on(tmp_path, sock_dir, "hup", views=400)
     proc = daemons.start(rig, sock)
     call(sock, "scan", name="hup")
     wait_for(lambda: call(sock, "status")["pose"] >= 2, "a few poses")
@@ -76,8 +76,8 @@ def test_sighup_shuts_the_daemon_down_cleanly(tmp_path, daemons):
     assert "daemon stopped" in json.dumps(capture.manifest)
 
 
-def test_check_refuses_a_socket_another_daemon_serves(tmp_path, daemons):
-    rig, sock = rig_on(tmp_path, "a")
+def test_check_refuses_a_socket_another_daemon_serves(tmp_path, sock_dir, daemons):
+    rig, sock = rig_on(tmp_path, sock_dir, "a")
     daemons.start(rig, sock)
     line = one_line_error(spadscan("daemon", "--config", rig, "--check"))
     assert f"another daemon is already listening on {sock}" in line and str(rig) in line, line

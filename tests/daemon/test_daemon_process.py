@@ -37,8 +37,10 @@ target = [0, 0, 0.1]
 """
 
 
-def write_rig(tmp_path: Path, auto: bool) -> tuple[Path, Path]:
-    sock = tmp_path / "ctl.sock"
+def write_rig(tmp_path: Path, auto: bool, sock_dir: Path | None = None) -> tuple[Path, Path]:
+    """(rig config in tmp_path, its socket in sock_dir, else in tmp_path: pass the sock_dir fixture's short folder,
+    as a socket's path under a long TMPDIR passes the 107 bytes a Unix socket may have)."""
+    sock = (sock_dir or tmp_path) / "ctl.sock"
     rig = tmp_path / f"rig-{'auto' if auto else 'manual'}.toml"
     rig.write_text(RIG.format(socket=sock, auto=str(auto).lower()))
     return rig, sock
@@ -123,8 +125,8 @@ def check_every_pose_once(folder: Path, n: int, k: int) -> None:
 
 
 @pytest.mark.slow
-def test_kill_9_restart_resume_every_pose_once(tmp_path, daemons):
-    rig, sock = write_rig(tmp_path, auto=False)
+def test_kill_9_restart_resume_every_pose_once(tmp_path, sock_dir, daemons):
+    rig, sock = write_rig(tmp_path, auto=False, sock_dir=sock_dir)
     first = daemons.start(rig, sock)
     assert (os.stat(sock).st_mode & 0o777) == 0o600
     seen = kill_mid_scan(daemons, first, sock, "crash")
@@ -163,9 +165,9 @@ def test_kill_9_restart_resume_every_pose_once(tmp_path, daemons):
 
 
 @pytest.mark.slow
-def test_auto_resume_after_kill_9(tmp_path, daemons):
-    rig, sock = write_rig(tmp_path, auto=False)
-    auto_rig, _ = write_rig(tmp_path, auto=True)
+def test_auto_resume_after_kill_9(tmp_path, sock_dir, daemons):
+    rig, sock = write_rig(tmp_path, auto=False, sock_dir=sock_dir)
+    auto_rig, _ = write_rig(tmp_path, auto=True, sock_dir=sock_dir)
     first = daemons.start(rig, sock)
     kill_mid_scan(daemons, first, sock, "auto")
     second = daemons.start(auto_rig, sock)
@@ -182,8 +184,8 @@ def test_auto_resume_after_kill_9(tmp_path, daemons):
     assert not sock.exists()
 
 
-def test_bad_config_and_no_daemon_are_one_line_errors(tmp_path):
-    rig, sock = write_rig(tmp_path, auto=False)
+def test_bad_config_and_no_daemon_are_one_line_errors(tmp_path, sock_dir):
+    rig, sock = write_rig(tmp_path, auto=False, sock_dir=sock_dir)
     rig.write_text(rig.read_text().replace("views = 24", "views = 24\nveiws = 3"))
     r = spadscan("daemon", "--config", rig)
     assert r.returncode == 1 and r.stderr.count("\n") == 1

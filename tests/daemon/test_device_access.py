@@ -5,6 +5,7 @@ is up; a second RTDE client on one arm is named as the likely cause of ur_rtde's
 from __future__ import annotations
 
 import errno
+import grp
 import logging
 import os
 import re
@@ -44,9 +45,10 @@ def pty_port():
 
 
 def serial_cfg(tmp_path, port: str, arm: dict | None = None):
-    return config_from_dict({"captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"),
-                             "arm": arm or {"backend": "sim"}, "sensor": {"backend": "serial", "port": port}},
-                            tmp_path / "rig.toml")
+    # No `socket`: the default, in the test's short private folder (conftest); one under tmp_path is too long where
+    # TMPDIR is.
+    return config_from_dict({"captures": str(tmp_path / "caps"), "arm": arm or {"backend": "sim"},
+                             "sensor": {"backend": "serial", "port": port}}, tmp_path / "rig.toml")
 
 
 # ---- --check: what the node is, judged without opening it ------------------------------------------------------------
@@ -93,9 +95,9 @@ def check_as_user(config: Path) -> subprocess.CompletedProcess:
                                                  str(config), "--check"], capture_output=True, text=True, timeout=120)
 
 
-def test_a_pty_whose_mode_shuts_this_user_out_is_refused_by_the_check(tmp_path, pty_port):
+def test_a_pty_whose_mode_shuts_this_user_out_is_refused_by_the_check(tmp_path, sock_dir, pty_port):
     config = tmp_path / "rig.toml"
-    config.write_text(f'captures = "{tmp_path / "caps"}"\nsocket = "{tmp_path / "s.sock"}"\n[arm]\nbackend = "sim"\n'
+    config.write_text(f'captures = "{tmp_path / "caps"}"\nsocket = "{sock_dir / "s.sock"}"\n[arm]\nbackend = "sim"\n'
                       f'[sensor]\nbackend = "serial"\nport = "{pty_port}"\n')
     (tmp_path / "caps").mkdir()
     assert check_as_user(config).returncode == 0, "the port as it is passes"
@@ -121,14 +123,30 @@ def test_a_node_of_the_wrong_class_is_named_by_the_class_the_kernel_gives(tmp_pa
     assert node_problem(pty_port, "dialout", "tty", sys_char=tmp_path / "char") is None
 
 
-def test_the_fix_names_the_nodes_own_group_when_that_group_may_read_and_write_it(tmp_path):
-    import grp
+def group_to_give() -> int | None:
+    """A named group other than root's that this user may give a file, and other than 'dialout' (the group the fix
+    names when the node's own may not read and write it): any group for root, one of an ordinary user's own groups
+    (the only ones they may give); None when there is none."""
+    if IS_ROOT:
+        gids = [g.gr_gid for g in grp.getgrall()]
+    else:
+        gids = [os.getgid(), *os.getgroups()]
+    for gid in gids:
+        try:
+            name = grp.getgrgid(gid).gr_name
+        except KeyError:  # a group with no name here (a container's numeric gid)
+            continue
+        if gid != 0 and name != "dialout":
+            return gid
+    return None
 
+
+def test_the_fix_names_the_nodes_own_group_when_that_group_may_read_and_write_it(tmp_path):
     node = tmp_path / "node"
     node.write_text("")
-    gid = next((g.gr_gid for g in grp.getgrall() if g.gr_gid != 0), None)
-    if gid is None or not (IS_ROOT or gid in os.getgroups()):
-        pytest.skip("no group other than root that this user may give a file")
+    gid = group_to_give()
+    if gid is None:
+        pytest.skip("no named group other than root's and dialout that this user may give a file")
     os.chown(node, -1, gid)
     os.chmod(node, 0o660)
     assert f"to the '{grp.getgrgid(gid).gr_name}' group" in access_fix(str(node), "dialout")

@@ -24,7 +24,9 @@ SENSOR = {"backend": "sim", "mesh": "builtin:sphere", "rays_per_zone": 4}
 def make_cfg(tmp_path, hand_eye_z: float = 0.05, auto_resume: bool = False, arm: dict | None = None, **sensor):
     hand_eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, hand_eye_z], [0, 0, 0, 1]]
     return config_from_dict({
-        "captures": str(tmp_path / "caps"), "socket": str(tmp_path / "s.sock"), "auto_resume": auto_resume,
+        # No `socket`: the default, in the test's short private folder (conftest); one under tmp_path is too long
+        # where TMPDIR is.
+        "captures": str(tmp_path / "caps"), "auto_resume": auto_resume,
         "arm": {"backend": "sim", "motion_time_s": 0.0, "hand_eye": hand_eye, **(arm or {})},
         "sensor": {**SENSOR, **sensor},
         "scan": {"views": 40, "settle_s": 0.0, "radius_m": 0.4, "target": [0, 0, 0.1]}}, tmp_path / "rig.toml")

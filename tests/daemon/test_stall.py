@@ -35,10 +35,10 @@ target = [0, 0, 0.1]
 """
 
 
-def test_a_stopped_daemon_waits_again_for_the_frame_instead_of_pausing_on_the_sensor(tmp_path, daemons):
+def test_a_stopped_daemon_waits_again_for_the_frame_instead_of_pausing_on_the_sensor(tmp_path, sock_dir, daemons):
     """SIGSTOP the daemon mid-scan for longer than frame_timeout_s, then SIGCONT: the scan goes on to the end, never
     paused with "sensor silent", and status says the daemon stalled."""
-    sock = tmp_path / "ctl.sock"
+    sock = sock_dir / "ctl.sock"
     rig = tmp_path / "rig.toml"
     rig.write_text(RIG.format(socket=sock))
     proc = daemons.start(rig, sock)

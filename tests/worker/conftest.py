@@ -2,8 +2,28 @@
 
 from __future__ import annotations
 
+import os
+
 import matplotlib.figure
 import pytest
+
+
+@pytest.fixture
+def draws_off_screen(monkeypatch):
+    """Skips the test, saying why and what to install, on a machine that cannot draw meshes off screen (no display,
+    no EGL, no OSMesa): the product's own check decides."""
+    from spadscan.worker.report.offscreen import OffscreenUnavailable, check_offscreen
+
+    # The check sets this variable to pick VTK's window: noted with monkeypatch, it is put back after the test.
+    name = "VTK_DEFAULT_OPENGL_WINDOW"
+    if name in os.environ:
+        monkeypatch.setenv(name, os.environ[name])
+    else:
+        monkeypatch.delenv(name, raising=False)
+    try:
+        check_offscreen()
+    except OffscreenUnavailable as exc:
+        pytest.skip(str(exc))
 
 
 @pytest.fixture

@@ -79,6 +79,7 @@ def test_the_saved_plot_is_a_png(tmp_path):
     assert path.read_bytes().startswith(b"\x89PNG")
 
 
+@pytest.mark.usefixtures("draws_off_screen")
 def test_the_normals_picture_names_its_per_vertex_measure(tmp_path, monkeypatch):
     import matplotlib.figure
     import trimesh
@@ -107,6 +108,7 @@ def drawn(panel: np.ndarray) -> np.ndarray:
     return (255 - panel.astype(int)).max(axis=2) > 12
 
 
+@pytest.mark.usefixtures("draws_off_screen")
 def test_the_preview_shows_the_reconstruction_where_it_is_and_the_ground_truth_below_it(tmp_path):
     import matplotlib.image
 
@@ -125,6 +127,7 @@ def test_the_preview_shows_the_reconstruction_where_it_is_and_the_ground_truth_b
             assert recon_y < truth_y - 0.1 * px, (az, el, recon_y, truth_y)
 
 
+@pytest.mark.usefixtures("draws_off_screen")
 def test_the_preview_without_ground_truth_is_one_row(tmp_path):
     import matplotlib.image
 
@@ -158,6 +161,7 @@ def red(panel: np.ndarray) -> np.ndarray:
     return (r > 60) & (r > 2 * g) & (r > 2 * b)
 
 
+@pytest.mark.usefixtures("draws_off_screen")
 def test_the_coverage_picture_shows_in_red_what_no_view_sees(tmp_path):
     from spadscan.worker.report import mesh_pictures
 
@@ -176,6 +180,7 @@ def test_the_coverage_picture_shows_in_red_what_no_view_sees(tmp_path):
     assert path.read_bytes().startswith(b"\x89PNG")
 
 
+@pytest.mark.usefixtures("draws_off_screen")
 def test_an_underside_that_the_share_leaves_out_is_grey_not_red():
     """The legend's shares leave the undersides out (no view from above a table sees them, and none is owed): drawn
     red, a sphere's unseen bottom read as a gap the legend's 0 % denied."""
@@ -198,6 +203,7 @@ def test_an_underside_that_the_share_leaves_out_is_grey_not_red():
     assert red(below).mean() < 0.75 * all_red, "the unseen side that is no underside stays red, the bottom does not"
 
 
+@pytest.mark.usefixtures("draws_off_screen")
 def test_the_coverage_picture_legend_gives_each_class_its_share(tmp_path, saved_legends):
     mesh = sphere((0, 0, 0))
     pictures.coverage_png(mesh, np.zeros(len(mesh.vertices), int), tmp_path / "c.png",
@@ -206,6 +212,7 @@ def test_the_coverage_picture_legend_gives_each_class_its_share(tmp_path, saved_
                               "underside: not counted"]]
 
 
+@pytest.mark.usefixtures("draws_off_screen")
 def test_a_surface_is_shaded_by_its_own_normals_as_smooth_shading_would():
     """offscreen.add_shaded draws a mesh as pyvista's smooth shading does (the normals computed once, from the
     mesh, not anew for each panel), and unlike flat shading."""
