@@ -17,6 +17,7 @@ from spadscan.protocol.raycast import zone_rays
 
 from ...carving.returns import RESCAN, below_default_level, first_returns
 from ...carving.space_carving import carve_scene
+from ...carving.view_subset import spread_views
 from ...carving.views import summed_views
 from ...table_height import RAYS_PER_ZONE, detect_height
 from ..errors import ReconstructionError
@@ -65,6 +66,10 @@ class FastProblem:
     notes: dict = field(default_factory=dict)
     measured: bool = False
     """The histograms come from a real sensor (the capture's `real` flag), not from a simulator."""
+    setup_views: torch.Tensor | None = None
+    """(k,) long: the evenly spread views (`view_subset`) that the set-up's O(views x cells) stages read of a large
+    capture (carving, the empty-space weights), or None for all. Training reads every view: its steps sample a fixed
+    number of views, so only the set-up grew with them (a 2000-view capture made one step in a 120 s budget)."""
 
 
 def candidate_rays(sensor, per_sr: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -115,7 +120,11 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     notes = {"table": None if table is None else table[3], "floor": floor_source}
     counts_np, carve_sensor = _carving_views(scene)
     poses_np = scene.poses.double().cpu().numpy()
-    hull_res = _carve(scene, counts_np, poses_np, carve_sensor, fc, floor_z, on_table=table is not None)
+    setup = _setup_views(poses_np, scene)
+    hull_res = _carve(scene, counts_np, poses_np, carve_sensor, fc, floor_z, on_table=table is not None,
+                      views=setup)
+    if setup is not None:
+        notes["setup_views"] = int(len(setup))
     voxel = float(np.min(hull_res.voxel_m))
     occ = np.transpose(hull_res.occupancy, (2, 1, 0))  # (x, y, z) -> (z, y, x)
     onset = first_returns(counts_np, carve_sensor, fc.carve_threshold, "leading").onset_range_m(carve_sensor)
@@ -142,7 +151,15 @@ def build_problem(scene, config, device, terms) -> FastProblem:
         zone_dirs=torch.as_tensor(dirs, **f32), zone_weights=torch.as_tensor(weights, **f32), forward=forward,
         hull=hull, floor_z=floor_z, box=(lo, hi),
         table_plane=None if table is None else (table[0], table[1], table[2]), notes=notes,
-        measured=bool(scene.real))
+        measured=bool(scene.real),
+        setup_views=None if setup is None else torch.as_tensor(setup, device=device, dtype=torch.long))
+
+
+def _setup_views(poses: np.ndarray, scene) -> np.ndarray | None:
+    """Indices of the evenly spread views (`view_subset.spread_views`) that the set-up's O(views x cells) stages
+    read of a large capture, or None where that is all of them (a capture of up to MAX_SETUP_VIEWS views)."""
+    keep = spread_views(poses, usable=_usable(scene))
+    return None if len(keep) == len(poses) else keep
 
 
 def carve_box(scene, floor_z: float | None) -> np.ndarray:
@@ -263,14 +280,18 @@ def _carving_views(scene):
     return summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
 
 
-def _carve(scene, counts, poses, sensor, fc, floor_z, on_table: bool):
+def _carve(scene, counts, poses, sensor, fc, floor_z, on_table: bool, views: np.ndarray | None = None):
     """The carved hull of the scene's views: `counts` (V, Z, B) and `sensor` as `_carving_views` gives them, `poses`
-    (V, 4, 4)."""
+    (V, 4, 4); `views`: the indices of those to carve with (None: all; see `FastProblem.setup_views`)."""
     box = carve_box(scene, floor_z)
+    usable = _usable(scene)
+    if views is not None:
+        counts, poses = counts[views], poses[views]
+        usable = None if usable is None else usable[views]
     return carve_scene(counts, poses, sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
                        floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc),
-                       weak_threshold=carve_weak_threshold(fc, on_table), usable=_usable(scene))
+                       weak_threshold=carve_weak_threshold(fc, on_table), usable=usable)
 
 
 def _usable(scene) -> np.ndarray | None:

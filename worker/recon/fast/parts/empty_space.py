@@ -103,13 +103,20 @@ class EmptySpacePush(Part):
                     bound = model.constraint.bound_for(model.field)[0, 0, ::stride, ::stride, ::stride]
                     reach = bound.to(points.device) <= 2 * voxel
                 w = torch.zeros(points.shape[:-1], dtype=points.dtype, device=points.device)
+                # A large capture's weights are those of its evenly spread set-up views (problem.setup_views): the
+                # work is O(views x nodes), and the coverage share and the count of views that hear are then those
+                # of the capture sizes these rules were tuned on.
+                views = p.setup_views
+                poses = p.poses if views is None else p.poses[views]
                 if model.on_table:
-                    cov = view_coverage(points[reach], p.poses, p.forward.sensor.zones,
-                                        looked=p.valid.any(dim=-1))
+                    looked = p.valid.any(dim=-1)
+                    cov = view_coverage(points[reach], poses, p.forward.sensor.zones,
+                                        looked=looked if views is None else looked[views])
                     w[reach] = pressure_weight(cov, self.config.coverage).to(w.dtype)
                 else:
-                    loud = heard_bins(p.counts, p.forward.sensor, self.config.heard_threshold)
-                    heard = views_hearing(points[reach], p.poses, p.forward.sensor, loud, voxel)
+                    counts = p.counts if views is None else p.counts[views]
+                    loud = heard_bins(counts, p.forward.sensor, self.config.heard_threshold)
+                    heard = views_hearing(points[reach], poses, p.forward.sensor, loud, voxel)
                     w[reach] = (1.0 - heard / self.config.heard_views).clamp(0.0, 1.0).to(w.dtype)
             self._weight = w[None, None].to(model.field.sdf.dtype).contiguous()
         if tuple(self._weight.shape) != shape:
