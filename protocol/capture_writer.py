@@ -35,6 +35,7 @@ from .capture_format import (CHUNK_PREFIX, FORMAT, MANIFEST, SCHEDULE, STATES, T
                              check_json, check_poses, chunk_index, chunk_name, fold, fsync_dir, one_line, read_json,
                              save_npy_durable, to_counts, write_durable, write_json_atomic)
 from .capture_reader import CaptureReader
+from .disk_full import is_short_write
 from .errors import CaptureError
 from .iso_time import utc_now
 from .sensor_model import SensorModel
@@ -46,11 +47,10 @@ def _named(exc: OSError, path) -> OSError:
     CLI needs the errno to say what stopped the write (`_short_write`)."""
     if exc.filename is not None:
         return exc
-    text = str(exc)
-    if exc.errno is None and "requested and" in text and "written" in text:
+    if is_short_write(exc):
         named = _short_write(path)
     else:
-        named = OSError(exc.errno, exc.strerror or text, str(path)) if exc.errno is not None else exc
+        named = OSError(exc.errno, exc.strerror or str(exc), str(path)) if exc.errno is not None else exc
     return named
 
 

@@ -13,6 +13,7 @@ import re
 import sys
 
 from spadscan.parent_watch import watch_parent_from_env
+from spadscan.protocol.disk_full import is_disk_full  # the command line's name for it, kept
 from spadscan.protocol.folders import file_in_the_way
 
 # name -> (module under spadscan.commands, one-line help)
@@ -202,16 +203,6 @@ def describe_os_error(exc: OSError) -> str:
         return f"{path}: permission denied"
     where = f" ({path})" if path else ""
     return f"{exc.strerror or exc}{where}"
-
-
-def is_disk_full(exc: OSError) -> bool:
-    """ENOSPC or EDQUOT, or numpy's short write ("8192 requested and 3040 written"), which carries no errno."""
-    import errno
-
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        return True
-    text = str(exc)
-    return exc.errno is None and "requested and" in text and "written" in text
 
 
 if __name__ == "__main__":  # pragma: no cover

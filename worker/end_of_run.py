@@ -280,6 +280,10 @@ class RunFacts:
     """Wall seconds of training, checkpoint evaluations included (what its share of the budget counts)."""
     training_budget_s: float | None = None
     """The seconds the budget left training, or None without a budget."""
+    preset: str | None = None
+    """The preset that ran, or None where not known (`faster_ways`)."""
+    cuda_seen: bool | None = None
+    """Whether torch saw a CUDA device on the machine that ran, or None where not known (`faster_ways`)."""
     signal: object | None = None
     """How many histograms of the zone aimed at the object hold a return at carving's level (a
     `signal_check.Signal`), or None where not judged."""
@@ -339,15 +343,38 @@ def overrun_warning(facts: RunFacts) -> str | None:
         # Training overran its share, not the start or the end: the trainer takes at least one step, however long
         # (the paper preset's on a CPU: over a minute).
         per_step = facts.training_s / max(facts.steps, 1)
+        faster = faster_ways(facts.preset, facts.device, facts.cuda_seen)
         return (f"{took}: training took {facts.training_s:.0f} s of the {_seconds(facts.training_budget_s)} s the "
                 f"budget left it, {per_step:.0f} s a step over {facts.steps} step(s) on {facts.device}, and a run "
-                f"takes at least one; give it a time budget of many steps, or a faster device (--device cuda) or "
-                f"preset (fast)")
+                f"takes at least one; give it {either(['a time budget of many steps', *faster])}")
     share = cpu_share(facts)
     had = f" (it had {share:.2f} of a CPU core while training)" if share is not None and facts.device == "cpu" else ""
     return (f"{took}: its start and its end (the "
             f"mesh, the pictures, the metrics) took longer than the budget left them{had}; give it a larger time "
             f"budget or stop other work")
+
+
+FASTER_PRESET = {"paper": "fast"}
+"""Preset -> the preset whose steps run faster, where there is one (the fast preset's grid step takes milliseconds on
+a CPU, the paper preset's MLP step seconds to minutes): the fast preset has none to be pointed at."""
+
+
+def faster_ways(preset: str | None, device: str, cuda_seen: bool | None) -> list[str]:
+    """What would make a run's steps faster, as phrases for its advice, only those that apply: a GPU for a run that
+    was not on one (`--device cuda` where torch sees a CUDA device; else it takes another machine), and a faster
+    preset where there is one (FASTER_PRESET). None (a run's facts that do not say): named as they may apply."""
+    ways = []
+    if device != "cuda":
+        ways.append("a machine with a GPU" if cuda_seen is False else "a faster device (--device cuda)")
+    faster = FASTER_PRESET.get(preset) if preset is not None else "fast"
+    if faster is not None:
+        ways.append(f"the {faster} preset (--preset {faster})")
+    return ways
+
+
+def either(options: list[str]) -> str:
+    """'a', 'a or b', 'a, b or c'."""
+    return options[0] if len(options) == 1 else f"{', '.join(options[:-1])} or {options[-1]}"
 
 
 def misfit_warning(fit: FitNoise, measured: bool) -> str | None:

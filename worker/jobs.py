@@ -8,7 +8,8 @@ replaced in silence: the worker does not run a job whose folder already holds on
 
 `python -m spadscan.worker.jobs` is the child process the worker pool starts for each job: it runs one job into the
 folder the pool names and writes an outcome file the pool reads (exit 0 done, 3 the input is at fault and a retry
-would fail the same way, 4 the job crashed).
+would fail the same way, 4 the job crashed, 5 it met a full disk: no fault of the job's, which the pool gives back
+to the queue without counting the attempt; said by the exit status alone where the outcome file does not fit).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.atomic_files import write_atomic
+from spadscan.protocol.disk_full import disk_full_cause
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
 from .budget import process_started
@@ -40,7 +42,7 @@ from .publish_out import move_aside
 
 ID_RE = re.compile(r"[^A-Za-z0-9._-]+")
 RECON_DIR = "recon"
-EXIT_DONE, EXIT_INPUT, EXIT_CRASH = 0, 3, 4
+EXIT_DONE, EXIT_INPUT, EXIT_CRASH, EXIT_FULL = 0, 3, 4, 5
 
 ReconFn = Callable[..., dict]
 """`reconstruct_capture(capture, out, *, preset, budget_s, steps, gt, device, seed, started) -> report dict`:
@@ -286,7 +288,7 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *
     gt, gt_note = ground_truth(manifest, out)
     (out / "job.json").write_text(json.dumps({**job.to_dict(), "capture": str(scan),
                                               "gt": None if gt is None else str(published_path(gt, out, final)),
-                                              "gt_note": gt_note}, indent=1) + "\n")
+                                              "gt_note": gt_note, "redo": redo_command(job, root)}, indent=1) + "\n")
     if gt_note:
         print(f"ground truth: {gt_note}", file=sys.stderr, flush=True)
     recon = recon or load_recon()
@@ -301,6 +303,12 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *
         report.update(extra)
         add_to_report(out, extra)
     return report
+
+
+def redo_command(job: Job, root: Path) -> str:
+    """The command that reconstructs the job again, its result then moved aside (job.json's `redo`: what a result's
+    report names where a part of it could not be written). The root is absolute: a report is read from anywhere."""
+    return f"spadscan worker --root {Path(root).resolve()} --redo {job.id}"
 
 
 def published_path(path: Path, scratch: Path, final: Path) -> Path:
@@ -456,6 +464,47 @@ def _write_outcome(path: Path, data: dict) -> None:
     write_atomic(path, json.dumps(data) + "\n")
 
 
+def _say(line: str) -> None:
+    """A line in the job's log (its stderr), which a full disk may keep out: the outcome and the exit status say what
+    matters."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except OSError:
+        pass
+
+
+def _ended(outcome: Path, data: dict, code: int) -> int:
+    """Write the outcome file and return the exit status `code`; EXIT_FULL when a full disk keeps the file out (the
+    exit status alone then tells the pool: a result that finished is reconstructed again, the job not at fault)."""
+    try:
+        _write_outcome(outcome, data)
+    except OSError as exc:
+        if disk_full_cause(exc) is None:
+            raise
+        return EXIT_FULL
+    return code
+
+
+def _ended_in_error(exc: Exception, outcome: Path, out: Path) -> int:
+    """Say how the job ended in error and return its exit status: the disk was full (EXIT_FULL, one line naming the
+    folder: no traceback, nothing in the job is at fault), its input is at fault (EXIT_INPUT), or it crashed
+    (EXIT_CRASH, with the traceback)."""
+    full = disk_full_cause(exc)
+    if full is not None:
+        folder = Path(full.filename).parent if full.filename else out
+        why = full.strerror or str(full)
+        _say(f"job stopped: no room left on the disk: {folder} could not be written ({why})")
+        return _ended(outcome, {"ok": False, "kind": "full", "error": why, "folder": str(folder)}, EXIT_FULL)
+    if isinstance(exc, SpadscanError):
+        _say(f"job failed: {exc}")
+        return _ended(outcome, {"ok": False, "kind": "input", "error": str(exc)}, EXIT_INPUT)
+    try:
+        traceback.print_exc()
+    except OSError:
+        pass
+    return _ended(outcome, {"ok": False, "kind": "crash", "error": f"{type(exc).__name__}: {exc}"}, EXIT_CRASH)
+
+
 def child_main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m spadscan.worker.jobs", description="Run one queued job.")
     parser.add_argument("--job", required=True, help="the job record as JSON")
@@ -473,18 +522,11 @@ def child_main(argv: list[str] | None = None) -> int:
     try:
         job = Job.from_dict(json.loads(args.job))
         report = execute_job(job, Path(args.root), Path(args.out), load_recon(args.recon), started=started)
-    except SpadscanError as exc:
-        _write_outcome(outcome, {"ok": False, "kind": "input", "error": str(exc)})
-        print(f"job failed: {exc}", file=sys.stderr)
-        return EXIT_INPUT
-    except Exception as exc:  # a bug or a resource problem: record it and let the pool retry
-        traceback.print_exc()
-        _write_outcome(outcome, {"ok": False, "kind": "crash", "error": f"{type(exc).__name__}: {exc}"})
-        return EXIT_CRASH
+    except Exception as exc:  # bad input, a full disk, a bug or another resource problem: see _ended_in_error
+        return _ended_in_error(exc, outcome, Path(args.out))
     summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note", "capture_counts_note",
                                       "converged", "warnings") if k in report}
-    _write_outcome(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary})
-    return EXIT_DONE
+    return _ended(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary}, EXIT_DONE)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,9 @@ write that meets a full disk; its other jobs run on. A result already renamed in
 be written yet is published, not lost: the worker writes the record once it fits. A finished result a stopped worker
 left unpublished is published by the worker that claims its job next (publishing.left_result), not reconstructed
 again. A job that ended in error whose record a full disk keeps out is said where it went and why, its record written
-at a later poll.
+at a later poll. A job whose own process met a full disk is not at fault, and a retry would meet the same disk: it
+goes back to the queue without counting an attempt, its line naming the folder that is full and where to make room,
+and the worker claims no job until there is room (`disk_room.RoomWait`), saying so once and again when it goes on.
 """
 
 from __future__ import annotations
@@ -34,8 +36,9 @@ from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
+from .disk_room import RoomWait, folder_bytes, mount_point, retry_after, size_text
 from .job_progress import PROGRESS_S, LogTails, ProgressNotes, ended_live_status, progress_note
-from .jobs import CHANGEABLE, completion, existing_result, mark_complete, result_path, scratch_path
+from .jobs import CHANGEABLE, EXIT_FULL, completion, existing_result, mark_complete, result_path, scratch_path
 from .holder import Holder
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
 from .presence import RENEW_S, Presence, present_workers, remove_presence, write_presence
@@ -97,6 +100,10 @@ class Worker:
         self.progress = ProgressNotes(progress_s) if progress_s else None
         self.tails = LogTails()
         """The running jobs' logs as last read for their progress lines: read again only once changed."""
+        self.room: RoomWait | None = None
+        """While set, a job met a full disk: no job is claimed until there is room (`_room_again`)."""
+        self._full_in_row = 0
+        """Jobs that met a full disk since one last finished (`disk_room.retry_after`)."""
         self.presence = Presence(Holder.current().to_dict(), str(self.root.resolve()), time.time(), config.processes,
                                  config.once)
         """What this worker says of itself in its file under the queue (presence.py), renewed while it runs."""
@@ -208,6 +215,8 @@ class Worker:
             await asyncio.to_thread(self._reconcile)
         await self._take_over()
         await asyncio.to_thread(self.queue.repair)
+        if self.room is not None and not await asyncio.to_thread(self._room_again):
+            return  # a claim now would meet the full disk again
         while len(self.children) + len(self.unpublished) < self.config.processes:  # a result to publish holds its slot
             claim = await asyncio.to_thread(self.queue.claim)
             if claim is None:
@@ -215,16 +224,16 @@ class Worker:
             await self._start(claim)
 
     async def _take_over(self) -> None:
-        """Take over the jobs of dead workers (`Queue.reclaim_expired`): each is queued again, a live job's status
+        """Take over the jobs of dead workers (`Queue.take_over_expired`): each is queued again, a live job's status
         saying so while this worker holds it (`_say_reclaimed`), or failed on its last attempt (`_gave_up`)."""
-        reclaimed = await asyncio.to_thread(self.queue.reclaim_expired, before_requeue=self._say_reclaimed)
-        for job_id, state in reclaimed:
-            self.log(f"{job_id}: its worker stopped; {'queued again' if state == 'queued' else 'failed'}")
+        reclaimed = await asyncio.to_thread(self.queue.take_over_expired, before_requeue=self._say_reclaimed)
+        for taken in reclaimed:  # its worker died (its process is gone) or went silent: said as --status says it
+            self.log(f"{taken.job_id}: {taken.why}; {'queued again' if taken.state == 'queued' else 'failed'}")
         if reclaimed:
             await asyncio.to_thread(self._reconcile)
-        for job_id, state in reclaimed:
-            if state == "failed":  # this worker gave up on it: counted as failed here (--once's exit status)
-                await asyncio.to_thread(self._gave_up, job_id)
+        for taken in reclaimed:
+            if taken.state == "failed":  # this worker gave up on it: counted as failed here (--once's exit status)
+                await asyncio.to_thread(self._gave_up, taken.job_id)
 
     def _say_reclaimed(self, job, why: str) -> None:
         """A live job whose worker died goes back to the queue: its status says so (`mark_live_queued`), as on every
@@ -422,6 +431,8 @@ class Worker:
         try:
             if rc == 0 and outcome.get("ok"):
                 self._settle_done(child, seconds, outcome.get("summary") or {})
+            elif rc == EXIT_FULL:
+                self._settle_full(child, outcome, seconds)
             else:
                 self._settle_error(child, rc, outcome, seconds)
         finally:
@@ -473,6 +484,74 @@ class Worker:
                 note += (f" (once the cause is fixed, `spadscan worker --root {self.root}{self._queue_flag()} "
                          f"--retry-failed` queues it again)")
         self.log(said + note)
+
+    def _settle_full(self, child: Child, outcome: dict, seconds: float) -> None:
+        """A job whose process met a full disk: its partial result is removed (room for its record, and a fair
+        measure of what is free), the job given back without counting an attempt, and no job claimed until there is
+        room (`RoomWait`). One line names the folder that is full and what to do; the wait is said once."""
+        claim, job = child.claim, child.claim.job
+        folder = Path(outcome.get("folder") or child.scratch)
+        if folder == child.scratch or child.scratch in folder.parents:
+            folder = child.scratch.parent  # the scratch folder goes: name the scan's recon/ folder it was in
+        held = folder_bytes(child.scratch)
+        shutil.rmtree(child.scratch, ignore_errors=True)
+        why = f"no room left on the disk: {folder} could not be written ({outcome.get('error') or 'disk full'})"
+        remedy = f"make room on the filesystem mounted at {mount_point(folder)}"
+        self._say_queued(claim, why)
+        uncounted = "not counted as an attempt"
+        try:
+            given = self.queue.release(claim, f"{why}; {remedy}, then a worker runs the job again", outcome="disk_full")
+        except Unrecorded as exc:
+            given = True
+            self.unrecorded[job.id] = (claim, exc.values)
+            self._troubles[_recording(job.id)] = fold(exc)  # said here: not again at the next poll
+            # until its record says disk_full, the claim's 'running' record counts: said as it is
+            uncounted = (f"but its attempt record could not be written ({fold(exc)}): trying again every "
+                         f"{self.config.poll_s:g} s, then it is not counted as an attempt")
+        except OSError as exc:  # the job file was not moved: held until its lease runs out
+            self.log(f"{job.id} stopped after {seconds:.1f} s: {why}; the queue could not take it back "
+                     f"({fold(exc)}): {remedy}; it is taken again once its lease runs out")
+            given = False
+        if given:
+            self.log(f"{job.id} stopped after {seconds:.1f} s: {why}; back in the queue, {uncounted}; "
+                     f"{remedy}, then this worker runs it again by itself")
+        self._wait_for_room(folder, held)
+
+    def _wait_for_room(self, folder: Path, held: int) -> None:
+        """Claim no job until the filesystem holding `folder` has room (`RoomWait`); said when the wait begins."""
+        self._full_in_row += 1
+        waiting = self.room is not None
+        try:
+            self.room = RoomWait.begin(folder, held, retry_after(self._full_in_row))
+        except OSError as exc:  # its free space cannot be asked (a lost mount): claims go on, each may say so
+            self.log(f"could not check the free space on the disk of {folder}: {fold(exc)}")
+            return
+        if not waiting:
+            room = self.room
+            self.log(f"waiting for room on {room.mount} before claiming another job: {size_text(room.free)} free, "
+                     f"the job needs more (waiting for {size_text(room.need)}, checked every {self.config.poll_s:g} s; "
+                     f"claiming again in {room.retry_s / 60:.0f} min all the same)")
+
+    def _room_again(self) -> bool:
+        """Whether the wait for room is over (`RoomWait.over`), said when it is; a probe that fails is said once and
+        the wait goes on."""
+        room = self.room
+        what = f"check the free space on {room.mount}"
+        try:
+            over, free = room.over()
+        except OSError as exc:
+            self._trouble(what, exc)
+            return False
+        self._trouble(what, None)
+        if not over:
+            return False
+        self.room = None
+        if free >= room.need:
+            self.log(f"room again on {room.mount} ({size_text(free)} free): claiming jobs again")
+        else:
+            self.log(f"still {size_text(free)} free on {room.mount} after {room.retry_s:.0f} s, less than the "
+                     f"{size_text(room.need)} waited for: claiming jobs again, in case that is room enough")
+        return True
 
     def _say_queued(self, claim: Claim, why: str) -> None:
         """A live job about to go back to the queue says so in its live status (`mark_live_queued`) while this worker
@@ -598,6 +677,7 @@ class Worker:
         if job.live:
             mark_live_done(job, self.root, final, self.log)
         self.settled[job.id] = "done"
+        self._full_in_row = 0
         extra = f", Chamfer {summary['chamfer_mm']:.2f} mm" if isinstance(summary.get("chamfer_mm"), float) else ""
         if summary.get("ground_truth_note"):
             extra += f" (ground truth: {summary['ground_truth_note']})"

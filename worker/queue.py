@@ -48,8 +48,10 @@ from .kill_points import kill_point
 STATES = ("queued", "running", "done", "failed")
 QUEUE_DIRNAME = ".queue"
 SEP = "~"
-# Outcomes of one claim. Interrupted claims (the worker was asked to stop) do not count as attempts.
-OUTCOMES = ("running", "done", "failed", "crashed", "lost", "interrupted")
+# Outcomes of one claim. Interrupted claims (the worker was asked to stop) and those that met a full disk (no fault of
+# the job's: run again once there is room) do not count as attempts.
+OUTCOMES = ("running", "done", "failed", "crashed", "lost", "interrupted", "disk_full")
+UNCOUNTED = ("interrupted", "disk_full")
 
 
 class Unrecorded(OSError):
@@ -103,6 +105,18 @@ class JobStatus:
     waiting_s: float | None = None
     """For a queued job: how long it has waited (its file's age: a job file is renamed into queued/ when it is queued
     or given back)."""
+
+
+@dataclass(frozen=True)
+class Reclaimed:
+    """A running job taken over from a holder that is gone (`Queue.take_over_expired`)."""
+
+    job_id: str
+    state: str
+    """Where it went: 'queued' (attempts left) or 'failed'."""
+    why: str
+    """Why its holder was given up on, as its lost claim's record and `--status` say it: `worker HOST pid N died
+    mid-job` (its process is gone from this machine) or `worker HOST pid N stopped renewing its lease (...)`."""
 
 
 def _utc() -> str:
@@ -325,11 +339,18 @@ class Queue:
         """Write how a settled claim ended into its attempt record (what Unrecorded.values says, once it fits)."""
         self._patch_record(claim.job.id, claim.token, **values)
 
-    def release(self, claim: Claim, reason: str = "worker stopped") -> bool:
-        """Give a held job back to queued/ without counting the attempt (the worker was asked to stop)."""
+    def release(self, claim: Claim, reason: str = "worker stopped", *, outcome: str = "interrupted") -> bool:
+        """Give a held job back to queued/ without counting the attempt: the worker was asked to stop
+        ('interrupted'), or the job met a full disk ('disk_full'). False (and nothing changes) when the lease was
+        lost. Raises Unrecorded when the job went back but its attempt record could not be written."""
         if not self._settle(claim.path, claim.job.id, "queued"):
             return False
-        self._update(claim, outcome="interrupted", error=_one_line(reason))
+        values = {"outcome": outcome, "error": _one_line(reason), "ended_utc": _utc(),
+                  "seconds": round(time.time() - claim.started, 3)}
+        try:
+            self.write_outcome(claim, values)
+        except OSError as exc:
+            raise Unrecorded(exc, "queued", values) from exc
         return True
 
     def _settle(self, src: Path, job_id: str, state: str) -> bool:
@@ -342,7 +363,13 @@ class Queue:
     # ---- expired leases --------------------------------------------------------------------------------------
     def reclaim_expired(self, holder: Holder | None = None, now: float | None = None,
                         before_requeue: Callable[[Job, str], None] | None = None) -> list[tuple[str, str]]:
-        """Take over every running job whose holder stopped; retry it or fail it. Returns [(job id, new state)].
+        """`take_over_expired`, as [(job id, new state)]."""
+        return [(r.job_id, r.state) for r in self.take_over_expired(holder, now, before_requeue)]
+
+    def take_over_expired(self, holder: Holder | None = None, now: float | None = None,
+                          before_requeue: Callable[[Job, str], None] | None = None) -> list[Reclaimed]:
+        """Take over every running job whose holder stopped; retry it or fail it. Returns what became of each, and
+        why its holder was given up on (`Reclaimed`).
 
         `before_requeue(job, why)` is called for each job about to be retried while this process still holds it:
         once back in queued/, another worker may claim it at once, and its attempt's first word must not be covered
@@ -352,8 +379,8 @@ class Queue:
         out = []
         for path in sorted((self.path / "running").glob(f"*{SEP}*.json")):
             job_id, _, old_token = path.stem.rpartition(SEP)
-            reason = self._expired(path, job_id, old_token, now)
-            if reason is None:
+            why = self._expired(path, job_id, old_token, now)
+            if why is None:
                 continue
             token = _new_token()
             mine = path.with_name(f"{job_id}{SEP}{token}.json")
@@ -366,15 +393,14 @@ class Queue:
                 continue
             attempts = self.attempts(job_id)
             retry = attempts < self.max_attempts
-            if not retry:
-                reason = f"{reason} (attempt {attempts} of {self.max_attempts}; giving up)"
+            reason = why if retry else f"{why} (attempt {attempts} of {self.max_attempts}; giving up)"
             self._patch_record(job_id, old_token, outcome="lost", error=reason, ended_utc=_utc(), retried=retry)
             held = _job_file(mine) if retry and before_requeue is not None else None
             if held is not None:
                 before_requeue(held, reason)
             state = "queued" if retry else "failed"
             if self._settle(mine, job_id, state):
-                out.append((job_id, state))
+                out.append(Reclaimed(job_id, state, why))
         return out
 
     def _expired(self, path: Path, job_id: str, token: str, now: float | None) -> str | None:
@@ -503,6 +529,8 @@ class Queue:
             notes.append("its last attempt record was not written (a full disk?): the worker's log says how it ended")
         counted = [r for r in recs if _counted(r)]
         errors = [str(r["error"]) for r in counted if r.get("error")]
+        if state == "queued" and recs and recs[-1].get("outcome") == "disk_full" and recs[-1].get("error"):
+            errors.append(str(recs[-1]["error"]))  # why it waits (the disk to make room on), though not an attempt
         # A done job's result: its done record's; else the one its last claim recorded before settling (its worker
         # died between moving the job to done/ and updating the record).
         results = ([str(r["result"]) for r in recs if r.get("outcome") == "done" and r.get("result")]
@@ -618,9 +646,9 @@ class Queue:
 
 
 def _counted(rec: dict) -> bool:
-    """Whether an attempt record counts as an attempt: interrupted claims (the worker was asked to stop) and adopted
-    ones (a finished result published for a dead worker) do not."""
-    return rec.get("outcome") != "interrupted" and not rec.get("adopted")
+    """Whether an attempt record counts as an attempt: interrupted claims (the worker was asked to stop), those that
+    met a full disk, and adopted ones (a finished result published for a dead worker) do not."""
+    return rec.get("outcome") not in UNCOUNTED and not rec.get("adopted")
 
 
 def _rename(src: Path, dst: Path) -> bool:

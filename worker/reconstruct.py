@@ -85,9 +85,10 @@ def _spent_at_set_up(elapsed_s: float, budget_s: float, preset: str, device: str
     """The line said as training starts when the set-up has used the whole time budget: the run still makes the one
     step every run makes and its mesh, however long they take, and without this line it says so only at its end (the
     `paper` preset on a CPU: 45 s of set-up and a step of minutes against a 40 s budget)."""
+    faster = end_of_run.faster_ways(preset, device, torch.cuda.is_available())
     return (f"warning: the set-up took {elapsed_s:.1f} s of the {budget_s:g} s time budget: training makes one step "
-            f"(the {preset} preset's may take minutes on the {device}) and the run will end late; give it a larger "
-            f"time budget or a faster device")
+            f"(the {preset} preset's may take minutes on the {device}) and the run will end late; give it "
+            f"{end_of_run.either(['a larger time budget', *faster])}")
 
 
 def run_config(preset: str, overrides: dict | None = None) -> ReconConfig:
@@ -361,7 +362,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
                      continued=bool(getattr(model, "warm_started", False)),
-                     training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s)
+                     training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s,
+                     preset=config.preset, cuda_seen=torch.cuda.is_available())
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts)
     report["fit_to_noise"] = None if fit is None else fit.to_dict()

@@ -51,7 +51,11 @@ as done a job whose result is in place, removes partial results, and queues agai
 A full disk while a finished result is published (its log copied in, its marker written) loses nothing either: the
 worker keeps the result and the job's claim, says so once, and publishes it when there is room again, while its
 other jobs run on; a worker stopped meanwhile leaves it marked complete, and the next worker to claim the job
-publishes it instead of reconstructing it again.
+publishes it instead of reconstructing it again. A job whose own process meets a full disk is not at fault: its
+partial result is removed, it goes back to the queue without using an attempt, the worker's line names the folder
+that could not be written and the filesystem to make room on, and the worker claims no job until there is room (it
+checks the free space every --poll-s, and claims again after 10 minutes all the same), saying so when it stops and
+when it goes on.
 
 While it runs, the worker says each running job's progress in its own terminal, one line per job, when the job's
 stage changes (its training starts or ends) and every 30 s in between; a job's done line is followed by its report's

@@ -94,7 +94,11 @@ def test_a_killed_workers_job_finishes_on_the_other_worker_once(tmp_path, procs)
         assert json.loads((result / "report.json").read_text())["steps"] == 2
         assert [p.name for p in (root / scan / "recon").iterdir() if not p.name.startswith(".")] == [job]
     assert len(lost) == 1, f"exactly the killed worker's job was taken over: {lost}"
-    assert "its worker stopped" in procs.log(survivor)
+    (taken,) = lost
+    held = queue.records(taken)[0]
+    assert held["pid"] == victim.pid, "the killed worker held it"
+    said = f"{taken}: worker {held['host']} pid {victim.pid} died mid-job; queued again"
+    assert said in procs.log(survivor), procs.log(survivor)
 
 
 def alive(pid: int) -> bool:

@@ -26,6 +26,12 @@ RECON = "test_missing_view_said:no_room_for_the_view_recon"
 SAID = "no 3D view: view3d.html could not be written (No space left on device)"
 
 
+def job_said(root: Path, job: str) -> str:
+    """SAID, as a worker job's result says it: with the command that reconstructs the job again with its view."""
+    return (f"{SAID}; make room on its disk, then `spadscan worker --root {root.resolve()} --redo {job}` "
+            f"reconstructs the job again with its view, this result kept aside")
+
+
 def _full_disk(folder, *args, **kwargs):
     raise OSError(errno.ENOSPC, "No space left on device", str(Path(folder) / VIEW3D))
 
@@ -66,17 +72,18 @@ def test_a_done_job_without_its_view_says_so_in_its_done_line_and_status(tmp_pat
     lines: list[str] = []
     worker = Worker(WorkerConfig(root=root, once=True, poll_s=0.05, recon=RECON), log=lines.append)
     assert arun(worker.run()) == {"mug-fast": "done"}
+    said = job_said(root, "mug-fast")
     result = root / "mug" / "recon" / "mug-fast"
     assert not (result / VIEW3D).exists()
-    assert json.loads((result / "report.json").read_text())["warnings"] == [SAID]
+    assert json.loads((result / "report.json").read_text())["warnings"] == [said]
     done = [line for line in lines if line.startswith("mug-fast done in ")]
-    assert done and done[0].splitlines() == [done[0].splitlines()[0], f"  warning: {SAID}"], lines
+    assert done and done[0].splitlines() == [done[0].splitlines()[0], f"  warning: {said}"], lines
     assert done[0].splitlines()[0].endswith(f" -> {result}"), "the done line itself stays short"
     assert cli_main(["worker", "--root", str(root), "--status", "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)
-    assert row["state"] == "done" and row["warnings"] == [SAID], row
+    assert row["state"] == "done" and row["warnings"] == [said], row
     assert cli_main(["worker", "--root", str(root), "--status"]) == 0
     header, row, warning, counts, workers = capsys.readouterr().out.splitlines()
     assert row.startswith("mug-fast") and row.endswith(f"{result} (1 warning below)"), row
-    assert warning == " " * header.index("RESULT") + f"warning: {SAID}", "on its own line, under the result"
+    assert warning == " " * header.index("RESULT") + f"warning: {said}", "on its own line, under the result"
     assert os.path.isfile(result / "job.log")

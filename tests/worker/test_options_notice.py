@@ -68,9 +68,11 @@ def test_a_dead_workers_job_taken_over_is_named(tmp_path, arun):
     make_scan(tmp_path, "d")
     queue = Queue.for_root(tmp_path)
     queue.enqueue(Job(id="d-fast", scan="d", steps=200))
-    assert queue.claim(Holder(**{**Holder.current().to_dict(), "pid": _gone_pid(), "pid_start": ""})) is not None
+    gone = Holder(**{**Holder.current().to_dict(), "pid": _gone_pid(), "pid_start": ""})
+    assert queue.claim(gone) is not None
     lines = run_once(tmp_path, arun, steps=3)
-    assert any("d-fast: its worker stopped; queued again" in line for line in lines), lines
+    said = f"d-fast: worker {gone.host} pid {gone.pid} died mid-job; queued again"
+    assert any(said in line for line in lines), lines
     assert steps_run(tmp_path, "d") == 200
     assert "d-fast (steps 200)" in named(lines), lines
 

@@ -73,7 +73,8 @@ def test_a_dead_workers_live_job_says_queued_again_before_it_goes_back(abandoned
 
     arun(abandoned._take_over())
     assert abandoned.queue.job_paths()[JOB][0] == "queued"
-    assert f"{JOB}: its worker stopped; queued again" in lines, lines
+    dead = abandoned.queue.records(JOB)[0]
+    assert f"{JOB}: worker {dead['host']} pid {dead['pid']} died mid-job; queued again" in lines, lines
     assert at_requeue == ["queued"], "said while the job was still held"
     status = read_status(status_path(abandoned.root / "s"))
     assert "died mid-job" in status.note and "back in the queue" in status.note, status.note

@@ -9,7 +9,9 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -149,13 +151,17 @@ def test_a_killed_workers_job_is_retried_by_another(tmp_path, markers, where):
     assert len(markers_of(markers, "s", "end")) == 1, "the job ran to its end exactly once"
     (row,) = Queue.for_root(root).statuses()
     assert (row.state, row.attempts) == ("done", 2)
-    assert "its worker stopped" in log
     recs = Queue.for_root(root).records("s-fast")
     assert [r["outcome"] for r in recs] == ["lost", "done"]
+    assert (recs[0]["host"], recs[0]["pid"]) == (socket.gethostname(), first.pid), "the killed worker held it"
+    said = f"s-fast: worker {recs[0]['host']} pid {first.pid} "
     if where == "same machine":
         assert "died mid-job" in recs[0]["error"]
+        assert f"{said}died mid-job; queued again" in log, log
     else:
         assert "stopped renewing its lease" in recs[0]["error"] and recs[1]["host"] == "elsewhere"
+        assert re.search(rf"{re.escape(said)}stopped renewing its lease \(\d+ s > 2 s\); queued again", log), log
+        assert "died mid-job" not in log, "from another machine, a silent holder is not known to have died"
         assert waited > 1.0, "the job is taken over only after the lease has expired"
 
 

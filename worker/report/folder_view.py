@@ -9,10 +9,12 @@ worker's done line and `spadscan worker --status` say that the result has no 3D 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
+from spadscan.protocol.disk_full import is_disk_full
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.mesh_io import BUILTIN_PREFIX
 
@@ -78,15 +80,33 @@ def ensure_view3d(report: dict, folder) -> Path | None:
         return write_view3d(folder, mesh, gt, capture_poses(report.get("capture")), title=f"{name} ({kind})")
     except (SpadscanError, OSError) as exc:
         offscreen.warn(f"no {VIEW3D} in {folder}: {exc}")
-        _add_warning(report, no_view_warning(exc))
+        _add_warning(report, no_view_warning(exc, folder))
         return None
 
 
-def no_view_warning(exc: Exception) -> str:
+def no_view_warning(exc: Exception, folder=None) -> str:
     """The report's warning for a view that could not be made. An OSError's own path is left out: it names the
-    folder the result was written in, which a job's result no longer is once published."""
+    folder the result was written in, which a job's result no longer is once published. A worker job's result
+    (`folder` holds its job.json) that met a write error names how to get the view: the job's `redo` command, once
+    there is room where the disk was full."""
     why = (exc.strerror or str(exc)) if isinstance(exc, OSError) else str(exc)
-    return f"no 3D view: {VIEW3D} could not be written ({' '.join(why.split())})"
+    line = f"no 3D view: {VIEW3D} could not be written ({' '.join(why.split())})"
+    redo = _redo_command(folder) if isinstance(exc, OSError) else None
+    if redo is None:
+        return line
+    first = "make room on its disk, then " if is_disk_full(exc) else ""
+    return f"{line}; {first}`{redo}` reconstructs the job again with its view, this result kept aside"
+
+
+def _redo_command(folder) -> str | None:
+    """The command that reconstructs the job whose result `folder` holds (its job.json's `redo`), or None."""
+    if folder is None:
+        return None
+    try:
+        redo = json.loads((Path(folder) / "job.json").read_text()).get("redo")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return redo if isinstance(redo, str) and redo else None
 
 
 def _add_warning(report: dict, warning: str) -> None:
