@@ -508,11 +508,13 @@ class Queue:
                 found[job_id] = (state, p)
         return found
 
-    def statuses(self) -> list[JobStatus]:
-        """One row per job, sorted by id. Damaged files (unreadable job file or attempt records) are named in the
-        row's `notes`; the row says what the readable ones do."""
+    def statuses(self, states: tuple[str, ...] = STATES) -> list[JobStatus]:
+        """One row per job in `states` (all by default), sorted by id. Damaged files (unreadable job file or attempt
+        records) are named in the row's `notes`; the row says what the readable ones do. Only the rows asked for read
+        their files: a queue's history of done and failed jobs grows without bound."""
         now = time.time()
-        return [self._status(job_id, state, path, now) for job_id, (state, path) in sorted(self.job_paths().items())]
+        return [self._status(job_id, state, path, now) for job_id, (state, path) in sorted(self.job_paths().items())
+                if state in states]
 
     def _status(self, job_id: str, state: str, path: Path, now: float) -> JobStatus:
         notes = []

@@ -38,7 +38,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -335,7 +334,13 @@ def _wait(path: str, name: str, timeout: float | None, as_json: bool = False) ->
             print(json.dumps({"ok": False, "error": str(exc), "wait": waited(ended)}))
         raise
     reply.pop("ok", None)
-    print(json.dumps(wait_json(path, reply, waited(str(reply.get("state")))) if as_json else reply))
+    line = reply
+    if as_json:
+        try:
+            line = wait_json(path, reply, waited(str(reply.get("state"))))
+        except KeyboardInterrupt:  # the scan has ended: a Ctrl-C while its status is read leaves only the status out
+            line = {**reply, "wait": waited(str(reply.get("state")))}
+    print(json.dumps(line))
     if reply.get("state") != "complete":
         reason = reply.get("reason")  # (an abort's: `ctl abort --reason`, or the daemon's own)
         print(f"spadscan: scan {name!r} ended {reply.get('state')}" + (f": {reason}" if reason else ""),
@@ -434,16 +439,17 @@ def live_queued(captures: str, scan: str) -> dict | None:
     for, in the dashboard's words}; None when it is not queued, or the queue cannot be read. The worker's own queue
     and presence code read it, as for the dashboard and `spadscan worker --status`."""
     from spadscan.protocol.errors import SpadscanError
-    from spadscan.worker.presence import present_workers
+    from spadscan.worker.presence import present_workers, start_command
     from spadscan.worker.queue import Queue
 
     try:
         queue = Queue.for_root(captures, create=False)
-        rows = queue.statuses()
-        paths = queue.job_paths()
-        job = next((row for row in rows if row.state == "queued" and row.scan == scan
-                    and _is_live(paths.get(row.id))), None)
-        if job is None:
+        live = next((job.id for job in queue.queued_jobs() if job.scan == scan and job.live), None)
+        if live is None:
+            return None  # (polled every PROGRESS_POLL_S by `wait`: no more is read unless the live job waits)
+        rows = queue.statuses(states=("queued", "running"))
+        job = next((row for row in rows if row.state == "queued" and row.id == live), None)
+        if job is None:  # claimed meanwhile
             return None
         workers = present_workers(queue.path)
     except (OSError, SpadscanError):  # no queue, or one this user may not read: nothing to say of it
@@ -452,27 +458,13 @@ def live_queued(captures: str, scan: str) -> dict | None:
     named = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"]} for w in workers]
     return {"job": job.id, "waiting_s": None if job.waiting_s is None else round(job.waiting_s, 1), "behind": behind,
             "workers": [w["name"] for w in named], "processes": sum(w["processes"] for w in named),
-            "said": queued_said(behind, named, captures)}
+            "said": queued_said(behind, named, f"{start_command(Path(captures), queue.path)} --live")}
 
 
-def _is_live(found) -> bool:
-    """Whether the job file `found` ((state, path) of `Queue.job_paths`, or None) is a live job's."""
-    from spadscan.protocol.errors import SpadscanError
-    from spadscan.worker.jobs import Job
-
-    if found is None:
-        return False
-    try:
-        return Job.from_dict(json.loads(found[1].read_text()), str(found[1])).live
-    except (OSError, ValueError, SpadscanError):  # moved on meanwhile, or damaged: not one to report on
-        return False
-
-
-def queued_said(behind: list[str], workers: list[dict], captures: str) -> str:
-    """What a queued live job waits for, as the dashboard says it: no worker (and the command that starts one), a
-    worker's next look (a job process is free), or the jobs `behind` (and how to run one job more at once)."""
+def queued_said(behind: list[str], workers: list[dict], start: str) -> str:
+    """What a queued live job waits for, as the dashboard says it: no worker (and `start`, the command that starts
+    one), a worker's next look (a job process is free), or the jobs `behind` (and how to run one job more at once)."""
     if not workers:
-        start = shlex.join(["spadscan", "worker", "--root", str(Path(captures).resolve()), "--live"])
         return f"no worker is running: start one with `{start}`"
     n = sum(w["processes"] for w in workers) or 1
     if len(behind) < n:
