@@ -137,3 +137,58 @@ def test_a_large_captures_set_up_reads_at_most_max_views_and_training_reads_them
     assert model.n_views == views and model.problem.counts.shape[0] == views  # training keeps every view
     assert int(model.rays.count.numel()) == views * model.n_zones
     assert torch.isfinite(model.field.sdf).all()
+
+
+def look_at(eye, target) -> np.ndarray:
+    """A sensor-to-world pose at `eye` (metres) whose +z boresight points at `target`."""
+    fwd = np.asarray(target, float) - eye
+    fwd /= np.linalg.norm(fwd)
+    side = np.cross(fwd, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([side, np.cross(fwd, side), fwd], axis=1)
+    pose[:3, 3] = eye
+    return pose
+
+
+@pytest.fixture(scope="module")
+def clustered_rod(tmp_path_factory):
+    """A 30 cm rod seen by 24 views spread over a hemisphere and by 40 clustered on its top (as an adaptive scan
+    gathers views where the fit is unsure): farthest-point sampling gives the cluster one pick of 16."""
+    import trimesh
+
+    from spadscan.protocol.schedules import fibonacci_hemisphere
+    from spadscan.protocol.sensor_presets import sensor_preset
+    from spadscan.protocol.simulator import SimSettings, simulate_capture
+
+    rod = trimesh.creation.cylinder(radius=0.03, height=0.30, sections=48)
+    rod.apply_translation([0, 0, 0.15])
+    wide = fibonacci_hemisphere(24, 0.3, target=(0, 0, 0.03), min_elevation_deg=5)
+    rng = np.random.default_rng(0)
+    cluster = np.stack([look_at(np.array([0.25, 0.0, 0.30]) + rng.normal(0, 0.01, 3), (0, 0, 0.27))
+                        for _ in range(40)])
+    path = tmp_path_factory.mktemp("rod") / "rod"
+    simulate_capture(rod, sensor_preset("lcspc-sim"), np.concatenate([wide, cluster]), path,
+                     settings=SimSettings(rays_per_zone=64), seed=3, progress=False)
+    top = trimesh.sample.volume_mesh(rod, 20000)
+    return path, top[top[:, 2] > 0.22]
+
+
+@pytest.mark.parametrize("real", [False, True])  # a real capture keeps no space behind its first returns
+def test_a_part_only_a_cluster_of_views_sees_stays_in_a_subsets_hull(clustered_rod, real, monkeypatch):
+    """Space fewer than MIN_VIEWS views see is dropped as never scanned: counted among the subset's 16 views, of
+    which one is the cluster's, the rod's top fell out of the hull (0 % of it inside), which the fit cannot leave."""
+    path, top = clustered_rod
+    scene = load_scene(path)
+    scene.real = real
+    fc = preset_config("fast").field
+    counts, sensor = fast_problem._carving_views(scene)
+    poses = scene.poses.double().numpy()
+    monkeypatch.setattr(view_subset, "MAX_SETUP_VIEWS", 16)
+    views = fast_problem._setup_views(poses, scene)
+    assert len(views) == 16 and int(np.sum(views >= 24)) <= 2, "the cluster gets a pick or two"
+    hull = fast_problem._carve(scene, counts, poses, sensor, fc, fc.floor_z, False, views=views)
+    idx = np.round((top - hull.origin) / hull.voxel_m).astype(int)
+    inside = np.all((idx >= 0) & (idx < np.array(hull.occupancy.shape)), axis=1)
+    inside[inside] = hull.occupancy[tuple(idx[inside].T)]
+    assert inside.mean() > 0.9, f"{inside.mean():.0%} of the rod's top is inside the hull"

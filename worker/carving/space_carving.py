@@ -361,10 +361,11 @@ def carve_hull(hists, poses, sensor: SensorModel, *, bounds_min, bounds_max, res
 def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, threshold: float = DEFAULT_THRESHOLD,
                 margin_m: float | None = None, floor_z: float | None = None, bounds=None,
                 edge_deg: float = DEFAULT_EDGE_DEG, coarse: int = 48, keep_returns_m: float = 0.0,
-                weak_threshold: float | None = None, usable: np.ndarray | None = None) -> CarveResult:
+                weak_threshold: float | None = None, usable: np.ndarray | None = None,
+                min_views: int = MIN_VIEWS) -> CarveResult:
     """Space carving without knowing the scene's box: carve coarsely inside the first returns' footprints (or
     `bounds`, a pair of (3,) corners in metres), then again at `resolution` in a cube around what is left
-    (`usable`: see `carve_hull`)."""
+    (`usable`, `min_views`: see `carve_hull`)."""
     h, p = check_inputs(hists, poses, sensor)
     if bounds is None:
         lo, hi = scene_bounds(first_returns(h, sensor, threshold, "matched"), p, sensor, floor_z=floor_z)
@@ -372,7 +373,7 @@ def carve_scene(hists, poses, sensor: SensorModel, *, resolution: int = 128, thr
         lo, hi = (np.asarray(b, float) for b in bounds)
     lo, hi = cube_around(lo, hi)
     kw = dict(threshold=threshold, margin_m=margin_m, floor_z=floor_z, edge_deg=edge_deg,
-              keep_returns_m=keep_returns_m, weak_threshold=weak_threshold, usable=usable)
+              keep_returns_m=keep_returns_m, weak_threshold=weak_threshold, usable=usable, min_views=min_views)
     first = carve_hull(h, p, sensor, bounds_min=lo, bounds_max=hi, resolution=min(coarse, resolution), **kw)
     if not first.occupancy.any():
         return first

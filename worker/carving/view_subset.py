@@ -4,11 +4,14 @@ Space carving and the empty-space weights test every view against every cell or 
 itself samples a fixed number of views a step and does not grow with them, so a 2000-view capture spent minutes in
 set-up (52 s carving, 47 s in the first step's empty-space weights, on a shared 2-core machine) and made one
 step in a 120 s budget. Those stages read at most `MAX_SETUP_VIEWS` views, chosen to spread evenly over the
-views' positions and directions (farthest-point sampling, which does not depend on the order the views were taken
-in: an adaptive scan orders its views by rank, so the first ones are no even spread). What the subset changes:
+views' positions and directions (farthest-point sampling, which up to ties does not depend on the order the views
+were taken in: an adaptive scan orders its views by rank, so the first ones are no even spread). What the subset
+changes:
 
 - carving with fewer views proves less space empty: a looser hull, which the fit carves further (every view's
-  histograms still speak in training);
+  histograms still speak in training). Carving's rule that space fewer than MIN_VIEWS views see was never scanned
+  counts views of the subset at the subset's share (`fast/problem.py`): counted whole, it dropped a part that only a
+  cluster of views sees (an adaptive scan gathers them where the fit is unsure; the subset takes one or two);
 - the share of views that see a node (on a table) and the number that hear a return there (without one) are those
   of a capture of `MAX_SETUP_VIEWS` views, the regime those rules were tuned in.
 

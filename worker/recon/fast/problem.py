@@ -16,7 +16,7 @@ import torch
 from spadscan.protocol.raycast import zone_rays
 
 from ...carving.returns import RESCAN, below_default_level, first_returns
-from ...carving.space_carving import carve_scene
+from ...carving.space_carving import MIN_VIEWS, carve_scene
 from ...carving.view_subset import spread_views
 from ...carving.views import summed_views
 from ...table_height import RAYS_PER_ZONE, detect_height
@@ -285,13 +285,18 @@ def _carve(scene, counts, poses, sensor, fc, floor_z, on_table: bool, views: np.
     (V, 4, 4); `views`: the indices of those to carve with (None: all; see `FastProblem.setup_views`)."""
     box = carve_box(scene, floor_z)
     usable = _usable(scene)
+    min_views = MIN_VIEWS
     if views is not None:
+        # Space seen by fewer than MIN_VIEWS views is dropped as never scanned: counted among the subset's views, a
+        # part that only a few views see (a cluster of an adaptive scan's views, which the subset takes one or two
+        # of) would be dropped from a hull the fit cannot leave. The count is scaled to the share of views read.
+        min_views = max(1, math.ceil(MIN_VIEWS * len(views) / len(poses)))
         counts, poses = counts[views], poses[views]
         usable = None if usable is None else usable[views]
     return carve_scene(counts, poses, sensor,
                        resolution=fc.hull_resolution, threshold=fc.carve_threshold, margin_m=fc.carve_margin_m,
                        floor_z=floor_z, bounds=(box[0], box[1]), keep_returns_m=carve_keep_returns_m(scene, fc),
-                       weak_threshold=carve_weak_threshold(fc, on_table), usable=usable)
+                       weak_threshold=carve_weak_threshold(fc, on_table), usable=usable, min_views=min_views)
 
 
 def _usable(scene) -> np.ndarray | None:
