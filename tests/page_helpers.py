@@ -8,12 +8,16 @@ Playwright is never let to download a browser of its own."""
 from __future__ import annotations
 
 import io
+import os
+import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from process_helpers import short_socket_dir
 
 CHROMIUM = Path("/usr/bin/chromium")
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
@@ -44,16 +48,23 @@ def browser_page(width: int = 1100, height: int = 900):
     from playwright.sync_api import sync_playwright
 
     seen = Seen()
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=FLAGS)
-        try:
-            page = browser.new_page(viewport={"width": width, "height": height})
-            page.on("console", lambda m: seen.errors.append(m.text) if m.type == "error" else None)
-            page.on("pageerror", lambda e: seen.errors.append(f"uncaught: {e}"))
-            page.on("request", lambda r: seen.requests.append(r.url))
-            yield page, seen
-        finally:
-            browser.close()
+    # Chromium makes its SingletonSocket in TMPDIR: under a long one (a CI's, a pytest's) the socket's path passes the
+    # 107 bytes a Unix socket may have and Chromium does not start. It gets a short folder of its own instead.
+    scratch = short_socket_dir()
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=FLAGS,
+                                         env={**os.environ, "TMPDIR": str(scratch)})
+            try:
+                page = browser.new_page(viewport={"width": width, "height": height})
+                page.on("console", lambda m: seen.errors.append(m.text) if m.type == "error" else None)
+                page.on("pageerror", lambda e: seen.errors.append(f"uncaught: {e}"))
+                page.on("request", lambda r: seen.requests.append(r.url))
+                yield page, seen
+            finally:
+                browser.close()
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
 
 
 def screenshot_pixels(target) -> np.ndarray:

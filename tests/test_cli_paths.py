@@ -19,7 +19,7 @@ pytestmark = pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs a
 
 RIG = """
 captures = "{captures}"
-socket = "ctl.sock"
+socket = "{socket}"
 [arm]
 backend = "sim"
 [sensor]
@@ -93,9 +93,11 @@ def test_worker_status_lists_a_queue_that_can_be_made_as_empty_and_makes_nothing
 
 
 # ---- daemon `captures` (defect: --check passed /proc/..., start-up said a bare "No such file or directory") ------
-def write_rig(folder: Path, captures: str) -> Path:
+def write_rig(folder: Path, captures: str, sock_dir: Path) -> Path:
+    """The rig config in `folder`, its socket in `sock_dir` (the fixture's short folder: beside the config, under a
+    long TMPDIR, its path would pass the 107 bytes a Unix socket may have, refused before what these tests check)."""
     path = folder / "rig.toml"
-    path.write_text(RIG.format(captures=captures))
+    path.write_text(RIG.format(captures=captures, socket=sock_dir / "ctl.sock"))
     return path
 
 
@@ -112,30 +114,30 @@ def never_serves(monkeypatch):
 
 
 @pytest.mark.parametrize("flags", [["--check"], []])
-def test_daemon_refuses_a_captures_root_that_cannot_be_made_naming_the_config_and_key(tmp_path, capsys, flags,
-                                                                                       never_serves):
+def test_daemon_refuses_a_captures_root_that_cannot_be_made_naming_the_config_and_key(tmp_path, sock_dir, capsys,
+                                                                                       flags, never_serves):
     """--check refuses what start-up would fail on. (As root the refusal is the creation tried; as another user,
     /proc is already not writable by os.access: either names the config file and `captures`.)"""
-    rig = write_rig(tmp_path, UNMAKEABLE)
+    rig = write_rig(tmp_path, UNMAKEABLE, sock_dir)
     assert main(["daemon", "--config", str(rig), *flags]) == 1
     assert one_line_error(capsys).startswith(f"spadscan: error: {rig}: captures {UNMAKEABLE}: ")
 
 
-def test_daemon_start_up_names_the_config_and_the_key_when_its_own_mkdir_fails(tmp_path, capsys, monkeypatch,
-                                                                              never_serves):
+def test_daemon_start_up_names_the_config_and_the_key_when_its_own_mkdir_fails(tmp_path, sock_dir, capsys,
+                                                                              monkeypatch, never_serves):
     """Start-up's own mkdir, after the checks passed (a file took the folder's place since), is named as --check's
     refusals are."""
     from spadscan.daemon import app
 
     monkeypatch.setattr(app, "check_captures_creatable", lambda root: root.write_text("took its place"))
-    rig = write_rig(tmp_path, "caps")
+    rig = write_rig(tmp_path, "caps", sock_dir)
     assert main(["daemon", "--config", str(rig)]) == 1
     err = one_line_error(capsys)
     assert err.startswith(f"spadscan: error: {rig}: captures {tmp_path / 'caps'}: cannot create the folder"), err
 
 
-def test_daemon_check_passes_a_captures_root_that_can_be_made_and_makes_nothing(tmp_path, capsys):
-    rig = write_rig(tmp_path, "caps")
+def test_daemon_check_passes_a_captures_root_that_can_be_made_and_makes_nothing(tmp_path, sock_dir, capsys):
+    rig = write_rig(tmp_path, "caps", sock_dir)
     before = listing(tmp_path)
     assert main(["daemon", "--config", str(rig), "--check"]) == 0
     assert "ok" in capsys.readouterr().out

@@ -207,10 +207,11 @@ class Handler(socketserver.StreamRequestHandler):
         self.wfile.write((json.dumps(reply) + "\n").encode())
 
 
-def test_a_ctl_status_process_says_it_without_loading_torch(busy):
+def test_a_ctl_status_process_says_it_without_loading_torch(busy, sock_dir):
     """A real `ctl status` process, against a daemon on a socket, reads the queue with the worker's own queue code
-    and stays quick to start (no torch: a second and more)."""
-    path = str(busy / "ctl.sock")
+    and stays quick to start (no torch: a second and more). The socket is in the short sock_dir: a long TMPDIR makes
+    one under the captures root too long."""
+    path = str(sock_dir / "ctl.sock")
     server = Daemon(path, status_of(busy))
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01})
     thread.start()

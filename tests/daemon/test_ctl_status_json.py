@@ -37,7 +37,8 @@ def test_status_takes_json_and_prints_the_same_json_on_one_line(tmp_path, monkey
 
 
 def stale_socket(folder: Path) -> str:
-    """A socket file nobody listens on (a crashed daemon's)."""
+    """A socket file nobody listens on (a crashed daemon's), in `folder`: the sock_dir fixture's short one, as a
+    socket under a long TMPDIR's tmp_path cannot be made."""
     path = str(folder / "stale.sock")
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     sock.bind(path)
@@ -59,8 +60,8 @@ def no_daemon_at(case: str, folder: Path) -> str:
 @pytest.mark.parametrize("case, said", [
     ("missing", "no daemon is listening on"), ("stale", "no daemon is listening on"),
     ("not a folder", "Not a directory"), ("too long", "path too long")])
-def test_status_with_json_prints_a_daemon_that_does_not_answer_as_json(tmp_path, capsys, case, said):
-    path = no_daemon_at(case, tmp_path)
+def test_status_with_json_prints_a_daemon_that_does_not_answer_as_json(sock_dir, capsys, case, said):
+    path = no_daemon_at(case, sock_dir)
     assert main(["ctl", "--socket", path, "status", "--json"]) == 1
     captured = capsys.readouterr()
     assert captured.err.startswith("spadscan: error: ") and captured.err.count("\n") == 1 and said in captured.err
@@ -69,8 +70,8 @@ def test_status_with_json_prints_a_daemon_that_does_not_answer_as_json(tmp_path,
     assert capsys.readouterr() == ("", captured.err), "without --json: the error line alone, as before"
 
 
-def test_a_socket_this_user_may_not_open_is_one_line_and_json_not_a_traceback(tmp_path):
-    path = stale_socket(tmp_path)
+def test_a_socket_this_user_may_not_open_is_one_line_and_json_not_a_traceback(sock_dir):
+    path = stale_socket(sock_dir)
     listening = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     os.unlink(path)
     listening.bind(path)

@@ -23,8 +23,9 @@ SLACK_S = 0.01
 
 
 @pytest.mark.slow
-def test_a_scan_taken_over_by_a_second_daemon_counts_its_time_from_its_start(tmp_path, daemons: Daemons):  # noqa: F811
-    rig, sock = write_rig(tmp_path, auto=False)
+def test_a_scan_taken_over_by_a_second_daemon_counts_its_time_from_its_start(tmp_path, sock_dir,
+                                                                             daemons: Daemons):  # noqa: F811
+    rig, sock = write_rig(tmp_path, auto=False, sock_dir=sock_dir)
     first = daemons.start(rig, sock)
     asked = time.time()
     r = spadscan("ctl", "--socket", sock, "scan", "--name", "long", "--views", "100", "--json")

@@ -1,13 +1,11 @@
-"""Fixtures of the end-to-end tests: a folder of background processes that are always stopped, a short socket
-folder, and a factory of daemons on rig configs written into tmp_path."""
+"""Fixtures of the end-to-end tests: a folder of background processes that are always stopped, and a factory of
+daemons on rig configs written into tmp_path, their sockets in the short folder of tests/conftest.py's sock_dir."""
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 
-from e2e_helpers import Daemon, Procs, rig_dict, short_socket_dir, toml_text
+from e2e_helpers import Daemon, Procs, rig_dict, toml_text
 
 
 @pytest.fixture
@@ -18,15 +16,6 @@ def procs(tmp_path):
         yield p
     finally:
         p.stop_all()
-
-
-@pytest.fixture
-def sock_dir():
-    d = short_socket_dir()
-    try:
-        yield d
-    finally:
-        shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture

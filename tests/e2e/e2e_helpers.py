@@ -14,7 +14,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -73,11 +72,6 @@ def rig_dict(captures: Path, sock: Path, **sections) -> dict:
             else:
                 target[k] = v
     return data
-
-
-def short_socket_dir() -> Path:
-    """A fresh short folder for a control socket (a Unix socket path has at most 107 bytes; tmp_path can be long)."""
-    return Path(tempfile.mkdtemp(prefix="ss-e2e-", dir="/tmp"))
 
 
 # ---- running spadscan ------------------------------------------------------------------------------------------------

@@ -141,7 +141,7 @@ def test_a_rerun_reconstructs_a_scan_left_unreconstructed_first_and_apart(tmp_pa
     assert not processes_mentioning(str(out)), "the demo left a process running"
 
 
-def test_the_rig_config_finds_the_captures_from_a_relative_output_folder(tmp_path, monkeypatch):
+def test_the_rig_config_finds_the_captures_from_a_relative_output_folder(tmp_path, sock_dir, monkeypatch):
     # The README's `spadscan demo` writes to ./spadscan-demo: the daemon reads the rig config's paths relative to
     # the config's own folder, so a path relative to the working folder would point one level too deep.
     from spadscan.daemon.config import load_config
@@ -150,5 +150,6 @@ def test_the_rig_config_finds_the_captures_from_a_relative_output_folder(tmp_pat
     monkeypatch.chdir(tmp_path)
     out = Path("spadscan-demo")
     out.mkdir()
-    config = load_config(write_rig_config(DemoOptions(out=out), out / "captures", tmp_path / "d.sock", None))
+    # The socket in the short sock_dir: under a long TMPDIR, one in tmp_path is refused as too long.
+    config = load_config(write_rig_config(DemoOptions(out=out), out / "captures", sock_dir / "d.sock", None))
     assert Path(config.captures).resolve() == (tmp_path / "spadscan-demo" / "captures").resolve()

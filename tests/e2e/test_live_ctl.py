@@ -32,8 +32,10 @@ class Handler(socketserver.StreamRequestHandler):
 
 
 @pytest.fixture
-def daemon(tmp_path):
-    server = Daemon(str(tmp_path / "ctl.sock"), {})
+def daemon(sock_dir):
+    """The stand-in, listening on a socket in the short sock_dir (one under a long TMPDIR's tmp_path cannot be
+    bound); its path is the server's server_address."""
+    server = Daemon(str(sock_dir / "ctl.sock"), {})
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01})
     thread.start()
     yield server
@@ -53,7 +55,7 @@ def test_status_shows_the_live_reconstruction_of_the_scan_in_flight(daemon, tmp_
     write_status(live_folder(capture), LiveStatus(views_used=24, views_published=30, steps=900, chamfer_mm=1.5,
                                                   views_planned=64, job="mug-fast"))
     daemon.reply = {"state": "scanning", "scan": "mug", "path": str(capture), "pose": 30, "poses": 64}
-    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "status"]) == 0
+    assert main(["ctl", "--socket", daemon.server_address, "status"]) == 0
     shown = json.loads(capsys.readouterr().out)
     assert shown["scan"] == "mug" and shown["live"]["views_used"] == 24 and shown["live"]["steps"] == 900
     assert shown["live"]["chamfer_mm"] == 1.5 and shown["live"]["state"] == "live" and shown["live"]["age_s"] >= 0
@@ -71,7 +73,7 @@ def test_status_after_the_scan_reads_the_last_scans_live_state(tmp_path):
 
 def test_status_without_a_live_job_is_as_before(daemon, tmp_path, capsys):
     daemon.reply = {"state": "scanning", "scan": "mug", "path": str(tmp_path / "mug")}
-    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "status"]) == 0
+    assert main(["ctl", "--socket", daemon.server_address, "status"]) == 0
     assert "live" not in json.loads(capsys.readouterr().out)
 
 
@@ -79,7 +81,7 @@ def test_a_damaged_live_status_is_named_not_fatal(daemon, tmp_path, capsys):
     capture = tmp_path / "mug"
     (live_folder(capture) / "status.json").write_text("{torn")
     daemon.reply = {"state": "scanning", "scan": "mug", "path": str(capture)}
-    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "status"]) == 0
+    assert main(["ctl", "--socket", daemon.server_address, "status"]) == 0
     assert "unreadable live status" in json.loads(capsys.readouterr().out)["live"]["error"]
 
 

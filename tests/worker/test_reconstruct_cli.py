@@ -54,6 +54,7 @@ def small_args():
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("draws_off_screen")  # every file: the pictures of meshes too
 def test_two_step_paper_run_writes_every_file(capture_and_gt, tmp_path, capsys):
     cap, gt = capture_and_gt
     out = tmp_path / "out"
@@ -336,6 +337,7 @@ def test_an_overwritten_result_leaves_none_of_its_own_files_and_lists_only_this_
     assert "removed the replaced result's normals.png" in capsys.readouterr().err
 
 
+@pytest.mark.usefixtures("draws_off_screen")  # the 3D view
 def test_a_result_lists_its_3d_view_and_one_not_made_again_is_not_left_standing(capture_and_gt, tmp_path,
                                                                                  monkeypatch):
     """view3d.html is the run's file like its pictures: listed in report.json, and a run over it with --overwrite
@@ -563,15 +565,25 @@ def test_the_ground_truth_a_capture_names_is_used_unless_no_gt(capture_and_gt, t
     assert f"ground truth: {gt}, named by the capture" in capsys.readouterr().err
     report = json.loads((tmp_path / "r" / "report.json").read_text())
     assert np.isfinite(report["chamfer_mm"]) and report["ground_truth"] == str(gt)
-    assert (tmp_path / "r" / "normals.png").exists()
     assert _recon(named, tmp_path / "n", "--no-gt") == 0
     assert "ground truth" not in capsys.readouterr().err
     report = json.loads((tmp_path / "n" / "report.json").read_text())
-    assert "chamfer_mm" not in report and not (tmp_path / "n" / "normals.png").exists()
+    assert "chamfer_mm" not in report
     assert main(["baseline", "space-carving", str(named), "--out", str(tmp_path / "b"), "--resolution", "16",
                  "--points", "5000"]) == 0
     assert "named by the capture" in capsys.readouterr().err
     assert "chamfer_mm" in json.loads((tmp_path / "b" / "report.json").read_text())
+
+
+@pytest.mark.usefixtures("draws_off_screen")  # normals.png; the test above runs where nothing can be drawn
+def test_the_normals_picture_is_drawn_against_the_ground_truth_a_capture_names_and_not_with_no_gt(capture_and_gt,
+                                                                                                   tmp_path):
+    cap, gt = capture_and_gt
+    named = _naming(cap, tmp_path / "named", {"mesh": str(gt)})
+    assert _recon(named, tmp_path / "r") == 0
+    assert (tmp_path / "r" / "normals.png").exists()
+    assert _recon(named, tmp_path / "n", "--no-gt") == 0
+    assert not (tmp_path / "n" / "normals.png").exists()
 
 
 def test_a_named_ground_truth_that_cannot_be_used_is_said_and_the_run_goes_on(capture_and_gt, tmp_path, capsys):
