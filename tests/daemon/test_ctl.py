@@ -197,13 +197,11 @@ def test_wait_that_runs_out_of_time_says_how_far_the_scan_got(fake_daemon, monke
     assert out == "" and err == "spadscan: error: scan 'mug' still scanning at pose 3/6 after 0.2 s\n", err
 
 
-def test_ctrl_c_during_wait_says_the_scan_goes_on(fake_daemon):
-    """The interrupt comes once the daemon has the `wait` request (the client is then blocked in it), however long a
-    loaded machine takes to start the client; the fake daemon's handler, left writing to a closed connection, keeps
-    its error to itself."""
-    server, path = fake_daemon
+def interrupted_wait(server, path: str, *flags: str) -> tuple[int, str, str]:
+    """`ctl wait mug` (with `flags`) as a real process, sent Ctrl-C once the fake daemon has its `wait` request:
+    (exit status, stdout, stderr)."""
     server.step = 0
-    proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path, "wait", "mug"],
+    proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path, "wait", "mug", *flags],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 300
@@ -216,7 +214,15 @@ def test_ctrl_c_during_wait_says_the_scan_goes_on(fake_daemon):
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    assert proc.returncode == 130 and out == ""
+    return proc.returncode, out, err
+
+
+def test_ctrl_c_during_wait_says_the_scan_goes_on(fake_daemon):
+    """The interrupt comes once the daemon has the `wait` request (the client is then blocked in it), however long a
+    loaded machine takes to start the client; the fake daemon's handler, left writing to a closed connection, keeps
+    its error to itself."""
+    code, out, err = interrupted_wait(*fake_daemon)
+    assert code == 130 and out == ""
     assert err == "spadscan: interrupted; scan 'mug' goes on in the daemon (`spadscan ctl wait mug` waits again, " \
                   "`spadscan ctl abort` stops it)\n", err
 

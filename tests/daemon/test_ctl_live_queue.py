@@ -8,7 +8,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import socketserver
 import subprocess
 import sys
 import threading
@@ -26,6 +25,8 @@ from spadscan.worker.jobs import Job
 from spadscan.worker.live.done import mark_live_queued
 from spadscan.worker.presence import Presence, write_presence
 from spadscan.worker.queue import Queue
+
+from status_daemon import StatusDaemon
 
 ELSEWHERE = Holder("gpu-box", 4242)  # a worker on another machine: judged by its lease alone
 BEHIND_Q1 = "waiting for q1-fast to finish (the worker runs 1 job at a time; `--processes 2` runs 2)"
@@ -192,27 +193,12 @@ def test_wait_on_a_terminal_shows_the_queue_on_its_progress_bar(busy):
     assert "scanning; live reconstruction queued: " + BEHIND_Q1 in stream.getvalue()
 
 
-class Daemon(socketserver.ThreadingUnixStreamServer):
-    daemon_threads = True
-
-    def __init__(self, path: str, status: dict):
-        self.reply = status
-        super().__init__(path, Handler)
-
-
-class Handler(socketserver.StreamRequestHandler):
-    def handle(self) -> None:
-        req = json.loads(self.rfile.readline())
-        reply = {"ok": True, **self.server.reply} if req["op"] == "status" else {"ok": False, "error": "no"}
-        self.wfile.write((json.dumps(reply) + "\n").encode())
-
-
 def test_a_ctl_status_process_says_it_without_loading_torch(busy, sock_dir):
     """A real `ctl status` process, against a daemon on a socket, reads the queue with the worker's own queue code
     and stays quick to start (no torch: a second and more). The socket is in the short sock_dir: a long TMPDIR makes
     one under the captures root too long."""
     path = str(sock_dir / "ctl.sock")
-    server = Daemon(path, status_of(busy))
+    server = StatusDaemon(path, status_of(busy))
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01})
     thread.start()
     try:

@@ -6,17 +6,13 @@ stderr. The progress bar and the pause notes stay on stderr."""
 from __future__ import annotations
 
 import json
-import signal
-import subprocess
-import sys
-import time
 
 import pytest
 
 from spadscan.cli import main
 from spadscan.protocol.live_status import LiveStatus, write_status
 
-from test_ctl import POSES, Terminal, fake_daemon  # noqa: F401  (fake_daemon: the fixture)
+from test_ctl import POSES, Terminal, fake_daemon, interrupted_wait  # noqa: F401  (fake_daemon: the fixture)
 
 
 def one_json_line(out: str) -> dict:
@@ -112,24 +108,10 @@ def test_the_pause_notes_stay_on_stderr_with_json(fake_daemon, monkeypatch, caps
 
 
 def test_ctrl_c_during_wait_with_json_says_so_on_stdout_too(fake_daemon):
-    server, path = fake_daemon
-    server.step = 0
-    proc = subprocess.Popen([sys.executable, "-m", "spadscan.cli", "ctl", "--socket", path, "wait", "mug", "--json"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 300
-        while "wait" not in server.requests:
-            assert proc.poll() is None and time.monotonic() < deadline, "the client never sent its wait request"
-            time.sleep(0.01)
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=300)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+    code, out, err = interrupted_wait(*fake_daemon, "--json")
     said = ("interrupted; scan 'mug' goes on in the daemon (`spadscan ctl wait mug` waits again, `spadscan ctl abort` "
             "stops it)")
-    assert proc.returncode == 130 and err == f"spadscan: {said}\n", err
+    assert code == 130 and err == f"spadscan: {said}\n", err
     shown = one_json_line(out)
     assert shown["ok"] is False and shown["error"] == said and shown["wait"]["ended"] == "interrupted"
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import io
 import json
-import socketserver
 import threading
 
 import pytest
@@ -15,27 +14,14 @@ from spadscan.cli import main
 from spadscan.commands.ctl import PauseNotes, live_status
 from spadscan.protocol.live_status import LiveStatus, write_status
 
-
-class Daemon(socketserver.ThreadingUnixStreamServer):
-    daemon_threads = True
-
-    def __init__(self, path: str, status: dict):
-        self.reply = status
-        super().__init__(path, Handler)
-
-
-class Handler(socketserver.StreamRequestHandler):
-    def handle(self) -> None:
-        req = json.loads(self.rfile.readline())
-        reply = {"ok": True, **self.server.reply} if req["op"] == "status" else {"ok": False, "error": "no"}
-        self.wfile.write((json.dumps(reply) + "\n").encode())
+from status_daemon import StatusDaemon
 
 
 @pytest.fixture
 def daemon(sock_dir):
     """The stand-in, listening on a socket in the short sock_dir (one under a long TMPDIR's tmp_path cannot be
     bound); its path is the server's server_address."""
-    server = Daemon(str(sock_dir / "ctl.sock"), {})
+    server = StatusDaemon(str(sock_dir / "ctl.sock"), {})
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01})
     thread.start()
     yield server
