@@ -6,6 +6,7 @@ stderr. The progress bar and the pause notes stay on stderr."""
 from __future__ import annotations
 
 import json
+import sys
 
 import pytest
 
