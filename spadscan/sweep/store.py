@@ -52,8 +52,8 @@ BASELINE_COLUMNS = ("threshold",)
 PRESET_END_COLUMNS = ("converged", "warning_count", "warnings")
 BASELINE_END_COLUMNS = ("threshold_edge", "warning_count", "warnings")
 """How each method's run ended, after every method's other columns: `converged` (True or False, a preset's),
-`warning_count` (0 for a clean run) and `warnings` (its one-line warnings joined by WARNINGS_JOIN), empty where the method gave no
-result or its record predates them; `threshold_edge` ('lowest', 'highest' or 'only': the calibrated threshold is at
+`warning_count` (0 for a clean run) and `warnings` (its one-line warnings joined by WARNINGS_JOIN), empty where the
+method gave no result or its record predates them; `threshold_edge` ('lowest', 'highest' or 'only': the calibrated threshold is at
 the end of the thresholds tried, so one beyond them might have done better)."""
 WARNINGS_JOIN = " | "
 

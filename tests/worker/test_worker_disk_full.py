@@ -282,7 +282,7 @@ def test_a_full_disk_that_keeps_out_the_attempt_record_says_so_and_writes_it_lat
     assert arun(scenario()) == {JOB: "done"}, lines
     (stopped,) = [line for line in lines if line.startswith(f"{JOB} stopped after ")]
     assert ("; back in the queue, but its attempt record could not be written ([Errno 28] No space left on device): "
-            "trying again every 0.05 s, then it is not counted as an attempt; make room on the filesystem") in stopped, \
-        stopped
+            "trying again every 0.05 s, then it is not counted as an attempt; make room on the "
+            "filesystem") in stopped, stopped
     assert [r["outcome"] for r in worker.queue.records(JOB)] == ["disk_full", "done"]
     assert sum(line.startswith(f"{JOB} started (attempt 1 of 1") for line in lines) == 2, lines
