@@ -30,15 +30,16 @@ def is_disk_full(exc: BaseException) -> bool:
 
 
 def disk_full_cause(exc: BaseException | None) -> OSError | None:
-    """The full disk's error behind `exc` (`is_disk_full`), looked for along what raised it too (its __cause__,
-    else its __context__: a library may turn a failed write into an error of its own), or None when it did not come
-    of one."""
+    """The full disk's error behind `exc` (`is_disk_full`), looked for along what raised it too: its __cause__ (a
+    library that turns a failed write into an error of its own, `raise ... from`), and its __context__ only where it
+    is itself an OSError (another write that failed while the first was handled). A bug raised while a full disk was
+    being handled is that bug, not the full disk. None when it did not come of one."""
     seen: set[int] = set()
     while exc is not None and id(exc) not in seen:
         seen.add(id(exc))
         if is_disk_full(exc):
             return exc
-        exc = exc.__cause__ or exc.__context__
+        exc = exc.__cause__ or (exc.__context__ if isinstance(exc, OSError) else None)
     return None
 
 

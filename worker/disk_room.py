@@ -25,22 +25,29 @@ def free_bytes(folder) -> int:
 
 
 def mount_point(folder) -> Path:
-    """The folder where the filesystem that holds `folder` is mounted: what a user makes room on."""
-    path = _existing(folder)
-    while not os.path.ismount(path) and path != path.parent:
-        path = path.parent
+    """The folder where the filesystem that holds `folder` is mounted: what a user makes room on (`folder` itself
+    where the file system cannot be asked: a lost mount, a folder this user may not read)."""
+    try:
+        path = _existing(folder)
+        while not os.path.ismount(path) and path != path.parent:
+            path = path.parent
+    except OSError:
+        return Path(os.path.abspath(folder))
     return path
 
 
 def folder_bytes(folder) -> int:
     """Bytes of disk the files under `folder` take (their blocks, not their lengths); 0 when it is gone."""
     total = 0
-    for path in Path(folder).rglob("*"):
-        try:
-            st = path.lstat()
-        except OSError:
-            continue
-        total += st.st_blocks * 512
+    try:
+        for path in Path(folder).rglob("*"):
+            try:
+                st = path.lstat()
+            except OSError:
+                continue
+            total += st.st_blocks * 512
+    except OSError:  # a folder that cannot be listed: what was counted
+        pass
     return total
 
 
@@ -55,6 +62,10 @@ def size_text(n: int) -> str:
 
 ROOM_MARGIN = 1 << 20
 """Bytes (1 MiB) more than it had that a job that met a full disk is given at least before it runs again."""
+MAX_FULL_DISK = 3
+"""A job that met a full disk this many times fails (counted then: `spadscan worker --retry-failed` queues it again):
+its result may need more room than the disk ever frees, and every run of it fills the disk again for every other
+writer on it (the daemon's captures among them)."""
 ROOM_RETRY_S = 600.0
 ROOM_RETRY_MAX_S = 3600.0
 """Seconds after which a wait for room ends even without the room it waited for (`RoomWait`): 10 min for the first
@@ -104,5 +115,5 @@ def retry_after(full_in_row: int) -> float:
     return min(ROOM_RETRY_S * 2 ** max(full_in_row - 1, 0), ROOM_RETRY_MAX_S)
 
 
-__all__ = ["free_bytes", "mount_point", "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S",
+__all__ = ["MAX_FULL_DISK", "free_bytes", "mount_point", "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S",
            "RoomWait", "retry_after"]

@@ -36,9 +36,10 @@ from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
-from .disk_room import RoomWait, folder_bytes, mount_point, retry_after, size_text
+from .disk_room import MAX_FULL_DISK, RoomWait, folder_bytes, mount_point, retry_after, size_text
 from .job_progress import PROGRESS_S, LogTails, ProgressNotes, ended_live_status, progress_note
-from .jobs import CHANGEABLE, EXIT_FULL, completion, existing_result, mark_complete, result_path, scratch_path
+from .jobs import (CHANGEABLE, EXIT_FULL, EXIT_INPUT, completion, existing_result, mark_complete, result_path,
+                   scratch_path)
 from .holder import Holder
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
 from .presence import RENEW_S, Presence, present_workers, remove_presence, write_presence
@@ -497,6 +498,12 @@ class Worker:
         shutil.rmtree(child.scratch, ignore_errors=True)
         why = f"no room left on the disk: {folder} could not be written ({outcome.get('error') or 'disk full'})"
         remedy = f"make room on the filesystem mounted at {mount_point(folder)}"
+        times = 1 + sum(1 for r in self.queue.records(job.id) if r.get("outcome") == "disk_full")
+        if times >= MAX_FULL_DISK:  # it may never fit: failed, counted (a --once run ends then too)
+            given_up = f"it met a full disk {times} times: its result may need more room than the disk frees"
+            self._settle_error(child, EXIT_INPUT, {"kind": "input", "error": f"{why}; {remedy} ({given_up})"},
+                               seconds)
+            return
         self._say_queued(claim, why)
         uncounted = "not counted as an attempt"
         try:
@@ -519,14 +526,16 @@ class Worker:
 
     def _wait_for_room(self, folder: Path, held: int) -> None:
         """Claim no job until the filesystem holding `folder` has room (`RoomWait`); said when the wait begins."""
+        if self.room is not None:  # one wait at a time: the jobs that meet the full disk with it lengthen none
+            return
         self._full_in_row += 1
-        waiting = self.room is not None
         try:
             self.room = RoomWait.begin(folder, held, retry_after(self._full_in_row))
-        except OSError as exc:  # its free space cannot be asked (a lost mount): claims go on, each may say so
-            self.log(f"could not check the free space on the disk of {folder}: {fold(exc)}")
-            return
-        if not waiting:
+        except OSError as exc:  # its free space cannot be asked (a lost mount): waited out on the timer alone
+            self.room = RoomWait(folder, folder, 0, math.inf, retry_after(self._full_in_row), time.monotonic())
+            self.log(f"could not check the free space on the disk of {folder} ({fold(exc)}): claiming again in "
+                     f"{self.room.retry_s / 60:.0f} min")
+        else:
             room = self.room
             self.log(f"waiting for room on {room.mount} before claiming another job: {size_text(room.free)} free, "
                      f"the job needs more (waiting for {size_text(room.need)}, checked every {self.config.poll_s:g} s; "
@@ -539,9 +548,11 @@ class Worker:
         what = f"check the free space on {room.mount}"
         try:
             over, free = room.over()
-        except OSError as exc:
+        except OSError as exc:  # the timer still ends the wait
             self._trouble(what, exc)
-            return False
+            if time.monotonic() - room.began < room.retry_s:
+                return False
+            over, free = True, 0
         self._trouble(what, None)
         if not over:
             return False

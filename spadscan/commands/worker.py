@@ -54,8 +54,9 @@ other jobs run on; a worker stopped meanwhile leaves it marked complete, and the
 publishes it instead of reconstructing it again. A job whose own process meets a full disk is not at fault: its
 partial result is removed, it goes back to the queue without using an attempt, the worker's line names the folder
 that could not be written and the filesystem to make room on, and the worker claims no job until there is room (it
-checks the free space every --poll-s, and claims again after 10 minutes all the same), saying so when it stops and
-when it goes on.
+checks the free space every --poll-s, and claims again after 10 minutes all the same, 20, 40, then every hour while
+jobs keep meeting it), saying so when it stops and when it goes on. A job that met a full disk 3 times fails: its
+result may need more room than the disk frees; make room, then --retry-failed.
 
 While it runs, the worker says each running job's progress in its own terminal, one line per job, when the job's
 stage changes (its training starts or ends) and every 30 s in between; a job's done line is followed by its report's

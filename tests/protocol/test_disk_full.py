@@ -41,9 +41,16 @@ def test_the_full_disk_behind_an_error_is_found_along_its_causes():
         try:
             raise OSError(errno.EDQUOT, "Disk quota exceeded")
         except OSError:
-            raise ValueError("while writing")  # raised while handling it: its __context__
-    except ValueError as during:
+            raise OSError(errno.EIO, "closing the file")  # another write failed while handling it: its __context__
+    except OSError as during:
         assert disk_full_cause(during).errno == errno.EDQUOT
+    try:
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        except OSError:
+            raise TypeError("a bug in the handler")
+    except TypeError as bug:
+        assert disk_full_cause(bug) is None, "a bug raised while a full disk was handled is that bug"
     assert disk_full_cause(OSError(errno.EACCES, "Permission denied")) is None
     assert disk_full_cause(ValueError("bad")) is None and disk_full_cause(None) is None
     looped = ValueError("a")

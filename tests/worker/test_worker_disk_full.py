@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import spadscan.worker.disk_room as disk_room
+import spadscan.worker.pool as pool_module
 import spadscan.worker.report.folder_view as folder_view
 from spadscan.cli import main as cli_main
 from spadscan.worker.disk_room import RoomWait, size_text
@@ -286,3 +287,43 @@ def test_a_full_disk_that_keeps_out_the_attempt_record_says_so_and_writes_it_lat
             "filesystem") in stopped, stopped
     assert [r["outcome"] for r in worker.queue.records(JOB)] == ["disk_full", "done"]
     assert sum(line.startswith(f"{JOB} started (attempt 1 of 1") for line in lines) == 2, lines
+
+
+@pytest.mark.usefixtures("recon_stand_ins")
+def test_a_job_that_keeps_meeting_a_full_disk_fails_and_says_why(tmp_path, monkeypatch, arun):
+    """A job whose result may need more room than the disk ever frees is not run into it for ever (each run fills
+    the disk again for every other writer on it): after MAX_FULL_DISK full disks it fails, counted, saying why."""
+    full = tmp_path / "full"
+    full.touch()
+    monkeypatch.setenv("WRITE_WITH", "refused")
+    monkeypatch.setenv("FULL", str(full))
+    monkeypatch.setattr(pool_module, "MAX_FULL_DISK", 2)
+    counted_probes(monkeypatch, lambda folder: PAGE)  # the disk never frees: each wait ends on its timer
+    monkeypatch.setattr(pool_module, "retry_after", lambda n: 0.0)
+    root = tmp_path / "caps"
+    make_scan(root, "s")
+    lines: list[str] = []
+    worker = Worker(WorkerConfig(root=root, once=True, poll_s=0.05, max_attempts=3, recon=RECON), log=lines.append)
+    assert arun(asyncio.wait_for(worker.run(), 120)) == {JOB: "failed"}, lines
+    assert [r["outcome"] for r in worker.queue.records(JOB)] == ["disk_full", "failed"]
+    (failed,) = [line for line in lines if line.startswith(f"{JOB} failed after ")]
+    assert "no room left on the disk" in failed and "(it met a full disk 2 times: its result may need more room " \
+           "than the disk frees)" in failed and "--retry-failed" in failed, failed
+
+
+def test_a_wait_whose_free_space_cannot_be_read_ends_on_its_timer(tmp_path, monkeypatch):
+    """A lost mount (statvfs failing): the wait neither stops claims for good nor is skipped."""
+    def lost(folder):
+        raise OSError(errno.ESTALE, "Stale file handle")
+
+    monkeypatch.setattr(disk_room, "free_bytes", lost)
+    lines: list[str] = []
+    worker = Worker(WorkerConfig(root=tmp_path, once=True, poll_s=0.05, recon=RECON), log=lines.append)
+    monkeypatch.setattr(pool_module, "retry_after", lambda n: 600.0)
+    worker._wait_for_room(tmp_path, 0)
+    assert worker.room is not None and not worker._room_again(), "the wait goes on: its time is not up"
+    worker._wait_for_room(tmp_path / "other", 0)
+    assert worker.room.retry_s == 600.0 and worker._full_in_row == 1, "a second full disk during it: one wait"
+    worker.room.began -= 600.0
+    assert worker._room_again() and worker.room is None, "its time is up: claims go on"
+    assert any("could not check the free space" in line for line in lines), lines

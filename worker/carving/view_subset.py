@@ -10,8 +10,8 @@ changes:
 
 - carving with fewer views proves less space empty: a looser hull, which the fit carves further (every view's
   histograms still speak in training). Carving's rule that space fewer than MIN_VIEWS views see was never scanned
-  counts views of the subset at the subset's share (`fast/problem.py`): counted whole, it dropped a part that only a
-  cluster of views sees (an adaptive scan gathers them where the fit is unsure; the subset takes one or two);
+  keeps, of a subset, what one of its views sees (`fast/problem.py`): counted among the subset, it dropped a part
+  that only a cluster of views sees (an adaptive scan gathers them where the fit is unsure; the subset takes one);
 - the share of views that see a node (on a table) and the number that hear a return there (without one) are those
   of a capture of `MAX_SETUP_VIEWS` views, the regime those rules were tuned in.
 

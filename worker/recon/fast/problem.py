@@ -288,9 +288,9 @@ def _carve(scene, counts, poses, sensor, fc, floor_z, on_table: bool, views: np.
     min_views = MIN_VIEWS
     if views is not None:
         # Space seen by fewer than MIN_VIEWS views is dropped as never scanned: counted among the subset's views, a
-        # part that only a few views see (a cluster of an adaptive scan's views, which the subset takes one or two
-        # of) would be dropped from a hull the fit cannot leave. The count is scaled to the share of views read.
-        min_views = max(1, math.ceil(MIN_VIEWS * len(views) / len(poses)))
+        # part that only a few views see (a cluster of an adaptive scan's views, which the subset takes one of) would
+        # be dropped from a hull the fit cannot leave. Of a subset, one view that sees it keeps it (a looser hull).
+        min_views = 1
         counts, poses = counts[views], poses[views]
         usable = None if usable is None else usable[views]
     return carve_scene(counts, poses, sensor,
