@@ -115,5 +115,5 @@ def retry_after(full_in_row: int) -> float:
     return min(ROOM_RETRY_S * 2 ** max(full_in_row - 1, 0), ROOM_RETRY_MAX_S)
 
 
-__all__ = ["MAX_FULL_DISK", "free_bytes", "mount_point", "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S",
-           "RoomWait", "retry_after"]
+__all__ = ["MAX_FULL_DISK", "free_bytes", "mount_point", "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S",
+           "ROOM_RETRY_MAX_S", "RoomWait", "retry_after"]
