@@ -1,4 +1,4 @@
-"""Disk faults for tests of capture reading: a file this user may not open, a file whose lookup fails."""
+"""Disk faults for tests: a file this user may not open, a file whose lookup fails, a disk that fills up."""
 
 from __future__ import annotations
 
@@ -32,3 +32,18 @@ def fail_lookup(monkeypatch, failing: Path) -> None:
         return exists(self, *args, **kwargs)
 
     monkeypatch.setattr(Path, "exists", guarded_exists)
+
+
+def switchable_full_disk(monkeypatch, module, name: str) -> dict:
+    """Replace `module.name`, a writer called as (path, data), by one that raises ENOSPC naming the path while the
+    returned switch's "on" is true, as a full disk would, and writes as before while it is false (it starts so)."""
+    real = getattr(module, name)
+    full = {"on": False}
+
+    def write(path, data):
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real(path, data)
+
+    monkeypatch.setattr(module, name, write)
+    return full

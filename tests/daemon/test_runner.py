@@ -28,6 +28,8 @@ from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings
 
+from disk_faults import switchable_full_disk
+
 HAND_EYE = [[0.0, -1, 0, 0.0], [1, 0, 0, 0.0], [0, 0, 1, 0.05], [0, 0, 0, 1]]
 
 
@@ -556,15 +558,7 @@ def test_restart_on_a_full_disk_takes_the_scan_over_paused(arun, tmp_path, spher
 
     cfg = make_cfg(tmp_path, views=8, auto_resume=True)
     folder = tmp_path / "caps" / "crash"
-    real = cw.write_json_atomic
-    full = {"on": False}
-
-    def write(path, data):
-        if full["on"]:
-            raise OSError(errno.ENOSPC, "No space left on device", str(path))
-        real(path, data)
-
-    monkeypatch.setattr(cw, "write_json_atomic", write)
+    full = switchable_full_disk(monkeypatch, cw, "write_json_atomic")
 
     async def scenario():
         arm, sensor = make_rig(cfg, sphere, motion_time_s=0.01)

@@ -4,13 +4,13 @@ instead of telling the operator that `spadscan ctl resume` continues the scan.""
 
 from __future__ import annotations
 
-import errno
 
 import pytest
 
 import spadscan.daemon.runner as runner_module
 from spadscan.protocol.errors import ConfigError
 
+from disk_faults import switchable_full_disk
 from test_runner import check_capture, daemon_runner, make_cfg, sphere, until  # noqa: F401  (sphere: a fixture)
 
 VIEWS = 6
@@ -22,15 +22,7 @@ def test_a_takeover_on_a_disk_with_no_room_for_a_chunk_says_so(arun, tmp_path, s
     moved; once room is made the scan completes, every pose once."""
     cfg = make_cfg(tmp_path, views=VIEWS)
     folder = tmp_path / "caps" / "full"
-    full = {"on": False}
-    real_write = runner_module.write_durable
-
-    def write(path, data):
-        if full["on"]:
-            raise OSError(errno.ENOSPC, "No space left on device", str(path))
-        real_write(path, data)
-
-    monkeypatch.setattr(runner_module, "write_durable", write)
+    full = switchable_full_disk(monkeypatch, runner_module, "write_durable")
 
     async def first_daemon():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
