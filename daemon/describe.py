@@ -9,12 +9,11 @@ import os
 import resource
 
 from spadscan.protocol.capture_writer import file_size_limit
+from spadscan.protocol.disk_full import FULL_ERRNOS
 from spadscan.protocol.errors import SpadscanError
 
 from .devices import ArmFault, LinkLost, SensorSilent
 
-FULL = (errno.ENOSPC, errno.EDQUOT)
-"""The errnos of a disk (or a quota) that has no room left."""
 NOT_WRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
 """The errnos of a captures' folder the daemon may not write (a disk remounted read-only, permissions)."""
 
@@ -27,7 +26,7 @@ def describe(exc: BaseException, doing: str = "publishing") -> str:
             limit = file_size_limit()
             said = f"; the daemon may write files of at most {limit} bytes (ulimit -f)" if limit is not None else ""
             return f"file too large while {doing}: {exc.strerror or exc}{where}{said}"
-        what = "disk full" if exc.errno in FULL else "write error"
+        what = "disk full" if exc.errno in FULL_ERRNOS else "write error"
         return f"{what} while {doing}: {exc.strerror or exc}{where}"
     if isinstance(exc, SensorSilent):
         return f"sensor silent: {exc}"
@@ -40,7 +39,7 @@ def describe(exc: BaseException, doing: str = "publishing") -> str:
 
 def write_advice(exc: OSError) -> str:
     """What the operator does about write error `exc` before `spadscan ctl resume`, as a clause ending in it."""
-    if exc.errno in FULL:
+    if exc.errno in FULL_ERRNOS:
         fix = "make room on the captures' disk"
     elif exc.errno == errno.EFBIG:
         fix = _raise_file_size_limit()

@@ -53,12 +53,13 @@ import numpy as np
 from spadscan.protocol.atomic_files import write_durable
 from spadscan.protocol.capture_format import MANIFEST, TMP_PREFIX, Measurement, one_line, read_json
 from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
+from spadscan.protocol.disk_full import FULL_ERRNOS
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
 from .abort_book import FOLDER_GONE, AbortBook
 from .config import DaemonConfig, scan_request
 from .arm.stops import clear_advice, stop_name
-from .describe import FULL, SLIDER_FLOOR, SLIDER_FULL, describe, slider_note, write_advice
+from .describe import SLIDER_FLOOR, SLIDER_FULL, describe, slider_note, write_advice
 from .devices import Arm, ArmFault, ArmState, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abort_pending, check_scan_name,
                        clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
@@ -1447,7 +1448,7 @@ def _no_room(job: ScanJob, model) -> str | None:
             path = probe / name
             write_durable(path, os.urandom(size))
     except OSError as exc:
-        if exc.errno in FULL:
+        if exc.errno in FULL_ERRNOS:
             return (f"the captures' disk is still full ({exc.strerror}: no room for the next pose's chunk in "
                     f"{job.path}); make room on it, then `spadscan ctl resume`")
         named = exc if exc.filename else OSError(exc.errno, exc.strerror or str(exc), str(path))  # (a write's has none)
@@ -1479,7 +1480,7 @@ def _reopen_problem(job: ScanJob, exc: BaseException) -> str:
 
 def _reopen_fix(exc: OSError) -> str:
     """What the operator does about a capture that write error `exc` keeps from being reopened."""
-    return "make room, then `spadscan ctl resume`" if exc.errno in FULL else write_advice(exc)
+    return "make room, then `spadscan ctl resume`" if exc.errno in FULL_ERRNOS else write_advice(exc)
 
 
 def _remove_partial(path: Path) -> None:
