@@ -24,7 +24,7 @@ from .devices import Device
 from .rig import build_devices, preflight, rig_record
 from .root_lock import RootLock, check_root_free
 from .runner import ScanRunner
-from .scan_job import end_reason
+from .scan_end import ScanEnd
 from .scan_plan import build_plan
 
 log = logging.getLogger("spadscan.daemon")
@@ -109,9 +109,7 @@ class Dispatcher:
             raise ConfigError(f"{op}'s 'name' must be a scan name (a string)")
         named = {"name": req["name"]} if req.get("name") else {}  # a scan the daemon does not hold (see ScanRunner)
         if op == "status":
-            return {**r.status(), "daemon": {"pid": os.getpid(), "socket": str(self.cfg.socket),
-                                             "captures": str(self.cfg.captures),
-                                             "uptime_s": round(time.monotonic() - self.started, 1)}}
+            return {**r.status(), "daemon": self._daemon(time.monotonic())}
         if op == "scan":
             options = req.get("options", {})
             if not isinstance(options, dict):
@@ -127,12 +125,21 @@ class Dispatcher:
         if op == "wait":
             if not isinstance(req.get("name"), str):
                 raise ConfigError("wait needs a scan 'name'")
-            reply = await r.wait(req["name"])
-            # (`ctl wait` says why a scan ended aborted: the reason its capture records, once the wait is over)
-            reason = await asyncio.to_thread(end_reason, self.cfg.captures / reply["name"])
-            return {**reply, "reason": reason} if reason else reply
+            return self._wait_reply(req["name"], await r.wait_end(req["name"]))
         asyncio.get_running_loop().call_soon(self.stop.set)  # after the reply is written
         return {"stopping": True}
+
+    def _daemon(self, at: float) -> dict:
+        """The daemon's own block of a status, as it stood at `at` (time.monotonic())."""
+        return {"pid": os.getpid(), "socket": str(self.cfg.socket), "captures": str(self.cfg.captures),
+                "uptime_s": round(max(0.0, at - self.started), 1)}
+
+    def _wait_reply(self, name: str, end: ScanEnd) -> dict:
+        """`wait`'s reply: {"name", "state", "reason" (why it ended so, where a reason was given: `ctl wait` says it),
+        "status": the daemon's status as the scan ended (what `ctl wait --json` prints), null for a scan that ended
+        before this daemon started}."""
+        status = None if end.status is None else {**end.status, "daemon": self._daemon(end.at)}
+        return {"name": name, "state": end.state, **({"reason": end.reason} if end.reason else {}), "status": status}
 
 
 def check_config(cfg: DaemonConfig):

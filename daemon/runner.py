@@ -29,10 +29,10 @@ is asked again about the poses still to come (`Arm.check_poses`).
 An abort is recorded in the capture's manifest alone (no chunk is read). One the disk cannot take (full, read-only)
 is never undone by a restart: the reply says it is not recorded yet, `abort-pending.json` in the scan folder keeps it
 where an empty file still fits (no daemon takes such a scan over), and the daemon writes it again every
-ABORT_RETRY_S, at each control request and at shutdown (`abort_book.py`). A scan found interrupted that cannot be taken over (a chunk
-torn by a power cut) is named in `status` with what to do: `ctl resume NAME` tries the takeover again (after its
-damaged chunk is moved out of the folder: the poses it held are taken again first, `_retake`), `ctl abort NAME` ends
-it as aborted, every chunk kept; `ctl wait NAME` says which of these it waits for; it stays named
+ABORT_RETRY_S, at each control request and at shutdown (`abort_book.py`). A scan found interrupted that cannot be
+taken over (a chunk torn by a power cut) is named in `status` with what to do: `ctl resume NAME` tries the takeover
+again (after its damaged chunk is moved out of the folder: the poses it held are taken again first, `_retake`), `ctl
+abort NAME` ends it as aborted, every chunk kept; `ctl wait NAME` says which of these it waits for; it stays named
 until that scan itself is taken over or aborted. The two are done one at a time (the later one is refused, to be
 tried again), so an acknowledged abort is never undone by a takeover, nor by a shutdown (SIGTERM) while `ctl abort`
 waits for the arm to stop: the scan's wind-down runs to its end whoever is cancelled.
@@ -65,6 +65,7 @@ from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abo
                        clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
                        load_job, way_out)
 from .adaptive import ViewChooser, live_converged
+from .scan_end import ScanEnd, recorded_end
 from .scan_plan import build_plan, sensor_from_tcp, tcp_from_sensor
 from .stall import StallWatch
 from .workspace import check_workspace, first_move_problem
@@ -155,10 +156,9 @@ class ScanRunner:
         self.job: ScanJob | None = None
         self.state = "idle"
         self.last_error: str | None = None
-        self.finished: dict[str, str] = {}
-        self.end_reasons: dict[str, str] = {}
-        """Why each scan in `finished` ended as it did, where a reason was given: an abort's (`ctl abort --reason`,
-        or the daemon's own), an adaptive scan's early end."""
+        self.ends: dict[str, ScanEnd] = {}
+        """The end of each scan this daemon ended (its state, reason and the status as it ended), the last one last:
+        what `wait`, `status`'s last_scan and a refused resume say of it, whatever its folder says since."""
         self._task: asyncio.Task | None = None
         self._resume = asyncio.Event()
         self._pause_requested = False
@@ -275,7 +275,8 @@ class ScanRunner:
         """Take the interrupted scan at `path` over, paused (resumed when auto_resume allows); False when it cannot
         be (`stuck`, and last_error with the reason and what the operator can do). A capture that cannot be reopened,
         or whose disk has no room for the next pose's chunk (`_no_room`, as a resume checks it: the pause that a full
-        disk made could not be recorded on it), is taken over paused with that cause as its reason."""
+        disk made could not be recorded on it), is taken over paused with that cause in its reason: after the pause it
+        had (the operator's, a fault's: `ScanJob.paused_for`, which the capture goes on recording alone)."""
         in_the_way = None  # why the capture cannot take the scan on (its disk), with what to do; None when it can
         try:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
@@ -312,9 +313,15 @@ class ScanRunner:
                                                f"{going_on}" +
                                                (f", taking pose(s) {owed} again first (missing from the capture)"
                                                 if owed else ""))
+        job.paused_for = paused
         if in_the_way and not job.blocked:
-            job.reason = self.last_error = (f"interrupted at pose {self._progress()} (daemon restarted), and "
-                                            f"{in_the_way}" +
+            # The pause the scan had (the operator's, a fault's) stays said first: the full disk is one more thing
+            # to see to, not why it was paused. The capture records that alone (or that the scan was interrupted):
+            # the next daemon checks the disk again itself.
+            interrupted = f"interrupted at pose {self._progress()} (daemon restarted)"
+            taken = f"{paused}; taken over at pose {self._progress()} (daemon restarted)" if paused else interrupted
+            job.paused_for = paused or interrupted
+            job.reason = self.last_error = (f"{taken}, and {in_the_way}" +
                                             (f", which takes pose(s) {owed} again first (missing from the capture)"
                                              if owed else ""))
         log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
@@ -421,7 +428,7 @@ class ScanRunner:
             log.info("scan %s: resumed at pose %s%s", job.name, self._progress(),
                      f" (was paused: {job.reason})" if job.reason else "")
             self._resume.set()
-            job.reason = None
+            job.reason = job.paused_for = None
             self._set_state("scanning")
         else:
             raise ConfigError(self._nothing_to_resume())
@@ -435,10 +442,10 @@ class ScanRunner:
         if job is not None:
             return said if not self._aborting() else \
                 f"nothing to resume: scan {job.name!r} is being aborted ({self._end[1]})"
-        last = next(reversed(self.finished), None)
-        if last is None or self.finished[last] != "aborted":
+        last = next(reversed(self.ends), None)
+        if last is None or self.ends[last].state != "aborted":
             return said
-        reason = self.end_reasons.get(last)
+        reason = self.ends[last].reason
         return f"nothing to resume: scan {last!r} was aborted{f' ({reason})' if reason else ''}; the daemon is " \
                f"{self.state}"
 
@@ -483,7 +490,8 @@ class ScanRunner:
 
     def _refuse_resume(self, job: ScanJob, cause: str) -> None:
         """Refuse to resume `job` for `cause`, which becomes its pause's reason (status tells it as it stands now)."""
-        job.reason = self.last_error = f"{cause} (pose {self._progress()})"
+        first = f"{job.paused_for}; " if job.paused_for else ""  # (why it was paused stays said)
+        job.reason = self.last_error = f"{first}{cause} (pose {self._progress()})"
         log.warning("scan %s: not resumed: %s", job.name, cause)
         self._notify()
         raise ConfigError(f"cannot resume scan {job.name!r}: {cause}")
@@ -501,7 +509,7 @@ class ScanRunner:
         self._interrupted_op = "taken over"
         try:
             path = await asyncio.to_thread(interrupted_scan, self.root, name)
-            if (self.finished.get(name) == "aborted" or name in self.aborts.unrecorded
+            if ((name in self.ends and self.ends[name].state == "aborted") or name in self.aborts.unrecorded
                     or await asyncio.to_thread(abort_pending, path) is not None):
                 raise ConfigError(f"scan {name!r} was aborted (its {MANIFEST} does not say so yet: the disk could not "
                                   f"take it); it cannot be resumed")
@@ -542,8 +550,7 @@ class ScanRunner:
                 reason = f"{reason}; it could not be taken over: {stuck['cause']}"
             await self.aborts.record(name, path, reason, None)
             self._forget_stuck(name)
-            self.finished[name] = "aborted"
-            self.end_reasons[name] = reason
+            self._record_end(name, "aborted", reason)
         finally:
             self._interrupted_op = None
         log.info("scan %s aborted, as it stood on disk: %s", name, reason)
@@ -565,18 +572,23 @@ class ScanRunner:
 
     async def wait(self, name: str) -> dict:
         """Block until scan `name` is complete or aborted; returns {'name', 'state'}."""
+        return {"name": name, "state": (await self.wait_end(name)).state}
+
+    async def wait_end(self, name: str) -> ScanEnd:
+        """Block until scan `name` is complete or aborted; returns how it ended: this daemon's record of it (`ends`),
+        or for a scan this daemon never ended, what its manifest records (no status then)."""
         check_scan_name(name, self.root)
-        while True:
-            if name in self.finished:
-                return {"name": name, "state": self.finished[name]}
-            if self.job is None or self.job.name != name:
-                m = self.root / name / MANIFEST
-                state = (await asyncio.to_thread(read_json, m)).get("state") if m.is_file() else None
-                if state in ("complete", "aborted"):
-                    return {"name": name, "state": state}
-                raise ConfigError(await self._not_held(name, state))
+        while self.job is not None and self.job.name == name:
             changed = self._changed
             await changed.wait()
+        if name in self.ends:
+            return self.ends[name]
+        m = self.root / name / MANIFEST
+        manifest = await asyncio.to_thread(read_json, m) if m.is_file() else {}
+        end = recorded_end(manifest)
+        if end is None:
+            raise ConfigError(await self._not_held(name, manifest.get("state")))
+        return end
 
     async def _not_held(self, name: str, state: str | None) -> str:
         """Why `wait NAME` cannot wait for scan `name`, which this daemon does not hold and whose capture has not
@@ -656,9 +668,9 @@ class ScanRunner:
                 out["poses_to_take_again"] = list(job.owed)
             if self.state == "pausing":
                 out["pausing_at"] = self._pause_at()
-        if self.finished:
-            name = next(reversed(self.finished))
-            out["last_scan"] = {"name": name, "state": self.finished[name]}
+        if self.ends:
+            name = next(reversed(self.ends))
+            out["last_scan"] = {"name": name, "state": self.ends[name].state}
         if self.aborts.unrecorded:
             out["unrecorded_aborts"] = self.aborts.status()
         if self.stuck is not None:
@@ -1140,7 +1152,7 @@ class ScanRunner:
         full disk) keeps the pause in memory only."""
         try:
             if paused:
-                await self._io(mark_paused, job.path, job.reason or "paused")
+                await self._io(mark_paused, job.path, job.paused_for or job.reason or "paused")
             else:
                 await self._io(job.writer.set_state, "running")
         except (OSError, CaptureError) as exc:
@@ -1169,7 +1181,7 @@ class ScanRunner:
             await self._record_pause(job)
             await self._resume.wait()
         self._resume.clear()
-        job.reason = None
+        job.reason = job.paused_for = None
         if job.writer is not None:  # (without one, the writer reopened on the way on clears the record)
             await self._record_pause(job, paused=False)
         self._set_state("scanning")
@@ -1224,19 +1236,25 @@ class ScanRunner:
             if job.writer is None:
                 job.writer = await self._io(CaptureWriter.resume, job.path)
             if self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
-                await self._io(mark_paused, job.path, job.reason or "paused by user")
+                await self._io(mark_paused, job.path, job.paused_for or job.reason or "paused by user")
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
             self.last_error = f"scan {job.name!r}: could not record '{state}': {describe(exc, 'recording it')}"
 
     def _finish(self, job: ScanJob, state: str, reason: str | None = None) -> None:
-        self.finished[job.name] = state
-        if reason:
-            self.end_reasons[job.name] = reason
         self.job, self._task = None, None
-        log.info("scan %s %s: %d frames", job.name, state, job.frames)
         self._set_state("idle")
+        self._record_end(job.name, state, reason)  # (a `wait` woken above runs once this call has returned)
+        log.info("scan %s %s: %d frames", job.name, state, job.frames)
+
+    def _record_end(self, name: str, state: str, reason: str | None) -> None:
+        """Record how scan `name` ended, with the status as it ended (what `ctl wait --json` prints: read later, the
+        status may be the next scan's). The last scan to end comes last, even under a name that ended before (its
+        folder deleted by hand, the name taken again)."""
+        self.ends.pop(name, None)
+        self.ends[name] = ScanEnd(state, reason or None)  # first: the status names it as the last scan
+        self.ends[name] = ScanEnd(state, reason or None, self.status(), time.monotonic())
 
     def _set_state(self, state: str) -> None:
         if state == "scanning" and self.state not in TAKING_FRAMES and self.job is not None:

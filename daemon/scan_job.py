@@ -91,6 +91,12 @@ class ScanJob:
     frames: int = 0
     dropped: int = 0
     reason: str | None = None
+    paused_for: str | None = None
+    """Why the scan is paused in the first place, while something found since keeps it paused too (a takeover, or a
+    resume refused, that found no room on the disk): the reason recorded in the capture when a daemon took the scan
+    over (the operator's pause, a fault's), or that it was interrupted. `reason` says it first, then what stands in
+    the way now; a pause records it alone in the capture (the next daemon checks the disk again itself). None once
+    the scan goes on."""
     blocked: str | None = None
     """Why this scan cannot resume (e.g. the rig's hand-eye changed); None when it can."""
     in_flight: int | None = None
@@ -330,20 +336,6 @@ def abort_pending(path: Path) -> str | None:
     if not marker.is_file():
         return None
     return _recorded_reason(marker) or _named_reason(Path(path)) or DEFAULT_ABORT_REASON
-
-
-def end_reason(path: Path) -> str | None:
-    """Why the scan at `path` ended as it did, as its folder records it: the reason in its manifest once that says
-    complete or aborted (an abort's: `ctl abort --reason` or the daemon's own; an adaptive scan's early end), else
-    the abort ABORT_PENDING keeps (its manifest could not take it); None when none is recorded, or the folder is not
-    a scan's."""
-    try:
-        manifest = read_json(Path(path) / MANIFEST)
-    except CaptureError:
-        return None
-    if manifest.get("state") in ("complete", "aborted"):
-        return str(manifest["reason"]) if manifest.get("reason") else None
-    return abort_pending(path)
 
 
 def clear_abort_pending(path: Path) -> None:

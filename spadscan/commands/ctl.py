@@ -17,10 +17,11 @@
 `scan`, `pause`, `resume`, `abort` and `shutdown` answer in one line for people: the scan in hand, its state and its
 pose i/n (`scan 'bunny' paused at pose 38/128: paused by user`); with --json they print the daemon's whole
 reply as one line of JSON instead. `status` and `wait` always print JSON; `status` takes --json too (then on one
-line), so that a script may pass it to every operation, and so does `wait` (then its line is what `status --json`
-prints once the scan has ended, with `wait`: the scan's name, how the wait ended and how long it took; its progress
-stays on stderr). With --json a refusal, or no daemon answering, is printed on standard output as {"ok": false,
-"error": ...} too, beside its error line on stderr and exit status 1.
+line), so that a script may pass it to every operation, and so does `wait` (then its line is the daemon's status as
+the scan ended, as `status --json` prints it, even when the daemon has started the next scan since, with `wait`: the
+scan's name, how the wait ended and how long it took; its progress stays on stderr). With --json a refusal, or no
+daemon answering, is printed on standard output as {"ok": false, "error": ...} too, beside its error line on stderr
+and exit status 1.
 
 The live reconstruction (`spadscan worker --live`) is read from the scan's recon/live/status.json, beside the daemon:
 views used of those published, steps, whether it converged, the Chamfer when the scene is known, the last update.
@@ -138,9 +139,13 @@ def add_arguments(parser) -> None:
         "`age_s`, the seconds since its last update, and `queued` while its job waits in the worker's queue "
         "(<captures>/.queue; alone before the job's first status): `job`, `waiting_s`, `behind` (the jobs of other "
         "scans running now, one of which must end first when every job process is busy), `workers` (those present), "
-        "`processes` (the jobs they run at once) and `said`, what it waits for as the dashboard says it ('waiting "
+        "`processes` (the jobs they run at once), `room_waits` (the workers that wait for room on a full disk "
+        "before they claim again, each one's `room_wait` from its presence file: mount, folder, free_bytes, "
+        "need_bytes, since_unix, retry_unix, quota) and `said`, what it waits for as the dashboard says it ('waiting "
         "for q1-fast to finish (the worker runs 1 job at a time; `--processes 2` runs 2)', 'a worker takes it at its "
-        "next look' or 'no worker is running: start one with ...'); `speed_scaling` and `speed_note`: a UR arm's "
+        "next look', 'the worker waits for room on /data (12 MB free, 40 MB needed): make room there; it claims "
+        "again by 14:05 (sooner once there is room)' or 'no worker is running: start one with ...'); "
+        "`speed_scaling` and `speed_note`: a UR arm's "
         "speed slider, when below 100 % (the scan runs that much slower).")
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
@@ -198,7 +203,8 @@ def add_arguments(parser) -> None:
     abort.add_argument("--reason", help="why (recorded in the capture)")
     wait = op("wait", "block until scan NAME is complete (exit 0) or aborted (exit 1)",
               "Block until scan NAME is complete (exit 0) or aborted (exit 1), then print the daemon's answer as JSON "
-              "({\"name\", \"state\"}, and \"reason\" where the scan's folder records why it ended; an aborted "
+              "({\"name\", \"state\"}, and \"reason\" where one was given for how it ended, as the daemon that "
+              "ended it recorded it (its folder says it for a scan that ended before the daemon started); an aborted "
               "scan's last line on stderr gives it). On a terminal a progress bar runs on stderr (with a rate and a "
               "time left only while the scan scans, and how its live reconstruction stands: e.g. queued behind "
               "another job); otherwise a line on stderr says why whenever the scan pauses, and how the live "
@@ -212,8 +218,10 @@ def add_arguments(parser) -> None:
                              "\"error\": ...} too, beside its error line and exit status 1")
     wait.add_argument("--json", action="store_true",
                       help="for scripts: standard output gets one line of JSON once the wait ends, and nothing "
-                           "else: what `status --json` prints then (the daemon's status, the scan's `live`; left out "
-                           "when the daemon no longer answers), plus `wait`: {\"name\", \"ended\": complete or "
+                           "else: the daemon's status as the scan ended, as `status --json` prints it (the next scan "
+                           "may run by then: the line is still the status of the scan waited for, with its `live`; "
+                           "for a scan that ended before the daemon started, the daemon's answer {\"name\", "
+                           "\"state\", \"reason\"} instead), plus `wait`: {\"name\", \"ended\": complete or "
                            "aborted, \"waited_s\"}; an error (a refusal, no daemon answering, --timeout run out) or "
                            "Ctrl-C is printed as {\"ok\": false, \"error\": ..., \"wait\": {\"name\", \"ended\": "
                            "error, timeout or interrupted, \"waited_s\"}} beside its line on stderr. The exit status "
@@ -334,11 +342,12 @@ def _wait(path: str, name: str, timeout: float | None, as_json: bool = False) ->
             print(json.dumps({"ok": False, "error": str(exc), "wait": waited(ended)}))
         raise
     reply.pop("ok", None)
+    status = reply.pop("status", None)  # (the daemon's status as the scan ended: for --json alone)
     line = reply
     if as_json:
         try:
-            line = wait_json(path, reply, waited(str(reply.get("state"))))
-        except KeyboardInterrupt:  # the scan has ended: a Ctrl-C while its status is read leaves only the status out
+            line = wait_json(reply, status, waited(str(reply.get("state"))))
+        except KeyboardInterrupt:  # the scan has ended: a Ctrl-C while its live status is read leaves the rest out
             line = {**reply, "wait": waited(str(reply.get("state")))}
     print(json.dumps(line))
     if reply.get("state") != "complete":
@@ -349,11 +358,20 @@ def _wait(path: str, name: str, timeout: float | None, as_json: bool = False) ->
     return 0
 
 
-def wait_json(path: str, reply: dict, waited: dict) -> dict:
-    """`wait --json`'s line: what `status --json` prints once the scan has ended (nothing of it when the daemon no
-    longer answers) and `wait`: {"name", "ended": the scan's end (complete, aborted), "waited_s"}."""
-    status = _status(path)
-    return {**(status_dict(status) if status else {}), "wait": waited}
+def wait_json(reply: dict, status: dict | None, waited: dict) -> dict:
+    """`wait --json`'s line: `status`, the daemon's status as the scan waited for ended (from the wait's reply: one
+    read afterwards may be the next scan's), as `status --json` prints it, its `live` that scan's whatever scan the
+    daemon held; and `wait`: {"name", "ended": the scan's end (complete, aborted), "waited_s"}. A scan that ended
+    before the daemon started has no such status (None): the line is then the daemon's reply ({"name", "state",
+    "reason"}) and `wait`."""
+    if status is None:
+        return {**reply, "wait": waited}
+    shown = {k: v for k, v in status.items() if k not in ("ok", "live")}
+    captures = (status.get("daemon") or {}).get("captures")
+    live = capture_live(os.path.join(captures, reply["name"]), captures) if captures else None
+    if live is not None:
+        shown["live"] = live
+    return {**shown, "wait": waited}
 
 
 def wait_for_scan(path: str, name: str, timeout: float | None, stream) -> dict:
@@ -408,8 +426,13 @@ def live_status(status: dict) -> dict | None:
     capture = live_capture(status)
     if capture is None:
         return None
+    return capture_live(capture, (status.get("daemon") or {}).get("captures"))
+
+
+def capture_live(capture: str, captures: str | None) -> dict | None:
+    """`live_status` of the scan whose capture folder is `capture`, under captures root `captures` (None: its queue is
+    not read)."""
     live = _live_file(capture)
-    captures = (status.get("daemon") or {}).get("captures")
     queued = live_queued(captures, os.path.basename(capture)) if captures else None
     if queued is None:
         return live
@@ -435,9 +458,11 @@ def live_queued(captures: str, scan: str) -> dict | None:
     """Scan `scan`'s live job while it waits in the worker's queue under captures root `captures` (its default
     queue: a worker started with `--queue DIR` is not seen), as {"job": its id, "waiting_s": seconds since it was
     queued (or given back), "behind": the jobs of other scans running now (their workers renew their claims),
-    "workers": the workers present ("HOST pid N"), "processes": how many jobs they run at once, "said": what it waits
-    for, in the dashboard's words}; None when it is not queued, or the queue cannot be read. The worker's own queue
-    and presence code read it, as for the dashboard and `spadscan worker --status`."""
+    "workers": the workers present ("HOST pid N"), "processes": how many jobs they run at once, "room_waits": the
+    workers among them that wait for room on a full disk before they claim again, each one's `room_wait`
+    (`room_waits`), "said": what it waits for, in the dashboard's words}; None when it is not queued, or the queue
+    cannot be read. The worker's own queue and presence code read it, as for the dashboard and `spadscan worker
+    --status`."""
     from spadscan.protocol.errors import SpadscanError
     from spadscan.worker.presence import present_workers, start_command
     from spadscan.worker.queue import Queue
@@ -455,22 +480,100 @@ def live_queued(captures: str, scan: str) -> dict | None:
     except (OSError, SpadscanError):  # no queue, or one this user may not read: nothing to say of it
         return None
     behind = [row.id for row in rows if row.state == "running" and row.stale is None and row.scan != scan]
-    named = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"]} for w in workers]
+    waits = room_waits(queue.path)
+    named = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"], "running": w["running"],
+              "room_wait": waits.get((w["host"], w["pid"]))} for w in workers]
     return {"job": job.id, "waiting_s": None if job.waiting_s is None else round(job.waiting_s, 1), "behind": behind,
             "workers": [w["name"] for w in named], "processes": sum(w["processes"] for w in named),
+            "room_waits": {w["name"]: w["room_wait"] for w in named if w["room_wait"] is not None},
             "said": queued_said(behind, named, f"{start_command(Path(captures), queue.path)} --live")}
+
+
+def room_waits(queue_dir: Path) -> dict[tuple[str, int], dict]:
+    """The workers of the queue at `queue_dir` that wait for room on a full disk before they claim a job again, by
+    (host, pid): each one's `room_wait` as its presence file (`<queue>/workers/*.json`) says it, read from the file
+    itself. A worker that writes no such key (an older one) or null waits for nothing; so does one whose value has
+    another shape (`_room_wait`), and a file that cannot be read says nothing."""
+    from spadscan.worker.presence import WORKERS_DIRNAME
+
+    found = {}
+    try:
+        paths = sorted((Path(queue_dir) / WORKERS_DIRNAME).glob("*.json"))
+    except OSError:
+        return found
+    for path in paths:
+        try:
+            data = json.loads(path.read_text())
+            key = (str(data["holder"]["host"]), int(data["holder"]["pid"]))
+            waiting = _room_wait(data.get("room_wait"))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            continue  # gone meanwhile, or damaged: present_workers leaves it out too
+        if waiting is not None:
+            found[key] = waiting
+    return found
+
+
+def _room_wait(value) -> dict | None:
+    """A presence file's `room_wait` as ctl reads it: None unless it is an object naming a mount; a figure of another
+    type is None (said as unknown), `quota` false unless it is true."""
+    if not isinstance(value, dict) or not isinstance(value.get("mount"), str) or not value["mount"]:
+        return None
+
+    def number(key: str, kind) -> float | None:
+        v = value.get(key)
+        ok = isinstance(v, kind) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+        return v if ok else None
+
+    return {"mount": value["mount"], "folder": value.get("folder") if isinstance(value.get("folder"), str) else None,
+            "free_bytes": number("free_bytes", int), "need_bytes": number("need_bytes", int),
+            "since_unix": number("since_unix", (int, float)), "retry_unix": number("retry_unix", (int, float)),
+            "quota": value.get("quota") is True}
 
 
 def queued_said(behind: list[str], workers: list[dict], start: str) -> str:
     """What a queued live job waits for, as the dashboard says it: no worker (and `start`, the command that starts
-    one), a worker's next look (a job process is free), or the jobs `behind` (and how to run one job more at once)."""
+    one), room on a full disk (every worker waits for it: `room_said`), a worker's next look (a job process is free),
+    or the jobs `behind` (and how to run one job more at once). A worker that waits for room (its `room_wait`) claims
+    nothing meanwhile: neither its job processes nor the jobs it runs count."""
     if not workers:
         return f"no worker is running: start one with `{start}`"
-    n = sum(w["processes"] for w in workers) or 1
+    claiming = [w for w in workers if not w.get("room_wait")]
+    if not claiming:
+        return room_said([w["room_wait"] for w in workers])
+    held = {job for w in workers if w.get("room_wait") for job in w.get("running", ())}
+    behind = [job for job in behind if job not in held]
+    n = sum(w["processes"] for w in claiming) or 1
     if len(behind) < n:
         return "a worker takes it at its next look"
     return (f"waiting for {'' if len(behind) == 1 else 'one of '}{_names(behind)} to finish "
-            f"({_processes_advice(workers, n)})")
+            f"({_processes_advice(claiming, n)})")
+
+
+def room_said(waits: list[dict]) -> str:
+    """What a queued job waits for while every worker waits for room (`waits`: their `room_wait`s): on which disk
+    (each mount once, with the figures of the first worker that names it), what to do, and by when a worker claims
+    again at the latest (the first of their retries: each claims sooner once its disk has room)."""
+    from spadscan.worker.disk_room import size_text
+
+    mounts = {}
+    for wait in waits:
+        mounts.setdefault(wait["mount"], wait)
+    places = []
+    for mount, wait in mounts.items():
+        free = "free space unknown" if wait["free_bytes"] is None else f"{size_text(wait['free_bytes'])} free"
+        need = "" if wait["need_bytes"] is None else f", {size_text(wait['need_bytes'])} needed"
+        places.append(f"{'in the disk quota on' if wait['quota'] else 'on'} {mount} ({free}{need})")
+    who = "the worker waits" if len(waits) == 1 else f"every worker ({len(waits)}) waits"
+    fix = "make room there" + (" or raise the quota" if any(w["quota"] for w in waits) else "")
+    retries = [w["retry_unix"] for w in waits if w["retry_unix"] is not None]
+    when = ""
+    try:
+        by = time.strftime("%H:%M", time.localtime(min(retries))) if retries else None
+    except (OverflowError, OSError, ValueError):  # a time past what the clock can name: said as unknown
+        by = None
+    if by is not None:
+        when = f"; {'it' if len(waits) == 1 else 'a worker'} claims again by {by} (sooner once there is room)"
+    return f"{who} for room {' and '.join(places)}: {fix}{when}"
 
 
 def _processes_advice(workers: list[dict], n: int) -> str:

@@ -5,12 +5,14 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import time
 from pathlib import Path
 
 import pytest
 
 from spadscan.daemon.app import DeviceSession, Dispatcher
 from spadscan.daemon.devices import Device
+from spadscan.daemon.scan_end import ScanEnd
 from spadscan.protocol.errors import ConfigError, DeviceError
 
 
@@ -115,8 +117,8 @@ class FakeRunner:
         self.calls.append(("abort", reason))
         return {"state": "idle"}
 
-    async def wait(self, name):
-        return {"name": name, "state": "complete"}
+    async def wait_end(self, name):
+        return ScanEnd("complete", None, {"state": "idle"}, time.monotonic())
 
 
 def test_dispatcher(arun, tmp_path, sock_dir):
@@ -142,7 +144,10 @@ def test_dispatcher(arun, tmp_path, sock_dir):
     out, calls, stopped = arun(scenario())
     assert out[0]["state"] == "idle" and out[0]["daemon"]["socket"] == str(sock_dir / "s.sock")
     assert calls == [("start", "n", {"views": 3}), ("abort", "aborted by user")]
-    assert out[3] == {"name": "n", "state": "complete"} and out[4] == {"stopping": True} and stopped
+    ended = out[3]["status"]  # the status as the scan ended, with the daemon's block (as `status` has it)
+    assert out[3] == {"name": "n", "state": "complete", "status": ended}
+    assert ended["state"] == "idle" and ended["daemon"]["socket"] == str(sock_dir / "s.sock")
+    assert out[4] == {"stopping": True} and stopped
 
 
 def test_an_abort_reason_is_one_line_before_it_is_cut(arun, tmp_path, sock_dir):

@@ -70,7 +70,8 @@ class Handler(socketserver.StreamRequestHandler):
         elif req["op"] == "wait":
             while self.server.pose < POSES and not self.server.closing:
                 time.sleep(0.01)
-            reply = {"ok": True, "name": req["name"], "state": "complete"}
+            ended = {k: v for k, v in self.server.status().items() if k != "ok"}  # the status as the scan ended
+            reply = {"ok": True, "name": req["name"], "state": "complete", "status": ended}
         else:
             reply = {"ok": False, "error": f"unknown op {req['op']!r}"}
         self.wfile.write((json.dumps(reply) + "\n").encode())

@@ -45,17 +45,19 @@ def test_a_waiting_live_job_reads_only_the_queued_and_running_jobs(tmp_path, mon
     assert sorted(read) == ["mug-fast", "q1-fast"], "the done jobs' files are not read"
 
 
-def test_a_ctrl_c_as_wait_json_reads_the_ended_scans_status_still_prints_its_line(monkeypatch, capsys):
+def test_a_ctrl_c_as_wait_json_reads_the_ended_scans_live_status_still_prints_its_line(monkeypatch, capsys):
     import json
 
     from spadscan.commands import ctl
 
-    def interrupted(path):
+    def interrupted(capture, captures):
         raise KeyboardInterrupt
 
+    ended = {"state": "idle", "scan": None, "daemon": {"captures": "/caps"}}
     monkeypatch.setattr(ctl, "wait_for_scan", lambda path, name, timeout, stream: {"ok": True, "name": "m",
-                                                                                     "state": "complete"})
-    monkeypatch.setattr(ctl, "_status", interrupted)
+                                                                                     "state": "complete",
+                                                                                     "status": ended})
+    monkeypatch.setattr(ctl, "capture_live", interrupted)
     assert ctl._wait("x.sock", "m", None, as_json=True) == 0
     out = capsys.readouterr().out
     assert out.count("\n") == 1

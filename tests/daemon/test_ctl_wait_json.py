@@ -45,7 +45,8 @@ def test_wait_with_json_gives_the_scans_live_reconstruction_as_status_does(tmp_p
                                                         job="mug-fast"))
     status = {"state": "idle", "scan": None, "last_scan": {"name": "mug", "state": "aborted"},
               "daemon": {"captures": str(tmp_path / "caps")}}
-    replies = {"wait": {"ok": True, "name": "mug", "state": "aborted"}, "status": {"ok": True, **status}}
+    replies = {"wait": {"ok": True, "name": "mug", "state": "aborted", "status": status},
+               "status": {"ok": True, **status}}
     monkeypatch.setattr(client, "call", lambda path, op, timeout, **request: dict(replies[op]))
     assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "wait", "mug", "--json"]) == 1
     out, err = capsys.readouterr()
@@ -127,3 +128,19 @@ def test_the_help_says_wait_takes_json_and_where_the_progress_goes(capsys):
     with pytest.raises(SystemExit):
         main(["ctl", "--help"])
     assert "and so does `wait`" in " ".join(capsys.readouterr().out.split())
+
+
+def test_wait_with_json_on_a_scan_that_ended_before_the_daemon_started_prints_the_reply(tmp_path, monkeypatch,
+                                                                                       capsys):
+    """The daemon has no status of that scan's end (null): the line is its reply and `wait`, not a status read now,
+    which is of another scan (here one being recorded)."""
+    import spadscan.daemon.client as client
+
+    now = {"ok": True, "state": "scanning", "scan": "next", "daemon": {"captures": str(tmp_path / "caps")}}
+    replies = {"wait": {"ok": True, "name": "mug", "state": "aborted", "reason": "lamp changed", "status": None},
+               "status": now}
+    monkeypatch.setattr(client, "call", lambda path, op, timeout, **request: dict(replies[op]))
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "wait", "mug", "--json"]) == 1
+    shown = one_json_line(capsys.readouterr().out)
+    waited = shown.pop("wait")
+    assert shown == {"name": "mug", "state": "aborted", "reason": "lamp changed"} and waited["ended"] == "aborted"

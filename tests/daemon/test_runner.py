@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import inspect
 import logging
 import re
 import threading
@@ -90,6 +91,19 @@ async def until(pred, what: str, timeout_s: float = 20.0) -> None:
         if time.monotonic() - t0 > timeout_s:
             raise AssertionError(f"timed out waiting for {what}")
         await asyncio.sleep(0.005)
+
+
+async def paused_after(runner: ScanRunner, name: str, fault, what: str = "the pause", poses: int = 2) -> dict:
+    """The scenario most runner tests begin with: start scan `name`, let `poses` poses in, then `fault()` (a fault
+    injected, a disk filled, or the operator's `runner.pause`: awaited when it returns an awaitable), and wait for the
+    pause it makes (`what`: said if it never comes). Returns the status then."""
+    await runner.start(name)
+    await until(lambda: runner.job.next_pose >= poses, f"{poses} poses")
+    done = fault()
+    if inspect.isawaitable(done):
+        await done
+    await until(lambda: runner.state == "paused", what)
+    return runner.status()
 
 
 async def resumed_after_pause(runner: ScanRunner, name: str, meanwhile=lambda: None) -> tuple[str, dict]:

@@ -21,7 +21,8 @@ from spadscan.daemon.sensor.serial_bridge import SerialSensor
 from spadscan.daemon.sensor.sim_bridge import SimBridge
 
 from test_abort_durable import disk  # noqa: F401  (a fixture)
-from test_runner import TimedArm, check_capture, daemon_runner, make_cfg, make_rig, sphere, until  # noqa: F401
+from test_runner import (TimedArm, check_capture, daemon_runner, make_cfg, make_rig, paused_after,  # noqa: F401
+                         sphere, until)
 
 WAIT = "`spadscan ctl resume` once the sensor's link is back (the scan does not go on by itself)"
 BACK = "the sensor's link is back now: `spadscan ctl resume`"
@@ -34,11 +35,7 @@ def test_a_full_disk_says_to_make_room(arun, tmp_path, sphere, disk):  # noqa: F
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("full")
-            await until(lambda: runner.job.next_pose >= 2, "two poses")
-            disk["error"] = errno.ENOSPC
-            await until(lambda: runner.state == "paused", "the pause")
-            return runner.status()
+            return await paused_after(runner, "full", lambda: disk.update(error=errno.ENOSPC))
 
     status = arun(scenario())
     assert re.fullmatch(r"disk full while publishing: No space left on device \([^()]+\); make room on the "
@@ -50,11 +47,7 @@ def test_a_lost_sensor_link_says_to_resume_once_it_is_back_and_then_that_it_is(a
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("unplug")
-            await until(lambda: runner.job.next_pose >= 2, "two poses")
-            runner.sensor.inject_link_loss(3600.0)
-            await until(lambda: runner.state == "paused", "the pause")
-            down = runner.status()
+            down = await paused_after(runner, "unplug", lambda: runner.sensor.inject_link_loss(3600.0))
             runner.sensor.end_link_loss()  # plugged in again
             back = runner.status()
             await runner.resume()
@@ -84,11 +77,7 @@ def test_an_unplugged_serial_sensor_says_to_resume_once_its_link_is_back(arun, t
             bridge.start_measuring(lambda: rng.integers(0, 1 << 16, (10, 128)), 0.05)
             runner = ScanRunner(arm, sensor, cfg)
             try:
-                await runner.start("serial")
-                await until(lambda: runner.job.next_pose >= 2, "two poses")
-                bridge.unplug()
-                await until(lambda: runner.state == "paused", "the pause")
-                down = runner.status()
+                down = await paused_after(runner, "serial", bridge.unplug)
                 bridge.replug()
                 await until(lambda: sensor.counters()["link"] == "up", "the link back")
                 back = runner.status()
@@ -115,11 +104,7 @@ def test_a_silent_sensor_with_its_link_up_says_what_to_check(arun, tmp_path, sph
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("quiet")
-            await until(lambda: runner.job.next_pose >= 2, "two poses")
-            runner.sensor.inject_silence(3600.0)
-            await until(lambda: runner.state == "paused", "the pause")
-            return runner.status()
+            return await paused_after(runner, "quiet", lambda: runner.sensor.inject_silence(3600.0))
 
     reason = arun(scenario())["reason"]
     assert re.fullmatch(r"sensor silent: sensor sim: no complete frame within 0\.5 s \(frame_timeout_s\) at pose "

@@ -18,7 +18,7 @@ from spadscan.daemon.runner import ScanRunner
 from spadscan.protocol.errors import ConfigError
 
 from test_abort_durable import disk  # noqa: F401  (a fixture)
-from test_runner import daemon_runner, make_cfg, sphere, until  # noqa: F401  (sphere: a fixture)
+from test_runner import daemon_runner, make_cfg, paused_after, sphere, until  # noqa: F401  (sphere: a fixture)
 from test_runner_ur import controller, quick_rig, ur_config  # noqa: F401  (controller: a fixture)
 
 
@@ -38,10 +38,7 @@ def test_aborting_a_scan_whose_folder_was_deleted_is_simply_done(arun, tmp_path,
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("del1")
-            await until(lambda: runner.job.next_pose >= 2, "two poses")
-            delete_by_hand(folder)
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "del1", lambda: delete_by_hand(folder))
             with pytest.raises(ConfigError) as refused:
                 await runner.resume()
             aborted = await runner.abort()
@@ -63,10 +60,7 @@ def test_aborting_a_scan_whose_folder_was_deleted_is_simply_done(arun, tmp_path,
 async def paused_on_a_full_disk(runner, name: str, disk) -> None:
     """Scan `name` until two poses are in, then fill the disk (`disk`: the full-disk fixture) and wait for the
     pause it makes."""
-    await runner.start(name)
-    await until(lambda: runner.job.next_pose >= 2, "two poses")
-    disk["error"] = errno.ENOSPC
-    await until(lambda: runner.state == "paused", "the pause for the full disk")
+    await paused_after(runner, name, lambda: disk.update(error=errno.ENOSPC), "the pause for the full disk")
 
 
 def test_an_abort_kept_for_a_full_disk_is_done_once_its_folder_is_deleted(arun, tmp_path, sphere, disk):  # noqa: F811
@@ -111,10 +105,8 @@ def test_resume_while_the_sensor_link_is_down_is_refused_with_the_cause(arun, tm
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("ln1")
-            await until(lambda: runner.job.next_pose >= 2, "two poses")
-            runner.sensor.inject_link_loss(3600.0)
-            await until(lambda: runner.state == "paused", "the pause for the lost link")
+            await paused_after(runner, "ln1", lambda: runner.sensor.inject_link_loss(3600.0),
+                               "the pause for the lost link")
             with pytest.raises(ConfigError) as refused:
                 await runner.resume()
             state = runner.state

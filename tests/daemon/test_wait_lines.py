@@ -1,8 +1,8 @@
 """What `spadscan ctl wait` says on stderr without a terminal: a pause's line gives the way on once (a reason that
 names `spadscan ctl resume` or `spadscan ctl abort` gets no second piece of advice), and the line of a scan that
 ended aborted gives the abort's reason (`ctl abort --reason`, or the daemon's own), which the daemon's `wait` reply
-carries as the scan's folder records it: in its manifest (whichever daemon ended it), or in abort-pending.json when
-the disk could not take the abort."""
+carries as the daemon that ended the scan recorded it (whether or not the disk could take the abort), or, for a scan
+that ended before the daemon started, as its manifest records it."""
 
 from __future__ import annotations
 
@@ -83,12 +83,13 @@ def test_wait_names_the_pause_advice_once_and_the_abort_reason(arun, tmp_path, s
     assert err.splitlines() == [f"spadscan: scan 'huge2' paused at pose {paused['progress']}: {reason}",
                                 "spadscan: scan 'huge2' ended aborted: lens smudged"], err
     assert err.count(RESUME) == 1, err
-    assert again == {"name": "huge2", "state": "aborted", "reason": "lens smudged"}, again
+    assert again == {"name": "huge2", "state": "aborted", "reason": "lens smudged", "status": None}, again
 
 
 def test_the_wait_reply_gives_the_reason_of_an_abort_the_disk_could_not_take(arun, tmp_path, sphere,
                                                                              disk):  # noqa: F811
-    """A full disk: the abort is kept in abort-pending.json, not in scan.json; the wait reply gives its reason."""
+    """A full disk: the abort is kept in abort-pending.json, not in scan.json; the wait reply gives its reason, and
+    the status as the scan ended."""
     cfg = make_cfg(tmp_path, views=10)
 
     async def scenario():
@@ -99,4 +100,6 @@ def test_the_wait_reply_gives_the_reason_of_an_abort_the_disk_could_not_take(aru
 
     kept, waited = arun(scenario())
     assert kept["abort_recorded"] is False, kept
+    status = waited.pop("status")
     assert waited == {"name": "full1", "state": "aborted", "reason": "lens smudged"}, waited
+    assert status["last_scan"] == {"name": "full1", "state": "aborted"} and status["unrecorded_aborts"], status

@@ -1,0 +1,111 @@
+"""A worker that met a full disk waits for room before it claims another job, and says so in its presence file
+(`room_wait`: {"mount", "folder", "free_bytes", "need_bytes", "since_unix", "retry_unix", "quota"}, null when it does
+not wait). While every worker present waits so, `ctl status` and `ctl wait` say that the scan's queued live job waits
+for room, where, and by when a worker claims again, instead of "a worker takes it at its next look"; `status --json`
+lists each waiting worker's `room_wait`. A worker that does not write the key (an older one) waits for nothing. The
+presence files are written here by hand, as a worker writes them."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+from spadscan.commands.ctl import live_line, live_status
+from spadscan.worker.holder import Holder
+from spadscan.worker.queue import Queue
+
+from test_ctl_live_queue import ELSEWHERE, captures, ctl_status, status_of
+
+MB = 1_000_000
+
+
+def room_wait(mount: str = "/mnt/scratch", free: int | None = 12 * MB, need: int | None = 40 * MB,
+              retry_in_s: float = 600.0, quota: bool = False) -> dict:
+    now = time.time()
+    return {"mount": mount, "folder": f"{mount}/caps/q1/recon", "free_bytes": free, "need_bytes": need,
+            "since_unix": now - 5.0, "retry_unix": now + retry_in_s, "quota": quota}
+
+
+def set_room_wait(root: Path, holder: Holder, value) -> None:
+    """Give the presence file of `holder` a `room_wait` (or take the key out: `...`), as the worker writes it."""
+    [path] = (Queue.for_root(root).path / "workers").glob(f"{holder.host}-{holder.pid}-*.json")
+    data = json.loads(path.read_text())
+    if value is ...:
+        data.pop("room_wait", None)
+    else:
+        data["room_wait"] = value
+    path.write_text(json.dumps(data, indent=1) + "\n")
+
+
+def hhmm(unix: float) -> str:
+    return time.strftime("%H:%M", time.localtime(unix))
+
+
+@pytest.fixture
+def idle(tmp_path) -> Path:
+    """One worker with a job process free, and mug's live job queued."""
+    return captures(tmp_path, {}, [(Holder.current(), 1, ())])
+
+
+def test_a_worker_waiting_for_room_is_said_instead_of_its_next_look(idle, monkeypatch, capsys):
+    """Before: 'a worker takes it at its next look', while the worker claimed nothing until room was made."""
+    me = Holder.current()
+    waiting = room_wait()
+    set_room_wait(idle, me, waiting)
+    said = (f"the worker waits for room on /mnt/scratch (12 MB free, 40 MB needed): make room there; it claims again "
+            f"by {hhmm(waiting['retry_unix'])} (sooner once there is room)")
+    queued = live_status(status_of(idle))["queued"]
+    assert queued["said"] == said, queued["said"]
+    assert live_line({"queued": queued}) == f"live reconstruction queued: {said}"
+    shown, out = ctl_status(idle, monkeypatch, capsys, "--json")
+    assert out.count("\n") == 1 and shown["live"]["queued"]["said"] == said
+    assert shown["live"]["queued"]["room_waits"] == {f"{me.host} pid {me.pid}": waiting}
+
+
+def test_every_worker_waiting_names_each_disk_and_the_first_claim(tmp_path):
+    me = Holder.current()
+    root = captures(tmp_path, {}, [(me, 1, ()), (ELSEWHERE, 2, ())])
+    later, sooner = room_wait(retry_in_s=1800.0), room_wait("/data", free=None, need=None, retry_in_s=300.0,
+                                                            quota=True)
+    set_room_wait(root, me, later)
+    set_room_wait(root, ELSEWHERE, sooner)
+    queued = live_status(status_of(root))["queued"]
+    assert queued["said"] == (
+        f"every worker (2) waits for room on /mnt/scratch (12 MB free, 40 MB needed) and in the disk quota on /data "
+        f"(free space unknown): make room there or raise the quota; a worker claims again by "
+        f"{hhmm(sooner['retry_unix'])} (sooner once there is room)"), queued["said"]
+    assert set(queued["room_waits"]) == {f"{me.host} pid {me.pid}", f"{ELSEWHERE.host} pid {ELSEWHERE.pid}"}
+
+
+def test_a_worker_that_can_claim_is_still_said_as_before(tmp_path):
+    """One worker waits for room: another with a process free takes the job; one whose processes are busy makes it
+    wait for its jobs (the waiting worker's process does not count)."""
+    me = Holder.current()
+    root = captures(tmp_path, {}, [(me, 1, ()), (ELSEWHERE, 1, ())])
+    set_room_wait(root, me, room_wait())
+    queued = live_status(status_of(root))["queued"]
+    assert queued["said"] == "a worker takes it at its next look"
+    assert list(queued["room_waits"]) == [f"{me.host} pid {me.pid}"]
+    busy = captures(tmp_path / "busy", {"q1-fast": ELSEWHERE}, [(me, 1, ()), (ELSEWHERE, 1, ("q1-fast",))])
+    set_room_wait(busy, me, room_wait())
+    assert live_status(status_of(busy))["queued"]["said"] == (
+        "waiting for q1-fast to finish (the worker runs 1 job at a time; `--processes 2` runs 2)")
+
+
+@pytest.mark.parametrize("value", [..., None, "full", {"free_bytes": 3}, {"mount": ""}])
+def test_no_room_wait_or_one_of_another_shape_waits_for_nothing(idle, value):
+    """An older worker writes no key; one not waiting writes null; a value of another shape says nothing."""
+    set_room_wait(idle, Holder.current(), value)
+    queued = live_status(status_of(idle))["queued"]
+    assert queued["said"] == "a worker takes it at its next look" and queued["room_waits"] == {}
+
+
+@pytest.mark.parametrize("retry", [float("nan"), 1e300, -5.0, "soon"])
+def test_odd_figures_in_a_room_wait_are_said_as_unknown(idle, retry):
+    waiting = {**room_wait(), "free_bytes": "lots", "need_bytes": True, "retry_unix": retry, "quota": 1}
+    set_room_wait(idle, Holder.current(), waiting)
+    assert live_status(status_of(idle))["queued"]["said"] == (
+        "the worker waits for room on /mnt/scratch (free space unknown): make room there")
