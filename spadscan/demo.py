@@ -351,13 +351,52 @@ def _scan(sock: Path, name: str, opts: DemoOptions, progress, watch=None) -> dic
     raise DemoError(f"scan {name} did not finish within {opts.stage_timeout_s:.0f} s")
 
 
+@dataclass(frozen=True)
+class JobRun:
+    """One run of a job's process, as the queue shows it: each claim of a job runs a process of its own, with a log
+    and a progress bar that start from nothing (a crashed job's retry is a new claim)."""
+
+    job_id: str
+    claim: str | None
+    """The claim's token; None where it is not known (the run is then taken for the one last shown)."""
+    attempt: int | None
+    """Which attempt of the job the claim is (1-based), as its attempt record says; None where that cannot be read."""
+    progress: object = None
+    """Its bar (worker.job_progress.JobProgress), or None while its log shows none yet."""
+    last_error: str | None = None
+    """Why the job's last attempt before this one ended (for a claim past the first attempt), or None."""
+
+
+def running_runs(captures: Path) -> dict[str, JobRun]:
+    """Each job the worker is running on `captures` by id: its claim and its progress, read from its log in the
+    queue and measured against its budget as `spadscan worker --status` measures it."""
+    from spadscan.worker.job_progress import running_progress
+    from spadscan.worker.queue import SEP, Queue
+
+    if not (captures / ".queue").is_dir():
+        return {}
+    queue = Queue.for_root(captures, create=False)
+    paths = queue.job_paths()
+    runs = {}
+    for job_id, progress in sorted(running_progress(queue, captures).items()):
+        state, path = paths.get(job_id, (None, None))
+        token = path.stem.rpartition(SEP)[2] if state == "running" else None  # (None: its claim ended meanwhile)
+        attempt = _attempt_of(queue.record(job_id, token) or {}) if token else None
+        last_error = queue.last_error(job_id) if attempt is not None and attempt > 1 else None
+        runs[job_id] = JobRun(job_id, token, attempt, progress, last_error)
+    return runs
+
+
+def running_job_run(captures: Path) -> JobRun | None:
+    """The run of a job the worker is running on `captures` (the demo's worker runs one at a time), or None."""
+    return next(iter(running_runs(captures).values()), None)
+
+
 def running_job_progress(captures: Path):
     """The progress (worker.job_progress.JobProgress) of a job the worker is running on `captures`, read from
     its log in the queue; None while none runs or its log shows no progress yet."""
-    from spadscan.worker.job_progress import running_progress
-    from spadscan.worker.queue import Queue
-
-    return next(iter(running_progress(Queue.for_root(captures, create=False)).values()), None)
+    run = running_job_run(captures)
+    return None if run is None else run.progress
 
 
 def finished_job_progress(scan_dir: Path):
@@ -372,11 +411,36 @@ def finished_job_progress(scan_dir: Path):
     return read_progress(report.parent / "job.log")
 
 
+def finished_job_run(captures: Path, scan: str) -> JobRun | None:
+    """The run that published scan `scan`'s result, with the last progress in its log (`finished_job_progress`),
+    or None when there is no result. Its claim is the one the job's 'done' record names (or the dead claim whose
+    finished result that record's claim adopted); None where the records do not say."""
+    from spadscan.worker.queue import Queue
+
+    progress = finished_job_progress(captures / scan)
+    if progress is None:
+        return None
+    job = _scan_job(captures, scan)
+    if job is None or job[1] != "done":
+        return JobRun(scan, None, None, progress)
+    records = Queue.for_root(captures, create=False).records(job[0])
+    done = [r for r in records if r.get("outcome") == "done"]
+    token = (done[-1].get("adopted") or done[-1].get("token")) if done else None
+    ran = next((r for r in records if token is not None and r.get("token") == token), {})
+    return JobRun(job[0], token if isinstance(token, str) else None, _attempt_of(ran), progress)
+
+
+def _attempt_of(record: dict) -> int | None:
+    """The attempt number an attempt record gives its claim (1-based), or None where it gives none."""
+    attempt = record.get("attempt")
+    return attempt if isinstance(attempt, int) and not isinstance(attempt, bool) and attempt >= 1 else None
+
+
 def _reconstruct(opts: DemoOptions, captures: Path, scan: str, procs: Processes, logs: Path, progress=None) -> None:
-    """Run a worker over the captures until it has reconstructed them; `progress` receives the running job's
-    progress (or None) about twice a second. Scan `scan`'s job must be done; another job may fail (the worker then
-    exits 1): an earlier live run's job of a scan the demo aborted ends failed, with the scan's reason."""
-    tick = None if progress is None else (lambda: progress(running_job_progress(captures)))
+    """Run a worker over the captures until it has reconstructed them; `progress` receives the running job's run
+    (`running_job_run`, or None) about twice a second. Scan `scan`'s job must be done; another job may fail (the
+    worker then exits 1): an earlier live run's job of a scan the demo aborted ends failed, with the scan's reason."""
+    tick = None if progress is None else (lambda: progress(running_job_run(captures)))
     code = _run_worker_once(opts, captures, procs, logs, tick, limit_s=opts.stage_timeout_s + opts.budget_s)
     if code != 0 and scan_job_state(captures, scan) != "done":
         raise _failed(f"the worker exited with code {code}", logs / "worker.log")
@@ -432,25 +496,25 @@ a complete scan copied into the captures is one of them too."""
 
 
 class EarlierBars:
-    """A bar of its own for each earlier scan's job the worker runs, apart from this run's reconstruction bar."""
+    """A bar of its own for each earlier scan's job the worker runs, apart from this run's reconstruction bar (a
+    job's next attempt starts its bar over: `ReconProgress.follow`)."""
 
-    def __init__(self, captures: Path, progress_factory, total_s: float):
-        self.captures, self.factory, self.total_s = captures, progress_factory, total_s
+    def __init__(self, captures: Path, progress_factory, total_s: float, say=None):
+        self.captures, self.factory, self.total_s, self.say = captures, progress_factory, total_s, say
         self.job, self.bar, self.show = None, None, None
 
     def __call__(self) -> None:
-        from spadscan.worker.job_progress import running_progress
         from spadscan.worker.queue import Queue
 
-        queue = Queue.for_root(self.captures, create=False)
-        for job_id, progress in sorted(running_progress(queue).items())[:1]:  # the demo's worker runs one at a time
+        for job_id, run in list(running_runs(self.captures).items())[:1]:  # the demo's worker runs one at a time
             if job_id != self.job:
                 self.close()
                 self.job = job_id
-                scan = queue.registered_scan(job_id) or job_id
+                scan = Queue.for_root(self.captures, create=False).registered_scan(job_id) or job_id
                 self.bar = self.factory(self.total_s, f"earlier scan {scan} (training s)", "s")
-                self.show = ReconProgress(self.bar, f"earlier scan {scan}: mesh, metrics, pictures, report")
-            self.show(progress)
+                self.show = ReconProgress(self.bar, f"earlier scan {scan}: mesh, metrics, pictures, report",
+                                          self.say)
+            self.show.follow(run)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -470,7 +534,7 @@ def _reconstruct_earlier(opts: DemoOptions, captures: Path, scans: list[str], pr
     say(f"scan{'s' if many else ''} {', '.join(scans)} {EARLIER_RUN_UNRECONSTRUCTED}: reconstructing {them} first, "
         f"on {'bars' if many else 'a bar'} of {'their' if many else 'its'} own and outside this run's times (Ctrl-C "
         f"leaves {them} for `spadscan worker --root {captures} --once`)")
-    bars = EarlierBars(captures, progress_factory, opts.budget_s)
+    bars = EarlierBars(captures, progress_factory, opts.budget_s, say)
     limit_s = sum(opts.stage_timeout_s + _queued_budget_s(captures, scan, opts.budget_s) for scan in scans)
     try:
         _run_worker_once(opts, captures, procs, logs, bars, limit_s=limit_s)
@@ -580,8 +644,8 @@ def _scan_job(captures: Path, scan: str) -> tuple[str, str, Path] | None:
 def _finish_live(opts: DemoOptions, captures: Path, scan: str, worker: subprocess.Popen, logs: Path,
                  watch: LiveWatch, progress=None) -> None:
     """Wait until the worker has published the scan's final result (the live status says `done`; the queue says so
-    too, also for a scan so quick that its job ran as an ordinary one); `progress` receives the running job's
-    progress (or None) about twice a second."""
+    too, also for a scan so quick that its job ran as an ordinary one); `progress` receives the running job's run
+    (`running_job_run`, or None) about twice a second."""
     log = logs / "worker.log"
     limit = opts.stage_timeout_s + opts.budget_s
     deadline = time.monotonic() + limit
@@ -600,7 +664,7 @@ def _finish_live(opts: DemoOptions, captures: Path, scan: str, worker: subproces
         if time.monotonic() > deadline:
             raise _failed(f"the live reconstruction did not finish within {limit:.0f} s", log)
         if progress is not None:
-            progress(running_job_progress(captures))
+            progress(running_job_run(captures))
         time.sleep(0.5)
 
 
@@ -641,24 +705,65 @@ def _start_dashboard(opts: DemoOptions, captures: Path, procs: Processes, logs: 
 
 class ReconProgress:
     """Shows a job's progress on a bar made by a progress_factory: seconds of the budget done, and the loss, step
-    and Chamfer the job's own bar carries."""
+    and Chamfer the job's own bar carries. Fed runs (`follow`), it starts the bar over when the worker runs the job
+    again (a crashed job's next attempt trains from nothing), names the attempt in the bar's description and says
+    why the last one ended in a line of its own (`say`)."""
 
-    def __init__(self, bar, after: str | None = None):
+    def __init__(self, bar, after: str | None = None, say=None):
         self.bar = bar
         self.shown = 0.0
         self.after = after or self.AFTER
+        self.say = say
+        self.desc = getattr(bar, "desc", "")
+        """The bar's own description, before any attempt's name is added to it."""
+        self.claim: str | None = None
+        """The claim of the run the bar shows (`JobRun.claim`), once one was followed."""
+        self.attempt: int | None = None
+        self.label = ""
+        """What the description says of the attempt (', attempt 2'), after its own words; '' for a first run."""
 
     AFTER = "reconstruction: mesh, metrics, pictures, report"
     """The bar's description once training is over: the job then extracts the mesh and writes its report."""
 
+    def follow(self, run: JobRun | None) -> None:
+        """Show run `run` of the job (None: none runs): a claim other than the one shown is a new run of the job's
+        process, shown from its own start; a run whose claim is not known is taken for the one shown."""
+        if run is None:
+            return
+        if run.claim is not None and run.claim != self.claim:
+            if self.claim is not None or (run.attempt or 1) > 1:
+                self._start_over(run)
+            self.claim, self.attempt = run.claim, run.attempt
+        self(run.progress)
+
+    def _start_over(self, run: JobRun) -> None:
+        """The bar back to nothing, its description naming the new attempt, and a line that says so."""
+        if run.attempt is None:
+            self.label = ", run again"
+        else:  # the same number again: the claim before was given back (a full disk, say), not counted
+            self.label = f", attempt {run.attempt}" + (", run again" if run.attempt == self.attempt else "")
+        if hasattr(self.bar, "reset"):
+            self.bar.reset()  # tqdm: the count and its clock from zero, the total kept until the new bar's comes
+        else:
+            self.bar.update(-self.shown)
+        self.shown = 0.0
+        if hasattr(self.bar, "set_postfix_str"):
+            self.bar.set_postfix_str("")
+        if hasattr(self.bar, "set_description_str"):
+            self.bar.set_description_str(self.desc + self.label)
+        if self.say is not None:
+            why = f" (the last attempt: {run.last_error})" if run.last_error else ""
+            self.say(f"reconstruction job {run.job_id}: the worker runs it again{self.label}{why}")
+
     def __call__(self, progress) -> None:
+        """Show reading `progress` (worker.job_progress.JobProgress, or None) of the run shown."""
         if progress is None:
             return
         total = max(progress.total, self.shown)
         if progress.total > 0 and getattr(self.bar, "total", total) != total:
             # The job's own total: its training budget, which the set-up and the end leave less than the demo's.
-            # Never below what the bar has counted: a crashed job's next attempt may have a shorter one, and tqdm
-            # takes a count past its total for "no total", which the demo's `{total:.0f}` cannot format.
+            # Never below what the bar has counted (a reading of a run other than the one shown, that no claim
+            # told apart): tqdm takes a count past its total for "no total", which `{total:.0f}` cannot format.
             self.bar.total = total
             if hasattr(self.bar, "refresh"):
                 self.bar.refresh()
@@ -666,7 +771,7 @@ class ReconProgress:
         self.bar.update(max(0.0, done - self.shown))
         self.shown = max(self.shown, done)
         if progress.done >= progress.total and hasattr(self.bar, "set_description_str"):
-            self.bar.set_description_str(self.after)
+            self.bar.set_description_str(self.after + self.label)
         fields = [f"step {progress.fields['step']}"] if "step" in progress.fields else []
         if "loss" in progress.fields:
             fields.append(f"loss {progress.fields['loss']}")
@@ -754,14 +859,14 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         desc = "final reconstruction (training s)" if opts.live else "reconstruction (training s)"
         bar = progress_factory(opts.budget_s, desc, "s")
         try:
-            show = ReconProgress(bar)
+            show = ReconProgress(bar, say=say)
             if watch is not None:
                 watch.bar = None  # the final run's own progress goes on this bar
-                _finish_live(opts, captures, name, worker, logs, watch, show)
+                _finish_live(opts, captures, name, worker, logs, watch, show.follow)
             else:
-                _reconstruct(opts, captures, name, procs, logs, show)
+                _reconstruct(opts, captures, name, procs, logs, show.follow)
             # The job's last progress, from its published log: a short job may end between two looks at its live one.
-            show(finished_job_progress(captures / name))
+            show.follow(finished_job_run(captures, name))
         finally:
             bar.close()
         stages["reconstruct_s"] = time.monotonic() - t

@@ -8,7 +8,9 @@ OUT/summary.json). The worker reconstructs live by default (`spadscan worker --l
 chunk, the scan's progress bar shows the live fit (views used of those published, steps, Chamfer) and a line is
 printed each time its state changes; once the scan is complete the final reconstruction continues from the live
 fit for --budget-s seconds. --offline reconstructs only once the scan is complete, as `spadscan worker --once`.
-While the final reconstruction runs, a progress line shows its training time, loss and Chamfer.
+While the final reconstruction runs, a progress line shows its training time, loss and Chamfer; when the worker
+runs the job again (its process crashed), the line starts over, named after the attempt, and a line says why the
+last attempt ended.
 With --dashboard it also serves the lab dashboard on its captures and prints the address to open.
 Every process it starts is stopped again, also on Ctrl-C. Run again into the same --out after a run was stopped
 during its scan, it aborts the scan that run left unfinished (its poses stay on disk, the capture marked aborted),

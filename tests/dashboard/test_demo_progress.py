@@ -86,7 +86,7 @@ def test_the_demo_prints_the_dashboard_progress_and_report(tmp_path):
     out = tmp_path / "demo"
     # The live look at the running job is switched off: a 3 s job on a busy machine may end between two looks, and
     # what the test waits for is the worker's exit, after which the demo shows the job's last bar from its log.
-    code = ("import sys; import spadscan.demo as demo; demo.running_job_progress = lambda captures: None; "
+    code = ("import sys; import spadscan.demo as demo; demo.running_job_run = lambda captures: None; "
             "from spadscan.cli import main; sys.exit(main(sys.argv[1:]))")
     # --offline: the job after the scan, whose progress line this checks (the live demo's lines: test_live_demo.py).
     r = subprocess.run([sys.executable, "-c", code, "demo", "--out", str(out), "--views", "8", "--offline",
