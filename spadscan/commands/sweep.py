@@ -10,7 +10,9 @@ Points run on Dask distributed: an embedded cluster of --workers processes (defa
 or the workers of a running scheduler (--scheduler tcp://HOST:8786; the machines must share DIR and the scenes'
 files). Results survive: each finished point is written at once to DIR/points/<id>.json and gathered into
 DIR/results.csv; a re-run of the same sweep runs only the points not done (failed ones again); a point whose worker
-dies runs again on another; a sweep file whose base condition or methods differ from those DIR was run with is
+dies runs again on another (one that kills every worker it is tried on fails, saying how the last one ended where
+the embedded cluster knows it: the signal, as "killed (SIGKILL: out of memory, or killed by hand?)" or "crashed
+(SIGSEGV)", or the exit code); a sweep file whose base condition or methods differ from those DIR was run with is
 refused, and so is one whose grid lacks entries DIR holds results of (a grown grid is welcome; --overwrite runs it,
 and results.csv then holds its entries alone). Failed points are results too: they are listed at the end and
 marked in `spadscan sweep-plot DIR`; the exit status is 0 once every point has run. A result whose run warned (a

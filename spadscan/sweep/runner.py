@@ -4,9 +4,12 @@ Each point is one Dask task (`dask_point`), one at a time per worker process, on
 writes the point's result into DIR/points/ itself, so a result survives whatever happens to this client. When a
 worker dies mid-point (killed, out of memory, its machine gone), the scheduler hands its task to another worker
 (Dask retries a task whose worker died up to `distributed.scheduler.allowed-failures` times, 3 by default); a
-point that kills that many workers is recorded as failed. Workers report each point's start and stages as Dask
-events, which this client writes to DIR/log.jsonl. Every sweep on a scheduler shares the events' topic: each event
-names its sweep's folder, and a client logs only its own folder's.
+point that kills that many workers is recorded as failed, with how its last worker ended where that is known: only
+a worker's nanny (its parent process) learns the exit status, and the embedded cluster's nannies report it
+(`ExitNotingNanny`), so that a point there says which signal ended its worker, or its exit code; a scheduler's workers
+do not, and a point there says that its worker died. Workers report each point's start and stages as Dask events,
+which this client writes to DIR/log.jsonl. Every sweep on a scheduler shares the events' topic: each event names its
+sweep's folder, and a client logs only its own folder's.
 
 A point on a CUDA device asks for the worker resource GPU=1: start GPU workers with `--resources GPU=1`
 (one per GPU); an embedded cluster gives each of its workers one.
@@ -27,8 +30,9 @@ from dataclasses import dataclass, field
 from multiprocessing import resource_tracker
 from typing import Callable
 
-from distributed import Client, KilledWorker, LocalCluster, as_completed, get_worker
+from distributed import Client, KilledWorker, LocalCluster, Nanny, as_completed, get_worker
 from distributed.comm import connect
+from distributed.core import Status
 from distributed.utils import silence_logging_cmgr
 from tqdm import tqdm
 
@@ -52,6 +56,15 @@ reads every point's file): a point that finishes sooner is gathered when the tim
 finishes (which can take hours). And at the end."""
 POLL_S = 0.1
 """How often the client looks for finished points while it waits (as often as Dask's own `as_completed` does)."""
+EXIT_TOPIC = "spadscan-worker-exit"
+"""The topic on which the embedded cluster's nannies report how a worker process ended (`ExitNotingNanny`)."""
+EXIT_NOTE_S = 10.0
+"""How long the client waits, once Dask has given up on a point whose worker died, for the nanny's report of how
+that worker ended: the two travel apart (the report comes within moments, on a busy machine within seconds)."""
+CRASH_SIGNALS = ("SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT")
+"""Signals a process gets from its own fault: it crashed."""
+STOP_SIGNALS = ("SIGTERM", "SIGINT", "SIGHUP", "SIGQUIT")
+"""Signals that ask a process to stop: it was stopped."""
 
 
 def emit_event(out: str, point_id: str, event: str, **fields) -> None:
@@ -160,6 +173,8 @@ def _run_on_dask(plan, todo, store, summary, connect, call, device, progress, sa
     """Submit a task per point of `todo` (`call(task)` gives the function and its arguments) to the client that
     `connect` opens, and record each as it finishes (`say`: where a line per finished point goes, if anywhere)."""
     name = sweep_name(store)
+    # Only the embedded cluster's nannies report how their workers ended (ExitNotingNanny).
+    exits = WorkerExits() if getattr(connect, "embedded", False) else None
 
     def on_event(event) -> None:
         _, message = event
@@ -170,18 +185,22 @@ def _run_on_dask(plan, todo, store, summary, connect, call, device, progress, sa
     start = time.monotonic()
     with connect as client:
         summary.startup_s = time.monotonic() - start
-        client.subscribe_topic(EVENT_TOPIC, on_event)
+        topics = [(EVENT_TOPIC, on_event)] + ([(EXIT_TOPIC, exits.note)] if exits is not None else [])
+        for topic, handler in topics:
+            client.subscribe_topic(topic, handler)
         try:
-            _submit_and_gather(plan, todo, store, summary, client, call, device, progress, say)
+            _submit_and_gather(plan, todo, store, summary, client, call, device, progress, say, exits)
         finally:
             # Also when interrupted: a scheduler that still counts this client among the topic's subscribers
             # writes the next event to its closed connection, and says so with a traceback.
-            with contextlib.suppress(OSError):  # a scheduler already gone has no subscription to end
-                client.unsubscribe_topic(EVENT_TOPIC)
+            for topic, _ in topics:
+                with contextlib.suppress(OSError):  # a scheduler already gone has no subscription to end
+                    client.unsubscribe_topic(topic)
 
 
-def _submit_and_gather(plan, todo, store, summary, client, call, device, progress, say=None) -> None:
-    """Submit a task per point of `todo` and record each as it finishes."""
+def _submit_and_gather(plan, todo, store, summary, client, call, device, progress, say=None, exits=None) -> None:
+    """Submit a task per point of `todo` and record each as it finishes (`exits`: how the embedded cluster's
+    workers ended, WorkerExits)."""
     token = secrets.token_hex(4)  # keys of this run only: another client's tasks never stand in for these
     resources = {"GPU": 1} if device == "cuda" else None
     futures = {}
@@ -197,7 +216,7 @@ def _submit_and_gather(plan, todo, store, summary, client, call, device, progres
             wait_s = max(0.0, gathered + RESULTS_EVERY_S - time.monotonic()) if due else None
             batch = _next_batch(finished, wait_s)
             for future, outcome in batch:
-                _record(plan, futures.pop(future), future, outcome, store, summary, device, bar, say)
+                _record(plan, futures.pop(future), future, outcome, store, summary, device, bar, say, exits)
             due = due or bool(batch)
             # A look at results.csv mid-sweep is current within RESULTS_EVERY_S of a point's end (run_sweep
             # gathers it after the last point).
@@ -217,11 +236,11 @@ def _next_batch(finished, wait_s: float | None) -> list:
     return finished.next_batch(block=False)
 
 
-def _record(plan, task, future, outcome, store, summary, device, bar, say=None) -> None:
+def _record(plan, task, future, outcome, store, summary, device, bar, say=None, exits=None) -> None:
     """Count a finished point in `summary` and on the bar, recording it first when its task raised; with `say`
     (no bar), say a line of it."""
     # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
-    result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device)
+    result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device, exits)
     future.release()
     summary.ran += 1
     if result["status"] == "done":
@@ -262,16 +281,14 @@ def finished_point_line(plan, task: PointTask, result: dict, n: int, of: int) ->
     return "; ".join(parts)
 
 
-def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
+def _outcome(outcome, task: PointTask, store: SweepDir, device: str, exits: WorkerExits | None = None) -> dict:
     """The summary a finished task returned, or for a task that raised (Dask gave up on it when its workers died, or
-    the task could not run at all) a failed point, recorded."""
+    the task could not run at all) a failed point, recorded. `exits`: how the embedded cluster's worker processes
+    ended (None on a scheduler's workers, whose endings this client does not learn)."""
     if not isinstance(outcome, BaseException):
         return outcome
     if isinstance(outcome, KilledWorker):
-        tries = outcome.allowed_failures + 1
-        reason = ("the worker running it died (killed, or out of memory?); its log says why" if tries == 1 else
-                  f"the worker running it died each time it was tried ({tries} workers: killed, or out of memory?); "
-                  f"their logs say why")
+        reason = killed_worker_reason(outcome, exits)
     else:
         reason = f"{type(outcome).__name__}: {' '.join(str(outcome).split())[:300]}"
     result = {"id": task.id, "status": "failed", "reason": reason, "scene": task.scene.label,
@@ -279,6 +296,134 @@ def _outcome(outcome, task: PointTask, store: SweepDir, device: str) -> dict:
     store.write_point(result)
     store.append_log({"event": "failed", "point": task.id, "reason": reason})
     return result
+
+
+def killed_worker_reason(error: KilledWorker, exits: WorkerExits | None = None) -> str:
+    """Why a point whose workers died failed: how its last worker ended (`process_ending`: a signal's name, or the
+    exit code; 'died' where `exits` does not say) and whose log says why."""
+    tries = error.allowed_failures + 1
+    last = error.last_worker  # Dask's record of the last worker that ran the task (None in a made-up error)
+    address = getattr(last, "address", None)
+    nanny = getattr(last, "nanny", None)
+    code = None if exits is None or not address else exits.wait_for(address, nanny, EXIT_NOTE_S)
+    ending = process_ending(code)
+    where = worker_where(last, local=exits is not None)
+    if tries == 1:
+        return f"the worker running it {ending}; its log says why" + (f" ({where})" if where else "")
+    last_one = "" if code is None else f"; the last {ending}"
+    return (f"the worker running it died each time it was tried ({tries} workers{last_one}); their logs say why" +
+            (f" (the last: {where})" if where else ""))
+
+
+def process_ending(exitcode: int | None) -> str:
+    """How a process ended, from its exit status as multiprocessing gives it (the signal that ended it, negated;
+    else its exit code): 'was killed (SIGKILL: ...)', 'crashed (SIGSEGV)', 'was stopped (SIGTERM)', 'exited with
+    code 1'; 'died' for None (not known). SIGKILL is what the kernel's out-of-memory killer sends, and what
+    `kill -9` does."""
+    if exitcode is None:
+        return "died"
+    if exitcode >= 0:
+        return f"exited with code {exitcode}"
+    try:
+        name = signal.Signals(-exitcode).name
+    except ValueError:
+        return f"was ended by signal {-exitcode}"
+    if name == "SIGKILL":
+        return "was killed (SIGKILL: out of memory, or killed by hand?)"
+    if name in CRASH_SIGNALS:
+        return f"crashed ({name})"
+    if name in STOP_SIGNALS:
+        return f"was stopped ({name})"
+    return f"was ended by {name}"
+
+
+def worker_where(worker, local: bool) -> str:
+    """Which worker, so that its log can be found: its name and pid, and where it writes (an embedded cluster's
+    workers write to this command's stderr) or its address; '' where Dask did not say."""
+    if worker is None:
+        return ""
+    pid = getattr(worker, "pid", None)
+    parts = [f"worker {getattr(worker, 'name', '?')}"] + ([f"pid {pid}"] if pid else [])
+    if local:
+        parts.append("writing to this command's stderr")
+    elif getattr(worker, "address", None):
+        parts.append(f"at {worker.address}")
+    return ", ".join(parts)
+
+
+class WorkerExits:
+    """How the embedded cluster's worker processes ended, as their nannies report it (`ExitNotingNanny`): worker
+    address -> exit status. The reports come on the client's event thread; `wait_for` is asked on another.
+
+    A worker process that died before its nanny learned its address (at once, as it started) is reported without
+    one: its ending is not known, and such a report ends one wait for a worker of its nanny (that wait then says
+    "died"), so that points that each kill their worker at once do not each wait EXIT_NOTE_S."""
+
+    def __init__(self):
+        self._codes: dict[str, int] = {}
+        self._unnamed: dict[str, int] = {}
+        """Nanny address -> its reports without a worker's address that no wait has taken yet."""
+        self._reports = 0
+        self._timed_out = False
+        """A wait ran out before any report had come: until one comes, the nannies are taken not to report (a Dask
+        without the hook), and no wait waits."""
+        self._changed = threading.Condition()
+
+    def note(self, event) -> None:
+        """A subscriber of EXIT_TOPIC: (time, {"worker": address or None, "nanny": address, "exitcode": status})."""
+        _, message = event
+        if not isinstance(message, dict):
+            return
+        address, nanny, code = message.get("worker"), message.get("nanny"), message.get("exitcode")
+        if not isinstance(code, int) or isinstance(code, bool):
+            return
+        with self._changed:
+            if isinstance(address, str):
+                self._codes[address] = code
+            elif isinstance(nanny, str):
+                self._unnamed[nanny] = self._unnamed.get(nanny, 0) + 1
+            else:
+                return
+            self._reports += 1
+            self._changed.notify_all()
+
+    def wait_for(self, address: str, nanny: str | None, timeout_s: float) -> int | None:
+        """The exit status of the worker at `address` (its nanny at `nanny`), waiting up to `timeout_s` for its
+        report; None without one, or once a report of its nanny's without an address has come."""
+        def settled() -> bool:
+            return address in self._codes or bool(nanny and self._unnamed.get(nanny))
+
+        with self._changed:
+            silent = self._timed_out and self._reports == 0
+            if not self._changed.wait_for(settled, 0 if silent else timeout_s):
+                self._timed_out = True
+                return None
+            if address in self._codes:
+                return self._codes[address]
+            self._unnamed[nanny] -= 1
+            return None
+
+
+class ExitNotingNanny(Nanny):
+    """The embedded cluster's nanny: it reports how its worker process ended (the exit status, which only the nanny,
+    its parent, learns) as an event on EXIT_TOPIC, so that a point whose worker died can say which signal ended it.
+
+    Dask has no public hook for a worker process's exit: this extends the nanny's own exit callback, which it passes
+    each worker process it starts. A Dask without it never calls this, and the points' reasons then say "died"."""
+
+    _reported: str | None = None
+    """The worker address of the last exit reported."""
+
+    def _on_worker_exit_sync(self, exitcode):
+        address = self.worker_address
+        # A process that died as it started, before the nanny read its address, leaves the last one's in place.
+        address = None if address == self._reported else address
+        self._reported = address or self._reported
+        if self.status == Status.running:  # not the cluster's own close, nor a nanny stopping its worker
+            # The report must never keep the nanny from restarting its worker.
+            with contextlib.suppress(Exception):
+                self.log_event(EXIT_TOPIC, {"worker": address, "nanny": self.address, "exitcode": exitcode})
+        return super()._on_worker_exit_sync(exitcode)
 
 
 @contextlib.contextmanager
@@ -368,6 +513,11 @@ class _client:
         self.timeout_s = timeout_s
         self.cluster = self.client = None
 
+    @property
+    def embedded(self) -> bool:
+        """Whether it starts its own cluster (whose nannies report how their workers end: ExitNotingNanny)."""
+        return self.scheduler is None
+
     def __enter__(self):
         if self.scheduler is not None:
             # run_sweep probed the address before it opened the folder; a scheduler gone since is refused here.
@@ -389,6 +539,7 @@ class _client:
         # 8787 would clash with another cluster on the machine.
         with _quiet_children():
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                        worker_class=ExitNotingNanny,
                                         dashboard_address=None, silence_logs=logging.CRITICAL,
                                         scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
                                         **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
@@ -418,4 +569,5 @@ class _client:
 
 __all__ = ["run_sweep", "probe_scheduler",
            "dask_point", "point_summary", "finished_point_line", "emit_event", "Summary",
-           "EVENT_TOPIC", "cores"]
+           "killed_worker_reason", "process_ending", "WorkerExits", "ExitNotingNanny",
+           "EVENT_TOPIC", "EXIT_TOPIC", "cores"]

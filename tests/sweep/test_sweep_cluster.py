@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import time
 from collections import Counter
 from pathlib import Path
@@ -229,8 +230,11 @@ def test_a_point_that_kills_every_worker_it_runs_on_is_recorded_as_failed(tmp_pa
     for task in make_plan(load_spec(one_point)).points.values():
         stored = json.loads((tmp_path / "out" / "points" / f"{task.id}.json").read_text())
         assert stored["status"] == "failed"
-        assert stored["reason"] == ("the worker running it died each time it was tried (2 workers: killed, or out "
-                                    "of memory?); their logs say why")
+        # The embedded cluster's nannies report how their workers ended (here the exit code), but the restarted
+        # worker dies as it starts, maybe before its nanny has learned its address: then its ending is not known.
+        assert re.fullmatch(r"the worker running it died each time it was tried \(2 workers(; the last exited "
+                            r"with code 1)?\); their logs say why \(the last: worker \d+, pid \d+, writing to this "
+                            r"command's stderr\)", stored["reason"]), stored["reason"]
 
 
 SECOND_CTRL_C = """
