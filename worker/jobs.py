@@ -9,12 +9,15 @@ replaced in silence: the worker does not run a job whose folder already holds on
 `python -m spadscan.worker.jobs` is the child process the worker pool starts for each job: it runs one job into the
 folder the pool names and writes an outcome file the pool reads (exit 0 done, 3 the input is at fault and a retry
 would fail the same way, 4 the job crashed, 5 it met a full disk: no fault of the job's, which the pool gives back
-to the queue without counting the attempt; said by the exit status alone where the outcome file does not fit).
+to the queue without counting the attempt; said by the exit status alone where the outcome file does not fit, and a
+job that finished but whose outcome file does not fit exits 6: its result is whole, published, not reconstructed
+again).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import hashlib
 import importlib
 import json
@@ -37,12 +40,17 @@ from spadscan.protocol.disk_full import disk_full_cause
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
 from .budget import process_started
+from .disk_room import full_folder
 from .outputs import RESULT_FILES
 from .publish_out import move_aside
 
 ID_RE = re.compile(r"[^A-Za-z0-9._-]+")
 RECON_DIR = "recon"
-EXIT_DONE, EXIT_INPUT, EXIT_CRASH, EXIT_FULL = 0, 3, 4, 5
+EXIT_DONE, EXIT_INPUT, EXIT_CRASH, EXIT_FULL, EXIT_DONE_UNSAID = 0, 3, 4, 5, 6
+"""EXIT_DONE_UNSAID: the job finished, its result whole in its folder, but its outcome file met a full disk (the
+queue's): the pool publishes the result (its summary read from its report.json, `summary_of`)."""
+SUMMARY_KEYS = ("chamfer_mm", "seconds", "steps", "ground_truth_note", "capture_counts_note", "converged", "warnings")
+"""What of a finished job's report its outcome file carries to the pool's done line."""
 
 ReconFn = Callable[..., dict]
 """`reconstruct_capture(capture, out, *, preset, budget_s, steps, gt, device, seed, started) -> report dict`:
@@ -473,28 +481,39 @@ def _say(line: str) -> None:
         pass
 
 
-def _ended(outcome: Path, data: dict, code: int) -> int:
-    """Write the outcome file and return the exit status `code`; EXIT_FULL when a full disk keeps the file out (the
-    exit status alone then tells the pool: a result that finished is reconstructed again, the job not at fault)."""
+def _ended(outcome: Path, data: dict, code: int, unsaid: int = EXIT_FULL) -> int:
+    """Write the outcome file and return the exit status `code`; `unsaid` when a full disk keeps the file out (the
+    exit status alone then tells the pool: EXIT_FULL for a job that ended in error, the job not at fault; a job that
+    finished passes EXIT_DONE_UNSAID, and its whole result is published)."""
     try:
         _write_outcome(outcome, data)
     except OSError as exc:
         if disk_full_cause(exc) is None:
             raise
-        return EXIT_FULL
+        return unsaid
     return code
+
+
+def summary_of(report: dict) -> dict:
+    """What of a finished job's report its done line says (SUMMARY_KEYS)."""
+    return {k: report[k] for k in SUMMARY_KEYS if k in report}
 
 
 def _ended_in_error(exc: Exception, outcome: Path, out: Path) -> int:
     """Say how the job ended in error and return its exit status: the disk was full (EXIT_FULL, one line naming the
     folder: no traceback, nothing in the job is at fault), its input is at fault (EXIT_INPUT), or it crashed
-    (EXIT_CRASH, with the traceback)."""
+    (EXIT_CRASH, with the traceback). A full disk's folder is the one its error names, else the one of the job's
+    result folder and the queue's (where its outcome and log go) whose filesystem has the least room
+    (`disk_room.full_folder`); a full quota (EDQUOT) says so (`quota`): free space does not show it."""
     full = disk_full_cause(exc)
     if full is not None:
-        folder = Path(full.filename).parent if full.filename else out
+        folder = full_folder(full, [out, outcome.parent])
         why = full.strerror or str(full)
-        _say(f"job stopped: no room left on the disk: {folder} could not be written ({why})")
-        return _ended(outcome, {"ok": False, "kind": "full", "error": why, "folder": str(folder)}, EXIT_FULL)
+        quota = full.errno == errno.EDQUOT
+        _say(f"job stopped: no room left {'in the disk quota' if quota else 'on the disk'}: {folder} could not be "
+             f"written ({why})")
+        return _ended(outcome, {"ok": False, "kind": "full", "error": why, "folder": str(folder), "quota": quota},
+                      EXIT_FULL)
     if isinstance(exc, SpadscanError):
         _say(f"job failed: {exc}")
         return _ended(outcome, {"ok": False, "kind": "input", "error": str(exc)}, EXIT_INPUT)
@@ -524,9 +543,8 @@ def child_main(argv: list[str] | None = None) -> int:
         report = execute_job(job, Path(args.root), Path(args.out), load_recon(args.recon), started=started)
     except Exception as exc:  # bad input, a full disk, a bug or another resource problem: see _ended_in_error
         return _ended_in_error(exc, outcome, Path(args.out))
-    summary = {k: report[k] for k in ("chamfer_mm", "seconds", "steps", "ground_truth_note", "capture_counts_note",
-                                      "converged", "warnings") if k in report}
-    return _ended(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary}, EXIT_DONE)
+    return _ended(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary_of(report)},
+                  EXIT_DONE, unsaid=EXIT_DONE_UNSAID)
 
 
 if __name__ == "__main__":

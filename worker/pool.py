@@ -17,6 +17,10 @@ again. A job that ended in error whose record a full disk keeps out is said wher
 at a later poll. A job whose own process met a full disk is not at fault, and a retry would meet the same disk: it
 goes back to the queue without counting an attempt, its line naming the folder that is full and where to make room,
 and the worker claims no job until there is room (`disk_room.RoomWait`), saying so once and again when it goes on.
+The job's attempt record carries that wait, so that no worker claims a job while its room is still missing
+(`Queue.claim`): a worker that finds such a wait in the queue waits too, and says so. A worker's presence file says
+the wait it is in (`room_wait`). A job that finished, whose outcome file alone met a full disk (the queue's), is
+published, not reconstructed again (`jobs.EXIT_DONE_UNSAID`).
 """
 
 from __future__ import annotations
@@ -36,10 +40,10 @@ from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
-from .disk_room import MAX_FULL_DISK, RoomWait, folder_bytes, mount_point, retry_after, size_text
+from .disk_room import MAX_FULL_DISK, RoomWait, folder_bytes, mount_point, retry_after, same_filesystem
 from .job_progress import PROGRESS_S, LogTails, ProgressNotes, ended_live_status, progress_note
-from .jobs import (CHANGEABLE, EXIT_FULL, EXIT_INPUT, completion, existing_result, mark_complete, result_path,
-                   scratch_path)
+from .jobs import (CHANGEABLE, EXIT_DONE_UNSAID, EXIT_FULL, EXIT_INPUT, completion, existing_result, mark_complete,
+                   result_path, scratch_path, summary_of)
 from .holder import Holder
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
 from .presence import RENEW_S, Presence, present_workers, remove_presence, write_presence
@@ -180,9 +184,12 @@ class Worker:
         and `--status` tell an idle worker from none by it. A write that fails (a full disk) is said once; the worker
         works on without it."""
         running = sorted(self.children)
-        if running == self.presence.running and time.monotonic() - self._presence_at < RENEW_S:
-            return
+        wait = None if self.room is None else self.room.note()
+        same = running == self.presence.running and _wait_key(wait) == _wait_key(self.presence.room_wait)
+        if same and time.monotonic() - self._presence_at < RENEW_S:
+            return  # a wait that begins or ends is said at once, its free space at the next renewal
         self.presence.running = running
+        self.presence.room_wait = wait
         self._presence_at = time.monotonic()
         try:
             write_presence(self.queue.path, self.presence)
@@ -216,6 +223,10 @@ class Worker:
             await asyncio.to_thread(self._reconcile)
         await self._take_over()
         await asyncio.to_thread(self.queue.repair)
+        if self.room is None:  # another worker's job (or an earlier run's) may wait for room: claim would skip it
+            waiting = await asyncio.to_thread(self.queue.room_wait)
+            if waiting is not None:
+                self._adopt_wait(*waiting)
         if self.room is not None and not await asyncio.to_thread(self._room_again):
             return  # a claim now would meet the full disk again
         while len(self.children) + len(self.unpublished) < self.config.processes:  # a result to publish holds its slot
@@ -432,6 +443,10 @@ class Worker:
         try:
             if rc == 0 and outcome.get("ok"):
                 self._settle_done(child, seconds, outcome.get("summary") or {})
+            elif rc == EXIT_DONE_UNSAID:
+                self.log(f"{job.id}: finished, but its outcome file did not fit in {child.outcome.parent} (no room "
+                         f"left on the disk): publishing its result all the same, not reconstructing it again")
+                self._settle_done(child, seconds, _report_summary(child.scratch))
             elif rc == EXIT_FULL:
                 self._settle_full(child, outcome, seconds)
             else:
@@ -488,26 +503,31 @@ class Worker:
 
     def _settle_full(self, child: Child, outcome: dict, seconds: float) -> None:
         """A job whose process met a full disk: its partial result is removed (room for its record, and a fair
-        measure of what is free), the job given back without counting an attempt, and no job claimed until there is
-        room (`RoomWait`). One line names the folder that is full and what to do; the wait is said once."""
+        measure of what is free), the job given back without counting an attempt, its record carrying the wait for
+        room it begins, and no job claimed until there is room (`RoomWait`). One line names the folder that is full
+        and what to do; the wait is said once."""
         claim, job = child.claim, child.claim.job
-        folder = Path(outcome.get("folder") or child.scratch)
-        if folder == child.scratch or child.scratch in folder.parents:
-            folder = child.scratch.parent  # the scratch folder goes: name the scan's recon/ folder it was in
-        held = folder_bytes(child.scratch)
+        folder = _full_folder(child, outcome)
+        quota = outcome.get("quota") is True
+        # what the partial result took counts only on its own filesystem (the queue's may be another)
+        held = folder_bytes(child.scratch) if same_filesystem(child.scratch, folder) else 0
         shutil.rmtree(child.scratch, ignore_errors=True)
-        why = f"no room left on the disk: {folder} could not be written ({outcome.get('error') or 'disk full'})"
-        remedy = f"make room on the filesystem mounted at {mount_point(folder)}"
+        room_of = "in the disk quota" if quota else "on the disk"
+        why = f"no room left {room_of}: {folder} could not be written ({outcome.get('error') or 'disk full'})"
+        in_quota = "in this user's disk quota " if quota else ""
+        remedy = f"make room {in_quota}on the filesystem mounted at {mount_point(folder)}"
         times = 1 + sum(1 for r in self.queue.records(job.id) if r.get("outcome") == "disk_full")
         if times >= MAX_FULL_DISK:  # it may never fit: failed, counted (a --once run ends then too)
             given_up = f"it met a full disk {times} times: its result may need more room than the disk frees"
             self._settle_error(child, EXIT_INPUT, {"kind": "input", "error": f"{why}; {remedy} ({given_up})"},
                                seconds)
             return
+        wait = self._job_wait(folder, held, quota, job.id)
         self._say_queued(claim, why)
         uncounted = "not counted as an attempt"
         try:
-            given = self.queue.release(claim, f"{why}; {remedy}, then a worker runs the job again", outcome="disk_full")
+            given = self.queue.release(claim, f"{why}; {remedy}, then a worker runs the job again", outcome="disk_full",
+                                       room=wait.note())
         except Unrecorded as exc:
             given = True
             self.unrecorded[job.id] = (claim, exc.values)
@@ -522,24 +542,44 @@ class Worker:
         if given:
             self.log(f"{job.id} stopped after {seconds:.1f} s: {why}; back in the queue, {uncounted}; "
                      f"{remedy}, then this worker runs it again by itself")
-        self._wait_for_room(folder, held)
+        self._begin_wait(wait)
 
     def _wait_for_room(self, folder: Path, held: int) -> None:
         """Claim no job until the filesystem holding `folder` has room (`RoomWait`); said when the wait begins."""
-        if self.room is not None:  # one wait at a time: the jobs that meet the full disk with it lengthen none
+        self._begin_wait(self._job_wait(folder, held, False, None))
+
+    def _job_wait(self, folder: Path, held: int, quota: bool, job_id: str | None) -> RoomWait:
+        """The wait for room of a job that met a full disk writing into `folder` (its record carries it): this
+        worker's own wait where it waits on that filesystem already (the jobs that meet the full disk with it
+        lengthen no wait), else a new one (`RoomWait.begin`; on its timer alone where the free space cannot be
+        asked: a lost mount)."""
+        room = self.room
+        if room is not None and room.mount == mount_point(folder) and room.quota == quota:
+            return room
+        retry_s = retry_after(self._full_in_row + (room is None))
+        try:
+            return RoomWait.begin(folder, held, retry_s, quota=quota, job=job_id)
+        except OSError as exc:
+            self.log(f"could not check the free space on the disk of {folder} ({fold(exc)}): claiming again in "
+                     f"{retry_s / 60:.0f} min")
+            return RoomWait.unasked(folder, retry_s, quota=quota, job=job_id)
+
+    def _begin_wait(self, wait: RoomWait) -> None:
+        """Make `wait` this worker's own, said once, unless it waits already (one wait at a time)."""
+        if self.room is not None:
             return
         self._full_in_row += 1
-        try:
-            self.room = RoomWait.begin(folder, held, retry_after(self._full_in_row))
-        except OSError as exc:  # its free space cannot be asked (a lost mount): waited out on the timer alone
-            self.room = RoomWait(folder, folder, 0, math.inf, retry_after(self._full_in_row), time.monotonic())
-            self.log(f"could not check the free space on the disk of {folder} ({fold(exc)}): claiming again in "
-                     f"{self.room.retry_s / 60:.0f} min")
-        else:
-            room = self.room
-            self.log(f"waiting for room on {room.mount} before claiming another job: {size_text(room.free)} free, "
-                     f"the job needs more (waiting for {size_text(room.need)}, checked every {self.config.poll_s:g} s; "
-                     f"claiming again in {room.retry_s / 60:.0f} min all the same)")
+        self.room = wait
+        if wait.quota or wait.need is not None:  # one whose free space cannot be asked was said by `_job_wait`
+            self.log(wait.begun_line(self.config.poll_s))
+
+    def _adopt_wait(self, job_id: str, note: dict) -> None:
+        """Wait, as the worker that gave it back does, for the room that the queued job `job_id` waits for (its
+        record's note, `Queue.room_wait`): no claim would be taken until then. Said once."""
+        wait = RoomWait.from_note(note, job_id)
+        if wait is not None:
+            self.room = wait
+            self.log(wait.adopted_line(self.config.poll_s))
 
     def _room_again(self) -> bool:
         """Whether the wait for room is over (`RoomWait.over`), said when it is; a probe that fails is said once and
@@ -550,18 +590,15 @@ class Worker:
             over, free = room.over()
         except OSError as exc:  # the timer still ends the wait
             self._trouble(what, exc)
-            if time.monotonic() - room.began < room.retry_s:
+            if not room.timed_out():
                 return False
-            over, free = True, 0
-        self._trouble(what, None)
+            over, free = True, None
+        else:
+            self._trouble(what, None)
         if not over:
             return False
         self.room = None
-        if free >= room.need:
-            self.log(f"room again on {room.mount} ({size_text(free)} free): claiming jobs again")
-        else:
-            self.log(f"still {size_text(free)} free on {room.mount} after {room.retry_s:.0f} s, less than the "
-                     f"{size_text(room.need)} waited for: claiming jobs again, in case that is room enough")
+        self.log(room.ended_line(free))
         return True
 
     def _say_queued(self, claim: Claim, why: str) -> None:
@@ -786,6 +823,34 @@ class Worker:
             del self.unpublished[job_id]
             if self._give_back(child.claim, "worker stopped before it could publish the result"):
                 self.log(f"{job_id} stopped before its result could be published; back in the queue, {kept}")
+
+
+def _full_folder(child: Child, outcome: dict) -> Path:
+    """The folder a job's process met a full disk in: its outcome's, or, where the outcome file itself did not fit,
+    the folder that file was written into (the queue's tmp/) when that is on a disk of its own (`--queue`), else its
+    result's, which it filled. A folder in the scratch folder, which is removed, is named by the scan's recon/ folder
+    it was in."""
+    if not outcome and not same_filesystem(child.outcome.parent, child.scratch):
+        return child.outcome.parent
+    folder = Path(outcome.get("folder") or child.scratch)
+    if folder == child.scratch or child.scratch in folder.parents:
+        folder = child.scratch.parent
+    return folder
+
+
+def _report_summary(scratch: Path) -> dict:
+    """A finished job's summary (`jobs.summary_of`) read from its report.json, for a job whose outcome file did not
+    fit; {} when it cannot be read (the done line then says less)."""
+    try:
+        report = json.loads((scratch / "report.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return summary_of(report) if isinstance(report, dict) else {}
+
+
+def _wait_key(note: dict | None) -> tuple | None:
+    """What tells one wait for room from another (a presence file is rewritten when it changes)."""
+    return None if note is None else (note.get("mount"), note.get("since_unix"))
 
 
 def _warning_lines(summary: dict) -> str:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from spadscan.protocol.atomic_files import write_atomic
 
+from .disk_room import RoomWait
 from .holder import holder_gone
 from .queue import QUEUE_DIRNAME, file_age
 
@@ -55,6 +56,12 @@ class Presence:
     token: str = field(default_factory=lambda: secrets.token_hex(4))
     """This run's own, in its file's name: two workers with one host name and pid (containers, cloned machines)
     never share a file."""
+    room_wait: dict | None = None
+    """None, or the wait for room on a full disk during which it claims no job (disk_room.RoomWait.note): exactly
+    the keys "mount" (str: where the full filesystem is mounted), "folder" (str: the folder that could not be
+    written), "free_bytes" and "need_bytes" (int or None: free when last probed, and free that ends the wait),
+    "since_unix" (float), "retry_unix" (float: when it claims again all the same) and "quota" (bool: a full disk
+    quota, which the free space does not show). The file is rewritten when a wait begins and when it ends."""
 
 
 def presence_path(queue_dir: Path, presence: Presence) -> Path:
@@ -75,7 +82,8 @@ def remove_presence(queue_dir: Path, presence: Presence) -> None:
 
 def present_workers(queue_dir: Path, now: float | None = None, *, tidy: bool = False) -> list[dict]:
     """The workers that serve the queue now: one dict each ({"host", "pid", "root", "started_unix", "processes",
-    "once", "running", "seen_s": seconds since its last renewal}), the longest running first. A file that cannot be
+    "once", "running", "room_wait": its wait for room or None (`Presence.room_wait`; None too where the file's is
+    damaged), "seen_s": seconds since its last renewal}), the longest running first. A file that cannot be
     read, or whose worker stopped renewing it or is gone from this machine, is left out (`tidy`: and removed when its
     process is known gone or it is FORGET_S old, as are temporary files that old)."""
     now = time.time() if now is None else now
@@ -109,11 +117,18 @@ def _present(path: Path, now: float) -> tuple[dict | None, bool]:
         row = {"host": str(holder["host"]), "pid": int(holder["pid"]), "root": str(data.get("root", "")),
                "started_unix": _positive(data.get("started_unix"), 0.0), "processes": int(data.get("processes", 1)),
                "once": bool(data.get("once", False)), "running": [str(j) for j in data.get("running", [])],
-               "seen_s": round(seen_s, 1)}
+               "room_wait": room_wait_of(data.get("room_wait")), "seen_s": round(seen_s, 1)}
         gone = holder_gone({**holder, "pid": row["pid"]}) or seen_s > FORGET_S
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None, False  # moved on meanwhile, or damaged: a damaged file says nothing about a worker
     return (None if gone or seen_s > MISSED_RENEWALS * renew_s else row), gone
+
+
+def room_wait_of(value) -> dict | None:
+    """A presence file's `room_wait` as `Presence.room_wait` says it (exactly its keys), or None where it is none or
+    not one (a damaged file, another version's)."""
+    wait = RoomWait.from_note(value) if isinstance(value, dict) else None
+    return None if wait is None else wait.note()
 
 
 def _forget(paths) -> None:
@@ -132,9 +147,17 @@ def workers_line(rows: list[dict], start: str) -> str:
     said = []
     for r in rows:
         doing = f"running {', '.join(r['running'])}" if r["running"] else "waiting for scans"
+        if r.get("room_wait"):
+            doing += f"; {waiting_for_room(r['room_wait'])}"
         since = _utc(r["started_unix"])
         said.append(f"{r['host']} pid {r['pid']} ({doing}; since {since}{', until drained' if r['once'] else ''})")
     return ("worker: " if len(rows) == 1 else f"{len(rows)} workers: ") + "; ".join(said)
+
+
+def waiting_for_room(wait: dict) -> str:
+    """What a worker's wait for room (`Presence.room_wait`) is, in a few words, for `worker --status`."""
+    where = f"in the disk quota on {wait['mount']}" if wait["quota"] else f"on {wait['mount']}"
+    return f"waiting for room {where} before claiming a job, until {_utc(wait['retry_unix'])} at the latest"
 
 
 def start_command(root: Path, queue_dir: Path) -> str:
@@ -158,4 +181,4 @@ def _positive(value, default: float) -> float:
 
 
 __all__ = ["WORKERS_DIRNAME", "RENEW_S", "MISSED_RENEWALS", "FORGET_S", "Presence", "presence_path", "write_presence",
-           "remove_presence", "present_workers", "workers_line", "start_command"]
+           "remove_presence", "present_workers", "room_wait_of", "workers_line", "waiting_for_room", "start_command"]

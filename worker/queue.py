@@ -40,6 +40,7 @@ from typing import Callable
 
 from spadscan.protocol.errors import ConfigError
 
+from .disk_room import room_missing
 from .holder import Holder, holder_alive, holder_gone
 from .jobs import CHANGEABLE, ID_RE as _ID_RE, Job
 from .kill_points import kill_point
@@ -192,9 +193,16 @@ class Queue:
         """Take the oldest queued live job, else the oldest queued job (first queued, first run: by its file's mtime,
         which a job gets when it is queued or given back), or None when there is none. A live job follows a scan
         that is being recorded: behind a backlog of finished scans its fit would start after the scan's end, which
-        is what a live job is for. Race-free: the one rename that succeeds wins."""
+        is what a live job is for. Race-free: the one rename that succeeds wins.
+
+        None, too, while a job given back on a full disk waits for room (`room_wait`): that job would meet the full
+        disk again, and so would any other, whose log and result go where that one's went. A claim whose attempt
+        record does not fit (the queue's own disk full) puts the job back and raises the OSError."""
         holder = holder or Holder.current()
-        for src in _claim_order((self.path / "queued").glob("*.json")):
+        paths = list((self.path / "queued").glob("*.json"))
+        if self.room_wait(paths) is not None:
+            return None
+        for src in _claim_order(paths):
             job_id = src.stem
             token = _new_token()
             dst = self.path / "running" / f"{job_id}{SEP}{token}.json"
@@ -210,9 +218,35 @@ class Queue:
                 self._record(job_id, token, holder, outcome="failed", error=f"unreadable job file: {exc}")
                 continue
             attempt = self.attempts(job_id) + 1
-            self._record(job_id, token, holder, outcome="running", attempt=attempt)
+            try:
+                self._record(job_id, token, holder, outcome="running", attempt=attempt)
+            except OSError:  # a claim with no record would hold the job, unnamed, until its lease ran out
+                _rename(dst, src)
+                raise
             return Claim(job, token, dst, attempt)
         return None
+
+    def room_wait(self, paths=None) -> tuple[str, dict] | None:
+        """(job id, its wait) for a queued job given back on a full disk whose room is still missing: the last
+        record of the job carries the wait (`release`'s `room`, disk_room.RoomWait.note) and its filesystem has not
+        the room it needs nor has its retry time come (disk_room.room_missing: one statvfs); None when no job waits.
+        `paths`: the queued job files, where the caller has listed them."""
+        paths = (self.path / "queued").glob("*.json") if paths is None else paths
+        for path in paths:
+            room = self._room_of(path.stem)
+            if room is not None and room_missing(room):
+                return path.stem, room
+        return None
+
+    def _room_of(self, job_id: str) -> dict | None:
+        """The wait the last record of a queued job carries (`release`'s `room`), or None. The record says
+        'running' where its settling was cut short or could not be written yet (the job went back all the same)."""
+        if not (self.path / "attempts" / job_id).is_dir():
+            return None  # never claimed: the cheap answer for a queue of new jobs
+        recs = self.records(job_id)
+        last = recs[-1] if recs else {}
+        room = last.get("room")
+        return room if isinstance(room, dict) and last.get("outcome") in ("disk_full", "running") else None
 
     def heartbeat(self, claim: Claim) -> bool:
         """Renew the lease; False when it was lost (another worker took the job over)."""
@@ -339,14 +373,24 @@ class Queue:
         """Write how a settled claim ended into its attempt record (what Unrecorded.values says, once it fits)."""
         self._patch_record(claim.job.id, claim.token, **values)
 
-    def release(self, claim: Claim, reason: str = "worker stopped", *, outcome: str = "interrupted") -> bool:
+    def release(self, claim: Claim, reason: str = "worker stopped", *, outcome: str = "interrupted",
+                room: dict | None = None) -> bool:
         """Give a held job back to queued/ without counting the attempt: the worker was asked to stop
         ('interrupted'), or the job met a full disk ('disk_full'). False (and nothing changes) when the lease was
-        lost. Raises Unrecorded when the job went back but its attempt record could not be written."""
+        lost. Raises Unrecorded when the job went back but its attempt record could not be written.
+
+        `room`: the wait for room a full disk began (disk_room.RoomWait.note), kept in the record, written there
+        before the job goes back too: no worker claims a job, this one or another, while it is still missing
+        (`claim`)."""
+        if room is not None:
+            try:
+                self._patch_record(claim.job.id, claim.token, room=room)
+            except OSError:
+                pass  # the queue's disk is full: the record after the rename will not fit either (Unrecorded)
         if not self._settle(claim.path, claim.job.id, "queued"):
             return False
         values = {"outcome": outcome, "error": _one_line(reason), "ended_utc": _utc(),
-                  "seconds": round(time.time() - claim.started, 3)}
+                  "seconds": round(time.time() - claim.started, 3), **({"room": room} if room is not None else {})}
         try:
             self.write_outcome(claim, values)
         except OSError as exc:

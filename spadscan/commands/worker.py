@@ -55,8 +55,13 @@ publishes it instead of reconstructing it again. A job whose own process meets a
 partial result is removed, it goes back to the queue without using an attempt, the worker's line names the folder
 that could not be written and the filesystem to make room on, and the worker claims no job until there is room (it
 checks the free space every --poll-s, and claims again after 10 minutes all the same, 20, 40, then every hour while
-jobs keep meeting it), saying so when it stops and when it goes on. A job that met a full disk 3 times fails: its
-result may need more room than the disk frees; make room, then --retry-failed.
+jobs keep meeting it), saying so when it stops and when it goes on. The disk named is the one that is full: the
+queue's (--queue on a disk of its own) when the job's log or outcome file did not fit there. A full disk quota
+(EDQUOT) does not show in the free space: the worker says it is a quota and waits for the timer alone. The job's
+attempt record carries the wait, and no worker on the queue claims a job while it lasts: another worker waits too,
+and says so. A job that finished, whose small outcome file alone did not fit, is published, not reconstructed
+again. A job that met a full disk 3 times fails: its result may need more room than the disk frees; make room, then
+--retry-failed.
 
 While it runs, the worker says each running job's progress in its own terminal, one line per job, when the job's
 stage changes (its training starts or ends) and every 30 s in between; a job's done line is followed by its report's
@@ -68,8 +73,9 @@ its budget or steps, the step, the loss and, where the scene is known, the last 
 died or stopped renewing its lease shows as
 `stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
 still holds shows as `running?`. Its last line (not with --json, which lists the jobs alone) names the workers
-running on the queue, idle ones included (each renews a file under QUEUE/workers/ while it runs), or says that none
-is and how to start one.
+running on the queue, idle ones included (each renews a file under QUEUE/workers/ while it runs), and where a worker
+waits for room on a full disk, where and until when at the latest; or it says that no worker runs and how to start
+one.
 
 --once queues the complete scans there are, runs until nothing is queued or running, and exits. Its last line
 counts the jobs done and failed and names each scan it left unqueued, and why (still recorded, or a copy still under
@@ -132,7 +138,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="list the jobs and exit (changes nothing; only --queue, --json and --lease-s go with "
                              "it): a running job with its progress; one whose worker seems gone shows as 'stale' or "
                              "'running?'; its last line (not with --json) names the workers running, idle ones "
-                             "included")
+                             "included, and says where one waits for room on a full disk, and until when")
     parser.add_argument("--json", action="store_true", help="with --status: print JSON instead of a table")
     parser.add_argument("--retry-failed", action="store_true",
                         help="put every failed job back in the queue with a fresh attempt count, and exit; "

@@ -244,6 +244,9 @@ def test_help_says_what_the_worker_does_on_a_full_disk(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "A job whose own process meets a full disk is not at fault" in text, text
     assert "without using an attempt" in text and "the worker claims no job until there is room" in text
+    assert "no worker on the queue claims a job while it lasts: another worker waits too" in text
+    assert "the worker says it is a quota and waits for the timer alone" in text
+    assert "whose small outcome file alone did not fit, is published, not reconstructed again" in text
 
 
 @pytest.mark.usefixtures("recon_stand_ins")
@@ -324,6 +327,6 @@ def test_a_wait_whose_free_space_cannot_be_read_ends_on_its_timer(tmp_path, monk
     assert worker.room is not None and not worker._room_again(), "the wait goes on: its time is not up"
     worker._wait_for_room(tmp_path / "other", 0)
     assert worker.room.retry_s == 600.0 and worker._full_in_row == 1, "a second full disk during it: one wait"
-    worker.room.began -= 600.0
+    worker.room.since_unix -= 600.0
     assert worker._room_again() and worker.room is None, "its time is up: claims go on"
     assert any("could not check the free space" in line for line in lines), lines
