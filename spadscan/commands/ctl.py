@@ -460,7 +460,7 @@ def live_queued(captures: str, scan: str) -> dict | None:
     queued (or given back), "behind": the jobs of other scans running now (their workers renew their claims),
     "workers": the workers present ("HOST pid N"), "processes": how many jobs they run at once, "room_waits": the
     workers among them that wait for room on a full disk before they claim again, each one's `room_wait`
-    (`room_waits`), "said": what it waits for, in the dashboard's words}; None when it is not queued, or the queue
+    (presence.Presence.room_wait), "said": what it waits for, in the dashboard's words}; None when it is not queued, or the queue
     cannot be read. The worker's own queue and presence code read it, as for the dashboard and `spadscan worker
     --status`."""
     from spadscan.protocol.errors import SpadscanError
@@ -480,54 +480,12 @@ def live_queued(captures: str, scan: str) -> dict | None:
     except (OSError, SpadscanError):  # no queue, or one this user may not read: nothing to say of it
         return None
     behind = [row.id for row in rows if row.state == "running" and row.stale is None and row.scan != scan]
-    waits = room_waits(queue.path)
     named = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"], "running": w["running"],
-              "room_wait": waits.get((w["host"], w["pid"]))} for w in workers]
+              "room_wait": w.get("room_wait")} for w in workers]
     return {"job": job.id, "waiting_s": None if job.waiting_s is None else round(job.waiting_s, 1), "behind": behind,
             "workers": [w["name"] for w in named], "processes": sum(w["processes"] for w in named),
             "room_waits": {w["name"]: w["room_wait"] for w in named if w["room_wait"] is not None},
             "said": queued_said(behind, named, f"{start_command(Path(captures), queue.path)} --live")}
-
-
-def room_waits(queue_dir: Path) -> dict[tuple[str, int], dict]:
-    """The workers of the queue at `queue_dir` that wait for room on a full disk before they claim a job again, by
-    (host, pid): each one's `room_wait` as its presence file (`<queue>/workers/*.json`) says it, read from the file
-    itself. A worker that writes no such key (an older one) or null waits for nothing; so does one whose value has
-    another shape (`_room_wait`), and a file that cannot be read says nothing."""
-    from spadscan.worker.presence import WORKERS_DIRNAME
-
-    found = {}
-    try:
-        paths = sorted((Path(queue_dir) / WORKERS_DIRNAME).glob("*.json"))
-    except OSError:
-        return found
-    for path in paths:
-        try:
-            data = json.loads(path.read_text())
-            key = (str(data["holder"]["host"]), int(data["holder"]["pid"]))
-            waiting = _room_wait(data.get("room_wait"))
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            continue  # gone meanwhile, or damaged: present_workers leaves it out too
-        if waiting is not None:
-            found[key] = waiting
-    return found
-
-
-def _room_wait(value) -> dict | None:
-    """A presence file's `room_wait` as ctl reads it: None unless it is an object naming a mount; a figure of another
-    type is None (said as unknown), `quota` false unless it is true."""
-    if not isinstance(value, dict) or not isinstance(value.get("mount"), str) or not value["mount"]:
-        return None
-
-    def number(key: str, kind) -> float | None:
-        v = value.get(key)
-        ok = isinstance(v, kind) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
-        return v if ok else None
-
-    return {"mount": value["mount"], "folder": value.get("folder") if isinstance(value.get("folder"), str) else None,
-            "free_bytes": number("free_bytes", int), "need_bytes": number("need_bytes", int),
-            "since_unix": number("since_unix", (int, float)), "retry_unix": number("retry_unix", (int, float)),
-            "quota": value.get("quota") is True}
 
 
 def queued_said(behind: list[str], workers: list[dict], start: str) -> str:

@@ -103,9 +103,16 @@ def test_no_room_wait_or_one_of_another_shape_waits_for_nothing(idle, value):
     assert queued["said"] == "a worker takes it at its next look" and queued["room_waits"] == {}
 
 
-@pytest.mark.parametrize("retry", [float("nan"), 1e300, -5.0, "soon"])
-def test_odd_figures_in_a_room_wait_are_said_as_unknown(idle, retry):
-    waiting = {**room_wait(), "free_bytes": "lots", "need_bytes": True, "retry_unix": retry, "quota": 1}
-    set_room_wait(idle, Holder.current(), waiting)
+@pytest.mark.parametrize("odd", [{"free_bytes": "lots"}, {"retry_unix": float("nan")}, {"quota": 1}])
+def test_a_damaged_room_wait_is_read_as_the_worker_reads_it_no_wait(idle, odd):
+    """ctl reads the presence files through the worker's own reader (presence.present_workers): a note it cannot
+    read is no wait, not a wait with figures made up."""
+    set_room_wait(idle, Holder.current(), {**room_wait(), **odd})
+    queued = live_status(status_of(idle))["queued"]
+    assert queued["said"] == "a worker takes it at its next look" and queued["room_waits"] == {}
+
+
+def test_unknown_free_space_and_a_retry_past_the_clock_are_said_as_unknown(idle):
+    set_room_wait(idle, Holder.current(), {**room_wait(), "free_bytes": None, "need_bytes": None, "retry_unix": 1e300})
     assert live_status(status_of(idle))["queued"]["said"] == (
         "the worker waits for room on /mnt/scratch (free space unknown): make room there")
