@@ -8,9 +8,15 @@ about once a second. The dashboard only reads the root: it never talks to the ar
 At the top it says the daemon's state in the daemon's own words (`spadscan ctl status`: scanning, paused, idle; a
 scan's scan.json says "running" while it is scanned) and, in one line, what the reconstruction side does: a worker at
 its jobs, a job whose worker is gone, jobs or complete scans that no worker has taken for 20 s, a worker waiting for
-scans, or no worker at all, with the command that starts a worker where one is wanted (a running worker, idle or not,
-renews its file under QUEUE/workers/). The scan in hand, the reconstruction in view and its 3D view fit a 1280x800
-window; a newer live view waits while the operator turns the shown one.
+scans, workers waiting for room on a full disk (where, how much is free, and that room must be made there: they take
+no job until then), or no worker at all, with the command that starts a worker where one is wanted (a running worker,
+idle or not, renews its file under QUEUE/workers/). That line stays one line (the middle of a long path gives way;
+the whole line is its tooltip) so that nothing below it moves. The scan in hand, the reconstruction in view and its
+3D view fit a 1280x800 window; a newer live view waits while the operator turns the shown one.
+
+The 3D views are drawn by the browser (WebGL): the dashboard's machine needs no display and no off-screen OpenGL
+(EGL or OSMesa). Where it has none, a result's mesh without a preview (a picture the worker draws off screen) says
+that this machine cannot draw one, with what to install in its tooltip.
 
 A scan left running by a daemon that is gone (crashed, killed or stopped: no process holds
 CAPTURES/.spadscan-daemon.lock) is shown as "interrupted (no daemon running)", without a frame rate; a daemon

@@ -1,7 +1,9 @@
 """What `/api/status` answers: the scans under the root, the scan in hand in detail, each scan's reconstructions and
 the reconstruction queue (the worker's read-only status view, with each running job's progress from its log), what
-the reconstruction side is doing (worker_state.py) and what each panel of a preview shows. A live reconstruction whose
-status an earlier attempt of its job wrote is shown without its figures and pictures (attempts.py).
+the reconstruction side is doing (worker_state.py: the workers' waits for room on a full disk included), whether this
+machine can draw pictures off screen (`cannot_draw`: the 3D views need not, the browser draws them) and what each panel
+of a preview shows. A live reconstruction whose status an earlier attempt of its job wrote is shown without its figures
+and pictures (attempts.py).
 
 Whether a daemon is running is asked of the caller's `daemon_running(root)`: the daemon's lock probe lives in the
 daemon's package, which the dashboard does not import (the CLI command hands it over). Without it, scans are shown
@@ -23,6 +25,7 @@ from pathlib import Path
 from spadscan.worker.job_progress import progress_field, running_progress
 from spadscan.worker.presence import present_workers, start_command
 from spadscan.worker.report.mesh_pictures import VIEWS
+from spadscan.worker.report.offscreen import OffscreenUnavailable, check_offscreen
 from spadscan.worker.status_detail import status_parts
 
 from .attempts import claim_starts, earlier_attempt, last_claim_change
@@ -34,6 +37,17 @@ PREVIEW = {"columns": [f"az {az:.0f}\u00b0 el {el:.0f}\u00b0" for az, el in VIEW
            "rows": ["reconstruction", "ground truth"]}
 """What each panel of a preview.png shows (worker/report/mesh_pictures.py `preview_png`: a column per angle, the
 reconstruction's row above the ground truth's when there is one): the page labels them in its own, readable, type."""
+
+
+def cannot_draw() -> str | None:
+    """Why this machine cannot draw meshes off screen (no display, no EGL, no OSMesa: the product's own check, in one
+    line with what to install), or None where it can. The browser draws the 3D views; the pictures (a preview) are
+    drawn off screen by the worker, and where the worker runs here, this says why a result has none."""
+    try:
+        check_offscreen()
+    except OffscreenUnavailable as exc:
+        return str(exc)
+    return None
 
 
 def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
@@ -67,7 +81,8 @@ class Dashboard:
     hand is shown as interrupted, without a frame rate, and the answer's `daemon` is False (the page says so even
     while the rig is idle, when no scan shows it). None: scans are shown as their scan.json says, `daemon` None.
     Either way a running scan without news for too long is shown as stalled (scans.py `stalled`), by `clock`'s time
-    (unix seconds: the file times' clock)."""
+    (unix seconds: the file times' clock). Whether this machine can draw off screen (`cannot_draw`) is asked once:
+    its libraries do not change while it runs."""
 
     def __init__(self, root, queue_dir=None, daemon_running: Callable[[Path], bool] | None = None,
                  clock: Callable[[], float] = time.time):
@@ -75,6 +90,7 @@ class Dashboard:
         self.queue_dir = Path(queue_dir) if queue_dir else self.root / ".queue"
         self.daemon_running = daemon_running
         self.clock = clock
+        self.cannot_draw = cannot_draw()
         self.scans = ScanIndex(self.root)
         self.results = ResultIndex(self.root)
         self._lock = threading.Lock()
@@ -116,7 +132,7 @@ class Dashboard:
                 "time_unix": now, "root_missing": not self.root.is_dir(),
                 "daemon": daemon, "daemon_config": next((r.config for r in rows if r.config), None),
                 "scans": scans, "current": detail, "queue": queue,
-                "worker": self._worker(rows, queue, now), "preview": PREVIEW}
+                "worker": self._worker(rows, queue, now), "preview": PREVIEW, "cannot_draw": self.cannot_draw}
 
     def _worker(self, rows, queue: dict, now: float) -> dict:
         """What the reconstruction side is doing (worker_state; "unknown" when the queue cannot be read), with the

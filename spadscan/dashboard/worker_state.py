@@ -8,12 +8,18 @@ that no worker has picked up within LOOK_S means that no worker serves the root,
 queued behind others waits for a worker to be free: its wait counts from the later of its queueing and the moment a
 claim last began or ended (its attempt records say when), so that a busy worker that takes it at its next look after
 finishing the job before never reads as leaving it.
+
+A worker whose job met a full disk claims no job until there is room again, and says so in its presence file
+(`room_wait`, disk_room.RoomWait.note): where every worker present waits so, the queued jobs wait for room, not for
+a worker's next look, and the operator is the one to make it.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import math
+
+from spadscan.worker.disk_room import RoomWait, size_text
 
 from .results import age_s
 
@@ -27,13 +33,41 @@ def worker_state(rows, jobs: list[dict], now: float, workers: list[dict] = (),
     """{"state": ..., and what the page names}: 'working' (jobs whose worker renews its claim: `jobs`, and `queued`,
     how many wait), 'gone' (running jobs whose worker is gone: `jobs`), 'queued' or 'untaken' (no job running, jobs
     queued: `jobs`, `waited_s` of the one left longest since a worker could take it; 'untaken' from LOOK_S on),
+    'room' (no job running, jobs queued, and every worker present waits for room on a full disk: `jobs`, `waited_s`),
     'unqueued' (nothing queued or running, complete scans without a job for LOOK_S: `scans`, `waited_s`), 'waiting'
     (nothing to do, a worker present), else 'none' (nothing to do, no worker). Every state also names the workers
-    present (`workers`: "HOST pid N" each). `rows`: the scans (ScanRow), `jobs`: the queue's rows (`queue_status`),
-    `now`: time.time(), `workers`: the queue's present workers (presence.present_workers), `freed_unix`: when a claim
-    last began or ended (attempts.last_claim_change; None: none ever did, or not known)."""
-    names = [f"{w['host']} pid {w['pid']}" for w in workers]
-    return {**_jobs_state(rows, jobs, now, bool(names), freed_unix), "workers": names}
+    present (`workers`: "HOST pid N" each), and where any of them waits for room, their waits (`room_waits`).
+    `rows`: the scans (ScanRow), `jobs`: the queue's rows (`queue_status`), `now`: time.time(), `workers`: the queue's
+    present workers (presence.present_workers), `freed_unix`: when a claim last began or ended
+    (attempts.last_claim_change; None: none ever did, or not known)."""
+    names = [worker_name(w) for w in workers]
+    state = _jobs_state(rows, jobs, now, bool(names), freed_unix)
+    waits = room_waits(workers)
+    if waits and len(waits) == len(names) and state["state"] in ("queued", "untaken"):
+        state = {**state, "state": "room"}  # no worker takes them at its next look: each waits for room first
+    return {**state, "workers": names, **({"room_waits": waits} if waits else {})}
+
+
+def worker_name(worker: dict) -> str:
+    """A present worker as the page names it: "HOST pid N"."""
+    return f"{worker['host']} pid {worker['pid']}"
+
+
+def room_waits(workers) -> list[dict]:
+    """The waits for room of the present workers (presence.present_workers) that wait: each its presence file's
+    `room_wait` (exactly disk_room.RoomWait.note's keys: mount, folder, free_bytes, need_bytes, since_unix,
+    retry_unix, quota), with `worker` (its name) and the bytes said as the worker's own log says them (`free_said`,
+    `need_said`: "12 MB", None where not known). A `room_wait` that is no such note (a damaged file, another
+    version's) is no wait: the worker is shown as the rest of its file says."""
+    waits = []
+    for worker in workers:
+        wait = RoomWait.from_note(worker.get("room_wait"))
+        if wait is None:
+            continue
+        waits.append({**wait.note(), "worker": worker_name(worker),
+                      "free_said": None if wait.free is None else size_text(wait.free),
+                      "need_said": None if wait.need is None else size_text(wait.need)})
+    return waits
 
 
 def needs_freed(jobs: list[dict]) -> bool:

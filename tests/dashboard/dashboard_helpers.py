@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import ctypes.util
 import http.client
 import json
+import os
 import threading
 from contextlib import contextmanager
 
+import pytest
+
 from page_helpers import add_pose, start_scan
 from spadscan.dashboard.server import make_server
+from spadscan.worker.report.offscreen import OffscreenUnavailable, check_offscreen
 
 
 @contextmanager
@@ -22,6 +27,41 @@ def serving(root, **kwargs):
         server.shutdown()
         server.server_close()
         thread.join(10)
+
+
+OPENGL_WINDOW = "VTK_DEFAULT_OPENGL_WINDOW"
+"""The variable the product's off-screen check sets to pick VTK's window (worker/report/offscreen.py)."""
+
+
+def skip_where_no_off_screen_drawing(monkeypatch) -> None:
+    """Skips the test, saying why and what to install, where this machine cannot draw meshes off screen (no display,
+    no EGL, no OSMesa): for a test that needs what the worker's own writers draw (a report's 3D view). The product's
+    own check decides, as the worker tests' `draws_off_screen` fixture does; the variable it sets is put back after
+    the test."""
+    keep_opengl_window(monkeypatch)
+    try:
+        check_offscreen()
+    except OffscreenUnavailable as exc:
+        pytest.skip(str(exc))
+
+
+def without_off_screen_opengl(monkeypatch) -> None:
+    """This process as the product sees a machine without a display, EGL or OSMesa (offscreen.check_offscreen asks
+    the environment and ctypes.util.find_library): the no-OpenGL path, tested on a machine that has one. Undone after
+    the test."""
+    keep_opengl_window(monkeypatch)
+    for name in ("DISPLAY", "WAYLAND_DISPLAY", OPENGL_WINDOW):
+        monkeypatch.delenv(name, raising=False)
+    find = ctypes.util.find_library
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None if name in ("EGL", "OSMesa") else find(name))
+
+
+def keep_opengl_window(monkeypatch) -> None:
+    """VTK's window variable as it is now, put back after the test (the off-screen check sets it)."""
+    if OPENGL_WINDOW in os.environ:
+        monkeypatch.setenv(OPENGL_WINDOW, os.environ[OPENGL_WINDOW])
+    else:
+        monkeypatch.delenv(OPENGL_WINDOW, raising=False)
 
 
 def get(server, path: str) -> tuple[int, bytes]:

@@ -1,6 +1,8 @@
 """How many views saw each part of a reconstructed surface (worker/coverage.py): exact shares on a box seen from
 known directions, undersides left out of the shares (and counted for the picture), occlusion counted, each vertex
-given its nearest sample's views, bad input refused in one line."""
+given its nearest sample's views, bad input refused in one line; coverage.png's legend counts what the report counts
+(that test alone draws: where this machine cannot draw off screen it is skipped, saying why; the others need no
+picture and run everywhere)."""
 
 from __future__ import annotations
 
@@ -105,7 +107,7 @@ def test_each_vertex_takes_the_views_of_its_nearest_sample():
     assert (views[inner_x_face] == 5).all() and (views[x < -0.0499] == 0).all()
 
 
-def test_the_coverage_picture_counts_what_the_report_counts(tmp_path, saved_legends):
+def test_the_coverage_picture_counts_what_the_report_counts(tmp_path, saved_legends, draws_off_screen):
     """coverage.png's legend and the report's coverage (its warning, report.json) give the same shares: both leave
     the undersides out. The legend counted them, and one page read 34 % seen by fewer than three views in the
     picture and 24 % in its warning."""

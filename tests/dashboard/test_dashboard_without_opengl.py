@@ -1,0 +1,121 @@
+"""The dashboard on a machine that cannot draw off screen (no display, no EGL, no OSMesa): the live 3D view is served
+and drawn all the same (the browser draws it with WebGL; the server only describes the scene), and a result's mesh
+without a preview says why it has none, in one line, with what to install in its title. The machine is simulated by
+the means the product's own check asks (offscreen.check_offscreen: the environment and ctypes.util.find_library), so
+that these run on a machine that has an off-screen OpenGL too; the live view looks as the report's own 3D view."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import zipfile
+
+import pytest
+import trimesh
+
+from dashboard_helpers import (complete_scan, get, preview_png, serving, skip_where_no_off_screen_drawing, status,
+                               without_off_screen_opengl)
+from page_helpers import browser_page, drawn_share, screenshot_pixels
+from spadscan.dashboard.server import address
+
+WAIT_MS = 60_000  # generous: a poll a second, and a live view made on demand, on a busy machine
+SCENE_LOADED = """() => { const f = document.getElementById('viewer-3d'); const body = f.contentDocument &&
+    f.contentDocument.body; return !f.hidden && body && body.dataset.sceneLoaded === 'yes'; }"""
+
+
+# how many lines the text of an element takes, as laid out (the tops of its text's pieces)
+LINES = """(s) => { const walker = document.createTreeWalker(document.querySelector(s), NodeFilter.SHOW_TEXT);
+    const tops = new Set();
+    while (walker.nextNode()) { const range = document.createRange(); range.selectNodeContents(walker.currentNode);
+      for (const r of range.getClientRects()) if (r.width > 0) tops.add(Math.round(r.top)); }
+    return tops.size; }"""
+
+
+def live_mesh(scan, preview: bool = False) -> None:
+    """A live job's first fit of `scan`: its mesh and status, and its preview only where the worker could draw it."""
+    live = scan / "recon" / "live"
+    live.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.icosphere(subdivisions=2, radius=0.05).export(live / "mesh.ply")
+    if preview:
+        (live / "preview.png").write_bytes(preview_png())
+    (live / "status.json").write_text(json.dumps({"views_used": 2, "views_published": 2, "steps": 20,
+                                                  "state": "live"}))
+
+
+def test_the_live_3d_view_is_served_and_drawn_where_nothing_can_draw_off_screen(tmp_path, monkeypatch):
+    from spadscan.worker.report.offscreen import OffscreenUnavailable, check_offscreen
+
+    without_off_screen_opengl(monkeypatch)
+    with pytest.raises(OffscreenUnavailable):
+        check_offscreen()  # the product sees no off-screen OpenGL here
+    complete_scan(tmp_path / "bowl", 2)
+    live_mesh(tmp_path / "bowl")
+    with serving(tmp_path) as server:
+        answer = status(server)
+        assert "EGL" in answer["cannot_draw"]
+        (recon,) = answer["scans"][0]["recons"]
+        code, body = get(server, recon["files"]["view3d.html"])
+        assert code == 200 and b"OfflineLocalView.load" in body and b"bowl (live)" in body, body[:300]
+        with browser_page() as (page, seen):
+            page.goto(address(server))
+            page.wait_for_function(SCENE_LOADED, timeout=WAIT_MS)
+            page.wait_for_timeout(300)  # the first frame drawn after the scene loaded
+            assert drawn_share(screenshot_pixels(page.locator("#viewer-3d"))[10:-3, 10:-3]) > 0.01
+            # the picture the worker could not draw: said why, in one line, and what to install in its title
+            none = page.locator("#preview-none")
+            assert none.is_visible() and none.text_content() == "no preview: this machine cannot draw off screen"
+            assert "EGL" in none.get_attribute("title") and "apt-get install" in none.get_attribute("title")
+            assert page.evaluate(LINES, "#preview-none") == 1
+    assert not seen.errors, seen.errors
+
+
+def test_where_pictures_can_be_drawn_a_missing_preview_is_just_missing(tmp_path, monkeypatch):
+    skip_where_no_off_screen_drawing(monkeypatch)
+    complete_scan(tmp_path / "bowl", 2)
+    live_mesh(tmp_path / "bowl")
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        assert status(server)["cannot_draw"] is None
+        page.goto(address(server))
+        page.wait_for_function(SCENE_LOADED, timeout=WAIT_MS)
+        assert page.locator("#preview-none").text_content() == "no preview"
+        assert not page.locator("#preview-none").get_attribute("title")
+        live_mesh(tmp_path / "bowl", preview=True)
+        page.locator("#viewer-preview:not([hidden])").wait_for(timeout=WAIT_MS)
+    assert not seen.errors, seen.errors
+
+
+def scene_of(page: bytes) -> dict:
+    """The scene a 3D view page embeds (the viewer's base64 zip), as {type: [properties of each object]}."""
+    start = page.index(b'base64Str: "') + len(b'base64Str: "')
+    data = base64.b64decode(page[start:page.index(b'"', start)])
+    scene = json.loads(zipfile.ZipFile(io.BytesIO(data)).read("index.json"))["scene"]
+    found: dict = {}
+
+    def walk(node):
+        found.setdefault(node.get("type"), []).append(node.get("properties", {}))
+        for child in node.get("dependencies", []):
+            walk(child)
+
+    walk(scene)
+    return found
+
+
+def test_the_live_view_frames_lights_and_colours_the_mesh_as_the_reports_3d_view_does(monkeypatch):
+    from spadscan.dashboard.live_view import live_view_html
+    from spadscan.worker.report.view3d import view3d_html
+
+    skip_where_no_off_screen_drawing(monkeypatch)  # the report's view is made in an off-screen plotter
+    mesh = trimesh.creation.box(extents=(0.1, 0.06, 0.2))
+    ours = scene_of(live_view_html(mesh, "t").encode())
+    report = scene_of(view3d_html(mesh, title="t").encode())
+    (camera,), (theirs,) = ours["vtkOpenGLCamera"], report["vtkOpenGLCamera"]
+    for key in ("position", "focalPoint", "viewUp", "clippingRange"):
+        assert camera[key] == pytest.approx(theirs[key], abs=1e-9), key
+    (look,), (their_look,) = ours["vtkOpenGLProperty"], report["vtkOpenGLProperty"]
+    for key in ("diffuseColor", "ambient", "diffuse", "specular", "specularPower", "interpolation", "opacity"):
+        assert look[key] == pytest.approx(their_look[key], abs=1e-6), key
+    lights, their_lights = ours["vtkOpenGLLight"], report["vtkOpenGLLight"]
+    assert [light["lightType"] for light in lights] == [light["lightType"] for light in their_lights]
+    assert [light["intensity"] for light in lights] == pytest.approx([light["intensity"] for light in their_lights])
+    assert ours["vtkOpenGLRenderer"][0]["background"] == report["vtkOpenGLRenderer"][0]["background"]
