@@ -109,7 +109,7 @@ class Dispatcher:
             raise ConfigError(f"{op}'s 'name' must be a scan name (a string)")
         named = {"name": req["name"]} if req.get("name") else {}  # a scan the daemon does not hold (see ScanRunner)
         if op == "status":
-            return {**r.status(), "daemon": self._daemon(time.monotonic())}
+            return {**await r.status_now(), "daemon": self._daemon(time.monotonic())}
         if op == "scan":
             options = req.get("options", {})
             if not isinstance(options, dict):

@@ -68,6 +68,8 @@ SLIDER_FLOOR = 0.01
 """The slowest pace a move's time limit is counted at (a slider at 0 % would stretch it without end)."""
 
 
-def slider_note(fraction: float) -> str:
-    """What a robot controller's speed slider below 100 % means, for the operator (a scan crawls, and says why)."""
-    return f"the controller runs moves at {fraction * 100:.3g} % (the pendant's speed slider)"
+def slider_note(fraction: float, age_s: float | None = None) -> str:
+    """What a robot controller's speed slider below 100 % means, for the operator (a scan crawls, and says why);
+    `age_s`: how long ago it was read, said where given (a reading that could not be renewed)."""
+    read = f", as read {age_s:.0f} s ago" if age_s is not None else ""
+    return f"the controller runs moves at {fraction * 100:.3g} % (the pendant's speed slider{read})"

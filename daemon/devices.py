@@ -2,18 +2,24 @@
 
 Every device follows one lifecycle: connect -> prepare -> (act) -> release -> close. Concrete backends live in
 `daemon/arm/` (ur, sim) and `daemon/sensor/` (serial, i2c, sim); the runner sees only these classes. Times are
-`time.monotonic()` seconds of the daemon process; poses are 4x4 float64 in metres.
+`time.monotonic()` seconds of the daemon process (frame timeouts count on a sensor's `wait_clock`, with
+`wait_counted`); poses are 4x4 float64 in metres.
 """
 
 from __future__ import annotations
 
 import abc
+import asyncio
+import time
 from dataclasses import dataclass, field
+from typing import Awaitable, Callable, TypeVar
 
 import numpy as np
 
 from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
+
+T = TypeVar("T")
 
 
 class ArmFault(DeviceError):
@@ -120,6 +126,12 @@ class Arm(Device):
         on the teach pendant before resuming; the UR arm uploads its control script again if a fault stopped it; a
         simulated arm clears its stop."""
 
+    async def read_speed_slider(self) -> None:
+        """Read the speed slider of an arm whose controller has one (the pendant's: `speed_slider`, a fraction, and
+        `speed_slider_at`, the time.monotonic() of the controller's latest report of it) now, as nothing else does
+        while no move runs (a paused scan). One read, nothing else: no move, no stop, no check of the link. Default:
+        an arm without a slider, nothing to read."""
+
     async def check_poses(self, tcp_poses: np.ndarray, first_index: int = 0) -> None:
         """Ask the arm's controller whether it can reach every TCP pose (P, 4, 4, numbered from first_index) within
         its own safety limits; ArmFault naming the first it refuses. Default: a controller with nothing to ask."""
@@ -135,6 +147,14 @@ class Sensor(Device):
     async def next_frame(self, timeout_s: float) -> Frame:
         """The next complete frame. Raises SensorSilent after timeout_s seconds without one."""
 
+    def wait_clock(self) -> float:
+        """The clock (seconds) that frame timeouts count on: `next_frame`'s own and the runner's frame_timeout_s.
+        A real sensor's frames come on the device's own timing, whatever this process is doing: time.monotonic(). A
+        simulated sensor's frames are produced by this process (`sensor/sim.py` renders them on a thread): its clock
+        stands still while a frame the device would already have delivered is still being produced here, so that a
+        loaded machine is not taken for a silent sensor. It never runs faster than time.monotonic()."""
+        return time.monotonic()
+
     async def begin_exposure(self) -> float | None:
         """Called once the arm has settled at a pose: a sensor that can start a fresh exposure (stop and restart its
         measurement) does so and returns the monotonic time from which every later frame's exposure lies; None when
@@ -145,3 +165,23 @@ class Sensor(Device):
     def counters(self) -> dict:
         """Health counters (frames, corrupt lines skipped, reconnects, ...), for `ctl status`."""
         return {}
+
+
+async def wait_counted(aw: Awaitable[T], timeout_s: float, clock: Callable[[], float]) -> T:
+    """Await `aw` for at most timeout_s seconds counted on `clock` (a sensor's `wait_clock`): asyncio.wait_for, except
+    that time during which the clock stands still does not count. TimeoutError once they have passed, `aw` then
+    cancelled (and so when the caller is cancelled). `clock` never runs faster than time.monotonic(), so a wait of
+    the seconds still left on it never sleeps past the deadline."""
+    task = asyncio.ensure_future(aw)
+    end = clock() + timeout_s
+    try:
+        while not task.done():
+            left = end - clock()
+            if left <= 0:
+                raise TimeoutError
+            await asyncio.wait((task,), timeout=left)
+        return task.result()
+    finally:
+        if not task.done():
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)

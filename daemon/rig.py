@@ -58,6 +58,9 @@ class TrackedArm(Arm):
     async def check_poses(self, tcp_poses: np.ndarray, first_index: int = 0) -> None:
         await self.inner.check_poses(tcp_poses, first_index)
 
+    async def read_speed_slider(self) -> None:
+        await self.inner.read_speed_slider()
+
     def actual_pose(self) -> np.ndarray:
         return self.last_tcp_pose.copy()
 

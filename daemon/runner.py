@@ -60,7 +60,8 @@ from .abort_book import FOLDER_GONE, AbortBook
 from .config import DaemonConfig, scan_request
 from .arm.stops import clear_advice, stop_name
 from .describe import SLIDER_FLOOR, SLIDER_FULL, describe, slider_note, write_advice
-from .devices import Arm, ArmFault, ArmState, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent
+from .devices import (Arm, ArmFault, ArmState, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent,
+                      wait_counted)
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abort_pending, check_scan_name,
                        clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
                        load_job, way_out)
@@ -84,6 +85,9 @@ STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still say
 TAKING_FRAMES = ("scanning", "pausing")  # the states in which a scan takes frames ("pausing": the pose in flight)
 RATE_UNIT = "frames/s"  # what status's rate_hz counts (each pose takes frames_per_pose of them), said beside it
 MOVE_TICK_S = 0.05  # how often a move's time limit is set again from the arm's speed slider (`_MoveClock`)
+SLIDER_READ_S = 1.0  # how long a status waits for the arm's speed slider read afresh (a UR arm answers in ms)
+SLIDER_OLD_S = 5.0  # a speed slider read longer ago than this is shown with its age (`speed_note`)
+ARM_IDLE = ("paused", "idle")  # the states in which no scan reads the arm: status reads its speed slider itself
 ROOM_PROBE = f"{TMP_PREFIX}room-check"  # the hidden folder a resume writes a pose's worth of files into (`_no_room`)
 META_BYTES = 4096  # what a frame's record in a chunk's meta.json may take, at most (depths, confidences, extra)
 SENSOR_LINK_WAIT = "`spadscan ctl resume` once the sensor's link is back (the scan does not go on by itself)"
@@ -254,8 +258,8 @@ class ScanRunner:
             log.warning("%s", self.last_error)
             raise CaptureError(self.last_error) from None
         self.job = ScanJob(name=name, path=path, scan=scan, sensor_poses=plan.sensor_poses,
-                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer, controller_checked=True,
-                           chooser=chooser)
+                           tcp_poses=plan.tcp_poses, hand_eye=hand_eye, writer=writer, chunk_book=writer.book,
+                           controller_checked=True, chooser=chooser)
         self.job.count_from(writer.manifest.get("created_utc"))
         self._forget_earlier_error()
         self._launch("scanning")
@@ -283,7 +287,7 @@ class ScanRunner:
                                           rig_now=self.rig, scene_now=self.scene)
             paused = await asyncio.to_thread(_paused_record, path)
             try:
-                job.writer = await self._io(CaptureWriter.resume, path)
+                job.writer = await self._io(job.reopen)
                 job.record_progress(job.writer)
             except OSError as exc:  # a full disk: take the scan over all the same, paused until room is made
                 in_the_way = f"{describe(exc, 'reopening the capture')}; {_reopen_fix(exc)}"
@@ -460,7 +464,8 @@ class ScanRunner:
         cannot be reopened (a full disk, its folder removed), a disk with no room for the next pose's chunk
         (`_no_room`: reopening alone may fit, as the half-written chunk it drops frees a little). The capture is
         reopened whether or not the daemon still holds it: what it holds on disk is counted again, so that a chunk
-        moved out of it while the scan was paused (damaged) is taken again first (`CaptureWriter.retakes`). The
+        moved out of it while the scan was paused (damaged) is taken again first (`CaptureWriter.retakes`); only the
+        chunks that changed since this daemon read or published them are read again (`ScanJob.reopen`). The
         writer reopened here is the one the scan goes on with. What the resumed run fixes by itself (the arm's link:
         it reconnects) is left to it."""
         link = self.sensor.counters().get("link")
@@ -468,7 +473,7 @@ class ScanRunner:
             self._refuse_resume(job, f"the link to {self.sensor.name} is down (it reconnects by itself); resume once "
                                      f"`spadscan ctl status` shows its link up")
         try:
-            writer = await self._io(CaptureWriter.resume, job.path)
+            writer = await self._io(job.reopen)
         except (OSError, CaptureError) as exc:
             self._refuse_resume(job, _reopen_problem(job, exc))
         if self.job is not job or self.state != "paused" or self._aborting():  # an abort or a resume meanwhile
@@ -645,15 +650,25 @@ class ScanRunner:
             "then `spadscan ctl resume`"
         return f"{at}, resumable: start the daemon again, {on}"
 
+    async def status_now(self) -> dict:
+        """`status` for a request (`ctl status`): while no scan reads the arm (paused, idle), its speed slider is read
+        afresh first, within SLIDER_READ_S (the reading from before a pause must not stand for the slider now; one
+        that cannot be renewed is shown with its age)."""
+        if self.state in ARM_IDLE:
+            try:
+                async with asyncio.timeout(SLIDER_READ_S):
+                    await self.arm.read_speed_slider()
+            except (TimeoutError, DeviceError):
+                pass  # (a link down is the resume's to handle: status says what it last read, and when)
+        return self.status()
+
     def status(self) -> dict:
         job = self.job
         if self.state == "paused":
             self._sensor_link_back(job)
         out = {"state": self.state, "scan": None, "last_error": self.last_error, "arm": self.arm.name,
                "sensor": {"name": self.sensor.name, **self.sensor.counters()}}
-        slider = _speed_slider(self.arm)
-        if slider is not None and slider < SLIDER_FULL:
-            out.update(speed_scaling=round(slider, 3), speed_note=slider_note(slider))
+        out.update(_slider_status(self.arm))
         if job is not None:
             now = time.monotonic()  # read once: elapsed_s and scan_elapsed_s differ by the time before the takeover
             out.update(scan=job.name, path=str(job.path), pose=job.next_pose, poses=job.n_poses,
@@ -708,7 +723,7 @@ class ScanRunner:
                 self._check_end()
                 if job.writer is None:
                     try:
-                        job.writer = await self._io(CaptureWriter.resume, job.path)
+                        job.writer = await self._io(job.reopen)
                         job.record_progress(job.writer)
                         if "paused" in job.writer.manifest:  # reopened to go on after a fault's pause
                             await self._io(job.writer.set_state, "running")
@@ -1043,36 +1058,37 @@ class ScanRunner:
     async def _frames(self, job: ScanJob, i: int, ready_t: float, count: int | None = None) -> list[Frame]:
         """K frames (`count`, else frames_per_pose) that began at or after ready_t; earlier ones (exposed while moving
         or settling) are dropped.
-        A wait the daemon itself slept through (stopped, suspended: `stall.py`) is begun again, not blamed on the
-        sensor."""
+        Each wait counts frame_timeout_s on the sensor's `wait_clock` (a simulated sensor's stands still while this
+        process renders a frame that is due). A wait the daemon itself slept through (stopped, suspended:
+        `stall.py`) is begun again, not blamed on the sensor."""
         timeout = self.cfg.sensor.frame_timeout_s
         model = self.sensor.model
+        clock = self.sensor.wait_clock
         frames: list[Frame] = []
-        since = time.monotonic()
+        since, slept_since = clock(), time.monotonic()  # (the stall watch counts on the monotonic clock)
         deadline, dropped = since + timeout, job.dropped
         last_arrival = since  # when the sensor last delivered a frame, dropped or kept
         while len(frames) < (job.scan.frames_per_pose if count is None else count):
-            left = deadline - time.monotonic()
+            left = deadline - clock()
             if left <= 0:
-                if self._slept_through(job, i, since):
-                    since = time.monotonic()
+                if self._slept_through(job, i, slept_since):
+                    since, slept_since = clock(), time.monotonic()
                     deadline, dropped = since + timeout, job.dropped
                     continue
                 raise self._too_late(job, i, dropped) or SensorSilent(
                     f"{self.sensor.name}: no frame that began after the arm settled within {timeout:g} s at pose {i}")
             try:
-                async with asyncio.timeout(left + FRAME_GRACE_S):
-                    f = await self.sensor.next_frame(left)
+                f = await wait_counted(self.sensor.next_frame(left), left + FRAME_GRACE_S, clock)
             except LinkLost as exc:
                 raise _SensorLinkLost(str(exc)) from None
             except (TimeoutError, SensorSilent) as exc:
-                if self._slept_through(job, i, since):
-                    since = time.monotonic()
+                if self._slept_through(job, i, slept_since):
+                    since, slept_since = clock(), time.monotonic()
                     deadline, dropped = since + timeout, job.dropped
                     continue
                 # Frames kept coming until just now (a backlog of early ones): not silence.
                 too_late = self._too_late(job, i, dropped)
-                if too_late is not None and time.monotonic() - last_arrival < timeout / 2:
+                if too_late is not None and clock() - last_arrival < timeout / 2:
                     raise too_late from None
                 if isinstance(exc, TimeoutError):
                     raise SensorSilent(f"{self.sensor.name}: next_frame did not return within "
@@ -1082,7 +1098,7 @@ class ScanRunner:
                 detail = exc.detail
                 raise SensorSilent(f"{self.sensor.name}: no complete frame within {timeout:g} s (frame_timeout_s) "
                                    f"at pose {i}" + (f"; {detail}" if detail else "")) from None
-            last_arrival = time.monotonic()
+            last_arrival = clock()
             if f.t_start < ready_t:
                 job.dropped += 1
                 continue
@@ -1090,7 +1106,7 @@ class ScanRunner:
                 raise DeviceError(f"{self.sensor.name}: frame of shape {np.shape(f.hists)}, expected "
                                   f"({model.n_zones}, {model.n_bins})")
             frames.append(f)
-            since = time.monotonic()
+            since, slept_since = clock(), time.monotonic()
             deadline, dropped = since + timeout, job.dropped  # each kept frame starts a wait of its own
         return frames
 
@@ -1234,7 +1250,7 @@ class ScanRunner:
             return
         try:
             if job.writer is None:
-                job.writer = await self._io(CaptureWriter.resume, job.path)
+                job.writer = await self._io(job.reopen)
             if self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
                 await self._io(mark_paused, job.path, job.paused_for or job.reason or "paused by user")
             else:
@@ -1430,14 +1446,37 @@ def _end_early(job: ScanJob) -> None:
 
 
 def _speed_slider(arm) -> float | None:
-    """The speed slider of an arm whose controller has one (UR), as last read, else None; through the wrapper that
-    tracks a sim sensor's arm pose (`rig.TrackedArm`: its `inner` arm)."""
+    """The speed slider of an arm whose controller has one (UR), as last read, else None."""
+    reading = _slider_reading(arm)
+    return None if reading is None else reading[0]
+
+
+def _slider_reading(arm) -> tuple[float, float | None] | None:
+    """(speed slider, time.monotonic() it was read or None where the arm does not say) of an arm whose controller has
+    one (UR), as last read, else None; through the wrapper that tracks a sim sensor's arm pose (`rig.TrackedArm`: its
+    `inner` arm)."""
     while arm is not None:
         slider = getattr(arm, "speed_slider", None)
         if slider is not None:
-            return float(slider)
+            return float(slider), getattr(arm, "speed_slider_at", None)
         arm = getattr(arm, "inner", None)
     return None
+
+
+def _slider_status(arm) -> dict:
+    """Status's speed slider keys, for an arm whose slider is below 100 %: `speed_scaling` (the fraction),
+    `speed_note` (what it means; its age too when older than SLIDER_OLD_S) and `speed_scaling_age_s` (seconds since
+    it was read, where the arm says); none otherwise."""
+    reading = _slider_reading(arm)
+    if reading is None or reading[0] >= SLIDER_FULL:
+        return {}
+    slider, at = reading
+    age = None if at is None else max(0.0, time.monotonic() - at)
+    out = {"speed_scaling": round(slider, 3),
+           "speed_note": slider_note(slider, age if age is not None and age > SLIDER_OLD_S else None)}
+    if age is not None:
+        out["speed_scaling_age_s"] = round(age, 1)
+    return out
 
 
 def _advice(exc: BaseException) -> str:

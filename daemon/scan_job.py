@@ -30,7 +30,7 @@ import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import CaptureWriter, held_frames, plan_retakes
+from spadscan.protocol.capture_writer import CaptureWriter, ChunkBook, held_frames, plan_retakes
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
@@ -87,6 +87,9 @@ class ScanJob:
     tcp_poses: np.ndarray
     hand_eye: np.ndarray
     writer: CaptureWriter | None = None
+    chunk_book: ChunkBook | None = None
+    """The chunks of the capture that this daemon's writers read or published (`CaptureWriter.book`): kept while a
+    fault has dropped the writer, so that reopening it (`reopen`) reads again only the chunks that changed."""
     next_pose: int = 0
     frames: int = 0
     dropped: int = 0
@@ -164,6 +167,14 @@ class ScanJob:
         if self.earlier_s is None:
             return None
         return self.earlier_s + ((time.monotonic() if now is None else now) - self.started)
+
+    def reopen(self) -> CaptureWriter:
+        """The capture's writer, reopened (`CaptureWriter.resume`; on the writer's thread): a chunk read or published
+        by an earlier writer of this daemon is read again only where its files changed (`chunk_book`); one moved out
+        is missed, one added is read whole, as ever."""
+        writer = CaptureWriter.resume(self.path, known=self.chunk_book)
+        self.chunk_book = writer.book
+        return writer
 
     def record_progress(self, writer: CaptureWriter) -> None:
         self.next_pose = writer.next_pose_index

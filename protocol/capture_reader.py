@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -292,7 +293,9 @@ class CaptureReader:
 
     def chunk_names(self) -> list[str]:
         """Published chunks in order (temporary folders of a chunk being written are never listed)."""
-        names = [p.name for p in self.path.iterdir() if chunk_index(p.name) is not None and p.is_dir()]
+        # os.scandir: an entry knows whether it is a folder without a stat each (10,000 chunks: ms, not 0.1 s).
+        with os.scandir(self.path) as entries:
+            names = [e.name for e in entries if chunk_index(e.name) is not None and e.is_dir()]
         return sorted(names)
 
     def read_chunk(self, name: str) -> Chunk:

@@ -5,7 +5,9 @@ folder fsynced: a reader sees a whole chunk or none, and a crash loses only what
 a scan, removes half-written temporary folders and continues after the last published chunk. The measurements it
 lacks before its first unpublished pose (a damaged chunk the operator moved out) are listed in `retakes`, each with
 the free chunk numbers that put it back in pose order; until they are published again the capture cannot be marked
-complete.
+complete. A writer keeps a `ChunkBook` of the chunks it read or published; reopened with it (`resume(path,
+known=book)`), it reads again only the chunks whose files changed since (a pause's resume does not read a
+10,000-pose capture whole), and still notices every chunk moved out, renamed, added or altered.
 
 A chunk's files are written and fsynced side by side, one thread each, and the publish waits for all of them: the
 same fsyncs as one after the other, but a journaling filesystem (ext4's jbd2) commits them together, so a durable
@@ -20,7 +22,7 @@ import json
 import os
 import shutil
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
 
@@ -162,6 +164,59 @@ def _occupied(path: Path) -> str:
     return f"{path}: already holds a capture that was not finished ({why}); delete the folder or choose another"
 
 
+CHUNK_FILES = ("hists.npy", "poses.npy", "meta.json", "reference.npy")
+"""Every file a chunk's reading looks at (`CaptureReader.read_chunk`)."""
+
+
+def chunk_stamp(folder) -> tuple | None:
+    """What the files of the chunk `folder` look like to the filesystem: (name, inode, size, mtime_ns, ctime_ns) of
+    each of CHUNK_FILES (only the name where it is absent). A file replaced, rewritten, truncated, added or removed
+    changes it (a rewrite changes ctime, which no tool sets back); None when a file cannot be looked up."""
+    out, folder = [], os.fspath(folder)
+    for name in CHUNK_FILES:
+        try:
+            st = os.stat(os.path.join(folder, name))  # (not pathlib: its objects cost more than the stat)
+        except FileNotFoundError:
+            out.append((name,))
+            continue
+        except OSError:
+            return None
+        out.append((name, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class ChunkRecord:
+    """One published chunk as a writer knows it: `stamp` (`chunk_stamp`) when it was read whole or published, and
+    `held`, the (pose_index, frame) of its measurements (`held_frames`)."""
+
+    stamp: tuple
+    held: tuple[tuple[int, int | None], ...]
+
+
+@dataclass
+class ChunkBook:
+    """The published chunks of the capture at `path` that a writer read whole or published, by folder name, checked
+    against a sensor of `shape` (zones, bins). Handed to `CaptureWriter.resume` (`known`), it spares reading again a
+    chunk whose stamp is unchanged: a published chunk never changes, and what was checked in it still holds. Kept
+    in memory only (a daemon's own scans); a writer updates it as it publishes."""
+
+    path: Path
+    shape: tuple[int, int]
+    chunks: dict[str, ChunkRecord] = field(default_factory=dict)
+
+    def record(self, name: str, held) -> None:
+        """Note chunk `name` with measurements `held` [(pose_index, frame)], as its files stand now."""
+        stamp = chunk_stamp(os.path.join(self.path, name))
+        if stamp is not None:  # (one that cannot be looked up is read whole next time)
+            self.chunks[name] = ChunkRecord(stamp, tuple(held))
+
+    def unchanged(self, name: str, stamp: tuple | None) -> ChunkRecord | None:
+        """The record of chunk `name` when its files still have `stamp`, else None (read it whole)."""
+        record = self.chunks.get(name)
+        return record if record is not None and stamp is not None and record.stamp == stamp else None
+
+
 @dataclass(frozen=True)
 class Retake:
     """Measurements a resumed capture lacks before its first unpublished pose (a damaged chunk moved out of it): pose
@@ -260,8 +315,10 @@ class CaptureWriter:
     """
 
     def __init__(self, path: Path, manifest: dict, sensor: SensorModel, next_chunk: int, published: int,
-                 pose_indices: set[int], retakes: list[Retake] | None = None):
+                 pose_indices: set[int], retakes: list[Retake] | None = None, book: ChunkBook | None = None):
         self.path = Path(path)
+        self.book = book if book is not None else ChunkBook(self.path, (sensor.n_zones, sensor.n_bins))
+        """The chunks this writer read whole or published (`resume(path, known=...)` of a later writer)."""
         self.manifest = manifest
         self.sensor = sensor
         self._next_chunk = next_chunk
@@ -330,22 +387,32 @@ class CaptureWriter:
         return cls(path, manifest, sensor, 0, 0, set())
 
     @classmethod
-    def resume(cls, path) -> "CaptureWriter":
+    def resume(cls, path, known: ChunkBook | None = None) -> "CaptureWriter":
         """Reopen a scan to continue it: drop half-written chunks, count what was published, list what is missing
         before the first unpublished pose (`retakes`: a damaged chunk moved out), state -> running. A pause stays
         recorded (`paused`, and its reason) until the scan goes on (`set_state`): a daemon reopens a capture to take
         it over before it has checked that it can, and a takeover refused or cut short must leave the operator's
-        pause in place. CaptureError when the missing measurements cannot be put back in pose order."""
+        pause in place. CaptureError when the missing measurements cannot be put back in pose order, or a chunk
+        cannot be read. `known`: the `book` of an earlier writer of this capture; every chunk it lists whose files
+        are unchanged (`chunk_stamp`) is taken as it read it, every other one is read whole (and checked)."""
         path = Path(path)
         reader = CaptureReader(path)
         _drop_temporary(path)  # half-written chunks and manifests of a writer that died
+        book = ChunkBook(path, (reader.sensor.n_zones, reader.sensor.n_bins))
+        if known is not None and (Path(known.path) != path or tuple(known.shape) != book.shape):
+            known = None  # another capture's, or checked against another sensor: read every chunk
         names = reader.chunk_names()
         published, poses, held = 0, set(), []
         for name in names:
-            chunk = reader.read_chunk(name)
-            published += len(chunk.meta)
-            poses.update(int(i) for i in chunk.pose_indices)
-            held.append((chunk_index(name), held_frames(chunk.meta)))
+            stamp = chunk_stamp(os.path.join(path, name))  # before the read: a change after it shows next time
+            record = known.unchanged(name, stamp) if known is not None else None
+            if record is None:
+                record = ChunkRecord(stamp, tuple(held_frames(reader.read_chunk(name).meta)))
+            if record.stamp is not None:
+                book.chunks[name] = record
+            published += len(record.held)
+            poses.update(pose for pose, _ in record.held)
+            held.append((chunk_index(name), list(record.held)))
         frames = reader.manifest.get("frames_per_pose", 1)
         frames = frames if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1 else 1
         retakes = plan_retakes(held, frames, int(reader.manifest["chunk_size"]), path)
@@ -354,7 +421,7 @@ class CaptureWriter:
         manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
                         updated_utc=utc_now())
         _write(write_json_atomic, path / MANIFEST, manifest)
-        return cls(path, manifest, reader.sensor, next_chunk, published, poses, retakes)
+        return cls(path, manifest, reader.sensor, next_chunk, published, poses, retakes, book)
 
     # ---- writing -------------------------------------------------------------------------------------------------
     @property
@@ -448,6 +515,7 @@ class CaptureWriter:
         _together(writes)
         _write(fsync_dir, tmp)
         os.rename(tmp, self.path / name)
+        self.book.record(name, [(m.pose_index, m.frame) for m in buf])
         _write(fsync_dir, self.path)
         self.n_published += len(buf)
         self.published_pose_indices.update(m.pose_index for m in buf)

@@ -23,7 +23,7 @@ What ur_rtde does not tell by raising, this class checks:
   arm (no program runs until the arm is restarted: the next move names it again);
 - the speed slider: a move's time budget counts time at the controller's combined speed scaling, so a slowed arm
   is not taken for a stuck one (the runner's move_timeout_s counts at the slider's pace too, `speed_slider`: read
-  at every poll of a move);
+  at every poll of a move, and by `read_speed_slider` for a status while no move runs);
 - the active TCP: spadscan's poses are the tool flange's (sensor pose = TCP pose x [arm] hand_eye), so the
   controller's active TCP offset (getTCPOffset) must be zero, within TCP_OFFSET_TOL_M / TCP_OFFSET_TOL_RAD. It is
   read at connect (unless a safety stop keeps the script from answering) and, for every program ur_rtde starts
@@ -179,6 +179,10 @@ class URArm(Arm):
         self.speed_slider: float | None = None
         """The pendant's speed slider (target speed fraction, 0..1) last read from the controller; None before the
         first read. `ctl status` shows it when below 1: a slowed arm otherwise looks like a slow or stuck scan."""
+        self.speed_slider_at: float | None = None
+        """When (time.monotonic()) a reading fresh from the controller (its timestamp advanced) last carried
+        `speed_slider`: a link gone stale repeats the last values, which say nothing of the slider now."""
+        self._slider_ts: float | None = None  # the controller timestamp of that reading
         # The last controller timestamp seen and when it last changed.
         self._last_ts: float | None = None
         self._last_change = 0.0
@@ -399,6 +403,13 @@ class URArm(Arm):
         return ArmState(tcp_pose=vector_to_pose(reading.pose_vec), joints=reading.joints.copy(),
                          timestamp_s=reading.timestamp, safety_stop=reading.stop)
 
+    async def read_speed_slider(self) -> None:
+        """One read of the receive interface (getTargetSpeedFraction among the rest), for the slider alone: no
+        check of the link (a stale link's reading does not renew `speed_slider_at`), so that asking for it (`ctl
+        status` while paused) never ends the link. LinkLost when it is known down."""
+        self._require_open()
+        await self._read("the speed slider")
+
     async def stop(self) -> None:
         """stopL now (decelerating at STOP_DECEL). LinkLost without trying when the link is dead: stopL would block
         the ur_rtde process for good."""
@@ -563,17 +574,21 @@ class URArm(Arm):
 
     async def _read(self, what: str, progress: bool = False) -> _Reading:
         d = await self._call(what, "read_progress" if progress else "read")
-        self._note_slider(d.get("speed_slider"))
+        self._note_slider(d.get("speed_slider"), float(d["timestamp"]))
         return _Reading(np.array(d["pose"], dtype=np.float64), np.array(d["joints"], dtype=np.float64),
                         float(d["timestamp"]), d["protective"], d["emergency"], d["safety_mode"], d["connected"],
                         np.array(d["tcp_speed"], dtype=np.float64), bool(d.get("moving", False)),
                         int(d["safety_bits"]), bool(d["program_running"]), float(d["speed_scaling"]),
                         int(d.get("op_id", -1)))
 
-    def _note_slider(self, slider: float | None) -> None:
-        """Keep the speed slider's reading; the log says once when it drops below 100 % and when it is back."""
+    def _note_slider(self, slider: float | None, timestamp: float) -> None:
+        """Keep the speed slider's reading, and when it came (`speed_slider_at`: only a reading the controller sent
+        since the last one, at controller time `timestamp`); the log says once when it drops below 100 % and when it
+        is back."""
         if slider is None:
             return
+        if timestamp != self._slider_ts:
+            self._slider_ts, self.speed_slider_at = timestamp, time.monotonic()
         was, self.speed_slider = self.speed_slider, float(slider)
         slowed, was_slowed = self.speed_slider < SLIDER_FULL, was is not None and was < SLIDER_FULL
         if slowed and not was_slowed:

@@ -7,6 +7,12 @@ in the past, so a scan runner drops it when the arm was still moving) and a call
 frames. A frame is rendered at the pose `pose_provider()` returns when it starts (for a frame already in progress:
 when the call arrives). With frame_time_s = 0 a frame starts when asked for and ends when rendered.
 
+Rendering is this process's work, not the device's: a real sensor delivers frame k at t_k + frame_time_s however
+busy our CPU is (with frame_time_s = 0, at once). The sensor's `wait_clock`, on which every frame timeout counts (its
+own and the runner's frame_timeout_s), stands still from the moment a frame is due until it is handed over: a render
+that a loaded machine slows, and the event loop's delay in taking it up, are never taken for a silent sensor.
+Silences (below) pass on the clock as on the wall.
+
 Faults: `inject_silence(s)` (no frames for s seconds: next_frame raises SensorSilent after its timeout; the frame in
 progress is lost) and `inject_link_loss(s)` (next_frame raises LinkLost at once for s seconds). Scheduled silence
 (the rig config's `silence_on_frames` and `silence_s`, reachable from a daemon process): when the sensor is about to
@@ -24,7 +30,7 @@ from typing import Callable
 
 import numpy as np
 
-from spadscan.daemon.devices import Frame, LinkLost, Sensor, SensorSilent
+from spadscan.daemon.devices import Frame, LinkLost, Sensor, SensorSilent, wait_counted
 from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
 from spadscan.protocol.simulator import SimSettings, Simulator
@@ -55,6 +61,8 @@ class SimSensor(Sensor):
         self.frame_time_s = float(frame_time_s)
         self._render_lock = threading.Lock()  # a render abandoned by a timeout may still run in its thread
         self._prev_end: float | None = None
+        self._held_s = 0.0  # seconds the wait clock has stood still: frames that were due, still being produced here
+        self._due: float | None = None  # when the frame being produced now is due (the clock stands still after it)
         self._silent_until = -math.inf
         self._down_until = -math.inf
         self._silence_on = {int(n) for n in silence_on_frames}  # frame numbers still to be silenced
@@ -89,16 +97,23 @@ class SimSensor(Sensor):
         if self._prev_end is None:
             raise DeviceError(f"{self.name}: next_frame before prepare (the sensor is not streaming)")
         try:
-            return await asyncio.wait_for(self._next(), timeout_s)
-        except asyncio.TimeoutError:
+            return await wait_counted(self._next(), timeout_s, self.wait_clock)
+        except TimeoutError:
             self._counts["silent_timeouts"] += 1
             raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s") from None
+
+    def wait_clock(self) -> float:
+        """time.monotonic() less the time frames were due from the device but still being produced here (see the
+        module docstring)."""
+        now = time.monotonic()
+        return now - self._held_s - (max(0.0, now - self._due) if self._due is not None else 0.0)
 
     def counters(self) -> dict:
         out = dict(self._counts)
         now = time.monotonic()
         out["silent"] = now < self._silent_until
         out["link"] = "down" if now < self._down_until else "up"
+        out["late_render_s"] = round(self._held_s, 3)  # frames due but still rendering: this process's delay
         return out
 
     async def _next(self) -> Frame:
@@ -112,9 +127,15 @@ class SimSensor(Sensor):
             start = self._frame_start(now)
             await _sleep_until(start)
             pose = np.asarray(self.pose_provider(), dtype=np.float64)
-            frames = await asyncio.to_thread(self._render, pose)
-            end = max(start + self.frame_time_s, time.monotonic()) if self.frame_time_s else time.monotonic()
-            await _sleep_until(end)
+            # When the device delivers it: from then on the wait is this process's delay. (Not earlier than now: the
+            # clock never steps back; an event loop late to begin the render is late for every timer alike.)
+            self._due = max(start + self.frame_time_s, time.monotonic())
+            try:
+                frames = await asyncio.to_thread(self._render, pose)
+                end = max(self._due, time.monotonic())
+                await _sleep_until(end)
+            finally:
+                self._handed_over()
             self._prev_end = end
             if self._silent_until > start:  # silenced while this frame was exposed: it never arrives
                 self._counts["frames_lost_to_silence"] += 1
@@ -123,6 +144,12 @@ class SimSensor(Sensor):
             return Frame(hists=frames.hists[0], t_start=start, t_end=end,
                          reference=None if frames.reference is None else frames.reference[0],
                          extra={"render_pose": pose.tolist()})
+
+    def _handed_over(self) -> None:
+        """The frame being produced is handed over (or lost, or its wait cancelled): the wait clock runs again."""
+        now = time.monotonic()
+        self._held_s += max(0.0, now - self._due)
+        self._due = None
 
     def _frame_start(self, now: float) -> float:
         """Start of the first frame that has not ended by `now` (monotonic seconds), after any silence."""

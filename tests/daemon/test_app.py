@@ -104,6 +104,9 @@ class FakeRunner:
     def status(self):
         return {"state": "idle"}
 
+    async def status_now(self):
+        return self.status()
+
     async def start(self, name, options):
         self.calls.append(("start", name, options))
         return {"state": "scanning", "scan": name}

@@ -661,6 +661,24 @@ def test_a_slowed_speed_slider_is_not_a_stuck_move(ur_real_time, arun):
     assert np.allclose(state.tcp_pose, pose(0.3, 0.1, 0.3, DOWN), atol=1e-6)
 
 
+def test_the_speed_slider_is_read_afresh_without_a_move(ur, arun):
+    """`read_speed_slider` (what `ctl status` asks while a scan is paused) reads the pendant's slider as it is now,
+    and notes when; nothing moves."""
+
+    async def run():
+        async with connected_arm(ur.host) as arm:
+            ur.configure(speed_slider=0.3)
+            t0 = time.monotonic()
+            while arm.speed_slider != 0.3:  # the receive stream comes at the controller's own pace
+                assert time.monotonic() - t0 < 20.0, f"the slider read {arm.speed_slider}"
+                await arm.read_speed_slider()
+                await asyncio.sleep(0.01)
+            return arm.speed_slider_at - t0
+
+    assert arun(run()) >= 0.0
+    assert ur.moves == []
+
+
 def test_a_move_whose_thread_reports_running_late_is_waited_for_to_its_end(ur, arun):
     """ur_rtde's control script answers an asynchronous moveL at once and reports the move running only when its
     thread runs (here 0.3 s later): a long move (2 s, longer than timeout_s) is not taken for one already over."""

@@ -109,11 +109,11 @@ def test_a_takeover_on_a_full_disk_lists_the_poses_owed(arun, tmp_path, sphere, 
     real = CaptureWriter.resume.__func__
     calls = []
 
-    def resume(cls, path):
+    def resume(cls, path, known=None):
         calls.append(path)
         if len(calls) == 1:
             raise OSError(errno.ENOSPC, "No space left on device")
-        return real(cls, path)
+        return real(cls, path, known)
 
     monkeypatch.setattr(CaptureWriter, "resume", classmethod(resume))
 

@@ -1,19 +1,22 @@
 """A move the pendant's speed slider slows is not taken for a stuck one: the runner's move_timeout_s counts motion
 time, at the slider's pace; a move that times out all the same says what the slider was at; and the reply to a
-resume shows the slider as it is then, not as it was read before the pause."""
+resume, and `ctl status` while the scan is paused, show the slider as it is then, not as it was read before the
+pause (a reading that cannot be renewed is shown with its age)."""
 
 from __future__ import annotations
 
 import asyncio
 import re
+import time
 from dataclasses import replace
 
 import pytest
 
-from spadscan.daemon.app import DeviceSession
+from spadscan.daemon.app import DeviceSession, Dispatcher
 from spadscan.daemon.arm.sim import SimArmFaults
+from spadscan.daemon.devices import LinkLost
 from spadscan.daemon.backends import pose_provider
-from spadscan.daemon.runner import ScanRunner
+from spadscan.daemon.runner import SLIDER_OLD_S, ScanRunner
 from spadscan.daemon.sensor.sim import SimSensor
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings
@@ -24,24 +27,35 @@ from test_runner_ur import controller, quick_rig, ur_config  # noqa: F401  (cont
 
 class SliderArm(TimedArm):
     """A sim arm with a speed slider, as a UR controller has: `slider` is the pendant's (a move takes its motion
-    time divided by it), `speed_slider` the daemon's reading of it, taken whenever the arm is read (a move, a state),
-    as `URArm` takes it."""
+    time divided by it), `speed_slider` the daemon's reading of it and `speed_slider_at` when it was taken, whenever
+    the arm is read (a move, a state, `read_speed_slider`), as `URArm` takes it. `slider_link` False: the slider
+    cannot be read (the link is down)."""
 
     def __init__(self, **kw):
         super().__init__(**kw)
         self.slider = 1.0
         self.speed_slider: float | None = None
+        self.speed_slider_at: float | None = None
+        self.slider_link = True
 
     def motion_time(self, start, goal, speed, accel):
         return super().motion_time(start, goal, speed, accel) / self.slider
 
+    def _note(self) -> None:
+        self.speed_slider, self.speed_slider_at = self.slider, time.monotonic()
+
     async def move_to(self, tcp_pose, speed, accel):
-        self.speed_slider = self.slider
+        self._note()
         await super().move_to(tcp_pose, speed, accel)
 
     async def state(self):
-        self.speed_slider = self.slider
+        self._note()
         return await super().state()
+
+    async def read_speed_slider(self):
+        if not self.slider_link:
+            raise LinkLost("arm (sim): link down")
+        self._note()
 
 
 async def slider_scan(cfg, mesh, name: str, arm: SliderArm, then=None):
@@ -107,6 +121,49 @@ def test_the_reply_to_a_resume_shows_the_speed_slider_as_it_is_then(arun, tmp_pa
     assert reply["state"] == "scanning", reply
     assert "speed_scaling" not in reply and "speed_note" not in reply, reply
     assert done == {"name": "fresh", "state": "complete"}
+
+
+def paused_with_the_slider_down(arun, cfg, mesh, meanwhile):
+    """Scan 'held' paused by a protective stop with the slider at 5 %; then `meanwhile(arm)` (what changes while it
+    is paused) and `ctl status` (through the daemon's dispatcher). Returns that status."""
+    arm = SliderArm(motion_time_s=0.0005, faults=SimArmFaults(protective_stop_on_moves=(2,)))
+    arm.slider = 0.05
+
+    async def asked(runner):
+        meanwhile(arm)
+        return await Dispatcher(runner, asyncio.Event(), cfg)({"op": "status"})
+
+    paused, status = arun(slider_scan(cfg, mesh, "held", arm, asked))
+    assert paused["state"] == "paused" and paused["speed_scaling"] == 0.05, paused
+    return status
+
+
+@pytest.mark.parametrize("now", [1.0, 0.2])
+def test_status_while_paused_reads_the_slider_afresh(arun, tmp_path, sphere, now):  # noqa: F811
+    """The slider set back to 100 % while the scan is paused (no move reads it): `ctl status` says nothing of a
+    slowed arm; one set to 20 % meanwhile is shown at 20 %, read just now."""
+    cfg = make_cfg(tmp_path, views=4)
+    status = paused_with_the_slider_down(arun, cfg, sphere, lambda arm: setattr(arm, "slider", now))
+    assert status["state"] == "paused", status
+    if now == 1.0:
+        assert "speed_scaling" not in status and "speed_note" not in status, status
+    else:
+        assert status["speed_scaling"] == 0.2 and status["speed_scaling_age_s"] < SLIDER_OLD_S, status
+        assert status["speed_note"] == "the controller runs moves at 20 % (the pendant's speed slider)", status
+
+
+def test_a_slider_that_cannot_be_read_afresh_is_shown_with_its_age(arun, tmp_path, sphere):  # noqa: F811
+    """The arm's link is down while paused: status shows the slider as last read, and how long ago."""
+    cfg = make_cfg(tmp_path, views=4)
+
+    def link_down(arm):
+        arm.slider_link, arm.slider = False, 1.0
+        arm.speed_slider_at = time.monotonic() - 60.0  # read a minute ago, before the pause
+
+    status = paused_with_the_slider_down(arun, cfg, sphere, link_down)
+    assert status["speed_scaling"] == 0.05 and 60.0 <= status["speed_scaling_age_s"] < 90.0, status
+    assert re.fullmatch(r"the controller runs moves at 5 % \(the pendant's speed slider, as read (6\d|[78]\d) s "
+                        r"ago\)", status["speed_note"]), status["speed_note"]
 
 
 @pytest.mark.slow
