@@ -149,6 +149,11 @@ class _MoveClock:
         return f"{said}; see on the teach pendant what holds the arm up, then `spadscan ctl resume`"
 
 
+KEPT_ENDS = 100
+"""How many ended scans' records (`ScanRunner.ends`, a status each, 1-2 kB) a daemon keeps, the newest: a `wait` for
+an older one reads how it ended from its folder, as for a scan that ended before the daemon started."""
+
+
 class ScanRunner:
     """Owns the current scan. All methods run on the daemon's event loop; writer I/O runs on one thread."""
 
@@ -1271,6 +1276,8 @@ class ScanRunner:
         self.ends.pop(name, None)
         self.ends[name] = ScanEnd(state, reason or None)  # first: the status names it as the last scan
         self.ends[name] = ScanEnd(state, reason or None, self.status(), time.monotonic())
+        while len(self.ends) > KEPT_ENDS:  # the oldest first: its folder still says how it ended
+            del self.ends[next(iter(self.ends))]
 
     def _set_state(self, state: str) -> None:
         if state == "scanning" and self.state not in TAKING_FRAMES and self.job is not None:
