@@ -2,15 +2,23 @@
 folders a job writes into met a full disk (`full_folder`), and the wait for room after a job met a full disk
 (`RoomWait`), during which the worker claims no job (pool.py). A wait is also written down (`RoomWait.note`): in the
 attempt record of the job it gave back, so that no worker claims a job while room is still missing (queue.py), and
-in the worker's presence file (presence.py)."""
+in the worker's presence file (presence.py).
+
+A wait others read names its folder twice: as the writer's absolute path, and relative to the queue or the captures
+root (`relative_to`, `relative`), which the reader resolves under its own (`from_note`'s `roots`): a second machine
+may mount the captures elsewhere, where the writer's path names another filesystem or none. Its times are the wall
+clock's, which machines share; a wait of this process's own ends on the monotonic clock as well (`deadline`), which
+a clock set back does not lengthen. A note is bounded as it is read: a wait never runs past the longest a worker
+waits (ROOM_RETRY_MAX_S), and one that begins ahead of the reader's clock by more than ROOM_SKEW_S is none
+(`note_doubt` says why)."""
 
 from __future__ import annotations
 
 import math
 import os
 import time
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, replace
+from pathlib import Path, PurePosixPath
 
 
 def _existing(folder) -> Path:
@@ -26,6 +34,12 @@ def free_bytes(folder) -> int:
     cannot be asked: a lost mount)."""
     st = os.statvfs(_existing(folder))
     return st.f_bavail * st.f_frsize
+
+
+def total_bytes(folder) -> int:
+    """Bytes the filesystem that holds `folder` has in all (statvfs; OSError when it cannot be asked)."""
+    st = os.statvfs(_existing(folder))
+    return st.f_blocks * st.f_frsize
 
 
 def mount_point(folder) -> Path:
@@ -109,6 +123,13 @@ ROOM_RETRY_S = 600.0
 ROOM_RETRY_MAX_S = 3600.0
 """Seconds after which a wait for room ends even without the room it waited for (`RoomWait`): 10 min for the first
 full disk in a row, doubling with each next one, at most an hour."""
+ROOM_SKEW_S = 60.0
+"""Seconds a wait noted on another machine may begin ahead of this one's clock: machines sharing a queue keep their
+clocks within a few seconds (NTP). One further ahead comes from a clock running ahead or a damaged record: waiting
+for it would hold every claim until that clock's time comes, so it is not waited for."""
+ROOTS = ("queue", "root")
+"""What a wait's folder is noted relative to (`RoomWait.relative`), in the order tried: the queue, which every
+reader of a note reads, then the captures root."""
 
 
 @dataclass
@@ -124,7 +145,8 @@ class RoomWait:
     otherwise hold the worker for good. A full quota (EDQUOT) is one user's, which the filesystem's free space does
     not show: that wait ends on its timer alone (`quota`), as does one whose free space could not be asked.
 
-    Its times are the clock's (time.time), not a monotonic one's: other workers read them (`note`)."""
+    Its times are the wall clock's (time.time), which other workers read (`note`); this process's own wait also ends
+    at its `deadline` on the monotonic clock, which a wall clock set back does not move."""
 
     folder: Path
     """The folder that could not be written."""
@@ -142,19 +164,33 @@ class RoomWait:
     """The job met a full disk quota (EDQUOT), not a full filesystem."""
     job: str | None = None
     """The job that met the full disk, when known."""
+    deadline: float | None = None
+    """When this process's wait ends all the same on the monotonic clock (time.monotonic), whatever the wall clock
+    does meanwhile; None: only `retry_unix` ends it."""
+    relative: tuple[str, str] | None = None
+    """`folder` as others find it: (one of ROOTS, the folder relative to it, '/'-separated); None where it lies under
+    neither (its readers wait on its timer)."""
+    unresolved: bool = False
+    """Read from a note whose folder could not be found on this machine (`from_note`'s `roots`): its free space is
+    not known here, and its timer alone ends it."""
 
     @classmethod
-    def begin(cls, folder, held: int, retry_s: float, *, quota: bool = False, job: str | None = None) -> "RoomWait":
+    def begin(cls, folder, held: int, retry_s: float, *, quota: bool = False, job: str | None = None,
+              roots: dict | None = None) -> "RoomWait":
         """The wait after a job whose partial result took `held` bytes met a full disk writing into `folder`,
-        that result removed (OSError when the free space cannot be asked)."""
+        that result removed (OSError when the free space cannot be asked). `roots`: {"queue": the queue's folder,
+        "root": the captures root}, which its note names the folder relative to."""
         free = free_bytes(folder)
         need = None if quota else free + max(held, ROOM_MARGIN)
-        return cls(Path(folder), mount_point(folder), free, need, retry_s, time.time(), quota, job)
+        return cls(Path(folder), mount_point(folder), free, need, retry_s, time.time(), quota, job,
+                   time.monotonic() + retry_s, _relative(folder, roots or {}))
 
     @classmethod
-    def unasked(cls, folder, retry_s: float, *, quota: bool = False, job: str | None = None) -> "RoomWait":
+    def unasked(cls, folder, retry_s: float, *, quota: bool = False, job: str | None = None,
+                roots: dict | None = None) -> "RoomWait":
         """The wait on `folder` whose free space cannot be asked (a lost mount): its timer alone ends it."""
-        return cls(Path(folder), mount_point(folder), None, None, retry_s, time.time(), quota, job)
+        return cls(Path(folder), mount_point(folder), None, None, retry_s, time.time(), quota, job,
+                   time.monotonic() + retry_s, _relative(folder, roots or {}))
 
     @property
     def retry_unix(self) -> float:
@@ -162,24 +198,44 @@ class RoomWait:
         return self.since_unix + self.retry_s
 
     def timed_out(self, now: float | None = None) -> bool:
-        return (time.time() if now is None else now) >= self.retry_unix
+        """Whether the wait's time is up: at `retry_unix` by the wall clock (`now`: its reading), or, for this
+        process's own wait read without `now`, at its monotonic `deadline`, whichever comes first."""
+        if (time.time() if now is None else now) >= self.retry_unix:
+            return True
+        return now is None and self.deadline is not None and time.monotonic() >= self.deadline
 
-    def over(self) -> tuple[bool, int]:
+    def over(self) -> tuple[bool, int | None]:
         """(whether the wait is over, the bytes free now): the room it waits for is there, or `retry_s` has passed.
-        One statvfs (OSError when it cannot be asked)."""
+        One statvfs (OSError when it cannot be asked); none for a wait whose folder is not on this machine
+        (`unresolved`: free None). A need larger than the whole filesystem can never be met: its timer ends it."""
+        if self.unresolved:
+            return self.timed_out(), None
         free = self.free = free_bytes(self.folder)
+        if self.need is not None and self.need > _total_or(self.folder, self.need):
+            self.need = None  # (a damaged note, or one about another filesystem): waited for on its timer
         return (self.need is not None and free >= self.need) or self.timed_out(), free
 
     def note(self) -> dict:
-        """The wait as others read it (a worker's presence file, the attempt record of the job it gave back): exactly
-        the keys mount, folder (str), free_bytes, need_bytes (int or None), since_unix, retry_unix (float), quota."""
-        return {"mount": str(self.mount), "folder": str(self.folder), "free_bytes": self.free,
-                "need_bytes": self.need, "since_unix": float(self.since_unix), "retry_unix": float(self.retry_unix),
-                "quota": bool(self.quota)}
+        """The wait as others read it (a worker's presence file, the attempt record of the job it gave back): the
+        keys mount, folder (str), free_bytes, need_bytes (int or None), since_unix, retry_unix (float), quota, and,
+        where the folder lies under the queue or the captures root, relative_to ("queue" or "root") and relative
+        (str: the folder relative to it)."""
+        shown = {"mount": str(self.mount), "folder": str(self.folder), "free_bytes": self.free,
+                 "need_bytes": self.need, "since_unix": float(self.since_unix), "retry_unix": float(self.retry_unix),
+                 "quota": bool(self.quota)}
+        if self.relative is not None:
+            shown["relative_to"], shown["relative"] = self.relative
+        return shown
 
     @classmethod
-    def from_note(cls, note, job: str | None = None) -> "RoomWait | None":
-        """The wait a `note` describes, or None when it is not one (a damaged or hand-edited record)."""
+    def from_note(cls, note, job: str | None = None, *, now: float | None = None,
+                  roots: dict | None = None) -> "RoomWait | None":
+        """The wait a `note` describes, or None when it is not one (a damaged or hand-edited record) or begins more
+        than ROOM_SKEW_S ahead of this machine's clock (`now`: its reading). A wait noted to run longer than
+        ROOM_RETRY_MAX_S (the longest a worker waits) runs that long from its start (`note_doubt` says both).
+        `roots` ({"queue", "root"}: this machine's folders): the folder is found under them (`relative`), where its
+        free space is asked; one that cannot be found there is `unresolved`, its free space unknown. Without
+        `roots` the note is only read (to be said), as it stands."""
         try:
             mount, folder, quota = note["mount"], note["folder"], note["quota"]
             free, need = _count(note["free_bytes"]), _count(note["need_bytes"])
@@ -188,15 +244,42 @@ class RoomWait:
             return None
         if not (isinstance(mount, str) and isinstance(folder, str) and isinstance(quota, bool)) or until < since:
             return None
-        return cls(Path(folder), Path(mount), free, need, until - since, since, quota, job)
+        now = time.time() if now is None else now
+        if since > now + ROOM_SKEW_S:
+            return None
+        retry_s = min(until - since, ROOM_RETRY_MAX_S)
+        left = min(max(since + retry_s - now, 0.0), ROOM_RETRY_MAX_S)
+        wait = cls(Path(folder), Path(mount), free, need, retry_s, since, quota, job, time.monotonic() + left,
+                   _noted_relative(note))
+        return wait if roots is None else wait._found(roots)
+
+    def _found(self, roots: dict) -> "RoomWait":
+        """This wait with its folder as found under this machine's `roots`, or `unresolved` where it is not."""
+        local = _resolve(self.relative, roots)
+        if local is None:
+            return replace(self, free=None, need=None, unresolved=True)
+        return replace(self, folder=local, mount=mount_point(local))
+
+    @property
+    def where(self) -> str:
+        """Where room is waited for, as every line about the wait says it: 'on /data', 'in the disk quota on
+        /data'."""
+        return f"in the disk quota on {self.mount}" if self.quota else f"on {self.mount}"
+
+    @property
+    def figures(self) -> str:
+        """Its bytes, as the lines about every worker's waits say them: '12 MB free, 40 MB needed', 'free space
+        unknown'."""
+        free = "free space unknown" if self.free is None else f"{size_text(self.free)} free"
+        return free if self.need is None else f"{free}, {size_text(self.need)} needed"
 
     def begun_line(self, poll_s: float) -> str:
         """What the worker whose job met the full disk says when its wait begins."""
         if self.quota:
-            return (f"waiting for room in the disk quota on {self.mount} before claiming another job: a full quota "
+            return (f"waiting for room {self.where} before claiming another job: a full quota "
                     f"does not show in the free space ({_free_text(self.free)} free), so no probe can tell when room "
                     f"is made: claiming again in {self.retry_s / 60:.0f} min")
-        return (f"waiting for room on {self.mount} before claiming another job: {_free_text(self.free)} free, the job "
+        return (f"waiting for room {self.where} before claiming another job: {_free_text(self.free)} free, the job "
                 f"needs more (waiting for {_free_text(self.need)}, checked every {poll_s:g} s; claiming again in "
                 f"{self.retry_s / 60:.0f} min all the same)")
 
@@ -210,7 +293,7 @@ class RoomWait:
         else:
             needs = "a full disk there, whose free space could not be checked"
         left = max(0.0, self.retry_unix - time.time())
-        return (f"waiting for room on {self.mount} before claiming another job: {self.job} went back to the queue on "
+        return (f"waiting for room {self.where} before claiming another job: {self.job} went back to the queue on "
                 f"{needs}; claiming again in {left / 60:.0f} min all the same")
 
     def ended_line(self, free: int | None) -> str:
@@ -228,17 +311,98 @@ class RoomWait:
                 f"{size_text(self.need)} waited for: claiming jobs again, in case that is room enough")
 
 
-def room_missing(note, now: float | None = None) -> bool:
-    """Whether the room a job given back on a full disk waits for (its record's `room`, `RoomWait.note`) is still
-    missing: its retry time has not come and its filesystem has not the room it needs (one statvfs; a quota's, or
-    one that cannot be asked, waits for its time). A note that is not one waits for nothing."""
-    wait = RoomWait.from_note(note)
+def missing_room(note, now: float | None = None, roots: dict | None = None) -> RoomWait | None:
+    """The wait a job given back on a full disk is in (its record's `room`, `RoomWait.note`, read under this
+    machine's `roots`: `RoomWait.from_note`) while its room is still missing: its retry time has not come and its
+    filesystem has not the room it needs (one statvfs; a quota's, one that cannot be asked, and one whose folder is
+    not found under `roots` wait for their time). None when it is not missing; a note that is not one waits for
+    nothing."""
+    wait = RoomWait.from_note(note, now=now, roots=roots if roots is not None else {})
     if wait is None or wait.timed_out(now):
-        return False
+        return None
     try:
-        return not wait.over()[0]
+        return None if wait.over()[0] else wait
     except OSError:
-        return True
+        return wait
+
+
+def room_missing(note, now: float | None = None, roots: dict | None = None) -> bool:
+    """Whether the room a noted wait waits for is still missing (`missing_room`)."""
+    return missing_room(note, now, roots) is not None
+
+
+def note_doubt(note, now: float | None = None) -> str | None:
+    """Why a noted wait (`RoomWait.note`) is not waited for as it says, in a few words, or None: it begins more than
+    ROOM_SKEW_S ahead of this machine's clock (`now`: its reading), or runs longer than any worker waits."""
+    try:
+        since, until = _instant(note["since_unix"]), _instant(note["retry_unix"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    now = time.time() if now is None else now
+    if since > now + ROOM_SKEW_S:
+        return (f"its wait for room begins at {when_text(since)}, more than {ROOM_SKEW_S:.0f} s ahead of this "
+                f"machine's clock (a clock running ahead, or a damaged record): not waited for")
+    if until - since > ROOM_RETRY_MAX_S:
+        return (f"its wait for room runs {(until - since) / 60:.0f} min, longer than any worker waits: waited for "
+                f"{ROOM_RETRY_MAX_S / 60:.0f} min from its start at most")
+    return None
+
+
+UNKNOWN_TIME = "an unknown time"
+"""`when_text` of a time past what the clock can name (a damaged file's)."""
+
+
+def when_text(unix: float) -> str:
+    """A time for a person, as every line about a wait (and `worker --status`) says it: '2025-03-01 14:05 UTC'
+    (UNKNOWN_TIME for one past what the clock can name)."""
+    try:
+        return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(unix))
+    except (OverflowError, OSError, ValueError):
+        return UNKNOWN_TIME
+
+
+def _relative(folder, roots: dict) -> tuple[str, str] | None:
+    """(the first of ROOTS that `folder` lies under, the folder relative to it), or None: as the paths are written,
+    else with their links resolved (a captures root named through a link)."""
+    for name in ROOTS:
+        base = roots.get(name)
+        if base is None:
+            continue
+        for mine, theirs in ((os.path.abspath(folder), os.path.abspath(base)),
+                             (os.path.realpath(folder), os.path.realpath(base))):
+            try:
+                return name, Path(mine).relative_to(theirs).as_posix()
+            except ValueError:
+                continue
+    return None
+
+
+def _noted_relative(note) -> tuple[str, str] | None:
+    """A note's (relative_to, relative), or None where it names none or names it otherwise (a damaged record, an
+    older worker's)."""
+    under, relative = note.get("relative_to"), note.get("relative")
+    if under in ROOTS and isinstance(relative, str):
+        return under, relative
+    return None
+
+
+def _resolve(relative: tuple[str, str] | None, roots: dict) -> Path | None:
+    """The folder `relative` names under this machine's `roots`, or None where it names none there (no such root
+    here, a path that leaves it)."""
+    if relative is None or roots.get(relative[0]) is None:
+        return None
+    path = PurePosixPath(relative[1])
+    if path.is_absolute() or ".." in path.parts:
+        return None
+    return Path(os.path.abspath(roots[relative[0]])) / path
+
+
+def _total_or(folder, default: int) -> int:
+    """`total_bytes` of `folder`'s filesystem, or `default` where it cannot be asked."""
+    try:
+        return total_bytes(folder)
+    except OSError:
+        return default
 
 
 def _free_text(free: int | None) -> str:
@@ -266,5 +430,6 @@ def retry_after(full_in_row: int) -> float:
     return min(ROOM_RETRY_S * 2 ** max(full_in_row - 1, 0), ROOM_RETRY_MAX_S)
 
 
-__all__ = ["MAX_FULL_DISK", "free_bytes", "mount_point", "same_filesystem", "full_folder", "folder_bytes", "size_text",
-           "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S", "RoomWait", "room_missing", "retry_after"]
+__all__ = ["MAX_FULL_DISK", "free_bytes", "total_bytes", "mount_point", "same_filesystem", "full_folder",
+           "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S", "ROOM_SKEW_S", "ROOTS",
+           "RoomWait", "missing_room", "room_missing", "note_doubt", "UNKNOWN_TIME", "when_text", "retry_after"]

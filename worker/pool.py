@@ -18,8 +18,9 @@ at a later poll. A job whose own process met a full disk is not at fault, and a 
 goes back to the queue without counting an attempt, its line naming the folder that is full and where to make room,
 and the worker claims no job until there is room (`disk_room.RoomWait`), saying so once and again when it goes on.
 The job's attempt record carries that wait, so that no worker claims a job while its room is still missing
-(`Queue.claim`): a worker that finds such a wait in the queue waits too, and says so. A worker's presence file says
-the wait it is in (`room_wait`). A job that finished, whose outcome file alone met a full disk (the queue's), is
+(`Queue.claim`): a worker that finds such a wait in the queue waits too, and says so, and goes on as soon as the queue
+holds that wait no more (the job claimed, settled or removed). A worker's presence file says the wait it is in
+(`room_wait`). A job that finished, whose outcome file alone met a full disk (the queue's), is
 published, not reconstructed again (`jobs.EXIT_DONE_UNSAID`).
 """
 
@@ -75,7 +76,7 @@ class Worker:
         self.config = config.check()
         self.root = Path(config.root)
         self.queue = Queue(config.queue_dir or self.root / ".queue", lease_s=config.lease_s,
-                           max_attempts=config.max_attempts)
+                           max_attempts=config.max_attempts, root=self.root)
         (self.queue.path / "logs").mkdir(exist_ok=True)
         self.log = log or (lambda line: print(f"spadscan worker: {line}", file=sys.stderr, flush=True))
         self.children: dict[str, Child] = {}
@@ -107,6 +108,10 @@ class Worker:
         """The running jobs' logs as last read for their progress lines: read again only once changed."""
         self.room: RoomWait | None = None
         """While set, a job met a full disk: no job is claimed until there is room (`_room_again`)."""
+        self._adopted: str | None = None
+        """The queued job whose wait `room` is, where it is another's (`_adopt_wait`): followed in the queue."""
+        self._doubts_said: set[tuple[str, str]] = set()
+        """(job id, why) of the queued waits said to be read otherwise than they say (`_say_doubts`): said once."""
         self._full_in_row = 0
         """Jobs that met a full disk since one last finished (`disk_room.retry_after`)."""
         self.presence = Presence(Holder.current().to_dict(), str(self.root.resolve()), time.time(), config.processes,
@@ -223,10 +228,11 @@ class Worker:
             await asyncio.to_thread(self._reconcile)
         await self._take_over()
         await asyncio.to_thread(self.queue.repair)
-        if self.room is None:  # another worker's job (or an earlier run's) may wait for room: claim would skip it
-            waiting = await asyncio.to_thread(self.queue.room_wait)
-            if waiting is not None:
-                self._adopt_wait(*waiting)
+        if self.room is None or self._adopted is not None:  # another's job (or an earlier run's) may wait for room
+            doubts: list[tuple[str, str]] = []
+            waiting = await asyncio.to_thread(self.queue.room_wait, None, doubts)
+            self._say_doubts(doubts)
+            await asyncio.to_thread(self._follow_queue_wait, waiting)
         if self.room is not None and not await asyncio.to_thread(self._room_again):
             return  # a claim now would meet the full disk again
         while len(self.children) + len(self.unpublished) < self.config.processes:  # a result to publish holds its slot
@@ -558,11 +564,11 @@ class Worker:
             return room
         retry_s = retry_after(self._full_in_row + (room is None))
         try:
-            return RoomWait.begin(folder, held, retry_s, quota=quota, job=job_id)
+            return RoomWait.begin(folder, held, retry_s, quota=quota, job=job_id, roots=self.queue.roots)
         except OSError as exc:
             self.log(f"could not check the free space on the disk of {folder} ({fold(exc)}): claiming again in "
                      f"{retry_s / 60:.0f} min")
-            return RoomWait.unasked(folder, retry_s, quota=quota, job=job_id)
+            return RoomWait.unasked(folder, retry_s, quota=quota, job=job_id, roots=self.queue.roots)
 
     def _begin_wait(self, wait: RoomWait) -> None:
         """Make `wait` this worker's own, said once, unless it waits already (one wait at a time)."""
@@ -573,13 +579,37 @@ class Worker:
         if wait.quota or wait.need is not None:  # one whose free space cannot be asked was said by `_job_wait`
             self.log(wait.begun_line(self.config.poll_s))
 
+    def _follow_queue_wait(self, waiting: tuple[str, dict] | None) -> None:
+        """Follow the queue's wait for room (`Queue.room_wait`: None, or the first queued job whose room is missing),
+        where this worker waits for none of its own: adopt it, or the next job's when the one it followed waits no
+        more; with none left, an adopted wait ends at once (claims succeed again: its job was claimed, settled or
+        removed, or its room made), not at its own time, up to an hour later."""
+        if waiting is not None:
+            if waiting[0] != self._adopted:
+                self._adopt_wait(*waiting)
+            return
+        if self._adopted is None or self._room_again():  # its room, or its time: said as the wait's end
+            return
+        self.log(f"{self._adopted} waits for room in the queue no more (claimed, settled or removed): claiming jobs "
+                 f"again")
+        self.room, self._adopted = None, None
+
     def _adopt_wait(self, job_id: str, note: dict) -> None:
         """Wait, as the worker that gave it back does, for the room that the queued job `job_id` waits for (its
-        record's note, `Queue.room_wait`): no claim would be taken until then. Said once."""
-        wait = RoomWait.from_note(note, job_id)
+        record's note, `Queue.room_wait`, its folder found under this worker's queue or root): no claim would be
+        taken until then. Said once."""
+        wait = RoomWait.from_note(note, job_id, roots=self.queue.roots)
         if wait is not None:
-            self.room = wait
+            self.room, self._adopted = wait, job_id
             self.log(wait.adopted_line(self.config.poll_s))
+
+    def _say_doubts(self, doubts: list[tuple[str, str]]) -> None:
+        """Say once of each queued job's wait that is read otherwise than it says (`Queue.room_wait`'s `doubts`:
+        a wait from a clock running ahead, or one longer than any worker waits) how it is read."""
+        for doubt in doubts:
+            if doubt not in self._doubts_said:
+                self._doubts_said.add(doubt)
+                self.log(f"{doubt[0]} went back to the queue on a full disk, but {doubt[1]}")
 
     def _room_again(self) -> bool:
         """Whether the wait for room is over (`RoomWait.over`), said when it is; a probe that fails is said once and
@@ -597,7 +627,7 @@ class Worker:
             self._trouble(what, None)
         if not over:
             return False
-        self.room = None
+        self.room, self._adopted = None, None
         self.log(room.ended_line(free))
         return True
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from spadscan.protocol.atomic_files import write_atomic
 
-from .disk_room import RoomWait
+from .disk_room import RoomWait, when_text
 from .holder import holder_gone
 from .queue import QUEUE_DIRNAME, file_age
 
@@ -61,7 +61,9 @@ class Presence:
     the keys "mount" (str: where the full filesystem is mounted), "folder" (str: the folder that could not be
     written), "free_bytes" and "need_bytes" (int or None: free when last probed, and free that ends the wait),
     "since_unix" (float), "retry_unix" (float: when it claims again all the same) and "quota" (bool: a full disk
-    quota, which the free space does not show). The file is rewritten when a wait begins and when it ends."""
+    quota, which the free space does not show), and, where the folder lies under the queue or the captures root,
+    "relative_to" ("queue" or "root") and "relative" (str: the folder relative to it, which a reader on another
+    machine finds under its own). The file is rewritten when a wait begins and when it ends."""
 
 
 def presence_path(queue_dir: Path, presence: Presence) -> Path:
@@ -147,17 +149,21 @@ def workers_line(rows: list[dict], start: str) -> str:
     said = []
     for r in rows:
         doing = f"running {', '.join(r['running'])}" if r["running"] else "waiting for scans"
-        if r.get("room_wait"):
-            doing += f"; {waiting_for_room(r['room_wait'])}"
+        room = waiting_for_room(r["room_wait"]) if r.get("room_wait") else ""
+        if room:
+            doing += f"; {room}"
         since = _utc(r["started_unix"])
         said.append(f"{r['host']} pid {r['pid']} ({doing}; since {since}{', until drained' if r['once'] else ''})")
     return ("worker: " if len(rows) == 1 else f"{len(rows)} workers: ") + "; ".join(said)
 
 
 def waiting_for_room(wait: dict) -> str:
-    """What a worker's wait for room (`Presence.room_wait`) is, in a few words, for `worker --status`."""
-    where = f"in the disk quota on {wait['mount']}" if wait["quota"] else f"on {wait['mount']}"
-    return f"waiting for room {where} before claiming a job, until {_utc(wait['retry_unix'])} at the latest"
+    """What a worker's wait for room (`Presence.room_wait`) is, in a few words, for `worker --status`: where (as
+    the worker's own lines say it, `RoomWait.where`) and until when at the latest ('' for a note that is none)."""
+    read = RoomWait.from_note(wait)
+    if read is None:
+        return ""
+    return f"waiting for room {read.where} before claiming a job, until {when_text(read.retry_unix)} at the latest"
 
 
 def start_command(root: Path, queue_dir: Path) -> str:
@@ -169,10 +175,9 @@ def start_command(root: Path, queue_dir: Path) -> str:
 
 
 def _utc(unix: float) -> str:
-    try:
-        return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(unix))
-    except (OverflowError, OSError, ValueError):  # a damaged file's start, past what the clock can name
-        return "an unknown time"
+    """A time as every line about the workers says it (disk_room.when_text): a damaged file's start, past what the
+    clock can name, is 'an unknown time'."""
+    return when_text(unix)
 
 
 def _positive(value, default: float) -> float:

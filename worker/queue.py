@@ -40,7 +40,7 @@ from typing import Callable
 
 from spadscan.protocol.errors import ConfigError
 
-from .disk_room import room_missing
+from .disk_room import missing_room, note_doubt
 from .holder import Holder, holder_alive, holder_gone
 from .jobs import CHANGEABLE, ID_RE as _ID_RE, Job
 from .kill_points import kill_point
@@ -127,9 +127,11 @@ def _utc() -> str:
 class Queue:
     """A job queue in one folder. Methods are safe to call from several processes at once."""
 
-    def __init__(self, path, *, lease_s: float = 60.0, max_attempts: int = 3, create: bool = True):
+    def __init__(self, path, *, lease_s: float = 60.0, max_attempts: int = 3, create: bool = True,
+                 root=None):
         """`create`: make the queue's folders; False for read-only uses (listing), which see a missing queue as
-        empty."""
+        empty. `root`: the captures root its jobs write under, where known: a wait for room noted relative to it
+        (disk_room.RoomWait.relative) is found there (`room_wait`)."""
         if not (lease_s > 0):
             raise ConfigError(f"lease {lease_s} s must be > 0")
         if not (isinstance(max_attempts, int) and max_attempts >= 1):
@@ -137,13 +139,19 @@ class Queue:
         self.path = Path(path)
         self.lease_s = float(lease_s)
         self.max_attempts = max_attempts
+        self.root = None if root is None else Path(root)
         self._scans: dict[str, str] = {}  # registered_scan's answers: a job's scan never changes
         for sub in ("ids", "tmp", "attempts", *STATES) if create else ():
             (self.path / sub).mkdir(parents=True, exist_ok=True)
 
     @classmethod
     def for_root(cls, root, **kwargs) -> "Queue":
-        return cls(Path(root) / QUEUE_DIRNAME, **kwargs)
+        return cls(Path(root) / QUEUE_DIRNAME, root=root, **kwargs)
+
+    @property
+    def roots(self) -> dict:
+        """The folders a wait for room is noted relative to, as this machine names them (disk_room.ROOTS)."""
+        return {"queue": self.path, "root": self.root}
 
     # ---- adding ----------------------------------------------------------------------------------------------
     def enqueue(self, job: Job) -> bool:
@@ -207,6 +215,7 @@ class Queue:
             token = _new_token()
             dst = self.path / "running" / f"{job_id}{SEP}{token}.json"
             try:
+                queued = src.stat()  # its place in the queue, should the claim put it back
                 os.utime(src)  # the lease starts now: a rename keeps the old mtime
                 os.rename(src, dst)
             except FileNotFoundError:
@@ -221,22 +230,35 @@ class Queue:
             try:
                 self._record(job_id, token, holder, outcome="running", attempt=attempt)
             except OSError:  # a claim with no record would hold the job, unnamed, until its lease ran out
-                _rename(dst, src)
+                _put_back(dst, src, queued)
                 raise
             return Claim(job, token, dst, attempt)
         return None
 
-    def room_wait(self, paths=None) -> tuple[str, dict] | None:
-        """(job id, its wait) for a queued job given back on a full disk whose room is still missing: the last
+    def room_wait(self, paths=None, doubts: list | None = None) -> tuple[str, dict] | None:
+        """(job id, its wait) for a queued job given back on a full disk whose room is still missing (the first of
+        `room_waits`); None when no job waits."""
+        return next(self.room_waits(paths, doubts), None)
+
+    def room_waits(self, paths=None, doubts: list | None = None):
+        """(job id, its wait) for each queued job given back on a full disk whose room is still missing: the last
         record of the job carries the wait (`release`'s `room`, disk_room.RoomWait.note) and its filesystem has not
-        the room it needs nor has its retry time come (disk_room.room_missing: one statvfs); None when no job waits.
-        `paths`: the queued job files, where the caller has listed them."""
+        the room it needs nor has its retry time come (disk_room.missing_room: one statvfs, on the folder as found
+        under this queue or its root, `roots`). The wait is given as read here: its folder this machine's, its
+        retry time bounded. No claim succeeds until the last of them ends. `paths`: the queued job files, where the
+        caller has listed them; `doubts`: a list that gets (job id, why) for each wait read otherwise than it says
+        (disk_room.note_doubt)."""
         paths = (self.path / "queued").glob("*.json") if paths is None else paths
         for path in paths:
             room = self._room_of(path.stem)
-            if room is not None and room_missing(room):
-                return path.stem, room
-        return None
+            if room is None:
+                continue
+            doubt = note_doubt(room) if doubts is not None else None
+            if doubt is not None:
+                doubts.append((path.stem, doubt))
+            wait = missing_room(room, roots=self.roots)
+            if wait is not None:
+                yield path.stem, wait.note()
 
     def _room_of(self, job_id: str) -> dict | None:
         """The wait the last record of a queued job carries (`release`'s `room`), or None. The record says
@@ -704,6 +726,16 @@ def _rename(src: Path, dst: Path) -> bool:
         return True
     except FileNotFoundError:
         return False
+
+
+def _put_back(claimed: Path, queued: Path, was: os.stat_result) -> None:
+    """Rename the job file a claim took (`claimed`) back to `queued`, with the times it had there (`was`): its place
+    in the queue (the oldest first) is its file's mtime, which the claim had set to now."""
+    if _rename(claimed, queued):
+        try:
+            os.utime(queued, ns=(was.st_atime_ns, was.st_mtime_ns))
+        except OSError:  # claimed by another meanwhile: its place is that claim's
+            pass
 
 
 def _job_file(path: Path) -> Job | None:

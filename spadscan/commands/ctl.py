@@ -18,8 +18,9 @@
 pose i/n (`scan 'bunny' paused at pose 38/128: paused by user`); with --json they print the daemon's whole
 reply as one line of JSON instead. `status` and `wait` always print JSON; `status` takes --json too (then on one
 line), so that a script may pass it to every operation, and so does `wait` (then its line is the daemon's status as
-the scan ended, as `status --json` prints it, even when the daemon has started the next scan since, with `wait`: the
-scan's name, how the wait ended and how long it took; its progress stays on stderr). With --json a refusal, or no
+the scan ended, as `status --json` prints it, even when the daemon has started the next scan since, or the status it
+answers then for a scan that ended before it started; with `wait`: the scan's name, how it ended (and why, where
+that was said), how long the wait took; its progress stays on stderr). With --json a refusal, or no
 daemon answering, is printed on standard output as {"ok": false, "error": ...} too, beside its error line on stderr
 and exit status 1.
 
@@ -144,9 +145,13 @@ def add_arguments(parser) -> None:
         "need_bytes, since_unix, retry_unix, quota) and `said`, what it waits for as the dashboard says it ('waiting "
         "for q1-fast to finish (the worker runs 1 job at a time; `--processes 2` runs 2)', 'a worker takes it at its "
         "next look', 'the worker waits for room on /data (12 MB free, 40 MB needed): make room there; it claims "
-        "again by 14:05 (sooner once there is room)' or 'no worker is running: start one with ...'); "
+        "again by 2025-03-01 14:05 UTC (sooner once there is room)': once the first of the workers' own waits "
+        "ends, and no sooner than the last wait of a job given back to the queue on a full disk, which holds every "
+        "claim; or 'no worker is running: start one with ...'); "
         "`speed_scaling` and `speed_note`: a UR arm's "
-        "speed slider, when below 100 % (the scan runs that much slower).")
+        "speed slider, when below 100 % (the scan runs that much slower), read afresh when status is asked while the "
+        "scan is paused or the daemon idle; `speed_scaling_age_s`: seconds since it was read (the note says so when it "
+        "could not be renewed for over 5 s).")
     scan = op("scan", "start a scan (options override the config's [scan] defaults)",
               "Start a scan. Every scan setting left out takes the daemon's default: the [scan] value of its rig "
               "config (examples/README.md documents each key).")
@@ -220,9 +225,10 @@ def add_arguments(parser) -> None:
                       help="for scripts: standard output gets one line of JSON once the wait ends, and nothing "
                            "else: the daemon's status as the scan ended, as `status --json` prints it (the next scan "
                            "may run by then: the line is still the status of the scan waited for, with its `live`; "
-                           "for a scan that ended before the daemon started, the daemon's answer {\"name\", "
-                           "\"state\", \"reason\"} instead), plus `wait`: {\"name\", \"ended\": complete or "
-                           "aborted, \"waited_s\"}; an error (a refusal, no daemon answering, --timeout run out) or "
+                           "for a scan that ended before the daemon started, the daemon's status then, with the "
+                           "waited scan's `live`: `state` is always the daemon's), plus `wait`: {\"name\", "
+                           "\"ended\": complete or aborted, \"reason\" where one was given for how it ended, "
+                           "\"waited_s\"}; an error (a refusal, no daemon answering, --timeout run out) or "
                            "Ctrl-C is printed as {\"ok\": false, \"error\": ..., \"wait\": {\"name\", \"ended\": "
                            "error, timeout or interrupted, \"waited_s\"}} beside its line on stderr. The exit status "
                            "is as without --json (0 complete; 1 aborted or an error; 130 Ctrl-C). The progress bar "
@@ -346,7 +352,8 @@ def _wait(path: str, name: str, timeout: float | None, as_json: bool = False) ->
     line = reply
     if as_json:
         try:
-            line = wait_json(reply, status, waited(str(reply.get("state"))))
+            ended = {**waited(str(reply.get("state"))), **({"reason": reply["reason"]} if reply.get("reason") else {})}
+            line = wait_json(reply, _status(path) if status is None else status, ended)
         except KeyboardInterrupt:  # the scan has ended: a Ctrl-C while its live status is read leaves the rest out
             line = {**reply, "wait": waited(str(reply.get("state")))}
     print(json.dumps(line))
@@ -358,14 +365,13 @@ def _wait(path: str, name: str, timeout: float | None, as_json: bool = False) ->
     return 0
 
 
-def wait_json(reply: dict, status: dict | None, waited: dict) -> dict:
+def wait_json(reply: dict, status: dict, waited: dict) -> dict:
     """`wait --json`'s line: `status`, the daemon's status as the scan waited for ended (from the wait's reply: one
-    read afterwards may be the next scan's), as `status --json` prints it, its `live` that scan's whatever scan the
-    daemon held; and `wait`: {"name", "ended": the scan's end (complete, aborted), "waited_s"}. A scan that ended
-    before the daemon started has no such status (None): the line is then the daemon's reply ({"name", "state",
-    "reason"}) and `wait`."""
-    if status is None:
-        return {**reply, "wait": waited}
+    read afterwards may be the next scan's; for a scan that ended before the daemon started, which the daemon has no
+    such status of, the status it answers now; {} when it answers no more), as `status --json` prints it, its `live`
+    that scan's whatever scan the daemon held; and `wait`: {"name", "ended": the scan's end (complete, aborted),
+    "reason" where one was given, "waited_s"}. Its `state` is the daemon's in every case: the scan's end is
+    `wait`'s."""
     shown = {k: v for k, v in status.items() if k not in ("ok", "live")}
     captures = (status.get("daemon") or {}).get("captures")
     live = capture_live(os.path.join(captures, reply["name"]), captures) if captures else None
@@ -460,9 +466,9 @@ def live_queued(captures: str, scan: str) -> dict | None:
     queued (or given back), "behind": the jobs of other scans running now (their workers renew their claims),
     "workers": the workers present ("HOST pid N"), "processes": how many jobs they run at once, "room_waits": the
     workers among them that wait for room on a full disk before they claim again, each one's `room_wait`
-    (presence.Presence.room_wait), "said": what it waits for, in the dashboard's words}; None when it is not queued, or the queue
-    cannot be read. The worker's own queue and presence code read it, as for the dashboard and `spadscan worker
-    --status`."""
+    (presence.Presence.room_wait), "said": what it waits for, in the dashboard's words}; None when it is not queued,
+    or the queue cannot be read. The worker's own queue and presence code read it, as for the dashboard and
+    `spadscan worker --status`."""
     from spadscan.protocol.errors import SpadscanError
     from spadscan.worker.presence import present_workers, start_command
     from spadscan.worker.queue import Queue
@@ -482,22 +488,28 @@ def live_queued(captures: str, scan: str) -> dict | None:
     behind = [row.id for row in rows if row.state == "running" and row.stale is None and row.scan != scan]
     named = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"], "running": w["running"],
               "room_wait": w.get("room_wait")} for w in workers]
+    try:  # read only where every worker waits for room: then the last of them says when a claim succeeds again
+        every = named and all(w["room_wait"] for w in named)
+        queue_waits = [note for _, note in queue.room_waits()] if every else []
+    except OSError:
+        queue_waits = []
     return {"job": job.id, "waiting_s": None if job.waiting_s is None else round(job.waiting_s, 1), "behind": behind,
             "workers": [w["name"] for w in named], "processes": sum(w["processes"] for w in named),
             "room_waits": {w["name"]: w["room_wait"] for w in named if w["room_wait"] is not None},
-            "said": queued_said(behind, named, f"{start_command(Path(captures), queue.path)} --live")}
+            "said": queued_said(behind, named, f"{start_command(Path(captures), queue.path)} --live", queue_waits)}
 
 
-def queued_said(behind: list[str], workers: list[dict], start: str) -> str:
+def queued_said(behind: list[str], workers: list[dict], start: str, queue_waits: list[dict] = ()) -> str:
     """What a queued live job waits for, as the dashboard says it: no worker (and `start`, the command that starts
-    one), room on a full disk (every worker waits for it: `room_said`), a worker's next look (a job process is free),
-    or the jobs `behind` (and how to run one job more at once). A worker that waits for room (its `room_wait`) claims
-    nothing meanwhile: neither its job processes nor the jobs it runs count."""
+    one), room on a full disk (every worker waits for it: `room_said`, `queue_waits` the waits of the jobs given back
+    to the queue on a full disk whose room is still missing, Queue.room_waits), a worker's next look (a job process is
+    free), or the jobs `behind` (and how to run one job more at once). A worker that waits for room (its
+    `room_wait`) claims nothing meanwhile: neither its job processes nor the jobs it runs count."""
     if not workers:
         return f"no worker is running: start one with `{start}`"
     claiming = [w for w in workers if not w.get("room_wait")]
     if not claiming:
-        return room_said([w["room_wait"] for w in workers])
+        return room_said([w["room_wait"] for w in workers], queue_waits)
     held = {job for w in workers if w.get("room_wait") for job in w.get("running", ())}
     behind = [job for job in behind if job not in held]
     n = sum(w["processes"] for w in claiming) or 1
@@ -507,30 +519,26 @@ def queued_said(behind: list[str], workers: list[dict], start: str) -> str:
             f"({_processes_advice(claiming, n)})")
 
 
-def room_said(waits: list[dict]) -> str:
+def room_said(waits: list[dict], queue_waits: list[dict] = ()) -> str:
     """What a queued job waits for while every worker waits for room (`waits`: their `room_wait`s): on which disk
     (each mount once, with the figures of the first worker that names it), what to do, and by when a worker claims
-    again at the latest (the first of their retries: each claims sooner once its disk has room)."""
-    from spadscan.worker.disk_room import size_text
+    again at the latest: once the first of their own waits ends, and no sooner than the last of `queue_waits` (those
+    of the jobs given back to the queue on a full disk whose room is still missing: no claim succeeds before), each
+    sooner once its disk has room. Places, figures and times are said as the worker's own lines and
+    `worker --status` say them (disk_room.RoomWait.where, .figures, disk_room.when_text)."""
+    from spadscan.worker.disk_room import UNKNOWN_TIME, RoomWait, when_text
 
+    read = [w for w in map(RoomWait.from_note, waits) if w is not None]
     mounts = {}
-    for wait in waits:
-        mounts.setdefault(wait["mount"], wait)
-    places = []
-    for mount, wait in mounts.items():
-        free = "free space unknown" if wait["free_bytes"] is None else f"{size_text(wait['free_bytes'])} free"
-        need = "" if wait["need_bytes"] is None else f", {size_text(wait['need_bytes'])} needed"
-        places.append(f"{'in the disk quota on' if wait['quota'] else 'on'} {mount} ({free}{need})")
+    for wait in read:
+        mounts.setdefault(wait.mount, wait)
+    places = [f"{wait.where} ({wait.figures})" for wait in mounts.values()]
     who = "the worker waits" if len(waits) == 1 else f"every worker ({len(waits)}) waits"
-    fix = "make room there" + (" or raise the quota" if any(w["quota"] for w in waits) else "")
-    retries = [w["retry_unix"] for w in waits if w["retry_unix"] is not None]
-    when = ""
-    try:
-        by = time.strftime("%H:%M", time.localtime(min(retries))) if retries else None
-    except (OverflowError, OSError, ValueError):  # a time past what the clock can name: said as unknown
-        by = None
-    if by is not None:
-        when = f"; {'it' if len(waits) == 1 else 'a worker'} claims again by {by} (sooner once there is room)"
+    fix = "make room there" + (" or raise the quota" if any(w.quota for w in read) else "")
+    queued = [w.retry_unix for w in map(RoomWait.from_note, queue_waits) if w is not None]
+    by = when_text(max([min(w.retry_unix for w in read), *queued])) if read else UNKNOWN_TIME
+    who_claims = "it" if len(waits) == 1 else "a worker"
+    when = "" if by == UNKNOWN_TIME else f"; {who_claims} claims again by {by} (sooner once there is room)"
     return f"{who} for room {' and '.join(places)}: {fix}{when}"
 
 

@@ -59,7 +59,9 @@ jobs keep meeting it), saying so when it stops and when it goes on. The disk nam
 queue's (--queue on a disk of its own) when the job's log or outcome file did not fit there. A full disk quota
 (EDQUOT) does not show in the free space: the worker says it is a quota and waits for the timer alone. The job's
 attempt record carries the wait, and no worker on the queue claims a job while it lasts: another worker waits too,
-and says so. A job that finished, whose small outcome file alone did not fit, is published, not reconstructed
+says so, and goes on once that job no longer waits in the queue. Such a wait lasts an hour at most, whatever the
+record or another machine's clock says; its folder is found under this worker's own root or queue, else it is waited
+for on its timer. A job that finished, whose small outcome file alone did not fit, is published, not reconstructed
 again. A job that met a full disk 3 times fails: its result may need more room than the disk frees; make room, then
 --retry-failed.
 
@@ -74,8 +76,8 @@ died or stopped renewing its lease shows as
 `stale` (the next worker to look at the queue takes it over); one whose worker has missed heartbeats while its lease
 still holds shows as `running?`. Its last line (not with --json, which lists the jobs alone) names the workers
 running on the queue, idle ones included (each renews a file under QUEUE/workers/ while it runs), and where a worker
-waits for room on a full disk, where and until when at the latest; or it says that no worker runs and how to start
-one.
+waits for room on a full disk, where and until when at the latest (in UTC); or it says that no worker runs and how
+to start one.
 
 --once queues the complete scans there are, runs until nothing is queued or running, and exits. Its last line
 counts the jobs done and failed and names each scan it left unqueued, and why (still recorded, or a copy still under

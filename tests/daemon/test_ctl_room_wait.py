@@ -13,11 +13,14 @@ from pathlib import Path
 
 import pytest
 
+import spadscan.worker.disk_room as disk_room
 from spadscan.commands.ctl import live_line, live_status
+from spadscan.worker.disk_room import ROOM_RETRY_MAX_S, RoomWait
 from spadscan.worker.holder import Holder
+from spadscan.worker.jobs import Job
 from spadscan.worker.queue import Queue
 
-from test_ctl_live_queue import ELSEWHERE, captures, ctl_status, status_of
+from test_ctl_live_queue import ELSEWHERE, captures, ctl_status, status_of, worker_present
 
 MB = 1_000_000
 
@@ -40,8 +43,9 @@ def set_room_wait(root: Path, holder: Holder, value) -> None:
     path.write_text(json.dumps(data, indent=1) + "\n")
 
 
-def hhmm(unix: float) -> str:
-    return time.strftime("%H:%M", time.localtime(unix))
+def utc(unix: float) -> str:
+    """A time as `worker --status` says it: '2025-03-01 14:05 UTC'."""
+    return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(unix))
 
 
 @pytest.fixture
@@ -56,7 +60,7 @@ def test_a_worker_waiting_for_room_is_said_instead_of_its_next_look(idle, monkey
     waiting = room_wait()
     set_room_wait(idle, me, waiting)
     said = (f"the worker waits for room on /mnt/scratch (12 MB free, 40 MB needed): make room there; it claims again "
-            f"by {hhmm(waiting['retry_unix'])} (sooner once there is room)")
+            f"by {utc(waiting['retry_unix'])} (sooner once there is room)")
     queued = live_status(status_of(idle))["queued"]
     assert queued["said"] == said, queued["said"]
     assert live_line({"queued": queued}) == f"live reconstruction queued: {said}"
@@ -76,7 +80,7 @@ def test_every_worker_waiting_names_each_disk_and_the_first_claim(tmp_path):
     assert queued["said"] == (
         f"every worker (2) waits for room on /mnt/scratch (12 MB free, 40 MB needed) and in the disk quota on /data "
         f"(free space unknown): make room there or raise the quota; a worker claims again by "
-        f"{hhmm(sooner['retry_unix'])} (sooner once there is room)"), queued["said"]
+        f"{utc(sooner['retry_unix'])} (sooner once there is room)"), queued["said"]
     assert set(queued["room_waits"]) == {f"{me.host} pid {me.pid}", f"{ELSEWHERE.host} pid {ELSEWHERE.pid}"}
 
 
@@ -112,7 +116,31 @@ def test_a_damaged_room_wait_is_read_as_the_worker_reads_it_no_wait(idle, odd):
     assert queued["said"] == "a worker takes it at its next look" and queued["room_waits"] == {}
 
 
-def test_unknown_free_space_and_a_retry_past_the_clock_are_said_as_unknown(idle):
-    set_room_wait(idle, Holder.current(), {**room_wait(), "free_bytes": None, "need_bytes": None, "retry_unix": 1e300})
+def test_unknown_free_space_is_said_as_unknown_and_a_retry_past_the_longest_wait_is_bounded(idle):
+    """No worker waits longer than ROOM_RETRY_MAX_S (an hour): a retry noted past that (a damaged file) is said as
+    its start plus that. Before: no time was said."""
+    waiting = {**room_wait(), "free_bytes": None, "need_bytes": None, "retry_unix": 1e300}
+    set_room_wait(idle, Holder.current(), waiting)
     assert live_status(status_of(idle))["queued"]["said"] == (
-        "the worker waits for room on /mnt/scratch (free space unknown): make room there")
+        f"the worker waits for room on /mnt/scratch (free space unknown): make room there; it claims again by "
+        f"{utc(waiting['since_unix'] + ROOM_RETRY_MAX_S)} (sooner once there is room)")
+
+
+def test_the_claim_is_said_by_the_last_wait_that_holds_the_queue(tmp_path, monkeypatch):
+    """A job given back to the queue on a full disk holds every claim until its room is made or its retry time
+    comes: the worker's own wait ends in 10 min, but it claims nothing before the queued job's wait ends in 50.
+    Before: the first of the workers' own retries was said."""
+    monkeypatch.setattr(disk_room, "free_bytes", lambda folder: 12 * MB)  # the disk stays full
+    root = tmp_path / "caps"
+    (root / "mug").mkdir(parents=True)
+    queue = Queue.for_root(root)
+    queue.enqueue(Job(id="q2-fast", scan="q2"))
+    given = queue.claim()
+    held = RoomWait.begin(root / "q2" / "recon", held=0, retry_s=3000.0, job="q2-fast", roots=queue.roots)
+    assert queue.release(given, "no room left on the disk", outcome="disk_full", room=held.note())
+    queue.enqueue(Job(id="mug-fast", scan="mug", live=True))
+    me = Holder.current()
+    worker_present(root, me, 1)
+    set_room_wait(root, me, room_wait(retry_in_s=600.0))
+    said = live_status(status_of(root))["queued"]["said"]
+    assert said.endswith(f"; it claims again by {utc(held.retry_unix)} (sooner once there is room)"), said

@@ -130,10 +130,12 @@ def test_the_help_says_wait_takes_json_and_where_the_progress_goes(capsys):
     assert "and so does `wait`" in " ".join(capsys.readouterr().out.split())
 
 
-def test_wait_with_json_on_a_scan_that_ended_before_the_daemon_started_prints_the_reply(tmp_path, monkeypatch,
-                                                                                       capsys):
-    """The daemon has no status of that scan's end (null): the line is its reply and `wait`, not a status read now,
-    which is of another scan (here one being recorded)."""
+def test_wait_with_json_on_a_scan_that_ended_before_the_daemon_started_keeps_the_status_shape(tmp_path, monkeypatch,
+                                                                                              capsys):
+    """The daemon has no status of that scan's end (null): the line is still a status, the one the daemon answers
+    now (here of another scan, being recorded), its `state` the daemon's as in every other case; the scan's end is
+    `wait`'s (`ended`, and `reason`). Before: the line was the daemon's reply, {"name", "state": the scan's end,
+    "reason"}, so that `state` meant one thing or the other."""
     import spadscan.daemon.client as client
 
     now = {"ok": True, "state": "scanning", "scan": "next", "daemon": {"captures": str(tmp_path / "caps")}}
@@ -143,4 +145,26 @@ def test_wait_with_json_on_a_scan_that_ended_before_the_daemon_started_prints_th
     assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "wait", "mug", "--json"]) == 1
     shown = one_json_line(capsys.readouterr().out)
     waited = shown.pop("wait")
-    assert shown == {"name": "mug", "state": "aborted", "reason": "lamp changed"} and waited["ended"] == "aborted"
+    assert shown == {"state": "scanning", "scan": "next", "daemon": {"captures": str(tmp_path / "caps")}}, shown
+    assert waited.pop("waited_s") >= 0
+    assert waited == {"name": "mug", "ended": "aborted", "reason": "lamp changed"}
+
+
+def test_wait_with_json_says_why_the_scan_ended_in_wait(tmp_path, monkeypatch, capsys):
+    """The daemon's status as the scan ended: `wait` carries the reason too, where one was given."""
+    import spadscan.daemon.client as client
+
+    status = {"state": "idle", "scan": None, "last_scan": {"name": "mug", "state": "aborted"}}
+    replies = {"wait": {"ok": True, "name": "mug", "state": "aborted", "reason": "lamp changed", "status": status}}
+    monkeypatch.setattr(client, "call", lambda path, op, timeout, **request: dict(replies[op]))
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "wait", "mug", "--json"]) == 1
+    shown = one_json_line(capsys.readouterr().out)
+    assert shown["state"] == "idle" and shown["wait"]["reason"] == "lamp changed", shown
+
+
+def test_the_help_says_the_state_is_the_daemons_and_the_scans_end_is_waits(capsys):
+    with pytest.raises(SystemExit):
+        main(["ctl", "wait", "--help"])
+    shown = " ".join(capsys.readouterr().out.split())
+    assert "for a scan that ended before the daemon started, the daemon's status then" in shown, shown
+    assert "`state` is always the daemon's" in shown and '"reason" where one was given for how it ended' in shown

@@ -22,7 +22,7 @@ from spadscan.worker.worker_config import WorkerConfig
 from test_watcher import make_scan
 from test_worker_disk_full import JOB, PAGE, RECON, counted_probes, until
 
-KEYS = {"mount", "folder", "free_bytes", "need_bytes", "since_unix", "retry_unix", "quota"}
+KEYS = {"mount", "folder", "free_bytes", "need_bytes", "since_unix", "retry_unix", "quota", "relative_to", "relative"}
 
 
 def own_row(worker: Worker) -> dict:
@@ -66,6 +66,7 @@ def test_a_worker_waiting_for_room_says_so_in_its_presence_file(tmp_path, monkey
     room = worker.queue.records(JOB)[0]["room"]
     assert set(wait) == KEYS and wait == room, "the contract's keys exactly; the job's record says the same wait"
     assert (wait["mount"], wait["folder"]) == (str(mount_point(root)), str(root / "s" / "recon"))
+    assert (wait["relative_to"], wait["relative"]) == ("root", "s/recon"), "found by a reader under its own root"
     assert wait["free_bytes"] == PAGE and wait["need_bytes"] > PAGE and wait["quota"] is False
     assert isinstance(wait["since_unix"], float) and wait["retry_unix"] == pytest.approx(wait["since_unix"] + 600.0)
 

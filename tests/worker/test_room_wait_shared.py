@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import os
+import time
 import types
 
 import pytest
@@ -23,9 +25,12 @@ from test_worker_disk_full import JOB, PAGE, RECON, counted_probes, until
 
 
 def fake_clock(monkeypatch) -> dict:
-    """disk_room's clock (time.time), set by the test: {"now": seconds}."""
-    clock = {"now": 1_700_000_000.0}
-    monkeypatch.setattr(disk_room, "time", types.SimpleNamespace(time=lambda: clock["now"]))
+    """disk_room's wall clock (time.time), set by the test: {"now": seconds}; its monotonic one, {"monotonic"}, runs
+    on from the real one's reading, moved by the test."""
+    clock = {"now": 1_700_000_000.0, "monotonic": time.monotonic()}
+    monkeypatch.setattr(disk_room, "time", types.SimpleNamespace(time=lambda: clock["now"],
+                                                                 monotonic=lambda: clock["monotonic"],
+                                                                 strftime=time.strftime, gmtime=time.gmtime))
     return clock
 
 
@@ -34,7 +39,7 @@ def given_back_on_a_full_disk(q: Queue, tmp_path, job_id: str = "a-fast") -> Roo
     record."""
     claim = q.claim()
     assert claim.job.id == job_id
-    wait = RoomWait.begin(tmp_path, held=0, retry_s=600.0, job=job_id)
+    wait = RoomWait.begin(tmp_path, held=0, retry_s=600.0, job=job_id, roots=q.roots)
     assert q.release(claim, "no room left on the disk", outcome="disk_full", room=wait.note())
     return wait
 
@@ -43,7 +48,7 @@ def test_no_job_is_claimed_while_one_given_back_on_a_full_disk_waits_for_room(tm
     free = {"now": PAGE}
     monkeypatch.setattr(disk_room, "free_bytes", lambda folder: free["now"])
     fake_clock(monkeypatch)
-    q = Queue(tmp_path / "q")
+    q = Queue(tmp_path / "q", root=tmp_path)
     q.enqueue(Job(id="a-fast", scan="a"))
     wait = given_back_on_a_full_disk(q, tmp_path)
     q.enqueue(Job(id="b-fast", scan="b"))  # another scan's job: its result goes where that one's went
@@ -61,7 +66,7 @@ def test_no_job_is_claimed_while_one_given_back_on_a_full_disk_waits_for_room(tm
 def test_a_job_given_back_on_a_full_disk_is_claimed_again_once_its_retry_time_has_come(tmp_path, monkeypatch):
     monkeypatch.setattr(disk_room, "free_bytes", lambda folder: PAGE)  # the disk never frees
     clock = fake_clock(monkeypatch)
-    q = Queue(tmp_path / "q")
+    q = Queue(tmp_path / "q", root=tmp_path)
     q.enqueue(Job(id="a-fast", scan="a"))
     wait = given_back_on_a_full_disk(q, tmp_path)
     clock["now"] = wait.retry_unix - 1
@@ -72,7 +77,7 @@ def test_a_job_given_back_on_a_full_disk_is_claimed_again_once_its_retry_time_ha
 
 def test_a_wait_whose_free_space_cannot_be_asked_holds_claims_until_its_time(tmp_path, monkeypatch):
     clock = fake_clock(monkeypatch)
-    q = Queue(tmp_path / "q")
+    q = Queue(tmp_path / "q", root=tmp_path)
     q.enqueue(Job(id="a-fast", scan="a"))
     monkeypatch.setattr(disk_room, "free_bytes", lambda folder: PAGE)
     wait = given_back_on_a_full_disk(q, tmp_path)
@@ -87,7 +92,7 @@ def test_a_wait_whose_free_space_cannot_be_asked_holds_claims_until_its_time(tmp
 
 
 def test_a_damaged_wait_in_a_record_holds_nothing(tmp_path):
-    q = Queue(tmp_path / "q")
+    q = Queue(tmp_path / "q", root=tmp_path)
     q.enqueue(Job(id="a-fast", scan="a"))
     claim = q.claim()
     q.release(claim, "no room left on the disk", outcome="disk_full", room={"mount": 3})
@@ -98,7 +103,7 @@ def test_an_interrupted_claim_after_the_wait_holds_nothing(tmp_path, monkeypatch
     """Once the job is claimed again, its wait is over: a later release (a stop) says nothing of room."""
     free = {"now": PAGE}
     monkeypatch.setattr(disk_room, "free_bytes", lambda folder: free["now"])
-    q = Queue(tmp_path / "q")
+    q = Queue(tmp_path / "q", root=tmp_path)
     q.enqueue(Job(id="a-fast", scan="a"))
     wait = given_back_on_a_full_disk(q, tmp_path)
     free["now"] = wait.need
@@ -111,7 +116,7 @@ def test_a_claim_whose_record_does_not_fit_puts_the_job_back(tmp_path, monkeypat
     """The queue's own disk full: the claim's record cannot be written. The job goes back to queued/ (a rename
     needs no room) instead of sitting in running/, held by nobody, until a lease that no one renews runs out, and
     then counted as an attempt its worker lost."""
-    q = Queue(tmp_path / "q")
+    q = Queue(tmp_path / "q", root=tmp_path)
     q.enqueue(Job(id="a-fast", scan="a"))
 
     def full(*args, **kwargs):
@@ -124,6 +129,26 @@ def test_a_claim_whose_record_does_not_fit_puts_the_job_back(tmp_path, monkeypat
     monkeypatch.undo()
     claim = q.claim()
     assert claim.job.id == "a-fast" and claim.attempt == 1
+
+
+def test_a_claim_put_back_keeps_the_jobs_place_in_the_queue(tmp_path, monkeypatch):
+    """While the queue's disk is full, every poll's claim is put back: the oldest job stays first. Before: its file
+    came back with the claim's fresh mtime, behind every other job, and each poll moved the next one to the back."""
+    q = Queue(tmp_path / "q")
+    for n, job_id in enumerate(("a-fast", "b-fast")):
+        q.enqueue(Job(id=job_id, scan=job_id[0]))
+        os.utime(q.path / "queued" / f"{job_id}.json", ns=(1_700_000_000 * 10**9 + n, 1_700_000_000 * 10**9 + n))
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(q, "_write_record", full)
+    for _ in range(2):  # two polls
+        with pytest.raises(OSError):
+            q.claim()
+    assert (q.path / "queued" / "a-fast.json").stat().st_mtime_ns == 1_700_000_000 * 10**9
+    monkeypatch.undo()
+    assert [q.claim().job.id, q.claim().job.id] == ["a-fast", "b-fast"], "first queued, first run"
 
 
 @pytest.mark.usefixtures("recon_stand_ins")
