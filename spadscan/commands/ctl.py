@@ -354,8 +354,8 @@ def _wait(path: str, name: str, timeout: float | None, as_json: bool = False) ->
         try:
             ended = {**waited(str(reply.get("state"))), **({"reason": reply["reason"]} if reply.get("reason") else {})}
             line = wait_json(reply, _status(path) if status is None else status, ended)
-        except KeyboardInterrupt:  # the scan has ended: a Ctrl-C while its live status is read leaves the rest out
-            line = {**reply, "wait": waited(str(reply.get("state")))}
+        except KeyboardInterrupt:  # the scan has ended: a Ctrl-C while its live status is read leaves the status out
+            line = {"wait": ended}
     print(json.dumps(line))
     if reply.get("state") != "complete":
         reason = reply.get("reason")  # (an abort's: `ctl abort --reason`, or the daemon's own)
