@@ -12,14 +12,15 @@ files). Results survive: each finished point is written at once to DIR/points/<i
 DIR/results.csv; a re-run of the same sweep runs only the points not done (failed ones again); a point whose worker
 dies runs again on another (one that kills every worker it is tried on fails, saying how the last one ended where
 the embedded cluster knows it: the signal, as "killed (SIGKILL: out of memory, or killed by hand?)" or "crashed
-(SIGSEGV)", or the exit code); a sweep file whose base condition or methods differ from those DIR was run with is
-refused, and so is one whose grid lacks entries DIR holds results of (a grown grid is welcome; --overwrite runs it,
-and results.csv then holds its entries alone). Failed points are results too: they are listed at the end and
-marked in `spadscan sweep-plot DIR`; the exit status is 0 once every point has run. A result whose run warned (a
-preset that did not converge; any method's report.json warnings) is counted at the end, carried into results.csv
-(<method>_converged, <method>_warning_count, <method>_warnings: the lines joined by " | ") and marked in the plot;
-so is a baseline whose calibrated threshold is at an end of those tried (<method>_threshold_edge). Without [grid],
-the sweep runs the base condition alone.
+(SIGSEGV)", or the exit code, or "stopped by Dask for using too much memory" where it passed 95% of its memory limit,
+an equal share of the machine's memory per worker); a sweep file whose base condition or methods differ from those DIR
+was run with is refused, and so is one whose grid lacks entries DIR holds results of (a grown grid is welcome;
+--overwrite runs it, and results.csv then holds its entries alone). Failed points are results too: they are listed at
+the end and marked in `spadscan sweep-plot DIR`; the exit status is 0 once every point has run. A result whose run
+warned (a preset that did not converge; any method's report.json warnings) is counted at the end, carried into
+results.csv (<method>_converged, <method>_warning_count, <method>_warnings: the lines joined by " | ") and marked in
+the plot; so is a baseline whose calibrated threshold is at an end of those tried (<method>_threshold_edge). Without
+[grid], the sweep runs the base condition alone.
 
 Examples:
   spadscan sweep examples/sweeps/small.toml --out sweep-small && spadscan sweep-plot sweep-small

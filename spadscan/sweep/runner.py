@@ -6,10 +6,11 @@ worker dies mid-point (killed, out of memory, its machine gone), the scheduler h
 (Dask retries a task whose worker died up to `distributed.scheduler.allowed-failures` times, 3 by default); a
 point that kills that many workers is recorded as failed, with how its last worker ended where that is known: only
 a worker's nanny (its parent process) learns the exit status, and the embedded cluster's nannies report it
-(`ExitNotingNanny`), so that a point there says which signal ended its worker, or its exit code; a scheduler's workers
-do not, and a point there says that its worker died. Workers report each point's start and stages as Dask events,
-which this client writes to DIR/log.jsonl. Every sweep on a scheduler shares the events' topic: each event names its
-sweep's folder, and a client logs only its own folder's.
+(`ExitNotingNanny`), so that a point there says which signal ended its worker, or its exit code, or that the nanny
+itself stopped it for using more than its memory limit (each of the embedded cluster's workers may use an equal share
+of the machine's memory); a scheduler's workers do not, and a point there says that its worker died. Workers report
+each point's start and stages as Dask events, which this client writes to DIR/log.jsonl. Every sweep on a scheduler
+shares the events' topic: each event names its sweep's folder, and a client logs only its own folder's.
 
 A point on a CUDA device asks for the worker resource GPU=1: start GPU workers with `--resources GPU=1`
 (one per GPU); an embedded cluster gives each of its workers one.
@@ -30,7 +31,8 @@ from dataclasses import dataclass, field
 from multiprocessing import resource_tracker
 from typing import Callable
 
-from distributed import Client, KilledWorker, LocalCluster, Nanny, as_completed, get_worker
+from dask.utils import format_bytes
+from distributed import Client, KilledWorker, LocalCluster, Nanny, as_completed, get_worker, system
 from distributed.comm import connect
 from distributed.core import Status
 from distributed.utils import silence_logging_cmgr
@@ -61,6 +63,10 @@ EXIT_TOPIC = "spadscan-worker-exit"
 EXIT_NOTE_S = 10.0
 """How long the client waits, once Dask has given up on a point whose worker died, for the nanny's report of how
 that worker ended: the two travel apart (the report comes within moments, on a busy machine within seconds)."""
+MEMORY_STOP_TOPIC = "worker-restart-memory"
+"""The topic of the event a Dask nanny logs as it stops its worker for using more than its memory limit (its memory
+manager's, distributed.worker.memory.terminate of the limit: 95% by default), just before it sends SIGTERM (SIGKILL
+where that does not end it)."""
 CRASH_SIGNALS = ("SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT")
 """Signals a process gets from its own fault: it crashed."""
 STOP_SIGNALS = ("SIGTERM", "SIGINT", "SIGHUP", "SIGQUIT")
@@ -300,12 +306,21 @@ def _outcome(outcome, task: PointTask, store: SweepDir, device: str, exits: Work
 
 def killed_worker_reason(error: KilledWorker, exits: WorkerExits | None = None) -> str:
     """Why a point whose workers died failed: how its last worker ended (`process_ending`: a signal's name, or the
-    exit code; 'died' where `exits` does not say) and whose log says why."""
+    exit code; 'died' where `exits` does not say) and whose log says why; or, where its nanny stopped it for its
+    memory (`memory_ending`), which worker it was (its log does not say: the embedded cluster's logs are silenced)."""
     tries = error.allowed_failures + 1
     last = error.last_worker  # Dask's record of the last worker that ran the task (None in a made-up error)
     address = getattr(last, "address", None)
     nanny = getattr(last, "nanny", None)
     code = None if exits is None or not address else exits.wait_for(address, nanny, EXIT_NOTE_S)
+    memory = None if code is None else exits.memory_stop(address)
+    if memory is not None:
+        which = worker_where(last, local=False, address=False)
+        which = f" ({which})" if which else ""
+        if tries == 1:
+            return f"the worker running it{which} {memory_ending(memory)}"
+        return (f"the worker running it died each time it was tried ({tries} workers); the last{which} "
+                f"{memory_ending(memory)}")
     ending = process_ending(code)
     where = worker_where(last, local=exits is not None)
     if tries == 1:
@@ -337,18 +352,44 @@ def process_ending(exitcode: int | None) -> str:
     return f"was ended by {name}"
 
 
-def worker_where(worker, local: bool) -> str:
+def memory_ending(memory: dict) -> str:
+    """How a worker that its nanny stopped for its memory ended, from the nanny's report (`ExitNotingNanny`: bytes
+    it used, its limit and the machine's, the fraction of the limit at which Dask stops a worker): 'was stopped by
+    Dask for using too much memory: 480.20 MiB, more than 95% of its 286.10 MiB limit, its share of this machine's
+    15.60 GiB (fewer --workers give each more)'; without the share where the worker had the whole machine's."""
+    said = (f"was stopped by Dask for using too much memory: {format_bytes(memory['rss'])}, more than "
+            f"{memory['terminate']:.0%} of its {format_bytes(memory['limit'])} limit")
+    if memory["limit"] < memory["machine"]:
+        said += f", its share of this machine's {format_bytes(memory['machine'])} (fewer --workers give each more)"
+    return said
+
+
+def worker_where(worker, local: bool, address: bool = True) -> str:
     """Which worker, so that its log can be found: its name and pid, and where it writes (an embedded cluster's
-    workers write to this command's stderr) or its address; '' where Dask did not say."""
+    workers write to this command's stderr) or (with `address`) its address; '' where Dask did not say."""
     if worker is None:
         return ""
     pid = getattr(worker, "pid", None)
     parts = [f"worker {getattr(worker, 'name', '?')}"] + ([f"pid {pid}"] if pid else [])
     if local:
         parts.append("writing to this command's stderr")
-    elif getattr(worker, "address", None):
+    elif address and getattr(worker, "address", None):
         parts.append(f"at {worker.address}")
     return ", ".join(parts)
+
+
+def memory_report(memory) -> dict | None:
+    """The memory part of a nanny's exit report, checked: {"rss", "limit", "machine": bytes, "terminate": the
+    fraction}; None where it is missing or malformed."""
+    if not isinstance(memory, dict):
+        return None
+    sizes = [memory.get(k) for k in ("rss", "limit", "machine")]
+    fraction = memory.get("terminate")
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in sizes):
+        return None
+    if not isinstance(fraction, (int, float)) or isinstance(fraction, bool) or not 0 < fraction <= 1:
+        return None
+    return {"rss": sizes[0], "limit": sizes[1], "machine": sizes[2], "terminate": float(fraction)}
 
 
 class WorkerExits:
@@ -361,6 +402,8 @@ class WorkerExits:
 
     def __init__(self):
         self._codes: dict[str, int] = {}
+        self._memory: dict[str, dict] = {}
+        """Worker address -> what its nanny reported of its memory, where the nanny stopped it for it."""
         self._unnamed: dict[str, int] = {}
         """Nanny address -> its reports without a worker's address that no wait has taken yet."""
         self._reports = 0
@@ -370,7 +413,8 @@ class WorkerExits:
         self._changed = threading.Condition()
 
     def note(self, event) -> None:
-        """A subscriber of EXIT_TOPIC: (time, {"worker": address or None, "nanny": address, "exitcode": status})."""
+        """A subscriber of EXIT_TOPIC: (time, {"worker": address or None, "nanny": address, "exitcode": status,
+        and "memory" where the nanny stopped the worker for its memory: see `memory_report`})."""
         _, message = event
         if not isinstance(message, dict):
             return
@@ -380,6 +424,9 @@ class WorkerExits:
         with self._changed:
             if isinstance(address, str):
                 self._codes[address] = code
+                memory = memory_report(message.get("memory"))
+                if memory is not None:
+                    self._memory[address] = memory
             elif isinstance(nanny, str):
                 self._unnamed[nanny] = self._unnamed.get(nanny, 0) + 1
             else:
@@ -403,27 +450,58 @@ class WorkerExits:
             self._unnamed[nanny] -= 1
             return None
 
+    def memory_stop(self, address: str) -> dict | None:
+        """What the nanny of the worker at `address` reported of its memory where it stopped that worker for using
+        more than its limit (`memory_report`); None otherwise (ask once `wait_for` has its exit status)."""
+        with self._changed:
+            return self._memory.get(address)
+
 
 class ExitNotingNanny(Nanny):
     """The embedded cluster's nanny: it reports how its worker process ended (the exit status, which only the nanny,
-    its parent, learns) as an event on EXIT_TOPIC, so that a point whose worker died can say which signal ended it.
+    its parent, learns) as an event on EXIT_TOPIC, so that a point whose worker died can say which signal ended it;
+    and where the nanny itself stopped the worker for using more than its memory limit, how much it used.
 
     Dask has no public hook for a worker process's exit: this extends the nanny's own exit callback, which it passes
-    each worker process it starts. A Dask without it never calls this, and the points' reasons then say "died"."""
+    each worker process it starts. A Dask without it never calls this, and the points' reasons then say "died". The
+    nanny's memory stop is learnt from the event its memory manager logs through the nanny (MEMORY_STOP_TOPIC); a
+    Dask that logs none leaves such a worker's ending at its signal."""
 
     _reported: str | None = None
     """The worker address of the last exit reported."""
+    _memory_stop: dict | None = None
+    """The last memory stop's event (the worker's address, its pid and bytes used), until its worker's exit."""
+
+    def log_event(self, topic, msg):
+        if topic == MEMORY_STOP_TOPIC and isinstance(msg, dict):
+            self._memory_stop = msg
+        return super().log_event(topic, msg)
 
     def _on_worker_exit_sync(self, exitcode):
         address = self.worker_address
         # A process that died as it started, before the nanny read its address, leaves the last one's in place.
         address = None if address == self._reported else address
         self._reported = address or self._reported
+        stop, self._memory_stop = self._memory_stop, None
         if self.status == Status.running:  # not the cluster's own close, nor a nanny stopping its worker
             # The report must never keep the nanny from restarting its worker.
             with contextlib.suppress(Exception):
-                self.log_event(EXIT_TOPIC, {"worker": address, "nanny": self.address, "exitcode": exitcode})
+                report = {"worker": address, "nanny": self.address, "exitcode": exitcode}
+                memory = self._memory_used(stop, address, exitcode)
+                self.log_event(EXIT_TOPIC, report if memory is None else {**report, "memory": memory})
         return super()._on_worker_exit_sync(exitcode)
+
+    def _memory_used(self, stop: dict | None, address: str | None, exitcode) -> dict | None:
+        """What this worker's exit report says of its memory: where the nanny stopped this very worker (`stop`, the
+        memory stop since the last exit) and the signal is the nanny's (SIGTERM, or SIGKILL where that did not end
+        it), the bytes it used, its limit and the machine's, and the fraction of the limit at which Dask stops it."""
+        if stop is None or address is None or stop.get("worker") != address:
+            return None
+        if exitcode not in (-signal.SIGTERM, -signal.SIGKILL):  # it ended otherwise before the signal came
+            return None
+        manager = self.memory_manager
+        return {"rss": stop.get("rss"), "limit": manager.memory_limit, "machine": system.MEMORY_LIMIT,
+                "terminate": manager.memory_terminate_fraction}
 
 
 @contextlib.contextmanager
@@ -505,6 +583,13 @@ def _interrupts_held(hold: bool = True):
             signal.signal(sig, handler)
 
 
+def worker_memory_limit(workers: int) -> int:
+    """Bytes each of an embedded cluster's `workers` processes may use before its nanny stops it: an equal share of
+    the machine's memory as Dask measures it (cgroups and ulimit heeded). LocalCluster's default is the same; it is
+    given here because a point stopped for its memory says so ("fewer --workers give each more")."""
+    return max(1, system.MEMORY_LIMIT // max(1, workers))
+
+
 class _client:
     """A Dask client on `scheduler`, or on a LocalCluster it starts and stops."""
 
@@ -539,7 +624,7 @@ class _client:
         # 8787 would clash with another cluster on the machine.
         with _quiet_children():
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                        worker_class=ExitNotingNanny,
+                                        worker_class=ExitNotingNanny, memory_limit=worker_memory_limit(n),
                                         dashboard_address=None, silence_logs=logging.CRITICAL,
                                         scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
                                         **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
@@ -569,5 +654,5 @@ class _client:
 
 __all__ = ["run_sweep", "probe_scheduler",
            "dask_point", "point_summary", "finished_point_line", "emit_event", "Summary",
-           "killed_worker_reason", "process_ending", "WorkerExits", "ExitNotingNanny",
-           "EVENT_TOPIC", "EXIT_TOPIC", "cores"]
+           "killed_worker_reason", "process_ending", "memory_ending", "WorkerExits", "ExitNotingNanny",
+           "worker_memory_limit", "EVENT_TOPIC", "EXIT_TOPIC", "MEMORY_STOP_TOPIC", "cores"]

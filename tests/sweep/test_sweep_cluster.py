@@ -203,8 +203,21 @@ from spadscan.sweep.spec import load_spec
 
 def dies_every_time(task, out, device, keep):
     import os
+    import time
 
-    os._exit(1)  # takes its worker down with it, as running out of memory does
+    from distributed import get_client, get_worker
+
+    # Once its nanny knows its address, which it reads moments after the worker starts (the restarted worker gets the
+    # point at once): the ending of a worker that died before then is not known, and its point says "died".
+    worker = get_worker()
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        known = get_client().run(lambda dask_worker: dask_worker.worker_address, workers=[worker.address],
+                                 nanny=True)
+        if known.get(worker.address) == worker.address:
+            break
+        time.sleep(0.05)
+    os._exit(1)  # takes its worker down with it
 
 
 if __name__ == "__main__":
@@ -230,10 +243,9 @@ def test_a_point_that_kills_every_worker_it_runs_on_is_recorded_as_failed(tmp_pa
     for task in make_plan(load_spec(one_point)).points.values():
         stored = json.loads((tmp_path / "out" / "points" / f"{task.id}.json").read_text())
         assert stored["status"] == "failed"
-        # The embedded cluster's nannies report how their workers ended (here the exit code), but the restarted
-        # worker dies as it starts, maybe before its nanny has learned its address: then its ending is not known.
-        assert re.fullmatch(r"the worker running it died each time it was tried \(2 workers(; the last exited "
-                            r"with code 1)?\); their logs say why \(the last: worker \d+, pid \d+, writing to this "
+        # The embedded cluster's nannies report how their workers ended: here the exit code.
+        assert re.fullmatch(r"the worker running it died each time it was tried \(2 workers; the last exited with "
+                            r"code 1\); their logs say why \(the last: worker \d+, pid \d+, writing to this "
                             r"command's stderr\)", stored["reason"]), stored["reason"]
 
 
