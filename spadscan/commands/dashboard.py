@@ -15,8 +15,9 @@ the whole line is its tooltip) so that nothing below it moves. The scan in hand,
 3D view fit a 1280x800 window; a newer live view waits while the operator turns the shown one.
 
 The 3D views are drawn by the browser (WebGL): the dashboard's machine needs no display and no off-screen OpenGL
-(EGL or OSMesa). Where it has none, a result's mesh without a preview (a picture the worker draws off screen) says
-that this machine cannot draw one, with what to install in its tooltip.
+(EGL or OSMesa). A result's mesh without a preview (a picture the worker draws off screen) says why as the result's
+report does (the worker's machine could not draw off screen, a full disk), or else, where this dashboard's machine
+cannot draw off screen, that, with what to install in its tooltip.
 
 A scan left running by a daemon that is gone (crashed, killed or stopped: no process holds
 CAPTURES/.spadscan-daemon.lock) is shown as "interrupted (no daemon running)", without a frame rate; a daemon

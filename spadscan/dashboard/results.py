@@ -8,6 +8,9 @@ Once a live job is done, its status carries its final result's figures, while it
 fit's last (worker/live/done.py): the live entry then gives way to that result (listed first, `from_live`), so that no
 figures are shown over the picture of another fit. Each live entry says its state, note and age (`age_s`, seconds
 since its status was written): one whose worker stopped must not look like one that runs.
+
+A result with a mesh and no preview says why where its report does (`no_preview`): the worker draws the preview on
+its own machine, which may not be the dashboard's.
 """
 
 from __future__ import annotations
@@ -45,6 +48,11 @@ SERIOUS = tuple(re.compile(p) for p in (
 the fit does not explain the measurements, too few views saw the surface, the mesh is in pieces, specks or tunnels,
 the capture holds too little signal. The others say how the run went (stopped on its budget, a busy machine): a
 longer run mends them."""
+OFF_SCREEN = "off screen"
+"""Words of the worker's reason where its machine cannot draw pictures (worker/report/offscreen.py
+`OffscreenUnavailable`: "no display and no EGL or OSMesa library to draw meshes off screen: install ...")."""
+WORKER_CANNOT_DRAW = "no preview: the worker's machine could not draw off screen"
+"""What the page says of a result whose report says that the machine its worker ran on could not draw off screen."""
 
 
 def _read_json(path: Path) -> tuple[dict | None, str | None]:
@@ -117,8 +125,23 @@ class ResultIndex:
             files = {p: url for p, url in files.items() if p not in LIVE_PICTURES}
         entry = {"id": folder.name, "scan": scan, "kind": LIVE if live else "final", "mtime": st.st_mtime,
                  "summary": summary, "error": error, "files": files}
+        if "mesh.ply" in files and "preview.png" not in files:
+            entry["no_preview"] = no_preview(summary.get("warnings"))
         self._folders[str(folder)] = (key, entry)
         return entry
+
+
+def no_preview(warnings) -> dict | None:
+    """Why a result has no preview, as its own report's `warnings` say: {"said": one line for the preview's box,
+    "why": the report's warning in full}, or None where they do not say. A warning of the preview's own ("no
+    preview..."), else the 3D view's where its worker's machine could not draw off screen (worker/report/
+    folder_view.py `no_view_warning`): the worker draws both in one process, the preview first, with one check."""
+    lines = [w for w in warnings if isinstance(w, str)] if isinstance(warnings, list) else []
+    own = next((w for w in lines if w.startswith("no preview")), None)
+    if own is not None:
+        return {"said": WORKER_CANNOT_DRAW if OFF_SCREEN in own else own, "why": own}
+    view = next((w for w in lines if w.startswith("no 3D view") and OFF_SCREEN in w), None)
+    return None if view is None else {"said": WORKER_CANNOT_DRAW, "why": view}
 
 
 def _mtime_ns(path: Path) -> int:

@@ -1,9 +1,9 @@
 """What `/api/status` answers: the scans under the root, the scan in hand in detail, each scan's reconstructions and
 the reconstruction queue (the worker's read-only status view, with each running job's progress from its log), what
-the reconstruction side is doing (worker_state.py: the workers' waits for room on a full disk included), whether this
-machine can draw pictures off screen (`cannot_draw`: the 3D views need not, the browser draws them) and what each panel
-of a preview shows. A live reconstruction whose status an earlier attempt of its job wrote is shown without its figures
-and pictures (attempts.py).
+the reconstruction side is doing (worker_state.py: the workers' waits for room on a full disk included), whether the
+dashboard's machine can draw pictures off screen (`cannot_draw`: the 3D views need not, the browser draws them) and
+what each panel of a preview shows. A live reconstruction whose status an earlier attempt of its job wrote is shown
+without its figures and pictures (attempts.py).
 
 Whether a daemon is running is asked of the caller's `daemon_running(root)`: the daemon's lock probe lives in the
 daemon's package, which the dashboard does not import (the CLI command hands it over). Without it, scans are shown
@@ -40,9 +40,10 @@ reconstruction's row above the ground truth's when there is one): the page label
 
 
 def cannot_draw() -> str | None:
-    """Why this machine cannot draw meshes off screen (no display, no EGL, no OSMesa: the product's own check, in one
-    line with what to install), or None where it can. The browser draws the 3D views; the pictures (a preview) are
-    drawn off screen by the worker, and where the worker runs here, this says why a result has none."""
+    """Why this dashboard's machine cannot draw meshes off screen (no display, no EGL, no OSMesa: the product's own
+    check, in one line with what to install), or None where it can. The browser draws the 3D views; the pictures (a
+    preview) are drawn off screen by the worker, on its own machine: the page says a result's own reason where its
+    report gives one (results.py `no_preview`), and this one, as this dashboard's machine's, only where it does not."""
     try:
         check_offscreen()
     except OffscreenUnavailable as exc:

@@ -2,7 +2,11 @@
 and drawn all the same (the browser draws it with WebGL; the server only describes the scene), and a result's mesh
 without a preview says why it has none, in one line, with what to install in its title. The machine is simulated by
 the means the product's own check asks (offscreen.check_offscreen: the environment and ctypes.util.find_library), so
-that these run on a machine that has an off-screen OpenGL too; the live view looks as the report's own 3D view."""
+that these run on a machine that has an off-screen OpenGL too; the live view looks as the report's own 3D view.
+
+The worker draws a preview on its own machine, which need not be the dashboard's: a result whose report says why it has
+no preview says that, whatever the dashboard's machine can do; the dashboard's machine's own reason, said as its, is
+only for a result that does not say."""
 
 from __future__ import annotations
 
@@ -14,8 +18,8 @@ import zipfile
 import pytest
 import trimesh
 
-from dashboard_helpers import (complete_scan, get, preview_png, serving, skip_where_no_off_screen_drawing, status,
-                               without_off_screen_opengl)
+from dashboard_helpers import (complete_scan, get, keep_opengl_window, preview_png, serving,
+                               skip_where_no_off_screen_drawing, status, without_off_screen_opengl)
 from page_helpers import browser_page, drawn_share, screenshot_pixels
 from spadscan.dashboard.server import address
 
@@ -62,12 +66,70 @@ def test_the_live_3d_view_is_served_and_drawn_where_nothing_can_draw_off_screen(
             page.wait_for_function(SCENE_LOADED, timeout=WAIT_MS)
             page.wait_for_timeout(300)  # the first frame drawn after the scene loaded
             assert drawn_share(screenshot_pixels(page.locator("#viewer-3d"))[10:-3, 10:-3]) > 0.01
-            # the picture the worker could not draw: said why, in one line, and what to install in its title
+            # the picture the worker could not draw: said why, in a line or two of the box, and what to install in its
+            # title
             none = page.locator("#preview-none")
-            assert none.is_visible() and none.text_content() == "no preview: this machine cannot draw off screen"
-            assert "EGL" in none.get_attribute("title") and "apt-get install" in none.get_attribute("title")
-            assert page.evaluate(LINES, "#preview-none") == 1
+            assert none.is_visible() and none.text_content() == DASHBOARD_CANNOT_DRAW
+            assert none.get_attribute("title").startswith("this dashboard's machine: no display and no EGL")
+            assert "apt-get install" in none.get_attribute("title")
+            assert page.evaluate(LINES, "#preview-none") <= 2
     assert not seen.errors, seen.errors
+
+
+DASHBOARD_CANNOT_DRAW = "no preview: this dashboard's machine cannot draw off screen"
+WORKER_CANNOT_DRAW = "no preview: the worker's machine could not draw off screen"
+# the warning a worker's report gives where its machine could not draw off screen (folder_view.py no_view_warning)
+NO_VIEW = ("no 3D view: view3d.html could not be written (no display and no EGL or OSMesa library to draw meshes off "
+           "screen: install an off-screen OpenGL: on Debian/Ubuntu `apt-get install libegl1 libegl-mesa0` (EGL) or "
+           "`apt-get install libosmesa6` (OSMesa))")
+
+
+def final_mesh(scan, warnings: list[str]) -> None:
+    """A finished result of `scan`, made by a worker (on whatever machine): its report with `warnings`, and its mesh
+    without a preview."""
+    final = scan / "recon" / f"{scan.name}-fast"
+    final.mkdir(parents=True)
+    trimesh.creation.icosphere(subdivisions=2, radius=0.05).export(final / "mesh.ply")
+    (final / "report.json").write_text(json.dumps({"preset": "fast", "chamfer_mm": 2.0, "warnings": warnings}))
+
+
+def preview_said(tmp_path, warnings: list[str]) -> tuple[str, str]:
+    """What the preview's box says (its text and title) of a finished result with a mesh, no preview and a report
+    with `warnings`, once it is in view."""
+    complete_scan(tmp_path / "bowl", 2)
+    final_mesh(tmp_path / "bowl", warnings)
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        page.wait_for_function("() => document.getElementById('viewer-name').textContent.startsWith('bowl / fast')",
+                               timeout=WAIT_MS)
+        none = page.locator("#preview-none")
+        said = (none.text_content(), none.get_attribute("title") or "")
+        assert none.is_visible() and page.evaluate(LINES, "#preview-none") <= 2
+    assert not seen.errors, seen.errors
+    return said
+
+
+@pytest.mark.parametrize("dashboard_draws", [True, False])
+def test_a_result_whose_worker_could_not_draw_says_so_whatever_the_dashboards_machine_can(tmp_path, monkeypatch,
+                                                                                          dashboard_draws):
+    if dashboard_draws:
+        keep_opengl_window(monkeypatch)
+        monkeypatch.setenv("DISPLAY", ":99")  # the product's check: a display draws
+    else:
+        without_off_screen_opengl(monkeypatch)
+    assert preview_said(tmp_path, ["the run stopped on its budget", NO_VIEW]) == (WORKER_CANNOT_DRAW, NO_VIEW)
+
+
+def test_a_results_own_reason_for_no_preview_is_said_not_the_dashboards_machines(tmp_path, monkeypatch):
+    without_off_screen_opengl(monkeypatch)
+    own = "no preview: preview.png could not be written (No space left on device)"
+    assert preview_said(tmp_path, [own]) == (own, own)
+
+
+def test_a_result_that_says_nothing_of_its_preview_gets_the_dashboards_machines_reason_as_its(tmp_path, monkeypatch):
+    without_off_screen_opengl(monkeypatch)
+    said, title = preview_said(tmp_path, ["the run stopped on its budget"])
+    assert said == DASHBOARD_CANNOT_DRAW and title.startswith("this dashboard's machine: no display and no EGL")
 
 
 def test_where_pictures_can_be_drawn_a_missing_preview_is_just_missing(tmp_path, monkeypatch):
