@@ -19,12 +19,21 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-FIXED_S = 9.0
+FIXED_S = 8.0
 """Seconds kept back for what does not scale with the mesh or the points: the preview, error-versus-time, fit and
 coverage pictures, report.html, the 3D view. Measured on the 2-core machine under a load of 11: 5-7 s (the off-screen
-renderer's start alone 2 s) before the coverage picture, which takes 1.8-2.4 s more on the idle machine (its drawing;
-the views of its sample points were counted before it, for the coverage check). With 8 s, the demo's final run on the
-idle machine cut its metrics to 270,000 points (its pictures took 9.7 s)."""
+renderer's start alone 2 s) before the coverage picture, which takes 1.8-2.4 s more on the idle machine (its drawing).
+That was 9 s with the count of the views that see each sample point of the mesh (the coverage check) in it, about a
+second then; the count is now timed by a probe on the views the report counts (`EndCosts.coverage_s`), since a
+capture's views made it grow (20 s at 10,000 views when every view was counted). With 8 s and the count in it, the
+demo's final run on the idle machine cut its metrics to 270,000 points (its pictures took 9.7 s)."""
+COVERAGE_S = 1.0
+"""Seconds of the coverage count before a probe is timed (a 256-view capture's on the idle machine)."""
+COMPLETION_SHARE = 0.1
+"""What a view beyond those the coverage counts for every point costs, as a share of one of those: it is counted
+only for the points those see fewer than three times (coverage.spread_counts). Measured at 10,000 views (one
+thread, a loaded 2-core machine): 0.03 of one on a well seen sphere, 0.05 on a poor fit with a quarter of its
+surface seen by few views."""
 COVERAGE_PICTURE_S = 2.5
 """The coverage picture is drawn only when this much is left of the budget beyond what the metrics and the normals
 picture still need: a short budget goes to the mesh and its figures first (the idle machine's 1.8-2.4 s)."""
@@ -109,11 +118,14 @@ class EndCosts:
     its 32 views rendered 4 times take a second or more on 2 cores, which FIXED_S does not hold."""
     view_render_s: float = 0.0
     """Seconds of one view's render, once a probe has timed one (0: not timed)."""
+    coverage_s: float = COVERAGE_S
+    """Seconds of the count of the views that see each sample point of the final mesh (the report's coverage)."""
     probed: list[str] = field(default_factory=list)
 
     def pictures_s(self) -> float:
-        """The stages after the mesh that do not scale with it or with the points: the pictures, the fit check."""
-        return self.fixed_s + SAFETY * self.fit_check_s
+        """The stages after the mesh that do not scale with it or with the points: the pictures, the fit check, the
+        coverage count."""
+        return self.fixed_s + SAFETY * (self.fit_check_s + self.coverage_s)
 
     def mesh_s(self, resolution: int) -> float:
         return SAFETY * (self.mesh_fixed_s + self.mesh_s_per_cell * resolution ** 3)
@@ -148,6 +160,13 @@ class EndCosts:
         self.view_render_s = max(seconds, 0.0) / max(views_rendered, 1)
         self.fit_check_s = self.view_render_s * renders_needed
         self.probed.append(f"fit check {renders_needed} view renders: {self.fit_check_s:.2f} s")
+
+    def time_coverage(self, seconds: float, views_timed: int, spread_views: int, other_views: int) -> None:
+        """Counting `views_timed` views for every sample point took `seconds`: the report counts `spread_views`
+        views so, and `other_views` more only for the points those see fewer than three times (COMPLETION_SHARE)."""
+        per_view = max(float(seconds), 0.0) / max(views_timed, 1)
+        self.coverage_s = per_view * (spread_views + COMPLETION_SHARE * other_views)
+        self.probed.append(f"coverage {spread_views} + {other_views} views: {self.coverage_s:.2f} s")
 
     def end_s(self, resolution: int, points: int | None, checkpoint: tuple[int, int] | None = None) -> float:
         """Seconds the stages after training take at `resolution` and `points` (None: no ground truth), plus the

@@ -25,12 +25,13 @@ from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 
 from . import end_of_run
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
-                     PROBE_RESOLUTIONS, EndCosts, RunClock, coverage_picture_within, fit_views_within,
+                     PROBE_RESOLUTIONS, SAFETY, EndCosts, RunClock, coverage_picture_within, fit_views_within,
                      mesh_resolution_within, metric_points_within, probe_seconds, training_budget)
 from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
 from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
+from .carving.view_subset import spread_views
 from .carving.views import summed_views
-from .coverage import FEW_VIEWS, Coverage, summarize, surface_views, vertex_views
+from .coverage import FEW_VIEWS, Coverage, counted_views, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .jobs import run_limits_problem
@@ -62,6 +63,9 @@ NOISE_VIEWS = 32
 """Views the fit is compared with the photon noise on (end_of_run.fit_noise)."""
 NOISE_RENDERS = 4
 """Renders of each of them averaged for that comparison (one for a model whose render is deterministic)."""
+COVERAGE_PROBE_VIEWS = 8
+"""Views the probe of the coverage count counts every sample point of the probe's mesh on, spread among those the
+report's count reads (`_probe_coverage`): an eighth or less of that count's time."""
 
 
 def resolve_device(device: str) -> torch.device:
@@ -248,8 +252,12 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     model, scene = run.model, run.scene
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder
+    # What the capture (and the ground truth) alone decide, before training: both read every view (0.5 s at 2000
+    # views, 4 s at 10,000), so a time budget meets them in the set-up's time, not after the end's estimate.
+    floor_note = _floor_note(scene, model.summary(), truth)
+    signal = _signal(scene, config)
     if budget_s is not None:
-        _probe_end_costs(model, scene.n_views, truth, costs, clock)
+        _probe_end_costs(model, scene.n_views, truth, costs, clock, scene=scene)
         end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
     plan = RunPlan(steps=run.plan.steps, budget_s=training_budget(run_clock, end_s), seed=run.plan.seed)
     if budget_s is not None and run_clock.left() <= 0:
@@ -298,7 +306,6 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report["mesh_resolution"] = resolution
     if run.state_note:
         report["capture_note"] = run.state_note
-    floor_note = _floor_note(scene, report["model"], truth)
     # The pictures before the metrics: what they take is kept back as a loaded machine's figure (FIXED_S), and on an
     # idle one most of it is left over; drawn first, that time goes to the metric points instead of being lost.
     log("pictures and report")
@@ -307,20 +314,21 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     # The fit check's views, as many as the budget leaves once the fixed pictures and the fewest metric points are
     # kept back (a deterministic model renders each once; the paper preset's full-size render takes half a minute).
     fit_views = want if budget_s is None else fit_views_within(
-        costs, want, fit_renders(model), run_clock.left() - costs.fixed_s
+        costs, want, fit_renders(model), run_clock.left() - costs.fixed_s - SAFETY * costs.coverage_s
         - (costs.metrics_s(MIN_METRIC_POINTS) if truth else 0.0), least=min(FIT_VIEWS, want))
     if fit_views < want:
         notes.append(f"the time budget was short: the fit was checked on {fit_views} views, not {want}")
     fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config, fit_views)
-    picture = coverage_picture_within(costs, run_clock.left(), scored=truth is not None)
+    # The picture after the count of the views that see the mesh, which the report needs whatever the time.
+    picture = coverage_picture_within(costs, run_clock.left() - SAFETY * costs.coverage_s, scored=truth is not None)
     if not picture:
         notes.append("the time budget was short: no coverage picture (coverage.png)")
     coverage = _coverage(out if picture else None, mesh, scene, log)
     pieces = _pieces(mesh, log)
-    signal = _signal(scene, config)
     stages["pictures_s"] = clock() - t_pictures
     if truth is not None:
-        costs.fixed_s, costs.fit_check_s = NORMALS_PICTURE_S, 0.0  # all that is left to draw after the metrics
+        # all that is left to draw after the metrics
+        costs.fixed_s, costs.fit_check_s, costs.coverage_s = NORMALS_PICTURE_S, 0.0, 0.0
         t_metrics = clock()
         scored = truth.scored(mesh)  # cut once for the metrics and the normals picture
         points = metric_points_within(costs, config.metrics_points, run_clock.left() - costs.fixed_s)
@@ -427,10 +435,11 @@ def _model_converged(last: dict) -> bool | None:
     return None if value is None else bool(value)
 
 
-def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock) -> None:
+def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock, scene: SceneData | None = None) -> None:
     """Time a small mesh extraction, the render of two views (the fit check renders up to NOISE_VIEWS views
-    NOISE_RENDERS times) and with a ground truth small metrics, on this model and machine, so that the budget keeps
-    back what the end of the run will take here. A short probe is timed twice, the faster kept (probe_seconds)."""
+    NOISE_RENDERS times), with `scene` the coverage count on that mesh (`_probe_coverage`) and with a ground truth
+    small metrics, on this model and machine, so that the budget keeps back what the end of the run will take here.
+    A short probe is timed twice, the faster kept (probe_seconds)."""
     probe_views = sorted({0, n_views // 2})
     seconds, _ = probe_seconds(partial(model.render_histograms, probe_views), clock)
     costs.time_fit_check(seconds, len(probe_views), min(NOISE_VIEWS, n_views) * fit_renders(model))
@@ -441,12 +450,36 @@ def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock) -> None
     except SpadscanError:  # no surface yet: the default rates stand
         return
     costs.time_mesh(timings)
+    if scene is not None:
+        _probe_coverage(mesh, scene, costs, clock)
     if truth is not None:
         try:
             seconds, _ = probe_seconds(partial(truth.metrics, mesh, n_points=PROBE_POINTS), clock)
         except SpadscanError:
             return
         costs.time_metrics(PROBE_POINTS, seconds)
+
+
+def _probe_coverage(mesh, scene: SceneData, costs: EndCosts, clock) -> None:
+    """Time the count of the views that see each sample point (`_coverage`) on `mesh`, over COVERAGE_PROBE_VIEWS of
+    the views the report's count reads for every point (spread among them), so that the budget keeps back that count
+    as the report makes it: of a large capture, on its spread views, not on every view (coverage.spread_counts). A
+    mesh without surface leaves the default (budget.COVERAGE_S)."""
+    poses, usable = _poses_usable(scene)
+    spread, others = counted_views(poses, usable)
+    timed = spread[spread_views(poses[spread], COVERAGE_PROBE_VIEWS, None if usable is None else usable[spread])]
+    count = partial(surface_views, mesh, poses[timed], scene.sensor, usable=None if usable is None else usable[timed])
+    try:
+        seconds, _ = probe_seconds(count, clock)
+    except SpadscanError:
+        return
+    costs.time_coverage(seconds, len(timed), len(spread), others)
+
+
+def _poses_usable(scene: SceneData) -> tuple[np.ndarray, np.ndarray | None]:
+    """(poses (V, 4, 4) float64, usable (V, Z) bool or None) of the scene as numpy: what the coverage count reads."""
+    usable = getattr(scene, "usable", None)  # (V, Z): dropped frames saw nothing
+    return scene.poses.detach().double().cpu().numpy(), None if usable is None else usable.cpu().numpy()
 
 
 def checkpoint_scoring(config: ReconConfig, short: bool = False) -> str:
@@ -528,9 +561,8 @@ def _coverage(out: Path | None, mesh, scene: SceneData, log) -> Coverage | None:
     """How many views saw each part of the mesh (coverage.py), and with `out` coverage.png there, the mesh coloured
     by it; None (said in the log) where it cannot be measured."""
     try:
-        usable = getattr(scene, "usable", None)  # (V, Z): dropped frames saw nothing
-        usable = None if usable is None else usable.cpu().numpy()
-        samples = surface_views(mesh, scene.poses.detach().double().cpu().numpy(), scene.sensor, usable=usable)
+        poses, usable = _poses_usable(scene)
+        samples = surface_views(mesh, poses, scene.sensor, usable=usable)
         if out is not None:
             # The legend's shares are the report's: of the surface less its undersides, which no view above sees.
             pictures.coverage_png(mesh, vertex_views(mesh, samples), out / "coverage.png", few_views=FEW_VIEWS,

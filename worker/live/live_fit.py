@@ -7,6 +7,10 @@ old model's level of refinement. So the views in use grow while the fit goes on 
 
 While the scan is young, a rebuild goes back to the coarse level instead (warm, from the live surface) each time the
 views have grown enough (`recoarse.RecoarsePolicy`: the first views see the object from one side only).
+
+A scan of more than MAX_SETUP_VIEWS views is carved from a spread subset of them (`carving.view_subset`); each rebuild
+keeps the views the last one carved from where it can, so that the hull changes with the views that arrived, not
+with a new choice of views.
 """
 
 from __future__ import annotations
@@ -16,13 +20,14 @@ from collections import deque
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 
 from spadscan.protocol.errors import SpadscanError
 
 from ..recon.config import ReconConfig
 from ..recon.model_api import RunPlan
-from ..recon.presets import make_model
+from ..recon.presets import make_model, preset
 from ..recon.scene_data import SceneData, load_scene
 from ..reconstruct import check_returns
 from .recoarse import RecoarsePolicy
@@ -80,7 +85,13 @@ class LiveFit:
             # The final run's own test: views that hold nothing above the noise would be fitted as a noise mesh,
             # published as "following the scan" and ranked views from, for a capture the final run then refuses.
             check_returns(self.capture, scene)
-            model = make_model(scene, self.config, self.device, RunPlan(steps=None, budget_s=None, seed=self.seed))
+            plan = RunPlan(steps=None, budget_s=None, seed=self.seed)
+            kept = self.setup_views()
+            # A large capture's set-up reads a spread subset of its views: kept from the last rebuild where it can,
+            # so that each rebuild carves from nearly the same views (view_subset.spread_views).
+            model = (make_model(scene, self.config, self.device, plan) if kept is None else
+                     preset(self.config.preset).make_model(scene, self.config, self.device, plan,
+                                                           keep_setup_views=kept))
             recoarse = self.model is None or self.recoarse.due(self.coarse_views, scene.n_views, views_planned)
             if self.model is not None:
                 level, level_steps = (0, 0) if recoarse else (self.model.level, self.model.level_steps)
@@ -97,6 +108,16 @@ class LiveFit:
         self.model, self.scene, self.not_yet = model, scene, None
         self.rebuilds += 1
         return True
+
+    def setup_views(self) -> np.ndarray | None:
+        """Indices of the views the current model's set-up read (every view of a capture of up to MAX_SETUP_VIEWS
+        views, else its spread subset: `FastProblem.setup_views`), or None before a model or for a model without
+        that set-up."""
+        problem = getattr(self.model, "problem", None)
+        if self.scene is None or problem is None or not hasattr(problem, "setup_views"):
+            return None
+        views = problem.setup_views
+        return np.arange(self.scene.n_views) if views is None else views.detach().cpu().numpy()
 
     def train(self, until: float) -> int:
         """Step the model until `time.monotonic()` reaches `until` (at least one step); returns the steps taken."""

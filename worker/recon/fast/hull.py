@@ -22,6 +22,10 @@ from spadscan.protocol.errors import ConfigError
 from .grid_field import GridField, signed_distance
 
 
+VOTE_VIEWS = 256
+"""Views whose first returns vote at once for the hull's pieces (`object_hull`): bounded memory (tens of MB)."""
+
+
 class HullConstraint:
     """The lower bound max(hull_sdf - margin, floor_z - z) of the field, as a grid matching a GridField.
 
@@ -88,24 +92,34 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     lab, n = ndimage.label(occ)
     if n <= 1:
         return occ.copy()
-    V, Z = onset_m.shape
     ok = np.isfinite(onset_m)
     dirs = np.einsum("vij,zdj->vzdi", poses[:, :3, :3], zone_dirs[:, :: max(1, zone_dirs.shape[1] // 64)])
-    shape = np.array(occ.shape[::-1])  # (nx, ny, nz)
     votes = np.zeros(n + 1, np.int64)
-    for v in range(V):
-        hit = np.zeros(n + 1, bool)
-        for z in np.flatnonzero(ok[v]):
-            for dep in depths_m:
-                p = poses[v, :3, 3] + dirs[v, z] * (onset_m[v, z] + dep)
-                i = np.round((p - np.asarray(origin, float)) / voxel).astype(np.int64)
-                good = np.all((i >= 0) & (i < shape), axis=1)
-                hit[lab[i[good, 2], i[good, 1], i[good, 0]]] = True
-        hit[0] = False
-        votes += hit
+    for a in range(0, len(poses), VOTE_VIEWS):
+        views = slice(a, a + VOTE_VIEWS)
+        votes += _piece_votes(lab, n, origin, voxel, poses[views], dirs[views], onset_m[views], ok[views], depths_m)
     keep = votes >= min_views * votes.max()
     keep[0] = False
     return keep[lab]
+
+
+def _piece_votes(lab: np.ndarray, n: int, origin, voxel: float, poses: np.ndarray, dirs: np.ndarray,
+                 onset_m: np.ndarray, ok: np.ndarray, depths_m) -> np.ndarray:
+    """(n + 1,) int: how many of these views (poses (v, 4, 4), world directions dirs (v, Z, d, 3), onset_m (v, Z)
+    metres, ok (v, Z) where a return was detected) land a point in each piece of `lab` (labels 1..n, 0 outside), at
+    the onset range plus each of `depths_m`; a view counts once a piece. All of them at once: a loop over the views
+    took 5.5 s of a 10,000-view capture's set-up."""
+    v, z = np.nonzero(ok)
+    reach = onset_m[v, z][:, None] + np.asarray(depths_m, float)[None]  # (k, depths)
+    p = poses[v, None, None, :3, 3] + dirs[v, z][:, None] * reach[:, :, None, None]  # (k, depths, d, 3)
+    i = np.round((p - np.asarray(origin, float)) / voxel).astype(np.int64).reshape(len(v), -1, 3)
+    good = np.all((i >= 0) & (i < np.array(lab.shape[::-1])), axis=-1)
+    which = np.zeros(good.shape, np.int64)
+    which[good] = lab[i[good][:, 2], i[good][:, 1], i[good][:, 0]]
+    view_piece = np.unique(v[:, None] * (n + 1) + which)  # each (view, piece) once
+    votes = np.bincount(view_piece % (n + 1), minlength=n + 1)
+    votes[0] = 0
+    return votes
 
 
 __all__ = ["HullConstraint", "hull_field", "object_hull"]

@@ -102,8 +102,11 @@ def _table_plane(scene, forward_kernel):
     return np.array([0.0, 0.0, 1.0]), h * float(np.sign(normal[2])), True, "detected, then fitted"
 
 
-def build_problem(scene, config, device, terms) -> FastProblem:
-    """Assemble a FastProblem from a SceneData and the resolved config (see the module docstring)."""
+def build_problem(scene, config, device, terms, keep_setup_views=None) -> FastProblem:
+    """Assemble a FastProblem from a SceneData and the resolved config (see the module docstring).
+    keep_setup_views: indices of the views the last set-up of this capture read (as it then stood), which the
+    subset of a large capture keeps (`view_subset.spread_views`), or None: a live fit's rebuilds then carve from
+    nearly the same views each time."""
     fc, sc = config.field, config.schedule
     f32 = dict(device=device, dtype=torch.float32)
     sensor = scene.sensor
@@ -120,7 +123,7 @@ def build_problem(scene, config, device, terms) -> FastProblem:
     notes = {"table": None if table is None else table[3], "floor": floor_source}
     counts_np, carve_sensor = _carving_views(scene)
     poses_np = scene.poses.double().cpu().numpy()
-    setup = _setup_views(poses_np, scene)
+    setup = _setup_views(poses_np, scene, keep_setup_views)
     hull_res = _carve(scene, counts_np, poses_np, carve_sensor, fc, floor_z, on_table=table is not None,
                       views=setup)
     if setup is not None:
@@ -155,11 +158,12 @@ def build_problem(scene, config, device, terms) -> FastProblem:
         setup_views=None if setup is None else torch.as_tensor(setup, device=device, dtype=torch.long))
 
 
-def _setup_views(poses: np.ndarray, scene) -> np.ndarray | None:
-    """Indices of the evenly spread views (`view_subset.spread_views`) that the set-up's O(views x cells) stages
-    read of a large capture, or None where that is all of them (a capture of up to MAX_SETUP_VIEWS views)."""
-    keep = spread_views(poses, usable=_usable(scene))
-    return None if len(keep) == len(poses) else keep
+def _setup_views(poses: np.ndarray, scene, keep=None) -> np.ndarray | None:
+    """Indices of the evenly spread views (`view_subset.spread_views`, keeping `keep` where it can) that the set-up's
+    O(views x cells) stages read of a large capture, or None where that is all of them (a capture of up to
+    MAX_SETUP_VIEWS views)."""
+    picked = spread_views(poses, usable=_usable(scene), keep=keep)
+    return None if len(picked) == len(poses) else picked
 
 
 def carve_box(scene, floor_z: float | None) -> np.ndarray:
