@@ -60,7 +60,8 @@ class Model(Protocol):
         """Tell every part (and the regularisers' band) that the surface just moved in one jump."""
 
     def deviance_all_views(self, seed: int) -> float:
-        """Deviance per bin over every view under the current field, with the rays that `seed` draws."""
+        """Deviance per bin over every view (of a capture of more than 256, its 256 spread set-up views) under the
+        current field, with the rays that `seed` draws."""
 
 
 @dataclass
