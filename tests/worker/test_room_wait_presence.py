@@ -20,7 +20,7 @@ from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
-from test_worker_disk_full import JOB, PAGE, RECON, counted_probes, until
+from test_worker_disk_full import JOB, PAGE, RECON, counted_probes, run_worker, until
 
 KEYS = {"mount", "folder", "free_bytes", "need_bytes", "since_unix", "retry_unix", "quota", "relative_to", "relative"}
 
@@ -50,16 +50,12 @@ def test_a_worker_waiting_for_room_says_so_in_its_presence_file(tmp_path, monkey
     seen: list[dict | None] = []
 
     async def scenario():
-        task = asyncio.create_task(worker.run())
-        try:
+        async def meanwhile():
             await until(lambda: own_row(worker).get("room_wait") is not None, "the wait in the presence file")
             seen.append(own_row(worker)["room_wait"])
             full.unlink()
-            return await asyncio.wait_for(task, 90)
-        finally:
-            if not task.done():
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
+
+        return (await run_worker(worker, meanwhile))[1]
 
     assert arun(scenario()) == {JOB: "done"}, lines
     (wait,) = seen

@@ -21,7 +21,7 @@ from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
-from test_worker_disk_full import JOB, fill_leaving, small_disk, until
+from test_worker_disk_full import JOB, fill_leaving, run_worker, small_disk, until
 
 
 def runs(marker: Path) -> int:
@@ -100,16 +100,12 @@ def test_a_full_queue_disk_is_the_one_named_and_waited_on(tmp_path, monkeypatch,
                                      recon="test_room_wait_queue_disk:queue_filling_recon"), log=lines.append)
 
         async def scenario():
-            task = asyncio.create_task(worker.run())
-            try:
+            async def meanwhile():
                 await until(lambda: any("waiting for room" in line for line in lines), "the wait for room")
                 assert runs(tmp_path / "runs") == 1
                 (qdisk / "filler").unlink()
-                return await asyncio.wait_for(task, 90)
-            finally:
-                if not task.done():
-                    task.cancel()
-                    await asyncio.gather(task, return_exceptions=True)
+
+            return (await run_worker(worker, meanwhile))[1]
 
         assert arun(scenario()) == {JOB: "done"}, lines
         (stopped,) = [line for line in lines if line.startswith(f"{JOB} stopped after ")]

@@ -19,7 +19,7 @@ from spadscan.worker.pool import Worker
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
-from test_worker_disk_full import JOB, counted_probes, until
+from test_worker_disk_full import JOB, counted_probes, run_worker, until
 
 MIB = 1 << 20
 
@@ -68,8 +68,7 @@ def test_a_job_that_meets_a_full_quota_waits_for_its_time_whatever_the_free_spac
                                  recon="test_room_wait_quota:quota_recon"), log=lines.append)
 
     async def scenario():
-        task = asyncio.create_task(worker.run())
-        try:
+        async def meanwhile():
             await until(lambda: any("waiting for room" in line for line in lines), "the wait for room")
             free["now"] += 2 * MIB  # room freed on the filesystem, none in the quota
             seen = len(probes)
@@ -78,11 +77,8 @@ def test_a_job_that_meets_a_full_quota_waits_for_its_time_whatever_the_free_spac
             assert not any("claiming jobs again" in line for line in lines), lines
             full.unlink()
             clock["now"] = worker.room.retry_unix
-            return await asyncio.wait_for(task, 90)
-        finally:
-            if not task.done():
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
+
+        return (await run_worker(worker, meanwhile))[1]
 
     assert arun(scenario()) == {JOB: "done"}, lines
     mount = mount_point(root)

@@ -111,12 +111,25 @@ async def until(check, what: str, timeout_s: float = 90.0) -> None:
         await asyncio.sleep(0.02)
 
 
+async def run_worker(worker: Worker, meanwhile):
+    """Run `worker` while `meanwhile()` (a coroutine function: what a test waits for and does, e.g. make room) runs,
+    then to its end; returns (what `meanwhile` returned, what the worker settled). The worker is stopped if the
+    test fails first."""
+    task = asyncio.create_task(worker.run())
+    try:
+        done = await meanwhile()
+        return done, await asyncio.wait_for(task, 90)
+    finally:
+        if not task.done():
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+
 def run_through_full_disk(worker: Worker, lines: list[str], probes: list[int], make_room, arun):
     """Run the worker until it waits for room and has probed for it a few times, check what it says meanwhile,
     make room, and run it to its end; returns (the job's --status row while it waited, what the worker settled)."""
     async def scenario():
-        task = asyncio.create_task(worker.run())
-        try:
+        async def meanwhile():
             await until(lambda: any("waiting for room" in line for line in lines), "the wait for room")
             seen = len(probes)
             await until(lambda: len(probes) >= seen + 5, "five more probes of free space")
@@ -125,11 +138,9 @@ def run_through_full_disk(worker: Worker, lines: list[str], probes: list[int], m
             assert sum(line.startswith(f"{JOB} started") for line in lines) == 1, "no claim while the disk is full"
             assert sum("waiting for room" in line for line in lines) == 1, "said once"
             make_room()
-            return row, await asyncio.wait_for(task, 90)
-        finally:
-            if not task.done():
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
+            return row
+
+        return await run_worker(worker, meanwhile)
 
     return arun(scenario())
 
@@ -272,16 +283,12 @@ def test_a_full_disk_that_keeps_out_the_attempt_record_says_so_and_writes_it_lat
     monkeypatch.setattr(worker.queue, "write_outcome", refused)
 
     async def scenario():
-        task = asyncio.create_task(worker.run())
-        try:
+        async def meanwhile():
             await until(lambda: any("waiting for room" in line for line in lines), "the wait for room")
             assert worker.queue.job_paths()[JOB][0] == "queued", "the job went back all the same"
             full.unlink()
-            return await asyncio.wait_for(task, 90)
-        finally:
-            if not task.done():
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
+
+        return (await run_worker(worker, meanwhile))[1]
 
     assert arun(scenario()) == {JOB: "done"}, lines
     (stopped,) = [line for line in lines if line.startswith(f"{JOB} stopped after ")]
