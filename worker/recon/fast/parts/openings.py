@@ -23,8 +23,8 @@ So every `every_steps` steps the model proposes jumps and keeps the deepest one 
    node open. The kept margin spares the walls the data holds, and the fine level then moves them to where the data
    puts them.
 3. The current field and each proposal are rendered over all views (of a capture of more than 256, its 256 spread
-   set-up views) with the same rays (common random numbers: the comparison does not see the sampling noise), and a proposal is kept if it lowers the deviance per bin by at least
-   `min_gain`; the deepest such proposal wins, not the one that gains most (below). After `patience` rounds in a
+   set-up views) with the same rays (common random numbers: the comparison does not see the sampling noise), and a
+   proposal is kept if it lowers the deviance per bin by at least `min_gain`; the deepest such proposal wins, not the one that gains most (below). After `patience` rounds in a
    row without a kept proposal, the model stops proposing. A round with proposals costs about as much as 25 steps
    (one pass over all views per proposal and one for the current field); a round without them, nothing.
 
