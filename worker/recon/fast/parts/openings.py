@@ -22,11 +22,12 @@ So every `every_steps` steps the model proposes jumps and keeps the deepest one 
    the opened region, where that is above the current value; only the pieces of that region that reach a flagged
    node open. The kept margin spares the walls the data holds, and the fine level then moves them to where the data
    puts them.
-3. The current field and each proposal are rendered over all views (of a capture of more than 256, its 256 spread
-   set-up views) with the same rays (common random numbers: the comparison does not see the sampling noise), and a
-   proposal is kept if it lowers the deviance per bin by at least `min_gain`; the deepest such proposal wins, not the one that gains most (below). After `patience` rounds in a
-   row without a kept proposal, the model stops proposing. A round with proposals costs about as much as 25 steps
-   (one pass over all views per proposal and one for the current field); a round without them, nothing.
+3. The current field and each proposal are rendered over all views (of a capture of more than 256, its 256 spread set-up
+   views) with the same rays (common random numbers: the comparison does not see the sampling noise), and a proposal is
+   kept if it lowers the deviance per bin by at least `min_gain`; the deepest such proposal wins, not the one that gains
+   most (below). After `patience` rounds in a row without a kept proposal, the model stops proposing. A round with
+   proposals costs about as much as 25 steps (one pass over all views per proposal and one for the current field); a
+   round without them, nothing.
 
 Why the deepest: the deviance just after a jump cannot see what only the later steps settle. Under the built-in
 side table's top (20 cm across, over four legs) the hull is solid to the floor; at step 150 the 4 cm proposal gains
