@@ -228,14 +228,16 @@ class RoomWait:
         return shown
 
     @classmethod
-    def from_note(cls, note, job: str | None = None, *, now: float | None = None,
-                  roots: dict | None = None) -> "RoomWait | None":
+    def from_note(cls, note, job: str | None = None, *, now: float | None = None, roots: dict | None = None,
+                  skewed: bool = False) -> "RoomWait | None":
         """The wait a `note` describes, or None when it is not one (a damaged or hand-edited record) or begins more
         than ROOM_SKEW_S ahead of this machine's clock (`now`: its reading). A wait noted to run longer than
         ROOM_RETRY_MAX_S (the longest a worker waits) runs that long from its start (`note_doubt` says both).
         `roots` ({"queue", "root"}: this machine's folders): the folder is found under them (`relative`), where its
-        free space is asked; one that cannot be found there is `unresolved`, its free space unknown. Without
-        `roots` the note is only read (to be said), as it stands."""
+        free space is asked; one under neither is asked where the note names it, if that folder is here on the
+        noted mount; one found nowhere is `unresolved`, its free space unknown. Without `roots` the note is only
+        read (to be said), as it stands. `skewed`: one ahead of this clock is read all the same (to be said: the
+        skew matters only to the queue's gate, while its worker does wait)."""
         try:
             mount, folder, quota = note["mount"], note["folder"], note["quota"]
             free, need = _count(note["free_bytes"]), _count(note["need_bytes"])
@@ -245,7 +247,7 @@ class RoomWait:
         if not (isinstance(mount, str) and isinstance(folder, str) and isinstance(quota, bool)) or until < since:
             return None
         now = time.time() if now is None else now
-        if since > now + ROOM_SKEW_S:
+        if since > now + ROOM_SKEW_S and not skewed:
             return None
         retry_s = min(until - since, ROOM_RETRY_MAX_S)
         left = min(max(since + retry_s - now, 0.0), ROOM_RETRY_MAX_S)
@@ -254,11 +256,15 @@ class RoomWait:
         return wait if roots is None else wait._found(roots)
 
     def _found(self, roots: dict) -> "RoomWait":
-        """This wait with its folder as found under this machine's `roots`, or `unresolved` where it is not."""
+        """This wait with its folder as found under this machine's `roots`; else as written, where that folder is
+        here on the filesystem mounted where the note says (a full $TMPDIR or cache, outside both roots: on the
+        writer's own machine, room made there ends the wait); `unresolved` otherwise."""
         local = _resolve(self.relative, roots)
-        if local is None:
-            return replace(self, free=None, need=None, unresolved=True)
-        return replace(self, folder=local, mount=mount_point(local))
+        if local is not None:
+            return replace(self, folder=local, mount=mount_point(local))
+        if _here(self.folder, self.mount):
+            return self
+        return replace(self, free=None, need=None, unresolved=True)
 
     @property
     def where(self) -> str:
@@ -395,6 +401,14 @@ def _resolve(relative: tuple[str, str] | None, roots: dict) -> Path | None:
     if path.is_absolute() or ".." in path.parts:
         return None
     return Path(os.path.abspath(roots[relative[0]])) / path
+
+
+def _here(folder: Path, mount: Path) -> bool:
+    """Whether the absolute `folder` exists on this machine on the filesystem mounted at `mount`."""
+    try:
+        return folder.is_absolute() and folder.is_dir() and mount_point(folder) == mount
+    except OSError:
+        return False
 
 
 def _total_or(folder, default: int) -> int:

@@ -128,8 +128,9 @@ def _present(path: Path, now: float) -> tuple[dict | None, bool]:
 
 def room_wait_of(value) -> dict | None:
     """A presence file's `room_wait` as `Presence.room_wait` says it (exactly its keys), or None where it is none or
-    not one (a damaged file, another version's)."""
-    wait = RoomWait.from_note(value) if isinstance(value, dict) else None
+    not one (a damaged file, another version's). One that begins ahead of this clock is said all the same: its
+    worker waits, whatever the clocks say."""
+    wait = RoomWait.from_note(value, skewed=True) if isinstance(value, dict) else None
     return None if wait is None else wait.note()
 
 
@@ -159,10 +160,11 @@ def workers_line(rows: list[dict], start: str) -> str:
 
 def waiting_for_room(wait: dict) -> str:
     """What a worker's wait for room (`Presence.room_wait`) is, in a few words, for `worker --status`: where (as
-    the worker's own lines say it, `RoomWait.where`) and until when at the latest ('' for a note that is none)."""
-    read = RoomWait.from_note(wait)
+    the worker's own lines say it, `RoomWait.where`) and until when at the latest (a note that cannot be read says
+    so). One that begins ahead of this clock is said as it stands: its worker waits all the same."""
+    read = RoomWait.from_note(wait, skewed=True)
     if read is None:
-        return ""
+        return "waiting for room before claiming a job (its note cannot be read)"
     return f"waiting for room {read.where} before claiming a job, until {when_text(read.retry_unix)} at the latest"
 
 

@@ -230,7 +230,7 @@ class Queue:
             try:
                 self._record(job_id, token, holder, outcome="running", attempt=attempt)
             except OSError:  # a claim with no record would hold the job, unnamed, until its lease ran out
-                _put_back(dst, src, queued)
+                _put_back(dst, src, queued, self.path / "tmp")
                 raise
             return Claim(job, token, dst, attempt)
         return None
@@ -728,14 +728,22 @@ def _rename(src: Path, dst: Path) -> bool:
         return False
 
 
-def _put_back(claimed: Path, queued: Path, was: os.stat_result) -> None:
+def _put_back(claimed: Path, queued: Path, was: os.stat_result, tmp: Path) -> None:
     """Rename the job file a claim took (`claimed`) back to `queued`, with the times it had there (`was`): its place
-    in the queue (the oldest first) is its file's mtime, which the claim had set to now."""
-    if _rename(claimed, queued):
-        try:
-            os.utime(queued, ns=(was.st_atime_ns, was.st_mtime_ns))
-        except OSError:  # claimed by another meanwhile: its place is that claim's
-            pass
+    in the queue (the oldest first) is its file's mtime, which the claim had set to now.
+
+    The times are restored under a private name in the queue's `tmp` folder, before the file is queued: restored in
+    queued/, they could land on another worker's claim of it made in between (its utime, then our old times, then
+    its rename), whose fresh lease would then look an hour old and be taken over while its job runs. The private
+    name is one `repair` reads: a crash in between leaves the job to be queued again, not lost."""
+    private = tmp / f"{queued.stem}{SEP}{_new_token()}.json"
+    if not _rename(claimed, private):
+        return
+    try:
+        os.utime(private, ns=(was.st_atime_ns, was.st_mtime_ns))
+    except OSError:  # `repair` queued it meanwhile: its place is whatever that rename kept
+        pass
+    _rename(private, queued)
 
 
 def _job_file(path: Path) -> Job | None:

@@ -528,11 +528,16 @@ def room_said(waits: list[dict], queue_waits: list[dict] = ()) -> str:
     `worker --status` say them (disk_room.RoomWait.where, .figures, disk_room.when_text)."""
     from spadscan.worker.disk_room import UNKNOWN_TIME, RoomWait, when_text
 
-    read = [w for w in map(RoomWait.from_note, waits) if w is not None]
+    read = [w for w in (RoomWait.from_note(n, skewed=True) for n in waits) if w is not None]
     mounts = {}
     for wait in read:
         mounts.setdefault(wait.mount, wait)
     places = [f"{wait.where} ({wait.figures})" for wait in mounts.values()]
+    for note in waits:  # a damaged note still means its worker waits: said by what can be read of it
+        if RoomWait.from_note(note, skewed=True) is None:
+            mount = note.get("mount") if isinstance(note, dict) else None
+            where = f"on {mount}" if isinstance(mount, str) and mount else "on a disk it does not name"
+            places.append(f"{where} (its note cannot be read)")
     who = "the worker waits" if len(waits) == 1 else f"every worker ({len(waits)}) waits"
     fix = "make room there" + (" or raise the quota" if any(w.quota for w in read) else "")
     queued = [w.retry_unix for w in map(RoomWait.from_note, queue_waits) if w is not None]

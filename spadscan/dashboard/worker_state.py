@@ -61,7 +61,7 @@ def room_waits(workers) -> list[dict]:
     version's) is no wait: the worker is shown as the rest of its file says."""
     waits = []
     for worker in workers:
-        wait = RoomWait.from_note(worker.get("room_wait"))
+        wait = RoomWait.from_note(worker.get("room_wait"), skewed=True)  # (shown: only the queue's gate skips it)
         if wait is None:
             continue
         waits.append({**wait.note(), "worker": worker_name(worker),

@@ -452,3 +452,46 @@ def test_a_claim_is_dead_only_when_it_can_never_publish(tmp_path):
     assert not q.claim_is_dead("far-fast", "0" * 16), "an unknown claim is left alone"
     q.reclaim_expired(now=time.time() + 60)  # the far holder's lease expires: its claim is lost
     assert q.claim_is_dead(far.job.id, far.token)
+
+
+def test_a_claim_put_back_never_ages_another_workers_claim_made_meanwhile(tmp_path, monkeypatch):
+    """Worker A's claim cannot write its record (the queue's disk full) and puts the job back with its old times;
+    worker B claims it at that moment (its utime, A's restore of the old times, its rename). Before: A restored
+    the times on the file in queued/, so B's fresh claim got the hour-old mtime, its lease looked expired, and the
+    job could be taken over while B ran it."""
+    q, other = Queue(tmp_path / "q"), Queue(tmp_path / "q")
+    q.enqueue(Job(id="s-fast", scan="s"))
+    old = time.time() - 3600
+    os.utime(q.path / "queued" / "s-fast.json", (old, old))
+    real_utime, real_rename = os.utime, os.rename
+    restore: dict = {}
+    b_claims: list = []
+
+    def utime(path, times=None, *, ns=None, **kwargs):
+        if ns is not None and not restore and not b_claims:  # A restores the old times: B claims right now
+            restore["args"] = (path, ns)
+            b_claims.append(other.claim())
+        return real_utime(path, times, ns=ns, **kwargs) if ns is not None else real_utime(path, times, **kwargs)
+
+    def rename(src, dst, **kwargs):
+        if restore and "running" in str(dst) and "done" not in restore:  # B's rename: A's restore comes first
+            restore["done"] = True
+            try:
+                real_utime(restore["args"][0], ns=restore["args"][1])
+            except FileNotFoundError:
+                pass
+        return real_rename(src, dst, **kwargs)
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "utime", utime)
+    monkeypatch.setattr(os, "rename", rename)
+    monkeypatch.setattr(q, "_write_record", full)
+    with pytest.raises(OSError):
+        q.claim()
+    monkeypatch.undo()
+    claim = (b_claims and b_claims[0]) or other.claim()
+    assert claim is not None and claim.job.id == "s-fast"
+    assert time.time() - claim.path.stat().st_mtime < 60, "B's lease starts at its claim"
+    assert other.reclaim_expired() == [], "B's live lease is not taken over"

@@ -147,7 +147,7 @@ def test_a_folder_not_found_under_the_readers_root_waits_on_its_timer(tmp_path, 
     clock = clocks(monkeypatch)
     monkeypatch.setattr(disk_room, "free_bytes", lambda folder: 10**12)
     (tmp_path / "s" / "recon").mkdir(parents=True)
-    noted = note(tmp_path / "s" / "recon", clock["now"])
+    noted = note(tmp_path / "s" / "recon", clock["now"], mount="/mnt/caps-of-a")  # the writer's, not here
     if case == "older note":
         noted = {k: v for k, v in noted.items() if k not in ("relative_to", "relative")}
     elif case == "leaves the root":
@@ -158,6 +158,29 @@ def test_a_folder_not_found_under_the_readers_root_waits_on_its_timer(tmp_path, 
     assert waiting is not None and waiting[1]["free_bytes"] is None and waiting[1]["need_bytes"] is None, waiting
     assert q.claim() is None
     clock["now"] += 600.0
+    assert q.claim().job.id == "a-fast"
+
+
+@pytest.mark.parametrize("mount", ["as noted", "another"])
+def test_a_folder_outside_both_roots_is_probed_where_written_if_it_is_here_on_its_mount(tmp_path, monkeypatch,
+                                                                                         mount):
+    """A job's own scratch space ($TMPDIR, a cache) lies under neither root: its note names no relative folder.
+    Where that folder is here, on the filesystem the note says, room made there ends the wait. Before: the wait was
+    unresolved and held every claim on every machine until its timer, room made or not."""
+    clock = clocks(monkeypatch)
+    free = {"now": PAGE}
+    monkeypatch.setattr(disk_room, "free_bytes", lambda folder: free["now"])
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    noted = {k: v for k, v in note(cache, clock["now"]).items() if k not in ("relative_to", "relative")}
+    noted["mount"] = str(mount_point(cache)) if mount == "as noted" else "/mnt/cache-of-a"
+    q = Queue(tmp_path / "caps" / ".queue", root=tmp_path / "caps")
+    given_back(q, noted, "a-fast")
+    assert q.claim() is None, "still full"
+    free["now"] = 10**12
+    if mount == "another":  # another machine's folder of that name: its room is not known here
+        assert q.room_wait()[1]["free_bytes"] is None and q.claim() is None
+        clock["now"] += 600.0
     assert q.claim().job.id == "a-fast"
 
 
