@@ -30,10 +30,13 @@ demo's final run on the idle machine cut its metrics to 270,000 points (its pict
 COVERAGE_S = 1.0
 """Seconds of the coverage count before a probe is timed (a 256-view capture's on the idle machine)."""
 COMPLETION_SHARE = 0.1
-"""What a view beyond those the coverage counts for every point costs, as a share of one of those: it is counted
-only for the points those see fewer than three times (coverage.spread_counts). Measured at 10,000 views (one
-thread, a loaded 2-core machine): 0.03 of one on a well seen sphere, 0.05 on a poor fit with a quarter of its
-surface seen by few views."""
+"""What a view beyond those the coverage counts for every point costs, as a share of one of those, at least: it is
+counted only for the points those see fewer than three times (coverage.spread_counts), and the probe's own counts say
+what share of the points that is (`EndCosts.time_coverage`). Measured at 10,000 views (one thread, a loaded 2-core
+machine): 0.03 of one on a well seen sphere, 0.05 on a poor fit with a quarter of its surface seen by few views; but
+0.56 on a flat plate seen from close by narrow views, where every point is seen by few of the spread views."""
+COVERAGE_DEFAULT_VIEWS = 256
+"""The views COVERAGE_S is a figure for: before a probe, the count's default grows with the views it reads."""
 COVERAGE_PICTURE_S = 2.5
 """The coverage picture is drawn only when this much is left of the budget beyond what the metrics and the normals
 picture still need: a short budget goes to the mesh and its figures first (the idle machine's 1.8-2.4 s)."""
@@ -161,12 +164,25 @@ class EndCosts:
         self.fit_check_s = self.view_render_s * renders_needed
         self.probed.append(f"fit check {renders_needed} view renders: {self.fit_check_s:.2f} s")
 
-    def time_coverage(self, seconds: float, views_timed: int, spread_views: int, other_views: int) -> None:
+    def coverage_views(self, spread_views: int, other_views: int) -> None:
+        """Before a probe times it (or where none can: no surface yet), the coverage count's default for a report
+        that counts `spread_views` views for every point and `other_views` more for the few points: COVERAGE_S is a
+        figure for COVERAGE_DEFAULT_VIEWS views, so it is scaled by the views, the others at COMPLETION_SHARE."""
+        per_view = COVERAGE_S / COVERAGE_DEFAULT_VIEWS
+        self.coverage_s = per_view * (max(spread_views, 0) + COMPLETION_SHARE * max(other_views, 0))
+
+    def time_coverage(self, seconds: float, views_timed: int, spread_views: int, other_views: int,
+                      few_share: float | None = None) -> None:
         """Counting `views_timed` views for every sample point took `seconds`: the report counts `spread_views`
-        views so, and `other_views` more only for the points those see fewer than three times (COMPLETION_SHARE)."""
+        views so, and `other_views` more only for the points those see fewer than three times: `few_share` of the
+        points (0 to 1, the probe's estimate; None: unknown), each other view costing that share of a spread view,
+        and never less than COMPLETION_SHARE."""
         per_view = max(float(seconds), 0.0) / max(views_timed, 1)
-        self.coverage_s = per_view * (spread_views + COMPLETION_SHARE * other_views)
-        self.probed.append(f"coverage {spread_views} + {other_views} views: {self.coverage_s:.2f} s")
+        share = COMPLETION_SHARE
+        if few_share is not None and math.isfinite(few_share):
+            share = min(max(float(few_share), COMPLETION_SHARE), 1.0)
+        self.coverage_s = per_view * (spread_views + share * other_views)
+        self.probed.append(f"coverage {spread_views} + {other_views} views at {share:.2f}: {self.coverage_s:.2f} s")
 
     def end_s(self, resolution: int, points: int | None, checkpoint: tuple[int, int] | None = None) -> float:
         """Seconds the stages after training take at `resolution` and `points` (None: no ground truth), plus the

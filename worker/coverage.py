@@ -166,6 +166,17 @@ def counted_views(poses: np.ndarray, usable: np.ndarray | None = None,
     return spread, len(_other_views(spread, len(poses), usable))
 
 
+def few_share(counts: np.ndarray, views_counted: int, views_of: int) -> float:
+    """Share (0 to 1) of the points whose `counts` (n,) over `views_counted` views, scaled to `views_of` views (a
+    probe's few views standing for the spread views), fall below FEW_VIEWS: the points `spread_counts` completes with
+    every other view. 0 for no points."""
+    counts = np.asarray(counts, np.float64)
+    if len(counts) == 0 or views_counted <= 0:
+        return 0.0
+    scaled = counts * (max(views_of, views_counted) / views_counted)
+    return float(np.mean(scaled < FEW_VIEWS))
+
+
 def _other_views(spread: np.ndarray, n_views: int, usable: np.ndarray | None) -> np.ndarray:
     """Indices of the views with data (usable (V, Z) or None: all) that are not among `spread`."""
     held = np.ones(n_views, bool) if usable is None else usable.any(axis=1)
@@ -221,4 +232,5 @@ def mesh_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = 
 
 
 __all__ = ["Coverage", "SurfaceViews", "mesh_coverage", "surface_views", "summarize", "vertex_views",
-           "views_per_point", "spread_counts", "counted_views", "FEW_VIEWS", "UNDERSIDE_NZ", "SPREAD_VIEWS"]
+           "views_per_point", "spread_counts", "counted_views", "few_share", "FEW_VIEWS", "UNDERSIDE_NZ",
+           "SPREAD_VIEWS"]

@@ -31,7 +31,7 @@ from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floo
 from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from .carving.view_subset import spread_views
 from .carving.views import summed_views
-from .coverage import FEW_VIEWS, Coverage, counted_views, summarize, surface_views, vertex_views
+from .coverage import FEW_VIEWS, Coverage, counted_views, few_share, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .jobs import run_limits_problem
@@ -318,7 +318,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         - (costs.metrics_s(MIN_METRIC_POINTS) if truth else 0.0), least=min(FIT_VIEWS, want))
     if fit_views < want:
         notes.append(f"the time budget was short: the fit was checked on {fit_views} views, not {want}")
-    fit = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config, fit_views)
+    fit, no_preview = _pictures(out, mesh, None if truth is None else truth.mesh, model, scene, result, config,
+                                fit_views)
     # The picture after the count of the views that see the mesh, which the report needs whatever the time.
     picture = coverage_picture_within(costs, run_clock.left() - SAFETY * costs.coverage_s, scored=truth is not None)
     if not picture:
@@ -389,6 +390,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     for line in report["warnings"]:
         if line not in (run.counts_note, run.state_note):  # said already, when the capture was loaded
             log(f"warning: {line}")
+    if no_preview is not None:  # after the log's warnings: said on stderr already, as the 3D view's is
+        report["warnings"] = [*report["warnings"], no_preview]
     ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
     written = files_written_after(out, before) | {"report.json", "report.html"}
     report["files"] = sorted(written)
@@ -440,6 +443,9 @@ def _probe_end_costs(model, n_views: int, truth, costs: EndCosts, clock, scene: 
     NOISE_RENDERS times), with `scene` the coverage count on that mesh (`_probe_coverage`) and with a ground truth
     small metrics, on this model and machine, so that the budget keeps back what the end of the run will take here.
     A short probe is timed twice, the faster kept (probe_seconds)."""
+    if scene is not None:  # the default, where no probe times it, is for the views the report counts
+        spread, others = counted_views(*_poses_usable(scene))
+        costs.coverage_views(len(spread), others)
     probe_views = sorted({0, n_views // 2})
     seconds, _ = probe_seconds(partial(model.render_histograms, probe_views), clock)
     costs.time_fit_check(seconds, len(probe_views), min(NOISE_VIEWS, n_views) * fit_renders(model))
@@ -464,16 +470,18 @@ def _probe_coverage(mesh, scene: SceneData, costs: EndCosts, clock) -> None:
     """Time the count of the views that see each sample point (`_coverage`) on `mesh`, over COVERAGE_PROBE_VIEWS of
     the views the report's count reads for every point (spread among them), so that the budget keeps back that count
     as the report makes it: of a large capture, on its spread views, not on every view (coverage.spread_counts). A
-    mesh without surface leaves the default (budget.COVERAGE_S)."""
+    mesh without surface leaves the default (EndCosts.coverage_views, set by `_probe_end_costs`)."""
     poses, usable = _poses_usable(scene)
     spread, others = counted_views(poses, usable)
     timed = spread[spread_views(poses[spread], COVERAGE_PROBE_VIEWS, None if usable is None else usable[spread])]
     count = partial(surface_views, mesh, poses[timed], scene.sensor, usable=None if usable is None else usable[timed])
     try:
-        seconds, _ = probe_seconds(count, clock)
+        seconds, samples = probe_seconds(count, clock)
     except SpadscanError:
         return
-    costs.time_coverage(seconds, len(timed), len(spread), others)
+    # The other views are counted only for the points the spread views see fewer than FEW_VIEWS times: the probe's
+    # counts, scaled from its views to the spread views, say what share that is (a flat plate seen close up: all).
+    costs.time_coverage(seconds, len(timed), len(spread), others, few_share(samples.counts, len(timed), len(spread)))
 
 
 def _poses_usable(scene: SceneData) -> tuple[np.ndarray, np.ndarray | None]:
@@ -624,12 +632,13 @@ def fit_renders(model) -> int:
 
 
 def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfig,
-              n_views: int) -> FitNoise | None:
+              n_views: int) -> tuple[FitNoise | None, str | None]:
     """preview.png, error_vs_time.png and fit.png; returns the fit against the photon noise on `n_views` views
     spread over the capture, those the fit picture shows among them (end_of_run.fit_noise; each rendered
     `fit_renders` times and averaged, the spread of the renders giving the renderer's own sampling noise, which the
-    check counts with the photon noise)."""
-    pictures.preview_png(mesh, out / "preview.png", gt=gt_mesh)
+    check counts with the photon noise), and the report's warning where the preview was not drawn (None where it
+    was)."""
+    no_preview = pictures.preview_or_warning(mesh, out / "preview.png", gt=gt_mesh)
     # how the checkpoints' Chamfer was scored, where the picture shows one (a run whose budget left them unscored
     # plots the loss alone, and its title says so)
     scored = gt_mesh is not None and pictures.chamfer_points(result.trace)
@@ -643,4 +652,4 @@ def _pictures(out: Path, mesh, gt_mesh, model, scene, result, config: ReconConfi
     shown = sorted({int(round(i)) for i in np.linspace(0, len(views) - 1, min(FIT_VIEWS, len(views)))})
     pictures.fit_png(measured[shown], rendered[shown], [views[i] for i in shown], out / "fit.png")
     return fit_noise(measured, rendered, scene.valid[views].cpu().numpy(), views,
-                     expected_var=renders.var(axis=0, ddof=1) / len(renders) if len(renders) > 1 else None)
+                     expected_var=renders.var(axis=0, ddof=1) / len(renders) if len(renders) > 1 else None), no_preview

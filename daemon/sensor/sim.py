@@ -10,8 +10,11 @@ when the call arrives). With frame_time_s = 0 a frame starts when asked for and 
 Rendering is this process's work, not the device's: a real sensor delivers frame k at t_k + frame_time_s however
 busy our CPU is (with frame_time_s = 0, at once). The sensor's `wait_clock`, on which every frame timeout counts (its
 own and the runner's frame_timeout_s), stands still from the moment a frame is due until it is handed over: a render
-that a loaded machine slows, and the event loop's delay in taking it up, are never taken for a silent sensor.
-Silences (below) pass on the clock as on the wall.
+that a loaded machine slows, and the event loop's delay in taking it up, are never taken for a silent sensor. One
+frame holds the clock still for at most `hold_max_s(timeout)` = max(HOLD_MIN_S, HOLD_TIMEOUTS x the timeout), 30 s
+or ten timeouts: a render that never returns (a deadlocked library, a saturated executor) then lets the clock run
+again, and the timeout raises SensorSilent, rather than a scan that waits for ever. Silences (below) pass on the clock
+as on the wall.
 
 Faults: `inject_silence(s)` (no frames for s seconds: next_frame raises SensorSilent after its timeout; the frame in
 progress is lost) and `inject_link_loss(s)` (next_frame raises LinkLost at once for s seconds). Scheduled silence
@@ -35,6 +38,17 @@ from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
 from spadscan.protocol.simulator import SimSettings, Simulator
 
+HOLD_MIN_S = 30.0
+"""Seconds one frame's render may hold the wait clock still at least (module docstring): a loaded machine's slow
+render (seconds) stays within it."""
+HOLD_TIMEOUTS = 10.0
+"""And at least this many of the wait's timeouts."""
+
+
+def hold_max_s(timeout_s: float, hold_min_s: float = HOLD_MIN_S) -> float:
+    """The most seconds one frame may hold the wait clock of a wait of `timeout_s` seconds still."""
+    return max(hold_min_s, HOLD_TIMEOUTS * timeout_s)
+
 
 class SimSensor(Sensor):
     """Renders `mesh` (trimesh, metres) for `model` at the sensor pose (4, 4) from `pose_provider()`.
@@ -42,6 +56,9 @@ class SimSensor(Sensor):
     `model` after construction is the simulator's effective model (settings' power, ambient and cycles folded in),
     which is what captures must store. Rendering runs in a worker thread; one frame is rendered at a time.
     """
+
+    hold_min_s = HOLD_MIN_S
+    """What `hold_max_s` allows one frame at least (a class attribute, so that a test can shorten it)."""
 
     def __init__(self, model: SensorModel, mesh, pose_provider: Callable[[], np.ndarray], *,
                  settings: SimSettings | None = None, seed: int = 0, frame_time_s: float = 0.0,
@@ -63,6 +80,8 @@ class SimSensor(Sensor):
         self._prev_end: float | None = None
         self._held_s = 0.0  # seconds the wait clock has stood still: frames that were due, still being produced here
         self._due: float | None = None  # when the frame being produced now is due (the clock stands still after it)
+        self._hold_max_s = hold_max_s(0.0, self.hold_min_s)  # how long that frame may hold it still (next_frame's)
+        self._held_too_long = False  # a frame held the clock as long as it may: said by the timeout that follows
         self._silent_until = -math.inf
         self._down_until = -math.inf
         self._silence_on = {int(n) for n in silence_on_frames}  # frame numbers still to be silenced
@@ -96,17 +115,29 @@ class SimSensor(Sensor):
     async def next_frame(self, timeout_s: float) -> Frame:
         if self._prev_end is None:
             raise DeviceError(f"{self.name}: next_frame before prepare (the sensor is not streaming)")
+        self._hold_max_s, self._held_too_long = hold_max_s(timeout_s, self.hold_min_s), False
         try:
             return await wait_counted(self._next(), timeout_s, self.wait_clock)
         except TimeoutError:
             self._counts["silent_timeouts"] += 1
-            raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s") from None
+            why = (f" (a frame's render here held the wait for {self._hold_max_s:g} s, the most one frame may)"
+                   if self._held_too_long else "")
+            raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s{why}") from None
 
     def wait_clock(self) -> float:
-        """time.monotonic() less the time frames were due from the device but still being produced here (see the
-        module docstring)."""
+        """time.monotonic() less the time frames were due from the device but still being produced here, each frame
+        at most `hold_max_s` of its wait's timeout (see the module docstring)."""
         now = time.monotonic()
-        return now - self._held_s - (max(0.0, now - self._due) if self._due is not None else 0.0)
+        return now - self._held_s - self._holding(now)
+
+    def _holding(self, now: float) -> float:
+        """Seconds the frame being produced holds the wait clock still at `now` (0: none is due yet)."""
+        if self._due is None:
+            return 0.0
+        held = max(0.0, now - self._due)
+        if held >= self._hold_max_s:
+            self._held_too_long = True
+        return min(held, self._hold_max_s)
 
     def counters(self) -> dict:
         out = dict(self._counts)
@@ -147,8 +178,7 @@ class SimSensor(Sensor):
 
     def _handed_over(self) -> None:
         """The frame being produced is handed over (or lost, or its wait cancelled): the wait clock runs again."""
-        now = time.monotonic()
-        self._held_s += max(0.0, now - self._due)
+        self._held_s += self._holding(time.monotonic())
         self._due = None
 
     def _frame_start(self, now: float) -> float:

@@ -7,6 +7,8 @@ than every timeout in play, so that no machine is fast enough to hide the fault.
 
 from __future__ import annotations
 
+import asyncio
+import threading
 import time
 
 import numpy as np
@@ -16,7 +18,7 @@ from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.backends import pose_provider
 from spadscan.daemon.devices import SensorSilent
 from spadscan.daemon.runner import FRAME_GRACE_S, ScanRunner
-from spadscan.daemon.sensor.sim import SimSensor
+from spadscan.daemon.sensor.sim import HOLD_TIMEOUTS, SimSensor
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings
 
@@ -109,3 +111,41 @@ def test_a_scan_whose_renders_outlast_every_timeout_completes_without_a_pause(ar
     assert status["state"] == "idle" and status["last_scan"] == {"name": "loaded", "state": "complete"}, status
     assert sensor.renders == 3 and sensor.counters()["silent_timeouts"] == 0
     check_capture(tmp_path / "caps" / "loaded", 3, 1)
+
+
+class BlockedSim(SimSensor):
+    """A SimSensor whose render never returns until `release` is set (a deadlocked library, a saturated executor);
+    `rendering` is set once it has begun. One frame may hold its wait clock still for 0.5 s or ten timeouts."""
+
+    hold_min_s = 0.5
+
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.rendering, self.release_render = threading.Event(), threading.Event()
+
+    def _render(self, pose):
+        self.rendering.set()
+        self.release_render.wait()
+        return super()._render(pose)
+
+
+def test_a_render_that_never_returns_still_times_out(arun, sphere):  # noqa: F811
+    """The wait clock stood still from a frame's due time until its hand-over with no bound: a render that never
+    returned never raised SensorSilent, and the scan sat in "scanning" for ever. One frame now holds the clock for at
+    most max(hold_min_s, HOLD_TIMEOUTS x the timeout), after which the timeout fires (and says why). The bound on the
+    wait is a guard against the hang alone, far beyond the 1.1 s of clock and wall it takes."""
+    sensor = BlockedSim(sensor_preset("tmf8820"), sphere, looking_at_the_sphere, settings=SimSettings(rays_per_zone=16))
+
+    async def scenario():
+        await sensor.prepare()
+        try:
+            with pytest.raises(SensorSilent, match="held the wait for 1 s"):
+                await asyncio.wait_for(sensor.next_frame(0.1), 60.0)
+            assert sensor.rendering.is_set()
+        finally:
+            sensor.release_render.set()  # the render's thread ends, so that the event loop can close
+            await sensor.release()
+
+    arun(scenario())
+    assert sensor.counters()["silent_timeouts"] == 1
+    assert sensor.counters()["late_render_s"] == pytest.approx(HOLD_TIMEOUTS * 0.1)

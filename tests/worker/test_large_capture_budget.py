@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 import trimesh
 
+from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.mesh_io import load_mesh_spec
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker import reconstruct
-from spadscan.worker.budget import COMPLETION_SHARE, COVERAGE_S, SAFETY, EndCosts
-from spadscan.worker.coverage import SPREAD_VIEWS
+from spadscan.worker.budget import COMPLETION_SHARE, COVERAGE_DEFAULT_VIEWS, COVERAGE_S, SAFETY, EndCosts
+from spadscan.worker.coverage import FEW_VIEWS, SPREAD_VIEWS, SurfaceViews, few_share
 from worker_helpers import FAST_SMALL
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -44,6 +45,7 @@ def test_the_coverage_count_is_kept_back_as_the_report_makes_it_on_its_spread_vi
     def count(mesh, poses, sensor, usable=None):
         seen.append(len(poses))
         t[0] += 1e-3 * len(poses)
+        return SurfaceViews(np.zeros((10, 3)), np.zeros((10, 3)), np.ones(10, int))  # every point seen: few none
 
     monkeypatch.setattr(reconstruct, "surface_views", count)
     costs = EndCosts()
@@ -57,6 +59,49 @@ def test_the_coverage_count_is_kept_back_as_the_report_makes_it_on_its_spread_vi
     small, seen[:] = Scene(40), []
     reconstruct._probe_coverage(trimesh.creation.icosphere(), small, costs, lambda: t[0])
     assert costs.coverage_s == pytest.approx(1e-3 * 40)  # every view counted for every point: no others
+
+
+def test_the_other_views_are_kept_back_for_the_share_of_points_the_probe_finds_seen_by_few(monkeypatch):
+    """The other views are counted for the points the spread views see fewer than FEW_VIEWS times: a flat plate seen
+    close up by narrow views has all of them so (its count took 0.43 s where COMPLETION_SHARE kept back 0.10 s). The
+    probe's own counts, scaled from its views to the spread views, say that share: here 6 of 10 points seen by no
+    probe view (few of the spread views too), 4 seen by one (about 32 of the 256)."""
+    t = [0.0]
+
+    def count(mesh, poses, sensor, usable=None):
+        t[0] += 1e-3 * len(poses)
+        return SurfaceViews(np.zeros((10, 3)), np.zeros((10, 3)), np.array([0] * 6 + [1] * 4))
+
+    monkeypatch.setattr(reconstruct, "surface_views", count)
+    costs = EndCosts()
+    reconstruct._probe_coverage(trimesh.creation.icosphere(), Scene(), costs, lambda: t[0])
+    assert costs.coverage_s == pytest.approx(1e-3 * (SPREAD_VIEWS + 0.6 * (900 - SPREAD_VIEWS)))
+    assert any(line.startswith(f"coverage {SPREAD_VIEWS} + 644 views at 0.60") for line in costs.probed)
+
+
+def test_the_share_seen_by_few_is_scaled_from_the_probe_views_to_the_spread_views():
+    assert few_share(np.array([0, 0, 1, 2]), 8, 256) == 0.5  # one of 8 views: about 32 of 256
+    assert few_share(np.array([0, 1, 2, FEW_VIEWS]), 8, 8) == 0.75  # every spread view probed: as counted
+    assert few_share(np.array([], int), 8, 256) == 0.0
+
+
+def test_the_default_coverage_cost_grows_with_the_views_when_the_mesh_probe_fails():
+    """COVERAGE_S is a 256-view figure: where the model has no surface to probe yet, a 1,000-view capture's default
+    is that of its spread views and its others (at COMPLETION_SHARE), and a 40-view capture's is less."""
+
+    class Model:
+        def render_histograms(self, views):
+            pass
+
+        def extract_mesh(self, resolution):
+            raise SpadscanError("no surface")
+
+    per_view = COVERAGE_S / COVERAGE_DEFAULT_VIEWS
+    for scene, want in ((Scene(), per_view * (SPREAD_VIEWS + COMPLETION_SHARE * (900 - SPREAD_VIEWS))),
+                        (Scene(40), per_view * 40)):
+        costs = EndCosts()
+        reconstruct._probe_end_costs(Model(), scene.n_views, None, costs, lambda: 0.0, scene=scene)
+        assert costs.coverage_s == pytest.approx(want)
 
 
 def test_a_mesh_without_surface_leaves_the_default_coverage_cost():

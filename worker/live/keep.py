@@ -3,9 +3,11 @@ measurements better.
 
 The final run is short (it polishes the live fit for a few seconds' steps, or within the job's budget), and it may
 end worse than it began. So once it has trained, before its mesh, metrics and pictures, both fields are scored on
-every view of the complete capture with the same rays (the data term, deviance per bin:
-`FastModel.deviance_all_views`), and the model is left holding the better one: the mesh, the report's pictures, its
-fit check and its metrics all describe what is published. report.json says which (`published`).
+the same views of the complete capture with the same rays (the data term, deviance per bin:
+`FastModel.deviance_all_views`): every view of a capture of up to 256 views, and of a larger one the 256 views spread
+over it that its set-up read (`problem.setup_views`), whose per-bin mean estimates every view's. The model is left
+holding the better one: the mesh, the report's pictures, its fit check and its metrics all describe what is
+published. report.json says which (`published`).
 """
 
 from __future__ import annotations
@@ -18,8 +20,8 @@ SCORE_SEED = 0
 
 def keep_the_better(model, live_field, log: Callable[[str], None]) -> dict:
     """Score the final model's mesh field and `live_field` (a GridField; projected into the final model's hull, as
-    at the warm start) on every view, and leave the better one in `model` (its grid and the field it meshes). Returns
-    report.json's `published`: which field, and both deviances per bin."""
+    at the warm start) on the same views (the module docstring), and leave the better one in `model` (its grid and
+    the field it meshes). Returns report.json's `published`: which field, and both deviances per bin."""
     final_values = model.mesh_field().sdf.detach().clone()
     use_field(model, final_values)
     final_dev = model.deviance_all_views(SCORE_SEED)

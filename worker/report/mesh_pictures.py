@@ -36,14 +36,36 @@ def _add(pl, mesh, data, **style) -> None:
 def preview_png(mesh, path, gt=None, pixels: int = 280) -> Path | None:
     """The mesh from four angles, and below each panel the ground truth from the same angle at the same scale when
     given. Returns the PNG's path, or None when this machine cannot draw off screen (a warning says why)."""
+    try:
+        return _draw_preview(mesh, path, gt, pixels)
+    except offscreen.OffscreenUnavailable as exc:
+        offscreen.warn(no_preview_warning(exc, path))
+        return None
+
+
+def preview_or_warning(mesh, path, gt=None, pixels: int = 280) -> str | None:
+    """`preview_png`, for a run's report: None where the preview was drawn, else the one-line warning its report's
+    "warnings" take (`no_preview_warning`; on stderr too), so that the report, and the dashboard that lists it, say
+    why the result has no preview."""
+    try:
+        _draw_preview(mesh, path, gt, pixels)
+    except offscreen.OffscreenUnavailable as exc:
+        offscreen.warn(no_preview_warning(exc, path))
+        return no_preview_warning(exc, path)
+    return None
+
+
+def no_preview_warning(exc: Exception, path="preview.png") -> str:
+    """The warning of a preview that was not drawn: "no preview.png: <why>", one line."""
+    return f"no {Path(path).name}: {' '.join(str(exc).split())}"
+
+
+def _draw_preview(mesh, path, gt, pixels: int) -> Path:
+    """preview_png's picture; OffscreenUnavailable where this machine cannot draw off screen."""
     rows = [("reconstruction", mesh, offscreen.MESH_COLOUR)]
     if gt is not None:
         rows.append(("ground truth", gt, offscreen.GT_COLOUR))
-    try:
-        pl = offscreen.plotter((len(rows), len(VIEWS)), (pixels, pixels))
-    except offscreen.OffscreenUnavailable as exc:
-        offscreen.warn(f"no {Path(path).name}: {exc}")
-        return None
+    pl = offscreen.plotter((len(rows), len(VIEWS)), (pixels, pixels))
     center, half = offscreen.frame([m for _, m, _ in rows])
     try:
         for r, (name, m, colour) in enumerate(rows):
