@@ -7,7 +7,7 @@ Routes (GET and HEAD only):
   /files/PATH     a file under the root; anything that resolves outside it, hidden folders (the queue, a job being
                   written) and folders are 404
   /live3d/SCAN    the 3D view of SCAN's live reconstruction (recon/live/mesh.ply), made on demand and remembered
-                  until the mesh changes; the browser draws it (live_view.py): the server needs no OpenGL for it
+                  until the mesh changes; the browser draws it (worker/report/view3d.py): the server needs no OpenGL for it
 """
 
 from __future__ import annotations
@@ -43,14 +43,13 @@ class LiveViews:
 
     def page(self, mesh_path: Path, title: str) -> bytes:
         from spadscan.protocol.mesh_io import load_mesh
-
-        from .live_view import live_view_html
+        from spadscan.worker.report.view3d import view3d_html
 
         with self._lock:
             stamp = mesh_path.stat().st_mtime_ns
             cached = self._pages.get(mesh_path)
             if cached is None or cached[0] != stamp:
-                page = live_view_html(load_mesh(mesh_path, units="m"), title=title).encode("utf-8")
+                page = view3d_html(load_mesh(mesh_path, units="m"), title=title).encode("utf-8")
                 self._pages[mesh_path] = cached = (stamp, page)
             return cached[1]
 

@@ -90,14 +90,14 @@ def started_ago(scan, seconds: float) -> None:
 
 
 def test_at_phone_and_half_screen_width_the_state_and_the_3d_view_are_read_and_nothing_scrolls_sideways(tmp_path):
-    from spadscan.dashboard.live_view import live_view_html
+    from spadscan.worker.report.view3d import view3d_html
 
     complete_scan(tmp_path / "mug", 2)
     final = tmp_path / "mug" / "recon" / "mug-fast"
     final.mkdir(parents=True)
     (final / "report.json").write_text(json.dumps({"preset": "fast", "chamfer_mm": 2.5}))
     # the report's viewer page, as the worker writes it, made where no off-screen OpenGL is (the layout is the point)
-    view = live_view_html(trimesh.creation.icosphere(subdivisions=2, radius=0.05), "mug (fast)")
+    view = view3d_html(trimesh.creation.icosphere(subdivisions=2, radius=0.05), title="mug (fast)")
     (final / "view3d.html").write_text(view, encoding="utf-8")
     for width in (400, 960):
         with serving(tmp_path, daemon_running=daemon_running) as server, browser_page(width, 800) as (page, seen):

@@ -2,7 +2,7 @@
 and drawn all the same (the browser draws it with WebGL; the server only describes the scene), and a result's mesh
 without a preview says why it has none, in one line, with what to install in its title. The machine is simulated by
 the means the product's own check asks (offscreen.check_offscreen: the environment and ctypes.util.find_library), so
-that these run on a machine that has an off-screen OpenGL too; the live view looks as the report's own 3D view.
+that these run on a machine that has an off-screen OpenGL too; the live view is the report's own 3D view page.
 
 The worker draws a preview on its own machine, which need not be the dashboard's: a result whose report says why it has
 no preview says that, whatever the dashboard's machine can do; the dashboard's machine's own reason, said as its, is
@@ -15,7 +15,9 @@ import io
 import json
 import zipfile
 
+import numpy as np
 import pytest
+import pyvista as pv
 import trimesh
 
 from dashboard_helpers import (complete_scan, get, keep_opengl_window, preview_png, serving,
@@ -78,7 +80,8 @@ def test_the_live_3d_view_is_served_and_drawn_where_nothing_can_draw_off_screen(
 
 DASHBOARD_CANNOT_DRAW = "no preview: this dashboard's machine cannot draw off screen"
 WORKER_CANNOT_DRAW = "no preview: the worker's machine could not draw off screen"
-# the warning a worker's report gives where its machine could not draw off screen (folder_view.py no_view_warning)
+# the warning an earlier version's report gave where its machine could not draw off screen (its 3D view needed an
+# off-screen OpenGL then): such results are still on disk and still say why they have no preview
 NO_VIEW = ("no 3D view: view3d.html could not be written (no display and no EGL or OSMesa library to draw meshes off "
            "screen: install an off-screen OpenGL: on Debian/Ubuntu `apt-get install libegl1 libegl-mesa0` (EGL) or "
            "`apt-get install libosmesa6` (OSMesa))")
@@ -109,20 +112,36 @@ def preview_said(tmp_path, warnings: list[str]) -> tuple[str, str]:
     return said
 
 
+def worker_preview_warning(tmp_path) -> str:
+    """The warning a worker's report gives where its machine could not draw the preview: made by the worker's own
+    code (mesh_pictures.preview_or_warning, as reconstruct.py calls it) on a machine without off-screen OpenGL."""
+    from spadscan.worker.report.pictures import preview_or_warning
+
+    with pytest.MonkeyPatch.context() as worker_machine:
+        without_off_screen_opengl(worker_machine)
+        line = preview_or_warning(trimesh.creation.icosphere(), tmp_path / "preview.png")
+    assert line is not None and not (tmp_path / "preview.png").exists()
+    return line
+
+
+@pytest.mark.parametrize("said_by", ["3D view", "preview"])
 @pytest.mark.parametrize("dashboard_draws", [True, False])
 def test_a_result_whose_worker_could_not_draw_says_so_whatever_the_dashboards_machine_can(tmp_path, monkeypatch,
-                                                                                          dashboard_draws):
+                                                                                          dashboard_draws, said_by):
+    warning = NO_VIEW if said_by == "3D view" else worker_preview_warning(tmp_path)
     if dashboard_draws:
         keep_opengl_window(monkeypatch)
         monkeypatch.setenv("DISPLAY", ":99")  # the product's check: a display draws
     else:
         without_off_screen_opengl(monkeypatch)
-    assert preview_said(tmp_path, ["the run stopped on its budget", NO_VIEW]) == (WORKER_CANNOT_DRAW, NO_VIEW)
+    assert preview_said(tmp_path, ["the run stopped on its budget", warning]) == (WORKER_CANNOT_DRAW, warning)
 
 
 def test_a_results_own_reason_for_no_preview_is_said_not_the_dashboards_machines(tmp_path, monkeypatch):
+    from spadscan.worker.report.mesh_pictures import no_preview_warning
+
     without_off_screen_opengl(monkeypatch)
-    own = "no preview: preview.png could not be written (No space left on device)"
+    own = no_preview_warning(OSError(28, "No space left on device"))  # the worker's own line for a full disk
     assert preview_said(tmp_path, [own]) == (own, own)
 
 
@@ -163,21 +182,32 @@ def scene_of(page: bytes) -> dict:
     return found
 
 
-def test_the_live_view_frames_lights_and_colours_the_mesh_as_the_reports_3d_view_does(monkeypatch):
-    from spadscan.dashboard.live_view import live_view_html
-    from spadscan.worker.report.view3d import view3d_html
+def test_the_reports_3d_view_with_every_layer_is_built_where_nothing_can_draw_off_screen(monkeypatch):
+    """The report's 3D view (the dashboard's live view is the same page) is only described by the server: it is built
+    without an off-screen OpenGL, its three layers coloured and lit as the pictures are. Before, it was built in an
+    off-screen plotter: a worker or a dashboard without EGL wrote or served none."""
+    from spadscan.worker.report import offscreen
+    from spadscan.worker.report.view3d import AZIMUTH_DEG, ELEVATION_DEG, view3d_html
 
-    skip_where_no_off_screen_drawing(monkeypatch)  # the report's view is made in an off-screen plotter
+    without_off_screen_opengl(monkeypatch)
+    with pytest.raises(offscreen.OffscreenUnavailable):
+        offscreen.check_offscreen()
     mesh = trimesh.creation.box(extents=(0.1, 0.06, 0.2))
-    ours = scene_of(live_view_html(mesh, "t").encode())
-    report = scene_of(view3d_html(mesh, title="t").encode())
-    (camera,), (theirs,) = ours["vtkOpenGLCamera"], report["vtkOpenGLCamera"]
-    for key in ("position", "focalPoint", "viewUp", "clippingRange"):
-        assert camera[key] == pytest.approx(theirs[key], abs=1e-9), key
-    (look,), (their_look,) = ours["vtkOpenGLProperty"], report["vtkOpenGLProperty"]
-    for key in ("diffuseColor", "ambient", "diffuse", "specular", "specularPower", "interpolation", "opacity"):
-        assert look[key] == pytest.approx(their_look[key], abs=1e-6), key
-    lights, their_lights = ours["vtkOpenGLLight"], report["vtkOpenGLLight"]
-    assert [light["lightType"] for light in lights] == [light["lightType"] for light in their_lights]
-    assert [light["intensity"] for light in lights] == pytest.approx([light["intensity"] for light in their_lights])
-    assert ours["vtkOpenGLRenderer"][0]["background"] == report["vtkOpenGLRenderer"][0]["background"]
+    gt = trimesh.creation.icosphere(radius=0.08)
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, 0, 3], poses[:, 2, 3] = (-0.3, 0.0, 0.3), 0.4
+    page = view3d_html(mesh, gt, poses, title="t")
+    assert all(f"> {label}</label>" in page for label in ("reconstruction", "ground truth", "sensor poses"))
+    scene = scene_of(page.encode())
+    looks = scene["vtkOpenGLProperty"]
+    colours = [offscreen.MESH_COLOUR, offscreen.GT_COLOUR, offscreen.POSE_COLOUR]
+    assert [look["diffuseColor"] for look in looks] == [pytest.approx(pv.Color(c).float_rgb) for c in colours]
+    assert [look["opacity"] for look in looks] == pytest.approx([1.0, 0.45, 1.0])
+    assert [look["interpolation"] for look in looks] == [2, 2, 0], "phong, phong, flat"
+    assert len(scene["vtkOpenGLLight"]) >= 3, "a light kit, as the pictures have"
+    assert scene["vtkOpenGLRenderer"][0]["background"] == pytest.approx(pv.Color(offscreen.BACKGROUND).float_rgb)
+    center, half = offscreen.frame([mesh, gt])
+    eye = offscreen.orbit_camera(center, half, AZIMUTH_DEG, ELEVATION_DEG)[0]
+    (camera,) = scene["vtkOpenGLCamera"]
+    direction = np.subtract(camera["position"], camera["focalPoint"])
+    assert direction / np.linalg.norm(direction) == pytest.approx((eye - center) / np.linalg.norm(eye - center))

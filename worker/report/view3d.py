@@ -1,10 +1,11 @@
 """The 3D view you can turn: view3d.html, one page that holds its viewer and its scene and fetches nothing.
 
-The scene (the reconstruction, the ground truth when there is one, the sensor poses as small cones) is built with
-pyvista and serialised by trame-vtk's vtk.js serialisers, without a server; trame-vtk's standalone vtk.js viewer
-(its OfflineLocalView page) shows it: drag to turn, shift-drag to pan, the wheel to zoom. The scene is embedded in
-the page, so the report folder can be zipped and mailed and the page opens from disk with no network. Our part is a
-small panel that shows or hides each layer, and the camera handed on when a page replaces the view (below).
+The scene (the reconstruction, the ground truth when there is one, the sensor poses as small cones) is built with VTK in
+a window that never draws (no display or off-screen OpenGL needed: the browser draws it) and serialised by trame-vtk's
+vtk.js serialisers, without a server; trame-vtk's standalone vtk.js viewer (its OfflineLocalView page) shows it: drag to
+turn, shift-drag to pan, the wheel to zoom. The scene is embedded in the page, so the report folder can be zipped and
+mailed and the page opens from disk with no network. Our part is a small panel that shows or hides each layer, and the
+camera handed on when a page replaces the view (below).
 """
 
 from __future__ import annotations
@@ -54,27 +55,94 @@ def pose_cones(poses: np.ndarray, center: np.ndarray) -> object:
     return pv.merge(cones) if len(cones) > 1 else cones[0]
 
 
-def build_scene(mesh, gt=None, poses: np.ndarray | None = None):
-    """(an off-screen pyvista Plotter holding the scene, its layers in the order of their actors)."""
-    pl = offscreen.plotter((1, 1), (800, 600))
+WINDOW_PX = (800, 600)
+"""The scene's window (width, height); the viewer fits the scene to its own frame."""
+AZIMUTH_DEG, ELEVATION_DEG, VIEW_ANGLE_DEG = 30.0, 25.0, 30.0
+"""The first camera."""
+MESH_SPECULAR, GT_OPACITY = 0.15, 0.45
+SPECULAR_POWER = 100.0
+"""pyvista's default highlight power, as the pictures have it."""
+
+
+@dataclass
+class Scene:
+    """What `scene_zip` serialises: a render window and its renderer."""
+
+    render_window: object
+    renderer: object
+
+
+def build_scene(mesh, gt=None, poses: np.ndarray | None = None) -> tuple[Scene, list[Layer]]:
+    """(the scene, its layers in the order of their actors). The server only describes the scene, which the browser
+    draws (WebGL): it is built in VTK's generic OpenGL window, which is given no context and so never draws, and needs
+    no display, EGL or OSMesa (a worker or a dashboard in a rack or a container serves it all the same)."""
+    from vtkmodules.vtkRenderingCore import vtkLightKit, vtkRenderer
+    # loaded, it makes VTK's renderer and actors the OpenGL ones, which the serialiser and the viewer read
+    from vtkmodules.vtkRenderingOpenGL2 import vtkGenericOpenGLRenderWindow
+
+    renderer = vtkRenderer()
+    renderer.SetBackground(_rgb(offscreen.BACKGROUND))
     layers = [Layer("reconstruction")]
-    offscreen.add_shaded(pl, offscreen.polydata(mesh), color=offscreen.MESH_COLOUR, specular=0.15)
+    renderer.AddActor(_actor(offscreen.polydata(mesh), offscreen.MESH_COLOUR, specular=MESH_SPECULAR))
     if gt is not None:
         layers.append(Layer("ground truth"))
-        offscreen.add_shaded(pl, offscreen.polydata(gt), color=offscreen.GT_COLOUR, opacity=0.45)
-    framed = [mesh] + ([gt] if gt is not None else [])
-    center, half = offscreen.frame(framed)
+        renderer.AddActor(_actor(offscreen.polydata(gt), offscreen.GT_COLOUR, opacity=GT_OPACITY))
+    center, half = offscreen.frame([mesh] + ([gt] if gt is not None else []))
     if poses is not None and len(poses):
         layers.append(Layer("sensor poses"))
-        pl.add_mesh(pose_cones(poses, center), color=offscreen.POSE_COLOUR)
-    pl.camera_position = offscreen.orbit_camera(center, half, 30.0, 25.0)
-    pl.camera.view_angle = 30.0
-    pl.reset_camera(bounds=np.ravel(np.stack([center - half, center + half]), order="F"))
-    return pl, layers
+        renderer.AddActor(_actor(pose_cones(poses, center), offscreen.POSE_COLOUR, smooth=False))
+    vtkLightKit().AddLightsToRenderer(renderer)
+    window = vtkGenericOpenGLRenderWindow()
+    window.SetSize(*WINDOW_PX)
+    window.AddRenderer(renderer)
+    _frame_camera(renderer, center, half)
+    return Scene(window, renderer), layers
 
 
-def scene_zip(pl) -> bytes:
-    """The plotter's scene as vtk.js's OfflineLocalView reads it: a zip holding index.json (the serialised render
+def _rgb(colour: str) -> tuple[float, float, float]:
+    import pyvista as pv
+
+    return pv.Color(colour).float_rgb
+
+
+def _actor(data, colour: str, *, opacity: float = 1.0, specular: float = 0.0, smooth: bool = True):
+    """An actor of surface `data` (offscreen.polydata, or any PolyData) in `colour`: shaded smoothly by its own point
+    normals (`smooth`) or flat, lit by diffuse light only but for `specular`."""
+    from vtkmodules.vtkRenderingCore import vtkActor, vtkDataSetMapper
+
+    mapper = vtkDataSetMapper()
+    mapper.SetInputData(data)
+    mapper.ScalarVisibilityOff()
+    actor = vtkActor()
+    actor.SetMapper(mapper)
+    prop = actor.GetProperty()
+    prop.SetColor(_rgb(colour))
+    prop.SetOpacity(opacity)
+    prop.SetAmbient(0.0)
+    prop.SetDiffuse(1.0)
+    prop.SetSpecular(specular)
+    prop.SetSpecularPower(SPECULAR_POWER)
+    if smooth:
+        prop.SetInterpolationToPhong()
+    else:
+        prop.SetInterpolationToFlat()
+    return actor
+
+
+def _frame_camera(renderer, center: np.ndarray, half: float) -> None:
+    """The first camera: from (AZIMUTH_DEG, ELEVATION_DEG) around `center`, moved to hold the whole frame."""
+    eye, focal, up = offscreen.orbit_camera(center, half, AZIMUTH_DEG, ELEVATION_DEG)
+    camera = renderer.GetActiveCamera()
+    camera.SetPosition(eye)
+    camera.SetFocalPoint(focal)
+    camera.SetViewUp(up)
+    camera.SetViewAngle(VIEW_ANGLE_DEG)
+    renderer.ResetCamera(*np.ravel(np.stack([center - half, center + half]), order="F"))
+    renderer.ResetCameraClippingRange()
+
+
+def scene_zip(pl: Scene) -> bytes:
+    """The scene as vtk.js's OfflineLocalView reads it: a zip holding index.json (the serialised render
     window and every data array it uses)."""
     from trame_vtk.modules.vtk.serializers import (SynchronizationContext, extract_array_hash,
                                                    initialize_serializers, reference_id, serialize)
@@ -195,11 +263,8 @@ def viewer_html(scene: bytes, layers: list[Layer], title: str) -> str:
 
 def view3d_html(mesh, gt=None, poses: np.ndarray | None = None, title: str = "3D view") -> str:
     """The whole page for a mesh (trimesh, metres), an optional ground truth and optional sensor poses (N, 4, 4)."""
-    pl, layers = build_scene(mesh, gt, poses)
-    try:
-        return viewer_html(scene_zip(pl), layers, title)
-    finally:
-        pl.close()
+    scene, layers = build_scene(mesh, gt, poses)
+    return viewer_html(scene_zip(scene), layers, title)
 
 
 def write_view3d(folder, mesh, gt=None, poses: np.ndarray | None = None, title: str = "3D view") -> Path:
