@@ -404,9 +404,10 @@ def _resolve(relative: tuple[str, str] | None, roots: dict) -> Path | None:
 
 
 def _here(folder: Path, mount: Path) -> bool:
-    """Whether the absolute `folder` exists on this machine on the filesystem mounted at `mount`."""
+    """Whether the absolute `folder` lies on this machine on the filesystem mounted at `mount` (the folder itself may
+    be gone: a job's own temporary folder is removed as the job ends; its nearest existing parent is asked)."""
     try:
-        return folder.is_absolute() and folder.is_dir() and mount_point(folder) == mount
+        return folder.is_absolute() and mount_point(folder) == mount
     except OSError:
         return False
 

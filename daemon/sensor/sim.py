@@ -120,9 +120,10 @@ class SimSensor(Sensor):
             return await wait_counted(self._next(), timeout_s, self.wait_clock)
         except TimeoutError:
             self._counts["silent_timeouts"] += 1
-            why = (f" (a frame's render here held the wait for {self._hold_max_s:g} s, the most one frame may)"
+            why = (f"a frame's render here held the wait for {self._hold_max_s:g} s, the most one frame may"
                    if self._held_too_long else "")
-            raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s{why}") from None
+            raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s" + (f" ({why})" if why else ""),
+                               detail=why) from None  # (the runner words the timeout and keeps the detail)
 
     def wait_clock(self) -> float:
         """time.monotonic() less the time frames were due from the device but still being produced here, each frame

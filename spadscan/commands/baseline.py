@@ -149,7 +149,7 @@ def write_pictures_and_page(report: dict, out, gt, before: dict[str, int]) -> No
     then lists the files this run wrote (`files`)."""
     from spadscan.protocol.mesh_io import load_mesh  # trimesh and matplotlib: only when a baseline ran
     from spadscan.worker.report.folder_view import ensure_view3d
-    from spadscan.worker.report.pictures import preview_png
+    from spadscan.worker.report.pictures import preview_or_warning
     from spadscan.worker.report.report_html import write_report_html
     from spadscan.worker.report.report_json import write_report
 
@@ -157,7 +157,9 @@ def write_pictures_and_page(report: dict, out, gt, before: dict[str, int]) -> No
     # The part of the ground truth that was scored (above its table, when it holds one), as reconstruct shows it:
     # a 2 m table slab beside the object would shrink the object to a speck.
     gt_mesh = load_ground_truth(gt).mesh if gt is not None else None
-    preview_png(load_mesh(out / "mesh.ply"), out / "preview.png", gt=gt_mesh)
+    missing = preview_or_warning(load_mesh(out / "mesh.ply"), out / "preview.png", gt=gt_mesh)
+    if missing is not None:  # the report says why it has no preview, as reconstruct's does
+        report["warnings"] = [*report.get("warnings", []), missing]
     ensure_view3d(report, out)  # before the files are listed: a view that cannot be made leaves no stale one
     written = files_written_after(out, before) | {"report.json", "report.html"}
     report["files"] = sorted(written)

@@ -134,8 +134,8 @@ class ResultIndex:
 def no_preview(warnings) -> dict | None:
     """Why a result has no preview, as its own report's `warnings` say: {"said": one line for the preview's box,
     "why": the report's warning in full}, or None where they do not say. A warning of the preview's own ("no
-    preview..."), else the 3D view's where its worker's machine could not draw off screen (worker/report/
-    folder_view.py `no_view_warning`): the worker draws both in one process, the preview first, with one check."""
+    preview.png: ...", mesh_pictures.no_preview_warning), else, in a report of an earlier version (whose 3D view
+    needed an off-screen OpenGL too), the 3D view's where its worker's machine could not draw off screen."""
     lines = [w for w in warnings if isinstance(w, str)] if isinstance(warnings, list) else []
     own = next((w for w in lines if w.startswith("no preview")), None)
     if own is not None:

@@ -7,7 +7,8 @@ Routes (GET and HEAD only):
   /files/PATH     a file under the root; anything that resolves outside it, hidden folders (the queue, a job being
                   written) and folders are 404
   /live3d/SCAN    the 3D view of SCAN's live reconstruction (recon/live/mesh.ply), made on demand and remembered
-                  until the mesh changes; the browser draws it (worker/report/view3d.py): the server needs no OpenGL for it
+                  until the mesh changes; the browser draws it (worker/report/view3d.py): the server needs no
+                  OpenGL for it
 """
 
 from __future__ import annotations

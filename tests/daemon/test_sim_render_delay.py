@@ -139,8 +139,9 @@ def test_a_render_that_never_returns_still_times_out(arun, sphere):  # noqa: F81
     async def scenario():
         await sensor.prepare()
         try:
-            with pytest.raises(SensorSilent, match="held the wait for 1 s"):
+            with pytest.raises(SensorSilent, match="held the wait for 1 s") as raised:
                 await asyncio.wait_for(sensor.next_frame(0.1), 60.0)
+            assert "held the wait for 1 s" in raised.value.detail, "the runner's pause reason keeps the detail"
             assert sensor.rendering.is_set()
         finally:
             sensor.release_render.set()  # the render's thread ends, so that the event loop can close

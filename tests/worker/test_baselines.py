@@ -590,3 +590,21 @@ def test_space_carving_on_fewer_views_than_it_needs_says_so(sphere_capture, tmp_
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "at least 3 views" in err and "holds 2" in err and "--threshold" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_baseline_that_cannot_draw_its_preview_says_why_in_its_report(sphere_capture, tmp_path, monkeypatch,
+                                                                        quick_metrics):
+    """As a reconstruction's report does (test_preview_warning.py): the dashboard, perhaps on another machine, reads
+    the reason there. Before: said on stderr alone, the report silent."""
+    from spadscan.dashboard.results import WORKER_CANNOT_DRAW, no_preview
+    from test_preview_warning import cannot_draw_off_screen
+
+    cap, gt = sphere_capture
+    out = tmp_path / "carve"
+    cannot_draw_off_screen(monkeypatch)
+    assert cli_main(["baseline", "space-carving", str(cap), "--out", str(out), "--gt", str(gt),
+                     "--resolution", "48"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert not (out / "preview.png").exists()
+    (line,) = [w for w in report["warnings"] if w.startswith("no preview.png: ")]
+    assert no_preview(report["warnings"]) == {"said": WORKER_CANNOT_DRAW, "why": line}

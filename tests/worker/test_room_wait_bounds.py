@@ -161,7 +161,7 @@ def test_a_folder_not_found_under_the_readers_root_waits_on_its_timer(tmp_path, 
     assert q.claim().job.id == "a-fast"
 
 
-@pytest.mark.parametrize("mount", ["as noted", "another"])
+@pytest.mark.parametrize("mount", ["as noted", "as noted, the folder gone", "another"])
 def test_a_folder_outside_both_roots_is_probed_where_written_if_it_is_here_on_its_mount(tmp_path, monkeypatch,
                                                                                          mount):
     """A job's own scratch space ($TMPDIR, a cache) lies under neither root: its note names no relative folder.
@@ -170,10 +170,12 @@ def test_a_folder_outside_both_roots_is_probed_where_written_if_it_is_here_on_it
     clock = clocks(monkeypatch)
     free = {"now": PAGE}
     monkeypatch.setattr(disk_room, "free_bytes", lambda folder: free["now"])
-    cache = tmp_path / "cache"
-    cache.mkdir()
+    cache = tmp_path / "cache" / "job-tmp"
+    cache.mkdir(parents=True)
     noted = {k: v for k, v in note(cache, clock["now"]).items() if k not in ("relative_to", "relative")}
-    noted["mount"] = str(mount_point(cache)) if mount == "as noted" else "/mnt/cache-of-a"
+    noted["mount"] = str(mount_point(cache)) if mount.startswith("as noted") else "/mnt/cache-of-a"
+    if mount.endswith("gone"):  # a job's own temporary folder, removed as the job ended
+        cache.rmdir()
     q = Queue(tmp_path / "caps" / ".queue", root=tmp_path / "caps")
     given_back(q, noted, "a-fast")
     assert q.claim() is None, "still full"
