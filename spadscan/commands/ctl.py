@@ -532,12 +532,8 @@ def room_said(waits: list[dict], queue_waits: list[dict] = ()) -> str:
     mounts = {}
     for wait in read:
         mounts.setdefault(wait.mount, wait)
+    # (a damaged note never comes here: presence.room_wait_of reads it as no wait)
     places = [f"{wait.where} ({wait.figures})" for wait in mounts.values()]
-    for note in waits:  # a damaged note still means its worker waits: said by what can be read of it
-        if RoomWait.from_note(note, skewed=True) is None:
-            mount = note.get("mount") if isinstance(note, dict) else None
-            where = f"on {mount}" if isinstance(mount, str) and mount else "on a disk it does not name"
-            places.append(f"{where} (its note cannot be read)")
     who = "the worker waits" if len(waits) == 1 else f"every worker ({len(waits)}) waits"
     fix = "make room there" + (" or raise the quota" if any(w.quota for w in read) else "")
     queued = [w.retry_unix for w in map(RoomWait.from_note, queue_waits) if w is not None]
