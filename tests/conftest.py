@@ -12,6 +12,7 @@ import pytest
 from benchmark_helpers import load_benchmark
 from process_helpers import live_children, short_socket_dir, stop_leaked_children
 from spadscan import parent_watch
+from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.worker import kill_points, threads
 
 DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "lcspc"
@@ -91,3 +92,17 @@ def lcspc_dataset() -> Path:
     if not DATASET.is_dir():
         pytest.skip(f"LCSPCData not found at {DATASET}")
     return DATASET
+
+
+@pytest.fixture
+def reads(monkeypatch):
+    """The names of the chunks of a capture read whole (CaptureReader.read_chunk), in order: what a resume reads."""
+    names: list[str] = []
+    real = CaptureReader.read_chunk
+
+    def read_chunk(self, name):
+        names.append(name)
+        return real(self, name)
+
+    monkeypatch.setattr(CaptureReader, "read_chunk", read_chunk)
+    return names

@@ -9,23 +9,8 @@ import shutil
 import pytest
 
 from spadscan.daemon.arm.sim import SimArmFaults
-from spadscan.protocol.capture_reader import CaptureReader
 
 from test_runner import check_capture, daemon_runner, make_cfg, sphere, until  # noqa: F401  (sphere: a fixture)
-
-
-@pytest.fixture
-def reads(monkeypatch):
-    """The names of the chunks read whole (CaptureReader.read_chunk), in order."""
-    names: list[str] = []
-    real = CaptureReader.read_chunk
-
-    def read_chunk(self, name):
-        names.append(name)
-        return real(self, name)
-
-    monkeypatch.setattr(CaptureReader, "read_chunk", read_chunk)
-    return names
 
 
 @pytest.mark.parametrize("paused_by", ["user", "arm fault"])

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from spadscan.protocol.capture_format import Measurement
-from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter, Retake
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_presets import sensor_preset
@@ -33,20 +32,6 @@ def capture(tmp_path, poses: int, frames: int = 2, name: str = "scan") -> Captur
             w.append(frame(i, k))
         w.flush()
     return w
-
-
-@pytest.fixture
-def reads(monkeypatch):
-    """The names of the chunks read whole (CaptureReader.read_chunk), in order."""
-    names: list[str] = []
-    real = CaptureReader.read_chunk
-
-    def read_chunk(self, name):
-        names.append(name)
-        return real(self, name)
-
-    monkeypatch.setattr(CaptureReader, "read_chunk", read_chunk)
-    return names
 
 
 def progress(w: CaptureWriter) -> tuple:
