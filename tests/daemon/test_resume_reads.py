@@ -1,10 +1,9 @@
 """A resume reads again only what changed in the capture since the pause: the chunks this daemon published are known
 to its writer's book (`ScanJob.chunk_book`), also once a fault has dropped the writer, so that resuming a long scan
-does not read every chunk of it again. A chunk moved out meanwhile is still owed and taken again."""
+does not read every chunk of it again. A chunk moved out meanwhile is still owed and taken again, reading no other
+(test_runner_disk_room.py)."""
 
 from __future__ import annotations
-
-import shutil
 
 import pytest
 
@@ -33,24 +32,3 @@ def test_a_resume_reads_no_chunk_the_daemon_published(arun, tmp_path, sphere, re
     assert published >= 4 and done == {"name": "long", "state": "complete"}
     assert reads == [], reads
     check_capture(tmp_path / "caps" / "long", 8, 2)
-
-
-def test_a_chunk_moved_out_while_paused_is_owed_without_reading_the_others(arun, tmp_path, sphere,
-                                                                          reads):  # noqa: F811
-    cfg = make_cfg(tmp_path, views=8)
-    folder = tmp_path / "caps" / "held"
-
-    async def scenario():
-        async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("held")
-            await until(lambda: runner.job.next_pose >= 4, "four poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
-            shutil.move(folder / "chunk-000001", tmp_path / "chunk-000001")
-            reply = await runner.resume()
-            return reply, await runner.wait("held")
-
-    reply, done = arun(scenario())
-    assert reply["poses_to_take_again"] == [1] and done == {"name": "held", "state": "complete"}, reply
-    assert reads == [], reads
-    check_capture(folder, 8, 2)

@@ -140,10 +140,11 @@ def test_a_refused_resume_for_a_disk_still_full_does_not_move_the_arm(arun, tmp_
     check_capture(tmp_path / "caps" / "room", 8, 2)
 
 
-def test_a_chunk_moved_out_of_a_scan_paused_in_the_daemons_hands_is_taken_again(arun, tmp_path,
-                                                                                sphere):  # noqa: F811
+def test_a_chunk_moved_out_of_a_scan_paused_in_the_daemons_hands_is_taken_again(arun, tmp_path, sphere,  # noqa: F811
+                                                                                reads):
     """The operator pauses the scan and moves pose 1's chunk out of the capture (damaged): the resume counts what
-    the capture holds, says pose 1 is owed, and takes it again; the capture ends complete with every pose."""
+    the capture holds, says pose 1 is owed, and takes it again, reading none of the chunks it published (its chunk
+    book); the capture ends complete with every pose."""
     cfg = make_cfg(tmp_path, views=8)
     folder = tmp_path / "caps" / "held"
 
@@ -160,6 +161,7 @@ def test_a_chunk_moved_out_of_a_scan_paused_in_the_daemons_hands_is_taken_again(
     reply, done = arun(scenario())
     assert reply["state"] == "scanning" and reply["poses_to_take_again"] == [1], reply
     assert done == {"name": "held", "state": "complete"}
+    assert reads == [], reads
     check_capture(folder, 8, 2)
 
 
