@@ -3,7 +3,6 @@ and `worker --status`), rewritten when the wait begins and when it ends, not onl
 
 from __future__ import annotations
 
-import asyncio
 import json
 import time
 from pathlib import Path
@@ -19,8 +18,7 @@ from spadscan.worker.presence import Presence, present_workers, presence_path, w
 from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
-from test_watcher import make_scan
-from test_worker_disk_full import JOB, PAGE, RECON, counted_probes, run_worker, until
+from test_worker_disk_full import JOB, PAGE, RECON, refused_until_room, run_worker, until
 
 KEYS = {"mount", "folder", "free_bytes", "need_bytes", "since_unix", "retry_unix", "quota", "relative_to", "relative"}
 
@@ -37,14 +35,8 @@ def a_wait(folder: Path) -> RoomWait:
 
 @pytest.mark.usefixtures("recon_stand_ins")
 def test_a_worker_waiting_for_room_says_so_in_its_presence_file(tmp_path, monkeypatch, arun):
-    full = tmp_path / "full"
-    full.touch()
-    monkeypatch.setenv("WRITE_WITH", "refused")
-    monkeypatch.setenv("FULL", str(full))
+    full, _, root = refused_until_room(tmp_path, monkeypatch)
     monkeypatch.setattr(pool_module, "RENEW_S", 3600.0)  # no renewal in the test: only what changes rewrites it
-    counted_probes(monkeypatch, lambda folder: PAGE if full.exists() else 10**12)
-    root = tmp_path / "caps"
-    make_scan(root, "s")
     lines: list[str] = []
     worker = Worker(WorkerConfig(root=root, once=True, poll_s=0.05, max_attempts=1, recon=RECON), log=lines.append)
     seen: list[dict | None] = []

@@ -20,8 +20,7 @@ from spadscan.worker.pool import Worker
 from spadscan.worker.queue import Queue
 from spadscan.worker.worker_config import WorkerConfig
 
-from test_watcher import make_scan
-from test_worker_disk_full import JOB, PAGE, RECON, counted_probes, until
+from test_worker_disk_full import JOB, PAGE, RECON, refused_until_room, until
 
 
 def fake_clock(monkeypatch) -> dict:
@@ -156,13 +155,7 @@ def test_another_worker_waits_for_the_room_a_job_given_back_waits_for(tmp_path, 
     """Worker A's job meets a full disk and goes back to the queue; worker B, started on the same root during A's
     wait, neither claims it (it would meet the full disk again, using one of the job's full-disk tries) nor any
     other job: it says that it waits for room, and where. Once room is made, the job runs once more, and is done."""
-    full = tmp_path / "full"
-    full.touch()
-    monkeypatch.setenv("WRITE_WITH", "refused")
-    monkeypatch.setenv("FULL", str(full))
-    probes = counted_probes(monkeypatch, lambda folder: PAGE if full.exists() else 10**12)
-    root = tmp_path / "caps"
-    make_scan(root, "s")
+    full, probes, root = refused_until_room(tmp_path, monkeypatch)
     a_lines: list[str] = []
     b_lines: list[str] = []
     config = WorkerConfig(root=root, once=True, poll_s=0.05, max_attempts=1, recon=RECON)

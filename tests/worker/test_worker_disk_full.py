@@ -125,6 +125,20 @@ async def run_worker(worker: Worker, meanwhile):
             await asyncio.gather(task, return_exceptions=True)
 
 
+def refused_until_room(tmp_path, monkeypatch) -> tuple[Path, list[int], Path]:
+    """A disk full while the file `full` exists: the stand-in job's writes are refused (ENOSPC) and the worker's
+    probe of free space reads one page free, else plenty; and a captures root with scan "s". Returns (full, the
+    probes' record, the root)."""
+    full = tmp_path / "full"
+    full.touch()
+    monkeypatch.setenv("WRITE_WITH", "refused")
+    monkeypatch.setenv("FULL", str(full))
+    probes = counted_probes(monkeypatch, lambda folder: PAGE if full.exists() else 10**12)
+    root = tmp_path / "caps"
+    make_scan(root, "s")
+    return full, probes, root
+
+
 def run_through_full_disk(worker: Worker, lines: list[str], probes: list[int], make_room, arun):
     """Run the worker until it waits for room and has probed for it a few times, check what it says meanwhile,
     make room, and run it to its end; returns (the job's --status row while it waited, what the worker settled)."""
@@ -183,13 +197,7 @@ def test_a_job_that_meets_a_full_disk_waits_for_room_and_uses_no_attempt(tmp_pat
 def test_a_full_disk_simulated_where_none_can_be_mounted(tmp_path, monkeypatch, arun):
     """The same, anywhere: the stand-in meets ENOSPC while a file says the disk is full, and the worker's probe of
     free space reads that file."""
-    full = tmp_path / "full"
-    full.touch()
-    monkeypatch.setenv("WRITE_WITH", "refused")
-    monkeypatch.setenv("FULL", str(full))
-    probes = counted_probes(monkeypatch, lambda folder: PAGE if full.exists() else 10**12)
-    root = tmp_path / "caps"
-    make_scan(root, "s")
+    full, probes, root = refused_until_room(tmp_path, monkeypatch)
     lines: list[str] = []
     worker = Worker(WorkerConfig(root=root, once=True, poll_s=0.05, max_attempts=1, recon=RECON), log=lines.append)
     assert run_through_full_disk(worker, lines, probes, full.unlink, arun)[1] == {JOB: "done"}, lines
@@ -264,13 +272,7 @@ def test_help_says_what_the_worker_does_on_a_full_disk(capsys):
 def test_a_full_disk_that_keeps_out_the_attempt_record_says_so_and_writes_it_later(tmp_path, monkeypatch, arun):
     """The job goes back to the queue (a rename needs no room) while its record does not fit: the line says so, the
     record is written once there is room, and the job then runs on the one attempt it has."""
-    full = tmp_path / "full"
-    full.touch()
-    monkeypatch.setenv("WRITE_WITH", "refused")
-    monkeypatch.setenv("FULL", str(full))
-    counted_probes(monkeypatch, lambda folder: PAGE if full.exists() else 10**12)
-    root = tmp_path / "caps"
-    make_scan(root, "s")
+    full, _, root = refused_until_room(tmp_path, monkeypatch)
     lines: list[str] = []
     worker = Worker(WorkerConfig(root=root, once=True, poll_s=0.05, max_attempts=1, recon=RECON), log=lines.append)
     write_outcome = worker.queue.write_outcome
