@@ -550,10 +550,6 @@ class Worker:
                      f"{remedy}, then this worker runs it again by itself")
         self._begin_wait(wait)
 
-    def _wait_for_room(self, folder: Path, held: int) -> None:
-        """Claim no job until the filesystem holding `folder` has room (`RoomWait`); said when the wait begins."""
-        self._begin_wait(self._job_wait(folder, held, False, None))
-
     def _job_wait(self, folder: Path, held: int, quota: bool, job_id: str | None) -> RoomWait:
         """The wait for room of a job that met a full disk writing into `folder` (its record carries it): this
         worker's own wait where it waits on that filesystem already (the jobs that meet the full disk with it
