@@ -332,9 +332,9 @@ def test_a_wait_whose_free_space_cannot_be_read_ends_on_its_timer(tmp_path, monk
     lines: list[str] = []
     worker = Worker(WorkerConfig(root=tmp_path, once=True, poll_s=0.05, recon=RECON), log=lines.append)
     monkeypatch.setattr(pool_module, "retry_after", lambda n: 600.0)
-    worker._wait_for_room(tmp_path, 0)
+    worker._begin_wait(worker._job_wait(tmp_path, 0, False, None))  # as a job's full disk begins it
     assert worker.room is not None and not worker._room_again(), "the wait goes on: its time is not up"
-    worker._wait_for_room(tmp_path / "other", 0)
+    worker._begin_wait(worker._job_wait(tmp_path / "other", 0, False, None))
     assert worker.room.retry_s == 600.0 and worker._full_in_row == 1, "a second full disk during it: one wait"
     worker.room.since_unix -= 600.0
     assert worker._room_again() and worker.room is None, "its time is up: claims go on"
