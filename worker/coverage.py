@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
+from scipy.stats import betabinom
 
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.sensor_model import SensorModel, in_any_zone, zone_masks
@@ -167,14 +168,50 @@ def counted_views(poses: np.ndarray, usable: np.ndarray | None = None,
 
 
 def few_share(counts: np.ndarray, views_counted: int, views_of: int) -> float:
-    """Share (0 to 1) of the points whose `counts` (n,) over `views_counted` views, scaled to `views_of` views (a
-    probe's few views standing for the spread views), fall below FEW_VIEWS: the points `spread_counts` completes with
-    every other view. 0 for no points."""
-    counts = np.asarray(counts, np.float64)
+    """Estimated share (0 to 1) of the points that `views_of` views (the spread views) see fewer than FEW_VIEWS
+    times, the points `spread_counts` completes with every other view, from `counts` (n,): how many of
+    `views_counted` of those views (a probe's few, spread among them) see each point. 0 for no points.
+
+    Scaling a count up to the spread views called every point that no probe view sees few: on a sphere seen from
+    close by, 0.64 of the points where 0.24 were (most of them lie between the probe's views, and many spread views
+    see them). Each point's count is read instead as a draw of `views_counted` views from the spread views, the
+    share of those that see it unknown (`_few_chance`), and the estimate is the mean chance that the spread views
+    see a point fewer than FEW_VIEWS times: 0.32 there (FEW_PRIOR_SHAPE says how it was measured)."""
+    counts = np.asarray(counts, np.float64).reshape(-1)
     if len(counts) == 0 or views_counted <= 0:
         return 0.0
-    scaled = counts * (max(views_of, views_counted) / views_counted)
-    return float(np.mean(scaled < FEW_VIEWS))
+    seen = np.clip(np.rint(np.nan_to_num(counts)), 0, views_counted).astype(np.int64)
+    if views_of <= views_counted:  # every spread view was counted: the share is exact
+        return float(np.mean(seen < FEW_VIEWS))
+    # Prior mean: the share of point-view pairs the probe found seeing (half a pair added, so never 0 or 1).
+    mean_share = (seen.sum() + 0.5) / (len(seen) * views_counted + 1.0)
+    chance = _few_chance(views_counted, views_of, mean_share)
+    return float(np.mean(chance[seen]))
+
+
+FEW_PRIOR_SHAPE = 0.5
+"""The shape a of the Beta(a, b) prior `_few_chance` puts on the share of the spread views that see a point (b sets
+its mean). 1/2, the Jeffreys prior's, keeps much weight near 0, where real surfaces have parts that almost nothing
+sees (undersides, hidden faces). Measured on 18 simulated 1,000-view captures (a sphere, a mug, a cup, a goblet, a
+bowl, a stool and flat plates; views from 2 cm to 50 cm): 0.5 erred by rms 0.055 of the share (mean +0.01, the bowl
+0.10 under); 0.6 by 0.053, but the bowl 0.13 under (a budget that keeps back too little ends late); 0.3
+overestimated (mean +0.05), 0.7 underestimated (the bowl by 0.16)."""
+
+
+def _few_chance(views_counted: int, views_of: int, mean_share: float) -> np.ndarray:
+    """(views_counted + 1,): for k = 0 .. views_counted, the chance that a point k of `views_counted` probe views
+    see (those views among `views_of`) is seen by fewer than FEW_VIEWS of all `views_of` views: k plus a
+    beta-binomial count of the other views, its Beta prior of shape FEW_PRIOR_SHAPE and mean `mean_share` (0 to 1,
+    clipped) updated by the k seeing and the views_counted - k not seeing."""
+    mean_share = min(max(float(mean_share), 1e-9), 1.0 - 1e-9)
+    a = FEW_PRIOR_SHAPE
+    b = a * (1.0 - mean_share) / mean_share
+    k = np.arange(views_counted + 1)
+    chance = np.zeros(views_counted + 1)
+    low = k < FEW_VIEWS  # a point seen FEW_VIEWS times by the probe is seen that often by the spread views
+    chance[low] = betabinom.cdf(FEW_VIEWS - 1 - k[low], views_of - views_counted, a + k[low],
+                                b + views_counted - k[low])
+    return np.clip(np.nan_to_num(chance), 0.0, 1.0)
 
 
 def _other_views(spread: np.ndarray, n_views: int, usable: np.ndarray | None) -> np.ndarray:

@@ -16,7 +16,7 @@ from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker import reconstruct
 from spadscan.worker.budget import COMPLETION_SHARE, COVERAGE_DEFAULT_VIEWS, COVERAGE_S, SAFETY, EndCosts
-from spadscan.worker.coverage import FEW_VIEWS, SPREAD_VIEWS, SurfaceViews, few_share
+from spadscan.worker.coverage import SPREAD_VIEWS, SurfaceViews, few_share
 from worker_helpers import FAST_SMALL
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -64,25 +64,22 @@ def test_the_coverage_count_is_kept_back_as_the_report_makes_it_on_its_spread_vi
 def test_the_other_views_are_kept_back_for_the_share_of_points_the_probe_finds_seen_by_few(monkeypatch):
     """The other views are counted for the points the spread views see fewer than FEW_VIEWS times: a flat plate seen
     close up by narrow views has all of them so (its count took 0.43 s where COMPLETION_SHARE kept back 0.10 s). The
-    probe's own counts, scaled from its views to the spread views, say that share: here 6 of 10 points seen by no
-    probe view (few of the spread views too), 4 seen by one (about 32 of the 256)."""
+    probe's own counts say what share that is (coverage.few_share): here 6 of 10 points seen by no probe view, 4 by
+    one, a share between COMPLETION_SHARE and all of them."""
     t = [0.0]
+    counts = np.array([0] * 6 + [1] * 4)
 
     def count(mesh, poses, sensor, usable=None):
         t[0] += 1e-3 * len(poses)
-        return SurfaceViews(np.zeros((10, 3)), np.zeros((10, 3)), np.array([0] * 6 + [1] * 4))
+        return SurfaceViews(np.zeros((10, 3)), np.zeros((10, 3)), counts)
 
     monkeypatch.setattr(reconstruct, "surface_views", count)
     costs = EndCosts()
     reconstruct._probe_coverage(trimesh.creation.icosphere(), Scene(), costs, lambda: t[0])
-    assert costs.coverage_s == pytest.approx(1e-3 * (SPREAD_VIEWS + 0.6 * (900 - SPREAD_VIEWS)))
-    assert any(line.startswith(f"coverage {SPREAD_VIEWS} + 644 views at 0.60") for line in costs.probed)
-
-
-def test_the_share_seen_by_few_is_scaled_from_the_probe_views_to_the_spread_views():
-    assert few_share(np.array([0, 0, 1, 2]), 8, 256) == 0.5  # one of 8 views: about 32 of 256
-    assert few_share(np.array([0, 1, 2, FEW_VIEWS]), 8, 8) == 0.75  # every spread view probed: as counted
-    assert few_share(np.array([], int), 8, 256) == 0.0
+    share = few_share(counts, reconstruct.COVERAGE_PROBE_VIEWS, SPREAD_VIEWS)
+    assert COMPLETION_SHARE < share < 1.0
+    assert costs.coverage_s == pytest.approx(1e-3 * (SPREAD_VIEWS + share * (900 - SPREAD_VIEWS)))
+    assert any(line.startswith(f"coverage {SPREAD_VIEWS} + 644 views at {share:.2f}") for line in costs.probed)
 
 
 def test_the_default_coverage_cost_grows_with_the_views_when_the_mesh_probe_fails():
