@@ -367,6 +367,36 @@ def when_text(unix: float) -> str:
         return UNKNOWN_TIME
 
 
+def room_line(who: str, waits, claimer: str, by: float | None) -> str:
+    """A wait for room in one line, as `spadscan ctl` and the dashboard say it: '{who} for room on /data (12 MB free,
+    40 MB needed): make room there; {claimer} claims again by 2025-03-01 14:05 UTC (sooner once there is room)'.
+    `waits` (RoomWait): each mount said once, with the figures of the first that names it (`RoomWait.where`,
+    `.figures`); `by` (unix seconds): when a claim succeeds again at the latest, as `when_text` says it (not said
+    where None or past what the clock can name)."""
+    mounts = {}
+    for wait in waits:
+        mounts.setdefault(wait.mount, wait)
+    places = " and ".join(f"{wait.where} ({wait.figures})" for wait in mounts.values())
+    fix = "make room there" + (" or raise the quota" if any(wait.quota for wait in waits) else "")
+    when = UNKNOWN_TIME if by is None else when_text(by)
+    again = "" if when == UNKNOWN_TIME else f"; {claimer} claims again by {when} (sooner once there is room)"
+    return f"{who} for room {places}: {fix}{again}"
+
+
+def room_said(notes, queue_notes=()) -> str:
+    """What a queued job waits for while every worker present waits for room (`notes`: their presence files'
+    `room_wait`s, each read as it stands, one ahead of this clock too: its worker waits all the same), in one line
+    (`room_line`): each disk, what to do, and by when a worker claims again at the latest: once the first of their own
+    waits ends, and no sooner than the last of `queue_notes` (the waits of the queued jobs given back on a full disk
+    whose room is still missing, `Queue.room_waits`: no claim succeeds before)."""
+    read = [wait for wait in (RoomWait.from_note(note, skewed=True) for note in notes) if wait is not None]
+    held = [wait.retry_unix for wait in map(RoomWait.from_note, queue_notes) if wait is not None]
+    by = max([min(wait.retry_unix for wait in read), *held]) if read else None
+    one = len(notes) == 1
+    return room_line("the worker waits" if one else f"every worker ({len(notes)}) waits", read,
+                     "it" if one else "a worker", by)
+
+
 def _relative(folder, roots: dict) -> tuple[str, str] | None:
     """(the first of ROOTS that `folder` lies under, the folder relative to it), or None: as the paths are written,
     else with their links resolved (a captures root named through a link)."""
@@ -447,4 +477,5 @@ def retry_after(full_in_row: int) -> float:
 
 __all__ = ["MAX_FULL_DISK", "free_bytes", "total_bytes", "mount_point", "same_filesystem", "full_folder",
            "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S", "ROOM_SKEW_S", "ROOTS",
-           "RoomWait", "missing_room", "room_missing", "note_doubt", "UNKNOWN_TIME", "when_text", "retry_after"]
+           "RoomWait", "missing_room", "room_missing", "note_doubt", "room_line", "room_said", "UNKNOWN_TIME",
+           "when_text", "retry_after"]

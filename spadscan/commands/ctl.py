@@ -520,27 +520,12 @@ def queued_said(behind: list[str], workers: list[dict], start: str, queue_waits:
 
 
 def room_said(waits: list[dict], queue_waits: list[dict] = ()) -> str:
-    """What a queued job waits for while every worker waits for room (`waits`: their `room_wait`s): on which disk
-    (each mount once, with the figures of the first worker that names it), what to do, and by when a worker claims
-    again at the latest: once the first of their own waits ends, and no sooner than the last of `queue_waits` (those
-    of the jobs given back to the queue on a full disk whose room is still missing: no claim succeeds before), each
-    sooner once its disk has room. Places, figures and times are said as the worker's own lines and
-    `worker --status` say them (disk_room.RoomWait.where, .figures, disk_room.when_text)."""
-    from spadscan.worker.disk_room import UNKNOWN_TIME, RoomWait, when_text
+    """What a queued job waits for while every worker waits for room (`waits`: their `room_wait`s; `queue_waits`:
+    those of the jobs given back to the queue on a full disk whose room is still missing), worded as the worker's own
+    lines, `worker --status` and the dashboard word it (disk_room.room_said)."""
+    from spadscan.worker.disk_room import room_said as worded
 
-    read = [w for w in (RoomWait.from_note(n, skewed=True) for n in waits) if w is not None]
-    mounts = {}
-    for wait in read:
-        mounts.setdefault(wait.mount, wait)
-    # (a damaged note never comes here: presence.room_wait_of reads it as no wait)
-    places = [f"{wait.where} ({wait.figures})" for wait in mounts.values()]
-    who = "the worker waits" if len(waits) == 1 else f"every worker ({len(waits)}) waits"
-    fix = "make room there" + (" or raise the quota" if any(w.quota for w in read) else "")
-    queued = [w.retry_unix for w in map(RoomWait.from_note, queue_waits) if w is not None]
-    by = when_text(max([min(w.retry_unix for w in read), *queued])) if read else UNKNOWN_TIME
-    who_claims = "it" if len(waits) == 1 else "a worker"
-    when = "" if by == UNKNOWN_TIME else f"; {who_claims} claims again by {by} (sooner once there is room)"
-    return f"{who} for room {' and '.join(places)}: {fix}{when}"
+    return worded(waits, queue_waits)
 
 
 def _processes_advice(workers: list[dict], n: int) -> str:

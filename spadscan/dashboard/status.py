@@ -1,9 +1,10 @@
 """What `/api/status` answers: the scans under the root, the scan in hand in detail, each scan's reconstructions and
 the reconstruction queue (the worker's read-only status view, with each running job's progress from its log), what
-the reconstruction side is doing (worker_state.py: the workers' waits for room on a full disk included), whether the
-dashboard's machine can draw pictures off screen (`cannot_draw`: the 3D views need not, the browser draws them) and
-what each panel of a preview shows. A live reconstruction whose status an earlier attempt of its job wrote is shown
-without its figures and pictures (attempts.py).
+the reconstruction side is doing (worker_state.py: the waits for room on a full disk included, the workers' and those
+of the queued jobs that hold every claim, in the line the page shows), whether the dashboard's machine can draw
+pictures off screen (`cannot_draw`: the 3D views need not, the browser draws them) and what each panel of a preview
+shows. A live reconstruction whose status an earlier attempt of its job wrote is shown without its figures and
+pictures (attempts.py).
 
 Whether a daemon is running is asked of the caller's `daemon_running(root)`: the daemon's lock probe lives in the
 daemon's package, which the dashboard does not import (the CLI command hands it over). Without it, scans are shown
@@ -24,6 +25,7 @@ from pathlib import Path
 
 from spadscan.worker.job_progress import progress_field, running_progress
 from spadscan.worker.presence import present_workers, start_command
+from spadscan.worker.queue import Queue
 from spadscan.worker.report.mesh_pictures import VIEWS
 from spadscan.worker.report.offscreen import OffscreenUnavailable, check_offscreen
 from spadscan.worker.status_detail import status_parts
@@ -58,13 +60,21 @@ def queue_status(queue_dir: Path, root: Path | None = None) -> dict:
     panel of the result in view: here a count leads there, as the terminal's "(3 warnings below)"). Its running
     jobs' progress is left out there: the page has a column for it (a live job's line from its scan's live status,
     under `root`, while it follows the scan)."""
-    from spadscan.worker.queue import Queue
-
     queue = Queue(queue_dir, create=False)
     running = running_progress(queue, root)  # a job with a budget is shown against it
     jobs = [{**asdict(row), **progress_field(row.state, row.id, running), **job_detail(row, root)}
             for row in queue.statuses()]
     return {"path": str(queue.path), "jobs": jobs, "counts": queue.counts()}
+
+
+def queue_room_waits(queue_dir: Path, root: Path) -> list[tuple[str, dict]]:
+    """(job id, its wait) for each queued job given back on a full disk whose room is still missing, as a worker's
+    claim reads them (Queue.room_waits: no claim succeeds meanwhile; the folders found under this machine's queue and
+    `root`); none where the queue cannot be read."""
+    try:
+        return list(Queue(queue_dir, create=False, root=root).room_waits())
+    except OSError:
+        return []
 
 
 def job_detail(row, root: Path | None) -> dict:
@@ -141,8 +151,9 @@ class Dashboard:
         worker's (`each`: its `name` as `workers` gives it and its `processes`), and the scans being recorded that no
         worker follows (`unfollowed`: a worker without --live leaves them)."""
         workers = [] if queue.get("error") else present_workers(self.queue_dir, now)
+        held = queue_room_waits(self.queue_dir, self.root) if _queued(queue) else []
         state = {"state": "unknown"} if queue.get("error") else worker_state(
-            rows, queue["jobs"], now, workers, self._freed(queue["jobs"]))
+            rows, queue["jobs"], now, workers, self._freed(queue["jobs"]), held)
         each = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"]} for w in workers]
         return {**state, "start": start_command(self.root, self.queue_dir),
                 "processes": sum(w["processes"] for w in workers), "each": each,
@@ -157,3 +168,8 @@ class Dashboard:
             return last_claim_change(self.queue_dir, [j["id"] for j in jobs])
         except OSError:
             return None
+
+
+def _queued(queue: dict) -> bool:
+    """Whether the queue read (`queue_status`'s) has a job queued: only then can a queued job's wait hold it."""
+    return not queue.get("error") and any(j["state"] == "queued" for j in queue["jobs"])

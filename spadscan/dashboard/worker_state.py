@@ -10,8 +10,11 @@ claim last began or ended (its attempt records say when), so that a busy worker 
 finishing the job before never reads as leaving it.
 
 A worker whose job met a full disk claims no job until there is room again, and says so in its presence file
-(`room_wait`, disk_room.RoomWait.note): where every worker present waits so, the queued jobs wait for room, not for
-a worker's next look, and the operator is the one to make it.
+(`room_wait`, disk_room.RoomWait.note); the job it gave back carries the wait in its attempt record, and no worker
+claims a job while that room is missing (worker/queue.py `Queue.room_waits`), whether or not a worker says it waits
+yet. Where every worker present waits so, or a queued job's wait holds the queue, the queued jobs wait for room, not
+for a worker's next look, and the operator is the one to make it. The wait is said in one line as `spadscan ctl` and
+the worker's own lines say it (disk_room.room_line: its places, figures and times): the page shows that line.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 
-from spadscan.worker.disk_room import RoomWait, size_text
+from spadscan.worker.disk_room import RoomWait, room_line, room_said, size_text
 
 from .results import age_s
 
@@ -29,23 +32,32 @@ a queued job left untaken with no job running, this long means that no worker se
 
 
 def worker_state(rows, jobs: list[dict], now: float, workers: list[dict] = (),
-                 freed_unix: float | None = None) -> dict:
+                 freed_unix: float | None = None, held=()) -> dict:
     """{"state": ..., and what the page names}: 'working' (jobs whose worker renews its claim: `jobs`, and `queued`,
     how many wait), 'gone' (running jobs whose worker is gone: `jobs`), 'queued' or 'untaken' (no job running, jobs
     queued: `jobs`, `waited_s` of the one left longest since a worker could take it; 'untaken' from LOOK_S on),
-    'room' (no job running, jobs queued, and every worker present waits for room on a full disk: `jobs`, `waited_s`),
-    'unqueued' (nothing queued or running, complete scans without a job for LOOK_S: `scans`, `waited_s`), 'waiting'
-    (nothing to do, a worker present), else 'none' (nothing to do, no worker). Every state also names the workers
-    present (`workers`: "HOST pid N" each), and where any of them waits for room, their waits (`room_waits`).
+    'room' (no job running, jobs queued, workers present, and every one of them waits for room on a full disk or a
+    queued job's wait holds every claim: `jobs`, `waited_s`), 'unqueued' (nothing queued or running, complete scans
+    without a job for LOOK_S: `scans`, `waited_s`), 'waiting' (nothing to do, a worker present), else 'none' (nothing
+    to do, no worker). Every state also names the workers present (`workers`: "HOST pid N" each), and where any of
+    them waits for room, their waits (`room_waits`); where a queued job's wait holds the queue, those waits
+    (`queue_room_waits`); where either is, the line that says it (`room_said`: `wait_line`) and whether it holds the
+    queued jobs (`room_holds`: every worker present waits, or the queue is held).
     `rows`: the scans (ScanRow), `jobs`: the queue's rows (`queue_status`), `now`: time.time(), `workers`: the queue's
     present workers (presence.present_workers), `freed_unix`: when a claim last began or ended
-    (attempts.last_claim_change; None: none ever did, or not known)."""
+    (attempts.last_claim_change; None: none ever did, or not known), `held`: (job id, its wait) for each queued job
+    whose wait for room holds the queue (Queue.room_waits)."""
     names = [worker_name(w) for w in workers]
     state = _jobs_state(rows, jobs, now, bool(names), freed_unix)
     waits = room_waits(workers)
-    if waits and len(waits) == len(names) and state["state"] in ("queued", "untaken"):
+    held = queue_room_waits(held)
+    holds = bool(held) or (bool(names) and len(waits) == len(names))
+    if holds and names and state["state"] in ("queued", "untaken"):
         state = {**state, "state": "room"}  # no worker takes them at its next look: each waits for room first
-    return {**state, "workers": names, **({"room_waits": waits} if waits else {})}
+    said = wait_line(waits, held, len(names))
+    return {**state, "workers": names, **({"room_waits": waits} if waits else {}),
+            **({"queue_room_waits": held} if held else {}),
+            **({"room_said": said, "room_holds": holds} if said else {})}
 
 
 def worker_name(worker: dict) -> str:
@@ -64,10 +76,48 @@ def room_waits(workers) -> list[dict]:
         wait = RoomWait.from_note(worker.get("room_wait"), skewed=True)  # (shown: only the queue's gate skips it)
         if wait is None:
             continue
-        waits.append({**wait.note(), "worker": worker_name(worker),
-                      "free_said": None if wait.free is None else size_text(wait.free),
-                      "need_said": None if wait.need is None else size_text(wait.need)})
+        waits.append({**wait.note(), "worker": worker_name(worker), **_said(wait)})
     return waits
+
+
+def queue_room_waits(held) -> list[dict]:
+    """The waits that hold the queue (`held`: (job id, its wait) as Queue.room_waits gives them): each the wait
+    (disk_room.RoomWait.note's keys) with `job`, and its bytes said as `room_waits` says them."""
+    read = [(job, note, RoomWait.from_note(note, skewed=True)) for job, note in held]
+    return [{**note, "job": job, **_said(wait)} for job, note, wait in read if wait is not None]
+
+
+def wait_line(waits: list[dict], held: list[dict], present: int) -> str | None:
+    """The waits for room in one line (disk_room.room_line), or None where there are none. Every worker present
+    waits (`waits`, `room_waits`'s): what `spadscan ctl` says of a queued live job (disk_room.room_said), by when a
+    worker claims again bounded by the queue's waits (`held`, `queue_room_waits`'s). Else a queued job's wait holds
+    the queue: the jobs, their disks (and those of the workers that wait), by when a worker that does not wait
+    claims again. Else the workers that wait, by name, and by when the first of them claims again."""
+    if waits and len(waits) == present:
+        return room_said(waits, held)
+    read = [RoomWait.from_note(w, skewed=True) for w in waits]
+    queued = [RoomWait.from_note(w, skewed=True) for w in held]
+    if queued:
+        jobs = [w["job"] for w in held]
+        who = f"no job is claimed while {_names(jobs)} {'waits' if len(jobs) == 1 else 'wait'}"
+        return room_line(who, queued + read, "a worker", max(w.retry_unix for w in queued))
+    if read:
+        who = [w["worker"] for w in waits]
+        subject = f"the worker on {who[0]} waits" if len(who) == 1 else f"the workers on {_names(who)} wait"
+        return room_line(subject, read, "it" if len(who) == 1 else "the first of them",
+                         min(w.retry_unix for w in read))
+    return None
+
+
+def _said(wait: RoomWait) -> dict:
+    """A wait's bytes as the worker's own log says them: {"free_said", "need_said"}: "12 MB", None where not known."""
+    return {"free_said": None if wait.free is None else size_text(wait.free),
+            "need_said": None if wait.need is None else size_text(wait.need)}
+
+
+def _names(items: list[str]) -> str:
+    """Names in a line, as the page names jobs: at most three, then how many more."""
+    return ", ".join(items[:3]) + (f" and {len(items) - 3} more" if len(items) > 3 else "")
 
 
 def needs_freed(jobs: list[dict]) -> bool:

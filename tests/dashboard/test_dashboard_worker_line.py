@@ -149,19 +149,20 @@ def test_the_page_says_the_workers_wait_for_room_and_not_that_a_worker_takes_the
     writer, poses = start_scan(tmp_path / "mug", 10)
     add_pose(writer, poses, 0)
     now = time.time()
-    name = present(tmp_path, room_wait(now))
-    room = f"room on {MOUNT} (12 MB free, it waits for 14 MB): make room there"
+    present(tmp_path, room_wait(now))
+    room = (f"the worker waits for room on {MOUNT} (12 MB free, 14 MB needed): make room there; it claims again by "
+            f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime(now + 600.0))} (sooner once there is room)")
     with serving(tmp_path) as server, browser_page(*WINDOW) as (page, seen):
         page.goto(address(server))
-        # nothing queued yet: the worker's own line says what it waits for
-        assert wait_text(page, "#worker", "waiting for room") == f"worker on {name}: waiting for {room}"
+        # nothing queued yet: the worker's wait is the line (worded as `spadscan ctl` words it)
+        assert wait_text(page, "#worker", "waits for room") == room
         assert page.locator("#worker").get_attribute("class") == "down"
         Queue.for_root(tmp_path).enqueue(Job(id="mug-fast", scan="mug", live=True))  # the scan's live job
         said = wait_text(page, "#worker", "queued")
-        assert said == f"1 job queued: the worker on {name} is waiting for {room}"
+        assert said == f"1 job queued: {room}"
         assert status(server)["worker"]["state"] == "room"
         heading = wait_text(page, "#viewer-name", "live reconstruction queued")
-        assert heading == f"mug / live reconstruction queued: the worker on {name} is waiting for {room}"
+        assert heading == f"mug / live reconstruction queued: {room}"
         assert "next look" not in page.locator("body").inner_text()
         present(tmp_path, None)  # room made: the worker says it waits no more
         assert wait_text(page, "#worker", "next look") == "1 job queued: a worker takes it at its next look"
