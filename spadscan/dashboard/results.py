@@ -126,7 +126,7 @@ class ResultIndex:
         entry = {"id": folder.name, "scan": scan, "kind": LIVE if live else "final", "mtime": st.st_mtime,
                  "summary": summary, "error": error, "files": files}
         if "mesh.ply" in files and "preview.png" not in files:
-            entry["no_preview"] = no_preview(summary.get("warnings"))
+            entry["no_preview"] = no_preview(live_preview_note(summary) if live else summary.get("warnings"))
         self._folders[str(folder)] = (key, entry)
         return entry
 
@@ -142,6 +142,14 @@ def no_preview(warnings) -> dict | None:
         return {"said": WORKER_CANNOT_DRAW if OFF_SCREEN in own else own, "why": own}
     view = next((w for w in lines if w.startswith("no 3D view") and OFF_SCREEN in w), None)
     return None if view is None else {"said": WORKER_CANNOT_DRAW, "why": view}
+
+
+def live_preview_note(summary: dict) -> list[str]:
+    """A live status's warning of its preview, as a report's `warnings` would hold it: the live job puts it last in
+    its `note` ("...; no preview.png: <why>"), the only line a live status has."""
+    note = summary.get("note")
+    at = note.find("no preview") if isinstance(note, str) else -1
+    return [] if at < 0 else [note[at:]]
 
 
 def _mtime_ns(path: Path) -> int:

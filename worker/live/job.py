@@ -262,6 +262,9 @@ class LiveRun:
         """When the scan last published a chunk or rewrote its manifest (time.monotonic())."""
         self.quiet_note: str | None = None
         """What the live status says while the scan is quiet (`quiet_note_s`), else None."""
+        self.preview_warning: str | None = None
+        """Why the last published mesh has no preview ("no preview.png: <why>", as a run's report says it), else
+        None: every status says it (`write_status`), as long as it holds."""
 
     # ---- set-up --------------------------------------------------------------------------------------------------
     def begin(self, progress: ScanProgress) -> None:
@@ -398,8 +401,9 @@ class LiveRun:
         if fit is not None and fit.model is not None:
             try:
                 mesh = fit.mesh(self.settings.mesh_resolution)
-                publish_mesh(self.folder, mesh, None if self.truth is None else self.truth.mesh,
-                             preview=self.settings.preview)
+                warning = publish_mesh(self.folder, mesh, None if self.truth is None else self.truth.mesh,
+                                       preview=self.settings.preview)
+                self._preview_said(warning)
                 if self.truth is not None:
                     self.chamfer_mm = self.truth.metrics(mesh, n_points=self.config.trace_points).chamfer_mm
                     self.chamfer_views = fit.views_used
@@ -415,6 +419,12 @@ class LiveRun:
         self.publish_cost_s = time.perf_counter() - t0
         # Publishing takes at most about a fifth of the time: a slow machine publishes less often.
         self.next_publish = time.monotonic() + max(self.settings.publish_every_s, 4.0 * self.publish_cost_s)
+
+    def _preview_said(self, warning: str | None) -> None:
+        """Keep why the mesh just published has no preview (None: it has one) for the statuses, and log it once."""
+        if warning is not None and warning != self.preview_warning:
+            self.log(f"live: {warning}")
+        self.preview_warning = warning
 
     def update_status(self, progress: ScanProgress, force: bool = False) -> None:
         """Rewrite status.json alone when `status_every_s` has passed since it was last written (or `force`: a
@@ -448,6 +458,8 @@ class LiveRun:
 
     def write_status(self, progress: ScanProgress, state: str, note: str | None = None,
                      final_start: str | None = None) -> None:
+        """Write status.json: the fit's figures in `state`, with `note` and, where the live mesh has no preview, why
+        (`preview_warning`) after it."""
         fit = self.fit
         used = 0 if fit is None else fit.views_used
         # A refit reads the capture itself and can see views that the last poll had not: every view it uses was
@@ -456,7 +468,8 @@ class LiveRun:
             views_used=used, views_published=max(progress.views_published, used),
             steps=0 if fit is None else fit.steps, converged=bool(fit is not None and fit.converged), state=state,
             chamfer_mm=None if self.chamfer_mm is None else round(float(self.chamfer_mm), 4),
-            views_planned=progress.views_planned, job=self.job.id, note=note, final_start=final_start,
+            views_planned=progress.views_planned, job=self.job.id,
+            note="; ".join(n for n in (note, self.preview_warning) if n) or None, final_start=final_start,
             chamfer_views=self.chamfer_views))
 
     def stopped(self, state: str, note: str) -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 from spadscan.protocol.live_status import LIVE_DIR, LiveStatus, write_status
 
 from ..outputs import export_mesh
-from ..report import pictures
+from ..report import offscreen, pictures
 
 MESH = "mesh.ply"
 PREVIEW = "preview.png"
@@ -45,17 +45,28 @@ def clear_earlier(folder: Path) -> None:
         (Path(folder) / name).unlink(missing_ok=True)
 
 
-def publish_mesh(folder: Path, mesh, gt_mesh=None, preview: bool = True) -> None:
-    """Write the live mesh (and, with `preview`, its preview picture beside the ground truth when known)."""
+def publish_mesh(folder: Path, mesh, gt_mesh=None, preview: bool = True) -> str | None:
+    """Write the live mesh (and, with `preview`, its preview picture beside the ground truth when known). Returns
+    None, or where the preview could not be drawn the one-line warning a run's report gives ("no preview.png: <why>",
+    `draw_preview`), for the live status to say."""
     folder = Path(folder)
     export_mesh(mesh, folder / MESH)
-    if preview:
-        tmp = folder / f".{PREVIEW}.{secrets.token_hex(4)}.png"  # pyvista picks the format from the extension
-        try:
-            if pictures.preview_png(mesh, tmp, gt=gt_mesh) is not None:
-                os.replace(tmp, folder / PREVIEW)
-        finally:
-            tmp.unlink(missing_ok=True)
+    return draw_preview(folder, mesh, gt_mesh) if preview else None
+
+
+def draw_preview(folder: Path, mesh, gt_mesh=None) -> str | None:
+    """Draw `folder`/preview.png of `mesh`; None when drawn, else why not ("no preview.png: <why>", one line, as a
+    run's report says it: the published file named, not the temporary one, and nothing on stderr at every
+    publication: the live job logs it once)."""
+    tmp = folder / f".{PREVIEW}.{secrets.token_hex(4)}.png"  # pyvista picks the format from the extension
+    try:
+        pictures.draw_preview(mesh, tmp, gt=gt_mesh)
+        os.replace(tmp, folder / PREVIEW)
+    except offscreen.OffscreenUnavailable as exc:
+        return pictures.no_preview_warning(exc, PREVIEW)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return None
 
 
 def publish_status(folder: Path, status: LiveStatus) -> Path:
@@ -63,4 +74,5 @@ def publish_status(folder: Path, status: LiveStatus) -> Path:
     return write_status(folder, status)
 
 
-__all__ = ["MESH", "PREVIEW", "live_folder", "clear_leftovers", "clear_earlier", "publish_mesh", "publish_status"]
+__all__ = ["MESH", "PREVIEW", "live_folder", "clear_leftovers", "clear_earlier", "publish_mesh", "draw_preview",
+           "publish_status"]

@@ -37,7 +37,7 @@ def preview_png(mesh, path, gt=None, pixels: int = 280) -> Path | None:
     """The mesh from four angles, and below each panel the ground truth from the same angle at the same scale when
     given. Returns the PNG's path, or None when this machine cannot draw off screen (a warning says why)."""
     try:
-        return _draw_preview(mesh, path, gt, pixels)
+        return draw_preview(mesh, path, gt, pixels)
     except offscreen.OffscreenUnavailable as exc:
         offscreen.warn(no_preview_warning(exc, path))
         return None
@@ -48,7 +48,7 @@ def preview_or_warning(mesh, path, gt=None, pixels: int = 280) -> str | None:
     "warnings" take (`no_preview_warning`; on stderr too), so that the report, and the dashboard that lists it, say
     why the result has no preview."""
     try:
-        _draw_preview(mesh, path, gt, pixels)
+        draw_preview(mesh, path, gt, pixels)
     except offscreen.OffscreenUnavailable as exc:
         offscreen.warn(no_preview_warning(exc, path))
         return no_preview_warning(exc, path)
@@ -60,8 +60,9 @@ def no_preview_warning(exc: Exception, path="preview.png") -> str:
     return f"no {Path(path).name}: {' '.join(str(exc).split())}"
 
 
-def _draw_preview(mesh, path, gt, pixels: int) -> Path:
-    """preview_png's picture; OffscreenUnavailable where this machine cannot draw off screen."""
+def draw_preview(mesh, path, gt=None, pixels: int = 280) -> Path:
+    """preview_png's picture, saying nothing: OffscreenUnavailable where this machine cannot draw off screen (the
+    live job says it once in its status, not at every publication)."""
     rows = [("reconstruction", mesh, offscreen.MESH_COLOUR)]
     if gt is not None:
         rows.append(("ground truth", gt, offscreen.GT_COLOUR))
