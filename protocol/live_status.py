@@ -28,7 +28,9 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
 - `views_planned` (int or null): poses the scan plans, when the capture says;
 - `job` (string): the queue's job id;
 - `result` (string or null): the final result folder, once `done`;
-- `note` (string or null): one line worth knowing (why the job ended, a warning);
+- `note` (string or null): one line worth knowing (why the job ended, why it waits);
+- `warnings` (list of strings, absent when empty): one line per doubt about what is published here, as a run's
+  report.json says them (`no preview.png: <why>`: the live mesh's preview could not be drawn);
 - `final_start` (`live`, `hull` or absent): from state `final` on, where the final run starts: from the live fit, or
   from the carved hull (a live fit still too young, or lagging the scan).
 
@@ -79,13 +81,19 @@ class LiveStatus:
     chamfer_views: int | None = None
     """The views of the fit whose mesh `chamfer_mm` was measured on: the status is rewritten between two meshes, and
     the fit has grown since (None: `views_used`'s)."""
+    warnings: tuple[str, ...] = ()
+    """Doubts about what is published beside it, one line each (a tuple: the status is frozen)."""
 
     def to_dict(self) -> dict:
-        """The JSON object written; `chamfer_mm`, `final_start` and `chamfer_views` only when there is one."""
+        """The JSON object written; `chamfer_mm`, `final_start`, `chamfer_views` and `warnings` only when there is
+        one."""
         data = asdict(self)
         for key in ("chamfer_mm", "final_start", "chamfer_views"):
             if data[key] is None:
                 del data[key]
+        data["warnings"] = list(self.warnings)
+        if not data["warnings"]:
+            del data["warnings"]
         return data
 
     def updated(self) -> _dt.datetime | None:
@@ -114,6 +122,7 @@ class LiveStatus:
             parts.append(f"updated {age:.0f} s ago")
         if self.note:
             parts.append(self.note)
+        parts += self.warnings
         return f"live reconstruction {SAID.get(self.state, self.state)}: " + ", ".join(parts)
 
 
@@ -149,7 +158,10 @@ def read_status(path) -> LiveStatus:
     missing = sorted({"views_used", "views_published", "steps"} - set(data))
     if missing:
         raise CaptureError(f"{path}: live status lacks {', '.join(missing)}")
-    status = LiveStatus(**{k: v for k, v in data.items() if k in known})
+    given = {k: v for k, v in data.items() if k in known}
+    if isinstance(given.get("warnings"), list):
+        given["warnings"] = tuple(given["warnings"])
+    status = LiveStatus(**given)
     check_status(status, str(path))
     return status
 
@@ -177,6 +189,8 @@ def check_status(status: LiveStatus, where: str) -> None:
         value = getattr(status, key)
         if value is not None and not isinstance(value, str):
             raise CaptureError(f"{where}: {key} {value!r} must be a string or null")
+    if not isinstance(status.warnings, tuple) or not all(isinstance(w, str) for w in status.warnings):
+        raise CaptureError(f"{where}: warnings {status.warnings!r} must be a list of strings")
     if status.final_start is not None and status.final_start not in FINAL_STARTS:
         raise CaptureError(f"{where}: final_start {status.final_start!r} must be one of {', '.join(FINAL_STARTS)}")
 

@@ -31,7 +31,7 @@ LIVE = "live"
 SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg",
                 "steps", "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
 LIVE_KEYS = ("views_used", "views_published", "views_planned", "steps", "updated_utc", "converged", "chamfer_mm",
-             "state", "note", "result", "job", "final_start", "chamfer_views")
+             "state", "note", "result", "job", "final_start", "chamfer_views", "warnings")
 LIVE_PICTURES = ("preview.png", "mesh.ply", "view3d.html")
 """The live entry's files that show the live fit's shape (not the final result's)."""
 PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "coverage.png", "mesh.ply")
@@ -126,7 +126,7 @@ class ResultIndex:
         entry = {"id": folder.name, "scan": scan, "kind": LIVE if live else "final", "mtime": st.st_mtime,
                  "summary": summary, "error": error, "files": files}
         if "mesh.ply" in files and "preview.png" not in files:
-            entry["no_preview"] = no_preview(live_preview_note(summary) if live else summary.get("warnings"))
+            entry["no_preview"] = no_preview(summary.get("warnings"))
         self._folders[str(folder)] = (key, entry)
         return entry
 
@@ -142,14 +142,6 @@ def no_preview(warnings) -> dict | None:
         return {"said": WORKER_CANNOT_DRAW if OFF_SCREEN in own else own, "why": own}
     view = next((w for w in lines if w.startswith("no 3D view") and OFF_SCREEN in w), None)
     return None if view is None else {"said": WORKER_CANNOT_DRAW, "why": view}
-
-
-def live_preview_note(summary: dict) -> list[str]:
-    """A live status's warning of its preview, as a report's `warnings` would hold it: the live job puts it last in
-    its `note` ("...; no preview.png: <why>"), the only line a live status has."""
-    note = summary.get("note")
-    at = note.find("no preview") if isinstance(note, str) else -1
-    return [] if at < 0 else [note[at:]]
 
 
 def _mtime_ns(path: Path) -> int:

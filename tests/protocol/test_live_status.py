@@ -33,6 +33,14 @@ def test_chamfer_and_the_final_start_are_written_only_when_known(tmp_path):
     assert read_status(tmp_path / "status.json").final_start == "hull"
 
 
+def test_warnings_are_written_only_when_there_are_some_and_read_back(tmp_path):
+    data = json.loads(write_status(tmp_path, LiveStatus(views_used=1, views_published=1, steps=0)).read_text())
+    assert "warnings" not in data
+    write_status(tmp_path, LiveStatus(views_used=1, views_published=1, steps=0, warnings=("no preview.png: why",)))
+    back = read_status(tmp_path / "status.json")
+    assert back.warnings == ("no preview.png: why",) and back.summary().endswith(", no preview.png: why")
+
+
 def test_a_capture_folder_reads_its_live_status(tmp_path):
     write_status(status_path(tmp_path).parent.mkdir(parents=True) or status_path(tmp_path).parent,
                  LiveStatus(views_used=3, views_published=3, steps=7, state="final"))
@@ -48,7 +56,8 @@ def test_unknown_keys_are_accepted(tmp_path):
 @pytest.mark.parametrize("change, says", [
     ({"views_used": -1}, "views_used"), ({"steps": 2.5}, "steps"), ({"converged": "yes"}, "converged"),
     ({"state": "dancing"}, "state"), ({"chamfer_mm": float("nan")}, "chamfer_mm"), ({"note": 3}, "note"),
-    ({"final_start": "scratch"}, "final_start"),
+    ({"final_start": "scratch"}, "final_start"), ({"warnings": "no preview.png"}, "warnings"),
+    ({"warnings": [3]}, "warnings"),
 ])
 def test_a_malformed_status_is_one_line_naming_the_field(tmp_path, change, says):
     path = tmp_path / "status.json"

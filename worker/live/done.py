@@ -94,8 +94,8 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
     fitted (every published one), its steps (on top of the live fit's where it continued from the live fit; alone
     where it started from the carved hull, which the live steps did not shape), its convergence and its Chamfer (None
     when it has none: the live fit's would read as the result's). Where that report cannot be read, the live fit's
-    figures stay."""
-    done = dataclasses.replace(status, state="done", result=str(result), updated_utc="")
+    figures stay. The live mesh's warnings go: the result's own report says its doubts."""
+    done = dataclasses.replace(status, state="done", result=str(result), updated_utc="", warnings=())
     try:
         report = json.loads((result / "report.json").read_text())
     except (OSError, ValueError):

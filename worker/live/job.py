@@ -459,7 +459,7 @@ class LiveRun:
     def write_status(self, progress: ScanProgress, state: str, note: str | None = None,
                      final_start: str | None = None) -> None:
         """Write status.json: the fit's figures in `state`, with `note` and, where the live mesh has no preview, why
-        (`preview_warning`) after it."""
+        (`preview_warning`) in its warnings."""
         fit = self.fit
         used = 0 if fit is None else fit.views_used
         # A refit reads the capture itself and can see views that the last poll had not: every view it uses was
@@ -468,9 +468,8 @@ class LiveRun:
             views_used=used, views_published=max(progress.views_published, used),
             steps=0 if fit is None else fit.steps, converged=bool(fit is not None and fit.converged), state=state,
             chamfer_mm=None if self.chamfer_mm is None else round(float(self.chamfer_mm), 4),
-            views_planned=progress.views_planned, job=self.job.id,
-            note="; ".join(n for n in (note, self.preview_warning) if n) or None, final_start=final_start,
-            chamfer_views=self.chamfer_views))
+            views_planned=progress.views_planned, job=self.job.id, note=note, final_start=final_start,
+            chamfer_views=self.chamfer_views, warnings=(self.preview_warning,) if self.preview_warning else ()))
 
     def stopped(self, state: str, note: str) -> None:
         """The follow phase ended otherwise than by a finished scan with a fit: say so in the status."""
