@@ -1,8 +1,8 @@
 """A live result whose preview cannot be drawn (its worker's machine has no off-screen OpenGL) says why, as a run's
 report does ("no preview.png: <why>", one line): in the warnings of every live status written while it holds, so in
-`spadscan ctl status` and in the dashboard's preview box, and after the job is given back or has failed. The machine is simulated by the means the drawing's
-own check asks (offscreen.check_offscreen: the environment and ctypes.util.find_library), as in
-test_preview_warning.py."""
+`spadscan ctl status` and in the dashboard's preview box, and after the job is given back or has failed. The machine
+is simulated by the means the drawing's own check asks (offscreen.check_offscreen: the environment and
+ctypes.util.find_library), as in test_preview_warning.py."""
 
 from __future__ import annotations
 
