@@ -17,8 +17,8 @@ from .mesh_pictures import (VIEWS, coverage_png, draw_preview, no_preview_warnin
                             preview_or_warning, preview_png)
 
 __all__ = ["VIEWS", "preview_png", "draw_preview", "preview_or_warning", "no_preview_warning", "normals_png",
-           "coverage_png", "vertex_normal_error_deg", "error_vs_time_png", "error_vs_time_figure", "fit_png", "normals_title",
-           "chamfer_points", "plain_log_ticks"]
+           "coverage_png", "vertex_normal_error_deg", "error_vs_time_png", "error_vs_time_figure", "fit_png",
+           "normals_title", "chamfer_points", "plain_log_ticks"]
 
 
 def _plt():
