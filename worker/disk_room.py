@@ -367,34 +367,84 @@ def when_text(unix: float) -> str:
         return UNKNOWN_TIME
 
 
-def room_line(who: str, waits, claimer: str, by: float | None) -> str:
+def room_line(who: str, waits, claimer: str, by: float | None, *, now: float | None = None,
+              start: str | None = None) -> str:
     """A wait for room in one line, as `spadscan ctl` and the dashboard say it: '{who} for room on /data (12 MB free,
     40 MB needed): make room there; {claimer} claims again by 2025-03-01 14:05 UTC (sooner once there is room)'.
-    `waits` (RoomWait): each mount said once, with the figures of the first that names it (`RoomWait.where`,
-    `.figures`); `by` (unix seconds): when a claim succeeds again at the latest, as `when_text` says it (not said
-    where None or past what the clock can name)."""
-    mounts = {}
+    `waits` (RoomWait): each place said once, a full filesystem and a full quota on one mount being two (with the
+    figures of the first wait that names it: `RoomWait.where`, `.figures`); `by` (unix seconds): when a claim
+    succeeds again at the latest, as `when_text` says it, not said where None, past what the clock can name, or not
+    after `now` (time.time(): a time already past, from a worker's clock behind or a note its worker no longer
+    renews, is no promise). `start`: no worker is running, and this command starts one: said before the time."""
+    places = {}
     for wait in waits:
-        mounts.setdefault(wait.mount, wait)
-    places = " and ".join(f"{wait.where} ({wait.figures})" for wait in mounts.values())
+        places.setdefault((wait.mount, wait.quota), wait)
+    said = " and ".join(f"{wait.where} ({wait.figures})" for wait in places.values())
     fix = "make room there" + (" or raise the quota" if any(wait.quota for wait in waits) else "")
-    when = UNKNOWN_TIME if by is None else when_text(by)
+    now = time.time() if now is None else now
+    when = UNKNOWN_TIME if by is None or not by > now else when_text(by)
+    first = "" if start is None else f"; no worker is running: start one with `{start}`"
     again = "" if when == UNKNOWN_TIME else f"; {claimer} claims again by {when} (sooner once there is room)"
-    return f"{who} for room {places}: {fix}{again}"
+    return f"{who} for room {said}: {fix}{first}{again}"
 
 
-def room_said(notes, queue_notes=()) -> str:
+def room_said(notes, queue_notes=(), *, now: float | None = None) -> str | None:
     """What a queued job waits for while every worker present waits for room (`notes`: their presence files'
     `room_wait`s, each read as it stands, one ahead of this clock too: its worker waits all the same), in one line
-    (`room_line`): each disk, what to do, and by when a worker claims again at the latest: once the first of their own
-    waits ends, and no sooner than the last of `queue_notes` (the waits of the queued jobs given back on a full disk
-    whose room is still missing, `Queue.room_waits`: no claim succeeds before)."""
-    read = [wait for wait in (RoomWait.from_note(note, skewed=True) for note in notes) if wait is not None]
-    held = [wait.retry_unix for wait in map(RoomWait.from_note, queue_notes) if wait is not None]
-    by = max([min(wait.retry_unix for wait in read), *held]) if read else None
-    one = len(notes) == 1
-    return room_line("the worker waits" if one else f"every worker ({len(notes)}) waits", read,
-                     "it" if one else "a worker", by)
+    (`room_line`): each disk the workers wait on and each that holds the queue (`queue_notes`: the waits of the queued
+    jobs given back on a full disk whose room is still missing, `Queue.room_waits`), what to do, and by when a worker
+    claims again at the latest: once the first of their own waits ends, and no sooner than the last of `queue_notes`
+    (no claim succeeds before). Only the notes read count (a damaged one is no wait); None where none is read: the
+    caller says what it says without a wait."""
+    read = _read(notes)
+    if not read:
+        return None
+    held = _read(queue_notes)
+    by = max([min(wait.retry_unix for wait in read), *(wait.retry_unix for wait in held)])
+    one = len(read) == 1
+    return room_line("the worker waits" if one else f"every worker ({len(read)}) waits", read + held,
+                     "it" if one else "a worker", by, now=now)
+
+
+def held_said(held, notes=(), present: int = 1, *, start: str | None = None, now: float | None = None) -> str | None:
+    """What holds the queue while a queued job's wait for room does (`held`: (job id, its wait) as `Queue.room_waits`
+    gives them: no claim succeeds until the last of them ends or its room is made), in one line (`room_line`): the
+    jobs, their disks and those of the workers that wait (`notes`: their `room_wait`s), what to do, and by when a
+    worker claims again at the latest; where no worker is present (`present` 0), to start one with `start` (as
+    `spadscan worker` where not given). None where no wait of `held` is read."""
+    queued = [(job, wait) for job, wait in ((job, RoomWait.from_note(note, skewed=True)) for job, note in held)
+              if wait is not None]
+    if not queued:
+        return None
+    jobs = [job for job, _ in queued]
+    who = f"no job is claimed while {_names(jobs)} {'waits' if len(jobs) == 1 else 'wait'}"
+    return room_line(who, [wait for _, wait in queued] + _read(notes), "a worker",
+                     max(wait.retry_unix for _, wait in queued), now=now,
+                     start=None if present else (start or "spadscan worker"))
+
+
+def holding_said(notes, held, present: int, *, start: str | None = None, now: float | None = None) -> str | None:
+    """What holds the queued jobs where room on a full disk does, in one line, as `spadscan ctl` says it of a queued
+    live job and the dashboard of the queue: every worker present waits for room (`notes`: the `room_wait`s of the
+    workers that wait, `present`: how many workers are present): `room_said`, the queue's waits (`held`: (job id, its
+    wait), `Queue.room_waits`) bounding the time; else a queued job's wait holds every claim: `held_said` (`start`:
+    the command that starts a worker, said where none is present). None where room holds nothing (a worker takes
+    the jobs at its next look, or no worker is running and nothing else holds them)."""
+    read = _read(notes)
+    if read and len(read) == present:
+        return room_said(notes, [note for _, note in held], now=now)
+    return held_said(held, notes, present, start=start, now=now)
+
+
+def _read(notes) -> list[RoomWait]:
+    """The waits `notes` describe, each read as it stands (`RoomWait.from_note`, one ahead of this clock too); a
+    note that is none (a damaged record) left out."""
+    return [wait for wait in (RoomWait.from_note(note, skewed=True) for note in notes) if wait is not None]
+
+
+def _names(items: list[str]) -> str:
+    """Names in a line, as the dashboard names jobs: at most three, then how many more."""
+    return ", ".join(items[:3]) + (f" and {len(items) - 3} more" if len(items) > 3 else "")
 
 
 def _relative(folder, roots: dict) -> tuple[str, str] | None:
@@ -477,5 +527,5 @@ def retry_after(full_in_row: int) -> float:
 
 __all__ = ["MAX_FULL_DISK", "free_bytes", "total_bytes", "mount_point", "same_filesystem", "full_folder",
            "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S", "ROOM_SKEW_S", "ROOTS",
-           "RoomWait", "missing_room", "room_missing", "note_doubt", "room_line", "room_said", "UNKNOWN_TIME",
-           "when_text", "retry_after"]
+           "RoomWait", "missing_room", "room_missing", "note_doubt", "room_line", "room_said", "held_said",
+           "holding_said", "UNKNOWN_TIME", "when_text", "retry_after"]

@@ -466,9 +466,10 @@ def live_queued(captures: str, scan: str) -> dict | None:
     queued (or given back), "behind": the jobs of other scans running now (their workers renew their claims),
     "workers": the workers present ("HOST pid N"), "processes": how many jobs they run at once, "room_waits": the
     workers among them that wait for room on a full disk before they claim again, each one's `room_wait`
-    (presence.Presence.room_wait), "said": what it waits for, in the dashboard's words}; None when it is not queued,
-    or the queue cannot be read. The worker's own queue and presence code read it, as for the dashboard and
-    `spadscan worker --status`."""
+    (presence.Presence.room_wait), "said": what it waits for, in the dashboard's words: room on a full disk where
+    every worker waits for it or a queued job's wait holds every claim (Queue.room_waits), whatever the workers
+    say}; None when it is not queued, or the queue cannot be read. The worker's own queue and presence code read it,
+    as for the dashboard and `spadscan worker --status`."""
     from spadscan.protocol.errors import SpadscanError
     from spadscan.worker.presence import present_workers, start_command
     from spadscan.worker.queue import Queue
@@ -488,30 +489,37 @@ def live_queued(captures: str, scan: str) -> dict | None:
     behind = [row.id for row in rows if row.state == "running" and row.stale is None and row.scan != scan]
     named = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"], "running": w["running"],
               "room_wait": w.get("room_wait")} for w in workers]
-    try:  # read only where every worker waits for room: then the last of them says when a claim succeeds again
-        every = named and all(w["room_wait"] for w in named)
-        queue_waits = [note for _, note in queue.room_waits()] if every else []
+    try:  # a queued job's wait for room holds every claim, whatever the workers say (Queue.room_waits)
+        held = list(queue.room_waits())
     except OSError:
-        queue_waits = []
+        held = []
     return {"job": job.id, "waiting_s": None if job.waiting_s is None else round(job.waiting_s, 1), "behind": behind,
             "workers": [w["name"] for w in named], "processes": sum(w["processes"] for w in named),
             "room_waits": {w["name"]: w["room_wait"] for w in named if w["room_wait"] is not None},
-            "said": queued_said(behind, named, f"{start_command(Path(captures), queue.path)} --live", queue_waits)}
+            "said": queued_said(behind, named, f"{start_command(Path(captures), queue.path)} --live", held)}
 
 
-def queued_said(behind: list[str], workers: list[dict], start: str, queue_waits: list[dict] = ()) -> str:
-    """What a queued live job waits for, as the dashboard says it: no worker (and `start`, the command that starts
-    one), room on a full disk (every worker waits for it: `room_said`, `queue_waits` the waits of the jobs given back
-    to the queue on a full disk whose room is still missing, Queue.room_waits), a worker's next look (a job process is
-    free), or the jobs `behind` (and how to run one job more at once). A worker that waits for room (its
-    `room_wait`) claims nothing meanwhile: neither its job processes nor the jobs it runs count."""
+def queued_said(behind: list[str], workers: list[dict], start: str, held: list[tuple[str, dict]] = ()) -> str:
+    """What a queued live job waits for, as the dashboard says it: room on a full disk (every worker waits for it, or
+    a queued job's wait holds every claim: `held`, (job id, its wait) for each job given back to the queue on a full
+    disk whose room is still missing, Queue.room_waits; disk_room.holding_said, which says to start a worker with
+    `start` where none is present), no worker (and `start`, the command that starts one), a worker's next look (a
+    job process is free), or the jobs `behind` (and how to run one job more at once). A worker that waits for room
+    (its `room_wait`, as the worker reads it: a damaged one is none) claims nothing meanwhile: neither its job
+    processes nor the jobs it runs count."""
+    from spadscan.worker.disk_room import RoomWait, holding_said
+
+    def waits(worker: dict) -> bool:
+        return RoomWait.from_note(worker.get("room_wait"), skewed=True) is not None
+
+    said = holding_said([w["room_wait"] for w in workers if waits(w)], held, len(workers), start=start)
+    if said is not None:
+        return said
     if not workers:
         return f"no worker is running: start one with `{start}`"
-    claiming = [w for w in workers if not w.get("room_wait")]
-    if not claiming:
-        return room_said([w["room_wait"] for w in workers], queue_waits)
-    held = {job for w in workers if w.get("room_wait") for job in w.get("running", ())}
-    behind = [job for job in behind if job not in held]
+    claiming = [w for w in workers if not waits(w)]
+    held_jobs = {job for w in workers if waits(w) for job in w.get("running", ())}
+    behind = [job for job in behind if job not in held_jobs]
     n = sum(w["processes"] for w in claiming) or 1
     if len(behind) < n:
         return "a worker takes it at its next look"
@@ -519,10 +527,10 @@ def queued_said(behind: list[str], workers: list[dict], start: str, queue_waits:
             f"({_processes_advice(claiming, n)})")
 
 
-def room_said(waits: list[dict], queue_waits: list[dict] = ()) -> str:
+def room_said(waits: list[dict], queue_waits: list[dict] = ()) -> str | None:
     """What a queued job waits for while every worker waits for room (`waits`: their `room_wait`s; `queue_waits`:
     those of the jobs given back to the queue on a full disk whose room is still missing), worded as the worker's own
-    lines, `worker --status` and the dashboard word it (disk_room.room_said)."""
+    lines, `worker --status` and the dashboard word it (disk_room.room_said); None where no wait is read."""
     from spadscan.worker.disk_room import room_said as worded
 
     return worded(waits, queue_waits)

@@ -152,10 +152,11 @@ class Dashboard:
         worker follows (`unfollowed`: a worker without --live leaves them)."""
         workers = [] if queue.get("error") else present_workers(self.queue_dir, now)
         held = queue_room_waits(self.queue_dir, self.root) if _queued(queue) else []
+        start = start_command(self.root, self.queue_dir)
         state = {"state": "unknown"} if queue.get("error") else worker_state(
-            rows, queue["jobs"], now, workers, self._freed(queue["jobs"]), held)
+            rows, queue["jobs"], now, workers, self._freed(queue["jobs"]), held, start)
         each = [{"name": f"{w['host']} pid {w['pid']}", "processes": w["processes"]} for w in workers]
-        return {**state, "start": start_command(self.root, self.queue_dir),
+        return {**state, "start": start,
                 "processes": sum(w["processes"] for w in workers), "each": each,
                 "unfollowed": unfollowed(rows, {j["scan"] for j in queue["jobs"]}, now) if workers else []}
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 
-from spadscan.worker.disk_room import RoomWait, room_line, room_said, size_text
+from spadscan.worker.disk_room import RoomWait, holding_said, room_line, size_text
 
 from .results import age_s
 
@@ -32,7 +32,7 @@ a queued job left untaken with no job running, this long means that no worker se
 
 
 def worker_state(rows, jobs: list[dict], now: float, workers: list[dict] = (),
-                 freed_unix: float | None = None, held=()) -> dict:
+                 freed_unix: float | None = None, held=(), start: str | None = None) -> dict:
     """{"state": ..., and what the page names}: 'working' (jobs whose worker renews its claim: `jobs`, and `queued`,
     how many wait), 'gone' (running jobs whose worker is gone: `jobs`), 'queued' or 'untaken' (no job running, jobs
     queued: `jobs`, `waited_s` of the one left longest since a worker could take it; 'untaken' from LOOK_S on),
@@ -42,7 +42,9 @@ def worker_state(rows, jobs: list[dict], now: float, workers: list[dict] = (),
     to do, no worker). Every state also names the workers present (`workers`: "HOST pid N" each), and where any of
     them waits for room, their waits (`room_waits`); where a queued job's wait holds the queue, those waits
     (`queue_room_waits`); where either is, the line that says it (`room_said`: `wait_line`) and whether it holds the
-    queued jobs (`room_holds`: every worker present waits, or the queue is held).
+    queued jobs (`room_holds`: every worker present waits, or the queue is held). Where the queue is held and no
+    worker is present, the line says to start one with `start` (the command that starts a worker), and
+    `live_room_said` says it as `spadscan ctl` says it of a queued live job (with `--live`).
     `rows`: the scans (ScanRow), `jobs`: the queue's rows (`queue_status`), `now`: time.time(), `workers`: the queue's
     present workers (presence.present_workers), `freed_unix`: when a claim last began or ended
     (attempts.last_claim_change; None: none ever did, or not known), `held`: (job id, its wait) for each queued job
@@ -54,10 +56,14 @@ def worker_state(rows, jobs: list[dict], now: float, workers: list[dict] = (),
     holds = bool(held) or (bool(names) and len(waits) == len(names))
     if holds and names and state["state"] in ("queued", "untaken"):
         state = {**state, "state": "room"}  # no worker takes them at its next look: each waits for room first
-    said = wait_line(waits, held, len(names))
+    said = wait_line(waits, held, len(names), start=start, now=now)
+    live = None
+    if held and not names:  # a live job's line names the command `spadscan ctl` gives for it
+        live = wait_line(waits, held, 0, start=f"{start or 'spadscan worker'} --live", now=now)
     return {**state, "workers": names, **({"room_waits": waits} if waits else {}),
             **({"queue_room_waits": held} if held else {}),
-            **({"room_said": said, "room_holds": holds} if said else {})}
+            **({"room_said": said, "room_holds": holds} if said else {}),
+            **({"live_room_said": live} if live else {})}
 
 
 def worker_name(worker: dict) -> str:
@@ -87,25 +93,22 @@ def queue_room_waits(held) -> list[dict]:
     return [{**note, "job": job, **_said(wait)} for job, note, wait in read if wait is not None]
 
 
-def wait_line(waits: list[dict], held: list[dict], present: int) -> str | None:
-    """The waits for room in one line (disk_room.room_line), or None where there are none. Every worker present
-    waits (`waits`, `room_waits`'s): what `spadscan ctl` says of a queued live job (disk_room.room_said), by when a
-    worker claims again bounded by the queue's waits (`held`, `queue_room_waits`'s). Else a queued job's wait holds
-    the queue: the jobs, their disks (and those of the workers that wait), by when a worker that does not wait
-    claims again. Else the workers that wait, by name, and by when the first of them claims again."""
-    if waits and len(waits) == present:
-        return room_said(waits, held)
+def wait_line(waits: list[dict], held: list[dict], present: int, *, start: str | None = None,
+              now: float | None = None) -> str | None:
+    """The waits for room in one line (disk_room.room_line), or None where there are none. Where they hold the
+    queued jobs (every worker present waits: `waits`, `room_waits`'s; or a queued job's wait holds the queue:
+    `held`, `queue_room_waits`'s), what `spadscan ctl` says of a queued live job (disk_room.holding_said; `start`:
+    the command that starts a worker, said where none is present). Else the workers that wait, by name, and by when
+    the first of them claims again (`now`: time.time())."""
+    said = holding_said(waits, [(w["job"], w) for w in held], present, start=start, now=now)
+    if said is not None:
+        return said
     read = [RoomWait.from_note(w, skewed=True) for w in waits]
-    queued = [RoomWait.from_note(w, skewed=True) for w in held]
-    if queued:
-        jobs = [w["job"] for w in held]
-        who = f"no job is claimed while {_names(jobs)} {'waits' if len(jobs) == 1 else 'wait'}"
-        return room_line(who, queued + read, "a worker", max(w.retry_unix for w in queued))
     if read:
         who = [w["worker"] for w in waits]
         subject = f"the worker on {who[0]} waits" if len(who) == 1 else f"the workers on {_names(who)} wait"
         return room_line(subject, read, "it" if len(who) == 1 else "the first of them",
-                         min(w.retry_unix for w in read))
+                         min(w.retry_unix for w in read), now=now)
     return None
 
 

@@ -1,9 +1,11 @@
 """A worker that met a full disk waits for room before it claims another job, and says so in its presence file
 (`room_wait`: {"mount", "folder", "free_bytes", "need_bytes", "since_unix", "retry_unix", "quota"}, null when it does
 not wait). While every worker present waits so, `ctl status` and `ctl wait` say that the scan's queued live job waits
-for room, where, and by when a worker claims again, instead of "a worker takes it at its next look"; `status --json`
-lists each waiting worker's `room_wait`. A worker that does not write the key (an older one) waits for nothing. The
-presence files are written here by hand, as a worker writes them."""
+for room, where, and by when a worker claims again, instead of "a worker takes it at its next look"; so do they while
+a job given back to the queue on a full disk holds every claim (Queue.room_waits), whether or not a worker says it
+waits, and with no worker present they say to start one as well; `status --json` lists each waiting worker's
+`room_wait`. A worker that does not write the key (an older one) waits for nothing. The presence files are written
+here by hand, as a worker writes them."""
 
 from __future__ import annotations
 
@@ -144,6 +146,10 @@ def test_the_claim_is_said_by_the_last_wait_that_holds_the_queue(tmp_path, monke
     set_room_wait(root, me, room_wait(retry_in_s=600.0))
     said = live_status(status_of(root))["queued"]["said"]
     assert said.endswith(f"; it claims again by {utc(held.retry_unix)} (sooner once there is room)"), said
+    # every disk that holds the claims is named, the queued job's as well as the worker's own. Before: /mnt/scratch
+    # alone
+    assert said.startswith(f"the worker waits for room on /mnt/scratch (12 MB free, 40 MB needed) and {held.where} "
+                           f"(12 MB free, "), said
 
 
 def test_a_wait_noted_ahead_of_this_clock_is_still_said(idle):
@@ -156,3 +162,55 @@ def test_a_wait_noted_ahead_of_this_clock_is_still_said(idle):
     said = live_status(status_of(idle))["queued"]["said"]
     assert said.startswith("the worker waits for room on /mnt/scratch (12 MB free, 40 MB needed): make room there")
     assert "on /mnt/scratch" in waiting_for_room(ahead)
+
+
+def given_back(root: Path, job_id: str = "mug-fast", retry_s: float = 600.0) -> RoomWait:
+    """Job `job_id` (of the scan its id's first part names; mug's is live) claimed and given back to the queue on a
+    full disk as a worker gives it back: its attempt record's `room` the wait it began, on the filesystem that holds
+    `root`. The queue's own gate then lets no claim succeed."""
+    scan = job_id.rsplit("-", 1)[0]
+    queue = Queue.for_root(root)
+    queue.enqueue(Job(id=job_id, scan=scan, live=scan == "mug"))
+    claim = queue.claim()
+    wait = RoomWait.begin(root / scan / "recon", held=0, retry_s=retry_s, job=job_id, roots=queue.roots)
+    assert queue.release(claim, "no room left on the disk", outcome="disk_full", room=wait.note())
+    assert queue.claim() is None
+    return wait
+
+
+def held_line(wait: RoomWait, tail: str) -> str:
+    """What ctl (and the dashboard) say of a queue that mug-fast's wait holds, the disk at 12 MB free."""
+    return (f"no job is claimed while mug-fast waits for room {wait.where} (12 MB free, "
+            f"{disk_room.size_text(wait.need)} needed): make room there{tail}; a worker claims again by "
+            f"{utc(wait.retry_unix)} (sooner once there is room)")
+
+
+def test_a_queued_jobs_wait_that_holds_the_queue_is_said_though_the_worker_does_not_wait(tmp_path, monkeypatch,
+                                                                                        capsys):
+    """A worker present that does not (yet) say it waits (between two looks, just started, its presence file not
+    fitting on the full disk) claims nothing while the live job's own wait holds the queue. Before: 'a worker takes
+    it at its next look', while the dashboard said the wait."""
+    monkeypatch.setattr(disk_room, "free_bytes", lambda folder: 12 * MB)  # the disk stays full
+    root = tmp_path / "caps"
+    (root / "mug").mkdir(parents=True)
+    wait = given_back(root)
+    worker_present(root, Holder.current(), 1)
+    said = held_line(wait, "")
+    shown, out = ctl_status(root, monkeypatch, capsys, "--json")
+    assert shown["live"]["queued"]["said"] == said, shown["live"]["queued"]["said"]
+    assert shown["live"]["queued"]["room_waits"] == {}
+    assert live_line(shown["live"]) == f"live reconstruction queued: {said}"
+
+
+def test_a_held_queue_with_no_worker_says_to_start_one_and_the_wait(tmp_path, monkeypatch):
+    """Before: 'no worker is running: start one with ...' alone, though a worker started then claims nothing until
+    the room is made."""
+    from spadscan.worker.presence import start_command
+
+    monkeypatch.setattr(disk_room, "free_bytes", lambda folder: 12 * MB)
+    root = tmp_path / "caps"
+    (root / "mug").mkdir(parents=True)
+    wait = given_back(root)
+    start = f"{start_command(root, Queue.for_root(root).path)} --live"
+    assert live_status(status_of(root))["queued"]["said"] == held_line(
+        wait, f"; no worker is running: start one with `{start}`")

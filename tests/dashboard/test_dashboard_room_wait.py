@@ -3,7 +3,8 @@ words as `spadscan ctl` and the worker's own lines word it (disk_room.room_said:
 `when_text`), not a wording of its own; and it says that the queue is held by a full disk where a queued job given back
 on one holds every claim (its attempt record's `room`, read as the queue's claim reads it: Queue.room_waits), even
 while no worker's presence file says it waits yet (a worker between two looks, one just started, one whose presence
-file did not fit on the full disk)."""
+file did not fit on the full disk), and, where no worker is present, that one is to be started. The page's lines are
+checked against what `spadscan ctl status` says through its own path (ctl.live_queued on the same queue)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import pytest
 import spadscan.worker.disk_room as disk_room
 from dashboard_helpers import serving, status
 from page_helpers import add_pose, browser_page, start_scan
-from spadscan.commands.ctl import room_said as ctl_room_said
+from spadscan.commands.ctl import live_queued
 from spadscan.dashboard.server import address
 from spadscan.worker.disk_room import RoomWait, room_said, when_text
 from spadscan.worker.jobs import Job
@@ -39,7 +40,6 @@ def test_the_page_words_a_workers_wait_as_ctl_and_the_worker_do(tmp_path):
     note = room_wait(time.time())
     present(tmp_path, note)
     said = room_said([note])
-    assert said == ctl_room_said([note])  # one wording: `spadscan ctl status` says the same
     wait = RoomWait.from_note(note)
     assert said == (f"the worker waits for room {wait.where} ({wait.figures}): make room there; it claims again by "
                     f"{when_text(wait.retry_unix)} (sooner once there is room)")
@@ -48,6 +48,7 @@ def test_the_page_words_a_workers_wait_as_ctl_and_the_worker_do(tmp_path):
         assert wait_text(page, "#worker", "for room") == said  # idle: the wait alone
         assert status(server)["worker"]["room_said"] == said
         Queue.for_root(tmp_path).enqueue(Job(id="mug-fast", scan="mug", live=True))  # the scan's live job
+        assert live_queued(str(tmp_path), "mug")["said"] == said  # one wording: `spadscan ctl status` says the same
         assert wait_text(page, "#worker", "queued") == f"1 job queued: {said}"
         assert wait_text(page, "#viewer-name", "live reconstruction queued") == (
             f"mug / live reconstruction queued: {said}")
@@ -84,6 +85,7 @@ def test_a_queued_jobs_wait_for_room_is_said_while_no_worker_says_it_waits(tmp_p
         assert page.locator("#worker").get_attribute("class") == "down"
         worker = status(server)["worker"]
         assert worker["state"] == "room" and worker["room_holds"] and "room_waits" not in worker
+        assert live_queued(str(tmp_path), "mug")["said"] == said  # as `spadscan ctl status` says it
         assert [w["job"] for w in worker["queue_room_waits"]] == ["mug-fast"]
         assert wait_text(page, "#viewer-name", "for room") == f"mug / live reconstruction queued: {said}"
         assert "next look" not in page.locator("body").inner_text()
@@ -96,8 +98,11 @@ def test_a_queued_jobs_wait_for_room_is_said_while_no_worker_says_it_waits(tmp_p
 
 @pytest.mark.parametrize("workers", [0, 1])
 def test_the_server_says_a_held_queue_with_or_without_workers(tmp_path, monkeypatch, workers):
-    """With no worker present the line says to start one first, and the wait after it; with one, the queued jobs are
-    held by room (state 'room'), not left untaken by the worker."""
+    """A queued job's wait holds every claim. With a worker present, the queued jobs are held by room (state 'room'),
+    not left untaken by the worker, and the line says the wait. With none, the state stays the one without a worker
+    ('untaken'), and the line says to start one (with the dashboard's start command; with `--live` in the line for a
+    live job, as `spadscan ctl` says it), then by when a worker claims again. Before: the line never said to start
+    one."""
     from spadscan.dashboard.worker_state import worker_state
 
     monkeypatch.setattr(disk_room, "free_bytes", lambda folder: 12 * MB)
@@ -105,8 +110,38 @@ def test_the_server_says_a_held_queue_with_or_without_workers(tmp_path, monkeypa
     held = list(Queue.for_root(tmp_path).room_waits())
     queued = {"id": "mug-fast", "scan": "mug", "state": "queued", "waiting_s": 600.0}
     idle = [{"host": "lab", "pid": 8, "processes": 1, "room_wait": None}][:workers]
-    state = worker_state([], [queued], time.time(), idle, held=held)
+    start = "spadscan worker --root /caps"
+    state = worker_state([], [queued], time.time(), idle, held=held, start=start)
     assert state["state"] == ("room" if workers else "untaken") and state["room_holds"]
-    assert state["room_said"].startswith(f"no job is claimed while mug-fast waits for room {wait.where} (")
+    said = (f"no job is claimed while mug-fast waits for room {wait.where} (12 MB free, "
+            f"{disk_room.size_text(wait.need)} needed): make room there")
+    by = f"; a worker claims again by {when_text(wait.retry_unix)} (sooner once there is room)"
+    if workers:
+        assert state["room_said"] == said + by and "live_room_said" not in state
+    else:
+        assert state["room_said"] == f"{said}; no worker is running: start one with `{start}`{by}"
+        assert state["live_room_said"] == f"{said}; no worker is running: start one with `{start} --live`{by}"
     assert state["queue_room_waits"][0]["free_said"] == "12 MB"
     assert "room_said" not in worker_state([], [queued], time.time(), idle)  # no wait: nothing said of room
+
+
+def test_a_held_queue_with_no_worker_says_to_start_one_on_the_page(tmp_path, monkeypatch):
+    """No worker, and the live job of the scan being recorded went back to the queue on a full disk: the top line and
+    the scan's heading say the wait and to start a worker, in `spadscan ctl`'s words. Before: the heading said
+    'no worker is running: start one with ...' alone, the top line said to start one twice."""
+    monkeypatch.setattr(disk_room, "free_bytes", lambda folder: 12 * MB)  # the disk stays full
+    writer, poses = start_scan(tmp_path / "mug", 10)
+    add_pose(writer, poses, 0)
+    given_back_on_a_full_disk(tmp_path)
+    ctl = live_queued(str(tmp_path), "mug")["said"]  # what `spadscan ctl status` says of the live job
+    assert ctl.startswith("no job is claimed while mug-fast waits for room ")
+    with serving(tmp_path) as server, browser_page(*WINDOW) as (page, seen):
+        page.goto(address(server))
+        worker = status(server)["worker"]
+        start = worker["start"]
+        assert worker["room_said"] == ctl.replace(f"`{start} --live`", f"`{start}`")
+        assert f"no worker is running: start one with `{start} --live`; a worker claims again by " in ctl
+        assert wait_text(page, "#worker", "for room") == f"1 job queued: {worker['room_said']}"
+        assert page.locator("#worker").get_attribute("class") == "down"
+        assert wait_text(page, "#viewer-name", "for room") == f"mug / live reconstruction queued: {ctl}"
+    assert not seen.errors, seen.errors
