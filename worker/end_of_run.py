@@ -5,8 +5,9 @@ Eight checks, each on plain numbers the run recorded (docs/end_of_run.md derives
 
 - **Stopped early.** A run that ended on its time budget or step count while its data term was still falling:
   the windowed data term of the last fifth of the run against the fifth before it.
-- **Starved.** A CPU run whose process got much less than one core (its CPU seconds against its wall seconds):
-  other processes took the cores, and it made that many times fewer steps than it would have alone.
+- **Starved.** A CPU run that lost over half its training to other processes: its threads waited that long for
+  cores they held (Linux's scheduler statistics, `cpu_wait.py`; where those cannot be read, its process had under
+  half a core: its CPU seconds against its wall seconds), and it made that many times fewer steps than alone.
 - **Far from the noise.** The measured counts against the fitted model's expected counts, histogram by histogram.
   On a simulated capture, whose model is exact, a histogram is misfit when its Poisson deviance exceeds what photon
   noise alone gives (`noise_deviance`) by more than MISFIT_Z standard deviations of that noise and the model is off
@@ -39,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import gammaln, xlogy
 
+from .cpu_wait import lost_seconds
 from .pieces import SPECKS_LIMIT
 from .signal_check import signal_warning
 
@@ -49,8 +51,13 @@ OVERRUN_FLOOR_S = 10.0
 """A run that overran its time budget says so beyond the tolerance `--budget-s` promises: OVERRUN_SHARE of the
 budget or OVERRUN_FLOOR_S seconds, whichever is larger (the start and the end of a run take seconds however short
 its budget)."""
+LEAST_PACE = 0.01
+"""The least share of its pace alone that a run's threads' waits are taken to say (`pace_share`): summed waits that
+overlap can reach the whole wall time, and beyond 100x fewer steps the figure says only that the run was starved."""
 STARVED_SHARE = 0.5
-"""CPU cores' worth a CPU run's process must have had on average (CPU seconds / wall seconds): below it, warn."""
+"""Share of its training's wall time that a CPU run must have gone at its own pace, not waiting for cores that other
+processes held (`pace_share`); where that is not measured, CPU cores' worth its process must have had on average (CPU
+seconds / wall seconds, `cpu_share`): below it, warn."""
 REAL_SENSOR_MISFIT = 0.3
 """Relative misfit (`FitNoise.relative_misfit`) that a real sensor's own departures from its model leave on good fits
 of the public dataset's real pyramid, bright or dim (docs/end_of_run.md gives the measurements)."""
@@ -291,6 +298,9 @@ class RunFacts:
     """Pieces of note of the ground truth (`pieces.mesh_pieces` of it), or None without one."""
     truth_tunnels: int | None = None
     """Tunnels through the ground truth (`pieces.Pieces.tunnels` of it), or None without one (or one not closed)."""
+    thread_times: dict | None = None
+    """Training's threads' seconds on a CPU and waiting for one (`cpu_wait.ThreadWaits.summary`: the stepping
+    thread's and the helpers'), or None where not measured."""
 
 
 def converged(facts: RunFacts) -> bool:
@@ -311,6 +321,58 @@ def cpu_share(facts: RunFacts) -> float | None:
     if not facts.cpu_seconds or not facts.wall_seconds or facts.wall_seconds <= 0:
         return None
     return facts.cpu_seconds / facts.wall_seconds
+
+
+def lost_share(facts: RunFacts) -> float | None:
+    """Share of training's wall seconds the run lost to other processes, its threads waiting for cores they held
+    (`cpu_wait.lost_seconds`), or None where not measured (no scheduler statistics, a GPU run)."""
+    if facts.thread_times is None or not facts.wall_seconds:
+        return None
+    lost = lost_seconds(facts.thread_times, facts.wall_seconds)
+    return None if lost is None else lost / facts.wall_seconds
+
+
+def pace_share(facts: RunFacts) -> tuple[float, bool] | None:
+    """(the share of its pace alone that the run kept while training, whether it was measured by its threads' waits
+    (`lost_share`) rather than by its CPU time (`cpu_share`, where the waits are not known)), or None where neither
+    is known. Its inverse is how many times fewer steps it made than alone."""
+    lost = lost_share(facts)
+    if lost is not None:
+        return max(1.0 - lost, LEAST_PACE), True
+    share = cpu_share(facts)
+    return None if share is None else (share, False)
+
+
+def cpu_wait(facts: RunFacts) -> dict | None:
+    """report.json's figures on what the run lost to other processes (None where its threads' waits were not
+    measured): seconds lost and their share of training, the pace kept, the steps' slowdown, the threads' times."""
+    lost = lost_share(facts)
+    if lost is None:
+        return None
+    pace, _ = pace_share(facts)
+    return {"lost_s": lost * facts.wall_seconds, "lost_share": lost, "pace_share": pace, "slowdown": 1.0 / pace,
+            "threads": facts.thread_times}
+
+
+def busy_warning(facts: RunFacts) -> str | None:
+    """The line saying that other processes took a CPU run's cores and it made that many times fewer steps, or None.
+    Only a run that a time budget stopped lost steps to a busy machine: one that converged, or made the steps it was
+    asked for, has the result it would have had alone (later)."""
+    pace = pace_share(facts)
+    if facts.stopped_by != "budget" or facts.device != "cpu" or pace is None or not pace[0] < STARVED_SHARE:
+        return None
+    share, by_waits = pace
+    fewer = f"made about {1 / max(share, 1e-3):.0f}x fewer steps ({facts.steps}) than it would alone"
+    advice = "stop other work or give it a larger time budget"
+    if not by_waits:
+        return f"the machine was busy: this run had {share:.2f} of a CPU core on average and {fewer}; {advice}"
+    cpu = cpu_share(facts)
+    # Threads that spin while a partner waits for its core burn CPU time: the run's CPU time then reads as a core.
+    spun = ("" if cpu is None or cpu < STARVED_SHARE else
+            f" (its CPU time, {cpu:.2f} of a core, does not show this: it counts its threads side by side, their "
+            f"spinning while they waited included)")
+    return (f"the machine was busy: other processes held the CPU cores this run's threads waited for, and it lost "
+            f"{100 * lost_share(facts):.0f} % of its training to them{spun}; it {fewer}; {advice}")
 
 
 INTERRUPTED = "the run's training was stopped by Ctrl-C"
@@ -473,13 +535,9 @@ def warnings(facts: RunFacts) -> list[str]:
     if facts.stopped_by == "interrupted" and not converged(facts):
         out.append(f"{INTERRUPTED} after {facts.steps} step(s), before it converged: the mesh is the fit as it "
                    f"stood (a run left to its end gives a better one)")
-    share = cpu_share(facts)
-    # Only a run that a time budget stopped lost steps to a busy machine: one that converged, or made the steps it
-    # was asked for, has the result it would have had alone (later).
-    if facts.stopped_by == "budget" and facts.device == "cpu" and share is not None and share < STARVED_SHARE:
-        out.append(f"the machine was busy: this run had {share:.2f} of a CPU core on average and made about "
-                   f"{1 / max(share, 1e-3):.0f}x fewer steps ({facts.steps}) than it would alone; stop other work "
-                   f"or give it a larger time budget")
+    busy = busy_warning(facts)
+    if busy:
+        out.append(busy)
     over = overrun_warning(facts)
     if over:
         out.append(over)
@@ -509,9 +567,10 @@ def early_note(facts: RunFacts) -> str:
 
 
 __all__ = ["INTERRUPTED", "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
-           "converged", "cpu_share", "warnings", "overrun_warning", "misfit_warning", "coverage_warning",
+           "converged", "cpu_share", "lost_share", "pace_share", "cpu_wait", "busy_warning", "warnings",
+           "overrun_warning", "misfit_warning", "coverage_warning",
            "pieces_warning", "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
-           "STILL_FALLING", "STARVED_SHARE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
+           "STILL_FALLING", "STARVED_SHARE", "LEAST_PACE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
            "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
            "MISFIT_Z", "MISFIT_RELATIVE", "MISFIT_MIN_HISTOGRAMS",
            "noise_moments", "misfit_histograms"]

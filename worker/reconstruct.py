@@ -31,6 +31,7 @@ from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floo
 from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from .carving.view_subset import spread_views
 from .carving.views import summed_views
+from .cpu_wait import ThreadWaits, read_threads
 from .coverage import FEW_VIEWS, Coverage, counted_views, few_share, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
@@ -197,7 +198,8 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                         log: Callable[[str], None] | None = None, started: float | None = None,
                         clock: Callable[[], float] = time.perf_counter,
                         cpu_clock: Callable[[], float] = time.process_time, make: Callable | None = None,
-                        after_training: Callable | None = None, stop: Callable[[], bool] | None = None) -> dict:
+                        after_training: Callable | None = None, stop: Callable[[], bool] | None = None,
+                        thread_reader: Callable[[], dict | None] | None = read_threads) -> dict:
     """Reconstruct `capture` into folder `out` with preset `preset`; returns the report dict (also report.json).
 
     `budget_s` bounds the whole run, from `started` (a `clock()` reading; default: now) to the report: set-up,
@@ -209,22 +211,24 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     chooses between torch's threads and one as it goes (threads.ThreadGovernor). `log`: receives a line per stage
     after training (mesh, metrics, pictures) and warnings. The report says whether the run converged and why its
     result may be doubtful (`converged`, `warnings`: end_of_run.py). `clock` (wall seconds) and `cpu_clock` (this
-    process's CPU seconds) time the run; tests inject their own. `stop()` true ends training at its next step, the
-    mesh and report made as after a budget (the user's first Ctrl-C: `trainer.train`). A previous result in `out`
-    (--overwrite) stays whole until this run has finished, and comes back if it does not
-    (`outputs.replacing_result`)."""
+    process's CPU seconds) time the run, and `thread_reader` gives its threads' seconds on a CPU and waiting for one
+    (`cpu_wait.read_threads`; None: not measured), what a CPU run lost to other processes; tests inject their own.
+    `stop()` true ends training at its next step, the mesh and report made as after a budget (the user's first
+    Ctrl-C: `trainer.train`). A previous result in `out` (--overwrite) stays whole until this run has finished, and
+    comes back if it does not (`outputs.replacing_result`)."""
     with replacing_result(out, log):
         return _reconstruct_into(capture, out, preset=preset, budget_s=budget_s, steps=steps, gt=gt, device=device,
                                  seed=seed, progress=progress, overrides=overrides, threads=threads, log=log,
                                  started=started, clock=clock, cpu_clock=cpu_clock, make=make,
-                                 after_training=after_training, stop=stop)
+                                 after_training=after_training, stop=stop, thread_reader=thread_reader)
 
 
 def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float | None, steps: int | None,
                       gt: Path | None, device: str, seed: int, progress: bool, overrides: dict | None,
                       threads: int | None, log: Callable[[str], None] | None, started: float | None,
                       clock: Callable[[], float], cpu_clock: Callable[[], float], make: Callable | None,
-                      after_training: Callable | None, stop: Callable[[], bool] | None) -> dict:
+                      after_training: Callable | None, stop: Callable[[], bool] | None,
+                      thread_reader: Callable[[], dict | None] | None) -> dict:
     """`reconstruct_capture`'s run, writing into `out`."""
     log = log or (lambda line: None)
     run_clock = RunClock(None, clock() if started is None else started, clock)
@@ -268,6 +272,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     governor = None
     if dev.type == "cpu" and not threads_fixed(threads, os.environ) and torch.get_num_threads() > 1:
         governor = ThreadGovernor(torch.get_num_threads(), torch.set_num_threads)
+    # What the steps lost to other processes, on a CPU only: a GPU run waits for its device, not for a core.
+    waits = ThreadWaits(thread_reader) if dev.type == "cpu" and thread_reader is not None else None
     evaluate = None
     if truth is not None:
         evaluate = lambda: _checkpoint_metrics(model, truth, config)  # noqa: E731
@@ -277,7 +283,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                    clock=clock, cpu_clock=cpu_clock,
                    eval_estimate_s=0.0 if checkpoint_cost is None else costs.checkpoint_s(*checkpoint_cost),
                    end_evaluation=None if budget_s is None else lambda seconds: seconds <= run_clock.left() - min_end,
-                   stop=stop)
+                   stop=stop, waits=waits)
     stages = {"set_up_s": run_clock.elapsed() - result.seconds - result.eval_seconds}
     chosen = {}
     if after_training is not None:
@@ -372,7 +378,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
                      continued=bool(getattr(model, "warm_started", False)),
                      training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s,
-                     preset=config.preset, cuda_seen=torch.cuda.is_available())
+                     preset=config.preset, cuda_seen=torch.cuda.is_available(),
+                     thread_times=None if waits is None else waits.summary())
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts)
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
@@ -382,6 +389,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         report["pieces"]["truth_tunnels"] = truth_pieces.tunnels
     report["signal"] = None if signal is None else signal.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
+    report["cpu_wait"] = end_of_run.cpu_wait(facts)
     report["threads"] = (governor.summary() if governor is not None else
                          {"fixed": torch.get_num_threads()} if dev.type == "cpu" else None)
     report["budget"] = {"budget_s": budget_s, "training_budget_s": plan.budget_s,
@@ -480,7 +488,7 @@ def _probe_coverage(mesh, scene: SceneData, costs: EndCosts, clock) -> None:
     except SpadscanError:
         return
     # The other views are counted only for the points the spread views see fewer than FEW_VIEWS times: the probe's
-    # counts, scaled from its views to the spread views, say what share that is (a flat plate seen close up: all).
+    # counts estimate what share that is (coverage.few_share; a flat plate seen close up: all).
     costs.time_coverage(seconds, len(timed), len(spread), others, few_share(samples.counts, len(timed), len(spread)))
 
 

@@ -350,7 +350,8 @@ def test_a_run_over_its_time_budget_says_by_how_much_and_one_within_it_does_not(
 
 def test_a_run_cut_short_while_its_fit_improves_says_so_and_one_that_converged_does_not(box_capture, tmp_path):
     clock = TickingClock()
-    report = reconstruct(box_capture, tmp_path / "cut", budget_s=30.0, clock=clock, cpu_clock=clock)
+    # The threads' real waits for a core are not measured against a made-up wall clock: the CPU clock judges.
+    report = reconstruct(box_capture, tmp_path / "cut", budget_s=30.0, clock=clock, cpu_clock=clock, thread_reader=None)
     assert report["stopped_by"] == "budget" and report["converged"] is False
     assert has(report, "stopped on its time budget"), report["warnings"]
     assert not has(report, "busy") and not has(report, "does not explain")
@@ -367,9 +368,10 @@ def test_a_run_cut_short_while_its_fit_improves_says_so_and_one_that_converged_d
 
 def test_a_starved_run_and_a_fit_far_from_the_noise_say_so(ambient_capture, box_capture, tmp_path):
     # A process that got a quarter of a core: its CPU clock runs at a quarter of the wall clock's pace, and its time
-    # budget ran out.
+    # budget ran out. Its threads' real waits are not measured against the made-up wall clock: the CPU clock judges.
     clock = TickingClock()
-    report = reconstruct(ambient_capture, tmp_path / "starved", budget_s=30.0, clock=clock, cpu_clock=clock.cpu(0.25))
+    report = reconstruct(ambient_capture, tmp_path / "starved", budget_s=30.0, clock=clock, cpu_clock=clock.cpu(0.25),
+                         thread_reader=None)
     assert report["stopped_by"] == "budget"
     assert has(report, "the machine was busy") and has(report, "0.25 of a CPU core"), report["warnings"]
     assert has(report, "the fit does not explain the measurements"), report["fit_to_noise"]
