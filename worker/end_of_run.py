@@ -409,11 +409,22 @@ def overrun_warning(facts: RunFacts) -> str | None:
         return (f"{took}: training took {facts.training_s:.0f} s of the {_seconds(facts.training_budget_s)} s the "
                 f"budget left it, {per_step:.0f} s a step over {facts.steps} step(s) on {facts.device}, and a run "
                 f"takes at least one; give it {either(['a time budget of many steps', *faster])}")
-    share = cpu_share(facts)
-    had = f" (it had {share:.2f} of a CPU core while training)" if share is not None and facts.device == "cpu" else ""
+    had = _contention_said(facts)
     return (f"{took}: its start and its end (the "
             f"mesh, the pictures, the metrics) took longer than the budget left them{had}; give it a larger time "
             f"budget or stop other work")
+
+
+def _contention_said(facts: RunFacts) -> str:
+    """What other processes took of a CPU run's training, for the overrun's line: the share its threads lost waiting
+    for cores (`lost_share`), else the CPU core's worth its process had (`cpu_share`); '' where neither is known."""
+    if facts.device != "cpu":
+        return ""
+    lost = lost_share(facts)
+    if lost is not None:
+        return f" (other processes took {100 * lost:.0f} % of its training's time)"
+    share = cpu_share(facts)
+    return "" if share is None else f" (it had {share:.2f} of a CPU core while training)"
 
 
 FASTER_PRESET = {"paper": "fast"}

@@ -250,3 +250,15 @@ def test_a_run_whose_spinning_threads_waited_for_their_cores_says_the_machine_wa
                                  cpu_clock=quiet.cpu, thread_reader=quiet.threads)
     assert not any(w.startswith("the machine was busy") for w in report["warnings"]), report["warnings"]
     assert report["cpu_wait"]["lost_share"] < 0.5
+
+
+def test_an_overrun_says_what_the_threads_lost_not_the_cpu_time_that_spinning_fills():
+    wall = 20.0
+    facts = RunFacts("budget", 150, True, FLAT, cpu_seconds=0.96 * wall, wall_seconds=wall, budget_s=30.0,
+                     elapsed_s=45.0, thread_times=scaled(SPINNING, wall))
+    (line,) = [w for w in warnings(facts) if w.startswith("the run took")]
+    assert "other processes took 95 % of its training's time" in line and "of a CPU core" not in line, line
+    unknown = RunFacts("budget", 150, True, FLAT, cpu_seconds=0.6 * wall, wall_seconds=wall, budget_s=30.0,
+                       elapsed_s=45.0)
+    (line,) = [w for w in warnings(unknown) if w.startswith("the run took")]
+    assert "it had 0.60 of a CPU core while training" in line, "without the waits, the CPU time as before"
