@@ -38,6 +38,11 @@ RUNNABLE_SHARE = 0.5
 """Share of the time a helper thread must have been runnable for its waits to count as the run's (the module's rule:
 the measured spinning workers were runnable 76-94 % of it, passive ones 30-38 %)."""
 
+MAIN_SEEN_SHARE = 0.5
+"""Share of training's wall time the stepping thread's figures (on a CPU plus waiting) must cover to be believed: a
+kernel that keeps no scheduler statistics reads zeros, which would pass for a run that lost nothing (measured: the
+stepping thread's figures cover 0.97-0.99 of training)."""
+
 Times = dict[int, tuple[float, float]]
 """{thread id: (seconds on a CPU, seconds waiting on a run queue)}, since each thread began."""
 
@@ -123,9 +128,30 @@ def lost_seconds(threads: dict, wall_s: float) -> float | None:
         return None
     if not all(0 <= run < math.inf and 0 <= wait < math.inf for run, wait in pairs):
         return None
-    (_, lost), helpers = pairs[0], pairs[1:]
-    lost += sum(wait for run, wait in helpers if run + wait >= RUNNABLE_SHARE * wall_s)
+    (run, lost), helpers = pairs[0], pairs[1:]
+    if run + lost < MAIN_SEEN_SHARE * wall_s:
+        # The stepping thread runs or waits for every step: figures that miss most of training are statistics this
+        # kernel does not keep (all zeros), not an idle machine.
+        return None
+    lost += sum(wait for run, wait in helpers if counted(run, wait, wall_s))
     return min(lost, wall_s)
 
 
-__all__ = ["TASKS", "RUNNABLE_SHARE", "read_threads", "ThreadWaits", "lost_seconds"]
+def counted(run: float, wait: float, wall_s: float) -> bool:
+    """Whether a helper thread's `wait` counts as the run's loss: it was runnable (`run` + `wait` seconds on a CPU or
+    waiting for one) at least RUNNABLE_SHARE of `wall_s`."""
+    return run + wait >= RUNNABLE_SHARE * wall_s
+
+
+def counted_helpers(threads: dict, wall_s: float) -> int:
+    """How many helper threads of `ThreadWaits.summary`'s figures count (`counted`): more than none means the run's
+    own threads may have kept each other waiting (more threads than the cores free to them), not only other
+    processes. 0 where the figures cannot be read."""
+    try:
+        return sum(counted(float(run), float(wait), wall_s) for run, wait in threads.get("helpers", []))
+    except (AttributeError, TypeError, ValueError):
+        return 0
+
+
+__all__ = ["TASKS", "RUNNABLE_SHARE", "MAIN_SEEN_SHARE", "read_threads", "ThreadWaits", "lost_seconds", "counted",
+           "counted_helpers"]

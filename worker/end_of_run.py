@@ -5,9 +5,9 @@ Eight checks, each on plain numbers the run recorded (docs/end_of_run.md derives
 
 - **Stopped early.** A run that ended on its time budget or step count while its data term was still falling:
   the windowed data term of the last fifth of the run against the fifth before it.
-- **Starved.** A CPU run that lost over half its training to other processes: its threads waited that long for
-  cores they held (Linux's scheduler statistics, `cpu_wait.py`; where those cannot be read, its process had under
-  half a core: its CPU seconds against its wall seconds), and it made that many times fewer steps than alone.
+- **Starved.** A CPU run whose threads waited for cores over half its training (Linux's scheduler statistics,
+  `cpu_wait.py`; where those cannot be read, its process had under half a core: its CPU seconds against its wall
+  seconds): it trained that many times slower than alone.
 - **Far from the noise.** The measured counts against the fitted model's expected counts, histogram by histogram.
   On a simulated capture, whose model is exact, a histogram is misfit when its Poisson deviance exceeds what photon
   noise alone gives (`noise_deviance`) by more than MISFIT_Z standard deviations of that noise and the model is off
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import gammaln, xlogy
 
-from .cpu_wait import lost_seconds
+from .cpu_wait import counted_helpers, lost_seconds
 from .pieces import SPECKS_LIMIT
 from .signal_check import signal_warning
 
@@ -53,7 +53,7 @@ budget or OVERRUN_FLOOR_S seconds, whichever is larger (the start and the end of
 its budget)."""
 LEAST_PACE = 0.01
 """The least share of its pace alone that a run's threads' waits are taken to say (`pace_share`): summed waits that
-overlap can reach the whole wall time, and beyond 100x fewer steps the figure says only that the run was starved."""
+overlap can reach the whole wall time, and beyond 100x slower the figure says only that the run was starved."""
 STARVED_SHARE = 0.5
 """Share of its training's wall time that a CPU run must have gone at its own pace, not waiting for cores that other
 processes held (`pace_share`); where that is not measured, CPU cores' worth its process must have had on average (CPU
@@ -335,7 +335,7 @@ def lost_share(facts: RunFacts) -> float | None:
 def pace_share(facts: RunFacts) -> tuple[float, bool] | None:
     """(the share of its pace alone that the run kept while training, whether it was measured by its threads' waits
     (`lost_share`) rather than by its CPU time (`cpu_share`, where the waits are not known)), or None where neither
-    is known. Its inverse is how many times fewer steps it made than alone."""
+    is known. Its inverse is how many times slower it trained than alone."""
     lost = lost_share(facts)
     if lost is not None:
         return max(1.0 - lost, LEAST_PACE), True
@@ -355,24 +355,28 @@ def cpu_wait(facts: RunFacts) -> dict | None:
 
 
 def busy_warning(facts: RunFacts) -> str | None:
-    """The line saying that other processes took a CPU run's cores and it made that many times fewer steps, or None.
-    Only a run that a time budget stopped lost steps to a busy machine: one that converged, or made the steps it was
-    asked for, has the result it would have had alone (later)."""
+    """The line saying that a CPU run's threads waited for cores most of its training and it trained that many times
+    slower than alone, or None. Only a run that a time budget stopped lost steps to a busy machine: one that
+    converged, or made the steps it was asked for, has the result it would have had alone (later). The waits do not
+    say who held the cores: other processes, or the run's own threads where it has more than the cores free to it
+    (then `--threads 1` is advised too)."""
     pace = pace_share(facts)
     if facts.stopped_by != "budget" or facts.device != "cpu" or pace is None or not pace[0] < STARVED_SHARE:
         return None
     share, by_waits = pace
-    fewer = f"made about {1 / max(share, 1e-3):.0f}x fewer steps ({facts.steps}) than it would alone"
-    advice = "stop other work or give it a larger time budget"
+    slower = f"trained about {1 / max(share, 1e-3):.0f}x slower than it would alone ({facts.steps} steps)"
     if not by_waits:
-        return f"the machine was busy: this run had {share:.2f} of a CPU core on average and {fewer}; {advice}"
+        return (f"the machine was busy: this run had {share:.2f} of a CPU core on average and {slower}; stop other "
+                f"work or give it a larger time budget")
     cpu = cpu_share(facts)
     # Threads that spin while a partner waits for its core burn CPU time: the run's CPU time then reads as a core.
     spun = ("" if cpu is None or cpu < STARVED_SHARE else
-            f" (its CPU time, {cpu:.2f} of a core, does not show this: it counts its threads side by side, their "
-            f"spinning while they waited included)")
-    return (f"the machine was busy: other processes held the CPU cores this run's threads waited for, and it lost "
-            f"{100 * lost_share(facts):.0f} % of its training to them{spun}; it {fewer}; {advice}")
+            f" (its CPU time, {cpu:.2f} of a core, hides this: its threads spun while they waited)")
+    own = counted_helpers(facts.thread_times, facts.wall_seconds) > 0
+    who = "other processes held them" + (", or the run has more threads than cores free to it" if own else "")
+    advice = "stop other work" + (", run it with `--threads 1`," if own else "") + " or give it a larger time budget"
+    return (f"the machine was busy: this run's threads waited for CPU cores for {100 * lost_share(facts):.0f} % of "
+            f"its training ({who}){spun}; it {slower}; {advice}")
 
 
 INTERRUPTED = "the run's training was stopped by Ctrl-C"
@@ -416,13 +420,13 @@ def overrun_warning(facts: RunFacts) -> str | None:
 
 
 def _contention_said(facts: RunFacts) -> str:
-    """What other processes took of a CPU run's training, for the overrun's line: the share its threads lost waiting
-    for cores (`lost_share`), else the CPU core's worth its process had (`cpu_share`); '' where neither is known."""
+    """What a CPU run's training lost to a busy machine, for the overrun's line: the share its threads waited for
+    cores (`lost_share`), else the CPU core's worth its process had (`cpu_share`); '' where neither is known."""
     if facts.device != "cpu":
         return ""
     lost = lost_share(facts)
     if lost is not None:
-        return f" (other processes took {100 * lost:.0f} % of its training's time)"
+        return f" (its threads waited for CPU cores for {100 * lost:.0f} % of its training)"
     share = cpu_share(facts)
     return "" if share is None else f" (it had {share:.2f} of a CPU core while training)"
 

@@ -41,8 +41,9 @@ def test_spinning_threads_that_waited_for_their_cores_are_called_starved_though_
     assert cpu_share(facts) == pytest.approx(0.96)
     assert lost_share(facts) == pytest.approx(0.48 + 0.47)
     (line,) = busy_lines(facts)
-    assert "lost 95 % of its training" in line and "about 20x fewer steps (150)" in line, line
-    assert "0.96 of a core" in line and "spinning" in line, "the CPU time it had is explained, not hidden"
+    assert "waited for CPU cores for 95 % of its training" in line and "about 20x slower" in line, line
+    assert "(150 steps)" in line and "more threads than cores" in line and "`--threads 1`" in line, line
+    assert "0.96 of a core" in line and "spun" in line, "the CPU time it had is explained, not hidden"
     figures = cpu_wait(facts)
     assert figures["lost_s"] == pytest.approx(lost_share(facts) * wall)
     assert figures["slowdown"] == pytest.approx(1 / (1 - lost_share(facts)))
@@ -60,7 +61,7 @@ def test_the_waits_of_a_helper_asleep_most_of_the_time_are_not_the_runs():
                      thread_times=scaled(awake, wall))
     assert lost_share(facts) == pytest.approx(0.70)
     (line,) = busy_lines(facts)
-    assert "lost 70 % of its training" in line and "about 3x fewer" in line, line
+    assert "for 70 % of its training" in line and "about 3x slower" in line, line
 
 
 def test_one_thread_that_waited_half_its_time_or_more_is_starved_by_its_wait_alone():
@@ -71,14 +72,15 @@ def test_one_thread_that_waited_half_its_time_or_more_is_starved_by_its_wait_alo
         assert pace_share(facts) == (pytest.approx(1 - wait), True)
         assert bool(busy_lines(facts)) is starved
     (line,) = busy_lines(facts)
-    assert "lost 55 % of its training" in line and "about 2x fewer" in line and "spinning" not in line, line
+    assert "for 55 % of its training" in line and "about 2x slower" in line and "spun" not in line, line
+    assert "more threads" not in line and "--threads" not in line, "one thread: only other processes held them"
 
 
 def test_without_the_threads_waits_the_cpu_time_judges_as_before():
     facts = RunFacts("budget", 100, True, FLAT, cpu_seconds=2.0, wall_seconds=10.0)
     assert pace_share(facts) == (pytest.approx(0.2), False) and cpu_wait(facts) is None
     (line,) = busy_lines(facts)
-    assert "this run had 0.20 of a CPU core" in line and "5x fewer steps (100)" in line
+    assert "this run had 0.20 of a CPU core" in line and "5x slower than it would alone (100 steps)" in line
 
 
 def test_only_a_cpu_run_stopped_by_its_budget_is_called_starved():
@@ -95,7 +97,7 @@ def test_the_lost_seconds_stay_within_the_wall_time_and_refuse_nonsense():
     facts = RunFacts("budget", 100, True, FLAT, cpu_seconds=3.0, wall_seconds=10.0, thread_times=saturated)
     assert pace_share(facts) == (0.01, True) and cpu_wait(facts)["slowdown"] == pytest.approx(100.0)
     (line,) = busy_lines(facts)
-    assert "about 100x fewer" in line, "waits that overlap: the figure stays finite"
+    assert "about 100x slower" in line, "waits that overlap: the figure stays finite"
     for bad in (None, {}, {"main": [1.0]}, {"main": [1.0, float("nan")]}, {"main": [1.0, -1.0]},
                 {"main": [1.0, 1.0], "helpers": [["x", 1.0]]}):
         assert lost_seconds(bad, 10.0) is None, bad
@@ -104,6 +106,15 @@ def test_the_lost_seconds_stay_within_the_wall_time_and_refuse_nonsense():
     facts = RunFacts("budget", 100, True, FLAT, cpu_seconds=9.0, wall_seconds=10.0,
                      thread_times={"main": [1.0, float("nan")]})
     assert pace_share(facts) == (pytest.approx(0.9), False), "unusable waits: the CPU time judges"
+
+
+def test_statistics_this_kernel_does_not_keep_read_as_unknown_not_as_an_idle_machine():
+    zeros = {"main": [0.0, 0.0], "helpers": []}  # a kernel without scheduler statistics
+    assert lost_seconds(zeros, 10.0) is None
+    facts = RunFacts("budget", 100, True, FLAT, cpu_seconds=2.0, wall_seconds=10.0, thread_times=zeros)
+    assert pace_share(facts) == (pytest.approx(0.2), False) and cpu_wait(facts) is None
+    (line,) = busy_lines(facts)
+    assert "this run had 0.20 of a CPU core" in line, "the CPU time judges, and says so"
 
 
 # ---- reading the threads ----------------------------------------------------------------------------------------
@@ -240,7 +251,7 @@ def test_a_run_whose_spinning_threads_waited_for_their_cores_says_the_machine_wa
                                  cpu_clock=clock.cpu, thread_reader=clock.threads)
     assert report["stopped_by"] == "budget"
     (line,) = [w for w in report["warnings"] if w.startswith("the machine was busy")]
-    assert "lost 95 % of its training" in line and "about 20x fewer steps" in line, line
+    assert "for 95 % of its training" in line and "about 20x slower" in line, line
     assert report["cpu_cores_used"] == pytest.approx(0.96, abs=0.01), "the key other tools read stays"
     assert report["cpu_wait"]["lost_share"] == pytest.approx(0.95, abs=0.01)
 
@@ -257,7 +268,7 @@ def test_an_overrun_says_what_the_threads_lost_not_the_cpu_time_that_spinning_fi
     facts = RunFacts("budget", 150, True, FLAT, cpu_seconds=0.96 * wall, wall_seconds=wall, budget_s=30.0,
                      elapsed_s=45.0, thread_times=scaled(SPINNING, wall))
     (line,) = [w for w in warnings(facts) if w.startswith("the run took")]
-    assert "other processes took 95 % of its training's time" in line and "of a CPU core" not in line, line
+    assert "its threads waited for CPU cores for 95 % of its training" in line and "of a CPU core" not in line, line
     unknown = RunFacts("budget", 150, True, FLAT, cpu_seconds=0.6 * wall, wall_seconds=wall, budget_s=30.0,
                        elapsed_s=45.0)
     (line,) = [w for w in warnings(unknown) if w.startswith("the run took")]

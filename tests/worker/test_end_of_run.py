@@ -239,7 +239,7 @@ def test_each_rule_warns_alone():
     assert warnings(quiet) == []
     assert len(warnings(RunFacts("budget", 100, False, falling))) == 1
     starved = RunFacts("budget", 100, True, flat, cpu_seconds=2.0, wall_seconds=10.0)
-    assert warnings(starved) and all("0.20 of a CPU core" in w and "5x fewer" in w for w in warnings(starved))
+    assert warnings(starved) and all("0.20 of a CPU core" in w and "5x slower" in w for w in warnings(starved))
     for stop in ("converged", "steps"):  # the same result as alone, only later: nothing to doubt
         assert warnings(RunFacts(stop, 100, True, flat, cpu_seconds=2.0, wall_seconds=10.0)) == []
     misfit = FitNoise(deviance_per_bin=0.75, noise_per_bin=0.5, bins=1000, relative_misfit=0.3, histograms=100,
