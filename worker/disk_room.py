@@ -368,24 +368,40 @@ def when_text(unix: float) -> str:
 
 
 def room_line(who: str, waits, claimer: str, by: float | None, *, now: float | None = None,
-              start: str | None = None) -> str:
+              start: str | None = None, also=(), also_who: str = "") -> str:
     """A wait for room in one line, as `spadscan ctl` and the dashboard say it: '{who} for room on /data (12 MB free,
     40 MB needed): make room there; {claimer} claims again by 2025-03-01 14:05 UTC (sooner once there is room)'.
     `waits` (RoomWait): each place said once, a full filesystem and a full quota on one mount being two (with the
-    figures of the first wait that names it: `RoomWait.where`, `.figures`); `by` (unix seconds): when a claim
-    succeeds again at the latest, as `when_text` says it, not said where None, past what the clock can name, or not
-    after `now` (time.time(): a time already past, from a worker's clock behind or a note its worker no longer
-    renews, is no promise). `start`: no worker is running, and this command starts one: said before the time."""
-    places = {}
-    for wait in waits:
-        places.setdefault((wait.mount, wait.quota), wait)
-    said = " and ".join(f"{wait.where} ({wait.figures})" for wait in places.values())
-    fix = "make room there" + (" or raise the quota" if any(wait.quota for wait in waits) else "")
+    figures of the first wait that names it: `RoomWait.where`, `.figures`); `also`: more waits, whose places not
+    among those are said after them as `also_who`'s ('; a worker waits for room on /scratch (...)'); `by` (unix
+    seconds): when a claim succeeds again at the latest, as `when_text` says it, not said where None, past what the
+    clock can name, or not after `now` (time.time(): a time already past, from a worker's clock behind or a note its
+    worker no longer renews, is no promise). `start`: no worker is running, and this command starts one: said before
+    the time, which is then when a claim can succeed at the earliest (no one claims before one is started)."""
+    places = _places(waits)
+    extra = {key: wait for key, wait in _places(also).items() if key not in places}
+    said = _places_said(places) + (f"; {also_who} for room {_places_said(extra)}" if extra else "")
+    quota = any(wait.quota for wait in [*places.values(), *extra.values()])
+    fix = "make room there" + (" or raise the quota" if quota else "")
     now = time.time() if now is None else now
     when = UNKNOWN_TIME if by is None or not by > now else when_text(by)
     first = "" if start is None else f"; no worker is running: start one with `{start}`"
-    again = "" if when == UNKNOWN_TIME else f"; {claimer} claims again by {when} (sooner once there is room)"
+    promise = f"{claimer} claims again by" if start is None else "no claim succeeds before"
+    again = "" if when == UNKNOWN_TIME else f"; {promise} {when} (sooner once there is room)"
     return f"{who} for room {said}: {fix}{first}{again}"
+
+
+def _places(waits) -> dict:
+    """{(mount, quota): the first wait that names it}: each place a wait is for, once."""
+    places = {}
+    for wait in waits:
+        places.setdefault((wait.mount, wait.quota), wait)
+    return places
+
+
+def _places_said(places: dict) -> str:
+    """'on /data (12 MB free, 40 MB needed) and in the disk quota on /home (...)': `_places`' each with its figures."""
+    return " and ".join(f"{wait.where} ({wait.figures})" for wait in places.values())
 
 
 def room_said(notes, queue_notes=(), *, now: float | None = None) -> str | None:
@@ -418,9 +434,10 @@ def held_said(held, notes=(), present: int = 1, *, start: str | None = None, now
         return None
     jobs = [job for job, _ in queued]
     who = f"no job is claimed while {_names(jobs)} {'waits' if len(jobs) == 1 else 'wait'}"
-    return room_line(who, [wait for _, wait in queued] + _read(notes), "a worker",
-                     max(wait.retry_unix for _, wait in queued), now=now,
-                     start=None if present else (start or "spadscan worker"))
+    workers = _read(notes)
+    return room_line(who, [wait for _, wait in queued], "a worker", max(wait.retry_unix for _, wait in queued),
+                     now=now, start=None if present else (start or "spadscan worker"), also=workers,
+                     also_who="a worker waits" if len(workers) == 1 else f"{len(workers)} workers wait")
 
 
 def holding_said(notes, held, present: int, *, start: str | None = None, now: float | None = None) -> str | None:

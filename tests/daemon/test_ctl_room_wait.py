@@ -180,8 +180,9 @@ def given_back(root: Path, job_id: str = "mug-fast", retry_s: float = 600.0) -> 
 
 def held_line(wait: RoomWait, tail: str) -> str:
     """What ctl (and the dashboard) say of a queue that mug-fast's wait holds, the disk at 12 MB free."""
+    promise = "no claim succeeds before" if "no worker is running" in tail else "a worker claims again by"
     return (f"no job is claimed while mug-fast waits for room {wait.where} (12 MB free, "
-            f"{disk_room.size_text(wait.need)} needed): make room there{tail}; a worker claims again by "
+            f"{disk_room.size_text(wait.need)} needed): make room there{tail}; {promise} "
             f"{utc(wait.retry_unix)} (sooner once there is room)")
 
 

@@ -116,11 +116,12 @@ def test_the_server_says_a_held_queue_with_or_without_workers(tmp_path, monkeypa
     said = (f"no job is claimed while mug-fast waits for room {wait.where} (12 MB free, "
             f"{disk_room.size_text(wait.need)} needed): make room there")
     by = f"; a worker claims again by {when_text(wait.retry_unix)} (sooner once there is room)"
+    before = f"; no claim succeeds before {when_text(wait.retry_unix)} (sooner once there is room)"
     if workers:
         assert state["room_said"] == said + by and "live_room_said" not in state
-    else:
-        assert state["room_said"] == f"{said}; no worker is running: start one with `{start}`{by}"
-        assert state["live_room_said"] == f"{said}; no worker is running: start one with `{start} --live`{by}"
+    else:  # no worker to claim: when a claim can succeed at the earliest, once one is started
+        assert state["room_said"] == f"{said}; no worker is running: start one with `{start}`{before}"
+        assert state["live_room_said"] == f"{said}; no worker is running: start one with `{start} --live`{before}"
     assert state["queue_room_waits"][0]["free_said"] == "12 MB"
     assert "room_said" not in worker_state([], [queued], time.time(), idle)  # no wait: nothing said of room
 
@@ -140,7 +141,7 @@ def test_a_held_queue_with_no_worker_says_to_start_one_on_the_page(tmp_path, mon
         worker = status(server)["worker"]
         start = worker["start"]
         assert worker["room_said"] == ctl.replace(f"`{start} --live`", f"`{start}`")
-        assert f"no worker is running: start one with `{start} --live`; a worker claims again by " in ctl
+        assert f"no worker is running: start one with `{start} --live`; no claim succeeds before " in ctl
         assert wait_text(page, "#worker", "for room") == f"1 job queued: {worker['room_said']}"
         assert page.locator("#worker").get_attribute("class") == "down"
         assert wait_text(page, "#viewer-name", "for room") == f"mug / live reconstruction queued: {ctl}"

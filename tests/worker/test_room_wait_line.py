@@ -68,17 +68,30 @@ def test_a_time_not_after_now_is_left_out():
 
 
 def test_a_held_queue_with_no_worker_says_to_start_one():
-    """A queued job's wait holds every claim and no worker is present: the line says to start one, then by when a
-    claim succeeds. Before: the wait alone, with 'a worker claims again' and no worker to."""
+    """A queued job's wait holds every claim and no worker is present: the line says to start one, then when a claim
+    can succeed at the earliest. Before: the wait alone, with 'a worker claims again' and no worker to."""
     held = note("/data", 1 * MB, 900 * MB, 1800.0)
     by = f"; a worker claims again by {when_text(held['retry_unix'])} (sooner once there is room)"
+    before = f"; no claim succeeds before {when_text(held['retry_unix'])} (sooner once there is room)"
     said = "no job is claimed while mug-fast waits for room on /data (1.0 MB free, 900 MB needed): make room there"
     start = "spadscan worker --root /caps"
     assert held_said([("mug-fast", held)], present=0, start=start) == (
-        f"{said}; no worker is running: start one with `{start}`{by}")
+        f"{said}; no worker is running: start one with `{start}`{before}")
     assert holding_said([], [("mug-fast", held)], 0, start=start) == held_said([("mug-fast", held)], (), 0,
                                                                                  start=start)
     assert held_said([("mug-fast", held)], present=1, start=start) == said + by  # a worker is there: no start
+
+
+def test_a_waiting_workers_disk_is_not_laid_to_the_held_jobs():
+    """Two jobs hold the queue on /data and the one worker waits on /mnt/scratch: the jobs' disk is theirs, the
+    worker's said as its. Before: 'mug-fast, cup-fast wait for room on /data (...) and on /mnt/scratch (...)'."""
+    data = note("/data", 1 * MB, 900 * MB, 1800.0)
+    said = held_said([("mug-fast", data), ("cup-fast", data)], [note()], present=1)
+    assert said.startswith("no job is claimed while mug-fast, cup-fast wait for room on /data (1.0 MB free, 900 MB "
+                           "needed); a worker waits for room on /mnt/scratch (12 MB free, 40 MB needed): make room "
+                           "there; a worker claims again by "), said
+    same = held_said([("mug-fast", data)], [note("/data", 1 * MB, 900 * MB)], present=1)
+    assert "a worker waits" not in same, "a worker waiting on the jobs' own disk adds nothing"
 
 
 def test_only_the_notes_read_count():
