@@ -194,7 +194,7 @@ def _why_no_return(counts: np.ndarray, sensor) -> str:
 
 def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budget_s: float | None = None,
                         steps: int | None = None, gt: Path | None = None, device: str = "auto", seed: int = 0,
-                        progress: bool = True, overrides: dict | None = None, threads: int | None = None,
+                        progress: bool | str = True, overrides: dict | None = None, threads: int | None = None,
                         log: Callable[[str], None] | None = None, started: float | None = None,
                         clock: Callable[[], float] = time.perf_counter,
                         cpu_clock: Callable[[], float] = time.process_time, make: Callable | None = None,
@@ -209,10 +209,12 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     every trace checkpoint. `overrides`: dotted config keys to change (see config.with_overrides). `threads`:
     torch's CPU threads, kept for the whole run; without it (and without a user's OMP_NUM_THREADS) a CPU run
     chooses between torch's threads and one as it goes (threads.ThreadGovernor). `log`: receives a line per stage
-    after training (mesh, metrics, pictures) and warnings. The report says whether the run converged and why its
-    result may be doubtful (`converged`, `warnings`: end_of_run.py). `clock` (wall seconds) and `cpu_clock` (this
-    process's CPU seconds) time the run, and `thread_reader` gives its threads' seconds on a CPU and waiting for one
-    (`cpu_wait.read_threads`; None: not measured), what a CPU run lost to other processes; tests inject their own.
+    after training (mesh, metrics, pictures) and warnings. `progress`: training's bar on stderr (True), plain lines
+    (trainer.PROGRESS_LINES) or nothing (False), as `trainer.train` takes it. The report says whether the run
+    converged and why its result may be doubtful (`converged`, `warnings`: end_of_run.py). `clock` (wall seconds)
+    and `cpu_clock` (this process's CPU seconds) time the run, and `thread_reader` gives its threads' seconds on a
+    CPU and waiting for one (`cpu_wait.read_threads`; None: not measured), what a CPU run lost to other processes;
+    tests inject their own.
     `stop()` true ends training at its next step, the mesh and report made as after a budget (the user's first
     Ctrl-C: `trainer.train`). A previous result in `out` (--overwrite) stays whole until this run has finished, and
     comes back if it does not (`outputs.replacing_result`)."""
@@ -224,7 +226,7 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
 
 
 def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float | None, steps: int | None,
-                      gt: Path | None, device: str, seed: int, progress: bool, overrides: dict | None,
+                      gt: Path | None, device: str, seed: int, progress: bool | str, overrides: dict | None,
                       threads: int | None, log: Callable[[str], None] | None, started: float | None,
                       clock: Callable[[], float], cpu_clock: Callable[[], float], make: Callable | None,
                       after_training: Callable | None, stop: Callable[[], bool] | None,
