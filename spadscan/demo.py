@@ -27,6 +27,7 @@ from pathlib import Path
 
 from spadscan.daemon.client import ControlError, call
 from spadscan.parent_watch import child_env
+from spadscan.protocol.capture_format import MANIFEST
 from spadscan.protocol.child_command import module_command
 from spadscan.protocol.errors import SpadscanError
 
@@ -131,6 +132,11 @@ def _socket_path(out: Path) -> tuple[Path, Path | None]:
     return tmp / "daemon.sock", tmp
 
 
+RIG_CONFIG = "rig.toml"
+"""The rig config the demo writes into OUT and starts its daemon with."""
+RIG_HEADER = "# Written by `spadscan demo`"
+"""The first line of every rig config the demo writes starts so: the mark of one it may write anew."""
+
 DEMO_FRAME_TIME_S = 0.1
 """Seconds a simulated frame takes (a real TMF8820's histograms take longer still to read out over I2C): the default
 scan then lasts about half a minute, long enough for the live job to start and show its fit while the scan goes on
@@ -145,7 +151,8 @@ def write_rig_config(opts: DemoOptions, captures: Path, sock: Path, ur_host: str
            'workspace_min = [-0.7, -0.7, -0.1]\nworkspace_max = [0.7, 0.7, 0.7]\n' if ur_host else
            'backend = "sim"\nspeed = 0.5\nacceleration = 2.0\ntime_scale = 0.05\n')
     # Absolute: the daemon resolves a relative path against the config's own folder, not the demo's working folder.
-    text = f"""# Written by `spadscan demo`: simulated devices only.
+    text = f"""{RIG_HEADER}: simulated devices only.
+# Each demo run into this folder writes this file anew: copy it elsewhere to change it.
 captures = "{captures.resolve()}"
 socket = "{sock}"
 
@@ -167,9 +174,32 @@ max_elevation_deg = 86.0
 frames_per_pose = {opts.frames_per_pose}
 settle_s = 0.0
 """
-    path = opts.out / "rig.toml"
+    path = opts.out / RIG_CONFIG
+    refused = foreign_rig_config(opts.out)  # checked up front too (check_options); here as well, where it is written
+    if refused:
+        raise DemoError(refused)
     path.write_text(text)
     return path
+
+
+def foreign_rig_config(out: Path) -> str | None:
+    """Why the demo must not write its rig config into `out` (one line), or None: `out` holds a RIG_CONFIG that no
+    demo run wrote (its first line is not RIG_HEADER's), such as the user's own rig with their hand-eye and ports.
+    Only the demo's own is replaced, so that a run into the folder of an earlier one goes on as before."""
+    path = Path(out) / RIG_CONFIG
+    if not os.path.lexists(path):
+        return None
+    try:
+        with open(path, "rb") as f:
+            first = f.readline(len(RIG_HEADER) + 1)
+    except OSError as exc:  # a folder, a link to nothing, a file this user may not read: not known to be the demo's
+        first, why = b"", f" ({exc.strerror or exc})"
+    else:
+        why = ""
+    if first.startswith(RIG_HEADER.encode()):
+        return None
+    return (f"{path} is not a rig config the demo wrote{why}: the demo would replace it with its own; give the demo "
+            f"a new folder (--out DIR), or move {path} away")
 
 
 def check_options(opts: DemoOptions) -> None:
@@ -196,9 +226,26 @@ def check_options(opts: DemoOptions) -> None:
         raise DemoError(f"--budget-s: {problem}")
     if opts.out.exists() and not opts.out.is_dir():
         raise DemoError(f"{opts.out}: exists and is not a folder")
+    capture = enclosing_capture(opts.out)
+    if capture is not None:
+        where = "is a capture" if capture == opts.out.resolve() else f"lies inside the capture {capture}"
+        raise DemoError(f"--out {opts.out} {where} (it holds {MANIFEST}): the demo's captures, logs and rig config "
+                        f"would be mixed into its measurements; give the demo a new folder (--out DIR)")
+    foreign = foreign_rig_config(opts.out)
+    if foreign:
+        raise DemoError(foreign)
     port = opts.dashboard_port
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise DemoError(f"--dashboard-port {port} must be an integer in [0, 65535]")
+
+
+def enclosing_capture(out: Path) -> Path | None:
+    """The capture folder (one holding MANIFEST) that `out` is, or lies inside, resolved; None when there is none."""
+    folder = Path(out).resolve()
+    for candidate in (folder, *folder.parents):
+        if os.path.isfile(candidate / MANIFEST):  # (False, not an error, where this user may not look)
+            return candidate
+    return None
 
 
 def _key(cls, name: str):

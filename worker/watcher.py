@@ -108,6 +108,8 @@ def check_root(root) -> Path:
     """`root` as a Path when it can be a captures root: a folder that is not itself a capture (a worker pointed at
     one capture would find no scans in it and leave its queue inside the capture)."""
     root = Path(root)
+    if not root.exists():  # (a link to nothing too)
+        raise ConfigError(f"{root}: captures root does not exist")
     if not root.is_dir():
         raise ConfigError(f"{root}: captures root is not a folder")
     if (root / MANIFEST).is_file():

@@ -96,6 +96,7 @@ def check_method_options(args) -> None:
 
 
 def run(args) -> int:
+    from spadscan.protocol.folders import check_folder_option
     from spadscan.worker.baselines.run import run_baseline  # numpy, scipy and trimesh: only when a baseline runs
     from spadscan.worker.metrics import MAX_POINTS
 
@@ -114,6 +115,7 @@ def run(args) -> int:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
 
     out = check_out(args.out, args.overwrite, capture=args.capture)
+    check_folder_option(out, "--out")  # before the calibration's minutes, as reconstruct checks it
 
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)

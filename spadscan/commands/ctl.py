@@ -40,6 +40,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 import sys
 import time
 from pathlib import Path
@@ -256,6 +257,7 @@ def run(args) -> int:
         request = {key: value for key, value in (("name", args.name), ("reason", getattr(args, "reason", None)))
                    if value}
     try:
+        check_socket(path)
         reply = call(path, args.op, timeout, **request)
     except ControlError as exc:
         if getattr(args, "json", False):  # a script that reads standard output reads the refusal there too
@@ -276,6 +278,23 @@ def run(args) -> int:
     if args.op == "scan" and args.wait:
         return _wait(path, reply["scan"], args.timeout)
     return 0
+
+
+def check_socket(path: str) -> None:
+    """A ControlError when `path` is there but is no socket (a file, a folder): the connection would be refused as
+    if no daemon were listening, and the user would look for a daemon instead of at the path. A missing path is left
+    to the connection's own error."""
+    from spadscan.daemon.client import ControlError
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return
+    if stat.S_ISSOCK(mode):
+        return
+    what = "a folder" if stat.S_ISDIR(mode) else "a file" if stat.S_ISREG(mode) else "something else"
+    raise ControlError(f"{path} is {what}, not a socket: no daemon listens there (pass --socket the daemon's control "
+                       f"socket, its config's `socket` key)")
 
 
 def reply_line(op: str, reply: dict) -> str:
@@ -389,6 +408,7 @@ def wait_for_scan(path: str, name: str, timeout: float | None, stream) -> dict:
 
     from spadscan.daemon.client import ControlTimeout, call
 
+    check_socket(path)
     outcome: dict = {}
 
     def wait() -> None:

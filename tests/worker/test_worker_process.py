@@ -353,7 +353,7 @@ def test_status_marks_running_jobs_whose_worker_seems_gone(tmp_path, capsys):
 
 def test_the_command_refuses_a_missing_root_and_an_unknown_preset(tmp_path, capsys):
     assert cli_main(["worker", "--root", str(tmp_path / "nope"), "--once"]) == 1
-    assert "captures root is not a folder" in capsys.readouterr().err
+    assert "captures root does not exist" in capsys.readouterr().err
     assert cli_main(["worker", "--root", str(tmp_path), "--once", "--preset", "slow"]) == 1
     assert "unknown preset 'slow'" in capsys.readouterr().err
     assert not (tmp_path / ".queue").exists(), "nothing queued with a bad preset"
