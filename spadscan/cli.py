@@ -152,6 +152,35 @@ def run_command(func, args) -> int:
         return 1
 
 
+def add_progress_options(parser: argparse.ArgumentParser, no_progress_help: str, default_help: str) -> None:
+    """--progress and --no-progress (one or the other) for a command that draws a progress bar on stderr;
+    `default_help` says what it shows when given neither and stderr is not a terminal."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--progress", action="store_true",
+                       help=f"draw the progress bar even when standard error is not a terminal (default: the bar on "
+                            f"a terminal only; in a file or a pipe, {default_help})")
+    group.add_argument("--no-progress", action="store_true", help=no_progress_help)
+
+
+def progress_bar_wanted(args: argparse.Namespace, stream=None) -> bool:
+    """Whether a command draws its progress bar: always with --progress, never with --no-progress, else only when
+    `stream` (default: standard error) is a terminal. A bar redraws itself with carriage returns, which a log file
+    (`2>run.log`, cron, systemd) keeps every one of: kilobytes of frames on one line."""
+    if getattr(args, "no_progress", False):
+        return False
+    if getattr(args, "progress", False):
+        return True
+    return is_terminal(sys.stderr if stream is None else stream)
+
+
+def is_terminal(stream) -> bool:
+    """Whether `stream` is a terminal (False for one that is closed or has no file behind it)."""
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
 SIGPIPE_EXIT = 128 + 13
 """Exit status of a command whose reader closed its output (`spadscan ctl status | head -1`), as a shell reports a
 program ended by SIGPIPE."""

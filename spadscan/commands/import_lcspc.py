@@ -17,13 +17,15 @@ from __future__ import annotations
 
 import argparse
 
+from spadscan.cli import add_progress_options, progress_bar_wanted
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.json", help="an LCSPCData scene file")
     parser.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to create (holds scan.json)")
     parser.add_argument("--chunk-size", type=int, default=64, metavar="K", help="measurements per chunk (default: 64)")
     parser.add_argument("--scan-id", default=None, help="scan id in the manifest (default: the folder's name)")
-    parser.add_argument("--no-progress", action="store_true", help="do not show progress bars")
+    add_progress_options(parser, "do not show progress bars", "none: the last lines say what was imported")
 
 
 def check_scan_id(scan_id: str, out) -> None:
@@ -55,14 +57,15 @@ def run(args: argparse.Namespace) -> int:
         check_folder_option(args.out, "--out")
 
     bars: dict[str, tqdm] = {}
+    show = progress_bar_wanted(args)
 
     def progress(stage: str, done: int, total: int) -> None:
-        if args.no_progress:
+        if not show:
             return
         if stage not in bars:
             unit, scale = ("B", True) if stage == "read" else ("meas", False)
             bars[stage] = tqdm(total=total, desc=stage, unit=unit, unit_scale=scale, file=sys.stderr,
-                               leave=False, disable=None)
+                               leave=False)
         bar = bars[stage]
         bar.update(done - bar.n)
 

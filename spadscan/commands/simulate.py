@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import math
 
+from spadscan.cli import add_progress_options, progress_bar_wanted
 from spadscan.protocol.scenes import scene_listing
 from spadscan.protocol.schedules import MAX_VIEWS_PER_RING, RINGS_BAND_DEG
 from spadscan.protocol.sim_table import DEFAULT_ALBEDO as DEFAULT_TABLE_ALBEDO
@@ -83,7 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "more than 3 mm above the mesh's lowest point, warned about more than 10 mm below it")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
     parser.add_argument("--chunk-size", type=int, default=64, metavar="K", help="measurements per chunk (default: 64)")
-    parser.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
+    add_progress_options(parser, "do not show a progress bar", "none: the last line says what was written")
     parser.epilog = scene_listing()
 
 
@@ -247,12 +248,14 @@ def run(args) -> int:
     import time
 
     from spadscan.protocol.errors import SimulationError
+    from spadscan.protocol.folders import check_folder_option
     from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.protocol.sensor_presets import sensor_preset
     from spadscan.protocol.simulator import SimSettings, misplaced_views_note, simulate_capture
     from spadscan.signals import terminate_as_interrupt
 
     check_options(args)
+    check_folder_option(args.out, "--out")  # named, before the mesh is loaded; not a bare OS error at the writer's
     table = make_table(args)
     mesh, scene = load_mesh_spec(args.mesh)
     if scene.get("mesh_units") == "mm":
@@ -274,7 +277,7 @@ def run(args) -> int:
     with terminate_as_interrupt():
         path = simulate_capture(mesh, sensor, poses, args.out, settings=settings, seed=args.seed,
                                 chunk_size=args.chunk_size, scene=scene, schedule=schedule,
-                                progress=not args.no_progress, log=lambda line: print(line, file=sys.stderr),
+                                progress=progress_bar_wanted(args), log=lambda line: print(line, file=sys.stderr),
                                 table=table)
     on_table = "" if table is None else f" on a table at z = {table.height_m:g} m (albedo {table.albedo:g})"
     print(f"wrote {len(poses)} views of {len(mesh.faces)} faces{on_table} with sensor {sensor.name} to {path} "

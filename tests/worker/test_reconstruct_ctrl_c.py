@@ -121,7 +121,7 @@ def _started(tmp_path, *extra):
     (tmp_path / "s").mkdir()
     quiet = [] if "--progress" in extra else ["--no-progress"]
     return subprocess.Popen([sys.executable, "-c", STAND_IN, "reconstruct", str(tmp_path / "s"), "--out",
-                             str(tmp_path / "out"), "--no-gt", *quiet, *(e for e in extra if e != "--progress")],
+                             str(tmp_path / "out"), "--no-gt", *quiet, *extra],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

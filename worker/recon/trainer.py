@@ -24,6 +24,16 @@ from .errors import ReconstructionError
 from .model_api import ReconModel, RunPlan
 
 
+PROGRESS_LINES = "lines"
+"""`train(progress=PROGRESS_LINES)`: the bar's readings as plain lines (`ProgressLines`), not a bar."""
+LINE_SHARE = 0.1
+"""A progress line each time training passes another tenth of its bar: a run's log shows its course in ten lines
+whatever its length."""
+LINE_EVERY_S = 30.0
+"""And at least this often (wall seconds), as `spadscan worker` says its jobs' progress: a run of hours still shows
+in its log that it is alive without filling it (120 lines an hour)."""
+
+
 @dataclass
 class TrainResult:
     """What a run did. trace: one dict per checkpoint {step, seconds, loss, ...evaluation}."""
@@ -44,7 +54,7 @@ class TrainResult:
 
 def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: float | None = None,
           evaluate: Callable[[], dict] | None = None, scoring_in_budget: bool = True,
-          on_checkpoint: Callable[[list[dict]], None] | None = None, progress: bool = True,
+          on_checkpoint: Callable[[list[dict]], None] | None = None, progress: bool | str = True,
           desc: str = "reconstruct", score_note: str = "", early_stop: bool = False,
           on_step: Callable[[float], None] | None = None, clock: Callable[[], float] = time.perf_counter,
           cpu_clock: Callable[[], float] = time.process_time, max_eval_share: float = 0.25,
@@ -61,11 +71,14 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     Checkpoints: at the start, every `every_s` seconds of training (default: every 1/checkpoints of the budget when
     there is one, else of the steps; 0: after every step) and at the end; each records the step, training seconds,
     the mean loss since the previous checkpoint and whatever `evaluate()` returns. `on_checkpoint(trace)` sees the
-    trace after each one (a benchmark keeps it on disk as it goes). A tqdm bar on stderr shows progress unless
-    `progress` is False: `step=` and `loss=`, and with an evaluation `chamfer=` (the last scored checkpoint's) and
-    `scored=`, the step it was scored at and `score_note`, how checkpoints are scored (coarser than the final
-    mesh): under a short budget the scoring's share can be spent early, and a Chamfer many steps old must say so.
-    The lab dashboard and the demo read these fields from a job's log: keep them `key=value` without commas.
+    trace after each one (a benchmark keeps it on disk as it goes). A tqdm bar on stderr shows progress when
+    `progress` is True, wherever stderr goes (a worker's job writes it into its log, which job_progress.py reads);
+    PROGRESS_LINES: plain lines instead (`ProgressLines`, for a log a person reads); False: nothing. The bar counts
+    seconds of `plan.budget_s` (with a budget) or steps, and shows `step=` and `loss=`, and with an evaluation
+    `chamfer=` (the last scored checkpoint's) and `scored=`, the step it was scored at and `score_note`, how
+    checkpoints are scored (coarser than the final mesh): under a short budget the scoring's share can be spent
+    early, and a Chamfer many steps old must say so. The lab dashboard and the demo read these fields from a job's
+    log: keep them `key=value` without commas.
 
     `on_step(seconds)` sees each step's wall time (the thread governor). `stop()`, asked before each step, true: the
     user asked training to end now (a first Ctrl-C of `spadscan reconstruct`); the run ends as a budget ends it, its
@@ -75,6 +88,8 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
         raise ReconstructionError("a run needs a step count or a time budget (give --steps or --budget-s)")
     if every_s is not None and not (math.isfinite(every_s) and every_s >= 0):
         raise ReconstructionError(f"checkpoint interval {every_s} s must be finite and >= 0")
+    if progress not in (True, False, PROGRESS_LINES):
+        raise ReconstructionError(f"progress {progress!r} must be True (a bar), False or {PROGRESS_LINES!r}")
     by_time = bool(plan.budget_s)
     marks_by_time = by_time or every_s is not None
     if every_s is not None:
@@ -118,8 +133,7 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     resume, pause = (waits.resume, waits.pause) if waits is not None else (lambda: None, lambda: None)
     total = plan.budget_s if by_time else plan.steps
     unit = "s" if by_time else "step"
-    with tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, disable=not progress, leave=False,
-              bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]") as bar:
+    with progress_display(progress, total, desc, unit, clock) as bar:
         checkpoint()
         next_mark = every
         post: dict[str, str] = {}
@@ -181,3 +195,71 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
             if on_checkpoint is not None:
                 on_checkpoint(result.trace)
     return result
+
+
+def progress_display(progress: bool | str, total: float, desc: str, unit: str, clock: Callable[[], float]):
+    """What shows a run's progress on stderr: `ProgressLines` for PROGRESS_LINES, else a tqdm bar (drawn when
+    `progress` is True). Both take `update(n)`, `set_postfix(fields, refresh)` and `n`, and are context managers."""
+    if progress == PROGRESS_LINES:
+        return ProgressLines(total, desc, unit, clock, sys.stderr)
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, disable=not progress, leave=False,
+                bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]")
+
+
+class ProgressLines:
+    """A training bar's readings as plain newline-terminated lines, for a log that a person reads (stderr a file or
+    a pipe): a bar redraws itself with carriage returns, and a file keeps every frame. A line each time the count
+    passes another `share` of `total`, or `every_s` wall seconds after the last line, and at the end where the count
+    or the fields changed since; e.g. `reconstruct (fast): 4.0/10.0 s of training (40 %), step 120, loss 2.25 [00:05]`
+    (with a time budget the total is training's share of it, as on the bar). `clock`: wall seconds."""
+
+    def __init__(self, total: float, desc: str, unit: str, clock: Callable[[], float], file,
+                 share: float = LINE_SHARE, every_s: float = LINE_EVERY_S):
+        self.total, self.desc, self.unit, self.clock, self.file = total, desc, unit, clock, file
+        self.step = share * total
+        self.every_s = every_s
+        self.n = 0.0
+        self.fields: dict[str, str] = {}
+        self.start = clock()
+        self.last_at = self.start
+        self.next_n = self.step
+        self.said: tuple | None = None
+        """(count, fields) of the last line said."""
+
+    def __enter__(self) -> ProgressLines:
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None:  # a run that failed or was aborted says so itself, not a reading of how far it got
+            self.close()
+
+    def set_postfix(self, fields: dict, refresh: bool = True) -> None:
+        """The fields the next line shows (`refresh` is tqdm's: a line comes only with the count)."""
+        self.fields = dict(fields)
+
+    def update(self, n: float) -> None:
+        """Count `n` more; say a line when one is due."""
+        self.n += n
+        now = self.clock()
+        if (self.step > 0 and self.n >= self.next_n) or now - self.last_at >= self.every_s:
+            self._say(now)
+
+    def close(self) -> None:
+        """The last reading, unless the last line said it already."""
+        if self.said != (self.n, self.fields):
+            self._say(self.clock())
+
+    def line(self, now: float) -> str:
+        what = "s of training" if self.unit == "s" else f"{self.unit}s"
+        digits = 1 if self.unit == "s" and self.total < 100 else 0  # a short run's tenths are not whole seconds
+        percent = f" ({100 * self.n / self.total:.0f} %)" if self.total > 0 else ""
+        parts = [f"{self.desc}: {self.n:.{digits}f}/{self.total:.{digits}f} {what}{percent}"]
+        parts += [f"{key} {value}" for key, value in self.fields.items()]
+        return ", ".join(parts) + f" [{tqdm.format_interval(now - self.start)}]"
+
+    def _say(self, now: float) -> None:
+        print(self.line(now), file=self.file, flush=True)
+        self.said = (self.n, dict(self.fields))
+        self.last_at = now
+        if self.step > 0:
+            self.next_n = (math.floor(self.n / self.step + 1e-9) + 1) * self.step
