@@ -22,6 +22,7 @@ import socket
 import subprocess
 import tempfile
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -184,22 +185,32 @@ settle_s = 0.0
 
 def foreign_rig_config(out: Path) -> str | None:
     """Why the demo must not write its rig config into `out` (one line), or None: `out` holds a RIG_CONFIG that no
-    demo run wrote (its first line is not RIG_HEADER's), such as the user's own rig with their hand-eye and ports.
-    Only the demo's own is replaced, so that a run into the folder of an earlier one goes on as before."""
+    demo run into `out` wrote, such as the user's own rig with their hand-eye and ports. The demo's own begins with
+    RIG_HEADER and names `out`'s captures folder as its `captures` (every version has written both); a copy of it
+    edited elsewhere keeps the header but names the folder it was copied from. Only the demo's own is replaced, so
+    that a run into the folder of an earlier one goes on as before."""
     path = Path(out) / RIG_CONFIG
     if not os.path.lexists(path):
         return None
     try:
-        with open(path, "rb") as f:
-            first = f.readline(len(RIG_HEADER) + 1)
+        text = path.read_bytes()
     except OSError as exc:  # a folder, a link to nothing, a file this user may not read: not known to be the demo's
-        first, why = b"", f" ({exc.strerror or exc})"
+        text, why = b"", f" ({exc.strerror or exc})"
     else:
         why = ""
-    if first.startswith(RIG_HEADER.encode()):
+    if text.startswith(RIG_HEADER.encode()) and _captures_named(text) == str((Path(out) / "captures").resolve()):
         return None
     return (f"{path} is not a rig config the demo wrote{why}: the demo would replace it with its own; give the demo "
             f"a new folder (--out DIR), or move {path} away")
+
+
+def _captures_named(text: bytes) -> str | None:
+    """The `captures` a rig config's TOML names, or None where it names none or cannot be read."""
+    try:
+        captures = tomllib.loads(text.decode()).get("captures")
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return None
+    return captures if isinstance(captures, str) else None
 
 
 def check_options(opts: DemoOptions) -> None:

@@ -25,9 +25,9 @@ port = "/dev/ttyACM0"
 """A rig config of the user's own (README step 3), in the folder they point the demo at."""
 
 EARLIER_DEMO_RIG = """# Written by `spadscan demo`: simulated devices only.
-captures = "/somewhere/captures"
+captures = "{out}/captures"
 """
-"""The first lines of a rig config a demo run wrote before the header gained its second line."""
+"""The first lines of a rig config a demo run into `out` wrote before the header gained its second line."""
 
 
 @pytest.fixture
@@ -85,10 +85,24 @@ def test_the_rig_config_of_an_earlier_demo_run_is_written_anew(tmp_path, sock_di
     if earlier == "this version":
         write_rig_config(DemoOptions(out=tmp_path, views=16), tmp_path / "captures", sock_dir / "d.sock", None)
     else:
-        (tmp_path / RIG_CONFIG).write_text(EARLIER_DEMO_RIG)
+        (tmp_path / RIG_CONFIG).write_text(EARLIER_DEMO_RIG.format(out=tmp_path.resolve()))
     check_options(opts)
     config = load_config(write_rig_config(opts, tmp_path / "captures", sock_dir / "d.sock", None))
     assert config.scan.views == 8
+
+
+def test_a_copy_of_a_demo_rig_config_edited_in_another_folder_is_the_users(tmp_path, sock_dir):
+    """The demo's header survives a copy: the copy names the captures of the folder it came from, not its own."""
+    demo, lab = tmp_path / "demo", tmp_path / "lab"
+    demo.mkdir()
+    lab.mkdir()
+    written = write_rig_config(DemoOptions(out=demo), demo / "captures", sock_dir / "d.sock", None)
+    edited = written.read_text().replace("speed = 0.5", "speed = 0.2  # my edit")
+    (lab / RIG_CONFIG).write_text(edited)
+    with pytest.raises(DemoError, match="is not a rig config the demo wrote"):
+        check_options(DemoOptions(out=lab))
+    assert (lab / RIG_CONFIG).read_text() == edited
+    check_options(DemoOptions(out=demo))  # the demo's own, in its own folder: written anew
 
 
 @pytest.mark.parametrize("inside", [False, True])

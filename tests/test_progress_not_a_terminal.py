@@ -83,6 +83,32 @@ def test_a_step_count_is_said_in_steps(capsys):
     assert len(lines) == 10 and lines[-1].startswith("reconstruct (paper): 30/30 steps (100 %), step 30, loss "), lines
 
 
+def test_a_reader_that_went_away_does_not_end_the_training():
+    """`spadscan reconstruct ... 2>&1 | head -3`: the pipe closes after the first lines; the run goes on to its
+    result. Before: the next line raised BrokenPipeError and the run was lost."""
+    from spadscan.worker.recon.trainer import ProgressLines
+
+    read, write = os.pipe()
+    os.close(read)
+    gone = os.fdopen(write, "w")
+    lines = ProgressLines(10.0, "reconstruct (fast)", "step", clock=lambda: 0.0, file=gone)
+    for _ in range(10):
+        lines.update(1)
+    lines.close()
+    assert lines.n == 10 and lines.file is None
+    try:
+        gone.close()  # its buffer still holds the line that could not go: the closing flush fails as well
+    except BrokenPipeError:
+        pass
+
+
+def test_a_budget_that_set_up_all_but_spent_is_said_in_hundredths(capsys):
+    fake_clock_lines(capsys, budget_s=0.05, step_s=0.01)  # asserts its own shape
+    train(Falling(), RunPlan(steps=None, budget_s=0.05, seed=0), progress=PROGRESS_LINES, desc="reconstruct (fast)")
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert "/0.05 s of training" in last, last
+
+
 STAND_IN = """
 import sys, types
 from pathlib import Path
@@ -130,6 +156,22 @@ def test_reconstruct_writes_plain_lines_into_a_log_file(tmp_path):
     said = [line for line in text.splitlines() if line.startswith("reconstruct (fast): ")]
     assert len(said) == 10 and said[-1].startswith("reconstruct (fast): 50/50 steps (100 %), step 50, loss 0.02"), text
     assert parse_progress(text) is None, "no bar for a bar's reader to take for a job's"
+
+
+def test_reconstruct_whose_stderr_reader_is_gone_still_publishes_its_result(tmp_path):
+    """Standard error a pipe no one reads any more (`2>&1 | head -3` after its lines): every line the run says
+    fails, and the run still ends with its result. Before: the first progress line ended it, nothing published."""
+    (tmp_path / "s").mkdir()
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before the run says anything
+    try:
+        done = subprocess.run([sys.executable, "-c", STAND_IN, "reconstruct", str(tmp_path / "s"), "--out",
+                               str(tmp_path / "out"), "--no-gt"], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                              stderr=write, text=True, timeout=120)
+    finally:
+        os.close(write)
+    assert done.returncode == 0 and (tmp_path / "out" / "report.json").is_file(), done.stdout
+    assert "wrote " in done.stdout
 
 
 def test_reconstruct_draws_the_bar_into_a_file_when_asked_and_nothing_with_no_progress(tmp_path):

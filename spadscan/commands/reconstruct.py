@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     overrides = dict(parse_override(text) for text in args.overrides)
 
     def log(line: str) -> None:
-        print(f"spadscan reconstruct: {line}", file=sys.stderr, flush=True)
+        say(f"spadscan reconstruct: {line}")
 
     gt, gt_note = ground_truth_for_run(args.capture, args.gt, args.no_gt, log)
     if args.overwrite:
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     # Ctrl-C while training ends the training and keeps the run; a second aborts as SIGTERM does.
     def said_over_the_bar(line: str) -> None:
         # A Ctrl-C comes while the bar is drawn: its line starts a line of its own, not glued to the bar's end.
-        print(f"\nspadscan reconstruct: {line}", file=sys.stderr, flush=True)
+        say(f"\nspadscan reconstruct: {line}")
 
     bar = progress_bar_wanted(args)
     progress = True if bar else (False if args.no_progress else PROGRESS_LINES)  # lines: what a log wants
@@ -175,3 +175,12 @@ def run(args: argparse.Namespace) -> int:
     written = [str(name) for name in report.get("files") or () if name != "report.html"]
     print(f"wrote {out / 'report.html'} (open this first), " + ", ".join(written))
     return 0
+
+
+def say(text: str) -> None:
+    """A line on stderr, where a reader that went away (`... 2>&1 | head`, a closed log) does not end the run: its
+    result is still published (report.json keeps what the lines said)."""
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass

@@ -251,14 +251,20 @@ class ProgressLines:
 
     def line(self, now: float) -> str:
         what = "s of training" if self.unit == "s" else f"{self.unit}s"
-        digits = 1 if self.unit == "s" and self.total < 100 else 0  # a short run's tenths are not whole seconds
+        # A short run's tenths are not whole seconds; a budget that set-up all but spent leaves hundredths.
+        digits = (2 if self.total < 1 else 1 if self.total < 100 else 0) if self.unit == "s" else 0
         percent = f" ({100 * self.n / self.total:.0f} %)" if self.total > 0 else ""
         parts = [f"{self.desc}: {self.n:.{digits}f}/{self.total:.{digits}f} {what}{percent}"]
         parts += [f"{key} {value}" for key, value in self.fields.items()]
         return ", ".join(parts) + f" [{tqdm.format_interval(now - self.start)}]"
 
     def _say(self, now: float) -> None:
-        print(self.line(now), file=self.file, flush=True)
+        if self.file is not None:
+            try:
+                print(self.line(now), file=self.file, flush=True)
+            except (OSError, ValueError):
+                # The reader is gone (`... 2>&1 | head`, a closed log): the run goes on to its result, unsaid.
+                self.file = None
         self.said = (self.n, dict(self.fields))
         self.last_at = now
         if self.step > 0:
