@@ -433,7 +433,7 @@ def held_said(held, notes=(), present: int = 1, *, start: str | None = None, now
     if not queued:
         return None
     jobs = [job for job, _ in queued]
-    who = f"no job is claimed while {_names(jobs)} {'waits' if len(jobs) == 1 else 'wait'}"
+    who = f"no job is claimed while {names_said(jobs)} {'waits' if len(jobs) == 1 else 'wait'}"
     workers = _read(notes)
     return room_line(who, [wait for _, wait in queued], "a worker", max(wait.retry_unix for _, wait in queued),
                      now=now, start=None if present else (start or "spadscan worker"), also=workers,
@@ -459,8 +459,9 @@ def _read(notes) -> list[RoomWait]:
     return [wait for wait in (RoomWait.from_note(note, skewed=True) for note in notes) if wait is not None]
 
 
-def _names(items: list[str]) -> str:
-    """Names in a line, as the dashboard names jobs: at most three, then how many more."""
+def names_said(items: list[str]) -> str:
+    """Names in a line, as `spadscan ctl` and the dashboard name jobs and workers: at most three, then how many
+    more."""
     return ", ".join(items[:3]) + (f" and {len(items) - 3} more" if len(items) > 3 else "")
 
 
@@ -545,4 +546,4 @@ def retry_after(full_in_row: int) -> float:
 __all__ = ["MAX_FULL_DISK", "free_bytes", "total_bytes", "mount_point", "same_filesystem", "full_folder",
            "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S", "ROOM_SKEW_S", "ROOTS",
            "RoomWait", "missing_room", "room_missing", "note_doubt", "room_line", "room_said", "held_said",
-           "holding_said", "UNKNOWN_TIME", "when_text", "retry_after"]
+           "holding_said", "names_said", "UNKNOWN_TIME", "when_text", "retry_after"]

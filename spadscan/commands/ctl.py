@@ -527,7 +527,7 @@ def queued_said(behind: list[str], workers: list[dict], start: str, held: list[t
     job process is free), or the jobs `behind` (and how to run one job more at once). A worker that waits for room
     (its `room_wait`, as the worker reads it: a damaged one is none) claims nothing meanwhile: neither its job
     processes nor the jobs it runs count."""
-    from spadscan.worker.disk_room import RoomWait, holding_said
+    from spadscan.worker.disk_room import RoomWait, holding_said, names_said
 
     def waits(worker: dict) -> bool:
         return RoomWait.from_note(worker.get("room_wait"), skewed=True) is not None
@@ -543,7 +543,7 @@ def queued_said(behind: list[str], workers: list[dict], start: str, held: list[t
     n = sum(w["processes"] for w in claiming) or 1
     if len(behind) < n:
         return "a worker takes it at its next look"
-    return (f"waiting for {'' if len(behind) == 1 else 'one of '}{_names(behind)} to finish "
+    return (f"waiting for {'' if len(behind) == 1 else 'one of '}{names_said(behind)} to finish "
             f"({_processes_advice(claiming, n)})")
 
 
@@ -564,10 +564,6 @@ def _processes_advice(workers: list[dict], n: int) -> str:
     least = min(workers, key=lambda w: w["processes"])  # the first of those that run the fewest
     return (f"the {len(workers)} workers run {_plural(n, 'job')} at a time; one more worker, or `--processes "
             f"{least['processes'] + 1}` for the worker on {least['name']}, runs {n + 1}")
-
-
-def _names(ids: list[str]) -> str:
-    return ", ".join(ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
 
 
 def _plural(n: int, word: str) -> str:

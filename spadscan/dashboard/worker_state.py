@@ -22,7 +22,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 
-from spadscan.worker.disk_room import RoomWait, holding_said, room_line, size_text
+from spadscan.worker.disk_room import RoomWait, holding_said, names_said, room_line, size_text
 
 from .results import age_s
 
@@ -106,7 +106,7 @@ def wait_line(waits: list[dict], held: list[dict], present: int, *, start: str |
     read = [RoomWait.from_note(w, skewed=True) for w in waits]
     if read:
         who = [w["worker"] for w in waits]
-        subject = f"the worker on {who[0]} waits" if len(who) == 1 else f"the workers on {_names(who)} wait"
+        subject = f"the worker on {who[0]} waits" if len(who) == 1 else f"the workers on {names_said(who)} wait"
         return room_line(subject, read, "it" if len(who) == 1 else "the first of them",
                          min(w.retry_unix for w in read), now=now)
     return None
@@ -116,11 +116,6 @@ def _said(wait: RoomWait) -> dict:
     """A wait's bytes as the worker's own log says them: {"free_said", "need_said"}: "12 MB", None where not known."""
     return {"free_said": None if wait.free is None else size_text(wait.free),
             "need_said": None if wait.need is None else size_text(wait.need)}
-
-
-def _names(items: list[str]) -> str:
-    """Names in a line, as the page names jobs: at most three, then how many more."""
-    return ", ".join(items[:3]) + (f" and {len(items) - 3} more" if len(items) > 3 else "")
 
 
 def needs_freed(jobs: list[dict]) -> bool:
