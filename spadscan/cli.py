@@ -152,13 +152,16 @@ def run_command(func, args) -> int:
         return 1
 
 
-def add_progress_options(parser: argparse.ArgumentParser, no_progress_help: str, default_help: str) -> None:
-    """--progress and --no-progress (one or the other) for a command that draws a progress bar on stderr;
-    `default_help` says what it shows when given neither and stderr is not a terminal."""
+def add_progress_options(parser: argparse.ArgumentParser, no_progress_help: str, default_help: str,
+                         bars: bool = False) -> None:
+    """--progress and --no-progress (one or the other) for a command that draws a progress bar on stderr (`bars`:
+    several, one after another); `default_help` says what it shows when given neither and stderr is not a
+    terminal."""
+    bar = "bars" if bars else "bar"
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--progress", action="store_true",
-                       help=f"draw the progress bar even when standard error is not a terminal (default: the bar on "
-                            f"a terminal only; in a file or a pipe, {default_help})")
+                       help=f"draw the progress {bar} even when standard error is not a terminal (default: the {bar} "
+                            f"on a terminal only; in a file or a pipe, {default_help})")
     group.add_argument("--no-progress", action="store_true", help=no_progress_help)
 
 

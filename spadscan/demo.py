@@ -825,19 +825,21 @@ class ReconProgress:
             self.bar.total = total
             if hasattr(self.bar, "refresh"):
                 self.bar.refresh()
-        done = min(progress.done, progress.total)
-        self.bar.update(max(0.0, done - self.shown))
-        self.shown = max(self.shown, done)
-        if progress.done >= progress.total and hasattr(self.bar, "set_description_str"):
-            self.bar.set_description_str(self.after + self.label)
         fields = [f"step {progress.fields['step']}"] if "step" in progress.fields else []
         if "loss" in progress.fields:
             fields.append(f"loss {progress.fields['loss']}")
         if progress.chamfer_mm is not None:
             at = "" if progress.chamfer_step is None else f" (step {progress.chamfer_step})"  # a short run's is old
             fields.append(f"checkpoint Chamfer {progress.chamfer_mm:.2f} mm{at}")  # a coarse mesh's: not the result's
+        # The fields before the count: a bar written as lines (ProgressLines) says a line with the count, and that
+        # line carries this reading's fields, not the last one's.
         if fields and hasattr(self.bar, "set_postfix_str"):
             self.bar.set_postfix_str(", ".join(fields))
+        if progress.done >= progress.total and hasattr(self.bar, "set_description_str"):
+            self.bar.set_description_str(self.after + self.label)
+        done = min(progress.done, progress.total)
+        self.bar.update(max(0.0, done - self.shown))
+        self.shown = max(self.shown, done)
 
 
 def _find_report(scan_dir: Path) -> Path:

@@ -83,6 +83,19 @@ def test_a_step_count_is_said_in_steps(capsys):
     assert len(lines) == 10 and lines[-1].startswith("reconstruct (paper): 30/30 steps (100 %), step 30, loss "), lines
 
 
+def test_a_run_that_ends_on_a_checkpoint_says_its_end_once_with_the_last_chamfer(capsys):
+    """The last step reaches 100 %, then its checkpoint scores a new Chamfer. Before: a line at the last step (the
+    Chamfer of the checkpoint before) and a second 100 % line from close(), with the new one."""
+    scored = iter([10.0, 5.0, 3.0])
+    train(Falling(), RunPlan(steps=10, budget_s=None, seed=0), progress=PROGRESS_LINES, checkpoints=2,
+          evaluate=lambda: {"chamfer_mm": next(scored)}, desc="reconstruct (fast)")
+    lines = capsys.readouterr().err.splitlines()
+    ends = [line for line in lines if "(100 %)" in line]
+    assert len(ends) == 1 and ends[0] == lines[-1], lines
+    assert ", chamfer 3.00mm, scored at step 10 " in ends[0], ends[0]
+    assert len(lines) == 10, "a line at each tenth, the last one the end's"
+
+
 def test_a_reader_that_went_away_does_not_end_the_training():
     """`spadscan reconstruct ... 2>&1 | head -3`: the pipe closes after the first lines; the run goes on to its
     result. Before: the next line raised BrokenPipeError and the run was lost."""

@@ -11,6 +11,9 @@ fit for --budget-s seconds. --offline reconstructs only once the scan is complet
 While the final reconstruction runs, a progress line shows its training time, loss and Chamfer; when the worker
 runs the job again (its process crashed), the line starts over, named after the attempt, and a line says why the
 last attempt ended.
+The bars are drawn on a terminal; with standard error in a file or a pipe (`2>demo.log`, nohup) each bar is plain
+lines instead, one at each tenth of it and at least every 30 s, and one at its end with its last reading (--progress
+draws the bars there too; --no-progress shows neither, and the other lines and the summary still come).
 With --dashboard it also serves the lab dashboard on its captures and prints the address to open.
 Every process it starts is stopped again, also on Ctrl-C. Run again into the same --out after a run was stopped
 during its scan, it aborts the scan that run left unfinished (its poses stay on disk, the capture marked aborted),
@@ -27,6 +30,8 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from spadscan.cli import add_progress_options, progress_bar_wanted
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -57,6 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "and print its address")
     parser.add_argument("--dashboard-port", type=int, default=8765, metavar="PORT",
                         help="the dashboard's port on 127.0.0.1 (default: 8765; a free one when it is busy)")
+    add_progress_options(parser, "draw no progress bars and write no progress lines (the lines that say what "
+                                 "happens, and the summary, still come)",
+                         "a plain line at each tenth of a bar and at least every 30 s, and its last reading at its "
+                         "end", bars=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -73,9 +82,7 @@ def run(args: argparse.Namespace) -> int:
     check_options(opts)  # before the banner: a refused option starts nothing and announces nothing
     make_out(opts)  # so is an --out that cannot be written: the banner names its logs folder
 
-    def bar(total: float, desc: str, unit: str):
-        return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=True,
-                    bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]")
+    bar = progress_factory(args)
 
     def say(line: str) -> None:
         # Above the bar in front, not glued to its end: tqdm clears the bar, prints the line and draws the bar again.
@@ -112,3 +119,27 @@ def run(args: argparse.Namespace) -> int:
         print(f"dashboard: stopped; to look again: spadscan dashboard --root {opts.out / 'captures'}")
     print(f"report:   {s['report_html']}  (open it in a browser: the 3D view, the pictures and the numbers)")
     return 0
+
+
+def progress_factory(args: argparse.Namespace):
+    """What run_demo makes its bars with, progress_factory(total, desc, unit): a tqdm bar on a terminal (or with
+    --progress); in a file or a pipe, which would keep every frame a bar redraws, plain lines (ProgressLines: a line at
+    each tenth and every 30 s, the end's once); with --no-progress a bar that shows nothing."""
+    import sys
+    import time
+
+    from tqdm import tqdm
+
+    from spadscan.worker.recon.trainer import ProgressLines
+
+    drawn = progress_bar_wanted(args)
+
+    def bar(total: float, desc: str, unit: str):
+        if drawn:
+            return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=True,
+                        bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]")
+        if args.no_progress:
+            return tqdm(total=total, desc=desc, unit=unit, disable=True)  # every call a bar takes, nothing shown
+        return ProgressLines(total, desc, unit, time.monotonic, sys.stderr)
+
+    return bar

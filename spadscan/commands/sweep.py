@@ -22,6 +22,9 @@ results.csv (<method>_converged, <method>_warning_count, <method>_warnings: the 
 the plot; so is a baseline whose calibrated threshold is at an end of those tried (<method>_threshold_edge). Without
 [grid], the sweep runs the base condition alone.
 
+Progress: a bar on standard error where it is a terminal; in a file or a pipe (nohup, a batch job, `2>sweep.log`) a
+line per finished point instead, as with --no-progress (--progress draws the bar there too).
+
 Examples:
   spadscan sweep examples/sweeps/small.toml --out sweep-small && spadscan sweep-plot sweep-small
   spadscan sweep examples/sweeps/figure_a.toml --out figure-a --lcspc ~/data/LCSPCData --scheduler tcp://head:8786
@@ -31,6 +34,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+
+from spadscan.cli import add_progress_options, progress_bar_wanted
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -55,9 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "DIR/points/, and a run of their own file gathers them again)")
     parser.add_argument("--dry-run", action="store_true",
                         help="check the file and list the points and how many are done; run nothing")
-    parser.add_argument("--no-progress", action="store_true",
-                        help="no progress bar: a line on standard error per finished point instead (its id, "
-                             "status, Chamfer per method and warnings), for a log")
+    add_progress_options(parser, "no progress bar: a line on standard error per finished point instead (its id, "
+                                 "status, Chamfer per method and warnings), for a log",
+                         "a line per finished point, as with --no-progress")
 
 
 def run(args) -> int:
@@ -95,7 +100,7 @@ def run(args) -> int:
     try:
         with terminate_as_interrupt():
             summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers,
-                                device=args.device, keep=args.keep, progress=not args.no_progress, log=log,
+                                device=args.device, keep=args.keep, progress=progress_bar_wanted(args), log=log,
                                 overwrite=args.overwrite)
     except KeyboardInterrupt:
         # Dask cannot stop a task that runs: a scheduler's workers finish the points they hold, and a re-run waits.

@@ -207,24 +207,41 @@ def progress_display(progress: bool | str, total: float, desc: str, unit: str, c
 
 
 class ProgressLines:
-    """A training bar's readings as plain newline-terminated lines, for a log that a person reads (stderr a file or
-    a pipe): a bar redraws itself with carriage returns, and a file keeps every frame. A line each time the count
-    passes another `share` of `total`, or `every_s` wall seconds after the last line, and at the end where the count
-    or the fields changed since; e.g. `reconstruct (fast): 4.0/10.0 s of training (40 %), step 120, loss 2.25 [00:05]`
-    (with a time budget the total is training's share of it, as on the bar). `clock`: wall seconds."""
+    """A bar's readings as plain newline-terminated lines, for a log that a person reads (stderr a file or a pipe): a
+    bar redraws itself with carriage returns, and a file keeps every frame. A line each time the count passes another
+    `share` of `total`, or `every_s` wall seconds after the last line; the end (the count at its total) is said once,
+    by close(), with the fields as they are then: a run that ends on a checkpoint sets its Chamfer after its last
+    count. E.g. `reconstruct (fast): 4.0/10.0 s of training (40 %), step 120, loss 2.25 [00:05]` (with a time budget
+    the total is training's share of it, as on the bar). `clock`: wall seconds; `file` None: nothing is said.
+
+    It takes what the trainer and the demo ask of a tqdm bar: update(n), set_postfix(fields, refresh),
+    set_postfix_str(text), set_description_str(text), reset(), close(), n, desc and total (which the demo sets to a
+    job's own), and it is a context manager."""
 
     def __init__(self, total: float, desc: str, unit: str, clock: Callable[[], float], file,
                  share: float = LINE_SHARE, every_s: float = LINE_EVERY_S):
-        self.total, self.desc, self.unit, self.clock, self.file = total, desc, unit, clock, file
-        self.step = share * total
+        self.desc, self.unit, self.clock, self.file = desc, unit, clock, file
+        self.share = share
         self.every_s = every_s
         self.n = 0.0
-        self.fields: dict[str, str] = {}
+        self.postfix = ""
+        """What the lines say after the count: set_postfix's `key value` pairs, or set_postfix_str's text."""
         self.start = clock()
         self.last_at = self.start
-        self.next_n = self.step
+        self.total = total
         self.said: tuple | None = None
-        """(count, fields) of the last line said."""
+        """(count, description, postfix) of the last line said."""
+
+    @property
+    def total(self) -> float:
+        return self._total
+
+    @total.setter
+    def total(self, total: float) -> None:
+        # The demo learns a job's own total after its bar was made: the tenths are the new total's from here on.
+        self._total = total
+        self.step = self.share * total
+        self.next_n = self._next_mark()
 
     def __enter__(self) -> ProgressLines:
         return self
@@ -235,18 +252,39 @@ class ProgressLines:
 
     def set_postfix(self, fields: dict, refresh: bool = True) -> None:
         """The fields the next line shows (`refresh` is tqdm's: a line comes only with the count)."""
-        self.fields = dict(fields)
+        self.postfix = ", ".join(f"{key} {value}" for key, value in fields.items())
+
+    def set_postfix_str(self, text: str) -> None:
+        """What the next line shows after the count, as it is."""
+        self.postfix = text
+
+    def set_description_str(self, desc: str) -> None:
+        """The words the next line starts with."""
+        self.desc = desc
+
+    def reset(self) -> None:
+        """The count and its clock back to zero, the total kept (tqdm's reset: the demo's bar for a job's next
+        attempt, which trains from nothing); the last reading first, where no line said it (the end of the attempt
+        before, say)."""
+        if self.n > 0:
+            self.close()
+        self.n = 0.0
+        self.start = self.last_at = self.clock()
+        self.next_n = self._next_mark()
+        self.said = None
 
     def update(self, n: float) -> None:
-        """Count `n` more; say a line when one is due."""
+        """Count `n` more; say a line when one is due, unless the count reached the end: close() says that."""
         self.n += n
+        if self._at_end():
+            return
         now = self.clock()
         if (self.step > 0 and self.n >= self.next_n) or now - self.last_at >= self.every_s:
             self._say(now)
 
     def close(self) -> None:
         """The last reading, unless the last line said it already."""
-        if self.said != (self.n, self.fields):
+        if self.said != (self.n, self.desc, self.postfix):
             self._say(self.clock())
 
     def line(self, now: float) -> str:
@@ -255,8 +293,16 @@ class ProgressLines:
         digits = (2 if self.total < 1 else 1 if self.total < 100 else 0) if self.unit == "s" else 0
         percent = f" ({100 * self.n / self.total:.0f} %)" if self.total > 0 else ""
         parts = [f"{self.desc}: {self.n:.{digits}f}/{self.total:.{digits}f} {what}{percent}"]
-        parts += [f"{key} {value}" for key, value in self.fields.items()]
+        parts += [self.postfix] if self.postfix else []
         return ", ".join(parts) + f" [{tqdm.format_interval(now - self.start)}]"
+
+    def _at_end(self) -> bool:
+        # Within rounding: a budget's last update adds what is left of it (budget - n) to n.
+        return self.total > 0 and self.n >= self.total * (1 - 1e-9)
+
+    def _next_mark(self) -> float:
+        """The count at which the next tenth's line is due."""
+        return (math.floor(self.n / self.step + 1e-9) + 1) * self.step if self.step > 0 else math.inf
 
     def _say(self, now: float) -> None:
         if self.file is not None:
@@ -265,7 +311,6 @@ class ProgressLines:
             except (OSError, ValueError):
                 # The reader is gone (`... 2>&1 | head`, a closed log): the run goes on to its result, unsaid.
                 self.file = None
-        self.said = (self.n, dict(self.fields))
+        self.said = (self.n, self.desc, self.postfix)
         self.last_at = now
-        if self.step > 0:
-            self.next_n = (math.floor(self.n / self.step + 1e-9) + 1) * self.step
+        self.next_n = self._next_mark()
