@@ -11,8 +11,9 @@ on a dead link) is ended the same way: the parent kills this process.
 Requests come on stdin, one JSON line each: {"id": n, "op": name, "args": [...]}. They run one at a time, in order
 (the interfaces are not thread-safe), and each gets one reply line: {"id": n, "result": ...} or
 {"id": n, "error": exception class name, "message": text}. ur_rtde prints its own messages to stdout, so the
-replies go to a duplicate of the original stdout and fd 1 is pointed at stderr. When stdin closes, the interfaces
-are disconnected and the process exits.
+replies go to a duplicate of the original stdout and fd 1 is pointed at stderr. When stdin closes (the parent's
+close, or the parent gone), the control script is stopped where it can take the command (stopScript: ur_rtde's
+disconnect() leaves it running on the controller), the interfaces are disconnected and the process exits.
 
 Its lifetime follows the parent's: it runs in a session of its own (a Ctrl-C on the daemon's terminal does not reach
 it), it ignores SIGINT and SIGTERM (a service stop signals every process of the service, and the daemon still needs
@@ -57,6 +58,12 @@ def tcp_offset_answered(polyscope: tuple[int, int] | None) -> bool:
     return polyscope is None or polyscope >= TCP_OFFSET_SINCE
 
 
+SAFETY_HOLD_BITS = (1 << 2) | (1 << 4) | (1 << 7) | (1 << 8) | (1 << 9)
+"""safety_status_bits while the arm is held for safety (protective, safeguard, emergency stop, violation, fault; RTDE
+guide): the control script takes no command then. ur_rtde's own wait for an answer gives up early only on a
+protective or emergency stop; on the others it waits up to 300 s."""
+
+
 class CommandFailed(Exception):
     """The controller did not carry out a command (its control script is not running, or a safety stop is active).
     Not a RuntimeError: the parent ends the link on those, and this link is fine."""
@@ -70,23 +77,28 @@ class Client:
         self.receive = None
         self.polyscope: tuple[int, int] | None = None
 
-    def open(self, host: str, frequency: float) -> list[int] | None:
-        """Connect both interfaces (the control interface uploads its script); returns the PolyScope version
-        [major, minor] the dashboard reports, or None when it says none."""
-        import dashboard_client
+    def open(self, host: str, frequency: float, watchdog_hz: float | None = None) -> dict:
+        """Connect both interfaces (the control interface uploads its script) and, with watchdog_hz, arm the
+        controller's watchdog at once (`arm_watchdog`). Returns {"polyscope": the PolyScope version [major, minor]
+        the dashboard reports, or None when it says none; "watchdog": whether setWatchdog was taken}."""
         import rtde_control
         import rtde_receive
 
         self.receive = rtde_receive.RTDEReceiveInterface(host, frequency)
+        # The dashboard is asked before the script is uploaded, so that nothing stands between the upload and
+        # setWatchdog (ur_rtde's advice: right after construction): a script without a watchdog runs on when this
+        # process dies, and one with it only as long as the parent's kicks, which start as soon as this returns.
+        self.polyscope = polyscope_version(host)
         self.control = rtde_control.RTDEControlInterface(host, frequency)
-        dashboard = dashboard_client.DashboardClient(host)
-        dashboard.connect()
-        try:
-            m = re.search(r"(\d+)\.(\d+)", str(dashboard.polyscopeVersion()))
-        finally:
-            dashboard.disconnect()
-        self.polyscope = (int(m[1]), int(m[2])) if m else None
-        return list(self.polyscope) if self.polyscope else None
+        watchdog = watchdog_hz is not None and self.arm_watchdog(watchdog_hz)
+        return {"polyscope": list(self.polyscope) if self.polyscope else None, "watchdog": watchdog}
+
+    def arm_watchdog(self, min_frequency: float) -> bool:
+        """setWatchdog, unless the script cannot take it now (not running, held by a safety stop: the parent arms it
+        later); whether the controller took it."""
+        if self._held() is not None:
+            return False
+        return self.set_watchdog(min_frequency)
 
     def read(self) -> dict:
         """One consistent reading: TCP pose vector [m, rad], joints [rad], controller timestamp [s], safety flags and
@@ -169,15 +181,42 @@ class Client:
             raise CommandFailed(f"getTCPOffset: no answer ({offset})")
         return offset
 
-    def _answering(self, what: str) -> None:
-        """CommandFailed unless the controller could have answered (script running, no safety stop)."""
+    def stop_script(self) -> dict:
+        """End the control script (stopScript: the program stops, and its watchdog with it), where it can take the
+        command. Returns {"stopped": whether no program runs now, "why": why it was left running, else ""}."""
+        if not self.control.isProgramRunning():
+            return {"stopped": True, "why": ""}
+        why = self._held()
+        if why is None:
+            self.control.stopScript()  # returns once the program has stopped (or ur_rtde gave up waiting)
+            if self.control.isProgramRunning():
+                why = "the RTDE control script still runs after stopScript"
+        return {"stopped": why is None, "why": why or ""}
+
+    def _held(self) -> str | None:
+        """Why the control script cannot take a command now (it is not running, a safety stop holds the arm), or
+        None when it can."""
         c, r = self.control, self.receive
         if not c.isProgramRunning():
-            raise CommandFailed(f"{what}: the RTDE control script is not running")
-        if r.isProtectiveStopped() or r.isEmergencyStopped() or r.getSafetyStatusBits() & (1 << 4):
-            raise CommandFailed(f"{what}: the arm is stopped for safety (safety mode {r.getSafetyMode()})")
+            return "the RTDE control script is not running"
+        if r.isProtectiveStopped() or r.isEmergencyStopped() or r.getSafetyStatusBits() & SAFETY_HOLD_BITS:
+            return f"the arm is stopped for safety (safety mode {r.getSafetyMode()})"
+        return None
+
+    def _answering(self, what: str) -> None:
+        """CommandFailed unless the controller could have answered (script running, no safety stop)."""
+        why = self._held()
+        if why is not None:
+            raise CommandFailed(f"{what}: {why}")
 
     def close(self) -> None:
+        """Stop the control script, then disconnect both interfaces. The parent stops the script itself before an
+        orderly close (and then nothing is left to stop here); this one covers a parent gone without a word."""
+        if self.control is not None and self.receive is not None:
+            try:
+                self.stop_script()
+            except RuntimeError:  # the link is dead: the controller's watchdog stops the script
+                pass
         for iface in (self.control, self.receive):
             if iface is not None:
                 try:
@@ -190,7 +229,20 @@ class Client:
 OPS = {"open": Client.open, "read": Client.read, "read_progress": Client.read_progress, "moveL": Client.move_l,
        "stopL": Client.stop_l, "program_running": Client.program_running, "set_watchdog": Client.set_watchdog,
        "kick": Client.kick, "reupload": Client.reupload, "check_poses": Client.check_poses,
-       "tcp_offset": Client.tcp_offset}
+       "tcp_offset": Client.tcp_offset, "stop_script": Client.stop_script}
+
+
+def polyscope_version(host: str) -> tuple[int, int] | None:
+    """The PolyScope version (major, minor) the controller's dashboard reports, or None when it names none."""
+    import dashboard_client
+
+    dashboard = dashboard_client.DashboardClient(host)
+    dashboard.connect()
+    try:
+        m = re.search(r"(\d+)\.(\d+)", str(dashboard.polyscopeVersion()))
+    finally:
+        dashboard.disconnect()
+    return (int(m[1]), int(m[2])) if m else None
 
 
 def answer(client: Client, line: str) -> dict:

@@ -30,9 +30,14 @@ What ur_rtde does not tell by raising, this class checks:
   (connect, reupload), at the latest before the first pose check or move; a non-zero one (a "pointer" TCP left
   active after measuring a calibration target) raises ArmFault naming it. PolyScope before 3.6 cannot tell
   (`rtde_child.TCP_OFFSET_SINCE`) and is not asked.
-The controller's watchdog (setWatchdog, after every connection or script upload) stops the program, and with it the
-arm, when no input arrives for 1/watchdog_hz s: the daemon's event loop kicks it (kickWatchdog) three times per
-period, so an arm whose daemon went silent (killed, stopped, hung) stops by itself. `check_poses` asks the controller
+The controller's watchdog (setWatchdog, right after every connection - in the ur_rtde process, as the control
+interface is constructed - or script upload; at the first prepare or move where a safety stop kept the script from
+taking it) stops the program, and with it the arm, when no input arrives for 1/watchdog_hz s: the daemon's event loop
+kicks it (kickWatchdog) three times per period from connect to close, so an arm whose daemon went silent (killed,
+stopped, hung) stops by itself. An orderly close (`close`, also after a failed `prepare`) first ends the control
+script (stopScript: ur_rtde's disconnect() leaves it running on the controller, until the watchdog stops it or, with
+none armed, for good); where the script cannot take that command (a safety stop holds it) or the link is dead, the
+watchdog stops it, as it does when the ur_rtde process is killed. `check_poses` asks the controller
 itself about every planned pose (isPoseWithinSafetyLimits, and getInverseKinematicsHasSolution where its PolyScope
 answers it: 5.10 on, 3.15 on a CB-series arm).
 Any LinkLost ends the client process (a closed link's interfaces would otherwise go on reconnecting by themselves,
@@ -41,8 +46,8 @@ carry it; the move it can no longer watch then stops), and every later call fail
 `connect()` or `reconnect()` starts a fresh process with new interfaces (ur_rtde's own `reconnect()` can crash the
 process too). A dead link can wedge a control call for good (ur_rtde 1.6.5's stopL on a dropped link never returns),
 so `stop()` reads the link first and raises LinkLost instead of calling stopL on a dead link, and a call that
-outlives its timeout ends the process. Keeping ur_rtde out of the daemon's process also keeps its GIL traps out of the event loop (its
-constructors hold the GIL while they connect, its destructors for ~0.5 s each).
+outlives its timeout ends the process. Keeping ur_rtde out of the daemon's process also keeps its GIL traps out of
+the event loop (its constructors hold the GIL while they connect, its destructors for ~0.5 s each).
 """
 
 from __future__ import annotations
@@ -209,7 +214,8 @@ class URArm(Arm):
         log.info("connecting to %s (up to %g s)", self.name, wait_s)
         try:
             await self._link.start()
-            await self._call(f"connection to {self.host}", "open", self.host, self.frequency, timeout_s=wait_s)
+            opened = await self._call(f"connection to {self.host}", "open", self.host, self.frequency,
+                                      self.watchdog_hz, timeout_s=wait_s)
         except BaseException as exc:
             self._link.end(f"connecting failed: {exc}")  # no client process is left behind a failed connect
             await self._close_link()
@@ -218,7 +224,11 @@ class URArm(Arm):
             raise
         self._open = True
         self._last_ts = None
-        self._watchdog_set = self._tcp_checked = False
+        # The ur_rtde process armed the watchdog as it connected (unless a safety stop held the script: then prepare
+        # or the first move does). Arming it before prepare is safe only because the kicks start here, with the link,
+        # and go on until it is closed: through prepare, between scans, while a scan is paused. Nothing else writes
+        # to the controller while the daemon waits, and without them the watchdog would stop the script then.
+        self._watchdog_set, self._tcp_checked = bool(opened["watchdog"]), False
         self._kicker = asyncio.ensure_future(self._kick_watchdog())
         reading = await self._fresh("the first data after connecting")
         if reading.program_running and reading.stop is None:
@@ -346,8 +356,9 @@ class URArm(Arm):
             await self.stop()
 
     async def close(self) -> None:
-        """Disconnect both interfaces and end the ur_rtde process. Idempotent; never waits long on a dead link (the
-        process was ended when the link was found lost, and one that does not exit within timeout_s is killed)."""
+        """Stop the control script (`_stop_script`), disconnect both interfaces and end the ur_rtde process.
+        Idempotent; never waits long on a dead link (the process was ended when the link was found lost, and one
+        that does not exit within timeout_s is killed)."""
         await self._close_link()
 
     # -- acting ----------------------------------------------------------------------------------------------------
@@ -610,14 +621,42 @@ class URArm(Arm):
             raise LinkLost(f"{self.name}: not connected")
 
     async def _close_link(self) -> None:
-        self._open = False
+        """Stop the kicks and the control script of an open link, then end the ur_rtde process."""
         kicker, self._kicker = self._kicker, None
         if kicker is not None:
             kicker.cancel()
             await asyncio.gather(kicker, return_exceptions=True)
-        link, self._link = self._link, None
-        if link is not None:
-            await link.stop(grace_s=self.timeout_s)
+        link = self._link
+        try:
+            if self._open and link is not None and link.alive:
+                await self._stop_script()
+        finally:  # also when cancelled: the process is ended all the same
+            self._open, self._link = False, None
+            if link is not None:
+                await link.stop(grace_s=self.timeout_s)
+
+    async def _stop_script(self) -> None:
+        """End the control script before disconnecting (stopScript; ur_rtde's disconnect() leaves it running). Not
+        over a link whose data is stale (it is ended instead), nor while a safety stop holds the script (it takes no
+        command then, and ur_rtde would wait for the program to end: until the watchdog stops it, or 300 s where
+        none is armed): the watchdog stops it there, armed unless that stop held the script since connect (the
+        warning then says to stop it on the pendant). Never raises LinkLost or DeviceError: a close goes on."""
+        watchdog = (f"the controller's watchdog stops it within {1 / self.watchdog_hz:g} s" if self._watchdog_set
+                    else "no watchdog was armed on it: stop it on the teach pendant")
+        try:
+            reading = await self._fresh("the control script's state before stopScript")
+            if not reading.program_running:
+                return
+            if reading.stop is not None:
+                log.warning("%s: the control script was left running (%s holds it); %s", self.name, reading.stop,
+                            watchdog)
+                return
+            result = await self._call("stopScript", "stop_script")
+        except DeviceError as exc:  # LinkLost too
+            log.warning("%s: could not stop the control script (%s); %s", self.name, exc, watchdog)
+            return
+        if not result["stopped"]:
+            log.warning("%s: the control script was left running (%s); %s", self.name, result["why"], watchdog)
 
 
 def _mode_text(mode: int) -> str:

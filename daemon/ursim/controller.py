@@ -22,7 +22,13 @@ and signals done, and ur_rtde's getTCPOffset reads those six registers (the scri
 3.6 on). The reported TCP poses stay the model's own: it has no flange that an offset would move.
 35 set_watchdog: `rtde_set_watchdog("input_int_register_0", f, "stop")`, so an input package that writes the
 command register must arrive at least every 1/f s (ur_rtde's kickWatchdog writes 0 there), or the program stops
-(runtime STOPPED) and the arm halts where it is.
+(runtime STOPPED) and the arm halts where it is. Until a program sets it there is no watchdog: a program whose client
+went away without setting one runs on. A program's watchdog ends with it (a new program sets its own).
+255 stop script (ur_rtde's stopScript): taken like any command (only while no safety stop holds the script), it
+signals nothing (no "done": ur_rtde waits for the program to stop instead), ends the script's main loop and with it
+the program (runtime STOPPED), and the program's watchdog with it; an asynchronous move's thread ends with the program
+and writes nothing (`_halt`). ur_rtde's disconnect() sends no such command: a client that only disconnects leaves
+the program running.
 
 Safety stops follow the RTDE guide: safety_mode 3 protective (status bit 2), 5 safeguard (bit 4), 7 robot
 emergency (bits 6, 7), each with bit 10 "stopped due to safety" (`safety_mode()`, which the dashboard's safetymode
@@ -118,6 +124,8 @@ class URControllerModel:
         self._last_kick = 0.0
         self.watchdog_stops = 0
         """Times the RTDE watchdog stopped the program."""
+        self.script_stops = 0
+        """Times the control script ended on its stop command (255, ur_rtde's stopScript)."""
         self.queries: list[tuple[str, tuple[float, ...], bool]] = []
         """(query, pose, answer) of every safety-limit and inverse-kinematics question answered."""
         self._motion: Motion | None = None
@@ -260,10 +268,11 @@ class URControllerModel:
     def _process(self, cmd: int, t: float) -> None:
         regs = [float(self._inputs.get(f"input_double_register_{i}", 0.0)) for i in range(8)]
         asynchronous = int(self._inputs.get("input_int_register_1", 0)) == 1
-        if cmd == STOP_SCRIPT:
+        if cmd == STOP_SCRIPT:  # the main loop ends without signalling done; the program ends with it
             self._halt(t, "ended")
             self.runtime_state = RUNTIME_STOPPED
             self.watchdog_period_s = None
+            self.script_stops += 1
             return
         if cmd == SET_WATCHDOG:
             self.watchdog_period_s = 1.0 / regs[0] if math.isfinite(regs[0]) and regs[0] > 0 else None

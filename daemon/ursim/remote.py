@@ -39,8 +39,9 @@ def handle(controller: SimURController, request: dict) -> object:
     if op == "state":
         m = controller.model
         return {"runtime_state": m.runtime_state, "watchdog_period_s": m.watchdog_period_s,
-                "watchdog_stops": m.watchdog_stops, "errors": list(m.errors), "queries": [list(q) for q in m.queries],
-                "tcp_offset_reads": m.tcp_offset_reads, "safety_mode": m.read(["safety_mode"])[0],
+                "watchdog_stops": m.watchdog_stops, "script_stops": m.script_stops, "errors": list(m.errors),
+                "queries": [list(q) for q in m.queries], "tcp_offset_reads": m.tcp_offset_reads,
+                "safety_mode": m.read(["safety_mode"])[0],
                 "moving": m.read(["output_int_register_2"])[0] & 32768 != 0,
                 "script_state": m.read(["output_int_register_0"])[0]}
     if op == "dashboard_log":
@@ -111,9 +112,10 @@ class SimURProcess:
         self._request("configure", **settings)
 
     def state(self) -> dict:
-        """runtime_state (1 stopped, 2 playing), watchdog_period_s, watchdog_stops, errors, queries (name, pose,
-        answer), tcp_offset_reads (get_tcp_offset commands answered), safety_mode (RTDE's), whether an asynchronous
-        move is running, script_state (1 ready for a command, 2 done with one)."""
+        """runtime_state (1 stopped, 2 playing), watchdog_period_s, watchdog_stops, script_stops (programs ended by
+        their stop command, ur_rtde's stopScript), errors, queries (name, pose, answer), tcp_offset_reads
+        (get_tcp_offset commands answered), safety_mode (RTDE's), whether an asynchronous move is running,
+        script_state (1 ready for a command, 2 done with one)."""
         return self._request("state")
 
     def emergency_stop(self) -> None:

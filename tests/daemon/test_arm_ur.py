@@ -170,7 +170,7 @@ class ArmWithoutPreCheck(URArm):
 
 def test_move_returning_false_is_explained_by_the_protective_stop(ur, arun):
     async def run():
-        arm = ArmWithoutPreCheck(ur.host, frequency=100.0, stale_after_s=1.0, timeout_s=20.0)
+        arm = ArmWithoutPreCheck(ur.host, frequency=100.0, stale_after_s=1.0, timeout_s=20.0, watchdog_hz=1.0)
         try:
             await arm.connect()
             ur.protective_stop()

@@ -372,6 +372,30 @@ def test_model_watchdog_stops_the_program_when_the_command_register_goes_unwritt
     assert c.model.watchdog_stops == 1 and "RTDE watchdog" in c.model.errors[-1]
 
 
+def test_model_the_stop_command_ends_the_program_and_its_watchdog_as_the_control_script_does():
+    """ur_rtde's stopScript writes 255: the script's main loop ends without signalling done, the program stops (the
+    arm halts, a move thread writes nothing) and its watchdog goes with it: no watchdog stop follows, however long
+    nothing is written. While a safety stop holds the script, the command is not taken (ur_rtde clears it again)."""
+    c = ClockedModel()
+    c.command(35, (2.0,) + (0.0,) * 7)  # watchdog 2 Hz
+    c.model.set_protective_stop(True)
+    c.command(255)
+    assert c.read("runtime_state") == [2] and c.model.script_stops == 0
+    c.model.set_protective_stop(False)
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)  # a 2 s move
+    c.t = 0.2
+    progress = c.read("output_int_register_2")[0]
+    c.model.write_inputs({"input_int_register_0": 255})
+    halted = c.read("actual_TCP_pose")[0]
+    assert c.read("runtime_state", "output_int_register_0", "output_int_register_2") == [1, 1, progress]
+    assert progress & RUNNING and 0.3 < halted[0] < 0.5
+    assert c.model.script_stops == 1 and c.model.watchdog_period_s is None
+    c.t = 5.0
+    c.model.check_watchdog()
+    assert c.read("runtime_state", "actual_TCP_pose") == [1, halted] and c.model.watchdog_stops == 0
+    assert [m.name for m in c.model.moves] == ["moveL"]  # the stop is no move
+
+
 def test_model_speed_slider_stretches_a_move_and_its_speed():
     fast, slow = ClockedModel(), ClockedModel()
     slow.model.set_speed_slider(0.25)

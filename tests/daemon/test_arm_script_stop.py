@@ -1,0 +1,229 @@
+"""The UR arm's control script ends with its session. An orderly close stops it (ur_rtde's stopScript: disconnect()
+alone leaves it running on the controller), also after a failed pre-check; the controller's watchdog is armed as soon
+as the client connects, kept kicked while the daemon waits, and is what stops the script when the client process dies.
+Real ur_rtde client, simulated controller in a child process on loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import os
+import re
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from spadscan.daemon.app import DeviceSession
+from spadscan.daemon.arm.rtde_link import RTDELink
+from spadscan.daemon.arm.ur import URArm
+from spadscan.daemon.ursim.remote import SimURProcess
+from spadscan.protocol.errors import DeviceError
+
+_hosts = itertools.count(1)
+WATCHDOG_HZ = 1.0  # a period the tests' own event loop keeps up with on a busy machine
+POINTER = (0.0, 0.0, 0.1, 0.0, 0.0, 0.5)  # a TCP offset the pre-check refuses
+DOWN = np.diag([1.0, -1.0, -1.0])
+
+
+@pytest.fixture
+def ur():
+    """A simulated controller process on a fresh loopback address; motion runs 10x faster than real."""
+    for _ in range(10):
+        try:
+            sim = SimURProcess(f"127.81.{os.getpid() % 250}.{next(_hosts) % 240 + 1}", time_scale=0.1)
+            break
+        except DeviceError:  # address in use: take the next one
+            continue
+    else:
+        raise AssertionError("no free loopback address for the simulated controller")
+    yield sim
+    sim.close()
+
+
+def make_arm(host: str, **kw) -> URArm:
+    return URArm(host, **{"frequency": 100.0, "stale_after_s": 1.0, "timeout_s": 20.0, "watchdog_hz": WATCHDOG_HZ,
+                          **kw})
+
+
+def pose(x: float, y: float, z: float) -> np.ndarray:
+    p = np.eye(4)
+    p[:3, :3], p[:3, 3] = DOWN, (x, y, z)
+    return p
+
+
+async def until(pred, what: str, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        await asyncio.sleep(0.02)
+
+
+async def until_arm_reads(arm: URArm, stop: str | None) -> None:
+    """Until the arm's own reading shows safety stop `stop` (None: none): the receive stream comes at its own pace."""
+    deadline = time.monotonic() + 30
+    while (await arm.state()).safety_stop != stop:
+        assert time.monotonic() < deadline, f"the arm never read safety stop {stop}"
+        await asyncio.sleep(0.01)
+
+
+def test_an_orderly_close_stops_the_control_script(ur, arun):
+    """After a session that moved the arm, close() ends the program with the script's stop command: nothing is left
+    running for the watchdog to stop, and the stop is no move."""
+    async def run():
+        arm = make_arm(ur.host)
+        try:
+            await arm.connect()
+            await arm.prepare()
+            await arm.move_to(pose(0.35, 0.0, 0.3), 0.5, 2.0)
+        finally:
+            await arm.close()
+        return ur.state()
+
+    state = arun(run())
+    assert state["runtime_state"] == 1 and state["script_stops"] == 1 and state["watchdog_stops"] == 0
+    assert [m.name for m in ur.moves] == ["moveL"]
+
+
+def test_a_failed_pre_check_still_stops_the_control_script(ur, arun):
+    """The rig does not start (the pre-check refuses a TCP offset): the session that connected is closed, and its
+    program stopped, before the error comes back."""
+    ur.configure(tcp_offset=POINTER)
+
+    async def run():
+        arm = make_arm(ur.host)
+        with pytest.raises(DeviceError, match="rig did not start: .*active TCP offset"):
+            async with DeviceSession([arm]):
+                pass
+        return ur.state()
+
+    state = arun(run())
+    assert state["runtime_state"] == 1 and state["script_stops"] == 1 and state["watchdog_stops"] == 0
+    assert [m.name for m in ur.moves] == ["stopL"]  # the session's release; nothing moved
+
+
+def test_the_watchdog_is_armed_at_connect_kept_while_waiting_and_stops_the_script_of_a_killed_client(ur, arun):
+    """Connected, not yet prepared (the daemon waits for the sensor, or between scans): the watchdog is armed and
+    kicked, so waiting several periods stops nothing. Then the ur_rtde process is killed, which no stopScript can
+    follow: the watchdog stops the program within its period."""
+    async def run():
+        arm = make_arm(ur.host)
+        try:
+            await arm.connect()
+            assert ur.state()["watchdog_period_s"] == 1.0 / WATCHDOG_HZ, "no watchdog armed at connect"
+            await asyncio.sleep(3.0 / WATCHDOG_HZ)  # the point: time without a command of the daemon's own
+            waited = ur.state()
+            os.kill(arm._link.pid, signal.SIGKILL)
+            await until(lambda: ur.state()["runtime_state"] == 1, "the watchdog to stop the program")
+            stopped = ur.state()
+        finally:
+            await arm.close()
+        return waited, stopped
+
+    waited, stopped = arun(run())
+    assert waited["runtime_state"] == 2 and waited["watchdog_stops"] == 0
+    assert stopped["watchdog_stops"] == 1 and stopped["script_stops"] == 0
+
+
+def test_a_safeguard_stop_at_connect_leaves_arming_the_watchdog_to_prepare(ur, arun):
+    """A script held by a safeguard stop takes no command (ur_rtde would wait minutes for setWatchdog's answer):
+    connecting does not ask, and prepare arms the watchdog once the stop is reset."""
+    ur.safeguard_stop()
+
+    async def run():
+        arm = make_arm(ur.host)
+        try:
+            await arm.connect()
+            at_connect = ur.state()["watchdog_period_s"]
+            ur.clear_safeguard_stop()
+            await until_arm_reads(arm, None)
+            await arm.prepare()
+            return at_connect, ur.state()["watchdog_period_s"]
+        finally:
+            await arm.close()
+
+    assert arun(run()) == (None, 1.0 / WATCHDOG_HZ)
+
+
+def test_a_close_during_a_safeguard_stop_leaves_the_script_to_the_watchdog(ur, arun, caplog):
+    """The script takes no stop command while a safety stop holds it (ur_rtde would wait minutes for the program to
+    end): close() does not ask, says so, finishes at once, and the watchdog armed at connect stops the program."""
+    caplog.set_level(logging.WARNING, logger="spadscan.daemon")
+
+    async def run():
+        arm = make_arm(ur.host)
+        try:
+            await arm.connect()
+            ur.safeguard_stop()
+            await until_arm_reads(arm, "safeguard stop")
+        finally:
+            t0 = time.monotonic()
+            await arm.close()
+            took = time.monotonic() - t0
+        await until(lambda: ur.state()["runtime_state"] == 1, "the watchdog to stop the program")
+        return took, arm.timeout_s, ur.state()
+
+    took, timeout_s, state = arun(run())
+    assert took < timeout_s  # a stopScript waiting for the held script would be ended only at timeout_s
+    assert state["watchdog_stops"] == 1 and state["script_stops"] == 0
+    said = [r.getMessage() for r in caplog.records if "control script" in r.getMessage()]
+    assert len(said) == 1 and re.search(r"the control script was left running \(safeguard stop holds it\); the "
+                                        r"controller's watchdog stops it within 1 s$", said[0]), said
+
+
+def test_a_close_under_a_safeguard_stop_held_since_connect_does_not_wait_and_says_what_to_do(ur, arun, caplog):
+    """No watchdog could be armed (the stop held the script since connect) and no stop command be taken: ur_rtde's
+    stopScript would wait 300 s for the program to end. close() does not send it, finishes at once and says that the
+    program runs on, to be stopped on the pendant."""
+    caplog.set_level(logging.WARNING, logger="spadscan.daemon")
+    ur.safeguard_stop()
+
+    async def run():
+        arm = make_arm(ur.host, timeout_s=10.0)
+        try:
+            await arm.connect()
+            await until_arm_reads(arm, "safeguard stop")
+        finally:
+            t0 = time.monotonic()
+            await arm.close()
+            took = time.monotonic() - t0
+        return took, arm.timeout_s, ur.state()
+
+    took, timeout_s, state = arun(run())
+    assert took < timeout_s
+    assert state["runtime_state"] == 2 and state["watchdog_period_s"] is None and state["script_stops"] == 0
+    said = [r.getMessage() for r in caplog.records if "control script" in r.getMessage()]
+    assert len(said) == 1 and said[0].endswith("no watchdog was armed on it: stop it on the teach pendant"), said
+
+
+def test_the_client_process_stops_the_script_when_its_requests_end(ur, arun):
+    """The ur_rtde process itself stops the script before it disconnects when its stdin closes (the daemon's close,
+    or the daemon gone): disconnect() alone would leave the program running."""
+    async def run():
+        link = RTDELink("test link")
+        await link.start()
+        try:
+            opened = await link.call("connect", 35.0, "open", ur.host, 100.0, None)
+            running = ur.state()["runtime_state"]
+        finally:
+            await link.stop(20.0)
+        return opened, running, ur.state()
+
+    opened, running, state = arun(run())
+    assert opened["watchdog"] is False and running == 2  # no watchdog asked for: only the stop ends the program
+    assert state["runtime_state"] == 1 and state["script_stops"] == 1 and state["watchdog_stops"] == 0
+
+
+def test_the_watchdog_armed_at_connect_runs_at_the_configured_rate(ur, arun):
+    """[arm] watchdog_hz, 2 Hz by default (the backend's default, not this file's)."""
+    async def run():
+        arm = make_arm(ur.host, watchdog_hz=2.0)
+        try:
+            await arm.connect()
+            return ur.state()["watchdog_period_s"]
+        finally:
+            await arm.close()
+
+    assert arun(run()) == 0.5
