@@ -64,7 +64,8 @@ def tmf8820() -> SensorModel:
         max_count=2**24 - 1,
         ignore_bins=(0,),
         has_reference=True,
-        notes=("Time axis 73.48 bins/m (ams), zero range at bin 12.40 and signal 0.27 photons/cycle per unit albedo x "
+        notes=("Time axis 73.48 bins/m (the UW tools' DIST_TO_BIN_SLOPE 73.484, intercept 13.2521; ams' drivers give "
+               "none), zero range at bin 12.40 and signal 0.27 photons/cycle per unit albedo x "
                "int cos/r^2 dOmega from a loose fit to LCSPCData's real pyramid (tools/fit_sensor.py --tmf); pulse "
                "table from the reference histogram, p(t) = ref_n(14.27 + (t - 12.66)/1.10)^1.5; zones, gains, "
                "crosstalk 0.021, ~4 M cycles per frame and background ~120 counts/bin from docs/sensor_models.md. "

@@ -15,25 +15,37 @@ the chip the same way):
    status `[status, size, checksum]` at 0x08 is polled while status >= 0x10 (busy: the register echoes the command
    it runs, 0x43, 0x41, ...) and must then read 0x00.
    RAMREMAP is not answered (the CPU restarts into the application): wait SETTLE_S, then poll APP_ID until 0x03.
-4. Accuracy mode: ACTIVE_RANGE 0x19 reads 0x6E (short-range high accuracy), 0x6F (long range, the default) or 0x00
-   (this firmware has no accuracy modes). On 0x6F CMD_STAT 0x08 <- 0x6E. A firmware that cannot switch is not an
-   error: the mode it measures in is logged and kept in the counters (`active_range`).
+4. Accuracy mode, as ams' Linux driver switches it: ACTIVE_RANGE 0x19 reads 0x6E (short-range high accuracy), 0x6F
+   (long range, the default) or 0x00 (an application image without accuracy modes). Unless it reads 0x6E, CMD_STAT
+   0x08 <- 0x6E, then ACTIVE_RANGE is read again and must read 0x6E: otherwise the start fails with one line naming
+   both (the `tmf8820` sensor model describes short-range histograms only; long-range ones stored under it would put
+   every surface in the wrong place), before anything is measured.
 5. Configure: 0x16 (load the common config page; 0x20 then reads 0x16), period ms 0x24 (u16 LE), kilo-iterations
    0x26 (u16 LE), SPAD map 0x34, HIST_DUMP 0x39 = 1 (raw histograms), then 0x15 (write config). After each command
-   CMD_STAT echoes the command while busy (>= 0x10), then reads 0x00 (ok) or 0x01 (accepted); 0x02..0x0F are errors.
+   CMD_STAT echoes the command while busy (>= 0x10), then reads its status: ams' Python driver requires 0x00 (ok)
+   for every command but measure, and 0x01 (accepted) for measure; so does the daemon (measure may also read 0x00,
+   which ams' Linux driver accepts). Anything else fails the start, the status named.
 6. Interrupts: INT_STATUS 0xE1 <- 0xFF (write 1 to clear), then INT_ENAB 0xE2 |= result (0x02) and raw histogram
-   (0x08) bits, read-modify-write, as every reference does before measuring (the enables drive the INT pin).
+   (0x08) bits, as every reference does before measuring, and the error bit (0x40), as ams' Linux driver does (it
+   enables all but "command done"); read-modify-write (the enables drive the INT pin).
 7. Measure: CMD_STAT <- 0x10 (accepted: 0x01).
 
 Readout polls INT_STATUS: bit 0x08 = a histogram sub-packet waits at 0x20, bit 0x02 = a result (layouts in
-`i2c_records`). Each is read in one `i2c_rdwr` transfer and its bit cleared by writing it back. A record that is not
+`i2c_records`). Before each record is read CMD_STAT is checked, as ams' Linux driver does before every message read.
+Each record is read in one `i2c_rdwr` transfer and its bit cleared by writing it back. A record that is not
 what its bit announces is refused (counted in bad_records, the last one's reason in last_bad_record); a histogram
 sub-packet whose size field is not the documented one is taken (ams' drivers do not check it) and counted in
-size_field_mismatches, with one warning in the log. If no record arrives
-for `watchdog_s`, APP_ID and CMD_STAT are checked: a sensor that lost power is back in its bootloader, and an
-application that stopped measuring (CMD_STAT not 0x01, e.g. 0x03 "severe error, stopped") sends nothing more; the
-device treats either as a dropped link (it boots, downloads if needed, configures and measures again). `stop` sends
-0xFF and clears its INT_ENAB bits again.
+size_field_mismatches, with one warning in the log.
+Bit 0x40 is the error interrupt ("one of the status registers has been set to a non-zero value", ams' Python
+driver): at the poll that sees it the daemon clears it and reads CMD_STAT and the status registers 0x04-0x07. A
+CMD_STAT other than 0x00 / 0x01 (e.g. 0x03 "severe error, stopped") means the application stopped measuring: a
+dropped link, named with the registers (the device boots, downloads if needed, configures and measures again). With
+CMD_STAT still fine it is counted (error_interrupts, the registers in last_error_interrupt) and logged once, and
+reading goes on, as ams' Linux driver goes on after logging it (the register map does not say which status values
+raise it: a warning such as "no factory calibration" may). The fallback, for a chip that stops without the
+interrupt: if no record arrives for `watchdog_s`, APP_ID and CMD_STAT are checked: a sensor that lost power is back
+in its bootloader, and an application that stopped measuring sends nothing more; either is a dropped link too.
+`stop` sends 0xFF and clears its INT_ENAB bits again.
 
 `restart` (once the arm has settled) stops the measurement and starts a fresh one, as ams' Python driver's
 stopMeasure/startMeasure and its Linux driver's stop/start do: 0xFF (status 0x00), INT_STATUS <- 0xFF (so that no
@@ -57,7 +69,7 @@ from .firmware import FirmwareImage, download_frames, load_firmware
 from .i2c_records import (HIST_RECORD, RESULT_RECORD, histogram_refusal, parse_histogram_record, parse_result_record,
                           result_refusal, size_field_disagreement)
 from .tmf8820 import TMF8820
-from .transport import RANGE_LONG, RANGE_NAMES, RANGE_SHORT, LinkDown, Packet, Transport
+from .transport import RANGE_LONG, RANGE_NAMES, RANGE_NONE, RANGE_SHORT, LinkDown, Packet, Transport
 
 log = logging.getLogger("spadscan.daemon")
 
@@ -67,12 +79,22 @@ REG_PERIOD, REG_KILO_ITER, REG_SPAD_MAP, REG_HIST_DUMP = 0x24, 0x26, 0x34, 0x39
 ENABLE_PON, ENABLE_CPU_READY, ENABLE_CPU_RESET = 0x01, 0x40, 0x80
 APP_BOOTLOADER, APP_RUNNING = 0x80, 0x03
 CMD_MEASURE, CMD_STOP, CMD_LOAD_CONFIG, CMD_WRITE_CONFIG, CMD_SHORT_RANGE = 0x10, 0xFF, 0x16, 0x15, 0x6E
-INT_RESULT, INT_HISTOGRAM = 0x02, 0x08
+INT_RESULT, INT_HISTOGRAM, INT_ERROR = 0x02, 0x08, 0x40
+INT_BITS = INT_RESULT | INT_HISTOGRAM | INT_ERROR
+"""The INT_ENAB bits the daemon sets while measuring (and clears at stop)."""
+REG_STATUS_NAMES = {0x04: "APPLICATION_STATUS", 0x05: "MEASURE_STATUS", 0x06: "ALGORITHM_STATUS",
+                    0x07: "FACTORY_CALIBRATION_STATUS"}
+"""The status registers the error interrupt is about (ams' register map)."""
 BUSY = 0x10
 """CMD_STAT (bootloader and application) at or above this value: a command is still running."""
 STAT_OK, STAT_ACCEPTED = 0x00, 0x01
 """CMD_STAT while the application measures: 0x01 (measure accepted, running until stopped), or 0x00 (ok), which
 ams' Linux driver accepts too before it reads a record."""
+STAT_NAMES = {0x00: "ok", 0x01: "accepted", 0x02: "configuration not accepted", 0x03: "application error, stopped",
+              0x04: "wakeup timed, power cycle the device", 0x05: "unexpected reset, power cycle the device",
+              0x06: "unknown command", 0x07: "no reference SPAD", 0x08: "no flicker SPAD",
+              0x09: "unknown config page", 0x0E: "unknown mode"}
+"""CMD_STAT values as ams' register map names them (0x0A-0x0D are warnings that a setting was ignored)."""
 SETTLE_S = 0.010
 """Wait after setting PON and after RAMREMAP before the chip is addressed again (the references wait 10 ms)."""
 TIME_MULTIPLEXED_MAPS = frozenset({4, 5, 7, 10, 13, 15})
@@ -81,6 +103,9 @@ BL_ERRORS = {0x01: "size error", 0x02: "checksum error", 0x03: "resource error",
              0x05: "timeout", 0x06: "locked", 0x07: "address out of range", 0x08: "more data expected"}
 COMMAND_NAMES = {CMD_MEASURE: "measure", CMD_STOP: "stop", CMD_LOAD_CONFIG: "load common config",
                  CMD_WRITE_CONFIG: "write config", CMD_SHORT_RANGE: "short-range mode"}
+COMMAND_STATUS = {CMD_MEASURE: (STAT_ACCEPTED, STAT_OK)}
+"""The statuses a command may answer (ams' Python driver: 0x01 for measure, 0x00 for the others; ams' Linux driver
+takes 0x00 for measure too). Any other command: 0x00 only."""
 
 
 class I2CTransport(Transport):
@@ -88,8 +113,9 @@ class I2CTransport(Transport):
 
     smbus_factory(bus) returns an SMBus-like object (default `smbus2.SMBus`; tests pass the fake). Counters:
     records, bad_records (refused; last_bad_record says why the last one was), size_field_mismatches (histogram
-    sub-packets taken although their size field is not the documented one), boots, downloads, and active_range (the
-    accuracy mode the sensor measures in).
+    sub-packets taken although their size field is not the documented one), error_interrupts (error interrupts
+    while the application went on measuring; the registers of the last one in last_error_interrupt), boots,
+    downloads, and active_range (the accuracy mode the sensor measures in).
     """
 
     def __init__(self, bus: int | str, address: int = 0x41, firmware: Path | None = None, *, period_ms: int = 100,
@@ -112,8 +138,8 @@ class I2CTransport(Transport):
         self._bus = None
         self._image: FirmwareImage | None = None
         self._last_record = 0.0
-        self._counts: dict[str, int | str] = {"records": 0, "bad_records": 0, "size_field_mismatches": 0, "boots": 0,
-                                              "downloads": 0}
+        self._counts: dict[str, int | str] = {"records": 0, "bad_records": 0, "size_field_mismatches": 0,
+                                              "error_interrupts": 0, "boots": 0, "downloads": 0}
 
     # ---- lifecycle -----------------------------------------------------------------------------------------------
     def open(self) -> None:
@@ -153,7 +179,7 @@ class I2CTransport(Transport):
         self._write(REG_HIST_DUMP, 0x01)
         self._command(CMD_WRITE_CONFIG)
         self._write(REG_INT_STATUS, 0xFF)
-        self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) | INT_RESULT | INT_HISTOGRAM)
+        self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) | INT_BITS)
         self._command(CMD_MEASURE)
         self._last_record = time.monotonic()
 
@@ -166,7 +192,7 @@ class I2CTransport(Transport):
     def stop(self) -> None:
         if self._bus is not None:
             self._command(CMD_STOP)
-            self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) & ~(INT_RESULT | INT_HISTOGRAM))
+            self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) & ~INT_BITS)
 
     def close(self) -> None:
         bus, self._bus = self._bus, None
@@ -184,6 +210,8 @@ class I2CTransport(Transport):
         deadline = time.monotonic() + timeout_s
         while True:
             status = self._read(REG_INT_STATUS)
+            if status & INT_ERROR:
+                self._error_interrupt()
             if status & (INT_HISTOGRAM | INT_RESULT):
                 pkt = self._take_record(status & INT_HISTOGRAM != 0)
                 if pkt is not None:
@@ -201,6 +229,7 @@ class I2CTransport(Transport):
         """Read the record waiting at 0x20 (a histogram sub-packet or a result) and clear its INT bit; the packet, or
         None when the record is refused (counted, with the reason)."""
         bit = INT_HISTOGRAM if histogram else INT_RESULT
+        self._require_measuring("before a record read")
         buf = self._block_read(REG_PAGE, HIST_RECORD if histogram else RESULT_RECORD)
         t = time.monotonic()
         self._write(REG_INT_STATUS, bit)
@@ -229,7 +258,8 @@ class I2CTransport(Transport):
 
     def _check_measuring(self) -> None:
         """After watchdog_s without a record: raise LinkDown (so the device boots and starts the sensor again) unless
-        the application still runs and measures.
+        the application still runs and measures. The fallback for a chip that stops without raising its error
+        interrupt (`_error_interrupt` catches the others at once).
 
         A power loss or reset puts the chip back in its bootloader (APP_ID). The application can also stop on its own
         while APP_ID stays 0x03: ams' register map has CMD_STAT 0x03 "severe error, stopped" (details in
@@ -240,11 +270,30 @@ class I2CTransport(Transport):
         app = self._read(REG_APP_ID)
         if app != APP_RUNNING:
             raise LinkDown(f"sensor reset (APP_ID {app:#04x}, no record for {self.watchdog_s:g} s)")
-        status = self._read(REG_CMD_STAT)
-        if status not in (STAT_OK, STAT_ACCEPTED):
-            detail = self._read(REG_APP_STATUS)
-            raise LinkDown(f"sensor stopped measuring (CMD_STAT {status:#04x}, APPLICATION_STATUS {detail:#04x}, "
-                           f"no record for {self.watchdog_s:g} s)")
+        self._require_measuring(f"no record for {self.watchdog_s:g} s")
+
+    def _require_measuring(self, when: str, registers: str | None = None) -> None:
+        """Raise LinkDown unless CMD_STAT says the application measures (0x01 accepted, or 0x00 ok, as ams' Linux
+        driver checks before every message read). `when` says what led to the check and `registers` the status
+        registers already read (default: APPLICATION_STATUS is read), for the message."""
+        status = self._settled_status()
+        if status in (STAT_OK, STAT_ACCEPTED):
+            return
+        if registers is None:
+            registers = f"APPLICATION_STATUS {self._read(REG_APP_STATUS):#04x}"
+        raise LinkDown(f"sensor stopped measuring (CMD_STAT {status:#04x}{_stat_name(status)}, {registers}, {when})")
+
+    def _error_interrupt(self) -> None:
+        """INT_STATUS bit 0x40 is set: clear it, then LinkDown if the application stopped (CMD_STAT), else count it
+        and warn once (the application measures on, as ams' Linux driver goes on after logging it)."""
+        self._write(REG_INT_STATUS, INT_ERROR)
+        registers = ", ".join(f"{name} {self._read(reg):#04x}" for reg, name in REG_STATUS_NAMES.items())
+        self._require_measuring("error interrupt: INT_STATUS bit 0x40", registers)
+        self._counts["error_interrupts"] += 1
+        self._counts["last_error_interrupt"] = registers
+        if self._counts["error_interrupts"] == 1:
+            log.warning("%s: the sensor raised its error interrupt (INT_STATUS bit 0x40: %s) and measures on; such "
+                        "interrupts are counted in error_interrupts", self.name, registers)
 
     # ---- boot steps ----------------------------------------------------------------------------------------------
     def _power_on(self) -> None:
@@ -282,37 +331,44 @@ class I2CTransport(Transport):
         self._wait(ready, f"the bootloader to accept {label}")
 
     def _short_range_mode(self) -> None:
-        """Ask for short-range high-accuracy mode where the firmware has accuracy modes; record the mode it runs."""
+        """Switch to short-range high-accuracy mode as ams' Linux driver does (command 0x6E unless ACTIVE_RANGE reads
+        0x6E, then ACTIVE_RANGE must read 0x6E); record the mode. A sensor that does not switch fails the start: the
+        `tmf8820` sensor model describes short-range histograms, and long-range ones stored under it would misplace
+        every surface."""
         mode = self._read(REG_ACTIVE_RANGE)
-        status = None
-        if mode == RANGE_LONG:
+        status = STAT_OK
+        if mode != RANGE_SHORT:
             status = self._send(CMD_SHORT_RANGE)
             mode = self._read(REG_ACTIVE_RANGE)
-        name = RANGE_NAMES.get(mode, f"unknown ({mode:#04x})")
-        self._counts["active_range"] = name
-        if mode != RANGE_SHORT:
-            refused = "" if status is None else f"; command 0x6e answered {status:#04x}"
-            log.warning("%s: the sensor measures in %s mode (ACTIVE_RANGE 0x19 reads %#04x%s), not short-range "
-                        "high accuracy: its time axis is not the one the tmf8820 sensor model describes",
-                        self.name, name, mode, refused)
+        self._counts["active_range"] = RANGE_NAMES.get(mode, f"unknown ({mode:#04x})")
+        if mode != RANGE_SHORT or status != STAT_OK:
+            raise DeviceError(short_range_refusal(status, mode))
 
     def _command(self, cmd: int) -> None:
-        """Send an application command and require it to succeed (status 0x00 ok or 0x01 accepted)."""
+        """Send an application command and require the status ams' drivers require (`COMMAND_STATUS`)."""
         status = self._send(cmd)
-        if status > 0x01:
-            raise DeviceError(f"command {cmd:#04x} ({COMMAND_NAMES[cmd]}) failed with status {status:#04x}")
+        expected = COMMAND_STATUS.get(cmd, (STAT_OK,))
+        if status not in expected:
+            wanted = " or ".join(f"{s:#04x}{_stat_name(s)}" for s in expected)
+            raise DeviceError(f"command {cmd:#04x} ({COMMAND_NAMES[cmd]}) answered status {status:#04x}"
+                              f"{_stat_name(status)}, expected {wanted}")
 
     def _send(self, cmd: int) -> int:
         """Write an application command to CMD_STAT and return its status once it no longer runs."""
         self._write(REG_CMD_STAT, cmd)
+        return self._settled_status(f"command {cmd:#04x} ({COMMAND_NAMES[cmd]})")
+
+    def _settled_status(self, what: str = "CMD_STAT to settle") -> int:
+        """CMD_STAT once no command runs (while one does the register echoes it, >= 0x10; ams' Linux driver waits
+        the same way before it reads a record)."""
         status = BUSY
 
         def done():
             nonlocal status
             status = self._read(REG_CMD_STAT)
-            return status < BUSY  # while it runs the register echoes the command
+            return status < BUSY
 
-        self._wait(done, f"command {cmd:#04x} ({COMMAND_NAMES[cmd]})")
+        self._wait(done, what)
         return status
 
     def _wait_waking(self, ready: Callable[[], bool], what: str) -> None:
@@ -387,6 +443,23 @@ class I2CTransport(Transport):
         if self._bus is None:
             raise LinkDown("the bus is not open")
         return self._bus
+
+
+def _stat_name(status: int) -> str:
+    """' (name)' of a CMD_STAT value as ams' register map names it, '' for a value it does not name."""
+    name = STAT_NAMES.get(status)
+    return f" ({name})" if name else ""
+
+
+def short_range_refusal(status: int, mode: int) -> str:
+    """The one-line error of a sensor that did not switch to short range: what command 0x6E answered, what
+    ACTIVE_RANGE reads, and what to do."""
+    what = {RANGE_NONE: "an application image without accuracy modes", RANGE_LONG: "still long range",
+            RANGE_SHORT: "short range, but the command did not answer 0x00"}.get(mode, "no accuracy mode ams documents")
+    return (f"the sensor did not switch to short-range high-accuracy mode: command 0x6e answered status "
+            f"{status:#04x}{_stat_name(status)} and ACTIVE_RANGE 0x19 reads {mode:#04x} ({what}); the tmf8820 sensor "
+            f"model describes short-range histograms only, so nothing is measured: set firmware = PATH to an ams "
+            f"TMF8820 application image with accuracy modes (short_range_accuracy), then power-cycle the sensor")
 
 
 def _bus_error(what: str, exc: OSError) -> LinkDown:

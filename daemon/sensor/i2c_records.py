@@ -13,9 +13,17 @@ Every record starts with a 4-byte header: RID (what the record is), TID (changes
   checks the size field of a later sub-packet (the Linux driver takes the message size from sub-packet 0 only), so a
   firmware may write it otherwise (the total in every sub-packet, say): such a sub-packet is still taken, and the
   disagreement is only reported (`size_field_disagreement`).
-- A measurement result (RID 0x10) is 132 bytes: header (size 128), result number, temperature (deg C, a signed byte;
-  the references read it as unsigned), number of valid results, reserved, ambient light u32, photon count u32,
-  reference photon count u32, system ticks u32, then 36 x {confidence u8, distance mm u16 LE}.
+- A measurement result (RID 0x10) is 132 bytes: header (size 128), result number, temperature (deg C, an unsigned
+  byte: ams' Python driver declares it uint8, its Linux driver decodes it as one, its Arduino driver prints it as
+  0..255), number of valid results (bits 5:0: the register map's mask 0x3F for NUMBER_VALID_RESULTS 0x26; what bits
+  7:6 mean it does not say, and ams' drivers read the whole byte), reserved, ambient light u32, photon count u32,
+  reference photon count u32, system ticks u32, then 36 result slots {confidence u8, distance mm u16 LE}.
+  Slot k is target (k // 18) + 1 of channel (k % 9) + 1 in sub-capture (k // 9) % 2 (ams' Linux driver's
+  RESULT_IDX_TO_CHANNEL / RESULT_IDX_TO_SUB_CAPTURE; its Python driver's object1[0..17], object2[0..17]): with one
+  SPAD map (no time multiplexing, as the daemon configures) slots 0-8 are the first target of channels 1-9, slots
+  18-26 their second target, and slots 9-17 and 27-35 (sub-capture 1) stay 0. A slot without a target reads
+  confidence 0 and distance 0 (`slot_target` says what slot k holds). The distances are stored as the chip wrote
+  them: no clock correction (ams' Arduino driver, and the bridge firmware built on it, print corrected ones).
 """
 
 from __future__ import annotations
@@ -34,9 +42,22 @@ def remaining_size(index: int) -> int:
     return (N_SUBPACKETS - index) * SUBPACKET_BYTES
 
 
-def signed_byte(value: int) -> int:
-    """A byte that carries a two's complement number (the temperature) as an int in [-128, 127]."""
-    return value - 256 if value > 127 else value
+VALID_RESULTS_MASK = 0x3F
+"""NUMBER_VALID_RESULTS (result byte 6, register 0x26) is a 6-bit field (ams' register map)."""
+N_TARGETS, N_SUB_CAPTURES, N_ZONE_CHANNELS = 2, 2, 9
+
+
+def valid_results(byte: int) -> int:
+    """The number of valid results a result's count byte holds: its bits 5:0."""
+    return byte & VALID_RESULTS_MASK
+
+
+def slot_target(k: int) -> tuple[int, int, int]:
+    """What result slot k (0..35) holds: (channel 1..9, sub-capture 0..1, target 1..2). Capture zone index = channel
+    - 1 (channel 0 is the reference, which has no result slot)."""
+    if not 0 <= k < N_RESULTS:
+        raise ValueError(f"result slot {k} is not in 0..{N_RESULTS - 1}")
+    return k % N_ZONE_CHANNELS + 1, (k // N_ZONE_CHANNELS) % N_SUB_CAPTURES, k // (N_ZONE_CHANNELS * N_TARGETS) + 1
 
 
 def histogram_refusal(buf: bytes) -> str:
@@ -73,8 +94,8 @@ def result_refusal(buf: bytes) -> str:
     # places at 0xA4-0xC7): the results themselves stand where they do, so only a shorter record is refused.
     if buf[2] | buf[3] << 8 < RESULT_RECORD - HEADER_BYTES:
         return f"size field {buf[2] | buf[3] << 8}, under {RESULT_RECORD - HEADER_BYTES}"
-    if buf[6] > N_RESULTS:
-        return f"{buf[6]} valid results, more than {N_RESULTS}"
+    if valid_results(buf[6]) > N_RESULTS:
+        return f"{valid_results(buf[6])} valid results (count byte {buf[6]:#04x}), more than {N_RESULTS}"
     return ""
 
 
@@ -91,7 +112,7 @@ def parse_result_record(buf: bytes, t: float) -> ResultPacket | None:
         return None
     u32 = [int.from_bytes(buf[k:k + 4], "little") for k in (8, 12, 16, 20)]
     body = buf[24:]
-    return ResultPacket(result_no=buf[4], temperature_c=float(signed_byte(buf[5])), n_valid=buf[6], systick=u32[3],
+    return ResultPacket(result_no=buf[4], temperature_c=float(buf[5]), n_valid=valid_results(buf[6]), systick=u32[3],
                         distances_mm=[body[3 * k + 1] | body[3 * k + 2] << 8 for k in range(N_RESULTS)],
                         confidences=[body[3 * k] for k in range(N_RESULTS)], t=t,
                         extra={"ambient": u32[0], "photon_count": u32[1], "reference_count": u32[2]})

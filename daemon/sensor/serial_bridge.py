@@ -1,6 +1,8 @@
 """The TMF8820 behind an Arduino bridge that prints the sensor's records as text lines over USB serial (pyserial).
 
-Line format (one record per line, fields separated by commas, an optional trailing comma, `\\n` or `\\r\\n`):
+Line format (one record per line, fields separated by commas, `\\n` or `\\r\\n`; ams' Arduino driver, which the UW
+firmware is built on, prints no trailing comma, and the UW consumer requires exactly 131 `#Raw` and 78 `#Obj` fields;
+a trailing comma is tolerated all the same):
 
     #Raw,<i2c addr>,<sub-packet 0..29>,<128 byte values 0..255>          131 fields
     #Obj,<i2c addr>,<result no>,<temperature>,<n valid>,<systick>,
@@ -8,9 +10,16 @@ Line format (one record per line, fields separated by commas, an optional traili
     #Obj                                                                  a separator, ignored
     #Err,<text...>   #Vers,<text...>                                      status lines
 
-The temperature is the result record's byte printed unsigned (0..255): it carries degrees C in two's complement, so
-values above 127 are below 0 C (250 is -6 C). The bridge has no checksum: a line is accepted when its tag, field
-count and every value are well-formed and in range; anything else (a partial line after a mid-line start or an
+The temperature is the result record's byte, degrees C, printed as an unsigned number (0..255) and read so, as every
+ams driver reads it. The valid-results count is the record's byte as printed; its bits 5:0 hold the count (the
+register map's 6-bit field). The 36 distance/confidence pairs are the result slots (`i2c_records`: slot k is target
+k // 18 + 1 of channel k % 9 + 1), their distances clock-corrected by the firmware (ams' Arduino driver's
+tmf882xCorrectDistance, on by default in the UW firmware), unlike the I2C backend's raw ones.
+
+`#Prt` lines (partial histograms: the UW consumer reads them as a "partial" histogram type, but no ams or UW source
+says which bins they carry or what the field after their sub-packet number is) are refused with a line saying so: a
+frame is 30 full `#Raw` sub-packets. The bridge has no checksum: a line is accepted when its tag, field count and
+every value are well-formed and in range; anything else (a partial line after a mid-line start or an
 unplug, two lines run together, line noise, another sensor's line) is refused and counted (in bad_records, as the I2C
 transport counts its refused records, and by kind), and the frame it belonged to is dropped by the frame assembler.
 
@@ -33,7 +42,7 @@ from spadscan.protocol.errors import DeviceError
 from spadscan.protocol.sensor_model import SensorModel
 
 from .device_node import SERIAL_GROUP, with_access_fix
-from .i2c_records import signed_byte
+from .i2c_records import valid_results
 from .tmf8820 import TMF8820
 from .transport import (N_RESULTS, N_SUBPACKETS, RANGE_NAMES, RANGE_SHORT, SUBPACKET_BYTES, HistogramPacket, LinkDown,
                         Packet, ResultPacket, StatusPacket, Transport)
@@ -69,9 +78,16 @@ def _printable(data: bytes, limit: int) -> str:
     return text + ("..." if len(data) > limit else "")
 
 
+PARTIAL_HISTOGRAM = ("the bridge prints partial histograms (#Prt lines: its partial-histogram mode), whose bins the "
+                     "daemon cannot place in a frame: flash or set the bridge firmware to dump full raw histograms "
+                     "(HIST_DUMP raw, 30 #Raw lines of 128 bins per frame, as the UW firmware does)")
+"""Why a `#Prt` line is refused, in one line for the operator."""
+
+
 def classify_line(line: bytes, t: float, address: int | None) -> Packet | tuple[str, str]:
     """Decode one line (without its newline): a packet, or (kind, why) for a line that is skipped, kind one of
-    'corrupt', 'separator', 'other_address', 'unknown' and why in words for the operator ('' for a separator)."""
+    'corrupt', 'separator', 'other_address', 'partial_histogram', 'unknown' and why in words for the operator ('' for
+    a separator)."""
     line = line.rstrip(b"\r")
     note = _bridge_note(line, t)
     if note is not None:
@@ -85,6 +101,8 @@ def classify_line(line: bytes, t: float, address: int | None) -> Packet | tuple[
             return _raw_record(fields, t, address)
         if tag == b"#Obj":
             return ("separator", "") if len(fields) == 1 else _obj_record(fields, t, address)
+        if tag == b"#Prt":
+            return "partial_histogram", PARTIAL_HISTOGRAM
         if tag in (b"#Err", b"#Vers"):
             text = b",".join(fields[1:]).decode("ascii", "replace")
             return StatusPacket(kind="error" if tag == b"#Err" else "version", text=text, t=t)
@@ -112,15 +130,17 @@ def _obj_record(fields: list[bytes], t: float, address: int | None) -> ResultPac
     if len(fields) != OBJ_FIELDS:
         return "corrupt", f"a #Obj line of {len(fields)} fields, not {OBJ_FIELDS}"
     addr = _uint(fields[1], 127)
-    temp = signed_byte(_uint(fields[3], 255))
+    n_valid = valid_results(_uint(fields[4], 255))
+    if n_valid > N_RESULTS:
+        return "corrupt", f"a #Obj line with {n_valid} valid results, more than {N_RESULTS}"
     pairs = [_uint(f, 65535) for f in fields[6:]]
     confidence = max(pairs[1::2])
     if confidence > 255:
         return "corrupt", f"a #Obj line with a confidence of {confidence}, more than a byte"
     if address is not None and addr != address:
         return "other_address", f"a #Obj line for I2C address {addr}, not {address}"
-    return ResultPacket(result_no=_uint(fields[2], 255), temperature_c=float(temp),
-                        n_valid=_uint(fields[4], N_RESULTS), systick=_uint(fields[5], 2**32 - 1),
+    return ResultPacket(result_no=_uint(fields[2], 255), temperature_c=float(_uint(fields[3], 255)),
+                        n_valid=n_valid, systick=_uint(fields[5], 2**32 - 1),
                         distances_mm=pairs[0::2], confidences=pairs[1::2], t=t)
 
 
@@ -146,8 +166,9 @@ class SerialBridgeTransport(Transport):
     """pyserial link to the bridge: splits the byte stream into lines, timestamps and parses them.
 
     The port is reopened by path after an unplug (use a stable path such as /dev/serial/by-id/...). Counters:
-    lines, corrupt_lines, unknown_lines, other_address_lines, separators, overlong_lines; bad_records, the lines
-    refused (all of those but separators), with last_bad_record saying why the last one was and how it began; once
+    lines, corrupt_lines, unknown_lines, other_address_lines, partial_histogram_lines, separators, overlong_lines;
+    bad_records, the lines refused (all of those but separators), with last_bad_record saying why the last one was and
+    how it began; once
     the bridge has said so, downloads (its "FW downloaded" lines) and active_range (the accuracy mode its "Active
     range" line reports).
     """
@@ -170,7 +191,7 @@ class SerialBridgeTransport(Transport):
         self._buf = bytearray()
         self._pending: collections.deque[tuple[bytes, float]] = collections.deque()
         self._counts = {"lines": 0, "corrupt_lines": 0, "unknown_lines": 0, "other_address_lines": 0,
-                        "separators": 0, "overlong_lines": 0, "bad_records": 0}
+                        "partial_histogram_lines": 0, "separators": 0, "overlong_lines": 0, "bad_records": 0}
 
     def open(self) -> None:
         if self._ser is not None:
@@ -221,6 +242,8 @@ class SerialBridgeTransport(Transport):
             self._counts["separators"] += 1
             return
         self._counts[f"{kind}_lines"] += 1
+        if kind == "partial_histogram" and self._counts[f"{kind}_lines"] == 1:
+            log.warning("%s: %s", self.name, why)
         self._refuse(why, line)
 
     def _refuse(self, why: str, line: bytes) -> None:
@@ -230,7 +253,8 @@ class SerialBridgeTransport(Transport):
 
     def _note(self, note: StatusPacket) -> None:
         """Count a download; keep the accuracy mode the bridge reports, and warn unless it is short range (the
-        `tmf8820` model's time axis), as the I2C backend does."""
+        `tmf8820` model's time axis). The I2C backend refuses to start in another mode; the bridge switches the mode
+        itself and cannot be told to, so here it is a warning."""
         if note.kind == "firmware_downloaded":
             self._counts["downloads"] = self._counts.get("downloads", 0) + 1
             return

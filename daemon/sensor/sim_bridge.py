@@ -43,11 +43,13 @@ FAULTS = ("drop", "duplicate", "swap", "truncate", "garble", "out_of_range", "me
 
 @dataclass
 class BridgeResult:
-    """The `#Obj` record that closes a frame: temperature (deg C), 36 distances (mm) and confidences."""
+    """The `#Obj` record that closes a frame: temperature (deg C, 0..255: the chip's unsigned byte), the valid-results
+    count (None: the slots with a non-zero confidence, as the chip counts them), 36 distances (mm) and confidences
+    (slot k: target k // 18 + 1 of channel k % 9 + 1, as `i2c_records` lays them out)."""
 
     result_no: int = 0
     temperature_c: int = 25
-    n_valid: int = 9
+    n_valid: int | None = None
     systick: int = 0
     distances_mm: list[int] = field(default_factory=lambda: [0] * 36)
     confidences: list[int] = field(default_factory=lambda: [0] * 36)
@@ -66,12 +68,14 @@ def raw_lines(counts: np.ndarray, address: int = 0x41) -> list[bytes]:
 
 
 def obj_line(result: BridgeResult, address: int = 0x41) -> bytes:
-    """The `#Obj` line (78 fields, trailing comma as the bridge prints it; the temperature byte printed unsigned)."""
-    if not -128 <= result.temperature_c <= 127:
-        raise ValueError(f"bridge temperature {result.temperature_c} C is outside a signed byte [-128, 127]")
+    """The `#Obj` line as ams' Arduino print_results prints it and the UW firmware sends it: 78 fields, no trailing
+    comma, ended by '\\n' (the firmware's PRINT_LN); the temperature byte printed unsigned."""
+    if not 0 <= result.temperature_c <= 255:
+        raise ValueError(f"bridge temperature {result.temperature_c} C: the chip reports an unsigned byte, 0..255")
     pairs = [v for d, c in zip(result.distances_mm, result.confidences) for v in (d, c)]
-    head = [address, result.result_no, result.temperature_c & 0xFF, result.n_valid, result.systick]
-    return ("#Obj," + ",".join(map(str, head + pairs)) + ",\r\n").encode()
+    n_valid = sum(1 for c in result.confidences if c) if result.n_valid is None else result.n_valid
+    head = [address, result.result_no, result.temperature_c, n_valid, result.systick]
+    return ("#Obj," + ",".join(map(str, head + pairs)) + "\n").encode()
 
 
 def bridge_counts(hists: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
@@ -142,8 +146,9 @@ class SimBridge:
 
     def boot(self, active_range: int = 0x6E) -> None:
         """Queue what the UW bridge prints as it starts, before any record: "FW downloaded" after it downloaded the
-        sensor's firmware, then the sensor's ACTIVE_RANGE in hex (Arduino's print(x, HEX): no leading zero)."""
-        self._queue.put(("data", f"FW downloaded\r\nActive range: {active_range:X}\r\n".encode()))
+        sensor's firmware, then the sensor's ACTIVE_RANGE in hex (Arduino's print(x, HEX): no leading zero), each
+        line ended by '\\n' as the firmware ends them."""
+        self._queue.put(("data", f"FW downloaded\nActive range: {active_range:X}\n".encode()))
 
     def send_frame(self, counts: np.ndarray, result: BridgeResult | None = None, fault: str | None = None,
                    at: int = 7) -> None:

@@ -10,19 +10,31 @@ recorded in `violations`):
   (bit 6). Setting PON wakes the CPU: for `startup_s` (5 ms by default) the chip acknowledges nothing, then cpu_ready
   shows after `ready_after_polls` reads of ENABLE; until then only ENABLE answers. The references sleep 10 ms first
   and then retry a read that is not acknowledged (ams' Linux driver wakes the chip again, its Python driver polls on):
-  such reads are counted (`nacked_while_starting`), not misuse. The CPU starts what power-up select says: 2 restarts the application kept in RAM through a standby
-  (PON cleared), anything else the bootloader. The chip starts asleep (PON 0) after power comes.
+  such reads are counted (`nacked_while_starting`), not misuse. The CPU starts what power-up select says: 2 restarts
+  the application kept in RAM through a standby (PON cleared), anything else the bootloader. The chip starts asleep
+  (PON 0) after power comes.
 - The bootloader (APP_ID 0x80) checks every frame's length and checksum; while it runs a command (`busy_polls`
   status reads) the status register echoes that command (0x43, 0x41, ...), then reads 0x00 or an error. RAMREMAP
   is not answered: after checking that every byte of the expected image arrived it restarts into the application
   (again no acknowledge for `startup_s`).
-- The application (APP_ID 0x03): CMD_STAT echoes a command while it runs (`busy_polls` reads), then 0x00 / 0x01 or
-  an error. ACTIVE_RANGE 0x19 reads 0x6F (long range) after the start and 0x6E after command 0x6E; a firmware without
-  accuracy modes (`accuracy_modes=False`) reads 0x00 there and answers 0x6E with 0x06 (unknown command). Config
+- The application (APP_ID 0x03): CMD_STAT echoes a command while it runs (`busy_polls` reads), then its status, as
+  ams' Python driver expects it: 0x01 (accepted, runs until stopped) for measure 0x10 (`measure_stat`; ams' Linux
+  driver takes 0x00 there too), 0x00 (ok) for every other command, or an error (0x02 config, 0x06 unknown command).
+  ACTIVE_RANGE 0x19 reads 0x6F (long range) after the start and 0x6E after command 0x6E. An application image without
+  accuracy modes (`accuracy_modes=False`) reads 0x00 there (the register map's "no active range supported"), stays
+  so, and refuses 0x6E with 0x06: the register map says the command is "only supported if short_range_accuracy =
+  1" but not which status an image without it answers; 0x06 "unknown command" is this fake's choice. Config
   registers take writes only while the common page (0x16) is loaded; 0x15 writes it. Measuring needs neither 0x6E nor
   a written config (the chip measures with its defaults).
 - INT_STATUS 0xE1 shows the bit of the record waiting at 0x20 (0x08 histogram sub-packet, 0x02 result) whether or not
   it is enabled; INT_ENAB 0xE2 only decides whether the INT pin is pulled low (`int_pin_low`). Writing 1 clears a bit.
+  Bit 0x40 is the error interrupt (ams' Python driver: "one of the <status> registers has been set to a non-zero
+  value"; its Linux driver logs it, and checks CMD_STAT before it reads a record): the fake raises it when the
+  application stops on an error (`stop_measuring`) and it stays set until the host clears it.
+- A result (`frame_records`) is laid out as ams' drivers decode it: temperature an unsigned byte (the fake draws
+  20-60 C), slot k the target (k // 18) + 1 of channel (k % 9) + 1 in sub-capture (k // 9) % 2. The fake measures
+  with one SPAD map (no time multiplexing), so slots 0-8 hold each zone's first target, 18-26 its second (behind the
+  first), 9-17 and 27-35 stay 0, and the valid-results count is the number of slots with a non-zero confidence.
 
 Timing, as ams' drivers use the chip. The chip measures on its own clock: one measurement every `frame_interval_s`
 (0: back to back, as fast as the readout frees its buffer), whether or not the host keeps up. A measured frame waits
@@ -41,11 +53,11 @@ was exposed in `exposures` (monotonic (begin, end) s, same order): measuring cyc
 the measure command 0x10, measurement j after a 0x10 at T is exposed over [T + j I, T + (j + 1) I] with
 I = `frame_interval_s` (each takes its whole period, the longest it can take); back to back (I = 0) a measurement is
 an instant, when the buffer frees. A stop (0xFF) ends the measurement: nothing measured before it is handed over
-after it. Faults: `unplug`/`replug`
-(every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back to the bootloader, RAM lost), `crash`
-(the chip resets itself into the bootloader but keeps answering), `stop_measuring` (the application reports a severe
-error and stops, APP_ID still 0x03), `corrupt_next_record` (of one frame or of every frame), `app_id` (a wrong chip),
-`ready_after_polls=None` (cpu_ready never comes).
+after it. Faults: `unplug`/`replug` (every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back
+to the bootloader, RAM lost), `crash` (the chip resets itself into the bootloader but keeps answering),
+`stop_measuring` (the application reports a severe error and stops, APP_ID still 0x03, with or without the error
+interrupt), `set_status` (status registers change while it measures on), `corrupt_next_record` (of one frame or of
+every frame), `app_id` (a wrong chip), `ready_after_polls=None` (cpu_ready never comes).
 
 The histogram size field: ams' protocol documents the message still to come (`size_field="remaining"`, 3840 in
 sub-packet 0, 128 less in each after it), but no ams driver checks it after sub-packet 0, so a firmware that writes
@@ -63,10 +75,33 @@ import time
 import numpy as np
 
 ENABLE, INT_STATUS, INT_ENAB, CMD_STAT, ACTIVE_RANGE, APP_ID, APP_STATUS = 0xE0, 0xE1, 0xE2, 0x08, 0x19, 0x00, 0x04
+INT_ERROR = 0x40
+"""INT_STATUS / INT_ENAB bit of the error interrupt (ams' TMF8X2X_APP_I2C_ERROR_IRQ_MASK)."""
 START_RAM_APP = 2
 """ENABLE power-up select (bits 4:5) value: start the application in RAM."""
 SIZE_FIELDS = ("remaining", "total")
 """What a histogram sub-packet's size field holds: the message still to come (documented), or the whole message."""
+
+
+TEMPERATURE_RANGE_C = (20, 60)
+"""What the fake's chip reports as its temperature, deg C: a plausible die temperature on a bench or an arm."""
+FIRST_TARGET_P, SECOND_TARGET_P = 0.9, 0.3
+"""How often a zone's result holds a first target, and a zone with one a second target too (the fake's choice)."""
+
+
+def zone_targets(rng: np.random.Generator) -> tuple[list[int], list[int]]:
+    """36 result slots (distances mm, confidences) as one SPAD map without time multiplexing fills them: slots 0-8
+    the first target of channels 1-9, slots 18-26 a second target behind it, slots 9-17 and 27-35 (sub-capture 1)
+    empty (0, 0)."""
+    distances, confidences = [0] * 36, [0] * 36
+    for zone in range(9):
+        if rng.random() >= FIRST_TARGET_P:
+            continue
+        first = int(rng.integers(50, 4000))
+        distances[zone], confidences[zone] = first, int(rng.integers(1, 256))
+        if rng.random() < SECOND_TARGET_P:
+            distances[18 + zone], confidences[18 + zone] = int(rng.integers(first + 1, 5000)), int(rng.integers(1, 256))
+    return distances, confidences
 
 
 def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid,
@@ -74,6 +109,8 @@ def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid,
     """The (INT_STATUS bit, bytes) records of one frame: 30 raw histogram sub-packets (when `hist_dump`), a result.
     `size_field`: one of SIZE_FIELDS. `diagnostics`: the result's size field counts the 36 diagnostics bytes that
     follow its 36 results (the register map's 0xA4-0xC7)."""
+    if not 0 <= result["temperature_c"] <= 255:
+        raise ValueError(f"temperature {result['temperature_c']} C: the chip reports an unsigned byte, 0..255")
     records = []
     if hist_dump:
         for k in range(30):
@@ -81,8 +118,9 @@ def frame_records(counts: np.ndarray, result: dict, hist_dump: bool, next_tid,
             # sub-packet headers excluded either way
             size = (30 - k) * 128 if size_field == "remaining" else 30 * 128
             records.append((0x08, bytes([0x81, next_tid(), size & 0xFF, size >> 8, k, 128, 0]) + plane))
-    head = bytearray([0x10, next_tid(), 128 + 36 * diagnostics, 0, result["result_no"],
-                      result["temperature_c"] & 0xFF, 9, 0])
+    n_valid = sum(1 for c in result["confidences"] if c)  # the slots that hold a target
+    head = bytearray([0x10, next_tid(), 128 + 36 * diagnostics, 0, result["result_no"], result["temperature_c"],
+                      n_valid, 0])
     head += b"".join(int(v).to_bytes(4, "little") for v in (1000, 200_000, 50_000, result["systick"]))
     body = b"".join(bytes([c]) + int(d).to_bytes(2, "little")
                     for c, d in zip(result["confidences"], result["distances_mm"]))
@@ -146,12 +184,25 @@ class SimTMF8820Bus:
             self._power_on_reset()
             self.pon, self.ready_countdown = True, 0
 
-    def stop_measuring(self, cmd_stat: int = 0x03, app_status: int = 0x04) -> None:
+    def stop_measuring(self, cmd_stat: int = 0x03, app_status: int = 0x04, error_interrupt: bool = True) -> None:
         """The application stops measuring on its own and says why: CMD_STAT 0x03 "severe error, stopped" (0x04 and
-        0x05: "power cycle the device"), APPLICATION_STATUS 0x04 the detail (4: unexpected reset). APP_ID stays 0x03."""
+        0x05: "power cycle the device"), APPLICATION_STATUS 0x04 the detail (4: unexpected reset). APP_ID stays 0x03.
+        It raises the error interrupt (INT_STATUS 0x40: a status register became non-zero) unless `error_interrupt`
+        is False (a chip whose error goes unannounced: only the host's watchdog notices)."""
         with self._lock:
             self._stop_records()
             self.cmd_stat, self.app_status = cmd_stat, app_status
+            self.error_irq = self.error_irq or error_interrupt
+
+    def set_status(self, *, cmd_stat: int | None = None, app_status: int | None = None,
+                   error_interrupt: bool = False) -> None:
+        """While the application goes on measuring (records keep coming), CMD_STAT and/or APPLICATION_STATUS change,
+        with or without the error interrupt: a status warning the application measures on with, or a host check of
+        CMD_STAT before a record read (ams' Linux driver's) put to the test."""
+        with self._lock:
+            self.cmd_stat = self.cmd_stat if cmd_stat is None else cmd_stat
+            self.app_status = self.app_status if app_status is None else app_status
+            self.error_irq = self.error_irq or error_interrupt
 
     def corrupt_next_record(self, k: int = 7, frames: int | None = 1) -> None:
         """Spoil the header (RID) of the k-th histogram record of each of the next `frames` frames made (None: of
@@ -237,6 +288,7 @@ class SimTMF8820Bus:
         self.bl_status, self.bl_cmd, self.bl_busy = 0x00, 0x00, 0
         self.cmd_stat, self.cmd_busy, self.app_status = 0x00, 0, 0x00
         self.int_enab = 0x00
+        self.error_irq = False  # INT_STATUS bit 0x40, set until the host clears it
         self.page = bytearray(0x80)  # registers 0x20..0x9F
         self.config_loaded = self.measuring = False
         self.active_range = 0x00
@@ -316,8 +368,10 @@ class SimTMF8820Bus:
             self._command(data[0])
         elif reg == INT_STATUS:
             self._advance()
-            if data[0] & self._int_status():
+            if data[0] & self._record_bit():
                 self.cleared_t = time.monotonic()
+            if data[0] & INT_ERROR:
+                self.error_irq = False
         elif reg == INT_ENAB:
             self.int_enab = data[0]
         elif 0x24 <= reg < 0xA0 and self.app_running:
@@ -428,6 +482,10 @@ class SimTMF8820Bus:
         self.cmd_stat = ok
 
     def _int_status(self) -> int:
+        return self._record_bit() | (INT_ERROR if self.error_irq else 0)
+
+    def _record_bit(self) -> int:
+        """The INT_STATUS bit of the record waiting at 0x20 (0 when none waits, or the host cleared it)."""
         return self.records[0][0] if self.records and self.cleared_t is None else 0
 
     def _advance(self) -> None:
@@ -467,9 +525,11 @@ class SimTMF8820Bus:
         `exposures`; returns (its index there, its records)."""
         counts = self.rng.integers(0, 1 << 24, (10, 128), dtype=np.int64)
         n = len(self.produced)
-        result = {"result_no": self.measured % 256, "temperature_c": int(self.rng.integers(-20, 60)), "n_valid": 9,
-                  "systick": int(self.rng.integers(0, 2**32)), "distances_mm": self.rng.integers(0, 5000, 36).tolist(),
-                  "confidences": self.rng.integers(0, 256, 36).tolist()}
+        distances, confidences = zone_targets(self.rng)
+        low, high = TEMPERATURE_RANGE_C
+        result = {"result_no": self.measured % 256, "temperature_c": int(self.rng.integers(low, high + 1)),
+                  "n_valid": sum(1 for c in confidences if c), "systick": int(self.rng.integers(0, 2**32)),
+                  "distances_mm": distances, "confidences": confidences}
         self.measured += 1
         self.produced.append((counts, result))
         self.exposures.append((begin, end))

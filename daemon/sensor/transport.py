@@ -49,7 +49,9 @@ class HistogramPacket:
 class ResultPacket:
     """One result record: the sensor's own distance estimates that close a frame.
 
-    distances_mm / confidences: 36 entries each; `t` is the monotonic arrival time (s).
+    distances_mm / confidences: 36 entries each, in the record's slot order (slot k: target k // 18 + 1 of channel
+    k % 9 + 1, `i2c_records.slot_target`; not zone k); temperature_c: the record's unsigned temperature byte, deg C;
+    n_valid: the slots holding a target; `t` is the monotonic arrival time (s).
     """
 
     result_no: int

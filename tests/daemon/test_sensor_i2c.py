@@ -72,15 +72,17 @@ def reference_records(counts, result_no, temperature_c, systick, distances, conf
 
     Header: RID, TID, size u16 LE. Raw histogram sub-packet n (RID 0x81): sub-header {n, payload length 128, config
     id 0}, then byte plane n // 10 of channel n % 10; its size is the message still to come without sub-headers,
-    128 x (30 - n). Result (RID 0x10, size 128): number, temperature (two's complement byte), valid count, reserved,
-    ambient, photon count, reference count, systick (u32 LE each), 36 x {confidence, distance mm u16 LE}.
+    128 x (30 - n). Result (RID 0x10, size 128): number, temperature (an unsigned byte, deg C), valid count (the
+    slots with a non-zero confidence), reserved, ambient, photon count, reference count, systick (u32 LE each),
+    36 x {confidence, distance mm u16 LE}.
     """
     records = []
     for n in range(30):
         plane = bytes((int(v) >> (8 * (n // 10))) & 0xFF for v in counts[n % 10])
         header = bytes([0x81, n + 1]) + (128 * (30 - n)).to_bytes(2, "little") + bytes([n, 128, 0])
         records.append((0x08, header + plane))
-    head = bytes([0x10, 31]) + (128).to_bytes(2, "little") + bytes([result_no, temperature_c % 256, 9, 0])
+    n_valid = sum(1 for c in confidences if c)
+    head = bytes([0x10, 31]) + (128).to_bytes(2, "little") + bytes([result_no, temperature_c, n_valid, 0])
     head += b"".join(v.to_bytes(4, "little") for v in (1000, 200_000, 50_000, systick))
     body = b"".join(bytes([c]) + d.to_bytes(2, "little") for d, c in zip(distances, confidences))
     records.append((0x02, head + body))
@@ -94,6 +96,8 @@ class ReplayBus:
         self.records = list(records)
 
     def read_byte_data(self, addr, register, force=None):
+        if register == 0x08:
+            return 0x01  # CMD_STAT, checked before each record: the measurement runs
         assert register == 0xE1
         return self.records[0][0] if self.records else 0
 
@@ -114,12 +118,12 @@ def test_a_frame_laid_out_as_the_protocol_says_decodes_bit_for_bit():
     rng = np.random.default_rng(11)
     counts = rng.integers(0, 1 << 24, (10, 128))
     distances, confidences = rng.integers(0, 5000, 36).tolist(), rng.integers(0, 256, 36).tolist()
-    records = reference_records(counts, 7, -12, 123457, distances, confidences)
+    records = reference_records(counts, 7, 200, 123457, distances, confidences)
     assert [len(r) for _, r in records] == [135] * 30 + [132]
     assert records[0][1][2:4] == b"\x00\x0f" and records[29][1][2:4] == b"\x80\x00"  # 3840 ... 128
     # The fake lays a frame out the same way, byte for byte.
     tids = iter(range(1, 100))
-    result = {"result_no": 7, "temperature_c": -12, "systick": 123457, "distances_mm": distances,
+    result = {"result_no": 7, "temperature_c": 200, "systick": 123457, "distances_mm": distances,
               "confidences": confidences}
     assert frame_records(counts, result, True, lambda: next(tids)) == records
 
@@ -130,7 +134,8 @@ def test_a_frame_laid_out_as_the_protocol_says_decodes_bit_for_bit():
     assert len(frames) == 1 and transport.counters()["bad_records"] == 0
     (frame,) = frames
     assert np.array_equal(frame.reference, counts[0]) and np.array_equal(frame.hists, counts[1:])
-    assert frame.temperature_c == -12.0 and frame.extra["systick"] == 123457 and frame.extra["result_no"] == 7
+    assert frame.temperature_c == 200.0 and frame.extra["systick"] == 123457 and frame.extra["result_no"] == 7
+    assert frame.extra["n_valid"] == sum(1 for c in confidences if c)
     assert frame.depths_mm == [float(d) for d in distances] and frame.confidences == confidences
 
 
@@ -227,32 +232,19 @@ def test_the_bootloader_echoes_the_command_it_runs_and_the_driver_waits(arun, im
 def test_measuring_enables_the_result_and_histogram_interrupts(image):
     path, data = image
     fake = SimTMF8820Bus(image=data)
-    fake.int_enab = 0x40  # an enable someone else set is kept
+    fake.int_enab = 0x10  # an enable someone else set is kept
     transport = I2CTransport(1, firmware=path, smbus_factory=fake)
     transport.open()
     try:
         transport.start()
-        assert fake.int_enab == 0x40 | 0x02 | 0x08
+        assert fake.int_enab == 0x10 | 0x02 | 0x08 | 0x40  # result, raw histogram and error, as ams' Linux driver
         assert fake.int_pin_low()  # the first sub-packet waits and its interrupt reaches the INT pin
         assert transport.read_packet(5.0).index == 0
         transport.stop()
-        assert fake.int_enab == 0x40 and not fake.int_pin_low()
+        assert fake.int_enab == 0x10 and not fake.int_pin_low()
     finally:
         transport.close()
     assert fake.violations == []
-
-
-def test_a_firmware_without_accuracy_modes_measures_in_its_own_mode(arun, image, caplog):
-    path, data = image
-    fake = SimTMF8820Bus(image=data, accuracy_modes=False)
-    sensor = I2CSensor(1, firmware=path, smbus_factory=fake)
-    with caplog.at_level(logging.WARNING, logger="spadscan.daemon"):
-        frames = arun(_run(sensor, n_frames=2))
-    assert len(frames) == 2 and fake.violations == []
-    assert 0x6E not in fake.commands and fake.commands[:2] == [0x16, 0x15]  # ACTIVE_RANGE 0x00: nothing to switch
-    assert sensor.counters()["active_range"] == "no accuracy modes"
-    assert re.search(r"i2c bus 1 addr 0x41: the sensor measures in no accuracy modes mode \(ACTIVE_RANGE 0x19 "
-                     r"reads 0x00\)", caplog.text)
 
 
 def test_the_chip_is_not_addressed_while_its_cpu_starts(arun, image):
@@ -580,7 +572,7 @@ def test_an_application_that_stops_measuring_is_started_again(arun, image):
     sensor = TMF8820(transport)
 
     async def during(sensor):
-        fake.stop_measuring(cmd_stat=0x03, app_status=0x04)
+        fake.stop_measuring(cmd_stat=0x03, app_status=0x04, error_interrupt=False)  # only the watchdog can tell
         deadline = time.monotonic() + 10
         while sensor.counters()["reconnects"] < 1:
             assert time.monotonic() < deadline, f"never restarted: {sensor.counters()}"
@@ -590,8 +582,8 @@ def test_an_application_that_stops_measuring_is_started_again(arun, image):
     arun(_run(sensor, n_frames=1, during=during))
     c = sensor.counters()
     assert c["downloads"] == 1 and c["boots"] == 2 and fake.violations == []  # the application in RAM is reused
-    assert "sensor stopped measuring (CMD_STAT 0x03, APPLICATION_STATUS 0x04, no record for 0.2 s)" in c[
-        "last_link_error"]
+    assert ("sensor stopped measuring (CMD_STAT 0x03 (application error, stopped), APPLICATION_STATUS 0x04, no record "
+            "for 0.2 s)") in c["last_link_error"]
     assert fake.commands.count(0x10) == 2
 
 

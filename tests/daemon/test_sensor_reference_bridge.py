@@ -1,0 +1,120 @@
+"""The serial bridge and its twin against what the reference firmware prints and its consumer reads: `#Obj` and
+`#Raw` lines without a trailing comma (exactly 78 and 131 fields), the temperature as an unsigned byte, the 6-bit
+valid count, and `#Prt` (partial histogram) lines refused with one line that says what to set."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+
+import numpy as np
+import pytest
+
+from spadscan.daemon.devices import SensorSilent
+from spadscan.daemon.sensor.serial_bridge import classify_line
+from spadscan.daemon.sensor.sim_bridge import BridgeResult, SimBridge, obj_line, raw_lines
+from spadscan.daemon.sensor.transport import ResultPacket
+
+from test_sensor_serial import counts, result, streaming
+
+pytestmark = pytest.mark.usefixtures("no_leaked_threads_or_fds")
+
+OBJ_PAIRS = b",".join([b"1", b"3"] * 36)
+
+
+def consumer_fields(line: bytes) -> list[str]:
+    """A line's fields as the UW consumer splits them: \\r and \\n removed, split on every comma."""
+    return line.decode().replace("\r", "").replace("\n", "").split(",")
+
+
+# ---- 6. the lines the firmware prints ------------------------------------------------------------------------------
+def test_the_twin_prints_obj_and_raw_lines_as_the_firmware_does():
+    """ams' print_results ends an #Obj line after the last confidence (no comma) with the firmware's '\\n'; the UW
+    consumer takes an #Obj line of exactly 78 fields and a #Raw line of exactly 131."""
+    line = obj_line(result(4))
+    assert line.endswith(b"\n") and not line.endswith(b",\n")
+    assert b"\r" not in line and len(consumer_fields(line)) == 78
+    assert all(len(consumer_fields(raw)) == 131 and not raw.endswith(b",\n") for raw in raw_lines(counts(4)))
+    assert consumer_fields(line)[-1] == str(result(4).confidences[-1])
+
+
+@pytest.mark.parametrize("ending", [b"", b",", b"\r", b",\r"])
+def test_the_parser_still_takes_a_trailing_comma_and_a_carriage_return(ending):
+    obj = classify_line(b"#Obj,65,1,25,9,100," + OBJ_PAIRS + ending, 0.0, 0x41)
+    assert isinstance(obj, ResultPacket) and obj.n_valid == 9 and obj.confidences == [3] * 36
+
+
+def test_the_twin_counts_valid_results_as_the_chip_does():
+    res = BridgeResult(distances_mm=[500] * 9 + [0] * 27, confidences=[40] * 5 + [0] * 31)
+    assert consumer_fields(obj_line(res))[4] == "5"
+    assert consumer_fields(obj_line(BridgeResult(n_valid=7)))[4] == "7"  # an explicit count is printed as given
+
+
+# ---- 2. the temperature ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("printed", [b"0", b"25", b"127", b"128", b"200", b"255"])
+def test_the_printed_temperature_is_an_unsigned_byte(printed):
+    obj = classify_line(b"#Obj,65,1," + printed + b",9,100," + OBJ_PAIRS, 0.0, 0x41)
+    assert isinstance(obj, ResultPacket) and obj.temperature_c == float(printed)
+
+
+def test_the_twin_prints_what_a_chip_reports():
+    assert consumer_fields(obj_line(BridgeResult(temperature_c=45)))[3] == "45"
+    assert consumer_fields(obj_line(BridgeResult()))[3] == "25"  # the default: a bench's die temperature
+    for bad in (-6, 256):
+        with pytest.raises(ValueError, match="unsigned byte, 0..255"):
+            obj_line(BridgeResult(temperature_c=bad))
+
+
+def test_a_frame_keeps_the_temperature_the_bridge_printed(arun):
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                bridge.send_frame(counts(7), BridgeResult(temperature_c=200, systick=3))
+                return await sensor.next_frame(10)
+
+    frame = arun(main())
+    assert frame.temperature_c == 200.0 and np.array_equal(frame.hists, counts(7)[1:])
+
+
+# ---- 3. the valid count ----------------------------------------------------------------------------------------------
+def test_the_printed_valid_count_is_read_through_its_six_bit_mask():
+    """The firmware prints the count byte whole; its bits 5:0 are the count (the register map's mask 0x3F)."""
+    obj = classify_line(b"#Obj,65,1,25,73,100," + OBJ_PAIRS, 0.0, 0x41)  # 73 = 0x49: bit 6 set, count 9
+    assert isinstance(obj, ResultPacket) and obj.n_valid == 9
+    assert classify_line(b"#Obj,65,1,25,37,100," + OBJ_PAIRS, 0.0, 0x41) == (
+        "corrupt", "a #Obj line with 37 valid results, more than 36")
+
+
+# ---- 6. partial histograms -------------------------------------------------------------------------------------------
+PRT_LINE = b"#Prt,65,3,0," + b",".join([b"7"] * 20)
+
+
+def test_a_partial_histogram_line_says_the_bridge_is_in_partial_histogram_mode():
+    kind, why = classify_line(PRT_LINE, 0.0, 0x41)
+    assert kind == "partial_histogram" and "\n" not in why
+    assert why.startswith("the bridge prints partial histograms (#Prt lines: its partial-histogram mode)")
+    assert "30 #Raw lines of 128 bins per frame" in why
+
+
+def test_partial_histograms_are_named_when_frames_stop(arun, caplog):
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                bridge.send((PRT_LINE + b"\n") * 30 + b"#Obj\n")
+                bridge.flush()
+                deadline = time.monotonic() + 20
+                while sensor.counters().get("partial_histogram_lines", 0) < 30:
+                    assert time.monotonic() < deadline, f"the #Prt lines never counted: {sensor.counters()}"
+                    await asyncio.sleep(0.01)
+                with pytest.raises(SensorSilent) as silent:
+                    await sensor.next_frame(0.05)
+                return silent.value, sensor.counters()
+
+    with caplog.at_level(logging.WARNING, logger="spadscan.daemon"):
+        silent, c = arun(main())
+    assert c["partial_histogram_lines"] == 30 and c["unknown_lines"] == 0 and c["bad_records"] == 30
+    assert "the last one: the bridge prints partial histograms (#Prt lines: its partial-histogram mode)" in str(silent)
+    assert "\n" not in str(silent)
+    warned = [r.getMessage() for r in caplog.records if "partial histograms" in r.getMessage()]
+    assert len(warned) == 1  # once, not for every line
