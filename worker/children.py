@@ -34,14 +34,19 @@ class Child:
 
 
 async def spawn_job(job: Job, root: Path, scratch: Path, outcome: Path, log: Path, *, recon: str | None,
-                    extra_env: dict[str, str] | None) -> asyncio.subprocess.Process:
-    """Start the process that runs `job` into `scratch`, its output going to `log`."""
+                    extra_env: dict[str, str] | None, preface: list[str] | None = None) -> asyncio.subprocess.Process:
+    """Start the process that runs `job` into `scratch`, its output going to `log`, after the worker's `preface`
+    lines (each as `spadscan worker: LINE`): what the job's own output cannot know, such as the other workers it
+    shares the machine's cores with."""
     cmd = module_command("spadscan.worker.jobs", "--job", json.dumps(job.to_dict()), "--root", root, "--out", scratch,
                          "--outcome", outcome, "--parent-pid", os.getpid())
     if recon:
         cmd += ["--recon", recon]
     env = {**os.environ, **(extra_env or {})}
     with open(log, "wb") as logf:
+        for line in preface or []:
+            logf.write(f"spadscan worker: {line}\n".encode("utf-8", "backslashreplace"))
+        logf.flush()  # the job's output follows, written through its own descriptor's offset
         # A session of its own: a Ctrl-C at the terminal reaches the worker, which then stops its children.
         return await asyncio.create_subprocess_exec(*cmd, stdin=asyncio.subprocess.DEVNULL, stdout=logf,
                                                     stderr=asyncio.subprocess.STDOUT, env=env,

@@ -47,11 +47,11 @@ from .jobs import (CHANGEABLE, EXIT_DONE_UNSAID, EXIT_FULL, EXIT_INPUT, completi
                    result_path, scratch_path, summary_of)
 from .holder import Holder
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
-from .presence import RENEW_S, Presence, present_workers, remove_presence, write_presence
+from .presence import RENEW_S, Presence, machine_siblings, remove_presence, write_presence
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
 from .queue import SEP, Claim, Queue, Unrecorded
 from .watcher import SETTLE_S, ScanReport, scan_once, watch
-from .worker_config import WorkerConfig
+from .worker_config import WorkerConfig, machine_job_processes
 
 
 @dataclass
@@ -100,9 +100,15 @@ class Worker:
         """Jobs already named as keeping options other than this worker's (`_say_frozen_options`): named once."""
         self._reconcile_due = True
         self.job_env = config.job_env()
-        """Environment the job processes get on top of the worker's own (threads per job, child_env)."""
+        """Environment the job processes get on top of the worker's own (threads per job, child_env): the cores
+        shared out among this worker's job processes and the other workers' on its machine (`_share_cores`)."""
         self.threads_note = config.threads_note()
         self.threads_warnings = config.threads_warnings()
+        self.siblings: list[dict] = []
+        """The other workers on this machine (`presence.machine_siblings`) when a job last started (or at start-up):
+        their job processes count in the cores shared out."""
+        self._siblings_key: tuple | None = None
+        """Who `siblings` are, as `_share_cores` compares them: None before the first look."""
         self.progress = ProgressNotes(progress_s) if progress_s else None
         self.tails = LogTails()
         """The running jobs' logs as last read for their progress lines: read again only once changed."""
@@ -123,11 +129,14 @@ class Worker:
     async def run(self, stop: asyncio.Event | None = None) -> dict[str, str]:
         """Work until `stop` is set (or, with `once`, until the queue is drained). Returns `settled`."""
         stop = stop or asyncio.Event()
+        # killed workers' files tidied away; the other workers on this machine share the cores with this one's jobs
+        self._share_cores(await asyncio.to_thread(machine_siblings, self.queue.path, self.presence.holder, tidy=True))
         self.log(f"watching {self.root} with {self.config.processes} job process(es) at once, "
                  f"{self.threads_note}")
+        if self.siblings:
+            self.log(self._siblings_line())
         for warning in self.threads_warnings:
             self.log(f"warning: {warning}")
-        await asyncio.to_thread(present_workers, self.queue.path, tidy=True)  # killed workers' files
         self._say_present()  # before the start-up work, which may take a while on a large root
         await asyncio.to_thread(self._say_frozen_options)  # before this worker queues jobs of its own
         watcher = None
@@ -345,11 +354,39 @@ class Worker:
             self.settled[job.id] = "failed"
             self.log(f"{job.id} failed: cannot prepare the result folder: {exc}")
             return
+        await self._share_cores_now()
+        # the job's log names the workers it shares the cores with: a busy warning in its report may come from them
         proc = await spawn_job(job, self.root, scratch, outcome, log_path, recon=self.config.recon,
-                               extra_env=self.job_env)
+                               extra_env=self.job_env, preface=[self._siblings_line()] if self.siblings else None)
         self.children[job.id] = Child(claim, proc, scratch, outcome, log_path, asyncio.create_task(proc.wait()))
         await asyncio.to_thread(self.queue.note_job_process, claim, proc.pid)
         self.log(f"{job.id} started (attempt {claim.attempt} of {self.queue.max_attempts}, pid {proc.pid})")
+
+    async def _share_cores_now(self) -> None:
+        """Look again at the other workers on this machine before a job starts (its threads are fixed for its whole
+        run) and share the cores with them; say so when they changed since the last look, not at every poll."""
+        before = self.threads_warnings
+        if self._share_cores(await asyncio.to_thread(machine_siblings, self.queue.path, self.presence.holder)):
+            self.log(self._siblings_line())
+            for warning in self.threads_warnings:
+                if warning not in before:
+                    self.log(f"warning: {warning}")
+
+    def _share_cores(self, siblings: list[dict]) -> bool:
+        """Give the jobs started from now on the cores shared out among this worker's job processes and those of
+        `siblings`, the other workers on this machine (`presence.machine_siblings`). Returns whether they changed
+        since the last look (always False at the first: the start-up lines say it)."""
+        key = tuple(sorted((r["host"], r["pid"], machine_job_processes([r])) for r in siblings))
+        changed, first = key != self._siblings_key, self._siblings_key is None
+        self._siblings_key, self.siblings = key, siblings
+        others = machine_job_processes(siblings)
+        self.job_env = self.config.job_env(others=others)
+        self.threads_note = self.config.threads_note(others=others)
+        self.threads_warnings = self.config.threads_warnings(others=others)
+        return changed and not first
+
+    def _siblings_line(self) -> str:
+        return self.config.siblings_line(self.siblings, host=self.presence.holder["host"])
 
     def _keep(self, claim: Claim, existing: Path) -> None:
         """Record a job whose results folder already holds a result as done, without running it: a result is never

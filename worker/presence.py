@@ -88,6 +88,30 @@ def present_workers(queue_dir: Path, now: float | None = None, *, tidy: bool = F
     damaged), "seen_s": seconds since its last renewal}), the longest running first. A file that cannot be
     read, or whose worker stopped renewing it or is gone from this machine, is left out (`tidy`: and removed when its
     process is known gone or it is FORGET_S old, as are temporary files that old)."""
+    return [row for row, _ in _listed(queue_dir, now, tidy)]
+
+
+def machine_siblings(queue_dir: Path, me: dict, now: float | None = None, *, tidy: bool = False) -> list[dict]:
+    """The other workers present (`present_workers`' rows, each with its `processes`) that run on the machine of the
+    process `me` (`Holder.to_dict`), and so share its CPU cores: the same running kernel (boot id) where both files
+    say one, else the same host name. Containers on one machine share its kernel, whatever their host names; machines
+    cloned with one host name do not. `me`'s own process is none of them (its file, or another worker object in it)."""
+    return [row for row, holder in _listed(queue_dir, now, tidy)
+            if same_machine(holder, me) and not _same_process(holder, me)]
+
+
+def same_machine(holder: dict, me: dict) -> bool:
+    """Whether two holders (`Holder.to_dict`) run on one machine: one boot id where both say one, else one host."""
+    boot, mine = str(holder.get("boot_id") or ""), str(me.get("boot_id") or "")
+    return boot == mine if boot and mine else str(holder.get("host")) == str(me.get("host"))
+
+
+def _same_process(holder: dict, me: dict) -> bool:
+    return all(str(holder.get(k) or "") == str(me.get(k) or "") for k in ("host", "pid", "boot_id", "pid_ns"))
+
+
+def _listed(queue_dir: Path, now: float | None, tidy: bool) -> list[tuple[dict, dict]]:
+    """(row, holder) of each worker `present_workers` lists, in its order: the row it lists, the file's `holder`."""
     now = time.time() if now is None else now
     folder = Path(queue_dir) / WORKERS_DIRNAME
     try:
@@ -98,21 +122,21 @@ def present_workers(queue_dir: Path, now: float | None = None, *, tidy: bool = F
         return []
     found = []
     for path in paths:
-        row, gone = _present(path, now)
+        row, holder, gone = _present(path, now)
         if row is not None:
-            found.append(row)
+            found.append((row, holder))
         elif tidy and gone:
             _forget([path])
-    return sorted(found, key=lambda r: (r["started_unix"], r["host"], r["pid"]))
+    return sorted(found, key=lambda pair: (pair[0]["started_unix"], pair[0]["host"], pair[0]["pid"]))
 
 
-def _present(path: Path, now: float) -> tuple[dict | None, bool]:
-    """(one file's worker as `present_workers` lists it, or None; whether its worker is certainly gone: its process
-    gone from this machine, or its file FORGET_S old)."""
+def _present(path: Path, now: float) -> tuple[dict | None, dict, bool]:
+    """(one file's worker as `present_workers` lists it, or None; the file's holder ({} where it is not read);
+    whether its worker is certainly gone: its process gone from this machine, or its file FORGET_S old)."""
     try:
         seen_s = file_age(path, now)
         if seen_s is None:
-            return None, False  # moved on meanwhile (a worker's own tidy)
+            return None, {}, False  # moved on meanwhile (a worker's own tidy)
         data = json.loads(path.read_text())
         holder = data["holder"]
         renew_s = _positive(data.get("renew_s"), RENEW_S)
@@ -122,8 +146,8 @@ def _present(path: Path, now: float) -> tuple[dict | None, bool]:
                "room_wait": room_wait_of(data.get("room_wait")), "seen_s": round(seen_s, 1)}
         gone = holder_gone({**holder, "pid": row["pid"]}) or seen_s > FORGET_S
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None, False  # moved on meanwhile, or damaged: a damaged file says nothing about a worker
-    return (None if gone or seen_s > MISSED_RENEWALS * renew_s else row), gone
+        return None, {}, False  # moved on meanwhile, or damaged: a damaged file says nothing about a worker
+    return (None if gone or seen_s > MISSED_RENEWALS * renew_s else row), holder, gone
 
 
 def room_wait_of(value) -> dict | None:
@@ -188,4 +212,5 @@ def _positive(value, default: float) -> float:
 
 
 __all__ = ["WORKERS_DIRNAME", "RENEW_S", "MISSED_RENEWALS", "FORGET_S", "Presence", "presence_path", "write_presence",
-           "remove_presence", "present_workers", "room_wait_of", "workers_line", "waiting_for_room", "start_command"]
+           "remove_presence", "present_workers", "machine_siblings", "same_machine", "room_wait_of", "workers_line",
+           "waiting_for_room", "start_command"]

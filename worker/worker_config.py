@@ -14,6 +14,32 @@ from .threads import (ADAPT_ENV, ENV as THREADS_ENV, check_threads, inherited_th
 from .watcher import JobOptions, check_root
 
 
+def machine_job_processes(siblings: list[dict]) -> int:
+    """Job processes the other workers on this machine (`presence.machine_siblings` rows) may run at once: each
+    one's `processes` (at least the jobs it runs now, at most 256, as `check` allows), whether it runs them now or
+    not. A job's threads are fixed for its whole run, and an idle worker may claim a job at its next look: counted
+    only while they run, two workers that claim at one poll (two scans queued together) would both find the other
+    idle, its presence not yet renewed, and take every core each."""
+    return sum(max(1, len(r.get("running") or []), min(int(r.get("processes") or 1), 256)) for r in siblings)
+
+
+def machine_oversubscribed(processes: int, others: int, threads: int, cores: int | None = None) -> str | None:
+    """`threads.oversubscribed` for workers that share a machine: this worker's `processes` and the `others` job
+    processes of the other workers there, each of `threads` threads, against its `cores`; None when they fit."""
+    cores = cores or machine_cores()
+    total = processes + others
+    if total * threads <= cores:
+        return None
+    if threads > 1:
+        advice = (f"OpenMP threads that lose their core stall each other, each step 20-40x slower; use --threads "
+                  f"{max(1, cores // total)} in each worker")
+    else:
+        advice = (f"the jobs take turns on the cores, each run slower; stop a worker, or run one worker with "
+                  f"--processes {cores}")
+    return (f"{total} job process(es) on this host ({processes} of this worker's, {others} of other workers') x "
+            f"{threads} CPU thread(s) = {total * threads} threads on {cores} cores: {advice}")
+
+
 @dataclass
 class WorkerConfig:
     """How a worker runs. Times in seconds."""
@@ -46,51 +72,58 @@ class WorkerConfig:
     threads: int | None = None
     """CPU threads per job, given to each job process as OMP_NUM_THREADS (read by torch and numpy's BLAS at start).
     None: the worker's own OMP_NUM_THREADS when it has one (the user chose), else the machine's cores shared out
-    among `processes`, at least one. Jobs that together ask for more threads than there are cores stall each other
-    (threads.py: 20-40x slower per step with two 2-thread jobs on 2 cores)."""
+    among the job processes of this worker (`processes`) and of the other workers present on its machine (`others`
+    of the methods below, `machine_job_processes`), at least one. Jobs that together ask for more threads than
+    there are cores stall each other (threads.py: 20-40x slower per step with two 2-thread jobs on 2 cores)."""
 
-    def job_env(self, environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    def job_env(self, environ: Mapping[str, str] | None = None, others: int = 0) -> dict[str, str]:
         """Environment variables the job processes get on top of the worker's own (`environ`, default os.environ):
         the threads per job, how their OpenMP threads wait (threads.py), then `child_env`. Threads the worker
-        shared out itself are a ceiling the job may go under when fewer are faster (ADAPT_ENV), and wait with a
-        short spin; --threads and the worker's own OMP_NUM_THREADS are kept as given, and wait passively."""
+        shared out itself (among its `processes` and the `others` job processes of the other workers on its
+        machine) are a ceiling the job may go under when fewer are faster (ADAPT_ENV), and wait with a short spin;
+        --threads and the worker's own OMP_NUM_THREADS are kept as given, and wait passively."""
         environ = os.environ if environ is None else environ
         env: dict[str, str] = {}
         if self.threads is not None:
             env[THREADS_ENV] = str(self.threads)
         elif inherited_threads(environ)[0] is None:  # unset, or a value torch cannot use: replaced
-            env[THREADS_ENV] = str(threads_per_job(self.processes))
+            env[THREADS_ENV] = str(threads_per_job(self.processes + others))
             env[ADAPT_ENV] = "1"
         env.update(wait_env(environ, adapting=ADAPT_ENV in env))
         return {**env, **(self.child_env or {})}
 
-    def job_threads(self, environ: Mapping[str, str] | None = None) -> int | None:
+    def job_threads(self, environ: Mapping[str, str] | None = None, others: int = 0) -> int | None:
         """CPU threads each job process gets (None when child_env sets something that is not a number)."""
         environ = os.environ if environ is None else environ
-        value = self.job_env(environ).get(THREADS_ENV) or environ.get(THREADS_ENV, "")
+        value = self.job_env(environ, others).get(THREADS_ENV) or environ.get(THREADS_ENV, "")
         try:
             return int(value)
         except ValueError:
             return None
 
-    def threads_warnings(self, environ: Mapping[str, str] | None = None) -> list[str]:
+    def threads_warnings(self, environ: Mapping[str, str] | None = None, others: int = 0) -> list[str]:
         """One-line warnings about the threads per job: an unusable OMP_NUM_THREADS that was ignored, and jobs that
-        together ask for more threads than there are cores."""
+        together ask for more threads than there are cores (this worker's, and the `others` job processes of the
+        other workers on its machine, taken to run as many threads each)."""
         environ = os.environ if environ is None else environ
         warnings = []
         bad = inherited_threads(environ)[1]
         if bad and self.threads is None and THREADS_ENV not in (self.child_env or {}):
             warnings.append(bad)
-        threads = self.job_threads(environ)
-        over = oversubscribed(self.processes, threads) if threads else None
+        threads = self.job_threads(environ, others)
+        if others:
+            over = machine_oversubscribed(self.processes, others, threads) if threads else None
+        else:
+            over = oversubscribed(self.processes, threads) if threads else None
         if over:
             warnings.append(over)
         return warnings
 
-    def threads_note(self, environ: Mapping[str, str] | None = None) -> str:
-        """How many CPU threads each job gets and why, for the worker's start-up line."""
+    def threads_note(self, environ: Mapping[str, str] | None = None, others: int = 0) -> str:
+        """How many CPU threads each job gets and why, for the worker's start-up line (`others`: the job processes
+        of the other workers on its machine, among which the cores are shared out too)."""
         environ = os.environ if environ is None else environ
-        value = self.job_env(environ).get(THREADS_ENV) or environ.get(THREADS_ENV)
+        value = self.job_env(environ, others).get(THREADS_ENV) or environ.get(THREADS_ENV)
         if THREADS_ENV in (self.child_env or {}):
             why = "set by child_env"
         elif self.threads is not None:
@@ -98,8 +131,33 @@ class WorkerConfig:
         elif inherited_threads(environ)[0] is not None:
             why = "the worker's own environment"
         else:
-            why = f"{machine_cores()} cores shared out among {self.processes} job process(es)"
+            why = f"{machine_cores()} cores shared out among {self.processes + others} job process(es)"
         return f"{value} CPU threads per job ({THREADS_ENV}={value}: {why})"
+
+    def siblings_line(self, siblings: list[dict], environ: Mapping[str, str] | None = None,
+                      host: str | None = None) -> str:
+        """One line on the other workers on this machine (`presence.machine_siblings` rows) and the CPU threads
+        each job gets with them: said when the worker starts beside them and when they change at a job's start.
+        `host`: this machine's host name (a sibling with another, in a container, is named with its own). With
+        none, the threads the jobs get alone."""
+        others = machine_job_processes(siblings)
+        note = self.threads_note(environ, others)
+        if not siblings:
+            return f"no other worker runs on this host now: {note}"
+        who = "another worker runs" if len(siblings) == 1 else f"{len(siblings)} other workers run"
+        names = ", ".join(f"pid {r['pid']}" if r["host"] == host else f"{r['host']} pid {r['pid']}"
+                          for r in siblings)
+        total = self.processes + others
+        kept = "" if self.threads_shared(environ) else f", kept; {total} job process(es) share {machine_cores()} cores"
+        return (f"{who} on this host ({names}, {others} job process(es)): {note}{kept}; one worker with --processes "
+                f"{total} does the same with less: one process watching the root and the queue, not "
+                f"{len(siblings) + 1}")
+
+    def threads_shared(self, environ: Mapping[str, str] | None = None) -> bool:
+        """Whether the job's threads are the cores shared out by the worker (not --threads, the worker's own
+        OMP_NUM_THREADS or child_env's: kept whatever other workers run)."""
+        environ = os.environ if environ is None else environ
+        return ADAPT_ENV in self.job_env(environ) and THREADS_ENV not in (self.child_env or {})
 
     def check(self) -> "WorkerConfig":
         if not (isinstance(self.processes, int) and 1 <= self.processes <= 256):

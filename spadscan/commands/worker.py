@@ -27,10 +27,16 @@ job's id, so with --retry-failed, --preset picks the failed jobs of that preset.
 torch sees no GPU, a negative --seed) are refused before anything is queued.
 
 Each job process gets --threads CPU threads (OMP_NUM_THREADS): by default the worker's own OMP_NUM_THREADS when it
-is set, else the machine's cores shared out among --processes. Jobs that together ask for more threads than there
-are cores stall each other (two 2-thread jobs on 2 cores run 20-40x slower per step than two 1-thread ones): the
-worker warns when --processes x threads is more than the cores. An OMP_NUM_THREADS that is not a whole number >= 1
-is ignored, with a warning.
+is set, else the machine's cores shared out among --processes and the job processes of the other workers on this
+machine (each one's --processes, idle or not, read from their files under QUEUE/workers/; workers on other machines
+sharing the queue do not count). Jobs that together ask for more threads than there are cores stall each other (two
+2-thread jobs on 2 cores run 20-40x slower per step than two 1-thread ones): the worker warns when the job processes
+on this machine x threads are more than the cores. It says at start-up, and when a job starts beside other workers
+than the last one did, which workers share the cores and what each job gets, e.g. `another worker runs on this host
+(pid 4242, 1 job process(es)): 1 CPU threads per job (OMP_NUM_THREADS=1: 2 cores shared out among 2 job
+process(es)); one worker with --processes 2 does the same with less: ...`; the job's log (the result's job.log)
+begins with that line. --threads and an OMP_NUM_THREADS of the worker's own are kept beside other workers. An
+OMP_NUM_THREADS that is not a whole number >= 1 is ignored, with a warning.
 
 --live reconstructs while the arm scans: a scan is queued as soon as its first chunk is published, and its job
 follows it (each new chunk is read as it lands; the views in use grow, nothing restarts). Every few seconds it
@@ -106,8 +112,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--processes", type=int, default=None, metavar="N", help="jobs run at once (default: 1)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="CPU threads per job, given to each job as OMP_NUM_THREADS; default: the worker's own "
-                             "OMP_NUM_THREADS when set, else the machine's cores shared out among --processes, "
-                             "at least 1 (the start-up line says how many)")
+                             "OMP_NUM_THREADS when set, else the machine's cores shared out among --processes and "
+                             "the job processes of the other workers on this machine, at least 1 (the start-up line "
+                             "says how many)")
     parser.add_argument("--preset", default=None,
                         help="reconstruction preset: fast or paper (default: fast; with --retry-failed: only the "
                              "failed jobs of this preset)")
