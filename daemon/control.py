@@ -22,6 +22,7 @@ import json
 import logging
 import os
 import select
+import shlex
 import socket
 import stat
 from pathlib import Path
@@ -29,6 +30,8 @@ from typing import AsyncIterator, Awaitable, Callable
 
 from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError, SpadscanError
+
+from .client import default_socket_path
 
 log = logging.getLogger("spadscan.daemon")
 MAX_LINE_BYTES = 64 * 1024
@@ -68,7 +71,16 @@ def check_socket_path(path: Path) -> str:
     if st.st_uid != os.getuid():  # not a daemon `ctl shutdown` could stop: someone may have taken the name first
         raise ConfigError(f"socket path {path} is served by another user's process (uid {st.st_uid}); choose "
                           f"another socket path")
-    raise ConfigError(f"another daemon is already listening on {path} (stop it with `spadscan ctl shutdown`)")
+    raise ConfigError(f"another daemon is already listening on {path} (stop it with `{shutdown_command(path)}`)")
+
+
+def shutdown_command(path: Path) -> str:
+    """The command that stops the daemon listening on `path`, as a shell takes it: `spadscan ctl` looks in its
+    default socket (`client.default_socket_path`) unless told otherwise, so any other path goes with --socket (made
+    absolute: the command may be typed in another folder)."""
+    if os.path.realpath(path) == os.path.realpath(default_socket_path(create=False)):
+        return "spadscan ctl shutdown"
+    return f"spadscan ctl --socket {shlex.quote(os.path.abspath(path))} shutdown"
 
 
 class ControlServer:

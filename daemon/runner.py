@@ -64,7 +64,7 @@ from .devices import (Arm, ArmFault, ArmState, Frame, FramesTooEarly, LinkLost, 
                       wait_counted)
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abort_pending, check_scan_name,
                        clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
-                       load_job, way_out)
+                       load_job, pause_before_block, way_out)
 from .adaptive import ViewChooser, live_converged
 from .scan_end import ScanEnd, recorded_end
 from .scan_plan import build_plan, sensor_from_tcp, tcp_from_sensor
@@ -290,7 +290,8 @@ class ScanRunner:
         try:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
                                           rig_now=self.rig, scene_now=self.scene)
-            paused = await asyncio.to_thread(_paused_record, path)
+            # A block an earlier daemon recorded is checked afresh (load_job), not taken for a pause of the scan's.
+            paused = pause_before_block(await asyncio.to_thread(_paused_record, path), path.name)
             try:
                 job.writer = await self._io(job.reopen)
                 job.record_progress(job.writer)
@@ -318,10 +319,14 @@ class ScanRunner:
         # continues a scan that was interrupted, not one someone or something had stopped.
         auto = auto_resume and job.blocked is None and in_the_way is None and paused is None
         going_on = "auto_resume continues it" if auto else "`spadscan ctl resume` continues"
-        job.reason = job.blocked or paused or (f"interrupted at pose {self._progress()} (daemon restarted); "
-                                               f"{going_on}" +
-                                               (f", taking pose(s) {owed} again first (missing from the capture)"
-                                                if owed else ""))
+        if job.blocked:
+            # Said after the pause the scan had, as the capture records it (`_pause_said`) for the dashboard:
+            # `ctl status` and the dashboard say the same.
+            job.reason = f"{paused}; {job.blocked}" if paused else job.blocked
+        else:
+            job.reason = paused or (f"interrupted at pose {self._progress()} (daemon restarted); {going_on}" +
+                                    (f", taking pose(s) {owed} again first (missing from the capture)"
+                                     if owed else ""))
         job.paused_for = paused
         if in_the_way and not job.blocked:
             # The pause the scan had (the operator's, a fault's) stays said first: the full disk is one more thing
@@ -645,8 +650,9 @@ class ScanRunner:
             job.record_progress(job.writer)
         self._sensor_link_back(job)
         at = f"scan {job.name} left {'paused ' if paused else ''}at pose {self._progress()}"
-        if paused and job.reason:
-            at += f" ({job.reason})"
+        why = job.paused_for if job.blocked else job.reason  # (a block is said once, below)
+        if paused and why:
+            at += f" ({why})"
         if job.blocked:
             return f"{at}; not resumable as the rig stands: {job.blocked}"
         if unrecorded is not None:
@@ -1173,7 +1179,7 @@ class ScanRunner:
         full disk) keeps the pause in memory only."""
         try:
             if paused:
-                await self._io(mark_paused, job.path, job.paused_for or job.reason or "paused")
+                await self._io(mark_paused, job.path, _pause_said(job) or "paused")
             else:
                 await self._io(job.writer.set_state, "running")
         except (OSError, CaptureError) as exc:
@@ -1257,7 +1263,7 @@ class ScanRunner:
             if job.writer is None:
                 job.writer = await self._io(job.reopen)
             if self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
-                await self._io(mark_paused, job.path, job.paused_for or job.reason or "paused by user")
+                await self._io(mark_paused, job.path, _pause_said(job) or "paused by user")
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
@@ -1554,6 +1560,13 @@ def _remove_partial(path: Path) -> None:
 
 def _rounded(value: float | None, digits: int) -> float | None:
     return None if value is None else round(value, digits)
+
+
+def _pause_said(job: ScanJob) -> str | None:
+    """What the capture records of a pause: why the scan was paused in the first place (`ScanJob.paused_for`), else
+    its reason. A block is recorded with it, so that the dashboard says why the scan waits as `ctl status` does; the
+    next daemon leaves it out of the pause it takes over (`pause_before_block`) and checks the rig afresh."""
+    return job.reason if job.blocked else job.paused_for or job.reason
 
 
 def _paused_record(path: Path) -> str | None:

@@ -31,9 +31,10 @@ import numpy as np
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter, ChunkBook, held_frames, plan_retakes
-from spadscan.protocol.errors import CaptureError, ConfigError
+from spadscan.protocol.errors import CaptureError, ConfigError, SensorModelError
 from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
+from spadscan.protocol.sensor_presets import sensor_preset
 
 from .config import ScanConfig, scan_with
 from .scan_plan import tcp_from_sensor
@@ -436,7 +437,9 @@ def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | 
     The plan's TCP poses come from the capture's own hand-eye; when the rig's hand-eye differs, the job is marked
     blocked (resuming would put the sensor elsewhere than planned). So it is when the rig's sensor differs from the
     one the capture records (sensor_now: the sensor model now; rig_now, scene_now: the rig and scene records a new
-    capture would get): resuming would mix two sensors in one capture.
+    capture would get): resuming would mix two sensors in one capture. So it is, too, when the installed spadscan's
+    preset of the same name gives other numbers than the one the scan was planned with (an upgrade refitted it):
+    then no key of the rig's can restore it, and the block says so.
     """
     reader = CaptureReader(path)
     planned = reader.planned_poses()
@@ -458,33 +461,84 @@ def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | 
     changed = []
     if not np.allclose(reader.hand_eye, hand_eye_now, atol=1e-6):
         changed.append(f"the rig's [arm] hand_eye differs from the one scan {path.name!r} was planned with")
-    keys = [] if sensor_now is None else sensor_changes(reader, sensor_now, rig_now or {}, scene_now or {})
+    keys, preset = ([], []) if sensor_now is None else sensor_differences(reader, sensor_now, rig_now or {},
+                                                                          scene_now or {})
     if keys:
         changed.append(f"the rig's [sensor] differs from the one scan {path.name!r} was planned with "
                        f"({', '.join(keys)})")
-    if changed:
-        job.blocked = "; ".join(changed) + "; restore it to resume, or abort the scan"
+    job.blocked = block_reason(path.name, changed, reader.sensor.name, preset)
     return job
+
+
+def block_reason(name: str, changed: list[str], preset_name: str, preset: list[str]) -> str | None:
+    """Why scan `name` cannot resume, with what the operator can do; None when it can. `changed`: what differs in
+    the rig (its config can restore it); `preset`: how the installed spadscan's preset `preset_name` differs from the
+    one the scan was planned with (`preset_changes`), which only the spadscan version that started the scan gives."""
+    abort = f"or abort the scan (`spadscan ctl abort {name}`)"
+    if not preset:
+        return "; ".join(changed) + f"; restore it to resume, {abort}" if changed else None
+    shown = ", ".join(preset[:PRESET_CHANGES_SHOWN])
+    if len(preset) > PRESET_CHANGES_SHOWN:
+        shown += f" and {len(preset) - PRESET_CHANGES_SHOWN} more"
+    said = f"this spadscan's `{preset_name}` preset differs from the one scan {name!r} was planned with: {shown}"
+    finish = "finish it with the spadscan version that started it"
+    if changed:
+        return "; ".join(changed + [said]) + f"; restore the rig and {finish}, {abort}"
+    return f"{said}; {finish}, {abort}"
+
+
+def pause_before_block(reason: str | None, name: str) -> str | None:
+    """A pause's reason recorded in scan `name`'s capture, less the block an earlier daemon found and said there
+    (`block_reason`: its first part names what differs from the one the scan 'was planned with'), or None when
+    nothing else was said. A daemon taking the scan over checks the rig and its presets afresh: a block since lifted
+    (the rig restored, the spadscan version put back, one that no longer counts free text) is no pause of the
+    operator's, and must not stand as one."""
+    if reason is None:
+        return None
+    parts = reason.split("; ")
+    mark = f"differs from the one scan {name!r} was planned with"
+    first = next((i for i, part in enumerate(parts) if mark in part), None)
+    if first is None:
+        return reason
+    return "; ".join(parts[:first]) or None
 
 
 MODEL_KEYS = {"signal_scale": "power", "background": "ambient", "cycles": "cycles"}
 """Sensor model fields a [sensor] key sets (sim: power, ambient, cycles); every other field is the preset's."""
 SCENE_KEYS = {"builtin": "mesh", "mesh": "mesh", "mesh_offset_m": "mesh_offset_m", "albedo": "albedo"}
 """Scene record fields (sim) that change what the sensor sees, and the [sensor] key of each."""
+FREE_TEXT = frozenset({"notes"})
+"""Sensor model fields that say nothing about what a histogram means, and so are not compared: a preset's reworded
+`notes` (where its numbers come from) must not block a resume. Every other field of protocol/sensor_model.py's
+SensorModel changes it, and is compared: `name` (which preset), `n_bins`, `bin_width_m` and `zero_bin` (the time
+axis: the range a bin stands for), `zones` (where each channel looks, and its gain), `pulse` (the shape a return
+takes), `signal_scale`, `background`, `cycles`, `pileup`, `crosstalk`, `jitter_bins` and `max_count` (the counts a
+scene gives), `ignore_bins` (the bins a fit must leave out of every frame alike) and `has_reference` (whether frames
+carry a reference histogram). A field added later is compared until it is named here."""
+PRESET_CHANGES_SHOWN = 3
+"""How many of the fields in which a preset differs a block names (then "and N more")."""
 
 
 def sensor_changes(reader: CaptureReader, model_now: SensorModel, rig_now: dict, scene_now: dict) -> list[str]:
     """The [sensor] keys whose change since the capture began changes what it measures: its sensor model (the
     preset and the sim's photon keys), the sensor backend and (sim) the scene. Records absent on either side (a
-    capture another way made) are not compared."""
+    capture another way made) are not compared. A difference the installed spadscan's preset made (the same preset,
+    other numbers) is none of them: `sensor_differences` tells the two apart."""
+    return sensor_differences(reader, model_now, rig_now, scene_now)[0]
+
+
+def sensor_differences(reader: CaptureReader, model_now: SensorModel, rig_now: dict,
+                       scene_now: dict) -> tuple[list[str], list[str]]:
+    """(the [sensor] keys that differ, as `sensor_changes` names them; how the installed preset of the same name
+    differs from the one the capture was planned with, as `preset_changes` says it)."""
     then, now = _plain(reader.sensor.to_dict()), _plain(model_now.to_dict())
-    keys = set()
+    keys, by_preset = set(), []
     if then["name"] != now["name"]:
         keys.add("preset")
     else:
-        for name in set(then) | set(now):
-            if then.get(name) != now.get(name):
-                keys.add(MODEL_KEYS.get(name, "preset"))
+        differ = [name for name in _fields_of(then, now) if name not in FREE_TEXT and then.get(name) != now.get(name)]
+        by_preset = _preset_made(differ, now)
+        keys.update(MODEL_KEYS.get(name, "preset") for name in differ if name not in by_preset)
     rig_then = (reader.manifest.get("rig") or {}).get("sensor") or {}
     rig_now = rig_now.get("sensor") or {}
     if rig_then and rig_now and rig_then.get("backend") != rig_now.get("backend"):
@@ -492,7 +546,71 @@ def sensor_changes(reader: CaptureReader, model_now: SensorModel, rig_now: dict,
     scene_then = reader.manifest.get("scene") or {}
     if scene_then and scene_now:
         keys.update(key for name, key in SCENE_KEYS.items() if scene_then.get(name) != scene_now.get(name))
-    return sorted(keys)
+    return sorted(keys), preset_changes({k: then.get(k) for k in by_preset}, {k: now.get(k) for k in by_preset})
+
+
+def _preset_made(differ: list[str], now: dict) -> list[str]:
+    """Which of the model fields in `differ` (same preset name) the installed preset changed, not the rig's config.
+    A field no [sensor] key sets can differ only so. A field a key sets (MODEL_KEYS) is put down to the preset only
+    when the preset is seen to have changed (a field of the first kind differs: an upgrade refitted it) and no key
+    sets that field now (its value is the installed preset's own); otherwise the key is named, as the operator can
+    set it back."""
+    own = [name for name in differ if name not in MODEL_KEYS]
+    if not own:
+        return []
+    try:
+        installed = _plain(sensor_preset(now["name"]).to_dict())
+    except SensorModelError:  # (a model no preset of this spadscan's gave: every keyed field is the key's)
+        installed = {}
+    return [name for name in differ if name in own or (name in installed and installed[name] == now.get(name))]
+
+
+def preset_changes(then: dict, now: dict) -> list[str]:
+    """Each value that differs between two sensor model records (plain JSON), as 'field then -> now' (nested ones
+    by their path: pulse.sigma_bins, zones[4].gain), or 'field changed' where a value is too long to show (a pulse
+    table); in the records' field order."""
+    return _differences(then, now, "")
+
+
+SHOWN_MAX = 24
+"""Characters of a value a block shows (longer ones: 'changed')."""
+
+
+def _differences(then, now, path: str) -> list[str]:
+    """`preset_changes` of two values at `path`: objects, and lists of objects of one length, are walked into."""
+    if then == now:
+        return []
+    if isinstance(then, dict) and isinstance(now, dict):
+        keys = list(then) + [key for key in now if key not in then]
+        return [said for key in keys
+                for said in _differences(then.get(key), now.get(key), f"{path}.{key}" if path else key)]
+    if _records(then) and _records(now):
+        if len(then) != len(now):
+            return [f"{path} {len(then)} -> {len(now)} entries"]
+        return [said for i, (a, b) in enumerate(zip(then, now)) for said in _differences(a, b, f"{path}[{i}]")]
+    shown = (_shown(then), _shown(now))
+    return [f"{path} changed" if max(map(len, shown)) > SHOWN_MAX else f"{path} {shown[0]} -> {shown[1]}"]
+
+
+def _records(value) -> bool:
+    """A non-empty list of JSON objects (a model's zones)."""
+    return isinstance(value, list) and bool(value) and all(isinstance(item, dict) for item in value)
+
+
+def _shown(value) -> str:
+    """A plain value as a block says it: numbers short (12.4, 0.0136091), lists in brackets, absent as (none)."""
+    if value is None:
+        return "(none)"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(map(_shown, value)) + "]"
+    return json.dumps(value)
+
+
+def _fields_of(then: dict, now: dict) -> list[str]:
+    """The fields of two model records, in their order (then's first)."""
+    return list(then) + [name for name in now if name not in then]
 
 
 def _plain(record: dict) -> dict:

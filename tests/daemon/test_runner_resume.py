@@ -13,6 +13,7 @@ from spadscan.daemon.rig import build_devices, rig_record
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon import runner as runner_module
 from spadscan.daemon.runner import ScanRunner
+from spadscan.protocol import sensor_presets
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError
 
@@ -77,7 +78,8 @@ def test_a_changed_sensor_blocks_the_resume(arun, tmp_path, change, keys):
     status, refused = arun(restart(make_cfg(tmp_path, **change)))
     said = f"the rig's [sensor] differs from the one scan 'mix' was planned with {keys}"
     assert status["state"] == "paused" and said in status["reason"], status
-    assert refused is not None and said in refused and "abort the scan" in refused
+    assert refused is not None and said in refused and "abort the scan (`spadscan ctl abort mix`)" in refused
+    assert "preset differs" not in refused  # the rig's config changed, not the installed preset
     assert CaptureReader(tmp_path / "caps" / "mix").state == "running"  # nothing was written meanwhile
 
 
@@ -86,6 +88,41 @@ def test_the_same_sensor_resumes(arun, tmp_path):
     arun(interrupt(make_cfg(tmp_path)))
     status, refused = arun(restart(make_cfg(tmp_path, seed=7, frame_timeout_s=2.0)))
     assert refused is None and "interrupted at pose" in status["reason"], status
+
+
+def test_a_preset_whose_notes_alone_were_reworded_resumes(arun, tmp_path, monkeypatch):
+    """An update that rewords the preset's `notes` (free text: where its numbers come from) leaves what a histogram
+    means as it was: the scan it interrupted resumes."""
+    arun(interrupt(make_cfg(tmp_path)))
+    reworded = sensor_presets.tmf8820().with_(notes="Numbers from a loose fit; reworded.")
+    monkeypatch.setitem(sensor_presets.PRESETS, "tmf8820", lambda: reworded)
+    status, refused = arun(restart(make_cfg(tmp_path)))
+    assert refused is None and "interrupted at pose" in status["reason"], status
+
+
+def test_a_block_an_earlier_daemon_recorded_is_checked_afresh(arun, tmp_path):
+    """A blocked scan's capture records the block with its pause (the dashboard shows it); the next daemon, on the
+    rig the scan was planned with again, takes the scan over as interrupted, not as paused with a stale block."""
+    capture = tmp_path / "caps" / "mix"
+    arun(interrupt(make_cfg(tmp_path)))
+    arun(restart(make_cfg(tmp_path, power=5.0)))
+    assert "[sensor] differs" in CaptureReader(capture).manifest["paused"]["reason"]
+    status, refused = arun(restart(make_cfg(tmp_path)))
+    assert refused is None and status["reason"].startswith("interrupted at pose"), status
+
+
+def test_an_operators_pause_outlasts_a_block(arun, tmp_path):
+    """Blocked after the operator's pause: both are said, and recorded; once the rig is restored, the scan is taken
+    over paused by the operator, the block gone."""
+    capture = tmp_path / "caps" / "mix"
+    arun(interrupt(make_cfg(tmp_path), pause="paused"))
+    status, refused = arun(restart(make_cfg(tmp_path, power=5.0)))
+    said = "the rig's [sensor] differs from the one scan 'mix' was planned with (power)"
+    assert status["reason"].startswith(f"paused by user; {said}") and said in refused, status
+    assert CaptureReader(capture).manifest["paused"]["reason"] == status["reason"]
+    status, refused = arun(restart(make_cfg(tmp_path, auto_resume=True)))
+    assert status["state"] == "paused" and status["reason"] == "paused by user", status
+    assert refused is None
 
 
 def test_hand_eye_and_sensor_changed_together_are_both_named(arun, tmp_path):
