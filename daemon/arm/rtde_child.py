@@ -32,6 +32,8 @@ import sys
 import threading
 import time
 
+from spadscan.daemon.arm.safety_hold import holding_stop
+
 IK_QUERY_SINCE = {"e-Series": (5, 10), "CB-series": (3, 15)}
 """PolyScope version from which ur_rtde's control script answers getInverseKinematicsHasSolution (its lines are
 marked `$5.10|3.15`; on older controllers they are left out and the answer register keeps a stale value)."""
@@ -56,12 +58,6 @@ def tcp_offset_answered(polyscope: tuple[int, int] | None) -> bool:
     """Whether a controller of PolyScope version `polyscope` (major, minor) answers getTCPOffset: 3.6 on, so every
     e-Series (5.x). A controller whose dashboard names no version is asked all the same."""
     return polyscope is None or polyscope >= TCP_OFFSET_SINCE
-
-
-SAFETY_HOLD_BITS = (1 << 2) | (1 << 4) | (1 << 7) | (1 << 8) | (1 << 9)
-"""safety_status_bits while the arm is held for safety (protective, safeguard, emergency stop, violation, fault; RTDE
-guide): the control script takes no command then. ur_rtde's own wait for an answer gives up early only on a
-protective or emergency stop; on the others it waits up to 300 s."""
 
 
 class CommandFailed(Exception):
@@ -195,12 +191,16 @@ class Client:
 
     def _held(self) -> str | None:
         """Why the control script cannot take a command now (it is not running, a safety stop holds the arm), or
-        None when it can."""
+        None when it can. The stop is judged by `holding_stop`, as the daemon judges it from the same readings: where
+        the daemon declined to send stopScript (a stop held the arm), this process declines too, also at its close."""
         c, r = self.control, self.receive
         if not c.isProgramRunning():
             return "the RTDE control script is not running"
-        if r.isProtectiveStopped() or r.isEmergencyStopped() or r.getSafetyStatusBits() & SAFETY_HOLD_BITS:
-            return f"the arm is stopped for safety (safety mode {r.getSafetyMode()})"
+        mode = int(r.getSafetyMode())
+        stop = holding_stop(bool(r.isProtectiveStopped()), bool(r.isEmergencyStopped()), mode,
+                            int(r.getSafetyStatusBits()))
+        if stop is not None:
+            return f"the arm is stopped for safety ({stop}, safety mode {mode})"
         return None
 
     def _answering(self, what: str) -> None:

@@ -9,10 +9,12 @@ reads the name with `stop_name`, which also serves an arm that only sets `protec
 
 from __future__ import annotations
 
+from spadscan.daemon.arm.safety_hold import (EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, SAFETY_FAULT,
+                                             SAFETY_VIOLATION)
 from spadscan.daemon.devices import ArmState
 
-EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP = "emergency stop", "protective stop", "safeguard stop"
-SAFETY_VIOLATION, SAFETY_FAULT = "safety violation", "safety fault"
+__all__ = ["EMERGENCY_STOP", "PROTECTIVE_STOP", "SAFEGUARD_STOP", "SAFETY_VIOLATION", "SAFETY_FAULT", "SAFETY_STOP",
+           "TO_CLEAR", "stop_name", "clear_advice"]
 SAFETY_STOP = "safety stop"
 """The name for an arm that says it is stopped for safety but not which stop it is."""
 TO_CLEAR = {

@@ -62,8 +62,11 @@ import numpy as np
 
 from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rotvec_to_matrix, vector_to_pose
-from spadscan.daemon.arm.stops import (EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, SAFETY_FAULT, SAFETY_VIOLATION,
-                                       clear_advice)
+# The safety modes and status bits stay importable from this module too.
+from spadscan.daemon.arm.safety_hold import (BIT_FAULT, BIT_SAFEGUARD_STOPPED, BIT_VIOLATION,  # noqa: F401
+                                             MODE_FAULT, MODE_VIOLATION, SAFEGUARD_MODES, SAFETY_MODES, holding_stop,
+                                             safety_fault)
+from spadscan.daemon.arm.stops import clear_advice
 from spadscan.daemon.describe import SLIDER_FLOOR, SLIDER_FULL, slider_note
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError
@@ -86,17 +89,6 @@ CLEARED_WITHIN_S = 2.0
 SAFETY_CATCH_UP_S = 0.5
 """s: how long a control script seen stopped is read again for the safety stop that may have stopped it (the
 receive stream can lag the control stream)."""
-SAFETY_MODES = {1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery", 5: "safeguard stop",
-                6: "system emergency stop", 7: "robot emergency stop", 8: "violation", 9: "fault",
-                12: "automatic mode safeguard stop", 13: "system three position enabling stop"}
-SAFEGUARD_MODES = frozenset({5, 12, 13})
-"""Safety modes in which the arm is held by a safeguard (RTDE guide): treated like a protective stop."""
-MODE_VIOLATION, MODE_FAULT = 8, 9
-"""Safety modes in which the safety system itself stopped the arm (RTDE guide): it must be restarted."""
-BIT_SAFEGUARD_STOPPED = 1 << 4
-"""safety_status_bits: 'is safeguard stopped' (bit 2 protective, bit 7 emergency: ur_rtde reads those itself)."""
-BIT_VIOLATION, BIT_FAULT = 1 << 8, 1 << 9
-"""safety_status_bits: 'is violation', 'is fault' (RTDE guide)."""
 TCP_OFFSET_TOL_M = 1e-4
 """m: largest translation of the controller's active TCP offset still taken for the bare flange."""
 TCP_OFFSET_TOL_RAD = 1e-3
@@ -125,29 +117,15 @@ class _Reading:
     op_id: int = -1  # the last asynchronous move that started (progress readings only; -1 otherwise)
 
     @property
-    def safeguard(self) -> bool:
-        return bool(self.safety_bits & BIT_SAFEGUARD_STOPPED) or self.safety_mode in SAFEGUARD_MODES
-
-    @property
     def safety_fault(self) -> str | None:
         """SAFETY_FAULT or SAFETY_VIOLATION when the safety system itself stopped the arm, else None."""
-        if self.safety_mode == MODE_FAULT or self.safety_bits & BIT_FAULT:
-            return SAFETY_FAULT
-        if self.safety_mode == MODE_VIOLATION or self.safety_bits & BIT_VIOLATION:
-            return SAFETY_VIOLATION
-        return None
+        return safety_fault(self.safety_mode, self.safety_bits)
 
     @property
     def stop(self) -> str | None:
-        """The safety stop that holds the arm (`stops`), None when none does; a safety fault or violation first (only
-        a restart of the arm clears it), then an emergency stop, as it outranks the others when several show."""
-        if self.safety_fault is not None:
-            return self.safety_fault
-        if self.emergency:
-            return EMERGENCY_STOP
-        if self.protective:
-            return PROTECTIVE_STOP
-        return SAFEGUARD_STOP if self.safeguard else None
+        """The safety stop that holds the arm (`stops`), None when none does: `safety_hold.holding_stop`, the
+        predicate the ur_rtde process uses too."""
+        return holding_stop(self.protective, self.emergency, self.safety_mode, self.safety_bits)
 
 
 class URArm(Arm):
@@ -255,9 +233,10 @@ class URArm(Arm):
             reading = await self._fresh("the control script's state")
         if not reading.program_running and reading.safety_fault is None:  # no program runs until a restart
             await self._call("reuploadScript", "reupload")
-            if not await self._script_started():
-                await self.reconnect()
-            self._watchdog_set = self._tcp_checked = False
+            if await self._script_started():
+                self._watchdog_set = self._tcp_checked = False  # a new program: it has no watchdog yet
+            else:
+                await self.reconnect()  # its ur_rtde process armed the new program's watchdog: keep what it set
         if reading.stop is None:
             await self._check_tcp_offset()
             await self._arm_watchdog()
@@ -653,10 +632,16 @@ class URArm(Arm):
                 return
             result = await self._call("stopScript", "stop_script")
         except DeviceError as exc:  # LinkLost too
-            log.warning("%s: could not stop the control script (%s); %s", self.name, exc, watchdog)
+            log.warning("%s: could not stop the control script (%s); %s", self.name, self._unnamed(exc), watchdog)
             return
         if not result["stopped"]:
             log.warning("%s: the control script was left running (%s); %s", self.name, result["why"], watchdog)
+
+    def _unnamed(self, exc: Exception) -> str:
+        """The message of an error this arm raised, without its leading "<arm name>: " (for a line that names the arm
+        already)."""
+        text, prefix = str(exc), f"{self.name}: "
+        return text[len(prefix):] if text.startswith(prefix) else text
 
 
 def _mode_text(mode: int) -> str:

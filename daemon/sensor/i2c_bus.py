@@ -19,38 +19,43 @@ the chip the same way):
    (long range, the default) or 0x00 (an application image without accuracy modes). Unless it reads 0x6E, CMD_STAT
    0x08 <- 0x6E, then ACTIVE_RANGE is read again and must read 0x6E: otherwise the start fails with one line naming
    both (the `tmf8820` sensor model describes short-range histograms only; long-range ones stored under it would put
-   every surface in the wrong place), before anything is measured.
+   every surface in the wrong place), before anything is measured. ACTIVE_RANGE alone decides: it says the mode the
+   model needs, whatever status the command answered (one other than 0x00 is logged).
 5. Configure: 0x16 (load the common config page; 0x20 then reads 0x16), period ms 0x24 (u16 LE), kilo-iterations
    0x26 (u16 LE), SPAD map 0x34, HIST_DUMP 0x39 = 1 (raw histograms), then 0x15 (write config). After each command
-   CMD_STAT echoes the command while busy (>= 0x10), then reads its status: ams' Python driver requires 0x00 (ok)
-   for every command but measure, and 0x01 (accepted) for measure; so does the daemon (measure may also read 0x00,
-   which ams' Linux driver accepts). Anything else fails the start, the status named.
+   CMD_STAT echoes the command while busy (>= 0x10), then reads its status. ams' Linux driver takes 0x00 (ok) or 0x01
+   (accepted) after any command, and so does the daemon; ams' Python driver expects 0x01 for measure and 0x00 for
+   the others, so a 0x01 where it expects 0x00 is logged once. Anything else fails the start, the status named.
 6. Interrupts: INT_STATUS 0xE1 <- 0xFF (write 1 to clear), then INT_ENAB 0xE2 |= result (0x02) and raw histogram
    (0x08) bits, as every reference does before measuring, and the error bit (0x40), as ams' Linux driver does (it
    enables all but "command done"); read-modify-write (the enables drive the INT pin).
 7. Measure: CMD_STAT <- 0x10 (accepted: 0x01).
 
 Readout polls INT_STATUS: bit 0x08 = a histogram sub-packet waits at 0x20, bit 0x02 = a result (layouts in
-`i2c_records`). Before each record is read CMD_STAT is checked, as ams' Linux driver does before every message read.
-Each record is read in one `i2c_rdwr` transfer and its bit cleared by writing it back. A record that is not
-what its bit announces is refused (counted in bad_records, the last one's reason in last_bad_record); a histogram
-sub-packet whose size field is not the documented one is taken (ams' drivers do not check it) and counted in
-size_field_mismatches, with one warning in the log.
+`i2c_records`). CMD_STAT is checked before a frame's first record is read (ams' Linux driver checks it before every
+message read; once per frame costs one register read instead of 31, ~3 % of the frame rate at 400 kHz), and again
+before the record after a refused or missing one. Each record is read in one `i2c_rdwr` transfer and its bit cleared
+by writing it back. A record that is not what its bit announces is refused (counted in bad_records, the last one's
+reason in last_bad_record); a histogram sub-packet whose size field is not the documented one is taken (ams' drivers
+do not check it) and counted in size_field_mismatches, with one warning in the log.
 Bit 0x40 is the error interrupt ("one of the status registers has been set to a non-zero value", ams' Python
-driver): at the poll that sees it the daemon clears it and reads CMD_STAT and the status registers 0x04-0x07. A
-CMD_STAT other than 0x00 / 0x01 (e.g. 0x03 "severe error, stopped") means the application stopped measuring: a
-dropped link, named with the registers (the device boots, downloads if needed, configures and measures again). With
-CMD_STAT still fine it is counted (error_interrupts, the registers in last_error_interrupt) and logged once, and
-reading goes on, as ams' Linux driver goes on after logging it (the register map does not say which status values
-raise it: a warning such as "no factory calibration" may). The fallback, for a chip that stops without the
-interrupt: if no record arrives for `watchdog_s`, APP_ID and CMD_STAT are checked: a sensor that lost power is back
-in its bootloader, and an application that stopped measuring sends nothing more; either is a dropped link too.
+driver): at the poll that sees it the daemon clears it and reads CMD_STAT (which serves as the check of a record read
+at the same poll) and the status registers 0x04-0x07. A CMD_STAT other than 0x00 / 0x01 (e.g. 0x03 "severe error,
+stopped") means the application stopped measuring: a dropped link, named with the registers (the device boots,
+downloads if needed, configures and measures again). With CMD_STAT still fine it is counted (error_interrupts, the
+registers in last_error_interrupt) and logged once, and reading goes on, as ams' Linux driver goes on after logging
+it (the register map does not say which status values raise it: a warning such as "no factory calibration" may).
+The fallback, for a chip that stops without the interrupt: if no record arrives for `watchdog_s`, APP_ID and
+CMD_STAT are checked: a sensor that lost power is back in its bootloader, and an application that stopped measuring
+sends nothing more; either is a dropped link too. So is a CMD_STAT that still echoes a command (>= 0x10) after
+`timeout_s` at any of these checks: the application hangs in that command (e.g. "CMD_STAT stuck at 0x10 (measure
+still running)").
 `stop` sends 0xFF and clears its INT_ENAB bits again.
 
 `restart` (once the arm has settled) stops the measurement and starts a fresh one, as ams' Python driver's
-stopMeasure/startMeasure and its Linux driver's stop/start do: 0xFF (status 0x00), INT_STATUS <- 0xFF (so that no
-record of the stopped measurement is read), 0x10 (accepted: 0x01). The chip measures cyclically from the 0x10 on, so
-no record read after it was exposed before it.
+stopMeasure/startMeasure and its Linux driver's stop/start do: 0xFF (status 0x00 or 0x01), INT_STATUS <- 0xFF (so
+that no record of the stopped measurement is read), 0x10 (accepted: 0x01). The chip measures cyclically from the
+0x10 on, so no record read after it was exposed before it.
 """
 
 from __future__ import annotations
@@ -95,6 +100,8 @@ STAT_NAMES = {0x00: "ok", 0x01: "accepted", 0x02: "configuration not accepted", 
               0x06: "unknown command", 0x07: "no reference SPAD", 0x08: "no flicker SPAD",
               0x09: "unknown config page", 0x0E: "unknown mode"}
 """CMD_STAT values as ams' register map names them (0x0A-0x0D are warnings that a setting was ignored)."""
+FRAME_START = "before a frame's first record"
+"""When CMD_STAT is checked in the normal course of reading: once per frame (the `when` of `_require_measuring`)."""
 SETTLE_S = 0.010
 """Wait after setting PON and after RAMREMAP before the chip is addressed again (the references wait 10 ms)."""
 TIME_MULTIPLEXED_MAPS = frozenset({4, 5, 7, 10, 13, 15})
@@ -103,9 +110,10 @@ BL_ERRORS = {0x01: "size error", 0x02: "checksum error", 0x03: "resource error",
              0x05: "timeout", 0x06: "locked", 0x07: "address out of range", 0x08: "more data expected"}
 COMMAND_NAMES = {CMD_MEASURE: "measure", CMD_STOP: "stop", CMD_LOAD_CONFIG: "load common config",
                  CMD_WRITE_CONFIG: "write config", CMD_SHORT_RANGE: "short-range mode"}
-COMMAND_STATUS = {CMD_MEASURE: (STAT_ACCEPTED, STAT_OK)}
-"""The statuses a command may answer (ams' Python driver: 0x01 for measure, 0x00 for the others; ams' Linux driver
-takes 0x00 for measure too). Any other command: 0x00 only."""
+COMMAND_STATUS = (STAT_OK, STAT_ACCEPTED)
+"""The statuses any command may answer: ams' Linux driver takes 0x00 (ok) or 0x01 (accepted) after every command."""
+PYTHON_DRIVER_STATUS = {CMD_MEASURE: STAT_ACCEPTED}
+"""The status ams' Python driver expects of a command (any other: 0x00); a 0x01 where it expects 0x00 is logged."""
 
 
 class I2CTransport(Transport):
@@ -138,6 +146,9 @@ class I2CTransport(Transport):
         self._bus = None
         self._image: FirmwareImage | None = None
         self._last_record = 0.0
+        self._check_before: str | None = FRAME_START  # why CMD_STAT is checked before the next record read (None: not)
+        self._next_index: int | None = 0  # the sub-packet expected next (0 after a result; None after a refused one)
+        self._accepted_noted = False  # a command answered 0x01 where ams' Python driver expects 0x00: logged once
         self._counts: dict[str, int | str] = {"records": 0, "bad_records": 0, "size_field_mismatches": 0,
                                               "error_interrupts": 0, "boots": 0, "downloads": 0}
 
@@ -180,13 +191,17 @@ class I2CTransport(Transport):
         self._command(CMD_WRITE_CONFIG)
         self._write(REG_INT_STATUS, 0xFF)
         self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) | INT_BITS)
-        self._command(CMD_MEASURE)
-        self._last_record = time.monotonic()
+        self._measure()
 
     def restart(self) -> None:
         self._command(CMD_STOP)
         self._write(REG_INT_STATUS, 0xFF)  # a record of the stopped measurement still flagged is not read
+        self._measure()
+
+    def _measure(self) -> None:
+        """Start measuring: the next record read begins a frame."""
         self._command(CMD_MEASURE)
+        self._check_before, self._next_index = FRAME_START, 0
         self._last_record = time.monotonic()
 
     def stop(self) -> None:
@@ -212,6 +227,7 @@ class I2CTransport(Transport):
             status = self._read(REG_INT_STATUS)
             if status & INT_ERROR:
                 self._error_interrupt()
+                self._check_before = None  # CMD_STAT was just read: the record below needs no second read
             if status & (INT_HISTOGRAM | INT_RESULT):
                 pkt = self._take_record(status & INT_HISTOGRAM != 0)
                 if pkt is not None:
@@ -229,7 +245,9 @@ class I2CTransport(Transport):
         """Read the record waiting at 0x20 (a histogram sub-packet or a result) and clear its INT bit; the packet, or
         None when the record is refused (counted, with the reason)."""
         bit = INT_HISTOGRAM if histogram else INT_RESULT
-        self._require_measuring("before a record read")
+        if self._check_before is not None:
+            self._require_measuring(self._check_before)
+            self._check_before = None
         buf = self._block_read(REG_PAGE, HIST_RECORD if histogram else RESULT_RECORD)
         t = time.monotonic()
         self._write(REG_INT_STATUS, bit)
@@ -239,11 +257,23 @@ class I2CTransport(Transport):
             self._counts["bad_records"] += 1
             kind, refusal = ("histogram sub-packet", histogram_refusal) if histogram else ("result", result_refusal)
             self._counts["last_bad_record"] = f"{kind}: {refusal(buf)}"
+            self._check_before, self._next_index = "before the record after a refused one", None
             return None
         self._counts["records"] += 1
         if histogram:
             self._note_size_field(buf)
+        self._note_sequence(pkt.index if histogram else None)
         return pkt
+
+    def _note_sequence(self, index: int | None) -> None:
+        """Keep track of where the frame is (`index`: the sub-packet just read, None for a result): CMD_STAT is checked
+        before the next frame's first record, and before the next record when one was missed."""
+        if index is None:
+            self._check_before, self._next_index = FRAME_START, 0
+            return
+        if self._next_index is not None and index != self._next_index:
+            self._check_before = "before the record after a missing one"
+        self._next_index = index + 1
 
     def _note_size_field(self, buf: bytes) -> None:
         """Count a histogram sub-packet whose size field is not the documented one; warn about the first."""
@@ -274,14 +304,18 @@ class I2CTransport(Transport):
 
     def _require_measuring(self, when: str, registers: str | None = None) -> None:
         """Raise LinkDown unless CMD_STAT says the application measures (0x01 accepted, or 0x00 ok, as ams' Linux
-        driver checks before every message read). `when` says what led to the check and `registers` the status
-        registers already read (default: APPLICATION_STATUS is read), for the message."""
-        status = self._settled_status()
-        if status in (STAT_OK, STAT_ACCEPTED):
+        driver checks before a message read). A CMD_STAT that still echoes a command (>= 0x10) after timeout_s is an
+        application hung in that command: a dropped link too, so that the device boots the sensor again. `when`
+        says what led to the check and `registers` the status registers already read (default: APPLICATION_STATUS
+        is read), for the message."""
+        status, settled = self._read_settled()
+        if settled and status in (STAT_OK, STAT_ACCEPTED):
             return
         if registers is None:
             registers = f"APPLICATION_STATUS {self._read(REG_APP_STATUS):#04x}"
-        raise LinkDown(f"sensor stopped measuring (CMD_STAT {status:#04x}{_stat_name(status)}, {registers}, {when})")
+        state = (f"CMD_STAT {status:#04x}{_stat_name(status)}" if settled else
+                 f"CMD_STAT stuck at {status:#04x} ({_running(status)} still running) for {self.timeout_s:g} s")
+        raise LinkDown(f"sensor stopped measuring ({state}, {registers}, {when})")
 
     def _error_interrupt(self) -> None:
         """INT_STATUS bit 0x40 is set: clear it, then LinkDown if the application stopped (CMD_STAT), else count it
@@ -336,31 +370,53 @@ class I2CTransport(Transport):
         `tmf8820` sensor model describes short-range histograms, and long-range ones stored under it would misplace
         every surface."""
         mode = self._read(REG_ACTIVE_RANGE)
-        status = STAT_OK
-        if mode != RANGE_SHORT:
-            status = self._send(CMD_SHORT_RANGE)
-            mode = self._read(REG_ACTIVE_RANGE)
+        if mode == RANGE_SHORT:
+            self._counts["active_range"] = RANGE_NAMES[mode]
+            return
+        status = self._send(CMD_SHORT_RANGE)
+        mode = self._read(REG_ACTIVE_RANGE)
         self._counts["active_range"] = RANGE_NAMES.get(mode, f"unknown ({mode:#04x})")
-        if mode != RANGE_SHORT or status != STAT_OK:
+        if mode != RANGE_SHORT:
             raise DeviceError(short_range_refusal(status, mode))
+        if status != STAT_OK:  # ACTIVE_RANGE decides: the mode the model needs is set
+            self._note_status(CMD_SHORT_RANGE, status, "ACTIVE_RANGE reads 0x6e (short range), which decides")
 
     def _command(self, cmd: int) -> None:
-        """Send an application command and require the status ams' drivers require (`COMMAND_STATUS`)."""
+        """Send an application command and require a status ams' Linux driver takes (`COMMAND_STATUS`); one that
+        ams' Python driver would not take is logged (`_note_status`)."""
         status = self._send(cmd)
-        expected = COMMAND_STATUS.get(cmd, (STAT_OK,))
-        if status not in expected:
-            wanted = " or ".join(f"{s:#04x}{_stat_name(s)}" for s in expected)
+        if status not in COMMAND_STATUS:
+            wanted = " or ".join(f"{s:#04x}{_stat_name(s)}" for s in COMMAND_STATUS)
             raise DeviceError(f"command {cmd:#04x} ({COMMAND_NAMES[cmd]}) answered status {status:#04x}"
                               f"{_stat_name(status)}, expected {wanted}")
+        if status == STAT_ACCEPTED and PYTHON_DRIVER_STATUS.get(cmd, STAT_OK) == STAT_OK:
+            self._note_status(cmd, status, "taken, as ams' Linux driver takes 0x00 or 0x01 after any command")
+
+    def _note_status(self, cmd: int, status: int, why: str) -> None:
+        """Log, once per transport, a command status other than the 0x00 ams' Python driver expects, and why it is
+        taken."""
+        if self._accepted_noted:
+            return
+        self._accepted_noted = True
+        log.warning("%s: command %#04x (%s) answered status %#04x%s where ams' Python driver expects 0x00 (ok); %s "
+                    "(said once)", self.name, cmd, COMMAND_NAMES[cmd], status, _stat_name(status), why)
 
     def _send(self, cmd: int) -> int:
         """Write an application command to CMD_STAT and return its status once it no longer runs."""
         self._write(REG_CMD_STAT, cmd)
         return self._settled_status(f"command {cmd:#04x} ({COMMAND_NAMES[cmd]})")
 
-    def _settled_status(self, what: str = "CMD_STAT to settle") -> int:
-        """CMD_STAT once no command runs (while one does the register echoes it, >= 0x10; ams' Linux driver waits
-        the same way before it reads a record)."""
+    def _settled_status(self, what: str) -> int:
+        """CMD_STAT once the command `what` no longer runs; DeviceError when it still runs after timeout_s."""
+        status, settled = self._read_settled()
+        if not settled:
+            raise DeviceError(f"timed out after {self.timeout_s:g} s waiting for {what}")
+        return status
+
+    def _read_settled(self) -> tuple[int, bool]:
+        """(CMD_STAT, whether it settled): polled while a command runs (the register echoes it, >= 0x10; ams' Linux
+        driver waits the same way before it reads a record) for up to timeout_s; the last value read when it did not
+        settle."""
         status = BUSY
 
         def done():
@@ -368,8 +424,8 @@ class I2CTransport(Transport):
             status = self._read(REG_CMD_STAT)
             return status < BUSY
 
-        self._wait(done, what)
-        return status
+        settled = self._poll(done)  # sets `status`
+        return status, settled
 
     def _wait_waking(self, ready: Callable[[], bool], what: str) -> None:
         """`_wait` while the chip's CPU starts (after PON, after RAMREMAP): it may acknowledge nothing for a while, and
@@ -395,11 +451,17 @@ class I2CTransport(Transport):
             raise LinkDown(f"{exc}: {silent}") from None
 
     def _wait(self, ready: Callable[[], bool], what: str) -> None:
+        if not self._poll(ready):
+            raise DeviceError(f"timed out after {self.timeout_s:g} s waiting for {what}")
+
+    def _poll(self, ready: Callable[[], bool]) -> bool:
+        """Call `ready` every poll_s until it returns True (then True) or timeout_s has passed (then False)."""
         deadline = time.monotonic() + self.timeout_s
         while not ready():
             if time.monotonic() >= deadline:
-                raise DeviceError(f"timed out after {self.timeout_s:g} s waiting for {what}")
+                return False
             time.sleep(self.poll_s)
+        return True
 
     # ---- bus access: every failure is a dropped link ---------------------------------------------------------------
     def _read(self, reg: int) -> int:
@@ -451,15 +513,23 @@ def _stat_name(status: int) -> str:
     return f" ({name})" if name else ""
 
 
+def _running(echo: int) -> str:
+    """The command a busy CMD_STAT (>= 0x10) echoes, in words: 'measure', or 'command 0x43' for one not named."""
+    return COMMAND_NAMES.get(echo, f"command {echo:#04x}")
+
+
 def short_range_refusal(status: int, mode: int) -> str:
     """The one-line error of a sensor that did not switch to short range: what command 0x6E answered, what
     ACTIVE_RANGE reads, and what to do."""
     what = {RANGE_NONE: "an application image without accuracy modes", RANGE_LONG: "still long range",
-            RANGE_SHORT: "short range, but the command did not answer 0x00"}.get(mode, "no accuracy mode ams documents")
-    return (f"the sensor did not switch to short-range high-accuracy mode: command 0x6e answered status "
-            f"{status:#04x}{_stat_name(status)} and ACTIVE_RANGE 0x19 reads {mode:#04x} ({what}); the tmf8820 sensor "
-            f"model describes short-range histograms only, so nothing is measured: set firmware = PATH to an ams "
-            f"TMF8820 application image with accuracy modes (short_range_accuracy), then power-cycle the sensor")
+            RANGE_SHORT: "short range"}.get(mode, "no accuracy mode ams documents")
+    head = (f"the sensor did not switch to short-range high-accuracy mode: command 0x6e answered status "
+            f"{status:#04x}{_stat_name(status)} and ACTIVE_RANGE 0x19 reads {mode:#04x} ({what})")
+    if mode == RANGE_SHORT:  # the mode the model needs: no image to change (the start does not refuse it)
+        return head
+    return (f"{head}; the tmf8820 sensor model describes short-range histograms only, so nothing is measured: set "
+            f"firmware = PATH to an ams TMF8820 application image with accuracy modes (short_range_accuracy), then "
+            f"power-cycle the sensor")
 
 
 def _bus_error(what: str, exc: OSError) -> LinkDown:

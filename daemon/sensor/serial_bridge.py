@@ -12,9 +12,11 @@ a trailing comma is tolerated all the same):
 
 The temperature is the result record's byte, degrees C, printed as an unsigned number (0..255) and read so, as every
 ams driver reads it. The valid-results count is the record's byte as printed; its bits 5:0 hold the count (the
-register map's 6-bit field). The 36 distance/confidence pairs are the result slots (`i2c_records`: slot k is target
-k // 18 + 1 of channel k % 9 + 1), their distances clock-corrected by the firmware (ams' Arduino driver's
-tmf882xCorrectDistance, on by default in the UW firmware), unlike the I2C backend's raw ones.
+register map's 6-bit field). With no checksum, a printed count over 36 marks a corrupt line (as a confidence over
+255 does) unless bits 7:6 explain it: then its bits 5:0 must count the pairs that hold a target (a non-zero distance
+or confidence, as ams' Linux driver counts them). The 36 distance/confidence pairs are the result slots
+(`i2c_records`: slot k is target k // 18 + 1 of channel k % 9 + 1), their distances clock-corrected by the firmware
+(ams' Arduino driver's tmf882xCorrectDistance, on by default in the UW firmware), unlike the I2C backend's raw ones.
 
 `#Prt` lines (partial histograms: the UW consumer reads them as a "partial" histogram type, but no ams or UW source
 says which bins they carry or what the field after their sub-packet number is) are refused with a line saying so: a
@@ -22,6 +24,11 @@ frame is 30 full `#Raw` sub-packets. The bridge has no checksum: a line is accep
 every value are well-formed and in range; anything else (a partial line after a mid-line start or an
 unplug, two lines run together, line noise, another sensor's line) is refused and counted (in bad_records, as the I2C
 transport counts its refused records, and by kind), and the frame it belonged to is dropped by the frame assembler.
+
+The bridge's "Active range: <hex>" line (the ACTIVE_RANGE the firmware reads as it starts) must say 6E, short-range
+high accuracy: in any other mode the transport refuses to go on (a DeviceError, which stops the device's reader
+before a frame of that mode is made), as the I2C backend refuses to start, since the `tmf8820` sensor model describes
+short-range histograms only. The daemon cannot switch the bridge's mode: its firmware must.
 
 Timing: the bridge keeps the sensor measuring on the period its firmware sets (the UW firmware: 230 ms) and cannot be
 told to start a fresh measurement. In its loop it clears a record's interrupt, reads the record over I2C and prints
@@ -44,8 +51,8 @@ from spadscan.protocol.sensor_model import SensorModel
 from .device_node import SERIAL_GROUP, with_access_fix
 from .i2c_records import valid_results
 from .tmf8820 import TMF8820
-from .transport import (N_RESULTS, N_SUBPACKETS, RANGE_NAMES, RANGE_SHORT, SUBPACKET_BYTES, HistogramPacket, LinkDown,
-                        Packet, ResultPacket, StatusPacket, Transport)
+from .transport import (N_RESULTS, N_SUBPACKETS, RANGE_LONG, RANGE_NAMES, RANGE_NONE, RANGE_SHORT, SUBPACKET_BYTES,
+                        HistogramPacket, LinkDown, Packet, ResultPacket, StatusPacket, Transport)
 
 log = logging.getLogger("spadscan.daemon")
 
@@ -130,18 +137,35 @@ def _obj_record(fields: list[bytes], t: float, address: int | None) -> ResultPac
     if len(fields) != OBJ_FIELDS:
         return "corrupt", f"a #Obj line of {len(fields)} fields, not {OBJ_FIELDS}"
     addr = _uint(fields[1], 127)
-    n_valid = valid_results(_uint(fields[4], 255))
-    if n_valid > N_RESULTS:
-        return "corrupt", f"a #Obj line with {n_valid} valid results, more than {N_RESULTS}"
+    printed = _uint(fields[4], 255)
     pairs = [_uint(f, 65535) for f in fields[6:]]
     confidence = max(pairs[1::2])
     if confidence > 255:
         return "corrupt", f"a #Obj line with a confidence of {confidence}, more than a byte"
+    refusal = valid_count_refusal(printed, pairs[0::2], pairs[1::2])
+    if refusal:
+        return "corrupt", f"a #Obj line with {refusal}"
     if address is not None and addr != address:
         return "other_address", f"a #Obj line for I2C address {addr}, not {address}"
     return ResultPacket(result_no=_uint(fields[2], 255), temperature_c=float(_uint(fields[3], 255)),
-                        n_valid=n_valid, systick=_uint(fields[5], 2**32 - 1),
+                        n_valid=valid_results(printed), systick=_uint(fields[5], 2**32 - 1),
                         distances_mm=pairs[0::2], confidences=pairs[1::2], t=t)
+
+
+def valid_count_refusal(printed: int, distances: list[int], confidences: list[int]) -> str:
+    """Why an #Obj line's printed valid-results count marks it corrupt, or '' when it does not. A count up to 36 is
+    taken. The bridge has no checksum, so one over 36 is taken only where the register map's upper bits 7:6 explain
+    it: its bits 5:0 must then count exactly the pairs that hold a target (ams' Linux driver counts a slot with a
+    non-zero confidence or distance as one). Masking alone would let 111 of the values 37..255 through."""
+    if printed <= N_RESULTS:
+        return ""
+    count, held = valid_results(printed), sum(1 for d, c in zip(distances, confidences) if d or c)
+    if count == held:  # at most 36: bits 7:6 alone make the printed value larger
+        return ""
+    why = f"{printed} valid results, more than {N_RESULTS}"
+    if count <= N_RESULTS:
+        why += f" (its bits 5:0 read {count}, but {held} pairs hold a target)"
+    return why
 
 
 FIRMWARE_DOWNLOADED = b"FW downloaded"
@@ -149,6 +173,17 @@ ACTIVE_RANGE_LINE = re.compile(rb"Active range: ([0-9A-Fa-f]{1,2})")
 BRIDGE_NOTES = ("firmware_downloaded", "active_range")
 """StatusPacket kinds of the lines the UW bridge prints without a '#' tag: after each download, and on every start
 the sensor's ACTIVE_RANGE (hex, as Arduino's print(x, HEX) writes it)."""
+
+
+def bridge_mode_refusal(mode: int, printed: str) -> str:
+    """The one-line error of a bridge whose "Active range" line is not 6E: what it reports, and what to do."""
+    what = {RANGE_LONG: "long range", RANGE_NONE: "an application image without accuracy modes"}.get(
+        mode, "no accuracy mode ams documents")
+    return (f"the bridge firmware runs the sensor in {what} (Active range: {printed}), not short-range high accuracy "
+            f"(6E), the only mode the tmf8820 sensor model describes, so no frame is stored: the daemon cannot switch "
+            f"the bridge's mode, so build and flash a bridge firmware that sets short-range high accuracy (command "
+            f"0x6E after it downloads an ams application image with accuracy modes, before it measures, as the UW "
+            f"firmware does), then reset the bridge and restart the daemon")
 
 
 def _bridge_note(line: bytes, t: float) -> StatusPacket | None:
@@ -252,19 +287,17 @@ class SerialBridgeTransport(Transport):
         self._counts["last_bad_record"] = f"{why} ('{_printable(line, LINE_EXCERPT_BYTES)}')"
 
     def _note(self, note: StatusPacket) -> None:
-        """Count a download; keep the accuracy mode the bridge reports, and warn unless it is short range (the
-        `tmf8820` model's time axis). The I2C backend refuses to start in another mode; the bridge switches the mode
-        itself and cannot be told to, so here it is a warning."""
+        """Count a download; keep the accuracy mode the bridge reports, and refuse to go on unless it is short range
+        (the `tmf8820` model's time axis), as the I2C backend refuses to start: a DeviceError, not a dropped link, so
+        that the device's reader stops before any frame of that mode is made (a reopen would bring the frames
+        back without the line on a board that does not reset)."""
         if note.kind == "firmware_downloaded":
             self._counts["downloads"] = self._counts.get("downloads", 0) + 1
             return
         mode = int(note.text, 16)
-        name = RANGE_NAMES.get(mode, f"unknown ({mode:#04x})")
-        self._counts["active_range"] = name
+        self._counts["active_range"] = RANGE_NAMES.get(mode, f"unknown ({mode:#04x})")
         if mode != RANGE_SHORT:
-            log.warning("%s: the bridge reports the sensor in %s mode (Active range: %s), not short-range high "
-                        "accuracy: its time axis is not the one the tmf8820 sensor model describes", self.name, name,
-                        note.text)
+            raise DeviceError(bridge_mode_refusal(mode, note.text))
 
     def _fill(self) -> None:
         """Read what the port has (waiting at most 0.05 s) and split complete lines into _pending."""

@@ -56,8 +56,9 @@ an instant, when the buffer frees. A stop (0xFF) ends the measurement: nothing m
 after it. Faults: `unplug`/`replug` (every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back
 to the bootloader, RAM lost), `crash` (the chip resets itself into the bootloader but keeps answering),
 `stop_measuring` (the application reports a severe error and stops, APP_ID still 0x03, with or without the error
-interrupt), `set_status` (status registers change while it measures on), `corrupt_next_record` (of one frame or of
-every frame), `app_id` (a wrong chip), `ready_after_polls=None` (cpu_ready never comes).
+interrupt), `hang` (the application hangs in a command: CMD_STAT echoes it for good, until a power cycle),
+`set_status` (status registers change while it measures on), `corrupt_next_record` (of one frame or of every frame),
+`app_id` (a wrong chip), `ready_after_polls=None` (cpu_ready never comes).
 
 The histogram size field: ams' protocol documents the message still to come (`size_field="remaining"`, 3840 in
 sub-packet 0, 128 less in each after it), but no ams driver checks it after sub-packet 0, so a firmware that writes
@@ -194,6 +195,14 @@ class SimTMF8820Bus:
             self.cmd_stat, self.app_status = cmd_stat, app_status
             self.error_irq = self.error_irq or error_interrupt
 
+    def hang(self, command: int = 0x10) -> None:
+        """The application hangs while it runs `command`: CMD_STAT echoes it (>= 0x10, "busy", as it does while any
+        command runs) from now on, nothing more is measured or handed over, and commands written to CMD_STAT are
+        not taken. APP_ID stays 0x03; only a power cycle (or unplug) ends it."""
+        with self._lock:
+            self._stop_records()
+            self.hung, self.cmd_stat, self.cmd_busy = True, command, 0
+
     def set_status(self, *, cmd_stat: int | None = None, app_status: int | None = None,
                    error_interrupt: bool = False) -> None:
         """While the application goes on measuring (records keep coming), CMD_STAT and/or APPLICATION_STATUS change,
@@ -287,6 +296,7 @@ class SimTMF8820Bus:
         """The seed of the last DOWNLOAD_INIT (0x14), None before one."""
         self.bl_status, self.bl_cmd, self.bl_busy = 0x00, 0x00, 0
         self.cmd_stat, self.cmd_busy, self.app_status = 0x00, 0, 0x00
+        self.hung = False  # `hang`: CMD_STAT echoes a command for good, and no command is taken
         self.int_enab = 0x00
         self.error_irq = False  # INT_STATUS bit 0x40, set until the host clears it
         self.page = bytearray(0x80)  # registers 0x20..0x9F
@@ -442,6 +452,8 @@ class SimTMF8820Bus:
 
     def _command(self, cmd: int) -> None:
         self.commands.append(cmd)
+        if self.hung:
+            return  # the application takes nothing: CMD_STAT goes on echoing the command it hangs in
         self.cmd_busy = self.busy_polls
         ok = 0x00
         if cmd == 0x10:

@@ -1,7 +1,8 @@
 """The UR arm's control script ends with its session. An orderly close stops it (ur_rtde's stopScript: disconnect()
 alone leaves it running on the controller), also after a failed pre-check; the controller's watchdog is armed as soon
 as the client connects, kept kicked while the daemon waits, and is what stops the script when the client process dies.
-Real ur_rtde client, simulated controller in a child process on loopback."""
+The daemon and its ur_rtde process judge a held arm with one predicate (no stopScript where the daemon declined).
+Real ur_rtde client, simulated controller in a child process on loopback (the predicate and the flags: in-process)."""
 
 from __future__ import annotations
 
@@ -17,8 +18,10 @@ import numpy as np
 import pytest
 
 from spadscan.daemon.app import DeviceSession
+from spadscan.daemon.arm import ur as ur_module
+from spadscan.daemon.arm.rtde_child import Client
 from spadscan.daemon.arm.rtde_link import RTDELink
-from spadscan.daemon.arm.ur import URArm
+from spadscan.daemon.arm.ur import URArm, _Reading
 from spadscan.daemon.ursim.remote import SimURProcess
 from spadscan.protocol.errors import DeviceError
 
@@ -227,3 +230,142 @@ def test_the_watchdog_armed_at_connect_runs_at_the_configured_rate(ur, arun):
             await arm.close()
 
     assert arun(run()) == 0.5
+
+
+# ---- one test of "held" for the daemon and its ur_rtde process ------------------------------------------------------
+class Receive:
+    """ur_rtde's receive interface as the ur_rtde process reads it: isProtectiveStopped and isEmergencyStopped are
+    bits 2 and 7 of the safety status bits (RTDE guide), the safety mode as the controller reports it."""
+
+    def __init__(self, mode: int, bits: int):
+        self.mode, self.bits = mode, bits
+
+    def isProtectiveStopped(self):
+        return bool(self.bits & 1 << 2)
+
+    def isEmergencyStopped(self):
+        return bool(self.bits & 1 << 7)
+
+    def getSafetyMode(self):
+        return self.mode
+
+    def getSafetyStatusBits(self):
+        return self.bits
+
+    def disconnect(self):
+        pass
+
+
+class Control:
+    """ur_rtde's control interface with its program running; records the stopScript calls."""
+
+    def __init__(self):
+        self.stop_scripts = 0
+
+    def isProgramRunning(self):
+        return self.stop_scripts == 0
+
+    def stopScript(self):
+        self.stop_scripts += 1
+
+    def disconnect(self):
+        pass
+
+
+def client(mode: int, bits: int) -> Client:
+    c = Client()
+    c.control, c.receive = Control(), Receive(mode, bits)
+    return c
+
+
+def daemon_reading(mode: int, bits: int) -> _Reading:
+    return _Reading(np.zeros(6), np.zeros(6), 1.0, bool(bits & 1 << 2), bool(bits & 1 << 7), mode, True, np.zeros(6),
+                    safety_bits=bits)
+
+
+STATUS_BITS = [0, 1 << 0, 1 << 2, 1 << 4, (1 << 6) | (1 << 7), 1 << 8, 1 << 9, 1 << 10, (1 << 4) | (1 << 10)]
+"""Safety status bits: normal, protective, safeguard, robot emergency, violation, fault, 'stopped due to safety'."""
+
+
+@pytest.mark.parametrize("mode", range(1, 14))
+def test_the_ur_rtde_process_judges_a_held_arm_as_the_daemon_does(mode):
+    """Both decide with one predicate: for every safety mode and status bits, the ur_rtde process declines a command
+    exactly where the daemon's reading says a stop holds the arm."""
+    for bits in STATUS_BITS:
+        held = client(mode, bits)._held()
+        stop = daemon_reading(mode, bits).stop
+        assert (held is not None) == (stop is not None), (mode, bits, held, stop)
+        assert stop is None or stop in held
+
+
+@pytest.mark.parametrize("mode", [12, 13])
+def test_the_ur_rtde_process_sends_no_stop_script_in_a_safeguard_mode_the_daemon_declined(mode):
+    """Safety modes 12 (automatic mode safeguard stop) and 13 (three position enabling stop) hold the arm for the
+    daemon whatever the status bits say; the ur_rtde process must not send stopScript there either (ur_rtde would
+    wait for the program to end until the daemon kills the process), neither when asked nor at its own close."""
+    assert daemon_reading(mode, 1 << 10).stop == "safeguard stop"
+    c = client(mode, 1 << 10)
+    assert c.stop_script() == {"stopped": False,
+                               "why": f"the arm is stopped for safety (safeguard stop, safety mode {mode})"}
+    control = c.control
+    c.close()
+    assert control.stop_scripts == 0
+
+
+# ---- the close's messages and the watchdog flag ---------------------------------------------------------------------
+def test_a_close_over_a_stale_link_names_the_arm_once(ur, arun, caplog):
+    """The reason the script could not be stopped comes from the arm's own error, which names the arm too: the
+    warning says the name once."""
+    caplog.set_level(logging.WARNING, logger="spadscan.daemon")
+
+    async def run():
+        arm = make_arm(ur.host)
+        try:
+            await arm.connect()
+            ur.drop_link("freeze")  # the stream repeats its last package: stale data
+            await asyncio.sleep(0.2)
+            await arm.state()  # the arm has seen the last package: the close's wait for a newer one goes stale
+        finally:
+            await arm.close()
+            ur.restore_link()
+        return arm.name
+
+    name = arun(run())
+    said = [r.getMessage() for r in caplog.records if "could not stop the control script" in r.getMessage()]
+    assert len(said) == 1 and said[0].count(name) == 1, said
+    assert said[0].startswith(f"{name}: could not stop the control script (receive data stale: ")
+
+
+class ReconnectingArm(URArm):
+    """A UR arm whose controller shows the control script stopped under a safeguard stop that outlasts the wait in
+    clear_fault; reuploadScript does not start it, so clear_fault reconnects, and the new ur_rtde process arms the
+    new program's watchdog as it connects (`opened`)."""
+
+    def __init__(self, opened_watchdog: bool):
+        super().__init__("127.0.0.1", watchdog_hz=2.0)
+        self._open, self.opened_watchdog, self.calls = True, opened_watchdog, []
+
+    async def _fresh(self, what):
+        return _Reading(np.zeros(6), np.zeros(6), 1.0, False, False, 5, True, np.zeros(6), safety_bits=1 << 4,
+                        program_running=False)
+
+    async def _call(self, what, op, *args, timeout_s=None):
+        self.calls.append(op)
+        return True
+
+    async def _script_started(self):
+        return False
+
+    async def reconnect(self):
+        self.calls.append("reconnect")
+        self._watchdog_set, self._tcp_checked = self.opened_watchdog, False
+
+
+@pytest.mark.parametrize("armed", [True, False])
+def test_clear_fault_keeps_the_watchdog_flag_the_reconnect_set(arun, monkeypatch, armed):
+    """After the fallback reconnect the flag says what the new ur_rtde process did: a close must not warn "no
+    watchdog was armed" over a watchdog that is armed (nor claim one that is not)."""
+    monkeypatch.setattr(ur_module, "CLEARED_WITHIN_S", 0.05)
+    arm = ReconnectingArm(armed)
+    arun(arm.clear_fault())
+    assert arm.calls == ["reupload", "reconnect"] and arm._watchdog_set is armed

@@ -97,7 +97,7 @@ class ReplayBus:
 
     def read_byte_data(self, addr, register, force=None):
         if register == 0x08:
-            return 0x01  # CMD_STAT, checked before each record: the measurement runs
+            return 0x01  # CMD_STAT, checked before each frame: the measurement runs
         assert register == 0xE1
         return self.records[0][0] if self.records else 0
 

@@ -1,6 +1,7 @@
 """The serial bridge and its twin against what the reference firmware prints and its consumer reads: `#Obj` and
 `#Raw` lines without a trailing comma (exactly 78 and 131 fields), the temperature as an unsigned byte, the 6-bit
-valid count, and `#Prt` (partial histogram) lines refused with one line that says what to set."""
+valid count (a printed count over 36 refused unless bits 7:6 explain it), `#Prt` (partial histogram) lines refused
+with one line that says what to set, and a bridge that reports any mode but short range refused before a frame."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 
 from spadscan.daemon.devices import SensorSilent
+from spadscan.protocol.errors import DeviceError
 from spadscan.daemon.sensor.serial_bridge import classify_line
 from spadscan.daemon.sensor.sim_bridge import BridgeResult, SimBridge, obj_line, raw_lines
 from spadscan.daemon.sensor.transport import ResultPacket
@@ -78,12 +80,43 @@ def test_a_frame_keeps_the_temperature_the_bridge_printed(arun):
 
 
 # ---- 3. the valid count ----------------------------------------------------------------------------------------------
-def test_the_printed_valid_count_is_read_through_its_six_bit_mask():
-    """The firmware prints the count byte whole; its bits 5:0 are the count (the register map's mask 0x3F)."""
-    obj = classify_line(b"#Obj,65,1,25,73,100," + OBJ_PAIRS, 0.0, 0x41)  # 73 = 0x49: bit 6 set, count 9
-    assert isinstance(obj, ResultPacket) and obj.n_valid == 9
-    assert classify_line(b"#Obj,65,1,25,37,100," + OBJ_PAIRS, 0.0, 0x41) == (
-        "corrupt", "a #Obj line with 37 valid results, more than 36")
+def chip_obj_line(printed_count: int, n_first: int = 6, n_second: int = 3) -> bytes:
+    """An #Obj line as ams' print_results prints a result of SPAD map 1: slots 0-8 the zones' first targets (the first
+    `n_first` of them found), 18-26 second targets behind them (`n_second`), every other pair 0,0; the count byte
+    printed whole as `printed_count`."""
+    distances, confidences = [0] * 36, [0] * 36
+    for zone in range(n_first):
+        distances[zone], confidences[zone] = 400 + 10 * zone, 120
+    for zone in range(n_second):
+        distances[18 + zone], confidences[18 + zone] = 900 + 10 * zone, 40
+    pairs = ",".join(f"{d},{c}" for d, c in zip(distances, confidences))
+    return f"#Obj,65,7,31,{printed_count},123456,{pairs}".encode()
+
+
+@pytest.mark.parametrize("printed, n_valid", [(9, 9), (5, 5), (36, 36), (0x40 | 9, 9), (0x80 | 9, 9), (0xC0 | 9, 9)])
+def test_a_printed_valid_count_is_taken_up_to_36_or_where_bits_7_6_explain_it(printed, n_valid):
+    """The firmware prints the count byte whole; its bits 5:0 are the count (the register map's mask 0x3F). A value
+    over 36 is taken when only bits 7:6 make it so: bits 5:0 count the pairs that hold a target (9 here). Up to 36
+    the count is taken as printed (ams' Linux driver only logs a count that differs from the slots)."""
+    obj = classify_line(chip_obj_line(printed), 0.0, 0x41)
+    assert isinstance(obj, ResultPacket) and obj.n_valid == n_valid
+
+
+@pytest.mark.parametrize("printed, why", [
+    (37, "a #Obj line with 37 valid results, more than 36"),
+    (100, "a #Obj line with 100 valid results, more than 36 (its bits 5:0 read 36, but 9 pairs hold a target)"),
+    (0x40 | 8, "a #Obj line with 72 valid results, more than 36 (its bits 5:0 read 8, but 9 pairs hold a target)"),
+    (255, "a #Obj line with 255 valid results, more than 36"),
+])
+def test_a_printed_valid_count_over_36_that_bits_7_6_do_not_explain_marks_a_corrupt_line(printed, why):
+    """The bridge has no checksum: "100" (a garbled "10", say) must not read as 36 valid results."""
+    assert classify_line(chip_obj_line(printed), 0.0, 0x41) == ("corrupt", why)
+
+
+def test_of_the_printed_counts_over_36_only_those_bits_7_6_explain_pass():
+    """Masking alone let 111 of the 219 values 37..255 through; with the pairs checked, three do (9 targets)."""
+    taken = [v for v in range(37, 256) if isinstance(classify_line(chip_obj_line(v), 0.0, 0x41), ResultPacket)]
+    assert taken == [0x40 | 9, 0x80 | 9, 0xC0 | 9]
 
 
 # ---- 6. partial histograms -------------------------------------------------------------------------------------------
@@ -118,3 +151,32 @@ def test_partial_histograms_are_named_when_frames_stop(arun, caplog):
     assert "\n" not in str(silent)
     warned = [r.getMessage() for r in caplog.records if "partial histograms" in r.getMessage()]
     assert len(warned) == 1  # once, not for every line
+
+
+# ---- 4. the accuracy mode ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("active_range, what", [(0x6F, "long range"), (0x00, "an application image without accuracy "
+                                                                            "modes")])
+def test_a_bridge_in_another_mode_than_short_range_is_refused_before_any_frame(arun, active_range, what):
+    """The UW firmware prints the ACTIVE_RANGE it reads as it starts; the daemon cannot switch the bridge's mode,
+    and long-range histograms stored under the tmf8820 model would misplace every surface: the frame that follows
+    the line is never made, and the reason is one line."""
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                bridge.boot(active_range)
+                bridge.send_frame(counts(2), result(2))
+                with pytest.raises(DeviceError) as info:
+                    await sensor.next_frame(10)
+                return str(info.value), sensor.counters()
+
+    message, c = arun(main())
+    assert "\n" not in message and c["frames"] == 0 and c["frames_delivered"] == 0
+    printed = f"{active_range:X}"
+    assert message.startswith("sensor serial ")
+    assert message.endswith(
+        f"reader stopped: the bridge firmware runs the sensor in {what} (Active range: {printed}), not short-range "
+        f"high accuracy (6E), the only mode the tmf8820 sensor model describes, so no frame is stored: the daemon "
+        f"cannot switch the bridge's mode, so build and flash a bridge firmware that sets short-range high accuracy "
+        f"(command 0x6E after it downloads an ams application image with accuracy modes, before it measures, as the "
+        f"UW firmware does), then reset the bridge and restart the daemon")
+    assert c["active_range"] == {0x6F: "long range", 0x00: "no accuracy modes"}[active_range]
