@@ -36,7 +36,8 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
 
 Once `done`, the figures are the final result's (its report.json): `views_used` the views it fitted, `steps` the
 final run's on top of the live fit's where it continued from it (its own alone from the hull), `converged` and
-`chamfer_mm` its own (no `chamfer_mm` when it has none).
+`chamfer_mm` its own (no `chamfer_mm` when it has none), measured on its mesh of all `views_used`: no
+`chamfer_views` (the live mesh's count would name the wrong mesh).
 """
 
 from __future__ import annotations
@@ -114,8 +115,10 @@ class LiveStatus:
         if self.converged:
             parts.append("converged")
         if self.chamfer_mm is not None:
-            on = (f" (its mesh of {self.chamfer_views} views)" if self.chamfer_views not in (None, self.views_used)
-                  else "")
+            # A done status's Chamfer is its result's, on all its views (one written by an earlier version may
+            # still carry the live mesh's count).
+            on = (f" (its mesh of {self.chamfer_views} views)"
+                  if self.chamfer_views not in (None, self.views_used) and self.state != "done" else "")
             parts.append(f"Chamfer {self.chamfer_mm:.2f} mm{on}")
         age = self.age_s(now)
         if age is not None:

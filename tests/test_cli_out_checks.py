@@ -5,9 +5,13 @@ listens on."""
 
 from __future__ import annotations
 
+import builtins
+import errno
 import json
 import os
+import shutil
 import socket
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -71,6 +75,108 @@ def test_simulate_names_out_when_it_cannot_be_made(here, capsys, out, reason):
     assert main(["simulate", "builtin:sphere", "--out", out, "--views", "8", "--no-progress"]) == 1
     err = one_line_error(capsys)
     assert err.startswith(f"spadscan: error: --out {out}: {reason}"), err
+
+
+# ---- an --out folder that cannot be written into (defect: simulate said a bare "Operation not permitted
+# (rotest/schedule.npy)", baseline the same after its run, reconstruct after its first lines; now one line as
+# reconstruct's own, before any work) ----------------------------------------------------------------------------------
+def immutable(folder: Path) -> None:
+    """Make `folder` immutable (chattr +i: root cannot write into it either; the caller undoes it); skips where the
+    filesystem or the process cannot."""
+    chattr = shutil.which("chattr")
+    if chattr is None or subprocess.run([chattr, "+i", str(folder)], capture_output=True).returncode != 0:
+        pytest.skip("no immutable folders here (chattr +i refused)")
+    try:
+        (folder / "probe").write_text("x")
+    except OSError:
+        return
+    (folder / "probe").unlink()
+    subprocess.run([chattr, "-i", str(folder)], check=True)
+    pytest.skip("chattr +i did not stop writes here")
+
+
+def refused_writes(folder: Path, monkeypatch) -> None:
+    """Make the calls that create or write files and folders refuse `folder`'s contents as an immutable folder does
+    (EPERM), whoever the process runs as."""
+    inside = str(folder.resolve())
+
+    def blocked(path) -> bool:
+        return os.path.dirname(os.path.abspath(os.fspath(path))) == inside
+
+    def refuse(path):
+        raise PermissionError(errno.EPERM, os.strerror(errno.EPERM), os.fspath(path))
+
+    real_mkdir, real_open, real_os_open = os.mkdir, builtins.open, os.open
+    real_rename, real_replace = os.rename, os.replace
+
+    def mkdir(path, *args, **kwargs):
+        return refuse(path) if blocked(path) else real_mkdir(path, *args, **kwargs)
+
+    def open_(file, mode="r", *args, **kwargs):
+        writes = isinstance(file, (str, os.PathLike)) and any(c in mode for c in "wax+")
+        return refuse(file) if writes and blocked(file) else real_open(file, mode, *args, **kwargs)
+
+    def os_open(path, flags, *args, **kwargs):
+        writes = flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT)
+        return refuse(path) if writes and blocked(path) else real_os_open(path, flags, *args, **kwargs)
+
+    def rename(src, dst, *args, **kwargs):
+        return refuse(dst) if blocked(dst) else real_rename(src, dst, *args, **kwargs)
+
+    def replace(src, dst, *args, **kwargs):
+        return refuse(dst) if blocked(dst) else real_replace(src, dst, *args, **kwargs)
+
+    for name, fake in (("mkdir", mkdir), ("open", os_open), ("rename", rename), ("replace", replace)):
+        monkeypatch.setattr(os, name, fake)
+    monkeypatch.setattr(builtins, "open", open_)
+
+
+@pytest.fixture(params=["immutable", "patched"])
+def rotest(request, here, monkeypatch) -> str:
+    """`rotest`, an existing folder this process cannot write into: immutable, or refused by patched os calls."""
+    folder = here / "rotest"
+    folder.mkdir()
+    if request.param == "immutable":
+        immutable(folder)
+        request.addfinalizer(lambda: subprocess.run([shutil.which("chattr"), "-i", str(folder)], check=True))
+    else:
+        refused_writes(folder, monkeypatch)
+    return "rotest"
+
+
+def test_simulate_says_an_out_it_cannot_write_into_as_the_others_do(rotest, capsys):
+    assert main(["simulate", "builtin:sphere", "--out", rotest, "--views", "8", "--no-progress"]) == 1
+    assert one_line_error(capsys).startswith(f"spadscan: error: --out {rotest}: cannot write into it (")
+
+
+def test_baseline_refuses_an_out_it_cannot_write_into_before_it_runs(rotest, capture, capsys, no_baseline_runs):
+    assert main(["baseline", "space-carving", capture, "--out", rotest, "--calibrate"]) == 1
+    assert one_line_error(capsys).startswith(f"spadscan: error: --out {rotest}: cannot write into it (")
+
+
+def test_reconstruct_refuses_an_out_it_cannot_write_into_before_it_says_anything(rotest, capture, capsys):
+    assert main(["reconstruct", capture, "--out", rotest, "--steps", "1", "--no-progress"]) == 1
+    assert one_line_error(capsys).startswith(f"spadscan: error: --out {rotest}: cannot write into it (")
+    assert os.listdir(rotest) == []
+
+
+# ---- reconstruct: options before folders (defect: --out holding a result was refused first; once --overwrite was
+# given, a bad --threads, and then a bad --set, each in turn) ------------------------------------------------------
+def test_reconstruct_checks_its_options_before_its_folders(here, capsys):
+    (here / "cap").mkdir()
+    (here / "cap" / "scan.json").write_text("{}")  # a capture folder to the checks; its reading fails later
+    (here / "result").mkdir()
+    (here / "result" / "mesh.ply").write_text("an earlier result")
+    base = ["reconstruct", "cap", "--out", "result", "--no-progress"]
+    assert main([*base, "--threads", "0", "--set", "nonsense"]) == 1
+    assert one_line_error(capsys) == "spadscan: error: threads 0 must be an integer in [1, 1024]"
+    assert main([*base, "--threads", "1", "--set", "nonsense"]) == 1
+    assert "config override 'nonsense' must look like KEY=VALUE" in one_line_error(capsys)
+    assert main([*base, "--threads", "1", "--set", "field.nonsense=2"]) == 1
+    assert "config override 'field.nonsense': no field 'nonsense'" in one_line_error(capsys)
+    assert main([*base, "--threads", "1", "--set", "field.resolution=48"]) == 1
+    assert "result: already holds a result (mesh.ply)" in one_line_error(capsys)
+    assert (here / "result" / "mesh.ply").read_text() == "an earlier result"
 
 
 # ---- worker --root (defect: a root that does not exist was said to be "not a folder") -----------------------------

@@ -183,26 +183,40 @@ def test_sweep_dry_run_passes_a_relative_or_linked_out_and_makes_nothing(here, c
     assert listing(here) == before
 
 
-def test_reconstruct_names_out_not_its_scratch_folder(here, capsys):
-    assert main(["reconstruct", "caps", "--out", f"{UNMAKEABLE}/x"]) == 1
+@pytest.fixture
+def stub(here) -> str:
+    """`stub`, a capture folder to the checks before the run (it holds a scan.json), which the run cannot read."""
+    (here / "stub").mkdir()
+    (here / "stub" / "scan.json").write_text("{}")
+    return "stub"
+
+
+def test_reconstruct_names_out_not_its_scratch_folder(here, stub, capsys):
+    assert main(["reconstruct", stub, "--out", f"{UNMAKEABLE}/x"]) == 1
     err = one_line_error(capsys)
     assert err.startswith(f"spadscan: error: --out {UNMAKEABLE}/x: cannot create it") and ".tmp-" not in err, err
-    assert main(["reconstruct", "caps", "--out", "afile/x"]) == 1
+    assert main(["reconstruct", stub, "--out", "afile/x"]) == 1
     assert one_line_error(capsys) == "spadscan: error: --out afile/x: afile is a file, not a folder"
 
 
 @pytest.mark.parametrize("out", ["result", "link", "new/deeper", "link/new"])
-def test_reconstruct_passes_an_existing_linked_or_new_out(here, capsys, out):
+def test_reconstruct_passes_an_existing_linked_or_new_out(here, stub, capsys, out):
     """A result folder with --overwrite, a link to a folder, a relative new path: the --out check lets each through
-    (the run then stops at the empty capture) and leaves nothing behind."""
+    (the run then stops at the capture it cannot read) and leaves nothing behind."""
     (here / "result").mkdir()
     (here / "result" / "mesh.ply").write_text("an earlier result")
     (here / "link").symlink_to("result")
     before = listing(here)
-    assert main(["reconstruct", "caps", "--out", out, "--overwrite"]) == 1
+    assert main(["reconstruct", stub, "--out", out, "--overwrite"]) == 1
     err = one_line_error(capsys)
-    assert "--out" not in err and "caps" in err, err
+    assert "--out" not in err and "stub/scan.json" in err, err
     assert listing(here) == before
+
+
+def test_reconstruct_says_an_empty_captures_root_is_no_capture_before_its_out(here, capsys):
+    """A folder without scan.json (here the empty captures root) is said to be no capture before --out is judged."""
+    assert main(["reconstruct", "caps", "--out", "afile/x"]) == 1
+    assert one_line_error(capsys).startswith("spadscan: error: caps: not a capture folder (no scan.json; ")
 
 
 # ---- a mesh file without a suffix (defect: "format '.'") ----------------------------------------------------------

@@ -284,8 +284,12 @@ def test_a_line_the_demo_says_while_a_bar_runs_starts_a_line_of_its_own(monkeypa
 
 
 def test_a_demo_whose_run_did_not_converge_says_what_ended_it_and_what_gives_it_longer(monkeypatch, tmp_path, capsys):
+    # As its report.json says it, among the run's warnings (end_of_run.UNCONVERGED): said once, with the demo's lever.
+    from spadscan.worker.end_of_run import UNCONVERGED
+
     def fake_run_demo(opts, bar, say):
-        return {"mesh": str(tmp_path / "mesh.ply"), "warnings": [], "converged": False, "pictures": [], "live": None,
+        return {"mesh": str(tmp_path / "mesh.ply"), "warnings": [UNCONVERGED], "converged": False, "pictures": [],
+                "live": None,
                 "chamfer_mm": 1.12, "seconds": {"start_s": 0.1, "scan_s": 1.0, "reconstruct_s": 2.0, "total_s": 3.1},
                 "preset": "fast", "report_html": str(tmp_path / "report.html"), "dashboard": None}
 

@@ -153,6 +153,7 @@ sys.exit(main(sys.argv[1:]))
 def reconstruct_into_a_file(tmp_path: Path, *flags: str) -> str:
     """`spadscan reconstruct` (its training a stand-in's) run with `flags`, stderr to a file: that file's text."""
     (tmp_path / "s").mkdir(exist_ok=True)
+    (tmp_path / "s" / "scan.json").write_text("{}")  # a capture folder to the early check; the run a stand-in
     log = tmp_path / "run.log"
     with open(log, "w") as err:
         done = subprocess.run([sys.executable, "-c", STAND_IN, "reconstruct", str(tmp_path / "s"), "--out",
@@ -175,6 +176,7 @@ def test_reconstruct_whose_stderr_reader_is_gone_still_publishes_its_result(tmp_
     """Standard error a pipe no one reads any more (`2>&1 | head -3` after its lines): every line the run says
     fails, and the run still ends with its result. Before: the first progress line ended it, nothing published."""
     (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "scan.json").write_text("{}")  # a capture folder to the early check; the run a stand-in
     read, write = os.pipe()
     os.close(read)  # the reader is gone before the run says anything
     try:

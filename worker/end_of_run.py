@@ -4,7 +4,8 @@
 Eight checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
 
 - **Stopped early.** A run that ended on its time budget or step count while its data term was still falling:
-  the windowed data term of the last fifth of the run against the fifth before it.
+  the windowed data term of the last fifth of the run against the fifth before it. Any other run that did not
+  converge says that it did not (UNCONVERGED), a live job's short final polish aside.
 - **Starved.** A CPU run whose threads waited for cores over half its training (Linux's scheduler statistics,
   `cpu_wait.py`; where those cannot be read, its process had under half a core: its CPU seconds against its wall
   seconds): it trained that many times slower than alone.
@@ -381,6 +382,8 @@ def busy_warning(facts: RunFacts) -> str | None:
 
 INTERRUPTED = "the run's training was stopped by Ctrl-C"
 """How the line of a run whose training the user ended early begins."""
+UNCONVERGED = "the run did not converge: its mesh may still be changing"
+"""The line of a run that did not converge and whose other lines say nothing of it (`unconverged_warning`)."""
 
 
 def overrun_tolerance_s(budget_s: float) -> float:
@@ -497,15 +500,18 @@ def coverage_warning(coverage, measured: bool = False) -> str | None:
             + ("; if the views did aim at it, the object may have moved during the scan" if measured else ""))
 
 
-def specks_warning(pieces) -> str | None:
+def specks_warning(pieces, settled: bool = True) -> str | None:
     """The line saying that the mesh's specks (a `pieces.Pieces`) hold more than SPECKS_LIMIT of its surface together,
-    or None."""
+    or None. Of a `settled` run (one that converged) it says that a longer run hardly changes them: a fit at the noise
+    floor gave the same specks with three times its budget (docs/end_of_run.md). A run that stopped before it
+    converged has no such measure behind it, and its line does not claim it."""
     if pieces is None or not pieces.specks_share > SPECKS_LIMIT:
         return None
+    longer = "a longer run hardly changes it: " if settled else ""
     return (f"{pieces.specks} specks stand apart from the mesh, {100 * pieces.specks_share:.1f} % of its surface (a "
             f"good fit: under {100 * SPECKS_LIMIT:.1f} %): the fit shaped noise, and the surface is likely spiky too; "
-            f"an object small against the sensor's footprint, or a faint capture (a longer run hardly changes it: scan "
-            f"closer, or with more signal); look at preview.png")
+            f"an object small against the sensor's footprint, or a faint capture ({longer}scan closer, or with more "
+            f"signal); look at preview.png")
 
 
 def pieces_warning(pieces, truth_pieces: int | None = None) -> str | None:
@@ -550,6 +556,9 @@ def warnings(facts: RunFacts) -> list[str]:
     if facts.stopped_by == "interrupted" and not converged(facts):
         out.append(f"{INTERRUPTED} after {facts.steps} step(s), before it converged: the mesh is the fit as it "
                    f"stood (a run left to its end gives a better one)")
+    unsettled = unconverged_warning(facts, said=bool(out))
+    if unsettled:
+        out.append(unsettled)
     busy = busy_warning(facts)
     if busy:
         out.append(busy)
@@ -560,16 +569,28 @@ def warnings(facts: RunFacts) -> list[str]:
     if faint:
         out.append(faint)
     # The doubts about the shape: of a rough early state, the fit's shortness says them first (a 1-step mesh of a
-    # good capture read as "the time axis or the poses are wrong" and "scan it with views aimed at it").
-    # (The specks are the mesh's, whatever the run's length: their line says so, and gets no such note.)
+    # good capture read as "the time axis or the poses are wrong" and "scan it with views aimed at it"). The specks
+    # line says that a longer run hardly changes them only of a run that converged: of one stopped early that would
+    # contradict the lines that say to run it longer.
     early = early_note(facts)
     shape = [(misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None, early),
              (coverage_warning(facts.coverage, facts.measured), early),
-             (pieces_warning(facts.pieces, facts.truth_pieces), early), (specks_warning(facts.pieces), ""),
+             (pieces_warning(facts.pieces, facts.truth_pieces), early),
+             (specks_warning(facts.pieces, settled=converged(facts)), early),
              (tunnels_warning(facts.pieces, facts.truth_tunnels), early)]
     out += [line + note for line, note in shape if line]
     out += facts.scene_notes + facts.budget_notes
     return out
+
+
+def unconverged_warning(facts: RunFacts, said: bool) -> str | None:
+    """UNCONVERGED for a run that did not converge where no line says so yet (`said`: one of "stopped early" or
+    Ctrl-C does): its data term had nearly stopped falling but the plateau test had not said so, or its trend could
+    not be read. None for a run that converged, and for a live job's final polish (it went on from the live fit and
+    ended on its step count: a few dozen steps, too few for the plateau test; the trend test says whether its data
+    term still fell). One of report.json's warnings, as every reader counts them (docs/end_of_run.md)."""
+    polish = facts.continued and facts.stopped_by == "steps"
+    return None if said or polish or converged(facts) else UNCONVERGED
 
 
 def early_note(facts: RunFacts) -> str:
@@ -581,7 +602,8 @@ def early_note(facts: RunFacts) -> str:
     return f" (the fit stopped after only {facts.steps} step(s): that alone may explain this; run it longer first)"
 
 
-__all__ = ["INTERRUPTED", "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
+__all__ = ["INTERRUPTED", "UNCONVERGED", "unconverged_warning",
+           "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
            "converged", "cpu_share", "lost_share", "pace_share", "cpu_wait", "busy_warning", "warnings",
            "overrun_warning", "misfit_warning", "coverage_warning",
            "pieces_warning", "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",

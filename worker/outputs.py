@@ -7,10 +7,12 @@ import contextlib
 import json
 import os
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
 
-from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.capture_format import MANIFEST, chunk_index, chunk_name
+from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.mesh_io import BUILTIN_PREFIX
 
 from .report.view3d import VIEW3D
@@ -24,6 +26,8 @@ JOB_FILES = ("job.json", "job.log", "ground_truth.ply", ".complete")
 options, its log, the ground truth it was scored against, the queue's completion marker). A run that replaces such a
 result must not leave them: they would describe how another mesh was made, and the marker would go on naming the
 queue's claim."""
+NAMED = 3
+"""How many captures, chunks or runs of views a message names before it counts the rest."""
 
 
 def held_result(out) -> list[str]:
@@ -34,9 +38,12 @@ def held_result(out) -> list[str]:
 
 def check_out(out, overwrite: bool, capture=None) -> Path:
     """`out` as a Path, refused when it is a file, or holds a result and `overwrite` is not set, or lies inside the
-    folder of `capture` (when given) anywhere but under its recon/ folder, where the worker puts results. (An empty
-    --out the command line refuses: cli.FOLDER_OPTIONS.)"""
+    folder of `capture` (when given) anywhere but under its recon/ folder, where the worker puts results, or is a
+    folder this process cannot write into (`check_writable`). A `capture` that is no capture folder is refused first
+    (`check_capture_folder`). (An empty --out the command line refuses: cli.FOLDER_OPTIONS.)"""
     out = Path(out)
+    if capture is not None:
+        check_capture_folder(capture)  # first: a plain folder that holds --out is no capture it would be mixed into
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
     if capture is not None:
@@ -48,7 +55,66 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
     if held and not overwrite:
         raise ConfigError(f"{out}: already holds a result ({', '.join(held)}); choose another --out, or pass "
                           "--overwrite to replace it")
+    check_writable(out, "--out")
     return out
+
+
+def check_capture_folder(capture) -> None:
+    """Refuse, in one line, a CAPTURE that is no capture folder: not there, a file, or a folder without scan.json (the
+    folder a user stands in, `spadscan reconstruct . --out results`, or a captures root, whose capture folders are
+    named). A scan.json that is there is the capture reader's to judge, as is a folder that cannot be looked into."""
+    capture = Path(capture)
+    try:
+        if (capture / MANIFEST).exists():
+            return
+        if not capture.is_dir():
+            raise CaptureError(f"{capture}: " + ("a file, not a capture folder" if capture.exists() else
+                                                 "no such capture folder"))
+        held = captures_in(capture)
+    except OSError:
+        return
+    if not held:
+        raise CaptureError(f"{capture}: not a capture folder (no {MANIFEST}; a capture is the folder that holds "
+                           f"{MANIFEST} and its chunk-NNNNNN folders)")
+    named = listed([str(capture / name) for name in held])
+    raise CaptureError(f"{capture}: not a capture folder (no {MANIFEST}); it holds captures: {named}; name one")
+
+
+def listed(names: list[str]) -> str:
+    """`names` in words: "a", "a and b", "a, b and c", the first NAMED of more named and the rest counted."""
+    if len(names) > NAMED:
+        return f"{', '.join(names[:NAMED])} and {len(names) - NAMED} more"
+    if len(names) < 2:
+        return "".join(names)
+    return f"{', '.join(names[:-1])} and {names[-1]}"
+
+
+def captures_in(folder: Path) -> list[str]:
+    """The names of the folders in `folder` that hold a scan.json (capture folders), sorted."""
+    return sorted(entry.name for entry in folder.iterdir() if _holds_manifest(entry))
+
+
+def _holds_manifest(folder: Path) -> bool:
+    """Whether `folder` holds a scan.json; False for one that cannot be looked into."""
+    try:
+        return (folder / MANIFEST).is_file()
+    except OSError:
+        return False
+
+
+def check_writable(folder, option: str) -> None:
+    """Refuse, in one line that names `option`, a folder that is there but that this process cannot write into: a
+    scratch folder is made in it and removed. os.access cannot answer it: root may write anywhere by its rules, yet
+    not into an immutable folder or onto a read-only mount. A folder that is not there is left to the check of
+    whether it can be made (protocol.folders)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    try:
+        scratch = tempfile.mkdtemp(prefix=".spadscan-check-", dir=folder)
+    except OSError as exc:
+        raise ConfigError(f"{option} {folder}: cannot write into it ({exc.strerror or exc})") from None
+    os.rmdir(scratch)
 
 
 def check_ground_truth_kept(gt, out) -> None:
@@ -181,14 +247,85 @@ def _put_back(out: Path, aside: Path, also_remove: set[str]) -> list[str]:
 
 def capture_state_note(capture, state: str, views: int, planned: int | None = None) -> str | None:
     """A warning for a capture that is not complete (a scan still running, paused or aborted), or that says complete
-    but holds fewer than its `planned` poses (a copy cut short, or still under way), or None."""
+    but holds fewer than its `planned` poses, or None. The latter names the views it lacks and, where the chunk
+    numbers show one, the chunk they were in (`missing_views_note`): a damaged chunk moved out, as the capture
+    reader's error advises, is then told from a copy cut short or still under way."""
     if state == "complete":
         if isinstance(planned, int) and not isinstance(planned, bool) and views < planned:
-            return (f"{capture}: the capture says complete but holds {views} of its {planned} planned views (a copy "
-                    f"cut short or still under way?): reconstructed from those")
+            lacking = missing_views_note(capture, planned)
+            if lacking is None:  # its chunks could not be read: the general cause
+                return (f"{capture}: the capture says complete but holds {views} of its {planned} planned views (a "
+                        f"copy cut short or still under way?): reconstructed from those")
+            return (f"{capture}: the capture says complete but holds {views} of its {planned} planned views: "
+                    f"{lacking}; reconstructed from those")
         return None
     return (f"{capture}: the capture is {state}, not complete: reconstructing the {views} views it holds so far")
 
 
-__all__ = ["RESULT_FILES", "JOB_FILES", "check_out", "check_ground_truth_kept", "export_mesh", "capture_state_note",
+def missing_views_note(capture, planned: int) -> str | None:
+    """Which of the `planned` views (pose indices 0 .. planned - 1) the capture folder `capture` lacks, run by run of
+    consecutive views, each with where it was (`_missing_run`); None when it lacks none or its chunks cannot be
+    listed."""
+    try:
+        held = chunk_views(capture)
+    except OSError:
+        return None
+    chunk_of = {view: number for number, views in held.items() for view in views if 0 <= view < planned}
+    runs = _missing_runs(sorted(chunk_of), planned)
+    said = [_missing_run(first, last, chunk_of, held) for first, last in runs[:NAMED]]
+    if len(runs) > NAMED:
+        said.append(f"and {len(runs) - NAMED} more runs of views are missing")
+    return "; ".join(said) or None
+
+
+def chunk_views(capture) -> dict[int, set[int]]:
+    """The views (pose indices) each published chunk of the capture folder `capture` holds, by chunk number, read from
+    the chunks' meta.json alone (docs/capture_format.md); a chunk whose meta.json cannot be read holds none here.
+    OSError when the folder cannot be listed."""
+    with os.scandir(capture) as entries:
+        chunks = {chunk_index(e.name): e.path for e in entries if chunk_index(e.name) is not None and e.is_dir()}
+    return {number: _meta_views(Path(path) / "meta.json") for number, path in chunks.items()}
+
+
+def _meta_views(meta: Path) -> set[int]:
+    """The pose indices a chunk's meta.json names (empty when it cannot be read)."""
+    try:
+        records = json.loads(meta.read_text()).get("measurements")
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return set()
+    if not isinstance(records, list):
+        return set()
+    return {r["pose_index"] for r in records if isinstance(r, dict) and type(r.get("pose_index")) is int}
+
+
+def _missing_runs(views: list[int], planned: int) -> list[tuple[int, int]]:
+    """(first, last) of each run of consecutive view numbers in 0 .. planned - 1 that sorted `views` lacks."""
+    runs, expected = [], 0
+    for view in [*views, planned]:
+        if view > expected:
+            runs.append((expected, view - 1))
+        expected = view + 1
+    return runs
+
+
+def _missing_run(first: int, last: int, chunk_of: dict[int, int], held: dict[int, set[int]]) -> str:
+    """Where the missing views `first` .. `last` were. Chunks hold the views in pose order, numbered upwards
+    (docs/capture_format.md): chunk numbers free between the chunks of the views either side of the run are the
+    chunks that held it (moved out). A run after the last view held may be a copy cut short or still under way, or
+    the last chunk moved out: nothing tells them apart."""
+    views = f"view {first}" if first == last else f"views {first}-{last}"
+    verb = "is" if first == last else "are"
+    before, after = chunk_of.get(first - 1), chunk_of.get(last + 1)
+    if after is None and before is not None:
+        return (f"{views} after its last chunk, {chunk_name(before)}, {verb} missing (a copy cut short or still under "
+                f"way, or a chunk moved out?)")
+    start = 0 if before is None else before + 1
+    free = [n for n in range(start, start if after is None else after) if n not in held]
+    if not free:
+        return f"{views} {verb} in none of its chunks"
+    return f"{listed([chunk_name(n) for n in free])} ({views}) {'is' if len(free) == 1 else 'are'} missing"
+
+
+__all__ = ["RESULT_FILES", "JOB_FILES", "check_out", "check_capture_folder", "check_writable",
+           "check_ground_truth_kept", "export_mesh", "capture_state_note", "missing_views_note", "chunk_views",
            "replacing_result", "held_result"]

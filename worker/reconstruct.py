@@ -236,11 +236,12 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     run_clock = RunClock(None, clock() if started is None else started, clock)
     before = folder_files(out)  # the user's own files there are no part of the result
     _check_run_args(budget_s, steps, seed)
+    threads_note = None
     if threads is not None:
         torch.set_num_threads(check_threads(threads))
-        if threads > machine_cores():
-            log(f"warning: {threads} CPU threads on {machine_cores()} cores: OpenMP threads that lose their core "
-                f"stall each other, each step many times slower (--threads {machine_cores()} or fewer)")
+        threads_note = threads_warning(threads, machine_cores())
+        if threads_note:
+            log(f"warning: {threads_note}")  # at once, before training slows down; the report keeps it too
     config = run_config(preset, overrides)
     dev = resolve_device(device)
     truth = load_ground_truth(gt) if gt is not None else None  # a bad one fails before hours of training
@@ -383,7 +384,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      preset=config.preset, cuda_seen=torch.cuda.is_available(),
                      thread_times=None if waits is None else waits.summary())
     report["converged"] = end_of_run.converged(facts)
-    report["warnings"] = end_of_run.warnings(facts)
+    report["warnings"] = end_of_run.warnings(facts) + ([threads_note] if threads_note else [])
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
     report["coverage"] = None if coverage is None else coverage.to_dict()
     report["pieces"] = None if pieces is None else pieces.to_dict()
@@ -398,7 +399,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                         "end_estimate_s": end_s, "timed": costs.probed, "notes": notes,
                         "stages": stages}
     for line in report["warnings"]:
-        if line not in (run.counts_note, run.state_note):  # said already, when the capture was loaded
+        if line not in (run.counts_note, run.state_note, threads_note):  # said already, as the run started
             log(f"warning: {line}")
     if no_preview is not None:  # after the log's warnings: said on stderr already, as the 3D view's is
         report["warnings"] = [*report["warnings"], no_preview]
@@ -410,6 +411,16 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report = json_safe(report)
     write_report_html(report, out)
     return report
+
+
+def threads_warning(threads: int, cores: int) -> str | None:
+    """The line saying that `threads` CPU threads (`--threads`) are more than the machine's `cores`, or None: OpenMP
+    threads that lose their core stall each other. One of the run's warnings: its steps, and so its result within a
+    time budget, suffer from it."""
+    if threads <= cores:
+        return None
+    return (f"{threads} CPU threads on {cores} cores: OpenMP threads that lose their core stall each other, each "
+            f"step many times slower (--threads {cores} or fewer)")
 
 
 FLOOR_WHY = {"config": "field.floor_z, by default z = 0, where simulated scenes stand",

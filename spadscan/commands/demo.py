@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from spadscan.demo import DemoOptions, check_options, make_out, run_demo
-    from spadscan.worker.report.report_html import UNCONVERGED, says_unconverged
+    from spadscan.worker.end_of_run import UNCONVERGED
 
     opts = DemoOptions(out=args.out, scene=args.scene, views=args.views, budget_s=args.budget_s, arm=args.arm,
                        sensor=args.sensor, dashboard=args.dashboard, dashboard_port=args.dashboard_port,
@@ -96,10 +96,10 @@ def run(args: argparse.Namespace) -> int:
     secs = s["seconds"]
     print(f"mesh:     {s['mesh']}")
     for warning in s["warnings"]:
+        if warning == UNCONVERGED:
+            # What ended it and what gives it longer: the demo's budget is the one lever a user of the demo has.
+            warning += f" (its {opts.budget_s:g} s budget ended it; a larger --budget-s gives it longer)"
         print(f"warning:  {warning}")
-    if says_unconverged(s):
-        # What ended it and what gives it longer: the demo's budget is the one lever a user of the demo has.
-        print(f"warning:  {UNCONVERGED} (its {opts.budget_s:g} s budget ended it; a larger --budget-s gives it longer)")
     print(f"pictures: {', '.join(s['pictures']) or '-'}")
     if s["live"] is not None:
         start = ("the final run continued from them" if s["live"].get("final_start", "live") == "live" else

@@ -76,7 +76,7 @@ from spadscan.worker.ground_truth import add_ground_truth_options, ground_truth_
 from spadscan.worker.jobs import add_to_report, run_limits_problem
 from spadscan.worker.outputs import check_ground_truth_kept, check_out
 from spadscan.worker.publish_out import result_beside
-from spadscan.worker.recon.config import PRESET_NAMES, parse_override
+from spadscan.worker.recon.config import PRESET_NAMES, parse_override, with_overrides
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -124,21 +124,29 @@ def run(args: argparse.Namespace) -> int:
     from spadscan.protocol.folders import check_folder_option
     from spadscan.signals import first_interrupt_stops_training, terminate_as_interrupt
     from spadscan.worker.budget import process_started
-    from spadscan.worker.threads import threads_fixed, wait_env
+    from spadscan.worker.threads import check_threads, threads_fixed, wait_env
 
     started = process_started()  # the budget counts from here: torch's import and the set-up are part of the run
-    # The run's limits, named by their flags, before anything is said or imported (the library's check names none).
+    # The options first, the files and folders they name after (a --out that holds a result, a capture that is none):
+    # fixing one error must not reveal another that was there all along. The run's limits, named by their flags,
+    # before anything is said or imported (the library's check names none).
     problem = run_limits_problem(args.budget_s, args.steps, args.seed, flags=True)
     if problem:
         raise ConfigError(problem)
+    if args.threads is not None:
+        check_threads(args.threads)
+    overrides = dict(parse_override(text) for text in args.overrides)
     # Read once, when torch's OpenMP runtime starts: before it.
     os.environ.update(wait_env(os.environ, adapting=not threads_fixed(args.threads, os.environ)))
     from spadscan.worker.recon.trainer import PROGRESS_LINES
     from spadscan.worker.reconstruct import reconstruct_capture  # torch: only when a reconstruction runs
 
+    if overrides:  # each --set against the preset's config, as the run will
+        from spadscan.worker.recon.presets import preset_config
+
+        with_overrides(preset_config(args.preset), overrides)
     out = check_out(args.out, args.overwrite, capture=args.capture)
     check_folder_option(out, "--out")  # here, not in the scratch folder beside it that the run makes first
-    overrides = dict(parse_override(text) for text in args.overrides)
 
     def log(line: str) -> None:
         say(f"spadscan reconstruct: {line}")

@@ -13,6 +13,10 @@ mesh or on or under the table top are refused (no sensor can stand there); views
 (the default spiral's lowest, 1 mm above it at 256 views, whose histograms the table floods) and views that see
 nothing of the mesh are warned about.
 
+--out must be a new or empty folder that can be written into. Ctrl-C (or SIGTERM) stops a simulation, exit status 130:
+the chunks written so far stay in --out as a partial capture marked aborted, which cannot be resumed; the command
+says how many views it holds and how to go on (remove it and run again, or give --out a new folder).
+
 Examples:
   spadscan simulate bunny.obj --out captures/bunny-sim --sensor lcspc-sim --views 256
   spadscan simulate builtin:head-on-can --out captures/head-on-can --sensor tmf8820 --table \\
@@ -23,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
+from pathlib import Path
 
 from spadscan.cli import add_progress_options, progress_bar_wanted
 from spadscan.protocol.scenes import scene_listing
@@ -243,19 +249,40 @@ def make_poses(args):
     return poses, record
 
 
+def left_behind(out, planned: int) -> str | None:
+    """What an interrupted simulation left in `out` and how to go on, or None when it left no capture there (stopped
+    before it began writing). The capture is marked aborted (a simulation cannot be resumed), and a new one is only
+    made in a new or empty folder."""
+    from spadscan.protocol.capture_format import MANIFEST, read_json
+    from spadscan.protocol.errors import CaptureError
+    from spadscan.worker.outputs import chunk_views
+
+    try:
+        state = read_json(Path(out) / MANIFEST).get("state")
+        views = len(set().union(*chunk_views(out).values()))
+    except (CaptureError, OSError):
+        return None
+    return (f"interrupted after {views} of {planned} views; the partial capture {out} is marked {state}: remove it "
+            f"(rm -r {shlex.quote(str(out))}) and run again, or give --out a new folder")
+
+
 def run(args) -> int:
     import sys
     import time
 
+    from spadscan.protocol.capture_format import MANIFEST
     from spadscan.protocol.errors import SimulationError
     from spadscan.protocol.folders import check_folder_option
     from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.protocol.sensor_presets import sensor_preset
     from spadscan.protocol.simulator import SimSettings, misplaced_views_note, simulate_capture
     from spadscan.signals import terminate_as_interrupt
+    from spadscan.worker.outputs import check_writable
 
     check_options(args)
     check_folder_option(args.out, "--out")  # named, before the mesh is loaded; not a bare OS error at the writer's
+    check_writable(args.out, "--out")  # as reconstruct and baseline say it
+    had_capture = (Path(args.out) / MANIFEST).exists()  # a capture there before this run is none of its own
     table = make_table(args)
     mesh, scene = load_mesh_spec(args.mesh)
     if scene.get("mesh_units") == "mm":
@@ -274,11 +301,17 @@ def run(args) -> int:
     settings = SimSettings(power=args.power, ambient=args.ambient, cycles=args.cycles, albedo=args.albedo,
                            **({} if args.rays_per_zone is None else {"rays_per_zone": args.rays_per_zone}))
     start = time.monotonic()
-    with terminate_as_interrupt():
-        path = simulate_capture(mesh, sensor, poses, args.out, settings=settings, seed=args.seed,
-                                chunk_size=args.chunk_size, scene=scene, schedule=schedule,
-                                progress=progress_bar_wanted(args), log=lambda line: print(line, file=sys.stderr),
-                                table=table)
+    try:
+        with terminate_as_interrupt():
+            path = simulate_capture(mesh, sensor, poses, args.out, settings=settings, seed=args.seed,
+                                    chunk_size=args.chunk_size, scene=scene, schedule=schedule,
+                                    progress=progress_bar_wanted(args), log=lambda line: print(line, file=sys.stderr),
+                                    table=table)
+    except KeyboardInterrupt:
+        left = None if had_capture else left_behind(args.out, len(poses))
+        if left:  # (the bar, drawn with leave=False, has cleared its line)
+            print(f"spadscan simulate: {left}", file=sys.stderr)
+        raise  # the command line says it was interrupted, exit status 130
     on_table = "" if table is None else f" on a table at z = {table.height_m:g} m (albedo {table.albedo:g})"
     print(f"wrote {len(poses)} views of {len(mesh.faces)} faces{on_table} with sensor {sensor.name} to {path} "
           f"in {time.monotonic() - start:.1f} s", file=sys.stderr)

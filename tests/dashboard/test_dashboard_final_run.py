@@ -15,6 +15,7 @@ from pathlib import Path
 from dashboard_helpers import add_final_recon, complete_scan, serving
 from page_helpers import add_pose, browser_page, start_scan
 from spadscan.dashboard.server import address
+from spadscan.worker.end_of_run import UNCONVERGED
 from spadscan.worker.holder import Holder
 from spadscan.worker.job_progress import claim_log
 from spadscan.worker.jobs import Job
@@ -68,13 +69,18 @@ def test_only_a_finished_result_warns_that_its_run_did_not_converge(tmp_path):
                     steps=0 if state == "waiting" else 1, converged=False, state=state)
     complete_scan(tmp_path / "done", 1)
     add_final_recon(tmp_path / "done", "done-fast")
+    # As a run's report.json says it (end_of_run.UNCONVERGED): once, counted as the scans table counts it.
     (tmp_path / "done" / "recon" / "done-fast" / "report.json").write_text(
-        json.dumps({"preset": "fast", "chamfer_mm": 1.0, "converged": False}))
+        json.dumps({"preset": "fast", "chamfer_mm": 1.0, "converged": False, "warnings": [UNCONVERGED]}))
     with serving(tmp_path) as server, browser_page() as (page, seen):
         page.goto(address(server))
         pick(page, "done")
         assert wait_text(page, "#viewer-notes", "the run did not converge")
-        assert page.locator('#scans tr[data-scan="done"] .warning').all_text_contents() == [" not converged"]
+        assert page.locator("#viewer-notes .warning").all_text_contents() == [UNCONVERGED]
+        assert wait_text(page, "#viewer-notes .warnings-head", "warning").startswith("1 warning")
+        row = page.locator('#scans tr[data-scan="done"]')
+        assert row.locator("a[data-warnings]").get_attribute("data-warnings") == "1"
+        assert row.locator("span.warning").all_text_contents() == [" not converged"]
         for name in ("waiting", "following", "aborted"):
             pick(page, name)
             assert "converge" not in page.locator("#viewer-notes").text_content(), name

@@ -38,6 +38,33 @@ def test_a_final_run_from_the_hull_counts_its_own_steps_only(tmp_path):
     assert done_status(AT_SCAN_END, tmp_path / "demo-fast").steps == 9 + 560
 
 
+def test_the_results_chamfer_names_no_live_mesh_of_fewer_views(tmp_path):
+    # The live status named the mesh of 94 views its last Chamfer was measured on; the result's Chamfer is its own
+    # mesh's, on all 128 views: the stale count would name the wrong mesh (in `ctl status` and the written status.json).
+    from spadscan.protocol.live_status import read_status, write_status
+
+    at_end = dataclasses.replace(AT_SCAN_END, views_used=96, chamfer_views=94, final_start="hull")
+    report = {"steps": 560, "converged": False, "chamfer_mm": 0.93, "scene": {"views": 128},
+              "live": {"final_start": "hull"}}
+    done = done_status(at_end, result_with(tmp_path, report))
+    assert done.chamfer_views is None and done.views_used == 128
+    assert "Chamfer 0.93 mm" in done.summary() and "its mesh of" not in done.summary(), done.summary()
+    (tmp_path / "live").mkdir()
+    written = write_status(tmp_path / "live", done)
+    assert "chamfer_views" not in json.loads(written.read_text())
+    assert read_status(written).chamfer_views is None
+    # A report that cannot be read leaves the live figures, the live mesh's count with its Chamfer.
+    (tmp_path / "demo-fast" / "report.json").write_text("{not json")
+    assert done_status(at_end, tmp_path / "demo-fast").chamfer_views == 94
+
+
+def test_a_done_status_of_an_earlier_version_says_no_live_meshs_count():
+    stale = dataclasses.replace(AT_SCAN_END, state="done", views_used=128, chamfer_mm=0.93, chamfer_views=94)
+    assert "Chamfer 0.93 mm" in stale.summary() and "its mesh of" not in stale.summary(), stale.summary()
+    live = dataclasses.replace(AT_SCAN_END, state="live", views_used=96, chamfer_views=94)
+    assert "(its mesh of 94 views)" in live.summary(), "a live fit's status still names its mesh"
+
+
 def test_a_result_without_a_chamfer_shows_none_rather_than_the_live_fits(tmp_path):
     done = done_status(AT_SCAN_END, result_with(tmp_path, {"steps": 40, "converged": False, "scene": {"views": 128}}))
     assert done.chamfer_mm is None and done.steps == 49 and done.converged is False

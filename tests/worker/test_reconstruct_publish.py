@@ -44,6 +44,7 @@ def hand_run(tmp_path, monkeypatch):
     folder it is given, calling `meanwhile(folder)` half-way (a worker publishing, say). Returns the exit status."""
     capture = tmp_path / "s"
     capture.mkdir()
+    (capture / "scan.json").write_text("{}")  # a capture folder to the early check; the run is a stand-in
 
     def run(out, *extra, meanwhile=None):
         def stand_in(capture, out_dir, **kwargs):
@@ -300,6 +301,7 @@ sys.exit(main(sys.argv[1:]))
 def test_sigterm_stops_a_run_as_ctrl_c_does_leaving_no_scratch_folder(tmp_path):
     capture, out = tmp_path / "s", tmp_path / "out"
     capture.mkdir()
+    (capture / "scan.json").write_text("{}")  # a capture folder to the early check; the run is a stand-in
     previous = {"mesh.ply": "the previous mesh", "report.json": "{}"}
     _write(out, previous)
     proc = subprocess.Popen([sys.executable, "-c", STOPPABLE_RUN, "reconstruct", str(capture), "--out", str(out),

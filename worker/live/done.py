@@ -93,8 +93,10 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
     """`status` as 'done' with `result`, the figures those of the result's report.json: the views the final run
     fitted (every published one), its steps (on top of the live fit's where it continued from the live fit; alone
     where it started from the carved hull, which the live steps did not shape), its convergence and its Chamfer (None
-    when it has none: the live fit's would read as the result's). Where that report cannot be read, the live fit's
-    figures stay. The live mesh's warnings go: the result's own report says its doubts."""
+    when it has none: the live fit's would read as the result's), measured on the result's own mesh of all those
+    views (no `chamfer_views`: the live mesh's count would name the wrong mesh). Where that report cannot be read,
+    the live fit's figures stay, its `chamfer_views` with them. The live mesh's warnings go: the result's own report
+    says its doubts."""
     done = dataclasses.replace(status, state="done", result=str(result), updated_utc="", warnings=())
     try:
         report = json.loads((result / "report.json").read_text())
@@ -112,7 +114,7 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
         done, views_used=views if is_count(views) else status.views_published,
         steps=before + steps if is_count(steps) else status.steps,
         converged=report.get("converged") is True,
-        chamfer_mm=float(chamfer) if is_chamfer(chamfer) else None)
+        chamfer_mm=float(chamfer) if is_chamfer(chamfer) else None, chamfer_views=None)
 
 
 __all__ = ["mark_live_done", "mark_live_done_unsaid", "mark_live_failed", "mark_live_queued", "done_status",

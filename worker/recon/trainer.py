@@ -133,7 +133,10 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     resume, pause = (waits.resume, waits.pause) if waits is not None else (lambda: None, lambda: None)
     total = plan.budget_s if by_time else plan.steps
     unit = "s" if by_time else "step"
-    with progress_display(progress, total, desc, unit, clock) as bar:
+    # What a budget's seconds on the bar are: training's, and checkpoint scoring's where the budget counts it (the
+    # report's `seconds` are the steps' alone: the lines must not call the sum "training").
+    what = "s of training and checkpoint scoring" if by_time and evaluate is not None and scoring_in_budget else None
+    with progress_display(progress, total, desc, unit, clock, what) as bar:
         checkpoint()
         next_mark = every
         post: dict[str, str] = {}
@@ -197,11 +200,13 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     return result
 
 
-def progress_display(progress: bool | str, total: float, desc: str, unit: str, clock: Callable[[], float]):
-    """What shows a run's progress on stderr: `ProgressLines` for PROGRESS_LINES, else a tqdm bar (drawn when
-    `progress` is True). Both take `update(n)`, `set_postfix(fields, refresh)` and `n`, and are context managers."""
+def progress_display(progress: bool | str, total: float, desc: str, unit: str, clock: Callable[[], float],
+                     what: str | None = None):
+    """What shows a run's progress on stderr: `ProgressLines` for PROGRESS_LINES (`what`: what its count is, as
+    `ProgressLines` takes it), else a tqdm bar (drawn when `progress` is True). Both take `update(n)`,
+    `set_postfix(fields, refresh)` and `n`, and are context managers."""
     if progress == PROGRESS_LINES:
-        return ProgressLines(total, desc, unit, clock, sys.stderr)
+        return ProgressLines(total, desc, unit, clock, sys.stderr, what=what)
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, disable=not progress, leave=False,
                 bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]")
 
@@ -212,15 +217,18 @@ class ProgressLines:
     `share` of `total`, or `every_s` wall seconds after the last line; the end (the count at its total) is said once,
     by close(), with the fields as they are then: a run that ends on a checkpoint sets its Chamfer after its last
     count. E.g. `reconstruct (fast): 4.0/10.0 s of training (40 %), step 120, loss 2.25 [00:05]` (with a time budget
-    the total is training's share of it, as on the bar). `clock`: wall seconds; `file` None: nothing is said.
+    the total is training's share of it, as on the bar). `clock`: wall seconds; `file` None: nothing is said. `what`:
+    what the count is, after the numbers (default: "s of training" for seconds, else the unit's plural; "s of
+    training and checkpoint scoring" where the budget counts the scoring too).
 
     It takes what the trainer and the demo ask of a tqdm bar: update(n), set_postfix(fields, refresh),
     set_postfix_str(text), set_description_str(text), reset(), close(), n, desc and total (which the demo sets to a
     job's own), and it is a context manager."""
 
     def __init__(self, total: float, desc: str, unit: str, clock: Callable[[], float], file,
-                 share: float = LINE_SHARE, every_s: float = LINE_EVERY_S):
+                 share: float = LINE_SHARE, every_s: float = LINE_EVERY_S, what: str | None = None):
         self.desc, self.unit, self.clock, self.file = desc, unit, clock, file
+        self.what = what or ("s of training" if unit == "s" else f"{unit}s")
         self.share = share
         self.every_s = every_s
         self.n = 0.0
@@ -288,7 +296,7 @@ class ProgressLines:
             self._say(self.clock())
 
     def line(self, now: float) -> str:
-        what = "s of training" if self.unit == "s" else f"{self.unit}s"
+        what = self.what
         # A short run's tenths are not whole seconds; a budget that set-up all but spent leaves hundredths.
         digits = (2 if self.total < 1 else 1 if self.total < 100 else 0) if self.unit == "s" else 0
         percent = f" ({100 * self.n / self.total:.0f} %)" if self.total > 0 else ""

@@ -110,36 +110,13 @@ def is_baseline(report: dict) -> bool:
     return "method" in report and "preset" not in report
 
 
-CONVERGENCE_WARNINGS = ("the run stopped on its ", "the run's training was stopped by Ctrl-C")
-"""How the end-of-run checks' lines that say why a run did not converge begin (`end_of_run.warnings`: stopped on its
-budget or step count early, or with its data term still falling; stopped by the user, `end_of_run.INTERRUPTED`)."""
-
-
-UNCONVERGED = "the run did not converge: its mesh may still be changing"
-"""The line of a run that `says_unconverged`, on its page and in the demo's summary."""
-
-
-def says_unconverged(report: dict) -> bool:
-    """Whether a run's result should say that it did not converge, nothing else having said so: "converged" is false,
-    none of its warnings is about its convergence (a warning about its pieces or its metrics says nothing of it), and
-    it is not a live job's final polish of a step count (a few dozen steps, too few for the plateau test: whether its
-    data term still fell is one of its own warnings). `report`: report.json's fields, or the demo's summary of them
-    ("converged", "warnings", "live")."""
-    own = report.get("warnings")
-    warned = isinstance(own, list) and any(str(w).startswith(CONVERGENCE_WARNINGS) for w in own)
-    live = report.get("live")
-    polish = isinstance(live, dict) and live.get("final_steps") is not None
-    return report.get("converged") is False and not warned and not polish
-
-
 def warnings(report: dict) -> list[str]:
     """What makes the run's result doubtful or unscored, for the top of the page: the run's own warnings (report.json's
-    "warnings", one line each), a run that did not converge (`says_unconverged`), an incomplete capture and a named
-    ground truth that could not be used."""
+    "warnings", one line each, as every reader counts them: a run that did not converge says so there,
+    end_of_run.UNCONVERGED, and the page adds no line of its own about it), an incomplete capture and a named ground
+    truth that could not be used."""
     own = report.get("warnings")
     found = [str(w) for w in own if str(w).strip()] if isinstance(own, list) else []
-    if says_unconverged(report):
-        found.append(UNCONVERGED)
     state = report.get("capture_state")
     note = str(report.get("capture_note") or f"the capture is {state}, not complete")
     if state not in (None, "complete") and note not in found:  # reports of earlier versions left it out of "warnings"
