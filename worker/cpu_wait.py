@@ -43,6 +43,14 @@ MAIN_SEEN_SHARE = 0.5
 kernel that keeps no scheduler statistics reads zeros, which would pass for a run that lost nothing (measured: the
 stepping thread's figures cover 0.97-0.99 of training)."""
 
+MACHINE_JOBS_ENV = "SPADSCAN_MACHINE_JOBS"
+"""Set by the worker for each job process it starts beside other workers on its machine: how many job processes
+those may run at once (`worker_config.machine_job_processes`), among which the job's share of the cores was counted.
+Cores its threads waited for may have been held by them, and the busy machine's advice then is fewer job processes
+on the host, not to stop other work (`end_of_run.busy_warning`)."""
+MAX_MACHINE_JOBS = 1_000_000
+"""The most job processes MACHINE_JOBS_ENV may name: a larger figure is no count the worker writes."""
+
 Times = dict[int, tuple[float, float]]
 """{thread id: (seconds on a CPU, seconds waiting on a run queue)}, since each thread began."""
 
@@ -116,6 +124,21 @@ class ThreadWaits:
         return {"main": [self.run[self.main], self.wait[self.main]], "helpers": helpers}
 
 
+def machine_jobs(environ) -> tuple[int | None, str | None]:
+    """(the job processes of other workers on this machine that `environ`'s MACHINE_JOBS_ENV names, or None where it
+    is unset; a one-line warning where it is set but not a whole number in [0, MAX_MACHINE_JOBS]: then ignored)."""
+    raw = environ.get(MACHINE_JOBS_ENV)
+    if raw is None:
+        return None, None
+    text = raw.strip()
+    # ASCII digits only: int() also takes signs, underscores and other scripts' digits, which no worker writes
+    count = int(text) if text.isascii() and text.isdigit() and len(text) <= 7 else -1
+    if not 0 <= count <= MAX_MACHINE_JOBS:
+        return None, (f"{MACHINE_JOBS_ENV}={raw!r} is not a whole number in [0, {MAX_MACHINE_JOBS:,}]: ignored (it "
+                      f"counts the job processes of other workers on this host)")
+    return count, None
+
+
 def lost_seconds(threads: dict, wall_s: float) -> float | None:
     """Seconds of `wall_s` (a run's training) that it lost to other processes, by the module's rule, from
     `ThreadWaits.summary`'s figures: the stepping thread's wait, and the waits of the helpers runnable at least
@@ -153,5 +176,5 @@ def counted_helpers(threads: dict, wall_s: float) -> int:
         return 0
 
 
-__all__ = ["TASKS", "RUNNABLE_SHARE", "MAIN_SEEN_SHARE", "read_threads", "ThreadWaits", "lost_seconds", "counted",
-           "counted_helpers"]
+__all__ = ["TASKS", "RUNNABLE_SHARE", "MAIN_SEEN_SHARE", "MACHINE_JOBS_ENV", "MAX_MACHINE_JOBS", "machine_jobs",
+           "read_threads", "ThreadWaits", "lost_seconds", "counted", "counted_helpers"]

@@ -302,6 +302,13 @@ class RunFacts:
     thread_times: dict | None = None
     """Training's threads' seconds on a CPU and waiting for one (`cpu_wait.ThreadWaits.summary`: the stepping
     thread's and the helpers'), or None where not measured."""
+    machine_jobs: int | None = None
+    """Job processes the other workers on this machine may run at once, as the worker that started the run counted
+    them (`cpu_wait.MACHINE_JOBS_ENV`), or None where no worker said (a run of its own): cores the run's threads
+    waited for may have been theirs (`busy_warning`)."""
+    threads_fixed: bool = False
+    """The run kept the CPU threads it was given (`--threads`, a user's OMP_NUM_THREADS: `threads.threads_fixed`),
+    not the worker's share of the cores, which counts `machine_jobs`."""
 
 
 def converged(facts: RunFacts) -> bool:
@@ -360,24 +367,52 @@ def busy_warning(facts: RunFacts) -> str | None:
     slower than alone, or None. Only a run that a time budget stopped lost steps to a busy machine: one that
     converged, or made the steps it was asked for, has the result it would have had alone (later). The waits do not
     say who held the cores: other processes, or the run's own threads where it has more than the cores free to it
-    (then `--threads 1` is advised too)."""
+    (then `--threads 1` is advised too). Where other workers on this host run job processes (`machine_jobs`), they
+    are named among those processes, and the advice is fewer job processes there: a share of the cores that counts
+    them is still too little when the host's job processes outnumber its cores, and stopping other work would not
+    stop them."""
     pace = pace_share(facts)
     if facts.stopped_by != "budget" or facts.device != "cpu" or pace is None or not pace[0] < STARVED_SHARE:
         return None
     share, by_waits = pace
     slower = f"trained about {1 / max(share, 1e-3):.0f}x slower than it would alone ({facts.steps} steps)"
+    siblings = _sibling_jobs(facts)
     if not by_waits:
-        return (f"the machine was busy: this run had {share:.2f} of a CPU core on average and {slower}; stop other "
-                f"work or give it a larger time budget")
+        beside = f" (beside {siblings})" if siblings else ""
+        return (f"the machine was busy: this run had {share:.2f} of a CPU core on average{beside} and {slower}; "
+                f"{_busy_advice(facts, own=False)}")
     cpu = cpu_share(facts)
     # Threads that spin while a partner waits for its core burn CPU time: the run's CPU time then reads as a core.
     spun = ("" if cpu is None or cpu < STARVED_SHARE else
             f" (its CPU time, {cpu:.2f} of a core, hides this: its threads spun while they waited)")
     own = counted_helpers(facts.thread_times, facts.wall_seconds) > 0
-    who = "other processes held them" + (", or the run has more threads than cores free to it" if own else "")
-    advice = "stop other work" + (", run it with `--threads 1`," if own else "") + " or give it a larger time budget"
+    who = ("other processes held them" + (f", among them {siblings}" if siblings else "")
+           + (", or the run has more threads than cores free to it" if own else ""))
     return (f"the machine was busy: this run's threads waited for CPU cores for {100 * lost_share(facts):.0f} % of "
-            f"its training ({who}){spun}; it {slower}; {advice}")
+            f"its training ({who}){spun}; it {slower}; {_busy_advice(facts, own)}")
+
+
+def _sibling_jobs(facts: RunFacts) -> str:
+    """The other workers' job processes on this host (`RunFacts.machine_jobs`) as the busy line names them, and
+    whether the run's threads counted them; '' where there are none or no worker said."""
+    if not _beside_siblings(facts):
+        return ""
+    counted = ("beside which this run kept the threads it was given" if facts.threads_fixed
+               else "whose share of the cores this run's threads already count")
+    return f"up to {facts.machine_jobs} job process(es) of other workers on this host, {counted}"
+
+
+def _busy_advice(facts: RunFacts, own: bool) -> str:
+    """What the busy line advises: stopping other work, or, beside other workers' job processes (`machine_jobs`),
+    fewer job processes on the host; `--threads 1` too where the run's own threads count (`own`)."""
+    first = ("run fewer job processes on this host (fewer workers, or a smaller --processes)"
+             if _beside_siblings(facts) else "stop other work")
+    return first + (", run it with `--threads 1`," if own else "") + " or give it a larger time budget"
+
+
+def _beside_siblings(facts: RunFacts) -> bool:
+    """Whether the worker that started the run said other workers' job processes share this host with it."""
+    return isinstance(facts.machine_jobs, int) and facts.machine_jobs > 0
 
 
 INTERRUPTED = "the run's training was stopped by Ctrl-C"

@@ -31,7 +31,7 @@ from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floo
 from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from .carving.view_subset import spread_views
 from .carving.views import summed_views
-from .cpu_wait import ThreadWaits, read_threads
+from .cpu_wait import ThreadWaits, machine_jobs, read_threads
 from .coverage import FEW_VIEWS, Coverage, counted_views, few_share, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
@@ -236,6 +236,11 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     run_clock = RunClock(None, clock() if started is None else started, clock)
     before = folder_files(out)  # the user's own files there are no part of the result
     _check_run_args(budget_s, steps, seed)
+    # other workers' job processes on this host, as the worker that started this run counted them: said in the busy
+    # warning, whose cores they may have held
+    siblings, bad_siblings = machine_jobs(os.environ)
+    if bad_siblings:
+        log(f"warning: {bad_siblings}")
     threads_note = None
     if threads is not None:
         torch.set_num_threads(check_threads(threads))
@@ -382,7 +387,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      continued=bool(getattr(model, "warm_started", False)),
                      training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s,
                      preset=config.preset, cuda_seen=torch.cuda.is_available(),
-                     thread_times=None if waits is None else waits.summary())
+                     thread_times=None if waits is None else waits.summary(), machine_jobs=siblings,
+                     threads_fixed=threads_fixed(threads, os.environ))
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts) + ([threads_note] if threads_note else [])
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
@@ -393,6 +399,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report["signal"] = None if signal is None else signal.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["cpu_wait"] = end_of_run.cpu_wait(facts)
+    report["machine_jobs"] = siblings
     report["threads"] = (governor.summary() if governor is not None else
                          {"fixed": torch.get_num_threads()} if dev.type == "cpu" else None)
     report["budget"] = {"budget_s": budget_s, "training_budget_s": plan.budget_s,

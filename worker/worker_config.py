@@ -9,6 +9,7 @@ from typing import Mapping
 
 from spadscan.protocol.errors import ConfigError
 
+from .cpu_wait import MACHINE_JOBS_ENV
 from .threads import (ADAPT_ENV, ENV as THREADS_ENV, check_threads, inherited_threads, machine_cores,
                       oversubscribed, threads_per_job, wait_env)
 from .watcher import JobOptions, check_root
@@ -81,7 +82,9 @@ class WorkerConfig:
         the threads per job, how their OpenMP threads wait (threads.py), then `child_env`. Threads the worker
         shared out itself (among its `processes` and the `others` job processes of the other workers on its
         machine) are a ceiling the job may go under when fewer are faster (ADAPT_ENV), and wait with a short spin;
-        --threads and the worker's own OMP_NUM_THREADS are kept as given, and wait passively."""
+        --threads and the worker's own OMP_NUM_THREADS are kept as given, and wait passively. The `others` are
+        named to the job too (MACHINE_JOBS_ENV; replaced by 0 where the worker's own environment has one): a busy
+        warning at its end then knows that other workers' jobs may have held the cores its threads waited for."""
         environ = os.environ if environ is None else environ
         env: dict[str, str] = {}
         if self.threads is not None:
@@ -90,6 +93,8 @@ class WorkerConfig:
             env[THREADS_ENV] = str(threads_per_job(self.processes + others))
             env[ADAPT_ENV] = "1"
         env.update(wait_env(environ, adapting=ADAPT_ENV in env))
+        if others or MACHINE_JOBS_ENV in environ:
+            env[MACHINE_JOBS_ENV] = str(others)
         return {**env, **(self.child_env or {})}
 
     def job_threads(self, environ: Mapping[str, str] | None = None, others: int = 0) -> int | None:

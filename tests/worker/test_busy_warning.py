@@ -263,6 +263,31 @@ def test_a_run_whose_spinning_threads_waited_for_their_cores_says_the_machine_wa
     assert report["cpu_wait"]["lost_share"] < 0.5
 
 
+def test_a_run_beside_other_workers_jobs_names_them_and_records_them(box_capture, tmp_path, monkeypatch):
+    from spadscan.worker.cpu_wait import MACHINE_JOBS_ENV
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    def run(name: str, value: str) -> tuple[dict, list[str]]:
+        monkeypatch.setenv(MACHINE_JOBS_ENV, value)  # as the worker sets it in its job's environment
+        clock, said = Ticking(cpu=0.96, times=SPINNING), []
+        report = reconstruct_capture(box_capture, tmp_path / name, budget_s=30.0, progress=False, device="cpu",
+                                     threads=1, overrides={"mesh_resolution": 32, "early_stop": False}, clock=clock,
+                                     cpu_clock=clock.cpu, thread_reader=clock.threads, log=said.append)
+        return report, said
+
+    report, _ = run("beside", "2")
+    assert report["machine_jobs"] == 2
+    (line,) = [w for w in report["warnings"] if w.startswith("the machine was busy")]
+    assert ("among them up to 2 job process(es) of other workers on this host, beside which this run kept the "
+            "threads it was given") in line, "--threads 1: the run's threads did not count them"
+    assert "run fewer job processes on this host" in line and "stop other work" not in line, line
+    report, said = run("garbled", "two")
+    assert report["machine_jobs"] is None
+    assert f"warning: {MACHINE_JOBS_ENV}='two' is not a whole number" in "\n".join(said), said
+    (line,) = [w for w in report["warnings"] if w.startswith("the machine was busy")]
+    assert "stop other work" in line and "other workers" not in line, "ignored: the line as before"
+
+
 def test_an_overrun_says_what_the_threads_lost_not_the_cpu_time_that_spinning_fills():
     wall = 20.0
     facts = RunFacts("budget", 150, True, FLAT, cpu_seconds=0.96 * wall, wall_seconds=wall, budget_s=30.0,
