@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spadscan import __version__
 from spadscan.protocol.atomic_files import write_durable
 from spadscan.protocol.capture_format import MANIFEST, TMP_PREFIX, Measurement, one_line, read_json
 from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
@@ -62,9 +63,9 @@ from .arm.stops import clear_advice, stop_name
 from .describe import SLIDER_FLOOR, SLIDER_FULL, describe, slider_note, write_advice
 from .devices import (Arm, ArmFault, ArmState, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent,
                       wait_counted)
-from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, WRITER, ScanJob, abort_pending, check_scan_name,
-                       clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted, interrupted_scan,
-                       load_job, pause_before_block, way_out)
+from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, RIG_VERSION, WRITER, ScanJob, abort_pending,
+                       check_scan_name, clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted,
+                       interrupted_at, interrupted_scan, load_job, pause_before_block, takeover_note, way_out)
 from .adaptive import ViewChooser, live_converged
 from .scan_end import ScanEnd, recorded_end
 from .scan_plan import build_plan, sensor_from_tcp, tcp_from_sensor
@@ -250,8 +251,8 @@ class ScanRunner:
             raise CaptureError(self.last_error) from None
         try:
             writer = await self._io(CaptureWriter.create, path, self.sensor.model, scan_id=name,
-                                    rig={**self.rig, "writer": WRITER}, hand_eye=hand_eye,
-                                    schedule=plan.description, planned_poses=plan.sensor_poses,
+                                    rig={**self.rig, "writer": WRITER, RIG_VERSION: __version__},
+                                    hand_eye=hand_eye, schedule=plan.description, planned_poses=plan.sensor_poses,
                                     chunk_size=scan.chunk_size, scene=self.scene,
                                     frames_per_pose=scan.frames_per_pose)
         except (OSError, CaptureError) as exc:
@@ -291,7 +292,7 @@ class ScanRunner:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
                                           rig_now=self.rig, scene_now=self.scene)
             # A block an earlier daemon recorded is checked afresh (load_job), not taken for a pause of the scan's.
-            paused = pause_before_block(await asyncio.to_thread(_paused_record, path), path.name)
+            recorded = pause_before_block(await asyncio.to_thread(_paused_record, path), path.name)
             try:
                 job.writer = await self._io(job.reopen)
                 job.record_progress(job.writer)
@@ -316,28 +317,35 @@ class ScanRunner:
         self.job = job
         owed = _owed(job)
         # A scan that was paused when the daemon stopped (by the operator, or by a fault) stays paused: auto_resume
-        # continues a scan that was interrupted, not one someone or something had stopped.
+        # continues a scan that was interrupted, not one someone or something had stopped. An earlier takeover's own
+        # note that it found the scan interrupted (recorded while it waited for `ctl resume`) is no such pause.
+        paused = None if takeover_note(recorded) else recorded
         auto = auto_resume and job.blocked is None and in_the_way is None and paused is None
         going_on = "auto_resume continues it" if auto else "`spadscan ctl resume` continues"
         if job.blocked:
             # Said after the pause the scan had, as the capture records it (`_pause_said`) for the dashboard:
             # `ctl status` and the dashboard say the same.
             job.reason = f"{paused}; {job.blocked}" if paused else job.blocked
+        elif recorded and not auto:
+            # The pause the scan had, or an earlier takeover's note, said as the capture records it: `ctl status` and
+            # the dashboard say the same.
+            job.reason = recorded
         else:
-            job.reason = paused or (f"interrupted at pose {self._progress()} (daemon restarted); {going_on}" +
-                                    (f", taking pose(s) {owed} again first (missing from the capture)"
-                                     if owed else ""))
+            job.reason = (f"{interrupted_at(self._progress())}; {going_on}" +
+                          (f", taking pose(s) {owed} again first (missing from the capture)" if owed else ""))
         job.paused_for = paused
         if in_the_way and not job.blocked:
             # The pause the scan had (the operator's, a fault's) stays said first: the full disk is one more thing
             # to see to, not why it was paused. The capture records that alone (or that the scan was interrupted):
             # the next daemon checks the disk again itself.
-            interrupted = f"interrupted at pose {self._progress()} (daemon restarted)"
+            interrupted = interrupted_at(self._progress())
             taken = f"{paused}; taken over at pose {self._progress()} (daemon restarted)" if paused else interrupted
             job.paused_for = paused or interrupted
             job.reason = self.last_error = (f"{taken}, and {in_the_way}" +
                                             (f", which takes pose(s) {owed} again first (missing from the capture)"
                                              if owed else ""))
+        if job.preset_note:
+            log.warning("scan %s: %s", job.name, job.preset_note)
         log.info("took over interrupted scan %s at pose %s (%s)", job.name, self._progress(),
                  "blocked: " + job.blocked if job.blocked else
                  "paused, as it was when the daemon stopped: " + job.reason if paused else
@@ -692,6 +700,8 @@ class ScanRunner:
                 out["views_chosen"] = dict(sorted(job.view_counts.items()))
             if job.owed:  # (kept on the job: a fault's pause drops the writer)
                 out["poses_to_take_again"] = list(job.owed)
+            if job.preset_note:  # (the preset the scan was planned with differs, and the scan goes on all the same)
+                out["preset_note"] = job.preset_note
             if self.state == "pausing":
                 out["pausing_at"] = self._pause_at()
         if self.ends:

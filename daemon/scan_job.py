@@ -18,6 +18,7 @@ import contextlib
 import datetime as _dt
 import json
 import logging
+import math
 import os
 import re
 import time
@@ -36,6 +37,8 @@ from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
 from spadscan.protocol.sensor_presets import sensor_preset
 
+from .backends import SENSOR_BACKENDS, SensorBackend
+from .backends.sensor_sim import SimSensorSettings
 from .config import ScanConfig, scan_with
 from .scan_plan import tcp_from_sensor
 
@@ -103,6 +106,10 @@ class ScanJob:
     the scan goes on."""
     blocked: str | None = None
     """Why this scan cannot resume (e.g. the rig's hand-eye changed); None when it can."""
+    preset_note: str | None = None
+    """How the installed spadscan's preset differs from the one the scan was planned with, where that does not stop
+    it (a real sensor's histograms do not depend on it: the scan goes on with the model its capture records), for
+    `ctl status`; None when it does not differ."""
     in_flight: int | None = None
     """The pose being captured, or captured and not yet published (the runner finishes it before it pauses)."""
     arm_fix: str | None = None
@@ -438,8 +445,11 @@ def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | 
     blocked (resuming would put the sensor elsewhere than planned). So it is when the rig's sensor differs from the
     one the capture records (sensor_now: the sensor model now; rig_now, scene_now: the rig and scene records a new
     capture would get): resuming would mix two sensors in one capture. So it is, too, when the installed spadscan's
-    preset of the same name gives other numbers than the one the scan was planned with (an upgrade refitted it):
-    then no key of the rig's can restore it, and the block says so.
+    preset of the same name gives other numbers than the one the scan was planned with (an upgrade refitted it) and
+    the sensor renders with the model (sim), or its zone or bin counts changed: then no key of the rig's can restore
+    it, and the block names the spadscan version that started the scan (`started_by`). A real sensor's histograms do
+    not depend on the preset's numbers (its driver checks only the zone and bin counts against them), and a resumed
+    capture keeps the model it records: there the difference is a note (`ScanJob.preset_note`), not a block.
     """
     reader = CaptureReader(path)
     planned = reader.planned_poses()
@@ -461,30 +471,65 @@ def load_job(path: Path, hand_eye_now: np.ndarray, *, sensor_now: SensorModel | 
     changed = []
     if not np.allclose(reader.hand_eye, hand_eye_now, atol=1e-6):
         changed.append(f"the rig's [arm] hand_eye differs from the one scan {path.name!r} was planned with")
-    keys, preset = ([], []) if sensor_now is None else sensor_differences(reader, sensor_now, rig_now or {},
-                                                                          scene_now or {})
-    if keys:
+    diff = NO_DIFFERENCE if sensor_now is None else sensor_differences(reader, sensor_now, rig_now or {},
+                                                                       scene_now or {})
+    if diff.keys:
         changed.append(f"the rig's [sensor] differs from the one scan {path.name!r} was planned with "
-                       f"({', '.join(keys)})")
-    job.blocked = block_reason(path.name, changed, reader.sensor.name, preset)
+                       f"({', '.join(diff.keys)})")
+    job.blocked = block_reason(path.name, changed, reader.sensor.name, diff.preset if diff.preset_blocks else [],
+                               started_by(reader.manifest))
+    if diff.preset and not diff.preset_blocks:
+        job.preset_note = preset_note(path.name, reader.sensor.name, diff.preset, diff.backend)
     return job
 
 
-def block_reason(name: str, changed: list[str], preset_name: str, preset: list[str]) -> str | None:
+RIG_VERSION = "spadscan_version"
+"""The rig record's key (scan.json `rig`) of the spadscan version that started the scan."""
+
+
+def started_by(manifest: dict) -> str:
+    """The spadscan version that started a capture, as a block says it: the one its rig record names, else the one
+    installed when it began (`created_utc`: captures older than that record), else no more than that."""
+    rig = manifest.get("rig")
+    version = rig.get(RIG_VERSION) if isinstance(rig, dict) else None
+    if isinstance(version, str) and version.strip():
+        return f"spadscan {version.strip()}, which started it"
+    begun = parse_utc(manifest.get("created_utc"))
+    if begun is not None:
+        return f"the spadscan version installed on {begun.astimezone(_dt.timezone.utc):%Y-%m-%d %H:%M} UTC"
+    return "the spadscan version that started it"
+
+
+def block_reason(name: str, changed: list[str], preset_name: str, preset: list[str],
+                 started: str = "the spadscan version that started it") -> str | None:
     """Why scan `name` cannot resume, with what the operator can do; None when it can. `changed`: what differs in
     the rig (its config can restore it); `preset`: how the installed spadscan's preset `preset_name` differs from the
-    one the scan was planned with (`preset_changes`), which only the spadscan version that started the scan gives."""
+    one the scan was planned with (`preset_changes`), which only the spadscan version that started the scan gives
+    (`started`, as `started_by` says it)."""
     abort = f"or abort the scan (`spadscan ctl abort {name}`)"
     if not preset:
         return "; ".join(changed) + f"; restore it to resume, {abort}" if changed else None
-    shown = ", ".join(preset[:PRESET_CHANGES_SHOWN])
-    if len(preset) > PRESET_CHANGES_SHOWN:
-        shown += f" and {len(preset) - PRESET_CHANGES_SHOWN} more"
-    said = f"this spadscan's `{preset_name}` preset differs from the one scan {name!r} was planned with: {shown}"
-    finish = "finish it with the spadscan version that started it"
+    said = f"this spadscan's `{preset_name}` preset differs from the one scan {name!r} was planned with: {_few(preset)}"
+    finish = f"finish it with {started}"
     if changed:
         return "; ".join(changed + [said]) + f"; restore the rig and {finish}, {abort}"
     return f"{said}; {finish}, {abort}"
+
+
+def preset_note(name: str, preset_name: str, preset: list[str], backend: str) -> str:
+    """What `ctl status` says of a scan whose preset differs from the installed one where that does not stop it: a
+    `backend` sensor's histograms do not depend on the model, and the capture keeps the one it records."""
+    return (f"this spadscan's `{preset_name}` preset differs from the one scan {name!r} was planned with: "
+            f"{_few(preset)}; the scan goes on with the sensor model its capture records ([sensor] backend "
+            f"{backend!r}: the sensor's histograms do not depend on it)")
+
+
+def _few(preset: list[str]) -> str:
+    """The first PRESET_CHANGES_SHOWN of a preset's differences, then how many more."""
+    shown = ", ".join(preset[:PRESET_CHANGES_SHOWN])
+    if len(preset) > PRESET_CHANGES_SHOWN:
+        shown += f" and {len(preset) - PRESET_CHANGES_SHOWN} more"
+    return shown
 
 
 def pause_before_block(reason: str | None, name: str) -> str | None:
@@ -503,8 +548,28 @@ def pause_before_block(reason: str | None, name: str) -> str | None:
     return "; ".join(parts[:first]) or None
 
 
-MODEL_KEYS = {"signal_scale": "power", "background": "ambient", "cycles": "cycles"}
-"""Sensor model fields a [sensor] key sets (sim: power, ambient, cycles); every other field is the preset's."""
+RESTARTED = "(daemon restarted)"
+"""What a takeover's own note of an interrupted scan says after the pose it was interrupted at (`interrupted_at`)."""
+_INTERRUPTED = re.compile(r"interrupted at pose \d+/\d+ " + re.escape(RESTARTED) + r"(?=$|[;,])")
+
+
+def interrupted_at(progress: str) -> str:
+    """How a daemon that took a scan over says it found it interrupted at pose `progress` (i/n): recorded as the
+    scan's pause while it waits for `ctl resume`, and told from a pause of the operator's or a fault's
+    (`takeover_note`)."""
+    return f"interrupted at pose {progress} {RESTARTED}"
+
+
+def takeover_note(reason: str | None) -> bool:
+    """Whether a pause's reason recorded in a capture is a takeover's own note that the scan was interrupted
+    (`interrupted_at`, and what followed it), not a pause of the operator's or a fault's: no one paused the scan, so
+    the next daemon goes on by itself where auto_resume allows."""
+    return reason is not None and _INTERRUPTED.match(reason) is not None
+
+
+MODEL_KEYS = SimSensorSettings.model_keys
+"""Sensor model fields a [sensor] key sets (sim: power, ambient, cycles); every other field is the preset's. What a
+resume compares where the rig's backend is not known (a capture another way made)."""
 SCENE_KEYS = {"builtin": "mesh", "mesh": "mesh", "mesh_offset_m": "mesh_offset_m", "albedo": "albedo"}
 """Scene record fields (sim) that change what the sensor sees, and the [sensor] key of each."""
 FREE_TEXT = frozenset({"notes"})
@@ -519,50 +584,126 @@ PRESET_CHANGES_SHOWN = 3
 """How many of the fields in which a preset differs a block names (then "and N more")."""
 
 
-def sensor_changes(reader: CaptureReader, model_now: SensorModel, rig_now: dict, scene_now: dict) -> list[str]:
-    """The [sensor] keys whose change since the capture began changes what it measures: its sensor model (the
-    preset and the sim's photon keys), the sensor backend and (sim) the scene. Records absent on either side (a
-    capture another way made) are not compared. A difference the installed spadscan's preset made (the same preset,
-    other numbers) is none of them: `sensor_differences` tells the two apart."""
-    return sensor_differences(reader, model_now, rig_now, scene_now)[0]
+@dataclass(frozen=True)
+class SensorDifference:
+    """How the rig's sensor differs from the one a capture was planned with."""
+
+    keys: list[str]
+    """The [sensor] keys that differ, sorted: the operator can set them back."""
+    preset: list[str]
+    """How the installed spadscan's preset of the same name differs (`preset_changes`): no key can set it back."""
+    preset_blocks: bool
+    """Whether the preset's difference stops the scan: the sensor renders with the model (sim), the zone or bin
+    counts differ, or the rig's backend is not known. Else a real sensor's scan goes on with the model its capture
+    records (its histograms do not depend on it)."""
+    backend: str = ""
+    """The rig's sensor backend now."""
+
+
+NO_DIFFERENCE = SensorDifference([], [], False)
 
 
 def sensor_differences(reader: CaptureReader, model_now: SensorModel, rig_now: dict,
-                       scene_now: dict) -> tuple[list[str], list[str]]:
-    """(the [sensor] keys that differ, as `sensor_changes` names them; how the installed preset of the same name
-    differs from the one the capture was planned with, as `preset_changes` says it)."""
+                       scene_now: dict) -> SensorDifference:
+    """How the rig's sensor now (model_now: its sensor model; rig_now, scene_now: the rig and scene records a new
+    capture would get) differs from the one the capture at `reader` was planned with, in what it measures: the
+    [sensor] keys that differ (the preset chosen, the keys that set the model, the backend, the sim's scene), and how
+    the installed preset of the same name differs (`_attribute`). Records absent on either side (a capture another
+    way made) are not compared."""
     then, now = _plain(reader.sensor.to_dict()), _plain(model_now.to_dict())
-    keys, by_preset = set(), []
+    rig_then = (reader.manifest.get("rig") or {}).get("sensor") or {}
+    rig_now = rig_now.get("sensor") or {}
+    backend = SENSOR_BACKENDS.get(rig_now.get("backend"))
+    keys, preset = set(), ({}, {})
     if then["name"] != now["name"]:
         keys.add("preset")
     else:
         differ = [name for name in _fields_of(then, now) if name not in FREE_TEXT and then.get(name) != now.get(name)]
-        by_preset = _preset_made(differ, now)
-        keys.update(MODEL_KEYS.get(name, "preset") for name in differ if name not in by_preset)
-    rig_then = (reader.manifest.get("rig") or {}).get("sensor") or {}
-    rig_now = rig_now.get("sensor") or {}
+        named, preset = _attribute(differ, then, now, rig_then, rig_now, backend)
+        keys.update(named)
     if rig_then and rig_now and rig_then.get("backend") != rig_now.get("backend"):
         keys.add("backend")
     scene_then = reader.manifest.get("scene") or {}
     if scene_then and scene_now:
         keys.update(key for name, key in SCENE_KEYS.items() if scene_then.get(name) != scene_now.get(name))
-    return sorted(keys), preset_changes({k: then.get(k) for k in by_preset}, {k: now.get(k) for k in by_preset})
+    blocks = backend is None or backend.renders_with_model or _counts_differ(then, now)
+    return SensorDifference(sorted(keys), preset_changes(*preset), blocks, rig_now.get("backend") or "")
 
 
-def _preset_made(differ: list[str], now: dict) -> list[str]:
-    """Which of the model fields in `differ` (same preset name) the installed preset changed, not the rig's config.
-    A field no [sensor] key sets can differ only so. A field a key sets (MODEL_KEYS) is put down to the preset only
-    when the preset is seen to have changed (a field of the first kind differs: an upgrade refitted it) and no key
-    sets that field now (its value is the installed preset's own); otherwise the key is named, as the operator can
-    set it back."""
-    own = [name for name in differ if name not in MODEL_KEYS]
-    if not own:
-        return []
+def _attribute(differ: list[str], then: dict, now: dict, rig_then: dict, rig_now: dict,
+               backend: type[SensorBackend] | None) -> tuple[set[str], tuple[dict, dict]]:
+    """Which of the model fields in `differ` (same preset name) a changed [sensor] key made, and which the
+    installed preset did: (the keys named, (the preset's fields then, now)). Where the capture's rig record holds
+    the backend's model keys (`SensorBackend.model_keys`: the sim's power, ambient, cycles; none for a real
+    sensor), they are compared key to key (`_by_keys`); a capture that holds none of them is inferred from
+    (`_inferred`)."""
+    cls = backend or SimSensorSettings  # (a backend not known: the sim's keys, the only ones there are)
+    if all(key in rig_then and key in rig_now for key in cls.model_keys.values()):
+        return _by_keys(differ, then, now, rig_then, rig_now, cls)
+    return _inferred(differ, then, now, rig_now, cls)
+
+
+def _by_keys(differ: list[str], then: dict, now: dict, rig_then: dict, rig_now: dict,
+             cls: type[SensorBackend]) -> tuple[set[str], tuple[dict, dict]]:
+    """`_attribute` with the model keys recorded on both sides: a key that differs is named; every difference of
+    the preset's own values (the model with the keys undone, `SensorBackend.preset_value`; now: the installed
+    preset's) is the preset's, the keys as they were or not."""
+    installed = _installed(now["name"])
+    named, preset_then, preset_now = set(), {}, {}
+    for name in differ:
+        key = cls.model_keys.get(name)
+        if key is None:
+            preset_then[name], preset_now[name] = then.get(name), now.get(name)
+            continue
+        if rig_then.get(key) != rig_now.get(key):
+            named.add(key)
+        was = cls.preset_value(name, then.get(name), rig_then)
+        is_ = installed[name] if name in installed else cls.preset_value(name, now.get(name), rig_now)
+        if was is not None and is_ is not None and not _same(was, is_):
+            preset_then[name], preset_now[name] = was, is_
+        elif key not in named and name not in preset_then:
+            # The keys the same, and the preset's values not to be told apart: the model still differs, so say how.
+            preset_then[name], preset_now[name] = then.get(name), now.get(name)
+    return named, (preset_then, preset_now)
+
+
+def _inferred(differ: list[str], then: dict, now: dict, rig_now: dict,
+              cls: type[SensorBackend]) -> tuple[set[str], tuple[dict, dict]]:
+    """`_attribute` for a capture whose rig record holds no model keys (one started before they were recorded). A
+    field no key sets can differ only by the preset. A field a key sets is put down to the preset only when the
+    preset is seen to have changed (a field of the first kind differs: an update refitted it) and the value now is
+    the installed preset's own (`preset_value`: for power, the signal_scale divided by it); otherwise the key is
+    named, as the operator can set it back."""
+    if all(name in cls.model_keys for name in differ):
+        return {cls.model_keys[name] for name in differ}, ({}, {})
+    installed = _installed(now["name"])
+    named = {cls.model_keys[name] for name in differ
+             if name in cls.model_keys and not (name in installed and
+                                               _same(cls.preset_value(name, now.get(name), rig_now), installed[name]))}
+    preset = [name for name in differ if cls.model_keys.get(name) not in named]
+    return named, ({name: then.get(name) for name in preset}, {name: now.get(name) for name in preset})
+
+
+def _installed(name: str) -> dict:
+    """The installed spadscan's preset `name` as a plain record; {} when it has none of that name."""
     try:
-        installed = _plain(sensor_preset(now["name"]).to_dict())
-    except SensorModelError:  # (a model no preset of this spadscan's gave: every keyed field is the key's)
-        installed = {}
-    return [name for name in differ if name in own or (name in installed and installed[name] == now.get(name))]
+        return _plain(sensor_preset(name).to_dict())
+    except SensorModelError:
+        return {}
+
+
+def _same(a, b) -> bool:
+    """Two values of a model field alike, numbers to 1e-9 (a value the keys were undone from is divided)."""
+    if isinstance(a, float) or isinstance(b, float):
+        return isinstance(a, (int, float)) and isinstance(b, (int, float)) and math.isclose(a, b, rel_tol=1e-9)
+    return a == b
+
+
+def _counts_differ(then: dict, now: dict) -> bool:
+    """Whether two sensor model records differ in their zone or bin counts (what a real sensor's driver checks a
+    model against: the histograms of one capture must have one shape)."""
+    zones = lambda record: len(record.get("zones") or [])  # noqa: E731
+    return then.get("n_bins") != now.get("n_bins") or zones(then) != zones(now)
 
 
 def preset_changes(then: dict, now: dict) -> list[str]:

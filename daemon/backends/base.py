@@ -68,10 +68,24 @@ class SensorBackend(BackendSettings):
 
     renders_at_arm_pose: ClassVar[bool] = False
     """The sensor needs the arm's live pose (a simulated sensor renders the scene there)."""
+    renders_with_model: ClassVar[bool] = False
+    """The sensor's histograms are made with its sensor model (a simulated sensor renders with it), so a scan goes on
+    only with the model it was planned with. A real sensor's are not: its driver checks only the zone and bin counts
+    against the model, and a capture is read with the one model it records."""
+    model_keys: ClassVar[dict[str, str]] = {}
+    """Sensor model fields this backend's keys set (`model`), each with its key: recorded in the rig record, so that a
+    resumed scan tells a changed key from a preset an update refitted."""
 
     def model(self, preset: SensorModel, where: str) -> SensorModel:
         """The sensor model stored with every capture: the preset, with any of this backend's overrides folded in."""
         return preset
+
+    @classmethod
+    def preset_value(cls, field: str, value, rig: dict):
+        """The preset's own value of sensor model field `field`, from the model's `value` and the keys this backend
+        recorded in the capture's rig record (`rig`, its sensor part): `model` undone. None where a key replaced it
+        (the preset's value cannot be told). No key of this backend's sets a field: the value is the preset's."""
+        return value
 
     def build(self, sensor: "SensorConfig", model: SensorModel, arm: "Arm", hand_eye: np.ndarray,
               where: str) -> "Sensor":

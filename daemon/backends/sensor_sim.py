@@ -27,6 +27,8 @@ class SimSensorSettings(SensorBackend):
 
     name: ClassVar[str] = "sim"
     renders_at_arm_pose: ClassVar[bool] = True
+    renders_with_model: ClassVar[bool] = True
+    model_keys: ClassVar[dict[str, str]] = {"signal_scale": "power", "background": "ambient", "cycles": "cycles"}
 
     mesh: str | None = key(None, "str")
     """Sim: the scene, a mesh file (metres; STL in mm is detected) or builtin:NAME (required for 'sim')."""
@@ -87,6 +89,20 @@ class SimSensorSettings(SensorBackend):
         except SensorModelError as exc:
             raise ConfigError(f"{where}: {exc}") from None
 
+    @classmethod
+    def preset_value(cls, field, value, rig):
+        # As `model` sets them: power multiplies the preset's signal_scale (absent: 1, the preset's own; 0 hides it),
+        # ambient and cycles replace background and cycles (absent or null: the preset's own).
+        if field == "signal_scale":
+            power = rig.get("power", 1.0)
+            if not isinstance(power, (int, float)) or isinstance(power, bool) or power <= 0:
+                return None
+            return value / power if isinstance(value, (int, float)) else None
+        key_name = cls.model_keys.get(field)
+        if key_name is not None and rig.get(key_name) is not None:
+            return None
+        return value
+
     def build(self, sensor, model, arm, hand_eye, where):
         from spadscan.protocol.simulator import SimSettings
 
@@ -102,7 +118,10 @@ class SimSensorSettings(SensorBackend):
                          silence_s=self.silence_s)
 
     def rig_record(self) -> dict:
-        return {"seed": self.seed, "rays_per_zone": self.rays_per_zone, "albedo": self.albedo}
+        # The keys that set the sensor model (`model_keys`; null: the preset's own), so that a resume compares them
+        # key to key and puts any other difference of the model down to the preset.
+        return {"seed": self.seed, "rays_per_zone": self.rays_per_zone, "albedo": self.albedo, "power": self.power,
+                "ambient": self.ambient, "cycles": self.cycles}
 
     def scene_record(self) -> dict:
         # The same record `spadscan simulate` writes, so the worker finds the ground truth.

@@ -25,7 +25,8 @@ the chip the same way):
    0x26 (u16 LE), SPAD map 0x34, HIST_DUMP 0x39 = 1 (raw histograms), then 0x15 (write config). After each command
    CMD_STAT echoes the command while busy (>= 0x10), then reads its status. ams' Linux driver takes 0x00 (ok) or 0x01
    (accepted) after any command, and so does the daemon; ams' Python driver expects 0x01 for measure and 0x00 for
-   the others, so a 0x01 where it expects 0x00 is logged once. Anything else fails the start, the status named.
+   the others, so a 0x01 where it expects 0x00 is logged, once for each command. Anything else fails the start,
+   the status named.
 6. Interrupts: INT_STATUS 0xE1 <- 0xFF (write 1 to clear), then INT_ENAB 0xE2 |= result (0x02) and raw histogram
    (0x08) bits, as every reference does before measuring, and the error bit (0x40), as ams' Linux driver does (it
    enables all but "command done"); read-modify-write (the enables drive the INT pin).
@@ -148,7 +149,7 @@ class I2CTransport(Transport):
         self._last_record = 0.0
         self._check_before: str | None = FRAME_START  # why CMD_STAT is checked before the next record read (None: not)
         self._next_index: int | None = 0  # the sub-packet expected next (0 after a result; None after a refused one)
-        self._accepted_noted = False  # a command answered 0x01 where ams' Python driver expects 0x00: logged once
+        self._statuses_noted: set[int] = set()  # commands that answered other than ams' Python driver expects: logged
         self._counts: dict[str, int | str] = {"records": 0, "bad_records": 0, "size_field_mismatches": 0,
                                               "error_interrupts": 0, "boots": 0, "downloads": 0}
 
@@ -393,11 +394,11 @@ class I2CTransport(Transport):
             self._note_status(cmd, status, "taken, as ams' Linux driver takes 0x00 or 0x01 after any command")
 
     def _note_status(self, cmd: int, status: int, why: str) -> None:
-        """Log, once per transport, a command status other than the 0x00 ams' Python driver expects, and why it is
-        taken."""
-        if self._accepted_noted:
+        """Log, once per command and transport, a command status other than the 0x00 ams' Python driver expects, and
+        why it is taken: a config command's note must not hide the short-range switch's, nor the other way round."""
+        if cmd in self._statuses_noted:
             return
-        self._accepted_noted = True
+        self._statuses_noted.add(cmd)
         log.warning("%s: command %#04x (%s) answered status %#04x%s where ams' Python driver expects 0x00 (ok); %s "
                     "(said once)", self.name, cmd, COMMAND_NAMES[cmd], status, _stat_name(status), why)
 

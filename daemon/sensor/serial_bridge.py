@@ -26,9 +26,11 @@ unplug, two lines run together, line noise, another sensor's line) is refused an
 transport counts its refused records, and by kind), and the frame it belonged to is dropped by the frame assembler.
 
 The bridge's "Active range: <hex>" line (the ACTIVE_RANGE the firmware reads as it starts) must say 6E, short-range
-high accuracy: in any other mode the transport refuses to go on (a DeviceError, which stops the device's reader
-before a frame of that mode is made), as the I2C backend refuses to start, since the `tmf8820` sensor model describes
-short-range histograms only. The daemon cannot switch the bridge's mode: its firmware must.
+high accuracy: in the other modes ams documents (6F long range, 0 an image without accuracy modes) the transport
+refuses to go on (a DeviceError, which stops the device's reader before a frame of that mode is made), as the I2C
+backend refuses to start, since the `tmf8820` sensor model describes short-range histograms only. The daemon cannot
+switch the bridge's mode: its firmware must. Any other value is a garbled line (with no checksum, a dropped or
+flipped character turns 6E into 6, E or 4E): refused and counted as a corrupt line, the mode left as it was.
 
 Timing: the bridge keeps the sensor measuring on the period its firmware sets (the UW firmware: 230 ms) and cannot be
 told to start a fresh measurement. In its loop it clears a record's interrupt, reads the record over I2C and prints
@@ -176,7 +178,8 @@ the sensor's ACTIVE_RANGE (hex, as Arduino's print(x, HEX) writes it)."""
 
 
 def bridge_mode_refusal(mode: int, printed: str) -> str:
-    """The one-line error of a bridge whose "Active range" line is not 6E: what it reports, and what to do."""
+    """The one-line error of a bridge whose "Active range" line names a mode ams documents other than 6E (6F, 0):
+    what it reports, and what to do."""
     what = {RANGE_LONG: "long range", RANGE_NONE: "an application image without accuracy modes"}.get(
         mode, "no accuracy mode ams documents")
     return (f"the bridge firmware runs the sensor in {what} (Active range: {printed}), not short-range high accuracy "
@@ -261,7 +264,7 @@ class SerialBridgeTransport(Transport):
                 self._counts["lines"] += 1
                 out = classify_line(line, t, self.address)
                 if isinstance(out, StatusPacket) and out.kind in BRIDGE_NOTES:
-                    self._note(out)
+                    self._note(out, line)
                     continue
                 if not isinstance(out, tuple):
                     return out
@@ -286,16 +289,23 @@ class SerialBridgeTransport(Transport):
         self._counts["bad_records"] += 1
         self._counts["last_bad_record"] = f"{why} ('{_printable(line, LINE_EXCERPT_BYTES)}')"
 
-    def _note(self, note: StatusPacket) -> None:
-        """Count a download; keep the accuracy mode the bridge reports, and refuse to go on unless it is short range
-        (the `tmf8820` model's time axis), as the I2C backend refuses to start: a DeviceError, not a dropped link, so
-        that the device's reader stops before any frame of that mode is made (a reopen would bring the frames
-        back without the line on a board that does not reset)."""
+    def _note(self, note: StatusPacket, line: bytes) -> None:
+        """Count a download; keep the accuracy mode the bridge reports (`line`), and refuse to go on in another mode
+        ams documents (long range, or an image without accuracy modes: not the `tmf8820` model's time axis), as the
+        I2C backend refuses to start: a DeviceError, not a dropped link, so that the device's reader stops before any
+        frame of that mode is made (a reopen would bring the frames back without the line on a board that does not
+        reset). Any other value is no mode at all: a garbled line (a dropped or flipped character; the bridge has no
+        checksum), refused and counted as a corrupt one, the mode left as it was; it must not stop the sensor."""
         if note.kind == "firmware_downloaded":
             self._counts["downloads"] = self._counts.get("downloads", 0) + 1
             return
         mode = int(note.text, 16)
-        self._counts["active_range"] = RANGE_NAMES.get(mode, f"unknown ({mode:#04x})")
+        if mode not in RANGE_NAMES:
+            self._counts["corrupt_lines"] += 1
+            self._refuse(f"an Active range line with {note.text}, no accuracy mode ams documents (6E, 6F or 0)",
+                         line)
+            return
+        self._counts["active_range"] = RANGE_NAMES[mode]
         if mode != RANGE_SHORT:
             raise DeviceError(bridge_mode_refusal(mode, note.text))
 

@@ -9,6 +9,7 @@ import json
 
 import pytest
 
+from spadscan import __version__
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.rig import build_devices, rig_record
 from spadscan.daemon.runner import ScanRunner
@@ -22,7 +23,7 @@ from test_runner import until
 from test_runner_resume import interrupt, make_cfg, restart
 
 PLANNED = "this spadscan's `tmf8820` preset differs from the one scan 'mix' was planned with: "
-FINISH = "finish it with the spadscan version that started it, or abort the scan (`spadscan ctl abort mix`)"
+FINISH = f"finish it with spadscan {__version__}, which started it, or abort the scan (`spadscan ctl abort mix`)"
 
 
 def update_preset(monkeypatch, **changes) -> None:

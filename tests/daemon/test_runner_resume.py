@@ -225,3 +225,34 @@ def test_a_pause_keeps_the_time_it_began_across_restarts(arun, tmp_path):
 
     arun(restart_and_stop())
     assert CaptureReader(capture).manifest["paused"]["since_utc"] == since
+
+
+async def taken_over_and_left(cfg, root) -> tuple[dict, dict]:
+    """A daemon on cfg takes the scan over and stops once its capture records the pause it waits in; (its status,
+    that record)."""
+    arm, sensor = build_devices(cfg)
+    async with DeviceSession([arm, sensor]):
+        rig, scene = rig_record(cfg)
+        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+        try:
+            await runner.recover()
+            await until(lambda: "paused" in CaptureReader(root / "mix").manifest, "the pause recorded")
+            return runner.status(), CaptureReader(root / "mix").manifest["paused"]
+        finally:
+            await runner.shutdown()
+
+
+def test_a_takeovers_own_note_is_no_pause_for_the_next_daemon(arun, tmp_path):
+    """A daemon without auto_resume takes the interrupted scan over paused and records why it waits (the dashboard
+    says it); that note is not the operator's pause: the next daemon with auto_resume goes on by itself (before, it
+    stayed paused), and one without says the same as the first."""
+    root = tmp_path / "caps"
+    arun(interrupt(make_cfg(tmp_path)))
+    first, recorded = arun(taken_over_and_left(make_cfg(tmp_path), root))
+    assert first["state"] == "paused" and recorded["reason"] == first["reason"], (first, recorded)
+    assert first["reason"].startswith("interrupted at pose") and first["reason"].endswith(
+        "(daemon restarted); `spadscan ctl resume` continues"), first
+    again, _ = arun(taken_over_and_left(make_cfg(tmp_path), root))
+    assert again["reason"] == first["reason"], again
+    status, _ = arun(restart(make_cfg(tmp_path, auto_resume=True)))
+    assert status["state"] == "scanning", status

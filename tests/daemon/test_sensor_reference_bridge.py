@@ -180,3 +180,27 @@ def test_a_bridge_in_another_mode_than_short_range_is_refused_before_any_frame(a
         f"(command 0x6E after it downloads an ams application image with accuracy modes, before it measures, as the "
         f"UW firmware does), then reset the bridge and restart the daemon")
     assert c["active_range"] == {0x6F: "long range", 0x00: "no accuracy modes"}[active_range]
+
+
+@pytest.mark.parametrize("booted", [False, True])
+@pytest.mark.parametrize("printed", ["6", "E", "4E", "6C"])
+def test_a_garbled_active_range_line_is_a_corrupt_line_and_frames_flow(arun, printed, booted):
+    """With no checksum, a dropped or flipped character turns "6E" into a value ams documents no mode for: that is a
+    corrupt line (counted, the mode left as it was), not a mode to refuse; before, it stopped the sensor until the
+    daemon restarted. Only 6F and 0 are refused (above)."""
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                if booted:
+                    bridge.boot(0x6E)
+                bridge.send(f"Active range: {printed}\n".encode())
+                bridge.send_frame(counts(2), result(2))
+                frame = await sensor.next_frame(10)
+                return frame, sensor.counters()
+
+    frame, c = arun(main())
+    assert frame is not None and c["frames_delivered"] == 1
+    assert c["corrupt_lines"] == 1 and c["bad_records"] == 1, c
+    assert c["last_bad_record"] == (f"an Active range line with {printed}, no accuracy mode ams documents (6E, 6F or "
+                                    f"0) ('Active range: {printed}')")
+    assert c.get("active_range") == ("short range" if booted else None), c

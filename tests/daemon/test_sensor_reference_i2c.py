@@ -406,6 +406,40 @@ def test_the_short_range_switch_is_decided_by_active_range_whatever_its_status(a
     assert "firmware = PATH" not in caplog.text
 
 
+class StatusesBus(SimTMF8820Bus):
+    """The register fake, but each command in `statuses` answers the status given there."""
+
+    def __init__(self, statuses: dict[int, int], **kw):
+        super().__init__(**kw)
+        self.statuses = statuses
+
+    def _command(self, cmd: int) -> None:
+        super()._command(cmd)
+        if cmd in self.statuses:
+            self.cmd_stat = self.statuses[cmd]
+
+
+def test_the_short_range_note_and_a_config_commands_note_are_each_said(arun, image, caplog):
+    """Both the short-range switch and a config command answer 0x01: each is logged once (before, the first note
+    hid the other for the transport's life)."""
+    path, data = image
+    fake = StatusesBus({0x6E: 0x01, 0x15: 0x01}, image=data, frame_interval_s=0.02)
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake)
+
+    async def during(sensor):
+        fake.power_cycle()
+        await _until(lambda: sensor.counters()["reconnects"] >= 1, "the start after the power loss")
+        return [await sensor.next_frame(10)]
+
+    with caplog.at_level(logging.WARNING, logger="spadscan.daemon"):
+        frames = arun(_run(sensor, n_frames=1, during=during))
+    assert len(frames) == 2 and sensor.counters()["boots"] == 2
+    said = [r.getMessage() for r in caplog.records if "Python driver expects" in r.getMessage()]
+    assert len(said) == 2, said
+    assert said[0].startswith("i2c bus 1 addr 0x41: command 0x6e (short-range mode) answered status 0x01"), said
+    assert said[1].startswith("i2c bus 1 addr 0x41: command 0x15 (write config) answered status 0x01"), said
+
+
 def test_a_command_status_that_is_an_error_still_fails_the_start(arun, image):
     path, data = image
     fake = StatusBus(cmd=0x16, status=0x02, image=data)
