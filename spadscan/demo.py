@@ -835,11 +835,13 @@ class ReconProgress:
         # line carries this reading's fields, not the last one's.
         if fields and hasattr(self.bar, "set_postfix_str"):
             self.bar.set_postfix_str(", ".join(fields))
-        if progress.done >= progress.total and hasattr(self.bar, "set_description_str"):
-            self.bar.set_description_str(self.after + self.label)
         done = min(progress.done, progress.total)
         self.bar.update(max(0.0, done - self.shown))
         self.shown = max(self.shown, done)
+        # After the count: the end's stage is said at once as lines (ProgressLines), with the count at its end, and
+        # not only once the job has finished (its mesh, metrics, pictures and report take a while).
+        if progress.done >= progress.total and hasattr(self.bar, "set_description_str"):
+            self.bar.set_description_str(self.after + self.label)
 
 
 def _find_report(scan_dir: Path) -> Path:

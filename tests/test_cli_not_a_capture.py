@@ -85,3 +85,18 @@ def test_a_capture_folder_still_keeps_out_of_its_measurements(here, capsys):
     stub_capture(here / "cap")
     assert main(["reconstruct", "cap", "--out", "cap/x"]) == 1
     assert one_line_error(capsys).startswith("spadscan: error: --out cap/x lies inside the capture cap: ")
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_chunk_or_the_manifest_of_a_capture_names_the_capture(here, capsys, command):
+    stub_capture(here / "cap")
+    (here / "cap" / "chunk-000000").mkdir()
+    (here / "cap" / "recon").mkdir()
+    before = listing(here)
+    for part, what in (("cap/chunk-000000", "a chunk of the capture"), ("cap/scan.json", "the manifest of the capture"),
+                       ("cap/recon", "a folder in the capture")):
+        assert main([*command, part, "--out", "x"]) == 1
+        assert one_line_error(capsys) == f"spadscan: error: {part}: {what} cap; name cap"
+    assert main([*command, "cap/chunk-000009", "--out", "x"]) == 1  # not there: said as any missing folder
+    assert one_line_error(capsys) == "spadscan: error: cap/chunk-000009: no such capture folder"
+    assert listing(here) == before

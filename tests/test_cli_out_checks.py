@@ -80,6 +80,17 @@ def test_simulate_names_out_when_it_cannot_be_made(here, capsys, out, reason):
 # ---- an --out folder that cannot be written into (defect: simulate said a bare "Operation not permitted
 # (rotest/schedule.npy)", baseline the same after its run, reconstruct after its first lines; now one line as
 # reconstruct's own, before any work) ----------------------------------------------------------------------------------
+SWEEP = """
+[sweep]
+scenes = ["builtin:sphere"]
+presets = ["fast"]
+baselines = []
+[base]
+views = 8
+rays_per_zone = 256
+"""
+
+
 def immutable(folder: Path) -> None:
     """Make `folder` immutable (chattr +i: root cannot write into it either; the caller undoes it); skips where the
     filesystem or the process cannot."""
@@ -156,6 +167,15 @@ def test_baseline_refuses_an_out_it_cannot_write_into_before_it_runs(rotest, cap
 
 def test_reconstruct_refuses_an_out_it_cannot_write_into_before_it_says_anything(rotest, capture, capsys):
     assert main(["reconstruct", capture, "--out", rotest, "--steps", "1", "--no-progress"]) == 1
+    assert one_line_error(capsys).startswith(f"spadscan: error: --out {rotest}: cannot write into it (")
+    assert os.listdir(rotest) == []
+
+
+@pytest.mark.parametrize("dry_run", [[], ["--dry-run"]])
+def test_sweep_refuses_an_out_it_cannot_write_into_before_its_plan(rotest, here, capsys, dry_run):
+    """Said before the plan's line, as the others say it (not "Read-only file system (rotest/.lock)" after it)."""
+    (here / "s.toml").write_text(SWEEP)
+    assert main(["sweep", "s.toml", "--out", rotest, "--workers", "1", "--no-progress", *dry_run]) == 1
     assert one_line_error(capsys).startswith(f"spadscan: error: --out {rotest}: cannot write into it (")
     assert os.listdir(rotest) == []
 

@@ -86,7 +86,8 @@ def test_readings_no_claim_tells_apart_never_count_past_the_total():
 
 def test_the_demos_bar_follows_the_retry_from_its_start(tmp_path, capsys, no_devices):
     out = tmp_path / "demo"
-    main(["demo", "--out", str(out), "--offline", "--views", "4", "--budget-s", "20", "--scene", "sphere"])
+    main(["demo", "--out", str(out), "--offline", "--views", "4", "--budget-s", "20", "--scene", "sphere",
+          "--progress"])  # the bar (stderr is no terminal here), not plain lines
     err = capsys.readouterr().err
     assert "reconstruction job scan-fast: the worker runs it again, attempt 2 (the last attempt: job process died)" \
         in err

@@ -284,17 +284,18 @@ def test_a_line_the_demo_says_while_a_bar_runs_starts_a_line_of_its_own(monkeypa
 
 
 def test_a_demo_whose_run_did_not_converge_says_what_ended_it_and_what_gives_it_longer(monkeypatch, tmp_path, capsys):
-    # As its report.json says it, among the run's warnings (end_of_run.UNCONVERGED): said once, with the demo's lever.
-    from spadscan.worker.end_of_run import UNCONVERGED
+    # As its report.json says it, among the run's warnings (end_of_run.unconverged_line: what ended it and the flag
+    # that gives it longer, the demo's own --budget-s): the same line as summary.json, the page and the dashboard.
+    from spadscan.worker.end_of_run import unconverged_line
 
     def fake_run_demo(opts, bar, say):
-        return {"mesh": str(tmp_path / "mesh.ply"), "warnings": [UNCONVERGED], "converged": False, "pictures": [],
-                "live": None,
+        return {"mesh": str(tmp_path / "mesh.ply"), "warnings": [unconverged_line("budget")], "converged": False,
+                "pictures": [], "live": None,
                 "chamfer_mm": 1.12, "seconds": {"start_s": 0.1, "scan_s": 1.0, "reconstruct_s": 2.0, "total_s": 3.1},
                 "preset": "fast", "report_html": str(tmp_path / "report.html"), "dashboard": None}
 
     monkeypatch.setattr(demo, "run_demo", fake_run_demo)
     assert main(["demo", "--out", str(tmp_path / "out"), "--budget-s", "90"]) == 0
     said = [line for line in capsys.readouterr().out.splitlines() if line.startswith("warning:")]
-    assert said == ["warning:  the run did not converge: its mesh may still be changing (its 90 s budget ended it; a "
-                    "larger --budget-s gives it longer)"], said
+    assert said == ["warning:  the run did not converge: its mesh may still be changing (it ended on its time budget: "
+                    "a larger --budget-s gives it longer)"], said

@@ -103,6 +103,10 @@ RUN_2 = ["reconstruct (fast):  43%|####      | 3/7 s [00:03<00:04, step=14, loss
          "scored=at step 200]"]
 
 
+JOB_FINISHED = "(the job finished)"
+"""What fake_run_demo says once the job it follows has finished, before it closes the bar."""
+
+
 def fake_run_demo(opts, bar, say):
     """What run_demo asks of its bars, without the daemon and the worker: the scan's bar counts poses and shows the
     live fit (LiveWatch), set after the count; the reconstruction's bar follows a job (ReconProgress) that crashes
@@ -117,6 +121,7 @@ def fake_run_demo(opts, bar, say):
     show.follow(demo.JobRun("scan-fast", "claim-1", 1, parse_progress(RUN_1)))
     for line in RUN_2:
         show.follow(demo.JobRun("scan-fast", "claim-2", 2, parse_progress(line), "job process died with signal 9"))
+    say(JOB_FINISHED)  # the job's mesh, metrics, pictures and report are made before this
     recon.close()
     return {"mesh": str(opts.out / "mesh.ply"), "warnings": [], "converged": True, "pictures": [], "live": None,
             "chamfer_mm": 1.21, "seconds": {"start_s": 0.1, "scan_s": 1.0, "reconstruct_s": 2.0, "total_s": 3.1},
@@ -140,17 +145,22 @@ def test_a_demo_into_a_file_says_its_bars_as_lines_each_end_once(tmp_path, monke
                                                      for k in range(1, 11)], err
     assert scan[-1].startswith("scan (poses): 20/20 poses (100 %), live: 20/20 views, 200 steps ["), \
         "the end once, with the fields set after its count"
+    # Its seconds as reconstruct says them where checkpoint scoring counts in the budget (a demo's scene has a
+    # ground truth).
     recon = [line for line in err.splitlines() if "reconstruction" in line and "s of training" in line]
     after = demo.ReconProgress.AFTER
     assert [line.split(" [")[0] for line in recon] == [
-        f"{after}: 8.0/8.0 s of training (100 %), step 216, loss 0.6",  # the crashed attempt's end, before its retry
-        "final reconstruction (training s), attempt 2: 3.0/7.0 s of training (43 %), step 14, loss 5.19",
-        f"{after}, attempt 2: 7.0/7.0 s of training (100 %), step 200, loss 0.61, "
+        # the crashed attempt's end, before its retry
+        f"{after}: 8.0/8.0 s of training and checkpoint scoring (100 %), step 216, loss 0.6",
+        "final reconstruction (training s), attempt 2: 3.0/7.0 s of training and checkpoint scoring (43 %), step 14, "
+        "loss 5.19",
+        f"{after}, attempt 2: 7.0/7.0 s of training and checkpoint scoring (100 %), step 200, loss 0.61, "
         "checkpoint Chamfer 1.21 mm (step 200)",
     ], err
     said = err.splitlines()
     assert said.index(recon[0]) < said.index(next(line for line in said if "runs it again" in line)) < \
         said.index(recon[1]), "the retry said between its attempts' lines"
+    assert said.index(recon[-1]) < said.index(JOB_FINISHED), "the end's stage said as it starts, not after it"
     assert "reconstruction job scan-fast: the worker runs it again, attempt 2" in err
 
 
@@ -198,3 +208,23 @@ def test_the_demos_bar_interface_is_what_run_demo_asks_of_it():
     assert (lines.n, lines.total, lines.step, lines.desc) == (4, 8.0, 0.8, "d")
     lines.reset()
     assert (lines.n, lines.total) == (0, 8.0)
+
+
+def test_a_new_description_at_the_end_of_the_count_is_said_at_once():
+    """The demo's end stage ("mesh, metrics, pictures, report") comes after the count's end: said as it starts,
+    once, not at close() after the stage (a log silent through it, its line dated after it)."""
+    import io
+
+    from spadscan.worker.recon.trainer import ProgressLines
+
+    file = io.StringIO()
+    lines = ProgressLines(10.0, "training", "s", clock=lambda: 0.0, file=file)
+    lines.set_description_str("training, attempt 2")  # before the end: said with the next count
+    assert file.getvalue() == ""
+    lines.update(10.0)
+    assert file.getvalue() == "", "the end of the count is close()'s, or the stage's after it"
+    lines.set_description_str("mesh, metrics, pictures, report")
+    assert file.getvalue().splitlines() == ["mesh, metrics, pictures, report: 10.0/10.0 s of training (100 %) [00:00]"]
+    lines.set_description_str("mesh, metrics, pictures, report")
+    lines.close()
+    assert len(file.getvalue().splitlines()) == 1, "said once"

@@ -459,10 +459,18 @@ def _read(notes) -> list[RoomWait]:
     return [wait for wait in (RoomWait.from_note(note, skewed=True) for note in notes) if wait is not None]
 
 
-def names_said(items: list[str]) -> str:
-    """Names in a line, as `spadscan ctl` and the dashboard name jobs and workers: at most three, then how many
-    more."""
-    return ", ".join(items[:3]) + (f" and {len(items) - 3} more" if len(items) > 3 else "")
+NAMED = 3
+"""How many names a line says before it counts the rest (`names_said`)."""
+
+
+def names_said(items: list[str], last_and: bool = False, most: int | None = NAMED) -> str:
+    """Names in a line, as `spadscan ctl` and the dashboard name jobs and workers: at most `most` (None: all), then
+    how many more. `last_and`: the last two of those all named joined by "and" ("a, b and c"), not a comma."""
+    if most is not None and len(items) > most:
+        return ", ".join(items[:most]) + f" and {len(items) - most} more"
+    if last_and and len(items) > 1:
+        return f"{', '.join(items[:-1])} and {items[-1]}"
+    return ", ".join(items)
 
 
 def _relative(folder, roots: dict) -> tuple[str, str] | None:
@@ -546,4 +554,4 @@ def retry_after(full_in_row: int) -> float:
 __all__ = ["MAX_FULL_DISK", "free_bytes", "total_bytes", "mount_point", "same_filesystem", "full_folder",
            "folder_bytes", "size_text", "ROOM_MARGIN", "ROOM_RETRY_S", "ROOM_RETRY_MAX_S", "ROOM_SKEW_S", "ROOTS",
            "RoomWait", "missing_room", "room_missing", "note_doubt", "room_line", "room_said", "held_said",
-           "holding_said", "names_said", "UNKNOWN_TIME", "when_text", "retry_after"]
+           "holding_said", "names_said", "NAMED", "UNKNOWN_TIME", "when_text", "retry_after"]

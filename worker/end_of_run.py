@@ -284,6 +284,9 @@ class RunFacts:
     continued: bool = False
     """The run went on from another fit's field (a live job's final run): too few steps to judge a trend is then a
     short polish, not a rough early state."""
+    polish: bool = False
+    """The run is a live job's final polish: it went on from the live fit for the step count the live job chose
+    itself (a few seconds' steps at the live fit's rate, `live.job.final_job`), not one the user asked for."""
     training_s: float | None = None
     """Wall seconds of training, checkpoint evaluations included (what its share of the budget counts)."""
     training_budget_s: float | None = None
@@ -418,7 +421,20 @@ def _beside_siblings(facts: RunFacts) -> bool:
 INTERRUPTED = "the run's training was stopped by Ctrl-C"
 """How the line of a run whose training the user ended early begins."""
 UNCONVERGED = "the run did not converge: its mesh may still be changing"
-"""The line of a run that did not converge and whose other lines say nothing of it (`unconverged_warning`)."""
+"""How the line of a run that did not converge and whose other lines say nothing of it begins
+(`unconverged_warning`, `unconverged_line`)."""
+ENDED_BY = {"budget": ("time budget", "--budget-s"), "steps": ("step count", "--steps")}
+"""What ended a run that stopped before it converged, by its `stopped_by`: the limit in words and the flag that
+gives it longer (the worker's, reconstruct's and the demo's alike)."""
+
+
+def unconverged_line(stopped_by: str) -> str:
+    """UNCONVERGED with what ended the run and the flag that gives it longer, where its `stopped_by` says (its time
+    budget or its step count): one line, as report.json, the page, --status, the demo and the dashboard all show it."""
+    if stopped_by not in ENDED_BY:
+        return UNCONVERGED
+    limit, flag = ENDED_BY[stopped_by]
+    return f"{UNCONVERGED} (it ended on its {limit}: a larger {flag} gives it longer)"
 
 
 def overrun_tolerance_s(budget_s: float) -> float:
@@ -578,8 +594,7 @@ def warnings(facts: RunFacts) -> list[str]:
     out = []
     if facts.stopped_by in ("budget", "steps") and not converged(facts):
         drop = late_drop(facts.data_terms)
-        limit = "time budget" if facts.stopped_by == "budget" else "step count"
-        flag = "--budget-s" if facts.stopped_by == "budget" else "--steps"
+        limit, flag = ENDED_BY[facts.stopped_by]
         if drop is None:
             if not facts.continued and too_short(facts.data_terms):
                 out.append(f"the run stopped on its {limit} after only {facts.steps} step(s), before its fit could "
@@ -621,11 +636,12 @@ def warnings(facts: RunFacts) -> list[str]:
 def unconverged_warning(facts: RunFacts, said: bool) -> str | None:
     """UNCONVERGED for a run that did not converge where no line says so yet (`said`: one of "stopped early" or
     Ctrl-C does): its data term had nearly stopped falling but the plateau test had not said so, or its trend could
-    not be read. None for a run that converged, and for a live job's final polish (it went on from the live fit and
-    ended on its step count: a few dozen steps, too few for the plateau test; the trend test says whether its data
-    term still fell). One of report.json's warnings, as every reader counts them (docs/end_of_run.md)."""
-    polish = facts.continued and facts.stopped_by == "steps"
-    return None if said or polish or converged(facts) else UNCONVERGED
+    not be read. None for a run that converged, and for a live job's final polish (`polish`: it went on from the live
+    fit for the step count the live job chose and ended on it, a few dozen steps, too few for the plateau test; the
+    trend test says whether its data term still fell). A final run for the steps the user asked for is judged as
+    any run. One of report.json's warnings, as every reader counts them (docs/end_of_run.md): `unconverged_line`."""
+    polish = facts.polish and facts.stopped_by == "steps"
+    return None if said or polish or converged(facts) else unconverged_line(facts.stopped_by)
 
 
 def early_note(facts: RunFacts) -> str:
@@ -637,7 +653,7 @@ def early_note(facts: RunFacts) -> str:
     return f" (the fit stopped after only {facts.steps} step(s): that alone may explain this; run it longer first)"
 
 
-__all__ = ["INTERRUPTED", "UNCONVERGED", "unconverged_warning",
+__all__ = ["INTERRUPTED", "UNCONVERGED", "ENDED_BY", "unconverged_line", "unconverged_warning",
            "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
            "converged", "cpu_share", "lost_share", "pace_share", "cpu_wait", "busy_warning", "warnings",
            "overrun_warning", "misfit_warning", "coverage_warning",

@@ -15,6 +15,7 @@ from spadscan.protocol.capture_format import MANIFEST, chunk_index, chunk_name
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.mesh_io import BUILTIN_PREFIX
 
+from .disk_room import NAMED, names_said
 from .report.view3d import VIEW3D
 
 RESULT_FILES = ("mesh.ply", "report.json")
@@ -26,8 +27,6 @@ JOB_FILES = ("job.json", "job.log", "ground_truth.ply", ".complete")
 options, its log, the ground truth it was scored against, the queue's completion marker). A run that replaces such a
 result must not leave them: they would describe how another mesh was made, and the marker would go on naming the
 queue's claim."""
-NAMED = 3
-"""How many captures, chunks or runs of views a message names before it counts the rest."""
 
 
 def held_result(out) -> list[str]:
@@ -62,11 +61,15 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
 def check_capture_folder(capture) -> None:
     """Refuse, in one line, a CAPTURE that is no capture folder: not there, a file, or a folder without scan.json (the
     folder a user stands in, `spadscan reconstruct . --out results`, or a captures root, whose capture folders are
-    named). A scan.json that is there is the capture reader's to judge, as is a folder that cannot be looked into."""
+    named); a chunk, the scan.json or another part of a capture names that capture (`part_of_capture`). A scan.json
+    that is there is the capture reader's to judge, as is a folder that cannot be looked into."""
     capture = Path(capture)
     try:
         if (capture / MANIFEST).exists():
             return
+        part = part_of_capture(capture)
+        if part is not None:
+            raise CaptureError(f"{capture}: {part} {capture.parent}; name {capture.parent}")
         if not capture.is_dir():
             raise CaptureError(f"{capture}: " + ("a file, not a capture folder" if capture.exists() else
                                                  "no such capture folder"))
@@ -76,17 +79,22 @@ def check_capture_folder(capture) -> None:
     if not held:
         raise CaptureError(f"{capture}: not a capture folder (no {MANIFEST}; a capture is the folder that holds "
                            f"{MANIFEST} and its chunk-NNNNNN folders)")
-    named = listed([str(capture / name) for name in held])
+    named = names_said([str(capture / name) for name in held], last_and=True)
     raise CaptureError(f"{capture}: not a capture folder (no {MANIFEST}); it holds captures: {named}; name one")
 
 
-def listed(names: list[str]) -> str:
-    """`names` in words: "a", "a and b", "a, b and c", the first NAMED of more named and the rest counted."""
-    if len(names) > NAMED:
-        return f"{', '.join(names[:NAMED])} and {len(names) - NAMED} more"
-    if len(names) < 2:
-        return "".join(names)
-    return f"{', '.join(names[:-1])} and {names[-1]}"
+def part_of_capture(path: Path) -> str | None:
+    """What `path`, a file or folder there in a capture folder (its parent holds scan.json), is of it, in words
+    before the capture's name ("a chunk of the capture", "the manifest of the capture"); None for any other path. A
+    user who names a chunk (`reconstruct CAP/chunk-000000`) or the manifest meant the capture. OSError where the
+    parent cannot be looked into."""
+    if not path.exists() or not (path.parent / MANIFEST).is_file():
+        return None
+    if path.name == MANIFEST:
+        return "the manifest of the capture"
+    if path.is_dir() and chunk_index(path.name) is not None:
+        return "a chunk of the capture"
+    return f"a {'folder' if path.is_dir() else 'file'} in the capture"
 
 
 def captures_in(folder: Path) -> list[str]:
@@ -323,7 +331,8 @@ def _missing_run(first: int, last: int, chunk_of: dict[int, int], held: dict[int
     free = [n for n in range(start, start if after is None else after) if n not in held]
     if not free:
         return f"{views} {verb} in none of its chunks"
-    return f"{listed([chunk_name(n) for n in free])} ({views}) {'is' if len(free) == 1 else 'are'} missing"
+    chunks = names_said([chunk_name(n) for n in free], last_and=True)
+    return f"{chunks} ({views}) {'is' if len(free) == 1 else 'are'} missing"
 
 
 __all__ = ["RESULT_FILES", "JOB_FILES", "check_out", "check_capture_folder", "check_writable",

@@ -133,8 +133,8 @@ class Worker:
         self._share_cores(await asyncio.to_thread(machine_siblings, self.queue.path, self.presence.holder, tidy=True))
         self.log(f"watching {self.root} with {self.config.processes} job process(es) at once, "
                  f"{self.threads_note}")
-        if self.siblings:
-            self.log(self._siblings_line())
+        if self.siblings:  # the line above says the threads per job: this one names the workers
+            self.log(self._siblings_line(threads_said=True))
         for warning in self.threads_warnings:
             self.log(f"warning: {warning}")
         self._say_present()  # before the start-up work, which may take a while on a large root
@@ -385,8 +385,8 @@ class Worker:
         self.threads_warnings = self.config.threads_warnings(others=others)
         return changed and not first
 
-    def _siblings_line(self) -> str:
-        return self.config.siblings_line(self.siblings, host=self.presence.holder["host"])
+    def _siblings_line(self, threads_said: bool = False) -> str:
+        return self.config.siblings_line(self.siblings, host=self.presence.holder["host"], threads_said=threads_said)
 
     def _keep(self, claim: Claim, existing: Path) -> None:
         """Record a job whose results folder already holds a result as done, without running it: a result is never

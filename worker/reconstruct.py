@@ -199,7 +199,8 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
                         clock: Callable[[], float] = time.perf_counter,
                         cpu_clock: Callable[[], float] = time.process_time, make: Callable | None = None,
                         after_training: Callable | None = None, stop: Callable[[], bool] | None = None,
-                        thread_reader: Callable[[], dict | None] | None = read_threads) -> dict:
+                        thread_reader: Callable[[], dict | None] | None = read_threads,
+                        polish: bool = False) -> dict:
     """Reconstruct `capture` into folder `out` with preset `preset`; returns the report dict (also report.json).
 
     `budget_s` bounds the whole run, from `started` (a `clock()` reading; default: now) to the report: set-up,
@@ -216,13 +217,15 @@ def reconstruct_capture(capture: Path, out: Path, *, preset: str = "fast", budge
     CPU and waiting for one (`cpu_wait.read_threads`; None: not measured), what a CPU run lost to other processes;
     tests inject their own.
     `stop()` true ends training at its next step, the mesh and report made as after a budget (the user's first
-    Ctrl-C: `trainer.train`). A previous result in `out` (--overwrite) stays whole until this run has finished, and
-    comes back if it does not (`outputs.replacing_result`)."""
+    Ctrl-C: `trainer.train`). `polish`: the run is a live job's final polish, its `steps` the live job's own choice
+    (`end_of_run.RunFacts.polish`). A previous result in `out` (--overwrite) stays whole until this run has
+    finished, and comes back if it does not (`outputs.replacing_result`)."""
     with replacing_result(out, log):
         return _reconstruct_into(capture, out, preset=preset, budget_s=budget_s, steps=steps, gt=gt, device=device,
                                  seed=seed, progress=progress, overrides=overrides, threads=threads, log=log,
                                  started=started, clock=clock, cpu_clock=cpu_clock, make=make,
-                                 after_training=after_training, stop=stop, thread_reader=thread_reader)
+                                 after_training=after_training, stop=stop, thread_reader=thread_reader,
+                                 polish=polish)
 
 
 def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float | None, steps: int | None,
@@ -230,7 +233,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                       threads: int | None, log: Callable[[str], None] | None, started: float | None,
                       clock: Callable[[], float], cpu_clock: Callable[[], float], make: Callable | None,
                       after_training: Callable | None, stop: Callable[[], bool] | None,
-                      thread_reader: Callable[[], dict | None] | None) -> dict:
+                      thread_reader: Callable[[], dict | None] | None, polish: bool = False) -> dict:
     """`reconstruct_capture`'s run, writing into `out`."""
     log = log or (lambda line: None)
     run_clock = RunClock(None, clock() if started is None else started, clock)
@@ -384,7 +387,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
-                     continued=bool(getattr(model, "warm_started", False)),
+                     continued=bool(getattr(model, "warm_started", False)), polish=polish,
                      training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s,
                      preset=config.preset, cuda_seen=torch.cuda.is_available(),
                      thread_times=None if waits is None else waits.summary(), machine_jobs=siblings,

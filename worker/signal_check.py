@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .carving.returns import RESCAN, below_default_level, first_returns, weak_level
+from .disk_room import names_said
 
 NO_RETURN_LIMIT = 0.05
 """Share of the aimed zone's usable histograms with no return at carving's level above which the result says so.
@@ -158,7 +159,7 @@ def _where(signal: Signal) -> str:
     if signal.n_zones <= 1:
         return ""
     names = [str(z + 1) for z in signal.zones]  # counted from 1, as the sensor's channels are
-    listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+    listed = names_said(names, last_and=True, most=None)
     return (f" of zone {listed} of {signal.n_zones}, the one aimed at the object," if len(names) == 1 else
             f" of zones {listed} of {signal.n_zones}, those aimed at the object,")
 

@@ -36,9 +36,15 @@ def machine_oversubscribed(processes: int, others: int, threads: int, cores: int
                   f"{max(1, cores // total)} in each worker")
     else:
         advice = (f"the jobs take turns on the cores, each run slower; stop a worker, or run one worker with "
-                  f"--processes {cores}")
+                  f"--processes {one_worker_processes(total, cores)}")
     return (f"{total} job process(es) on this host ({processes} of this worker's, {others} of other workers') x "
             f"{threads} CPU thread(s) = {total * threads} threads on {cores} cores: {advice}")
+
+
+def one_worker_processes(total: int, cores: int) -> int:
+    """The --processes of one worker that does what workers running `total` job processes on a host of `cores` do,
+    as their lines advise it: as many, but no more than there are cores (more take turns on them)."""
+    return max(1, min(total, cores))
 
 
 @dataclass
@@ -140,11 +146,14 @@ class WorkerConfig:
         return f"{value} CPU threads per job ({THREADS_ENV}={value}: {why})"
 
     def siblings_line(self, siblings: list[dict], environ: Mapping[str, str] | None = None,
-                      host: str | None = None) -> str:
+                      host: str | None = None, threads_said: bool = False) -> str:
         """One line on the other workers on this machine (`presence.machine_siblings` rows) and the CPU threads
         each job gets with them: said when the worker starts beside them and when they change at a job's start.
         `host`: this machine's host name (a sibling with another, in a container, is named with its own). With
-        none, the threads the jobs get alone."""
+        none, the threads the jobs get alone. `threads_said`: the line before it says the threads per job (the
+        worker's start-up line), which this one then does not say again. Threads the user fixed are kept: the
+        line says how many run on the host's cores in all."""
+        environ = os.environ if environ is None else environ
         others = machine_job_processes(siblings)
         note = self.threads_note(environ, others)
         if not siblings:
@@ -152,11 +161,17 @@ class WorkerConfig:
         who = "another worker runs" if len(siblings) == 1 else f"{len(siblings)} other workers run"
         names = ", ".join(f"pid {r['pid']}" if r["host"] == host else f"{r['host']} pid {r['pid']}"
                           for r in siblings)
-        total = self.processes + others
-        kept = "" if self.threads_shared(environ) else f", kept; {total} job process(es) share {machine_cores()} cores"
-        return (f"{who} on this host ({names}, {others} job process(es)): {note}{kept}; one worker with --processes "
-                f"{total} does the same with less: one process watching the root and the queue, not "
-                f"{len(siblings) + 1}")
+        total, cores = self.processes + others, machine_cores()
+        threads = self.job_threads(environ, others)
+        if self.threads_shared(environ):
+            said = ", counted in the threads per job above" if threads_said else f": {note}"
+        else:
+            in_all = (f"{total} job process(es) x {threads} CPU thread(s) = {total * threads} threads on {cores} cores"
+                      if threads else f"{total} job process(es) share {cores} cores")
+            said = f": the threads per job above kept; {in_all}" if threads_said else f": {note}, kept; {in_all}"
+        return (f"{who} on this host ({names}, {others} job process(es)){said}; one worker with --processes "
+                f"{one_worker_processes(total, cores)} does the same with less: one process watching the root and "
+                f"the queue, not {len(siblings) + 1}")
 
     def threads_shared(self, environ: Mapping[str, str] | None = None) -> bool:
         """Whether the job's threads are the cores shared out by the worker (not --threads, the worker's own

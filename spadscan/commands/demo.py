@@ -74,7 +74,6 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from spadscan.demo import DemoOptions, check_options, make_out, run_demo
-    from spadscan.worker.end_of_run import UNCONVERGED
 
     opts = DemoOptions(out=args.out, scene=args.scene, views=args.views, budget_s=args.budget_s, arm=args.arm,
                        sensor=args.sensor, dashboard=args.dashboard, dashboard_port=args.dashboard_port,
@@ -95,10 +94,7 @@ def run(args: argparse.Namespace) -> int:
     chamfer = s["chamfer_mm"]
     secs = s["seconds"]
     print(f"mesh:     {s['mesh']}")
-    for warning in s["warnings"]:
-        if warning == UNCONVERGED:
-            # What ended it and what gives it longer: the demo's budget is the one lever a user of the demo has.
-            warning += f" (its {opts.budget_s:g} s budget ended it; a larger --budget-s gives it longer)"
+    for warning in s["warnings"]:  # as report.json says them (what ended a run that did not converge too)
         print(f"warning:  {warning}")
     print(f"pictures: {', '.join(s['pictures']) or '-'}")
     if s["live"] is not None:
@@ -124,13 +120,14 @@ def run(args: argparse.Namespace) -> int:
 def progress_factory(args: argparse.Namespace):
     """What run_demo makes its bars with, progress_factory(total, desc, unit): a tqdm bar on a terminal (or with
     --progress); in a file or a pipe, which would keep every frame a bar redraws, plain lines (ProgressLines: a line at
-    each tenth and every 30 s, the end's once); with --no-progress a bar that shows nothing."""
+    each tenth and every 30 s, the end's once; seconds said as training's and checkpoint scoring's, which a demo's
+    job counts in its budget: its scenes have a ground truth); with --no-progress a bar that shows nothing."""
     import sys
     import time
 
     from tqdm import tqdm
 
-    from spadscan.worker.recon.trainer import ProgressLines
+    from spadscan.worker.recon.trainer import SCORING_COUNTED, ProgressLines
 
     drawn = progress_bar_wanted(args)
 
@@ -140,6 +137,7 @@ def progress_factory(args: argparse.Namespace):
                         bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]")
         if args.no_progress:
             return tqdm(total=total, desc=desc, unit=unit, disable=True)  # every call a bar takes, nothing shown
-        return ProgressLines(total, desc, unit, time.monotonic, sys.stderr)
+        return ProgressLines(total, desc, unit, time.monotonic, sys.stderr,
+                             what=SCORING_COUNTED if unit == "s" else None)
 
     return bar

@@ -74,6 +74,7 @@ def run(args) -> int:
     from spadscan.sweep.checks import check_local_device, check_scheduler_address, check_workers
     from spadscan.sweep.plan import make_plan
     from spadscan.sweep.spec import load_spec
+    from spadscan.worker.outputs import check_writable
 
     def log(line: str) -> None:
         print(f"spadscan sweep: {line}", file=sys.stderr, flush=True)
@@ -86,11 +87,14 @@ def run(args) -> int:
         check_local_device(args.device)
     spec = load_spec(args.sweep)
     plan = make_plan(spec, None if args.lcspc is None else Path(args.lcspc))
+    # --out before the plan's line: a folder the run cannot make or write into is refused in one line naming it
+    # (not an OS error about its lock file after the plan was announced); the dry run too, as the run would.
+    if not os.path.lexists(args.out):
+        check_folder_option(args.out, "--out")
+    check_writable(args.out, "--out")
     log(f"{counted(len(plan.entries), 'grid entry', 'grid entries')} on {counted(len(plan.scenes), 'scene')}: "
         f"{counted(len(plan.points), 'distinct point')}; methods {', '.join(spec.methods)}"
         + ("" if spec.grid else " (no [grid]: the base condition alone)"))
-    if not os.path.lexists(args.out):  # the dry run too: the run would refuse it when it makes the folder
-        check_folder_option(args.out, "--out")
     if args.dry_run:
         return _dry_run(plan, Path(args.out), args.overwrite)
     from spadscan.signals import terminate_as_interrupt

@@ -90,7 +90,8 @@ def test_the_demo_prints_the_dashboard_progress_and_report(tmp_path):
             "from spadscan.cli import main; sys.exit(main(sys.argv[1:]))")
     # --offline: the job after the scan, whose progress line this checks (the live demo's lines: test_live_demo.py).
     r = subprocess.run([sys.executable, "-c", code, "demo", "--out", str(out), "--views", "8", "--offline",
-                        "--budget-s", "3", "--dashboard", "--dashboard-port", "0"],
+                        "--budget-s", "3", "--dashboard", "--dashboard-port", "0",
+                        "--progress"],  # the bar (stderr is no terminal here), not plain lines
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     address = re.search(r"^dashboard: (http://127\.0\.0\.1:\d+/) ", r.stderr, re.M)

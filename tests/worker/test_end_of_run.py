@@ -289,10 +289,11 @@ def test_a_short_run_is_a_rough_early_state_unless_it_went_on_from_another_fit()
     for stop, flag in (("steps", "--steps"), ("budget", "--budget-s")):
         (line,) = warnings(RunFacts(stop, 30, False, short))
         assert "after only 30 step(s)" in line and "rough early state" in line and flag in line
-    # A polish of the live fit on its step count, too short for a trend: nothing to say (its plateau test had no
-    # time). A final run on a time budget is judged as any run: it says it did not converge.
-    assert warnings(RunFacts("steps", 30, False, short, continued=True)) == []
-    assert warnings(RunFacts("budget", 30, False, short, continued=True)) == [UNCONVERGED]
+    # A polish of the live fit on the step count the live job chose, too short for a trend: nothing to say (its
+    # plateau test had no time). A final run on a time budget is judged as any run: it says it did not converge.
+    assert warnings(RunFacts("steps", 30, False, short, continued=True, polish=True)) == []
+    assert warnings(RunFacts("budget", 30, False, short, continued=True)) == [
+        f"{UNCONVERGED} (it ended on its time budget: a larger --budget-s gives it longer)"]
     (line,) = warnings(RunFacts("steps", 100, False, list(np.linspace(2.0, 1.0, 100)), continued=True))
     assert "still falling" in line
 

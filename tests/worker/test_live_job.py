@@ -18,6 +18,7 @@ import pytest
 
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.live_status import LiveStatus, read_status, status_path
+from spadscan.worker.end_of_run import UNCONVERGED
 from spadscan.worker.jobs import Job
 from spadscan.worker.live.follower import ScanProgress
 from spadscan.worker.live.job import LiveRun, LiveSettings, ScanAborted, execute_live_job, final_job, final_start
@@ -143,6 +144,8 @@ def test_with_no_budget_the_final_run_polishes_for_steps_and_says_nothing_of_a_s
     assert [c["step"] for c in report["trace"]] == [0, report["steps"]], report["trace"]
     assert report["budget"]["notes"] == [] and report["budget"]["budget_s"] is None
     assert not [w for w in report["warnings"] if "rough early state" in w or "time budget" in w], report["warnings"]
+    # A polish the live job chose itself: too short for the plateau test, no "did not converge" line either.
+    assert not [w for w in report["warnings"] if w.startswith(UNCONVERGED)], report["warnings"]
 
 
 def test_the_final_run_is_bounded_by_the_jobs_own_budget_or_steps_else_by_the_live_rate():
@@ -165,6 +168,26 @@ def test_the_final_run_is_bounded_by_the_jobs_own_budget_or_steps_else_by_the_li
     assert bounds == {"final_budget_s": None, "final_steps": None}
     assert final_job(dataclasses.replace(job, budget_s=30.0), rates, LiveSettings(), "hull")[0].budget_s == 30.0, \
         "the job's own budget still bounds it"
+
+
+def test_only_the_steps_the_live_job_chose_make_its_final_run_a_polish(tmp_path):
+    """A polish (too short for the plateau test: no "did not converge" line) is the step count the live job chose
+    itself; the steps the user asked for (`worker --live --steps 3000`) or a budget make a run judged as any."""
+    from spadscan.worker.live.job import chose_polish
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    rates = SimpleNamespace(recent_steps_per_s=lambda: 20.0, steps_per_s=lambda: 50.0)
+    job = Job(id="s-fast", scan="s", live=True)
+    for asked, start, polish in ((job, "live", True), (dataclasses.replace(job, steps=3000), "live", False),
+                                 (dataclasses.replace(job, budget_s=30.0), "live", False), (job, "hull", False)):
+        final, _ = final_job(asked, rates, LiveSettings(final_polish_s=6.0), start)
+        assert chose_polish(asked, final) is polish, (asked, start)
+    # The final run's reconstruction is told, for its report's checks (end_of_run.RunFacts.polish).
+    run = LiveRun(job, tmp_path, tmp_path / "recon" / "live", follower=None, settings=small_settings(), log=print)
+    run.fit = SimpleNamespace(live_field=lambda: None, warm_factory=lambda from_live: None)
+    for polish in (True, False):
+        recon = run.final_recon(None, True, polish)
+        assert recon.func is reconstruct_capture and recon.keywords["polish"] is polish
 
 
 @pytest.mark.parametrize("continuable, used, views, start", [

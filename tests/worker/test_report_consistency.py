@@ -35,14 +35,25 @@ def done_row(result) -> SimpleNamespace:
                            error=None)
 
 
+BUDGET_ENDED = f"{UNCONVERGED} (it ended on its time budget: a larger --budget-s gives it longer)"
+STEPS_ENDED = f"{UNCONVERGED} (it ended on its step count: a larger --steps gives it longer)"
+
+
 def test_a_run_that_did_not_converge_says_so_in_report_json_and_every_reader_counts_it_once(tmp_path):
     lines = end_of_run.warnings(RunFacts("budget", 100, False, SETTLING))
-    assert lines == [UNCONVERGED], lines
+    assert lines == [BUDGET_ENDED], lines
     report = {"preset": "fast", "converged": False, "warnings": lines, "capture_state": "complete"}
     (tmp_path / "report.json").write_text(json.dumps(report))
     assert page_warnings(report) == lines, "the page adds no line of its own beside report.json's"
     said = status_lines(done_row(tmp_path))
-    assert "(1 warning below)" in said[0] and said[1:] == [f"warning: {UNCONVERGED}"], said
+    assert "(1 warning below)" in said[0] and said[1:] == [f"warning: {BUDGET_ENDED}"], said
+
+
+def test_the_unconverged_line_names_what_ended_the_run_and_the_flag_that_gives_it_longer():
+    # One line for every reader (the demo adds nothing to it): what ended the run is the run's own.
+    assert end_of_run.warnings(RunFacts("steps", 100, False, SETTLING)) == [STEPS_ENDED]
+    assert end_of_run.unconverged_line("budget") == BUDGET_ENDED
+    assert end_of_run.unconverged_line("something else") == UNCONVERGED
 
 
 def test_a_line_that_says_why_it_did_not_converge_stands_alone():
@@ -52,11 +63,14 @@ def test_a_line_that_says_why_it_did_not_converge_stands_alone():
         (line,) = end_of_run.warnings(facts)
         assert line != UNCONVERGED and ("converge" in line or "settle" in line), line
     assert end_of_run.warnings(RunFacts("converged", 100, True, SETTLING)) == []
-    # A live job's final polish on its step count: too few steps for the plateau test, no line. On a time budget
-    # (the demo's final run, from the live fit or the hull) it is judged as any run.
-    assert end_of_run.warnings(RunFacts("steps", 40, False, [1.0] * 40, continued=True)) == []
-    assert end_of_run.warnings(RunFacts("budget", 40, False, [1.0] * 40, continued=True)) == [UNCONVERGED]
-    assert end_of_run.warnings(RunFacts("budget", 100, False, SETTLING, continued=True)) == [UNCONVERGED]
+    # A live job's final polish on the step count it chose: too few steps for the plateau test, no line. A final
+    # run on the steps the user asked for (`worker --live --steps 3000`), or on a time budget (the demo's final run,
+    # from the live fit or the hull), is judged as any run.
+    polish = RunFacts("steps", 40, False, [1.0] * 40, continued=True, polish=True)
+    assert end_of_run.warnings(polish) == []
+    assert end_of_run.warnings(RunFacts("steps", 3000, False, SETTLING * 30, continued=True)) == [STEPS_ENDED]
+    assert end_of_run.warnings(RunFacts("budget", 40, False, [1.0] * 40, continued=True)) == [BUDGET_ENDED]
+    assert end_of_run.warnings(RunFacts("budget", 100, False, SETTLING, continued=True)) == [BUDGET_ENDED]
 
 
 def test_the_specks_line_of_a_run_stopped_early_does_not_say_a_longer_run_hardly_changes_it():

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import time
 
-from spadscan.worker.disk_room import (ROOM_RETRY_MAX_S, RoomWait, held_said, holding_said, room_line, room_said,
-                                        when_text)
+from spadscan.worker.disk_room import (ROOM_RETRY_MAX_S, RoomWait, held_said, holding_said, names_said, room_line,
+                                        room_said, when_text)
 
 MB = 1_000_000
 
@@ -102,3 +102,14 @@ def test_only_the_notes_read_count():
     assert room_said([damaged, note()]).startswith("the worker waits for room on /mnt/scratch (12 MB free")
     assert holding_said([damaged], [], 1) is None  # the caller says its usual line
     assert held_said([("mug-fast", damaged)]) is None
+
+
+def test_one_helper_names_things_in_a_line_for_every_message():
+    """names_said: ctl's and the dashboard's jobs and workers (commas), the captures and chunks a refused folder
+    names ("and" before the last), a sensor's zones (all of them)."""
+    assert names_said(["a", "b", "c"]) == "a, b, c" and names_said(list("abcde")) == "a, b, c and 2 more"
+    assert names_said(["a"], last_and=True) == "a" and names_said(["a", "b"], last_and=True) == "a and b"
+    assert names_said(["a", "b", "c"], last_and=True) == "a, b and c"
+    assert names_said(list("abcde"), last_and=True) == "a, b, c and 2 more"
+    assert names_said(list("abcde"), last_and=True, most=None) == "a, b, c, d and e"
+    assert names_said([], last_and=True) == ""

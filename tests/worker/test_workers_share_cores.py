@@ -99,8 +99,14 @@ def test_threads_the_user_fixed_are_kept_beside_other_workers(monkeypatch, threa
     assert config.job_threads(environ, others=1) == 2 and ADAPT_ENV not in config.job_env(environ, others=1)
     rows = [{"host": "lab", "pid": 4242, "processes": 1, "running": []}]
     line = config.siblings_line(rows, environ, host="lab")
-    assert line.startswith(f"another worker runs on this host (pid 4242, 1 job process(es)): 2 CPU threads per "
-                           f"job (OMP_NUM_THREADS=2: {why}), kept; 2 job process(es) share 2 cores"), line
+    # The threads that run in all, not only the job processes: the one worker it advises runs no more than cores.
+    assert line == (f"another worker runs on this host (pid 4242, 1 job process(es)): 2 CPU threads per job "
+                    f"(OMP_NUM_THREADS=2: {why}), kept; 2 job process(es) x 2 CPU thread(s) = 4 threads on 2 cores; "
+                    f"one worker with --processes 2 does the same with less: one process watching the root and the "
+                    f"queue, not 2"), line
+    assert config.siblings_line(rows, environ, host="lab", threads_said=True).startswith(
+        "another worker runs on this host (pid 4242, 1 job process(es)): the threads per job above kept; 2 job "
+        "process(es) x 2 CPU thread(s) = 4 threads on 2 cores; one worker")
     [warning] = config.threads_warnings(environ, others=1)
     assert warning.startswith("2 job process(es) on this host (1 of this worker's, 1 of other workers') x 2 CPU "
                               "thread(s) = 4 threads on 2 cores"), warning
@@ -114,6 +120,10 @@ def test_more_job_processes_than_cores_on_the_machine_is_a_warning(monkeypatch):
     assert warning == ("3 job process(es) on this host (2 of this worker's, 1 of other workers') x 1 CPU thread(s) "
                        "= 3 threads on 2 cores: the jobs take turns on the cores, each run slower; stop a worker, or "
                        "run one worker with --processes 2")
+    # The line that names the other worker advises the same one worker: no more job processes than cores.
+    line = config.siblings_line([{"host": "lab", "pid": 4242, "processes": 1, "running": []}], {}, host="lab")
+    assert line.endswith("; one worker with --processes 2 does the same with less: one process watching the root "
+                         "and the queue, not 2"), line
 
 
 def test_the_siblings_line_names_them_and_the_single_worker_that_does_the_same(monkeypatch):
@@ -143,8 +153,10 @@ def test_a_worker_that_starts_beside_another_says_so_once(tmp_path, monkeypatch,
     worker = Worker(WorkerConfig(root=root, once=True, poll_s=0.05), log=lines.append)
     arun(worker.run(), timeout_s=60)
     assert lines[0].endswith("1 CPU threads per job (OMP_NUM_THREADS=1: 2 cores shared out among 2 job process(es))")
-    assert lines[1].startswith(f"another worker runs on this host (pid {other.pid}, 1 job process(es)): 1 CPU "
-                               "threads per job"), lines
+    # The threads per job said once: the line that names the other worker follows the one that says them.
+    assert lines[1] == (f"another worker runs on this host (pid {other.pid}, 1 job process(es)), counted in the "
+                        "threads per job above; one worker with --processes 2 does the same with less: one process "
+                        "watching the root and the queue, not 2"), lines
     assert sum("other worker" in line for line in lines) == 1, lines
     assert worker.job_env[ENV] == "1"
 

@@ -196,7 +196,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     how = "continues from the live fit" if start == "live" else f"starts from the carved hull: {why}"
     log(f"live: scan complete ({live_report['views_used']} views fitted, {live_report['steps']} steps); the final "
         f"reconstruction {how}, for {length}")
-    report = execute_job(final, root, out, runner.final_recon(recon, start == "live"))
+    report = execute_job(final, root, out, runner.final_recon(recon, start == "live", chose_polish(job, final)))
     extra = {"live": {**live_report, **bounds, "final_start": start}}
     add_to_report(out, extra)
     report.update(extra)
@@ -214,6 +214,13 @@ def final_job(job, fit, settings: LiveSettings, start: str) -> tuple:
     rate = fit.recent_steps_per_s() or fit.steps_per_s() or 0.0
     steps = max(settings.final_min_steps, round(rate * settings.final_polish_s))
     return dataclasses.replace(job, live=False, steps=steps), {"final_budget_s": None, "final_steps": steps}
+
+
+def chose_polish(job, final) -> bool:
+    """Whether the final run `final` (`final_job`'s) of live job `job` is a polish for the step count the live job
+    chose itself: the job named neither a budget nor steps, and the final run went on from the live fit for steps.
+    Too short for the plateau test to judge (`end_of_run.RunFacts.polish`); steps the user asked for are not."""
+    return job.budget_s is None and job.steps is None and final.steps is not None
 
 
 def _rank_after(manifest: dict) -> float:
@@ -480,12 +487,13 @@ class LiveRun:
             pass
 
     # ---- the final run -------------------------------------------------------------------------------------------
-    def final_recon(self, recon: Callable | None, from_live: bool) -> Callable:
+    def final_recon(self, recon: Callable | None, from_live: bool, polish: bool = False) -> Callable:
         """The reconstruction function of the final run: the ordinary one, its model warm-started from the live fit
         where `from_live` (the field, the level and where its learning-rate decay stands; `final_start` decides),
         else started from the carved hull, and once trained holding the better of its
-        own field and the live fit's (keep.py) for its mesh, pictures and metrics. A replacement reconstruction
-        (`--recon`, tests) is used as it is."""
+        own field and the live fit's (keep.py) for its mesh, pictures and metrics; `polish`: its step count is the
+        one the live job chose (`final_job`), which its report's checks know (`end_of_run.RunFacts.polish`). A
+        replacement reconstruction (`--recon`, tests) is used as it is."""
         from ..reconstruct import reconstruct_capture
 
         if recon is not None and recon is not reconstruct_capture:
@@ -493,7 +501,7 @@ class LiveRun:
         overrides = {"trace_checkpoints": self.settings.final_checkpoints, **dict(self.settings.overrides)}
         keep = functools.partial(keep_the_better, live_field=self.fit.live_field(), log=self.log)
         return functools.partial(reconstruct_capture, make=self.fit.warm_factory(from_live), overrides=overrides,
-                                 after_training=keep)
+                                 after_training=keep, polish=polish)
 
 
-__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun", "final_start", "refit_due"]
+__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun", "final_start", "refit_due", "chose_polish"]

@@ -135,7 +135,7 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
     unit = "s" if by_time else "step"
     # What a budget's seconds on the bar are: training's, and checkpoint scoring's where the budget counts it (the
     # report's `seconds` are the steps' alone: the lines must not call the sum "training").
-    what = "s of training and checkpoint scoring" if by_time and evaluate is not None and scoring_in_budget else None
+    what = SCORING_COUNTED if by_time and evaluate is not None and scoring_in_budget else None
     with progress_display(progress, total, desc, unit, clock, what) as bar:
         checkpoint()
         next_mark = every
@@ -211,6 +211,10 @@ def progress_display(progress: bool | str, total: float, desc: str, unit: str, c
                 bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} " + unit + " [{elapsed}<{remaining}{postfix}]")
 
 
+SCORING_COUNTED = "s of training and checkpoint scoring"
+"""What a ProgressLines count of seconds is where a time budget counts checkpoint scoring too (its `what`)."""
+
+
 class ProgressLines:
     """A bar's readings as plain newline-terminated lines, for a log that a person reads (stderr a file or a pipe): a
     bar redraws itself with carriage returns, and a file keeps every frame. A line each time the count passes another
@@ -267,8 +271,12 @@ class ProgressLines:
         self.postfix = text
 
     def set_description_str(self, desc: str) -> None:
-        """The words the next line starts with."""
-        self.desc = desc
+        """The words the next line starts with. A new description once the count is at its end (the demo's "mesh,
+        metrics, pictures, report" stage) is said at once: no count comes after it, and the stage may take a while
+        (said at close() only, a log would be silent through it and date its line after it)."""
+        changed, self.desc = desc != self.desc, desc
+        if changed and self._at_end():
+            self._say(self.clock())
 
     def reset(self) -> None:
         """The count and its clock back to zero, the total kept (tqdm's reset: the demo's bar for a job's next
