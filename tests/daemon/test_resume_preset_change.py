@@ -13,7 +13,7 @@ from spadscan import __version__
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.rig import build_devices, rig_record
 from spadscan.daemon.runner import ScanRunner
-from spadscan.daemon.scan_job import preset_changes
+from spadscan.daemon.sensor_differences import preset_changes
 from spadscan.dashboard.status import Dashboard
 from spadscan.protocol import sensor_presets
 from spadscan.protocol.capture_reader import CaptureReader
