@@ -13,7 +13,7 @@ from benchmark_helpers import load_benchmark
 from process_helpers import live_children, short_socket_dir, stop_leaked_children
 from spadscan import parent_watch
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.worker import kill_points, threads
+from spadscan.worker import cpu_wait, kill_points, threads
 
 DATASET = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "lcspc"
 
@@ -44,11 +44,12 @@ def no_leaked_processes():
     assert not leaked, f"test leaked child processes {sorted(leaked)} (killed)"
 
 
-PRODUCT_ENV = ("SPADSCAN_SOCKET", parent_watch.ENV, kill_points.ENV, threads.ADAPT_ENV)
+PRODUCT_ENV = ("SPADSCAN_SOCKET", parent_watch.ENV, kill_points.ENV, threads.ADAPT_ENV, cpu_wait.MACHINE_JOBS_ENV)
 """The product's own variables, none of them the tests' to inherit: the user's SPADSCAN_SOCKET (exported for a
 daemon of theirs) sends a test's daemon or ctl to that socket; a SPADSCAN_EXIT_WITH_PARENT of a demo's child makes a
 command watch a parent that is not the test's; SPADSCAN_KILL_AT kills a worker at a step; SPADSCAN_ADAPT_THREADS
-changes how a job's threads are chosen. A test that needs one sets it itself."""
+changes how a job's threads are chosen; SPADSCAN_MACHINE_JOBS (a worker's job, run by hand) changes what a busy
+warning says. A test that needs one sets it itself."""
 
 
 @pytest.fixture(autouse=True)
