@@ -53,7 +53,7 @@ import numpy as np
 from spadscan import __version__
 from spadscan.protocol.atomic_files import write_durable
 from spadscan.protocol.capture_format import MANIFEST, TMP_PREFIX, Measurement, one_line, read_json
-from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
+from spadscan.protocol.capture_writer import INTERRUPTED, PAUSE, CaptureWriter, mark_paused
 from spadscan.protocol.disk_full import FULL_ERRNOS
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
@@ -292,7 +292,8 @@ class ScanRunner:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
                                           rig_now=self.rig, scene_now=self.scene)
             # A block an earlier daemon recorded is checked afresh (load_job), not taken for a pause of the scan's.
-            recorded = pause_before_block(await asyncio.to_thread(_paused_record, path), path.name)
+            record = await asyncio.to_thread(_paused_record, path)
+            recorded = pause_before_block(_said(record), path.name)
             try:
                 job.writer = await self._io(job.reopen)
                 job.record_progress(job.writer)
@@ -319,7 +320,7 @@ class ScanRunner:
         # A scan that was paused when the daemon stopped (by the operator, or by a fault) stays paused: auto_resume
         # continues a scan that was interrupted, not one someone or something had stopped. An earlier takeover's own
         # note that it found the scan interrupted (recorded while it waited for `ctl resume`) is no such pause.
-        paused = None if takeover_note(recorded) else recorded
+        paused = None if record is not None and takeover_note(record) else recorded
         auto = auto_resume and job.blocked is None and in_the_way is None and paused is None
         going_on = "auto_resume continues it" if auto else "`spadscan ctl resume` continues"
         if job.blocked:
@@ -333,7 +334,7 @@ class ScanRunner:
         else:
             job.reason = (f"{interrupted_at(self._progress())}; {going_on}" +
                           (f", taking pose(s) {owed} again first (missing from the capture)" if owed else ""))
-        job.paused_for = paused
+        job.paused_for, job.interrupted = paused, paused is None
         if in_the_way and not job.blocked:
             # The pause the scan had (the operator's, a fault's) stays said first: the full disk is one more thing
             # to see to, not why it was paused. The capture records that alone (or that the scan was interrupted):
@@ -451,6 +452,7 @@ class ScanRunner:
                      f" (was paused: {job.reason})" if job.reason else "")
             self._resume.set()
             job.reason = job.paused_for = None
+            job.interrupted = False
             self._set_state("scanning")
         else:
             raise ConfigError(self._nothing_to_resume())
@@ -1189,7 +1191,7 @@ class ScanRunner:
         full disk) keeps the pause in memory only."""
         try:
             if paused:
-                await self._io(mark_paused, job.path, _pause_said(job) or "paused")
+                await self._io(mark_paused, job.path, _pause_said(job) or "paused", _pause_kind(job))
             else:
                 await self._io(job.writer.set_state, "running")
         except (OSError, CaptureError) as exc:
@@ -1219,6 +1221,7 @@ class ScanRunner:
             await self._resume.wait()
         self._resume.clear()
         job.reason = job.paused_for = None
+        job.interrupted = False
         if job.writer is not None:  # (without one, the writer reopened on the way on clears the record)
             await self._record_pause(job, paused=False)
         self._set_state("scanning")
@@ -1273,7 +1276,7 @@ class ScanRunner:
             if job.writer is None:
                 job.writer = await self._io(job.reopen)
             if self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
-                await self._io(mark_paused, job.path, _pause_said(job) or "paused by user")
+                await self._io(mark_paused, job.path, _pause_said(job) or "paused by user", _pause_kind(job))
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
@@ -1579,7 +1582,18 @@ def _pause_said(job: ScanJob) -> str | None:
     return job.reason if job.blocked else job.paused_for or job.reason
 
 
-def _paused_record(path: Path) -> str | None:
-    """Why the capture's scan was paused when its daemon stopped (scan.json's `paused`), or None."""
+def _pause_kind(job: ScanJob) -> str:
+    """The kind of pause the capture records (scan.json's `paused.kind`): INTERRUPTED while the scan waits only
+    because a takeover found it interrupted (`ScanJob.interrupted`), else PAUSE."""
+    return INTERRUPTED if job.interrupted else PAUSE
+
+
+def _paused_record(path: Path) -> dict | None:
+    """The pause the capture's scan had when its daemon stopped (scan.json's `paused`), or None."""
     paused = read_json(path / MANIFEST).get("paused")
-    return str(paused.get("reason") or "paused") if isinstance(paused, dict) else None
+    return paused if isinstance(paused, dict) else None
+
+
+def _said(record: dict | None) -> str | None:
+    """Why a `paused` record (`_paused_record`) says the scan was paused, or None without one."""
+    return None if record is None else str(record.get("reason") or "paused")

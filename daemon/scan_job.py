@@ -30,7 +30,7 @@ import numpy as np
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import CaptureWriter, ChunkBook, held_frames, plan_retakes
+from spadscan.protocol.capture_writer import INTERRUPTED, CaptureWriter, ChunkBook, held_frames, plan_retakes
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
@@ -101,6 +101,10 @@ class ScanJob:
     over (the operator's pause, a fault's), or that it was interrupted. `reason` says it first, then what stands in
     the way now; a pause records it alone in the capture (the next daemon checks the disk again itself). None once
     the scan goes on."""
+    interrupted: bool = False
+    """Paused only because a takeover found the scan interrupted: no one and nothing paused it. Its capture records
+    the pause as such (`paused.kind` INTERRUPTED), so that the next daemon may go on by itself. False once it goes
+    on."""
     blocked: str | None = None
     """Why this scan cannot resume (e.g. the rig's hand-eye changed); None when it can."""
     preset_note: str | None = None
@@ -547,21 +551,37 @@ def pause_before_block(reason: str | None, name: str) -> str | None:
 
 RESTARTED = "(daemon restarted)"
 """What a takeover's own note of an interrupted scan says after the pose it was interrupted at (`interrupted_at`)."""
-_INTERRUPTED = re.compile(r"interrupted at pose \d+/\d+ " + re.escape(RESTARTED) + r"(?=$|[;,])")
 
 
 def interrupted_at(progress: str) -> str:
     """How a daemon that took a scan over says it found it interrupted at pose `progress` (i/n): recorded as the
-    scan's pause while it waits for `ctl resume`, and told from a pause of the operator's or a fault's
-    (`takeover_note`)."""
+    scan's pause (of kind INTERRUPTED) while it waits for `ctl resume`."""
     return f"interrupted at pose {progress} {RESTARTED}"
 
 
-def takeover_note(reason: str | None) -> bool:
-    """Whether a pause's reason recorded in a capture is a takeover's own note that the scan was interrupted
-    (`interrupted_at`, and what followed it), not a pause of the operator's or a fault's: no one paused the scan, so
-    the next daemon goes on by itself where auto_resume allows."""
-    return reason is not None and _INTERRUPTED.match(reason) is not None
+def takeover_note(paused: dict) -> bool:
+    """Whether scan.json's `paused` record is a takeover's own note that the scan was interrupted (its `kind` is
+    INTERRUPTED), not a pause of the operator's or a fault's: no one paused the scan, so the next daemon goes on by
+    itself where auto_resume allows. A kind this daemon does not know is taken for a pause: the arm does not move by
+    itself. A record without a kind was written before it had one (`older_takeover_note`)."""
+    kind = paused.get("kind")
+    if kind is None:
+        return older_takeover_note(paused.get("reason"))
+    return kind == INTERRUPTED
+
+
+OLDER_TAKEOVER_NOTE = re.compile(r"interrupted at pose \d+/\d+ \(daemon restarted\)(?=$|[;,])")
+"""How a takeover's note began in a `paused` record written before records had a `kind`. Matched only there: that
+wording is fixed (no newer daemon writes such a record: so it is spelled out here, not built from `interrupted_at`,
+which may be reworded), and in those versions nothing else began so (`ctl pause` takes no reason, and no fault's
+reason starts with it)."""
+
+
+def older_takeover_note(reason) -> bool:
+    """Whether the reason of a `paused` record without a `kind` (one written before records had it, by a daemon that
+    took the scan over interrupted and waited for `ctl resume`) is that takeover's own note: a scan such a daemon
+    left waiting, taken over after an update, still goes on by itself where auto_resume allows."""
+    return isinstance(reason, str) and OLDER_TAKEOVER_NOTE.match(reason) is not None
 
 
 PRESET_CHANGES_SHOWN = 3

@@ -42,6 +42,14 @@ from .errors import CaptureError
 from .iso_time import utc_now
 from .sensor_model import SensorModel
 
+PAUSE = "pause"
+"""scan.json's `paused.kind` when someone or something paused the scan: the operator (`ctl pause`), a fault."""
+INTERRUPTED = "interrupted"
+"""scan.json's `paused.kind` when no one paused the scan: its daemon stopped while it ran, and a later one took it
+over and waits (for `ctl resume`, or for what stands in the way: a full disk, a changed rig). The daemon after that
+takes it for no pause: with auto_resume it goes on by itself."""
+PAUSE_KINDS = (PAUSE, INTERRUPTED)
+
 
 def _named(exc: OSError, path) -> OSError:
     """The same error, naming the file it happened to. A write into an open file raises without a filename, and
@@ -268,12 +276,15 @@ def plan_retakes(chunks: list[tuple[int, list[tuple[int, int | None]]]], frames_
     return out
 
 
-def mark_paused(path, reason: str) -> None:
-    """Record in the manifest of the capture at `path` that its scan is paused and why (`paused`: {"reason",
-    "since_utc"}; the state stays 'running'): a daemon restarted meanwhile takes it over paused, and a reader can say
-    so. Only the manifest is read and written (no chunk: a writer reopened for this would read them all), so the
-    scan's writer, if one is open, must not be writing meanwhile; its next recorded state (`set_state`: the scan
-    goes on, or ends) clears the record, and nothing else does."""
+def mark_paused(path, reason: str, kind: str = PAUSE) -> None:
+    """Record in the manifest of the capture at `path` that its scan is paused, why, and what kind of pause it is
+    (`paused`: {"reason", "since_utc", "kind"}: one of PAUSE_KINDS; the state stays 'running'): a daemon restarted
+    meanwhile takes it over paused, and a reader can say so. Only the manifest is read and written (no chunk: a
+    writer reopened for this would read them all), so the scan's writer, if one is open, must not be writing
+    meanwhile; its next recorded state (`set_state`: the scan goes on, or ends) clears the record, and nothing else
+    does."""
+    if kind not in PAUSE_KINDS:
+        raise CaptureError(f"pause kind {kind!r} is not one of {PAUSE_KINDS}")
     manifest_path = Path(path) / MANIFEST
     manifest = read_json(manifest_path)
     reason = fold(reason)
@@ -281,8 +292,8 @@ def mark_paused(path, reason: str) -> None:
     # on removes the record, so one that is there is this pause's.
     held = manifest.get("paused")
     since = held.get("since_utc") if isinstance(held, dict) else None
-    manifest.update(state="running", reason=reason,
-                    paused={"reason": reason, "since_utc": since if isinstance(since, str) else utc_now()},
+    since = since if isinstance(since, str) else utc_now()
+    manifest.update(state="running", reason=reason, paused={"reason": reason, "since_utc": since, "kind": kind},
                     updated_utc=utc_now())
     _write(write_json_atomic, manifest_path, manifest)
 

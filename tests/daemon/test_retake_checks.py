@@ -142,8 +142,8 @@ def test_a_takeover_resumed_at_once_never_says_paused(arun, tmp_path, sphere, mo
     arun(interrupted(cfg, sphere))
     marked = []
     real_mark = runner_module.mark_paused
-    monkeypatch.setattr(runner_module, "mark_paused", lambda path, reason: (marked.append(reason),
-                                                                            real_mark(path, reason)))
+    monkeypatch.setattr(runner_module, "mark_paused", lambda path, reason, *kind: (marked.append(reason),
+                                                                                   real_mark(path, reason, *kind)))
 
     async def scenario():
         async with daemon_runner(cfg, sphere) as runner:

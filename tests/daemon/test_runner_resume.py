@@ -13,8 +13,11 @@ from spadscan.daemon.rig import build_devices, rig_record
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon import runner as runner_module
 from spadscan.daemon.runner import ScanRunner
+from spadscan.daemon.scan_job import takeover_note
 from spadscan.protocol import sensor_presets
+from spadscan.protocol.capture_format import MANIFEST, read_json, write_json_atomic
 from spadscan.protocol.capture_reader import CaptureReader
+from spadscan.protocol.capture_writer import mark_paused
 from spadscan.protocol.errors import ConfigError
 
 from test_runner import until
@@ -250,9 +253,104 @@ def test_a_takeovers_own_note_is_no_pause_for_the_next_daemon(arun, tmp_path):
     arun(interrupt(make_cfg(tmp_path)))
     first, recorded = arun(taken_over_and_left(make_cfg(tmp_path), root))
     assert first["state"] == "paused" and recorded["reason"] == first["reason"], (first, recorded)
+    assert recorded["kind"] == "interrupted", recorded
     assert first["reason"].startswith("interrupted at pose") and first["reason"].endswith(
         "(daemon restarted); `spadscan ctl resume` continues"), first
     again, _ = arun(taken_over_and_left(make_cfg(tmp_path), root))
     assert again["reason"] == first["reason"], again
+    status, _ = arun(restart(make_cfg(tmp_path, auto_resume=True)))
+    assert status["state"] == "scanning", status
+
+
+NOTE = "interrupted at pose 3/40 (daemon restarted); `spadscan ctl resume` continues"
+"""A takeover's note as a daemon words it now, and as daemons before `paused.kind` did."""
+
+
+def test_a_pause_whose_reason_reads_like_a_takeovers_note_stays_a_pause(arun, tmp_path):
+    """The kind of the record tells a takeover's note from a pause, not its wording: a pause (an operator's, a
+    fault's) that says what a takeover's note says is still taken over paused, even with auto_resume."""
+    cfg = make_cfg(tmp_path, auto_resume=True)
+    arun(interrupt(cfg, pause="paused"))
+    capture = tmp_path / "caps" / "mix"
+    mark_paused(capture, NOTE)  # (the kind a caller does not name: a pause)
+    status, refused = arun(restart(cfg))
+    assert status["state"] == "paused" and status["reason"] == NOTE, status
+    assert refused is None
+
+
+def set_paused(capture, **record) -> None:
+    """Rewrite the `paused` record of the capture's scan.json: its keys given, a key given None removed."""
+    manifest = read_json(capture / MANIFEST)
+    manifest["paused"].update(record)
+    manifest["paused"] = {key: value for key, value in manifest["paused"].items() if value is not None}
+    write_json_atomic(capture / MANIFEST, manifest)
+
+
+def test_a_takeovers_note_is_told_by_its_kind_whatever_it_says(arun, tmp_path):
+    """A note reworded (by a later version, say) is still a takeover's note: the next daemon with auto_resume goes
+    on by itself."""
+    root = tmp_path / "caps"
+    arun(interrupt(make_cfg(tmp_path)))
+    arun(taken_over_and_left(make_cfg(tmp_path), root))
+    set_paused(root / "mix", reason="waiting for the operator after a restart")
+    assert CaptureReader(root / "mix").manifest["paused"]["kind"] == "interrupted"
+    status, _ = arun(restart(make_cfg(tmp_path, auto_resume=True)))
+    assert status["state"] == "scanning", status
+
+
+@pytest.mark.parametrize("reason, note", [(NOTE, True), ("paused by user", False)])
+def test_a_record_without_a_kind_is_read_as_the_daemons_before_wrote_it(arun, tmp_path, reason, note):
+    """A scan that a daemon before `paused.kind` left waiting (its note, or the operator's pause) is taken over as
+    that daemon meant it, after an update: its note goes on by itself with auto_resume, a pause does not."""
+    capture = tmp_path / "caps" / "mix"
+    arun(interrupt(make_cfg(tmp_path), pause="paused"))
+    set_paused(capture, reason=reason, kind=None)
+    status, _ = arun(restart(make_cfg(tmp_path, auto_resume=True)))
+    assert status["state"] == ("scanning" if note else "paused"), status
+
+
+@pytest.mark.parametrize("record, note", [
+    ({"reason": NOTE, "kind": "interrupted"}, True),
+    ({"reason": "the operator's words", "kind": "interrupted"}, True),
+    ({"reason": NOTE, "kind": "pause"}, False),
+    ({"reason": NOTE, "kind": "a kind not known yet"}, False),  # (a pause: the arm does not move by itself)
+    ({"reason": NOTE}, True),  # written before records had a kind: its wording is all there is
+    ({"reason": "interrupted at pose 3/40 (daemon restarted), and the captures' disk is still full"}, True),
+    ({"reason": "interrupted at pose 3/40 (daemon restarted)"}, True),
+    ({"reason": "paused by user; interrupted at pose 3/40 (daemon restarted)"}, False),
+    ({"reason": "interrupted at pose 3/40 (daemon restarted)x"}, False),
+    ({"reason": "interrupted at pose 3/40"}, False),
+    ({}, False),
+])
+def test_takeover_note(record, note):
+    assert takeover_note({"since_utc": "2024-01-01T00:00:00Z", **record}) is note
+
+
+def test_a_takeover_whose_resume_was_refused_is_still_no_pause(arun, tmp_path):
+    """A takeover's wait, its resume refused (the sensor's link down), is still no one's pause when the daemon
+    stops: the capture records it as the takeover's, and the next daemon with auto_resume goes on by itself (it
+    checks the link afresh). The refusal's cause in the record was taken for a pause before."""
+    cfg = make_cfg(tmp_path)
+    arun(interrupt(cfg))
+
+    async def refused_and_left():
+        arm, sensor = build_devices(cfg)
+        async with DeviceSession([arm, sensor]):
+            rig, scene = rig_record(cfg)
+            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+            try:
+                await runner.recover()
+                await until(lambda: "paused" in CaptureReader(tmp_path / "caps" / "mix").manifest, "the pause")
+                sensor.inject_link_loss(3600.0)
+                with pytest.raises(ConfigError, match="is down"):
+                    await runner.resume()
+                return runner.status()
+            finally:
+                await runner.shutdown()
+
+    refused = arun(refused_and_left())
+    assert refused["state"] == "paused" and "is down" in refused["reason"], refused
+    record = CaptureReader(tmp_path / "caps" / "mix").manifest["paused"]
+    assert record["kind"] == "interrupted", record
     status, _ = arun(restart(make_cfg(tmp_path, auto_resume=True)))
     assert status["state"] == "scanning", status

@@ -19,7 +19,7 @@ import pytest
 
 from spadscan.protocol.capture_format import MANIFEST, Measurement, chunk_name
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_presets import sensor_preset
 
@@ -242,13 +242,28 @@ def test_set_state_refuses_unknown_state_and_records_reason(tmp_path):
     assert r.state == "aborted" and r.manifest["reason"] == "arm fault"
 
 
+def test_mark_paused_records_the_kind_of_pause_and_refuses_an_unknown_one(tmp_path):
+    """A pause records its kind ('pause' unless named), kept with the time it began when recorded again; a kind the
+    format does not define is refused, the record left as it was."""
+    write(tmp_path / "s", 2, 4, finish=False)
+    mark_paused(tmp_path / "s", "paused by user")
+    first = CaptureReader(tmp_path / "s").manifest["paused"]
+    assert first["kind"] == "pause" and first["reason"] == "paused by user", first
+    mark_paused(tmp_path / "s", "interrupted at pose 2/9 (daemon restarted)", "interrupted")
+    again = CaptureReader(tmp_path / "s").manifest["paused"]
+    assert again == {**first, "reason": "interrupted at pose 2/9 (daemon restarted)", "kind": "interrupted"}, again
+    with pytest.raises(CaptureError, match="pause kind 'operator' is not one of"):
+        mark_paused(tmp_path / "s", "paused by user", "operator")
+    assert CaptureReader(tmp_path / "s").manifest["paused"] == again
+
+
 # ---- a writer killed in the middle of a chunk --------------------------------------------------------------------------
 CHILD = """
 import sys, time
 from pathlib import Path
 import numpy as np
 import spadscan.protocol.capture_writer as cw
-from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
 from spadscan.protocol.sensor_presets import sensor_preset
 
 {source}
