@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.errors import ConfigError
-from spadscan.protocol.folders import check_folder_option
+from spadscan.protocol.folders import check_folder_option, folder_problem
 from spadscan.protocol.schedules import ring_at_pole_deg
 
 from .backends import ARM_BACKENDS, SENSOR_BACKENDS, ArmBackend, SensorBackend
@@ -373,31 +373,18 @@ def _check_paths(cfg: DaemonConfig, where: str) -> None:
     if not cfg.socket.parent.is_dir():
         raise ConfigError(f"{where}: socket folder {cfg.socket.parent}: no such folder")
     root = cfg.captures
-    probe = root if root.exists() else root.parent
     if root.exists() and not root.is_dir():
         raise ConfigError(f"{where}: captures {root} exists and is not a folder")
-    problem = _folder_problem(probe)
+    if not root.exists() and not root.parent.is_dir():  # its parent must exist (examples/README.md)
+        raise ConfigError(f"{where}: captures {root}: folder {root.parent} is missing")
+    problem = folder_problem(root)  # tried, leaving nothing made: os.access says yes to root where mkdir says no
     if problem is not None:
-        raise ConfigError(f"{where}: captures {root}: folder {probe} {problem}")
-
-
-def _folder_problem(folder: Path) -> str | None:
-    """Why nothing can be written in `folder`, in words that follow its name; None when this user may write there."""
-    if not folder.is_dir():
-        return "is missing"
-    if os.access(folder, os.W_OK | os.X_OK):
-        return None
-    try:
-        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
-    except OSError:
-        read_only = False
-    return "is on a read-only file system" if read_only else "is not writable by this user"
+        raise ConfigError(f"{where}: captures {root}: {problem}")
 
 
 def check_captures_creatable(root: Path) -> None:
-    """Refuse a captures root that start-up could not create (`make_captures`), leaving nothing made: a scratch
-    folder is made and removed where it would go (protocol/folders.py), for os.access (`_check_paths`) says yes to
-    root in /proc, on a read-only mount or in an immutable folder, where the real mkdir says no."""
+    """Refuse a captures root that start-up could not create or write into (`make_captures`), leaving nothing made,
+    as loading the config did (`_check_paths`): asked again when start-up comes, for the folders may have changed."""
     check_folder_option(root, "captures")
 
 

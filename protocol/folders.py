@@ -1,9 +1,9 @@
-"""Whether a folder a command must make can be made, asked before anything runs: `--out`, `--queue`, a rig's
-`captures`. Standard library only (the light CLI and the daemon's config check use it).
+"""Whether a folder a command must write into can be written into, or made, asked before anything runs: `--out`,
+`--queue`, a rig's `captures`. Standard library only (the light CLI and the daemon's config check use it).
 
-os.access cannot answer it: root may write anywhere by its rules, yet not into /proc, a read-only mount or an
-immutable folder. So a missing folder is tried for real: a scratch folder is made, and removed, where the first mkdir
-would go.
+os.access cannot answer it: it says yes to root for /proc and /sys, where the real mkdir says no (a file system's own
+rules are not the permission bits it reads). So it is tried for real: a scratch folder is made, and removed, in the
+folder when it is there, and where the first mkdir would go when it is not.
 """
 
 from __future__ import annotations
@@ -37,24 +37,29 @@ def not_a_folder(path) -> str | None:
     return what if part == Path(path) else f"{part} is {what}"
 
 
-def folder_problem(path) -> str | None:
-    """Why the folder `path` is not there and cannot be made, or None; one that can be made is left unmade."""
+def folder_problem(path, writable: bool = True) -> str | None:
+    """Why the folder `path` cannot be written into (it is there) or made (it is not), in words that follow the path,
+    or None; tried by a scratch folder made and removed in it, or in the nearest folder above it that is there, so
+    that one that can be made is left unmade. With `writable` false a folder that is there passes untried: for a
+    command that only reads one that is there (`worker --status`), yet would have it made when it is not."""
     path = Path(path)
+    there = False
     try:
         reason = not_a_folder(path)
-        if reason is not None or path.is_dir():
+        there = reason is None and path.is_dir()
+        if reason is not None or (there and not writable):
             return reason
-        above = next(parent for parent in path.absolute().parents if parent.is_dir())
+        above = path if there else next(parent for parent in path.absolute().parents if parent.is_dir())
         scratch = tempfile.mkdtemp(prefix=".spadscan-check-", dir=above)
-    except OSError as exc:  # /proc, a read-only mount, or a folder above it that this user may not search
-        return f"cannot create it ({exc.strerror or exc})"
+    except OSError as exc:  # /proc, a read-only mount, an immutable folder, one above that this user may not search
+        return f"{'cannot write into it' if there else 'cannot create it'} ({exc.strerror or exc})"
     os.rmdir(scratch)  # outside the try: a scratch folder that stays is an error of its own, not "cannot create"
     return None
 
 
 def check_folder_option(path, option: str) -> None:
-    """Refuse, in one line that names the option or key (`--out`, `captures`), a folder that is not there and
-    cannot be made."""
+    """Refuse, in one line that names the option or key (`--out`, `captures`) and the user's path, a folder that
+    cannot be written into or made (`folder_problem`)."""
     reason = folder_problem(path)
     if reason is not None:
         raise ConfigError(f"{option} {path}: {reason}")

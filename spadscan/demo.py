@@ -859,10 +859,8 @@ def make_out(opts: DemoOptions) -> tuple[Path, Path]:
     that cannot be made, or that is there but cannot be written into, is refused in one line that names --out, as the
     other commands refuse theirs (not an OS error about its logs folder)."""
     from spadscan.protocol.folders import check_folder_option
-    from spadscan.worker.outputs import check_writable
 
     check_folder_option(opts.out, "--out")
-    check_writable(opts.out, "--out")
     logs, captures = opts.out / "logs", opts.out / "captures"
     for folder in (opts.out, logs, captures):
         folder.mkdir(parents=True, exist_ok=True)

@@ -180,6 +180,23 @@ def test_sweep_refuses_an_out_it_cannot_write_into_before_its_plan(rotest, here,
     assert os.listdir(rotest) == []
 
 
+def test_import_lcspc_refuses_an_out_it_cannot_write_into_before_it_reads(rotest, here, capsys):
+    (here / "s.json").write_text("[]")  # never read: --out is refused first
+    assert main(["import-lcspc", "s.json", "--out", rotest, "--no-progress"]) == 1
+    assert one_line_error(capsys).startswith(f"spadscan: error: --out {rotest}: cannot write into it (")
+    assert os.listdir(rotest) == []
+
+
+def test_a_worker_refuses_a_queue_it_cannot_write_into_and_status_still_reads_it(rotest, here, capsys):
+    """A run writes its jobs into the queue: refused, naming --queue, as --out is; --status only reads it."""
+    (here / "caps").mkdir()
+    assert main(["worker", "--root", "caps", "--queue", rotest, "--once"]) == 1
+    assert one_line_error(capsys).startswith(f"spadscan: error: --queue {rotest}: cannot write into it (")
+    assert main(["worker", "--root", "caps", "--queue", rotest, "--status"]) == 0
+    assert f"no jobs in {rotest}" in capsys.readouterr().out
+    assert os.listdir(rotest) == []
+
+
 # ---- reconstruct: options before folders (defect: --out holding a result was refused first; once --overwrite was
 # given, a bad --threads, and then a bad --set, each in turn) ------------------------------------------------------
 def test_reconstruct_checks_its_options_before_its_folders(here, capsys):

@@ -151,6 +151,8 @@ def test_import_lcspc_names_out_when_it_cannot_be_made(here, capsys):
     assert one_line_error(capsys).startswith(f"spadscan: error: --out {UNMAKEABLE}/zz: cannot create it")
     assert main(["import-lcspc", "s.json", "--out", "afile/cap", "--no-progress"]) == 1
     assert one_line_error(capsys) == "spadscan: error: --out afile/cap: afile is a file, not a folder"
+    assert main(["import-lcspc", "s.json", "--out", "afile", "--no-progress"]) == 1
+    assert one_line_error(capsys) == "spadscan: error: --out afile: a file, not a folder"
 
 
 def test_sweep_names_out_when_it_cannot_be_made(here, capsys):
@@ -158,6 +160,14 @@ def test_sweep_names_out_when_it_cannot_be_made(here, capsys):
     assert main(["sweep", "s.toml", "--out", f"{UNMAKEABLE}/sw", "--workers", "1", "--no-progress"]) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith(f"spadscan: error: --out {UNMAKEABLE}/sw: cannot create it"), err
+
+
+@pytest.mark.parametrize("dry_run", [[], ["--dry-run"]])
+def test_sweep_names_out_when_it_is_a_file_before_its_plan(here, capsys, dry_run):
+    (here / "s.toml").write_text(SWEEP)
+    assert main(["sweep", "s.toml", "--out", "afile", "--workers", "1", "--no-progress", *dry_run]) == 1
+    assert one_line_error(capsys) == "spadscan: error: --out afile: a file, not a folder"
+    assert (here / "afile").read_text() == "x"
 
 
 @pytest.mark.parametrize("out", ["afile/sub", f"{UNMAKEABLE}/sw"])
@@ -230,11 +240,15 @@ def test_a_mesh_file_without_a_suffix_is_said_to_have_none(here, capsys):
 
 
 # ---- the check itself -----------------------------------------------------------------------------------------------
-def test_folder_problem_reads_a_folder_that_is_there_and_tries_one_that_is_not(here):
+def test_folder_problem_tries_a_folder_that_is_there_and_one_that_is_not(here):
     (here / "dir").mkdir()
     (here / "dangling").symlink_to("nowhere")
     before = listing(here)
     assert folder_problem("dir") is None and folder_problem(here / "dir") is None
+    # /proc: there, and no one may make a folder in it (os.access says yes to root): tried, unless only read.
+    assert folder_problem("/proc").startswith("cannot write into it (")
+    assert folder_problem("/proc", writable=False) is None and folder_problem("dir", writable=False) is None
+    assert folder_problem(f"{UNMAKEABLE}/a", writable=False).startswith("cannot create it (")
     assert folder_problem("new/a/b") is None
     assert folder_problem("afile") == "a file, not a folder"
     assert folder_problem("dangling") == "a link to a missing folder"

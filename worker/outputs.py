@@ -7,12 +7,12 @@ import contextlib
 import json
 import os
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
 
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, chunk_name
 from spadscan.protocol.errors import CaptureError, ConfigError
+from spadscan.protocol.folders import check_folder_option
 from spadscan.protocol.mesh_io import BUILTIN_PREFIX
 
 from .disk_room import NAMED, names_said
@@ -38,7 +38,8 @@ def held_result(out) -> list[str]:
 def check_out(out, overwrite: bool, capture=None) -> Path:
     """`out` as a Path, refused when it is a file, or holds a result and `overwrite` is not set, or lies inside the
     folder of `capture` (when given) anywhere but under its recon/ folder, where the worker puts results, or is a
-    folder this process cannot write into (`check_writable`). A `capture` that is no capture folder is refused first
+    folder this process cannot write into or make (`check_folder_option`, on `out` itself, not on the scratch
+    folder beside it that a run makes first). A `capture` that is no capture folder is refused first
     (`check_capture_folder`). (An empty --out the command line refuses: cli.FOLDER_OPTIONS.)"""
     out = Path(out)
     if capture is not None:
@@ -54,7 +55,7 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
     if held and not overwrite:
         raise ConfigError(f"{out}: already holds a result ({', '.join(held)}); choose another --out, or pass "
                           "--overwrite to replace it")
-    check_writable(out, "--out")
+    check_folder_option(out, "--out")
     return out
 
 
@@ -108,21 +109,6 @@ def _holds_manifest(folder: Path) -> bool:
         return (folder / MANIFEST).is_file()
     except OSError:
         return False
-
-
-def check_writable(folder, option: str) -> None:
-    """Refuse, in one line that names `option`, a folder that is there but that this process cannot write into: a
-    scratch folder is made in it and removed. os.access cannot answer it: root may write anywhere by its rules, yet
-    not into an immutable folder or onto a read-only mount. A folder that is not there is left to the check of
-    whether it can be made (protocol.folders)."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        return
-    try:
-        scratch = tempfile.mkdtemp(prefix=".spadscan-check-", dir=folder)
-    except OSError as exc:
-        raise ConfigError(f"{option} {folder}: cannot write into it ({exc.strerror or exc})") from None
-    os.rmdir(scratch)
 
 
 def check_ground_truth_kept(gt, out) -> None:
@@ -335,6 +321,5 @@ def _missing_run(first: int, last: int, chunk_of: dict[int, int], held: dict[int
     return f"{chunks} ({views}) {'is' if len(free) == 1 else 'are'} missing"
 
 
-__all__ = ["RESULT_FILES", "JOB_FILES", "check_out", "check_capture_folder", "check_writable",
-           "check_ground_truth_kept", "export_mesh", "capture_state_note", "missing_views_note", "chunk_views",
-           "replacing_result", "held_result"]
+__all__ = ["RESULT_FILES", "JOB_FILES", "check_out", "check_capture_folder", "check_ground_truth_kept", "export_mesh",
+           "capture_state_note", "missing_views_note", "chunk_views", "replacing_result", "held_result"]

@@ -96,7 +96,6 @@ def check_method_options(args) -> None:
 
 
 def run(args) -> int:
-    from spadscan.protocol.folders import check_folder_option
     from spadscan.worker.baselines.run import run_baseline  # numpy, scipy and trimesh: only when a baseline runs
     from spadscan.worker.metrics import MAX_POINTS
 
@@ -114,8 +113,7 @@ def run(args) -> int:
     if args.threshold is not None and not args.threshold > 0:
         raise ConfigError(f"--threshold {args.threshold} must be > 0 (noise standard deviations)")
 
-    out = check_out(args.out, args.overwrite, capture=args.capture)
-    check_folder_option(out, "--out")  # before the calibration's minutes, as reconstruct checks it
+    out = check_out(args.out, args.overwrite, capture=args.capture)  # --out too: before the calibration's minutes
 
     def log(line: str) -> None:
         print(f"spadscan baseline: {line}", file=sys.stderr, flush=True)

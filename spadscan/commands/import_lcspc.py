@@ -42,7 +42,6 @@ def check_scan_id(scan_id: str, out) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
     import sys
 
     from tqdm import tqdm
@@ -53,8 +52,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.scan_id is not None:
         check_scan_id(args.scan_id, args.out)
-    if not os.path.lexists(args.out):  # one that exists is refused by the import, which says why
-        check_folder_option(args.out, "--out")
+    check_folder_option(args.out, "--out")  # a folder that already holds a capture the import refuses, saying so
 
     bars: dict[str, tqdm] = {}
     show = progress_bar_wanted(args)

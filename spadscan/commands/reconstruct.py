@@ -121,7 +121,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import os
 
-    from spadscan.protocol.folders import check_folder_option
     from spadscan.signals import first_interrupt_stops_training, terminate_as_interrupt
     from spadscan.worker.budget import process_started
     from spadscan.worker.threads import check_threads, threads_fixed, wait_env
@@ -145,8 +144,7 @@ def run(args: argparse.Namespace) -> int:
         from spadscan.worker.recon.presets import preset_config
 
         with_overrides(preset_config(args.preset), overrides)
-    out = check_out(args.out, args.overwrite, capture=args.capture)
-    check_folder_option(out, "--out")  # here, not in the scratch folder beside it that the run makes first
+    out = check_out(args.out, args.overwrite, capture=args.capture)  # --out too, as it is, not its scratch folder
 
     def log(line: str) -> None:
         say(f"spadscan reconstruct: {line}")

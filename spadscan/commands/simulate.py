@@ -277,11 +277,9 @@ def run(args) -> int:
     from spadscan.protocol.sensor_presets import sensor_preset
     from spadscan.protocol.simulator import SimSettings, misplaced_views_note, simulate_capture
     from spadscan.signals import terminate_as_interrupt
-    from spadscan.worker.outputs import check_writable
 
     check_options(args)
     check_folder_option(args.out, "--out")  # named, before the mesh is loaded; not a bare OS error at the writer's
-    check_writable(args.out, "--out")  # as reconstruct and baseline say it
     had_capture = (Path(args.out) / MANIFEST).exists()  # a capture there before this run is none of its own
     table = make_table(args)
     mesh, scene = load_mesh_spec(args.mesh)

@@ -66,7 +66,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    import os
     import sys
     from pathlib import Path
 
@@ -74,7 +73,6 @@ def run(args) -> int:
     from spadscan.sweep.checks import check_local_device, check_scheduler_address, check_workers
     from spadscan.sweep.plan import make_plan
     from spadscan.sweep.spec import load_spec
-    from spadscan.worker.outputs import check_writable
 
     def log(line: str) -> None:
         print(f"spadscan sweep: {line}", file=sys.stderr, flush=True)
@@ -89,9 +87,7 @@ def run(args) -> int:
     plan = make_plan(spec, None if args.lcspc is None else Path(args.lcspc))
     # --out before the plan's line: a folder the run cannot make or write into is refused in one line naming it
     # (not an OS error about its lock file after the plan was announced); the dry run too, as the run would.
-    if not os.path.lexists(args.out):
-        check_folder_option(args.out, "--out")
-    check_writable(args.out, "--out")
+    check_folder_option(args.out, "--out")
     log(f"{counted(len(plan.entries), 'grid entry', 'grid entries')} on {counted(len(plan.scenes), 'scene')}: "
         f"{counted(len(plan.points), 'distinct point')}; methods {', '.join(spec.methods)}"
         + ("" if spec.grid else " (no [grid]: the base condition alone)"))

@@ -267,18 +267,19 @@ def _refuse_combinations(args) -> None:
 
 
 def _check_queue(queue_dir, given: bool, creates: bool) -> None:
-    """Refuse, in one line that names --queue, a queue folder that cannot be one: a file there or above it, or a
-    missing folder that cannot be created, where it must be: for a run (`creates`), which makes it, and for a --queue
-    given (--status would end by suggesting a worker on it). A root's default queue that is missing is only read:
-    --status lists it as empty, since the root's own worker makes it, even where this user cannot."""
+    """Refuse, in one line that names --queue, a queue folder that cannot be one: a file there or above it; for a run
+    (`creates`), which makes the folder and writes its jobs into it, one that cannot be made or written into; for a
+    --queue given (--status would end by suggesting a worker on it), one that is not there and cannot be made (one
+    that is there is only read). A root's default queue that is missing is only read: --status lists it as empty,
+    since the root's own worker makes it, even where this user cannot."""
     from spadscan.protocol.folders import folder_problem, not_a_folder
     from spadscan.protocol.errors import ConfigError
 
-    reason = folder_problem(queue_dir) if creates or given else not_a_folder(queue_dir)
+    reason = folder_problem(queue_dir, writable=creates) if creates or given else not_a_folder(queue_dir)
     if reason is None:
         return
     name = f"--queue {queue_dir}" if given else f"queue {queue_dir}"
-    if queue_dir.exists() or queue_dir.is_symlink():  # in the dashboard's words for the same option
+    if not queue_dir.is_dir() and (queue_dir.exists() or queue_dir.is_symlink()):  # in the dashboard's words
         raise ConfigError(f"{name}: no such queue folder ({reason})")
     raise ConfigError(f"{name}: {reason}")
 

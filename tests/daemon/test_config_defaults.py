@@ -1,12 +1,14 @@
 """A default the user never chose is named as one: a real sensor on an arm nobody chose is refused, a sim sensor
-taken by default says so; a captures folder says whether it is missing, read-only or not writable; the daemon's log
-is in UTC and says so."""
+taken by default says so; a captures folder says whether it is missing, or why it cannot be written into or made,
+as the real mkdir says it (root included, whom os.access lets through); the daemon's log is in UTC and says so."""
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -14,7 +16,6 @@ import time
 import pytest
 
 from spadscan.commands.daemon import utc_formatter
-from spadscan.daemon import config as config_module
 from spadscan.daemon.config import config_from_dict
 from spadscan.protocol.errors import ConfigError
 
@@ -88,19 +89,52 @@ def test_a_missing_captures_parent_is_called_missing(tmp_path):
         config_from_dict({"captures": str(tmp_path / "nope" / "deeper" / "caps"), **SIM}, tmp_path / "rig.toml")
 
 
-def test_a_captures_folder_on_a_read_only_mount_says_so(tmp_path, monkeypatch):
+def refuse_mkdir_in(folder, err: int, monkeypatch) -> None:
+    """Have every folder made inside `folder` refused with `err` (EROFS: a read-only mount; EACCES: no write
+    permission), whoever the process runs as."""
+    real_mkdir = os.mkdir
+
+    def mkdir(path, *args, **kwargs):
+        if os.path.dirname(os.path.abspath(path)) == str(folder):
+            raise OSError(err, os.strerror(err), str(path))
+        return real_mkdir(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+
+
+@pytest.mark.parametrize("err, said", [(errno.EROFS, "Read-only file system"), (errno.EACCES, "Permission denied")])
+def test_a_captures_folder_that_cannot_be_written_into_says_why(tmp_path, monkeypatch, err, said):
+    """A read-only mount, or no write permission, as the real mkdir says it (tried, not read from the mode)."""
     (tmp_path / "caps").mkdir()
-    real_statvfs = os.statvfs
-
-    class ReadOnly:
-        def __init__(self, path):
-            self.f_flag = real_statvfs(path).f_flag | os.ST_RDONLY
-
-    # A read-only mount as the kernel shows it: no write access for anyone, ST_RDONLY in its flags.
-    monkeypatch.setattr(config_module.os, "access", lambda path, mode: not mode & os.W_OK)
-    monkeypatch.setattr(config_module.os, "statvfs", ReadOnly)
-    with pytest.raises(ConfigError, match=r"captures .*caps: folder .*caps is on a read-only file system$"):
+    refuse_mkdir_in(tmp_path / "caps", err, monkeypatch)
+    with pytest.raises(ConfigError) as refused:
         load(tmp_path, **SIM)
+    assert str(refused.value) == f"{tmp_path / 'rig.toml'}: captures {tmp_path / 'caps'}: cannot write into it ({said})"
+
+
+def test_a_captures_root_that_cannot_be_made_says_so(tmp_path, monkeypatch):
+    refuse_mkdir_in(tmp_path, errno.EROFS, monkeypatch)
+    with pytest.raises(ConfigError, match=r"captures .*caps: cannot create it \(Read-only file system\)$"):
+        load(tmp_path, **SIM)
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs a Linux /proc")
+@pytest.mark.parametrize("captures, said", [("/proc", "cannot write into it ("),
+                                            ("/proc/spadscan-test", "cannot create it (")])
+def test_a_captures_folder_that_os_access_passes_but_no_one_can_write_is_refused(tmp_path, captures, said):
+    """/proc: os.access says yes to root (whom the permission bits do not stop), yet the kernel makes no folder in
+    it, for root neither; for another user the refusal is the same."""
+    with pytest.raises(ConfigError) as refused:
+        config_from_dict({"captures": captures, **SIM}, tmp_path / "rig.toml")
+    assert str(refused.value).startswith(f"{tmp_path / 'rig.toml'}: captures {captures}: {said}"), str(refused.value)
+
+
+def test_loading_a_config_makes_nothing_in_or_for_its_captures(tmp_path):
+    (tmp_path / "caps").mkdir()
+    load(tmp_path, **SIM)
+    assert list((tmp_path / "caps").iterdir()) == []
+    config_from_dict({"captures": str(tmp_path / "new"), **SIM}, tmp_path / "rig.toml")
+    assert not (tmp_path / "new").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["caps"]
 
 
 def test_a_captures_folder_this_user_may_not_write_says_so(tmp_path, sock_dir):
@@ -112,15 +146,28 @@ def test_a_captures_folder_this_user_may_not_write_says_so(tmp_path, sock_dir):
     r = subprocess.run(permissions_apply() + [sys.executable, "-m", "spadscan.cli", "daemon", "--config", str(config),
                                               "--check"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 1 and r.stdout == "" and r.stderr.count("\n") == 1, r.stderr
-    assert re.fullmatch(r"spadscan: error: .*rig\.toml: captures .*caps: folder .*caps is not writable by this user\n",
+    assert re.fullmatch(r"spadscan: error: .*rig\.toml: captures .*caps: cannot write into it \(Permission denied\)\n",
                         r.stderr), r.stderr
 
 
-def test_a_captures_folder_without_write_permission_is_not_called_read_only(tmp_path, monkeypatch):
-    (tmp_path / "caps").mkdir()
-    monkeypatch.setattr(config_module.os, "access", lambda path, mode: not mode & os.W_OK)
-    with pytest.raises(ConfigError, match=r"folder .*caps is not writable by this user$"):
-        load(tmp_path, **SIM)
+def test_a_captures_folder_on_a_real_read_only_mount_is_refused(tmp_path, sock_dir):
+    """A read-only bind mount of the folder, in a mount namespace of the checking process's own (so nothing outside
+    it sees the mount); skipped where the process may not make one."""
+    caps = tmp_path / "caps"
+    caps.mkdir()
+    config = tmp_path / "rig.toml"
+    config.write_text(f'captures = "{caps}"\nsocket = "{sock_dir / "s.sock"}"\n'
+                      '[sensor]\nbackend = "sim"\nmesh = "builtin:sphere"\n')
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        pytest.skip("no unshare: no mount namespace for a read-only mount")
+    mount = f'mount --bind "$1" "$1" && mount -o remount,bind,ro "$1" "$1" || exit 99; shift; exec "$@"'
+    r = subprocess.run([unshare, "--mount", "sh", "-c", mount, "sh", str(caps), sys.executable, "-m", "spadscan.cli",
+                        "daemon", "--config", str(config), "--check"], capture_output=True, text=True, timeout=120)
+    if r.returncode == 99 or "unshare:" in r.stderr:
+        pytest.skip(f"no read-only bind mount here: {r.stderr.strip()}")
+    assert r.returncode == 1 and r.stdout == "" and r.stderr.count("\n") == 1, r.stderr
+    assert r.stderr == f"spadscan: error: {config}: captures {caps}: cannot write into it (Read-only file system)\n"
 
 
 # ---- the log's clock -------------------------------------------------------------------------------------------------
