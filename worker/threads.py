@@ -87,19 +87,31 @@ def inherited_threads(environ) -> tuple[int | None, str | None]:
         return None, f"{ENV}={raw!r} in the worker's environment is not a whole number in [1, 1024]: ignored"
 
 
-def oversubscribed(processes: int, threads: int, cores: int | None = None) -> str | None:
-    """A one-line warning when `processes` jobs of `threads` threads each ask for more threads than there are
-    `cores` (default: this machine's), else None."""
+def oversubscribed(processes: int, threads: int, cores: int | None = None, others: int = 0) -> str | None:
+    """A one-line warning when this worker's `processes` jobs and the `others` job processes of the other workers on
+    its machine, each of `threads` threads, ask for more threads than there are `cores` (default: this machine's),
+    else None. With others, the line counts them apart and its advice speaks to every worker there."""
     cores = cores or machine_cores()
-    if processes * threads <= cores:
+    total = processes + others
+    if total * threads <= cores:
         return None
     if threads > 1:
         advice = (f"OpenMP threads that lose their core stall each other, each step 20-40x slower; use --threads "
-                  f"{max(1, cores // processes)}")
+                  f"{max(1, cores // total)}{' in each worker' if others else ''}")
+    elif others:
+        advice = (f"the jobs take turns on the cores, each run slower; stop a worker, or run one worker with "
+                  f"--processes {one_worker_processes(total, cores)}")
     else:
         advice = f"the jobs take turns on the cores; --processes {cores} runs as many at once as there are cores"
-    return (f"{processes} job process(es) x {threads} CPU thread(s) = {processes * threads} threads on "
+    where = f" on this host ({processes} of this worker's, {others} of other workers')" if others else ""
+    return (f"{total} job process(es){where} x {threads} CPU thread(s) = {total * threads} threads on "
             f"{cores} cores: {advice}")
+
+
+def one_worker_processes(total: int, cores: int) -> int:
+    """The --processes of one worker that does what workers running `total` job processes on a host of `cores` do,
+    as their lines advise it: as many, but no more than there are cores (more take turns on them)."""
+    return max(1, min(total, cores))
 
 
 def wait_env(environ: Mapping[str, str], adapting: bool) -> dict[str, str]:
@@ -221,5 +233,6 @@ class ThreadGovernor:
                 "median_step_s": {str(k): v for k, v in sorted(self.medians.items())}}
 
 
-__all__ = ["ENV", "WAIT_ENV", "SPIN_ENV", "SHORT_SPIN", "ADAPT_ENV", "wait_env", "threads_fixed", "ThreadGovernor", "machine_cores",
-           "threads_per_job", "check_threads", "inherited_threads", "oversubscribed"]
+__all__ = ["ENV", "WAIT_ENV", "SPIN_ENV", "SHORT_SPIN", "ADAPT_ENV", "wait_env", "threads_fixed", "ThreadGovernor",
+           "machine_cores", "threads_per_job", "check_threads", "inherited_threads", "oversubscribed",
+           "one_worker_processes"]

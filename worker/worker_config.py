@@ -11,7 +11,7 @@ from spadscan.protocol.errors import ConfigError
 
 from .cpu_wait import MACHINE_JOBS_ENV
 from .threads import (ADAPT_ENV, ENV as THREADS_ENV, check_threads, inherited_threads, machine_cores,
-                      oversubscribed, threads_per_job, wait_env)
+                      one_worker_processes, oversubscribed, threads_per_job, wait_env)
 from .watcher import JobOptions, check_root
 
 
@@ -22,29 +22,6 @@ def machine_job_processes(siblings: list[dict]) -> int:
     only while they run, two workers that claim at one poll (two scans queued together) would both find the other
     idle, its presence not yet renewed, and take every core each."""
     return sum(max(1, len(r.get("running") or []), min(int(r.get("processes") or 1), 256)) for r in siblings)
-
-
-def machine_oversubscribed(processes: int, others: int, threads: int, cores: int | None = None) -> str | None:
-    """`threads.oversubscribed` for workers that share a machine: this worker's `processes` and the `others` job
-    processes of the other workers there, each of `threads` threads, against its `cores`; None when they fit."""
-    cores = cores or machine_cores()
-    total = processes + others
-    if total * threads <= cores:
-        return None
-    if threads > 1:
-        advice = (f"OpenMP threads that lose their core stall each other, each step 20-40x slower; use --threads "
-                  f"{max(1, cores // total)} in each worker")
-    else:
-        advice = (f"the jobs take turns on the cores, each run slower; stop a worker, or run one worker with "
-                  f"--processes {one_worker_processes(total, cores)}")
-    return (f"{total} job process(es) on this host ({processes} of this worker's, {others} of other workers') x "
-            f"{threads} CPU thread(s) = {total * threads} threads on {cores} cores: {advice}")
-
-
-def one_worker_processes(total: int, cores: int) -> int:
-    """The --processes of one worker that does what workers running `total` job processes on a host of `cores` do,
-    as their lines advise it: as many, but no more than there are cores (more take turns on them)."""
-    return max(1, min(total, cores))
 
 
 @dataclass
@@ -122,10 +99,7 @@ class WorkerConfig:
         if bad and self.threads is None and THREADS_ENV not in (self.child_env or {}):
             warnings.append(bad)
         threads = self.job_threads(environ, others)
-        if others:
-            over = machine_oversubscribed(self.processes, others, threads) if threads else None
-        else:
-            over = oversubscribed(self.processes, threads) if threads else None
+        over = oversubscribed(self.processes, threads, others=others) if threads else None
         if over:
             warnings.append(over)
         return warnings

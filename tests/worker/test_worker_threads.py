@@ -12,7 +12,7 @@ import pytest
 from spadscan.cli import main as cli_main
 from spadscan.worker.pool import Worker
 from spadscan.worker.threads import (ADAPT_ENV, ENV, SHORT_SPIN, SPIN_ENV, WAIT_ENV, ThreadGovernor, machine_cores,
-                                     threads_fixed)
+                                     oversubscribed, threads_fixed)
 from spadscan.worker.worker_config import WorkerConfig
 
 from test_watcher import make_scan
@@ -143,6 +143,25 @@ def test_more_threads_than_cores_is_a_warning(monkeypatch, processes, threads, e
     assert warning.startswith(f"{processes} job process(es) x {total // processes} CPU thread(s) = {total} threads "
                               "on 2 cores")
     assert ("20-40x slower; use --threads 1" in warning) == (total // processes > 1)
+
+
+@pytest.mark.parametrize("processes, threads, others, warning", [
+    (3, 1, 0, "3 job process(es) x 1 CPU thread(s) = 3 threads on 2 cores: the jobs take turns on the cores; "
+              "--processes 2 runs as many at once as there are cores"),
+    (2, 2, 0, "2 job process(es) x 2 CPU thread(s) = 4 threads on 2 cores: OpenMP threads that lose their core stall "
+              "each other, each step 20-40x slower; use --threads 1"),
+    (2, 1, 1, "3 job process(es) on this host (2 of this worker's, 1 of other workers') x 1 CPU thread(s) = 3 threads "
+              "on 2 cores: the jobs take turns on the cores, each run slower; stop a worker, or run one worker with "
+              "--processes 2"),
+    (1, 2, 1, "2 job process(es) on this host (1 of this worker's, 1 of other workers') x 2 CPU thread(s) = 4 threads "
+              "on 2 cores: OpenMP threads that lose their core stall each other, each step 20-40x slower; use "
+              "--threads 1 in each worker"),
+    (2, 1, 0, None),  # as many threads as cores: they fit
+    (1, 1, 1, None),
+])
+def test_oversubscribed_words_a_worker_alone_and_beside_others(processes, threads, others, warning):
+    # One rule, two wordings: other workers' job processes are counted apart and the advice speaks to every worker.
+    assert oversubscribed(processes, threads, 2, others=others) == warning
 
 
 def test_threads_that_fit_the_cores_are_no_warning(monkeypatch):
