@@ -1,7 +1,7 @@
-"""Simulated captures of the built-in validation, holdout and check splits, of the large tuning scenes and of the tall
-objects on a table.
+"""Simulated captures of the built-in validation, holdout, check and tuning splits (the large tuning scenes a group of
+their own) and of the tall objects on a table.
 
-    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,check,large,table] [--seed 0]
+    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,check,tuning,large,table] [--seed 0]
                                      [--overwrite]
 
 Writes one capture folder per scene into FOLDER, each through `spadscan simulate` with a fixed command line (printed
@@ -9,6 +9,8 @@ as it goes), so the same seed gives the same captures on any machine:
 
 - validation, holdout, check: those splits (protocol/scenes.py SPLITS) in the public dataset's simulated format: sensor
   lcspc-sim, 256 views on the Fibonacci spiral at 0.5 m looking at the origin, no table.
+- tuning: the tuning split's built-ins but the large ones, in the same format (the dataset's own three scenes are
+  imported from it: `spadscan import-lcspc`).
 - large: the tuning split's four 0.35 m scenes (LARGE_SCENES), in the same format: their tops 0.15 m from the views
   above them.
 - table: the tall objects (TABLE_SCENES) on a black table, as a real capture sees them: sensor tmf8820, 120 views
@@ -44,7 +46,7 @@ TABLE_RADIUS_M = {"head-on-can": 0.45, "tall-block": 0.40}
 LARGE_SCENES = ("big-lamp", "big-cup", "big-goblet", "tall-egg")
 """The tuning split's built-ins made 0.35 m tall (protocol/scenes.py)."""
 
-GROUPS = ("validation", "holdout", "check", "large", "table")
+GROUPS = ("validation", "holdout", "check", "tuning", "large", "table")
 
 
 def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
@@ -55,6 +57,10 @@ def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
             for spec in SPLITS[split]:
                 name = spec.split(":", 1)[1]
                 out.append((name, [spec, *VALIDATION_OPTIONS, "--seed", str(seed)]))
+    if "tuning" in groups:
+        names = [s.split(":", 1)[1] for s in SPLITS["tuning"] if s.startswith("builtin:")]
+        out += [(name, [f"builtin:{name}", *VALIDATION_OPTIONS, "--seed", str(seed)])
+                for name in names if name not in LARGE_SCENES]
     if "large" in groups:
         out += [(name, [f"builtin:{name}", *VALIDATION_OPTIONS, "--seed", str(seed)]) for name in LARGE_SCENES]
     if "table" in groups:

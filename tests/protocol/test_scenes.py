@@ -15,7 +15,7 @@ HEIGHT_M = {"sphere": 0.20, "cup": 0.16, "lamp": 0.20, "pyramid": 0.15, "demo": 
             "bottle": 0.24, "mushroom": 0.18, "pawn": 0.20, "big-lamp": 0.35, "big-cup": 0.35, "big-goblet": 0.35,
             "tall-egg": 0.35, "chair": 0.26, "snowman": 0.28, "vase": 0.25, "ring-stand": 0.24, "cat": 0.23,
             "lighthouse": 0.34, "candlestick": 0.27, "kettle": 0.18, "pear": 0.20,
-            "plant-stand": 0.18, "easel": 0.30, "coat-rack": 0.32, "side-table": 0.205}
+            "plant-stand": 0.18, "easel": 0.30, "coat-rack": 0.32, "side-table": 0.205, "dish": 0.06}
 """Each scene's height as its description gives it (metres, to the centimetre)."""
 
 HOLES = {"mug": 1, "ring-stand": 1, "kettle": 1, "teddy": 2, "chair": 2, "easel": 2, "stool": 3, "plant-stand": 4}
@@ -114,7 +114,7 @@ def test_every_builtin_is_in_one_split_or_a_table_scene_and_the_splits_do_not_ov
     for i, a in enumerate(splits):
         assert all(not a & b for b in splits[i + 1:])
     tuning = ("sphere", "cup", "lamp", "pyramid", "demo", "big-lamp", "big-cup", "big-goblet", "tall-egg",
-              "plant-stand", "side-table")
+              "plant-stand", "side-table", "dish")
     assert splits[0] == {f"builtin:{n}" for n in tuning} | set(DATASET_SCENES)
     assert set(DATASET_SCENES) == {"lcspc:sphere", "lcspc:bunny", "lcspc:soap"}
     for name in BUILTIN_SCENES:
@@ -197,7 +197,7 @@ def test_side_table_has_a_wide_top_over_four_thin_legs(meshes):
     assert top == pytest.approx(0.100, abs=2e-3) and top - legs_top > 0.025, "the top overhangs the legs"
 
 
-@pytest.mark.parametrize("name, depth", [("mug", 0.12), ("bowl", 0.08)])
+@pytest.mark.parametrize("name, depth", [("mug", 0.12), ("bowl", 0.08), ("dish", 0.045)])
 def test_mug_and_bowl_are_open_to_the_top(name, depth, meshes):
     mesh = meshes(name)
     assert _first_hit_z(mesh) < mesh.bounds[1, 2] - depth
