@@ -840,7 +840,7 @@ class ReconProgress:
         self.shown = max(self.shown, done)
         # After the count: the end's stage is said at once as lines (ProgressLines), with the count at its end, and
         # not only once the job has finished (its mesh, metrics, pictures and report take a while).
-        if progress.done >= progress.total and hasattr(self.bar, "set_description_str"):
+        if progress.training_done and hasattr(self.bar, "set_description_str"):
             self.bar.set_description_str(self.after + self.label)
 
 

@@ -66,7 +66,7 @@ def test_progress_lines_come_at_each_tenth_of_the_training(capsys):
     lines = fake_clock_lines(capsys, budget_s=20.0, step_s=1.0)
     assert [line.split(",")[0] for line in lines] == \
         [f"reconstruct (fast): {s}.0/20.0 s of training ({5 * s} %)" for s in range(2, 21, 2)]
-    assert lines[-1].endswith("[00:20]") and ", step 20, loss 0.05 " in lines[-1], lines[-1]
+    assert lines[-1].endswith("[00:20]") and ", step 20, loss 0.05, ended budget " in lines[-1], lines[-1]
 
 
 def test_progress_lines_of_a_long_run_come_at_least_every_30_s(capsys):
@@ -92,7 +92,7 @@ def test_a_run_that_ends_on_a_checkpoint_says_its_end_once_with_the_last_chamfer
     lines = capsys.readouterr().err.splitlines()
     ends = [line for line in lines if "(100 %)" in line]
     assert len(ends) == 1 and ends[0] == lines[-1], lines
-    assert ", chamfer 3.00mm, scored at step 10 " in ends[0], ends[0]
+    assert ", chamfer 3.00mm, scored at step 10, ended steps " in ends[0], ends[0]
     assert len(lines) == 10, "a line at each tenth, the last one the end's"
 
 

@@ -27,6 +27,7 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.live_status import LiveStatus
 
 from .jobs import Job
+from .recon.trainer import ENDED_FIELD
 from .queue import QUEUE_DIRNAME, SEP, Claim
 from .status_detail import ENDED, own_live_status
 
@@ -38,7 +39,7 @@ CHAMFER_RE = re.compile(r"^(?P<mm>[\d.]+)\s*mm$")
 SCORED_RE = re.compile(r"^at step (?P<step>\d+)")
 """The bar's `scored=` field: the step its `chamfer=` was scored at (then how checkpoints are scored)."""
 AFTER_TRAINING = "training done: mesh, metrics, pictures"
-"""What a job does once its training bar is full (its result is not there yet)."""
+"""What a job does once its training is over (`JobProgress.training_done`; its result is not there yet)."""
 PROGRESS_S = 30.0
 """How often `spadscan worker` says each running job's progress in its own terminal (`ProgressNotes`)."""
 SETTING_UP = "setting up"
@@ -63,7 +64,9 @@ class JobProgress:
 
     @property
     def training_done(self) -> bool:
-        return self.total > 0 and self.done >= self.total
+        """The count at its total, or the bar's field that the training ended (a run that converged early, a
+        budget's last step short of it: the job makes its mesh, metrics and pictures all the same)."""
+        return (self.total > 0 and self.done >= self.total) or ENDED_FIELD in self.fields
 
     @property
     def fraction(self) -> float:

@@ -26,6 +26,8 @@ from .model_api import ReconModel, RunPlan
 
 PROGRESS_LINES = "lines"
 """`train(progress=PROGRESS_LINES)`: the bar's readings as plain lines (`ProgressLines`), not a bar."""
+ENDED_FIELD = "ended"
+"""The bar's field, drawn once its training has ended, that says why: converged, budget, steps or interrupted."""
 LINE_SHARE = 0.1
 """A progress line each time training passes another tenth of its bar: a run's log shows its course in ten lines
 whatever its length."""
@@ -183,8 +185,11 @@ def train(model: ReconModel, plan: RunPlan, *, checkpoints: int = 12, every_s: f
             if result.stopped_by:
                 break
         pause()
-        if post:
-            bar.set_postfix(post)  # the last step's fields are drawn, whenever the bar last was
+        # The bar says its training ended, and why: its count need not be at its total (a run that converged early, a
+        # budget's last step that left part of a second), and what reads it from a job's log (worker.job_progress)
+        # tells the mesh, metrics and pictures that follow from training by this field.
+        post[ENDED_FIELD] = result.stopped_by
+        bar.set_postfix(post)  # the last step's fields are drawn, whenever the bar last was
         if window or not result.trace or result.trace[-1]["step"] != result.steps:
             checkpoint(final=True)
         elif evaluate is not None and "note" in result.trace[-1] and (end_evaluation is None
@@ -271,11 +276,12 @@ class ProgressLines:
         self.postfix = text
 
     def set_description_str(self, desc: str) -> None:
-        """The words the next line starts with. A new description once the count is at its end (the demo's "mesh,
-        metrics, pictures, report" stage) is said at once: no count comes after it, and the stage may take a while
-        (said at close() only, a log would be silent through it and date its line after it)."""
+        """The words the next line starts with. A new description once the count has begun (the demo's "mesh,
+        metrics, pictures, report" stage, at the count where training ended) is said at once: no count may come after
+        it, and the stage may take a while (said at close() only, a log would be silent through it and date its line
+        after it). One at the start (a retry naming its attempt) comes with the first count."""
         changed, self.desc = desc != self.desc, desc
-        if changed and self._at_end():
+        if changed and self.n > 0:
             self._say(self.clock())
 
     def reset(self) -> None:
