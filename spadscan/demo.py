@@ -838,8 +838,9 @@ class ReconProgress:
         done = min(progress.done, progress.total)
         self.bar.update(max(0.0, done - self.shown))
         self.shown = max(self.shown, done)
-        # After the count: the end's stage is said at once as lines (ProgressLines), with the count at its end, and
-        # not only once the job has finished (its mesh, metrics, pictures and report take a while).
+        # After the count: the end's stage once the training is over (its count at its total, or its bar's `ended`
+        # field: a run that converged early), said at once as lines (ProgressLines), not only once the job has
+        # finished (its mesh, metrics, pictures and report take a while).
         if progress.training_done and hasattr(self.bar, "set_description_str"):
             self.bar.set_description_str(self.after + self.label)
 
