@@ -248,8 +248,9 @@ def test_a_job_result_without_its_view_names_the_command_that_makes_it_again(tmp
     report: dict = {"warnings": []}
     assert ensure_view3d(report, out) is None
     assert report["warnings"] == [f"no 3D view: {VIEW3D} could not be written (No space left on device); make room "
-                                  f"on its disk, then `{redo}` reconstructs the job again with its view, this result "
-                                  f"kept aside"]
+                                  f"on its disk, then `{redo}` queues the job again, this result moved aside, and a "
+                                  f"worker on that root (a running one, or one started with --once) reconstructs it "
+                                  f"with its view"]
     (out / "job.json").unlink()
     plain: dict = {}
     ensure_view3d(plain, out)

@@ -88,14 +88,16 @@ def no_view_warning(exc: Exception, folder=None) -> str:
     """The report's warning for a view that could not be made. An OSError's own path is left out: it names the
     folder the result was written in, which a job's result no longer is once published. A worker job's result
     (`folder` holds its job.json) that met a write error names how to get the view: the job's `redo` command, once
-    there is room where the disk was full."""
+    there is room where the disk was full. That command only queues the job again and exits, so the warning says
+    what then runs it: a worker on that root."""
     why = (exc.strerror or str(exc)) if isinstance(exc, OSError) else str(exc)
     line = f"no 3D view: {VIEW3D} could not be written ({' '.join(why.split())})"
     redo = _redo_command(folder) if isinstance(exc, OSError) else None
     if redo is None:
         return line
     first = "make room on its disk, then " if is_disk_full(exc) else ""
-    return f"{line}; {first}`{redo}` reconstructs the job again with its view, this result kept aside"
+    return (f"{line}; {first}`{redo}` queues the job again, this result moved aside, and a worker on that root "
+            f"(a running one, or one started with --once) reconstructs it with its view")
 
 
 def _redo_command(folder) -> str | None:
