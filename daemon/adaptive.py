@@ -13,7 +13,9 @@ costs.
 
 The plan's rows before the pose being chosen are the poses taken, so `schedule.npy`, rewritten before each chosen
 pose is published, keeps meaning "row i is pose i" and a resumed scan reads its fallback queue back from it. Each
-measurement records why its pose was taken (`view_choice` in its meta: `initial`, `adaptive` or `fallback`).
+measurement records why its pose was taken (`view_choice` in its meta, its `why`: `initial`, `adaptive` or `fallback`
+as chosen here, or `retaken`, which the daemon writes for a pose taken again after its chunk was moved out of the
+capture, at the pose it had).
 """
 
 from __future__ import annotations

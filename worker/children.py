@@ -34,12 +34,16 @@ class Child:
 
 
 async def spawn_job(job: Job, root: Path, scratch: Path, outcome: Path, log: Path, *, recon: str | None,
-                    extra_env: dict[str, str] | None, preface: list[str] | None = None) -> asyncio.subprocess.Process:
+                    extra_env: dict[str, str] | None, preface: list[str] | None = None,
+                    queue: Path | None = None) -> asyncio.subprocess.Process:
     """Start the process that runs `job` into `scratch`, its output going to `log`, after the worker's `preface`
     lines (each as `spadscan worker: LINE`): what the job's own output cannot know, such as the other workers it
-    shares the machine's cores with."""
+    shares the machine's cores with. `queue`: the queue the job was claimed from (None: the root's own), which the
+    command its result records to run it again names."""
     cmd = module_command("spadscan.worker.jobs", "--job", json.dumps(job.to_dict()), "--root", root, "--out", scratch,
                          "--outcome", outcome, "--parent-pid", os.getpid())
+    if queue is not None:
+        cmd += ["--queue", str(queue)]
     if recon:
         cmd += ["--recon", recon]
     env = {**os.environ, **(extra_env or {})}

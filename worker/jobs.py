@@ -26,6 +26,7 @@ import numbers
 import os
 import re
 import secrets
+import shlex
 import shutil
 import sys
 import threading
@@ -46,6 +47,9 @@ from .publish_out import move_aside
 
 ID_RE = re.compile(r"[^A-Za-z0-9._-]+")
 RECON_DIR = "recon"
+DEFAULT_QUEUE = ".queue"
+"""The name of a root's own queue folder (queue.QUEUE_DIRNAME: defined here, where the command that names a queue is
+built, since the queue module imports this one)."""
 EXIT_DONE, EXIT_INPUT, EXIT_CRASH, EXIT_FULL, EXIT_DONE_UNSAID = 0, 3, 4, 5, 6
 """EXIT_DONE_UNSAID: the job finished, its result whole in its folder, but its outcome file met a full disk (the
 queue's): the pool publishes the result (its summary read from its report.json, `summary_of`)."""
@@ -270,7 +274,7 @@ def _export_placed(spec: str, offset, path: Path) -> tuple[Path | None, str | No
 
 
 def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *,
-                started: float | None = None) -> dict:
+                started: float | None = None, queue: Path | None = None) -> dict:
     """Reconstruct the job's capture into the folder `out` (created), to be published as `result_path(job, root)`:
     paths into `out` that the results record (job.json, report.json, report.html) name the published folder. Returns
     the reconstruction's report, with `ground_truth_note` when the capture names a ground truth that cannot be used
@@ -280,11 +284,12 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *
     reconstruction counts it from there, so what checking the capture, loading torch and placing the ground truth
     took is part of it, and its report's times are the job's (report.json: `job_budget_s`). A live job (`job.live`)
     follows its scan first (worker/live/job.py); its final run is an ordinary job, its budget counted from the scan's
-    end."""
+    end. `queue`: the queue the job was claimed from (None: the root's own), which the command job.json records to
+    run the job again (`redo_command`) names."""
     if job.live:
         from .live.job import execute_live_job
 
-        return execute_live_job(job, root, out, recon)
+        return execute_live_job(job, root, out, recon, queue=queue)
     started = time.perf_counter() if started is None else started
     scan = scan_path(job, root)
     manifest, counts_note = check_capture(scan)
@@ -296,7 +301,8 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *
     gt, gt_note = ground_truth(manifest, out)
     (out / "job.json").write_text(json.dumps({**job.to_dict(), "capture": str(scan),
                                               "gt": None if gt is None else str(published_path(gt, out, final)),
-                                              "gt_note": gt_note, "redo": redo_command(job, root)}, indent=1) + "\n")
+                                              "gt_note": gt_note, "redo": redo_command(job, root, queue)},
+                                             indent=1) + "\n")
     if gt_note:
         print(f"ground truth: {gt_note}", file=sys.stderr, flush=True)
     recon = recon or load_recon()
@@ -313,10 +319,23 @@ def execute_job(job: Job, root: Path, out: Path, recon: ReconFn | None = None, *
     return report
 
 
-def redo_command(job: Job, root: Path) -> str:
-    """The command that reconstructs the job again, its result then moved aside (job.json's `redo`: what a result's
-    report names where a part of it could not be written). The root is absolute: a report is read from anywhere."""
-    return f"spadscan worker --root {Path(root).resolve()} --redo {job.id}"
+def redo_command(job: Job, root: Path, queue: Path | None = None) -> str:
+    """The command that moves the job's result aside and queues the job again, then exits: a worker on that root and
+    queue (a running one, or one started with --once) then reconstructs it. Recorded as job.json's `redo`, which a
+    result's report names where a part of it could not be written. `queue`: the worker's queue (None: the root's
+    own)."""
+    return worker_command(root, queue, "--redo", job.id)
+
+
+def worker_command(root: Path, queue: Path | None, *words: str) -> str:
+    """`spadscan worker --root ROOT [--queue QUEUE] WORDS...` as a shell reads it, each word quoted where it must be.
+    Root and queue are absolute (a report is read, and its command run, from anywhere); --queue only when `queue` is
+    not the root's own queue, which the command finds by itself."""
+    root = Path(root).resolve()
+    command = ["spadscan", "worker", "--root", str(root)]
+    if queue is not None and Path(queue).resolve() != (root / DEFAULT_QUEUE).resolve():
+        command += ["--queue", str(Path(queue).resolve())]
+    return shlex.join([*command, *words])
 
 
 def published_path(path: Path, scratch: Path, final: Path) -> Path:
@@ -530,6 +549,9 @@ def child_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", required=True, help="captures root")
     parser.add_argument("--out", required=True, help="folder to write the results into")
     parser.add_argument("--outcome", required=True, help="file to write the outcome into (JSON)")
+    parser.add_argument("--queue", default=None,
+                        help="the queue the job was claimed from (default: ROOT/.queue), named by the command the "
+                             "result records to run the job again")
     parser.add_argument("--parent-pid", type=int, default=None,
                         help="pid of the worker that started this job: the job ends when that process does")
     parser.add_argument("--recon", default=None, help=argparse.SUPPRESS)
@@ -540,7 +562,8 @@ def child_main(argv: list[str] | None = None) -> int:
     started = process_started()  # the job's budget counts from its process's start
     try:
         job = Job.from_dict(json.loads(args.job))
-        report = execute_job(job, Path(args.root), Path(args.out), load_recon(args.recon), started=started)
+        report = execute_job(job, Path(args.root), Path(args.out), load_recon(args.recon), started=started,
+                             queue=Path(args.queue) if args.queue else None)
     except Exception as exc:  # bad input, a full disk, a bug or another resource problem: see _ended_in_error
         return _ended_in_error(exc, outcome, Path(args.out))
     return _ended(outcome, {"ok": True, "seconds": round(time.monotonic() - t0, 3), "summary": summary_of(report)},

@@ -44,7 +44,7 @@ from .children import Child, exit_reason, kill_group, spawn_job
 from .disk_room import MAX_FULL_DISK, RoomWait, folder_bytes, mount_point, retry_after, same_filesystem
 from .job_progress import PROGRESS_S, LogTails, ProgressNotes, ended_live_status, progress_note
 from .jobs import (CHANGEABLE, EXIT_DONE_UNSAID, EXIT_FULL, EXIT_INPUT, completion, existing_result, mark_complete,
-                   result_path, scratch_path, summary_of)
+                   redo_command, result_path, scratch_path, summary_of, worker_command)
 from .holder import Holder
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
 from .presence import RENEW_S, Presence, machine_siblings, remove_presence, write_presence
@@ -357,7 +357,8 @@ class Worker:
         await self._share_cores_now()
         # the job's log names the workers it shares the cores with: a busy warning in its report may come from them
         proc = await spawn_job(job, self.root, scratch, outcome, log_path, recon=self.config.recon,
-                               extra_env=self.job_env, preface=[self._siblings_line()] if self.siblings else None)
+                               extra_env=self.job_env, preface=[self._siblings_line()] if self.siblings else None,
+                               queue=self.queue.path)
         self.children[job.id] = Child(claim, proc, scratch, outcome, log_path, asyncio.create_task(proc.wait()))
         await asyncio.to_thread(self.queue.note_job_process, claim, proc.pid)
         self.log(f"{job.id} started (attempt {claim.attempt} of {self.queue.max_attempts}, pid {proc.pid})")
@@ -405,8 +406,8 @@ class Worker:
             return
         self.settled[claim.job.id] = "kept"
         self.log(f"{claim.job.id}: not run, {existing} already holds a result; kept it and recorded the job as done "
-                 f"(`spadscan worker --root {self.root}{self._queue_flag()} --redo {claim.job.id}` reconstructs it "
-                 f"again, keeping this one aside)")
+                 f"(`{redo_command(claim.job, self.root, self.queue.path)}` moves this one aside and queues the job "
+                 f"again; a worker on this queue then reconstructs it)")
 
     def _publish_left(self, claim: Claim, left: Path) -> None:
         """Publish the finished result an earlier claim of this job left in `left` (its worker stopped, or died,
@@ -426,11 +427,6 @@ class Worker:
         self.settled[job.id] = "done"
         self.log(f"{job.id}: published the finished result an earlier attempt left in {left.name} (not reconstructed "
                  f"again) -> {final}" + (f" (moved {aside} aside)" if aside else ""))
-
-    def _queue_flag(self) -> str:
-        """' --queue DIR' when this worker's queue is not the root's default one, for commands it suggests."""
-        default = self.root / ".queue"
-        return "" if self.queue.path == default else f" --queue {self.queue.path}"
 
     def _heartbeat(self) -> None:
         now = time.monotonic()
@@ -540,8 +536,8 @@ class Worker:
         if state == "failed":
             self._settle_failed(job, error)
             if not aborted:
-                note += (f" (once the cause is fixed, `spadscan worker --root {self.root}{self._queue_flag()} "
-                         f"--retry-failed` queues it again)")
+                note += (f" (once the cause is fixed, `{worker_command(self.root, self.queue.path, '--retry-failed')}` "
+                         "queues it again)")
         self.log(said + note)
 
     def _settle_full(self, child: Child, outcome: dict, seconds: float) -> None:

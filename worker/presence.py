@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import math
 import secrets
-import shlex
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -23,7 +22,8 @@ from spadscan.protocol.atomic_files import write_atomic
 
 from .disk_room import RoomWait, when_text
 from .holder import holder_gone
-from .queue import QUEUE_DIRNAME, file_age
+from .jobs import worker_command
+from .queue import file_age
 
 WORKERS_DIRNAME = "workers"
 """The folder under the queue that holds the workers' presence files."""
@@ -194,10 +194,7 @@ def waiting_for_room(wait: dict) -> str:
 
 def start_command(root: Path, queue_dir: Path) -> str:
     """The command that starts a worker on `root` (and its queue, when it is not the default one)."""
-    words = ["spadscan", "worker", "--root", str(Path(root).resolve())]
-    if Path(queue_dir).resolve() != Path(root).resolve() / QUEUE_DIRNAME:
-        words += ["--queue", str(queue_dir)]
-    return shlex.join(words)
+    return worker_command(root, queue_dir)
 
 
 def _utc(unix: float) -> str:

@@ -42,12 +42,11 @@ from spadscan.protocol.errors import ConfigError
 
 from .disk_room import missing_room, note_doubt
 from .holder import Holder, holder_alive, holder_gone
-from .jobs import CHANGEABLE, ID_RE as _ID_RE, Job
+from .jobs import CHANGEABLE, DEFAULT_QUEUE as QUEUE_DIRNAME, ID_RE as _ID_RE, Job
 from .kill_points import kill_point
 
 
 STATES = ("queued", "running", "done", "failed")
-QUEUE_DIRNAME = ".queue"
 SEP = "~"
 # Outcomes of one claim. Interrupted claims (the worker was asked to stop) and those that met a full disk (no fault of
 # the job's: run again once there is room) do not count as attempts.

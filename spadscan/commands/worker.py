@@ -11,7 +11,8 @@ processes and gives their jobs back to the queue.
 A result is never replaced in silence: a job whose <scan>/recon/<job>/ already holds one (from another queue, or
 from before the queue was deleted) is not run; it is recorded as done, and the log and --status say so. To
 reconstruct finished scans again, `--redo JOB...` moves each one's results folder aside to
-<scan>/recon/<job>.replaced-<UTC time>-<4 hex digits>/ and queues the job again.
+<scan>/recon/<job>.replaced-<UTC time>-<4 hex digits>/, queues the job again and exits: a worker on that root and
+queue (a running one, or one started with --once) then reconstructs it.
 
 --budget-s bounds each job's whole run, from its process's start to its report (within 10 % or 10 s, whichever is
 larger): the mesh is coarser and the metrics use fewer points when time is short. --status shows, for each done
@@ -98,8 +99,8 @@ Examples:
   spadscan worker --root captures --live          # reconstruct scans while they are recorded
   spadscan worker --root captures --status        # list jobs: state, attempts, last error, result
   spadscan worker --root captures --retry-failed  # put failed jobs back in the queue, with their own options
-  spadscan worker --root captures --retry-failed --device cpu   # ... and run them on the CPU
-  spadscan worker --root captures --redo mug-fast --steps 400    # reconstruct a finished scan again
+  spadscan worker --root captures --retry-failed --device cpu   # ... to run on the CPU
+  spadscan worker --root captures --redo mug-fast --steps 400    # queue a finished scan again (a worker reruns it)
 """
 
 from __future__ import annotations
@@ -154,10 +155,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "--budget-s, --steps, --device and --seed given with it replace the jobs' own values "
                              "(the others are kept)")
     parser.add_argument("--redo", nargs="+", default=None, metavar="JOB",
-                        help="reconstruct these done jobs again, and exit: each one's results folder is moved aside "
-                             "to <scan>/recon/<job>.replaced-<UTC time>-<4 hex digits>/ (never deleted; the new name "
-                             "is printed) and the job is queued again; --budget-s, --steps, --device and --seed given "
-                             "with it replace the jobs' own values (the others are kept)")
+                        help="queue these done jobs again, and exit (a worker on the root then reconstructs them): "
+                             "each one's results folder is moved aside to <scan>/recon/<job>.replaced-<UTC time>-<4 "
+                             "hex digits>/ (never deleted; the new name is printed); --budget-s, --steps, --device and "
+                             "--seed given with it replace the jobs' own values (the others are kept)")
 
 
 OPTION_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "device": "--device", "seed": "--seed"}
@@ -345,8 +346,8 @@ def _done_job(queue, job_id: str):
     if state is None:
         raise ConfigError(f"no job {job_id} in {queue.path} (`--status` lists the jobs)")
     if state != "done":
-        raise ConfigError(f"{job_id} is {state}, not done: --redo runs finished jobs again"
-                          + (" (--retry-failed runs failed ones)" if state == "failed" else ""))
+        raise ConfigError(f"{job_id} is {state}, not done: --redo queues finished jobs again"
+                          + (" (--retry-failed queues failed ones)" if state == "failed" else ""))
     try:
         return Job.from_dict(json.loads(path.read_text()), str(path))
     except (OSError, ValueError) as exc:

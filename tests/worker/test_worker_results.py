@@ -48,6 +48,8 @@ def test_a_fresh_queue_keeps_the_results_already_there(tmp_path, arun):
     assert any(f"s-fast: not run, {result} already holds a result" in line for line in lines), lines
     redo = f"`spadscan worker --root {root} --queue {tmp_path / 'q2'} --redo s-fast`"
     assert any(redo in line for line in lines), "the command it suggests names this worker's queue"
+    assert any(f"{redo} moves this one aside and queues the job again; a worker on this queue then reconstructs it"
+               in line for line in lines), "the command only queues the job: a worker runs it"
     rows = {r.id: r for r in Queue(tmp_path / "q2").statuses()}
     assert (rows["s-fast"].state, rows["s-fast"].result, rows["s-fast"].kept) == ("done", str(result), True)
     assert rows["new-fast"].kept is False
@@ -127,8 +129,8 @@ def test_redo_moves_the_result_aside_and_runs_the_job_again(tmp_path, arun, caps
 
 @pytest.mark.parametrize("job, message", [
     ("nope-fast", "no job nope-fast in {queue} (`--status` lists the jobs)"),
-    ("q-fast", "q-fast is queued, not done: --redo runs finished jobs again"),
-    ("f-fast", "f-fast is failed, not done: --redo runs finished jobs again (--retry-failed runs failed ones)"),
+    ("q-fast", "q-fast is queued, not done: --redo queues finished jobs again"),
+    ("f-fast", "f-fast is failed, not done: --redo queues finished jobs again (--retry-failed queues failed ones)"),
 ])
 def test_redo_refuses_jobs_that_are_not_done_and_moves_nothing(tmp_path, capsys, job, message):
     from spadscan.worker.watcher import scan_once

@@ -146,10 +146,12 @@ class ScanAborted(SpadscanError):
 
 
 def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
-                     settings: LiveSettings | None = None, log: Callable[[str], None] | None = None) -> dict:
+                     settings: LiveSettings | None = None, log: Callable[[str], None] | None = None,
+                     queue: Path | None = None) -> dict:
     """Run the live job `job` (see the module): follow its scan, then reconstruct the complete capture into `out`
     (the job's scratch folder) from the live state. Returns the final report, with `live` (what the live phase
-    did). Raises ScanAborted when the scan is aborted, SpadscanError (one line) for a capture that cannot be read."""
+    did). Raises ScanAborted when the scan is aborted, SpadscanError (one line) for a capture that cannot be read.
+    `queue`: the queue the job was claimed from, passed on to `execute_job`."""
     from ..jobs import add_to_report, execute_job, ground_truth, scan_path
 
     settings = settings or LiveSettings()
@@ -163,7 +165,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         note = f"scan {scan.name} was already complete when its live job started: reconstructing it from scratch"
         log(f"live: {note}")
         status_finishing(scan, job, progress, note)
-        return execute_job(dataclasses.replace(job, live=False), root, out, recon)
+        return execute_job(dataclasses.replace(job, live=False), root, out, recon, queue=queue)
     folder = live_folder(scan)
     runner = LiveRun(job, scan, folder, follower, settings, log)
     runner.begin(progress)  # before the set-up (the ground truth, torch, the device), which takes seconds
@@ -183,7 +185,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     if runner.fit.model is None:
         runner.stopped("final", f"the scan completed with {progress.views_published} views before the live fit "
                                 "started: reconstructing it from scratch")
-        return execute_job(dataclasses.replace(job, live=False), root, out, recon)
+        return execute_job(dataclasses.replace(job, live=False), root, out, recon, queue=queue)
     start, why = final_start(runner.fit, progress.views_published, settings)
     if progress.state == "complete":
         # The status only: the live mesh is at most publish_every_s old, and meshing and drawing it again would
@@ -196,7 +198,8 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     how = "continues from the live fit" if start == "live" else f"starts from the carved hull: {why}"
     log(f"live: scan complete ({live_report['views_used']} views fitted, {live_report['steps']} steps); the final "
         f"reconstruction {how}, for {length}")
-    report = execute_job(final, root, out, runner.final_recon(recon, start == "live", chose_polish(job, final)))
+    report = execute_job(final, root, out, runner.final_recon(recon, start == "live", chose_polish(job, final)),
+                         queue=queue)
     extra = {"live": {**live_report, **bounds, "final_start": start}}
     add_to_report(out, extra)
     report.update(extra)

@@ -101,7 +101,7 @@ def no_view_warning(exc: Exception, folder=None) -> str:
 
 
 def _redo_command(folder) -> str | None:
-    """The command that reconstructs the job whose result `folder` holds (its job.json's `redo`), or None."""
+    """The command that queues again the job whose result `folder` holds (its job.json's `redo`), or None."""
     if folder is None:
         return None
     try:
