@@ -165,20 +165,19 @@ def _sphere():
 
 
 def _cup():
-    h, wall, base = 0.16, 0.005, 0.008
-    r_bottom, r_top = 0.040, 0.052
-    r_in = lambda z: r_bottom + (r_top - r_bottom) * z / h - wall  # noqa: E731  (inner wall follows the taper)
-    profile = [(0, 0), (r_bottom - 0.004, 0), (r_bottom, 0.004), (r_top, h), (r_in(h), h),
-               (r_in(base), base), (0, base)]
-    return revolve_profile(np.array(profile))
+    return _open_vessel(h=0.16, wall=0.005, base=0.008, r_bottom=0.040, r_top=0.052, foot=0.004)
 
 
 def _dish():
-    # Like the cup, turned wide and shallow: the wall leans out 1 in 2, a rounded foot edge, a flat 8 mm floor.
-    h, wall, base = 0.060, 0.005, 0.008
-    r_bottom, r_top = 0.100, 0.130
-    r_in = lambda z: r_bottom + (r_top - r_bottom) * z / h - wall  # noqa: E731  (inner wall follows the flare)
-    profile = [(0, 0), (r_bottom - 0.006, 0), (r_bottom, 0.006), (r_top, h), (r_in(h), h),
+    # The cup turned wide and shallow: the wall leans out 1 in 2.
+    return _open_vessel(h=0.060, wall=0.005, base=0.008, r_bottom=0.100, r_top=0.130, foot=0.006)
+
+
+def _open_vessel(h: float, wall: float, base: float, r_bottom: float, r_top: float, foot: float):
+    """A vessel open to the top (metres): its outer wall straight from radius r_bottom to r_top over height h, a
+    rounded foot edge `foot` wide, the inner wall `wall` inside the outer one down to a flat floor `base` thick."""
+    r_in = lambda z: r_bottom + (r_top - r_bottom) * z / h - wall  # noqa: E731  (inner wall follows the outer)
+    profile = [(0, 0), (r_bottom - foot, 0), (r_bottom, foot), (r_top, h), (r_in(h), h),
                (r_in(base), base), (0, base)]
     return revolve_profile(np.array(profile))
 
