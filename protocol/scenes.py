@@ -30,7 +30,7 @@ BUILTIN_SCENES: dict[str, str] = {
     "pyramid": ("a 0.15 m square, 0.15 m tall pyramid (flat faces, sharp edges; smaller and lower than the "
                 "dataset's real one)"),
     "demo": "a 0.20 m goblet: foot, 14 mm stem and a bowl open to the top (concavity and thin part together)",
-    "dish": "a 0.26 m wide, 0.06 m tall serving dish, 5 mm wall leaning out round a flat floor (wide, shallow opening)",
+    "dish": "a 0.26 m wide, 0.06 m tall dish: a flat floor, its wall leaning out, 2 mm thick low, 5 mm at the rim",
     "teddy": "a 0.25 m sitting teddy bear: round body and head, thin ears, arms with paws (smooth, small parts)",
     "head": "a 0.35 m sculpted head on a 14 cm square plinth: nose, ears, eye sockets (smooth, large)",
     "duck": "a 0.15 m bath duck: egg-shaped body, raised tail, round head, flat beak (small, smooth)",
@@ -174,8 +174,10 @@ def _dish():
 
 
 def _open_vessel(h: float, wall: float, base: float, r_bottom: float, r_top: float, foot: float):
-    """A vessel open to the top (metres): its outer wall straight from radius r_bottom to r_top over height h, a
-    rounded foot edge `foot` wide, the inner wall `wall` inside the outer one down to a flat floor `base` thick."""
+    """A vessel open to the top (metres): the outer wall straight from radius r_bottom at height `foot` (a bevelled
+    foot edge below) to r_top at h; the inner wall on the line from r_bottom to r_top over 0-h moved in by `wall`, down
+    to a flat floor `base` thick. The wall is `wall` across at the rim and thinner below by the foot's share of the
+    flare: a cup's hardly (5 mm at the rim, 4.7 above its floor), a dish's much (5 mm, 2.2)."""
     r_in = lambda z: r_bottom + (r_top - r_bottom) * z / h - wall  # noqa: E731  (inner wall follows the outer)
     profile = [(0, 0), (r_bottom - foot, 0), (r_bottom, foot), (r_top, h), (r_in(h), h),
                (r_in(base), base), (0, base)]

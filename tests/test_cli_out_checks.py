@@ -188,10 +188,12 @@ def test_import_lcspc_refuses_an_out_it_cannot_write_into_before_it_reads(rotest
 
 
 def test_a_worker_refuses_a_queue_it_cannot_write_into_and_status_still_reads_it(rotest, here, capsys):
-    """A run writes its jobs into the queue: refused, naming --queue, as --out is; --status only reads it."""
+    """A run writes its jobs into the queue, and --redo and --retry-failed the jobs they queue again: refused, naming
+    --queue, as --out is; --status only reads it."""
     (here / "caps").mkdir()
-    assert main(["worker", "--root", "caps", "--queue", rotest, "--once"]) == 1
-    assert one_line_error(capsys).startswith(f"spadscan: error: --queue {rotest}: cannot write into it (")
+    for action in (["--once"], ["--redo", "s-fast"], ["--retry-failed"]):
+        assert main(["worker", "--root", "caps", "--queue", rotest, *action]) == 1
+        assert one_line_error(capsys).startswith(f"spadscan: error: --queue {rotest}: cannot write into it ("), action
     assert main(["worker", "--root", "caps", "--queue", rotest, "--status"]) == 0
     assert f"no jobs in {rotest}" in capsys.readouterr().out
     assert os.listdir(rotest) == []

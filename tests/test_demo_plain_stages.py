@@ -51,6 +51,7 @@ CLOSED = converged_log()
 TRAINING = CLOSED[:CLOSED.rindex("reconstruct (fast)")]
 """The same log while the run's steps are drawn, before its training ended."""
 
+
 def running(tmp_path):
     """A queue whose job is running; returns a function that writes the running claim's log."""
     queue = Queue.for_root(tmp_path)

@@ -49,7 +49,7 @@ from .holder import Holder
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
 from .presence import RENEW_S, Presence, machine_siblings, remove_presence, write_presence
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
-from .queue import SEP, Claim, Queue, Unrecorded
+from .queue import QUEUE_DIRNAME, SEP, Claim, Queue, Unrecorded
 from .watcher import SETTLE_S, ScanReport, scan_once, watch
 from .worker_config import WorkerConfig, machine_job_processes
 
@@ -75,7 +75,7 @@ class Worker:
                  progress_s: float | None = None):
         self.config = config.check()
         self.root = Path(config.root)
-        self.queue = Queue(config.queue_dir or self.root / ".queue", lease_s=config.lease_s,
+        self.queue = Queue(config.queue_dir or self.root / QUEUE_DIRNAME, lease_s=config.lease_s,
                            max_attempts=config.max_attempts, root=self.root)
         (self.queue.path / "logs").mkdir(exist_ok=True)
         self.log = log or (lambda line: print(f"spadscan worker: {line}", file=sys.stderr, flush=True))

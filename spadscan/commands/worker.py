@@ -155,10 +155,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "--budget-s, --steps, --device and --seed given with it replace the jobs' own values "
                              "(the others are kept)")
     parser.add_argument("--redo", nargs="+", default=None, metavar="JOB",
-                        help="queue these done jobs again, and exit (a worker on the root then reconstructs them): "
-                             "each one's results folder is moved aside to <scan>/recon/<job>.replaced-<UTC time>-<4 "
-                             "hex digits>/ (never deleted; the new name is printed); --budget-s, --steps, --device and "
-                             "--seed given with it replace the jobs' own values (the others are kept)")
+                        help="queue these done jobs again, and exit (a worker on the root and queue then reconstructs "
+                             "them): each one's results folder is moved aside to <scan>/recon/<job>.replaced-<UTC "
+                             "time>-<4 hex digits>/ (never deleted; the new name is printed); --budget-s, --steps, "
+                             "--device and --seed given with it replace the jobs' own values (the others are kept)")
 
 
 OPTION_FLAGS = {"budget_s": "--budget-s", "steps": "--steps", "device": "--device", "seed": "--seed"}
@@ -181,14 +181,14 @@ def run(args) -> int:
     from pathlib import Path
 
     from spadscan.worker.pool import run_worker
-    from spadscan.worker.queue import Queue
+    from spadscan.worker.queue import QUEUE_DIRNAME, Queue
     from spadscan.worker.watcher import JobOptions, check_root
     from spadscan.worker.worker_config import WorkerConfig
 
     _refuse_combinations(args)
     root = check_root(args.root)
-    queue_dir = Path(args.queue) if args.queue else root / ".queue"
-    _check_queue(queue_dir, given=args.queue is not None, creates=not (args.status or args.retry_failed or args.redo))
+    queue_dir = Path(args.queue) if args.queue else root / QUEUE_DIRNAME
+    _check_queue(queue_dir, given=args.queue is not None, creates=not args.status)
     lease_s = DEFAULTS["lease_s"] if args.lease_s is None else args.lease_s
     if args.status:  # a query: a root without a queue yet is listed as empty, not given one
         return _print_status(Queue(queue_dir, lease_s=lease_s, create=False), args.json, root)
@@ -268,11 +268,12 @@ def _refuse_combinations(args) -> None:
 
 
 def _check_queue(queue_dir, given: bool, creates: bool) -> None:
-    """Refuse, in one line that names --queue, a queue folder that cannot be one: a file there or above it; for a run
-    (`creates`), which makes the folder and writes its jobs into it, one that cannot be made or written into; for a
-    --queue given (--status would end by suggesting a worker on it), one that is not there and cannot be made (one
-    that is there is only read). A root's default queue that is missing is only read: --status lists it as empty,
-    since the root's own worker makes it, even where this user cannot."""
+    """Refuse, in one line that names --queue, a queue folder that cannot be one: a file there or above it; for all
+    but --status (`creates`: a run makes the folder and writes its jobs into it, --redo and --retry-failed write the
+    jobs they queue again), one that cannot be made or written into; for --status with a --queue given (it would end
+    by suggesting a worker on it), one that is not there and cannot be made (one that is there is only read). A
+    root's default queue that is missing is only read by --status: it lists it as empty, since the root's own worker
+    makes it, even where this user cannot."""
     from spadscan.protocol.folders import folder_problem, not_a_folder
     from spadscan.protocol.errors import ConfigError
 

@@ -263,7 +263,7 @@ import sys, time
 from pathlib import Path
 import numpy as np
 import spadscan.protocol.capture_writer as cw
-from spadscan.protocol.capture_writer import CaptureWriter, mark_paused
+from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.sensor_presets import sensor_preset
 
 {source}

@@ -29,8 +29,8 @@ SAID = "no 3D view: view3d.html could not be written (No space left on device)"
 def job_said(root: Path, job: str) -> str:
     """SAID, as a worker job's result says it: with the command that queues the job again, and what then runs it."""
     return (f"{SAID}; make room on its disk, then `spadscan worker --root {root.resolve()} --redo {job}` "
-            f"queues the job again, this result moved aside, and a worker on that root (a running one, or one "
-            f"started with --once) reconstructs it with its view")
+            f"queues the job again, this result moved aside, and a worker on that root and queue (a running one, or "
+            f"one started with --once) reconstructs it with its view")
 
 
 def _full_disk(folder, *args, **kwargs):

@@ -78,8 +78,8 @@ def test_help_says_redo_and_retry_failed_queue_jobs_for_a_worker_to_run(capsys):
     with pytest.raises(SystemExit):
         cli_main(["worker", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "--redo JOB [JOB ...] queue these done jobs again, and exit (a worker on the root then reconstructs " \
-           "them)" in text, text
+    assert "--redo JOB [JOB ...] queue these done jobs again, and exit (a worker on the root and queue then " \
+           "reconstructs them)" in text, text
     assert "--redo mug-fast --steps 400 # queue a finished scan again (a worker reruns it)" in text
     assert "--retry-failed --device cpu # ... to run on the CPU" in text
     assert "queues the job again and exits: a worker on that root and queue" in text

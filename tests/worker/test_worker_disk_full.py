@@ -249,8 +249,8 @@ def test_a_job_result_without_its_view_names_the_command_that_makes_it_again(tmp
     assert ensure_view3d(report, out) is None
     assert report["warnings"] == [f"no 3D view: {VIEW3D} could not be written (No space left on device); make room "
                                   f"on its disk, then `{redo}` queues the job again, this result moved aside, and a "
-                                  f"worker on that root (a running one, or one started with --once) reconstructs it "
-                                  f"with its view"]
+                                  f"worker on that root and queue (a running one, or one started with --once) "
+                                  f"reconstructs it with its view"]
     (out / "job.json").unlink()
     plain: dict = {}
     ensure_view3d(plain, out)

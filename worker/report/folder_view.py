@@ -97,7 +97,7 @@ def no_view_warning(exc: Exception, folder=None) -> str:
         return line
     first = "make room on its disk, then " if is_disk_full(exc) else ""
     return (f"{line}; {first}`{redo}` queues the job again, this result moved aside, and a worker on that root "
-            f"(a running one, or one started with --once) reconstructs it with its view")
+            f"and queue (a running one, or one started with --once) reconstructs it with its view")
 
 
 def _redo_command(folder) -> str | None:
