@@ -429,9 +429,9 @@ def running_runs(captures: Path) -> dict[str, JobRun]:
     """Each job the worker is running on `captures` by id: its claim and its progress, read from its log in the
     queue and measured against its budget as `spadscan worker --status` measures it."""
     from spadscan.worker.job_progress import running_progress
-    from spadscan.worker.queue import SEP, Queue
+    from spadscan.worker.queue import QUEUE_DIRNAME, SEP, Queue
 
-    if not (captures / ".queue").is_dir():
+    if not (captures / QUEUE_DIRNAME).is_dir():
         return {}
     queue = Queue.for_root(captures, create=False)
     paths = queue.job_paths()
@@ -688,9 +688,9 @@ def scan_job_state(captures: Path, scan: str) -> str | None:
 def _scan_job(captures: Path, scan: str) -> tuple[str, str, Path] | None:
     """(id, state, job file) of scan `scan`'s job, or None while none is queued. The job's own record says whose it
     is: its id need not start with the scan's name (`jobs.job_id_for` hashes long or odd names)."""
-    from spadscan.worker.queue import Queue
+    from spadscan.worker.queue import QUEUE_DIRNAME, Queue
 
-    if not (captures / ".queue").is_dir():
+    if not (captures / QUEUE_DIRNAME).is_dir():
         return None
     queue = Queue.for_root(captures, create=False)
     for job_id, (state, path) in sorted(queue.job_paths().items()):

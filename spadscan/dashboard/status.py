@@ -25,7 +25,7 @@ from pathlib import Path
 
 from spadscan.worker.job_progress import progress_field, running_progress
 from spadscan.worker.presence import present_workers, start_command
-from spadscan.worker.queue import Queue
+from spadscan.worker.queue import QUEUE_DIRNAME, Queue
 from spadscan.worker.report.mesh_pictures import VIEWS
 from spadscan.worker.report.offscreen import OffscreenUnavailable, check_offscreen
 from spadscan.worker.status_detail import status_parts
@@ -98,7 +98,7 @@ class Dashboard:
     def __init__(self, root, queue_dir=None, daemon_running: Callable[[Path], bool] | None = None,
                  clock: Callable[[], float] = time.time):
         self.root = Path(root)
-        self.queue_dir = Path(queue_dir) if queue_dir else self.root / ".queue"
+        self.queue_dir = Path(queue_dir) if queue_dir else self.root / QUEUE_DIRNAME
         self.daemon_running = daemon_running
         self.clock = clock
         self.cannot_draw = cannot_draw()
