@@ -91,6 +91,7 @@ SLIDER_OLD_S = 5.0  # a speed slider read longer ago than this is shown with its
 ARM_IDLE = ("paused", "idle")  # the states in which no scan reads the arm: status reads its speed slider itself
 ROOM_PROBE = f"{TMP_PREFIX}room-check"  # the hidden folder a resume writes a pose's worth of files into (`_no_room`)
 META_BYTES = 4096  # what a frame's record in a chunk's meta.json may take, at most (depths, confidences, extra)
+USER_PAUSE = "paused by user"  # the reason of the operator's pause (`ctl pause`)
 SENSOR_LINK_WAIT = "`spadscan ctl resume` once the sensor's link is back (the scan does not go on by itself)"
 SENSOR_LINK_BACK = "the sensor's link is back now: `spadscan ctl resume`"
 """What a pause for the sensor's lost link tells the operator to do while it is down, and once it is back."""
@@ -322,19 +323,25 @@ class ScanRunner:
         # note that it found the scan interrupted (recorded while it waited for `ctl resume`) is no such pause.
         paused = None if record is not None and takeover_note(record) else recorded
         auto = auto_resume and job.blocked is None and in_the_way is None and paused is None
-        going_on = "auto_resume continues it" if auto else "`spadscan ctl resume` continues"
+        # What this takeover says of the scan it found interrupted while it waits for `ctl resume`: also after an
+        # auto_resume refused (the sensor's link down), when "auto_resume continues it" no longer holds.
+        waiting = self._takeover_note("`spadscan ctl resume` continues", owed)
         if job.blocked:
             # Said after the pause the scan had, as the capture records it (`_pause_said`) for the dashboard:
             # `ctl status` and the dashboard say the same.
             job.reason = f"{paused}; {job.blocked}" if paused else job.blocked
-        elif recorded and not auto:
-            # The pause the scan had, or an earlier takeover's note, said as the capture records it: `ctl status` and
-            # the dashboard say the same.
-            job.reason = recorded
+        elif paused:
+            # The pause the scan had, said as the capture records it: `ctl status` and the dashboard say the same.
+            job.reason = paused
         else:
-            job.reason = (f"{interrupted_at(self._progress())}; {going_on}" +
-                          (f", taking pose(s) {owed} again first (missing from the capture)" if owed else ""))
-        job.paused_for, job.interrupted = paused, paused is None
+            # An earlier takeover's record (kind INTERRUPTED) is not repeated: its words may be a refused resume's
+            # cause, long gone, or a pose since passed. This takeover says its own note, as the scan stands now.
+            job.reason = self._takeover_note("auto_resume continues it", owed) if auto else waiting
+        # Why the scan waits stays said first when a resume is refused (`_refuse_resume`), and is what the capture
+        # records (`_pause_said`): not the refusal's cause, which the next daemon checks afresh. A blocked scan
+        # keeps the pause it had alone (the block is no pause of its own, and `_pause_said` records it with that).
+        job.paused_for = paused if job.blocked else paused or waiting
+        job.interrupted = paused is None
         if in_the_way and not job.blocked:
             # The pause the scan had (the operator's, a fault's) stays said first: the full disk is one more thing
             # to see to, not why it was paused. The capture records that alone (or that the scan was interrupted):
@@ -359,6 +366,12 @@ class ScanRunner:
             except ConfigError as exc:  # a cause known to persist (the sensor's link down): it stays paused
                 log.warning("scan %s: auto_resume did not continue it: %s", job.name, exc)
         return True
+
+    def _takeover_note(self, going_on: str, owed: list[int]) -> str:
+        """A takeover's note of the scan it found interrupted, at the pose it stands at now: how it goes on
+        (`going_on`), and the poses it takes again first (`owed`: missing from the capture)."""
+        return (f"{interrupted_at(self._progress())}; {going_on}" +
+                (f", taking pose(s) {owed} again first (missing from the capture)" if owed else ""))
 
     async def _cannot_take_over(self, path: Path, exc: BaseException) -> None:
         """Say why scan `path` cannot be taken over and what the operator can do (a damaged chunk named): the scan
@@ -408,15 +421,36 @@ class ScanRunner:
                 log.info("scan %s: recorded its abort (%s), which %s had kept", path.name, reason, ABORT_PENDING)
 
     async def pause(self) -> dict:
-        """Pause after the pose in flight is published."""
+        """Pause after the pose in flight is published. A scan that waits only because a takeover found it
+        interrupted (`ScanJob.interrupted`) is paused by the operator from now on (`_hold_taken_over`)."""
         if self.state == "scanning":
             self._pause_requested = True
             self._set_state("pausing")
             log.info("scan %s: pause requested at pose %s; pausing at pose %s, once the poses under way are published",
                      self.job.name, self._progress(), self._pause_at())
+        elif self.state == "paused" and self.job is not None and self.job.interrupted and not self._aborting():
+            await self._hold_taken_over(self.job)
         elif self.state not in ("pausing", "paused"):
             raise ConfigError(f"nothing to pause (daemon is {self.state})")
         return self.status()
+
+    async def _hold_taken_over(self, job: ScanJob) -> None:
+        """`ctl pause` on a scan that a takeover holds waiting, found interrupted: the wait becomes the operator's
+        pause, recorded as one (kind PAUSE), so that no later daemon goes on by itself, auto_resume or not (a
+        takeover's note of kind INTERRUPTED lets it). Its reason says so first; what stands in the way besides (a
+        block, a full disk, a refused resume's cause) stays said after it. A resume being checked decides first."""
+        if self._resume_checks:
+            raise ConfigError(f"scan {job.name!r} is being resumed: pause it (`spadscan ctl pause`) once it scans")
+        was, note = job.reason or "", job.paused_for or ""
+        rest = (f"; {job.blocked}" if job.blocked else
+                was[len(note):] if note and was.startswith(note) else "")
+        job.reason, job.paused_for, job.interrupted = f"{USER_PAUSE}{rest}", USER_PAUSE, False
+        if self.last_error == was:
+            self.last_error = job.reason
+        log.info("scan %s %s at pose %s (it waited after a takeover): it stays paused, auto_resume or not, until "
+                 "`spadscan ctl resume`", job.name, USER_PAUSE, self._progress())
+        self._notify()
+        await self._record_pause(job)
 
     async def resume(self, name: str | None = None) -> dict:
         """Continue a paused scan at its first unpublished pose. `name`: a scan the daemon does not hold (found
@@ -754,8 +788,8 @@ class ScanRunner:
                         await self._fault(job, _reopen_problem(job, exc))
                         continue
                 if self._pause_requested:
-                    job.reason = "paused by user"
-                    log.info("scan %s paused by user at pose %s", job.name, self._progress())
+                    job.reason = USER_PAUSE
+                    log.info("scan %s %s at pose %s", job.name, USER_PAUSE, self._progress())
                     await self._wait_resume(job)
                     continue
                 try:
@@ -1276,7 +1310,7 @@ class ScanRunner:
             if job.writer is None:
                 job.writer = await self._io(job.reopen)
             if self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
-                await self._io(mark_paused, job.path, _pause_said(job) or "paused by user", _pause_kind(job))
+                await self._io(mark_paused, job.path, _pause_said(job) or USER_PAUSE, _pause_kind(job))
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:

@@ -97,14 +97,15 @@ class ScanJob:
     reason: str | None = None
     paused_for: str | None = None
     """Why the scan is paused in the first place, while something found since keeps it paused too (a takeover, or a
-    resume refused, that found no room on the disk): the reason recorded in the capture when a daemon took the scan
-    over (the operator's pause, a fault's), or that it was interrupted. `reason` says it first, then what stands in
-    the way now; a pause records it alone in the capture (the next daemon checks the disk again itself). None once
-    the scan goes on."""
+    resume refused, that found no room on the disk; a resume refused for the sensor's link): the reason recorded in
+    the capture when a daemon took the scan over (the operator's pause, a fault's), or the takeover's own note that
+    it was interrupted, or the operator's pause (`ctl pause`) of a scan that waited after a takeover. `reason` says
+    it first, then what stands in the way now; a pause records it alone in the capture (the next daemon checks the
+    disk and the link again itself). None once the scan goes on."""
     interrupted: bool = False
     """Paused only because a takeover found the scan interrupted: no one and nothing paused it. Its capture records
     the pause as such (`paused.kind` INTERRUPTED), so that the next daemon may go on by itself. False once it goes
-    on."""
+    on, or once the operator pauses it (`ctl pause`: the wait becomes a pause, and is recorded as one)."""
     blocked: str | None = None
     """Why this scan cannot resume (e.g. the rig's hand-eye changed); None when it can."""
     preset_note: str | None = None

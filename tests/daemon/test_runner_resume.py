@@ -326,31 +326,98 @@ def test_takeover_note(record, note):
     assert takeover_note({"since_utc": "2024-01-01T00:00:00Z", **record}) is note
 
 
+async def taken_over_and_held(cfg, root, *, refuse: bool = False, pause: bool = False) -> dict:
+    """A daemon on cfg takes the scan over, waits until its capture records the wait; `refuse`: `ctl resume` is then
+    refused (the sensor's link down); `pause`: then `ctl pause`. Returns its status (the pause's reply, when paused)
+    just before it stops."""
+    arm, sensor = build_devices(cfg)
+    async with DeviceSession([arm, sensor]):
+        rig, scene = rig_record(cfg)
+        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+        try:
+            await runner.recover()
+            await until(lambda: "paused" in CaptureReader(root / "mix").manifest, "the pause")
+            if refuse:
+                sensor.inject_link_loss(3600.0)
+                with pytest.raises(ConfigError, match="is down"):
+                    await runner.resume()
+            return await runner.pause() if pause else runner.status()
+        finally:
+            await runner.shutdown()
+
+
 def test_a_takeover_whose_resume_was_refused_is_still_no_pause(arun, tmp_path):
     """A takeover's wait, its resume refused (the sensor's link down), is still no one's pause when the daemon
     stops: the capture records it as the takeover's, and the next daemon with auto_resume goes on by itself (it
     checks the link afresh). The refusal's cause in the record was taken for a pause before."""
     cfg = make_cfg(tmp_path)
     arun(interrupt(cfg))
-
-    async def refused_and_left():
-        arm, sensor = build_devices(cfg)
-        async with DeviceSession([arm, sensor]):
-            rig, scene = rig_record(cfg)
-            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
-            try:
-                await runner.recover()
-                await until(lambda: "paused" in CaptureReader(tmp_path / "caps" / "mix").manifest, "the pause")
-                sensor.inject_link_loss(3600.0)
-                with pytest.raises(ConfigError, match="is down"):
-                    await runner.resume()
-                return runner.status()
-            finally:
-                await runner.shutdown()
-
-    refused = arun(refused_and_left())
+    refused = arun(taken_over_and_held(cfg, tmp_path / "caps", refuse=True))
     assert refused["state"] == "paused" and "is down" in refused["reason"], refused
     record = CaptureReader(tmp_path / "caps" / "mix").manifest["paused"]
     assert record["kind"] == "interrupted", record
     status, _ = arun(restart(make_cfg(tmp_path, auto_resume=True)))
     assert status["state"] == "scanning", status
+
+
+def test_a_refused_resume_after_a_takeover_leaves_the_takeovers_note(arun, tmp_path):
+    """A takeover's resume refused (the sensor's link down) says the takeover's note first, then the cause, and the
+    daemon stopped records the note, not the cause: the next daemon, the link up, said the stale cause before."""
+    root = tmp_path / "caps"
+    arun(interrupt(make_cfg(tmp_path)))
+    refused = arun(taken_over_and_held(make_cfg(tmp_path), root, refuse=True))
+    assert refused["reason"].startswith(NOTE.replace("3/40", refused["progress"]) + "; the link to"), refused
+    record = CaptureReader(root / "mix").manifest["paused"]
+    assert record["kind"] == "interrupted" and "is down" not in record["reason"], record
+    status, _ = arun(taken_over_and_left(make_cfg(tmp_path), root))
+    assert status["state"] == "paused" and status["reason"] == NOTE.replace("3/40", status["progress"]), status
+    recorded = CaptureReader(root / "mix").manifest["paused"]  # (as the daemon stopped: what the dashboard says)
+    assert recorded == {**record, "reason": status["reason"]}, (recorded, record)  # (the pause's time kept)
+
+
+def test_a_takeover_says_its_own_note_whatever_an_earlier_one_recorded(arun, tmp_path):
+    """A record of kind interrupted holds an earlier daemon's words of its wait (here a refused resume's cause, as
+    daemons before recorded it): the next daemon says its own note, as it stands now, not those words."""
+    root = tmp_path / "caps"
+    arun(interrupt(make_cfg(tmp_path)))
+    arun(taken_over_and_left(make_cfg(tmp_path), root))
+    set_paused(root / "mix", reason="the link to sensor sim is down (it reconnects by itself); resume once "
+                                    "`spadscan ctl status` shows its link up (pose 3/40)")
+    status, _ = arun(taken_over_and_left(make_cfg(tmp_path), root))
+    recorded = CaptureReader(root / "mix").manifest["paused"]  # (as the daemon stopped: what the dashboard says)
+    assert status["reason"] == NOTE.replace("3/40", status["progress"]) == recorded["reason"], (status, recorded)
+    assert recorded["kind"] == "interrupted", recorded
+
+
+@pytest.mark.parametrize("refuse", [False, True])
+def test_ctl_pause_on_a_takeovers_wait_is_the_operators_pause(arun, tmp_path, refuse):
+    """`ctl pause` on a scan that waits only because a daemon took it over interrupted makes the wait the operator's
+    pause, recorded as one: the next daemon, with auto_resume, keeps it paused instead of moving the arm by itself.
+    `ctl pause` did nothing there before (the scan was 'paused' already): the record stayed the takeover's note."""
+    root = tmp_path / "caps"
+    arun(interrupt(make_cfg(tmp_path)))
+    reply = arun(taken_over_and_held(make_cfg(tmp_path), root, refuse=refuse, pause=True))
+    assert reply["state"] == "paused" and reply["reason"].startswith("paused by user"), reply
+    assert ("; the link to sensor sim is down" in reply["reason"]) is refuse, reply  # (what stands in the way stays)
+    assert "interrupted at pose" not in f"{reply['reason']} {reply['last_error']}", reply
+    record = CaptureReader(root / "mix").manifest["paused"]
+    assert record["kind"] == "pause" and record["reason"] == "paused by user", record
+    status, refused = arun(restart(make_cfg(tmp_path, auto_resume=True)))
+    assert status["state"] == "paused" and status["reason"] == "paused by user", status
+    assert refused is None  # `ctl resume` goes on
+
+
+def test_ctl_pause_on_a_blocked_takeover_is_the_operators_pause(arun, tmp_path):
+    """A scan taken over interrupted and blocked (a changed sensor), then paused by the operator: both are said and
+    recorded as a pause; once the rig is restored, the next daemon with auto_resume keeps it paused, the block
+    gone."""
+    root = tmp_path / "caps"
+    arun(interrupt(make_cfg(tmp_path)))
+    reply = arun(taken_over_and_held(make_cfg(tmp_path, power=5.0), root, pause=True))
+    said = "the rig's [sensor] differs from the one scan 'mix' was planned with (power)"
+    assert reply["state"] == "paused" and reply["reason"].startswith(f"paused by user; {said}"), reply
+    record = CaptureReader(root / "mix").manifest["paused"]
+    assert record["kind"] == "pause" and record["reason"] == reply["reason"], record
+    status, refused = arun(restart(make_cfg(tmp_path, auto_resume=True)))
+    assert status["state"] == "paused" and status["reason"] == "paused by user", status
+    assert refused is None
