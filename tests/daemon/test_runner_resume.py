@@ -232,17 +232,9 @@ def test_a_pause_keeps_the_time_it_began_across_restarts(arun, tmp_path):
 
 async def taken_over_and_left(cfg, root) -> tuple[dict, dict]:
     """A daemon on cfg takes the scan over and stops once its capture records the pause it waits in; (its status,
-    that record)."""
-    arm, sensor = build_devices(cfg)
-    async with DeviceSession([arm, sensor]):
-        rig, scene = rig_record(cfg)
-        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
-        try:
-            await runner.recover()
-            await until(lambda: "paused" in CaptureReader(root / "mix").manifest, "the pause recorded")
-            return runner.status(), CaptureReader(root / "mix").manifest["paused"]
-        finally:
-            await runner.shutdown()
+    the record it leaves for the next daemon)."""
+    status = await taken_over_and_held(cfg, root)
+    return status, CaptureReader(root / "mix").manifest["paused"]
 
 
 def test_a_takeovers_own_note_is_no_pause_for_the_next_daemon(arun, tmp_path):
