@@ -27,8 +27,8 @@ from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.live_status import LiveStatus
 
 from .jobs import Job
-from .recon.trainer import ENDED_FIELD
 from .queue import QUEUE_DIRNAME, SEP, Claim
+from .recon.trainer import ENDED_FIELD
 from .status_detail import ENDED, own_live_status
 
 TAIL_BYTES = 16 * 1024
