@@ -1,7 +1,7 @@
 """How a reconstruction ended, honestly: did it converge, and what makes its result doubtful (report.json's
 "converged" and "warnings", one line each).
 
-Eight checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
+Nine checks, each on plain numbers the run recorded (docs/end_of_run.md derives the thresholds):
 
 - **Stopped early.** A run that ended on its time budget or step count while its data term was still falling:
   the windowed data term of the last fifth of the run against the fifth before it. Any other run that did not
@@ -19,6 +19,10 @@ Eight checks, each on plain numbers the run recorded (docs/end_of_run.md derives
   all the histograms (`FitNoise.relative_misfit`), against what a good fit of a real capture leaves.
 - **Seen by too few views.** The share of the mesh's surface (undersides left out) that fewer than three views saw
   (`coverage.py`): there the shape is the prior's guess, however well the fit explains the measurements.
+- **Returns the mesh lacks.** Many first returns come from where the mesh has no surface: nothing of it in their
+  zone's field of view as near as the return (`lost_returns.py`). A part of the object lost whole (a thin rod that
+  carving cut away) leaves a mesh that the other checks pass: one piece, well seen, its fit within the noise where
+  the lost part's few photons were.
 - **In pieces.** The mesh falls apart into more than one piece of note (`pieces.py`): a thin part broke where the
   fit could not hold it, or surface stands apart where there is none. Neither need show in the fit's misfit. With a
   ground truth of as many pieces (two objects), there is nothing to say.
@@ -309,6 +313,8 @@ class RunFacts:
     """Job processes the other workers on this machine may run at once, as the worker that started the run counted
     them (`cpu_wait.MACHINE_JOBS_ENV`), or None where no worker said (a run of its own): cores the run's threads
     waited for may have been theirs (`busy_warning`)."""
+    lost: object | None = None
+    """The first returns the mesh does not account for (a `lost_returns.LostReturns`), or None where not judged."""
     threads_fixed: bool = False
     """The run kept the CPU threads it was given (`--threads`, a user's OMP_NUM_THREADS: `threads.threads_fixed`),
     not the worker's share of the cores, which counts `machine_jobs`."""
@@ -565,6 +571,24 @@ def specks_warning(pieces, settled: bool = True) -> str | None:
             f"signal); look at preview.png")
 
 
+def lost_warning(lost, measured: bool = False) -> str | None:
+    """The line saying that many first returns come from where the mesh has no surface (a `lost_returns.LostReturns`
+    that `says` so), or None: a part of the object is missing from the mesh. On a `measured` capture it names a
+    second cause: an object that moved during the scan."""
+    if lost is None or not lost.says:
+        return None
+    where = ""
+    if lost.heights_m is not None:
+        lo, hi = lost.heights_m
+        where = f", mostly at heights {lo:.2f} to {hi:.2f} m"
+    return (f"{100 * lost.share:.0f} % of the first returns ({lost.lost} of {lost.returns}) come from where the mesh "
+            f"has no surface{where}: their zones saw something over {lost.tolerance_m * 1e3:.0f} mm nearer than any "
+            f"surface of the mesh (a good fit: under {100 * lost.limit:.0f} %); a part of the object is missing, a "
+            f"thin part most likely, whose faint return some views missed, so that they carved its space empty "
+            f"(scan it nearer or with more laser power); look at preview.png"
+            + ("; or the object moved during the scan" if measured else ""))
+
+
 def pieces_warning(pieces, truth_pieces: int | None = None) -> str | None:
     """The line saying that the mesh is in more than one piece of note (a `pieces.Pieces`), or None. With the ground
     truth's own count of pieces (`truth_pieces`), only more pieces than it has are worth a line: two objects scanned
@@ -625,6 +649,7 @@ def warnings(facts: RunFacts) -> list[str]:
     early = early_note(facts)
     shape = [(misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None, early),
              (coverage_warning(facts.coverage, facts.measured), early),
+             (lost_warning(facts.lost, facts.measured), early),
              (pieces_warning(facts.pieces, facts.truth_pieces), early),
              (specks_warning(facts.pieces, settled=converged(facts)), early),
              (tunnels_warning(facts.pieces, facts.truth_tunnels), early)]
@@ -656,7 +681,7 @@ def early_note(facts: RunFacts) -> str:
 __all__ = ["INTERRUPTED", "UNCONVERGED", "ENDED_BY", "unconverged_line", "unconverged_warning",
            "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
            "converged", "cpu_share", "lost_share", "pace_share", "cpu_wait", "busy_warning", "warnings",
-           "overrun_warning", "misfit_warning", "coverage_warning",
+           "overrun_warning", "misfit_warning", "coverage_warning", "lost_warning",
            "pieces_warning", "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "LEAST_PACE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
            "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",

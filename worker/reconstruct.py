@@ -36,6 +36,7 @@ from .coverage import FEW_VIEWS, Coverage, counted_views, few_share, summarize, 
 from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .jobs import run_limits_problem
+from .lost_returns import LostReturns, lost_returns
 from .metrics import mesh_metrics
 from .outputs import capture_state_note, export_mesh, files_written_after, folder_files, replacing_result
 from .pieces import Pieces, mesh_pieces
@@ -343,6 +344,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         notes.append("the time budget was short: no coverage picture (coverage.png)")
     coverage = _coverage(out if picture else None, mesh, scene, log)
     pieces = _pieces(mesh, log)
+    lost = _lost(mesh, scene, model.summary())
     stages["pictures_s"] = clock() - t_pictures
     if truth is not None:
         # all that is left to draw after the metrics
@@ -383,7 +385,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
                      scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note, run.state_note) if n],
-                     coverage=coverage, pieces=pieces, signal=signal,
+                     coverage=coverage, pieces=pieces, signal=signal, lost=lost,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
                      budget_s=budget_s, elapsed_s=run_clock.elapsed(),
@@ -400,6 +402,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     if report["pieces"] is not None and truth_pieces is not None:
         report["pieces"]["truth_tunnels"] = truth_pieces.tunnels
     report["signal"] = None if signal is None else signal.to_dict()
+    report["lost_returns"] = lost.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["cpu_wait"] = end_of_run.cpu_wait(facts)
     report["machine_jobs"] = siblings
@@ -449,9 +452,7 @@ def _floor_note(scene: SceneData, summary: dict, truth) -> str | None:
     floor_z, source = summary.get("floor_z_m"), summary.get("floor")
     if not isinstance(floor_z, (int, float)) or source not in FLOOR_WHY:
         return None
-    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
-    counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
-    usable = None if scene.usable is None else scene.usable.cpu().numpy()
+    counts, sensor, usable = _as_carving_reads(scene)
     below = returns_below_floor(counts, scene.poses.double().cpu().numpy(), sensor, float(floor_z), usable)
     share = None if truth is None else mesh_share_below(truth.mesh, float(floor_z))
     return floor_cut_note(float(floor_z), FLOOR_WHY[source], below, share, FLOOR_REMEDY[source])
@@ -513,6 +514,14 @@ def _probe_coverage(mesh, scene: SceneData, costs: EndCosts, clock) -> None:
     # The other views are counted only for the points the spread views see fewer than FEW_VIEWS times: the probe's
     # counts estimate what share that is (coverage.few_share; a flat plate seen close up: all).
     costs.time_coverage(seconds, len(timed), len(spread), others, few_share(samples.counts, len(timed), len(spread)))
+
+
+def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:
+    """(counts (V, Z, B) float64, sensor, usable (V, Z) bool or None) of the scene as carving reads them: each view's
+    frames summed into one histogram (`carving.views.summed_views`), the histograms without data marked."""
+    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
+    counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
+    return counts, sensor, None if scene.usable is None else scene.usable.cpu().numpy()
 
 
 def _poses_usable(scene: SceneData) -> tuple[np.ndarray, np.ndarray | None]:
@@ -621,6 +630,21 @@ def _pieces(mesh, log) -> Pieces | None:
         return None
 
 
+def _lost(mesh, scene: SceneData, summary: dict) -> LostReturns:
+    """The first returns the mesh does not account for (lost_returns.py), read as carving reads the histograms
+    (frames summed, those without data left out), with the table the fit stood the object on: the height it found
+    (the fast preset's summary says "table" and its height), else the scene's table as the capture set it up."""
+    counts, sensor, usable = _as_carving_reads(scene)
+    poses = _poses_usable(scene)[0]
+    table = None
+    if scene.table is not None:
+        height = summary.get("floor_z_m")
+        fitted = summary.get("floor") == "table" and isinstance(height, (int, float))
+        table = (np.array([0.0, 0.0, 1.0]), float(height)) if fitted else (scene.table.normal, scene.table.offset)
+    return lost_returns(counts, poses, sensor, mesh, scene.center.double().cpu().numpy(), scene.radius, table,
+                        usable, measured=bool(scene.real))
+
+
 def _truth_pieces(mesh) -> Pieces | None:
     """The ground truth's pieces (of note, and the tunnels through them), counted as the result's are, or None for
     one without surface."""
@@ -645,9 +669,7 @@ def _signal(scene: SceneData, config: ReconConfig) -> Signal | None:
     threshold = getattr(config.field, "carve_threshold", None)
     if threshold is None:
         return None
-    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
-    counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
-    usable = None if scene.usable is None else scene.usable.cpu().numpy()
+    counts, sensor, usable = _as_carving_reads(scene)
     on_table = scene.table is not None
     # Carving's thresholds as shipped: a capture too faint at their level stays faint when the level is lowered.
     return capture_signal(counts, sensor, float(threshold), usable,
