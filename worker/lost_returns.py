@@ -138,8 +138,8 @@ def lost_returns(hists: np.ndarray, poses: np.ndarray, sensor: SensorModel, mesh
     """The first returns of `hists` (V, zones, bins, frames summed as carving reads them; poses (V, 4, 4) sensor to
     world, metres) that `mesh` (a trimesh.Trimesh, world metres) and the `table` plane (normal (3,), offset metres),
     if any, do not account for. `center`, `radius`: the scene's sphere (metres). usable (V, zones) bool, None for
-    all: histograms that hold data. `measured`: a real capture (`limit_for`). Of a capture of more than `max_views` views with data, that many spread evenly
-    over it are judged (the share is what matters)."""
+    all: histograms that hold data. `measured`: a real capture (`limit_for`). Of a capture of more than `max_views`
+    views with data, that many spread evenly over it are judged (the share is what matters)."""
     hists, poses = np.asarray(hists, np.float64), np.asarray(poses, np.float64)
     keep = spread_views(poses, max_views, usable)
     hists, poses = hists[keep], poses[keep]
