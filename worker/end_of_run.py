@@ -20,9 +20,9 @@ Nine checks, each on plain numbers the run recorded (docs/end_of_run.md derives 
 - **Seen by too few views.** The share of the mesh's surface (undersides left out) that fewer than three views saw
   (`coverage.py`): there the shape is the prior's guess, however well the fit explains the measurements.
 - **Returns the mesh lacks.** Many first returns come from where the mesh has no surface: nothing of it in their
-  zone's field of view as near as the return (`lost_returns.py`). A part of the object lost whole (a thin rod that
-  carving cut away) leaves a mesh that the other checks pass: one piece, well seen, its fit within the noise where
-  the lost part's few photons were.
+  zone's field of view as near as the return (`lost_returns.py`). A part that stands out of the object lost whole (a
+  thin rod that carving cut away) leaves a mesh that the other checks pass: one piece, well seen, its fit within the
+  noise where the lost part's few photons were.
 - **In pieces.** The mesh falls apart into more than one piece of note (`pieces.py`): a thin part broke where the
   fit could not hold it, or surface stands apart where there is none. Neither need show in the fit's misfit. With a
   ground truth of as many pieces (two objects), there is nothing to say.
@@ -573,8 +573,9 @@ def specks_warning(pieces, settled: bool = True) -> str | None:
 
 def lost_warning(lost, measured: bool = False) -> str | None:
     """The line saying that many first returns come from where the mesh has no surface (a `lost_returns.LostReturns`
-    that `says` so), or None: a part of the object is missing from the mesh. On a `measured` capture it names a
-    second cause: an object that moved during the scan."""
+    that `says` so), or None: a part that stands out of the object is missing from the mesh (one that only other
+    surface hides is not seen: lost_returns.py). On a `measured` capture it names a second cause: an object that moved
+    during the scan, whose two poses no one mesh accounts for."""
     if lost is None or not lost.says:
         return None
     where = ""
@@ -583,9 +584,9 @@ def lost_warning(lost, measured: bool = False) -> str | None:
         where = f", mostly at heights {lo:.2f} to {hi:.2f} m"
     return (f"{100 * lost.share:.0f} % of the first returns ({lost.lost} of {lost.returns}) come from where the mesh "
             f"has no surface{where}: their zones saw something over {lost.tolerance_m * 1e3:.0f} mm nearer than any "
-            f"surface of the mesh (a good fit: under {100 * lost.limit:.0f} %); a part of the object is missing, a "
-            f"thin part most likely, whose faint return some views missed, so that they carved its space empty "
-            f"(scan it nearer or with more laser power); look at preview.png"
+            f"surface of the mesh (a good fit: under {100 * lost.limit:.0f} %); a part that stands out of the object "
+            f"is missing, a thin one most likely, whose faint return some views missed, so that they carved its "
+            f"space empty (scan it nearer or with more laser power); look at preview.png"
             + ("; or the object moved during the scan" if measured else ""))
 
 

@@ -18,8 +18,11 @@ from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.sim_table import SimTable
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker.end_of_run import RunFacts, lost_warning, warnings
-from spadscan.worker.lost_returns import (LOST_MIN, LOST_SHARE_MEASURED, LOST_SHARE_SIMULATED, LOST_TOLERANCE_M,
-                                          LostReturns, in_sphere_reach, lost_returns, nearest_surface, table_range)
+from spadscan.protocol.scenes import builtin_scene
+from spadscan.worker import lost_returns as lost_module
+from spadscan.worker.lost_returns import (LEAK_SHARE, LOST_MIN, LOST_SHARE_MEASURED, LOST_SHARE_SIMULATED,
+                                          LOST_TOLERANCE_M, LostReturns, in_sphere_reach, leaked, lost_returns,
+                                          nearest_surface, table_range)
 
 BOX = (0.07, 0.05, 0.09)
 """The scene's box (metres), standing on z = 0."""
@@ -125,13 +128,43 @@ def test_a_real_capture_is_held_to_its_own_limit(box_capture):
 
 def test_the_table_accounts_for_the_outer_zones_returns(table_capture):
     """On a table the outer zones' first returns are the table's: with its plane they are accounted for, without it
-    they would pass for a lost part."""
+    they would pass for lost returns, at the table's height."""
     counts, poses, sensor = table_capture
     table = (np.array([0.0, 0.0, 1.0]), 0.0)
     with_table = lost_returns(counts, poses, sensor, box(), np.array([0, 0, 0.045]), 0.15, table)
     assert with_table.returns > 24 * 4 and with_table.share <= LOST_SHARE_SIMULATED, with_table
     without = lost_returns(counts, poses, sensor, box(), np.array([0, 0, 0.045]), 0.15)
-    assert without.share > LOST_SHARE_SIMULATED, without
+    assert without.lost >= with_table.lost + 10 and abs(without.heights_m[1]) < 0.01, without  # the table's
+
+
+def test_a_weak_return_at_a_kept_return_s_range_is_its_light_in_the_wrong_zone():
+    """One view of three zones: zone 0's bright return is accounted for; zone 1's, at its range and under LEAK_SHARE
+    of its peak, is its light; zone 2's, as weak but 10 cm nearer, is not."""
+    ranges = np.array([[0.30, 0.31, 0.20]])
+    peak = np.array([[1000.0, 0.5 * LEAK_SHARE * 1000.0, 0.5 * LEAK_SHARE * 1000.0]])
+    lost = np.array([[False, True, True]])
+    assert leaked(lost, ~lost, ranges, peak).tolist() == [[False, True, False]]
+    # Not light of a return that is itself lost, nor of one as weak as it.
+    assert not leaked(lost, np.zeros_like(lost), ranges, peak).any()
+    assert not leaked(lost, ~lost, ranges, np.array([[1000.0, 900.0, 900.0]])).any()
+
+
+def test_a_bright_9_zone_capture_s_crosstalk_is_not_a_lost_part(tmp_path, monkeypatch):
+    """The duck at three times the laser power seen by the TMF8820 without a table: the true mesh accounts for every
+    return; read without the leak rule, the residue of the crosstalk's unmixing in the zones beside the duck would
+    pass for lost returns."""
+    mesh = builtin_scene("duck")
+    middle = float(mesh.bounds[1, 2]) / 2
+    poses = fibonacci_hemisphere(32, 0.35, target=(0, 0, middle), min_elevation_deg=20)
+    simulate_capture(mesh, sensor_preset("tmf8820"), poses, tmp_path / "duck",
+                     settings=SimSettings(rays_per_zone=64, power=3.0), progress=False)
+    capture = CaptureReader(tmp_path / "duck").load()
+    counts, poses = capture.by_pose().counts, capture.poses[capture.by_pose().first]
+    centre = np.array([0.0, 0.0, middle])
+    kept = lost_returns(counts, poses, capture.sensor, mesh, centre, 0.2)
+    monkeypatch.setattr(lost_module, "LEAK_SHARE", 0.0)
+    unread = lost_returns(counts, poses, capture.sensor, mesh, centre, 0.2)
+    assert unread.lost >= 10 and kept.lost <= unread.lost // 4 and not kept.says, (kept, unread)
 
 
 def test_the_warning_says_how_much_where_and_what_to_do():
@@ -144,7 +177,7 @@ def test_the_warning_says_how_much_where_and_what_to_do():
     assert line in warnings(RunFacts(stopped_by="converged", steps=100, model_converged=True,
                                      data_terms=[1.0] * 100, lost=lost, measured=False))
     assert lost_warning(LostReturns(returns=241, lost=2)) is None  # too few to be a pattern
-    assert lost_warning(LostReturns(returns=241, lost=12)) is None  # 5 %: within the limit
+    assert lost_warning(LostReturns(returns=241, lost=16)) is None  # 6.6 %: within the limit
     assert lost_warning(None) is None
 
 
