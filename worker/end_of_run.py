@@ -571,11 +571,10 @@ def specks_warning(pieces, settled: bool = True) -> str | None:
             f"signal); look at preview.png")
 
 
-def lost_warning(lost, measured: bool = False) -> str | None:
+def lost_warning(lost) -> str | None:
     """The line saying that many first returns come from where the mesh has no surface (a `lost_returns.LostReturns`
     that `says` so), or None: a part that stands out of the object is missing from the mesh (one that only other
-    surface hides is not seen: lost_returns.py). On a `measured` capture it names a second cause: an object that moved
-    during the scan, whose two poses no one mesh accounts for."""
+    surface hides is not seen: lost_returns.py)."""
     if lost is None or not lost.says:
         return None
     where = ""
@@ -586,8 +585,7 @@ def lost_warning(lost, measured: bool = False) -> str | None:
             f"has no surface{where}: their zones saw something over {lost.tolerance_m * 1e3:.0f} mm nearer than any "
             f"surface of the mesh (a good fit: under {100 * lost.limit:.0f} %); a part that stands out of the object "
             f"is missing, a thin one most likely, whose faint return some views missed, so that they carved its "
-            f"space empty (scan it nearer or with more laser power); look at preview.png"
-            + ("; or the object moved during the scan" if measured else ""))
+            f"space empty (scan it nearer or with more laser power); look at preview.png")
 
 
 def pieces_warning(pieces, truth_pieces: int | None = None) -> str | None:
@@ -650,7 +648,7 @@ def warnings(facts: RunFacts) -> list[str]:
     early = early_note(facts)
     shape = [(misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None, early),
              (coverage_warning(facts.coverage, facts.measured), early),
-             (lost_warning(facts.lost, facts.measured), early),
+             (lost_warning(facts.lost), early),
              (pieces_warning(facts.pieces, facts.truth_pieces), early),
              (specks_warning(facts.pieces, settled=converged(facts)), early),
              (tunnels_warning(facts.pieces, facts.truth_tunnels), early)]
