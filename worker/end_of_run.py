@@ -540,6 +540,11 @@ def misfit_warning(fit: FitNoise, measured: bool) -> str | None:
     return None
 
 
+def mostly_at(heights_m: tuple[float, float] | None) -> str:
+    """', mostly at heights 0.12 to 0.30 m' for a (low, high) pair of heights in metres; '' for None."""
+    return "" if heights_m is None else f", mostly at heights {heights_m[0]:.2f} to {heights_m[1]:.2f} m"
+
+
 def coverage_warning(coverage, measured: bool = False) -> str | None:
     """The line saying that much of the surface was seen by too few views to be measured (a `coverage.Coverage`
     whose share_few is above COVERAGE_LIMIT), or None. On a `measured` capture it names a second cause: an object
@@ -547,12 +552,8 @@ def coverage_warning(coverage, measured: bool = False) -> str | None:
     between its scan's halves: 16 %, against 8-10 % unmoved)."""
     if coverage is None or not coverage.share_few > COVERAGE_LIMIT:
         return None
-    where = ""
-    if coverage.few_heights_m is not None:
-        lo, hi = coverage.few_heights_m
-        where = f", mostly at heights {lo:.2f} to {hi:.2f} m"
     return (f"{100 * coverage.share_few:.0f} % of the surface (undersides left out) was seen by fewer than "
-            f"{coverage.few_views} views{where}: its shape there comes from the fit's smoothness, not from "
+            f"{coverage.few_views} views{mostly_at(coverage.few_heights_m)}: its shape there comes from the fit's smoothness, not from "
             f"measurements; scan it with views aimed at it (for a tall object, a higher target)"
             + ("; if the views did aim at it, the object may have moved during the scan" if measured else ""))
 
@@ -577,12 +578,8 @@ def lost_warning(lost) -> str | None:
     surface hides is not seen: lost_returns.py)."""
     if lost is None or not lost.says:
         return None
-    where = ""
-    if lost.heights_m is not None:
-        lo, hi = lost.heights_m
-        where = f", mostly at heights {lo:.2f} to {hi:.2f} m"
     return (f"{100 * lost.share:.0f} % of the first returns ({lost.lost} of {lost.returns}) come from where the mesh "
-            f"has no surface{where}: their zones saw something over {lost.tolerance_m * 1e3:.0f} mm nearer than any "
+            f"has no surface{mostly_at(lost.heights_m)}: their zones saw something over {lost.tolerance_m * 1e3:.0f} mm nearer than any "
             f"surface of the mesh (a good fit: under {100 * lost.limit:.0f} %); a part that stands out of the object "
             f"is missing, a thin one most likely, whose faint return some views missed, so that they carved its "
             f"space empty (scan it nearer or with more laser power); look at preview.png")

@@ -13,7 +13,7 @@ import pytest
 import trimesh
 
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.schedules import fibonacci_hemisphere
+from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.sim_table import SimTable
 from spadscan.protocol.simulator import SimSettings, simulate_capture
@@ -31,18 +31,6 @@ BOX = (0.07, 0.05, 0.09)
 def box(height: float = BOX[2]) -> trimesh.Trimesh:
     """The box, or its lowest `height` metres."""
     return trimesh.creation.box(extents=(BOX[0], BOX[1], height)).apply_translation([0.0, 0.0, 0.5 * height])
-
-
-def looking_at(eye, target) -> np.ndarray:
-    """(4, 4) sensor-to-world pose at `eye` with its boresight (+z) towards `target`."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    pose[:3, 3] = eye
-    return pose
 
 
 @pytest.fixture(scope="module")
@@ -73,9 +61,9 @@ def test_the_table_s_nearest_point_in_a_cone():
     the cone's lowest edge; looking up, the zone never meets it."""
     sensor = sensor_preset("lcspc-sim")
     half = sensor.zones[0].half_angle_rad
-    down = looking_at([0, 0, 0.5], [0, 0, 0])
-    slant = looking_at([0, 0, 0.5], [0.5, 0, 0])
-    up = looking_at([0, 0, 0.5], [0, 0, 1.0])
+    down = look_at([0, 0, 0.5], [0, 0, 0])
+    slant = look_at([0, 0, 0.5], [0.5, 0, 0])
+    up = look_at([0, 0, 0.5], [0, 0, 1.0])
     got = table_range(np.array([0.0, 0.0, 1.0]), 0.0, np.stack([down, slant, up]), sensor)[:, 0]
     assert got[0] == pytest.approx(0.5)
     assert got[1] == pytest.approx(0.5 / math.cos(math.radians(45.0) - half), rel=1e-3)
@@ -86,7 +74,7 @@ def test_the_nearest_surface_point_in_each_zone():
     """Of points in front of a 9-zone sensor, each zone's nearest in its own field of view; none where a zone holds
     no point."""
     sensor = sensor_preset("tmf8820")
-    pose = looking_at([0, 0, 0], [0, 0, 1.0])
+    pose = look_at([0, 0, 0], [0, 0, 1.0])
     centre = np.array([[0.0, 0.0, 0.4], [0.0, 0.0, 0.3]])  # both in the middle zone
     near = nearest_surface(centre, pose[None], sensor)[0]
     middle = [i for i, zone in enumerate(sensor.zones) if zone.holds(np.array([0.0, 0.0, 1.0]))]
@@ -98,8 +86,8 @@ def test_a_return_counts_only_where_it_can_have_come_from_the_scene_s_sphere():
     """A return at the range of a 10 cm ball ahead is judged; one far beyond it, or from a zone looking away from
     it, is not (the room behind, which no fit models)."""
     sensor = sensor_preset("lcspc-sim")
-    ahead = looking_at([0, 0, 0.5], [0, 0, 0])
-    away = looking_at([0, 0, 0.5], [0, 0, 1.0])
+    ahead = look_at([0, 0, 0.5], [0, 0, 0])
+    away = look_at([0, 0, 0.5], [0, 0, 1.0])
     ranges = np.array([[0.45], [0.9], [0.45]])
     got = in_sphere_reach(ranges, np.stack([ahead, ahead, away]), sensor, np.zeros(3), 0.1)[:, 0]
     assert got.tolist() == [True, False, False]
