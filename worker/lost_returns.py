@@ -10,7 +10,7 @@ few. Only returns that can have come from the scene's sphere are judged: beyond 
 models. A weak return at the range of a return of another zone of its view that the mesh accounts for is that one's
 light in the wrong zone (LEAK_SHARE), and is accounted for with it.
 
-Only each zone's nearest return is judged, so only a part that some zone sees before anything else can be missed:
+Only each zone's nearest return is judged, so a lost part is found only where some zone saw it before anything else:
 a part that stands out of the object (a rod, a set of legs, a limb, a top). A part lost behind or beside surface
 the mesh keeps in the same zones (a mug's handle, a lamp's stem under its shade, one leg of four) leaves returns that
 the kept surface accounts for. Surface the mesh has where nothing returned (a phantom lump) is not judged here: the
