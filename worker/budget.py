@@ -26,7 +26,8 @@ renderer's start alone 2 s) before the coverage picture, which takes 1.8-2.4 s m
 That was 9 s with the count of the views that see each sample point of the mesh (the coverage check) in it, about a
 second then; the count is now timed by a probe on the views the report counts (`EndCosts.coverage_s`), since a
 capture's views made it grow (20 s at 10,000 views when every view was counted). With 8 s and the count in it, the
-demo's final run on the idle machine cut its metrics to 270,000 points (its pictures took 9.7 s)."""
+demo's final run on the idle machine cut its metrics to 270,000 points (its pictures took 9.7 s). The returns held
+against the mesh (`lost_returns`, 0.1-0.3 s idle, on at most 256 views whatever the capture's size) are in it too."""
 COVERAGE_S = 1.0
 """Seconds of the coverage count before a probe is timed (a 256-view capture's on the idle machine)."""
 COMPLETION_SHARE = 0.1

@@ -553,8 +553,8 @@ def coverage_warning(coverage, measured: bool = False) -> str | None:
     if coverage is None or not coverage.share_few > COVERAGE_LIMIT:
         return None
     return (f"{100 * coverage.share_few:.0f} % of the surface (undersides left out) was seen by fewer than "
-            f"{coverage.few_views} views{mostly_at(coverage.few_heights_m)}: its shape there comes from the fit's smoothness, not from "
-            f"measurements; scan it with views aimed at it (for a tall object, a higher target)"
+            f"{coverage.few_views} views{mostly_at(coverage.few_heights_m)}: its shape there comes from the fit's "
+            f"smoothness, not from measurements; scan it with views aimed at it (for a tall object, a higher target)"
             + ("; if the views did aim at it, the object may have moved during the scan" if measured else ""))
 
 
@@ -578,11 +578,12 @@ def lost_warning(lost) -> str | None:
     surface hides is not seen: lost_returns.py)."""
     if lost is None or not lost.says:
         return None
-    return (f"{100 * lost.share:.0f} % of the first returns ({lost.lost} of {lost.returns}) come from where the mesh "
-            f"has no surface{mostly_at(lost.heights_m)}: their zones saw something over {lost.tolerance_m * 1e3:.0f} mm nearer than any "
-            f"surface of the mesh (a good fit: under {100 * lost.limit:.0f} %); a part that stands out of the object "
-            f"is missing, a thin one most likely, whose faint return some views missed, so that they carved its "
-            f"space empty (scan it nearer or with more laser power); look at preview.png")
+    return (f"{100 * lost.share:.1f} % of the first returns that can have come from the object ({lost.lost} of "
+            f"{lost.returns}) come from where the mesh has no surface{mostly_at(lost.heights_m)}: their zones saw "
+            f"something over {lost.tolerance_m * 1e3:.0f} mm nearer than any surface of the mesh or the table (a good "
+            f"fit: at most {100 * lost.limit:.0f} %); a part that stands out of the object is missing, a thin one most "
+            f"likely, lost where some views missed its faint return (scan it nearer or with more laser power), or "
+            f"something else stood in the views; look at preview.png")
 
 
 def pieces_warning(pieces, truth_pieces: int | None = None) -> str | None:

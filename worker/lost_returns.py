@@ -26,7 +26,7 @@ import trimesh
 
 from spadscan.protocol.sensor_model import SensorModel, zone_masks
 
-from .carving.bounds import zone_axis, zone_edges
+from .carving.bounds import zone_axis, zone_edges, zone_top_z
 from .carving.returns import DEFAULT_THRESHOLD, first_returns
 from .carving.view_subset import MAX_SETUP_VIEWS, spread_views
 
@@ -41,11 +41,13 @@ capture 0; docs/end_of_run.md)."""
 LOST_SHARE_MEASURED = 0.15
 """The same for a measured capture: twice what good fits of the public dataset's real pyramid leave (7.7 %)."""
 LEAK_SHARE = 0.02
-"""A return whose matched-filter peak is at most this share of that of a return of another zone of the same view, at
-its range (within LOST_TOLERANCE_M), is that return's light in the wrong zone: a 9-zone sensor's crosstalk puts a
-share of every zone's signal into the others, and the unmixing that carving's returns start with leaves a residue
-that clears the threshold beside a bright surface. With the mesh accounting for the bright return, it accounts for
-the weak one (docs/end_of_run.md: 1-15 % of a good 9-zone capture's returns before, under 4 % after)."""
+"""A return whose peak z-score (matched filter, noise standard deviations) is at most this share of that of a return
+of another zone of the same view, at its range (within LOST_TOLERANCE_M), is that return's light in the wrong zone:
+a 9-zone sensor's crosstalk puts a share of every zone's signal into the others, and the unmixing that carving's
+returns start with leaves a residue that clears the threshold beside a bright surface. With the mesh accounting for
+the bright return, it accounts for the weak one (docs/end_of_run.md: 1-15 % of a good 9-zone capture's returns
+before, under 4 % after). A z-score, not a photon count: of a bright return it grows as the square root of its
+photons, so the share of signal is far under 2 %; the value is what the captures measured."""
 LOST_MIN = 3
 """Fewest returns unaccounted for that make a pattern: one view's noise can clear the threshold anywhere."""
 MESH_POINTS = 10_000
@@ -104,20 +106,21 @@ def nearest_surface(points: np.ndarray, poses: np.ndarray, sensor: SensorModel) 
 
 def table_range(normal: np.ndarray, offset: float, poses: np.ndarray, sensor: SensorModel) -> np.ndarray:
     """(V, Z) range (metres) from each view's sensor to the nearest point of the plane normal . x = offset (normal
-    unit, pointing up into the free side) in each zone's field of view; inf where the zone does not look at it.
-    Taken over the zone's edge and axis directions, and straight down onto the plane where that lies in the zone."""
+    unit, pointing up into the free side) in each zone's field of view; inf where the zone does not look at it or
+    the sensor stands under the plane. The nearest point lies along the zone's direction that heads most steeply
+    down onto the plane (`zone_top_z` of the rotations turned so that their z is the plane's down): exact for a cone,
+    for a rect zone its edges', or straight down where that lies in the zone."""
     normal = np.asarray(normal, np.float64)
+    height = poses[:, :3, 3] @ normal - offset  # (V,): the sensor's height above the plane
+    turned = np.array(poses[:, :3, :3], np.float64)
+    turned[:, 2, :] = (-normal) @ poses[:, :3, :3]  # row 2: each sensor-frame direction's component down the normal
     out = np.full((len(poses), len(sensor.zones)), np.inf)
-    height = offset - poses[:, :3, 3] @ normal  # (V,) < 0: the sensor stands above the plane
     for z, zone in enumerate(sensor.zones):
-        dirs = np.einsum("vij,mj->vmi", poses[:, :3, :3], zone_edges(zone, 16))  # (V, m, 3) world
-        towards = dirs @ normal  # (V, m): < 0 heads down to the plane
+        steepest = zone_top_z(zone, turned)
+        if zone.kind == "rect":
+            steepest = np.where(np.asarray(zone.holds(turned[:, 2, :]), bool), 1.0, steepest)
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(towards < 0, height[:, None] / towards, np.inf)
-        t = np.where(t > 0, t, np.inf).min(axis=1)
-        down = (-normal) @ poses[:, :3, :3]  # (V, 3): straight down in each sensor frame
-        straight = np.asarray(zone.holds(down), bool) & (height < 0)
-        out[:, z] = np.where(straight, -height, t)
+            out[:, z] = np.where((steepest > 0) & (height > 0), height / steepest, np.inf)
     return out
 
 
@@ -178,7 +181,7 @@ def lost_returns(hists: np.ndarray, poses: np.ndarray, sensor: SensorModel, mesh
 def leaked(lost: np.ndarray, kept: np.ndarray, ranges: np.ndarray, peak_z: np.ndarray) -> np.ndarray:
     """(V, Z) bool: the `lost` returns that are light of a `kept` return (one the mesh accounts for) of another zone
     of the same view in the wrong zone: at its range (within LOST_TOLERANCE_M; `ranges` (V, Z) metres) and at most
-    LEAK_SHARE of its matched-filter peak (`peak_z` (V, Z), noise standard deviations)."""
+    LEAK_SHARE of its peak z-score (`peak_z` (V, Z), noise standard deviations of the matched filter)."""
     near = np.abs(ranges[:, :, None] - ranges[:, None, :]) <= LOST_TOLERANCE_M  # (V, lost zone, source zone)
     weak = peak_z[:, :, None] <= LEAK_SHARE * peak_z[:, None, :]
     return lost & (near & weak & kept[:, None, :]).any(axis=2)

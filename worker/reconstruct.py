@@ -344,8 +344,10 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         notes.append("the time budget was short: no coverage picture (coverage.png)")
     coverage = _coverage(out if picture else None, mesh, scene, log)
     pieces = _pieces(mesh, log)
-    lost = _lost(mesh, scene, model.summary())
     stages["pictures_s"] = clock() - t_pictures
+    t_lost = clock()
+    lost = _lost(mesh, scene, model.summary(), log)
+    stages["lost_returns_s"] = clock() - t_lost
     if truth is not None:
         # all that is left to draw after the metrics
         costs.fixed_s, costs.fit_check_s, costs.coverage_s = NORMALS_PICTURE_S, 0.0, 0.0
@@ -402,7 +404,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     if report["pieces"] is not None and truth_pieces is not None:
         report["pieces"]["truth_tunnels"] = truth_pieces.tunnels
     report["signal"] = None if signal is None else signal.to_dict()
-    report["lost_returns"] = lost.to_dict()
+    report["lost_returns"] = None if lost is None else lost.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["cpu_wait"] = end_of_run.cpu_wait(facts)
     report["machine_jobs"] = siblings
@@ -630,19 +632,26 @@ def _pieces(mesh, log) -> Pieces | None:
         return None
 
 
-def _lost(mesh, scene: SceneData, summary: dict) -> LostReturns:
+def _lost(mesh, scene: SceneData, summary: dict, log) -> LostReturns | None:
     """The first returns the mesh does not account for (lost_returns.py), read as carving reads the histograms
-    (frames summed, those without data left out), with the table the fit stood the object on: the height it found
-    (the fast preset's summary says "table" and its height), else the scene's table as the capture set it up."""
+    (frames summed, those without data left out), with the table the object stood on: the plane the fit ended with
+    (the fast preset's summary of its table part), else the scene's as the capture set it up; None (said in the log)
+    where they cannot be judged."""
     counts, sensor, usable = _as_carving_reads(scene)
     poses = _poses_usable(scene)[0]
     table = None
     if scene.table is not None:
-        height = summary.get("floor_z_m")
-        fitted = summary.get("floor") == "table" and isinstance(height, (int, float))
-        table = (np.array([0.0, 0.0, 1.0]), float(height)) if fitted else (scene.table.normal, scene.table.offset)
-    return lost_returns(counts, poses, sensor, mesh, scene.center.double().cpu().numpy(), scene.radius, table,
-                        usable, measured=bool(scene.real))
+        fitted = ((summary.get("parts") or {}).get("table")) or {}
+        if isinstance(fitted.get("table_offset_m"), (int, float)) and fitted.get("table_normal") is not None:
+            table = (np.asarray(fitted["table_normal"], np.float64), float(fitted["table_offset_m"]))
+        else:
+            table = (np.asarray(scene.table.normal, np.float64), float(scene.table.offset))
+    try:
+        return lost_returns(counts, poses, sensor, mesh, scene.center.double().cpu().numpy(), scene.radius, table,
+                            usable, measured=bool(scene.real))
+    except SpadscanError as exc:
+        log(f"no returns held against the mesh: {exc}")
+        return None
 
 
 def _truth_pieces(mesh) -> Pieces | None:
