@@ -54,6 +54,7 @@ from .report.report_json import json_safe, write_report
 from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 from .time_axis import check_time_axis, scene_views
+from .view_spread import elevation_spread_deg, one_ring_warning
 
 DEVICES = ("auto", "cpu", "cuda")
 NEAR_RANGE_M = 0.01
@@ -271,6 +272,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     # What the capture (and the ground truth) alone decide, before training: both read every view (0.5 s at 2000
     # views, 4 s at 10,000), so a time budget meets them in the set-up's time, not after the end's estimate.
     floor_note = _floor_note(scene, model.summary(), truth)
+    ring_note = _ring_note(scene)
     signal = _signal(scene, config)
     if budget_s is not None:
         _probe_end_costs(model, scene.n_views, truth, costs, clock, scene=scene)
@@ -386,7 +388,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
-                     scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note, run.state_note) if n],
+                     scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note, ring_note, run.state_note)
+                                  if n],
                      coverage=coverage, pieces=pieces, signal=signal, lost=lost,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
@@ -516,6 +519,14 @@ def _probe_coverage(mesh, scene: SceneData, costs: EndCosts, clock) -> None:
     # The other views are counted only for the points the spread views see fewer than FEW_VIEWS times: the probe's
     # counts estimate what share that is (coverage.few_share; a flat plate seen close up: all).
     costs.time_coverage(seconds, len(timed), len(spread), others, few_share(samples.counts, len(timed), len(spread)))
+
+
+def _ring_note(scene: SceneData) -> str | None:
+    """The warning that every view stands at one elevation about the scene's centre (view_spread.py), or None."""
+    poses, usable = _poses_usable(scene)
+    low, high, _ = elevation_spread_deg(poses, scene.center.double().cpu().numpy(), usable)
+    views = len(poses) if usable is None else int(np.asarray(usable, bool).any(axis=1).sum())
+    return one_ring_warning(low, high, views)
 
 
 def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:

@@ -1,0 +1,49 @@
+"""Views from one elevation say so: every view of one ring reads nearly the same histogram, and a fit of a bottle seen
+so came out 15-33 mm with no warning about its shape."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spadscan.protocol.schedules import elevation_rings, fibonacci_hemisphere
+from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.protocol.simulator import SimSettings, simulate_capture
+from spadscan.protocol.scenes import builtin_scene
+from spadscan.worker.view_spread import ONE_RING_DEG, elevation_spread_deg, one_ring_warning
+
+
+def test_one_ring_is_one_elevation_and_a_spiral_is_many():
+    ring = elevation_rings(1, 16, 0.5, min_elevation_deg=20, max_elevation_deg=20)
+    low, high, spread = elevation_spread_deg(ring, np.zeros(3))
+    assert low == pytest.approx(20.0) and spread == pytest.approx(0.0, abs=1e-6)
+    assert "16 views all stand 20 to 20 degrees up" in one_ring_warning(low, high, 16)
+    spiral = fibonacci_hemisphere(16, 0.5)
+    assert elevation_spread_deg(spiral, np.zeros(3))[2] > 45.0
+    assert one_ring_warning(*elevation_spread_deg(spiral, np.zeros(3))[:2], 16) is None
+    # Two rings 5 degrees apart or more are not one ring; two views are too few to judge.
+    two = elevation_rings(2, 8, 0.5, min_elevation_deg=30, max_elevation_deg=30 + ONE_RING_DEG)
+    assert one_ring_warning(*elevation_spread_deg(two, np.zeros(3))[:2], 16) is None
+    assert one_ring_warning(20.0, 20.0, 2) is None
+
+
+def test_views_without_data_are_left_out():
+    """A ring of views and one view high above it whose histograms hold no data: the capture is one ring."""
+    poses = np.concatenate([elevation_rings(1, 8, 0.5, min_elevation_deg=20, max_elevation_deg=20),
+                            fibonacci_hemisphere(1, 0.5, min_elevation_deg=80)])
+    usable = np.ones((9, 1), bool)
+    assert elevation_spread_deg(poses, np.zeros(3))[2] > 50.0
+    usable[8] = False
+    assert elevation_spread_deg(poses, np.zeros(3), usable)[2] == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_reconstruct_warns_of_a_capture_from_one_ring(tmp_path):
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    poses = elevation_rings(1, 12, 0.4, target=(0, 0, 0.05), min_elevation_deg=25, max_elevation_deg=25)
+    simulate_capture(builtin_scene("sphere"), sensor_preset("lcspc-sim"), poses, tmp_path / "ring",
+                     settings=SimSettings(rays_per_zone=256), progress=False)
+    report = reconstruct_capture(tmp_path / "ring", tmp_path / "out", steps=5, progress=False, device="cpu",
+                                 threads=1, overrides={"mesh_resolution": 48, "early_stop": False})
+    assert any("12 views all stand" in w and "on one ring" in w for w in report["warnings"]), report["warnings"]
