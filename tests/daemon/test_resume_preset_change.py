@@ -10,9 +10,6 @@ import json
 import pytest
 
 from spadscan import __version__
-from spadscan.daemon.app import DeviceSession
-from spadscan.daemon.rig import build_devices, rig_record
-from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.sensor_differences import preset_changes
 from spadscan.dashboard.status import Dashboard
 from spadscan.protocol import sensor_presets
@@ -20,7 +17,7 @@ from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.errors import ConfigError
 
 from test_runner import until
-from test_runner_resume import interrupt, make_cfg, restart
+from test_runner_resume import a_daemon, interrupt, make_cfg, restart
 
 PLANNED = "this spadscan's `tmf8820` preset differs from the one scan 'mix' was planned with: "
 FINISH = f"finish it with spadscan {__version__}, which started it, or abort the scan (`spadscan ctl abort mix`)"
@@ -92,21 +89,15 @@ def test_the_preset_put_back_resumes(arun, tmp_path, monkeypatch):
 async def blocked_as_shown(cfg, root) -> tuple[dict, str, dict]:
     """A daemon on cfg takes the scan over blocked; (its status, the pause its capture records once the scan task
     has recorded it, the dashboard's scan in hand then)."""
-    arm, sensor = build_devices(cfg)
-    async with DeviceSession([arm, sensor]):
-        rig, scene = rig_record(cfg)
-        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
-        try:
-            await runner.recover()
-            status = runner.status()
-            manifest = lambda: CaptureReader(root / "mix").manifest  # noqa: E731
-            await until(lambda: (manifest().get("paused") or {}).get("reason") == status["reason"],
-                        "the block recorded in the capture")
-            with pytest.raises(ConfigError):
-                await runner.resume()
-            return status, manifest()["paused"]["reason"], Dashboard(root).status()["current"]
-        finally:
-            await runner.shutdown()
+    async with a_daemon(cfg) as (runner, _):
+        await runner.recover()
+        status = runner.status()
+        manifest = lambda: CaptureReader(root / "mix").manifest  # noqa: E731
+        await until(lambda: (manifest().get("paused") or {}).get("reason") == status["reason"],
+                    "the block recorded in the capture")
+        with pytest.raises(ConfigError):
+            await runner.resume()
+        return status, manifest()["paused"]["reason"], Dashboard(root).status()["current"]
 
 
 def test_ctl_status_and_the_dashboard_say_the_same_of_a_blocked_scan(arun, tmp_path, monkeypatch):

@@ -4,6 +4,7 @@ capture never mixes two sensors."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 
 import pytest
@@ -36,38 +37,42 @@ def make_cfg(tmp_path, hand_eye_z: float = 0.05, auto_resume: bool = False, arm:
         "scan": {"views": 40, "settle_s": 0.0, "radius_m": 0.4, "target": [0, 0, 0.1]}}, tmp_path / "rig.toml")
 
 
-async def interrupt(cfg, pause: str | None = None) -> None:
-    """A daemon on cfg starts scan 'mix' and stops (as on SIGTERM) with a few poses published; `pause`: 'paused'
-    once `ctl pause` has paused it, 'pausing' right after `ctl pause` (before the pose in flight is published)."""
-    arm, sensor = build_devices(cfg)
-    async with DeviceSession([arm, sensor]):
-        rig, scene = rig_record(cfg)
-        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
-        await runner.start("mix")
-        await until(lambda: runner.job.next_pose >= 3, "three poses")
-        if pause is not None:
-            await runner.pause()
-            await until(lambda: runner.state == pause, pause)
-        await runner.shutdown()
-
-
-async def restart(cfg) -> tuple[dict, str | None]:
-    """A daemon on cfg takes the scan over; returns its status and why `resume` was refused (None: it resumed)."""
+@contextlib.asynccontextmanager
+async def a_daemon(cfg):
+    """(runner, sensor) of a daemon on cfg, its devices open; the runner shuts down (as on SIGTERM) when the block
+    ends."""
     arm, sensor = build_devices(cfg)
     async with DeviceSession([arm, sensor]):
         rig, scene = rig_record(cfg)
         runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
         try:
-            await runner.recover()
-            status = runner.status()
-            try:
-                await runner.resume()
-            except ConfigError as exc:
-                return status, str(exc)
-            await runner.abort()
-            return status, None
+            yield runner, sensor
         finally:
             await runner.shutdown()
+
+
+async def interrupt(cfg, pause: str | None = None) -> None:
+    """A daemon on cfg starts scan 'mix' and stops (as on SIGTERM) with a few poses published; `pause`: 'paused'
+    once `ctl pause` has paused it, 'pausing' right after `ctl pause` (before the pose in flight is published)."""
+    async with a_daemon(cfg) as (runner, _):
+        await runner.start("mix")
+        await until(lambda: runner.job.next_pose >= 3, "three poses")
+        if pause is not None:
+            await runner.pause()
+            await until(lambda: runner.state == pause, pause)
+
+
+async def restart(cfg) -> tuple[dict, str | None]:
+    """A daemon on cfg takes the scan over; returns its status and why `resume` was refused (None: it resumed)."""
+    async with a_daemon(cfg) as (runner, _):
+        await runner.recover()
+        status = runner.status()
+        try:
+            await runner.resume()
+        except ConfigError as exc:
+            return status, str(exc)
+        await runner.abort()
+        return status, None
 
 
 @pytest.mark.parametrize("change, keys", [
@@ -218,13 +223,9 @@ def test_a_pause_keeps_the_time_it_began_across_restarts(arun, tmp_path):
     since = CaptureReader(capture).manifest["paused"]["since_utc"]
 
     async def restart_and_stop():
-        arm, sensor = build_devices(cfg)
-        async with DeviceSession([arm, sensor]):
-            rig, scene = rig_record(cfg)
-            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+        async with a_daemon(cfg) as (runner, _):
             await runner.recover()
             await until(lambda: runner.state == "paused", "paused")
-            await runner.shutdown()
 
     arun(restart_and_stop())
     assert CaptureReader(capture).manifest["paused"]["since_utc"] == since
@@ -322,20 +323,14 @@ async def taken_over_and_held(cfg, root, *, refuse: bool = False, pause: bool = 
     """A daemon on cfg takes the scan over, waits until its capture records the wait; `refuse`: `ctl resume` is then
     refused (the sensor's link down); `pause`: then `ctl pause`. Returns its status (the pause's reply, when paused)
     just before it stops."""
-    arm, sensor = build_devices(cfg)
-    async with DeviceSession([arm, sensor]):
-        rig, scene = rig_record(cfg)
-        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
-        try:
-            await runner.recover()
-            await until(lambda: "paused" in CaptureReader(root / "mix").manifest, "the pause")
-            if refuse:
-                sensor.inject_link_loss(3600.0)
-                with pytest.raises(ConfigError, match="is down"):
-                    await runner.resume()
-            return await runner.pause() if pause else runner.status()
-        finally:
-            await runner.shutdown()
+    async with a_daemon(cfg) as (runner, sensor):
+        await runner.recover()
+        await until(lambda: "paused" in CaptureReader(root / "mix").manifest, "the pause")
+        if refuse:
+            sensor.inject_link_loss(3600.0)
+            with pytest.raises(ConfigError, match="is down"):
+                await runner.resume()
+        return await runner.pause() if pause else runner.status()
 
 
 def test_a_takeover_whose_resume_was_refused_is_still_no_pause(arun, tmp_path):
