@@ -54,7 +54,7 @@ from .report.report_json import json_safe, write_report
 from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 from .time_axis import check_time_axis, scene_views
-from .view_spread import elevation_spread_deg, one_ring_warning
+from .view_spread import one_ring_warning, view_elevations_deg
 
 DEVICES = ("auto", "cpu", "cuda")
 NEAR_RANGE_M = 0.01
@@ -271,9 +271,11 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder
     # What the capture (and the ground truth) alone decide, before training: both read every view (0.5 s at 2000
     # views, 4 s at 10,000), so a time budget meets them in the set-up's time, not after the end's estimate.
-    floor_note = _floor_note(scene, model.summary(), truth)
+    reads = _as_carving_reads(scene)  # summed once for both checks
+    floor_note = _floor_note(scene, model.summary(), truth, reads)
+    signal = _signal(scene, config, reads)
+    del reads  # not held through training: at 10,000 views of nine zones it is a hundred megabytes
     ring_note = _ring_note(scene)
-    signal = _signal(scene, config)
     if budget_s is not None:
         _probe_end_costs(model, scene.n_views, truth, costs, clock, scene=scene)
         end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
@@ -317,7 +319,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     try:
         mesh = model.extract_mesh(resolution)
     except ReconstructionError as exc:
-        raise ReconstructionError(_with_signal(str(exc), scene, config)) from None
+        raise ReconstructionError(_with_signal(str(exc), signal)) from None
     export_mesh(mesh, out / "mesh.ply", vertex_normal=True)
     stages["mesh_s"] = clock() - t_end
     report = _report(capture, preset, dev, config, scene, model, result, plan, scored=truth is not None)
@@ -449,15 +451,15 @@ FLOOR_REMEDY = {"config": "--set field.floor_z=null takes the floor away, --set 
                 "capture": "change or remove scene.floor_z in the capture's scan.json"}
 
 
-def _floor_note(scene: SceneData, summary: dict, truth) -> str | None:
+def _floor_note(scene: SceneData, summary: dict, truth, reads: tuple) -> str | None:
     """The warning that the floor the fit assumes (not a table) cuts the object, or None: first returns that only
     surface below it can have given, or with a ground truth, a share of its surface below it (docs/end_of_run.md).
     `summary`: the model's summary (the fast preset names its floor and where it comes from; the paper preset has
-    none)."""
+    none). `reads`: the scene as carving reads it (`_as_carving_reads`)."""
     floor_z, source = summary.get("floor_z_m"), summary.get("floor")
     if not isinstance(floor_z, (int, float)) or source not in FLOOR_WHY:
         return None
-    counts, sensor, usable = _as_carving_reads(scene)
+    counts, sensor, usable = reads
     below = returns_below_floor(counts, scene.poses.double().cpu().numpy(), sensor, float(floor_z), usable)
     share = None if truth is None else mesh_share_below(truth.mesh, float(floor_z))
     return floor_cut_note(float(floor_z), FLOOR_WHY[source], below, share, FLOOR_REMEDY[source])
@@ -524,9 +526,7 @@ def _probe_coverage(mesh, scene: SceneData, costs: EndCosts, clock) -> None:
 def _ring_note(scene: SceneData) -> str | None:
     """The warning that every view stands at one elevation about the scene's centre (view_spread.py), or None."""
     poses, usable = _poses_usable(scene)
-    low, high, _ = elevation_spread_deg(poses, scene.center.double().cpu().numpy(), usable)
-    views = len(poses) if usable is None else int(np.asarray(usable, bool).any(axis=1).sum())
-    return one_ring_warning(low, high, views)
+    return one_ring_warning(*view_elevations_deg(poses, scene.center.double().cpu().numpy(), usable))
 
 
 def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:
@@ -674,22 +674,22 @@ def _truth_pieces(mesh) -> Pieces | None:
         return None
 
 
-def _with_signal(error: str, scene: SceneData, config: ReconConfig) -> str:
-    """A run's error, with the capture's signal check after it where that check finds too little signal: a capture
-    that faint can leave the fit no surface at all (a dim torus at four times the ambient light), and the check,
-    which needs only the capture, names the cause and what to do."""
-    line = signal_warning(_signal(scene, config))
+def _with_signal(error: str, signal: Signal | None) -> str:
+    """A run's error, with the capture's signal check (`signal`, measured before training) after it where that check
+    finds too little signal: a capture that faint can leave the fit no surface at all (a dim torus at four times the
+    ambient light), and the check, which needs only the capture, names the cause and what to do."""
+    line = signal_warning(signal)
     return error if line is None else f"{error}; {line}"
 
 
-def _signal(scene: SceneData, config: ReconConfig) -> Signal | None:
-    """The aimed zone's histograms with no return at carving's level, read as carving reads them (frames summed,
-    histograms without data left out, the weak threshold off a table); None for a preset that does not carve (the
-    paper preset)."""
+def _signal(scene: SceneData, config: ReconConfig, reads: tuple) -> Signal | None:
+    """The aimed zone's histograms with no return at carving's level, read as carving reads them (`reads`:
+    `_as_carving_reads`: frames summed, histograms without data left out; the weak threshold off a table); None for a
+    preset that does not carve (the paper preset)."""
     threshold = getattr(config.field, "carve_threshold", None)
     if threshold is None:
         return None
-    counts, sensor, usable = _as_carving_reads(scene)
+    counts, sensor, usable = reads
     on_table = scene.table is not None
     # Carving's thresholds as shipped: a capture too faint at their level stays faint when the level is lowered.
     return capture_signal(counts, sensor, float(threshold), usable,

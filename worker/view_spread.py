@@ -19,10 +19,10 @@ second ring or a spiral spreads them over tens of degrees (the public dataset's 
 ones 0-86)."""
 
 
-def elevation_spread_deg(poses: np.ndarray, center, usable: np.ndarray | None = None) -> tuple[float, float, float]:
-    """(lowest, highest, spread) elevation in degrees of the sensors of the views (poses (V, 4, 4) sensor to world,
-    metres) seen from `center` (3,) metres: 90 straight above it. usable (V, Z) bool, None for all: views without
-    any data are left out. (nan, nan, nan) when no view is left."""
+def view_elevations_deg(poses: np.ndarray, center, usable: np.ndarray | None = None) -> tuple[float, float, int]:
+    """(lowest, highest elevation in degrees, views) of the sensors of the views (poses (V, 4, 4) sensor to world,
+    metres) seen from `center` (3,) metres, 90 straight above it; views without any data (usable (V, Z) bool, None
+    for all) and a sensor at the centre left out. (nan, nan, 0) when no view is left."""
     poses = np.asarray(poses, np.float64)
     if usable is not None:
         poses = poses[np.asarray(usable, bool).reshape(len(poses), -1).any(axis=1)]
@@ -30,10 +30,9 @@ def elevation_spread_deg(poses: np.ndarray, center, usable: np.ndarray | None = 
     dist = np.linalg.norm(rel, axis=1)
     rel, dist = rel[dist > 0], dist[dist > 0]
     if not len(rel):
-        return math.nan, math.nan, math.nan
+        return math.nan, math.nan, 0
     elevation = np.degrees(np.arcsin(np.clip(rel[:, 2] / dist, -1.0, 1.0)))
-    low, high = float(elevation.min()), float(elevation.max())
-    return low, high, high - low
+    return float(elevation.min()), float(elevation.max()), len(rel)
 
 
 def one_ring_warning(low_deg: float, high_deg: float, views: int) -> str | None:
@@ -47,4 +46,4 @@ def one_ring_warning(low_deg: float, high_deg: float, views: int) -> str | None:
             f"at two or more elevations (e.g. rings from 36 to 83 degrees, the public dataset's real captures' layout)")
 
 
-__all__ = ["ONE_RING_DEG", "elevation_spread_deg", "one_ring_warning"]
+__all__ = ["ONE_RING_DEG", "view_elevations_deg", "one_ring_warning"]

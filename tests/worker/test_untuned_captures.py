@@ -57,7 +57,9 @@ def ball_on_floor(tmp_path_factory):
 
 
 def floor_note(capture, truth=None, source="config"):
-    return reconstruct._floor_note(load_scene(capture), {"floor_z_m": 0.0, "floor": source}, truth)
+    scene = load_scene(capture)
+    return reconstruct._floor_note(scene, {"floor_z_m": 0.0, "floor": source}, truth,
+                                   reconstruct._as_carving_reads(scene))
 
 
 # ---- 1. dropped frames ---------------------------------------------------------------------------------------------

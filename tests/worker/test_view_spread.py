@@ -10,20 +10,20 @@ from spadscan.protocol.schedules import elevation_rings, fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.protocol.scenes import builtin_scene
-from spadscan.worker.view_spread import ONE_RING_DEG, elevation_spread_deg, one_ring_warning
+from spadscan.worker.view_spread import ONE_RING_DEG, one_ring_warning, view_elevations_deg
 
 
 def test_one_ring_is_one_elevation_and_a_spiral_is_many():
     ring = elevation_rings(1, 16, 0.5, min_elevation_deg=20, max_elevation_deg=20)
-    low, high, spread = elevation_spread_deg(ring, np.zeros(3))
-    assert low == pytest.approx(20.0) and spread == pytest.approx(0.0, abs=1e-6)
-    assert "16 views all stand 20 to 20 degrees up" in one_ring_warning(low, high, 16)
+    low, high, views = view_elevations_deg(ring, np.zeros(3))
+    assert low == pytest.approx(20.0) and high - low == pytest.approx(0.0, abs=1e-6) and views == 16
+    assert "16 views all stand 20 to 20 degrees up" in one_ring_warning(low, high, views)
     spiral = fibonacci_hemisphere(16, 0.5)
-    assert elevation_spread_deg(spiral, np.zeros(3))[2] > 45.0
-    assert one_ring_warning(*elevation_spread_deg(spiral, np.zeros(3))[:2], 16) is None
+    low, high, views = view_elevations_deg(spiral, np.zeros(3))
+    assert high - low > 45.0 and one_ring_warning(low, high, views) is None
     # Two rings 5 degrees apart or more are not one ring; two views are too few to judge.
     two = elevation_rings(2, 8, 0.5, min_elevation_deg=30, max_elevation_deg=30 + ONE_RING_DEG)
-    assert one_ring_warning(*elevation_spread_deg(two, np.zeros(3))[:2], 16) is None
+    assert one_ring_warning(*view_elevations_deg(two, np.zeros(3))) is None
     assert one_ring_warning(20.0, 20.0, 2) is None
 
 
@@ -32,9 +32,11 @@ def test_views_without_data_are_left_out():
     poses = np.concatenate([elevation_rings(1, 8, 0.5, min_elevation_deg=20, max_elevation_deg=20),
                             fibonacci_hemisphere(1, 0.5, min_elevation_deg=80)])
     usable = np.ones((9, 1), bool)
-    assert elevation_spread_deg(poses, np.zeros(3))[2] > 50.0
+    low, high, views = view_elevations_deg(poses, np.zeros(3))
+    assert high - low > 50.0 and views == 9
     usable[8] = False
-    assert elevation_spread_deg(poses, np.zeros(3), usable)[2] == pytest.approx(0.0, abs=1e-6)
+    low, high, views = view_elevations_deg(poses, np.zeros(3), usable)
+    assert high - low == pytest.approx(0.0, abs=1e-6) and views == 8
 
 
 @pytest.mark.usefixtures("one_thread")
