@@ -141,7 +141,7 @@ def test_the_carving_error_and_the_end_of_run_check_agree_on_what_is_lowered(cyl
     effect) lies below the defaults' (4 off a table). The carving threshold lowered alone to 4.5 leaves the level at
     4: the carving error offers lower ones, and the end of the run judges nothing at the default level; the weak
     one lowered to 3.5 lowers the level: no lower ones offered, and the end of the run judges at 4 too."""
-    from spadscan.worker.reconstruct import _signal
+    from spadscan.worker.reconstruct import _as_carving_reads, _signal
 
     monkeypatch.setattr(problem, "object_hull", lambda occ, *a, **k: np.zeros_like(occ, bool))
     scene = load_scene(cylinder_capture)
@@ -150,7 +150,8 @@ def test_the_carving_error_and_the_end_of_run_check_agree_on_what_is_lowered(cyl
         with pytest.raises(ReconstructionError, match="thin or faint") as err:
             _build(cylinder_capture, overrides)
         msg = str(err.value)
-        judged = _signal(scene, with_overrides(preset_config("fast"), {**FAST_SMALL, **overrides}))
+        judged = _signal(scene, with_overrides(preset_config("fast"), {**FAST_SMALL, **overrides}),
+                         _as_carving_reads(scene))
         assert ("--set field.carve_threshold=" in msg, judged.default_threshold) == (offers_lower, default_level), msg
         if offers_lower:
             assert "--set field.carve_threshold=2.5 --set field.carve_weak_threshold=2" in msg, msg
