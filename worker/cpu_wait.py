@@ -31,6 +31,8 @@ import threading
 from pathlib import Path
 from typing import Callable
 
+from .env_number import whole_number
+
 TASKS = Path("/proc/self/task")
 """One folder per thread of this process, each holding `schedstat`: ns on a CPU, ns waiting on a run queue, slices."""
 
@@ -130,10 +132,8 @@ def machine_jobs(environ) -> tuple[int | None, str | None]:
     raw = environ.get(MACHINE_JOBS_ENV)
     if raw is None:
         return None, None
-    text = raw.strip()
-    # ASCII digits only: int() also takes signs, underscores and other scripts' digits, which no worker writes
-    count = int(text) if text.isascii() and text.isdigit() and len(text) <= 7 else -1
-    if not 0 <= count <= MAX_MACHINE_JOBS:
+    count = whole_number(raw, 0, MAX_MACHINE_JOBS)
+    if count is None:
         return None, (f"{MACHINE_JOBS_ENV}={raw!r} is not a whole number in [0, {MAX_MACHINE_JOBS:,}]: ignored (it "
                       f"counts the job processes of other workers on this host)")
     return count, None

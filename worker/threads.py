@@ -38,6 +38,8 @@ from typing import Callable, Mapping
 
 from spadscan.protocol.errors import ConfigError
 
+from .env_number import whole_number
+
 ENV = "OMP_NUM_THREADS"
 """Read by torch and by numpy's BLAS when they start: how a parent process sets its children's threads."""
 WAIT_ENV = "OMP_WAIT_POLICY"
@@ -51,6 +53,10 @@ speed of spinning without end on idle cores (the module's table)."""
 ADAPT_ENV = "SPADSCAN_ADAPT_THREADS"
 """Set to 1 by the worker for jobs whose OMP_NUM_THREADS is its default share of the cores (not a user's choice): the
 job may then use fewer threads when that is faster (`ThreadGovernor`)."""
+
+
+MAX_THREADS = 1024
+"""The most CPU threads a run may be given (--threads, a config, OMP_NUM_THREADS)."""
 
 
 def machine_cores() -> int:
@@ -69,9 +75,9 @@ def threads_per_job(processes: int, cores: int | None = None) -> int:
 
 
 def check_threads(threads) -> int:
-    """`threads` as given on a command line or in a config: an integer in [1, 1024]."""
-    if not (isinstance(threads, int) and not isinstance(threads, bool) and 1 <= threads <= 1024):
-        raise ConfigError(f"threads {threads} must be an integer in [1, 1024]")
+    """`threads` as given on a command line or in a config: an integer in [1, MAX_THREADS]."""
+    if not (isinstance(threads, int) and not isinstance(threads, bool) and 1 <= threads <= MAX_THREADS):
+        raise ConfigError(f"threads {threads} must be an integer in [1, {MAX_THREADS}]")
     return threads
 
 
@@ -81,10 +87,10 @@ def inherited_threads(environ) -> tuple[int | None, str | None]:
     raw = environ.get(ENV)
     if not raw or not raw.strip():
         return None, None
-    try:
-        return check_threads(int(raw)), None
-    except (ValueError, ConfigError):
-        return None, f"{ENV}={raw!r} in the worker's environment is not a whole number in [1, 1024]: ignored"
+    threads = whole_number(raw, 1, MAX_THREADS)
+    if threads is None:
+        return None, f"{ENV}={raw!r} in the worker's environment is not a whole number in [1, {MAX_THREADS}]: ignored"
+    return threads, None
 
 
 def oversubscribed(processes: int, threads: int, cores: int | None = None, others: int = 0) -> str | None:

@@ -170,7 +170,7 @@ def test_threads_that_fit_the_cores_are_no_warning(monkeypatch):
     assert WorkerConfig(root=Path("."), processes=1, threads=2).threads_warnings({ENV: "8"}) == []
 
 
-@pytest.mark.parametrize("bad", ["abc", "0", "-1", "2.5"])
+@pytest.mark.parametrize("bad", ["abc", "0", "-1", "2.5", "+2", "1_0", "\u0663", "2048", "1" * 5000])
 def test_an_unusable_omp_num_threads_is_ignored_with_a_warning(monkeypatch, bad):
     two_cores(monkeypatch)
     config = WorkerConfig(root=Path("."), processes=2)
