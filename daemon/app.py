@@ -183,9 +183,9 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 its default action would kill the daemon with the arm moving and the scan left unrecorded."""
 
 
-async def serve(cfg: DaemonConfig, arm, sensor) -> None:
+async def serve(cfg: DaemonConfig, arm, sensor, lock: RootLock | None = None) -> None:
     """Run the daemon until SIGTERM, SIGINT, SIGHUP or `ctl shutdown`. The caller has run check_startup and holds
-    its lock."""
+    its `lock`, which each new scan checks is still the captures root's (None: not checked)."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     me = asyncio.current_task()
@@ -206,7 +206,7 @@ async def serve(cfg: DaemonConfig, arm, sensor) -> None:
     try:
         async with DeviceSession([arm, sensor]):
             rig, scene = rig_record(cfg)
-            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+            runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene, root_lock=lock)
             try:
                 await runner.recover()  # before listening: the first `status` already shows an interrupted scan
                 phase = "serving"

@@ -48,6 +48,23 @@ class RootLock:
             raise
         self._fd, self._writable = fd, writable
 
+    def keep(self) -> bool:
+        """Hold the lock of the file now at `path`, taking it again where that is not the file locked (the root was
+        moved or removed, or its lock file deleted, while this process held it: a lock on a file no longer there
+        guards nothing, and a second daemon would be let in). True when it was taken again; ConfigError when another
+        daemon holds the file there now."""
+        if self._fd is not None:
+            try:
+                there = os.stat(self.path)
+            except OSError:
+                there = None
+            held = os.fstat(self._fd)
+            if there is not None and (there.st_dev, there.st_ino) == (held.st_dev, held.st_ino):
+                return False
+            self.release()
+        self.acquire()
+        return True
+
     def release(self) -> None:
         if self._fd is not None:
             if self._writable:

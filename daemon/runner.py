@@ -63,6 +63,7 @@ from .arm.stops import clear_advice, stop_name
 from .describe import SLIDER_FLOOR, SLIDER_FULL, describe, slider_note, write_advice
 from .devices import (Arm, ArmFault, ArmState, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent,
                       wait_counted)
+from .root_lock import RootLock
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, RIG_VERSION, WRITER, ScanJob, abort_pending,
                        check_scan_name, clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted,
                        interrupted_at, interrupted_scan, load_job, pause_before_block, takeover_note, way_out)
@@ -160,9 +161,12 @@ class ScanRunner:
     """Owns the current scan. All methods run on the daemon's event loop; writer I/O runs on one thread."""
 
     def __init__(self, arm: Arm, sensor: Sensor, cfg: DaemonConfig, *, rig: dict | None = None,
-                 scene: dict | None = None):
+                 scene: dict | None = None, root_lock: RootLock | None = None):
         self.arm, self.sensor, self.cfg = arm, sensor, cfg
         self.root = cfg.captures
+        self.root_lock = root_lock
+        """The captures root's lock this daemon holds (None: not checked), taken again by a new scan where the root
+        was moved or its lock file removed meanwhile (`RootLock.keep`)."""
         self.rig, self.scene = rig or {}, scene or {}
         self.job: ScanJob | None = None
         self.state = "idle"
@@ -214,6 +218,14 @@ class ScanRunner:
             self.root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise CaptureError(f"cannot start a scan: {describe(exc, 'creating the captures root')}") from None
+        if self.root_lock is not None:
+            try:
+                relocked = await asyncio.to_thread(self.root_lock.keep)
+            except ConfigError as exc:
+                raise ConfigError(f"cannot start a scan: {exc}") from None
+            if relocked:
+                log.warning("captures root %s was moved or removed, or its lock file deleted, while the daemon ran: "
+                            "locked again", self.root)
         name = check_scan_name(name, self.root) if name is not None else default_scan_name(self.root)
         path = self.root / name
         if path.exists():

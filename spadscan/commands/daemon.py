@@ -57,5 +57,5 @@ def run(args) -> int:
         return 0
     arm, sensor, lock = check_startup(cfg)
     with lock:  # held until the daemon has stopped: another daemon may then take the captures root
-        asyncio.run(serve(cfg, arm, sensor))
+        asyncio.run(serve(cfg, arm, sensor, lock))
     return 0

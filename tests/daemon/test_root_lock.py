@@ -74,3 +74,46 @@ def test_a_lock_file_another_user_made_still_locks(tmp_path, monkeypatch):
         with pytest.raises(ConfigError, match="in use by another daemon"):
             check_root_free(tmp_path)
     check_root_free(tmp_path)
+
+
+@pytest.mark.parametrize("how", ["moved", "removed", "lock deleted"])
+def test_a_root_moved_or_its_lock_deleted_is_locked_again(tmp_path, how, monkeypatch):
+    """A lock on a file no longer at the root guards nothing: `keep` takes the file there now, and a second daemon
+    is refused again; where the root is as it was, it does nothing."""
+    import shutil
+
+    import spadscan.daemon.root_lock as root_lock
+
+    monkeypatch.setattr(root_lock, "LOCK_TRIES", 2)
+    root = tmp_path / "caps"
+    root.mkdir()
+    with RootLock(root) as lock:
+        assert lock.keep() is False
+        if how == "moved":
+            root.rename(tmp_path / "caps-archive")
+        elif how == "removed":
+            shutil.rmtree(root)
+        else:
+            (root / LOCK_NAME).unlink()
+        root.mkdir(exist_ok=True)  # the daemon makes the root again for its next scan
+        intruder = RootLock(root)
+        intruder.acquire()  # without `keep`, a second daemon is let in
+        intruder.release()
+        assert lock.keep() is True
+        with pytest.raises(ConfigError, match=r"in use by another daemon \(pid"):
+            RootLock(root).acquire()
+        assert lock.keep() is False
+
+
+def test_keep_refuses_where_another_daemon_took_the_new_lock(tmp_path, monkeypatch):
+    import spadscan.daemon.root_lock as root_lock
+
+    monkeypatch.setattr(root_lock, "LOCK_TRIES", 2)
+    root = tmp_path / "caps"
+    root.mkdir()
+    with RootLock(root) as lock:
+        (root / LOCK_NAME).unlink()
+        with RootLock(root):
+            with pytest.raises(ConfigError, match=r"in use by another daemon \(pid"):
+                lock.keep()
+        assert lock.keep() is True  # the other let go: taken

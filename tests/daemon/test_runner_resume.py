@@ -13,6 +13,7 @@ from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.rig import build_devices, rig_record
 from spadscan.daemon.config import config_from_dict
 from spadscan.daemon import runner as runner_module
+from spadscan.daemon.root_lock import RootLock
 from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.scan_job import takeover_note
 from spadscan.protocol import sensor_presets
@@ -38,13 +39,13 @@ def make_cfg(tmp_path, hand_eye_z: float = 0.05, auto_resume: bool = False, arm:
 
 
 @contextlib.asynccontextmanager
-async def a_daemon(cfg):
+async def a_daemon(cfg, root_lock: RootLock | None = None):
     """(runner, sensor) of a daemon on cfg, its devices open; the runner shuts down (as on SIGTERM) when the block
     ends."""
     arm, sensor = build_devices(cfg)
     async with DeviceSession([arm, sensor]):
         rig, scene = rig_record(cfg)
-        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene)
+        runner = ScanRunner(arm, sensor, cfg, rig=rig, scene=scene, root_lock=root_lock)
         try:
             yield runner, sensor
         finally:
@@ -408,3 +409,28 @@ def test_ctl_pause_on_a_blocked_takeover_is_the_operators_pause(arun, tmp_path):
     status, refused = arun(restart(make_cfg(tmp_path, auto_resume=True)))
     assert status["state"] == "paused" and status["reason"] == "paused by user", status
     assert refused is None
+
+
+def test_a_scan_after_the_captures_root_was_moved_locks_it_again(arun, tmp_path, caplog, monkeypatch):
+    """The operator moves the captures folder away between scans: the next scan makes it again and holds its lock, so
+    that a second daemon on the same folder is refused rather than let in to take over the scan being recorded."""
+    import spadscan.daemon.root_lock as root_lock
+
+    monkeypatch.setattr(root_lock, "LOCK_TRIES", 2)
+    cfg = make_cfg(tmp_path)
+    cfg.captures.mkdir()
+
+    async def scans() -> None:
+        with RootLock(cfg.captures) as lock:
+            async with a_daemon(cfg, lock) as (runner, _):
+                await runner.start("old", {"views": 3})
+                assert (await runner.wait("old"))["state"] == "complete"
+                cfg.captures.rename(tmp_path / "caps-archive")
+                await runner.start("new", {"views": 3})
+                with pytest.raises(ConfigError, match="in use by another daemon"):
+                    RootLock(cfg.captures).acquire()
+                assert (await runner.wait("new"))["state"] == "complete"
+
+    arun(scans())
+    assert "locked again" in caplog.text
+    assert (tmp_path / "caps-archive" / "old").is_dir() and (cfg.captures / "new").is_dir()
