@@ -31,6 +31,10 @@ class Child:
     log: Path
     wait: asyncio.Task
     last_beat: float = field(default_factory=time.monotonic)
+    stopped_why: str | None = None
+    """Why the worker stopped it while it ran (`overdue.overdue_reason`): its crash record says this, not its signal."""
+    kill_at: float | None = None
+    """When a stopped child not yet gone is sent SIGKILL (time.monotonic())."""
 
 
 async def spawn_job(job: Job, root: Path, scratch: Path, outcome: Path, log: Path, *, recon: str | None,

@@ -42,10 +42,11 @@ from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
 from .disk_room import MAX_FULL_DISK, RoomWait, folder_bytes, mount_point, retry_after, same_filesystem
-from .job_progress import PROGRESS_S, LogTails, ProgressNotes, ended_live_status, progress_note
+from .job_progress import PROGRESS_S, LogTails, ProgressNotes, claim_budget, ended_live_status, progress_note
 from .jobs import (CHANGEABLE, EXIT_DONE_UNSAID, EXIT_FULL, EXIT_INPUT, completion, existing_result, mark_complete,
                    redo_command, result_path, scratch_path, summary_of, worker_command)
 from .holder import Holder
+from .overdue import overdue_reason
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
 from .presence import RENEW_S, Presence, machine_siblings, remove_presence, write_presence
 from .publishing import left_result, own_result, publish_claim, publish_left, reconcile
@@ -165,6 +166,7 @@ class Worker:
                 self._heartbeat()
                 self._say_present()
                 await self._say_progress()
+                await self._stop_overdue()
                 if self.config.once and not self.children and not self.unpublished and self._drained():
                     break
                 # renewals due too: a poll longer than the presence's window would hide an idle worker
@@ -464,6 +466,24 @@ class Worker:
                 lines.append(note.text)
         return lines
 
+    async def _stop_overdue(self) -> None:
+        """Stop the job processes that have run far past their budget (`overdue.py`), as a shutdown stops them
+        (SIGTERM, then SIGKILL after the grace period); `_reap` then records each as a crash that says why."""
+        now = time.time()
+        for job_id, child in list(self.children.items()):
+            if child.wait.done():
+                continue
+            if child.stopped_why is not None:
+                if time.monotonic() >= child.kill_at:
+                    kill_group(child.proc, signal.SIGKILL)
+                continue
+            budget = await asyncio.to_thread(claim_budget, child.claim.job, child.claim.started, self.root)
+            why = overdue_reason(budget, now)
+            if why is not None:
+                child.stopped_why, child.kill_at = why, time.monotonic() + self.config.stop_grace_s
+                kill_group(child.proc, signal.SIGTERM)
+                self.log(f"{job_id}: {why}; stopping it")
+
     async def _reap(self) -> None:
         for job_id, child in list(self.children.items()):
             if child.wait.done():
@@ -512,7 +532,7 @@ class Worker:
             error = outcome.get("error", "bad input")
             said = f"{job.id} failed after {seconds:.1f} s: {error}"
         else:
-            reason = outcome.get("error") or exit_reason(rc)
+            reason = child.stopped_why or outcome.get("error") or exit_reason(rc)
             error = f"{reason} (log: {child.log})"
             said = f"{job.id} crashed after {seconds:.1f} s: {reason}"
         if not bad_input and claim.attempt < self.queue.max_attempts:  # queue.crash retries it: queued again
