@@ -460,9 +460,33 @@ def capture_live(capture: str, captures: str | None) -> dict | None:
     not read)."""
     live = _live_file(capture)
     queued = live_queued(captures, os.path.basename(capture)) if captures else None
-    if queued is None:
-        return live
-    return {**(live or {}), "queued": queued}
+    if queued is not None:
+        return {**(live or {}), "queued": queued}
+    gone = live_job_gone(captures, live) if captures and live else None
+    return {**live, "gone": gone} if gone else live
+
+
+def live_job_gone(captures: str, live: dict) -> str | None:
+    """Why the live reconstruction a live status says follows its scan (or runs its final run) is not running: its
+    job's worker is gone (the queue's 'stale' or 'running?', as `spadscan worker --status` says), or its job runs no
+    more; None while it runs, once it ended, or where the queue cannot be read. The status file is its job's last word:
+    a worker killed mid-scan leaves it saying 'live' for good."""
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.worker.queue import Queue
+    from spadscan.worker.status_detail import FOLLOWING
+
+    if live.get("state") not in FOLLOWING or not live.get("job"):
+        return None
+    try:
+        queue = Queue.for_root(captures, create=False)
+        row = next((r for r in queue.statuses(("running",)) if r.id == live["job"]), None)
+    except (OSError, SpadscanError):
+        return None
+    if row is None:
+        return f"its job {live['job']} is not running (its worker stopped or was killed)"
+    if row.stale:
+        return f"its job {live['job']} is {row.shown_state}: {row.stale}"
+    return None
 
 
 def _live_file(capture: str) -> dict | None:
@@ -578,6 +602,8 @@ def live_line(live: dict | None, scan_views: int | None = None) -> str | None:
     if not live:
         return None
     said = _fit_line(live, scan_views)
+    if live.get("gone"):
+        return f"{said or 'live reconstruction'}; {live['gone']}"
     queued = live.get("queued")
     if not isinstance(queued, dict):
         return said

@@ -214,3 +214,27 @@ def test_a_ctl_status_process_says_it_without_loading_torch(busy, sock_dir):
     imported = {line.rsplit("|", 1)[1].strip().split(".")[0] for line in r.stderr.splitlines()
                 if line.startswith("import time:") and line.count("|") == 2}
     assert "spadscan" in imported and "torch" not in imported, sorted(imported)
+
+
+def test_a_live_fit_whose_worker_was_killed_says_so_not_that_it_follows_the_scan(tmp_path, monkeypatch, capsys):
+    """A worker killed mid-scan leaves its live status saying 'live' for good; the queue knows its claim is dead (as
+    `spadscan worker --status` says 'stale'), and `ctl status` says it too. Once its job runs no more at all, that."""
+    dead = dead_holder()
+    root = tmp_path / "caps"
+    folder = root / "mug" / "recon" / "live"
+    folder.mkdir(parents=True)
+    queue = Queue.for_root(root)
+    queue.enqueue(Job(id="mug-fast", scan="mug", live=True))
+    assert queue.claim(dead).job.id == "mug-fast"
+    write_status(folder, LiveStatus(views_used=8, views_published=9, steps=40, job="mug-fast"))
+    shown, _ = ctl_status(root, monkeypatch, capsys, "--json")
+    assert shown["live"]["gone"].startswith("its job mug-fast is stale: "), shown["live"]
+    line = live_line(shown["live"], 3)
+    assert line.startswith("live reconstruction following the scan: 8/9 views") and "is stale: " in line, line
+    [running] = (queue.path / "running").glob("mug-fast~*.json")
+    os.rename(running, queue.path / "failed" / "mug-fast.json")
+    assert live_status(status_of(root))["gone"] == "its job mug-fast is not running (its worker stopped or was killed)"
+    live = Holder.current()
+    (queue.path / "failed" / "mug-fast.json").rename(queue.path / "queued" / "mug-fast.json")
+    assert queue.claim(live).job.id == "mug-fast"
+    assert "gone" not in live_status(status_of(root)), "its worker renews the claim: it follows the scan"
