@@ -17,6 +17,7 @@ again).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import hashlib
 import importlib
@@ -37,6 +38,7 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.atomic_files import write_atomic
+from spadscan.protocol.capture_writer import file_size_limit
 from spadscan.protocol.disk_full import disk_full_cause
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
 
@@ -269,6 +271,8 @@ def _export_placed(spec: str, offset, path: Path) -> tuple[Path | None, str | No
         mesh.export(path)
         return path, None
     except (ImportError, OSError, SpadscanError) as exc:
+        with contextlib.suppress(OSError):  # a file cut short (a size limit) would read as a ground truth
+            path.unlink(missing_ok=True)
         moved = "" if offset is None else f" moved by {list(offset)}"
         return None, f"{spec}{moved}: {exc}; no metrics"
 
@@ -533,6 +537,15 @@ def _ended_in_error(exc: Exception, outcome: Path, out: Path) -> int:
              f"written ({why})")
         return _ended(outcome, {"ok": False, "kind": "full", "error": why, "folder": str(folder), "quota": quota},
                       EXIT_FULL)
+    if isinstance(exc, OSError) and exc.errno == errno.EFBIG:
+        # Not a full disk, nor a bug: this process may not write a file that large, and another attempt may not
+        # either. Failed, with the limit named, not a crash retried to the end of its attempts.
+        limit = file_size_limit()
+        where = exc.filename or f"a file in {out}"
+        said = f"this process may write files of at most {limit:,} bytes" if limit is not None else "a size limit"
+        error = f"file too large: {where} could not be written ({said}: raise `ulimit -f` for the worker)"
+        _say(f"job failed: {error}")
+        return _ended(outcome, {"ok": False, "kind": "input", "error": error}, EXIT_INPUT)
     if isinstance(exc, SpadscanError):
         _say(f"job failed: {exc}")
         return _ended(outcome, {"ok": False, "kind": "input", "error": str(exc)}, EXIT_INPUT)
