@@ -193,6 +193,9 @@ class ScanRunner:
         """Frame waits begun again because the daemon itself had not run (see `stall.py`), not the sensor."""
         self.aborts = AbortBook(self._io, self._replace_error, cfg.auto_resume)
         """The aborts their capture could not record yet, written again until they land."""
+        self.also_interrupted: list[str] = []
+        """The interrupted scans found at start-up besides the one taken over (an older one that could not be, and a
+        newer scan started, then a crash), newest first: named in `status` until taken over or aborted by name."""
         self.stuck: dict | None = None
         """The interrupted scan found at start-up that could not be taken over: {"scan", "cause", "error" (the
         last_error, with what the operator can do)}; None when there is none."""
@@ -289,10 +292,15 @@ class ScanRunner:
         """At start-up: record the aborts a disk could not take before (`abort-pending.json`), then take over a scan a
         crash or stop left 'running', paused (or resumed when auto_resume)."""
         await self._settle_pending_aborts()
-        path = await asyncio.to_thread(find_interrupted, self.root)
-        if path is None:
+        found = await asyncio.to_thread(find_interrupted, self.root)
+        if not found:
             return
-        await self._take_over(path, self.cfg.auto_resume)
+        self.also_interrupted = [p.name for p in found[1:]]
+        if self.also_interrupted:
+            log.warning("also left 'running' by an earlier daemon, not taken over: %s; `spadscan ctl resume NAME` "
+                        "takes one over once no scan is held, `spadscan ctl abort NAME` ends it as it stands",
+                        ", ".join(self.also_interrupted))
+        await self._take_over(found[0], self.cfg.auto_resume)
 
     async def _take_over(self, path: Path, auto_resume: bool) -> bool:
         """Take the interrupted scan at `path` over, paused (resumed when auto_resume allows); False when it cannot
@@ -406,9 +414,11 @@ class ScanRunner:
             self.last_error = standing[-1] if standing else None
 
     def _forget_stuck(self, name: str) -> None:
-        """Scan `name` is taken over or aborted: if it is the one that could not be taken over, status stops naming
-        it. Another scan's takeover leaves it named: it is still 'running' on disk, and plain `ctl resume` and `ctl
-        abort` still point at it."""
+        """Scan `name` is taken over or aborted: if it is the one that could not be taken over, or one of the others
+        found interrupted at start-up, status stops naming it. Another scan's takeover leaves it named: it is still
+        'running' on disk, and plain `ctl resume` and `ctl abort` still point at it."""
+        if name in self.also_interrupted:
+            self.also_interrupted.remove(name)
         if self.stuck is None or self.stuck["scan"] != name:
             return
         if self.last_error == self.stuck["error"]:
@@ -759,6 +769,8 @@ class ScanRunner:
             out["unrecorded_aborts"] = self.aborts.status()
         if self.stuck is not None:
             out["cannot_take_over"] = {"scan": self.stuck["scan"], "error": self.stuck["error"]}
+        if self.also_interrupted:
+            out["also_interrupted"] = list(self.also_interrupted)
         out["daemon_stalls"] = {**self.stalls.counters(), "frame_waits_retried": self.frame_waits_retried}
         return out
 

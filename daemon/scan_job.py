@@ -249,13 +249,14 @@ def written_by_daemon(manifest: dict) -> bool:
     return isinstance(rig, dict) and rig.get("writer") == WRITER
 
 
-def find_interrupted(root: Path) -> Path | None:
-    """The daemon's scan folder under root whose manifest says 'running' and was updated last (a crash or stop left
-    it). 'running' captures the daemon did not write (no rig.writer = WRITER) are logged and skipped."""
-    best, best_t = None, ""
+def find_interrupted(root: Path) -> list[Path]:
+    """The daemon's scan folders under root whose manifest says 'running' (a crash or stop left them), the one updated
+    last first: the one a restarted daemon takes over. 'running' captures the daemon did not write (no rig.writer =
+    WRITER) are logged and skipped."""
+    found: list[tuple[str, Path]] = []
     root = Path(root)
     if not root.is_dir():
-        return None
+        return []
     for d in root.iterdir():
         m = d / MANIFEST
         if d.name.startswith(".") or not m.is_file():
@@ -272,9 +273,8 @@ def find_interrupted(root: Path) -> Path | None:
             log.warning("not taking over %s: its capture says 'running' but was not written by the daemon "
                         "(no rig.writer = %r in %s)", d, WRITER, MANIFEST)
             continue
-        if str(manifest.get("updated_utc", "")) >= best_t:
-            best, best_t = d, str(manifest.get("updated_utc", ""))
-    return best
+        found.append((str(manifest.get("updated_utc", "")), d))
+    return [d for _, d in sorted(found, key=lambda pair: (pair[0], pair[1].name), reverse=True)]
 
 
 def note_abort_pending(path: Path, reason: str) -> bool:

@@ -215,3 +215,22 @@ def test_a_chunk_this_user_may_not_read_is_never_called_damaged_and_is_kept_in_p
     assert resumed["scan"] == "vase" and done == {"name": "vase", "state": "complete"}
     check_capture(folder, VIEWS, 2)
     assert {p.relative_to(folder): p.read_bytes() for p in chunk.glob("*")} == kept  # the chunk stayed, untouched
+
+
+def test_an_older_interrupted_scan_stays_named_beside_the_one_taken_over(arun, tmp_path, sphere, caplog):  # noqa: F811
+    """Scan 'old' could not be taken over (a torn chunk), the operator started 'new', and the daemon crashed: the next
+    daemon takes 'new' over and names 'old' too (status and its log), until 'old' is ended by name."""
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    arun(interrupted(cfg, sphere, "old"))
+    tear(tmp_path / "caps" / "old")
+    arun(interrupted(cfg, sphere, "new"))
+
+    async def then(runner, status):
+        await runner.abort(name="old")
+        return status, runner.status()
+
+    status, after = arun(restarted(cfg, sphere, then))
+    assert status["scan"] == "new" and status["state"] == "paused", status
+    assert status["also_interrupted"] == ["old"], status
+    assert "also left 'running' by an earlier daemon, not taken over: old" in caplog.text
+    assert "also_interrupted" not in after and after["scan"] == "new", after
