@@ -13,10 +13,12 @@ CAPTURE/chunk-000000/          published chunks of at most `chunk_size` measurem
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
 import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -168,10 +170,19 @@ def no_permission(path) -> NoPermission:
                         f"may be intact)")
 
 
+def check_regular(path: Path) -> None:
+    """OSError (EINVAL) where `path` is not a regular file (FileNotFoundError where it is missing). Asked before it is
+    opened: a FIFO left where a file should be (or a device) would block a plain open until something writes to it,
+    and with it a worker's whole look for scans."""
+    if not stat.S_ISREG(os.stat(path).st_mode):
+        raise OSError(errno.EINVAL, "not a regular file", str(path))
+
+
 def read_json(path: Path) -> dict:
     """Read a JSON object; a missing, truncated or non-object file is a one-line CaptureError naming it (NoPermission
     for one this user may not read)."""
     try:
+        check_regular(path)
         data = json.loads(Path(path).read_text())
     except FileNotFoundError:
         raise CaptureError(f"{path}: missing") from None
@@ -251,6 +262,7 @@ def npy_is_whole(path: Path) -> bool:
     """Whether the .npy file at `path` holds as many bytes as its header describes (False when it cannot be read):
     a file still being copied in is short of them."""
     try:
+        check_regular(path)
         with open(path, "rb") as f:
             if f.read(len(NPY_MAGIC)) != NPY_MAGIC:
                 return False

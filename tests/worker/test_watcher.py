@@ -238,3 +238,38 @@ def test_watch_polls_until_stopped(tmp_path, arun):
     arun(main())
     assert q.known("late-fast")
     assert sum(r.queued.count("late") for r in reports) == 1
+
+
+def test_a_fifo_where_a_capture_file_belongs_is_refused_without_blocking(tmp_path):
+    """A FIFO would block a plain open until something writes to it, and with it the worker's whole look for scans
+    (`--status` saying it waits for scans while none is queued, and a worker deaf to Ctrl-C): refused at once."""
+    import os
+    import threading
+
+    from spadscan.protocol.capture_format import MANIFEST, chunk_name, npy_is_whole, read_json, write_json_atomic
+    from spadscan.protocol.errors import CaptureError
+    from spadscan.worker.watcher import holds_every_measurement
+
+    make_scan(tmp_path, "s", n=2)
+    folder = tmp_path / "s"
+    write_json_atomic(folder / MANIFEST, {**read_json(folder / MANIFEST), "planned_poses": 2, "frames_per_pose": 1})
+    assert holds_every_measurement(folder), "whole: the chunks are read and counted"
+    chunk = folder / chunk_name(0)
+    for name in ("hists.npy", "meta.json"):
+        (chunk / name).unlink()
+        os.mkfifo(chunk / name)
+    answers = {}
+
+    def look():
+        answers["whole"] = holds_every_measurement(folder)
+        answers["npy"] = npy_is_whole(chunk / "hists.npy")
+        try:
+            read_json(chunk / "meta.json")
+        except CaptureError as exc:
+            answers["json"] = str(exc)
+
+    looking = threading.Thread(target=look, daemon=True)
+    looking.start()
+    looking.join(timeout=30)
+    assert not looking.is_alive(), "blocked on a FIFO"
+    assert answers["whole"] is False and answers["npy"] is False and "not a regular file" in answers["json"], answers
