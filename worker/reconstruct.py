@@ -54,7 +54,7 @@ from .report.report_json import json_safe, write_report
 from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 from .time_axis import check_time_axis, scene_views
-from .view_spread import one_ring_warning, view_elevations_deg
+from .view_spread import above_only_warning, one_ring_warning, view_elevations_deg
 
 DEVICES = ("auto", "cpu", "cuda")
 NEAR_RANGE_M = 0.01
@@ -524,9 +524,11 @@ def _probe_coverage(mesh, scene: SceneData, costs: EndCosts, clock) -> None:
 
 
 def _ring_note(scene: SceneData) -> str | None:
-    """The warning that every view stands at one elevation about the scene's centre (view_spread.py), or None."""
+    """The warning that every view stands at one elevation about the scene's centre, else that every view looks down
+    from above only (view_spread.py), or None."""
     poses, usable = _poses_usable(scene)
-    return one_ring_warning(*view_elevations_deg(poses, scene.center.double().cpu().numpy(), usable))
+    spread = view_elevations_deg(poses, scene.center.double().cpu().numpy(), usable)
+    return one_ring_warning(*spread) or above_only_warning(*spread)
 
 
 def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:
