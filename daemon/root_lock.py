@@ -52,17 +52,27 @@ class RootLock:
         """Hold the lock of the file now at `path`, taking it again where that is not the file locked (the root was
         moved or removed, or its lock file deleted, while this process held it: a lock on a file no longer there
         guards nothing, and a second daemon would be let in). True when it was taken again; ConfigError when another
-        daemon holds the file there now."""
+        daemon holds the file there now, or the file cannot be looked at (the lock held is then kept)."""
         if self._fd is not None:
             try:
                 there = os.stat(self.path)
-            except OSError:
+            except (FileNotFoundError, NotADirectoryError):
                 there = None
+            except OSError as exc:  # a lost mount, a permission: not a sign that the lock is gone
+                raise ConfigError(f"cannot check the lock of captures root {self.root}: {exc.strerror or exc} "
+                                  f"({self.path})") from None
             held = os.fstat(self._fd)
             if there is not None and (there.st_dev, there.st_ino) == (held.st_dev, held.st_ino):
                 return False
-            self.release()
-        self.acquire()
+        old = self._fd
+        self._fd = None
+        try:
+            self.acquire()  # a new file: no conflict with the one still held
+        except BaseException:
+            self._fd = old  # kept: a refusal or an error lets no second daemon in by this one letting go
+            raise
+        if old is not None:
+            os.close(old)  # its file is elsewhere now, or gone: its pid is nobody's to read
         return True
 
     def release(self) -> None:

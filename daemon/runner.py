@@ -226,6 +226,8 @@ class ScanRunner:
                 relocked = await asyncio.to_thread(self.root_lock.keep)
             except ConfigError as exc:
                 raise ConfigError(f"cannot start a scan: {exc}") from None
+            except OSError as exc:  # the new lock file's pid could not be written (a full disk)
+                raise CaptureError(f"cannot start a scan: {describe(exc, 'locking the captures root')}") from None
             if relocked:
                 log.warning("captures root %s was moved or removed, or its lock file deleted, while the daemon ran: "
                             "locked again", self.root)
@@ -399,6 +401,11 @@ class ScanRunner:
         way = await asyncio.to_thread(way_out, path)
         said = f"cannot take over interrupted scan {path.name!r}: {exc}; {way}"
         log.error("%s", said)
+        before = self.stuck["scan"] if self.stuck is not None else None
+        if before not in (None, path.name, *self.also_interrupted):
+            self.also_interrupted.append(before)  # still 'running' on disk: still named
+        if path.name in self.also_interrupted:
+            self.also_interrupted.remove(path.name)  # named as the one that cannot be taken over
         self.stuck = {"scan": path.name, "cause": str(exc), "error": said}
         self.last_error = said
 
@@ -412,6 +419,16 @@ class ScanRunner:
             standing.append(self.stuck["error"])
         if self.last_error not in standing:
             self.last_error = standing[-1] if standing else None
+
+    async def _interrupted(self, name: str) -> Path:
+        """`interrupted_scan`; a scan that is no longer one (moved out of the root by hand, ended) is no longer named
+        as one that could not be taken over or was left interrupted."""
+        try:
+            return await asyncio.to_thread(interrupted_scan, self.root, name)
+        except ConfigError:
+            if await asyncio.to_thread(_gone_or_ended, self.root / name):
+                self._forget_stuck(name)
+            raise
 
     def _forget_stuck(self, name: str) -> None:
         """Scan `name` is taken over or aborted: if it is the one that could not be taken over, or one of the others
@@ -589,7 +606,7 @@ class ScanRunner:
             raise ConfigError(f"{doing}; try again in a moment")
         self._interrupted_op = "taken over"
         try:
-            path = await asyncio.to_thread(interrupted_scan, self.root, name)
+            path = await self._interrupted(name)
             if ((name in self.ends and self.ends[name].state == "aborted") or name in self.aborts.unrecorded
                     or await asyncio.to_thread(abort_pending, path) is not None):
                 raise ConfigError(f"scan {name!r} was aborted (its {MANIFEST} does not say so yet: the disk could not "
@@ -625,7 +642,7 @@ class ScanRunner:
             raise ConfigError(f"an interrupted scan is being {self._interrupted_op}; try again in a moment")
         self._interrupted_op = "aborted"
         try:
-            path = await asyncio.to_thread(interrupted_scan, self.root, name)
+            path = await self._interrupted(name)
             stuck = self.stuck if self.stuck is not None and self.stuck["scan"] == name else None
             if stuck is not None:
                 reason = f"{reason}; it could not be taken over: {stuck['cause']}"
@@ -1607,6 +1624,14 @@ def _chunk_sizes(frames: int, model) -> list[tuple[str, int]]:
             ("poses.npy", 128 + frames * 16 * 8),
             ("reference.npy", 128 + frames * model.n_bins * 4),
             ("meta.json", frames * META_BYTES)]
+
+
+def _gone_or_ended(path: Path) -> bool:
+    """Whether the scan folder `path` holds no manifest any more (moved out by hand), or one that says it ended."""
+    try:
+        return read_json(path / MANIFEST).get("state") != "running"
+    except CaptureError:
+        return not (path / MANIFEST).exists()
 
 
 def _reopen_problem(job: ScanJob, exc: BaseException) -> str:

@@ -174,7 +174,10 @@ def check_regular(path: Path) -> None:
     """OSError (EINVAL) where `path` is not a regular file (FileNotFoundError where it is missing). Asked before it is
     opened: a FIFO left where a file should be (or a device) would block a plain open until something writes to it,
     and with it a worker's whole look for scans."""
-    if not stat.S_ISREG(os.stat(path).st_mode):
+    mode = os.stat(path).st_mode
+    if stat.S_ISDIR(mode):  # as open() says it
+        raise IsADirectoryError(errno.EISDIR, "Is a directory", str(path))
+    if not stat.S_ISREG(mode):
         raise OSError(errno.EINVAL, "not a regular file", str(path))
 
 
@@ -204,6 +207,7 @@ def read_npy(path: Path) -> np.ndarray:
     """Load a .npy file without pickles, in the machine's byte order; a file that is not a .npy, truncation or
     corruption is a one-line CaptureError naming the file (NoPermission for one this user may not read)."""
     try:
+        check_regular(path)
         with open(path, "rb") as f:
             head = f.read(len(NPY_MAGIC))
             # Without the magic np.load would try to unpickle the file and complain about allow_pickle, which reads

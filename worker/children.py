@@ -31,6 +31,8 @@ class Child:
     log: Path
     wait: asyncio.Task
     last_beat: float = field(default_factory=time.monotonic)
+    spawned: float = field(default_factory=time.monotonic)
+    """When its process was started (time.monotonic(): a clock that a suspend or a clock step does not move on)."""
     stopped_why: str | None = None
     """Why the worker stopped it while it ran (`overdue.overdue_reason`): its crash record says this, not its signal."""
     kill_at: float | None = None

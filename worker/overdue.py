@@ -8,7 +8,9 @@ grace period) and records a crash that names why; the queue retries it as any cr
 
 The limit is far from a slow run's: twice the budget and five minutes more (a job on a busy machine ends its last
 stages late by seconds to tens of seconds). A job without a budget (a step count only) is never stopped: no limit
-says how long it should take.
+says how long it should take; nor is a live job while it follows its scan (its budget bounds its final run, from the
+scan's end). An ordinary job's time is measured on the monotonic clock: a machine suspended for an hour does not stop
+every job on waking.
 """
 
 from __future__ import annotations
@@ -28,8 +30,9 @@ def overdue_limit_s(budget_s: float) -> float:
 
 
 def overdue_reason(budget: tuple[float, float] | None, now: float) -> str | None:
-    """Why a running job is stopped at `now` (unix seconds), or None while it is not overdue. `budget`: (budget_s,
-    when it started counting, unix seconds), as `job_progress.claim_budget` gives it (None: no budget known)."""
+    """Why a running job is stopped at `now` (seconds, on the clock `budget`'s start is read on), or None while it is
+    not overdue. `budget`: (budget_s, when it started counting), as `job_progress.claim_budget` gives it (None: no
+    budget known)."""
     if budget is None:
         return None
     budget_s, start = budget

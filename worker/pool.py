@@ -469,7 +469,6 @@ class Worker:
     async def _stop_overdue(self) -> None:
         """Stop the job processes that have run far past their budget (`overdue.py`), as a shutdown stops them
         (SIGTERM, then SIGKILL after the grace period); `_reap` then records each as a crash that says why."""
-        now = time.time()
         for job_id, child in list(self.children.items()):
             if child.wait.done():
                 continue
@@ -477,8 +476,13 @@ class Worker:
                 if time.monotonic() >= child.kill_at:
                     kill_group(child.proc, signal.SIGKILL)
                 continue
-            budget = await asyncio.to_thread(claim_budget, child.claim.job, child.claim.started, self.root)
-            why = overdue_reason(budget, now)
+            job = child.claim.job
+            if job.live:  # its budget counts from its scan's end, which its live status tells on the wall clock
+                why = overdue_reason(await asyncio.to_thread(claim_budget, job, child.claim.started, self.root),
+                                     time.time())
+            else:  # from its process's start, on a clock that a suspended machine does not move on
+                budget = claim_budget(job, child.spawned, self.root)
+                why = overdue_reason(budget, time.monotonic())
             if why is not None:
                 child.stopped_why, child.kill_at = why, time.monotonic() + self.config.stop_grace_s
                 kill_group(child.proc, signal.SIGTERM)

@@ -468,9 +468,10 @@ def capture_live(capture: str, captures: str | None) -> dict | None:
 
 def live_job_gone(captures: str, live: dict) -> str | None:
     """Why the live reconstruction a live status says follows its scan (or runs its final run) is not running: its
-    job's worker is gone (the queue's 'stale' or 'running?', as `spadscan worker --status` says), or its job runs no
-    more; None while it runs, once it ended, or where the queue cannot be read. The status file is its job's last word:
-    a worker killed mid-scan leaves it saying 'live' for good."""
+    job's worker is gone (the queue's 'stale' or 'running?', as `spadscan worker --status` says); None while it runs,
+    once its job left running/ (it ended: its status is written just after; or it was queued again, which
+    `live_queued` says), or where the queue cannot be read. The status file is its job's last word: a worker killed
+    mid-scan leaves it saying 'live' for good."""
     from spadscan.protocol.errors import SpadscanError
     from spadscan.worker.queue import Queue
     from spadscan.worker.status_detail import FOLLOWING
@@ -482,9 +483,7 @@ def live_job_gone(captures: str, live: dict) -> str | None:
         row = next((r for r in queue.statuses(("running",)) if r.id == live["job"]), None)
     except (OSError, SpadscanError):
         return None
-    if row is None:
-        return f"its job {live['job']} is not running (its worker stopped or was killed)"
-    if row.stale:
+    if row is not None and row.stale:
         return f"its job {live['job']} is {row.shown_state}: {row.stale}"
     return None
 

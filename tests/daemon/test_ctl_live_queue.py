@@ -218,7 +218,8 @@ def test_a_ctl_status_process_says_it_without_loading_torch(busy, sock_dir):
 
 def test_a_live_fit_whose_worker_was_killed_says_so_not_that_it_follows_the_scan(tmp_path, monkeypatch, capsys):
     """A worker killed mid-scan leaves its live status saying 'live' for good; the queue knows its claim is dead (as
-    `spadscan worker --status` says 'stale'), and `ctl status` says it too. Once its job runs no more at all, that."""
+    `spadscan worker --status` says 'stale'), and `ctl status` says it too; not once the job has ended (its live
+    status is written just after it leaves running/), nor while a worker renews its claim."""
     dead = dead_holder()
     root = tmp_path / "caps"
     folder = root / "mug" / "recon" / "live"
@@ -232,9 +233,9 @@ def test_a_live_fit_whose_worker_was_killed_says_so_not_that_it_follows_the_scan
     line = live_line(shown["live"], 3)
     assert line.startswith("live reconstruction following the scan: 8/9 views") and "is stale: " in line, line
     [running] = (queue.path / "running").glob("mug-fast~*.json")
-    os.rename(running, queue.path / "failed" / "mug-fast.json")
-    assert live_status(status_of(root))["gone"] == "its job mug-fast is not running (its worker stopped or was killed)"
+    os.rename(running, queue.path / "done" / "mug-fast.json")
+    assert "gone" not in live_status(status_of(root)), "ended: its status is written just after"
     live = Holder.current()
-    (queue.path / "failed" / "mug-fast.json").rename(queue.path / "queued" / "mug-fast.json")
+    (queue.path / "done" / "mug-fast.json").rename(queue.path / "queued" / "mug-fast.json")
     assert queue.claim(live).job.id == "mug-fast"
     assert "gone" not in live_status(status_of(root)), "its worker renews the claim: it follows the scan"

@@ -81,3 +81,19 @@ def test_check_refuses_a_socket_another_daemon_serves(tmp_path, sock_dir, daemon
     daemons.start(rig, sock)
     line = one_line_error(spadscan("daemon", "--config", rig, "--check"))
     assert f"another daemon is already listening on {sock}" in line and str(rig) in line, line
+
+
+def test_a_captures_root_moved_away_is_locked_again_by_the_next_scan(tmp_path, sock_dir, daemons):
+    """The operator moves the captures folder away while the daemon runs: its next scan makes the folder again and
+    takes its lock first, so that a second daemon started on it is refused, not let in to take that scan over."""
+    rig_a, sock_a = rig_on(tmp_path, sock_dir, "a", views=4)
+    rig_b, _ = rig_on(tmp_path, sock_dir, "b")
+    a = daemons.start(rig_a, sock_a)
+    call(sock_a, "scan", name="old")
+    wait_for(lambda: (call(sock_a, "status").get("last_scan") or {}).get("state") == "complete", "scan 'old' done")
+    (tmp_path / "caps").rename(tmp_path / "caps-archive")
+    call(sock_a, "scan", name="m1", options={"views": 400})
+    line = one_line_error(spadscan("daemon", "--config", rig_b))
+    assert f"is in use by another daemon (pid {a.pid})" in line, line
+    assert "locked again" in daemons.log(a)
+    assert (tmp_path / "caps-archive" / "old").is_dir() and call(sock_a, "status")["scan"] == "m1"

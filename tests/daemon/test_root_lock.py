@@ -117,3 +117,32 @@ def test_keep_refuses_where_another_daemon_took_the_new_lock(tmp_path, monkeypat
             with pytest.raises(ConfigError, match=r"in use by another daemon \(pid"):
                 lock.keep()
         assert lock.keep() is True  # the other let go: taken
+
+
+def test_a_lock_that_cannot_be_looked_at_is_kept(tmp_path, monkeypatch):
+    """A lost mount or a permission makes the look fail, not the lock go: `keep` refuses and holds what it held, so
+    that no second daemon is let in by this one letting go."""
+    import spadscan.daemon.root_lock as root_lock
+
+    monkeypatch.setattr(root_lock, "LOCK_TRIES", 2)
+    root = tmp_path / "caps"
+    root.mkdir()
+    with RootLock(root) as lock:
+        real_stat = os.stat
+
+        def failing(path, *args, **kwargs):
+            if os.fspath(path) == os.fspath(root / LOCK_NAME):
+                raise OSError(5, "Input/output error")
+            return real_stat(path, *args, **kwargs)
+
+        monkeypatch.setattr(root_lock.os, "stat", failing)
+        with pytest.raises(ConfigError, match="cannot check the lock of captures root"):
+            lock.keep()
+        monkeypatch.setattr(root_lock.os, "stat", real_stat)
+        with pytest.raises(ConfigError, match=r"in use by another daemon"):
+            RootLock(root).acquire()
+        (root / LOCK_NAME).unlink()
+        with RootLock(root):  # another daemon holds the new file: the old lock is kept, not let go
+            with pytest.raises(ConfigError):
+                lock.keep()
+            assert lock._fd is not None

@@ -234,3 +234,26 @@ def test_an_older_interrupted_scan_stays_named_beside_the_one_taken_over(arun, t
     assert status["also_interrupted"] == ["old"], status
     assert "also left 'running' by an earlier daemon, not taken over: old" in caplog.text
     assert "also_interrupted" not in after and after["scan"] == "new", after
+
+
+def test_scans_that_cannot_be_taken_over_stay_named_until_they_are_ended(arun, tmp_path, sphere):  # noqa: F811
+    """Two damaged scans: one named as not taken over, the other beside it; a failed `ctl resume` of the other makes
+    it the one named, and keeps the first named too. A scan moved out of the root by hand is named no more."""
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    for name in ("a", "b"):
+        arun(interrupted(cfg, sphere, name))
+        tear(tmp_path / "caps" / name)
+
+    async def then(runner, status):
+        with pytest.raises(ConfigError):
+            await runner.resume(name="a")
+        after = runner.status()
+        (tmp_path / "caps" / "b").rename(tmp_path / "b-moved-out")
+        with pytest.raises(ConfigError, match="no scan named 'b'"):
+            await runner.abort(name="b")
+        return status, after, runner.status()
+
+    status, after, moved = arun(restarted(cfg, sphere, then))
+    assert status["cannot_take_over"]["scan"] == "b" and status["also_interrupted"] == ["a"], status
+    assert after["cannot_take_over"]["scan"] == "a" and after["also_interrupted"] == ["b"], after
+    assert moved["cannot_take_over"]["scan"] == "a" and "also_interrupted" not in moved, moved

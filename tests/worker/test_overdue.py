@@ -24,7 +24,9 @@ pytestmark = pytest.mark.usefixtures("recon_stand_ins")  # the job processes imp
 
 def hung_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
                started=None):
-    """A stand-in reconstruction whose process hangs: it waits for a signal that never comes (SIGTERM ends it)."""
+    """A stand-in reconstruction whose process hangs and ignores SIGTERM (a process stopped or stuck in the kernel
+    takes no signal but SIGKILL): the worker's SIGKILL after its grace period ends it."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     while True:
         signal.pause()
 

@@ -246,7 +246,8 @@ def test_a_fifo_where_a_capture_file_belongs_is_refused_without_blocking(tmp_pat
     import os
     import threading
 
-    from spadscan.protocol.capture_format import MANIFEST, chunk_name, npy_is_whole, read_json, write_json_atomic
+    from spadscan.protocol.capture_format import (MANIFEST, chunk_name, npy_is_whole, read_json, read_npy,
+                                                  write_json_atomic)
     from spadscan.protocol.errors import CaptureError
     from spadscan.worker.watcher import holds_every_measurement
 
@@ -267,9 +268,14 @@ def test_a_fifo_where_a_capture_file_belongs_is_refused_without_blocking(tmp_pat
             read_json(chunk / "meta.json")
         except CaptureError as exc:
             answers["json"] = str(exc)
+        try:
+            read_npy(chunk / "hists.npy")
+        except CaptureError as exc:
+            answers["read"] = str(exc)
 
     looking = threading.Thread(target=look, daemon=True)
     looking.start()
     looking.join(timeout=30)
     assert not looking.is_alive(), "blocked on a FIFO"
-    assert answers["whole"] is False and answers["npy"] is False and "not a regular file" in answers["json"], answers
+    assert answers["whole"] is False and answers["npy"] is False, answers
+    assert "not a regular file" in answers["json"] and "not a regular file" in answers["read"], answers
