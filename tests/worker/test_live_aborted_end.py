@@ -28,7 +28,8 @@ def settle(worker: Worker, claim, outcome: dict, returncode: int, tmp_path) -> N
     """The worker settles the job process of `claim` that ended with `outcome` and `returncode`."""
     (outcome_file := tmp_path / "outcome.json").write_text(json.dumps(outcome))
     worker._settle(SimpleNamespace(claim=claim, proc=SimpleNamespace(returncode=returncode),
-                                   scratch=tmp_path / "scratch", outcome=outcome_file, log=tmp_path / "job.log"))
+                                   scratch=tmp_path / "scratch", outcome=outcome_file, log=tmp_path / "job.log",
+                                   stopped_why=None))
 
 
 def test_a_live_job_whose_scan_is_aborted_ends_saying_so_with_nothing_to_retry(cylinder_capture, tmp_path,

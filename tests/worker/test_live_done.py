@@ -108,7 +108,8 @@ def settle_failed_live_job(tmp_path, status: LiveStatus, outcome: dict, returnco
     claim = worker.queue.claim()
     (outcome_file := tmp_path / "outcome.json").write_text(json.dumps(outcome))
     worker._settle(SimpleNamespace(claim=claim, proc=SimpleNamespace(returncode=returncode),
-                                   scratch=tmp_path / "scratch", outcome=outcome_file, log=tmp_path / "job.log"))
+                                   scratch=tmp_path / "scratch", outcome=outcome_file, log=tmp_path / "job.log",
+                                   stopped_why=None))
     assert worker.settled == {"demo-fast": "failed"}
     return read_status(status_path(root / "demo"))
 

@@ -136,7 +136,7 @@ def held(tmp_path):
     outcome = tmp_path / "outcome.json"
     outcome.write_text("{}")  # a process that died without a word: a crash, retried
     child = SimpleNamespace(claim=claim, proc=SimpleNamespace(returncode=-9, pid=None), scratch=tmp_path / "scratch",
-                            outcome=outcome, log=tmp_path / "job.log")
+                            outcome=outcome, log=tmp_path / "job.log", stopped_why=None)
     return SimpleNamespace(root=root, worker=worker, child=child)
 
 
