@@ -100,7 +100,10 @@ def test_an_aborted_scans_live_job_ends_with_the_reason_and_is_not_retried(make_
     daemon, worker, capture, fitted = start_half_scan(make_daemon, procs, "cup")
     daemon.call("abort", reason="the object fell over")
     queue = Queue.for_root(daemon.captures, create=False)
-    wait_for(lambda: queue.job_paths().get("cup-fast", ("?",))[0] == "failed", "the job failed", SLOW_S, poll_s=0.2)
+    # the job file is moved to failed/ first, then its attempt record says so: wait for both
+    wait_for(lambda: queue.job_paths().get("cup-fast", ("?",))[0] == "failed"
+             and [r.get("outcome") for r in queue.records("cup-fast")][-1:] == ["failed"], "the job failed", SLOW_S,
+             poll_s=0.2)
     (record,) = queue.records("cup-fast")
     assert record["outcome"] == "failed" and not record["retried"]
     assert "aborted" in record["error"] and "the object fell over" in record["error"]
