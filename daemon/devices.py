@@ -155,6 +155,12 @@ class Sensor(Device):
         loaded machine is not taken for a silent sensor. It never runs faster than time.monotonic()."""
         return time.monotonic()
 
+    def starting_left(self) -> float:
+        """Seconds (on `wait_clock`) the sensor may still take to deliver its first frame after a start it began on
+        its own (a serial bridge that reset and set its sensor up again after a replug); 0 when none is under way. A
+        frame wait that runs out sooner is begun again, not taken for a silent sensor. Default: 0."""
+        return 0.0
+
     async def begin_exposure(self) -> float | None:
         """Called once the arm has settled at a pose: a sensor that can start a fresh exposure (stop and restart its
         measurement) does so and returns the monotonic time from which every later frame's exposure lies; None when

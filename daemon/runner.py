@@ -1158,7 +1158,8 @@ class ScanRunner:
         or settling) are dropped.
         Each wait counts frame_timeout_s on the sensor's `wait_clock` (a simulated sensor's stands still while this
         process renders a frame that is due). A wait the daemon itself slept through (stopped, suspended:
-        `stall.py`) is begun again, not blamed on the sensor."""
+        `stall.py`), or one that ran out while the sensor started again on its own (`Sensor.starting_left`), is
+        begun again, not blamed on the sensor."""
         timeout = self.cfg.sensor.frame_timeout_s
         model = self.sensor.model
         clock = self.sensor.wait_clock
@@ -1169,9 +1170,10 @@ class ScanRunner:
         while len(frames) < (job.scan.frames_per_pose if count is None else count):
             left = deadline - clock()
             if left <= 0:
-                if self._slept_through(job, i, slept_since):
+                extra = self._wait_again(job, i, slept_since)
+                if extra is not None:
                     since, slept_since = clock(), time.monotonic()
-                    deadline, dropped = since + timeout, job.dropped
+                    deadline, dropped = since + timeout + extra, job.dropped
                     continue
                 raise self._too_late(job, i, dropped) or SensorSilent(
                     f"{self.sensor.name}: no frame that began after the arm settled within {timeout:g} s at pose {i}")
@@ -1180,9 +1182,10 @@ class ScanRunner:
             except LinkLost as exc:
                 raise _SensorLinkLost(str(exc)) from None
             except (TimeoutError, SensorSilent) as exc:
-                if self._slept_through(job, i, slept_since):
+                extra = self._wait_again(job, i, slept_since)
+                if extra is not None:
                     since, slept_since = clock(), time.monotonic()
-                    deadline, dropped = since + timeout, job.dropped
+                    deadline, dropped = since + timeout + extra, job.dropped
                     continue
                 # Frames kept coming until just now (a backlog of early ones): not silence.
                 too_late = self._too_late(job, i, dropped)
@@ -1215,6 +1218,26 @@ class ScanRunner:
         return FramesTooEarly(f"{self.sensor.name}: {job.dropped - dropped_before} frames in "
                             f"{self.cfg.sensor.frame_timeout_s:g} s (frame_timeout_s) at pose {i}, none begun after "
                             f"the arm settled")
+
+    def _wait_again(self, job: ScanJob, i: int, slept_since: float) -> float | None:
+        """Whether a frame wait that ran out is begun again, and with how many seconds on top of its frame_timeout_s:
+        0 when the daemon itself stood still meanwhile (`_slept_through`), the rest of the sensor's own start when
+        one is under way (`_sensor_starting`); None when neither: the sensor is silent."""
+        if self._slept_through(job, i, slept_since):
+            return 0.0
+        starting = self._sensor_starting(job, i)
+        return starting if starting > 0 else None
+
+    def _sensor_starting(self, job: ScanJob, i: int) -> float:
+        """Seconds the sensor says its own start may still take (`Sensor.starting_left`: a bridge that reset and
+        set its sensor up again, after a replug that powered it off), logged; 0 when none is under way. A frame wait
+        that runs out meanwhile is begun again, to run its frame_timeout_s from the start's end."""
+        starting = self.sensor.starting_left()
+        if starting <= 0:
+            return 0.0
+        log.warning("scan %s: the sensor is starting again (its bridge set it up afresh) at pose %d; waiting up to "
+                    "%.0f s more for its first frame", job.name, i, starting + self.cfg.sensor.frame_timeout_s)
+        return starting
 
     def _slept_through(self, job: ScanJob, i: int, since: float) -> bool:
         """Whether the daemon itself stood still while it waited for a frame since `since` (then the wait is begun

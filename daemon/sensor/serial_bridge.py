@@ -72,6 +72,12 @@ reading the 132-byte result over I2C (~12 ms at 100 kHz, ~3 ms at the firmware's
 delivery (a USB-serial chip holds data up to its latency timer: 16 ms by default on FTDI chips)."""
 PRINTED_BYTES = 1200
 """Bytes the bridge may print between a hand-over and the arrival the next frame counts back from: two lines."""
+BRIDGE_START_S = 15.0
+"""How long the UW bridge firmware may take from its "FW downloaded" line to its first record, s: it then sends the
+short-range command and waits 4 s for it, runs a factory calibration (4,000 kilo-iterations), configures the sensor
+and starts measuring (its "Active range" line comes then, the first record a period later). A frame wait that runs
+out within this of that line is begun again (`starting_left`): a replug that powered the sensor off is a start, not
+a silent sensor."""
 
 
 def _uint(field: bytes, limit: int) -> int:
@@ -230,6 +236,7 @@ class SerialBridgeTransport(Transport):
         self._pending: collections.deque[tuple[bytes, float]] = collections.deque()
         self._counts = {"lines": 0, "corrupt_lines": 0, "unknown_lines": 0, "other_address_lines": 0,
                         "partial_histogram_lines": 0, "separators": 0, "overlong_lines": 0, "bad_records": 0}
+        self._downloaded_at: float | None = None  # arrival of a "FW downloaded" line with no record since
 
     def open(self) -> None:
         if self._ser is not None:
@@ -243,6 +250,7 @@ class SerialBridgeTransport(Transport):
         self._ser = ser
         self._buf.clear()
         self._pending.clear()
+        self._downloaded_at = None
 
     def start(self) -> None:
         """Empty the link: lines that waited in the OS buffer since `open` would get late arrival times, and a
@@ -267,11 +275,19 @@ class SerialBridgeTransport(Transport):
                     self._note(out, line)
                     continue
                 if not isinstance(out, tuple):
+                    if not isinstance(out, StatusPacket):  # a record: the start is over
+                        self._downloaded_at = None
                     return out
                 self._skip(*out, line)
             if time.monotonic() >= deadline:
                 return None
             self._fill()
+
+    def starting_left(self, now: float) -> float:
+        """Seconds left of the bridge's start (`BRIDGE_START_S` after its "FW downloaded" line) while no record has
+        come since that line; 0 otherwise."""
+        at = self._downloaded_at
+        return 0.0 if at is None else max(0.0, at + BRIDGE_START_S - now)
 
     def _skip(self, kind: str, why: str, line: bytes) -> None:
         """Count a line that is not handed over. A separator is part of the protocol; every other one is a refused
@@ -298,6 +314,7 @@ class SerialBridgeTransport(Transport):
         checksum), refused and counted as a corrupt one, the mode left as it was; it must not stop the sensor."""
         if note.kind == "firmware_downloaded":
             self._counts["downloads"] = self._counts.get("downloads", 0) + 1
+            self._downloaded_at = note.t
             return
         mode = int(note.text, 16)
         if mode not in RANGE_NAMES:

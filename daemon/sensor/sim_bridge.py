@@ -144,11 +144,16 @@ class SimBridge:
         """Queue raw bytes (e.g. the tail of a line, for a mid-line start)."""
         self._queue.put(("data", bytes(data)))
 
-    def boot(self, active_range: int = 0x6E) -> None:
+    def boot(self, active_range: int = 0x6E, *, start_s: float = 0.0) -> None:
         """Queue what the UW bridge prints as it starts, before any record: "FW downloaded" after it downloaded the
         sensor's firmware, then the sensor's ACTIVE_RANGE in hex (Arduino's print(x, HEX): no leading zero), each
-        line ended by '\\n' as the firmware ends them."""
-        self._queue.put(("data", f"FW downloaded\nActive range: {active_range:X}\n".encode()))
+        line ended by '\\n' as the firmware ends them. `start_s`: the time between the two lines (what is queued
+        later waits behind it), where the firmware sends the short-range command and waits 4 s, runs a factory
+        calibration, configures the sensor and starts measuring (`serial_bridge.BRIDGE_START_S`)."""
+        self._queue.put(("data", b"FW downloaded\n"))
+        if start_s > 0:
+            self._queue.put(("pause", float(start_s)))
+        self._queue.put(("data", f"Active range: {active_range:X}\n".encode()))
 
     def send_frame(self, counts: np.ndarray, result: BridgeResult | None = None, fault: str | None = None,
                    at: int = 7) -> None:
@@ -299,6 +304,8 @@ class SimBridge:
                 self.counts["replugs"] += 1
             elif kind == "mark":
                 arg.set()
+            elif kind == "pause":
+                self._closing.wait(arg)  # close ends it at once
 
     def _write(self, data: bytes) -> None:
         """Write to the pty master, waiting for the reader to drain it; drop the rest after write_timeout_s."""

@@ -184,6 +184,9 @@ class TMF8820(Sensor):
             except asyncio.TimeoutError:
                 pass
 
+    def starting_left(self) -> float:
+        return self.transport.starting_left(time.monotonic())
+
     def _silent_detail(self, now: float) -> str:
         """Why frames may have stopped: the error the link reported after the last frame, and the records the
         transport refused since then; '' when neither."""

@@ -111,6 +111,12 @@ class Transport(abc.ABC):
     def read_packet(self, timeout_s: float) -> Packet | None:
         """The next well-formed record, or None when none arrived within timeout_s. Raises LinkDown."""
 
+    def starting_left(self, now: float) -> float:
+        """Seconds (time.monotonic() `now`) the sensor may still take to deliver its first record after a start the
+        link has seen it begin on its own (a bridge that reset and set the sensor up again: `serial_bridge.py`), 0
+        when none is under way. Default: 0 (a start the host drives itself is awaited in `start`)."""
+        return 0.0
+
     def restart(self) -> None:
         """Stop the measurement and start a fresh one, so that nothing read after it was exposed before it; records
         of the old measurement are not handed over any more. Only for `restarts_measurement` transports. Default:

@@ -14,7 +14,7 @@ import pytest
 
 from spadscan.daemon.devices import SensorSilent
 from spadscan.protocol.errors import DeviceError
-from spadscan.daemon.sensor.serial_bridge import classify_line
+from spadscan.daemon.sensor.serial_bridge import BRIDGE_START_S, classify_line
 from spadscan.daemon.sensor.sim_bridge import BridgeResult, SimBridge, obj_line, raw_lines
 from spadscan.daemon.sensor.transport import ResultPacket
 
@@ -204,3 +204,27 @@ def test_a_garbled_active_range_line_is_a_corrupt_line_and_frames_flow(arun, pri
     assert c["last_bad_record"] == (f"an Active range line with {printed}, no accuracy mode ams documents (6E, 6F or "
                                     f"0) ('Active range: {printed}')")
     assert c.get("active_range") == ("short range" if booted else None), c
+
+
+# ---- 5. the bridge's start -------------------------------------------------------------------------------------------
+def test_a_bridge_setting_its_sensor_up_again_says_its_start_may_last_until_its_first_record(arun):
+    """After "FW downloaded" the UW firmware sends the short-range command and waits 4 s, calibrates, configures and
+    starts measuring before its first record: the sensor says how long that may still take (the runner waits for it
+    rather than pausing the scan as silent). Its "Active range" line does not end the start; the first record does."""
+    async def main():
+        with SimBridge() as bridge:
+            async with streaming(bridge) as sensor:
+                before = sensor.starting_left()
+                bridge.boot(0x6E)
+                deadline = time.monotonic() + 10
+                while "active_range" not in sensor.counters() and time.monotonic() < deadline:
+                    await asyncio.sleep(0.01)
+                during = sensor.starting_left()
+                bridge.send_frame(counts(2), result(2))
+                await sensor.next_frame(10)
+                return before, during, sensor.starting_left(), sensor.counters()
+
+    before, during, after, c = arun(main())
+    assert c["downloads"] == 1 and c["active_range"] == "short range", c
+    assert before == 0 and after == 0
+    assert BRIDGE_START_S - 5 < during <= BRIDGE_START_S

@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from e2e_helpers import assert_every_pose_once, chunk_digests, published_prefix
+from e2e_helpers import assert_every_pose_once, chunk_digests, published_prefix, wait_for
 from spadscan.daemon.sensor.sim_bridge import FAULTS, BridgeResult, SimBridge
 from spadscan.protocol.capture_reader import CaptureReader
 
@@ -154,5 +154,35 @@ def test_silent_serial_sensor_pauses_and_resume_completes(make_daemon, tmp_path,
     assert_only_good_frames(data, feeder)
     after = chunk_digests(folder)
     assert all(after[n] == d for n, d in digests.items()), "a chunk published before the silence changed"
+    feeder.hold()
+    assert daemon.stop() == 0, daemon.log()
+
+
+@pytest.mark.slow
+def test_a_replugged_bridge_that_sets_its_sensor_up_again_is_waited_for_not_paused(make_daemon, tmp_path, bridge):
+    """A replug that powered the sensor off: the UW firmware downloads the sensor's firmware again, prints "FW
+    downloaded" and takes seconds (a 4 s wait for the short-range command, a calibration) before its first record.
+    The scan waits for that start, longer than frame_timeout_s, and completes without a pause."""
+    b, feeder = bridge
+    feeder.start()
+    daemon = serial_daemon(make_daemon, b.port, sensor={"frame_timeout_s": 4.0},
+                           arm={"motion_time_s": 0.1}, scan={"views": 12, "frames_per_pose": 2, "chunk_size": 2})
+    daemon.start()
+    daemon.call("scan", name="replug")
+    daemon.wait_pose("replug", 3)
+    feeder.hold()
+    b.unplug()
+    b.replug()
+    # The firmware prints nothing before the port is open again (a real bridge's download takes a while too).
+    wait_for(lambda: daemon.status()["sensor"].get("reconnects", 0) >= 1, "the daemon to reopen the port")
+    b.boot(0x6E, start_s=6.0)  # its first record 1.5x frame_timeout_s after "FW downloaded"
+    feeder.start()
+    ended = wait_for(lambda: (s := daemon.status())["state"] != "scanning" and s, "the scan to end or pause", 180)
+    assert ended["state"] == "idle" and ended["last_scan"] == {"name": "replug", "state": "complete"}, (
+        ended, daemon.log())
+    assert ended["sensor"]["downloads"] == 1 and not ended.get("last_error"), ended
+    assert "the sensor is starting again (its bridge set it up afresh)" in daemon.log()
+    data = assert_every_pose_once(tmp_path / "caps" / "replug", 12, 2)
+    assert_only_good_frames(data, feeder)
     feeder.hold()
     assert daemon.stop() == 0, daemon.log()
