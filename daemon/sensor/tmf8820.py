@@ -217,6 +217,9 @@ class TMF8820(Sensor):
         out = {**self._assembler.counters(), **self.transport.counters(), **self._stats}
         out["queued"] = len(self._frames)
         out["link"] = "down" if self._down_since is not None else "up"
+        starting = self.starting_left()
+        if starting > 0:  # the operator sees why no frame comes yet
+            out["starting_s"] = round(starting, 1)
         if self._last_error:
             out["last_link_error"] = self._last_error
         return out

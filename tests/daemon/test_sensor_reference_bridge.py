@@ -219,12 +219,13 @@ def test_a_bridge_setting_its_sensor_up_again_says_its_start_may_last_until_its_
                 deadline = time.monotonic() + 10
                 while "active_range" not in sensor.counters() and time.monotonic() < deadline:
                     await asyncio.sleep(0.01)
-                during = sensor.starting_left()
+                during, said = sensor.starting_left(), sensor.counters()
                 bridge.send_frame(counts(2), result(2))
                 await sensor.next_frame(10)
-                return before, during, sensor.starting_left(), sensor.counters()
+                return before, during, said, sensor.starting_left(), sensor.counters()
 
-    before, during, after, c = arun(main())
+    before, during, said, after, c = arun(main())
     assert c["downloads"] == 1 and c["active_range"] == "short range", c
     assert before == 0 and after == 0
     assert BRIDGE_START_S - 5 < during <= BRIDGE_START_S
+    assert abs(said["starting_s"] - during) < 1 and "starting_s" not in c  # in `ctl status` while it lasts
