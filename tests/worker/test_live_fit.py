@@ -3,13 +3,14 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
 import pytest
 import torch
 
-from spadscan.worker.live.keep import keep_the_better, use_field
+from spadscan.worker.live.keep import LiveState, keep_the_better, scalars_of, use_field
 from spadscan.worker.live.live_fit import LiveFit
 from spadscan.worker.live.recoarse import RecoarsePolicy
 from spadscan.worker.recon.config import with_overrides
@@ -92,16 +93,39 @@ def test_a_final_run_that_fits_worse_than_the_live_state_is_not_published(cylind
     final.refine()
     hull = final.constraint.bound_for(final.field)
     use_field(final, hull)  # the hull itself: nothing fitted
-    kept = keep_the_better(final, live_field, log=lambda line: None)
+    kept = keep_the_better(final, LiveState(live_field, live.level, scalars_of(live)), log=lambda line: None)
     assert kept["published"]["mesh"] == "live"
     assert kept["published"]["deviance_live"] < kept["published"]["deviance_final"]
     assert not torch.allclose(final.mesh_field().sdf, hull), "the model holds the live field"
     assert final.deviance_all_views(0) == pytest.approx(kept["published"]["deviance_live"], abs=1e-4)
 
     held = final.mesh_field().sdf.detach().clone()
-    again = keep_the_better(final, live_field, log=lambda line: None)  # the final field is now the live one
+    again = keep_the_better(final, LiveState(live_field, live.level, scalars_of(live)),  # the final field is now
+                            log=lambda line: None)                                         # the live one
     assert again["published"]["deviance_final"] == pytest.approx(again["published"]["deviance_live"], rel=1e-3)
     assert torch.allclose(final.mesh_field().sdf, held, atol=1e-6)
+
+
+def test_the_live_field_is_scored_on_its_own_grid_with_its_own_albedo(cylinder_capture, tmp_path, one_thread):
+    """A final run from the hull that its budget ended on the coarse level, its albedo fitted to the hull's bloated
+    surface: the live field, fitted further, is scored as it was fitted (its finer grid, its albedo), as well as it
+    explains the views on its own model, and published; the model then holds its grid and albedo."""
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    _, every = grown_scenes(cylinder_capture, tmp_path, 16)
+    live = make_fast_model(every, config, "cpu", PLAN)
+    for _ in range(40):
+        live.step()
+    assert live.level == 1
+    use_field(live, live.mesh_field().sdf.detach().clone())  # the field it hands over
+    own = live.deviance_all_views(0)
+    state = LiveState(live.mesh_field(), live.level, scalars_of(live))
+    final = make_fast_model(every, config, "cpu", PLAN)
+    with torch.no_grad():
+        final.log_albedo.fill_(math.log(0.5))
+    kept = keep_the_better(final, state, log=lambda line: None)
+    assert kept["published"]["deviance_live"] == pytest.approx(own, rel=1e-3)
+    assert kept["published"]["mesh"] == "live"
+    assert final.level == live.level and float(final.log_albedo.detach()) == pytest.approx(float(live.log_albedo.detach()))
 
 
 def test_recoarse_policy_wants_half_as_many_views_again_while_the_scan_is_young():

@@ -184,7 +184,7 @@ def test_only_the_steps_the_live_job_chose_make_its_final_run_a_polish(tmp_path)
         assert chose_polish(asked, final) is polish, (asked, start)
     # The final run's reconstruction is told, for its report's checks (end_of_run.RunFacts.polish).
     run = LiveRun(job, tmp_path, tmp_path / "recon" / "live", follower=None, settings=small_settings(), log=print)
-    run.fit = SimpleNamespace(live_field=lambda: None, warm_factory=lambda from_live: None)
+    run.fit = SimpleNamespace(live_state=lambda: None, warm_factory=lambda from_live: None)
     for polish in (True, False):
         recon = run.final_recon(None, True, polish)
         assert recon.func is reconstruct_capture and recon.keywords["polish"] is polish

@@ -502,7 +502,7 @@ class LiveRun:
         if recon is not None and recon is not reconstruct_capture:
             return recon
         overrides = {"trace_checkpoints": self.settings.final_checkpoints, **dict(self.settings.overrides)}
-        keep = functools.partial(keep_the_better, live_field=self.fit.live_field(), log=self.log)
+        keep = functools.partial(keep_the_better, live=self.fit.live_state(), log=self.log)
         return functools.partial(reconstruct_capture, make=self.fit.warm_factory(from_live), overrides=overrides,
                                  after_training=keep, polish=polish)
 

@@ -30,6 +30,7 @@ from ..recon.model_api import RunPlan
 from ..recon.presets import make_model, preset
 from ..recon.scene_data import SceneData, load_scene
 from ..reconstruct import check_returns
+from .keep import LiveState, scalars_of
 from .recoarse import RecoarsePolicy
 from .snapshot import FieldSnapshot, GridSnapshot, LiveSnapshot
 
@@ -224,6 +225,11 @@ class LiveFit:
         """A copy of the field the live mesh comes from (a GridField that later steps leave as it is)."""
         field = self.model.mesh_field()
         return type(field)(field.origin.detach().cpu().numpy(), field.voxel, field.sdf.detach()[0, 0].clone())
+
+    def live_state(self) -> LiveState:
+        """What the final run's choice of field (`keep.py`) needs of this fit: a copy of its field, its level, and
+        copies of its fitted numbers besides the grid."""
+        return LiveState(self.live_field(), self.model.level, scalars_of(self.model))
 
     def report(self) -> dict:
         """What the live phase did, for the final report."""

@@ -191,6 +191,13 @@ class FastModel:
         # The floor on the grid (after the coarse level's first steps: `_grid_floor`); albedos and table: plain Adam.
         self.opt = Adam(groups, floor=(self._grid_floor(),) + (0.0,) * (len(groups) - 1))
 
+    def fitted_scalars(self) -> list[torch.Tensor]:
+        """The fitted numbers besides the grid, as the optimiser holds them: the object's log albedo, then the
+        table's (its log albedo, its offset where fitted)."""
+        table = self.part("table")
+        extra = [t for tensors, _ in table.param_groups(0.0) for t in tensors] if table is not None else []
+        return [self.log_albedo, *extra]
+
     def _grid_floor(self) -> float:
         """The grid's Adam floor (the config's `adam_floor` says why): none for the coarse level's first
         `adam_floor_after_steps` steps, and none on the whole coarse level of a scene on a table, `adam_floor` on
