@@ -842,6 +842,8 @@ class ScanRunner:
                         break
                     if not self._pause_requested:
                         if job.next_pose >= job.n_poses:
+                            if await self._io(_lost_chunks, job):
+                                continue  # taken again (`_retake`), then complete
                             await self._io(_finish_capture, job)
                             break
                         # A pause withdrawn (resume) while the pose in flight was being published: the loop stopped
@@ -1432,6 +1434,13 @@ class ScanRunner:
         if isinstance(exc, _SensorLinkLost) or (isinstance(exc, SensorSilent)
                                                 and self.sensor.counters().get("link") == "down"):
             return f"{describe(exc)}; {SENSOR_LINK_WAIT}{at}"
+        job = self.job
+        if isinstance(exc, (OSError, CaptureError)) and job is not None and not (job.path / MANIFEST).is_file():
+            # Not the disk's fault: its advice (the kernel log, a failing disk) would send the operator astray. (The
+            # manifest, which nothing but the operator removes: a folder deleted while a chunk was being written
+            # may be left holding that chunk's remains.)
+            return (f"{describe(exc)}; the scan's folder {job.path} is gone (moved or deleted while the scan ran): "
+                    f"move it back, then `spadscan ctl resume`, or `spadscan ctl abort` ends the scan{at}")
         advice = _advice(exc)
         return f"{describe(exc)}{'; ' + advice if advice else ''}{at}"
 
@@ -1549,6 +1558,22 @@ def _segment_distance(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray
     length2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18)
     t = np.clip(np.einsum("ij,ij->i", p - a, ab) / length2, 0.0, 1.0)
     return np.linalg.norm(a + t[:, None] * ab - p, axis=1)
+
+
+def _lost_chunks(job: ScanJob) -> bool:
+    """Whether chunks the scan published are gone from its folder (moved out or deleted while it ran), checked before
+    it is called complete ("complete" promises every pose): their poses are then owed again, as a resume finds them
+    (`CaptureWriter.take_stock`), and the scan's progress says so."""
+    gone = job.writer.take_stock()
+    if not gone:
+        return False
+    job.record_progress(job.writer)
+    again = [str(pose) for pose in job.owed]
+    if job.next_pose < job.n_poses:  # the last chunks gone: the scan goes on from the first pose they held
+        again.append(f"{job.next_pose}..{job.n_poses - 1}")
+    log.warning("scan %s: %s gone from its folder (moved out or deleted while the scan ran): taking pose(s) %s "
+                "again before the scan is complete", job.name, ", ".join(gone), ", ".join(again))
+    return True
 
 
 def _finish_capture(job: ScanJob) -> None:

@@ -485,6 +485,29 @@ class CaptureWriter:
         self._buffer = []
         return name
 
+    def take_stock(self) -> list[str]:
+        """The chunks this writer published or read (`book`) that are gone from the folder now (moved out or deleted
+        while the scan ran), by name; what they held is owed again (`retakes`, in pose order, as `resume` lists
+        it), so that the scan is complete only once it is taken again. [] when none is gone. CaptureError when the
+        folder cannot be listed (it is gone) or the frames cannot be put back in order."""
+        try:
+            present = {entry.name for entry in os.scandir(self.path) if entry.name.startswith(CHUNK_PREFIX)}
+        except OSError as exc:
+            raise CaptureError(f"{self.path}: cannot list the scan's folder ({exc.strerror or exc})") from None
+        gone = sorted(name for name in self.book.chunks if name not in present)
+        if not gone:
+            return []
+        for name in gone:
+            del self.book.chunks[name]
+        kept = sorted(self.book.chunks.items())
+        frames = self.manifest.get("frames_per_pose", 1)
+        frames = frames if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1 else 1
+        self.retakes = plan_retakes([(chunk_index(name), list(record.held)) for name, record in kept], frames,
+                                    self.chunk_size, self.path)
+        self.n_published = sum(len(record.held) for _, record in kept)
+        self.published_pose_indices = {pose for _, record in kept for pose, _ in record.held}
+        return gone
+
     def publish_retake(self, retake: Retake, measurements: list[Measurement]) -> None:
         """Publish the measurements taken again for `retake` (its pose's missing frames, in its order) under its
         chunk numbers (the next ones when it has none); then it is no longer owed."""

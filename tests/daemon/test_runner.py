@@ -9,6 +9,7 @@ import errno
 import inspect
 import logging
 import re
+import shutil
 import threading
 import time
 from pathlib import Path
@@ -209,6 +210,61 @@ def test_pause_resume_abort(arun, tmp_path, sphere, caplog):
     assert any(m.startswith("scan p: pause requested at pose") for m in said), said
     assert any(m == f"scan p paused by user at pose {held}/30" for m in said), said
     assert any(m.startswith(f"scan p: resumed at pose {held}/30 (was paused: paused by user)") for m in said), said
+
+
+@pytest.mark.parametrize("lost", [("chunk-000001",), ("chunk-000001", "chunk-000003")])
+def test_chunks_lost_while_the_scan_runs_are_taken_again_before_it_is_complete(arun, tmp_path, sphere, caplog, lost):
+    """A chunk moved out or deleted while the scan runs (not paused): "complete" promises every pose, so the poses
+    it held are taken again, in pose order, before the scan is called complete, and the log says which."""
+    caplog.set_level(logging.INFO, logger="spadscan.daemon")
+    cfg = make_cfg(tmp_path, views=8, frames_per_pose=2, chunk_size=2)  # a chunk a pose
+    folder = tmp_path / "caps" / "gone"
+
+    async def scenario():
+        async with daemon_runner(cfg, sphere) as runner:
+            take_frame, arm = runner.sensor.next_frame, runner.arm
+
+            async def next_frame(timeout_s):
+                if arm.moves == 6 and all((folder / name).exists() for name in lost):  # at pose 5, once
+                    for name in lost:
+                        await runner._io(shutil.rmtree, folder / name)
+                return await take_frame(timeout_s)
+
+            runner.sensor.next_frame = next_frame
+            await runner.start("gone")
+            return await runner.wait("gone"), runner.status()
+
+    done, status = arun(scenario())
+    assert done == {"name": "gone", "state": "complete"} and status.get("poses_to_take_again") in (None, [])
+    check_capture(folder, 8, 2)
+    said = [r.getMessage() for r in caplog.records if "gone from its folder" in r.getMessage()]
+    poses = ", ".join(name[-1] for name in lost)
+    assert said == [f"scan gone: {', '.join(lost)} gone from its folder (moved out or deleted while the scan ran): "
+                    f"taking pose(s) {poses} again before the scan is complete"], said
+
+
+def test_a_scan_folder_deleted_while_the_scan_runs_pauses_it_naming_that_not_the_disk(arun, tmp_path, sphere):
+    cfg = make_cfg(tmp_path, views=8, frames_per_pose=1)
+    folder = tmp_path / "caps" / "deleted"
+
+    async def scenario():
+        async with daemon_runner(cfg, sphere) as runner:
+            take_frame, arm = runner.sensor.next_frame, runner.arm
+
+            async def next_frame(timeout_s):
+                if arm.moves == 4 and folder.exists():
+                    await runner._io(shutil.rmtree, folder)  # between two writes, as `rm -r` may fall
+                return await take_frame(timeout_s)
+
+            runner.sensor.next_frame = next_frame
+            status = await paused_after(runner, "deleted", lambda: None, poses=0)
+            await runner.abort("gone")
+            return status
+
+    status = arun(scenario())
+    assert f"the scan's folder {folder} is gone (moved or deleted while the scan ran): move it back, then `spadscan " \
+           f"ctl resume`, or `spadscan ctl abort` ends the scan" in status["reason"], status
+    assert "disk" not in status["reason"], status
 
 
 def test_the_first_move_after_a_resume_is_checked_like_every_planned_one(arun, tmp_path, sphere):
