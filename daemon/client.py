@@ -68,6 +68,11 @@ def _private_folder(folder: str) -> None:
                           f"{stat.S_IMODE(st.st_mode):o}); chmod 700 {folder}")
 
 
+READ_ONLY_OPS = frozenset({"status", "wait"})
+"""Requests that only read: one that timed out needs no word on what the daemon may still do (and the daemon
+cancels one whose client hung up: `control.py`)."""
+
+
 def _peer_uid(sock: socket.socket, path: str) -> int:
     """The uid of the process serving the socket: the kernel's SO_PEERCRED (struct ucred: pid, uid, gid), else the
     socket file's owner."""
@@ -105,7 +110,9 @@ def request(socket_path, message: dict, timeout_s: float | None = 10.0) -> dict:
             sock.sendall((json.dumps(message) + "\n").encode())
             return _read_reply(sock, path, op)
         except socket.timeout:
-            raise ControlTimeout(f"daemon on {path} did not answer {op!r} within {timeout_s:g} s") from None
+            # Sent, the request is the daemon's: it may carry it out after the caller gave up (a scan started).
+            maybe = "" if op in READ_ONLY_OPS else "; it may still carry it out: `spadscan ctl status` says"
+            raise ControlTimeout(f"daemon on {path} did not answer {op!r} within {timeout_s:g} s{maybe}") from None
         except OSError as exc:
             raise ControlError(f"lost the connection to the daemon on {path} during {op!r}: "
                                f"{exc.strerror or exc}") from None

@@ -31,12 +31,12 @@ from typing import AsyncIterator, Awaitable, Callable
 from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError, SpadscanError
 
-from .client import default_socket_path
+from .client import READ_ONLY_OPS, default_socket_path
 
 log = logging.getLogger("spadscan.daemon")
 MAX_LINE_BYTES = 64 * 1024
 HANGUP_POLL_S = 0.2  # how often a pending request's connection is checked for the client's hang-up
-ABANDONABLE_OPS = frozenset({"status", "wait"})
+ABANDONABLE_OPS = READ_ONLY_OPS
 """Ops that only read: cancelled when the client that asked hangs up before the reply."""
 
 Handler = Callable[[dict], Awaitable[dict]]

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from spadscan.daemon.client import ControlError, call, request
+from spadscan.daemon.client import ControlError, ControlTimeout, call, request
 from spadscan.daemon.control import ControlServer, claim_socket_path
 from spadscan.protocol.errors import ConfigError
 
@@ -416,3 +416,21 @@ def test_a_default_socket_folder_others_could_use_is_refused(socket_root, monkey
     message = str(info.value)
     assert message.startswith(f"control socket folder {folder} ") and word.format(real=real, fake=fake) in message
     assert "\n" not in message
+
+
+@pytest.mark.parametrize("op, maybe", [("scan", True), ("abort", True), ("status", False), ("wait", False)])
+def test_a_request_that_timed_out_says_whether_the_daemon_may_still_carry_it_out(sock_dir, op, maybe):
+    """A daemon that takes the request and does not answer in time (a busy machine, a tiny --timeout): a scan it may
+    still start is not a scan refused, and a retry would find it already there."""
+    path = str(sock_dir / "slow.sock")
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        listener.bind(path)
+        listener.listen(1)  # connected from its backlog, never answered
+        with pytest.raises(ControlTimeout) as info:
+            request(path, {"op": op}, timeout_s=0.05)
+    finally:
+        listener.close()
+    said = str(info.value)
+    assert said.startswith(f"daemon on {path} did not answer {op!r} within 0.05 s")
+    assert ("; it may still carry it out: `spadscan ctl status` says" in said) == maybe, said
