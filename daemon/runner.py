@@ -204,7 +204,9 @@ class ScanRunner:
     async def start(self, name: str | None = None, overrides: dict | None = None) -> dict:
         """Plan and start a scan named `name` (default: scan-<time>) with [scan] keys overridden."""
         if self.job is not None:
-            raise ConfigError(f"scan {self.job.name!r} is {self.state} at pose {self._progress()}: "
+            # A pause's reason says what a resume needs, or that only an abort will do (its folder gone).
+            why = f" ({self.job.reason})" if self.state == "paused" and self.job.reason else ""
+            raise ConfigError(f"scan {self.job.name!r} is {self.state} at pose {self._progress()}{why}: "
                               f"{'resume or abort it' if self.state == 'paused' else 'wait for it or abort it'} first")
         if self._starting:
             raise ConfigError("another scan is being planned; try again in a moment")

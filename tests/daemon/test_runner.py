@@ -258,10 +258,14 @@ def test_a_scan_folder_deleted_while_the_scan_runs_pauses_it_naming_that_not_the
 
             runner.sensor.next_frame = next_frame
             status = await paused_after(runner, "deleted", lambda: None, poses=0)
+            with pytest.raises(ConfigError) as busy:  # a new scan is refused, the reason told again
+                await runner.start("next")
             await runner.abort("gone")
-            return status
+            return status, str(busy.value)
 
-    status = arun(scenario())
+    status, busy = arun(scenario())
+    assert busy.startswith("scan 'deleted' is paused at pose ") and busy.endswith(
+        f"({status['reason']}): resume or abort it first"), busy
     assert f"the scan's folder {folder} is gone (moved or deleted while the scan ran): move it back, then `spadscan " \
            f"ctl resume`, or `spadscan ctl abort` ends the scan" in status["reason"], status
     assert "disk" not in status["reason"], status
