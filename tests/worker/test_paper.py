@@ -10,6 +10,7 @@ import pytest
 import torch
 import trimesh
 
+from spadscan.cli import main as cli_main
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_writer import CaptureWriter
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
@@ -334,6 +335,16 @@ def test_a_view_near_the_centre_that_keeps_the_scene_sphere_off_the_object_is_sa
     note = load_scene(cap).bound_note
     assert note is not None and "of the first returns lie beyond it" in note and "mm to the scene's centre" in note
     assert load_scene(box_capture).bound_note is None
+
+
+def test_the_table_top_the_low_views_meet_far_out_is_not_said_to_lie_beyond_the_scene_sphere(tmp_path, capsys):
+    """`simulate --table`'s default spiral reaches down to the table top, whose returns come from 40 cm out: they
+    are the table's, not the object's, and the bound that leaves them out cuts nothing (it was said of every such
+    capture)."""
+    cap = tmp_path / "ball"
+    assert cli_main(["simulate", "builtin:sphere", "--sensor", "tmf8820", "--table", "--out", str(cap)]) == 0
+    scene = load_scene(cap)
+    assert scene.table is not None and scene.bound_note is None
 
 
 def test_scene_sphere_holds_a_thin_tall_object_whose_top_only_the_views_above_see(tmp_path):

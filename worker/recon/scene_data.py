@@ -38,6 +38,9 @@ from ..table_height import TablePlane, named_table
 RADIUS_FRACTION = 0.6  # scene radius / nearest sensor's distance, when no return locates the object
 BEYOND_BOUND_SHARE = 0.01
 """A scene sphere that leaves more than this share of the first returns outside is said to cut the object."""
+TABLE_RETURN_BAND_M = 0.03
+"""A first return this near the table top (m) is taken for the table's: a view's return along its boresight is
+placed to within a bin or two (the tmf8820's: 1.4 cm of range each), and a low view meets the top far out."""
 FAR_RETURN_MARGIN = 1.25
 """The scene sphere reaches at least this many times the farthest view's return from its centre. Most views of a
 thin object return from near the point they aim at (a 32 cm coat rack's 12 mm pole: the 90th percentile 3.6 cm from
@@ -135,8 +138,8 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     cycles = frames * float(sensor.cycles)
 
     scene = dict(data.manifest.get("scene") or {})
-    center, radius, bound_note = _scene_sphere(scene, poses, counts, sensor, capture)
     real = is_measured(scene, data.manifest, sensor)
+    center, radius, bound_note = _scene_sphere(scene, poses, counts, sensor, capture, real)
     table = _table(scene, center, radius, real, first_returns(counts, poses, sensor), capture)
     reference = data.reference.mean(axis=0) if (real and data.reference is not None) else None
     kernel, origin, pulse_source = pulse_kernel(sensor, reference)
@@ -182,9 +185,11 @@ def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) ->
     return poses[clear, :3, 3] + rng[clear, None] * poses[clear, :3, 2]
 
 
-def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: SensorModel, where: Path):
+def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: SensorModel, where: Path,
+                  real: bool = False):
     """(centre (3,), radius, note) of a sphere that holds the object, from the manifest, else from the data; note
-    (else None) says when views near the centre kept the sphere smaller than the first returns reach.
+    (else None) says when views near the centre kept the sphere smaller than the first returns reach, the returns
+    on a table (`_on_table`) left out: low views' returns from the table top far out are not the object's.
 
     Centre: the median of the views' first-return points when at least 3 views show one (it lies inside the object
     for views from around it); else the point nearest to every boresight. Radius: 3 x the 90th percentile of the
@@ -214,7 +219,7 @@ def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: Se
         reach = np.linalg.norm(points - center, axis=1)
         spread, far = float(np.percentile(reach, 90)), float(reach.max())
         radius = min(RADIUS_FRACTION_MAX * float(dist.min()), max(3.0 * spread, FAR_RETURN_MARGIN * far, 0.05))
-        beyond = float(np.mean(reach > radius))
+        beyond = float(np.mean((reach > radius) & ~_on_table(points, scene, real)))
         if beyond > BEYOND_BOUND_SHARE:
             # Nothing outside the sphere can be reconstructed: a scan from 0.2 m of a 0.2 m ball kept 60 % of it.
             note = (f"views as near as {dist.min() * 1e3:.0f} mm to the scene's centre keep its bound to "
@@ -227,6 +232,22 @@ def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: Se
         raise CaptureError(f"{where}: a sensor sits {dist.min() * 1e3:.1f} mm from the scene centre; cannot bound "
                            "the object (give scene.center and scene.radius in the manifest)")
     return center, radius, note
+
+
+def _on_table(points: np.ndarray, scene: dict, real: bool) -> np.ndarray:
+    """Which first-return points (n, 3) lie on the table top (within TABLE_RETURN_BAND_M of it) where the scene has
+    one: a table the manifest places, else one to be fitted, whose top is taken at the lowest returns' height (5th
+    percentile, where `_table` starts it). All False without a table."""
+    spec = scene.get("table", True if real else None)
+    if not spec or len(points) < 3:
+        return np.zeros(len(points), dtype=bool)
+    if spec is True:
+        return points[:, 2] < float(np.percentile(points[:, 2], 5)) + TABLE_RETURN_BAND_M
+    try:
+        plane = named_table(spec)
+    except CaptureError:  # (`_table` names the malformed record)
+        return np.zeros(len(points), dtype=bool)
+    return np.abs(points @ plane.normal - plane.offset) < TABLE_RETURN_BAND_M
 
 
 def _table(scene: dict, center: np.ndarray, radius: float, real: bool, points: np.ndarray,
