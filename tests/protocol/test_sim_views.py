@@ -37,7 +37,7 @@ def test_a_table_does_not_hide_the_views_that_miss_the_mesh(tmp_path, capsys):
     """The table's returns used to count as seeing the mesh: with --table the warning never came."""
     assert main(["simulate", *ASIDE, "--out", str(tmp_path / "bare")]) == 0
     bare = warnings_of(capsys.readouterr().err)
-    assert main(["simulate", *ASIDE, "--table", "--out", str(tmp_path / "table")]) == 0
+    assert main(["simulate", *ASIDE, "--table", "--min-elevation", "0", "--out", str(tmp_path / "table")]) == 0
     on_table = warnings_of(capsys.readouterr().err)
     assert len(bare) == 1 and bare[0].startswith("warning: 14 of 16 views see nothing of the mesh (")
     assert on_table == bare
@@ -183,15 +183,15 @@ def test_a_schedule_that_repeats_a_pose_is_refused_naming_the_flags(tmp_path, ca
 
 
 def test_views_just_above_the_table_top_are_warned_about_and_rendered_as_they_were(tmp_path, capsys):
-    """The default spiral's lowest views stand 1-9 mm above a table at z = 0 (the lowest at 0.11 deg elevation):
-    the table floods their histograms, and nothing said so. Said now, in one line; the capture is the one the
-    library renders for those poses, count for count."""
+    """The spiral from 0 degrees puts its lowest views 1-9 mm above a table at z = 0 (the lowest at 0.11 deg
+    elevation): the table floods their histograms, and nothing said so. Said now, in one line; the capture is the
+    one the library renders for those poses, count for count."""
     from spadscan.protocol.capture_reader import CaptureReader
     from spadscan.protocol.schedules import fibonacci_hemisphere
     from spadscan.protocol.simulator import SimSettings
 
     assert main(["simulate", "builtin:sphere", "--sensor", "tmf8820", "--table", "--no-progress",
-                 "--out", str(tmp_path / "cli")]) == 0
+                 "--min-elevation", "0", "--out", str(tmp_path / "cli")]) == 0
     err = capsys.readouterr().err
     near = [line for line in err.splitlines() if "within 1 cm above the table top" in line]
     assert near == ["warning: 5 of 256 views (251, 252, 253, 254, 255) put the sensor within 1 cm above the table top "
@@ -203,6 +203,20 @@ def test_views_just_above_the_table_top_are_warned_about_and_rendered_as_they_we
     cli, lib = CaptureReader(tmp_path / "cli").load(), CaptureReader(tmp_path / "lib").load()
     np.testing.assert_array_equal(cli.hists, lib.hists)
     np.testing.assert_array_equal(cli.poses, lib.poses)
+
+
+def test_on_a_table_the_spiral_starts_ten_degrees_up_unless_told(tmp_path, capsys):
+    """The default a new user gets on a table is a spiral whose views all stand clear of its top (from 0 degrees,
+    its lowest stood on the table and flooded their histograms)."""
+    from spadscan.protocol.capture_reader import CaptureReader
+
+    assert main(["simulate", "builtin:sphere", "--sensor", "tmf8820", "--table", "--no-progress", "--views", "64",
+                 "--rays-per-zone", "64", "--out", str(tmp_path / "c")]) == 0
+    assert "table top" not in capsys.readouterr().err
+    reader = CaptureReader(tmp_path / "c")
+    assert reader.manifest["schedule"]["min_elevation_deg"] == 10.0
+    heights = reader.load().poses[:, 2, 3]
+    assert heights.min() > 0.5 * np.sin(np.radians(10.0)) - 1e-6
 
 
 @pytest.mark.parametrize("argv", [
