@@ -153,3 +153,26 @@ def test_redo_refuses_jobs_that_are_not_done_and_moves_nothing(tmp_path, capsys,
     assert captured.err.strip() == "spadscan: error: " + message.format(queue=queue.path) and captured.out == ""
     assert (result / "report.json").exists(), "nothing moved when one of the jobs named cannot be redone"
     assert queue.counts() == {"queued": 1, "running": 0, "done": 1, "failed": 1}
+
+
+def removing_recon(capture, out, *, preset="fast", budget_s=None, steps=None, gt=None, device="auto", seed=0,
+                   started=None):
+    """A stand-in reconstruction whose scan is deleted while it runs: it fails on its input, as the real one does."""
+    from spadscan.protocol.errors import CaptureError
+
+    if steps == 1:  # the scan whose folder goes
+        shutil.rmtree(capture)
+    raise CaptureError(f"{capture}: missing")
+
+
+@pytest.mark.usefixtures("recon_stand_ins")
+@pytest.mark.parametrize("steps, gone", [(1, True), (2, False)])
+def test_a_failed_job_whose_scan_is_gone_is_not_said_to_be_worth_a_retry(tmp_path, arun, steps, gone):
+    make_scan(tmp_path, "s")
+    lines: list[str] = []
+    config = WorkerConfig(root=tmp_path, once=True, poll_s=0.1, recon="test_worker_results:removing_recon",
+                          options=JobOptions(steps=steps))
+    arun(Worker(config, log=lines.append).run(), timeout_s=120)
+    (failed,) = [line for line in lines if line.startswith("s-fast failed after ")]
+    assert failed.endswith(f"(its scan s is gone from {tmp_path}: nothing to try again)") == gone, failed
+    assert ("--retry-failed" in failed) != gone, failed
