@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from spadscan.protocol.capture_format import MANIFEST, fold
+from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError
 
 from .children import Child, exit_reason, kill_group, spawn_job
@@ -559,7 +559,7 @@ class Worker:
             note = "" if bad_input else f"; {_moved_to(state, bad_input)}"
         if state == "failed":
             self._settle_failed(job, error)
-            if not (self.root / job.scan / MANIFEST).is_file():  # moved out or deleted: a retry would fail as well
+            if not (self.root / job.scan).is_dir():  # moved out or deleted: a retry would fail as well
                 note += f" (its scan {job.scan} is gone from {self.root}: nothing to try again)"
             elif not aborted:
                 note += (f" (once the cause is fixed, `{worker_command(self.root, self.queue.path, '--retry-failed')}` "
