@@ -110,8 +110,8 @@ def request(socket_path, message: dict, timeout_s: float | None = 10.0) -> dict:
             sock.sendall((json.dumps(message) + "\n").encode())
             return _read_reply(sock, path, op)
         except socket.timeout:
-            # Sent, the request is the daemon's: it may carry it out after the caller gave up (a scan started).
-            maybe = "" if op in READ_ONLY_OPS else "; it may still carry it out: `spadscan ctl status` says"
+            # A request sent (or partly sent) may be carried out after the caller gave up (a scan started).
+            maybe = "" if op in READ_ONLY_OPS else "; it may still carry it out (check `spadscan ctl status`)"
             raise ControlTimeout(f"daemon on {path} did not answer {op!r} within {timeout_s:g} s{maybe}") from None
         except OSError as exc:
             raise ControlError(f"lost the connection to the daemon on {path} during {op!r}: "

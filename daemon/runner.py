@@ -840,6 +840,8 @@ class ScanRunner:
                     await self._retake(job)
                     await self._poses(job)
                     if job.ended_early is not None:
+                        if await self._io(_lost_chunks, job):
+                            continue  # taken again (`_retake`), then ended where the scan stands
                         await self._io(_end_early, job)
                         break
                     if not self._pause_requested:
@@ -1437,7 +1439,7 @@ class ScanRunner:
                                                 and self.sensor.counters().get("link") == "down"):
             return f"{describe(exc)}; {SENSOR_LINK_WAIT}{at}"
         job = self.job
-        if isinstance(exc, (OSError, CaptureError)) and job is not None and not (job.path / MANIFEST).is_file():
+        if isinstance(exc, (OSError, CaptureError)) and job is not None and _folder_gone(job.path):
             # Not the disk's fault: its advice (the kernel log, a failing disk) would send the operator astray. (The
             # manifest, which nothing but the operator removes: a folder deleted while a chunk was being written
             # may be left holding that chunk's remains.)
@@ -1562,6 +1564,18 @@ def _segment_distance(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray
     return np.linalg.norm(a + t[:, None] * ab - p, axis=1)
 
 
+def _folder_gone(path: Path) -> bool:
+    """Whether a scan's folder is gone: its manifest (which nothing but the operator removes) is missing. A look that
+    fails otherwise (a failing disk, a permission) is not taken for gone: the disk's advice then stands."""
+    try:
+        os.stat(path / MANIFEST)
+    except (FileNotFoundError, NotADirectoryError):
+        return True
+    except OSError:
+        return False
+    return False
+
+
 def _lost_chunks(job: ScanJob) -> bool:
     """Whether chunks the scan published are gone from its folder (moved out or deleted while it ran), checked before
     it is called complete ("complete" promises every pose): their poses are then owed again, as a resume finds them
@@ -1572,7 +1586,8 @@ def _lost_chunks(job: ScanJob) -> bool:
     job.record_progress(job.writer)
     again = [str(pose) for pose in job.owed]
     if job.next_pose < job.n_poses:  # the last chunks gone: the scan goes on from the first pose they held
-        again.append(f"{job.next_pose}..{job.n_poses - 1}")
+        last = job.n_poses - 1
+        again.append(str(last) if job.next_pose == last else f"{job.next_pose}..{last}")
     log.warning("scan %s: %s gone from its folder (moved out or deleted while the scan ran): taking pose(s) %s "
                 "again before the scan is complete", job.name, ", ".join(gone), ", ".join(again))
     return True

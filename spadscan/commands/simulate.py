@@ -212,7 +212,8 @@ def make_poses(args):
     from spadscan.protocol.errors import SimulationError
 
     band = SPIRAL_BAND if args.schedule == "fibonacci" else RINGS_BAND
-    low = max(band[0], TABLE_SPIRAL_LOW_DEG) if args.table else band[0]
+    lifted = args.table and (args.max_elevation is None or args.max_elevation >= TABLE_SPIRAL_LOW_DEG)
+    low = max(band[0], TABLE_SPIRAL_LOW_DEG) if lifted else band[0]  # (a band asked for below it: as before)
     args.min_elevation = low if args.min_elevation is None else args.min_elevation
     args.max_elevation = band[1] if args.max_elevation is None else args.max_elevation
     common = dict(radius_m=args.radius, target=tuple(args.target), min_elevation_deg=args.min_elevation,

@@ -8,6 +8,7 @@ import datetime as dt
 import json
 import logging
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -179,6 +180,34 @@ def test_the_scan_ends_when_the_live_reconstruction_has_converged(arun, tmp_path
     assert "the live reconstruction converged with 3 views" in reader.manifest["reason"]
     data = check_capture(cfg.captures / "a", INITIAL, 1)  # complete as it stands: every planned pose published
     assert [c["why"] for c in choices(data)] == ["initial"] * INITIAL
+
+
+def test_a_chunk_lost_before_an_early_end_is_taken_again_first(arun, tmp_path, sphere):
+    """"complete" promises every pose of the capture as it stands: a chunk deleted while an adaptive scan runs is
+    found before the scan ends early, and its pose is taken again."""
+    cfg = make_cfg(tmp_path, **ADAPTIVE, stop_when_converged=True, chunk_size=1)
+    folder = cfg.captures / "a"
+
+    async def scenario():
+        async with daemon_runner(cfg, sphere) as runner:
+            take_frame, deleted = runner.sensor.next_frame, []
+
+            async def next_frame(timeout_s):
+                if not deleted and (folder / "chunk-000000").exists():  # once pose 0 is published
+                    await runner._io(shutil.rmtree, folder / "chunk-000000")
+                    deleted.append(runner.job.next_pose)
+                return await take_frame(timeout_s)
+
+            runner.sensor.next_frame = next_frame
+            await runner.start("a")
+            live_status(folder, views_used=INITIAL, converged=True)  # the scan ends after its initial views
+            return await runner.wait("a"), deleted
+
+    done, deleted = arun(scenario())
+    assert done["state"] == "complete" and deleted and deleted[0] < INITIAL, deleted
+    reader = CaptureReader(folder)
+    assert "converged" in reader.manifest["reason"]
+    check_capture(folder, reader.manifest["planned_poses"], 1)
 
 
 def test_a_status_without_convergence_never_ends_the_scan(arun, tmp_path, sphere):

@@ -433,4 +433,4 @@ def test_a_request_that_timed_out_says_whether_the_daemon_may_still_carry_it_out
         listener.close()
     said = str(info.value)
     assert said.startswith(f"daemon on {path} did not answer {op!r} within 0.05 s")
-    assert ("; it may still carry it out: `spadscan ctl status` says" in said) == maybe, said
+    assert ("; it may still carry it out (check `spadscan ctl status`)" in said) == maybe, said

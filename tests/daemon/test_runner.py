@@ -22,6 +22,7 @@ from spadscan.daemon.arm.sim import SimArm, SimArmFaults, fake_joints
 from spadscan.daemon.arm.stops import EMERGENCY_STOP, PROTECTIVE_STOP, SAFEGUARD_STOP, TO_CLEAR
 from spadscan.daemon.backends import pose_provider
 from spadscan.daemon.config import config_from_dict
+from spadscan.daemon.devices import SensorSilent
 from spadscan.daemon.runner import ScanRunner
 from spadscan.daemon.sensor.sim import SimSensor
 from spadscan.protocol.capture_reader import CaptureReader
@@ -269,6 +270,64 @@ def test_a_scan_folder_deleted_while_the_scan_runs_pauses_it_naming_that_not_the
     assert f"the scan's folder {folder} is gone (moved or deleted while the scan ran): move it back, then `spadscan " \
            f"ctl resume`, or `spadscan ctl abort` ends the scan" in status["reason"], status
     assert "disk" not in status["reason"], status
+
+
+class RestartingSensor(SimSensor):
+    """A sensor that starts again on its own once `restart(s)` is called (a bridge set up afresh after a replug): no
+    frame for `s` seconds, which `starting_left` says while it lasts."""
+
+    until: float | None = None
+
+    def restart(self, seconds: float) -> None:
+        self.until = time.monotonic() + seconds
+
+    def starting_left(self) -> float:
+        return 0.0 if self.until is None else max(0.0, self.until - time.monotonic())
+
+    async def next_frame(self, timeout_s):
+        left = self.starting_left()
+        if left > timeout_s:
+            await asyncio.sleep(timeout_s)
+            raise SensorSilent(f"{self.name}: no complete frame within {timeout_s:g} s")
+        await asyncio.sleep(left)
+        self.until = None
+        return await super().next_frame(timeout_s)
+
+
+def test_a_sensor_starting_again_on_its_own_is_waited_for_once_not_paused(arun, tmp_path, sphere, caplog):
+    """Its start lasts three frame timeouts: the wait is begun again once, for the rest of the start and then a
+    frame timeout, and said once; the scan never pauses."""
+    cfg = make_cfg(tmp_path, views=6, frames_per_pose=1, frame_timeout_s=0.5)
+    arm = TimedArm(motion_time_s=0.0)
+    sensor = RestartingSensor(sensor_preset("tmf8820"), sphere, pose_provider(arm, cfg.arm.hand_eye),
+                              settings=SimSettings(rays_per_zone=16), seed=1)
+
+    async def scenario():
+        async with DeviceSession([arm, sensor]):
+            runner = ScanRunner(arm, sensor, cfg)
+            try:
+                moved = arm.move_to
+
+                async def move_to(*args):
+                    await moved(*args)
+                    if arm.moves == 3:
+                        sensor.restart(1.5)
+
+                arm.move_to = move_to
+                await runner.start("restart")
+                states = []
+                while runner.job is not None and runner.job.name == "restart" and runner.state != "idle":
+                    states.append(runner.state)
+                    await asyncio.sleep(0.01)
+                return await runner.wait("restart"), states
+            finally:
+                await runner.shutdown()
+
+    done, states = arun(scenario())
+    assert done == {"name": "restart", "state": "complete"} and "paused" not in states
+    said = [r.getMessage() for r in caplog.records if "is starting again" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("scan restart: the sensor is starting again"), said
+    check_capture(tmp_path / "caps" / "restart", 6, 1)
 
 
 def test_the_first_move_after_a_resume_is_checked_like_every_planned_one(arun, tmp_path, sphere):

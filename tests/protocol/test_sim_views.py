@@ -219,6 +219,14 @@ def test_on_a_table_the_spiral_starts_ten_degrees_up_unless_told(tmp_path, capsy
     assert heights.min() > 0.5 * np.sin(np.radians(10.0)) - 1e-6
 
 
+def test_a_spiral_band_below_the_tables_default_start_is_taken_as_asked(tmp_path, capsys):
+    assert main(["simulate", "builtin:sphere", "--sensor", "tmf8820", "--table", "--no-progress", "--views", "16",
+                 "--rays-per-zone", "64", "--max-elevation", "5", "--out", str(tmp_path / "c")]) == 0
+    from spadscan.protocol.capture_reader import CaptureReader
+
+    assert CaptureReader(tmp_path / "c").manifest["schedule"]["min_elevation_deg"] == 0.0
+
+
 @pytest.mark.parametrize("argv", [
     ["--table", "--schedule", "rings"],  # the rings' lowest at 10 deg: 87 mm above the table
     ["--views", "16"],  # the same spiral without a table

@@ -104,6 +104,12 @@ def test_a_final_run_that_fits_worse_than_the_live_state_is_not_published(cylind
                             log=lambda line: None)                                         # the live one
     assert again["published"]["deviance_final"] == pytest.approx(again["published"]["deviance_live"], rel=1e-3)
     assert torch.allclose(final.mesh_field().sdf, held, atol=1e-6)
+    # The same field with a far wrong albedo loses: the model keeps its own albedo with its own field.
+    own = float(final.log_albedo.detach())
+    dim = keep_the_better(final, LiveState(live_field, live.level, [torch.tensor(math.log(0.05))]),
+                          log=lambda line: None)
+    assert dim["published"]["mesh"] == "final" and float(final.log_albedo.detach()) == pytest.approx(own)
+    assert torch.allclose(final.mesh_field().sdf, held, atol=1e-6)
 
 
 def test_the_live_field_is_scored_on_its_own_grid_with_its_own_albedo(cylinder_capture, tmp_path, one_thread):

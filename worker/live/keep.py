@@ -9,11 +9,11 @@ over it that its set-up read (`problem.setup_views`), whose per-bin mean estimat
 holding the better one: the mesh, the report's pictures, its fit check and its metrics all describe what is
 published. report.json says which (`published`).
 
-Each field is scored as it was fitted: with its own albedos (and table offset), and on the finer grid of the two. A
+Each field is scored as it was fitted: with its own albedos (and table offset), and on its own grid. A
 final run from the hull that its budget ended on the coarse level fitted its albedo to the hull's bloated surface,
 and a fine live field read on the coarse grid loses the parts that grid cannot hold: scored on the final run's grid
 and albedo, a live fit of 1.8 mm read 86 per bin against 28 for a 40 mm final field, and the final one was
-published; on its own grid and albedo it reads 21 against 26.
+published; on its own grid and albedo it reads 21 against 28.
 """
 
 from __future__ import annotations
@@ -39,16 +39,16 @@ class LiveState:
 
 def keep_the_better(model, live: LiveState, log: Callable[[str], None]) -> dict:
     """Score the final model's mesh field and the live one (projected into the final model's hull, as at the warm
-    start) on the same views (the module docstring), each with its own fitted numbers, on the finer of their two
-    grids, and leave the better one in `model` (its grid, the field it meshes, its albedos). Returns report.json's
-    `published`: which field, and both deviances per bin."""
+    start) on the same views (the module docstring), each on its own grid with its own fitted numbers, and leave the
+    better one in `model` (the field it meshes, its albedos; the grid refined to the live fit's level where that is
+    finer, the final field then upsampled onto it: the same surface). Returns report.json's `published`: which
+    field, and both deviances per bin."""
     use_field(model, model.mesh_field().sdf.detach().clone())
+    final_dev = model.deviance_all_views(SCORE_SEED)
+    final_scalars = scalars_of(model)
     while model.level < live.level and model.part("refinement") is not None:
         model.refine()  # the final surface as it is, on the live fit's finer grid
-    final_values = model.mesh_field().sdf.detach().clone()
-    final_scalars = scalars_of(model)
-    use_field(model, final_values)
-    final_dev = model.deviance_all_views(SCORE_SEED)
+    final_values = model.field.sdf.detach().clone()
     model.warm_start(live.field, model.level, model.level_steps)
     use_scalars(model, live.scalars)
     live_dev = model.deviance_all_views(SCORE_SEED)
