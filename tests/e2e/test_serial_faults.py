@@ -90,6 +90,19 @@ def serial_daemon(make_daemon, port: str, **sections):
     return make_daemon(sensor=sensor, **sections)
 
 
+def held_mid_scan(make_daemon, b: SimBridge, feeder: Feeder, name: str, frame_timeout_s: float):
+    """A started daemon whose scan `name` (12 poses of 2 frames) has published 3 poses, its bridge's feeder then held
+    (nothing more is sent)."""
+    feeder.start()
+    daemon = serial_daemon(make_daemon, b.port, sensor={"frame_timeout_s": frame_timeout_s},
+                           arm={"motion_time_s": 0.1}, scan={"views": 12, "frames_per_pose": 2, "chunk_size": 2})
+    daemon.start()
+    daemon.call("scan", name=name)
+    daemon.wait_pose(name, 3)
+    feeder.hold()
+    return daemon
+
+
 def assert_only_good_frames(data, feeder: Feeder) -> None:
     """Every stored frame is a good frame the bridge sent, bit for bit; none is a corrupt one."""
     assert data.reference is not None
@@ -124,13 +137,8 @@ def test_corrupt_serial_frames_never_reach_the_capture(make_daemon, tmp_path, br
 @pytest.mark.slow
 def test_silent_serial_sensor_pauses_and_resume_completes(make_daemon, tmp_path, bridge):
     b, feeder = bridge
-    feeder.start()
-    daemon = serial_daemon(make_daemon, b.port, sensor={"frame_timeout_s": 1.0},
-                           arm={"motion_time_s": 0.1}, scan={"views": 12, "frames_per_pose": 2, "chunk_size": 2})
-    daemon.start()
-    daemon.call("scan", name="quiet")
-    daemon.wait_pose("quiet", 3)
-    feeder.hold()  # the bridge stops sending: the sensor is silent, after the error line the UW firmware prints
+    daemon = held_mid_scan(make_daemon, b, feeder, "quiet", frame_timeout_s=1.0)
+    # the bridge stopped sending: the sensor is silent, after the error line the UW firmware prints
     b.send(b"#Err,inter,2,but no data\n")
     status = daemon.wait_state("paused", 30)
     assert "sensor silent" in status["reason"], status
@@ -164,13 +172,7 @@ def test_a_replugged_bridge_that_sets_its_sensor_up_again_is_waited_for_not_paus
     downloaded" and takes seconds (a 4 s wait for the short-range command, a calibration) before its first record.
     The scan waits for that start, longer than frame_timeout_s, and completes without a pause."""
     b, feeder = bridge
-    feeder.start()
-    daemon = serial_daemon(make_daemon, b.port, sensor={"frame_timeout_s": 4.0},
-                           arm={"motion_time_s": 0.1}, scan={"views": 12, "frames_per_pose": 2, "chunk_size": 2})
-    daemon.start()
-    daemon.call("scan", name="replug")
-    daemon.wait_pose("replug", 3)
-    feeder.hold()
+    daemon = held_mid_scan(make_daemon, b, feeder, "replug", frame_timeout_s=4.0)
     b.unplug()
     b.replug()
     # The firmware prints nothing before the port is open again (a real bridge's download takes a while too).
