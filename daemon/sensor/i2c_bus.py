@@ -22,7 +22,8 @@ the chip the same way):
    every surface in the wrong place), before anything is measured. ACTIVE_RANGE alone decides: it says the mode the
    model needs, whatever status the command answered (one other than 0x00 is logged).
 5. Configure: 0x16 (load the common config page; 0x20 then reads 0x16), period ms 0x24 (u16 LE), kilo-iterations
-   0x26 (u16 LE), SPAD map 0x34, HIST_DUMP 0x39 = 1 (raw histograms), then 0x15 (write config). After each command
+   0x26 (u16 LE), SPAD map 0x34, ALG_SETTING_0 0x35 = 0x04, HIST_DUMP 0x39 = 1 (raw histograms), then 0x15 (write
+   config). After each command
    CMD_STAT echoes the command while busy (>= 0x10), then reads its status. ams' Linux driver takes 0x00 (ok) or 0x01
    (accepted) after any command, and so does the daemon; ams' Python driver expects 0x01 for measure and 0x00 for
    the others, so a 0x01 where it expects 0x00 is logged, once for each command. Anything else fails the start,
@@ -82,6 +83,11 @@ log = logging.getLogger("spadscan.daemon")
 REG_APP_ID, REG_APP_STATUS, REG_CMD_STAT, REG_ACTIVE_RANGE, REG_PAGE = 0x00, 0x04, 0x08, 0x19, 0x20
 REG_ENABLE, REG_INT_STATUS, REG_INT_ENAB = 0xE0, 0xE1, 0xE2
 REG_PERIOD, REG_KILO_ITER, REG_SPAD_MAP, REG_HIST_DUMP = 0x24, 0x26, 0x34, 0x39
+REG_ALG_SETTING = 0x35
+ALG_DISTANCES_ONLY = 0x04
+"""ALG_SETTING_0 as ams documents its reset value: distances reported; no electrical calibration, statistics or
+diagnostics records, the 5 m distance mode. Written at every start: the application keeps its configuration while
+it stays powered, so a start after another tool (an Arduino sketch, ams' own GUI) finds whatever that tool set."""
 ENABLE_PON, ENABLE_CPU_READY, ENABLE_CPU_RESET = 0x01, 0x40, 0x80
 APP_BOOTLOADER, APP_RUNNING = 0x80, 0x03
 CMD_MEASURE, CMD_STOP, CMD_LOAD_CONFIG, CMD_WRITE_CONFIG, CMD_SHORT_RANGE = 0x10, 0xFF, 0x16, 0x15, 0x6E
@@ -188,6 +194,7 @@ class I2CTransport(Transport):
         self._block_write(REG_PERIOD, [self.period_ms & 0xFF, self.period_ms >> 8])
         self._block_write(REG_KILO_ITER, [self.kilo_iterations & 0xFF, self.kilo_iterations >> 8])
         self._write(REG_SPAD_MAP, self.spad_map)
+        self._write(REG_ALG_SETTING, ALG_DISTANCES_ONLY)
         self._write(REG_HIST_DUMP, 0x01)
         self._command(CMD_WRITE_CONFIG)
         self._write(REG_INT_STATUS, 0xFF)

@@ -141,7 +141,8 @@ class SimTMF8820Bus:
             raise ValueError(f"size_field = {size_field!r} must be one of {SIZE_FIELDS}")
         self.size_field = size_field
         # Both of what ams' Linux driver accepts: CMD_STAT 0x01 (accepted) or 0x00 (ok) while measuring; a result
-        # record followed by the 36 diagnostics bytes (its size field 164 instead of 128).
+        # record followed by the 36 diagnostics bytes (its size field 164 instead of 128), as it is also while
+        # ALG_SETTING_0's diagnostics bit (0x40) is set in the configuration.
         self.measure_stat, self.result_diagnostics = measure_stat, result_diagnostics
         self.address, self.image, self.load_address = address, image, load_address
         self.frame_interval_s, self.ready_after_polls, self.busy_polls = frame_interval_s, ready_after_polls, busy_polls
@@ -302,7 +303,8 @@ class SimTMF8820Bus:
         self.page = bytearray(0x80)  # registers 0x20..0x9F
         self.config_loaded = self.measuring = False
         self.active_range = 0x00
-        self.config = {"period_ms": 33, "kilo_iterations": 537, "spad_map": 1, "hist_dump": 0}  # ams' reset values
+        self.config = {"period_ms": 33, "kilo_iterations": 537, "spad_map": 1, "hist_dump": 0,
+                       "alg_setting_0": 0x04}  # ams' reset values (ALG_SETTING_0: distances only)
         self.tid = 0
         self._stop_records()
 
@@ -480,11 +482,12 @@ class SimTMF8820Bus:
             self.page[4:6] = self.config["period_ms"].to_bytes(2, "little")
             self.page[6:8] = self.config["kilo_iterations"].to_bytes(2, "little")
             self.page[0x14], self.page[0x19] = self.config["spad_map"], self.config["hist_dump"]
+            self.page[0x15] = self.config["alg_setting_0"]
             self.config_loaded = True
         elif cmd == 0x15 and self.config_loaded:
             p = self.page
             self.config = {"period_ms": p[4] | p[5] << 8, "kilo_iterations": p[6] | p[7] << 8,
-                           "spad_map": p[0x14], "hist_dump": p[0x19]}
+                           "spad_map": p[0x14], "hist_dump": p[0x19], "alg_setting_0": p[0x15]}
         elif cmd == 0x15:
             self.violations.append("write config without a loaded config page")
             ok = 0x02
@@ -546,7 +549,7 @@ class SimTMF8820Bus:
         self.produced.append((counts, result))
         self.exposures.append((begin, end))
         records = frame_records(counts, result, bool(self.config["hist_dump"] & 0x01), self._tid, self.size_field,
-                                self.result_diagnostics)
+                                self.result_diagnostics or bool(self.config["alg_setting_0"] & 0x40))
         for k in sorted(self._corrupt):
             if k < len(records) - 1:
                 bit, rec = records[k]

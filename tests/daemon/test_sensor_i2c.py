@@ -311,7 +311,8 @@ def test_boot_download_configure_measure_bit_for_bit(arun, image):
     assert fake.app_running and bytes(fake.ram[:len(data)]) == data and fake.written.sum() == len(data)
     assert fake.download_seed == 0x29  # DOWNLOAD_INIT went first, as ams' C host driver sends it
     assert fake.commands == EXPECTED_COMMANDS + [0xFF]  # ... and stop on release
-    assert fake.config == {"period_ms": 250, "kilo_iterations": 4000, "spad_map": 1, "hist_dump": 1}
+    assert fake.config == {"period_ms": 250, "kilo_iterations": 4000, "spad_map": 1, "hist_dump": 1,
+                           "alg_setting_0": 0x04}
     assert fake.active_range == 0x6E and fake.int_enab == 0 and fake.closed  # stop disables its interrupts again
     for frame, (counts, result) in zip(frames, fake.produced):
         assert np.array_equal(frame.hists, counts[1:]) and np.array_equal(frame.reference, counts[0])
@@ -373,6 +374,19 @@ def test_the_app_already_running_is_stopped_and_reused(arun, image):
     assert fake.violations == [] and len(frames) == 1
     assert fake.commands == EXPECTED_COMMANDS + [0xFF, 0xFF] + EXPECTED_COMMANDS[1:] + [0xFF]
     assert np.array_equal(frames[0].hists, fake.produced[before][0][1:])  # the first frame of the new session
+
+
+def test_a_start_after_another_tool_sets_the_result_reporting_back_to_ams_reset_value(arun, image):
+    """The application keeps its configuration while it stays powered: one that another tool left reporting
+    statistics and diagnostics (ALG_SETTING_0 0x46) is set back to distances only (0x04, ams' reset value) at the
+    daemon's start, as every setting the daemon relies on is."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+    arun(_run(I2CSensor(1, firmware=path, smbus_factory=fake), n_frames=1))
+    fake.config["alg_setting_0"] = 0x46  # left so by another tool; the application still runs
+    frames = arun(_run(I2CSensor(1, smbus_factory=fake), n_frames=2))
+    assert fake.violations == [] and len(frames) == 2
+    assert fake.config["alg_setting_0"] == 0x04
 
 
 @pytest.mark.parametrize("fake_kw, sensor_kw, message", [
