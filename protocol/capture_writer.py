@@ -237,6 +237,12 @@ class Retake:
     chunks: tuple[int, ...] | None
 
 
+def frames_per_pose(manifest: dict) -> int:
+    """A manifest's frames_per_pose, 1 where it gives none or no whole number of at least 1."""
+    frames = manifest.get("frames_per_pose", 1)
+    return frames if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1 else 1
+
+
 def plan_retakes(chunks: list[tuple[int, list[tuple[int, int | None]]]], frames_per_pose: int, chunk_size: int,
                  where) -> list[Retake]:
     """The Retakes of a capture whose chunks are `chunks` [(number, [(pose_index, frame), ...])]: every frame
@@ -424,9 +430,7 @@ class CaptureWriter:
             published += len(record.held)
             poses.update(pose for pose, _ in record.held)
             held.append((chunk_index(name), list(record.held)))
-        frames = reader.manifest.get("frames_per_pose", 1)
-        frames = frames if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1 else 1
-        retakes = plan_retakes(held, frames, int(reader.manifest["chunk_size"]), path)
+        retakes = plan_retakes(held, frames_per_pose(reader.manifest), int(reader.manifest["chunk_size"]), path)
         next_chunk = (chunk_index(names[-1]) + 1) if names else 0
         manifest = dict(reader.manifest)
         manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
@@ -500,10 +504,8 @@ class CaptureWriter:
         for name in gone:
             del self.book.chunks[name]
         kept = sorted(self.book.chunks.items())
-        frames = self.manifest.get("frames_per_pose", 1)
-        frames = frames if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1 else 1
-        self.retakes = plan_retakes([(chunk_index(name), list(record.held)) for name, record in kept], frames,
-                                    self.chunk_size, self.path)
+        self.retakes = plan_retakes([(chunk_index(name), list(record.held)) for name, record in kept],
+                                    frames_per_pose(self.manifest), self.chunk_size, self.path)
         self.n_published = sum(len(record.held) for _, record in kept)
         self.published_pose_indices = {pose for _, record in kept for pose, _ in record.held}
         return gone

@@ -234,6 +234,11 @@ def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: Se
     return center, radius, note
 
 
+def _lowest_returns_z(points: np.ndarray) -> float:
+    """The height (m) a fitted table starts at: the lowest first returns' (5th percentile of their heights)."""
+    return float(np.percentile(points[:, 2], 5))
+
+
 def _on_table(points: np.ndarray, scene: dict, real: bool) -> np.ndarray:
     """Which first-return points (n, 3) lie on the table top (within TABLE_RETURN_BAND_M of it) where the scene has
     one: a table the manifest places, else one to be fitted, whose top is taken at the lowest returns' height (5th
@@ -242,7 +247,7 @@ def _on_table(points: np.ndarray, scene: dict, real: bool) -> np.ndarray:
     if not spec or len(points) < 3:
         return np.zeros(len(points), dtype=bool)
     if spec is True:
-        return points[:, 2] < float(np.percentile(points[:, 2], 5)) + TABLE_RETURN_BAND_M
+        return points[:, 2] < _lowest_returns_z(points) + TABLE_RETURN_BAND_M
     try:
         plane = named_table(spec)
     except CaptureError:  # (`_table` names the malformed record)
@@ -258,7 +263,7 @@ def _table(scene: dict, center: np.ndarray, radius: float, real: bool, points: n
     if not spec:
         return None
     if spec is True:
-        start = float(np.percentile(points[:, 2], 5)) if len(points) >= 3 else float(center[2] - radius)
+        start = _lowest_returns_z(points) if len(points) >= 3 else float(center[2] - radius)
         return TablePlane(np.array([0.0, 0.0, 1.0]), max(start, float(center[2] - radius)), fitted=True)
     try:
         return named_table(spec)
