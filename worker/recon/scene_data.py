@@ -139,8 +139,9 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
 
     scene = dict(data.manifest.get("scene") or {})
     real = is_measured(scene, data.manifest, sensor)
-    center, radius, bound_note = _scene_sphere(scene, poses, counts, sensor, capture, real)
-    table = _table(scene, center, radius, real, first_returns(counts, poses, sensor), capture)
+    points = first_returns(counts, poses, sensor)
+    center, radius, bound_note = _scene_sphere(scene, poses, points, sensor, capture, real)
+    table = _table(scene, center, radius, real, points, capture)
     reference = data.reference.mean(axis=0) if (real and data.reference is not None) else None
     kernel, origin, pulse_source = pulse_kernel(sensor, reference)
     reference = reference if pulse_source == "reference" else None
@@ -185,19 +186,18 @@ def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) ->
     return poses[clear, :3, 3] + rng[clear, None] * poses[clear, :3, 2]
 
 
-def _scene_sphere(scene: dict, poses: np.ndarray, counts: np.ndarray, sensor: SensorModel, where: Path,
+def _scene_sphere(scene: dict, poses: np.ndarray, points: np.ndarray, sensor: SensorModel, where: Path,
                   real: bool = False):
     """(centre (3,), radius, note) of a sphere that holds the object, from the manifest, else from the data; note
     (else None) says when views near the centre kept the sphere smaller than the first returns reach, the returns
     on a table (`_on_table`) left out: low views' returns from the table top far out are not the object's.
 
-    Centre: the median of the views' first-return points when at least 3 views show one (it lies inside the object
-    for views from around it); else the point nearest to every boresight. Radius: 3 x the 90th percentile of the
-    points' distances to the centre, or FAR_RETURN_MARGIN x the farthest point's distance where that is more (at
-    least 5 cm), never more than 0.8 x the nearest sensor's distance (no sensor inside); without points, 0.6 x that
-    distance."""
+    `points`: the views' first returns (`first_returns`). Centre: the median of those points when at least 3 views
+    show one (it lies inside the object for views from around it); else the point nearest to every boresight. Radius:
+    3 x the 90th percentile of the points' distances to the centre, or FAR_RETURN_MARGIN x the farthest point's
+    distance where that is more (at least 5 cm), never more than 0.8 x the nearest sensor's distance (no sensor
+    inside); without points, 0.6 x that distance."""
     origins, axes = poses[:, :3, 3], poses[:, :3, 2]
-    points = first_returns(counts, poses, sensor)
     center, given_radius = given_sphere(scene, where)
     if center is None and len(points) >= 3:
         center = np.median(points, axis=0)
