@@ -9,6 +9,10 @@ the chip the same way):
    the references do: the chip does not answer while its CPU starts) and poll ENABLE until cpu_ready.
 2. APP_ID 0x00: 0x80 = bootloader -> download the image; 0x03 = the application already runs (no power loss since
    the last download) -> stop it (0xFF) in case a previous session left it measuring; anything else is an error.
+   Then the zone mode: TMF8828_MODE 0x10 reads 0x00 in 3x3 mode (its reset value; every TMF8820/21 image) and 0x08
+   in a TMF8828's 8x8 mode, which the application keeps while powered. Unless it reads 0x00, command 0x65 (switch to
+   3x3 / 3x6 / 4x4 mode) is sent and 0x10 must then read 0x00, as ams' Linux driver switches it back; otherwise the
+   start fails (an 8x8 capture is four time-multiplexed sub-captures, not one 3x3 frame).
 3. Download: bootloader frames written to 0x08 with `i2c_rdwr` (up to 131 bytes, beyond SMBus's 32): DOWNLOAD_INIT
    0x14 with seed 0x29 (ams' C host driver sends it for its encrypted images; ams' own Python and Arduino drivers
    do not, and the bootloader takes either), SET_ADDR, then W_RAM chunks of <= 128 bytes. After each, the bootloader
@@ -22,8 +26,9 @@ the chip the same way):
    every surface in the wrong place), before anything is measured. ACTIVE_RANGE alone decides: it says the mode the
    model needs, whatever status the command answered (one other than 0x00 is logged).
 5. Configure: 0x16 (load the common config page; 0x20 then reads 0x16), period ms 0x24 (u16 LE), kilo-iterations
-   0x26 (u16 LE), SPAD map 0x34, ALG_SETTING_0 0x35 = 0x04, HIST_DUMP 0x39 = 1 (raw histograms), then 0x15 (write
-   config). After each command
+   0x26 (u16 LE), POWER_CFG 0x33 with every field ams names cleared (their reset values: no timed standby between
+   measurements; the bits it does not name are kept as read), SPAD map 0x34, ALG_SETTING_0 0x35 = 0x04, HIST_DUMP
+   0x39 = 1 (raw histograms), then 0x15 (write config). After each command
    CMD_STAT echoes the command while busy (>= 0x10), then reads its status. ams' Linux driver takes 0x00 (ok) or 0x01
    (accepted) after any command, and so does the daemon; ams' Python driver expects 0x01 for measure and 0x00 for
    the others, so a 0x01 where it expects 0x00 is logged, once for each command. Anything else fails the start,
@@ -34,11 +39,15 @@ the chip the same way):
 7. Measure: CMD_STAT <- 0x10 (accepted: 0x01).
 
 Readout polls INT_STATUS: bit 0x08 = a histogram sub-packet waits at 0x20, bit 0x02 = a result (layouts in
-`i2c_records`). CMD_STAT is checked before a frame's first record is read (ams' Linux driver checks it before every
-message read; once per frame costs one register read instead of 31, ~3 % of the frame rate at 400 kHz), and again
-before the record after a refused or missing one. Each record is read in one `i2c_rdwr` transfer and its bit cleared
-by writing it back. A record that is not what its bit announces is refused (counted in bad_records, the last one's
-reason in last_bad_record); a histogram sub-packet whose size field is not the documented one is taken (ams' drivers
+`i2c_records`); bit 0x01 ("any interrupt has occurred") goes up with each of them and is cleared with each record,
+as ams' Arduino driver clears it. CMD_STAT is checked before a frame's first record is read (ams' Linux driver checks
+it before every message read; once per frame costs one register read instead of 31, ~3 % of the frame rate at
+400 kHz), and again before the record after a refused or missing one. Each record is read in one `i2c_rdwr` transfer
+and its bit cleared by writing it back. The TID is not waited for: ams' Linux driver re-reads 0x20 until the TID
+changes because it clears the bit before it reads (so the bit of the last sub-packet it read is still set at its
+next interrupt); read first and clear after, a record's bit goes up only once the chip has put a new record there.
+A record that is not what its bit announces is refused (counted in bad_records, the last one's reason in
+last_bad_record); a histogram sub-packet whose size field is not the documented one is taken (ams' drivers
 do not check it) and counted in size_field_mismatches, with one warning in the log.
 Bit 0x40 is the error interrupt ("one of the status registers has been set to a non-zero value", ams' Python
 driver): at the poll that sees it the daemon clears it and reads CMD_STAT (which serves as the check of a record read
@@ -84,6 +93,16 @@ REG_APP_ID, REG_APP_STATUS, REG_CMD_STAT, REG_ACTIVE_RANGE, REG_PAGE = 0x00, 0x0
 REG_ENABLE, REG_INT_STATUS, REG_INT_ENAB = 0xE0, 0xE1, 0xE2
 REG_PERIOD, REG_KILO_ITER, REG_SPAD_MAP, REG_HIST_DUMP = 0x24, 0x26, 0x34, 0x39
 REG_ALG_SETTING = 0x35
+REG_TMF8828_MODE = 0x10
+"""TMF8828_MODE (ams' register map, TMF8X2X_COM_TMF8828_MODE in ams' Linux driver): 0x00 3x3 / 3x6 / 4x4 mode, 0x08 a
+TMF8828's 8x8 mode."""
+MODE_3X3 = 0x00
+REG_POWER_CFG = 0x33
+POWER_CFG_FIELDS = 0x80 | 0x40 | 0x20 | 0x08 | 0x04
+"""POWER_CFG's fields as ams' register map names them (TMF8X2X_COM_POWER_CFG in ams' Linux driver): goto_standby_timed
+0x80, low_power_osc_on 0x40, keep_pll_running 0x20, allow_osc_retrim 0x08, pulse_interrupt 0x04, each reset 0.
+Cleared at every start: the application keeps them while it stays powered, and one another tool set (timed standby
+between measurements, a retrimmed oscillator) is not the chip the daemon's timing and sensor model describe."""
 ALG_DISTANCES_ONLY = 0x04
 """ALG_SETTING_0 as ams documents its reset value: distances reported; no electrical calibration, statistics or
 diagnostics records, the 5 m distance mode. Written at every start: the application keeps its configuration while
@@ -91,7 +110,10 @@ it stays powered, so a start after another tool (an Arduino sketch, ams' own GUI
 ENABLE_PON, ENABLE_CPU_READY, ENABLE_CPU_RESET = 0x01, 0x40, 0x80
 APP_BOOTLOADER, APP_RUNNING = 0x80, 0x03
 CMD_MEASURE, CMD_STOP, CMD_LOAD_CONFIG, CMD_WRITE_CONFIG, CMD_SHORT_RANGE = 0x10, 0xFF, 0x16, 0x15, 0x6E
-INT_RESULT, INT_HISTOGRAM, INT_ERROR = 0x02, 0x08, 0x40
+CMD_3X3_MODE = 0x65
+"""CMD_SWITCH_TMF8821_MODE (ams' register map): to 3x3 / 3x6 / 4x4 mode; only images with 8x8 measurements take it."""
+INT_ANY, INT_RESULT, INT_HISTOGRAM, INT_ERROR = 0x01, 0x02, 0x08, 0x40
+"""INT_STATUS bits (ams' Python driver's TMF8X2X_APP_I2C_*_IRQ_MASK): 0x01 is "any of the others has occurred"."""
 INT_BITS = INT_RESULT | INT_HISTOGRAM | INT_ERROR
 """The INT_ENAB bits the daemon sets while measuring (and clears at stop)."""
 REG_STATUS_NAMES = {0x04: "APPLICATION_STATUS", 0x05: "MEASURE_STATUS", 0x06: "ALGORITHM_STATUS",
@@ -116,7 +138,7 @@ TIME_MULTIPLEXED_MAPS = frozenset({4, 5, 7, 10, 13, 15})
 BL_ERRORS = {0x01: "size error", 0x02: "checksum error", 0x03: "resource error", 0x04: "application error",
              0x05: "timeout", 0x06: "locked", 0x07: "address out of range", 0x08: "more data expected"}
 COMMAND_NAMES = {CMD_MEASURE: "measure", CMD_STOP: "stop", CMD_LOAD_CONFIG: "load common config",
-                 CMD_WRITE_CONFIG: "write config", CMD_SHORT_RANGE: "short-range mode"}
+                 CMD_WRITE_CONFIG: "write config", CMD_SHORT_RANGE: "short-range mode", CMD_3X3_MODE: "3x3 mode"}
 COMMAND_STATUS = (STAT_OK, STAT_ACCEPTED)
 """The statuses any command may answer: ams' Linux driver takes 0x00 (ok) or 0x01 (accepted) after every command."""
 PYTHON_DRIVER_STATUS = {CMD_MEASURE: STAT_ACCEPTED}
@@ -186,6 +208,7 @@ class I2CTransport(Transport):
         else:
             raise DeviceError(f"unexpected APP_ID {app:#04x} (expected {APP_BOOTLOADER:#04x} for the bootloader or "
                               f"{APP_RUNNING:#04x} for the application): is this a TMF8820?")
+        self._zone_mode()  # first: a switch resets the application's configuration
         self._short_range_mode()
         self._command(CMD_LOAD_CONFIG)
         page = self._read(REG_PAGE)
@@ -193,6 +216,7 @@ class I2CTransport(Transport):
             raise DeviceError(f"config page did not load: register 0x20 reads {page:#04x}, expected 0x16")
         self._block_write(REG_PERIOD, [self.period_ms & 0xFF, self.period_ms >> 8])
         self._block_write(REG_KILO_ITER, [self.kilo_iterations & 0xFF, self.kilo_iterations >> 8])
+        self._write(REG_POWER_CFG, self._read(REG_POWER_CFG) & ~POWER_CFG_FIELDS)
         self._write(REG_SPAD_MAP, self.spad_map)
         self._write(REG_ALG_SETTING, ALG_DISTANCES_ONLY)
         self._write(REG_HIST_DUMP, 0x01)
@@ -258,7 +282,7 @@ class I2CTransport(Transport):
             self._check_before = None
         buf = self._block_read(REG_PAGE, HIST_RECORD if histogram else RESULT_RECORD)
         t = time.monotonic()
-        self._write(REG_INT_STATUS, bit)
+        self._write(REG_INT_STATUS, bit | INT_ANY)  # nothing of this record stays flagged
         self._last_record = t
         pkt = (parse_histogram_record if histogram else parse_result_record)(buf, t)
         if pkt is None:
@@ -328,7 +352,7 @@ class I2CTransport(Transport):
     def _error_interrupt(self) -> None:
         """INT_STATUS bit 0x40 is set: clear it, then LinkDown if the application stopped (CMD_STAT), else count it
         and warn once (the application measures on, as ams' Linux driver goes on after logging it)."""
-        self._write(REG_INT_STATUS, INT_ERROR)
+        self._write(REG_INT_STATUS, INT_ERROR | INT_ANY)
         registers = ", ".join(f"{name} {self._read(reg):#04x}" for reg, name in REG_STATUS_NAMES.items())
         self._require_measuring("error interrupt: INT_STATUS bit 0x40", registers)
         self._counts["error_interrupts"] += 1
@@ -371,6 +395,19 @@ class I2CTransport(Transport):
             return True
 
         self._wait(ready, f"the bootloader to accept {label}")
+
+    def _zone_mode(self) -> None:
+        """Leave a TMF8828's 8x8 mode (another tool may have left the application in it) for 3x3 mode, as ams' Linux
+        driver switches it: command 0x65 unless TMF8828_MODE reads 0x00, then it must read 0x00."""
+        mode = self._read(REG_TMF8828_MODE)
+        if mode == MODE_3X3:
+            return
+        self._command(CMD_3X3_MODE)
+        after = self._read(REG_TMF8828_MODE)
+        if after != MODE_3X3:
+            raise DeviceError(f"the sensor did not leave 8x8 mode: TMF8828_MODE 0x10 read {mode:#04x}, and "
+                              f"{after:#04x} after command 0x65 (3x3 mode); frames need one 3x3 capture")
+        log.info("%s: the sensor was in 8x8 mode (TMF8828_MODE %#04x); switched to 3x3 mode", self.name, mode)
 
     def _short_range_mode(self) -> None:
         """Switch to short-range high-accuracy mode as ams' Linux driver does (command 0x6E unless ACTIVE_RANGE reads

@@ -11,8 +11,11 @@ recorded in `violations`):
   shows after `ready_after_polls` reads of ENABLE; until then only ENABLE answers. The references sleep 10 ms first
   and then retry a read that is not acknowledged (ams' Linux driver wakes the chip again, its Python driver polls on):
   such reads are counted (`nacked_while_starting`), not misuse. The CPU starts what power-up select says: 2 restarts
-  the application kept in RAM through a standby (PON cleared), anything else the bootloader. The chip starts asleep
-  (PON 0) after power comes.
+  the application kept in RAM through a standby (PON cleared), anything else the bootloader. Power coming (`replug`,
+  `power_cycle`) is a start too: PON is 1 at reset (ams' register map, as ams' Arduino driver defines it:
+  TMF8828_ENABLE__pon__RESET 1), so the chip boots its bootloader by itself and reads 0x41 once it is ready, nothing
+  acknowledged for `startup_s` first. A new fake is a chip whose power came before the test: PON 1, no silent window,
+  cpu_ready after `ready_after_polls` reads of ENABLE.
 - The bootloader (APP_ID 0x80) checks every frame's length and checksum; while it runs a command (`busy_polls`
   status reads) the status register echoes that command (0x43, 0x41, ...), then reads 0x00 or an error. RAMREMAP
   is not answered: after checking that every byte of the expected image arrived it restarts into the application
@@ -25,9 +28,20 @@ recorded in `violations`):
   so, and refuses 0x6E with 0x06: the register map says the command is "only supported if short_range_accuracy =
   1" but not which status an image without it answers; 0x06 "unknown command" is this fake's choice. Config
   registers take writes only while the common page (0x16) is loaded; 0x15 writes it. Measuring needs neither 0x6E nor
-  a written config (the chip measures with its defaults).
+  a written config (the chip measures with its defaults). POWER_CFG 0x33 is kept with the configuration (reset 0x00:
+  every field ams' register map names - goto_standby_timed 0x80, low_power_osc_on 0x40, keep_pll_running 0x20,
+  allow_osc_retrim 0x08, pulse_interrupt 0x04 - resets to 0, TMF8X2X_COM_POWER_CFG in ams' Linux driver).
+- A TMF8828 (`tmf8828=True`: an image built with 8x8_measurements) has TMF8828_MODE 0x10: 0x00 in 3x3 / 3x6 / 4x4
+  mode (its reset value, what the application starts in), 0x08 in 8x8 mode. Command 0x6C switches to 8x8 mode and
+  0x65 back; after either the device "will need to be re-configured" (ams' register map; ams' Linux driver calls
+  the switch a device reset and resets the TID it keeps), so the configuration goes back to its reset values (8x8
+  mode: SPAD map 15, the only one it takes) and the TID counter starts again. Without 8x8 measurements 0x10 reads
+  0x00 and both commands answer 0x06 ("only supported if 8x8_measurements = 1"; which status is this fake's choice).
 - INT_STATUS 0xE1 shows the bit of the record waiting at 0x20 (0x08 histogram sub-packet, 0x02 result) whether or not
   it is enabled; INT_ENAB 0xE2 only decides whether the INT pin is pulled low (`int_pin_low`). Writing 1 clears a bit.
+  Bit 0x01 is "any of the other interrupts has occurred" (ams' Python driver's TMF8X2X_APP_I2C_ANY_IRQ_MASK): set
+  with every record published and with the error interrupt, and kept until the host clears it (ams' Arduino driver
+  clears it with every record, its Linux driver writes back every bit it read).
   Bit 0x40 is the error interrupt (ams' Python driver: "one of the <status> registers has been set to a non-zero
   value"; its Linux driver logs it, and checks CMD_STAT before it reads a record): the fake raises it when the
   application stops on an error (`stop_measuring`) and it stays set until the host clears it.
@@ -76,7 +90,8 @@ import time
 import numpy as np
 
 ENABLE, INT_STATUS, INT_ENAB, CMD_STAT, ACTIVE_RANGE, APP_ID, APP_STATUS = 0xE0, 0xE1, 0xE2, 0x08, 0x19, 0x00, 0x04
-INT_ERROR = 0x40
+TMF8828_MODE = 0x10
+INT_ANY, INT_ERROR = 0x01, 0x40
 """INT_STATUS / INT_ENAB bit of the error interrupt (ams' TMF8X2X_APP_I2C_ERROR_IRQ_MASK)."""
 START_RAM_APP = 2
 """ENABLE power-up select (bits 4:5) value: start the application in RAM."""
@@ -136,7 +151,7 @@ class SimTMF8820Bus:
                  ready_after_polls: int | None = 2, busy_polls: int = 1, app_id: int | None = None,
                  load_address: int = 0, accuracy_modes: bool = True, startup_s: float = 0.005,
                  handover_s: float = 0.001, hold_s: float | None = None, size_field: str = "remaining",
-                 measure_stat: int = 0x01, result_diagnostics: bool = False):
+                 measure_stat: int = 0x01, result_diagnostics: bool = False, tmf8828: bool = False):
         if size_field not in SIZE_FIELDS:
             raise ValueError(f"size_field = {size_field!r} must be one of {SIZE_FIELDS}")
         self.size_field = size_field
@@ -151,6 +166,7 @@ class SimTMF8820Bus:
         self.torn: list[int] = []  # indices into `produced` of frames abandoned part-way (the host overran hold_s)
         self.app_id_override = app_id
         self.accuracy_modes, self.startup_s = accuracy_modes, startup_s
+        self.tmf8828 = tmf8828  # the image has 8x8_measurements: TMF8828_MODE and commands 0x65 / 0x6C
         self.rng = np.random.default_rng(seed)
         self.produced: list[tuple[np.ndarray, dict]] = []
         self.exposures: list[tuple[float, float]] = []  # (begin, end) of each measurement in `produced`, monotonic s
@@ -165,6 +181,7 @@ class SimTMF8820Bus:
         self._lock = threading.Lock()
         self._corrupt: dict[int, int | None] = {}  # record index -> frames still to spoil (None: every frame)
         self._power_on_reset()
+        self.starting_until = 0.0  # powered before the test: the silent start is over, cpu_ready comes on ENABLE reads
 
     # ---- test hooks ----------------------------------------------------------------------------------------------
     def unplug(self) -> None:
@@ -184,7 +201,7 @@ class SimTMF8820Bus:
         """The chip resets itself into the bootloader (power and cpu_ready stay): RAM and config are lost."""
         with self._lock:
             self._power_on_reset()
-            self.pon, self.ready_countdown = True, 0
+            self.ready_countdown, self.starting_until = 0, 0.0
 
     def stop_measuring(self, cmd_stat: int = 0x03, app_status: int = 0x04, error_interrupt: bool = True) -> None:
         """The application stops measuring on its own and says why: CMD_STAT 0x03 "severe error, stopped" (0x04 and
@@ -194,7 +211,7 @@ class SimTMF8820Bus:
         with self._lock:
             self._stop_records()
             self.cmd_stat, self.app_status = cmd_stat, app_status
-            self.error_irq = self.error_irq or error_interrupt
+            self._raise_error(error_interrupt)
 
     def hang(self, command: int = 0x10) -> None:
         """The application hangs while it runs `command`: CMD_STAT echoes it (>= 0x10, "busy", as it does while any
@@ -212,7 +229,7 @@ class SimTMF8820Bus:
         with self._lock:
             self.cmd_stat = self.cmd_stat if cmd_stat is None else cmd_stat
             self.app_status = self.app_status if app_status is None else app_status
-            self.error_irq = self.error_irq or error_interrupt
+            self._raise_error(error_interrupt)
 
     def corrupt_next_record(self, k: int = 7, frames: int | None = 1) -> None:
         """Spoil the header (RID) of the k-th histogram record of each of the next `frames` frames made (None: of
@@ -285,10 +302,10 @@ class SimTMF8820Bus:
 
     # ---- the chip ------------------------------------------------------------------------------------------------
     def _power_on_reset(self) -> None:
-        self.pon = False
+        """Power comes: every register at its reset value, PON 1 among them, so the CPU starts the bootloader."""
+        self.pon = True
         self.powerup_select = 0
-        self.ready_countdown = None
-        self.starting_until = 0.0  # monotonic time until which the CPU starts and nothing is acknowledged
+        self._start_cpu()  # sets starting_until: the monotonic time until which nothing is acknowledged
         self.app_running = self.app_in_ram = False
         self.ram = bytearray(0x10000)
         self.written = np.zeros(0x10000, bool)
@@ -300,13 +317,19 @@ class SimTMF8820Bus:
         self.hung = False  # `hang`: CMD_STAT echoes a command for good, and no command is taken
         self.int_enab = 0x00
         self.error_irq = False  # INT_STATUS bit 0x40, set until the host clears it
+        self.any_irq = False  # INT_STATUS bit 0x01: another bit was raised since the host last cleared this one
+        self.mode_8x8 = False  # TMF8828_MODE 0x10 reads 0x08 (8x8 mode) rather than 0x00
         self.page = bytearray(0x80)  # registers 0x20..0x9F
-        self.config_loaded = self.measuring = False
         self.active_range = 0x00
-        self.config = {"period_ms": 33, "kilo_iterations": 537, "spad_map": 1, "hist_dump": 0,
-                       "alg_setting_0": 0x04}  # ams' reset values (ALG_SETTING_0: distances only)
-        self.tid = 0
+        self._reset_config()
         self._stop_records()
+
+    def _reset_config(self) -> None:
+        """The configuration at its reset values (at power-up and after a switch between 8x8 and 3x3 mode)."""
+        self.config = {"period_ms": 33, "kilo_iterations": 537, "spad_map": 15 if self.mode_8x8 else 1,
+                       "hist_dump": 0, "alg_setting_0": 0x04, "power_cfg": 0x00}  # ams' reset values
+        self.config_loaded = False
+        self.tid = 0
 
     def _stop_records(self) -> None:
         """No measurement: nothing measured, nothing to hand over (0x20 shows the config page again)."""
@@ -364,6 +387,8 @@ class SimTMF8820Bus:
             return bytes([self.app_status if self.app_running else 0]).ljust(n, b"\0")
         if reg == ACTIVE_RANGE:
             return bytes([self.active_range if self.app_running else 0]).ljust(n, b"\0")
+        if reg == TMF8828_MODE:
+            return bytes([0x08 if self.app_running and self.mode_8x8 else 0]).ljust(n, b"\0")
         if 0x20 <= reg < 0xA0 and self.app_running:
             self._advance()
             src = self.shown if self.measuring and self.shown is not None else bytes(self.page)
@@ -384,6 +409,8 @@ class SimTMF8820Bus:
                 self.cleared_t = time.monotonic()
             if data[0] & INT_ERROR:
                 self.error_irq = False
+            if data[0] & INT_ANY:
+                self.any_irq = False
         elif reg == INT_ENAB:
             self.int_enab = data[0]
         elif 0x24 <= reg < 0xA0 and self.app_running:
@@ -468,7 +495,7 @@ class SimTMF8820Bus:
                 self.next_frame_t = time.monotonic() + self.frame_interval_s
         elif cmd == 0xFF:
             self._stop_records()
-        elif cmd in (0x6E, 0x6F, 0x16) and self.measuring:
+        elif cmd in (0x6E, 0x6F, 0x16, 0x65, 0x6C) and self.measuring:
             self.violations.append(f"command {cmd:#04x} while measuring")
             ok = 0x02
         elif cmd in (0x6E, 0x6F):
@@ -476,18 +503,25 @@ class SimTMF8820Bus:
                 self.active_range = cmd
             else:
                 ok = 0x06  # unknown command: this firmware has no accuracy modes
+        elif cmd in (0x65, 0x6C):
+            if self.tmf8828:
+                self.mode_8x8 = cmd == 0x6C
+                self._reset_config()  # a switch resets the device: it must be configured again
+            else:
+                ok = 0x06  # unknown command: this image has no 8x8 measurements
         elif cmd == 0x16:
             self.page[:] = bytes(0x80)
             self.page[0], self.page[2] = 0x16, 0x7C
             self.page[4:6] = self.config["period_ms"].to_bytes(2, "little")
             self.page[6:8] = self.config["kilo_iterations"].to_bytes(2, "little")
             self.page[0x14], self.page[0x19] = self.config["spad_map"], self.config["hist_dump"]
-            self.page[0x15] = self.config["alg_setting_0"]
+            self.page[0x13], self.page[0x15] = self.config["power_cfg"], self.config["alg_setting_0"]
             self.config_loaded = True
         elif cmd == 0x15 and self.config_loaded:
             p = self.page
             self.config = {"period_ms": p[4] | p[5] << 8, "kilo_iterations": p[6] | p[7] << 8,
-                           "spad_map": p[0x14], "hist_dump": p[0x19], "alg_setting_0": p[0x15]}
+                           "spad_map": p[0x14], "hist_dump": p[0x19], "alg_setting_0": p[0x15],
+                           "power_cfg": p[0x13]}
         elif cmd == 0x15:
             self.violations.append("write config without a loaded config page")
             ok = 0x02
@@ -497,7 +531,12 @@ class SimTMF8820Bus:
         self.cmd_stat = ok
 
     def _int_status(self) -> int:
-        return self._record_bit() | (INT_ERROR if self.error_irq else 0)
+        return self._record_bit() | (INT_ERROR if self.error_irq else 0) | (INT_ANY if self.any_irq else 0)
+
+    def _raise_error(self, raised: bool) -> None:
+        """Raise the error interrupt (and with it the "any" bit) when `raised`; a raised one stays."""
+        if raised:
+            self.error_irq = self.any_irq = True
 
     def _record_bit(self) -> int:
         """The INT_STATUS bit of the record waiting at 0x20 (0 when none waits, or the host cleared it)."""
@@ -534,6 +573,7 @@ class SimTMF8820Bus:
         self.published_t, self.cleared_t = t, None
         if self.records:
             self.shown = self.records[0][1]
+            self.any_irq = True  # the record's bit goes up, and with it "any interrupt has occurred"
 
     def _measure(self, begin: float, end: float) -> tuple[int, list[tuple[int, bytes]]]:
         """One measurement exposed over [begin, end]: its counts and result are kept in `produced`, its exposure in

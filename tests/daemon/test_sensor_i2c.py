@@ -267,8 +267,10 @@ def test_a_chip_that_starts_slower_than_the_references_sleep_is_polled_until_it_
 
 
 def test_a_chip_that_never_answers_after_power_on_says_so_within_the_timeout(arun, image):
+    """A chip in standby (PON 0, as a host left it) is woken by setting PON; its CPU then never answers."""
     path, data = image
     fake = SimTMF8820Bus(image=data, startup_s=60.0)
+    fake.write_byte_data(0x41, 0xE0, 0x00)
     sensor = I2CSensor(1, firmware=path, smbus_factory=fake, timeout_s=0.2)
     with pytest.raises(DeviceError, match=r"timed out after 0.2 s waiting for cpu_ready \(ENABLE bit 6\) after "
                                           r"power-on: .*no acknowledge"):
@@ -298,7 +300,8 @@ def test_the_fake_measures_without_short_range_mode_or_a_written_config():
     fake.write_byte_data(0x41, 0x08, 0x10)
     while fake.read_byte_data(0x41, 0x08) >= 0x10:
         pass
-    assert fake.read_byte_data(0x41, 0x08) == 0x01 and fake.read_byte_data(0x41, 0xE1) == 0x02  # no HIST_DUMP
+    # no HIST_DUMP: a result (0x02), and with it "any interrupt" (0x01)
+    assert fake.read_byte_data(0x41, 0x08) == 0x01 and fake.read_byte_data(0x41, 0xE1) == 0x03
     assert fake.violations == []
 
 
@@ -312,7 +315,7 @@ def test_boot_download_configure_measure_bit_for_bit(arun, image):
     assert fake.download_seed == 0x29  # DOWNLOAD_INIT went first, as ams' C host driver sends it
     assert fake.commands == EXPECTED_COMMANDS + [0xFF]  # ... and stop on release
     assert fake.config == {"period_ms": 250, "kilo_iterations": 4000, "spad_map": 1, "hist_dump": 1,
-                           "alg_setting_0": 0x04}
+                           "alg_setting_0": 0x04, "power_cfg": 0x00}
     assert fake.active_range == 0x6E and fake.int_enab == 0 and fake.closed  # stop disables its interrupts again
     for frame, (counts, result) in zip(frames, fake.produced):
         assert np.array_equal(frame.hists, counts[1:]) and np.array_equal(frame.reference, counts[0])
