@@ -756,7 +756,23 @@ class ScanRunner:
                     await self.arm.read_speed_slider()
             except (TimeoutError, DeviceError):
                 pass  # (a link down is the resume's to handle: status says what it last read, and when)
+        await self._count_owed()
         return self.status()
+
+    async def _count_owed(self) -> None:
+        """While a scan is paused, the poses its resume will take again, counted afresh from its folder
+        (`ScanJob.owed_on_disk`): a chunk the operator moved out during the pause is listed at once under
+        poses_to_take_again, not only after `ctl resume`. Where the count is left to the resume, `owed_note` says
+        why."""
+        job = self.job
+        if job is None or self.state != "paused" or job.blocked:
+            return
+        try:
+            owed, note = await asyncio.to_thread(job.owed_on_disk)
+        except CaptureError as exc:
+            owed, note = list(job.owed), f"{exc} (`spadscan ctl resume` says the same)"
+        if self.job is job and self.state == "paused":  # (a resume or an abort meanwhile counts on its own)
+            job.owed, job.owed_note = owed, note
 
     def status(self) -> dict:
         job = self.job
@@ -775,8 +791,11 @@ class ScanRunner:
                        scan_elapsed_s=_rounded(job.scan_elapsed_s(now), 3), schedule=job.scan.schedule)
             if job.chooser is not None:
                 out["views_chosen"] = dict(sorted(job.view_counts.items()))
-            if job.owed:  # (kept on the job: a fault's pause drops the writer)
+            unsure = job.owed_note if self.state == "paused" else None  # why the resume may owe more (_count_owed)
+            if job.owed or unsure:  # (kept on the job: a fault's pause drops the writer)
                 out["poses_to_take_again"] = list(job.owed)
+            if unsure:
+                out["poses_to_take_again_note"] = unsure
             if job.preset_note:  # (the preset the scan was planned with differs, and the scan goes on all the same)
                 out["preset_note"] = job.preset_note
             if self.state == "pausing":

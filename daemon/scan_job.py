@@ -28,9 +28,10 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
-from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
+from spadscan.protocol.capture_format import CHUNK_PREFIX, MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import INTERRUPTED, CaptureWriter, ChunkBook, held_frames, plan_retakes
+from spadscan.protocol.capture_writer import (INTERRUPTED, CaptureWriter, ChunkBook, chunk_stamp, held_frames,
+                                              plan_retakes)
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
@@ -143,6 +144,9 @@ class ScanJob:
     owed: list[int] = field(default_factory=list)
     """The poses the capture lacks before its first unpublished one (its writer's `retakes`, to be taken again), as
     last read: kept while a fault has dropped the writer, so that status still lists them."""
+    owed_note: str | None = None
+    """Why `owed` may not be all that a paused scan's resume takes again (`owed_on_disk`: a chunk new or changed
+    since the daemon read it is read at the resume), or None."""
     way_on: bool = False
     """The retake's way along the scan's path (back to the poses owed, forward to the last published pose) is
     unfinished: the next run walks it on before the scan's next pose (`ScanRunner._retake`)."""
@@ -190,6 +194,7 @@ class ScanJob:
         self.next_pose = writer.next_pose_index
         self.frames = writer.n_published
         self.owed = [r.pose for r in writer.retakes]
+        self.owed_note = None  # (counted from the capture itself)
         self.history.append((time.monotonic(), self.frames))
 
     def count_published(self) -> None:
@@ -208,6 +213,32 @@ class ScanJob:
         self.frames = frames
         retakes = plan_retakes(held, self.scan.frames_per_pose, self.scan.chunk_size, self.path)
         self.owed = [r.pose for r in retakes]
+
+    def owed_on_disk(self) -> tuple[list[int], str | None]:
+        """The poses a paused scan's resume takes again, as its folder stands now: the chunk book's chunks still
+        there, counted as the resume counts them (`plan_retakes`), so that a chunk moved out while the scan is paused
+        is owed at once, not only once the resume has reopened the capture. No chunk is read: (poses, None), or
+        (poses, why the resume counts again) where a chunk is new or changed since the daemon read it (the resume
+        reads it). CaptureError when the frames left cannot be put back in pose order (the resume says the same)."""
+        book = self.chunk_book
+        if book is None:
+            return list(self.owed), "the capture has not been read yet: `spadscan ctl resume` counts its chunks"
+        try:
+            present = sorted(e.name for e in os.scandir(self.path)
+                             if e.name.startswith(CHUNK_PREFIX) and chunk_index(e.name) is not None)
+        except OSError as exc:
+            return list(self.owed), f"cannot list the scan's folder ({exc.strerror or exc})"
+        known = dict(book.chunks)  # (a copy: the writer's thread may record a chunk meanwhile)
+        unread = [name for name in present
+                  if name not in known or known[name].stamp != chunk_stamp(os.path.join(self.path, name))]
+        if unread:  # what they hold is not known without reading them: the poses owed as last counted
+            them = "it" if len(unread) == 1 else "them"
+            return list(self.owed), (f"{', '.join(unread[:3])}{' and more' if len(unread) > 3 else ''} changed "
+                                     f"since the daemon read {them}: `spadscan ctl resume` reads {them} and counts "
+                                     f"again")
+        held = [(chunk_index(name), list(known[name].held)) for name in present]
+        retakes = plan_retakes(held, self.scan.frames_per_pose, self.scan.chunk_size, self.path)
+        return [r.pose for r in retakes], None
 
     def count_choices(self) -> None:
         """view_counts read from the published measurements' meta (after a restart)."""

@@ -32,7 +32,10 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
 - `warnings` (list of strings, absent when empty): one line per doubt about what is published here, as a run's
   report.json says them (`no preview.png: <why>`: the live mesh's preview could not be drawn);
 - `final_start` (`live`, `hull` or absent): from state `final` on, where the final run starts: from the live fit, or
-  from the carved hull (a live fit still too young, or lagging the scan).
+  from the carved hull (a live fit still too young, or lagging the scan);
+- `figures_utc` (string or absent): when the figures (views, steps, Chamfer) were measured, where the status was
+  written again later without measuring them: a job given back to the queue (`queued`) or stopped by its worker
+  (`stopped`) keeps the stopped attempt's figures, which are that attempt's, of this time, never the job's now.
 
 Once `done`, the figures are the final result's (its report.json): `views_used` the views it fitted, `steps` the
 final run's on top of the live fit's where it continued from it (its own alone from the hull), `converged` and
@@ -84,12 +87,15 @@ class LiveStatus:
     the fit has grown since (None: `views_used`'s)."""
     warnings: tuple[str, ...] = ()
     """Doubts about what is published beside it, one line each (a tuple: the status is frozen)."""
+    figures_utc: str | None = None
+    """When the figures were measured, where the status was rewritten since without them (the stopped attempt's
+    figures of a job given back or stopped: `earlier_figures`); None: they are of `updated_utc`."""
 
     def to_dict(self) -> dict:
-        """The JSON object written; `chamfer_mm`, `final_start`, `chamfer_views` and `warnings` only when there is
-        one."""
+        """The JSON object written; `chamfer_mm`, `final_start`, `chamfer_views`, `figures_utc` and `warnings` only
+        when there is one."""
         data = asdict(self)
-        for key in ("chamfer_mm", "final_start", "chamfer_views"):
+        for key in ("chamfer_mm", "final_start", "chamfer_views", "figures_utc"):
             if data[key] is None:
                 del data[key]
         data["warnings"] = list(self.warnings)
@@ -108,8 +114,24 @@ class LiveStatus:
             return None
         return max(0.0, ((now or _dt.datetime.now(_dt.timezone.utc)) - then).total_seconds())
 
+    def earlier_figures(self) -> bool:
+        """Whether the figures are a stopped attempt's, not the job's now: the job was given back to the queue (its
+        next attempt begins afresh) or stopped (`figures_utc`, where given, says when they were measured)."""
+        return self.state in ("queued", "stopped")
+
+    def figures_said(self, now: _dt.datetime | None = None) -> str:
+        """When a stopped attempt's figures were measured ('as of 2026-12-03 17:29:55 UTC, 95 s ago'), or that they
+        are not the job's now where the status does not say (one written by an earlier version)."""
+        then = parse_utc(self.figures_utc)
+        if then is None:
+            return "not the job's now"
+        age = max(0.0, ((now or _dt.datetime.now(_dt.timezone.utc)) - then).total_seconds())
+        return f"as of {then.astimezone(_dt.timezone.utc):%Y-%m-%d %H:%M:%S} UTC, {age:.0f} s ago"
+
     def summary(self, now: _dt.datetime | None = None) -> str:
-        """One line for people: state, views used of published (of planned), steps, Chamfer, last update."""
+        """One line for people: state, views used of published (of planned), steps, Chamfer, last update. A stopped
+        attempt's figures (`earlier_figures`) are said to be that attempt's, as of their own time where the status
+        gives it: the status's update is the give-back's, and beside it they would read as the job's now."""
         planned = f" of {self.views_planned} planned" if self.views_planned else ""
         parts = [f"{self.views_used}/{self.views_published} views{planned}", f"{self.steps} steps"]
         if self.converged:
@@ -120,6 +142,9 @@ class LiveStatus:
             on = (f" (its mesh of {self.chamfer_views} views)"
                   if self.chamfer_views not in (None, self.views_used) and self.state != "done" else "")
             parts.append(f"Chamfer {self.chamfer_mm:.2f} mm{on}")
+        if self.earlier_figures() and (self.views_used or self.steps or self.chamfer_mm is not None):
+            parts[0] = f"the stopped attempt's {parts[0]}"
+            parts[-1] += f" ({self.figures_said(now)})"
         age = self.age_s(now)
         if age is not None:
             parts.append(f"updated {age:.0f} s ago")
@@ -188,7 +213,7 @@ def check_status(status: LiveStatus, where: str) -> None:
     for key in ("updated_utc", "job"):
         if not isinstance(getattr(status, key), str):
             raise CaptureError(f"{where}: {key} {getattr(status, key)!r} must be a string")
-    for key in ("result", "note"):
+    for key in ("result", "note", "figures_utc"):
         value = getattr(status, key)
         if value is not None and not isinstance(value, str):
             raise CaptureError(f"{where}: {key} {value!r} must be a string or null")

@@ -673,8 +673,11 @@ class LiveWatch:
             self.state = status.state
         if self.bar is not None and hasattr(self.bar, "set_postfix_str"):
             chamfer = "" if status.chamfer_mm is None else f", Chamfer {status.chamfer_mm:.2f} mm"
-            self.bar.set_postfix_str(f"live: {status.views_used}/{status.views_published} views, "
-                                     f"{status.steps} steps{chamfer}")
+            # a job given back or stopped keeps its stopped attempt's figures: never shown as the job's now
+            earlier = (("the stopped attempt's ", f" ({status.figures_said()})") if status.earlier_figures()
+                       else ("", ""))
+            self.bar.set_postfix_str(f"live: {earlier[0]}{status.views_used}/{status.views_published} views, "
+                                     f"{status.steps} steps{chamfer}{earlier[1]}")
         return status
 
 
@@ -738,16 +741,18 @@ def _free_port(host: str, port: int) -> int:
     raise DemoError(f"no free port on {host} for the dashboard")
 
 
-def _start_dashboard(opts: DemoOptions, captures: Path, procs: Processes, logs: Path, timeout_s: float = 60.0) -> str:
-    """Serve the dashboard on the captures (a child process, stopped with the others); returns its address once it
-    answers."""
+def _start_dashboard(opts: DemoOptions, captures: Path, procs: Processes, logs: Path, timeout_s: float = 60.0,
+                     sock: Path | None = None) -> str:
+    """Serve the dashboard on the captures (a child process, stopped with the others), asking the demo's daemon on
+    `sock` for its own state; returns its address once it answers."""
     import urllib.request
 
     host = "127.0.0.1"
     port = _free_port(host, opts.dashboard_port)
     log = logs / "dashboard.log"
+    asked = ("--socket", str(sock)) if sock is not None else ()
     proc = procs.start("dashboard", _spadscan("dashboard", "--root", str(captures), "--host", host,
-                                              "--port", str(port)), log)
+                                              "--port", str(port), *asked), log)
     url = f"http://{host}:{port}/"
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -900,7 +905,7 @@ def run_demo(opts: DemoOptions, progress_factory, say=None) -> dict:
         for line in _abort_earlier_scans(sock, out, captures):  # before the worker starts: it then skips that scan
             say(line)
         if opts.dashboard:
-            dashboard = _start_dashboard(opts, captures, procs, logs)
+            dashboard = _start_dashboard(opts, captures, procs, logs, sock=sock)
             say(f"dashboard: {dashboard} (open it in a browser; it stops with the demo)")
         t = time.monotonic()
         # Before this run's worker starts: it would run them first, inside this run's reconstruction and its time.

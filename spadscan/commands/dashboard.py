@@ -28,8 +28,13 @@ A scan whose scan.json says running but whose newest pose (or last scan.json wri
 times its recent pose interval (the median gap between its last 8 poses), and never less than 120 s (the daemon's
 default move timeout and a pose's frames), is shown as "stalled (no new pose for N s ...)", without a frame rate,
 and the top line says "daemon: no new pose of SCAN for N s": the daemon may have paused without being able to record
-it (a full disk) or be stuck; `spadscan ctl status` says which. The page only reads files: the daemon's own state is
-asked of its socket.
+it (a full disk) or be stuck; `spadscan ctl status` says which. Where the dashboard runs as the daemon's user, it
+asks the daemon's control socket for its status as `spadscan ctl status` does (the default socket, or --socket: the
+config's `socket` key), and the top line then says the daemon's state in its own words (scanning, pausing, paused,
+idle, with the scan it holds), and a scan it could not take over as "not taken over", with the daemon's reason and
+the way out (`spadscan ctl resume NAME` or `spadscan ctl abort NAME`). Where it cannot ask (another user's daemon,
+another socket), the page says so in the top line's tooltip and tells the state from the files as above. Asking is
+read-only: the page never sends the daemon anything else.
 
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
 The root is the folder of scans, never one scan's own folder (that is refused, naming its parent); a root with no
@@ -60,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8765, help="port to listen on (default: 8765; 0: any free one)")
     parser.add_argument("--queue", type=Path, default=None, metavar="DIR",
                         help="the worker's queue folder (default: CAPTURES/.queue)")
+    parser.add_argument("--socket", default=None, metavar="PATH",
+                        help="the daemon's control socket, asked for the daemon's own state as `spadscan ctl status` "
+                             "asks it (default: ctl's, $SPADSCAN_SOCKET or /tmp/spadscan-<uid>/spadscan.sock; the "
+                             "rig config's `socket` key where it sets one)")
 
 
 def daemon_running(root: Path) -> bool:
@@ -73,6 +82,22 @@ def daemon_running(root: Path) -> bool:
     return False
 
 
+STATUS_TIMEOUT_S = 2.0
+"""How long a poll waits for the daemon's status; one that does not answer by then is told from the files."""
+
+
+def daemon_status(socket_path: str):
+    """`daemon_status(root)` for the dashboard: the daemon's status reply over its control socket at `socket_path`
+    (`spadscan ctl status`'s request; the client refuses a socket another user serves), or a ControlError why not."""
+
+    def ask(root: Path) -> dict:
+        from spadscan.daemon.client import call
+
+        return call(socket_path, "status", STATUS_TIMEOUT_S)
+
+    return ask
+
+
 def run(args: argparse.Namespace) -> int:
     import sys
 
@@ -80,7 +105,11 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port <= 65535:
         raise ConfigError(f"--port {args.port} must be in [0, 65535]")
-    server = make_server(args.root, args.host, args.port, args.queue, daemon_running=daemon_running)
+    from spadscan.daemon.client import default_socket_path
+
+    socket_path = args.socket or default_socket_path(create=False)
+    server = make_server(args.root, args.host, args.port, args.queue, daemon_running=daemon_running,
+                         daemon_status=daemon_status(socket_path))
     print(f"spadscan dashboard: serving {args.root.resolve()} at {address(server)} (Ctrl-C stops it)",
           file=sys.stderr, flush=True)
     if not args.root.exists():  # served all the same: the daemon creates it at its first scan

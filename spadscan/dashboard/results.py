@@ -31,7 +31,7 @@ LIVE = "live"
 SUMMARY_KEYS = ("preset", "method", "chamfer_mm", "accuracy_mm", "completeness_mm", "fscore_5mm", "normal_error_deg",
                 "steps", "seconds", "stopped_by", "converged", "warnings", "capture_state", "ground_truth_note")
 LIVE_KEYS = ("views_used", "views_published", "views_planned", "steps", "updated_utc", "converged", "chamfer_mm",
-             "state", "note", "result", "job", "final_start", "chamfer_views", "warnings")
+             "state", "note", "result", "job", "final_start", "chamfer_views", "warnings", "figures_utc")
 LIVE_PICTURES = ("preview.png", "mesh.ply", "view3d.html")
 """The live entry's files that show the live fit's shape (not the final result's)."""
 PAGES = ("report.html", "preview.png", "view3d.html", "error_vs_time.png", "coverage.png", "mesh.ply")
@@ -86,7 +86,10 @@ class ResultIndex:
         found = [f for f in found if f is not None]
         found.sort(key=lambda f: (f["kind"] != LIVE, -f["mtime"]))
         now = now or _dt.datetime.now(_dt.timezone.utc)
-        found = [{**f, "age_s": age_s(f["summary"].get("updated_utc"), now)} if f["kind"] == LIVE else f
+        # figures_age_s: the age of a stopped attempt's figures that a status given back or stopped keeps (its
+        # `figures_utc`), None where it has none
+        found = [{**f, "age_s": age_s(f["summary"].get("updated_utc"), now),
+                  "figures_age_s": age_s(f["summary"].get("figures_utc"), now)} if f["kind"] == LIVE else f
                  for f in found]
         return fold_done_live(found)
 
@@ -125,6 +128,10 @@ class ResultIndex:
             files = {p: url for p, url in files.items() if p not in LIVE_PICTURES}
         entry = {"id": folder.name, "scan": scan, "kind": LIVE if live else "final", "mtime": st.st_mtime,
                  "summary": summary, "error": error, "files": files}
+        if not live:
+            # A live job's result records its live fit (`live`, worker/live/job.py) from the first version on; one
+            # without it is an ordinary job's, or a live job's that never fitted and ran from scratch. None: unread.
+            entry["live_record"] = None if data is None else isinstance(data.get("live"), dict)
         if "mesh.ply" in files and "preview.png" not in files:
             entry["no_preview"] = no_preview(summary.get("warnings"))
         self._folders[str(folder)] = (key, entry)
@@ -171,8 +178,9 @@ def final_start(report: dict | None) -> str | None:
 
 def fold_done_live(found: list[dict]) -> list[dict]:
     """`found` (the live entry first) with a live entry whose status is 'done' replaced by the result it names, when
-    that result is listed: that result first, marked `from_live`. A done live entry whose result is not there (moved
-    away) stays, without pictures (its figures are that result's)."""
+    that result is listed: that result first, marked `from_live` (and `from_scratch` where the live job never fitted
+    and reconstructed the complete scan from scratch). A done live entry whose result is not there (moved away)
+    stays, without pictures (its figures are that result's)."""
     live = found[0] if found and found[0]["kind"] == LIVE else None
     result = (live or {}).get("summary", {}).get("result")
     if live is None or live["summary"].get("state") != "done" or not isinstance(result, str):
@@ -181,7 +189,10 @@ def fold_done_live(found: list[dict]) -> list[dict]:
     own = next((f for f in found[1:] if f["id"] == name), None)
     if own is None:
         return found
-    return [{**own, "from_live": True}] + [f for f in found[1:] if f is not own]
+    # The live job's result, but not the live fit's where its report holds no live record: its scan was complete
+    # before a live fit began, and the job reconstructed it from scratch (`from_scratch`: the page says so).
+    scratch = {"from_scratch": True} if own.get("live_record") is False else {}
+    return [{**own, "from_live": True, **scratch}] + [f for f in found[1:] if f is not own]
 
 
 def age_s(updated_utc, now: _dt.datetime) -> float | None:

@@ -83,6 +83,10 @@ IN_HAND = ("running", "paused")
 INTERRUPTED = "interrupted"
 """A scan in hand whose daemon is gone (crashed, killed or stopped): scan.json still says running, but nothing
 writes it. It takes no frames, so it has no frame rate; a daemon started on the root takes it over."""
+NOT_TAKEN_OVER = "not_taken_over"
+"""A scan in hand that the running daemon did not take over, by its own status (`spadscan ctl status`, where the
+dashboard can ask it: `cannot_take_over`, `also_interrupted`): scan.json still says running, but nothing records it.
+The reason is the daemon's own, with the way out."""
 NO_DAEMON = "no daemon running"
 STALLED = "stalled"
 """A scan whose scan.json says running but whose latest news is older than `quiet_limit_s` allows: its daemon may
@@ -231,6 +235,29 @@ def interrupted(row: ScanRow) -> ScanRow:
     and the daemon may come back without the scan's files changing."""
     reason = NO_DAEMON if row.state == "running" else f"{NO_DAEMON}; it was paused: {row.reason}"
     return replace(row, state=INTERRUPTED, reason=reason)
+
+
+def as_the_daemon_says(row: ScanRow, daemon: dict) -> ScanRow:
+    """A scan in hand as the running daemon's own status (`daemon`, its `spadscan ctl status`) says it, a copy: one
+    it could not take over (`cannot_take_over`: why, and the way out, in its words), one an earlier daemon also left
+    running that it has not taken over (`also_interrupted`), its own scan paused while scan.json still says running
+    (a pause that a full disk kept out of scan.json: the daemon's reason). Any other row as it is: scan.json is
+    written by that daemon, and the status and the files are read a moment apart."""
+    if row.state not in IN_HAND:
+        return row
+    stuck = daemon.get("cannot_take_over")
+    if isinstance(stuck, dict) and stuck.get("scan") == row.name:
+        return replace(row, state=NOT_TAKEN_OVER, reason=str(stuck.get("error") or "the daemon cannot take it over"))
+    also = daemon.get("also_interrupted")
+    if isinstance(also, list) and row.name in also:
+        held = daemon.get("scan")
+        return replace(row, state=NOT_TAKEN_OVER, reason=(
+            f"left running by an earlier daemon; the daemon running now {f'holds {held!r} and ' if held else ''}has "
+            f"not taken it over: `spadscan ctl resume {row.name}` takes it over once no scan is held, `spadscan ctl "
+            f"abort {row.name}` ends it as aborted, keeping every chunk"))
+    if daemon.get("scan") == row.name and daemon.get("state") == "paused" and row.state == "running":
+        return replace(row, state="paused", reason=daemon.get("reason") or row.reason)
+    return row
 
 
 def quiet_limit_s(published: list[float]) -> float:

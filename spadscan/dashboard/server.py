@@ -123,9 +123,11 @@ class Handler(BaseHTTPRequestHandler):
 
 
 def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None,
-                daemon_running=None) -> ThreadingHTTPServer:
+                daemon_running=None, daemon_status=None) -> ThreadingHTTPServer:
     """A server for the captures root `root` bound to (host, port) (port 0: any free one); call serve_forever.
-    `daemon_running(root)`: whether a daemon holds the root (Dashboard); None shows scans as scan.json says."""
+    `daemon_running(root)`: whether a daemon holds the root (Dashboard); None shows scans as scan.json says.
+    `daemon_status(root)`: the running daemon's own status (`spadscan ctl status`'s reply), or a SpadscanError why
+    it cannot be asked; None: the daemon's state is told from the scans' files alone."""
     root = check_captures_root(root)
     if not str(host).strip():
         raise SpadscanError("--host '' would listen on every interface: give 0.0.0.0 to open the page to the "
@@ -134,7 +136,8 @@ def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None,
         raise SpadscanError(f"--queue {queue_dir}: no such queue folder" +
                             (" (a file, not a folder)" if Path(queue_dir).exists() else "") +
                             " (the worker makes CAPTURES/.queue, the default)")
-    handler = partial(Handler, dashboard=Dashboard(root, queue_dir, daemon_running), live=LiveViews())
+    handler = partial(Handler, dashboard=Dashboard(root, queue_dir, daemon_running, daemon_status=daemon_status),
+                      live=LiveViews())
     try:
         server = server_class(host, port)((host, port), handler)
     except OSError as exc:

@@ -10,9 +10,13 @@ Whether a daemon is running is asked of the caller's `daemon_running(root)`: the
 daemon's package, which the dashboard does not import (the CLI command hands it over). Without it, scans are shown
 as their scan.json says.
 
-The daemon writes nothing else under the root that says what it does (its lock file holds only its pid; it is asked
-over its socket, which the dashboard never uses): a daemon that paused but could not record it in scan.json (a full
-disk) or that hangs is told from its scan's files alone, by the age of its last pose (scans.py `stalled`).
+The daemon writes nothing else under the root that says what it does (its lock file holds only its pid). Where the
+caller hands over `daemon_status(root)` (the CLI asks the daemon's control socket, as `spadscan ctl status` does),
+the daemon's own status is shown (`daemon_status`: its state in its own words, the scan it holds, a scan it could not
+take over and why) and the scans in hand as it says them (scans.py `as_the_daemon_says`); where it cannot be asked
+(another user's daemon, another socket), `daemon_status_note` says why, and a daemon that paused but could not
+record it in scan.json (a full disk) or that hangs is told from its scan's files alone, by the age of its last pose
+(scans.py `stalled`).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
+from spadscan.protocol.errors import SpadscanError
 from spadscan.worker.job_progress import progress_field, running_progress
 from spadscan.worker.presence import present_workers, start_command
 from spadscan.worker.queue import QUEUE_DIRNAME, Queue
@@ -32,13 +37,21 @@ from spadscan.worker.status_detail import status_parts
 
 from .attempts import claim_starts, earlier_attempt, last_claim_change
 from .results import ResultIndex, serious_count
-from .scans import IN_HAND, INTERRUPTED, STALLED, ScanIndex, interrupted, scan_detail, stalled
+from .scans import (IN_HAND, INTERRUPTED, NOT_TAKEN_OVER, STALLED, ScanIndex, as_the_daemon_says, interrupted,
+                    scan_detail, stalled)
 from .worker_state import needs_freed, unfollowed, worker_state
 
 PREVIEW = {"columns": [f"az {az:.0f}\u00b0 el {el:.0f}\u00b0" for az, el in VIEWS],
            "rows": ["reconstruction", "ground truth"]}
 """What each panel of a preview.png shows (worker/report/mesh_pictures.py `preview_png`: a column per angle, the
 reconstruction's row above the ground truth's when there is one): the page labels them in its own, readable, type."""
+
+
+DAEMON_KEYS = ("state", "scan", "progress", "reason", "last_error", "cannot_take_over", "also_interrupted",
+               "poses_to_take_again", "poses_to_take_again_note", "pausing_at")
+"""What the answer's `daemon_status` keeps of the daemon's own status (`spadscan ctl status`)."""
+DAEMON_ASKED_S = 1.0
+"""The daemon's status is asked at most once in this many seconds, however many pages poll."""
 
 
 def cannot_draw() -> str | None:
@@ -96,8 +109,10 @@ class Dashboard:
     its libraries do not change while it runs."""
 
     def __init__(self, root, queue_dir=None, daemon_running: Callable[[Path], bool] | None = None,
-                 clock: Callable[[], float] = time.time):
+                 clock: Callable[[], float] = time.time, daemon_status: Callable[[Path], dict] | None = None):
         self.root = Path(root)
+        self.daemon_status = daemon_status
+        self._asked: tuple[float, dict | None, str | None] | None = None
         self.queue_dir = Path(queue_dir) if queue_dir else self.root / QUEUE_DIRNAME
         self.daemon_running = daemon_running
         self.clock = clock
@@ -120,13 +135,17 @@ class Dashboard:
         daemon = None if self.daemon_running is None else bool(self.daemon_running(self.root))
         orphaned = daemon is False
         now = self.clock()
+        said, unsaid = self._daemon_said(now) if daemon else (None, None)
         with self._lock:
             rows = self.scans.rows()
             # in place: the order (scans in hand first) stays, and the scan is still the one in hand
             if orphaned:
                 rows = [interrupted(r) if r.state in IN_HAND else r for r in rows]
+            if said is not None:
+                rows = [as_the_daemon_says(r, said) for r in rows]
             rows = [stalled(r, now) for r in rows]
-            current = next((r for r in rows if r.state in IN_HAND + (INTERRUPTED, STALLED)), None) or next(
+            current = next((r for r in rows if r.state in IN_HAND + (INTERRUPTED, STALLED, NOT_TAKEN_OVER)),
+                           None) or next(
                 (r for r in rows if r.state != "error"), None)
             detail = self._scan_detail(current) if current is not None else None
             recons = {row.name: self.results.for_scan(row.name) for row in rows}
@@ -142,8 +161,31 @@ class Dashboard:
         return {"root": str(self.root.resolve()), "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now)),
                 "time_unix": now, "root_missing": not self.root.is_dir(),
                 "daemon": daemon, "daemon_config": next((r.config for r in rows if r.config), None),
+                "daemon_status": said, "daemon_status_note": unsaid,
                 "scans": scans, "current": detail, "queue": queue,
                 "worker": self._worker(rows, queue, now), "preview": PREVIEW, "cannot_draw": self.cannot_draw}
+
+    def _daemon_said(self, now: float) -> tuple[dict | None, str | None]:
+        """(the running daemon's own status, DAEMON_KEYS of it; None where it cannot be asked), (why not, or None):
+        asked of `daemon_status` at most every DAEMON_ASKED_S, and only a daemon that writes to this root counts."""
+        if self.daemon_status is None:
+            return None, None
+        with self._lock:
+            if self._asked is not None and 0 <= now - self._asked[0] < DAEMON_ASKED_S:
+                return self._asked[1], self._asked[2]
+        try:
+            reply = self.daemon_status(self.root)
+            captures = (reply.get("daemon") or {}).get("captures")
+            if captures is not None and Path(captures).resolve() != self.root.resolve():
+                said, unsaid = None, (f"the daemon that answers on its socket writes to {captures}, not to this root: "
+                                      f"its state is told from the scans' files")
+            else:
+                said, unsaid = {k: reply[k] for k in DAEMON_KEYS if k in reply}, None
+        except (SpadscanError, OSError) as exc:
+            said, unsaid = None, f"the daemon's own state cannot be asked ({exc}): it is told from the scans' files"
+        with self._lock:
+            self._asked = (now, said, unsaid)
+        return said, unsaid
 
     def _worker(self, rows, queue: dict, now: float) -> dict:
         """What the reconstruction side is doing (worker_state; "unknown" when the queue cannot be read), with the

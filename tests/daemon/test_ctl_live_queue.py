@@ -108,7 +108,9 @@ def test_a_live_job_given_back_to_the_queue_says_queued_again_and_what_it_waits_
     live = shown["live"]
     assert live["state"] == "queued" and live["views_used"] == 8 and live["queued"]["behind"] == ["q1-fast"]
     line = live_line(live, 3)
-    assert line.startswith("live reconstruction queued again: 8/9 views, 40 steps") and line.endswith(
+    # the stopped attempt's figures, as of when they were measured: never the job's now
+    assert line.startswith("live reconstruction queued again: the stopped attempt's 8/9 views, 40 steps (as of ") \
+        and line.endswith(
         "; " + BEHIND_Q1), line
     # a status that could not be set to 'queued' (a full disk) still reads as following the scan: the queue says not
     line = live_line({**live, "state": "live"}, 3)

@@ -46,8 +46,9 @@ def test_a_given_back_live_job_reads_queued_again_and_a_run_from_scratch_shows_n
         picks["back"].wait_for(timeout=WAIT_MS)
         picks["scratch"].wait_for(timeout=WAIT_MS)
         back = picks["back"].text_content()  # 5 s ago, or a little more on a busy machine
-        assert back.startswith("live, queued again (38 views, 563 steps), the live fit's Chamfer against the ground "
-                               "truth on its 38 views: 68.65 mm, updated ") and \
+        # the stopped attempt's figures, never the job's now (a status of an earlier version: no figures_utc)
+        assert back.startswith("live, queued again (the stopped attempt's fit: 38 views, 563 steps), its Chamfer "
+                               "against the ground truth on its 38 views: 68.65 mm, updated ") and \
             back.endswith(" s ago"), back
         assert page.locator('#scans tr[data-scan="back"] .note').text_content().endswith("back in the queue")
         assert picks["scratch"].text_content() == "live, finishing: the final run on 60 views"

@@ -146,6 +146,9 @@ def test_once_a_live_reconstruction_is_done_the_page_shows_its_result_picture_an
     scan = tmp_path / "demo"
     complete_scan(scan, 2)
     add_final_recon(scan, "demo-fast")  # its report.json: Chamfer 1.00 mm
+    # a live job's result records its live fit (worker/live/job.py)
+    (scan / "recon" / "demo-fast" / "report.json").write_text(json.dumps(
+        {"preset": "fast", "chamfer_mm": 1.0, "live": {"views_used": 18, "steps": 0}}))
     live = scan / "recon" / "live"
     live.mkdir()
     trimesh.creation.icosphere(subdivisions=1, radius=0.05).export(live / "mesh.ply")

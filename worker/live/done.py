@@ -50,7 +50,7 @@ def mark_live_failed(job: Job, root: Path, error: str, log: Callable[[str], None
         status = read_status(path)
         if status.state not in ENDED:
             write_status(path.parent, dataclasses.replace(status, state="stopped", note=" ".join(error.split()),
-                                                          updated_utc=""))
+                                                          updated_utc="", figures_utc=figures_time(status)))
     except (SpadscanError, OSError) as exc:
         log(f"{job.id}: the live status was not updated: {exc}")
 
@@ -76,9 +76,16 @@ def mark_live_queued(job, root: Path, why: str, log: Callable[[str], None]) -> N
         status = read_status(path)
         if status.job == job.id and status.state not in ENDED:
             write_status(path.parent, dataclasses.replace(status, state="queued", note=f"{fold(why)}; {AGAIN}",
-                                                          updated_utc=""))
+                                                          updated_utc="", figures_utc=figures_time(status)))
     except (SpadscanError, OSError) as exc:
         log(f"{job.id}: the live status was not updated: {fold(exc)}")
+
+
+def figures_time(status: LiveStatus) -> str | None:
+    """When `status`'s figures were measured: its own `figures_utc` where it was rewritten without them already,
+    else its `updated_utc`. A status given back or stopped is written anew (its update is the give-back's) and keeps
+    the stopped attempt's figures: with their own time, they are never read as the job's now."""
+    return status.figures_utc or status.updated_utc or None
 
 
 ENDED = ("done", "aborted", "stopped")
@@ -97,7 +104,7 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
     views (no `chamfer_views`: the live mesh's count would name the wrong mesh). Where that report cannot be read,
     the live fit's figures stay, its `chamfer_views` with them. The live mesh's warnings go: the result's own report
     says its doubts."""
-    done = dataclasses.replace(status, state="done", result=str(result), updated_utc="", warnings=())
+    done = dataclasses.replace(status, state="done", result=str(result), updated_utc="", warnings=(), figures_utc=None)
     try:
         report = json.loads((result / "report.json").read_text())
     except (OSError, ValueError):
