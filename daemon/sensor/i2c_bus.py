@@ -6,7 +6,10 @@ the chip the same way):
 1. Power on: read ENABLE 0xE0; unless PON (bit 0) and cpu_ready (bit 6) are set, write it back with PON set. This is
    a read-modify-write: the power-up select bits 4:5 say what the CPU starts after a wake-up (2: the application in
    RAM, which RAMREMAP sets) and must survive; the cpu_reset bit 7 is never written. Then wait SETTLE_S (10 ms, as
-   the references do: the chip does not answer while its CPU starts) and poll ENABLE until cpu_ready.
+   the references do: the chip does not answer while its CPU starts) and poll ENABLE until cpu_ready. A chip whose
+   power just came starts its CPU by itself (PON resets to 1) and answers nothing meanwhile, the first ENABLE read
+   included: that read is retried until timeout_s, as ams' Linux driver retries it; a sensor that never answers
+   fails then, one line naming the wait and the missing acknowledge.
 2. APP_ID 0x00: 0x80 = bootloader -> download the image; 0x03 = the application already runs (no power loss since
    the last download) -> stop it (0xFF) in case a previous session left it measuring; anything else is an error.
    Then the zone mode: TMF8828_MODE 0x10 reads 0x00 in 3x3 mode (its reset value; every TMF8820/21 image) and 0x08
@@ -363,11 +366,29 @@ class I2CTransport(Transport):
 
     # ---- boot steps ----------------------------------------------------------------------------------------------
     def _power_on(self) -> None:
-        enable = self._read(REG_ENABLE)
+        enable = self._first_enable()
         if enable & (ENABLE_PON | ENABLE_CPU_READY) != ENABLE_PON | ENABLE_CPU_READY:
             self._write(REG_ENABLE, (enable | ENABLE_PON) & ~(ENABLE_CPU_RESET | ENABLE_CPU_READY))
             time.sleep(SETTLE_S)
         self._wait_waking(lambda: self._read(REG_ENABLE) & ENABLE_CPU_READY, "cpu_ready (ENABLE bit 6) after power-on")
+
+    def _first_enable(self) -> int:
+        """ENABLE as the chip first answers it. PON resets to 1, so a chip whose power just came (a replug, a power
+        loss) starts its CPU by itself and acknowledges nothing meanwhile, this read included: a missing acknowledge
+        means "still starting", as ams' Linux driver takes it (it sleeps 10 ms, then reads ENABLE up to 10 times,
+        waking the chip again after each read not acknowledged). The bound is timeout_s (1 s by default), the one the
+        CPU start after PON and after RAMREMAP already has, as this is the same start; a count of reads would last
+        what the bus clock makes it. A sensor not wired, powered or at this address never answers: LinkDown after
+        timeout_s, one line naming the wait and the missing acknowledge."""
+        enable = 0
+
+        def answered() -> bool:
+            nonlocal enable
+            enable = self._read(REG_ENABLE)
+            return True
+
+        self._wait_waking(answered, f"the sensor to answer (ENABLE {REG_ENABLE:#04x})")
+        return enable
 
     def _download(self) -> None:
         if self._image is None:

@@ -277,6 +277,62 @@ def test_a_chip_that_never_answers_after_power_on_says_so_within_the_timeout(aru
         arun(_run(sensor, n_frames=1))
 
 
+def test_a_start_just_after_power_came_waits_for_the_first_acknowledge(image):
+    """PON resets to 1, so a chip whose power just came starts its CPU by itself and acknowledges nothing meanwhile,
+    the first ENABLE read included: "still starting" (ams' Linux driver retries that read), not a dead link."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data, startup_s=0.05)
+    transport = I2CTransport(1, firmware=path, smbus_factory=fake)
+    transport.open()
+    try:
+        fake.power_cycle()
+        transport.start()
+        assert transport.read_packet(5.0).index == 0
+        transport.stop()
+    finally:
+        transport.close()
+    assert fake.nacked_while_starting > 0 and fake.violations == []
+    assert transport.counters()["boots"] == 1 and transport.counters()["downloads"] == 1
+
+
+def test_a_power_loss_costs_one_link_drop_and_one_start(arun, image):
+    """The start after a power loss meets the chip's CPU still starting: it waits for it instead of failing as a
+    second dropped link and being tried again."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data, frame_interval_s=0.02, startup_s=0.05)
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake)
+
+    async def during(sensor):
+        fake.power_cycle()
+        deadline = time.monotonic() + 10
+        while sensor.counters()["reconnects"] < 1:
+            assert time.monotonic() < deadline, f"never reconnected: {sensor.counters()}"
+            await asyncio.sleep(0.01)
+        return [await sensor.next_frame(10)]
+
+    frames = arun(_run(sensor, n_frames=1, during=during))
+    c = sensor.counters()
+    assert len(frames) == 2 and c["boots"] == 2 and c["link_drops"] == 1 and c["reconnect_failures"] == 0, c
+    assert c["downloads"] == 2 and fake.nacked_while_starting > 0
+
+
+def test_a_sensor_not_wired_fails_in_one_line_within_the_start_up_window(arun, image):
+    """Nothing on the bus answers: the wait for the first acknowledge ends after timeout_s, with one line that names
+    the wait and what to check."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+    fake.unplug()
+    sensor = I2CSensor(1, firmware=path, smbus_factory=fake, timeout_s=0.2)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceError) as info:
+        arun(_run(sensor, n_frames=1))
+    took = time.monotonic() - t0
+    assert str(info.value) == ("sensor i2c bus 1 addr 0x41: timed out after 0.2 s waiting for the sensor to answer "
+                               "(ENABLE 0xe0): i2c read of register 0xe0: no acknowledge (is the sensor wired, "
+                               "powered and at this address?)")
+    assert 0.2 <= took < 5.0, took
+
+
 def test_power_on_keeps_the_power_up_select_bits(arun, image):
     """ENABLE is read-modify-written: after a standby the chip wakes into the application kept in RAM."""
     path, data = image
@@ -396,7 +452,8 @@ def test_a_start_after_another_tool_sets_the_result_reporting_back_to_ams_reset_
     ({"app_id": 0x42}, {}, r"unexpected APP_ID 0x42 \(expected 0x80 for the bootloader or 0x03"),
     ({"ready_after_polls": None}, {}, r"timed out after 0.2 s waiting for cpu_ready \(ENABLE bit 6\)"),
     ({}, {"firmware": None}, r"the sensor is in its bootloader and needs the firmware image"),
-    ({"address": 0x29}, {}, r"i2c read of register 0xe0: no acknowledge \(is the sensor wired, powered"),
+    ({"address": 0x29}, {}, r"timed out after 0.2 s waiting for the sensor to answer \(ENABLE 0xe0\): i2c read of "
+                            r"register 0xe0: no acknowledge \(is the sensor wired, powered and at this address\?\)$"),
 ])
 def test_boot_failures_are_named(arun, image, fake_kw, sensor_kw, message):
     path, data = image
