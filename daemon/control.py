@@ -8,10 +8,11 @@ is created with mode 0600 (umask set around bind, then chmod), a stale one left 
 
 A client that hangs up while its request is pending (say a `wait` on a paused scan) is noticed: while a request
 runs, the server checks the connection for the peer's hang-up (POLLHUP: the peer closed its socket; a peer that only
-shut down its sending side still gets its reply). A request that changes nothing (`status`, `wait`) is then
-cancelled and the connection closed; any other runs to its end, since its effect must not depend on whether the
-asker still listens, and the connection closes when its reply cannot be written. Abandoned requests hold no socket
-and no task.
+shut down its sending side still gets its reply). A request that changes nothing of its own (`status`, `wait`; the
+daemon's handler writes again, at every request, an abort a full disk kept it from recording, which a later request
+tries again) is then cancelled and the connection closed; any other runs to its end, since its effect must not
+depend on whether the asker still listens, and the connection closes when its reply cannot be written. Abandoned
+requests hold no socket and no task.
 """
 
 from __future__ import annotations

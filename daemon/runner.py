@@ -760,19 +760,23 @@ class ScanRunner:
         return self.status()
 
     async def _count_owed(self) -> None:
-        """While a scan is paused, the poses its resume will take again, counted afresh from its folder
-        (`ScanJob.owed_on_disk`): a chunk the operator moved out during the pause is listed at once under
-        poses_to_take_again, not only after `ctl resume`. Where the count is left to the resume, `owed_note` says
-        why."""
+        """While a scan is paused, its progress as its resume will find it, counted afresh from its folder
+        (`ScanJob.stock_on_disk`): a chunk the operator moved out during the pause shows at once, not only after
+        `ctl resume`: one before the newest under poses_to_take_again, the newest ones as a lower pose and frame
+        count (the resume goes on from the first pose they held). Where only the resume can count (a chunk changed
+        since the daemon read it), the progress stays as last counted and `owed_note` says why."""
         job = self.job
-        if job is None or self.state != "paused" or job.blocked:
+        if job is None or self.state != "paused" or job.blocked or self._resume_checks:
             return
         try:
-            owed, note = await asyncio.to_thread(job.owed_on_disk)
-        except CaptureError as exc:
-            owed, note = list(job.owed), f"{exc} (`spadscan ctl resume` says the same)"
-        if self.job is job and self.state == "paused":  # (a resume or an abort meanwhile counts on its own)
-            job.owed, job.owed_note = owed, note
+            stock, note = await asyncio.to_thread(job.stock_on_disk)
+        except (CaptureError, OSError) as exc:
+            stock, note = None, f"{one_line(exc)} (`spadscan ctl resume` says the same)"
+        # (a resume or an abort meanwhile counts on its own: the resume reopens the capture)
+        if self.job is job and self.state == "paused" and not self._resume_checks:
+            if stock is not None:
+                job.record_stock(stock)
+            job.owed_note = note
 
     def status(self) -> dict:
         job = self.job

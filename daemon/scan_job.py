@@ -28,10 +28,10 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
-from spadscan.protocol.capture_format import CHUNK_PREFIX, MANIFEST, chunk_index, fsync_dir, read_json
+from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
-from spadscan.protocol.capture_writer import (INTERRUPTED, CaptureWriter, ChunkBook, chunk_stamp, held_frames,
-                                              plan_retakes)
+from spadscan.protocol.capture_writer import (INTERRUPTED, CaptureWriter, ChunkBook, Stock, chunk_stamp, count_stock,
+                                              held_frames)
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
@@ -145,8 +145,8 @@ class ScanJob:
     """The poses the capture lacks before its first unpublished one (its writer's `retakes`, to be taken again), as
     last read: kept while a fault has dropped the writer, so that status still lists them."""
     owed_note: str | None = None
-    """Why `owed` may not be all that a paused scan's resume takes again (`owed_on_disk`: a chunk new or changed
-    since the daemon read it is read at the resume), or None."""
+    """Why a paused scan's progress (`next_pose`, `frames`, `owed`) is as last counted, not as its resume will count
+    it (`stock_on_disk`: a chunk new or changed since the daemon read it is read at the resume), or None."""
     way_on: bool = False
     """The retake's way along the scan's path (back to the poses owed, forward to the last published pose) is
     unfinished: the next run walks it on before the scan's next pose (`ScanRunner._retake`)."""
@@ -199,46 +199,44 @@ class ScanJob:
 
     def count_published(self) -> None:
         """Progress read from the capture folder alone (no writer, nothing written): for a scan whose writer could
-        not be reopened. The poses owed are worked out as the writer's reopening does (`plan_retakes`), so that
-        status lists them while the operator makes room (CaptureError, as there, when they cannot be put back in
-        pose order)."""
+        not be reopened. Counted as the writer's reopening counts it (`count_stock`), so that status lists the poses
+        owed while the operator makes room (CaptureError, as there, when they cannot be put back in pose order)."""
         reader = CaptureReader(self.path)
-        poses, frames, held = set(), 0, []
-        for name in reader.chunk_names():
-            chunk = reader.read_chunk(name)
-            frames += len(chunk.meta)
-            poses.update(int(i) for i in chunk.pose_indices)
-            held.append((chunk_index(name), held_frames(chunk.meta)))
-        self.next_pose = max(poses) + 1 if poses else 0
-        self.frames = frames
-        retakes = plan_retakes(held, self.scan.frames_per_pose, self.scan.chunk_size, self.path)
-        self.owed = [r.pose for r in retakes]
+        held = [(chunk_index(name), held_frames(reader.read_chunk(name).meta)) for name in reader.chunk_names()]
+        self.record_stock(count_stock(held, reader.manifest, self.path))
 
-    def owed_on_disk(self) -> tuple[list[int], str | None]:
-        """The poses a paused scan's resume takes again, as its folder stands now: the chunk book's chunks still
-        there, counted as the resume counts them (`plan_retakes`), so that a chunk moved out while the scan is paused
-        is owed at once, not only once the resume has reopened the capture. No chunk is read: (poses, None), or
-        (poses, why the resume counts again) where a chunk is new or changed since the daemon read it (the resume
-        reads it). CaptureError when the frames left cannot be put back in pose order (the resume says the same)."""
+    def record_stock(self, stock: Stock) -> None:
+        """Progress as the capture's folder holds it (`count_stock`), where no writer counts it."""
+        self.next_pose = stock.next_pose
+        self.frames = stock.published
+        self.owed = [r.pose for r in stock.retakes]
+
+    def stock_on_disk(self) -> tuple[Stock | None, str | None]:
+        """What a paused scan's resume finds in its folder as it stands now (the pose it goes on at, the frames
+        published, the poses it takes again), from the chunk book's records of the chunks still there, counted as
+        the resume counts them (`count_stock`, its chunks listed as `CaptureReader.chunk_names` lists them): a chunk
+        moved out during the pause, the newest included, shows at once, not only once the resume has reopened the
+        capture. No chunk is read: (stock, None), or (None, why only the resume can count) where the capture has not
+        been read yet, its folder cannot be listed, or a chunk is new or changed since the daemon read it (the
+        resume reads it). CaptureError when the folder's manifest cannot be read, or the frames left cannot be put
+        back in pose order (the resume says the same)."""
         book = self.chunk_book
         if book is None:
-            return list(self.owed), "the capture has not been read yet: `spadscan ctl resume` counts its chunks"
+            return None, "the capture has not been read yet: `spadscan ctl resume` counts its chunks"
+        reader = CaptureReader(self.path)
         try:
-            present = sorted(e.name for e in os.scandir(self.path)
-                             if e.name.startswith(CHUNK_PREFIX) and chunk_index(e.name) is not None)
+            present = reader.chunk_names()
         except OSError as exc:
-            return list(self.owed), f"cannot list the scan's folder ({exc.strerror or exc})"
+            return None, f"cannot list the scan's folder ({exc.strerror or exc})"
         known = dict(book.chunks)  # (a copy: the writer's thread may record a chunk meanwhile)
         unread = [name for name in present
                   if name not in known or known[name].stamp != chunk_stamp(os.path.join(self.path, name))]
-        if unread:  # what they hold is not known without reading them: the poses owed as last counted
+        if unread:  # what they hold is not known without reading them
             them = "it" if len(unread) == 1 else "them"
-            return list(self.owed), (f"{', '.join(unread[:3])}{' and more' if len(unread) > 3 else ''} changed "
-                                     f"since the daemon read {them}: `spadscan ctl resume` reads {them} and counts "
-                                     f"again")
+            return None, (f"{', '.join(unread[:3])}{' and more' if len(unread) > 3 else ''} changed since the daemon "
+                          f"read {them}: `spadscan ctl resume` reads {them} and counts again")
         held = [(chunk_index(name), list(known[name].held)) for name in present]
-        retakes = plan_retakes(held, self.scan.frames_per_pose, self.scan.chunk_size, self.path)
-        return [r.pose for r in retakes], None
+        return count_stock(held, reader.manifest, self.path), None
 
     def count_choices(self) -> None:
         """view_counts read from the published measurements' meta (after a restart)."""

@@ -282,6 +282,31 @@ def plan_retakes(chunks: list[tuple[int, list[tuple[int, int | None]]]], frames_
     return out
 
 
+@dataclass(frozen=True)
+class Stock:
+    """What a capture's published chunks hold, as every reader of its progress counts it (`count_stock`): the
+    measurements published, the poses they are of, and the Retakes owed before the first unpublished pose."""
+
+    published: int
+    poses: frozenset[int]
+    retakes: tuple[Retake, ...]
+
+    @property
+    def next_pose(self) -> int:
+        """The first pose not published (poses are published in order): where the scan goes on."""
+        return max(self.poses) + 1 if self.poses else 0
+
+
+def count_stock(chunks: list[tuple[int, list[tuple[int, int | None]]]], manifest: dict, where) -> Stock:
+    """The Stock of a capture whose manifest is `manifest` and whose published chunks are `chunks` [(number,
+    [(pose_index, frame), ...])]: one count for a writer's reopening (`CaptureWriter.resume`), its check for chunks
+    gone (`take_stock`) and a daemon's counts without a writer, so that they never disagree. CaptureError as
+    `plan_retakes`."""
+    retakes = plan_retakes(chunks, frames_per_pose(manifest), int(manifest["chunk_size"]), where)
+    return Stock(sum(len(pairs) for _, pairs in chunks), frozenset(pose for _, pairs in chunks for pose, _ in pairs),
+                 tuple(retakes))
+
+
 def mark_paused(path, reason: str, kind: str = PAUSE) -> None:
     """Record in the manifest of the capture at `path` that its scan is paused, why, and what kind of pause it is
     (`paused`: {"reason", "since_utc", "kind"}: one of PAUSE_KINDS; the state stays 'running'): a daemon restarted
@@ -419,7 +444,7 @@ class CaptureWriter:
         if known is not None and (Path(known.path) != path or tuple(known.shape) != book.shape):
             known = None  # another capture's, or checked against another sensor: read every chunk
         names = reader.chunk_names()
-        published, poses, held = 0, set(), []
+        held = []
         for name in names:
             stamp = chunk_stamp(os.path.join(path, name))  # before the read: a change after it shows next time
             record = known.unchanged(name, stamp) if known is not None else None
@@ -427,16 +452,15 @@ class CaptureWriter:
                 record = ChunkRecord(stamp, tuple(held_frames(reader.read_chunk(name).meta)))
             if record.stamp is not None:
                 book.chunks[name] = record
-            published += len(record.held)
-            poses.update(pose for pose, _ in record.held)
             held.append((chunk_index(name), list(record.held)))
-        retakes = plan_retakes(held, frames_per_pose(reader.manifest), int(reader.manifest["chunk_size"]), path)
+        stock = count_stock(held, reader.manifest, path)
         next_chunk = (chunk_index(names[-1]) + 1) if names else 0
         manifest = dict(reader.manifest)
         manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
                         updated_utc=utc_now())
         _write(write_json_atomic, path / MANIFEST, manifest)
-        return cls(path, manifest, reader.sensor, next_chunk, published, poses, retakes, book)
+        return cls(path, manifest, reader.sensor, next_chunk, stock.published, set(stock.poses), list(stock.retakes),
+                   book)
 
     # ---- writing -------------------------------------------------------------------------------------------------
     @property
@@ -503,11 +527,11 @@ class CaptureWriter:
             return []
         for name in gone:
             del self.book.chunks[name]
-        kept = sorted(self.book.chunks.items())
-        self.retakes = plan_retakes([(chunk_index(name), list(record.held)) for name, record in kept],
-                                    frames_per_pose(self.manifest), self.chunk_size, self.path)
-        self.n_published = sum(len(record.held) for _, record in kept)
-        self.published_pose_indices = {pose for _, record in kept for pose, _ in record.held}
+        kept = [(chunk_index(name), list(record.held)) for name, record in sorted(self.book.chunks.items())]
+        stock = count_stock(kept, self.manifest, self.path)
+        self.retakes = list(stock.retakes)
+        self.n_published = stock.published
+        self.published_pose_indices = set(stock.poses)
         return gone
 
     def publish_retake(self, retake: Retake, measurements: list[Measurement]) -> None:

@@ -128,10 +128,12 @@ class LiveStatus:
         age = max(0.0, ((now or _dt.datetime.now(_dt.timezone.utc)) - then).total_seconds())
         return f"as of {then.astimezone(_dt.timezone.utc):%Y-%m-%d %H:%M:%S} UTC, {age:.0f} s ago"
 
-    def summary(self, now: _dt.datetime | None = None) -> str:
-        """One line for people: state, views used of published (of planned), steps, Chamfer, last update. A stopped
-        attempt's figures (`earlier_figures`) are said to be that attempt's, as of their own time where the status
-        gives it: the status's update is the give-back's, and beside it they would read as the job's now."""
+    def figures(self, now: _dt.datetime | None = None) -> list[str]:
+        """The figures as people read them, in one wording wherever they are shown (`summary`, the demo's progress
+        line): views used of published (of planned), steps, converged, Chamfer. A stopped attempt's figures
+        (`earlier_figures`) are said to be that attempt's, as of their own time where the status gives it: the
+        status's update is the give-back's, and beside it they would read as the job's now. A status with no figures
+        yet (nothing fitted, no Chamfer) is not said to hold a stopped attempt's."""
         planned = f" of {self.views_planned} planned" if self.views_planned else ""
         parts = [f"{self.views_used}/{self.views_published} views{planned}", f"{self.steps} steps"]
         if self.converged:
@@ -145,6 +147,11 @@ class LiveStatus:
         if self.earlier_figures() and (self.views_used or self.steps or self.chamfer_mm is not None):
             parts[0] = f"the stopped attempt's {parts[0]}"
             parts[-1] += f" ({self.figures_said(now)})"
+        return parts
+
+    def summary(self, now: _dt.datetime | None = None) -> str:
+        """One line for people: state, the figures (`figures`), last update, note and warnings."""
+        parts = self.figures(now)
         age = self.age_s(now)
         if age is not None:
             parts.append(f"updated {age:.0f} s ago")

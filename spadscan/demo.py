@@ -672,12 +672,8 @@ class LiveWatch:
             self.say(status.summary())
             self.state = status.state
         if self.bar is not None and hasattr(self.bar, "set_postfix_str"):
-            chamfer = "" if status.chamfer_mm is None else f", Chamfer {status.chamfer_mm:.2f} mm"
-            # a job given back or stopped keeps its stopped attempt's figures: never shown as the job's now
-            earlier = (("the stopped attempt's ", f" ({status.figures_said()})") if status.earlier_figures()
-                       else ("", ""))
-            self.bar.set_postfix_str(f"live: {earlier[0]}{status.views_used}/{status.views_published} views, "
-                                     f"{status.steps} steps{chamfer}{earlier[1]}")
+            # the figures as the summary words them (a stopped attempt's never shown as the job's now)
+            self.bar.set_postfix_str("live: " + ", ".join(status.figures()))
         return status
 
 

@@ -3,7 +3,8 @@
 The page lists every scan under the captures root with its state and progress, shows the scan in hand (poses,
 frame rate, its last histograms), the reconstruction queue (as `spadscan worker --status` lists it, with each
 running job's progress), and each live or finished reconstruction's preview, 3D view and report. It updates itself
-about once a second. The dashboard only reads the root: it never talks to the arm or changes a file.
+about once a second. The dashboard only reads the root (it changes no file) and asks the daemon for its status (see
+below); it never talks to the arm itself.
 
 At the top it says the daemon's state in the daemon's own words (`spadscan ctl status`: scanning, paused, idle; a
 scan's scan.json says "running" while it is scanned) and, in one line, what the reconstruction side does: a worker at
@@ -29,12 +30,16 @@ times its recent pose interval (the median gap between its last 8 poses), and ne
 default move timeout and a pose's frames), is shown as "stalled (no new pose for N s ...)", without a frame rate,
 and the top line says "daemon: no new pose of SCAN for N s": the daemon may have paused without being able to record
 it (a full disk) or be stuck; `spadscan ctl status` says which. Where the dashboard runs as the daemon's user, it
-asks the daemon's control socket for its status as `spadscan ctl status` does (the default socket, or --socket: the
-config's `socket` key), and the top line then says the daemon's state in its own words (scanning, pausing, paused,
-idle, with the scan it holds), and a scan it could not take over as "not taken over", with the daemon's reason and
-the way out (`spadscan ctl resume NAME` or `spadscan ctl abort NAME`). Where it cannot ask (another user's daemon,
-another socket), the page says so in the top line's tooltip and tells the state from the files as above. Asking is
-read-only: the page never sends the daemon anything else.
+asks the daemon's control socket for its status as `spadscan ctl status` does (ctl's default socket, or --socket: a
+rig config that sets `socket` needs its path given here), and the top line then says the daemon's state in its own
+words (scanning, pausing, paused, idle, with the scan it holds), and a scan it could not take over as "not taken
+over", with the daemon's reason and the way out (`spadscan ctl resume NAME` or `spadscan ctl abort NAME`). Where it
+cannot ask (another user's daemon, another socket), the page says so in the top line's tooltip and tells the state
+from the files as above. The daemon is asked at most once a second, however many pages are open, and only for its
+status: that request moves nothing and starts or ends no scan, but it is `ctl status`'s own, and the daemon answers
+it as it answers ctl: it reads the arm's speed slider afresh while no scan runs (paused or idle), counts a paused
+scan's chunks in its folder, and, as at every request, writes again an abort that a full disk kept it from
+recording.
 
 It listens on 127.0.0.1 (this machine only) unless --host says otherwise, and serves nothing outside the root.
 The root is the folder of scans, never one scan's own folder (that is refused, naming its parent); a root with no
@@ -68,7 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--socket", default=None, metavar="PATH",
                         help="the daemon's control socket, asked for the daemon's own state as `spadscan ctl status` "
                              "asks it (default: ctl's, $SPADSCAN_SOCKET or /tmp/spadscan-<uid>/spadscan.sock; the "
-                             "rig config's `socket` key where it sets one)")
+                             "rig config is not read: where it sets `socket`, give that path here)")
 
 
 def daemon_running(root: Path) -> bool:

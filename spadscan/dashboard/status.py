@@ -51,7 +51,8 @@ DAEMON_KEYS = ("state", "scan", "progress", "reason", "last_error", "cannot_take
                "poses_to_take_again", "poses_to_take_again_note", "pausing_at")
 """What the answer's `daemon_status` keeps of the daemon's own status (`spadscan ctl status`)."""
 DAEMON_ASKED_S = 1.0
-"""The daemon's status is asked at most once in this many seconds, however many pages poll."""
+"""The daemon's status is asked at most once in this many seconds after its last answer came, however many pages
+poll, and by one poll at a time (the others meanwhile show its last answer)."""
 
 
 def cannot_draw() -> str | None:
@@ -113,6 +114,8 @@ class Dashboard:
         self.root = Path(root)
         self.daemon_status = daemon_status
         self._asked: tuple[float, dict | None, str | None] | None = None
+        """(`clock` when the daemon's last answer came, what it said, why it could not be asked), or None."""
+        self._asking = threading.Lock()  # held by the poll that asks the daemon
         self.queue_dir = Path(queue_dir) if queue_dir else self.root / QUEUE_DIRNAME
         self.daemon_running = daemon_running
         self.clock = clock
@@ -135,7 +138,7 @@ class Dashboard:
         daemon = None if self.daemon_running is None else bool(self.daemon_running(self.root))
         orphaned = daemon is False
         now = self.clock()
-        said, unsaid = self._daemon_said(now) if daemon else (None, None)
+        said, unsaid = self._daemon_said() if daemon else (None, None)
         with self._lock:
             rows = self.scans.rows()
             # in place: the order (scans in hand first) stays, and the scan is still the one in hand
@@ -165,27 +168,42 @@ class Dashboard:
                 "scans": scans, "current": detail, "queue": queue,
                 "worker": self._worker(rows, queue, now), "preview": PREVIEW, "cannot_draw": self.cannot_draw}
 
-    def _daemon_said(self, now: float) -> tuple[dict | None, str | None]:
+    def _daemon_said(self) -> tuple[dict | None, str | None]:
         """(the running daemon's own status, DAEMON_KEYS of it; None where it cannot be asked), (why not, or None):
-        asked of `daemon_status` at most every DAEMON_ASKED_S, and only a daemon that writes to this root counts."""
+        asked of `daemon_status` once DAEMON_ASKED_S have passed since its last answer came (a daemon slow to answer
+        is not asked again at once), by one poll at a time: a poll that finds another asking takes the last answer,
+        and waits for the asking one only where there is none yet. Only a daemon that writes to this root counts."""
         if self.daemon_status is None:
             return None, None
         with self._lock:
-            if self._asked is not None and 0 <= now - self._asked[0] < DAEMON_ASKED_S:
-                return self._asked[1], self._asked[2]
+            last = self._asked
+            age = None if last is None else self.clock() - last[0]  # (the clock read after the answer's stamp)
+        if last is not None and 0 <= age < DAEMON_ASKED_S:
+            return last[1], last[2]
+        if not self._asking.acquire(blocking=last is None):
+            return last[1], last[2]
+        try:
+            with self._lock:
+                if self._asked is not last:  # answered while this poll waited for the first answer
+                    return self._asked[1], self._asked[2]
+            said, unsaid = self._ask_daemon()
+            with self._lock:
+                self._asked = (self.clock(), said, unsaid)
+        finally:
+            self._asking.release()
+        return said, unsaid
+
+    def _ask_daemon(self) -> tuple[dict | None, str | None]:
+        """`_daemon_said`'s answer, asked of `daemon_status` now."""
         try:
             reply = self.daemon_status(self.root)
             captures = (reply.get("daemon") or {}).get("captures")
             if captures is not None and Path(captures).resolve() != self.root.resolve():
-                said, unsaid = None, (f"the daemon that answers on its socket writes to {captures}, not to this root: "
-                                      f"its state is told from the scans' files")
-            else:
-                said, unsaid = {k: reply[k] for k in DAEMON_KEYS if k in reply}, None
+                return None, (f"the daemon that answers on its socket writes to {captures}, not to this root: its "
+                              f"state is told from the scans' files")
+            return {k: reply[k] for k in DAEMON_KEYS if k in reply}, None
         except (SpadscanError, OSError) as exc:
-            said, unsaid = None, f"the daemon's own state cannot be asked ({exc}): it is told from the scans' files"
-        with self._lock:
-            self._asked = (now, said, unsaid)
-        return said, unsaid
+            return None, f"the daemon's own state cannot be asked ({exc}): it is told from the scans' files"
 
     def _worker(self, rows, queue: dict, now: float) -> dict:
         """What the reconstruction side is doing (worker_state; "unknown" when the queue cannot be read), with the
