@@ -318,6 +318,9 @@ class RunFacts:
     threads_fixed: bool = False
     """The run kept the CPU threads it was given (`--threads`, a user's OMP_NUM_THREADS: `threads.threads_fixed`),
     not the worker's share of the cores, which counts `machine_jobs`."""
+    dark: dict | None = None
+    """The fast preset's dark-restart part's summary with the fitted `albedo` beside it, where the part started the
+    fit again for a dark object; else None."""
 
 
 def converged(facts: RunFacts) -> bool:
@@ -572,6 +575,20 @@ def specks_warning(pieces, settled: bool = True) -> str | None:
             f"signal); look at preview.png")
 
 
+def dark_warning(dark: dict | None) -> str | None:
+    """The line saying that the object is dark, where the dark-restart part started its fit again (`RunFacts.dark`),
+    or None: its returns are that many times fainter than a white object's, and its shape noisier; a dark torus (albedo
+    0.15) came out at 3.9 mm where a white one came out at 0.9."""
+    if not dark or dark.get("restarted_at_step") is None or not isinstance(dark.get("albedo"), (int, float)):
+        return None
+    albedo = float(dark["albedo"])
+    return (f"the object is dark: its fitted albedo is {albedo:.2f} (a white one's about 1), so each view caught "
+            f"about {1 / max(albedo, 1e-3):.0f}x fewer photons from it than from a white one, and its shape is "
+            f"noisier, thin or small parts most (its fit started again from the hull at step "
+            f"{dark['restarted_at_step']}, its albedo read from the counts: docs/end_of_run.md); scan it nearer, "
+            f"with more frames per pose or more laser power for a better one; look at preview.png")
+
+
 def lost_warning(lost) -> str | None:
     """The line saying that many first returns come from where the mesh has no surface (a `lost_returns.LostReturns`
     that `says` so), or None: a part that stands out of the object is missing from the mesh (one that only other
@@ -639,6 +656,9 @@ def warnings(facts: RunFacts) -> list[str]:
     faint = signal_warning(facts.signal)  # first of the result's doubts: it explains those that follow
     if faint:
         out.append(faint)
+    dark = dark_warning(facts.dark)  # as faint returns do, it explains a shape's doubts
+    if dark:
+        out.append(dark)
     # The doubts about the shape: of a rough early state, the fit's shortness says them first (a 1-step mesh of a
     # good capture read as "the time axis or the poses are wrong" and "scan it with views aimed at it"). The specks
     # line says that a longer run hardly changes them only of a run that converged: of one stopped early that would

@@ -400,7 +400,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s,
                      preset=config.preset, cuda_seen=torch.cuda.is_available(),
                      thread_times=None if waits is None else waits.summary(), machine_jobs=siblings,
-                     threads_fixed=threads_fixed(threads, os.environ))
+                     threads_fixed=threads_fixed(threads, os.environ), dark=_dark(model.summary()))
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts) + ([threads_note] if threads_note else [])
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
@@ -643,6 +643,12 @@ def _pieces(mesh, log) -> Pieces | None:
     except SpadscanError as exc:
         log(f"no pieces counted: {exc}")
         return None
+
+
+def _dark(summary: dict) -> dict | None:
+    """The dark-restart part's summary with the fitted albedo (`RunFacts.dark`), or None where it did not run."""
+    part = (summary.get("parts") or {}).get("dark_restart")
+    return None if part is None else {**part, "albedo": summary.get("albedo")}
 
 
 def _lost(mesh, scene: SceneData, summary: dict, log) -> LostReturns | None:

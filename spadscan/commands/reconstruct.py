@@ -46,9 +46,9 @@ report.json's "threads" says what it chose.
 Presets: `fast` (default) is an SDF grid that reaches good meshes in minutes on a CPU; `paper` is the published
 method (an MLP SDF, 300K steps nominal: hours on a GPU). The `fast` preset's mechanisms are parts (refinement,
 hull_projection, table, cavities, thin_sheets, coarse_smoothing, openings, erosion, blur, unseen, empty_space,
-average, plateau), each with its settings under parts.NAME; report.json's model.parts lists those that ran with their
-settings, and model.parts_left_out why the others did not (switched off, or not for this scene). Switch one off
-with --set parts.NAME.enabled=false.
+average, plateau, dark_restart), each with its settings under parts.NAME; report.json's model.parts lists those
+that ran with their settings, and model.parts_left_out why the others did not (switched off, or not for this
+scene). Switch one off with --set parts.NAME.enabled=false.
 
 Progress: on a terminal, a bar of the training. With --budget-s its seconds are training's share of the budget,
 not the whole budget: the rest is kept for the set-up before it and the mesh, metrics and pictures after it (a 25 s

@@ -19,6 +19,7 @@ import torch
 from ..errors import ReconstructionError
 from ..forward import choose_terms
 from ..numerics import flush_denormals
+from .albedo_start import albedo_for_total
 from .config import FastConfig
 from .grid_field import GridField, grid_shape
 from .hull import HullConstraint
@@ -33,6 +34,12 @@ from .sampler import HullRays, around_crossing, hull_rays, pick_rays, stratified
 RENDER_SEED_OFFSET = 0x5EED
 """The renders outside training draw from the run's seed plus this (any fixed offset: a stream apart from
 training's)."""
+
+ALBEDO_SEED_OFFSET = 0xA1BE
+"""The albedo's estimate from the counts draws its rays from the run's seed plus this (a stream of its own)."""
+
+ALBEDO_VIEWS = 64
+"""Views the albedo's estimate renders: a total over 64 views spread over the capture varies by a few per cent."""
 
 
 def make_fast_model(scene, config: FastConfig, device, plan, keep_setup_views=None) -> "FastModel":
@@ -157,7 +164,7 @@ class FastModel:
         for part in self.parts:
             part.after_step(self, step)
         out = {"loss": float(loss.detach()), "data": float(data.detach()), "eikonal": float(eik.detach()),
-               "smooth": float(smooth.detach()), "albedo": float(torch.exp(self.log_albedo.detach())),
+               "smooth": float(smooth.detach()), "albedo": self.albedo(),
                "grid": max(self.field.counts), "converged": self.converged}
         if self.table is not None:
             out["table_albedo"] = self.table.albedo_value()
@@ -244,6 +251,29 @@ class FastModel:
         self.warm_started = True
         self.jumped()
 
+    def albedo(self) -> float:
+        """The object's fitted albedo."""
+        return float(torch.exp(self.log_albedo.detach()))
+
+    def set_albedo(self, albedo: float) -> None:
+        """Set the object's albedo (> 0), as the optimiser goes on from."""
+        with torch.no_grad():
+            self.log_albedo.fill_(math.log(albedo))
+
+    def restart(self) -> None:
+        """Start the fit again from the hull on the coarse grid (the dark-restart part's call): the grid, its level
+        and the optimiser as before the first step, every part's state that followed the grid dropped
+        (`on_refine`, `on_jump`); the albedos stay, and `steps` goes on counting."""
+        box = self.problem.box
+        counts, voxel = grid_shape(box[0], box[1], self.config.field.resolution)
+        self.field = self.constraint.start_field(box[0], voxel, counts, self.device, torch.float32)
+        self.level, self.level_steps, self._band = 0, 0, None
+        self.last_level = not self.config.parts.refinement.enabled
+        for part in self.parts:
+            part.on_refine(self)
+        self.jumped()
+        self._make_optimizer()
+
     def project(self) -> None:
         """Clamp the field into the hull's bound, where the hull projection part runs."""
         if self.part("hull_projection") is not None:
@@ -268,6 +298,13 @@ class FastModel:
         """(photon rates (n, Z, B) of the given views under the current field, albedos and table, hits). hits: with
         record_hits, the opaque returns (`_opaque_returns`) for the parts that read them, else None. gen: the
         generator that draws the rays and samples (default: the model's)."""
+        transient, hits = self._transient(views, record_hits, gen)
+        return self.problem.forward.rates(transient, self.problem.background[views]), hits
+
+    def _transient(self, views: torch.Tensor, record_hits: bool = False, gen: torch.Generator | None = None,
+                   albedo: float | None = None) -> tuple[torch.Tensor, tuple | None]:
+        """(transients (n, Z, n_fine) of the given views, hits): `_rates` before the sensor model. albedo: the
+        object's albedo to render with instead of the fitted one (the table keeps its own)."""
         hits = None
         gen = self.gen if gen is None else gen
         Z, fwd, table = self.n_zones, self.problem.forward, self.table
@@ -289,7 +326,7 @@ class FastModel:
             if record_hits:
                 hits = _opaque_returns(o, d, r, radiance, opacity, local[batch])
             # The forward model's transient carries albedo / pi (see forward.py); render_returns gives cos/r^2 x sr.
-            radiance = radiance * (torch.exp(self.log_albedo) / math.pi)
+            radiance = radiance * ((torch.exp(self.log_albedo) if albedo is None else albedo) / math.pi)
             hist_id = local[batch][:, None].expand_as(r)
             ranges, values, ids = [r.reshape(-1)], [radiance.reshape(-1)], [hist_id.reshape(-1)]
             if table is not None:
@@ -300,7 +337,35 @@ class FastModel:
             transient = fwd.bin(torch.cat(ranges), torch.cat(values), torch.cat(ids), n_hist)
         if table is not None:
             transient = transient + table.open_transient(hist)
-        return fwd.rates(transient.reshape(views.numel(), Z, -1), self.problem.background[views]), hits
+        return transient.reshape(views.numel(), Z, -1), hits
+
+    def counts_albedo(self, max_views: int = ALBEDO_VIEWS) -> float | None:
+        """The object's albedo at which the current field's expected counts, over up to `max_views` views spread
+        evenly over the capture (of a large one, over those its set-up read), total the counts they measured
+        (`albedo_start`); None where they hold no signal above their background. No gradient; its rays come from
+        their own stream, so the training's draws stay as they were."""
+        p, fwd = self.problem, self.problem.forward
+        pool = p.setup_views if p.setup_views is not None else torch.arange(self.n_views, device=self.device)
+        views = pool[torch.linspace(0, pool.numel() - 1, min(max_views, pool.numel()), device=self.device).long()]
+        gen = torch.Generator(device=self.device)
+        gen.manual_seed(self.seed + ALBEDO_SEED_OFFSET)
+        batches, measured = [], 0.0
+        with torch.no_grad(), flush_denormals(self.device):
+            for batch in views.split(self.views_per_step):
+                state = gen.get_state()
+                lit, _ = self._transient(batch, gen=gen, albedo=1.0)
+                base = torch.zeros_like(lit)
+                if self.table is not None:  # the table's own returns, behind the object as it stands
+                    gen.set_state(state)
+                    base, _ = self._transient(batch, gen=gen, albedo=0.0)
+                batches.append((batch, base, lit - base))
+                measured += float((p.counts[batch] * p.valid[batch]).sum())
+
+            def total_at(albedo: float) -> float:
+                return sum(float((fwd.expected_counts(fwd.rates(base + albedo * own, p.background[v]), p.cycles[v])
+                                  * p.valid[v]).sum()) for v, base, own in batches)
+
+            return albedo_for_total(total_at, measured)
 
     def deviance_all_views(self, seed: int) -> float:
         """Deviance per bin over every view under the current field, with the rays that `seed` draws (so that two
@@ -353,7 +418,7 @@ class FastModel:
         it did (`parts`), and why the others did not run (`parts_left_out`)."""
         out = {"steps": self.steps, "grid_nodes": list(self.field.counts), "voxel_mm": self.field.voxel * 1e3,
                "sharpness_per_m": self.config.field.sharpness_voxels / self.field.voxel, "refined": self.level > 0,
-               "converged": self.converged, "albedo": float(torch.exp(self.log_albedo.detach())),
+               "converged": self.converged, "albedo": self.albedo(),
                "hull_rays": int(self.rays.count.sum()), "rays_per_histogram": self.per_hist,
                "floor_z_m": self.problem.floor_z, **self.problem.notes,
                "parts": {part.name: {"config": asdict(part.config), **part.summary()} for part in self.parts},

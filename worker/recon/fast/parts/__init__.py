@@ -20,6 +20,8 @@ holds in this order; see `part.Part` for the hooks):
                                   on a table where few views look, without one where no view hears a return
   average           after_step    keep the moving average of the grid that meshes come from
   plateau           after_step    test whether the data term has stopped improving on the last level
+  dark_restart      after_step    once, on the coarse level: an albedo fallen low marks a dark object, whose fit
+                                  starts again from the hull with its albedo read from the counts
 
 Each part's config is `parts.NAME` in the preset's config (`FastPartsConfig`); `parts.NAME.enabled=false` switches
 it off. A part that is enabled but does not apply to the scene (say, erosion on a measured capture) says why in the
@@ -34,6 +36,7 @@ from .average import Average, AverageConfig
 from .blur import BlurConfig, GradientBlur
 from .cavities import Cavities, CavitiesConfig
 from .coarse_smoothing import CoarseSmoothing, CoarseSmoothingConfig
+from .dark_restart import DarkRestart, DarkRestartConfig
 from .empty_space import EmptySpaceConfig, EmptySpacePush
 from .erosion import Erosion, ErosionConfig
 from .hull_projection import HullProjection, HullProjectionConfig
@@ -46,7 +49,8 @@ from .thin_sheets import ThinSheets, ThinSheetsConfig
 from .unseen import UnseenConfig, UnseenRelaxation
 
 PARTS: tuple[type[Part], ...] = (Refinement, HullProjection, TableFit, Cavities, ThinSheets, CoarseSmoothing, Openings,
-                                 Erosion, GradientBlur, UnseenRelaxation, EmptySpacePush, Average, PlateauPart)
+                                 Erosion, GradientBlur, UnseenRelaxation, EmptySpacePush, Average, PlateauPart,
+                                 DarkRestart)
 """Every part, in the order its hooks run."""
 
 
@@ -67,6 +71,7 @@ class FastPartsConfig:
     empty_space: EmptySpaceConfig = field(default_factory=EmptySpaceConfig)
     average: AverageConfig = field(default_factory=AverageConfig)
     plateau: PlateauConfig = field(default_factory=PlateauConfig)
+    dark_restart: DarkRestartConfig = field(default_factory=DarkRestartConfig)
 
     def check(self) -> None:
         """Each part's config checked, errors naming `parts.NAME.FIELD`."""

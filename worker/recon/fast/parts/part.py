@@ -4,8 +4,8 @@ parts in the order their hooks run).
 
 A part sees the model through `Model` below: it reads the grid, the step counters and the problem being fitted,
 and changes the model only in its hooks and through the model's services (`project`, `refine`, `jumped`,
-`deviance_all_views`). State that a mechanism must drop when the surface jumps is dropped by that part's own
-`on_jump`, never by the part that made the jump.
+`restart`, `set_albedo`, `counts_albedo`, `deviance_all_views`). State that a mechanism must drop when the surface
+jumps is dropped by that part's own `on_jump`, never by the part that made the jump.
 """
 
 from __future__ import annotations
@@ -58,6 +58,21 @@ class Model(Protocol):
 
     def jumped(self) -> None:
         """Tell every part (and the regularisers' band) that the surface just moved in one jump."""
+
+    warm_started: bool
+    """The field came from another fit (a live fit's rebuild), not from the hull."""
+
+    def albedo(self) -> float:
+        """The object's fitted albedo."""
+
+    def set_albedo(self, albedo: float) -> None:
+        """Set the object's albedo (> 0)."""
+
+    def restart(self) -> None:
+        """Start the fit again from the hull on the coarse grid (calls every part's `on_refine` and `on_jump`)."""
+
+    def counts_albedo(self) -> float | None:
+        """The albedo at which the current field renders as many photons as the views measured (None: no signal)."""
 
     def deviance_all_views(self, seed: int) -> float:
         """Deviance per bin over every view (of a capture of more than 256, its 256 spread set-up views) under the
