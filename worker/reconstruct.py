@@ -386,6 +386,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         report["ground_truth"] = str(gt)
         stages["metrics_s"] = clock() - t_metrics
     truth_pieces = None if truth is None else _truth_pieces(truth.mesh)
+    summary = model.summary()
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
@@ -400,7 +401,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      training_s=result.seconds + result.eval_seconds, training_budget_s=plan.budget_s,
                      preset=config.preset, cuda_seen=torch.cuda.is_available(),
                      thread_times=None if waits is None else waits.summary(), machine_jobs=siblings,
-                     threads_fixed=threads_fixed(threads, os.environ), dark=_dark(model.summary()))
+                     threads_fixed=threads_fixed(threads, os.environ), dark=_dark(summary),
+                     thin_sheets_emptied=_part_figure(summary, "thin_sheets", "emptied_nodes"))
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts) + ([threads_note] if threads_note else [])
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
@@ -643,6 +645,11 @@ def _pieces(mesh, log) -> Pieces | None:
     except SpadscanError as exc:
         log(f"no pieces counted: {exc}")
         return None
+
+
+def _part_figure(summary: dict, part: str, key: str):
+    """A figure of a fast preset's part's summary, or None where the part did not run (or the preset has none)."""
+    return ((summary.get("parts") or {}).get(part) or {}).get(key)
 
 
 def _dark(summary: dict) -> dict | None:

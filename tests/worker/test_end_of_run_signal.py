@@ -167,6 +167,17 @@ def test_pieces_against_a_ground_truth_of_as_many():
     assert "3 pieces" in pieces_warning(Pieces(count=3, share_apart=0.5, specks=0), truth_pieces=2)
 
 
+def test_pieces_on_a_table_name_the_thin_sheets_emptied_there():
+    two = Pieces(count=2, share_apart=0.19, specks=0)
+    line = pieces_warning(two, thin_sheets_emptied=1752)
+    assert "on the table the thin-sheets part emptied 1752 nodes" in line
+    assert "--set parts.thin_sheets.enabled=false" in line and line.endswith("; look at preview.png")
+    assert "thin-sheets" not in pieces_warning(two, thin_sheets_emptied=0)
+    assert "thin-sheets" not in pieces_warning(two)  # no table: the part did not run
+    assert pieces_warning(Pieces(count=1, share_apart=0.0, specks=0), thin_sheets_emptied=1752) is None
+    assert warnings(facts(pieces=two, thin_sheets_emptied=1752)) == [line]
+
+
 def test_reconstruct_records_signal_specks_and_truth_pieces(tmp_path, monkeypatch):
     """The run's wiring: report.json holds the signal and the specks' share, and a two-piece ground truth silences the
     two-piece line (the two boxes' fit is in two pieces, as they are)."""
