@@ -578,6 +578,10 @@ def specks_warning(pieces, settled: bool = True) -> str | None:
             f"signal); look at preview.png")
 
 
+DARK_ALBEDO = 0.6
+"""A fitted albedo under which a restarted fit's object is called dark (the dark-restart part's `falling_below`)."""
+
+
 def dark_warning(dark: dict | None) -> str | None:
     """The line saying that the object is dark, where the dark-restart part started its fit again (`RunFacts.dark`),
     or None: its returns are that many times fainter than a white object's, and its shape noisier; a dark torus (albedo
@@ -585,11 +589,14 @@ def dark_warning(dark: dict | None) -> str | None:
     if not dark or dark.get("restarted_at_step") is None or not isinstance(dark.get("albedo"), (int, float)):
         return None
     albedo = float(dark["albedo"])
+    if not albedo < DARK_ALBEDO:  # the restarted fit found it bright after all: nothing to say of its photons
+        return None
+    start = ", its albedo read from the counts" if dark.get("counts_albedo") is not None else ""
     return (f"the object is dark: its fitted albedo is {albedo:.2f} (a white one's about 1), so each view caught "
             f"about {1 / max(albedo, 1e-3):.0f}x fewer photons from it than from a white one, and its shape is "
             f"noisier, thin or small parts most (its fit started again from the hull at step "
-            f"{dark['restarted_at_step']}, its albedo read from the counts: docs/end_of_run.md); scan it nearer, "
-            f"with more frames per pose or more laser power for a better one; look at preview.png")
+            f"{dark['restarted_at_step']}{start}: docs/end_of_run.md); scan it nearer, with more frames per pose or "
+            f"more laser power for a better one; look at preview.png")
 
 
 def lost_warning(lost) -> str | None:

@@ -100,9 +100,11 @@ def test_a_dark_objects_fit_starts_again_from_the_hull_with_the_counts_albedo_on
     assert part.restarted_at_step == 3 and model.steps == 3 and model.level_steps == 0 and model.level == 0
     assert torch.equal(model.field.sdf.detach(), start)
     assert model.albedo() == pytest.approx(model.counts_albedo(), rel=1e-5) and model.albedo() < 0.5
-    for _ in range(4):  # past check_steps again: no second restart
+    model.step()  # the new fit moves: a fresh optimiser on the new grid
+    assert not torch.equal(model.field.sdf.detach(), start)
+    for _ in range(3):  # past check_steps again: no second restart
         model.step()
-    assert part.restarted_at_step == 3 and model.level_steps == 4
+    assert part.restarted_at_step == 3 and model.level_steps == 4 and model.part("dark_restart") is part
     assert model.summary()["parts"]["dark_restart"]["counts_albedo"] == pytest.approx(part.counts_albedo)
 
 
@@ -123,6 +125,31 @@ def test_bad_dark_restart_settings_are_refused_with_their_name(key, value):
         with_overrides(preset_config("fast"), {f"parts.dark_restart.{key}": value}).check()
 
 
+def test_a_restart_starts_every_part_afresh_but_the_table_and_its_own_record(table_capture):
+    scene = load_scene(table_capture)
+    model = model_of(scene, **CHECK_EARLY, **{"parts.dark_restart.below": 1.0})
+    before = {part.name: part for part in model.parts}
+    for _ in range(3):
+        model.step()
+    assert model.part("dark_restart").restarted_at_step == 3
+    kept = {name for name, part in before.items() if model.part(name) is part}
+    assert kept == {"table", "dark_restart"}, kept
+    assert [p.name for p in model.parts] == list(before)
+    model.step()  # the kept table's parameters are in the new optimiser
+    assert model.table is before["table"].table
+
+
+def test_the_part_says_why_it_is_left_out_where_the_coarse_level_ends_before_its_check(dark_and_bright):
+    model = model_of(dark_and_bright["dark"])  # FAST_SMALL: refined after 4 steps, the check at 200
+    assert model.part("dark_restart") is None
+    assert "parts.refinement.after_steps" in model.summary()["parts_left_out"]["dark_restart"]
+
+
+def test_the_estimate_gives_no_albedo_for_a_model_that_renders_no_number():
+    assert albedo_for_total(lambda albedo: float("nan"), 100.0) is None
+    assert albedo_for_total(lambda albedo: 10.0 if albedo < 0.5 else float("nan"), 100.0) is None
+
+
 def test_the_dark_line_says_the_albedo_and_the_restart_and_nothing_without_one():
     assert dark_warning(None) is None
     assert dark_warning({"restarted_at_step": None, "albedo_at_check": 0.6, "albedo": 0.95}) is None
@@ -131,7 +158,11 @@ def test_the_dark_line_says_the_albedo_and_the_restart_and_nothing_without_one()
     assert "started again from the hull at step 200" in line
     quiet = RunFacts(stopped_by="converged", steps=900, model_converged=True, data_terms=[1.0] * 900)
     assert warnings(quiet) == []
-    assert warnings(replace(quiet, dark={"restarted_at_step": 200, "albedo": 0.13})) == [line]
+    assert warnings(replace(quiet, dark={"restarted_at_step": 200, "albedo": 0.13, "counts_albedo": 0.09})) == [line]
+    # a restart whose fit came out bright says nothing of photons; one without a counts' reading does not claim it
+    assert dark_warning({"restarted_at_step": 200, "counts_albedo": 0.3, "albedo": 0.97}) is None
+    assert "read from the counts" not in dark_warning({"restarted_at_step": 200, "counts_albedo": None,
+                                                       "albedo": 0.2})
 
 
 @pytest.fixture(scope="module")

@@ -27,10 +27,12 @@ ON_A_TABLE = ("table", "thin_sheets")
 HOOKS = ("before_step", "before_loss", "after_gradient", "after_step")
 NEEDS = {"refinement": ("coarse_smoothing",)}
 """Parts that cannot act without another (coarse_smoothing acts on the coarse level only, which refinement makes)."""
+CHECK_BEFORE_REFINING = {"parts.dark_restart.check_steps": 3, "parts.dark_restart.trend_steps": 1}
+"""FAST_SMALL refines the grid after 4 steps: the dark-restart part reads the albedo on the coarse level, so before."""
 
 
 def fast(**overrides):
-    return with_overrides(preset_config("fast"), {**FAST_SMALL, **overrides})
+    return with_overrides(preset_config("fast"), {**FAST_SMALL, **CHECK_BEFORE_REFINING, **overrides})
 
 
 def model_on(capture, config, steps: int):

@@ -23,16 +23,20 @@ BISECTIONS = 40
 def albedo_for_total(total_at: Callable[[float], float], measured: float) -> float | None:
     """The albedo a with total_at(a) = measured, by bisection in log a over [ALBEDO_LO, ALBEDO_HI]. total_at: the
     expected counts (photons) the views would hold at albedo a, non-decreasing in a; measured: the counts they hold.
-    None where the counts hold no more than the background (total_at at the lowest albedo), or are not finite:
-    nothing to read an albedo from. ALBEDO_HI where even it falls short."""
-    if not math.isfinite(measured) or measured <= total_at(ALBEDO_LO):
+    None where the counts hold no more than the background (total_at at the lowest albedo), or they or the model's
+    totals are not finite: nothing to read an albedo from. ALBEDO_HI where even it falls short."""
+    least, most = total_at(ALBEDO_LO), total_at(ALBEDO_HI)
+    if not all(math.isfinite(x) for x in (measured, least, most)) or measured <= least:
         return None
-    if total_at(ALBEDO_HI) <= measured:
+    if most <= measured:
         return ALBEDO_HI
     lo, hi = math.log(ALBEDO_LO), math.log(ALBEDO_HI)
     for _ in range(BISECTIONS):
         mid = 0.5 * (lo + hi)
-        if total_at(math.exp(mid)) < measured:
+        total = total_at(math.exp(mid))
+        if not math.isfinite(total):  # a model that renders nothing sound: no albedo to read
+            return None
+        if total < measured:
             lo = mid
         else:
             hi = mid

@@ -38,6 +38,9 @@ training's)."""
 ALBEDO_SEED_OFFSET = 0xA1BE
 """The albedo's estimate from the counts draws its rays from the run's seed plus this (a stream of its own)."""
 
+KEPT_ON_RESTART = ("table", "dark_restart")
+"""The parts `FastModel.restart` keeps as they are; every other part starts afresh."""
+
 ALBEDO_VIEWS = 64
 """Views the albedo's estimate renders: a total over 64 views spread over the capture varies by a few per cent."""
 
@@ -261,17 +264,18 @@ class FastModel:
             self.log_albedo.fill_(math.log(albedo))
 
     def restart(self) -> None:
-        """Start the fit again from the hull on the coarse grid (the dark-restart part's call): the grid, its level
-        and the optimiser as before the first step, every part's state that followed the grid dropped
-        (`on_refine`, `on_jump`); the albedos stay, and `steps` goes on counting."""
+        """Start the fit again from the hull on the coarse grid (the dark-restart part's call): the grid, its level,
+        the optimiser and every part as before the first step, but the table (what it learned of the plane) and the
+        dark-restart part itself (its record); the albedos stay, and `steps` goes on counting (a part that keys its
+        rounds on it, the openings, starts its schedule where the steps stand)."""
         box = self.problem.box
         counts, voxel = grid_shape(box[0], box[1], self.config.field.resolution)
         self.field = self.constraint.start_field(box[0], voxel, counts, self.device, torch.float32)
         self.level, self.level_steps, self._band = 0, 0, None
         self.last_level = not self.config.parts.refinement.enabled
-        for part in self.parts:
-            part.on_refine(self)
-        self.jumped()
+        fresh, self.left_out = build_parts(self.config.parts, self)
+        self.parts = [self._by_name.get(part.name, part) if part.name in KEPT_ON_RESTART else part for part in fresh]
+        self._by_name = {part.name: part for part in self.parts}
         self._make_optimizer()
 
     def project(self) -> None:

@@ -16,8 +16,10 @@ at the one with which the hull renders as many photons as the views measured (`F
 extra surface makes it read low, 0.5-0.7 of the truth on compact objects, which the fit then learns up from without
 carving; the ball: 4.1 mm at step 800). Measured at step 200 on every bright scene of the benchmarks (37 simulated,
 two real): 0.57 and more, the one under 0.6 (the plant stand) rising by 0.13 over the 50 steps before; on the dark
-objects tried, 0.25-0.34, or 0.46-0.54 and falling. Once per run; not on a warm start (a live fit's rebuild carries
-its albedo), nor on a capture with too little signal to read an albedo from.
+objects tried, 0.23-0.37, or 0.46-0.54 and falling. Once per run; not on a warm start (a live fit's rebuilds go on
+from the live field, their albedo from 1 again, and are not restarted: a dark object's live fit is not helped), nor
+where the coarse level ends before `check_steps` (said in the report's parts left out). Without a signal to read an
+albedo from, the restart keeps the albedo the first fit reached.
 """
 
 from __future__ import annotations
@@ -63,6 +65,15 @@ class DarkRestart(Part):
     """Reads the albedo once, at the coarse level's `check_steps`-th step, and restarts a dark object's fit."""
 
     name = "dark_restart"
+
+    @classmethod
+    def left_out(cls, config: DarkRestartConfig, model: Model) -> str | None:
+        refine = model.config.parts.refinement
+        if refine.enabled and refine.after_steps <= config.check_steps:
+            return (f"the albedo is read at the coarse level's step {config.check_steps} "
+                    f"(parts.dark_restart.check_steps), and the grid is refined after {refine.after_steps} "
+                    f"(parts.refinement.after_steps)")
+        return None
 
     def __init__(self, config: DarkRestartConfig, model: Model):
         super().__init__(config, model)

@@ -28,6 +28,8 @@ class Model(Protocol):
 
     problem: FastProblem
     """What is fitted: counts, poses, sensor model, hull, floor, table plane."""
+    config: object
+    """The run's `FastConfig` (every part's settings, under `parts`)."""
     field: GridField
     """The SDF grid being fitted (a new object after each refinement)."""
     constraint: HullConstraint
