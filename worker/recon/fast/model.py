@@ -42,7 +42,8 @@ KEPT_ON_RESTART = ("table", "dark_restart")
 """The parts `FastModel.restart` keeps as they are; every other part starts afresh."""
 
 ALBEDO_VIEWS = 64
-"""Views the albedo's estimate renders: a total over 64 views spread over the capture varies by a few per cent."""
+"""Views the albedo's estimate renders, spread over the capture: a total of photons needs no more, and a restart
+pays for it once."""
 
 
 def make_fast_model(scene, config: FastConfig, device, plan, keep_setup_views=None) -> "FastModel":
