@@ -78,8 +78,9 @@ def test_a_dead_workers_live_job_says_queued_again_before_it_goes_back(abandoned
     assert at_requeue == ["queued"], "said while the job was still held"
     status = read_status(status_path(abandoned.root / "s"))
     assert "died mid-job" in status.note and "back in the queue" in status.note, status.note
-    assert dataclasses.replace(status, state="live", note=None, updated_utc="") == dataclasses.replace(
-        FOLLOWING, updated_utc=""), "its figures stay: the stopped attempt's"
+    kept = dataclasses.replace(status, state="live", note=None, updated_utc="", figures_utc=None)
+    assert kept == dataclasses.replace(FOLLOWING, updated_utc=""), "its figures stay: the stopped attempt's"
+    assert status.figures_utc == FOLLOWING.updated_utc, "and say when they were measured"
 
 
 def test_a_dead_workers_job_on_its_last_attempt_never_says_queued(abandoned, monkeypatch, arun):
