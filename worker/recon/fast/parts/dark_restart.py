@@ -13,7 +13,7 @@ the first hundred steps while its albedo, which the lump's excess light no longe
 At the coarse level's `check_steps`-th step, an albedo below `below`, or below `falling_below` and lower than
 `trend_steps` steps before, marks a dark object: the fit starts again from the hull (`FastModel.restart`), its albedo
 at the one with which the hull renders as many photons as the views measured (`FastModel.counts_albedo`: the hull's
-extra surface makes it read low, 0.5-0.7 of the truth on compact objects, which the fit then learns up from without
+extra surface makes it read low, 0.4-0.8 of the truth on the dark ones tried, which the fit then learns up from without
 carving; the ball: 4.1 mm at step 800). Measured at step 200 on every bright scene of the benchmarks (37 simulated,
 two real): 0.57 and more, the one under 0.6 (the plant stand) rising by 0.13 over the 50 steps before; on the dark
 objects tried, 0.23-0.37, or 0.46-0.54 and falling. Once per run; not on a warm start (a live fit's rebuilds go on
