@@ -350,7 +350,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     pieces = _pieces(mesh, log)
     stages["pictures_s"] = clock() - t_pictures
     t_lost = clock()
-    lost = _lost(mesh, scene, model.summary(), log)
+    summary = model.summary()  # the trained model's, for the lost returns and the end's checks
+    lost = _lost(mesh, scene, summary, log)
     stages["lost_returns_s"] = clock() - t_lost
     if truth is not None:
         # all that is left to draw after the metrics
@@ -386,7 +387,6 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         report["ground_truth"] = str(gt)
         stages["metrics_s"] = clock() - t_metrics
     truth_pieces = None if truth is None else _truth_pieces(truth.mesh)
-    summary = model.summary()
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
