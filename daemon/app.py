@@ -19,7 +19,8 @@ from spadscan.protocol.capture_format import fold
 from spadscan.protocol.errors import ConfigError, DeviceError
 
 from .config import DaemonConfig, check_captures_creatable, make_captures
-from .control import ControlServer, check_socket_path, claim_socket_path
+from .client import ControlError, call
+from .control import ControlServer, SocketServed, check_socket_path, claim_socket_path
 from .devices import Device
 from .rig import build_devices, preflight, rig_record
 from .root_lock import RootLock, check_root_free
@@ -143,19 +144,76 @@ class Dispatcher:
 
 
 def check_config(cfg: DaemonConfig):
-    """Everything start-up checks before a device is touched, creating, claiming and holding nothing (also what
-    `spadscan daemon --check` runs): the default scan plan, the devices built (a sim sensor's mesh loaded, the
-    sensor model), an I2C sensor's firmware image read and parsed, its bus or a serial sensor's port present, the
-    socket path neither taken by another file nor served by another daemon, the captures root not held by another
-    daemon and, when it does not exist yet, one that can be created (tried: a scratch folder made and removed).
-    Returns (plan, arm, sensor), neither device connected."""
+    """Everything start-up checks before a device is touched, creating, claiming and holding nothing (`spadscan
+    daemon --check` runs them through `check_only`): the default scan plan, the devices built (a sim sensor's mesh
+    loaded, the sensor model), an I2C sensor's firmware image read and parsed, its bus or a serial sensor's port
+    present, the socket path neither taken by another file nor served by another daemon, the captures root not held
+    by another daemon and, when it does not exist yet, one that can be created (tried: a scratch folder made and
+    removed). Returns (plan, arm, sensor), neither device connected."""
+    plan, arm, sensor = _check_rig(cfg)
+    _in_config(cfg, check_socket_path, cfg.socket)
+    _check_root(cfg)
+    return plan, arm, sensor
+
+
+def check_only(cfg: DaemonConfig):
+    """`spadscan daemon --check`: check_config's checks, where a daemon already serving the config's socket is no
+    error (the config is valid all the same; only a start would be refused): the captures root is checked as ever
+    unless that daemon holds it (the config's own daemon, running), as its `status` says. Returns (plan, None), or
+    (plan, 'a daemon is already running on SOCKET (pid N)', naming its captures root where it is not the config's);
+    ConfigError for anything else, a daemon on the socket that does not answer `status` included."""
+    plan, _, _ = _check_rig(cfg)
+    served = _in_config(cfg, _served, cfg.socket)
+    if served is None:
+        _check_root(cfg)
+        return plan, None
+    try:
+        daemon = call(cfg.socket, "status", STATUS_CHECK_S).get("daemon")
+    except ControlError as why:
+        raise ConfigError(f"{cfg.source}: {served}; it did not answer `status`: {why}") from None
+    daemon = daemon if isinstance(daemon, dict) else {}
+    said = [f"pid {daemon['pid']}"] if daemon.get("pid") is not None else []
+    if not _same_folder(daemon.get("captures"), cfg.captures):
+        _check_root(cfg)
+        said += [f"captures root {daemon['captures']}"] if daemon.get("captures") else []
+    return plan, f"a daemon is already running on {cfg.socket}" + (f" ({', '.join(said)})" if said else "")
+
+
+STATUS_CHECK_S = 5.0
+"""How long `--check` waits for the status of a daemon serving the config's socket: a status waits at most
+`runner.SLIDER_READ_S` (1 s) for the arm's speed slider, the rest is quick."""
+
+
+def _check_rig(cfg: DaemonConfig):
+    """The default scan plan, the devices built, each backend's preflight: (plan, arm, sensor)."""
     plan = build_plan(cfg.scan, cfg.arm, where=f"{cfg.source}: [scan] defaults")
     arm, sensor = build_devices(cfg)
     preflight(cfg)
-    _in_config(cfg, check_socket_path, cfg.socket)
+    return plan, arm, sensor
+
+
+def _served(path) -> SocketServed | None:
+    """check_socket_path(path)'s refusal of a socket that a daemon of this user serves, returned (None: the path is
+    free); any other refusal is raised."""
+    try:
+        check_socket_path(path)
+    except SocketServed as exc:
+        return exc
+    return None
+
+
+def _check_root(cfg: DaemonConfig) -> None:
+    """The captures root held by no daemon and, when it does not exist yet, one that start-up can create."""
     _in_config(cfg, check_root_free, cfg.captures)
     _in_config(cfg, check_captures_creatable, cfg.captures)
-    return plan, arm, sensor
+
+
+def _same_folder(a, b) -> bool:
+    """Whether paths a and b name one existing folder (a link to it included); False when either is missing."""
+    try:
+        return a is not None and os.path.samefile(a, b)
+    except (OSError, TypeError, ValueError):
+        return False
 
 
 def _in_config(cfg: DaemonConfig, check, *args):

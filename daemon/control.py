@@ -43,6 +43,11 @@ ABANDONABLE_OPS = READ_ONLY_OPS
 Handler = Callable[[dict], Awaitable[dict]]
 
 
+class SocketServed(ConfigError):
+    """`check_socket_path`'s refusal of a socket that a daemon of this user listens on: `spadscan daemon --check`
+    tells it apart, for the daemon may be the one of the config checked."""
+
+
 def claim_socket_path(path: Path) -> None:
     """Make sure `path` is free for a new socket: remove a stale socket, refuse a live one or any other file."""
     if check_socket_path(path) == "stale":
@@ -51,8 +56,9 @@ def claim_socket_path(path: Path) -> None:
 
 
 def check_socket_path(path: Path) -> str:
-    """'free' (nothing there) or 'stale' (a socket nobody listens on); raises ConfigError for a live socket (another
-    daemon) or any other file. Changes nothing: also what `spadscan daemon --check` runs."""
+    """'free' (nothing there) or 'stale' (a socket nobody listens on); raises SocketServed for a live socket of this
+    user's (another daemon), ConfigError for another user's or any other file. Changes nothing: also what `spadscan
+    daemon --check` runs."""
     try:
         st = os.lstat(path)
     except FileNotFoundError:
@@ -72,7 +78,7 @@ def check_socket_path(path: Path) -> str:
     if st.st_uid != os.getuid():  # not a daemon `ctl shutdown` could stop: someone may have taken the name first
         raise ConfigError(f"socket path {path} is served by another user's process (uid {st.st_uid}); choose "
                           f"another socket path")
-    raise ConfigError(f"another daemon is already listening on {path} (stop it with `{shutdown_command(path)}`)")
+    raise SocketServed(f"another daemon is already listening on {path} (stop it with `{shutdown_command(path)}`)")
 
 
 def shutdown_command(path: Path) -> str:

@@ -53,7 +53,7 @@ import numpy as np
 from spadscan import __version__
 from spadscan.protocol.atomic_files import write_durable
 from spadscan.protocol.capture_format import MANIFEST, TMP_PREFIX, Measurement, one_line, read_json
-from spadscan.protocol.capture_writer import INTERRUPTED, PAUSE, CaptureWriter, mark_paused
+from spadscan.protocol.capture_writer import INTERRUPTED, PAUSE, CaptureWriter, Stock, mark_paused
 from spadscan.protocol.disk_full import FULL_ERRNOS
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
@@ -632,9 +632,10 @@ class ScanRunner:
             stuck = self.stuck["scan"] if self.stuck is not None else None
             raise ConfigError(f"nothing to abort (daemon is {self.state})" + (
                 f"; scan {stuck!r} could not be taken over: `spadscan ctl abort {stuck}` ends it" if stuck else ""))
-        name = self.job.name
+        job = self.job
         await self._cancel(("aborted", reason))
-        return self._aborted_reply(name)
+        await asyncio.to_thread(_count_as_held, job)  # the pose it stopped at, as its capture holds it
+        return self._aborted_reply(job.name, job)
 
     async def _abort_interrupted(self, name: str, reason: str) -> dict:
         """End the daemon's interrupted scan `name`, which it does not hold, as aborted: the manifest alone is
@@ -657,8 +658,13 @@ class ScanRunner:
         self._notify()
         return self._aborted_reply(name)
 
-    def _aborted_reply(self, name: str) -> dict:
+    def _aborted_reply(self, name: str, job: ScanJob | None = None) -> dict:
+        """The abort's reply: the status, `aborted` (the scan it ended), `abort_recorded`; for the scan the daemon
+        held (`job`), the pose it stopped at as `status` and the pause reply give it (pose, poses, progress), unless
+        the daemon holds another scan by now (the status's keys are that scan's)."""
         reply = {**self.status(), "aborted": name, "abort_recorded": name not in self.aborts.unrecorded}
+        if job is not None and reply["scan"] is None:
+            reply.update(pose=job.next_pose, poses=job.n_poses, progress=_progress_of(job))
         if name in self.aborts.folder_gone:  # removed by hand: the abort is done, with nothing to record
             reply["abort_note"] = FOLDER_GONE
         return reply
@@ -729,10 +735,8 @@ class ScanRunner:
     def _left_note(self, job: ScanJob, paused: bool, unrecorded: str | None) -> str:
         """Where a scan the daemon stops with stands, and how it goes on: the last line an operator who stopped the
         daemon (Ctrl-C, SIGTERM) reads. `unrecorded`: why its state could not be recorded on stopping. Called once
-        the writer thread has ended: the writer's own count is what the capture holds, and what the next daemon
-        takes the scan over at."""
-        if job.writer is not None:
-            job.record_progress(job.writer)
+        the writer thread has ended. The pose is the one the next daemon takes the scan over at (`_count_as_held`)."""
+        _count_as_held(job)
         self._sensor_link_back(job)
         at = f"scan {job.name} left {'paused ' if paused else ''}at pose {self._progress()}"
         why = job.paused_for if job.blocked else job.reason  # (a block is said once, below)
@@ -768,10 +772,7 @@ class ScanRunner:
         job = self.job
         if job is None or self.state != "paused" or job.blocked or self._resume_checks:
             return
-        try:
-            stock, note = await asyncio.to_thread(job.stock_on_disk)
-        except (CaptureError, OSError) as exc:
-            stock, note = None, f"{one_line(exc)} (`spadscan ctl resume` says the same)"
+        stock, note = await asyncio.to_thread(_counted_on_disk, job)
         # (a resume or an abort meanwhile counts on its own: the resume reopens the capture)
         if self.job is job and self.state == "paused" and not self._resume_checks:
             if stock is not None:
@@ -1436,7 +1437,7 @@ class ScanRunner:
         changed.set()
 
     def _progress(self) -> str:
-        return f"{self.job.next_pose}/{self.job.n_poses}" if self.job else "-"
+        return _progress_of(self.job) if self.job else "-"
 
     @staticmethod
     def _fault_at(job: ScanJob) -> str:
@@ -1511,6 +1512,33 @@ def scan_eta_s(job: ScanJob) -> float | None:
         return None
     left = max(0, job.n_poses - job.next_pose) + len(job.owed)
     return round(left * job.scan.frames_per_pose / rate, 1)
+
+
+def _progress_of(job: ScanJob) -> str:
+    """A scan's pose i/n, as `status` gives it (`progress`): its next pose of its poses."""
+    return f"{job.next_pose}/{job.n_poses}"
+
+
+def _count_as_held(job: ScanJob) -> None:
+    """Set the progress of a scan whose writes have ended (stopped, aborted) to what its capture holds: counted from
+    its folder as a resume counts it (`_counted_on_disk`, as `ctl status` of a paused scan is), for the writer's own
+    count misses a chunk moved out by hand (during a pause); the writer's count where only a resume can count (a
+    chunk changed since the daemon read it). A publish that landed as the scan was stopped is counted either way."""
+    if job.writer is not None:
+        job.record_progress(job.writer)
+    stock, _ = _counted_on_disk(job)
+    if stock is not None:
+        job.record_stock(stock)
+
+
+def _counted_on_disk(job: ScanJob) -> tuple[Stock | None, str | None]:
+    """`ScanJob.stock_on_disk`: (the scan's progress as its resume will count it from its folder, None) or (None, why
+    only the resume can count), a folder that cannot be counted included: what `ctl status` of a paused scan and the
+    stop note say."""
+    try:
+        return job.stock_on_disk()
+    except (CaptureError, OSError) as exc:
+        return None, f"{one_line(exc)} (`spadscan ctl resume` says the same)"
 
 
 def _measurements(job: ScanJob, i: int, frames: list[Frame], arm, choice: dict | None = None,

@@ -15,9 +15,10 @@
     spadscan ctl shutdown                       stop the daemon (a scan in flight stays resumable)
 
 `scan`, `pause`, `resume`, `abort` and `shutdown` answer in one line for people: the scan in hand, its state and its
-pose i/n (`scan 'bunny' paused at pose 38/128: paused by user`); with --json they print the daemon's whole
-reply as one line of JSON instead. `status` and `wait` always print JSON; `status` takes --json too (then on one
-line), so that a script may pass it to every operation, and so does `wait` (then its line is the daemon's status as
+pose i/n (`scan 'bunny' paused at pose 38/128: paused by user`; an abort, the pose the scan stopped at: `scan 'bunny'
+aborted at pose 38/128`); with --json they print the daemon's whole reply as one line of JSON instead. `status` and
+`wait` always print JSON; `status` takes --json too (then on one line), so that a script may pass it to every
+operation, and so does `wait` (then its line is the daemon's status as
 the scan ended, as `status --json` prints it, even when the daemon has started the next scan since, or the status it
 answers then for a scan that ended before it started; with `wait`: the scan's name, how it ended (and why, where
 that was said), how long the wait took; its progress stays on stderr). With --json a refusal, or no
@@ -307,16 +308,16 @@ def check_socket(path: str) -> None:
 def reply_line(op: str, reply: dict) -> str:
     """One line for people about the daemon's reply to `op` (scan, pause, resume, abort: the daemon's status after
     it; shutdown): the scan in hand, its state and its pose i/n (and, for a pause, the pose it stops at; for a paused
-    scan, why), the scan an abort ended, where a scan started is written."""
+    scan, why), the scan an abort ended and the pose it stopped at, where a scan started is written."""
     if op == "shutdown":
         return "the daemon is stopping (a scan in flight stays resumable)"
     said = []
-    aborted = reply.get("aborted")
+    aborted, name = reply.get("aborted"), reply.get("scan")
     if aborted:
         note = reply.get("abort_note") or ("not recorded on disk yet" if reply.get("abort_recorded") is False
                                           else None)
-        said.append(f"scan {aborted!r} aborted" + (f" ({note})" if note else ""))
-    name = reply.get("scan")
+        at = f" at pose {reply['progress']}" if reply.get("progress") and not name else ""  # (else `name`'s pose)
+        said.append(f"scan {aborted!r} aborted{at}" + (f" ({note})" if note else ""))
     if name:
         line = f"scan {name!r} {reply.get('state')} at pose {reply.get('progress')}"
         if reply.get("pausing_at"):

@@ -343,7 +343,7 @@ SCANNING = {"ok": True, "state": "scanning", "scan": "mug", "last_error": None, 
     (["resume"], {**SCANNING, "progress": "40/128", "poses_to_take_again": [12, 13]},
      "scan 'mug' scanning at pose 40/128; taking pose(s) 12, 13 again first"),
     (["abort"], {**SCANNING, "state": "idle", "scan": None, "aborted": "mug", "abort_recorded": True},
-     "scan 'mug' aborted"),
+     "scan 'mug' aborted at pose 0/128"),  # (the pose it stopped at: `progress`)
     (["shutdown"], {"ok": True, "stopping": True}, "the daemon is stopping (a scan in flight stays resumable)"),
 ])
 def test_ops_that_change_the_daemon_answer_in_one_line_for_people_and_in_json_with_json(

@@ -1,5 +1,6 @@
 """`spadscan daemon` as a real process: one daemon per captures root (whatever its socket), a clean shutdown on
-SIGHUP, and `--check` refusing what start-up refuses while another daemon runs."""
+SIGHUP, and `--check` refusing what start-up refuses while another daemon runs, but for a daemon already serving the
+config's socket (its own, running): the config is valid all the same."""
 
 from __future__ import annotations
 
@@ -76,11 +77,24 @@ def test_sighup_shuts_the_daemon_down_cleanly(tmp_path, sock_dir, daemons):
     assert "daemon stopped" in json.dumps(capture.manifest)
 
 
-def test_check_refuses_a_socket_another_daemon_serves(tmp_path, sock_dir, daemons):
+def test_check_on_the_config_of_a_running_daemon_says_it_is_valid_and_the_daemon_runs(tmp_path, sock_dir, daemons):
+    """The config's own daemon holds its socket and its captures root: the config is valid all the same, and `--check`
+    says so in one line, with that daemon, and exit status 0 (it used to fail on the socket alone)."""
     rig, sock = rig_on(tmp_path, sock_dir, "a")
-    daemons.start(rig, sock)
-    line = one_line_error(spadscan("daemon", "--config", rig, "--check"))
-    assert f"another daemon is already listening on {sock}" in line and str(rig) in line, line
+    a = daemons.start(rig, sock)
+    r = spadscan("daemon", "--config", rig, "--check")
+    assert r.returncode == 0 and r.stderr == "", (r.returncode, r.stdout, r.stderr)
+    assert r.stdout.startswith(f"{rig}: the config is valid (sim arm, sim sensor, default scan of 24 poses, "), r.stdout
+    assert r.stdout.endswith(f"; a daemon is already running on {sock} (pid {a.pid})\n"), r.stdout
+    assert len(r.stdout.splitlines()) == 1, r.stdout
+
+    # Another rig on the same socket, with a captures root of its own: valid too, the daemon's root named.
+    other = tmp_path / "other.toml"
+    other.write_text(rig.read_text().replace('captures = "caps"', 'captures = "caps-other"'))
+    r = spadscan("daemon", "--config", other, "--check")
+    assert r.returncode == 0 and r.stdout.endswith(f"; a daemon is already running on {sock} (pid {a.pid}, captures "
+                                                   f"root {tmp_path / 'caps'})\n"), (r.stdout, r.stderr)
+    assert call(sock, "status")["daemon"]["pid"] == a.pid  # asked, and left running
 
 
 def test_a_captures_root_moved_away_is_locked_again_by_the_next_scan(tmp_path, sock_dir, daemons):
