@@ -17,7 +17,7 @@ What ur_rtde does not tell by raising, this class checks:
   a light curtain or a door) all raise ArmFault; so do a safety violation and a safety fault (safety mode 8 or 9,
   bit 8 or 9: the safety system itself stopped the arm, and the controller the program), whose advice differs: UR
   requires the arm's safety system to be restarted from the pendant, not a stop unlocked. A control script that is
-  no longer running (a real controller may stop it on a safety stop, the watchdog stops it, so may the pendant)
+  no longer running (a protective or emergency stop pauses it, the watchdog stops it, so may the pendant)
   raises ArmFault too, naming the safety mode, and `clear_fault()` (the runner calls it when the scan resumes)
   uploads it again (reuploadScript; a fresh connection if that fails) unless a violation or fault still holds the
   arm (no program runs until the arm is restarted: the next move names it again);

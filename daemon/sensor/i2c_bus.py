@@ -38,7 +38,10 @@ the chip the same way):
    the status named.
 6. Interrupts: INT_STATUS 0xE1 <- 0xFF (write 1 to clear), then INT_ENAB 0xE2 |= result (0x02) and raw histogram
    (0x08) bits, as every reference does before measuring, and the error bit (0x40), as ams' Linux driver does (it
-   enables all but "command done"); read-modify-write (the enables drive the INT pin).
+   enables all but "command done"); read-modify-write (the enables drive the INT pin), except that the "command done"
+   enable (0x20) is cleared, as ams' Linux driver's enable clears it: commands are waited for on CMD_STAT (as every
+   reference waits), the bit goes up after each command (measure included) and is never cleared while reading, so
+   one enabled by another tool would hold the INT pin low for the whole measurement.
 7. Measure: CMD_STAT <- 0x10 (accepted: 0x01).
 
 Readout polls INT_STATUS: bit 0x08 = a histogram sub-packet waits at 0x20, bit 0x02 = a result (layouts in
@@ -115,8 +118,9 @@ APP_BOOTLOADER, APP_RUNNING = 0x80, 0x03
 CMD_MEASURE, CMD_STOP, CMD_LOAD_CONFIG, CMD_WRITE_CONFIG, CMD_SHORT_RANGE = 0x10, 0xFF, 0x16, 0x15, 0x6E
 CMD_3X3_MODE = 0x65
 """CMD_SWITCH_TMF8821_MODE (ams' register map): to 3x3 / 3x6 / 4x4 mode; only images with 8x8 measurements take it."""
-INT_ANY, INT_RESULT, INT_HISTOGRAM, INT_ERROR = 0x01, 0x02, 0x08, 0x40
-"""INT_STATUS bits (ams' Python driver's TMF8X2X_APP_I2C_*_IRQ_MASK): 0x01 is "any of the others has occurred"."""
+INT_ANY, INT_RESULT, INT_HISTOGRAM, INT_CMD_DONE, INT_ERROR = 0x01, 0x02, 0x08, 0x20, 0x40
+"""INT_STATUS bits (ams' Python driver's TMF8X2X_APP_I2C_*_IRQ_MASK): 0x01 is "any of the others has occurred", 0x20
+"a received I2C command has been handled (successfully or failed)"."""
 INT_BITS = INT_RESULT | INT_HISTOGRAM | INT_ERROR
 """The INT_ENAB bits the daemon sets while measuring (and clears at stop)."""
 REG_STATUS_NAMES = {0x04: "APPLICATION_STATUS", 0x05: "MEASURE_STATUS", 0x06: "ALGORITHM_STATUS",
@@ -225,7 +229,7 @@ class I2CTransport(Transport):
         self._write(REG_HIST_DUMP, 0x01)
         self._command(CMD_WRITE_CONFIG)
         self._write(REG_INT_STATUS, 0xFF)
-        self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) | INT_BITS)
+        self._write(REG_INT_ENAB, self._read(REG_INT_ENAB) & ~INT_CMD_DONE | INT_BITS)
         self._measure()
 
     def restart(self) -> None:

@@ -45,6 +45,12 @@ recorded in `violations`):
   Bit 0x40 is the error interrupt (ams' Python driver: "one of the <status> registers has been set to a non-zero
   value"; its Linux driver logs it, and checks CMD_STAT before it reads a record): the fake raises it when the
   application stops on an error (`stop_measuring`) and it stays set until the host clears it.
+  Bit 0x20 is "command done" (ams' Python driver's TMF8X2X_APP_I2C_CMD_DONE_IRQ_MASK: "a received I2C command has been
+  handled (successfully or failed)"; F_CMD_DONE_IRQ in ams' Linux driver, which enables every interrupt but this one
+  and clears it with the others it read): it goes up, with bit 0x01, when an application command is handled, whatever
+  its status - here when CMD_STAT stops echoing it (`busy_polls` reads; at once with none) - and stays set until the
+  host clears it. An application hung in a command never raises it. ams' drivers wait for a command on CMD_STAT, not
+  on this bit.
 - A result (`frame_records`) is laid out as ams' drivers decode it: temperature an unsigned byte (the fake draws
   20-60 C), slot k the target (k // 18) + 1 of channel (k % 9) + 1 in sub-capture (k // 9) % 2. The fake measures
   with one SPAD map (no time multiplexing), so slots 0-8 hold each zone's first target, 18-26 its second (behind the
@@ -91,8 +97,8 @@ import numpy as np
 
 ENABLE, INT_STATUS, INT_ENAB, CMD_STAT, ACTIVE_RANGE, APP_ID, APP_STATUS = 0xE0, 0xE1, 0xE2, 0x08, 0x19, 0x00, 0x04
 TMF8828_MODE = 0x10
-INT_ANY, INT_ERROR = 0x01, 0x40
-"""INT_STATUS / INT_ENAB bit of the error interrupt (ams' TMF8X2X_APP_I2C_ERROR_IRQ_MASK)."""
+INT_ANY, INT_CMD_DONE, INT_ERROR = 0x01, 0x20, 0x40
+"""INT_STATUS / INT_ENAB bits: "any", command done and the error interrupt (ams' TMF8X2X_APP_I2C_*_IRQ_MASK)."""
 START_RAM_APP = 2
 """ENABLE power-up select (bits 4:5) value: start the application in RAM."""
 SIZE_FIELDS = ("remaining", "total")
@@ -238,7 +244,7 @@ class SimTMF8820Bus:
             self._corrupt[k] = frames
 
     def int_pin_low(self) -> bool:
-        """The open-drain INT pin: pulled low while a waiting record's INT_STATUS bit is enabled in INT_ENAB."""
+        """The open-drain INT pin: pulled low while an INT_STATUS bit that is set is enabled in INT_ENAB."""
         with self._lock:
             self._advance()
             return bool(self._int_status() & self.int_enab)
@@ -317,6 +323,7 @@ class SimTMF8820Bus:
         self.hung = False  # `hang`: CMD_STAT echoes a command for good, and no command is taken
         self.int_enab = 0x00
         self.error_irq = False  # INT_STATUS bit 0x40, set until the host clears it
+        self.cmd_done_irq = False  # INT_STATUS bit 0x20: a command was handled since the host last cleared it
         self.any_irq = False  # INT_STATUS bit 0x01: another bit was raised since the host last cleared this one
         self.mode_8x8 = False  # TMF8828_MODE 0x10 reads 0x08 (8x8 mode) rather than 0x00
         self.page = bytearray(0x80)  # registers 0x20..0x9F
@@ -381,7 +388,10 @@ class SimTMF8820Bus:
             return bytes([status, 0, ~status & 0xFF])[:n].ljust(n, b"\0")
         if reg == CMD_STAT:
             status = self.commands[-1] if self.cmd_busy else self.cmd_stat
-            self.cmd_busy = max(0, self.cmd_busy - 1)
+            if self.cmd_busy:
+                self.cmd_busy -= 1
+                if not self.cmd_busy:
+                    self._command_done()
             return bytes([status]).ljust(n, b"\0")
         if reg == APP_STATUS:
             return bytes([self.app_status if self.app_running else 0]).ljust(n, b"\0")
@@ -409,6 +419,8 @@ class SimTMF8820Bus:
                 self.cleared_t = time.monotonic()
             if data[0] & INT_ERROR:
                 self.error_irq = False
+            if data[0] & INT_CMD_DONE:
+                self.cmd_done_irq = False
             if data[0] & INT_ANY:
                 self.any_irq = False
         elif reg == INT_ENAB:
@@ -529,9 +541,16 @@ class SimTMF8820Bus:
             self.violations.append(f"unknown command {cmd:#04x}")
             ok = 0x06
         self.cmd_stat = ok
+        if not self.cmd_busy:
+            self._command_done()
+
+    def _command_done(self) -> None:
+        """The application has handled a command (CMD_STAT no longer echoes it): INT_STATUS bit 0x20, and 0x01."""
+        self.cmd_done_irq = self.any_irq = True
 
     def _int_status(self) -> int:
-        return self._record_bit() | (INT_ERROR if self.error_irq else 0) | (INT_ANY if self.any_irq else 0)
+        return (self._record_bit() | (INT_ERROR if self.error_irq else 0) | (INT_CMD_DONE if self.cmd_done_irq else 0)
+                | (INT_ANY if self.any_irq else 0))
 
     def _raise_error(self, raised: bool) -> None:
         """Raise the error interrupt (and with it the "any" bit) when `raised`; a raised one stays."""

@@ -26,9 +26,6 @@ def main(argv: list[str] | None = None) -> int:
                         help="the pendant's speed slider: moves run at this fraction of their speed (0 < f <= 1)")
     parser.add_argument("--pose-noise-m", type=float, default=0.0,
                         help="standard deviation of the reported actual TCP position, per axis (m; default 0)")
-    parser.add_argument("--stop-script-on-fault", action="store_true",
-                        help="stop the control script on a safety stop, as a real controller may (upload it again "
-                             "after clearing the stop)")
     parser.add_argument("--tcp-offset", default="0,0,0,0,0,0", metavar="X,Y,Z,RX,RY,RZ",
                         help="the pendant's active TCP offset in the flange frame [m, rad] that get_tcp_offset "
                              "answers (default 0,0,0,0,0,0: the bare flange; the UR arm backend refuses any other)")
@@ -39,7 +36,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         controller = SimURController(args.host, time_scale=args.time_scale)
         controller.configure(speed_slider=args.speed_slider, pose_noise_m=args.pose_noise_m,
-                             stop_script_on_fault=args.stop_script_on_fault,
                              tcp_offset=args.tcp_offset.split(","))
     except SpadscanError as exc:
         print(f"ursim: error: {exc}", file=sys.stderr)

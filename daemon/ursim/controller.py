@@ -32,9 +32,13 @@ the program running.
 
 Safety stops follow the RTDE guide: safety_mode 3 protective (status bit 2), 5 safeguard (bit 4), 7 robot
 emergency (bits 6, 7), each with bit 10 "stopped due to safety" (`safety_mode()`, which the dashboard's safetymode
-and safetystatus name too). The script takes no command while one is active; with
-`stop_script_on_fault` the program also stops, as a real controller may do, and stays stopped after the stop is
-cleared until the script is uploaded again.
+and safetystatus name too). The script takes no command while one is active. A protective or emergency stop also
+pauses the program (UR's ROS 2 driver documentation: such a stop "is only pausing the running program"; runtime_state
+4, PAUSED, UR's client library's RUNTIME_STATE): the move thread is held where the arm stopped, and the program stays
+paused when the stop is cleared. A paused program is not running to ur_rtde (its isProgramRunning is runtime_state ==
+PLAYING), takes no command, and is replaced by the next upload (ur_rtde's reuploadScript sends the script without
+stopping a program that is not playing). Resuming it in place (the pendant's or the dashboard's play) is not modelled.
+A safeguard stop holds the program without pausing it: it takes commands again once the stop is cleared.
 A safety violation (safety_mode 8, status bit 8) or fault (9, bit 9) is the safety system itself stopping the arm
 (UR's manuals: a category 0 stop, power removed): the arm halts where it is, the program always stops, and no
 program starts (a script that arrives is recorded, not run) until `restart_safety` - what restarting the arm from
@@ -112,7 +116,6 @@ class URControllerModel:
         self.speed_slider = 1.0
         self._t_ref = self._tau_ref = 0.0
         self.pose_noise_m = 0.0
-        self.stop_script_on_fault = False
         self.safety_floor_z: float | None = None
         """A safety plane: TCP positions below this height (m) are outside the safety limits."""
         self.reach_m = 0.85
@@ -360,15 +363,17 @@ class URControllerModel:
 
     # -- faults --------------------------------------------------------------------------------------------------
     def set_protective_stop(self, on: bool) -> None:
-        """Protective stop: motion halts, the script stops taking commands; clearing it aborts the halted command."""
+        """Protective stop: motion halts and the program pauses (see the module docstring); clearing the stop leaves
+        it paused until the script is uploaded again."""
         self._set_safety(protective=on)
 
     def set_safeguard_stop(self, on: bool) -> None:
-        """Safeguard stop (a light curtain, a door): like a protective stop, reported as safety mode 5, bit 4."""
+        """Safeguard stop (a light curtain, a door), safety mode 5, bit 4: motion halts and the program takes no
+        command until the stop is cleared; the program is not paused."""
         self._set_safety(safeguard=on)
 
     def set_emergency_stop(self, on: bool) -> None:
-        """Robot emergency stop: like a protective stop, reported as safety mode 7."""
+        """Robot emergency stop: like a protective stop (the program pauses), reported as safety mode 7."""
         self._set_safety(emergency=on)
 
     def set_safety_fault(self, mode: int) -> None:
@@ -403,10 +408,8 @@ class URControllerModel:
             if self._safety_stopped():
                 self._halt(t, "held")
                 self._busy = False
-                if self.stop_script_on_fault and self.runtime_state == RUNTIME_PLAYING:
-                    self._halt(t, "ended")
-                    self.runtime_state = RUNTIME_STOPPED
-                    self.watchdog_period_s = None
+                if (self.protective_stop or self.emergency_stop) and self.runtime_state == RUNTIME_PLAYING:
+                    self.runtime_state = RUNTIME_PAUSED  # the held move thread stays as it was
             self._step(t)
 
     # -- what RTDE reports -----------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from spadscan.daemon.ursim.controller import RUNTIME_PLAYING, SAFETY_MODE_NAMES, URControllerModel
+from spadscan.daemon.ursim.controller import RUNTIME_PAUSED, RUNTIME_PLAYING, SAFETY_MODE_NAMES, URControllerModel
 
 GREETING = "Connected: Universal Robots Dashboard Server"
 
@@ -36,8 +36,9 @@ def reply(model: URControllerModel, line: str, version: str, serial: str) -> str
         return f"{cmd[0].upper()}{cmd[1:].lower()}: {SAFETY_MODE_NAMES[model.safety_mode()]}"
     if low == "running":
         return f"Program running: {'true' if playing else 'false'}"
-    if low == "programstate":
-        return "PLAYING <unnamed>" if playing else "STOPPED <unnamed>"
+    if low == "programstate":  # STOPPED, PLAYING or PAUSED and the program's name
+        state = "PLAYING" if playing else "PAUSED" if model.runtime_state == RUNTIME_PAUSED else "STOPPED"
+        return f"{state} <unnamed>"
     if low == "get loaded program":
         return "No program loaded"
     if low == "unlock protective stop":

@@ -112,8 +112,8 @@ class SimURProcess:
         self._request("configure", **settings)
 
     def state(self) -> dict:
-        """runtime_state (1 stopped, 2 playing), watchdog_period_s, watchdog_stops, script_stops (programs ended by
-        their stop command, ur_rtde's stopScript), errors, queries (name, pose, answer), tcp_offset_reads
+        """runtime_state (1 stopped, 2 playing, 4 paused), watchdog_period_s, watchdog_stops, script_stops (programs
+        ended by their stop command, ur_rtde's stopScript), errors, queries (name, pose, answer), tcp_offset_reads
         (get_tcp_offset commands answered), safety_mode (RTDE's), whether an asynchronous move is running,
         script_state (1 ready for a command, 2 done with one)."""
         return self._request("state")

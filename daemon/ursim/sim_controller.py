@@ -5,8 +5,7 @@
         ur.protective_stop(); ur.clear_protective_stop()     # also safeguard_stop, emergency_stop
         ur.safety_fault("fault"); ur.restart_safety()         # or "violation": cleared only by a restart
         ur.drop_link("silent"); ur.restore_link()
-        ur.configure(speed_slider=0.5, pose_noise_m=2e-4, stop_script_on_fault=True, safety_floor_z=0.05,
-                     tcp_offset=(0, 0, 0.1, 0, 0, 0))
+        ur.configure(speed_slider=0.5, pose_noise_m=2e-4, safety_floor_z=0.05, tcp_offset=(0, 0, 0.1, 0, 0, 0))
         ur.moves  # every command the controller took
 
 The servers run on an asyncio loop in one background thread (`start`/`stop`, or a `with` block), or in the caller's
@@ -31,8 +30,7 @@ from spadscan.protocol.errors import DeviceError
 LINK_MODES = ("close", "silent", "freeze")
 WATCHDOG_POLL_S = 0.005
 """How often the RTDE watchdog is checked (the real controller checks every control cycle, 2 ms)."""
-SETTINGS = ("speed_slider", "pose_noise_m", "stop_script_on_fault", "safety_floor_z", "reach_m", "move_thread_start_s",
-            "tcp_offset")
+SETTINGS = ("speed_slider", "pose_noise_m", "safety_floor_z", "reach_m", "move_thread_start_s", "tcp_offset")
 """What `configure` may change while the controller runs."""
 
 
@@ -133,7 +131,8 @@ class SimURController:
 
     # -- faults (thread-safe) --------------------------------------------------------------------------------
     def protective_stop(self) -> None:
-        """Safety mode 3, safety_status_bits bit 2; motion halts and commands are not taken until cleared."""
+        """Safety mode 3, safety_status_bits bit 2; motion halts and the program pauses (runtime_state 4): it takes no
+        command, also once the stop is cleared, until the script is uploaded again."""
         self.model.set_protective_stop(True)
 
     def clear_protective_stop(self) -> None:
@@ -147,7 +146,8 @@ class SimURController:
         self.model.set_safeguard_stop(False)
 
     def emergency_stop(self) -> None:
-        """Robot emergency stop (safety mode 7, safety_status_bits bits 6 and 7)."""
+        """Robot emergency stop (safety mode 7, safety_status_bits bits 6 and 7); the program pauses, as on a protective
+        stop."""
         self.model.set_emergency_stop(True)
 
     def clear_emergency_stop(self) -> None:
@@ -167,10 +167,9 @@ class SimURController:
 
     def configure(self, **settings) -> None:
         """Change what makes the controller less than ideal (thread-safe): speed_slider (0 < f <= 1), pose_noise_m
-        (m), stop_script_on_fault (bool), safety_floor_z (m or None), reach_m (m), move_thread_start_s (s: how long
-        an asynchronous move takes to report itself running; one controller cycle by default), tcp_offset (the
-        pendant's active TCP offset, a pose vector [m, rad] in the flange frame, which get_tcp_offset answers; zero,
-        the bare flange, by default)."""
+        (m), safety_floor_z (m or None), reach_m (m), move_thread_start_s (s: how long an asynchronous move takes to
+        report itself running; one controller cycle by default), tcp_offset (the pendant's active TCP offset, a pose
+        vector [m, rad] in the flange frame, which get_tcp_offset answers; zero, the bare flange, by default)."""
         unknown = set(settings) - set(SETTINGS)
         if unknown:
             raise DeviceError(f"unknown controller settings {sorted(unknown)} (known: {', '.join(SETTINGS)})")

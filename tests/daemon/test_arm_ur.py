@@ -520,11 +520,10 @@ def test_a_safeguard_stop_is_an_arm_fault_like_a_protective_stop(ur, arun):
     assert [m.name for m in ur.moves] == ["moveL", "moveL"]
 
 
-def test_a_control_script_stopped_by_a_protective_stop_is_uploaded_again_on_resume(ur, arun):
-    """A controller that stops the program on a protective stop: once the stop is cleared every command is refused
-    (ur_rtde: "RTDE control script is not running"). The arm says so; clear_fault (the runner's step on resume)
-    uploads the script again, and moves work."""
-    ur.configure(stop_script_on_fault=True)
+def test_a_control_script_paused_by_a_protective_stop_is_uploaded_again_on_resume(ur, arun):
+    """A protective stop pauses the program, as on a real controller; it stays paused once the stop is cleared, and
+    ur_rtde refuses every command ("RTDE control script is not running": its isProgramRunning is runtime_state ==
+    PLAYING). The arm says so; clear_fault (the runner's step on resume) uploads the script again, and moves work."""
 
     async def run():
         async with connected_arm(ur.host, **EXACT) as arm:
@@ -532,15 +531,16 @@ def test_a_control_script_stopped_by_a_protective_stop_is_uploaded_again_on_resu
             ur.protective_stop()
             ur.clear_protective_stop()
             await cleared(arm)
+            paused = ur.state()["runtime_state"]
             with pytest.raises(ArmFault, match="control script is not running"):
                 await arm.move_to(pose(0.35, 0.1, 0.3, DOWN))
             scripts = ur.scripts()
             await arm.clear_fault()
             await arm.move_to(pose(0.35, 0.1, 0.3, DOWN))
-            return scripts, ur.scripts(), await arm.state()
+            return paused, scripts, ur.scripts(), await arm.state()
 
-    scripts, after, state = arun(run())
-    assert after == scripts + 1
+    paused, scripts, after, state = arun(run())
+    assert paused == 4 and after == scripts + 1
     assert np.allclose(state.tcp_pose, pose(0.35, 0.1, 0.3, DOWN), atol=1e-6)
     assert [m.target[1] for m in ur.moves] == [0.0, 0.1]
 
@@ -1064,9 +1064,10 @@ class FirstMoveLost(URArm):
 
 
 def test_a_move_refused_after_a_stop_that_held_a_move_is_sent_again(ur, arun):
-    """A protective stop halts an asynchronous move and leaves its running bit set. Once the stop is cleared, a
-    refused moveL must not be taken for a move the controller took because that stale bit still says 'running': the
-    move is sent again and arrives (instead of waiting out its motion budget for a move that never started)."""
+    """A safeguard stop halts an asynchronous move and leaves its running bit set (the program runs on: unlike a
+    protective stop, it is not paused and uploaded again). Once the stop is cleared, a refused moveL must not be
+    taken for a move the controller took because that stale bit still says 'running': the move is sent again and
+    arrives (instead of waiting out its motion budget for a move that never started)."""
     async def run():
         arm = FirstMoveLost(ur.host, frequency=100.0, stale_after_s=1.0, timeout_s=5.0, watchdog_hz=1.0)
         try:
@@ -1076,10 +1077,10 @@ def test_a_move_refused_after_a_stop_that_held_a_move_is_sent_again(ur, arun):
             await wait_for_moves(ur, 1)
             while not (await arm._read("test", progress=True)).moving:
                 await asyncio.sleep(0.01)
-            ur.protective_stop()
-            with pytest.raises(ArmFault, match="protective stop"):
+            ur.safeguard_stop()
+            with pytest.raises(ArmFault, match="safeguard stop"):
                 await asyncio.wait_for(long_move, 30)
-            ur.clear_protective_stop()
+            ur.clear_safeguard_stop()
             await cleared(arm)
             await arm.clear_fault()
             held = (await arm._read("test", progress=True)).moving

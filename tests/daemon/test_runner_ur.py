@@ -95,12 +95,11 @@ def check_every_pose_once(path, hand_eye=HAND_EYE) -> None:
 
 @pytest.mark.slow
 def test_scan_on_the_ur_controller_with_a_protective_stop(tmp_path, controller, arun):
-    """The controller stops its program on the protective stop, as a real one may: after the operator clears the
+    """The controller pauses its program on the protective stop, as a real one does: after the operator clears the
     stop, `resume` finds the control script not running, uploads it again and the scan completes."""
     # The config's slowest watchdog (2 s of silence): this test is about the protective stop, and on a busy machine
     # a 1 s watchdog may stop the script first (its own tests are in test_arm_ur).
     cfg = ur_config(tmp_path, controller.host, watchdog_hz=0.5)
-    controller.configure(stop_script_on_fault=True)
 
     async def scenario():
         arm, sensor = build_devices(cfg)

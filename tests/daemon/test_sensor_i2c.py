@@ -356,8 +356,8 @@ def test_the_fake_measures_without_short_range_mode_or_a_written_config():
     fake.write_byte_data(0x41, 0x08, 0x10)
     while fake.read_byte_data(0x41, 0x08) >= 0x10:
         pass
-    # no HIST_DUMP: a result (0x02), and with it "any interrupt" (0x01)
-    assert fake.read_byte_data(0x41, 0x08) == 0x01 and fake.read_byte_data(0x41, 0xE1) == 0x03
+    # no HIST_DUMP: a result (0x02), the measure command handled (0x20), and with them "any interrupt" (0x01)
+    assert fake.read_byte_data(0x41, 0x08) == 0x01 and fake.read_byte_data(0x41, 0xE1) == 0x23
     assert fake.violations == []
 
 

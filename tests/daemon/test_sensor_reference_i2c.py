@@ -559,7 +559,8 @@ def test_the_fake_powers_up_with_pon_set_and_boots_its_bootloader_by_itself():
 def test_a_record_read_leaves_no_interrupt_flagged_the_any_bit_included(image):
     """INT_STATUS bit 0x01 ("any interrupt has occurred") goes up with each record; ams' Arduino driver clears it with
     each record (its Linux driver writes back every bit it read). Left set, it holds the INT pin low for good where
-    another tool enabled it (INT_ENAB bit 0x01, which the read-modify-write keeps)."""
+    another tool enabled it (INT_ENAB bit 0x01, which the read-modify-write keeps). The measure command's "command
+    done" (0x20) stays set, as ams' Python driver leaves it: not enabled, it does not hold the pin."""
     path, data = image
     fake = SimTMF8820Bus(image=data, handover_s=0.5)  # the next record comes long after the checks below
     fake.int_enab = 0x01
@@ -569,7 +570,7 @@ def test_a_record_read_leaves_no_interrupt_flagged_the_any_bit_included(image):
         transport.start()
         assert fake.int_pin_low()
         assert transport.read_packet(5.0).index == 0
-        assert fake.read_byte_data(0x41, 0xE1) == 0x00 and not fake.int_pin_low()
+        assert fake.read_byte_data(0x41, 0xE1) == 0x20 and not fake.int_pin_low()
     finally:
         transport.stop()
         transport.close()
@@ -588,10 +589,55 @@ def test_an_error_interrupt_cleared_leaves_no_interrupt_flagged_the_any_bit_incl
         transport.start()
         assert transport.read_packet(5.0).index == 0  # the first record read: nothing flagged until the next one
         fake.set_status(app_status=0x05, error_interrupt=True)  # a warning: the application measures on
-        assert fake.read_byte_data(0x41, 0xE1) == 0x41 and fake.int_pin_low()
+        assert fake.read_byte_data(0x41, 0xE1) == 0x61 and fake.int_pin_low()  # 0x20: the measure command's done
         assert transport.read_packet(0.0) is None  # the poll that sees the error interrupt and clears it
         assert transport.counters()["error_interrupts"] == 1
-        assert fake.read_byte_data(0x41, 0xE1) == 0x00 and not fake.int_pin_low()
+        assert fake.read_byte_data(0x41, 0xE1) == 0x20 and not fake.int_pin_low()
+    finally:
+        transport.stop()
+        transport.close()
+    assert fake.violations == []
+
+
+def test_the_fake_raises_command_done_when_a_command_is_handled():
+    """INT_STATUS bit 0x20 (ams' TMF8X2X_APP_I2C_CMD_DONE_IRQ_MASK: "a received I2C command has been handled
+    (successfully or failed)"), with bit 0x01: up once CMD_STAT no longer echoes the command, whatever its status, kept
+    until the host writes 1 to it; enabled in INT_ENAB it pulls the INT pin. A command the application hangs in is
+    never handled."""
+    fake = _started_fake(busy_polls=2)
+    fake.write_byte_data(0x41, 0xE1, 0xFF)
+    fake.write_byte_data(0x41, 0x08, 0x16)
+    assert fake.read_byte_data(0x41, 0x08) == 0x16 and fake.read_byte_data(0x41, 0xE1) == 0x00  # still running
+    assert fake.read_byte_data(0x41, 0x08) == 0x16 and fake.read_byte_data(0x41, 0xE1) == 0x21  # handled
+    assert fake.read_byte_data(0x41, 0x08) == 0x00 and not fake.int_pin_low()
+    fake.write_byte_data(0x41, 0xE2, 0x20)
+    assert fake.int_pin_low()
+    fake.write_byte_data(0x41, 0xE1, 0x21)
+    assert fake.read_byte_data(0x41, 0xE1) == 0x00 and not fake.int_pin_low()
+    assert _send(fake, 0x77) == 0x06 and fake.read_byte_data(0x41, 0xE1) == 0x21  # failed, handled all the same
+    fake.write_byte_data(0x41, 0xE1, 0x21)
+    fake.hang(0x16)
+    fake.write_byte_data(0x41, 0x08, 0x15)
+    for _ in range(5):
+        assert fake.read_byte_data(0x41, 0x08) == 0x16
+    assert fake.read_byte_data(0x41, 0xE1) == 0x00
+
+
+def test_a_command_done_enable_another_tool_left_is_cleared_at_the_start(image):
+    """Another tool enabled "command done" (INT_ENAB bit 0x20). The driver waits for its commands on CMD_STAT, as ams'
+    drivers do, and never clears that bit while it reads, so the start clears its enable, as ams' Linux driver's
+    enable does (it enables every interrupt but this one): the measure command's done stays in INT_STATUS without
+    holding the INT pin low, and records are read as ever. The other enables are kept (read-modify-write)."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data, handover_s=0.5)
+    fake.int_enab = 0x20 | 0x04
+    transport = I2CTransport(1, firmware=path, smbus_factory=fake)
+    transport.open()
+    try:
+        transport.start()
+        assert fake.int_enab == 0x04 | 0x02 | 0x08 | 0x40
+        assert transport.read_packet(5.0).index == 0
+        assert fake.read_byte_data(0x41, 0xE1) == 0x20 and not fake.int_pin_low()
     finally:
         transport.stop()
         transport.close()

@@ -199,25 +199,31 @@ def test_motion_takes_scaled_time_and_interpolates():
     assert np.allclose(inverse_kinematics(forward_kinematics(q)), q)
 
 
-def test_protective_stop_refuses_commands_until_cleared(sim):
+def test_protective_stop_pauses_the_program_until_the_script_is_uploaded_again(sim):
+    """A protective stop pauses the program (runtime_state 4): it takes no command during the stop nor after it is
+    cleared; the next upload (ur_rtde's reuploadScript) starts a program that takes them."""
     c, types = streaming_client(sim)
     rid, _ = c.inputs(CMD)
     send_program(sim.host)
     wait_until(lambda: c.data(types)["output_int_register_0"] == 1, "ready")
     sim.protective_stop()
     d = wait_until(lambda: (d := c.data(types))["safety_mode"] == 3 and d, "protective stop")
-    assert d["safety_status_bits"] & 4
+    assert d["safety_status_bits"] & 4 and d["runtime_state"] == 4 and not d["robot_status_bits"] & 2
     command(c, rid, 3, (0.5, 0.0, 0.3, 0.0, 3.0, 0.0, 0.25, 1.2))
+    for _ in range(5):
+        assert c.data(types)["output_int_register_0"] != 2
+    sim.clear_protective_stop()
+    d = wait_until(lambda: (d := c.data(types))["safety_mode"] == 1 and d, "normal mode")
+    assert not d["safety_status_bits"] & 4 and d["runtime_state"] == 4
     for _ in range(5):
         assert c.data(types)["output_int_register_0"] != 2
     assert sim.moves == []
     command(c, rid, 0)
     wait_until(lambda: c.data(types)["input_int_register_0"] == 0, "the cleared command to arrive")
-    sim.clear_protective_stop()
-    d = wait_until(lambda: (d := c.data(types))["safety_mode"] == 1 and d, "normal mode")
-    assert not d["safety_status_bits"] & 4
+    send_program(sim.host)
+    wait_until(lambda: (d := c.data(types))["runtime_state"] == 2 and d["output_int_register_0"] == 1, "ready")
     command(c, rid, 3, (0.5, 0.0, 0.3, 0.0, 3.0, 0.0, 0.25, 1.2))
-    wait_until(lambda: c.data(types)["output_int_register_0"] == 2, "done after clearing")
+    wait_until(lambda: c.data(types)["output_int_register_0"] == 2, "done after the upload")
     assert len(sim.moves) == 1
     c.close()
 
@@ -378,10 +384,10 @@ def test_model_the_stop_command_ends_the_program_and_its_watchdog_as_the_control
     nothing is written. While a safety stop holds the script, the command is not taken (ur_rtde clears it again)."""
     c = ClockedModel()
     c.command(35, (2.0,) + (0.0,) * 7)  # watchdog 2 Hz
-    c.model.set_protective_stop(True)
+    c.model.set_safeguard_stop(True)
     c.command(255)
     assert c.read("runtime_state") == [2] and c.model.script_stops == 0
-    c.model.set_protective_stop(False)
+    c.model.set_safeguard_stop(False)
     c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)  # a 2 s move
     c.t = 0.2
     progress = c.read("output_int_register_2")[0]
@@ -424,19 +430,36 @@ def test_model_pose_noise_scatters_the_reported_pose_only():
     assert np.allclose(poses.mean(axis=0)[:3], (0.3, 0.0, 0.3), atol=5e-5) and np.all(poses[:, 3:] == poses[0, 3:])
 
 
-def test_model_safety_stops_and_a_script_stopped_by_them():
+@pytest.mark.parametrize("kind, mode, bits", [("protective", 3, 1 << 2), ("emergency", 7, (1 << 6) | (1 << 7))])
+def test_model_a_protective_or_emergency_stop_pauses_the_program_until_the_script_is_uploaded_again(kind, mode, bits):
+    """UR: such a stop only pauses the running program (runtime_state 4, PAUSED); clearing the stop leaves it paused,
+    taking no command (ur_rtde's isProgramRunning: runtime_state == PLAYING); the next upload replaces it."""
+    from spadscan.daemon.ursim.dashboard import reply
+
+    c = ClockedModel()
+    set_stop(c.model, kind, True)
+    assert c.read("safety_mode", "safety_status_bits", "runtime_state", "robot_status_bits") == [
+        mode, bits | (1 << 10), 4, 1]
+    set_stop(c.model, kind, False)
+    assert c.read("safety_mode", "runtime_state") == [1, 4]
+    assert reply(c.model, "programstate", "URSoftware 5.15", "1") == "PAUSED <unnamed>"
+    assert reply(c.model, "running", "URSoftware 5.15", "1") == "Program running: false"
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0))
+    assert c.model.moves == [] and c.read("runtime_state", "output_int_register_0") == [4, 1]
+    c.model.start_script("def rtde_control():\nend")
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0))
+    assert c.read("runtime_state") == [2] and [m.name for m in c.model.moves] == ["moveL"]
+
+
+def test_model_a_safeguard_stop_holds_the_program_without_pausing_it():
     c = ClockedModel()
     c.model.set_safeguard_stop(True)
-    mode, bits = c.read("safety_mode", "safety_status_bits")
-    assert mode == 5 and bits == (1 << 4) | (1 << 10)
+    assert c.read("safety_mode", "safety_status_bits", "runtime_state") == [5, (1 << 4) | (1 << 10), 2]
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0))
+    assert c.model.moves == []
     c.model.set_safeguard_stop(False)
-    c.model.stop_script_on_fault = True
-    c.model.set_protective_stop(True)
-    assert c.read("safety_mode", "safety_status_bits", "runtime_state") == [3, (1 << 2) | (1 << 10), 1]
-    c.model.set_protective_stop(False)
-    assert c.read("runtime_state") == [1]  # stays stopped until the script is uploaded again
-    c.model.start_script("def rtde_control():\nend")
-    assert c.read("runtime_state") == [2]
+    c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0))
+    assert c.read("runtime_state") == [2] and [m.name for m in c.model.moves] == ["moveL"]
 
 
 SAFETY_STOPS = {"protective": (3, "PROTECTIVE_STOP"), "safeguard": (5, "SAFEGUARD_STOP"),
@@ -466,8 +489,13 @@ def test_model_a_safety_stop_halts_an_asynchronous_move_and_leaves_it_running_as
     set_stop(c.model, kind, False)
     c.t = 2.5
     assert c.read("actual_TCP_pose", "output_int_register_2") == [halted, progress]  # cleared: nothing resumes
-    c.command(33, (10.0,) + (0.0,) * 7)  # stopL kills the thread: now "finished"
-    assert not c.read("output_int_register_2")[0] & RUNNING
+    c.command(33, (10.0,) + (0.0,) * 7)  # stopL kills the thread of a program that runs: now "finished"
+    if kind == "safeguard":
+        assert not c.read("output_int_register_2")[0] & RUNNING
+    else:  # a paused program takes no stopL; the next one's start resets the register
+        assert c.read("runtime_state", "output_int_register_2") == [4, progress]
+        c.model.start_script("def rtde_control():\nend")
+        assert not c.read("output_int_register_2")[0] & RUNNING
 
 
 def test_model_a_program_stopped_under_a_running_move_writes_nothing_and_a_new_one_resets_the_register():
@@ -487,8 +515,8 @@ def test_model_the_next_move_after_a_safety_stop_kills_the_halted_thread_and_sta
     c = ClockedModel()
     c.command(3, (0.5, 0.0, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)
     c.t = 0.5
-    c.model.set_protective_stop(True)
-    c.model.set_protective_stop(False)
+    c.model.set_safeguard_stop(True)  # a stop the program runs on through
+    c.model.set_safeguard_stop(False)
     before = c.read("output_int_register_2")[0]
     c.command(3, (0.3, 0.1, 0.3, 0.0, math.pi, 0.0, 0.1, 1.0), asynchronous=1)
     killed = c.read("output_int_register_2")[0]
@@ -520,7 +548,7 @@ def test_model_the_dashboard_names_the_safety_mode_rtde_reports(kind):
 @pytest.mark.parametrize("mode, name", [(8, "VIOLATION"), (9, "FAULT")])
 def test_model_a_safety_violation_or_fault_holds_the_arm_and_the_program_until_the_arm_is_restarted(mode, name):
     """RTDE guide: safety mode 8 violation (safety_status_bits bit 8), 9 fault (bit 9), with bit 10. The arm halts
-    and the program stops whatever stop_script_on_fault says; unlocking a protective stop does not clear it and no
+    and the program stops (it is not paused); unlocking a protective stop does not clear it and no
     program starts, only a restart of the arm (the dashboard's `restart safety`) does; the program then stays stopped
     until the script is uploaded again."""
     from spadscan.daemon.ursim.dashboard import reply
