@@ -212,31 +212,6 @@ def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_
     assert torch.allclose(grown.field.sdf, torch.maximum(live, grown.constraint.bound_for(grown.field)), atol=1e-6)
 
 
-def test_a_rebuild_and_the_final_run_go_on_with_the_live_fits_albedo(cylinder_capture, tmp_path, one_thread):
-    """The fitted albedo is part of where the fit stands: a rebuild (at the fine level, or back at the coarse one)
-    and a final run that continues from the live fit take it over instead of starting again from 1; a final run
-    from the hull starts as any run does."""
-    config = with_overrides(preset_config("fast"), FAST_SMALL)
-    scan = ReplayScan(cylinder_capture, tmp_path / "scan")
-    fit = LiveFit(tmp_path / "scan", config, torch.device("cpu"), 0, log=lambda line: None)
-    scan.publish(8)
-    assert fit.rebuild(32) and fit.train_steps(12) == 12 and fit.model.level == 1
-    fresh = float(make_fast_model(load_scene(tmp_path / "scan"), config, "cpu", PLAN).log_albedo.detach())
-    for views, albedo, level in ((10, 0.3, 1), (15, 0.2, 0)):  # 10: on at the fine level; 15: back to the coarse
-        fit.model.set_albedo(albedo)
-        scan.publish(views - fit.views_used)
-        assert fit.rebuild(32) and fit.model.level == level
-        assert fit.model.albedo() == pytest.approx(albedo), "the rebuild started its albedo again"
-        fit.train_steps(12)
-    assert fit.continuable
-    fit.model.set_albedo(0.25)
-    scan.publish(len(scan.poses) - fit.views_used)
-    scan.finish()
-    every = load_scene(tmp_path / "scan")
-    assert fit.warm_factory(True)(every, config, "cpu", PLAN).albedo() == pytest.approx(0.25)
-    assert float(fit.warm_factory(False)(every, config, "cpu", PLAN).log_albedo.detach()) == pytest.approx(fresh)
-
-
 def test_views_that_hold_no_return_are_not_fitted_and_the_live_status_says_why(tmp_path, one_thread):
     # The final run refuses such a capture; the live fit used to publish a noise mesh of it as "following the scan".
     from spadscan.protocol.live_status import read_status

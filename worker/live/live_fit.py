@@ -3,8 +3,7 @@
 Each rebuild loads the capture as it stands (every published view), builds the `fast` problem on it (a new space
 carving: more views carve a tighter hull) and a new model, and warm-starts that model from the previous one's field
 (`FastModel.warm_start`): the old surface where the old grid covers the new one, never outside the new hull, at the
-old model's level of refinement, with the old model's fitted albedos. So the views in use grow while the fit goes on
-from where it was.
+old model's level of refinement. So the views in use grow while the fit goes on from where it was.
 
 While the scan is young, a rebuild goes back to the coarse level instead (warm, from the live surface) each time the
 views have grown enough (`recoarse.RecoarsePolicy`: the first views see the object from one side only).
@@ -31,7 +30,7 @@ from ..recon.model_api import RunPlan
 from ..recon.presets import make_model, preset
 from ..recon.scene_data import SceneData, load_scene
 from ..reconstruct import check_returns
-from .keep import LiveState, scalars_of, use_scalars
+from .keep import LiveState, scalars_of
 from .recoarse import RecoarsePolicy
 from .snapshot import FieldSnapshot, GridSnapshot, LiveSnapshot
 
@@ -98,10 +97,6 @@ class LiveFit:
             if self.model is not None:
                 level, level_steps = (0, 0) if recoarse else (self.model.level, self.model.level_steps)
                 model.warm_start(self.model.mesh_field(), level, level_steps)
-                # The albedos go on with the field they were fitted with: from 1 again, every rebuild put the field
-                # under a brighter object than it was fitted for (a dark one's, far brighter: only a cold start's
-                # dark restart corrects that, and a warm fit is never restarted).
-                use_scalars(model, scalars_of(self.model))
         except SpadscanError as exc:
             self.not_yet = f"no live fit yet: {exc}"
             self.log(f"live: cannot fit the views so far yet ({exc}); trying again with more")
@@ -203,9 +198,8 @@ class LiveFit:
 
     def warm_factory(self, from_live: bool) -> Callable:
         """A model factory (scene, config, device, plan) -> model for the final reconstruction: the preset's model
-        of the complete capture, warm-started from this fit (its field and albedos) where `from_live` (the final run
-        continues from the live state; only a `continuable` fit can), else that model as it starts, from the carved
-        hull.
+        of the complete capture, warm-started from this fit where `from_live` (the final run continues from the live
+        state; only a `continuable` fit can), else that model as it starts, from the carved hull.
 
         A fit still on its coarse level is a worse start than the hull: the demo's simulated scan takes 4 s, in
         which the live fit took 6-8 coarse steps, and the final runs that continued from them ended shredded (the
@@ -217,14 +211,12 @@ class LiveFit:
         the last coarse ones on 113 of its 128 views), and the final run that continued from it came out in 13
         pieces at 6.65 mm, where the hull's gives 1.2."""
         field, level, level_steps = self.live_field(), self.model.level, self.model.level_steps
-        scalars = scalars_of(self.model)
         continued = from_live and self.continuable
 
         def make(scene, config, device, plan):
             model = make_model(scene, config, device, plan)
             if continued:
                 model.warm_start(field, level, level_steps)
-                use_scalars(model, scalars)
             return model
 
         return make

@@ -17,7 +17,7 @@ extra surface makes it read low, 0.4-0.8 of the truth on the dark ones tried, wh
 carving; the ball: 4.1 mm at step 800). Measured at step 200 on every bright scene of the benchmarks (37 simulated,
 two real): 0.57 and more, the one under 0.6 (the plant stand) rising by 0.13 over the 50 steps before; on the dark
 objects tried, 0.23-0.37, or 0.46-0.54 and falling. Once per run; not on a warm start (a live fit's rebuilds go on
-from the live field and its albedo: only the live fit's first model, from the hull, can be restarted), nor
+from the live field, their albedo from 1 again, and are not restarted: a dark object's live fit is not helped), nor
 where the coarse level ends before `check_steps` (said in the report's parts left out). Without a signal to read an
 albedo from, the restart keeps the albedo the first fit reached.
 """
