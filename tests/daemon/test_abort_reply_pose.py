@@ -8,7 +8,7 @@ import shutil
 from spadscan.cli import main
 from spadscan.protocol.capture_reader import CaptureReader
 
-from test_runner import daemon_runner, make_cfg, sphere, until  # noqa: F401  (sphere: a fixture)
+from test_runner import daemon_runner, make_cfg, paused_after, sphere, until  # noqa: F401  (sphere: a fixture)
 
 VIEWS = 40
 
@@ -23,10 +23,7 @@ def test_the_abort_reply_of_a_paused_scan_gives_the_pose_it_stopped_at(arun, tmp
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("mug")
-            await until(lambda: runner.job.next_pose >= 3, "three poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "mug", runner.pause, poses=3)
             return await runner.status_now(), await runner.abort("wrong object")
 
     paused, aborted = arun(scenario())
@@ -58,10 +55,7 @@ def test_a_chunk_moved_out_during_the_pause_lowers_the_pose_the_abort_reply_give
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("mug")
-            await until(lambda: runner.job.next_pose >= 3, "three poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "mug", runner.pause, poses=3)
             before = runner.status()
             newest = sorted(folder.glob("chunk-*"))[-1]
             shutil.move(newest, tmp_path / newest.name)  # (one pose a chunk)

@@ -21,7 +21,8 @@ import spadscan.daemon.runner as runner_module
 from spadscan.protocol.errors import ConfigError
 
 from test_abort_durable import disk  # noqa: F401  (a fixture)
-from test_runner import check_capture, daemon_runner, make_cfg, sphere, until  # noqa: F401  (sphere: a fixture)
+from test_runner import (check_capture, daemon_runner, make_cfg, paused_after, sphere,  # noqa: F401  (sphere: a fixture)
+                         until)
 
 PAGE = 4096  # tmpfs allocates files' data in pages
 
@@ -65,10 +66,7 @@ def test_a_resume_on_a_disk_with_room_for_the_manifest_but_not_a_chunk_is_refuse
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("tight")
-            await until(lambda: runner.job.next_pose >= 2, "two poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "tight", runner.pause, poses=2)
             fill_leaving(tmp_path / "caps", 2 * PAGE)
             moves = runner.arm.moves
             with pytest.raises(ConfigError) as refused:
@@ -150,10 +148,7 @@ def test_a_chunk_moved_out_of_a_scan_paused_in_the_daemons_hands_is_taken_again(
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("held")
-            await until(lambda: runner.job.next_pose >= 4, "four poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "held", runner.pause, poses=4)
             shutil.move(folder / "chunk-000001", tmp_path / "chunk-000001")
             reply = await runner.resume()
             return reply, await runner.wait("held")

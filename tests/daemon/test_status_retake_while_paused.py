@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import shutil
 
-from test_runner import check_capture, daemon_runner, make_cfg, sphere, until  # noqa: F401  (sphere: a fixture)
+from test_runner import check_capture, daemon_runner, make_cfg, paused_after, sphere  # noqa: F401  (sphere: a fixture)
 
 
 def test_a_chunk_moved_out_during_a_pause_is_listed_to_take_again_before_the_resume(arun, tmp_path,
@@ -16,10 +16,7 @@ def test_a_chunk_moved_out_during_a_pause_is_listed_to_take_again_before_the_res
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("held")
-            await until(lambda: runner.job.next_pose >= 4, "four poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "held", runner.pause, poses=4)
             before = await runner.status_now()
             shutil.move(folder / "chunk-000001", tmp_path / "chunk-000001")
             paused = await runner.status_now()
@@ -43,10 +40,7 @@ def test_a_chunk_changed_during_a_pause_gives_an_explicit_list_and_why_the_resum
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("held")
-            await until(lambda: runner.job.next_pose >= 4, "four poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "held", runner.pause, poses=4)
             meta = folder / "chunk-000002" / "meta.json"
             meta.write_bytes(meta.read_bytes())  # rewritten in place: the daemon cannot tell what it holds now
             paused = await runner.status_now()
@@ -67,10 +61,7 @@ def test_the_newest_chunk_moved_out_during_a_pause_lowers_the_pose_and_frames_as
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("held")
-            await until(lambda: runner.job.next_pose >= 4, "four poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "held", runner.pause, poses=4)
             before = await runner.status_now()
             newest = sorted(folder.glob("chunk-*"))[-1]
             shutil.move(newest, tmp_path / newest.name)
@@ -97,10 +88,7 @@ def test_a_file_named_like_a_chunk_is_no_chunk_to_the_paused_count_as_to_the_res
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("held")
-            await until(lambda: runner.job.next_pose >= 4, "four poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "held", runner.pause, poses=4)
             shutil.move(folder / "chunk-000001", tmp_path / "chunk-000001")
             (folder / "chunk-000099").write_text("not a chunk: a chunk is a folder")
             paused = await runner.status_now()

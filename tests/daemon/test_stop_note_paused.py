@@ -9,7 +9,7 @@ import shutil
 
 from spadscan.protocol.capture_writer import CaptureWriter
 
-from test_runner import daemon_runner, make_cfg, sphere, until  # noqa: F401  (sphere: a fixture)
+from test_runner import daemon_runner, make_cfg, paused_after, sphere  # noqa: F401  (sphere: a fixture)
 
 VIEWS = 8
 
@@ -22,10 +22,7 @@ def test_the_paused_stop_note_counts_a_chunk_moved_out_during_the_pause(arun, tm
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
-            await runner.start("held")
-            await until(lambda: runner.job.next_pose >= 4, "four poses")
-            await runner.pause()
-            await until(lambda: runner.state == "paused", "the pause")
+            await paused_after(runner, "held", runner.pause, poses=4)
             before = runner.status()
             newest = sorted(folder.glob("chunk-*"))[-1]
             shutil.move(newest, tmp_path / newest.name)  # the resume goes on from the first pose it held
