@@ -86,6 +86,11 @@ def make_plan(spec: SweepSpec, lcspc_root: Path | None = None) -> Plan:
     base_record = {"format": FORMAT, "base": spec.base, **methods}
     plan = Plan(spec, scenes, [], {}, base_record, canonical_hash(base_record)[:16])
     checked: dict[str, dict] = {}  # one check per distinct parameter set
+    # The base condition first: a fault in [base] is in every entry, and blaming the first one misleads.
+    try:
+        checked[canonical_hash(dict(spec.base))] = check_point(dict(spec.base), spec.base["bin_ps"])
+    except ConfigError as exc:
+        raise ConfigError(f"{spec.path}: [base] (the base condition): {exc}") from None
     for scene in scenes:
         for axis, value, params in _grid_points(spec):
             key = canonical_hash(params)

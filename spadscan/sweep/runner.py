@@ -299,7 +299,10 @@ def _outcome(outcome, task: PointTask, store: SweepDir, device: str, exits: Work
         reason = f"{type(outcome).__name__}: {' '.join(str(outcome).split())[:300]}"
     result = {"id": task.id, "status": "failed", "reason": reason, "scene": task.scene.label,
               "params": task.params, "methods": {}, "device": device, "record": task.record}
-    store.write_point(result)
+    stored = store.write_point(result)
+    if stored.get("status") == "done":
+        # An attempt whose worker died after storing the point had finished it: report what points/<id>.json says.
+        return point_summary(stored)
     store.append_log({"event": "failed", "point": task.id, "reason": reason})
     return result
 

@@ -78,6 +78,7 @@ class SweepDir:
         self.work = self.path / WORK
         self.locks = self.path / LOCKS
         self._lock_fd: int | None = None
+        self._opened = False
 
     # --- the client's side: open, check, gather ---------------------------------------------------------------
 
@@ -101,15 +102,21 @@ class SweepDir:
             self.points.mkdir(exist_ok=True)
             self.work.mkdir(exist_ok=True)
             self.locks.mkdir(exist_ok=True)
-            for folder in self.work.glob(f"*{RUNNING_MARK}*"):
-                with self.hold_point(folder.name.split(RUNNING_MARK)[0], wait=False) as free:
-                    if free:  # no attempt holds its point: the one that made it is dead
-                        shutil.rmtree(folder, ignore_errors=True)
+            self._clear_dead_work()
             write_json_atomic(self.path / SWEEP_JSON, sweep_record(plan))
             write_atomic(self.path / SWEEP_TOML, plan.spec.text)
+            self._opened = True
         except BaseException:
             self.close()
             raise
+
+    def _clear_dead_work(self) -> None:
+        """Remove work/<id>.running-... folders whose point no attempt holds: the attempt that made each is dead (an
+        attempt still running, on a scheduler's worker, holds its point's lock and keeps its folder)."""
+        for folder in self.work.glob(f"*{RUNNING_MARK}*"):
+            with self.hold_point(folder.name.split(RUNNING_MARK)[0], wait=False) as free:
+                if free:
+                    shutil.rmtree(folder, ignore_errors=True)
 
     def check(self, plan, overwrite: bool = False) -> None:
         """What `open` refuses, checked without taking the lock or writing anything (`spadscan sweep --dry-run`): a
@@ -120,6 +127,12 @@ class SweepDir:
             self._check_fingerprint(plan, overwrite)
 
     def close(self) -> None:
+        """Clear the work folders of attempts that died during the run (a killed worker's), then let the folder go.
+        A folder `open` refused is left as it was found."""
+        if self._opened:
+            self._opened = False
+            with contextlib.suppress(OSError):  # a leftover folder is untidy, not wrong: the next open clears it
+                self._clear_dead_work()
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # releases the lock
             self._lock_fd = None

@@ -168,3 +168,22 @@ def test_without_a_progress_bar_each_finished_point_is_a_line(tmp_path):
                                                  "2 warnings (fast)") for line in done), done
     (failed,) = [line for line in finished if ": failed" in line]
     assert failed.endswith("power=1e-07: failed; every method: no return"), failed
+
+
+def test_a_point_dask_gave_up_on_after_it_was_stored_done_is_reported_done(tmp_path):
+    """Dask can give up on a task (its worker died) after the attempt stored the point as done: the client's account
+    must follow points/<id>.json, not Dask."""
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    task = next(iter(plan.points.values()))
+    store = SweepDir(tmp_path / "out")
+    store.open(plan)
+    try:
+        store.write_point(fake_result(task))
+        result = runner._outcome(RuntimeError("worker lost"), task, store, "cpu")
+    finally:
+        store.close()
+    assert result["status"] == "done" and result["reason"] is None, result
+    assert result["methods"]["fast"]["status"] == "done"
+    assert json.loads((store.points / f"{task.id}.json").read_text())["status"] == "done"
+    log = (store.path / "log.jsonl").read_text() if (store.path / "log.jsonl").exists() else ""
+    assert '"event": "failed"' not in log

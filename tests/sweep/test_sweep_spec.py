@@ -178,3 +178,17 @@ def test_lcspc_scenes_are_found_under_the_dataset_folder(tmp_path):
     assert make_plan(load_spec(path), moved).points.keys() == plan.points.keys()
     with pytest.raises(ConfigError, match="is --lcspc .* the dataset's folder"):
         make_plan(load_spec(path), tmp_path)
+
+
+@pytest.mark.parametrize("base, message", [
+    ('sensor = "tmf8820"\nbin_ps = 33.4\n', "bin_ps: sensor 'tmf8820' has a measured (tabulated) pulse"),
+    ('schedule = "spiral"\n', "schedule = 'spiral' is not one of"),
+    ('min_elevation_deg = 60\nmax_elevation_deg = 30\n', "must be below max_elevation_deg"),
+])
+def test_a_bad_base_condition_is_blamed_on_base_not_on_the_first_grid_entry(tmp_path, base, message):
+    path = write(tmp_path, f'[sweep]\nscenes = ["builtin:sphere"]\n[base]\n{base}[grid]\nviews = [8]\n')
+    with pytest.raises(ConfigError) as err:
+        make_plan(load_spec(path))
+    text = str(err.value)
+    assert f"{path}: [base] (the base condition): " in text and message in text, text
+    assert "[grid]" not in text, text

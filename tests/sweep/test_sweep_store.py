@@ -340,3 +340,34 @@ def test_entries_without_a_result_may_be_dropped(tmp_path):
     again = SweepDir(tmp_path / "out")
     again.open(make_plan(load_spec(smaller)))
     again.close()
+
+
+def test_closing_the_folder_clears_the_work_folders_of_attempts_that_died_during_the_run(tmp_path):
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    try:
+        dead = out.new_work_dir("0123456789abcdef", "gone")  # made after open: a worker killed during this run
+        live = out.new_work_dir("fedcba9876543210", "here")
+        with out.hold_point("fedcba9876543210") as held:  # an attempt still running holds its point
+            assert held
+            out.close()
+            assert not dead.exists() and live.is_dir()
+    finally:
+        out.close()
+    assert live.is_dir()  # closing twice does nothing more
+
+
+def test_a_refused_folder_keeps_its_work_folders_when_closed(tmp_path):
+    plan = make_plan(load_spec(write_tiny(tmp_path)))
+    out = SweepDir(tmp_path / "out")
+    out.open(plan)
+    out.write_point(fake_result(next(iter(plan.points.values()))))
+    dead = out.new_work_dir("0123456789abcdef", "gone")
+    out.close()
+    dead.mkdir(exist_ok=True)  # the close above clears it: as if a worker died after it
+    other = write_tiny(tmp_path).read_text().replace("views = 12\n", "views = 16\n", 1)
+    (tmp_path / "other.toml").write_text(other)
+    with pytest.raises(ConfigError, match="another base condition"):
+        SweepDir(tmp_path / "out").open(make_plan(load_spec(tmp_path / "other.toml")))
+    assert dead.is_dir()
