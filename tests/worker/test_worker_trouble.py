@@ -85,6 +85,9 @@ def test_a_worker_that_ends_on_an_error_stops_its_jobs_first(tmp_path, arun, mar
     def scan_once_then_fail(*args):
         passes.append(1)
         if len(passes) > 1 and markers_started(markers):
+            # The job processes running as the bug strikes (read here: the worker stops them before the test's
+            # own wait for the marker may wake up)
+            pids.extend(c.proc.pid for c in worker.children.values())
             raise RuntimeError("a bug in the watcher")
         return real_scan_once(*args)
 
@@ -95,8 +98,6 @@ def test_a_worker_that_ends_on_an_error_stops_its_jobs_first(tmp_path, arun, mar
 
     async def main():
         run = asyncio.create_task(worker.run(asyncio.Event()))
-        await _until(lambda: markers_started(markers))
-        pids.extend(c.proc.pid for c in worker.children.values())
         with pytest.raises(RuntimeError, match="a bug in the watcher"):
             await run
 
