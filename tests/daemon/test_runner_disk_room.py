@@ -21,8 +21,8 @@ import spadscan.daemon.runner as runner_module
 from spadscan.protocol.errors import ConfigError
 
 from test_abort_durable import disk  # noqa: F401  (a fixture)
-from test_runner import (check_capture, daemon_runner, make_cfg, paused_after, sphere,  # noqa: F401  (sphere: a fixture)
-                         until)
+from test_runner import check_capture, daemon_runner, make_cfg, paused_after, until
+from test_runner import sphere  # noqa: F401  (a fixture)
 
 PAGE = 4096  # tmpfs allocates files' data in pages
 
