@@ -60,6 +60,15 @@ def tcp_offset_answered(polyscope: tuple[int, int] | None) -> bool:
     return polyscope is None or polyscope >= TCP_OFFSET_SINCE
 
 
+RUNTIME_PAUSED = (3, 4)
+"""RTDE runtime_state values of a program a protective or emergency stop paused: PAUSING and PAUSED (UR's client
+library's RUNTIME_STATE; 1 is STOPPED, 2 PLAYING)."""
+STOP_REPLY = "Stopped"
+"""The dashboard server's answer to `stop` when it took it (otherwise "Failed to execute: stop")."""
+PAUSED_STOP_WAIT_S = 2.0
+"""How long the receive stream may take to show the program stopped after the dashboard's `stop`."""
+
+
 class CommandFailed(Exception):
     """The controller did not carry out a command (its control script is not running, or a safety stop is active).
     Not a RuntimeError: the parent ends the link on those, and this link is fine."""
@@ -72,6 +81,7 @@ class Client:
         self.control = None
         self.receive = None
         self.polyscope: tuple[int, int] | None = None
+        self.host = ""
 
     def open(self, host: str, frequency: float, watchdog_hz: float | None = None) -> dict:
         """Connect both interfaces (the control interface uploads its script) and, with watchdog_hz, arm the
@@ -80,6 +90,7 @@ class Client:
         import rtde_control
         import rtde_receive
 
+        self.host = host
         self.receive = rtde_receive.RTDEReceiveInterface(host, frequency)
         # The dashboard is asked before the script is uploaded, so that nothing stands between the upload and
         # setWatchdog (ur_rtde's advice: right after construction): a script without a watchdog runs on when this
@@ -109,7 +120,8 @@ class Client:
                 "connected": bool(r.isConnected() and c.isConnected()),
                 "program_running": bool(c.isProgramRunning()), "tcp_speed": list(r.getActualTCPSpeed()),
                 "speed_scaling": float(r.getSpeedScalingCombined()),
-                "speed_slider": float(r.getTargetSpeedFraction())}
+                "speed_slider": float(r.getTargetSpeedFraction()),
+                "paused": int(r.getRuntimeState()) in RUNTIME_PAUSED}
 
     def read_progress(self) -> dict:
         """`read`, plus whether an asynchronous move is still running and the id of the last one that started (it
@@ -179,8 +191,11 @@ class Client:
 
     def stop_script(self) -> dict:
         """End the control script (stopScript: the program stops, and its watchdog with it), where it can take the
-        command. Returns {"stopped": whether no program runs now, "why": why it was left running, else ""}."""
-        if not self.control.isProgramRunning():
+        command; a paused program, which takes no command, by the dashboard's `stop`. Returns {"stopped": whether no
+        program runs now, "why": why it was left running or paused, else ""}."""
+        if not self.control.isProgramRunning():  # true only while playing
+            if int(self.receive.getRuntimeState()) in RUNTIME_PAUSED:
+                return self._stop_paused()
             return {"stopped": True, "why": ""}
         why = self._held()
         if why is None:
@@ -188,6 +203,30 @@ class Client:
             if self.control.isProgramRunning():
                 why = "the RTDE control script still runs after stopScript"
         return {"stopped": why is None, "why": why or ""}
+
+    def _stop_paused(self) -> dict:
+        """The dashboard's `stop` for a paused program (see `stop_script`), then until the receive stream shows it
+        stopped."""
+        import dashboard_client
+
+        dashboard = dashboard_client.DashboardClient(self.host)
+        try:
+            dashboard.connect()
+            dashboard.send("stop\n")
+            answer = dashboard.receive().strip()
+        except RuntimeError as exc:  # no dashboard server to ask
+            return {"stopped": False, "why": f"the dashboard server did not take `stop`: {exc}"}
+        finally:
+            if dashboard.isConnected():
+                dashboard.disconnect()
+        if not answer.startswith(STOP_REPLY):
+            return {"stopped": False, "why": f"the dashboard server answered `stop` with {answer!r}"}
+        deadline = time.monotonic() + PAUSED_STOP_WAIT_S
+        while int(self.receive.getRuntimeState()) in RUNTIME_PAUSED:
+            if time.monotonic() > deadline:
+                return {"stopped": False, "why": f"still paused {PAUSED_STOP_WAIT_S:g} s after the dashboard's stop"}
+            time.sleep(0.02)
+        return {"stopped": True, "why": ""}
 
     def _held(self) -> str | None:
         """Why the control script cannot take a command now (it is not running, a safety stop holds the arm), or

@@ -115,6 +115,7 @@ class _Reading:
     program_running: bool = True  # the control script runs (commands can be taken)
     speed_scaling: float = 1.0  # combined: speed slider x trajectory scaling
     op_id: int = -1  # the last asynchronous move that started (progress readings only; -1 otherwise)
+    paused: bool = False  # the program is paused (runtime state PAUSING/PAUSED: a protective or emergency stop)
 
     @property
     def safety_fault(self) -> str | None:
@@ -569,7 +570,7 @@ class URArm(Arm):
                         float(d["timestamp"]), d["protective"], d["emergency"], d["safety_mode"], d["connected"],
                         np.array(d["tcp_speed"], dtype=np.float64), bool(d.get("moving", False)),
                         int(d["safety_bits"]), bool(d["program_running"]), float(d["speed_scaling"]),
-                        int(d.get("op_id", -1)))
+                        int(d.get("op_id", -1)), bool(d.get("paused", False)))
 
     def _note_slider(self, slider: float | None, timestamp: float) -> None:
         """Keep the speed slider's reading, and when it came (`speed_slider_at`: only a reading the controller sent
@@ -624,6 +625,9 @@ class URArm(Arm):
                     else "no watchdog was armed on it: stop it on the teach pendant")
         try:
             reading = await self._fresh("the control script's state before stopScript")
+            if reading.paused:
+                await self._stop_paused_program()
+                return
             if not reading.program_running:
                 return
             if reading.stop is not None:
@@ -636,6 +640,18 @@ class URArm(Arm):
             return
         if not result["stopped"]:
             log.warning("%s: the control script was left running (%s); %s", self.name, result["why"], watchdog)
+
+    async def _stop_paused_program(self) -> None:
+        """A protective or emergency stop paused the program (UR: it only pauses it) and no script command reaches a
+        paused program, so stopScript cannot end it: the dashboard's `stop` does. Left paused, the program would
+        finish its halted move when someone presses Play on the pendant, long after this daemon let go of the arm.
+        Raises DeviceError (LinkLost too) as `_call` does; the caller says what is left."""
+        result = await self._call("the dashboard's stop for the paused program", "stop_script")
+        if result["stopped"]:
+            log.info("%s: the paused control script was stopped (the dashboard's stop)", self.name)
+        else:
+            log.warning("%s: the paused control script was left on the controller (%s): stop it on the teach pendant "
+                        "(Play would finish its halted move)", self.name, result["why"])
 
     def _unnamed(self, exc: Exception) -> str:
         """The message of an error this arm raised, without its leading "<arm name>: " (for a line that names the arm

@@ -129,6 +129,8 @@ class URControllerModel:
         """Times the RTDE watchdog stopped the program."""
         self.script_stops = 0
         """Times the control script ended on its stop command (255, ur_rtde's stopScript)."""
+        self.dashboard_stops = 0
+        """Times the dashboard's `stop` ended a playing or paused program."""
         self.queries: list[tuple[str, tuple[float, ...], bool]] = []
         """(query, pose, answer) of every safety-limit and inverse-kinematics question answered."""
         self._motion: Motion | None = None
@@ -331,6 +333,21 @@ class URControllerModel:
             ok = ok and (self.safety_floor_z is None or bool(pose[2] >= self.safety_floor_z))
         self.queries.append((name, tuple(float(x) for x in pose), ok))
         self._out_int[1] = int(ok)
+
+    def stop_program(self) -> None:
+        """The dashboard's `stop` (as the pendant's Stop button): a playing or paused program ends, the move thread
+        with it; a paused one is the case that matters, since no script command reaches it (UR's ROS 2 driver's
+        robot state helper stops a paused program so before playing it again). Nothing when no program runs."""
+        with self._lock:
+            t = self.now()
+            self._advance(t)
+            if self.runtime_state not in (RUNTIME_PLAYING, RUNTIME_PAUSED):
+                return
+            self._halt(t, "ended")
+            self._busy = self._executing = False
+            self.runtime_state = RUNTIME_STOPPED
+            self.watchdog_period_s = None
+            self.dashboard_stops += 1
 
     def _check_watchdog(self, t: float) -> None:
         """Stop the program when the watchdog's input has not been written for longer than its period."""

@@ -57,7 +57,8 @@ def reply(model: URControllerModel, line: str, version: str, serial: str) -> str
         return "Powering off"
     if low == "brake release":
         return "Brake releasing"
-    if low == "stop":
+    if low == "stop":  # ends a playing or a paused program
+        model.stop_program()
         return "Stopped"
     return f"could not understand: '{cmd}'"
 

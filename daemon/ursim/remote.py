@@ -39,7 +39,8 @@ def handle(controller: SimURController, request: dict) -> object:
     if op == "state":
         m = controller.model
         return {"runtime_state": m.runtime_state, "watchdog_period_s": m.watchdog_period_s,
-                "watchdog_stops": m.watchdog_stops, "script_stops": m.script_stops, "errors": list(m.errors),
+                "watchdog_stops": m.watchdog_stops, "script_stops": m.script_stops,
+                "dashboard_stops": m.dashboard_stops, "errors": list(m.errors),
                 "queries": [list(q) for q in m.queries], "tcp_offset_reads": m.tcp_offset_reads,
                 "safety_mode": m.read(["safety_mode"])[0],
                 "moving": m.read(["output_int_register_2"])[0] & 32768 != 0,
@@ -113,7 +114,8 @@ class SimURProcess:
 
     def state(self) -> dict:
         """runtime_state (1 stopped, 2 playing, 4 paused), watchdog_period_s, watchdog_stops, script_stops (programs
-        ended by their stop command, ur_rtde's stopScript), errors, queries (name, pose, answer), tcp_offset_reads
+        ended by their stop command, ur_rtde's stopScript), dashboard_stops (programs, playing or paused, ended by the
+        dashboard's `stop`), errors, queries (name, pose, answer), tcp_offset_reads
         (get_tcp_offset commands answered), safety_mode (RTDE's), whether an asynchronous move is running,
         script_state (1 ready for a command, 2 done with one)."""
         return self._request("state")

@@ -369,3 +369,51 @@ def test_clear_fault_keeps_the_watchdog_flag_the_reconnect_set(arun, monkeypatch
     arm = ReconnectingArm(armed)
     arun(arm.clear_fault())
     assert arm.calls == ["reupload", "reconnect"] and arm._watchdog_set is armed
+
+
+def test_a_close_ends_a_program_a_protective_stop_paused_with_the_dashboards_stop(ur, arun, caplog):
+    """UR: a protective stop only pauses the program, and a paused program takes no script command (stopScript
+    cannot reach it); Play on the pendant would finish its halted move after the daemon let go. close() ends it with
+    the dashboard's `stop`, and says so."""
+    caplog.set_level(logging.INFO, logger="spadscan.daemon")
+
+    async def run():
+        arm = make_arm(ur.host)
+        try:
+            await arm.connect()
+            await arm.prepare()
+            ur.protective_stop()
+            await until_arm_reads(arm, "protective stop")
+            ur.clear_protective_stop()
+            await until_arm_reads(arm, None)
+            paused = ur.state()
+        finally:
+            await arm.close()
+        return paused, ur.state(), arm.name
+
+    paused, closed, name = arun(run())
+    assert paused["runtime_state"] == 4
+    assert closed["runtime_state"] == 1 and closed["dashboard_stops"] == 1 and closed["script_stops"] == 0
+    assert "stop" in ur.dashboard_log()
+    said = [r.getMessage() for r in caplog.records if "control script" in r.getMessage()]
+    assert said == [f"{name}: the paused control script was stopped (the dashboard's stop)"], said
+
+
+def test_the_client_process_ends_a_paused_program_when_its_requests_end(ur, arun):
+    """The ur_rtde process's own close (the parent gone) ends a paused program the same way."""
+    async def run():
+        link = RTDELink("test link")
+        await link.start()
+        try:
+            await link.call("connect", 35.0, "open", ur.host, 100.0, None)
+            ur.protective_stop()
+            deadline = time.monotonic() + 30  # until the process's own reading shows it (the stream's own pace)
+            while not (await link.call("read", 20.0, "read"))["paused"]:
+                assert time.monotonic() < deadline, "the ur_rtde process never read the program paused"
+                await asyncio.sleep(0.01)
+        finally:
+            await link.stop(20.0)
+        return ur.state()
+
+    state = arun(run())
+    assert state["runtime_state"] == 1 and state["dashboard_stops"] == 1
