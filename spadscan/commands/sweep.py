@@ -9,7 +9,9 @@ calibrated against the ground truth, and everything is scored (see examples/swee
 Points run on Dask distributed: an embedded cluster of --workers processes (default: one per core), one thread each,
 or the workers of a running scheduler (--scheduler tcp://HOST:8786; the machines must share DIR and the scenes'
 files). Results survive: each finished point is written at once to DIR/points/<id>.json and gathered into
-DIR/results.csv; a re-run of the same sweep runs only the points not done (failed ones again); a point whose worker
+DIR/results.csv; a re-run of the same sweep runs only the points not done (failed ones again, each only its methods
+not done) and the stale ones, stored by another spadscan version or --device or before a preset's or a baseline's
+defaults changed (said in one line; a stale result stays until its new one is stored); a point whose worker
 dies runs again on another (one that kills every worker it is tried on fails, saying how the last one ended where
 the embedded cluster knows it: the signal, as "killed (SIGKILL: out of memory, or killed by hand?)" or "crashed
 (SIGSEGV)", or the exit code, or "stopped by Dask for using too much memory" where it passed 95% of its memory limit,
@@ -49,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
                         help="where the presets reconstruct (default: cpu); cuda points go only to workers "
                              "started with --resources GPU=1 (without --scheduler, cuda is refused where torch "
-                             "sees no CUDA device)")
+                             "sees no CUDA device; points stored with another device run their presets again)")
     parser.add_argument("--lcspc", default=None, metavar="DIR",
                         help="the LCSPCData folder (the one holding simulated/) for lcspc:NAME scenes")
     parser.add_argument("--keep", action="store_true",
@@ -59,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "sweep.json and sweep.toml become this file's (the other points' results stay in "
                              "DIR/points/, and a run of their own file gathers them again)")
     parser.add_argument("--dry-run", action="store_true",
-                        help="check the file and list the points and how many are done; run nothing")
+                        help="check the file and list the points and how many are done (and stale: they would run "
+                             "again); run nothing")
     add_progress_options(parser, "no progress bar: a line on standard error per finished point instead (its id, "
                                  "status, Chamfer per method and warnings), for a log",
                          "a line per finished point, as with --no-progress")
@@ -92,7 +95,7 @@ def run(args) -> int:
         f"{counted(len(plan.points), 'distinct point')}; methods {', '.join(spec.methods)}"
         + ("" if spec.grid else " (no [grid]: the base condition alone)"))
     if args.dry_run:
-        return _dry_run(plan, Path(args.out), args.overwrite)
+        return _dry_run(plan, Path(args.out), args.overwrite, args.device)
     from spadscan.signals import terminate_as_interrupt
     from spadscan.sweep.runner import run_sweep
 
@@ -161,16 +164,21 @@ def _per_method(points: dict) -> dict:
     return counts
 
 
-def _dry_run(plan, out, overwrite: bool = False) -> int:
+def _dry_run(plan, out, overwrite: bool = False, device: str = "cpu") -> int:
+    from spadscan.sweep.fingerprint import Digests, Expected
     from spadscan.sweep.store import SweepDir
 
     store = SweepDir(out)
     store.check(plan, overwrite)  # what the run would refuse, the dry run refuses too
-    done = 0
+    done = stale = 0
+    digests = Digests()
     for task in plan.points.values():
         result = store.read_point(task.id) if out.is_dir() else None
-        status = (result or {}).get("status", "to run")
+        # done, stale (done, to run again), failed or to run
+        status = Expected(task, device, digests=digests).state(result)
         done += status == "done"
+        stale += status == "stale"
         print(f"{task.id}  {status:<7} {task.describe(plan.spec.base)}")
-    print(f"{counted(len(plan.points), 'point')}, {done} done, {len(plan.points) - done} to run")
+    print(f"{counted(len(plan.points), 'point')}, {done} done, {len(plan.points) - done} to run"
+          + (f" ({stale} stale)" if stale else ""))
     return 0

@@ -4,8 +4,11 @@ A point is one simulate -> reconstruct -> baselines -> metrics run: a scene and 
 Its id is a hash of everything its results depend on (the scene's label and mesh digest, every parameter, the
 point's sensor model and photon settings, the methods and how they are run and scored), so the same point has the
 same id in every run of every sweep file that asks for it, and grid entries that coincide (the base condition sits
-on every axis) share one point. The *fingerprint* hashes the base condition and the methods: a results folder holds
-the points of one fingerprint only, so that a changed base condition never mixes with results of the old one.
+on every axis) share one point. What the file leaves to spadscan (a preset's defaults, the baselines' default
+thresholds, the code's version) and the device are not in the id: each method's own fingerprint (fingerprint.py),
+stored with the point, holds them, and a stored method whose fingerprint differs runs again. The plan's
+*fingerprint* hashes the base condition and the methods: a results folder holds the points of one fingerprint only,
+so that a changed base condition never mixes with results of the old one.
 """
 
 from __future__ import annotations

@@ -8,7 +8,10 @@ one cause named together: "every method: ..." when all did). Reasons and warning
 its temporary work folder, which is gone when the point ends. A point whose result is
 already there as `done` (its worker died after writing it, and Dask ran it again) is not run twice, and an attempt
 waits while another holds the point (an interrupted run's attempt, which goes on running on a scheduler's worker)
-and then takes that one's result.
+and then takes that one's result. A point stored earlier runs only its methods that are not stored done and current
+(fingerprint.py): a failed point's methods that were done are kept, not run again (a `paper` preset takes hours);
+a stale method (another spadscan version, device, or preset or threshold defaults) runs again. The stored file is
+replaced only once the new result is written.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from spadscan.worker.baselines.run import run_baseline
 from spadscan.worker.reconstruct import reconstruct_capture
 from spadscan.worker.report.report_json import json_safe
 
+from .fingerprint import Expected
 from .params import point_poses, point_sensor, point_settings
 from .plan import PointTask
 from .scenes import scene_mesh
@@ -54,42 +58,63 @@ def run_point(task: PointTask, out: str, *, device: str = "cpu", keep: bool = Fa
     """Run `task` and store its result in the sweep folder `out`; returns the result (as stored)."""
     emit = emit or (lambda event, **fields: None)
     store = SweepDir(out)
+    expected = Expected(task, device)
     earlier = store.read_point(task.id)
-    if earlier is not None and earlier.get("status") == "done":
+    if expected.state(earlier) == "done":
         emit("skip")
         return earlier
     with store.hold_point(task.id, on_wait=lambda: emit("wait")):
         latest = store.read_point(task.id)
-        # A result written since the first look is another attempt's, which held the point meanwhile: the point ran.
-        if latest is not None and (latest.get("status") == "done" or latest != earlier):
+        # A result written since the first look is another attempt's, which held the point meanwhile: the point ran
+        # (unless that attempt's code or device was another: its result is stale, and the point runs again).
+        if expected.state(latest) == "done" or (latest is not None and latest != earlier and all(
+                expected.current(latest, name) for name in expected.fingerprints)):
             emit("skip")
             return latest
-        return _run(task, store, device, keep, emit, worker)
+        return _run(task, store, device, keep, emit, worker, expected, latest)
 
 
-def _run(task: PointTask, store: SweepDir, device: str, keep: bool, emit: Emit, worker: str | None) -> dict:
-    """Run `task` (its lock held) and store its result."""
+def _run(task: PointTask, store: SweepDir, device: str, keep: bool, emit: Emit, worker: str | None,
+         expected: Expected, stored: dict | None = None) -> dict:
+    """Run `task` (its lock held) and store its result; the methods that `stored` (the point's stored result) holds
+    done and current are kept as they are, not run again."""
     host = socket.gethostname()
-    emit("start")
+    kept_methods = expected.reusable(stored)
+    emit("start", **({"kept": list(kept_methods)} if kept_methods else {}))
     start = time.perf_counter()
-    work = store.new_work_dir(task.id, host)
     methods: dict[str, dict] = {}
     simulation: dict = {}
+    names = [p.name for p in task.presets] + list(task.baselines.methods)
+    if all(name in kept_methods for name in names):  # nothing left to run: the capture is not simulated again
+        simulation = dict((stored or {}).get("simulation") or {"status": "done"})
+        methods = {name: kept_methods[name] for name in names}
+        work = kept = None
+    else:
+        work = store.new_work_dir(task.id, host)
     try:
-        emit("stage", stage="simulate")
-        simulation = _attempt(lambda: _simulate(task, work))
-        if simulation.get("status") == "done":
-            capture = work / "capture"
-            for preset in task.presets:
-                emit("stage", stage=preset.name)
-                methods[preset.name] = _attempt(lambda: _reconstruct(task, preset, capture, work, device))
-            for method in task.baselines.methods:
-                emit("stage", stage=method)
-                methods[method] = _attempt(lambda: _baseline(task, method, capture, work))
+        if work is not None:
+            emit("stage", stage="simulate")
+            simulation = _attempt(lambda: _simulate(task, work))
+            if simulation.get("status") == "done":
+                capture = work / "capture"
+                for preset in task.presets:
+                    if preset.name in kept_methods:
+                        methods[preset.name] = kept_methods[preset.name]
+                        continue
+                    emit("stage", stage=preset.name)
+                    methods[preset.name] = _attempt(lambda: _reconstruct(task, preset, capture, work, device))
+                for method in task.baselines.methods:
+                    if method in kept_methods:
+                        methods[method] = kept_methods[method]
+                        continue
+                    emit("stage", stage=method)
+                    methods[method] = _attempt(lambda: _baseline(task, method, capture, work))
     finally:
-        kept = store.finish_work_dir(work, task.id, keep)
-    simulation = without_work_path(simulation, work)
-    methods = {name: without_work_path(r, work) for name, r in methods.items()}
+        if work is not None:
+            kept = store.finish_work_dir(work, task.id, keep)
+    if work is not None:
+        simulation = without_work_path(simulation, work)
+        methods = {name: without_work_path(r, work) for name, r in methods.items()}
     reason = point_reason(simulation, methods)
     result = {
         "id": task.id,
@@ -106,8 +131,9 @@ def _run(task: PointTask, store: SweepDir, device: str, keep: bool, emit: Emit, 
         "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "spadscan": spadscan.__version__,
         "record": task.record,
+        "fingerprints": expected.fingerprints,
     }
-    result = store.write_point(json_safe(result))
+    result = store.write_point(json_safe(result), expected)
     warned = warning_counts(result)  # log.jsonl's end of the point: which methods warned, how often
     emit(result["status"], reason=result["reason"], seconds=result["seconds"],
          **({"warnings": warned} if warned else {}))

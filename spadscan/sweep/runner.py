@@ -38,9 +38,11 @@ from distributed.core import Status
 from distributed.utils import silence_logging_cmgr
 from tqdm import tqdm
 
+import spadscan
 from spadscan.protocol.errors import ConfigError
 
 from .checks import check_local_device, check_workers
+from .fingerprint import Digests, Expected
 from .plan import Plan, PointTask
 from .point import run_point
 from .store import SweepDir, warning_count
@@ -147,12 +149,14 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
         check_local_device(device)
     timeout_s = CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
     store = SweepDir(out)
-    if scheduler is not None and _points_to_run(plan, store):
+    if scheduler is not None and _points_to_run(plan, store, device)[0]:
         # Before the folder is made or opened: a refused run writes nothing.
         probe_scheduler(scheduler, timeout_s)
     store.open(plan, overwrite=overwrite)
     try:
-        todo = _points_to_run(plan, store)
+        todo, stale = _points_to_run(plan, store, device)
+        if stale:
+            log(stale_line(stale))
         summary = Summary(len(plan.points), len(plan.points) - len(todo))
         say = None if progress else log
         try:
@@ -170,9 +174,23 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
         store.close()
 
 
-def _points_to_run(plan: Plan, store: SweepDir) -> list[PointTask]:
-    """The points of `plan` that the folder does not hold as done (all of them where there is no folder yet)."""
-    return [t for t in plan.points.values() if (store.read_point(t.id) or {}).get("status") != "done"]
+def _points_to_run(plan: Plan, store: SweepDir, device: str = "cpu") -> tuple[list[PointTask], int]:
+    """The points of `plan` that the folder does not hold as done and current on `device` (all of them where there
+    is no folder yet), and how many of those it holds done but stale (fingerprint.py)."""
+    todo, stale, digests = [], 0, Digests()
+    for task in plan.points.values():
+        state = Expected(task, device, digests=digests).state(store.read_point(task.id))
+        if state != "done":
+            todo.append(task)
+            stale += state == "stale"
+    return todo, stale
+
+
+def stale_line(stale: int) -> str:
+    """The line that says how many stored points are stale and run again."""
+    return (f"{stale} stored point{' is' if stale == 1 else 's are'} stale (run by another spadscan version or "
+            f"device, or before a preset's or a baseline's defaults changed): {'it runs' if stale == 1 else 'they run'}"
+            f" again; {'its' if stale == 1 else 'each'} old result is kept until the new one is stored")
 
 
 def _run_on_dask(plan, todo, store, summary, connect, call, device, progress, say=None) -> None:
@@ -297,9 +315,12 @@ def _outcome(outcome, task: PointTask, store: SweepDir, device: str, exits: Work
         reason = killed_worker_reason(outcome, exits)
     else:
         reason = f"{type(outcome).__name__}: {' '.join(str(outcome).split())[:300]}"
+    expected = Expected(task, device)
+    # The methods an earlier attempt stored done and current stay in the point's file, for the next run to keep.
     result = {"id": task.id, "status": "failed", "reason": reason, "scene": task.scene.label,
-              "params": task.params, "methods": {}, "device": device, "record": task.record}
-    stored = store.write_point(result)
+              "params": task.params, "methods": expected.reusable(store.read_point(task.id)), "device": device,
+              "record": task.record, "spadscan": spadscan.__version__, "fingerprints": expected.fingerprints}
+    stored = store.write_point(result, expected)
     if stored.get("status") == "done":
         # An attempt whose worker died after storing the point had finished it: report what points/<id>.json says.
         return point_summary(stored)
@@ -509,23 +530,45 @@ class ExitNotingNanny(Nanny):
 
 @contextlib.contextmanager
 def _quiet_children():
-    """The embedded cluster's processes start with SIGINT ignored, which they inherit: a terminal's Ctrl-C goes to
-    the whole process group, and workers that died of it at once would leave this client's orderly close (the
-    points in flight end with the cluster, the points done stay done) a trail of tracebacks. The processes share
-    one resource tracker, started here: a worker stopped mid-point leaves it the semaphores of its point's own
-    processes, which it cleans up at the end, and its warning of "leaked semaphore objects" is filtered (that
-    message only, in that process)."""
+    """The embedded cluster's start: its processes start with SIGINT blocked, which they inherit (and so do those
+    that its threads start later: the threads begin here, and inherit the block too): a terminal's Ctrl-C goes to the
+    whole process group, and workers that died of it at once would leave this client's orderly close (the points in
+    flight end with the cluster, the points done stay done) a trail of tracebacks. Yet a Ctrl-C or a SIGTERM that
+    comes while the cluster starts is neither lost nor let into Dask's start (which then prints tracebacks, and can
+    leave processes behind): the block yields the list of those that came, for the caller to act on once the start
+    is done. A SIGINT that stays pending (blocked here) is taken at the end; one that a thread of this process that
+    does not block it receives (a library's own thread, started earlier) is noted by the handler.
+
+    The processes share one resource tracker, started here: a worker stopped mid-point leaves it the semaphores of
+    its point's own processes, which it cleans up at the end, and its warning of "leaked semaphore objects" is
+    filtered (that message only, in that process)."""
+    caught: list[int] = []
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield caught
         return
-    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
     env = os.environ.get("PYTHONWARNINGS")
     os.environ["PYTHONWARNINGS"] = ",".join(filter(None, [env, "ignore:resource_tracker:UserWarning"]))
+    before: dict = {}
+    blocked = None
     try:
+        # Before the block: starting the tracker unblocks SIGINT in the thread that starts it.
         resource_tracker.ensure_running()
-        yield
+        # An ignored Ctrl-C (a script's background job) stays ignored. SIGTERM is noted, not blocked: a blocked
+        # SIGTERM, inherited, would keep a nanny from stopping its worker.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                before[sig] = signal.signal(sig, lambda signum, frame: caught.append(signum))
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        yield caught
     finally:
-        signal.signal(signal.SIGINT, before)
+        if blocked is not None and signal.SIGINT in signal.sigpending():
+            signal.sigwait({signal.SIGINT})  # taken here: unblocked, it would reach the handler restored below
+            if signal.SIGINT in before:
+                caught.append(signal.SIGINT)
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+        if blocked is not None and signal.SIGINT not in blocked:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         if env is None:
             os.environ.pop("PYTHONWARNINGS", None)
         else:
@@ -625,14 +668,17 @@ class _client:
         n = self.workers or (1 if self.device == "cuda" else cores())
         # Loopback only; no dashboard, and the scheduler's HTTP server (health, metrics) on a free port: a fixed
         # 8787 would clash with another cluster on the machine.
-        with _quiet_children():
-            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                        worker_class=ExitNotingNanny, memory_limit=worker_memory_limit(n),
-                                        dashboard_address=None, silence_logs=logging.CRITICAL,
-                                        scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-                                        **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
         try:
-            self.client = Client(self.cluster)
+            with _quiet_children() as caught:
+                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                            worker_class=ExitNotingNanny, memory_limit=worker_memory_limit(n),
+                                            dashboard_address=None, silence_logs=logging.CRITICAL,
+                                            scheduler_kwargs={"dashboard": False,
+                                                              "dashboard_address": "127.0.0.1:0"},
+                                            **({"resources": {"GPU": 1}} if self.device == "cuda" else {}))
+                self.client = Client(self.cluster)
+            if caught:
+                raise KeyboardInterrupt  # a Ctrl-C or SIGTERM while the cluster started: the sweep ends as one
         except BaseException:
             self.__exit__(*sys.exc_info())  # the cluster's processes are not left running without a client
             raise

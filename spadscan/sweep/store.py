@@ -3,7 +3,8 @@
     DIR/sweep.json          the fingerprint of the base condition and methods, the grid, the entries (see plan.py)
     DIR/sweep.toml          a copy of the sweep file last run here (its relative mesh paths are relative to the
                             original's folder: sweep.json's sweep_file)
-    DIR/points/<id>.json    one finished point (done or failed), written at once and atomically by the worker
+    DIR/points/<id>.json    one finished point (done or failed), written at once and atomically by the worker;
+                            with each method's fingerprint (fingerprint.py): a stale point runs again
     DIR/results.csv         every grid entry that has a result, one row each, gathered from points/
     DIR/log.jsonl           what happened when: each point's start and stages, on which worker, and its end
     DIR/work/               points in progress (their capture and outputs; removed when they end unless kept)
@@ -256,12 +257,14 @@ class SweepDir:
             return None
         return data if isinstance(data, dict) and data.get("id") == point_id else None
 
-    def write_point(self, result: dict) -> dict:
+    def write_point(self, result: dict, expected=None) -> dict:
         """Store a point's result; returns what is stored. A `done` result already there stays: an attempt that
-        failed (its worker died, it was cut short) says nothing against another attempt that finished."""
+        failed (its worker died, it was cut short) says nothing against another attempt that finished. With
+        `expected` (fingerprint.Expected), only a current one stays: a stale result is replaced by the new one."""
         if result.get("status") != "done":
             stored = self.read_point(result["id"])
-            if stored is not None and stored.get("status") == "done":
+            if stored is not None and stored.get("status") == "done" and (
+                    expected is None or expected.state(stored) == "done"):
                 return stored
         write_json_atomic(self.points / f"{result['id']}.json", result)
         return result

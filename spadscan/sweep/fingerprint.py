@@ -1,0 +1,116 @@
+"""What decides a stored method's result beyond its point's id: a fingerprint per method, kept in its point's file.
+
+A point's id (plan.py) holds what the sweep file says: the scene, the parameters, the methods' settings. What the
+file leaves to spadscan is not in it: a preset's config after its defaults (presets.py), the thresholds a baseline
+calibrates over when the file gives none (CALIBRATION_THRESHOLDS), the code itself (spadscan's version), and for a
+preset the device it reconstructs on. Each method's fingerprint hashes those with the point's id; a stored method
+whose fingerprint differs from the one this run computes is stale: it runs again, and its point's file is replaced
+once the new result is stored (never before).
+
+A point stored before fingerprints were (no "fingerprints" in its file) holds the version and the device it ran
+with: it is stale where either differs from this run's (a preset's device only: a baseline runs on the CPU), and is
+taken as it is where its file does not say.
+"""
+
+from __future__ import annotations
+
+import json
+
+import spadscan
+from spadscan.worker.baselines.common import CALIBRATION_THRESHOLDS
+from spadscan.worker.recon.config import with_overrides
+from spadscan.worker.recon.presets import preset_config
+
+from .plan import PointTask, canonical_hash
+
+FINGERPRINT_FORMAT = 1
+"""Version of what a fingerprint hashes; a new one makes every stored method stale."""
+
+
+class Digests:
+    """Each method's inputs hashed, per distinct set of presets, baselines and counts: most points of a plan share
+    them, so one instance per run resolves and hashes them once (a sweep of 100,000 points looks at every point's
+    state). Made afresh for each run: a preset's defaults are read as the run starts."""
+
+    def __init__(self):
+        self._configs: dict[tuple[str, str], dict] = {}
+        self._digests: dict[str, dict[str, str]] = {}
+
+    def resolved_config(self, task: PointTask, preset) -> dict:
+        """The config `preset` runs with at `task`'s point: the preset's defaults, the sweep file's overrides, and
+        the metrics' sample count (as point.py runs it)."""
+        overrides = json.dumps({**preset.overrides, "metrics_points": task.metrics_points}, sort_keys=True)
+        key = (preset.name, overrides)
+        if key not in self._configs:
+            config = with_overrides(preset_config(preset.name), json.loads(overrides)).to_dict()
+            self._configs[key] = json.loads(json.dumps(config, sort_keys=True, default=str))
+        return self._configs[key]
+
+    def method_inputs(self, task: PointTask, device: str, version: str) -> dict[str, dict]:
+        """{method: what its fingerprint hashes, less the point's id} for every method of `task` run on `device`."""
+        common = {"format": FINGERPRINT_FORMAT, "spadscan": version}
+        inputs = {}
+        for preset in task.presets:
+            inputs[preset.name] = {**common, "method": preset.name, "config": self.resolved_config(task, preset),
+                                   "steps": preset.steps, "budget_s": preset.budget_s, "device": device}
+        b = task.baselines
+        thresholds = list(CALIBRATION_THRESHOLDS if b.thresholds is None else b.thresholds)
+        for method in b.methods:
+            inputs[method] = {**common, "method": method, "thresholds": thresholds, "resolution": b.resolution,
+                              "calibration_points": task.calibration_points, "metrics_points": task.metrics_points}
+        return inputs
+
+    def fingerprints(self, task: PointTask, device: str, version: str) -> dict[str, str]:
+        """{method: fingerprint} for every method of `task` run on `device` with spadscan `version`: the hash of
+        the point's id and of its method's inputs."""
+        key = json.dumps([[{"name": p.name, **p.record()} for p in task.presets], task.baselines.record(),
+                          task.metrics_points, task.calibration_points, device, version], sort_keys=True)
+        digests = self._digests.get(key)
+        if digests is None:
+            digests = self._digests[key] = {name: canonical_hash(data)
+                                            for name, data in self.method_inputs(task, device, version).items()}
+        return {name: canonical_hash([task.id, digest])[:16] for name, digest in digests.items()}
+
+
+class Expected:
+    """What this run would store of one point: its methods' fingerprints, and what a point stored before
+    fingerprints were is checked against (the version; for a preset, the device)."""
+
+    def __init__(self, task: PointTask, device: str, version: str | None = None, digests: Digests | None = None):
+        self.version = spadscan.__version__ if version is None else version
+        self.device = device
+        self.presets = {p.name for p in task.presets}
+        self.fingerprints = (digests or Digests()).fingerprints(task, device, self.version)
+
+    def current(self, stored: dict, method: str) -> bool:
+        """Whether `method`'s record in the stored point `stored` was made by what this run would run, whatever its
+        status."""
+        stored_fps = stored.get("fingerprints")
+        if isinstance(stored_fps, dict):
+            return method in self.fingerprints and stored_fps.get(method) == self.fingerprints[method]
+        # Stored before fingerprints were: what its file says of the code and the device (the module's docstring).
+        said_version, said_device = stored.get("spadscan"), stored.get("device")
+        if said_version is not None and said_version != self.version:
+            return False
+        return not (method in self.presets and said_device is not None and said_device != self.device)
+
+    def reusable(self, stored: dict | None) -> dict[str, dict]:
+        """The methods the stored point `stored` holds done and current: {method: its record}."""
+        if not isinstance(stored, dict) or not isinstance(stored.get("methods"), dict):
+            return {}
+        return {name: record for name, record in stored["methods"].items()
+                if name in self.fingerprints and isinstance(record, dict) and record.get("status") == "done"
+                and self.current(stored, name)}
+
+    def state(self, stored: dict | None) -> str:
+        """'done' (stored done, every method current: nothing to run), 'stale' (stored done, a method not), the
+        stored status otherwise ('failed'), or 'to run' where nothing is stored."""
+        if not isinstance(stored, dict):
+            return "to run"
+        if stored.get("status") != "done":
+            return str(stored.get("status") or "to run")
+        methods = stored.get("methods") if isinstance(stored.get("methods"), dict) else {}
+        return "done" if all(self.current(stored, name) for name in methods) else "stale"
+
+
+__all__ = ["Digests", "Expected", "FINGERPRINT_FORMAT"]
