@@ -47,11 +47,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a running Dask scheduler (tcp://host:8786); default: start a local cluster")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="worker processes of the local cluster (default: one per CPU core; with --device "
-                             "cuda, one)")
+                             "cuda, or auto on a machine with a GPU, one)")
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
-                        help="where the presets reconstruct (default: cpu); cuda points go only to workers "
-                             "started with --resources GPU=1 (without --scheduler, cuda is refused where torch "
-                             "sees no CUDA device; points stored with another device run their presets again)")
+                        help="where the presets reconstruct (default: cpu; auto: the local cluster's machine's GPU "
+                             "where torch sees one, else its CPU; on a scheduler each worker's own); cuda points go "
+                             "only to workers started with --resources GPU=1 (without --scheduler, cuda is refused "
+                             "where torch sees no CUDA device; points stored with another device run their presets "
+                             "again)")
     parser.add_argument("--lcspc", default=None, metavar="DIR",
                         help="the LCSPCData folder (the one holding simulated/) for lcspc:NAME scenes")
     parser.add_argument("--keep", action="store_true",
@@ -73,7 +75,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from spadscan.protocol.folders import check_folder_option
-    from spadscan.sweep.checks import check_local_device, check_scheduler_address, check_workers
+    from spadscan.sweep.checks import check_scheduler_address, check_workers, local_device
     from spadscan.sweep.plan import make_plan
     from spadscan.sweep.spec import load_spec
 
@@ -82,10 +84,11 @@ def run(args) -> int:
 
     # Refused before anything runs (the dry run too: what the run would refuse, it refuses).
     check_workers(args.scheduler, args.workers)
+    device = args.device
     if args.scheduler is not None:
         check_scheduler_address(args.scheduler)
     else:
-        check_local_device(args.device)
+        device = local_device(device)
     spec = load_spec(args.sweep)
     plan = make_plan(spec, None if args.lcspc is None else Path(args.lcspc))
     # --out before the plan's line: a folder the run cannot make or write into is refused in one line naming it
@@ -95,7 +98,7 @@ def run(args) -> int:
         f"{counted(len(plan.points), 'distinct point')}; methods {', '.join(spec.methods)}"
         + ("" if spec.grid else " (no [grid]: the base condition alone)"))
     if args.dry_run:
-        return _dry_run(plan, Path(args.out), args.overwrite, args.device)
+        return _dry_run(plan, Path(args.out), args.overwrite, device)
     from spadscan.signals import terminate_as_interrupt
     from spadscan.sweep.runner import run_sweep
 
@@ -103,7 +106,7 @@ def run(args) -> int:
     try:
         with terminate_as_interrupt():
             summary = run_sweep(plan, Path(args.out), scheduler=args.scheduler, workers=args.workers,
-                                device=args.device, keep=args.keep, progress=progress_bar_wanted(args), log=log,
+                                device=device, keep=args.keep, progress=progress_bar_wanted(args), log=log,
                                 overwrite=args.overwrite)
     except KeyboardInterrupt:
         # Dask cannot stop a task that runs: a scheduler's workers finish the points they hold, and a re-run waits.

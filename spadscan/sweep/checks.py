@@ -1,7 +1,7 @@
 """What `spadscan sweep` refuses in its command line before anything runs, the dry run too.
 
 The dry run only reads the sweep file and the results folder: these checks load torch and Dask only for the options
-that need them (--device cuda without --scheduler, and --scheduler): a plan-only run loads neither the runner nor
+that need them (--device cuda or auto without --scheduler, and --scheduler): a plan-only run loads neither the runner nor
 Dask. (It still imports torch, through the presets' configs that the sweep file is checked against: a fast part's
 config lives beside its torch code.)
 """
@@ -11,16 +11,22 @@ from __future__ import annotations
 from spadscan.protocol.errors import ConfigError
 
 
-def check_local_device(device: str) -> None:
-    """Refuse, in one line, --device cuda for the embedded cluster (this machine is its worker) where torch sees no
-    CUDA device, before anything runs: every point would be simulated and run through the baselines, then fail."""
-    if device != "cuda":
-        return
-    import torch  # only for 'cuda': the checks themselves load nothing heavy
+def local_device(device: str) -> str:
+    """The device the embedded cluster's points run on (this machine is its worker): 'auto' resolved as the
+    reconstruction resolves it (CUDA where torch sees a GPU, else the CPU), so that the cluster is sized for it (one
+    worker for a GPU, not one per core sharing it) and the points store the device they ran on. Refuses, in one line,
+    'cuda' where torch sees no CUDA device, before anything runs: every point would be simulated and run through the
+    baselines, then fail."""
+    if device not in ("cuda", "auto"):
+        return device
+    import torch  # only for 'cuda' and 'auto': the checks themselves load nothing heavy
 
-    if not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' asked for, but torch sees no CUDA device on this machine, whose local cluster "
-                          "would run the points (use --device cpu or auto, or --scheduler with GPU workers)")
+    if torch.cuda.is_available():
+        return "cuda"
+    if device == "auto":
+        return "cpu"
+    raise ConfigError("device 'cuda' asked for, but torch sees no CUDA device on this machine, whose local cluster "
+                      "would run the points (use --device cpu or auto, or --scheduler with GPU workers)")
 
 
 def check_workers(scheduler: str | None, workers: int | None) -> None:
@@ -52,4 +58,4 @@ def check_scheduler_address(address: str) -> None:
                           f"tcp:// address (e.g. through an SSH tunnel)")
 
 
-__all__ = ["check_local_device", "check_workers", "check_scheduler_address"]
+__all__ = ["local_device", "check_workers", "check_scheduler_address"]

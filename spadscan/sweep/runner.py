@@ -41,7 +41,7 @@ from tqdm import tqdm
 import spadscan
 from spadscan.protocol.errors import ConfigError
 
-from .checks import check_local_device, check_workers
+from .checks import check_workers, local_device
 from .fingerprint import Digests, Expected
 from .plan import Plan, PointTask
 from .point import run_point
@@ -146,7 +146,7 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
         raise ConfigError(f"device {device!r} is not one of {', '.join(DEVICES)}")
     check_workers(scheduler, workers)
     if scheduler is None:
-        check_local_device(device)
+        device = local_device(device)
     timeout_s = CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
     store = SweepDir(out)
     if scheduler is not None and _points_to_run(plan, store, device)[0]:

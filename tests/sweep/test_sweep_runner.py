@@ -187,3 +187,33 @@ def test_a_point_dask_gave_up_on_after_it_was_stored_done_is_reported_done(tmp_p
     assert json.loads((store.points / f"{task.id}.json").read_text())["status"] == "done"
     log = (store.path / "log.jsonl").read_text() if (store.path / "log.jsonl").exists() else ""
     assert '"event": "failed"' not in log
+
+
+@pytest.mark.parametrize("gpu, expected", [(True, "cuda"), (False, "cpu")])
+def test_auto_on_the_local_cluster_is_the_device_its_points_run_on(monkeypatch, gpu, expected):
+    """The embedded cluster's machine runs the points: 'auto' is resolved there as the reconstruction resolves it, so
+    that a GPU gets one worker (not one per core sharing it) and the points store the device they ran on."""
+    from spadscan.sweep.checks import local_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: gpu)
+    assert local_device("auto") == expected
+    assert local_device("cpu") == "cpu"
+
+
+def test_points_run_on_the_cpu_are_reused_by_an_auto_run_on_a_machine_without_a_gpu(tmp_path, monkeypatch, capsys):
+    """A point stored by a --device cpu run is current for --device auto where torch sees no GPU (the same device):
+    the dry run lists it done, not stale."""
+    from spadscan.sweep.fingerprint import Expected
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    tiny = write_tiny(tmp_path)
+    plan = make_plan(load_spec(tiny))
+    store = SweepDir(tmp_path / "out")
+    store.open(plan)
+    task = next(iter(plan.points.values()))
+    store.write_point({**fake_result(task), "device": "cpu", "fingerprints": Expected(task, "cpu").fingerprints})
+    store.close()
+    capsys.readouterr()
+    assert main(["sweep", str(tiny), "--out", str(tmp_path / "out"), "--device", "auto", "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert any(line.startswith(f"{task.id}  done") for line in lines), lines
