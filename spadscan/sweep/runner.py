@@ -165,9 +165,9 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
                              lambda task: (point, task, sweep_name(store), device, keep), device, progress, say)
         except BaseException:
             with contextlib.suppress(OSError):
-                store.write_results(plan)  # an interrupt or a failure: what finished is gathered all the same
+                store.write_results(plan, current_on(plan, device))  # an interrupt or a failure: what finished is gathered all the same
             raise
-        summary.rows = store.write_results(plan)
+        summary.rows = store.write_results(plan, current_on(plan, device))
         summary.warned, summary.edge = store.endings(plan)
         return summary
     finally:
@@ -186,11 +186,19 @@ def _points_to_run(plan: Plan, store: SweepDir, device: str = "cpu") -> tuple[li
     return todo, stale
 
 
+def current_on(plan: Plan, device: str) -> Callable[[str, dict], bool]:
+    """Whether a point's stored result is current for a run on `device` (not stale: fingerprint.py), for
+    results.csv, which leaves a stale one out until it has run again."""
+    digests = Digests()
+    return lambda point_id, result: Expected(plan.points[point_id], device, digests=digests).state(result) != "stale"
+
+
 def stale_line(stale: int) -> str:
     """The line that says how many stored points are stale and run again."""
     return (f"{stale} stored point{' is' if stale == 1 else 's are'} stale (run by another spadscan version or "
             f"device, or before a preset's or a baseline's defaults changed): {'it runs' if stale == 1 else 'they run'}"
-            f" again; {'its' if stale == 1 else 'each'} old result is kept until the new one is stored")
+            f" again; {'its' if stale == 1 else 'each'} old result is kept until the new one is stored, and left out "
+            f"of results.csv until then")
 
 
 def _run_on_dask(plan, todo, store, summary, connect, call, device, progress, say=None) -> None:
@@ -245,7 +253,7 @@ def _submit_and_gather(plan, todo, store, summary, client, call, device, progres
             # A look at results.csv mid-sweep is current within RESULTS_EVERY_S of a point's end (run_sweep
             # gathers it after the last point).
             if due and time.monotonic() - gathered >= RESULTS_EVERY_S and not finished.is_empty():
-                store.write_results(plan)
+                store.write_results(plan, current_on(plan, device))
                 gathered, due = time.monotonic(), False
 
 

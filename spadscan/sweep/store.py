@@ -206,8 +206,11 @@ class SweepDir:
         return (f"run the sweep file it was run with, {sweep_file} (if it has changed since, copy {copy} over it "
                 f"first: its scenes' relative paths are relative to that file's folder)")
 
-    def write_results(self, plan) -> int:
-        """Gather every grid entry of `plan` that has a result into results.csv (atomically); returns the rows."""
+    def write_results(self, plan, current=None) -> int:
+        """Gather every grid entry of `plan` that has a result into results.csv (atomically); returns the rows.
+        `current(point_id, result)`: whether a stored result is this run's to show (fingerprint.py; the runner's):
+        a stale one, which runs again, is left out until it has, so that one figure never mixes the results of two
+        versions, devices or defaults (its file stays in points/)."""
         methods = plan.spec.methods
         header = ["scene", "axis", "value", "point", "status", "reason", *PARAM_COLUMNS, "bin_mm"]
         presets = {p.name for p in plan.spec.presets}
@@ -225,7 +228,7 @@ class SweepDir:
             if entry.point_id not in cache:
                 cache[entry.point_id] = self.read_point(entry.point_id)
             result = cache[entry.point_id]
-            if result is None:
+            if result is None or (current is not None and not current(entry.point_id, result)):
                 continue
             writer.writerow(results_row(entry, result, methods, plan.spec))
             rows += 1

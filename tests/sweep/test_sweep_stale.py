@@ -189,7 +189,7 @@ def test_a_sweep_says_in_one_line_how_many_stored_points_were_stale_and_runs_the
     stale = [line for line in lines if "stale" in line]
     assert stale == ["2 stored points are stale (run by another spadscan version or device, or before a preset's or "
                      "a baseline's defaults changed): they run again; each old result is kept until the new one is "
-                     "stored"], lines
+                     "stored, and left out of results.csv until then"], lines
     assert (summary.earlier, summary.ran, summary.done) == (1, 2, 2)
     for task in tasks[1:]:
         assert store.read_point(task.id)["old_kept"] is True
@@ -235,3 +235,20 @@ def test_a_dry_run_lists_stale_points_as_to_run(tmp_path, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert f"{task.id}  stale   {task.describe(plan.spec.base)}" in lines, lines
     assert lines[-1] == "3 points, 0 done, 3 to run (1 stale)"
+
+
+def test_results_csv_leaves_out_a_stale_point_until_it_has_run_again(tmp_path):
+    """A sweep stopped before its stale points ran again: one figure must not mix two versions' results, so
+    results.csv holds only the current ones (the stale file stays in points/)."""
+    plan, store, _ = folder(tmp_path)
+    tasks = list(plan.points.values())
+    for task in tasks:
+        version = spadscan.__version__ if task is tasks[0] else "0.0.1"
+        store.write_point({"id": task.id, "status": "done", "reason": None, "scene": task.scene.label,
+                           "params": task.params, "methods": {"fast": {"status": "done", "chamfer_mm": 1.0}},
+                           "spadscan": version, "fingerprints": fingerprints(task, "cpu", version)})
+    rows = store.write_results(plan, runner.current_on(plan, "cpu"))
+    points = [line.split(",")[3] for line in (store.path / "results.csv").read_text().splitlines()[1:]]
+    assert set(points) == {tasks[0].id} and rows == len(points) > 0
+    assert all(store.read_point(task.id) is not None for task in tasks)
+    assert store.write_results(plan) == len(plan.entries)  # without the check, every stored point is a row
