@@ -10,9 +10,12 @@ the estimator's own biases cancel; a zone whose predicted return peaks outside t
 not a match. Levenberg-Marquardt over six parameters (a rotation vector applied on the sensor's side of X's rotation,
 a translation in the flange frame), optionally a seventh: a shift of the sensor model's zero bin; before it, the start
 is moved along the sensor's axis to the returns' median range (a start centimetres off along it leaves the fit no way
-back), and it is tried turned four ways about that axis (TURNS_DEG). After it, X's uncertainty (sigma^2 (J^T J)^-1);
-views that leave part of X undetermined are refused rather than fitted. Both uncertainties are given along and about
-the flange's axes.
+back), and it is tried turned four ways about that axis (TURNS_DEG). After it, X's uncertainty (sigma^2 (J^T J)^-1,
+over one residual and one Jacobian row per pose and zone, each the mean over the pose's frames: frames of one pose
+share its error, so more frames do not make X more certain); views that leave part of X undetermined are refused
+rather than fitted. Both uncertainties are given along and about the flange's axes. A one-zone sensor sees the same
+at every turn about its boresight: that turn is held at the start's (not fitted, not tried four ways) and reported
+as not determined; its rotation's uncertainty is the tilt of its axis about the sensor's own x and y.
 
 A plane constrains X well when the views tilt the tool in different directions (rotations about several axes carry
 X's translation across the plane's normal); residuals of a few millimetres remain on real data (the peak's sub-bin
@@ -55,10 +58,10 @@ SIGMA_FLOOR_BINS = 0.1
 far below real ones (0.1-0.3 bins), and a fit to noise-free data is no more certain than the sensor."""
 UNDETERMINED_MM = 10.0
 UNDETERMINED_DEG = 5.0
-"""A fit is refused when, for returns scattered by SIGMA_FLOOR_BINS, one standard deviation of X's translation along
-a flange axis or of its rotation about one exceeds these: the views leave that part of X to the optimiser's drift
-(views all turned about one axis, rings without jitter, too few views: tens of millimetres to metres); views tilted
-5-30 degrees every way give about 1 mm and 0.6 degrees."""
+"""A fit is refused when, for returns scattered by SIGMA_FLOOR_BINS (one per pose and zone, however many frames),
+one standard deviation of X's translation along a flange axis or of its rotation about one exceeds these: the views
+leave that part of X to the optimiser's drift (views all turned about one axis, rings without jitter, too few views:
+tens of millimetres to metres); views tilted 5-30 degrees every way give about 1 mm and 0.6 degrees."""
 RIGID_TOL = 1e-4
 """A recorded tcp_pose's rotation must be orthonormal to this (the simulator's tolerance for the poses it renders)."""
 TURNS_DEG = (0.0, 90.0, 180.0, 270.0)
@@ -174,7 +177,8 @@ class HandEyeFit:
     std_mm: tuple = (0.0, 0.0, 0.0)
     """One standard deviation of X's translation along the flange's x, y, z (mm)."""
     std_deg: tuple = (0.0, 0.0, 0.0)
-    """One standard deviation of X's rotation about the flange's x, y, z (degrees)."""
+    """One standard deviation of X's rotation about the flange's x, y, z (degrees); where turn_determined is False,
+    two: of the tilt of the sensor's axis about the sensor's own x and y."""
     bin_width_mm: float = 0.0
     """The capture's histogram bin, one-way range (mm): a return more than WINDOW_BINS of them off is lost."""
     kind: str = "plane"
@@ -183,6 +187,9 @@ class HandEyeFit:
     """Which of TURNS_DEG about the sensor's boresight the fit went on from (0: the start as given)."""
     frames: int = 0
     """Measurements fitted: frames_per_pose of them at each view (0: one a view)."""
+    turn_determined: bool = True
+    """False for a sensor whose histograms do not tell a turn about its boresight (one zone: `turn_observable`):
+    X keeps the start's turn there, which the fit says nothing of (std_deg leaves it out)."""
 
     @property
     def uncertain(self) -> bool:
@@ -399,8 +406,9 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
                  iterations: int = 30) -> HandEyeFit:
     """Fit X from a capture folder (see the module docstring). `start`: where the fit begins (default: the X the
     capture was taken with); the fit also tries it turned about the sensor's boresight (TURNS_DEG) and keeps the
-    turn that explains the returns best after SCOUT_ITERATIONS. Raises CaptureError for an unreadable capture,
-    ConfigError when too few zones see the target."""
+    turn that explains the returns best after SCOUT_ITERATIONS. A one-zone sensor's turn about its boresight is
+    held at the start's (see `turn_observable`). Raises CaptureError for an unreadable capture, ConfigError when
+    too few zones see the target."""
     reader = CaptureReader(Path(capture))
     data = reader.load()
     model = data.sensor
@@ -410,9 +418,20 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
     windows = peak_bins(data.hists, first_bin)
     observed = peak_positions(data.hists, windows)
     shown = np.isfinite(observed)
+    # The (pose, zone) each return belongs to: the frames of one pose share its error, so the independent samples
+    # are these, not the frames.
+    n_zones = observed.shape[-1]
+    groups = (data.pose_indices[:, None] * n_zones + np.arange(n_zones))[shown]
     predictor = _Predictor(model, target)
+    turn_known = turn_observable(model)
     n_params = 7 if fit_zero_bin else 6
-    steps = np.array([1e-4] * 3 + [1e-4] * 3 + [1e-2])[:n_params]
+    free = np.array([i for i in range(n_params) if turn_known or i != 2])  # 2: the turn about the boresight
+    steps = np.array([1e-4] * 3 + [1e-4] * 3 + [1e-2])[free]
+
+    def full(p: np.ndarray) -> np.ndarray:
+        out = np.zeros(n_params)
+        out[free] = p
+        return out
 
     def predict(x: np.ndarray, params: np.ndarray) -> np.ndarray:
         counts, seen = predictor.counts(tcp @ _compose(x, params), params[6] if fit_zero_bin else 0.0)
@@ -423,34 +442,70 @@ def fit_hand_eye(capture, target: Target, *, fit_zero_bin: bool = False, start: 
             # Every zone that shows a return counts, the same set from every start so that their costs compare. A
             # zone whose predicted return is off the target or its window costs more than any it could show: a fit
             # that pushes the predictions away (a residual of 0 for lost zones) must not look better for it.
-            r = observed[shown] - predict(x, p)[shown]
+            r = observed[shown] - predict(x, full(p))[shown]
             return np.where(np.isfinite(r), r, LOST_ZONE_BINS)
         return residual
 
     starts = []
-    for turn in TURNS_DEG:
+    for turn in TURNS_DEG if turn_known else (0.0,):
         x = _turned(x0, turn)
         params = np.zeros(n_params)
         params[3:6] = _boresight_offset(predictor, tcp, x, observed, first_bin, model.bin_width_m)
-        starts.append((turn, x, params, int(np.isfinite(predict(x, params)[shown]).sum())))
+        on = np.isfinite(predict(x, params)[shown])
+        starts.append((turn, x, params[free], len(np.unique(groups[on]))))
     matched = max(m for *_, m in starts)
-    if matched < 2 * n_params:
+    if matched < 2 * len(free):
         raise ConfigError(f"{reader.path}: only {matched} zone returns see the target where it was said to be "
-                          f"(need {2 * n_params}); check --plane / --sphere and the capture")
+                          f"(need {2 * len(free)}, counting a zone once per view); check --plane / --sphere and the "
+                          f"capture")
     turn, x, params, r, done = _fit_best_turn(residual_from, [s[:3] for s in starts], steps, iterations)
-    residual = residual_from(x)
-    fitted = np.isfinite(predict(x, params)[shown])
+    fitted_params = full(params)
+    fitted = np.isfinite(predict(x, fitted_params)[shown])
     r_start = observed[shown] - predict(x0, np.zeros(n_params))[shown]
     both = fitted & np.isfinite(r_start)
-    fit = HandEyeFit(_compose(x, params), x0, _rms_mm(r_start[both], model), _rms_mm(r[fitted], model),
-                     int(fitted.sum()), len(np.unique(data.pose_indices)), float(params[6]) if fit_zero_bin else 0.0,
-                     done, lost=int((~fitted).sum()), lost_start=int((fitted & ~both).sum()),
-                     bin_width_mm=model.bin_width_m * 1e3, kind=target.kind, turn_deg=turn, frames=len(tcp))
-    jac = _flange_rotation(_jacobian(residual, params, r, steps), x, params)
-    _check_determined(jac, reader.path)
-    scatter = float(np.sqrt(np.mean(r[fitted] ** 2))) if fitted.any() else 0.0
-    fit.std_mm, fit.std_deg = _uncertainty(jac, max(scatter, SIGMA_FLOOR_BINS))
+    fit = HandEyeFit(_compose(x, fitted_params), x0, _rms_mm(r_start[both], model), _rms_mm(r[fitted], model),
+                     int(fitted.sum()), len(np.unique(data.pose_indices)),
+                     float(fitted_params[6]) if fit_zero_bin else 0.0, done, lost=int((~fitted).sum()),
+                     lost_start=int((fitted & ~both).sum()), bin_width_mm=model.bin_width_m * 1e3, kind=target.kind,
+                     turn_deg=turn, frames=len(tcp), turn_determined=turn_known)
+    # One row and one residual per (pose, zone), each the mean over the pose's frames: k frames of a pose are not k
+    # independent looks at X (they share the arm's repeatability and the target's placement), and counted as such
+    # they shrank the uncertainty, and the check that refuses undetermined views, by sqrt(k). A zone whose return
+    # leaves its window within a difference step has no derivative there: its row (the jump to LOST_ZONE_BINS over
+    # 1e-4) claimed a turn known to 0.2 deg that was known to 1.4.
+    def raw(p: np.ndarray) -> np.ndarray:
+        return observed[shown] - predict(x, full(p))[shown]  # NaN where the return is lost
+
+    jac = _jacobian(raw, params, np.where(fitted, r, np.nan), steps)
+    steady = fitted & np.isfinite(jac).all(axis=1)
+    jac = _per_pose(jac[steady], groups[steady])
+    per_pose = _per_pose(r[steady], groups[steady])
+    n_rot = 3 if turn_known else 2
+    if turn_known:
+        jac = _flange_rotation(jac, x, fitted_params)
+    _check_determined(jac, reader.path, n_rot)
+    scatter = float(np.sqrt(np.mean(per_pose ** 2)))
+    fit.std_mm, fit.std_deg = _uncertainty(jac, max(scatter, SIGMA_FLOOR_BINS), n_rot)
     return fit
+
+
+def turn_observable(model: SensorModel) -> bool:
+    """Whether the sensor's histograms tell a turn about its boresight: not with one zone (a cone about the
+    boresight sees the same at every turn; a lone zone of another shape hardly less), so the fit holds that turn
+    at the start's and reports it as not determined."""
+    return len(model.zones) > 1
+
+
+def _per_pose(values: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """The mean of `values` (rows) over the rows of each group, groups in sorted order; one row of zeros when
+    there are none (nothing is determined then)."""
+    if len(values) == 0:
+        return np.zeros((1,) + values.shape[1:])
+    _, inverse = np.unique(groups, return_inverse=True)
+    sums = np.zeros((inverse.max() + 1,) + values.shape[1:])
+    np.add.at(sums, inverse, values)
+    counts = np.bincount(inverse).astype(np.float64)
+    return sums / counts.reshape((-1,) + (1,) * (values.ndim - 1))
 
 
 def _jacobian(residual, params: np.ndarray, r: np.ndarray, steps: np.ndarray) -> np.ndarray:
@@ -476,17 +531,19 @@ def _left_jacobian(rotvec: np.ndarray) -> np.ndarray:
     """J with R(r + dr) = R(J dr) R(r) to first order in dr (3, 3)."""
     theta = float(np.linalg.norm(rotvec))
     k = np.array([[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]])
-    if theta < 1e-8:
-        return np.eye(3) + 0.5 * k
+    if theta < 1e-4:
+        # Its series: below this the closed form's 1 - cos(theta) loses its digits (nothing at all below 1e-8).
+        return np.eye(3) + 0.5 * k + (k @ k) / 6.0
     return (np.eye(3) + (1.0 - math.cos(theta)) / theta ** 2 * k
             + (theta - math.sin(theta)) / theta ** 3 * (k @ k))
 
 
-def _uncertainty(jac: np.ndarray, sigma_bins: float) -> tuple[tuple, tuple]:
+def _uncertainty(jac: np.ndarray, sigma_bins: float, n_rot: int = 3) -> tuple[tuple, tuple]:
     """One standard deviation of X's translation (flange axes, mm) and rotation (about the flange's axes for a
     Jacobian from `_flange_rotation`, degrees) for returns scattered by sigma_bins: sigma^2 (J^T J)^-1 over every
     fitted parameter (a fitted zero bin takes its share). A direction the views cannot tell apart (J^T J singular)
-    comes out infinite."""
+    comes out infinite. The Jacobian's columns: n_rot rotations (3; 2 where the turn about the boresight is held:
+    the tilts about the sensor's own x and y), the translation along x, y, z, a zero bin if fitted."""
     scale = np.linalg.norm(jac, axis=0)
     scale[scale == 0] = 1.0
     _, s, vt = np.linalg.svd(jac / scale, full_matrices=False)
@@ -495,16 +552,19 @@ def _uncertainty(jac: np.ndarray, sigma_bins: float) -> tuple[tuple, tuple]:
         per = np.where(s > s[0] * 1e-9, 1.0 / (s * s), np.inf)
         var = np.where(weight > 1e-12, weight * per, 0.0).sum(axis=1) / scale ** 2 * sigma_bins ** 2
     std = np.sqrt(var)  # residuals in bins, parameters in radians and metres
-    return tuple(float(v) for v in std[3:6] * 1e3), tuple(float(v) for v in np.degrees(std[:3]))
+    return (tuple(float(v) for v in std[n_rot:n_rot + 3] * 1e3),
+            tuple(float(v) for v in np.degrees(std[:n_rot])))
 
 
-def _check_determined(jac: np.ndarray, path) -> None:
+def _check_determined(jac: np.ndarray, path, n_rot: int = 3) -> None:
     """One-line ConfigError when the views leave part of X undetermined: its uncertainty for returns as steady as a
-    sensor's best (SIGMA_FLOOR_BINS) over UNDETERMINED_MM or UNDETERMINED_DEG."""
-    std_mm, std_deg = _uncertainty(jac, SIGMA_FLOOR_BINS)
+    sensor's best (SIGMA_FLOOR_BINS) over UNDETERMINED_MM or UNDETERMINED_DEG. n_rot: as for `_uncertainty` (2: the
+    tilts about the sensor's own x and y, the turn about its boresight being held)."""
+    std_mm, std_deg = _uncertainty(jac, SIGMA_FLOOR_BINS, n_rot)
+    about = "about " if n_rot == 3 else "about the sensor's own "
     loose = [f"along {axis} {_spread(v, 'mm', math.inf)}" for axis, v in zip("xyz", std_mm)
              if not v <= UNDETERMINED_MM]
-    loose += [f"about {axis} {_spread(v, 'deg', 180.0)}" for axis, v in zip("xyz", std_deg)
+    loose += [f"{about}{axis} {_spread(v, 'deg', 180.0)}" for axis, v in zip("xyz", std_deg)
               if not v <= UNDETERMINED_DEG]
     if loose:
         raise ConfigError(f"{path}: the views do not determine the hand-eye transform ({', '.join(loose)} in the "

@@ -51,12 +51,16 @@ def sensor_poses(n: int, seed: int = 0) -> np.ndarray:
 
 def make_capture(path, x_recorded: np.ndarray, n: int = 24, target: Target = Target("plane", (0, 0, 0)),
                  zero_bin_error: float = 0.0, true_sensor: np.ndarray | None = None,
-                 x_true: np.ndarray = X_TRUE, frames_per_pose: int = 1) -> None:
+                 x_true: np.ndarray = X_TRUE, frames_per_pose: int = 1, preset: str = "tmf8820",
+                 tcp_pose: bool = True, range_noise_bins: float = 0.0) -> None:
     """Render the target at TCP x x_true, record the capture as if X were x_recorded (the daemon's way: sensor pose
     = actual TCP x the config's hand-eye, the TCP pose in each measurement's metadata). zero_bin_error: the unit's
     zero bin lies this many bins after the one the capture's sensor model states. true_sensor: the sensor's poses
-    (default: `sensor_poses(n)`). frames_per_pose: frames taken at each pose (each its own noise)."""
-    model = sensor_preset("tmf8820")
+    (default: `sensor_poses(n)`). frames_per_pose: frames taken at each pose (each its own noise). preset: the
+    sensor's ('lcspc-sim': one zone, no reference histogram). tcp_pose: whether the metadata records it.
+    range_noise_bins: each frame's zone histograms moved by a normal random shift of this spread (bins), every
+    frame and zone its own, as a real return's position scatters beyond a simulated one's."""
+    model = sensor_preset(preset)
     true_sensor = sensor_poses(n) if true_sensor is None else true_sensor
     n = len(true_sensor)
     tcp = true_sensor @ invert_rigid(x_true)
@@ -64,11 +68,20 @@ def make_capture(path, x_recorded: np.ndarray, n: int = 24, target: Target = Tar
     sim = Simulator(target.mesh(), unit, SimSettings(rays_per_zone=256), seed=1)
     k = frames_per_pose
     frames = sim.frames(np.repeat(true_sensor, k, axis=0))
+    hists = frames.hists
+    if range_noise_bins:
+        rng = np.random.default_rng(7)
+        hists = hists.astype(np.float64)
+        axis = np.arange(hists.shape[-1], dtype=np.float64)
+        for h in hists.reshape(-1, hists.shape[-1]):
+            h[:] = np.interp(axis - rng.normal(0.0, range_noise_bins), axis, h)
+        hists = np.round(hists).astype(frames.hists.dtype)
     with CaptureWriter.create(path, model, hand_eye=x_recorded, chunk_size=64, frames_per_pose=k) as w:
         for j in range(n * k):
             i = j // k
-            w.append(Measurement(frames.hists[j], tcp[i] @ x_recorded, i, j % k, frames.reference[j],
-                                 {"tcp_pose": tcp[i].tolist()}))
+            reference = None if frames.reference is None else frames.reference[j]
+            meta = {"tcp_pose": tcp[i].tolist()} if tcp_pose else {}
+            w.append(Measurement(hists[j], tcp[i] @ x_recorded, i, j % k, reference, meta))
         w.finish()
 
 
