@@ -11,13 +11,17 @@ exceeds T standard deviations of the background noise (pile-up undone first). Bo
 leading edge, whose response does not reach far ahead of a return: filtered with the whole pulse, a long-tailed pulse
 (the TMF8820's) lifts background-only bins up to 35 cm in front of a strong return over the threshold. Histograms
 that no sensor could have produced (the "left out" warning) give no return, and stay out of the crosstalk
-unmixing, where they would move the other zones of their view. --calibrate tries thresholds from 3 to
-300 and keeps the one with the lowest Chamfer distance to the ground truth, as the paper did (and says so in the
-report). Without --gt, the ground truth that the capture names is used (import-lcspc and simulate record theirs);
---no-gt skips it. Writes into DIR (a new folder, or one without a result unless --overwrite): report.html (the page to
-open first), view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply, report.json (method,
-threshold, calibrated, seconds, and with a ground truth the metrics: chamfer_mm, accuracy_mm, completeness_mm,
-fscore_5mm, normal_error_deg) and preview.png (the mesh, and the ground truth beside it).
+unmixing, where they would move the other zones of their view. Without --threshold, T is the sensor's default: 20
+on a TMF8820 (at 5, noise clears it in zones that see nothing and space carving's hull grew to a metre), 5 on
+others. --calibrate tries thresholds from 3 to 300 and keeps the one with the lowest Chamfer distance to the ground
+truth, as the paper did (and says so in the report; a warning when the best is the lowest or highest tried, since a
+threshold beyond it may do better). A carved hull wider than 1.5 times the box its first returns lie in is called
+implausible, in one warning line on the terminal and in the report (report.json's implausible_hull). Without
+--gt, the ground truth that the capture names is used (import-lcspc and simulate record theirs); --no-gt skips it.
+Writes into DIR (a new folder, or one without a result unless --overwrite): report.html (the page to open first),
+view3d.html (the 3D view report.html embeds: keep it beside report.html), mesh.ply, report.json (method, threshold
+and threshold_source, calibrated, seconds, warnings, and with a ground truth the metrics: chamfer_mm, accuracy_mm,
+completeness_mm, fscore_5mm, normal_error_deg) and preview.png (the mesh, and the ground truth beside it).
 
 Examples:
   spadscan baseline space-carving captures/bunny --out out/bunny-carve --gt bunny.obj
@@ -57,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "mesh.ply or report.json is refused)")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--threshold", type=float, default=None, metavar="T",
-                       help="detection threshold in noise standard deviations (default: 5)")
+                       help="detection threshold in noise standard deviations (default: the sensor's: 20 on a "
+                            "TMF8820, 5 on others)")
     group.add_argument("--calibrate", action="store_true",
                        help="search the threshold for the best Chamfer against the ground truth (as the paper did)")
     parser.add_argument("--resolution", type=int, default=None, metavar="R",
@@ -133,13 +138,16 @@ def run(args) -> int:
             report["ground_truth_note"] = gt_note  # the page says why it has no metrics
         log("drawing the pictures and writing report.html")
         write_pictures_and_page(report, args.out, gt, before)
-    line = f"{args.method}: threshold {report['threshold']:g}" + (" (calibrated)" if report["calibrated"] else "")
+    source = report.get("threshold_source", "")
+    line = f"{args.method}: threshold {report['threshold']:g}" + (f" ({source})" if source != "given" else "")
     # The method's own time (report.json's seconds) apart from the run's: metrics on 300,000 points and the
     # pictures take most of it.
     line += f", {report['seconds']:.1f} s to build, {time.monotonic() - started:.1f} s in all"
     if "chamfer_mm" in report:
         line += (f", Chamfer {report['chamfer_mm']:.2f} mm (accuracy {report['accuracy_mm']:.2f}, completeness "
                  f"{report['completeness_mm']:.2f}), F-score@5mm {report['fscore_5mm']:.3f}")
+    if report.get("implausible_hull"):
+        line += " - IMPLAUSIBLE hull (see the warning)"
     print(f"{line} -> {args.out}")
     return 0
 

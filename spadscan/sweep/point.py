@@ -27,6 +27,7 @@ import spadscan
 from spadscan.protocol.capture_format import one_line
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.simulator import simulate_capture
+from spadscan.worker.baselines.common import threshold_edge
 from spadscan.worker.baselines.run import run_baseline
 from spadscan.worker.reconstruct import reconstruct_capture
 from spadscan.worker.report.report_json import json_safe
@@ -222,22 +223,6 @@ def _baseline(task: PointTask, method: str, capture: Path, work: Path) -> dict:
                           for row in (report.get("calibration") or {}).get("table", [])]
     out["threshold_edge"] = threshold_edge(out["threshold"], [row["threshold"] for row in out["calibration"]])
     return out
-
-
-def threshold_edge(threshold, tried) -> str | None:
-    """Where a calibrated threshold lies among those tried: 'lowest' or 'highest' when it is one of the ends (a
-    threshold beyond that end, never tried, may have done better), 'only' when a single one was tried, None when it
-    lies between two it beat or no threshold was tried."""
-    tried = sorted({float(t) for t in tried if isinstance(t, (int, float))})
-    if threshold is None or not tried:
-        return None
-    if len(tried) == 1:
-        return "only"
-    if float(threshold) <= tried[0]:
-        return "lowest"
-    if float(threshold) >= tried[-1]:
-        return "highest"
-    return None
 
 
 __all__ = ["run_point", "point_reason", "without_work_path", "threshold_edge", "PRESET_KEYS",

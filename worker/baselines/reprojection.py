@@ -24,7 +24,7 @@ from spadscan.protocol.sensor_model import SensorModel
 
 from ..carving.bounds import zone_axis
 from ..carving.returns import DEFAULT_THRESHOLD, FirstReturns, check_inputs, first_returns
-from .common import points_mesh
+from .common import default_threshold, points_mesh
 
 FILTER = "leading"
 """The detection filter reprojection finds its returns with (see the module docstring)."""
@@ -54,10 +54,11 @@ def reprojection_returns(hists, sensor: SensorModel, threshold: float = DEFAULT_
     return first_returns(hists, sensor, threshold, FILTER, usable=usable)
 
 
-def _reproject(hists, poses, sensor: SensorModel, threshold: float, floor_z: float | None,
+def _reproject(hists, poses, sensor: SensorModel, threshold: float | None, floor_z: float | None,
                usable: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
     """(points, view, zone, below the floor, behind the sensor): see `reproject_points`."""
     h, p = check_inputs(hists, poses, sensor)
+    threshold = default_threshold(sensor) if threshold is None else threshold
     fr = reprojection_returns(h, sensor, threshold, usable)
     rng = fr.arrival_range_m(sensor)
     ahead = fr.detected & (rng > 0)  # NaN where nothing was detected compares False
@@ -73,19 +74,22 @@ def _reproject(hists, poses, sensor: SensorModel, threshold: float, floor_z: flo
     return pts[keep], view[keep], zone[keep], finite - int(keep.sum()), behind
 
 
-def reproject_points(hists, poses, sensor: SensorModel, threshold: float = DEFAULT_THRESHOLD,
+def reproject_points(hists, poses, sensor: SensorModel, threshold: float | None = None,
                      floor_z: float | None = None,
                      usable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """(points (m, 3), view (m,), zone (m,), below) for every zone with a first return in front of the sensor;
+    """(points (m, 3), view (m,), zone (m,), below) for every zone with a first return in front of the sensor
+    (threshold None: the sensor's default, `common.default_threshold`, as `spadscan baseline` takes it);
     points below `floor_z` are left out (a floor the histograms do not show cannot hold a return, so they are
     noise), `below` counts them. usable (n, zones) bool, or None for all: histograms marked False give no point."""
     return _reproject(hists, poses, sensor, threshold, floor_z, usable)[:4]
 
 
-def reprojection(hists, poses, sensor: SensorModel, *, threshold: float = DEFAULT_THRESHOLD,
+def reprojection(hists, poses, sensor: SensorModel, *, threshold: float | None = None,
                  surface: str = "occupancy", floor_z: float | None = None,
                  usable: np.ndarray | None = None) -> Reprojection:
-    """The reprojection baseline: back-projected first returns and a surface through them."""
+    """The reprojection baseline: back-projected first returns and a surface through them (threshold None: the
+    sensor's default, `common.default_threshold`)."""
+    threshold = default_threshold(sensor) if threshold is None else threshold
     pts, view, zone, below, behind = _reproject(hists, poses, sensor, threshold, floor_z, usable)
     return Reprojection(pts, view, zone, float(threshold), surface, points_mesh(pts, surface), below_floor=below,
                         behind_sensor=behind)

@@ -18,7 +18,7 @@ from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.plausibility import implausible
 from spadscan.protocol.sensor_model import SensorModel
 
-from ..carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
+from ..carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor, returns_span
 from ..carving.returns import DEFAULT_THRESHOLD, first_returns
 from ..carving.space_carving import DEFAULT_EDGE_DEG, MIN_VIEWS, carve_scene, main_components, occupancy_mesh
 from ..carving.views import summed_views
@@ -26,7 +26,7 @@ from ..ground_truth import load_ground_truth
 from ..outputs import capture_state_note, export_mesh
 from ..report.report_json import json_safe, write_report
 from ..time_axis import check_time_axis
-from .common import CALIBRATION_POINTS, CALIBRATION_THRESHOLDS, MIN_SURFACE_POINTS, calibrate
+from .common import CALIBRATION_POINTS, CALIBRATION_THRESHOLDS, MIN_SURFACE_POINTS, calibrate, default_threshold
 from .floor import ASSUMED_FLOORS, check_given_floor, scene_floor
 from .reprojection import reprojection, reprojection_returns
 
@@ -37,6 +37,13 @@ SURFACES = {
     "convex-hull": "convex hull of the points",
 }
 THRESHOLD_UNITS = "standard deviations of the pulse-filtered background noise (z-score)"
+IMPLAUSIBLE_SPAN = 1.5
+"""A carved hull wider than this many times the box its first returns lie in (`bounds.returns_span`), along some
+axis, is implausible: carving keeps only space behind returns, so most of such a hull is space no return supports.
+Measured (space carving, widest axis): simulated lcspc scenes 0.6-0.8 (a mug of 48 and 256 views, the dataset's
+bunny); a simulated TMF8820 mug 0.8-1.0 at thresholds 15-30, against 4.2 at 5 (a 1.15 m hull, Chamfer 221 mm); TMF8820
+scenes on a table 1.9-3.7 at every threshold from 5 to 30 (the real pyramid, Chamfer 35-38 mm; simulated, a head on a
+can 97-163 mm, a tall block), whose hulls keep a skirt of the table's space round the object."""
 
 
 @dataclass(frozen=True)
@@ -106,6 +113,29 @@ def check_returns(capture, data: PoseViews, usable: np.ndarray) -> None:
                            f"of range or out of every view, or the sensor's settings wrong)")
 
 
+def hull_warning(method: str, mesh, data: PoseViews, threshold: float, usable: np.ndarray) -> tuple[str | None,
+                                                                                              dict]:
+    """(one line saying that a carved hull is implausible, or None; the spans for the report). Only space carving:
+    reprojection's surface goes through its returns."""
+    if method != "space-carving":
+        return None, {}
+    span = returns_span(first_returns(data.hists, data.sensor, threshold, "leading", usable=usable), data.poses,
+                        data.sensor)
+    if span is None:
+        return None, {}
+    hull, box = np.asarray(mesh.extents, float), np.maximum(span[1] - span[0], 1e-6)
+    ratio = hull / box
+    fields = {"hull_span_m": hull.round(4).tolist(), "returns_span_m": box.round(4).tolist(),
+              "hull_to_returns_span": float(ratio.max().round(3))}
+    if ratio.max() <= IMPLAUSIBLE_SPAN:
+        return None, fields
+    axis = "xyz"[int(np.argmax(ratio))]
+    return (f"implausible hull: it spans {' x '.join(f'{v:.3f}' for v in hull)} m, {ratio.max():.1f} times the "
+            f"{axis} extent of the box its first returns lie in ({' x '.join(f'{v:.3f}' for v in box)} m), so most "
+            f"of it is space no return supports (threshold {threshold:g}: returns of noise, or a table's skirt); "
+            f"do not read its metrics as the method's, try --calibrate or a higher --threshold"), fields
+
+
 def floor_warning(floor_z, floor_source: str, data: PoseViews, usable: np.ndarray, truth) -> str | None:
     """The warning that a floor the baseline assumed (z = 0: no table named or found) cuts the object, or None
     (`bounds.floor_cut_note`). A floor given with --floor-z, or a table, is the user's or the histograms' word."""
@@ -124,7 +154,8 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
                  calibration_points: int = CALIBRATION_POINTS, metrics_points: int = 300_000) -> dict:
     """Run `method` on the capture folder and write the results into `out`. Returns the report (also report.json).
 
-    threshold: detection threshold (see THRESHOLD_UNITS); `calibrate_` searches it for the best Chamfer against `gt`
+    threshold: detection threshold (see THRESHOLD_UNITS; None: the sensor's default, `common.default_threshold`);
+    `calibrate_` searches it for the best Chamfer against `gt`
     (a mesh path or builtin:NAME, scored above its table when it holds one: ground_truth.py) instead, as the paper
     did. floor_z: height (metres) below which the scene is empty; None: no floor; "auto": a measured scene's table,
     found in its histograms, else z = 0 (`floor.scene_floor`). thresholds: those `calibrate_` tries (default
@@ -184,11 +215,22 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         calibration = calibrate(lambda t: _build(method, posed, t, **opts)[0], truth, thresholds, progress=progress,
                                 n_points=calibration_points)
         threshold = calibration.threshold
-    threshold = DEFAULT_THRESHOLD if threshold is None else float(threshold)
+    if threshold is None:
+        threshold, threshold_source = default_threshold(data.sensor), f"the default for the {data.sensor.name} sensor"
+    else:
+        threshold, threshold_source = float(threshold), "calibrated" if calibrate_ else "given"
+    edge = None if calibration is None else calibration.edge_note()
+    if edge:
+        log(f"warning: {edge}")
+        warnings.append(edge)
     mesh, extras = _build(method, posed, threshold, **opts)
     seconds = time.monotonic() - start
     if mesh is None:
         raise CaptureError(_no_surface(capture, method, threshold, floor_z, extras, posed, ~broken))
+    implausible_line, spans = hull_warning(method, mesh, posed, threshold, ~broken)
+    if implausible_line:
+        log(f"warning: {implausible_line}")
+        warnings.append(implausible_line)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     export_mesh(mesh, out / "mesh.ply")
@@ -198,16 +240,19 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
     report = {
         "method": method, "capture": str(Path(capture).resolve()), "sensor": data.sensor.name,
         "views": int(len(posed.hists)), "zones": int(data.sensor.n_zones),
-        "threshold": threshold, "threshold_units": THRESHOLD_UNITS, "calibrated": bool(calibrate_),
+        "threshold": threshold, "threshold_units": THRESHOLD_UNITS, "threshold_source": threshold_source,
+        "calibrated": bool(calibrate_),
         "calibration": None if calibration is None else {
             "note": "threshold chosen by the lowest Chamfer against the ground truth, as in the paper "
                     f"(metrics on {calibration_points} samples per mesh during the search)",
-            "table": calibration.table},
+            "table": calibration.table, "edge": calibration.edge(), **({"edge_note": edge} if edge else {})},
         "floor_z_m": floor_z, "floor_source": floor_source, "seconds": round(seconds, 3),
         "capture_state": data.manifest["state"],
         **({"capture_note": state_note} if state_note else {}),
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))},
         "warnings": warnings,
+        **({"implausible_hull": implausible_line is not None} if method == "space-carving" else {}),
+        **spans,
         **extras,
     }
     if truth is not None:

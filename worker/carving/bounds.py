@@ -97,6 +97,25 @@ def scene_bounds(returns: FirstReturns, poses: np.ndarray, sensor: SensorModel, 
     return lo, hi
 
 
+def returns_span(returns: FirstReturns, poses: np.ndarray, sensor: SensorModel,
+                 share: float = 0.01) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box (min (3,), max (3,), metres) the first returns in front of the sensors lie in: each detected zone's
+    field-of-view edges and axis at its first return's range (as `scene_bounds` takes them), the box between the
+    `share` and 1 - `share` quantiles on each axis, so that a few returns of noise far off do not stretch it. None
+    when no zone saw anything. What the returns support: a carved hull far wider than it is space no return holds."""
+    rng = returns.arrival_range_m(sensor)
+    pts = []
+    for z, zone in enumerate(sensor.zones):
+        ok = returns.detected[:, z] & (rng[:, z] > 0)  # NaN (nothing detected) compares False
+        if ok.any():
+            world = np.einsum("nij,mj->nmi", poses[ok, :3, :3], zone_edges(zone))
+            pts.append((poses[ok, None, :3, 3] + world * rng[ok, z, None, None]).reshape(-1, 3))
+    if not pts:
+        return None
+    allp = np.concatenate(pts)
+    return np.quantile(allp, share, axis=0), np.quantile(allp, 1 - share, axis=0)
+
+
 @dataclass(frozen=True)
 class BelowFloor:
     """First returns that can only have come from below a floor: `below` of the `returns` detected, the lowest
@@ -183,5 +202,6 @@ def cube_around(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return c - half, c + half
 
 
-__all__ = ["zone_axis", "zone_edges", "scene_bounds", "cube_around", "BelowFloor", "returns_below_floor",
-           "zone_top_z", "mesh_share_below", "floor_cut_note", "BELOW_FLOOR_M", "BELOW_FLOOR_SHARE", "BELOW_FLOOR_MIN"]
+__all__ = ["zone_axis", "zone_edges", "scene_bounds", "returns_span", "cube_around", "BelowFloor",
+           "returns_below_floor", "zone_top_z", "mesh_share_below", "floor_cut_note", "BELOW_FLOOR_M",
+           "BELOW_FLOOR_SHARE", "BELOW_FLOOR_MIN"]
