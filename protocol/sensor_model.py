@@ -80,7 +80,9 @@ class Zone:
     def solid_angle_sr(self) -> float:
         """Solid angle of the zone (steradians)."""
         if self.kind == "cone":
-            return 2 * math.pi * (1 - math.cos(self.half_angle_rad))
+            # 1 - cos(a) written as 2 sin^2(a / 2): the difference underflows to 0 below about 1e-8 rad, and a zone
+            # of no solid angle weighs its rays 0 / 0.
+            return 4 * math.pi * math.sin(self.half_angle_rad / 2) ** 2
         # Solid angle of a rectangle on the z = 1 plane: sum of signed corner terms atan(xy / sqrt(1 + x^2 + y^2)).
         total = 0.0
         for x, sx in ((self.tan_x[1], 1), (self.tan_x[0], -1)):

@@ -90,6 +90,14 @@ def test_solid_angles():
     assert rect.solid_angle_sr() == pytest.approx(quad, rel=1e-6)
 
 
+@pytest.mark.parametrize("half_angle", [1e-9, 1e-12, 1e-100])
+def test_a_very_narrow_cone_keeps_its_solid_angle(half_angle):
+    """pi a^2 for a small half-angle a: 2 pi (1 - cos a) underflows to 0 below about 1e-8 rad, and a zone of no solid
+    angle weighed its rays 0 / 0 (a NaN in the fit's set-up)."""
+    cone = Zone(kind="cone", half_angle_rad=half_angle)
+    assert cone.solid_angle_sr() == pytest.approx(math.pi * half_angle ** 2, rel=1e-9)
+
+
 @pytest.mark.parametrize("sigma,tau,over", [(2.0, 3.6, 1), (2.0, 3.6, 8), (0.9, 0.0, 4), (0.5, 1.5, 8),
                                              (1.0, 300.0, 8)])  # a long tail: summed by FFT (minutes directly)
 def test_exgauss_kernel_has_the_right_mean_and_width(sigma, tau, over):
