@@ -12,6 +12,7 @@ The manifest's `scene` dict may say (all optional, metres):
 - `"table": {"normal": [nx, ny, nz], "offset": d}` (the plane n . x = d, n pointing up) or `"table": {"z": h}`, or
   `"table": true` for a horizontal table whose height is fitted, or `"table": false`; measured scenes that say
   nothing get a fitted table (on the arm rig the object stands on one), simulated ones none;
+- `"floor_z": z` — nothing is solid below this height (a finite number within MAX_FLOOR_M, checked here);
 - `"real": true|false` — measured data (default: false for a simulated rig (`rig.kind` "simulated") or a daemon's
   simulated sensor (`rig.sensor.backend` "sim"), else whether the sensor model carries reference histograms, i.e.
   is hardware). Only measured data take their pulse from reference histograms.
@@ -19,6 +20,7 @@ The manifest's `scene` dict may say (all optional, metres):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +38,8 @@ from ..pulse import pulse_kernel
 from ..table_height import TablePlane, named_table
 
 RADIUS_FRACTION = 0.6  # scene radius / nearest sensor's distance, when no return locates the object
+MAX_FLOOR_M = 100.0
+"""A scene's floor_z (metres) beyond this is no floor of a lab's scene: a unit or a typing error."""
 BEYOND_BOUND_SHARE = 0.01
 """A scene sphere that leaves more than this share of the first returns outside is said to cut the object."""
 TABLE_RETURN_BAND_M = 0.03
@@ -138,6 +142,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     cycles = frames * float(sensor.cycles)
 
     scene = dict(data.manifest.get("scene") or {})
+    _check_floor(scene, capture)
     real = is_measured(scene, data.manifest, sensor)
     points = first_returns(counts, poses, sensor)
     center, radius, bound_note = _scene_sphere(scene, poses, points, sensor, capture, real)
@@ -157,6 +162,17 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
         usable=torch.as_tensor(~broken, device=device),
         state=str(data.manifest["state"]),
     )
+
+
+def _check_floor(scene: dict, capture: Path) -> None:
+    """One-line CaptureError for a scene `floor_z` that is no finite number of metres (NaN trained on and failed as a
+    diverged fit; true read as a 1 m floor)."""
+    if "floor_z" not in scene or scene["floor_z"] is None:
+        return
+    z = scene["floor_z"]
+    if isinstance(z, bool) or not isinstance(z, (int, float)) or not math.isfinite(z) or abs(z) > MAX_FLOOR_M:
+        raise CaptureError(f"{capture / 'scan.json'}: scene floor_z {z!r} is not a height in metres (a finite "
+                           f"number within +-{MAX_FLOOR_M:g} m)")
 
 
 def _implausible(data, capture: Path) -> np.ndarray:
