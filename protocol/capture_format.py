@@ -151,6 +151,18 @@ def one_line(exc: BaseException) -> str:
     return fold(exc) or type(exc).__name__
 
 
+def strict_json(value):
+    """A copy of `value` (dicts, lists, numbers, text) with every number that is not finite made None: JSON has no
+    NaN or Infinity, and Python's json writes them as bare tokens that other readers refuse."""
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def check_json(data, where: str) -> None:
     """Refuse data that JSON cannot hold (objects, arrays), before anything is written."""
     try:

@@ -35,7 +35,7 @@ except ImportError:  # not on Windows, which has no per-process file-size limit
 
 from .capture_format import (CHUNK_PREFIX, FORMAT, MANIFEST, SCHEDULE, STATES, TMP_PREFIX, VERSION, Measurement,
                              check_json, check_poses, chunk_index, chunk_name, fold, fsync_dir, one_line, read_json,
-                             save_npy_durable, to_counts, write_durable, write_json_atomic)
+                             save_npy_durable, strict_json, to_counts, write_durable, write_json_atomic)
 from .capture_reader import CaptureReader
 from .disk_full import is_short_write
 from .errors import CaptureError
@@ -569,7 +569,8 @@ class CaptureWriter:
         meta = {"measurements": [{**m.meta, "pose_index": m.pose_index, "frame": m.frame} for m in buf]}
         writes = [(save_npy_durable, tmp / "hists.npy", np.stack([m.hist for m in buf])),
                   (save_npy_durable, tmp / "poses.npy", np.stack([m.pose for m in buf])),
-                  (write_durable, tmp / "meta.json", json.dumps(meta).encode())]
+                  (write_durable, tmp / "meta.json",
+                   json.dumps(strict_json(meta), allow_nan=False).encode())]
         if buf[0].reference is not None:
             writes.append((save_npy_durable, tmp / "reference.npy", np.stack([m.reference for m in buf])))
         _together(writes)

@@ -115,6 +115,19 @@ def test_meta_cannot_overwrite_pose_index_or_frame(tmp_path):
     assert meta["pose_index"] == 5 and meta["frame"] == 0 and meta["x"] == 1
 
 
+def test_meta_json_is_strict_json_a_number_not_finite_written_as_null(tmp_path):
+    """JSON has no NaN or Infinity (Python writes bare tokens that other readers refuse): a meta value that is not
+    finite (a sensor's temperature it could not read, a dataset's record) is written as null."""
+    m = tmf(5)
+    m.meta = {"temperature_c": float("nan"), "extra": {"gain": [1.0, float("inf")]}}
+    with CaptureWriter.create(tmp_path / "s", TMF) as w:
+        w.append(m)
+    text = (tmp_path / "s" / chunk_name(0) / "meta.json").read_text()
+    json.loads(text, parse_constant=lambda token: pytest.fail(f"bare {token} in meta.json"))
+    meta = CaptureReader(tmp_path / "s").load().meta[0]
+    assert meta["temperature_c"] is None and meta["extra"] == {"gain": [1.0, None]}
+
+
 # ---- chunk boundaries ----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("n,size", [(1, 3), (2, 3), (3, 3), (4, 3), (6, 3), (7, 3), (5, 1), (3, 64)])
 def test_chunks_hold_at_most_chunk_size(tmp_path, n, size):
