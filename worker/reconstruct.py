@@ -391,8 +391,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
-                     scene_notes=[n for n in (run.counts_note, scene.bound_note, floor_note, ring_note, run.state_note)
-                                  if n],
+                     scene_notes=[n for n in (run.counts_note, scene.bound_note, scene.pulse_note, floor_note,
+                                              ring_note, run.state_note) if n],
                      coverage=coverage, pieces=pieces, signal=signal, lost=lost,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,

@@ -378,6 +378,21 @@ def test_measured_capture_takes_its_pulse_from_the_reference_and_estimates_backg
     sim_cap = write_capture(tmp_path / "sim", sensor, hists, poses, reference=ref.astype(np.uint32),
                             rig={"kind": "simulated"})
     assert load_scene(sim_cap).pulse_source == "sensor model"
+    assert scene.pulse_note is None and load_scene(sim_cap).pulse_note is None  # a simulated one wants none
+
+
+@pytest.mark.parametrize("level", [0, 200])
+def test_a_measured_capture_whose_reference_shows_no_pulse_says_it_took_the_sensor_models(tmp_path, level):
+    """Reference histograms all zero or flat (a dark or saturated reference path): the fit takes the preset's pulse,
+    and the run says so (its scene notes are report warnings), not only report.json's scene.pulse."""
+    sensor = sensor_preset("tmf8820")
+    target = np.zeros(3)
+    poses = np.stack([look_at([0.0, 0.0, 0.3], target), look_at([0.2, 0.0, 0.25], target)])
+    hists = np.random.default_rng(0).poisson(150, (2, 9, 128)).astype(np.uint32)
+    cap = write_capture(tmp_path / "real", sensor, hists, poses, reference=np.full((2, 128), level, np.uint32))
+    scene = load_scene(cap)
+    assert scene.real and scene.pulse_source == "sensor model"
+    assert "reference histograms show no clear pulse" in scene.pulse_note and "tmf8820" in scene.pulse_note
 
 
 def test_daemon_capture_from_a_simulated_sensor_is_not_measured(tmp_path):

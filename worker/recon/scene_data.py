@@ -96,6 +96,9 @@ class SceneData:
     all its bins are invalid too); None: all of them."""
     bound_note: str | None = None
     """Why part of the object may lie outside the scene sphere (views too near its centre keep it small), or None."""
+    pulse_note: str | None = None
+    """Why a measured capture's pulse is the sensor model's though it holds reference histograms (they show no
+    clear peak: all zero, saturated, flat), or None."""
 
     def pulse(self, oversample: int = 1) -> tuple[np.ndarray, int]:
         """(kernel (K,) summing to 1, origin): kernel[origin + k] is the response k / oversample bins after the
@@ -149,6 +152,11 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     table = _table(scene, center, radius, real, points, capture)
     reference = data.reference.mean(axis=0) if (real and data.reference is not None) else None
     kernel, origin, pulse_source = pulse_kernel(sensor, reference)
+    pulse_note = None
+    if reference is not None and pulse_source != "reference":
+        pulse_note = (f"the capture's reference histograms show no clear pulse (no peak 5 standard deviations over "
+                      f"their floor: the sensor's reference path dark, saturated or flat), so the fit takes the "
+                      f"{sensor.name} sensor model's pulse, which may not be this unit's; check the sensor")
     reference = reference if pulse_source == "reference" else None
     background, bg_source = _background(counts, cycles, poses, center, radius, sensor, origin, real)
 
@@ -159,7 +167,7 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
         reference=reference, pulse_source=pulse_source,
         background=t(background), background_source=bg_source,
         center=t(center), radius=float(radius), table=table, real=real, scene=scene, bound_note=bound_note,
-        usable=torch.as_tensor(~broken, device=device),
+        usable=torch.as_tensor(~broken, device=device), pulse_note=pulse_note,
         state=str(data.manifest["state"]),
     )
 
