@@ -53,13 +53,10 @@ from .report.report_html import write_report_html
 from .report.report_json import json_safe, write_report
 from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
-from .time_axis import check_time_axis, scene_views
+from .time_axis import NEAR_RANGE_M, check_time_axis, scene_views
 from .view_spread import above_only_warning, one_ring_warning, view_elevations_deg
 
 DEVICES = ("auto", "cpu", "cuda")
-NEAR_RANGE_M = 0.01
-"""Range (metres) under which piled-up photons say a surface touches the sensor: no return this near is told from
-the pulse's own start (the scene's first returns count from here on: recon/scene_data.py)."""
 FIT_VIEWS = 4
 """Views the fit picture shows."""
 NOISE_VIEWS = 32

@@ -20,6 +20,9 @@ from .carving.returns import matched_filter_z
 from .carving.views import summed_views
 
 
+NEAR_RANGE_M = 0.01
+"""Range (metres) under which piled-up photons say a surface touches the sensor: no return this near is told from
+the pulse's own start (the scene's first returns count from here on: recon/scene_data.py)."""
 STRONG_Z = 10.0
 """A histogram's strongest peak is a strong return at this many standard deviations of its matched-filtered
 background (twice the detection threshold): the time-axis check reads only those, which noise never makes."""
@@ -83,6 +86,15 @@ def check_time_axis(capture, record: dict, poses: np.ndarray, counts: np.ndarray
         return
     out = places.ranges_m[~places.inside]
     before = " (negative: before the time axis's zero)" if out.min() < 0 else ""
+    if out.max() < NEAR_RANGE_M:
+        # Every such return at the start of the range: photons piled up from a surface touching the sensor (their
+        # peak can fall bins before the zero) look just as a zero_bin set too late does; the first is the likelier.
+        raise CaptureError(f"{capture}: {out.size} of {places.inside.size} strong returns lie {_metres(out.min())} "
+                           f"to {_metres(out.max())} m from the sensor{before}, at the start of its range, but the "
+                           f"scene's sphere is {_metres(places.near_m)} to {_metres(places.far_m)} m from the views: "
+                           f"the photons pile up in the first bins, as from a surface touching the sensor (move the "
+                           f"sensor back from it), or the sensor record's sensor.zero_bin ({sensor.zero_bin:g}) in "
+                           f"its scan.json is wrong")
     raise CaptureError(f"{capture}: {out.size} of {places.inside.size} strong returns lie {_metres(out.min())} to "
                        f"{_metres(out.max())} m from the sensor{before}, but the scene's sphere is "
                        f"{_metres(places.near_m)} to {_metres(places.far_m)} m from the views: no surface of the "

@@ -78,6 +78,19 @@ def test_a_zero_bin_far_off_is_refused_as_the_time_axis_not_the_floor(cylinder_c
     assert "floor" not in line, line
 
 
+def test_a_sensor_touching_the_surface_is_named_first_not_only_the_time_axis(tmp_path, capsys):
+    """A TMF8820 a few millimetres from a ball: pile-up puts the photons' peak bins before the time axis's zero, as a
+    zero_bin set too late would. The refusal names the likelier cause first (a surface touching the sensor), then
+    the zero bin; not the bin width, which no return near zero says anything of."""
+    cap = tmp_path / "near"
+    assert cli_main(["simulate", "builtin:sphere", "--no-progress", "--sensor", "tmf8820", "--views", "16",
+                     "--target", "0", "0", "0.1", "--radius", "0.105", "--out", str(cap)]) == 0
+    capsys.readouterr()
+    line = refused_run(cap, tmp_path, capsys)
+    assert "at the start of its range" in line and "a surface touching the sensor" in line, line
+    assert line.index("surface touching") < line.index("sensor.zero_bin") and "bin_width_m" not in line, line
+
+
 def test_a_tmf8820_capture_on_a_table_with_a_bin_width_of_a_metre_is_refused(tmf_table_capture, tmp_path, capsys):
     line = refused_run(with_sensor(tmf_table_capture, tmp_path / "cap", bin_width_m=1.0), tmp_path, capsys)
     assert "sensor.bin_width_m (1 m a bin)" in line, line
