@@ -403,6 +403,31 @@ def misplaced_views(poses, mesh, table: SimTable | None = None) -> tuple[np.ndar
     return inside, under
 
 
+FLOODED_BINS = 4
+"""The first bins of a histogram: most of its detections there say pile-up (the first photon of nearly every cycle
+comes at once: a surface touching the sensor, or so much ambient light or laser power that the sensor fills its
+first bins and sees nothing behind them)."""
+FLOODED_SHARE = 0.5
+"""A histogram holding more than this share of its detections in its first FLOODED_BINS bins is flooded."""
+
+
+def flooded_note(hists: np.ndarray) -> str | None:
+    """A warning for a capture whose views are mostly flooded (`FLOODED_SHARE` of a histogram's detections in its
+    first FLOODED_BINS bins, for most of a view's zones, in most views), or None. hists (n, zones, bins) counts."""
+    h = np.asarray(hists, dtype=np.float64)
+    total = h.sum(axis=-1)
+    early = h[..., :FLOODED_BINS].sum(axis=-1)
+    flooded = (total > 0) & (early > FLOODED_SHARE * total)
+    views = flooded.mean(axis=1) > 0.5
+    if views.mean() <= 0.5:
+        return None
+    share = float(early[flooded].sum() / total[flooded].sum())
+    return (f"warning: {int(views.sum())} of {len(views)} views hold {100 * share:.0f} % of their detections in "
+            f"their first {FLOODED_BINS} bins (pile-up: a surface touching the sensor, or so much ambient light or "
+            f"laser power that the first photon of nearly every cycle comes at once): they show no return behind "
+            f"it, and reconstruct will refuse or misread them; move the views back, or lower --ambient / --power")
+
+
 def misplaced_views_note(poses, mesh, table: SimTable | None = None) -> str | None:
     """A line naming how many views, and which, put the sensor inside the mesh or on or under the table top (see
     `misplaced_views`); None when none does."""
@@ -445,6 +470,6 @@ def blind_views_note(signal_photons: np.ndarray, mesh) -> str | None:
             f"{hi} m: check the target and radius (or the albedo and power)")
 
 
-__all__ = ["SimSettings", "SimFrames", "SimTable", "Simulator", "simulate_capture", "blind_views_note",
+__all__ = ["SimSettings", "SimFrames", "SimTable", "Simulator", "simulate_capture", "blind_views_note", "flooded_note",
            "reference_shape", "misplaced_views", "misplaced_views_note", "check_pose_array", "check_seed",
            "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS", "REFERENCE_STRETCH", "REFERENCE_POWER"]

@@ -43,6 +43,22 @@ def test_a_table_does_not_hide_the_views_that_miss_the_mesh(tmp_path, capsys):
     assert on_table == bare
 
 
+@pytest.mark.parametrize("how", [["--target", "0", "0", "0.1", "--radius", "0.1005"], ["--ambient", "1"]])
+def test_a_capture_flooded_by_pile_up_is_said_when_it_is_written(tmp_path, capsys, how):
+    """Views half a millimetre from the ball, or ambient light that fills the first bins of every cycle: every
+    histogram holds its detections in its first bins, which reconstruct refuses later; simulate says so at once."""
+    out = str(tmp_path / "c")
+    assert main(["simulate", "builtin:sphere", "--views", "16", "--no-progress", *how, "--out", out]) == 0
+    said = warnings_of(capsys.readouterr().err)
+    assert len(said) == 1 and said[0].startswith("warning: 16 of 16 views hold "), said
+    assert "in their first 4 bins (pile-up" in said[0]
+
+
+def test_a_plain_capture_is_not_said_to_be_flooded(tmp_path, capsys):
+    assert main(["simulate", "builtin:sphere", "--views", "16", "--no-progress", "--out", str(tmp_path / "c")]) == 0
+    assert warnings_of(capsys.readouterr().err) == []
+
+
 def test_frames_keep_the_meshs_photons_apart_from_the_tables():
     ball = builtin_scene("sphere")
     sim = Simulator(ball, sensor_preset("tmf8820"), table=SimTable(0.0, 0.5))
