@@ -19,7 +19,8 @@ def url_path(*names: str) -> str:
 
 def safe_path(root: Path, url_path: str) -> Path | None:
     """The file under `root` that `url_path` (percent-encoded, '/'-separated, relative to root) names, or None when
-    it names anything outside the root (after '..' and links are resolved), a hidden component or no regular file."""
+    it names anything outside the root (after '..' and links are resolved), a hidden component (in the URL or, after
+    links are resolved, below the root) or no regular file."""
     parts = [p for p in unquote(url_path, errors="surrogateescape").split("/") if p not in ("", ".")]
     if not parts or any(p.startswith(".") or "\\" in p or "\x00" in p for p in parts):
         return None  # '..' starts with a dot too
@@ -28,6 +29,10 @@ def safe_path(root: Path, url_path: str) -> Path | None:
         path = root.joinpath(*parts).resolve()
         # is_file() raises for a name the system refuses (ENAMETOOLONG over 255 bytes): that is no file, not a fault
         if root not in path.parents or not path.is_file():
+            return None
+        # a link inside the root may lead into a hidden folder (the queue, a job being written): refused as its own
+        # name would be
+        if any(p.startswith(".") for p in path.relative_to(root).parts):
             return None
     except (OSError, RuntimeError, ValueError):
         return None

@@ -4,19 +4,22 @@ Routes (GET and HEAD only):
   /               the page (page.html), which polls /api/status
   /api/status     the state of the root as JSON (status.py); strict JSON, a browser's parser takes it: a NaN or an
                   infinity read from a damaged file is null there
-  /files/PATH     a file under the root; anything that resolves outside it, hidden folders (the queue, a job being
-                  written) and folders are 404
+  /files/PATH     a file under the root, streamed (never read whole: chunk data, large meshes); anything that
+                  resolves outside it or into a hidden folder (the queue, a job being written; through a link too)
+                  and folders are 404
   /live3d/SCAN    the 3D view of SCAN's live reconstruction (recon/live/mesh.ply), made on demand and remembered
-                  until the mesh changes; the browser draws it (worker/report/view3d.py): the server needs no
-                  OpenGL for it
+                  until the mesh changes (a few scans' only); the browser draws it (worker/report/view3d.py): the
+                  server needs no OpenGL for it
 """
 
 from __future__ import annotations
 
 import json
 import mimetypes
+import os
 import socket
 import threading
+from collections import OrderedDict
 from functools import partial
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -33,14 +36,17 @@ from .results import LIVE, RECON
 from .status import Dashboard
 
 PAGE = "page.html"
+BLOCK = 1 << 16  # bytes of a served file read and sent at a time
 
 
 class LiveViews:
-    """3D views of live meshes, made on demand and kept until the mesh file changes."""
+    """3D views of live meshes, made on demand and kept until the mesh file changes; the `keep` last asked for only
+    (a dashboard left open for weeks sees many scans, each page a whole mesh)."""
 
-    def __init__(self):
+    def __init__(self, keep: int = 4):
         self._lock = threading.Lock()
-        self._pages: dict[Path, tuple[int, bytes]] = {}
+        self._keep = keep
+        self._pages: OrderedDict[Path, tuple[int, bytes]] = OrderedDict()
 
     def page(self, mesh_path: Path, title: str) -> bytes:
         from spadscan.protocol.mesh_io import load_mesh
@@ -52,7 +58,15 @@ class LiveViews:
             if cached is None or cached[0] != stamp:
                 page = view3d_html(load_mesh(mesh_path, units="m"), title=title).encode("utf-8")
                 self._pages[mesh_path] = cached = (stamp, page)
+            self._pages.move_to_end(mesh_path)
+            while len(self._pages) > self._keep:
+                self._pages.popitem(last=False)
             return cached[1]
+
+    def kept(self) -> list[Path]:
+        """The meshes whose pages are kept, oldest asked for first."""
+        with self._lock:
+            return list(self._pages)
 
 
 class Handler(BaseHTTPRequestHandler):
@@ -100,26 +114,60 @@ class Handler(BaseHTTPRequestHandler):
         kind = mimetypes.guess_type(path.name)[0] or "application/octet-stream"
         if kind.startswith("text/"):
             kind += "; charset=utf-8"
-        return self._send(HTTPStatus.OK, path.read_bytes(), kind, head)
+        # Streamed, never read whole: /files/ serves anything under the root (chunk data, meshes of hundreds of MB).
+        # Another error opening it (an unreadable disk) is said as a 503 (do_GET).
+        try:
+            f = path.open("rb")
+        except FileNotFoundError:
+            return self._not_found(head)  # removed since safe_path found it
+        with f:
+            size = os.fstat(f.fileno()).st_size
+            self._headers(HTTPStatus.OK, size, kind)
+            if not head:
+                self._copy(f, size)
+        return None
+
+    def _copy(self, f, size: int):
+        """`size` bytes of `f` to the client, in blocks. The headers are sent: a file cut short or unreadable from
+        here closes the connection, which the client sees as a body shorter than its Content-Length (never a
+        traceback, nor the rest of a file grown meanwhile beyond what was promised)."""
+        left = size
+        try:
+            while left > 0:
+                block = f.read(min(BLOCK, left))
+                if not block:
+                    break
+                self.wfile.write(block)
+                left -= len(block)
+        except OSError:  # a read error, or the client gone
+            pass
+        if left > 0:
+            self.close_connection = True
 
     def _live(self, scan: str, head: bool):
         mesh = safe_path(self.dashboard.root, f"{scan}/{RECON}/{LIVE}/mesh.ply")
         if mesh is None or "/" in unquote(scan).strip("/"):
             return self._not_found(head)
-        body = self.live.page(mesh, title=f"{unquote(scan)} (live)")
+        try:
+            body = self.live.page(mesh, title=f"{unquote(scan)} (live)")
+        except FileNotFoundError:
+            return self._not_found(head)  # removed since safe_path found it (a new live attempt clears it)
         return self._send(HTTPStatus.OK, body, "text/html; charset=utf-8", head)
 
     def _not_found(self, head: bool):
         return self._send(HTTPStatus.NOT_FOUND, b"not found\n", "text/plain; charset=utf-8", head)
 
     def _send(self, status: HTTPStatus, body: bytes, kind: str, head: bool):
-        self.send_response(status)
-        self.send_header("Content-Type", kind)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
+        self._headers(status, len(body), kind)
         if not head:
             self.wfile.write(body)
+
+    def _headers(self, status: HTTPStatus, length: int, kind: str):
+        self.send_response(status)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(length))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
 
 
 def make_server(root, host: str = "127.0.0.1", port: int = 8765, queue_dir=None,

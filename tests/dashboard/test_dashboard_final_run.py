@@ -7,6 +7,7 @@ whose worker is gone says so in the heading and the queue's counts, as `spadscan
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 import subprocess
 import sys
@@ -132,6 +133,32 @@ def test_while_the_final_run_runs_the_heading_says_so_and_where_it_started(tmp_p
         assert page.locator('#scans tr[data-scan="bowl"] a.pick').text_content() == (
             "fast, Chamfer to the ground truth 83.85 mm (the live reconstruction's result: its final run started "
             "from the carved hull, not from the live fit)")
+    assert not seen.errors, seen.errors
+
+
+def test_a_final_run_whose_job_ended_says_the_queues_word_and_how_old_its_status_is(tmp_path):
+    # A worker that could not write 'done' or 'failed' (a full disk) leaves the live status at 'final': its job, done
+    # or failed in the queue, runs no final run, which must never read as starting, for good.
+    queue = Queue.for_root(tmp_path)
+    ten_min_ago = (_dt.datetime.now(_dt.timezone.utc) - _dt.timedelta(minutes=10)).strftime("%Y-%m-%dT%H:%M:%SZ")
+    for name in ("bowl", "mug"):
+        complete_scan(tmp_path / name, 1)
+        live_status(tmp_path / name, views_used=57, views_published=64, steps=89, state="final", job=f"{name}-fast",
+                    final_start="live", updated_utc=ten_min_ago)
+        queue.enqueue(Job(id=f"{name}-fast", scan=name, live=True))
+    queue.finish(queue.claim(), result=str(tmp_path / "bowl" / "recon" / "bowl-fast"))
+    queue.fail(queue.claim(), "out of room", retry=False)
+    with serving(tmp_path) as server, browser_page() as (page, seen):
+        page.goto(address(server))
+        pick(page, "bowl")
+        heading = wait_text(page, "#viewer-name", "its job")
+        assert heading.startswith("bowl / live, finishing: the final run on 64 views, continuing the live fit; its job "
+                                  "is done, updated 10 min ago"), heading
+        pick(page, "mug")
+        heading = wait_text(page, "#viewer-name", "its job")
+        assert heading.startswith("mug / live, finishing: the final run on 64 views, continuing the live fit; its job "
+                                  "failed, updated 10 min ago"), heading
+        assert "starting" not in page.locator("#scans").text_content()
     assert not seen.errors, seen.errors
 
 
