@@ -195,7 +195,7 @@ def run(args) -> int:
     given = _given_options(args)
     _check_limits(given)
     if args.retry_failed:
-        return _retry_failed(Queue(queue_dir, create=False), given, args.preset)
+        return _retry_failed(Queue(queue_dir, create=False), given, args.preset, root)
     if args.redo:
         return _redo(Queue(queue_dir, create=False), root, args.redo, given)
     options = JobOptions(**({"preset": args.preset} if args.preset else {}), **given, live=args.live)
@@ -303,11 +303,13 @@ def _check_limits(given: dict) -> None:
         raise ConfigError(problem)
 
 
-def _retry_failed(queue, given: dict, preset: str | None) -> int:
+def _retry_failed(queue, given: dict, preset: str | None, root: Path) -> int:
     """Queue failed jobs again (those of `preset`, if given), with the options `given` on the command line."""
     from spadscan.worker.watcher import JobOptions
 
     JobOptions(**({"preset": preset} if preset else {}), **given).check()  # before any job moves
+    for job in _jobs_in(queue, "failed", preset):
+        _say_queued(job, root, "queued again by `spadscan worker --retry-failed`")
     moved = queue.retry_failed(changes=given, preset=preset)
     changed = ", ".join(f"{OPTION_FLAGS[k]} {v}" for k, v in given.items())
     if not moved:
@@ -328,12 +330,46 @@ def _redo(queue, root, job_ids: list[str], given: dict) -> int:
     changed = ", ".join(f"{OPTION_FLAGS[k]} {v}" for k, v in given.items()) or "their own options"
     for job in jobs:
         aside = move_aside(result_path(job, root))  # a done job's result is in place: it is published first
+        _say_queued(job, root, "queued again by `spadscan worker --redo`" + (f"; its earlier result is now {aside}"
+                                                                          if aside else ""))
         if not queue.requeue("done", job.id, changes=given):
             raise ConfigError(f"{job.id}: another process moved the job while it was being queued again"
                               + (f"; its earlier result is in {aside}" if aside else ""))
         kept = f"; its earlier result is now {aside}" if aside else "; it had no results folder"
         print(f"queued again: {job.id} (with {changed}){kept}")
     return 0
+
+
+def _say_queued(job, root: Path, why: str) -> None:
+    """A live job queued again says so in its live status ('queued', `why`): its 'done' or 'stopped' would stand
+    until a worker claims the job, over figures of a result moved aside. Written before the job moves, so that it
+    never lands after the 'waiting' of a worker that claimed the job at once."""
+    import sys
+
+    from spadscan.worker.live.done import mark_live_queued
+
+    mark_live_queued(job, root, why, lambda line: print(line, file=sys.stderr), ended_too=True)
+
+
+def _jobs_in(queue, state: str, preset: str | None) -> list:
+    """The readable jobs in `state` (of `preset`, if given); those whose files cannot be read are left out (the
+    queue moves them all the same, and their jobs say why when they run)."""
+    import json
+
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.worker.jobs import Job
+
+    jobs = []
+    for job_id, (where, path) in sorted(queue.job_paths().items()):
+        if where != state:
+            continue
+        try:
+            job = Job.from_dict(json.loads(path.read_text()), str(path))
+        except (OSError, ValueError, SpadscanError):
+            continue
+        if preset is None or job.preset == preset:
+            jobs.append(job)
+    return jobs
 
 
 def _done_job(queue, job_id: str):

@@ -23,7 +23,9 @@ def mark_live_done(job: Job, root: Path, result: Path, log: Callable[[str], None
     try:
         path = status_path(scan_path(job, root))
         status = read_status(path)
-        write_status(path.parent, done_status(status, Path(result)))
+        if not holds(status, job):
+            return  # another live job's folder (`holds`): this job's result is in its own folder, not there
+        write_status(path.parent, dataclasses.replace(done_status(status, Path(result)), job=job.id))
     except (SpadscanError, OSError) as exc:
         log(f"{job.id}: its result is published, but the live status was not updated: {exc}")
 
@@ -44,11 +46,11 @@ def mark_live_failed(job: Job, root: Path, error: str, log: Callable[[str], None
     """Set `<scan>/recon/live/status.json` to state 'stopped' with `error` as its note, for a live job the queue has
     given up on: the job process can die, or its final run fail, after it wrote 'final' ("finishing"), which would
     then stand for good. A status that already says how the job ended ('done', 'aborted', 'stopped': the job's own
-    word, more precise) or cannot be read is left alone."""
+    word, more precise), another job's (`holds`) or one that cannot be read is left alone."""
     try:
         path = status_path(scan_path(job, root))
         status = read_status(path)
-        if status.state not in ENDED:
+        if holds(status, job) and status.state not in ENDED:
             write_status(path.parent, dataclasses.replace(status, state="stopped", note=" ".join(error.split()),
                                                           updated_utc="", figures_utc=figures_time(status)))
     except (SpadscanError, OSError) as exc:
@@ -60,13 +62,15 @@ AGAIN = ("the job is back in the queue and runs again from the start when a work
 """What the live status of a job given back to the queue says after why."""
 
 
-def mark_live_queued(job, root: Path, why: str, log: Callable[[str], None]) -> None:
+def mark_live_queued(job, root: Path, why: str, log: Callable[[str], None], ended_too: bool = False) -> None:
     """Set a live job's `<scan>/recon/live/status.json` to 'queued', its note `why` and then AGAIN: the job went back
     to the queue before it ended, and its status would otherwise go on saying it is finishing (or following the
     scan) with no process running it. Its figures stay, as the mesh and preview beside them: the stopped attempt's,
     which the next attempt begins afresh. A status that is missing (the job was stopped before it wrote one), another
     job's or one that says how the job ended is left alone; one that cannot be read or written is too, saying so in
-    the log."""
+    the log. `ended_too`: a status that says how the job ended is set to 'queued' too, and its `result` dropped
+    (`spadscan worker --redo` and `--retry-failed` queue a finished or failed job again: its 'done' or 'stopped'
+    would otherwise stand, with the figures of a result moved aside, until a worker claims it)."""
     if not job.live:
         return
     try:
@@ -74,9 +78,10 @@ def mark_live_queued(job, root: Path, why: str, log: Callable[[str], None]) -> N
         if not path.is_file():
             return
         status = read_status(path)
-        if status.job == job.id and status.state not in ENDED:
+        if status.job == job.id and (ended_too or status.state not in ENDED):
             write_status(path.parent, dataclasses.replace(status, state="queued", note=f"{fold(why)}; {AGAIN}",
-                                                          updated_utc="", figures_utc=figures_time(status)))
+                                                          updated_utc="", figures_utc=figures_time(status),
+                                                          result=None if ended_too else status.result))
     except (SpadscanError, OSError) as exc:
         log(f"{job.id}: the live status was not updated: {fold(exc)}")
 
@@ -86,6 +91,14 @@ def figures_time(status: LiveStatus) -> str | None:
     else its `updated_utc`. A status given back or stopped is written anew (its update is the give-back's) and keeps
     the stopped attempt's figures: with their own time, they are never read as the job's now."""
     return status.figures_utc or status.updated_utc or None
+
+
+def holds(status: LiveStatus, job) -> bool:
+    """Whether the live folder whose status is `status` is `job`'s: the folder (`<scan>/recon/live/`, one per scan)
+    is the first live job's that took it (`worker.live.publish.take_live_folder`), and only that job writes there.
+    Another live job of the scan (another id: a hashed one, another preset) never ends, fails or queues the one
+    that holds it. A status naming no job (written by an earlier version) is taken to be the job's."""
+    return status.job in ("", job.id)
 
 
 ENDED = ("done", "aborted", "stopped")
@@ -125,4 +138,4 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
 
 
 __all__ = ["mark_live_done", "mark_live_done_unsaid", "mark_live_failed", "mark_live_queued", "done_status",
-           "SCAN_ABORTED"]
+           "holds", "SCAN_ABORTED"]

@@ -21,7 +21,11 @@ published) runs `execute_live_job`:
    the live one); report.json's `published` says which. A live job that never fitted anything (its scan was
    complete before it started, or held too few views) runs the ordinary job.
 3. **Abort.** When the scan is aborted the job ends at once: the live folder keeps its last state, the status says
-   `aborted`, and the job fails with the scan's reason (not retried).
+   `aborted`, and the job fails with the scan's reason (not retried). A job that starts after its scan was aborted
+   (re-run after its worker died) says `aborted` there and clears nothing.
+
+The live folder is one live job's (`publish.take_live_folder`): another live job of the same scan writes nothing
+there, waits for the scan's end and runs as an ordinary job.
 
 A live job reads the capture and writes only under its `recon/` folder; the daemon never waits for it.
 """
@@ -38,12 +42,12 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.errors import SpadscanError
-from spadscan.protocol.live_status import LiveStatus
+from spadscan.protocol.live_status import STATUS, LiveStatus, read_status
 
 from .follower import ScanFollower, ScanProgress
 from .keep import keep_the_better
 from .next_views import is_adaptive, update_next_views
-from .publish import clear_earlier, live_folder, publish_mesh, publish_status
+from .publish import clear_earlier, live_folder, publish_mesh, publish_status, take_live_folder
 from .recoarse import RecoarsePolicy
 
 
@@ -145,6 +149,38 @@ class ScanAborted(SpadscanError):
     """The scan a live job followed was aborted: the job ends (not retried)."""
 
 
+def status_aborted(folder: Path, job, progress: ScanProgress, note: str) -> None:
+    """The live status of a job whose scan was aborted before it began (its earlier attempt's worker died, and the
+    job was queued again): 'aborted', everything else as the earlier attempt left it (its figures describe the mesh
+    and preview beside them, which stay: the scan will publish nothing more for a fit to replace them)."""
+    try:
+        status = read_status(Path(folder) / STATUS)
+    except SpadscanError:
+        status = LiveStatus(views_used=0, views_published=progress.views_published, steps=0,
+                            views_planned=progress.views_planned)
+    try:
+        publish_status(folder, dataclasses.replace(status, state="aborted", note=note, job=job.id, updated_utc=""))
+    except OSError:  # the scan's folder moved away (how a scan no daemon will resume is ended), a full disk
+        pass
+
+
+def not_holding(job, root: Path, out: Path, recon, queue, follower: ScanFollower, progress: ScanProgress,
+                holder: str, settings: LiveSettings, log: Callable[[str], None]) -> dict:
+    """Run live job `job` of a scan whose live folder another live job (`holder`) holds (`take_live_folder`): it
+    writes nothing there, waits for the scan's end, and reconstructs the complete capture as an ordinary job (its
+    result in its own folder, `recon/<job>/`). Raises ScanAborted when the scan is aborted."""
+    from ..jobs import execute_job
+
+    log(f"live: {job.scan}/recon/live is live job {holder}'s: this job publishes nothing there; it reconstructs "
+        f"the scan as an ordinary job once the scan is complete")
+    while not progress.ended:
+        time.sleep(settings.poll_s)
+        progress = follower.poll()
+    if progress.state == "aborted":
+        raise ScanAborted(f"scan {job.scan} was aborted ({progress.reason or 'no reason given'}): its job ended")
+    return execute_job(dataclasses.replace(job, live=False), root, out, recon, queue=queue)
+
+
 def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
                      settings: LiveSettings | None = None, log: Callable[[str], None] | None = None,
                      queue: Path | None = None) -> dict:
@@ -161,12 +197,23 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     out.mkdir(parents=True, exist_ok=True)
     follower = ScanFollower(scan)
     progress = follower.poll()
+    folder = live_folder(scan)
+    holder = take_live_folder(folder, job, LiveStatus(
+        views_used=0, views_published=progress.views_published, steps=0, state="waiting",
+        views_planned=progress.views_planned, job=job.id))
+    if holder is not None:
+        return not_holding(job, root, out, recon, queue, follower, progress, holder, settings, log)
     if progress.ended and progress.state == "complete":
         note = f"scan {scan.name} was already complete when its live job started: reconstructing it from scratch"
         log(f"live: {note}")
         status_finishing(scan, job, progress, note)
         return execute_job(dataclasses.replace(job, live=False), root, out, recon, queue=queue)
-    folder = live_folder(scan)
+    if progress.ended:  # aborted before this attempt began: what the last attempt published stays as it is
+        reason = progress.reason or "no reason given"
+        log(f"live: scan aborted: {reason}")
+        status_aborted(folder, job, progress, f"scan aborted: {reason}")
+        raise ScanAborted(f"scan {scan.name} was aborted ({reason}) before its live job started: the last live "
+                          f"result stays in {folder}")
     runner = LiveRun(job, scan, folder, follower, settings, log)
     runner.begin(progress)  # before the set-up (the ground truth, torch, the device), which takes seconds
     gt, _ = ground_truth(progress.manifest, out)

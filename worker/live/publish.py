@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import os
 import secrets
+import shutil
 from pathlib import Path
 
-from spadscan.protocol.live_status import LIVE_DIR, LiveStatus, write_status
+from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.live_status import LIVE_DIR, STATUS, LiveStatus, read_status, write_status
 
 from ..outputs import export_mesh
 from ..report import offscreen, pictures
@@ -27,6 +29,44 @@ def live_folder(capture: Path) -> Path:
     folder = Path(capture) / "recon" / LIVE_DIR
     folder.mkdir(parents=True, exist_ok=True)
     return folder
+
+
+def take_live_folder(folder: Path, job, first: LiveStatus) -> str | None:
+    """Take `folder` (`<scan>/recon/live/`) for live job `job`: None when it is the job's (its status names the job,
+    or no job, or cannot be read, or there was none: `first` is then written there, created so that of two jobs
+    starting at once exactly one takes it); else the id of the live job that holds it.
+
+    The folder's path is the scan's one live reconstruction that `spadscan ctl status` and the dashboard read, so
+    it is one job's for good: the first live job's that took it (its retries and its --redo have its id). A second
+    live job of the scan (another preset, a hashed id) writing there would delete the first's mesh, and its end
+    would say 'done' over the first's status with its own result; a lab reading the page expects the job it saw
+    following the scan to be the one it reports on. That second job runs as an ordinary job instead."""
+    from .done import holds
+
+    path = Path(folder) / STATUS
+    for _ in range(2):
+        try:
+            status = read_status(path)
+        except SpadscanError:
+            if path.is_file():
+                return None  # damaged: the job's own first write replaces it
+        else:
+            return None if holds(status, job) else status.job
+        spare = Path(folder) / f".claim-{secrets.token_hex(4)}"  # hidden: a reader never takes it for the status
+        try:
+            spare.mkdir()
+            written = write_status(spare, first)
+            try:
+                os.link(written, path)  # fails where status.json appeared meanwhile: exactly one job takes the folder
+                return None
+            except FileExistsError:
+                pass  # another job took it first: read whose it is
+            except OSError:  # a file system without hard links: taken without the guard
+                os.replace(written, path)
+                return None
+        finally:
+            shutil.rmtree(spare, ignore_errors=True)
+    return None
 
 
 def clear_leftovers(folder: Path) -> None:
@@ -74,5 +114,5 @@ def publish_status(folder: Path, status: LiveStatus) -> Path:
     return write_status(folder, status)
 
 
-__all__ = ["MESH", "PREVIEW", "live_folder", "clear_leftovers", "clear_earlier", "publish_mesh", "draw_preview",
-           "publish_status"]
+__all__ = ["MESH", "PREVIEW", "live_folder", "take_live_folder", "clear_leftovers", "clear_earlier", "publish_mesh",
+           "draw_preview", "publish_status"]
