@@ -53,7 +53,8 @@ import numpy as np
 from spadscan import __version__
 from spadscan.protocol.atomic_files import write_durable
 from spadscan.protocol.capture_format import MANIFEST, TMP_PREFIX, Measurement, one_line, read_json
-from spadscan.protocol.capture_writer import INTERRUPTED, PAUSE, CaptureWriter, Stock, mark_paused
+from spadscan.protocol.capture_writer import (INTERRUPTED, PAUSE, CaptureWriter, Stock, mark_paused,
+                                              writer_lock_held)
 from spadscan.protocol.disk_full import FULL_ERRNOS
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
@@ -646,6 +647,9 @@ class ScanRunner:
         self._interrupted_op = "aborted"
         try:
             path = await self._interrupted(name)
+            if await asyncio.to_thread(writer_lock_held, path):  # its writer is open in another process
+                raise ConfigError(f"scan {name!r} not aborted: another process is writing it (another daemon on this "
+                                  f"captures root?); abort it there, or stop that process first")
             stuck = self.stuck if self.stuck is not None and self.stuck["scan"] == name else None
             if stuck is not None:
                 reason = f"{reason}; it could not be taken over: {stuck['cause']}"
@@ -731,6 +735,10 @@ class ScanRunner:
         self._io_pool.shutdown(wait=True)
         if left is not None:
             log.info("%s", self._left_note(*left))
+        if self.job is not None and self.job.writer is not None:
+            # Its writer lock goes now, not when the writer is collected: a daemon started next in this process's
+            # place (or beside it, in a test) may take the scan over at once.
+            self.job.writer.close()
 
     def _left_note(self, job: ScanJob, paused: bool, unrecorded: str | None) -> str:
         """Where a scan the daemon stops with stands, and how it goes on: the last line an operator who stopped the

@@ -31,12 +31,13 @@ import numpy as np
 from spadscan.protocol.capture_format import MANIFEST, chunk_index, fsync_dir, read_json
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import (INTERRUPTED, CaptureWriter, ChunkBook, Stock, chunk_stamp, count_stock,
-                                              held_frames)
+                                              held_frames, writer_lock_held)
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.iso_time import parse_utc, utc_now
 from spadscan.protocol.sensor_model import SensorModel
 
 from .config import ScanConfig, scan_with
+from .root_lock import LOCK_NAME as ROOT_LOCK_NAME
 from .scan_plan import tcp_from_sensor
 from .sensor_differences import NO_DIFFERENCE, sensor_differences
 
@@ -450,6 +451,9 @@ def way_out(path: Path) -> str:
     loop): let the daemon read the chunks it may not, set its damaged chunks aside and resume it, or end it (every
     chunk stays)."""
     name = path.name
+    if writer_lock_held(path):  # another daemon writes it: neither a resume nor an abort here may touch it
+        return (f"leave it to that process, or stop it, then `spadscan ctl resume {name}` here (was the root's "
+                f"{ROOT_LOCK_NAME} removed while it ran?)")
     end = f"or `spadscan ctl abort {name}` ends the scan as aborted, keeping every chunk"
     _, damaged, forbidden = damaged_chunks(path)
     steps = []

@@ -12,6 +12,14 @@ known=book)`), it reads again only the chunks whose files changed since (a pause
 A chunk's files are written and fsynced side by side, one thread each, and the publish waits for all of them: the
 same fsyncs as one after the other, but a journaling filesystem (ext4's jbd2) commits them together, so a durable
 publish costs about two journal commits (the files, then the rename) instead of one per file.
+
+A writer holds an exclusive flock on the capture folder itself (its writer lock) for as long as it is open: another
+process's `create` or `resume` of the same capture is refused while it is held (a second daemon on the same captures
+root would otherwise drive a second arm through the same poses and delete this writer's half-written chunks). The
+folder's inode stays for as long as the capture exists (scan.json, replaced by rename, would not do), and locking it
+adds no file to the capture. flock belongs to an open file description, so the writers of one capture within one
+process share one descriptor (the daemon reopens its own scans); the last of them closed (`close`, or dropped)
+releases it, and the kernel releases it when the process dies.
 """
 
 from __future__ import annotations
@@ -22,6 +30,8 @@ import json
 import os
 import shutil
 import threading
+import time
+import weakref
 from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
@@ -32,6 +42,10 @@ try:
     import resource
 except ImportError:  # not on Windows, which has no per-process file-size limit
     resource = None
+try:
+    import fcntl
+except ImportError:  # not on Windows: no flock there, and no writer lock
+    fcntl = None
 
 from .capture_format import (CHUNK_PREFIX, FORMAT, MANIFEST, SCHEDULE, STATES, TMP_PREFIX, VERSION, Measurement,
                              check_json, check_poses, chunk_index, chunk_name, fold, fsync_dir, one_line, read_json,
@@ -49,6 +63,112 @@ INTERRUPTED = "interrupted"
 over and waits (for `ctl resume`, or for what stands in the way: a full disk, a changed rig). The daemon after that
 takes it for no pause: with auto_resume it goes on by itself."""
 PAUSE_KINDS = (PAUSE, INTERRUPTED)
+_HELD: dict[tuple[int, int], list[int]] = {}
+"""The writer locks this process holds: (st_dev, st_ino) of the capture folder -> [descriptor, writers open on it]."""
+_HELD_GUARD = threading.Lock()
+_NO_FLOCK = (errno.EBADF, errno.EINVAL, errno.ENOLCK, errno.EOPNOTSUPP)
+"""flock's errors where the filesystem cannot lock a folder (some network filesystems): the writer goes on unlocked
+there, as it did before it locked at all, rather than refuse every capture on such a disk."""
+
+
+def _open_folder(path: Path) -> int:
+    return os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+
+
+def writer_lock_held(path) -> bool:
+    """Whether another process holds the writer lock of the capture folder `path` (a writer of it is open there).
+    False where the folder cannot be opened or locked, or this process holds it."""
+    if fcntl is None:
+        return False
+    try:
+        fd = _open_folder(Path(path))
+    except OSError:
+        return False
+    try:
+        st = os.fstat(fd)
+        with _HELD_GUARD:
+            if (st.st_dev, st.st_ino) in _HELD:
+                return False
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        except OSError:
+            return False
+        return False
+    finally:
+        os.close(fd)  # (drops the shared lock taken to look)
+
+
+def _writing_elsewhere(path: Path) -> str:
+    """A refusal to open the capture at `path` whose writer lock another process holds, on one line."""
+    return (f"{path}: another process is writing this capture (it holds the folder's writer lock); stop that process "
+            f"(another daemon on the same captures root?) before opening it here")
+
+
+def _flock_retrying(fd: int, tries: int = 10, wait_s: float = 0.02) -> None:
+    """An exclusive flock on `fd`, tried `tries` times `wait_s` apart: another process's `writer_lock_held` holds a
+    shared lock for a moment only, and must not make a writer's open fail. The last refusal is raised."""
+    for k in range(tries):
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if k == tries - 1:
+                raise
+            time.sleep(wait_s)
+
+
+def _take_writer_lock(path: Path) -> tuple[int, int] | None:
+    """Hold the writer lock of the capture folder `path` (an exclusive flock on the folder itself: its inode stays
+    for as long as the capture exists, whatever is renamed in it) for one more writer of this process; its key (for
+    `_release_writer_lock`), None where nothing is locked (no flock, or a filesystem that cannot lock a folder).
+    CaptureError when another process holds it; an OSError naming the folder when it cannot be opened."""
+    if fcntl is None:
+        return None
+    try:
+        fd = _open_folder(path)
+    except OSError as exc:
+        raise _named(exc, path) from None
+    try:
+        st = os.fstat(fd)
+    except OSError as exc:
+        os.close(fd)
+        raise _named(exc, path) from None
+    key = (st.st_dev, st.st_ino)
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is not None:  # another writer of this process has it: a second flock here would refuse it
+            held[1] += 1
+            os.close(fd)
+            return key
+        try:
+            _flock_retrying(fd)
+        except OSError as exc:
+            os.close(fd)
+            if isinstance(exc, BlockingIOError):
+                raise CaptureError(_writing_elsewhere(path)) from None
+            if exc.errno in _NO_FLOCK:
+                return None
+            raise _named(exc, path) from None
+        _HELD[key] = [fd, 1]
+    return key
+
+
+def _release_writer_lock(key: tuple[int, int] | None) -> None:
+    """One writer of this process less on the lock `key`; the last one closes its descriptor, which drops the flock."""
+    if key is None:
+        return
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is None:
+            return
+        held[1] -= 1
+        if held[1] > 0:
+            return
+        del _HELD[key]
+    with contextlib.suppress(OSError):
+        os.close(held[0])
 
 
 def _named(exc: OSError, path) -> OSError:
@@ -333,7 +453,9 @@ def mark_aborted(path, reason: str) -> None:
     """Record in the manifest of the capture at `path` that its scan is aborted, and why; a pause's record goes. Only
     the manifest is read and written: no chunk is read (a capture with a damaged chunk can be ended too) and nothing
     is published, so the write needs room for the manifest alone. The scan's writer, if one is open, must not be
-    writing meanwhile."""
+    writing meanwhile: CaptureError when another process holds the capture's writer lock."""
+    if writer_lock_held(path):
+        raise CaptureError(_writing_elsewhere(Path(path)))
     manifest_path = Path(path) / MANIFEST
     manifest = read_json(manifest_path)
     manifest.pop("paused", None)
@@ -344,8 +466,9 @@ def mark_aborted(path, reason: str) -> None:
 def drop_temporary(path) -> None:
     """Remove the hidden temporary chunk folders and manifest files no writer finished in the capture at `path` (a
     full disk's half-written chunk: freeing its room may let the manifest be written). No writer may be writing the
-    capture meanwhile."""
-    _drop_temporary(Path(path))
+    capture meanwhile: nothing is removed while another process holds its writer lock (they are that writer's)."""
+    if not writer_lock_held(path):
+        _drop_temporary(Path(path))
 
 
 class CaptureWriter:
@@ -357,8 +480,11 @@ class CaptureWriter:
     """
 
     def __init__(self, path: Path, manifest: dict, sensor: SensorModel, next_chunk: int, published: int,
-                 pose_indices: set[int], retakes: list[Retake] | None = None, book: ChunkBook | None = None):
+                 pose_indices: set[int], retakes: list[Retake] | None = None, book: ChunkBook | None = None,
+                 lock: tuple[int, int] | None = None):
         self.path = Path(path)
+        # The writer lock (`_take_writer_lock`) is released by `close`, or when the writer is dropped unclosed.
+        self._release = weakref.finalize(self, _release_writer_lock, lock)
         self.book = book if book is not None else ChunkBook(self.path, (sensor.n_zones, sensor.n_bins))
         """The chunks this writer read whole or published (`resume(path, known=...)` of a later writer)."""
         self.manifest = manifest
@@ -369,6 +495,11 @@ class CaptureWriter:
         self.published_pose_indices = pose_indices
         self.retakes: list[Retake] = list(retakes or [])
         """What a resumed capture lacks before its first unpublished pose, in pose order (`publish_retake`)."""
+
+    def close(self) -> None:
+        """Release this writer's hold on the capture's writer lock; the buffer is not flushed. Once
+        every writer of the capture in this process is closed, another process may open it."""
+        self._release()
 
     # ---- opening -------------------------------------------------------------------------------------------------
     @classmethod
@@ -416,7 +547,9 @@ class CaptureWriter:
         check_json(manifest, f"{path / MANIFEST}")  # fail before anything is written
         made = not path.exists()
         path.mkdir(parents=True, exist_ok=True)
+        lock = None
         try:
+            lock = _take_writer_lock(path)
             if planned is not None:
                 _write(save_npy_durable, path / SCHEDULE, planned)
             _write(write_json_atomic, path / MANIFEST, manifest)
@@ -424,9 +557,10 @@ class CaptureWriter:
         except BaseException:
             # A full disk or Ctrl-C here would leave files that make the rerun refuse the folder ("holds other
             # files", "not finished"): the folder was empty or new (checked above), so all that is in it is ours.
+            _release_writer_lock(lock)
             _undo_create(path, made)
             raise
-        return cls(path, manifest, sensor, 0, 0, set())
+        return cls(path, manifest, sensor, 0, 0, set(), lock=lock)
 
     @classmethod
     def resume(cls, path, known: ChunkBook | None = None) -> "CaptureWriter":
@@ -436,31 +570,40 @@ class CaptureWriter:
         it over before it has checked that it can, and a takeover refused or cut short must leave the operator's
         pause in place. CaptureError when the missing measurements cannot be put back in pose order, or a chunk
         cannot be read. `known`: the `book` of an earlier writer of this capture; every chunk it lists whose files
-        are unchanged (`chunk_stamp`) is taken as it read it, every other one is read whole (and checked)."""
+        are unchanged (`chunk_stamp`) is taken as it read it, every other one is read whole (and checked).
+        CaptureError, before anything is touched, when another process holds the capture's writer lock: it is writing
+        the capture."""
         path = Path(path)
         reader = CaptureReader(path)
-        _drop_temporary(path)  # half-written chunks and manifests of a writer that died
-        book = ChunkBook(path, (reader.sensor.n_zones, reader.sensor.n_bins))
-        if known is not None and (Path(known.path) != path or tuple(known.shape) != book.shape):
-            known = None  # another capture's, or checked against another sensor: read every chunk
-        names = reader.chunk_names()
-        held = []
-        for name in names:
-            stamp = chunk_stamp(os.path.join(path, name))  # before the read: a change after it shows next time
-            record = known.unchanged(name, stamp) if known is not None else None
-            if record is None:
-                record = ChunkRecord(stamp, tuple(held_frames(reader.read_chunk(name).meta)))
-            if record.stamp is not None:
-                book.chunks[name] = record
-            held.append((chunk_index(name), list(record.held)))
-        stock = count_stock(held, reader.manifest, path)
-        next_chunk = (chunk_index(names[-1]) + 1) if names else 0
-        manifest = dict(reader.manifest)
-        manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
-                        updated_utc=utc_now())
-        _write(write_json_atomic, path / MANIFEST, manifest)
-        return cls(path, manifest, reader.sensor, next_chunk, stock.published, set(stock.poses), list(stock.retakes),
-                   book)
+        # Before anything is dropped or written: a capture another process writes is left as it is.
+        lock = _take_writer_lock(path)
+        try:
+            reader = CaptureReader(path)  # read again under the lock: a writer that closed meanwhile may have written
+            _drop_temporary(path)  # half-written chunks and manifests of a writer that died
+            book = ChunkBook(path, (reader.sensor.n_zones, reader.sensor.n_bins))
+            if known is not None and (Path(known.path) != path or tuple(known.shape) != book.shape):
+                known = None  # another capture's, or checked against another sensor: read every chunk
+            names = reader.chunk_names()
+            held = []
+            for name in names:
+                stamp = chunk_stamp(os.path.join(path, name))  # before the read: a change after it shows next time
+                record = known.unchanged(name, stamp) if known is not None else None
+                if record is None:
+                    record = ChunkRecord(stamp, tuple(held_frames(reader.read_chunk(name).meta)))
+                if record.stamp is not None:
+                    book.chunks[name] = record
+                held.append((chunk_index(name), list(record.held)))
+            stock = count_stock(held, reader.manifest, path)
+            next_chunk = (chunk_index(names[-1]) + 1) if names else 0
+            manifest = dict(reader.manifest)
+            manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
+                            updated_utc=utc_now())
+            _write(write_json_atomic, path / MANIFEST, manifest)
+            return cls(path, manifest, reader.sensor, next_chunk, stock.published, set(stock.poses),
+                       list(stock.retakes), book, lock=lock)
+        except BaseException:
+            _release_writer_lock(lock)
+            raise
 
     # ---- writing -------------------------------------------------------------------------------------------------
     @property
@@ -637,4 +780,7 @@ class CaptureWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        self.flush()
+        try:
+            self.flush()
+        finally:
+            self.close()
