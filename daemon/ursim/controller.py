@@ -274,9 +274,7 @@ class URControllerModel:
         regs = [float(self._inputs.get(f"input_double_register_{i}", 0.0)) for i in range(8)]
         asynchronous = int(self._inputs.get("input_int_register_1", 0)) == 1
         if cmd == STOP_SCRIPT:  # the main loop ends without signalling done; the program ends with it
-            self._halt(t, "ended")
-            self.runtime_state = RUNTIME_STOPPED
-            self.watchdog_period_s = None
+            self._end_program(t)
             self.script_stops += 1
             return
         if cmd == SET_WATCHDOG:
@@ -297,9 +295,7 @@ class URControllerModel:
         if cmd in MOVE_COMMANDS and not (all(map(math.isfinite, regs)) and regs[6] > 0 and regs[7] > 0):
             # A real controller raises a script error here and the program halts.
             self.errors.append(f"{name}: target {regs[:6]} speed {regs[6]} acceleration {regs[7]} rejected")
-            self._halt(t, "ended")
-            self.runtime_state = RUNTIME_STOPPED
-            self.watchdog_period_s = None
+            self._end_program(t)
             return
         self.moves.append(MoveRecord(name, cmd, tuple(regs[:6]), regs[6], regs[7], asynchronous, t))
         if cmd in MOVE_COMMANDS:
@@ -343,21 +339,23 @@ class URControllerModel:
             self._advance(t)
             if self.runtime_state not in (RUNTIME_PLAYING, RUNTIME_PAUSED):
                 return
-            self._halt(t, "ended")
-            self._busy = self._executing = False
-            self.runtime_state = RUNTIME_STOPPED
-            self.watchdog_period_s = None
+            self._end_program(t)
             self.dashboard_stops += 1
+
+    def _end_program(self, t: float) -> None:
+        """The program ends (its stop command, a script error, the watchdog, the dashboard's stop, a safety fault):
+        the arm halts where it is, the move thread ends with it, and the watchdog it set goes."""
+        self._halt(t, "ended")
+        self._busy = self._executing = False
+        self.runtime_state = RUNTIME_STOPPED
+        self.watchdog_period_s = None
 
     def _check_watchdog(self, t: float) -> None:
         """Stop the program when the watchdog's input has not been written for longer than its period."""
         period = self.watchdog_period_s
         if period is None or self.runtime_state != RUNTIME_PLAYING or t - self._last_kick <= period:
             return
-        self._halt(t, "ended")
-        self._busy = self._executing = False
-        self.runtime_state = RUNTIME_STOPPED
-        self.watchdog_period_s = None
+        self._end_program(t)
         self.watchdog_stops += 1
         self.errors.append(f"RTDE watchdog: input_int_register_0 not written for {t - self._last_kick:.3f} s "
                            f"(limit {period:.3f} s); program stopped")
@@ -402,10 +400,7 @@ class URControllerModel:
             t = self.now()
             self._advance(t)
             self.safety_fault = mode
-            self._halt(t, "ended")
-            self._busy = self._executing = False
-            self.runtime_state = RUNTIME_STOPPED
-            self.watchdog_period_s = None
+            self._end_program(t)
 
     def restart_safety(self) -> None:
         """The arm restarted from the pendant (or the dashboard's `restart safety`): a violation or fault is cleared,
