@@ -1,9 +1,9 @@
 """What `spadscan sweep` refuses in its command line before anything runs, the dry run too.
 
-The dry run only reads the sweep file and the results folder: these checks load torch and Dask only for the options
-that need them (--device cuda or auto without --scheduler, and --scheduler): a plan-only run loads neither the runner nor
-Dask. (It still imports torch, through the presets' configs that the sweep file is checked against: a fast part's
-config lives beside its torch code.)
+The dry run only reads the sweep file and the results folder: these checks load torch and Dask only for the options that
+need them (--device cuda or auto without --scheduler, and --scheduler): a plan-only run loads neither the runner nor
+Dask. (It still imports torch, through the presets' configs that the sweep file is checked against: a fast part's config
+lives beside its torch code.)
 """
 
 from __future__ import annotations

@@ -165,7 +165,8 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
                              lambda task: (point, task, sweep_name(store), device, keep), device, progress, say)
         except BaseException:
             with contextlib.suppress(OSError):
-                store.write_results(plan, current_on(plan, device))  # an interrupt or a failure: what finished is gathered all the same
+                # an interrupt or a failure: what finished is gathered all the same
+                store.write_results(plan, current_on(plan, device))
             raise
         summary.rows = store.write_results(plan, current_on(plan, device))
         summary.warned, summary.edge = store.endings(plan)
