@@ -193,9 +193,11 @@ class Client:
         """End the control script (stopScript: the program stops, and its watchdog with it), where it can take the
         command; a paused program, which takes no command, by the dashboard's `stop`. Returns {"stopped": whether no
         program runs now, "why": why it was left running or paused, else ""}."""
+        # The receive stream's runtime state first: the control interface's view of the program lags it, and a
+        # paused program read as "running" would be left to a stopScript it cannot take.
+        if int(self.receive.getRuntimeState()) in RUNTIME_PAUSED:
+            return self._stop_paused()
         if not self.control.isProgramRunning():  # true only while playing
-            if int(self.receive.getRuntimeState()) in RUNTIME_PAUSED:
-                return self._stop_paused()
             return {"stopped": True, "why": ""}
         why = self._held()
         if why is None:

@@ -252,6 +252,9 @@ class Receive:
     def getSafetyStatusBits(self):
         return self.bits
 
+    def getRuntimeState(self):
+        return 2  # PLAYING: a safeguard stop holds the program without pausing it
+
     def disconnect(self):
         pass
 
