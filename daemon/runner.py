@@ -1316,7 +1316,7 @@ class ScanRunner:
         reason += self._stall_note()
         log.warning("scan %s paused: %s", job.name, reason)
         await self._stop_arm()
-        job.writer = None
+        _close_writer(job)
         job.reason = self.last_error = reason
         await self._wait_resume(job)
 
@@ -1419,6 +1419,7 @@ class ScanRunner:
             self.last_error = f"scan {job.name!r}: could not record '{state}': {describe(exc, 'recording it')}"
 
     def _finish(self, job: ScanJob, state: str, reason: str | None = None) -> None:
+        _close_writer(job)
         self.job, self._task = None, None
         self._set_state("idle")
         self._record_end(job.name, state, reason)  # (a `wait` woken above runs once this call has returned)
@@ -1650,6 +1651,14 @@ def _lost_chunks(job: ScanJob) -> bool:
     log.warning("scan %s: %s gone from its folder (moved out or deleted while the scan ran): taking pose(s) %s "
                 "again before the scan is complete", job.name, ", ".join(gone), ", ".join(again))
     return True
+
+
+def _close_writer(job: ScanJob) -> None:
+    """Drop the scan's writer, its writer lock released now (not whenever the writer is collected): a descriptor
+    held past a pause or the scan's end would keep another process (the next daemon) off the capture."""
+    if job.writer is not None:
+        job.writer.close()
+    job.writer = None
 
 
 def _finish_capture(job: ScanJob) -> None:
