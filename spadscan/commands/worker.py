@@ -354,22 +354,8 @@ def _say_queued(job, root: Path, why: str) -> None:
 def _jobs_in(queue, state: str, preset: str | None) -> list:
     """The readable jobs in `state` (of `preset`, if given); those whose files cannot be read are left out (the
     queue moves them all the same, and their jobs say why when they run)."""
-    import json
-
-    from spadscan.protocol.errors import SpadscanError
-    from spadscan.worker.jobs import Job
-
-    jobs = []
-    for job_id, (where, path) in sorted(queue.job_paths().items()):
-        if where != state:
-            continue
-        try:
-            job = Job.from_dict(json.loads(path.read_text()), str(path))
-        except (OSError, ValueError, SpadscanError):
-            continue
-        if preset is None or job.preset == preset:
-            jobs.append(job)
-    return jobs
+    jobs = [queue.job_in(state, job_id) for job_id, (where, _) in sorted(queue.job_paths().items()) if where == state]
+    return [job for job in jobs if job is not None and (preset is None or job.preset == preset)]
 
 
 def _done_job(queue, job_id: str):
