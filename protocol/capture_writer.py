@@ -747,6 +747,11 @@ class CaptureWriter:
         if state == "complete" and self.retakes:  # "complete" promises every pose 0 .. P - 1 (capture_format.md)
             raise CaptureError(f"{self.path}: not complete: pose(s) {', '.join(str(r.pose) for r in self.retakes)} "
                                f"lack frames that were never taken again")
+        planned = self.manifest.get("planned_poses")
+        if state == "complete" and planned is not None and (self._buffer or self.next_pose_index < planned):
+            raise CaptureError(f"{self.path}: not complete: {self.next_pose_index} of {planned} planned poses "
+                               f"published" + (" (measurements still buffered: finish() publishes them)"
+                                               if self._buffer else ""))
         if isinstance(reason, str):
             reason = fold(reason)
         check_json({"reason": reason, **extra}, f"{self.path / MANIFEST}")

@@ -72,7 +72,7 @@ def published_chunks(reader):
 def test_round_trip_keeps_arrays_meta_reference_and_manifest(tmp_path):
     path = tmp_path / "scan"
     he = make_measurement(3, 1, 4, False).pose
-    planned = np.stack([tmf(i).pose for i in range(12)])
+    planned = np.stack([tmf(i).pose for i in range(10)])
     write(path, 10, 4, scene={"name": "unit"}, rig={"arm": "sim"}, hand_eye=he, schedule={"kind": "fib"},
           planned_poses=planned, scan_id="abc")
     r = CaptureReader(path)
@@ -82,7 +82,7 @@ def test_round_trip_keeps_arrays_meta_reference_and_manifest(tmp_path):
     np.testing.assert_allclose(r.hand_eye, he)
     np.testing.assert_array_equal(r.planned_poses(), planned)
     assert r.manifest["scene"] == {"name": "unit"} and r.manifest["rig"] == {"arm": "sim"}
-    assert r.manifest["schedule"] == {"kind": "fib"} and r.manifest["planned_poses"] == 12
+    assert r.manifest["schedule"] == {"kind": "fib"} and r.manifest["planned_poses"] == 10
     data = r.load()
     assert data.hists.shape == (10, 9, 128) and data.hists.dtype == np.uint32
     assert data.poses.shape == (10, 4, 4) and data.poses.dtype == np.float64

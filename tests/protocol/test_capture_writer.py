@@ -5,6 +5,7 @@ nothing and leaves no write running."""
 from __future__ import annotations
 
 import errno
+import json
 import os
 import threading
 
@@ -12,9 +13,11 @@ import numpy as np
 import pytest
 
 import spadscan.protocol.capture_writer as cw
-from spadscan.protocol.capture_format import Measurement
+from spadscan.protocol.atomic_files import write_atomic
+from spadscan.protocol.capture_format import Measurement, write_json_atomic
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.sensor_presets import sensor_preset
 
 
@@ -27,10 +30,11 @@ def measurement(i: int, sensor, reference: bool = True) -> Measurement:
 
 @pytest.fixture
 def events(monkeypatch):
-    """A log of ('fsync', path) and ('rename', src, dst), in the order they happened (any thread)."""
+    """A log of ('fsync', path) and ('rename', src, dst) (os.rename or os.replace), in the order they happened (any
+    thread)."""
     log: list[tuple] = []
     lock = threading.Lock()
-    real_fsync, real_rename = os.fsync, os.rename
+    real_fsync, real_rename, real_replace = os.fsync, os.rename, os.replace
 
     def fsync(fd):
         real_fsync(fd)
@@ -42,8 +46,14 @@ def events(monkeypatch):
         with lock:
             log.append(("rename", str(src), str(dst)))
 
+    def replace(src, dst):
+        real_replace(src, dst)
+        with lock:
+            log.append(("rename", str(src), str(dst)))
+
     monkeypatch.setattr(os, "fsync", fsync)
     monkeypatch.setattr(os, "rename", rename)
+    monkeypatch.setattr(os, "replace", replace)
     return log
 
 
@@ -63,6 +73,23 @@ def test_every_file_and_folder_is_fsynced_around_the_publishing_rename(tmp_path,
     assert ("fsync", str(tmp_path / "scan")) in events[at + 1:], "the captures folder is not fsynced after"
     assert sorted(os.listdir(published)) == sorted(files)
     np.testing.assert_array_equal(CaptureReader(tmp_path / "scan").load().pose_indices, [0, 1])
+
+
+@pytest.mark.parametrize("replace", ["manifest", "file"])
+def test_a_replaced_file_is_fsynced_before_its_rename_and_its_folder_after(tmp_path, events, replace):
+    """The manifest (`write_json_atomic`) and the other files replaced whole (`write_atomic`: status files, job
+    records): a crash after the rename keeps the new content, and the rename itself, only with both fsyncs."""
+    path = tmp_path / ("scan.json" if replace == "manifest" else "status.json")
+    if replace == "manifest":
+        write_json_atomic(path, {"state": "running"})
+    else:
+        write_atomic(path, '{"state": "running"}')
+    (rename,) = [e for e in events if e[0] == "rename"]
+    at = events.index(rename)
+    assert rename[2] == str(path)
+    assert ("fsync", rename[1]) in events[:at], "the new content is not fsynced before the rename"
+    assert ("fsync", str(tmp_path)) in events[at + 1:], "the folder is not fsynced after the rename"
+    assert json.loads(path.read_text()) == {"state": "running"}
 
 
 def test_a_failed_write_publishes_nothing_and_leaves_no_write_running(tmp_path, monkeypatch):
@@ -163,8 +190,6 @@ def test_abandon_never_hides_the_error_that_stopped_the_writer(tmp_path, monkeyp
     ("aborted", "simulation failed: disk\nfull", "(state 'aborted': simulation failed: disk full); delete the folder"),
 ])
 def test_create_on_an_existing_capture_says_what_to_do(tmp_path, state, reason, expect):
-    from spadscan.protocol.errors import CaptureError
-
     sensor = sensor_preset("tmf8820")
     w = CaptureWriter.create(tmp_path / "scan", sensor)
     w.set_state(state, reason)
@@ -216,5 +241,28 @@ def test_a_failed_create_leaves_nothing_that_blocks_the_rerun(tmp_path, monkeypa
         CaptureWriter.create(path, sensor, planned_poses=np.stack([np.eye(4)] * 3))
     assert (sorted(path.iterdir()) == []) if existing else not path.exists()
     monkeypatch.undo()  # space freed
-    CaptureWriter.create(path, sensor, planned_poses=np.stack([np.eye(4)] * 3)).finish()
+    CaptureWriter.create(path, sensor, planned_poses=np.stack([np.eye(4)] * 3)).close()
     assert CaptureReader(path).planned_poses().shape == (3, 4, 4)
+
+
+def test_a_capture_that_lacks_planned_poses_is_not_marked_complete(tmp_path):
+    """"complete" promises every planned pose (capture_format.md): a writer asked to mark a capture complete with
+    poses still to publish, or with measurements still in its buffer, refuses, and the manifest still says
+    running; once the last planned pose is published it is marked complete."""
+    sensor = sensor_preset("tmf8820")
+    path = tmp_path / "scan"
+    w = CaptureWriter.create(path, sensor, planned_poses=np.stack([np.eye(4)] * 3), chunk_size=8)
+    hist = np.ones((sensor.n_zones, sensor.n_bins), dtype=np.uint32)
+    for i in range(2):
+        w.append(Measurement(hist, np.eye(4), i, 0, np.ones(sensor.n_bins), {}))
+    w.flush()
+    with pytest.raises(CaptureError, match=r"not complete: 2 of 3 planned poses published"):
+        w.set_state("complete")
+    w.append(Measurement(hist, np.eye(4), 2, 0, np.ones(sensor.n_bins), {}))
+    with pytest.raises(CaptureError, match=r"3 planned poses.*still buffered"):
+        w.set_state("complete")
+    assert CaptureReader(path).state == "running"
+    w.set_state("aborted", "stopped early")  # any other state is recorded as it is
+    w.finish("complete")
+    assert CaptureReader(path).state == "complete"
+    w.close()

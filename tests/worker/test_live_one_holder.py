@@ -81,6 +81,7 @@ def test_a_second_live_job_of_a_scan_runs_as_an_ordinary_job_and_never_touches_t
         log=log)), daemon=True)
     thread.start()
     assert said.wait(120), lines
+    scan.run()  # the rest of its poses: "complete" promises every planned pose
     scan.finish("complete")
     thread.join(300)
     assert not thread.is_alive()
