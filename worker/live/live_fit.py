@@ -26,6 +26,7 @@ import torch
 from spadscan.protocol.errors import SpadscanError
 
 from ..recon.config import ReconConfig
+from ..recon.errors import ReconstructionError
 from ..recon.model_api import RunPlan
 from ..recon.presets import make_model, preset
 from ..recon.scene_data import SceneData, load_scene
@@ -71,6 +72,8 @@ class LiveFit:
         self.history: deque[FieldSnapshot] = deque(maxlen=HISTORY)
         self.not_yet: str | None = None
         """Why the last rebuild could not fit the views so far (None once one did), for the live status."""
+        self.diverged_views = -1
+        """Views in use when the live fit last diverged (`restart`); -1 before."""
 
     @property
     def views_used(self) -> int:
@@ -126,8 +129,7 @@ class LiveFit:
             return 0
         n = 0
         t0 = time.perf_counter()
-        while True:
-            self.model.step()
+        while self._step():
             n += 1
             if time.monotonic() >= until:
                 break
@@ -144,12 +146,35 @@ class LiveFit:
             return 0
         t0 = time.perf_counter()
         taken = 0
-        while taken < n and not self.model.converged:
-            self.model.step()
+        while taken < n and not self.model.converged and self._step():
             taken += 1
         self.train_s += time.perf_counter() - t0
         self.steps += taken
         return taken
+
+    def _step(self) -> bool:
+        """One step of the model; False when it diverged (a non-finite loss), after `restart`."""
+        try:
+            self.model.step()
+        except ReconstructionError as exc:
+            self.restart(exc)
+            return False
+        return True
+
+    def restart(self, exc: ReconstructionError) -> None:
+        """After a diverged step: the live fit starts again, cold, from the carved hull of the same views, rather than
+        failing the live job (the scan still gets its final run). Diverged again on those views, the live model is
+        dropped (`not_yet` says why) until a refit on more views; the final run then starts from the hull."""
+        self.history.clear()
+        again = self.diverged_views == self.views_used
+        self.diverged_views = self.views_used
+        self.model = None
+        if again:
+            self.not_yet = f"no live fit: it diverged twice on {self.views_used} views ({exc})"
+            self.log(f"live: {self.not_yet}; fitting again when more views arrive")
+            return
+        self.log(f"live: the live fit diverged ({exc}): starting it again from the carved hull")
+        self.rebuild()
 
     @property
     def converged(self) -> bool:
