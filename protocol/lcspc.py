@@ -323,8 +323,14 @@ def _check_spread(path, poses: np.ndarray, sensor: SensorModel) -> None:
     """Refuse sensor positions farther from their centroid than SPREAD_RANGES x the sensor's range: no scan of one
     scene places its views so, but poses in millimetres do. The centroid, not the origin, so any world frame works."""
     t = poses[:, :3, 3]
-    dist = np.linalg.norm(t - t.mean(axis=0), axis=1)
-    i = int(np.argmax(dist))
+    # Measured in units of the largest coordinate, then scaled back: squared, a pose at 1e300 m overflowed to inf
+    # for every pose alike, and the first one was named.
+    scale = float(np.abs(t).max()) or 1.0
+    u = t / scale
+    rel = np.linalg.norm(u - u.mean(axis=0), axis=1)
+    i = int(np.argmax(rel))
+    with np.errstate(over="ignore"):
+        dist = rel * scale
     limit = SPREAD_RANGES * sensor.max_range_m
     if dist[i] > limit:
         raise DatasetError(f"{path}: pose {i} lies {dist[i]:.4g} m from the sensors' mean position, more than "

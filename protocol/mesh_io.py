@@ -11,6 +11,10 @@ from .errors import MeshError
 
 # An object this tool scans fits in a 2 m box; an STL whose extent exceeds this is taken to be in millimetres.
 MM_EXTENT_THRESHOLD_M = 5.0
+# No object spadscan scans, nor a 100-1000x units mix-up of one, comes near this size (metres across, after reading
+# millimetres): a mesh larger is a units or export error, and distances between samples of one so large and one of
+# an object's size lose all precision (exact nearest samples then take hours).
+MAX_EXTENT_M = 1e4
 # Formats that carry no unit. STL is the usual millimetre culprit (CAD exports); an OBJ, PLY or OFF exported from
 # CAD in millimetres is just as wrong read as metres, so 'auto' applies the same rule to them.
 UNITLESS_SUFFIXES = (".stl", ".obj", ".ply", ".off")
@@ -38,6 +42,13 @@ def load_mesh(path, *, units: str = "auto"):
             pass
     except OSError as exc:
         raise MeshError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    # Non-finite or huge coordinates make trimesh's normals and areas print numpy warnings on the way; the checks
+    # below say what is wrong in one line.
+    with np.errstate(all="ignore"):
+        return _load(path, units, trimesh)
+
+
+def _load(path: Path, units: str, trimesh):
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files; all mean "cannot read this mesh"
@@ -57,6 +68,13 @@ def load_mesh(path, *, units: str = "auto"):
     if units == "mm" or (units == "auto" and path.suffix.lower() in UNITLESS_SUFFIXES
                          and np.ptp(verts, axis=0).max() > MM_EXTENT_THRESHOLD_M):
         scale = 1e-3
+    span = np.ptp(verts, axis=0)
+    widest = float(span.max())  # the diagonal in units of the widest side: squared in metres, 1e155 m overflowed
+    extent = widest * float(np.linalg.norm(span / widest)) * scale if 0 < widest < np.inf else widest * scale
+    if not extent <= MAX_EXTENT_M:  # inf where the diagonal overflows
+        read = " (read as millimetres)" if scale != 1.0 else ""
+        raise MeshError(f"{path}: {extent:.3g} m across{read}, far larger than anything scanned (at most "
+                        f"{MAX_EXTENT_M:g} m accepted): check its units and coordinates")
     written = trimesh.Trimesh(verts * scale, faces, process=False)
     # A surface closed as written keeps its own connectivity: merging the vertices of a marching-cubes mesh (which
     # repeats a vertex where the surface passes through a grid node) pinches it there into edges of three or more
@@ -65,7 +83,7 @@ def load_mesh(path, *, units: str = "auto"):
     # triangles that merging collapses to nothing go: they joined pieces only through pinched edges.
     mesh = written if written.is_watertight else _merged(verts * scale, faces)
     if len(mesh.faces) == 0 or not mesh.area > 0:
-        raise MeshError(f"{path}: all triangles are degenerate (zero area)")
+        raise MeshError(f"{path}: all triangles are degenerate (zero area; it spans {extent:.3g} m)")
     # Which unit the file was read in, so that a caller can say so: a silent x1000 is a surprise otherwise.
     mesh.metadata["units_read"] = "mm" if scale != 1.0 else "m"
     return mesh

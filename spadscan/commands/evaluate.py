@@ -3,8 +3,10 @@
 Both meshes are sampled uniformly by area (--points each, fixed --seed) and compared point to point (docs/metrics.md):
 accuracy = mean distance MESH -> GT, completeness = mean GT -> MESH, Chamfer = (accuracy + completeness) / 2.
 Identical meshes score about 0.5 sqrt(area / points) (~0.35 mm for the bunny at 300,000 points), the floor of this
-estimate. Meshes are read in metres; STL (and OBJ/PLY/OFF) files larger than 5 m are taken to be in millimetres.
-Either mesh may be `builtin:NAME`, a built-in scene.
+estimate; fewer than 1000 --points are refused, since their floor reaches the F-score's 5 mm. Meshes are read in
+metres; STL (and OBJ/PLY/OFF) files larger than 5 m are taken to be in millimetres, and a mesh still over 10 km
+across is refused (a units or export error: nothing scanned is that large). Either mesh may be `builtin:NAME`, a
+built-in scene.
 
 A ground truth that includes the table the object stands on (a slab: one upward-facing level holding over a quarter
 of its area, like LCSPCData's pyramid2.stl) is scored on the object: both meshes are cut 5 mm above the table top,
@@ -16,6 +18,11 @@ A note (the table's `note` line, `mismatch_note` in the JSON) says when the two 
 in the same units and frame: their bounding boxes do not overlap, or differ over 5x in size (a mesh in cm read as
 metres is 100x too large; not judged with --keep-table or --box, where a table may be scored). The score is printed
 all the same.
+
+The distances are measured within --budget-s seconds (120 by default; meshes of a scanned object's size take seconds):
+a reconstruction lying inside a much larger ground truth can make the exact nearest samples slow to find, and once the
+budget is spent the figures rest on the samples measured so far, a coarser estimate that the table's `measured` line
+(`measured_note` in the JSON, and `queries`) says.
 
 Examples:
   spadscan eval recon.obj --gt bunny.obj
@@ -34,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt", required=True, metavar="GT", help="the ground truth: a mesh file or builtin:NAME")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     parser.add_argument("--points", type=int, default=300_000, metavar="N",
-                        help="points sampled on each mesh (default: 300000)")
+                        help=f"points sampled on each mesh, {MIN_POINTS} to 20000000 (default: 300000; fewer than "
+                             f"{MIN_POINTS} measure the sampling, not the meshes)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="sampling seed (default: 0)")
     parser.add_argument("--threshold-mm", type=float, default=5.0, metavar="T",
                         help="F-score distance threshold in mm (default: 5)")
@@ -43,10 +51,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--box", type=float, nargs=6, default=None, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                         help="crop both meshes to this box (metres) before comparing, instead of the cut above a "
                              "table: what of a table lies inside the box is scored (so not with --keep-table)")
+    parser.add_argument("--budget-s", type=float, default=BUDGET_S, metavar="S",
+                        help=f"seconds for measuring the distances (default: {BUDGET_S:g}); past them the figures "
+                             "rest on the samples measured so far, and say so")
     parser.add_argument("--keep-table", action="store_true",
                         help="score a ground truth's table too (default: the object above it; not with --box)")
 
 
+MIN_POINTS = 1000
+"""The fewest samples per mesh eval takes: two samplings of one surface lie about 0.5 sqrt(area / points) apart, 5 mm
+for a 20 cm object at 1000 points, as much as the F-score's threshold; fewer score the sampling, not the meshes."""
+BUDGET_S = 120.0
+"""Seconds eval measures distances for by default: the bunny at 300,000 points takes a few, a ground truth many times
+the reconstruction around it took minutes."""
 SIZE_RATIO = 5.0
 """Meshes whose bounding-box diagonals differ by more than this factor get a note. A unit mistake differs 10x (cm
 taken for mm) or more (100x: cm read as metres); 188 reconstructions scored against their own scene's ground truth,
@@ -100,12 +117,21 @@ def _bounds(bounds) -> str:
     return " .. ".join("[" + ", ".join(f"{round(v, 3) + 0.0:g}" for v in corner) + "]" for corner in bounds)
 
 
+def measured_note(metrics, budget_s: float) -> str | None:
+    """One line when the budget cut the distances short (`metrics.queries` below `n_points`), else None."""
+    if metrics.queries >= metrics.n_points:
+        return None
+    return (f"{metrics.queries:,} of the {metrics.n_points:,} samples per mesh within --budget-s {budget_s:g}: a "
+            f"coarser estimate (a larger --budget-s measures more)")
+
+
 def format_table(metrics, mesh: str, gt: str, scored: str | None = None, units: str | None = None,
-                 note: str | None = None) -> str:
+                 note: str | None = None, measured: str | None = None) -> str:
     """The metrics as a small aligned table (mm and degrees); `scored`: what part of the meshes was compared,
-    `units`: how they were read (`units_line`), `note`: `mismatch_note` (each left out when None)."""
+    `units`: how they were read (`units_line`), `note`: `mismatch_note`, `measured`: `measured_note` (each left
+    out when None)."""
     m = metrics
-    said = (("units", units), ("scored", scored), ("note", note))
+    said = (("units", units), ("scored", scored), ("note", note), ("measured", measured))
     rows = [
         ("reconstruction", mesh),
         ("ground truth", gt),
@@ -126,13 +152,19 @@ def run(args: argparse.Namespace) -> int:
     import json
     import math
     import sys
+    import time
 
     from spadscan.protocol.errors import ConfigError
 
     from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.worker.ground_truth import GroundTruth, load_ground_truth
-    from spadscan.worker.metrics import crop_to_box, mesh_metrics
+    from spadscan.worker.metrics import MAX_POINTS, crop_to_box, mesh_metrics
 
+    if not MIN_POINTS <= args.points <= MAX_POINTS:
+        raise ConfigError(f"--points {args.points} must be in [{MIN_POINTS}, {MAX_POINTS}] (samples per mesh; fewer "
+                          f"than {MIN_POINTS} score the sampling, not the meshes)")
+    if not (math.isfinite(args.budget_s) and args.budget_s > 0):
+        raise ConfigError(f"--budget-s {args.budget_s:g} must be a finite number of seconds > 0")
     if not (math.isfinite(args.threshold_mm) and 0 < args.threshold_mm < 10_000):
         raise ConfigError(f"--threshold-mm {args.threshold_mm:g} must be a distance in (0, 10000) mm")
     if args.box is not None and args.keep_table:
@@ -152,15 +184,17 @@ def run(args: argparse.Namespace) -> int:
     scored = truth.scored(pred)  # what GroundTruth.metrics compares, kept to check the two meshes against each other
     note = mismatch_note(scored, truth.mesh, compare_sizes=not args.keep_table and args.box is None)
     metrics = mesh_metrics(scored, truth.mesh, n_points=args.points, seed=args.seed,
-                           fscore_threshold_m=args.threshold_mm * 1e-3)
+                           fscore_threshold_m=args.threshold_mm * 1e-3, deadline=time.perf_counter() + args.budget_s)
+    measured = measured_note(metrics, args.budget_s)
     box = None if args.box is None else [list(args.box[:3]), list(args.box[3:])]
     if args.json:
         # ground_truth and ground_truth_cut_above_z_m: the keys reconstruct's and baseline's reports use.
         print(json.dumps({"mesh": args.mesh, "gt": args.gt, "ground_truth": args.gt, "mesh_units": units["mesh"],
                           "gt_units": units["gt"], "cut_above_z_m": truth.cut_above_z_m,
                           "ground_truth_cut_above_z_m": truth.cut_above_z_m, "box_m": box,
-                          "mismatch_note": note, **metrics.to_dict()}))
+                          "mismatch_note": note, "measured_note": measured, **metrics.to_dict()}))
     else:
         scored_line = box_line(args.box) if args.box is not None else truth.note()
-        print(format_table(metrics, args.mesh, args.gt, scored_line, units_line(units, args.units), note))
+        print(format_table(metrics, args.mesh, args.gt, scored_line, units_line(units, args.units), note,
+                           measured))
     return 0
