@@ -104,7 +104,7 @@ def test_the_main_state_fits_a_1280x800_window_and_every_text_is_readable(tmp_pa
 
 def test_the_panels_stay_in_place_while_their_content_changes(tmp_path):
     scan = tmp_path / "goblet"
-    writer, poses = start_scan(scan, 64)
+    writer, poses = start_scan(scan, 10)  # each published before the scan is marked complete
     add_pose(writer, poses, 0)
     with serving(tmp_path) as server, browser_page(*WINDOW) as (page, seen):
         page.goto(address(server))

@@ -293,7 +293,7 @@ def test_an_empty_root_a_silent_dashboard_the_daemons_config_and_a_scan_with_no_
             f"no scans in {tmp_path.resolve()} yet (a scan is a sub-folder holding scan.json); they are listed as "
             "they appear")
         with RootLock(tmp_path):  # a daemon records s1
-            writer = recording(tmp_path / "s1", 2)
+            writer = recording(tmp_path / "s1", 2, planned=2)
             said = wait_text(page, "#worker", "s1")
             assert said.startswith("no worker is running: scan s1 is recorded and nothing reconstructs it") and \
                 "--live" in said, said

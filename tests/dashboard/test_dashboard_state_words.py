@@ -46,6 +46,8 @@ def test_a_scan_being_recorded_reads_scanning_as_the_daemon_says_it(tmp_path):
         assert text_of(page, "#daemon", "daemon") == " · daemon: scanning s1"
         assert page.locator("#current-state").text_content() == "scanning"
         assert page.locator('#scans tr[data-scan="s1"] td').nth(1).text_content() == "scanning"
+        for i in range(1, len(poses)):  # the rest of the plan: a complete scan holds every planned pose
+            add_pose(writer, poses, i)
         writer.finish()
         assert text_of(page, "#daemon", "idle") == " · daemon: idle"
     assert not seen.errors, seen.errors
