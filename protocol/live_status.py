@@ -27,6 +27,9 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
   afresh);
 - `views_planned` (int or null): poses the scan plans, when the capture says;
 - `job` (string): the queue's job id;
+- `owner` (string, absent when none): the live job's own token (its job file's `owner`, random, given when it was
+  queued): two queues on one root give a scan's live job one id, and the token says which of the two holds this
+  folder; a status without one is taken to be that of any job of its id;
 - `result` (string or null): the final result folder, once `done`;
 - `note` (string or null): one line worth knowing (why the job ended, why it waits);
 - `warnings` (list of strings, absent when empty): one line per doubt about what is published here, as a run's
@@ -90,11 +93,15 @@ class LiveStatus:
     figures_utc: str | None = None
     """When the figures were measured, where the status was rewritten since without them (the stopped attempt's
     figures of a job given back or stopped: `earlier_figures`); None: they are of `updated_utc`."""
+    owner: str = ""
+    """The live job's token (its job file's `owner`): which of two live jobs of one id holds the folder."""
 
     def to_dict(self) -> dict:
-        """The JSON object written; `chamfer_mm`, `final_start`, `chamfer_views`, `figures_utc` and `warnings` only
-        when there is one."""
+        """The JSON object written; `chamfer_mm`, `final_start`, `chamfer_views`, `figures_utc`, `warnings` and
+        `owner` only when there is one."""
         data = asdict(self)
+        if not data["owner"]:
+            del data["owner"]
         for key in ("chamfer_mm", "final_start", "chamfer_views", "figures_utc"):
             if data[key] is None:
                 del data[key]
@@ -217,7 +224,7 @@ def check_status(status: LiveStatus, where: str) -> None:
         raise CaptureError(f"{where}: state {status.state!r} must be one of {', '.join(STATES)}")
     if status.chamfer_mm is not None and not is_chamfer(status.chamfer_mm):
         raise CaptureError(f"{where}: chamfer_mm {status.chamfer_mm!r} must be a finite number >= 0")
-    for key in ("updated_utc", "job"):
+    for key in ("updated_utc", "job", "owner"):
         if not isinstance(getattr(status, key), str):
             raise CaptureError(f"{where}: {key} {getattr(status, key)!r} must be a string")
     for key in ("result", "note", "figures_utc"):

@@ -119,11 +119,18 @@ class Job:
     live: bool = False
     """Reconstruct while the scan is recorded (`spadscan worker --live`): the job starts at the scan's first chunk,
     follows it and finishes from the live state (`worker/live/job.py`); `budget_s` then bounds that final run."""
+    owner: str = ""
+    """A live job's token, random, given when it is queued (`Queue.enqueue`) and kept by its retries and its
+    --redo: its live status carries it (`LiveStatus.owner`). Two queues on one root queue a scan's live job under
+    one id; the token tells the one that holds the scan's live folder from the other (`worker.live.done.holds`).
+    Empty: a job queued by an earlier version, known by its id alone."""
 
     def to_dict(self) -> dict:
         data = asdict(self)
         if not self.live:
             del data["live"]  # an ordinary job's file is as it always was
+        if not self.owner:
+            del data["owner"]
         return data
 
     @classmethod
@@ -187,7 +194,7 @@ def _is_number(v) -> bool:
 FIELD_TYPES = {"id": ("str", "a string"), "scan": ("str", "a string"), "preset": ("str", "a string"),
                "device": ("str", "a string"), "created_utc": ("str", "a string"),
                "budget_s": ("number?", "a number or null"), "steps": ("int?", "an integer or null"),
-               "seed": ("int", "an integer"), "live": ("bool", "true or false")}
+               "seed": ("int", "an integer"), "live": ("bool", "true or false"), "owner": ("str", "a string")}
 """What each field of a job file must hold (kind, and how an error names it)."""
 
 

@@ -157,7 +157,7 @@ class Queue:
         """Queue a job unless its id was ever queued; True when it was added.
 
         The job file is written once into tmp/, hard-linked into ids/ (fails if the id exists: exactly one caller
-        wins) and then renamed into queued/.
+        wins) and then renamed into queued/. A live job without an owner token gets one (`Job.owner`).
         """
         if not job.id or _ID_RE.search(job.id) or job.id.startswith("."):
             raise ConfigError(f"job id {job.id!r} must be a non-empty name of [A-Za-z0-9._-]")
@@ -165,6 +165,8 @@ class Queue:
             return False
         if not job.created_utc:
             job = Job(**{**job.to_dict(), "created_utc": _utc()})
+        if job.live and not job.owner:  # tells it from another queue's live job of the scan (Job.owner)
+            job = Job(**{**job.to_dict(), "owner": secrets.token_hex(8)})
         tmp = self.path / "tmp" / f"{job.id}{SEP}{secrets.token_hex(6)}.json"
         _write_new(tmp, job.to_dict())
         try:
@@ -211,6 +213,9 @@ class Queue:
             return None
         for src in _claim_order(paths):
             job_id = src.stem
+            how, _ = self.live_claim(src, take=True)
+            if how == "wait":
+                continue  # another live job follows its scan: this one waits for the scan's end, holding no worker
             token = _new_token()
             dst = self.path / "running" / f"{job_id}{SEP}{token}.json"
             try:
@@ -225,6 +230,8 @@ class Queue:
                 self._settle(dst, job_id, "failed")
                 self._record(job_id, token, holder, outcome="failed", error=f"unreadable job file: {exc}")
                 continue
+            if how == "ordinary":  # its scan has ended and another live job holds its live folder
+                job = Job(**{**job.to_dict(), "live": False})
             attempt = self.attempts(job_id) + 1
             try:
                 self._record(job_id, token, holder, outcome="running", attempt=attempt)
@@ -233,6 +240,39 @@ class Queue:
                 raise
             return Claim(job, token, dst, attempt)
         return None
+
+    def live_claim(self, path: Path, take: bool = False) -> tuple[str, str | None]:
+        """How the queued job file `path` is claimed: ('claim', None) as it is; for a live job whose scan's live
+        folder another live job holds (`worker.live.publish.live_holder`: another queue's job of its id on
+        this root, another preset), ('wait', that job's id) while the scan is recorded, ('ordinary', that job's id)
+        once the scan has ended.
+
+        Claimed while its scan is recorded, such a job would hold a worker for the whole scan and publish nothing:
+        it waits in the queue instead (`--status` says so), and once the scan has ended it is claimed as the
+        ordinary job it then is, its budget counted from its process's start and the worker's overdue stop applied
+        as to any ordinary job's (a live job's count from its own live status's 'final', which it never writes).
+        `take`: mark the live folder the job's when it is free and its scan is recorded (a claim:
+        `claim_live_folder`), so that of two queues' workers claiming the scan's live job at once one gets it and
+        the other's waits. Without the captures root (`root`), or where the scan cannot be read (its process says
+        why), ('claim', None)."""
+        job = _job_file(path) if self.root is not None else None
+        if job is None or not job.live:
+            return "claim", None
+        from spadscan.protocol.capture_format import MANIFEST
+        from spadscan.protocol.errors import SpadscanError
+
+        from .jobs import scan_path
+        from .live.publish import claim_live_folder, live_holder
+
+        try:
+            scan = scan_path(job, self.root)
+            state = json.loads((scan / MANIFEST).read_text()).get("state")
+            holder = (claim_live_folder if state == "running" and take else live_holder)(scan, job)
+        except (OSError, ValueError, AttributeError, SpadscanError):
+            return "claim", None
+        if holder is None:
+            return "claim", None
+        return ("wait" if state == "running" else "ordinary"), holder
 
     def room_wait(self, paths=None, doubts: list | None = None) -> tuple[str, dict] | None:
         """(job id, its wait) for a queued job given back on a full disk whose room is still missing (the first of
@@ -613,6 +653,11 @@ class Queue:
             shown, stale = self._stale(path, job_id, token, age, now) or (state, None)
         elif state == "queued":
             waiting = file_age(path, now)
+            how, other = self.live_claim(path)
+            if how == "wait":
+                whose = "another queue's live job of this id" if other == job_id else f"live job {other}"
+                notes.append(f"waits for scan {job.scan} to end, holding no worker: {whose} follows it live; then "
+                             f"it reconstructs the scan as an ordinary job (its budget counted from its start)")
         done = [r for r in recs if r.get("outcome") == "done"]
         return JobStatus(job_id, str(job.scan), str(job.preset), state, len(counted),
                          errors[-1] if errors and state != "done" else None, results[-1] if results else None,

@@ -49,7 +49,9 @@ with the fit a quarter behind the views it holds or more, fits from the carved h
 publishes its result where every job does. An aborted scan's live job ends (failed, with the scan's reason; the live
 folder keeps its last state). A live job holds its job process from the
 scan's first chunk to its end: give the worker a process for each scan that may run at once (--processes). Live
-jobs run the fast preset.
+jobs run the fast preset. A scan's recon/live/ is one live job's, the first claimed: another live job of the scan
+(another queue's on the same root) waits in the queue while the scan is recorded, holding no worker (--status says
+so), and then reconstructs the scan as an ordinary job, its budget counted from its start.
 
 A job is recorded as done only once its result is in place, so a worker killed at any moment loses nothing: the
 next worker to start reconciles the queue with the result folders. It publishes the finished result a dead worker
@@ -191,7 +193,7 @@ def run(args) -> int:
     _check_queue(queue_dir, given=args.queue is not None, creates=not args.status)
     lease_s = DEFAULTS["lease_s"] if args.lease_s is None else args.lease_s
     if args.status:  # a query: a root without a queue yet is listed as empty, not given one
-        return _print_status(Queue(queue_dir, lease_s=lease_s, create=False), args.json, root)
+        return _print_status(Queue(queue_dir, lease_s=lease_s, create=False, root=root), args.json, root)
     given = _given_options(args)
     _check_limits(given)
     if args.retry_failed:
@@ -330,9 +332,10 @@ def _redo(queue, root, job_ids: list[str], given: dict) -> int:
     changed = ", ".join(f"{OPTION_FLAGS[k]} {v}" for k, v in given.items()) or "their own options"
     for job in jobs:
         aside = move_aside(result_path(job, root))  # a done job's result is in place: it is published first
-        _say_queued(job, root, "queued again by `spadscan worker --redo`" + (f"; its earlier result is now {aside}"
-                                                                          if aside else ""))
+        said = _say_queued(job, root, "queued again by `spadscan worker --redo`"
+                           + (f"; its earlier result is now {aside}" if aside else ""))
         if not queue.requeue("done", job.id, changes=given):
+            _unsay_queued(queue, job, root, said)
             raise ConfigError(f"{job.id}: another process moved the job while it was being queued again"
                               + (f"; its earlier result is in {aside}" if aside else ""))
         kept = f"; its earlier result is now {aside}" if aside else "; it had no results folder"
@@ -340,15 +343,81 @@ def _redo(queue, root, job_ids: list[str], given: dict) -> int:
     return 0
 
 
-def _say_queued(job, root: Path, why: str) -> None:
+def _say_queued(job, root: Path, why: str) -> tuple[bytes, bytes] | None:
     """A live job queued again says so in its live status ('queued', `why`): its 'done' or 'stopped' would stand
     until a worker claims the job, over figures of a result moved aside. Written before the job moves, so that it
-    never lands after the 'waiting' of a worker that claimed the job at once."""
+    never lands after the 'waiting' of a worker that claimed the job at once. Returns (the status before, the one
+    written) where it wrote one, for `_unsay_queued`; else None."""
     import sys
 
     from spadscan.worker.live.done import mark_live_queued
 
+    path = _live_status_path(job, root)
+    before = _file_bytes(path)
     mark_live_queued(job, root, why, lambda line: print(line, file=sys.stderr), ended_too=True)
+    after = _file_bytes(path)
+    return None if before is None or after is None or after == before else (before, after)
+
+
+def _live_status_path(job, root: Path) -> Path | None:
+    """The live status file of `job`'s scan; None for a job whose scan is not inside the root (it says so itself
+    when it runs)."""
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.protocol.live_status import status_path
+    from spadscan.worker.jobs import scan_path
+
+    try:
+        return status_path(scan_path(job, root))
+    except SpadscanError:
+        return None
+
+
+def _unsay_queued(queue, job, root: Path, said: tuple[bytes, bytes] | None) -> None:
+    """Another process moved the job out of done/ before this one could queue it again: the 'queued' that
+    `_say_queued` wrote (`said`) names a queuing that did not happen, and would stand for good where nothing queued
+    the job. Unless the status has been written since (by the process that took the job: a worker's 'waiting'), it
+    goes back to what it said before where that was the other process's 'queued', or where the job is not queued
+    or running now (nothing queued it again: the earlier word stands); else (the other process queued the job
+    again without saying so first) it says that the job was queued again by another process."""
+    import dataclasses
+    import json
+    import sys
+
+    from spadscan.protocol.atomic_files import write_atomic
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.protocol.live_status import read_status, write_status
+    from spadscan.worker.live.done import AGAIN
+
+    path = _live_status_path(job, root)
+    if said is None or path is None:
+        return
+    before, ours = said
+    if _file_bytes(path) != ours:
+        return  # written since: the other process's word, newer than this one's
+    try:
+        earlier = json.loads(before)
+    except ValueError:
+        earlier = None
+    now = queue.job_paths().get(job.id, (None, None))[0]
+    try:
+        if (isinstance(earlier, dict) and earlier.get("state") == "queued") or now not in ("queued", "running"):
+            write_atomic(path, before)
+        else:
+            note = (f"queued again by another process while `spadscan worker --redo` was queuing it (that --redo "
+                    f"queued nothing); {AGAIN}")
+            write_status(path.parent, dataclasses.replace(read_status(path), updated_utc="", note=note))
+    except (SpadscanError, OSError) as exc:
+        print(f"{job.id}: the live status was not updated: {' '.join(str(exc).split())}", file=sys.stderr)
+
+
+def _file_bytes(path: Path | None) -> bytes | None:
+    """The bytes of file `path`, or None where there is none or it cannot be read."""
+    if path is None:
+        return None
+    try:
+        return path.read_bytes()
+    except OSError:
+        return None
 
 
 def _jobs_in(queue, state: str, preset: str | None) -> list:

@@ -78,7 +78,7 @@ def mark_live_queued(job, root: Path, why: str, log: Callable[[str], None], ende
         if not path.is_file():
             return
         status = read_status(path)
-        if status.job == job.id and (ended_too or status.state not in ENDED):
+        if status.job == job.id and same_owner(status, job) and (ended_too or status.state not in ENDED):
             write_status(path.parent, dataclasses.replace(status, state="queued", note=f"{fold(why)}; {AGAIN}",
                                                           updated_utc="", figures_utc=figures_time(status),
                                                           result=None if ended_too else status.result))
@@ -97,8 +97,16 @@ def holds(status: LiveStatus, job) -> bool:
     """Whether the live folder whose status is `status` is `job`'s: the folder (`<scan>/recon/live/`, one per scan)
     is the first live job's that took it (`worker.live.publish.take_live_folder`), and only that job writes there.
     Another live job of the scan (another id: a hashed one, another preset) never ends, fails or queues the one
-    that holds it. A status naming no job (written by an earlier version) is taken to be the job's."""
-    return status.job in ("", job.id)
+    that holds it, nor does another queue's live job of the same id (on the same root), told apart by its owner
+    token (`same_owner`). A status naming no job (written by an earlier version) is taken to be the job's."""
+    return status.job in ("", job.id) and same_owner(status, job)
+
+
+def same_owner(status: LiveStatus, job) -> bool:
+    """Whether `status` was written by `job` as its owner token says (`Job.owner`, `LiveStatus.owner`): a status
+    or a job without one (an earlier version's) is told by the job's id alone."""
+    owner = getattr(job, "owner", "")
+    return not status.owner or not owner or status.owner == owner
 
 
 ENDED = ("done", "aborted", "stopped")
@@ -138,4 +146,4 @@ def done_status(status: LiveStatus, result: Path) -> LiveStatus:
 
 
 __all__ = ["mark_live_done", "mark_live_done_unsaid", "mark_live_failed", "mark_live_queued", "done_status",
-           "holds", "SCAN_ABORTED"]
+           "holds", "same_owner", "SCAN_ABORTED"]

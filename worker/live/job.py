@@ -24,8 +24,11 @@ published) runs `execute_live_job`:
    `aborted`, and the job fails with the scan's reason (not retried). A job that starts after its scan was aborted
    (re-run after its worker died) says `aborted` there and clears nothing.
 
-The live folder is one live job's (`publish.take_live_folder`): another live job of the same scan writes nothing
-there, waits for the scan's end and runs as an ordinary job.
+The live folder is one live job's (`publish.take_live_folder`; marked the job's when the queue hands it out,
+`publish.claim_live_folder`): another live job of the same scan (another preset, or another queue's job of its id,
+told apart by its owner token) writes nothing there and runs as an ordinary job. The queue leaves it queued while
+the scan is recorded and hands it out as an ordinary job once the scan has ended (`Queue.live_claim`); one whose
+process finds the folder taken all the same waits for the scan's end (`not_holding`).
 
 A live job reads the capture and writes only under its `recon/` folder; the daemon never waits for it.
 """
@@ -142,7 +145,8 @@ def status_finishing(scan: Path, job, progress: ScanProgress, note: str) -> None
     folder = live_folder(scan)
     clear_earlier(folder)
     publish_status(folder, LiveStatus(views_used=0, views_published=progress.views_published, steps=0, state="final",
-                                      views_planned=progress.views_planned, job=job.id, note=note))
+                                      views_planned=progress.views_planned, job=job.id, note=note,
+                                      owner=job.owner))
 
 
 class ScanAborted(SpadscanError):
@@ -159,7 +163,8 @@ def status_aborted(folder: Path, job, progress: ScanProgress, note: str) -> None
         status = LiveStatus(views_used=0, views_published=progress.views_published, steps=0,
                             views_planned=progress.views_planned)
     try:
-        publish_status(folder, dataclasses.replace(status, state="aborted", note=note, job=job.id, updated_utc=""))
+        publish_status(folder, dataclasses.replace(status, state="aborted", note=note, job=job.id, updated_utc="",
+                                                   owner=job.owner))
     except OSError:  # the scan's folder moved away (how a scan no daemon will resume is ended), a full disk
         pass
 
@@ -168,10 +173,13 @@ def not_holding(job, root: Path, out: Path, recon, queue, follower: ScanFollower
                 holder: str, settings: LiveSettings, log: Callable[[str], None]) -> dict:
     """Run live job `job` of a scan whose live folder another live job (`holder`) holds (`take_live_folder`): it
     writes nothing there, waits for the scan's end, and reconstructs the complete capture as an ordinary job (its
-    result in its own folder, `recon/<job>/`). Raises ScanAborted when the scan is aborted."""
+    result in its own folder, `recon/<job>/`). Raises ScanAborted when the scan is aborted. Rare: the queue hands
+    such a job out only once its scan has ended, as an ordinary job (`Queue.live_claim`); this is for one whose
+    claim did not see the folder taken."""
     from ..jobs import execute_job
 
-    log(f"live: {job.scan}/recon/live is live job {holder}'s: this job publishes nothing there; it reconstructs "
+    whose = f"another queue's live job {holder}" if holder == job.id else f"live job {holder}"
+    log(f"live: {job.scan}/recon/live is {whose}'s: this job publishes nothing there; it reconstructs "
         f"the scan as an ordinary job once the scan is complete")
     while not progress.ended:
         time.sleep(settings.poll_s)
@@ -200,7 +208,7 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     folder = live_folder(scan)
     holder = take_live_folder(folder, job, LiveStatus(
         views_used=0, views_published=progress.views_published, steps=0, state="waiting",
-        views_planned=progress.views_planned, job=job.id))
+        views_planned=progress.views_planned, job=job.id, owner=job.owner))
     if holder is not None:
         return not_holding(job, root, out, recon, queue, follower, progress, holder, settings, log)
     if progress.ended and progress.state == "complete":
@@ -525,7 +533,8 @@ class LiveRun:
             views_used=used, views_published=max(progress.views_published, used),
             steps=0 if fit is None else fit.steps, converged=bool(fit is not None and fit.converged), state=state,
             chamfer_mm=None if self.chamfer_mm is None else round(float(self.chamfer_mm), 4),
-            views_planned=progress.views_planned, job=self.job.id, note=note, final_start=final_start,
+            views_planned=progress.views_planned, job=self.job.id, owner=self.job.owner, note=note,
+            final_start=final_start,
             chamfer_views=self.chamfer_views, warnings=(self.preview_warning,) if self.preview_warning else ()))
 
     def stopped(self, state: str, note: str) -> None:

@@ -40,7 +40,10 @@ def take_live_folder(folder: Path, job, first: LiveStatus) -> str | None:
     it is one job's for good: the first live job's that took it (its retries and its --redo have its id). A second
     live job of the scan (another preset, a hashed id) writing there would delete the first's mesh, and its end
     would say 'done' over the first's status with its own result; a lab reading the page expects the job it saw
-    following the scan to be the one it reports on. That second job runs as an ordinary job instead."""
+    following the scan to be the one it reports on. That second job runs as an ordinary job instead. Two queues on
+    one root give a scan's live job one id in each: the owner token (`Job.owner`, which `first` carries) tells the
+    one that took the folder from the other, which is told the holder's id (its own). A folder with no status yet
+    is the job's that claimed it first (`claim_live_folder`), where one did."""
     from .done import holds
 
     path = Path(folder) / STATUS
@@ -52,6 +55,9 @@ def take_live_folder(folder: Path, job, first: LiveStatus) -> str | None:
                 return None  # damaged: the job's own first write replaces it
         else:
             return None if holds(status, job) else status.job
+        claimed = _claim_mark(Path(folder).parent, job)
+        if claimed is not None:
+            return claimed
         spare = Path(folder) / f".claim-{secrets.token_hex(4)}"  # hidden: a reader never takes it for the status
         try:
             spare.mkdir()
@@ -64,6 +70,79 @@ def take_live_folder(folder: Path, job, first: LiveStatus) -> str | None:
             except OSError:  # a file system without hard links: taken without the guard
                 os.replace(written, path)
                 return None
+        finally:
+            shutil.rmtree(spare, ignore_errors=True)
+    return None
+
+
+CLAIM = ".live-claim"
+"""In `<scan>/recon/`: which live job claimed the scan's live folder before it had a status (`claim_live_folder`)."""
+
+
+def claim_live_folder(scan: Path, job) -> str | None:
+    """At the claim of live job `job` in the queue: None when `<scan>/recon/live/` is the job's or free (then it is
+    marked the job's, in `<scan>/recon/.live-claim`, before the job's process starts), else the id of the live job
+    that holds it. Two queues' workers claim a scan's live job at its first chunk, within a poll of each other,
+    seconds before either job's process can take the folder (`take_live_folder`): the mark, made by one hard link,
+    gives it to exactly one of them at the claim, and the other's job is left in the queue (`Queue.live_claim`)
+    instead of holding a worker for the whole scan. The live folder itself is not made here (it is the job's to
+    make)."""
+    from .done import holds
+
+    try:
+        status = read_status(Path(scan) / "recon" / LIVE_DIR / STATUS)
+    except SpadscanError:
+        if (Path(scan) / "recon" / LIVE_DIR / STATUS).is_file():
+            return None  # damaged: the job's own first write replaces it
+    else:
+        return None if holds(status, job) else status.job
+    return _claim_mark(Path(scan) / "recon", job)
+
+
+def live_holder(scan: Path, job) -> str | None:
+    """`claim_live_folder` without claiming: None when `<scan>/recon/live/` is `job`'s or free, else the id of the
+    live job that holds it (by its status, else by the mark of its claim)."""
+    from .done import holds
+
+    for path in (Path(scan) / "recon" / LIVE_DIR / STATUS, Path(scan) / "recon" / CLAIM):
+        try:
+            status = read_status(path)
+        except SpadscanError:
+            if path.is_file():
+                return None  # damaged: the job's own first write replaces it
+            continue
+        return None if holds(status, job) else status.job
+    return None
+
+
+def _claim_mark(recon: Path, job) -> str | None:
+    """None when `recon`/.live-claim names `job` (or no job, or cannot be read), or names none yet and is made
+    naming it now (by one hard link: of two claims at once exactly one makes it); else the id of the job it names."""
+    from .done import holds
+
+    path = recon / CLAIM
+    mine = LiveStatus(views_used=0, views_published=0, steps=0, state="waiting", job=job.id,
+                      owner=getattr(job, "owner", ""))
+    for _ in range(2):
+        try:
+            marked = read_status(path)
+        except SpadscanError:
+            if path.is_file():
+                return None  # damaged: no claim to honour
+        else:
+            return None if holds(marked, job) else marked.job
+        spare = recon / f".claim-{secrets.token_hex(4)}"
+        try:
+            spare.mkdir(parents=True)
+            try:
+                os.link(write_status(spare, mine), path)
+                return None
+            except FileExistsError:
+                pass  # another job's claim came first: read whose it is
+            except OSError:  # a file system without hard links: claimed without the guard
+                return None
+        except OSError:  # recon/ cannot be written: the job's process says so
+            return None
         finally:
             shutil.rmtree(spare, ignore_errors=True)
     return None
@@ -114,5 +193,5 @@ def publish_status(folder: Path, status: LiveStatus) -> Path:
     return write_status(folder, status)
 
 
-__all__ = ["MESH", "PREVIEW", "live_folder", "take_live_folder", "clear_leftovers", "clear_earlier", "publish_mesh",
-           "draw_preview", "publish_status"]
+__all__ = ["MESH", "PREVIEW", "CLAIM", "live_folder", "take_live_folder", "claim_live_folder", "live_holder",
+           "clear_leftovers", "clear_earlier", "publish_mesh", "draw_preview", "publish_status"]
