@@ -221,13 +221,15 @@ def _pose_ok(tcp: np.ndarray, arm: ArmConfig) -> bool:
 
 def live_converged(capture: Path, min_views: int) -> str | None:
     """Why the scan may end now: the live reconstruction's recon/live/status.json (`protocol.live_status`) says it
-    converged with at least min_views views used; else None (also for a missing or malformed file: a worker's file
+    is following the scan (state 'live') and converged with at least min_views views used; else None (also for a missing or malformed file: a worker's file
     never stops a scan by being broken)."""
     try:
         status = read_status(status_path(capture))
     except CaptureError:
         return None
-    if not status.converged or status.views_used < min_views:
+    # Only a fit following the scan now: a 'queued', 'stopped' or 'aborted' status keeps its last figures, and a
+    # converged flag there is a stopped job's, not the scan's.
+    if status.state != "live" or not status.converged or status.views_used < min_views:
         return None
     return f"the live reconstruction converged with {status.views_used} views"
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spadscan.daemon.adaptive import ViewChooser
+from spadscan.daemon.adaptive import ViewChooser, live_converged
 from spadscan.daemon.app import DeviceSession
 from spadscan.daemon.config import scan_to_dict, scan_with
 from spadscan.daemon.runner import ScanRunner
@@ -406,3 +406,13 @@ def test_a_scan_stopped_on_a_ranked_view_is_taken_over(arun, tmp_path, sphere):
 
     assert arun(second())["state"] == "complete"
     check_capture(folder, 9, 1)
+
+
+@pytest.mark.parametrize("state", ["queued", "stopped", "aborted", "waiting", "final", "done"])
+def test_only_a_fit_following_the_scan_ends_it_as_converged(tmp_path, state):
+    """A live status that says its job was given back, stopped or ended keeps the stopped fit's figures, its
+    converged flag too: that is no reason to end the scan; the same figures in a 'live' status are."""
+    live_status(tmp_path / "a", views_used=20, converged=True, state=state)
+    assert live_converged(tmp_path / "a", 8) is None
+    live_status(tmp_path / "b", views_used=20, converged=True, state="live")
+    assert live_converged(tmp_path / "b", 8) == "the live reconstruction converged with 20 views"

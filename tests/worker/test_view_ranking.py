@@ -149,3 +149,20 @@ def test_coverage_seeks_the_space_no_view_has_emptied():
     y = cand[:, 1, 3]
     assert scores[y < -0.2].mean() > 2 * scores[y > 0.2].mean()
     assert cand[np.argmax(scores), 1, 3] < 0
+
+
+def test_disagreement_scores_the_surface_moving_not_the_grid_s_box_changing():
+    """A refit carves a new hull and so a new box: rays that miss the object leave each snapshot's box at another
+    distance, which is no disagreement about the surface. The same surface on a larger box (the same nodes) scores
+    next to nothing against a surface moved out by 2 mm everywhere."""
+    cand = candidate_poses(BAND, 64)
+    still = grid()
+    pad = 5
+    z, y, x = np.meshgrid(*(ORIGIN[::-1][i] + VOXEL * np.arange(-pad, N + pad) for i in range(3)), indexing="ij")
+    d = np.sqrt(x ** 2 + y ** 2 + (z - CENTRE[2]) ** 2) - R
+    larger = GridSnapshot(d.astype(np.float32), ORIGIN - pad * VOXEL, VOXEL)
+    moved = GridSnapshot(still.sdf - 0.002, ORIGIN, VOXEL)
+    box_only = rank_candidates(snapshot([still, larger], cand[:4]), cand, "disagreement", spread=False)
+    surface = rank_candidates(snapshot([still, moved], cand[:4]), cand, "disagreement", spread=False)
+    assert surface.max() > 0
+    assert box_only.max() < 0.05 * surface.max(), (box_only.max(), surface.max())

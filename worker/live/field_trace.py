@@ -68,10 +68,7 @@ class TracedField:
         unless `normals` is False (then zero). Only the part of each ray inside the grid's box is traced: nothing
         stands outside it."""
         n = len(origins)
-        t_max = torch.as_tensor(t_max, dtype=torch.float32).expand(n)
-        t_in, t_out = self._box_span(origins, dirs)
-        t_out = torch.minimum(t_out, t_max)
-        t_hit = torch.where(t_in < t_out, t_out, t_max)  # a ray that hits nothing: where it leaves the box
+        t_in, t_out, t_hit = self._clipped_span(origins, dirs, t_max)  # t_hit: where a ray that hits nothing leaves
         hit = torch.zeros(n, dtype=torch.bool)
         idx = torch.nonzero(t_in < t_out)[:, 0]
         o, d, end = origins[idx], dirs[idx], t_out[idx]
@@ -98,6 +95,19 @@ class TracedField:
         if normals and bool(hit.any()):
             normal[hit] = self.normal(point[hit])
         return Hits(hit, t_hit, point, normal)
+
+    def box_exit(self, origins: torch.Tensor, dirs: torch.Tensor, t_max: float | torch.Tensor) -> torch.Tensor:
+        """(N,) where each ray leaves the box before t_max (t_max where it never enters it): the `t` that `trace`
+        gives a ray that hits nothing."""
+        return self._clipped_span(origins, dirs, t_max)[2]
+
+    def _clipped_span(self, origins: torch.Tensor, dirs: torch.Tensor, t_max: float | torch.Tensor):
+        """(t_in, t_out, exit) (N,): the part of each ray inside the box, cut at t_max, and where the ray leaves it
+        (t_max where it never enters)."""
+        t_max = torch.as_tensor(t_max, dtype=torch.float32).expand(len(origins))
+        t_in, t_out = self._box_span(origins, dirs)
+        t_out = torch.minimum(t_out, t_max)
+        return t_in, t_out, torch.where(t_in < t_out, t_out, t_max)
 
     def _box_span(self, origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(t_in, t_out) (N,) of each ray's part inside the box, t_in >= 0; t_in >= t_out where it misses."""

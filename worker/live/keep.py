@@ -18,6 +18,7 @@ published; on its own grid and albedo it reads 21 against 28.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -52,12 +53,19 @@ def keep_the_better(model, live: LiveState, log: Callable[[str], None]) -> dict:
     model.warm_start(live.field, model.level, model.level_steps)
     use_scalars(model, live.scalars)
     live_dev = model.deviance_all_views(SCORE_SEED)
-    which = "live" if live_dev < final_dev else "final"
+    # A non-finite deviance (a field that diverged) never wins, nor goes into report.json as a number.
+    live_better = math.isfinite(live_dev) and (live_dev < final_dev or not math.isfinite(final_dev))
+    which = "live" if live_better else "final"
     if which == "final":
         use_field(model, final_values)
         use_scalars(model, final_scalars)
     log(f"live: publishing the {which} field (deviance per bin: live {live_dev:.4f}, final {final_dev:.4f})")
-    return {"published": {"mesh": which, "deviance_live": round(live_dev, 5), "deviance_final": round(final_dev, 5)}}
+    return {"published": {"mesh": which, "deviance_live": _rounded(live_dev), "deviance_final": _rounded(final_dev)}}
+
+
+def _rounded(deviance: float) -> float | None:
+    """A deviance as report.json keeps it: 5 decimals, None where it is not finite."""
+    return round(deviance, 5) if math.isfinite(deviance) else None
 
 
 def use_field(model, values) -> None:

@@ -215,7 +215,7 @@ def _sees_cells(field: TracedField, sensor, cells: np.ndarray, poses: np.ndarray
     to_sensor = poses[:, None, :3, 3] - cells[None]  # (n, U, 3)
     dist = np.linalg.norm(to_sensor, axis=-1)
     local = np.matmul(-to_sensor, poses[:, :3, :3])
-    ok = in_any_zone(sensor.zones, local) & (dist < sensor.n_bins * sensor.bin_width_m)
+    ok = in_any_zone(sensor.zones, local) & (dist < sensor.max_range_m)  # the last bin's range, past zero_bin
     out = np.zeros(ok.shape)
     view, cell = np.nonzero(ok)
     if len(view):
@@ -282,12 +282,17 @@ def _ray_measure(snap: LiveSnapshot, cand: np.ndarray, measure: str) -> np.ndarr
     n, r = len(cand), len(dirs)
     o = torch.as_tensor(np.repeat(cand[:, :3, 3], r, axis=0), dtype=torch.float32)
     d = torch.as_tensor(np.einsum("nij,rj->nri", cand[:, :3, :3], dirs).reshape(-1, 3), dtype=torch.float32)
-    t_max = float(sensor.n_bins * sensor.bin_width_m)
-    hits = [TracedField(f.grid).trace(o, d, t_max) for f in snap.fields]
+    t_max = float(sensor.max_range_m)
+    traced = [TracedField(f.grid) for f in snap.fields]
+    hits = [f.trace(o, d, t_max) for f in traced]
     if len(hits) < 2:
         return np.zeros(n)
     if measure == "disagreement":
-        t = torch.stack([h.t for h in hits]).numpy().reshape(len(hits), n, r)
+        # A miss reads where the ray leaves the newest snapshot's box, in every snapshot: where it leaves each one's
+        # own box differs between refits that carved other hulls, which would score the box, not the surface.
+        away = traced[-1].box_exit(o, d, t_max)
+        t = torch.stack([torch.where(h.hit, h.t, away) for h in hits])
+        t = t.numpy().reshape(len(hits), n, r)
         return (t.var(axis=0) * w).sum(axis=1)
     hists = np.stack([_histograms(sensor, h, d, w, zone, n) for h in hits])  # (S, n, Z, B)
     noise = hists.mean(axis=0) + max(sensor.background, 1e-12) * sensor.cycles
