@@ -221,8 +221,8 @@ def _pose_ok(tcp: np.ndarray, arm: ArmConfig) -> bool:
 
 def live_converged(capture: Path, min_views: int) -> str | None:
     """Why the scan may end now: the live reconstruction's recon/live/status.json (`protocol.live_status`) says it
-    is following the scan (state 'live') and converged with at least min_views views used; else None (also for a missing or malformed file: a worker's file
-    never stops a scan by being broken)."""
+    is following the scan (state 'live') and converged with at least min_views views used; else None (also for a
+    missing or malformed file: a worker's file never stops a scan by being broken)."""
     try:
         status = read_status(status_path(capture))
     except CaptureError:
