@@ -70,6 +70,9 @@ def _file(tmp_path, **change):
     ({"created_utc": "2026-01-01T00:00:00"}, "lacks its UTC offset"),
     ({"candidates": []}, "candidates must be a list of 1..100000"),
     ({"candidates": [{"pose": [[1, 0, 0, 0]] * 4, "score": 1}]}, "candidate 0: pose is not a rigid transform"),
+    # a mirror: orthonormal, but a left-handed frame no arm can take
+    ({"candidates": [{"pose": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]], "score": 1}]},
+     "candidate 0: pose is not a rigid transform"),
     ({"candidates": [{"pose": "up", "score": 1}]}, "candidate 0: pose must be a 4x4 array"),
     ({"candidates": [{"pose": np.eye(4).tolist(), "score": float("nan")}]}, "score nan must be a finite number"),
     ({"candidates": [{"pose": np.eye(4).tolist()}]}, "candidate 0 must be an object with 'pose' and 'score'"),
