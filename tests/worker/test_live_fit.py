@@ -182,6 +182,23 @@ def test_a_rebuild_goes_back_to_the_coarse_level_from_the_live_surface_when_the_
     assert rate == pytest.approx((fit.steps - before) / sum(s for _, s in fit.recent)) and rate > 0
 
 
+def test_the_growth_that_sends_a_rebuild_back_to_the_coarse_level_counts_from_its_last_return(
+        cylinder_capture, tmp_path, one_thread):
+    """Half as many views again as the coarse level last began with, not as the first fit began with: 17 views
+    after a return at 12 go on at the fine level, however young the scan (64 planned)."""
+    config = with_overrides(preset_config("fast"), FAST_SMALL)
+    scan = ReplayScan(cylinder_capture, tmp_path / "scan")
+    fit = LiveFit(tmp_path / "scan", config, torch.device("cpu"), 0, log=lambda line: None)
+    scan.publish(8)
+    assert fit.rebuild(64) and fit.train_steps(12) == 12 and fit.model.level == 1
+    scan.publish(4)  # 12 views: 1.5x 8
+    assert fit.rebuild(64) and fit.model.level == 0 and fit.coarse_views == 12
+    fit.train_steps(6)
+    assert fit.model.level == 1
+    scan.publish(5)  # 17 views: under 1.5x 12
+    assert fit.rebuild(64) and (fit.model.level, fit.recoarsened, fit.coarse_views) == (1, 1, 12)
+
+
 def test_the_final_run_starts_from_the_hull_while_the_live_fit_is_on_its_coarse_level(cylinder_capture, tmp_path,
                                                                                       one_thread):
     """A scan that ends before the live fit has left its coarse level (the demo's simulated scan takes 4 s), or just
