@@ -166,3 +166,14 @@ def test_disagreement_scores_the_surface_moving_not_the_grid_s_box_changing():
     surface = rank_candidates(snapshot([still, moved], cand[:4]), cand, "disagreement", spread=False)
     assert surface.max() > 0
     assert box_only.max() < 0.05 * surface.max(), (box_only.max(), surface.max())
+
+
+@pytest.mark.parametrize("taken_views", [1, 8, 24])
+def test_the_greedy_picks_scores_fall_strictly_so_the_file_keeps_their_order(taken_views):
+    """next_views.json lists candidates by score: two greedy picks of one score would be listed by candidate index,
+    a later pick ahead of an earlier one. Every pick's score is its own."""
+    cand = candidate_poses(BAND, 512)
+    taken = fibonacci_hemisphere(taken_views, 0.5, (0, 0, 0), 10, 80)
+    scores = rank_candidates(snapshot([grid()], taken), cand, "coverage")
+    picked = scores[scores > 0]
+    assert len(picked) > 16 and len(np.unique(picked)) == len(picked)

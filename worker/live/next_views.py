@@ -128,7 +128,7 @@ class _StaticGain:
 
 
 def _spread_ranking(gain, cand: np.ndarray, taken: np.ndarray) -> np.ndarray:
-    """Greedy spread scores (module docstring): non-increasing along the greedy order, 0 where the measure is 0."""
+    """Greedy spread scores (module docstring): decreasing along the greedy order, 0 where the measure is 0."""
     axes = _unit(cand[:, :3, 2])
     nearest = np.full(len(cand), np.pi)  # radians to the nearest view taken or ranked ahead
     if len(taken):
@@ -146,7 +146,9 @@ def _spread_ranking(gain, cand: np.ndarray, taken: np.ndarray) -> np.ndarray:
         i = int(np.argmax(value))
         if value[i] <= 0.0:
             break
-        last = min(last, float(value[i]))
+        # Strictly below the pick before (by one ulp where its value is no lower): next_views.json is sorted by score,
+        # and a tie would put the later pick first where its candidate index is lower.
+        last = float(value[i]) if value[i] < last else float(np.nextafter(last, 0.0))
         out[i], free[i] = last, False
         nearest = np.minimum(nearest, _angles(axes, axes[i:i + 1])[:, 0])
         views += 1
