@@ -69,10 +69,11 @@ def test_ray_measures_prefer_where_the_snapshots_disagree(measure):
     # a cap on the -y side still grows: hidden from +y
     moving = grid(lambda x, y, z: R + 0.02 * np.clip(-y / np.sqrt(x ** 2 + y ** 2 + (z - CENTRE[2]) ** 2 + 1e-12)
                                                      - 0.6, 0, None))
-    scores = rank_candidates(snapshot([still, still, moving], cand[:4]), cand, measure)
-    assert np.all(np.isfinite(scores))
     y = cand[:, 1, 3]
-    assert scores[y < -0.2].mean() > 3 * scores[y > 0.2].mean()
+    for fields in ([still, still, moving], [still, moving]):  # two snapshots: the newest against the one before
+        scores = rank_candidates(snapshot(fields, cand[:4]), cand, measure)
+        assert np.all(np.isfinite(scores))
+        assert scores[y < -0.2].mean() > 3 * scores[y > 0.2].mean()
     # one snapshot, or snapshots that agree: nothing to choose by
     assert not rank_candidates(snapshot([still, still], cand[:4]), cand, measure).any()
 
