@@ -1,6 +1,6 @@
 """A stored point is reused only where what decides its result is unchanged (fingerprint.py): the resolved preset
-config, the baselines' thresholds, the device and spadscan's version. A stale point runs again, its old file kept
-until the new result is stored; a failed point runs again only its methods that are not stored done."""
+config, the baselines' thresholds, the device, spadscan's version and its source. A stale point runs again, its old file
+kept until the new result is stored; a failed point runs again only its methods that are not stored done."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 import spadscan
 from spadscan.sweep import fingerprint, point, runner
-from spadscan.sweep.fingerprint import Digests, Expected
+from spadscan.sweep.fingerprint import Digests, Expected, code_digest, source_digest
 from spadscan.sweep.plan import make_plan
 from spadscan.sweep.point import run_point
 from spadscan.sweep.spec import load_spec
@@ -140,6 +140,33 @@ def test_another_version_or_device_makes_a_point_stale(tmp_path, monkeypatch):
     rerun = Stages(monkeypatch)
     assert run_point(task, str(store.path))["spadscan"] == spadscan.__version__
     assert rerun.calls == ["simulate", "fast", "reprojection", "space-carving"]
+
+
+def test_a_change_to_the_source_between_versions_makes_a_point_stale(tmp_path, monkeypatch):
+    """Developing a method changes its code, not spadscan's version: a point stored by other source runs again."""
+    plan, store, task = folder(tmp_path)
+    Stages(monkeypatch)
+    stored = run_point(task, str(store.path))
+    assert Expected(task, "cpu").state(stored) == "done"
+    assert {inputs["code"] for inputs in Digests().method_inputs(task, "cpu", "1").values()} == {code_digest()}
+    monkeypatch.setattr(fingerprint, "code_digest", lambda: "0123456789abcdef")
+    assert Expected(task, "cpu").state(stored) == "stale"
+    rerun = Stages(monkeypatch)
+    run_point(task, str(store.path))
+    assert rerun.calls == ["simulate", "fast", "reprojection", "space-carving"]
+
+
+def test_the_source_digest_follows_each_file_s_name_and_content(tmp_path):
+    a, b = tmp_path / "a.py", tmp_path / "b.py"
+    a.write_text("x = 1\n")
+    b.write_text("y = 2\n")
+    base = source_digest([("pkg/a.py", a), ("pkg/b.py", b)])
+    assert source_digest([("pkg/b.py", b), ("pkg/a.py", a)]) == base  # in name order, however found
+    assert source_digest([("pkg/a2.py", a), ("pkg/b.py", b)]) != base  # a file renamed
+    assert source_digest([("pkg/a.py", a)]) != base  # a file removed
+    a.write_text("x = 2\n")
+    assert source_digest([("pkg/a.py", a), ("pkg/b.py", b)]) != base
+    assert code_digest() == code_digest() and len(code_digest()) == 16  # the installed source, read the same way
 
 
 def test_fingerprints_cover_the_resolved_config_the_thresholds_the_device_and_the_version(tmp_path):
