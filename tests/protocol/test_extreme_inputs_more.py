@@ -12,6 +12,7 @@ import trimesh
 from spadscan.protocol.errors import DatasetError, MeshError
 from spadscan.protocol.lcspc import import_lcspc
 from spadscan.protocol.mesh_io import load_mesh
+from spadscan.protocol.schedules import look_at
 
 
 def sphere(radius: float, centre=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:
@@ -63,14 +64,7 @@ def test_a_ground_truth_1e17_m_across_even_as_millimetres_is_refused_and_a_thous
 def look_at_pose(k: int, n: int) -> list[list[float]]:
     """Pose k of n on a ring 0.5 m around the origin, looking at it."""
     az = 2 * math.pi * k / n
-    pos = 0.5 * np.array([math.cos(az), math.sin(az), 0.5])
-    z = -pos / np.linalg.norm(pos)
-    x = np.cross([0, 0, 1.0], z)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    pose[:3, 3] = pos
-    return pose.tolist()
+    return look_at(0.5 * np.array([math.cos(az), math.sin(az), 0.5]), (0.0, 0.0, 0.0)).tolist()
 
 
 @pytest.mark.filterwarnings("error")

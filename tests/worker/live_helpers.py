@@ -3,12 +3,14 @@ project's CaptureWriter (each pose published as its own chunk by one rename, as 
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
 from spadscan.protocol.capture_format import Measurement
 from spadscan.protocol.capture_reader import CaptureReader
 from spadscan.protocol.capture_writer import CaptureWriter
+from spadscan.worker.live.job import execute_live_job
 
 
 class ReplayScan:
@@ -46,3 +48,22 @@ class ReplayScan:
 
     def finish(self, state: str = "complete", reason: str | None = None) -> None:
         self.writer.finish(state, reason)
+
+
+class SecondLiveJob:
+    """A live job of a scan whose live folder another live job holds, run on a thread (`execute_live_job`): `said`
+    is set once it logs a line holding `marker` (that it publishes nothing there), `result` gets its report."""
+
+    def __init__(self, job, root: Path, out: Path, marker: str, **kwargs):
+        self.lines: list[str] = []
+        self.said = threading.Event()
+        self.result: dict = {}
+
+        def log(line):
+            self.lines.append(line)
+            if marker in line:
+                self.said.set()
+
+        self.thread = threading.Thread(target=lambda: self.result.update(report=execute_live_job(
+            job, root, out, log=log, **kwargs)), daemon=True)
+        self.thread.start()

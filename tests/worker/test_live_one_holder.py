@@ -5,7 +5,6 @@ live result and says 'aborted'; --redo and --retry-failed say 'queued' in the li
 from __future__ import annotations
 
 import json
-import threading
 
 import pytest
 
@@ -17,7 +16,7 @@ from spadscan.worker.live.job import ScanAborted, execute_live_job
 from spadscan.worker.live.publish import clear_earlier, live_folder, take_live_folder
 from spadscan.worker.queue import Queue
 
-from live_helpers import ReplayScan
+from live_helpers import ReplayScan, SecondLiveJob
 from test_live_job import small_settings
 from test_worker_process import options_recon
 
@@ -66,29 +65,18 @@ def test_a_second_live_job_of_a_scan_runs_as_an_ordinary_job_and_never_touches_t
     scan.publish(3)
     folder = holder_folder(root)
     before = (folder / "status.json").read_bytes()
-    said = threading.Event()
-    lines: list[str] = []
-
-    def log(line):
-        lines.append(line)
-        if "mug-fast's" in line:
-            said.set()
-
     job = Job(id="mug-paper", scan="mug", preset="paper", live=True, device="cpu")
-    result: dict = {}
-    thread = threading.Thread(target=lambda: result.update(report=execute_live_job(
-        job, root, root / "mug" / "recon" / ".tmp-paper", recon=options_recon, settings=small_settings(),
-        log=log)), daemon=True)
-    thread.start()
-    assert said.wait(120), lines
+    second = SecondLiveJob(job, root, root / "mug" / "recon" / ".tmp-paper", "mug-fast's", recon=options_recon,
+                           settings=small_settings())
+    assert second.said.wait(120), second.lines
     scan.run()  # the rest of its poses: "complete" promises every planned pose
     scan.finish("complete")
-    thread.join(300)
-    assert not thread.is_alive()
-    assert result["report"]["device"] == "cpu"  # the ordinary job's report
+    second.thread.join(300)
+    assert not second.thread.is_alive()
+    assert second.result["report"]["device"] == "cpu"  # the ordinary job's report
     assert (folder / "status.json").read_bytes() == before
     assert (folder / "mesh.ply").read_text() == "fast's mesh"
-    assert sum("publishes nothing there" in line for line in lines) == 1, lines
+    assert sum("publishes nothing there" in line for line in second.lines) == 1, second.lines
 
 
 def test_a_rerun_after_the_scan_was_aborted_keeps_the_last_live_result(cylinder_capture, tmp_path):

@@ -4,16 +4,14 @@ never clears, overwrites, ends, fails or queues it, and runs as an ordinary job.
 
 from __future__ import annotations
 
-import threading
 
 from spadscan.protocol.live_status import LiveStatus, read_status, write_status
 from spadscan.worker.jobs import Job
 from spadscan.worker.live.done import mark_live_done, mark_live_failed, mark_live_queued
-from spadscan.worker.live.job import execute_live_job
 from spadscan.worker.live.publish import live_folder, take_live_folder
 from spadscan.worker.queue import Queue
 
-from live_helpers import ReplayScan
+from live_helpers import ReplayScan, SecondLiveJob
 from test_live_job import small_settings
 from test_worker_process import options_recon
 
@@ -73,24 +71,13 @@ def test_the_other_queues_live_job_runs_as_an_ordinary_job_leaving_the_folder_al
                                     owner=first.owner, chamfer_mm=2.5))
     (folder / "mesh.ply").write_text("the holder's mesh")
     before = (folder / "status.json").read_bytes()
-    said = threading.Event()
-    lines: list[str] = []
-
-    def log(line):
-        lines.append(line)
-        if "another queue's live job mug-fast" in line:
-            said.set()
-
-    result: dict = {}
-    thread = threading.Thread(target=lambda: result.update(report=execute_live_job(
-        second, root, root / "mug" / "recon" / ".tmp-b", recon=options_recon, settings=small_settings(),
-        log=log)), daemon=True)
-    thread.start()
-    assert said.wait(120), lines
+    run = SecondLiveJob(second, root, root / "mug" / "recon" / ".tmp-b", "another queue's live job mug-fast",
+                        recon=options_recon, settings=small_settings())
+    assert run.said.wait(120), run.lines
     scan.publish(len(scan.poses))  # a complete scan holds every planned pose
     scan.finish("complete")
-    thread.join(300)
-    assert not thread.is_alive()
-    assert result["report"]["device"] == "cpu"  # the ordinary job's report
+    run.thread.join(300)
+    assert not run.thread.is_alive()
+    assert run.result["report"]["device"] == "cpu"  # the ordinary job's report
     assert (folder / "status.json").read_bytes() == before
     assert (folder / "mesh.ply").read_text() == "the holder's mesh"
