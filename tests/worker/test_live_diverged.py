@@ -74,3 +74,18 @@ def test_a_live_job_whose_fit_diverges_still_ends_with_its_result(cylinder_captu
     report = live.result["report"]
     assert report["steps"] > 0 and report["live"]["final_start"] in ("live", "hull")
     assert any("starting it again from the carved hull" in line for line in live.lines), live.lines
+
+
+def test_a_live_job_whose_fit_diverged_twice_says_so_when_it_reconstructs_from_scratch(
+        cylinder_capture, tmp_path, one_thread, monkeypatch):
+    root = tmp_path / "captures"
+    scan = ReplayScan(cylinder_capture, root / "cyl")
+    scan.run()  # every view published: no new one to fit the live model again on
+    diverging(monkeypatch, {3, 4})
+    live = LiveJobThread(root, "cyl", small_settings())
+    live.wait_status(lambda s: s.note is not None and "diverged twice" in s.note, "the live fit dropped")
+    scan.finish()
+    report = live.join()
+    assert report["steps"] > 0 and "live" not in report  # an ordinary run's report
+    final = [line for line in live.lines if "reconstructing it from scratch" in line]
+    assert final and "no live fit: it diverged twice on" in final[0], live.lines

@@ -237,9 +237,10 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         runner.stopped("aborted", f"scan aborted: {progress.reason or 'no reason given'}")
         raise ScanAborted(f"scan {scan.name} was aborted ({progress.reason or 'no reason given'}): its live job "
                           f"ended; the last live result stays in {folder}")
-    if runner.fit.model is None:
-        runner.stopped("final", f"the scan completed with {progress.views_published} views before the live fit "
-                                "started: reconstructing it from scratch")
+    if runner.fit.model is None:  # never started, or dropped (`LiveFit.restart`: it diverged twice), as not_yet says
+        why = runner.fit.not_yet or f"the scan completed with {progress.views_published} views before the live fit " \
+                                    f"started"
+        runner.stopped("final", f"{why}: reconstructing it from scratch")
         return execute_job(dataclasses.replace(job, live=False), root, out, recon, queue=queue)
     start, why = final_start(runner.fit, progress.views_published, settings)
     if progress.state == "complete":
