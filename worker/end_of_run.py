@@ -16,7 +16,10 @@ Nine checks, each on plain numbers the run recorded (docs/end_of_run.md derives 
   (The deviance summed over every bin against the noise, `FitNoise.ratio`, cannot judge a bright capture: there a
   good fit's 1-2 mm errors are significant too.) On a real capture the sensor's own departures from any model of it
   outweigh the noise everywhere, so the test there is the model's error per bin relative to its expected counts over
-  all the histograms (`FitNoise.relative_misfit`), against what a good fit of a real capture leaves.
+  all the histograms (`FitNoise.relative_misfit`), against what a good fit of a real capture leaves. Where most
+  histograms are saturated (`saturated_histograms`: the first return stopped nearly every laser cycle, pile-up), the
+  line names that as the cause, with what to do, and a saturated capture whose fit passes says so on its own line:
+  its histograms hold each view's nearest surface and nothing behind it.
 - **Seen by too few views.** The share of the mesh's surface (undersides left out) that fewer than three views saw
   (`coverage.py`): there the shape is the prior's guess, however well the fit explains the measurements.
 - **Returns the mesh lacks.** Many first returns come from where the mesh has no surface: nothing of it in their
@@ -96,6 +99,21 @@ MIN_TREND_STEPS = 50
 """Fewest steps for the trend test: a shorter run is judged by its stop alone."""
 EXACT_BELOW = 30.0
 """Expected counts below which the noise deviance is summed over the Poisson distribution (above: its expansion)."""
+SHADOW = 0.02
+"""A histogram is saturated when its detections per bin after its first return fall under this share of those
+before it: the return stopped over 98 % of the cycles that reached it (about 4 photons a cycle, e^-4), so the
+histogram holds only the leading edge of the nearest surface and nothing behind it (pile-up). The simulated builtin
+sphere at power 1 keeps 25 % or more after its returns, at power 100 none."""
+SHADOW_GAP = 64
+"""The bins either side of a histogram's highest bin left out of `saturated_histograms`' before and after (the
+return itself): the histogram's length over this, at least one bin."""
+SHADOW_MIN_COUNTS = 20.0
+"""Fewest detections before a return for its shadow to be judged: SHADOW of as many bins after it then expects
+nothing, and none is a measurement (a capture without background has no shadow to read)."""
+SATURATED_SHARE = 0.5
+"""Share of the histograms checked that must be saturated for the run to name pile-up: the capture as a whole was
+taken at too much flux (the near views of a tall object may saturate a few; of every histogram of the dataset's
+bunny and soap, the real pyramid, the simulated lamp and the TMF8820 head on a can, none is)."""
 
 
 @dataclass
@@ -126,6 +144,8 @@ class FitNoise:
     """The deviance beyond the photon noise and the renders' share, summed over every bin checked, in standard
     deviations of the two: a relative misfit that chance alone gives (a dim capture's few photons) stays under
     MISFIT_Z here."""
+    saturated_histograms: int = 0
+    """Of the histograms checked, those whose first return is saturated (`saturated_histograms`)."""
 
     @property
     def ratio(self) -> float:
@@ -139,11 +159,17 @@ class FitNoise:
         """Share of the checked histograms that are misfit (0 when none was checked)."""
         return self.misfit_histograms / self.histograms if self.histograms else 0.0
 
+    @property
+    def saturated(self) -> bool:
+        """Whether over SATURATED_SHARE of the checked histograms are saturated (pile-up)."""
+        return bool(self.histograms) and self.saturated_histograms > SATURATED_SHARE * self.histograms
+
     def to_dict(self) -> dict:
         return {"deviance_per_bin": self.deviance_per_bin, "noise_per_bin": self.noise_per_bin,
                 "render_per_bin": self.render_per_bin, "ratio": self.ratio, "relative_misfit": self.relative_misfit,
                 "histograms": self.histograms, "misfit_histograms": self.misfit_histograms,
-                "misfit_share": self.misfit_share, "excess_z": self.excess_z, "bins": self.bins,
+                "misfit_share": self.misfit_share, "excess_z": self.excess_z,
+                "saturated_histograms": self.saturated_histograms, "bins": self.bins,
                 "views": list(self.views)}
 
 
@@ -205,8 +231,31 @@ def fit_noise(measured: np.ndarray, expected: np.ndarray, valid: np.ndarray | No
     checked, misfit = misfit_histograms(dev, noise, noise_var, render, mu)
     sd = math.sqrt(float(noise_var.sum() + (2.0 * render * render).sum()))
     n = int(ok.sum())
+    flat = lambda a: a.reshape(-1, a.shape[-1])  # noqa: E731
+    judged = flat(mu).sum(axis=1) > 0  # the histograms `misfit_histograms` checks
+    saturated = int((saturated_histograms(flat(c), flat(ok)) & judged).sum())
     return FitNoise(float(dev.sum() / n), float(noise.sum() / n), n, [int(v) for v in views], relative,
-                    float(render.sum() / n), checked, misfit, excess / sd if sd > 0 else 0.0)
+                    float(render.sum() / n), checked, misfit, excess / sd if sd > 0 else 0.0, saturated)
+
+
+def saturated_histograms(counts: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(H,) bool: which histograms (H, B) of measured counts (`valid` bins only) are saturated by pile-up: their
+    detections per bin after their highest bin (SHADOW_GAP bins on) fall under SHADOW of those before it (as far
+    before). A first-photon sensor detects a bin's background only in the cycles still live there, so that ratio is
+    the share of the cycles that the return left live (Coates): the cycles themselves need not be known. Judged only
+    where the bins before hold SHADOW_MIN_COUNTS detections."""
+    c = np.where(valid, counts, 0.0)
+    n_bins = c.shape[-1]
+    gap = max(1, n_bins // SHADOW_GAP)
+    bins = np.arange(n_bins)
+    peak = np.argmax(c, axis=-1)[:, None]
+    before = valid & (bins < peak - gap)
+    after = valid & (bins > peak + gap)
+    n_before, n_after = before.sum(axis=-1), after.sum(axis=-1)
+    c_before, c_after = (c * before).sum(axis=-1), (c * after).sum(axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shadow = (c_after / np.maximum(n_after, 1)) < SHADOW * c_before / np.maximum(n_before, 1)
+    return (c_before >= SHADOW_MIN_COUNTS) & (n_after > 0) & shadow
 
 
 def misfit_histograms(dev, noise, noise_var, render, mu) -> tuple[int, int]:
@@ -523,27 +572,59 @@ def either(options: list[str]) -> str:
 def misfit_warning(fit: FitNoise, measured: bool) -> str | None:
     """The line saying that the fit does not explain the measurements, or None when it does: on a measured capture
     by its relative misfit (RELATIVE_MISFIT_LIMIT), on a simulated one by the same when it is gross, else by its
-    share of misfit histograms (MISFIT_SHARE_SIMULATED, and at least MISFIT_MIN_HISTOGRAMS of them)."""
+    share of misfit histograms (MISFIT_SHARE_SIMULATED, and at least MISFIT_MIN_HISTOGRAMS of them). Of a saturated
+    capture (`FitNoise.saturated`) it names pile-up as the cause (`saturation_cause`), not the time axis, the poses
+    or the surface: the builtin sphere at power 100 was off by 75 % with its time axis and poses exact."""
     if measured and fit.relative_misfit > RELATIVE_MISFIT_LIMIT:
+        cause = (saturation_cause(fit) if _saturated(fit) else
+                 "a wrong sensor model or calibration, an object that moved during the scan, or a fit gone wrong")
         return (f"the fit does not explain the measurements: the model is off by {100 * fit.relative_misfit:.0f} % "
                 f"per bin where the photons are (a good fit of a real capture: about "
-                f"{100 * REAL_SENSOR_MISFIT:.0f} %); a wrong sensor model or calibration, an object that "
-                f"moved during the scan, or a fit gone wrong")
+                f"{100 * REAL_SENSOR_MISFIT:.0f} %); {cause}")
     if not measured and fit.relative_misfit > RELATIVE_MISFIT_LIMIT and fit.excess_z > MISFIT_Z:
         # Gross, whatever the count: a capture of one or two views, or a short run's check of 4 histograms, has too
         # few histograms for MISFIT_MIN_HISTOGRAMS, and a good fit of a simulated capture is under 0.1 here; and
         # beyond chance: a dim capture's few photons alone can make the relative misfit that large.
+        cause = (saturation_cause(fit) if _saturated(fit) else
+                 "the capture is simulated, so its model is exact: its time axis (the sensor's bin_width_m, "
+                 "zero_bin), its poses or the fit are wrong")
         return (f"the fit does not explain the measurements: the model is off by {100 * fit.relative_misfit:.0f} % "
                 f"per bin where the photons are (a good fit of a simulated capture: under "
-                f"{100 * SIMULATED_GOOD_MISFIT:.0f} %); the capture is simulated, so its model is exact: its time axis "
-                f"(the sensor's bin_width_m, zero_bin), its poses or the fit are wrong")
+                f"{100 * SIMULATED_GOOD_MISFIT:.0f} %); {cause}")
     if not measured and fit.misfit_share > MISFIT_SHARE_SIMULATED and fit.misfit_histograms >= MISFIT_MIN_HISTOGRAMS:
+        cause = (saturation_cause(fit) if _saturated(fit) else
+                 "the capture is simulated, so its model is exact: part of the surface is likely wrong")
         return (f"the fit does not explain the measurements: {100 * fit.misfit_share:.0f} % of the histograms "
                 f"checked ({fit.misfit_histograms} of {fit.histograms}) depart from the model beyond photon noise and "
                 f"by over {100 * MISFIT_RELATIVE:.0f} % where their photons are (a good fit: under "
-                f"{100 * MISFIT_SHARE_SIMULATED:.0f} %); the capture is simulated, so its model is exact: part of the "
-                f"surface is likely wrong")
+                f"{100 * MISFIT_SHARE_SIMULATED:.0f} %); {cause}")
     return None
+
+
+def _saturated(fit) -> bool:
+    """`FitNoise.saturated`, False for a figure that does not say (a reader's own record of the misfit alone)."""
+    return bool(getattr(fit, "saturated", False))
+
+
+PILEUP_ADVICE = "lower the laser power or the exposure, or move the sensor back"
+"""What a saturated capture needs (`saturation_cause`)."""
+
+
+def saturation_cause(fit: FitNoise) -> str:
+    """Why a saturated capture (`FitNoise.saturated`) fits badly, and what to do about it, as a clause."""
+    return (f"the histograms are saturated ({fit.saturated_histograms} of the {fit.histograms} checked): the first "
+            f"return stopped nearly every laser cycle (pile-up), so they hold only the leading edge of each view's "
+            f"nearest surface and nothing behind it; {PILEUP_ADVICE}")
+
+
+def saturation_warning(fit: FitNoise | None) -> str | None:
+    """The line saying that the capture is saturated (`FitNoise.saturated`), or None: said alone where the fit
+    explains what the histograms hold (`misfit_warning` names pile-up itself where it does not), since that is only
+    each view's nearest surface and the shape behind it comes from the fit's smoothness."""
+    if fit is None or not _saturated(fit):
+        return None
+    return (f"{saturation_cause(fit)}: the shape behind each view's nearest surface comes from the fit's smoothness, "
+            f"not from measurements")
 
 
 def mostly_at(heights_m: tuple[float, float] | None) -> str:
@@ -682,7 +763,8 @@ def warnings(facts: RunFacts) -> list[str]:
     # line says that a longer run hardly changes them only of a run that converged: of one stopped early that would
     # contradict the lines that say to run it longer.
     early = early_note(facts)
-    shape = [(misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None, early),
+    misfit = misfit_warning(facts.fit, facts.measured) if facts.fit is not None else None
+    shape = [(misfit if misfit is not None else saturation_warning(facts.fit), early),
              (coverage_warning(facts.coverage, facts.measured), early),
              (lost_warning(facts.lost), early),
              (pieces_warning(facts.pieces, facts.truth_pieces, facts.thin_sheets_emptied), early),
@@ -716,8 +798,8 @@ def early_note(facts: RunFacts) -> str:
 __all__ = ["INTERRUPTED", "UNCONVERGED", "ENDED_BY", "unconverged_line", "unconverged_warning",
            "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
            "converged", "cpu_share", "lost_share", "pace_share", "cpu_wait", "busy_warning", "warnings",
-           "overrun_warning", "misfit_warning", "coverage_warning", "lost_warning",
-           "pieces_warning", "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
+           "overrun_warning", "misfit_warning", "saturation_warning", "saturated_histograms", "coverage_warning",
+           "lost_warning", "pieces_warning", "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "LEAST_PACE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
            "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",
            "MISFIT_Z", "MISFIT_RELATIVE", "MISFIT_MIN_HISTOGRAMS",
