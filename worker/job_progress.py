@@ -245,7 +245,7 @@ def claim_budget(job: Job, started: float | None, root) -> tuple[float, float] |
 def final_run_start(root, job: Job) -> float | None:
     """When a live job's final run started (unix seconds): its live status is written 'final' just before; None
     while it follows its scan, or when that status is not its own or cannot be read."""
-    status = own_live_status(root, job.id, job.scan, ("final",))
+    status = own_live_status(root, job, ("final",))
     return None if status is None else written_unix(status)
 
 
@@ -254,7 +254,7 @@ def ended_live_status(root, job: Job, since: float) -> LiveStatus | None:
     stopped), written since its claim began (`since`, unix seconds): an earlier attempt's last word is none of this
     one's. The job's process ends right after writing it; until the worker has reaped it, that is what the job is
     doing (not setting up). None otherwise; `root`: the captures root."""
-    status = own_live_status(root, job.id, job.scan, ENDED)
+    status = own_live_status(root, job, ENDED)
     if status is None:
         return None
     written = written_unix(status)
@@ -309,7 +309,7 @@ def progress_note(claim: Claim, log: Path, root, now: float | None = None,
         return ProgressNote(stage, f"{job.id} at {100 * progress.fraction:.0f} %: {progress.line()}")
     live = None
     if job.live:
-        live = own_live_status(root, job.id, job.scan) or ended_live_status(root, job, claim.started)
+        live = own_live_status(root, job) or ended_live_status(root, job, claim.started)
     if live is not None:
         return ProgressNote(f"live: {live.state}", f"{job.id}: {live.summary()}")
     when = of_budget(now - budget[1], budget[0]) if budget else f"{clock(now - claim.started)} since it started"

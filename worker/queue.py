@@ -105,6 +105,8 @@ class JobStatus:
     waiting_s: float | None = None
     """For a queued job: how long it has waited (its file's age: a job file is renamed into queued/ when it is queued
     or given back)."""
+    owner: str = ""
+    """A live job's owner token (`Job.owner`): its live status is its own only where the token matches."""
 
 
 @dataclass(frozen=True)
@@ -661,7 +663,8 @@ class Queue:
         done = [r for r in recs if r.get("outcome") == "done"]
         return JobStatus(job_id, str(job.scan), str(job.preset), state, len(counted),
                          errors[-1] if errors and state != "done" else None, results[-1] if results else None,
-                         holder, age, notes, stale, shown, bool(done and done[-1].get("kept")), claimed, waiting)
+                         holder, age, notes, stale, shown, bool(done and done[-1].get("kept")), claimed, waiting,
+                         job.owner)
 
     def _stale(self, path: Path, job_id: str, token: str, age: float | None,
                now: float) -> tuple[str, str] | None:

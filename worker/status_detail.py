@@ -10,6 +10,8 @@ from pathlib import Path
 from spadscan.protocol.errors import SpadscanError
 from spadscan.protocol.live_status import STATES, LiveStatus, read_status, status_path
 
+from .live.done import same_owner
+
 ENDED = ("done", "aborted", "stopped")
 """Live states after which the job's line is no longer the live status's (its final run has a bar, or it ended)."""
 FOLLOWING = tuple(s for s in STATES if s not in (*ENDED, "queued"))
@@ -40,22 +42,25 @@ def live_detail(root, row) -> str | None:
     it follows the scan: its log shows no progress bar until its final run), or None; `root`: the captures root."""
     if row.state != "running":
         return None
-    status = own_live_status(root, row.id, row.scan)
+    status = own_live_status(root, row)
     return status.summary() if status is not None else None
 
 
-def own_live_status(root, job_id: str, scan: str, states: tuple[str, ...] = FOLLOWING) -> LiveStatus | None:
-    """The live status (`<scan>/recon/live/status.json`) of live job `job_id` when it is in one of `states` (by
-    default FOLLOWING: while it follows its scan or runs its final run); None when there is none, it cannot be read,
-    it is another job's, or it is in another state (by default: past, ENDED, or a given-back attempt's last word,
-    'queued', until the attempt that took the job over writes its own); `root`: the captures root."""
+def own_live_status(root, job, states: tuple[str, ...] = FOLLOWING) -> LiveStatus | None:
+    """The live status (`<scan>/recon/live/status.json`) of live job `job` (a Job or a --status row: its id, scan
+    and owner token) when it is in one of `states` (by default FOLLOWING: while it follows its scan or runs its final
+    run); None when there is none, it cannot be read, it is another job's (another id, or another queue's job of the
+    same id, told apart by its owner token: `same_owner`; such a job runs as an ordinary one once the scan has ended,
+    and its row must not show the other's progress), or it is in another state (by default: past, ENDED, or a
+    given-back attempt's last word, 'queued', until the attempt that took the job over writes its own); `root`: the
+    captures root."""
     if root is None:
         return None
     try:
-        status = read_status(status_path(Path(root) / scan))
+        status = read_status(status_path(Path(root) / job.scan))
     except (SpadscanError, OSError):
         return None
-    return status if status.job == job_id and status.state in states else None
+    return status if status.job == job.id and same_owner(status, job) and status.state in states else None
 
 
 def status_lines(row, running: dict | None = None, root=None) -> list[str]:

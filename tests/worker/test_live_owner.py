@@ -6,10 +6,12 @@ from __future__ import annotations
 
 
 from spadscan.protocol.live_status import LiveStatus, read_status, write_status
+from spadscan.worker.job_progress import final_run_start
 from spadscan.worker.jobs import Job
 from spadscan.worker.live.done import mark_live_done, mark_live_failed, mark_live_queued
 from spadscan.worker.live.publish import live_folder, take_live_folder
 from spadscan.worker.queue import Queue
+from spadscan.worker.status_detail import live_detail
 
 from live_helpers import ReplayScan, SecondLiveJob
 from test_live_job import small_settings
@@ -81,3 +83,22 @@ def test_the_other_queues_live_job_runs_as_an_ordinary_job_leaving_the_folder_al
     assert run.result["report"]["device"] == "cpu"  # the ordinary job's report
     assert (folder / "status.json").read_bytes() == before
     assert (folder / "mesh.ply").read_text() == "the holder's mesh"
+
+
+def test_a_row_or_claim_of_the_other_queues_job_never_shows_the_holders_progress(tmp_path):
+    """The other queue's job of the same id runs as an ordinary job once the scan has ended, while the holder may
+    still be in its final run: `--status` and the worker's progress line must not give it the holder's figures."""
+    first, second = two_queues_jobs(tmp_path)
+    folder = live_folder(tmp_path / "mug")
+    write_status(folder, LiveStatus(views_used=40, views_published=48, steps=900, state="final", job="mug-fast",
+                                    owner=first.owner))
+    rows = {}
+    for name in (".queue", ".queue-b"):
+        [row] = [r for r in Queue(tmp_path / name).statuses() if r.id == "mug-fast"]
+        rows[name] = row
+    assert rows[".queue"].owner == first.owner and rows[".queue-b"].owner == second.owner
+    assert live_detail(tmp_path, rows[".queue"]).startswith("live reconstruction finishing")
+    assert live_detail(tmp_path, rows[".queue-b"]) is None
+    assert final_run_start(tmp_path, first) is not None and final_run_start(tmp_path, second) is None
+    earlier = Job(id="mug-fast", scan="mug", live=True)  # a job file of an earlier version: no owner token
+    assert final_run_start(tmp_path, earlier) is not None
