@@ -37,7 +37,7 @@ from .end_of_run import FitNoise, RunFacts, fit_noise
 from .ground_truth import load_ground_truth
 from .jobs import run_limits_problem
 from .lost_returns import LostReturns, lost_returns
-from .metrics import mesh_metrics
+from .metrics import UNBUDGETED_S, mesh_metrics
 from .outputs import capture_state_note, export_mesh, files_written_after, folder_files, replacing_result
 from .pieces import Pieces, mesh_pieces
 from .recon.config import ReconConfig, with_overrides
@@ -364,12 +364,17 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         report["vertex_normal_error_deg"] = {"mean": float(vertex_err.mean()),
                                              "median": float(np.median(vertex_err))}
         # The points' distances measured until what the normals picture needs is all that is left: a forecast of
-        # their time can fall short by seconds on a poor mesh, the deadline cannot.
-        deadline = None if budget_s is None else clock() + run_clock.left() - NORMALS_PICTURE_S
+        # their time can fall short by seconds on a poor mesh, the deadline cannot. Without a budget: UNBUDGETED_S.
+        deadline = clock() + (UNBUDGETED_S if budget_s is None else run_clock.left() - NORMALS_PICTURE_S)
         # The points are drawn from the metrics' own fixed seed, not the run's: `spadscan eval` of the mesh, a
         # baseline's figure and a run of another seed are scored on the same samples (docs/metrics.md).
         scores = mesh_metrics(scored, truth.mesh, n_points=points, deadline=deadline, clock=clock)
-        if scores.queries < points:  # one line for both cuts: this one says what the first did
+        if scores.queries < points and budget_s is None:
+            notes.append(f"the metrics measured {scores.queries:,} of the {points:,} points per mesh in "
+                         f"{UNBUDGETED_S:g} s, the most a run without a time budget gives them (a coarser estimate): "
+                         f"the mesh and its ground truth lie far apart (is the ground truth the scanned object's, "
+                         f"in metres?)")
+        elif scores.queries < points:  # one line for both cuts: this one says what the first did
             asked = f", {config.metrics_points:,} asked" if points < config.metrics_points else ""
             notes.append(f"the time budget was short: the metrics measured {scores.queries:,} of the {points:,} "
                          f"points per mesh{asked} (a coarser estimate)")

@@ -5,6 +5,7 @@ The budgets here are short, so that the 10 s dominate: a loaded machine still ha
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import subprocess
@@ -276,3 +277,16 @@ def test_a_worker_job_ends_within_its_budget(box, tmp_path):
         "the job's reconstruction counts the job's budget from the job process's start"
     assert report["wall_seconds"] > report["budget"]["stages"]["set_up_s"] > 0
     assert report["threads"]["most"] >= 1 if "most" in report["threads"] else report["threads"]["fixed"] >= 1
+
+
+def test_a_run_without_a_time_budget_measures_its_metrics_for_a_bounded_time(box, tmp_path, monkeypatch, one_thread):
+    """A run stopped on its step count alone (no --budget-s) must end too: meshes far apart (a ground truth in the
+    wrong unit) measure slowly, so the distances are measured for UNBUDGETED_S at most, and the report says so."""
+    cap, gt = box
+    monkeypatch.setattr(reconstruct, "UNBUDGETED_S", 0.0)  # the first chunk of samples only
+    report = reconstruct.reconstruct_capture(cap, tmp_path / "o", preset="fast", steps=5, gt=gt, device="cpu",
+                                             progress=False, threads=1, overrides={"mesh_resolution": 32})
+    assert report["queries"] < report["n_points"] and math.isfinite(report["chamfer_mm"]), report["budget"]
+    line = f"the metrics measured {report['queries']:,} of the {report['n_points']:,} points per mesh in 0 s"
+    assert any(w.startswith(line) and "ground truth" in w for w in report["warnings"]), report["warnings"]
+    assert not any("time budget was short" in w for w in report["warnings"]), report["warnings"]
