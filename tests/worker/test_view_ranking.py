@@ -11,6 +11,7 @@ from spadscan.daemon.config import ScanConfig, scan_to_dict, scan_with
 from spadscan.protocol.next_views import candidate_poses, read_next_views
 from spadscan.protocol.schedules import fibonacci_hemisphere, look_at
 from spadscan.protocol.sensor_presets import sensor_preset
+from spadscan.worker.live import next_views
 from spadscan.worker.live.field_trace import TracedField
 from spadscan.worker.live.next_views import is_adaptive, rank_candidates, update_next_views
 from spadscan.worker.live.snapshot import FieldSnapshot, GridSnapshot, LiveSnapshot
@@ -178,3 +179,21 @@ def test_the_greedy_picks_scores_fall_strictly_so_the_file_keeps_their_order(tak
     scores = rank_candidates(snapshot([grid()], taken), cand, "coverage")
     picked = scores[scores > 0]
     assert len(picked) > 16 and len(np.unique(picked)) == len(picked)
+
+
+@pytest.mark.parametrize("measure", ["coverage", "disagreement"])
+def test_the_candidates_past_the_greedy_picks_follow_in_the_order_the_next_pick_would_see(measure, monkeypatch):
+    """Past SPREAD_PICKS the ranking keeps each candidate's spread score below the last pick: ranked as the next
+    greedy pick would rank them (after the last pick's own effect), so the first of them is that pick."""
+    cand = candidate_poses(BAND, 128)
+    taken = fibonacci_hemisphere(4, 0.5, (0, 0, 0), 10, 80)
+    snap = snapshot([grid(), grid(lambda x, y, z: R + 0.01 * (x > 0))], taken)
+    monkeypatch.setattr(next_views, "SPREAD_PICKS", 6)
+    short = rank_candidates(snap, cand, measure)
+    monkeypatch.setattr(next_views, "SPREAD_PICKS", 7)
+    longer = rank_candidates(snap, cand, measure)
+    picks = np.argsort(-short)[:6]
+    np.testing.assert_array_equal(picks, np.argsort(-longer)[:6])
+    rest = np.delete(short, picks)
+    assert 0 < rest.max() < short[picks].min() and (rest > 0).sum() > 64
+    assert int(np.argsort(-short)[6]) == int(np.argsort(-longer)[6])  # the seventh pick leads the rest

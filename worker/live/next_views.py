@@ -56,7 +56,7 @@ UNSEEN_CELLS = 1500
 """Cells of unseen space (inside the carved hull, outside the surface) the coverage measure weighs."""
 SPREAD_PICKS = 64
 """Places of the ranking filled greedily with the spread factor (more than any scan takes from one ranking); the
-candidates after them keep their spread score of that moment, below the last pick."""
+candidates after them keep the spread score the next pick would see, scaled below the last pick."""
 MIN_COS = 0.1
 """A patch seen more obliquely than this (incidence cosine) is not seen: its return is weak and smeared."""
 
@@ -138,11 +138,13 @@ def _spread_ranking(gain, cand: np.ndarray, taken: np.ndarray) -> np.ndarray:
     out = np.zeros(len(cand))
     free = np.ones(len(cand), dtype=bool)
     last = np.inf
-    value = np.zeros(len(cand))
-    for _ in range(min(len(cand), SPREAD_PICKS)):
+
+    def values() -> np.ndarray:  # each free candidate's gain times its spread factor, given the picks so far
         a0 = 0.5 * np.sqrt(omega / (views + 1))
-        value = np.maximum(_finite(gain.scores()), 0.0) * (1.0 - np.exp(-(nearest / a0) ** 2))
-        value[~free] = 0.0
+        return np.where(free, np.maximum(_finite(gain.scores()), 0.0) * (1.0 - np.exp(-(nearest / a0) ** 2)), 0.0)
+
+    for _ in range(min(len(cand), SPREAD_PICKS)):
+        value = values()
         i = int(np.argmax(value))
         if value[i] <= 0.0:
             break
@@ -153,8 +155,9 @@ def _spread_ranking(gain, cand: np.ndarray, taken: np.ndarray) -> np.ndarray:
         nearest = np.minimum(nearest, _angles(axes, axes[i:i + 1])[:, 0])
         views += 1
         gain.take(i)
-        value[i] = 0.0
-    rest = np.where(free, value, 0.0)
+    # The rest in the order the next greedy pick would see them: after the last pick's own effect (ranked by the
+    # value before it, the candidates beside the last pick led them, though it had just covered what they see).
+    rest = values()
     if np.isfinite(last) and rest.max() > 0:
         rest *= min(1.0, 0.999 * last / rest.max())  # below the last greedy pick, in their own order
     return np.where(free, rest, out)
