@@ -98,3 +98,59 @@ def coates_correct(counts, cycles) -> np.ndarray:
     live = np.maximum(n - _rate_before(c), 0.0)
     c = np.minimum(c, live)
     return np.log(np.maximum(live, 0.5)) - np.log(np.maximum(live - c, 0.5))
+
+
+SHADOW = 0.02
+"""A histogram is saturated when its detections per bin after its first return fall under this share of those
+before it: the return stopped over 98 % of the cycles that reached it (about 4 photons a cycle, e^-4), so the
+histogram holds only the leading edge of the nearest surface and nothing behind it. The simulated builtin sphere
+at power 1 keeps 25 % or more after its returns, at power 100 none."""
+SHADOW_GAP = 8
+"""The bins either side of a histogram's highest bin left out of `saturated_histograms`' before and after (the
+return itself): the histogram's length over this, at least one bin. 16 of the TMF8820's 128 bins, past its
+pulse's long tail: with 2 (a 64th), the simulated TMF8820 sphere at 1000 times its power read 33 of its 144
+histograms saturated, with 16, 73 (every one of LCSPCData's 1024-bin sphere at 100 times its power either way)."""
+SHADOW_MIN_COUNTS = 20.0
+"""Fewest detections the bins after a return would hold at the background's level before it, for its shadow to be
+judged: SHADOW of that expects nothing, and none is a measurement (a capture without background has no shadow to
+read, nor has a return in the histogram's last bins)."""
+SATURATED_SHARE = 0.5
+"""Share of a capture's histograms that must be saturated for it to be called saturated as a whole: taken at too much
+flux (the near views of a tall object may saturate a few; of every histogram of LCSPCData's bunny and soap, its real
+pyramid, the simulated lamp and the TMF8820 head on a can, none is)."""
+
+
+def saturated_histograms(counts, valid=None) -> np.ndarray:
+    """(...) bool: which first-photon histograms `counts` (..., bins) of measured detections (`valid` (..., bins)
+    bool: the bins to read, default all) are saturated by pile-up: their detections per bin after their highest bin
+    (SHADOW_GAP on) fall under SHADOW of the background's level before it (as far before; the median bin there, so
+    that a weaker return in front, an object before a brighter table, is not taken for background). A first-photon
+    sensor detects a bin's background only in the cycles still live there, so that ratio is the share of the cycles
+    that the return left live (Coates): the cycles themselves need not be known. Judged only where the bins after
+    would hold SHADOW_MIN_COUNTS detections at that level (a return in the first or last bins, or no background,
+    says nothing here)."""
+    c = np.asarray(counts, dtype=np.float64)
+    if c.ndim < 1 or c.shape[-1] == 0 or not np.all(np.isfinite(c)) or np.any(c < 0):
+        raise SimulationError(f"counts must be finite and >= 0 with a bins axis, got shape {c.shape}")
+    valid = np.ones(c.shape, bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), c.shape)
+    c = np.where(valid, c, 0.0)
+    n_bins = c.shape[-1]
+    gap = max(1, n_bins // SHADOW_GAP)
+    bins = np.arange(n_bins)
+    peak = np.argmax(c, axis=-1)[..., None]
+    before = valid & (bins < peak - gap)
+    after = valid & (bins > peak + gap)
+    n_after = after.sum(axis=-1)
+    c_after = (c * after).sum(axis=-1)
+    level = _median_where(c, before)
+    shadow = c_after < SHADOW * level * n_after
+    return (level * n_after >= SHADOW_MIN_COUNTS) & shadow
+
+
+def _median_where(values: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """The median of `values` (..., n) over the entries `where` (..., n) bool along the last axis; 0 where none."""
+    count = where.sum(axis=-1)
+    ranked = np.sort(np.where(where, values, np.inf), axis=-1)  # the chosen entries first, in order
+    lo = np.take_along_axis(ranked, np.maximum((count - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(ranked, np.minimum(count // 2, values.shape[-1] - 1)[..., None], -1)[..., 0]
+    return np.where(count > 0, 0.5 * (lo + hi), 0.0)

@@ -17,9 +17,9 @@ Nine checks, each on plain numbers the run recorded (docs/end_of_run.md derives 
   good fit's 1-2 mm errors are significant too.) On a real capture the sensor's own departures from any model of it
   outweigh the noise everywhere, so the test there is the model's error per bin relative to its expected counts over
   all the histograms (`FitNoise.relative_misfit`), against what a good fit of a real capture leaves. Where most
-  histograms are saturated (`saturated_histograms`: the first return stopped nearly every laser cycle, pile-up), the
-  line names that as the cause, with what to do, and a saturated capture whose fit passes says so on its own line:
-  its histograms hold each view's nearest surface and nothing behind it.
+  histograms are saturated (`protocol.pileup.saturated_histograms`: the first return stopped nearly every laser
+  cycle, pile-up), the line names that as the cause, with what to do, and a saturated capture whose fit passes says
+  so on its own line: its histograms hold each view's nearest surface and nothing behind it.
 - **Seen by too few views.** The share of the mesh's surface (undersides left out) that fewer than three views saw
   (`coverage.py`): there the shape is the prior's guess, however well the fit explains the measurements.
 - **Returns the mesh lacks.** Many first returns come from where the mesh has no surface: nothing of it in their
@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import gammaln, xlogy
+
+from spadscan.protocol.pileup import SATURATED_SHARE, saturated_histograms
 
 from .cpu_wait import counted_helpers, lost_seconds
 from .pieces import SPECKS_LIMIT
@@ -99,21 +101,6 @@ MIN_TREND_STEPS = 50
 """Fewest steps for the trend test: a shorter run is judged by its stop alone."""
 EXACT_BELOW = 30.0
 """Expected counts below which the noise deviance is summed over the Poisson distribution (above: its expansion)."""
-SHADOW = 0.02
-"""A histogram is saturated when its detections per bin after its first return fall under this share of those
-before it: the return stopped over 98 % of the cycles that reached it (about 4 photons a cycle, e^-4), so the
-histogram holds only the leading edge of the nearest surface and nothing behind it (pile-up). The simulated builtin
-sphere at power 1 keeps 25 % or more after its returns, at power 100 none."""
-SHADOW_GAP = 64
-"""The bins either side of a histogram's highest bin left out of `saturated_histograms`' before and after (the
-return itself): the histogram's length over this, at least one bin."""
-SHADOW_MIN_COUNTS = 20.0
-"""Fewest detections before a return for its shadow to be judged: SHADOW of as many bins after it then expects
-nothing, and none is a measurement (a capture without background has no shadow to read)."""
-SATURATED_SHARE = 0.5
-"""Share of the histograms checked that must be saturated for the run to name pile-up: the capture as a whole was
-taken at too much flux (the near views of a tall object may saturate a few; of every histogram of the dataset's
-bunny and soap, the real pyramid, the simulated lamp and the TMF8820 head on a can, none is)."""
 
 
 @dataclass
@@ -233,29 +220,9 @@ def fit_noise(measured: np.ndarray, expected: np.ndarray, valid: np.ndarray | No
     n = int(ok.sum())
     flat = lambda a: a.reshape(-1, a.shape[-1])  # noqa: E731
     judged = flat(mu).sum(axis=1) > 0  # the histograms `misfit_histograms` checks
-    saturated = int((saturated_histograms(flat(c), flat(ok)) & judged).sum())
+    saturated = int((saturated_histograms(np.maximum(flat(c), 0.0), flat(ok)) & judged).sum())
     return FitNoise(float(dev.sum() / n), float(noise.sum() / n), n, [int(v) for v in views], relative,
                     float(render.sum() / n), checked, misfit, excess / sd if sd > 0 else 0.0, saturated)
-
-
-def saturated_histograms(counts: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(H,) bool: which histograms (H, B) of measured counts (`valid` bins only) are saturated by pile-up: their
-    detections per bin after their highest bin (SHADOW_GAP bins on) fall under SHADOW of those before it (as far
-    before). A first-photon sensor detects a bin's background only in the cycles still live there, so that ratio is
-    the share of the cycles that the return left live (Coates): the cycles themselves need not be known. Judged only
-    where the bins before hold SHADOW_MIN_COUNTS detections."""
-    c = np.where(valid, counts, 0.0)
-    n_bins = c.shape[-1]
-    gap = max(1, n_bins // SHADOW_GAP)
-    bins = np.arange(n_bins)
-    peak = np.argmax(c, axis=-1)[:, None]
-    before = valid & (bins < peak - gap)
-    after = valid & (bins > peak + gap)
-    n_before, n_after = before.sum(axis=-1), after.sum(axis=-1)
-    c_before, c_after = (c * before).sum(axis=-1), (c * after).sum(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shadow = (c_after / np.maximum(n_after, 1)) < SHADOW * c_before / np.maximum(n_before, 1)
-    return (c_before >= SHADOW_MIN_COUNTS) & (n_after > 0) & shadow
 
 
 def misfit_histograms(dev, noise, noise_var, render, mu) -> tuple[int, int]:
@@ -610,11 +577,12 @@ PILEUP_ADVICE = "lower the laser power or the exposure, or move the sensor back"
 """What a saturated capture needs (`saturation_cause`)."""
 
 
-def saturation_cause(fit: FitNoise) -> str:
-    """Why a saturated capture (`FitNoise.saturated`) fits badly, and what to do about it, as a clause."""
+def saturation_cause(fit: FitNoise, consequence: str = "") -> str:
+    """Why a saturated capture (`FitNoise.saturated`) fits badly, then `consequence` (a clause, or none), then what
+    to do about it."""
     return (f"the histograms are saturated ({fit.saturated_histograms} of the {fit.histograms} checked): the first "
             f"return stopped nearly every laser cycle (pile-up), so they hold only the leading edge of each view's "
-            f"nearest surface and nothing behind it; {PILEUP_ADVICE}")
+            f"nearest surface and nothing behind it{consequence}; {PILEUP_ADVICE}")
 
 
 def saturation_warning(fit: FitNoise | None) -> str | None:
@@ -623,8 +591,7 @@ def saturation_warning(fit: FitNoise | None) -> str | None:
     each view's nearest surface and the shape behind it comes from the fit's smoothness."""
     if fit is None or not _saturated(fit):
         return None
-    return (f"{saturation_cause(fit)}: the shape behind each view's nearest surface comes from the fit's smoothness, "
-            f"not from measurements")
+    return saturation_cause(fit, ", and the shape behind it comes from the fit's smoothness, not from measurements")
 
 
 def mostly_at(heights_m: tuple[float, float] | None) -> str:
@@ -798,7 +765,7 @@ def early_note(facts: RunFacts) -> str:
 __all__ = ["INTERRUPTED", "UNCONVERGED", "ENDED_BY", "unconverged_line", "unconverged_warning",
            "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
            "converged", "cpu_share", "lost_share", "pace_share", "cpu_wait", "busy_warning", "warnings",
-           "overrun_warning", "misfit_warning", "saturation_warning", "saturated_histograms", "coverage_warning",
+           "overrun_warning", "misfit_warning", "saturation_warning", "coverage_warning",
            "lost_warning", "pieces_warning", "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "LEAST_PACE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
            "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",

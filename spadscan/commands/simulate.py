@@ -13,7 +13,8 @@ mesh or on or under the table top are refused (no sensor can stand there); on a 
 up unless --min-elevation says otherwise; views less than 1 cm above the table top (the spiral's lowest from 0
 degrees, 1 mm above it at 256 views, whose histograms the table floods) and views that see nothing of the mesh are
 warned about, and so is a capture whose views hold most of their detections in their first bins (pile-up: a surface
-touching the sensor, or --ambient or --power so high that nothing behind the first bins is seen).
+touching the sensor, or --ambient or --power so high that nothing behind the first bins is seen) or most of whose
+histograms are saturated (pile-up again: the first return stops nearly every laser cycle, as at --power 100).
 
 --out must be a new or empty folder that can be written into. Ctrl-C (or SIGTERM) stops a simulation, exit status 130:
 the chunks written so far stay in --out as a partial capture marked aborted, which cannot be resumed; the command
@@ -292,7 +293,8 @@ def run(args) -> int:
     from spadscan.protocol.folders import check_folder_option
     from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.protocol.sensor_presets import sensor_preset
-    from spadscan.protocol.simulator import SimSettings, flooded_note, misplaced_views_note, simulate_capture
+    from spadscan.protocol.simulator import (SimSettings, flooded_note, misplaced_views_note, saturated_note,
+                                             simulate_capture)
     from spadscan.signals import terminate_as_interrupt
 
     check_options(args)
@@ -327,9 +329,10 @@ def run(args) -> int:
         if left:  # (the bar, drawn with leave=False, has cleared its line)
             print(f"spadscan simulate: {left}", file=sys.stderr)
         raise  # the command line says it was interrupted, exit status 130
-    flooded = flooded_note(CaptureReader(path).load().hists)
-    if flooded:
-        print(flooded, file=sys.stderr)
+    hists = CaptureReader(path).load().hists
+    for note in (flooded_note(hists), saturated_note(hists)):
+        if note:
+            print(note, file=sys.stderr)
     on_table = "" if table is None else f" on a table at z = {table.height_m:g} m (albedo {table.albedo:g})"
     print(f"wrote {len(poses)} views of {len(mesh.faces)} faces{on_table} with sensor {sensor.name} to {path} "
           f"in {time.monotonic() - start:.1f} s", file=sys.stderr)

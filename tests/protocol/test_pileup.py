@@ -109,3 +109,27 @@ def test_jitter_blur_spreads_but_keeps_mass_inside():
     edge = np.zeros(64)
     edge[0] = 1.0
     assert pileup.jitter_blur(edge, 2.0).sum() < 0.6  # blurred past bin 0: detected outside the window
+
+
+def test_saturation_is_read_from_the_shadow_behind_a_return_whatever_the_leading_axes():
+    bins = np.arange(512)
+    pulse = np.exp(-0.5 * ((bins - 200) / 2.0) ** 2)
+    rates = np.stack([0.002 + s * pulse / pulse.sum() for s in (1.5, 8.0)])  # a plain return, a saturated one
+    counts = pileup.detection_probabilities(rates) * 50_000
+    assert pileup.saturated_histograms(counts).tolist() == [False, True]
+    grid = np.broadcast_to(counts, (3, 9, 2, 512))  # views, zones, ...
+    assert pileup.saturated_histograms(grid).shape == (3, 9, 2) and pileup.saturated_histograms(grid)[..., 1].all()
+    early = np.zeros(512)
+    early[0] = 1e4  # a return in the first bin: nothing before it to judge by
+    late_only = np.zeros(512)
+    late_only[300] = 1e4  # no background at all
+    assert not pileup.saturated_histograms(np.stack([early, late_only])).any()
+    masked = np.ones((2, 512), bool)
+    masked[:, :195] = False  # the bins before the return left out: nothing to judge by either
+    assert not pileup.saturated_histograms(counts, masked).any()
+    two = 2.5e-6 + (0.2 * np.roll(pulse, -50) + 0.4 * np.roll(pulse, 20)) / pulse.sum()  # an object, a table behind
+    last = 0.002 + 8.0 * np.roll(pulse, 305) / pulse.sum()  # a saturated return in the last bins: nothing after
+    assert not pileup.saturated_histograms(pileup.detection_probabilities(np.stack([two, last])) * 5_000).any()
+    for bad in (np.full(512, np.nan), -counts, np.zeros((2, 0))):
+        with pytest.raises(SimulationError):
+            pileup.saturated_histograms(bad)

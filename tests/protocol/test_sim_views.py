@@ -54,6 +54,16 @@ def test_a_capture_flooded_by_pile_up_is_said_when_it_is_written(tmp_path, capsy
     assert "in their first 4 bins (pile-up" in said[0]
 
 
+def test_a_saturated_capture_is_said_when_it_is_written(tmp_path, capsys):
+    """At 100 times the laser power every return stops nearly every cycle: nothing is flooded (the returns are far
+    from the first bins), but no histogram holds anything behind its first surface."""
+    out = str(tmp_path / "c")
+    assert main(["simulate", "builtin:sphere", "--views", "16", "--no-progress", "--power", "100", "--out", out]) == 0
+    said = warnings_of(capsys.readouterr().err)
+    assert len(said) == 1 and said[0].startswith("warning: 16 of 16 histograms are saturated (pile-up"), said
+    assert "lower --power or --ambient, or move the views back" in said[0]
+
+
 def test_a_plain_capture_is_not_said_to_be_flooded(tmp_path, capsys):
     assert main(["simulate", "builtin:sphere", "--views", "16", "--no-progress", "--out", str(tmp_path / "c")]) == 0
     assert warnings_of(capsys.readouterr().err) == []

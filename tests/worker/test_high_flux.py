@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spadscan.protocol.pileup import detection_probabilities
-from spadscan.worker.end_of_run import FitNoise, RunFacts, fit_noise, misfit_warning, saturated_histograms, warnings
+from spadscan.protocol.pileup import detection_probabilities, saturated_histograms
+from spadscan.worker.end_of_run import FitNoise, RunFacts, fit_noise, misfit_warning, warnings
 
 
 def _ball_capture(path, power: float):
