@@ -372,8 +372,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         if scores.queries < points and budget_s is None:
             notes.append(f"the metrics measured {scores.queries:,} of the {points:,} points per mesh in "
                          f"{UNBUDGETED_S:g} s, the most a run without a time budget gives them (a coarser estimate): "
-                         f"the mesh and its ground truth lie far apart (is the ground truth the scanned object's, "
-                         f"in metres?)")
+                         f"likely the mesh and its ground truth lie far apart (is the ground truth the scanned "
+                         f"object's, in metres?), or many points on a busy machine")
         elif scores.queries < points:  # one line for both cuts: this one says what the first did
             asked = f", {config.metrics_points:,} asked" if points < config.metrics_points else ""
             notes.append(f"the time budget was short: the metrics measured {scores.queries:,} of the {points:,} "

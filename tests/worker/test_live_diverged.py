@@ -5,9 +5,11 @@ final reconstruction."""
 from __future__ import annotations
 
 import threading
+from types import SimpleNamespace
 
 import torch
 
+from spadscan.worker.live.job import no_live_model
 from spadscan.worker.live.live_fit import LiveFit
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.errors import ReconstructionError
@@ -89,3 +91,11 @@ def test_a_live_job_whose_fit_diverged_twice_says_so_when_it_reconstructs_from_s
     assert report["steps"] > 0 and "live" not in report  # an ordinary run's report
     final = [line for line in live.lines if "reconstructing it from scratch" in line]
     assert final and "no live fit: it diverged twice on" in final[0], live.lines
+
+
+def test_an_early_tries_failure_is_not_given_as_the_reason_the_scan_has_no_live_model():
+    early = SimpleNamespace(model=None, not_yet="no live fit yet: too few views", diverged_views=-1, views_used=0)
+    assert no_live_model(early, 6) == "the scan completed with 6 views before the live fit started"
+    dropped = SimpleNamespace(model=None, not_yet="no live fit: it diverged twice on 10 views (nan)",
+                              diverged_views=10, views_used=10)
+    assert no_live_model(dropped, 12) == dropped.not_yet

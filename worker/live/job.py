@@ -237,10 +237,8 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         runner.stopped("aborted", f"scan aborted: {progress.reason or 'no reason given'}")
         raise ScanAborted(f"scan {scan.name} was aborted ({progress.reason or 'no reason given'}): its live job "
                           f"ended; the last live result stays in {folder}")
-    if runner.fit.model is None:  # never started, or dropped (`LiveFit.restart`: it diverged twice), as not_yet says
-        why = runner.fit.not_yet or f"the scan completed with {progress.views_published} views before the live fit " \
-                                    f"started"
-        runner.stopped("final", f"{why}: reconstructing it from scratch")
+    if runner.fit.model is None:
+        runner.stopped("final", f"{no_live_model(runner.fit, progress.views_published)}: reconstructing it from scratch")
         return execute_job(dataclasses.replace(job, live=False), root, out, recon, queue=queue)
     start, why = final_start(runner.fit, progress.views_published, settings)
     if progress.state == "complete":
@@ -260,6 +258,15 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     add_to_report(out, extra)
     report.update(extra)
     return report
+
+
+def no_live_model(fit, views_published: int) -> str:
+    """Why a scan that ended has no live model (`fit.model` None): the live fit never started, or it diverged twice on
+    its views and was dropped (`LiveFit.restart`; its `not_yet` says so). An early try's failure (too few views yet)
+    that `not_yet` may still hold is not the reason: the scan ended before the next try."""
+    if fit.not_yet and fit.diverged_views == fit.views_used:
+        return fit.not_yet
+    return f"the scan completed with {views_published} views before the live fit started"
 
 
 def final_job(job, fit, settings: LiveSettings, start: str) -> tuple:
@@ -564,4 +571,5 @@ class LiveRun:
                                  after_training=keep, polish=polish)
 
 
-__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun", "final_start", "refit_due", "chose_polish"]
+__all__ = ["LiveSettings", "ScanAborted", "execute_live_job", "LiveRun", "final_start", "refit_due", "chose_polish",
+           "no_live_model"]
