@@ -33,7 +33,9 @@ Keys (metres and seconds as everywhere; the Chamfer in millimetres, as people re
 - `result` (string or null): the final result folder, once `done`;
 - `note` (string or null): one line worth knowing (why the job ended, why it waits);
 - `warnings` (list of strings, absent when empty): one line per doubt about what is published here, as a run's
-  report.json says them (`no preview.png: <why>`: the live mesh's preview could not be drawn);
+  report.json says them (`the histograms are saturated (...)`: most histograms of the views fitted are saturated
+  by pile-up, said while the scan runs so that the power can be lowered or the sensor moved back; `no preview.png:
+  <why>`: the live mesh's preview could not be drawn);
 - `final_start` (`live`, `hull` or absent): from state `final` on, where the final run starts: from the live fit, or
   from the carved hull (a live fit still too young, or lagging the scan);
 - `figures_utc` (string or absent): when the figures (views, steps, Chamfer) were measured, where the status was

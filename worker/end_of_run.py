@@ -580,9 +580,15 @@ PILEUP_ADVICE = "lower the laser power or the exposure, or move the sensor back"
 def saturation_cause(fit: FitNoise, consequence: str = "") -> str:
     """Why a saturated capture (`FitNoise.saturated`) fits badly, then `consequence` (a clause, or none), then what
     to do about it."""
-    return (f"the histograms are saturated ({fit.saturated_histograms} of the {fit.histograms} checked): the first "
-            f"return stopped nearly every laser cycle (pile-up), so they hold only the leading edge of each view's "
-            f"nearest surface and nothing behind it{consequence}; {PILEUP_ADVICE}")
+    return pile_up_line(fit.saturated_histograms, f"the {fit.histograms} checked", consequence)
+
+
+def pile_up_line(saturated: int, of: str, consequence: str = "") -> str:
+    """'the histograms are saturated (`saturated` of `of`): ...' with `consequence` (a clause, or none) and what to
+    do: the line that names pile-up, in a run's warnings and in a live job's status (worker/live/job.py)."""
+    return (f"the histograms are saturated ({saturated} of {of}): the first return stopped nearly every laser cycle "
+            f"(pile-up), so they hold only the leading edge of each view's nearest surface and nothing behind "
+            f"it{consequence}; {PILEUP_ADVICE}")
 
 
 def saturation_warning(fit: FitNoise | None) -> str | None:
@@ -765,7 +771,7 @@ def early_note(facts: RunFacts) -> str:
 __all__ = ["INTERRUPTED", "UNCONVERGED", "ENDED_BY", "unconverged_line", "unconverged_warning",
            "FitNoise", "RunFacts", "noise_deviance", "fit_noise", "late_drop", "late_drop_error",
            "converged", "cpu_share", "lost_share", "pace_share", "cpu_wait", "busy_warning", "warnings",
-           "overrun_warning", "misfit_warning", "saturation_warning", "coverage_warning",
+           "overrun_warning", "misfit_warning", "saturation_warning", "pile_up_line", "coverage_warning",
            "lost_warning", "pieces_warning", "specks_warning", "tunnels_warning", "EXTRA_TUNNELS", "COVERAGE_LIMIT",
            "STILL_FALLING", "STARVED_SHARE", "LEAST_PACE", "OVERRUN_SHARE", "OVERRUN_FLOOR_S", "overrun_tolerance_s",
            "RELATIVE_MISFIT_LIMIT", "MISFIT_SHARE_SIMULATED",

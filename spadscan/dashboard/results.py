@@ -43,10 +43,11 @@ SERIOUS = tuple(re.compile(p) for p in (
     r"^the mesh has \d+ tunnels",
     r"^too little signal",
     r"^faint returns",
+    r"^the histograms are saturated",
 ))
 """The starts of the end-of-run warnings (worker/end_of_run.py, worker/signal_check.py) that doubt the shape itself:
 the fit does not explain the measurements, too few views saw the surface, the mesh is in pieces, specks or tunnels,
-the capture holds too little signal. The others say how the run went (stopped on its budget, a busy machine): a
+the capture holds too little signal, or is saturated by pile-up. The others say how the run went (stopped on its budget, a busy machine): a
 longer run mends them."""
 OFF_SCREEN = "off screen"
 """Words of the worker's reason where its machine cannot draw pictures (worker/report/offscreen.py

@@ -25,8 +25,8 @@ from spadscan.commands.dashboard import daemon_running
 from spadscan.daemon.root_lock import RootLock
 from spadscan.dashboard.server import address
 from spadscan.dashboard.worker_state import LOOK_S
-from spadscan.worker.end_of_run import (coverage_warning, misfit_warning, pieces_warning, specks_warning,
-                                        tunnels_warning)
+from spadscan.worker.end_of_run import (coverage_warning, misfit_warning, pieces_warning, saturation_warning,
+                                        specks_warning, tunnels_warning)
 from spadscan.worker.holder import Holder
 from spadscan.worker.job_progress import claim_log
 from spadscan.worker.jobs import Job
@@ -121,7 +121,8 @@ def end_of_run_warnings() -> tuple[list[str], list[str]]:
                pieces_warning(SimpleNamespace(count=9, share_apart=0.12)),
                specks_warning(SimpleNamespace(specks=63, specks_share=0.05)),
                tunnels_warning(SimpleNamespace(tunnels=37), 0),
-               coverage_warning(SimpleNamespace(share_few=0.3, few_heights_m=(0.1, 0.2), few_views=3))]
+               coverage_warning(SimpleNamespace(share_few=0.3, few_heights_m=(0.1, 0.2), few_views=3)),
+               saturation_warning(SimpleNamespace(saturated=True, saturated_histograms=30, histograms=32))]
     mild = ["the run stopped on its time budget well before convergence: its data term was still falling (4.8 % over "
             "the last fifth of its 150 steps; a larger --budget-s gives a better mesh)",
             "the machine was busy: this run had 0.41 of a CPU core on average and made about 2x fewer steps (150) "
@@ -143,7 +144,7 @@ def test_a_results_warnings_are_counted_opened_in_full_from_their_count_and_the_
         head = wait_text(page, "#viewer-notes .warnings-head", "warnings")
         # the lines listed, report.json's alone (its "stopped ... before convergence" says it did not converge): as
         # many as the scans table counts
-        assert head.startswith("7 warnings, 5 of them serious"), head
+        assert head.startswith(f"{len(warnings)} warnings, {len(serious)} of them serious"), head
         closed = page.locator("#viewer-notes .warning").first  # the serious first: the closed box shows them
         assert "serious" in closed.get_attribute("class") and page.evaluate(SEEN, "#viewer-notes .warning.serious")
         assert page.evaluate(SEEN, "#viewer-notes .warnings-head"), "the count is out of sight"
@@ -155,7 +156,7 @@ def test_a_results_warnings_are_counted_opened_in_full_from_their_count_and_the_
         lines = page.locator("#viewer-notes .warning")
         mild = [w for w in warnings if w not in serious]
         assert lines.all_text_contents() == [*serious, *mild]
-        assert count.get_attribute("data-warnings") == "7"
+        assert count.get_attribute("data-warnings") == str(len(warnings))
         for i in range(lines.count()):  # each in full: not cut by its box, nor by the notes' box
             assert lines.nth(i).evaluate("e => e.scrollWidth <= e.clientWidth && e.scrollHeight <= e.clientHeight + 1")
         notes = page.locator("#viewer-notes")

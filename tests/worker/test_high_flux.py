@@ -111,3 +111,33 @@ def test_the_fit_check_counts_the_saturated_histograms():
     fit = fit_noise(measured, np.maximum(measured, 0.1))
     assert fit.saturated and fit.saturated_histograms == 8 and fit.to_dict()["saturated_histograms"] == 8
     assert fit_noise(_histograms(1.5)[:, None], _histograms(1.5)[:, None] + 0.1).saturated_histograms == 0
+
+
+def test_a_live_job_says_in_its_status_that_the_views_so_far_are_saturated(bright_ball, tmp_path, one_thread):
+    """Said while the scan runs, the power can be lowered before the rest of the scan is taken that way."""
+    from live_helpers import ReplayScan
+    from test_live_job import LiveJobThread, small_settings
+
+    root = tmp_path / "captures"
+    scan = ReplayScan(bright_ball, root / "ball")
+    scan.run()
+    live = LiveJobThread(root, "ball", small_settings())
+    status = live.wait_status(lambda s: s.state == "live", "a live fit")
+    assert len(status.warnings) == 1 and status.warnings[0].startswith("the histograms are saturated (6 of the 6 "
+                                                                       "read so far)"), status
+    assert any(line.startswith("live: warning: the histograms are saturated") for line in live.lines), live.lines
+    scan.finish()
+    live.join()
+
+
+def test_the_live_line_counts_the_histograms_with_detections_and_says_nothing_below_saturation(bright_ball,
+                                                                                              plain_ball):
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.worker.live.saturation import live_saturation_warning
+
+    bright = CaptureReader(bright_ball).load().hists
+    assert "(6 of the 6 read so far)" in live_saturation_warning(bright)
+    empty = np.zeros_like(bright[:4])
+    assert "(6 of the 6 read so far)" in live_saturation_warning(np.concatenate([bright, empty]))
+    assert live_saturation_warning(CaptureReader(plain_ball).load().hists) is None
+    assert live_saturation_warning(empty) is None

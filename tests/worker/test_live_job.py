@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 
 from spadscan.protocol.errors import CaptureError
 from spadscan.protocol.live_status import LiveStatus, read_status, status_path
@@ -493,6 +494,7 @@ def test_the_log_never_says_more_views_fitted_than_published(tmp_path):
 
         def rebuild(self, views_planned):
             self.model, self.views_used, self.rebuilds = SimpleNamespace(level=0), 22, self.rebuilds + 1
+            self.scene = SimpleNamespace(counts=torch.zeros(22, 9, 128), valid=torch.ones(22, 9, 128, dtype=torch.bool))
             return True
 
         def mesh(self, resolution):

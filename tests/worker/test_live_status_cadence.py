@@ -8,6 +8,8 @@ import itertools
 from pathlib import Path
 from types import SimpleNamespace
 
+import torch
+
 from spadscan.protocol.live_status import read_status, status_path
 from spadscan.worker.jobs import Job
 from spadscan.worker.live.follower import ScanProgress
@@ -28,6 +30,8 @@ class Fit:
 
     def rebuild(self, views_planned):
         self.model, self.views_used, self.rebuilds = SimpleNamespace(level=1), self.scan.published, self.rebuilds + 1
+        shape = (self.views_used, 9, 128)  # nothing detected: no pile-up to say
+        self.scene = SimpleNamespace(counts=torch.zeros(shape), valid=torch.ones(shape, dtype=torch.bool))
         return True
 
     def mesh(self, resolution):

@@ -52,6 +52,7 @@ from .keep import keep_the_better
 from .next_views import is_adaptive, update_next_views
 from .publish import clear_earlier, live_folder, publish_mesh, publish_status, take_live_folder
 from .recoarse import RecoarsePolicy
+from .saturation import live_saturation_warning
 
 
 @dataclass(frozen=True)
@@ -338,6 +339,9 @@ class LiveRun:
         self.preview_warning: str | None = None
         """Why the last published mesh has no preview ("no preview.png: <why>", as a run's report says it), else
         None: every status says it (`write_status`), as long as it holds."""
+        self.saturation_warning: str | None = None
+        """The pile-up line (`live_saturation_warning`) while the views last fitted are mostly saturated, else None:
+        every status says it, first among its warnings."""
 
     # ---- set-up --------------------------------------------------------------------------------------------------
     def begin(self, progress: ScanProgress) -> None:
@@ -391,6 +395,7 @@ class LiveRun:
                 self.last_rebuild = time.monotonic()
                 if rebuilt:
                     self.fit_views = self.fit.views_used
+                    self._saturation_said(self.fit.scene)
                     level = getattr(self.fit.model, "level", None)
                     level = "coarse level" if level == 0 else f"level {level}"
                     # the refit read the capture itself, and may have seen views the last poll had not
@@ -493,6 +498,14 @@ class LiveRun:
         # Publishing takes at most about a fifth of the time: a slow machine publishes less often.
         self.next_publish = time.monotonic() + max(self.settings.publish_every_s, 4.0 * self.publish_cost_s)
 
+    def _saturation_said(self, scene) -> None:
+        """Keep whether the views just fitted are saturated (pile-up) for the statuses, and log it when that
+        changes: said while the scan runs, the power can be lowered before the rest is taken."""
+        warning = live_saturation_warning(scene.counts.cpu().numpy(), scene.valid.cpu().numpy())
+        if warning is not None and self.saturation_warning is None:
+            self.log(f"live: warning: {warning}")
+        self.saturation_warning = warning
+
     def _preview_said(self, warning: str | None) -> None:
         """Keep why the mesh just published has no preview (None: it has one) for the statuses, and log it once."""
         if warning is not None and warning != self.preview_warning:
@@ -543,7 +556,8 @@ class LiveRun:
             chamfer_mm=None if self.chamfer_mm is None else round(float(self.chamfer_mm), 4),
             views_planned=progress.views_planned, job=self.job.id, owner=self.job.owner, note=note,
             final_start=final_start,
-            chamfer_views=self.chamfer_views, warnings=(self.preview_warning,) if self.preview_warning else ()))
+            chamfer_views=self.chamfer_views,
+            warnings=tuple(w for w in (self.saturation_warning, self.preview_warning) if w)))
 
     def stopped(self, state: str, note: str) -> None:
         """The follow phase ended otherwise than by a finished scan with a fit: say so in the status."""
