@@ -598,6 +598,11 @@ class CaptureWriter:
             manifest = dict(reader.manifest)
             manifest.update(state="running", reason=manifest.get("reason") if "paused" in manifest else None,
                             updated_utc=utc_now())
+            schedule = reader.planned_poses()
+            if schedule is not None:
+                # `replace_schedule` writes schedule.npy first and the manifest's count after it: a writer that died
+                # between the two (a crash, a full disk) left the file's count, which the daemon's resume follows.
+                manifest["planned_poses"] = int(len(schedule))
             _write(write_json_atomic, path / MANIFEST, manifest)
             return cls(path, manifest, reader.sensor, next_chunk, stock.published, set(stock.poses),
                        list(stock.retakes), book, lock=lock)

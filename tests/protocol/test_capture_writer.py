@@ -266,3 +266,33 @@ def test_a_capture_that_lacks_planned_poses_is_not_marked_complete(tmp_path):
     w.finish("complete")
     assert CaptureReader(path).state == "complete"
     w.close()
+
+
+def test_a_scan_shortened_by_a_writer_that_died_before_its_manifest_can_still_be_completed(tmp_path, monkeypatch):
+    """An adaptive scan that ends early writes its shorter schedule.npy, then the manifest's planned_poses: a writer
+    that died between the two (a crash, a full disk on scan.json) left 2 poses in the file and 4 in the manifest.
+    The resumed writer takes the file's count, which the daemon's resume follows, so the scan can be completed."""
+    sensor = sensor_preset("tmf8820")
+    path = tmp_path / "scan"
+    w = CaptureWriter.create(path, sensor, planned_poses=np.stack([np.eye(4)] * 4), chunk_size=8)
+    for i in range(2):
+        w.append(measurement(i, sensor))
+    w.flush()
+    real = cw.write_json_atomic
+
+    def dies_on_the_manifest(target, data):
+        if target.name == "scan.json" and data.get("planned_poses") == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(target, data)
+
+    monkeypatch.setattr(cw, "write_json_atomic", dies_on_the_manifest)
+    with pytest.raises(OSError):
+        w.replace_schedule(np.stack([np.eye(4)] * 2))
+    monkeypatch.undo()
+    w.close()
+    assert json.loads((path / "scan.json").read_text())["planned_poses"] == 4
+    again = CaptureWriter.resume(path)
+    assert again.manifest["planned_poses"] == 2 == len(CaptureReader(path).planned_poses())
+    again.finish("complete")
+    again.close()
+    assert CaptureReader(path).state == "complete"
