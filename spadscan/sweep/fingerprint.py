@@ -36,25 +36,35 @@ POINT_MODULES = ("point.py", "params.py", "scenes.py")
 result, and a change there leaves the stored points current."""
 
 
+NO_SOURCE = "no-source"
+"""`code_digest` of an install without the source files (bytecode only, a zip): its version alone then says."""
+
+
 def source_digest(files: list[tuple[str, Path]]) -> str:
-    """A hash of source files given as (name, path) pairs: their names and contents, in name order."""
+    """A hash of source files given as (name, path) pairs: their names and contents (line ends as LF: a Windows
+    checkout hashes as a Linux one), in name order."""
     h = hashlib.sha256()
     for name, path in sorted(files):
-        data = path.read_bytes()
+        data = path.read_bytes().replace(b"\r\n", b"\n")
         h.update(f"{name}\0{len(data)}\0".encode())
         h.update(data)
     return h.hexdigest()[:16]
 
 
 def code_digest() -> str:
-    """`source_digest` of the Python source that makes a point's results: RESULT_PACKAGES' and POINT_MODULES'."""
+    """`source_digest` of the Python source that makes a point's results: RESULT_PACKAGES' and POINT_MODULES'
+    (regular files only, none under a dot-name: an editor's lock file `.#model.py` is a dangling link), or NO_SOURCE
+    where the install holds none of it."""
     files = []
     for package in RESULT_PACKAGES:
         root = Path(importlib.import_module(package).__file__).parent
-        files += [(f"{package}/{p.relative_to(root).as_posix()}", p) for p in root.rglob("*.py")]
+        for p in root.rglob("*.py"):
+            rel = p.relative_to(root)
+            if p.is_file() and not any(part.startswith(".") for part in rel.parts):
+                files.append((f"{package}/{rel.as_posix()}", p))
     here = Path(__file__).parent
-    files += [(f"spadscan.sweep/{name}", here / name) for name in POINT_MODULES]
-    return source_digest(files)
+    files += [(f"spadscan.sweep/{name}", here / name) for name in POINT_MODULES if (here / name).is_file()]
+    return source_digest(files) if files else NO_SOURCE
 
 
 class Digests:
@@ -112,7 +122,11 @@ class Expected:
         self.version = spadscan.__version__ if version is None else version
         self.device = device
         self.presets = {p.name for p in task.presets}
-        self.fingerprints = (digests or Digests()).fingerprints(task, device, self.version)
+        digests = digests or Digests()
+        self.code = digests.code
+        """The source's hash these fingerprints were made with (`code_digest`): stored with the point, so that a
+        client can tell a worker running other source (its points then stale to the client)."""
+        self.fingerprints = digests.fingerprints(task, device, self.version)
 
     def current(self, stored: dict, method: str) -> bool:
         """Whether `method`'s record in the stored point `stored` was made by what this run would run, whatever its
@@ -145,4 +159,4 @@ class Expected:
         return "done" if all(self.current(stored, name) for name in methods) else "stale"
 
 
-__all__ = ["Digests", "Expected", "FINGERPRINT_FORMAT", "code_digest", "source_digest"]
+__all__ = ["Digests", "Expected", "FINGERPRINT_FORMAT", "NO_SOURCE", "code_digest", "source_digest"]

@@ -133,6 +133,7 @@ def _run(task: PointTask, store: SweepDir, device: str, keep: bool, emit: Emit, 
         "spadscan": spadscan.__version__,
         "record": task.record,
         "fingerprints": expected.fingerprints,
+        "code": expected.code,
     }
     result = store.write_point(json_safe(result), expected)
     warned = warning_counts(result)  # log.jsonl's end of the point: which methods warned, how often

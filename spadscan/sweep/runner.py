@@ -42,7 +42,7 @@ import spadscan
 from spadscan.protocol.errors import ConfigError
 
 from .checks import check_workers, local_device
-from .fingerprint import Digests, Expected
+from .fingerprint import Digests, Expected, code_digest
 from .plan import Plan, PointTask
 from .point import run_point
 from .store import SweepDir, warning_count
@@ -101,7 +101,8 @@ def point_summary(result: dict) -> dict:
     methods = {name: {"status": r.get("status"), "chamfer_mm": r.get("chamfer_mm"), "warnings": warning_count(r)}
                for name, r in (result.get("methods") or {}).items()}
     return {"id": result["id"], "status": result["status"], "reason": result.get("reason"),
-            "seconds": result.get("seconds"), "worker": result.get("worker"), "methods": methods}
+            "seconds": result.get("seconds"), "worker": result.get("worker"), "methods": methods,
+            "code": result.get("code")}
 
 
 @dataclass
@@ -122,6 +123,11 @@ class Summary:
     """Points where a baseline's calibrated threshold is at an end of the thresholds tried: id -> those baselines."""
     startup_s: float = 0.0
     """Seconds to start (or reach) the cluster."""
+    code: str = ""
+    """The client's source hash (fingerprint.code_digest): what a point's result must have been made with to count
+    as current here."""
+    other_code: dict[str, str] = field(default_factory=dict)
+    """Workers that ran a point with other source than the client's: worker -> their source's hash."""
 
 
 def cores() -> int:
@@ -157,7 +163,7 @@ def run_sweep(plan: Plan, out, *, scheduler: str | None = None, workers: int | N
         todo, stale = _points_to_run(plan, store, device)
         if stale:
             log(stale_line(stale))
-        summary = Summary(len(plan.points), len(plan.points) - len(todo))
+        summary = Summary(len(plan.points), len(plan.points) - len(todo), code=code_digest())
         say = None if progress else log
         try:
             if todo:
@@ -275,6 +281,9 @@ def _record(plan, task, future, outcome, store, summary, device, bar, say=None, 
     # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
     result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device, exits)
     future.release()
+    line = other_code_line(result, summary)
+    if line is not None:
+        (say or (lambda text: bar.write(text, file=sys.stderr)))(line)
     summary.ran += 1
     if result["status"] == "done":
         summary.done += 1
@@ -288,6 +297,19 @@ def _record(plan, task, future, outcome, store, summary, device, bar, say=None, 
                   file=sys.stderr)
     bar.set_postfix(failed=len(summary.failed), refresh=False)
     bar.update(1)
+
+
+def other_code_line(result: dict, summary: Summary) -> str | None:
+    """The line said the first time a worker returns a point made with other source than the client's (another
+    install, a local edit): its points are stale to the client, left out of results.csv and run again by every
+    sweep, so that the figures always come from the client's code. None otherwise."""
+    code, worker = result.get("code"), str((result.get("worker") or {}).get("name") or "a worker")
+    if not code or not summary.code or code == summary.code or worker in summary.other_code:
+        return None
+    summary.other_code[worker] = str(code)
+    return (f"spadscan sweep: {worker} runs other spadscan source than this client (source hash {code}, here "
+            f"{summary.code}): its points count as stale here, are left out of results.csv and run again by every "
+            f"sweep; install the same spadscan on the workers as here")
 
 
 def finished_point_line(plan, task: PointTask, result: dict, n: int, of: int) -> str:
@@ -711,6 +733,6 @@ class _client:
 
 
 __all__ = ["run_sweep", "probe_scheduler",
-           "dask_point", "point_summary", "finished_point_line", "emit_event", "Summary",
+           "dask_point", "point_summary", "finished_point_line", "other_code_line", "emit_event", "Summary",
            "killed_worker_reason", "process_ending", "memory_ending", "WorkerExits", "ExitNotingNanny",
            "worker_memory_limit", "EVENT_TOPIC", "EXIT_TOPIC", "MEMORY_STOP_TOPIC", "cores"]

@@ -148,6 +148,7 @@ def test_a_change_to_the_source_between_versions_makes_a_point_stale(tmp_path, m
     Stages(monkeypatch)
     stored = run_point(task, str(store.path))
     assert Expected(task, "cpu").state(stored) == "done"
+    assert stored["code"] == code_digest() == runner.point_summary(stored)["code"]  # what the client is told
     assert {inputs["code"] for inputs in Digests().method_inputs(task, "cpu", "1").values()} == {code_digest()}
     monkeypatch.setattr(fingerprint, "code_digest", lambda: "0123456789abcdef")
     assert Expected(task, "cpu").state(stored) == "stale"
@@ -167,6 +168,40 @@ def test_the_source_digest_follows_each_file_s_name_and_content(tmp_path):
     a.write_text("x = 2\n")
     assert source_digest([("pkg/a.py", a), ("pkg/b.py", b)]) != base
     assert code_digest() == code_digest() and len(code_digest()) == 16  # the installed source, read the same way
+    a.write_bytes(b"x = 2\r\ny = 3\r\n")
+    b.write_bytes(b"x = 2\ny = 3\n")
+    assert source_digest([("pkg/a.py", a)]) == source_digest([("pkg/a.py", b)])  # a Windows checkout's line ends
+
+
+def test_the_code_digest_reads_the_source_files_alone_and_says_where_there_are_none(tmp_path, monkeypatch):
+    """An editor's lock file (`.#model.py`, a link to nowhere) or a cache under a dot-folder is no source (a lock
+    file made every sweep fail while a method's file was open); an install without source has a digest too."""
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "m.py").write_text("x = 1\n")
+    monkeypatch.setattr(fingerprint, "RESULT_PACKAGES", ("pkg",))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    base = code_digest()
+    (pkg / ".#m.py").symlink_to(tmp_path / "nowhere")
+    (pkg / ".hidden").mkdir()
+    (pkg / ".hidden" / "x.py").write_text("y = 2\n")
+    assert code_digest() == base
+    monkeypatch.setattr(fingerprint, "POINT_MODULES", ("gone.py",))
+    for p in ((pkg / "sub" / "m.py"), (pkg / "__init__.py")):
+        p.unlink()
+    assert code_digest() == fingerprint.NO_SOURCE
+
+
+def test_a_worker_running_other_source_is_said_once(tmp_path):
+    summary = runner.Summary(3, 0, code="aaaa")
+    ran = lambda worker, code: {"id": "p", "status": "done", "worker": {"name": worker}, "code": code}  # noqa: E731
+    assert runner.other_code_line(ran("w1", "aaaa"), summary) is None
+    line = runner.other_code_line(ran("w2", "bbbb"), summary)
+    assert line.startswith("spadscan sweep: w2 runs other spadscan source than this client (source hash bbbb, here "
+                           "aaaa)") and "install the same spadscan on the workers" in line
+    assert runner.other_code_line(ran("w2", "bbbb"), summary) is None and summary.other_code == {"w2": "bbbb"}
+    assert runner.other_code_line(ran("w3", None), summary) is None  # an earlier version's worker: nothing to say
 
 
 def test_fingerprints_cover_the_resolved_config_the_thresholds_the_device_and_the_version(tmp_path):
