@@ -231,6 +231,16 @@ def scan_path(job: Job, root: Path) -> Path:
     return path
 
 
+def scan_aborted(job: Job, root: Path) -> bool:
+    """Whether the job's scan says it was aborted (its scan.json's state): a job that failed on it has nothing to
+    retry (an ordinary job, or the second live job of a scan run as one: `Queue.live_claim`). False where the
+    manifest cannot be read."""
+    try:
+        return json.loads((scan_path(job, root) / "scan.json").read_text()).get("state") == "aborted"
+    except (OSError, ValueError, AttributeError, ConfigError):
+        return False
+
+
 def check_capture(scan: Path) -> tuple[dict, str | None]:
     """Validate a capture before reconstructing it: manifest, state 'complete', every chunk readable, counts a
     sensor could have produced.

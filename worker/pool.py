@@ -44,7 +44,7 @@ from .children import Child, exit_reason, kill_group, spawn_job
 from .disk_room import MAX_FULL_DISK, RoomWait, folder_bytes, mount_point, retry_after, same_filesystem
 from .job_progress import PROGRESS_S, LogTails, ProgressNotes, claim_budget, ended_live_status, progress_note
 from .jobs import (CHANGEABLE, EXIT_DONE_UNSAID, EXIT_FULL, EXIT_INPUT, completion, existing_result, mark_complete,
-                   redo_command, result_path, scratch_path, summary_of, worker_command)
+                   redo_command, result_path, scan_aborted, scratch_path, summary_of, worker_command)
 from .holder import Holder
 from .overdue import overdue_reason
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
@@ -520,15 +520,16 @@ class Worker:
                 shutil.rmtree(child.scratch, ignore_errors=True)
 
     def _settle_error(self, child: Child, rc: int | None, outcome: dict, seconds: float) -> None:
-        """Record a job that failed (bad input), crashed, or ended as its aborted scan did (a live job: failed in the
-        queue, with nothing to retry, `SCAN_ABORTED`). A record the queue cannot write (a full disk) does not end
-        the worker and its other jobs: the line says where the job is and why it ended, and the record is written at
-        a later poll (`unrecorded`); a job file that could not even be moved stays held until its lease runs out."""
+        """Record a job that failed (bad input), crashed, or ended as its aborted scan did (a live job, or any job
+        that failed on a scan whose manifest says aborted: failed in the queue, with nothing to retry,
+        `SCAN_ABORTED`). A record the queue cannot write (a full disk) does not end the worker and its other jobs:
+        the line says where the job is and why it ended, and the record is written at a later poll (`unrecorded`); a
+        job file that could not even be moved stays held until its lease runs out."""
         claim, job = child.claim, child.claim.job
         bad_input = outcome.get("kind") == "input"
         # its own word, written by this attempt: an earlier attempt's 'aborted' says nothing of this one's failure
         ended = ended_live_status(self.root, job, claim.started) if bad_input and job.live else None
-        aborted = ended is not None and ended.state == "aborted"
+        aborted = (ended is not None and ended.state == "aborted") or (bad_input and scan_aborted(job, self.root))
         if aborted:  # no fault: the job ended as its scan did, and a retry would follow a scan that has ended
             error = f"{SCAN_ABORTED} ({outcome.get('error', 'its scan was aborted')})"
             said = f"{job.id} ended after {seconds:.1f} s: {error}"

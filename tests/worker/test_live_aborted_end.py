@@ -82,3 +82,22 @@ def test_an_earlier_attempts_last_word_is_not_taken_for_this_ones_nor_another_fa
     worker = Worker(WorkerConfig(root=root, max_attempts=1), log=lines.append)
     settle(worker, claim, {"ok": False, "kind": "input", "error": "capture cyl: chunk-000007 unreadable"}, 1, tmp_path)
     assert ABORTED not in lines[-1] and "--retry-failed" in lines[-1], lines
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_a_job_that_failed_on_an_aborted_scan_ends_with_nothing_to_retry(tmp_path, live):
+    """An ordinary job, or the second live job of a scan run as an ordinary one once the scan ended
+    (`Queue.live_claim`), fails on a scan the operator aborted without a live status of its own: its scan's
+    manifest says aborted, so a retry would fail the same way."""
+    root = tmp_path / "captures"
+    (root / "cyl").mkdir(parents=True)
+    (root / "cyl" / "scan.json").write_text(json.dumps({"state": "aborted", "reason": "aborted by user"}))
+    lines: list[str] = []
+    worker = Worker(WorkerConfig(root=root), log=lines.append)
+    worker.queue.enqueue(Job(id="cyl-fast", scan="cyl", live=live, device="cpu"))
+    claim = worker.queue.claim()
+    error = f"{root / 'cyl'}: scan state is 'aborted', not 'complete'"
+    settle(worker, claim, {"ok": False, "kind": "input", "error": error}, 1, tmp_path)
+    assert ABORTED in lines[-1] and "--retry-failed" not in lines[-1], lines
+    (record,) = worker.queue.records("cyl-fast")
+    assert record["error"].startswith(ABORTED) and "not 'complete'" in record["error"], record
