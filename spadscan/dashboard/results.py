@@ -47,8 +47,8 @@ SERIOUS = tuple(re.compile(p) for p in (
 ))
 """The starts of the end-of-run warnings (worker/end_of_run.py, worker/signal_check.py) that doubt the shape itself:
 the fit does not explain the measurements, too few views saw the surface, the mesh is in pieces, specks or tunnels,
-the capture holds too little signal, or is saturated by pile-up. The others say how the run went (stopped on its budget, a busy machine): a
-longer run mends them."""
+the capture holds too little signal, or is saturated by pile-up. The others say how the run went (stopped on its
+budget, a busy machine): a longer run mends them."""
 OFF_SCREEN = "off screen"
 """Words of the worker's reason where its machine cannot draw pictures (worker/report/offscreen.py
 `OffscreenUnavailable`: "no display and no EGL or OSMesa library to draw meshes off screen: install ...")."""

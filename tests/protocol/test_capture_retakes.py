@@ -63,7 +63,8 @@ def test_a_pose_moved_out_is_taken_again_under_its_number_and_the_capture_stays_
 
 
 def test_a_pose_split_over_chunks_takes_only_its_missing_frames_again(tmp_path):
-    path = capture(tmp_path, poses=3, frames=2, chunk_size=1, planned=3)  # chunk 2k: pose k frame 0; chunk 2k+1: frame 1
+    # chunk 2k: pose k frame 0; chunk 2k+1: frame 1
+    path = capture(tmp_path, poses=3, frames=2, chunk_size=1, planned=3)
     move_out(path, 3, 5)  # pose 1 frame 1 (between chunks), pose 2 frame 1 (the last chunk)
     w = CaptureWriter.resume(path)
     assert w.retakes == [Retake(1, (1,), (3,)), Retake(2, (1,), None)]

@@ -239,7 +239,8 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
         raise ScanAborted(f"scan {scan.name} was aborted ({progress.reason or 'no reason given'}): its live job "
                           f"ended; the last live result stays in {folder}")
     if runner.fit.model is None:
-        runner.stopped("final", f"{no_live_model(runner.fit, progress.views_published)}: reconstructing it from scratch")
+        why = no_live_model(runner.fit, progress.views_published)
+        runner.stopped("final", f"{why}: reconstructing it from scratch")
         return execute_job(dataclasses.replace(job, live=False), root, out, recon, queue=queue)
     start, why = final_start(runner.fit, progress.views_published, settings)
     if progress.state == "complete":
