@@ -147,6 +147,19 @@ def saturated_histograms(counts, valid=None) -> np.ndarray:
     return (level * n_after >= SHADOW_MIN_COUNTS) & shadow
 
 
+def saturated_count(counts, valid=None) -> tuple[int, int]:
+    """(saturated, judged): of the histograms `counts` (..., bins) that hold a detection, how many are saturated
+    (`saturated_histograms`, over the `valid` bins), and how many there are."""
+    c = np.asarray(counts, dtype=np.float64)
+    some = c.sum(axis=-1) > 0
+    return int((saturated_histograms(c, valid) & some).sum()), int(some.sum())
+
+
+def mostly_saturated(saturated: int, judged: int) -> bool:
+    """Whether a capture is saturated as a whole: over SATURATED_SHARE of its `judged` histograms saturated."""
+    return judged > 0 and saturated > SATURATED_SHARE * judged
+
+
 def _median_where(values: np.ndarray, where: np.ndarray) -> np.ndarray:
     """The median of `values` (..., n) over the entries `where` (..., n) bool along the last axis; 0 where none."""
     count = where.sum(axis=-1)

@@ -432,12 +432,10 @@ def saturated_note(hists: np.ndarray) -> str | None:
     """A warning for a capture most of whose histograms are saturated (`pileup.saturated_histograms`: the first
     return stopped nearly every laser cycle), or None. hists (n, zones, bins) counts. A flooded capture
     (`flooded_note`) is not said again here: its returns in the first bins leave nothing before them to judge."""
-    h = np.asarray(hists, dtype=np.float64)
-    some = h.sum(axis=-1) > 0
-    saturated = pileup.saturated_histograms(h) & some
-    if not some.any() or saturated.sum() <= pileup.SATURATED_SHARE * some.sum():
+    saturated, judged = pileup.saturated_count(hists)
+    if not pileup.mostly_saturated(saturated, judged):
         return None
-    return (f"warning: {int(saturated.sum())} of {int(some.sum())} histograms are saturated (pile-up: their first "
+    return (f"warning: {saturated} of {judged} histograms are saturated (pile-up: their first "
             f"return stopped nearly every laser cycle, so they hold only the leading edge of each view's nearest "
             f"surface and nothing behind it): reconstruct will fit them poorly and say so; lower --power or "
             f"--ambient, or move the views back")
@@ -486,5 +484,6 @@ def blind_views_note(signal_photons: np.ndarray, mesh) -> str | None:
 
 
 __all__ = ["SimSettings", "SimFrames", "SimTable", "Simulator", "simulate_capture", "blind_views_note", "flooded_note",
-           "saturated_note", "reference_shape", "misplaced_views", "misplaced_views_note", "check_pose_array", "check_seed",
+           "saturated_note", "reference_shape", "misplaced_views", "misplaced_views_note", "check_pose_array",
+           "check_seed",
            "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS", "REFERENCE_STRETCH", "REFERENCE_POWER"]

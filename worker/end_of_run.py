@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import gammaln, xlogy
 
-from spadscan.protocol.pileup import SATURATED_SHARE, saturated_histograms
+from spadscan.protocol.pileup import mostly_saturated, saturated_histograms
 
 from .cpu_wait import counted_helpers, lost_seconds
 from .pieces import SPECKS_LIMIT
@@ -148,8 +148,8 @@ class FitNoise:
 
     @property
     def saturated(self) -> bool:
-        """Whether over SATURATED_SHARE of the checked histograms are saturated (pile-up)."""
-        return bool(self.histograms) and self.saturated_histograms > SATURATED_SHARE * self.histograms
+        """Whether the checked histograms are mostly saturated (pile-up: `protocol.pileup.mostly_saturated`)."""
+        return mostly_saturated(self.saturated_histograms, self.histograms)
 
     def to_dict(self) -> dict:
         return {"deviance_per_bin": self.deviance_per_bin, "noise_per_bin": self.noise_per_bin,
