@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Callable
 
 from spadscan.protocol.atomic_files import write_atomic
+from spadscan.protocol.capture_format import MANIFEST
 from spadscan.protocol.capture_writer import file_size_limit
 from spadscan.protocol.disk_full import disk_full_cause
 from spadscan.protocol.errors import CaptureError, ConfigError, SpadscanError
@@ -231,14 +232,13 @@ def scan_path(job: Job, root: Path) -> Path:
     return path
 
 
-def scan_aborted(job: Job, root: Path) -> bool:
-    """Whether the job's scan says it was aborted (its scan.json's state): a job that failed on it has nothing to
-    retry (an ordinary job, or the second live job of a scan run as one: `Queue.live_claim`). False where the
-    manifest cannot be read."""
+def scan_state(job: Job, root: Path) -> str | None:
+    """The state the job's scan records (its scan.json's: 'running', 'complete', 'aborted'), or None where that
+    cannot be read (no manifest, a damaged one, a scan outside the captures root)."""
     try:
-        return json.loads((scan_path(job, root) / "scan.json").read_text()).get("state") == "aborted"
+        return json.loads((scan_path(job, root) / MANIFEST).read_text()).get("state")
     except (OSError, ValueError, AttributeError, ConfigError):
-        return False
+        return None
 
 
 def check_capture(scan: Path) -> tuple[dict, str | None]:

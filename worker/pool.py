@@ -44,7 +44,7 @@ from .children import Child, exit_reason, kill_group, spawn_job
 from .disk_room import MAX_FULL_DISK, RoomWait, folder_bytes, mount_point, retry_after, same_filesystem
 from .job_progress import PROGRESS_S, LogTails, ProgressNotes, claim_budget, ended_live_status, progress_note
 from .jobs import (CHANGEABLE, EXIT_DONE_UNSAID, EXIT_FULL, EXIT_INPUT, completion, existing_result, mark_complete,
-                   redo_command, result_path, scan_aborted, scratch_path, summary_of, worker_command)
+                   redo_command, result_path, scan_state, scratch_path, summary_of, worker_command)
 from .holder import Holder
 from .overdue import overdue_reason
 from .live.done import SCAN_ABORTED, mark_live_done, mark_live_failed, mark_live_queued
@@ -529,7 +529,9 @@ class Worker:
         bad_input = outcome.get("kind") == "input"
         # its own word, written by this attempt: an earlier attempt's 'aborted' says nothing of this one's failure
         ended = ended_live_status(self.root, job, claim.started) if bad_input and job.live else None
-        aborted = (ended is not None and ended.state == "aborted") or (bad_input and scan_aborted(job, self.root))
+        # Or its scan's manifest says aborted (an ordinary job, a second live job run as one: `Queue.live_claim`).
+        by_scan = bad_input and scan_state(job, self.root) == "aborted"
+        aborted = (ended is not None and ended.state == "aborted") or by_scan
         if aborted:  # no fault: the job ended as its scan did, and a retry would follow a scan that has ended
             error = f"{SCAN_ABORTED} ({outcome.get('error', 'its scan was aborted')})"
             said = f"{job.id} ended after {seconds:.1f} s: {error}"

@@ -260,17 +260,17 @@ class Queue:
         job = _job_file(path) if self.root is not None else None
         if job is None or not job.live:
             return "claim", None
-        from spadscan.protocol.capture_format import MANIFEST
         from spadscan.protocol.errors import SpadscanError
 
-        from .jobs import scan_path
+        from .jobs import scan_path, scan_state
         from .live.publish import claim_live_folder, live_holder
 
+        state = scan_state(job, self.root)
+        if state is None:
+            return "claim", None
         try:
-            scan = scan_path(job, self.root)
-            state = json.loads((scan / MANIFEST).read_text()).get("state")
-            holder = (claim_live_folder if state == "running" and take else live_holder)(scan, job)
-        except (OSError, ValueError, AttributeError, SpadscanError):
+            holder = (claim_live_folder if state == "running" and take else live_holder)(scan_path(job, self.root), job)
+        except (OSError, SpadscanError):
             return "claim", None
         if holder is None:
             return "claim", None
