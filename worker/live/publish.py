@@ -44,17 +44,11 @@ def take_live_folder(folder: Path, job, first: LiveStatus) -> str | None:
     one root give a scan's live job one id in each: the owner token (`Job.owner`, which `first` carries) tells the
     one that took the folder from the other, which is told the holder's id (its own). A folder with no status yet
     is the job's that claimed it first (`claim_live_folder`), where one did."""
-    from .done import holds
-
     path = Path(folder) / STATUS
     for _ in range(2):
-        try:
-            status = read_status(path)
-        except SpadscanError:
-            if path.is_file():
-                return None  # damaged: the job's own first write replaces it
-        else:
-            return None if holds(status, job) else status.job
+        found, holder = _named(path, job)
+        if found:
+            return holder
         claimed = _claim_mark(Path(folder).parent, job)
         if claimed is not None:
             return claimed
@@ -87,50 +81,43 @@ def claim_live_folder(scan: Path, job) -> str | None:
     gives it to exactly one of them at the claim, and the other's job is left in the queue (`Queue.live_claim`)
     instead of holding a worker for the whole scan. The live folder itself is not made here (it is the job's to
     make)."""
-    from .done import holds
-
-    try:
-        status = read_status(Path(scan) / "recon" / LIVE_DIR / STATUS)
-    except SpadscanError:
-        if (Path(scan) / "recon" / LIVE_DIR / STATUS).is_file():
-            return None  # damaged: the job's own first write replaces it
-    else:
-        return None if holds(status, job) else status.job
-    return _claim_mark(Path(scan) / "recon", job)
+    found, holder = _named(Path(scan) / "recon" / LIVE_DIR / STATUS, job)
+    return holder if found else _claim_mark(Path(scan) / "recon", job)
 
 
 def live_holder(scan: Path, job) -> str | None:
     """`claim_live_folder` without claiming: None when `<scan>/recon/live/` is `job`'s or free, else the id of the
     live job that holds it (by its status, else by the mark of its claim)."""
+    for path in (Path(scan) / "recon" / LIVE_DIR / STATUS, Path(scan) / "recon" / CLAIM):
+        found, holder = _named(path, job)
+        if found:
+            return holder
+    return None
+
+
+def _named(path: Path, job) -> tuple[bool, str | None]:
+    """What the live status or claim mark `path` says of live job `job`: (False, None) where there is none; (True,
+    None) where it is the job's, names no job, or is damaged (the job's own write replaces it, and a damaged mark
+    is no claim to honour); else (True, the id of the other live job it names)."""
     from .done import holds
 
-    for path in (Path(scan) / "recon" / LIVE_DIR / STATUS, Path(scan) / "recon" / CLAIM):
-        try:
-            status = read_status(path)
-        except SpadscanError:
-            if path.is_file():
-                return None  # damaged: the job's own first write replaces it
-            continue
-        return None if holds(status, job) else status.job
-    return None
+    try:
+        status = read_status(path)
+    except SpadscanError:
+        return path.is_file(), None
+    return True, (None if holds(status, job) else status.job)
 
 
 def _claim_mark(recon: Path, job) -> str | None:
     """None when `recon`/.live-claim names `job` (or no job, or cannot be read), or names none yet and is made
     naming it now (by one hard link: of two claims at once exactly one makes it); else the id of the job it names."""
-    from .done import holds
-
     path = recon / CLAIM
     mine = LiveStatus(views_used=0, views_published=0, steps=0, state="waiting", job=job.id,
                       owner=getattr(job, "owner", ""))
     for _ in range(2):
-        try:
-            marked = read_status(path)
-        except SpadscanError:
-            if path.is_file():
-                return None  # damaged: no claim to honour
-        else:
-            return None if holds(marked, job) else marked.job
+        found, marked = _named(path, job)
+        if found:
+            return marked
         spare = recon / f".claim-{secrets.token_hex(4)}"
         try:
             spare.mkdir(parents=True)
