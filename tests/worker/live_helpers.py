@@ -67,3 +67,13 @@ class SecondLiveJob:
         self.thread = threading.Thread(target=lambda: self.result.update(report=execute_live_job(
             job, root, out, log=log, **kwargs)), daemon=True)
         self.thread.start()
+
+    def after_scan(self, scan: ReplayScan) -> dict:
+        """Once the job has said it publishes nothing in the live folder: `scan` completed (every planned pose
+        published, as "complete" promises), and the job's report once it has ended."""
+        assert self.said.wait(120), self.lines
+        scan.run()
+        scan.finish("complete")
+        self.thread.join(300)
+        assert not self.thread.is_alive()
+        return self.result["report"]

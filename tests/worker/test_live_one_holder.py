@@ -68,12 +68,7 @@ def test_a_second_live_job_of_a_scan_runs_as_an_ordinary_job_and_never_touches_t
     job = Job(id="mug-paper", scan="mug", preset="paper", live=True, device="cpu")
     second = SecondLiveJob(job, root, root / "mug" / "recon" / ".tmp-paper", "mug-fast's", recon=options_recon,
                            settings=small_settings())
-    assert second.said.wait(120), second.lines
-    scan.run()  # the rest of its poses: "complete" promises every planned pose
-    scan.finish("complete")
-    second.thread.join(300)
-    assert not second.thread.is_alive()
-    assert second.result["report"]["device"] == "cpu"  # the ordinary job's report
+    assert second.after_scan(scan)["device"] == "cpu"  # the ordinary job's report
     assert (folder / "status.json").read_bytes() == before
     assert (folder / "mesh.ply").read_text() == "fast's mesh"
     assert sum("publishes nothing there" in line for line in second.lines) == 1, second.lines

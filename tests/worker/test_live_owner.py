@@ -75,12 +75,7 @@ def test_the_other_queues_live_job_runs_as_an_ordinary_job_leaving_the_folder_al
     before = (folder / "status.json").read_bytes()
     run = SecondLiveJob(second, root, root / "mug" / "recon" / ".tmp-b", "another queue's live job mug-fast",
                         recon=options_recon, settings=small_settings())
-    assert run.said.wait(120), run.lines
-    scan.publish(len(scan.poses))  # a complete scan holds every planned pose
-    scan.finish("complete")
-    run.thread.join(300)
-    assert not run.thread.is_alive()
-    assert run.result["report"]["device"] == "cpu"  # the ordinary job's report
+    assert run.after_scan(scan)["device"] == "cpu"  # the ordinary job's report
     assert (folder / "status.json").read_bytes() == before
     assert (folder / "mesh.ply").read_text() == "the holder's mesh"
 
