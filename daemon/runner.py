@@ -12,12 +12,12 @@ running meanwhile, `stall.py`: that wait begins again), frames that all began to
 stop or lost link (ArmFault, LinkLost, any DeviceError), a full disk or other write error (OSError, CaptureError); the
 reason says, on one line, what the operator does before `ctl resume` (`_advice`). The writer is then dropped; every
 resume reopens the capture (counting what it holds on disk: a chunk moved out meanwhile is taken again) and writes
-a pose's worth of files to check for room (`_no_room`) before it replies, and continues at the first unpublished
+a pose's worth of files to check for room (`no_room`) before it replies, and continues at the first unpublished
 pose (`CaptureWriter.next_pose_index`); a takeover checks for room the same way (a full disk's pause could not be
 recorded on it). A safety stop that comes while the arm stands at a pose is named in the
 reason (emergency, protective or safeguard stop, `arm/stops.py`), with what clears it, and when it was found: as
 the move ended or the arm settled, or while the pose was captured. A move's limit, move_timeout_s, counts motion
-time at the pace of the arm's speed slider (`_MoveClock`). Before the first move after a
+time at the pace of the arm's speed slider (`MoveClock`). Before the first move after a
 resume the arm is readied: after LinkLost, or whenever its link is found down then, whatever paused the scan, it
 reconnects (`Arm.reconnect`: fresh interfaces); after ArmFault `Arm.clear_fault` runs (the sim arm clears its
 safety stop; a real UR arm's stop is cleared by the operator before `ctl resume`, and the arm uploads its control
@@ -42,8 +42,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
-import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -51,28 +49,32 @@ from pathlib import Path
 import numpy as np
 
 from spadscan import __version__
-from spadscan.protocol.atomic_files import write_durable
-from spadscan.protocol.capture_format import MANIFEST, TMP_PREFIX, Measurement, one_line, read_json
-from spadscan.protocol.capture_writer import (INTERRUPTED, PAUSE, CaptureWriter, Stock, mark_paused,
-                                              writer_lock_held)
-from spadscan.protocol.disk_full import FULL_ERRNOS
+from spadscan.protocol.capture_format import MANIFEST, Measurement, one_line, read_json
+from spadscan.protocol.capture_writer import CaptureWriter, mark_paused, writer_lock_held
 from spadscan.protocol.errors import CaptureError, ConfigError, DeviceError, SpadscanError
 
 from .abort_book import FOLDER_GONE, AbortBook
 from .config import DaemonConfig, scan_request
 from .arm.stops import clear_advice, stop_name
-from .describe import SLIDER_FLOOR, SLIDER_FULL, describe, slider_note, write_advice
+from .describe import describe, write_advice
 from .devices import (Arm, ArmFault, ArmState, Frame, FramesTooEarly, LinkLost, Sensor, SensorSilent,
                       wait_counted)
+from .move_clock import MoveClock
+from .room_check import no_room
 from .root_lock import RootLock
+from .scan_capture import (close_writer, count_as_held, counted_on_disk, end_early, finish_capture, folder_gone,
+                           gone_or_ended, lost_chunks, pause_kind, pause_said, paused_reason, paused_record,
+                           pose_measurements, remove_partial, reopen_fix, reopen_problem)
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, RIG_VERSION, WRITER, ScanJob, abort_pending,
                        check_scan_name, clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted,
                        interrupted_at, interrupted_scan, load_job, pause_before_block, takeover_note, way_out)
 from .adaptive import ViewChooser, live_converged
 from .scan_end import ScanEnd, recorded_end
-from .scan_plan import build_plan, sensor_from_tcp, tcp_from_sensor
+from .scan_path import back_on_path, check_left, check_way
+from .scan_plan import build_plan, tcp_from_sensor
+from .speed_slider import slider_status, speed_slider
 from .stall import StallWatch
-from .workspace import check_workspace, first_move_problem
+from .workspace import first_move_problem
 
 log = logging.getLogger("spadscan.daemon")
 STATE_TIMEOUT_S = 5.0  # how long arm.state() may take
@@ -83,16 +85,11 @@ READY_TIMEOUT_S = 60.0  # how long readying the arm after a fault (reconnecting)
 ARM_FIXES = {"reconnect": "reconnecting", "clear": "clearing its fault"}  # what readying the arm does, said
 ARM_LINK_CHECK = "check the network to the arm's controller and that the controller is on"  # for a lost arm link
 CONTROLLER_TRIES = 3  # ranked views an adaptive scan offers the arm's controller for one pose before its fallback
-ON_PATH_M = 0.01  # an arm this close to a straight move between two poses of a scan's path stands on that path
 STALL_NOTE_S = 30.0  # a pause this soon after the daemon itself stood still says so (a watchdog, a timeout may follow)
 TAKING_FRAMES = ("scanning", "pausing")  # the states in which a scan takes frames ("pausing": the pose in flight)
 RATE_UNIT = "frames/s"  # what status's rate_hz counts (each pose takes frames_per_pose of them), said beside it
-MOVE_TICK_S = 0.05  # how often a move's time limit is set again from the arm's speed slider (`_MoveClock`)
 SLIDER_READ_S = 1.0  # how long a status waits for the arm's speed slider read afresh (a UR arm answers in ms)
-SLIDER_OLD_S = 5.0  # a speed slider read longer ago than this is shown with its age (`speed_note`)
 ARM_IDLE = ("paused", "idle")  # the states in which no scan reads the arm: status reads its speed slider itself
-ROOM_PROBE = f"{TMP_PREFIX}room-check"  # the hidden folder a resume writes a pose's worth of files into (`_no_room`)
-META_BYTES = 4096  # what a frame's record in a chunk's meta.json may take, at most (depths, confidences, extra)
 USER_PAUSE = "paused by user"  # the reason of the operator's pause (`ctl pause`)
 SENSOR_LINK_WAIT = "`spadscan ctl resume` once the sensor's link is back (the scan does not go on by itself)"
 SENSOR_LINK_BACK = "the sensor's link is back now: `spadscan ctl resume`"
@@ -106,51 +103,6 @@ class _Fault(SpadscanError):
 class _SensorLinkLost(LinkLost):
     """The sensor's link is down (LinkLost from the sensor): told apart from the arm's, which calls for other
     advice."""
-
-
-class _MoveClock:
-    """A move's time limit (`limit_s`, move_timeout_s) counted in motion time: wall time at the pace of the arm's
-    speed slider as the arm last read it (`slider`: a fraction, None for an arm without one: full pace), so that
-    at 5 % a second counts 0.05 s; never slower than SLIDER_FLOOR. A UR arm reads its slider at every poll of a
-    move, so the pace follows the pendant within a poll; the limit is set again every MOVE_TICK_S (`follow`)."""
-
-    def __init__(self, limit_s: float, slider):
-        self.limit_s, self._slider = float(limit_s), slider
-        self._loop = asyncio.get_running_loop()
-        self.begun = self._last = self._loop.time()
-        self.spent = 0.0  # motion time (s) counted up to self._last
-        self.pace = self.slowest = self._read()
-
-    def _read(self) -> float:
-        slider = self._slider()
-        return 1.0 if slider is None else min(1.0, max(SLIDER_FLOOR, float(slider)))
-
-    def deadline(self) -> float:
-        """When the limit runs out at the pace read now (the event loop's clock). The time since the last call
-        counts at the slower of the paces read then and now: a move slowed meanwhile is never cut short."""
-        now, pace = self._loop.time(), self._read()
-        self.spent += (now - self._last) * min(pace, self.pace)
-        self._last, self.pace, self.slowest = now, pace, min(self.slowest, pace)
-        return now + max(0.0, self.limit_s - self.spent) / pace
-
-    async def follow(self, limit: asyncio.Timeout) -> None:
-        """Set `limit` (the move's asyncio timeout) again every MOVE_TICK_S, until it expires."""
-        while True:
-            await asyncio.sleep(MOVE_TICK_S)
-            if limit.expired():
-                return
-            limit.reschedule(self.deadline())
-
-    def timed_out(self, arm: str, i: int) -> str:
-        """Why the move to pose i was stopped, with what to do: one that the speed slider slowed names it."""
-        said = f"{arm}: move to pose {i} did not finish within {self.limit_s:g} s (move_timeout_s)"
-        if self.slowest < SLIDER_FULL:
-            now = self._read()
-            slider = (f"at {now * 100:.3g} %" if now < SLIDER_FULL else
-                      f"down to {self.slowest * 100:.3g} % during the move")
-            said += (f" of motion, counted at the pace of the pendant's speed slider ({slider}; "
-                     f"{self._loop.time() - self.begun:.1f} s in all)")
-        return f"{said}; see on the teach pendant what holds the arm up, then `spadscan ctl resume`"
 
 
 KEPT_ENDS = 100
@@ -279,7 +231,7 @@ class ScanRunner:
         except (OSError, CaptureError) as exc:
             # The folder was made above, by this call: whatever create left of it is ours to remove, so that the
             # name is free again once the disk has room.
-            await self._io(_remove_partial, path)
+            await self._io(remove_partial, path)
             what = describe(exc, "creating the scan folder") if isinstance(exc, OSError) else str(exc)
             self.last_error = f"cannot start scan {name!r}: {what}"
             log.warning("%s", self.last_error)
@@ -310,7 +262,7 @@ class ScanRunner:
     async def _take_over(self, path: Path, auto_resume: bool) -> bool:
         """Take the interrupted scan at `path` over, paused (resumed when auto_resume allows); False when it cannot
         be (`stuck`, and last_error with the reason and what the operator can do). A capture that cannot be reopened,
-        or whose disk has no room for the next pose's chunk (`_no_room`, as a resume checks it: the pause that a full
+        or whose disk has no room for the next pose's chunk (`no_room`, as a resume checks it: the pause that a full
         disk made could not be recorded on it), is taken over paused with that cause in its reason: after the pause it
         had (the operator's, a fault's: `ScanJob.paused_for`, which the capture goes on recording alone)."""
         in_the_way = None  # why the capture cannot take the scan on (its disk), with what to do; None when it can
@@ -318,21 +270,21 @@ class ScanRunner:
             job = await asyncio.to_thread(load_job, path, self.cfg.arm.hand_eye, sensor_now=self.sensor.model,
                                           rig_now=self.rig, scene_now=self.scene)
             # A block an earlier daemon recorded is checked afresh (load_job), not taken for a pause of the scan's.
-            record = await asyncio.to_thread(_paused_record, path)
-            recorded = pause_before_block(_said(record), path.name)
+            record = await asyncio.to_thread(paused_record, path)
+            recorded = pause_before_block(paused_reason(record), path.name)
             try:
                 job.writer = await self._io(job.reopen)
                 job.record_progress(job.writer)
             except OSError as exc:  # a full disk: take the scan over all the same, paused until room is made
-                in_the_way = f"{describe(exc, 'reopening the capture')}; {_reopen_fix(exc)}"
+                in_the_way = f"{describe(exc, 'reopening the capture')}; {reopen_fix(exc)}"
                 await asyncio.to_thread(job.count_published)
             else:
                 if job.blocked is None:
-                    in_the_way = await self._io(_no_room, job, self.sensor.model)
+                    in_the_way = await self._io(no_room, job, self.sensor.model)
             if job.blocked is None:
                 # In a thread: thousands of poses take seconds, and the event loop must keep kicking the arm's
                 # watchdog meanwhile (a 4,000-view plan blocked it 1.4 s, and the controller stopped the script).
-                await asyncio.to_thread(_check_left, job, self.cfg.arm)
+                await asyncio.to_thread(check_left, job, self.cfg.arm)
             if job.scan.schedule == "adaptive":
                 job.chooser = await asyncio.to_thread(ViewChooser, job.scan, self.cfg.arm, job.hand_eye, path)
                 await asyncio.to_thread(job.count_choices)
@@ -352,7 +304,7 @@ class ScanRunner:
         # auto_resume refused (the sensor's link down), when "auto_resume continues it" no longer holds.
         waiting = self._takeover_note("`spadscan ctl resume` continues", owed)
         if job.blocked:
-            # Said after the pause the scan had, as the capture records it (`_pause_said`) for the dashboard:
+            # Said after the pause the scan had, as the capture records it (`pause_said`) for the dashboard:
             # `ctl status` and the dashboard say the same.
             job.reason = f"{paused}; {job.blocked}" if paused else job.blocked
         elif paused:
@@ -363,8 +315,8 @@ class ScanRunner:
             # cause, long gone, or a pose since passed. This takeover says its own note, as the scan stands now.
             job.reason = self._takeover_note("auto_resume continues it", owed) if auto else waiting
         # Why the scan waits stays said first when a resume is refused (`_refuse_resume`), and is what the capture
-        # records (`_pause_said`): not the refusal's cause, which the next daemon checks afresh. A blocked scan
-        # keeps the pause it had alone (the block is no pause of its own, and `_pause_said` records it with that).
+        # records (`pause_said`): not the refusal's cause, which the next daemon checks afresh. A blocked scan
+        # keeps the pause it had alone (the block is no pause of its own, and `pause_said` records it with that).
         job.paused_for = paused if job.blocked else paused or waiting
         job.interrupted = paused is None
         if in_the_way and not job.blocked:
@@ -429,7 +381,7 @@ class ScanRunner:
         try:
             return await asyncio.to_thread(interrupted_scan, self.root, name)
         except ConfigError:
-            if await asyncio.to_thread(_gone_or_ended, self.root / name):
+            if await asyncio.to_thread(gone_or_ended, self.root / name):
                 self._forget_stuck(name)
             raise
 
@@ -558,7 +510,7 @@ class ScanRunner:
         scan left paused with that cause as its reason (a reply of 'scanning' that a pause follows a moment later
         would be untrue), and the arm is not moved: the sensor's link down (it reconnects by itself), a capture that
         cannot be reopened (a full disk, its folder removed), a disk with no room for the next pose's chunk
-        (`_no_room`: reopening alone may fit, as the half-written chunk it drops frees a little). The capture is
+        (`no_room`: reopening alone may fit, as the half-written chunk it drops frees a little). The capture is
         reopened whether or not the daemon still holds it: what it holds on disk is counted again, so that a chunk
         moved out of it while the scan was paused (damaged) is taken again first (`CaptureWriter.retakes`); only the
         chunks that changed since this daemon read or published them are read again (`ScanJob.reopen`). The
@@ -571,12 +523,12 @@ class ScanRunner:
         try:
             writer = await self._io(job.reopen)
         except (OSError, CaptureError) as exc:
-            self._refuse_resume(job, _reopen_problem(job, exc))
+            self._refuse_resume(job, reopen_problem(job, exc))
         if self.job is not job or self.state != "paused" or self._aborting():  # an abort or a resume meanwhile
             return
         job.writer = writer
         job.record_progress(writer)
-        full = await self._io(_no_room, job, self.sensor.model)
+        full = await self._io(no_room, job, self.sensor.model)
         if full is not None:
             self._refuse_resume(job, full)
 
@@ -635,7 +587,7 @@ class ScanRunner:
                 f"; scan {stuck!r} could not be taken over: `spadscan ctl abort {stuck}` ends it" if stuck else ""))
         job = self.job
         await self._cancel(("aborted", reason))
-        await asyncio.to_thread(_count_as_held, job)  # the pose it stopped at, as its capture holds it
+        await asyncio.to_thread(count_as_held, job)  # the pose it stopped at, as its capture holds it
         return self._aborted_reply(job.name, job)
 
     async def _abort_interrupted(self, name: str, reason: str) -> dict:
@@ -743,8 +695,8 @@ class ScanRunner:
     def _left_note(self, job: ScanJob, paused: bool, unrecorded: str | None) -> str:
         """Where a scan the daemon stops with stands, and how it goes on: the last line an operator who stopped the
         daemon (Ctrl-C, SIGTERM) reads. `unrecorded`: why its state could not be recorded on stopping. Called once
-        the writer thread has ended. The pose is the one the next daemon takes the scan over at (`_count_as_held`)."""
-        _count_as_held(job)
+        the writer thread has ended. The pose is the one the next daemon takes the scan over at (`count_as_held`)."""
+        count_as_held(job)
         self._sensor_link_back(job)
         at = f"scan {job.name} left {'paused ' if paused else ''}at pose {self._progress()}"
         why = job.paused_for if job.blocked else job.reason  # (a block is said once, below)
@@ -780,7 +732,7 @@ class ScanRunner:
         job = self.job
         if job is None or self.state != "paused" or job.blocked or self._resume_checks:
             return
-        stock, note = await asyncio.to_thread(_counted_on_disk, job)
+        stock, note = await asyncio.to_thread(counted_on_disk, job)
         # (a resume or an abort meanwhile counts on its own: the resume reopens the capture)
         if self.job is job and self.state == "paused" and not self._resume_checks:
             if stock is not None:
@@ -793,7 +745,7 @@ class ScanRunner:
             self._sensor_link_back(job)
         out = {"state": self.state, "scan": None, "last_error": self.last_error, "arm": self.arm.name,
                "sensor": {"name": self.sensor.name, **self.sensor.counters()}}
-        out.update(_slider_status(self.arm))
+        out.update(slider_status(self.arm))
         if job is not None:
             now = time.monotonic()  # read once: elapsed_s and scan_elapsed_s differ by the time before the takeover
             out.update(scan=job.name, path=str(job.path), pose=job.next_pose, poses=job.n_poses,
@@ -860,7 +812,7 @@ class ScanRunner:
                         if "paused" in job.writer.manifest:  # reopened to go on after a fault's pause
                             await self._io(job.writer.set_state, "running")
                     except (OSError, CaptureError) as exc:
-                        await self._fault(job, _reopen_problem(job, exc))
+                        await self._fault(job, reopen_problem(job, exc))
                         continue
                 if self._pause_requested:
                     job.reason = USER_PAUSE
@@ -872,15 +824,15 @@ class ScanRunner:
                     await self._retake(job)
                     await self._poses(job)
                     if job.ended_early is not None:
-                        if await self._io(_lost_chunks, job):
+                        if await self._io(lost_chunks, job):
                             continue  # taken again (`_retake`), then ended where the scan stands
-                        await self._io(_end_early, job)
+                        await self._io(end_early, job)
                         break
                     if not self._pause_requested:
                         if job.next_pose >= job.n_poses:
-                            if await self._io(_lost_chunks, job):
+                            if await self._io(lost_chunks, job):
                                 continue  # taken again (`_retake`), then complete
-                            await self._io(_finish_capture, job)
+                            await self._io(finish_capture, job)
                             break
                         # A pause withdrawn (resume) while the pose in flight was being published: the loop stopped
                         # for the pause all the same, and finishing here marked a partial capture complete. Go on
@@ -972,7 +924,7 @@ class ScanRunner:
                     r, replan = replan, None
                     await self._landed(r, i)
                 pending = asyncio.ensure_future(self._io(self._publish, job.writer,
-                                                         _measurements(job, i, frames, arm, job.choices.get(i))))
+                                                         pose_measurements(job, i, frames, arm, job.choices.get(i))))
         finally:
             try:
                 if replan is not None or ahead is not None:  # a rewrite of schedule.npy lands before the writer is
@@ -999,9 +951,9 @@ class ScanRunner:
         flight; the next run starts the way again from where the arm then is. That holds once every owed pose is
         taken, too: the way forward still unfinished (`job.way_on`), the next run walks it on, instead of moving
         straight from an early pose to the scan's next one. A daemon restarted meanwhile knows nothing of the way:
-        it walks it on when the arm stands on the scan's path before its last published pose (`_back_on_path`).
+        it walks it on when the arm stands on the scan's path before its last published pose (`back_on_path`).
         Before the arm goes, every pose and move of the way is checked against the current [arm] limits
-        (`_check_way`): a refusal pauses the scan with the reason, the arm not moved."""
+        (`check_way`): a refusal pauses the scan with the reason, the arm not moved."""
         if self._pause_requested:
             return
         owed = {r.pose: r for r in job.writer.retakes}
@@ -1010,7 +962,7 @@ class ScanRunner:
             return
         now = np.asarray((await self._arm_state()).tcp_pose, dtype=np.float64)
         start = int(np.argmin(np.linalg.norm(job.tcp_poses[:last + 1, :3, 3] - now[:3, 3], axis=1)))
-        if job.taken_over and not owed and start < last and _back_on_path(job, now[:3, 3]):
+        if job.taken_over and not owed and start < last and back_on_path(job, now[:3, 3]):
             job.way_on = True
             log.info("scan %s: %s stands on the scan's path near pose %d, before its last published pose %d "
                      "(taken over during the retake's way forward?)", job.name, self.arm.name, start, last)
@@ -1033,7 +985,7 @@ class ScanRunner:
         # The takeover checked the poses from the first owed or unpublished one against the current [arm] limits;
         # the way may begin before it (the arm nearer an earlier pose, or walking on after a restart). A config
         # tightened since the scan began must stop the scan here, before the arm goes, not once it stands there.
-        await asyncio.to_thread(_check_way, job, first, last, self.cfg.arm)
+        await asyncio.to_thread(check_way, job, first, last, self.cfg.arm)
         if not job.controller_checked:  # the way back passes poses before `start`: the controller is asked from there
             await self.arm.check_poses(job.tcp_poses[first:], first_index=first)
             job.controller_checked = True
@@ -1070,7 +1022,7 @@ class ScanRunner:
         whole = len(retake.frames) == job.scan.frames_per_pose
         choice = None if job.chooser is None else {
             "why": "retaken", "detail": "taken again after its chunk was moved out of the capture (damaged)"}
-        measurements = _measurements(job, i, frames, arm, choice, numbers=retake.frames)
+        measurements = pose_measurements(job, i, frames, arm, choice, numbers=retake.frames)
         await self._landed(asyncio.ensure_future(self._io(job.writer.publish_retake, retake, measurements)), i)
         job.record_progress(job.writer)
         if choice is not None and whole:  # a pose some of whose frames stayed is counted by why it was first taken
@@ -1159,8 +1111,8 @@ class ScanRunner:
 
     async def _move(self, job: ScanJob, i: int) -> float:
         """Move to pose i; returns the monotonic time the arm stopped. Its limit, move_timeout_s, counts motion time
-        (`_MoveClock`): a move the pendant's speed slider slows is not taken for a stuck one."""
-        clock = _MoveClock(self.cfg.arm.move_timeout_s, lambda: _speed_slider(self.arm))
+        (`MoveClock`): a move the pendant's speed slider slows is not taken for a stuck one."""
+        clock = MoveClock(self.cfg.arm.move_timeout_s, lambda: speed_slider(self.arm))
         try:
             async with asyncio.timeout_at(clock.deadline()) as limit:
                 follow = asyncio.ensure_future(clock.follow(limit))
@@ -1316,7 +1268,7 @@ class ScanRunner:
         reason += self._stall_note()
         log.warning("scan %s paused: %s", job.name, reason)
         await self._stop_arm()
-        _close_writer(job)
+        close_writer(job)
         job.reason = self.last_error = reason
         await self._wait_resume(job)
 
@@ -1327,7 +1279,7 @@ class ScanRunner:
         full disk) keeps the pause in memory only."""
         try:
             if paused:
-                await self._io(mark_paused, job.path, _pause_said(job) or "paused", _pause_kind(job))
+                await self._io(mark_paused, job.path, pause_said(job) or "paused", pause_kind(job))
             else:
                 await self._io(job.writer.set_state, "running")
         except (OSError, CaptureError) as exc:
@@ -1412,14 +1364,14 @@ class ScanRunner:
             if job.writer is None:
                 job.writer = await self._io(job.reopen)
             if self.state in ("paused", "pausing"):  # stopped while paused: the next daemon takes it over paused
-                await self._io(mark_paused, job.path, _pause_said(job) or USER_PAUSE, _pause_kind(job))
+                await self._io(mark_paused, job.path, pause_said(job) or USER_PAUSE, pause_kind(job))
             else:
                 await self._io(job.writer.set_state, "running", reason)
         except (OSError, CaptureError) as exc:
             self.last_error = f"scan {job.name!r}: could not record '{state}': {describe(exc, 'recording it')}"
 
     def _finish(self, job: ScanJob, state: str, reason: str | None = None) -> None:
-        _close_writer(job)
+        close_writer(job)
         self.job, self._task = None, None
         self._set_state("idle")
         self._record_end(job.name, state, reason)  # (a `wait` woken above runs once this call has returned)
@@ -1472,7 +1424,7 @@ class ScanRunner:
                                                 and self.sensor.counters().get("link") == "down"):
             return f"{describe(exc)}; {SENSOR_LINK_WAIT}{at}"
         job = self.job
-        if isinstance(exc, (OSError, CaptureError)) and job is not None and _folder_gone(job.path):
+        if isinstance(exc, (OSError, CaptureError)) and job is not None and folder_gone(job.path):
             # Not the disk's fault: its advice (the kernel log, a failing disk) would send the operator astray. (The
             # manifest, which nothing but the operator removes: a folder deleted while a chunk was being written
             # may be left holding that chunk's remains.)
@@ -1528,189 +1480,9 @@ def _progress_of(job: ScanJob) -> str:
     return f"{job.next_pose}/{job.n_poses}"
 
 
-def _count_as_held(job: ScanJob) -> None:
-    """Set the progress of a scan whose writes have ended (stopped, aborted) to what its capture holds: counted from
-    its folder as a resume counts it (`_counted_on_disk`, as `ctl status` of a paused scan is), for the writer's own
-    count misses a chunk moved out by hand (during a pause); the writer's count where only a resume can count (a
-    chunk changed since the daemon read it). A publish that landed as the scan was stopped is counted either way."""
-    if job.writer is not None:
-        job.record_progress(job.writer)
-    stock, _ = _counted_on_disk(job)
-    if stock is not None:
-        job.record_stock(stock)
-
-
-def _counted_on_disk(job: ScanJob) -> tuple[Stock | None, str | None]:
-    """`ScanJob.stock_on_disk`: (the scan's progress as its resume will count it from its folder, None) or (None, why
-    only the resume can count), a folder that cannot be counted included: what `ctl status` of a paused scan and the
-    stop note say."""
-    try:
-        return job.stock_on_disk()
-    except (CaptureError, OSError) as exc:
-        return None, f"{one_line(exc)} (`spadscan ctl resume` says the same)"
-
-
-def _measurements(job: ScanJob, i: int, frames: list[Frame], arm, choice: dict | None = None,
-                  numbers: tuple[int, ...] | None = None) -> list[Measurement]:
-    """One measurement per frame at the arm's actual pose (raw counts, never summed); `choice`: why an adaptive scan
-    took the pose (its `view_choice`); `numbers`: the frames' numbers at the pose (default 0, 1, ...: a retake's are
-    the ones missing)."""
-    tcp = np.asarray(arm.tcp_pose, dtype=np.float64)
-    sensor_pose = sensor_from_tcp(tcp, job.hand_eye)
-    common = {"tcp_pose": tcp.tolist(), "joints": np.asarray(arm.joints, float).tolist(),
-              "arm_timestamp_s": float(arm.timestamp_s)}
-    out = []
-    for k, f in enumerate(frames):
-        meta = {"t_start": float(f.t_start), "t_end": float(f.t_end), "temperature_c": f.temperature_c,
-                "depths_mm": f.depths_mm, "confidences": f.confidences, **common}
-        if f.extra:
-            meta["extra"] = f.extra
-        if choice is not None:
-            meta["view_choice"] = choice
-        out.append(Measurement(f.hists, sensor_pose, i, k if numbers is None else numbers[k], f.reference, meta))
-    return out
-
-
-def _check_left(job: ScanJob, arm) -> None:
-    """Check the poses a scan has left against the workspace: as a path for a planned scan; pose by pose for an
-    adaptive one, whose moves are checked as each pose is chosen (the row being taken when it stopped may be a
-    ranked view that the rest of the plan was never meant to follow)."""
-    retakes = job.writer.retakes if job.writer is not None else []
-    first = min([job.next_pose, *(r.pose for r in retakes)])  # poses owed again are reached back along the path
-    left, where = job.tcp_poses[first:], f"scan {job.name!r}"
-    if job.scan.schedule != "adaptive":
-        check_workspace(left, arm, where, first=first)
-        return
-    for k, tcp in enumerate(left):
-        check_workspace(tcp[None], arm, f"{where} pose {first + k}")
-
-
-def _check_way(job: ScanJob, first: int, last: int, arm) -> None:
-    """Check the retake's way, the scan's path from pose `first` to pose `last` (walked back and forth along it),
-    against the workspace: a ConfigError names the pose or move the current [arm] limits refuse (the arm not moved)."""
-    try:
-        check_workspace(job.tcp_poses[first:last + 1], arm, f"scan {job.name!r}", first=first, of=job.n_poses)
-    except ConfigError as exc:
-        raise ConfigError(f"{exc}; the arm is not moved (before pose {last + 1} it walks the scan's path from pose "
-                          f"{first} to pose {last}: a straight move across the scan would cross the object): restore "
-                          f"the [arm] limits the scan was planned with and restart the daemon, or `spadscan ctl "
-                          f"abort`") from None
-
-
 def _owed(job: ScanJob) -> str:
     """The poses the capture lacks before its first unpublished one (to be taken again), said; '' when none."""
     return ", ".join(map(str, job.owed))
-
-
-def _back_on_path(job: ScanJob, here: np.ndarray) -> bool:
-    """Whether TCP position `here` (m) lies on the scan's path before its last published pose (within ON_PATH_M of
-    a straight move between two published poses), and not on the move from that pose to the next one (where any
-    stop of a scan going on leaves the arm): only a stop on the retake's way forward leaves it there."""
-    last = job.next_pose - 1
-    path = job.tcp_poses[:last + 1, :3, 3]
-    if len(path) < 2 or _segment_distance(path[:-1], path[1:], here).min() > ON_PATH_M:
-        return False
-    on = job.tcp_poses[last:last + 2, :3, 3]
-    if len(on) < 2:  # no pose follows the last published one
-        return True
-    return float(_segment_distance(on[:1], on[1:], here)[0]) > ON_PATH_M
-
-
-def _segment_distance(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Distances (m) from point p (3,) to the segments a[k] -> b[k] ((n, 3) each)."""
-    ab = b - a
-    length2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18)
-    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / length2, 0.0, 1.0)
-    return np.linalg.norm(a + t[:, None] * ab - p, axis=1)
-
-
-def _folder_gone(path: Path) -> bool:
-    """Whether a scan's folder is gone: its manifest (which nothing but the operator removes) is missing. A look that
-    fails otherwise (a failing disk, a permission) is not taken for gone: the disk's advice then stands."""
-    try:
-        os.stat(path / MANIFEST)
-    except (FileNotFoundError, NotADirectoryError):
-        return True
-    except OSError:
-        return False
-    return False
-
-
-def _lost_chunks(job: ScanJob) -> bool:
-    """Whether chunks the scan published are gone from its folder (moved out or deleted while it ran), checked before
-    it is called complete ("complete" promises every pose): their poses are then owed again, as a resume finds them
-    (`CaptureWriter.take_stock`), and the scan's progress says so."""
-    gone = job.writer.take_stock()
-    if not gone:
-        return False
-    job.record_progress(job.writer)
-    again = [str(pose) for pose in job.owed]
-    if job.next_pose < job.n_poses:  # the last chunks gone: the scan goes on from the first pose they held
-        last = job.n_poses - 1
-        again.append(str(last) if job.next_pose == last else f"{job.next_pose}..{last}")
-    log.warning("scan %s: %s gone from its folder (moved out or deleted while the scan ran): taking pose(s) %s "
-                "again before the scan is complete", job.name, ", ".join(gone), ", ".join(again))
-    return True
-
-
-def _close_writer(job: ScanJob) -> None:
-    """Drop the scan's writer, its writer lock released now (not whenever the writer is collected): a descriptor
-    held past a pause or the scan's end would keep another process (the next daemon) off the capture."""
-    if job.writer is not None:
-        job.writer.close()
-    job.writer = None
-
-
-def _finish_capture(job: ScanJob) -> None:
-    """Mark the capture complete; an adaptive scan's manifest also counts its poses by why they were taken."""
-    if job.chooser is None:
-        job.writer.finish("complete")
-        return
-    job.writer.flush()
-    job.writer.set_state("complete", None, view_choices=dict(sorted(job.view_counts.items())))
-
-
-def _end_early(job: ScanJob) -> None:
-    """End an adaptive scan at its published poses (job.ended_early says why): schedule.npy and planned_poses cut to
-    them first, so that the capture is complete as it stands (every planned pose published), then the state."""
-    n = job.writer.next_pose_index
-    job.writer.replace_schedule(job.sensor_poses[:n])
-    job.writer.flush()
-    job.writer.set_state("complete", job.ended_early, view_choices=dict(sorted(job.view_counts.items())))
-
-
-def _speed_slider(arm) -> float | None:
-    """The speed slider of an arm whose controller has one (UR), as last read, else None."""
-    reading = _slider_reading(arm)
-    return None if reading is None else reading[0]
-
-
-def _slider_reading(arm) -> tuple[float, float | None] | None:
-    """(speed slider, time.monotonic() it was read or None where the arm does not say) of an arm whose controller has
-    one (UR), as last read, else None; through the wrapper that tracks a sim sensor's arm pose (`rig.TrackedArm`: its
-    `inner` arm)."""
-    while arm is not None:
-        slider = getattr(arm, "speed_slider", None)
-        if slider is not None:
-            return float(slider), getattr(arm, "speed_slider_at", None)
-        arm = getattr(arm, "inner", None)
-    return None
-
-
-def _slider_status(arm) -> dict:
-    """Status's speed slider keys, for an arm whose slider is below 100 %: `speed_scaling` (the fraction),
-    `speed_note` (what it means; its age too when older than SLIDER_OLD_S) and `speed_scaling_age_s` (seconds since
-    it was read, where the arm says); none otherwise."""
-    reading = _slider_reading(arm)
-    if reading is None or reading[0] >= SLIDER_FULL:
-        return {}
-    slider, at = reading
-    age = None if at is None else max(0.0, time.monotonic() - at)
-    out = {"speed_scaling": round(slider, 3),
-           "speed_note": slider_note(slider, age if age is not None and age > SLIDER_OLD_S else None)}
-    if age is not None:
-        out["speed_scaling_age_s"] = round(age, 1)
-    return out
 
 
 def _advice(exc: BaseException) -> str:
@@ -1727,89 +1499,7 @@ def _advice(exc: BaseException) -> str:
     return ""
 
 
-def _no_room(job: ScanJob, model) -> str | None:
-    """Why the captures' disk cannot take the next pose's chunk, with what to do; None when it can. Its files are
-    written for real, at the sizes they will have (`_chunk_sizes`), in a hidden folder of the scan's (ROOM_PROBE,
-    removed after; a writer reopening the capture drops it too): a free-space figure would miss quotas and the
-    filesystem's own overheads. Random bytes: a compressing filesystem stores them whole, as it does counts."""
-    probe = path = job.path / ROOM_PROBE
-    try:
-        probe.mkdir(exist_ok=True)
-        for name, size in _chunk_sizes(job.scan.frames_per_pose, model):
-            path = probe / name
-            write_durable(path, os.urandom(size))
-    except OSError as exc:
-        if exc.errno in FULL_ERRNOS:
-            return (f"the captures' disk is still full ({exc.strerror}: no room for the next pose's chunk in "
-                    f"{job.path}); make room on it, then `spadscan ctl resume`")
-        named = exc if exc.filename else OSError(exc.errno, exc.strerror or str(exc), str(path))  # (a write's has none)
-        return f"{describe(named, 'checking for room for the next pose')}; {write_advice(named)}"
-    finally:
-        shutil.rmtree(probe, ignore_errors=True)
-    return None
-
-
-def _chunk_sizes(frames: int, model) -> list[tuple[str, int]]:
-    """The files of a chunk of `frames` frames of sensor `model` and the bytes each takes at most: counts and
-    reference counts as uint32, poses as 4x4 float64, each behind a 128-byte .npy header; META_BYTES a frame's
-    record in meta.json."""
-    return [("hists.npy", 128 + frames * model.n_zones * model.n_bins * 4),
-            ("poses.npy", 128 + frames * 16 * 8),
-            ("reference.npy", 128 + frames * model.n_bins * 4),
-            ("meta.json", frames * META_BYTES)]
-
-
-def _gone_or_ended(path: Path) -> bool:
-    """Whether the scan folder `path` holds no manifest any more (moved out by hand), or one that says it ended."""
-    try:
-        return read_json(path / MANIFEST).get("state") != "running"
-    except CaptureError:
-        return not (path / MANIFEST).exists()
-
-
-def _reopen_problem(job: ScanJob, exc: BaseException) -> str:
-    """Why the capture of `job` cannot be reopened, with what the operator can do."""
-    if not job.path.is_dir():
-        return f"its folder {job.path} is gone; `spadscan ctl abort` ends the scan"
-    if not isinstance(exc, OSError):  # the capture itself is in the way (a damaged chunk)
-        return f"cannot reopen the capture: {exc}; `spadscan ctl abort` ends the scan"
-    what = describe(exc, "reopening it")
-    return f"cannot reopen the capture: {what}; {_reopen_fix(exc)}"
-
-
-def _reopen_fix(exc: OSError) -> str:
-    """What the operator does about a capture that write error `exc` keeps from being reopened."""
-    return "make room, then `spadscan ctl resume`" if exc.errno in FULL_ERRNOS else write_advice(exc)
-
-
-def _remove_partial(path: Path) -> None:
-    """Remove a scan folder that CaptureWriter.create left half-made (removing needs no free space)."""
-    shutil.rmtree(path, ignore_errors=True)
-
-
 def _rounded(value: float | None, digits: int) -> float | None:
     return None if value is None else round(value, digits)
 
 
-def _pause_said(job: ScanJob) -> str | None:
-    """What the capture records of a pause: why the scan was paused in the first place (`ScanJob.paused_for`), else
-    its reason. A block is recorded with it, so that the dashboard says why the scan waits as `ctl status` does; the
-    next daemon leaves it out of the pause it takes over (`pause_before_block`) and checks the rig afresh."""
-    return job.reason if job.blocked else job.paused_for or job.reason
-
-
-def _pause_kind(job: ScanJob) -> str:
-    """The kind of pause the capture records (scan.json's `paused.kind`): INTERRUPTED while the scan waits only
-    because a takeover found it interrupted (`ScanJob.interrupted`), else PAUSE."""
-    return INTERRUPTED if job.interrupted else PAUSE
-
-
-def _paused_record(path: Path) -> dict | None:
-    """The pause the capture's scan had when its daemon stopped (scan.json's `paused`), or None."""
-    paused = read_json(path / MANIFEST).get("paused")
-    return paused if isinstance(paused, dict) else None
-
-
-def _said(record: dict | None) -> str | None:
-    """Why a `paused` record (`_paused_record`) says the scan was paused, or None without one."""
-    return None if record is None else str(record.get("reason") or "paused")

@@ -11,7 +11,7 @@ import errno
 import numpy as np
 
 from spadscan.daemon import runner as runner_module
-from spadscan.daemon.runner import ON_PATH_M, _segment_distance
+from spadscan.daemon.scan_path import ON_PATH_M, segment_distance
 from spadscan.daemon.scan_plan import ScanPlan, tcp_from_sensor
 from spadscan.daemon.workspace import check_workspace
 from spadscan.protocol.capture_reader import CaptureReader
@@ -191,7 +191,7 @@ def test_a_stop_on_the_scans_next_move_that_crosses_an_earlier_move_goes_straigh
     path = plan[:, :3, 3]
     # The stop lies on the move 0 -> 1 as on 7 -> 8, and pose 0 is the published pose nearest it.
     np.testing.assert_allclose(here[:3, 3], (path[7] + path[8]) / 2, atol=1e-9)
-    assert _segment_distance(path[:1], path[1:2], here[:3, 3])[0] < ON_PATH_M / 10
+    assert segment_distance(path[:1], path[1:2], here[:3, 3])[0] < ON_PATH_M / 10
     assert int(np.argmin(np.linalg.norm(path[:8] - here[:3, 3], axis=1))) == 0
 
     _, done, moves = restarted_with_the_arm_at(arun, cfg, sphere, here)

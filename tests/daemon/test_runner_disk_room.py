@@ -17,7 +17,7 @@ import textwrap
 
 import pytest
 
-import spadscan.daemon.runner as runner_module
+import spadscan.daemon.room_check as room_check
 from spadscan.protocol.errors import ConfigError
 
 from test_abort_durable import disk  # noqa: F401  (a fixture)
@@ -108,7 +108,7 @@ def test_a_refused_resume_for_a_disk_still_full_does_not_move_the_arm(arun, tmp_
         return write
 
     monkeypatch.setattr(cw, "save_npy_durable", failing(cw.save_npy_durable))
-    monkeypatch.setattr(runner_module, "write_durable", failing(runner_module.write_durable))
+    monkeypatch.setattr(room_check, "write_durable", failing(room_check.write_durable))
 
     async def scenario():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:

@@ -145,13 +145,13 @@ def test_taking_a_scan_over_checks_its_poses_off_the_event_loop(arun, tmp_path, 
     UR watchdog's period, and the controller stopped its script while the daemon took the scan over."""
     arun(interrupt(make_cfg(tmp_path)))
     threads = []
-    check = runner_module._check_left
+    check = runner_module.check_left
 
     def recorded(job, arm):
         threads.append(threading.current_thread() is threading.main_thread())
         return check(job, arm)
 
-    monkeypatch.setattr(runner_module, "_check_left", recorded)
+    monkeypatch.setattr(runner_module, "check_left", recorded)
     status, refused = arun(restart(make_cfg(tmp_path)))
     assert refused is None and threads == [False], (threads, status)
 

@@ -16,7 +16,8 @@ from spadscan.daemon.app import DeviceSession, Dispatcher
 from spadscan.daemon.arm.sim import SimArmFaults
 from spadscan.daemon.devices import LinkLost
 from spadscan.daemon.backends import pose_provider
-from spadscan.daemon.runner import SLIDER_OLD_S, ScanRunner
+from spadscan.daemon.runner import ScanRunner
+from spadscan.daemon.speed_slider import SLIDER_OLD_S
 from spadscan.daemon.sensor.sim import SimSensor
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings

@@ -1,6 +1,6 @@
 """A scan paused for a full disk cannot record that pause on it: a daemon restarted meanwhile (kill -9) checks for
-room as a resume does (`_no_room`: a pose's worth of files written) and says in `status` that the disk is full,
-instead of telling the operator that `spadscan ctl resume` continues the scan; a scan that was paused (by the
+room as a resume does (`room_check.no_room`: a pose's worth of files written) and says in `status` that the disk is
+full, instead of telling the operator that `spadscan ctl resume` continues the scan; a scan that was paused (by the
 operator, or a fault) keeps that pause's reason beside the full disk's."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-import spadscan.daemon.runner as runner_module
+import spadscan.daemon.room_check as room_check
 from spadscan.protocol.capture_format import MANIFEST, read_json
 from spadscan.protocol.errors import ConfigError
 
@@ -25,7 +25,7 @@ def test_a_takeover_on_a_disk_with_no_room_for_a_chunk_says_so(arun, tmp_path, s
     moved; once room is made the scan completes, every pose once."""
     cfg = make_cfg(tmp_path, views=VIEWS)
     folder = tmp_path / "caps" / "full"
-    full = switchable_full_disk(monkeypatch, runner_module, "write_durable")
+    full = switchable_full_disk(monkeypatch, room_check, "write_durable")
 
     async def first_daemon():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
@@ -68,7 +68,7 @@ def test_a_takeover_on_a_full_disk_keeps_the_pause_reason_the_scan_had(arun, tmp
     of the past. Before: the full disk's reason replaced the operator's, and the capture recorded it."""
     cfg = make_cfg(tmp_path, views=VIEWS)
     folder = tmp_path / "caps" / "lamp"
-    full = switchable_full_disk(monkeypatch, runner_module, "write_durable")
+    full = switchable_full_disk(monkeypatch, room_check, "write_durable")
 
     async def first_daemon():
         async with daemon_runner(cfg, sphere, motion_time_s=0.01) as runner:
