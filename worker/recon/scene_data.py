@@ -2,9 +2,9 @@
 
 Frames recorded at one pose (same `pose_index`) are summed into one histogram per zone (their cycles add up), since
 the sensor did not move between them. Bins listed in the sensor model's `ignore_bins`, and bins where any frame hit
-the counter's ceiling (`max_count`), are masked out of every loss, as is every bin of a histogram no sensor could
-have produced in any of its frames (`protocol.plausibility`: all zero, saturated, more counts than a first-photon
-sensor's cycles allow, ...).
+the counter's ceiling (`max_count`; their counts zeroed, `load_scene`), are masked out of every loss, as is every bin
+of a histogram no sensor could have produced in any of its frames (`protocol.plausibility`: all zero, saturated, more
+counts than a first-photon sensor's cycles allow, ...).
 
 The manifest's `scene` dict may say (all optional, metres):
 - `"center": [x, y, z]`, `"radius": r` — a sphere that holds the object (else found from the views' first returns,
@@ -138,6 +138,11 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     # Left out means left out of everything: the scene's bound, the table's search and the background read counts
     # too, and a corrupt bin of a left-out histogram would otherwise put the table under a spurious peak.
     counts = np.where(broken[..., None], 0.0, counts)
+    # A bin at the counter's limit holds no count (every preset's counter holds more than a frame's cycles: the value
+    # is a corrupt one), and it is masked out of the bins' terms; zeroed, it also stays out of the fit's "no photon"
+    # term (a 2**32-1 there read as every cycle having seen a photon: a sphere 115 mm off after 50 steps, 56 without
+    # it), the first returns (each view's return put in that bin), the scene's bound, the table and the background.
+    counts = np.where(saturated, 0.0, counts)
     poses = data.poses[views.first]
     valid = ~saturated & ~broken[..., None]
     if sensor.ignore_bins:
