@@ -404,26 +404,37 @@ def misplaced_views(poses, mesh, table: SimTable | None = None) -> tuple[np.ndar
 
 
 FLOODED_BINS = 4
-"""The first bins of a histogram: most of its detections there say pile-up (the first photon of nearly every cycle
-comes at once: a surface touching the sensor, or so much ambient light or laser power that the sensor fills its
-first bins and sees nothing behind them)."""
+"""The first bins of a histogram, at least (`flooded_bins`): most of its detections there say pile-up (the first
+photon of nearly every cycle comes at once: a surface touching the sensor, or so much ambient light or laser power
+that the sensor fills its first bins and sees nothing behind them)."""
 FLOODED_SHARE = 0.5
-"""A histogram holding more than this share of its detections in its first FLOODED_BINS bins is flooded."""
+"""A histogram holding more than this share of its detections in its first `flooded_bins` bins is flooded."""
 
 
-def flooded_note(hists: np.ndarray) -> str | None:
+def flooded_bins(sensor: SensorModel) -> int:
+    """How many first bins of `sensor`'s histograms a flooded one fills: those before zero range and the one that
+    holds it, at least FLOODED_BINS. A sensor whose zero range lies far into its histogram (the TMF8820's at bin
+    12.4, its pulse peaking 3 bins before it) puts the return of a surface touching it there, not in bins 0-3: counted
+    from bin 0 alone, a TMF8820 capture whose every view touched the sphere was written without a word."""
+    return min(sensor.n_bins, max(FLOODED_BINS, math.ceil(sensor.zero_bin) + 1))
+
+
+def flooded_note(hists: np.ndarray, sensor: SensorModel) -> str | None:
     """A warning for a capture whose views are mostly flooded (`FLOODED_SHARE` of a histogram's detections in its
-    first FLOODED_BINS bins, for most of a view's zones, in most views), or None. hists (n, zones, bins) counts."""
-    h = np.asarray(hists, dtype=np.float64)
+    first `flooded_bins` bins, for most of a view's zones, in most views), or None. hists (n, zones, bins) counts of
+    `sensor`; the bins it ignores (the TMF8820's reference bin 0) are left out."""
+    h = np.array(hists, dtype=np.float64)
+    h[..., [b for b in sensor.ignore_bins if b < h.shape[-1]]] = 0.0
+    first = flooded_bins(sensor)
     total = h.sum(axis=-1)
-    early = h[..., :FLOODED_BINS].sum(axis=-1)
+    early = h[..., :first].sum(axis=-1)
     flooded = (total > 0) & (early > FLOODED_SHARE * total)
     views = flooded.mean(axis=1) > 0.5
     if views.mean() <= 0.5:
         return None
     share = float(early[flooded].sum() / total[flooded].sum())
     return (f"warning: {int(views.sum())} of {len(views)} views hold {100 * share:.0f} % of their detections in "
-            f"their first {FLOODED_BINS} bins (pile-up: a surface touching the sensor, or so much ambient light or "
+            f"their first {first} bins (pile-up: a surface touching the sensor, or so much ambient light or "
             f"laser power that the first photon of nearly every cycle comes at once): they show no return behind "
             f"it, and reconstruct will refuse or misread them; move the views back, or lower --ambient / --power")
 

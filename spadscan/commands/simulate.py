@@ -330,7 +330,7 @@ def run(args) -> int:
             print(f"spadscan simulate: {left}", file=sys.stderr)
         raise  # the command line says it was interrupted, exit status 130
     hists = CaptureReader(path).load().hists
-    for note in (flooded_note(hists), saturated_note(hists)):
+    for note in (flooded_note(hists, sensor), saturated_note(hists)):
         if note:
             print(note, file=sys.stderr)
     on_table = "" if table is None else f" on a table at z = {table.height_m:g} m (albedo {table.albedo:g})"
