@@ -22,6 +22,7 @@ import spadscan
 from spadscan.protocol.capture_reader import CaptureReader, check_capture_counts
 from spadscan.protocol.errors import CaptureError, SpadscanError
 from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
+from spadscan.protocol.pileup import coates_correct
 
 from . import end_of_run
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
@@ -63,6 +64,9 @@ NOISE_VIEWS = 32
 """Views the fit is compared with the photon noise on (end_of_run.fit_noise)."""
 NOISE_RENDERS = 4
 """Renders of each of them averaged for that comparison (one for a model whose render is deterministic)."""
+NEAR_PEAK_OVER = 5.0
+"""How far (x their median) the photon rates' peak near the sensor stands above the rest when a surface touches
+the sensor (`_why_no_return`): such a return piles up nearly every cycle, ambient light alone stays within its noise."""
 COVERAGE_PROBE_VIEWS = 8
 """Views the probe of the coverage count counts every sample point of the probe's mesh on, spread among those the
 report's count reads (`_probe_coverage`): an eighth or less of that count's time."""
@@ -173,19 +177,24 @@ def check_returns(capture, scene) -> None:
     if not detected_returns(counts, scene.sensor, DEFAULT_THRESHOLD).detected.any():
         raise CaptureError(f"{capture}: no histogram holds a return above the noise ({DEFAULT_THRESHOLD:g} standard "
                            f"deviations of its matched-filtered background): nothing to reconstruct "
-                           f"({_why_no_return(counts, scene.sensor)})")
+                           f"({_why_no_return(counts, scene.cycles.detach().cpu().numpy(), scene.sensor)})")
     check_time_axis(capture, *scene_views(scene))
 
 
-def _why_no_return(counts: np.ndarray, sensor) -> str:
-    """The likely cause of histograms without a return: photons piled at the start of the range (a surface touching
-    the sensor: its return ends in the first bins, where no peak can stand out), else the general causes."""
-    total = counts.sum(axis=(0, 1))
+def _why_no_return(counts: np.ndarray, cycles: np.ndarray, sensor) -> str:
+    """The likely cause of histograms (V, Z, B) of `cycles` (V,) laser cycles without a return: photons piled at the
+    start of the range (a surface touching the sensor: its return ends in the first bins, where no peak can stand
+    out), else the general causes. The photon rates are read through pile-up (`coates_correct`) before their peak is
+    looked for, and it must stand NEAR_PEAK_OVER x over their median: a first-photon sensor's counts of ambient light
+    alone fall bin by bin (fewer cycles are still live), and their highest bin, the first, was read as a surface
+    touching the sensor."""
+    rates = coates_correct(counts, cycles[:, None]) if sensor.pileup else counts
+    total = rates.sum(axis=(0, 1))
     if sensor.ignore_bins:
         total[list(sensor.ignore_bins)] = 0.0
     peak = int(np.argmax(total))
     at = float(sensor.range_of_bin(peak + 0.5))
-    if total[peak] > 0 and at < NEAR_RANGE_M:
+    if total[peak] > NEAR_PEAK_OVER * np.median(total) and total[peak] > 0 and at < NEAR_RANGE_M:
         return (f"the photons pile up {max(at, 0.0) * 1e3:.0f} mm from the sensor, at the start of its range: a "
                 f"surface touching the sensor (move it back), or the sensor record's zero_bin wrong")
     return "the object out of range or out of every view, or the sensor's settings wrong"
