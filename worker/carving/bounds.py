@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from spadscan.protocol.errors import CaptureError
+from spadscan.protocol.mesh_io import MAX_EXTENT_M
 from spadscan.protocol.sensor_model import SensorModel, Zone
 
 from .returns import DEFAULT_THRESHOLD, FirstReturns, first_returns
@@ -16,7 +17,8 @@ RADIUS_FRACTION_MAX = 0.8
 """A scene's sphere never reaches closer to a sensor than this fraction of its distance to the sphere's centre."""
 def given_sphere(scene: dict, where) -> tuple[np.ndarray | None, float | None]:
     """(centre (3,), radius m) of the sphere a capture's scene record gives, each None where it gives none;
-    CaptureError naming `where` for a centre that is no finite 3-vector or a radius that is no positive number."""
+    CaptureError naming `where` for a centre that is no finite 3-vector or a radius that is no positive number, or
+    either beyond MAX_EXTENT_M (a radius of 1e300 made the grid's box NaN, refused by a message that named neither)."""
     center = radius = None
     if "center" in scene:
         try:
@@ -25,11 +27,15 @@ def given_sphere(scene: dict, where) -> tuple[np.ndarray | None, float | None]:
             center = None
         if center is None or center.shape != (3,) or not np.all(np.isfinite(center)):
             raise CaptureError(f"{where}: scene center {scene['center']} is not a finite 3-vector")
+        if np.abs(center).max() > MAX_EXTENT_M:
+            raise CaptureError(f"{where}: scene center {scene['center']} lies over {MAX_EXTENT_M:g} m from the "
+                               f"origin (metres are meant)")
     if "radius" in scene:
         value = scene["radius"]
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
-        if not ok:
-            raise CaptureError(f"{where}: scene radius {value} must be a positive number of metres")
+        if not ok or value > MAX_EXTENT_M:
+            raise CaptureError(f"{where}: scene radius {value} must be a positive number of metres, at most "
+                               f"{MAX_EXTENT_M:g}")
         radius = float(value)
     return center, radius
 
