@@ -120,7 +120,8 @@ def with_scene(capture, out, **changes):
                                            ({"radius": "big"}, "scene radius big must be a positive number"),
                                            ({"radius": 1e300}, "scene radius 1e+300 must be a positive number of "
                                                                "metres, at most 10000"),
-                                           ({"center": [0, 0, 1e300]}, "scene center [0, 0, 1e+300] lies over 10000 m")])
+                                           ({"center": [0, 0, 1e300]},
+                                            "scene center [0, 0, 1e+300] lies over 10000 m")])
 def test_a_malformed_scene_sphere_is_one_line_in_both_commands(cylinder_capture, tmp_path, capsys, command, changes,
                                                                said):
     cap = with_scene(cylinder_capture, tmp_path / "cap", **changes)
