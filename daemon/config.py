@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from spadscan.protocol.errors import ConfigError
-from spadscan.protocol.folders import check_folder_option, folder_problem
+from spadscan.protocol.folders import check_folder_option, folder_problem, not_a_folder
 from spadscan.protocol.schedules import ring_at_pole_deg
 
 from .backends import ARM_BACKENDS, SENSOR_BACKENDS, ArmBackend, SensorBackend
@@ -370,8 +370,12 @@ def _check_ring_poles(scan: ScanConfig, where: str) -> None:
 def _check_paths(cfg: DaemonConfig, where: str) -> None:
     if len(os.fsencode(str(cfg.socket))) > SOCKET_PATH_MAX:
         raise ConfigError(f"{where}: socket path {cfg.socket} is longer than {SOCKET_PATH_MAX} bytes (Unix limit)")
-    if not cfg.socket.parent.is_dir():
-        raise ConfigError(f"{where}: socket folder {cfg.socket.parent}: no such folder")
+    folder = cfg.socket.parent
+    # Tried as the captures root is (`folder_problem`): one the daemon cannot write into passed --check, and the
+    # start failed after the devices had connected, with a bare "Permission denied" that named no path.
+    problem = not_a_folder(folder) or (None if folder.is_dir() else "no such folder") or folder_problem(folder)
+    if problem is not None:
+        raise ConfigError(f"{where}: socket folder {folder}: {problem}")
     root = cfg.captures
     if root.exists() and not root.is_dir():
         raise ConfigError(f"{where}: captures {root} exists and is not a folder")

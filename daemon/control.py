@@ -109,9 +109,10 @@ class ControlServer:
         old = os.umask(0o177)  # the file is born 0600: no window in which others could connect
         try:
             sock.bind(str(self.path))
-        except OSError:
+        except OSError as exc:  # the folder changed since start-up checked it: said with the path and the key
             sock.close()
-            raise
+            raise ConfigError(f"socket path {self.path}: cannot listen there ({exc.strerror or exc}); make its "
+                              f"folder writable or choose another `socket` in the rig config") from None
         finally:
             os.umask(old)
         os.chmod(self.path, 0o600)

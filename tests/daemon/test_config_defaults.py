@@ -150,6 +150,22 @@ def test_a_captures_folder_this_user_may_not_write_says_so(tmp_path, sock_dir):
                         r.stderr), r.stderr
 
 
+@pytest.mark.parametrize("folder, said", [("locked", "cannot write into it (Permission denied)"),
+                                          ("file", "a file, not a folder"), ("missing", "no such folder")])
+def test_a_socket_folder_the_daemon_cannot_use_is_refused_by_the_check(tmp_path, folder, said):
+    """`daemon --check` passed a socket folder this user may not write into, and the start failed after the devices
+    had connected; a file where the folder should be was called "no such folder"."""
+    (tmp_path / "locked").mkdir(mode=0o500)
+    (tmp_path / "file").write_text("")
+    config = tmp_path / "rig.toml"
+    config.write_text(f'captures = "{tmp_path / "caps"}"\nsocket = "{tmp_path / folder / "s.sock"}"\n'
+                      '[sensor]\nbackend = "sim"\nmesh = "builtin:sphere"\n')
+    r = subprocess.run(permissions_apply() + [sys.executable, "-m", "spadscan.cli", "daemon", "--config", str(config),
+                                              "--check"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and r.stdout == "", r.stderr
+    assert r.stderr == f"spadscan: error: {config}: socket folder {tmp_path / folder}: {said}\n"
+
+
 def test_a_captures_folder_on_a_real_read_only_mount_is_refused(tmp_path, sock_dir):
     """A read-only bind mount of the folder, in a mount namespace of the checking process's own (so nothing outside
     it sees the mount); skipped where the process may not make one."""

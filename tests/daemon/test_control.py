@@ -54,6 +54,21 @@ def test_socket_is_private_and_removed(arun, sock_dir):
     assert not path.exists()
 
 
+def test_a_socket_that_cannot_be_made_is_said_with_its_path_and_key(arun, sock_dir):
+    """Its folder gone (or made unwritable) after start-up checked it: the daemon said only "Operation not permitted",
+    naming no path, after its devices had connected."""
+    path = sock_dir / "gone" / "ctl.sock"
+
+    async def scenario():
+        async with ControlServer(path, echo):
+            pass
+
+    with pytest.raises(ConfigError) as refused:
+        arun(scenario())
+    assert str(refused.value) == (f"socket path {path}: cannot listen there (No such file or directory); make its "
+                                  f"folder writable or choose another `socket` in the rig config")
+
+
 def test_a_request_without_its_newline_is_answered_when_the_sender_closes_its_side(arun, sock_dir):
     """`printf '{"op": "status"}' | nc -U -q 5 SOCKET`: a complete request, no newline, then the sending side shut;
     the client still reads its reply."""
