@@ -284,7 +284,7 @@ def run(args) -> int:
         print(f"spadscan: error: {said}", file=sys.stderr)
         return 1
     if args.op == "scan" and args.wait:
-        return _wait(path, reply["scan"], args.timeout)
+        return _wait(path, reply["scan"], args.timeout, args.json)
     return 0
 
 

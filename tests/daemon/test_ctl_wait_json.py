@@ -168,3 +168,23 @@ def test_the_help_says_the_state_is_the_daemons_and_the_scans_end_is_waits(capsy
     shown = " ".join(capsys.readouterr().out.split())
     assert "for a scan that ended before the daemon started, the daemon's status then" in shown, shown
     assert "`state` is always the daemon's" in shown and '"reason" where one was given for how it ended' in shown
+
+
+def test_a_scan_whose_wait_fails_with_json_ends_with_the_error_on_stdout(tmp_path, monkeypatch, capsys):
+    """`ctl scan --wait --json` whose wait runs out of time: standard output held the start's reply alone, so a
+    script reading its last line read "scanning"; now the wait's {"ok": false, ...} line follows it."""
+    from spadscan.daemon.client import ControlTimeout
+    import spadscan.daemon.client as client
+
+    def answer(path, op, timeout, **request):
+        if op == "scan":
+            return {"ok": True, "state": "scanning", "scan": "mug"}
+        raise ControlTimeout("scan 'mug' still scanning at pose 3/6 after 0.2 s")
+
+    monkeypatch.setattr(client, "call", answer)
+    assert main(["ctl", "--socket", str(tmp_path / "ctl.sock"), "scan", "--wait", "--json", "--timeout", "0.2"]) == 1
+    out, err = capsys.readouterr()
+    started, failed = map(json.loads, out.splitlines())
+    assert started == {"state": "scanning", "scan": "mug"}
+    assert failed["ok"] is False and failed["wait"]["name"] == "mug" and failed["wait"]["ended"] == "timeout"
+    assert err == f"spadscan: error: {failed['error']}\n", err

@@ -134,6 +134,19 @@ def test_a_scan_name_cannot_escape_the_captures_root(make_daemon, tmp_path):
     assert daemon.stop() == 0, daemon.log()
 
 
+def test_scan_wait_with_json_ends_with_waits_json_line(make_daemon):
+    """`ctl scan --wait --json`: its wait printed the plain reply; now the line `ctl wait --json` prints."""
+    daemon = make_daemon(scan={"views": 4})
+    daemon.start()
+    r = daemon.ctl("scan", "--name", "jw", "--wait", "--json")
+    assert r.returncode == 0, r.stderr
+    started, waited = map(json.loads, r.stdout.splitlines())
+    assert started["scan"] == "jw"
+    assert waited["wait"]["name"] == "jw" and waited["wait"]["ended"] == "complete", waited
+    assert waited["last_scan"]["name"] == "jw", waited
+    assert daemon.stop() == 0, daemon.log()
+
+
 def test_ctl_without_a_daemon_is_one_line(tmp_path, sock_dir):
     r = spadscan("ctl", "--socket", sock_dir / "none.sock", "status")
     assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1 and "no daemon is listening" in r.stderr
