@@ -26,7 +26,7 @@ import numpy as np
 import numpy.lib.format as npy_format
 
 from .atomic_files import fsync_dir, write_durable
-from .errors import CaptureError
+from .errors import CaptureError, ConfigError
 
 FORMAT = "spadscan-capture"
 VERSION = 1
@@ -89,6 +89,29 @@ def chunk_index(name: str) -> int | None:
     """Index of a published chunk folder name, or None for anything else."""
     match = CHUNK_NAME.fullmatch(name)
     return int(match[1]) if match else None
+
+
+def enclosing_capture(path) -> Path | None:
+    """The capture folder (one holding MANIFEST) nearest above `path`, or `path` itself when it is one; None when
+    none is, or where a folder on the way cannot be looked into. Paths resolved (a link into a capture is inside it):
+    a command's --out there would put its files among that capture's measurements."""
+    for folder in [Path(path).resolve(), *Path(path).resolve().parents]:
+        try:
+            if (folder / MANIFEST).is_file():
+                return folder
+        except OSError:
+            return None
+    return None
+
+
+def check_new_capture_out(out) -> None:
+    """Refuse (ConfigError, one line) an --out for a new capture that lies inside another capture's folder: its
+    chunks and manifest would be mixed into that capture's measurements. One that is a capture itself is left to
+    the writer, which says so."""
+    around = enclosing_capture(out)
+    if around is not None and around != Path(out).resolve():
+        raise ConfigError(f"--out {out} lies inside the capture {around}: a capture there would be mixed into its "
+                          f"measurements; choose a folder outside it")
 
 
 def check_poses(poses: np.ndarray, where: str) -> np.ndarray:

@@ -10,7 +10,7 @@ import shutil
 from pathlib import Path
 from typing import Callable, Iterator
 
-from spadscan.protocol.capture_format import MANIFEST, chunk_index, chunk_name
+from spadscan.protocol.capture_format import MANIFEST, chunk_index, chunk_name, enclosing_capture
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.folders import check_folder_option
 from spadscan.protocol.mesh_io import BUILTIN_PREFIX
@@ -37,8 +37,8 @@ def held_result(out) -> list[str]:
 
 def check_out(out, overwrite: bool, capture=None) -> Path:
     """`out` as a Path, refused when it is a file, or holds a result and `overwrite` is not set, or lies inside the
-    folder of `capture` (when given) anywhere but under its recon/ folder, where the worker puts results, or is a
-    folder this process cannot write into or make (`check_folder_option`, on `out` itself, not on the scratch
+    folder of a capture (`capture`, or any other: `enclosing_capture`) anywhere but under its recon/ folder, where the
+    worker puts results, or is a folder this process cannot write into or make (`check_folder_option`, on `out` itself, not on the scratch
     folder beside it that a run makes first). A `capture` that is no capture folder is refused first
     (`check_capture_folder`). (An empty --out the command line refuses: cli.FOLDER_OPTIONS.)"""
     out = Path(out)
@@ -46,10 +46,12 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
         check_capture_folder(capture)  # first: a plain folder that holds --out is no capture it would be mixed into
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
-    if capture is not None:
-        inside = _relative_to(out, Path(capture))
-        if inside is not None and (not inside.parts or inside.parts[0] != "recon"):
-            raise ConfigError(f"--out {out} lies inside the capture {capture}: results there would be mixed into "
+    around = enclosing_capture(out)  # the capture read, or another one (a copy, a daemon's scan): never among them
+    if around is not None:
+        inside = out.resolve().relative_to(around)
+        if not inside.parts or inside.parts[0] != "recon":
+            named = capture if capture is not None and _relative_to(around, Path(capture)) == Path() else around
+            raise ConfigError(f"--out {out} lies inside the capture {named}: results there would be mixed into "
                               f"its measurements; choose a folder outside it (or under its recon/ folder)")
     held = held_result(out)
     if held and not overwrite:

@@ -46,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
+    from spadscan.protocol.capture_format import check_new_capture_out
     from spadscan.protocol.folders import check_folder_option
     from spadscan.protocol.lcspc import import_lcspc
     from spadscan.signals import terminate_as_interrupt
@@ -53,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scan_id is not None:
         check_scan_id(args.scan_id, args.out)
     check_folder_option(args.out, "--out")  # a folder that already holds a capture the import refuses, saying so
+    check_new_capture_out(args.out)
 
     bars: dict[str, tqdm] = {}
     show = progress_bar_wanted(args)

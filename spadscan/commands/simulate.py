@@ -287,7 +287,7 @@ def run(args) -> int:
     import sys
     import time
 
-    from spadscan.protocol.capture_format import MANIFEST
+    from spadscan.protocol.capture_format import MANIFEST, check_new_capture_out
     from spadscan.protocol.capture_reader import CaptureReader
     from spadscan.protocol.errors import SimulationError
     from spadscan.protocol.folders import check_folder_option
@@ -299,6 +299,7 @@ def run(args) -> int:
 
     check_options(args)
     check_folder_option(args.out, "--out")  # named, before the mesh is loaded; not a bare OS error at the writer's
+    check_new_capture_out(args.out)
     had_capture = (Path(args.out) / MANIFEST).exists()  # a capture there before this run is none of its own
     table = make_table(args)
     mesh, scene = load_mesh_spec(args.mesh)

@@ -643,6 +643,38 @@ def test_results_are_never_written_among_a_captures_measurements(capture_and_gt,
     check_out(cap / "recon" / "by-hand", False, capture=cap)  # where the worker puts its results: allowed
 
 
+def test_results_are_never_written_among_another_captures_measurements(capture_and_gt, tmp_path, capsys):
+    """--out in a copy of the capture, or in a chunk of it: the check compared --out with the capture read only,
+    and mesh.ply, report.json and the pictures landed among the other capture's chunks, exit status 0. Its recon/
+    folder stays allowed, as the capture's own is."""
+    import shutil
+
+    cap, _ = capture_and_gt
+    other = tmp_path / "copy"
+    shutil.copytree(cap, other)
+    before = sorted(p.name for p in other.rglob("*"))
+    for out in (other, other / "chunk-000000", other / "results"):
+        assert _recon(cap, out) == 1
+        assert f"--out {out} lies inside the capture {other}: results there" in _error_lines(capsys)[0]
+        assert main(["baseline", "reprojection", str(cap), "--out", str(out), "--no-gt"]) == 1
+        assert f"lies inside the capture {other}" in _error_lines(capsys)[0]
+    assert sorted(p.name for p in other.rglob("*")) == before
+    check_out(other / "recon" / "by-hand", False, capture=cap)
+
+
+@pytest.mark.parametrize("command", ["simulate", "import-lcspc"])
+def test_a_new_capture_is_never_made_inside_another(capture_and_gt, tmp_path, capsys, command):
+    cap, _ = capture_and_gt
+    out = cap / "recon" / "new"
+    argv = (["simulate", "builtin:sphere", "--views", "4", "--no-progress"] if command == "simulate" else
+            ["import-lcspc", str(tmp_path / "scene.json"), "--no-progress"])
+    assert main([*argv, "--out", str(out)]) == 1
+    assert _error_lines(capsys)[0] == (f"spadscan: error: --out {out} lies inside the capture {cap.resolve()}: a "
+                                       f"capture there would be mixed into its measurements; choose a folder "
+                                       f"outside it")
+    assert not out.exists()
+
+
 def test_more_threads_than_cores_is_a_warning(capture_and_gt, tmp_path, capsys, monkeypatch):
     import spadscan.worker.reconstruct as reconstruct
 
