@@ -71,9 +71,13 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     module.add_arguments(parser)
     args = parser.parse_args(_negative_lists_attached(rest))
-    empty = _empty_folder_option(rest)
+    empty = _empty_option(rest, FOLDER_OPTIONS)
     if empty:
         print(f"spadscan: error: {empty} is empty (an unset shell variable?): give the folder", file=sys.stderr)
+        return 1
+    empty = _empty_option(rest, FILE_OPTIONS)
+    if empty:
+        print(f"spadscan: error: {empty} is empty (an unset shell variable?): give the file", file=sys.stderr)
         return 1
     empty = _empty_positional(parser, args)
     if empty:
@@ -87,11 +91,16 @@ FOLDER_OPTIONS = ("--out", "--root", "--queue", "--lcspc")
 a command writes its result among the user's files."""
 
 
-def _empty_folder_option(argv: list[str]) -> str | None:
-    """The first of FOLDER_OPTIONS given an empty value in `argv` (`--out ""` or `--out=`), or None."""
+FILE_OPTIONS = ("--config", "--gt")
+"""Options that name a file: given empty they named the current folder, and the error said `.: cannot read` or `.: is
+a folder, not a mesh file`."""
+
+
+def _empty_option(argv: list[str], options: tuple[str, ...]) -> str | None:
+    """The first of `options` given an empty value in `argv` (`--out ""` or `--out=`), or None."""
     for i, token in enumerate(argv):
         name, eq, value = token.partition("=")
-        if name in FOLDER_OPTIONS and ((eq and not value) or (not eq and i + 1 < len(argv) and argv[i + 1] == "")):
+        if name in options and ((eq and not value) or (not eq and i + 1 < len(argv) and argv[i + 1] == "")):
             return name
     return None
 

@@ -44,3 +44,18 @@ def test_an_empty_path_argument_is_named_in_one_line_and_writes_nothing(tmp_path
     assert main(argv) == 1
     assert capsys.readouterr().err == f"spadscan: error: {name} is empty (an unset shell variable?)\n"
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [
+    ["daemon", "--config", "", "--check"],
+    ["eval", "mesh.ply", "--gt="],
+    ["reconstruct", "capture", "--out", "x", "--gt", ""],
+    ["baseline", "reprojection", "capture", "--out", "x", "--gt", ""],
+])
+def test_an_empty_file_option_is_named_in_one_line_and_writes_nothing(tmp_path, monkeypatch, capsys, argv):
+    """Not '.: cannot read ([Errno 21] Is a directory: '.')' nor '.: is a folder, not a mesh file'."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 1
+    name = next(token.partition("=")[0] for token in argv if token.partition("=")[0] in ("--config", "--gt"))
+    assert capsys.readouterr().err == f"spadscan: error: {name} is empty (an unset shell variable?): give the file\n"
+    assert list(tmp_path.iterdir()) == []
