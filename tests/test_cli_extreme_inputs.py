@@ -77,3 +77,12 @@ def test_simulate_refuses_too_few_laser_cycles_and_names_the_minimum(tmp_path):
                                   "--no-progress"))
     assert "--cycles 1" in err and "at least 100" in err, err
     assert not (tmp_path / "cap").exists()
+
+
+def test_worker_times_out_of_range_name_the_range(tmp_path):
+    """`--poll-s 1e6` and `--lease-s inf` were refused as "must be > 0"."""
+    (tmp_path / "caps").mkdir()
+    for option, value, said in (("--poll-s", "1000000", "poll 1000000.0 s"), ("--lease-s", "inf", "lease inf s"),
+                                ("--poll-s", "0", "poll 0.0 s")):
+        err = one_line_error(spadscan("worker", "--root", tmp_path / "caps", option, value, "--once"))
+        assert err == f"spadscan: error: {said} must be a finite number of seconds over 0 and under 1e+06", err

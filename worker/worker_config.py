@@ -14,6 +14,10 @@ from .threads import (ADAPT_ENV, ENV as THREADS_ENV, check_threads, inherited_th
                       one_worker_processes, oversubscribed, threads_per_job, wait_env)
 from .watcher import JobOptions, check_root
 
+MAX_SECONDS = 1e6
+"""The worker's times (poll, lease, stop grace) are under this many seconds (11 days): a larger one, or inf, is a
+typo, not a wish."""
+
 
 def machine_job_processes(siblings: list[dict]) -> int:
     """Job processes the other workers on this machine (`presence.machine_siblings` rows) may run at once: each
@@ -158,8 +162,9 @@ class WorkerConfig:
             raise ConfigError(f"processes {self.processes} must be an integer in [1, 256]")
         for key in ("poll_s", "lease_s", "stop_grace_s"):
             v = getattr(self, key)
-            if not (isinstance(v, (int, float)) and 0 < v < 1e6):
-                raise ConfigError(f"{key.replace('_s', '')} {v} s must be > 0")
+            if not (isinstance(v, (int, float)) and 0 < v < MAX_SECONDS):
+                raise ConfigError(f"{key.replace('_s', '')} {v} s must be a finite number of seconds over 0 and "
+                                  f"under {MAX_SECONDS:g}")
         if self.threads is not None:
             check_threads(self.threads)
         self.options.check()
