@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -67,7 +68,8 @@ from .scan_capture import (close_writer, count_as_held, counted_on_disk, end_ear
                            pose_measurements, remove_partial, reopen_fix, reopen_problem)
 from .scan_job import (ABORT_PENDING, DEFAULT_ABORT_REASON, RIG_VERSION, WRITER, ScanJob, abort_pending,
                        check_scan_name, clear_abort_pending, default_scan_name, find_abort_pending, find_interrupted,
-                       interrupted_at, interrupted_scan, load_job, pause_before_block, takeover_note, way_out)
+                       interrupted_at, interrupted_scan, load_job, name_taken, pause_before_block, takeover_note,
+                       way_out)
 from .adaptive import ViewChooser, live_converged
 from .scan_end import ScanEnd, recorded_end
 from .scan_path import back_on_path, check_left, check_way
@@ -188,8 +190,8 @@ class ScanRunner:
                             "locked again", self.root)
         name = check_scan_name(name, self.root) if name is not None else default_scan_name(self.root)
         path = self.root / name
-        if path.exists():
-            raise ConfigError(f"scan {name!r} already exists in {self.root} (choose another name)")
+        if os.path.lexists(path):
+            raise ConfigError(name_taken(name, self.root))
         scan = scan_request(self.cfg.scan, overrides or {})
         try:
             start = (await self._arm_state()).tcp_pose
@@ -217,7 +219,7 @@ class ScanRunner:
             # writing there) is not ours to fill, nor to remove if the start fails.
             await self._io(path.mkdir)
         except FileExistsError:
-            raise ConfigError(f"scan {name!r} already exists in {self.root} (choose another name)") from None
+            raise ConfigError(name_taken(name, self.root)) from None
         except OSError as exc:
             self.last_error = f"cannot start scan {name!r}: {describe(exc, 'creating the scan folder')}"
             log.warning("%s", self.last_error)

@@ -69,6 +69,17 @@ def check_scan_name(name, root: Path) -> str:
     return name
 
 
+def name_taken(name: str, root: Path) -> str:
+    """Why a new scan cannot be named `name` in captures root `root`, where something by that name is: a scan, or
+    what else (`ctl scan --name X` called a file or an empty folder X a scan that exists, where `ctl wait X` said
+    there is no scan named X)."""
+    path = Path(root) / name
+    if (path / MANIFEST).is_file():
+        return f"scan {name!r} already exists in {root} (choose another name)"
+    what = "a folder that holds no scan" if path.is_dir() else "a file, not a scan"
+    return f"{name!r} already exists in {root}, {what} (choose another name)"
+
+
 def default_scan_name(root: Path) -> str:
     """scan-YYYYMMDD-HHMMSS (local time), with a suffix when that folder exists."""
     base = "scan-" + _dt.datetime.now().strftime("%Y%m%d-%H%M%S")

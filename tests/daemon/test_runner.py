@@ -754,7 +754,9 @@ def test_requests_in_the_wrong_state_are_refused(arun, tmp_path, sphere):
     errors = arun(scenario())
     assert all("\n" not in e for e in errors)
     assert "nothing to pause" in errors[0] and "nothing to resume" in errors[1] and "nothing to abort" in errors[2]
-    assert "no scan named 'ghost'" in errors[3] and "already exists" in errors[4]
+    assert "no scan named 'ghost'" in errors[3]
+    assert errors[4] == (f"'taken' already exists in {tmp_path / 'caps'}, a folder that holds no scan (choose another "
+                         f"name)")
     assert all("scan name" in e for e in errors[5:9])
     assert "views" in errors[9] and "unknown key 'fps'" in errors[10]
     assert sorted(p.name for p in (tmp_path / "caps").iterdir()) == ["busy", "taken"]
@@ -831,6 +833,30 @@ def test_only_scans_the_daemon_wrote_are_taken_over(arun, tmp_path, sphere, capl
         assert r.state == "running" and r.chunk_names() == []  # untouched
     assert CaptureReader(tmp_path / "caps" / "mine").manifest["rig"]["writer"] == "spadscan-daemon"
     assert any(r.getMessage().startswith("took over interrupted scan mine at pose ") for r in caplog.records)
+
+
+def test_a_new_scans_name_taken_says_by_what(arun, tmp_path, sphere):
+    """`ctl scan --name X` called a file X, or a folder X that holds no scan, a scan that exists, where `ctl wait X`
+    said there is no scan named X."""
+    cfg = make_cfg(tmp_path, views=4, frames_per_pose=1)
+    caps = tmp_path / "caps"
+    caps.mkdir()
+    (caps / "notes").write_text("keep")
+
+    async def scenario():
+        async with daemon_runner(cfg, sphere) as runner:
+            await runner.start("done")
+            await runner.wait("done")
+            said = []
+            for name in ("notes", "done"):
+                with pytest.raises(ConfigError) as refused:
+                    await runner.start(name)
+                said.append(str(refused.value))
+            return said
+
+    assert arun(scenario()) == [f"'notes' already exists in {caps}, a file, not a scan (choose another name)",
+                                f"scan 'done' already exists in {caps} (choose another name)"]
+    assert (caps / "notes").read_text() == "keep"
 
 
 def test_a_folder_that_appears_while_a_scan_is_planned_is_left_alone(arun, tmp_path, sphere, monkeypatch):
