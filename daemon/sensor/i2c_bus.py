@@ -142,6 +142,9 @@ SETTLE_S = 0.010
 """Wait after setting PON and after RAMREMAP before the chip is addressed again (the references wait 10 ms)."""
 TIME_MULTIPLEXED_MAPS = frozenset({4, 5, 7, 10, 13, 15})
 """ams' predefined SPAD maps that take two sub-captures per result (4x4, 3x6, 8x8): not one 3x3 frame."""
+PREDEFINED_MAPS = range(1, 14)
+"""ams' predefined SPAD map ids (the config page's SPAD_MAP_ID, a 4-bit field): 14 is the user's own mask, which
+needs the SPAD config page this driver never writes, and 15 the TMF8828's 8x8."""
 BL_ERRORS = {0x01: "size error", 0x02: "checksum error", 0x03: "resource error", 0x04: "application error",
              0x05: "timeout", 0x06: "locked", 0x07: "address out of range", 0x08: "more data expected"}
 COMMAND_NAMES = {CMD_MEASURE: "measure", CMD_STOP: "stop", CMD_LOAD_CONFIG: "load common config",
@@ -169,6 +172,9 @@ class I2CTransport(Transport):
                            ("spad_map", spad_map, 0xFF), ("address", address, 0x7F)):
             if not (isinstance(v, int) and 0 < v <= hi):
                 raise DeviceError(f"i2c sensor: {key} = {v} must be an integer in [1, {hi}]")
+        if spad_map not in PREDEFINED_MAPS and spad_map not in TIME_MULTIPLEXED_MAPS:
+            raise DeviceError(f"i2c sensor: spad_map = {spad_map} is none of ams' predefined SPAD maps (1-13): the "
+                              f"chip would measure with a mask the `tmf8820` sensor model does not describe; use 1")
         if spad_map in TIME_MULTIPLEXED_MAPS:
             raise DeviceError(f"i2c sensor: spad_map = {spad_map} is time-multiplexed (two sub-captures per result); "
                               "frames need one 3x3 capture: use SPAD map 1 (the `tmf8820` sensor model's)")

@@ -770,6 +770,9 @@ def test_bad_settings_are_refused():
         I2CSensor(1, kilo_iterations=70000)
     with pytest.raises(DeviceError, match="spad_map = 7 is time-multiplexed"):
         I2CSensor(1, spad_map=7)
+    for user_mask in (14, 16, 255):  # the config page's SPAD_MAP_ID is 4 bits; 14 needs the SPAD config page
+        with pytest.raises(DeviceError, match=f"spad_map = {user_mask} is none of ams' predefined SPAD maps"):
+            I2CSensor(1, spad_map=user_mask)
 
 
 def test_the_lab_notes_list_exactly_the_notes_there_are():
