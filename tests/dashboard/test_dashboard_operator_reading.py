@@ -25,8 +25,12 @@ from spadscan.commands.dashboard import daemon_running
 from spadscan.daemon.root_lock import RootLock
 from spadscan.dashboard.server import address
 from spadscan.dashboard.worker_state import LOOK_S
-from spadscan.worker.end_of_run import (coverage_warning, misfit_warning, pieces_warning, saturation_warning,
-                                        specks_warning, tunnels_warning)
+from spadscan.worker.carving.bounds import BelowFloor, floor_cut_note
+from spadscan.worker.end_of_run import (coverage_warning, dark_warning, lost_warning, misfit_warning, pieces_warning,
+                                        saturation_warning, specks_warning, tunnels_warning)
+from spadscan.worker.lost_returns import LostReturns
+from spadscan.worker.recon.scene_data import bound_warning
+from spadscan.worker.view_spread import above_only_warning, one_ring_warning
 from spadscan.worker.holder import Holder
 from spadscan.worker.job_progress import claim_log
 from spadscan.worker.jobs import Job
@@ -122,7 +126,13 @@ def end_of_run_warnings() -> tuple[list[str], list[str]]:
                specks_warning(SimpleNamespace(specks=63, specks_share=0.05)),
                tunnels_warning(SimpleNamespace(tunnels=37), 0),
                coverage_warning(SimpleNamespace(share_few=0.3, few_heights_m=(0.1, 0.2), few_views=3)),
-               saturation_warning(SimpleNamespace(saturated=True, saturated_histograms=30, histograms=32))]
+               saturation_warning(SimpleNamespace(saturated=True, saturated_histograms=30, histograms=32)),
+               lost_warning(LostReturns(returns=200, lost=176, heights_m=(0.1, 0.2))),
+               bound_warning(0.2, 0.16, 0.6),
+               floor_cut_note(0.0, "the default floor", BelowFloor(5, 48, 0.055), None, "give another floor"),
+               dark_warning({"restarted_at_step": 200, "albedo": 0.15}),
+               above_only_warning(48.0, 80.0, 64), one_ring_warning(30.0, 31.0, 32)]
+    assert all(serious), serious  # (each made to say so)
     mild = ["the run stopped on its time budget well before convergence: its data term was still falling (4.8 % over "
             "the last fifth of its 150 steps; a larger --budget-s gives a better mesh)",
             "the machine was busy: this run had 0.41 of a CPU core on average and made about 2x fewer steps (150) "

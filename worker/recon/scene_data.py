@@ -177,6 +177,14 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     )
 
 
+def bound_warning(nearest_m: float, radius_m: float, beyond: float) -> str:
+    """The line saying that views `nearest_m` from the scene's centre keep its bound to `radius_m` and a share
+    `beyond` of the first returns lie outside it: that part of the object is not reconstructed."""
+    return (f"views as near as {nearest_m * 1e3:.0f} mm to the scene's centre keep its bound to {radius_m * 1e3:.0f} "
+            f"mm, and {beyond:.0%} of the first returns lie beyond it: that part of the object cannot be "
+            f"reconstructed (scan from farther, or give scene.center and scene.radius in the capture's scan.json)")
+
+
 def _check_floor(scene: dict, capture: Path) -> None:
     """One-line CaptureError for a scene `floor_z` that is no finite number of metres (NaN trained on and failed as a
     diverged fit; true read as a 1 m floor)."""
@@ -251,10 +259,7 @@ def _scene_sphere(scene: dict, poses: np.ndarray, points: np.ndarray, sensor: Se
         beyond = float(np.mean((reach > radius) & ~_on_table(points, scene, real)))
         if beyond > BEYOND_BOUND_SHARE:
             # Nothing outside the sphere can be reconstructed: a scan from 0.2 m of a 0.2 m ball kept 60 % of it.
-            note = (f"views as near as {dist.min() * 1e3:.0f} mm to the scene's centre keep its bound to "
-                    f"{radius * 1e3:.0f} mm, and {beyond:.0%} of the first returns lie beyond it: that part of the "
-                    f"object cannot be reconstructed (scan from farther, or give scene.center and scene.radius in the "
-                    f"capture's scan.json)")
+            note = bound_warning(float(dist.min()), radius, beyond)
     else:
         radius = RADIUS_FRACTION * float(dist.min())
     if radius < 1e-3:
