@@ -205,15 +205,18 @@ def test_the_scan_in_hand_says_how_long_it_has_run_and_its_time_left(tmp_path):
         assert re.fullmatch(r"running for 1:(1[5-9]|[2-5]\d), about \d+ s left", said), said
         assert re.fullmatch(r"\d+ s ago", page.locator("#current-updated").text_content())
         assert re.fullmatch(r"\d+ s ago", page.locator('#scans tr[data-scan="s1"] td').nth(3).text_content())
-        # the estimate is the server's at the last pose: counted past its end, the scan is not said to be over
+        # the estimate is the server's at the last pose, counted down while the next pose can come at the scan's
+        # pace; well past that the pose is late: the scan is not said to end in seconds (it counted down to "its
+        # end due" with 30 poses still to take)
         for chunk in scan.glob("chunk-*"):  # every pose published 40 s earlier than it was: none since
             then = chunk.stat().st_mtime - 40.0
             os.utime(chunk, (then, then))
         manifest = json.loads((scan / "scan.json").read_text())
         manifest["updated_utc"] = (_dt.datetime.now(_dt.timezone.utc) - _dt.timedelta(seconds=40)).isoformat()
         (scan / "scan.json").write_text(json.dumps(manifest))
-        said = wait_text(page, "#current-time", "due")
-        assert re.fullmatch(r"running for 1:(1[5-9]|[2-5]\d), its end due at this pace", said), said
+        said = wait_text(page, "#current-time", "late")
+        assert re.fullmatch(r"running for 1:(1[5-9]|[2-5]\d), its next pose late \(the last came 4\d s ago; 15 s left "
+                            r"at its pace then\)", said), said
         # a scan that stands still was started, not running, for however long it stands
         manifest["paused"] = {"reason": "paused by user"}
         (scan / "scan.json").write_text(json.dumps(manifest))
