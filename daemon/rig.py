@@ -5,6 +5,7 @@ own live pose, or, for any other arm, the last pose it reported or reached (`Tra
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -102,7 +103,8 @@ def rig_record(cfg: DaemonConfig) -> tuple[dict, dict]:
     a, s = cfg.arm, cfg.sensor
     arm = {"backend": a.backend, "speed_m_s": a.speed, "acceleration_m_s2": a.acceleration, **a.device.rig_record()}
     sensor = {"backend": s.backend, "preset": s.preset, **s.device.rig_record()}
-    rig = {"arm": arm, "sensor": sensor, "config": str(cfg.source) if cfg.source else None,
+    # The config's whole path: the dashboard's "start a daemon" hint gives it, to be run from any folder.
+    rig = {"arm": arm, "sensor": sensor, "config": os.path.abspath(cfg.source) if cfg.source else None,
            "created_unix_s": round(time.time(), 3), "clock": "t_start/t_end: daemon monotonic seconds"}
     return rig, s.device.scene_record()
 

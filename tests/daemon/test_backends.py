@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -170,3 +172,13 @@ def test_choosing_a_backend_loads_no_other_backends_library(tmp_path, sock_dir):
 
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == []
+
+
+def test_the_rig_record_names_its_config_by_its_whole_path(tmp_path, monkeypatch):
+    """`spadscan daemon --config rig.toml` started in its folder: the dashboard's hint to start a daemon again read
+    `spadscan daemon --config rig.toml`, which fails from any other folder."""
+    monkeypatch.chdir(tmp_path)
+    cfg = config_from_dict({"captures": "caps", "sensor": {"backend": "sim", "mesh": "builtin:sphere"}},
+                           Path("rig.toml"))
+    rig, _ = rig_record(cfg)
+    assert rig["config"] == str(tmp_path / "rig.toml")
