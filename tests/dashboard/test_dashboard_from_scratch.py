@@ -38,7 +38,7 @@ def test_a_result_reconstructed_from_scratch_is_not_called_the_live_reconstructi
             pick = page.locator('#scans tr[data-scan="scratch"] a.pick')
             pick.wait_for(timeout=WAIT_MS)
             assert pick.text_content() == ("fast, Chamfer to the ground truth 4.00 mm (reconstructed from scratch: "
-                                           "the scan was complete before a live fit began)")
+                                           "the scan was complete when the live job started (or was retried))")
             assert page.locator('#scans tr[data-scan="followed"] a.pick').text_content() == (
                 "fast, Chamfer to the ground truth 2.00 mm (the live reconstruction's result: its final run continued "
                 "from the live fit)")

@@ -38,7 +38,8 @@ def test_a_given_back_live_job_reads_queued_again_and_a_run_from_scratch_shows_n
          note="its worker was stopped; the job is back in the queue",
          updated_utc=(now - _dt.timedelta(seconds=5)).isoformat())  # young: only its state says it is not rewritten
     live("scratch", state="final", views_used=0, steps=0,
-         note="scan scratch was already complete when its live job started: reconstructing it from scratch",
+         note="scan scratch was already complete when its live job started (or was retried): reconstructing it from "
+              "scratch",
          updated_utc=(now + _dt.timedelta(minutes=10)).isoformat())  # fresh all along
     with serving(tmp_path) as server, browser_page() as (page, seen):
         page.goto(address(server))

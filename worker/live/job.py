@@ -213,7 +213,9 @@ def execute_live_job(job, root: Path, out: Path, recon: Callable | None = None,
     if holder is not None:
         return not_holding(job, root, out, recon, queue, follower, progress, holder, settings, log)
     if progress.ended and progress.state == "complete":
-        note = f"scan {scan.name} was already complete when its live job started: reconstructing it from scratch"
+        # (also where an earlier attempt fitted live and its worker was stopped: this attempt found the scan ended)
+        note = (f"scan {scan.name} was already complete when its live job started (or was retried): reconstructing "
+                f"it from scratch")
         log(f"live: {note}")
         status_finishing(scan, job, progress, note)
         return execute_job(dataclasses.replace(job, live=False), root, out, recon, queue=queue)
