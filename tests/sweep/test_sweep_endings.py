@@ -173,3 +173,19 @@ def test_the_end_of_a_run_counts_the_points_that_warn(tmp_path):
                                "(reprojection 1): see results.csv's reprojection_threshold_edge;")
     quiet = finished_lines(Summary(points=2, earlier=0, ran=2, done=2, rows=2), {}, tmp_path, presets=["fast"])
     assert len(quiet) == 2
+
+
+def test_a_point_whose_sensor_stands_inside_the_object_fails_as_simulate_refuses_it(folder):
+    """radius_m = 0.02 around the 0.1 m sphere: the point was simulated, reconstructed and plotted as an ordinary
+    result 60 mm off, the simulator's note kept where nothing read it. It fails now, with `simulate`'s reason, and
+    no method runs on it."""
+    import dataclasses
+
+    plan, out = folder
+    task = next(iter(plan.points.values()))
+    task = dataclasses.replace(task, params={**task.params, "radius_m": 0.02})
+    result = run_point(task, str(out.path))
+    assert result["status"] == "failed" and result["methods"] == {}, result
+    assert result["reason"].startswith("simulate: 7 of 8 views (0, 1, "), result["reason"]
+    assert result["reason"].endswith("put the sensor inside the mesh: no sensor can stand there; move the target or "
+                                     "the radius (metres), or the elevations"), result["reason"]
