@@ -77,7 +77,7 @@ PARAMS: dict[str, Param] = {p.name: p for p in (
     Param("power", "float", "", "laser power relative to the sensor preset", 0.0, 1e9, lo_open=True, log=True,
           label="illumination power (relative)"),
     Param("ambient", "float", "photons/bin/cycle", "ambient background per bin per cycle at the base bin size",
-          0.0, 1.0, label="ambient (photons / bin / cycle)"),
+          0.0, 1.0, log=True, label="ambient (photons / bin / cycle)"),
     Param("cycles", "int", "", "laser cycles per histogram", 1, 10**10, log=True, label="laser cycles"),
     Param("albedo", "float", "", "Lambertian albedo of the object", 0.0, 1e3, lo_open=True, log=True,
           label="albedo"),

@@ -40,6 +40,9 @@ NICE = (1.0, 2.0, 3.0, 5.0)
 """The leading digits a Chamfer axis may end at: an end is labelled, so that labels reach past every value."""
 END_MARGIN = 1.05
 """A Chamfer axis ends at least this factor beyond its values, so that a marker at the end is drawn whole."""
+EMPTY_RANGE_MM = (1.0, 100.0)
+"""The Chamfer axis (mm) of a panel where every method failed: a log axis as every other panel's, over a range that
+holds the figures a sweep usually draws."""
 MARKERS = ("o", "s", "^", "D", "v", "P", "*")
 DASHES = ("-", "--", ":", "-.")
 """A product sweep's combinations of the other axes, told apart by marker and dashes (7 x 4 combinations before one
@@ -169,9 +172,11 @@ def _panel(ax, results: SweepResults, rows: list[dict], axis: str, index: int) -
         ax.legend(handles=keys, fontsize=7, loc="best", framealpha=0.8, handlelength=2.5)
     values = [v for v in results.grid.get(axis, []) if isinstance(v, (int, float))]
     plain = FuncFormatter(lambda v, _: f"{v:g}")
-    if PARAMS.get(axis) is not None and PARAMS[axis].log and values and min(values) > 0:
+    logarithmic = PARAMS.get(axis) is not None and PARAMS[axis].log
+    if logarithmic and values and min(values) > 0:
         ax.set_xscale("log")
-    elif values and min(values) == 0 and max(values) > 0:
+    elif logarithmic and values and min(values) == 0 and max(values) > 0:  # ambient light from none: linear to the
+        # first value over 0, logarithmic above (a linear parameter from 0, an elevation, stays linear)
         ax.set_xscale("symlog", linthresh=min(v for v in values if v > 0))
     if values:
         ax.set_xticks(sorted(values))
@@ -223,10 +228,11 @@ def _base_panel(ax, results: SweepResults, rows: list[dict]) -> None:
 def _chamfer_axis(ax, drawn: list, any_failed: bool, methods: int) -> None:
     """A log Chamfer axis (mm) over the values drawn, with room for the failures' strip above them."""
     drawn = [v for v in drawn if v is not None and v > 0]  # a log axis shows no 0
-    if not drawn:
-        return
     ax.set_yscale("log")
-    low, high = _nice_below(min(drawn) / END_MARGIN), _nice_above(max(drawn) * END_MARGIN)
+    if drawn:
+        low, high = _nice_below(min(drawn) / END_MARGIN), _nice_above(max(drawn) * END_MARGIN)
+    else:  # every method failed: the failures' crosses above an empty decade, not a linear axis through 0
+        low, high = EMPTY_RANGE_MM
     ax.set_ylim(low, high)
     # No value is labelled in the failures' strip above the data: a cross there is no Chamfer distance.
     ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}" if v <= high * 1.0001 else ""))

@@ -210,3 +210,39 @@ def test_failure_crosses_sit_above_every_value_where_no_value_is_labelled(tmp_pa
         labels = [t.get_text() for t in ax.yaxis.get_majorticklabels() + ax.yaxis.get_minorticklabels()
                   if t.get_text() and t.get_position()[1] >= y_data / 1.2]
         assert not labels, labels
+
+
+def _panel_of(tmp_path, axis: str, values: list, chamfers: list):
+    """The panel of one axis drawn from rows of the fast method's Chamfer distances (None: failed there)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from spadscan.sweep.plot import _panel
+    from spadscan.sweep.results import SweepResults
+
+    rows = [{"scene": "s", "axis": axis, axis: str(v), "fast_status": "failed" if c is None else "done",
+             "fast_chamfer_mm": "" if c is None else str(c)} for v, c in zip(values, chamfers)]
+    results = SweepResults(folder=tmp_path, mode="one-at-a-time", grid={axis: values}, base={axis: values[1]},
+                           scenes=["s"], methods=["fast"], presets=["fast"], rows=rows)
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    _panel(ax, results, rows, axis, 0)
+    fig.canvas.draw()
+    return ax
+
+
+def test_a_linear_parameter_from_zero_gets_a_linear_axis(tmp_path):
+    """Elevations 0-60 degrees drew on a symlog axis, linear to 15 and logarithmic above (equal steps squeezed
+    against the right edge); ambient light from none keeps it, a log parameter of its own."""
+    assert _panel_of(tmp_path, "min_elevation_deg", [0.0, 15.0, 30.0, 45.0, 60.0], [3, 2, 2, 2, 3]).get_xscale() \
+        == "linear"
+    assert _panel_of(tmp_path, "ambient", [0.0, 1e-4, 1e-3], [2, 2, 3]).get_xscale() == "symlog"
+
+
+def test_a_panel_where_every_method_failed_has_a_log_axis_without_negative_values(tmp_path):
+    ax = _panel_of(tmp_path, "power", [1e-6, 1.0, 100.0], [None, None, None])
+    assert ax.get_yscale() == "log"
+    bottom, top = ax.get_ylim()
+    assert 0 < bottom < top, (bottom, top)
+    assert len([line for line in ax.get_lines() if line.get_marker() == "x"]) == 1
