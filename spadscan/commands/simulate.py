@@ -89,8 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"laser cycles per histogram, at least {MIN_CYCLES} (default: the sensor preset's)")
     parser.add_argument("--albedo", type=float, default=1.0, help="Lambertian albedo of the mesh (default: 1)")
     parser.add_argument("--rays-per-zone", type=int, default=None, metavar="R",
-                        help="rays cast per zone per view (default: 4096 per view shared by the zones, "
-                             "at least 512 each)")
+                        help="rays cast per zone per view (default: 4096 per view shared by the zones, at least "
+                             "about 512 each: a rectangular zone rounds them to its grid of rays, 504 on the "
+                             "TMF8820's)")
     table = parser.add_argument_group("table")
     table.add_argument("--table", action="store_true",
                        help="stand the object on a horizontal table (a 2 m square at --table-height)")
