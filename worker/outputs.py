@@ -39,8 +39,8 @@ def check_out(out, overwrite: bool, capture=None) -> Path:
     """`out` as a Path, refused when it is a file, or holds a result and `overwrite` is not set, or lies inside the
     folder of a capture (`capture`, or any other: `enclosing_capture`) anywhere but under its recon/ folder, where the
     worker puts results, or is a folder this process cannot write into or make (`check_folder_option`, on `out`
-    itself, not on the scratch folder beside it that a run makes first). A `capture` that is no capture folder is refused first
-    (`check_capture_folder`). (An empty --out the command line refuses: cli.FOLDER_OPTIONS.)"""
+    itself, not on the scratch folder beside it that a run makes first). A `capture` that is no capture folder is
+    refused first (`check_capture_folder`). (An empty --out the command line refuses: cli.FOLDER_OPTIONS.)"""
     out = Path(out)
     if capture is not None:
         check_capture_folder(capture)  # first: a plain folder that holds --out is no capture it would be mixed into
