@@ -247,7 +247,10 @@ class Worker:
         if self.room is not None and not await asyncio.to_thread(self._room_again):
             return  # a claim now would meet the full disk again
         while len(self.children) + len(self.unpublished) < self.config.processes:  # a result to publish holds its slot
-            claim = await asyncio.to_thread(self.queue.claim)
+            skipped: list[tuple[str, OSError]] = []
+            claim = await asyncio.to_thread(self.queue.claim, None, skipped)
+            for job_id, exc in skipped:  # said once a job: it stays queued for a worker that may take it
+                self._trouble(f"claim job {job_id}", exc)
             if claim is None:
                 break
             await self._start(claim)
@@ -350,7 +353,9 @@ class Worker:
         outcome = self.queue.path / "tmp" / f"outcome-{stem}.json"
         try:
             scratch = scratch_path(job, self.root, claim.token)
-            scratch.parent.mkdir(parents=True, exist_ok=True)
+            if not scratch.parent.parent.is_dir():  # made with its parents, the folder of a removed scan came back
+                raise ConfigError(f"its capture folder {scratch.parent.parent} is gone (moved or removed)")
+            scratch.parent.mkdir(exist_ok=True)
         except (ConfigError, OSError) as exc:
             self.queue.fail(claim, f"cannot prepare the result folder: {exc}", retry=False)
             self.settled[job.id] = "failed"

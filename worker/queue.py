@@ -200,7 +200,7 @@ class Queue:
         return self.path / "ids" / f"{job_id}.json"
 
     # ---- claiming --------------------------------------------------------------------------------------------
-    def claim(self, holder: Holder | None = None) -> Claim | None:
+    def claim(self, holder: Holder | None = None, skipped: list | None = None) -> Claim | None:
         """Take the oldest queued live job, else the oldest queued job (first queued, first run: by its file's mtime,
         which a job gets when it is queued or given back), or None when there is none. A live job follows a scan
         that is being recorded: behind a backlog of finished scans its fit would start after the scan's end, which
@@ -208,7 +208,12 @@ class Queue:
 
         None, too, while a job given back on a full disk waits for room (`room_wait`): that job would meet the full
         disk again, and so would any other, whose log and result go where that one's went. A claim whose attempt
-        record does not fit (the queue's own disk full) puts the job back and raises the OSError."""
+        record does not fit (the queue's own disk full) puts the job back and raises the OSError.
+
+        A queued job file this process may not take (another user's on a shared queue: EACCES) is passed over, its id
+        and the OSError (which names the file) added to `skipped`, and the others are claimed: its error stopped every
+        claim, poll after poll. One that cannot be read once taken (a folder in its place) fails as a damaged one
+        does."""
         holder = holder or Holder.current()
         paths = list((self.path / "queued").glob("*.json"))
         if self.room_wait(paths) is not None:
@@ -226,9 +231,13 @@ class Queue:
                 os.rename(src, dst)
             except FileNotFoundError:
                 continue  # another worker claimed it first
+            except OSError as exc:
+                if skipped is not None:
+                    skipped.append((job_id, exc))
+                continue
             try:
                 job = Job.from_dict(json.loads(dst.read_text()), str(dst))
-            except (ValueError, ConfigError) as exc:
+            except (ValueError, ConfigError, OSError) as exc:
                 self._settle(dst, job_id, "failed")
                 self._record(job_id, token, holder, outcome="failed", error=f"unreadable job file: {exc}")
                 continue

@@ -401,6 +401,43 @@ def test_an_unreadable_job_file_fails_that_job_only(tmp_path):
     assert rows["junk"].state == "failed" and "unreadable job file" in rows["junk"].error
 
 
+def test_a_folder_in_place_of_a_job_file_fails_that_job_only(tmp_path):
+    """Read once taken, it raised IsADirectoryError out of the claim: no job was claimed, poll after poll, and the
+    taken one waited in running/ without a record until its lease ran out."""
+    q = Queue(tmp_path / "q")
+    (q.path / "queued" / "junk.json").mkdir()
+    q.enqueue(_job("s"))
+    claim = q.claim()
+    assert claim is not None and claim.job.id == "s-fast"
+    rows = {r.id: r for r in q.statuses()}
+    assert rows["junk"].state == "failed" and "unreadable job file" in rows["junk"].error, rows["junk"]
+
+
+def test_a_job_file_this_process_may_not_take_is_passed_over_and_named(tmp_path, monkeypatch):
+    """Another user's job file on a shared queue (its utime refused: EACCES) stopped every claim of the worker, which
+    said only "Permission denied"; the others are claimed now, and the one passed over is named with its file."""
+    q = Queue(tmp_path / "q")
+    theirs, mine = _job("theirs"), _job("mine")
+    q.enqueue(theirs)
+    q.enqueue(mine)
+    old = time.time() - 60  # the oldest: claimed first
+    os.utime(q.path / "queued" / f"{theirs.id}.json", (old, old))
+    real = os.utime
+
+    def utime(path, *args, **kwargs):
+        if str(path).endswith(f"queued/{theirs.id}.json"):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "utime", utime)
+    skipped = []
+    claim = q.claim(skipped=skipped)
+    assert claim is not None and claim.job.id == mine.id
+    assert [(job_id, str(exc)) for job_id, exc in skipped] == [
+        (theirs.id, f"[Errno 13] Permission denied: '{q.path / 'queued' / f'{theirs.id}.json'}'")]
+    assert {r.id: r.state for r in q.statuses()}[theirs.id] == "queued"
+
+
 @pytest.mark.parametrize("record, why", [
     ({"id": "bad", "scan": None}, "scan = null is not a string"),
     ({"id": "bad", "scan": ["s"]}, 'scan = ["s"] is not a string'),

@@ -736,3 +736,20 @@ def test_the_worker_says_a_running_jobs_progress_in_its_own_terminal(tmp_path, a
         # (timed as said: a line may reach the log a little later than the look that chose it, never 0.5 s)
         assert next_stage != stage or next_t - t >= every_s / 2, f"two lines within {every_s} s: {progress}"
     assert [s for s, _ in stages].count(AFTER_TRAINING) >= 1 and stages[-1][0] == AFTER_TRAINING
+
+
+def test_a_job_whose_capture_folder_is_gone_fails_without_making_it_again(tmp_path, arun):
+    """Its scan moved or removed while the job waited: the result folder was made with its parents, and the removed
+    capture came back as an empty folder (a scan moved back then landed inside it)."""
+    from spadscan.worker.jobs import Job, job_id_for
+
+    root = tmp_path / "captures"
+    root.mkdir()
+    Queue.for_root(root).enqueue(Job(id=job_id_for("gone", "fast"), scan="gone"))
+    lines = []
+    config = WorkerConfig(root=root, once=True, poll_s=0.1, recon=RECON)
+    assert arun(Worker(config, log=lines.append).run(), timeout_s=120) == {"gone-fast": "failed"}
+    assert not (root / "gone").exists()
+    said = next(line for line in lines if line.startswith("gone-fast failed"))
+    assert said == f"gone-fast failed: cannot prepare the result folder: its capture folder {root / 'gone'} is gone " \
+                   f"(moved or removed)", said
