@@ -195,7 +195,7 @@ def test_an_adopted_wait_ends_once_its_job_leaves_the_queue(tmp_path, monkeypatc
     (tmp_path / "s" / "recon").mkdir(parents=True)
     given_back(worker.queue, note(tmp_path / "s" / "recon", time.time()), "a-fast")
     claims: list[int] = []
-    monkeypatch.setattr(worker.queue, "claim", lambda: claims.append(1))  # (returns None: no job is started)
+    monkeypatch.setattr(worker.queue, "claim", lambda *args: claims.append(1))  # (returns None: no job is started)
     arun(worker._poll_queue())
     assert worker.room is not None and worker.room.job == "a-fast" and not claims, lines
     (worker.queue.path / "queued" / "a-fast.json").unlink()  # removed by the operator
@@ -213,7 +213,7 @@ def test_an_adopted_wait_follows_the_next_job_that_holds_the_queue(tmp_path, mon
     claims: list[int] = []
     (tmp_path / "s" / "recon").mkdir(parents=True)
     given_back(worker.queue, note(tmp_path / "s" / "recon", time.time()), "a-fast", "b-fast")
-    monkeypatch.setattr(worker.queue, "claim", lambda: claims.append(1))
+    monkeypatch.setattr(worker.queue, "claim", lambda *args: claims.append(1))
     arun(worker._poll_queue())
     first = worker.room.job
     (worker.queue.path / "queued" / f"{first}.json").unlink()
