@@ -495,6 +495,6 @@ def blind_views_note(signal_photons: np.ndarray, mesh) -> str | None:
 
 
 __all__ = ["SimSettings", "SimFrames", "SimTable", "Simulator", "simulate_capture", "blind_views_note", "flooded_note",
-           "saturated_note", "reference_shape", "misplaced_views", "misplaced_views_note", "check_pose_array",
-           "check_seed",
-           "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS", "REFERENCE_STRETCH", "REFERENCE_POWER"]
+           "flooded_bins", "saturated_note", "reference_shape", "misplaced_views", "misplaced_views_note",
+           "check_pose_array", "check_seed", "MIN_RANGE_M", "BACKGROUND_FLOOR", "MIN_SIGNAL_PHOTONS",
+           "REFERENCE_STRETCH", "REFERENCE_POWER"]

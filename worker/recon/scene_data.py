@@ -136,15 +136,14 @@ def load_scene(capture, device="cpu", dtype=torch.float32) -> SceneData:
     # and spoil the fit of every other histogram.
     broken = views.in_any_frame(_implausible(data, capture))
     # Left out means left out of everything: the scene's bound, the table's search and the background read counts
-    # too, and a corrupt bin of a left-out histogram would otherwise put the table under a spurious peak.
-    counts = np.where(broken[..., None], 0.0, counts)
-    # A bin at the counter's limit holds no count (every preset's counter holds more than a frame's cycles: the value
-    # is a corrupt one), and it is masked out of the bins' terms; zeroed, it also stays out of the fit's "no photon"
-    # term (a 2**32-1 there read as every cycle having seen a photon: a sphere 115 mm off after 50 steps, 56 without
-    # it), the first returns (each view's return put in that bin), the scene's bound, the table and the background.
-    counts = np.where(saturated, 0.0, counts)
-    poses = data.poses[views.first]
+    # too, and a corrupt bin of a left-out histogram would otherwise put the table under a spurious peak. So is a bin
+    # at the counter's limit, which holds no count (every preset's counter holds more than a frame's cycles: the value
+    # is a corrupt one): masked out of the bins' terms only, it stayed in the fit's "no photon" term (a 2**32-1 there
+    # read as every cycle having seen a photon: a sphere 115 mm off after 50 steps, 56 without it), the first returns
+    # (each view's return put in that bin), the scene's bound, the table and the background.
     valid = ~saturated & ~broken[..., None]
+    counts = np.where(valid, counts, 0.0)
+    poses = data.poses[views.first]
     if sensor.ignore_bins:
         valid[..., list(sensor.ignore_bins)] = False
     cycles = frames * float(sensor.cycles)
