@@ -144,6 +144,12 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
     return out
 
 
+# A run ended by one of these signals was stopped, not failed: by `Children.stop` (SIGTERM), or by a Ctrl-C that
+# reached it in the instant between its fork and its move to a group of its own, which may end before this script's
+# own KeyboardInterrupt has called `stop`; or by a user's `kill` of that one run. The same command runs it again.
+STOPPED_BY = (-signal.SIGINT, -signal.SIGTERM)
+
+
 class Children:
     """The runs' processes. Each runs in a process group of its own, so that Ctrl-C, which the terminal sends to the
     foreground job's group, reaches only this script, which then stops them itself (`stop`): a run that ends after
@@ -238,7 +244,7 @@ def run_in_child(capture: Path, target: Path, args, overrides: list[str], scene:
         children.done(proc)
     if proc.returncode == 0 and target.is_file():
         return json.loads(target.read_text())
-    if children.stopped:
+    if children.stopped or proc.returncode in STOPPED_BY:
         return None
     tail = (stderr or stdout).strip().splitlines()
     return {"failed": tail[-1] if tail else f"exit status {proc.returncode}"}

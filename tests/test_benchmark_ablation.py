@@ -155,6 +155,21 @@ def test_a_child_that_fails_gives_its_last_line_of_error(ablation, tmp_path):
     assert not target.exists()
 
 
+@pytest.mark.parametrize("shell, stopped", [("kill -INT $$", True), ("kill -TERM $$", True),
+                                             ("echo broke >&2; exit 1", False)])
+def test_a_child_ended_by_a_stop_signal_was_stopped_not_failed(ablation, tmp_path, shell, stopped):
+    # A Ctrl-C that reaches a run between its fork and its own process group ends it before this script's own
+    # KeyboardInterrupt has stopped the others: not run ("-", run again by the same command), never "failed".
+    class ShellChildren(ablation.Children):
+        def start(self, cmd, env):
+            return super().start(["sh", "-c", shell], env)
+
+    args = ablation.argparse.Namespace(steps=1, seed=0, threads=1, points=1000, device="cpu")
+    target = tmp_path / "runs" / "box--all-parts.json"
+    res = ablation.run_in_child(tmp_path / "box", target, args, [], "box", children=ShellChildren())
+    assert res is None if stopped else res == {"failed": "broke"}, res
+
+
 def test_cuda_without_a_cuda_device_is_refused_before_any_run(ablation, capture, tmp_path, monkeypatch, capsys):
     import torch
 
