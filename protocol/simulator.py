@@ -337,16 +337,17 @@ def reference_shape(kernel: np.ndarray, origin: int, n_bins: int, peak_index: fl
 
 def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSettings = SimSettings(), seed: int = 0,
                      chunk_size: int = 64, scene: dict | None = None, schedule: dict | None = None,
-                     progress: bool = True, log=None, table: SimTable | None = None):
+                     progress: bool = True, log=None, table: SimTable | None = None, refuse_misplaced: bool = False):
     """Render `poses` (n, 4, 4) of `mesh` (on `table`, if given) into a complete capture folder `out` (which must not
     hold a capture).
 
     The manifest records the effective sensor model (settings folded in), `scene` (plus the albedo) and `schedule`.
     A table is recorded as a measured capture's is to the reconstruction, `"table": true` (there is one, its height is
     to be found), and in full as `"simulated_table"` (its height `z`, `albedo` and `half_size_m`) for scoring.
-    Shows a progress bar on stderr unless `progress` is False. `log` (a function of one line) hears of views that
-    put the sensor inside the mesh or under the table (`misplaced_views_note`; `spadscan simulate` refuses them, a
-    library caller may render them on purpose) and of views that see nothing of the mesh (`blind_views_note`).
+    Shows a progress bar on stderr unless `progress` is False. Views that put the sensor inside the mesh or under the
+    table (`misplaced_views_note`) raise SimulationError before anything is written when `refuse_misplaced` (as
+    `spadscan simulate` and a sweep's points do), else `log` (a function of one line) hears of them: a library caller
+    may render them on purpose. `log` hears of views that see nothing of the mesh too (`blind_views_note`).
     Returns the capture's path.
     """
     from pathlib import Path
@@ -359,6 +360,8 @@ def simulate_capture(mesh, sensor: SensorModel, poses, out, *, settings: SimSett
     poses = check_pose_array(poses)
     sim = Simulator(mesh, sensor, settings, seed, table)
     misplaced = misplaced_views_note(poses, mesh, sim.table)
+    if misplaced and refuse_misplaced:
+        raise SimulationError(misplaced)
     if misplaced and log is not None:
         log(f"warning: {misplaced}")
     scene = {**(scene or {}), "albedo": settings.albedo, "seed": int(seed), "rays_per_zone": sim.rays.n_rays,

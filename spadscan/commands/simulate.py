@@ -290,12 +290,10 @@ def run(args) -> int:
 
     from spadscan.protocol.capture_format import MANIFEST, check_new_capture_out
     from spadscan.protocol.capture_reader import CaptureReader
-    from spadscan.protocol.errors import SimulationError
     from spadscan.protocol.folders import check_folder_option
     from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M, load_mesh_spec
     from spadscan.protocol.sensor_presets import sensor_preset
-    from spadscan.protocol.simulator import (SimSettings, flooded_note, misplaced_views_note, saturated_note,
-                                             simulate_capture)
+    from spadscan.protocol.simulator import SimSettings, flooded_note, saturated_note, simulate_capture
     from spadscan.signals import terminate_as_interrupt
 
     check_options(args)
@@ -310,9 +308,6 @@ def run(args) -> int:
     if floating:
         print(f"spadscan: warning: {floating}", file=sys.stderr)
     poses, schedule = make_poses(args)
-    misplaced = misplaced_views_note(poses, mesh, table)
-    if misplaced:
-        raise SimulationError(misplaced)
     near = near_table_note(poses, table)  # said only: the views are rendered as they are
     if near:
         print(near, file=sys.stderr)
@@ -325,7 +320,7 @@ def run(args) -> int:
             path = simulate_capture(mesh, sensor, poses, args.out, settings=settings, seed=args.seed,
                                     chunk_size=args.chunk_size, scene=scene, schedule=schedule,
                                     progress=progress_bar_wanted(args), log=lambda line: print(line, file=sys.stderr),
-                                    table=table)
+                                    table=table, refuse_misplaced=True)
     except KeyboardInterrupt:
         left = None if had_capture else left_behind(args.out, len(poses))
         if left:  # (the bar, drawn with leave=False, has cleared its line)

@@ -25,8 +25,8 @@ from typing import Callable
 
 import spadscan
 from spadscan.protocol.capture_format import one_line
-from spadscan.protocol.errors import SimulationError, SpadscanError
-from spadscan.protocol.simulator import misplaced_views_note, simulate_capture
+from spadscan.protocol.errors import SpadscanError
+from spadscan.protocol.simulator import simulate_capture
 from spadscan.worker.baselines.common import threshold_edge
 from spadscan.worker.baselines.run import run_baseline
 from spadscan.worker.reconstruct import reconstruct_capture
@@ -197,14 +197,11 @@ def _simulate(task: PointTask, work: Path) -> dict:
     poses, schedule = point_poses(task.params)
     sensor = point_sensor(task.params)
     settings = point_settings(task.params, task.base_bin_ps)
+    notes: list[str] = []
     # Refused as `spadscan simulate` refuses it: a point whose sensor stood inside the object was simulated,
     # reconstructed, and plotted as an ordinary result 60 mm off, its note kept where nothing read it.
-    misplaced = misplaced_views_note(poses, mesh)
-    if misplaced is not None:
-        raise SimulationError(misplaced)
-    notes: list[str] = []
     simulate_capture(mesh, sensor, poses, work / "capture", settings=settings, seed=task.params["seed"],
-                     scene=scene_record, schedule=schedule, progress=False, log=notes.append)
+                     scene=scene_record, schedule=schedule, progress=False, log=notes.append, refuse_misplaced=True)
     return {"views": int(len(poses)), "bins": int(sensor.n_bins), "bin_width_mm": sensor.bin_width_m * 1e3,
             "ambient_per_bin": settings.ambient, **({"note": " ".join(notes)} if notes else {})}
 

@@ -10,6 +10,7 @@ import trimesh
 
 from spadscan.cli import main
 from spadscan.commands import simulate
+from spadscan.protocol.errors import SimulationError
 from spadscan.protocol.scenes import builtin_scene
 from spadscan.protocol.schedules import look_at
 from spadscan.protocol.sensor_presets import sensor_preset
@@ -131,6 +132,11 @@ def test_the_library_renders_a_misplaced_view_but_says_so(tmp_path):
                         "sensor on or under the table top (z = 0 m): no sensor can stand there; move the target or "
                         "the radius (metres), or the elevations")
     assert misplaced_views_note(poses[1:2], ball, SimTable(0.0)) is None
+    # asked to refuse them (as `simulate` and a sweep's points do), it raises that line and writes nothing
+    with pytest.raises(SimulationError, match=r"^1 of 3 views \(0\) put the sensor inside the mesh and"):
+        simulate_capture(ball, sensor_preset("tmf8820"), poses, tmp_path / "r", progress=False, log=lines.append,
+                         table=SimTable(0.0), refuse_misplaced=True)
+    assert not (tmp_path / "r").exists() and len(lines) == 2  # the first capture's two lines alone
     # an open mesh has no inside: nothing is said of it
     closed = trimesh.creation.icosphere(radius=0.3)
     assert misplaced_views_note(poses[:1], closed) is not None
