@@ -33,7 +33,7 @@ import shutil
 import signal
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -92,6 +92,9 @@ class Worker:
         self.left: dict[str, str] = {}
         """With `once`: scans the run looked at and left unqueued (still recorded, or a copy still under way) -> why,
         in a few words (`_left_why`)."""
+        self.untakeable: dict[str, str] = {}
+        """Queued jobs this worker may not take (another user's on a shared queue: `Queue.claim`'s `skipped`) -> the
+        error, in one line: left for a worker that may, and not waited for by a --once run (`_drained`)."""
         self._seen_skipped: set[str] = set()
         self._troubles: dict[str, str] = {}
         """What this worker failed to do, with the error last logged for it (`_trouble`)."""
@@ -220,8 +223,9 @@ class Worker:
             self.log(f"could not remove this worker's presence file: {fold(exc)}")
 
     def _drained(self) -> bool:
-        counts = self.queue.counts()
-        return counts["queued"] == 0 and counts["running"] == 0
+        """Nothing queued or running, the queued jobs this worker may not take aside: a --once run waited on them
+        for good."""
+        return not self.queue.queued_ids() - self.untakeable.keys() and self.queue.counts()["running"] == 0
 
     async def _wait(self, stop: asyncio.Event, timeout: float) -> None:
         """Sleep until a child exits, `stop` is set or `timeout` passes."""
@@ -251,6 +255,7 @@ class Worker:
             claim = await asyncio.to_thread(self.queue.claim, None, skipped)
             for job_id, exc in skipped:  # said once a job: it stays queued for a worker that may take it
                 self._trouble(f"claim job {job_id}", exc)
+                self.untakeable[job_id] = fold(exc)
             if claim is None:
                 break
             await self._start(claim)
@@ -1003,6 +1008,8 @@ class WorkerRun:
     """Job id -> 'done', 'failed' or 'kept' (`Worker.settled`)."""
     left: dict[str, str]
     """With `once`: scan -> why it was left unqueued (`Worker.left`)."""
+    untakeable: dict[str, str] = field(default_factory=dict)
+    """Queued jobs this worker may not take -> why (`Worker.untakeable`)."""
 
 
 async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = None,
@@ -1020,7 +1027,7 @@ async def run_worker(config: WorkerConfig, log: Callable[[str], None] | None = N
     finally:
         for sig in sigs:
             loop.remove_signal_handler(sig)
-    return WorkerRun(dict(settled), dict(worker.left))
+    return WorkerRun(dict(settled), dict(worker.left), dict(worker.untakeable))
 
 
 __all__ = ["Worker", "WorkerRun", "run_worker"]

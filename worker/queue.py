@@ -689,6 +689,10 @@ class Queue:
             return "running?", f"worker silent for {age:.0f} s (its lease of {lease:.0f} s has not expired yet)"
         return None
 
+    def queued_ids(self) -> set[str]:
+        """The ids of the jobs in queued/."""
+        return {p.stem for p in (self.path / "queued").glob("*.json")}
+
     def counts(self) -> dict[str, int]:
         """Number of job files in each state."""
         return {s: sum(1 for _ in (self.path / s).glob("*.json")) for s in STATES}

@@ -90,8 +90,9 @@ to start one.
 
 --once queues the complete scans there are, runs until nothing is queued or running, and exits. Its last line
 counts the jobs done and failed and names each scan it left unqueued, and why (still recorded, or a copy still under
-way: taken once nothing in it has changed for 60 s). Its exit status: 0, 1 when a job failed, 130 when it was
-stopped before the queue drained, 75 when it ran no job while it left scans waiting (run it again later). Without
+way: taken once nothing in it has changed for 60 s), and each queued job it may not take (another user's on a
+shared queue), left for a worker that may. Its exit status: 0, 1 when a job failed, 130 when it was stopped before
+the queue drained, 75 when it ran no job while it left scans or jobs waiting (run it again later). Without
 --once the worker runs until Ctrl-C or SIGTERM (`systemctl stop`), says what it settled meanwhile, and exits 0: a
 service stopped as asked.
 
@@ -215,19 +216,23 @@ def run(args) -> int:
     failed = any(s == "failed" for s in settled.values())
     kept = sum(1 for s in settled.values() if s == "kept")
     # Stopped (Ctrl-C, SIGTERM) before the queue drained: said, and not the exit status of a drained queue.
-    counts = Queue(queue_dir, create=False).counts()
-    unfinished = counts.get("queued", 0) + counts.get("running", 0)
+    queue = Queue(queue_dir, create=False)
+    # The queued jobs this worker may not take (another user's) are left for a worker that may: named, not waited for.
+    untakeable = {job: why for job, why in ran.untakeable.items() if job in queue.queued_ids()}
+    counts = queue.counts()
+    unfinished = counts.get("queued", 0) - len(untakeable) + counts.get("running", 0)
     print(f"spadscan worker: {_settled_note(settled)}"
           + (f", {kept} not run (their results were already there)" if kept else "")
           + (f"; stopped with {unfinished} job{'s' if unfinished != 1 else ''} still queued or running"
              if unfinished else "")
-          + _left_note(ran.left))
+          + _left_note(ran.left) + _untakeable_note(untakeable))
     if unfinished:
         return 130
     if failed:
         return 1
-    # No job settled while scans wait (a copy still under way, a scan still recorded): a script runs it again later.
-    return LEFT_WAITING if ran.left and not settled else 0
+    # No job settled while scans or jobs wait (a copy still under way, a scan still recorded, another user's job):
+    # a script runs it again later.
+    return LEFT_WAITING if (ran.left or untakeable) and not settled else 0
 
 
 def _settled_note(settled: dict[str, str]) -> str:
@@ -244,6 +249,16 @@ def _left_note(left: dict[str, str], most: int = 5) -> str:
     named = [f"{name} ({why})" for name, why in list(left.items())[:most]]
     more = f" and {len(left) - most} more" if len(left) > most else ""
     return f"; left {len(left)} scan{'s' if len(left) != 1 else ''} not queued yet: {', '.join(named)}{more}"
+
+
+def _untakeable_note(untakeable: dict[str, str], most: int = 3) -> str:
+    """What the summary line of --once says of the queued jobs it may not take, each with why; '' when none."""
+    if not untakeable:
+        return ""
+    named = [f"{job} ({why})" for job, why in list(untakeable.items())[:most]]
+    more = f" and {len(untakeable) - most} more" if len(untakeable) > most else ""
+    return (f"; left {len(untakeable)} queued job{'s' if len(untakeable) != 1 else ''} it may not take, for a worker "
+            f"that may: {', '.join(named)}{more}")
 
 
 def _refuse_combinations(args) -> None:

@@ -66,3 +66,36 @@ def test_once_that_settled_a_job_exits_0_and_still_names_what_it_left(tmp_path):
     assert done.returncode == 0, done
     assert last_line(done) == ("spadscan worker: 0 done, 0 failed, 1 not run (their results were already there); "
                                "left 1 scan not queued yet: rec (still being recorded)"), done
+
+
+def test_once_leaves_a_queued_job_it_may_not_take_names_it_and_ends(tmp_path, monkeypatch, capsys):
+    """Another user's job on a shared queue (its file's utime refused: EACCES) stayed queued, and --once, which ran
+    until nothing was queued, waited on it for good. It ends once nothing else is left, naming that job and why; the
+    job stays queued for a worker that may take it."""
+    from spadscan.cli import main
+
+    make_scan(tmp_path, "mine")
+    kept = tmp_path / "mine" / "recon" / "mine-fast"
+    kept.mkdir(parents=True)
+    (kept / "mesh.ply").write_text("a result already there: the job is kept, not run")
+    make_scan(tmp_path, "theirs")
+    real = os.utime
+
+    def utime(path, *args, **kwargs):
+        if str(path).endswith("queued/theirs-fast.json"):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "utime", utime)
+    assert main(["worker", "--root", str(tmp_path), "--once", "--poll-s", "0.05"]) == 0
+    queued = tmp_path / ".queue" / "queued" / "theirs-fast.json"
+    assert capsys.readouterr().out.strip().splitlines()[-1] == (
+        "spadscan worker: 0 done, 0 failed, 1 not run (their results were already there); left 1 queued job it may "
+        f"not take, for a worker that may: theirs-fast ([Errno 13] Permission denied: '{queued}')")
+    assert Queue.for_root(tmp_path).queued_ids() == {"theirs-fast"}
+    # with nothing else to run it says the same, exit status 75 (run again later)
+    shutil.rmtree(tmp_path / "mine")
+    assert main(["worker", "--root", str(tmp_path), "--once", "--poll-s", "0.05"]) == LEFT_WAITING
+    assert capsys.readouterr().out.strip().splitlines()[-1] == (
+        "spadscan worker: 0 done, 0 failed; left 1 queued job it may not take, for a worker that may: theirs-fast "
+        f"([Errno 13] Permission denied: '{queued}')")
