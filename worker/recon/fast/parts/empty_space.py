@@ -38,6 +38,7 @@ from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.sensor_model import in_any_zone, zone_masks
 
 from ....carving.returns import matched_filter_z
+from ....carving.views import summed_views
 from .part import Model, Part, PartConfig
 
 
@@ -115,7 +116,8 @@ class EmptySpacePush(Part):
                     w[reach] = pressure_weight(cov, self.config.coverage).to(w.dtype)
                 else:
                     counts = p.counts if views is None else p.counts[views]
-                    loud = heard_bins(counts, p.forward.sensor, self.config.heard_threshold)
+                    cycles = p.cycles if views is None else p.cycles[views]
+                    loud = heard_view_bins(counts, cycles, p.forward.sensor, self.config.heard_threshold)
                     heard = views_hearing(points[reach], poses, p.forward.sensor, loud, voxel)
                     w[reach] = (1.0 - heard / self.config.heard_views).clamp(0.0, 1.0).to(w.dtype)
             self._weight = w[None, None].to(model.field.sdf.dtype).contiguous()
@@ -163,6 +165,16 @@ def heard_bins(counts: torch.Tensor, sensor, threshold: float) -> torch.Tensor:
     loud = z > threshold
     loud[..., list(sensor.ignore_bins)] = True
     return torch.as_tensor(loud, device=counts.device)
+
+
+def heard_view_bins(counts: torch.Tensor, cycles: torch.Tensor, sensor, threshold: float) -> torch.Tensor:
+    """`heard_bins` of views that may each hold several frames: counts (V, Z, B) summed over a view's frames,
+    cycles (V,) its laser cycles (frames x the sensor's cycles a frame). Read as carving reads them
+    (`carving.views.summed_views`): taken for one frame's cycles, a view of 8 frames ran out of cycles early in the
+    noise model and read nearly every bin as a return, so no node went unheard and the push never acted."""
+    frames = np.round(cycles.detach().double().cpu().numpy() / float(sensor.cycles))
+    summed, view_sensor = summed_views(counts.detach().double().cpu().numpy(), frames, sensor)
+    return heard_bins(torch.as_tensor(summed), view_sensor, threshold).to(counts.device)
 
 
 def views_hearing(points: torch.Tensor, poses: torch.Tensor, sensor, loud: torch.Tensor, half_width_m: float,
@@ -226,5 +238,5 @@ def push_to_empty(grad: torch.Tensor, sdf: torch.Tensor, voxel: float, weight: t
     grad -= strength * rms * surf.to(grad.dtype) * weight
 
 
-__all__ = ["EmptySpacePush", "EmptySpaceConfig", "view_coverage", "views_hearing", "heard_bins",
+__all__ = ["EmptySpacePush", "EmptySpaceConfig", "view_coverage", "views_hearing", "heard_bins", "heard_view_bins",
            "pressure_weight", "push_to_empty"]
