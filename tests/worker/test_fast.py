@@ -475,6 +475,26 @@ def test_without_a_table_a_small_piece_apart_stays_in_the_mesh_and_on_a_table_it
     assert len(mesh.split(only_watertight=False)) == 1 and not mesh.contains(piece[None])[0]
 
 
+@pytest.mark.parametrize("capture", ["cylinder_capture", "table_capture"])
+def test_the_mesh_fills_a_closed_pocket_only_with_the_cavities_part(capture, request):
+    """The mesh filled every closed pocket whether or not the cavities part ran: switched off alone, half of it
+    still acted. Off, the mesh shows the pocket the fit left (a second surface inside the solid)."""
+    def meshed(cavities: bool):
+        config = with_overrides(preset_config("fast"), {**FAST_SMALL, "parts.cavities.enabled": cavities})
+        model = make_fast_model(load_scene(request.getfixturevalue(capture)), config, "cpu",
+                                RunPlan(steps=1, budget_s=None, seed=0))
+        _solid_with_a_small_piece_apart(model)
+        sdf = model.field.sdf.detach()[0, 0]
+        nz = sdf.shape[0]
+        with torch.no_grad():  # a pocket of 2 x 2 x 2 nodes deep inside the block
+            sdf[nz // 2: nz // 2 + 2, 6:8, 6:8] = model.field.voxel
+        return model.extract_mesh(averaged=False)
+
+    filled, kept = meshed(True), meshed(False)
+    assert len(kept.split(only_watertight=False)) == len(filled.split(only_watertight=False)) + 1
+    assert kept.volume < filled.volume
+
+
 def test_without_a_table_the_empty_space_push_acts_where_no_view_hears_a_return(cylinder_capture):
     model = make_fast_model(load_scene(cylinder_capture), with_overrides(preset_config("fast"), FAST_SMALL), "cpu",
                             RunPlan(steps=1, budget_s=None, seed=0))

@@ -22,11 +22,11 @@ on every scene without a table (benchmarks/RESULTS.md, "Small pieces kept")."""
 
 
 def clean_solid(values: np.ndarray, min_fraction: float = 0.0,
-                below_floor: np.ndarray | None = None) -> np.ndarray:
+                below_floor: np.ndarray | None = None, fill_pockets: bool = True) -> np.ndarray:
     """Remove what the histograms cannot have seen from an SDF grid (nz, ny, nx) -> cleaned copy.
 
     Cavities (`cavities`: empty regions closed by the solid, and by the floor when `below_floor` marks it) lie behind
-    every surface a sensor outside can see: they are filled. Solid pieces smaller than `min_fraction` of the largest
+    every surface a sensor outside can see: they are filled (unless not `fill_pockets`). Solid pieces smaller than `min_fraction` of the largest
     piece (by node count) are floaters: they are emptied (0, the default: none is). Filled and emptied nodes get a
     value of half a node spacing's worth (+-1e-3 of the field's scale), so the surface moves only where something was
     removed.
@@ -36,7 +36,8 @@ def clean_solid(values: np.ndarray, min_fraction: float = 0.0,
     if not solid.any():
         return v
     eps = 1e-4 * max(float(np.abs(v).max()), 1e-6)
-    v[cavities(solid, below_floor)] = -eps
+    if fill_pockets:
+        v[cavities(solid, below_floor)] = -eps
     if min_fraction > 0:
         lab, n = ndimage.label(v < 0)
         if n > 1:
@@ -66,8 +67,9 @@ def mesh_from_values(values: np.ndarray, origin, spacing):
 
 
 def mesh_from_field(field, resolution: int | None = None, floor_z: float | None = None, fill_under: bool = False,
-                    open_m: float = 0.0, floater_fraction: float = 0.0):
-    """Marching cubes of a GridField (cleaned by `clean_solid`, with the floor at height `floor_z` metres, if any),
+                    open_m: float = 0.0, floater_fraction: float = 0.0, fill_pockets: bool = True):
+    """Marching cubes of a GridField (cleaned by `clean_solid`, with the floor at height `floor_z` metres, if any,
+    its closed pockets filled unless not `fill_pockets`),
     on its own nodes or resampled to `resolution` cells along its longest side, with vertex normals from the field's
     gradient (central differences). fill_under (a table at floor_z): fill the hidden space under overhangs first
     (`grid_ops.fill_under_overhangs`), less what a gap of over 2 `open_m` metres opens to the side.
@@ -90,7 +92,8 @@ def mesh_from_field(field, resolution: int | None = None, floor_z: float | None 
         z = node_heights(grid.shape[0], float(field.origin[2]), float(spacing[2]))
         grid = fill_under_overhangs(grid, z, floor_z, -0.5 * float(np.min(spacing)),
                                     open_nodes=open_nodes(open_m, float(np.min(spacing))))
-    mesh = mesh_from_values(clean_solid(grid, floater_fraction, below), field.origin.cpu().numpy(), spacing)
+    mesh = mesh_from_values(clean_solid(grid, floater_fraction, below, fill_pockets), field.origin.cpu().numpy(),
+                            spacing)
     mesh.vertex_normals = vertex_normals(field, mesh.vertices)
     return mesh
 

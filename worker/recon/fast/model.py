@@ -408,15 +408,17 @@ class FastModel:
         """The surface as a trimesh.Trimesh (world metres) with vertex normals from the grid's gradient, marching
         cubes on the grid resampled to `resolution` cells along its longest side (None: the grid's own). On a
         table, what lies under it is cut, (with the cavities part) the space under the object filled, and small
-        pieces on the table removed (mesh.FLOATER_FRACTION); without one, every piece stays.
+        pieces on the table removed (mesh.FLOATER_FRACTION); without one, every piece stays. Closed pockets are
+        filled with the cavities part only: switched off, the mesh shows what the fit made of them.
         averaged=False: from the grid as it is now, not its average (what the fit would mesh without that part)."""
         field = self.mesh_field() if averaged else self.field
-        if not self.on_table:
-            return mesh_from_field(field, resolution)
         cavities = self.part("cavities")
+        if not self.on_table:
+            return mesh_from_field(field, resolution, fill_pockets=cavities is not None)
         fill = cavities is not None and cavities.config.under_overhangs
         return mesh_from_field(field, resolution, self.problem.floor_z, fill_under=fill,
-                               open_m=cavities.config.open_width_m if fill else 0.0, floater_fraction=FLOATER_FRACTION)
+                               open_m=cavities.config.open_width_m if fill else 0.0, floater_fraction=FLOATER_FRACTION,
+                               fill_pockets=cavities is not None)
 
     def summary(self) -> dict:
         """JSON-able state: grid, hull, rays, albedo, convergence, and each part that ran with its config and what
