@@ -45,7 +45,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 MARKS_S = (30.0, 60.0, 180.0)
 GOAL_MM = 2.0

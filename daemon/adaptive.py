@@ -28,7 +28,6 @@ import numpy as np
 
 from spadscan.protocol.errors import CaptureError, ConfigError
 from spadscan.protocol.live_status import read_status, status_path
-from spadscan.protocol.live_status import status_path
 from spadscan.protocol.next_views import (FILE, NextViews, candidate_poses, read_next_views, too_close,
                                           view_angles_deg)
 

@@ -71,7 +71,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    import sys
     from pathlib import Path
 
     from spadscan.protocol.folders import check_folder_option

@@ -113,14 +113,6 @@ class GridField(torch.nn.Module):
         v = torch.where(excess > 0, torch.clamp(v, min=0.0) + excess, v)
         return v.reshape(shape)
 
-    def gradient_nodes(self, values: torch.Tensor | None = None) -> torch.Tensor:
-        """Forward-difference gradient on the grid, (3, nz-1, ny-1, nx-1), one-sided per axis (1/m x metres)."""
-        g = (self.sdf if values is None else values)[0, 0]
-        gx = (g[:, :, 1:] - g[:, :, :-1])[:-1, :-1, :]
-        gy = (g[:, 1:, :] - g[:, :-1, :])[:-1, :, :-1]
-        gz = (g[1:, :, :] - g[:-1, :, :])[:, :-1, :-1]
-        return torch.stack([gx, gy, gz]) / self.voxel
-
     # ---- refinement -------------------------------------------------------------------------------------------
     def upsampled(self, factor: int = 2) -> "GridField":
         """A new field with `factor` x finer voxels over the same box; old nodes are kept, new ones interpolated.
@@ -135,11 +127,6 @@ class GridField(torch.nn.Module):
         with torch.no_grad():
             fine = F.interpolate(self.sdf, size=size, mode="trilinear", align_corners=True)[0, 0]
         return GridField(self.origin.cpu().numpy(), self.voxel / factor, fine)
-
-    def resampled_like(self, values: torch.Tensor) -> torch.Tensor:
-        """Resample another grid over the same box, (1, 1, nz', ny', nx'), to this grid's node counts."""
-        nz, ny, nx = self.sdf.shape[2:]
-        return F.interpolate(values, size=(nz, ny, nx), mode="trilinear", align_corners=True)
 
 
 __all__ = ["GridField", "grid_shape", "signed_distance"]

@@ -45,7 +45,7 @@ class FastProblem:
     zone_dirs (Z, D, 3) and zone_weights (Z, D): candidate directions (sensor frame) and steradians;
     forward: the shared TransientForward; hull: the carved hull's SDF (GridField, negative inside);
     floor_z: nothing solid below this height (metres) or None; box: (min (3,), max (3,)) of the SDF grid;
-    table: a TableModel or None (built by the model, which owns the rays); notes: what was decided, for the report;
+    notes: what was decided, for the report;
     measured: real sensor data, not simulated.
     """
 
@@ -62,7 +62,6 @@ class FastProblem:
     box: tuple[np.ndarray, np.ndarray]
     table_plane: tuple[np.ndarray, float, bool] | None = None
     """(normal (3,), offset, fitted) of the table, or None."""
-    table: object = None
     notes: dict = field(default_factory=dict)
     measured: bool = False
     """The histograms come from a real sensor (the capture's `real` flag), not from a simulator."""

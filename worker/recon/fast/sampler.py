@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from scipy import ndimage
 
@@ -44,10 +43,6 @@ class HullRays:
     missed: "HullRays | None" = None
     """The candidates that miss the hull (same layout, t_in = t_out = 0), when asked for: they can still see a
     table."""
-
-    @property
-    def n_hist(self) -> int:
-        return int(self.count.numel())
 
 
 def _box_interval(o: torch.Tensor, d: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor):

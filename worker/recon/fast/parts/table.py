@@ -42,9 +42,6 @@ class TableModel:
         self.missed = missed
         self.forward = forward
 
-    def parameters(self) -> list[torch.Tensor]:
-        return [self.log_albedo] + ([self.offset] if self.fit_offset else [])
-
     def albedo_value(self) -> float:
         return float(torch.exp(self.log_albedo.detach()))
 
