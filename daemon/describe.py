@@ -1,6 +1,6 @@
 """One line for the operator about what went wrong in the daemon: a write error (a full disk named as such, a file
-larger than the daemon's file-size limit told apart from it), a device fault, or our own error's message; what to
-do about a write error (`write_advice`); and what slows a move (an arm's speed slider)."""
+larger than the daemon's file-size limit and too many open files told apart from it), a device fault, or our own
+error's message; what to do about a write error (`write_advice`); and what slows a move (an arm's speed slider)."""
 
 from __future__ import annotations
 
@@ -26,6 +26,12 @@ def describe(exc: BaseException, doing: str = "publishing") -> str:
             limit = file_size_limit()
             said = f"; the daemon may write files of at most {limit} bytes (ulimit -f)" if limit is not None else ""
             return f"file too large while {doing}: {exc.strerror or exc}{where}{said}"
+        if exc.errno == errno.EMFILE:  # not the disk: this process holds as many files as it may (ulimit -n)
+            limit = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+            return (f"too many open files while {doing}: {exc.strerror or exc}{where}; the daemon may hold "
+                    f"{limit} open at once (ulimit -n)")
+        if exc.errno == errno.ENFILE:
+            return f"too many open files on this machine while {doing}: {exc.strerror or exc}{where}"
         what = "disk full" if exc.errno in FULL_ERRNOS else "write error"
         return f"{what} while {doing}: {exc.strerror or exc}{where}"
     if isinstance(exc, SensorSilent):
@@ -45,6 +51,10 @@ def write_advice(exc: OSError) -> str:
         fix = _raise_file_size_limit()
     elif exc.errno in NOT_WRITABLE:
         fix = "make the captures' folder writable"
+    elif exc.errno == errno.EMFILE:
+        fix = _raise_open_file_limit()
+    elif exc.errno == errno.ENFILE:
+        fix = "close programs that hold many files open (the machine's limit is `sysctl fs.file-max`)"
     else:
         fix = "check the captures' disk (the kernel log names a failing one)"
     return f"{fix}, then `spadscan ctl resume`"
@@ -60,6 +70,17 @@ def _raise_file_size_limit() -> str:
         return f"raise the daemon's file-size limit (`prlimit --pid {os.getpid()} --fsize={to}`)"
     return ("start the daemon again with a higher file-size limit (`ulimit -f` where it is started, systemd's "
             "LimitFSIZE=)")
+
+
+def _raise_open_file_limit() -> str:
+    """How the operator frees or raises this process's open files: what holds them (a script's connections left
+    open) goes first; `prlimit` raises the limit of the running daemon while its hard limit allows more."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    to = "unlimited" if hard == resource.RLIM_INFINITY else str(hard)
+    raise_it = (f"raise the daemon's open-file limit (`prlimit --pid {os.getpid()} --nofile={to}`)"
+                if hard == resource.RLIM_INFINITY or hard > soft else
+                "start the daemon again with a higher open-file limit (`ulimit -n`, systemd's LimitNOFILE=)")
+    return f"close what holds connections to the daemon open (a script's, a stuck program's) or {raise_it}"
 
 
 SLIDER_FULL = 0.995

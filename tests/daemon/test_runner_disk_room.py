@@ -226,3 +226,46 @@ def test_a_takeover_on_a_read_only_disk_says_to_make_it_writable_not_to_make_roo
     assert re.fullmatch(r"interrupted at pose \d/6 \(daemon restarted\), and write error while reopening the "
                         r"capture: Read-only file system \([^()]+\); make the captures' folder writable, then "
                         r"`spadscan ctl resume`", status["reason"]), status["reason"]
+
+
+WRITE_OUT_OF_FILES = textwrap.dedent("""
+    import errno, os, resource, sys
+    import numpy as np
+    from spadscan.daemon.describe import describe, write_advice
+    from spadscan.protocol.capture_format import Measurement
+    from spadscan.protocol.capture_writer import CaptureWriter
+    from spadscan.protocol.sensor_presets import sensor_preset
+
+    writer = CaptureWriter.create(sys.argv[1], sensor_preset("tmf8820"), chunk_size=64)
+    writer.append(Measurement(np.ones((9, 128), np.uint32), np.eye(4), 0, 0, None, {}))
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+    held = []
+    try:
+        while True:  # every descriptor this process may hold, as idle connections to a daemon would
+            held.append(os.open(os.devnull, os.O_RDONLY))
+    except OSError:
+        pass
+    try:
+        writer.flush()
+    except OSError as exc:
+        print(errno.errorcode.get(exc.errno))
+        print(describe(exc))
+        print(write_advice(exc))
+""")
+
+
+def test_a_chunk_written_out_of_open_files_is_not_blamed_on_the_disk(tmp_path):
+    """A daemon whose files were all held (a script's idle connections) paused its scan with "write error ...;
+    check the captures' disk": it says now that it has too many files open, and how to free or raise them."""
+    r = subprocess.run([sys.executable, "-c", WRITE_OUT_OF_FILES, str(tmp_path / "cap")], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    code, said, advice = r.stdout.splitlines()
+    assert code == "EMFILE", r.stdout
+    assert said.startswith("too many open files while publishing: Too many open files"), said
+    assert said.endswith("; the daemon may hold 64 open at once (ulimit -n)"), said
+    assert "disk" not in said + advice, advice
+    assert advice.startswith("close what holds connections to the daemon open (a script's, a stuck program's) or "
+                             ), advice
+    assert advice.endswith(", then `spadscan ctl resume`"), advice
