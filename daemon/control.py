@@ -13,6 +13,10 @@ daemon's handler writes again, at every request, an abort a full disk kept it fr
 tries again) is then cancelled and the connection closed; any other runs to its end, since its effect must not
 depend on whether the asker still listens, and the connection closes when its reply cannot be written. Abandoned
 requests hold no socket and no task.
+
+A script that opens connections and leaves them open must not take the files the daemon writes its scan with: at
+most `max_clients` connections are served at once (one more is told so in its one reply line and closed), and a
+connection that sends nothing for `idle_s` seconds while no request of its is pending is closed.
 """
 
 from __future__ import annotations
@@ -37,6 +41,11 @@ from .client import READ_ONLY_OPS, default_socket_path
 log = logging.getLogger("spadscan.daemon")
 MAX_LINE_BYTES = 64 * 1024
 HANGUP_POLL_S = 0.2  # how often a pending request's connection is checked for the client's hang-up
+MAX_CLIENTS = 128
+"""Connections served at once: 1,100 idle ones took every file a daemon under `ulimit -n 1024` may hold, and its
+scan paused on the next chunk it wrote."""
+IDLE_S = 600.0
+"""Seconds a connection may send nothing, no request of its pending, before it is closed."""
 ABANDONABLE_OPS = READ_ONLY_OPS
 """Ops that only read: cancelled when the client that asked hangs up before the reply."""
 
@@ -94,10 +103,14 @@ class ControlServer:
     """Serves `handler` on a Unix socket. Use `async with` or start()/close()."""
 
     def __init__(self, path, handler: Handler, *, max_line: int = MAX_LINE_BYTES,
-                 abandonable: frozenset[str] = ABANDONABLE_OPS):
+                 abandonable: frozenset[str] = ABANDONABLE_OPS, max_clients: int = MAX_CLIENTS,
+                 idle_s: float = IDLE_S):
         self.path = Path(path)
         self.handler = handler
         self.max_line = max_line
+        self.max_clients = max_clients
+        self.idle_s = idle_s
+        self._turned_away = 0
         self.abandonable = frozenset(abandonable)
         self._server: asyncio.base_events.Server | None = None
         self._inode: tuple[int, int] | None = None
@@ -150,6 +163,10 @@ class ControlServer:
 
     # ---- one connection ------------------------------------------------------------------------------------------
     async def _serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if len(self._clients) >= self.max_clients:
+            await self._turn_away(writer)
+            return
+        self._turned_away = 0
         task = asyncio.current_task()
         self._clients.add(task)
         sock = writer.get_extra_info("socket")
@@ -169,6 +186,20 @@ class ControlServer:
         finally:
             self._clients.discard(task)
             writer.close()
+
+    async def _turn_away(self, writer: asyncio.StreamWriter) -> None:
+        """One connection more than `max_clients`: told so in one reply line, and closed. Logged once a run of them
+        (until a connection is served again)."""
+        if not self._turned_away:
+            log.warning("control socket: %d connections open, the most served at once; turning new ones away "
+                        "until some close", len(self._clients))
+        self._turned_away += 1
+        error = (f"the daemon serves {self.max_clients} connections at once and all are open; close those left "
+                 f"open (a script's) and try again")
+        with contextlib.suppress(ConnectionError):
+            writer.write(_encode({"ok": False, "error": error}))
+            await writer.drain()
+        writer.close()
 
     async def _answer_while_connected(self, line: bytes, sock) -> dict:
         """The reply to one line. The handler runs in this task, so its reply is written before anything it
@@ -200,11 +231,14 @@ class ControlServer:
     async def _lines(self, reader: asyncio.StreamReader) -> AsyncIterator[tuple[bytes, str | None]]:
         """Yield (line, None) per complete line, or (b'', problem) for a line over max_line bytes (whose rest is
         skipped up to its newline). Text after the last newline counts as a line when the client closes its
-        sending side (it may still read the reply)."""
+        sending side (it may still read the reply). Ends when the client sends nothing for idle_s seconds."""
         buf = bytearray()
         skipping = False
         while True:
-            data = await reader.read(65536)
+            try:
+                data = await asyncio.wait_for(reader.read(65536), self.idle_s)
+            except asyncio.TimeoutError:  # nothing asked for idle_s: the connection is closed
+                return
             if not data:
                 # The client shut its sending side after a complete request without the newline: still a request.
                 if buf.strip() and not skipping and len(buf) <= self.max_line:

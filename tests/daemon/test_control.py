@@ -449,3 +449,77 @@ def test_a_request_that_timed_out_says_whether_the_daemon_may_still_carry_it_out
     said = str(info.value)
     assert said.startswith(f"daemon on {path} did not answer {op!r} within 0.05 s")
     assert ("; it may still carry it out (check `spadscan ctl status`)" in said) == maybe, said
+
+
+async def open_idle(path, n: int) -> list:
+    """`n` connections that send nothing, each once the server has taken it (a status answered on it first)."""
+    conns = []
+    for _ in range(n):
+        reader, writer = await asyncio.open_unix_connection(str(path))
+        writer.write(b'{"op": "status"}\n')
+        await writer.drain()
+        assert json.loads(await asyncio.wait_for(reader.readline(), 30)) == {"ok": True, "echo": "status"}
+        conns.append((reader, writer))
+    return conns
+
+
+async def close_all(conns) -> None:
+    for _, writer in conns:
+        writer.close()
+        await writer.wait_closed()
+
+
+def test_connections_over_the_most_served_at_once_are_told_so_and_closed(arun, sock_dir):
+    """1,100 idle connections took every file a daemon under `ulimit -n 1024` may hold: its scan paused on the next
+    chunk it wrote and every other client timed out. One more than the most served at once gets one error line and
+    is closed; once one closes, the next is served."""
+    path = sock_dir / "ctl.sock"
+
+    async def scenario():
+        async with ControlServer(path, echo, max_clients=3):
+            held = await open_idle(path, 3)
+            reader, writer = await asyncio.open_unix_connection(str(path))
+            refused = json.loads(await asyncio.wait_for(reader.readline(), 30))
+            after = await asyncio.wait_for(reader.read(), 30)
+            writer.close()
+            await close_all(held[:1])
+            for _ in range(600):  # until the server has seen that one close: then a connection is served again
+                served = await exchange(path, [b'{"op": "again"}\n'])
+                if served[0]["ok"]:
+                    break
+                await asyncio.sleep(0.05)
+            await close_all(held[1:])
+            return refused, after, served
+
+    refused, after, served = arun(scenario())
+    assert refused == {"ok": False, "error": "the daemon serves 3 connections at once and all are open; close those "
+                                             "left open (a script's) and try again"}
+    assert after == b""
+    assert served == [{"ok": True, "echo": "again"}]
+
+
+def test_a_connection_idle_past_its_limit_is_closed_but_not_one_waiting_for_its_reply(arun, sock_dir):
+    path = sock_dir / "ctl.sock"
+    release = asyncio.Event()
+
+    async def slow(req: dict) -> dict:
+        if req["op"] == "wait":
+            await release.wait()
+        return {"echo": req["op"]}
+
+    async def scenario():
+        async with ControlServer(path, slow, idle_s=0.2):
+            idle_reader, idle_writer = await asyncio.open_unix_connection(str(path))
+            waiting_reader, waiting_writer = await asyncio.open_unix_connection(str(path))
+            waiting_writer.write(b'{"op": "wait"}\n')
+            await waiting_writer.drain()
+            ended = await asyncio.wait_for(idle_reader.read(), 30)  # closed by the server, nothing said
+            release.set()  # the pending request, far past idle_s, still gets its reply on its connection
+            reply = json.loads(await asyncio.wait_for(waiting_reader.readline(), 30))
+            for writer in (idle_writer, waiting_writer):
+                writer.close()
+                await writer.wait_closed()
+            return ended, reply
+
+    ended, reply = arun(scenario())
+    assert ended == b"" and reply == {"ok": True, "echo": "wait"}
