@@ -1,4 +1,5 @@
-"""The dashboard's web server: the standard library's ThreadingHTTPServer, read-only, serving one captures root.
+"""The dashboard's web server: the standard library's ThreadingHTTPServer, read-only, serving one captures root;
+at most MAX_CONNECTIONS connections at once, each closed after IDLE_S seconds of silence.
 
 Routes (GET and HEAD only):
   /               the page (page.html), which polls /api/status
@@ -37,6 +38,11 @@ from .status import Dashboard
 
 PAGE = "page.html"
 BLOCK = 1 << 16  # bytes of a served file read and sent at a time
+IDLE_S = 60.0
+"""Seconds a connection may keep silent (between requests, or mid-request) before it is closed."""
+MAX_CONNECTIONS = 128
+"""Connections served at once, each by a thread: 1,020 idle ones took every file the dashboard may hold, and every
+page's polls timed out. One more gets a 503 and is closed."""
 
 
 class LiveViews:
@@ -73,6 +79,7 @@ class Handler(BaseHTTPRequestHandler):
     """One request. `dashboard` and `live` are bound by make_server."""
 
     server_version = "spadscan-dashboard"
+    timeout = IDLE_S  # the socket's: a silent connection is closed instead of holding its thread for good
     dashboard: Dashboard
     live: LiveViews
 
@@ -219,7 +226,39 @@ def holds_no_scans(root) -> bool:
         return False
 
 
-class IPv6Server(ThreadingHTTPServer):
+class DashboardServer(ThreadingHTTPServer):
+    """ThreadingHTTPServer with at most `max_connections` connections served at once (a thread each); one more is
+    answered 503 and closed, so that connections left open cannot take every file and thread of the process."""
+
+    max_connections = MAX_CONNECTIONS
+
+    def __init__(self, *args, **kwargs):
+        self._slots = threading.BoundedSemaphore(self.max_connections)
+        super().__init__(*args, **kwargs)
+
+    def process_request(self, request, client_address):
+        if not self._slots.acquire(blocking=False):
+            try:
+                request.sendall(b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
+                                b"Connection: close\r\n\r\ntoo many connections open to the dashboard\n")
+            except OSError:
+                pass
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:  # no thread started: its slot is given back here
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+
+class IPv6Server(DashboardServer):
     """The server on an IPv6 address (ThreadingHTTPServer binds IPv4 only)."""
 
     address_family = socket.AF_INET6
@@ -232,9 +271,9 @@ def server_class(host: str, port: int) -> type[ThreadingHTTPServer]:
     try:
         found = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except (socket.gaierror, UnicodeError, OverflowError):
-        return ThreadingHTTPServer
+        return DashboardServer
     families = {info[0] for info in found}
-    return IPv6Server if families == {socket.AF_INET6} else ThreadingHTTPServer
+    return IPv6Server if families == {socket.AF_INET6} else DashboardServer
 
 
 def address(server: ThreadingHTTPServer) -> str:

@@ -483,3 +483,34 @@ def test_a_dashboard_stopped_by_ctrl_c_or_sigterm_says_so_and_exits_0(tmp_path, 
         proc.kill()
         proc.wait(30)
     assert rest.splitlines() == ["spadscan dashboard: stopped"], rest
+
+
+def test_connections_left_open_are_closed_and_capped(tmp_path, monkeypatch):
+    """1,020 idle connections took every file and a thread each of the dashboard, and every page's polls timed out.
+    A silent connection is closed after IDLE_S, and one more than MAX_CONNECTIONS gets a 503 and is closed."""
+    import socket
+
+    from spadscan.dashboard import server as dashboard_server
+
+    monkeypatch.setattr(dashboard_server.DashboardServer, "max_connections", 2)
+    monkeypatch.setattr(dashboard_server.Handler, "timeout", 0.3)
+    complete_scan(tmp_path / "a")
+    with serving(tmp_path) as server:
+        where = server.server_address[:2]
+        idle = [socket.create_connection(where, timeout=30) for _ in range(2)]  # accepted in order: both served
+        extra = socket.create_connection(where, timeout=30)
+        try:
+            turned_away = extra.makefile("rb").read()
+            assert turned_away.startswith(b"HTTP/1.0 503 Service Unavailable\r\n"), turned_away
+            assert turned_away.endswith(b"\r\n\r\ntoo many connections open to the dashboard\n"), turned_away
+            for conn in idle:  # closed by the server after their silence, nothing said
+                assert conn.makefile("rb").read() == b""
+            for _ in range(600):  # their slots given back as their threads end: served again
+                code, _ = get(server, "/api/status")
+                if code == 200:
+                    break
+                time.sleep(0.05)
+            assert code == 200
+        finally:
+            for conn in [*idle, extra]:
+                conn.close()
