@@ -383,8 +383,11 @@ class ScanRunner:
         try:
             return await asyncio.to_thread(interrupted_scan, self.root, name)
         except ConfigError:
-            if await asyncio.to_thread(gone_or_ended, self.root / name):
-                self._forget_stuck(name)
+            # Only a scan status names is looked up (a folder's name): the error of a name that cannot be a scan's
+            # (too long, a NUL, a lone surrogate) was lost to the lookup's own ("internal error: OSError: ...").
+            if name in self.also_interrupted or (self.stuck is not None and self.stuck["scan"] == name):
+                if await asyncio.to_thread(gone_or_ended, self.root / name):
+                    self._forget_stuck(name)
             raise
 
     def _forget_stuck(self, name: str) -> None:

@@ -153,6 +153,26 @@ def test_abort_name_refuses_a_scan_that_is_not_the_daemons_to_end(arun, tmp_path
     assert again == "scan 'vase' has already ended (aborted)", again
 
 
+def test_resume_and_abort_of_a_name_no_scan_can_have_say_why(arun, tmp_path, sphere):  # noqa: F811
+    """A name too long for a file, with a NUL or a lone surrogate was looked up on disk after its refusal, and the
+    lookup's own error replaced it: "internal error: OSError: [Errno 36] File name too long"."""
+    cfg = make_cfg(tmp_path, views=VIEWS)
+    arun(interrupted(cfg, sphere))
+
+    async def then(runner, status):
+        await runner.abort(name="vase")  # the scan it took over at start-up: it holds none now
+        said = []
+        for name in ("a" * 300, "a\x00b", "\ud800"):
+            for ask in (runner.resume, runner.abort):
+                with pytest.raises(ConfigError) as refused:
+                    await ask(name=name)
+                said.append(str(refused.value))
+        return said
+
+    for line in arun(restarted(cfg, sphere, then)):
+        assert line.startswith("scan name ") and "must be 1-100 letters" in line, line
+
+
 def test_wait_on_an_interrupted_scan_the_daemon_does_not_hold_says_so_with_the_ways_out(arun, tmp_path,
                                                                                          sphere):  # noqa: F811
     """Not "no scan named": the scan is there, and `ctl wait` would otherwise be the operator's only word on it."""
