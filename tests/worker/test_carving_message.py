@@ -61,6 +61,14 @@ def test_cells_larger_than_the_returns_spread_name_the_scene_radius():
     assert "thin or faint" not in msg
 
 
+def test_a_single_return_is_no_spread_to_blame_the_cells_on():
+    """One return spreads over 0 mm: every cell is larger, and a return well inside a sensible box blamed the scene
+    radius."""
+    msg = problem._nothing_left(ROD[20:21], BOX, 0.0, 5.0, 4.0)
+    assert "1 histogram shows a return, 1 of them in the scene box" in msg and "thin or faint" in msg, msg
+    assert "mm cells, larger than" not in msg, msg
+
+
 def test_returns_under_the_floor_keep_the_floor_advice():
     msg = problem._nothing_left(ROD, BOX, 0.045, 5.0, 4.0)
     assert "the floor (z = 0.045 m)" in msg and "field.floor_z" in msg

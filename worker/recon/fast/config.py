@@ -26,7 +26,8 @@ class FastFieldConfig:
     resolution: int = 64
     """Grid nodes along the longest side of the hull's box at the coarse level."""
     box_pad_voxels: float = 3.0
-    """Empty margin (coarse voxels) between the hull's bounding box and the grid's walls."""
+    """Empty margin between the hull's bounding box and the grid's walls: this many times the box's longest side /
+    (resolution - 1), plus `hull_margin_m` (how far the solid may leave the hull)."""
     hull_resolution: int = 128
     """Cells along the longest side of the space-carving grid."""
     carve_threshold: float = 5.0

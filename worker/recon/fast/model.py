@@ -134,7 +134,9 @@ class FastModel:
         6. regulariser gradient added, Adam steps the grid and the albedos; the step is counted
         7. after_step       hull_projection (clamp into the hull), openings (a round every few steps; a kept one
                             is a jump: `jumped`), erosion (every few steps), unseen (relax the air side of surface
-                            no ray reaches, last level), average, plateau
+                            no ray reaches, last level; after the clamp, so that a relaxed node may lie below the
+                            hull's bound until the next step's clamp), average, plateau, dark_restart (a dark
+                            object's fit started again from the hull, once)
         """
         for part in self.parts:
             part.before_step(self)

@@ -261,18 +261,19 @@ def _nothing_left(points: np.ndarray, hull_res, floor_z: float | None, threshold
     where = (f"the scene box {np.round(lo, 3).tolist()} .. {np.round(hi, 3).tolist()} m ({cell_mm:.0f} mm cells) "
              f"and above the floor ({floor})")
     spread_mm = float(np.ptp(points, axis=0).max()) * 1e3 if found > 1 else 0.0
-    if cell_mm > spread_mm:
+    shown = f"{found} histograms show a return" if found != 1 else "1 histogram shows a return"
+    if found > 1 and cell_mm > spread_mm:  # (one return spreads over nothing: any cell would be "larger")
         # A scene radius of metres makes a hull cell larger than all the returns together: no cell is seen empty
         # by few enough views to stay, whatever the thresholds.
-        return (f"space carving removed everything although {found} histograms show a return: the scene box "
+        return (f"space carving removed everything although {shown}: the scene box "
                 f"{np.round(lo, 3).tolist()} .. {np.round(hi, 3).tolist()} m has {cell_mm:.0f} mm cells, larger "
                 f"than the {spread_mm:.0f} mm the returns spread over (check the capture's scene.radius and "
                 f"scene.center)")
     if held >= HELD_SHARE * found:
-        return (f"space carving removed everything although {found} histograms show a return, {held} of them in "
+        return (f"space carving removed everything although {shown}, {held} of them in "
                 f"{where}: the object is thin or faint, and the views that missed its return carved it away "
                 f"({_thin_advice(threshold, weak, lowered)})")
-    return (f"space carving removed everything although {found} histograms show a return, only {held} of them in "
+    return (f"space carving removed everything although {shown}, only {held} of them in "
             f"{where}: the box or the floor does not hold the object (check the capture's scene.radius and "
             f"scene.center, or field.floor_z)")
 

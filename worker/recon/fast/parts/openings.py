@@ -1,6 +1,6 @@
 """Opening the solid behind phantom surface, kept only where the likelihood prefers it.
 
-The erosion of phantom surface (phantoms.py) sinks a lid one voxel at a time, and on the built-in cup it stalls: the
+The erosion of phantom surface (erosion.py) sinks a lid one voxel at a time, and on the built-in cup it stalls: the
 lid stood at 8-11 cm after 600 steps (the bottom is at 0.8 cm), and the data term was flat. Not because the data
 cannot tell: with the cavity under that lid opened to the true shape, the deviance over all 256 views drops from
 0.610 to 0.596 per bin, nearly all of it from the views above 60 degrees of elevation, which see the bottom. But a lid
@@ -9,14 +9,14 @@ get there, a jump can.
 
 So every `every_steps` steps the model proposes jumps and keeps the deepest one that the likelihood prefers:
 
-1. The training steps of the last `open_passes` passes' worth of views before the round gather the same per-node
+1. The training steps of the last `passes` passes' worth of views before the round gather the same per-node
    evidence as the erosion (`evidence.py`): the log of measured over expected photons at each ray's return. Among
    the nodes at the surface as it is now (within a voxel of the zero level: the window also saw the surface where
-   it was a few erosions ago), those with at least `phantom_min_hits` returns whose mean ratio is below
-   `phantom_ratio` are *flagged* (phantom surface); those whose mean ratio is at least `open_keep_ratio` are
-   *supported* (surface the data holds). With fewer than `open_min_flagged` flagged nodes the round makes no
+   it was a few erosions ago), those with at least `min_hits` returns whose mean ratio is below
+   `flag_ratio` are *flagged* (phantom surface); those whose mean ratio is at least `keep_ratio` are
+   *supported* (surface the data holds). With fewer than `min_flagged` flagged nodes the round makes no
    proposals and renders nothing.
-2. For each depth D in `open_depths_m`: the solid within D of a flagged node and more than `open_keep_m` from every
+2. For each depth D in `depths_m`: the solid within D of a flagged node and more than `keep_m` from every
    supported node (and from the floor, which the model counts as supported) is opened (`opened_field`): there the
    field becomes min(D - distance to the flagged nodes, distance to the supported ones - keep), a distance field of
    the opened region, where that is above the current value; only the pieces of that region that reach a flagged

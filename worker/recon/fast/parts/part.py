@@ -71,7 +71,7 @@ class Model(Protocol):
         """Set the object's albedo (> 0)."""
 
     def restart(self) -> None:
-        """Start the fit again from the hull on the coarse grid (calls every part's `on_refine` and `on_jump`)."""
+        """Start the fit again from the hull on the coarse grid, with the parts made afresh (see FastModel)."""
 
     def counts_albedo(self) -> float | None:
         """The albedo at which the current field renders as many photons as the views measured (None: no signal)."""
