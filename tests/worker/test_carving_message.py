@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from spadscan.protocol.errors import ConfigError
 from spadscan.worker.carving.returns import below_default_level
 from spadscan.worker.recon.config import with_overrides
 from spadscan.worker.recon.errors import ReconstructionError
@@ -174,3 +175,19 @@ def test_lowered_means_carving_s_level_below_the_defaults_level():
     assert below_default_level(5.0, 3.5, 5.0, 4.0) and below_default_level(3.5, 3.5, 5.0, 4.0)
     assert not below_default_level(6.0, 4.5, 5.0, 4.0)  # raised
     assert below_default_level(4.5, None, 5.0, None) and not below_default_level(6.0, None, 5.0, None)
+
+
+def test_the_hull_piece_vote_has_its_own_key(cylinder_capture):
+    """`field.hull_min_votes` drops the carved pieces few first returns land in (the box's skirt, specks); 0 keeps
+    every piece, a share over 1 is refused naming the key."""
+    scene = load_scene(cylinder_capture)
+
+    def hull_voxels(**overrides):
+        config = with_overrides(preset_config("fast"), {**FAST_SMALL, **overrides})
+        model = make_fast_model(scene, config, "cpu", RunPlan(steps=1, budget_s=None, seed=0))
+        return model.problem.notes["hull_occupied_voxels"]
+
+    assert hull_voxels() < hull_voxels(**{"field.hull_min_votes": 0.0})
+    with pytest.raises(ConfigError, match=r"^field\.hull_min_votes 1\.5 must be in \[0, 1\] of the best piece's "
+                                          r"votes \(0: every piece stays\)$"):
+        hull_voxels(**{"field.hull_min_votes": 1.5})

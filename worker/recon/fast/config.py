@@ -49,6 +49,10 @@ class FastFieldConfig:
     it; without this, carving drops it as unscanned space (fewer than 3 views) and the fit may not grow back there:
     a 35 cm lamp's shade lost its top 6 cm (0: the old rule). Simulated captures only (problem.carve_keep_returns_m:
     on the real pyramid it kept air above the object)."""
+    hull_min_votes: float = 0.2
+    """Pieces of the carved hull into which fewer first returns land than this share of the best piece's are
+    dropped (`hull.object_hull`): space the views barely looked at, a skirt along the box's walls, specks beside the
+    sensors. 0: every piece stays."""
     hull_margin_m: float = 0.004
     """How far (metres) the surface may grow outside the carved hull: keeps thin parts that carving shaved (the field
     starts on the hull grown by this much, and `parts.hull_projection` holds it there)."""
@@ -173,6 +177,8 @@ class FastConfig(ReconConfig):
             check_int(f"field.{key}", getattr(self.field, key), 4, 1024)
         for key in ("carve_margin_m", "carve_keep_returns_m"):
             check_in_range(f"field.{key}", getattr(self.field, key), 0.0, 1.0)
+        check_in_range("field.hull_min_votes", self.field.hull_min_votes, 0.0, 1.0, unit="of the best piece's votes",
+                       hint="0: every piece stays")
         check_in_range("field.carve_weak_threshold", self.field.carve_weak_threshold, 1.0,
                        max(1.0, self.field.carve_threshold), unit="noise standard deviations",
                        hint="at most field.carve_threshold")

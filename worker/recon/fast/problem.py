@@ -26,10 +26,6 @@ from .grid_field import GridField
 from .hull import hull_field, object_hull
 
 
-HULL_MIN_VOTES = 0.2
-"""Pieces of the carved hull that fewer first returns land in than this fraction of the best piece's are not the
-object (see hull.object_hull)."""
-
 HELD_SHARE = 0.5
 """Share of the first-return points that must lie in the scene box and above the floor for carving's failure to be
 put down to a thin or faint object rather than to the box or the floor. A 6 mm rod 20 cm tall, 83 % of whose 193
@@ -132,7 +128,7 @@ def build_problem(scene, config, device, terms, keep_setup_views=None) -> FastPr
     onset = first_returns(counts_np, carve_sensor, fc.carve_threshold, "leading").onset_range_m(carve_sensor)
     if scene.usable is not None:
         onset = np.where(_usable(scene), onset, np.nan)  # no information, not "no return"
-    occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=HULL_MIN_VOTES)
+    occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=fc.hull_min_votes)
     if not occ.any():
         points = _return_points(onset, poses_np, dirs, weights)
         weak = carve_weak_threshold(fc, table is not None)
