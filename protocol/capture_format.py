@@ -312,10 +312,18 @@ def npy_is_whole(path: Path) -> bool:
 
 
 def save_npy_durable(path: Path, array: np.ndarray) -> None:
+    """`array` as .npy at `path`, on the disk when this returns. A write the kernel cut short raises numpy's short
+    write ("N requested and M written", no errno: `disk_full.is_short_write`) also where numpy said nothing: it writes
+    through C stdio, and a failure to flush the last partial buffer (at the file-size limit, on a disk that filled in
+    the file's last kilobytes) it never raises. Such a file, short of what its header says, was published as a chunk,
+    and the scan ended complete with every chunk unreadable."""
     with open(path, "wb") as f:
         np.save(f, array, allow_pickle=False)
         f.flush()
         os.fsync(f.fileno())
+        due, written = f.tell(), os.fstat(f.fileno()).st_size
+    if written != due or written < array.nbytes:
+        raise OSError(f"{max(due, array.nbytes)} requested and {written} written")
 
 
 def write_json_atomic(path: Path, data: dict) -> None:

@@ -269,3 +269,36 @@ def test_a_chunk_written_out_of_open_files_is_not_blamed_on_the_disk(tmp_path):
     assert advice.startswith("close what holds connections to the daemon open (a script's, a stuck program's) or "
                              ), advice
     assert advice.endswith(", then `spadscan ctl resume`"), advice
+
+
+WRITE_THE_TAIL_OVER_THE_LIMIT = textwrap.dedent("""
+    import errno, resource, sys
+    import numpy as np
+    from spadscan.protocol.capture_format import Measurement
+    from spadscan.protocol.capture_reader import CaptureReader
+    from spadscan.protocol.capture_writer import CaptureWriter
+    from spadscan.protocol.sensor_presets import sensor_preset
+
+    writer = CaptureWriter.create(sys.argv[1], sensor_preset("tmf8820"), chunk_size=64)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (9216, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+    for k in range(2):  # hists.npy: a 128-byte header and 2 x 9 x 128 x 4 = 9,216 bytes: its last 128 over the limit
+        writer.append(Measurement(np.ones((9, 128), np.uint32), np.eye(4), 0, k, None, {}))
+    try:
+        writer.flush()
+    except OSError as exc:
+        print(errno.errorcode.get(exc.errno), exc.filename)
+    print(len(CaptureReader(sys.argv[1]).chunk_names()))
+""")
+
+
+def test_a_chunk_whose_last_bytes_pass_the_file_size_limit_is_not_published(tmp_path):
+    """numpy writes through C stdio and never raises a failure to flush the last partial buffer: a chunk whose
+    hists.npy ended 128 bytes past the daemon's file-size limit was published short of its header's data, and the
+    scan ended complete with every chunk unreadable. The write fails as one over the limit does, nothing published."""
+    r = subprocess.run([sys.executable, "-c", WRITE_THE_TAIL_OVER_THE_LIMIT, str(tmp_path / "cap")], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    failed, published = r.stdout.splitlines()
+    code, name = failed.split(" ", 1)
+    assert code == "EFBIG" and name.endswith("hists.npy"), r.stdout
+    assert published == "0", r.stdout
