@@ -1,6 +1,11 @@
 """kill -9 of a worker mid-job: two `spadscan worker` processes serve one captures root; the one
 running a job is killed; the job finishes on the other worker and every scan is reconstructed exactly once (a real
-reconstruction, two optimisation steps)."""
+reconstruction, two optimisation steps).
+
+A job of two steps may end by finishing its work as soon as by noticing that its worker is gone: where these tests
+wait for such a job to end, that orders what follows and proves nothing of the job's watch on its worker. That watch
+is proven where the job cannot finish meanwhile: `test_a_job_whose_worker_died_before_it_started_exits` here, and
+tests/worker/test_worker_process.py's killed worker (a stand-in job that sleeps 60 s)."""
 
 from __future__ import annotations
 
@@ -60,17 +65,17 @@ def test_a_killed_workers_job_finishes_on_the_other_worker_once(tmp_path, procs)
 
     # The first job process to appear: its worker is the one to kill, mid-job, once the job watches its parent.
     job_pid, _ = next(iter(wait_for(lambda: job_processes(root), "a job process", 120).items()))
-    wait_for(lambda: threads(job_pid) >= 2, "the job process to watch its worker", 60)
+    wait_for(lambda: threads(job_pid) >= 2, "the job process under way", 60)
     victim = workers.pop(parent_pid(job_pid))
     (survivor,) = workers.values()
     victim.kill()
     victim.wait(timeout=30)
-    wait_for(lambda: job_pid not in job_processes(root), "the orphaned job process to exit", 30)
+    wait_for(lambda: job_pid not in job_processes(root), "the orphaned job process to end", 30)
 
     queue = Queue.for_root(root)
     wait_for(lambda: queue.counts()["done"] == len(SCANS), "every job done", 400, poll_s=0.2)
     assert procs.stop(survivor) == 0, procs.log(survivor)
-    assert not job_processes(root), "a job process outlived its worker"
+    assert not job_processes(root), "a job process outlived the stopped worker"
 
     r = spadscan("worker", "--root", root, "--status", "--json")
     assert r.returncode == 0, r.stderr
@@ -148,10 +153,10 @@ def test_a_killed_workers_partial_result_is_cleaned_up(tmp_path, procs):
     argv = spadscan_argv("worker", "--root", root, "--processes", 1, "--steps", 2, "--device", "cpu", "--poll-s", 0.2)
     first = procs.start(argv, "worker")
     job_pid = next(iter(wait_for(lambda: job_processes(root), "a job process", 120)))
-    wait_for(lambda: threads(job_pid) >= 2, "the job process to watch its worker", 60)
+    wait_for(lambda: threads(job_pid) >= 2, "the job process under way", 60)
     first.kill()
     first.wait(timeout=30)
-    wait_for(lambda: job_pid not in job_processes(root), "the orphaned job process to exit", 30)
+    wait_for(lambda: job_pid not in job_processes(root), "the orphaned job process to end", 30)
     r = spadscan("worker", "--root", root, "--once", "--steps", 2, "--device", "cpu", timeout=300)
     assert r.returncode == 0, r.stderr
     recon = root / SCANS[0] / "recon"
