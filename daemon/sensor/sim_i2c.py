@@ -73,7 +73,7 @@ was exposed in `exposures` (monotonic (begin, end) s, same order): measuring cyc
 the measure command 0x10, measurement j after a 0x10 at T is exposed over [T + j I, T + (j + 1) I] with
 I = `frame_interval_s` (each takes its whole period, the longest it can take); back to back (I = 0) a measurement is
 an instant, when the buffer frees. A stop (0xFF) ends the measurement: nothing measured before it is handed over
-after it. Faults: `unplug`/`replug` (every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back
+after it, but the record at 0x20 whose INT bit is up stays flagged until the host clears it (`_stop_command`). Faults: `unplug`/`replug` (every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back
 to the bootloader, RAM lost), `crash` (the chip resets itself into the bootloader but keeps answering),
 `stop_measuring` (the application reports a severe error and stops, APP_ID still 0x03, with or without the error
 interrupt), `hang` (the application hangs in a command: CMD_STAT echoes it for good, until a power cycle),
@@ -338,6 +338,19 @@ class SimTMF8820Bus:
         self.config_loaded = False
         self.tid = 0
 
+    def _stop_command(self) -> None:
+        """The host's stop (0xFF): nothing more is measured, and what was measured but not yet handed over is dropped;
+        a record handed over and not yet cleared stays flagged in INT_STATUS until the host clears its bit, and is
+        what 0x20 holds when a measurement starts again. ams'
+        register map says only that the stop aborts the measurement; all three of ams' drivers clear INT_STATUS
+        themselves around a stop or the next start (the Linux one clears the bits of a record it then drops unread),
+        and none says that the chip does."""
+        flagged = self.records[:1] if self.records and self.cleared_t is None else []
+        published, shown = self.published_t, self.shown
+        self._stop_records()
+        if flagged:
+            self.records, self.published_t, self.shown = flagged, published, shown
+
     def _stop_records(self) -> None:
         """No measurement: nothing measured, nothing to hand over (0x20 shows the config page again)."""
         self.measuring = False
@@ -506,7 +519,7 @@ class SimTMF8820Bus:
                 self.app_status = 0x00  # ams' register map: a new measurement clears the status registers
                 self.next_frame_t = time.monotonic() + self.frame_interval_s
         elif cmd == 0xFF:
-            self._stop_records()
+            self._stop_command()
         elif cmd in (0x6E, 0x6F, 0x16, 0x65, 0x6C) and self.measuring:
             self.violations.append(f"command {cmd:#04x} while measuring")
             ok = 0x02

@@ -692,6 +692,30 @@ def test_clearing_the_interrupt_before_reading_the_record_loses_nothing(image):
     assert got[13][7:] == ((counts[3] >> 8) & 0xFF).astype(np.uint8).tobytes()
 
 
+def test_a_record_flagged_when_the_measurement_restarts_is_not_read_as_the_new_ones(image):
+    """A stop leaves the record handed over flagged until the host clears it (ams' drivers all clear INT_STATUS
+    themselves around a stop or start): a restart that did not would read the stopped measurement's sub-packet as
+    the first record of the new one. The first record read after a restart is sub-packet 0."""
+    from spadscan.daemon.sensor.transport import HistogramPacket
+
+    fake, transport = _started(image, frame_interval_s=0.02)
+    try:
+        while True:  # into a frame: its sub-packets 0-5 read, 6 waits flagged
+            pkt = transport.read_packet(10)
+            assert pkt is not None, "no record in 10 s"
+            if isinstance(pkt, HistogramPacket) and pkt.index == 5:
+                break
+        deadline = time.monotonic() + 10
+        while not fake.read_byte_data(0x41, 0xE1) & 0x08:
+            assert time.monotonic() < deadline, "sub-packet 6 never flagged"
+        transport.restart()
+        first = transport.read_packet(10)
+    finally:
+        transport.stop()
+        transport.close()
+    assert isinstance(first, HistogramPacket) and first.index == 0, first
+
+
 def test_the_chip_measures_on_its_own_period_while_the_host_is_away(image):
     """The chip does not wait for the host to measure: frames measured while one is handed over replace each other
     in its buffer (lost), and the host gets the newest."""
