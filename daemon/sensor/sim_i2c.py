@@ -173,6 +173,7 @@ class SimTMF8820Bus:
         self.app_id_override = app_id
         self.accuracy_modes, self.startup_s = accuracy_modes, startup_s
         self.tmf8828 = tmf8828  # the image has 8x8_measurements: TMF8828_MODE and commands 0x65 / 0x6C
+        self.garbled_status_reads = 0  # bootloader status reads still to come back with a bit flipped on the bus
         self.rng = np.random.default_rng(seed)
         self.produced: list[tuple[np.ndarray, dict]] = []
         self.exposures: list[tuple[float, float]] = []  # (begin, end) of each measurement in `produced`, monotonic s
@@ -396,9 +397,16 @@ class SimTMF8820Bus:
         if reg == INT_ENAB:
             return bytes([self.int_enab])
         if reg == CMD_STAT and not self.app_running:
-            status = self.bl_cmd if self.bl_busy else self.bl_status  # busy: the command it runs is echoed
+            busy = self.bl_busy > 0
+            status = self.bl_cmd if busy else self.bl_status  # busy: the command it runs is echoed
             self.bl_busy = max(0, self.bl_busy - 1)
-            return bytes([status, 0, ~status & 0xFF])[:n].ljust(n, b"\0")
+            frame = bytes([status, 0, ~status & 0xFF])
+            if self.garbled_status_reads and not busy:
+                # A transport fault, not the bootloader's: a bit of the status flipped on the bus, its checksum
+                # (~(status + size), ams' Linux driver's check) left as sent.
+                self.garbled_status_reads -= 1
+                frame = bytes([status ^ 0x01]) + frame[1:]
+            return frame[:n].ljust(n, b"\0")
         if reg == CMD_STAT:
             status = self.commands[-1] if self.cmd_busy else self.cmd_stat
             if self.cmd_busy:

@@ -229,6 +229,18 @@ def test_the_bootloader_echoes_the_command_it_runs_and_the_driver_waits(arun, im
     assert len(frames) == 1 and fake.violations == [] and bytes(fake.ram[:len(data)]) == data
 
 
+def test_a_garbled_bootloader_status_is_read_again_not_taken_for_an_error(arun, image):
+    """A status whose bits a noisy bus flipped (0x00, "ready", read as 0x01, an error) fails its checksum: read again,
+    it is the bootloader's own, and the download goes on. Taken as it read, it failed the start with "bootloader
+    rejected"."""
+    path, data = image
+    fake = SimTMF8820Bus(image=data)
+    fake.garbled_status_reads = 3
+    frames = arun(_run(I2CSensor(1, firmware=path, smbus_factory=fake), n_frames=1))
+    assert len(frames) == 1 and fake.garbled_status_reads == 0 and fake.violations == []
+    assert bytes(fake.ram[:len(data)]) == data
+
+
 def test_measuring_enables_the_result_and_histogram_interrupts(image):
     path, data = image
     fake = SimTMF8820Bus(image=data)
