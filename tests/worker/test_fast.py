@@ -22,7 +22,7 @@ from spadscan.worker.recon.fast.model import make_fast_model
 from spadscan.worker.recon.fast.optim import Adam
 from spadscan.worker.recon.fast.regularizers import band_nodes, grid_regularizers
 from spadscan.worker.recon.fast.render import section_ranges, section_weights
-from spadscan.worker.recon.fast.sampler import around_crossing, hull_rays
+from spadscan.worker.recon.fast.sampler import around_crossing, hull_rays, pick_rays
 from spadscan.worker.recon.model_api import ReconModel, RunPlan
 from spadscan.worker.recon.presets import preset_config
 from spadscan.worker.recon.scene_data import load_scene
@@ -493,6 +493,23 @@ def test_the_mesh_fills_a_closed_pocket_only_with_the_cavities_part(capture, req
     filled, kept = meshed(True), meshed(False)
     assert len(kept.split(only_watertight=False)) == len(filled.split(only_watertight=False)) + 1
     assert kept.volume < filled.volume
+
+
+def test_the_rays_drawn_turn_about_their_candidates_only_with_ray_jitter(cylinder_capture):
+    """`schedule.ray_jitter` (its switch, for the ablation): on, each drawn ray turns by a random angle of about half
+    the candidates' spacing; off, the rays are the candidates as they are, and the fit still steps."""
+    config = with_overrides(preset_config("fast"), {**FAST_SMALL, "schedule.ray_jitter": False})
+    model = make_fast_model(load_scene(cylinder_capture), config, "cpu", RunPlan(steps=2, budget_s=None, seed=0))
+    rays = model.rays
+    hists = torch.nonzero(rays.count > 0).flatten()[:8]
+    for jitter in (True, False):
+        idx, _, _, d, _ = pick_rays(rays, hists, 16, torch.Generator().manual_seed(0), jitter)
+        turned = (d - rays.dirs[idx]).norm(dim=-1)
+        if jitter:
+            assert float(turned.min()) > 0 and float(turned.max()) < 4 * rays.jitter_rad
+        else:
+            assert float(turned.max()) == 0.0
+    assert math.isfinite(model.step()["loss"]) and math.isfinite(model.step()["loss"])
 
 
 def test_without_a_table_the_empty_space_push_acts_where_no_view_hears_a_return(cylinder_capture):

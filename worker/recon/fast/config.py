@@ -78,6 +78,9 @@ class FastScheduleConfig:
     """Hull-hitting rays drawn per histogram per step, per steradian of the zone (at least `min_rays`)."""
     min_rays: int = 32
     """Floor on rays per histogram per step."""
+    ray_jitter: bool = True
+    """Turn each drawn ray by a random angle about half the candidates' spacing, every step: over the steps the
+    rays cover the zone, not only the candidates' fixed directions (false: the candidates as they are)."""
     views_per_step: int = 16
     """Views (all their zones) rendered per step."""
     coarse_samples: int = 48

@@ -322,7 +322,7 @@ class FastModel:
         transient = torch.zeros(n_hist, fwd.n_fine, device=self.device)
         vox = self.field.voxel
         if hist_ok.numel() > 0:
-            idx, batch, o, d, w = pick_rays(self.rays, hist_ok, self.per_hist, gen)
+            idx, batch, o, d, w = pick_rays(self.rays, hist_ok, self.per_hist, gen, self.sc.ray_jitter)
             t_in, t_out = self.rays.t_in[idx], self.rays.t_out[idx]
             with torch.no_grad():
                 tc = stratified(t_in, t_out, self.sc.coarse_samples, gen)

@@ -196,8 +196,10 @@ class _HullGrid:
         return node
 
 
-def pick_rays(rays: HullRays, hist_ids: torch.Tensor, per_hist: int, generator: torch.Generator | None):
-    """A stratified subset of each histogram's hull-hitting rays, jittered by up to half the candidate spacing.
+def pick_rays(rays: HullRays, hist_ids: torch.Tensor, per_hist: int, generator: torch.Generator | None,
+              jitter: bool = True):
+    """A stratified subset of each histogram's hull-hitting rays, jittered by up to half the candidate spacing (unless
+    not `jitter`).
 
     hist_ids (n,) histograms with count > 0. Returns (ray_index (n * per_hist,), batch_hist (n * per_hist,) index into
     hist_ids, origins, dirs (n * per_hist, 3), weight (n * per_hist,) steradians: each candidate's weight times
@@ -212,9 +214,10 @@ def pick_rays(rays: HullRays, hist_ids: torch.Tensor, per_hist: int, generator: 
     idx = (rays.start[hist_ids][:, None] + local).reshape(-1)
     batch = torch.arange(n, device=dev).repeat_interleave(per_hist)
     d = rays.dirs[idx]
-    noise = torch.randn(d.shape, device=dev, dtype=d.dtype, generator=generator) * (0.5 * rays.jitter_rad)
-    noise = noise - (noise * d).sum(-1, keepdim=True) * d
-    d = torch.nn.functional.normalize(d + noise, dim=-1)
+    if jitter:
+        noise = torch.randn(d.shape, device=dev, dtype=d.dtype, generator=generator) * (0.5 * rays.jitter_rad)
+        noise = noise - (noise * d).sum(-1, keepdim=True) * d
+        d = torch.nn.functional.normalize(d + noise, dim=-1)
     w = rays.weight[idx] * (count[batch] / per_hist)
     return idx, batch, rays.origins[idx], d, w
 
