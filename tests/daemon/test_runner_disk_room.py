@@ -165,21 +165,32 @@ WRITE_OVER_THE_LIMIT = textwrap.dedent("""
     import numpy as np
     from spadscan.daemon.describe import describe, write_advice
     from spadscan.protocol.capture_format import Measurement
+    from spadscan.protocol.capture_reader import CaptureReader
     from spadscan.protocol.capture_writer import CaptureWriter
     from spadscan.protocol.sensor_presets import sensor_preset
 
-    writer = CaptureWriter.create(sys.argv[1], sensor_preset("tmf8820"), chunk_size=64)
-    hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1] if sys.argv[2] == "soft" else 16384
-    resource.setrlimit(resource.RLIMIT_FSIZE, (16384, hard))
-    for k in range(8):  # hists.npy: 8 x 9 x 128 x 4 bytes, over the limit
+    out, which, limit, poses = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+    writer = CaptureWriter.create(out, sensor_preset("tmf8820"), chunk_size=64)
+    hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1] if which == "soft" else limit
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
+    for k in range(poses):  # hists.npy: a 128-byte header and poses x 9 x 128 x 4 bytes
         writer.append(Measurement(np.ones((9, 128), np.uint32), np.eye(4), 0, k, None, {}))
     try:
         writer.flush()
     except OSError as exc:
-        print(errno.errorcode.get(exc.errno))
+        print(errno.errorcode.get(exc.errno), exc.filename)
         print(describe(exc))
         print(write_advice(exc))
+    print(len(CaptureReader(out).chunk_names()))
 """)
+
+
+def write_over_the_limit(out, which: str, limit: int, poses: int) -> list[str]:
+    """`WRITE_OVER_THE_LIMIT` run in a process of its own (its file-size limit is that process's): its lines."""
+    r = subprocess.run([sys.executable, "-c", WRITE_OVER_THE_LIMIT, str(out), which, str(limit), str(poses)],
+                       cwd=out.parent, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    return r.stdout.splitlines()
 
 
 @pytest.mark.parametrize("limit", ["soft", "hard"])
@@ -187,11 +198,8 @@ def test_a_chunk_over_the_daemons_file_size_limit_is_not_called_a_full_disk(tmp_
     """Under `ulimit -f` numpy's write of a chunk's counts stops short (no errno): at the process's file-size limit
     that is EFBIG, said as such with its own advice, not a full disk to make room on: `prlimit` on the running
     daemon where its hard limit allows more, else a daemon started with a higher limit (`ulimit -f` sets both)."""
-    r = subprocess.run([sys.executable, "-c", WRITE_OVER_THE_LIMIT, str(tmp_path / "cap"), limit], cwd=tmp_path,
-                       capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
-    code, said, advice = r.stdout.splitlines()
-    assert code == "EFBIG", r.stdout
+    failed, said, advice, published = write_over_the_limit(tmp_path / "cap", limit, 16384, 8)
+    assert failed.split()[0] == "EFBIG" and published == "0", failed
     assert said.startswith("file too large while publishing: File too large ("), said
     assert said.endswith("hists.npy); the daemon may write files of at most 16384 bytes (ulimit -f)"), said
     assert "disk full" not in said and "No space" not in said, said
@@ -271,34 +279,11 @@ def test_a_chunk_written_out_of_open_files_is_not_blamed_on_the_disk(tmp_path):
     assert advice.endswith(", then `spadscan ctl resume`"), advice
 
 
-WRITE_THE_TAIL_OVER_THE_LIMIT = textwrap.dedent("""
-    import errno, resource, sys
-    import numpy as np
-    from spadscan.protocol.capture_format import Measurement
-    from spadscan.protocol.capture_reader import CaptureReader
-    from spadscan.protocol.capture_writer import CaptureWriter
-    from spadscan.protocol.sensor_presets import sensor_preset
-
-    writer = CaptureWriter.create(sys.argv[1], sensor_preset("tmf8820"), chunk_size=64)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (9216, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
-    for k in range(2):  # hists.npy: a 128-byte header and 2 x 9 x 128 x 4 = 9,216 bytes: its last 128 over the limit
-        writer.append(Measurement(np.ones((9, 128), np.uint32), np.eye(4), 0, k, None, {}))
-    try:
-        writer.flush()
-    except OSError as exc:
-        print(errno.errorcode.get(exc.errno), exc.filename)
-    print(len(CaptureReader(sys.argv[1]).chunk_names()))
-""")
-
-
 def test_a_chunk_whose_last_bytes_pass_the_file_size_limit_is_not_published(tmp_path):
     """numpy writes through C stdio and never raises a failure to flush the last partial buffer: a chunk whose
     hists.npy ended 128 bytes past the daemon's file-size limit was published short of its header's data, and the
     scan ended complete with every chunk unreadable. The write fails as one over the limit does, nothing published."""
-    r = subprocess.run([sys.executable, "-c", WRITE_THE_TAIL_OVER_THE_LIMIT, str(tmp_path / "cap")], cwd=tmp_path,
-                       capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
-    failed, published = r.stdout.splitlines()
-    code, name = failed.split(" ", 1)
-    assert code == "EFBIG" and name.endswith("hists.npy"), r.stdout
-    assert published == "0", r.stdout
+    lines = write_over_the_limit(tmp_path / "cap", "soft", 9216, 2)  # the data's last 128 bytes over the limit
+    code, name = lines[0].split(" ", 1)
+    assert code == "EFBIG" and name.endswith("hists.npy"), lines
+    assert lines[-1] == "0", lines
