@@ -52,7 +52,8 @@ class FastFieldConfig:
     hull_min_votes: float = 0.2
     """Pieces of the carved hull into which fewer first returns land than this share of the best piece's are
     dropped (`hull.object_hull`): space the views barely looked at, a skirt along the box's walls, specks beside the
-    sensors. 0: every piece stays."""
+    sensors. 0: every piece stays. Not on a table, where it bought nothing (benchmarks/RESULTS.md, "The hull's piece
+    vote and the rays' jitter, each switched off alone")."""
     hull_margin_m: float = 0.004
     """How far (metres) the surface may grow outside the carved hull: keeps thin parts that carving shaved (the field
     starts on the hull grown by this much, and `parts.hull_projection` holds it there)."""
