@@ -46,7 +46,7 @@ from .recon.errors import ReconstructionError
 from .recon.fast.problem import carve_weak_threshold, default_thresholds
 from .recon.model_api import ReconModel, RunPlan
 from .recon.presets import make_model, preset_config
-from .recon.scene_data import SceneData, load_scene
+from .recon.scene_data import SceneData, load_scene, strongest_returns
 from .recon.trainer import train
 from .report import pictures
 from .report.folder_view import ensure_view3d
@@ -55,7 +55,7 @@ from .report.report_json import json_safe, write_report
 from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 from .time_axis import NEAR_RANGE_M, check_time_axis, scene_views
-from .view_spread import above_only_warning, one_ring_warning, view_elevations_deg
+from .view_spread import above_only_warning, far_views_warning, one_ring_warning, view_elevations_deg
 
 DEVICES = ("auto", "cpu", "cuda")
 FIT_VIEWS = 4
@@ -282,6 +282,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     signal = _signal(scene, config, reads)
     del reads  # not held through training: at 10,000 views of nine zones it is a hundred megabytes
     ring_note = _ring_note(scene)
+    far_note = _far_note(scene)
     if budget_s is not None:
         _probe_end_costs(model, scene.n_views, truth, costs, clock, scene=scene)
         end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
@@ -403,7 +404,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
                      scene_notes=[n for n in (run.counts_note, scene.bound_note, scene.pulse_note, floor_note,
-                                              ring_note, run.state_note) if n],
+                                              ring_note, far_note, run.state_note) if n],
                      coverage=coverage, pieces=pieces, signal=signal, lost=lost,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
@@ -542,6 +543,14 @@ def _ring_note(scene: SceneData) -> str | None:
     poses, usable = _poses_usable(scene)
     spread = view_elevations_deg(poses, scene.center.double().cpu().numpy(), usable)
     return one_ring_warning(*spread) or above_only_warning(*spread)
+
+
+def _far_note(scene: SceneData) -> str | None:
+    """The warning that the views stand so far from the object that one zone sees a patch wider than its parts
+    (view_spread.py), or None: from each view's strongest return, its frames summed."""
+    counts, sensor, _ = _as_carving_reads(scene)
+    clear, ranges = strongest_returns(counts, sensor)
+    return far_views_warning(sensor, ranges[clear])
 
 
 def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:

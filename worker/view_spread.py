@@ -1,5 +1,6 @@
-"""Views from one elevation, or from above only: a capture whose views all look at the object from the same height
-above it, or all from high above it.
+"""Views from one elevation, from above only, or from far away: a capture whose views all look at the object from
+the same height above it, all from high above it, or from so far that each zone sees a patch wider than the object's
+parts.
 
 Every view of one ring around a roundish object reads nearly the same histogram, and ranges taken from one elevation
 do not fix the shape's profile in height: the fit explains every histogram with a wrong shape, and no check on the fit
@@ -29,6 +30,12 @@ target): a 16 cm block seen from 48-88 degrees came out 7-10 mm at three runs, e
 up 8.1 mm; the block on a table with the tmf8820 from 50 up 3.9 mm; the block from 37 up 2.3 mm and from 28 up 1.4
 (benchmarks/RESULTS.md, "a bad result says so"). The public dataset's captures reach 10 degrees or lower (the real
 pyramid 10, its `_random` twin 7, the simulated ones below 0)."""
+
+FAR_PATCH_M = 0.30
+"""Width (metres) of the patch one zone sees at the views' median return range over which a capture is said to be
+taken from far away: each histogram then sums the returns of a patch wider than most objects' parts, and the fit
+explains every one of them with a blurred shape. Every benchmark capture sees patches of 2.7-25 cm (lcspc-sim from
+0.5 m, the TMF8820's 9 zones from 0.13-0.45 m; benchmarks/RESULTS.md, "Views from far away")."""
 
 
 def view_elevations_deg(poses: np.ndarray, center, usable: np.ndarray | None = None) -> tuple[float, float, int]:
@@ -70,4 +77,34 @@ def one_ring_warning(low_deg: float, high_deg: float, views: int) -> str | None:
             f"at two or more elevations (e.g. rings from 36 to 83 degrees, the public dataset's real captures' layout)")
 
 
-__all__ = ["ONE_RING_DEG", "ABOVE_ONLY_DEG", "view_elevations_deg", "one_ring_warning", "above_only_warning"]
+def zone_patch_m(sensor, range_m: float) -> float:
+    """Width (metres) of the patch one zone of `sensor` sees at `range_m` metres: the diameter of the cone of the
+    zones' mean solid angle."""
+    solid = float(np.mean([zone.solid_angle_sr() for zone in sensor.zones]))
+    half = math.acos(max(-1.0, 1.0 - solid / (2.0 * math.pi)))
+    return 2.0 * range_m * math.tan(min(half, math.radians(89.0)))
+
+
+def far_views_warning(sensor, ranges_m: np.ndarray) -> str | None:
+    """The line saying that the views' returns (`ranges_m`, metres, one per view with a clear return) lie so far that
+    one zone sees a patch wider than FAR_PATCH_M at their median, or None (None too for fewer than 3 returns)."""
+    ranges_m = np.asarray(ranges_m, np.float64)
+    if len(ranges_m) < 3:
+        return None
+    median = float(np.median(ranges_m))
+    patch = zone_patch_m(sensor, median)
+    if not patch > FAR_PATCH_M:
+        return None
+    return (f"the views' returns lie {median:.2f} m away (median), where each zone of the {sensor.name} sees a patch "
+            f"{100 * patch:.0f} cm across: each histogram sums a patch wider than most of an object's parts, and the "
+            f"fit can explain every one with a blurred shape; scan closer (within {_closer_m(sensor):.2f} m, where "
+            f"a zone's patch is {100 * FAR_PATCH_M:.0f} cm or less)")
+
+
+def _closer_m(sensor) -> float:
+    """The range (metres) at which one zone of `sensor` sees a patch FAR_PATCH_M across."""
+    return FAR_PATCH_M / zone_patch_m(sensor, 1.0)
+
+
+__all__ = ["ONE_RING_DEG", "ABOVE_ONLY_DEG", "FAR_PATCH_M", "view_elevations_deg", "one_ring_warning",
+           "above_only_warning", "zone_patch_m", "far_views_warning"]

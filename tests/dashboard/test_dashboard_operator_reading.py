@@ -17,12 +17,14 @@ import sys
 import time
 from types import SimpleNamespace
 
+import numpy as np
 import trimesh
 
 from dashboard_helpers import complete_scan, serving, status
 from page_helpers import add_pose, browser_page, start_scan
 from spadscan.commands.dashboard import daemon_running
 from spadscan.daemon.root_lock import RootLock
+from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.dashboard.server import address
 from spadscan.dashboard.worker_state import LOOK_S
 from spadscan.worker.carving.bounds import BelowFloor, floor_cut_note
@@ -30,7 +32,7 @@ from spadscan.worker.end_of_run import (coverage_warning, dark_warning, lost_war
                                         saturation_warning, specks_warning, tunnels_warning)
 from spadscan.worker.lost_returns import LostReturns
 from spadscan.worker.recon.scene_data import bound_warning
-from spadscan.worker.view_spread import above_only_warning, one_ring_warning
+from spadscan.worker.view_spread import above_only_warning, far_views_warning, one_ring_warning
 from spadscan.worker.holder import Holder
 from spadscan.worker.job_progress import claim_log
 from spadscan.worker.jobs import Job
@@ -131,7 +133,8 @@ def end_of_run_warnings() -> tuple[list[str], list[str]]:
                bound_warning(0.2, 0.16, 0.6),
                floor_cut_note(0.0, "the default floor", BelowFloor(5, 48, 0.055), None, "give another floor"),
                dark_warning({"restarted_at_step": 200, "albedo": 0.15}),
-               above_only_warning(48.0, 80.0, 64), one_ring_warning(30.0, 31.0, 32)]
+               above_only_warning(48.0, 80.0, 64), one_ring_warning(30.0, 31.0, 32),
+               far_views_warning(sensor_preset("lcspc-sim"), np.full(64, 0.74))]
     assert all(serious), serious  # (each made to say so)
     mild = ["the run stopped on its time budget well before convergence: its data term was still falling (4.8 % over "
             "the last fifth of its 150 steps; a larger --budget-s gives a better mesh)",

@@ -11,8 +11,8 @@ from spadscan.protocol.schedules import elevation_rings, fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.protocol.scenes import builtin_scene
-from spadscan.worker.view_spread import (ABOVE_ONLY_DEG, ONE_RING_DEG, above_only_warning, one_ring_warning,
-                                         view_elevations_deg)
+from spadscan.worker.view_spread import (ABOVE_ONLY_DEG, FAR_PATCH_M, ONE_RING_DEG, above_only_warning,
+                                         far_views_warning, one_ring_warning, view_elevations_deg, zone_patch_m)
 
 
 def test_one_ring_is_one_elevation_and_a_spiral_is_many():
@@ -75,3 +75,36 @@ def test_reconstruct_warns_of_a_capture_from_above_only(tmp_path):
     report = reconstruct_capture(tmp_path / "top", tmp_path / "out", steps=5, progress=False, device="cpu",
                                  threads=1, overrides={"mesh_resolution": 48, "early_stop": False})
     assert any("24 views all look down from" in w for w in report["warnings"]), report["warnings"]
+
+
+def test_a_zones_patch_grows_with_range_and_its_solid_angle():
+    lcspc, tmf = sensor_preset("lcspc-sim"), sensor_preset("tmf8820")
+    # lcspc-sim's one zone of 0.21 sr is a cone of about 15 degrees half-angle: 0.53 x the range across
+    assert zone_patch_m(lcspc, 1.0) == pytest.approx(0.53, abs=0.01)
+    assert zone_patch_m(lcspc, 0.5) == pytest.approx(0.5 * zone_patch_m(lcspc, 1.0))
+    assert zone_patch_m(tmf, 1.0) < 0.5 * zone_patch_m(lcspc, 1.0)  # nine zones share a field of view like it
+
+
+def test_views_from_far_away_are_said_and_the_benchmarks_ranges_are_not():
+    lcspc, tmf = sensor_preset("lcspc-sim"), sensor_preset("tmf8820")
+    near = FAR_PATCH_M / zone_patch_m(lcspc, 1.0)  # the range where a zone's patch is FAR_PATCH_M
+    assert far_views_warning(lcspc, np.full(64, 0.47)) is None  # the benchmark's farthest lcspc-sim returns
+    assert far_views_warning(tmf, np.full(64, 0.6)) is None  # the TMF8820's nine narrow zones
+    said = far_views_warning(lcspc, np.r_[np.full(40, 0.74), np.full(20, 0.3)])
+    assert said.startswith("the views' returns lie 0.74 m away (median), where each zone of the lcspc-sim sees a "
+                           "patch 40 cm across:"), said
+    assert said.endswith(f"scan closer (within {near:.2f} m, where a zone's patch is 30 cm or less)"), said
+    assert far_views_warning(lcspc, np.full(2, 0.9)) is None  # two returns are too few to judge
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_reconstruct_warns_of_a_capture_from_far_away(tmp_path):
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    poses = fibonacci_hemisphere(24, 0.85, target=(0, 0, 0.05))
+    simulate_capture(builtin_scene("sphere"), sensor_preset("lcspc-sim"), poses, tmp_path / "far",
+                     settings=SimSettings(rays_per_zone=256), progress=False)
+    report = reconstruct_capture(tmp_path / "far", tmp_path / "out", steps=5, progress=False, device="cpu",
+                                 threads=1, overrides={"mesh_resolution": 48, "early_stop": False})
+    assert any(w.startswith("the views' returns lie 0.7") and "scan closer" in w for w in report["warnings"]), \
+        report["warnings"]

@@ -206,11 +206,10 @@ def _implausible(data, capture: Path) -> np.ndarray:
     return implausible(data.hists, *bounds)
 
 
-def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) -> np.ndarray:
-    """World points (n, 3) of each view's strongest return along its boresight, for views with a clear one.
-
-    counts: (V, Z, B). The zones are summed; a view counts when its peak stands 8 Poisson sigmas above the
-    histogram's median (most bins hold background only)."""
+def strongest_returns(counts: np.ndarray, sensor: SensorModel) -> tuple[np.ndarray, np.ndarray]:
+    """(clear (V,) bool, range (V,) metres) of each view's strongest return, its zones summed: a view is clear when
+    its peak stands 8 Poisson sigmas above the histogram's median (most bins hold background only) and lies between
+    1 cm and the sensor's range. counts: (V, Z, B)."""
     h = counts.sum(axis=1)
     if sensor.ignore_bins:
         h[:, list(sensor.ignore_bins)] = 0.0
@@ -219,6 +218,13 @@ def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) ->
     clear = h[np.arange(len(h)), peak] > floor + 8 * np.sqrt(np.maximum(floor, 1.0))
     rng = sensor.range_of_bin(peak + 0.5)
     clear &= (rng > 0.01) & (rng < sensor.max_range_m)
+    return clear, rng
+
+
+def first_returns(counts: np.ndarray, poses: np.ndarray, sensor: SensorModel) -> np.ndarray:
+    """World points (n, 3) of each view's strongest return along its boresight, for views with a clear one
+    (`strongest_returns`). counts: (V, Z, B)."""
+    clear, rng = strongest_returns(counts, sensor)
     return poses[clear, :3, 3] + rng[clear, None] * poses[clear, :3, 2]
 
 
