@@ -93,7 +93,7 @@ def test_views_from_far_away_are_said_and_the_benchmarks_ranges_are_not():
     said = far_views_warning(lcspc, np.r_[np.full(40, 0.74), np.full(20, 0.3)])
     assert said.startswith("the views' returns lie 0.74 m away (median), where each zone of the lcspc-sim sees a "
                            "patch 40 cm across:"), said
-    assert said.endswith(f"scan closer (within {near:.2f} m, where a zone's patch is 30 cm or less)"), said
+    assert said.endswith(f"scan closer (within {near:.2f} m, where a zone's patch is 27 cm or less)"), said
     assert far_views_warning(lcspc, np.full(2, 0.9)) is None  # two returns are too few to judge
 
 
