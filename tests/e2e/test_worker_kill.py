@@ -4,8 +4,9 @@ reconstruction, two optimisation steps).
 
 A job of two steps may end by finishing its work as soon as by noticing that its worker is gone: where these tests
 wait for such a job to end, that orders what follows and proves nothing of the job's watch on its worker. That watch
-is proven where the job cannot finish meanwhile: `test_a_job_whose_worker_died_before_it_started_exits` here, and
-tests/worker/test_worker_process.py's killed worker (a stand-in job that sleeps 60 s)."""
+is proven where the job cannot finish meanwhile: tests/worker/test_worker_process.py's killed worker (a stand-in job
+that sleeps 60 s); `test_a_job_whose_worker_died_before_it_started_exits` here proves the check a job makes as it
+starts (a worker already gone)."""
 
 from __future__ import annotations
 
