@@ -73,7 +73,8 @@ was exposed in `exposures` (monotonic (begin, end) s, same order): measuring cyc
 the measure command 0x10, measurement j after a 0x10 at T is exposed over [T + j I, T + (j + 1) I] with
 I = `frame_interval_s` (each takes its whole period, the longest it can take); back to back (I = 0) a measurement is
 an instant, when the buffer frees. A stop (0xFF) ends the measurement: nothing measured before it is handed over
-after it, but the record at 0x20 whose INT bit is up stays flagged until the host clears it (`_stop_command`). Faults: `unplug`/`replug` (every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back
+after it, but the record at 0x20 whose INT bit is up stays flagged until the host clears it (`_stop_command`).
+Faults: `unplug`/`replug` (every transfer NACKs; a replug is a power-up), `power_cycle` (power lost: back
 to the bootloader, RAM lost), `crash` (the chip resets itself into the bootloader but keeps answering),
 `stop_measuring` (the application reports a severe error and stops, APP_ID still 0x03, with or without the error
 interrupt), `hang` (the application hangs in a command: CMD_STAT echoes it for good, until a power cycle),

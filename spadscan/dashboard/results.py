@@ -56,7 +56,8 @@ SERIOUS = tuple(re.compile(p) for p in (
 doubt the shape itself: the fit does not explain the measurements, too few views saw the surface, the mesh is in
 pieces, specks or tunnels, misses a part that returns came from, the capture holds too little signal, or is saturated
 by pile-up, the scene's bound or the floor cuts the object, the object is dark, the views all look down, stand on
-one ring or stand far away. The others say how the run went (stopped on its budget, a busy machine): a longer run mends them."""
+one ring or stand far away. The others say how the run went (stopped on its budget, a busy machine): a longer run
+mends them."""
 OFF_SCREEN = "off screen"
 """Words of the worker's reason where its machine cannot draw pictures (worker/report/offscreen.py
 `OffscreenUnavailable`: "no display and no EGL or OSMesa library to draw meshes off screen: install ...")."""

@@ -26,10 +26,10 @@ def clean_solid(values: np.ndarray, min_fraction: float = 0.0,
     """Remove what the histograms cannot have seen from an SDF grid (nz, ny, nx) -> cleaned copy.
 
     Cavities (`cavities`: empty regions closed by the solid, and by the floor when `below_floor` marks it) lie behind
-    every surface a sensor outside can see: they are filled (unless not `fill_pockets`). Solid pieces smaller than `min_fraction` of the largest
-    piece (by node count) are floaters: they are emptied (0, the default: none is). Filled and emptied nodes get a
-    value of half a node spacing's worth (+-1e-3 of the field's scale), so the surface moves only where something was
-    removed.
+    every surface a sensor outside can see: they are filled (unless not `fill_pockets`). Solid pieces smaller than
+    `min_fraction` of the largest piece (by node count) are floaters: they are emptied (0, the default: none is).
+    Filled and emptied nodes get a value of half a node spacing's worth (+-1e-3 of the field's scale), so the surface
+    moves only where something was removed.
     """
     v = np.array(values, np.float32, copy=True)
     solid = v < 0
