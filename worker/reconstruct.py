@@ -31,7 +31,7 @@ from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PI
 from .carving.bounds import floor_cut_note, mesh_share_below, returns_below_floor
 from .carving.returns import DEFAULT_THRESHOLD, first_returns as detected_returns
 from .carving.view_subset import spread_views
-from .carving.views import summed_views
+from .carving.views import summed_by_cycles
 from .cpu_wait import ThreadWaits, machine_jobs, read_threads
 from .coverage import FEW_VIEWS, Coverage, counted_views, few_share, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
@@ -277,12 +277,12 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     out.mkdir(parents=True, exist_ok=True)  # only once the capture has loaded: a bad one leaves no empty folder
     # What the capture (and the ground truth) alone decide, before training: both read every view (0.5 s at 2000
     # views, 4 s at 10,000), so a time budget meets them in the set-up's time, not after the end's estimate.
-    reads = _as_carving_reads(scene)  # summed once for both checks
+    reads = _as_carving_reads(scene)  # summed once for the three checks
     floor_note = _floor_note(scene, model.summary(), truth, reads)
     signal = _signal(scene, config, reads)
+    far_note = _far_note(reads)
     del reads  # not held through training: at 10,000 views of nine zones it is a hundred megabytes
     ring_note = _ring_note(scene)
-    far_note = _far_note(scene)
     if budget_s is not None:
         _probe_end_costs(model, scene.n_views, truth, costs, clock, scene=scene)
         end_s = costs.end_s(config.mesh_resolution, config.metrics_points if truth else None, checkpoint_cost)
@@ -545,10 +545,11 @@ def _ring_note(scene: SceneData) -> str | None:
     return one_ring_warning(*spread) or above_only_warning(*spread)
 
 
-def _far_note(scene: SceneData) -> str | None:
+def _far_note(reads: tuple) -> str | None:
     """The warning that the views stand so far from the object that one zone sees a patch wider than its parts
-    (view_spread.py), or None: from each view's strongest return, its frames summed."""
-    counts, sensor, _ = _as_carving_reads(scene)
+    (view_spread.py), or None: from each view's strongest return. `reads`: the scene as carving reads it
+    (`_as_carving_reads`: its frames summed)."""
+    counts, sensor, _ = reads
     clear, ranges = strongest_returns(counts, sensor)
     return far_views_warning(sensor, ranges[clear])
 
@@ -556,8 +557,8 @@ def _far_note(scene: SceneData) -> str | None:
 def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:
     """(counts (V, Z, B) float64, sensor, usable (V, Z) bool or None) of the scene as carving reads them: each view's
     frames summed into one histogram (`carving.views.summed_views`), the histograms without data marked."""
-    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
-    counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
+    counts, sensor = summed_by_cycles(scene.counts.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
+                                      scene.sensor)
     return counts, sensor, None if scene.usable is None else scene.usable.cpu().numpy()
 
 

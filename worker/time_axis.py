@@ -17,7 +17,7 @@ from spadscan.protocol.errors import CaptureError
 
 from .carving.bounds import RADIUS_FRACTION_MAX, given_sphere
 from .carving.returns import matched_filter_z
-from .carving.views import summed_views
+from .carving.views import summed_by_cycles
 
 
 NEAR_RANGE_M = 0.01
@@ -106,8 +106,8 @@ def check_time_axis(capture, record: dict, poses: np.ndarray, counts: np.ndarray
 def scene_views(scene) -> tuple:
     """A loaded scene (`recon.scene_data.SceneData`) as `check_time_axis` reads it after the capture's name: (scene
     record, poses, counts, sensor, usable), numpy, one view per pose."""
-    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
-    counts, sensor = summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
+    counts, sensor = summed_by_cycles(scene.counts.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
+                                      scene.sensor)
     usable = None if scene.usable is None else scene.usable.cpu().numpy()
     return scene.scene, scene.poses.detach().double().cpu().numpy(), counts, sensor, usable
 

@@ -29,4 +29,11 @@ def summed_views(counts: np.ndarray, frames: np.ndarray, sensor: SensorModel) ->
     return scaled, dataclasses.replace(sensor, cycles=int(sensor.cycles) * most)
 
 
-__all__ = ["summed_views"]
+def summed_by_cycles(counts: np.ndarray, cycles: np.ndarray, sensor: SensorModel) -> tuple[np.ndarray, SensorModel]:
+    """`summed_views` of views told by their laser cycles: `counts` (V, zones, bins) each view's frames summed,
+    `cycles` (V,) its cycles (its frames x the sensor's `cycles`, a frame's), as a loaded scene holds them."""
+    frames = np.round(np.asarray(cycles, np.float64) / float(sensor.cycles))
+    return summed_views(counts, frames, sensor)
+
+
+__all__ = ["summed_views", "summed_by_cycles"]

@@ -18,7 +18,7 @@ from spadscan.protocol.raycast import zone_rays
 from ...carving.returns import RESCAN, below_default_level, first_returns
 from ...carving.space_carving import MIN_VIEWS, carve_scene
 from ...carving.view_subset import spread_views
-from ...carving.views import summed_views
+from ...carving.views import summed_by_cycles
 from ...table_height import RAYS_PER_ZONE, detect_height
 from ..errors import ReconstructionError
 from ..forward import TransientForward
@@ -277,8 +277,7 @@ def _nothing_left(points: np.ndarray, hull_res, floor_z: float | None, threshold
 
 def _carving_views(scene):
     """(counts (V, Z, B), sensor) as carving reads a view: its frames summed, the sensor's cycles a view's."""
-    frames = scene.cycles.double().cpu().numpy() / float(scene.sensor.cycles)
-    return summed_views(scene.counts.double().cpu().numpy(), np.round(frames), scene.sensor)
+    return summed_by_cycles(scene.counts.double().cpu().numpy(), scene.cycles.double().cpu().numpy(), scene.sensor)
 
 
 def _carve(scene, counts, poses, sensor, fc, floor_z, on_table: bool, views: np.ndarray | None = None):

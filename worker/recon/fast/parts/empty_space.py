@@ -31,14 +31,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from spadscan.protocol.errors import ConfigError
 from spadscan.protocol.sensor_model import in_any_zone, zone_masks
 
 from ....carving.returns import matched_filter_z
-from ....carving.views import summed_views
+from ....carving.views import summed_by_cycles
 from .part import Model, Part, PartConfig
 
 
@@ -172,8 +171,8 @@ def heard_view_bins(counts: torch.Tensor, cycles: torch.Tensor, sensor, threshol
     cycles (V,) its laser cycles (frames x the sensor's cycles a frame). Read as carving reads them
     (`carving.views.summed_views`): taken for one frame's cycles, a view of 8 frames ran out of cycles early in the
     noise model and read nearly every bin as a return, so no node went unheard and the push never acted."""
-    frames = np.round(cycles.detach().double().cpu().numpy() / float(sensor.cycles))
-    summed, view_sensor = summed_views(counts.detach().double().cpu().numpy(), frames, sensor)
+    summed, view_sensor = summed_by_cycles(counts.detach().double().cpu().numpy(),
+                                           cycles.detach().double().cpu().numpy(), sensor)
     return heard_bins(torch.as_tensor(summed), view_sensor, threshold).to(counts.device)
 
 
