@@ -110,7 +110,7 @@ class ControlServer:
         self.max_line = max_line
         self.max_clients = max_clients
         self.idle_s = idle_s
-        self._turned_away = 0
+        self._turning_away = False
         self.abandonable = frozenset(abandonable)
         self._server: asyncio.base_events.Server | None = None
         self._inode: tuple[int, int] | None = None
@@ -166,7 +166,7 @@ class ControlServer:
         if len(self._clients) >= self.max_clients:
             await self._turn_away(writer)
             return
-        self._turned_away = 0
+        self._turning_away = False
         task = asyncio.current_task()
         self._clients.add(task)
         sock = writer.get_extra_info("socket")
@@ -190,10 +190,10 @@ class ControlServer:
     async def _turn_away(self, writer: asyncio.StreamWriter) -> None:
         """One connection more than `max_clients`: told so in one reply line, and closed. Logged once a run of them
         (until a connection is served again)."""
-        if not self._turned_away:
+        if not self._turning_away:
             log.warning("control socket: %d connections open, the most served at once; turning new ones away "
                         "until some close", len(self._clients))
-        self._turned_away += 1
+        self._turning_away = True
         error = (f"the daemon serves {self.max_clients} connections at once and all are open; close those left "
                  f"open (a script's) and try again")
         with contextlib.suppress(ConnectionError):

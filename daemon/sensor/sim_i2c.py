@@ -343,10 +343,9 @@ class SimTMF8820Bus:
     def _stop_command(self) -> None:
         """The host's stop (0xFF): nothing more is measured, and what was measured but not yet handed over is dropped;
         a record handed over and not yet cleared stays flagged in INT_STATUS until the host clears its bit, and is
-        what 0x20 holds when a measurement starts again. ams'
-        register map says only that the stop aborts the measurement; all three of ams' drivers clear INT_STATUS
-        themselves around a stop or the next start (the Linux one clears the bits of a record it then drops unread),
-        and none says that the chip does."""
+        what 0x20 holds when a measurement starts again. ams' register map says only that the stop aborts the
+        measurement; all three of ams' drivers clear INT_STATUS themselves around a stop or the next start (the Linux
+        one clears the bits of a record it then drops unread), and none says that the chip does."""
         flagged = self.records[:1] if self.records and self.cleared_t is None else []
         published, shown = self.published_t, self.shown
         self._stop_records()

@@ -218,7 +218,8 @@ def run(args) -> int:
     # Stopped (Ctrl-C, SIGTERM) before the queue drained: said, and not the exit status of a drained queue.
     queue = Queue(queue_dir, create=False)
     # The queued jobs this worker may not take (another user's) are left for a worker that may: named, not waited for.
-    untakeable = {job: why for job, why in ran.untakeable.items() if job in queue.queued_ids()}
+    queued = queue.queued_ids()
+    untakeable = {job: why for job, why in ran.untakeable.items() if job in queued}
     counts = queue.counts()
     unfinished = counts.get("queued", 0) - len(untakeable) + counts.get("running", 0)
     print(f"spadscan worker: {_settled_note(settled)}"
