@@ -35,6 +35,9 @@ SCAN = {"views": VIEWS, "frames_per_pose": FRAMES, "chunk_size": FRAMES}
 DAEMON_KILLS, WORKER_KILLS = 8, 18
 """Kills to inject; then the faults stop and everything must come to its end."""
 JOB_KILLS = 2
+IDLE_KILLS = 6
+"""Kills of idle workers, at most: the rest wait until the worker holds a job, so that kills land in jobs however
+slowly the scans (and so the jobs) come on a busy machine."""
 """Kills of workers while they hold one job, at most: a job whose worker keeps dying fails after its attempts
 (max_attempts 5 in WORKER: a job's attempt may also end when a worker is killed just as it claims the job)."""
 IDLE = "(no job)"
@@ -150,12 +153,15 @@ class Soak:
 
     def step_workers(self, faults_on: bool) -> None:
         """Kill each worker at random moments (a draw of 0.5-4 s after it was started), whatever it is doing; but
-        a job is hit at most JOB_KILLS times, so that it can still end within its attempts."""
+        an idle worker is hit at most IDLE_KILLS times, and a job at most JOB_KILLS times, so that it can still end
+        within its attempts."""
         now = time.monotonic()
         for i, worker in enumerate(self.workers):
             if not faults_on or len(self.faults.hit["worker kill -9"]) >= WORKER_KILLS or now < self.kill_worker_at[i]:
                 continue
             jobs = self.held_by(worker.pid)
+            if not jobs and self.faults.hit["worker kill -9"].count(IDLE) >= IDLE_KILLS:
+                continue
             if any(self.faults.hit["worker kill -9"].count(job) >= JOB_KILLS for job in jobs):
                 continue
             worker.kill()
