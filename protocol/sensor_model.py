@@ -248,12 +248,13 @@ class SensorModel:
         return len(self.zones)
 
     def bin_of_range(self, r_m):
-        """Bin coordinate of the arrival of a return from one-way range r (metres)."""
-        return self.zero_bin + np.asarray(r_m) / self.bin_width_m
+        """Bin coordinate of the arrival of a return from one-way range r (metres): a number, a numpy array or a torch
+        tensor, and the coordinate comes back as the same kind (so that the fit's torch code reads the one formula)."""
+        return self.zero_bin + r_m / self.bin_width_m
 
     def range_of_bin(self, t):
-        """One-way range (metres) of a return that arrives at bin coordinate t."""
-        return (np.asarray(t) - self.zero_bin) * self.bin_width_m
+        """One-way range (metres) of a return that arrives at bin coordinate t (a number, numpy array or tensor)."""
+        return (t - self.zero_bin) * self.bin_width_m
 
     @property
     def max_range_m(self) -> float:

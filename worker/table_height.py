@@ -99,7 +99,7 @@ def plane_peak_bins(height: float, poses: np.ndarray, zone_dirs: np.ndarray, zon
     down = dirs[..., 2] < -1e-3
     t = (height - poses[:, 2, 3][:, None, None]) / np.where(down, dirs[..., 2], -1.0)
     ok = down & (t > MIN_RANGE_M)
-    b = np.floor(sensor.zero_bin + np.where(ok, t, 0.0) / sensor.bin_width_m).astype(int)
+    b = np.floor(sensor.bin_of_range(np.where(ok, t, 0.0))).astype(int)
     good = ok & (b >= 0) & (b < B)
     raw = np.zeros((V, zone_dirs.shape[0], B))
     vi, zi, _ = np.nonzero(good)

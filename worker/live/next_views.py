@@ -311,7 +311,7 @@ def _histograms(sensor, hits, d: torch.Tensor, w: np.ndarray, zone: np.ndarray, 
     t = hits.t.numpy()
     cos = np.abs((hits.normal * d).sum(dim=-1).numpy())
     value = np.where(hit, np.tile(w, n) * cos / np.maximum(t, 1e-3) ** 2, 0.0) * sensor.signal_scale * sensor.cycles
-    b = np.floor(sensor.zero_bin + t / sensor.bin_width_m).astype(np.int64)
+    b = np.floor(sensor.bin_of_range(t)).astype(np.int64)
     keep = hit & (b >= 0) & (b < sensor.n_bins)
     idx = np.repeat(np.arange(n), r) * sensor.n_zones + np.tile(zone, n)
     out = np.zeros((n * sensor.n_zones, sensor.n_bins))

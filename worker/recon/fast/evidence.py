@@ -98,8 +98,7 @@ def _log_ratios(problem, views: torch.Tensor, rates: torch.Tensor, hits: tuple, 
     ratio, significant = return_ratios(expected, problem.counts[views].reshape(-1, n_bins), bg,
                                        problem.valid[views].reshape(-1, n_bins), window)
     hist, points, ranges = hits
-    s = fwd.sensor
-    b = torch.floor(s.zero_bin + ranges / s.bin_width_m).long().clamp(0, n_bins - 1)
+    b = torch.floor(fwd.sensor.bin_of_range(ranges)).long().clamp(0, n_bins - 1)
     keep = significant[hist, b]
     return points[keep], torch.log(ratio[hist, b][keep])
 

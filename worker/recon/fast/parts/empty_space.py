@@ -193,12 +193,11 @@ def views_hearing(points: torch.Tensor, poses: torch.Tensor, sensor, loud: torch
     out = torch.empty(flat.shape[0], dtype=flat.dtype, device=flat.device)
     row = torch.arange(V, device=flat.device)[None] * (B + 1)
     zone_size = V * (B + 1)
-    zero_bin = float(sensor.bin_of_range(0.0))
     for i in range(0, flat.shape[0], chunk):
         rel = torch.einsum("vji,pvj->pvi", rot, flat[i: i + chunk, None, :] - org[None])  # sensor frame (P, V, 3)
         rng = rel.norm(dim=-1)
-        lo = torch.floor(zero_bin + (rng - half_width_m) / sensor.bin_width_m).long().clamp(0, B)
-        hi = torch.floor(zero_bin + (rng + half_width_m) / sensor.bin_width_m).long().clamp(-1, B - 1)
+        lo = torch.floor(sensor.bin_of_range(rng - half_width_m)).long().clamp(0, B)
+        hi = torch.floor(sensor.bin_of_range(rng + half_width_m)).long().clamp(-1, B - 1)
         first, past = row + lo, row + (hi + 1).clamp(0, B)
         held = torch.stack(zone_masks(sensor.zones, rel), dim=-1) & (hi >= lo)[..., None]  # (P, V, Z)
         # A (point, view) lies in one zone of a tiling (the TMF8820's): read the first zone that holds it, then
