@@ -18,7 +18,9 @@ the embedded cluster knows it: the signal, as "killed (SIGKILL: out of memory, o
 an equal share of the machine's memory per worker); a sweep file whose base condition or methods differ from those DIR
 was run with is refused, and so is one whose grid lacks entries DIR holds results of (a grown grid is welcome;
 --overwrite runs it, and results.csv then holds its entries alone). Failed points are results too: they are listed at
-the end and marked in `spadscan sweep-plot DIR`; the exit status is 0 once every point has run. A result whose run
+the end and marked in `spadscan sweep-plot DIR`; the exit status is 0 once every point has run. A scheduler lost
+mid-sweep (stopped, its machine gone) ends the run with one line and exit status 1, recording nothing for the points
+it was waiting for (a stored result stays as it was): the same command runs them. A result whose run
 warned (a preset that did not converge; any method's report.json warnings) is counted at the end, carried into
 results.csv (<method>_converged, <method>_warning_count, <method>_warnings: the lines joined by " | ") and marked in
 the plot; so is a baseline whose calibrated threshold is at an end of those tried (<method>_threshold_edge). Without

@@ -27,6 +27,7 @@ import signal
 import sys
 import threading
 import time
+from concurrent.futures import CancelledError
 from dataclasses import dataclass, field
 from multiprocessing import resource_tracker
 from typing import Callable
@@ -39,7 +40,7 @@ from distributed.utils import silence_logging_cmgr
 from tqdm import tqdm
 
 import spadscan
-from spadscan.protocol.errors import ConfigError
+from spadscan.protocol.errors import ConfigError, SpadscanError
 
 from .checks import check_workers, local_device
 from .fingerprint import Digests, Expected, code_digest
@@ -278,6 +279,12 @@ def _next_batch(finished, wait_s: float | None) -> list:
 def _record(plan, task, future, outcome, store, summary, device, bar, say=None, exits=None) -> None:
     """Count a finished point in `summary` and on the bar, recording it first when its task raised; with `say`
     (no bar), say a line of it."""
+    if future.status == "cancelled" or isinstance(outcome, CancelledError):
+        # The client lost its scheduler (Dask cancels every future it held): the point's outcome is not known here,
+        # and a worker may still store it; a failure made up for it would replace a stored result.
+        raise SpadscanError(f"lost the Dask scheduler with {bar.total - summary.ran} point(s) of this run not "
+                            f"finished here ({' '.join(str(outcome).split())[:120]}): nothing is recorded for them, "
+                            f"the points finished are kept in {store.path}, and the same command runs the rest")
     # An errored future's outcome is Dask's own record of the error: ask the future for the exception.
     result = _outcome(future.exception() if future.status == "error" else outcome, task, store, device, exits)
     future.release()
