@@ -447,7 +447,9 @@ class Worker:
                 continue
             child.last_beat = now
             if not self.queue.heartbeat(child.claim):
-                self.log(f"{job_id}: lease lost to another worker; stopping its process and dropping the result")
+                removed = self._removed(child)
+                self.log(f"{job_id}: {removed}; stopping its process" if removed else
+                         f"{job_id}: lease lost to another worker; stopping its process and dropping the result")
                 kill_group(child.proc, signal.SIGKILL)
         for job_id, waiting in list(self.unpublished.items()):
             child = waiting.child
@@ -455,7 +457,7 @@ class Worker:
                 continue
             child.last_beat = now
             if not self.queue.heartbeat(child.claim) and not self._done_in_place(child):
-                self._drop_unpublished(job_id, "its lease was taken over by another worker")
+                self._drop_unpublished(job_id, self._removed(child) or "its lease was taken over by another worker")
 
     async def _say_progress(self) -> None:
         """Log the progress lines that are due (`ProgressNotes`): without them the worker's own terminal says nothing
@@ -763,7 +765,7 @@ class Worker:
         self.unpublished.pop(job.id, None)
         self._trouble(what, None)
         if published is None:
-            self._lease_lost(job.id, child, "its lease had been taken over")
+            self._lease_lost(job.id, child, self._removed(child) or "its lease had been taken over")
             return True
         self._said_done(waiting, *published)
         return True
@@ -804,6 +806,17 @@ class Worker:
         waiting = self.unpublished.pop(job_id)
         self._troubles.pop(f"publish the finished result of {job_id} ({waiting.child.scratch})", None)
         self._lease_lost(job_id, waiting.child, f"{why} before its result could be published")
+
+    def _removed(self, child: Child) -> str:
+        """For a claim whose file is gone from running/: when no other worker took the job over (its file was
+        removed by hand), the job is put in failed/ (`Queue.restore_removed`) and settled as failed, and this says
+        so ('' otherwise)."""
+        reason = "its file in running/ was removed while it ran (by hand?)"
+        if not self.queue.restore_removed(child.claim, reason):
+            return ""
+        self._settle_failed(child.claim.job, reason)
+        return (f"{reason}: the job is in failed/ "
+                f"(`{worker_command(self.root, self.queue.path, '--retry-failed')}` queues it again)")
 
     def _lease_lost(self, job_id: str, child: Child, why: str) -> None:
         """Say what became of a finished result whose lease was taken over: dropped while still in its scratch

@@ -328,6 +328,34 @@ class Queue:
         except FileNotFoundError:
             return False
 
+    def restore_removed(self, claim: Claim, reason: str) -> bool:
+        """A held job whose file left running/ with the job in no state folder (its file removed by hand: a worker
+        that takes a job over renames the file, so the job stays somewhere) goes to failed/ from its registered file
+        (ids/, a link to the same file), its claim's record saying `reason`: a queue never loses a job. False when
+        the job is in a state folder (taken over) or cannot be put back (its ids/ entry gone too)."""
+        job_id = claim.job.id
+        # Looked for twice, in the order a job moves through the folders: a job moving while it is looked for shows
+        # in one of the two looks.
+        if self._in_some_state(job_id) or self._in_some_state(job_id):
+            return False
+        try:
+            os.link(self._id_path(job_id), self.path / "failed" / f"{job_id}.json")
+        except (FileNotFoundError, FileExistsError):
+            return False
+        try:
+            self.write_outcome(claim, {"outcome": "failed", "error": _one_line(reason), "retried": False,
+                                       "ended_utc": _utc(), "seconds": round(time.time() - claim.started, 3)})
+        except OSError:
+            pass  # the queue's disk is full: the job is in failed/ all the same, its record left as it was
+        return True
+
+    def _in_some_state(self, job_id: str) -> bool:
+        """Whether a file of the job is in a state folder, or in tmp/ on its way to queued/ (`repair`)."""
+        return ((self.path / "queued" / f"{job_id}.json").exists()
+                or any((self.path / "running").glob(f"{job_id}{SEP}*.json"))
+                or any((self.path / state / f"{job_id}.json").exists() for state in ("done", "failed"))
+                or any((self.path / "tmp").glob(f"{job_id}{SEP}*.json")))
+
     # ---- finishing -------------------------------------------------------------------------------------------
     def finish(self, claim: Claim, result: str | None = None, *, kept: bool = False) -> bool:
         """Move a held job to done/; False (and nothing changes) when the lease was lost. Call it only once the
