@@ -28,7 +28,8 @@ from pathlib import Path
 
 from spadscan.daemon.client import ControlError, call
 from spadscan.parent_watch import child_env
-from spadscan.protocol.capture_format import MANIFEST
+from spadscan.daemon.root_lock import LOCK_NAME
+from spadscan.protocol.capture_format import MANIFEST, enclosing_capture
 from spadscan.protocol.child_command import module_command
 from spadscan.protocol.errors import SpadscanError
 
@@ -219,7 +220,7 @@ def check_options(opts: DemoOptions) -> None:
     the daemon's config keys where they are declared."""
     from spadscan.daemon.config import ScanConfig, SensorConfig
     from spadscan.protocol.scenes import BUILTIN_SCENES
-    from spadscan.worker.jobs import run_limits_problem
+    from spadscan.worker.jobs import DEFAULT_QUEUE, run_limits_problem
 
     if opts.scene not in BUILTIN_SCENES:
         raise DemoError(f"unknown scene {opts.scene!r} (built-in: {', '.join(BUILTIN_SCENES)})")
@@ -242,21 +243,16 @@ def check_options(opts: DemoOptions) -> None:
         where = "is a capture" if capture == opts.out.resolve() else f"lies inside the capture {capture}"
         raise DemoError(f"--out {opts.out} {where} (it holds {MANIFEST}): the demo's captures, logs and rig config "
                         f"would be mixed into its measurements; give the demo a new folder (--out DIR)")
+    held = [name for name in (LOCK_NAME, DEFAULT_QUEUE) if os.path.lexists(opts.out / name)]
+    if held:
+        raise DemoError(f"--out {opts.out} is a captures root (it holds {' and '.join(held)}): the demo's captures, "
+                        f"logs and rig config would be mixed into its scans; give the demo a new folder (--out DIR)")
     foreign = foreign_rig_config(opts.out)
     if foreign:
         raise DemoError(foreign)
     port = opts.dashboard_port
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise DemoError(f"--dashboard-port {port} must be an integer in [0, 65535]")
-
-
-def enclosing_capture(out: Path) -> Path | None:
-    """The capture folder (one holding MANIFEST) that `out` is, or lies inside, resolved; None when there is none."""
-    folder = Path(out).resolve()
-    for candidate in (folder, *folder.parents):
-        if os.path.isfile(candidate / MANIFEST):  # (False, not an error, where this user may not look)
-            return candidate
-    return None
 
 
 def _key(cls, name: str):

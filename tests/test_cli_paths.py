@@ -83,6 +83,19 @@ def test_a_worker_started_on_a_file_as_queue_names_the_option_not_an_inner_path(
     assert err == "spadscan: error: --queue afile: no such queue folder (a file, not a folder)", err
 
 
+@pytest.mark.parametrize("queue", ["cap1", "cap1/q"])
+@pytest.mark.parametrize("flag", ["--once", "--status"])
+def test_a_worker_refuses_a_queue_that_is_or_lies_inside_a_capture(here, capsys, queue, flag):
+    (here / "cap1").mkdir()
+    (here / "cap1" / "scan.json").write_text("{}")
+    before = listing(here)
+    assert main(["worker", "--root", "caps", "--queue", queue, flag]) == 1
+    where = "is a capture" if queue == "cap1" else f"lies inside the capture {here.resolve() / 'cap1'}"
+    assert one_line_error(capsys) == (f"spadscan: error: --queue {queue} {where} (it holds scan.json): the queue's "
+                                      f"folders would be mixed into its measurements; choose a folder outside it")
+    assert listing(here) == before, "nothing written into the capture"
+
+
 def test_worker_status_lists_a_queue_that_can_be_made_as_empty_and_makes_nothing(here, capsys):
     before = listing(here)
     assert main(["worker", "--root", "caps", "--queue", "new/q", "--status"]) == 0

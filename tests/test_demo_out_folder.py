@@ -119,3 +119,18 @@ def test_the_command_refuses_an_out_that_is_or_lies_inside_a_capture(tmp_path, m
     assert err == (f"spadscan: error: --out {out} {where} (it holds scan.json): the demo's captures, logs and rig "
                    f"config would be mixed into its measurements; give the demo a new folder (--out DIR)"), err
     assert listing(tmp_path) == before, "nothing written into the capture"
+
+
+@pytest.mark.parametrize("held", [".spadscan-daemon.lock", ".queue"])
+def test_the_command_refuses_an_out_that_is_a_lab_captures_root(tmp_path, monkeypatch, capsys, nothing_starts, held):
+    """A daemon's captures root (its lock) or a worker's (its queue) holds the lab's scans: the demo's own daemon,
+    worker, logs and rig config are not mixed into them."""
+    monkeypatch.chdir(tmp_path)
+    Path("caps").mkdir()
+    (Path("caps") / held).mkdir() if held == ".queue" else (Path("caps") / held).write_text("")
+    before = listing(tmp_path)
+    assert main(["demo", "--out", "caps"]) == 1
+    err = one_line_error(capsys)
+    assert err == (f"spadscan: error: --out caps is a captures root (it holds {held}): the demo's captures, logs and "
+                   f"rig config would be mixed into its scans; give the demo a new folder (--out DIR)"), err
+    assert listing(tmp_path) == before, "nothing written into the captures root"
