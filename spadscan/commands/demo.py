@@ -23,7 +23,8 @@ that did) is left alone, and the demo stops naming it. After a run was stopped d
 own, a line gives its report, and its time stays out of the new scan's reconstruction time and summary (Ctrl-C
 meanwhile keeps it queued, for the next run or `spadscan worker --root OUT/captures --once`).
 The demo writes its own rig config, OUT/rig.toml, anew on each run: an OUT that holds a rig.toml no demo run wrote (a
-lab rig's own) is refused, as is an OUT that is a capture or lies inside one; both before anything starts.
+lab rig's own) is refused, as is an OUT that is a capture or lies inside one, or a lab's captures root (it holds a
+daemon's .spadscan-daemon.lock or a worker's .queue); all before anything starts.
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ from spadscan.cli import add_progress_options, progress_bar_wanted
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("spadscan-demo"), metavar="DIR",
                         help="folder for config (rig.toml, written anew on each run), captures, logs and "
-                             "summary.json (default: ./spadscan-demo); refused: a capture, or a folder that holds a "
-                             "rig.toml the demo did not write")
+                             "summary.json (default: ./spadscan-demo); refused: a capture, a lab's captures root, or a "
+                             "folder that holds a rig.toml the demo did not write")
     parser.add_argument("--scene", default="demo",
                         help="built-in scene: demo (goblet: a bowl and a thin stem), cup, lamp, sphere, pyramid, or "
                              "any other `spadscan simulate --help` lists (default: demo)")
