@@ -392,8 +392,9 @@ def test_metrics_with_a_far_deadline_are_the_metrics_without_one(monkeypatch, ca
 
 
 def test_a_deadline_stops_the_metrics_at_the_chunk_that_would_pass_it(monkeypatch):
-    """Chunks of 5,000, 10,000 and 20,000 samples at 1 ms a query and side take 10, 20 and 40 s: with a deadline
-    at 45 s the third would end at 70 s, so the metrics rest on the first 15,000 samples of each mesh."""
+    """Chunks of 500, 1,000, 2,000, 4,000 and 8,000 samples at 1 ms a query and side take 1, 2, 4, 8 and 16 s:
+    with a deadline at 45 s the sixth (32 s) would end at 63 s, so the metrics rest on the first 15,500 samples of
+    each mesh."""
     import spadscan.worker.metrics as metrics
     from spadscan.worker.metrics import FIRST_QUERIES
 
@@ -401,9 +402,12 @@ def test_a_deadline_stops_the_metrics_at_the_chunk_that_would_pass_it(monkeypatc
     monkeypatch.setattr(metrics, "SampleIndex", timed_index(clock))
     a, b = ball(0.05), ball(0.052)
     cut = mesh_metrics(a, b, n_points=N, deadline=45.0, clock=clock)
-    assert cut.queries == 3 * FIRST_QUERIES and cut.n_points == N
-    assert clock.t == pytest.approx(30.0)
+    assert FIRST_QUERIES == 500 and cut.queries == 15_500 and cut.n_points == N
+    assert clock.t == pytest.approx(31.0)
     whole = mesh_metrics(a, b, n_points=N)
     assert cut.chamfer_mm == pytest.approx(whole.chamfer_mm, rel=0.02), "the first samples drawn: an unbiased share"
-    late = mesh_metrics(a, b, n_points=N, deadline=-1.0, clock=StepClock(0.0))
+    slow = StepClock(0.01)  # queries as slow as those at the centre of a sphere ten times the ground truth's size
+    monkeypatch.setattr(metrics, "SampleIndex", timed_index(slow))
+    late = mesh_metrics(a, b, n_points=N, deadline=-1.0, clock=slow)
     assert late.queries == FIRST_QUERIES, "a deadline already past still measures the first chunk"
+    assert slow.t == pytest.approx(10.0), "and that chunk alone: 10 s past the deadline, not minutes"
