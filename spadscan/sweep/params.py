@@ -23,6 +23,7 @@ import numpy as np
 
 from spadscan.protocol import schedules
 from spadscan.protocol.errors import ConfigError, SpadscanError
+from spadscan.protocol.sensor_model import MAX_RECT_TAN
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings
 
@@ -33,8 +34,6 @@ MIN_PULSE_SIGMA_BINS = 0.05
 SCHEDULES = ("fibonacci", "rings")
 RINGS_ELEVATIONS = dict(zip(("min_elevation_deg", "max_elevation_deg"), schedules.RINGS_BAND_DEG))
 """The rings schedule's own band (schedules.RINGS_BAND_DEG), as the keys of a point."""
-MAX_RECT_TAN = 10.0
-"""The sensor model's limit on a rectangular zone's edges, |tan| < 10 (protocol.sensor_model)."""
 
 
 @dataclass(frozen=True)

@@ -161,6 +161,9 @@ def _dict(**changes):
     (_dict(zones=[{"kind": "cone", "half_angle_rad": 2.0}]), "half-angle"),
     (_dict(zones=[{"kind": "cone", "half_angle_rad": 0.2, "axis": [0, 0, -1]}]), "axis"),
     (_dict(zones=[{"kind": "rect", "tan_x": [0.2, 0.1], "tan_y": [0, 1]}]), "tan_x"),
+    # A zone wider than 127 degrees: its rays, even in tangent, hit a small object at its centre whole or not at all.
+    (_dict(zones=[{"kind": "rect", "tan_x": [-0.1, 0.1], "tan_y": [-9.9, 9.9]}]),
+     r"tan_y bounds \(-9.9, 9.9\) must lie within \|tan\| < 2 \(edges under 63.4 degrees off the axis\)"),
     (_dict(zones=[{"kind": "cone", "half_angle_rad": 0.2, "gain": 0}]), "gain"),
     (_dict(zones=[{"kind": "cone", "half_angle_rad": 0.2, "colour": "red"}]), "unknown keys"),
     (_dict(pulse={"kind": "table", "values": [1, 2], "origin": 5}), "origin"),

@@ -58,7 +58,7 @@ def test_defaults_are_the_datasets_base_condition(tmp_path):
     ('[sweep]\nscenes = ["builtin:sphere"]\n[grid]\nbin_ps = [1e4]\n', "[grid] bin_ps = 10000: sensor model"),
     ('[sweep\n', "not valid TOML"),
     ('[sweep]\nscenes = ["builtin:sphere"]\n[base]\nsensor = "tmf8820"\n[grid]\nfov_deg = [170]\n',
-     "[grid] fov_deg = 170: fov_deg: sensor 'tmf8820' has rectangular zones, whose field widens only to under 168.5"),
+     "[grid] fov_deg = 170: fov_deg: sensor 'tmf8820' has rectangular zones, whose field widens only to under 126.8"),
     ('[sweep]\nscenes = ["builtin:sphere"]\n[base]\nschedule = "rings"\nviews = 64\nmax_elevation_deg = 90\n',
      "max_elevation_deg = 90 puts the top ring of schedule 'rings' at the zenith, where its 16 views are one"),
 ])
