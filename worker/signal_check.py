@@ -25,6 +25,11 @@ Measured at that level on about 170 captures (docs/end_of_run.md): every good on
 the 9-zone sphere and demos without a table) has none; a torus at 0.2 of its laser power 18.8 % (29.5 mm), at 0.15
 41.4 % (43 mm). At 0.3 of its power (1.6 %, 4 of 256, 25.7 mm) it stays under the limit: a limit that low would
 turn on a handful of histograms, a few views that happen to miss."""
+MIN_RETURN_PHOTONS = 3
+"""A histogram of the aimed zone holding fewer photons than this in all its bins counts as holding no return,
+whatever clears carving's level in it: where the background is nil (a simulation without ambient light) one stray
+photon clears any level, and a capture of 15 photons over 16 views (8 of them empty) reconstructed to a 34 mm lump
+with nothing said. Every benchmark capture holds over 1,000 photons in each of them."""
 
 
 @dataclass
@@ -34,7 +39,8 @@ class Signal:
     histograms: int
     """Usable histograms judged: those of the zone(s) aimed at the object that the capture holds data in."""
     no_return: int
-    """Of them, those in which no bin clears `threshold`: carving took their zone's whole field of view for empty."""
+    """Of them, those in which no bin clears `threshold` (carving took their zone's whole field of view for empty),
+    or that hold fewer than MIN_RETURN_PHOTONS photons in all."""
     threshold: float
     """Carving's level for a return (noise standard deviations of the matched-filtered background): the weak
     threshold off a table, the carving threshold on one."""
@@ -102,6 +108,7 @@ def capture_signal(counts: np.ndarray, sensor, threshold: float, usable: np.ndar
 
     def no_return(at: float) -> tuple[int, int]:
         found = first_returns(counts, sensor, at, "leading", usable=usable).detected[:, zones]
+        found &= np.asarray(counts)[:, zones].sum(-1) >= MIN_RETURN_PHOTONS
         held = np.ones(found.shape, bool) if judged is None else judged
         return int(held.sum()), int((held & ~found).sum())
 
@@ -122,8 +129,9 @@ def signal_warning(signal: Signal | None) -> str | None:
         return lowered_warning(signal)
     return (f"too little signal: {100 * signal.share:.0f} % of the histograms ({signal.no_return} of "
             f"{signal.histograms}){_where(signal)} hold no return above carving's level ({signal.threshold:g} noise "
-            f"standard deviations; a good capture: none), and each of them carved its whole field of view empty, so "
-            f"much of the object may be missing; too little laser power, too much ambient light, a dark or small "
+            f"standard deviations; a good capture: none) or hold fewer than {MIN_RETURN_PHOTONS} photons, and each "
+            f"such view says nothing of the object or carved its whole field of view empty, so much of the object may "
+            f"be missing; too little laser power, too much ambient light, a dark or small "
             f"object, or views aimed past it: {RESCAN} ({_lower_or_lowered(signal)})")
 
 

@@ -114,11 +114,28 @@ def test_a_9_zone_capture_without_a_table_stays_quiet_and_a_dim_one_warns(tmp_pa
     assert warnings(facts(signal=dim))[0] == line
 
 
+def test_histograms_of_a_few_stray_photons_hold_no_return_even_without_background():
+    """Without ambient light one photon clears any level: 16 views of one or two photons each are a capture too dim
+    to say anything, and say so; three photons or more in a histogram are judged by carving's level alone."""
+    from spadscan.protocol.sensor_presets import sensor_preset
+
+    sensor = sensor_preset("lcspc-sim").with_(background=0.0)
+    counts = np.zeros((16, 1, sensor.n_bins), np.uint32)
+    counts[:, 0, 300] = 1
+    counts[::2, 0, 301] = 1
+    stray = capture_signal(counts, sensor, 5.0, weak_threshold=4.0)
+    assert (stray.histograms, stray.no_return) == (16, 16), stray
+    assert signal_warning(stray).startswith("too little signal: 100 % of the histograms (16 of 16)")
+    assert "or hold fewer than 3 photons" in signal_warning(stray)
+    counts[:, 0, 300:303] = 1  # three photons in three neighbouring bins: judged by the level, a return
+    assert capture_signal(counts, sensor, 5.0, weak_threshold=4.0).no_return == 0
+
+
 def test_a_dim_capture_warns_with_its_share_and_what_to_do():
     line = signal_warning(Signal(histograms=256, no_return=106, threshold=4.0))
     assert "too little signal: 41 % of the histograms (106 of 256)" in line
     assert "4 noise standard deviations" in line and "laser power" in line and "ambient" in line
-    assert "carved its whole field of view empty" in line
+    assert "says nothing of the object or carved its whole field of view empty" in line
     assert "field.carve_threshold and field.carve_weak_threshold set lower by --set" in line  # the first alone: refused
     assert any(line == w for w in warnings(facts(signal=Signal(256, 106, 4.0))))
     assert warnings(facts(signal=Signal(256, 106, 4.0)))[0] == line  # first: it explains the doubts after it
