@@ -110,7 +110,8 @@ class Client:
     def read(self) -> dict:
         """One consistent reading: TCP pose vector [m, rad], joints [rad], controller timestamp [s], safety flags and
         status bits, whether both links are up and the control script runs, TCP speed [m/s, rad/s], the combined
-        speed scaling (slider x trajectory scaling, 0..1) and the pendant's speed slider alone (0..1)."""
+        speed scaling (slider x trajectory scaling, 0..1), the pendant's speed slider alone (0..1) and UR's robot
+        mode (7: running; 3: powered off; 5: its brakes on)."""
         r, c = self.receive, self.control
         if r is None or c is None:
             raise RuntimeError("interfaces are not open")
@@ -121,7 +122,7 @@ class Client:
                 "program_running": bool(c.isProgramRunning()), "tcp_speed": list(r.getActualTCPSpeed()),
                 "speed_scaling": float(r.getSpeedScalingCombined()),
                 "speed_slider": float(r.getTargetSpeedFraction()),
-                "paused": int(r.getRuntimeState()) in RUNTIME_PAUSED}
+                "paused": int(r.getRuntimeState()) in RUNTIME_PAUSED, "robot_mode": int(r.getRobotMode())}
 
     def read_progress(self) -> dict:
         """`read`, plus whether an asynchronous move is still running and the id of the last one that started (it

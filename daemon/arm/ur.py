@@ -66,7 +66,7 @@ from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rot
 from spadscan.daemon.arm.safety_hold import (BIT_FAULT, BIT_SAFEGUARD_STOPPED, BIT_VIOLATION,  # noqa: F401
                                              MODE_FAULT, MODE_VIOLATION, SAFEGUARD_MODES, SAFETY_MODES, holding_stop,
                                              safety_fault)
-from spadscan.daemon.arm.stops import clear_advice
+from spadscan.daemon.arm.stops import ROBOT_MODE_RUNNING, clear_advice, not_ready
 from spadscan.daemon.describe import SLIDER_FLOOR, SLIDER_FULL, slider_note
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError
@@ -116,6 +116,7 @@ class _Reading:
     speed_scaling: float = 1.0  # combined: speed slider x trajectory scaling
     op_id: int = -1  # the last asynchronous move that started (progress readings only; -1 otherwise)
     paused: bool = False  # the program is paused (runtime state PAUSING/PAUSED: a protective or emergency stop)
+    robot_mode: int = ROBOT_MODE_RUNNING  # UR's robot mode: 7 running, 3 powered off, 5 its brakes on (`not_ready`)
 
     @property
     def safety_fault(self) -> str | None:
@@ -233,6 +234,9 @@ class URArm(Arm):
             await asyncio.sleep(self.poll_s)  # a stop cleared just now may still show in the data already sent
             reading = await self._fresh("the control script's state")
         if not reading.program_running and reading.safety_fault is None:  # no program runs until a restart
+            unpowered = not_ready(reading.robot_mode)
+            if unpowered is not None:  # its script would not start: ur_rtde's connection would give up on it
+                raise ArmFault(f"{self.name}: {unpowered}")
             await self._call("reuploadScript", "reupload")
             if await self._script_started():
                 self._watchdog_set = self._tcp_checked = False  # a new program: it has no watchdog yet
@@ -525,6 +529,9 @@ class URArm(Arm):
                            f"{clear_advice(stop)})")
         if not reading.program_running:
             self._watchdog_set = self._tcp_checked = False  # the program uploaded next is asked afresh
+            unpowered = not_ready(reading.robot_mode)
+            if unpowered is not None:
+                raise ArmFault(f"{self.name}: {doing}: {unpowered}")
             raise ArmFault(f"{self.name}: {doing}: the RTDE control script is not running on the controller "
                            f"({_mode_text(reading.safety_mode)}; the watchdog stops it when the daemon falls silent "
                            f"for {1 / self.watchdog_hz:g} s, a safety stop or the pendant can stop it too); resuming "
@@ -570,7 +577,8 @@ class URArm(Arm):
                         float(d["timestamp"]), d["protective"], d["emergency"], d["safety_mode"], d["connected"],
                         np.array(d["tcp_speed"], dtype=np.float64), bool(d.get("moving", False)),
                         int(d["safety_bits"]), bool(d["program_running"]), float(d["speed_scaling"]),
-                        int(d.get("op_id", -1)), bool(d.get("paused", False)))
+                        int(d.get("op_id", -1)), bool(d.get("paused", False)),
+                        int(d.get("robot_mode", ROBOT_MODE_RUNNING)))
 
     def _note_slider(self, slider: float | None, timestamp: float) -> None:
         """Keep the speed slider's reading, and when it came (`speed_slider_at`: only a reading the controller sent

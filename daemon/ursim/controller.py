@@ -42,9 +42,11 @@ A safeguard stop holds the program without pausing it: it takes commands again o
 A safety violation (safety_mode 8, status bit 8) or fault (9, bit 9) is the safety system itself stopping the arm
 (UR's manuals: a category 0 stop, power removed): the arm halts where it is, the program always stops, and no
 program starts (a script that arrives is recorded, not run) until `restart_safety` - what restarting the arm from
-the pendant, or the dashboard's `restart safety`, does; unlocking a protective stop does not clear it. A real arm
-comes back from that restart powered off; the model folds the power-on and brake release into the restart (its
-robot mode stays RUNNING). The program stays stopped until the script is uploaded again.
+the pendant, or the dashboard's `restart safety`, does; unlocking a protective stop does not clear it. The arm comes
+back from that restart powered off (robot_mode 3, POWER_OFF), and runs no program (a script that arrives is recorded,
+not run) until it is powered on (the dashboard's `power on`: 5, IDLE, its brakes on) and its brakes are released
+(`brake release`: 7, RUNNING; UR's robot modes, as ur_rtde's getRobotMode lists them); `power off` takes it back to 3
+and ends the program. The program stays stopped until the script is uploaded again.
 
 What a real arm adds to the ideal: `pose_noise_m` (the reported actual TCP position scatters by that standard
 deviation, per axis, per package) and `speed_slider` (the pendant's speed slider, target_speed_fraction: motion runs at
@@ -74,7 +76,8 @@ THREAD_START_S = 0.008
 cycle of a CB-series controller (125 Hz; ur_rtde's examples wait for the start before they wait for the end)."""
 
 RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
-ROBOT_MODE_RUNNING = 7
+ROBOT_MODE_POWER_OFF, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 5, 7
+ROBOT_MODE_NAMES = {ROBOT_MODE_POWER_OFF: "POWER_OFF", ROBOT_MODE_IDLE: "IDLE", ROBOT_MODE_RUNNING: "RUNNING"}
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_SAFEGUARD_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 5, 7
 SAFETY_VIOLATION, SAFETY_FAULT = 8, 9
 SAFETY_MODE_NAMES = {SAFETY_NORMAL: "NORMAL", SAFETY_PROTECTIVE_STOP: "PROTECTIVE_STOP",
@@ -150,6 +153,7 @@ class URControllerModel:
         self.safeguard_stop = False
         self.emergency_stop = False
         self.safety_fault: int | None = None
+        self.robot_mode = ROBOT_MODE_RUNNING
         """SAFETY_VIOLATION or SAFETY_FAULT while the safety system holds the arm (until `restart_safety`)."""
         self._busy = False  # a synchronous command is executing (the script is blocked in it)
         self._executing = False  # the script took the current command and waits for the register to clear
@@ -236,8 +240,8 @@ class URControllerModel:
             t = self.now()
             self._halt(t)
             self.scripts.append(text)
-            if self.safety_fault is not None:
-                return  # no program starts until the arm is restarted
+            if self.safety_fault is not None or self.robot_mode != ROBOT_MODE_RUNNING:
+                return  # no program starts until the arm is restarted, powered on and its brakes released
             self.runtime_state = RUNTIME_PLAYING
             self.watchdog_period_s = None  # a new program has set no watchdog yet
             self._busy = self._executing = False
@@ -404,9 +408,33 @@ class URControllerModel:
 
     def restart_safety(self) -> None:
         """The arm restarted from the pendant (or the dashboard's `restart safety`): a violation or fault is cleared,
-        and the program stays stopped until the script is uploaded again. Without a violation or fault: nothing."""
+        the arm comes back powered off, and the program stays stopped until the script is uploaded again. Without a
+        violation or fault: nothing."""
         with self._lock:
-            self.safety_fault = None
+            if self.safety_fault is not None:
+                self.safety_fault = None
+                self.robot_mode = ROBOT_MODE_POWER_OFF
+
+    def power_on(self) -> None:
+        """The dashboard's `power on`: a powered-off arm is powered, its brakes still on (IDLE)."""
+        with self._lock:
+            if self.robot_mode == ROBOT_MODE_POWER_OFF:
+                self.robot_mode = ROBOT_MODE_IDLE
+
+    def release_brakes(self) -> None:
+        """The dashboard's `brake release`: a powered arm with its brakes on is ready to run a program (RUNNING)."""
+        with self._lock:
+            if self.robot_mode == ROBOT_MODE_IDLE:
+                self.robot_mode = ROBOT_MODE_RUNNING
+
+    def power_off(self) -> None:
+        """The dashboard's `power off`: the arm halts, the program ends, and the arm is powered off."""
+        with self._lock:
+            t = self.now()
+            self._advance(t)
+            if self.runtime_state in (RUNTIME_PLAYING, RUNTIME_PAUSED):
+                self._end_program(t)
+            self.robot_mode = ROBOT_MODE_POWER_OFF
 
     def _set_safety(self, protective: bool | None = None, safeguard: bool | None = None,
                     emergency: bool | None = None) -> None:
@@ -461,10 +489,11 @@ class URControllerModel:
         running = self.runtime_state == RUNTIME_PLAYING
         return {
             "timestamp": t, "actual_q": q, "target_q": q, "actual_TCP_pose": pose, "target_TCP_pose": pose,
-            "robot_mode": ROBOT_MODE_RUNNING, "joint_mode": (JOINT_RUNNING_MODE,) * 6,
+            "robot_mode": self.robot_mode, "joint_mode": (JOINT_RUNNING_MODE,) * 6,
             "safety_mode": mode, "safety_status": mode, "safety_status_bits": bits,
             "runtime_state": self.runtime_state,
-            "robot_status_bits": STATUS_POWER_ON | (STATUS_PROGRAM_RUNNING if running else 0),
+            "robot_status_bits": (STATUS_POWER_ON if self.robot_mode != ROBOT_MODE_POWER_OFF else 0)
+            | (STATUS_PROGRAM_RUNNING if running else 0),
             "speed_scaling": 1.0, "target_speed_fraction": self.speed_slider, "actual_main_voltage": 48.0,
             "actual_robot_voltage": 48.0, "joint_temperatures": (30.0,) * 6, "actual_execution_time": 0.1,
         }

@@ -10,7 +10,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from spadscan.daemon.ursim.controller import RUNTIME_PAUSED, RUNTIME_PLAYING, SAFETY_MODE_NAMES, URControllerModel
+from spadscan.daemon.ursim.controller import (ROBOT_MODE_NAMES, RUNTIME_PAUSED, RUNTIME_PLAYING, SAFETY_MODE_NAMES,
+                                             URControllerModel)
 
 GREETING = "Connected: Universal Robots Dashboard Server"
 
@@ -31,7 +32,7 @@ def reply(model: URControllerModel, line: str, version: str, serial: str) -> str
     if low == "is in remote control":
         return "true"
     if low == "robotmode":
-        return "Robotmode: RUNNING"
+        return f"Robotmode: {ROBOT_MODE_NAMES[model.robot_mode]}"
     if low in ("safetymode", "safetystatus"):  # the safety mode's name: what RTDE's safety_mode reports
         return f"{cmd[0].upper()}{cmd[1:].lower()}: {SAFETY_MODE_NAMES[model.safety_mode()]}"
     if low == "running":
@@ -52,10 +53,13 @@ def reply(model: URControllerModel, line: str, version: str, serial: str) -> str
     if low == "close popup":
         return "closing popup"
     if low == "power on":
+        model.power_on()
         return "Powering on"
     if low == "power off":
+        model.power_off()
         return "Powering off"
     if low == "brake release":
+        model.release_brakes()
         return "Brake releasing"
     if low == "stop":  # ends a playing or a paused program
         model.stop_program()

@@ -20,7 +20,8 @@ from spadscan.protocol.child_command import module_command
 from spadscan.protocol.errors import DeviceError, SpadscanError
 
 _CALLS = ("protective_stop", "clear_protective_stop", "safeguard_stop", "clear_safeguard_stop", "emergency_stop",
-          "clear_emergency_stop", "safety_fault", "restart_safety", "drop_link", "restore_link", "configure")
+          "clear_emergency_stop", "safety_fault", "restart_safety", "power_on", "release_brakes", "drop_link",
+          "restore_link", "configure")
 
 
 def handle(controller: SimURController, request: dict) -> object:
@@ -132,6 +133,12 @@ class SimURProcess:
 
     def restart_safety(self) -> None:
         self._request("restart_safety")
+
+    def power_on(self) -> None:
+        self._request("power_on")
+
+    def release_brakes(self) -> None:
+        self._request("release_brakes")
 
     def drop_link(self, mode: str = "silent") -> None:
         """See SimURController.drop_link: "close", "silent" or "freeze"."""

@@ -162,8 +162,17 @@ class SimURController:
         self.model.set_safety_fault(modes[kind])
 
     def restart_safety(self) -> None:
-        """Restart the arm as from the pendant after a violation or fault; the script must be uploaded again."""
+        """Restart the arm as from the pendant after a violation or fault: it comes back powered off (robot mode 3);
+        `power_on` and `release_brakes` ready it, and the script must be uploaded again."""
         self.model.restart_safety()
+
+    def power_on(self) -> None:
+        """Power the arm on as from the pendant (or the dashboard's `power on`): its brakes stay on (robot mode 5)."""
+        self.model.power_on()
+
+    def release_brakes(self) -> None:
+        """Release the brakes of a powered arm (the dashboard's `brake release`): ready to run a program (mode 7)."""
+        self.model.release_brakes()
 
     def configure(self, **settings) -> None:
         """Change what makes the controller less than ideal (thread-safe): speed_slider (0 < f <= 1), pose_noise_m

@@ -321,7 +321,10 @@ def test_a_safety_violation_or_fault_names_its_mode_and_says_to_restart_the_arm(
     """Safety mode 8 or 9 (RTDE guide): the safety system stopped the arm, and the controller the program. The move
     in progress is reported at once by that mode, with UR's remedy (restart the arm from the pendant), not as a
     control script the watchdog stopped that resuming uploads again. A resume before the restart uploads nothing
-    (no program runs until then) and the next move says the same; once the arm is restarted, moves work again."""
+    (no program runs until then) and the next move says the same. The arm comes back from the restart powered off
+    (robot mode 3, then 5 once powered, its brakes on): a resume then says so, by the robot mode, and uploads
+    nothing (the script would not start, and ur_rtde's connection would give up on it as a lost link); once it is
+    powered on and its brakes released, moves work again."""
     async def run():
         async with connected_arm(ur.host) as arm:
             move = asyncio.ensure_future(arm.move_to(pose(0.3, 0.2, 0.3, DOWN), 0.005, 1.0))  # 4 s scaled
@@ -337,11 +340,24 @@ def test_a_safety_violation_or_fault_names_its_mode_and_says_to_restart_the_arm(
             uploaded_while_held = ur.scripts() - scripts
             ur.restart_safety()
             await cleared(arm)
+            unready = []
+            for ready in (ur.power_on, ur.release_brakes):
+                with pytest.raises(ArmFault) as unpowered:
+                    await arm.clear_fault()
+                unready.append(str(unpowered.value))
+                ready()
+            uploaded_unpowered = ur.scripts() - scripts
             await arm.clear_fault()
             await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
-            return aborted.value, again.value, held, uploaded_while_held, ur.scripts() - scripts, ur.state()
+            return (aborted.value, again.value, held, uploaded_while_held, ur.scripts() - scripts, ur.state(), unready,
+                    uploaded_unpowered)
 
-    aborted, again, held, uploaded_while_held, uploaded, after = arun(run())
+    aborted, again, held, uploaded_while_held, uploaded, after, unready, uploaded_unpowered = arun(run())
+    advice = "power it on and release the brakes on the teach pendant, then resume"
+    assert [line.split(": ", 1)[1] for line in unready] == [
+        f"the arm is powered off (robot mode 3): {advice}",
+        f"the arm is powered on with its brakes on (robot mode 5): {advice}"], unready
+    assert uploaded_unpowered == 0
     restart = (r"restart the arm from the pendant \(its safety system must be restarted after a " + kind
                + r"; the arm comes back powered off: power it on and release the brakes\), then resume\)$")
     assert re.match(rf"safety {kind} on UR arm .*: moveL to .* aborted \(safety mode {mode} \({kind}\); .*{restart}",

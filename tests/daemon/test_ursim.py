@@ -549,8 +549,9 @@ def test_model_the_dashboard_names_the_safety_mode_rtde_reports(kind):
 def test_model_a_safety_violation_or_fault_holds_the_arm_and_the_program_until_the_arm_is_restarted(mode, name):
     """RTDE guide: safety mode 8 violation (safety_status_bits bit 8), 9 fault (bit 9), with bit 10. The arm halts
     and the program stops (it is not paused); unlocking a protective stop does not clear it and no
-    program starts, only a restart of the arm (the dashboard's `restart safety`) does; the program then stays stopped
-    until the script is uploaded again."""
+    program starts, only a restart of the arm (the dashboard's `restart safety`) does. The arm comes back from it
+    powered off (robot mode 3, robot_status_bits' power bit clear) and starts no program until it is powered on (5,
+    its brakes on) and its brakes released (7); the program then stays stopped until the script is uploaded again."""
     from spadscan.daemon.ursim.dashboard import reply
 
     c = ClockedModel()
@@ -566,10 +567,22 @@ def test_model_a_safety_violation_or_fault_holds_the_arm_and_the_program_until_t
     assert reply(c.model, "unlock protective stop", "URSoftware 5.15", "1") == "Protective stop releasing"
     c.model.start_script("def rtde_control():\nend")  # ur_rtde's reupload: recorded, not run
     assert c.read("safety_mode", "runtime_state") == [mode, 1] and len(c.model.scripts) == 2
+    assert c.read("robot_mode", "robot_status_bits") == [7, 1]
     assert reply(c.model, "restart safety", "URSoftware 5.15", "1") == "Restarting safety"
-    assert c.read("safety_mode", "safety_status_bits", "runtime_state") == [1, 1, 1]
+    assert c.read("safety_mode", "safety_status_bits", "runtime_state", "robot_mode", "robot_status_bits") == [
+        1, 1, 1, 3, 0]
+    assert reply(c.model, "robotmode", "URSoftware 5.15", "1") == "Robotmode: POWER_OFF"
+    for command, answer, robot_mode in (("brake release", "Brake releasing", 3), ("power on", "Powering on", 5),
+                                        ("brake release", "Brake releasing", 7)):
+        c.model.start_script("def rtde_control():\nend")  # not run before the arm is powered and its brakes off
+        assert c.read("runtime_state") == [1]
+        assert reply(c.model, command, "URSoftware 5.15", "1") == answer
+        assert c.read("robot_mode") == [robot_mode]
+    assert reply(c.model, "robotmode", "URSoftware 5.15", "1") == "Robotmode: RUNNING"
     c.model.start_script("def rtde_control():\nend")
     assert c.read("runtime_state") == [2]
+    assert reply(c.model, "power off", "URSoftware 5.15", "1") == "Powering off"
+    assert c.read("runtime_state", "robot_mode") == [1, 3]
     with pytest.raises(ValueError, match="safety mode 8 or 9"):
         c.model.set_safety_fault(3)
 
