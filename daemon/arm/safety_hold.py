@@ -1,6 +1,7 @@
 """Which safety stop holds a UR arm, from what the RTDE receive interface reports (RTDE guide): the one predicate the
 daemon (`ur._Reading.stop`) and its ur_rtde process (`rtde_child`) both use. While a stop holds the arm its control
-script takes no command, and ur_rtde waits for an answer that does not come (for stopScript: until the program ends),
+script takes no command: ur_rtde gives up at once under a protective or emergency stop (it checks those two in its
+waits) but waits for an answer that does not come under a safeguard stop (3 s for "ready", up to 300 s for "done"),
 so the ur_rtde process must never send one where the daemon found the arm held; two tests of "held" could disagree.
 
 Standard library only: the ur_rtde process imports it.

@@ -626,9 +626,10 @@ class URArm(Arm):
     async def _stop_script(self) -> None:
         """End the control script before disconnecting (stopScript; ur_rtde's disconnect() leaves it running). Not
         over a link whose data is stale (it is ended instead), nor while a safety stop holds the script (it takes no
-        command then, and ur_rtde would wait for the program to end: until the watchdog stops it, or 300 s where
-        none is armed): the watchdog stops it there, armed unless that stop held the script since connect (the
-        warning then says to stop it on the pendant). Never raises LinkLost or DeviceError: a close goes on."""
+        command then: ur_rtde gives up at once under a protective or emergency stop, and under a safeguard stop waits
+        up to 300 s for an answer that does not come): the watchdog stops it there, armed unless that stop held the
+        script since connect (the warning then says to stop it on the pendant). Never raises LinkLost or
+        DeviceError: a close goes on."""
         watchdog = (f"the controller's watchdog stops it within {1 / self.watchdog_hz:g} s" if self._watchdog_set
                     else "no watchdog was armed on it: stop it on the teach pendant")
         try:
