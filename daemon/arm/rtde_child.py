@@ -32,7 +32,7 @@ import sys
 import threading
 import time
 
-from spadscan.daemon.arm.safety_hold import holding_stop
+from spadscan.daemon.arm.safety_hold import holding_stop, not_ready
 
 IK_QUERY_SINCE = {"e-Series": (5, 10), "CB-series": (3, 15)}
 """PolyScope version from which ur_rtde's control script answers getInverseKinematicsHasSolution (its lines are
@@ -69,6 +69,11 @@ PAUSED_STOP_WAIT_S = 2.0
 """How long the receive stream may take to show the program stopped after the dashboard's `stop`."""
 
 
+class ArmNotReady(Exception):
+    """The arm runs no program (powered off, its brakes on: `safety_hold.not_ready` says which and what to do), so
+    the control script ur_rtde uploaded did not start. Not a RuntimeError: the link is fine, the arm is not."""
+
+
 class CommandFailed(Exception):
     """The controller did not carry out a command (its control script is not running, or a safety stop is active).
     Not a RuntimeError: the parent ends the link on those, and this link is fine."""
@@ -96,7 +101,15 @@ class Client:
         # setWatchdog (ur_rtde's advice: right after construction): a script without a watchdog runs on when this
         # process dies, and one with it only as long as the parent's kicks, which start as soon as this returns.
         self.polyscope = polyscope_version(host)
-        self.control = rtde_control.RTDEControlInterface(host, frequency)
+        try:
+            self.control = rtde_control.RTDEControlInterface(host, frequency)
+        except RuntimeError:
+            # ur_rtde gives up on a script that does not start; an arm that runs no program is the operator's to
+            # ready, said as such (by then its receive data has long arrived).
+            unready = not_ready(int(self.receive.getRobotMode()))
+            if unready is not None:
+                raise ArmNotReady(unready) from None
+            raise
         watchdog = watchdog_hz is not None and self.arm_watchdog(watchdog_hz)
         return {"polyscope": list(self.polyscope) if self.polyscope else None, "watchdog": watchdog}
 

@@ -23,7 +23,7 @@ import os
 import signal
 import time
 
-from spadscan.daemon.devices import LinkLost
+from spadscan.daemon.devices import ArmFault, LinkLost
 from spadscan.protocol.child_command import module_command
 from spadscan.protocol.errors import DeviceError
 
@@ -94,6 +94,8 @@ class RTDELink:
             message = plain_rtde_error(reply["message"])
             self.end(f"{what} failed: {message}")
             raise LinkLost(f"{self.name}: {what} failed: {message}")
+        if reply["error"] == "ArmNotReady":  # rtde_child.ArmNotReady: the arm runs no program; its message says why
+            raise ArmFault(f"{self.name}: {reply['message']}")
         raise DeviceError(f"{self.name}: {what} failed in the ur_rtde process: {reply['error']}: {reply['message']}")
 
     def post(self, what: str, timeout_s: float, op: str, *args) -> None:

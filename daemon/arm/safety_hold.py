@@ -49,3 +49,23 @@ def holding_stop(protective: bool, emergency: bool, safety_mode: int, safety_bit
     if safety_bits & BIT_SAFEGUARD_STOPPED or safety_mode in SAFEGUARD_MODES:
         return SAFEGUARD_STOP
     return None
+
+
+ROBOT_MODE_RUNNING = 7
+"""UR's robot mode of an arm powered on with its brakes released, ready to run a program (RTDE robot_mode, ur_rtde's
+getRobotMode)."""
+ROBOT_MODES = {-1: "without a controller", 0: "disconnected", 1: "confirming its safety configuration", 2: "booting",
+               3: "powered off", 4: "powering on", 5: "powered on with its brakes on", 6: "in backdrive",
+               8: "updating its firmware"}
+"""UR's other robot modes (RTDE guide; ur_rtde's getRobotMode), as the arm's state: none runs a program."""
+
+
+def not_ready(robot_mode: int) -> str | None:
+    """Why an arm in `robot_mode` runs no program and what the operator does, as a clause ('the arm is powered off
+    (robot mode 3): ...'), or None when it is running. An arm restarted after a safety violation or fault comes back
+    powered off: the control script uploaded then does not start, and ur_rtde's connection gives up on it."""
+    if robot_mode == ROBOT_MODE_RUNNING:
+        return None
+    state = ROBOT_MODES.get(robot_mode, "not ready")
+    return (f"the arm is {state} (robot mode {robot_mode}): power it on and release the brakes on the teach pendant, "
+            f"then resume")

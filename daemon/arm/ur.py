@@ -64,9 +64,9 @@ from spadscan.daemon.arm.rtde_link import RTDELink
 from spadscan.daemon.arm.pose_convert import pose_to_vector, rotation_angle, rotvec_to_matrix, vector_to_pose
 # The safety modes and status bits stay importable from this module too.
 from spadscan.daemon.arm.safety_hold import (BIT_FAULT, BIT_SAFEGUARD_STOPPED, BIT_VIOLATION,  # noqa: F401
-                                             MODE_FAULT, MODE_VIOLATION, SAFEGUARD_MODES, SAFETY_MODES, holding_stop,
-                                             safety_fault)
-from spadscan.daemon.arm.stops import ROBOT_MODE_RUNNING, clear_advice, not_ready
+                                             MODE_FAULT, MODE_VIOLATION, ROBOT_MODE_RUNNING, SAFEGUARD_MODES,
+                                             SAFETY_MODES, holding_stop, not_ready, safety_fault)
+from spadscan.daemon.arm.stops import clear_advice
 from spadscan.daemon.describe import SLIDER_FLOOR, SLIDER_FULL, slider_note
 from spadscan.daemon.devices import Arm, ArmFault, ArmState, LinkLost
 from spadscan.protocol.errors import ConfigError, DeviceError

@@ -371,6 +371,32 @@ def test_a_safety_violation_or_fault_names_its_mode_and_says_to_restart_the_arm(
     assert [m.name for m in ur.moves] == ["moveL", "moveL"]
 
 
+def test_connecting_to_an_arm_that_runs_no_program_says_to_power_it_on(ur, arun):
+    """An arm restarted after a safety fault and left powered off: ur_rtde's connection uploads its script, which
+    does not start, and gives up after 5 s. The connect says why, by the robot mode, as an arm fault (the operator's
+    to clear, not a lost link); once the arm is powered on and its brakes released, it connects."""
+    ur.safety_fault("fault")
+    ur.restart_safety()
+
+    async def run():
+        arm = make_arm(ur.host)
+        try:
+            with pytest.raises(ArmFault) as unpowered:
+                await arm.connect()
+            ur.power_on()
+            ur.release_brakes()
+            await arm.connect()
+            await arm.move_to(pose(0.35, 0.0, 0.3, DOWN))
+        finally:
+            await arm.close()
+        return unpowered.value
+
+    unpowered = arun(run())
+    assert str(unpowered).endswith(": the arm is powered off (robot mode 3): power it on and release the brakes on "
+                                   "the teach pendant, then resume"), str(unpowered)
+    assert [m.name for m in ur.moves] == ["moveL"]
+
+
 class StoppedScript(URArm):
     """Its control script is not running, in safety mode `mode`, and no safety stop shows."""
 

@@ -279,6 +279,40 @@ def test_a_link_that_dropped_and_came_back_while_paused_is_reconnected_by_the_fi
 
 
 @pytest.mark.slow
+def test_an_arm_restarted_powered_off_pauses_each_resume_until_it_runs_then_the_scan_completes(tmp_path, controller,
+                                                                                               arun):
+    """A safety fault pauses the scan; the operator restarts the arm, which comes back powered off, and the
+    controller's connections drop meanwhile (a reboot). A resume reconnects, and the arm refuses the script: the scan
+    pauses again, saying to power the arm on and release its brakes; once that is done, the next resume reconnects
+    again (not only the fault's clearing, over a link that is down) and completes the scan."""
+    cfg = ur_config(tmp_path, controller.host)
+
+    async def scenario():
+        async with ur_runner(cfg) as (arm, runner):
+            await runner.start("ur")
+            await until(lambda: runner.job.next_pose >= 2, "two poses")
+            await asyncio.to_thread(controller.safety_fault, "fault")
+            await until(lambda: runner.state == "paused", "the pause")
+            reasons = [runner.status()["reason"]]
+            await asyncio.to_thread(controller.restart_safety)
+            await bounce_link(controller, arm)
+            await runner.resume()
+            await until(lambda: runner.state != "scanning", "the resumed scan to pause")
+            reasons.append(runner.status()["reason"])
+            await asyncio.to_thread(controller.power_on)
+            await asyncio.to_thread(controller.release_brakes)
+            await runner.resume()
+            await until(lambda: runner.state != "scanning", "the resumed scan to end or pause")
+            return reasons, runner.status()
+
+    reasons, status = arun(scenario(), timeout_s=240)
+    assert "safety fault" in reasons[0], reasons
+    assert "the arm is powered off (robot mode 3): power it on and release the brakes" in reasons[1], reasons
+    assert status["state"] == "idle" and status["last_scan"] == {"name": "ur", "state": "complete"}, status
+    check_every_pose_once(tmp_path / "caps" / "ur")
+
+
+@pytest.mark.slow
 def test_shutdown_on_a_dead_link_does_not_hang(tmp_path, controller, arun):
     """The link stays down (silent: ur_rtde's moveL blocks for good): shutting down reports the dead link at once
     instead of waiting on ur_rtde, and leaves the scan resumable."""
