@@ -125,6 +125,9 @@ def classify_line(line: bytes, t: float, address: int | None) -> Packet | tuple[
         return "corrupt", f"a {_printable(tag, 8)} line with {exc}"
     if not tag.startswith(b"#") or len(tag) > 8:
         return "corrupt", "a line without a '#' tag: part of a line, or noise (a baud rate other than the bridge's?)"
+    if tag == b"#Cal":  # ams' shim prints electrical-calibration histograms under it (HIST_DUMP = 2)
+        return "unknown", ("a #Cal line: electrical-calibration histograms, which the bridge firmware prints only when "
+                           "set to dump them; it must dump raw histograms alone (HIST_DUMP = 1)")
     return "unknown", f"a {_printable(tag, 8)} line, a tag the bridge does not print"
 
 

@@ -145,12 +145,13 @@ class SimBridge:
         self._queue.put(("data", bytes(data)))
 
     def boot(self, active_range: int = 0x6E, *, start_s: float = 0.0) -> None:
-        """Queue what the UW bridge prints as it starts, before any record: "FW downloaded" after it downloaded the
-        sensor's firmware, then the sensor's ACTIVE_RANGE in hex (Arduino's print(x, HEX): no leading zero), each
+        """Queue what the UW bridge prints as it starts, before any record: the application's version as it downloads
+        it ("#Vers,a.b.c.d"), "FW downloaded" after it downloaded the sensor's firmware, then the sensor's ACTIVE_RANGE
+        in hex (Arduino's print(x, HEX): no leading zero), each
         line ended by '\\n' as the firmware ends them. `start_s`: the time between the two lines (what is queued
         later waits behind it), where the firmware sends the short-range command and waits 4 s, runs a factory
         calibration, configures the sensor and starts measuring (`serial_bridge.BRIDGE_START_S`)."""
-        self._queue.put(("data", b"FW downloaded\n"))
+        self._queue.put(("data", b"#Vers,1.20.0.30\n" + b"FW downloaded\n"))
         if start_s > 0:
             self._queue.put(("pause", float(start_s)))
         self._queue.put(("data", f"Active range: {active_range:X}\n".encode()))

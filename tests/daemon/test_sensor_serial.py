@@ -339,6 +339,9 @@ def test_a_line_too_long_is_a_refused_record(arun):
     (b"#Obj,66,1,25,9,100," + b",".join([b"1", b"3"] * 36),
      ("other_address", "a #Obj line for I2C address 66, not 65")),
     (b"#Foo,1,2", ("unknown", "a #Foo line, a tag the bridge does not print")),
+    # ams' shim prints electrical-calibration histograms under #Cal (the firmware set to dump them): named as such
+    (b"#Cal,65,0,1,2", ("unknown", "a #Cal line: electrical-calibration histograms, which the bridge firmware prints "
+                                   "only when set to dump them; it must dump raw histograms alone (HIST_DUMP = 1)")),
 ])
 def test_a_skipped_line_says_why(line, why):
     """The reason a line is refused, as the silence quotes it (bad_records' last_bad_record)."""
