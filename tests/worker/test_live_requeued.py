@@ -117,7 +117,8 @@ def test_a_live_job_whose_process_crashed_says_queued_again_until_it_is_retried(
         wait_for(lambda: (live(root) or EARLIER).state == "queued")
         status = live(root)
         assert "process crashed" in status.note and "simulated crash" in status.note, status.note
-        assert Queue.for_root(root).job_paths()[JOB][0] == "queued"
+        # The status is written while the worker still holds the job (`_say_queued`), the rename to queued/ follows.
+        wait_for(lambda: Queue.for_root(root).job_paths()[JOB][0] == "queued")
     finally:
         log = stop(worker)
     assert "queued again" in log, log
