@@ -119,8 +119,8 @@ def run_one(capture: Path, steps: int, seed: int, threads: int, overrides: list[
 
     def scored(record: dict, averaged: bool = True) -> dict:
         if truth is not None:
-            m = truth.metrics(model.extract_mesh(config.mesh_resolution, averaged=averaged),
-                              n_points=points, seed=seed)
+            # The metrics' own fixed seed (0), not the run's: scored on the samples `spadscan reconstruct` uses.
+            m = truth.metrics(model.extract_mesh(config.mesh_resolution, averaged=averaged), n_points=points)
             record.update(chamfer_mm=m.chamfer_mm, accuracy_mm=m.accuracy_mm, completeness_mm=m.completeness_mm,
                           normal_error_deg=m.normal_error_deg, fscore_5mm=m.fscore_5mm)
         return record
@@ -313,7 +313,15 @@ def out_problem(out: Path) -> str | None:
         return f"--out {out}: exists and is not a folder"
     if (out / "runs").exists() and not (out / "runs").is_dir():
         return f"--out {out}: its runs exists and is not a folder"
-    return None
+    return unmakeable(out)
+
+
+def unmakeable(out: Path) -> str | None:
+    """'--out OUT: cannot create it (...)' where this user cannot make or write into the folder, else None."""
+    from spadscan.protocol.folders import folder_problem
+
+    reason = folder_problem(out)
+    return None if reason is None else f"--out {out}: {reason}"
 
 
 def scenes_problem(scenes: list[Path]) -> str | None:
@@ -461,6 +469,8 @@ def main(argv=None) -> int:
                 if v in results[name].get("_ran", []) and v not in results[name]]
         list(pool.map(lambda nv: run(*nv), todo))
     except KeyboardInterrupt:  # Ctrl-C: the runs queued are not started, those running are stopped (not failed)
+        # A second Ctrl-C (or `timeout`'s to the whole group) waits for the stop: the table is written all the same.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         interrupted = True
         children.stop()
     finally:

@@ -539,6 +539,7 @@ def presets_of(text: str) -> list[str]:
 def check_options(args) -> list[str]:
     """Every problem with the options, one line each ([] when the runs can start). Reads, never writes."""
     from spadscan.protocol.errors import SpadscanError
+    from spadscan.protocol.folders import folder_problem
     from spadscan.worker.recon.config import parse_override, with_overrides
     from spadscan.worker.recon.presets import PRESETS, preset_config
     from spadscan.worker.reconstruct import resolve_device
@@ -597,6 +598,8 @@ def check_options(args) -> list[str]:
     out = args.out
     if out.exists() and not out.is_dir():
         problems.append(f"--out {out}: exists and is not a folder")
+    elif folder_problem(out):
+        problems.append(f"--out {out}: {folder_problem(out)}")
     elif not args.overwrite:
         held = earlier_run(out)
         if held:

@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 from spadscan.cli import main as spadscan
+from spadscan.protocol.folders import folder_problem
 from spadscan.protocol.scenes import SPLITS, TABLE_SCENES, builtin_scene
 
 VALIDATION_OPTIONS = ["--sensor", "lcspc-sim", "--views", "256"]
@@ -88,6 +89,8 @@ def main(argv=None) -> int:
         parser.error(f"--seed {args.seed} must be >= 0")
     if args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out}: exists and is not a folder")
+    if folder_problem(args.out):
+        parser.error(f"--out {args.out}: {folder_problem(args.out)}")
     todo = plans(groups, args.seed)
     existing = [name for name, _ in todo if (args.out / name).exists()]
     if existing and not args.overwrite:

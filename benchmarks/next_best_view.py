@@ -127,8 +127,12 @@ SETTING_FLAGS = {"views": "--views", "steps": "--steps", "batch": "--batch", "li
 def out_problem(args) -> str | None:
     """Why --out cannot take this run (one line), or None. Reads, never writes: the fits an earlier run cached there
     cost minutes each, so fits made with other settings are never silently dropped (--overwrite drops them)."""
+    from spadscan.protocol.folders import folder_problem
+
     if args.out.exists() and not args.out.is_dir():
         return f"--out {args.out}: exists and is not a folder"
+    if folder_problem(args.out):
+        return f"--out {args.out}: {folder_problem(args.out)}"
     path = args.out / "results.json"
     if args.combine or args.overwrite or not path.exists():
         return None
@@ -232,7 +236,7 @@ def score_fit(capture: Path, truth, steps: int, seed: int) -> dict:
         mesh = run.model.extract_mesh(config.mesh_resolution)
     except ReconstructionError as exc:
         return {"chamfer_mm": None, "failed": str(exc), "steps": steps, "fit_seconds": round(fit_s, 1)}
-    m = truth.metrics(mesh, n_points=config.metrics_points, seed=seed)
+    m = truth.metrics(mesh, n_points=config.metrics_points)  # the metrics' fixed seed: the run's moves the fit alone
     return {"chamfer_mm": m.chamfer_mm, "accuracy_mm": m.accuracy_mm, "completeness_mm": m.completeness_mm,
             "steps": steps, "fit_seconds": round(fit_s, 1)}
 

@@ -219,3 +219,25 @@ def test_an_out_that_is_a_file_is_refused_before_any_run(ablation, capture, tmp_
     err = capsys.readouterr().err
     assert "Traceback" not in err and "exists and is not a folder" in err.strip().splitlines()[-1]
     assert runs.runs == []
+
+
+def test_a_run_is_scored_on_the_metrics_fixed_samples_whatever_its_seed(ablation, tmp_path, monkeypatch):
+    """`spadscan reconstruct` scores every run on the metrics' own seed (0, docs/metrics.md): an ablation run of
+    seed 3 is scored on the same samples, so that its figure is the project's figure of its mesh."""
+    from spadscan.cli import main
+
+    sphere = tmp_path / "sphere"
+    assert main(["simulate", "builtin:sphere", "--views", "12", "--rays-per-zone", "64", "--out", str(sphere),
+                 "--no-progress"]) == 0
+    asked = []
+    truth = ablation.ground_truth(sphere)
+
+    class Recorded:
+        def metrics(self, pred, **options):
+            asked.append(options)
+            return truth.metrics(pred, **options)
+
+    monkeypatch.setattr(ablation, "ground_truth", lambda capture: Recorded())
+    record = ablation.run_one(sphere, steps=2, seed=3, threads=1, overrides=[], points=2000)
+    assert asked and all(options.get("seed", 0) == 0 for options in asked), asked
+    assert record["chamfer_mm"] > 0

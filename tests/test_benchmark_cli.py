@@ -335,3 +335,16 @@ def test_a_preset_run_goes_through_the_products_trainer_and_records_its_commit_a
     walls = [e["wall_seconds"] for e in res["trace"]]
     assert walls == sorted(walls) and walls[0] == pytest.approx(res["setup_s"]) and len(walls) >= 2
     assert not bench.partial_path(result).exists()  # a finished run leaves no partial file
+
+
+@pytest.mark.parametrize("stem, extra", [("error_vs_time", ["--budget-s", "5"]), ("ablation", []),
+                                         ("next_best_view", []), ("make_scenes", None)])
+def test_an_out_that_cannot_be_made_is_refused_in_one_line(capture, tmp_path, capsys, stem, extra):
+    """A place no one can write (/proc; root included): one line naming --out, before any run, no traceback."""
+    from benchmark_helpers import load_benchmark
+
+    argv = ["--out", "/proc/spadscan-test"] + ([] if extra is None else ["--scenes", str(capture), *extra])
+    assert call(load_benchmark(stem), argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith("error: --out /proc/spadscan-test: cannot create it (No such file or directory)"), err
+    assert not any("Traceback" in line for line in err)
