@@ -87,7 +87,15 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if not args.scenes and not args.combine:
         p.error("give --scenes to run, or --combine FOLDER... to tabulate earlier runs")
+    from spadscan.protocol.errors import SpadscanError
+    from spadscan.protocol.mesh_io import load_mesh_spec
     from spadscan.worker.live.next_views import MEASURES
+
+    for spec in args.scenes:  # each read now: a misspelt last scene must not fail after hours of the first ones' fits
+        try:
+            load_mesh_spec(spec)
+        except SpadscanError as exc:
+            p.error(f"--scenes {spec}: {exc}")
 
     args.measures = [m for m in args.measures.split(",") if m]
     bad = [m for m in args.measures if m not in MEASURES]
@@ -530,7 +538,12 @@ def combine(folders: list[Path]) -> dict:
 def main(argv=None) -> int:
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    data = combine(args.combine) if args.combine else run(args)
+    try:
+        data = combine(args.combine) if args.combine else run(args)
+    except KeyboardInterrupt:
+        print(f"next_best_view.py: interrupted: {args.out / 'results.json'} keeps the fits that finished, and the "
+              f"same command goes on from them", file=sys.stderr)
+        return 130
     text = table(data)
     print(text)
     (args.out / "table.md").write_text(text + "\n")

@@ -161,3 +161,24 @@ def test_an_unreadable_results_json_or_a_file_as_out_is_a_one_line_error(nbv, tm
             nbv.parse_args(["--scenes", "builtin:cup", "--out", str(out)])
         err = capsys.readouterr().err
         assert "Traceback" not in err and says in err.strip().splitlines()[-1], err
+
+
+def test_a_scene_that_does_not_load_is_refused_before_any_fit(nbv, tmp_path, capsys):
+    """Every scene is read first: a misspelt last one is one line before the first one's fits, and --out stays
+    unmade."""
+    with pytest.raises(SystemExit) as exit_:
+        nbv.main(["--scenes", "builtin:sphere", "builtin:sphre", "--out", str(tmp_path / "out")])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert ": error: --scenes builtin:sphre: unknown built-in scene 'sphre'" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_ctrl_c_says_where_the_finished_fits_are_and_exits_130(nbv, tmp_path, capsys, monkeypatch):
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(nbv, "run", interrupted)
+    assert nbv.main(["--scenes", "builtin:sphere", "--out", str(tmp_path / "out")]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "results.json keeps the fits that finished" in err and "Traceback" not in err
