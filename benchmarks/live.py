@@ -55,7 +55,7 @@ def spadscan(*args) -> list[str]:
 def rig_text(captures: Path, sock: Path, scene: str, views: int | None, frame_time_s: float,
              time_scale: float) -> str:
     """The real rig's defaults, with simulated devices: only what a simulation needs is set."""
-    scan = f"views = {views}\n" if views else ""
+    scan = f"views = {views}\n" if views is not None else ""
     return (f'captures = "{captures}"\nsocket = "{sock}"\n\n'
             f'[arm]\nbackend = "sim"\ntime_scale = {time_scale}\n\n'
             f'[sensor]\nbackend = "sim"\nmesh = "builtin:{scene}"\nframe_time_s = {frame_time_s}\n\n'
@@ -312,6 +312,12 @@ def main(argv=None) -> int:
     unknown = [s for s in scenes if s not in BUILTIN_SCENES]
     if unknown:
         ap.error(f"unknown scene(s) {', '.join(unknown)} (built-in: {', '.join(BUILTIN_SCENES)})")
+    from spadscan.daemon.config import ScanConfig
+    from spadscan.daemon.config_keys import key_spec
+
+    views = key_spec(ScanConfig, "views")  # the daemon's own range: a scan it would refuse is refused here
+    if args.views is not None and not views.lo <= args.views <= views.hi:
+        ap.error(f"--views {args.views} must be an integer in [{views.lo:g}, {views.hi:g}]")
     # Absolute: the rig.toml written under it names its folders, and a rig file's relative paths are read from its
     # own folder, so a relative --out would name them twice over.
     out = (args.out or Path(tempfile.mkdtemp(prefix="spadscan-live-bench-"))).resolve()

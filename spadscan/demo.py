@@ -219,6 +219,7 @@ def check_options(opts: DemoOptions) -> None:
     would otherwise fail only after the daemon started or the whole scan ran). The limits are theirs, read from
     the daemon's config keys where they are declared."""
     from spadscan.daemon.config import ScanConfig, SensorConfig
+    from spadscan.daemon.config_keys import key_spec
     from spadscan.protocol.scenes import BUILTIN_SCENES
     from spadscan.worker.jobs import DEFAULT_QUEUE, run_limits_problem
 
@@ -226,10 +227,10 @@ def check_options(opts: DemoOptions) -> None:
         raise DemoError(f"unknown scene {opts.scene!r} (built-in: {', '.join(BUILTIN_SCENES)})")
     if opts.arm not in ARMS:
         raise DemoError(f"--arm {opts.arm!r} must be one of {', '.join(ARMS)}")
-    presets = _key(SensorConfig, "preset").choices
+    presets = key_spec(SensorConfig, "preset").choices
     if opts.sensor not in presets:
         raise DemoError(f"--sensor {opts.sensor!r} must be one of {', '.join(presets)}")
-    most = int(_key(ScanConfig, "views").hi)
+    most = int(key_spec(ScanConfig, "views").hi)
     if isinstance(opts.views, bool) or not isinstance(opts.views, int) or not MIN_VIEWS <= opts.views <= most:
         raise DemoError(f"--views {opts.views} must be an integer in [{MIN_VIEWS}, {most}]")
     # the worker's rule (`spadscan worker --budget-s`); the demo always names a budget
@@ -253,13 +254,6 @@ def check_options(opts: DemoOptions) -> None:
     port = opts.dashboard_port
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise DemoError(f"--dashboard-port {port} must be an integer in [0, 65535]")
-
-
-def _key(cls, name: str):
-    """The daemon config's Key spec (kind, range, choices) of field `name` of section `cls`."""
-    from dataclasses import fields
-
-    return next(f.metadata["key"] for f in fields(cls) if f.name == name)
 
 
 def check_rig_config(config: Path) -> None:

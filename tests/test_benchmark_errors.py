@@ -72,6 +72,9 @@ BAD = {
     "live_recoarse: simulation fails": ("live_recoarse", ["--scenes", "mug", "--captures", "{tmp}/c"],
                                         "spadscan: error: out of disk", "simulating builtin:mug failed: spadscan"),
     "live: no scene": ("live", ["--scenes", ",", "--out", "{tmp}/l"], None, "--scenes ',' names no scene"),
+    # 0 once ran the daemon's default of 128 views
+    "live: no views": ("live", ["--scenes", "demo", "--views", 0, "--out", "{tmp}/l"], None,
+                       "--views 0 must be an integer in [1, 10000]"),
     "make_scenes: a file as --out": ("make_scenes", ["--out", "{capture}/scan.json", "--groups", "table"], None,
                                      "scan.json: exists and is not a folder"),
     "warm_start_resampling: no steps": ("warm_start_resampling", ["{capture}", "--steps", 0, "--rebuilds", 1], None,
