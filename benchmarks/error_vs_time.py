@@ -283,12 +283,13 @@ def run_baseline(capture: Path, method: str, out: Path) -> dict:
     start = time.perf_counter()
     report = run(capture, out, method)
     seconds = time.perf_counter() - start
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # before the scoring, as for the presets
     mesh = trimesh.load(out / "mesh.ply")
     c = chamfer_mm(mesh, truth, 300_000) if truth is not None else None
     return {"method": method, "kind": "baseline", "setup_s": 0.0, "trace": [{"wall_seconds": seconds,
             "chamfer_mm": c}], "final_chamfer_mm": c, "crop_z_m": None if truth is None else truth.cut_above_z_m,
             "threshold": report.get("threshold"),
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "commit": source_commit()}
+            "peak_rss_mb": peak_mb, "commit": source_commit()}
 
 
 def write_atomic(path: Path, record: dict) -> None:

@@ -337,13 +337,14 @@ def test_a_preset_run_goes_through_the_products_trainer_and_records_its_commit_a
     assert not bench.partial_path(result).exists()  # a finished run leaves no partial file
 
 
-@pytest.mark.parametrize("stem, extra", [("error_vs_time", ["--budget-s", "5"]), ("ablation", []),
-                                         ("next_best_view", []), ("make_scenes", None)])
+@pytest.mark.parametrize("stem, extra", [("error_vs_time", ["--scenes", "{capture}", "--budget-s", "5"]),
+                                         ("ablation", ["--scenes", "{capture}"]),
+                                         ("next_best_view", ["--scenes", "builtin:sphere"]), ("make_scenes", [])])
 def test_an_out_that_cannot_be_made_is_refused_in_one_line(capture, tmp_path, capsys, stem, extra):
     """A place no one can write (/proc; root included): one line naming --out, before any run, no traceback."""
     from benchmark_helpers import load_benchmark
 
-    argv = ["--out", "/proc/spadscan-test"] + ([] if extra is None else ["--scenes", str(capture), *extra])
+    argv = ["--out", "/proc/spadscan-test"] + [a.format(capture=capture) for a in extra]
     assert call(load_benchmark(stem), argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].endswith("error: --out /proc/spadscan-test: cannot create it (No such file or directory)"), err
