@@ -68,7 +68,7 @@ def test_eval_of_a_mesh_inside_a_much_larger_one_ends_within_its_budget_and_says
     done = spadscan("eval", "builtin:sphere", "--gt", gt, "--points", 100_000, "--budget-s", 0.01)
     assert done.returncode == 0, done.stderr
     measured = [line for line in done.stdout.splitlines() if line.startswith("measured ")]
-    assert measured and "5,000 of the 100,000 samples per mesh within --budget-s 0.01" in measured[0], done.stdout
+    assert measured and "500 of the 100,000 samples per mesh within --budget-s 0.01" in measured[0], done.stdout
 
 
 def test_simulate_refuses_too_few_laser_cycles_and_names_the_minimum(tmp_path):

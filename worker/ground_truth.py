@@ -56,6 +56,18 @@ class GroundTruth:
 
         return mesh_metrics(self.scored(pred), self.mesh, **options)
 
+    def mismatch_warning(self, scored, name) -> str | None:
+        """A warning when the scored part of a reconstruction and this ground truth (read from `name`) plainly are
+        not one object in one frame and unit (`metrics.mismatch`): figures against it score the mistake, not the
+        reconstruction. None otherwise."""
+        from spadscan.worker.metrics import mismatch
+
+        found = mismatch(scored, self.mesh)
+        if found is None:
+            return None
+        return (f"the ground truth {name} does not match the reconstruction: {found}; its figures score that, not "
+                f"the reconstruction: check that it is the scanned object's, in metres, in the capture's frame")
+
     def report_fields(self) -> dict:
         """What a report.json records of how it was scored: `ground_truth_cut_above_z_m` (None: whole), and with a
         cut, `ground_truth_scored` (the note)."""

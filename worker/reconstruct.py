@@ -360,6 +360,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     summary = model.summary()  # the trained model's, for the lost returns and the end's checks
     lost = _lost(mesh, scene, summary, log)
     stages["lost_returns_s"] = clock() - t_lost
+    truth_note = None  # what the ground truth's fit with the mesh says, where there is one
     if truth is not None:
         # all that is left to draw after the metrics
         costs.fixed_s, costs.fit_check_s, costs.coverage_s = NORMALS_PICTURE_S, 0.0, 0.0
@@ -391,6 +392,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         elif points < config.metrics_points:
             notes.append(f"the time budget was short: the metrics used {points:,} points per mesh, not "
                          f"{config.metrics_points:,} (a coarser estimate)")
+        truth_note = truth.mismatch_warning(scored, gt)
         figures = scores.to_dict()
         figures["metrics_seed"] = figures.pop("seed")  # "seed" stays the run's
         report.update(figures)
@@ -404,7 +406,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
                      scene_notes=[n for n in (run.counts_note, scene.bound_note, scene.pulse_note, floor_note,
-                                              ring_note, far_note, run.state_note) if n],
+                                              ring_note, far_note, run.state_note, truth_note) if n],
                      coverage=coverage, pieces=pieces, signal=signal, lost=lost,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,

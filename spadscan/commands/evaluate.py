@@ -64,10 +64,6 @@ for a 20 cm object at 1000 points, as much as the F-score's threshold; fewer sco
 BUDGET_S = 120.0
 """Seconds eval measures distances for by default: the bunny at 300,000 points takes a few, a ground truth many times
 the reconstruction around it took minutes."""
-SIZE_RATIO = 5.0
-"""Meshes whose bounding-box diagonals differ by more than this factor get a note. A unit mistake differs 10x (cm
-taken for mm) or more (100x: cm read as metres); 188 reconstructions scored against their own scene's ground truth,
-failed ones with stray blobs included, stayed within 3.5x."""
 WHO = {"mesh": "the reconstruction", "gt": "the ground truth"}
 
 
@@ -91,30 +87,12 @@ def box_line(box) -> str:
 
 
 def mismatch_note(mesh, gt, compare_sizes: bool = True) -> str | None:
-    """One line when the scored meshes plainly are not one object in one frame and unit (their bounding boxes do
-    not overlap, or, with `compare_sizes`, their diagonals differ over SIZE_RATIO times), else None. A Chamfer of
-    hundreds of mm says that something is wrong, not what. Sizes are not compared where a table was kept (--keep-table,
-    --box): a ground truth's table slab is many times its object, which no reconstruction holds."""
-    import numpy as np
+    """`metrics.mismatch` of the scored meshes, with what to check, or None. Sizes are not compared where a table was
+    kept (--keep-table, --box): a ground truth's table slab is many times its object, which no reconstruction holds."""
+    from spadscan.worker.metrics import mismatch
 
-    a, b = np.asarray(mesh.bounds, float), np.asarray(gt.bounds, float)
-    said = []
-    if np.any(a[0] > b[1]) or np.any(b[0] > a[1]):
-        said.append(f"the bounding boxes of the reconstruction and the ground truth do not overlap "
-                    f"({_bounds(a)} and {_bounds(b)} m)")
-    sizes = {"mesh": float(np.linalg.norm(a[1] - a[0])), "gt": float(np.linalg.norm(b[1] - b[0]))}
-    large, small = sorted(sizes, key=sizes.get, reverse=True)
-    if compare_sizes and sizes[small] > 0 and sizes[large] / sizes[small] > SIZE_RATIO:
-        said.append(f"{WHO[large]} is {sizes[large] / sizes[small]:.3g}x the size of {WHO[small]} (bounding-box "
-                    f"diagonals {sizes[large]:.3g} and {sizes[small]:.3g} m)")
-    if not said:
-        return None
-    return "; ".join(said) + ": check that both are in the same units (--units m|mm) and frame"
-
-
-def _bounds(bounds) -> str:
-    # Millimetres are enough to see two boxes apart; + 0.0 turns a rounded -0.0 into 0.
-    return " .. ".join("[" + ", ".join(f"{round(v, 3) + 0.0:g}" for v in corner) + "]" for corner in bounds)
+    found = mismatch(mesh, gt, compare_sizes)
+    return None if found is None else f"{found}: check that both are in the same units (--units m|mm) and frame"
 
 
 def measured_note(metrics, budget_s: float) -> str | None:

@@ -263,5 +263,9 @@ def run_baseline(capture, out, method: str, *, gt=None, threshold: float | None 
         log(f"scoring against the ground truth on {metrics_points:,} points per mesh")
         report.update(truth.report_fields())
         report.update(truth.metrics(mesh, n_points=metrics_points).to_dict())
+        unlike = truth.mismatch_warning(truth.scored(mesh), gt)
+        if unlike is not None:
+            log(f"warning: {unlike}")
+            report["warnings"] = [*report["warnings"], unlike]
     write_report(out, report)
     return json_safe(report)
