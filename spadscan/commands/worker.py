@@ -287,11 +287,12 @@ def _refuse_combinations(args) -> None:
 
 def _check_queue(queue_dir, given: bool, creates: bool) -> None:
     """Refuse, in one line that names --queue, a queue folder that cannot be one: a capture or a folder inside one
-    (its files would be mixed into the measurements), a file there or above it; for all but --status (`creates`: a run makes the folder and writes its jobs into it, --redo and --retry-failed write the
-    jobs they queue again), one that cannot be made or written into; for --status with a --queue given (it would end
-    by suggesting a worker on it), one that is not there and cannot be made (one that is there is only read). A
-    root's default queue that is missing is only read by --status: it lists it as empty, since the root's own worker
-    makes it, even where this user cannot."""
+    (its files would be mixed into the measurements), a file there or above it; for all but --status (`creates`: a
+    run makes the folder and writes its jobs into it, --redo and --retry-failed write the jobs they queue again), one
+    that cannot be made or written into; for --status with a --queue given (it would end by suggesting a worker on
+    it), one that is not there and cannot be made (one that is there is only read). A root's default queue that is
+    missing is only read by --status: it lists it as empty, since the root's own worker makes it, even where this
+    user cannot."""
     from spadscan.protocol.capture_format import MANIFEST, enclosing_capture
     from spadscan.protocol.folders import folder_problem, not_a_folder
     from spadscan.protocol.errors import ConfigError

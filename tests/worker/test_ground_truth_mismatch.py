@@ -30,9 +30,9 @@ def warnings_of(out) -> list[str]:
     return json.loads((out / "report.json").read_text())["warnings"]
 
 
-@pytest.mark.parametrize("gt, said", [("moved.obj", "the bounding boxes of the reconstruction and the ground truth "
-                                                    "do not overlap"),
-                                      ("large.obj", "x the size of the reconstruction (bounding-box diagonals 3.46 and ")])
+@pytest.mark.parametrize("gt, said", [
+    ("moved.obj", "the bounding boxes of the reconstruction and the ground truth do not overlap"),
+    ("large.obj", "x the size of the reconstruction (bounding-box diagonals 3.46 and ")])
 @pytest.mark.parametrize("command", ["reconstruct", "baseline"])
 def test_a_ground_truth_unlike_the_reconstruction_is_said(sphere, tmp_path, capsys, gt, said, command):
     out = tmp_path / "out"
