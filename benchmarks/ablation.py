@@ -461,6 +461,7 @@ def main(argv=None) -> int:
     before = signal.signal(signal.SIGTERM, signal.default_int_handler)
     # Ctrl-Z stops this script's process group, not the runs' own: passed on, it pauses them too.
     before_tstp = signal.signal(signal.SIGTSTP, lambda signum, frame: children.pause(signum))
+    before_int = signal.getsignal(signal.SIGINT)
     try:
         # Every scene's all-parts run first: its report says which parts ran there, so which to ablate.
         list(pool.map(lambda n: run(n, ALL), list(captures)))
@@ -477,6 +478,7 @@ def main(argv=None) -> int:
         pool.shutdown(wait=True, cancel_futures=True)
         signal.signal(signal.SIGTERM, before)
         signal.signal(signal.SIGTSTP, before_tstp)
+        signal.signal(signal.SIGINT, before_int)  # (children started later, by a caller, would inherit SIG_IGN)
     text = tables(results, [ALL] + wanted)
     (args.out / "table.md").write_text(text + "\n")
     write_atomic(args.out / "results.json", results)
