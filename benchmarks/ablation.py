@@ -461,7 +461,6 @@ def main(argv=None) -> int:
     before = signal.signal(signal.SIGTERM, signal.default_int_handler)
     # Ctrl-Z stops this script's process group, not the runs' own: passed on, it pauses them too.
     before_tstp = signal.signal(signal.SIGTSTP, lambda signum, frame: children.pause(signum))
-    before_int = signal.getsignal(signal.SIGINT)
     try:
         # Every scene's all-parts run first: its report says which parts ran there, so which to ablate.
         list(pool.map(lambda n: run(n, ALL), list(captures)))
@@ -470,15 +469,12 @@ def main(argv=None) -> int:
                 if v in results[name].get("_ran", []) and v not in results[name]]
         list(pool.map(lambda nv: run(*nv), todo))
     except KeyboardInterrupt:  # Ctrl-C: the runs queued are not started, those running are stopped (not failed)
-        # A second Ctrl-C (or `timeout`'s to the whole group) waits for the stop: the table is written all the same.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
         interrupted = True
         children.stop()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
         signal.signal(signal.SIGTERM, before)
         signal.signal(signal.SIGTSTP, before_tstp)
-        signal.signal(signal.SIGINT, before_int)  # (children started later, by a caller, would inherit SIG_IGN)
     text = tables(results, [ALL] + wanted)
     (args.out / "table.md").write_text(text + "\n")
     write_atomic(args.out / "results.json", results)

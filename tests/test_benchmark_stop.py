@@ -201,16 +201,7 @@ def ctrl_c(proc: subprocess.Popen) -> None:
     os.killpg(proc.pid, signal.SIGINT)
 
 
-def ctrl_c_twice(proc: subprocess.Popen) -> None:
-    """Ctrl-C, and again while the first is being handled (an impatient user; `timeout -s INT`, which signals the
-    process and then its group)."""
-    ctrl_c(proc)
-    time.sleep(0.2)
-    ctrl_c(proc)
-
-
-@pytest.mark.parametrize("how", [pytest.param(ctrl_c, id="ctrl-c"), pytest.param(ctrl_c_twice, id="ctrl-c-twice"),
-                                 *STOPS])
+@pytest.mark.parametrize("how", [pytest.param(ctrl_c, id="ctrl-c"), *STOPS])
 def test_ablations_run_stopped_is_not_run_not_failed(tmp_path, how):
     # A real run, in a child process of the script's worker thread, stopped as a user or a time limit stops it. The
     # run never ends by itself (10^6 steps).
