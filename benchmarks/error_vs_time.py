@@ -599,8 +599,8 @@ def check_options(args) -> list[str]:
     out = args.out
     if out.exists() and not out.is_dir():
         problems.append(f"--out {out}: exists and is not a folder")
-    elif folder_problem(out):
-        problems.append(f"--out {out}: {folder_problem(out)}")
+    elif (unmakeable := folder_problem(out)) is not None:
+        problems.append(f"--out {out}: {unmakeable}")
     elif not args.overwrite:
         held = earlier_run(out)
         if held:

@@ -89,8 +89,8 @@ def main(argv=None) -> int:
         parser.error(f"--seed {args.seed} must be >= 0")
     if args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out}: exists and is not a folder")
-    if folder_problem(args.out):
-        parser.error(f"--out {args.out}: {folder_problem(args.out)}")
+    if (unmakeable := folder_problem(args.out)) is not None:
+        parser.error(f"--out {args.out}: {unmakeable}")
     todo = plans(groups, args.seed)
     existing = [name for name, _ in todo if (args.out / name).exists()]
     if existing and not args.overwrite:

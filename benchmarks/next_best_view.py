@@ -139,8 +139,8 @@ def out_problem(args) -> str | None:
 
     if args.out.exists() and not args.out.is_dir():
         return f"--out {args.out}: exists and is not a folder"
-    if folder_problem(args.out):
-        return f"--out {args.out}: {folder_problem(args.out)}"
+    if (unmakeable := folder_problem(args.out)) is not None:
+        return f"--out {args.out}: {unmakeable}"
     path = args.out / "results.json"
     if args.combine or args.overwrite or not path.exists():
         return None

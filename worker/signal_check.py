@@ -105,10 +105,10 @@ def capture_signal(counts: np.ndarray, sensor, threshold: float, usable: np.ndar
     level = weak_level(threshold, weak_threshold)
     zones = aimed_zones(sensor)
     judged = None if usable is None else np.asarray(usable, bool)[:, zones]
+    enough = np.asarray(counts)[:, zones].sum(-1) >= MIN_RETURN_PHOTONS  # whatever the level
 
     def no_return(at: float) -> tuple[int, int]:
-        found = first_returns(counts, sensor, at, "leading", usable=usable).detected[:, zones]
-        found &= np.asarray(counts)[:, zones].sum(-1) >= MIN_RETURN_PHOTONS
+        found = first_returns(counts, sensor, at, "leading", usable=usable).detected[:, zones] & enough
         held = np.ones(found.shape, bool) if judged is None else judged
         return int(held.sum()), int((held & ~found).sum())
 

@@ -42,4 +42,3 @@ def stop_name(state: ArmState) -> str | None:
 def clear_advice(stop: str) -> str:
     """What to do about `stop` before resuming, as a clause: '<what to do>, then resume'."""
     return f"{TO_CLEAR.get(stop, TO_CLEAR[SAFETY_STOP])}, then resume"
-
