@@ -50,6 +50,7 @@ from scipy.special import gammaln, xlogy
 
 from spadscan.protocol.pileup import mostly_saturated, saturated_histograms
 
+from .ambient_light import ambient_warning
 from .cpu_wait import counted_helpers, lost_seconds
 from .pieces import SPECKS_LIMIT
 from .signal_check import signal_warning
@@ -340,6 +341,9 @@ class RunFacts:
     dark: dict | None = None
     """The fast preset's dark-restart part's summary with the fitted `albedo` beside it, where the part started the
     fit again for a dark object; else None."""
+    ambient: object | None = None
+    """How much of the laser cycles ambient light stopped before the object's returns (an `ambient_light.Ambient`),
+    or None where not judged."""
 
 
 def converged(facts: RunFacts) -> bool:
@@ -732,6 +736,9 @@ def warnings(facts: RunFacts) -> list[str]:
     dark = dark_warning(facts.dark)  # as faint returns do, it explains a shape's doubts
     if dark:
         out.append(dark)
+    bright = ambient_warning(facts.ambient)  # so does a background that buries the returns
+    if bright:
+        out.append(bright)
     # The doubts about the shape: of a rough early state, the fit's shortness says them first (a 1-step mesh of a
     # good capture read as "the time axis or the poses are wrong" and "scan it with views aimed at it"). The specks
     # line says that a longer run hardly changes them only of a run that converged: of one stopped early that would

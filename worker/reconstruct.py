@@ -25,6 +25,7 @@ from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 from spadscan.protocol.pileup import coates_correct
 
 from . import end_of_run
+from .ambient_light import Ambient, capture_ambient
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
                      PROBE_RESOLUTIONS, SAFETY, EndCosts, RunClock, coverage_picture_within, fit_views_within,
                      mesh_resolution_within, metric_points_within, probe_seconds, training_budget)
@@ -281,6 +282,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     floor_note = _floor_note(scene, model.summary(), truth, reads)
     signal = _signal(scene, config, reads)
     far_note = _far_note(reads)
+    ambient = _ambient(scene, reads)
     del reads  # not held through training: at 10,000 views of nine zones it is a hundred megabytes
     ring_note = _ring_note(scene)
     if budget_s is not None:
@@ -416,7 +418,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
                      preset=config.preset, cuda_seen=torch.cuda.is_available(),
                      thread_times=None if waits is None else waits.summary(), machine_jobs=siblings,
                      threads_fixed=threads_fixed(threads, os.environ), dark=_dark(summary),
-                     thin_sheets_emptied=_part_figure(summary, "thin_sheets", "emptied_nodes"))
+                     thin_sheets_emptied=_part_figure(summary, "thin_sheets", "emptied_nodes"), ambient=ambient)
     report["converged"] = end_of_run.converged(facts)
     report["warnings"] = end_of_run.warnings(facts) + ([threads_note] if threads_note else [])
     report["fit_to_noise"] = None if fit is None else fit.to_dict()
@@ -426,6 +428,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         report["pieces"]["truth_tunnels"] = truth_pieces.tunnels
     report["signal"] = None if signal is None else signal.to_dict()
     report["lost_returns"] = None if lost is None else lost.to_dict()
+    report["ambient_light"] = None if ambient is None else ambient.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["cpu_wait"] = end_of_run.cpu_wait(facts)
     report["machine_jobs"] = siblings
@@ -554,6 +557,17 @@ def _far_note(reads: tuple) -> str | None:
     counts, sensor, _ = reads
     clear, ranges = strongest_returns(counts, sensor)
     return far_views_warning(sensor, ranges[clear])
+
+
+def _ambient(scene: SceneData, reads: tuple) -> Ambient | None:
+    """How much of the laser cycles ambient light stopped before the object's returns (ambient_light.py): the fit's
+    own background, at the bin of each view's strongest return. `reads`: the scene as carving reads it
+    (`_as_carving_reads`)."""
+    counts, sensor, _ = reads
+    clear, ranges = strongest_returns(counts, sensor)
+    usable = None if scene.usable is None else scene.usable.cpu().numpy()
+    return capture_ambient(scene.background.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
+                           sensor.bin_of_range(ranges[clear]), bool(sensor.pileup), usable)
 
 
 def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:
