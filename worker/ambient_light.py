@@ -24,10 +24,10 @@ import numpy as np
 
 STOPPED_LIMIT = 0.4
 """Share of the laser cycles that ambient light stops before the object's returns (the median view's) above which the
-result says so: between the duck's 29 % (1.55 mm) and 50 % (2.05 mm; AMBIENT_EVIDENCE); every benchmark capture stays
+result says so: between the duck's 29 % (1.55 mm) and 49 % (2.05 mm; AMBIENT_EVIDENCE); every benchmark capture stays
 under 12 % (lcspc-sim from 0.7 m), the TMF8820's 128-bin histograms (the real pyramid, the simulated table scenes)
 at 0.1 % (docs/end_of_run.md, "Too much ambient light")."""
-AMBIENT_EVIDENCE = "0.74 mm at 8 % of its cycles stopped, 1.55 at 29 %, 2.05 at 50 %, 4.81 at 59 %"
+AMBIENT_EVIDENCE = "0.74 mm at 8 % of its cycles stopped, 1.55 at 29 %, 2.05 at 49 %, 4.81 at 64 %"
 """What the simulated duck (lcspc-sim, 256 views, 3,000 steps) came out at as ambient light stopped more of its
 cycles before its returns: said in the warning, so that the share reads as a consequence."""
 
@@ -41,11 +41,11 @@ class Ambient:
     background_photons: float
     """Median photons per bin that rate puts in a histogram (the rate times its cycles)."""
     return_bin: float
-    """Median bin of the views' strongest returns (those that stand clear of the background)."""
+    """Median bin of the first returns (as carving finds them: reconstruct's `_return_ranges`)."""
     stopped_share: float
     """Share of the cycles that the ambient light stopped before that bin: 1 - exp(-background * return_bin)."""
     returns: int
-    """Views whose strongest return stood clear (of which `return_bin` is the median)."""
+    """Histograms with a first return (of which `return_bin` is the median)."""
 
     def to_dict(self) -> dict:
         return {"background_per_bin_per_cycle": self.background, "background_photons_per_bin":
@@ -56,9 +56,9 @@ class Ambient:
 def capture_ambient(background: np.ndarray, cycles: np.ndarray, return_bins: np.ndarray, pileup: bool,
                     usable: np.ndarray | None = None) -> Ambient | None:
     """The ambient light of a capture: `background` (V, Z) photons per bin per cycle of each histogram, `cycles` (V,)
-    each view's laser cycles, `return_bins` (n,) the bins of the views' clear strongest returns, `usable` (V, Z) bool
+    each view's laser cycles, `return_bins` (n,) the bins of the histograms' first returns, `usable` (V, Z) bool
     (None: all) the histograms that hold data. None for a sensor without pile-up (`pileup` false: no cycle stops),
-    or where no histogram holds data or no view a clear return."""
+    or where no histogram holds data or none a first return."""
     background = np.asarray(background, np.float64)
     return_bins = np.asarray(return_bins, np.float64).reshape(-1)
     held = np.ones(background.shape, bool) if usable is None else np.asarray(usable, bool).reshape(background.shape)

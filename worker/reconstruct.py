@@ -47,7 +47,7 @@ from .recon.errors import ReconstructionError
 from .recon.fast.problem import carve_weak_threshold, default_thresholds
 from .recon.model_api import ReconModel, RunPlan
 from .recon.presets import make_model, preset_config
-from .recon.scene_data import SceneData, load_scene, strongest_returns
+from .recon.scene_data import SceneData, load_scene
 from .recon.trainer import train
 from .report import pictures
 from .report.folder_view import ensure_view3d
@@ -56,7 +56,8 @@ from .report.report_json import json_safe, write_report
 from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 from .time_axis import NEAR_RANGE_M, check_time_axis, scene_views
-from .view_spread import above_only_warning, far_views_warning, one_ring_warning, view_elevations_deg
+from .view_spread import (above_only_warning, far_views_warning, low_only_warning, one_ring_warning,
+                          small_object_warning, view_elevations_deg)
 
 DEVICES = ("auto", "cpu", "cuda")
 FIT_VIEWS = 4
@@ -281,8 +282,9 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     reads = _as_carving_reads(scene)  # summed once for the three checks
     floor_note = _floor_note(scene, model.summary(), truth, reads)
     signal = _signal(scene, config, reads)
-    far_note = _far_note(reads)
-    ambient = _ambient(scene, reads)
+    return_ranges = _return_ranges(reads)
+    far_note = far_views_warning(scene.sensor, return_ranges)
+    ambient = _ambient(scene, return_ranges)
     del reads  # not held through training: at 10,000 views of nine zones it is a hundred megabytes
     ring_note = _ring_note(scene)
     if budget_s is not None:
@@ -403,12 +405,15 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         report["ground_truth"] = str(gt)
         stages["metrics_s"] = clock() - t_metrics
     truth_pieces = None if truth is None else _truth_pieces(truth.mesh)
+    small_note = _small_note(mesh, scene.sensor, return_ranges)
+    if small_note:  # it says why the views were too far for this object, and how near to come: the far line's advice
+        far_note = None
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
                      scene_notes=[n for n in (run.counts_note, scene.bound_note, scene.pulse_note, floor_note,
-                                              ring_note, far_note, run.state_note, truth_note) if n],
+                                              ring_note, far_note, small_note, run.state_note, truth_note) if n],
                      coverage=coverage, pieces=pieces, signal=signal, lost=lost,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
@@ -544,30 +549,39 @@ def _probe_coverage(mesh, scene: SceneData, costs: EndCosts, clock) -> None:
 
 def _ring_note(scene: SceneData) -> str | None:
     """The warning that every view stands at one elevation about the scene's centre, else that every view looks down
-    from above only (view_spread.py), or None."""
+    from above only, else that every view stands low down (view_spread.py), or None."""
     poses, usable = _poses_usable(scene)
     spread = view_elevations_deg(poses, scene.center.double().cpu().numpy(), usable)
-    return one_ring_warning(*spread) or above_only_warning(*spread)
+    return one_ring_warning(*spread) or above_only_warning(*spread) or low_only_warning(*spread)
 
 
-def _far_note(reads: tuple) -> str | None:
-    """The warning that the views stand so far from the object that one zone sees a patch wider than its parts
-    (view_spread.py), or None: from each view's strongest return. `reads`: the scene as carving reads it
-    (`_as_carving_reads`: its frames summed)."""
-    counts, sensor, _ = reads
-    clear, ranges = strongest_returns(counts, sensor)
-    return far_views_warning(sensor, ranges[clear])
+def _return_ranges(reads: tuple) -> np.ndarray:
+    """(n,) range (metres) of the first return of each histogram that holds one, as carving finds them
+    (`carving.returns.first_returns`, its matched filter at its default level) in the scene as carving reads it
+    (`reads`: `_as_carving_reads`, its frames summed): where the object lies from the views, for the checks on their
+    distance (view_spread.py) and on the ambient light. The matched filter finds a small object's faint returns that
+    a histogram's highest bin misses (a 5 cm ball from 0.6 m: 24 of 24 views against 1), and under bright ambient
+    light the object's return, where the highest bin lies early (pile-up piles the background there)."""
+    counts, sensor, usable = reads
+    found = detected_returns(counts, sensor, DEFAULT_THRESHOLD, usable=usable)
+    return np.asarray(sensor.range_of_bin(found.arrival_bin[found.detected]), np.float64)
 
 
-def _ambient(scene: SceneData, reads: tuple) -> Ambient | None:
+def _ambient(scene: SceneData, ranges: np.ndarray) -> Ambient | None:
     """How much of the laser cycles ambient light stopped before the object's returns (ambient_light.py): the fit's
-    own background, at the bin of each view's strongest return. `reads`: the scene as carving reads it
-    (`_as_carving_reads`)."""
-    counts, sensor, _ = reads
-    clear, ranges = strongest_returns(counts, sensor)
+    own background, at the bins of the first returns (`ranges`, metres: `_return_ranges`)."""
     usable = None if scene.usable is None else scene.usable.cpu().numpy()
     return capture_ambient(scene.background.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
-                           sensor.bin_of_range(ranges[clear]), bool(sensor.pileup), usable)
+                           scene.sensor.bin_of_range(ranges), bool(scene.sensor.pileup), usable)
+
+
+def _small_note(mesh, sensor, ranges: np.ndarray) -> str | None:
+    """The warning that one zone sees a patch several times the mesh's size at the views' returns (`ranges`, metres:
+    `_return_ranges`; view_spread.py), or None (None too for a mesh without vertices)."""
+    vertices = np.asarray(mesh.vertices)
+    if not len(vertices):
+        return None
+    return small_object_warning(sensor, ranges, float(np.ptp(vertices, axis=0).max()))
 
 
 def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:

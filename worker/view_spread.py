@@ -1,6 +1,6 @@
-"""Views from one elevation, from above only, or from far away: a capture whose views all look at the object from
-the same height above it, all from high above it, or from so far that each zone sees a patch wider than the object's
-parts.
+"""Views from one elevation, from above only, from low down only, or from far away: a capture whose views all look at
+the object from the same height above it, all from high above it, all from near its base's height, or from so far
+that each zone sees a patch wider than the object's parts (or several times the whole object).
 
 Every view of one ring around a roundish object reads nearly the same histogram, and ranges taken from one elevation
 do not fix the shape's profile in height: the fit explains every histogram with a wrong shape, and no check on the fit
@@ -31,13 +31,30 @@ up 8.1 mm; the block on a table with the tmf8820 from 50 up 3.9 mm; the block fr
 (benchmarks/RESULTS.md, "a bad result says so"). The public dataset's captures reach 10 degrees or lower (the real
 pyramid 10, its `_random` twin 7, the simulated ones below 0)."""
 
+LOW_ONLY_DEG = 30.0
+"""Highest view elevation (degrees, about the scene's centre) up to which a capture is taken to look from low down
+only: the object's top is then seen at a grazing angle alone, its returns spread over many bins and merged with the
+sides', and the fit can put it centimetres off while explaining every histogram (LOW_ONLY_EVIDENCE). The public
+dataset's captures reach 80 degrees and more (its simulated ones 86, its real ones 80 about the target)."""
+LOW_ONLY_EVIDENCE = "a flat plate seen from 25 degrees up at most: ..."
+"""What captures from low down came out at, said in the warning."""
+
 FAR_PATCH_M = 0.27
 """Width (metres) of the patch one zone sees at the views' median return range over which a capture is said to be
 taken from far away: each histogram then sums the returns of a patch wider than most objects' parts, and the fit
 explains every one of them with a blurred shape. Set on the tuning split's cup and lamp scanned from farther: the
-lamp from 0.7 m (a 30 cm patch) came out 4.72 mm against 1.68 from 0.5 m, the cup 1.85 and 1.67 from 0.7 and 0.6 m
-(35 and 28 cm) against 1.50; every benchmark capture sees 2.7-25 cm (lcspc-sim from 0.5 m, the TMF8820's 9 zones from
+lamp from 0.7 m (a 31 cm patch) came out 4.72 mm against 1.68 from 0.5 m, the cup 1.85 and 1.67 from 0.7 and 0.6 m
+(33 and 27 cm) against 1.50; every benchmark capture sees 3.0-25 cm (lcspc-sim from 0.5 m, the TMF8820's 9 zones from
 0.13-0.45 m; benchmarks/RESULTS.md, "The hull's piece vote ...; views from far away")."""
+
+
+SMALL_PATCH_RATIO = 3.0
+"""How many times the object's size (the mesh's largest extent) the patch one zone sees at the views' median return
+range may be before a capture is said to see a small object: each histogram then holds the whole object in one
+blurred return, and the fit trades its size against its brightness. Every benchmark capture's zone sees 0.1-1.6
+times its object (the far cup 2.2: 1.85 mm); SMALL_EVIDENCE says what smaller objects came out at."""
+SMALL_EVIDENCE = "white balls of 3, 5 and 8 cm seen from 0.5 m came out ..."
+"""What small objects came out at, said in the warning."""
 
 
 def view_elevations_deg(poses: np.ndarray, center, usable: np.ndarray | None = None) -> tuple[float, float, int]:
@@ -68,6 +85,18 @@ def above_only_warning(low_deg: float, high_deg: float, views: int) -> str | Non
             f"reach 10 degrees about the object's centre)")
 
 
+def low_only_warning(low_deg: float, high_deg: float, views: int) -> str | None:
+    """The line saying that the capture's `views` (at least 3) all stand LOW_ONLY_DEG or less above the scene's centre
+    (`low_deg` to `high_deg`), or None."""
+    if views < 3 or not high_deg <= LOW_ONLY_DEG:
+        return None
+    return (f"the {views} views all stand {low_deg:.0f} to {high_deg:.0f} degrees up from the scene's centre, none "
+            f"higher: the object's top is seen only at a grazing angle, its returns spread over many bins and merged "
+            f"with the sides', and the fit can put it centimetres off while explaining every histogram "
+            f"({LOW_ONLY_EVIDENCE}); if the object has a top, scan with views from higher up too (the public "
+            f"dataset's captures reach 80 degrees or more)")
+
+
 def one_ring_warning(low_deg: float, high_deg: float, views: int) -> str | None:
     """The line saying that the capture's `views` (at least 3) all stand within ONE_RING_DEG of one elevation
     (`low_deg` to `high_deg` about the scene's centre), or None."""
@@ -88,7 +117,7 @@ def zone_patch_m(sensor, range_m: float) -> float:
 
 
 def far_views_warning(sensor, ranges_m: np.ndarray) -> str | None:
-    """The line saying that the views' returns (`ranges_m`, metres, one per view with a clear return) lie so far that
+    """The line saying that the views' returns (`ranges_m`, metres, one per histogram with a return) lie so far that
     one zone sees a patch wider than FAR_PATCH_M at their median, or None (None too for fewer than 3 returns)."""
     ranges_m = np.asarray(ranges_m, np.float64)
     if len(ranges_m) < 3:
@@ -103,10 +132,30 @@ def far_views_warning(sensor, ranges_m: np.ndarray) -> str | None:
             f"a zone's patch is {100 * FAR_PATCH_M:.0f} cm or less)")
 
 
+def small_object_warning(sensor, ranges_m: np.ndarray, extent_m: float) -> str | None:
+    """The line saying that one zone sees a patch over SMALL_PATCH_RATIO times the object's size (`extent_m`, metres:
+    the mesh's largest extent) at the views' median return range (`ranges_m`, one per histogram with a return), or
+    None (None too for fewer than 3 returns or a mesh of no extent)."""
+    ranges_m = np.asarray(ranges_m, np.float64)
+    if len(ranges_m) < 3 or not extent_m > 0:
+        return None
+    median = float(np.median(ranges_m))
+    patch = zone_patch_m(sensor, median)
+    if not patch > SMALL_PATCH_RATIO * extent_m:
+        return None
+    closer = SMALL_PATCH_RATIO * extent_m / zone_patch_m(sensor, 1.0)
+    return (f"the object is small against the sensor's view: the mesh is {100 * extent_m:.1f} cm across, where each "
+            f"zone of the {sensor.name} sees a patch {100 * patch:.0f} cm across at the views' returns ({median:.2f} "
+            f"m away, median), so each histogram holds the whole object in one blurred return, its size, shape and "
+            f"brightness traded against each other ({SMALL_EVIDENCE}); scan closer (within {closer:.2f} m, where a "
+            f"zone's patch is {SMALL_PATCH_RATIO:g} times its size)")
+
+
 def _closer_m(sensor) -> float:
     """The range (metres) at which one zone of `sensor` sees a patch FAR_PATCH_M across."""
     return FAR_PATCH_M / zone_patch_m(sensor, 1.0)
 
 
-__all__ = ["ONE_RING_DEG", "ABOVE_ONLY_DEG", "FAR_PATCH_M", "view_elevations_deg", "one_ring_warning",
-           "above_only_warning", "zone_patch_m", "far_views_warning"]
+__all__ = ["ONE_RING_DEG", "ABOVE_ONLY_DEG", "LOW_ONLY_DEG", "FAR_PATCH_M", "SMALL_PATCH_RATIO",
+           "view_elevations_deg", "one_ring_warning", "above_only_warning", "low_only_warning", "zone_patch_m",
+           "far_views_warning", "small_object_warning"]

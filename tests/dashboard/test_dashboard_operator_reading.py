@@ -27,12 +27,13 @@ from spadscan.daemon.root_lock import RootLock
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.dashboard.server import address
 from spadscan.dashboard.worker_state import LOOK_S
+from spadscan.worker.ambient_light import Ambient, ambient_warning
 from spadscan.worker.carving.bounds import BelowFloor, floor_cut_note
 from spadscan.worker.end_of_run import (coverage_warning, dark_warning, lost_warning, misfit_warning, pieces_warning,
                                         saturation_warning, specks_warning, tunnels_warning)
 from spadscan.worker.lost_returns import LostReturns
 from spadscan.worker.recon.scene_data import bound_warning
-from spadscan.worker.view_spread import above_only_warning, far_views_warning, one_ring_warning
+from spadscan.worker.view_spread import above_only_warning, far_views_warning, one_ring_warning, small_object_warning
 from spadscan.worker.holder import Holder
 from spadscan.worker.job_progress import claim_log
 from spadscan.worker.jobs import Job
@@ -134,7 +135,10 @@ def end_of_run_warnings() -> tuple[list[str], list[str]]:
                floor_cut_note(0.0, "the default floor", BelowFloor(5, 48, 0.055), None, "give another floor"),
                dark_warning({"restarted_at_step": 200, "albedo": 0.15}),
                above_only_warning(48.0, 80.0, 64), one_ring_warning(30.0, 31.0, 32),
-               far_views_warning(sensor_preset("lcspc-sim"), np.full(64, 0.74))]
+               far_views_warning(sensor_preset("lcspc-sim"), np.full(64, 0.74)),
+               small_object_warning(sensor_preset("lcspc-sim"), np.full(64, 0.45), 0.03),
+               ambient_warning(Ambient(background=3e-3, background_photons=15.0, return_bin=336, stopped_share=0.64,
+                                       returns=256))]
     assert all(serious), serious  # (each made to say so)
     mild = ["the run stopped on its time budget well before convergence: its data term was still falling (4.8 % over "
             "the last fifth of its 150 steps; a larger --budget-s gives a better mesh)",

@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 
 from spadscan.protocol.schedules import elevation_rings, fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.protocol.scenes import builtin_scene
-from spadscan.worker.view_spread import (ABOVE_ONLY_DEG, FAR_PATCH_M, ONE_RING_DEG, above_only_warning,
-                                         far_views_warning, one_ring_warning, view_elevations_deg, zone_patch_m)
+from spadscan.worker.view_spread import (ABOVE_ONLY_DEG, FAR_PATCH_M, LOW_ONLY_DEG, ONE_RING_DEG, SMALL_PATCH_RATIO,
+                                         above_only_warning, far_views_warning, low_only_warning, one_ring_warning,
+                                         small_object_warning, view_elevations_deg, zone_patch_m)
 
 
 def test_one_ring_is_one_elevation_and_a_spiral_is_many():
@@ -65,6 +67,33 @@ def test_views_from_above_only_are_said_and_a_band_reaching_lower_is_not():
     assert above_only_warning(float("nan"), float("nan"), 0) is None
 
 
+def test_views_from_low_down_only_are_said_and_a_band_reaching_higher_is_not():
+    low_band = fibonacci_hemisphere(64, 0.5, min_elevation_deg=0, max_elevation_deg=LOW_ONLY_DEG)
+    low, high, views = view_elevations_deg(low_band, np.zeros(3))
+    assert high <= LOW_ONLY_DEG and views == 64
+    said = low_only_warning(low, high, views)
+    assert said.startswith(f"the 64 views all stand {low:.0f} to {high:.0f} degrees up from the scene's centre, none "
+                           f"higher: the object's top is seen only at a grazing angle") and "\n" not in said
+    higher = fibonacci_hemisphere(64, 0.5, min_elevation_deg=0, max_elevation_deg=LOW_ONLY_DEG + 10)
+    assert low_only_warning(*view_elevations_deg(higher, np.zeros(3))) is None
+    assert low_only_warning(*view_elevations_deg(fibonacci_hemisphere(256, 0.5), np.zeros(3))) is None
+    assert low_only_warning(5.0, 10.0, 2) is None, "two views are too few to judge"
+    assert low_only_warning(float("nan"), float("nan"), 0) is None
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_reconstruct_warns_of_a_capture_from_low_down_only(tmp_path):
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    plate = trimesh.creation.cylinder(radius=0.1, height=0.01, sections=32).apply_translation([0.0, 0.0, 0.005])
+    poses = fibonacci_hemisphere(24, 0.5, target=(0, 0, 0.005), min_elevation_deg=0, max_elevation_deg=20)
+    simulate_capture(plate, sensor_preset("lcspc-sim"), poses, tmp_path / "low",
+                     settings=SimSettings(rays_per_zone=256), progress=False)
+    report = reconstruct_capture(tmp_path / "low", tmp_path / "out", steps=5, progress=False, device="cpu",
+                                 threads=1, overrides={"mesh_resolution": 48, "early_stop": False})
+    assert sum("24 views all stand" in w and "none higher" in w for w in report["warnings"]) == 1, report["warnings"]
+
+
 @pytest.mark.usefixtures("one_thread")
 def test_reconstruct_warns_of_a_capture_from_above_only(tmp_path):
     from spadscan.worker.reconstruct import reconstruct_capture
@@ -108,3 +137,39 @@ def test_reconstruct_warns_of_a_capture_from_far_away(tmp_path):
                                  threads=1, overrides={"mesh_resolution": 48, "early_stop": False})
     assert any(w.startswith("the views' returns lie 0.7") and "scan closer" in w for w in report["warnings"]), \
         report["warnings"]
+
+
+def test_a_small_object_is_said_and_the_benchmarks_objects_are_not():
+    """A zone that sees over SMALL_PATCH_RATIO times the object says so, with how near to come; the benchmark's
+    objects (15-35 cm) are seen by patches up to 1.6 times their size, the TMF8820's nine zones far less."""
+    lcspc, tmf = sensor_preset("lcspc-sim"), sensor_preset("tmf8820")
+    returns = np.full(64, 0.45)
+    patch = zone_patch_m(lcspc, 0.45)
+    assert small_object_warning(lcspc, returns, 0.15) is None  # the pyramid, 15 cm, from 0.5 m
+    assert small_object_warning(tmf, np.full(64, 0.3), 0.05) is None  # 5 cm seen by one of nine zones at 0.3 m
+    assert small_object_warning(lcspc, returns, patch / SMALL_PATCH_RATIO * 1.01) is None
+    said = small_object_warning(lcspc, returns, patch / SMALL_PATCH_RATIO * 0.99)
+    assert said is not None and said.startswith("the object is small against the sensor's view")
+    said = small_object_warning(lcspc, np.r_[np.full(40, 0.45), np.full(20, 0.2)], 0.03)
+    near = SMALL_PATCH_RATIO * 0.03 / zone_patch_m(lcspc, 1.0)
+    assert f"the mesh is 3.0 cm across, where each zone of the lcspc-sim sees a patch {100 * patch:.0f} cm" in said
+    assert said.endswith(f"scan closer (within {near:.2f} m, where a zone's patch is 3 times its size)"), said
+    assert small_object_warning(lcspc, np.full(2, 0.45), 0.03) is None  # two returns are too few to judge
+    assert small_object_warning(lcspc, returns, 0.0) is None  # a mesh of no extent says nothing of its size
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_reconstruct_warns_of_a_small_object_and_not_of_far_views(tmp_path):
+    """A 5 cm ball seen from 0.6 m: the small-object line says why the views were too far, and how near to come,
+    in place of the far-views line."""
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    ball = trimesh.creation.icosphere(3, 0.025).apply_translation([0.0, 0.0, 0.025])
+    poses = fibonacci_hemisphere(24, 0.6, target=(0, 0, 0.025))
+    simulate_capture(ball, sensor_preset("lcspc-sim"), poses, tmp_path / "ball",
+                     settings=SimSettings(rays_per_zone=4096), progress=False)
+    report = reconstruct_capture(tmp_path / "ball", tmp_path / "out", steps=5, progress=False, device="cpu",
+                                 threads=1, overrides={"mesh_resolution": 48, "early_stop": False})
+    assert sum(w.startswith("the object is small against the sensor's view") for w in report["warnings"]) == 1, \
+        report["warnings"]
+    assert not any(w.startswith("the views' returns lie") for w in report["warnings"]), report["warnings"]
