@@ -25,7 +25,7 @@ from spadscan.protocol.mesh_io import MM_EXTENT_THRESHOLD_M
 from spadscan.protocol.pileup import coates_correct
 
 from . import end_of_run
-from .ambient_light import Ambient, capture_ambient
+from .ambient_light import Ambient, ambient_warning, capture_ambient
 from .budget import (FIXED_S, MIN_MESH_RESOLUTION, MIN_METRIC_POINTS, NORMALS_PICTURE_S, PROBE_POINTS,
                      PROBE_RESOLUTIONS, SAFETY, EndCosts, RunClock, coverage_picture_within, fit_views_within,
                      mesh_resolution_within, metric_points_within, probe_seconds, training_budget)
@@ -330,7 +330,8 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     try:
         mesh = model.extract_mesh(resolution)
     except ReconstructionError as exc:
-        raise ReconstructionError(_with_signal(str(exc), signal)) from None
+        causes = [ring_note, far_note, ambient_warning(ambient)]  # what the capture alone says of its views and light
+        raise ReconstructionError(_with_causes(str(exc), signal, causes)) from None
     export_mesh(mesh, out / "mesh.ply", vertex_normal=True)
     stages["mesh_s"] = clock() - t_end
     report = _report(capture, preset, dev, config, scene, model, result, plan, scored=truth is not None)
@@ -740,12 +741,14 @@ def _truth_pieces(mesh) -> Pieces | None:
         return None
 
 
-def _with_signal(error: str, signal: Signal | None) -> str:
-    """A run's error, with the capture's signal check (`signal`, measured before training) after it where that check
-    finds too little signal: a capture that faint can leave the fit no surface at all (a dim torus at four times the
-    ambient light), and the check, which needs only the capture, names the cause and what to do."""
-    line = signal_warning(signal)
-    return error if line is None else f"{error}; {line}"
+def _with_causes(error: str, signal: Signal | None, capture_notes: list[str | None]) -> str:
+    """A run's error, with what the checks that need only the capture found after it: its signal check (`signal`,
+    measured before training) where that finds too little signal, and `capture_notes`, the lines on its views and
+    its light (None where they say nothing). A capture too faint can leave the fit no surface at all (a dim torus at
+    four times the ambient light), and so can views that see the object only at a grazing angle (a flat plate seen
+    from 25 degrees up at most); these name the cause and what to do."""
+    lines = [line for line in (signal_warning(signal), *capture_notes) if line]
+    return "; ".join([error, *lines])
 
 
 def _signal(scene: SceneData, config: ReconConfig, reads: tuple) -> Signal | None:

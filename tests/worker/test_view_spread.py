@@ -173,3 +173,26 @@ def test_reconstruct_warns_of_a_small_object_and_not_of_far_views(tmp_path):
     assert sum(w.startswith("the object is small against the sensor's view") for w in report["warnings"]) == 1, \
         report["warnings"]
     assert not any(w.startswith("the views' returns lie") for w in report["warnings"]), report["warnings"]
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_a_fit_left_without_surface_names_the_views_from_low_down_in_its_error(tmp_path, monkeypatch):
+    """A flat plate seen from 25 degrees up at most left the fit no surface at all: the error carries the line on the
+    views, which needs only the capture."""
+    from spadscan.worker.recon.errors import ReconstructionError
+    from spadscan.worker.recon.fast.model import FastModel
+    from spadscan.worker.reconstruct import reconstruct_capture
+
+    def no_surface(self, resolution=None, averaged=True):
+        raise ReconstructionError("no surface: the SDF is outside everywhere on the grid")
+
+    monkeypatch.setattr(FastModel, "extract_mesh", no_surface)
+    plate = trimesh.creation.cylinder(radius=0.1, height=0.01, sections=32).apply_translation([0.0, 0.0, 0.005])
+    poses = fibonacci_hemisphere(24, 0.5, target=(0, 0, 0.005), min_elevation_deg=0, max_elevation_deg=20)
+    simulate_capture(plate, sensor_preset("lcspc-sim"), poses, tmp_path / "low",
+                     settings=SimSettings(rays_per_zone=256), progress=False)
+    with pytest.raises(ReconstructionError) as err:
+        reconstruct_capture(tmp_path / "low", tmp_path / "out", steps=5, progress=False, device="cpu", threads=1,
+                            overrides={"mesh_resolution": 48})
+    assert str(err.value).startswith("no surface: the SDF is outside everywhere on the grid; the 24 views all stand ")
+    assert "none higher" in str(err.value) and "\n" not in str(err.value)
