@@ -153,7 +153,8 @@ def test_a_small_object_is_said_and_the_benchmarks_objects_are_not():
     said = small_object_warning(lcspc, np.r_[np.full(40, 0.45), np.full(20, 0.2)], 0.03)
     near = SMALL_PATCH_RATIO * 0.03 / zone_patch_m(lcspc, 1.0)
     assert f"the mesh is 3.0 cm across, where each zone of the lcspc-sim sees a patch {100 * patch:.0f} cm" in said
-    assert said.endswith(f"scan closer (within {near:.2f} m, where a zone's patch is 3 times its size)"), said
+    assert said.endswith(f"scan closer (within {near:.2f} m, where a zone's patch is {SMALL_PATCH_RATIO:g} times its "
+                         f"size)"), said
     assert small_object_warning(lcspc, np.full(2, 0.45), 0.03) is None  # two returns are too few to judge
     assert small_object_warning(lcspc, returns, 0.0) is None  # a mesh of no extent says nothing of its size
 
