@@ -56,6 +56,7 @@ from .report.report_json import json_safe, write_report
 from .signal_check import Signal, capture_signal, signal_warning
 from .threads import ThreadGovernor, check_threads, machine_cores, threads_fixed
 from .time_axis import NEAR_RANGE_M, check_time_axis, scene_views
+from .top_reach import TopReach, top_reach, top_warning
 from .view_spread import (above_only_warning, far_views_warning, low_only_warning, one_ring_warning,
                           small_object_warning, view_elevations_deg)
 
@@ -409,12 +410,16 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     small_note = _small_note(mesh, scene.sensor, return_ranges)
     if small_note:  # it says why the views were too far for this object, and how near to come: the far line's advice
         far_note = None
+    top = _top(mesh, scene)
+    # Views all from low down or on one ring say why the top went unseen, and what to do: one line for one cause.
+    top_note = None if ring_note else top_warning(top)
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
                      scene_notes=[n for n in (run.counts_note, scene.bound_note, scene.pulse_note, floor_note,
-                                              ring_note, far_note, small_note, run.state_note, truth_note) if n],
+                                              ring_note, far_note, small_note, top_note, run.state_note,
+                                              truth_note) if n],
                      coverage=coverage, pieces=pieces, signal=signal, lost=lost,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
                      truth_tunnels=None if truth_pieces is None else truth_pieces.tunnels,
@@ -435,6 +440,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report["signal"] = None if signal is None else signal.to_dict()
     report["lost_returns"] = None if lost is None else lost.to_dict()
     report["ambient_light"] = None if ambient is None else ambient.to_dict()
+    report["top_reach"] = None if top is None else top.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["cpu_wait"] = end_of_run.cpu_wait(facts)
     report["machine_jobs"] = siblings
@@ -583,6 +589,12 @@ def _small_note(mesh, sensor, ranges: np.ndarray) -> str | None:
     if not len(vertices):
         return None
     return small_object_warning(sensor, ranges, float(np.ptp(vertices, axis=0).max()))
+
+
+def _top(mesh, scene: SceneData) -> TopReach | None:
+    """Whether the views looked above the mesh's top (top_reach.py), or None for a mesh without vertices."""
+    poses, usable = _poses_usable(scene)
+    return top_reach(np.asarray(mesh.vertices), poses, scene.sensor, usable)
 
 
 def _as_carving_reads(scene: SceneData) -> tuple[np.ndarray, object, np.ndarray | None]:
