@@ -411,8 +411,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     if small_note:  # it says why the views were too far for this object, and how near to come: the far line's advice
         far_note = None
     top = _top(mesh, scene)
-    # Views all from low down or on one ring say why the top went unseen, and what to do: one line for one cause.
-    top_note = None if ring_note else top_warning(top)
+    top_note = top_warning(top)
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,

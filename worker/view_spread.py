@@ -31,12 +31,15 @@ up 8.1 mm; the block on a table with the tmf8820 from 50 up 3.9 mm; the block fr
 (benchmarks/RESULTS.md, "a bad result says so"). The public dataset's captures reach 10 degrees or lower (the real
 pyramid 10, its `_random` twin 7, the simulated ones below 0)."""
 
-LOW_ONLY_DEG = 30.0
+LOW_ONLY_DEG = 45.0
 """Highest view elevation (degrees, about the scene's centre) up to which a capture is taken to look from low down
 only: the object's top is then seen at a grazing angle alone, its returns spread over many bins and merged with the
-sides', and the fit can put it centimetres off while explaining every histogram (LOW_ONLY_EVIDENCE). The public
-dataset's captures reach 80 degrees and more (its simulated ones 86, its real ones 80 about the target)."""
-LOW_ONLY_EVIDENCE = "a flat plate seen from 25 degrees up at most: ..."
+sides', and the fit can put it centimetres off while explaining every histogram (LOW_ONLY_EVIDENCE). Measured about
+the centre: a flat plate (20 cm across, 1 cm thick, 64 views) came out 1.15 mm from views up to 83 degrees, 4.12 up to
+42 (quiet), 9.43 up to 32, and left no surface up to 23; a teddy (128 views) 10.6 mm up to 23. The mirror of
+ABOVE_ONLY_DEG; the public dataset's captures reach 80 degrees and more (its simulated ones 86, its real ones 80
+about the target)."""
+LOW_ONLY_EVIDENCE = "a flat plate seen from 42 degrees up at most: 4.1 mm, against 1.2 from up to 83"
 """What captures from low down came out at, said in the warning."""
 
 FAR_PATCH_M = 0.27
