@@ -27,6 +27,9 @@ STOPPED_LIMIT = 0.4
 result says so: between the duck's 29 % (1.55 mm) and 49 % (2.05 mm; AMBIENT_EVIDENCE); every benchmark capture stays
 under 12 % (lcspc-sim from 0.7 m), the TMF8820's 128-bin histograms (the real pyramid, the simulated table scenes)
 at 0.1 % (docs/end_of_run.md, "Too much ambient light")."""
+MAX_FAINTER = 1000
+"""The most times fainter a return is said to be by its number; beyond, 'over 1,000x' (light that stops every cycle
+would make it infinitely so)."""
 AMBIENT_EVIDENCE = "0.74 mm at 8 % of its cycles stopped, 1.55 at 29 %, 2.05 at 49 %, 4.81 at 64 %"
 """What the simulated duck (lcspc-sim, 256 views, 3,000 steps) came out at as ambient light stopped more of its
 cycles before its returns: said in the warning, so that the share reads as a consequence."""
@@ -79,10 +82,11 @@ def ambient_warning(ambient: Ambient | None) -> str | None:
     returns, or None."""
     if ambient is None or not ambient.stopped_share > STOPPED_LIMIT:
         return None
-    live = max(1.0 - ambient.stopped_share, 1e-9)
+    live = 1.0 - ambient.stopped_share
+    fainter = f"{1 / live:.1f}x" if live * MAX_FAINTER > 1.0 else f"over {MAX_FAINTER:,}x"  # light that stops all
     return (f"too much ambient light: it stopped {100 * ambient.stopped_share:.0f} % of the laser cycles before the "
             f"object's returns (median bin {ambient.return_bin:.0f}; a good capture: under {100 * STOPPED_LIMIT:.0f} "
-            f"%), so each return is {1 / live:.1f}x fainter and stands on {ambient.background_photons:.3g} photons "
+            f"%), so each return is {fainter} fainter and stands on {ambient.background_photons:.3g} photons "
             f"per bin of background, whose noise blurs its shape (a simulated duck: {AMBIENT_EVIDENCE}); darken the "
             f"room or shade the scene, or scan closer, where the returns arrive before the light stops the cycles")
 

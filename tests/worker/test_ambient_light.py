@@ -46,6 +46,11 @@ def test_the_warning_says_the_share_and_what_to_do():
     line = ambient_warning(bright)
     assert line.startswith("too much ambient light: it stopped 49 % of the laser cycles") and "2.0x fainter" in line
     assert "darken the room" in line
+    blinding = ambient_warning(Ambient(background=1.0, background_photons=5000.0, return_bin=300, stopped_share=1.0,
+                                       returns=256))  # light that stops every cycle: the figure stays finite
+    assert "over 1,000x fainter" in blinding and "inf" not in blinding, blinding
+    stopped = capture_ambient(np.full((2, 1), 1e3), np.ones(2), np.array([1e6]), pileup=True)
+    assert stopped.stopped_share == 1.0 and math.isfinite(stopped.background_photons)
     facts = RunFacts(stopped_by="converged", steps=100, model_converged=True, data_terms=[1.0] * 100, ambient=bright)
     assert warnings(facts) == [line]
     assert 0.08 < STOPPED_LIMIT < 0.49
