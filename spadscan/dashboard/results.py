@@ -50,6 +50,7 @@ SERIOUS = tuple(re.compile(p) for p in (
     r"^the object is dark",
     r"^the \d+ views all look down",
     r"^the \d+ views all stand .* on one ring",
+    r"^the \d+ views all stand .* none higher",
     r"^the views' returns lie [\d.]+ m away",
     r"^the object is small against the sensor's view",
     r"^too much ambient light",
@@ -59,8 +60,8 @@ SERIOUS = tuple(re.compile(p) for p in (
 doubt the shape itself: the fit does not explain the measurements, too few views saw the surface, the mesh is in
 pieces, specks or tunnels, misses a part that returns came from, the capture holds too little signal, or is saturated
 by pile-up or buried under ambient light, the scene's bound or the floor cuts the object, the object is dark or
-small against the sensor's view, the views all look down, stand on one ring, stand far away or never looked above
-the mesh's top. The others say how the run went (stopped on its budget, a busy machine): a longer run
+small against the sensor's view, the views all look down, stand on one ring or low down only, stand far away or
+never looked above the mesh's top. The others say how the run went (stopped on its budget, a busy machine): a longer run
 mends them."""
 OFF_SCREEN = "off screen"
 """Words of the worker's reason where its machine cannot draw pictures (worker/report/offscreen.py

@@ -34,7 +34,8 @@ from spadscan.worker.end_of_run import (coverage_warning, dark_warning, lost_war
 from spadscan.worker.lost_returns import LostReturns
 from spadscan.worker.recon.scene_data import bound_warning
 from spadscan.worker.top_reach import TopReach, top_warning
-from spadscan.worker.view_spread import above_only_warning, far_views_warning, one_ring_warning, small_object_warning
+from spadscan.worker.view_spread import (above_only_warning, far_views_warning, low_only_warning, one_ring_warning,
+                                         small_object_warning)
 from spadscan.worker.holder import Holder
 from spadscan.worker.job_progress import claim_log
 from spadscan.worker.jobs import Job
@@ -135,7 +136,7 @@ def end_of_run_warnings() -> tuple[list[str], list[str]]:
                bound_warning(0.2, 0.16, 0.6),
                floor_cut_note(0.0, "the default floor", BelowFloor(5, 48, 0.055), None, "give another floor"),
                dark_warning({"restarted_at_step": 200, "albedo": 0.15}),
-               above_only_warning(48.0, 80.0, 64), one_ring_warning(30.0, 31.0, 32),
+               above_only_warning(48.0, 80.0, 64), one_ring_warning(30.0, 31.0, 32), low_only_warning(-1.0, 23.0, 128),
                far_views_warning(sensor_preset("lcspc-sim"), np.full(64, 0.74)),
                small_object_warning(sensor_preset("lcspc-sim"), np.full(64, 0.45), 0.03),
                ambient_warning(Ambient(background=3e-3, background_photons=15.0, return_bin=336, stopped_share=0.64,
