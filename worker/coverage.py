@@ -85,7 +85,7 @@ def views_per_point(mesh, points: np.ndarray, normals: np.ndarray, poses: np.nda
             continue  # a view without data: as if it had not been taken
         rot, eye = pose[:3, :3], pose[:3, 3]
         rel = (points - eye) @ rot  # sensor frame
-        inside = _in_zones(sensor, rel, None if usable is None else usable[v])
+        inside = in_usable_zones(sensor, rel, None if usable is None else usable[v])
         facing = np.einsum("ij,ij->i", eye - points, normals) > 0
         cand = np.flatnonzero(inside & facing)
         if len(cand) == 0:
@@ -100,7 +100,7 @@ def views_per_point(mesh, points: np.ndarray, normals: np.ndarray, poses: np.nda
     return counts
 
 
-def _in_zones(sensor: SensorModel, rel: np.ndarray, usable: np.ndarray | None) -> np.ndarray:
+def in_usable_zones(sensor: SensorModel, rel: np.ndarray, usable: np.ndarray | None) -> np.ndarray:
     """(n,) bool: sensor-frame points `rel` (n, 3) in one of the sensor's zones, of those `usable` (Z,) marks (None:
     all of them)."""
     if usable is None or usable.all():
@@ -269,5 +269,5 @@ def mesh_coverage(mesh, poses: np.ndarray, sensor: SensorModel, n_points: int = 
 
 
 __all__ = ["Coverage", "SurfaceViews", "mesh_coverage", "surface_views", "summarize", "vertex_views",
-           "views_per_point", "spread_counts", "counted_views", "few_share", "FEW_VIEWS", "UNDERSIDE_NZ",
-           "SPREAD_VIEWS"]
+           "views_per_point", "in_usable_zones", "spread_counts", "counted_views", "few_share", "FEW_VIEWS",
+           "UNDERSIDE_NZ", "SPREAD_VIEWS"]

@@ -285,7 +285,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     signal = _signal(scene, config, reads)
     return_ranges = _return_ranges(reads)
     far_note = far_views_warning(scene.sensor, return_ranges)
-    ambient = _ambient(scene, return_ranges)
+    ambient = _ambient(scene, return_ranges, reads[2])
     del reads  # not held through training: at 10,000 views of nine zones it is a hundred megabytes
     ring_note = _ring_note(scene)
     if budget_s is not None:
@@ -573,10 +573,10 @@ def _return_ranges(reads: tuple) -> np.ndarray:
     return np.asarray(sensor.range_of_bin(found.arrival_bin[found.detected]), np.float64)
 
 
-def _ambient(scene: SceneData, ranges: np.ndarray) -> Ambient | None:
+def _ambient(scene: SceneData, ranges: np.ndarray, usable: np.ndarray | None) -> Ambient | None:
     """How much of the laser cycles ambient light stopped before the object's returns (ambient_light.py): the fit's
-    own background, at the bins of the first returns (`ranges`, metres: `_return_ranges`)."""
-    usable = None if scene.usable is None else scene.usable.cpu().numpy()
+    own background, at the bins of the first returns (`ranges`, metres: `_return_ranges`), over the histograms with
+    data (`usable` (V, Z) bool, as `_as_carving_reads` gives it; None for all)."""
     return capture_ambient(scene.background.double().cpu().numpy(), scene.cycles.double().cpu().numpy(),
                            scene.sensor.bin_of_range(ranges), bool(scene.sensor.pileup), usable)
 

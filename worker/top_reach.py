@@ -17,7 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spadscan.protocol.sensor_model import SensorModel, zone_masks
+from spadscan.protocol.sensor_model import SensorModel
+
+from .coverage import in_usable_zones
 
 TOP_BAND_M = 0.01
 """How far below the mesh's highest point (metres) its vertices count as its top."""
@@ -76,9 +78,7 @@ def top_reach(vertices: np.ndarray, poses: np.ndarray, sensor: SensorModel,
         if not held.any():
             continue
         rel = (top[~seen] - pose[:3, 3]) @ pose[:3, :3]  # sensor frame
-        masks = zone_masks(sensor.zones, rel)
-        inside = np.logical_or.reduce([np.asarray(mask, bool) for mask, ok in zip(masks, held) if ok])
-        seen[np.flatnonzero(~seen)[inside]] = True
+        seen[np.flatnonzero(~seen)[in_usable_zones(sensor, rel, held)]] = True
         if seen.all():
             break
     return TopReach(top_z=top_z, vertices=len(top), unseen=int((~seen).sum()),

@@ -131,10 +131,11 @@ def far_views_warning(sensor, ranges_m: np.ndarray) -> str | None:
     patch = zone_patch_m(sensor, median)
     if not patch > FAR_PATCH_M:
         return None
+    closer = _range_for_patch(sensor, FAR_PATCH_M)
     return (f"the views' returns lie {median:.2f} m away (median), where each zone of the {sensor.name} sees a patch "
             f"{100 * patch:.0f} cm across: each histogram sums a patch wider than most of an object's parts, and the "
-            f"fit can explain every one with a blurred shape; scan closer (within {_closer_m(sensor):.2f} m, where "
-            f"a zone's patch is {100 * FAR_PATCH_M:.0f} cm or less)")
+            f"fit can explain every one with a blurred shape; scan closer (within {closer:.2f} m, where a zone's patch "
+            f"is {100 * FAR_PATCH_M:.0f} cm or less)")
 
 
 def small_object_warning(sensor, ranges_m: np.ndarray, extent_m: float) -> str | None:
@@ -148,7 +149,7 @@ def small_object_warning(sensor, ranges_m: np.ndarray, extent_m: float) -> str |
     patch = zone_patch_m(sensor, median)
     if not patch > SMALL_PATCH_RATIO * extent_m:
         return None
-    closer = SMALL_PATCH_RATIO * extent_m / zone_patch_m(sensor, 1.0)
+    closer = _range_for_patch(sensor, SMALL_PATCH_RATIO * extent_m)
     return (f"the object is small against the sensor's view: the mesh is {100 * extent_m:.1f} cm across, where each "
             f"zone of the {sensor.name} sees a patch {100 * patch:.0f} cm across at the views' returns ({median:.2f} "
             f"m away, median), so each histogram holds the whole object in one blurred return, its size, shape and "
@@ -156,9 +157,9 @@ def small_object_warning(sensor, ranges_m: np.ndarray, extent_m: float) -> str |
             f"zone's patch is {SMALL_PATCH_RATIO:g} times its size)")
 
 
-def _closer_m(sensor) -> float:
-    """The range (metres) at which one zone of `sensor` sees a patch FAR_PATCH_M across."""
-    return FAR_PATCH_M / zone_patch_m(sensor, 1.0)
+def _range_for_patch(sensor, patch_m: float) -> float:
+    """The range (metres) at which one zone of `sensor` sees a patch `patch_m` metres across."""
+    return patch_m / zone_patch_m(sensor, 1.0)
 
 
 __all__ = ["ONE_RING_DEG", "ABOVE_ONLY_DEG", "LOW_ONLY_DEG", "FAR_PATCH_M", "SMALL_PATCH_RATIO",
