@@ -54,6 +54,10 @@ class FastFieldConfig:
     dropped (`hull.object_hull`): space the views barely looked at, a skirt along the box's walls, specks beside the
     sensors. 0: every piece stays. Not on a table, where it bought nothing (benchmarks/RESULTS.md, "The hull's piece
     vote and the rays' jitter, each switched off alone")."""
+    hull_returns_pad_m: float | None = 0.02
+    """The hull is cut to the box of its cells that first returns land in, grown by this much (metres), before the
+    SDF grid's box is taken around it (`hull.returns_box`): views aimed at the object's middle leave its shadow
+    uncarved, and the grid grew to hold it. None: the whole hull. Not on a table, as `hull_min_votes`."""
     hull_margin_m: float = 0.004
     """How far (metres) the surface may grow outside the carved hull: keeps thin parts that carving shaved (the field
     starts on the hull grown by this much, and `parts.hull_projection` holds it there)."""
@@ -181,6 +185,9 @@ class FastConfig(ReconConfig):
             check_int(f"field.{key}", getattr(self.field, key), 4, 1024)
         for key in ("carve_margin_m", "carve_keep_returns_m"):
             check_in_range(f"field.{key}", getattr(self.field, key), 0.0, 1.0)
+        if self.field.hull_returns_pad_m is not None:
+            check_in_range("field.hull_returns_pad_m", self.field.hull_returns_pad_m, 0.0, 1.0,
+                           hint="none: the whole hull")
         check_in_range("field.hull_min_votes", self.field.hull_min_votes, 0.0, 1.0, unit="of the best piece's votes",
                        hint="0: every piece stays")
         check_in_range("field.carve_weak_threshold", self.field.carve_weak_threshold, 1.0,

@@ -24,6 +24,15 @@ from .grid_field import GridField, signed_distance
 
 VOTE_VIEWS = 256
 """Views whose first returns vote at once for the hull's pieces (`object_hull`): bounded memory (tens of MB)."""
+RETURN_MIN_VIEWS = 3
+"""A hull cell holds the object's surface for `returns_box` where the first returns of at least this many views land
+in it (those of one or two views: noise, or the glancing edge of a wide zone)."""
+RETURN_DEPTHS_M = (0.0, 0.005, 0.01, 0.015, 0.02)
+"""How far (metres) beyond a zone's first-return onset `returns_box` looks for the surface that made it: a voxel's
+steps through the first 2 cm of a surface seen at a slant."""
+RETURN_DIRECTIONS = 256
+"""Directions of each zone `returns_box` marches (a stride through the fit's candidate rays): 1.6 degrees apart in
+the lcspc-sim sensor's 15-degree cone, about 1.4 cm at 0.5 m, against hull cells of 3-6 mm."""
 
 
 class HullConstraint:
@@ -103,6 +112,57 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     return keep[lab]
 
 
+def returns_box(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, zone_dirs: np.ndarray,
+                onset_m: np.ndarray, pad_m: float) -> np.ndarray:
+    """The carved occupancy (nz, ny, nx) cut to the box, grown by `pad_m` (metres), around the hull cells in which
+    the first returns of at least RETURN_MIN_VIEWS views land (the object's surface); the occupancy itself where no
+    cell has them.
+
+    Carving keeps whatever no view proved empty, and that includes the object's shadow: space that only views from
+    its far side have in their fields, beyond their first returns. Views aimed at the floor under the object look into
+    that space from its own side and carve it; views aimed at the object's middle, as a rig is set up, leave it: a
+    teddy's hull spanned 54 cm for a 20 cm object, the SDF grid's box with it, and the fit's cells came out twice as
+    coarse (4.8 mm against 2.3; Chamfer 1.80 mm against 0.94). Nothing in that shadow can be fitted: no histogram
+    holds a return from it. zone_dirs (Z, D, 3) sensor frame, onset_m (V, Z) metres (NaN: nothing detected), poses
+    (V, 4, 4), as for `object_hull`.
+    """
+    occ = np.asarray(occupancy, bool)
+    hits = np.zeros(occ.size, np.int32)
+    dirs = np.einsum("vij,zdj->vzdi", poses[:, :3, :3],
+                     zone_dirs[:, :: max(1, zone_dirs.shape[1] // RETURN_DIRECTIONS)])
+    ok = np.isfinite(onset_m)
+    for a in range(0, len(poses), VOTE_VIEWS):
+        views = slice(a, a + VOTE_VIEWS)
+        np.add.at(hits, _cells_hit(occ.shape, origin, voxel, poses[views], dirs[views], onset_m[views], ok[views]), 1)
+    surface = occ & (hits.reshape(occ.shape) >= RETURN_MIN_VIEWS)
+    if not surface.any():
+        return occ.copy()
+    idx = np.argwhere(surface)
+    grow = int(np.ceil(pad_m / voxel))
+    lo, hi = np.maximum(idx.min(axis=0) - grow, 0), idx.max(axis=0) + grow + 1
+    cut = np.zeros_like(occ)
+    cut[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = occ[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    return cut
+
+
+def _cells_hit(shape, origin, voxel: float, poses: np.ndarray, dirs: np.ndarray, onset_m: np.ndarray,
+               ok: np.ndarray) -> np.ndarray:
+    """Flat indices into a grid of `shape` (nz, ny, nx), one per (view, cell) pair, of the cells that the points at
+    each detected zone's onset plus RETURN_DEPTHS_M along its directions fall in (poses (v, 4, 4), world directions
+    dirs (v, Z, d, 3), onset_m and ok (v, Z))."""
+    v, z = np.nonzero(ok)
+    if not len(v):
+        return np.zeros(0, np.int64)
+    reach = onset_m[v, z][:, None] + np.asarray(RETURN_DEPTHS_M)[None]  # (k, depths)
+    p = poses[v, None, None, :3, 3] + dirs[v, z][:, None] * reach[:, :, None, None]  # (k, depths, d, 3)
+    i = np.round((p - np.asarray(origin, float)) / voxel).astype(np.int64).reshape(len(v), -1, 3)
+    good = np.all((i >= 0) & (i < np.array(shape[::-1])), axis=-1)
+    flat = np.ravel_multi_index((i[..., 2], i[..., 1], i[..., 0]), shape, mode="clip")
+    size = int(np.prod(shape))
+    pairs = np.unique(np.broadcast_to(v[:, None], flat.shape)[good] * size + flat[good])
+    return pairs % size
+
+
 def _piece_votes(lab: np.ndarray, n: int, origin, voxel: float, poses: np.ndarray, dirs: np.ndarray,
                  onset_m: np.ndarray, ok: np.ndarray, depths_m) -> np.ndarray:
     """(n + 1,) int: how many of these views (poses (v, 4, 4), world directions dirs (v, Z, d, 3), onset_m (v, Z)
@@ -122,4 +182,4 @@ def _piece_votes(lab: np.ndarray, n: int, origin, voxel: float, poses: np.ndarra
     return votes
 
 
-__all__ = ["HullConstraint", "hull_field", "object_hull"]
+__all__ = ["HullConstraint", "hull_field", "object_hull", "returns_box"]

@@ -23,7 +23,7 @@ from ...table_height import RAYS_PER_ZONE, detect_height
 from ..errors import ReconstructionError
 from ..forward import TransientForward
 from .grid_field import GridField
-from .hull import hull_field, object_hull
+from .hull import hull_field, object_hull, returns_box
 
 
 HELD_SHARE = 0.5
@@ -130,6 +130,10 @@ def build_problem(scene, config, device, terms, keep_setup_views=None) -> FastPr
         onset = np.where(_usable(scene), onset, np.nan)  # no information, not "no return"
     if table is None:  # on a table the piece vote bought nothing: the real pyramid 4.58 -> 4.56 mm without it
         occ = object_hull(occ, hull_res.origin, voxel, poses_np, dirs, onset, min_views=fc.hull_min_votes)
+        if fc.hull_returns_pad_m is not None:
+            whole = int(occ.sum())
+            occ = returns_box(occ, hull_res.origin, voxel, poses_np, dirs, onset, fc.hull_returns_pad_m)
+            notes["hull_cut_to_returns"] = 1.0 - int(occ.sum()) / max(whole, 1)
     if not occ.any():
         points = _return_points(onset, poses_np, dirs, weights)
         weak = carve_weak_threshold(fc, table is not None)
