@@ -1,8 +1,8 @@
 """Simulated captures of the built-in validation, holdout, check and tuning splits (the large tuning scenes a group of
 their own) and of the tall objects on a table.
 
-    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,check,tuning,large,table] [--seed 0]
-                                     [--overwrite]
+    python benchmarks/make_scenes.py --out FOLDER [--groups validation,holdout,check,tuning,large,aimed,table]
+                                     [--seed 0] [--overwrite]
 
 Writes one capture folder per scene into FOLDER, each through `spadscan simulate` with a fixed command line (printed
 as it goes), so the same seed gives the same captures on any machine:
@@ -13,6 +13,9 @@ as it goes), so the same seed gives the same captures on any machine:
   imported from it: `spadscan import-lcspc`).
 - large: the tuning split's four 0.35 m scenes (LARGE_SCENES), in the same format: their tops 0.15 m from the views
   above them.
+- aimed: the validation split's scenes with the same views aimed at each object's mid-height, as a rig is often set
+  up (named NAME-mid): the views cover it otherwise than the dataset's, which aim at the floor under it. Never tuned
+  on either.
 - table: the tall objects (TABLE_SCENES) on a black table, as a real capture sees them: sensor tmf8820, 120 views
   on 8 elevation rings from 36 to 83 degrees (the real captures' layout), looking at the object's mid-height from
   0.45 m (head on a can) or 0.40 m (tall block), so that the sensor stays 0.2-0.6 m from the surface.
@@ -47,7 +50,7 @@ TABLE_RADIUS_M = {"head-on-can": 0.45, "tall-block": 0.40}
 LARGE_SCENES = ("big-lamp", "big-cup", "big-goblet", "tall-egg")
 """The tuning split's built-ins made 0.35 m tall (protocol/scenes.py)."""
 
-GROUPS = ("validation", "holdout", "check", "tuning", "large", "table")
+GROUPS = ("validation", "holdout", "check", "tuning", "large", "aimed", "table")
 
 
 def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
@@ -64,12 +67,22 @@ def plans(groups, seed: int) -> list[tuple[str, list[str]]]:
                 for name in names if name not in LARGE_SCENES]
     if "large" in groups:
         out += [(name, [f"builtin:{name}", *VALIDATION_OPTIONS, "--seed", str(seed)]) for name in LARGE_SCENES]
+    if "aimed" in groups:
+        for spec in SPLITS["validation"]:
+            name = spec.split(":", 1)[1]
+            out.append((f"{name}-mid", [spec, *VALIDATION_OPTIONS, "--target", "0", "0", str(_mid_height(name)),
+                                        "--seed", str(seed)]))
     if "table" in groups:
         for name in TABLE_SCENES:
-            mid = round(float(builtin_scene(name).bounds[1, 2]) / 2, 3)
+            mid = _mid_height(name)
             out.append((f"{name}-table", [f"builtin:{name}", *TABLE_OPTIONS, "--radius", str(TABLE_RADIUS_M[name]),
                                           "--target", "0", "0", str(mid), "--seed", str(seed)]))
     return out
+
+
+def _mid_height(name: str) -> float:
+    """Half the height (metres, 1 mm steps) of a built-in scene, which stands on z = 0."""
+    return round(float(builtin_scene(name).bounds[1, 2]) / 2, 3)
 
 
 def main(argv=None) -> int:
