@@ -36,6 +36,7 @@ from .carving.views import summed_by_cycles
 from .cpu_wait import ThreadWaits, machine_jobs, read_threads
 from .coverage import FEW_VIEWS, Coverage, counted_views, few_share, summarize, surface_views, vertex_views
 from .end_of_run import FitNoise, RunFacts, fit_noise
+from .floor_gap import floor_gap, gap_warning
 from .ground_truth import load_ground_truth
 from .jobs import run_limits_problem
 from .lost_returns import LostReturns, lost_returns
@@ -412,12 +413,15 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
         far_note = None
     top = _top(mesh, scene)
     top_note = top_warning(top)
+    gap = floor_gap(np.asarray(mesh.vertices), summary.get("floor_z_m"), summary.get("floor"))
+    gap_note = gap_warning(gap)
     facts = RunFacts(stopped_by=result.stopped_by, steps=result.steps,
                      model_converged=_model_converged(result.last), data_terms=result.data_terms,
                      device=dev.type, cpu_seconds=result.cpu_seconds, wall_seconds=result.seconds, fit=fit,
                      measured=bool(scene.real), budget_notes=notes,
                      scene_notes=[n for n in (run.counts_note, scene.bound_note, scene.pulse_note, floor_note,
-                                              ring_note, far_note, small_note, top_note, run.state_note,
+                                              ring_note, far_note, small_note, top_note, gap_note,
+                                              run.state_note,
                                               truth_note) if n],
                      coverage=coverage, pieces=pieces, signal=signal, lost=lost,
                      truth_pieces=None if truth_pieces is None else truth_pieces.count,
@@ -440,6 +444,7 @@ def _reconstruct_into(capture: Path, out: Path, *, preset: str, budget_s: float 
     report["lost_returns"] = None if lost is None else lost.to_dict()
     report["ambient_light"] = None if ambient is None else ambient.to_dict()
     report["top_reach"] = None if top is None else top.to_dict()
+    report["floor_gap"] = None if gap is None else gap.to_dict()
     report["cpu_cores_used"] = end_of_run.cpu_share(facts)
     report["cpu_wait"] = end_of_run.cpu_wait(facts)
     report["machine_jobs"] = siblings

@@ -55,14 +55,15 @@ SERIOUS = tuple(re.compile(p) for p in (
     r"^the object is small against the sensor's view",
     r"^too much ambient light",
     r"^no view looked above the mesh's top",
+    r"^the mesh stops [\d.]+ cm above the floor",
 ))
 """The starts of the end-of-run warnings (worker/end_of_run.py, worker/signal_check.py, the scene's notes) that
 doubt the shape itself: the fit does not explain the measurements, too few views saw the surface, the mesh is in
 pieces, specks or tunnels, misses a part that returns came from, the capture holds too little signal, or is saturated
 by pile-up or buried under ambient light, the scene's bound or the floor cuts the object, the object is dark or
 small against the sensor's view, the views all look down, stand on one ring or low down only, stand far away or
-never looked above the mesh's top. The others say how the run went (stopped on its budget, a busy machine): a longer run
-mends them."""
+never looked above the mesh's top, or the mesh stops above its floor. The others say how the run went (stopped on its
+budget, a busy machine): a longer run mends them."""
 OFF_SCREEN = "off screen"
 """Words of the worker's reason where its machine cannot draw pictures (worker/report/offscreen.py
 `OffscreenUnavailable`: "no display and no EGL or OSMesa library to draw meshes off screen: install ...")."""

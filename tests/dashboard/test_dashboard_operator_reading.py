@@ -33,6 +33,7 @@ from spadscan.worker.end_of_run import (coverage_warning, dark_warning, lost_war
                                         saturation_warning, specks_warning, tunnels_warning)
 from spadscan.worker.lost_returns import LostReturns
 from spadscan.worker.recon.scene_data import bound_warning
+from spadscan.worker.floor_gap import FloorGap, gap_warning
 from spadscan.worker.top_reach import TopReach, top_warning
 from spadscan.worker.view_spread import (above_only_warning, far_views_warning, low_only_warning, one_ring_warning,
                                          small_object_warning)
@@ -141,7 +142,8 @@ def end_of_run_warnings() -> tuple[list[str], list[str]]:
                small_object_warning(sensor_preset("lcspc-sim"), np.full(64, 0.45), 0.03),
                ambient_warning(Ambient(background=3e-3, background_photons=15.0, return_bin=336, stopped_share=0.64,
                                        returns=256)),
-               top_warning(TopReach(top_z=0.18, vertices=400, unseen=390, width_m=0.12))]
+               top_warning(TopReach(top_z=0.18, vertices=400, unseen=390, width_m=0.12)),
+               gap_warning(FloorGap(floor_z=0.0, bottom_z=0.047, source="config"))]
     assert all(serious), serious  # (each made to say so)
     mild = ["the run stopped on its time budget well before convergence: its data term was still falling (4.8 % over "
             "the last fifth of its 150 steps; a larger --budget-s gives a better mesh)",
