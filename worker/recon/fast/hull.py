@@ -148,38 +148,41 @@ def returns_box(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
 def _cells_hit(shape, origin, voxel: float, poses: np.ndarray, dirs: np.ndarray, onset_m: np.ndarray,
                ok: np.ndarray) -> np.ndarray:
     """Flat indices into a grid of `shape` (nz, ny, nx), one per (view, cell) pair, of the cells that the points at
-    each detected zone's onset plus RETURN_DEPTHS_M along its directions fall in (poses (v, 4, 4), world directions
-    dirs (v, Z, d, 3), onset_m and ok (v, Z))."""
-    v, z = np.nonzero(ok)
-    if not len(v):
-        return np.zeros(0, np.int64)
-    reach = onset_m[v, z][:, None] + np.asarray(RETURN_DEPTHS_M)[None]  # (k, depths)
-    p = poses[v, None, None, :3, 3] + dirs[v, z][:, None] * reach[:, :, None, None]  # (k, depths, d, 3)
-    i = np.round((p - np.asarray(origin, float)) / voxel).astype(np.int64).reshape(len(v), -1, 3)
-    good = np.all((i >= 0) & (i < np.array(shape[::-1])), axis=-1)
-    flat = np.ravel_multi_index((i[..., 2], i[..., 1], i[..., 0]), shape, mode="clip")
+    each detected zone's onset plus RETURN_DEPTHS_M along its directions fall in (`_return_cells`'s arguments)."""
+    v, i, good = _return_cells(shape, origin, voxel, poses, dirs, onset_m, ok, RETURN_DEPTHS_M)
+    cells = i[good]
     size = int(np.prod(shape))
-    pairs = np.unique(np.broadcast_to(v[:, None], flat.shape)[good] * size + flat[good])
-    return pairs % size
+    flat = np.ravel_multi_index((cells[:, 2], cells[:, 1], cells[:, 0]), shape)
+    return np.unique(np.broadcast_to(v[:, None], good.shape)[good] * size + flat) % size
 
 
 def _piece_votes(lab: np.ndarray, n: int, origin, voxel: float, poses: np.ndarray, dirs: np.ndarray,
                  onset_m: np.ndarray, ok: np.ndarray, depths_m) -> np.ndarray:
-    """(n + 1,) int: how many of these views (poses (v, 4, 4), world directions dirs (v, Z, d, 3), onset_m (v, Z)
-    metres, ok (v, Z) where a return was detected) land a point in each piece of `lab` (labels 1..n, 0 outside), at
-    the onset range plus each of `depths_m`; a view counts once a piece. All of them at once: a loop over the views
-    took 5.5 s of a 10,000-view capture's set-up."""
-    v, z = np.nonzero(ok)
-    reach = onset_m[v, z][:, None] + np.asarray(depths_m, float)[None]  # (k, depths)
-    p = poses[v, None, None, :3, 3] + dirs[v, z][:, None] * reach[:, :, None, None]  # (k, depths, d, 3)
-    i = np.round((p - np.asarray(origin, float)) / voxel).astype(np.int64).reshape(len(v), -1, 3)
-    good = np.all((i >= 0) & (i < np.array(lab.shape[::-1])), axis=-1)
+    """(n + 1,) int: how many of these views land a point (`_return_cells`) in each piece of `lab` (labels 1..n, 0
+    outside); a view counts once a piece. All of them at once: a loop over the views took 5.5 s of a 10,000-view
+    capture's set-up."""
+    v, i, good = _return_cells(lab.shape, origin, voxel, poses, dirs, onset_m, ok, depths_m)
     which = np.zeros(good.shape, np.int64)
     which[good] = lab[i[good][:, 2], i[good][:, 1], i[good][:, 0]]
     view_piece = np.unique(v[:, None] * (n + 1) + which)  # each (view, piece) once
     votes = np.bincount(view_piece % (n + 1), minlength=n + 1)
     votes[0] = 0
     return votes
+
+
+def _return_cells(shape, origin, voxel: float, poses: np.ndarray, dirs: np.ndarray, onset_m: np.ndarray,
+                  ok: np.ndarray, depths_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the first returns of these views land in a grid of `shape` (nz, ny, nx) of cell `voxel` (metres) from
+    `origin`: the points at each detected zone's onset range plus each of `depths_m` along each of its directions.
+    poses (v, 4, 4), world directions dirs (v, Z, d, 3), onset_m (v, Z) metres, ok (v, Z) where a return was
+    detected. Returns (the view of each detected zone (k,), the points' cells (k, m, 3) as (x, y, z) indices, which
+    of them lie in the grid (k, m))."""
+    v, z = np.nonzero(ok)
+    reach = onset_m[v, z][:, None] + np.asarray(depths_m, float)[None]  # (k, depths)
+    p = poses[v, None, None, :3, 3] + dirs[v, z][:, None] * reach[:, :, None, None]  # (k, depths, d, 3)
+    i = np.round((p - np.asarray(origin, float)) / voxel).astype(np.int64).reshape(len(v), p.shape[1] * p.shape[2], 3)
+    good = np.all((i >= 0) & (i < np.array(shape[::-1])), axis=-1)
+    return v, i, good
 
 
 __all__ = ["HullConstraint", "hull_field", "object_hull", "returns_box"]
