@@ -11,7 +11,7 @@ from spadscan.protocol.schedules import fibonacci_hemisphere
 from spadscan.protocol.sensor_presets import sensor_preset
 from spadscan.protocol.simulator import SimSettings, simulate_capture
 from spadscan.worker.recon.config import with_overrides
-from spadscan.worker.recon.fast.hull import RETURN_MIN_VIEWS, returns_box
+from spadscan.worker.recon.fast.hull import RETURN_MIN_VIEWS, RETURN_VIEWS_PER_HIT, returns_box
 from spadscan.worker.recon.fast.problem import build_problem
 from spadscan.worker.recon.forward import choose_terms
 from spadscan.worker.recon.presets import preset_config
@@ -21,10 +21,10 @@ BALL_RADIUS_M = 0.1
 
 
 def _looking_along_x(n: int, y0: float = 0.1) -> np.ndarray:
-    """n poses at x = -0.1 m, z = 0.1 m, spread along y from y0 by 1 mm, each looking along +x."""
+    """n poses at x = -0.1 m, z = 0.1 m, spread along y from y0 by 0.05 mm, each looking along +x."""
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, :3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]
-    poses[:, :3, 3] = [[-0.1, y0 + 0.001 * k, 0.1] for k in range(n)]
+    poses[:, :3, 3] = [[-0.1, y0 + 5e-5 * k, 0.1] for k in range(n)]
     return poses
 
 
@@ -45,11 +45,14 @@ def test_cells_that_too_few_views_return_from_do_not_widen_the_box():
     occ = np.zeros((20, 20, 60), bool)
     occ[8:12, 8:12, 4:60] = True
     dirs = np.array([[[0.0, 0.0, 1.0]]])
-    poses = _looking_along_x(RETURN_MIN_VIEWS + 2)
+    poses = _looking_along_x(RETURN_MIN_VIEWS * RETURN_VIEWS_PER_HIT)
     onset = np.full((len(poses), 1), 0.14)
     onset[-2:] = 0.44  # two views' returns land 30 cm deeper: noise, or a glancing edge
     cut = returns_box(occ, (0.0, 0.0, 0.0), 0.01, poses, dirs, onset, pad_m=0.0)
     assert cut[10, 10, 4:7].all() and not cut[:, :, 7:].any()
+    # of a capture of few views, each view's nearest patch is its own: one view's returns count
+    few = returns_box(occ, (0.0, 0.0, 0.0), 0.01, poses[-3:], dirs, onset[-3:], pad_m=0.0)
+    assert np.flatnonzero(few.any(axis=(0, 1))).tolist() == list(range(4, 37))
     nothing = returns_box(occ, (0.0, 0.0, 0.0), 0.01, poses, dirs, np.full_like(onset, np.nan), pad_m=0.0)
     assert (nothing == occ).all()  # no return at all: nothing to cut to
 

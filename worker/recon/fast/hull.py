@@ -26,7 +26,10 @@ VOTE_VIEWS = 256
 """Views whose first returns vote at once for the hull's pieces (`object_hull`): bounded memory (tens of MB)."""
 RETURN_MIN_VIEWS = 3
 """A hull cell holds the object's surface for `returns_box` where the first returns of at least this many views land
-in it (those of one or two views: noise, or the glancing edge of a wide zone)."""
+in it (those of one or two views: noise, or the glancing edge of a wide zone), or of one view in RETURN_VIEWS_PER_HIT
+where that is fewer (at least one): of a 20 cm ball seen by 16 views, each view's nearest patch is its own, and
+cells that 3 views' returns land in held a quarter of it."""
+RETURN_VIEWS_PER_HIT = 64
 RETURN_DEPTHS_M = (0.0, 0.005, 0.01, 0.015, 0.02)
 """How far (metres) beyond a zone's first-return onset `returns_box` looks for the surface that made it: a voxel's
 steps through the first 2 cm of a surface seen at a slant."""
@@ -115,8 +118,8 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
 def returns_box(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, zone_dirs: np.ndarray,
                 onset_m: np.ndarray, pad_m: float) -> np.ndarray:
     """The carved occupancy (nz, ny, nx) cut to the box, grown by `pad_m` (metres), around the hull cells in which
-    the first returns of at least RETURN_MIN_VIEWS views land (the object's surface); the occupancy itself where no
-    cell has them.
+    the first returns of at least RETURN_MIN_VIEWS views land (fewer of a capture of few views; the object's surface);
+    the occupancy itself where no cell has them.
 
     Carving keeps whatever no view proved empty, and that includes the object's shadow: space that only views from
     its far side have in their fields, beyond their first returns. Views aimed at the floor under the object look into
@@ -134,7 +137,7 @@ def returns_box(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     for a in range(0, len(poses), VOTE_VIEWS):
         views = slice(a, a + VOTE_VIEWS)
         np.add.at(hits, _cells_hit(occ.shape, origin, voxel, poses[views], dirs[views], onset_m[views], ok[views]), 1)
-    surface = occ & (hits.reshape(occ.shape) >= RETURN_MIN_VIEWS)
+    surface = occ & (hits.reshape(occ.shape) >= min(RETURN_MIN_VIEWS, max(1, len(poses) // RETURN_VIEWS_PER_HIT)))
     if not surface.any():
         return occ.copy()
     idx = np.argwhere(surface)
