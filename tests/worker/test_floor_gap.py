@@ -44,12 +44,13 @@ def test_no_floor_a_table_or_no_mesh_is_not_judged():
 
 @pytest.mark.usefixtures("one_thread")
 def test_reconstruct_warns_of_a_mesh_that_stops_above_its_floor(tmp_path):
-    """A 10 cm cube held 10 cm over the floor of a simulated scene, seen by the TMF8820 model, whose low zones look
-    under it and carve that space: its mesh stops there, and the run says so; the report keeps the figures."""
+    """A 10 cm cube held 10 cm over the floor of a simulated scene, seen by 64 views of the TMF8820 model, whose low
+    zones look under it and carve that space: its mesh stops there, and the run says so; the report keeps the
+    figures."""
     from spadscan.worker.reconstruct import reconstruct_capture
 
     cube = trimesh.creation.box(extents=(0.1, 0.1, 0.1)).apply_translation([0.0, 0.0, 0.15])
-    poses = fibonacci_hemisphere(24, 0.4, target=(0.0, 0.0, 0.1), max_elevation_deg=60)
+    poses = fibonacci_hemisphere(64, 0.4, target=(0.0, 0.0, 0.1), max_elevation_deg=60)
     simulate_capture(cube, sensor_preset("tmf8820"), poses, tmp_path / "held", settings=SimSettings(rays_per_zone=128),
                      progress=False)
     report = reconstruct_capture(tmp_path / "held", tmp_path / "out", steps=5, progress=False, device="cpu",
