@@ -72,8 +72,7 @@ def test_the_pieces_votes_are_those_of_a_view_at_a_time(monkeypatch):
     # A few calls of many views each, not a loop over the views.
     assert calls == [hull.VOTE_VIEWS, hull.VOTE_VIEWS, 700 - 2 * hull.VOTE_VIEWS]
     for lo in (0, 256, 512):
-        got = real(lab, lab.max(), origin, voxel, poses[lo: lo + 256],
-                   np.einsum("vij,zdj->vzdi", poses[lo: lo + 256, :3, :3], dirs[:, ::2]),
+        got = real(lab, lab.max(), origin, voxel, poses[lo: lo + 256], dirs[:, ::2],
                    onset[lo: lo + 256], np.isfinite(onset[lo: lo + 256]), (0.0, 0.01, 0.02, 0.04))
         assert np.array_equal(got, votes_a_view_at_a_time(occ, origin, voxel, poses[lo: lo + 256], dirs,
                                                            onset[lo: lo + 256])[1])

@@ -105,11 +105,11 @@ def object_hull(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     if n <= 1:
         return occ.copy()
     ok = np.isfinite(onset_m)
-    dirs = np.einsum("vij,zdj->vzdi", poses[:, :3, :3], zone_dirs[:, :: max(1, zone_dirs.shape[1] // 64)])
+    dirs = zone_dirs[:, :: max(1, zone_dirs.shape[1] // 64)]
     votes = np.zeros(n + 1, np.int64)
     for a in range(0, len(poses), VOTE_VIEWS):
         views = slice(a, a + VOTE_VIEWS)
-        votes += _piece_votes(lab, n, origin, voxel, poses[views], dirs[views], onset_m[views], ok[views], depths_m)
+        votes += _piece_votes(lab, n, origin, voxel, poses[views], dirs, onset_m[views], ok[views], depths_m)
     keep = votes >= min_views * votes.max()
     keep[0] = False
     return keep[lab]
@@ -131,12 +131,11 @@ def returns_box(occupancy: np.ndarray, origin, voxel: float, poses: np.ndarray, 
     """
     occ = np.asarray(occupancy, bool)
     hits = np.zeros(occ.size, np.int32)
-    dirs = np.einsum("vij,zdj->vzdi", poses[:, :3, :3],
-                     zone_dirs[:, :: max(1, zone_dirs.shape[1] // RETURN_DIRECTIONS)])
+    dirs = zone_dirs[:, :: max(1, zone_dirs.shape[1] // RETURN_DIRECTIONS)]
     ok = np.isfinite(onset_m)
     for a in range(0, len(poses), VOTE_VIEWS):
         views = slice(a, a + VOTE_VIEWS)
-        np.add.at(hits, _cells_hit(occ.shape, origin, voxel, poses[views], dirs[views], onset_m[views], ok[views]), 1)
+        np.add.at(hits, _cells_hit(occ.shape, origin, voxel, poses[views], dirs, onset_m[views], ok[views]), 1)
     surface = occ & (hits.reshape(occ.shape) >= min(RETURN_MIN_VIEWS, max(1, len(poses) // RETURN_VIEWS_PER_HIT)))
     if not surface.any():
         return occ.copy()
@@ -177,12 +176,14 @@ def _return_cells(shape, origin, voxel: float, poses: np.ndarray, dirs: np.ndarr
                   ok: np.ndarray, depths_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the first returns of these views land in a grid of `shape` (nz, ny, nx) of cell `voxel` (metres) from
     `origin`: the points at each detected zone's onset range plus each of `depths_m` along each of its directions.
-    poses (v, 4, 4), world directions dirs (v, Z, d, 3), onset_m (v, Z) metres, ok (v, Z) where a return was
-    detected. Returns (the view of each detected zone (k,), the points' cells (k, m, 3) as (x, y, z) indices, which
-    of them lie in the grid (k, m))."""
+    poses (v, 4, 4), each zone's directions dirs (Z, d, 3) in the sensor frame (turned into the world here, for these
+    views alone: a capture's views at once held hundreds of megabytes), onset_m (v, Z) metres, ok (v, Z) where a
+    return was detected. Returns (the view of each detected zone (k,), the points' cells (k, m, 3) as (x, y, z)
+    indices, which of them lie in the grid (k, m))."""
     v, z = np.nonzero(ok)
     reach = onset_m[v, z][:, None] + np.asarray(depths_m, float)[None]  # (k, depths)
-    p = poses[v, None, None, :3, 3] + dirs[v, z][:, None] * reach[:, :, None, None]  # (k, depths, d, 3)
+    world = np.einsum("vij,zdj->vzdi", poses[:, :3, :3], dirs)[v, z]  # (k, d, 3)
+    p = poses[v, None, None, :3, 3] + world[:, None] * reach[:, :, None, None]  # (k, depths, d, 3)
     i = np.round((p - np.asarray(origin, float)) / voxel).astype(np.int64).reshape(len(v), p.shape[1] * p.shape[2], 3)
     good = np.all((i >= 0) & (i < np.array(shape[::-1])), axis=-1)
     return v, i, good
